@@ -1,0 +1,53 @@
+"""rr_actors: TeMoto's Resource Registrar as a Python actor framework.
+
+Registrars, resource servers and clients are pykka actors; see `DESIGN.md` for the
+semantics and the docs for a tutorial.
+"""
+
+import logging
+
+from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, ResourceRegistrar
+from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
+from rr_actors.config import RegistrarConfig
+from rr_actors.errors import (
+    CallTimeoutError,
+    CatalogCorruptError,
+    ConfigError,
+    DependencyCycleError,
+    DuplicateNameError,
+    ErrorFrame,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    ResourceLoadError,
+    RrError,
+    SupervisorGaveUpError,
+    UnknownQueryError,
+    UnknownServerError,
+)
+
+__all__ = [
+    "MAX_DEPENDENCY_DEPTH",
+    "CallTimeoutError",
+    "CatalogCorruptError",
+    "ConfigError",
+    "DependencyCycleError",
+    "DuplicateNameError",
+    "ErrorFrame",
+    "Query",
+    "RegistrarConfig",
+    "RegistrarStoppedError",
+    "RegistrarUnavailableError",
+    "ResourceLoadError",
+    "ResourceRegistrar",
+    "RrError",
+    "Status",
+    "StatusCallback",
+    "StatusUpdate",
+    "SupervisorGaveUpError",
+    "UnknownQueryError",
+    "UnknownServerError",
+]
+
+__version__ = "0.1.0"
+
+logging.getLogger("rr_actors").addHandler(logging.NullHandler())

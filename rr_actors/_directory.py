@@ -1,0 +1,127 @@
+"""Where registrars find each other by name, and what a message is sent through.
+
+A *peer* is anything with `tell(message)`: a registrar actor in this process, or (with
+manager processes) a channel to a registrar in another process. The directory maps names
+to peers, remembers why a name went away (stopped or died, so callers get the right
+error), and tells the living registrars when a consumer died for good (death watch).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import pykka
+
+from rr_actors.errors import (
+    DuplicateNameError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    UnknownServerError,
+)
+
+__all__ = ["DIRECTORY", "Directory", "LocalPeer", "Peer", "Reply"]
+
+
+class Reply(Protocol):
+    """Where the answer to one request goes; called from any thread, at most once."""
+
+    def set_result(self, value: Any) -> None: ...
+    def set_error(self, error: BaseException) -> None: ...
+
+
+class Peer(Protocol):
+    """Something a message for a registrar can be sent through."""
+
+    name: str
+
+    def tell(self, message: Any) -> None:
+        """Send `message`; raise `RegistrarUnavailableError` if the registrar is dead."""
+
+
+class LocalPeer:
+    """A registrar actor in this process."""
+
+    def __init__(self, name: str, ref: pykka.ActorRef[Any] | None = None) -> None:
+        self.name = name
+        self.ref = ref  # set by the actor when it starts
+
+    def tell(self, message: Any) -> None:
+        if self.ref is None:
+            raise RegistrarUnavailableError(f"registrar {self.name!r} is still starting")
+        try:
+            self.ref.tell(message)
+        except pykka.ActorDeadError as exc:
+            raise DIRECTORY.gone_error(self.name) from exc
+
+
+class Directory:
+    """Names of the registrars of this process (and, later, of its system)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._peers: dict[str, Peer] = {}
+        self._gone: dict[str, str] = {}  # name -> "stopped" | "died"
+        self._resolvers: list[Callable[[str], Peer | None]] = []
+        self.restart_expected: set[str] = set()
+
+    def register(self, peer: Peer) -> None:
+        """Publish a registrar under its name.
+
+        Raises:
+            DuplicateNameError: a living registrar already has that name.
+        """
+        with self._lock:
+            if peer.name in self._peers:
+                raise DuplicateNameError(f"a registrar named {peer.name!r} is already running")
+            self._peers[peer.name] = peer
+            self._gone.pop(peer.name, None)
+
+    def unregister(self, peer: Peer, reason: str) -> None:
+        """Withdraw a registrar; `reason` is `"stopped"` or `"died"`."""
+        with self._lock:
+            if self._peers.get(peer.name) is peer:
+                del self._peers[peer.name]
+                self._gone[peer.name] = reason
+
+    def add_resolver(self, resolver: Callable[[str], Peer | None]) -> None:
+        """Consult `resolver(name)` for names not registered in this process."""
+        with self._lock:
+            self._resolvers.append(resolver)
+
+    def lookup(self, name: str) -> Peer:
+        """Return the peer of registrar `name`.
+
+        Raises:
+            UnknownServerError: no registrar of that name was ever seen.
+            RegistrarStoppedError: it was stopped.
+            RegistrarUnavailableError: it died.
+        """
+        with self._lock:
+            peer = self._peers.get(name)
+            resolvers = list(self._resolvers)
+        if peer is not None:
+            return peer
+        for resolve in resolvers:
+            found = resolve(name)
+            if found is not None:
+                return found
+        raise self.gone_error(name)
+
+    def gone_error(self, name: str) -> Exception:
+        """The error for a registrar that is not (or no longer) reachable."""
+        reason = self._gone.get(name)
+        if reason == "stopped":
+            return RegistrarStoppedError(f"registrar {name!r} was stopped")
+        if reason == "died":
+            return RegistrarUnavailableError(f"registrar {name!r} died")
+        return UnknownServerError(f"no registrar named {name!r}")
+
+    def local_peers(self) -> list[Peer]:
+        """Every registrar registered in this process."""
+        with self._lock:
+            return list(self._peers.values())
+
+
+DIRECTORY = Directory()

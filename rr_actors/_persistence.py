@@ -1,0 +1,87 @@
+"""When catalog changes reach the backup: the save policy (rules 13-14).
+
+`Saver` sits between the registrar actor and its `CatalogStore`. With `save_on_modify`
+every change is written before the registrar answers; otherwise changes accumulate and
+are flushed every `save_interval` seconds (a crash loses at most that window), on
+`save_catalog()` and on a clean stop.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from rr_actors._catalog import Changes, ClientRecord, Resource
+from rr_actors.config import RegistrarConfig
+
+__all__ = ["CatalogStore", "Saver", "open_store"]
+
+
+class CatalogStore(Protocol):
+    """Durable storage of one registrar's catalog rows."""
+
+    path: str
+
+    def load(self) -> tuple[list[Resource], list[ClientRecord]] | None:
+        """The stored rows, or `None` when there was no backup (a first start)."""
+
+    def write(self, changes: Changes) -> None:
+        """Apply `changes` as one transaction."""
+
+    def close(self, *, erase: bool) -> None:
+        """Close the store; with `erase`, remove its files."""
+
+
+def open_store(config: RegistrarConfig) -> CatalogStore | None:
+    """Open the backup named by `config.backup_path` (`None` without one).
+
+    Raises:
+        ConfigError: the path cannot hold a backup (missing directory, read-only, ...).
+        CatalogCorruptError: the file exists but is not a readable catalog.
+    """
+    if config.backup_path is None:
+        return None
+    from rr_actors._sqlite_store import SqliteStore  # noqa: PLC0415 - only with a backup
+
+    return SqliteStore.open(config.backup_path, durability=config.durability)
+
+
+class Saver:
+    """Applies the save policy of a `RegistrarConfig` to a store (or to nothing)."""
+
+    def __init__(self, store: CatalogStore | None, config: RegistrarConfig) -> None:
+        self.store = store
+        self.on_modify = config.save_on_modify
+        self.flush_interval = (
+            config.save_interval if store is not None and not config.save_on_modify else None
+        )
+        self._pending = Changes({}, {})
+
+    @property
+    def durable(self) -> bool:
+        """Whether every change is written before it is acknowledged."""
+        return self.store is not None and self.on_modify
+
+    def changed(self, changes: Changes) -> None:
+        """Take changes just made to the catalog."""
+        if self.store is None:
+            return
+        if self.on_modify:
+            self.store.write(changes)
+            return
+        self._pending.resources.update(changes.resources)
+        self._pending.clients.update(changes.clients)
+
+    def flush(self) -> None:
+        """Write what accumulated since the last write."""
+        if self.store is not None and self._pending:
+            pending, self._pending = self._pending, Changes({}, {})
+            self.store.write(pending)
+
+    def close(self, *, erase: bool, flush: bool = True) -> None:
+        """Close the store: flush first (unless erasing, or `flush=False` after a crash)."""
+        if self.store is None:
+            return
+        if flush and not erase:
+            self.flush()
+        self.store.close(erase=erase)
+        self.store = None

@@ -1,0 +1,1372 @@
+"""The resource registrar: its actor, its resource-server and client actors, and its handle.
+
+Message flow (thesis 4.2, figures 4.3-4.5), all through pykka mailboxes:
+
+* `call`: caller thread -> client actor -> provider registrar actor. A dedup hit is answered
+  by the provider actor at once; a miss goes to the server actor, which runs `load` on a
+  worker thread and answers the registrar actor, which answers every waiter.
+* `unload`: consumer registrar actor -> provider registrar actor; the last consumer id
+  releases the resource's dependencies, then the server actor runs `unload`.
+* `send_status`: provider registrar actor -> each consumer registrar actor -> client
+  actors (status callbacks) and, for dependencies, on up to those resources' consumers.
+
+Registrar actors never wait: each question they ask another actor carries a token, and
+the answer arrives as a message that resumes the work (`Tokens`, `Join`). User callbacks
+run on worker threads (`Workers`), so a slow or hung callback never blocks a mailbox.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextvars
+import dataclasses
+import logging
+import threading
+import traceback
+import uuid
+from collections.abc import Callable
+from typing import Any
+
+import pykka
+
+from rr_actors._catalog import Catalog, ClientRecord, Resource, ResourceState
+from rr_actors._directory import DIRECTORY, LocalPeer, Reply
+from rr_actors._messages import (
+    Abandon,
+    ConsumerDown,
+    Fetch,
+    Load,
+    ResponseUpdated,
+    Revoke,
+    StatusNotice,
+    Unload,
+)
+from rr_actors._persistence import Saver, open_store
+from rr_actors._replies import Answer, FutureReply, Join, Tokens, wait
+from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
+from rr_actors._workers import Workers
+from rr_actors.config import RegistrarConfig
+from rr_actors.errors import (
+    CallTimeoutError,
+    ConfigError,
+    DependencyCycleError,
+    DuplicateNameError,
+    ErrorFrame,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    ResourceLoadError,
+    RrError,
+    UnknownQueryError,
+    UnknownServerError,
+)
+
+__all__ = ["MAX_DEPENDENCY_DEPTH", "ResourceRegistrar"]
+
+logger = logging.getLogger("rr_actors")
+
+MAX_DEPENDENCY_DEPTH = 64
+"""A load chain deeper than this is reported as a `DependencyCycleError` (runaway recursion)."""
+
+LoadCallback = Callable[[Any], Any]
+UnloadCallback = Callable[[Any, Any], None]
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadContext:
+    """What is being loaded on the current thread (read by `call` to record dependencies)."""
+
+    registrar: str
+    resource_id: str
+    chain: tuple[str, ...]
+
+
+_LOADING: contextvars.ContextVar[LoadContext | None] = contextvars.ContextVar(
+    "rr_actors_loading", default=None
+)
+
+
+# -- internal messages (never leave the process) ---------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class _RunLoad:
+    resource_id: str
+    request: Any
+    chain: tuple[str, ...]
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class _RunUnload:
+    request: Any
+    response: Any
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class _RunStatus:
+    callback: StatusCallback
+    query: Query
+    update: StatusUpdate
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class _Call:
+    record: ClientRecord
+    chain: tuple[str, ...]
+    on_status: StatusCallback | None
+    future: pykka.ThreadingFuture[Any]
+
+
+@dataclasses.dataclass(frozen=True)
+class _GiveUp:
+    query_id: str
+
+
+@dataclasses.dataclass(frozen=True)
+class _FetchVia:
+    server: str
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class _Pending:
+    record: ClientRecord
+    on_status: StatusCallback | None
+
+
+@dataclasses.dataclass(frozen=True)
+class _ClientLoaded:
+    query_id: str
+    response: Any
+    future: pykka.ThreadingFuture[Any] | None  # answered after the commit, if given
+
+
+@dataclasses.dataclass(frozen=True)
+class _CallFailed:
+    query_id: str
+
+
+@dataclasses.dataclass(frozen=True)
+class _Request:
+    """A request from the handle: run `op(actor)` in the actor thread, answer `reply`."""
+
+    op: Callable[[RegistrarActor, Reply], None]
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class _Flush:
+    pass
+
+
+@dataclasses.dataclass(frozen=True)
+class _Crash:
+    pass
+
+
+class _ClientReply:
+    """The answer to a consumer's load: record it in the consumer's catalog, answer the caller.
+
+    With `commit_first` the consumer's registrar commits the client record before it
+    answers the caller (`save_on_modify`); otherwise the caller is answered at once.
+    """
+
+    __slots__ = ("commit_first", "future", "query_id", "registrar")
+
+    def __init__(
+        self,
+        registrar: pykka.ActorRef[Any],
+        query_id: str,
+        future: pykka.ThreadingFuture[Any],
+        *,
+        commit_first: bool,
+    ) -> None:
+        self.registrar = registrar
+        self.query_id = query_id
+        self.future = future
+        self.commit_first = commit_first
+
+    def set_result(self, value: Any) -> None:
+        try:
+            self.registrar.tell(
+                _ClientLoaded(self.query_id, value, self.future if self.commit_first else None)
+            )
+        except pykka.ActorDeadError:
+            FutureReply(self.future).set_error(
+                RegistrarStoppedError("the calling registrar stopped before the answer came")
+            )
+            return
+        if not self.commit_first:
+            FutureReply(self.future).set_result(value)
+
+    def set_error(self, error: BaseException) -> None:
+        try:
+            self.registrar.tell(_CallFailed(self.query_id))
+        except pykka.ActorDeadError:
+            pass
+        FutureReply(self.future).set_error(error)
+
+
+def _load_error(registrar: str, server: str, exc: BaseException) -> RrError:
+    """Turn what a `load` callback raised into the error its callers get."""
+    inner: BaseException | None = exc
+    while inner is not None and not isinstance(inner, ResourceLoadError | DependencyCycleError):
+        inner = inner.__cause__
+    if isinstance(inner, DependencyCycleError):
+        return inner
+    frame = ErrorFrame(
+        registrar=registrar,
+        server=server,
+        exc_type=type(exc).__qualname__,
+        message=str(exc),
+        traceback="".join(traceback.format_exception(exc)),
+    )
+    stack = inner.stack if isinstance(inner, ResourceLoadError) else ()
+    return ResourceLoadError((*stack, frame))
+
+
+# -- the actors ------------------------------------------------------------------------
+
+
+class ServerActor(pykka.ThreadingActor):
+    """A resource server: owns its callbacks and runs them on the registrar's workers.
+
+    `load` and `unload` run on a worker thread of the registrar's process, never on an
+    actor thread, so different requests to one server load concurrently.
+    """
+
+    def __init__(
+        self,
+        registrar: str,
+        name: str,
+        load: LoadCallback,
+        unload: UnloadCallback,
+        on_status: StatusCallback | None,
+        workers: Workers,
+    ) -> None:
+        super().__init__()
+        self.registrar = registrar
+        self.name = name
+        self.load = load
+        self.unload = unload
+        self.on_status = on_status
+        self.workers = workers
+
+    def on_receive(self, message: Any) -> None:
+        if isinstance(message, _RunLoad):
+            self.workers.submit(lambda: self._load(message))
+        elif isinstance(message, _RunUnload):
+            self.workers.submit(lambda: self._unload(message))
+        elif isinstance(message, _RunStatus):
+            self.workers.submit(lambda: _run_status(message))
+
+    def _load(self, message: _RunLoad) -> None:
+        token = _LOADING.set(LoadContext(self.registrar, message.resource_id, message.chain))
+        try:
+            response = self.load(message.request)
+        except BaseException as exc:  # noqa: BLE001 - any exception fails the load (rule 4)
+            message.reply.set_error(_load_error(self.registrar, self.name, exc))
+        else:
+            message.reply.set_result(response)
+        finally:
+            _LOADING.reset(token)
+
+    def _unload(self, message: _RunUnload) -> None:
+        try:
+            self.unload(message.request, message.response)
+        except BaseException as exc:  # noqa: BLE001 - logged by the registrar, never lost
+            message.reply.set_error(exc)
+        else:
+            message.reply.set_result(None)
+
+
+def _run_status(message: _RunStatus) -> None:
+    try:
+        message.callback(message.query, message.update)
+    except Exception:
+        logger.exception("status callback for %s raised", message.query.id)
+    finally:
+        message.reply.set_result(None)
+
+
+class ClientActor(pykka.ThreadingActor):
+    """A client: the consumer-side endpoint for one target server (thesis 4.3.3).
+
+    It sends loads and fetches to the provider and runs the status callbacks of the
+    queries made through it, on worker threads of the consumer's process.
+    """
+
+    def __init__(
+        self,
+        registrar_ref: pykka.ActorRef[Any],
+        origin_rr: str,
+        target_rr: str,
+        server: str,
+        workers: Workers,
+        *,
+        commit_first: bool,
+    ) -> None:
+        super().__init__()
+        self.registrar_ref = registrar_ref
+        self.origin_rr = origin_rr
+        self.target_rr = target_rr
+        self.server = server
+        self.workers = workers
+        self.commit_first = commit_first
+
+    def on_receive(self, message: Any) -> None:
+        if isinstance(message, _Call):
+            self._call(message)
+        elif isinstance(message, _GiveUp):
+            self.registrar_ref.tell(_CallFailed(message.query_id))
+            try:
+                DIRECTORY.lookup(self.target_rr).tell(Abandon(message.query_id, self.origin_rr))
+            except RrError:
+                pass  # the provider is gone; nothing to release there
+        elif isinstance(message, _FetchVia):
+            try:
+                DIRECTORY.lookup(self.target_rr).tell(
+                    Fetch(message.server, self.origin_rr, message.reply)
+                )
+            except RrError as exc:
+                message.reply.set_error(exc)
+        elif isinstance(message, _RunStatus):
+            self.workers.submit(lambda: _run_status(message))
+
+    def _call(self, message: _Call) -> None:
+        query = message.record.query
+        self.registrar_ref.tell(_Pending(message.record, message.on_status))
+        reply = _ClientReply(
+            self.registrar_ref, query.id, message.future, commit_first=self.commit_first
+        )
+        try:
+            peer = DIRECTORY.lookup(self.target_rr)
+            peer.tell(
+                Load(query.id, query.server, query.request, self.origin_rr, message.chain, reply)
+            )
+        except RrError as exc:
+            reply.set_error(exc)
+
+
+@dataclasses.dataclass
+class _Server:
+    name: str
+    ref: pykka.ActorRef[ServerActor]
+    on_status: StatusCallback | None
+    closing: bool = False
+
+
+@dataclasses.dataclass
+class _Waiter:
+    query_id: str
+    origin_rr: str
+    reply: Reply
+
+
+class RegistrarActor(pykka.ThreadingActor):
+    """The registrar actor: the only writer of its catalog.
+
+    It never blocks: what it needs from another actor arrives later as a message.
+    """
+
+    def __init__(
+        self,
+        config: RegistrarConfig,
+        catalog: Catalog,
+        saver: Saver,
+        peer: LocalPeer,
+    ) -> None:
+        super().__init__()
+        self.config = config
+        self.name = config.name
+        self.catalog = catalog
+        self.saver = saver
+        self.peer = peer
+        self.workers = Workers(config.name)
+        self.tokens = Tokens()
+        self.servers: dict[str, _Server] = {}
+        self.clients: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
+        self.status_callbacks: dict[str, StatusCallback] = {}
+        self.loads: dict[str, list[_Waiter]] = {}  # resource id -> callers waiting for it
+        self.loading_ids: dict[str, str] = {}  # waiting query id -> resource id
+        self.abandoned: set[str] = set()
+        self.unload_waiters: dict[str, list[Reply]] = {}
+        self.after_unload: dict[str, list[Load]] = {}
+        self.seen_events: collections.OrderedDict[tuple[str, str], None] = (
+            collections.OrderedDict()
+        )
+        self.stopping = False
+        self.flush_timer: threading.Timer | None = None
+
+    # -- life cycle -------------------------------------------------------------------
+
+    def on_start(self) -> None:
+        self.peer.ref = self.actor_ref
+        self._arm_flush_timer()
+
+    def on_receive(self, message: Any) -> None:
+        handler = self._handlers.get(type(message))
+        if handler is None:
+            logger.warning("registrar %s ignored an unknown message %r", self.name, message)
+            return
+        handler(self, message)
+
+    def on_failure(self, *_: object) -> None:
+        self._die()
+
+    def _die(self) -> None:
+        """A crash: fail every waiting caller, release this consumer's ids elsewhere."""
+        DIRECTORY.unregister(self.peer, "died")
+        error = RegistrarUnavailableError(f"registrar {self.name!r} died")
+        for waiters in self.loads.values():
+            for waiter in waiters:
+                waiter.reply.set_error(error)
+        for replies in self.unload_waiters.values():
+            for reply in replies:
+                reply.set_error(error)
+        for loads in self.after_unload.values():
+            for load in loads:
+                load.reply.set_error(error)
+        while not self.actor_inbox.empty():
+            pending = getattr(self.actor_inbox.get_nowait().message, "reply", None)
+            if pending is not None:
+                pending.set_error(error)
+        self._stop_children()
+        if self.flush_timer is not None:
+            self.flush_timer.cancel()
+        self.saver.close(erase=False, flush=False)  # a crash writes nothing more
+        if self.name not in DIRECTORY.restart_expected:
+            for peer in DIRECTORY.local_peers():
+                try:
+                    peer.tell(ConsumerDown(self.name))
+                except RrError:
+                    pass
+
+    def _stop_children(self) -> None:
+        for server in self.servers.values():
+            server.ref.stop(block=True, timeout=5.0)
+        for client in self.clients.values():
+            client.stop(block=True, timeout=5.0)
+
+    # -- persistence ------------------------------------------------------------------
+
+    def _commit(self) -> None:
+        changes = self.catalog.drain_changes()
+        if changes:
+            self.saver.changed(changes)
+
+    def _arm_flush_timer(self) -> None:
+        interval = self.saver.flush_interval
+        if interval is None:
+            return
+        ref = self.actor_ref
+
+        def tick() -> None:
+            try:
+                ref.tell(_Flush())
+            except pykka.ActorDeadError:
+                pass
+
+        self.flush_timer = threading.Timer(interval, tick)
+        self.flush_timer.daemon = True
+        self.flush_timer.start()
+
+    def _on_flush(self, _: _Flush) -> None:
+        self.saver.flush()
+        self._arm_flush_timer()
+
+    # -- asking others without waiting ------------------------------------------------
+
+    def _send(self, target: str, make: Callable[[Reply], Any], then: Callable[..., None]) -> None:
+        """Send `make(reply)` to registrar `target`; `then(value, error)` runs on the answer."""
+        reply = self.tokens.reply(self.actor_ref, then)
+        try:
+            DIRECTORY.lookup(target).tell(make(reply))
+        except RrError as exc:
+            reply.set_error(exc)
+
+    def _on_answer(self, message: Answer) -> None:
+        self.tokens.answer(message.token, message.value, message.error)
+
+    # -- provider side: load ----------------------------------------------------------
+
+    def _on_load(self, message: Load) -> None:
+        server = self.servers.get(message.server)
+        if server is None or server.closing:
+            message.reply.set_error(
+                UnknownServerError(f"no resource server '{self.name}/{message.server}'")
+            )
+            return
+        if self.stopping:
+            message.reply.set_error(RegistrarStoppedError(f"registrar {self.name!r} is stopping"))
+            return
+        if len(message.chain) >= MAX_DEPENDENCY_DEPTH:
+            message.reply.set_error(
+                DependencyCycleError(
+                    f"load chain deeper than {MAX_DEPENDENCY_DEPTH} at '{self.name}/"
+                    f"{message.server}': runaway recursion"
+                )
+            )
+            return
+        if self.catalog.has_consumer(message.query_id):  # a retry of an answered call
+            message.reply.set_result(self.catalog.resource_of(message.query_id).response)
+            return
+        waiter = _Waiter(message.query_id, message.origin_rr, message.reply)
+        rid = self.loading_ids.get(message.query_id)
+        if rid is not None:  # a retry while its load runs
+            self.loads[rid].append(waiter)
+            return
+        resource = self.catalog.find(message.server, message.request)
+        if resource is None:
+            self._start_load(server, message, waiter)
+        elif resource.state is ResourceState.LOADED:
+            self.catalog.add_consumer(resource.id, message.query_id, message.origin_rr)
+            self._commit()
+            message.reply.set_result(resource.response)
+        elif resource.state is ResourceState.LOADING:
+            if resource.id in message.chain:
+                message.reply.set_error(
+                    DependencyCycleError(
+                        f"'{self.name}/{message.server}' is asked for {message.request!r} "
+                        f"while loading it further up the same chain"
+                    )
+                )
+                return
+            self.loads[resource.id].append(waiter)
+            self.loading_ids[message.query_id] = resource.id
+        else:  # unloading: load it afresh once the unload finished
+            self.after_unload.setdefault(resource.id, []).append(message)
+
+    def _start_load(self, server: _Server, message: Load, waiter: _Waiter) -> None:
+        rid = str(uuid.uuid4())
+        self.catalog.begin_load(rid, message.server, message.request)
+        self._commit()
+        self.loads[rid] = [waiter]
+        self.loading_ids[message.query_id] = rid
+        reply = self.tokens.reply(
+            self.actor_ref, lambda value, error: self._load_done(rid, value, error)
+        )
+        server.ref.tell(_RunLoad(rid, message.request, (*message.chain, rid), reply))
+
+    def _load_done(self, rid: str, response: Any, error: BaseException | None) -> None:
+        waiters = self.loads.pop(rid)
+        for waiter in waiters:
+            self.loading_ids.pop(waiter.query_id, None)
+        resource = self.catalog.resources[rid]
+        if error is not None:
+            self.catalog.begin_unload(rid)
+            self._commit()
+
+            def failed() -> None:
+                self._remove_resource(resource)
+                for waiter in waiters:
+                    self.abandoned.discard(waiter.query_id)
+                    waiter.reply.set_error(error)
+
+            self._release_dependencies(rid, failed)
+            return
+        self.catalog.finish_load(rid, response)
+        live = []
+        for waiter in waiters:
+            if waiter.query_id in self.abandoned:
+                self.abandoned.discard(waiter.query_id)
+            elif not self.catalog.has_consumer(waiter.query_id):
+                self.catalog.add_consumer(rid, waiter.query_id, waiter.origin_rr)
+                live.append(waiter)
+            else:
+                live.append(waiter)
+        self._commit()
+        server = self.servers.get(resource.server)
+        if server is None or server.closing:
+            for waiter in live:
+                self.catalog.release(waiter.query_id)
+                waiter.reply.set_error(
+                    UnknownServerError(f"resource server '{self.name}/{resource.server}' closed")
+                )
+            live = []
+        for waiter in live:
+            waiter.reply.set_result(response)
+        if not resource.consumers:  # every caller gave up (or the server closed)
+            self._unload_resource(resource, None)
+
+    # -- provider side: unload --------------------------------------------------------
+
+    def _on_unload(self, message: Unload) -> None:
+        self._release(message.query_id, message.reply)
+
+    def _on_abandon(self, message: Abandon) -> None:
+        self._release(message.query_id, None)
+
+    def _release(self, query_id: str, reply: Reply | None) -> None:
+        if query_id in self.loading_ids:  # its caller gave up while it loads
+            self.abandoned.add(query_id)
+            if reply is not None:
+                reply.set_result(None)
+            return
+        try:
+            resource = self.catalog.release(query_id)
+        except UnknownQueryError as exc:
+            if reply is not None:
+                reply.set_error(exc)
+            return
+        if resource.consumers or resource.state is not ResourceState.LOADED:
+            self._commit()
+            if reply is not None:
+                reply.set_result(None)
+            return
+        self._unload_resource(resource, reply)
+
+    def _unload_resource(self, resource: Resource, reply: Reply | None) -> None:
+        """The last consumer left: release the dependencies, then run `unload` (rule 7)."""
+        self.catalog.begin_unload(resource.id)
+        self._commit()
+        self.unload_waiters[resource.id] = [] if reply is None else [reply]
+
+        def run_unload() -> None:
+            server = self.servers.get(resource.server)
+            if server is None:
+                unloaded(None, None)
+                return
+            done = self.tokens.reply(self.actor_ref, unloaded)
+            server.ref.tell(_RunUnload(resource.request, resource.response, done))
+
+        def unloaded(_: Any, error: BaseException | None) -> None:
+            if error is not None:
+                logger.error(
+                    "unload callback of '%s/%s' raised; the resource is released anyway",
+                    self.name,
+                    resource.server,
+                    exc_info=error,
+                )
+            self._remove_resource(resource)
+            for waiting in self.unload_waiters.pop(resource.id):
+                waiting.set_result(None)
+
+        self._release_dependencies(resource.id, run_unload)
+
+    def _remove_resource(self, resource: Resource) -> None:
+        self.catalog.remove_resource(resource.id)
+        self._commit()
+        for load in self.after_unload.pop(resource.id, ()):
+            self._on_load(load)
+        server = self.servers.get(resource.server)
+        if server is not None and server.closing and not self.catalog.resources_of(server.name):
+            del self.servers[server.name]
+            server.ref.stop(block=False)
+
+    def _release_dependencies(self, rid: str, then: Callable[[], None]) -> None:
+        join = Join(then)
+        for record in self.catalog.dependencies(rid):
+            self._release_client(record, join.add())
+        join.seal()
+
+    def _release_client(self, record: ClientRecord, then: Callable[[], None]) -> None:
+        """Unload one query this registrar holds; the record goes whatever the answer."""
+        query = record.query
+
+        def answered(_: Any, error: BaseException | None) -> None:
+            if error is not None and not isinstance(error, UnknownQueryError):
+                logger.warning("releasing %s at %s failed: %s", query.id, query.serving_rr, error)
+            if query.id in self.catalog.clients:
+                self.catalog.remove_client(query.id)
+                self.status_callbacks.pop(query.id, None)
+                self._commit()
+            then()
+
+        self._send(query.serving_rr, lambda reply: Unload(query.id, self.name, reply), answered)
+
+    def _on_consumer_down(self, message: ConsumerDown) -> None:
+        for resource in list(self.catalog.resources.values()):
+            for query_id, origin in list(resource.consumers.items()):
+                if origin == message.origin_rr:
+                    self._release(query_id, None)
+
+    # -- provider side: status, fetch, revoke -----------------------------------------
+
+    def _notify(
+        self,
+        resource: Resource,
+        update: StatusUpdate,
+        event: str,
+        own_query_id: str | None,
+        then: Callable[[], None],
+    ) -> None:
+        """Run this server's `on_status` once and pass the status on to every consumer."""
+        key = (event, resource.id)
+        if key in self.seen_events:
+            then()
+            return
+        self.seen_events[key] = None
+        if len(self.seen_events) > 4096:
+            self.seen_events.popitem(last=False)
+        join = Join(then)
+        server = self.servers.get(resource.server)
+        query_id = own_query_id or next(iter(resource.consumers), resource.id)
+        if server is not None and server.on_status is not None:
+            query = Query(query_id, resource.server, self.name,
+                          resource.consumers.get(query_id, self.name),
+                          resource.request, resource.response)
+            done = self.tokens.reply(self.actor_ref, join.add())
+            server.ref.tell(_RunStatus(
+                server.on_status, query, dataclasses.replace(update, query_id=query_id), done
+            ))
+        by_origin: dict[str, list[str]] = {}
+        for query_id, origin in resource.consumers.items():
+            by_origin.setdefault(origin, []).append(query_id)
+        for origin, query_ids in by_origin.items():
+            ids = tuple(query_ids)
+            self._send(
+                origin,
+                lambda reply, ids=ids: StatusNotice(  # type: ignore[misc]
+                    ids, update.status, update.message, update.source, event, reply
+                ),
+                join.add(),
+            )
+        join.seal()
+
+    def _on_status_notice(self, message: StatusNotice) -> None:
+        """Consumer side: run the client callbacks, climb to the dependent resources."""
+        join = Join(lambda: message.reply.set_result(None))
+        for query_id in message.query_ids:
+            record = self.catalog.clients.get(query_id)
+            if record is None:
+                continue
+            update = StatusUpdate(query_id, message.status, message.message, message.source)
+            callback = self.status_callbacks.get(query_id)
+            if callback is not None:
+                done = self.tokens.reply(self.actor_ref, join.add())
+                client = self._client(record.query.serving_rr, record.query.server)
+                client.tell(_RunStatus(callback, record.query, update, done))
+            if record.parent is not None and record.parent in self.catalog.resources:
+                parent = self.catalog.resources[record.parent]
+                self._notify(parent, update, message.event, None, join.add())
+        join.seal()
+
+    def _on_fetch(self, message: Fetch) -> None:
+        if message.server not in self.servers:
+            message.reply.set_error(
+                UnknownServerError(f"no resource server '{self.name}/{message.server}'")
+            )
+            return
+        message.reply.set_result([
+            query
+            for query in self.catalog.server_queries(message.server, self.name)
+            if query.origin_rr == message.origin_rr
+        ])
+
+    def _on_revoke(self, message: Revoke) -> None:
+        for query_id in message.query_ids:
+            if query_id in self.catalog.clients:
+                self.catalog.remove_client(query_id)
+                self.status_callbacks.pop(query_id, None)
+        self._commit()
+
+    def _on_response_updated(self, message: ResponseUpdated) -> None:
+        for query_id in message.query_ids:
+            self.catalog.client_loaded(query_id, message.response)
+        self._commit()
+
+    # -- consumer side ----------------------------------------------------------------
+
+    def _client(self, target_rr: str, server: str) -> pykka.ActorRef[ClientActor]:
+        key = (target_rr, server)
+        client = self.clients.get(key)
+        if client is None:
+            client = ClientActor.start(
+                self.actor_ref, self.name, target_rr, server, self.workers,
+                commit_first=self.config.save_on_modify and self.saver.durable,
+            )
+            self.clients[key] = client
+        return client
+
+    def _on_pending(self, message: _Pending) -> None:
+        self.catalog.add_client(message.record)
+        if message.on_status is not None:
+            self.status_callbacks[message.record.query.id] = message.on_status
+        self._commit()
+
+    def _on_client_loaded(self, message: _ClientLoaded) -> None:
+        self.catalog.client_loaded(message.query_id, message.response)
+        self._commit()
+        if message.future is not None:
+            FutureReply(message.future).set_result(message.response)
+
+    def _on_call_failed(self, message: _CallFailed) -> None:
+        if message.query_id in self.catalog.clients:
+            self.catalog.remove_client(message.query_id)
+            self.status_callbacks.pop(message.query_id, None)
+            self._commit()
+
+    def _on_request(self, message: _Request) -> None:
+        try:
+            message.op(self, message.reply)
+        except RrError as exc:
+            message.reply.set_error(exc)
+
+    def _on_crash(self, _: _Crash) -> None:
+        raise RuntimeError(f"registrar {self.name!r} was made to crash (rr_actors.testing)")
+
+    _handlers: dict[type, Callable[[RegistrarActor, Any], None]] = {
+        Answer: _on_answer,
+        Load: _on_load,
+        Unload: _on_unload,
+        Abandon: _on_abandon,
+        Fetch: _on_fetch,
+        StatusNotice: _on_status_notice,
+        Revoke: _on_revoke,
+        ResponseUpdated: _on_response_updated,
+        ConsumerDown: _on_consumer_down,
+        _Pending: _on_pending,
+        _ClientLoaded: _on_client_loaded,
+        _CallFailed: _on_call_failed,
+        _Request: _on_request,
+        _Flush: _on_flush,
+        _Crash: _on_crash,
+    }
+
+    # -- operations the handle asks for (run in the actor thread) ---------------------
+
+    def op_register(
+        self,
+        name: str,
+        load: LoadCallback,
+        unload: UnloadCallback,
+        on_status: StatusCallback | None,
+        reply: Reply,
+    ) -> None:
+        if name in self.servers:
+            raise DuplicateNameError(f"resource server '{self.name}/{name}' already exists")
+        ref = ServerActor.start(self.name, name, load, unload, on_status, self.workers)
+        self.servers[name] = _Server(name, ref, on_status)
+        reply.set_result(None)
+
+    def op_unregister(self, name: str, timeout: float, reply: Reply) -> None:
+        server = self._server(name)
+        server.closing = True
+        resources = [
+            r for r in self.catalog.resources_of(name) if r.state is ResourceState.LOADED
+        ]
+
+        def finish() -> None:
+            if not self.catalog.resources_of(name) and name in self.servers:
+                del self.servers[name]
+                server.ref.stop(block=False)
+            reply.set_result(None)
+
+        join = Join(finish)
+        for resource in resources:
+            self._close_resource(resource, join.add())
+        join.seal()
+
+    def _close_resource(self, resource: Resource, then: Callable[[], None]) -> None:
+        """Send FATAL to a resource's consumers, revoke their ids, unload it."""
+        query_id = next(iter(resource.consumers))
+        update = StatusUpdate(query_id, Status.FATAL, "resource server was unregistered",
+                              f"{self.name}/{resource.server}")
+
+        def revoke_and_unload() -> None:
+            by_origin: dict[str, list[str]] = {}
+            for qid, origin in resource.consumers.items():
+                by_origin.setdefault(origin, []).append(qid)
+            for origin, ids in by_origin.items():
+                try:
+                    DIRECTORY.lookup(origin).tell(Revoke(tuple(ids)))
+                except RrError:
+                    pass
+            for qid in list(resource.consumers):
+                self.catalog.release(qid)
+            self._unload_resource(resource, self.tokens.reply(self.actor_ref, lambda *_: then()))
+
+        self._notify(resource, update, str(uuid.uuid4()), query_id, revoke_and_unload)
+
+    def op_send_status(self, query_id: str, status: Status, message: str, reply: Reply) -> None:
+        resource = self.catalog.resource_of(query_id)
+        update = StatusUpdate(query_id, status, message, f"{self.name}/{resource.server}")
+        self._notify(resource, update, str(uuid.uuid4()), query_id,
+                     lambda: reply.set_result(None))
+
+    def op_unload(self, query_id: str, reply: Reply) -> None:
+        record = self.catalog.clients.get(query_id)
+        if record is None or not record.loaded:
+            raise UnknownQueryError(f"unknown or released query id {query_id!r}")
+        query = record.query
+
+        def answered(_: Any, error: BaseException | None) -> None:
+            if error is not None and not isinstance(error, UnknownQueryError):
+                reply.set_error(error)  # e.g. the provider is unavailable: keep the record
+                return
+            if error is not None:
+                logger.warning("provider %s no longer knew %s", query.serving_rr, query.id)
+            if query_id in self.catalog.clients:
+                self.catalog.remove_client(query_id)
+                self.status_callbacks.pop(query_id, None)
+                self._commit()
+            reply.set_result(None)
+
+        self._send(query.serving_rr, lambda r: Unload(query_id, self.name, r), answered)
+
+    def op_update_response(self, query_id: str, response: Any, reply: Reply) -> None:
+        resource = self.catalog.resource_of(query_id)
+        self.catalog.set_response(resource.id, response)
+        self._commit()
+        by_origin: dict[str, list[str]] = {}
+        for qid, origin in resource.consumers.items():
+            by_origin.setdefault(origin, []).append(qid)
+        for origin, ids in by_origin.items():
+            try:
+                DIRECTORY.lookup(origin).tell(ResponseUpdated(tuple(ids), response))
+            except RrError:
+                logger.warning("could not tell %s about a new response", origin)
+        reply.set_result(None)
+
+    def op_set_status_callback(
+        self, query_id: str, callback: StatusCallback, reply: Reply
+    ) -> None:
+        if query_id not in self.catalog.clients:
+            raise UnknownQueryError(f"unknown or released query id {query_id!r}")
+        self.status_callbacks[query_id] = callback
+        reply.set_result(None)
+
+    def op_server_queries(self, server: str, reply: Reply) -> None:
+        self._server(server)
+        reply.set_result(self.catalog.server_queries(server, self.name))
+
+    def op_client_queries(self, reply: Reply) -> None:
+        reply.set_result([r.query for r in self.catalog.clients.values() if r.loaded])
+
+    def op_client(self, target_rr: str, server: str, reply: Reply) -> None:
+        reply.set_result(self._client(target_rr, server))
+
+    def op_save(self, reply: Reply) -> None:
+        self._commit()
+        self.saver.flush()
+        reply.set_result(None)
+
+    def op_snapshot(self, reply: Reply) -> None:
+        self.catalog.check_invariants()
+        reply.set_result(CatalogView(
+            resources=tuple(dataclasses.replace(r, consumers=dict(r.consumers))
+                            for r in self.catalog.resources.values()),
+            clients=tuple(dataclasses.replace(c) for c in self.catalog.clients.values()),
+        ))
+
+    def op_stop(self, reply: Reply) -> None:
+        """Unload what this registrar holds as a consumer (newest first), then stop (rule 12)."""
+        self.stopping = True
+        for record in list(self.catalog.clients.values()):
+            if record.parent is None and not record.loaded:  # in flight: give it up
+                self._client(record.query.serving_rr, record.query.server).tell(
+                    _GiveUp(record.query.id)
+                )
+        tops = [r for r in reversed(self.catalog.clients.values())
+                if r.parent is None and r.loaded]
+
+        def next_one() -> None:
+            if tops:
+                self._release_client(tops.pop(0), next_one)
+                return
+            self._commit()
+            if self.flush_timer is not None:
+                self.flush_timer.cancel()
+            self.saver.close(erase=self.config.erase_on_destruct)
+            DIRECTORY.unregister(self.peer, "stopped")
+            self._stop_children()
+            reply.set_result(None)
+            self.stop()
+
+        next_one()
+
+    def _server(self, name: str) -> _Server:
+        server = self.servers.get(name)
+        if server is None or server.closing:
+            raise UnknownServerError(f"no resource server '{self.name}/{name}'")
+        return server
+
+
+@dataclasses.dataclass(frozen=True)
+class CatalogView:
+    """An immutable copy of a registrar's catalog rows (for inspection and tests)."""
+
+    resources: tuple[Resource, ...]
+    clients: tuple[ClientRecord, ...]
+
+
+# -- the handle --------------------------------------------------------------------------
+
+
+class ResourceRegistrar:
+    """A manager's resource registrar (thesis 4.3.1, `RrBase`).
+
+    Start one with [`ResourceRegistrar.start`][rr_actors.ResourceRegistrar.start]. Its
+    methods may be called from any thread, including from inside callbacks; each sends a
+    message to the registrar actor and waits for the answer at most `timeout` seconds
+    (default: the config's `call_timeout`).
+    """
+
+    def __init__(
+        self,
+        ref: pykka.ActorRef[RegistrarActor],
+        config: RegistrarConfig,
+        *,
+        restored: bool,
+        in_doubt: tuple[Query, ...],
+    ) -> None:
+        self._ref = ref
+        self._config = config
+        self._restored = restored
+        self._in_doubt = in_doubt
+        self._clients: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
+
+    @classmethod
+    def start(cls, config: RegistrarConfig | str) -> ResourceRegistrar:
+        """Start a registrar, restoring its catalog first if its backup exists.
+
+        Args:
+            config: a `RegistrarConfig`, or just a name (all other fields default).
+
+        Returns:
+            The handle of the running registrar.
+
+        Raises:
+            DuplicateNameError: a registrar with this name is already running here.
+            CatalogCorruptError: the backup exists but cannot be read (it is left as is).
+            ConfigError: the configuration, or its backup path, is invalid.
+        """
+        if isinstance(config, str):
+            config = RegistrarConfig(name=config)
+        elif not isinstance(config, RegistrarConfig):
+            raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
+        peer = LocalPeer(config.name, None)
+        DIRECTORY.register(peer)
+        try:
+            store = open_store(config)
+            rows = store.load() if store is not None else None
+            catalog = Catalog.restore(*rows) if rows is not None else Catalog()
+            saver = Saver(store, config)
+            in_doubt = tuple(
+                Query(r.id, r.server, config.name, config.name, r.request)
+                for r in catalog.resources.values()
+                if r.state is ResourceState.LOADING
+            )
+            ref = RegistrarActor.start(config, catalog, saver, peer)
+        except BaseException:
+            DIRECTORY.unregister(peer, "stopped")
+            raise
+        return cls(ref, config, restored=rows is not None, in_doubt=in_doubt)
+
+    # -- properties -------------------------------------------------------------------
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        return self._config.name
+
+    @property
+    def config(self) -> RegistrarConfig:
+        """The configuration it was started with."""
+        return self._config
+
+    @property
+    def restored(self) -> bool:
+        """Whether the catalog was restored from an existing backup at start."""
+        return self._restored
+
+    @property
+    def in_doubt(self) -> tuple[Query, ...]:
+        """Loads that had started but were not committed when the last run died (rule 16).
+
+        Each is a `Query` whose `id` is the resource id and whose `request` is what the
+        load was for; the manager decides whether something it started must be cleaned up.
+        """
+        return self._in_doubt
+
+    def is_alive(self) -> bool:
+        """Whether the registrar actor is running."""
+        return self._ref.is_alive()
+
+    # -- servers ----------------------------------------------------------------------
+
+    def register_server(
+        self,
+        name: str,
+        *,
+        load: LoadCallback,
+        unload: UnloadCallback,
+        on_status: StatusCallback | None = None,
+        timeout: float | None = None,
+    ) -> None:
+        """Register a resource server `"<registrar>/<name>"`.
+
+        Args:
+            name: server name, unique on this registrar.
+            load: `load(request) -> response`; runs on a worker thread of this process.
+            unload: `unload(request, response) -> None`; runs on a worker thread, after the
+                resource's dependencies were released.
+            on_status: `on_status(query, update)`, run once on a worker thread when a status
+                about one of this server's resources is sent or passes through.
+            timeout: seconds to wait for the registrar.
+
+        Raises:
+            ConfigError: a callback is not callable or the name is invalid.
+            DuplicateNameError: a server with this name exists on this registrar.
+        """
+        if not isinstance(name, str) or not name or "/" in name:
+            raise ConfigError(f"server name must be a non-empty string without '/', got {name!r}")
+        for arg, fn in (("load", load), ("unload", unload), ("on_status", on_status)):
+            if fn is not None and not callable(fn):
+                raise ConfigError(f"{arg} must be callable, got {fn!r}")
+        self._ask(lambda actor, reply: actor.op_register(name, load, unload, on_status, reply),
+                  timeout, f"register_server({name!r})")
+
+    def unregister_server(self, name: str, *, timeout: float | None = None) -> None:
+        """Remove a server: send `FATAL` to its consumers and unload all it serves (rule 12).
+
+        Raises:
+            UnknownServerError: no such server here.
+            CallTimeoutError: not finished within `timeout` seconds.
+        """
+        limit = self._timeout(timeout)
+        self._ask(lambda actor, reply: actor.op_unregister(name, limit, reply), limit,
+                  f"unregister_server({name!r})")
+
+    # -- consumer API -----------------------------------------------------------------
+
+    def call(
+        self,
+        target_rr: str,
+        server: str,
+        request: Any,
+        *,
+        on_status: StatusCallback | None = None,
+        timeout: float | None = None,
+        query_id: str | None = None,
+    ) -> Query:
+        """Ask `target_rr/server` for the resource `request` describes (rules 1-6, 17).
+
+        The provider runs `load(request)` unless an equal (`==`) request is loaded or
+        loading there; either way this call becomes one more consumer with its own id.
+        Called from inside a `load` callback of this registrar, the query is recorded as
+        a dependency of the resource being loaded.
+
+        Args:
+            target_rr: name of the provider registrar (this one's own name works too).
+            server: server name on it.
+            request: any value; equal requests mean the same resource.
+            on_status: client status callback `on_status(query, update)`, run on a worker
+                thread of this registrar's process.
+            timeout: seconds to wait for the answer.
+            query_id: the id to use (default: a fresh UUID4). Retrying with the same id is
+                idempotent: it never loads twice nor adds a second consumer.
+
+        Returns:
+            The `Query`, with the provider's `response`.
+
+        Raises:
+            ResourceLoadError: `load` raised here or further down; `stack` says where.
+            DependencyCycleError: the load would wait for itself further up its chain.
+            UnknownServerError: no such registrar or server.
+            CallTimeoutError: no answer in time; the query id is released if it loads later.
+            RegistrarUnavailableError: the provider died (it may have executed the load).
+            RegistrarStoppedError: this registrar or the provider was stopped.
+        """
+        if on_status is not None and not callable(on_status):
+            raise ConfigError(f"on_status must be callable, got {on_status!r}")
+        limit = self._timeout(timeout)
+        context = _LOADING.get()
+        parent: str | None = None
+        chain: tuple[str, ...] = ()
+        if context is not None:
+            chain = context.chain
+            if context.registrar == self.name:
+                parent = context.resource_id
+        query = Query(query_id or str(uuid.uuid4()), server, target_rr, self.name, request)
+        client = self._client(target_rr, server, limit)
+        future: pykka.ThreadingFuture[Any] = pykka.ThreadingFuture()
+        try:
+            client.tell(_Call(ClientRecord(query, parent), chain, on_status, future))
+        except pykka.ActorDeadError:
+            raise DIRECTORY.gone_error(self.name) from None
+        try:
+            response = future.get(timeout=limit)
+        except pykka.Timeout:
+            try:
+                client.tell(_GiveUp(query.id))
+            except pykka.ActorDeadError:
+                pass
+            raise CallTimeoutError(
+                f"call to '{target_rr}/{server}' timed out after {limit:g} s"
+            ) from None
+        return dataclasses.replace(query, response=response)
+
+    def unload(self, query_id: str, *, timeout: float | None = None) -> None:
+        """Release one consumer id obtained from `call` (rules 7-8).
+
+        The provider's `unload` callback runs when the last consumer id of the resource is
+        released, after that resource's own dependencies were released; this returns
+        when that is done.
+
+        Raises:
+            UnknownQueryError: the id is unknown here or already released (nothing changes).
+            CallTimeoutError: not finished within `timeout` seconds.
+            RegistrarUnavailableError: the provider died; the id is kept, retry later.
+        """
+        self._ask(lambda actor, reply: actor.op_unload(query_id, reply), timeout,
+                  f"unload({query_id!r})")
+
+    def send_status(
+        self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
+    ) -> None:
+        """Tell every consumer of the resource behind `query_id` about its status (rule 9).
+
+        This server's `on_status` runs once; each consumer's status callback runs with its
+        own query id; the status climbs every dependency path to the top consumers.
+        Returns once every callback on the way has run.
+
+        Args:
+            query_id: any consumer id of a resource this registrar serves.
+            status: the status code.
+            message: free text.
+            timeout: seconds to wait for delivery along the whole path.
+
+        Raises:
+            UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            CallTimeoutError: not delivered everywhere within `timeout` seconds.
+        """
+        if not isinstance(status, Status):
+            raise ConfigError(f"status must be an rr_actors.Status, got {status!r}")
+        self._ask(lambda actor, reply: actor.op_send_status(query_id, status, message, reply),
+                  timeout, f"send_status({query_id!r})")
+
+    def server_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
+        """Every consumer query of this registrar's `server`, each id once (rule 10).
+
+        Raises:
+            UnknownServerError: no such server here.
+        """
+        result: list[Query] = self._ask(
+            lambda actor, reply: actor.op_server_queries(server, reply), timeout,
+            f"server_queries({server!r})")
+        return result
+
+    def fetch_queries(
+        self, target_rr: str, server: str, *, timeout: float | None = None
+    ) -> list[Query]:
+        """The queries this registrar holds at `target_rr/server`, as the provider has them.
+
+        Used after a restart to learn what this registrar had asked for (thesis 4.2.5).
+
+        Raises:
+            UnknownServerError: no such registrar or server.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarUnavailableError: the provider died.
+        """
+        limit = self._timeout(timeout)
+        reply = FutureReply()
+        self._client(target_rr, server, limit).tell(_FetchVia(server, reply))
+        result: list[Query] = wait(reply.future, limit, f"fetch_queries({target_rr!r})")
+        return result
+
+    def client_queries(self, *, timeout: float | None = None) -> list[Query]:
+        """Every query this registrar holds at servers (its own included), oldest first."""
+        result: list[Query] = self._ask(
+            lambda actor, reply: actor.op_client_queries(reply), timeout, "client_queries()")
+        return result
+
+    def set_status_callback(
+        self, query_id: str, callback: StatusCallback, *, timeout: float | None = None
+    ) -> None:
+        """Attach (or replace) the client status callback of a query this registrar holds.
+
+        Status callbacks are code, so they are not in the backup: re-attach them after a
+        restart (rule 11).
+
+        Raises:
+            UnknownQueryError: this registrar holds no such query.
+            ConfigError: `callback` is not callable.
+        """
+        if not callable(callback):
+            raise ConfigError(f"callback must be callable, got {callback!r}")
+        self._ask(lambda actor, reply: actor.op_set_status_callback(query_id, callback, reply),
+                  timeout, f"set_status_callback({query_id!r})")
+
+    def update_response(
+        self, query_id: str, response: Any, *, timeout: float | None = None
+    ) -> None:
+        """Replace the stored response of the resource behind `query_id` (asynchronous loads).
+
+        Every consumer's client record gets the new response too (delivered in the
+        background; `fetch_queries` shows it at once).
+
+        Raises:
+            UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+        """
+        self._ask(lambda actor, reply: actor.op_update_response(query_id, response, reply),
+                  timeout, f"update_response({query_id!r})")
+
+    def save_catalog(self, *, timeout: float | None = None) -> None:
+        """Write every pending change of the catalog to the backup now (no-op without one)."""
+        self._ask(lambda actor, reply: actor.op_save(reply), timeout, "save_catalog()")
+
+    def stop(self, *, timeout: float | None = None) -> None:
+        """Stop the registrar (rule 12).
+
+        Unloads everything it holds as a consumer (newest first), then stops its servers
+        and clients. What its servers serve stays in the catalog for a restart. With
+        `erase_on_destruct` the backup is removed. Stopping a stopped registrar is a no-op.
+
+        Raises:
+            CallTimeoutError: not finished within `timeout` seconds.
+        """
+        if not self._ref.is_alive():
+            return
+        try:
+            self._ask(lambda actor, reply: actor.op_stop(reply), timeout, "stop()")
+        except RegistrarStoppedError:
+            return
+        self._ref.stop(block=True, timeout=self._timeout(timeout))
+
+    def __enter__(self) -> ResourceRegistrar:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.stop()
+
+    def __repr__(self) -> str:
+        state = "running" if self._ref.is_alive() else "stopped"
+        return f"<ResourceRegistrar {self.name!r} {state}>"
+
+    # -- plumbing ---------------------------------------------------------------------
+
+    def _timeout(self, timeout: float | None) -> float:
+        if timeout is None:
+            return self._config.call_timeout
+        if isinstance(timeout, bool) or not isinstance(timeout, int | float) or timeout <= 0:
+            raise ConfigError(f"timeout must be a positive number of seconds, got {timeout!r}")
+        return float(timeout)
+
+    def _ask(
+        self,
+        op: Callable[[RegistrarActor, Reply], None],
+        timeout: float | None,
+        what: str,
+    ) -> Any:
+        limit = self._timeout(timeout)
+        reply = FutureReply()
+        try:
+            self._ref.tell(_Request(op, reply))
+        except pykka.ActorDeadError:
+            raise DIRECTORY.gone_error(self.name) from None
+        return wait(reply.future, limit, what)
+
+    def _client(self, target_rr: str, server: str, timeout: float) -> pykka.ActorRef[ClientActor]:
+        key = (target_rr, server)
+        client = self._clients.get(key)
+        if client is None or not client.is_alive():
+            client = self._ask(
+                lambda actor, reply: actor.op_client(target_rr, server, reply), timeout,
+                "starting a client")
+            self._clients[key] = client
+        return client
+

@@ -1,0 +1,135 @@
+"""Reply objects: where the answer to a message goes, and how a caller waits for it."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import logging
+import queue
+from collections.abc import Callable
+from typing import Any
+
+import pykka
+
+from rr_actors.errors import CallTimeoutError
+
+__all__ = ["Answer", "FutureReply", "Join", "TokenReply", "Tokens", "wait"]
+
+logger = logging.getLogger("rr_actors")
+
+
+class FutureReply:
+    """Answers a pykka future; a second answer is ignored (the first one wins)."""
+
+    __slots__ = ("future",)
+
+    def __init__(self, future: pykka.ThreadingFuture[Any] | None = None) -> None:
+        self.future: pykka.ThreadingFuture[Any] = future or pykka.ThreadingFuture()
+
+    def set_result(self, value: Any) -> None:
+        try:
+            self.future.set(value)
+        except queue.Full:
+            pass
+
+    def set_error(self, error: BaseException) -> None:
+        try:
+            self.future.set_exception((type(error), error, error.__traceback__))
+        except queue.Full:
+            pass
+
+
+def wait(future: pykka.ThreadingFuture[Any], timeout: float, what: str) -> Any:
+    """Wait for `future` at most `timeout` seconds.
+
+    Raises:
+        CallTimeoutError: nothing arrived in time.
+        Exception: whatever error the future holds.
+    """
+    try:
+        return future.get(timeout=timeout)
+    except pykka.Timeout:
+        raise CallTimeoutError(f"{what} timed out after {timeout:g} s") from None
+
+
+@dataclasses.dataclass(frozen=True)
+class Answer:
+    """The answer to an actor's own ask, delivered to its mailbox."""
+
+    token: int
+    value: Any
+    error: BaseException | None
+
+
+class TokenReply:
+    """Answers by telling an actor `(token, value, error)`; used for an actor's own asks."""
+
+    __slots__ = ("ref", "token")
+
+    def __init__(self, ref: pykka.ActorRef[Any], token: int) -> None:
+        self.ref = ref
+        self.token = token
+
+    def set_result(self, value: Any) -> None:
+        self._tell(value, None)
+
+    def set_error(self, error: BaseException) -> None:
+        self._tell(None, error)
+
+    def _tell(self, value: Any, error: BaseException | None) -> None:
+        try:
+            self.ref.tell(Answer(self.token, value, error))
+        except pykka.ActorDeadError:
+            logger.debug("answer %s dropped: the registrar is gone", self.token)
+
+
+Continuation = Callable[[Any, BaseException | None], None]
+
+
+class Tokens:
+    """The continuations an actor waits on, keyed by token (used in the actor thread only)."""
+
+    def __init__(self) -> None:
+        self._next = itertools.count()
+        self._waiting: dict[int, Continuation] = {}
+
+    def reply(self, ref: pykka.ActorRef[Any], then: Continuation) -> TokenReply:
+        token = next(self._next)
+        self._waiting[token] = then
+        return TokenReply(ref, token)
+
+    def answer(self, token: int, value: Any, error: BaseException | None) -> None:
+        then = self._waiting.pop(token, None)
+        if then is not None:
+            then(value, error)
+
+
+class Join:
+    """Run `then()` once every started part is `done()` (in the actor thread).
+
+    Call `add()` before starting each part and `seal()` after the last one.
+    """
+
+    __slots__ = ("_open", "_sealed", "_then")
+
+    def __init__(self, then: Callable[[], None]) -> None:
+        self._then = then
+        self._open = 0
+        self._sealed = False
+
+    def add(self) -> Callable[..., None]:
+        self._open += 1
+        return self.done
+
+    def done(self, *_: Any) -> None:
+        self._open -= 1
+        self._maybe_fire()
+
+    def seal(self) -> None:
+        self._sealed = True
+        self._maybe_fire()
+
+    def _maybe_fire(self) -> None:
+        if self._sealed and self._open == 0:
+            self._sealed = False  # fire once
+            self._then()

@@ -1,0 +1,136 @@
+"""Errors raised by rr_actors.
+
+Every error derives from [`RrError`][rr_actors.errors.RrError]. "You stopped it"
+([`RegistrarStoppedError`][rr_actors.errors.RegistrarStoppedError]) is kept apart from
+"it died" ([`RegistrarUnavailableError`][rr_actors.errors.RegistrarUnavailableError]), and
+a timeout is also a built-in `TimeoutError`.
+
+All errors pickle (they cross process boundaries) and keep their attributes when they do.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+__all__ = [
+    "CallTimeoutError",
+    "CatalogCorruptError",
+    "ConfigError",
+    "DependencyCycleError",
+    "DuplicateNameError",
+    "ErrorFrame",
+    "RegistrarStoppedError",
+    "RegistrarUnavailableError",
+    "ResourceLoadError",
+    "RrError",
+    "SupervisorGaveUpError",
+    "UnknownQueryError",
+    "UnknownServerError",
+]
+
+
+class RrError(Exception):
+    """Base class of every error rr_actors raises."""
+
+
+class ConfigError(RrError, ValueError):
+    """A configuration value is invalid; the message names the field and the value."""
+
+
+class DuplicateNameError(ConfigError):
+    """A registrar or resource server name is already in use where names must be unique."""
+
+
+class UnknownServerError(RrError, LookupError):
+    """No registrar, or no resource server on that registrar, has the given name."""
+
+
+class UnknownQueryError(RrError, LookupError):
+    """The query id is unknown here, or was already released. Nothing was changed."""
+
+
+class DependencyCycleError(RrError):
+    """A load would wait for a resource that is being loaded further up the same chain.
+
+    Raised instead of deadlocking (equal request further up) or recursing forever
+    (the chain grew deeper than `rr_actors.MAX_DEPENDENCY_DEPTH`).
+    """
+
+
+class CallTimeoutError(RrError, TimeoutError):
+    """A blocking call did not finish within its `timeout` (seconds).
+
+    A call that timed out leaves nothing behind: if its load completes later, the
+    provider releases that query id.
+    """
+
+
+class RegistrarUnavailableError(RrError):
+    """The registrar died (crashed, was killed, or its process exited).
+
+    A call that was in flight when this is raised may or may not have executed at
+    the provider; retrying with the same query id is safe (loads are idempotent per id).
+    """
+
+
+class RegistrarStoppedError(RrError):
+    """The registrar was stopped by its owner (`stop()`), so it takes no more work."""
+
+
+class CatalogCorruptError(RrError):
+    """A catalog backup file cannot be read; it was left untouched.
+
+    Attributes:
+        path: the file that could not be read.
+    """
+
+    def __init__(self, path: str, cause: str) -> None:
+        super().__init__(f"catalog backup {path!r} cannot be used: {cause}")
+        self.path = path
+        self.cause = cause
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (type(self), (self.path, self.cause))
+
+
+class SupervisorGaveUpError(RrError):
+    """A supervisor exceeded its restart intensity (`max_restarts` within `period` s)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ErrorFrame:
+    """One registrar's part of a [`ResourceLoadError`][rr_actors.errors.ResourceLoadError] stack.
+
+    Attributes:
+        registrar: name of the registrar whose server failed to load.
+        server: name of that resource server.
+        exc_type: qualified name of the exception raised there.
+        message: `str()` of that exception.
+        traceback: formatted traceback text, as produced where it was raised.
+    """
+
+    registrar: str
+    server: str
+    exc_type: str
+    message: str
+    traceback: str
+
+
+class ResourceLoadError(RrError):
+    """A `load` callback raised, here or further down the dependency chain.
+
+    Like TeMoto's `TemotoErrorStack` (thesis 4.3.4): `stack` holds one
+    [`ErrorFrame`][rr_actors.errors.ErrorFrame] per registrar the error crossed, the
+    origin first. Sub-resources loaded inside the failed load were unloaded before
+    this error was raised.
+    """
+
+    def __init__(self, stack: tuple[ErrorFrame, ...]) -> None:
+        origin = stack[0]
+        path = " <- ".join(f"{f.registrar}/{f.server}" for f in stack)
+        super().__init__(f"{origin.exc_type}: {origin.message} (at {path})")
+        self.stack = stack
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (type(self), (self.stack,))
