@@ -18,14 +18,16 @@ run on worker threads (`Workers`), so a slow or hung callback never blocks a mai
 from __future__ import annotations
 
 import collections
+import contextlib
 import contextvars
 import dataclasses
+import functools
 import logging
 import threading
 import traceback
 import uuid
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 import pykka
 
@@ -202,10 +204,8 @@ class _ClientReply:
             FutureReply(self.future).set_result(value)
 
     def set_error(self, error: BaseException) -> None:
-        try:
+        with contextlib.suppress(pykka.ActorDeadError):
             self.registrar.tell(_CallFailed(self.query_id))
-        except pykka.ActorDeadError:
-            pass
         FutureReply(self.future).set_error(error)
 
 
@@ -321,10 +321,8 @@ class ClientActor(pykka.ThreadingActor):
             self._call(message)
         elif isinstance(message, _GiveUp):
             self.registrar_ref.tell(_CallFailed(message.query_id))
-            try:
+            with contextlib.suppress(RrError):  # a provider that is gone holds nothing
                 DIRECTORY.lookup(self.target_rr).tell(Abandon(message.query_id, self.origin_rr))
-            except RrError:
-                pass  # the provider is gone; nothing to release there
         elif isinstance(message, _FetchVia):
             try:
                 DIRECTORY.lookup(self.target_rr).tell(
@@ -394,9 +392,8 @@ class RegistrarActor(pykka.ThreadingActor):
         self.abandoned: set[str] = set()
         self.unload_waiters: dict[str, list[Reply]] = {}
         self.after_unload: dict[str, list[Load]] = {}
-        self.seen_events: collections.OrderedDict[tuple[str, str], None] = (
-            collections.OrderedDict()
-        )
+        self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
+        self.seen_events: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
         self.stopping = False
         self.flush_timer: threading.Timer | None = None
 
@@ -404,7 +401,21 @@ class RegistrarActor(pykka.ThreadingActor):
 
     def on_start(self) -> None:
         self.peer.ref = self.actor_ref
+        self._settle_in_doubt()
         self._arm_flush_timer()
+
+    def _settle_in_doubt(self) -> None:
+        """Drop restored resources whose load or unload a crash cut short (rule 16).
+
+        They were reported to the manager as `in_doubt`; what they held as dependencies
+        is released, so nothing they started at other servers leaks.
+        """
+        for resource in list(self.catalog.resources.values()):
+            if resource.state is not ResourceState.LOADED:
+                self.catalog.begin_unload(resource.id)
+                self._release_dependencies(
+                    resource.id, functools.partial(self._remove_resource, resource)
+                )
 
     def on_receive(self, message: Any) -> None:
         handler = self._handlers.get(type(message))
@@ -430,7 +441,7 @@ class RegistrarActor(pykka.ThreadingActor):
             for load in loads:
                 load.reply.set_error(error)
         while not self.actor_inbox.empty():
-            pending = getattr(self.actor_inbox.get_nowait().message, "reply", None)
+            pending = getattr(self.actor_inbox.get().message, "reply", None)
             if pending is not None:
                 pending.set_error(error)
         self._stop_children()
@@ -439,10 +450,8 @@ class RegistrarActor(pykka.ThreadingActor):
         self.saver.close(erase=False, flush=False)  # a crash writes nothing more
         if self.name not in DIRECTORY.restart_expected:
             for peer in DIRECTORY.local_peers():
-                try:
+                with contextlib.suppress(RrError):
                     peer.tell(ConsumerDown(self.name))
-                except RrError:
-                    pass
 
     def _stop_children(self) -> None:
         for server in self.servers.values():
@@ -464,10 +473,8 @@ class RegistrarActor(pykka.ThreadingActor):
         ref = self.actor_ref
 
         def tick() -> None:
-            try:
+            with contextlib.suppress(pykka.ActorDeadError):
                 ref.tell(_Flush())
-            except pykka.ActorDeadError:
-                pass
 
         self.flush_timer = threading.Timer(interval, tick)
         self.flush_timer.daemon = True
@@ -626,8 +633,8 @@ class RegistrarActor(pykka.ThreadingActor):
 
         def run_unload() -> None:
             server = self.servers.get(resource.server)
-            if server is None:
-                unloaded(None, None)
+            if server is None:  # restored, and setup has not registered the server yet
+                self.parked_unloads.setdefault(resource.server, []).append(run_unload)
                 return
             done = self.tokens.reply(self.actor_ref, unloaded)
             server.ref.tell(_RunUnload(resource.request, resource.response, done))
@@ -705,13 +712,20 @@ class RegistrarActor(pykka.ThreadingActor):
         server = self.servers.get(resource.server)
         query_id = own_query_id or next(iter(resource.consumers), resource.id)
         if server is not None and server.on_status is not None:
-            query = Query(query_id, resource.server, self.name,
-                          resource.consumers.get(query_id, self.name),
-                          resource.request, resource.response)
+            query = Query(
+                query_id,
+                resource.server,
+                self.name,
+                resource.consumers.get(query_id, self.name),
+                resource.request,
+                resource.response,
+            )
             done = self.tokens.reply(self.actor_ref, join.add())
-            server.ref.tell(_RunStatus(
-                server.on_status, query, dataclasses.replace(update, query_id=query_id), done
-            ))
+            server.ref.tell(
+                _RunStatus(
+                    server.on_status, query, dataclasses.replace(update, query_id=query_id), done
+                )
+            )
         by_origin: dict[str, list[str]] = {}
         for query_id, origin in resource.consumers.items():
             by_origin.setdefault(origin, []).append(query_id)
@@ -750,11 +764,13 @@ class RegistrarActor(pykka.ThreadingActor):
                 UnknownServerError(f"no resource server '{self.name}/{message.server}'")
             )
             return
-        message.reply.set_result([
-            query
-            for query in self.catalog.server_queries(message.server, self.name)
-            if query.origin_rr == message.origin_rr
-        ])
+        message.reply.set_result(
+            [
+                query
+                for query in self.catalog.server_queries(message.server, self.name)
+                if query.origin_rr == message.origin_rr
+            ]
+        )
 
     def _on_revoke(self, message: Revoke) -> None:
         for query_id in message.query_ids:
@@ -775,7 +791,11 @@ class RegistrarActor(pykka.ThreadingActor):
         client = self.clients.get(key)
         if client is None:
             client = ClientActor.start(
-                self.actor_ref, self.name, target_rr, server, self.workers,
+                self.actor_ref,
+                self.name,
+                target_rr,
+                server,
+                self.workers,
                 commit_first=self.config.save_on_modify and self.saver.durable,
             )
             self.clients[key] = client
@@ -808,7 +828,7 @@ class RegistrarActor(pykka.ThreadingActor):
     def _on_crash(self, _: _Crash) -> None:
         raise RuntimeError(f"registrar {self.name!r} was made to crash (rr_actors.testing)")
 
-    _handlers: dict[type, Callable[[RegistrarActor, Any], None]] = {
+    _handlers: ClassVar[dict[type, Callable[[RegistrarActor, Any], None]]] = {
         Answer: _on_answer,
         Load: _on_load,
         Unload: _on_unload,
@@ -840,14 +860,14 @@ class RegistrarActor(pykka.ThreadingActor):
             raise DuplicateNameError(f"resource server '{self.name}/{name}' already exists")
         ref = ServerActor.start(self.name, name, load, unload, on_status, self.workers)
         self.servers[name] = _Server(name, ref, on_status)
+        for run_unload in self.parked_unloads.pop(name, ()):
+            run_unload()
         reply.set_result(None)
 
     def op_unregister(self, name: str, timeout: float, reply: Reply) -> None:
         server = self._server(name)
         server.closing = True
-        resources = [
-            r for r in self.catalog.resources_of(name) if r.state is ResourceState.LOADED
-        ]
+        resources = [r for r in self.catalog.resources_of(name) if r.state is ResourceState.LOADED]
 
         def finish() -> None:
             if not self.catalog.resources_of(name) and name in self.servers:
@@ -863,18 +883,20 @@ class RegistrarActor(pykka.ThreadingActor):
     def _close_resource(self, resource: Resource, then: Callable[[], None]) -> None:
         """Send FATAL to a resource's consumers, revoke their ids, unload it."""
         query_id = next(iter(resource.consumers))
-        update = StatusUpdate(query_id, Status.FATAL, "resource server was unregistered",
-                              f"{self.name}/{resource.server}")
+        update = StatusUpdate(
+            query_id,
+            Status.FATAL,
+            "resource server was unregistered",
+            f"{self.name}/{resource.server}",
+        )
 
         def revoke_and_unload() -> None:
             by_origin: dict[str, list[str]] = {}
             for qid, origin in resource.consumers.items():
                 by_origin.setdefault(origin, []).append(qid)
             for origin, ids in by_origin.items():
-                try:
+                with contextlib.suppress(RrError):
                     DIRECTORY.lookup(origin).tell(Revoke(tuple(ids)))
-                except RrError:
-                    pass
             for qid in list(resource.consumers):
                 self.catalog.release(qid)
             self._unload_resource(resource, self.tokens.reply(self.actor_ref, lambda *_: then()))
@@ -884,8 +906,7 @@ class RegistrarActor(pykka.ThreadingActor):
     def op_send_status(self, query_id: str, status: Status, message: str, reply: Reply) -> None:
         resource = self.catalog.resource_of(query_id)
         update = StatusUpdate(query_id, status, message, f"{self.name}/{resource.server}")
-        self._notify(resource, update, str(uuid.uuid4()), query_id,
-                     lambda: reply.set_result(None))
+        self._notify(resource, update, str(uuid.uuid4()), query_id, lambda: reply.set_result(None))
 
     def op_unload(self, query_id: str, reply: Reply) -> None:
         record = self.catalog.clients.get(query_id)
@@ -921,9 +942,7 @@ class RegistrarActor(pykka.ThreadingActor):
                 logger.warning("could not tell %s about a new response", origin)
         reply.set_result(None)
 
-    def op_set_status_callback(
-        self, query_id: str, callback: StatusCallback, reply: Reply
-    ) -> None:
+    def op_set_status_callback(self, query_id: str, callback: StatusCallback, reply: Reply) -> None:
         if query_id not in self.catalog.clients:
             raise UnknownQueryError(f"unknown or released query id {query_id!r}")
         self.status_callbacks[query_id] = callback
@@ -946,11 +965,15 @@ class RegistrarActor(pykka.ThreadingActor):
 
     def op_snapshot(self, reply: Reply) -> None:
         self.catalog.check_invariants()
-        reply.set_result(CatalogView(
-            resources=tuple(dataclasses.replace(r, consumers=dict(r.consumers))
-                            for r in self.catalog.resources.values()),
-            clients=tuple(dataclasses.replace(c) for c in self.catalog.clients.values()),
-        ))
+        reply.set_result(
+            CatalogView(
+                resources=tuple(
+                    dataclasses.replace(r, consumers=dict(r.consumers))
+                    for r in self.catalog.resources.values()
+                ),
+                clients=tuple(dataclasses.replace(c) for c in self.catalog.clients.values()),
+            )
+        )
 
     def op_stop(self, reply: Reply) -> None:
         """Unload what this registrar holds as a consumer (newest first), then stop (rule 12)."""
@@ -960,8 +983,7 @@ class RegistrarActor(pykka.ThreadingActor):
                 self._client(record.query.serving_rr, record.query.server).tell(
                     _GiveUp(record.query.id)
                 )
-        tops = [r for r in reversed(self.catalog.clients.values())
-                if r.parent is None and r.loaded]
+        tops = [r for r in reversed(self.catalog.clients.values()) if r.parent is None and r.loaded]
 
         def next_one() -> None:
             if tops:
@@ -1046,9 +1068,9 @@ class ResourceRegistrar:
             catalog = Catalog.restore(*rows) if rows is not None else Catalog()
             saver = Saver(store, config)
             in_doubt = tuple(
-                Query(r.id, r.server, config.name, config.name, r.request)
+                Query(r.id, r.server, config.name, config.name, r.request, r.response)
                 for r in catalog.resources.values()
-                if r.state is ResourceState.LOADING
+                if r.state is not ResourceState.LOADED
             )
             ref = RegistrarActor.start(config, catalog, saver, peer)
         except BaseException:
@@ -1075,10 +1097,12 @@ class ResourceRegistrar:
 
     @property
     def in_doubt(self) -> tuple[Query, ...]:
-        """Loads that had started but were not committed when the last run died (rule 16).
+        """Loads (or unloads) a crash cut short in the last run, found at restore (rule 16).
 
-        Each is a `Query` whose `id` is the resource id and whose `request` is what the
-        load was for; the manager decides whether something it started must be cleaned up.
+        Each is a `Query` whose `id` is the resource id, whose `request` is what the load
+        was for and whose `response` is `None` for a load that never finished. They are
+        no longer in the catalog and their dependencies were released; the manager
+        decides whether something its callback started must be cleaned up.
         """
         return self._in_doubt
 
@@ -1117,8 +1141,11 @@ class ResourceRegistrar:
         for arg, fn in (("load", load), ("unload", unload), ("on_status", on_status)):
             if fn is not None and not callable(fn):
                 raise ConfigError(f"{arg} must be callable, got {fn!r}")
-        self._ask(lambda actor, reply: actor.op_register(name, load, unload, on_status, reply),
-                  timeout, f"register_server({name!r})")
+        self._ask(
+            lambda actor, reply: actor.op_register(name, load, unload, on_status, reply),
+            timeout,
+            f"register_server({name!r})",
+        )
 
     def unregister_server(self, name: str, *, timeout: float | None = None) -> None:
         """Remove a server: send `FATAL` to its consumers and unload all it serves (rule 12).
@@ -1128,8 +1155,11 @@ class ResourceRegistrar:
             CallTimeoutError: not finished within `timeout` seconds.
         """
         limit = self._timeout(timeout)
-        self._ask(lambda actor, reply: actor.op_unregister(name, limit, reply), limit,
-                  f"unregister_server({name!r})")
+        self._ask(
+            lambda actor, reply: actor.op_unregister(name, limit, reply),
+            limit,
+            f"unregister_server({name!r})",
+        )
 
     # -- consumer API -----------------------------------------------------------------
 
@@ -1191,10 +1221,8 @@ class ResourceRegistrar:
         try:
             response = future.get(timeout=limit)
         except pykka.Timeout:
-            try:
+            with contextlib.suppress(pykka.ActorDeadError):
                 client.tell(_GiveUp(query.id))
-            except pykka.ActorDeadError:
-                pass
             raise CallTimeoutError(
                 f"call to '{target_rr}/{server}' timed out after {limit:g} s"
             ) from None
@@ -1212,8 +1240,9 @@ class ResourceRegistrar:
             CallTimeoutError: not finished within `timeout` seconds.
             RegistrarUnavailableError: the provider died; the id is kept, retry later.
         """
-        self._ask(lambda actor, reply: actor.op_unload(query_id, reply), timeout,
-                  f"unload({query_id!r})")
+        self._ask(
+            lambda actor, reply: actor.op_unload(query_id, reply), timeout, f"unload({query_id!r})"
+        )
 
     def send_status(
         self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
@@ -1236,8 +1265,11 @@ class ResourceRegistrar:
         """
         if not isinstance(status, Status):
             raise ConfigError(f"status must be an rr_actors.Status, got {status!r}")
-        self._ask(lambda actor, reply: actor.op_send_status(query_id, status, message, reply),
-                  timeout, f"send_status({query_id!r})")
+        self._ask(
+            lambda actor, reply: actor.op_send_status(query_id, status, message, reply),
+            timeout,
+            f"send_status({query_id!r})",
+        )
 
     def server_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
         """Every consumer query of this registrar's `server`, each id once (rule 10).
@@ -1246,8 +1278,10 @@ class ResourceRegistrar:
             UnknownServerError: no such server here.
         """
         result: list[Query] = self._ask(
-            lambda actor, reply: actor.op_server_queries(server, reply), timeout,
-            f"server_queries({server!r})")
+            lambda actor, reply: actor.op_server_queries(server, reply),
+            timeout,
+            f"server_queries({server!r})",
+        )
         return result
 
     def fetch_queries(
@@ -1271,7 +1305,8 @@ class ResourceRegistrar:
     def client_queries(self, *, timeout: float | None = None) -> list[Query]:
         """Every query this registrar holds at servers (its own included), oldest first."""
         result: list[Query] = self._ask(
-            lambda actor, reply: actor.op_client_queries(reply), timeout, "client_queries()")
+            lambda actor, reply: actor.op_client_queries(reply), timeout, "client_queries()"
+        )
         return result
 
     def set_status_callback(
@@ -1288,8 +1323,11 @@ class ResourceRegistrar:
         """
         if not callable(callback):
             raise ConfigError(f"callback must be callable, got {callback!r}")
-        self._ask(lambda actor, reply: actor.op_set_status_callback(query_id, callback, reply),
-                  timeout, f"set_status_callback({query_id!r})")
+        self._ask(
+            lambda actor, reply: actor.op_set_status_callback(query_id, callback, reply),
+            timeout,
+            f"set_status_callback({query_id!r})",
+        )
 
     def update_response(
         self, query_id: str, response: Any, *, timeout: float | None = None
@@ -1302,8 +1340,11 @@ class ResourceRegistrar:
         Raises:
             UnknownQueryError: `query_id` is not a consumer id of a resource served here.
         """
-        self._ask(lambda actor, reply: actor.op_update_response(query_id, response, reply),
-                  timeout, f"update_response({query_id!r})")
+        self._ask(
+            lambda actor, reply: actor.op_update_response(query_id, response, reply),
+            timeout,
+            f"update_response({query_id!r})",
+        )
 
     def save_catalog(self, *, timeout: float | None = None) -> None:
         """Write every pending change of the catalog to the backup now (no-op without one)."""
@@ -1365,8 +1406,9 @@ class ResourceRegistrar:
         client = self._clients.get(key)
         if client is None or not client.is_alive():
             client = self._ask(
-                lambda actor, reply: actor.op_client(target_rr, server, reply), timeout,
-                "starting a client")
+                lambda actor, reply: actor.op_client(target_rr, server, reply),
+                timeout,
+                "starting a client",
+            )
             self._clients[key] = client
         return client
-

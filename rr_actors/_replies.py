@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
 import logging
@@ -27,16 +28,12 @@ class FutureReply:
         self.future: pykka.ThreadingFuture[Any] = future or pykka.ThreadingFuture()
 
     def set_result(self, value: Any) -> None:
-        try:
+        with contextlib.suppress(queue.Full):
             self.future.set(value)
-        except queue.Full:
-            pass
 
     def set_error(self, error: BaseException) -> None:
-        try:
+        with contextlib.suppress(queue.Full):
             self.future.set_exception((type(error), error, error.__traceback__))
-        except queue.Full:
-            pass
 
 
 def wait(future: pykka.ThreadingFuture[Any], timeout: float, what: str) -> Any:

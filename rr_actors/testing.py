@@ -20,7 +20,7 @@ def crash(registrar: ResourceRegistrar, *, timeout: float = 5.0) -> None:
     will restart it, the providers release its consumer ids (death watch).
     Returns once the actor is dead.
     """
-    ref = registrar._ref  # noqa: SLF001 - the testing namespace may reach inside
+    ref = registrar._ref
     ref.tell(_Crash())
     ref.actor_stopped.wait(timeout)
 
@@ -32,7 +32,7 @@ def catalog_snapshot(registrar: ResourceRegistrar, *, timeout: float = 5.0) -> C
         AssertionError: an index of the catalog disagrees with its rows.
     """
     reply = FutureReply()
-    registrar._ref.tell(_Request(lambda actor, r: actor.op_snapshot(r), reply))  # noqa: SLF001
+    registrar._ref.tell(_Request(lambda actor, r: actor.op_snapshot(r), reply))
     view: CatalogView = wait(reply.future, timeout, "catalog_snapshot()")
     return view
 
