@@ -209,8 +209,9 @@ class Catalog:
     def queries(self, resource: Resource, serving_rr: str) -> Iterator[Query]:
         """Yield one `Query` per consumer id of `resource`."""
         for qid, origin in resource.consumers.items():
-            yield Query(qid, resource.server, serving_rr, origin, resource.request,
-                        resource.response)
+            yield Query(
+                qid, resource.server, serving_rr, origin, resource.request, resource.response
+            )
 
     def server_queries(self, server: str, serving_rr: str) -> list[Query]:
         """Every consumer query of every loaded resource of `server`."""
@@ -300,7 +301,8 @@ class Catalog:
         for resource in self.resources.values():
             if resource.state is ResourceState.LOADED:
                 equal = [
-                    r for r in self.resources_of(resource.server)
+                    r
+                    for r in self.resources_of(resource.server)
                     if r.id != resource.id and requests_equal(r.request, resource.request)
                 ]
                 assert not equal, f"resource {resource.id} is loaded twice"
