@@ -891,6 +891,13 @@ class RegistrarActor(pykka.ThreadingActor):
         )
 
         def revoke_and_unload() -> None:
+            done = self.tokens.reply(self.actor_ref, lambda *_: then())
+            if resource.state is not ResourceState.LOADED:  # its consumers left meanwhile
+                if resource.id in self.unload_waiters:
+                    self.unload_waiters[resource.id].append(done)
+                else:
+                    done.set_result(None)
+                return
             by_origin: dict[str, list[str]] = {}
             for qid, origin in resource.consumers.items():
                 by_origin.setdefault(origin, []).append(qid)
@@ -899,7 +906,7 @@ class RegistrarActor(pykka.ThreadingActor):
                     DIRECTORY.lookup(origin).tell(Revoke(tuple(ids)))
             for qid in list(resource.consumers):
                 self.catalog.release(qid)
-            self._unload_resource(resource, self.tokens.reply(self.actor_ref, lambda *_: then()))
+            self._unload_resource(resource, done)
 
         self._notify(resource, update, str(uuid.uuid4()), query_id, revoke_and_unload)
 
