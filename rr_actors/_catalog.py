@@ -25,7 +25,12 @@ __all__ = ["Catalog", "Changes", "ClientRecord", "Resource", "ResourceState", "r
 _UNHASHABLE = ("<unhashable>",)
 
 
+_ATOMS = frozenset({int, float, str, bytes, bool, type(None)})
+
+
 def _freeze(value: Any) -> Any:
+    if type(value) in _ATOMS:
+        return value
     if isinstance(value, Mapping):
         return frozenset((_freeze(k), _freeze(v)) for k, v in value.items())
     if isinstance(value, list | tuple):
@@ -114,7 +119,8 @@ class Changes:
 class Catalog:
     """The bookkeeping of one registrar (thesis 4.3.2), without the locks."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, track_changes: bool = True) -> None:
+        self.track_changes = track_changes
         self.resources: dict[str, Resource] = {}
         self.clients: dict[str, ClientRecord] = {}
         self._by_consumer: dict[str, str] = {}
@@ -243,7 +249,7 @@ class Catalog:
         record = self.clients.get(query_id)
         if record is None:
             return None
-        record.query = dataclasses.replace(record.query, response=response)
+        record.query = record.query.with_response(response)
         record.loaded = True
         self._dirty_clients.add(query_id)
         return record
@@ -272,7 +278,14 @@ class Catalog:
     # -- persistence ------------------------------------------------------------------
 
     def drain_changes(self) -> Changes:
-        """Return and forget the rows changed since the last drain."""
+        """Return and forget the rows changed since the last drain.
+
+        Without `track_changes` (a catalog nobody persists) this is always empty.
+        """
+        if not self.track_changes:
+            self._dirty_resources.clear()
+            self._dirty_clients.clear()
+            return Changes({}, {})
         changes = Changes(
             {rid: self.resources.get(rid) for rid in self._dirty_resources},
             {qid: self.clients.get(qid) for qid in self._dirty_clients},
@@ -284,7 +297,7 @@ class Catalog:
     @classmethod
     def restore(cls, resources: Iterable[Resource], clients: Iterable[ClientRecord]) -> Catalog:
         """Build a catalog from stored rows (nothing is marked dirty)."""
-        catalog = cls()
+        catalog = cls(track_changes=True)
         for resource in resources:
             catalog._insert(resource)
             for qid in resource.consumers:

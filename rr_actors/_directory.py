@@ -98,11 +98,11 @@ class Directory:
             RegistrarStoppedError: it was stopped.
             RegistrarUnavailableError: it died.
         """
-        with self._lock:
-            peer = self._peers.get(name)
-            resolvers = list(self._resolvers)
+        peer = self._peers.get(name)  # a dict read is atomic; writers hold the lock
         if peer is not None:
             return peer
+        with self._lock:
+            resolvers = list(self._resolvers)
         for resolve in resolvers:
             found = resolve(name)
             if found is not None:

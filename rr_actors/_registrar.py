@@ -135,19 +135,19 @@ class _FetchVia:
 @dataclasses.dataclass(frozen=True)
 class _Pending:
     record: ClientRecord
-    on_status: StatusCallback | None
 
 
 @dataclasses.dataclass(frozen=True)
 class _ClientLoaded:
-    query_id: str
-    response: Any
+    record: ClientRecord  # its query holds the response
+    on_status: StatusCallback | None
     future: pykka.ThreadingFuture[Any] | None  # answered after the commit, if given
 
 
 @dataclasses.dataclass(frozen=True)
 class _CallFailed:
     query_id: str
+    gave_up: bool = False  # the caller timed out (an answer may still come)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -171,41 +171,48 @@ class _Crash:
 class _ClientReply:
     """The answer to a consumer's load: record it in the consumer's catalog, answer the caller.
 
-    With `commit_first` the consumer's registrar commits the client record before it
-    answers the caller (`save_on_modify`); otherwise the caller is answered at once.
+    The client record travels with the answer: the provider tells the consumer's
+    registrar before it can process any later status, so mailbox order puts the record
+    first. With `commit_first` (a durable consumer) the record was also written as
+    pending before the load was sent, and is committed before the caller is answered.
     """
 
-    __slots__ = ("commit_first", "future", "query_id", "registrar")
+    __slots__ = ("commit_first", "future", "on_status", "record", "registrar")
 
     def __init__(
         self,
         registrar: pykka.ActorRef[Any],
-        query_id: str,
+        record: ClientRecord,
+        on_status: StatusCallback | None,
         future: pykka.ThreadingFuture[Any],
         *,
         commit_first: bool,
     ) -> None:
         self.registrar = registrar
-        self.query_id = query_id
+        self.record = record
+        self.on_status = on_status
         self.future = future
         self.commit_first = commit_first
 
     def set_result(self, value: Any) -> None:
+        query = self.record.query.with_response(value)
+        record = ClientRecord(query, self.record.parent, loaded=True)
+        future = self.future if self.commit_first else None
         try:
-            self.registrar.tell(
-                _ClientLoaded(self.query_id, value, self.future if self.commit_first else None)
-            )
-        except pykka.ActorDeadError:
+            self.registrar.tell(_ClientLoaded(record, self.on_status, future))
+        except pykka.ActorDeadError:  # the consumer stopped meanwhile: give the id back
+            with contextlib.suppress(RrError):
+                DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, query.origin_rr))
             FutureReply(self.future).set_error(
-                RegistrarStoppedError("the calling registrar stopped before the answer came")
+                RegistrarStoppedError(f"registrar {query.origin_rr!r} stopped during the call")
             )
             return
-        if not self.commit_first:
+        if future is None:
             FutureReply(self.future).set_result(value)
 
     def set_error(self, error: BaseException) -> None:
         with contextlib.suppress(pykka.ActorDeadError):
-            self.registrar.tell(_CallFailed(self.query_id))
+            self.registrar.tell(_CallFailed(self.record.query.id))
         FutureReply(self.future).set_error(error)
 
 
@@ -320,7 +327,7 @@ class ClientActor(pykka.ThreadingActor):
         if isinstance(message, _Call):
             self._call(message)
         elif isinstance(message, _GiveUp):
-            self.registrar_ref.tell(_CallFailed(message.query_id))
+            self.registrar_ref.tell(_CallFailed(message.query_id, gave_up=True))
             with contextlib.suppress(RrError):  # a provider that is gone holds nothing
                 DIRECTORY.lookup(self.target_rr).tell(Abandon(message.query_id, self.origin_rr))
         elif isinstance(message, _FetchVia):
@@ -335,9 +342,14 @@ class ClientActor(pykka.ThreadingActor):
 
     def _call(self, message: _Call) -> None:
         query = message.record.query
-        self.registrar_ref.tell(_Pending(message.record, message.on_status))
+        if self.commit_first:
+            self.registrar_ref.tell(_Pending(message.record))
         reply = _ClientReply(
-            self.registrar_ref, query.id, message.future, commit_first=self.commit_first
+            self.registrar_ref,
+            message.record,
+            message.on_status,
+            message.future,
+            commit_first=self.commit_first,
         )
         try:
             peer = DIRECTORY.lookup(self.target_rr)
@@ -389,7 +401,8 @@ class RegistrarActor(pykka.ThreadingActor):
         self.status_callbacks: dict[str, StatusCallback] = {}
         self.loads: dict[str, list[_Waiter]] = {}  # resource id -> callers waiting for it
         self.loading_ids: dict[str, str] = {}  # waiting query id -> resource id
-        self.abandoned: set[str] = set()
+        self.abandoned: set[str] = set()  # provider side: callers that gave up on a load
+        self.given_up: set[str] = set()  # consumer side: calls whose caller timed out
         self.unload_waiters: dict[str, list[Reply]] = {}
         self.after_unload: dict[str, list[Load]] = {}
         self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
@@ -462,6 +475,8 @@ class RegistrarActor(pykka.ThreadingActor):
     # -- persistence ------------------------------------------------------------------
 
     def _commit(self) -> None:
+        if self.saver.store is None:  # nothing persists this catalog
+            return
         changes = self.catalog.drain_changes()
         if changes:
             self.saver.changed(changes)
@@ -499,39 +514,41 @@ class RegistrarActor(pykka.ThreadingActor):
 
     # -- provider side: load ----------------------------------------------------------
 
-    def _on_load(self, message: Load) -> None:
+    def _load_refusal(self, message: Load) -> RrError | None:
+        """Why this registrar cannot take `message` at all, if it cannot."""
         server = self.servers.get(message.server)
         if server is None or server.closing:
-            message.reply.set_error(
-                UnknownServerError(f"no resource server '{self.name}/{message.server}'")
-            )
-            return
+            return UnknownServerError(f"no resource server '{self.name}/{message.server}'")
         if self.stopping:
-            message.reply.set_error(RegistrarStoppedError(f"registrar {self.name!r} is stopping"))
-            return
+            return RegistrarStoppedError(f"registrar {self.name!r} is stopping")
         if len(message.chain) >= MAX_DEPENDENCY_DEPTH:
-            message.reply.set_error(
-                DependencyCycleError(
-                    f"load chain deeper than {MAX_DEPENDENCY_DEPTH} at '{self.name}/"
-                    f"{message.server}': runaway recursion"
-                )
+            return DependencyCycleError(
+                f"load chain deeper than {MAX_DEPENDENCY_DEPTH} at '{self.name}/"
+                f"{message.server}': runaway recursion"
             )
+        return None
+
+    def _on_load(self, message: Load) -> None:
+        refusal = self._load_refusal(message)
+        if refusal is not None:
+            message.reply.set_error(refusal)
             return
         if self.catalog.has_consumer(message.query_id):  # a retry of an answered call
             message.reply.set_result(self.catalog.resource_of(message.query_id).response)
+            return
+        resource = self.catalog.find(message.server, message.request)
+        if resource is not None and resource.state is ResourceState.LOADED:  # the hot path
+            self.catalog.add_consumer(resource.id, message.query_id, message.origin_rr)
+            self._commit()
+            message.reply.set_result(resource.response)
             return
         waiter = _Waiter(message.query_id, message.origin_rr, message.reply)
         rid = self.loading_ids.get(message.query_id)
         if rid is not None:  # a retry while its load runs
             self.loads[rid].append(waiter)
             return
-        resource = self.catalog.find(message.server, message.request)
         if resource is None:
-            self._start_load(server, message, waiter)
-        elif resource.state is ResourceState.LOADED:
-            self.catalog.add_consumer(resource.id, message.query_id, message.origin_rr)
-            self._commit()
-            message.reply.set_result(resource.response)
+            self._start_load(self.servers[message.server], message, waiter)
         elif resource.state is ResourceState.LOADING:
             if resource.id in message.chain:
                 message.reply.set_error(
@@ -803,21 +820,35 @@ class RegistrarActor(pykka.ThreadingActor):
 
     def _on_pending(self, message: _Pending) -> None:
         self.catalog.add_client(message.record)
-        if message.on_status is not None:
-            self.status_callbacks[message.record.query.id] = message.on_status
         self._commit()
 
     def _on_client_loaded(self, message: _ClientLoaded) -> None:
-        self.catalog.client_loaded(message.query_id, message.response)
+        query = message.record.query
+        if query.id in self.given_up:  # the caller timed out; the provider releases the id
+            self.given_up.discard(query.id)
+            if query.id in self.catalog.clients:
+                self.catalog.remove_client(query.id)
+                self._commit()
+            return
+        if query.id in self.catalog.clients:  # written as pending before the load was sent
+            self.catalog.client_loaded(query.id, query.response)
+        else:
+            self.catalog.add_client(message.record)
+        if message.on_status is not None:
+            self.status_callbacks[query.id] = message.on_status
         self._commit()
         if message.future is not None:
-            FutureReply(message.future).set_result(message.response)
+            FutureReply(message.future).set_result(query.response)
 
     def _on_call_failed(self, message: _CallFailed) -> None:
         if message.query_id in self.catalog.clients:
             self.catalog.remove_client(message.query_id)
             self.status_callbacks.pop(message.query_id, None)
             self._commit()
+        elif message.gave_up:  # its answer may still come: drop it then
+            self.given_up.add(message.query_id)
+        else:
+            self.given_up.discard(message.query_id)
 
     def _on_request(self, message: _Request) -> None:
         try:
@@ -1072,7 +1103,10 @@ class ResourceRegistrar:
         try:
             store = open_store(config)
             rows = store.load() if store is not None else None
-            catalog = Catalog.restore(*rows) if rows is not None else Catalog()
+            if rows is not None:
+                catalog = Catalog.restore(*rows)
+            else:
+                catalog = Catalog(track_changes=store is not None)
             saver = Saver(store, config)
             in_doubt = tuple(
                 Query(r.id, r.server, config.name, config.name, r.request, r.response)
@@ -1233,7 +1267,7 @@ class ResourceRegistrar:
             raise CallTimeoutError(
                 f"call to '{target_rr}/{server}' timed out after {limit:g} s"
             ) from None
-        return dataclasses.replace(query, response=response)
+        return query.with_response(response)
 
     def unload(self, query_id: str, *, timeout: float | None = None) -> None:
         """Release one consumer id obtained from `call` (rules 7-8).
