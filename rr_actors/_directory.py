@@ -90,6 +90,12 @@ class Directory:
         with self._lock:
             self._resolvers.append(resolver)
 
+    def remove_resolver(self, resolver: Callable[[str], Peer | None]) -> None:
+        """Stop consulting `resolver` (no-op if it was not added)."""
+        with self._lock:
+            if resolver in self._resolvers:
+                self._resolvers.remove(resolver)
+
     def lookup(self, name: str) -> Peer:
         """Return the peer of registrar `name`.
 

@@ -1,0 +1,285 @@
+"""Cross-process transport benchmark: rr_actors calls vs a raw multiprocessing.Pipe round trip.
+
+Run: `python benchmarks/bench_transport.py [--rounds N]`. Everything is measured in one run
+on the same machine, so the ratios are comparable:
+
+* the floor: a raw `multiprocessing.Pipe` round trip between two processes (bytes echo,
+  and an object echo with pickling);
+* a dedup-hit `call` from this process to a provider registrar in another process
+  (target: <= 3x the raw round trip), next to the same call with both registrars in this
+  process;
+* `send_status` over three hops across processes: provider process -> agent process ->
+  consumer in this process, and the acknowledgements back (target: <= 1 ms).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import multiprocessing
+import multiprocessing.connection
+import os
+import signal
+import statistics
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import cloudpickle
+
+import rr_actors as rr
+from rr_actors._transport import System, SystemAddress, attach
+
+Setup = Callable[[rr.ResourceRegistrar], None]
+
+
+# -- child processes ----------------------------------------------------------------------------
+
+
+def _echo(conn: multiprocessing.connection.Connection, objects: bool) -> None:
+    """Echo until the pipe closes (the raw floor)."""
+    with contextlib.suppress(EOFError, OSError):
+        while True:
+            if objects:
+                conn.send(conn.recv())
+            else:
+                conn.send_bytes(conn.recv_bytes())
+
+
+def _registrar_main(
+    address: SystemAddress, name: str, setup: bytes, control: multiprocessing.connection.Connection
+) -> None:
+    """Serve one registrar on the system until the control pipe says stop (or closes)."""
+    attached = attach(address)
+    registrar = rr.ResourceRegistrar.start(name)
+    try:
+        cloudpickle.loads(setup)(registrar)
+        attached.serve(registrar)
+        control.send("ready")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        registrar.stop()
+        attached.close()
+
+
+@contextlib.contextmanager
+def registrar_process(
+    ctx: Any, address: SystemAddress, name: str, setup: Setup
+) -> Iterator[multiprocessing.process.BaseProcess]:
+    """A registrar `name` in its own process for the duration of the block."""
+    parent, child = ctx.Pipe()
+    process = ctx.Process(
+        target=_registrar_main, args=(address, name, cloudpickle.dumps(setup), child), daemon=True
+    )
+    process.start()
+    child.close()
+    try:
+        if not parent.poll(60) or parent.recv() != "ready":
+            raise RuntimeError(f"registrar process {name} did not start")
+        yield process
+    finally:
+        with contextlib.suppress(OSError):
+            parent.send("stop")
+        process.join(10)
+        if process.is_alive():
+            process.kill()
+            process.join(5)
+
+
+# -- measurements -------------------------------------------------------------------------------
+
+
+def timed(fn: Callable[[], Any], rounds: int, warmup: int = 200) -> list[float]:
+    """Seconds per call of `fn`, `rounds` times after `warmup` untimed calls."""
+    for _ in range(warmup):
+        fn()
+    samples = []
+    for _ in range(rounds):
+        start = time.perf_counter()
+        fn()
+        samples.append(time.perf_counter() - start)
+    return samples
+
+
+def raw_pipe(ctx: Any, rounds: int, *, objects: bool) -> list[float]:
+    parent, child = ctx.Pipe()
+    process = ctx.Process(target=_echo, args=(child, objects), daemon=True)
+    process.start()
+    child.close()
+    try:
+        if objects:
+            message = ("0f3b7b2c-1111-2222-3333-444455556666", "echo", {"cam": 1})
+
+            def once() -> None:
+                parent.send(message)
+                parent.recv()
+        else:
+            payload = b"x" * 200
+
+            def once() -> None:
+                parent.send_bytes(payload)
+                parent.recv_bytes()
+
+        return timed(once, rounds)
+    finally:
+        parent.close()
+        process.join(10)
+
+
+def setup_echo(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server(
+        "echo", load=lambda request: {"resource": request}, unload=lambda _q, _r: None
+    )
+
+
+def dedup_hits(consumer: rr.ResourceRegistrar, provider: str, rounds: int) -> list[float]:
+    ids: list[str] = []
+
+    def once() -> None:
+        ids.append(consumer.call(provider, "echo", {"cam": 1}).id)
+
+    samples = timed(once, rounds)
+    for query_id in ids:
+        consumer.unload(query_id)
+    return samples
+
+
+def status_timings(rounds: int) -> Callable[[rr.ResourceRegistrar], list[float]]:
+    """A function to run in the provider: time `send_status` of its first query."""
+
+    def measure(registrar: rr.ResourceRegistrar) -> list[float]:
+        query_id = registrar.server_queries("echo")[0].id
+        return timed(lambda: registrar.send_status(query_id, rr.Status.UPDATE, "tick"), rounds)
+
+    return measure
+
+
+def agent_setup(provider: str) -> Setup:
+    """The agent's `composite` server depends on the provider's `echo` (a dependency)."""
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        def load(request: Any) -> Any:
+            return registrar.call(provider, "echo", request).response
+
+        registrar.register_server("composite", load=load, unload=lambda _q, _r: None)
+
+    return setup
+
+
+def setup_hang(registrar: rr.ResourceRegistrar) -> None:
+    """`hang` blocks its load; a load of `started` returns once a `hang` load runs."""
+    started = threading.Event()
+
+    def hang(_request: Any) -> Any:
+        started.set()
+        threading.Event().wait(60)
+
+    registrar.register_server("hang", load=hang, unload=lambda _q, _r: None)
+    registrar.register_server(
+        "started", load=lambda _request: started.wait(10), unload=lambda _q, _r: None
+    )
+
+
+def kill_detection(
+    ctx: Any, system: System, consumer: rr.ResourceRegistrar, repeats: int
+) -> list[float]:
+    """Seconds from SIGKILL of a provider to the failure of a call in flight to it."""
+    samples = []
+    for number in range(repeats):
+        name = f"victim-{number}-{uuid.uuid4().hex[:6]}"
+        failed = threading.Event()
+        ended: list[float] = []
+
+        def call(
+            name: str = name, failed: threading.Event = failed, ended: list[float] = ended
+        ) -> None:
+            try:
+                consumer.call(name, "hang", "r", timeout=30)
+            except rr.RegistrarUnavailableError:
+                ended.append(time.perf_counter())
+            failed.set()
+
+        with registrar_process(ctx, system.address, name, setup_hang) as process:
+            threading.Thread(target=call, daemon=True).start()
+            if not consumer.call(name, "started", None, timeout=10).response:
+                raise RuntimeError("the load never started")
+            assert process.pid is not None
+            killed = time.perf_counter()
+            os.kill(process.pid, signal.SIGKILL)
+            if not failed.wait(30) or not ended:
+                raise RuntimeError("the call in flight did not fail as unavailable")
+            samples.append(ended[0] - killed)
+    return samples
+
+
+# -- report ---------------------------------------------------------------------------------------
+
+
+def row(name: str, samples: list[float], floor: float) -> str:
+    median = statistics.median(samples)
+    p90 = statistics.quantiles(samples, n=10)[-1]
+    return f"| {name} | {median * 1e6:9.1f} | {p90 * 1e6:9.1f} | {median / floor:6.2f}x |"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=2000, help="timed round trips per row")
+    args = parser.parse_args()
+    rounds: int = args.rounds
+    ctx = multiprocessing.get_context("forkserver")
+
+    raw_bytes = raw_pipe(ctx, rounds, objects=False)
+    raw_objects = raw_pipe(ctx, rounds, objects=True)
+    floor = statistics.median(raw_bytes)
+
+    suffix = uuid.uuid4().hex[:6]
+    system = System.create()
+    try:
+        consumer = rr.ResourceRegistrar.start(f"main-{suffix}")
+        system.serve(consumer)
+        local = rr.ResourceRegistrar.start(f"local-{suffix}")
+        setup_echo(local)
+        provider = f"provider-{suffix}"
+        agent = f"agent-{suffix}"
+        try:
+            in_process = dedup_hits(consumer, local.name, rounds)
+            with registrar_process(ctx, system.address, provider, setup_echo):
+                cross = dedup_hits(consumer, provider, rounds)
+                with registrar_process(ctx, system.address, agent, agent_setup(provider)):
+                    heard: list[Any] = []
+                    query = consumer.call(
+                        agent, "composite", {"cam": 2}, on_status=lambda _q, u: heard.append(u)
+                    )
+                    status = system.run(provider, status_timings(rounds), timeout=600)
+                    consumer.unload(query.id)
+                    if len(heard) < rounds:
+                        raise RuntimeError(f"only {len(heard)} statuses reached the consumer")
+            killed = kill_detection(ctx, system, consumer, repeats=10)
+        finally:
+            local.stop()
+            consumer.stop()
+    finally:
+        system.close()
+
+    print(f"rounds per row: {rounds}; times in microseconds; ratio = median / raw bytes median")
+    print()
+    print("| measurement | median us | p90 us | ratio |")
+    print("|---|---:|---:|---:|")
+    print(row("raw Pipe round trip, send_bytes (floor)", raw_bytes, floor))
+    print(row("raw Pipe round trip, send/recv objects", raw_objects, floor))
+    print(row("dedup-hit call, both registrars in one process", in_process, floor))
+    print(row("dedup-hit call across processes (target <= 3x)", cross, floor))
+    print(row("send_status over 3 process hops (target <= 1000 us)", status, floor))
+    print(row("SIGKILL of provider -> call in flight fails (10 kills)", killed, floor))
+    print()
+    print(
+        f"cross-process dedup hit vs raw object round trip: "
+        f"{statistics.median(cross) / statistics.median(raw_objects):.2f}x"
+    )
+
+
+if __name__ == "__main__":
+    main()

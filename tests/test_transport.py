@@ -1,0 +1,543 @@
+"""Registrars talking across real processes over the system's authenticated channels.
+
+Each provider registrar runs in a child process started with the "forkserver" context: the
+child attaches the system, starts a registrar, runs a setup function (cloudpickled),
+serves the registrar, says "ready" over a pipe and waits until the pipe says "stop" (or
+closes: a child never outlives the test process). The consumer is in the test process.
+
+Functions that read a child's state (`load_count`, `wait_load_started`, ...) are module
+level, so cloudpickle sends them by reference and they run against the child's globals.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import multiprocessing
+import multiprocessing.connection
+import multiprocessing.context
+import multiprocessing.forkserver
+import os
+import pickle
+import signal
+import stat
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import cloudpickle
+import pytest
+
+import rr_actors as rr
+from rr_actors._directory import DIRECTORY
+from rr_actors._messages import Load
+from rr_actors._transport import RemotePeer, System, attach
+
+Setup = Callable[[rr.ResourceRegistrar], None]
+
+# -- what runs in the child -------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class ChildState:
+    """Per-process record of what the provider's callbacks did (lives in the child)."""
+
+    loads: list[Any] = dataclasses.field(default_factory=list)
+    unloads: list[Any] = dataclasses.field(default_factory=list)
+    load_started: threading.Event = dataclasses.field(default_factory=threading.Event)
+    release: threading.Event = dataclasses.field(default_factory=threading.Event)
+    lock: threading.Lock = dataclasses.field(default_factory=threading.Lock)
+
+
+CHILD = ChildState()
+
+
+def _record_load(request: Any) -> Any:
+    with CHILD.lock:
+        CHILD.loads.append(request)
+    return {"resource": request}
+
+
+def _record_unload(request: Any, _response: Any) -> None:
+    with CHILD.lock:
+        CHILD.unloads.append(request)
+
+
+def _blocking_load(request: Any) -> Any:
+    CHILD.load_started.set()
+    CHILD.release.wait(30)
+    return request
+
+
+def setup_servers(registrar: rr.ResourceRegistrar) -> None:
+    """The provider's servers: a recording `echo`, a `slow` one and one with a bad response."""
+    registrar.register_server("echo", load=_record_load, unload=_record_unload)
+    registrar.register_server("slow", load=_blocking_load, unload=_record_unload)
+    registrar.register_server("lock", load=lambda _request: threading.Lock(), unload=_record_unload)
+
+
+def load_count(_registrar: rr.ResourceRegistrar) -> int:
+    """How many times a `load` callback ran in this (child) process."""
+    return len(CHILD.loads)
+
+
+def unloads(_registrar: rr.ResourceRegistrar) -> list[Any]:
+    """The requests whose `unload` callback ran in this (child) process."""
+    return list(CHILD.unloads)
+
+
+def wait_load_started(_registrar: rr.ResourceRegistrar) -> bool:
+    """Block (bounded) until the `slow` server's load runs in this process."""
+    return CHILD.load_started.wait(10)
+
+
+def provider_main(
+    address: Any, name: str, setup: bytes, control: multiprocessing.connection.Connection
+) -> None:
+    """A provider process: serve a registrar until told to stop (or the parent is gone)."""
+    attached = attach(address)
+    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, call_timeout=10.0))
+    try:
+        cloudpickle.loads(setup)(registrar)
+        attached.serve(registrar)
+        control.send("ready")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        CHILD.release.set()
+        registrar.stop()
+        attached.close()
+
+
+# -- fixtures -----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def context() -> multiprocessing.context.ForkServerContext:
+    """The forkserver context, with its helper processes started before any leak check."""
+    ctx = multiprocessing.get_context("forkserver")
+    assert isinstance(ctx, multiprocessing.context.ForkServerContext)
+    ctx.set_forkserver_preload(["rr_actors", "rr_actors._transport", "cloudpickle"])
+    multiprocessing.forkserver.ensure_running()
+    return ctx
+
+
+@pytest.fixture
+def system() -> Iterator[System]:
+    """A fresh system (runtime directory + authkey), closed after the test."""
+    created = System.create()
+    yield created
+    created.close()
+
+
+@pytest.fixture
+def consumer(system: System) -> Iterator[rr.ResourceRegistrar]:
+    """A consumer registrar in the test process, served on the system."""
+    registrar = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=f"consumer-{uuid.uuid4().hex[:8]}", call_timeout=30.0)
+    )
+    system.serve(registrar)
+    yield registrar
+    registrar.stop()
+
+
+@dataclasses.dataclass
+class Provider:
+    """A provider registrar's child process, as the test sees it."""
+
+    name: str
+    process: multiprocessing.process.BaseProcess
+    control: multiprocessing.connection.Connection
+
+    @property
+    def pid(self) -> int:
+        assert self.process.pid is not None
+        return self.process.pid
+
+    def kill(self) -> None:
+        """SIGKILL the process and reap it."""
+        os.kill(self.pid, signal.SIGKILL)
+        self.process.join(10)
+        assert not self.process.is_alive()
+
+    def stop(self) -> None:
+        """Ask for a clean stop (registrar.stop(), then exit) and reap the process."""
+        with contextlib.suppress(OSError):
+            self.control.send("stop")
+        self.process.join(10)
+        assert 0 == self.process.exitcode
+
+
+ProviderFactory = Callable[..., Provider]
+
+
+@pytest.fixture
+def start_provider(
+    context: multiprocessing.context.ForkServerContext, system: System
+) -> Iterator[ProviderFactory]:
+    """Start provider processes: `start_provider(setup, name=None)`; all are reaped after."""
+    started: list[Provider] = []
+
+    def start(setup: Setup = setup_servers, name: str | None = None) -> Provider:
+        name = name or f"provider-{uuid.uuid4().hex[:8]}"
+        parent_end, child_end = context.Pipe()
+        process = context.Process(
+            target=provider_main,
+            args=(system.address, name, cloudpickle.dumps(setup), child_end),
+            name=name,
+            daemon=True,
+        )
+        process.start()
+        child_end.close()
+        provider = Provider(name, process, parent_end)
+        started.append(provider)
+        assert parent_end.poll(30), "the provider process did not get ready"
+        assert "ready" == parent_end.recv()
+        return provider
+
+    yield start
+    for provider in started:
+        with contextlib.suppress(OSError):
+            provider.control.send("stop")
+    for provider in started:
+        provider.process.join(10)
+        if provider.process.is_alive():
+            provider.process.kill()
+            provider.process.join(5)
+        provider.control.close()
+
+
+def in_thread(fn: Callable[[], Any]) -> tuple[threading.Event, dict[str, Any]]:
+    """Run `fn` on a thread; the dict gets `result` or `error` and the `time` it ended."""
+    done = threading.Event()
+    outcome: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            outcome["result"] = fn()
+        except BaseException as exc:
+            outcome["error"] = exc
+        outcome["time"] = time.monotonic()
+        done.set()
+
+    threading.Thread(target=run, daemon=True).start()
+    return done, outcome
+
+
+# -- the system ---------------------------------------------------------------------------------
+
+
+def test_the_runtime_directory_is_private_to_its_user(system: System) -> None:
+    assert 0o700 == stat.S_IMODE(os.stat(system.address.runtime_dir).st_mode)
+
+
+def test_a_given_runtime_directory_is_made_private(tmp_path: Path) -> None:
+    wanted = tmp_path / "run"
+    wanted.mkdir(mode=0o755)
+    created = System.create(str(wanted))
+    try:
+        assert 0o700 == stat.S_IMODE(os.stat(wanted).st_mode)
+    finally:
+        created.close()
+    assert not wanted.exists()
+
+
+def test_the_system_address_pickles_and_hides_its_key_in_its_repr(system: System) -> None:
+    address = pickle.loads(pickle.dumps(system.address))
+
+    assert system.address == address
+    assert system.address.authkey.hex() not in repr(address)
+
+
+# -- calls across processes ----------------------------------------------------------------------
+
+
+def test_a_call_loads_once_and_an_equal_call_shares_the_resource(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+
+    first = consumer.call(provider.name, "echo", {"cam": 1})
+    second = consumer.call(provider.name, "echo", {"cam": 1})
+
+    assert ({"resource": {"cam": 1}}, {"resource": {"cam": 1}}) == (
+        first.response,
+        second.response,
+    )
+    assert first.id != second.id
+    assert 1 == system.run(provider.name, load_count, timeout=10)
+
+
+def test_unload_across_processes_runs_the_unload_callback_after_the_last_consumer(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    first = consumer.call(provider.name, "echo", "r")
+    second = consumer.call(provider.name, "echo", "r")
+
+    consumer.unload(first.id)
+    after_first = system.run(provider.name, unloads, timeout=10)
+    consumer.unload(second.id)
+
+    assert ([], ["r"]) == (after_first, system.run(provider.name, unloads, timeout=10))
+
+
+def test_fetch_across_processes_lists_each_consumer_id_once(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    ids = {consumer.call(provider.name, "echo", "r").id for _ in range(3)}
+
+    fetched = consumer.fetch_queries(provider.name, "echo")
+
+    assert ids == {q.id for q in fetched}
+    assert 3 == len(fetched)
+
+
+def test_a_status_sent_in_the_provider_process_reaches_the_consumer_callback(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    heard: list[rr.StatusUpdate] = []
+    query = consumer.call(provider.name, "echo", "r", on_status=lambda _q, u: heard.append(u))
+
+    system.run(
+        provider.name,
+        lambda registrar: registrar.send_status(query.id, rr.Status.WARNING, "hot"),
+        timeout=10,
+    )
+
+    assert [(query.id, rr.Status.WARNING, "hot")] == [
+        (u.query_id, u.status, u.message) for u in heard
+    ]
+
+
+def test_run_reraises_what_the_function_raised_in_the_other_process(
+    system: System, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+
+    with pytest.raises(rr.UnknownQueryError):
+        system.run(
+            provider.name,
+            lambda registrar: registrar.send_status("no-such-id", rr.Status.OK),
+            timeout=10,
+        )
+
+
+# -- failures -------------------------------------------------------------------------------------
+
+
+def test_a_call_in_flight_to_a_killed_process_fails_at_once_as_unavailable(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    done, outcome = in_thread(lambda: consumer.call(provider.name, "slow", "r", timeout=30))
+    assert system.run(provider.name, wait_load_started, timeout=10)
+
+    killed_at = time.monotonic()
+    provider.kill()
+
+    assert done.wait(10)
+    assert isinstance(outcome.get("error"), rr.RegistrarUnavailableError)
+    assert outcome["time"] - killed_at < 2.0  # far below the 30 s call timeout
+
+
+def test_a_call_to_a_killed_process_fails_as_unavailable(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    consumer.call(provider.name, "echo", "warm up the connection")
+    provider.kill()
+
+    with pytest.raises(rr.RegistrarUnavailableError):
+        consumer.call(provider.name, "echo", "r", timeout=10)
+
+
+def test_a_call_to_a_cleanly_stopped_process_fails_as_stopped(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    consumer.call(provider.name, "echo", "warm up the connection")
+    provider.stop()
+
+    with pytest.raises(rr.RegistrarStoppedError):
+        consumer.call(provider.name, "echo", "r", timeout=10)
+
+
+def test_a_call_to_a_name_nobody_serves_is_an_unknown_server(
+    consumer: rr.ResourceRegistrar,
+) -> None:
+    with pytest.raises(rr.UnknownServerError):
+        consumer.call(f"nobody-{uuid.uuid4().hex[:8]}", "echo", "r", timeout=10)
+
+
+def test_a_restarted_provider_is_reached_again_on_the_next_call(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    consumer.call(provider.name, "echo", "before")
+    provider.kill()
+    with pytest.raises(rr.RegistrarUnavailableError):
+        consumer.call(provider.name, "echo", "while dead", timeout=10)
+
+    again = start_provider(name=provider.name)
+    query = consumer.call(again.name, "echo", "after", timeout=10)
+
+    assert {"resource": "after"} == query.response
+    assert 1 == system.run(again.name, load_count, timeout=10)
+
+
+def test_an_unpicklable_request_is_a_config_error_at_the_caller_and_nothing_loads(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+
+    with pytest.raises(rr.ConfigError, match="not picklable") as caught:
+        consumer.call(provider.name, "echo", threading.Lock(), timeout=10)
+
+    assert f"'{provider.name}/echo'" in str(caught.value)
+    assert isinstance(caught.value.__cause__, TypeError)
+    assert 0 == system.run(provider.name, load_count, timeout=10)
+    assert [] == consumer.client_queries()
+
+
+def test_an_unpicklable_response_fails_the_call_and_releases_its_consumer_id(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    eventually: Callable[..., bool],
+) -> None:
+    provider = start_provider()
+
+    with pytest.raises(rr.ResourceLoadError, match="not picklable"):
+        consumer.call(provider.name, "lock", "r", timeout=10)
+
+    assert eventually(lambda: ["r"] == system.run(provider.name, unloads, timeout=10))
+    assert [] == system.run(
+        provider.name, lambda registrar: registrar.server_queries("lock"), timeout=10
+    )
+    assert [] == consumer.client_queries()
+
+
+def test_no_raw_low_level_error_reaches_a_caller(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    held = consumer.call(provider.name, "echo", "held")
+    done, outcome = in_thread(lambda: consumer.call(provider.name, "slow", "r", timeout=30))
+    assert system.run(provider.name, wait_load_started, timeout=10)
+    provider.kill()
+    assert done.wait(10)
+    errors: list[BaseException] = [outcome["error"]]
+    attempts: list[Callable[[], Any]] = [
+        lambda: consumer.call(provider.name, "echo", "r", timeout=10),
+        lambda: consumer.unload(held.id, timeout=10),
+        lambda: consumer.fetch_queries(provider.name, "echo", timeout=10),
+        lambda: system.run(provider.name, load_count, timeout=10),
+        lambda: consumer.call(provider.name, "echo", threading.Lock(), timeout=10),
+    ]
+    for attempt in attempts:
+        try:
+            attempt()
+        except BaseException as exc:
+            errors.append(exc)
+
+    raw = (EOFError, BrokenPipeError, ConnectionResetError, pickle.PickleError)
+    assert len(attempts) + 1 == len(errors)
+    assert [] == [e for e in errors if isinstance(e, raw) or not isinstance(e, rr.RrError)]
+
+
+# -- authentication --------------------------------------------------------------------------------
+
+
+class _Marker:
+    """A payload whose unpickling would create a file (to show nothing was unpickled)."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (Path.touch, (Path(self.path),))
+
+
+def _drain_until_closed(conn: multiprocessing.connection.Connection) -> bool:
+    """Read until the other side closes the connection; False if it stays open for 10 s."""
+    while True:
+        try:
+            if not conn.poll(10):
+                return False
+            conn.recv_bytes()
+        except (EOFError, OSError):
+            return True
+
+
+def _evil_load(name: str, marker: str) -> bytes:
+    message = Load("q-1", "echo", _Marker(marker), "intruder", (), None)  # type: ignore[arg-type]
+    payload: bytes = cloudpickle.dumps(message)
+    return b"\x00" * 8 + payload
+
+
+def test_a_client_with_the_wrong_authkey_is_refused_and_nothing_runs(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+) -> None:
+    provider = start_provider()
+    path = system.address.socket_path(provider.name)
+
+    with pytest.raises(multiprocessing.AuthenticationError):
+        multiprocessing.connection.Client(path, family="AF_UNIX", authkey=os.urandom(32))
+
+    assert 0 == system.run(provider.name, load_count, timeout=10)
+    assert {"resource": "ok"} == consumer.call(provider.name, "echo", "ok").response
+
+
+def test_a_client_without_an_authkey_is_refused_before_its_payload_is_unpickled(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    tmp_path: Path,
+) -> None:
+    provider = start_provider()
+    marker = tmp_path / "unpickled"
+    conn = multiprocessing.connection.Client(
+        system.address.socket_path(provider.name), family="AF_UNIX"
+    )
+    try:
+        for _ in range(3):
+            conn.send_bytes(_evil_load(provider.name, str(marker)))
+        assert _drain_until_closed(conn), "the listener kept an unauthenticated connection"
+    finally:
+        conn.close()
+
+    assert not marker.exists()
+    assert 0 == system.run(provider.name, load_count, timeout=10)
+    assert {"resource": "ok"} == consumer.call(provider.name, "echo", "ok").response
+
+
+def test_a_stalled_unauthenticated_client_does_not_block_others(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory, system: System
+) -> None:
+    provider = start_provider()
+    silent = multiprocessing.connection.Client(
+        system.address.socket_path(provider.name), family="AF_UNIX"
+    )
+    try:
+        query = consumer.call(provider.name, "echo", "ok", timeout=10)
+    finally:
+        silent.close()
+
+    assert {"resource": "ok"} == query.response
+
+
+def test_a_remote_peer_is_what_the_directory_hands_out_for_another_process(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+
+    assert isinstance(DIRECTORY.lookup(provider.name), RemotePeer)
+    assert not isinstance(DIRECTORY.lookup(consumer.name), RemotePeer)
