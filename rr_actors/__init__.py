@@ -7,6 +7,14 @@ semantics and the docs for a tutorial.
 import logging
 
 from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, ResourceRegistrar
+from rr_actors._supervisor import (
+    Backoff,
+    ChildCounts,
+    ChildInfo,
+    ManagerSpec,
+    Supervisor,
+    SupervisorSpec,
+)
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (
@@ -27,12 +35,16 @@ from rr_actors.errors import (
 
 __all__ = [
     "MAX_DEPENDENCY_DEPTH",
+    "Backoff",
     "CallTimeoutError",
     "CatalogCorruptError",
+    "ChildCounts",
+    "ChildInfo",
     "ConfigError",
     "DependencyCycleError",
     "DuplicateNameError",
     "ErrorFrame",
+    "ManagerSpec",
     "Query",
     "RegistrarConfig",
     "RegistrarStoppedError",
@@ -43,7 +55,9 @@ __all__ = [
     "Status",
     "StatusCallback",
     "StatusUpdate",
+    "Supervisor",
     "SupervisorGaveUpError",
+    "SupervisorSpec",
     "UnknownQueryError",
     "UnknownServerError",
 ]

@@ -23,7 +23,6 @@ import contextvars
 import dataclasses
 import functools
 import logging
-import threading
 import traceback
 import uuid
 from collections.abc import Callable
@@ -43,7 +42,7 @@ from rr_actors._messages import (
     StatusNotice,
     Unload,
 )
-from rr_actors._persistence import Saver, open_store
+from rr_actors._persistence import Cancellable, Saver, open_store
 from rr_actors._replies import Answer, FutureReply, Join, Tokens, wait
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors._workers import Workers
@@ -408,7 +407,7 @@ class RegistrarActor(pykka.ThreadingActor):
         self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
         self.seen_events: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
         self.stopping = False
-        self.flush_timer: threading.Timer | None = None
+        self.flush_timer: Cancellable | None = None
 
     # -- life cycle -------------------------------------------------------------------
 
@@ -491,9 +490,7 @@ class RegistrarActor(pykka.ThreadingActor):
             with contextlib.suppress(pykka.ActorDeadError):
                 ref.tell(_Flush())
 
-        self.flush_timer = threading.Timer(interval, tick)
-        self.flush_timer.daemon = True
-        self.flush_timer.start()
+        self.flush_timer = self.saver.schedule(tick)
 
     def _on_flush(self, _: _Flush) -> None:
         self.saver.flush()
@@ -819,6 +816,8 @@ class RegistrarActor(pykka.ThreadingActor):
         return client
 
     def _on_pending(self, message: _Pending) -> None:
+        if message.record.query.id in self.catalog.clients:  # a retry of a call it holds
+            return
         self.catalog.add_client(message.record)
         self._commit()
 

@@ -1,0 +1,507 @@
+"""Manager processes: the child's `main` and the parent's handle on one manager process.
+
+A process manager is started with the `forkserver` context (`spawn` where there is no
+forkserver), never with a plain `fork` of the threaded parent. In the child, `main`:
+
+1. asks the kernel to kill it when its parent dies (`prctl(PR_SET_PDEATHSIG)` on Linux),
+2. attaches to the system and starts the registrar, which restores its catalog,
+3. runs the (cloudpickled) `setup(registrar)`, then serves the registrar on the system,
+4. reports `ready` over its control pipe and answers control requests: `stop`, `ping`
+   (the heartbeat, answered through the registrar actor's mailbox) and `run` (a function
+   run against the registrar, for tests and tools),
+5. exits at once when the control pipe reaches EOF: the parent is gone.
+
+In the parent, [`ManagerProcess`][rr_actors._manager.ManagerProcess] owns the process and
+its control pipe; one watcher thread per process blocks on the process sentinel and the
+pipe (no polling) and sends the heartbeat pings.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import itertools
+import logging
+import multiprocessing
+import multiprocessing.connection
+import os
+import signal
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from multiprocessing.connection import Connection
+from typing import Any
+
+import cloudpickle
+import pykka
+
+from rr_actors._replies import FutureReply, wait
+from rr_actors.config import RegistrarConfig
+from rr_actors.errors import ConfigError, RegistrarUnavailableError, RrError
+
+__all__ = ["ManagerExit", "ManagerProcess", "main", "mp_context"]
+
+logger = logging.getLogger("rr_actors")
+
+_TRACE = os.environ.get("RR_TRACE")
+
+
+def _T(label: str) -> None:
+    if _TRACE:
+        with open(_TRACE, "a") as f:
+            f.write(f"{time.monotonic():.6f} {os.getpid()} {label}\n")
+
+_PR_SET_PDEATHSIG = 1
+_PARENT_GONE_EXIT = 70  # the exit code of a manager whose parent died
+_ACTOR_DIED_EXIT = 71  # the registrar actor died inside a living process
+
+
+def mp_context() -> multiprocessing.context.BaseContext:
+    """The multiprocessing context for manager processes: forkserver, else spawn."""
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(
+            [
+                "rr_actors._manager",
+                "rr_actors._registrar",
+                "rr_actors._transport",
+                "rr_actors._sqlite_store",
+            ]
+        )
+        return ctx
+    return multiprocessing.get_context("spawn")
+
+
+def start_forkserver() -> None:
+    """Start the forkserver now (if manager processes use one), not at the first manager.
+
+    The forkserver (and multiprocessing's resource tracker) are long-lived helper children
+    of this process; tests that count child processes start them before counting.
+    """
+    if mp_context().get_start_method() == "forkserver":
+        from multiprocessing import forkserver  # noqa: PLC0415
+
+        forkserver.ensure_running()
+
+
+def _die_with_parent() -> None:
+    """Linux: have the kernel SIGKILL this process when the process that forked it dies."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    except (OSError, AttributeError):  # no prctl: the control pipe EOF still works
+        logger.debug("prctl(PR_SET_PDEATHSIG) unavailable")
+
+
+# -- the child ---------------------------------------------------------------------------
+
+
+class _Control:
+    """The child's end of the control pipe; `send` may be called from any thread."""
+
+    def __init__(self, conn: Connection) -> None:
+        self.conn = conn
+        self.lock = threading.Lock()
+
+    def send(self, message: tuple[Any, ...]) -> None:
+        # OSError: the parent is gone; the control loop sees EOF and exits
+        with self.lock, contextlib.suppress(OSError):
+            self.conn.send(message)
+
+
+class _Pong:
+    """A reply that answers a heartbeat ping once the registrar actor got to it."""
+
+    def __init__(self, control: _Control, number: int) -> None:
+        self.control = control
+        self.number = number
+
+    def set_result(self, _: Any) -> None:
+        self.control.send(("pong", self.number))
+
+    def set_error(self, _: BaseException) -> None:
+        pass  # no pong: the parent counts it as missed
+
+
+def _run_request(control: _Control, registrar: Any, token: int, payload: bytes) -> None:
+    try:
+        fn = cloudpickle.loads(payload)
+        value = fn(registrar)
+        answer = ("result", token, True, cloudpickle.dumps(value))
+    except BaseException as exc:  # noqa: BLE001 - returned to the caller in the parent
+        try:
+            answer = ("result", token, False, cloudpickle.dumps(exc))
+        except Exception:  # noqa: BLE001 - the error itself does not pickle
+            text = "".join(traceback.format_exception(exc))
+            answer = ("result", token, False, cloudpickle.dumps(RrError(text)))
+    control.send(answer)
+
+
+def main(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) -> None:
+    """Run one manager: restore, set up, serve, then answer control requests until stopped.
+
+    Runs as the target of a manager process (never in the supervisor's process).
+
+    Args:
+        setup: `cloudpickle.dumps(setup_function_or_None)`.
+        config: the registrar's configuration (its backup is restored before `setup`).
+        address: the system's `SystemAddress`, or `None` to run unattached.
+        conn: the child's end of the control pipe.
+    """
+    _T("child main")
+    _die_with_parent()
+    from rr_actors._registrar import ResourceRegistrar  # noqa: PLC0415 - preloaded
+
+    control = _Control(conn)
+    attached: Any = None
+    try:
+        if address is not None:
+            from rr_actors._transport import attach  # noqa: PLC0415
+
+            attached = attach(address)
+        _T("attached")
+        registrar = ResourceRegistrar.start(config)
+        _T("registrar started")
+        setup_fn = cloudpickle.loads(setup)
+        if setup_fn is not None:
+            setup_fn(registrar)
+        _T("setup")
+        if attached is not None:
+            attached.serve(registrar)
+        _T("served")
+    except BaseException as exc:  # noqa: BLE001 - reported to the supervisor, then exit
+        control.send(("failed", "".join(traceback.format_exception(exc))))
+        os._exit(1)
+    stopping = threading.Event()
+
+    def watch_actor() -> None:
+        registrar._ref.actor_stopped.wait()
+        if not stopping.is_set():
+            os._exit(_ACTOR_DIED_EXIT)
+
+    threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
+    control.send(("ready", os.getpid()))
+    _serve_control(conn, control, registrar, attached, stopping)
+
+
+def _serve_control(
+    conn: Connection, control: _Control, registrar: Any, attached: Any, stopping: threading.Event
+) -> None:
+    """The child's control loop: answer pings, run requests, stop; exit on EOF."""
+    from rr_actors._registrar import _Request  # noqa: PLC0415 - preloaded by the forkserver
+
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            os._exit(_PARENT_GONE_EXIT)  # the supervisor's process is gone: no orphans
+        kind = message[0]
+        if kind == "ping":
+            pong = _Pong(control, message[1])
+            with contextlib.suppress(pykka.ActorDeadError):
+                registrar._ref.tell(_Request(lambda _actor, reply: reply.set_result(None), pong))
+        elif kind == "run":
+            threading.Thread(
+                target=_run_request,
+                args=(control, registrar, message[1], message[2]),
+                name="rr-manager-run",
+                daemon=True,
+            ).start()
+        elif kind == "stop":
+            stopping.set()
+            code = 0
+            try:
+                registrar.stop(timeout=message[1])
+            except RrError:
+                logger.exception("manager %s did not stop cleanly", registrar.name)
+                code = 1
+            if attached is not None:
+                with contextlib.suppress(Exception):
+                    attached.close()
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
+
+
+# -- the parent --------------------------------------------------------------------------
+
+
+class ManagerExit:
+    """Why a manager process ended: `reason` text and whether it counts as `normal`."""
+
+    __slots__ = ("normal", "reason")
+
+    def __init__(self, reason: str, *, normal: bool) -> None:
+        self.reason = reason
+        self.normal = normal
+
+    def __repr__(self) -> str:
+        return f"ManagerExit({self.reason!r}, normal={self.normal})"
+
+
+def _describe(exitcode: int | None) -> ManagerExit:
+    if exitcode == 0:
+        return ManagerExit("normal", normal=True)
+    if exitcode is None:
+        return ManagerExit("unknown exit", normal=False)
+    if exitcode < 0:
+        try:
+            name = signal.Signals(-exitcode).name
+        except ValueError:
+            name = f"signal {-exitcode}"
+        return ManagerExit(f"killed by {name}", normal=False)
+    if exitcode == _ACTOR_DIED_EXIT:
+        return ManagerExit("registrar actor died", normal=False)
+    return ManagerExit(f"exit code {exitcode}", normal=False)
+
+
+class ManagerProcess:
+    """The parent's handle on one running manager process (one incarnation).
+
+    Start with [`start`][rr_actors._manager.ManagerProcess.start]; `on_exit(ManagerExit)`
+    runs once on the watcher thread when the process ends, whatever the cause.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        process: Any,
+        conn: Connection,
+        *,
+        heartbeat: float | None,
+        heartbeat_timeout: float,
+        on_exit: Callable[[ManagerExit], None],
+    ) -> None:
+        self.name = name
+        self.process = process
+        self.pid: int = process.pid
+        self.conn = conn
+        self._send_lock = threading.Lock()
+        self._heartbeat = heartbeat
+        self._heartbeat_timeout = heartbeat_timeout
+        self._on_exit = on_exit
+        self._tokens = itertools.count()
+        self._results: dict[int, FutureReply] = {}
+        self._results_lock = threading.Lock()
+        self._hung_for: float | None = None
+        self._stopping = False
+        self.exited = threading.Event()
+        self.exit: ManagerExit | None = None
+
+    @classmethod
+    def start(
+        cls,
+        name: str,
+        setup: bytes,
+        config: RegistrarConfig,
+        address: Any,
+        *,
+        start_timeout: float,
+        heartbeat: float | None,
+        heartbeat_timeout: float,
+        on_exit: Callable[[ManagerExit], None],
+    ) -> ManagerProcess:
+        """Start a manager process and wait until it serves (its catalog restored).
+
+        Raises:
+            RegistrarUnavailableError: it failed (setup raised, its backup could not be
+                read, ...) or died before it was ready; the message holds its traceback.
+            CallTimeoutError: it was not ready within `start_timeout` seconds (it is killed).
+        """
+        ctx = mp_context()
+        parent_conn, child_conn = ctx.Pipe(duplex=True)
+        process = ctx.Process(  # type: ignore[attr-defined]
+            target=main,
+            args=(setup, config, address, child_conn),
+            name=f"rr-manager-{name}",
+            daemon=True,
+        )
+        _T("process.start begin")
+        process.start()
+        _T("process.start returned")
+        child_conn.close()
+        deadline = time.monotonic() + start_timeout
+        ready: Any = None
+        while ready is None:
+            left = deadline - time.monotonic()
+            woke = multiprocessing.connection.wait([parent_conn, process.sentinel], max(left, 0))
+            if parent_conn in woke:
+                try:
+                    ready = parent_conn.recv()
+                except (EOFError, OSError):
+                    woke = [process.sentinel]
+            if ready is None and (process.sentinel in woke or left <= 0):
+                if left <= 0:
+                    process.kill()
+                process.join(5.0)
+                parent_conn.close()
+                if left <= 0:
+                    from rr_actors.errors import CallTimeoutError  # noqa: PLC0415
+
+                    raise CallTimeoutError(
+                        f"manager {name!r} was not ready within {start_timeout:g} s"
+                    )
+                raise RegistrarUnavailableError(
+                    f"manager {name!r} died while starting ({_describe(process.exitcode).reason})"
+                )
+        _T("ready received")
+        if ready[0] != "ready":
+            process.join(5.0)
+            parent_conn.close()
+            raise RegistrarUnavailableError(f"manager {name!r} failed to start:\n{ready[1]}")
+        handle = cls(
+            name,
+            process,
+            parent_conn,
+            heartbeat=heartbeat,
+            heartbeat_timeout=heartbeat_timeout,
+            on_exit=on_exit,
+        )
+        threading.Thread(target=handle._watch, name=f"rr-watch-{name}", daemon=True).start()
+        return handle
+
+    # -- requests ---------------------------------------------------------------------
+
+    def _send(self, message: tuple[Any, ...]) -> bool:
+        with self._send_lock:
+            try:
+                self.conn.send(message)
+            except (OSError, ValueError):
+                return False
+        return True
+
+    def run(self, fn: Callable[[Any], Any], *, timeout: float) -> Any:
+        """Run `fn(registrar)` inside the manager process; return its (picklable) result.
+
+        Raises:
+            ConfigError: `fn` cannot be pickled.
+            RegistrarUnavailableError: the process died before answering.
+            CallTimeoutError: no answer within `timeout` seconds.
+            Exception: whatever `fn` raised (pickled back).
+        """
+        try:
+            payload = cloudpickle.dumps(fn)
+        except Exception as exc:
+            raise ConfigError(
+                f"function for manager {self.name!r} is not picklable: {exc}"
+            ) from exc
+        token = next(self._tokens)
+        reply = FutureReply()
+        with self._results_lock:
+            if self.exited.is_set():
+                raise RegistrarUnavailableError(f"manager {self.name!r} is not running")
+            self._results[token] = reply
+        if not self._send(("run", token, payload)):
+            self._fail_results()
+        return wait(reply.future, timeout, f"run in manager {self.name!r}")
+
+    def stop(self, timeout: float) -> ManagerExit:
+        """Ask the manager to stop its registrar and exit; kill it after `timeout` seconds.
+
+        Returns:
+            How it ended (`"shutdown"`, or `"killed: shutdown timeout"`, or what it died of).
+        """
+        self._stopping = True
+        self._send(("stop", timeout))
+        if self.exited.wait(timeout) and self.exit is not None:
+            if self.exit.normal:
+                return ManagerExit("shutdown", normal=True)
+            return self.exit
+        self.kill()
+        self.exited.wait(10.0)
+        return ManagerExit(f"killed: no clean stop within {timeout:g} s", normal=False)
+
+    def kill(self) -> None:
+        """SIGKILL the process (no cleanup; its backup keeps what was written)."""
+        with contextlib.suppress(OSError, ValueError):
+            self.process.kill()
+
+    # -- the watcher thread -----------------------------------------------------------
+
+    def _fail_results(self) -> None:
+        with self._results_lock:
+            results, self._results = self._results, {}
+        for reply in results.values():
+            reply.set_error(RegistrarUnavailableError(f"manager {self.name!r} died"))
+
+    def _watch(self) -> None:
+        """Block on the sentinel and the control pipe; ping on the heartbeat period."""
+        sentinel = self.process.sentinel
+        waitables: list[Any] = [sentinel, self.conn]
+        period = self._heartbeat
+        sent = 0
+        oldest_unanswered: float | None = None
+        next_ping = time.monotonic() + (period or 0.0)
+        while True:
+            timeout = None if period is None else max(0.0, next_ping - time.monotonic())
+            woke = multiprocessing.connection.wait(waitables, timeout)
+            if sentinel in woke:
+                _T("sentinel woke")
+                break
+            if self.conn in woke:
+                try:
+                    message = self.conn.recv()
+                except (EOFError, OSError):
+                    waitables = [sentinel]
+                    continue
+                if message[0] == "pong" and message[1] == sent:
+                    oldest_unanswered = None
+                elif message[0] == "result":
+                    self._deliver(message[1], message[2], message[3])
+            if period is None or self._stopping:
+                continue
+            now = time.monotonic()
+            if oldest_unanswered is not None and now - oldest_unanswered > self._heartbeat_timeout:
+                self._hang(now - oldest_unanswered)
+                period = None
+            elif now >= next_ping:
+                if oldest_unanswered is None:  # one ping in flight at a time
+                    sent += 1
+                    oldest_unanswered = now
+                    self._send(("ping", sent))
+                next_ping = now + period
+        self._finish()
+
+    def _hang(self, silent_for: float) -> None:
+        self._hung_for = silent_for
+        logger.error(
+            "manager %s hangs (no heartbeat answer for %.3f s): killing it", self.name, silent_for
+        )
+        self.kill()
+
+    def _finish(self) -> None:
+        self.process.join(5.0)
+        with contextlib.suppress(OSError):
+            self.conn.close()
+        self._fail_results()
+        if self._hung_for is not None:
+            result = ManagerExit(
+                f"hung: no heartbeat answer for {self._hung_for:.3f} s (killed)", normal=False
+            )
+        else:
+            result = _describe(self.process.exitcode)
+        self.exit = result
+        self.exited.set()
+        try:
+            self._on_exit(result)
+        except Exception:
+            logger.exception("exit handler of manager %s raised", self.name)
+
+    def _deliver(self, token: int, ok: bool, payload: bytes) -> None:
+        with self._results_lock:
+            reply = self._results.pop(token, None)
+        if reply is None:
+            return
+        try:
+            value = cloudpickle.loads(payload)
+        except Exception as exc:  # noqa: BLE001 - a class missing here, for example
+            reply.set_error(RrError(f"answer from manager {self.name!r} cannot be read: {exc}"))
+            return
+        if ok:
+            reply.set_result(value)
+        else:
+            reply.set_error(value)

@@ -1,0 +1,1269 @@
+"""Supervision trees of managers, after Erlang/OTP's `supervisor` (design principles, sup_princ).
+
+A [`Supervisor`][rr_actors.Supervisor] starts its children (managers, or nested
+supervisors) in order, watches them and restarts them by policy:
+
+* strategies `one_for_one`, `one_for_all`, `rest_for_one` (which siblings restart with a
+  crashed child);
+* restart types `permanent` (always restarted), `transient` (restarted after an abnormal
+  exit), `temporary` (never restarted);
+* restart intensity: more than `max_restarts` restarts within `period` seconds and the
+  supervisor gives up: it stops every child and reports `SupervisorGaveUpError` (to its
+  parent supervisor, which treats it as a crashed child, or to its owner);
+* what OTP lacks: exponential [`Backoff`][rr_actors.Backoff] with jitter before a restart.
+
+The supervisor is a thread with a mailbox: one event at a time, never polling. A manager
+process's death is seen by a watcher thread blocked on the process sentinel; a thread
+manager's death by a watcher blocked on its registrar actor's stop event. Time (the
+intensity window and the backoff timers) goes through an injectable `clock` and `timer`.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import dataclasses
+import itertools
+import logging
+import math
+import os
+import queue
+import random as _random
+import threading
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Literal, Protocol
+
+import cloudpickle
+
+from rr_actors._directory import DIRECTORY
+from rr_actors._messages import Abandon, ConsumerDown
+from rr_actors._registrar import ResourceRegistrar, _Crash
+from rr_actors._types import Query, StatusCallback
+from rr_actors.config import RegistrarConfig
+from rr_actors.errors import (
+    CallTimeoutError,
+    ConfigError,
+    RegistrarUnavailableError,
+    RrError,
+    SupervisorGaveUpError,
+    UnknownServerError,
+)
+
+if TYPE_CHECKING:
+    from rr_actors._manager import ManagerProcess
+
+__all__ = [
+    "Backoff",
+    "ChildCounts",
+    "ChildInfo",
+    "ManagerSpec",
+    "RestartIntensity",
+    "Supervisor",
+    "SupervisorSpec",
+]
+
+logger = logging.getLogger("rr_actors")
+
+RestartType = Literal["permanent", "transient", "temporary"]
+Strategy = Literal["one_for_one", "one_for_all", "rest_for_one"]
+Isolation = Literal["thread", "process"]
+ChildState = Literal["starting", "running", "restarting", "stopping", "stopped", "exited"]
+Setup = Callable[[ResourceRegistrar], object]
+Clock = Callable[[], float]
+
+
+class Cancellable(Protocol):
+    """What a timer returns: something that can be cancelled before it fires."""
+
+    def cancel(self) -> None: ...
+
+
+Timer = Callable[[float, Callable[[], None]], Cancellable]
+"""`timer(delay, fn)`: run `fn()` once after `delay` seconds on some thread."""
+
+
+def thread_timer(delay: float, fn: Callable[[], None]) -> Cancellable:
+    """The default `timer`: a daemon `threading.Timer`."""
+    timer = threading.Timer(delay, fn)
+    timer.daemon = True
+    timer.start()
+    return timer
+
+
+def _check_seconds(field: str, value: object, *, allow_zero: bool = False) -> None:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | float)
+        or not math.isfinite(value)
+        or value < 0
+        or (value == 0 and not allow_zero)
+    ):
+        kind = "non-negative" if allow_zero else "positive"
+        raise ConfigError(f"{field} must be a {kind} number of seconds, got {value!r}")
+
+
+def _check_choice(field: str, value: object, choices: Sequence[str]) -> None:
+    if value not in choices:
+        raise ConfigError(f"{field} must be one of {', '.join(map(repr, choices))}, got {value!r}")
+
+
+# -- configuration -----------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Backoff:
+    """Exponential backoff with jitter before a restart (something OTP does not have).
+
+    The n-th restart within the supervisor's intensity window waits
+    `min(max, initial * factor ** (n - 1))` seconds, scaled by a random factor in
+    `[1 - jitter, 1 + jitter]` (never beyond `max`). The default (`initial=0`) restarts at once.
+
+    Attributes:
+        initial: delay before the first restart, in seconds (0: no delay at all).
+        factor: growth of the delay per further restart within the window (>= 1).
+        max: the longest delay, in seconds.
+        jitter: relative spread of the delay, from 0 (none) to 1.
+
+    Raises:
+        ConfigError: a field is invalid; the message names it.
+    """
+
+    initial: float = 0.0
+    factor: float = 2.0
+    max: float = 30.0
+    jitter: float = 0.2
+
+    def __post_init__(self) -> None:
+        _check_seconds("Backoff.initial", self.initial, allow_zero=True)
+        _check_seconds("Backoff.max", self.max, allow_zero=True)
+        if (
+            isinstance(self.factor, bool)
+            or not isinstance(self.factor, int | float)
+            or not (math.isfinite(self.factor) and self.factor >= 1)
+        ):
+            raise ConfigError(f"Backoff.factor must be a number >= 1, got {self.factor!r}")
+        if (
+            isinstance(self.jitter, bool)
+            or not isinstance(self.jitter, int | float)
+            or not (0 <= self.jitter <= 1)
+        ):
+            raise ConfigError(f"Backoff.jitter must be a number from 0 to 1, got {self.jitter!r}")
+        if self.max < self.initial:
+            raise ConfigError(
+                f"Backoff.max ({self.max!r}) must not be less than Backoff.initial "
+                f"({self.initial!r})"
+            )
+
+    def delay(self, attempt: int, random: Callable[[], float] = _random.random) -> float:
+        """The delay in seconds before restart number `attempt` (1 = first) of a window.
+
+        Args:
+            attempt: how many restarts (this one included) fall in the intensity window.
+            random: returns a float in `[0, 1)`; injectable for tests.
+        """
+        if self.initial == 0 or attempt < 1:
+            return 0.0
+        base = min(self.max, self.initial * self.factor ** min(attempt - 1, 1000))
+        spread = 1.0 + self.jitter * (2.0 * random() - 1.0)
+        return min(self.max, max(0.0, base * spread))
+
+
+@dataclasses.dataclass(frozen=True)
+class ManagerSpec:
+    """How to start and supervise one manager (OTP's child specification, as data).
+
+    Attributes:
+        name: the manager's registrar name, unique in the whole supervision tree.
+        setup: `setup(registrar)`, run in the manager (in its process, after its catalog
+            was restored, before it accepts traffic); registers its servers. May be a
+            closure (it is cloudpickled for process managers). `None`: no servers.
+        isolation: `"thread"` (the registrar runs in the supervisor's process) or
+            `"process"` (in its own OS process, so killing it kills nothing else).
+        restart: `"permanent"` (always restarted), `"transient"` (restarted only after an
+            abnormal exit) or `"temporary"` (never restarted).
+        config: the registrar's configuration; its `name` must equal `name`. Default:
+            `RegistrarConfig(name)`, with the supervisor's `state_dir` a backup at
+            `<state_dir>/<name>.db` with `save_on_modify=True`.
+        shutdown: seconds a clean stop may take before the manager is killed.
+        heartbeat: seconds between heartbeat pings to a process manager (`None`: off). A
+            ping is answered through the registrar actor's mailbox, so a frozen process
+            and a stuck registrar both count as hung. Thread managers have no heartbeat.
+        heartbeat_timeout: seconds without an answer to a ping after which a process
+            manager counts as hung: it is killed and handled like a crash. Default:
+            three heartbeat periods.
+        start_timeout: seconds a manager may take to restore, set up and serve.
+
+    Raises:
+        ConfigError: a field is invalid; the message names it.
+    """
+
+    name: str
+    setup: Setup | None = None
+    isolation: Isolation = "thread"
+    restart: RestartType = "permanent"
+    config: RegistrarConfig | None = None
+    shutdown: float = 5.0
+    heartbeat: float | None = 0.5
+    heartbeat_timeout: float | None = None
+    start_timeout: float = 30.0
+
+    def __post_init__(self) -> None:
+        RegistrarConfig(name=self.name)  # validates the name (ConfigError names the field)
+        if self.setup is not None and not callable(self.setup):
+            raise ConfigError(
+                f"setup of manager {self.name!r} must be callable, got {self.setup!r}"
+            )
+        _check_choice("isolation", self.isolation, ("thread", "process"))
+        _check_choice("restart", self.restart, ("permanent", "transient", "temporary"))
+        if self.config is not None:
+            if not isinstance(self.config, RegistrarConfig):
+                raise ConfigError(f"config must be a RegistrarConfig, got {self.config!r}")
+            if self.config.name != self.name:
+                raise ConfigError(
+                    f"config.name ({self.config.name!r}) must equal the manager's name "
+                    f"({self.name!r})"
+                )
+        _check_seconds("shutdown", self.shutdown)
+        if self.heartbeat is not None:
+            _check_seconds("heartbeat", self.heartbeat)
+        if self.heartbeat_timeout is not None:
+            _check_seconds("heartbeat_timeout", self.heartbeat_timeout)
+        _check_seconds("start_timeout", self.start_timeout)
+
+    @property
+    def hang_after(self) -> float:
+        """Seconds without a heartbeat answer after which the manager counts as hung."""
+        if self.heartbeat_timeout is not None:
+            return self.heartbeat_timeout
+        return 3.0 * (self.heartbeat or 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class SupervisorSpec:
+    """A nested supervisor as a child of another (its arguments are `Supervisor`'s).
+
+    When it gives up, its parent sees a crashed child and applies its own strategy
+    (escalation, as in OTP).
+
+    Attributes:
+        name: the child's name in its parent (unique in the tree).
+        children: its children, started in this order.
+        strategy, max_restarts, period, backoff: as for `Supervisor`.
+        restart: its restart type in the parent.
+        state_dir: where its managers keep their catalogs (default: the parent's).
+
+    Raises:
+        ConfigError: a field is invalid; the message names it.
+    """
+
+    name: str
+    children: tuple[ManagerSpec | SupervisorSpec, ...]
+    strategy: Strategy = "one_for_one"
+    max_restarts: int = 3
+    period: float = 5.0
+    backoff: Backoff = Backoff()
+    restart: RestartType = "permanent"
+    state_dir: str | os.PathLike[str] | None = None
+
+    def __post_init__(self) -> None:
+        RegistrarConfig(name=self.name)
+        object.__setattr__(self, "children", tuple(self.children))
+        _check_choice("strategy", self.strategy, ("one_for_one", "one_for_all", "rest_for_one"))
+        _check_choice("restart", self.restart, ("permanent", "transient", "temporary"))
+        if (
+            isinstance(self.max_restarts, bool)
+            or not isinstance(self.max_restarts, int)
+            or (self.max_restarts < 0)
+        ):
+            raise ConfigError(f"max_restarts must be an int >= 0, got {self.max_restarts!r}")
+        _check_seconds("period", self.period)
+        if not isinstance(self.backoff, Backoff):
+            raise ConfigError(f"backoff must be an rr_actors.Backoff, got {self.backoff!r}")
+        seen: set[str] = set()
+        for child in self.children:
+            if not isinstance(child, ManagerSpec | SupervisorSpec):
+                raise ConfigError(
+                    f"children must be ManagerSpec or SupervisorSpec values, got {child!r}"
+                )
+        for name in _tree_names(self):
+            if name in seen:
+                raise ConfigError(f"children: the name {name!r} is used twice in the tree")
+            seen.add(name)
+
+    def has_processes(self) -> bool:
+        """Whether any manager in this subtree runs in its own process."""
+        return any(
+            c.has_processes() if isinstance(c, SupervisorSpec) else c.isolation == "process"
+            for c in self.children
+        )
+
+
+def _tree_names(spec: SupervisorSpec) -> list[str]:
+    names: list[str] = []
+    for child in spec.children:
+        names.append(child.name)
+        if isinstance(child, SupervisorSpec):
+            names.extend(_tree_names(child))
+    return names
+
+
+# -- introspection -----------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class ChildInfo:
+    """An immutable snapshot of one child (OTP's `which_children`, with more to see).
+
+    Attributes:
+        name: the child's name.
+        kind: `"manager"` or `"supervisor"`.
+        isolation: `"thread"` or `"process"` for a manager, `None` for a supervisor.
+        restart: its restart type.
+        state: `"starting"`, `"running"`, `"restarting"` (down, restart pending),
+            `"stopping"`, `"stopped"` (by the supervisor) or `"exited"` (down for good:
+            temporary, or transient after a normal exit).
+        pid: the process id of a running process manager, else `None`.
+        restarts: how many times it was restarted so far.
+        last_exit: why its last incarnation ended (`None` before the first exit).
+    """
+
+    name: str
+    kind: Literal["manager", "supervisor"]
+    isolation: Isolation | None
+    restart: RestartType
+    state: ChildState
+    pid: int | None
+    restarts: int
+    last_exit: str | None
+
+
+@dataclasses.dataclass(frozen=True)
+class ChildCounts:
+    """OTP's `count_children`: how many children of which kind.
+
+    Attributes:
+        specs: every child, running or not.
+        active: children running now.
+        supervisors: children that are supervisors.
+        managers: children that are managers (OTP's workers).
+    """
+
+    specs: int
+    active: int
+    supervisors: int
+    managers: int
+
+
+class RestartIntensity:
+    """OTP's restart intensity: at most `max_restarts` restarts within `period` seconds.
+
+    Pure logic over an injectable clock (no threads).
+    """
+
+    def __init__(self, max_restarts: int, period: float, clock: Clock = time.monotonic) -> None:
+        self.max_restarts = max_restarts
+        self.period = period
+        self.clock = clock
+        self._times: collections.deque[float] = collections.deque()
+
+    def add(self) -> bool:
+        """Count one restart now; return `False` if that exceeds the intensity (give up)."""
+        now = self.clock()
+        self._times.append(now)
+        while self._times and now - self._times[0] >= self.period:
+            self._times.popleft()
+        return len(self._times) <= self.max_restarts
+
+    @property
+    def recent(self) -> int:
+        """Restarts counted within the current window (this one included, after `add`)."""
+        return len(self._times)
+
+
+# -- running children --------------------------------------------------------------------
+
+
+class _Exit:
+    """Why an incarnation of a child ended."""
+
+    __slots__ = ("normal", "reason")
+
+    def __init__(self, reason: str, *, normal: bool) -> None:
+        self.reason = reason
+        self.normal = normal
+
+
+class _Running(Protocol):
+    pid: int | None
+
+    def stop(self, timeout: float) -> _Exit: ...
+
+
+class _ThreadManager:
+    """A manager whose registrar runs in this process."""
+
+    pid: int | None = None
+
+    def __init__(
+        self,
+        spec: ManagerSpec,
+        config: RegistrarConfig,
+        attached: Any,
+        on_exit: Callable[[_Exit], None],
+    ) -> None:
+        self.spec = spec
+        self.stopping = False
+        registrar = ResourceRegistrar.start(config)
+        try:
+            if spec.setup is not None:
+                spec.setup(registrar)
+            if attached is not None:
+                attached.serve(registrar)
+        except BaseException:
+            with contextlib.suppress(RrError):
+                registrar.stop(timeout=spec.shutdown)
+            raise
+        self.registrar = registrar
+        ref = registrar._ref
+
+        def watch() -> None:
+            ref.actor_stopped.wait()
+            if self.stopping:
+                return
+            error = DIRECTORY.gone_error(spec.name)
+            if isinstance(error, RegistrarUnavailableError):
+                on_exit(_Exit("crashed (registrar actor died)", normal=False))
+            else:
+                on_exit(_Exit("normal", normal=True))
+
+        threading.Thread(target=watch, name=f"rr-watch-{spec.name}", daemon=True).start()
+
+    def stop(self, timeout: float) -> _Exit:
+        self.stopping = True
+        ref = self.registrar._ref
+        if not ref.is_alive():
+            return _Exit("crashed (registrar actor died)", normal=False)
+        try:
+            self.registrar.stop(timeout=timeout)
+        except RrError as exc:
+            logger.error(  # noqa: TRY400 - the timeout is the news, not its traceback
+                "manager %s did not stop within %g s: %s", self.spec.name, timeout, exc
+            )
+            with contextlib.suppress(Exception):
+                ref.tell(_Crash())
+            ref.actor_stopped.wait(timeout)
+            return _Exit(f"killed: no clean stop within {timeout:g} s", normal=False)
+        return _Exit("shutdown", normal=True)
+
+
+class _ProcessManager:
+    """A manager in its own OS process (see `rr_actors._manager`)."""
+
+    def __init__(self, handle: ManagerProcess) -> None:
+        self.handle = handle
+        self.pid: int | None = handle.pid
+
+    def stop(self, timeout: float) -> _Exit:
+        result = self.handle.stop(timeout)
+        return _Exit(result.reason, normal=result.normal)
+
+
+class _NestedSupervisor:
+    """A supervisor running as the child of another."""
+
+    pid: int | None = None
+
+    def __init__(self, supervisor: Supervisor) -> None:
+        self.supervisor = supervisor
+
+    def stop(self, timeout: float) -> _Exit:
+        self.supervisor._shutdown()
+        return _Exit("shutdown", normal=True)
+
+
+@dataclasses.dataclass
+class _Child:
+    spec: ManagerSpec | SupervisorSpec
+    state: ChildState = "stopped"
+    running: _Running | None = None
+    incarnation: int = 0
+    restarts: int = 0
+    last_exit: str | None = None
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    def info(self) -> ChildInfo:
+        spec = self.spec
+        return ChildInfo(
+            name=spec.name,
+            kind="supervisor" if isinstance(spec, SupervisorSpec) else "manager",
+            isolation=spec.isolation if isinstance(spec, ManagerSpec) else None,
+            restart=spec.restart,
+            state=self.state,
+            pid=self.running.pid if self.running is not None else None,
+            restarts=self.restarts,
+            last_exit=self.last_exit,
+        )
+
+
+# -- mailbox events ----------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class _Exited:
+    name: str
+    incarnation: int
+    exit: _Exit
+
+
+@dataclasses.dataclass(frozen=True)
+class _Restart:
+    names: tuple[str, ...]
+    generation: int
+
+
+@dataclasses.dataclass(frozen=True)
+class _Do:
+    fn: Callable[[], Any]
+    done: queue.SimpleQueue[tuple[bool, Any]]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Quit:
+    pass
+
+
+_SUPERVISOR_NAMES = itertools.count(1)
+
+
+class Supervisor:
+    """Starts managers in order, restarts them by policy, stops them in reverse order.
+
+    Follows Erlang/OTP's supervisor (strategies, restart types, restart intensity with
+    escalation), plus exponential backoff with jitter. Use it as a context manager, or call
+    [`start`][rr_actors.Supervisor.start] and [`stop`][rr_actors.Supervisor.stop].
+
+    ```python
+    sup = rr.Supervisor([rr.ManagerSpec("erm", setup=erm_setup, isolation="process"),
+                         rr.ManagerSpec("cm", setup=cm_setup)],
+                        strategy="one_for_one", max_restarts=3, period=5.0, state_dir="state")
+    with sup:
+        app = sup.registrar("action")
+        app.call("cm", "filtered_camera", {...})
+    ```
+
+    Args:
+        children: `ManagerSpec` and `SupervisorSpec` values, started in this order.
+        strategy: `"one_for_one"` (restart the crashed child), `"one_for_all"` (restart
+            every child) or `"rest_for_one"` (restart it and the children started after it).
+        max_restarts: at most this many restarts within `period` seconds; one more and the
+            supervisor gives up.
+        period: the intensity window, in seconds.
+        backoff: delay before restarts (default: none).
+        state_dir: directory for the managers' catalogs (`<state_dir>/<name>.db`,
+            `save_on_modify=True`) unless a spec gives its own `config`.
+        name: this supervisor's name (for logs and thread names).
+        clock: monotonic clock in seconds for the intensity window (injectable for tests).
+        timer: `timer(delay, fn)` that runs `fn` after `delay` seconds (injectable for tests);
+            a zero delay restarts without a timer.
+        random: float in `[0, 1)` for the backoff jitter (injectable for tests).
+
+    Raises:
+        ConfigError: an argument is invalid; the message names it.
+    """
+
+    def __init__(
+        self,
+        children: Sequence[ManagerSpec | SupervisorSpec],
+        *,
+        strategy: Strategy = "one_for_one",
+        max_restarts: int = 3,
+        period: float = 5.0,
+        backoff: Backoff | None = None,
+        state_dir: str | os.PathLike[str] | None = None,
+        name: str | None = None,
+        clock: Clock = time.monotonic,
+        timer: Timer = thread_timer,
+        random: Callable[[], float] = _random.random,
+    ) -> None:
+        self._spec = SupervisorSpec(
+            name=name or f"supervisor-{next(_SUPERVISOR_NAMES)}",
+            children=tuple(children),
+            strategy=strategy,
+            max_restarts=max_restarts,
+            period=period,
+            backoff=backoff if backoff is not None else Backoff(),
+            state_dir=state_dir,
+        )
+        self._clock = clock
+        self._timer = timer
+        self._random = random
+        self._parent: Supervisor | None = None
+        self._on_gave_up: Callable[[SupervisorGaveUpError], None] | None = None
+        self._system: Any = None
+        self._attached: Any = None
+        self._owns_system = False
+        self._children = [_Child(spec) for spec in self._spec.children]
+        self._intensity = RestartIntensity(max_restarts, period, clock)
+        self._mailbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+        self._cond = threading.Condition()
+        self._infos: tuple[ChildInfo, ...] = tuple(c.info() for c in self._children)
+        self._gave_up: SupervisorGaveUpError | None = None
+        self._stopped = False
+        self._generation = 0
+        self._timers: list[Cancellable] = []
+        self._setups: dict[str, bytes] = {}
+        self._registrars: list[ResourceRegistrar] = []
+        self._abandon_later: dict[str, list[tuple[str, str]]] = {}
+        self._wait_cursor: dict[str, int] = {}
+
+    @classmethod
+    def _nested(cls, spec: SupervisorSpec, parent: Supervisor) -> Supervisor:
+        sup = cls(
+            spec.children,
+            strategy=spec.strategy,
+            max_restarts=spec.max_restarts,
+            period=spec.period,
+            backoff=spec.backoff,
+            state_dir=spec.state_dir if spec.state_dir is not None else parent._spec.state_dir,
+            name=spec.name,
+            clock=parent._clock,
+            timer=parent._timer,
+            random=parent._random,
+        )
+        sup._parent = parent
+        sup._system, sup._attached = parent._system, parent._attached
+        sup._setups = parent._setups
+        return sup
+
+    # -- properties -------------------------------------------------------------------
+
+    @property
+    def name(self) -> str:
+        """This supervisor's name."""
+        return self._spec.name
+
+    @property
+    def gave_up(self) -> SupervisorGaveUpError | None:
+        """The error it gave up with (restart intensity exceeded), or `None`."""
+        return self._gave_up
+
+    @property
+    def system(self) -> Any:
+        """The transport system its process managers are attached to (`None` without any)."""
+        return self._system
+
+    # -- life cycle -------------------------------------------------------------------
+
+    def start(self) -> Supervisor:
+        """Start every child in order; return once all are running (serving).
+
+        Raises:
+            SupervisorGaveUpError: a child failed to start (its setup raised, its backup
+                could not be read, ...); the children already started were stopped again,
+                in reverse order. The cause is chained.
+            ConfigError: a process manager's `setup` cannot be pickled.
+        """
+        if self._thread is not None:
+            raise ConfigError(f"supervisor {self.name!r} was already started")
+        if self._spec.state_dir is not None:
+            os.makedirs(self._spec.state_dir, exist_ok=True)
+        if self._parent is None:
+            self._prepare_root()
+        self._thread = threading.Thread(
+            target=self._loop, name=f"rr-supervisor-{self.name}", daemon=True
+        )
+        self._thread.start()
+        try:
+            self._do(self._start_all)
+        except BaseException:
+            self._mailbox.put(_Quit())
+            self._thread.join(30.0)
+            if self._parent is None:
+                self._close_system()
+            raise
+        return self
+
+    def stop(self, *, timeout: float | None = None) -> None:
+        """Stop the registrars from `registrar()`, then every child in reverse start order.
+
+        Each child gets its spec's `shutdown` seconds to stop cleanly before it is killed.
+        Stopping a stopped supervisor is a no-op.
+
+        Args:
+            timeout: ignored bound kept for symmetry; each child's `shutdown` applies.
+        """
+        del timeout
+        if self._thread is None or self._stopped:
+            return
+        for registrar in reversed(self._registrars):
+            with contextlib.suppress(RrError):
+                registrar.stop()
+        self._registrars.clear()
+        if self._thread.is_alive():
+            with contextlib.suppress(RrError):
+                self._do(self._stop_all)
+            self._mailbox.put(_Quit())
+            self._thread.join(60.0)
+        self._stopped = True
+        if self._parent is None:
+            self._close_system()
+
+    def __enter__(self) -> Supervisor:
+        return self.start()
+
+    def __exit__(self, exc_type: object, *_: object) -> None:
+        self.stop()
+        if exc_type is None and self._gave_up is not None:
+            raise self._gave_up
+
+    def _shutdown(self) -> None:
+        """Stop as the child of another supervisor (called from the parent's thread)."""
+        self.stop()
+
+    def _prepare_root(self) -> None:
+        self._pickle_setups(self._spec)
+        if self._spec.has_processes():
+            from rr_actors._transport import System  # noqa: PLC0415
+
+            self._system = System.create()  # also attaches this process
+            self._owns_system = True
+            self._attached = self._system
+
+    def _pickle_setups(self, spec: SupervisorSpec) -> None:
+        for child in spec.children:
+            if isinstance(child, SupervisorSpec):
+                self._pickle_setups(child)
+            elif child.isolation == "process":
+                try:
+                    self._setups[child.name] = cloudpickle.dumps(child.setup)
+                except Exception as exc:
+                    raise ConfigError(
+                        f"setup of manager {child.name!r} is not picklable: {exc}"
+                    ) from exc
+
+    def _close_system(self) -> None:
+        if self._attached is not None:
+            with contextlib.suppress(Exception):
+                self._attached.close()
+        if self._owns_system and self._system is not None:
+            with contextlib.suppress(Exception):
+                self._system.close()
+        self._attached = None
+
+    # -- introspection ----------------------------------------------------------------
+
+    def which_children(self) -> tuple[ChildInfo, ...]:
+        """Immutable snapshots of the children, in start order (OTP's `which_children`)."""
+        with self._cond:
+            return self._infos
+
+    def count_children(self) -> ChildCounts:
+        """How many children of which kind, and how many run now (OTP's `count_children`)."""
+        infos = self.which_children()
+        return ChildCounts(
+            specs=len(infos),
+            active=sum(1 for i in infos if i.state == "running"),
+            supervisors=sum(1 for i in infos if i.kind == "supervisor"),
+            managers=sum(1 for i in infos if i.kind == "manager"),
+        )
+
+    def child(self, name: str) -> ChildInfo:
+        """The snapshot of the child `name`, searched through nested supervisors too.
+
+        Raises:
+            UnknownServerError: no child of that name in this tree.
+        """
+        found = self._find(name)
+        if found is None:
+            raise UnknownServerError(f"supervisor {self.name!r} has no child named {name!r}")
+        return found[1]
+
+    def _find(self, name: str) -> tuple[Supervisor, ChildInfo] | None:
+        for info in self.which_children():
+            if info.name == name:
+                return self, info
+        for child in list(self._children):
+            running = child.running
+            if isinstance(running, _NestedSupervisor):
+                found = running.supervisor._find(name)
+                if found is not None:
+                    return found
+        return None
+
+    def wait_restarted(
+        self, name: str, *, timeout: float, restarts: int | None = None
+    ) -> ChildInfo:
+        """Wait until child `name` (anywhere in the tree) was restarted and is running again.
+
+        Args:
+            name: the child's name.
+            timeout: seconds to wait at most.
+            restarts: wait until it was restarted at least this many times in total.
+                Default: one more restart than the previous `wait_restarted` for this
+                child returned (1 the first time), so "kill, wait, kill, wait" works even
+                when a restart completes before the wait starts.
+
+        Returns:
+            The child's snapshot, running.
+
+        Raises:
+            CallTimeoutError: not restarted within `timeout` seconds.
+            SupervisorGaveUpError: its supervisor gave up (restart intensity exceeded).
+            RegistrarUnavailableError: it exited for good (temporary, or transient after a
+                normal exit) or its supervisor was stopped.
+            UnknownServerError: no child of that name.
+        """
+        deadline = time.monotonic() + timeout
+        target = restarts if restarts is not None else self._wait_cursor.get(name, 0) + 1
+        while True:
+            found = self._find(name)
+            if found is None:
+                raise UnknownServerError(f"supervisor {self.name!r} has no child named {name!r}")
+            owner, info = found
+            if info.state == "running" and info.restarts >= target:
+                self._wait_cursor[name] = info.restarts
+                return info
+            error = owner._gave_up or self._gave_up
+            if error is not None:
+                raise error
+            if info.state in ("exited", "stopped") and info.restarts < target:
+                raise RegistrarUnavailableError(
+                    f"child {name!r} is {info.state} ({info.last_exit}) and will not be restarted"
+                )
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise CallTimeoutError(
+                    f"child {name!r} was not restarted within {timeout:g} s "
+                    f"(state {info.state}, {info.restarts} restarts)"
+                )
+            with owner._cond:
+                owner._cond.wait(min(left, 0.5))
+
+    # -- registrars, calls, manager access ----------------------------------------------
+
+    def registrar(self, config: RegistrarConfig | str) -> ResourceRegistrar:
+        """Start a consumer registrar in this process, on this supervisor's system.
+
+        Process managers can reach it (status notifications, nested calls). It is not
+        supervised; the supervisor stops it first when it stops.
+
+        Args:
+            config: a `RegistrarConfig` or a name.
+
+        Raises:
+            DuplicateNameError: a registrar of that name runs in this process.
+            ConfigError: the configuration is invalid or the supervisor is not running.
+        """
+        if self._thread is None or self._stopped:
+            raise ConfigError(f"supervisor {self.name!r} is not running")
+        registrar = ResourceRegistrar.start(config)
+        if self._attached is not None:
+            try:
+                self._attached.serve(registrar)
+            except BaseException:
+                registrar.stop()
+                raise
+        self._registrars.append(registrar)
+        return registrar
+
+    def run_in(
+        self, name: str, fn: Callable[[ResourceRegistrar], Any], *, timeout: float = 10.0
+    ) -> Any:
+        """Run `fn(registrar)` against manager `name`'s registrar, where it lives.
+
+        For a process manager `fn` is cloudpickled and runs on a thread of that process
+        (its result must pickle); for a thread manager it runs on the calling thread.
+
+        Raises:
+            UnknownServerError: no manager of that name in the tree.
+            RegistrarUnavailableError: it is not running, or died before answering.
+            CallTimeoutError: no answer within `timeout` seconds.
+            ConfigError: `fn` cannot be pickled (process manager).
+        """
+        running = self._running_manager(name)
+        if isinstance(running, _ThreadManager):
+            return fn(running.registrar)
+        if isinstance(running, _ProcessManager):
+            return running.handle.run(fn, timeout=timeout)
+        raise RegistrarUnavailableError(f"manager {name!r} is not running")
+
+    def _running_manager(self, name: str) -> _Running | None:
+        for child in list(self._children):
+            if child.name == name:
+                if isinstance(child.spec, SupervisorSpec):
+                    raise UnknownServerError(f"{name!r} is a supervisor, not a manager")
+                return child.running
+            if isinstance(child.running, _NestedSupervisor):
+                with contextlib.suppress(UnknownServerError):
+                    return child.running.supervisor._running_manager(name)
+        raise UnknownServerError(f"supervisor {self.name!r} has no manager named {name!r}")
+
+    def call_with_retry(
+        self,
+        consumer: ResourceRegistrar,
+        target_rr: str,
+        server: str,
+        request: Any,
+        *,
+        on_status: StatusCallback | None = None,
+        timeout: float | None = None,
+        query_id: str | None = None,
+    ) -> Query:
+        """`consumer.call(...)`, waiting out a restart of `target_rr` and retrying.
+
+        Every attempt uses the same caller-generated query id, so the provider's restored
+        catalog recognises a retry of a call it already answered before it died: the
+        resource is never loaded twice and no second consumer id is created. If the wait
+        for the restart runs out, the id is abandoned at the provider when it comes back,
+        so nothing leaks.
+
+        Args:
+            consumer: the calling registrar.
+            target_rr, server, request, on_status: as for `ResourceRegistrar.call`.
+            timeout: seconds for the whole call, restarts and retries included
+                (default: the consumer's `call_timeout`).
+            query_id: the id to use (default: a fresh UUID4).
+
+        Returns:
+            The `Query`, with the provider's response.
+
+        Raises:
+            RegistrarUnavailableError: the provider died and will not be restarted.
+            SupervisorGaveUpError: its supervisor gave up while the call waited.
+            CallTimeoutError: no answer (restart included) within `timeout` seconds.
+            ResourceLoadError, DependencyCycleError, UnknownServerError,
+            RegistrarStoppedError: as for `ResourceRegistrar.call`.
+        """
+        limit = timeout if timeout is not None else consumer.config.call_timeout
+        qid = query_id or str(uuid.uuid4())
+        deadline = time.monotonic() + limit
+        while True:
+            found = self._find(target_rr)
+            before = found[1].restarts if found is not None else 0
+            left = deadline - time.monotonic()
+            if left <= 0:
+                self._abandon_after_restart(target_rr, qid, consumer.name)
+                raise CallTimeoutError(
+                    f"call to '{target_rr}/{server}' timed out after {limit:g} s"
+                )
+            try:
+                return consumer.call(
+                    target_rr, server, request, on_status=on_status, timeout=left, query_id=qid
+                )
+            except RegistrarUnavailableError:
+                if found is None or found[1].restart == "temporary":
+                    raise
+            try:
+                self.wait_restarted(
+                    target_rr, timeout=max(deadline - time.monotonic(), 1e-3), restarts=before + 1
+                )
+            except CallTimeoutError:
+                self._abandon_after_restart(target_rr, qid, consumer.name)
+                raise CallTimeoutError(
+                    f"call to '{target_rr}/{server}' timed out after {limit:g} s while "
+                    f"{target_rr!r} was restarting"
+                ) from None
+
+    def _abandon_after_restart(self, name: str, query_id: str, origin: str) -> None:
+        found = self._find(name)
+        owner = found[0] if found is not None else self
+        owner._do_async(
+            lambda: owner._abandon_later.setdefault(name, []).append((query_id, origin))
+        )
+
+    # -- the mailbox ------------------------------------------------------------------
+
+    def _loop(self) -> None:
+        while True:
+            event = self._mailbox.get()
+            if isinstance(event, _Quit):
+                return
+            try:
+                if isinstance(event, _Exited):
+                    self._on_exited(event)
+                elif isinstance(event, _Restart):
+                    self._on_restart(event)
+                elif isinstance(event, _Do):
+                    try:
+                        event.done.put((True, event.fn()))
+                    except BaseException as exc:  # noqa: BLE001 - handed to the caller
+                        event.done.put((False, exc))
+            except Exception:
+                logger.exception("supervisor %s failed handling %r", self.name, event)
+            self._publish()
+
+    def _do(self, fn: Callable[[], Any]) -> Any:
+        done: queue.SimpleQueue[tuple[bool, Any]] = queue.SimpleQueue()
+        self._mailbox.put(_Do(fn, done))
+        ok, value = done.get()
+        if not ok:
+            raise value
+        return value
+
+    def _do_async(self, fn: Callable[[], Any]) -> None:
+        self._mailbox.put(_Do(fn, queue.SimpleQueue()))
+
+    def _publish(self) -> None:
+        with self._cond:
+            self._infos = tuple(c.info() for c in self._children)
+            self._cond.notify_all()
+        parent = self._parent
+        if parent is not None:
+            with parent._cond:
+                parent._cond.notify_all()
+
+    def _post_exit(self, name: str, incarnation: int) -> Callable[[Any], None]:
+        def post(result: Any) -> None:
+            self._mailbox.put(
+                _Exited(name, incarnation, _Exit(result.reason, normal=result.normal))
+            )
+
+        return post
+
+    # -- starting and stopping children (mailbox thread) ------------------------------
+
+    def _config(self, spec: ManagerSpec) -> RegistrarConfig:
+        if spec.config is not None:
+            return spec.config
+        state_dir = self._spec.state_dir
+        if state_dir is None:
+            return RegistrarConfig(name=spec.name)
+        return RegistrarConfig(
+            name=spec.name,
+            backup_path=os.path.join(os.fspath(state_dir), f"{spec.name}.db"),
+            save_on_modify=True,
+        )
+
+    def _start_child(self, child: _Child) -> None:
+        """Start one incarnation of `child`; raise what its start raised."""
+        child.incarnation += 1
+        child.state = "starting"
+        self._publish()
+        spec = child.spec
+        post = self._post_exit(child.name, child.incarnation)
+        if isinstance(spec, SupervisorSpec):
+            nested = Supervisor._nested(spec, self)
+            incarnation = child.incarnation
+
+            def escalate(error: SupervisorGaveUpError) -> None:
+                self._mailbox.put(
+                    _Exited(spec.name, incarnation, _Exit(f"gave up: {error}", normal=False))
+                )
+
+            nested._on_gave_up = escalate
+            nested.start()
+            child.running = _NestedSupervisor(nested)
+        else:
+            if spec.restart != "temporary":
+                DIRECTORY.restart_expected.add(spec.name)  # death watch waits for us
+            if spec.isolation == "thread":
+                child.running = _ThreadManager(spec, self._config(spec), self._attached, post)
+            else:
+                from rr_actors._manager import ManagerProcess  # noqa: PLC0415
+
+                handle = ManagerProcess.start(
+                    spec.name,
+                    self._setups[spec.name],
+                    self._config(spec),
+                    self._system.address if self._system is not None else None,
+                    start_timeout=spec.start_timeout,
+                    heartbeat=spec.heartbeat,
+                    heartbeat_timeout=spec.hang_after,
+                    on_exit=post,
+                )
+                child.running = _ProcessManager(handle)
+        child.state = "running"
+        for query_id, origin in self._abandon_later.pop(child.name, ()):
+            with contextlib.suppress(RrError):
+                DIRECTORY.lookup(child.name).tell(Abandon(query_id, origin))
+
+    def _start_all(self) -> None:
+        started: list[_Child] = []
+        for child in self._children:
+            try:
+                self._start_child(child)
+            except BaseException as exc:
+                child.state = "stopped"
+                child.last_exit = f"failed to start: {exc}"
+                for done in reversed(started):
+                    self._stop_child(done, final=True)
+                raise SupervisorGaveUpError(
+                    f"supervisor {self.name!r}: child {child.name!r} failed to start: {exc}"
+                ) from exc
+            started.append(child)
+            self._publish()
+
+    def _stop_child(self, child: _Child, *, final: bool) -> None:
+        """Stop a running child (its spec's shutdown, then a kill)."""
+        running = child.running
+        if running is None:
+            if final:
+                dead = child.state == "restarting"  # it crashed and will not come back now
+                if child.state != "exited":
+                    child.state = "stopped"
+                self._forget(child, dead=dead)
+            return
+        child.state = "stopping"
+        child.incarnation += 1  # its watcher's exit event is now stale
+        self._publish()
+        shutdown = child.spec.shutdown if isinstance(child.spec, ManagerSpec) else 60.0
+        result = running.stop(shutdown)
+        child.running = None
+        child.state = "stopped"
+        child.last_exit = result.reason
+        if final:
+            self._forget(child, dead=not result.normal)
+
+    def _forget(self, child: _Child, *, dead: bool) -> None:
+        """The child will not come back: release what it held (death watch) if it died."""
+        if isinstance(child.spec, ManagerSpec):
+            DIRECTORY.restart_expected.discard(child.name)
+            if dead:
+                self._root()._consumer_down(child.name)
+
+    def _stop_all(self) -> None:
+        self._generation += 1
+        for timer in self._timers:
+            timer.cancel()
+        self._timers.clear()
+        for child in reversed(self._children):
+            self._stop_child(child, final=True)
+
+    def _root(self) -> Supervisor:
+        sup = self
+        while sup._parent is not None:
+            sup = sup._parent
+        return sup
+
+    def _living_registrars(self) -> list[str]:
+        names: list[str] = []
+        for child in list(self._children):
+            running = child.running
+            if isinstance(running, _NestedSupervisor):
+                names.extend(running.supervisor._living_registrars())
+            elif isinstance(running, _ProcessManager):
+                names.append(child.name)
+        return names
+
+    def _consumer_down(self, name: str) -> None:
+        """Death watch: tell every living registrar that consumer `name` is gone for good."""
+        local = {peer.name for peer in DIRECTORY.local_peers()}
+        for target in sorted(local | set(self._living_registrars())):
+            if target == name:
+                continue
+            try:
+                DIRECTORY.lookup(target).tell(ConsumerDown(name))
+            except RrError:
+                logger.debug("death watch: %s unreachable", target)
+
+    # -- crashes and restarts (mailbox thread) ----------------------------------------
+
+    def _on_exited(self, event: _Exited) -> None:
+        from rr_actors._manager import _T
+        _T("on_exited")
+        child = next((c for c in self._children if c.name == event.name), None)
+        if child is None or child.incarnation != event.incarnation or self._gave_up:
+            return  # a stale event: that incarnation was stopped on purpose
+        if isinstance(child.running, _NestedSupervisor):
+            child.running.supervisor.stop()  # it gave up: end its mailbox thread
+        child.running = None
+        child.last_exit = event.exit.reason
+        restart = child.spec.restart
+        logger.warning(
+            "supervisor %s: child %s exited: %s", self.name, child.name, event.exit.reason
+        )
+        if restart == "temporary" or (restart == "transient" and event.exit.normal):
+            child.state = "exited"
+            self._forget(child, dead=not event.exit.normal)
+            return
+        child.state = "restarting"
+        self._publish()
+        if not self._intensity.add():
+            self._give_up(child)
+            return
+        names = self._affected(child)
+        for other in reversed([c for c in self._children if c.name in names]):
+            if other is not child and other.running is not None:
+                self._stop_child(other, final=other.spec.restart == "temporary")
+                if other.spec.restart == "temporary":
+                    other.state = "exited"
+                else:
+                    other.state = "restarting"
+        names = tuple(
+            n
+            for n in names
+            if n == child.name
+            or next(c for c in self._children if c.name == n).spec.restart != "temporary"
+        )
+        self._schedule(names)
+
+    def _affected(self, child: _Child) -> tuple[str, ...]:
+        strategy = self._spec.strategy
+        if strategy == "one_for_one":
+            return (child.name,)
+        if strategy == "one_for_all":
+            return tuple(c.name for c in self._children if c.state != "exited" or c is child)
+        index = self._children.index(child)
+        return tuple(c.name for c in self._children[index:] if c.state != "exited" or c is child)
+
+    def _schedule(self, names: tuple[str, ...]) -> None:
+        delay = self._spec.backoff.delay(self._intensity.recent, self._random)
+        generation = self._generation
+        event = _Restart(names, generation)
+        if delay <= 0:
+            self._mailbox.put(event)
+            return
+        logger.info("supervisor %s: restarting %s in %.3f s", self.name, ", ".join(names), delay)
+        self._timers.append(self._timer(delay, lambda: self._mailbox.put(event)))
+
+    def _on_restart(self, event: _Restart) -> None:
+        from rr_actors._manager import _T
+        _T("on_restart")
+        if event.generation != self._generation or self._gave_up is not None:
+            return
+        for child in self._children:
+            if child.name not in event.names or child.state != "restarting":
+                continue
+            try:
+                self._start_child(child)
+            except Exception as exc:
+                logger.exception("supervisor %s: restart of %s failed", self.name, child.name)
+                child.running = None
+                self._mailbox.put(
+                    _Exited(
+                        child.name,
+                        child.incarnation,
+                        _Exit(f"failed to start: {exc}", normal=False),
+                    )
+                )
+                return
+            child.restarts += 1
+            self._publish()
+
+    def _give_up(self, crashed: _Child) -> None:
+        error = SupervisorGaveUpError(
+            f"supervisor {self.name!r} gave up: more than {self._spec.max_restarts} restart(s) "
+            f"within {self._spec.period:g} s (last: {crashed.name!r} {crashed.last_exit})"
+        )
+        logger.error("%s", error)
+        self._generation += 1
+        for timer in self._timers:
+            timer.cancel()
+        self._timers.clear()
+        for child in reversed(self._children):
+            if child is crashed or child.running is None:
+                dead = child.state != "exited"
+                child.state = "stopped"
+                self._forget(child, dead=dead)
+            else:
+                self._stop_child(child, final=True)
+        self._gave_up = error  # after the children stopped: waiters then see a settled tree
+        self._publish()
+        if self._on_gave_up is not None:
+            self._on_gave_up(error)

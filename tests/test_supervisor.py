@@ -1,0 +1,628 @@
+"""Supervisor logic with thread managers: strategies, restart types, intensity, backoff.
+
+No processes here: managers run in this process (a crash is `rr_actors.testing.crash`),
+time is an injected clock and backoff delays go to a manual timer, so intensity and
+backoff are tested without waiting for real time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import uuid
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors import testing
+from rr_actors._supervisor import (
+    Backoff,
+    ManagerSpec,
+    RestartIntensity,
+    Supervisor,
+    SupervisorSpec,
+)
+
+
+class FakeClock:
+    """A monotonic clock that moves only when the test says so."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class _Handle:
+    def __init__(self) -> None:
+        self.cancelled = False
+
+    def cancel(self) -> None:
+        self.cancelled = True
+
+
+class ManualTimer:
+    """A `timer` that records delays and fires only when the test calls `fire()`."""
+
+    def __init__(self) -> None:
+        self.cond = threading.Condition()
+        self.pending: list[tuple[float, Callable[[], None], _Handle]] = []
+        self.delays: list[float] = []
+
+    def __call__(self, delay: float, fn: Callable[[], None]) -> _Handle:
+        handle = _Handle()
+        with self.cond:
+            self.pending.append((delay, fn, handle))
+            self.delays.append(delay)
+            self.cond.notify_all()
+        return handle
+
+    def wait_scheduled(self, count: int, timeout: float = 5.0) -> bool:
+        with self.cond:
+            return self.cond.wait_for(lambda: len(self.delays) >= count, timeout)
+
+    def fire(self) -> None:
+        with self.cond:
+            pending, self.pending = self.pending, []
+        for _, fn, handle in pending:
+            if not handle.cancelled:
+                fn()
+
+
+@pytest.fixture
+def uid() -> str:
+    """A fragment that makes this test's registrar names unique."""
+    return uuid.uuid4().hex[:8]
+
+
+@pytest.fixture
+def clock() -> FakeClock:
+    return FakeClock()
+
+
+@pytest.fixture
+def supervisors() -> Iterator[Callable[..., Supervisor]]:
+    """Make supervisors (injected clock by default); every one is stopped at teardown."""
+    made: list[Supervisor] = []
+
+    def make(children: list[Any], **kwargs: Any) -> Supervisor:
+        kwargs.setdefault("clock", FakeClock())
+        sup = Supervisor(children, **kwargs)
+        made.append(sup)
+        return sup
+
+    yield make
+    for sup in reversed(made):
+        sup.stop()
+
+
+def handle(sup: Supervisor, name: str) -> rr.ResourceRegistrar:
+    """The registrar of thread manager `name` (its current incarnation)."""
+    registrar: rr.ResourceRegistrar = sup.run_in(name, lambda r: r)
+    return registrar
+
+
+def crash(sup: Supervisor, name: str) -> None:
+    testing.crash(handle(sup, name))
+
+
+def restarts(sup: Supervisor) -> dict[str, int]:
+    return {info.name: info.restarts for info in sup.which_children()}
+
+
+# -- Backoff --------------------------------------------------------------------------------
+
+
+def test_backoff_without_an_initial_delay_restarts_at_once() -> None:
+    assert [0.0, 0.0, 0.0] == [Backoff().delay(n) for n in (1, 2, 5)]
+
+
+def test_backoff_grows_by_its_factor_per_restart_in_the_window() -> None:
+    backoff = Backoff(initial=0.1, factor=2.0, max=10.0, jitter=0.0)
+
+    assert [0.1, 0.2, 0.4, 0.8] == [round(backoff.delay(n), 9) for n in (1, 2, 3, 4)]
+
+
+def test_backoff_never_waits_longer_than_its_max() -> None:
+    backoff = Backoff(initial=1.0, factor=10.0, max=3.0, jitter=0.5)
+
+    assert 3.0 == backoff.delay(50, random=lambda: 0.999999)
+
+
+def test_backoff_jitter_spreads_the_delay_both_ways() -> None:
+    backoff = Backoff(initial=1.0, factor=2.0, max=10.0, jitter=0.2)
+
+    assert (0.8, 1.2) == (
+        backoff.delay(1, random=lambda: 0.0),
+        backoff.delay(1, random=lambda: 1.0),
+    )
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("initial", -1.0), ("factor", 0.5), ("max", -2.0), ("jitter", 1.5), ("jitter", True)],
+)
+def test_invalid_backoff_raises_config_error_naming_the_field(field: str, value: Any) -> None:
+    with pytest.raises(rr.ConfigError, match=f"Backoff.{field}"):
+        Backoff(**{field: value})
+
+
+# -- RestartIntensity -----------------------------------------------------------------------
+
+
+def test_intensity_allows_max_restarts_within_the_period_and_not_one_more(
+    clock: FakeClock,
+) -> None:
+    intensity = RestartIntensity(max_restarts=3, period=5.0, clock=clock)
+
+    assert [True, True, True, False] == [intensity.add() for _ in range(4)]
+
+
+def test_restarts_older_than_the_period_no_longer_count(clock: FakeClock) -> None:
+    intensity = RestartIntensity(max_restarts=2, period=5.0, clock=clock)
+    intensity.add()
+    intensity.add()
+    clock.now += 5.0
+
+    assert (True, 1) == (intensity.add(), intensity.recent)
+
+
+def test_zero_max_restarts_gives_up_at_the_first_crash(clock: FakeClock) -> None:
+    assert not RestartIntensity(max_restarts=0, period=5.0, clock=clock).add()
+
+
+# -- specs ----------------------------------------------------------------------------------
+
+
+def test_manager_spec_config_must_carry_the_managers_name() -> None:
+    with pytest.raises(rr.ConfigError, match=r"config\.name"):
+        ManagerSpec("erm", config=rr.RegistrarConfig(name="other"))
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("isolation", "fiber"), ("restart", "sometimes"), ("shutdown", 0), ("heartbeat", -1.0)],
+)
+def test_invalid_manager_spec_raises_config_error_naming_the_field(field: str, value: Any) -> None:
+    with pytest.raises(rr.ConfigError, match=field):
+        ManagerSpec("erm", **{field: value})
+
+
+def test_a_name_used_twice_in_the_tree_is_a_config_error() -> None:
+    inner = SupervisorSpec("inner", (ManagerSpec("erm"),))
+
+    with pytest.raises(rr.ConfigError, match="'erm' is used twice"):
+        Supervisor([ManagerSpec("erm"), inner])
+
+
+def test_an_unknown_strategy_is_a_config_error() -> None:
+    with pytest.raises(rr.ConfigError, match="strategy"):
+        Supervisor([], strategy="one_for_some")  # type: ignore[arg-type]
+
+
+# -- start, stop, introspection -------------------------------------------------------------
+
+
+def test_children_start_in_order_and_stop_in_reverse_order(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    released: list[Any] = []
+    started: list[str] = []
+    a, b, c = f"a-{uid}", f"b-{uid}", f"c-{uid}"
+
+    def provider(reg: rr.ResourceRegistrar) -> None:
+        started.append(reg.name)
+        reg.register_server("log", load=lambda r: r, unload=lambda r, _: released.append(r))
+
+    def consumer(reg: rr.ResourceRegistrar) -> None:
+        started.append(reg.name)
+        reg.call(a, "log", reg.name)
+
+    sup = supervisors(
+        [ManagerSpec(a, provider), ManagerSpec(b, consumer), ManagerSpec(c, consumer)]
+    )
+    sup.start()
+    sup.stop()
+
+    assert ([a, b, c], [c, b]) == (started, released)
+
+
+def test_which_children_returns_immutable_snapshots(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    sup = supervisors([ManagerSpec(f"a-{uid}")]).start()
+    info = sup.which_children()[0]
+
+    assert (f"a-{uid}", "manager", "thread", "running", None, 0, None) == (
+        info.name,
+        info.kind,
+        info.isolation,
+        info.state,
+        info.pid,
+        info.restarts,
+        info.last_exit,
+    )
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        info.state = "stopped"  # type: ignore[misc]
+
+
+def test_count_children_counts_specs_running_supervisors_and_managers(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    inner = SupervisorSpec(f"inner-{uid}", (ManagerSpec(f"x-{uid}"),))
+    sup = supervisors([ManagerSpec(f"a-{uid}"), inner]).start()
+
+    assert rr.ChildCounts(specs=2, active=2, supervisors=1, managers=1) == sup.count_children()
+
+
+def test_a_setup_that_raises_fails_start_and_stops_the_children_already_started(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    a = f"a-{uid}"
+
+    def broken(_: rr.ResourceRegistrar) -> None:
+        raise ValueError("no camera")
+
+    sup = supervisors([ManagerSpec(a), ManagerSpec(f"b-{uid}", broken)])
+
+    with pytest.raises(rr.SupervisorGaveUpError, match="no camera") as caught:
+        sup.start()
+    assert isinstance(caught.value.__cause__, ValueError)
+    assert ["stopped", "stopped"] == [i.state for i in sup.which_children()]
+
+
+def test_with_block_starts_the_children_and_stops_them_on_exit(uid: str) -> None:
+    sup = Supervisor([ManagerSpec(f"a-{uid}")])
+
+    with sup:
+        running = sup.which_children()[0].state
+
+    assert ("running", "stopped") == (running, sup.which_children()[0].state)
+
+
+# -- strategies and restart types -----------------------------------------------------------
+
+
+def three(uid: str, restart: str = "permanent") -> list[ManagerSpec]:
+    return [ManagerSpec(f"{n}-{uid}", restart=restart) for n in "abc"]  # type: ignore[arg-type]
+
+
+def test_one_for_one_restarts_only_the_crashed_child(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    sup = supervisors(three(uid), strategy="one_for_one").start()
+    crash(sup, f"b-{uid}")
+    sup.wait_restarted(f"b-{uid}", timeout=5.0)
+
+    assert {f"a-{uid}": 0, f"b-{uid}": 1, f"c-{uid}": 0} == restarts(sup)
+
+
+def test_one_for_all_restarts_every_child(supervisors: Callable[..., Supervisor], uid: str) -> None:
+    sup = supervisors(three(uid), strategy="one_for_all").start()
+    crash(sup, f"b-{uid}")
+    sup.wait_restarted(f"c-{uid}", timeout=5.0)
+
+    assert {f"a-{uid}": 1, f"b-{uid}": 1, f"c-{uid}": 1} == restarts(sup)
+
+
+def test_rest_for_one_restarts_the_crashed_child_and_those_started_after_it(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    sup = supervisors(three(uid), strategy="rest_for_one").start()
+    crash(sup, f"b-{uid}")
+    sup.wait_restarted(f"c-{uid}", timeout=5.0)
+
+    assert {f"a-{uid}": 0, f"b-{uid}": 1, f"c-{uid}": 1} == restarts(sup)
+
+
+def test_a_restarted_thread_manager_runs_its_setup_again_and_serves(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    name = f"erm-{uid}"
+
+    def setup(reg: rr.ResourceRegistrar) -> None:
+        reg.register_server("echo", load=lambda r: r, unload=lambda r, _: None)
+
+    sup = supervisors([ManagerSpec(name, setup)]).start()
+    app = sup.registrar(f"app-{uid}")
+    crash(sup, name)
+    sup.wait_restarted(name, timeout=5.0)
+
+    assert "hi" == app.call(name, "echo", "hi").response
+
+
+def test_a_temporary_child_is_never_restarted(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    sup = supervisors(three(uid, "temporary")).start()
+    crash(sup, f"a-{uid}")
+
+    with pytest.raises(rr.RegistrarUnavailableError, match="will not be restarted"):
+        sup.wait_restarted(f"a-{uid}", timeout=5.0)
+    assert ("exited", 0) == (sup.child(f"a-{uid}").state, sup.child(f"a-{uid}").restarts)
+
+
+def test_a_transient_child_that_stops_normally_is_not_restarted(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    sup = supervisors(three(uid, "transient")).start()
+    handle(sup, f"a-{uid}").stop()
+
+    with pytest.raises(rr.RegistrarUnavailableError, match="normal"):
+        sup.wait_restarted(f"a-{uid}", timeout=5.0)
+
+
+def test_a_transient_child_that_crashes_is_restarted(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    sup = supervisors(three(uid, "transient")).start()
+    crash(sup, f"a-{uid}")
+
+    assert 1 == sup.wait_restarted(f"a-{uid}", timeout=5.0).restarts
+
+
+def test_wait_restarted_waits_for_one_more_restart_each_time(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    name = f"a-{uid}"
+    sup = supervisors([ManagerSpec(name)], max_restarts=5).start()
+    crash(sup, name)
+    first = sup.wait_restarted(name, timeout=5.0).restarts
+    crash(sup, name)
+    second = sup.wait_restarted(name, timeout=5.0).restarts
+
+    assert (1, 2) == (first, second)
+
+
+def test_last_exit_says_why_the_child_went_down(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    name = f"a-{uid}"
+    sup = supervisors([ManagerSpec(name)]).start()
+    crash(sup, name)
+
+    assert "crashed" in (sup.wait_restarted(name, timeout=5.0).last_exit or "")
+
+
+# -- intensity, escalation, backoff ---------------------------------------------------------
+
+
+def test_more_restarts_than_the_intensity_allows_makes_the_supervisor_give_up(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    name = f"a-{uid}"
+    sup = supervisors([ManagerSpec(name), ManagerSpec(f"b-{uid}")], max_restarts=2).start()
+    for _ in range(2):
+        crash(sup, name)
+        sup.wait_restarted(name, timeout=5.0)
+    crash(sup, name)
+
+    with pytest.raises(rr.SupervisorGaveUpError, match="more than 2 restart"):
+        sup.wait_restarted(name, timeout=5.0)
+    assert ["stopped", "stopped"] == [i.state for i in sup.which_children()]
+
+
+def test_crashes_spread_wider_than_the_period_never_exhaust_the_intensity(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    name = f"a-{uid}"
+    clock = FakeClock()
+    sup = supervisors([ManagerSpec(name)], max_restarts=1, period=5.0, clock=clock).start()
+    for _ in range(4):
+        crash(sup, name)
+        sup.wait_restarted(name, timeout=5.0)
+        clock.now += 6.0
+
+    assert (None, 4) == (sup.gave_up, sup.child(name).restarts)
+
+
+def test_leaving_the_with_block_of_a_supervisor_that_gave_up_raises(uid: str) -> None:
+    name = f"a-{uid}"
+    sup = Supervisor([ManagerSpec(name)], max_restarts=0, clock=FakeClock())
+
+    def crash_inside_with_block() -> None:
+        with sup:
+            crash(sup, name)
+            with pytest.raises(rr.SupervisorGaveUpError):
+                sup.wait_restarted(name, timeout=5.0)
+
+    with pytest.raises(rr.SupervisorGaveUpError):
+        crash_inside_with_block()
+
+
+def test_a_nested_supervisor_that_gives_up_is_restarted_by_its_parent(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    x = f"x-{uid}"
+    inner = SupervisorSpec(f"inner-{uid}", (ManagerSpec(x),), max_restarts=0)
+    sup = supervisors([ManagerSpec(f"a-{uid}"), inner], max_restarts=3).start()
+    crash(sup, x)
+    info = sup.wait_restarted(f"inner-{uid}", timeout=5.0)
+
+    assert (1, "running", None) == (info.restarts, sup.child(x).state, sup.gave_up)
+    assert "gave up" in (info.last_exit or "")
+
+
+def test_escalation_reaches_the_top_when_the_parent_runs_out_of_restarts_too(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    x = f"x-{uid}"
+    inner = SupervisorSpec(f"inner-{uid}", (ManagerSpec(x),), max_restarts=0)
+    sup = supervisors([inner], max_restarts=0).start()
+    crash(sup, x)
+
+    with pytest.raises(rr.SupervisorGaveUpError):
+        sup.wait_restarted(f"inner-{uid}", timeout=5.0)
+    assert sup.gave_up is not None
+
+
+def test_backoff_delays_each_restart_in_the_window_longer(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    name = f"a-{uid}"
+    timer = ManualTimer()
+    backoff = Backoff(initial=0.1, factor=2.0, max=1.0, jitter=0.0)
+    sup = supervisors([ManagerSpec(name)], max_restarts=5, backoff=backoff, timer=timer).start()
+    for n in (1, 2, 3):
+        crash(sup, name)
+        assert timer.wait_scheduled(n)
+        assert "restarting" == sup.child(name).state
+        timer.fire()
+        sup.wait_restarted(name, timeout=5.0)
+
+    assert [0.1, 0.2, 0.4] == [round(d, 9) for d in timer.delays]
+
+
+def test_stopping_a_supervisor_cancels_a_pending_restart(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    name = f"a-{uid}"
+    timer = ManualTimer()
+    sup = supervisors([ManagerSpec(name)], backoff=Backoff(initial=1.0), timer=timer).start()
+    crash(sup, name)
+    assert timer.wait_scheduled(1)
+    sup.stop()
+    timer.fire()
+
+    assert "stopped" == sup.child(name).state
+
+
+def test_a_restart_whose_setup_fails_counts_as_another_crash(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    name = f"a-{uid}"
+    runs: list[int] = []
+
+    def setup(_: rr.ResourceRegistrar) -> None:
+        runs.append(1)
+        if len(runs) > 1:
+            raise RuntimeError("disk full")
+
+    sup = supervisors([ManagerSpec(name, setup)], max_restarts=2).start()
+    crash(sup, name)
+
+    with pytest.raises(rr.SupervisorGaveUpError, match="failed to start"):
+        sup.wait_restarted(name, timeout=5.0)
+    assert 3 == len(runs)
+
+
+# -- death watch and retries ----------------------------------------------------------------
+
+
+def provider_and_consumer(
+    uid: str, consumer_restart: str
+) -> tuple[list[ManagerSpec], list[Any], threading.Event]:
+    """A provider `p-<uid>` with server "res", and a consumer `c-<uid>` that loads from it."""
+    unloads: list[Any] = []
+    unloaded = threading.Event()
+
+    def provider(reg: rr.ResourceRegistrar) -> None:
+        def unload(request: Any, _: Any) -> None:
+            unloads.append(request)
+            unloaded.set()
+
+        reg.register_server("res", load=lambda r: r, unload=unload)
+
+    def consumer(reg: rr.ResourceRegistrar) -> None:
+        if not reg.client_queries():
+            reg.call(f"p-{uid}", "res", "camera")
+
+    specs = [
+        ManagerSpec(f"p-{uid}", provider),
+        ManagerSpec(f"c-{uid}", consumer, restart=consumer_restart),  # type: ignore[arg-type]
+    ]
+    return specs, unloads, unloaded
+
+
+def test_a_temporary_consumer_that_dies_has_its_consumer_ids_released(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    specs, unloads, unloaded = provider_and_consumer(uid, "temporary")
+    sup = supervisors(specs).start()
+    crash(sup, f"c-{uid}")
+
+    assert unloaded.wait(5.0)
+    assert (["camera"], []) == (unloads, handle(sup, f"p-{uid}").server_queries("res"))
+
+
+def test_a_consumer_that_will_be_restarted_keeps_its_consumer_ids(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    specs, unloads, _ = provider_and_consumer(uid, "permanent")
+    timer = ManualTimer()
+    sup = supervisors(specs, backoff=Backoff(initial=1.0), timer=timer).start()
+    crash(sup, f"c-{uid}")
+    assert timer.wait_scheduled(1)
+
+    held = handle(sup, f"p-{uid}").server_queries("res")
+    assert ([], [f"c-{uid}"]) == (unloads, [q.origin_rr for q in held])
+
+
+def test_a_consumer_whose_supervisor_gave_up_has_its_consumer_ids_released(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    specs, unloads, unloaded = provider_and_consumer(uid, "permanent")
+    inner = SupervisorSpec(f"inner-{uid}", (specs[1],), max_restarts=0, restart="temporary")
+    sup = supervisors([specs[0], inner]).start()
+    crash(sup, f"c-{uid}")
+
+    assert unloaded.wait(5.0)
+    assert ["camera"] == unloads
+
+
+def test_call_with_retry_waits_for_the_restart_and_loads_once(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    loads: list[Any] = []
+    name = f"p-{uid}"
+
+    def provider(reg: rr.ResourceRegistrar) -> None:
+        reg.register_server("res", load=lambda r: loads.append(r) or r, unload=lambda r, _: None)
+
+    timer = ManualTimer()
+    sup = supervisors([ManagerSpec(name, provider)], backoff=Backoff(initial=1.0), timer=timer)
+    sup.start()
+    app = sup.registrar(f"app-{uid}")
+    crash(sup, name)
+    assert timer.wait_scheduled(1)
+    result: list[rr.Query] = []
+    caller = threading.Thread(
+        target=lambda: result.append(
+            sup.call_with_retry(app, name, "res", "camera", timeout=10.0, query_id="q-1")
+        )
+    )
+    caller.start()
+    timer.fire()
+    caller.join(10.0)
+
+    assert (["camera"], "q-1") == (loads, result[0].id)
+    assert ["q-1"] == [q.id for q in handle(sup, name).server_queries("res")]
+
+
+def test_call_with_retry_gives_up_at_once_when_the_provider_will_not_come_back(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    name = f"p-{uid}"
+    sup = supervisors([ManagerSpec(name, restart="temporary")]).start()
+    app = sup.registrar(f"app-{uid}")
+    crash(sup, name)
+
+    with pytest.raises(rr.RegistrarUnavailableError):
+        sup.call_with_retry(app, name, "res", "camera", timeout=5.0)
+
+
+def test_call_with_retry_that_times_out_while_restarting_raises_call_timeout(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    name = f"p-{uid}"
+    timer = ManualTimer()
+    sup = supervisors([ManagerSpec(name)], backoff=Backoff(initial=1.0), timer=timer).start()
+    app = sup.registrar(f"app-{uid}")
+    crash(sup, name)
+    assert timer.wait_scheduled(1)
+
+    with pytest.raises(rr.CallTimeoutError):
+        sup.call_with_retry(app, name, "res", "camera", timeout=0.2)

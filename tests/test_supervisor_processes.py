@@ -1,0 +1,401 @@
+"""Supervisor with manager processes: real processes, real SIGKILL, bounded waits.
+
+Crashes are caused with `os.kill(pid, SIGKILL)` (or SIGSTOP for a hang); every wait is
+bounded (sentinels, events, `wait_restarted(timeout=)`). The conftest's `no_leftovers`
+fixture fails any test that leaves a child process behind.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors._manager import start_forkserver
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def forkserver() -> None:
+    """Start the forkserver before the leak check counts this process's children."""
+    start_forkserver()
+
+
+@pytest.fixture
+def uid() -> str:
+    return uuid.uuid4().hex[:8]
+
+
+@pytest.fixture
+def supervisors() -> Iterator[Callable[..., rr.Supervisor]]:
+    """Make supervisors; every one is stopped at teardown."""
+    made: list[rr.Supervisor] = []
+
+    def make(children: list[Any], **kwargs: Any) -> rr.Supervisor:
+        sup = rr.Supervisor(children, **kwargs)
+        made.append(sup)
+        return sup
+
+    yield make
+    for sup in reversed(made):
+        sup.stop()
+
+
+def alive(pid: int) -> bool:
+    """Whether process `pid` exists and is not a zombie."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        return not Path("/proc").exists()
+    return state != "Z"
+
+
+def wait_gone(pids: list[int], timeout: float = 15.0) -> list[int]:
+    """Wait (bounded) until none of `pids` lives; return those still alive."""
+    deadline = time.monotonic() + timeout
+    pause = threading.Event()
+    while any(alive(p) for p in pids) and time.monotonic() < deadline:
+        pause.wait(0.02)
+    return [p for p in pids if alive(p)]
+
+
+def echo_setup(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
+
+
+def journal_setup(path: str) -> Callable[[rr.ResourceRegistrar], None]:
+    """A setup whose server appends `load <request>` / `unload <request>` lines to `path`."""
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        def note(line: str) -> None:
+            with open(path, "a", encoding="utf-8") as out:
+                out.write(line + "\n")
+
+        def load(request: Any) -> Any:
+            note(f"load {request}")
+            return {"pid": os.getpid(), "request": request}
+
+        registrar.register_server(
+            "res", load=load, unload=lambda request, _: note(f"unload {request}")
+        )
+
+    return setup
+
+
+def lines(path: Path) -> list[str]:
+    return path.read_text().splitlines() if path.exists() else []
+
+
+def process(name: str, setup: Any = echo_setup, **kwargs: Any) -> rr.ManagerSpec:
+    return rr.ManagerSpec(name, setup, isolation="process", **kwargs)
+
+
+# -- crash detection and restart ------------------------------------------------------------
+
+
+def test_a_sigkilled_manager_process_is_restarted_with_a_new_pid_and_serves(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    name = f"erm-{uid}"
+    sup = supervisors([process(name)]).start()
+    app = sup.registrar(f"app-{uid}")
+    old = sup.child(name).pid
+    assert old is not None
+    os.kill(old, signal.SIGKILL)
+    info = sup.wait_restarted(name, timeout=15.0)
+
+    assert ("killed by SIGKILL", True) == (info.last_exit, info.pid not in (None, old))
+    assert "hi" == app.call(name, "echo", "hi", timeout=10.0).response
+
+
+def test_a_restarted_manager_restores_its_catalog_before_it_serves(
+    supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path
+) -> None:
+    name = f"erm-{uid}"
+    journal = tmp_path / "journal.txt"
+    sup = supervisors([process(name, journal_setup(str(journal)))], state_dir=tmp_path / "state")
+    sup.start()
+    app = sup.registrar(f"app-{uid}")
+    query = app.call(name, "res", "camera", timeout=10.0)
+    os.kill(sup.child(name).pid or 0, signal.SIGKILL)
+    sup.wait_restarted(name, timeout=15.0)
+
+    held = sup.run_in(name, lambda r: [q.id for q in r.server_queries("res")])
+    assert ([query.id], True) == (held, (tmp_path / "state" / f"{name}.db").exists())
+
+
+def test_a_consumer_id_from_before_the_crash_can_be_unloaded_after_it(
+    supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path
+) -> None:
+    name = f"erm-{uid}"
+    journal = tmp_path / "journal.txt"
+    sup = supervisors([process(name, journal_setup(str(journal)))], state_dir=tmp_path)
+    sup.start()
+    app = sup.registrar(f"app-{uid}")
+    query = app.call(name, "res", "camera", timeout=10.0)
+    os.kill(sup.child(name).pid or 0, signal.SIGKILL)
+    sup.wait_restarted(name, timeout=15.0)
+    app.unload(query.id, timeout=10.0)
+
+    assert ["load camera", "unload camera"] == lines(journal)
+
+
+def dies_in_first_load(path: str) -> Callable[[rr.ResourceRegistrar], None]:
+    """A setup whose first `load` ever (counted in `path`) SIGKILLs its own process."""
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        with open(path, "a", encoding="utf-8") as out:
+            out.write(f"in doubt {[q.request for q in registrar.in_doubt]}\n")
+
+        def load(request: Any) -> Any:
+            with open(path, "a", encoding="utf-8") as out:
+                out.write(f"load {request}\n")
+            if sum(line.startswith("load") for line in lines(Path(path))) == 1:
+                os.kill(os.getpid(), signal.SIGKILL)
+            return request
+
+        registrar.register_server("res", load=load, unload=lambda r, s: None)
+
+    return setup
+
+
+def test_call_with_retry_over_a_manager_killed_mid_load_keeps_one_consumer_id(
+    supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path
+) -> None:
+    name = f"erm-{uid}"
+    journal = tmp_path / "journal.txt"
+    sup = supervisors([process(name, dies_in_first_load(str(journal)))], state_dir=tmp_path)
+    sup.start()
+    app = sup.registrar(f"app-{uid}")
+    query = sup.call_with_retry(app, name, "res", "camera", timeout=20.0, query_id="q-1")
+
+    held = sup.run_in(name, lambda r: [q.id for q in r.server_queries("res")])
+    assert ("q-1", ["q-1"], ["q-1"]) == (query.id, held, [q.id for q in app.client_queries()])
+    assert ["in doubt []", "load camera", "in doubt ['camera']", "load camera"] == lines(journal)
+
+
+def test_a_retry_after_a_restart_of_an_answered_request_does_not_load_again(
+    supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path
+) -> None:
+    name = f"erm-{uid}"
+    journal = tmp_path / "journal.txt"
+    sup = supervisors([process(name, journal_setup(str(journal)))], state_dir=tmp_path)
+    sup.start()
+    app = sup.registrar(f"app-{uid}")
+    first = app.call(name, "res", "camera", timeout=10.0)
+    os.kill(sup.child(name).pid or 0, signal.SIGKILL)
+    second = sup.call_with_retry(app, name, "res", "camera", timeout=15.0)
+
+    held = sup.run_in(name, lambda r: sorted(q.id for q in r.server_queries("res")))
+    assert (["load camera"], sorted([first.id, second.id])) == (lines(journal), held)
+
+
+def test_a_call_in_flight_to_a_manager_that_dies_fails_at_once(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    name = f"erm-{uid}"
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        registrar.register_server(
+            "stuck", load=lambda r: threading.Event().wait(), unload=lambda r, s: None
+        )
+
+    sup = supervisors([process(name, setup)]).start()
+    app = sup.registrar(f"app-{uid}")
+    errors: list[BaseException] = []
+    loading = threading.Event()
+
+    def call() -> None:
+        loading.set()
+        try:
+            app.call(name, "stuck", 1, timeout=30.0)
+        except BaseException as exc:
+            errors.append(exc)
+
+    caller = threading.Thread(target=call)
+    caller.start()
+    assert loading.wait(5.0)
+    pending = threading.Event()
+    pending.wait(0.3)  # let the request reach the manager: not a synchronisation point
+    started = time.monotonic()
+    os.kill(sup.child(name).pid or 0, signal.SIGKILL)
+    caller.join(20.0)
+
+    assert [rr.RegistrarUnavailableError] == [type(e) for e in errors]
+    assert time.monotonic() - started < 10.0
+
+
+def test_a_hung_manager_is_detected_by_the_heartbeat_and_restarted(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    name = f"erm-{uid}"
+    sup = supervisors([process(name, heartbeat=0.1, heartbeat_timeout=1.0)]).start()
+    old = sup.child(name).pid or 0
+    os.kill(old, signal.SIGSTOP)
+    info = sup.wait_restarted(name, timeout=15.0)
+
+    assert (True, True) == (info.last_exit.startswith("hung"), info.pid != old)  # type: ignore[union-attr]
+
+
+def test_one_for_all_restarts_every_manager_process(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    a, b = f"a-{uid}", f"b-{uid}"
+    sup = supervisors([process(a), process(b)], strategy="one_for_all").start()
+    before = {i.name: i.pid for i in sup.which_children()}
+    os.kill(before[b] or 0, signal.SIGKILL)
+    sup.wait_restarted(a, timeout=15.0)
+    sup.wait_restarted(b, timeout=15.0)
+    after = {i.name: i.pid for i in sup.which_children()}
+
+    assert [False, False] == [before[n] == after[n] for n in (a, b)]
+    assert [] == wait_gone([p for p in before.values() if p is not None])
+
+
+def test_a_setup_that_raises_in_the_manager_process_fails_start_with_its_traceback(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    def broken(_: rr.ResourceRegistrar) -> None:
+        raise ValueError("camera not found")
+
+    sup = supervisors([process(f"erm-{uid}", broken)])
+
+    with pytest.raises(rr.SupervisorGaveUpError, match="camera not found"):
+        sup.start()
+
+
+def test_an_unpicklable_setup_is_a_config_error_at_start(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    lock = threading.Lock()
+
+    def setup(_: rr.ResourceRegistrar) -> None:
+        with lock:
+            pass
+
+    with pytest.raises(rr.ConfigError, match="not picklable"):
+        supervisors([process(f"erm-{uid}", setup)]).start()
+
+
+# -- death watch ----------------------------------------------------------------------------
+
+
+def consumer_setup(provider: str) -> Callable[[rr.ResourceRegistrar], None]:
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        if not registrar.client_queries():
+            registrar.call(provider, "res", "camera", timeout=10.0)
+
+    return setup
+
+
+def test_a_temporary_consumer_process_that_is_killed_has_its_ids_released(
+    supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path
+) -> None:
+    p, c = f"p-{uid}", f"c-{uid}"
+    journal = tmp_path / "journal.txt"
+    sup = supervisors(
+        [
+            process(p, journal_setup(str(journal))),
+            process(c, consumer_setup(p), restart="temporary"),
+        ]
+    ).start()
+    os.kill(sup.child(c).pid or 0, signal.SIGKILL)
+    deadline = time.monotonic() + 10.0
+    while "unload camera" not in lines(journal) and time.monotonic() < deadline:
+        threading.Event().wait(0.02)
+
+    assert ["load camera", "unload camera"] == lines(journal)
+
+
+def test_a_consumer_process_that_will_be_restarted_keeps_its_ids(
+    supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path
+) -> None:
+    p, c = f"p-{uid}", f"c-{uid}"
+    journal = tmp_path / "journal.txt"
+    sup = supervisors(
+        [process(p, journal_setup(str(journal))), process(c, consumer_setup(p))],
+        state_dir=tmp_path / "state",
+    ).start()
+    os.kill(sup.child(c).pid or 0, signal.SIGKILL)
+    sup.wait_restarted(c, timeout=15.0)
+
+    held = sup.run_in(p, lambda r: [q.origin_rr for q in r.server_queries("res")])
+    assert ([c], ["load camera"]) == (held, lines(journal))
+
+
+# -- no orphans -----------------------------------------------------------------------------
+
+
+def test_stopping_the_supervisor_leaves_no_manager_process(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    sup = supervisors([process(f"a-{uid}"), process(f"b-{uid}")]).start()
+    pids = [i.pid for i in sup.which_children() if i.pid is not None]
+    sup.stop()
+
+    assert (2, []) == (len(pids), [p for p in pids if alive(p)])
+
+
+def test_a_manager_that_does_not_stop_in_time_is_killed(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    name = f"erm-{uid}"
+    sup = supervisors([process(name, heartbeat=None, shutdown=0.5)]).start()
+    pid = sup.child(name).pid or 0
+    os.kill(pid, signal.SIGSTOP)
+    sup.stop()
+
+    assert ("killed", False) == ((sup.child(name).last_exit or "")[:6], alive(pid))
+
+
+PARENT = textwrap.dedent(
+    """
+    import sys, threading
+    import rr_actors as rr
+
+    def setup(registrar):
+        registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
+
+    if __name__ == "__main__":
+        uid = sys.argv[1]
+        sup = rr.Supervisor([rr.ManagerSpec(f"{n}-{uid}", setup, isolation="process")
+                             for n in ("a", "b")])
+        sup.start()
+        print(" ".join(str(i.pid) for i in sup.which_children()), flush=True)
+        threading.Event().wait()
+    """
+)
+
+
+def test_killing_the_users_main_process_leaves_no_manager_process(uid: str, tmp_path: Path) -> None:
+    script = tmp_path / "parent.py"
+    script.write_text(PARENT)
+    parent = subprocess.Popen([sys.executable, str(script), uid], stdout=subprocess.PIPE, text=True)
+    try:
+        assert parent.stdout is not None
+        pids = [int(p) for p in parent.stdout.readline().split()]
+        assert 2 == len(pids)
+        assert all(alive(p) for p in pids)
+    finally:
+        parent.kill()
+        parent.wait(10.0)
+        if parent.stdout is not None:
+            parent.stdout.close()
+
+    assert [] == wait_gone(pids)
