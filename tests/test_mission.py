@@ -1,0 +1,214 @@
+"""The thesis's fault-injected mission (`rr-actors demo`), in --fast mode, for real.
+
+Every run starts three manager processes under a supervisor and the robot's programs as
+OS processes, and injects its faults with SIGKILL. The full mission runs once for the
+module; each fault also runs alone.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import uuid
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors.mission import FAULTS, MissionConfig, MissionReport, run_mission
+from rr_actors.mission.managers import ProcessTable
+from rr_actors.mission.programs import start_time
+from rr_actors.mission.run import Odometry, main
+
+ROOT = Path(__file__).resolve().parent.parent
+REPORT_KEYS = {"mission_time_s", "distance_m", "faults", "leaked_processes", "catalog_entries_left"}
+FAULT_KEYS = {"id", "injected_at_s", "detected_after_s", "recovered_after_s", "robot_stopped_s"}
+
+
+def living_programs(out: Path) -> list[int]:
+    """Pids of this run's programs that are still alive (pid and creation time match)."""
+    alive = []
+    for path in (out / "bus" / "pids").glob("*.json"):
+        record = json.loads(path.read_text())
+        if start_time(record["pid"]) == record["start_time"]:
+            alive.append(record["pid"])
+    return alive
+
+
+def programs_started(out: Path) -> list[dict[str, Any]]:
+    """Every program the run started, from their pid files."""
+    return [json.loads(p.read_text()) for p in (out / "bus" / "pids").glob("*.json")]
+
+
+@pytest.fixture(scope="module")
+def full_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, Path]:
+    """`rr-actors demo --fast` with all five faults: (exit code, output directory)."""
+    out = tmp_path_factory.mktemp("mission")
+    return main(["--fast", "--quiet", "--out", str(out)]), out
+
+
+@pytest.fixture(scope="module")
+def full_report(full_run: tuple[int, Path]) -> dict[str, Any]:
+    """The full run's report.json."""
+    report: dict[str, Any] = json.loads((full_run[1] / "report.json").read_text())
+    return report
+
+
+def faults_by_id(report: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    return {f["id"]: f for f in report["faults"]}
+
+
+def test_the_demo_exits_zero_after_the_full_mission(full_run: tuple[int, Path]) -> None:
+    assert 0 == full_run[0]
+
+
+def test_the_report_holds_every_field_and_all_five_faults(full_report: dict[str, Any]) -> None:
+    assert REPORT_KEYS <= set(full_report)
+    assert list(FAULTS) == [f["id"] for f in full_report["faults"]]
+    for fault in full_report["faults"]:
+        assert FAULT_KEYS <= set(fault)
+
+
+def test_every_fault_of_the_full_mission_is_detected_and_recovered(
+    full_report: dict[str, Any],
+) -> None:
+    for fault in full_report["faults"]:
+        assert fault["detected_after_s"] is not None, fault
+        assert fault["recovered_after_s"] is not None, fault
+        assert fault["detected_after_s"] <= fault["recovered_after_s"], fault
+
+
+def test_killing_the_managers_does_not_stop_the_robot(full_report: dict[str, Any]) -> None:
+    stopped = {f: faults_by_id(full_report)[f]["robot_stopped_s"] for f in ("F3", "F4", "F5")}
+
+    assert {"F3": 0.0, "F4": 0.0, "F5": 0.0} == stopped
+
+
+def test_losing_the_lidar_or_the_driver_stops_the_robot_for_a_while(
+    full_report: dict[str, Any],
+) -> None:
+    faults = faults_by_id(full_report)
+
+    assert faults["F1"]["robot_stopped_s"] > 0
+    assert faults["F2"]["robot_stopped_s"] > 0
+
+
+def test_the_robot_reaches_the_goal_in_the_full_mission(full_report: dict[str, Any]) -> None:
+    assert full_report["distance_m"] >= MissionConfig.fast().distance_m
+    assert full_report["mission_time_s"] >= MissionConfig.fast().nominal_time_s
+
+
+def test_the_full_mission_leaves_no_process_and_no_catalog_entry(
+    full_run: tuple[int, Path], full_report: dict[str, Any]
+) -> None:
+    started = programs_started(full_run[1])
+
+    assert (0, 0) == (full_report["leaked_processes"], full_report["catalog_entries_left"])
+    assert {"erm": 0, "cm": 0, "rm": 0, "mission": 0} == full_report["catalog_entries_by_registrar"]
+    assert [] == living_programs(full_run[1])
+    assert 5 == len(started)  # driver, navigation, LiDAR 1, LiDAR 2, the restarted driver
+
+
+def test_the_full_mission_draws_its_plot(full_run: tuple[int, Path]) -> None:
+    if importlib.util.find_spec("matplotlib") is None:
+        pytest.skip("matplotlib is not installed")
+
+    assert (full_run[1] / "mission.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("fault", FAULTS)
+def test_each_fault_alone_is_recovered_and_leaves_nothing_behind(
+    fault: str, tmp_path: Path
+) -> None:
+    report: MissionReport = run_mission(MissionConfig.fast(faults=(fault,)), tmp_path)
+    (result,) = report.faults
+
+    assert fault == result.id
+    assert result.recovered_after_s is not None
+    assert (0, 0) == (report.leaked_processes, report.catalog_entries_left)
+    assert [] == living_programs(tmp_path)
+    if fault in ("F3", "F4", "F5"):
+        assert 0.0 == result.robot_stopped_s
+
+
+def test_without_faults_the_robot_drives_through_and_the_demo_explains_the_missing_plot(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setitem(sys.modules, "rr_actors.mission.plot", None)  # as without matplotlib
+
+    code = main(["--fast", "--no-faults", "--distance", "2", "--out", str(tmp_path)])
+    report = json.loads((tmp_path / "report.json").read_text())
+
+    assert 0 == code
+    assert [] == report["faults"]
+    assert "pip install 'rr-actors[demo]'" in capsys.readouterr().out
+    assert not (tmp_path / "mission.png").exists()
+
+
+def test_the_example_script_runs_the_mission(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "examples" / "jackal_mission.py"),
+            "--fast",
+            "--faults",
+            "F1",
+            "--distance",
+            "3",
+            "--out",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=50,
+        check=False,
+    )
+
+    assert (0, "") == (result.returncode, result.stderr)
+    assert "F1     LiDAR 1 disconnected" in result.stdout
+    assert "leaked processes: 0; catalog entries left: 0" in result.stdout
+
+
+def test_an_unknown_fault_is_a_command_line_error(capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["--faults", "F9", "--out", "unused"])
+
+    assert 2 == code
+    assert "F9" in capsys.readouterr().err
+
+
+def test_the_odometry_counts_a_gap_without_a_driver_as_a_stop(tmp_path: Path) -> None:
+    log = tmp_path / "odom.jsonl"
+    samples = [(0.0, 0.0, 1.0), (0.1, 0.1, 1.0), (0.2, 0.2, 1.0), (0.7, 0.2, 0.0), (0.8, 0.3, 1.0)]
+    log.write_text("".join(json.dumps({"t": t, "x": x, "v": v}) + "\n" for t, x, v in samples))
+    odometry = Odometry(log)
+
+    odometry.read()
+
+    assert [(0.2, 0.7)] == odometry.stops(0.0, 1.0)
+
+
+def test_the_erm_does_not_adopt_a_process_whose_pid_was_reused(tmp_path: Path) -> None:
+    registrar = rr.ResourceRegistrar.start(f"erm-{uuid.uuid4().hex[:8]}")
+    try:
+        table = ProcessTable(registrar)
+        me = os.getpid()
+        created = start_time(me)
+        assert created is not None
+        impostor = rr.Query(
+            "q1",
+            "program",
+            registrar.name,
+            "cm",
+            {"name": "lidar1", "bus": str(tmp_path)},
+            {"name": "lidar1", "pid": me, "start_time": created + 1},
+        )
+
+        dead = table.adopt([impostor])
+    finally:
+        registrar.stop()
+
+    assert [impostor] == dead
