@@ -1,0 +1,160 @@
+"""Core registrar latencies next to a raw pykka ask, measured in one run.
+
+Every operation is measured in interleaved rounds (round 1 of every operation, then
+round 2 of every operation, ...) so that noise from other processes spreads evenly over
+all rows. Each sample is one operation, timed with `time.perf_counter_ns`. The table shows
+the median and 90th percentile in microseconds and the ratio of each median to the
+median of a raw pykka ask (`ActorRef.ask` to a `ThreadingActor` that echoes).
+
+Usage:
+    python benchmarks/bench_core.py [--rounds 20] [--batch 200] [--profile FILE]
+
+Operations:
+    pykka ask           raw `ref.ask(x)` round trip to an echoing ThreadingActor
+    dedup-hit call      `call` of a request already loaded (a consumer is added, no load)
+    dedup-hit unload    `unload` of one of those ids (not the last consumer, no unload)
+    unique load+unload  `call` of a new request, then `unload` of its only id
+    status delivery     `send_status` to one consumer; returns after its callback ran
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import importlib.metadata
+import itertools
+import platform
+import statistics
+import sys
+import time
+import uuid
+from collections.abc import Callable
+from typing import Any
+
+import pykka
+
+import rr_actors as rr
+
+
+class Echo(pykka.ThreadingActor):
+    """The baseline: the cheapest useful pykka round trip."""
+
+    def on_receive(self, message: Any) -> Any:
+        return message
+
+
+class Bench:
+    """The actors and registrars every operation uses, started once."""
+
+    def __init__(self) -> None:
+        suffix = uuid.uuid4().hex[:6]
+        self.echo = Echo.start()
+        self.provider = rr.ResourceRegistrar.start(f"bench-provider-{suffix}")
+        self.consumer = rr.ResourceRegistrar.start(f"bench-consumer-{suffix}")
+        self.provider.register_server("res", load=lambda request: request, unload=_noop)
+        self.holder = self.consumer.call(self.provider.name, "res", "shared")
+        self.watched = self.consumer.call(self.provider.name, "res", "watched", on_status=_noop)
+        self._unique = itertools.count()
+        self._dedup_ids: list[str] = []
+
+    def stop(self) -> None:
+        self.consumer.stop()
+        self.provider.stop()
+        self.echo.stop()
+
+    # -- operations (each does one operation) -----------------------------------------
+
+    def pykka_ask(self) -> None:
+        self.echo.ask("ping")
+
+    def dedup_call(self) -> None:
+        query = self.consumer.call(self.provider.name, "res", "shared")
+        self._dedup_ids.append(query.id)
+
+    def dedup_unload(self) -> None:
+        self.consumer.unload(self._dedup_ids.pop())
+
+    def unique_load_unload(self) -> None:
+        query = self.consumer.call(self.provider.name, "res", ("unique", next(self._unique)))
+        self.consumer.unload(query.id)
+
+    def status_delivery(self) -> None:
+        self.provider.send_status(self.watched.id, rr.Status.UPDATE, "tick")
+
+
+def _noop(*_: object) -> None:
+    return None
+
+
+def measure(op: Callable[[], None], batch: int, samples: list[int]) -> None:
+    """Run `op` `batch` times, appending each duration (ns) to `samples`."""
+    clock = time.perf_counter_ns
+    for _ in range(batch):
+        start = clock()
+        op()
+        samples.append(clock() - start)
+
+
+def percentile(values: list[int], fraction: float) -> float:
+    """The `fraction` quantile of `values` (nearest rank)."""
+    ordered = sorted(values)
+    index = min(len(ordered) - 1, max(0, round(fraction * len(ordered)) - 1))
+    return float(ordered[index])
+
+
+def run(rounds: int, batch: int) -> list[tuple[str, float, float]]:
+    """Measure every operation; return (name, median us, p90 us) rows."""
+    bench = Bench()
+    try:
+        ops: dict[str, Callable[[], None]] = {
+            "pykka ask": bench.pykka_ask,
+            "dedup-hit call": bench.dedup_call,
+            "dedup-hit unload": bench.dedup_unload,
+            "unique load+unload": bench.unique_load_unload,
+            "status delivery": bench.status_delivery,
+        }
+        samples: dict[str, list[int]] = {name: [] for name in ops}
+        for op in ops.values():  # warm-up: threads, caches, clients
+            measure(op, batch, [])
+        for _ in range(rounds):
+            for name, op in ops.items():
+                measure(op, batch, samples[name])
+        return [
+            (name, statistics.median(s) / 1000, percentile(s, 0.9) / 1000)
+            for name, s in samples.items()
+        ]
+    finally:
+        bench.stop()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse arguments, run, print the table."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=20, help="interleaved rounds (default 20)")
+    parser.add_argument("--batch", type=int, default=200, help="operations per round and row")
+    parser.add_argument("--profile", metavar="FILE", help="write cProfile stats of the run here")
+    args = parser.parse_args(argv)
+
+    profiler = cProfile.Profile() if args.profile else None
+    if profiler is not None:
+        profiler.enable()
+    rows = run(args.rounds, args.batch)
+    if profiler is not None:
+        profiler.disable()
+        profiler.dump_stats(args.profile)
+
+    base = rows[0][1]
+    print(
+        f"python {platform.python_version()}, pykka {importlib.metadata.version('pykka')}, "
+        f"{args.rounds} rounds x {args.batch} operations per row, {sys.platform}"
+    )
+    print()
+    print("| operation | median (us) | p90 (us) | median / pykka ask |")
+    print("|---|---:|---:|---:|")
+    for name, median, p90 in rows:
+        print(f"| {name} | {median:.1f} | {p90:.1f} | {median / base:.1f}x |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
