@@ -41,25 +41,54 @@ from rr_actors._replies import FutureReply, wait
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import ConfigError, RegistrarUnavailableError, RrError
 
-__all__ = ["ManagerExit", "ManagerProcess", "main", "mp_context"]
+__all__ = ["ManagerExit", "ManagerProcess", "Spare", "main", "mp_context", "standby"]
 
 logger = logging.getLogger("rr_actors")
-
-_TRACE = os.environ.get("RR_TRACE")
-
-
-def _T(label: str) -> None:
-    if _TRACE:
-        with open(_TRACE, "a") as f:
-            f.write(f"{time.monotonic():.6f} {os.getpid()} {label}\n")
 
 _PR_SET_PDEATHSIG = 1
 _PARENT_GONE_EXIT = 70  # the exit code of a manager whose parent died
 _ACTOR_DIED_EXIT = 71  # the registrar actor died inside a living process
 
 
+_PROCESS_PREFIX = "rr-manager-"  # the name of every manager process starts with it
+_LEAN_LOCK = threading.Lock()
+
+
+def _install_lean_preparation() -> None:
+    """Keep manager processes from re-running the parent's `__main__` module (idempotent).
+
+    A forkserver or spawn child first "prepares": it re-imports the parent's main script
+    as `__mp_main__` so that objects pickled by reference to `__main__` resolve. A manager
+    never needs that (its target lives in `rr_actors._manager`, its setup is cloudpickled by
+    value, its config is plain data), and it costs every start (and every restart) the
+    import time of whatever the main script imports: 10-40 ms for a script that imports
+    `argparse` and `statistics`. (The forkserver's own `__main__` preload, meant to make
+    this cheap, never runs on Python <= 3.13: it looks for a `main_path` key that
+    `get_preparation_data` does not produce.) This wraps
+    `multiprocessing.spawn.get_preparation_data` to drop the main-module entries for
+    processes named `rr-manager-*` only; other processes are unaffected.
+    """
+    from multiprocessing import spawn  # noqa: PLC0415
+
+    with _LEAN_LOCK:
+        original = spawn.get_preparation_data
+        if getattr(original, "_rr_lean", False):
+            return
+
+        def get_preparation_data(name: str) -> dict[str, Any]:
+            data: dict[str, Any] = original(name)
+            if name.startswith(_PROCESS_PREFIX):
+                data.pop("init_main_from_path", None)
+                data.pop("init_main_from_name", None)
+            return data
+
+        get_preparation_data._rr_lean = True  # type: ignore[attr-defined]
+        spawn.get_preparation_data = get_preparation_data
+
+
 def mp_context() -> multiprocessing.context.BaseContext:
     """The multiprocessing context for manager processes: forkserver, else spawn."""
+    _install_lean_preparation()
     if "forkserver" in multiprocessing.get_all_start_methods():
         ctx = multiprocessing.get_context("forkserver")
         ctx.set_forkserver_preload(
@@ -68,6 +97,7 @@ def mp_context() -> multiprocessing.context.BaseContext:
                 "rr_actors._registrar",
                 "rr_actors._transport",
                 "rr_actors._sqlite_store",
+                "hmac",  # the transport's authkey handshake imports it lazily
             ]
         )
         return ctx
@@ -152,7 +182,6 @@ def main(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) 
         address: the system's `SystemAddress`, or `None` to run unattached.
         conn: the child's end of the control pipe.
     """
-    _T("child main")
     _die_with_parent()
     from rr_actors._registrar import ResourceRegistrar  # noqa: PLC0415 - preloaded
 
@@ -163,16 +192,12 @@ def main(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) 
             from rr_actors._transport import attach  # noqa: PLC0415
 
             attached = attach(address)
-        _T("attached")
         registrar = ResourceRegistrar.start(config)
-        _T("registrar started")
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
             setup_fn(registrar)
-        _T("setup")
         if attached is not None:
             attached.serve(registrar)
-        _T("served")
     except BaseException as exc:  # noqa: BLE001 - reported to the supervisor, then exit
         control.send(("failed", "".join(traceback.format_exception(exc))))
         os._exit(1)
@@ -186,6 +211,46 @@ def main(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) 
     threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
     control.send(("ready", os.getpid()))
     _serve_control(conn, control, registrar, attached, stopping)
+
+
+def _warm_up() -> None:
+    """Pay a fresh process's first-use costs while it idles as a spare, not after a crash.
+
+    A forked child shares its parent's memory copy-on-write: the first write to a page
+    (Python writes reference counts and GC headers everywhere) copies it, which made the
+    first registrar start in a new process about twice as slow as in a warm one. A full
+    collection touches every tracked object (and so most of the heap) once; opening an
+    in-memory SQLite database initialises the library.
+    """
+    import gc  # noqa: PLC0415
+    import sqlite3  # noqa: PLC0415
+
+    gc.collect()
+    with contextlib.closing(sqlite3.connect(":memory:")) as db:
+        db.execute("CREATE TABLE t (x)").fetchall()
+
+
+def standby(conn: Connection) -> None:
+    """Wait, started but idle, until the parent hands over a manager's arguments; run it.
+
+    Runs as the target of a spare manager process (see [`Spare`][rr_actors._manager.Spare]):
+    the interpreter start, the forkserver's fork and the child's bootstrap are paid before
+    a manager crashes, not after. Exits when the control pipe reaches EOF.
+
+    Args:
+        conn: the child's end of the control pipe; the first message is
+            `("start", setup, config, address)` with `main`'s arguments.
+    """
+    _die_with_parent()
+    _warm_up()
+    try:
+        message = conn.recv()
+    except (EOFError, OSError):
+        os._exit(0)  # released unused, or the parent is gone
+    if message[0] != "start":
+        os._exit(0)
+    _, setup, config, address = message
+    main(setup, config, address, conn)
 
 
 def _serve_control(
@@ -259,6 +324,55 @@ def _describe(exitcode: int | None) -> ManagerExit:
     return ManagerExit(f"exit code {exitcode}", normal=False)
 
 
+class Spare:
+    """A manager process started ahead of need, idle until it is given a manager to run.
+
+    The supervisor keeps one so that a restart does not wait for a process to start:
+    it only sends the manager's arguments, and the spare restores, sets up and serves.
+    A spare that is never used exits when [`close`][rr_actors._manager.Spare.close]d (or
+    when its parent dies, like any manager process).
+    """
+
+    def __init__(self, process: Any, conn: Connection) -> None:
+        self.process = process
+        self.conn = conn
+
+    @classmethod
+    def start(cls) -> Spare:
+        """Start a spare process (returns once it was forked; it idles on its pipe)."""
+        ctx = mp_context()
+        parent_conn, child_conn = ctx.Pipe(duplex=True)
+        process = ctx.Process(  # type: ignore[attr-defined]
+            target=standby, args=(child_conn,), name=f"{_PROCESS_PREFIX}spare", daemon=True
+        )
+        process.start()
+        child_conn.close()
+        return cls(process, parent_conn)
+
+    def take(self, name: str, setup: bytes, config: RegistrarConfig, address: Any) -> bool:
+        """Hand manager `name`'s arguments to the spare; `False` if it is not usable."""
+        if not self.process.is_alive():
+            self.close()
+            return False
+        try:
+            self.conn.send(("start", setup, config, address))
+        except (OSError, ValueError):
+            self.close()
+            return False
+        self.process.name = f"{_PROCESS_PREFIX}{name}"
+        return True
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Release an unused spare: it sees EOF and exits; killed after `timeout` seconds."""
+        with contextlib.suppress(OSError):
+            self.conn.close()
+        self.process.join(timeout)
+        if self.process.exitcode is None:
+            with contextlib.suppress(OSError, ValueError):
+                self.process.kill()
+            self.process.join(timeout)
+
+
 class ManagerProcess:
     """The parent's handle on one running manager process (one incarnation).
 
@@ -304,26 +418,37 @@ class ManagerProcess:
         heartbeat: float | None,
         heartbeat_timeout: float,
         on_exit: Callable[[ManagerExit], None],
+        spare: Spare | None = None,
     ) -> ManagerProcess:
         """Start a manager process and wait until it serves (its catalog restored).
+
+        Args:
+            name, setup, config, address: what the manager runs (see `main`).
+            start_timeout: seconds it may take to restore, set up and serve.
+            heartbeat, heartbeat_timeout: seconds between pings, and of silence before
+                it counts as hung (`None`: no heartbeat).
+            on_exit: called once, on the watcher thread, with how it ended.
+            spare: an idle pre-started process to run it in (else a new one is started;
+                also if the spare died meanwhile).
 
         Raises:
             RegistrarUnavailableError: it failed (setup raised, its backup could not be
                 read, ...) or died before it was ready; the message holds its traceback.
             CallTimeoutError: it was not ready within `start_timeout` seconds (it is killed).
         """
-        ctx = mp_context()
-        parent_conn, child_conn = ctx.Pipe(duplex=True)
-        process = ctx.Process(  # type: ignore[attr-defined]
-            target=main,
-            args=(setup, config, address, child_conn),
-            name=f"rr-manager-{name}",
-            daemon=True,
-        )
-        _T("process.start begin")
-        process.start()
-        _T("process.start returned")
-        child_conn.close()
+        if spare is not None and spare.take(name, setup, config, address):
+            process, parent_conn = spare.process, spare.conn
+        else:
+            ctx = mp_context()
+            parent_conn, child_conn = ctx.Pipe(duplex=True)
+            process = ctx.Process(  # type: ignore[attr-defined]
+                target=main,
+                args=(setup, config, address, child_conn),
+                name=f"{_PROCESS_PREFIX}{name}",
+                daemon=True,
+            )
+            process.start()
+            child_conn.close()
         deadline = time.monotonic() + start_timeout
         ready: Any = None
         while ready is None:
@@ -348,7 +473,6 @@ class ManagerProcess:
                 raise RegistrarUnavailableError(
                     f"manager {name!r} died while starting ({_describe(process.exitcode).reason})"
                 )
-        _T("ready received")
         if ready[0] != "ready":
             process.join(5.0)
             parent_conn.close()
@@ -440,7 +564,6 @@ class ManagerProcess:
             timeout = None if period is None else max(0.0, next_ping - time.monotonic())
             woke = multiprocessing.connection.wait(waitables, timeout)
             if sentinel in woke:
-                _T("sentinel woke")
                 break
             if self.conn in woke:
                 try:

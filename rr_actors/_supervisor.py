@@ -52,7 +52,7 @@ from rr_actors.errors import (
 )
 
 if TYPE_CHECKING:
-    from rr_actors._manager import ManagerProcess
+    from rr_actors._manager import ManagerProcess, Spare
 
 __all__ = [
     "Backoff",
@@ -621,6 +621,9 @@ class Supervisor:
         self._registrars: list[ResourceRegistrar] = []
         self._abandon_later: dict[str, list[tuple[str, str]]] = {}
         self._wait_cursor: dict[str, int] = {}
+        self._spare: Spare | None = None  # root only: an idle manager process, ready to use
+        self._spare_lock = threading.Lock()
+        self._spares = False  # root only: keep a spare (the tree has process managers)
 
     @classmethod
     def _nested(cls, spec: SupervisorSpec, parent: Supervisor) -> Supervisor:
@@ -685,6 +688,9 @@ class Supervisor:
             self._mailbox.put(_Quit())
             self._thread.join(30.0)
             if self._parent is None:
+                with self._spare_lock:
+                    self._spares = False
+                self._release_spare()
                 self._close_system()
             raise
         return self
@@ -705,6 +711,8 @@ class Supervisor:
             with contextlib.suppress(RrError):
                 registrar.stop()
         self._registrars.clear()
+        with self._spare_lock:
+            self._spares = False  # no new spare while the children stop
         if self._thread.is_alive():
             with contextlib.suppress(RrError):
                 self._do(self._stop_all)
@@ -712,6 +720,7 @@ class Supervisor:
             self._thread.join(60.0)
         self._stopped = True
         if self._parent is None:
+            self._release_spare()
             self._close_system()
 
     def __enter__(self) -> Supervisor:
@@ -734,6 +743,7 @@ class Supervisor:
             self._system = System.create()  # also attaches this process
             self._owns_system = True
             self._attached = self._system
+            self._spares = True
 
     def _pickle_setups(self, spec: SupervisorSpec) -> None:
         for child in spec.children:
@@ -746,6 +756,41 @@ class Supervisor:
                     raise ConfigError(
                         f"setup of manager {child.name!r} is not picklable: {exc}"
                     ) from exc
+
+    # -- the spare manager process (root supervisor only) ----------------------------------
+
+    def _take_spare(self) -> Spare | None:
+        """Hand out the idle spare process, if there is one (any supervisor's thread)."""
+        with self._spare_lock:
+            spare, self._spare = self._spare, None
+        return spare
+
+    def _replenish_spare(self) -> None:
+        """Start a new spare if none is waiting (mailbox thread, after a start is published).
+
+        A restart then only hands the manager's arguments to a process that already runs:
+        the process start (forkserver fork and child bootstrap) is off the restart path.
+        """
+        with self._spare_lock:
+            if not self._spares or self._spare is not None:
+                return
+        from rr_actors._manager import Spare  # noqa: PLC0415
+
+        try:
+            spare = Spare.start()
+        except Exception:
+            logger.exception("supervisor %s could not start a spare manager process", self.name)
+            return
+        with self._spare_lock:
+            if self._spares and self._spare is None:
+                self._spare, spare = spare, None  # type: ignore[assignment]
+        if spare is not None:  # stopped meanwhile
+            spare.close()
+
+    def _release_spare(self) -> None:
+        spare = self._take_spare()
+        if spare is not None:
+            spare.close()
 
     def _close_system(self) -> None:
         if self._attached is not None:
@@ -1067,16 +1112,21 @@ class Supervisor:
             else:
                 from rr_actors._manager import ManagerProcess  # noqa: PLC0415
 
-                handle = ManagerProcess.start(
-                    spec.name,
-                    self._setups[spec.name],
-                    self._config(spec),
-                    self._system.address if self._system is not None else None,
-                    start_timeout=spec.start_timeout,
-                    heartbeat=spec.heartbeat,
-                    heartbeat_timeout=spec.hang_after,
-                    on_exit=post,
-                )
+                root = self._root()
+                try:
+                    handle = ManagerProcess.start(
+                        spec.name,
+                        self._setups[spec.name],
+                        self._config(spec),
+                        self._system.address if self._system is not None else None,
+                        start_timeout=spec.start_timeout,
+                        heartbeat=spec.heartbeat,
+                        heartbeat_timeout=spec.hang_after,
+                        on_exit=post,
+                        spare=root._take_spare(),
+                    )
+                finally:  # runs after this start was published: off the restart path
+                    root._do_async(root._replenish_spare)
                 child.running = _ProcessManager(handle)
         child.state = "running"
         for query_id, origin in self._abandon_later.pop(child.name, ()):
@@ -1165,8 +1215,6 @@ class Supervisor:
     # -- crashes and restarts (mailbox thread) ----------------------------------------
 
     def _on_exited(self, event: _Exited) -> None:
-        from rr_actors._manager import _T
-        _T("on_exited")
         child = next((c for c in self._children if c.name == event.name), None)
         if child is None or child.incarnation != event.incarnation or self._gave_up:
             return  # a stale event: that incarnation was stopped on purpose
@@ -1223,8 +1271,6 @@ class Supervisor:
         self._timers.append(self._timer(delay, lambda: self._mailbox.put(event)))
 
     def _on_restart(self, event: _Restart) -> None:
-        from rr_actors._manager import _T
-        _T("on_restart")
         if event.generation != self._generation or self._gave_up is not None:
             return
         for child in self._children:
