@@ -116,6 +116,13 @@ class Changes:
         return bool(self.resources or self.clients)
 
 
+class _DirtySet(dict[str, None]):
+    """An insertion-ordered set of row ids (so the store can keep the rows' order)."""
+
+    def add(self, key: str) -> None:
+        self[key] = None
+
+
 class Catalog:
     """The bookkeeping of one registrar (thesis 4.3.2), without the locks."""
 
@@ -126,15 +133,20 @@ class Catalog:
         self._by_consumer: dict[str, str] = {}
         self._index: dict[str, dict[Any, list[str]]] = {}
         self._deps: dict[str, list[str]] = {}
-        self._dirty_resources: set[str] = set()
-        self._dirty_clients: set[str] = set()
+        self._dirty_resources = _DirtySet()  # ordered: new rows drain in creation order
+        self._dirty_clients = _DirtySet()
 
     # -- served resources -------------------------------------------------------------
 
     def find(self, server: str, request: Any) -> Resource | None:
         """Return the resource of `server` whose request `== request`, if any."""
-        bucket = self._index.get(server, {}).get(request_bucket(request), ())
-        for rid in bucket:
+        buckets = self._index.get(server, {})
+        key = request_bucket(request)
+        if key == _UNHASHABLE:  # it may equal a canonicalisable value (bytearray == bytes)
+            candidates = [rid for bucket in buckets.values() for rid in bucket]
+        else:
+            candidates = [*buckets.get(key, ()), *buckets.get(_UNHASHABLE, ())]
+        for rid in candidates:
             resource = self.resources[rid]
             if requests_equal(resource.request, request):
                 return resource

@@ -1,0 +1,318 @@
+"""The pure catalog: dedup buckets, indexes and invariants (unit and property tests)."""
+
+from __future__ import annotations
+
+import uuid
+from typing import Any
+
+import hypothesis.strategies as st
+import pytest
+from hypothesis import given, settings
+from hypothesis.stateful import (
+    Bundle,
+    RuleBasedStateMachine,
+    consumes,
+    invariant,
+    precondition,
+    rule,
+)
+
+from rr_actors import Query, UnknownQueryError
+from rr_actors._catalog import (
+    Catalog,
+    ClientRecord,
+    ResourceState,
+    request_bucket,
+    requests_equal,
+)
+
+scalars = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-3, 3),
+    st.floats(allow_nan=False, min_value=-3, max_value=3),
+    st.text(max_size=3),
+    st.binary(max_size=3),
+)
+hashables = st.recursive(
+    scalars, lambda inner: st.tuples(inner, inner) | st.frozensets(inner), max_leaves=6
+)
+requests = st.recursive(
+    scalars | st.builds(bytearray, st.binary(max_size=3)),
+    lambda inner: st.one_of(
+        st.lists(inner, max_size=3),
+        st.tuples(inner, inner),
+        st.dictionaries(st.text(max_size=2) | st.integers(-2, 2), inner, max_size=3),
+        st.sets(hashables, max_size=3),
+        st.frozensets(hashables, max_size=3),
+    ),
+    max_leaves=8,
+)
+
+
+def rebuilt(value: Any) -> Any:
+    """An equal value built afresh, dicts in reverse insertion order."""
+    if isinstance(value, dict):
+        return {k: rebuilt(v) for k, v in reversed(list(value.items()))}
+    if isinstance(value, list):
+        return [rebuilt(v) for v in value]
+    if isinstance(value, tuple):
+        return tuple(rebuilt(v) for v in value)
+    if isinstance(value, bytearray):
+        return bytearray(value)
+    return value
+
+
+def loaded(catalog: Catalog, server: str, request: Any, consumer: str = "c") -> str:
+    rid = str(uuid.uuid4())
+    catalog.begin_load(rid, server, request)
+    catalog.finish_load(rid, {"for": rid})
+    catalog.add_consumer(rid, consumer + rid, "origin")
+    return rid
+
+
+@given(requests)
+def test_equal_requests_always_share_a_bucket(request):
+    copy = rebuilt(request)
+
+    assert request == copy
+    assert request_bucket(request) == request_bucket(copy)
+
+
+@given(requests, requests)
+def test_find_returns_the_resource_of_any_equal_request(stored, asked):
+    catalog = Catalog()
+    rid = loaded(catalog, "s", stored)
+
+    found = catalog.find("s", asked)
+
+    if requests_equal(stored, asked):
+        assert found is not None
+        assert rid == found.id
+    else:
+        assert found is None
+
+
+@pytest.mark.parametrize(
+    ("stored", "asked"),
+    [
+        ({"a": 1, "b": [1, 2]}, {"b": [1, 2], "a": 1}),
+        ([1, {"x": {2, 3}}], [1, {"x": {3, 2}}]),
+        ({"k": {"nested": [1, [2]]}}, {"k": {"nested": [1, [2]]}}),
+        ({1, 2}, frozenset({1, 2})),
+        (1, 1.0),
+        (1, True),
+        (bytearray(b"ab"), b"ab"),
+        (b"ab", bytearray(b"ab")),
+    ],
+)
+def test_find_matches_equal_requests_of_the_usual_types(stored, asked):
+    catalog = Catalog()
+    rid = loaded(catalog, "s", stored)
+
+    found = catalog.find("s", asked)
+
+    assert found is not None
+    assert rid == found.id
+
+
+def test_unequal_requests_with_equal_buckets_stay_apart():
+    catalog = Catalog()
+    a = loaded(catalog, "s", [1, 2])
+    b = loaded(catalog, "s", (1, 2))  # freezes like [1, 2], but [1, 2] != (1, 2)
+
+    assert (a, b) == (catalog.find("s", [1, 2]).id, catalog.find("s", (1, 2)).id)
+
+
+def test_a_value_that_cannot_be_canonicalised_is_compared_by_equality_alone():
+    class Box:
+        __hash__ = None  # type: ignore[assignment]
+
+        def __init__(self, v):
+            self.v = v
+
+        def __eq__(self, other):
+            return isinstance(other, Box) and self.v == other.v
+
+    catalog = Catalog()
+    rid = loaded(catalog, "s", Box(1))
+
+    assert rid == catalog.find("s", Box(1)).id
+    assert catalog.find("s", Box(2)) is None
+
+
+def test_a_request_whose_equality_raises_matches_nothing():
+    class Touchy:
+        def __eq__(self, other):
+            raise RuntimeError("no")
+
+        __hash__ = object.__hash__
+
+    catalog = Catalog()
+    loaded(catalog, "s", Touchy())
+
+    assert catalog.find("s", Touchy()) is None
+
+
+def test_equal_requests_on_different_servers_are_different_resources():
+    catalog = Catalog()
+    loaded(catalog, "one", "x")
+
+    assert catalog.find("two", "x") is None
+
+
+def test_releasing_an_unknown_consumer_id_raises_and_changes_nothing():
+    catalog = Catalog()
+    loaded(catalog, "s", "x")
+    before = {rid: dict(r.consumers) for rid, r in catalog.resources.items()}
+
+    with pytest.raises(UnknownQueryError):
+        catalog.release("nope")
+
+    assert before == {rid: dict(r.consumers) for rid, r in catalog.resources.items()}
+    catalog.check_invariants()
+
+
+def test_removing_an_unknown_client_record_raises():
+    with pytest.raises(UnknownQueryError):
+        Catalog().remove_client("nope")
+
+
+def test_a_consumer_id_cannot_be_added_twice():
+    catalog = Catalog()
+    rid = loaded(catalog, "s", "x", consumer="c")
+
+    with pytest.raises(ValueError, match="already"):
+        catalog.add_consumer(rid, "c" + rid, "origin")
+
+
+def test_server_queries_lists_each_consumer_id_once():
+    catalog = Catalog()
+    rid = loaded(catalog, "s", {"a": [1]})
+    catalog.add_consumer(rid, "second", "other")
+
+    queries = catalog.server_queries("s", "me")
+
+    assert [("c" + rid, "origin"), ("second", "other")] == [(q.id, q.origin_rr) for q in queries]
+    assert all({"a": [1]} == q.request for q in queries)
+
+
+def test_dependencies_are_listed_by_owner_oldest_first():
+    catalog = Catalog()
+    owner = loaded(catalog, "s", "composite")
+    for qid in ("d1", "d2"):
+        catalog.add_client(ClientRecord(Query(qid, "leaf", "p", "me", qid), parent=owner))
+    catalog.add_client(ClientRecord(Query("top", "leaf", "p", "me", "top")))
+
+    assert ["d1", "d2"] == [r.query.id for r in catalog.dependencies(owner)]
+    catalog.check_invariants()
+
+
+def test_check_invariants_catches_a_resource_loaded_twice():
+    catalog = Catalog()
+    loaded(catalog, "s", "x")
+    loaded(catalog, "s", "x")
+
+    with pytest.raises(AssertionError, match="loaded twice"):
+        catalog.check_invariants()
+
+
+def test_restore_rebuilds_the_indexes():
+    catalog = Catalog()
+    rid = loaded(catalog, "s", {"a": [1]})
+    catalog.add_client(ClientRecord(Query("d", "leaf", "p", "me", 1), parent=rid, loaded=True))
+
+    restored = Catalog.restore(catalog.resources.values(), catalog.clients.values())
+
+    restored.check_invariants()
+    assert rid == restored.find("s", {"a": [1]}).id
+    assert rid == restored.resource_of("c" + rid).id
+    assert ["d"] == [r.query.id for r in restored.dependencies(rid)]
+
+
+def test_drain_changes_reports_touched_rows_once():
+    catalog = Catalog()
+    rid = loaded(catalog, "s", "x")
+
+    first, second = catalog.drain_changes(), catalog.drain_changes()
+
+    assert [rid] == list(first.resources)
+    assert not second
+
+
+class CatalogMachine(RuleBasedStateMachine):
+    """Random sequences of catalog operations keep the indexes in step with a model."""
+
+    resources = Bundle("resources")
+    consumers = Bundle("consumers")
+    deps = Bundle("deps")
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.catalog = Catalog()
+        self.model: dict[str, set[str]] = {}  # resource id -> consumer ids
+
+    @rule(target=resources, server=st.sampled_from(["a", "b"]), request=requests)
+    def load(self, server, request):
+        existing = self.catalog.find(server, request)
+        if existing is not None:
+            return existing.id
+        rid = str(uuid.uuid4())
+        self.catalog.begin_load(rid, server, request)
+        self.catalog.finish_load(rid, "resp")
+        self.model[rid] = set()
+        return rid
+
+    @rule(target=consumers, rid=resources)
+    def add_consumer(self, rid):
+        if rid not in self.model:
+            return None
+        qid = str(uuid.uuid4())
+        self.catalog.add_consumer(rid, qid, "origin")
+        self.model[rid].add(qid)
+        return qid
+
+    @rule(qid=consumes(consumers))
+    def release(self, qid):
+        owner = next((rid for rid, ids in self.model.items() if qid in ids), None)
+        if owner is None:
+            with pytest.raises(UnknownQueryError):
+                self.catalog.release(qid)
+            return
+        assert owner == self.catalog.release(qid).id
+        self.model[owner].discard(qid)
+
+    @rule(target=deps, rid=resources)
+    def add_dependency(self, rid):
+        if rid not in self.model:
+            return None
+        qid = str(uuid.uuid4())
+        self.catalog.add_client(ClientRecord(Query(qid, "leaf", "p", "me", qid), parent=rid))
+        return qid
+
+    @rule(qid=consumes(deps))
+    def remove_dependency(self, qid):
+        if qid is not None and qid in self.catalog.clients:
+            self.catalog.remove_client(qid)
+
+    @precondition(lambda self: any(not ids for ids in self.model.values()))
+    @rule()
+    def remove_unused(self):
+        rid = next(rid for rid, ids in self.model.items() if not ids)
+        for record in self.catalog.dependencies(rid):
+            self.catalog.remove_client(record.query.id)
+        self.catalog.begin_unload(rid)
+        assert ResourceState.UNLOADING is self.catalog.resources[rid].state
+        self.catalog.remove_resource(rid)
+        del self.model[rid]
+
+    @invariant()
+    def indexes_agree_with_rows(self):
+        self.catalog.check_invariants()
+        assert self.model == {rid: set(r.consumers) for rid, r in self.catalog.resources.items()}
+        for rid, resource in self.catalog.resources.items():
+            assert rid == self.catalog.find(resource.server, rebuilt(resource.request)).id
+
+
+TestCatalogMachine = CatalogMachine.TestCase
+TestCatalogMachine.settings = settings(max_examples=60, stateful_step_count=30, deadline=None)

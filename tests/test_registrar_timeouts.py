@@ -1,0 +1,163 @@
+"""Timeouts on blocking calls, and calls to registrars that die (DESIGN rule 17)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+
+import rr_actors as rr
+from rr_actors.testing import catalog_snapshot, crash
+
+
+def stuck_load(gate, started):
+    def load(request):
+        started.set()
+        assert gate.wait(20)
+        return request
+
+    return load
+
+
+def test_a_call_whose_load_hangs_raises_call_timeout_error(make_registrar, serve, gates):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    serve(provider, "leaf", stuck_load(gates(), threading.Event()))
+
+    with pytest.raises(rr.CallTimeoutError) as info:
+        consumer.call(provider.name, "leaf", "x", timeout=0.3)
+
+    assert isinstance(info.value, TimeoutError)
+
+
+def test_the_default_timeout_comes_from_the_registrar_config(make_registrar, serve, gates):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer", call_timeout=0.3)
+    serve(provider, "leaf", stuck_load(gates(), threading.Event()))
+    began = time.monotonic()
+
+    with pytest.raises(rr.CallTimeoutError):
+        consumer.call(provider.name, "leaf", "x")
+
+    assert time.monotonic() - began < 5.0
+
+
+def test_a_load_that_completes_after_its_caller_timed_out_is_released(make_registrar, serve, gates):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    gate, started = gates(), threading.Event()
+    leaf = serve(provider, "leaf", stuck_load(gate, started))
+    with pytest.raises(rr.CallTimeoutError):
+        consumer.call(provider.name, "leaf", "x", timeout=0.3)
+
+    gate.set()
+
+    assert leaf.unloaded.wait(5)
+    assert [("x", "x")] == leaf.unloads
+    assert () == catalog_snapshot(provider).resources
+    assert () == catalog_snapshot(consumer).clients
+
+
+def test_a_timed_out_waiter_does_not_take_the_resource_from_a_patient_caller(
+    make_registrar, serve, gates, arrived
+):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    gate, started = gates(), threading.Event()
+    leaf = serve(provider, "leaf", stuck_load(gate, started))
+    with ThreadPoolExecutor(1) as pool:
+        patient = pool.submit(consumer.call, provider.name, "leaf", "x", timeout=20)
+        assert started.wait(5)
+        with pytest.raises(rr.CallTimeoutError):
+            consumer.call(provider.name, "leaf", "x", timeout=0.3)
+        gate.set()
+        query = patient.result(timeout=20)
+
+    assert [query.id] == [q.id for q in provider.server_queries("leaf")]
+    assert [query] == consumer.client_queries()
+    assert [] == leaf.unloads
+
+
+def test_a_timed_out_call_inside_a_load_leaves_no_dependency_behind(make_registrar, serve, gates):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    gate = gates()
+    slow = serve(provider, "slow", stuck_load(gate, threading.Event()))
+
+    def impatient(request):
+        return provider.call(provider.name, "slow", request, timeout=0.3)
+
+    serve(provider, "composite", impatient)
+    with pytest.raises(rr.ResourceLoadError) as info:
+        consumer.call(provider.name, "composite", "x", timeout=10)
+    gate.set()
+
+    assert "CallTimeoutError" == info.value.stack[0].exc_type
+    assert slow.unloaded.wait(5)
+    snapshot = catalog_snapshot(provider)
+    assert ((), ()) == (snapshot.resources, snapshot.clients)
+
+
+def test_an_unload_whose_callback_hangs_raises_call_timeout_error(make_registrar, gates):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    gate = gates()
+    provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: gate.wait(20))
+    query = consumer.call(provider.name, "leaf", "x")
+
+    with pytest.raises(rr.CallTimeoutError):
+        consumer.unload(query.id, timeout=0.3)
+
+
+def test_unregister_server_with_a_hanging_unload_raises_call_timeout_error(make_registrar, gates):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    gate = gates()
+    provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: gate.wait(20))
+    consumer.call(provider.name, "leaf", "x")
+
+    with pytest.raises(rr.CallTimeoutError):
+        provider.unregister_server("leaf", timeout=0.3)
+
+
+def test_a_call_in_flight_to_a_registrar_that_dies_fails_at_once(make_registrar, serve, gates):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    started = threading.Event()
+    serve(provider, "leaf", stuck_load(gates(), started))
+    with ThreadPoolExecutor(1) as pool:
+        call = pool.submit(consumer.call, provider.name, "leaf", "x", timeout=30)
+        assert started.wait(5)
+        began = time.monotonic()
+
+        crash(provider)
+
+        assert isinstance(call.exception(timeout=10), rr.RegistrarUnavailableError)
+        assert time.monotonic() - began < 10.0
+
+
+@pytest.mark.parametrize("timeout", [0, -1.0, True, "1"])
+def test_an_invalid_timeout_is_a_config_error(make_registrar, serve, timeout):
+    provider = make_registrar("provider")
+    serve(provider, "leaf")
+
+    with pytest.raises(rr.ConfigError):
+        provider.call(provider.name, "leaf", "x", timeout=timeout)
+
+
+def test_retrying_a_timed_out_call_with_its_query_id_gets_the_resource(
+    make_registrar, serve, gates, arrived
+):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    gate, started = gates(), threading.Event()
+    leaf = serve(provider, "leaf", stuck_load(gate, started))
+    with pytest.raises(rr.CallTimeoutError):
+        consumer.call(provider.name, "leaf", "x", timeout=0.3, query_id=QUERY_ID)
+    with ThreadPoolExecutor(1) as pool:
+        retry = pool.submit(
+            consumer.call, provider.name, "leaf", "x", timeout=10, query_id=QUERY_ID
+        )
+        assert arrived(provider, [QUERY_ID, QUERY_ID])  # the retry joined the running load
+        gate.set()
+        query = retry.result(timeout=20)
+
+    assert (QUERY_ID, "x") == (query.id, query.response)
+    assert [QUERY_ID] == [q.id for q in provider.server_queries("leaf")]
+    assert 1 == len(leaf.loads)
+
+
+QUERY_ID = "0b4f8b8e-9a1e-4c55-8f43-2a7f3b1d6e10"

@@ -1,0 +1,163 @@
+"""Unloading (DESIGN rules 7-8)."""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+
+import rr_actors as rr
+from rr_actors.testing import catalog_snapshot
+
+
+def test_the_unload_callback_runs_only_when_the_last_consumer_id_is_released(make_registrar, serve):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    leaf = serve(provider, "leaf")
+    first = consumer.call(provider.name, "leaf", "camera")
+    second = consumer.call(provider.name, "leaf", "camera")
+
+    consumer.unload(first.id)
+    assert [] == leaf.unloads
+    consumer.unload(second.id)
+
+    assert [("camera", {"resource": "camera"})] == leaf.unloads
+
+
+def test_unload_returns_after_the_unload_callback_ran(make_registrar, serve):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    leaf = serve(provider, "leaf")
+    query = consumer.call(provider.name, "leaf", "camera")
+
+    consumer.unload(query.id)
+
+    assert leaf.unloaded.is_set()
+    assert [] == provider.server_queries("leaf")
+    assert [] == consumer.client_queries()
+
+
+def test_a_resource_s_dependencies_are_released_before_its_own_unload_runs(
+    make_registrar, serve, journal
+):
+    consumer, agent, producer = (make_registrar(n) for n in ("consumer", "agent", "producer"))
+    serve(producer, "leaf")
+    serve(agent, "composite", lambda r: agent.call(producer.name, "leaf", r).response)
+    query = consumer.call(agent.name, "composite", "x")
+
+    consumer.unload(query.id)
+
+    unloads = [server for server, what, _ in journal if what == "unload"]
+    assert [f"{producer.name}/leaf", f"{agent.name}/composite"] == unloads
+
+
+def test_unloading_an_unknown_id_raises_and_changes_nothing(make_registrar, serve):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    serve(provider, "leaf")
+    consumer.call(provider.name, "leaf", "camera")
+    before = (catalog_snapshot(provider), catalog_snapshot(consumer))
+
+    with pytest.raises(rr.UnknownQueryError):
+        consumer.unload(str(uuid.uuid4()))
+
+    assert before == (catalog_snapshot(provider), catalog_snapshot(consumer))
+
+
+def test_unloading_an_already_released_id_raises_and_changes_nothing(make_registrar, serve):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    leaf = serve(provider, "leaf")
+    kept = consumer.call(provider.name, "leaf", "camera")
+    released = consumer.call(provider.name, "leaf", "camera")
+    consumer.unload(released.id)
+
+    with pytest.raises(rr.UnknownQueryError):
+        consumer.unload(released.id)
+
+    assert [] == leaf.unloads
+    assert [kept.id] == [q.id for q in provider.server_queries("leaf")]
+
+
+def test_a_registrar_cannot_unload_another_registrar_s_query_id(make_registrar, serve):
+    provider, owner, other = (make_registrar(n) for n in ("provider", "owner", "other"))
+    serve(provider, "leaf")
+    query = owner.call(provider.name, "leaf", "camera")
+
+    with pytest.raises(rr.UnknownQueryError):
+        other.unload(query.id)
+
+    assert [query.id] == [q.id for q in provider.server_queries("leaf")]
+
+
+def test_a_dependency_id_cannot_be_unloaded_directly(make_registrar, serve):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    serve(provider, "leaf")
+    sub_ids = []
+    serve(
+        provider, "composite", lambda r: sub_ids.append(provider.call(provider.name, "leaf", r).id)
+    )
+    consumer.call(provider.name, "composite", "x")
+    before = catalog_snapshot(provider)
+
+    with pytest.raises(rr.UnknownQueryError):
+        consumer.unload(sub_ids[0])
+
+    assert before == catalog_snapshot(provider)
+
+
+def test_an_unload_callback_that_raises_still_releases_the_resource(make_registrar):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    loads = []
+
+    def broken_unload(request, response):
+        raise RuntimeError("could not stop it")
+
+    provider.register_server("leaf", load=loads.append, unload=broken_unload)
+    query = consumer.call(provider.name, "leaf", "camera")
+
+    consumer.unload(query.id)
+
+    assert [] == provider.server_queries("leaf")
+    consumer.call(provider.name, "leaf", "camera")
+    assert ["camera", "camera"] == loads
+
+
+def test_a_resource_loads_again_after_it_was_unloaded(make_registrar, serve):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    leaf = serve(provider, "leaf")
+    consumer.unload(consumer.call(provider.name, "leaf", "camera").id)
+
+    consumer.call(provider.name, "leaf", "camera")
+
+    assert ["camera", "camera"] == leaf.loads
+
+
+def test_an_equal_call_during_its_unload_waits_and_loads_the_resource_afresh(
+    make_registrar, gates, arrived
+):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    gate, unloading = gates(), threading.Event()
+    journal = []
+
+    def load(request):
+        journal.append("load")
+        return len(journal)
+
+    def unload(request, response):
+        unloading.set()
+        assert gate.wait(10)
+        journal.append("unload")
+
+    provider.register_server("leaf", load=load, unload=unload)
+    query = consumer.call(provider.name, "leaf", "camera")
+    with ThreadPoolExecutor(2) as pool:
+        unload_done = pool.submit(consumer.unload, query.id)
+        assert unloading.wait(5)
+        again_id = str(uuid.uuid4())
+        again = pool.submit(consumer.call, provider.name, "leaf", "camera", query_id=again_id)
+        assert arrived(provider, [again_id])
+        gate.set()
+        unload_done.result(timeout=10)
+        response = again.result(timeout=10).response
+
+    assert (["load", "unload", "load"], 3) == (journal, response)
+    assert [again_id] == [q.id for q in provider.server_queries("leaf")]
