@@ -39,7 +39,7 @@ def process_start_time(pid: int) -> int | float | None:
             return None
         return None if fields[0] == "Z" else int(fields[19])
     try:
-        import psutil  # type: ignore[import-untyped]  # noqa: PLC0415 - optional extra
+        import psutil  # noqa: PLC0415 - optional extra
     except ImportError as exc:
         raise RuntimeError("re-adopting processes needs /proc or psutil") from exc
     try:

@@ -970,7 +970,10 @@ class Supervisor:
 
         Args:
             consumer: the calling registrar.
-            target_rr, server, request, on_status: as for `ResourceRegistrar.call`.
+            target_rr: provider registrar name, as for `ResourceRegistrar.call`.
+            server: server name on it.
+            request: the request value.
+            on_status: client status callback, as for `ResourceRegistrar.call`.
             timeout: seconds for the whole call, restarts and retries included
                 (default: the consumer's `call_timeout`).
             query_id: the id to use (default: a fresh UUID4).
@@ -982,7 +985,9 @@ class Supervisor:
             RegistrarUnavailableError: the provider died and will not be restarted.
             SupervisorGaveUpError: its supervisor gave up while the call waited.
             CallTimeoutError: no answer (restart included) within `timeout` seconds.
-            ResourceLoadError, DependencyCycleError, UnknownServerError,
+            ResourceLoadError: as for `ResourceRegistrar.call`.
+            DependencyCycleError: as for `ResourceRegistrar.call`.
+            UnknownServerError: as for `ResourceRegistrar.call`.
             RegistrarStoppedError: as for `ResourceRegistrar.call`.
         """
         limit = timeout if timeout is not None else consumer.config.call_timeout
