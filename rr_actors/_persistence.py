@@ -8,12 +8,37 @@ are flushed every `save_interval` seconds (a crash loses at most that window), o
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
 from typing import Protocol
 
 from rr_actors._catalog import Changes, ClientRecord, Resource
 from rr_actors.config import RegistrarConfig
 
-__all__ = ["CatalogStore", "Saver", "open_store"]
+__all__ = ["Cancellable", "CatalogStore", "Saver", "TimerFactory", "open_store", "thread_timer"]
+
+
+class Cancellable(Protocol):
+    """A started timer (`threading.Timer` is one)."""
+
+    def cancel(self) -> None:
+        """Stop the timer if it has not fired yet."""
+
+
+TimerFactory = Callable[[float, Callable[[], None]], Cancellable]
+"""`factory(delay, tick)` starts a timer that calls `tick()` once after `delay` seconds."""
+
+
+def thread_timer(delay: float, tick: Callable[[], None]) -> Cancellable:
+    """Run `tick()` on a daemon thread after `delay` seconds (the default `TimerFactory`)."""
+    timer = threading.Timer(delay, tick)
+    timer.daemon = True
+    timer.start()
+    return timer
+
+
+timer_factory: TimerFactory = thread_timer
+"""Starts every save-interval timer. Tests replace it (monkeypatch) with a manual clock."""
 
 
 class CatalogStore(Protocol):
@@ -60,6 +85,16 @@ class Saver:
     def durable(self) -> bool:
         """Whether every change is written before it is acknowledged."""
         return self.store is not None and self.on_modify
+
+    def schedule(self, tick: Callable[[], None]) -> Cancellable | None:
+        """Start the save-interval timer: `tick()` runs once, `flush_interval` s from now.
+
+        Returns `None` (and starts nothing) when this policy has no interval. `tick` runs
+        on the timer's thread; the registrar's tick only sends its actor a message.
+        """
+        if self.flush_interval is None:
+            return None
+        return timer_factory(self.flush_interval, tick)
 
     def changed(self, changes: Changes) -> None:
         """Take changes just made to the catalog."""

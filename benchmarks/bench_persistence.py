@@ -1,0 +1,249 @@
+"""Cost of durable catalogs: per-change cost and restore time vs catalog size, in one run.
+
+For each catalog size N (resources, one consumer each) a backup is built, then:
+
+* store change: one catalog change (add a consumer / release it) written by
+  `SqliteStore.write` (one transaction), next to the same change with no store and a raw
+  SQLite commit (one-row INSERT or DELETE in its own transaction, same pragmas);
+* registrar change: a dedup-hit `call` or its `unload` on a registrar restored from that
+  backup, with `save_on_modify=True` vs with nothing written (`save_on_modify=False`,
+  no `save_interval`): the difference is what persistence adds to a change;
+* restore: `SqliteStore.open` + `load` + `Catalog.restore`, and `ResourceRegistrar.start`
+  end to end, next to a raw `SELECT` of every row of the three tables.
+
+Per-change rows are measured in interleaved rounds (so noise spreads evenly); the tables
+show medians in microseconds. Usage:
+
+    python benchmarks/bench_persistence.py [--sizes 100,10000,100000] [--rounds 15]
+        [--batch 100] [--durability process|power]
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import platform
+import sqlite3
+import statistics
+import sys
+import tempfile
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import rr_actors as rr
+from rr_actors._catalog import Catalog
+from rr_actors._sqlite_store import SqliteStore, gc_paused
+
+Sample = Callable[[], None]
+
+
+def build_backup(path: Path, size: int) -> list[str]:
+    """A backup with `size` loaded resources of server `leaf`; returns their request keys."""
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    with gc_paused():
+        for n in range(size):
+            rid = str(uuid.uuid4())
+            catalog.begin_load(rid, "leaf", {"cmd": ["driver", "--id", str(n)]})
+            catalog.finish_load(rid, {"pid": 1000 + n})
+            catalog.add_consumer(rid, str(uuid.uuid4()), "app")
+        store.write(catalog.drain_changes())
+    store.close(erase=False)
+    return [str(n) for n in range(0, size, max(1, size // 50))]
+
+
+def timed(sample: Sample, batch: int) -> float:
+    """Microseconds per call of `sample`, over `batch` calls."""
+    start = time.perf_counter_ns()
+    for _ in range(batch):
+        sample()
+    return (time.perf_counter_ns() - start) / batch / 1000
+
+
+def store_rows(path: Path, durability: Any) -> dict[str, Sample]:
+    """Per-change samples on the store alone, on a restored copy of the catalog."""
+    store = SqliteStore.open(path, durability=durability)
+    rows = store.load()
+    assert rows is not None
+    catalog = Catalog.restore(*rows)
+    rid = next(iter(catalog.resources))
+    plain = Catalog.restore(*rows)
+    ids = iter(range(10**9))
+
+    def persisted() -> None:
+        qid = f"q{next(ids)}"
+        catalog.add_consumer(rid, qid, "app")
+        store.write(catalog.drain_changes())
+        catalog.release(qid)
+        store.write(catalog.drain_changes())
+
+    def memory_only() -> None:
+        qid = f"q{next(ids)}"
+        plain.add_consumer(rid, qid, "app")
+        plain.drain_changes()
+        plain.release(qid)
+        plain.drain_changes()
+
+    raw = sqlite3.connect(path.with_suffix(".raw"), isolation_level=None)
+    raw.execute("PRAGMA journal_mode = WAL")
+    raw.execute(f"PRAGMA synchronous = {'FULL' if durability == 'power' else 'NORMAL'}")
+    raw.execute("CREATE TABLE IF NOT EXISTS t (seq INTEGER PRIMARY KEY, query_id TEXT)")
+
+    def raw_commit() -> None:
+        raw.execute("BEGIN IMMEDIATE")
+        cursor = raw.execute("INSERT INTO t (query_id) VALUES ('q')")
+        raw.execute("COMMIT")
+        raw.execute("BEGIN IMMEDIATE")
+        raw.execute("DELETE FROM t WHERE seq = ?", (cursor.lastrowid,))
+        raw.execute("COMMIT")
+
+    return {
+        "store write (2 changes)": persisted,
+        "no store (2 changes)": memory_only,
+        "raw SQLite (2 commits)": raw_commit,
+    }
+
+
+def registrar_rows(path: Path, durability: Any, keys: list[str]) -> tuple[dict[str, Sample], Any]:
+    """Dedup-hit call + unload on registrars restored from `path`, durable and not."""
+    registrars = []
+    samples = {}
+    for label, durable in (("registrar, save_on_modify", True), ("registrar, no writes", False)):
+        copy = path.with_name(f"{path.stem}-{int(durable)}.db")
+        copy.write_bytes(path.read_bytes())
+        registrar = rr.ResourceRegistrar.start(
+            rr.RegistrarConfig(
+                name=f"bench-{uuid.uuid4().hex[:8]}",
+                backup_path=copy,
+                save_on_modify=durable,
+                save_interval=None,
+                durability=durability,
+            )
+        )
+        registrar.register_server("leaf", load=lambda r: r, unload=lambda r, s: None)
+        registrars.append(registrar)
+        request = {"cmd": ["driver", "--id", keys[len(keys) // 2]]}
+
+        def call_unload(
+            registrar: rr.ResourceRegistrar = registrar, request: Any = request
+        ) -> None:
+            query = registrar.call(registrar.name, "leaf", request)
+            registrar.unload(query.id)
+
+        samples[f"{label} (call+unload, 4 changes)"] = call_unload
+    return samples, registrars
+
+
+def restore_rows(path: Path, rounds: int) -> dict[str, float]:
+    """Median milliseconds to restore `path`, three ways."""
+
+    def store_restore() -> None:
+        store = SqliteStore.open(path)
+        rows = store.load()
+        assert rows is not None
+        with gc_paused():
+            Catalog.restore(*rows)
+        store.close(erase=False)
+
+    def registrar_start() -> None:
+        registrar = rr.ResourceRegistrar.start(
+            rr.RegistrarConfig(name=f"restore-{uuid.uuid4().hex[:8]}", backup_path=path)
+        )
+        registrar.stop()
+
+    def raw_select() -> None:
+        db = sqlite3.connect(path)
+        for table in ("resources", "consumers", "clients"):
+            db.execute(f"SELECT * FROM {table} ORDER BY seq").fetchall()  # noqa: S608 - fixed names
+        db.close()
+
+    results: dict[str, list[float]] = {
+        "raw SELECT *": [],
+        "store load+restore": [],
+        "ResourceRegistrar.start+stop": [],
+    }
+    for _ in range(rounds):
+        for label, run in (
+            ("raw SELECT *", raw_select),
+            ("store load+restore", store_restore),
+            ("ResourceRegistrar.start+stop", registrar_start),
+        ):
+            gc.collect()
+            start = time.perf_counter()
+            run()
+            results[label].append((time.perf_counter() - start) * 1000)
+    return {label: statistics.median(values) for label, values in results.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", default="100,10000,100000")
+    parser.add_argument("--rounds", type=int, default=15)
+    parser.add_argument("--batch", type=int, default=100)
+    parser.add_argument("--durability", default="process", choices=["process", "power"])
+    args = parser.parse_args()
+    sizes = [int(s) for s in args.sizes.split(",")]
+    print(
+        f"python {platform.python_version()}, SQLite {sqlite3.sqlite_version}, "
+        f"{platform.machine()}, durability={args.durability}"
+    )
+    change_table: dict[str, dict[int, float]] = {}
+    restore_table: dict[str, dict[int, float]] = {}
+    with tempfile.TemporaryDirectory() as directory:
+        for size in sizes:
+            path = Path(directory) / f"catalog-{size}.db"
+            built = time.perf_counter()
+            keys = build_backup(path, size)
+            print(
+                f"built a backup of {size} resources in {time.perf_counter() - built:.1f} s "
+                f"({path.stat().st_size / 1e6:.1f} MB)",
+                file=sys.stderr,
+            )
+            samples = store_rows(path, args.durability)
+            more, registrars = registrar_rows(path, args.durability, keys)
+            samples.update(more)
+            measured: dict[str, list[float]] = {label: [] for label in samples}
+            try:
+                for _ in range(args.rounds):
+                    for label, sample in samples.items():
+                        measured[label].append(timed(sample, args.batch))
+            finally:
+                for registrar in registrars:
+                    registrar.stop()
+            for label, values in measured.items():
+                change_table.setdefault(label, {})[size] = statistics.median(values)
+            for label, ms in restore_rows(path, max(3, args.rounds // 5)).items():
+                restore_table.setdefault(label, {})[size] = ms
+
+    head = "".join(f"{f'N={s}':>12}" for s in sizes)
+    print(f"\nper operation, median us{'':<28}{head}{'100k/100':>10}")
+    for label, row in change_table.items():
+        ratio = row[sizes[-1]] / row[sizes[0]]
+        print(f"{label:<52}{''.join(f'{row[s]:12.1f}' for s in sizes)}{ratio:10.2f}")
+    store_cost = {
+        s: change_table["store write (2 changes)"][s] - change_table["no store (2 changes)"][s]
+        for s in sizes
+    }
+    registrar_cost = {
+        s: change_table["registrar, save_on_modify (call+unload, 4 changes)"][s]
+        - change_table["registrar, no writes (call+unload, 4 changes)"][s]
+        for s in sizes
+    }
+    print(f"{'=> store cost per change':<52}{''.join(f'{store_cost[s] / 2:12.1f}' for s in sizes)}")
+    raw_row = change_table["raw SQLite (2 commits)"]
+    print(f"{'=> raw SQLite commit':<52}{''.join(f'{raw_row[s] / 2:12.1f}' for s in sizes)}")
+    print(
+        f"{'=> registrar: persistence per change':<52}"
+        f"{''.join(f'{registrar_cost[s] / 4:12.1f}' for s in sizes)}"
+    )
+    print(f"\nrestore, median ms{'':<34}{head}")
+    for label, row in restore_table.items():
+        print(f"{label:<52}{''.join(f'{row[s]:12.1f}' for s in sizes)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,231 @@
+"""The `rr-actors` command line.
+
+Each subcommand is one `Command`: a name, a one-line help, a function that adds its
+arguments, and a function that runs it. Add a subcommand by appending to `COMMANDS`.
+
+    rr-actors inspect state/erm.db          # a catalog backup as a tree
+    rr-actors inspect state/erm.db --json   # the same as JSON
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any, TextIO
+
+from rr_actors._catalog import ClientRecord, Resource, ResourceState
+from rr_actors._sqlite_store import Backup, Unreadable, read_backup
+from rr_actors.errors import CatalogCorruptError, ConfigError
+
+__all__ = ["COMMANDS", "Command", "backup_to_dict", "main", "render_tree"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Command:
+    """One `rr-actors` subcommand.
+
+    Attributes:
+        name: the subcommand's name.
+        help: one line for `rr-actors --help`.
+        add_arguments: adds the subcommand's arguments to its parser.
+        run: runs it with the parsed arguments and an output stream; returns the exit code.
+    """
+
+    name: str
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace, TextIO], int]
+
+
+# -- inspect ------------------------------------------------------------------------------
+
+Node = tuple[str, list[Any]]
+"""A tree line and its children."""
+
+
+def _short(value: Any, width: int = 60) -> str:
+    text = repr(value)
+    if isinstance(value, Unreadable) or len(text) <= width:
+        return text
+    return text[: width - 3] + "..."
+
+
+def _in_doubt(resource: Resource) -> bool:
+    return resource.state is not ResourceState.LOADED
+
+
+def _client_dict(record: ClientRecord) -> dict[str, Any]:
+    query = record.query
+    return {
+        "query_id": query.id,
+        "serving_rr": query.serving_rr,
+        "server": query.server,
+        "request": repr(query.request),
+        "response": repr(query.response),
+        "loaded": record.loaded,
+    }
+
+
+def backup_to_dict(backup: Backup) -> dict[str, Any]:
+    """A backup as JSON-able data (requests and responses as their `repr`).
+
+    Args:
+        backup: what `read_backup` returned.
+
+    Returns:
+        `{"path", "schema_version", "servers": {server: [resource, ...]}, "clients": [...]}`
+        where a resource has `id`, `state`, `in_doubt`, `request`, `response`,
+        `consumers` (`query_id`, `origin_rr`) and `dependencies` (client records), and
+        `clients` lists the top-level queries this registrar holds elsewhere.
+    """
+    dependencies: dict[str, list[ClientRecord]] = {}
+    for record in backup.clients:
+        if record.parent is not None:
+            dependencies.setdefault(record.parent, []).append(record)
+    servers: dict[str, list[dict[str, Any]]] = {}
+    for resource in backup.resources:
+        servers.setdefault(resource.server, []).append(
+            {
+                "id": resource.id,
+                "state": resource.state.value,
+                "in_doubt": _in_doubt(resource),
+                "request": repr(resource.request),
+                "response": repr(resource.response),
+                "consumers": [
+                    {"query_id": qid, "origin_rr": origin}
+                    for qid, origin in resource.consumers.items()
+                ],
+                "dependencies": [_client_dict(r) for r in dependencies.get(resource.id, ())],
+            }
+        )
+    return {
+        "path": backup.path,
+        "schema_version": backup.schema_version,
+        "servers": servers,
+        "clients": [_client_dict(r) for r in backup.clients if r.parent is None],
+    }
+
+
+def _client_line(record: ClientRecord) -> str:
+    query = record.query
+    state = "" if record.loaded else "  [in flight]"
+    return (
+        f"{query.id} -> {query.serving_rr}/{query.server} {_short(query.request)}"
+        f" = {_short(query.response)}{state}"
+    )
+
+
+def _tree(lines: list[str], prefix: str, items: Sequence[tuple[str, list[Any]]]) -> None:
+    """Append `items` (label, children) as box-drawn tree lines."""
+    for index, (label, children) in enumerate(items):
+        last = index == len(items) - 1
+        lines.append(f"{prefix}{'└── ' if last else '├── '}{label}")
+        _tree(lines, prefix + ("    " if last else "│   "), children)
+
+
+def render_tree(backup: Backup) -> str:
+    """A backup as a tree: servers -> resources -> consumer ids and dependencies.
+
+    Resources whose load or unload a crash cut short are marked `[IN DOUBT: ...]`.
+    """
+    data_deps: dict[str, list[ClientRecord]] = {}
+    for record in backup.clients:
+        if record.parent is not None:
+            data_deps.setdefault(record.parent, []).append(record)
+    servers: dict[str, list[Resource]] = {}
+    for resource in backup.resources:
+        servers.setdefault(resource.server, []).append(resource)
+    doubtful = sum(_in_doubt(r) for r in backup.resources)
+    lines = [
+        f"{backup.path} (schema {backup.schema_version}): {len(backup.resources)} resources, "
+        f"{len(backup.clients)} client records" + (f", {doubtful} in doubt" if doubtful else "")
+    ]
+    server_items = []
+    for server, resources in servers.items():
+        resource_items = []
+        for resource in resources:
+            mark = f"  [IN DOUBT: {resource.state.value}]" if _in_doubt(resource) else ""
+            consumers: list[Node] = [
+                (f"consumer {q} (from {o})", []) for q, o in resource.consumers.items()
+            ]
+            deps: list[Node] = [
+                (f"dependency {_client_line(r)}", []) for r in data_deps.get(resource.id, ())
+            ]
+            label = (
+                f"{_short(resource.request)} = {_short(resource.response)}"
+                f"  (resource {resource.id}){mark}"
+            )
+            resource_items.append((label, [*consumers, *deps]))
+        server_items.append((f"server {server}", resource_items))
+    tops: list[Node] = [(_client_line(r), []) for r in backup.clients if r.parent is None]
+    items: list[Node] = [("servers", server_items)]
+    if tops:
+        items.append(("queries held elsewhere", tops))
+    _tree(lines, "", items)
+    return "\n".join(lines) + "\n"
+
+
+def _inspect_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("path", help="the catalog backup (a registrar's backup_path)")
+    parser.add_argument("--json", action="store_true", help="print JSON instead of a tree")
+
+
+def _inspect(args: argparse.Namespace, out: TextIO) -> int:
+    backup = read_backup(args.path)
+    if args.json:
+        json.dump(backup_to_dict(backup), out, indent=2)
+        out.write("\n")
+    else:
+        out.write(render_tree(backup))
+    return 0
+
+
+COMMANDS: list[Command] = [
+    Command(
+        "inspect",
+        "print a catalog backup as a tree (safe on a live file; unpickles its values)",
+        _inspect_arguments,
+        _inspect,
+    ),
+]
+"""The subcommands, in the order `--help` lists them."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The `rr-actors` argument parser, one subparser per entry of `COMMANDS`."""
+    parser = argparse.ArgumentParser(
+        prog="rr-actors", description="Tools for rr_actors resource registrars."
+    )
+    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for command in COMMANDS:
+        sub = subparsers.add_parser(command.name, help=command.help, description=command.help)
+        command.add_arguments(sub)
+        sub.set_defaults(run=command.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
+    """Run `rr-actors` (the console script's entry point).
+
+    Args:
+        argv: the arguments without the program name (default: `sys.argv[1:]`).
+        out: where results go (default: standard output). Errors go to standard error.
+
+    Returns:
+        The exit code: 0 on success, 1 when the backup cannot be read (the message names
+        the file and the cause), 2 for a usage error.
+    """
+    args = build_parser().parse_args(argv)
+    try:
+        code: int = args.run(args, out if out is not None else sys.stdout)
+    except (CatalogCorruptError, ConfigError) as exc:
+        print(f"rr-actors {args.command}: {exc}", file=sys.stderr)  # noqa: T201 - CLI output
+        return 1
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

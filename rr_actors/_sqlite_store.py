@@ -1,0 +1,692 @@
+"""The catalog backup: an embedded SQLite database (DESIGN.md rules 13-16).
+
+One file per registrar, in WAL mode. Every `write` is one transaction, so a crash at any
+instant leaves the old or the new catalog, never a torn one. A write touches only the
+rows that changed (the store keeps a small mirror of what it wrote to compute the
+difference), so its cost does not grow with the catalog.
+
+Layout (schema version 1):
+
+* `rr_actors_schema(version)`: one row, the schema version; `PRAGMA application_id` marks
+  the file as an rr_actors catalog.
+* `resources(seq, id, server, state, request, response)`: served resources, `seq` being
+  the insertion order.
+* `consumers(seq, query_id, resource_id, origin_rr)`: consumer ids, in arrival order.
+* `clients(seq, query_id, server, serving_rr, origin_rr, request, response, parent,
+  loaded)`: outbound queries (`parent` set for dependencies).
+
+Requests and responses are stored with cloudpickle (`NULL` for `None`). No Python
+`hash()` value is ever stored: string hashes differ from process to process, so the
+catalog recomputes its dedup buckets from the requests on restore.
+
+A new file is built under a temporary name and linked into place complete, so the backup
+path either does not exist or holds a whole catalog. An existing file is validated
+through a read-only connection before anything writes to it; whatever is wrong raises
+`CatalogCorruptError` (or `ConfigError` for an unusable path) and leaves it untouched.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime
+import functools
+import gc
+import os
+import pickle
+import sqlite3
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, Literal
+
+import cloudpickle
+
+from rr_actors._catalog import Changes, ClientRecord, Resource, ResourceState
+from rr_actors._types import Query
+from rr_actors.errors import CatalogCorruptError, ConfigError
+
+__all__ = [
+    "APPLICATION_ID",
+    "SCHEMA_VERSION",
+    "Backup",
+    "SqliteStore",
+    "Unreadable",
+    "gc_paused",
+    "quarantine_backup",
+    "read_backup",
+]
+
+APPLICATION_ID = 0x72724163  # "rrAc"
+"""`PRAGMA application_id` of every rr_actors catalog file."""
+
+SCHEMA_VERSION = 1
+"""The schema version this code writes; older files are migrated, newer ones refused."""
+
+_HEADER = b"SQLite format 3\x00"
+_SIDE_FILES = ("-wal", "-shm", "-journal")
+
+_SYNCHRONOUS = {"process": "NORMAL", "power": "FULL"}
+
+
+def _create_v1(db: sqlite3.Connection) -> None:
+    db.execute("CREATE TABLE rr_actors_schema (version INTEGER NOT NULL)")
+    db.execute("INSERT INTO rr_actors_schema (version) VALUES (0)")
+    db.execute(
+        "CREATE TABLE resources (seq INTEGER PRIMARY KEY, id TEXT NOT NULL, "
+        "server TEXT NOT NULL, state TEXT NOT NULL, request BLOB, response BLOB)"
+    )
+    db.execute(
+        "CREATE TABLE consumers (seq INTEGER PRIMARY KEY, query_id TEXT NOT NULL, "
+        "resource_id TEXT NOT NULL, origin_rr TEXT NOT NULL)"
+    )
+    db.execute(
+        "CREATE TABLE clients (seq INTEGER PRIMARY KEY, query_id TEXT NOT NULL, "
+        "server TEXT NOT NULL, serving_rr TEXT NOT NULL, origin_rr TEXT NOT NULL, "
+        "request BLOB, response BLOB, parent TEXT, loaded INTEGER NOT NULL)"
+    )
+
+
+_MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_create_v1,)
+"""`_MIGRATIONS[v]` brings a version-`v` file to version `v + 1` (0 is an empty file).
+
+To change the schema: append a migration, bump `SCHEMA_VERSION`, add a test that opens a
+file written by the previous version. Never edit a released migration.
+"""
+assert len(_MIGRATIONS) == SCHEMA_VERSION
+
+
+def _dumps(value: Any) -> bytes | None:
+    if value is None:
+        return None
+    return cloudpickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)  # type: ignore[no-any-return]
+
+
+def _loads(blob: bytes | None) -> Any:
+    return None if blob is None else pickle.loads(blob)
+
+
+@dataclasses.dataclass(frozen=True)
+class Unreadable:
+    """Stands for a stored request or response that cannot be unpickled here (inspection).
+
+    Attributes:
+        error: why, e.g. `"ModuleNotFoundError: No module named 'drivers'"`.
+        size: length of the pickle, in bytes.
+    """
+
+    error: str
+    size: int
+
+    def __repr__(self) -> str:
+        return f"<unreadable, {self.size} bytes: {self.error}>"
+
+
+def _lenient_loads(blob: bytes | None) -> Any:
+    try:
+        return _loads(blob)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure is shown, not raised
+        return Unreadable(f"{type(exc).__name__}: {exc}", len(blob or b""))
+
+
+@dataclasses.dataclass
+class _Mirror:
+    """What the store last wrote for one resource (to write only the difference)."""
+
+    seq: int  # the row's key
+    state: ResourceState
+    response: Any  # compared by identity: the catalog replaces, never mutates, a response
+    consumers: dict[str, int]  # consumer query id -> its row's key
+
+
+@dataclasses.dataclass
+class _Rows:
+    """Rows read from a backup, with the row keys the store needs to update them."""
+
+    resources: list[Resource]
+    clients: list[ClientRecord]
+    mirror: dict[str, _Mirror]
+    client_seqs: dict[str, int]
+    max_seq: int
+
+
+@dataclasses.dataclass(frozen=True)
+class Backup:
+    """The content of a catalog backup, as `read_backup` returns it.
+
+    Attributes:
+        path: the file.
+        schema_version: its schema version.
+        resources: served resources, oldest first (consumers in arrival order).
+        clients: client records, oldest first.
+    """
+
+    path: str
+    schema_version: int
+    resources: list[Resource]
+    clients: list[ClientRecord]
+
+
+# -- opening and validating ---------------------------------------------------------------
+
+
+def _check_location(path: Path) -> None:
+    """Raise `ConfigError` if `path` cannot hold a backup."""
+    if path.is_dir():
+        raise ConfigError(f"backup_path {str(path)!r} is a directory, not a file")
+    parent = path.parent
+    if not parent.is_dir():
+        raise ConfigError(f"backup_path {str(path)!r}: directory {str(parent)!r} does not exist")
+    if path.exists() and not os.access(path, os.R_OK | os.W_OK):
+        raise ConfigError(f"backup_path {str(path)!r} is not readable and writable")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(
+            f"backup_path {str(path)!r}: directory {str(parent)!r} is not writable "
+            f"(SQLite needs to create its -wal and -shm files there)"
+        )
+
+
+def _connect(path: Path, *, read_only: bool) -> sqlite3.Connection:
+    if read_only:
+        uri = f"{path.resolve().as_uri()}?mode=ro"
+        db = sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=False)
+    else:
+        db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+    return db
+
+
+def _file_problem(path: Path) -> str | None:
+    """What is wrong with the file itself, judged from its header (or `None`)."""
+    size = path.stat().st_size
+    if size == 0:
+        return "the file is empty (an rr_actors catalog is never empty)"
+    with path.open("rb") as file:
+        header = file.read(100)
+    if not header.startswith(_HEADER):
+        return f"not an SQLite database (starts with {header[:16]!r})"
+    if len(header) < 100:
+        return f"truncated: {size} bytes, shorter than an SQLite header"
+    page_size = int.from_bytes(header[16:18], "big")
+    page_size = 65536 if page_size == 1 else page_size
+    pages = int.from_bytes(header[28:32], "big")
+    change_counter, valid_for = header[24:28], header[92:96]
+    if change_counter == valid_for and pages and pages * page_size > size:
+        return f"truncated: {size} bytes, its header says {pages} pages of {page_size} bytes"
+    return None
+
+
+def _schema_version(db: sqlite3.Connection, path: str) -> int:
+    """Validate that `db` is an rr_actors catalog and return its schema version."""
+    application_id = db.execute("PRAGMA application_id").fetchone()[0]
+    tables = sorted(
+        row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
+    )
+    if application_id != APPLICATION_ID or "rr_actors_schema" not in tables:
+        raise CatalogCorruptError(
+            path,
+            f"not an rr_actors catalog (application_id {application_id:#x}, tables {tables})",
+        )
+    rows = db.execute("SELECT version FROM rr_actors_schema").fetchall()
+    if len(rows) != 1 or not isinstance(rows[0][0], int):
+        raise CatalogCorruptError(path, f"bad schema version rows {rows!r}")
+    version: int = rows[0][0]
+    if version > SCHEMA_VERSION:
+        raise CatalogCorruptError(
+            path,
+            f"schema version {version} is newer than this rr_actors supports "
+            f"({SCHEMA_VERSION}); upgrade rr_actors to read it",
+        )
+    if version < 1:
+        raise CatalogCorruptError(path, f"bad schema version {version}")
+    return version
+
+
+def _migrate(db: sqlite3.Connection, version: int) -> None:
+    """Bring `db` from `version` to `SCHEMA_VERSION`, each step one transaction."""
+    for step in range(version, SCHEMA_VERSION):
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            _MIGRATIONS[step](db)
+            db.execute("UPDATE rr_actors_schema SET version = ?", (step + 1,))
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        db.execute("COMMIT")
+
+
+def _create(path: Path) -> None:
+    """Build an empty catalog under a temporary name, then link it into place.
+
+    The backup path therefore never holds a half-created file. If another process
+    created it first, that file wins (and is validated like any existing file).
+    """
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.creating")
+    try:
+        db = sqlite3.connect(tmp, isolation_level=None)
+    except sqlite3.Error as exc:
+        raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
+    try:
+        db.execute(f"PRAGMA application_id = {APPLICATION_ID}")
+        _migrate(db, 0)
+        db.execute("PRAGMA journal_mode = WAL")
+        db.close()
+        with contextlib.suppress(FileExistsError):
+            os.link(tmp, path)
+    except (sqlite3.Error, OSError) as exc:
+        raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
+    finally:
+        db.close()
+        for suffix in ("", *_SIDE_FILES):
+            with contextlib.suppress(FileNotFoundError):
+                Path(f"{tmp}{suffix}").unlink()
+
+
+@contextlib.contextmanager
+def _as_corrupt(path: str) -> Iterator[None]:
+    """Translate what SQLite or unpickling raises about a bad file."""
+    try:
+        yield
+    except sqlite3.DatabaseError as exc:
+        raise CatalogCorruptError(path, f"{type(exc).__name__}: {exc}") from exc
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        AttributeError,
+        ImportError,
+        ValueError,
+        TypeError,
+        KeyError,
+        IndexError,
+    ) as exc:
+        raise CatalogCorruptError(
+            path, f"a stored row cannot be read: {type(exc).__name__}: {exc}"
+        ) from exc
+
+
+@contextlib.contextmanager
+def _read_only(path: Path, *, tidy: bool) -> Iterator[sqlite3.Connection]:
+    """A read-only connection; with `tidy`, remove the `-wal`/`-shm` files it created.
+
+    A read-only connection to a WAL-mode file creates those files but cannot delete
+    them; an empty `-wal` holds nothing, so removing what we created changes nothing.
+    """
+    existed = {suffix: Path(f"{path}{suffix}").exists() for suffix in ("-wal", "-shm")}
+    db = _connect(path, read_only=True)
+    try:
+        yield db
+    finally:
+        db.close()
+        wal = Path(f"{path}-wal")
+        if tidy and not existed["-wal"] and wal.exists() and wal.stat().st_size == 0:
+            for suffix in ("-wal", "-shm"):
+                if not existed[suffix]:
+                    with contextlib.suppress(FileNotFoundError):
+                        Path(f"{path}{suffix}").unlink()
+
+
+def _validate(path: Path, *, tidy: bool) -> int:
+    """Check an existing file without writing to it; return its schema version."""
+    name = str(path)
+    problem = _file_problem(path)
+    if problem is not None:
+        raise CatalogCorruptError(name, problem)
+    with _as_corrupt(name), _read_only(path, tidy=tidy) as db:
+        return _schema_version(db, name)
+
+
+def _prepare(db: sqlite3.Connection, name: str, durability: str, version: int) -> None:
+    """Check that `db` is writable, switch on WAL and the durability, migrate it."""
+    try:
+        db.execute("BEGIN IMMEDIATE")  # can we write here at all?
+        db.execute("ROLLBACK")
+    except sqlite3.OperationalError as exc:
+        raise ConfigError(f"backup_path {name!r} is not writable: {exc}") from exc
+    with _as_corrupt(name):
+        mode = db.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+        db.execute(f"PRAGMA synchronous = {_SYNCHRONOUS[durability]}")
+        _migrate(db, version)
+    if mode != "wal":
+        raise ConfigError(f"backup_path {name!r}: SQLite cannot use WAL mode there ({mode})")
+
+
+_STATES = {state.value: state for state in ResourceState}
+
+
+@contextlib.contextmanager
+def gc_paused() -> Iterator[None]:
+    """Pause the cyclic garbage collector while a catalog is built (restores twice as fast).
+
+    Building 100k rows allocates many containers and no cycles; each allocation burst
+    would otherwise trigger collections that rescan every object built so far.
+    """
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
+
+
+def _read_rows(db: sqlite3.Connection, loads: Callable[[bytes | None], Any]) -> _Rows:
+    """Read every row in one read transaction (a consistent snapshot, also of a live file)."""
+    db.execute("BEGIN")
+    try:
+        resources: dict[str, Resource] = {}
+        mirror: dict[str, _Mirror] = {}
+        max_seq = 0
+        for seq, rid, server, state, request, response in db.execute(
+            "SELECT seq, id, server, state, request, response FROM resources ORDER BY seq"
+        ).fetchall():
+            resource = Resource(rid, server, loads(request), loads(response), _STATES[state])
+            resources[rid] = resource
+            mirror[rid] = _Mirror(seq, resource.state, resource.response, {})
+            max_seq = seq
+        for seq, query_id, rid, origin in db.execute(
+            "SELECT seq, query_id, resource_id, origin_rr FROM consumers ORDER BY seq"
+        ).fetchall():
+            if rid not in resources:
+                raise ValueError(f"consumer {query_id} belongs to a missing resource {rid}")
+            resources[rid].consumers[query_id] = origin
+            mirror[rid].consumers[query_id] = seq
+            max_seq = max(max_seq, seq)
+        clients = []
+        client_seqs = {}
+        for seq, qid, server, serving, origin, request, response, parent, loaded in db.execute(
+            "SELECT seq, query_id, server, serving_rr, origin_rr, request, response, parent, "
+            "loaded FROM clients ORDER BY seq"
+        ).fetchall():
+            query = Query(qid, server, serving, origin, loads(request), loads(response))
+            clients.append(ClientRecord(query, parent, bool(loaded)))
+            client_seqs[qid] = seq
+            max_seq = max(max_seq, seq)
+    finally:
+        db.execute("COMMIT")
+    return _Rows(list(resources.values()), clients, mirror, client_seqs, max_seq)
+
+
+def read_backup(path: str | os.PathLike[str]) -> Backup:
+    """Read a catalog backup without changing it (it may belong to a running registrar).
+
+    Stored requests and responses that cannot be unpickled in this process (their
+    classes are not importable here) come back as `Unreadable` placeholders. Unpickling
+    runs code from the file: only read backups you trust.
+
+    Args:
+        path: the backup file.
+
+    Returns:
+        Its rows and schema version.
+
+    Raises:
+        ConfigError: `path` does not exist or is not a file.
+        CatalogCorruptError: the file is not a readable rr_actors catalog.
+    """
+    file = Path(os.fspath(path))
+    if not file.is_file():
+        raise ConfigError(f"no catalog backup at {str(file)!r}")
+    version = _validate(file, tidy=True)
+    name = str(file)
+    with _as_corrupt(name), _read_only(file, tidy=True) as db:
+        check = db.execute("PRAGMA quick_check").fetchall()
+        if check != [("ok",)]:
+            raise CatalogCorruptError(name, f"integrity check failed: {check[:5]!r}")
+        with gc_paused():
+            rows = _read_rows(db, _lenient_loads)
+    return Backup(name, version, rows.resources, rows.clients)
+
+
+def quarantine_backup(path: str | os.PathLike[str]) -> Path:
+    """Move a catalog backup that cannot be used out of the way, keeping it for analysis.
+
+    The file (and its `-wal`/`-shm` companions) is renamed to
+    `<path>.corrupt-<UTC timestamp>`; a registrar started on `path` afterwards starts with
+    an empty catalog. This is the one explicit way to give up a backup: rr_actors never
+    does it on its own. Only call it while no registrar uses the file.
+
+    Args:
+        path: the backup file, as in `RegistrarConfig.backup_path`.
+
+    Returns:
+        The new path of the quarantined file.
+
+    Raises:
+        ConfigError: there is no file at `path`.
+    """
+    file = Path(os.fspath(path))
+    if not file.is_file():
+        raise ConfigError(f"no catalog backup to quarantine at {str(file)!r}")
+    stamp = datetime.datetime.now(datetime.UTC).strftime("%Y%m%dT%H%M%S.%fZ")
+    target = file.with_name(f"{file.name}.corrupt-{stamp}")
+    for suffix in _SIDE_FILES:  # companions first: the main file's name is the anchor
+        side = Path(f"{file}{suffix}")
+        if side.exists():
+            side.rename(f"{target}{suffix}")
+    file.rename(target)
+    return target
+
+
+# -- the store ----------------------------------------------------------------------------
+
+
+class SqliteStore:
+    """A `CatalogStore` in one SQLite file. Used by one thread at a time (the registrar's).
+
+    Open it with [`SqliteStore.open`][rr_actors._sqlite_store.SqliteStore.open].
+    """
+
+    def __init__(self, path: Path, db: sqlite3.Connection, *, created: bool) -> None:
+        self.path = str(path)
+        self._file = path
+        self._db = db
+        self._created = created
+        self._loaded = False
+        self._resources: dict[str, _Mirror] = {}
+        self._clients: dict[str, tuple[int, Any]] = {}  # query id -> (row key, response)
+        self._seq = 0
+
+    @classmethod
+    def open(
+        cls, path: str | os.PathLike[str], *, durability: Literal["process", "power"] = "process"
+    ) -> SqliteStore:
+        """Open the backup at `path`, creating an empty one if there is no file.
+
+        Args:
+            path: the backup file; its directory must exist and be writable.
+            durability: `"process"` (SQLite `synchronous=NORMAL`: a commit survives a
+                crash of the process) or `"power"` (`synchronous=FULL`: it also survives
+                power loss, at the cost of an fsync per commit).
+
+        Returns:
+            The open store; `load()` returns `None` if it was created just now.
+
+        Raises:
+            ConfigError: the path cannot hold a backup (missing directory, a directory,
+                read-only file or location).
+            CatalogCorruptError: the file exists but is not a usable rr_actors catalog
+                (garbage, truncated, another program's database, a newer schema, ...).
+        """
+        file = Path(os.fspath(path))
+        _check_location(file)
+        created = False
+        if not file.exists():
+            _create(file)
+            created = True
+        version = _validate(file, tidy=True)
+        name = str(file)
+        try:
+            db = _connect(file, read_only=False)
+        except sqlite3.Error as exc:
+            raise ConfigError(f"backup_path {name!r} cannot be opened: {exc}") from exc
+        try:
+            _prepare(db, name, durability, version)
+        except BaseException:
+            db.close()
+            raise
+        return cls(file, db, created=created)
+
+    def load(self) -> tuple[list[Resource], list[ClientRecord]] | None:
+        """Every stored row, oldest first; `None` if the file was created by `open`.
+
+        Raises:
+            CatalogCorruptError: a row or a stored value cannot be read.
+        """
+        try:
+            with _as_corrupt(self.path), gc_paused():
+                rows = _read_rows(self._db, _loads)
+        except CatalogCorruptError:
+            self.close(erase=False)  # unusable; closing also removes its -wal and -shm
+            raise
+        self._resources = rows.mirror
+        self._clients = {
+            c.query.id: (rows.client_seqs[c.query.id], c.query.response) for c in rows.clients
+        }
+        self._seq = rows.max_seq
+        self._loaded = True
+        if self._created and not rows.resources and not rows.clients:
+            return None
+        return rows.resources, rows.clients
+
+    def write(self, changes: Changes) -> None:
+        """Apply `changes` (current rows, `None` for deleted ones) as one transaction.
+
+        Only what differs from the last write reaches the file; rows are addressed by
+        their integer key, so the cost of a change does not depend on the catalog's size.
+        """
+        if not self._loaded:
+            self.load()
+        db = self._db
+        after: list[Callable[[], object]] = []  # mirror updates, applied once committed
+        seq = self._seq
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            for rid, resource in changes.resources.items():
+                seq = self._write_resource(db, rid, resource, seq, after)
+            for qid, record in changes.clients.items():
+                seq = self._write_client(db, qid, record, seq, after)
+            db.execute("COMMIT")
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        self._seq = seq
+        for update in after:
+            update()
+
+    def _write_resource(
+        self,
+        db: sqlite3.Connection,
+        rid: str,
+        resource: Resource | None,
+        seq: int,
+        after: list[Callable[[], object]],
+    ) -> int:
+        old = self._resources.get(rid)
+        if resource is None:
+            if old is not None:
+                db.execute("DELETE FROM resources WHERE seq = ?", (old.seq,))
+                db.executemany(
+                    "DELETE FROM consumers WHERE seq = ?", [(k,) for k in old.consumers.values()]
+                )
+                after.append(functools.partial(self._resources.pop, rid, None))
+            return seq
+        if old is None:
+            seq += 1
+            db.execute(
+                "INSERT INTO resources (seq, id, server, state, request, response) "
+                "VALUES (?, ?, ?, ?, ?, ?)",
+                (
+                    seq,
+                    rid,
+                    resource.server,
+                    resource.state.value,
+                    _dumps(resource.request),
+                    _dumps(resource.response),
+                ),
+            )
+            old_consumers: dict[str, int] = {}
+            row = seq
+        else:
+            if old.state is not resource.state or old.response is not resource.response:
+                db.execute(
+                    "UPDATE resources SET state = ?, response = ? WHERE seq = ?",
+                    (resource.state.value, _dumps(resource.response), old.seq),
+                )
+            old_consumers = old.consumers
+            row = old.seq
+        consumers = {}
+        kept = 0
+        for query_id, origin in resource.consumers.items():
+            key = old_consumers.get(query_id)
+            if key is None:
+                seq += 1
+                key = seq
+                db.execute(
+                    "INSERT INTO consumers (seq, query_id, resource_id, origin_rr) "
+                    "VALUES (?, ?, ?, ?)",
+                    (key, query_id, rid, origin),
+                )
+            else:
+                kept += 1
+            consumers[query_id] = key
+        if kept != len(old_consumers):  # some consumers left since the last write
+            db.executemany(
+                "DELETE FROM consumers WHERE seq = ?",
+                [(k,) for q, k in old_consumers.items() if q not in consumers],
+            )
+        mirror = _Mirror(row, resource.state, resource.response, consumers)
+        after.append(functools.partial(self._resources.__setitem__, rid, mirror))
+        return seq
+
+    def _write_client(
+        self,
+        db: sqlite3.Connection,
+        qid: str,
+        record: ClientRecord | None,
+        seq: int,
+        after: list[Callable[[], object]],
+    ) -> int:
+        old = self._clients.get(qid)
+        if record is None:
+            if old is not None:
+                db.execute("DELETE FROM clients WHERE seq = ?", (old[0],))
+                after.append(functools.partial(self._clients.pop, qid, None))
+            return seq
+        query = record.query
+        if old is None:
+            seq += 1
+            row = seq
+            db.execute(
+                "INSERT INTO clients (seq, query_id, server, serving_rr, origin_rr, request, "
+                "response, parent, loaded) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    seq,
+                    qid,
+                    query.server,
+                    query.serving_rr,
+                    query.origin_rr,
+                    _dumps(query.request),
+                    _dumps(query.response),
+                    record.parent,
+                    int(record.loaded),
+                ),
+            )
+        elif old[1] is query.response:
+            row = old[0]
+            db.execute("UPDATE clients SET loaded = ? WHERE seq = ?", (int(record.loaded), row))
+        else:
+            row = old[0]
+            db.execute(
+                "UPDATE clients SET response = ?, loaded = ? WHERE seq = ?",
+                (_dumps(query.response), int(record.loaded), row),
+            )
+        after.append(functools.partial(self._clients.__setitem__, qid, (row, query.response)))
+        return seq
+
+    def close(self, *, erase: bool) -> None:
+        """Close the database; with `erase`, delete the file and its companions."""
+        with contextlib.suppress(sqlite3.Error):
+            self._db.close()
+        if erase:
+            for suffix in ("", *_SIDE_FILES):
+                with contextlib.suppress(FileNotFoundError):
+                    Path(f"{self._file}{suffix}").unlink()

@@ -1,0 +1,817 @@
+"""Durable catalogs: the SQLite store, the save policies, restore and bad files (rules 13-16).
+
+Crashes are real: a child process (forkserver context) runs the registrars, reports what
+it did over a pipe and is SIGKILLed; the test process then starts fresh registrars on the
+same backups. Module-level functions run in the child (sent by reference).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import multiprocessing
+import multiprocessing.connection
+import multiprocessing.context
+import multiprocessing.forkserver
+import os
+import random
+import signal
+import sqlite3
+import tempfile
+import threading
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import rr_actors as rr
+from rr_actors import _persistence
+from rr_actors import _sqlite_store as store_module
+from rr_actors._catalog import Catalog, ClientRecord, ResourceState
+from rr_actors._sqlite_store import SqliteStore, quarantine_backup, read_backup
+from rr_actors.testing import catalog_snapshot, crash
+
+# -- what runs in the child process ----------------------------------------------------------
+
+
+def _leaf_load(request: Any) -> Any:
+    return {"leaf": request}
+
+
+def _noop_unload(_request: Any, _response: Any) -> None:
+    return None
+
+
+def child_hold(names: tuple[str, str], paths: tuple[str, str], conn: Any) -> None:
+    """Provider P and consumer C with backups: load a leaf twice and a nested resource,
+    send the ids and both catalogs to the parent, then wait to be killed."""
+    p_name, c_name = names
+    provider = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=p_name, backup_path=paths[0], save_on_modify=True)
+    )
+
+    def nested(request: Any) -> Any:
+        return provider.call(p_name, "leaf", {"sub": request}).response
+
+    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    provider.register_server("nested", load=nested, unload=_noop_unload)
+    consumer = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=c_name, backup_path=paths[1], save_on_modify=True)
+    )
+    first = consumer.call(p_name, "leaf", {"a": 1, "b": [1, 2]})
+    second = consumer.call(p_name, "leaf", {"b": [1, 2], "a": 1})
+    third = consumer.call(p_name, "nested", "x")
+    conn.send(
+        ((first.id, second.id, third.id), catalog_snapshot(provider), catalog_snapshot(consumer))
+    )
+    conn.recv()  # never answered: the parent kills this process
+
+
+def child_stuck_in_load(names: tuple[str, str], paths: tuple[str, str], conn: Any) -> None:
+    """A load that loads a dependency, tells the parent, and hangs until it is killed."""
+    p_name, c_name = names
+    provider = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=p_name, backup_path=paths[0], save_on_modify=True)
+    )
+
+    def stuck(request: Any) -> Any:
+        provider.call(p_name, "leaf", {"dependency of": request})
+        conn.send("started")
+        threading.Event().wait(60)
+        return None
+
+    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    provider.register_server("stuck", load=stuck, unload=_noop_unload)
+    consumer = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=c_name, backup_path=paths[1], save_on_modify=True)
+    )
+    consumer.call(p_name, "stuck", {"job": 7}, timeout=60)
+
+
+@pytest.fixture(scope="session")
+def context() -> multiprocessing.context.ForkServerContext:
+    """The forkserver context, its server started before any leak check."""
+    ctx = multiprocessing.get_context("forkserver")
+    assert isinstance(ctx, multiprocessing.context.ForkServerContext)
+    ctx.set_forkserver_preload(["rr_actors", "rr_actors._sqlite_store", "cloudpickle"])
+    multiprocessing.forkserver.ensure_running()
+    return ctx
+
+
+RunAndKill = Callable[..., list[Any]]
+
+
+@pytest.fixture
+def run_and_kill(context: multiprocessing.context.ForkServerContext) -> RunAndKill:
+    """`run_and_kill(target, *args, messages=1)`: run `target(*args, conn)` in a child,
+    receive `messages` messages from it, SIGKILL it, and return the messages."""
+
+    def run(target: Callable[..., None], *args: Any, messages: int = 1) -> list[Any]:
+        parent_end, child_end = context.Pipe()
+        process = context.Process(target=target, args=(*args, child_end), daemon=True)
+        process.start()
+        child_end.close()
+        received = []
+        try:
+            for _ in range(messages):
+                assert parent_end.poll(30), "the child did not report in time"
+                received.append(parent_end.recv())
+        finally:
+            assert process.pid is not None
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(process.pid, signal.SIGKILL)
+            process.join(10)
+            parent_end.close()
+        assert process.exitcode == -signal.SIGKILL
+        return received
+
+    return run
+
+
+# -- helpers --------------------------------------------------------------------------------
+
+
+def unique(prefix: str) -> str:
+    return f"{prefix}-{uuid.uuid4().hex[:8]}"
+
+
+@pytest.fixture
+def started() -> Iterator[list[rr.ResourceRegistrar]]:
+    """Registrars a test starts by hand (append them); stopped newest first at teardown."""
+    registrars: list[rr.ResourceRegistrar] = []
+    yield registrars
+    for registrar in reversed(registrars):
+        if registrar.is_alive():
+            registrar.stop()
+
+
+def start(
+    started: list[rr.ResourceRegistrar], name: str, path: Path | None, **config: Any
+) -> rr.ResourceRegistrar:
+    registrar = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=name, backup_path=path, **config)
+    )
+    started.append(registrar)
+    return registrar
+
+
+def ordered(view: Any) -> Any:
+    """A catalog view as comparable data, with consumer order made visible."""
+    return (
+        [
+            (r.id, r.server, r.request, r.response, r.state, list(r.consumers.items()))
+            for r in view.resources
+        ],
+        [(c.query, c.parent, c.loaded) for c in view.clients],
+    )
+
+
+def digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+class Recorder:
+    """Recording load/unload callbacks for servers registered in the test process."""
+
+    def __init__(self) -> None:
+        self.loads: list[Any] = []
+        self.unloads: list[Any] = []
+        self.unloaded = threading.Event()
+
+    def load(self, request: Any) -> Any:
+        self.loads.append(request)
+        return {"leaf": request}
+
+    def unload(self, request: Any, _response: Any) -> None:
+        self.unloads.append(request)
+        self.unloaded.set()
+
+
+class ManualTimers:
+    """A save-interval clock the test advances by hand (`fire()`)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.pending: list[tuple[float, Callable[[], None]]] = []
+        self.armed = threading.Event()
+
+    def __call__(self, delay: float, tick: Callable[[], None]) -> Any:
+        entry = (delay, tick)
+        with self.lock:
+            self.pending.append(entry)
+        self.armed.set()
+        timers = self
+
+        class Handle:
+            def cancel(self) -> None:
+                with timers.lock, contextlib.suppress(ValueError):
+                    timers.pending.remove(entry)
+
+        return Handle()
+
+    def fire(self) -> float:
+        """Run every pending tick once; return the delay they were armed with."""
+        with self.lock:
+            due, self.pending = self.pending, []
+            self.armed.clear()
+        assert due, "no save-interval timer was armed"
+        for _, tick in due:
+            tick()
+        return due[0][0]
+
+
+@pytest.fixture
+def timers(monkeypatch: pytest.MonkeyPatch) -> ManualTimers:
+    manual = ManualTimers()
+    monkeypatch.setattr(_persistence, "timer_factory", manual)
+    return manual
+
+
+def consumer_ids(path: Path) -> set[str]:
+    """Consumer ids stored in a backup, read through a separate connection."""
+    return {q for r in read_backup(path).resources for q in r.consumers}
+
+
+# -- restore after a real crash ---------------------------------------------------------------
+
+
+def test_a_registrar_restarted_after_a_kill_restores_every_served_query_and_client_record(
+    tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
+) -> None:
+    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    [(_, provider_view, consumer_view)] = run_and_kill(child_hold, names, tuple(map(str, paths)))
+
+    provider = start(started, names[0], paths[0], save_on_modify=True)
+    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    provider.register_server("nested", load=_leaf_load, unload=_noop_unload)
+    consumer = start(started, names[1], paths[1], save_on_modify=True)
+
+    assert (True, True) == (provider.restored, consumer.restored)
+    assert ordered(provider_view) == ordered(catalog_snapshot(provider))
+    assert ordered(consumer_view) == ordered(catalog_snapshot(consumer))
+
+
+def test_setup_code_sees_the_restored_queries_before_it_registers_its_servers(
+    tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
+) -> None:
+    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    [((first, second, _), _, _)] = run_and_kill(child_hold, names, tuple(map(str, paths)))
+    provider = start(started, names[0], paths[0], save_on_modify=True)
+    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+
+    held = provider.server_queries("leaf")
+
+    assert {first, second} <= {q.id for q in held}
+
+
+def test_consumer_ids_issued_before_a_kill_unload_after_the_restart(
+    tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
+) -> None:
+    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    [((first, second, _), _, _)] = run_and_kill(child_hold, names, tuple(map(str, paths)))
+    provider = start(started, names[0], paths[0], save_on_modify=True)
+    leaf = Recorder()
+    provider.register_server("leaf", load=leaf.load, unload=leaf.unload)
+    provider.register_server("nested", load=leaf.load, unload=_noop_unload)
+    consumer = start(started, names[1], paths[1], save_on_modify=True)
+
+    consumer.unload(first)
+    consumer.unload(second)
+
+    assert [{"a": 1, "b": [1, 2]}] == leaf.unloads
+
+
+def test_a_nested_resource_restored_after_a_kill_releases_its_dependency_when_unloaded(
+    tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
+) -> None:
+    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    [((_, _, third), _, _)] = run_and_kill(child_hold, names, tuple(map(str, paths)))
+    provider = start(started, names[0], paths[0], save_on_modify=True)
+    leaf, nested = Recorder(), Recorder()
+    provider.register_server("leaf", load=leaf.load, unload=leaf.unload)
+    provider.register_server("nested", load=nested.load, unload=nested.unload)
+    consumer = start(started, names[1], paths[1], save_on_modify=True)
+
+    consumer.unload(third)
+
+    assert ([{"sub": "x"}], ["x"]) == (leaf.unloads, nested.unloads)
+
+
+def test_an_equal_request_after_a_restart_in_another_process_reuses_the_restored_resource(
+    tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
+) -> None:
+    # The child hashed its strings with another seed: only requests are stored, never hashes.
+    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    run_and_kill(child_hold, names, tuple(map(str, paths)))
+    provider = start(started, names[0], paths[0], save_on_modify=True)
+    leaf = Recorder()
+    provider.register_server("leaf", load=leaf.load, unload=leaf.unload)
+    provider.register_server("nested", load=leaf.load, unload=_noop_unload)
+    consumer = start(started, names[1], paths[1], save_on_modify=True)
+
+    query = consumer.call(names[0], "leaf", {"b": [1, 2], "a": 1})
+
+    assert ([], {"leaf": {"a": 1, "b": [1, 2]}}) == (leaf.loads, query.response)
+
+
+# -- in-doubt loads ---------------------------------------------------------------------------
+
+
+def test_a_load_killed_inside_its_callback_is_reported_in_doubt_after_the_restart(
+    tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
+) -> None:
+    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    run_and_kill(child_stuck_in_load, names, tuple(map(str, paths)))
+
+    provider = start(started, names[0], paths[0], save_on_modify=True)
+
+    assert [("stuck", {"job": 7})] == [(q.server, q.request) for q in provider.in_doubt]
+
+
+def test_the_dependency_of_an_in_doubt_load_is_released_after_the_restart(
+    tmp_path: Path,
+    run_and_kill: RunAndKill,
+    started: list[rr.ResourceRegistrar],
+    eventually: Callable[..., bool],
+) -> None:
+    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    run_and_kill(child_stuck_in_load, names, tuple(map(str, paths)))
+    provider = start(started, names[0], paths[0], save_on_modify=True)
+    leaf = Recorder()
+
+    provider.register_server("leaf", load=leaf.load, unload=leaf.unload)
+
+    assert leaf.unloaded.wait(5)
+    assert eventually(lambda: not catalog_snapshot(provider).resources)
+    assert [{"dependency of": {"job": 7}}] == leaf.unloads
+
+
+def test_a_registrar_without_in_doubt_loads_reports_none(
+    tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
+) -> None:
+    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    run_and_kill(child_hold, names, tuple(map(str, paths)))
+
+    provider = start(started, names[0], paths[0], save_on_modify=True)
+
+    assert () == provider.in_doubt
+
+
+# -- save policies ----------------------------------------------------------------------------
+
+
+def test_restored_is_false_on_a_first_start(
+    tmp_path: Path, started: list[rr.ResourceRegistrar]
+) -> None:
+    registrar = start(started, unique("P"), tmp_path / "p.db")
+
+    assert registrar.restored is False
+
+
+def test_restored_is_true_on_an_existing_backup_even_an_empty_one(
+    tmp_path: Path, started: list[rr.ResourceRegistrar]
+) -> None:
+    name = unique("P")
+    start(started, name, tmp_path / "p.db").stop()
+
+    assert start(started, name, tmp_path / "p.db").restored is True
+
+
+def test_save_on_modify_commits_a_load_before_the_caller_gets_the_answer(
+    tmp_path: Path, started: list[rr.ResourceRegistrar]
+) -> None:
+    provider = start(started, unique("P"), tmp_path / "p.db", save_on_modify=True)
+    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+
+    query = provider.call(provider.name, "leaf", 1)
+
+    assert {query.id} == consumer_ids(tmp_path / "p.db")
+
+
+def test_save_on_modify_commits_an_unload_before_the_caller_gets_the_answer(
+    tmp_path: Path, started: list[rr.ResourceRegistrar]
+) -> None:
+    provider = start(started, unique("P"), tmp_path / "p.db", save_on_modify=True)
+    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    query = provider.call(provider.name, "leaf", 1)
+
+    provider.unload(query.id)
+
+    assert ([], []) == (
+        read_backup(tmp_path / "p.db").resources,
+        read_backup(tmp_path / "p.db").clients,
+    )
+
+
+def test_without_save_on_modify_a_change_waits_for_the_save_interval(
+    tmp_path: Path, started: list[rr.ResourceRegistrar], timers: ManualTimers
+) -> None:
+    provider = start(started, unique("P"), tmp_path / "p.db", save_interval=30.0)
+    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+
+    provider.call(provider.name, "leaf", 1)
+
+    assert set() == consumer_ids(tmp_path / "p.db")
+
+
+def test_the_save_interval_timer_flushes_pending_changes_and_is_armed_again(
+    tmp_path: Path, started: list[rr.ResourceRegistrar], timers: ManualTimers
+) -> None:
+    provider = start(started, unique("P"), tmp_path / "p.db", save_interval=30.0)
+    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    query = provider.call(provider.name, "leaf", 1)
+    assert timers.armed.wait(5)
+
+    delay = timers.fire()
+    catalog_snapshot(provider)  # the flush message was handled before this answer
+
+    assert (30.0, {query.id}, True) == (
+        delay,
+        consumer_ids(tmp_path / "p.db"),
+        timers.armed.wait(5),
+    )
+
+
+def test_a_crash_loses_only_the_changes_made_since_the_last_interval_flush(
+    tmp_path: Path, timers: ManualTimers
+) -> None:
+    provider = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=unique("P"), backup_path=tmp_path / "p.db", save_interval=30.0)
+    )
+    try:
+        provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+        kept = provider.call(provider.name, "leaf", 1)
+        assert timers.armed.wait(5)
+        timers.fire()
+        provider.call(provider.name, "leaf", 2)
+    finally:
+        crash(provider)
+
+    assert {kept.id} == consumer_ids(tmp_path / "p.db")
+
+
+def test_save_catalog_writes_pending_changes_at_once(
+    tmp_path: Path, started: list[rr.ResourceRegistrar]
+) -> None:
+    provider = start(started, unique("P"), tmp_path / "p.db", save_interval=None)
+    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    query = provider.call(provider.name, "leaf", 1)
+
+    provider.save_catalog()
+
+    assert {query.id} == consumer_ids(tmp_path / "p.db")
+
+
+def test_a_clean_stop_flushes_pending_changes(tmp_path: Path) -> None:
+    provider = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=unique("P"), backup_path=tmp_path / "p.db", save_interval=None)
+    )
+    consumer = rr.ResourceRegistrar.start(unique("C"))
+    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    query = consumer.call(provider.name, "leaf", 1)
+
+    provider.stop()
+    consumer.stop()
+
+    assert {query.id} == consumer_ids(tmp_path / "p.db")
+
+
+def test_erase_on_destruct_removes_the_backup_after_a_clean_stop(tmp_path: Path) -> None:
+    registrar = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=unique("P"), backup_path=tmp_path / "p.db", erase_on_destruct=True)
+    )
+
+    registrar.stop()
+
+    assert [] == list(tmp_path.iterdir())
+
+
+def test_erase_on_destruct_keeps_the_backup_after_a_kill(
+    tmp_path: Path, run_and_kill: RunAndKill
+) -> None:
+    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+
+    run_and_kill(child_hold, names, tuple(map(str, paths)))
+
+    assert (True, True) == (paths[0].is_file(), paths[1].is_file())
+
+
+@pytest.mark.parametrize(("durability", "synchronous"), [("process", 1), ("power", 2)])
+def test_durability_chooses_the_sqlite_synchronous_level(
+    tmp_path: Path, durability: Any, synchronous: int
+) -> None:
+    store = SqliteStore.open(tmp_path / "p.db", durability=durability)
+    try:
+        level = store._db.execute("PRAGMA synchronous").fetchone()[0]
+        mode = store._db.execute("PRAGMA journal_mode").fetchone()[0]
+    finally:
+        store.close(erase=False)
+
+    assert (synchronous, "wal") == (level, mode)
+
+
+def test_a_new_backup_records_its_schema_version_and_application_id(tmp_path: Path) -> None:
+    SqliteStore.open(tmp_path / "p.db").close(erase=False)
+
+    db = sqlite3.connect(tmp_path / "p.db")
+    try:
+        found = (
+            db.execute("SELECT version FROM rr_actors_schema").fetchall(),
+            db.execute("PRAGMA application_id").fetchone()[0],
+        )
+    finally:
+        db.close()
+
+    assert ([(store_module.SCHEMA_VERSION,)], store_module.APPLICATION_ID) == found
+
+
+# -- the store on its own ---------------------------------------------------------------------
+
+
+def make_query(qid: str, request: Any, *, target: str = "P", origin: str = "C") -> rr.Query:
+    return rr.Query(qid, "leaf", target, origin, request)
+
+
+def reopen(path: Path) -> Catalog:
+    store = SqliteStore.open(path)
+    try:
+        rows = store.load()
+    finally:
+        store.close(erase=False)
+    assert rows is not None
+    catalog = Catalog.restore(*rows)
+    catalog.check_invariants()
+    return catalog
+
+
+def rows_of(catalog: Catalog) -> Any:
+    return (
+        [
+            (r.id, r.server, r.request, r.response, r.state, list(r.consumers.items()))
+            for r in catalog.resources.values()
+        ],
+        [(c.query, c.parent, c.loaded) for c in catalog.clients.values()],
+    )
+
+
+def random_load(rng: random.Random, catalog: Catalog) -> None:
+    request = {"n": rng.randrange(6), "tags": [rng.randrange(3)]}
+    if catalog.find("leaf", request) is None:
+        rid = str(uuid.uuid4())
+        catalog.begin_load(rid, "leaf", request)
+        if rng.random() < 0.8:
+            catalog.finish_load(rid, ("pid", rng.randrange(1000)))
+            catalog.add_consumer(rid, str(uuid.uuid4()), rng.choice("CD"))
+
+
+def random_release(rng: random.Random, catalog: Catalog, held: list[str]) -> None:
+    resource = catalog.release(rng.choice(held))
+    if not resource.consumers:
+        catalog.begin_unload(resource.id)
+        if rng.random() < 0.7:
+            for dep in catalog.dependencies(resource.id):
+                catalog.remove_client(dep.query.id)
+            catalog.remove_resource(resource.id)
+
+
+def random_program(rng: random.Random, catalog: Catalog, steps: int) -> Iterator[None]:
+    """Apply `steps` random valid catalog changes, yielding after each."""
+    for _ in range(steps):
+        loaded = [r for r in catalog.resources.values() if r.state is ResourceState.LOADED]
+        held = [q for r in loaded for q in r.consumers]
+        choice = rng.randrange(8)
+        if choice <= 1 or not catalog.resources:
+            random_load(rng, catalog)
+        elif choice == 2 and loaded:
+            catalog.add_consumer(rng.choice(loaded).id, str(uuid.uuid4()), rng.choice("CD"))
+        elif choice == 3 and held:
+            random_release(rng, catalog, held)
+        elif choice == 4 and loaded:
+            catalog.set_response(rng.choice(loaded).id, {"new": rng.random()})
+        elif choice == 5:
+            parent = rng.choice([None, *catalog.resources])
+            qid = str(uuid.uuid4())
+            catalog.add_client(ClientRecord(make_query(qid, rng.randrange(9)), parent))
+        elif choice == 6 and catalog.clients:
+            catalog.client_loaded(rng.choice(list(catalog.clients)), rng.randrange(9))
+        elif choice == 7 and catalog.clients:
+            catalog.remove_client(rng.choice(list(catalog.clients)))
+        yield
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32), batch=st.integers(1, 6))
+def test_a_reopened_backup_holds_exactly_the_catalog_written_in_any_batching(
+    seed: int, batch: int
+) -> None:
+    rng = random.Random(seed)  # noqa: S311 - a reproducible test program, not crypto
+    with tempfile.TemporaryDirectory() as directory:
+        path = Path(directory) / "p.db"
+        store = SqliteStore.open(path)
+        assert store.load() is None
+        catalog = Catalog()
+        try:
+            for step, _ in enumerate(random_program(rng, catalog, 60)):
+                if step % batch == 0:
+                    store.write(catalog.drain_changes())
+            store.write(catalog.drain_changes())
+        finally:
+            store.close(erase=False)
+
+        assert rows_of(catalog) == rows_of(reopen(path))
+
+
+def test_a_write_that_fails_leaves_the_file_and_the_next_write_intact(tmp_path: Path) -> None:
+    store = SqliteStore.open(tmp_path / "p.db")
+    store.load()
+    catalog = Catalog()
+    catalog.begin_load("r1", "leaf", 1)
+    store.write(catalog.drain_changes())
+    catalog.finish_load("r1", threading.Lock())  # cannot be pickled
+    catalog.add_consumer("r1", "q1", "C")
+    with pytest.raises(TypeError):
+        store.write(catalog.drain_changes())
+    before = rows_of(reopen(tmp_path / "p.db"))
+    catalog.set_response("r1", "fine")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    assert ([("r1", ResourceState.LOADING, [])], [("r1", ResourceState.LOADED, [("q1", "C")])]) == (
+        [(r[0], r[4], r[5]) for r in before[0]],
+        [(r[0], r[4], r[5]) for r in rows_of(reopen(tmp_path / "p.db"))[0]],
+    )
+
+
+def test_an_older_schema_is_migrated_by_an_explicit_step(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    SqliteStore.open(tmp_path / "p.db").close(erase=False)
+
+    def add_note(db: sqlite3.Connection) -> None:
+        db.execute("ALTER TABLE resources ADD COLUMN note TEXT")
+
+    monkeypatch.setattr(store_module, "_MIGRATIONS", (*store_module._MIGRATIONS, add_note))
+    monkeypatch.setattr(store_module, "SCHEMA_VERSION", 2)
+    SqliteStore.open(tmp_path / "p.db").close(erase=False)
+
+    db = sqlite3.connect(tmp_path / "p.db")
+    try:
+        version = db.execute("SELECT version FROM rr_actors_schema").fetchone()[0]
+        columns = [row[1] for row in db.execute("PRAGMA table_info(resources)")]
+    finally:
+        db.close()
+    assert (2, "note") == (version, columns[-1])
+
+
+# -- bad files --------------------------------------------------------------------------------
+
+
+def write_valid_backup(path: Path) -> None:
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    for n in range(300):
+        catalog.begin_load(f"r{n}", "leaf", {"n": n, "pad": "x" * 200})
+        catalog.finish_load(f"r{n}", n)
+        catalog.add_consumer(f"r{n}", f"q{n}", "C")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+
+def make_garbage(path: Path) -> None:
+    path.write_bytes(os.urandom(5000))
+
+
+def make_truncated(path: Path) -> None:
+    write_valid_backup(path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def make_empty(path: Path) -> None:
+    path.write_bytes(b"")
+
+
+def make_foreign(path: Path) -> None:
+    db = sqlite3.connect(path)
+    db.execute("CREATE TABLE songs (title TEXT)")
+    db.commit()
+    db.close()
+
+
+def make_newer(path: Path) -> None:
+    SqliteStore.open(path).close(erase=False)
+    db = sqlite3.connect(path)
+    db.execute("UPDATE rr_actors_schema SET version = 99")
+    db.commit()
+    db.close()
+
+
+def make_bad_row(path: Path) -> None:
+    write_valid_backup(path)
+    db = sqlite3.connect(path)
+    db.execute("UPDATE resources SET request = x'00ff00' WHERE id = 'r7'")
+    db.commit()
+    db.close()
+
+
+@pytest.mark.parametrize(
+    ("make", "cause"),
+    [
+        (make_garbage, "not an SQLite database"),
+        (make_truncated, "truncated"),
+        (make_empty, "empty"),
+        (make_foreign, "not an rr_actors catalog"),
+        (make_newer, "schema version 99 is newer"),
+        (make_bad_row, "cannot be read"),
+    ],
+)
+def test_a_bad_backup_raises_catalog_corrupt_error_naming_the_file_and_is_left_untouched(
+    tmp_path: Path, make: Callable[[Path], None], cause: str
+) -> None:
+    path = tmp_path / "p.db"
+    make(path)
+    before = digest(path)
+    name = unique("P")
+
+    with pytest.raises(rr.CatalogCorruptError) as raised:
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, backup_path=path))
+
+    assert (str(path), True, before, sorted(os.listdir(tmp_path))) == (
+        raised.value.path,
+        cause in raised.value.cause,
+        digest(path),
+        ["p.db"],
+    )
+
+
+def test_a_backup_that_failed_to_open_leaves_the_registrar_name_free(tmp_path: Path) -> None:
+    make_garbage(tmp_path / "p.db")
+    name = unique("P")
+    with pytest.raises(rr.CatalogCorruptError):
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, backup_path=tmp_path / "p.db"))
+
+    registrar = rr.ResourceRegistrar.start(name)
+
+    registrar.stop()
+
+
+@pytest.mark.parametrize(
+    ("where", "cause"),
+    [
+        (lambda tmp: tmp / "missing" / "p.db", "does not exist"),
+        (lambda tmp: tmp, "is a directory"),
+        (lambda _tmp: Path("/sys/rr_actors_test.db"), "cannot be created"),
+    ],
+)
+def test_an_unusable_backup_path_raises_config_error_naming_it(
+    tmp_path: Path, where: Callable[[Path], Path], cause: str
+) -> None:
+    path = where(tmp_path)
+    if path.parent == Path("/sys"):
+        try:
+            path.touch()
+        except OSError:
+            pass
+        else:
+            path.unlink()
+            pytest.skip("/sys is writable here")
+
+    with pytest.raises(rr.ConfigError) as raised:
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("P"), backup_path=path))
+
+    assert (True, True) == (str(path) in str(raised.value), cause in str(raised.value))
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write to read-only files")
+def test_a_read_only_backup_raises_config_error(tmp_path: Path) -> None:
+    write_valid_backup(tmp_path / "p.db")
+    (tmp_path / "p.db").chmod(0o444)
+
+    with pytest.raises(rr.ConfigError, match="not readable and writable"):
+        SqliteStore.open(tmp_path / "p.db")
+
+
+def test_quarantine_moves_a_corrupt_backup_aside_so_a_registrar_starts_empty(
+    tmp_path: Path, started: list[rr.ResourceRegistrar]
+) -> None:
+    make_garbage(tmp_path / "p.db")
+    before = digest(tmp_path / "p.db")
+
+    moved = quarantine_backup(tmp_path / "p.db")
+    registrar = start(started, unique("P"), tmp_path / "p.db")
+
+    assert (before, True, False) == (
+        digest(moved),
+        moved.name.startswith("p.db.corrupt-"),
+        registrar.restored,
+    )
+
+
+def test_quarantine_without_a_file_raises_config_error(tmp_path: Path) -> None:
+    with pytest.raises(rr.ConfigError, match="no catalog backup"):
+        quarantine_backup(tmp_path / "p.db")
