@@ -7,6 +7,7 @@ semantics and the docs for a tutorial.
 import logging
 
 from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, ResourceRegistrar
+from rr_actors._sqlite_store import quarantine_backup
 from rr_actors._supervisor import (
     Backoff,
     ChildCounts,
@@ -60,6 +61,7 @@ __all__ = [
     "SupervisorSpec",
     "UnknownQueryError",
     "UnknownServerError",
+    "quarantine_backup",
 ]
 
 __version__ = "0.1.0"

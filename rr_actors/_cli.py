@@ -183,7 +183,25 @@ def _inspect(args: argparse.Namespace, out: TextIO) -> int:
     return 0
 
 
+def _demo_arguments(parser: argparse.ArgumentParser) -> None:
+    from rr_actors.mission import run  # noqa: PLC0415 - only the demo needs the mission
+
+    run.add_arguments(parser)
+
+
+def _demo(args: argparse.Namespace, _out: TextIO) -> int:
+    from rr_actors.mission import run  # noqa: PLC0415 - only the demo needs the mission
+
+    return run.run(args)
+
+
 COMMANDS: list[Command] = [
+    Command(
+        "demo",
+        "run the thesis's fault-injected robot mission on real processes (the main demo)",
+        _demo_arguments,
+        _demo,
+    ),
     Command(
         "inspect",
         "print a catalog backup as a tree (safe on a live file; unpickles its values)",

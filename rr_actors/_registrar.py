@@ -23,6 +23,7 @@ import contextvars
 import dataclasses
 import functools
 import logging
+import threading
 import traceback
 import uuid
 from collections.abc import Callable
@@ -42,7 +43,7 @@ from rr_actors._messages import (
     StatusNotice,
     Unload,
 )
-from rr_actors._persistence import Cancellable, Saver, open_store
+from rr_actors._persistence import Cancellable, Saver, gc_paused, open_store
 from rr_actors._replies import Answer, FutureReply, Join, Tokens, wait
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors._workers import Workers
@@ -356,6 +357,7 @@ class RegistrarActor(pykka.ThreadingActor):
         catalog: Catalog,
         saver: Saver,
         peer: LocalPeer,
+        died: threading.Event,
     ) -> None:
         super().__init__()
         self.config = config
@@ -377,6 +379,7 @@ class RegistrarActor(pykka.ThreadingActor):
         self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
         self.seen_events: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
         self.stopping = False
+        self.died = died  # set once a crash was fully handled (see testing.crash)
         self.flush_timer: Cancellable | None = None
 
     # -- life cycle -------------------------------------------------------------------
@@ -434,6 +437,7 @@ class RegistrarActor(pykka.ThreadingActor):
             for peer in DIRECTORY.local_peers():
                 with contextlib.suppress(RrError):
                     peer.tell(ConsumerDown(self.name))
+        self.died.set()
 
     def _stop_children(self) -> None:
         for server in self.servers.values():
@@ -1044,6 +1048,7 @@ class ResourceRegistrar:
         self._restored = restored
         self._in_doubt = in_doubt
         self._clients: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
+        self._died = threading.Event()  # set when a crash of the actor was fully handled
         self._commit_first = config.save_on_modify and config.backup_path is not None
 
     @classmethod
@@ -1067,12 +1072,13 @@ class ResourceRegistrar:
             raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
         peer = LocalPeer(config.name, None)
         DIRECTORY.register(peer)
+        store = None
         try:
             store = open_store(config)
-            rows = store.load() if store is not None else None
-            if rows is not None:
-                catalog = Catalog.restore(*rows)
-            else:
+            with gc_paused():  # building many rows allocates no cycles: skip the rescans
+                rows = store.load() if store is not None else None
+                catalog = Catalog.restore(*rows) if rows is not None else None
+            if catalog is None:
                 catalog = Catalog(track_changes=store is not None)
             saver = Saver(store, config)
             in_doubt = tuple(
@@ -1080,11 +1086,16 @@ class ResourceRegistrar:
                 for r in catalog.resources.values()
                 if r.state is not ResourceState.LOADED
             )
-            ref = RegistrarActor.start(config, catalog, saver, peer)
+            died = threading.Event()
+            ref = RegistrarActor.start(config, catalog, saver, peer, died)
         except BaseException:
+            if store is not None:
+                store.close(erase=False)
             DIRECTORY.unregister(peer, "stopped")
             raise
-        return cls(ref, config, restored=rows is not None, in_doubt=in_doubt)
+        handle = cls(ref, config, restored=rows is not None, in_doubt=in_doubt)
+        handle._died = died
+        return handle
 
     # -- properties -------------------------------------------------------------------
 

@@ -31,7 +31,6 @@ import contextlib
 import dataclasses
 import datetime
 import functools
-import gc
 import os
 import pickle
 import sqlite3
@@ -43,6 +42,7 @@ from typing import Any, Literal
 import cloudpickle
 
 from rr_actors._catalog import Changes, ClientRecord, Resource, ResourceState
+from rr_actors._persistence import gc_paused
 from rr_actors._types import Query
 from rr_actors.errors import CatalogCorruptError, ConfigError
 
@@ -52,7 +52,6 @@ __all__ = [
     "Backup",
     "SqliteStore",
     "Unreadable",
-    "gc_paused",
     "quarantine_backup",
     "read_backup",
 ]
@@ -350,22 +349,6 @@ def _prepare(db: sqlite3.Connection, name: str, durability: str, version: int) -
 
 
 _STATES = {state.value: state for state in ResourceState}
-
-
-@contextlib.contextmanager
-def gc_paused() -> Iterator[None]:
-    """Pause the cyclic garbage collector while a catalog is built (restores twice as fast).
-
-    Building 100k rows allocates many containers and no cycles; each allocation burst
-    would otherwise trigger collections that rescan every object built so far.
-    """
-    was_enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if was_enabled:
-            gc.enable()
 
 
 def _read_rows(db: sqlite3.Connection, loads: Callable[[bytes | None], Any]) -> _Rows:

@@ -67,6 +67,6 @@ def test_readme_starts_with_the_demo_and_the_test_command_that_ci_runs() -> None
     test_command = lines[2].split("&&", 1)[1].strip()
 
     assert ["```bash", "```"] == [lines[0], lines[3]]
-    assert lines[1].startswith("pip install -e ")
+    assert 'pip install -e ".[demo]" && rr-actors demo' == lines[1]
     assert lines[2].startswith('pip install -e ".[dev]" && ')
     assert f"\n{test_command} || status=$?\n" in (ROOT / ".ci" / "run").read_text()

@@ -862,14 +862,22 @@ def timeline(report: MissionReport) -> str:
 # -- the command line --------------------------------------------------------------------
 
 
+DESCRIPTION = (
+    "The TeMoto thesis's fault-injected robot mission (chapter 6), on real processes: a "
+    "robot drives a path while its LiDAR, its motor driver and each of its three managers "
+    "are killed, and recovers from every fault."
+)
+
+
 def parser() -> argparse.ArgumentParser:
     """The `rr-actors demo` command line."""
-    p = argparse.ArgumentParser(
-        prog="rr-actors demo",
-        description="The TeMoto thesis's fault-injected robot mission (chapter 6), on real "
-        "processes: a robot drives a path while its LiDAR, its motor driver and each of "
-        "its three managers are killed, and recovers from every fault.",
-    )
+    p = argparse.ArgumentParser(prog="rr-actors demo", description=DESCRIPTION)
+    add_arguments(p)
+    return p
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Add the demo's options to `p` (shared by `rr-actors demo` and this module's `main`)."""
     p.add_argument("--fast", action="store_true", help="a run of a few seconds (for CI)")
     faults = p.add_mutually_exclusive_group()
     faults.add_argument("--no-faults", action="store_true", help="drive without any fault")
@@ -885,7 +893,6 @@ def parser() -> argparse.ArgumentParser:
         "--isolation", choices=("process", "thread"), default="process", help=argparse.SUPPRESS
     )
     p.add_argument("--quiet", action="store_true", help="print only the timeline")
-    return p
 
 
 def config_from_args(args: argparse.Namespace) -> MissionConfig:
@@ -923,7 +930,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         0 when the mission completed, every fault was recovered and nothing was left
         behind; 1 otherwise; 2 for a bad command line.
     """
-    args = parser().parse_args(argv)
+    return run(parser().parse_args(argv))
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the mission the parsed command line `args` asks for; returns the exit code."""
     try:
         config = config_from_args(args)
     except rr.ConfigError as exc:
