@@ -192,7 +192,7 @@ class ManagerSpec:
             and a stuck registrar both count as hung. Thread managers have no heartbeat.
         heartbeat_timeout: seconds without an answer to a ping after which a process
             manager counts as hung: it is killed and handled like a crash. Default:
-            three heartbeat periods.
+            three heartbeat periods (0.75 s with the default `heartbeat`).
         start_timeout: seconds a manager may take to restore, set up and serve.
 
     Raises:
@@ -205,7 +205,7 @@ class ManagerSpec:
     restart: RestartType = "permanent"
     config: RegistrarConfig | None = None
     shutdown: float = 5.0
-    heartbeat: float | None = 0.5
+    heartbeat: float | None = 0.25
     heartbeat_timeout: float | None = None
     start_timeout: float = 30.0
 
