@@ -31,6 +31,7 @@ from rr_actors.errors import (
     RrError,
     SupervisorGaveUpError,
     UnknownQueryError,
+    UnknownRegistrarError,
     UnknownServerError,
 )
 
@@ -60,6 +61,7 @@ __all__ = [
     "SupervisorGaveUpError",
     "SupervisorSpec",
     "UnknownQueryError",
+    "UnknownRegistrarError",
     "UnknownServerError",
     "quarantine_backup",
 ]

@@ -18,7 +18,7 @@ from rr_actors.errors import (
     DuplicateNameError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
-    UnknownServerError,
+    UnknownRegistrarError,
 )
 
 __all__ = ["DIRECTORY", "Directory", "LocalPeer", "Peer", "Reply"]
@@ -100,7 +100,7 @@ class Directory:
         """Return the peer of registrar `name`.
 
         Raises:
-            UnknownServerError: no registrar of that name was ever seen.
+            UnknownRegistrarError: no registrar of that name was ever seen.
             RegistrarStoppedError: it was stopped.
             RegistrarUnavailableError: it died.
         """
@@ -122,7 +122,7 @@ class Directory:
             return RegistrarStoppedError(f"registrar {name!r} was stopped")
         if reason == "died":
             return RegistrarUnavailableError(f"registrar {name!r} died")
-        return UnknownServerError(f"no registrar named {name!r}")
+        return UnknownRegistrarError(f"no registrar named {name!r}")
 
     def local_peers(self) -> list[Peer]:
         """Every registrar registered in this process."""

@@ -26,6 +26,7 @@ __all__ = [
     "RrError",
     "SupervisorGaveUpError",
     "UnknownQueryError",
+    "UnknownRegistrarError",
     "UnknownServerError",
 ]
 
@@ -43,7 +44,14 @@ class DuplicateNameError(ConfigError):
 
 
 class UnknownServerError(RrError, LookupError):
-    """No registrar, or no resource server on that registrar, has the given name."""
+    """No resource server (or no registrar at all) answers to the given name."""
+
+
+class UnknownRegistrarError(UnknownServerError):
+    """No registrar (or supervised manager) of that name was ever seen on this system.
+
+    A subclass of `UnknownServerError`: a server is unreachable when its registrar is.
+    """
 
 
 class UnknownQueryError(RrError, LookupError):
