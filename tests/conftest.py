@@ -1,17 +1,57 @@
-"""Shared fixtures: leak checks, registrar creation, recording resource servers.
+"""Shared fixtures: leak checks, registrar creation in both placements, recording servers.
 
-Every registrar a test starts goes through `make_registrar`, so that placement (threads
-now, processes later) can be parametrised in one place, and every registrar is stopped
-at teardown. The autouse `no_leftovers` fixture fails any test that leaves pykka actors
-or child processes running.
+Placement. Every registrar test starts its registrars through `make_registrar`, and every
+test that (directly or through another fixture) uses it runs twice, through the one
+parametrised fixture `registrar_placement`:
+
+- "thread": `make_registrar` returns `ResourceRegistrar`s in this process (threads).
+- "process": each registrar runs in its own manager process (forkserver context) on a
+  per-test `System`; `make_registrar` returns `rr_actors.testing.RemoteRegistrar`
+  handles, which have the same methods and forward each one into the registrar's process
+  over the system's authenticated channel. Errors come back as the same rr_actors
+  errors. Callbacks are cloudpickled into the manager process; a callback that captured a
+  handle calls its registrar directly when it runs in that registrar's process (so
+  dependency tracking through the context variable works inside `load`) and forwards
+  otherwise. `rr_actors.testing.crash` SIGKILLs the manager process, and its owner handle
+  then tells the other registrars the consumer is gone (what a supervisor does for a
+  child it will not restart).
+
+A test that cannot mean the same in both placements is marked
+`@pytest.mark.thread_only("reason")`; `pytest_generate_tests` then gives it the thread
+placement only.
+
+Why these choices:
+
+- One `System` per test, not per module: creating one costs a temporary directory and
+  32 random bytes, and a fresh one keeps the death-watch broadcast (which lists the
+  system's sockets) and the directory resolver to the test's own registrars. What costs
+  is a manager process (~35 ms to fork from the warm forkserver and be served), paid per
+  registrar; the forkserver (with its preloaded rr_actors modules) and multiprocessing's
+  resource tracker are started once per session, before any leak check counts children.
+- State the test shares with callbacks (the recording servers' journals, status inboxes,
+  gates, started-events, barriers) comes from the `shared` fixture: plain `threading`
+  objects and lists in the thread placement (nothing changes there), and
+  `rr_actors.testing.SharedObjects` proxies (a `SyncManager` helper process, one per
+  session, excluded from the leak check by pid) in the process placement. Lists are
+  `rr_actors.testing.Records`: they compare equal to a list, so assertions are unchanged.
+  A callback that captured a bare `threading.Event` fails loudly in the process placement
+  (it does not pickle), and one that captured a bare list would record into a copy, so
+  tests use `shared` wherever a callback touches state the test reads.
+- conftest and the test modules are registered with cloudpickle "by value", so their
+  functions and classes (the recording server, `SensorError`, ...) reach the manager
+  processes without those importing pytest or the test modules.
+
+The autouse `no_leftovers` fixture fails any test that leaves pykka actors or child
+processes running (in either placement).
 """
 
 from __future__ import annotations
 
 import collections
-import dataclasses
+import functools
 import multiprocessing
 import os
+import sys
 import threading
 import time
 import uuid
@@ -19,15 +59,44 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import cloudpickle
 import pykka
 import pytest
 
 import rr_actors as rr
+from rr_actors._manager import start_forkserver
 from rr_actors._registrar import _Request
 from rr_actors._replies import FutureReply, wait
+from rr_actors._transport import System
+from rr_actors.testing import RemoteRegistrar, SharedObjects
 
 LEAK_GRACE = 5.0
 """Seconds a test's actors and child processes get to finish stopping after it ended."""
+
+PLACEMENTS = ("thread", "process")
+"""Where `make_registrar` starts registrars: in this process, or one manager process each."""
+
+_HELPER_PIDS: set[int] = set()
+"""Session-long helper processes (the `SharedObjects` manager), not leaks of a test."""
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers",
+        "thread_only(reason): run this registrar test in the thread placement only",
+    )
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    """Run every test that uses `registrar_placement` once per placement."""
+    if "registrar_placement" not in metafunc.fixturenames:
+        return
+    placements = list(PLACEMENTS)
+    marker = metafunc.definition.get_closest_marker("thread_only")
+    if marker is not None:
+        assert marker.args or marker.kwargs.get("reason"), "thread_only needs a reason"
+        placements = ["thread"]
+    metafunc.parametrize("registrar_placement", placements, indirect=True, ids=placements)
 
 
 def _os_children() -> list[int]:
@@ -49,6 +118,10 @@ def _os_children() -> list[int]:
     return living
 
 
+def _test_children() -> list[multiprocessing.process.BaseProcess]:
+    return [p for p in multiprocessing.active_children() if p.pid not in _HELPER_PIDS]
+
+
 @pytest.fixture(autouse=True)
 def no_leftovers() -> Iterator[None]:
     """Fail the test if pykka actors or child processes outlive it (after a bounded wait)."""
@@ -58,10 +131,10 @@ def no_leftovers() -> Iterator[None]:
     for ref in pykka.ActorRegistry.get_all():
         ref.actor_stopped.wait(max(0.0, deadline - time.monotonic()))
     actors = pykka.ActorRegistry.get_all()
-    for child in multiprocessing.active_children():
+    for child in _test_children():
         child.join(max(0.0, deadline - time.monotonic()))
-    processes = multiprocessing.active_children()
-    strays = set(_os_children()) - children_before - {p.pid for p in processes}
+    processes = _test_children()
+    strays = set(_os_children()) - children_before - {p.pid for p in processes} - _HELPER_PIDS
     if actors:
         pykka.ActorRegistry.stop_all(block=True, timeout=LEAK_GRACE)
     for child in processes:
@@ -78,31 +151,97 @@ def no_leftovers() -> Iterator[None]:
         pytest.fail("; ".join(problems))
 
 
-@pytest.fixture
-def registrar_placement() -> str:
-    """Where registrars started by `make_registrar` run ("thread": in this process).
+# -- placement ------------------------------------------------------------------------------
 
-    The single hook for running the registrar tests over both placements.
+
+@pytest.fixture
+def registrar_placement(request: pytest.FixtureRequest) -> str:
+    """Where registrars started by `make_registrar` run: "thread" or "process".
+
+    Parametrised by `pytest_generate_tests` (ids "thread" / "process"); a test marked
+    `thread_only` gets "thread" only.
     """
-    return "thread"
+    placement: str = request.param
+    return placement
 
 
-MakeRegistrar = Callable[..., rr.ResourceRegistrar]
+class _LocalObjects:
+    """The thread placement's shared state: ordinary objects of this process."""
+
+    def event(self) -> threading.Event:
+        return threading.Event()
+
+    def lock(self) -> threading.Lock:
+        return threading.Lock()
+
+    def barrier(self, parties: int, *, timeout: float | None = None) -> threading.Barrier:
+        return threading.Barrier(parties, timeout=timeout)
+
+    def list(self) -> list[Any]:
+        return []
+
+
+Shared = _LocalObjects | SharedObjects
+
+
+@pytest.fixture(scope="session")
+def process_helpers() -> Iterator[SharedObjects]:
+    """The forkserver, the resource tracker and the `SharedObjects` helper, for the session.
+
+    Started before any test's leak check counts this process's children (a session
+    fixture is set up before the function-scoped autouse `no_leftovers`).
+    """
+    start_forkserver()
+    shared = SharedObjects().start()
+    assert shared.pid is not None
+    _HELPER_PIDS.add(shared.pid)
+    yield shared
+    shared.close()
+    _HELPER_PIDS.discard(shared.pid)
 
 
 @pytest.fixture
-def make_registrar(registrar_placement: str) -> Iterator[MakeRegistrar]:
+def shared(registrar_placement: str, process_helpers: SharedObjects) -> Shared:
+    """Events, locks, barriers and lists a test shares with its callbacks.
+
+    `shared.event()`, `shared.lock()`, `shared.barrier(n, timeout=5)`, `shared.list()`:
+    `threading` objects and a list in the thread placement, `SharedObjects` proxies (that
+    work from manager processes) in the process placement.
+    """
+    if registrar_placement == "thread":
+        return _LocalObjects()
+    return process_helpers
+
+
+Registrar = rr.ResourceRegistrar | RemoteRegistrar
+MakeRegistrar = Callable[..., Registrar]
+
+
+@pytest.fixture
+def make_registrar(
+    registrar_placement: str, request: pytest.FixtureRequest, process_helpers: SharedObjects
+) -> Iterator[MakeRegistrar]:
     """Start registrars with unique names (`<prefix>-<8 hex>`); stop them all at teardown.
 
     Call as `make_registrar("provider", call_timeout=5.0)`: keyword arguments are
-    `RegistrarConfig` fields. Registrars are stopped newest first.
+    `RegistrarConfig` fields. In the "process" placement each registrar gets its own
+    manager process and the result is a `RemoteRegistrar`. Registrars are stopped newest
+    first.
     """
-    assert registrar_placement == "thread", f"placement {registrar_placement!r} is not built"
-    started: list[rr.ResourceRegistrar] = []
+    started: list[Registrar] = []
+    system: System | None = None
+    if registrar_placement == "process":
+        cloudpickle.register_pickle_by_value(sys.modules[__name__])
+        cloudpickle.register_pickle_by_value(request.module)
+        system = System.create()
 
-    def make(prefix: str = "rr", **config: Any) -> rr.ResourceRegistrar:
-        name = f"{prefix}-{uuid.uuid4().hex[:8]}"
-        registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, **config))
+    def make(prefix: str = "rr", **config: Any) -> Registrar:
+        settings = rr.RegistrarConfig(name=f"{prefix}-{uuid.uuid4().hex[:8]}", **config)
+        registrar: Registrar
+        if system is None:
+            registrar = rr.ResourceRegistrar.start(settings)
+        else:
+            registrar = RemoteRegistrar.start(settings, system)
         started.append(registrar)
         return registrar
 
@@ -113,42 +252,47 @@ def make_registrar(registrar_placement: str) -> Iterator[MakeRegistrar]:
             registrar.stop()
         except Exception as exc:
             errors.append(exc)
+    if system is not None:
+        system.close()
     if errors:
         pytest.fail(f"stopping the test's registrars failed: {errors!r}")
 
 
-@dataclasses.dataclass
+# -- recording servers and status inboxes ------------------------------------------------------
+
+
 class ServerLog:
     """A recording resource server: what its callbacks were called with, in order.
 
     `journal` is shared by every server of one test, so orders across servers show.
-    Entries are `(full server id, "load" | "unload", request)`.
+    Entries are `(full server id, "load" | "unload", request)`. The lists and the
+    `unloaded` event come from the `shared` fixture, so the callbacks may run in a manager
+    process; each append is atomic (no lock needed around one).
     """
 
-    full_id: str
-    journal: list[tuple[str, str, Any]]
-    respond: Callable[[Any], Any]
-    loads: list[Any] = dataclasses.field(default_factory=list)
-    unloads: list[tuple[Any, Any]] = dataclasses.field(default_factory=list)
-    statuses: list[tuple[rr.Query, rr.StatusUpdate]] = dataclasses.field(default_factory=list)
-    lock: threading.Lock = dataclasses.field(default_factory=threading.Lock)
-    unloaded: threading.Event = dataclasses.field(default_factory=threading.Event)
+    def __init__(
+        self, full_id: str, journal: Any, respond: Callable[[Any], Any], shared: Shared
+    ) -> None:
+        self.full_id = full_id
+        self.journal = journal
+        self.respond = respond
+        self.loads = shared.list()
+        self.unloads = shared.list()
+        self.statuses = shared.list()
+        self.unloaded = shared.event()
 
     def load(self, request: Any) -> Any:
-        with self.lock:
-            self.loads.append(request)
-            self.journal.append((self.full_id, "load", request))
+        self.loads.append(request)
+        self.journal.append((self.full_id, "load", request))
         return self.respond(request)
 
     def unload(self, request: Any, response: Any) -> None:
-        with self.lock:
-            self.unloads.append((request, response))
-            self.journal.append((self.full_id, "unload", request))
+        self.unloads.append((request, response))
+        self.journal.append((self.full_id, "unload", request))
         self.unloaded.set()
 
     def on_status(self, query: rr.Query, update: rr.StatusUpdate) -> None:
-        with self.lock:
-            self.statuses.append((query, update))
+        self.statuses.append((query, update))
 
 
 def default_response(request: Any) -> Any:
@@ -157,25 +301,25 @@ def default_response(request: Any) -> Any:
 
 
 @pytest.fixture
-def journal() -> list[tuple[str, str, Any]]:
+def journal(shared: Shared) -> Any:
     """The ordered load/unload record shared by the test's recording servers."""
-    return []
+    return shared.list()
 
 
 @pytest.fixture
-def serve(journal: list[tuple[str, str, Any]]) -> Callable[..., ServerLog]:
+def serve(journal: Any, shared: Shared) -> Callable[..., ServerLog]:
     """Register a recording server: `serve(registrar, "leaf", respond=fn)` -> `ServerLog`.
 
-    `respond(request)` runs inside `load` (on a worker thread) and gives the response; it
-    may raise, block or call other servers.
+    `respond(request)` runs inside `load` (on a worker thread of the registrar's process)
+    and gives the response; it may raise, block or call other servers.
     """
 
     def register(
-        registrar: rr.ResourceRegistrar,
+        registrar: Registrar,
         name: str,
         respond: Callable[[Any], Any] = default_response,
     ) -> ServerLog:
-        log = ServerLog(f"{registrar.name}/{name}", journal, respond)
+        log = ServerLog(f"{registrar.name}/{name}", journal, respond, shared)
         registrar.register_server(name, load=log.load, unload=log.unload, on_status=log.on_status)
         return log
 
@@ -183,21 +327,19 @@ def serve(journal: list[tuple[str, str, Any]]) -> Callable[..., ServerLog]:
 
 
 class StatusInbox:
-    """A client status callback that records what it receives."""
+    """A client status callback that records what it receives (in `updates`)."""
 
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.updates: list[tuple[rr.Query, rr.StatusUpdate]] = []
+    def __init__(self, updates: Any) -> None:
+        self.updates = updates
 
     def __call__(self, query: rr.Query, update: rr.StatusUpdate) -> None:
-        with self.lock:
-            self.updates.append((query, update))
+        self.updates.append((query, update))
 
 
 @pytest.fixture
-def inbox() -> Callable[[], StatusInbox]:
+def inbox(shared: Shared) -> Callable[[], StatusInbox]:
     """Make client status callbacks that record their updates: `cb = inbox()`."""
-    return StatusInbox
+    return lambda: StatusInbox(shared.list())
 
 
 def wait_for(predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
@@ -218,15 +360,15 @@ def eventually() -> Callable[..., bool]:
 
 
 @pytest.fixture
-def gates(make_registrar: MakeRegistrar) -> Iterator[Callable[[], threading.Event]]:
+def gates(make_registrar: MakeRegistrar, shared: Shared) -> Iterator[Callable[[], Any]]:
     """Make events that block callbacks; all are set at teardown so no worker stays stuck.
 
     Depends on `make_registrar` so that the gates open before the registrars stop.
     """
-    made: list[threading.Event] = []
+    made: list[Any] = []
 
-    def make() -> threading.Event:
-        event = threading.Event()
+    def make() -> Any:
+        event = shared.event()
         made.append(event)
         return event
 
@@ -235,15 +377,19 @@ def gates(make_registrar: MakeRegistrar) -> Iterator[Callable[[], threading.Even
         event.set()
 
 
-def waiting_query_ids(
-    provider: rr.ResourceRegistrar, timeout: float = 5.0
-) -> collections.Counter[str]:
+def waiting_query_ids(provider: Registrar, timeout: float = 5.0) -> collections.Counter[str]:
     """Consumer ids whose load the provider has taken but not answered yet (with repeats).
 
     Reads the registrar actor's private state in its own thread (like
     `rr_actors.testing.catalog_snapshot`): the ids waiting for a load that runs, and the
-    ids parked until an equal resource finished unloading.
+    ids parked until an equal resource finished unloading. For a `RemoteRegistrar` this
+    runs in the registrar's process.
     """
+    if isinstance(provider, RemoteRegistrar):
+        remote: collections.Counter[str] = provider.run(
+            functools.partial(waiting_query_ids, timeout=timeout), timeout=timeout + 5.0
+        )
+        return remote
 
     def op(actor: Any, reply: Any) -> None:
         ids = [w.query_id for waiters in actor.loads.values() for w in waiters]
@@ -263,7 +409,7 @@ def arrived() -> Callable[..., bool]:
     An id listed twice must be waiting twice (a retry with the same query id).
     """
 
-    def check(provider: rr.ResourceRegistrar, query_ids: list[str], timeout: float = 5.0) -> bool:
+    def check(provider: Registrar, query_ids: list[str], timeout: float = 5.0) -> bool:
         wanted = collections.Counter(query_ids)
         return wait_for(lambda: wanted <= waiting_query_ids(provider), timeout)
 

@@ -77,6 +77,9 @@ def test_a_duplicate_server_name_is_refused_and_the_first_server_keeps_serving(
     assert ["x", "y"] == first.loads
 
 
+@pytest.mark.thread_only(
+    "starts a second registrar of that name in this process, where names are unique"
+)
 def test_a_duplicate_registrar_name_is_refused_and_the_first_keeps_running(make_registrar, serve):
     provider = make_registrar("provider")
     serve(provider, "leaf")

@@ -213,10 +213,10 @@ def test_without_erase_on_destruct_a_clean_stop_keeps_the_backup(make_registrar,
 
 
 def test_consumer_records_are_cleared_when_a_consumer_stops_while_a_load_runs(
-    make_registrar, serve, gates
+    make_registrar, serve, gates, shared
 ):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), threading.Event()
+    gate, started = gates(), shared.event()
 
     def slow(request):
         started.set()
@@ -239,3 +239,27 @@ def test_consumer_records_are_cleared_when_a_consumer_stops_while_a_load_runs(
 def _call_ignoring_errors(consumer, provider_name):
     with contextlib.suppress(rr.RrError):  # stopped, or stopped while waiting
         consumer.call(provider_name, "slow", "x", timeout=10)
+
+
+def test_a_consumer_that_crashes_while_its_call_loads_is_released_when_the_load_ends(
+    make_registrar, serve, gates, shared
+):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    gate, started = gates(), shared.event()
+
+    def slow(request):
+        started.set()
+        assert gate.wait(10)
+        return request
+
+    leaf = serve(provider, "slow", slow)
+    caller = threading.Thread(target=_call_ignoring_errors, args=(consumer, provider.name))
+    caller.start()
+    assert started.wait(5)
+
+    crash(consumer)
+    gate.set()
+    caller.join(10)
+
+    assert leaf.unloaded.wait(5)
+    assert [] == provider.server_queries("slow")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextvars
-import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
@@ -22,10 +21,12 @@ def parents(registrar):
     return {c.query.id: c.parent for c in catalog_snapshot(registrar).clients}
 
 
-def test_a_call_inside_load_is_a_dependency_of_the_resource_being_loaded(make_registrar, serve):
+def test_a_call_inside_load_is_a_dependency_of_the_resource_being_loaded(
+    make_registrar, serve, shared
+):
     consumer, agent, producer = (make_registrar(n) for n in ("consumer", "agent", "producer"))
     serve(producer, "leaf")
-    sub_ids = []
+    sub_ids = shared.list()
     serve(agent, "composite", lambda r: sub_ids.append(agent.call(producer.name, "leaf", r).id))
 
     consumer.call(agent.name, "composite", "x")
@@ -33,10 +34,10 @@ def test_a_call_inside_load_is_a_dependency_of_the_resource_being_loaded(make_re
     assert {sub_ids[0]: resource_id(agent, "composite")} == parents(agent)
 
 
-def test_a_call_to_a_server_of_the_same_registrar_is_a_dependency(make_registrar, serve):
+def test_a_call_to_a_server_of_the_same_registrar_is_a_dependency(make_registrar, serve, shared):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
     serve(provider, "leaf")
-    sub_ids = []
+    sub_ids = shared.list()
     serve(
         provider, "composite", lambda r: sub_ids.append(provider.call(provider.name, "leaf", r).id)
     )
@@ -82,10 +83,12 @@ def test_a_call_made_by_another_registrar_inside_a_load_is_top_level_there(make_
     assert {} == parents(provider)
 
 
-def test_concurrent_loads_record_their_dependencies_on_their_own_resources(make_registrar, serve):
+def test_concurrent_loads_record_their_dependencies_on_their_own_resources(
+    make_registrar, serve, shared
+):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
     serve(provider, "leaf")
-    both_started = threading.Barrier(2, timeout=5)
+    both_started = shared.barrier(2, timeout=5)
 
     def composite(request):
         both_started.wait()
@@ -153,6 +156,18 @@ def test_a_cycle_across_registrars_raises_a_cycle_error_at_the_top_caller(make_r
     for registrar in (a, b):
         snapshot = catalog_snapshot(registrar)
         assert ((), ()) == (snapshot.resources, snapshot.clients)
+
+
+def test_a_call_made_through_another_registrar_inside_a_load_carries_the_chain(
+    make_registrar, serve
+):
+    consumer, a, b = (make_registrar(n) for n in ("consumer", "a", "b"))
+    serve(a, "x", lambda r: b.call(a.name, "x", r, timeout=20))
+
+    with pytest.raises(rr.DependencyCycleError):
+        consumer.call(a.name, "x", "ping", timeout=20)
+
+    assert ((), ()) == (catalog_snapshot(a).resources, catalog_snapshot(b).clients)
 
 
 def test_runaway_recursion_raises_a_cycle_error_and_unloads_what_it_loaded(make_registrar, serve):

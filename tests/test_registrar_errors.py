@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pickle
-import threading
 import uuid
 from concurrent.futures import ThreadPoolExecutor
 
@@ -161,9 +160,11 @@ def test_a_sub_resource_shared_with_another_consumer_survives_the_rollback(make_
     assert [kept.id] == [q.id for q in provider.server_queries("leaf")]
 
 
-def test_a_failed_load_leaves_nothing_so_an_equal_request_loads_afresh(make_registrar, serve):
+def test_a_failed_load_leaves_nothing_so_an_equal_request_loads_afresh(
+    make_registrar, serve, shared
+):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    attempts = []
+    attempts = shared.list()
 
     def flaky(request):
         attempts.append(request)
@@ -182,9 +183,11 @@ def test_a_failed_load_leaves_nothing_so_an_equal_request_loads_afresh(make_regi
     assert [query.id] == [q.id for q in consumer.client_queries()]
 
 
-def test_every_waiter_of_a_failing_load_gets_the_error(make_registrar, serve, gates, arrived):
+def test_every_waiter_of_a_failing_load_gets_the_error(
+    make_registrar, serve, gates, arrived, shared
+):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), threading.Event()
+    gate, started = gates(), shared.event()
 
     def fails_later(request):
         started.set()

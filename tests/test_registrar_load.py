@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import threading
 import uuid
 from concurrent.futures import ThreadPoolExecutor
 
@@ -148,9 +147,11 @@ def test_retrying_a_call_with_the_same_query_id_neither_loads_nor_adds_a_consume
     assert [chosen] == [q.id for q in consumer.client_queries()]
 
 
-def test_concurrent_equal_requests_run_load_exactly_once(make_registrar, serve, gates, arrived):
+def test_concurrent_equal_requests_run_load_exactly_once(
+    make_registrar, serve, gates, arrived, shared
+):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), threading.Event()
+    gate, started = gates(), shared.event()
 
     def slow(request):
         started.set()
@@ -176,11 +177,11 @@ def test_concurrent_equal_requests_run_load_exactly_once(make_registrar, serve, 
 
 
 def test_concurrent_equal_requests_from_different_registrars_run_load_once(
-    make_registrar, serve, gates, arrived
+    make_registrar, serve, gates, arrived, shared
 ):
     provider = make_registrar("provider")
     consumers = [make_registrar(f"consumer{i}") for i in range(3)]
-    gate, started = gates(), threading.Event()
+    gate, started = gates(), shared.event()
 
     def slow(request):
         started.set()
@@ -203,9 +204,9 @@ def test_concurrent_equal_requests_from_different_registrars_run_load_once(
     assert ["shared"] * 3 == responses
 
 
-def test_different_requests_to_one_server_load_concurrently(make_registrar, serve):
+def test_different_requests_to_one_server_load_concurrently(make_registrar, serve, shared):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    started = {"a": threading.Event(), "b": threading.Event()}
+    started = {"a": shared.event(), "b": shared.event()}
 
     def meet(request):
         started[request].set()
@@ -219,9 +220,11 @@ def test_different_requests_to_one_server_load_concurrently(make_registrar, serv
         assert ["a", "b"] == [f.result(timeout=10).response for f in futures]
 
 
-def test_a_slow_load_on_one_server_does_not_stall_another_server(make_registrar, serve, gates):
+def test_a_slow_load_on_one_server_does_not_stall_another_server(
+    make_registrar, serve, gates, shared
+):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), threading.Event()
+    gate, started = gates(), shared.event()
 
     def stuck(request):
         started.set()

@@ -126,11 +126,11 @@ def test_a_consumer_client_on_an_intermediate_dependency_hears_the_status(
     assert [(leaf_query.id, leaf_query.id)] == own_ids(middle)
 
 
-def test_send_status_returns_after_every_callback_on_the_path_ran(make_registrar, serve):
+def test_send_status_returns_after_every_callback_on_the_path_ran(make_registrar, serve, shared):
     consumer, agent, producer = (make_registrar(n) for n in ("consumer", "agent", "producer"))
     serve(producer, "leaf")
     serve(agent, "composite", lambda r: agent.call(producer.name, "leaf", r).response)
-    ran = threading.Event()
+    ran = shared.event()
 
     def slow_callback(query, update):
         threading.Event().wait(0.2)  # work that takes a while
@@ -183,11 +183,13 @@ def test_a_released_consumer_no_longer_hears_status(make_registrar, serve, inbox
     assert ([], 1) == (gone.updates, len(kept.updates))
 
 
-def test_a_status_callback_may_call_unload_and_send_status_on_the_sender(make_registrar, serve):
+def test_a_status_callback_may_call_unload_and_send_status_on_the_sender(
+    make_registrar, serve, shared
+):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
     serve(provider, "leaf")
     serve(provider, "spare")
-    done = []
+    done = shared.list()
 
     def reentrant(query, update):
         if update.status is rr.Status.WARNING:
@@ -206,10 +208,10 @@ def test_a_status_callback_may_call_unload_and_send_status_on_the_sender(make_re
     assert [] == provider.server_queries("spare")
 
 
-def test_a_server_on_status_may_call_its_own_registrar(make_registrar):
+def test_a_server_on_status_may_call_its_own_registrar(make_registrar, shared):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
     provider.register_server("spare", load=lambda r: r, unload=lambda r, s: None)
-    done = []
+    done = shared.list()
 
     def on_status(query, update):
         spare = provider.call(provider.name, "spare", "replacement", timeout=5)

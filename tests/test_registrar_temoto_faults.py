@@ -6,7 +6,6 @@ dependence is shown by every test here starting its own registrars.)
 
 from __future__ import annotations
 
-import threading
 import uuid
 from concurrent.futures import ThreadPoolExecutor
 
@@ -42,9 +41,11 @@ def test_fault_dependencies_were_keyed_to_the_first_consumer(make_registrar, ser
     assert ([], 1) == (released_early, len(leaf.unloads))
 
 
-def test_fault_concurrent_identical_requests_loaded_twice(make_registrar, serve, gates, arrived):
+def test_fault_concurrent_identical_requests_loaded_twice(
+    make_registrar, serve, gates, arrived, shared
+):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), threading.Event()
+    gate, started = gates(), shared.event()
 
     def slow(request):
         started.set()

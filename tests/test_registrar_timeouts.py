@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -21,9 +20,9 @@ def stuck_load(gate, started):
     return load
 
 
-def test_a_call_whose_load_hangs_raises_call_timeout_error(make_registrar, serve, gates):
+def test_a_call_whose_load_hangs_raises_call_timeout_error(make_registrar, serve, gates, shared):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    serve(provider, "leaf", stuck_load(gates(), threading.Event()))
+    serve(provider, "leaf", stuck_load(gates(), shared.event()))
 
     with pytest.raises(rr.CallTimeoutError) as info:
         consumer.call(provider.name, "leaf", "x", timeout=0.3)
@@ -31,9 +30,9 @@ def test_a_call_whose_load_hangs_raises_call_timeout_error(make_registrar, serve
     assert isinstance(info.value, TimeoutError)
 
 
-def test_the_default_timeout_comes_from_the_registrar_config(make_registrar, serve, gates):
+def test_the_default_timeout_comes_from_the_registrar_config(make_registrar, serve, gates, shared):
     provider, consumer = make_registrar("provider"), make_registrar("consumer", call_timeout=0.3)
-    serve(provider, "leaf", stuck_load(gates(), threading.Event()))
+    serve(provider, "leaf", stuck_load(gates(), shared.event()))
     began = time.monotonic()
 
     with pytest.raises(rr.CallTimeoutError):
@@ -42,9 +41,11 @@ def test_the_default_timeout_comes_from_the_registrar_config(make_registrar, ser
     assert time.monotonic() - began < 5.0
 
 
-def test_a_load_that_completes_after_its_caller_timed_out_is_released(make_registrar, serve, gates):
+def test_a_load_that_completes_after_its_caller_timed_out_is_released(
+    make_registrar, serve, gates, shared
+):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), threading.Event()
+    gate, started = gates(), shared.event()
     leaf = serve(provider, "leaf", stuck_load(gate, started))
     with pytest.raises(rr.CallTimeoutError):
         consumer.call(provider.name, "leaf", "x", timeout=0.3)
@@ -58,10 +59,10 @@ def test_a_load_that_completes_after_its_caller_timed_out_is_released(make_regis
 
 
 def test_a_timed_out_waiter_does_not_take_the_resource_from_a_patient_caller(
-    make_registrar, serve, gates, arrived
+    make_registrar, serve, gates, arrived, shared
 ):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), threading.Event()
+    gate, started = gates(), shared.event()
     leaf = serve(provider, "leaf", stuck_load(gate, started))
     with ThreadPoolExecutor(1) as pool:
         patient = pool.submit(consumer.call, provider.name, "leaf", "x", timeout=20)
@@ -76,10 +77,12 @@ def test_a_timed_out_waiter_does_not_take_the_resource_from_a_patient_caller(
     assert [] == leaf.unloads
 
 
-def test_a_timed_out_call_inside_a_load_leaves_no_dependency_behind(make_registrar, serve, gates):
+def test_a_timed_out_call_inside_a_load_leaves_no_dependency_behind(
+    make_registrar, serve, gates, shared
+):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
     gate = gates()
-    slow = serve(provider, "slow", stuck_load(gate, threading.Event()))
+    slow = serve(provider, "slow", stuck_load(gate, shared.event()))
 
     def impatient(request):
         return provider.call(provider.name, "slow", request, timeout=0.3)
@@ -115,9 +118,11 @@ def test_unregister_server_with_a_hanging_unload_raises_call_timeout_error(make_
         provider.unregister_server("leaf", timeout=0.3)
 
 
-def test_a_call_in_flight_to_a_registrar_that_dies_fails_at_once(make_registrar, serve, gates):
+def test_a_call_in_flight_to_a_registrar_that_dies_fails_at_once(
+    make_registrar, serve, gates, shared
+):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    started = threading.Event()
+    started = shared.event()
     serve(provider, "leaf", stuck_load(gates(), started))
     with ThreadPoolExecutor(1) as pool:
         call = pool.submit(consumer.call, provider.name, "leaf", "x", timeout=30)
@@ -140,10 +145,10 @@ def test_an_invalid_timeout_is_a_config_error(make_registrar, serve, timeout):
 
 
 def test_retrying_a_timed_out_call_with_its_query_id_gets_the_resource(
-    make_registrar, serve, gates, arrived
+    make_registrar, serve, gates, arrived, shared
 ):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), threading.Event()
+    gate, started = gates(), shared.event()
     leaf = serve(provider, "leaf", stuck_load(gate, started))
     with pytest.raises(rr.CallTimeoutError):
         consumer.call(provider.name, "leaf", "x", timeout=0.3, query_id=QUERY_ID)

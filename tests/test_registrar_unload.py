@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import threading
 import uuid
 from concurrent.futures import ThreadPoolExecutor
 
@@ -88,10 +87,10 @@ def test_a_registrar_cannot_unload_another_registrar_s_query_id(make_registrar, 
     assert [query.id] == [q.id for q in provider.server_queries("leaf")]
 
 
-def test_a_dependency_id_cannot_be_unloaded_directly(make_registrar, serve):
+def test_a_dependency_id_cannot_be_unloaded_directly(make_registrar, serve, shared):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
     serve(provider, "leaf")
-    sub_ids = []
+    sub_ids = shared.list()
     serve(
         provider, "composite", lambda r: sub_ids.append(provider.call(provider.name, "leaf", r).id)
     )
@@ -104,9 +103,9 @@ def test_a_dependency_id_cannot_be_unloaded_directly(make_registrar, serve):
     assert before == catalog_snapshot(provider)
 
 
-def test_an_unload_callback_that_raises_still_releases_the_resource(make_registrar):
+def test_an_unload_callback_that_raises_still_releases_the_resource(make_registrar, shared):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    loads = []
+    loads = shared.list()
 
     def broken_unload(request, response):
         raise RuntimeError("could not stop it")
@@ -132,11 +131,11 @@ def test_a_resource_loads_again_after_it_was_unloaded(make_registrar, serve):
 
 
 def test_an_equal_call_during_its_unload_waits_and_loads_the_resource_afresh(
-    make_registrar, gates, arrived
+    make_registrar, gates, arrived, shared
 ):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, unloading = gates(), threading.Event()
-    journal = []
+    gate, unloading = gates(), shared.event()
+    journal = shared.list()
 
     def load(request):
         journal.append("load")
