@@ -358,6 +358,8 @@ class RegistrarActor(pykka.ThreadingActor):
         saver: Saver,
         peer: LocalPeer,
         died: threading.Event,
+        *,
+        setting_up: bool = False,
     ) -> None:
         super().__init__()
         self.config = config
@@ -379,6 +381,8 @@ class RegistrarActor(pykka.ThreadingActor):
         self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
         self.seen_events: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
         self.stopping = False
+        self.setting_up = setting_up  # loads for servers setup has not registered wait
+        self.held_loads: list[Load] = []
         self.died = died  # set once a crash was fully handled (see testing.crash)
         self.flush_timer: Cancellable | None = None
 
@@ -422,7 +426,7 @@ class RegistrarActor(pykka.ThreadingActor):
         for replies in self.unload_waiters.values():
             for reply in replies:
                 reply.set_error(error)
-        for loads in self.after_unload.values():
+        for loads in [*self.after_unload.values(), self.held_loads]:
             for load in loads:
                 load.reply.set_error(error)
         while not self.actor_inbox.empty():
@@ -500,6 +504,9 @@ class RegistrarActor(pykka.ThreadingActor):
         return None
 
     def _on_load(self, message: Load) -> None:
+        if self.setting_up and message.server not in self.servers:
+            self.held_loads.append(message)  # served once setup has registered its servers
+            return
         refusal = self._load_refusal(message)
         if refusal is not None:
             message.reply.set_error(refusal)
@@ -861,6 +868,14 @@ class RegistrarActor(pykka.ThreadingActor):
             run_unload()
         reply.set_result(None)
 
+    def op_ready(self, reply: Reply) -> None:
+        """Setup is done: serve the loads that waited for it (unknown servers now fail)."""
+        self.setting_up = False
+        held, self.held_loads = self.held_loads, []
+        for load in held:
+            self._on_load(load)
+        reply.set_result(None)
+
     def op_unregister(self, name: str, timeout: float, reply: Reply) -> None:
         server = self._server(name)
         server.closing = True
@@ -1052,11 +1067,21 @@ class ResourceRegistrar:
         self._commit_first = config.save_on_modify and config.backup_path is not None
 
     @classmethod
-    def start(cls, config: RegistrarConfig | str) -> ResourceRegistrar:
+    def start(
+        cls,
+        config: RegistrarConfig | str,
+        *,
+        setup: Callable[[ResourceRegistrar], None] | None = None,
+    ) -> ResourceRegistrar:
         """Start a registrar, restoring its catalog first if its backup exists.
 
         Args:
             config: a `RegistrarConfig`, or just a name (all other fields default).
+            setup: `setup(registrar)`, run on the calling thread after the catalog was
+                restored and before the registrar serves other registrars: loads that
+                arrive meanwhile for servers it has not registered yet wait for it (a
+                manager's start-up, DESIGN "Public API"). If it raises, the registrar is
+                stopped and the error propagates.
 
         Returns:
             The handle of the running registrar.
@@ -1087,7 +1112,9 @@ class ResourceRegistrar:
                 if r.state is not ResourceState.LOADED
             )
             died = threading.Event()
-            ref = RegistrarActor.start(config, catalog, saver, peer, died)
+            ref = RegistrarActor.start(
+                config, catalog, saver, peer, died, setting_up=setup is not None
+            )
         except BaseException:
             if store is not None:
                 store.close(erase=False)
@@ -1095,6 +1122,13 @@ class ResourceRegistrar:
             raise
         handle = cls(ref, config, restored=rows is not None, in_doubt=in_doubt)
         handle._died = died
+        if setup is not None:
+            try:
+                setup(handle)
+            except BaseException:
+                handle.stop()
+                raise
+            handle._ask(lambda actor, reply: actor.op_ready(reply), None, "ready")
         return handle
 
     # -- properties -------------------------------------------------------------------
