@@ -6,50 +6,148 @@ resources). Only the registrar actor writes it, so it has no locks. Every change
 the touched rows dirty; the persistence layer drains them as one transaction.
 
 Dedup is by `==` on the request value, also for unhashable values: requests are bucketed
-by a hash of a canonical form (mappings as item sets, sequences as tuples), and within a
-bucket compared with `==`, so equal requests always meet in the same bucket.
+by `request_digest`, a deterministic digest of a canonical form (mappings as item sets,
+sequences in order, numbers by their value), and within a bucket compared with `==`, so
+equal requests always meet in the same bucket. The digest may be stored: a restored
+catalog indexes its resources from their stored digests without decoding a request.
+Requests with parts the digest does not know (custom classes) are bucketed by their
+in-process `hash()` instead, and compared across both kinds where `==` could hold.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import decimal
 import enum
-from collections.abc import Iterable, Iterator, Mapping, Set
+import fractions
+import hashlib
+import sys
+from collections.abc import Callable, Iterable, Iterator, Mapping, Set
 from typing import Any
 
 from rr_actors._types import Query
 from rr_actors.errors import UnknownQueryError
 
-__all__ = ["Catalog", "Changes", "ClientRecord", "Resource", "ResourceState", "request_bucket"]
+__all__ = [
+    "DIGEST_SCHEME",
+    "NO_DIGEST",
+    "Catalog",
+    "Changes",
+    "ClientRecord",
+    "Resource",
+    "ResourceState",
+    "request_bucket",
+    "request_digest",
+]
 
 _UNHASHABLE = ("<unhashable>",)
 
+NO_DIGEST = -1
+"""`Resource.digest` of a request that has no digest (`hash()` never returns -1 either)."""
 
-_ATOMS = frozenset({int, float, str, bytes, bool, type(None)})
+_TAG_NONE, _TAG_SEQ, _TAG_MAP, _TAG_SET, _TAG_NAN = range(0x5F3A_0000, 0x5F3A_0005)
+_NUMBERS = (int, float, complex, decimal.Decimal, fractions.Fraction)
+_STRINGS: dict[str, int] = {}  # str -> digest; strings repeat (keys, command names)
+_STRINGS_MAX = 4096
+
+DIGEST_SCHEME = (
+    f"rr1-py{sys.version_info[0]}.{sys.version_info[1]}-w{sys.hash_info.width}"
+    f"-{sys.hash_info.modulus}"
+)
+"""Names the digest function. It combines parts with `hash()` of tuples and frozensets
+of integers, which is deterministic but may change with Python's version or word size:
+a backup written under another scheme has its digests recomputed when it is opened."""
 
 
-def _freeze(value: Any) -> Any:
-    if type(value) in _ATOMS:
-        return value
-    if isinstance(value, Mapping):
-        return frozenset((_freeze(k), _freeze(v)) for k, v in value.items())
-    if isinstance(value, list | tuple):
-        return tuple(_freeze(v) for v in value)
+def _blake(data: bytes) -> int:
+    digest = int.from_bytes(hashlib.blake2b(data, digest_size=8).digest(), "little", signed=True)
+    return -2 if digest == NO_DIGEST else digest
+
+
+def _number(value: Any) -> int:
+    # NaN != NaN, and its hash() is its address: every NaN gets one constant instead.
+    return _TAG_NAN if value != value else hash(value)  # noqa: PLR0124
+
+
+class _Opaque(Exception):  # noqa: N818 - control flow inside _digest, never escapes
+    pass
+
+
+def _digest(value: Any) -> int:  # noqa: PLR0911 - one return per kind of value
+    cls = type(value)
+    if cls is str:
+        digest = _STRINGS.get(value)
+        if digest is None:
+            if len(_STRINGS) >= _STRINGS_MAX:
+                _STRINGS.clear()
+            digest = _STRINGS[value] = _blake(value.encode("utf-8", "surrogatepass"))
+        return digest
+    if cls is int or cls is bool:
+        return hash(value)
+    if cls is float or cls is complex:
+        return _number(value)
+    if value is None:
+        return _TAG_NONE
+    if cls is dict or isinstance(value, Mapping):
+        return hash((_TAG_MAP, frozenset([(_digest(k), _digest(v)) for k, v in value.items()])))
+    if cls is list or cls is tuple or isinstance(value, list | tuple):
+        return hash((_TAG_SEQ, *[_digest(item) for item in value]))
     if isinstance(value, Set):
-        return frozenset(_freeze(v) for v in value)
-    hash(value)  # raises TypeError for other unhashable values
-    return value
+        return hash((_TAG_SET, frozenset([_digest(item) for item in value])))
+    if cls is bytes or cls is bytearray:  # bytearray(b"a") == b"a"
+        return hash((_TAG_SEQ, _blake(value)))  # not the digest of the equal str
+    return _digest_subclass(value, cls)
+
+
+def _digest_subclass(value: Any, cls: type) -> int:
+    """Subclasses that keep their base's `==` and `hash()` (IntEnum, StrEnum, ...)."""
+    bases: tuple[type, ...] = (str, bytes, *_NUMBERS)
+    for base in bases:
+        same: object = (cls.__eq__, cls.__hash__) == (base.__eq__, base.__hash__)
+        if issubclass(cls, base) and same:
+            if base is str:
+                return _blake(str.encode(value, "utf-8", "surrogatepass"))
+            if base is bytes:
+                return hash((_TAG_SEQ, _blake(bytes(value))))
+            return _number(value)
+    raise _Opaque
+
+
+def request_digest(request: Any) -> int | None:
+    """A deterministic 64-bit digest of a request, such that `a == b` implies equal digests.
+
+    The same in every process (it may be stored): strings and bytes are digested with
+    BLAKE2b, numbers by their `hash()` (which Python defines from the value, so that
+    `1`, `1.0` and `True` agree, and which is not randomised), mappings as an
+    order-free combination of their items, sets likewise, lists and tuples in order.
+
+    Returns:
+        The digest (never `NO_DIGEST`), or `None` for a value with other parts (a
+        custom class, an enum), whose equality only `==` can judge; the catalog indexes
+        those by their in-process `hash()` instead, which is never stored.
+    """
+    try:
+        return _digest(request)
+    except (_Opaque, RecursionError):
+        return None
+
+
+def _runtime_key(request: Any) -> Any:
+    """The in-process bucket of a request that has no digest (never stored)."""
+    try:
+        return ("h", hash(request))
+    except Exception:  # noqa: BLE001 - unhashable, or a __hash__ that raises: compare by ==
+        return _UNHASHABLE
 
 
 def request_bucket(request: Any) -> Any:
     """Return a hashable key such that `a == b` implies equal keys (for the usual types).
 
-    Values that cannot be canonicalised share one bucket and are compared by `==` alone.
+    The key is the request's digest (`request_digest`); values without one fall back to
+    their `hash()`, and unhashable ones share one bucket compared by `==` alone.
     """
-    try:
-        return hash(_freeze(request))
-    except TypeError:
-        return _UNHASHABLE
+    digest = request_digest(request)
+    return digest if digest is not None else _runtime_key(request)
 
 
 def requests_equal(a: Any, b: Any) -> bool:
@@ -72,6 +170,10 @@ class ResourceState(enum.Enum):
 class Resource:
     """A resource a server of this registrar serves.
 
+    A resource restored from a backup decodes its request and its response on first
+    access (most restored resources are not looked at before traffic resumes); a stored
+    value that cannot be decoded then raises `CatalogCorruptError` naming the backup.
+
     Attributes:
         id: resource id (UUID4 string), stable for the resource's life.
         server: name of the server that loaded it.
@@ -79,6 +181,8 @@ class Resource:
         response: what `load` returned (`None` while loading).
         state: life-cycle state.
         consumers: consumer query id -> origin registrar name, in arrival order.
+        digest: `request_digest(request)`, `NO_DIGEST` if it has none, `None` if not known
+            yet (computed when the catalog indexes it).
     """
 
     id: str
@@ -87,6 +191,64 @@ class Resource:
     response: Any = None
     state: ResourceState = ResourceState.LOADING
     consumers: dict[str, str] = dataclasses.field(default_factory=dict)
+    digest: int | None = dataclasses.field(default=None, compare=False, repr=False)
+
+    def __getattr__(self, name: str) -> Any:
+        # Only called when `name` is not in the instance: a restored, still encoded value.
+        if name in _LAZY:
+            encoded = self.__dict__.get("_encoded")
+            if encoded is not None:
+                decode, blobs = encoded
+                value = decode(self.id, name, blobs[_LAZY[name]])
+                values = self.__dict__
+                values[name] = value
+                if name == "response":  # lets the store tell a decoded from a new response
+                    values["_decoded_response"] = value
+                if "request" in values and "response" in values:
+                    del values["_encoded"]  # both decoded: free the blobs
+                return value
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    @classmethod
+    def encoded(
+        cls,
+        rid: str,
+        server: str,
+        state: ResourceState,
+        digest: int,
+        blobs: tuple[bytes | None, bytes | None],
+        decode: Decoder,
+    ) -> Resource:
+        """A stored resource whose request and response are decoded on first access.
+
+        Args:
+            rid: resource id.
+            server: server name.
+            state: life-cycle state.
+            digest: the stored request digest (or `NO_DIGEST`).
+            blobs: the encoded request and response.
+            decode: `decode(rid, "request" | "response", blob)` returns the value or
+                raises `CatalogCorruptError`.
+        """
+        resource = cls.__new__(cls)
+        resource.__dict__ = {
+            "id": rid,
+            "server": server,
+            "state": state,
+            "consumers": {},
+            "digest": digest,
+            "_encoded": (decode, blobs),
+        }
+        return resource
+
+
+Decoder = Callable[[str, str, "bytes | None"], Any]
+"""`decode(resource_id, field, blob)`: turns a stored value back into an object."""
+
+_LAZY = {"request": 0, "response": 1}
+# Without class attributes the two values are looked up in the instance, and a missing
+# (still encoded) one reaches `__getattr__`. `__init__` keeps its defaults.
+del Resource.response
 
 
 @dataclasses.dataclass
@@ -131,7 +293,11 @@ class Catalog:
         self.resources: dict[str, Resource] = {}
         self.clients: dict[str, ClientRecord] = {}
         self._by_consumer: dict[str, str] = {}
-        self._index: dict[str, dict[Any, list[str]]] = {}
+        # Dedup index, per server: request digest -> resource ids (most requests), and
+        # in-process key (`_runtime_key`) -> resource ids for requests without a digest.
+        self._index: dict[str, dict[int, list[str]]] = {}
+        self._others: dict[str, dict[Any, list[str]]] = {}
+        self._other_keys: dict[str, Any] = {}  # resource id -> its key in `_others`
         self._deps: dict[str, list[str]] = {}
         self._dirty_resources = _DirtySet()  # ordered: new rows drain in creation order
         self._dirty_clients = _DirtySet()
@@ -140,12 +306,19 @@ class Catalog:
 
     def find(self, server: str, request: Any) -> Resource | None:
         """Return the resource of `server` whose request `== request`, if any."""
-        buckets = self._index.get(server, {})
-        key = request_bucket(request)
-        if key == _UNHASHABLE:  # it may equal a canonicalisable value (bytearray == bytes)
-            candidates = [rid for bucket in buckets.values() for rid in bucket]
+        digested = self._index.get(server)
+        others = self._others.get(server)
+        digest = request_digest(request)
+        candidates: Iterable[str]
+        if digest is not None:
+            candidates = digested.get(digest, ()) if digested else ()
+            if others:  # a request without a digest may still be equal (rare)
+                candidates = [*candidates, *_candidates(others, request)]
         else:
-            candidates = [*buckets.get(key, ()), *buckets.get(_UNHASHABLE, ())]
+            candidates = _candidates(others, request) if others else []
+            if digested and not _identity_equality(request):
+                # A custom `__eq__` may equal a plain value: compare with every one.
+                candidates = [*candidates, *(r for b in digested.values() for r in b)]
         for rid in candidates:
             resource = self.resources[rid]
             if requests_equal(resource.request, request):
@@ -182,10 +355,16 @@ class Catalog:
         """Delete a resource that has no consumers any more."""
         resource = self.resources.pop(rid)
         assert not resource.consumers, "a resource with consumers cannot be removed"
-        bucket = self._index[resource.server][request_bucket(resource.request)]
+        key = self._other_keys.pop(rid, None)
+        buckets: dict[Any, list[str]]
+        if key is None:
+            key, buckets = resource.digest, self._index[resource.server]
+        else:
+            buckets = self._others[resource.server]
+        bucket = buckets[key]
         bucket.remove(rid)
         if not bucket:
-            del self._index[resource.server][request_bucket(resource.request)]
+            del buckets[key]
         self._dirty_resources.add(rid)
         return resource
 
@@ -235,7 +414,8 @@ class Catalog:
         """Every consumer query of every loaded resource of `server`."""
         return [
             query
-            for bucket in self._index.get(server, {}).values()
+            for index in (self._index, self._others)
+            for bucket in index.get(server, {}).values()
             for rid in bucket
             for query in self.queries(self.resources[rid], serving_rr)
         ]
@@ -308,15 +488,35 @@ class Catalog:
 
     @classmethod
     def restore(cls, resources: Iterable[Resource], clients: Iterable[ClientRecord]) -> Catalog:
-        """Build a catalog from stored rows (nothing is marked dirty)."""
+        """Build a catalog from stored rows (nothing is marked dirty).
+
+        Resources whose `digest` is known are indexed without looking at their request
+        (a restored request stays encoded until first used).
+        """
         catalog = cls(track_changes=True)
-        for resource in resources:
-            catalog._insert(resource)
-            for qid in resource.consumers:
-                catalog._by_consumer[qid] = resource.id
-        for record in clients:
-            catalog.add_client(record)
-        catalog.drain_changes()
+        catalog.resources = {resource.id: resource for resource in resources}
+        catalog._by_consumer = {
+            qid: rid for rid, resource in catalog.resources.items() for qid in resource.consumers
+        }
+        index = catalog._index
+        for rid, resource in catalog.resources.items():
+            digest = resource.digest
+            if digest is not None and digest != NO_DIGEST:
+                server = index.get(resource.server)
+                if server is None:
+                    server = index[resource.server] = {}
+                bucket = server.get(digest)
+                if bucket is None:
+                    server[digest] = [rid]
+                else:
+                    bucket.append(rid)
+            else:
+                catalog._index_request(resource)
+        deps = catalog._deps
+        catalog.clients = {record.query.id: record for record in clients}
+        for qid, record in catalog.clients.items():
+            if record.parent is not None:
+                deps.setdefault(record.parent, []).append(qid)
         return catalog
 
     def check_invariants(self) -> None:
@@ -340,6 +540,32 @@ class Catalog:
 
     def _insert(self, resource: Resource) -> None:
         self.resources[resource.id] = resource
-        key = request_bucket(resource.request)
-        self._index.setdefault(resource.server, {}).setdefault(key, []).append(resource.id)
+        self._index_request(resource)
         self._dirty_resources.add(resource.id)
+
+    def _index_request(self, resource: Resource) -> None:
+        digest = resource.digest
+        if digest is None:
+            digest = request_digest(resource.request)
+            resource.digest = NO_DIGEST if digest is None else digest
+        if digest is not None and digest != NO_DIGEST:
+            index = self._index.setdefault(resource.server, {})
+            index.setdefault(digest, []).append(resource.id)
+        else:
+            key = self._other_keys[resource.id] = _runtime_key(resource.request)
+            self._others.setdefault(resource.server, {}).setdefault(key, []).append(resource.id)
+
+
+def _identity_equality(value: Any) -> bool:
+    """Whether `value` can only equal itself (its class keeps `object.__eq__`)."""
+    eq: object = type(value).__eq__
+    return eq is object.__eq__
+
+
+def _candidates(others: dict[Any, list[str]], request: Any) -> list[str]:
+    """The resource ids among requests without a digest that may `== request`."""
+    key = _runtime_key(request)
+    if key == _UNHASHABLE:
+        return [rid for bucket in others.values() for rid in bucket]
+    # Equal hashable values have equal hashes; unhashable stored ones are compared anyway.
+    return [*others.get(key, ()), *others.get(_UNHASHABLE, ())]

@@ -5,19 +5,30 @@ instant leaves the old or the new catalog, never a torn one. A write touches onl
 rows that changed (the store keeps a small mirror of what it wrote to compute the
 difference), so its cost does not grow with the catalog.
 
-Layout (schema version 1):
+Layout (schema version 2):
 
-* `rr_actors_schema(version)`: one row, the schema version; `PRAGMA application_id` marks
-  the file as an rr_actors catalog.
-* `resources(seq, id, server, state, request, response)`: served resources, `seq` being
-  the insertion order.
-* `consumers(seq, query_id, resource_id, origin_rr)`: consumer ids, in arrival order.
+* `rr_actors_schema(version, digest_scheme)`: one row, the schema version and the
+  `DIGEST_SCHEME` of the stored digests; `PRAGMA application_id` marks the file as an
+  rr_actors catalog.
+* `resources(seq, id, server, state, digest, request, response)`: served resources, `seq`
+  being the insertion order, `state` 0/1/2 (loading/loaded/unloading), `digest` the
+  request's `request_digest` (`NULL` if it has none).
+* `consumers(seq, query_id, resource, origin_rr)`: consumer ids in arrival order,
+  `resource` being the `seq` of their resource.
 * `clients(seq, query_id, server, serving_rr, origin_rr, request, response, parent,
   loaded)`: outbound queries (`parent` set for dependencies).
 
-Requests and responses are stored with cloudpickle (`NULL` for `None`). No Python
-`hash()` value is ever stored: string hashes differ from process to process, so the
-catalog recomputes its dedup buckets from the requests on restore.
+Requests and responses are stored with cloudpickle (`NULL` for `None`). The stored digest
+is deterministic (BLAKE2b of strings, numbers' own `hash()`), never the per-process
+`hash()` of a string, so a restore indexes every resource from its digest alone and
+leaves its request and response encoded until first used. A file whose digests were
+written under another `DIGEST_SCHEME` (another Python version or word size) has them
+recomputed, in one transaction, when it is opened.
+
+Restore validates cheaply what it does not decode: every stored value must look like a
+whole pickle (protocol header, final STOP opcode). A value that passes and still cannot
+be decoded later (its class is not importable here) raises `CatalogCorruptError` naming
+the file and the resource when it is first used.
 
 A new file is built under a temporary name and linked into place complete, so the backup
 path either does not exist or holds a whole catalog. An existing file is validated
@@ -41,7 +52,15 @@ from typing import Any, Literal
 
 import cloudpickle
 
-from rr_actors._catalog import Changes, ClientRecord, Resource, ResourceState
+from rr_actors._catalog import (
+    DIGEST_SCHEME,
+    NO_DIGEST,
+    Changes,
+    ClientRecord,
+    Resource,
+    ResourceState,
+    request_digest,
+)
 from rr_actors._persistence import gc_paused
 from rr_actors._types import Query
 from rr_actors.errors import CatalogCorruptError, ConfigError
@@ -59,7 +78,7 @@ __all__ = [
 APPLICATION_ID = 0x72724163  # "rrAc"
 """`PRAGMA application_id` of every rr_actors catalog file."""
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 """The schema version this code writes; older files are migrated, newer ones refused."""
 
 _HEADER = b"SQLite format 3\x00"
@@ -86,7 +105,42 @@ def _create_v1(db: sqlite3.Connection) -> None:
     )
 
 
-_MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_create_v1,)
+_STATE_CODES = {ResourceState.LOADING: 0, ResourceState.LOADED: 1, ResourceState.UNLOADING: 2}
+_STATES_BY_CODE = tuple(_STATE_CODES)
+
+
+def _upgrade_v2(db: sqlite3.Connection) -> None:
+    """v1 -> v2: a digest column, integer states, consumers keyed by their resource's row.
+
+    The digests are filled in by `_refresh_digests` (the scheme is still `NULL`). A row
+    with an unknown state or a consumer of a missing resource violates `NOT NULL`.
+    """
+    db.execute("ALTER TABLE rr_actors_schema ADD COLUMN digest_scheme TEXT")
+    db.execute(
+        "CREATE TABLE resources_v2 (seq INTEGER PRIMARY KEY, id TEXT NOT NULL, "
+        "server TEXT NOT NULL, state INTEGER NOT NULL, digest INTEGER, request BLOB, "
+        "response BLOB)"
+    )
+    db.execute(
+        "INSERT INTO resources_v2 (seq, id, server, state, request, response) "
+        "SELECT seq, id, server, CASE state WHEN 'loading' THEN 0 WHEN 'loaded' THEN 1 "
+        "WHEN 'unloading' THEN 2 END, request, response FROM resources"
+    )
+    db.execute(
+        "CREATE TABLE consumers_v2 (seq INTEGER PRIMARY KEY, query_id TEXT NOT NULL, "
+        "resource INTEGER NOT NULL, origin_rr TEXT NOT NULL)"
+    )
+    db.execute(
+        "INSERT INTO consumers_v2 (seq, query_id, resource, origin_rr) "
+        "SELECT c.seq, c.query_id, (SELECT r.seq FROM resources_v2 r WHERE r.id = c.resource_id), "
+        "c.origin_rr FROM consumers c"
+    )
+    for table in ("resources", "consumers"):
+        db.execute(f"DROP TABLE {table}")
+        db.execute(f"ALTER TABLE {table}_v2 RENAME TO {table}")
+
+
+_MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_create_v1, _upgrade_v2)
 """`_MIGRATIONS[v]` brings a version-`v` file to version `v + 1` (0 is an empty file).
 
 To change the schema: append a migration, bump `SCHEMA_VERSION`, add a test that opens a
@@ -105,6 +159,61 @@ def _loads(blob: bytes | None) -> Any:
     return None if blob is None else pickle.loads(blob)
 
 
+def _decode(path: str, rid: str, field: str, blob: bytes | None) -> Any:
+    """Decode a restored resource's stored value on first use (see `Resource.encoded`)."""
+    try:
+        return _loads(blob)
+    except Exception as exc:
+        raise CatalogCorruptError(
+            path,
+            f"the stored {field} of resource {rid} cannot be read: {type(exc).__name__}: {exc}",
+        ) from exc
+
+
+def _not_a_pickle(blob: bytes | None) -> bool:
+    """Whether a stored value cannot be a whole binary pickle (protocol header ... STOP)."""
+    return blob is not None and (
+        type(blob) is not bytes or blob[:1] != b"\x80" or blob[-1:] != b"."
+    )
+
+
+def _check_blobs(rows: list[Any]) -> None:
+    """Raise `ValueError` if a resource row's request or response cannot be a pickle.
+
+    A cheap check of what a restore leaves encoded (about 0.3 us a row).
+    """
+    for row in rows:
+        if _not_a_pickle(row[5]) or _not_a_pickle(row[6]):
+            raise ValueError(f"the stored request or response of resource {row[1]} is not a pickle")
+
+
+def _refresh_digests(db: sqlite3.Connection, name: str) -> None:
+    """Recompute every stored digest if they were written under another `DIGEST_SCHEME`.
+
+    One transaction; a request that cannot be decoded here keeps a `NULL` digest (the
+    restore then decodes it, and reports it as `CatalogCorruptError`).
+    """
+    with _as_corrupt(name):
+        scheme = db.execute("SELECT digest_scheme FROM rr_actors_schema").fetchone()[0]
+        if scheme == DIGEST_SCHEME:
+            return
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            updates = []
+            for seq, blob in db.execute("SELECT seq, request FROM resources").fetchall():
+                try:
+                    digest = request_digest(_loads(blob))
+                except Exception:  # noqa: BLE001 - reported when the row is restored
+                    digest = None
+                updates.append((digest, seq))
+            db.executemany("UPDATE resources SET digest = ? WHERE seq = ?", updates)
+            db.execute("UPDATE rr_actors_schema SET digest_scheme = ?", (DIGEST_SCHEME,))
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        db.execute("COMMIT")
+
+
 @dataclasses.dataclass(frozen=True)
 class Unreadable:
     """Stands for a stored request or response that cannot be unpickled here (inspection).
@@ -121,21 +230,38 @@ class Unreadable:
         return f"<unreadable, {self.size} bytes: {self.error}>"
 
 
-def _lenient_loads(blob: bytes | None) -> Any:
+def _lenient_decode(_rid: str, _field: str, blob: bytes | None) -> Any:
     try:
         return _loads(blob)
     except Exception as exc:  # noqa: BLE001 - any unpickling failure is shown, not raised
         return Unreadable(f"{type(exc).__name__}: {exc}", len(blob or b""))
 
 
-@dataclasses.dataclass
+_STORED = object()
+"""`_Mirror.response` of a restored resource whose response was not replaced since."""
+
+
 class _Mirror:
     """What the store last wrote for one resource (to write only the difference)."""
 
-    seq: int  # the row's key
-    state: ResourceState
-    response: Any  # compared by identity: the catalog replaces, never mutates, a response
-    consumers: dict[str, int]  # consumer query id -> its row's key
+    __slots__ = ("consumers", "response", "seq", "state")
+
+    def __init__(
+        self, seq: int, state: ResourceState, response: Any, consumers: dict[str, int]
+    ) -> None:
+        self.seq = seq  # the row's key
+        self.state = state
+        # Compared by identity: the catalog replaces, never mutates, a response.
+        self.response = response
+        self.consumers = consumers  # consumer query id -> its row's key
+
+
+def _response_changed(old: _Mirror, resource: Resource) -> bool:
+    if old.response is not _STORED:
+        return old.response is not resource.response
+    # Restored: unchanged while still encoded, or while it holds the decoded value.
+    values = vars(resource)
+    return "response" in values and values["response"] is not values.get("_decoded_response")
 
 
 @dataclasses.dataclass
@@ -344,48 +470,85 @@ def _prepare(db: sqlite3.Connection, name: str, durability: str, version: int) -
         mode = db.execute("PRAGMA journal_mode = WAL").fetchone()[0]
         db.execute(f"PRAGMA synchronous = {_SYNCHRONOUS[durability]}")
         _migrate(db, version)
+    _refresh_digests(db, name)
     if mode != "wal":
         raise ConfigError(f"backup_path {name!r}: SQLite cannot use WAL mode there ({mode})")
 
 
-_STATES = {state.value: state for state in ResourceState}
+def _read_rows(
+    db: sqlite3.Connection, decode: Callable[[str, str, bytes | None], Any], *, lenient: bool
+) -> _Rows:
+    """Read every row in one read transaction (a consistent snapshot, also of a live file).
 
-
-def _read_rows(db: sqlite3.Connection, loads: Callable[[bytes | None], Any]) -> _Rows:
-    """Read every row in one read transaction (a consistent snapshot, also of a live file)."""
+    Restored resources keep their request and response encoded: `decode` runs on first
+    access. Requests without a stored digest are decoded at once (the catalog indexes
+    them by `hash()`, which only the value can give). With `lenient` (inspection) every
+    value is decoded at once and the cheap pickle check is skipped (`decode` is lenient).
+    """
     db.execute("BEGIN")
     try:
-        resources: dict[str, Resource] = {}
-        mirror: dict[str, _Mirror] = {}
-        max_seq = 0
-        for seq, rid, server, state, request, response in db.execute(
-            "SELECT seq, id, server, state, request, response FROM resources ORDER BY seq"
-        ).fetchall():
-            resource = Resource(rid, server, loads(request), loads(response), _STATES[state])
-            resources[rid] = resource
-            mirror[rid] = _Mirror(seq, resource.state, resource.response, {})
-            max_seq = seq
-        for seq, query_id, rid, origin in db.execute(
-            "SELECT seq, query_id, resource_id, origin_rr FROM consumers ORDER BY seq"
-        ).fetchall():
-            if rid not in resources:
-                raise ValueError(f"consumer {query_id} belongs to a missing resource {rid}")
-            resources[rid].consumers[query_id] = origin
-            mirror[rid].consumers[query_id] = seq
-            max_seq = max(max_seq, seq)
-        clients = []
-        client_seqs = {}
-        for seq, qid, server, serving, origin, request, response, parent, loaded in db.execute(
+        rows = db.execute(
+            "SELECT seq, id, server, state, digest, request, response FROM resources ORDER BY seq"
+        ).fetchall()
+        consumer_rows = db.execute(
+            "SELECT seq, query_id, resource, origin_rr FROM consumers ORDER BY seq"
+        ).fetchall()
+        client_rows = db.execute(
             "SELECT seq, query_id, server, serving_rr, origin_rr, request, response, parent, "
             "loaded FROM clients ORDER BY seq"
-        ).fetchall():
-            query = Query(qid, server, serving, origin, loads(request), loads(response))
-            clients.append(ClientRecord(query, parent, bool(loaded)))
-            client_seqs[qid] = seq
-            max_seq = max(max_seq, seq)
+        ).fetchall()
     finally:
         db.execute("COMMIT")
-    return _Rows(list(resources.values()), clients, mirror, client_seqs, max_seq)
+    if not lenient:
+        _check_blobs(rows)
+    encoded = Resource.encoded
+    states = _STATES_BY_CODE
+    resources = [
+        encoded(
+            rid,
+            server,
+            states[state],
+            NO_DIGEST if digest is None else digest,
+            (request, response),
+            decode,
+        )
+        for _, rid, server, state, digest, request, response in rows
+    ]
+    for resource in resources:
+        if lenient:
+            _ = resource.request, resource.response
+        if resource.digest == NO_DIGEST:
+            resource.digest = None  # the catalog indexes it from its (decoded) request
+            _ = resource.request
+    mirrors = [
+        _Mirror(row[0], r.state, _STORED, {}) for row, r in zip(rows, resources, strict=True)
+    ]
+    by_seq = {row[0]: (r, m) for row, r, m in zip(rows, resources, mirrors, strict=True)}
+    max_seq = rows[-1][0] if rows else 0
+    for seq, query_id, resource_seq, origin in consumer_rows:
+        owner = by_seq.get(resource_seq)
+        if owner is None:
+            raise ValueError(f"consumer {query_id} belongs to a missing resource")
+        owner[0].consumers[query_id] = origin
+        owner[1].consumers[query_id] = seq
+    if consumer_rows:
+        max_seq = max(max_seq, consumer_rows[-1][0])
+    clients = []
+    client_seqs = {}
+    for seq, qid, server, serving, origin, request, response, parent, loaded in client_rows:
+        query = Query(
+            qid,
+            server,
+            serving,
+            origin,
+            decode(qid, "request", request),
+            decode(qid, "response", response),
+        )
+        clients.append(ClientRecord(query, parent, bool(loaded)))
+        client_seqs[qid] = seq
+        max_seq = max(max_seq, seq)
+    mirror = {r.id: m for r, m in zip(resources, mirrors, strict=True)}
+    return _Rows(resources, clients, mirror, client_seqs, max_seq)
 
 
 def read_backup(path: str | os.PathLike[str]) -> Backup:
@@ -415,7 +578,7 @@ def read_backup(path: str | os.PathLike[str]) -> Backup:
         if check != [("ok",)]:
             raise CatalogCorruptError(name, f"integrity check failed: {check[:5]!r}")
         with gc_paused():
-            rows = _read_rows(db, _lenient_loads)
+            rows = _read_rows(db, _lenient_decode, lenient=True)
     return Backup(name, version, rows.resources, rows.clients)
 
 
@@ -516,7 +679,7 @@ class SqliteStore:
         """
         try:
             with _as_corrupt(self.path), gc_paused():
-                rows = _read_rows(self._db, _loads)
+                rows = _read_rows(self._db, functools.partial(_decode, self.path), lenient=False)
         except CatalogCorruptError:
             self.close(erase=False)  # unusable; closing also removes its -wal and -shm
             raise
@@ -574,14 +737,18 @@ class SqliteStore:
             return seq
         if old is None:
             seq += 1
+            digest = resource.digest
+            if digest is None:
+                digest = request_digest(resource.request)
             db.execute(
-                "INSERT INTO resources (seq, id, server, state, request, response) "
-                "VALUES (?, ?, ?, ?, ?, ?)",
+                "INSERT INTO resources (seq, id, server, state, digest, request, response) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
                 (
                     seq,
                     rid,
                     resource.server,
-                    resource.state.value,
+                    _STATE_CODES[resource.state],
+                    None if digest == NO_DIGEST else digest,
                     _dumps(resource.request),
                     _dumps(resource.response),
                 ),
@@ -589,10 +756,15 @@ class SqliteStore:
             old_consumers: dict[str, int] = {}
             row = seq
         else:
-            if old.state is not resource.state or old.response is not resource.response:
+            if _response_changed(old, resource):
                 db.execute(
                     "UPDATE resources SET state = ?, response = ? WHERE seq = ?",
-                    (resource.state.value, _dumps(resource.response), old.seq),
+                    (_STATE_CODES[resource.state], _dumps(resource.response), old.seq),
+                )
+            elif old.state is not resource.state:
+                db.execute(
+                    "UPDATE resources SET state = ? WHERE seq = ?",
+                    (_STATE_CODES[resource.state], old.seq),
                 )
             old_consumers = old.consumers
             row = old.seq
@@ -604,9 +776,9 @@ class SqliteStore:
                 seq += 1
                 key = seq
                 db.execute(
-                    "INSERT INTO consumers (seq, query_id, resource_id, origin_rr) "
+                    "INSERT INTO consumers (seq, query_id, resource, origin_rr) "
                     "VALUES (?, ?, ?, ?)",
-                    (key, query_id, rid, origin),
+                    (key, query_id, row, origin),
                 )
             else:
                 kept += 1
@@ -616,7 +788,10 @@ class SqliteStore:
                 "DELETE FROM consumers WHERE seq = ?",
                 [(k,) for q, k in old_consumers.items() if q not in consumers],
             )
-        mirror = _Mirror(row, resource.state, resource.response, consumers)
+        response = (
+            resource.response if old is None or _response_changed(old, resource) else old.response
+        )
+        mirror = _Mirror(row, resource.state, response, consumers)
         after.append(functools.partial(self._resources.__setitem__, rid, mirror))
         return seq
 

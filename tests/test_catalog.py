@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
+import decimal
+import enum
+import fractions
+import pickle
 import uuid
 from typing import Any
 
@@ -21,8 +26,10 @@ from rr_actors import Query, UnknownQueryError
 from rr_actors._catalog import (
     Catalog,
     ClientRecord,
+    Resource,
     ResourceState,
     request_bucket,
+    request_digest,
     requests_equal,
 )
 
@@ -316,3 +323,83 @@ class CatalogMachine(RuleBasedStateMachine):
 
 TestCatalogMachine = CatalogMachine.TestCase
 TestCatalogMachine.settings = settings(max_examples=60, stateful_step_count=30, deadline=None)
+
+
+# -- digests and restore without decoding ----------------------------------------------------
+
+
+class Level(enum.IntEnum):
+    ONE = 1
+
+
+class Name(enum.StrEnum):
+    CAM = "cam"
+
+
+@pytest.mark.parametrize(
+    "values",
+    [
+        [1, 1.0, True, Level.ONE, decimal.Decimal(1), fractions.Fraction(1)],
+        ["cam", Name.CAM],
+        [b"ab", bytearray(b"ab")],
+        [{"a": 1, "b": [2]}, {"b": [2.0], "a": True}],
+        [{1, 2}, frozenset({2.0, 1})],
+        [float("nan"), float("nan")],
+    ],
+)
+def test_equal_values_of_different_types_have_one_digest(values):
+    assert 1 == len({request_digest(v) for v in values})
+
+
+def test_values_of_custom_classes_have_no_digest():
+    assert [None, None] == [request_digest(ResourceState.LOADED), request_digest([object()])]
+
+
+def test_a_value_without_a_digest_that_equals_one_with_a_digest_is_found_both_ways():
+    class Alias:
+        """Equal to the string it wraps (and hashed like it, as Python requires)."""
+
+        def __init__(self, text):
+            self.text = text
+
+        def __eq__(self, other):
+            return other == self.text
+
+        def __hash__(self):
+            return hash(self.text)
+
+    catalog = Catalog()
+    plain = loaded(catalog, "s", "cam")
+    alias = loaded(catalog, "t", Alias("cam"))
+
+    assert (plain, alias) == (catalog.find("s", Alias("cam")).id, catalog.find("t", "cam").id)
+
+
+def encoded_resource(rid, request, decoded):
+    def decode(rid, field, blob):
+        decoded.append((rid, field))
+        return pickle.loads(blob)
+
+    blobs = (pickle.dumps(request), pickle.dumps({"for": rid}))
+    digest = request_digest(request)
+    resource = Resource.encoded(rid, "s", ResourceState.LOADED, digest, blobs, decode)
+    resource.consumers["q" + rid] = "origin"
+    return resource
+
+
+def test_restore_indexes_encoded_resources_by_digest_and_decodes_only_what_find_compares():
+    decoded = []
+    resources = [encoded_resource(f"r{n}", {"n": n}, decoded) for n in range(100)]
+
+    catalog = Catalog.restore(resources, [])
+    found = catalog.find("s", {"n": 42.0})
+
+    assert ("r42", [("r42", "request")]) == (found.id, decoded)
+    catalog.check_invariants()  # (it decodes every request)
+
+
+def test_an_encoded_resource_equals_its_decoded_twin_and_copies_decoded():
+    resource = encoded_resource("r1", {"n": 1}, [])
+    twin = Resource("r1", "s", {"n": 1}, {"for": "r1"}, ResourceState.LOADED, {"qr1": "origin"})
+
+    assert (twin, twin) == (resource, dataclasses.replace(resource))

@@ -17,7 +17,7 @@ import pytest
 import rr_actors as rr
 from rr_actors._catalog import Catalog
 from rr_actors._cli import main
-from rr_actors._sqlite_store import SqliteStore
+from rr_actors._sqlite_store import SCHEMA_VERSION, SqliteStore
 
 
 def run(*argv: str) -> tuple[int, str]:
@@ -80,7 +80,7 @@ def test_inspect_json_gives_the_same_catalog_as_data(
     data = json.loads(out)
     [leaf, sub] = data["servers"]["leaf"]
     [nested] = data["servers"]["nested"]
-    assert (0, 1, [ids["first"], ids["second"]], ["{'sub': 'x'}"], False) == (
+    assert (0, SCHEMA_VERSION, [ids["first"], ids["second"]], ["{'sub': 'x'}"], False) == (
         code,
         data["schema_version"],
         [c["query_id"] for c in leaf["consumers"]],

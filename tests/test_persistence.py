@@ -14,9 +14,12 @@ import multiprocessing.connection
 import multiprocessing.context
 import multiprocessing.forkserver
 import os
+import pickle
 import random
 import signal
 import sqlite3
+import subprocess
+import sys
 import tempfile
 import threading
 import uuid
@@ -31,7 +34,13 @@ from hypothesis import strategies as st
 import rr_actors as rr
 from rr_actors import _persistence
 from rr_actors import _sqlite_store as store_module
-from rr_actors._catalog import Catalog, ClientRecord, ResourceState
+from rr_actors._catalog import (
+    DIGEST_SCHEME,
+    Catalog,
+    ClientRecord,
+    ResourceState,
+    request_digest,
+)
 from rr_actors._sqlite_store import SqliteStore, quarantine_backup, read_backup
 from rr_actors.testing import catalog_snapshot, crash
 
@@ -654,8 +663,9 @@ def test_an_older_schema_is_migrated_by_an_explicit_step(
     def add_note(db: sqlite3.Connection) -> None:
         db.execute("ALTER TABLE resources ADD COLUMN note TEXT")
 
+    next_version = store_module.SCHEMA_VERSION + 1
     monkeypatch.setattr(store_module, "_MIGRATIONS", (*store_module._MIGRATIONS, add_note))
-    monkeypatch.setattr(store_module, "SCHEMA_VERSION", 2)
+    monkeypatch.setattr(store_module, "SCHEMA_VERSION", next_version)
     SqliteStore.open(tmp_path / "p.db").close(erase=False)
 
     db = sqlite3.connect(tmp_path / "p.db")
@@ -664,7 +674,7 @@ def test_an_older_schema_is_migrated_by_an_explicit_step(
         columns = [row[1] for row in db.execute("PRAGMA table_info(resources)")]
     finally:
         db.close()
-    assert (2, "note") == (version, columns[-1])
+    assert (next_version, "note") == (version, columns[-1])
 
 
 # -- bad files --------------------------------------------------------------------------------
@@ -815,3 +825,176 @@ def test_quarantine_moves_a_corrupt_backup_aside_so_a_registrar_starts_empty(
 def test_quarantine_without_a_file_raises_config_error(tmp_path: Path) -> None:
     with pytest.raises(rr.ConfigError, match="no catalog backup"):
         quarantine_backup(tmp_path / "p.db")
+
+
+# -- restore without decoding, digests, schema 2 ------------------------------------------------
+
+
+def stored_catalog(path: Path, requests: list[Any]) -> Catalog:
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    for n, request in enumerate(requests):
+        catalog.begin_load(f"r{n}", "leaf", request)
+        catalog.finish_load(f"r{n}", {"pid": n})
+        catalog.add_consumer(f"r{n}", f"q{n}", "C")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+    return catalog
+
+
+def test_a_restore_leaves_requests_and_responses_encoded_until_first_used(tmp_path: Path) -> None:
+    stored_catalog(tmp_path / "p.db", [{"n": n} for n in range(5)])
+    store = SqliteStore.open(tmp_path / "p.db")
+    rows = store.load()
+    store.close(erase=False)
+    assert rows is not None
+
+    catalog = Catalog.restore(*rows)
+    found = catalog.find("leaf", {"n": 3})
+
+    assert found is not None
+    decoded = [sorted({"request", "response"} & set(vars(r))) for r in catalog.resources.values()]
+    assert [[], [], [], ["request"], []] == decoded
+    assert ({"n": 3}, {"pid": 3}) == (found.request, found.response)
+
+
+def test_a_stored_value_whose_class_is_gone_raises_catalog_corrupt_error_when_first_used(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    module = type(os)("rr_gone_module")
+    exec("class Thing:\n    pass\n", module.__dict__)  # noqa: S102 - a throwaway module
+    monkeypatch.setitem(sys.modules, "rr_gone_module", module)
+    stored_catalog(tmp_path / "p.db", ["plain", "other"])
+    db = sqlite3.connect(tmp_path / "p.db")
+    db.execute("UPDATE resources SET response = ? WHERE id = 'r1'", (pickle.dumps(module.Thing()),))
+    db.commit()
+    db.close()
+    monkeypatch.delitem(sys.modules, "rr_gone_module")
+
+    catalog = reopen(tmp_path / "p.db")
+    with pytest.raises(rr.CatalogCorruptError) as raised:
+        _ = catalog.resources["r1"].response
+
+    assert (str(tmp_path / "p.db"), True, {"pid": 0}) == (
+        raised.value.path,
+        "response of resource r1 cannot be read" in raised.value.cause,
+        catalog.resources["r0"].response,
+    )
+
+
+def test_a_new_response_for_a_restored_resource_reaches_the_file(tmp_path: Path) -> None:
+    stored_catalog(tmp_path / "p.db", ["a", "b"])
+    store = SqliteStore.open(tmp_path / "p.db")
+    rows = store.load()
+    assert rows is not None
+    catalog = Catalog.restore(*rows)
+    _ = catalog.resources["r0"].response  # decoded: not a change
+    catalog.set_response("r0", "old one decoded, then kept")
+    catalog.set_response("r1", "replaced without a look")
+    catalog.set_response("r0", catalog.resources["r0"].response)
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    assert ["old one decoded, then kept", "replaced without a look"] == [
+        r.response for r in reopen(tmp_path / "p.db").resources.values()
+    ]
+
+
+def test_the_stored_digest_is_the_same_in_a_process_with_another_string_hash_seed(
+    tmp_path: Path,
+) -> None:
+    request = {"cmd": ["driver", "--id", "7"], "on": True, "rate": 2.5}
+    stored_catalog(tmp_path / "p.db", [request])
+    code = (
+        "from rr_actors._catalog import request_digest; "
+        "print(request_digest({'rate': 2.5, 'on': 1, 'cmd': ['driver', '--id', '7']}))"
+    )
+    env = {**os.environ, "PYTHONHASHSEED": "12345"}
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    ).stdout
+    db = sqlite3.connect(tmp_path / "p.db")
+    try:
+        [(stored,)] = db.execute("SELECT digest FROM resources").fetchall()
+    finally:
+        db.close()
+
+    assert int(out) == stored
+
+
+def test_digests_written_under_another_scheme_are_recomputed_when_the_file_is_opened(
+    tmp_path: Path,
+) -> None:
+    stored_catalog(tmp_path / "p.db", [{"n": 1}, ["x"]])
+    db = sqlite3.connect(tmp_path / "p.db")
+    db.execute("UPDATE resources SET digest = 42")
+    db.execute("UPDATE rr_actors_schema SET digest_scheme = 'another-python'")
+    db.commit()
+    db.close()
+
+    catalog = reopen(tmp_path / "p.db")
+
+    assert ("r0", "r1") == (catalog.find("leaf", {"n": 1.0}).id, catalog.find("leaf", ["x"]).id)
+
+
+def write_v1_backup(path: Path) -> None:
+    """A backup as rr_actors wrote it with schema version 1."""
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute(f"PRAGMA application_id = {store_module.APPLICATION_ID}")
+    store_module._create_v1(db)
+    db.execute("UPDATE rr_actors_schema SET version = 1")
+    db.execute("PRAGMA journal_mode = WAL")
+    rows = [(1, "r0", "leaf", "loaded", {"n": 0}, "zero"), (2, "r1", "leaf", "loading", "x", None)]
+    for seq, rid, server, state, request, response in rows:
+        db.execute(
+            "INSERT INTO resources VALUES (?, ?, ?, ?, ?, ?)",
+            (seq, rid, server, state, store_module._dumps(request), store_module._dumps(response)),
+        )
+    db.execute("INSERT INTO consumers VALUES (3, 'q0', 'r0', 'C')")
+    db.execute(
+        "INSERT INTO clients VALUES (4, 'd0', 'leaf', 'P', 'me', ?, NULL, 'r0', 1)",
+        (store_module._dumps(5),),
+    )
+    db.close()
+
+
+def test_a_version_1_backup_is_migrated_to_digests_integer_states_and_consumer_rows(
+    tmp_path: Path,
+) -> None:
+    write_v1_backup(tmp_path / "p.db")
+
+    catalog = reopen(tmp_path / "p.db")
+
+    db = sqlite3.connect(tmp_path / "p.db")
+    try:
+        schema = db.execute("SELECT version, digest_scheme FROM rr_actors_schema").fetchall()
+        digests = db.execute("SELECT digest, state FROM resources ORDER BY seq").fetchall()
+        consumers = db.execute("SELECT query_id, resource FROM consumers").fetchall()
+    finally:
+        db.close()
+    assert [(store_module.SCHEMA_VERSION, DIGEST_SCHEME)] == schema
+    assert [(request_digest({"n": 0}), 1), (request_digest("x"), 0)] == digests
+    assert [("q0", 1)] == consumers
+    assert (
+        "r0",
+        ["q0"],
+        ResourceState.LOADING,
+        ["d0"],
+    ) == (
+        catalog.find("leaf", {"n": 0}).id,
+        list(catalog.resources["r0"].consumers),
+        catalog.resources["r1"].state,
+        [c.query.id for c in catalog.dependencies("r0")],
+    )
+
+
+def test_a_request_without_a_digest_is_restored_and_found_by_equality(tmp_path: Path) -> None:
+    stored_catalog(tmp_path / "p.db", [ResourceState.LOADED, ("tuple", ResourceState.LOADING)])
+
+    catalog = reopen(tmp_path / "p.db")
+
+    assert ("r0", "r1") == (
+        catalog.find("leaf", ResourceState.LOADED).id,
+        catalog.find("leaf", ("tuple", ResourceState.LOADING)).id,
+    )
