@@ -411,7 +411,13 @@ class RegistrarActor(pykka.ThreadingActor):
         if handler is None:
             logger.warning("registrar %s ignored an unknown message %r", self.name, message)
             return
-        handler(self, message)
+        try:
+            handler(self, message)
+        except RrError as exc:  # e.g. a restored value that cannot be decoded any more
+            reply = getattr(message, "reply", None)
+            if reply is None:
+                raise
+            reply.set_error(exc)  # that request fails; the registrar keeps serving
 
     def on_failure(self, *_: object) -> None:
         self._die()
@@ -1071,7 +1077,7 @@ class ResourceRegistrar:
         cls,
         config: RegistrarConfig | str,
         *,
-        setup: Callable[[ResourceRegistrar], None] | None = None,
+        setup: Callable[[ResourceRegistrar], object] | None = None,
     ) -> ResourceRegistrar:
         """Start a registrar, restoring its catalog first if its backup exists.
 

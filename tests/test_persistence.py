@@ -998,3 +998,30 @@ def test_a_request_without_a_digest_is_restored_and_found_by_equality(tmp_path: 
         catalog.find("leaf", ResourceState.LOADED).id,
         catalog.find("leaf", ("tuple", ResourceState.LOADING)).id,
     )
+
+
+def test_a_call_that_meets_an_unreadable_restored_value_fails_and_the_registrar_keeps_serving(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    module = type(os)("rr_gone_module_2")
+    exec("class Thing:\n    pass\n", module.__dict__)  # noqa: S102 - a throwaway module
+    monkeypatch.setitem(sys.modules, "rr_gone_module_2", module)
+    stored_catalog(tmp_path / "p.db", ["plain", "other"])
+    db = sqlite3.connect(tmp_path / "p.db")
+    db.execute("UPDATE resources SET response = ? WHERE id = 'r1'", (pickle.dumps(module.Thing()),))
+    db.commit()
+    db.close()
+    monkeypatch.delitem(sys.modules, "rr_gone_module_2")
+    name = f"p-{uuid.uuid4().hex[:8]}"
+    provider = rr.ResourceRegistrar.start(rr.RegistrarConfig(name, backup_path=tmp_path / "p.db"))
+    consumer = rr.ResourceRegistrar.start(f"c-{uuid.uuid4().hex[:8]}")
+    try:
+        provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: None)
+        with pytest.raises(rr.CatalogCorruptError):
+            consumer.call(name, "leaf", "other", timeout=5)
+        served = consumer.call(name, "leaf", "plain", timeout=5)
+
+        assert ({"pid": 0}, True) == (served.response, provider.is_alive())
+    finally:
+        consumer.stop()
+        provider.stop()
