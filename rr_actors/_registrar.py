@@ -330,6 +330,25 @@ class ClientActor(pykka.ThreadingActor):
             self.workers.submit(lambda: _run_status(message))
 
 
+class _OpenReply:
+    """A handle request's reply, known to its actor until answered (a crash fails it)."""
+
+    __slots__ = ("open", "reply")
+
+    def __init__(self, reply: Reply, open_requests: set[_OpenReply]) -> None:
+        self.reply = reply
+        self.open = open_requests
+        open_requests.add(self)
+
+    def set_result(self, value: Any) -> None:
+        self.open.discard(self)
+        self.reply.set_result(value)
+
+    def set_error(self, error: BaseException) -> None:
+        self.open.discard(self)
+        self.reply.set_error(error)
+
+
 @dataclasses.dataclass
 class _Server:
     name: str
@@ -383,6 +402,7 @@ class RegistrarActor(pykka.ThreadingActor):
         self.stopping = False
         self.setting_up = setting_up  # loads for servers setup has not registered wait
         self.held_loads: list[Load] = []
+        self.open_requests: set[_OpenReply] = set()  # handle requests not answered yet
         self.died = died  # set once a crash was fully handled (see testing.crash)
         self.flush_timer: Cancellable | None = None
 
@@ -435,6 +455,8 @@ class RegistrarActor(pykka.ThreadingActor):
         for loads in [*self.after_unload.values(), self.held_loads]:
             for load in loads:
                 load.reply.set_error(error)
+        for request in list(self.open_requests):
+            request.set_error(error)
         while not self.actor_inbox.empty():
             pending = getattr(self.actor_inbox.get().message, "reply", None)
             if pending is not None:
@@ -830,10 +852,11 @@ class RegistrarActor(pykka.ThreadingActor):
             self.given_up.discard(message.query_id)
 
     def _on_request(self, message: _Request) -> None:
+        reply = _OpenReply(message.reply, self.open_requests)
         try:
-            message.op(self, message.reply)
+            message.op(self, reply)
         except RrError as exc:
-            message.reply.set_error(exc)
+            reply.set_error(exc)
 
     def _on_crash(self, _: _Crash) -> None:
         raise RuntimeError(f"registrar {self.name!r} was made to crash (rr_actors.testing)")
