@@ -3,13 +3,19 @@
 A process manager is started with the `forkserver` context (`spawn` where there is no
 forkserver), never with a plain `fork` of the threaded parent. In the child, `main`:
 
-1. asks the kernel to kill it when its parent dies (`prctl(PR_SET_PDEATHSIG)` on Linux),
+1. asks the kernel to kill it when the process that forked it dies (see `_die_with_parent`:
+   with the forkserver context that is the forkserver, not the supervisor's process),
 2. attaches to the system and starts the registrar, which restores its catalog,
 3. runs the (cloudpickled) `setup(registrar)`, then serves the registrar on the system,
-4. reports `ready` over its control pipe and answers control requests: `stop`, `ping`
-   (the heartbeat, answered through the registrar actor's mailbox) and `run` (a function
-   run against the registrar, for tests and tools),
-5. exits at once when the control pipe reaches EOF: the parent is gone.
+4. reports `ready` over its control pipe and answers control requests: `stop` and `ping`
+   (the heartbeat, answered through the registrar actor's mailbox),
+5. exits at once when the control pipe reaches EOF: the supervisor's process is gone,
+6. exits with code 0 when its registrar was stopped cleanly by code in the manager (a
+   `transient` manager is then not restarted, as in a thread), with code 71 when the
+   registrar actor died.
+
+Running a function against the registrar (`Supervisor.run_in`) goes over the system's
+transport (`AttachedSystem.run`), not over the control pipe.
 
 In the parent, [`ManagerProcess`][rr_actors._manager.ManagerProcess] owns the process and
 its control pipe; one watcher thread per process blocks on the process sentinel and the
@@ -20,7 +26,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import itertools
 import logging
 import multiprocessing
 import multiprocessing.connection
@@ -37,11 +42,24 @@ from typing import Any
 import cloudpickle
 import pykka
 
-from rr_actors._replies import FutureReply, wait
+from rr_actors._directory import DIRECTORY
 from rr_actors.config import RegistrarConfig
-from rr_actors.errors import ConfigError, RegistrarUnavailableError, RrError
+from rr_actors.errors import (
+    CallTimeoutError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    RrError,
+)
 
-__all__ = ["ManagerExit", "ManagerProcess", "Spare", "main", "mp_context", "standby"]
+__all__ = [
+    "ManagerExit",
+    "ManagerProcess",
+    "Spare",
+    "main",
+    "mp_context",
+    "standby",
+    "stopped_cleanly",
+]
 
 logger = logging.getLogger("rr_actors")
 
@@ -116,8 +134,39 @@ def start_forkserver() -> None:
         forkserver.ensure_running()
 
 
-def _die_with_parent() -> None:
-    """Linux: have the kernel SIGKILL this process when the process that forked it dies."""
+def _forker_pid(ctx: multiprocessing.context.BaseContext) -> int | None:
+    """The pid of the process that forks manager processes: the forkserver, or this one.
+
+    Handed to the child so that it can tell whether that process died before the child
+    asked to be killed with it (see `_die_with_parent`). `None` if it cannot be known.
+    """
+    if ctx.get_start_method() != "forkserver":
+        return os.getpid()
+    from multiprocessing import forkserver  # noqa: PLC0415
+
+    forkserver.ensure_running()  # cheap when it runs: one waitpid(WNOHANG)
+    # CPython keeps the pid in a private attribute (3.8 to 3.13); without it, no check.
+    pid = getattr(getattr(forkserver, "_forkserver", None), "_forkserver_pid", None)
+    return pid if isinstance(pid, int) else None
+
+
+def _die_with_parent(expected_parent: int | None) -> None:
+    """Linux: have the kernel SIGKILL this process when the process that forked it dies.
+
+    That process is the forkserver with the forkserver context (the supervisor's process
+    with spawn). The forkserver exits when the supervisor's process dies, so the signal
+    also ends a manager whose supervisor died, but only as a second line: a manager sees
+    its supervisor's death first as EOF on its control pipe (`_serve_control` exits at
+    once). The signal is for a manager that is not reading its pipe (stuck, or stopped).
+
+    `prctl` only covers deaths after it ran: if the forking process died between the fork
+    and this call (the child was then re-parented, so `getppid()` changed), the process
+    exits here at once with code 70.
+
+    Args:
+        expected_parent: the pid of the process that forked this one (`None`: unknown,
+            no check).
+    """
     if not sys.platform.startswith("linux"):
         return
     try:
@@ -125,6 +174,19 @@ def _die_with_parent() -> None:
         libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
     except (OSError, AttributeError):  # no prctl: the control pipe EOF still works
         logger.debug("prctl(PR_SET_PDEATHSIG) unavailable")
+        return
+    if expected_parent is not None and os.getppid() != expected_parent:
+        os._exit(_PARENT_GONE_EXIT)  # it died before prctl: the signal will never come
+
+
+def stopped_cleanly(name: str) -> bool:
+    """Whether registrar `name` of this process, no longer running, was stopped by code.
+
+    `False` if its actor died (a crash). The same test for both placements, so a
+    `transient` manager whose registrar was stopped cleanly is not restarted in a
+    thread or in a process alike.
+    """
+    return isinstance(DIRECTORY.gone_error(name), RegistrarStoppedError)
 
 
 # -- the child ---------------------------------------------------------------------------
@@ -157,21 +219,23 @@ class _Pong:
         pass  # no pong: the parent counts it as missed
 
 
-def _run_request(control: _Control, registrar: Any, token: int, payload: bytes) -> None:
-    try:
-        fn = cloudpickle.loads(payload)
-        value = fn(registrar)
-        answer = ("result", token, True, cloudpickle.dumps(value))
-    except BaseException as exc:  # noqa: BLE001 - returned to the caller in the parent
-        try:
-            answer = ("result", token, False, cloudpickle.dumps(exc))
-        except Exception:  # noqa: BLE001 - the error itself does not pickle
-            text = "".join(traceback.format_exception(exc))
-            answer = ("result", token, False, cloudpickle.dumps(RrError(text)))
-    control.send(answer)
+def _exit(code: int, attached: Any) -> None:
+    """Leave the system (peers then see "stopped" or "died" at once), flush, exit."""
+    if attached is not None:
+        with contextlib.suppress(Exception):
+            attached.close()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
-def main(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) -> None:
+def main(
+    setup: bytes,
+    config: RegistrarConfig,
+    address: Any,
+    conn: Connection,
+    parent: int | None = None,
+) -> None:
     """Run one manager: restore, set up, serve, then answer control requests until stopped.
 
     Runs as the target of a manager process (never in the supervisor's process).
@@ -181,8 +245,13 @@ def main(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) 
         config: the registrar's configuration (its backup is restored before `setup`).
         address: the system's `SystemAddress`, or `None` to run unattached.
         conn: the child's end of the control pipe.
+        parent: the pid of the process that forked this one (see `_die_with_parent`).
     """
-    _die_with_parent()
+    _die_with_parent(parent)
+    _run_manager(setup, config, address, conn)
+
+
+def _run_manager(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) -> None:
     from rr_actors._registrar import ResourceRegistrar  # noqa: PLC0415 - preloaded
 
     control = _Control(conn)
@@ -205,8 +274,11 @@ def main(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) 
 
     def watch_actor() -> None:
         registrar._ref.actor_stopped.wait()
-        if not stopping.is_set():
-            os._exit(_ACTOR_DIED_EXIT)
+        if stopping.is_set():
+            return  # the supervisor's `stop`: the control loop exits
+        if stopped_cleanly(registrar.name):  # code in the manager called registrar.stop()
+            _exit(0, attached)
+        _exit(_ACTOR_DIED_EXIT, attached)
 
     threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
     control.send(("ready", os.getpid()))
@@ -230,7 +302,7 @@ def _warm_up() -> None:
         db.execute("CREATE TABLE t (x)").fetchall()
 
 
-def standby(conn: Connection) -> None:
+def standby(conn: Connection, parent: int | None = None) -> None:
     """Wait, started but idle, until the parent hands over a manager's arguments; run it.
 
     Runs as the target of a spare manager process (see [`Spare`][rr_actors._manager.Spare]):
@@ -240,8 +312,9 @@ def standby(conn: Connection) -> None:
     Args:
         conn: the child's end of the control pipe; the first message is
             `("start", setup, config, address)` with `main`'s arguments.
+        parent: the pid of the process that forked this one (see `_die_with_parent`).
     """
-    _die_with_parent()
+    _die_with_parent(parent)
     _warm_up()
     try:
         message = conn.recv()
@@ -250,13 +323,13 @@ def standby(conn: Connection) -> None:
     if message[0] != "start":
         os._exit(0)
     _, setup, config, address = message
-    main(setup, config, address, conn)
+    _run_manager(setup, config, address, conn)
 
 
 def _serve_control(
     conn: Connection, control: _Control, registrar: Any, attached: Any, stopping: threading.Event
 ) -> None:
-    """The child's control loop: answer pings, run requests, stop; exit on EOF."""
+    """The child's control loop: answer pings, stop; exit on EOF."""
     from rr_actors._registrar import _Request  # noqa: PLC0415 - preloaded by the forkserver
 
     while True:
@@ -269,13 +342,6 @@ def _serve_control(
             pong = _Pong(control, message[1])
             with contextlib.suppress(pykka.ActorDeadError):
                 registrar._ref.tell(_Request(lambda _actor, reply: reply.set_result(None), pong))
-        elif kind == "run":
-            threading.Thread(
-                target=_run_request,
-                args=(control, registrar, message[1], message[2]),
-                name="rr-manager-run",
-                daemon=True,
-            ).start()
         elif kind == "stop":
             stopping.set()
             code = 0
@@ -284,19 +350,20 @@ def _serve_control(
             except RrError:
                 logger.exception("manager %s did not stop cleanly", registrar.name)
                 code = 1
-            if attached is not None:
-                with contextlib.suppress(Exception):
-                    attached.close()
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(code)
+            _exit(code, attached)
 
 
 # -- the parent --------------------------------------------------------------------------
 
 
 class ManagerExit:
-    """Why a manager process ended: `reason` text and whether it counts as `normal`."""
+    """Why a child (a manager process or thread, a nested supervisor) ended.
+
+    Attributes:
+        reason: what happened, for people (`ChildInfo.last_exit`).
+        normal: whether it counts as a normal exit (a `transient` child is then not
+            restarted).
+    """
 
     __slots__ = ("normal", "reason")
 
@@ -343,7 +410,10 @@ class Spare:
         ctx = mp_context()
         parent_conn, child_conn = ctx.Pipe(duplex=True)
         process = ctx.Process(  # type: ignore[attr-defined]
-            target=standby, args=(child_conn,), name=f"{_PROCESS_PREFIX}spare", daemon=True
+            target=standby,
+            args=(child_conn, _forker_pid(ctx)),
+            name=f"{_PROCESS_PREFIX}spare",
+            daemon=True,
         )
         process.start()
         child_conn.close()
@@ -387,7 +457,7 @@ class ManagerProcess:
         conn: Connection,
         *,
         heartbeat: float | None,
-        heartbeat_timeout: float,
+        heartbeat_timeout: float | None,
         on_exit: Callable[[ManagerExit], None],
     ) -> None:
         self.name = name
@@ -398,9 +468,6 @@ class ManagerProcess:
         self._heartbeat = heartbeat
         self._heartbeat_timeout = heartbeat_timeout
         self._on_exit = on_exit
-        self._tokens = itertools.count()
-        self._results: dict[int, FutureReply] = {}
-        self._results_lock = threading.Lock()
         self._hung_for: float | None = None
         self._stopping = False
         self.exited = threading.Event()
@@ -416,7 +483,7 @@ class ManagerProcess:
         *,
         start_timeout: float,
         heartbeat: float | None,
-        heartbeat_timeout: float,
+        heartbeat_timeout: float | None,
         on_exit: Callable[[ManagerExit], None],
         spare: Spare | None = None,
     ) -> ManagerProcess:
@@ -425,8 +492,8 @@ class ManagerProcess:
         Args:
             name, setup, config, address: what the manager runs (see `main`).
             start_timeout: seconds it may take to restore, set up and serve.
-            heartbeat, heartbeat_timeout: seconds between pings, and of silence before
-                it counts as hung (`None`: no heartbeat).
+            heartbeat, heartbeat_timeout: seconds between pings (`None`: no heartbeat),
+                and of silence before it counts as hung (`None`: three periods).
             on_exit: called once, on the watcher thread, with how it ended.
             spare: an idle pre-started process to run it in (else a new one is started;
                 also if the spare died meanwhile).
@@ -443,7 +510,7 @@ class ManagerProcess:
             parent_conn, child_conn = ctx.Pipe(duplex=True)
             process = ctx.Process(  # type: ignore[attr-defined]
                 target=main,
-                args=(setup, config, address, child_conn),
+                args=(setup, config, address, child_conn, _forker_pid(ctx)),
                 name=f"{_PROCESS_PREFIX}{name}",
                 daemon=True,
             )
@@ -465,8 +532,6 @@ class ManagerProcess:
                 process.join(5.0)
                 parent_conn.close()
                 if left <= 0:
-                    from rr_actors.errors import CallTimeoutError  # noqa: PLC0415
-
                     raise CallTimeoutError(
                         f"manager {name!r} was not ready within {start_timeout:g} s"
                     )
@@ -498,31 +563,6 @@ class ManagerProcess:
                 return False
         return True
 
-    def run(self, fn: Callable[[Any], Any], *, timeout: float) -> Any:
-        """Run `fn(registrar)` inside the manager process; return its (picklable) result.
-
-        Raises:
-            ConfigError: `fn` cannot be pickled.
-            RegistrarUnavailableError: the process died before answering.
-            CallTimeoutError: no answer within `timeout` seconds.
-            Exception: whatever `fn` raised (pickled back).
-        """
-        try:
-            payload = cloudpickle.dumps(fn)
-        except Exception as exc:
-            raise ConfigError(
-                f"function for manager {self.name!r} is not picklable: {exc}"
-            ) from exc
-        token = next(self._tokens)
-        reply = FutureReply()
-        with self._results_lock:
-            if self.exited.is_set():
-                raise RegistrarUnavailableError(f"manager {self.name!r} is not running")
-            self._results[token] = reply
-        if not self._send(("run", token, payload)):
-            self._fail_results()
-        return wait(reply.future, timeout, f"run in manager {self.name!r}")
-
     def stop(self, timeout: float) -> ManagerExit:
         """Ask the manager to stop its registrar and exit; kill it after `timeout` seconds.
 
@@ -546,12 +586,6 @@ class ManagerProcess:
 
     # -- the watcher thread -----------------------------------------------------------
 
-    def _fail_results(self) -> None:
-        with self._results_lock:
-            results, self._results = self._results, {}
-        for reply in results.values():
-            reply.set_error(RegistrarUnavailableError(f"manager {self.name!r} died"))
-
     def _watch(self) -> None:
         """Block on the sentinel and the control pipe; ping on the heartbeat period."""
         sentinel = self.process.sentinel
@@ -561,7 +595,10 @@ class ManagerProcess:
         oldest_unanswered: float | None = None
         next_ping = time.monotonic() + (period or 0.0)
         while True:
-            timeout = None if period is None else max(0.0, next_ping - time.monotonic())
+            if period is None or self._stopping:
+                timeout = None  # stopping: no pings; block until it exits (or the pipe says)
+            else:
+                timeout = max(0.0, next_ping - time.monotonic())
             woke = multiprocessing.connection.wait(waitables, timeout)
             if sentinel in woke:
                 break
@@ -573,12 +610,11 @@ class ManagerProcess:
                     continue
                 if message[0] == "pong" and message[1] == sent:
                     oldest_unanswered = None
-                elif message[0] == "result":
-                    self._deliver(message[1], message[2], message[3])
             if period is None or self._stopping:
                 continue
             now = time.monotonic()
-            if oldest_unanswered is not None and now - oldest_unanswered > self._heartbeat_timeout:
+            hung_after = self._heartbeat_timeout or 3.0 * period
+            if oldest_unanswered is not None and now - oldest_unanswered > hung_after:
                 self._hang(now - oldest_unanswered)
                 period = None
             elif now >= next_ping:
@@ -600,7 +636,6 @@ class ManagerProcess:
         self.process.join(5.0)
         with contextlib.suppress(OSError):
             self.conn.close()
-        self._fail_results()
         if self._hung_for is not None:
             result = ManagerExit(
                 f"hung: no heartbeat answer for {self._hung_for:.3f} s (killed)", normal=False
@@ -613,18 +648,3 @@ class ManagerProcess:
             self._on_exit(result)
         except Exception:
             logger.exception("exit handler of manager %s raised", self.name)
-
-    def _deliver(self, token: int, ok: bool, payload: bytes) -> None:
-        with self._results_lock:
-            reply = self._results.pop(token, None)
-        if reply is None:
-            return
-        try:
-            value = cloudpickle.loads(payload)
-        except Exception as exc:  # noqa: BLE001 - a class missing here, for example
-            reply.set_error(RrError(f"answer from manager {self.name!r} cannot be read: {exc}"))
-            return
-        if ok:
-            reply.set_result(value)
-        else:
-            reply.set_error(value)

@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol
 import cloudpickle
 
 from rr_actors._directory import DIRECTORY
+from rr_actors._manager import ManagerExit, stopped_cleanly
 from rr_actors._messages import Abandon, ConsumerDown
 from rr_actors._registrar import ResourceRegistrar, _Crash
 from rr_actors._types import Query, StatusCallback
@@ -45,6 +46,7 @@ from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
+    RegistrarStoppedError,
     RegistrarUnavailableError,
     RrError,
     SupervisorGaveUpError,
@@ -176,9 +178,13 @@ class ManagerSpec:
 
     Attributes:
         name: the manager's registrar name, unique in the whole supervision tree.
-        setup: `setup(registrar)`, run in the manager (in its process, after its catalog
-            was restored, before it accepts traffic); registers its servers. May be a
-            closure (it is cloudpickled for process managers). `None`: no servers.
+        setup: `setup(registrar)`, run in the manager after its catalog was restored and
+            before it accepts traffic; registers its servers. May be a closure (it is
+            cloudpickled for process managers). `None`: no servers. It runs on the main
+            thread of a process manager, and on the supervisor's own thread for a thread
+            manager. Either way the supervisor waits for it: supervision of the other
+            children (crash handling, restarts) pauses until it returns, so keep it short
+            (a process manager is bounded by `start_timeout`, a thread manager is not).
         isolation: `"thread"` (the registrar runs in the supervisor's process) or
             `"process"` (in its own OS process, so killing it kills nothing else).
         restart: `"permanent"` (always restarted), `"transient"` (restarted only after an
@@ -186,7 +192,12 @@ class ManagerSpec:
         config: the registrar's configuration; its `name` must equal `name`. Default:
             `RegistrarConfig(name)`, with the supervisor's `state_dir` a backup at
             `<state_dir>/<name>.db` with `save_on_modify=True`.
-        shutdown: seconds a clean stop may take before the manager is killed.
+        shutdown: seconds a clean stop may take before the manager is killed. A process
+            manager is SIGKILLed. A thread cannot be killed: its registrar actor is told
+            to crash, which takes effect once it finishes the callback it is stuck in; a
+            restart that comes before that fails with `DuplicateNameError` (the old
+            registrar still holds the name) and counts as another crash, so the
+            supervisor gives up if the actor stays stuck.
         heartbeat: seconds between heartbeat pings to a process manager (`None`: off). A
             ping is answered through the registrar actor's mailbox, so a frozen process
             and a stuck registrar both count as hung. Thread managers have no heartbeat.
@@ -233,11 +244,13 @@ class ManagerSpec:
         _check_seconds("start_timeout", self.start_timeout)
 
     @property
-    def hang_after(self) -> float:
-        """Seconds without a heartbeat answer after which the manager counts as hung."""
+    def hang_after(self) -> float | None:
+        """Seconds without a heartbeat answer after which it counts as hung (`None`: off)."""
+        if self.heartbeat is None:
+            return None
         if self.heartbeat_timeout is not None:
             return self.heartbeat_timeout
-        return 3.0 * (self.heartbeat or 1.0)
+        return 3.0 * self.heartbeat
 
 
 @dataclasses.dataclass(frozen=True)
@@ -325,7 +338,8 @@ class ChildInfo:
             `"stopping"`, `"stopped"` (by the supervisor) or `"exited"` (down for good:
             temporary, or transient after a normal exit).
         pid: the process id of a running process manager, else `None`.
-        restarts: how many times it was restarted so far.
+        restarts: how many times it was restarted so far, counting the times it came
+            back with its nested supervisor when the parent restarted that one.
         last_exit: why its last incarnation ended (`None` before the first exit).
     """
 
@@ -385,20 +399,10 @@ class RestartIntensity:
 # -- running children --------------------------------------------------------------------
 
 
-class _Exit:
-    """Why an incarnation of a child ended."""
-
-    __slots__ = ("normal", "reason")
-
-    def __init__(self, reason: str, *, normal: bool) -> None:
-        self.reason = reason
-        self.normal = normal
-
-
 class _Running(Protocol):
     pid: int | None
 
-    def stop(self, timeout: float) -> _Exit: ...
+    def stop(self, timeout: float | None) -> ManagerExit: ...
 
 
 class _ThreadManager:
@@ -411,14 +415,13 @@ class _ThreadManager:
         spec: ManagerSpec,
         config: RegistrarConfig,
         attached: Any,
-        on_exit: Callable[[_Exit], None],
+        on_exit: Callable[[ManagerExit], None],
     ) -> None:
         self.spec = spec
         self.stopping = False
-        registrar = ResourceRegistrar.start(config)
+        # setup runs before the registrar serves: loads arriving meanwhile wait for it
+        registrar = ResourceRegistrar.start(config, setup=spec.setup)
         try:
-            if spec.setup is not None:
-                spec.setup(registrar)
             if attached is not None:
                 attached.serve(registrar)
         except BaseException:
@@ -432,19 +435,19 @@ class _ThreadManager:
             ref.actor_stopped.wait()
             if self.stopping:
                 return
-            error = DIRECTORY.gone_error(spec.name)
-            if isinstance(error, RegistrarUnavailableError):
-                on_exit(_Exit("crashed (registrar actor died)", normal=False))
+            if stopped_cleanly(spec.name):  # code in the manager called registrar.stop()
+                on_exit(ManagerExit("normal", normal=True))
             else:
-                on_exit(_Exit("normal", normal=True))
+                on_exit(ManagerExit("crashed (registrar actor died)", normal=False))
 
         threading.Thread(target=watch, name=f"rr-watch-{spec.name}", daemon=True).start()
 
-    def stop(self, timeout: float) -> _Exit:
+    def stop(self, timeout: float | None) -> ManagerExit:
+        timeout = self.spec.shutdown if timeout is None else timeout
         self.stopping = True
         ref = self.registrar._ref
         if not ref.is_alive():
-            return _Exit("crashed (registrar actor died)", normal=False)
+            return ManagerExit("crashed (registrar actor died)", normal=False)
         try:
             self.registrar.stop(timeout=timeout)
         except RrError as exc:
@@ -454,20 +457,20 @@ class _ThreadManager:
             with contextlib.suppress(Exception):
                 ref.tell(_Crash())
             ref.actor_stopped.wait(timeout)
-            return _Exit(f"killed: no clean stop within {timeout:g} s", normal=False)
-        return _Exit("shutdown", normal=True)
+            return ManagerExit(f"killed: no clean stop within {timeout:g} s", normal=False)
+        return ManagerExit("shutdown", normal=True)
 
 
 class _ProcessManager:
     """A manager in its own OS process (see `rr_actors._manager`)."""
 
-    def __init__(self, handle: ManagerProcess) -> None:
+    def __init__(self, handle: ManagerProcess, shutdown: float) -> None:
         self.handle = handle
+        self.handle_shutdown = shutdown
         self.pid: int | None = handle.pid
 
-    def stop(self, timeout: float) -> _Exit:
-        result = self.handle.stop(timeout)
-        return _Exit(result.reason, normal=result.normal)
+    def stop(self, timeout: float | None) -> ManagerExit:
+        return self.handle.stop(self.handle_shutdown if timeout is None else timeout)
 
 
 class _NestedSupervisor:
@@ -478,9 +481,9 @@ class _NestedSupervisor:
     def __init__(self, supervisor: Supervisor) -> None:
         self.supervisor = supervisor
 
-    def stop(self, timeout: float) -> _Exit:
-        self.supervisor._shutdown()
-        return _Exit("shutdown", normal=True)
+    def stop(self, timeout: float | None) -> ManagerExit:
+        self.supervisor.stop(timeout=timeout)
+        return ManagerExit("shutdown", normal=True)
 
 
 @dataclasses.dataclass
@@ -489,14 +492,14 @@ class _Child:
     state: ChildState = "stopped"
     running: _Running | None = None
     incarnation: int = 0
-    restarts: int = 0
     last_exit: str | None = None
+    gave_up: SupervisorGaveUpError | None = None  # a nested supervisor's last incarnation
 
     @property
     def name(self) -> str:
         return self.spec.name
 
-    def info(self) -> ChildInfo:
+    def info(self, restarts: int) -> ChildInfo:
         spec = self.spec
         return ChildInfo(
             name=spec.name,
@@ -505,7 +508,7 @@ class _Child:
             restart=spec.restart,
             state=self.state,
             pid=self.running.pid if self.running is not None else None,
-            restarts=self.restarts,
+            restarts=restarts,
             last_exit=self.last_exit,
         )
 
@@ -517,7 +520,7 @@ class _Child:
 class _Exited:
     name: str
     incarnation: int
-    exit: _Exit
+    exit: ManagerExit
 
 
 @dataclasses.dataclass(frozen=True)
@@ -538,6 +541,58 @@ class _Quit:
 
 
 _SUPERVISOR_NAMES = itertools.count(1)
+_MIN_STOP = 1e-3  # seconds a child still gets to stop when an overall stop bound ran out
+
+
+def _tree_specs(spec: SupervisorSpec) -> dict[str, ManagerSpec | SupervisorSpec]:
+    specs: dict[str, ManagerSpec | SupervisorSpec] = {}
+    for child in spec.children:
+        specs[child.name] = child
+        if isinstance(child, SupervisorSpec):
+            specs.update(_tree_specs(child))
+    return specs
+
+
+class _Tree:
+    """What every supervisor of one tree shares (made by the root, kept across incarnations).
+
+    Nested supervisors are replaced when their parent restarts them; what must outlive an
+    incarnation lives here, keyed by child name (names are unique in a tree).
+    """
+
+    def __init__(self, spec: SupervisorSpec) -> None:
+        self.cond = threading.Condition()  # published snapshots of the whole tree; waiters
+        self.specs = _tree_specs(spec)
+        self.latest: dict[str, ChildInfo] = {}  # the last published snapshot of every child
+        self.restarts: dict[str, int] = {}  # starts after the first, across incarnations
+        self.started: set[str] = set()
+        self.setups: dict[str, bytes] = {}  # process managers' cloudpickled setups
+        self.abandon_lock = threading.Lock()
+        self.abandon_later: dict[str, list[tuple[str, str]]] = {}  # name -> (query id, origin)
+        self.wait_cursor: dict[str, int] = {}
+
+    def spec_info(self, name: str, state: ChildState) -> ChildInfo:
+        """The snapshot of a child whose supervisor is down: `state`, no pid."""
+        spec = self.specs[name]
+        last = self.latest.get(name)
+        return ChildInfo(
+            name=name,
+            kind="supervisor" if isinstance(spec, SupervisorSpec) else "manager",
+            isolation=spec.isolation if isinstance(spec, ManagerSpec) else None,
+            restart=spec.restart,
+            state=state,
+            pid=None,
+            restarts=self.restarts.get(name, 0),
+            last_exit=last.last_exit if last is not None else None,
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class _Found:
+    """A child found anywhere in the tree, and a give-up on its path that is final."""
+
+    info: ChildInfo
+    gave_up: SupervisorGaveUpError | None
 
 
 class Supervisor:
@@ -602,6 +657,7 @@ class Supervisor:
         self._clock = clock
         self._timer = timer
         self._random = random
+        self._tree = _Tree(self._spec)
         self._parent: Supervisor | None = None
         self._on_gave_up: Callable[[SupervisorGaveUpError], None] | None = None
         self._system: Any = None
@@ -611,16 +667,17 @@ class Supervisor:
         self._intensity = RestartIntensity(max_restarts, period, clock)
         self._mailbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
-        self._cond = threading.Condition()
-        self._infos: tuple[ChildInfo, ...] = tuple(c.info() for c in self._children)
+        self._infos: tuple[ChildInfo, ...] = self._snapshots()
+        self._subtrees = {
+            c.name: frozenset(_tree_names(c))
+            for c in self._spec.children
+            if isinstance(c, SupervisorSpec)
+        }
         self._gave_up: SupervisorGaveUpError | None = None
         self._stopped = False
         self._generation = 0
         self._timers: list[Cancellable] = []
-        self._setups: dict[str, bytes] = {}
         self._registrars: list[ResourceRegistrar] = []
-        self._abandon_later: dict[str, list[tuple[str, str]]] = {}
-        self._wait_cursor: dict[str, int] = {}
         self._spare: Spare | None = None  # root only: an idle manager process, ready to use
         self._spare_lock = threading.Lock()
         self._spares = False  # root only: keep a spare (the tree has process managers)
@@ -641,7 +698,11 @@ class Supervisor:
         )
         sup._parent = parent
         sup._system, sup._attached = parent._system, parent._attached
-        sup._setups = parent._setups
+        sup._tree = parent._tree
+        for child in sup._children:  # a new incarnation: say how the last one ended
+            last = sup._tree.latest.get(child.name)
+            child.last_exit = last.last_exit if last is not None else None
+        sup._infos = sup._snapshots()
         return sup
 
     # -- properties -------------------------------------------------------------------
@@ -698,24 +759,34 @@ class Supervisor:
     def stop(self, *, timeout: float | None = None) -> None:
         """Stop the registrars from `registrar()`, then every child in reverse start order.
 
-        Each child gets its spec's `shutdown` seconds to stop cleanly before it is killed.
-        Stopping a stopped supervisor is a no-op.
+        Each child gets its spec's `shutdown` seconds to stop cleanly before it is killed
+        (see `ManagerSpec.shutdown` for what that means for a thread manager). Stopping a
+        stopped supervisor is a no-op.
 
         Args:
-            timeout: ignored bound kept for symmetry; each child's `shutdown` applies.
+            timeout: an overall bound in seconds: a child still running when it ran out
+                gets no more than what is left of it (at least 1 ms) before it is killed,
+                even if its `shutdown` is longer. `None`: every child gets its full
+                `shutdown`. The bound starts once the supervisor's thread takes up the
+                stop (it first finishes a child start that is under way).
+
+        Raises:
+            ConfigError: `timeout` is not a positive number of seconds.
         """
-        del timeout
+        if timeout is not None:
+            _check_seconds("timeout", timeout)
+        deadline = None if timeout is None else time.monotonic() + timeout
         if self._thread is None or self._stopped:
             return
         for registrar in reversed(self._registrars):
             with contextlib.suppress(RrError):
-                registrar.stop()
+                registrar.stop(timeout=_left(deadline))
         self._registrars.clear()
         with self._spare_lock:
             self._spares = False  # no new spare while the children stop
         if self._thread.is_alive():
             with contextlib.suppress(RrError):
-                self._do(self._stop_all)
+                self._do(lambda: self._stop_all(deadline))
             self._mailbox.put(_Quit())
             self._thread.join(60.0)
         self._stopped = True
@@ -730,10 +801,6 @@ class Supervisor:
         self.stop()
         if exc_type is None and self._gave_up is not None:
             raise self._gave_up
-
-    def _shutdown(self) -> None:
-        """Stop as the child of another supervisor (called from the parent's thread)."""
-        self.stop()
 
     def _prepare_root(self) -> None:
         self._pickle_setups(self._spec)
@@ -751,7 +818,7 @@ class Supervisor:
                 self._pickle_setups(child)
             elif child.isolation == "process":
                 try:
-                    self._setups[child.name] = cloudpickle.dumps(child.setup)
+                    self._tree.setups[child.name] = cloudpickle.dumps(child.setup)
                 except Exception as exc:
                     raise ConfigError(
                         f"setup of manager {child.name!r} is not picklable: {exc}"
@@ -805,7 +872,7 @@ class Supervisor:
 
     def which_children(self) -> tuple[ChildInfo, ...]:
         """Immutable snapshots of the children, in start order (OTP's `which_children`)."""
-        with self._cond:
+        with self._tree.cond:
             return self._infos
 
     def count_children(self) -> ChildCounts:
@@ -821,22 +888,56 @@ class Supervisor:
     def child(self, name: str) -> ChildInfo:
         """The snapshot of the child `name`, searched through nested supervisors too.
 
+        A child of a nested supervisor that is down (being restarted by its parent, say)
+        has that supervisor's state (`"restarting"`, ...) and no pid.
+
         Raises:
             UnknownServerError: no child of that name in this tree.
         """
-        found = self._find(name)
+        found = self._root()._lookup(name)
         if found is None:
             raise UnknownServerError(f"supervisor {self.name!r} has no child named {name!r}")
-        return found[1]
+        return found.info
 
-    def _find(self, name: str) -> tuple[Supervisor, ChildInfo] | None:
-        for info in self.which_children():
-            if info.name == name:
-                return self, info
+    def _lookup(self, name: str) -> _Found | None:
+        """Find `name` below this supervisor by the specs, whether its supervisor runs or not."""
+        with self._tree.cond:
+            return self._locate(name, None)
+
+    def _locate(self, name: str, down: ChildState | None) -> _Found | None:
+        """`_lookup` (tree lock held); `down`: the state of a supervisor above that is down."""
+        tree = self._tree
+        for child, info in zip(self._children, self._infos, strict=True):
+            if child.name == name:
+                if down is not None:
+                    return _Found(tree.spec_info(name, down), None)
+                return _Found(info, child.gave_up if info.state in ("exited", "stopped") else None)
+            if name not in self._subtrees.get(child.name, ()):
+                continue
+            state = down if down is not None else info.state
+            running = child.running
+            if state == "running" and isinstance(running, _NestedSupervisor):
+                nested = running.supervisor
+                if nested._gave_up is None:
+                    return nested._locate(name, None)
+                if child.spec.restart == "temporary":  # no one restarts it: final
+                    found = nested._locate(name, None)
+                    return None if found is None else _Found(found.info, nested._gave_up)
+                state = "restarting"  # its parent will restart it (or give up itself)
+            elif state == "running":
+                state = "starting"
+            final = child.gave_up if state in ("exited", "stopped") else None
+            return _Found(tree.spec_info(name, state), final)
+        return None
+
+    def _child_object(self, name: str) -> _Child | None:
+        """The live `_Child` record of `name` (in a running nested supervisor), if any."""
         for child in list(self._children):
+            if child.name == name:
+                return child
             running = child.running
             if isinstance(running, _NestedSupervisor):
-                found = running.supervisor._find(name)
+                found = running.supervisor._child_object(name)
                 if found is not None:
                     return found
         return None
@@ -845,6 +946,10 @@ class Supervisor:
         self, name: str, *, timeout: float, restarts: int | None = None
     ) -> ChildInfo:
         """Wait until child `name` (anywhere in the tree) was restarted and is running again.
+
+        A child of a nested supervisor counts as restarted also when its supervisor was
+        restarted by its parent (escalation): restart counts are kept per name across
+        incarnations of the nested supervisor.
 
         Args:
             name: the child's name.
@@ -859,36 +964,54 @@ class Supervisor:
 
         Raises:
             CallTimeoutError: not restarted within `timeout` seconds.
-            SupervisorGaveUpError: its supervisor gave up (restart intensity exceeded).
+            SupervisorGaveUpError: the tree gave up on it: its supervisor gave up and no
+                supervisor above will restart that one (the top one gave up, or a nested
+                one whose restart type is `temporary`).
             RegistrarUnavailableError: it exited for good (temporary, or transient after a
                 normal exit) or its supervisor was stopped.
             UnknownServerError: no child of that name.
         """
-        deadline = time.monotonic() + timeout
-        target = restarts if restarts is not None else self._wait_cursor.get(name, 0) + 1
-        while True:
-            found = self._find(name)
+        root = self._root()
+        tree = self._tree
+        target = restarts if restarts is not None else tree.wait_cursor.get(name, 0) + 1
+        outcome: list[ChildInfo | RrError] = []
+
+        def settled() -> bool:  # runs with the tree lock held, at every publish
+            found = root._locate(name, None)
             if found is None:
-                raise UnknownServerError(f"supervisor {self.name!r} has no child named {name!r}")
-            owner, info = found
+                outcome.append(
+                    UnknownServerError(f"supervisor {root.name!r} has no child named {name!r}")
+                )
+                return True
+            info = found.info
+            error = root._gave_up or found.gave_up
             if info.state == "running" and info.restarts >= target:
-                self._wait_cursor[name] = info.restarts
-                return info
-            error = owner._gave_up or self._gave_up
-            if error is not None:
-                raise error
-            if info.state in ("exited", "stopped") and info.restarts < target:
-                raise RegistrarUnavailableError(
-                    f"child {name!r} is {info.state} ({info.last_exit}) and will not be restarted"
+                outcome.append(info)
+            elif error is not None:
+                outcome.append(error)
+            elif info.state in ("exited", "stopped") and info.restarts < target:
+                outcome.append(
+                    RegistrarUnavailableError(
+                        f"child {name!r} is {info.state} ({info.last_exit}) and will not be "
+                        "restarted"
+                    )
                 )
-            left = deadline - time.monotonic()
-            if left <= 0:
+            return bool(outcome)
+
+        with tree.cond:
+            if not tree.cond.wait_for(settled, timeout):
+                found = root._locate(name, None)
+                state = (
+                    f" (state {found.info.state}, {found.info.restarts} restarts)" if found else ""
+                )
                 raise CallTimeoutError(
-                    f"child {name!r} was not restarted within {timeout:g} s "
-                    f"(state {info.state}, {info.restarts} restarts)"
+                    f"child {name!r} was not restarted within {timeout:g} s{state}"
                 )
-            with owner._cond:
-                owner._cond.wait(min(left, 0.5))
+        result = outcome[-1]
+        if isinstance(result, RrError):
+            raise result
+        tree.wait_cursor[name] = result.restarts
+        return result
 
     # -- registrars, calls, manager access ----------------------------------------------
 
@@ -922,32 +1045,39 @@ class Supervisor:
     ) -> Any:
         """Run `fn(registrar)` against manager `name`'s registrar, where it lives.
 
-        For a process manager `fn` is cloudpickled and runs on a thread of that process
-        (its result must pickle); for a thread manager it runs on the calling thread.
+        For a process manager `fn` is cloudpickled and runs on a fresh thread of that
+        process, over the system's transport (`AttachedSystem.run`); its result must
+        pickle. For a thread manager it runs on the calling thread.
+
+        Args:
+            name: the manager's name (anywhere in the tree).
+            fn: called with the manager's `ResourceRegistrar`.
+            timeout: seconds to wait for the result of a process manager.
+
+        Returns:
+            What `fn` returned.
 
         Raises:
             UnknownServerError: no manager of that name in the tree.
             RegistrarUnavailableError: it is not running, or died before answering.
+            RegistrarStoppedError: its registrar was stopped before answering (by `fn`,
+                for example).
             CallTimeoutError: no answer within `timeout` seconds.
             ConfigError: `fn` cannot be pickled (process manager).
+            RrError: the result cannot be pickled (process manager).
+            Exception: whatever `fn` raised.
         """
-        running = self._running_manager(name)
+        spec = self._tree.specs.get(name)
+        if not isinstance(spec, ManagerSpec):
+            what = "a supervisor, not a manager" if spec is not None else "not in the tree"
+            raise UnknownServerError(f"supervisor {self.name!r}: {name!r} is {what}")
+        child = self._root()._child_object(name)
+        running = child.running if child is not None else None
         if isinstance(running, _ThreadManager):
             return fn(running.registrar)
-        if isinstance(running, _ProcessManager):
-            return running.handle.run(fn, timeout=timeout)
+        if isinstance(running, _ProcessManager) and self._system is not None:
+            return self._system.run(name, fn, timeout=timeout)
         raise RegistrarUnavailableError(f"manager {name!r} is not running")
-
-    def _running_manager(self, name: str) -> _Running | None:
-        for child in list(self._children):
-            if child.name == name:
-                if isinstance(child.spec, SupervisorSpec):
-                    raise UnknownServerError(f"{name!r} is a supervisor, not a manager")
-                return child.running
-            if isinstance(child.running, _NestedSupervisor):
-                with contextlib.suppress(UnknownServerError):
-                    return child.running.supervisor._running_manager(name)
-        raise UnknownServerError(f"supervisor {self.name!r} has no manager named {name!r}")
 
     def call_with_retry(
         self,
@@ -965,8 +1095,9 @@ class Supervisor:
         Every attempt uses the same caller-generated query id, so the provider's restored
         catalog recognises a retry of a call it already answered before it died: the
         resource is never loaded twice and no second consumer id is created. If the wait
-        for the restart runs out, the id is abandoned at the provider when it comes back,
-        so nothing leaks.
+        for the restart runs out, the id is abandoned at the provider (at once if it runs
+        again by then, else when it comes back), so nothing leaks. A restart of the
+        provider's nested supervisor by its parent (escalation) is waited out too.
 
         Args:
             consumer: the calling registrar.
@@ -983,19 +1114,21 @@ class Supervisor:
 
         Raises:
             RegistrarUnavailableError: the provider died and will not be restarted.
-            SupervisorGaveUpError: its supervisor gave up while the call waited.
+            SupervisorGaveUpError: the tree gave up on the provider while the call waited.
             CallTimeoutError: no answer (restart included) within `timeout` seconds.
             ResourceLoadError: as for `ResourceRegistrar.call`.
             DependencyCycleError: as for `ResourceRegistrar.call`.
             UnknownServerError: as for `ResourceRegistrar.call`.
-            RegistrarStoppedError: as for `ResourceRegistrar.call`.
+            RegistrarStoppedError: as for `ResourceRegistrar.call` (not when the
+                supervisor stopped the provider to restart it).
         """
         limit = timeout if timeout is not None else consumer.config.call_timeout
         qid = query_id or str(uuid.uuid4())
         deadline = time.monotonic() + limit
+        root = self._root()
         while True:
-            found = self._find(target_rr)
-            before = found[1].restarts if found is not None else 0
+            found = root._lookup(target_rr)
+            before = found.info.restarts if found is not None else 0
             left = deadline - time.monotonic()
             if left <= 0:
                 self._abandon_after_restart(target_rr, qid, consumer.name)
@@ -1007,7 +1140,11 @@ class Supervisor:
                     target_rr, server, request, on_status=on_status, timeout=left, query_id=qid
                 )
             except RegistrarUnavailableError:
-                if found is None or found[1].restart == "temporary":
+                if found is None or found.info.restart == "temporary":
+                    raise
+            except RegistrarStoppedError:
+                now = root._lookup(target_rr)  # stopped by its supervisor for a restart?
+                if now is None or now.info.state not in ("stopping", "restarting", "starting"):
                     raise
             try:
                 self.wait_restarted(
@@ -1021,11 +1158,19 @@ class Supervisor:
                 ) from None
 
     def _abandon_after_restart(self, name: str, query_id: str, origin: str) -> None:
-        found = self._find(name)
-        owner = found[0] if found is not None else self
-        owner._do_async(
-            lambda: owner._abandon_later.setdefault(name, []).append((query_id, origin))
-        )
+        """Abandon `query_id` at provider `name`: now if it runs, else when it is back.
+
+        Under the tree's abandon lock, which `_start_child` takes after marking a child
+        running: an id is either sent here or handed to the next start, never left behind.
+        """
+        tree = self._tree
+        with tree.abandon_lock:
+            child = self._root()._child_object(name)
+            if child is None or child.state != "running" or child.running is None:
+                tree.abandon_later.setdefault(name, []).append((query_id, origin))
+                return
+        with contextlib.suppress(RrError):
+            DIRECTORY.lookup(name).tell(Abandon(query_id, origin))
 
     # -- the mailbox ------------------------------------------------------------------
 
@@ -1059,20 +1204,22 @@ class Supervisor:
     def _do_async(self, fn: Callable[[], Any]) -> None:
         self._mailbox.put(_Do(fn, queue.SimpleQueue()))
 
-    def _publish(self) -> None:
-        with self._cond:
-            self._infos = tuple(c.info() for c in self._children)
-            self._cond.notify_all()
-        parent = self._parent
-        if parent is not None:
-            with parent._cond:
-                parent._cond.notify_all()
+    def _snapshots(self) -> tuple[ChildInfo, ...]:
+        restarts = self._tree.restarts
+        return tuple(c.info(restarts.get(c.name, 0)) for c in self._children)
 
-    def _post_exit(self, name: str, incarnation: int) -> Callable[[Any], None]:
-        def post(result: Any) -> None:
-            self._mailbox.put(
-                _Exited(name, incarnation, _Exit(result.reason, normal=result.normal))
-            )
+    def _publish(self) -> None:
+        """Publish the children's snapshots and wake every waiter of the tree."""
+        tree = self._tree
+        with tree.cond:
+            self._infos = self._snapshots()
+            for info in self._infos:
+                tree.latest[info.name] = info
+            tree.cond.notify_all()
+
+    def _post_exit(self, name: str, incarnation: int) -> Callable[[ManagerExit], None]:
+        def post(result: ManagerExit) -> None:
+            self._mailbox.put(_Exited(name, incarnation, result))
 
         return post
 
@@ -1103,12 +1250,13 @@ class Supervisor:
 
             def escalate(error: SupervisorGaveUpError) -> None:
                 self._mailbox.put(
-                    _Exited(spec.name, incarnation, _Exit(f"gave up: {error}", normal=False))
+                    _Exited(spec.name, incarnation, ManagerExit(f"gave up: {error}", normal=False))
                 )
 
             nested._on_gave_up = escalate
             nested.start()
             child.running = _NestedSupervisor(nested)
+            child.gave_up = None
         else:
             if spec.restart != "temporary":
                 DIRECTORY.restart_expected.add(spec.name)  # death watch waits for us
@@ -1121,7 +1269,7 @@ class Supervisor:
                 try:
                     handle = ManagerProcess.start(
                         spec.name,
-                        self._setups[spec.name],
+                        self._tree.setups[spec.name],
                         self._config(spec),
                         self._system.address if self._system is not None else None,
                         start_timeout=spec.start_timeout,
@@ -1132,9 +1280,15 @@ class Supervisor:
                     )
                 finally:  # runs after this start was published: off the restart path
                     root._do_async(root._replenish_spare)
-                child.running = _ProcessManager(handle)
+                child.running = _ProcessManager(handle, spec.shutdown)
         child.state = "running"
-        for query_id, origin in self._abandon_later.pop(child.name, ()):
+        tree = self._tree
+        if child.name in tree.started:  # a restart: by this supervisor, or of its parent
+            tree.restarts[child.name] = tree.restarts.get(child.name, 0) + 1
+        tree.started.add(child.name)
+        with tree.abandon_lock:  # see _abandon_after_restart
+            abandoned = tree.abandon_later.pop(child.name, [])
+        for query_id, origin in abandoned:
             with contextlib.suppress(RrError):
                 DIRECTORY.lookup(child.name).tell(Abandon(query_id, origin))
 
@@ -1146,6 +1300,7 @@ class Supervisor:
             except BaseException as exc:
                 child.state = "stopped"
                 child.last_exit = f"failed to start: {exc}"
+                self._forget(child, dead=False)  # no restart is coming: no death-watch hold
                 for done in reversed(started):
                     self._stop_child(done, final=True)
                 raise SupervisorGaveUpError(
@@ -1154,8 +1309,8 @@ class Supervisor:
             started.append(child)
             self._publish()
 
-    def _stop_child(self, child: _Child, *, final: bool) -> None:
-        """Stop a running child (its spec's shutdown, then a kill)."""
+    def _stop_child(self, child: _Child, *, final: bool, deadline: float | None = None) -> None:
+        """Stop a running child (its spec's shutdown, bounded by `deadline`, then a kill)."""
         running = child.running
         if running is None:
             if final:
@@ -1167,8 +1322,10 @@ class Supervisor:
         child.state = "stopping"
         child.incarnation += 1  # its watcher's exit event is now stale
         self._publish()
-        shutdown = child.spec.shutdown if isinstance(child.spec, ManagerSpec) else 60.0
-        result = running.stop(shutdown)
+        limit: float | None = _left(deadline)
+        if isinstance(child.spec, ManagerSpec):
+            limit = child.spec.shutdown if limit is None else min(limit, child.spec.shutdown)
+        result = running.stop(limit)
         child.running = None
         child.state = "stopped"
         child.last_exit = result.reason
@@ -1182,13 +1339,17 @@ class Supervisor:
             if dead:
                 self._root()._consumer_down(child.name)
 
-    def _stop_all(self) -> None:
+    def _cancel_restarts(self) -> None:
+        """Make every scheduled restart stale (new generation) and cancel its timer."""
         self._generation += 1
         for timer in self._timers:
             timer.cancel()
         self._timers.clear()
+
+    def _stop_all(self, deadline: float | None = None) -> None:
+        self._cancel_restarts()
         for child in reversed(self._children):
-            self._stop_child(child, final=True)
+            self._stop_child(child, final=True, deadline=deadline)
 
     def _root(self) -> Supervisor:
         sup = self
@@ -1224,7 +1385,9 @@ class Supervisor:
         if child is None or child.incarnation != event.incarnation or self._gave_up:
             return  # a stale event: that incarnation was stopped on purpose
         if isinstance(child.running, _NestedSupervisor):
-            child.running.supervisor.stop()  # it gave up: end its mailbox thread
+            nested = child.running.supervisor
+            child.gave_up = nested.gave_up
+            nested.stop()  # it gave up: end its mailbox thread
         child.running = None
         child.last_exit = event.exit.reason
         restart = child.spec.restart
@@ -1290,11 +1453,10 @@ class Supervisor:
                     _Exited(
                         child.name,
                         child.incarnation,
-                        _Exit(f"failed to start: {exc}", normal=False),
+                        ManagerExit(f"failed to start: {exc}", normal=False),
                     )
                 )
                 return
-            child.restarts += 1
             self._publish()
 
     def _give_up(self, crashed: _Child) -> None:
@@ -1303,10 +1465,7 @@ class Supervisor:
             f"within {self._spec.period:g} s (last: {crashed.name!r} {crashed.last_exit})"
         )
         logger.error("%s", error)
-        self._generation += 1
-        for timer in self._timers:
-            timer.cancel()
-        self._timers.clear()
+        self._cancel_restarts()
         for child in reversed(self._children):
             if child is crashed or child.running is None:
                 dead = child.state != "exited"
@@ -1318,3 +1477,10 @@ class Supervisor:
         self._publish()
         if self._on_gave_up is not None:
             self._on_gave_up(error)
+
+
+def _left(deadline: float | None) -> float | None:
+    """Seconds left until `deadline` (at least `_MIN_STOP`), or `None` without one."""
+    if deadline is None:
+        return None
+    return max(deadline - time.monotonic(), _MIN_STOP)

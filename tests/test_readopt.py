@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -41,6 +42,31 @@ def test_a_pid_that_no_longer_runs_is_not_our_process() -> None:
     child.wait(10.0)
 
     assert not example.same_process(child.pid, start)
+
+
+WAITS = [sys.executable, "-c", "import sys; sys.stdin.read()"]  # runs until stdin closes
+
+
+def test_a_process_with_another_start_time_gets_no_signal() -> None:
+    example = load_example()
+    with subprocess.Popen(WAITS, stdin=subprocess.PIPE) as child:
+        try:
+            start = example.process_start_time(child.pid)
+            sent = example.signal_process(child.pid, start + 1, signal.SIGTERM)
+            assert (False, None) == (sent, child.poll())
+        finally:
+            child.kill()
+
+
+def test_our_process_is_signalled_through_its_pidfd() -> None:
+    example = load_example()
+    with subprocess.Popen(WAITS, stdin=subprocess.PIPE) as child:
+        try:
+            start = example.process_start_time(child.pid)
+            sent = example.signal_process(child.pid, start, signal.SIGTERM)
+            assert (True, -signal.SIGTERM) == (sent, child.wait(10.0))
+        finally:
+            child.kill()
 
 
 def test_the_restarted_erm_re_adopts_the_process_that_still_runs_and_unloads_it() -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+import time
 import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -107,6 +108,30 @@ def handle(sup: Supervisor, name: str) -> rr.ResourceRegistrar:
 
 def crash(sup: Supervisor, name: str) -> None:
     testing.crash(handle(sup, name))
+
+
+def once_waiting(sup: Supervisor, monkeypatch: pytest.MonkeyPatch) -> threading.Event:
+    """An event set when something (`call_with_retry`) starts to wait for a restart."""
+    waiting = threading.Event()
+    wait_restarted = sup.wait_restarted
+
+    def wait_restarted_and_tell(name: str, **kwargs: Any) -> rr.ChildInfo:
+        waiting.set()
+        return wait_restarted(name, **kwargs)
+
+    monkeypatch.setattr(sup, "wait_restarted", wait_restarted_and_tell)
+    return waiting
+
+
+def recording_provider(
+    unloaded: threading.Event,
+) -> Callable[[rr.ResourceRegistrar], None]:
+    """A setup with server "res" that sets `unloaded` when a resource is unloaded."""
+
+    def setup(reg: rr.ResourceRegistrar) -> None:
+        reg.register_server("res", load=lambda r: r, unload=lambda r, _: unloaded.set())
+
+    return setup
 
 
 def restarts(sup: Supervisor) -> dict[str, int]:
@@ -485,9 +510,10 @@ def test_stopping_a_supervisor_cancels_a_pending_restart(
     crash(sup, name)
     assert timer.wait_scheduled(1)
     sup.stop()
+    cancelled = [handle.cancelled for _, _, handle in timer.pending]
     timer.fire()
 
-    assert "stopped" == sup.child(name).state
+    assert ([True], "stopped") == (cancelled, sup.child(name).state)
 
 
 def test_a_restart_whose_setup_fails_counts_as_another_crash(
@@ -574,7 +600,7 @@ def test_a_consumer_whose_supervisor_gave_up_has_its_consumer_ids_released(
 
 
 def test_call_with_retry_waits_for_the_restart_and_loads_once(
-    supervisors: Callable[..., Supervisor], uid: str
+    supervisors: Callable[..., Supervisor], uid: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     loads: list[Any] = []
     name = f"p-{uid}"
@@ -588,6 +614,7 @@ def test_call_with_retry_waits_for_the_restart_and_loads_once(
     app = sup.registrar(f"app-{uid}")
     crash(sup, name)
     assert timer.wait_scheduled(1)
+    waiting = once_waiting(sup, monkeypatch)
     result: list[rr.Query] = []
     caller = threading.Thread(
         target=lambda: result.append(
@@ -595,6 +622,7 @@ def test_call_with_retry_waits_for_the_restart_and_loads_once(
         )
     )
     caller.start()
+    assert waiting.wait(5.0)  # its first attempt failed: the restart is what it waits for
     timer.fire()
     caller.join(10.0)
 
@@ -626,3 +654,164 @@ def test_call_with_retry_that_times_out_while_restarting_raises_call_timeout(
 
     with pytest.raises(rr.CallTimeoutError):
         sup.call_with_retry(app, name, "res", "camera", timeout=0.2)
+
+
+def test_an_id_abandoned_while_its_provider_runs_is_released_at_once(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    """`call_with_retry` abandons an id when its wait runs out; the provider may be back."""
+    name = f"p-{uid}"
+    unloaded = threading.Event()
+    sup = supervisors([ManagerSpec(name, recording_provider(unloaded))]).start()
+    app = sup.registrar(f"app-{uid}")
+    app.call(name, "res", "camera", query_id="q-1")
+    sup._abandon_after_restart(name, "q-1", app.name)
+
+    assert unloaded.wait(5.0)
+    assert [] == handle(sup, name).server_queries("res")
+
+
+def test_a_manager_that_failed_to_start_is_released_by_the_death_watch_when_it_dies_later(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    name = f"c-{uid}"
+
+    def broken(_: rr.ResourceRegistrar) -> None:
+        raise ValueError("no camera")
+
+    with pytest.raises(rr.SupervisorGaveUpError):
+        supervisors([ManagerSpec(name, broken)]).start()
+    unloaded = threading.Event()
+    provider = rr.ResourceRegistrar.start(f"p-{uid}")
+    try:
+        recording_provider(unloaded)(provider)
+        consumer = rr.ResourceRegistrar.start(name)  # the same name, now unsupervised
+        consumer.call(provider.name, "res", "camera")
+        testing.crash(consumer)
+
+        assert unloaded.wait(5.0)
+    finally:
+        provider.stop()
+
+
+def test_stop_with_a_timeout_bounds_a_shutdown_that_would_take_longer(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    name = f"a-{uid}"
+    release = threading.Event()
+
+    def setup(reg: rr.ResourceRegistrar) -> None:
+        reg.register_server("res", load=lambda r: r, unload=lambda r, _: release.wait(30.0))
+
+    sup = supervisors([ManagerSpec(name, setup, shutdown=30.0)]).start()
+    app = sup.registrar(f"app-{uid}")
+    sup.run_in(name, lambda reg: reg.call(name, "res", "x"))  # its stop must unload it
+    started = time.monotonic()
+    try:
+        sup.stop(timeout=0.5)
+    finally:
+        release.set()
+
+    quick = time.monotonic() - started < 15.0  # not the 30 s of its shutdown
+
+    assert (True, "killed", False) == (
+        quick,
+        (sup.child(name).last_exit or "")[:6],
+        app.is_alive(),
+    )
+
+
+# -- nested supervisors: escalation seen from a child below -----------------------------------
+
+
+def nested(uid: str, setup: Any = None, **inner: Any) -> list[ManagerSpec | SupervisorSpec]:
+    """`a-<uid>`, then `inner-<uid>` (max_restarts=0 unless given) holding `x-<uid>`."""
+    inner.setdefault("max_restarts", 0)
+    return [
+        ManagerSpec(f"a-{uid}"),
+        SupervisorSpec(f"inner-{uid}", (ManagerSpec(f"x-{uid}", setup),), **inner),
+    ]
+
+
+def test_wait_restarted_on_a_child_waits_while_its_parent_restarts_its_supervisor(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    x = f"x-{uid}"
+    sup = supervisors(nested(uid), max_restarts=3).start()
+    crash(sup, x)
+    info = sup.wait_restarted(x, timeout=5.0)
+
+    assert (1, "running", None) == (info.restarts, info.state, sup.gave_up)
+
+
+def test_a_child_of_a_nested_supervisor_being_restarted_is_reported_restarting(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    x = f"x-{uid}"
+    timer = ManualTimer()
+    sup = supervisors(nested(uid), backoff=Backoff(initial=1.0), timer=timer).start()
+    crash(sup, x)
+    assert timer.wait_scheduled(1)  # the parent holds the restart of inner
+
+    assert ("restarting", None) == (sup.child(x).state, sup.child(x).pid)
+
+
+def test_call_with_retry_to_a_child_waits_out_its_supervisors_restart_by_the_parent(
+    supervisors: Callable[..., Supervisor], uid: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    x = f"x-{uid}"
+    timer = ManualTimer()
+    unloaded = threading.Event()
+    specs = nested(uid, recording_provider(unloaded))
+    sup = supervisors(specs, backoff=Backoff(initial=1.0), timer=timer).start()
+    app = sup.registrar(f"app-{uid}")
+    crash(sup, x)
+    assert timer.wait_scheduled(1)
+    waiting = once_waiting(sup, monkeypatch)
+    result: list[Any] = []
+
+    def call() -> None:
+        try:
+            result.append(sup.call_with_retry(app, x, "res", "camera", timeout=10.0).response)
+        except Exception as exc:
+            result.append(exc)
+
+    caller = threading.Thread(target=call)
+    caller.start()
+    assert waiting.wait(5.0)
+    timer.fire()
+    caller.join(10.0)
+
+    assert ["camera"] == result
+
+
+def test_an_id_abandoned_while_a_nested_supervisor_restarts_is_released_when_it_is_back(
+    supervisors: Callable[..., Supervisor], uid: str, tmp_path: Any
+) -> None:
+    x = f"x-{uid}"
+    timer = ManualTimer()
+    unloaded = threading.Event()
+    specs = nested(uid, recording_provider(unloaded))
+    sup = supervisors(specs, backoff=Backoff(initial=1.0), timer=timer, state_dir=tmp_path)
+    sup.start()
+    app = sup.registrar(f"app-{uid}")
+    app.call(x, "res", "camera", query_id="q-1")
+    crash(sup, x)
+    assert timer.wait_scheduled(1)
+    sup._abandon_after_restart(x, "q-1", app.name)  # what a timed-out call_with_retry does
+    timer.fire()
+    sup.wait_restarted(x, timeout=5.0)
+
+    assert unloaded.wait(5.0)
+
+
+def test_a_nested_give_up_is_raised_when_no_supervisor_above_restarts_it(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    x, inner = f"x-{uid}", f"inner-{uid}"
+    sup = supervisors(nested(uid, restart="temporary")).start()
+    crash(sup, x)
+
+    with pytest.raises(rr.SupervisorGaveUpError, match=inner):
+        sup.wait_restarted(x, timeout=5.0)
+    assert None is sup.gave_up

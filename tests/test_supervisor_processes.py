@@ -1,13 +1,17 @@
 """Supervisor with manager processes: real processes, real SIGKILL, bounded waits.
 
 Crashes are caused with `os.kill(pid, SIGKILL)` (or SIGSTOP for a hang); every wait is
-bounded (sentinels, events, `wait_restarted(timeout=)`). The conftest's `no_leftovers`
-fixture fails any test that leaves a child process behind.
+bounded (sentinels, events, `wait_restarted(timeout=)`). Events that a manager process sets
+come from the conftest's `process_helpers` (`SharedObjects` proxies, which pickle into the
+managers). The conftest's `no_leftovers` fixture fails any test that leaves a child
+process behind.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -23,6 +27,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._manager import start_forkserver
+from rr_actors.testing import SharedObjects
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -67,8 +72,21 @@ def alive(pid: int) -> bool:
 
 
 def wait_gone(pids: list[int], timeout: float = 15.0) -> list[int]:
-    """Wait (bounded) until none of `pids` lives; return those still alive."""
+    """Wait (bounded) until none of `pids` lives; return those still alive.
+
+    Blocks on a pidfd per process (readable once it ended; pidfds work for processes that
+    are not our children); polls only where there are no pidfds.
+    """
     deadline = time.monotonic() + timeout
+    for pid in pids:
+        try:
+            fd = os.pidfd_open(pid)
+        except (AttributeError, OSError):  # gone already, or no pidfds: polled below
+            continue
+        try:
+            select.select([fd], [], [], max(0.0, deadline - time.monotonic()))
+        finally:
+            os.close(fd)
     pause = threading.Event()
     while any(alive(p) for p in pids) and time.monotonic() < deadline:
         pause.wait(0.02)
@@ -79,8 +97,13 @@ def echo_setup(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
 
 
-def journal_setup(path: str) -> Callable[[rr.ResourceRegistrar], None]:
-    """A setup whose server appends `load <request>` / `unload <request>` lines to `path`."""
+def journal_setup(
+    path: str, unloaded: threading.Event | None = None
+) -> Callable[[rr.ResourceRegistrar], None]:
+    """A setup whose server appends `load <request>` / `unload <request>` lines to `path`.
+
+    `unloaded` (a shared event) is set after an `unload` line was written.
+    """
 
     def setup(registrar: rr.ResourceRegistrar) -> None:
         def note(line: str) -> None:
@@ -91,9 +114,12 @@ def journal_setup(path: str) -> Callable[[rr.ResourceRegistrar], None]:
             note(f"load {request}")
             return {"pid": os.getpid(), "request": request}
 
-        registrar.register_server(
-            "res", load=load, unload=lambda request, _: note(f"unload {request}")
-        )
+        def unload(request: Any, _: Any) -> None:
+            note(f"unload {request}")
+            if unloaded is not None:
+                unloaded.set()
+
+        registrar.register_server("res", load=load, unload=unload)
 
     return setup
 
@@ -207,22 +233,23 @@ def test_a_retry_after_a_restart_of_an_answered_request_does_not_load_again(
 
 
 def test_a_call_in_flight_to_a_manager_that_dies_fails_at_once(
-    supervisors: Callable[..., rr.Supervisor], uid: str
+    supervisors: Callable[..., rr.Supervisor], uid: str, process_helpers: SharedObjects
 ) -> None:
     name = f"erm-{uid}"
+    loading = process_helpers.event()
 
     def setup(registrar: rr.ResourceRegistrar) -> None:
-        registrar.register_server(
-            "stuck", load=lambda r: threading.Event().wait(), unload=lambda r, s: None
-        )
+        def stuck(_: Any) -> None:
+            loading.set()
+            threading.Event().wait()
+
+        registrar.register_server("stuck", load=stuck, unload=lambda r, s: None)
 
     sup = supervisors([process(name, setup)]).start()
     app = sup.registrar(f"app-{uid}")
     errors: list[BaseException] = []
-    loading = threading.Event()
 
     def call() -> None:
-        loading.set()
         try:
             app.call(name, "stuck", 1, timeout=30.0)
         except BaseException as exc:
@@ -230,9 +257,7 @@ def test_a_call_in_flight_to_a_manager_that_dies_fails_at_once(
 
     caller = threading.Thread(target=call)
     caller.start()
-    assert loading.wait(5.0)
-    pending = threading.Event()
-    pending.wait(0.3)  # let the request reach the manager: not a synchronisation point
+    assert loading.wait(10.0)  # the load runs in the manager: the call is in flight there
     started = time.monotonic()
     os.kill(sup.child(name).pid or 0, signal.SIGKILL)
     caller.join(20.0)
@@ -305,21 +330,23 @@ def consumer_setup(provider: str) -> Callable[[rr.ResourceRegistrar], None]:
 
 
 def test_a_temporary_consumer_process_that_is_killed_has_its_ids_released(
-    supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path
+    supervisors: Callable[..., rr.Supervisor],
+    uid: str,
+    tmp_path: Path,
+    process_helpers: SharedObjects,
 ) -> None:
     p, c = f"p-{uid}", f"c-{uid}"
     journal = tmp_path / "journal.txt"
+    unloaded = process_helpers.event()
     sup = supervisors(
         [
-            process(p, journal_setup(str(journal))),
+            process(p, journal_setup(str(journal), unloaded)),
             process(c, consumer_setup(p), restart="temporary"),
         ]
     ).start()
     os.kill(sup.child(c).pid or 0, signal.SIGKILL)
-    deadline = time.monotonic() + 10.0
-    while "unload camera" not in lines(journal) and time.monotonic() < deadline:
-        threading.Event().wait(0.02)
 
+    assert unloaded.wait(10.0)
     assert ["load camera", "unload camera"] == lines(journal)
 
 
@@ -389,6 +416,8 @@ def test_killing_the_users_main_process_leaves_no_manager_process(uid: str, tmp_
     parent = subprocess.Popen([sys.executable, str(script), uid], stdout=subprocess.PIPE, text=True)
     try:
         assert parent.stdout is not None
+        readable, _, _ = select.select([parent.stdout], [], [], 30.0)
+        assert [parent.stdout] == readable  # it prints its managers' pids once they run
         pids = [int(p) for p in parent.stdout.readline().split()]
         assert 2 == len(pids)
         assert all(alive(p) for p in pids)
@@ -399,3 +428,123 @@ def test_killing_the_users_main_process_leaves_no_manager_process(uid: str, tmp_
             parent.stdout.close()
 
     assert [] == wait_gone(pids)
+
+
+# -- the same outcome in both placements ------------------------------------------------------
+
+
+def stop_own_registrar(registrar: rr.ResourceRegistrar) -> str:
+    """Run in the manager: stop its registrar cleanly, as code in the manager may do."""
+    registrar.stop()
+    return "stopped"
+
+
+@pytest.mark.parametrize("isolation", ["thread", "process"])
+def test_a_transient_manager_whose_registrar_its_own_code_stops_exits_normally(
+    supervisors: Callable[..., rr.Supervisor], uid: str, isolation: str
+) -> None:
+    name = f"t-{uid}"
+    spec = rr.ManagerSpec(name, echo_setup, isolation=isolation, restart="transient")  # type: ignore[arg-type]
+    sup = supervisors([spec]).start()
+    with contextlib.suppress(rr.RegistrarStoppedError):  # its answer may not make it out
+        sup.run_in(name, stop_own_registrar, timeout=10.0)
+
+    with pytest.raises(rr.RegistrarUnavailableError, match="will not be restarted"):
+        sup.wait_restarted(name, timeout=10.0)
+    assert ("exited", "normal", 0) == (
+        sup.child(name).state,
+        sup.child(name).last_exit,
+        sup.child(name).restarts,
+    )
+
+
+# -- stopping ---------------------------------------------------------------------------------
+
+
+def slow_unload_setup(seconds: float) -> Callable[[rr.ResourceRegistrar], None]:
+    """A setup that holds one resource whose `unload` takes `seconds` (a slow clean stop)."""
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        registrar.register_server(
+            "slow", load=lambda r: r, unload=lambda r, s: threading.Event().wait(seconds)
+        )
+        if not registrar.server_queries("slow"):
+            registrar.call(registrar.name, "slow", "x", timeout=10.0)
+
+    return setup
+
+
+def test_the_supervisor_does_not_spin_while_a_manager_process_takes_its_time_to_stop(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    name = f"erm-{uid}"
+    sup = supervisors([process(name, slow_unload_setup(1.5), shutdown=20.0)]).start()
+    cpu = time.process_time()
+    started = time.monotonic()
+    sup.stop()
+    cpu = time.process_time() - cpu
+
+    assert ("shutdown", True) == (sup.child(name).last_exit, time.monotonic() - started >= 1.5)
+    assert cpu < 0.5, f"the supervisor's process used {cpu:.2f} s CPU in a 1.5 s stop"
+
+
+def test_stop_with_a_timeout_kills_a_manager_process_before_its_shutdown_ran_out(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    name = f"erm-{uid}"
+    sup = supervisors([process(name, heartbeat=None, shutdown=30.0)]).start()
+    pid = sup.child(name).pid or 0
+    os.kill(pid, signal.SIGSTOP)
+    started = time.monotonic()
+    sup.stop(timeout=0.5)
+
+    assert ("killed", False, True) == (
+        (sup.child(name).last_exit or "")[:6],
+        alive(pid),
+        time.monotonic() - started < 15.0,  # not the 30 s of its shutdown
+    )
+
+
+# -- no orphans: the parent-death signal -------------------------------------------------------
+
+GRANDCHILD = textwrap.dedent(
+    """
+    import os, sys, threading
+    expected = os.getppid()
+    print(os.getpid(), flush=True)
+    sys.stdin.read()  # EOF: the middle process (its parent) is exiting
+    from rr_actors._manager import _die_with_parent
+    _die_with_parent(expected)
+    threading.Event().wait(60)  # an orphan that nothing kills lives on
+    """
+)
+
+MIDDLE = textwrap.dedent(
+    """
+    import subprocess, sys
+
+    # Start the grandchild, pass its pid on, exit: it loses its parent before its prctl.
+    child = subprocess.Popen(
+        [sys.executable, sys.argv[1]], stdin=subprocess.PIPE, stdout=subprocess.PIPE
+    )
+    print(child.stdout.readline().decode().strip(), flush=True)
+    """
+)
+
+
+def test_a_manager_whose_forking_process_died_before_prctl_exits_at_once(tmp_path: Path) -> None:
+    (tmp_path / "middle.py").write_text(MIDDLE)
+    (tmp_path / "grandchild.py").write_text(GRANDCHILD)
+    middle = subprocess.run(
+        [sys.executable, str(tmp_path / "middle.py"), str(tmp_path / "grandchild.py")],
+        check=True,
+        timeout=30,
+        capture_output=True,
+        text=True,
+    )
+    pid = int(middle.stdout)
+    try:
+        assert [] == wait_gone([pid])
+    finally:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGKILL)
