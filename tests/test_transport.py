@@ -13,14 +13,19 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import multiprocessing
 import multiprocessing.connection
 import multiprocessing.context
 import multiprocessing.forkserver
+import multiprocessing.synchronize
 import os
 import pickle
 import signal
+import socket
 import stat
+import struct
+import sys
 import threading
 import time
 import uuid
@@ -33,8 +38,8 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._directory import DIRECTORY
-from rr_actors._messages import Load
-from rr_actors._transport import RemotePeer, System, attach
+from rr_actors._messages import Fetch, Load
+from rr_actors._transport import RemotePeer, System, _Channel, _Writer, attach
 
 Setup = Callable[[rr.ResourceRegistrar], None]
 
@@ -50,6 +55,7 @@ class ChildState:
     load_started: threading.Event = dataclasses.field(default_factory=threading.Event)
     release: threading.Event = dataclasses.field(default_factory=threading.Event)
     lock: threading.Lock = dataclasses.field(default_factory=threading.Lock)
+    warnings: list[str] = dataclasses.field(default_factory=list)
 
 
 CHILD = ChildState()
@@ -92,6 +98,56 @@ def unloads(_registrar: rr.ResourceRegistrar) -> list[Any]:
 def wait_load_started(_registrar: rr.ResourceRegistrar) -> bool:
     """Block (bounded) until the `slow` server's load runs in this process."""
     return CHILD.load_started.wait(10)
+
+
+BIG = 20_000_000  # bytes: far more than a socket buffer holds
+
+
+def _big_load(_request: Any) -> Any:
+    CHILD.load_started.set()
+    CHILD.release.wait(30)
+    return b"x" * BIG
+
+
+def _refuse_rebuild() -> None:
+    raise RuntimeError("cannot be rebuilt here")
+
+
+class Opaque:
+    """Pickles fine; unpickling it (in the consumer) raises."""
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_refuse_rebuild, ())
+
+
+def setup_big(registrar: rr.ResourceRegistrar) -> None:
+    """`big` answers 20 MB once released; `echo` records; `opaque` answers an `Opaque`."""
+    setup_servers(registrar)
+    registrar.register_server("big", load=_big_load, unload=_record_unload)
+    registrar.register_server("opaque", load=lambda _request: Opaque(), unload=_record_unload)
+
+
+def release_loads(_registrar: rr.ResourceRegistrar) -> None:
+    """Let blocked `slow` / `big` loads of this (child) process return."""
+    CHILD.release.set()
+
+
+class _WarningLog(logging.Handler):
+    def emit(self, record: logging.LogRecord) -> None:
+        with CHILD.lock:
+            CHILD.warnings.append(record.getMessage())
+
+
+def record_warnings(_registrar: rr.ResourceRegistrar) -> None:
+    """From now on, keep what the `rr_actors` logger says at WARNING and above here."""
+    handler = _WarningLog(logging.WARNING)
+    logging.getLogger("rr_actors").addHandler(handler)
+
+
+def warnings_logged(_registrar: rr.ResourceRegistrar) -> list[str]:
+    """The warnings recorded in this (child) process."""
+    with CHILD.lock:
+        return list(CHILD.warnings)
 
 
 def provider_main(
@@ -242,6 +298,35 @@ def test_a_given_runtime_directory_is_made_private(tmp_path: Path) -> None:
         assert 0o700 == stat.S_IMODE(os.stat(wanted).st_mode)
     finally:
         created.close()
+
+
+def test_closing_a_system_keeps_a_given_directory_and_the_files_it_did_not_make(
+    tmp_path: Path,
+) -> None:
+    wanted = tmp_path / "run"
+    wanted.mkdir()
+    (wanted / "notes.txt").write_text("mine")
+    created = System.create(str(wanted))
+    registrar = rr.ResourceRegistrar.start(f"kept-{uuid.uuid4().hex[:8]}")
+    try:
+        created.serve(registrar)
+    finally:
+        registrar.stop()
+        created.close()
+
+    assert ["notes.txt"] == sorted(os.listdir(wanted))
+
+
+def test_closing_a_system_removes_the_runtime_directory_it_made(tmp_path: Path) -> None:
+    wanted = tmp_path / "made" / "run"
+    created = System.create(str(wanted))
+    registrar = rr.ResourceRegistrar.start(f"made-{uuid.uuid4().hex[:8]}")
+    try:
+        created.serve(registrar)
+    finally:
+        registrar.stop()
+        created.close()
+
     assert not wanted.exists()
 
 
@@ -541,3 +626,323 @@ def test_a_remote_peer_is_what_the_directory_hands_out_for_another_process(
 
     assert isinstance(DIRECTORY.lookup(provider.name), RemotePeer)
     assert not isinstance(DIRECTORY.lookup(consumer.name), RemotePeer)
+
+
+# -- frozen peers (SIGSTOP) ---------------------------------------------------------------------
+
+
+def fetch_big(provider: str) -> Callable[[rr.ResourceRegistrar], int]:
+    """A function to run in a consumer process: call `provider/big`, return the size."""
+
+    def fetch(registrar: rr.ResourceRegistrar) -> int:
+        return len(registrar.call(provider, "big", "r", timeout=30).response)
+
+    return fetch
+
+
+def test_a_call_to_a_frozen_process_fails_within_its_timeout(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider(setup_big)
+    consumer.call(provider.name, "echo", "warm up the connection")
+    os.kill(provider.pid, signal.SIGSTOP)
+    try:
+        done, outcome = in_thread(
+            lambda: consumer.call(provider.name, "echo", b"x" * BIG, timeout=1.0)
+        )
+        assert done.wait(10), "the call outlived its timeout"
+    finally:
+        provider.kill()
+
+    assert isinstance(outcome.get("error"), rr.CallTimeoutError)
+
+
+def test_a_first_call_to_a_frozen_process_fails_within_its_timeout(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider(setup_big)
+    os.kill(provider.pid, signal.SIGSTOP)
+    try:
+        done, outcome = in_thread(lambda: consumer.call(provider.name, "echo", "r", timeout=1.0))
+        assert done.wait(10), "the call outlived its timeout"
+    finally:
+        provider.kill()
+
+    assert isinstance(outcome.get("error"), rr.CallTimeoutError)
+
+
+def test_a_frozen_consumer_process_does_not_hold_up_its_provider(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider(setup_big)
+    frozen = start_provider()
+    fetched, _ = in_thread(lambda: system.run(frozen.name, fetch_big(provider.name), timeout=30))
+    assert system.run(provider.name, wait_load_started, timeout=10)
+    os.kill(frozen.pid, signal.SIGSTOP)
+    try:
+        system.run(provider.name, release_loads, timeout=10)  # 20 MB go to the frozen one
+        query = consumer.call(provider.name, "echo", "r", timeout=10)
+    finally:
+        frozen.kill()
+
+    assert {"resource": "r"} == query.response
+    assert fetched.wait(10)
+
+
+# -- answers that cannot be read ------------------------------------------------------------------
+
+
+def test_an_answer_that_cannot_be_unpickled_here_fails_the_call_as_a_load_error(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider(setup_big)
+
+    with pytest.raises(rr.ResourceLoadError) as caught:
+        consumer.call(provider.name, "opaque", "r", timeout=10)
+
+    assert [(provider.name, "opaque", "RuntimeError")] == [
+        (frame.registrar, frame.server, frame.exc_type) for frame in caught.value.stack
+    ]
+
+
+def test_an_answer_that_cannot_be_unpickled_here_releases_its_consumer_id(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    eventually: Callable[..., bool],
+) -> None:
+    provider = start_provider(setup_big)
+    with pytest.raises(rr.ResourceLoadError):
+        consumer.call(provider.name, "opaque", "r", timeout=10)
+
+    assert eventually(lambda: ["r"] == system.run(provider.name, unloads, timeout=10))
+    assert [] == system.run(
+        provider.name, lambda registrar: registrar.server_queries("opaque"), timeout=10
+    )
+    assert [] == consumer.client_queries()
+
+
+# -- malformed frames from an authenticated peer -------------------------------------------------
+
+
+def _raw_client(system: System, name: str) -> multiprocessing.connection.Connection:
+    """A connection to registrar `name` that passed the handshake (it knows the authkey)."""
+    return multiprocessing.connection.Client(
+        system.address.socket_path(name), family="AF_UNIX", authkey=system.address.authkey
+    )
+
+
+def _answer_to(conn: multiprocessing.connection.Connection, token: int) -> Any:
+    """The next answer on `conn` (bounded wait), which must carry `token`."""
+    assert conn.poll(10), "no answer came"
+    data = conn.recv_bytes()
+    assert token == struct.unpack_from("<Q", data)[0]
+    return pickle.loads(data[8:])
+
+
+def test_a_short_frame_from_an_authenticated_peer_leaves_its_connection_serving(
+    system: System, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    conn = _raw_client(system, provider.name)
+    try:
+        conn.send_bytes(b"\x01\x02")
+        fetch = Fetch("echo", "intruder", None)  # type: ignore[arg-type]
+        conn.send_bytes(struct.pack("<Q", 7) + cloudpickle.dumps(fetch))
+        answer = _answer_to(conn, 7)
+    finally:
+        conn.close()
+
+    assert ([], None) == answer
+
+
+def test_a_message_without_a_reply_field_is_answered_with_an_error(
+    system: System, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    conn = _raw_client(system, provider.name)
+    try:
+        conn.send_bytes(struct.pack("<Q", 9) + pickle.dumps(42))
+        _value, error = _answer_to(conn, 9)
+    finally:
+        conn.close()
+
+    assert isinstance(error, rr.RrError)
+
+
+def _fake_provider(listening: socket.socket, authkey: bytes) -> None:
+    """Accept one connection; before the first answer send a short frame, answer the rest."""
+    try:
+        accepted, _ = listening.accept()
+    except OSError:
+        return
+    accepted.settimeout(None)
+    conn = multiprocessing.connection.Connection(accepted.detach())
+    with contextlib.suppress(EOFError, OSError):
+        multiprocessing.connection.deliver_challenge(conn, authkey)
+        multiprocessing.connection.answer_challenge(conn, authkey)
+        value: Any = "from the fake"
+        while True:
+            (token,) = struct.unpack_from("<Q", conn.recv_bytes())
+            if value is not None:
+                conn.send_bytes(b"\x01")
+            if token:
+                conn.send_bytes(struct.pack("<Q", token) + pickle.dumps((value, None)))
+            value = None
+    conn.close()
+
+
+def test_a_malformed_answer_does_not_stop_the_reader_of_its_connection(
+    system: System, consumer: rr.ResourceRegistrar
+) -> None:
+    name = f"fake-{uuid.uuid4().hex[:8]}"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as listening:
+        listening.bind(system.address.socket_path(name))
+        listening.listen(1)
+        listening.settimeout(10)
+        threading.Thread(
+            target=_fake_provider, args=(listening, system.address.authkey), daemon=True
+        ).start()
+        query = consumer.call(name, "echo", "r", timeout=10)
+
+    assert "from the fake" == query.response
+
+
+# -- one owner per name ---------------------------------------------------------------------------
+
+
+def contender_main(
+    address: Any,
+    names: list[str],
+    barrier: multiprocessing.synchronize.Barrier,
+    control: multiprocessing.connection.Connection,
+) -> None:
+    """For each name: serve it when all contenders are ready, report, unserve on "next"."""
+    attached = attach(address)
+    try:
+        for name in names:
+            registrar = rr.ResourceRegistrar.start(name)
+            try:
+                outcome = "served"
+                barrier.wait(30)
+                try:
+                    attached.serve(registrar)
+                except rr.RrError as exc:
+                    outcome = type(exc).__name__
+                control.send(outcome)
+                if control.recv() != "next":
+                    return
+            finally:
+                registrar.stop()
+    except (EOFError, OSError, threading.BrokenBarrierError):
+        return
+    finally:
+        attached.close()
+
+
+def test_of_processes_racing_to_serve_one_name_exactly_one_serves_it(
+    system: System, context: multiprocessing.context.ForkServerContext
+) -> None:
+    rounds, parties = 10, 4
+    names = [f"contested-{number}-{uuid.uuid4().hex[:8]}" for number in range(rounds)]
+    for name in names:  # each name starts with a socket left behind by a dead process
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as stale:
+            stale.bind(system.address.socket_path(name))
+    barrier = context.Barrier(parties)
+    contenders = []
+    for _ in range(parties):
+        parent_end, child_end = context.Pipe()
+        process = context.Process(
+            target=contender_main, args=(system.address, names, barrier, child_end), daemon=True
+        )
+        process.start()
+        child_end.close()
+        contenders.append((process, parent_end))
+    outcomes = []
+    try:
+        for _ in names:
+            outcome = []
+            for _process, control in contenders:
+                assert control.poll(30), "a contender did not report"
+                outcome.append(control.recv())
+            outcomes.append(sorted(outcome))
+            for _process, control in contenders:
+                control.send("next")
+    finally:
+        for process, control in contenders:
+            control.close()
+            process.join(10)
+
+    assert [["DuplicateNameError"] * (parties - 1) + ["served"]] * rounds == outcomes
+
+
+def test_a_refused_duplicate_does_not_make_the_owner_log_a_warning(
+    system: System, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    system.run(provider.name, record_warnings, timeout=10)
+    duplicate = rr.ResourceRegistrar.start(provider.name)
+    try:
+        with pytest.raises(rr.DuplicateNameError):
+            system.serve(duplicate)
+    finally:
+        duplicate.stop()
+
+    assert [] == system.run(provider.name, warnings_logged, timeout=10)
+
+
+# -- internals -----------------------------------------------------------------------------------
+
+
+class _CountingReply:
+    """A reply that counts how often it was answered."""
+
+    __slots__ = ("answers",)
+
+    def __init__(self) -> None:
+        self.answers = 0
+
+    def set_result(self, _value: Any) -> None:
+        self.answers += 1
+
+    def set_error(self, _error: BaseException) -> None:
+        self.answers += 1
+
+
+def _lose_while_reading(system: System, answers: int) -> list[int]:
+    """Close a peer's channel while a thread pops its answers; tokens not answered once."""
+    peer = RemotePeer(system, f"nobody-{uuid.uuid4().hex[:8]}")
+    channel = _Channel(_Writer(None, lambda _exc: None))
+    peer._channel = channel
+    replies = {token: _CountingReply() for token in range(1, answers + 1)}
+    channel.pending.update((token, (reply, None)) for token, reply in replies.items())
+    go = threading.Event()
+
+    def reader() -> None:  # what the reader thread does with each answer
+        go.wait(10)
+        for token in reversed(replies):
+            entry = channel.pending.pop(token, None)
+            if entry is not None:
+                entry[0].set_result(None)
+
+    thread = threading.Thread(target=reader)
+    thread.start()
+    go.set()
+    try:
+        peer.close(rr.RegistrarStoppedError("closing"))
+    finally:
+        thread.join(10)
+    return [token for token, reply in replies.items() if reply.answers != 1]
+
+
+def test_losing_a_connection_while_its_reader_resolves_answers_answers_each_reply_once(
+    system: System,
+) -> None:
+    switch_interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as possible
+    try:
+        trials = [_lose_while_reading(system, 100_000) for _ in range(5)]
+    finally:
+        sys.setswitchinterval(switch_interval)
+
+    assert [[]] * 5 == trials
