@@ -12,9 +12,11 @@ from __future__ import annotations
 import contextlib
 import os
 import select
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import textwrap
 import threading
 import time
@@ -413,7 +415,15 @@ PARENT = textwrap.dedent(
 def test_killing_the_users_main_process_leaves_no_manager_process(uid: str, tmp_path: Path) -> None:
     script = tmp_path / "parent.py"
     script.write_text(PARENT)
-    parent = subprocess.Popen([sys.executable, str(script), uid], stdout=subprocess.PIPE, text=True)
+    # A SIGKILLed owner cannot remove its system's runtime directory: keep it where this
+    # test removes it (short: AF_UNIX socket paths are limited to about 100 bytes).
+    runtime_parent = tempfile.mkdtemp(prefix="rr-test-")
+    parent = subprocess.Popen(
+        [sys.executable, str(script), uid],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "TMPDIR": runtime_parent},
+    )
     try:
         assert parent.stdout is not None
         readable, _, _ = select.select([parent.stdout], [], [], 30.0)
@@ -428,6 +438,7 @@ def test_killing_the_users_main_process_leaves_no_manager_process(uid: str, tmp_
             parent.stdout.close()
 
     assert [] == wait_gone(pids)
+    shutil.rmtree(runtime_parent)
 
 
 # -- the same outcome in both placements ------------------------------------------------------
