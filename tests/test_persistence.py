@@ -859,18 +859,23 @@ def test_a_restore_leaves_requests_and_responses_encoded_until_first_used(tmp_pa
     assert ({"n": 3}, {"pid": 3}) == (found.request, found.response)
 
 
-def test_a_stored_value_whose_class_is_gone_raises_catalog_corrupt_error_when_first_used(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def catalog_with_a_gone_class(path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Store resources r0 ("plain") and r1 ("other"); r1's response is of a class gone since."""
     module = type(os)("rr_gone_module")
     exec("class Thing:\n    pass\n", module.__dict__)  # noqa: S102 - a throwaway module
     monkeypatch.setitem(sys.modules, "rr_gone_module", module)
-    stored_catalog(tmp_path / "p.db", ["plain", "other"])
-    db = sqlite3.connect(tmp_path / "p.db")
+    stored_catalog(path, ["plain", "other"])
+    db = sqlite3.connect(path)
     db.execute("UPDATE resources SET response = ? WHERE id = 'r1'", (pickle.dumps(module.Thing()),))
     db.commit()
     db.close()
     monkeypatch.delitem(sys.modules, "rr_gone_module")
+
+
+def test_a_stored_value_whose_class_is_gone_raises_catalog_corrupt_error_when_first_used(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    catalog_with_a_gone_class(tmp_path / "p.db", monkeypatch)
 
     catalog = reopen(tmp_path / "p.db")
     with pytest.raises(rr.CatalogCorruptError) as raised:
@@ -1003,15 +1008,7 @@ def test_a_request_without_a_digest_is_restored_and_found_by_equality(tmp_path: 
 def test_a_call_that_meets_an_unreadable_restored_value_fails_and_the_registrar_keeps_serving(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    module = type(os)("rr_gone_module_2")
-    exec("class Thing:\n    pass\n", module.__dict__)  # noqa: S102 - a throwaway module
-    monkeypatch.setitem(sys.modules, "rr_gone_module_2", module)
-    stored_catalog(tmp_path / "p.db", ["plain", "other"])
-    db = sqlite3.connect(tmp_path / "p.db")
-    db.execute("UPDATE resources SET response = ? WHERE id = 'r1'", (pickle.dumps(module.Thing()),))
-    db.commit()
-    db.close()
-    monkeypatch.delitem(sys.modules, "rr_gone_module_2")
+    catalog_with_a_gone_class(tmp_path / "p.db", monkeypatch)
     name = f"p-{uuid.uuid4().hex[:8]}"
     provider = rr.ResourceRegistrar.start(rr.RegistrarConfig(name, backup_path=tmp_path / "p.db"))
     consumer = rr.ResourceRegistrar.start(f"c-{uuid.uuid4().hex[:8]}")
