@@ -148,15 +148,28 @@ def run_lidar(args: argparse.Namespace) -> None:
         ticker.wait()
 
 
+def _last_distance(bus: Path) -> float:
+    """The distance of the last whole sample a driver logged (0.0 before the first)."""
+    try:
+        lines = (bus / "odom.jsonl").read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        return 0.0
+    for line in reversed(lines):
+        try:
+            return float(json.loads(line)["x"])
+        except (ValueError, KeyError):
+            continue  # a line cut short by a kill
+    return 0.0
+
+
 def run_driver(args: argparse.Namespace) -> None:
     """A motor driver: integrate velocity commands into odometry at `--rate` Hz.
 
-    It starts from the last published odometry: the robot did not move while its driver
-    was down.
+    It starts from the last sample its predecessor logged: the robot did not move while
+    its driver was down.
     """
     bus = _startup(args, "driver")
-    odom = read_topic(bus, "odom") or {"x": 0.0}
-    x = float(odom["x"])
+    x = _last_distance(bus)
     ticker = Ticker(args.rate, args.watch_pid)
     last = time.monotonic()
     with (bus / "odom.jsonl").open("a", encoding="utf-8") as log:
@@ -166,9 +179,9 @@ def run_driver(args: argparse.Namespace) -> None:
             x += v * (now - last)
             last = now
             sample = {"t": now, "x": round(x, 6), "v": v, "pid": os.getpid()}
+            log.write(json.dumps(sample) + "\n")  # the record first: a successor resumes
+            log.flush()  # from it, so a kill between the two cannot hide a stop
             publish(bus, "odom", sample)
-            log.write(json.dumps(sample) + "\n")
-            log.flush()
             if args.ready_fd is not None:
                 _ready(args)
                 args.ready_fd = None
