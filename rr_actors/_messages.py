@@ -91,10 +91,14 @@ class Revoke:
 
 @dataclasses.dataclass(frozen=True)
 class ResponseUpdated:
-    """Provider -> consumer: the stored response of these consumer ids changed."""
+    """Provider -> consumer: the stored response of these consumer ids changed.
+
+    Answer: `None` once the consumer's client records hold the new response.
+    """
 
     query_ids: tuple[str, ...]
     response: Any
+    reply: Reply
 
 
 @dataclasses.dataclass(frozen=True)

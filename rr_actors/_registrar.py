@@ -24,11 +24,13 @@ import dataclasses
 import functools
 import logging
 import threading
+import time
 import traceback
 import uuid
 from collections.abc import Callable
 from typing import Any, ClassVar
 
+import cloudpickle
 import pykka
 
 from rr_actors._catalog import Catalog, ClientRecord, Resource, ResourceState
@@ -116,6 +118,7 @@ class _RunStatus:
 @dataclasses.dataclass(frozen=True)
 class _GiveUp:
     query_id: str
+    attempt: pykka.ThreadingFuture[Any]  # the caller's future: one per call attempt
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,18 +130,21 @@ class _FetchVia:
 @dataclasses.dataclass(frozen=True)
 class _Pending:
     record: ClientRecord
+    attempt: pykka.ThreadingFuture[Any]
 
 
 @dataclasses.dataclass(frozen=True)
 class _ClientLoaded:
     record: ClientRecord  # its query holds the response
     on_status: StatusCallback | None
-    future: pykka.ThreadingFuture[Any] | None  # answered after the commit, if given
+    attempt: pykka.ThreadingFuture[Any]  # the caller's future
+    answer_after_commit: bool  # the caller is answered by the registrar, after the commit
 
 
 @dataclasses.dataclass(frozen=True)
 class _CallFailed:
     query_id: str
+    attempt: pykka.ThreadingFuture[Any]
     gave_up: bool = False  # the caller timed out (an answer may still come)
 
 
@@ -189,9 +195,10 @@ class _ClientReply:
     def set_result(self, value: Any) -> None:
         query = self.record.query.with_response(value)
         record = ClientRecord(query, self.record.parent, loaded=True)
-        future = self.future if self.commit_first else None
         try:
-            self.registrar.tell(_ClientLoaded(record, self.on_status, future))
+            self.registrar.tell(
+                _ClientLoaded(record, self.on_status, self.future, self.commit_first)
+            )
         except pykka.ActorDeadError:  # the consumer stopped meanwhile: give the id back
             with contextlib.suppress(RrError):
                 DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, query.origin_rr))
@@ -199,13 +206,23 @@ class _ClientReply:
                 RegistrarStoppedError(f"registrar {query.origin_rr!r} stopped during the call")
             )
             return
-        if future is None:
+        if not self.commit_first:
             FutureReply(self.future).set_result(value)
 
     def set_error(self, error: BaseException) -> None:
         with contextlib.suppress(pykka.ActorDeadError):
-            self.registrar.tell(_CallFailed(self.record.query.id))
+            self.registrar.tell(_CallFailed(self.record.query.id, self.future))
         FutureReply(self.future).set_error(error)
+
+
+def _check_picklable(value: Any, what: str) -> None:
+    """Raise `ConfigError` if `value` cannot be stored in a catalog backup."""
+    try:
+        cloudpickle.dumps(value)
+    except Exception as exc:
+        raise ConfigError(
+            f"{what} cannot be pickled, so the catalog cannot store it: {exc}"
+        ) from exc
 
 
 def _load_error(registrar: str, server: str, exc: BaseException) -> RrError:
@@ -244,8 +261,11 @@ class ServerActor(pykka.ThreadingActor):
         unload: UnloadCallback,
         on_status: StatusCallback | None,
         workers: Workers,
+        *,
+        persisted: bool = False,
     ) -> None:
         super().__init__()
+        self.persisted = persisted  # responses must pickle: the catalog stores them
         self.registrar = registrar
         self.name = name
         self.load = load
@@ -265,6 +285,8 @@ class ServerActor(pykka.ThreadingActor):
         token = _LOADING.set(LoadContext(self.registrar, message.resource_id, message.chain))
         try:
             response = self.load(message.request)
+            if self.persisted:
+                _check_picklable(response, "the response")
         except BaseException as exc:  # noqa: BLE001 - any exception fails the load (rule 4)
             message.reply.set_error(_load_error(self.registrar, self.name, exc))
         else:
@@ -316,7 +338,7 @@ class ClientActor(pykka.ThreadingActor):
 
     def on_receive(self, message: Any) -> None:
         if isinstance(message, _GiveUp):
-            self.registrar_ref.tell(_CallFailed(message.query_id, gave_up=True))
+            self.registrar_ref.tell(_CallFailed(message.query_id, message.attempt, gave_up=True))
             with contextlib.suppress(RrError):  # a provider that is gone holds nothing
                 DIRECTORY.lookup(self.target_rr).tell(Abandon(message.query_id, self.origin_rr))
         elif isinstance(message, _FetchVia):
@@ -347,6 +369,21 @@ class _OpenReply:
     def set_error(self, error: BaseException) -> None:
         self.open.discard(self)
         self.reply.set_error(error)
+
+
+def _log_failure(what: str, then: Callable[[], None], _: Any, error: BaseException | None) -> None:
+    """A continuation that logs a failed answer, then runs `then()`."""
+    if error is not None:
+        logger.warning("%s failed: %s", what, error)
+    then()
+
+
+def _consumers_by_origin(resource: Resource) -> dict[str, tuple[str, ...]]:
+    """A resource's consumer ids, grouped by the registrar that holds them."""
+    by_origin: dict[str, list[str]] = {}
+    for query_id, origin in resource.consumers.items():
+        by_origin.setdefault(origin, []).append(query_id)
+    return {origin: tuple(ids) for origin, ids in by_origin.items()}
 
 
 @dataclasses.dataclass
@@ -394,7 +431,10 @@ class RegistrarActor(pykka.ThreadingActor):
         self.loads: dict[str, list[_Waiter]] = {}  # resource id -> callers waiting for it
         self.loading_ids: dict[str, str] = {}  # waiting query id -> resource id
         self.abandoned: set[str] = set()  # provider side: callers that gave up on a load
-        self.given_up: set[str] = set()  # consumer side: calls whose caller timed out
+        # consumer side: attempts (the callers' futures) that timed out, and the futures
+        # of durable calls in flight (answered by this actor after its commit)
+        self.given_up: set[pykka.ThreadingFuture[Any]] = set()
+        self.pending_attempts: dict[str, pykka.ThreadingFuture[Any]] = {}
         self.unload_waiters: dict[str, list[Reply]] = {}
         self.after_unload: dict[str, list[Load]] = {}
         self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
@@ -402,6 +442,7 @@ class RegistrarActor(pykka.ThreadingActor):
         self.stopping = False
         self.setting_up = setting_up  # loads for servers setup has not registered wait
         self.held_loads: list[Load] = []
+        self.setup_done = False  # start(setup=) finished: servers it did not register are gone
         self.open_requests: set[_OpenReply] = set()  # handle requests not answered yet
         self.died = died  # set once a crash was fully handled (see testing.crash)
         self.flush_timer: Cancellable | None = None
@@ -417,7 +458,8 @@ class RegistrarActor(pykka.ThreadingActor):
         """Drop restored resources whose load or unload a crash cut short (rule 16).
 
         They were reported to the manager as `in_doubt`; what they held as dependencies
-        is released, so nothing they started at other servers leaks.
+        is released, so nothing they started at other servers leaks. A top-level call that
+        was in flight is given up at its provider (its caller died with the last run).
         """
         for resource in list(self.catalog.resources.values()):
             if resource.state is not ResourceState.LOADED:
@@ -425,6 +467,13 @@ class RegistrarActor(pykka.ThreadingActor):
                 self._release_dependencies(
                     resource.id, functools.partial(self._remove_resource, resource)
                 )
+        for record in list(self.catalog.clients.values()):
+            if record.parent is None and not record.loaded:
+                query = record.query
+                with contextlib.suppress(RrError):
+                    DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
+                self.catalog.remove_client(query.id)
+        self._commit()
 
     def on_receive(self, message: Any) -> None:
         handler = self._handlers.get(type(message))
@@ -435,9 +484,15 @@ class RegistrarActor(pykka.ThreadingActor):
             handler(self, message)
         except RrError as exc:  # e.g. a restored value that cannot be decoded any more
             reply = getattr(message, "reply", None)
-            if reply is None:
-                raise
-            reply.set_error(exc)  # that request fails; the registrar keeps serving
+            if reply is not None:
+                reply.set_error(exc)  # that request fails; the registrar keeps serving
+            else:
+                logger.exception("registrar %s: %s failed", self.name, type(message).__name__)
+        except Exception as exc:
+            reply = getattr(message, "reply", None)
+            if reply is not None:  # a bug: the actor dies, but its caller hears of it now
+                reply.set_error(RegistrarUnavailableError(f"registrar {self.name!r} died: {exc!r}"))
+            raise
 
     def on_failure(self, *_: object) -> None:
         self._die()
@@ -445,22 +500,7 @@ class RegistrarActor(pykka.ThreadingActor):
     def _die(self) -> None:
         """A crash: fail every waiting caller, release this consumer's ids elsewhere."""
         DIRECTORY.unregister(self.peer, "died")
-        error = RegistrarUnavailableError(f"registrar {self.name!r} died")
-        for waiters in self.loads.values():
-            for waiter in waiters:
-                waiter.reply.set_error(error)
-        for replies in self.unload_waiters.values():
-            for reply in replies:
-                reply.set_error(error)
-        for loads in [*self.after_unload.values(), self.held_loads]:
-            for load in loads:
-                load.reply.set_error(error)
-        for request in list(self.open_requests):
-            request.set_error(error)
-        while not self.actor_inbox.empty():
-            pending = getattr(self.actor_inbox.get().message, "reply", None)
-            if pending is not None:
-                pending.set_error(error)
+        self._fail_waiting(RegistrarUnavailableError(f"registrar {self.name!r} died"))
         self._stop_children()
         if self.flush_timer is not None:
             self.flush_timer.cancel()
@@ -470,6 +510,32 @@ class RegistrarActor(pykka.ThreadingActor):
                 with contextlib.suppress(RrError):
                     peer.tell(ConsumerDown(self.name))
         self.died.set()
+
+    def _fail_waiting(self, error: RrError) -> None:
+        """Answer everyone still waiting on this actor with `error` (it stops or died)."""
+        for waiters in self.loads.values():
+            for waiter in waiters:
+                waiter.reply.set_error(error)
+        for replies in self.unload_waiters.values():
+            for reply in replies:
+                reply.set_error(error)
+        for loads in [*self.after_unload.values(), self.held_loads]:
+            for load in loads:
+                load.reply.set_error(error)
+        for attempt in self.pending_attempts.values():
+            FutureReply(attempt).set_error(error)
+        for request in list(self.open_requests):
+            request.set_error(error)
+        while not self.actor_inbox.empty():
+            message = self.actor_inbox.get().message
+            pending = getattr(message, "reply", None)
+            if pending is not None:
+                pending.set_error(error)
+            if isinstance(message, _ClientLoaded):  # its id would leak at the provider
+                query = message.record.query
+                with contextlib.suppress(RrError):
+                    DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
+                FutureReply(message.attempt).set_error(error)
 
     def _stop_children(self) -> None:
         for server in self.servers.values():
@@ -499,6 +565,8 @@ class RegistrarActor(pykka.ThreadingActor):
         self.flush_timer = self.saver.schedule(tick)
 
     def _on_flush(self, _: _Flush) -> None:
+        if self.stopping:
+            return
         self.saver.flush()
         self._arm_flush_timer()
 
@@ -539,6 +607,7 @@ class RegistrarActor(pykka.ThreadingActor):
         if refusal is not None:
             message.reply.set_error(refusal)
             return
+        self.abandoned.discard(message.query_id)  # a retry: its caller is back
         if self.catalog.has_consumer(message.query_id):  # a retry of an answered call
             message.reply.set_result(self.catalog.resource_of(message.query_id).response)
             return
@@ -570,6 +639,12 @@ class RegistrarActor(pykka.ThreadingActor):
             self.after_unload.setdefault(resource.id, []).append(message)
 
     def _start_load(self, server: _Server, message: Load, waiter: _Waiter) -> None:
+        if self.saver.store is not None:  # the backup must be able to hold the request
+            try:
+                _check_picklable(message.request, f"the request to '{self.name}/{server.name}'")
+            except ConfigError as exc:
+                message.reply.set_error(exc)
+                return
         rid = str(uuid.uuid4())
         self.catalog.begin_load(rid, message.server, message.request)
         self._commit()
@@ -600,8 +675,9 @@ class RegistrarActor(pykka.ThreadingActor):
         self.catalog.finish_load(rid, response)
         live = []
         for waiter in waiters:
-            if waiter.query_id in self.abandoned:
+            if waiter.query_id in self.abandoned:  # its caller gave up: answer, hold nothing
                 self.abandoned.discard(waiter.query_id)
+                waiter.reply.set_error(CallTimeoutError(f"call {waiter.query_id} was given up"))
             elif not self.catalog.has_consumer(waiter.query_id):
                 self.catalog.add_consumer(rid, waiter.query_id, waiter.origin_rr)
                 live.append(waiter)
@@ -611,7 +687,8 @@ class RegistrarActor(pykka.ThreadingActor):
         server = self.servers.get(resource.server)
         if server is None or server.closing:
             for waiter in live:
-                self.catalog.release(waiter.query_id)
+                if self.catalog.has_consumer(waiter.query_id):  # a retry may be listed twice
+                    self.catalog.release(waiter.query_id)
                 waiter.reply.set_error(
                     UnknownServerError(f"resource server '{self.name}/{resource.server}' closed")
                 )
@@ -630,6 +707,12 @@ class RegistrarActor(pykka.ThreadingActor):
         self._release(message.query_id, None)
 
     def _release(self, query_id: str, reply: Reply | None) -> None:
+        parked = self._unpark(query_id)
+        if parked is not None:  # it waited behind an unload or for setup: it never loads
+            parked.reply.set_error(CallTimeoutError(f"call {query_id} was given up"))
+            if reply is not None:
+                reply.set_result(None)
+            return
         if query_id in self.loading_ids:  # its caller gave up while it loads
             self.abandoned.add(query_id)
             if reply is not None:
@@ -648,6 +731,15 @@ class RegistrarActor(pykka.ThreadingActor):
             return
         self._unload_resource(resource, reply)
 
+    def _unpark(self, query_id: str) -> Load | None:
+        """Take the load of `query_id` out of the held or parked loads, if it is there."""
+        for loads in [self.held_loads, *self.after_unload.values()]:
+            for load in loads:
+                if load.query_id == query_id:
+                    loads.remove(load)
+                    return load
+        return None
+
     def _unload_resource(self, resource: Resource, reply: Reply | None) -> None:
         """The last consumer left: release the dependencies, then run `unload` (rule 7)."""
         self.catalog.begin_unload(resource.id)
@@ -656,7 +748,10 @@ class RegistrarActor(pykka.ThreadingActor):
 
         def run_unload() -> None:
             server = self.servers.get(resource.server)
-            if server is None:  # restored, and setup has not registered the server yet
+            if server is None and self.setup_done:  # setup did not bring the server back
+                unloaded(None, None)
+                return
+            if server is None:  # restored, and no one has registered the server yet
                 self.parked_unloads.setdefault(resource.server, []).append(run_unload)
                 return
             done = self.tokens.reply(self.actor_ref, unloaded)
@@ -806,6 +901,7 @@ class RegistrarActor(pykka.ThreadingActor):
         for query_id in message.query_ids:
             self.catalog.client_loaded(query_id, message.response)
         self._commit()
+        message.reply.set_result(None)
 
     # -- consumer side ----------------------------------------------------------------
 
@@ -818,6 +914,7 @@ class RegistrarActor(pykka.ThreadingActor):
         return client
 
     def _on_pending(self, message: _Pending) -> None:
+        self.pending_attempts[message.record.query.id] = message.attempt
         if message.record.query.id in self.catalog.clients:  # a retry of a call it holds
             return
         self.catalog.add_client(message.record)
@@ -825,11 +922,20 @@ class RegistrarActor(pykka.ThreadingActor):
 
     def _on_client_loaded(self, message: _ClientLoaded) -> None:
         query = message.record.query
-        if query.id in self.given_up:  # the caller timed out; the provider releases the id
-            self.given_up.discard(query.id)
-            if query.id in self.catalog.clients:
+        self.pending_attempts.pop(query.id, None)
+        gave_up = message.attempt in self.given_up  # its give-up released the id already
+        if gave_up or (self.stopping and message.record.parent is None):
+            self.given_up.discard(message.attempt)
+            if not gave_up:  # stopping: give the id back rather than hold it
+                with contextlib.suppress(RrError):
+                    DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
+            if query.id in self.catalog.clients and not self.catalog.clients[query.id].loaded:
                 self.catalog.remove_client(query.id)
                 self._commit()
+            if message.answer_after_commit:
+                FutureReply(message.attempt).set_error(
+                    RegistrarStoppedError(f"registrar {self.name!r} stopped during the call")
+                )
             return
         if query.id in self.catalog.clients:  # written as pending before the load was sent
             self.catalog.client_loaded(query.id, query.response)
@@ -838,18 +944,19 @@ class RegistrarActor(pykka.ThreadingActor):
         if message.on_status is not None:
             self.status_callbacks[query.id] = message.on_status
         self._commit()
-        if message.future is not None:
-            FutureReply(message.future).set_result(query.response)
+        if message.answer_after_commit:
+            FutureReply(message.attempt).set_result(query.response)
 
     def _on_call_failed(self, message: _CallFailed) -> None:
+        self.pending_attempts.pop(message.query_id, None)
+        if message.gave_up:  # an answer may still come for this attempt: drop it then
+            self.given_up.add(message.attempt)
+        else:
+            self.given_up.discard(message.attempt)
         if message.query_id in self.catalog.clients:
             self.catalog.remove_client(message.query_id)
             self.status_callbacks.pop(message.query_id, None)
             self._commit()
-        elif message.gave_up:  # its answer may still come: drop it then
-            self.given_up.add(message.query_id)
-        else:
-            self.given_up.discard(message.query_id)
 
     def _on_request(self, message: _Request) -> None:
         reply = _OpenReply(message.reply, self.open_requests)
@@ -891,7 +998,15 @@ class RegistrarActor(pykka.ThreadingActor):
     ) -> None:
         if name in self.servers:
             raise DuplicateNameError(f"resource server '{self.name}/{name}' already exists")
-        ref = ServerActor.start(self.name, name, load, unload, on_status, self.workers)
+        ref = ServerActor.start(
+            self.name,
+            name,
+            load,
+            unload,
+            on_status,
+            self.workers,
+            persisted=self.saver.store is not None,
+        )
         self.servers[name] = _Server(name, ref, on_status)
         for run_unload in self.parked_unloads.pop(name, ()):
             run_unload()
@@ -900,9 +1015,21 @@ class RegistrarActor(pykka.ThreadingActor):
     def op_ready(self, reply: Reply) -> None:
         """Setup is done: serve the loads that waited for it (unknown servers now fail)."""
         self.setting_up = False
+        self.setup_done = True
         held, self.held_loads = self.held_loads, []
         for load in held:
             self._on_load(load)
+        for server, unloads in list(self.parked_unloads.items()):
+            if server not in self.servers:  # setup did not bring it back: release anyway
+                logger.warning(
+                    "registrar %s: server %r was not registered by setup; its restored "
+                    "resources are released without their unload callback",
+                    self.name,
+                    server,
+                )
+                del self.parked_unloads[server]
+                for run_unload in unloads:
+                    run_unload()
         reply.set_result(None)
 
     def op_unregister(self, name: str, timeout: float, reply: Reply) -> None:
@@ -980,15 +1107,16 @@ class RegistrarActor(pykka.ThreadingActor):
         resource = self.catalog.resource_of(query_id)
         self.catalog.set_response(resource.id, response)
         self._commit()
-        by_origin: dict[str, list[str]] = {}
-        for qid, origin in resource.consumers.items():
-            by_origin.setdefault(origin, []).append(qid)
-        for origin, ids in by_origin.items():
-            try:
-                DIRECTORY.lookup(origin).tell(ResponseUpdated(tuple(ids), response))
-            except RrError:
-                logger.warning("could not tell %s about a new response", origin)
-        reply.set_result(None)
+        join = Join(lambda: reply.set_result(None))
+        for origin, ids in _consumers_by_origin(resource).items():
+            self._send(
+                origin,
+                functools.partial(ResponseUpdated, ids, response),
+                functools.partial(
+                    _log_failure, f"telling {origin} about a new response", join.add()
+                ),
+            )
+        join.seal()
 
     def op_set_status_callback(self, query_id: str, callback: StatusCallback, reply: Reply) -> None:
         if query_id not in self.catalog.clients:
@@ -1030,11 +1158,15 @@ class RegistrarActor(pykka.ThreadingActor):
     def op_stop(self, reply: Reply) -> None:
         """Unload what this registrar holds as a consumer (newest first), then stop (rule 12)."""
         self.stopping = True
+        stopped = RegistrarStoppedError(f"registrar {self.name!r} stopped during the call")
         for record in list(self.catalog.clients.values()):
-            if record.parent is None and not record.loaded:  # in flight: give it up
+            attempt = self.pending_attempts.pop(record.query.id, None)
+            if record.parent is None and not record.loaded and attempt is not None:
+                # a durable call in flight: give it up, and tell its caller at once
                 self._client(record.query.serving_rr, record.query.server).tell(
-                    _GiveUp(record.query.id)
+                    _GiveUp(record.query.id, attempt)
                 )
+                FutureReply(attempt).set_error(stopped)
         tops = [r for r in reversed(self.catalog.clients.values()) if r.parent is None and r.loaded]
 
         def next_one() -> None:
@@ -1048,6 +1180,7 @@ class RegistrarActor(pykka.ThreadingActor):
             DIRECTORY.unregister(self.peer, "stopped")
             self._stop_children()
             reply.set_result(None)
+            self._fail_waiting(RegistrarStoppedError(f"registrar {self.name!r} was stopped"))
             self.stop()
 
         next_one()
@@ -1286,6 +1419,7 @@ class ResourceRegistrar:
         if on_status is not None and not callable(on_status):
             raise ConfigError(f"on_status must be callable, got {on_status!r}")
         limit = self._timeout(timeout)
+        deadline = time.monotonic() + limit
         context = _LOADING.get()
         parent: str | None = None
         chain: tuple[str, ...] = ()
@@ -1303,7 +1437,7 @@ class ResourceRegistrar:
             # pending record and a later give-up reach their actors after this.
             record = ClientRecord(query, parent)
             if self._commit_first:
-                self._ref.tell(_Pending(record))
+                self._ref.tell(_Pending(record, future))
             reply = _ClientReply(
                 self._ref, record, on_status, future, commit_first=self._commit_first
             )
@@ -1316,10 +1450,10 @@ class ResourceRegistrar:
         except pykka.ActorDeadError:
             raise DIRECTORY.gone_error(self.name) from None
         try:
-            response = future.get(timeout=limit)
+            response = future.get(timeout=max(0.0, deadline - time.monotonic()))
         except pykka.Timeout:
             with contextlib.suppress(pykka.ActorDeadError):
-                client.tell(_GiveUp(query.id))
+                client.tell(_GiveUp(query.id, future))
             raise CallTimeoutError(
                 f"call to '{target_rr}/{server}' timed out after {limit:g} s"
             ) from None
@@ -1463,7 +1597,10 @@ class ResourceRegistrar:
             self._ask(lambda actor, reply: actor.op_stop(reply), timeout, "stop()")
         except RegistrarStoppedError:
             return
-        self._ref.stop(block=True, timeout=self._timeout(timeout))
+        try:
+            self._ref.stop(block=True, timeout=self._timeout(timeout))
+        except pykka.Timeout:
+            raise CallTimeoutError(f"stop() of {self.name!r} timed out") from None
 
     def __enter__(self) -> ResourceRegistrar:
         return self
