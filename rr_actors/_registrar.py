@@ -1350,6 +1350,9 @@ class ResourceRegistrar:
         Raises:
             ConfigError: a callback is not callable or the name is invalid.
             DuplicateNameError: a server with this name exists on this registrar.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
         """
         if not isinstance(name, str) or not name or "/" in name:
             raise ConfigError(f"server name must be a non-empty string without '/', got {name!r}")
@@ -1368,6 +1371,8 @@ class ResourceRegistrar:
         Raises:
             UnknownServerError: no such server here.
             CallTimeoutError: not finished within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
         """
         limit = self._timeout(timeout)
         self._ask(
@@ -1470,6 +1475,7 @@ class ResourceRegistrar:
             UnknownQueryError: the id is unknown here or already released (nothing changes).
             CallTimeoutError: not finished within `timeout` seconds.
             RegistrarUnavailableError: the provider died; the id is kept, retry later.
+            RegistrarStoppedError: this registrar was stopped.
         """
         self._ask(
             lambda actor, reply: actor.op_unload(query_id, reply), timeout, f"unload({query_id!r})"
@@ -1493,6 +1499,8 @@ class ResourceRegistrar:
         Raises:
             UnknownQueryError: `query_id` is not a consumer id of a resource served here.
             CallTimeoutError: not delivered everywhere within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
         """
         if not isinstance(status, Status):
             raise ConfigError(f"status must be an rr_actors.Status, got {status!r}")
@@ -1507,6 +1515,9 @@ class ResourceRegistrar:
 
         Raises:
             UnknownServerError: no such server here.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
         """
         result: list[Query] = self._ask(
             lambda actor, reply: actor.op_server_queries(server, reply),
@@ -1534,7 +1545,13 @@ class ResourceRegistrar:
         return result
 
     def client_queries(self, *, timeout: float | None = None) -> list[Query]:
-        """Every query this registrar holds at servers (its own included), oldest first."""
+        """Every query this registrar holds at servers (its own included), oldest first.
+
+        Raises:
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
         result: list[Query] = self._ask(
             lambda actor, reply: actor.op_client_queries(reply), timeout, "client_queries()"
         )
@@ -1551,6 +1568,9 @@ class ResourceRegistrar:
         Raises:
             UnknownQueryError: this registrar holds no such query.
             ConfigError: `callback` is not callable.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
         """
         if not callable(callback):
             raise ConfigError(f"callback must be callable, got {callback!r}")
@@ -1565,11 +1585,20 @@ class ResourceRegistrar:
     ) -> None:
         """Replace the stored response of the resource behind `query_id` (asynchronous loads).
 
-        Every consumer's client record gets the new response too (delivered in the
-        background; `fetch_queries` shows it at once).
+        Like TeMoto's catalog response update (thesis 4.3.2). Returns once every
+        consumer's client record holds the new response too (a consumer that cannot be
+        reached is logged and skipped).
+
+        Args:
+            query_id: any consumer id of a resource this registrar serves.
+            response: the new response (it must pickle when the catalog has a backup).
+            timeout: seconds to wait for the update to reach every consumer.
 
         Raises:
             UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            CallTimeoutError: not delivered within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
         """
         self._ask(
             lambda actor, reply: actor.op_update_response(query_id, response, reply),
@@ -1578,7 +1607,13 @@ class ResourceRegistrar:
         )
 
     def save_catalog(self, *, timeout: float | None = None) -> None:
-        """Write every pending change of the catalog to the backup now (no-op without one)."""
+        """Write every pending change of the catalog to the backup now (no-op without one).
+
+        Raises:
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
         self._ask(lambda actor, reply: actor.op_save(reply), timeout, "save_catalog()")
 
     def stop(self, *, timeout: float | None = None) -> None:
