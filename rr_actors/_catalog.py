@@ -7,11 +7,16 @@ the touched rows dirty; the persistence layer drains them as one transaction.
 
 Dedup is by `==` on the request value, also for unhashable values: requests are bucketed
 by `request_digest`, a deterministic digest of a canonical form (mappings as item sets,
-sequences in order, numbers by their value), and within a bucket compared with `==`, so
-equal requests always meet in the same bucket. The digest may be stored: a restored
-catalog indexes its resources from their stored digests without decoding a request.
-Requests with parts the digest does not know (custom classes) are bucketed by their
-in-process `hash()` instead, and compared across both kinds where `==` could hold.
+sequences in order, numbers by their value), and within a bucket compared with `==`. The
+digest covers only built-in values whose `==` it mirrors (and subclasses that keep their
+base's `==`), so two such requests that are `==` meet in the same bucket. The digest may
+be stored: a restored catalog indexes its resources from their stored digests without
+decoding a request. Any other request (a custom class, a subclass with its own `__eq__`
+such as `Counter`, a value whose comparison raises) has no digest: it is bucketed by its
+in-process `hash()` when its class defines one together with its `__eq__`, otherwise with
+the unhashable ones, and compared with `==` against every candidate that could equal it.
+Finding a request never raises because of its value: a comparison that raises means
+"different".
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import enum
 import fractions
 import hashlib
 import sys
+from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Mapping, Set
 from typing import Any
 
@@ -51,7 +57,7 @@ _STRINGS: dict[str, int] = {}  # str -> digest; strings repeat (keys, command na
 _STRINGS_MAX = 4096
 
 DIGEST_SCHEME = (
-    f"rr1-py{sys.version_info[0]}.{sys.version_info[1]}-w{sys.hash_info.width}"
+    f"rr2-py{sys.version_info[0]}.{sys.version_info[1]}-w{sys.hash_info.width}"
     f"-{sys.hash_info.modulus}"
 )
 """Names the digest function. It combines parts with `hash()` of tuples and frozensets
@@ -88,15 +94,29 @@ def _digest(value: Any) -> int:  # noqa: PLR0911 - one return per kind of value
         return _number(value)
     if value is None:
         return _TAG_NONE
-    if cls is dict or isinstance(value, Mapping):
+    if cls is dict or (isinstance(value, Mapping) and _keeps_eq(cls, _MAPPING_EQ)):
         return hash((_TAG_MAP, frozenset([(_digest(k), _digest(v)) for k, v in value.items()])))
-    if cls is list or cls is tuple or isinstance(value, list | tuple):
+    if cls is list or cls is tuple or (isinstance(value, list | tuple) and _keeps_eq(cls, _SEQ_EQ)):
         return hash((_TAG_SEQ, *[_digest(item) for item in value]))
-    if isinstance(value, Set):
+    if isinstance(value, Set) and _keeps_eq(cls, _SET_EQ):
         return hash((_TAG_SET, frozenset([_digest(item) for item in value])))
     if cls is bytes or cls is bytearray:  # bytearray(b"a") == b"a"
         return hash((_TAG_SEQ, _blake(value)))  # not the digest of the equal str
     return _digest_subclass(value, cls)
+
+
+# The `==` of containers the digest mirrors: a subclass that overrides `__eq__` (Counter,
+# a case-insensitive dict, a tuple with a tolerance) may call values equal whose digests
+# differ, so it has no digest. OrderedDict's `==` is dict's when either side is a plain
+# dict and stricter (order too) between two OrderedDicts, so equal ones have equal items.
+_MAPPING_EQ: tuple[object, ...] = (dict.__eq__, OrderedDict.__eq__, Mapping.__eq__)
+_SEQ_EQ: tuple[object, ...] = (list.__eq__, tuple.__eq__)
+_SET_EQ: tuple[object, ...] = (set.__eq__, frozenset.__eq__, Set.__eq__)
+
+
+def _keeps_eq(cls: type, eqs: tuple[object, ...]) -> bool:
+    eq: object = cls.__eq__
+    return eq in eqs
 
 
 def _digest_subclass(value: Any, cls: type) -> int:
@@ -121,19 +141,39 @@ def request_digest(request: Any) -> int | None:
     `1`, `1.0` and `True` agree, and which is not randomised), mappings as an
     order-free combination of their items, sets likewise, lists and tuples in order.
 
+    Only values whose `==` the digest mirrors get one: built-in strings, bytes, numbers,
+    `None`, and dicts, lists, tuples, sets (and other mappings and sets) of them, including
+    subclasses that keep their base's `__eq__` and `__hash__` (IntEnum, StrEnum,
+    namedtuple, OrderedDict, defaultdict).
+
     Returns:
         The digest (never `NO_DIGEST`), or `None` for a value with other parts (a
-        custom class, an enum), whose equality only `==` can judge; the catalog indexes
-        those by their in-process `hash()` instead, which is never stored.
+        custom class, a container subclass with its own `__eq__` such as `Counter`, a
+        plain enum) or one that raises while being digested (`Decimal("sNaN")`, a
+        mapping whose `items()` raises), whose equality only `==` can judge; the catalog
+        indexes those by their in-process `hash()` instead, which is never stored.
     """
     try:
         return _digest(request)
-    except (_Opaque, RecursionError):
+    except Exception:  # noqa: BLE001 - _Opaque, RecursionError, whatever user code raises
         return None
 
 
 def _runtime_key(request: Any) -> Any:
-    """The in-process bucket of a request that has no digest (never stored)."""
+    """The in-process bucket of a request that has no digest (never stored).
+
+    A class that overrides `__eq__` but keeps a built-in `__hash__` (a tuple subclass
+    with a tolerance, say) hashes inconsistently with its `==`: it goes with the
+    unhashable requests, which are compared with every candidate.
+    """
+    cls = type(request)
+    hasher: object = cls.__hash__
+    owner = getattr(hasher, "__objclass__", None)
+    if isinstance(owner, type) and owner is not cls:
+        base_eq: object = owner.__eq__
+        own_eq: object = cls.__eq__
+        if base_eq is not own_eq:
+            return _UNHASHABLE
     try:
         return ("h", hash(request))
     except Exception:  # noqa: BLE001 - unhashable, or a __hash__ that raises: compare by ==
@@ -183,6 +223,9 @@ class Resource:
         consumers: consumer query id -> origin registrar name, in arrival order.
         digest: `request_digest(request)`, `NO_DIGEST` if it has none, `None` if not known
             yet (computed when the catalog indexes it).
+        response_version: counts the catalog's writes of `response` (`finish_load`,
+            `set_response`), so the store writes each one even when the provider passes
+            the same, mutated object again; decoding a restored response leaves it alone.
     """
 
     id: str
@@ -192,6 +235,7 @@ class Resource:
     state: ResourceState = ResourceState.LOADING
     consumers: dict[str, str] = dataclasses.field(default_factory=dict)
     digest: int | None = dataclasses.field(default=None, compare=False, repr=False)
+    response_version: int = dataclasses.field(default=0, compare=False, repr=False)
 
     def __getattr__(self, name: str) -> Any:
         # Only called when `name` is not in the instance: a restored, still encoded value.
@@ -202,8 +246,6 @@ class Resource:
                 value = decode(self.id, name, blobs[_LAZY[name]])
                 values = self.__dict__
                 values[name] = value
-                if name == "response":  # lets the store tell a decoded from a new response
-                    values["_decoded_response"] = value
                 if "request" in values and "response" in values:
                     del values["_encoded"]  # both decoded: free the blobs
                 return value
@@ -237,6 +279,7 @@ class Resource:
             "state": state,
             "consumers": {},
             "digest": digest,
+            "response_version": 0,
             "_encoded": (decode, blobs),
         }
         return resource
@@ -260,11 +303,13 @@ class ClientRecord:
         parent: id of this registrar's resource that owns the query as a dependency,
             or `None` for a top-level call.
         loaded: `False` while the call is in flight.
+        response_version: counts `client_loaded` calls, so the store writes each response.
     """
 
     query: Query
     parent: str | None = None
     loaded: bool = False
+    response_version: int = dataclasses.field(default=0, compare=False, repr=False)
 
 
 @dataclasses.dataclass
@@ -335,13 +380,16 @@ class Catalog:
         """Mark a loading resource `LOADED` with its response."""
         resource = self.resources[rid]
         resource.response = response
+        resource.response_version += 1
         resource.state = ResourceState.LOADED
         self._dirty_resources.add(rid)
         return resource
 
     def set_response(self, rid: str, response: Any) -> None:
         """Replace a resource's stored response."""
-        self.resources[rid].response = response
+        resource = self.resources[rid]
+        resource.response = response
+        resource.response_version += 1
         self._dirty_resources.add(rid)
 
     def begin_unload(self, rid: str) -> Resource:
@@ -443,6 +491,7 @@ class Catalog:
             return None
         record.query = record.query.with_response(response)
         record.loaded = True
+        record.response_version += 1
         self._dirty_clients.add(query_id)
         return record
 

@@ -126,23 +126,31 @@ class Saver:
         """Take changes just made to the catalog."""
         if self.store is None:
             return
-        if self.on_modify:
-            self.store.write(changes)
-            return
         self._pending.resources.update(changes.resources)
         self._pending.clients.update(changes.clients)
+        if self.on_modify:
+            self.flush()
 
     def flush(self) -> None:
-        """Write what accumulated since the last write."""
+        """Write what accumulated since the last write.
+
+        The changes are forgotten only once written: if the write raises they stay
+        pending, and the next write (or flush) tries them again with what came since.
+        """
         if self.store is not None and self._pending:
-            pending, self._pending = self._pending, Changes({}, {})
-            self.store.write(pending)
+            self.store.write(self._pending)
+            self._pending = Changes({}, {})
 
     def close(self, *, erase: bool, flush: bool = True) -> None:
-        """Close the store: flush first (unless erasing, or `flush=False` after a crash)."""
+        """Close the store: flush first (unless erasing, or `flush=False` after a crash).
+
+        The store is closed even if the flush raises (the error is then re-raised).
+        """
         if self.store is None:
             return
-        if flush and not erase:
-            self.flush()
-        self.store.close(erase=erase)
-        self.store = None
+        try:
+            if flush and not erase:
+                self.flush()
+        finally:
+            self.store.close(erase=erase)
+            self.store = None

@@ -26,9 +26,10 @@ written under another `DIGEST_SCHEME` (another Python version or word size) has 
 recomputed, in one transaction, when it is opened.
 
 Restore validates cheaply what it does not decode: every stored value must look like a
-whole pickle (protocol header, final STOP opcode). A value that passes and still cannot
-be decoded later (its class is not importable here) raises `CatalogCorruptError` naming
-the file and the resource when it is first used.
+whole pickle (protocol header, final STOP opcode), every state code must be known, and no
+resource id, consumer query id or client query id may appear twice. A value that passes
+and still cannot be decoded later (its class is not importable here) raises
+`CatalogCorruptError` naming the file and the resource when it is first used.
 
 A new file is built under a temporary name and linked into place complete, so the backup
 path either does not exist or holds a whole catalog. An existing file is validated
@@ -149,6 +150,13 @@ file written by the previous version. Never edit a released migration.
 assert len(_MIGRATIONS) == SCHEMA_VERSION
 
 
+def _rollback(db: sqlite3.Connection) -> None:
+    """Roll back after a failure without hiding it (a failed COMMIT may have ended it)."""
+    if db.in_transaction:
+        with contextlib.suppress(sqlite3.Error):
+            db.execute("ROLLBACK")
+
+
 def _dumps(value: Any) -> bytes | None:
     if value is None:
         return None
@@ -187,6 +195,30 @@ def _check_blobs(rows: list[Any]) -> None:
             raise ValueError(f"the stored request or response of resource {row[1]} is not a pickle")
 
 
+def _check_keys(rows: list[Any], consumer_rows: list[Any], client_rows: list[Any]) -> None:
+    """Raise `ValueError` for a duplicate id or an unknown state code.
+
+    A resource id, a consumer query id and a client query id each name one row; a second
+    row with the same id would silently replace the first in the catalog.
+    """
+    states = len(_STATES_BY_CODE)
+    for row in rows:
+        state = row[3]
+        if type(state) is not int or not 0 <= state < states:
+            raise ValueError(f"resource {row[1]} has an unknown state {state!r}")
+    for what, ids in (
+        ("resource id", [row[1] for row in rows]),
+        ("consumer query id", [row[1] for row in consumer_rows]),
+        ("client query id", [row[1] for row in client_rows]),
+    ):
+        if len(set(ids)) != len(ids):
+            seen: set[Any] = set()
+            for key in ids:
+                if key in seen:
+                    raise ValueError(f"{what} {key} is stored twice")
+                seen.add(key)
+
+
 def _refresh_digests(db: sqlite3.Connection, name: str) -> None:
     """Recompute every stored digest if they were written under another `DIGEST_SCHEME`.
 
@@ -209,7 +241,7 @@ def _refresh_digests(db: sqlite3.Connection, name: str) -> None:
             db.executemany("UPDATE resources SET digest = ? WHERE seq = ?", updates)
             db.execute("UPDATE rr_actors_schema SET digest_scheme = ?", (DIGEST_SCHEME,))
         except BaseException:
-            db.execute("ROLLBACK")
+            _rollback(db)
             raise
         db.execute("COMMIT")
 
@@ -237,31 +269,24 @@ def _lenient_decode(_rid: str, _field: str, blob: bytes | None) -> Any:
         return Unreadable(f"{type(exc).__name__}: {exc}", len(blob or b""))
 
 
-_STORED = object()
-"""`_Mirror.response` of a restored resource whose response was not replaced since."""
-
-
 class _Mirror:
     """What the store last wrote for one resource (to write only the difference)."""
 
-    __slots__ = ("consumers", "response", "seq", "state")
+    __slots__ = ("consumers", "response_version", "seq", "state")
 
     def __init__(
-        self, seq: int, state: ResourceState, response: Any, consumers: dict[str, int]
+        self, seq: int, state: ResourceState, response_version: int, consumers: dict[str, int]
     ) -> None:
         self.seq = seq  # the row's key
         self.state = state
-        # Compared by identity: the catalog replaces, never mutates, a response.
-        self.response = response
+        # The catalog bumps `Resource.response_version` on every response it sets (also
+        # the same object again, mutated); decoding a restored one does not.
+        self.response_version = response_version
         self.consumers = consumers  # consumer query id -> its row's key
 
 
 def _response_changed(old: _Mirror, resource: Resource) -> bool:
-    if old.response is not _STORED:
-        return old.response is not resource.response
-    # Restored: unchanged while still encoded, or while it holds the decoded value.
-    values = vars(resource)
-    return "response" in values and values["response"] is not values.get("_decoded_response")
+    return old.response_version != resource.response_version
 
 
 @dataclasses.dataclass
@@ -374,7 +399,7 @@ def _migrate(db: sqlite3.Connection, version: int) -> None:
             _MIGRATIONS[step](db)
             db.execute("UPDATE rr_actors_schema SET version = ?", (step + 1,))
         except BaseException:
-            db.execute("ROLLBACK")
+            _rollback(db)
             raise
         db.execute("COMMIT")
 
@@ -501,6 +526,7 @@ def _read_rows(
         db.execute("COMMIT")
     if not lenient:
         _check_blobs(rows)
+    _check_keys(rows, consumer_rows, client_rows)
     encoded = Resource.encoded
     states = _STATES_BY_CODE
     resources = [
@@ -521,7 +547,8 @@ def _read_rows(
             resource.digest = None  # the catalog indexes it from its (decoded) request
             _ = resource.request
     mirrors = [
-        _Mirror(row[0], r.state, _STORED, {}) for row, r in zip(rows, resources, strict=True)
+        _Mirror(row[0], r.state, r.response_version, {})
+        for row, r in zip(rows, resources, strict=True)
     ]
     by_seq = {row[0]: (r, m) for row, r, m in zip(rows, resources, mirrors, strict=True)}
     max_seq = rows[-1][0] if rows else 0
@@ -554,6 +581,9 @@ def _read_rows(
 def read_backup(path: str | os.PathLike[str]) -> Backup:
     """Read a catalog backup without changing it (it may belong to a running registrar).
 
+    A file of an older schema version is copied into memory and migrated there; the file
+    itself is never migrated by reading it.
+
     Stored requests and responses that cannot be unpickled in this process (their
     classes are not importable here) come back as `Unreadable` placeholders. Unpickling
     runs code from the file: only read backups you trust.
@@ -577,9 +607,27 @@ def read_backup(path: str | os.PathLike[str]) -> Backup:
         check = db.execute("PRAGMA quick_check").fetchall()
         if check != [("ok",)]:
             raise CatalogCorruptError(name, f"integrity check failed: {check[:5]!r}")
-        with gc_paused():
-            rows = _read_rows(db, _lenient_decode, lenient=True)
+        with _migrated_copy(db, version) as current, gc_paused():
+            rows = _read_rows(current, _lenient_decode, lenient=True)
     return Backup(name, version, rows.resources, rows.clients)
+
+
+@contextlib.contextmanager
+def _migrated_copy(db: sqlite3.Connection, version: int) -> Iterator[sqlite3.Connection]:
+    """`db` itself if it has the current schema, else a migrated copy in memory.
+
+    An older file is read as the code reads a current one, without writing to it.
+    """
+    if version == SCHEMA_VERSION:
+        yield db
+        return
+    copy = sqlite3.connect(":memory:", isolation_level=None)
+    try:
+        db.backup(copy)
+        _migrate(copy, version)
+        yield copy
+    finally:
+        copy.close()
 
 
 def quarantine_backup(path: str | os.PathLike[str]) -> Path:
@@ -628,7 +676,8 @@ class SqliteStore:
         self._created = created
         self._loaded = False
         self._resources: dict[str, _Mirror] = {}
-        self._clients: dict[str, tuple[int, Any]] = {}  # query id -> (row key, response)
+        # query id -> (row key, response_version)
+        self._clients: dict[str, tuple[int, int]] = {}
         self._seq = 0
 
     @classmethod
@@ -685,7 +734,7 @@ class SqliteStore:
             raise
         self._resources = rows.mirror
         self._clients = {
-            c.query.id: (rows.client_seqs[c.query.id], c.query.response) for c in rows.clients
+            c.query.id: (rows.client_seqs[c.query.id], c.response_version) for c in rows.clients
         }
         self._seq = rows.max_seq
         self._loaded = True
@@ -712,7 +761,7 @@ class SqliteStore:
                 seq = self._write_client(db, qid, record, seq, after)
             db.execute("COMMIT")
         except BaseException:
-            db.execute("ROLLBACK")
+            _rollback(db)
             raise
         self._seq = seq
         for update in after:
@@ -788,10 +837,7 @@ class SqliteStore:
                 "DELETE FROM consumers WHERE seq = ?",
                 [(k,) for q, k in old_consumers.items() if q not in consumers],
             )
-        response = (
-            resource.response if old is None or _response_changed(old, resource) else old.response
-        )
-        mirror = _Mirror(row, resource.state, response, consumers)
+        mirror = _Mirror(row, resource.state, resource.response_version, consumers)
         after.append(functools.partial(self._resources.__setitem__, rid, mirror))
         return seq
 
@@ -828,7 +874,7 @@ class SqliteStore:
                     int(record.loaded),
                 ),
             )
-        elif old[1] is query.response:
+        elif old[1] == record.response_version:
             row = old[0]
             db.execute("UPDATE clients SET loaded = ? WHERE seq = ?", (int(record.loaded), row))
         else:
@@ -837,7 +883,8 @@ class SqliteStore:
                 "UPDATE clients SET response = ?, loaded = ? WHERE seq = ?",
                 (_dumps(query.response), int(record.loaded), row),
             )
-        after.append(functools.partial(self._clients.__setitem__, qid, (row, query.response)))
+        version = (row, record.response_version)
+        after.append(functools.partial(self._clients.__setitem__, qid, version))
         return seq
 
     def close(self, *, erase: bool) -> None:

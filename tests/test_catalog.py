@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import collections
+import collections.abc
 import dataclasses
 import decimal
 import enum
@@ -403,3 +405,109 @@ def test_an_encoded_resource_equals_its_decoded_twin_and_copies_decoded():
     twin = Resource("r1", "s", {"n": 1}, {"for": "r1"}, ResourceState.LOADED, {"qr1": "origin"})
 
     assert (twin, twin) == (resource, dataclasses.replace(resource))
+
+
+# -- subclasses with their own `==`, comparisons that raise ------------------------------------
+
+
+class CaseInsensitiveDict(dict):  # type: ignore[type-arg]
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, dict):
+            return NotImplemented
+        return {k.lower(): v for k, v in self.items()} == {k.lower(): v for k, v in other.items()}
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+class Tolerant(tuple):  # type: ignore[type-arg]
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, tuple) or len(other) != len(self):
+            return False
+        return all(abs(a - b) < 0.1 for a, b in zip(self, other, strict=True))
+
+    __hash__ = tuple.__hash__  # inconsistent with its `==`, like many such classes
+
+
+class SameSize(frozenset):  # type: ignore[type-arg]
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, frozenset | set) and len(self) == len(other)
+
+    __hash__ = frozenset.__hash__
+
+
+class Anything(list):  # type: ignore[type-arg]
+    def __eq__(self, other: object) -> bool:
+        return True
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+@pytest.mark.parametrize(
+    ("stored", "probe"),
+    [
+        (collections.Counter(a=0), collections.Counter()),
+        (CaseInsensitiveDict({"A": 1}), {"a": 1}),
+        ({"a": 1}, CaseInsensitiveDict({"A": 1})),
+        (Tolerant((1.0,)), (1.05,)),
+        ((1.05,), Tolerant((1.0,))),
+        (SameSize({1}), frozenset({2})),
+        (Anything(), "x"),
+        ({"k": collections.Counter(a=0)}, {"k": collections.Counter()}),
+    ],
+    ids=repr,
+)
+def test_a_container_subclass_with_its_own_eq_finds_every_request_it_calls_equal(
+    stored: Any, probe: Any
+) -> None:
+    catalog = Catalog()
+    catalog.begin_load("r1", "s", stored)
+
+    found = catalog.find("s", probe)
+
+    assert ("r1", True) == (found.id if found else None, stored == probe)
+
+
+@pytest.mark.parametrize(
+    "value",
+    [
+        collections.namedtuple("Point", "x y")(1, 2),
+        collections.OrderedDict(a=1, b=2),
+        collections.defaultdict(list, a=[1]),
+    ],
+    ids=repr,
+)
+def test_a_container_subclass_that_keeps_its_base_eq_keeps_its_base_digest(value: Any) -> None:
+    base = {collections.OrderedDict: dict, collections.defaultdict: dict}.get(type(value), tuple)
+
+    assert request_digest(base(value)) == request_digest(value)
+
+
+class RaisingItems(collections.abc.Mapping):  # type: ignore[type-arg]
+    def __getitem__(self, key: Any) -> Any:
+        raise KeyError(key)
+
+    def __iter__(self) -> Any:
+        raise RuntimeError("broken mapping")
+
+    def __len__(self) -> int:
+        return 1
+
+
+@pytest.mark.parametrize(
+    "request_value",
+    [decimal.Decimal("sNaN"), {"x": [decimal.Decimal("sNaN")]}, RaisingItems()],
+    ids=repr,
+)
+def test_a_request_that_raises_while_digested_or_compared_has_no_digest_and_never_raises(
+    request_value: Any,
+) -> None:
+    catalog = Catalog()
+    catalog.begin_load("r0", "s", {"plain": 1})
+    catalog.begin_load("r1", "s", request_value)
+    catalog.find("s", request_value)  # a comparison that raises means "different"
+
+    assert (None, "r0", False) == (
+        request_digest(request_value),
+        catalog.find("s", {"plain": 1}).id,
+        requests_equal(request_value, decimal.Decimal("sNaN")),
+    )

@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors import _sqlite_store as store_module
 from rr_actors._catalog import Catalog
 from rr_actors._cli import main
 from rr_actors._sqlite_store import SCHEMA_VERSION, SqliteStore
@@ -165,4 +166,35 @@ def test_the_command_line_runs_as_a_program(
     assert (0, ids["first"]) == (
         done.returncode,
         json.loads(done.stdout)["servers"]["leaf"][0]["consumers"][0]["query_id"],
+    )
+
+
+def write_v1_backup(path: Path) -> None:
+    """A backup as rr_actors wrote it with schema version 1 (text states, no digests)."""
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute(f"PRAGMA application_id = {store_module.APPLICATION_ID}")
+    store_module._create_v1(db)
+    db.execute("UPDATE rr_actors_schema SET version = 1")
+    db.execute("PRAGMA journal_mode = WAL")
+    db.execute(
+        "INSERT INTO resources VALUES (1, 'r1', 'leaf', 'loaded', ?, ?)",
+        (store_module._dumps({"cam": 1}), store_module._dumps({"pid": 42})),
+    )
+    db.execute("INSERT INTO consumers VALUES (2, 'q1', 'r1', 'C')")
+    db.close()
+
+
+def test_inspect_reads_a_schema_1_backup_without_changing_it(tmp_path: Path) -> None:
+    path = tmp_path / "v1.db"
+    write_v1_backup(path)
+    before = path.read_bytes()
+
+    code, out = run("inspect", str(path), "--json")
+
+    resource = json.loads(out)["servers"]["leaf"][0]
+    assert (0, "q1", [], before) == (
+        code,
+        resource["consumers"][0]["query_id"],
+        sorted({p.name for p in tmp_path.iterdir()} - {"v1.db"}),
+        path.read_bytes(),
     )

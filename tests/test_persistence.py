@@ -37,6 +37,7 @@ from rr_actors import _sqlite_store as store_module
 from rr_actors._catalog import (
     DIGEST_SCHEME,
     Catalog,
+    Changes,
     ClientRecord,
     ResourceState,
     request_digest,
@@ -1022,3 +1023,274 @@ def test_a_call_that_meets_an_unreadable_restored_value_fails_and_the_registrar_
     finally:
         consumer.stop()
         provider.stop()
+
+
+# -- every response the catalog sets is written -----------------------------------------------
+
+
+def written_once(path: Path) -> Catalog:
+    """A backup holding resource r1 (consumer q1, response {"status": "starting"}) and client d1."""
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    catalog.begin_load("r1", "leaf", {"k": 1})
+    catalog.add_consumer("r1", "q1", "C")
+    catalog.finish_load("r1", {"status": "starting"})
+    catalog.add_client(ClientRecord(make_query("d1", 1), "r1"))
+    catalog.client_loaded("d1", {"status": "starting"})
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+    return catalog
+
+
+def test_setting_a_restored_never_decoded_response_to_none_is_written(tmp_path: Path) -> None:
+    written_once(tmp_path / "p.db")
+    store = SqliteStore.open(tmp_path / "p.db")
+    rows = store.load()
+    assert rows is not None
+    catalog = Catalog.restore(*rows)
+    catalog.set_response("r1", None)
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    assert reopen(tmp_path / "p.db").resources["r1"].response is None
+
+
+def test_a_response_mutated_in_place_and_set_again_is_written(tmp_path: Path) -> None:
+    store = SqliteStore.open(tmp_path / "p.db")
+    store.load()
+    catalog = Catalog()
+    response = {"status": "starting"}
+    catalog.begin_load("r1", "leaf", "req")
+    catalog.finish_load("r1", response)
+    store.write(catalog.drain_changes())
+    response["status"] = "running"
+    catalog.set_response("r1", response)
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    assert {"status": "running"} == reopen(tmp_path / "p.db").resources["r1"].response
+
+
+def test_a_client_response_mutated_in_place_and_loaded_again_is_written(tmp_path: Path) -> None:
+    store = SqliteStore.open(tmp_path / "p.db")
+    store.load()
+    catalog = Catalog()
+    response = {"status": "starting"}
+    catalog.add_client(ClientRecord(make_query("d1", 1)))
+    catalog.client_loaded("d1", response)
+    store.write(catalog.drain_changes())
+    response["status"] = "running"
+    catalog.client_loaded("d1", response)
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    assert {"status": "running"} == reopen(tmp_path / "p.db").clients["d1"].query.response
+
+
+def test_decoding_a_restored_response_writes_no_value(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    written_once(tmp_path / "p.db")
+    store = SqliteStore.open(tmp_path / "p.db")
+    rows = store.load()
+    assert rows is not None
+    catalog = Catalog.restore(*rows)
+    _ = catalog.resources["r1"].response, catalog.clients["d1"].query.response
+    catalog.add_consumer("r1", "q2", "C")  # dirties the row
+    dumped: list[Any] = []
+    monkeypatch.setattr(store_module, "_dumps", dumped.append)
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    assert ([], ["q1", "q2"]) == (dumped, list(reopen(tmp_path / "p.db").resources["r1"].consumers))
+
+
+def test_a_registrar_restarted_writes_update_response_to_none_on_a_restored_query(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "p.db"
+    name = unique("P")
+
+    def start_provider() -> rr.ResourceRegistrar:
+        provider = rr.ResourceRegistrar.start(
+            rr.RegistrarConfig(name=name, backup_path=path, save_on_modify=True)
+        )
+        provider.register_server("leaf", load=lambda r: {"pid": 42}, unload=_noop_unload)
+        return provider
+
+    provider = start_provider()
+    consumer = rr.ResourceRegistrar.start(unique("C"))
+    try:
+        query = consumer.call(name, "leaf", {"cmd": "x"}, timeout=5)
+        provider.stop()
+        provider = start_provider()
+        provider.update_response(query.id, None)
+        provider.stop()
+    finally:
+        consumer.stop()
+        provider.stop()
+
+    assert [None] == [r.response for r in read_backup(path).resources]
+
+
+# -- rows that cannot be right ----------------------------------------------------------------
+
+
+def duplicate_resource(db: sqlite3.Connection) -> None:
+    db.execute(
+        "INSERT INTO resources (seq, id, server, state, digest, request, response) "
+        "SELECT 100, id, server, state, digest, request, response FROM resources WHERE id = 'r1'"
+    )
+
+
+def duplicate_consumer(db: sqlite3.Connection) -> None:
+    db.execute("INSERT INTO consumers SELECT 101, query_id, resource, origin_rr FROM consumers")
+
+
+def duplicate_client(db: sqlite3.Connection) -> None:
+    db.execute(
+        "INSERT INTO clients SELECT 102, query_id, server, serving_rr, origin_rr, request, "
+        "response, parent, loaded FROM clients"
+    )
+
+
+def state_minus_one(db: sqlite3.Connection) -> None:
+    db.execute("UPDATE resources SET state = -1")
+
+
+def state_three(db: sqlite3.Connection) -> None:
+    db.execute("UPDATE resources SET state = 3")
+
+
+def state_text(db: sqlite3.Connection) -> None:
+    db.execute("UPDATE resources SET state = 'loaded'")
+
+
+@pytest.mark.parametrize(
+    ("damage", "cause"),
+    [
+        (duplicate_resource, "resource id r1 is stored twice"),
+        (duplicate_consumer, "consumer query id q1 is stored twice"),
+        (duplicate_client, "client query id d1 is stored twice"),
+        (state_minus_one, "unknown state -1"),
+        (state_three, "unknown state 3"),
+        (state_text, "unknown state 'loaded'"),
+    ],
+)
+def test_a_duplicate_id_or_unknown_state_in_a_backup_raises_catalog_corrupt_error(
+    tmp_path: Path, damage: Callable[[sqlite3.Connection], None], cause: str
+) -> None:
+    path = tmp_path / "p.db"
+    written_once(path)
+    db = sqlite3.connect(path)
+    damage(db)
+    db.commit()
+    db.close()
+
+    with pytest.raises(rr.CatalogCorruptError) as restored:
+        SqliteStore.open(path).load()
+    with pytest.raises(rr.CatalogCorruptError) as inspected:
+        read_backup(path)
+
+    assert [(str(path), True)] * 2 == [
+        (e.value.path, cause in e.value.cause) for e in (restored, inspected)
+    ]
+
+
+# -- failures while writing -------------------------------------------------------------------
+
+
+class CommitFails:
+    """A connection whose COMMIT fails after SQLite has ended the transaction (I/O error)."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self.db = db
+
+    @property
+    def in_transaction(self) -> bool:
+        return self.db.in_transaction
+
+    def execute(self, sql: str, *args: Any) -> Any:
+        if sql == "COMMIT":
+            self.db.execute("ROLLBACK")
+            raise sqlite3.OperationalError("disk I/O error (simulated)")
+        return self.db.execute(sql, *args)
+
+    def executemany(self, sql: str, *args: Any) -> Any:
+        return self.db.executemany(sql, *args)
+
+    def close(self) -> None:
+        self.db.close()
+
+
+def test_a_failed_commit_raises_its_own_error_not_one_from_the_rollback(tmp_path: Path) -> None:
+    store = SqliteStore.open(tmp_path / "p.db")
+    store.load()
+    catalog = Catalog()
+    catalog.begin_load("r1", "leaf", 1)
+    store._db = CommitFails(store._db)  # type: ignore[assignment]
+    try:
+        with pytest.raises(sqlite3.OperationalError) as raised:
+            store.write(catalog.drain_changes())
+    finally:
+        store.close(erase=False)
+
+    assert "disk I/O error (simulated)" == str(raised.value)
+
+
+class FlakyStore:
+    """A `CatalogStore` whose first `fail` writes raise; it records what it was given."""
+
+    path = "flaky"
+
+    def __init__(self, fail: int) -> None:
+        self.fail = fail
+        self.written: list[tuple[list[str], list[str]]] = []
+        self.closed = False
+
+    def load(self) -> None:
+        return None
+
+    def write(self, changes: Changes) -> None:
+        if self.fail:
+            self.fail -= 1
+            raise OSError("disk full (simulated)")
+        self.written.append((list(changes.resources), list(changes.clients)))
+
+    def close(self, *, erase: bool) -> None:
+        self.closed = True
+
+
+def test_a_clean_stop_closes_the_store_even_when_the_last_flush_fails() -> None:
+    store = FlakyStore(fail=1)
+    saver = _persistence.Saver(store, rr.RegistrarConfig(name="x", backup_path="flaky"))
+    saver.changed(Changes({"r1": None}, {}))
+
+    with pytest.raises(OSError, match="simulated"):
+        saver.close(erase=False)
+
+    assert (True, None) == (store.closed, saver.store)
+
+
+def test_a_change_whose_save_on_modify_write_failed_is_written_with_the_next_change() -> None:
+    store = FlakyStore(fail=1)
+    config = rr.RegistrarConfig(name="x", backup_path="flaky", save_on_modify=True)
+    saver = _persistence.Saver(store, config)
+    with pytest.raises(OSError, match="simulated"):
+        saver.changed(Changes({"r1": None}, {}))
+    saver.changed(Changes({"r2": None}, {"d1": None}))
+
+    assert [(["r1", "r2"], ["d1"])] == store.written
+
+
+def test_changes_whose_interval_flush_failed_are_written_with_the_next_flush() -> None:
+    store = FlakyStore(fail=1)
+    saver = _persistence.Saver(store, rr.RegistrarConfig(name="x", backup_path="flaky"))
+    saver.changed(Changes({"r1": None}, {}))
+    with pytest.raises(OSError, match="simulated"):
+        saver.flush()
+    saver.changed(Changes({"r2": None}, {"d1": None}))
+    saver.flush()
+
+    assert [(["r1", "r2"], ["d1"])] == store.written
