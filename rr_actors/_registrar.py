@@ -116,12 +116,6 @@ class _RunStatus:
 
 
 @dataclasses.dataclass(frozen=True)
-class _GiveUp:
-    query_id: str
-    attempt: pykka.ThreadingFuture[Any]  # the caller's future: one per call attempt
-
-
-@dataclasses.dataclass(frozen=True)
 class _FetchVia:
     server: str
     reply: Reply
@@ -317,7 +311,7 @@ class ClientActor(pykka.ThreadingActor):
 
     Created (and cached) by its registrar the first time it calls the server. It runs
     the status callbacks of the queries made through it, on worker threads of the
-    consumer's process, relays fetches, and gives up timed-out calls. A load itself is
+    consumer's process, and relays fetches. A load (and the give-up of a timed-out one) is
     sent from the caller's thread along the client's route (see `ResourceRegistrar.call`).
     """
 
@@ -337,11 +331,7 @@ class ClientActor(pykka.ThreadingActor):
         self.workers = workers
 
     def on_receive(self, message: Any) -> None:
-        if isinstance(message, _GiveUp):
-            self.registrar_ref.tell(_CallFailed(message.query_id, message.attempt, gave_up=True))
-            with contextlib.suppress(RrError):  # a provider that is gone holds nothing
-                DIRECTORY.lookup(self.target_rr).tell(Abandon(message.query_id, self.origin_rr))
-        elif isinstance(message, _FetchVia):
+        if isinstance(message, _FetchVia):
             try:
                 DIRECTORY.lookup(self.target_rr).tell(
                     Fetch(message.server, self.origin_rr, message.reply)
@@ -844,15 +834,11 @@ class RegistrarActor(pykka.ThreadingActor):
                     server.on_status, query, dataclasses.replace(update, query_id=query_id), done
                 )
             )
-        by_origin: dict[str, list[str]] = {}
-        for query_id, origin in resource.consumers.items():
-            by_origin.setdefault(origin, []).append(query_id)
-        for origin, query_ids in by_origin.items():
-            ids = tuple(query_ids)
+        for origin, ids in _consumers_by_origin(resource).items():
             self._send(
                 origin,
-                lambda reply, ids=ids: StatusNotice(  # type: ignore[misc]
-                    ids, update.status, update.message, update.source, event, reply
+                functools.partial(
+                    StatusNotice, ids, update.status, update.message, update.source, event
                 ),
                 join.add(),
             )
@@ -1066,12 +1052,9 @@ class RegistrarActor(pykka.ThreadingActor):
                 else:
                     done.set_result(None)
                 return
-            by_origin: dict[str, list[str]] = {}
-            for qid, origin in resource.consumers.items():
-                by_origin.setdefault(origin, []).append(qid)
-            for origin, ids in by_origin.items():
+            for origin, ids in _consumers_by_origin(resource).items():
                 with contextlib.suppress(RrError):
-                    DIRECTORY.lookup(origin).tell(Revoke(tuple(ids)))
+                    DIRECTORY.lookup(origin).tell(Revoke(ids))
             for qid in list(resource.consumers):
                 self.catalog.release(qid)
             self._unload_resource(resource, done)
@@ -1163,9 +1146,11 @@ class RegistrarActor(pykka.ThreadingActor):
             attempt = self.pending_attempts.pop(record.query.id, None)
             if record.parent is None and not record.loaded and attempt is not None:
                 # a durable call in flight: give it up, and tell its caller at once
-                self._client(record.query.serving_rr, record.query.server).tell(
-                    _GiveUp(record.query.id, attempt)
-                )
+                self._on_call_failed(_CallFailed(record.query.id, attempt, gave_up=True))
+                with contextlib.suppress(RrError):
+                    DIRECTORY.lookup(record.query.serving_rr).tell(
+                        Abandon(record.query.id, self.name)
+                    )
                 FutureReply(attempt).set_error(stopped)
         tops = [r for r in reversed(self.catalog.clients.values()) if r.parent is None and r.loaded]
 
@@ -1433,7 +1418,7 @@ class ResourceRegistrar:
             if context.registrar == self.name:
                 parent = context.resource_id
         query = Query(query_id or str(uuid.uuid4()), server, target_rr, self.name, request)
-        client = self._client(target_rr, server, limit)
+        self._client(target_rr, server, limit)  # the client endpoint exists from the first call
         future: pykka.ThreadingFuture[Any] = pykka.ThreadingFuture()
         try:
             # The load goes out from the caller's thread along the client's route rather
@@ -1457,8 +1442,12 @@ class ResourceRegistrar:
         try:
             response = future.get(timeout=max(0.0, deadline - time.monotonic()))
         except pykka.Timeout:
+            # Given up from this thread, like the load: the provider sees the Abandon after
+            # the Load and before any retry this caller makes with the same id.
             with contextlib.suppress(pykka.ActorDeadError):
-                client.tell(_GiveUp(query.id, future))
+                self._ref.tell(_CallFailed(query.id, future, gave_up=True))
+            with contextlib.suppress(RrError):  # a provider that is gone holds nothing
+                DIRECTORY.lookup(target_rr).tell(Abandon(query.id, self.name))
             raise CallTimeoutError(
                 f"call to '{target_rr}/{server}' timed out after {limit:g} s"
             ) from None
