@@ -1188,7 +1188,41 @@ class CatalogView:
 # -- the handle --------------------------------------------------------------------------
 
 
-class ResourceRegistrar:
+class RegistrarFacts:
+    """What a registrar handle knows without asking its actor (shared by every handle)."""
+
+    _config: RegistrarConfig
+    _restored: bool
+    _in_doubt: tuple[Query, ...]
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        return self._config.name
+
+    @property
+    def config(self) -> RegistrarConfig:
+        """The configuration it was started with."""
+        return self._config
+
+    @property
+    def restored(self) -> bool:
+        """Whether the catalog was restored from an existing backup at start."""
+        return self._restored
+
+    @property
+    def in_doubt(self) -> tuple[Query, ...]:
+        """Loads (or unloads) a crash cut short in the last run, found at restore (rule 16).
+
+        Each is a `Query` whose `id` is the resource id, whose `request` is what the load
+        was for and whose `response` is `None` for a load that never finished. They are
+        no longer in the catalog and their dependencies were released; the manager
+        decides whether something its callback started must be cleaned up.
+        """
+        return self._in_doubt
+
+
+class ResourceRegistrar(RegistrarFacts):
     """A manager's resource registrar (thesis 4.3.1, `RrBase`).
 
     Start one with [`ResourceRegistrar.start`][rr_actors.ResourceRegistrar.start]. Its
@@ -1279,32 +1313,6 @@ class ResourceRegistrar:
         return handle
 
     # -- properties -------------------------------------------------------------------
-
-    @property
-    def name(self) -> str:
-        """The registrar's name."""
-        return self._config.name
-
-    @property
-    def config(self) -> RegistrarConfig:
-        """The configuration it was started with."""
-        return self._config
-
-    @property
-    def restored(self) -> bool:
-        """Whether the catalog was restored from an existing backup at start."""
-        return self._restored
-
-    @property
-    def in_doubt(self) -> tuple[Query, ...]:
-        """Loads (or unloads) a crash cut short in the last run, found at restore (rule 16).
-
-        Each is a `Query` whose `id` is the resource id, whose `request` is what the load
-        was for and whose `response` is `None` for a load that never finished. They are
-        no longer in the catalog and their dependencies were released; the manager
-        decides whether something its callback started must be cleaned up.
-        """
-        return self._in_doubt
 
     def is_alive(self) -> bool:
         """Whether the registrar actor is running."""

@@ -32,6 +32,7 @@ from rr_actors._registrar import (
     _LOADING,
     CatalogView,
     LoadContext,
+    RegistrarFacts,
     ResourceRegistrar,
     _Crash,
     _Request,
@@ -118,7 +119,7 @@ def running_actors() -> list[Any]:
 # -- a registrar in a manager process --------------------------------------------------
 
 
-class RemoteRegistrar:
+class RemoteRegistrar(RegistrarFacts):
     """A handle on a registrar that lives in a manager process of a system.
 
     It has the methods and properties of a `ResourceRegistrar`, with the same arguments,
@@ -230,26 +231,6 @@ class RemoteRegistrar:
         return (_rebuild, (self._config, self._address, self._restored, self._in_doubt))
 
     # -- properties -------------------------------------------------------------------
-
-    @property
-    def name(self) -> str:
-        """The registrar's name."""
-        return self._config.name
-
-    @property
-    def config(self) -> RegistrarConfig:
-        """The configuration it was started with."""
-        return self._config
-
-    @property
-    def restored(self) -> bool:
-        """Whether the catalog was restored from an existing backup at start."""
-        return self._restored
-
-    @property
-    def in_doubt(self) -> tuple[Query, ...]:
-        """Loads a crash cut short in the last run, found at restore (rule 16)."""
-        return self._in_doubt
 
     @property
     def pid(self) -> int | None:
