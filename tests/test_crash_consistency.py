@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from durable_pair import start_pair
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog
@@ -42,30 +43,11 @@ MAX_HELD = 24
 # -- the child -------------------------------------------------------------------------------
 
 
-def _leaf(request: Any) -> Any:
-    return {"leaf": request}
-
-
-def _unload(_request: Any, _response: Any) -> None:
-    return None
-
-
 def worker(names: tuple[str, str], paths: tuple[str, str], seed: int, conn: Any) -> None:
     """Run P and C on the backups and drive random operations until killed."""
     rng = random.Random(seed)  # noqa: S311 - a reproducible workload, not crypto
-    p_name, c_name = names
-    provider = rr.ResourceRegistrar.start(
-        rr.RegistrarConfig(name=p_name, backup_path=paths[0], save_on_modify=True)
-    )
-
-    def nested(request: Any) -> Any:
-        return provider.call(p_name, "leaf", {"sub": request}).response
-
-    provider.register_server("leaf", load=_leaf, unload=_unload)
-    provider.register_server("nested", load=nested, unload=_unload)
-    consumer = rr.ResourceRegistrar.start(
-        rr.RegistrarConfig(name=c_name, backup_path=paths[1], save_on_modify=True)
-    )
+    p_name, _ = names
+    _, consumer = start_pair(names, paths)
     held = [c.query.id for c in catalog_snapshot(consumer).clients if c.parent is None and c.loaded]
     while True:
         if held and (len(held) >= MAX_HELD or rng.random() < 0.45):

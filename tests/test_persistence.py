@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from durable_pair import leaf_load, noop_unload, start_consumer, start_pair, start_provider
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -48,30 +49,11 @@ from rr_actors.testing import catalog_snapshot, crash
 # -- what runs in the child process ----------------------------------------------------------
 
 
-def _leaf_load(request: Any) -> Any:
-    return {"leaf": request}
-
-
-def _noop_unload(_request: Any, _response: Any) -> None:
-    return None
-
-
 def child_hold(names: tuple[str, str], paths: tuple[str, str], conn: Any) -> None:
     """Provider P and consumer C with backups: load a leaf twice and a nested resource,
     send the ids and both catalogs to the parent, then wait to be killed."""
-    p_name, c_name = names
-    provider = rr.ResourceRegistrar.start(
-        rr.RegistrarConfig(name=p_name, backup_path=paths[0], save_on_modify=True)
-    )
-
-    def nested(request: Any) -> Any:
-        return provider.call(p_name, "leaf", {"sub": request}).response
-
-    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
-    provider.register_server("nested", load=nested, unload=_noop_unload)
-    consumer = rr.ResourceRegistrar.start(
-        rr.RegistrarConfig(name=c_name, backup_path=paths[1], save_on_modify=True)
-    )
+    p_name, _ = names
+    provider, consumer = start_pair(names, paths)
     first = consumer.call(p_name, "leaf", {"a": 1, "b": [1, 2]})
     second = consumer.call(p_name, "leaf", {"b": [1, 2], "a": 1})
     third = consumer.call(p_name, "nested", "x")
@@ -84,9 +66,7 @@ def child_hold(names: tuple[str, str], paths: tuple[str, str], conn: Any) -> Non
 def child_stuck_in_load(names: tuple[str, str], paths: tuple[str, str], conn: Any) -> None:
     """A load that loads a dependency, tells the parent, and hangs until it is killed."""
     p_name, c_name = names
-    provider = rr.ResourceRegistrar.start(
-        rr.RegistrarConfig(name=p_name, backup_path=paths[0], save_on_modify=True)
-    )
+    provider = start_provider(p_name, paths[0])
 
     def stuck(request: Any) -> Any:
         provider.call(p_name, "leaf", {"dependency of": request})
@@ -94,11 +74,8 @@ def child_stuck_in_load(names: tuple[str, str], paths: tuple[str, str], conn: An
         threading.Event().wait(60)
         return None
 
-    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
-    provider.register_server("stuck", load=stuck, unload=_noop_unload)
-    consumer = rr.ResourceRegistrar.start(
-        rr.RegistrarConfig(name=c_name, backup_path=paths[1], save_on_modify=True)
-    )
+    provider.register_server("stuck", load=stuck, unload=noop_unload)
+    consumer = start_consumer(c_name, paths[1])
     consumer.call(p_name, "stuck", {"job": 7}, timeout=60)
 
 
@@ -256,8 +233,8 @@ def test_a_registrar_restarted_after_a_kill_restores_every_served_query_and_clie
     [(_, provider_view, consumer_view)] = run_and_kill(child_hold, names, tuple(map(str, paths)))
 
     provider = start(started, names[0], paths[0], save_on_modify=True)
-    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
-    provider.register_server("nested", load=_leaf_load, unload=_noop_unload)
+    provider.register_server("leaf", load=leaf_load, unload=noop_unload)
+    provider.register_server("nested", load=leaf_load, unload=noop_unload)
     consumer = start(started, names[1], paths[1], save_on_modify=True)
 
     assert (True, True) == (provider.restored, consumer.restored)
@@ -271,7 +248,7 @@ def test_setup_code_sees_the_restored_queries_before_it_registers_its_servers(
     names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
     [((first, second, _), _, _)] = run_and_kill(child_hold, names, tuple(map(str, paths)))
     provider = start(started, names[0], paths[0], save_on_modify=True)
-    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    provider.register_server("leaf", load=leaf_load, unload=noop_unload)
 
     held = provider.server_queries("leaf")
 
@@ -286,7 +263,7 @@ def test_consumer_ids_issued_before_a_kill_unload_after_the_restart(
     provider = start(started, names[0], paths[0], save_on_modify=True)
     leaf = Recorder()
     provider.register_server("leaf", load=leaf.load, unload=leaf.unload)
-    provider.register_server("nested", load=leaf.load, unload=_noop_unload)
+    provider.register_server("nested", load=leaf.load, unload=noop_unload)
     consumer = start(started, names[1], paths[1], save_on_modify=True)
 
     consumer.unload(first)
@@ -320,7 +297,7 @@ def test_an_equal_request_after_a_restart_in_another_process_reuses_the_restored
     provider = start(started, names[0], paths[0], save_on_modify=True)
     leaf = Recorder()
     provider.register_server("leaf", load=leaf.load, unload=leaf.unload)
-    provider.register_server("nested", load=leaf.load, unload=_noop_unload)
+    provider.register_server("nested", load=leaf.load, unload=noop_unload)
     consumer = start(started, names[1], paths[1], save_on_modify=True)
 
     query = consumer.call(names[0], "leaf", {"b": [1, 2], "a": 1})
@@ -395,7 +372,7 @@ def test_save_on_modify_commits_a_load_before_the_caller_gets_the_answer(
     tmp_path: Path, started: list[rr.ResourceRegistrar]
 ) -> None:
     provider = start(started, unique("P"), tmp_path / "p.db", save_on_modify=True)
-    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    provider.register_server("leaf", load=leaf_load, unload=noop_unload)
 
     query = provider.call(provider.name, "leaf", 1)
 
@@ -406,7 +383,7 @@ def test_save_on_modify_commits_an_unload_before_the_caller_gets_the_answer(
     tmp_path: Path, started: list[rr.ResourceRegistrar]
 ) -> None:
     provider = start(started, unique("P"), tmp_path / "p.db", save_on_modify=True)
-    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    provider.register_server("leaf", load=leaf_load, unload=noop_unload)
     query = provider.call(provider.name, "leaf", 1)
 
     provider.unload(query.id)
@@ -421,7 +398,7 @@ def test_without_save_on_modify_a_change_waits_for_the_save_interval(
     tmp_path: Path, started: list[rr.ResourceRegistrar], timers: ManualTimers
 ) -> None:
     provider = start(started, unique("P"), tmp_path / "p.db", save_interval=30.0)
-    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    provider.register_server("leaf", load=leaf_load, unload=noop_unload)
 
     provider.call(provider.name, "leaf", 1)
 
@@ -432,7 +409,7 @@ def test_the_save_interval_timer_flushes_pending_changes_and_is_armed_again(
     tmp_path: Path, started: list[rr.ResourceRegistrar], timers: ManualTimers
 ) -> None:
     provider = start(started, unique("P"), tmp_path / "p.db", save_interval=30.0)
-    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    provider.register_server("leaf", load=leaf_load, unload=noop_unload)
     query = provider.call(provider.name, "leaf", 1)
     assert timers.armed.wait(5)
 
@@ -453,7 +430,7 @@ def test_a_crash_loses_only_the_changes_made_since_the_last_interval_flush(
         rr.RegistrarConfig(name=unique("P"), backup_path=tmp_path / "p.db", save_interval=30.0)
     )
     try:
-        provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+        provider.register_server("leaf", load=leaf_load, unload=noop_unload)
         kept = provider.call(provider.name, "leaf", 1)
         assert timers.armed.wait(5)
         timers.fire()
@@ -468,7 +445,7 @@ def test_save_catalog_writes_pending_changes_at_once(
     tmp_path: Path, started: list[rr.ResourceRegistrar]
 ) -> None:
     provider = start(started, unique("P"), tmp_path / "p.db", save_interval=None)
-    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    provider.register_server("leaf", load=leaf_load, unload=noop_unload)
     query = provider.call(provider.name, "leaf", 1)
 
     provider.save_catalog()
@@ -481,7 +458,7 @@ def test_a_clean_stop_flushes_pending_changes(tmp_path: Path) -> None:
         rr.RegistrarConfig(name=unique("P"), backup_path=tmp_path / "p.db", save_interval=None)
     )
     consumer = rr.ResourceRegistrar.start(unique("C"))
-    provider.register_server("leaf", load=_leaf_load, unload=_noop_unload)
+    provider.register_server("leaf", load=leaf_load, unload=noop_unload)
     query = consumer.call(provider.name, "leaf", 1)
 
     provider.stop()
@@ -1116,7 +1093,7 @@ def test_a_registrar_restarted_writes_update_response_to_none_on_a_restored_quer
         provider = rr.ResourceRegistrar.start(
             rr.RegistrarConfig(name=name, backup_path=path, save_on_modify=True)
         )
-        provider.register_server("leaf", load=lambda r: {"pid": 42}, unload=_noop_unload)
+        provider.register_server("leaf", load=lambda r: {"pid": 42}, unload=noop_unload)
         return provider
 
     provider = start_provider()

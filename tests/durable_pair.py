@@ -1,0 +1,45 @@
+"""The durable provider/consumer pair that the crash tests run in their child processes."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import rr_actors as rr
+
+
+def leaf_load(request: Any) -> Any:
+    return {"leaf": request}
+
+
+def noop_unload(_request: Any, _response: Any) -> None:
+    return None
+
+
+def start_provider(name: str, path: str) -> rr.ResourceRegistrar:
+    """Provider `name` with `save_on_modify` on `path` and a `leaf` server."""
+    provider = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=name, backup_path=path, save_on_modify=True)
+    )
+    provider.register_server("leaf", load=leaf_load, unload=noop_unload)
+    return provider
+
+
+def start_pair(
+    names: tuple[str, str], paths: tuple[str, str]
+) -> tuple[rr.ResourceRegistrar, rr.ResourceRegistrar]:
+    """Provider P (servers `leaf` and `nested`, which loads a leaf) and consumer C."""
+    p_name, c_name = names
+    provider = start_provider(p_name, paths[0])
+
+    def nested(request: Any) -> Any:
+        return provider.call(p_name, "leaf", {"sub": request}).response
+
+    provider.register_server("nested", load=nested, unload=noop_unload)
+    return provider, start_consumer(c_name, paths[1])
+
+
+def start_consumer(name: str, path: str) -> rr.ResourceRegistrar:
+    """Consumer `name` with `save_on_modify` on `path`."""
+    return rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=name, backup_path=path, save_on_modify=True)
+    )
