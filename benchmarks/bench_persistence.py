@@ -38,6 +38,7 @@ from rr_actors._catalog import Catalog
 from rr_actors._sqlite_store import SqliteStore, gc_paused
 
 Sample = Callable[[], None]
+BATCHED = 100  # changes per sample in the batched (save_interval) rows
 
 
 def build_backup(path: Path, size: int) -> list[str]:
@@ -70,22 +71,43 @@ def store_rows(path: Path, durability: Any) -> dict[str, Sample]:
     rows = store.load()
     assert rows is not None
     catalog = Catalog.restore(*rows)
-    rid = next(iter(catalog.resources))
+    # changes go to resources spread over the whole catalog (rows all over the file)
+    rids = list(catalog.resources)
     plain = Catalog.restore(*rows)
     ids = iter(range(10**9))
 
     def persisted() -> None:
-        qid = f"q{next(ids)}"
-        catalog.add_consumer(rid, qid, "app")
+        n = next(ids)
+        qid = f"q{n}"
+        catalog.add_consumer(rids[n * 7919 % len(rids)], qid, "app")
         store.write(catalog.drain_changes())
         catalog.release(qid)
         store.write(catalog.drain_changes())
 
     def memory_only() -> None:
-        qid = f"q{next(ids)}"
-        plain.add_consumer(rid, qid, "app")
+        n = next(ids)
+        qid = f"q{n}"
+        plain.add_consumer(rids[n * 7919 % len(rids)], qid, "app")
         plain.drain_changes()
         plain.release(qid)
+        plain.drain_changes()
+
+    def persisted_batch() -> None:  # a save_interval flush: many changes, one transaction
+        qids = [f"q{next(ids)}" for _ in range(BATCHED // 2)]
+        for n, qid in enumerate(qids):
+            catalog.add_consumer(rids[(hash(qid) + n) % len(rids)], qid, "app")
+        store.write(catalog.drain_changes())
+        for qid in qids:
+            catalog.release(qid)
+        store.write(catalog.drain_changes())
+
+    def memory_only_batch() -> None:
+        qids = [f"q{next(ids)}" for _ in range(BATCHED // 2)]
+        for n, qid in enumerate(qids):
+            plain.add_consumer(rids[(hash(qid) + n) % len(rids)], qid, "app")
+        plain.drain_changes()
+        for qid in qids:
+            plain.release(qid)
         plain.drain_changes()
 
     raw = sqlite3.connect(path.with_suffix(".raw"), isolation_level=None)
@@ -105,6 +127,8 @@ def store_rows(path: Path, durability: Any) -> dict[str, Sample]:
         "store write (2 changes)": persisted,
         "no store (2 changes)": memory_only,
         "raw SQLite (2 commits)": raw_commit,
+        f"store write, batched ({BATCHED} changes, 2 commits)": persisted_batch,
+        f"no store ({BATCHED} changes)": memory_only_batch,
     }
 
 
@@ -141,12 +165,20 @@ def registrar_rows(path: Path, durability: Any, keys: list[str]) -> tuple[dict[s
 def restore_rows(path: Path, rounds: int) -> dict[str, float]:
     """Median milliseconds to restore `path`, three ways."""
 
-    def store_restore() -> None:
+    def store_load() -> None:
         store = SqliteStore.open(path)
         rows = store.load()
         assert rows is not None
         with gc_paused():
             Catalog.restore(*rows)
+        store.close(erase=False)
+
+    def store_restore() -> None:
+        store = SqliteStore.open(path)
+        restored = store.restore()
+        assert restored is not None
+        with gc_paused():
+            Catalog.restore(restored.resources, restored.clients, restored.unread)
         store.close(erase=False)
 
     def registrar_start() -> None:
@@ -161,17 +193,15 @@ def restore_rows(path: Path, rounds: int) -> dict[str, float]:
             db.execute(f"SELECT * FROM {table} ORDER BY seq").fetchall()  # noqa: S608 - fixed names
         db.close()
 
-    results: dict[str, list[float]] = {
-        "raw SELECT *": [],
-        "store load+restore": [],
-        "ResourceRegistrar.start+stop": [],
+    runs = {
+        "raw SELECT *": raw_select,
+        "store restore (what start does)": store_restore,
+        "store load (every row) + restore": store_load,
+        "ResourceRegistrar.start+stop": registrar_start,
     }
+    results: dict[str, list[float]] = {label: [] for label in runs}
     for _ in range(rounds):
-        for label, run in (
-            ("raw SELECT *", raw_select),
-            ("store load+restore", store_restore),
-            ("ResourceRegistrar.start+stop", registrar_start),
-        ):
+        for label, run in runs.items():
             gc.collect()
             start = time.perf_counter()
             run()
@@ -234,6 +264,15 @@ def main() -> None:
         for s in sizes
     }
     print(f"{'=> store cost per change':<52}{''.join(f'{store_cost[s] / 2:12.1f}' for s in sizes)}")
+    batched = {
+        s: change_table[f"store write, batched ({BATCHED} changes, 2 commits)"][s]
+        - change_table[f"no store ({BATCHED} changes)"][s]
+        for s in sizes
+    }
+    print(
+        f"{'=> store cost per change, batched (save_interval)':<52}"
+        f"{''.join(f'{batched[s] / BATCHED:12.1f}' for s in sizes)}"
+    )
     raw_row = change_table["raw SQLite (2 commits)"]
     print(f"{'=> raw SQLite commit':<52}{''.join(f'{raw_row[s] / 2:12.1f}' for s in sizes)}")
     print(

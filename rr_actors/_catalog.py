@@ -26,10 +26,11 @@ import decimal
 import enum
 import fractions
 import hashlib
+import math
 import sys
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Mapping, Set
-from typing import Any
+from typing import Any, Protocol
 
 from rr_actors._types import Query
 from rr_actors.errors import UnknownQueryError
@@ -42,6 +43,7 @@ __all__ = [
     "ClientRecord",
     "Resource",
     "ResourceState",
+    "UnreadRows",
     "request_bucket",
     "request_digest",
 ]
@@ -260,6 +262,7 @@ class Resource:
         digest: int,
         blobs: tuple[bytes | None, bytes | None],
         decode: Decoder,
+        order: int = 0,
     ) -> Resource:
         """A stored resource whose request and response are decoded on first access.
 
@@ -271,6 +274,8 @@ class Resource:
             blobs: the encoded request and response.
             decode: `decode(rid, "request" | "response", blob)` returns the value or
                 raises `CatalogCorruptError`.
+            order: its place in the backup (row key), to list restored resources in
+                their stored order.
         """
         resource = cls.__new__(cls)
         resource.__dict__ = {
@@ -281,6 +286,7 @@ class Resource:
             "digest": digest,
             "response_version": 0,
             "_encoded": (decode, blobs),
+            "_order": order,
         }
         return resource
 
@@ -330,8 +336,40 @@ class _DirtySet(dict[str, None]):
         self[key] = None
 
 
+class UnreadRows(Protocol):
+    """Served resources of a restored catalog still in its backup (see `Catalog.restore`).
+
+    Each method returns resources not returned before, with their consumers; once
+    returned, a resource lives in the catalog's memory and is never returned again.
+    """
+
+    remaining: int
+    """How many resources have not been returned yet."""
+
+    def by_request(self, server: str, digest: int) -> list[Resource]:
+        """Those of `server` whose request digest is `digest`."""
+
+    def by_consumer(self, query_id: str) -> Resource | None:
+        """The one that has consumer `query_id`, if any."""
+
+    def of_server(self, server: str) -> list[Resource]:
+        """Every one of `server`, oldest first."""
+
+    def with_origin(self, origin_rr: str) -> list[Resource]:
+        """Every one with a consumer from registrar `origin_rr`."""
+
+    def every(self) -> list[Resource]:
+        """All of them, oldest first."""
+
+
 class Catalog:
-    """The bookkeeping of one registrar (thesis 4.3.2), without the locks."""
+    """The bookkeeping of one registrar (thesis 4.3.2), without the locks.
+
+    A restored catalog may hold only part of its resources in memory (`resources`); the
+    others are read from the backup (`UnreadRows`) when a lookup first needs them, so a
+    restore does not cost a read of every row. Methods that look resources up (`find`,
+    `resource_of`, `has_consumer`, `resources_of`, ...) see both.
+    """
 
     def __init__(self, *, track_changes: bool = True) -> None:
         self.track_changes = track_changes
@@ -346,11 +384,25 @@ class Catalog:
         self._deps: dict[str, list[str]] = {}
         self._dirty_resources = _DirtySet()  # ordered: new rows drain in creation order
         self._dirty_clients = _DirtySet()
+        self._unread: UnreadRows | None = None  # a restored catalog's resources still on disk
 
     # -- served resources -------------------------------------------------------------
 
     def find(self, server: str, request: Any) -> Resource | None:
         """Return the resource of `server` whose request `== request`, if any."""
+        found = self._find(server, request)
+        if found is None and self._unread is not None:
+            digest = request_digest(request)
+            if digest is not None:
+                self._read(self._unread.by_request(server, digest))
+            elif not _identity_equality(request):  # may equal any value: read them all
+                self._read(self._unread.of_server(server))
+            else:
+                return None  # equal only to itself: never to a value read back from disk
+            found = self._find(server, request)
+        return found
+
+    def _find(self, server: str, request: Any) -> Resource | None:
         digested = self._index.get(server)
         others = self._others.get(server)
         digest = request_digest(request)
@@ -418,7 +470,7 @@ class Catalog:
 
     def add_consumer(self, rid: str, query_id: str, origin_rr: str) -> None:
         """Record one more consumer id of a resource."""
-        if query_id in self._by_consumer:
+        if self.has_consumer(query_id):
             raise ValueError(f"query id {query_id} is already a consumer")
         self.resources[rid].consumers[query_id] = origin_rr
         self._by_consumer[query_id] = rid
@@ -443,13 +495,25 @@ class Catalog:
             UnknownQueryError: the id is not a consumer of any resource here.
         """
         rid = self._by_consumer.get(query_id)
+        if rid is None and self._unread is not None:
+            resource = self._unread.by_consumer(query_id)
+            if resource is not None:
+                self._read([resource])
+                rid = resource.id
         if rid is None:
             raise UnknownQueryError(f"unknown or released query id {query_id!r}")
         return self.resources[rid]
 
     def has_consumer(self, query_id: str) -> bool:
         """Whether `query_id` is a consumer id of one of the resources served here."""
-        return query_id in self._by_consumer
+        if query_id in self._by_consumer:
+            return True
+        if self._unread is not None:
+            resource = self._unread.by_consumer(query_id)
+            if resource is not None:
+                self._read([resource])
+                return True
+        return False
 
     def queries(self, resource: Resource, serving_rr: str) -> Iterator[Query]:
         """Yield one `Query` per consumer id of `resource`."""
@@ -460,6 +524,8 @@ class Catalog:
 
     def server_queries(self, server: str, serving_rr: str) -> list[Query]:
         """Every consumer query of every loaded resource of `server`."""
+        if self._unread is not None:
+            self._read(self._unread.of_server(server))
         return [
             query
             for index in (self._index, self._others)
@@ -469,8 +535,29 @@ class Catalog:
         ]
 
     def resources_of(self, server: str) -> list[Resource]:
-        """Every resource of `server`, oldest first."""
+        """Every resource of `server`, in the order the catalog learnt of them."""
+        if self._unread is not None:
+            self._read(self._unread.of_server(server))
         return [r for r in self.resources.values() if r.server == server]
+
+    def consumers_from(self, origin_rr: str) -> list[str]:
+        """The consumer ids, of any resource here, that registrar `origin_rr` holds."""
+        if self._unread is not None:
+            self._read(self._unread.with_origin(origin_rr))
+        return [
+            query_id
+            for resource in self.resources.values()
+            for query_id, origin in resource.consumers.items()
+            if origin == origin_rr
+        ]
+
+    def read_all(self) -> dict[str, Resource]:
+        """Every resource (reading those still in the backup), by id, oldest first."""
+        if self._unread is not None:
+            self._read(self._unread.every())
+            # restored ones in their stored order, then those created since (stable sort)
+            self.resources = dict(sorted(self.resources.items(), key=_stored_order))
+        return self.resources
 
     # -- client records ---------------------------------------------------------------
 
@@ -536,13 +623,21 @@ class Catalog:
         return changes
 
     @classmethod
-    def restore(cls, resources: Iterable[Resource], clients: Iterable[ClientRecord]) -> Catalog:
+    def restore(
+        cls,
+        resources: Iterable[Resource],
+        clients: Iterable[ClientRecord],
+        unread: UnreadRows | None = None,
+    ) -> Catalog:
         """Build a catalog from stored rows (nothing is marked dirty).
 
         Resources whose `digest` is known are indexed without looking at their request
-        (a restored request stays encoded until first used).
+        (a restored request stays encoded until first used). `unread` holds the stored
+        resources not given in `resources`: lookups read them when they need them.
         """
         catalog = cls(track_changes=True)
+        if unread is not None and unread.remaining:
+            catalog._unread = unread
         catalog.resources = {resource.id: resource for resource in resources}
         catalog._by_consumer = {
             qid: rid for rid, resource in catalog.resources.items() for qid in resource.consumers
@@ -570,6 +665,7 @@ class Catalog:
 
     def check_invariants(self) -> None:
         """Raise `AssertionError` if the indexes disagree with the rows (for tests)."""
+        self.read_all()
         by_consumer = {q: r.id for r in self.resources.values() for q in r.consumers}
         assert by_consumer == self._by_consumer, "consumer index out of sync"
         for resource in self.resources.values():
@@ -587,6 +683,16 @@ class Catalog:
                 deps.setdefault(record.parent, []).append(qid)
         assert deps == self._deps, "dependency index out of sync"
 
+    def _read(self, resources: list[Resource]) -> None:
+        """Take resources read from the backup into memory (and into the indexes)."""
+        for resource in resources:
+            self.resources[resource.id] = resource
+            for query_id in resource.consumers:
+                self._by_consumer[query_id] = resource.id
+            self._index_request(resource)
+        if self._unread is not None and not self._unread.remaining:
+            self._unread = None  # everything is in memory: stop asking
+
     def _insert(self, resource: Resource) -> None:
         self.resources[resource.id] = resource
         self._index_request(resource)
@@ -603,6 +709,12 @@ class Catalog:
         else:
             key = self._other_keys[resource.id] = _runtime_key(resource.request)
             self._others.setdefault(resource.server, {}).setdefault(key, []).append(resource.id)
+
+
+def _stored_order(item: tuple[str, Resource]) -> float:
+    """Sort key: a restored resource's row key in its backup; one created since is newer."""
+    order: float = item[1].__dict__.get("_order", math.inf)
+    return order
 
 
 def _identity_equality(value: Any) -> bool:

@@ -12,10 +12,13 @@ import contextlib
 import gc
 import threading
 from collections.abc import Callable, Iterator
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from rr_actors._catalog import Changes, ClientRecord, Resource
 from rr_actors.config import RegistrarConfig
+
+if TYPE_CHECKING:
+    from rr_actors._sqlite_store import Restored
 
 __all__ = [
     "Cancellable",
@@ -73,7 +76,10 @@ class CatalogStore(Protocol):
     path: str
 
     def load(self) -> tuple[list[Resource], list[ClientRecord]] | None:
-        """The stored rows, or `None` when there was no backup (a first start)."""
+        """Every stored row, or `None` when there was no backup (a first start)."""
+
+    def restore(self) -> Restored | None:
+        """What a registrar needs to serve again (the rest read on first use), or `None`."""
 
     def write(self, changes: Changes) -> None:
         """Apply `changes` as one transaction."""

@@ -793,10 +793,8 @@ class RegistrarActor(pykka.ThreadingActor):
         self._send(query.serving_rr, lambda reply: Unload(query.id, self.name, reply), answered)
 
     def _on_consumer_down(self, message: ConsumerDown) -> None:
-        for resource in list(self.catalog.resources.values()):
-            for query_id, origin in list(resource.consumers.items()):
-                if origin == message.origin_rr:
-                    self._release(query_id, None)
+        for query_id in self.catalog.consumers_from(message.origin_rr):
+            self._release(query_id, None)
 
     # -- provider side: status, fetch, revoke -----------------------------------------
 
@@ -1132,7 +1130,7 @@ class RegistrarActor(pykka.ThreadingActor):
             CatalogView(
                 resources=tuple(
                     dataclasses.replace(r, consumers=dict(r.consumers))
-                    for r in self.catalog.resources.values()
+                    for r in self.catalog.read_all().values()
                 ),
                 clients=tuple(dataclasses.replace(c) for c in self.catalog.clients.values()),
             )
@@ -1282,8 +1280,12 @@ class ResourceRegistrar(RegistrarFacts):
         try:
             store = open_store(config)
             with gc_paused():  # building many rows allocates no cycles: skip the rescans
-                rows = store.load() if store is not None else None
-                catalog = Catalog.restore(*rows) if rows is not None else None
+                restored = store.restore() if store is not None else None
+                catalog = (
+                    Catalog.restore(restored.resources, restored.clients, restored.unread)
+                    if restored is not None
+                    else None
+                )
             if catalog is None:
                 catalog = Catalog(track_changes=store is not None)
             saver = Saver(store, config)
@@ -1301,7 +1303,7 @@ class ResourceRegistrar(RegistrarFacts):
                 store.close(erase=False)
             DIRECTORY.unregister(peer, "stopped")
             raise
-        handle = cls(ref, config, restored=rows is not None, in_doubt=in_doubt)
+        handle = cls(ref, config, restored=restored is not None, in_doubt=in_doubt)
         handle._died = died
         if setup is not None:
             try:

@@ -5,18 +5,28 @@ instant leaves the old or the new catalog, never a torn one. A write touches onl
 rows that changed (the store keeps a small mirror of what it wrote to compute the
 difference), so its cost does not grow with the catalog.
 
-Layout (schema version 2):
+Layout (schema version 3):
 
 * `rr_actors_schema(version, digest_scheme)`: one row, the schema version and the
   `DIGEST_SCHEME` of the stored digests; `PRAGMA application_id` marks the file as an
   rr_actors catalog.
 * `resources(seq, id, server, state, digest, request, response)`: served resources, `seq`
   being the insertion order, `state` 0/1/2 (loading/loaded/unloading), `digest` the
-  request's `request_digest` (`NULL` if it has none).
-* `consumers(seq, query_id, resource, origin_rr)`: consumer ids in arrival order,
-  `resource` being the `seq` of their resource.
+  request's `request_digest` (`NULL` if it has none). Indexed by `id` (unique), by
+  `(server, digest)`, and (partial index) the rows not loaded or without a digest.
+* `consumers(resource, seq, query_id, origin_rr)`: consumer ids, `resource` being the `seq`
+  of their resource; clustered by `(resource, seq)` (`WITHOUT ROWID`), so a scan yields
+  each resource's consumers together, in arrival order, and adding or removing one
+  writes one page.
 * `clients(seq, query_id, server, serving_rr, origin_rr, request, response, parent,
   loaded)`: outbound queries (`parent` set for dependencies).
+
+Restoring does not read every row (`SqliteStore.restore`): the consumer ids are read as
+four column strings by one aggregate query, the resources in doubt (or without a digest,
+or owning a dependency) and the client records as rows; every other resource is read
+when the catalog first looks it up, through the indexes. So a restart costs a fraction of
+a full read, and an index is written only when a resource is added or removed, never
+when a consumer id is.
 
 Requests and responses are stored with cloudpickle (`NULL` for `None`). The stored digest
 is deterministic (BLAKE2b of strings, numbers' own `hash()`), never the per-process
@@ -25,11 +35,12 @@ leaves its request and response encoded until first used. A file whose digests w
 written under another `DIGEST_SCHEME` (another Python version or word size) has them
 recomputed, in one transaction, when it is opened.
 
-Restore validates cheaply what it does not decode: every stored value must look like a
+Reading validates cheaply what it does not decode: every stored value must look like a
 whole pickle (protocol header, final STOP opcode), every state code must be known, and no
-resource id, consumer query id or client query id may appear twice. A value that passes
-and still cannot be decoded later (its class is not importable here) raises
-`CatalogCorruptError` naming the file and the resource when it is first used.
+resource id, consumer query id or client query id may appear twice. A resource row is
+validated when it is read, so a damaged row a restore left on disk raises
+`CatalogCorruptError` (naming the file and the resource) when it is first used, as does a
+value that passes and still cannot be decoded (its class is not importable here).
 
 A new file is built under a temporary name and linked into place complete, so the backup
 path either does not exist or holds a whole catalog. An existing file is validated
@@ -39,6 +50,7 @@ through a read-only connection before anything writes to it; whatever is wrong r
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import dataclasses
 import datetime
@@ -79,7 +91,7 @@ __all__ = [
 APPLICATION_ID = 0x72724163  # "rrAc"
 """`PRAGMA application_id` of every rr_actors catalog file."""
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 """The schema version this code writes; older files are migrated, newer ones refused."""
 
 _HEADER = b"SQLite format 3\x00"
@@ -141,7 +153,42 @@ def _upgrade_v2(db: sqlite3.Connection) -> None:
         db.execute(f"ALTER TABLE {table}_v2 RENAME TO {table}")
 
 
-_MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_create_v1, _upgrade_v2)
+def _upgrade_v3(db: sqlite3.Connection) -> None:
+    """v2 -> v3: indexes that let a restore leave served resources on disk until used.
+
+    Consumers are clustered by their resource (`WITHOUT ROWID`, key `(resource, seq)`),
+    so one table scan yields each resource's consumer ids together and in arrival order;
+    resources get a unique index on their id, one on `(server, digest)` (dedup of a
+    resource not read yet) and a partial one on the rows a restore reads at once. A file
+    with a resource id stored twice fails here (`UNIQUE constraint failed`).
+    """
+    db.execute(
+        "CREATE TABLE consumers_v3 (resource INTEGER NOT NULL, seq INTEGER NOT NULL, "
+        "query_id TEXT NOT NULL, origin_rr TEXT NOT NULL, PRIMARY KEY (resource, seq)) "
+        "WITHOUT ROWID"
+    )
+    db.execute(
+        "INSERT INTO consumers_v3 (resource, seq, query_id, origin_rr) "
+        "SELECT resource, seq, query_id, origin_rr FROM consumers"
+    )
+    db.execute("DROP TABLE consumers")
+    db.execute("ALTER TABLE consumers_v3 RENAME TO consumers")
+    db.execute("CREATE UNIQUE INDEX resources_by_id ON resources (id)")
+    db.execute("CREATE INDEX resources_by_request ON resources (server, digest)")
+    db.execute(f"CREATE INDEX resources_unsettled ON resources (seq) WHERE {_UNSETTLED}")
+
+
+_INDEXES = ("resources_by_id", "resources_by_request", "resources_unsettled")
+"""The indexes of a current file: a restore relies on them (unique ids, dedup, doubt)."""
+
+_UNSETTLED = "state != 1 OR digest IS NULL"
+"""Resources a restore reads at once: in doubt (not loaded), or indexed by their value."""
+
+_MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (
+    _create_v1,
+    _upgrade_v2,
+    _upgrade_v3,
+)
 """`_MIGRATIONS[v]` brings a version-`v` file to version `v + 1` (0 is an empty file).
 
 To change the schema: append a migration, bump `SCHEMA_VERSION`, add a test that opens a
@@ -388,6 +435,13 @@ def _schema_version(db: sqlite3.Connection, path: str) -> int:
         )
     if version < 1:
         raise CatalogCorruptError(path, f"bad schema version {version}")
+    if version == SCHEMA_VERSION:
+        indexes = {
+            row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'index'")
+        }
+        for index in _INDEXES:
+            if index not in indexes:
+                raise CatalogCorruptError(path, f"index {index} is missing")
     return version
 
 
@@ -578,6 +632,179 @@ def _read_rows(
     return _Rows(resources, clients, mirror, client_seqs, max_seq)
 
 
+_RESOURCE_BY_SEQ = (
+    "SELECT seq, id, server, state, digest, request, response FROM resources WHERE seq = ?"
+)
+_RESOURCES_AT_ONCE = (  # what a restore reads as rows: in doubt, no digest, or a parent
+    "SELECT seq, id, server, state, digest, request, response FROM resources "
+    "WHERE state != 1 OR digest IS NULL "  # == _UNSETTLED: the partial index serves it
+    "UNION SELECT seq, id, server, state, digest, request, response FROM resources "
+    "WHERE id IN (SELECT parent FROM clients WHERE parent IS NOT NULL) ORDER BY seq"
+)
+_CLIENTS = (
+    "SELECT seq, query_id, server, serving_rr, origin_rr, request, response, parent, loaded "
+    "FROM clients ORDER BY seq"
+)
+_SEP = "\x1f"  # joins consumer ids and origins in one string (checked: a collision reads rows)
+
+
+class _Consumers:
+    """Every stored consumer id, as columns in `(resource, seq)` order (the table's key).
+
+    Read with one aggregate query (four strings instead of 100k row tuples); a resource's
+    consumers are the slice `bisect(resources, seq)`. `index` maps a query id to its place.
+    """
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        count, max_seq, resources, seqs, query_ids, origins = db.execute(
+            "SELECT count(*), ifnull(max(seq), 0), group_concat(resource), group_concat(seq), "
+            "group_concat(query_id, char(31)), group_concat(origin_rr, char(31)) "
+            "FROM consumers"
+        ).fetchone()
+        self.max_seq: int = max_seq
+        self.resources: list[int] = []
+        self.seqs: list[str | int] = []  # row keys, parsed when their resource is read
+        self.query_ids: list[str] = []
+        self.origins: list[str] = []
+        if count:
+            self.resources = list(map(int, resources.split(",")))
+            self.seqs = seqs.split(",")
+            self.query_ids = query_ids.split(_SEP)
+            self.origins = origins.split(_SEP)
+            if len(self.query_ids) != count or len(self.origins) != count:  # an id holds _SEP
+                rows = db.execute(
+                    "SELECT resource, seq, query_id, origin_rr FROM consumers"
+                ).fetchall()
+                columns = zip(*rows, strict=True)
+                self.resources, self.seqs, self.query_ids, self.origins = map(list, columns)
+        if self.resources != sorted(self.resources):  # sorting a sorted list is one pass
+            raise ValueError("the consumers table is not in (resource, seq) order")
+        self.index = dict(zip(self.query_ids, range(count), strict=True))
+        if len(self.index) != count:
+            raise ValueError(
+                f"consumer query id {_first_duplicate(self.query_ids)} is stored twice"
+            )
+
+    def of(self, resource_seq: int) -> range:
+        """The places of the consumers of resource row `resource_seq`, in arrival order."""
+        keys = self.resources
+        return range(
+            bisect.bisect_left(keys, resource_seq), bisect.bisect_right(keys, resource_seq)
+        )
+
+
+def _first_duplicate(values: list[Any]) -> Any:
+    seen: set[Any] = set()
+    for value in values:
+        if value in seen:
+            return value
+        seen.add(value)
+    return None
+
+
+class _Unread:
+    """The served resources of a restored backup that are not in memory yet (`UnreadRows`).
+
+    A restore reads the consumer ids, the resources in doubt and the clients; the other
+    resources stay in the file until the catalog asks for one (by request digest, by
+    consumer id, by server, ...). Reading one builds it with its consumers, records its
+    mirror in the store and never returns it again: from then on memory is the truth.
+    Rows written after the restore (`seq > last`) are the catalog's own and never read.
+    """
+
+    def __init__(
+        self, store: SqliteStore, consumers: _Consumers, count: int, last: int, read: set[int]
+    ) -> None:
+        self._store = store
+        self._consumers = consumers
+        self._last = last
+        self._read = read  # row keys of restored resources already in memory
+        self.remaining = count - len(read)
+
+    def by_request(self, server: str, digest: int) -> list[Resource]:
+        """Unread resources of `server` whose request digest is `digest`."""
+        return self._fetch(
+            "SELECT seq FROM resources WHERE server = ? AND digest = ? AND seq <= ?",
+            (server, digest, self._last),
+        )
+
+    def by_consumer(self, query_id: str) -> Resource | None:
+        """The unread resource that has consumer `query_id`, if any."""
+        place = self._consumers.index.get(query_id)
+        if place is None:
+            return None
+        seq = self._consumers.resources[place]
+        if seq in self._read:
+            return None  # in memory: released since (memory is the truth)
+        resource = self._row(seq)
+        if resource is None:
+            raise CatalogCorruptError(
+                self._store.path, f"consumer {query_id} belongs to a missing resource"
+            )
+        return resource
+
+    def of_server(self, server: str) -> list[Resource]:
+        """Every unread resource of `server`, oldest first."""
+        return self._fetch(
+            "SELECT seq FROM resources WHERE server = ? AND seq <= ? ORDER BY seq",
+            (server, self._last),
+        )
+
+    def with_origin(self, origin_rr: str) -> list[Resource]:
+        """Every unread resource with a consumer from registrar `origin_rr`."""
+        consumers = self._consumers
+        seqs = {consumers.resources[i] for i, o in enumerate(consumers.origins) if o == origin_rr}
+        return [r for seq in sorted(seqs - self._read) if (r := self._row(seq)) is not None]
+
+    def every(self) -> list[Resource]:
+        """Every unread resource, oldest first."""
+        return self._fetch("SELECT seq FROM resources WHERE seq <= ? ORDER BY seq", (self._last,))
+
+    def _fetch(self, sql: str, args: tuple[Any, ...]) -> list[Resource]:
+        if not self.remaining:
+            return []
+        with _as_corrupt(self._store.path):
+            seqs = [seq for (seq,) in self._store._db.execute(sql, args) if seq not in self._read]
+        return [r for seq in seqs if (r := self._row(seq)) is not None]
+
+    def _row(self, seq: int) -> Resource | None:
+        store = self._store
+        with _as_corrupt(store.path):
+            row = store._db.execute(_RESOURCE_BY_SEQ, (seq,)).fetchone()
+            if row is None:
+                return None
+            _check_row(row)
+            resource = store._adopt(row, self._consumers)
+        self._read.add(seq)
+        self.remaining -= 1
+        return resource
+
+
+def _check_row(row: Any) -> None:
+    """Raise `ValueError` if a resource row has an unknown state or a value is no pickle."""
+    state = row[3]
+    if type(state) is not int or not 0 <= state < len(_STATES_BY_CODE):
+        raise ValueError(f"resource {row[1]} has an unknown state {state!r}")
+    if _not_a_pickle(row[5]) or _not_a_pickle(row[6]):
+        raise ValueError(f"the stored request or response of resource {row[1]} is not a pickle")
+
+
+@dataclasses.dataclass
+class Restored:
+    """What `SqliteStore.restore` read: enough to serve, the rest on first use.
+
+    Attributes:
+        resources: resources read at once (in doubt, without a digest, or owning a
+            dependency), oldest first.
+        clients: every client record, oldest first.
+        unread: the other served resources, read when the catalog first needs them.
+    """
+
+    resources: list[Resource]
+    clients: list[ClientRecord]
+    unread: _Unread
+
+
 def read_backup(path: str | os.PathLike[str]) -> Backup:
     """Read a catalog backup without changing it (it may belong to a running registrar).
 
@@ -742,6 +969,91 @@ class SqliteStore:
             return None
         return rows.resources, rows.clients
 
+    def restore(self) -> Restored | None:
+        """Read what a registrar needs to serve again; `None` if `open` created the file.
+
+        Unlike `load`, it does not read every served resource: the consumer ids (as four
+        column strings), the resources in doubt or without a stored digest, those owning a
+        dependency and the client records are read in one read transaction; the other
+        resources are read from the file when the catalog first needs them (`unread`).
+        So its cost grows with the number of consumer ids only, at a fraction of a row read.
+
+        Raises:
+            CatalogCorruptError: the backup cannot be read (duplicate ids, unknown
+                states, ...); a resource read later that cannot be read raises it then.
+        """
+        decode = functools.partial(_decode, self.path)
+        try:
+            with _as_corrupt(self.path), gc_paused():
+                self._db.execute("BEGIN")
+                try:
+                    count, last = self._db.execute(
+                        "SELECT count(*), ifnull(max(seq), 0) FROM resources"
+                    ).fetchone()
+                    consumers = _Consumers(self._db)
+                    rows = self._db.execute(_RESOURCES_AT_ONCE).fetchall()
+                    client_rows = self._db.execute(_CLIENTS).fetchall()
+                finally:
+                    self._db.execute("COMMIT")
+                for row in rows:
+                    _check_row(row)
+                _check_keys([], [], client_rows)
+                self._resources = {}
+                resources = [self._adopt(row, consumers) for row in rows]
+                for resource in resources:
+                    if resource.digest == NO_DIGEST:
+                        resource.digest = None  # indexed from its (decoded) request
+                        _ = resource.request
+                clients = self._read_clients(client_rows, decode)
+        except CatalogCorruptError:
+            self.close(erase=False)
+            raise
+        client_seqs = (seq for seq, _ in self._clients.values())
+        self._seq = max(last, consumers.max_seq, max(client_seqs, default=0))
+        self._loaded = True
+        if self._created and not count and not clients:
+            return None
+        unread = _Unread(self, consumers, count, last, {row[0] for row in rows})
+        return Restored(resources, clients, unread)
+
+    def _adopt(self, row: Any, consumers: _Consumers) -> Resource:
+        """Build a stored resource with its consumers; from now on the store mirrors it."""
+        seq, rid, server, state, digest, request, response = row
+        resource = Resource.encoded(
+            rid,
+            server,
+            _STATES_BY_CODE[state],
+            NO_DIGEST if digest is None else digest,
+            (request, response),
+            functools.partial(_decode, self.path),
+            seq,
+        )
+        keys = {}
+        for place in consumers.of(seq):
+            query_id = consumers.query_ids[place]
+            resource.consumers[query_id] = consumers.origins[place]
+            keys[query_id] = int(consumers.seqs[place])
+        self._resources[rid] = _Mirror(seq, resource.state, 0, keys)
+        return resource
+
+    def _read_clients(
+        self, client_rows: list[Any], decode: Callable[[str, str, bytes | None], Any]
+    ) -> list[ClientRecord]:
+        clients = []
+        self._clients = {}
+        for seq, qid, server, serving, origin, request, response, parent, loaded in client_rows:
+            query = Query(
+                qid,
+                server,
+                serving,
+                origin,
+                decode(qid, "request", request),
+                decode(qid, "response", response),
+            )
+            clients.append(ClientRecord(query, parent, bool(loaded)))
+            self._clients[qid] = (seq, 0)
+        return clients
+
     def write(self, changes: Changes) -> None:
         """Apply `changes` (current rows, `None` for deleted ones) as one transaction.
 
@@ -779,9 +1091,7 @@ class SqliteStore:
         if resource is None:
             if old is not None:
                 db.execute("DELETE FROM resources WHERE seq = ?", (old.seq,))
-                db.executemany(
-                    "DELETE FROM consumers WHERE seq = ?", [(k,) for k in old.consumers.values()]
-                )
+                db.execute("DELETE FROM consumers WHERE resource = ?", (old.seq,))
                 after.append(functools.partial(self._resources.pop, rid, None))
             return seq
         if old is None:
@@ -834,8 +1144,8 @@ class SqliteStore:
             consumers[query_id] = key
         if kept != len(old_consumers):  # some consumers left since the last write
             db.executemany(
-                "DELETE FROM consumers WHERE seq = ?",
-                [(k,) for q, k in old_consumers.items() if q not in consumers],
+                "DELETE FROM consumers WHERE resource = ? AND seq = ?",
+                [(row, k) for q, k in old_consumers.items() if q not in consumers],
             )
         mirror = _Mirror(row, resource.state, resource.response_version, consumers)
         after.append(functools.partial(self._resources.__setitem__, rid, mirror))

@@ -715,7 +715,6 @@ def make_bad_row(path: Path) -> None:
         (make_empty, "empty"),
         (make_foreign, "not an rr_actors catalog"),
         (make_newer, "schema version 99 is newer"),
-        (make_bad_row, "cannot be read"),
     ],
 )
 def test_a_bad_backup_raises_catalog_corrupt_error_naming_the_file_and_is_left_untouched(
@@ -735,6 +734,39 @@ def test_a_bad_backup_raises_catalog_corrupt_error_naming_the_file_and_is_left_u
         digest(path),
         ["p.db"],
     )
+
+
+def test_a_damaged_resource_row_raises_catalog_corrupt_error_when_first_used_and_only_then(
+    tmp_path: Path,
+) -> None:
+    """A restore reads served resources on first use: a damaged one fails that use alone."""
+    path = tmp_path / "p.db"
+    make_bad_row(path)  # r7's request is not a pickle; r0 .. r299 are fine
+    registrar = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=unique("P"), backup_path=path, save_interval=None)
+    )
+    try:
+        registrar.register_server("leaf", load=lambda r: r, unload=noop_unload)
+        seventh, eighth = ({"n": n, "pad": "x" * 200} for n in (7, 8))
+        with pytest.raises(rr.CatalogCorruptError) as damaged:
+            registrar.call(registrar.name, "leaf", seventh)
+        with pytest.raises(rr.CatalogCorruptError) as again:
+            registrar.call(registrar.name, "leaf", seventh)
+        neighbour = registrar.call(registrar.name, "leaf", eighth)  # r8, restored: a dedup hit
+        registrar.unload(neighbour.id)
+    finally:
+        registrar.stop()
+
+    assert (str(path), True, True, 8) == (
+        damaged.value.path,
+        "resource r7 is not a pickle" in damaged.value.cause,
+        "resource r7 is not a pickle" in again.value.cause,
+        neighbour.response,
+    )
+    with sqlite3.connect(path) as db:  # r7's row is kept as it was
+        assert db.execute("SELECT request FROM resources WHERE id = 'r7'").fetchone() == (
+            b"\x00\xff\x00",
+        )
 
 
 def test_a_backup_that_failed_to_open_leaves_the_registrar_name_free(tmp_path: Path) -> None:
@@ -1115,6 +1147,7 @@ def test_a_registrar_restarted_writes_update_response_to_none_on_a_restored_quer
 
 
 def duplicate_resource(db: sqlite3.Connection) -> None:
+    db.execute("DROP INDEX resources_by_id")  # the unique index refuses a second row
     db.execute(
         "INSERT INTO resources (seq, id, server, state, digest, request, response) "
         "SELECT 100, id, server, state, digest, request, response FROM resources WHERE id = 'r1'"
@@ -1122,7 +1155,10 @@ def duplicate_resource(db: sqlite3.Connection) -> None:
 
 
 def duplicate_consumer(db: sqlite3.Connection) -> None:
-    db.execute("INSERT INTO consumers SELECT 101, query_id, resource, origin_rr FROM consumers")
+    db.execute(
+        "INSERT INTO consumers (seq, query_id, resource, origin_rr) "
+        "SELECT 101, query_id, resource, origin_rr FROM consumers"
+    )
 
 
 def duplicate_client(db: sqlite3.Connection) -> None:
@@ -1147,7 +1183,7 @@ def state_text(db: sqlite3.Connection) -> None:
 @pytest.mark.parametrize(
     ("damage", "cause"),
     [
-        (duplicate_resource, "resource id r1 is stored twice"),
+        (duplicate_resource, "index resources_by_id is missing"),
         (duplicate_consumer, "consumer query id q1 is stored twice"),
         (duplicate_client, "client query id d1 is stored twice"),
         (state_minus_one, "unknown state -1"),
@@ -1165,13 +1201,15 @@ def test_a_duplicate_id_or_unknown_state_in_a_backup_raises_catalog_corrupt_erro
     db.commit()
     db.close()
 
-    with pytest.raises(rr.CatalogCorruptError) as restored:
+    with pytest.raises(rr.CatalogCorruptError) as restored:  # as a registrar restores
+        SqliteStore.open(path).restore()
+    with pytest.raises(rr.CatalogCorruptError) as loaded:
         SqliteStore.open(path).load()
     with pytest.raises(rr.CatalogCorruptError) as inspected:
         read_backup(path)
 
-    assert [(str(path), True)] * 2 == [
-        (e.value.path, cause in e.value.cause) for e in (restored, inspected)
+    assert [(str(path), True)] * 3 == [
+        (e.value.path, cause in e.value.cause) for e in (restored, loaded, inspected)
     ]
 
 
