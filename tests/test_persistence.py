@@ -524,14 +524,37 @@ def make_query(qid: str, request: Any, *, target: str = "P", origin: str = "C") 
 
 
 def reopen(path: Path) -> Catalog:
+    """Read a backup back, every row at once; the lazy restore must read the same catalog."""
     store = SqliteStore.open(path)
     try:
         rows = store.load()
+        assert rows is not None
+        catalog = Catalog.restore(*rows)
+        catalog.check_invariants()
+        lazily = reopen_lazily(path)
+        assert shape_of(catalog) == shape_of(lazily)
     finally:
         store.close(erase=False)
-    assert rows is not None
-    catalog = Catalog.restore(*rows)
-    catalog.check_invariants()
+    return catalog
+
+
+def shape_of(catalog: Catalog) -> Any:
+    """The rows without their values (a test may store one that cannot be decoded)."""
+    return [
+        (r.id, r.server, r.state, list(r.consumers.items())) for r in catalog.resources.values()
+    ]
+
+
+def reopen_lazily(path: Path) -> Catalog:
+    """Restore a backup as a registrar does (resources read on first use), then read all."""
+    store = SqliteStore.open(path)
+    try:
+        restored = store.restore()
+        assert restored is not None
+        catalog = Catalog.restore(restored.resources, restored.clients, restored.unread)
+        catalog.read_all()
+    finally:
+        store.close(erase=False)
     return catalog
 
 
@@ -851,6 +874,92 @@ def stored_catalog(path: Path, requests: list[Any]) -> Catalog:
     store.write(catalog.drain_changes())
     store.close(erase=False)
     return catalog
+
+
+def lazily_restored(path: Path) -> tuple[SqliteStore, Catalog, int]:
+    """A catalog restored as a registrar restores it, its store, and how many rows wait."""
+    store = SqliteStore.open(path)
+    restored = store.restore()
+    assert restored is not None
+    catalog = Catalog.restore(restored.resources, restored.clients, restored.unread)
+    return store, catalog, restored.unread.remaining
+
+
+def test_a_restore_reads_a_served_resource_only_when_a_lookup_needs_it(tmp_path: Path) -> None:
+    stored_catalog(tmp_path / "p.db", [{"n": n} for n in range(6)])
+    store, catalog, waiting = lazily_restored(tmp_path / "p.db")
+    try:
+        in_memory = len(catalog.resources)
+        found = catalog.find("leaf", {"n": 2})  # by digest, through the index
+        by_consumer = catalog.resource_of("q4")  # by consumer id, from the columns
+        known = (catalog.has_consumer("q5"), catalog.has_consumer("q-never"))
+        after = sorted(catalog.resources)
+        of_server = [r.id for r in catalog.resources_of("leaf")]
+        catalog.check_invariants()
+    finally:
+        store.close(erase=False)
+
+    assert (6, 0, "r2", "r4", (True, False), ["r2", "r4", "r5"]) == (
+        waiting,
+        in_memory,
+        found.id if found else None,
+        by_consumer.id,
+        known,
+        after,
+    )
+    assert sorted(of_server) == [f"r{n}" for n in range(6)]
+
+
+def test_memory_wins_over_rows_not_written_yet_for_a_lazily_restored_catalog(
+    tmp_path: Path,
+) -> None:
+    """A release or removal not flushed yet (save_interval) must not come back from disk."""
+    stored_catalog(tmp_path / "p.db", [{"n": n} for n in range(4)])
+    store, catalog, _ = lazily_restored(tmp_path / "p.db")
+    try:
+        resource = catalog.resource_of("q1")
+        catalog.release("q1")
+        catalog.begin_unload(resource.id)
+        catalog.remove_resource(resource.id)
+        pending = catalog.drain_changes()  # held back, as a save_interval registrar does
+        seen = (
+            catalog.has_consumer("q1"),
+            catalog.find("leaf", {"n": 1}),
+            "r1" in catalog.read_all(),
+        )
+        store.write(pending)
+    finally:
+        store.close(erase=False)
+
+    assert ((False, None, False), ["r0", "r2", "r3"]) == (
+        seen,
+        sorted(r.id for r in read_backup(tmp_path / "p.db").resources),
+    )
+
+
+def test_consumers_from_an_origin_include_those_of_resources_still_on_disk(
+    tmp_path: Path,
+) -> None:
+    store = SqliteStore.open(tmp_path / "p.db")
+    store.load()
+    catalog = Catalog()
+    for n in range(6):
+        catalog.begin_load(f"r{n}", "leaf", n)
+        catalog.finish_load(f"r{n}", n)
+        catalog.add_consumer(f"r{n}", f"a{n}", "A")
+        if n % 2:
+            catalog.add_consumer(f"r{n}", f"b{n}", "B")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    store, restored, _ = lazily_restored(tmp_path / "p.db")
+    try:
+        from_b = restored.consumers_from("B")
+        listed = [r.id for r in restored.read_all().values()]
+    finally:
+        store.close(erase=False)
+
+    assert (["b1", "b3", "b5"], [f"r{n}" for n in range(6)]) == (sorted(from_b), listed)
 
 
 def test_a_restore_leaves_requests_and_responses_encoded_until_first_used(tmp_path: Path) -> None:
