@@ -50,7 +50,6 @@ through a read-only connection before anything writes to it; whatever is wrong r
 
 from __future__ import annotations
 
-import bisect
 import contextlib
 import dataclasses
 import datetime
@@ -645,52 +644,37 @@ _CLIENTS = (
     "SELECT seq, query_id, server, serving_rr, origin_rr, request, response, parent, loaded "
     "FROM clients ORDER BY seq"
 )
-_SEP = "\x1f"  # joins consumer ids and origins in one string (checked: a collision reads rows)
+_SEP = "\x1f"  # joins the consumer ids in one string (checked: a collision reads rows)
 
 
 class _Consumers:
-    """Every stored consumer id, as columns in `(resource, seq)` order (the table's key).
+    """Which resource row holds each stored consumer id, read as two column strings.
 
-    Read with one aggregate query (four strings instead of 100k row tuples); a resource's
-    consumers are the slice `bisect(resources, seq)`. `index` maps a query id to its place.
+    One aggregate query returns every query id and resource key joined in a string each
+    (no row tuples: a fraction of the cost of reading 100k rows); `index` maps a query
+    id to its place, and the resource key is parsed when that consumer is looked up.
     """
 
     def __init__(self, db: sqlite3.Connection) -> None:
-        count, max_seq, resources, seqs, query_ids, origins = db.execute(
-            "SELECT count(*), ifnull(max(seq), 0), group_concat(resource), group_concat(seq), "
-            "group_concat(query_id, char(31)), group_concat(origin_rr, char(31)) "
-            "FROM consumers"
+        count, max_seq, resources, query_ids = db.execute(
+            "SELECT count(*), ifnull(max(seq), 0), group_concat(resource), "
+            "group_concat(query_id, char(31)) FROM consumers"
         ).fetchone()
         self.max_seq: int = max_seq
-        self.resources: list[int] = []
-        self.seqs: list[str | int] = []  # row keys, parsed when their resource is read
-        self.query_ids: list[str] = []
-        self.origins: list[str] = []
-        if count:
-            self.resources = list(map(int, resources.split(",")))
-            self.seqs = seqs.split(",")
-            self.query_ids = query_ids.split(_SEP)
-            self.origins = origins.split(_SEP)
-            if len(self.query_ids) != count or len(self.origins) != count:  # an id holds _SEP
-                rows = db.execute(
-                    "SELECT resource, seq, query_id, origin_rr FROM consumers"
-                ).fetchall()
-                columns = zip(*rows, strict=True)
-                self.resources, self.seqs, self.query_ids, self.origins = map(list, columns)
-        if self.resources != sorted(self.resources):  # sorting a sorted list is one pass
-            raise ValueError("the consumers table is not in (resource, seq) order")
-        self.index = dict(zip(self.query_ids, range(count), strict=True))
+        self.resources: list[str | int] = resources.split(",") if count else []
+        keys: list[str] = query_ids.split(_SEP) if count else []
+        if len(keys) != count:  # a query id holds the separator: read the rows instead
+            rows = db.execute("SELECT resource, query_id FROM consumers").fetchall()
+            self.resources = [resource for resource, _ in rows]
+            keys = [query_id for _, query_id in rows]
+        self.index = dict(zip(keys, range(count), strict=True))
         if len(self.index) != count:
-            raise ValueError(
-                f"consumer query id {_first_duplicate(self.query_ids)} is stored twice"
-            )
+            raise ValueError(f"consumer query id {_first_duplicate(keys)} is stored twice")
 
-    def of(self, resource_seq: int) -> range:
-        """The places of the consumers of resource row `resource_seq`, in arrival order."""
-        keys = self.resources
-        return range(
-            bisect.bisect_left(keys, resource_seq), bisect.bisect_right(keys, resource_seq)
-        )
+    def resource_of(self, query_id: str) -> int | None:
+        """The resource row key of consumer `query_id`, if it is stored."""
+        place = self.index.get(query_id)
+        return None if place is None else int(self.resources[place])
 
 
 def _first_duplicate(values: list[Any]) -> Any:
@@ -730,10 +714,9 @@ class _Unread:
 
     def by_consumer(self, query_id: str) -> Resource | None:
         """The unread resource that has consumer `query_id`, if any."""
-        place = self._consumers.index.get(query_id)
-        if place is None:
+        seq = self._consumers.resource_of(query_id)
+        if seq is None:
             return None
-        seq = self._consumers.resources[place]
         if seq in self._read:
             return None  # in memory: released since (memory is the truth)
         resource = self._row(seq)
@@ -752,9 +735,11 @@ class _Unread:
 
     def with_origin(self, origin_rr: str) -> list[Resource]:
         """Every unread resource with a consumer from registrar `origin_rr`."""
-        consumers = self._consumers
-        seqs = {consumers.resources[i] for i, o in enumerate(consumers.origins) if o == origin_rr}
-        return [r for seq in sorted(seqs - self._read) if (r := self._row(seq)) is not None]
+        return self._fetch(
+            "SELECT DISTINCT resource FROM consumers WHERE origin_rr = ? AND resource <= ? "
+            "ORDER BY resource",
+            (origin_rr, self._last),
+        )
 
     def every(self) -> list[Resource]:
         """Every unread resource, oldest first."""
@@ -774,7 +759,7 @@ class _Unread:
             if row is None:
                 return None
             _check_row(row)
-            resource = store._adopt(row, self._consumers)
+            resource = store._adopt(row)
         self._read.add(seq)
         self.remaining -= 1
         return resource
@@ -999,7 +984,7 @@ class SqliteStore:
                     _check_row(row)
                 _check_keys([], [], client_rows)
                 self._resources = {}
-                resources = [self._adopt(row, consumers) for row in rows]
+                resources = [self._adopt(row) for row in rows]
                 for resource in resources:
                     if resource.digest == NO_DIGEST:
                         resource.digest = None  # indexed from its (decoded) request
@@ -1016,7 +1001,7 @@ class SqliteStore:
         unread = _Unread(self, consumers, count, last, {row[0] for row in rows})
         return Restored(resources, clients, unread)
 
-    def _adopt(self, row: Any, consumers: _Consumers) -> Resource:
+    def _adopt(self, row: Any) -> Resource:
         """Build a stored resource with its consumers; from now on the store mirrors it."""
         seq, rid, server, state, digest, request, response = row
         resource = Resource.encoded(
@@ -1029,10 +1014,12 @@ class SqliteStore:
             seq,
         )
         keys = {}
-        for place in consumers.of(seq):
-            query_id = consumers.query_ids[place]
-            resource.consumers[query_id] = consumers.origins[place]
-            keys[query_id] = int(consumers.seqs[place])
+        # the table's key is (resource, seq): this reads one range, in arrival order
+        for key, query_id, origin in self._db.execute(
+            "SELECT seq, query_id, origin_rr FROM consumers WHERE resource = ?", (seq,)
+        ):
+            resource.consumers[query_id] = origin
+            keys[query_id] = key
         self._resources[rid] = _Mirror(seq, resource.state, 0, keys)
         return resource
 

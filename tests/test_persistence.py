@@ -910,6 +910,29 @@ def test_a_restore_reads_a_served_resource_only_when_a_lookup_needs_it(tmp_path:
     assert sorted(of_server) == [f"r{n}" for n in range(6)]
 
 
+def test_a_consumer_id_holding_the_column_separator_is_restored_all_the_same(
+    tmp_path: Path,
+) -> None:
+    store = SqliteStore.open(tmp_path / "p.db")
+    store.load()
+    catalog = Catalog()
+    for n, query_id in enumerate(["plain", "with\x1funit separator", "with,comma"]):
+        catalog.begin_load(f"r{n}", "leaf", n)
+        catalog.finish_load(f"r{n}", n)
+        catalog.add_consumer(f"r{n}", query_id, "C")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    store, restored, _ = lazily_restored(tmp_path / "p.db")
+    try:
+        found = [restored.resource_of(q).id for q in ("with,comma", "with\x1funit separator")]
+        missing = restored.has_consumer("with")
+    finally:
+        store.close(erase=False)
+
+    assert (["r2", "r1"], False) == (found, missing)
+
+
 def test_memory_wins_over_rows_not_written_yet_for_a_lazily_restored_catalog(
     tmp_path: Path,
 ) -> None:
