@@ -53,13 +53,13 @@ _UNHASHABLE = ("<unhashable>",)
 NO_DIGEST = -1
 """`Resource.digest` of a request that has no digest (`hash()` never returns -1 either)."""
 
-_TAG_NONE, _TAG_SEQ, _TAG_MAP, _TAG_SET, _TAG_NAN = range(0x5F3A_0000, 0x5F3A_0005)
+_TAG_NONE, _TAG_SEQ, _TAG_MAP, _TAG_SET, _TAG_NAN, _TAG_ENUM = range(0x5F3A_0000, 0x5F3A_0006)
 _NUMBERS = (int, float, complex, decimal.Decimal, fractions.Fraction)
 _STRINGS: dict[str, int] = {}  # str -> digest; strings repeat (keys, command names)
 _STRINGS_MAX = 4096
 
 DIGEST_SCHEME = (
-    f"rr2-py{sys.version_info[0]}.{sys.version_info[1]}-w{sys.hash_info.width}"
+    f"rr3-py{sys.version_info[0]}.{sys.version_info[1]}-w{sys.hash_info.width}"
     f"-{sys.hash_info.modulus}"
 )
 """Names the digest function. It combines parts with `hash()` of tuples and frozensets
@@ -104,7 +104,22 @@ def _digest(value: Any) -> int:  # noqa: PLR0911 - one return per kind of value
         return hash((_TAG_SET, frozenset([_digest(item) for item in value])))
     if cls is bytes or cls is bytearray:  # bytearray(b"a") == b"a"
         return hash((_TAG_SEQ, _blake(value)))  # not the digest of the equal str
+    if isinstance(value, enum.Enum) and _identity_equality(value):
+        return _enum_member(value, cls)
     return _digest_subclass(value, cls)
+
+
+def _enum_member(value: enum.Enum, cls: type) -> int:
+    """A plain enum member equals only itself: its class's path and its name name it.
+
+    Members are pickled by name, so the same member has the same digest in every process.
+    (IntEnum and StrEnum keep their base's `==` and are digested as that value.)
+    """
+    name = value._name_
+    if type(name) is not str:  # a composite Flag without a name: leave it to `==`
+        raise _Opaque
+    where = _blake(f"{cls.__module__}:{cls.__qualname__}".encode("utf-8", "surrogatepass"))
+    return hash((_TAG_ENUM, where, _blake(name.encode("utf-8", "surrogatepass"))))
 
 
 # The `==` of containers the digest mirrors: a subclass that overrides `__eq__` (Counter,
@@ -144,14 +159,15 @@ def request_digest(request: Any) -> int | None:
     order-free combination of their items, sets likewise, lists and tuples in order.
 
     Only values whose `==` the digest mirrors get one: built-in strings, bytes, numbers,
-    `None`, and dicts, lists, tuples, sets (and other mappings and sets) of them, including
+    `None`, members of enums that keep identity equality (digested by class path and
+    name), and dicts, lists, tuples, sets (and other mappings and sets) of them, including
     subclasses that keep their base's `__eq__` and `__hash__` (IntEnum, StrEnum,
     namedtuple, OrderedDict, defaultdict).
 
     Returns:
         The digest (never `NO_DIGEST`), or `None` for a value with other parts (a
-        custom class, a container subclass with its own `__eq__` such as `Counter`, a
-        plain enum) or one that raises while being digested (`Decimal("sNaN")`, a
+        custom class, a container subclass with its own `__eq__` such as `Counter`, an
+        enum with its own `__eq__`) or one that raises while being digested (`Decimal("sNaN")`, a
         mapping whose `items()` raises), whose equality only `==` can judge; the catalog
         indexes those by their in-process `hash()` instead, which is never stored.
     """

@@ -354,7 +354,24 @@ def test_equal_values_of_different_types_have_one_digest(values):
 
 
 def test_values_of_custom_classes_have_no_digest():
-    assert [None, None] == [request_digest(ResourceState.LOADED), request_digest([object()])]
+    class Loose(enum.Enum):
+        A = 1
+
+        def __eq__(self, other):
+            return other == self.value
+
+        __hash__ = enum.Enum.__hash__
+
+    assert [None, None] == [request_digest(Loose.A), request_digest([object()])]
+
+
+def test_a_plain_enum_member_is_digested_by_its_class_and_name():
+    """Requests holding enum members (a robot's mode) are indexed, not scanned."""
+    mode = {"mode": ResourceState.LOADED, "rate": 10}
+    same = request_digest({"rate": 10.0, "mode": ResourceState.LOADED})
+    other = request_digest({"mode": ResourceState.LOADING, "rate": 10})
+
+    assert (same, True) == (request_digest(mode), other not in (None, same))
 
 
 def test_a_value_without_a_digest_that_equals_one_with_a_digest_is_found_both_ways():

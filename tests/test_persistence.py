@@ -1051,11 +1051,17 @@ def test_a_new_response_for_a_restored_resource_reaches_the_file(tmp_path: Path)
 def test_the_stored_digest_is_the_same_in_a_process_with_another_string_hash_seed(
     tmp_path: Path,
 ) -> None:
-    request = {"cmd": ["driver", "--id", "7"], "on": True, "rate": 2.5}
+    request = {
+        "cmd": ["driver", "--id", "7"],
+        "on": True,
+        "rate": 2.5,
+        "mode": ResourceState.LOADED,
+    }
     stored_catalog(tmp_path / "p.db", [request])
     code = (
-        "from rr_actors._catalog import request_digest; "
-        "print(request_digest({'rate': 2.5, 'on': 1, 'cmd': ['driver', '--id', '7']}))"
+        "from rr_actors._catalog import ResourceState, request_digest; "
+        "print(request_digest({'rate': 2.5, 'on': 1, 'cmd': ['driver', '--id', '7'], "
+        "'mode': ResourceState.LOADED}))"
     )
     env = {**os.environ, "PYTHONHASHSEED": "12345"}
     out = subprocess.run(
