@@ -331,8 +331,11 @@ class _Mirror:
         self.consumers = consumers  # consumer query id -> its row's key
 
 
-def _response_changed(old: _Mirror, resource: Resource) -> bool:
-    return old.response_version != resource.response_version
+_Op = tuple[str, tuple[Any, ...]]
+"""One planned SQL statement and its parameters."""
+
+_GONE = object()
+"""Marks a mirror entry to delete once a write committed."""
 
 
 @dataclasses.dataclass
@@ -1045,72 +1048,96 @@ class SqliteStore:
         """Apply `changes` (current rows, `None` for deleted ones) as one transaction.
 
         Only what differs from the last write reaches the file; rows are addressed by
-        their integer key, so the cost of a change does not depend on the catalog's size.
+        their key, so the cost of a change does not depend on the catalog's size. The
+        statements are planned first (values are pickled then: one that cannot be raises
+        before anything is written); a single statement is its own transaction (most
+        changes: a consumer id added or released), several run between `BEGIN IMMEDIATE`
+        and `COMMIT`. What the store remembers of the file changes only once committed.
         """
         if not self._loaded:
             self.load()
-        db = self._db
-        after: list[Callable[[], object]] = []  # mirror updates, applied once committed
+        ops: list[_Op] = []
+        mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, new value | _GONE)
         seq = self._seq
+        for rid, resource in changes.resources.items():
+            seq = self._plan_resource(ops, mirrors, rid, resource, seq)
+        for qid, record in changes.clients.items():
+            seq = self._plan_client(ops, mirrors, qid, record, seq)
+        if ops:
+            self._run(ops)
+        self._seq = seq
+        for table, key, value in mirrors:
+            if value is _GONE:
+                table.pop(key, None)
+            else:
+                table[key] = value
+
+    def _run(self, ops: list[_Op]) -> None:
+        db = self._db
+        if len(ops) == 1:  # SQLite makes one statement its own transaction
+            sql, params = ops[0]
+            db.execute(sql, params)
+            return
         db.execute("BEGIN IMMEDIATE")
         try:
-            for rid, resource in changes.resources.items():
-                seq = self._write_resource(db, rid, resource, seq, after)
-            for qid, record in changes.clients.items():
-                seq = self._write_client(db, qid, record, seq, after)
+            for sql, params in ops:
+                db.execute(sql, params)
             db.execute("COMMIT")
         except BaseException:
             _rollback(db)
             raise
-        self._seq = seq
-        for update in after:
-            update()
 
-    def _write_resource(
+    def _plan_resource(
         self,
-        db: sqlite3.Connection,
+        ops: list[_Op],
+        mirrors: list[tuple[dict[str, Any], str, Any]],
         rid: str,
         resource: Resource | None,
         seq: int,
-        after: list[Callable[[], object]],
     ) -> int:
         old = self._resources.get(rid)
         if resource is None:
             if old is not None:
-                db.execute("DELETE FROM resources WHERE seq = ?", (old.seq,))
-                db.execute("DELETE FROM consumers WHERE resource = ?", (old.seq,))
-                after.append(functools.partial(self._resources.pop, rid, None))
+                ops.append(("DELETE FROM resources WHERE seq = ?", (old.seq,)))
+                ops.append(("DELETE FROM consumers WHERE resource = ?", (old.seq,)))
+                mirrors.append((self._resources, rid, _GONE))
             return seq
         if old is None:
             seq += 1
             digest = resource.digest
             if digest is None:
                 digest = request_digest(resource.request)
-            db.execute(
-                "INSERT INTO resources (seq, id, server, state, digest, request, response) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+            ops.append(
                 (
-                    seq,
-                    rid,
-                    resource.server,
-                    _STATE_CODES[resource.state],
-                    None if digest == NO_DIGEST else digest,
-                    _dumps(resource.request),
-                    _dumps(resource.response),
-                ),
+                    "INSERT INTO resources (seq, id, server, state, digest, request, response) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    (
+                        seq,
+                        rid,
+                        resource.server,
+                        _STATE_CODES[resource.state],
+                        None if digest == NO_DIGEST else digest,
+                        _dumps(resource.request),
+                        _dumps(resource.response),
+                    ),
+                )
             )
             old_consumers: dict[str, int] = {}
             row = seq
         else:
-            if _response_changed(old, resource):
-                db.execute(
-                    "UPDATE resources SET state = ?, response = ? WHERE seq = ?",
-                    (_STATE_CODES[resource.state], _dumps(resource.response), old.seq),
+            if old.response_version != resource.response_version:
+                ops.append(
+                    (
+                        "UPDATE resources SET state = ?, response = ? WHERE seq = ?",
+                        (_STATE_CODES[resource.state], _dumps(resource.response), old.seq),
+                    )
                 )
             elif old.state is not resource.state:
-                db.execute(
-                    "UPDATE resources SET state = ? WHERE seq = ?",
-                    (_STATE_CODES[resource.state], old.seq),
+                ops.append(
+                    (
+                        "UPDATE resources SET state = ? WHERE seq = ?",
+                        (_STATE_CODES[resource.state], old.seq),
+                    )
                 )
             old_consumers = old.consumers
             row = old.seq
@@ -1121,67 +1148,73 @@ class SqliteStore:
             if key is None:
                 seq += 1
                 key = seq
-                db.execute(
-                    "INSERT INTO consumers (seq, query_id, resource, origin_rr) "
-                    "VALUES (?, ?, ?, ?)",
-                    (key, query_id, row, origin),
+                ops.append(
+                    (
+                        "INSERT INTO consumers (resource, seq, query_id, origin_rr) "
+                        "VALUES (?, ?, ?, ?)",
+                        (row, key, query_id, origin),
+                    )
                 )
             else:
                 kept += 1
             consumers[query_id] = key
         if kept != len(old_consumers):  # some consumers left since the last write
-            db.executemany(
-                "DELETE FROM consumers WHERE resource = ? AND seq = ?",
-                [(row, k) for q, k in old_consumers.items() if q not in consumers],
+            ops.extend(
+                ("DELETE FROM consumers WHERE resource = ? AND seq = ?", (row, key))
+                for query_id, key in old_consumers.items()
+                if query_id not in consumers
             )
         mirror = _Mirror(row, resource.state, resource.response_version, consumers)
-        after.append(functools.partial(self._resources.__setitem__, rid, mirror))
+        mirrors.append((self._resources, rid, mirror))
         return seq
 
-    def _write_client(
+    def _plan_client(
         self,
-        db: sqlite3.Connection,
+        ops: list[_Op],
+        mirrors: list[tuple[dict[str, Any], str, Any]],
         qid: str,
         record: ClientRecord | None,
         seq: int,
-        after: list[Callable[[], object]],
     ) -> int:
         old = self._clients.get(qid)
         if record is None:
             if old is not None:
-                db.execute("DELETE FROM clients WHERE seq = ?", (old[0],))
-                after.append(functools.partial(self._clients.pop, qid, None))
+                ops.append(("DELETE FROM clients WHERE seq = ?", (old[0],)))
+                mirrors.append((self._clients, qid, _GONE))
             return seq
         query = record.query
         if old is None:
             seq += 1
             row = seq
-            db.execute(
-                "INSERT INTO clients (seq, query_id, server, serving_rr, origin_rr, request, "
-                "response, parent, loaded) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            ops.append(
                 (
-                    seq,
-                    qid,
-                    query.server,
-                    query.serving_rr,
-                    query.origin_rr,
-                    _dumps(query.request),
-                    _dumps(query.response),
-                    record.parent,
-                    int(record.loaded),
-                ),
+                    "INSERT INTO clients (seq, query_id, server, serving_rr, origin_rr, "
+                    "request, response, parent, loaded) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (
+                        seq,
+                        qid,
+                        query.server,
+                        query.serving_rr,
+                        query.origin_rr,
+                        _dumps(query.request),
+                        _dumps(query.response),
+                        record.parent,
+                        int(record.loaded),
+                    ),
+                )
             )
         elif old[1] == record.response_version:
             row = old[0]
-            db.execute("UPDATE clients SET loaded = ? WHERE seq = ?", (int(record.loaded), row))
+            ops.append(("UPDATE clients SET loaded = ? WHERE seq = ?", (int(record.loaded), row)))
         else:
             row = old[0]
-            db.execute(
-                "UPDATE clients SET response = ?, loaded = ? WHERE seq = ?",
-                (_dumps(query.response), int(record.loaded), row),
+            ops.append(
+                (
+                    "UPDATE clients SET response = ?, loaded = ? WHERE seq = ?",
+                    (_dumps(query.response), int(record.loaded), row),
+                )
             )
-        version = (row, record.response_version)
-        after.append(functools.partial(self._clients.__setitem__, qid, version))
+        mirrors.append((self._clients, qid, (row, record.response_version)))
         return seq
 
     def close(self, *, erase: bool) -> None:

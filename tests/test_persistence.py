@@ -1382,6 +1382,7 @@ def test_a_failed_commit_raises_its_own_error_not_one_from_the_rollback(tmp_path
     store.load()
     catalog = Catalog()
     catalog.begin_load("r1", "leaf", 1)
+    catalog.add_consumer("r1", "q1", "C")  # two statements: one transaction with a COMMIT
     store._db = CommitFails(store._db)  # type: ignore[assignment]
     try:
         with pytest.raises(sqlite3.OperationalError) as raised:
@@ -1390,6 +1391,52 @@ def test_a_failed_commit_raises_its_own_error_not_one_from_the_rollback(tmp_path
         store.close(erase=False)
 
     assert "disk I/O error (simulated)" == str(raised.value)
+
+
+class InsertFailsOnce:
+    """A connection whose first INSERT fails (an I/O error in a one-statement write)."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self.db = db
+        self.failed = False
+
+    @property
+    def in_transaction(self) -> bool:
+        return self.db.in_transaction
+
+    def execute(self, sql: str, *args: Any) -> Any:
+        if sql.startswith("INSERT") and not self.failed:
+            self.failed = True
+            raise sqlite3.OperationalError("disk I/O error (simulated)")
+        return self.db.execute(sql, *args)
+
+    def close(self) -> None:
+        self.db.close()
+
+
+def test_a_one_statement_write_that_failed_is_written_again_with_the_next_change(
+    tmp_path: Path,
+) -> None:
+    store = SqliteStore.open(tmp_path / "p.db")
+    store.load()
+    catalog = Catalog()
+    catalog.begin_load("r1", "leaf", 1)
+    catalog.finish_load("r1", 1)
+    store.write(catalog.drain_changes())
+    store._db = InsertFailsOnce(store._db)  # type: ignore[assignment]
+    catalog.add_consumer("r1", "q1", "C")  # one INSERT: its own transaction
+    failed = catalog.drain_changes()
+    try:
+        with pytest.raises(sqlite3.OperationalError, match="simulated"):
+            store.write(failed)
+        catalog.add_consumer("r1", "q2", "C")
+        store.write(catalog.drain_changes())  # the row holds q1 and q2: both are written
+    finally:
+        store.close(erase=False)
+
+    assert [("r1", [("q1", "C"), ("q2", "C")])] == [
+        (r.id, list(r.consumers.items())) for r in read_backup(tmp_path / "p.db").resources
+    ]
 
 
 class FlakyStore:
