@@ -1398,7 +1398,10 @@ class ResourceRegistrar(RegistrarFacts):
         Args:
             target_rr: name of the provider registrar (this one's own name works too).
             server: server name on it.
-            request: any value; equal requests mean the same resource.
+            request: any value; equal requests mean the same resource. Between
+                registrars of one process it is passed, not copied (as pykka passes
+                messages): do not change it after the call, or the provider's catalog
+                holds the changed value and may no longer match equal requests to it.
             on_status: client status callback `on_status(query, update)`, run on a worker
                 thread of this registrar's process.
             timeout: seconds to wait for the answer.
@@ -1406,7 +1409,8 @@ class ResourceRegistrar(RegistrarFacts):
                 idempotent: it never loads twice nor adds a second consumer.
 
         Returns:
-            The `Query`, with the provider's `response`.
+            The `Query`, with the provider's `response` (in one process, the very object
+            `load` returned, shared by every consumer: treat it as read-only).
 
         Raises:
             ResourceLoadError: `load` raised here or further down; `stack` says where.
