@@ -401,6 +401,7 @@ class Catalog:
         self._dirty_resources = _DirtySet()  # ordered: new rows drain in creation order
         self._dirty_clients = _DirtySet()
         self._unread: UnreadRows | None = None  # a restored catalog's resources still on disk
+        self._unsorted = False  # resources read from disk since `resources` was last ordered
 
     # -- served resources -------------------------------------------------------------
 
@@ -551,10 +552,10 @@ class Catalog:
         ]
 
     def resources_of(self, server: str) -> list[Resource]:
-        """Every resource of `server`, in the order the catalog learnt of them."""
+        """Every resource of `server`, oldest first."""
         if self._unread is not None:
             self._read(self._unread.of_server(server))
-        return [r for r in self.resources.values() if r.server == server]
+        return [r for r in self._in_order().values() if r.server == server]
 
     def consumers_from(self, origin_rr: str) -> list[str]:
         """The consumer ids, of any resource here, that registrar `origin_rr` holds."""
@@ -571,8 +572,17 @@ class Catalog:
         """Every resource (reading those still in the backup), by id, oldest first."""
         if self._unread is not None:
             self._read(self._unread.every())
-            # restored ones in their stored order, then those created since (stable sort)
+        return self._in_order()
+
+    def _in_order(self) -> dict[str, Resource]:
+        """`resources`, oldest first: restored ones in their stored order, then newer ones.
+
+        Lookups read restored resources in whatever order traffic asks for them; they are
+        put back in order (a stable sort) only when an ordered listing is asked for.
+        """
+        if self._unsorted:
             self.resources = dict(sorted(self.resources.items(), key=_stored_order))
+            self._unsorted = False
         return self.resources
 
     # -- client records ---------------------------------------------------------------
@@ -703,6 +713,7 @@ class Catalog:
         """Take resources read from the backup into memory (and into the indexes)."""
         for resource in resources:
             self.resources[resource.id] = resource
+            self._unsorted = True
             for query_id in resource.consumers:
                 self._by_consumer[query_id] = resource.id
             self._index_request(resource)

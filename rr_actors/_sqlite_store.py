@@ -75,7 +75,7 @@ from rr_actors._catalog import (
 )
 from rr_actors._persistence import gc_paused
 from rr_actors._types import Query
-from rr_actors.errors import CatalogCorruptError, ConfigError
+from rr_actors.errors import CatalogCorruptError, ConfigError, RegistrarStoppedError
 
 __all__ = [
     "APPLICATION_ID",
@@ -643,6 +643,9 @@ _RESOURCES_AT_ONCE = (  # what a restore reads as rows: in doubt, no digest, or 
     "UNION SELECT seq, id, server, state, digest, request, response FROM resources "
     "WHERE id IN (SELECT parent FROM clients WHERE parent IS NOT NULL) ORDER BY seq"
 )
+_CONSUMERS_OF = (  # one key range of the (resource, seq) key: in arrival order
+    "SELECT seq, query_id, origin_rr FROM consumers WHERE resource = ?"
+)
 _CLIENTS = (
     "SELECT seq, query_id, server, serving_rr, origin_rr, request, response, parent, loaded "
     "FROM clients ORDER BY seq"
@@ -717,17 +720,19 @@ class _Unread:
 
     def by_consumer(self, query_id: str) -> Resource | None:
         """The unread resource that has consumer `query_id`, if any."""
-        seq = self._consumers.resource_of(query_id)
+        with _as_corrupt(self._store.path):
+            seq = self._consumers.resource_of(query_id)
         if seq is None:
             return None
         if seq in self._read:
             return None  # in memory: released since (memory is the truth)
-        resource = self._row(seq)
-        if resource is None:
+        self._check_open()
+        resources = self._take([seq])
+        if not resources:
             raise CatalogCorruptError(
                 self._store.path, f"consumer {query_id} belongs to a missing resource"
             )
-        return resource
+        return resources[0]
 
     def of_server(self, server: str) -> list[Resource]:
         """Every unread resource of `server`, oldest first."""
@@ -751,21 +756,37 @@ class _Unread:
     def _fetch(self, sql: str, args: tuple[Any, ...]) -> list[Resource]:
         if not self.remaining:
             return []
+        self._check_open()
         with _as_corrupt(self._store.path):
             seqs = [seq for (seq,) in self._store._db.execute(sql, args) if seq not in self._read]
-        return [r for seq in seqs if (r := self._row(seq)) is not None]
+        return self._take(seqs)
 
-    def _row(self, seq: int) -> Resource | None:
+    def _take(self, seqs: list[int]) -> list[Resource]:
+        """Read resource rows `seqs` with their consumers; hand over all of them or none.
+
+        Every row is read and checked before any is adopted, so a damaged one fails the
+        lookup without marking its healthy neighbours read (they stay on disk, whole).
+        """
         store = self._store
+        db = store._db
+        read = []
         with _as_corrupt(store.path):
-            row = store._db.execute(_RESOURCE_BY_SEQ, (seq,)).fetchone()
-            if row is None:
-                return None
-            _check_row(row)
-            resource = store._adopt(row)
-        self._read.add(seq)
-        self.remaining -= 1
-        return resource
+            for seq in seqs:
+                row = db.execute(_RESOURCE_BY_SEQ, (seq,)).fetchone()
+                if row is None:
+                    continue
+                _check_row(row)
+                read.append((row, db.execute(_CONSUMERS_OF, (seq,)).fetchall()))
+        resources = [store._adopt(row, consumers) for row, consumers in read]
+        self._read.update(row[0] for row, _ in read)
+        self.remaining -= len(read)
+        return resources
+
+    def _check_open(self) -> None:
+        if self._store.closed:
+            raise RegistrarStoppedError(
+                f"the catalog backup {self._store.path!r} was closed (its registrar stopped)"
+            )
 
 
 def _check_row(row: Any) -> None:
@@ -894,6 +915,7 @@ class SqliteStore:
         # query id -> (row key, response_version)
         self._clients: dict[str, tuple[int, int]] = {}
         self._seq = 0
+        self.closed = False
 
     @classmethod
     def open(
@@ -987,7 +1009,10 @@ class SqliteStore:
                     _check_row(row)
                 _check_keys([], [], client_rows)
                 self._resources = {}
-                resources = [self._adopt(row) for row in rows]
+                resources = [
+                    self._adopt(row, self._db.execute(_CONSUMERS_OF, (row[0],)).fetchall())
+                    for row in rows
+                ]
                 for resource in resources:
                     if resource.digest == NO_DIGEST:
                         resource.digest = None  # indexed from its (decoded) request
@@ -1004,7 +1029,7 @@ class SqliteStore:
         unread = _Unread(self, consumers, count, last, {row[0] for row in rows})
         return Restored(resources, clients, unread)
 
-    def _adopt(self, row: Any) -> Resource:
+    def _adopt(self, row: Any, consumer_rows: list[Any]) -> Resource:
         """Build a stored resource with its consumers; from now on the store mirrors it."""
         seq, rid, server, state, digest, request, response = row
         resource = Resource.encoded(
@@ -1017,10 +1042,7 @@ class SqliteStore:
             seq,
         )
         keys = {}
-        # the table's key is (resource, seq): this reads one range, in arrival order
-        for key, query_id, origin in self._db.execute(
-            "SELECT seq, query_id, origin_rr FROM consumers WHERE resource = ?", (seq,)
-        ):
+        for key, query_id, origin in consumer_rows:
             resource.consumers[query_id] = origin
             keys[query_id] = key
         self._resources[rid] = _Mirror(seq, resource.state, 0, keys)
@@ -1074,7 +1096,7 @@ class SqliteStore:
 
     def _run(self, ops: list[_Op]) -> None:
         db = self._db
-        if len(ops) == 1:  # SQLite makes one statement its own transaction
+        if len(ops) == 1 and not db.in_transaction:  # one statement: its own transaction
             sql, params = ops[0]
             db.execute(sql, params)
             return
@@ -1219,6 +1241,7 @@ class SqliteStore:
 
     def close(self, *, erase: bool) -> None:
         """Close the database; with `erase`, delete the file and its companions."""
+        self.closed = True
         with contextlib.suppress(sqlite3.Error):
             self._db.close()
         if erase:
