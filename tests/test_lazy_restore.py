@@ -15,7 +15,8 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors._catalog import Catalog
+from rr_actors import _sqlite_store as store_module
+from rr_actors._catalog import DIGEST_SCHEME, Catalog, request_digest
 from rr_actors._sqlite_store import SqliteStore, read_backup
 
 
@@ -195,3 +196,58 @@ def test_a_consumer_row_whose_resource_key_is_not_a_number_is_a_corrupt_backup(
         store.close(erase=False)
 
     assert str(path) == raised.value.path
+
+
+# -- 4. a schema-2 file --------------------------------------------------------------------------
+
+
+def write_v2_backup(path: Path) -> None:
+    """A backup laid out as rr_actors wrote it with schema version 2 (rowid consumers).
+
+    r0 (loaded, consumers q0 then q1 in arrival order, owner of dependency d0), r1 still
+    loading (in doubt), r2 loaded; the consumer seqs are not in resource order.
+    """
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute(f"PRAGMA application_id = {store_module.APPLICATION_ID}")
+    for step in store_module._MIGRATIONS[:2]:
+        step(db)
+    db.execute("UPDATE rr_actors_schema SET version = 2, digest_scheme = ?", (DIGEST_SCHEME,))
+    dumps = store_module._dumps
+    for seq, rid, state, request in ((1, "r0", 1, {"n": 0}), (2, "r1", 0, "x"), (5, "r2", 1, 2)):
+        db.execute(
+            "INSERT INTO resources VALUES (?, ?, 'leaf', ?, ?, ?, ?)",
+            (seq, rid, state, request_digest(request), dumps(request), dumps({"of": rid})),
+        )
+    for seq, query_id, resource in ((3, "q0", 1), (4, "q2", 5), (6, "q1", 1)):
+        db.execute("INSERT INTO consumers VALUES (?, ?, ?, 'C')", (seq, query_id, resource))
+    db.execute(
+        "INSERT INTO clients VALUES (7, 'd0', 'leaf', 'Q', 'me', ?, NULL, 'r0', 1)",
+        (dumps(5),),
+    )
+    db.execute("PRAGMA journal_mode = WAL")
+    db.close()
+
+
+def test_a_version_2_backup_is_migrated_and_restored_lazily(tmp_path: Path) -> None:
+    path = tmp_path / "p.db"
+    write_v2_backup(path)
+
+    store = SqliteStore.open(path)
+    try:
+        restored = store.restore()
+        assert restored is not None
+        at_once = sorted(r.id for r in restored.resources)  # in doubt, or owns a dependency
+        catalog = Catalog.restore(restored.resources, restored.clients, restored.unread)
+        found = catalog.find("leaf", 2)
+        listed = [(r.id, list(r.consumers)) for r in catalog.read_all().values()]
+        catalog.release("q1")
+        catalog.add_consumer("r2", "q3", "C")
+        store.write(catalog.drain_changes())
+    finally:
+        store.close(erase=False)
+
+    assert (["r0", "r1"], "r2") == (at_once, found.id if found else None)
+    assert [("r0", ["q0", "q1"]), ("r1", []), ("r2", ["q2"])] == listed
+    assert [("r0", ["q0"]), ("r1", []), ("r2", ["q2", "q3"])] == [
+        (r.id, list(r.consumers)) for r in read_backup(path).resources
+    ]
