@@ -616,8 +616,18 @@ def _read_rows(
         owner[1].consumers[query_id] = seq
     if consumer_rows:
         max_seq = max(max_seq, consumer_rows[-1][0])
+    clients, client_seqs = _client_records(client_rows, decode)
+    max_seq = max([max_seq, *client_seqs.values()])
+    mirror = {r.id: m for r, m in zip(resources, mirrors, strict=True)}
+    return _Rows(resources, clients, mirror, client_seqs, max_seq)
+
+
+def _client_records(
+    client_rows: list[Any], decode: Callable[[str, str, bytes | None], Any]
+) -> tuple[list[ClientRecord], dict[str, int]]:
+    """Client records from their rows (oldest first), with each record's row key."""
     clients = []
-    client_seqs = {}
+    seqs = {}
     for seq, qid, server, serving, origin, request, response, parent, loaded in client_rows:
         query = Query(
             qid,
@@ -628,10 +638,8 @@ def _read_rows(
             decode(qid, "response", response),
         )
         clients.append(ClientRecord(query, parent, bool(loaded)))
-        client_seqs[qid] = seq
-        max_seq = max(max_seq, seq)
-    mirror = {r.id: m for r, m in zip(resources, mirrors, strict=True)}
-    return _Rows(resources, clients, mirror, client_seqs, max_seq)
+        seqs[qid] = seq
+    return clients, seqs
 
 
 _RESOURCE_BY_SEQ = (
@@ -916,6 +924,7 @@ class SqliteStore:
         self._clients: dict[str, tuple[int, int]] = {}
         self._seq = 0
         self.closed = False
+        self._decode = functools.partial(_decode, self.path)  # decodes a stored value lazily
 
     @classmethod
     def open(
@@ -965,7 +974,7 @@ class SqliteStore:
         """
         try:
             with _as_corrupt(self.path), gc_paused():
-                rows = _read_rows(self._db, functools.partial(_decode, self.path), lenient=False)
+                rows = _read_rows(self._db, self._decode, lenient=False)
         except CatalogCorruptError:
             self.close(erase=False)  # unusable; closing also removes its -wal and -shm
             raise
@@ -992,7 +1001,6 @@ class SqliteStore:
             CatalogCorruptError: the backup cannot be read (duplicate ids, unknown
                 states, ...); a resource read later that cannot be read raises it then.
         """
-        decode = functools.partial(_decode, self.path)
         try:
             with _as_corrupt(self.path), gc_paused():
                 self._db.execute("BEGIN")
@@ -1017,12 +1025,12 @@ class SqliteStore:
                     if resource.digest == NO_DIGEST:
                         resource.digest = None  # indexed from its (decoded) request
                         _ = resource.request
-                clients = self._read_clients(client_rows, decode)
+                clients, client_seqs = _client_records(client_rows, self._decode)
+                self._clients = {qid: (seq, 0) for qid, seq in client_seqs.items()}
         except CatalogCorruptError:
             self.close(erase=False)
             raise
-        client_seqs = (seq for seq, _ in self._clients.values())
-        self._seq = max(last, consumers.max_seq, max(client_seqs, default=0))
+        self._seq = max(last, consumers.max_seq, *client_seqs.values())
         self._loaded = True
         if self._created and not count and not clients:
             return None
@@ -1038,7 +1046,7 @@ class SqliteStore:
             _STATES_BY_CODE[state],
             NO_DIGEST if digest is None else digest,
             (request, response),
-            functools.partial(_decode, self.path),
+            self._decode,
             seq,
         )
         keys = {}
@@ -1047,24 +1055,6 @@ class SqliteStore:
             keys[query_id] = key
         self._resources[rid] = _Mirror(seq, resource.state, 0, keys)
         return resource
-
-    def _read_clients(
-        self, client_rows: list[Any], decode: Callable[[str, str, bytes | None], Any]
-    ) -> list[ClientRecord]:
-        clients = []
-        self._clients = {}
-        for seq, qid, server, serving, origin, request, response, parent, loaded in client_rows:
-            query = Query(
-                qid,
-                server,
-                serving,
-                origin,
-                decode(qid, "request", request),
-                decode(qid, "response", response),
-            )
-            clients.append(ClientRecord(query, parent, bool(loaded)))
-            self._clients[qid] = (seq, 0)
-        return clients
 
     def write(self, changes: Changes) -> None:
         """Apply `changes` (current rows, `None` for deleted ones) as one transaction.
