@@ -991,7 +991,7 @@ class SqliteStore:
     def restore(self) -> Restored | None:
         """Read what a registrar needs to serve again; `None` if `open` created the file.
 
-        Unlike `load`, it does not read every served resource: the consumer ids (as four
+        Unlike `load`, it does not read every served resource: the consumer ids (as two
         column strings), the resources in doubt or without a stored digest, those owning a
         dependency and the client records are read in one read transaction; the other
         resources are read from the file when the catalog first needs them (`unread`).
