@@ -54,9 +54,11 @@ import contextlib
 import dataclasses
 import datetime
 import functools
+import logging
 import os
 import pickle
 import sqlite3
+import threading
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -86,6 +88,8 @@ __all__ = [
     "quarantine_backup",
     "read_backup",
 ]
+
+logger = logging.getLogger("rr_actors")
 
 APPLICATION_ID = 0x72724163  # "rrAc"
 """`PRAGMA application_id` of every rr_actors catalog file."""
@@ -901,6 +905,104 @@ def quarantine_backup(path: str | os.PathLike[str]) -> Path:
     return target
 
 
+# -- checkpoints --------------------------------------------------------------------------
+
+
+CHECKPOINT_EVERY = 256
+"""Statements written between two background checkpoints (about as many WAL pages)."""
+
+WAL_LIMIT = 16_384
+"""WAL frames (4 KiB pages) past which a checkpoint makes the writer wait for it."""
+
+WAL_KEPT = 4 * 1024 * 1024
+"""Bytes of WAL file kept when the log restarts (`journal_size_limit`); more is cut off."""
+
+
+class _Checkpointer:
+    """Copies committed WAL pages into the database file, on its own thread.
+
+    SQLite's automatic checkpoint runs inside the commit that crosses its threshold: one
+    change in a few hundred paid for copying the log into the file and syncing both, the
+    largest part of a change's cost in a large catalog. The store switches it off
+    (`wal_autocheckpoint = 0`) and wakes this thread every `CHECKPOINT_EVERY` statements
+    instead; it runs `PRAGMA wal_checkpoint(PASSIVE)` on its own connection, which never
+    blocks the writer (and SQLite releases the GIL while it copies). A commit is exactly
+    as durable as before: it is in the WAL either way, and SQLite repairs a checkpoint cut
+    short by a crash when the file is next opened.
+
+    A passive checkpoint cannot restart the log while the writer keeps appending; once
+    the log holds more than `WAL_LIMIT` frames the checkpoint is `RESTART`, which makes
+    the writer wait (its busy timeout) until the log is copied, so the WAL stays bounded
+    under any load. The thread starts at the first wake-up: a store that writes little
+    never has one.
+    """
+
+    def __init__(self, path: Path, synchronous: str) -> None:
+        self._path = path
+        self._synchronous = synchronous
+        self._wake = threading.Event()
+        self._closing = False
+        self._thread: threading.Thread | None = None
+        self.done = threading.Condition()
+        """Notified after each checkpoint (tests wait on it)."""
+        self.checkpoints = 0
+        self.last: tuple[int, int, int] | None = None
+        """The last checkpoint's `(busy, frames in the log, frames copied)`."""
+
+    def wake(self) -> bool:
+        """Ask for a checkpoint soon; `False` if no thread can be started for it."""
+        if self._thread is None:
+            if self._closing:
+                return True
+            thread = threading.Thread(
+                target=self._run, name=f"rr-actors-checkpoint:{self._path.name}", daemon=True
+            )
+            try:
+                thread.start()
+            except RuntimeError:  # out of threads
+                return False
+            self._thread = thread
+        self._wake.set()
+        return True
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop the thread once the checkpoint in progress, if any, is done (seconds)."""
+        self._closing = True
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        try:
+            db = sqlite3.connect(self._path, isolation_level=None, timeout=5.0)
+        except sqlite3.Error as exc:  # pragma: no cover - the writer opened the same file
+            logger.warning("catalog %s: no checkpoint connection: %s", self._path, exc)
+            return
+        try:
+            db.execute(f"PRAGMA synchronous = {self._synchronous}")
+            while True:
+                self._wake.wait()
+                self._wake.clear()
+                if self._closing:
+                    return
+                self._checkpoint(db)
+        finally:
+            db.close()
+
+    def _checkpoint(self, db: sqlite3.Connection) -> None:
+        try:
+            busy, log, copied = db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+            if log > WAL_LIMIT and copied < log:
+                busy, log, copied = db.execute("PRAGMA wal_checkpoint(RESTART)").fetchone()
+        except sqlite3.Error as exc:  # the WAL keeps every commit; retried at the next wake
+            logger.warning("catalog %s: checkpoint failed: %s", self._path, exc)
+            return
+        with self.done:
+            self.last = (busy, log, copied)
+            self.checkpoints += 1
+            self.done.notify_all()
+
+
 # -- the store ----------------------------------------------------------------------------
 
 
@@ -910,10 +1012,17 @@ class SqliteStore:
     Open it with [`SqliteStore.open`][rr_actors._sqlite_store.SqliteStore.open].
     """
 
-    def __init__(self, path: Path, db: sqlite3.Connection, *, created: bool) -> None:
+    def __init__(
+        self, path: Path, db: sqlite3.Connection, *, created: bool, synchronous: str = "NORMAL"
+    ) -> None:
         self.path = str(path)
         self._file = path
         self._db = db
+        db.execute("PRAGMA wal_autocheckpoint = 0")  # the checkpointer's thread does it
+        db.execute(f"PRAGMA journal_size_limit = {WAL_KEPT}")
+        self._checkpointer = _Checkpointer(path, synchronous)
+        self._unchecked = 0  # statements written since the checkpointer was last woken
+        self.checkpoint_every = CHECKPOINT_EVERY
         self._created = created
         self._loaded = False
         self._resources: dict[str, _Mirror] = {}
@@ -961,7 +1070,7 @@ class SqliteStore:
         except BaseException:
             db.close()
             raise
-        return cls(file, db, created=created)
+        return cls(file, db, created=created, synchronous=_SYNCHRONOUS[durability])
 
     def load(self) -> tuple[list[Resource], list[ClientRecord]] | None:
         """Every stored row, oldest first; `None` if the file was created by `open`.
@@ -1086,15 +1195,20 @@ class SqliteStore:
         if len(ops) == 1 and not db.in_transaction:  # one statement: its own transaction
             sql, params = ops[0]
             db.execute(sql, params)
-            return
-        db.execute("BEGIN IMMEDIATE")
-        try:
-            for sql, params in ops:
-                db.execute(sql, params)
-            db.execute("COMMIT")
-        except BaseException:
-            _rollback(db)
-            raise
+        else:
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                for sql, params in ops:
+                    db.execute(sql, params)
+                db.execute("COMMIT")
+            except BaseException:
+                _rollback(db)
+                raise
+        self._unchecked += len(ops)
+        if self._unchecked >= self.checkpoint_every:
+            self._unchecked = 0
+            if not self._checkpointer.wake():  # no thread: let SQLite do it in the commit
+                db.execute("PRAGMA wal_autocheckpoint = 1000")
 
     def _plan_resource(
         self,
@@ -1229,6 +1343,7 @@ class SqliteStore:
     def close(self, *, erase: bool) -> None:
         """Close the database; with `erase`, delete the file and its companions."""
         self.closed = True
+        self._checkpointer.close()
         with contextlib.suppress(sqlite3.Error):
             self._db.close()
         if erase:

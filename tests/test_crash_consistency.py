@@ -10,8 +10,9 @@ kills it after a random number of reports, then opens both backups afresh and ch
 * every acknowledged unload is in neither.
 
 The next child restarts on the same backups (so restore, in-doubt settling and unloads of
-ids issued before a crash are exercised too). `run_kills` is shared with
-`benchmarks/stress_crash.py`, which runs 1,000 kills.
+ids issued before a crash are exercised too). The child's stores checkpoint their WAL
+every few statements, so kills also land in the middle of background checkpoints.
+`run_kills` is shared with `benchmarks/stress_crash.py`, which runs 1,000 kills.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import pytest
 from durable_pair import start_pair
 
 import rr_actors as rr
+from rr_actors import _sqlite_store as store_module
 from rr_actors._catalog import Catalog
 from rr_actors._sqlite_store import SqliteStore
 from rr_actors.testing import catalog_snapshot
@@ -46,6 +48,7 @@ MAX_HELD = 24
 def worker(names: tuple[str, str], paths: tuple[str, str], seed: int, conn: Any) -> None:
     """Run P and C on the backups and drive random operations until killed."""
     rng = random.Random(seed)  # noqa: S311 - a reproducible workload, not crypto
+    store_module.CHECKPOINT_EVERY = 4  # background checkpoints run (and are killed) often
     p_name, _ = names
     _, consumer = start_pair(names, paths)
     held = [c.query.id for c in catalog_snapshot(consumer).clients if c.parent is None and c.loaded]

@@ -1,0 +1,130 @@
+"""The backup's WAL is checkpointed on a thread of its own, never inside a change.
+
+SQLite's automatic checkpoint copies the log into the database file inside whichever
+commit crosses its threshold; the store switches it off and wakes a checkpointer thread
+instead (`_sqlite_store._Checkpointer`). These tests pin that it runs, that it keeps the
+WAL bounded when a reader holds it back, that it stops with the store, and that a store
+that writes little never starts it. (Crashes in the middle of a checkpoint are covered by
+tests/test_crash_consistency.py, whose child checkpoints every few statements.)
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+import uuid
+from pathlib import Path
+
+import pytest
+
+from rr_actors import _sqlite_store as store_module
+from rr_actors._catalog import Catalog
+from rr_actors._sqlite_store import SqliteStore
+
+WAIT = 10.0  # seconds: the bound of every wait below
+
+
+def checkpointer_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name.startswith("rr-actors-checkpoint:")]
+
+
+def write_changes(store: SqliteStore, catalog: Catalog, count: int) -> None:
+    """`count` one-statement changes: consumer ids added to one loaded resource."""
+    rid = next(iter(catalog.resources))
+    for _ in range(count):
+        catalog.add_consumer(rid, str(uuid.uuid4()), "C")
+        store.write(catalog.drain_changes())
+
+
+def opened(path: Path) -> tuple[SqliteStore, Catalog]:
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    catalog.begin_load("r1", "leaf", {"n": 1})
+    catalog.finish_load("r1", {"pid": 1})
+    store.write(catalog.drain_changes())
+    return store, catalog
+
+
+def wait_checkpoints(store: SqliteStore, count: int) -> tuple[int, int, int]:
+    done = store._checkpointer.done
+    with done:
+        assert done.wait_for(lambda: store._checkpointer.checkpoints >= count, WAIT)
+        last = store._checkpointer.last
+    assert last is not None
+    return last
+
+
+def test_the_writer_never_checkpoints_and_a_thread_copies_the_log(tmp_path: Path) -> None:
+    store, catalog = opened(tmp_path / "c.db")
+    try:
+        assert store._db.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 0
+        store.checkpoint_every = 8
+        write_changes(store, catalog, 8)
+        busy, log, copied = wait_checkpoints(store, 1)
+        assert busy == 0
+        assert 0 < copied == log  # the whole log is in the database file now
+        assert len(checkpointer_threads()) == 1
+    finally:
+        store.close(erase=False)
+    assert checkpointer_threads() == []  # close stops it
+    db = sqlite3.connect(tmp_path / "c.db")
+    assert db.execute("SELECT count(*) FROM consumers").fetchone()[0] == 8
+    db.close()
+
+
+def test_a_store_that_writes_little_has_no_checkpointer_thread(tmp_path: Path) -> None:
+    store, catalog = opened(tmp_path / "c.db")
+    try:
+        write_changes(store, catalog, 10)
+        assert checkpointer_threads() == []
+    finally:
+        store.close(erase=False)
+
+
+def test_a_log_held_back_by_a_reader_is_restarted_once_it_passes_the_limit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(store_module, "WAL_LIMIT", 4)
+    path = tmp_path / "c.db"
+    store, catalog = opened(path)
+    reader = sqlite3.connect(path, isolation_level=None)
+    checkpoint = sqlite3.connect(path, isolation_level=None, timeout=0.05)
+    try:
+        reader.execute("BEGIN")
+        reader.execute("SELECT count(*) FROM consumers").fetchone()  # holds an old snapshot
+        write_changes(store, catalog, 20)
+        store._checkpointer._checkpoint(checkpoint)
+        busy, log, copied = store._checkpointer.last or (0, 0, 0)
+        # the passive copy stopped at the reader; the RESTART that followed waited for it
+        assert (busy, copied < log) == (1, True)
+        assert log > 4
+        reader.execute("COMMIT")
+        store._checkpointer._checkpoint(checkpoint)
+        busy, log, copied = store._checkpointer.last or (1, 0, 0)
+        assert busy == 0
+        assert copied == log
+        write_changes(store, catalog, 1)  # the next commit starts the log from its beginning
+        assert store._db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()[1] <= 2
+    finally:
+        checkpoint.close()
+        reader.close()
+        store.close(erase=False)
+
+
+def test_without_a_thread_the_writer_falls_back_to_sqlites_own_checkpoints(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def no_thread(self: threading.Thread) -> None:
+        raise RuntimeError("can't start new thread")
+
+    store, catalog = opened(tmp_path / "c.db")
+    try:
+        store.checkpoint_every = 4
+        monkeypatch.setattr(threading.Thread, "start", no_thread)
+        write_changes(store, catalog, 4)
+        monkeypatch.undo()
+        assert store._db.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 1000
+        write_changes(store, catalog, 4)  # and the writes go on
+    finally:
+        store.close(erase=False)
