@@ -251,3 +251,26 @@ def test_a_version_2_backup_is_migrated_and_restored_lazily(tmp_path: Path) -> N
     assert [("r0", ["q0"]), ("r1", []), ("r2", ["q2", "q3"])] == [
         (r.id, list(r.consumers)) for r in read_backup(path).resources
     ]
+
+
+# -- 5. the consumer index hands its build memory back -------------------------------------------
+
+
+def test_a_restore_that_trims_the_heap_still_finds_every_consumer(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    trims: list[int] = []
+    real = store_module._release_free_memory
+    monkeypatch.setattr(store_module, "_TRIM_AFTER", 2)
+    monkeypatch.setattr(store_module, "_release_free_memory", lambda: (trims.append(1), real()))
+    path = tmp_path / "c.db"
+    rows = [(f"r{n}", "leaf", {"n": n}, f"q{n}") for n in range(5)]
+    write_catalog(path, rows)
+    store, catalog = lazily_restored(path)
+    try:
+        assert trims == [1]
+        for rid, _, _, query_id in rows:
+            assert catalog.resource_of(query_id).id == rid
+        assert catalog.find("leaf", {"n": 3}) is not None
+    finally:
+        store.close(erase=False)
