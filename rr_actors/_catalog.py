@@ -352,6 +352,13 @@ class _DirtySet(dict[str, None]):
         self[key] = None
 
 
+class _NoDirt(_DirtySet):
+    """The changed rows of a catalog nobody persists: none are kept (nobody drains them)."""
+
+    def add(self, key: str) -> None:
+        pass
+
+
 class UnreadRows(Protocol):
     """Served resources of a restored catalog still in its backup (see `Catalog.restore`).
 
@@ -398,8 +405,9 @@ class Catalog:
         self._others: dict[str, dict[Any, list[str]]] = {}
         self._other_keys: dict[str, Any] = {}  # resource id -> its key in `_others`
         self._deps: dict[str, list[str]] = {}
-        self._dirty_resources = _DirtySet()  # ordered: new rows drain in creation order
-        self._dirty_clients = _DirtySet()
+        # ordered: new rows drain in creation order
+        self._dirty_resources = _DirtySet() if track_changes else _NoDirt()
+        self._dirty_clients = _DirtySet() if track_changes else _NoDirt()
         self._unread: UnreadRows | None = None  # a restored catalog's resources still on disk
         self._unsorted = False  # resources read from disk since `resources` was last ordered
 
@@ -634,12 +642,9 @@ class Catalog:
     def drain_changes(self) -> Changes:
         """Return and forget the rows changed since the last drain.
 
-        Without `track_changes` (a catalog nobody persists) this is always empty.
+        Without `track_changes` (a catalog nobody persists) this is always empty, and
+        nothing is kept meanwhile (a registrar without a backup never drains).
         """
-        if not self.track_changes:
-            self._dirty_resources.clear()
-            self._dirty_clients.clear()
-            return Changes({}, {})
         changes = Changes(
             {rid: self.resources.get(rid) for rid in self._dirty_resources},
             {qid: self.clients.get(qid) for qid in self._dirty_clients},

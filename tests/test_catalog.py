@@ -249,6 +249,19 @@ def test_drain_changes_reports_touched_rows_once():
     assert not second
 
 
+def test_a_catalog_nobody_persists_keeps_no_changed_rows():
+    # a registrar without a backup never drains: whatever it kept would grow with every call
+    catalog = Catalog(track_changes=False)
+    for n in range(20):
+        rid = loaded(catalog, "s", str(n))
+        catalog.add_consumer(rid, f"q{n}", "C")
+        catalog.release(f"q{n}")
+
+    assert not catalog._dirty_resources
+    assert not catalog._dirty_clients
+    assert not catalog.drain_changes()
+
+
 class CatalogMachine(RuleBasedStateMachine):
     """Random sequences of catalog operations keep the indexes in step with a model."""
 
