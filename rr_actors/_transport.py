@@ -291,7 +291,8 @@ class _Writer:
                 else:
                     self._queue.appendleft((memoryview(frame)[sent:], on_lost))
             self._busy = False
-            self._cond.notify_all()
+            if self._queue:  # else the writer thread would wake to nothing (close notifies)
+                self._cond.notify_all()
         if lost and on_lost is not None:
             _run_lost([on_lost])
         return True
