@@ -946,3 +946,184 @@ def test_losing_a_connection_while_its_reader_resolves_answers_answers_each_repl
         sys.setswitchinterval(switch_interval)
 
     assert [[]] * 5 == trials
+
+
+# -- encoding: the C pickler's fast path ----------------------------------------------------
+
+
+class _MyStr(str):
+    """A subclass of a builtin: not plain."""
+
+
+@pytest.mark.parametrize(
+    "value",
+    [
+        Load("q1", "leaf", {"cmd": ["driver", "--id", 7], "rate": 2.5}, "C", ("C",), None),  # type: ignore[arg-type]
+        Fetch("leaf", "C", None),  # type: ignore[arg-type]
+        rr.Query("q2", "leaf", "P", "C", ("a", 1), {"pid": 4}),
+        ("answer", 3, None, b"x", frozenset({1}), {2, 3}),
+        rr.Status.FATAL,
+    ],
+)
+def test_small_builtin_data_is_pickled_by_the_c_pickler_as_cloudpickle_would(value: Any) -> None:
+    from rr_actors import _transport  # noqa: PLC0415 - private helpers under test
+
+    assert _transport._plain(value)
+    frame = _transport._frame(9, value)
+    token, payload = _transport._unframe(frame[4:])
+    assert token == 9
+    assert pickle.loads(payload) == value
+    assert bytes(payload) == cloudpickle.dumps(value, pickle.HIGHEST_PROTOCOL)
+
+
+@pytest.mark.parametrize(
+    "value",
+    [
+        {"f": lambda: 1},  # needs cloudpickle
+        [_MyStr("x")],  # a subclass
+        Load("q1", "leaf", {"at": uuid.UUID(int=1)}, "C", (), None),  # not builtin data
+        list(range(300)),  # too wide
+        [
+            [
+                [
+                    [
+                        [
+                            [
+                                [
+                                    [
+                                        [
+                                            [
+                                                [
+                                                    [
+                                                        [
+                                                            [
+                                                                [
+                                                                    [
+                                                                        [
+                                                                            [
+                                                                                [
+                                                                                    [
+                                                                                        [
+                                                                                            [
+                                                                                                [
+                                                                                                    [
+                                                                                                        [
+                                                                                                            [
+                                                                                                                [
+                                                                                                                    [
+                                                                                                                        [
+                                                                                                                            [
+                                                                                                                                [
+                                                                                                                                    [
+                                                                                                                                        [
+                                                                                                                                            [
+                                                                                                                                                [
+                                                                                                                                                    [
+                                                                                                                                                        [
+                                                                                                                                                            [
+                                                                                                                                                                [
+                                                                                                                                                                    [
+                                                                                                                                                                        [
+                                                                                                                                                                            [
+                                                                                                                                                                                [
+                                                                                                                                                                                    [
+                                                                                                                                                                                        [
+                                                                                                                                                                                            [
+                                                                                                                                                                                                [
+                                                                                                                                                                                                    [
+                                                                                                                                                                                                        [
+                                                                                                                                                                                                            [
+                                                                                                                                                                                                                [
+                                                                                                                                                                                                                    [
+                                                                                                                                                                                                                        [
+                                                                                                                                                                                                                            [
+                                                                                                                                                                                                                                [
+                                                                                                                                                                                                                                    [
+                                                                                                                                                                                                                                        [
+                                                                                                                                                                                                                                            [
+                                                                                                                                                                                                                                                [
+                                                                                                                                                                                                                                                    [
+                                                                                                                                                                                                                                                        [
+                                                                                                                                                                                                                                                            [
+                                                                                                                                                                                                                                                                [
+                                                                                                                                                                                                                                                                    [
+                                                                                                                                                                                                                                                                        [
+                                                                                                                                                                                                                                                                            [
+                                                                                                                                                                                                                                                                                []
+                                                                                                                                                                                                                                                                            ]
+                                                                                                                                                                                                                                                                        ]
+                                                                                                                                                                                                                                                                    ]
+                                                                                                                                                                                                                                                                ]
+                                                                                                                                                                                                                                                            ]
+                                                                                                                                                                                                                                                        ]
+                                                                                                                                                                                                                                                    ]
+                                                                                                                                                                                                                                                ]
+                                                                                                                                                                                                                                            ]
+                                                                                                                                                                                                                                        ]
+                                                                                                                                                                                                                                    ]
+                                                                                                                                                                                                                                ]
+                                                                                                                                                                                                                            ]
+                                                                                                                                                                                                                        ]
+                                                                                                                                                                                                                    ]
+                                                                                                                                                                                                                ]
+                                                                                                                                                                                                            ]
+                                                                                                                                                                                                        ]
+                                                                                                                                                                                                    ]
+                                                                                                                                                                                                ]
+                                                                                                                                                                                            ]
+                                                                                                                                                                                        ]
+                                                                                                                                                                                    ]
+                                                                                                                                                                                ]
+                                                                                                                                                                            ]
+                                                                                                                                                                        ]
+                                                                                                                                                                    ]
+                                                                                                                                                                ]
+                                                                                                                                                            ]
+                                                                                                                                                        ]
+                                                                                                                                                    ]
+                                                                                                                                                ]
+                                                                                                                                            ]
+                                                                                                                                        ]
+                                                                                                                                    ]
+                                                                                                                                ]
+                                                                                                                            ]
+                                                                                                                        ]
+                                                                                                                    ]
+                                                                                                                ]
+                                                                                                            ]
+                                                                                                        ]
+                                                                                                    ]
+                                                                                                ]
+                                                                                            ]
+                                                                                        ]
+                                                                                    ]
+                                                                                ]
+                                                                            ]
+                                                                        ]
+                                                                    ]
+                                                                ]
+                                                            ]
+                                                        ]
+                                                    ]
+                                                ]
+                                            ]
+                                        ]
+                                    ]
+                                ]
+                            ]
+                        ]
+                    ]
+                ]
+            ]
+        ],  # too deep
+    ],
+)
+def test_anything_else_goes_through_cloudpickle(value: Any) -> None:
+    from rr_actors import _transport  # noqa: PLC0415 - private helpers under test
+
+    assert not _transport._plain(value)
+    token, payload = _transport._unframe(_transport._frame(1, value)[4:])
+    assert token == 1
+    decoded = cloudpickle.loads(payload)
+    if not isinstance(value, dict):
+        assert decoded == value
