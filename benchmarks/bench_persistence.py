@@ -3,8 +3,10 @@
 For each catalog size N (resources, one consumer each) a backup is built, then:
 
 * store change: one catalog change (add a consumer / release it) written by
-  `SqliteStore.write` (one transaction), next to the same change with no store and a raw
-  SQLite commit (one-row INSERT or DELETE in its own transaction, same pragmas);
+  `SqliteStore.write` (one transaction, as with `save_on_modify`), next to the same change
+  with no store and a raw SQLite commit (one-row INSERT or DELETE in its own transaction,
+  same pragmas); and batched: 50 changes per transaction, on a store that checkpoints in
+  the background (as with a `save_interval`);
 * registrar change: a dedup-hit `call` or its `unload` on a registrar restored from that
   backup, with `save_on_modify=True` vs with nothing written (`save_on_modify=False`,
   no `save_interval`): the difference is what persistence adds to a change;
@@ -65,15 +67,24 @@ def timed(sample: Sample, batch: int) -> float:
     return (time.perf_counter_ns() - start) / batch / 1000
 
 
-def store_rows(path: Path, durability: Any) -> dict[str, Sample]:
-    """Per-change samples on the store alone, on a restored copy of the catalog."""
-    store = SqliteStore.open(path, durability=durability)
+def opened(path: Path, durability: Any, *, background: bool) -> tuple[SqliteStore, Catalog]:
+    """A store on `path` and the catalog it holds (read whole)."""
+    store = SqliteStore.open(path, durability=durability, background_checkpoints=background)
     rows = store.load()
     assert rows is not None
-    catalog = Catalog.restore(*rows)
+    return store, Catalog.restore(*rows)
+
+
+def store_rows(path: Path, durability: Any) -> dict[str, Sample]:
+    """Per-change samples on the store alone, on a restored copy of the catalog."""
+    store, catalog = opened(path, durability, background=False)  # as with save_on_modify
     # changes go to resources spread over the whole catalog (rows all over the file)
     rids = list(catalog.resources)
-    plain = Catalog.restore(*rows)
+    plain = opened(path, durability, background=False)[1]
+    # the batched rows write a copy, opened as with a save_interval (background checkpoints)
+    copy = path.with_name(f"{path.stem}-batched.db")
+    copy.write_bytes(path.read_bytes())
+    batch_store, batch_catalog = opened(copy, durability, background=True)
     ids = iter(range(10**9))
 
     def persisted() -> None:
@@ -95,11 +106,11 @@ def store_rows(path: Path, durability: Any) -> dict[str, Sample]:
     def persisted_batch() -> None:  # a save_interval flush: many changes, one transaction
         qids = [f"q{next(ids)}" for _ in range(BATCHED // 2)]
         for n, qid in enumerate(qids):
-            catalog.add_consumer(rids[(hash(qid) + n) % len(rids)], qid, "app")
-        store.write(catalog.drain_changes())
+            batch_catalog.add_consumer(rids[(hash(qid) + n) % len(rids)], qid, "app")
+        batch_store.write(batch_catalog.drain_changes())
         for qid in qids:
-            catalog.release(qid)
-        store.write(catalog.drain_changes())
+            batch_catalog.release(qid)
+        batch_store.write(batch_catalog.drain_changes())
 
     def memory_only_batch() -> None:
         qids = [f"q{next(ids)}" for _ in range(BATCHED // 2)]

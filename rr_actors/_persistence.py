@@ -99,7 +99,13 @@ def open_store(config: RegistrarConfig) -> CatalogStore | None:
         return None
     from rr_actors._sqlite_store import SqliteStore  # noqa: PLC0415 - only with a backup
 
-    return SqliteStore.open(config.backup_path, durability=config.durability)
+    # Changes written in bursts (a flush every `save_interval`) are checkpointed off the
+    # registrar's thread; a commit per change (`save_on_modify`) keeps SQLite's own.
+    return SqliteStore.open(
+        config.backup_path,
+        durability=config.durability,
+        background_checkpoints=not config.save_on_modify,
+    )
 
 
 class Saver:

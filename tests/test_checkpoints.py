@@ -1,11 +1,13 @@
-"""The backup's WAL is checkpointed on a thread of its own, never inside a change.
+"""A registrar that flushes in bursts checkpoints its WAL on a thread, never in a flush.
 
 SQLite's automatic checkpoint copies the log into the database file inside whichever
-commit crosses its threshold; the store switches it off and wakes a checkpointer thread
+commit crosses its threshold; a store opened with `background_checkpoints` (what a
+registrar with a `save_interval` opens) switches it off and wakes a checkpointer thread
 instead (`_sqlite_store._Checkpointer`). These tests pin that it runs, that it keeps the
-WAL bounded when a reader holds it back, that it stops with the store, and that a store
-that writes little never starts it. (Crashes in the middle of a checkpoint are covered by
-tests/test_crash_consistency.py, whose child checkpoints every few statements.)
+WAL bounded when a reader holds it back, that it stops with the store, that a store that
+writes little never starts it, and which registrars use it. (Crashes in the middle of a
+checkpoint are covered by tests/test_crash_consistency.py, whose child checkpoints in the
+background every few statements.)
 """
 
 from __future__ import annotations
@@ -17,8 +19,10 @@ from pathlib import Path
 
 import pytest
 
+import rr_actors as rr
 from rr_actors import _sqlite_store as store_module
 from rr_actors._catalog import Catalog
+from rr_actors._persistence import open_store
 from rr_actors._sqlite_store import SqliteStore
 
 WAIT = 10.0  # seconds: the bound of every wait below
@@ -37,7 +41,7 @@ def write_changes(store: SqliteStore, catalog: Catalog, count: int) -> None:
 
 
 def opened(path: Path) -> tuple[SqliteStore, Catalog]:
-    store = SqliteStore.open(path)
+    store = SqliteStore.open(path, background_checkpoints=True)
     store.load()
     catalog = Catalog()
     catalog.begin_load("r1", "leaf", {"n": 1})
@@ -126,5 +130,22 @@ def test_without_a_thread_the_writer_falls_back_to_sqlites_own_checkpoints(
         monkeypatch.undo()
         assert store._db.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 1000
         write_changes(store, catalog, 4)  # and the writes go on
+    finally:
+        store.close(erase=False)
+
+
+@pytest.mark.parametrize(("save_on_modify", "background"), [(False, True), (True, False)])
+def test_a_registrar_checkpoints_in_the_background_only_when_it_flushes_in_bursts(
+    tmp_path: Path, save_on_modify: bool, background: bool
+) -> None:
+    config = rr.RegistrarConfig(
+        name="R", backup_path=tmp_path / "c.db", save_on_modify=save_on_modify
+    )
+    store = open_store(config)
+    assert isinstance(store, SqliteStore)
+    try:
+        assert (store._checkpointer is not None) is background
+        expected = 0 if background else 1000  # SQLite's own threshold, in pages
+        assert store._db.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == expected
     finally:
         store.close(erase=False)

@@ -11,7 +11,7 @@ kills it after a random number of reports, then opens both backups afresh and ch
 
 The next child restarts on the same backups (so restore, in-doubt settling and unloads of
 ids issued before a crash are exercised too). The child's stores checkpoint their WAL
-every few statements, so kills also land in the middle of background checkpoints.
+on a background thread every few statements, so kills also land in checkpoints.
 `run_kills` is shared with `benchmarks/stress_crash.py`, which runs 1,000 kills.
 """
 
@@ -48,7 +48,14 @@ MAX_HELD = 24
 def worker(names: tuple[str, str], paths: tuple[str, str], seed: int, conn: Any) -> None:
     """Run P and C on the backups and drive random operations until killed."""
     rng = random.Random(seed)  # noqa: S311 - a reproducible workload, not crypto
-    store_module.CHECKPOINT_EVERY = 4  # background checkpoints run (and are killed) often
+    # background checkpoints (as with a save_interval) run, and are killed, often
+    store_module.CHECKPOINT_EVERY = 4
+    real_open = store_module.SqliteStore.open
+
+    def open_in_background(path: Any, **options: Any) -> store_module.SqliteStore:
+        return real_open(path, **{**options, "background_checkpoints": True})
+
+    store_module.SqliteStore.open = open_in_background  # type: ignore[method-assign,assignment]
     p_name, _ = names
     _, consumer = start_pair(names, paths)
     held = [c.query.id for c in catalog_snapshot(consumer).clients if c.parent is None and c.loaded]
