@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import os
 import platform
 import sqlite3
 import statistics
@@ -75,8 +76,12 @@ def opened(path: Path, durability: Any, *, background: bool) -> tuple[SqliteStor
     return store, Catalog.restore(*rows)
 
 
-def store_rows(path: Path, durability: Any) -> dict[str, Sample]:
-    """Per-change samples on the store alone, on a restored copy of the catalog."""
+def store_rows(path: Path, durability: Any) -> tuple[dict[str, Sample], Sample]:
+    """Per-change samples on the store alone, on a restored copy of the catalog.
+
+    Also returns `settle()`, which waits until the batched store's background checkpoint
+    (started by a sample) is done, so that it does not slow the sample measured next.
+    """
     store, catalog = opened(path, durability, background=False)  # as with save_on_modify
     # changes go to resources spread over the whole catalog (rows all over the file)
     rids = list(catalog.resources)
@@ -134,13 +139,17 @@ def store_rows(path: Path, durability: Any) -> dict[str, Sample]:
         raw.execute("DELETE FROM t WHERE seq = ?", (cursor.lastrowid,))
         raw.execute("COMMIT")
 
+    def settle() -> None:
+        if batch_store._checkpointer is not None:
+            batch_store._checkpointer.wait_idle(30.0)
+
     return {
         "store write (2 changes)": persisted,
         "no store (2 changes)": memory_only,
         "raw SQLite (2 commits)": raw_commit,
         f"store write, batched ({BATCHED} changes, 2 commits)": persisted_batch,
         f"no store ({BATCHED} changes)": memory_only_batch,
-    }
+    }, settle
 
 
 def registrar_rows(path: Path, durability: Any, keys: list[str]) -> tuple[dict[str, Sample], Any]:
@@ -244,14 +253,16 @@ def main() -> None:
                 f"({path.stat().st_size / 1e6:.1f} MB)",
                 file=sys.stderr,
             )
-            samples = store_rows(path, args.durability)
+            samples, settle = store_rows(path, args.durability)
             more, registrars = registrar_rows(path, args.durability, keys)
             samples.update(more)
+            os.sync()  # the copies just written must not be written back while we measure
             measured: dict[str, list[float]] = {label: [] for label in samples}
             try:
                 for _ in range(args.rounds):
                     for label, sample in samples.items():
                         measured[label].append(timed(sample, args.batch))
+                        settle()  # a row's background work must not slow the next row
             finally:
                 for registrar in registrars:
                     registrar.stop()

@@ -950,8 +950,9 @@ CHECKPOINT_EVERY = 256
 WAL_LIMIT = 16_384
 """WAL frames (4 KiB pages) past which a checkpoint makes the writer wait for it."""
 
-WAL_KEPT = 4 * 1024 * 1024
-"""Bytes of WAL file kept when the log restarts (`journal_size_limit`); more is cut off."""
+WAL_KEPT = 8 * 1024 * 1024
+"""Bytes of WAL file kept when the log restarts after background checkpoints
+(`journal_size_limit`); more is cut off. Twice what SQLite's own checkpoints let it reach."""
 
 
 class _Checkpointer:
@@ -984,7 +985,8 @@ class _Checkpointer:
         self._closing = False
         self._thread: threading.Thread | None = None
         self.done = threading.Condition()
-        """Notified after each checkpoint (tests wait on it)."""
+        """Notified after each checkpoint (tests and benchmarks wait on it)."""
+        self._running = False
         self.checkpoints = 0
         self.last: tuple[int, int, int] | None = None
         """The last checkpoint's `(busy, frames in the log, frames copied)`."""
@@ -1005,6 +1007,13 @@ class _Checkpointer:
         self._wake.set()
         return True
 
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until no checkpoint is asked for or running; False after `timeout` seconds."""
+        with self.done:
+            return self.done.wait_for(
+                lambda: not self._running and not self._wake.is_set(), timeout
+            )
+
     def close(self, timeout: float = 10.0) -> None:
         """Stop the thread once the checkpoint in progress, if any, is done (seconds)."""
         self._closing = True
@@ -1022,9 +1031,11 @@ class _Checkpointer:
             db.execute(f"PRAGMA synchronous = {self._synchronous}")
             while True:
                 self._wake.wait()
-                self._wake.clear()
                 if self._closing:
                     return
+                with self.done:
+                    self._wake.clear()
+                    self._running = True
                 self._checkpoint(db)
         finally:
             db.close()
@@ -1036,10 +1047,14 @@ class _Checkpointer:
                 busy, log, copied = db.execute("PRAGMA wal_checkpoint(RESTART)").fetchone()
         except sqlite3.Error as exc:  # the WAL keeps every commit; retried at the next wake
             logger.warning("catalog %s: checkpoint failed: %s", self._path, exc)
+            with self.done:
+                self._running = False
+                self.done.notify_all()
             return
         with self.done:
             self.last = (busy, log, copied)
             self.checkpoints += 1
+            self._running = False
             self.done.notify_all()
 
 
@@ -1064,10 +1079,10 @@ class SqliteStore:
         self.path = str(path)
         self._file = path
         self._db = db
-        db.execute(f"PRAGMA journal_size_limit = {WAL_KEPT}")
         self._checkpointer: _Checkpointer | None = None
         if background_checkpoints:
             db.execute("PRAGMA wal_autocheckpoint = 0")  # the checkpointer's thread does it
+            db.execute(f"PRAGMA journal_size_limit = {WAL_KEPT}")
             self._checkpointer = _Checkpointer(path, synchronous)
         self._unchecked = 0  # statements written since the checkpointer was last woken
         self.checkpoint_every = CHECKPOINT_EVERY

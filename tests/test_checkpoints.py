@@ -68,6 +68,8 @@ def test_the_writer_never_checkpoints_and_a_thread_copies_the_log(tmp_path: Path
         busy, log, copied = wait_checkpoints(store, 1)
         assert busy == 0
         assert 0 < copied == log  # the whole log is in the database file now
+        assert store._checkpointer is not None
+        assert store._checkpointer.wait_idle(WAIT)
         assert len(checkpointer_threads()) == 1
     finally:
         store.close(erase=False)
