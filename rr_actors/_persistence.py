@@ -99,8 +99,9 @@ def open_store(config: RegistrarConfig) -> CatalogStore | None:
         return None
     from rr_actors._sqlite_store import SqliteStore  # noqa: PLC0415 - only with a backup
 
-    # Changes written in bursts (a flush every `save_interval`) are checkpointed off the
-    # registrar's thread; a commit per change (`save_on_modify`) keeps SQLite's own.
+    # Changes written in bursts (flushes: every `save_interval`, `save_catalog`, `stop`)
+    # are checkpointed off the registrar's thread; a commit per change (`save_on_modify`)
+    # keeps SQLite's own.
     return SqliteStore.open(
         config.backup_path,
         durability=config.durability,

@@ -961,7 +961,7 @@ class _Checkpointer:
     SQLite's automatic checkpoint runs inside the commit that crosses its threshold: one
     flush in a few paid for copying the log into the file and syncing both, the largest
     part of a batched change's cost in a large catalog. A store opened with
-    `background_checkpoints` (a registrar with a `save_interval`) switches it off
+    `background_checkpoints` (a registrar without `save_on_modify`) switches it off
     (`wal_autocheckpoint = 0`) and wakes this thread every `CHECKPOINT_EVERY` statements
     instead, as SQLite's WAL documentation suggests for writers that must not stall. It
     runs `PRAGMA wal_checkpoint(PASSIVE)` on its own connection, which never blocks the
@@ -1286,8 +1286,9 @@ class SqliteStore:
         self._unchecked += len(ops)
         if self._unchecked >= self.checkpoint_every:
             self._unchecked = 0
-            if not self._checkpointer.wake():  # no thread: let SQLite do it in the commit
+            if not self._checkpointer.wake():  # no thread: SQLite's own, from now on
                 db.execute("PRAGMA wal_autocheckpoint = 1000")
+                self._checkpointer = None
 
     def _plan_resource(
         self,

@@ -131,7 +131,9 @@ def test_without_a_thread_the_writer_falls_back_to_sqlites_own_checkpoints(
         write_changes(store, catalog, 4)
         monkeypatch.undo()
         assert store._db.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 1000
+        assert store._checkpointer is None  # SQLite's own from now on: no second try
         write_changes(store, catalog, 4)  # and the writes go on
+        assert checkpointer_threads() == []
     finally:
         store.close(erase=False)
 
