@@ -51,7 +51,6 @@ through a read-only connection before anything writes to it; whatever is wrong r
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import dataclasses
 import datetime
 import functools
@@ -720,10 +719,14 @@ _TRIM_AFTER = 10_000
 def _malloc_trim() -> Callable[[int], object] | None:
     """glibc's `malloc_trim`; `None` with another C library."""
     try:
-        trim: Callable[[int], object] = ctypes.CDLL(None).malloc_trim
-    except (OSError, AttributeError, TypeError):
+        import ctypes  # noqa: PLC0415 - only where a restore is large enough to trim
+
+        trim = ctypes.CDLL(None).malloc_trim
+    except (ImportError, OSError, AttributeError, TypeError):
         return None
-    return trim
+    trim.argtypes = [ctypes.c_size_t]
+    result: Callable[[int], object] = trim
+    return result
 
 
 def _release_free_memory() -> None:
@@ -945,7 +948,11 @@ def quarantine_backup(path: str | os.PathLike[str]) -> Path:
 
 
 CHECKPOINT_EVERY = 256
-"""Statements written between two background checkpoints (about as many WAL pages)."""
+"""Statements written between two background checkpoints (each writes a page or a few;
+one holding a large request or response, more)."""
+
+CHECKPOINT_BUSY_TIMEOUT = 0.1
+"""Seconds a `RESTART` checkpoint waits for readers; the writer waits at most as long."""
 
 WAL_LIMIT = 16_384
 """WAL frames (4 KiB pages) past which a checkpoint makes the writer wait for it."""
@@ -972,18 +979,23 @@ class _Checkpointer:
     `save_on_modify` registrar keeps those.)
 
     A passive checkpoint cannot restart the log while the writer keeps appending; once
-    the log holds more than `WAL_LIMIT` frames the checkpoint is `RESTART`, which makes
-    the writer wait (its busy timeout) until the log is copied, so the WAL stays bounded
-    under any load. The thread starts at the first wake-up: a store that writes little
-    never has one.
+    the log holds more than `WAL_LIMIT` frames the checkpoint is `RESTART`, which holds
+    new writes back while it waits for readers on older snapshots, for at most
+    `CHECKPOINT_BUSY_TIMEOUT` (far below the writer's own 5 s busy timeout, so a reader
+    that lingers, `rr-actors inspect` on a live file say, delays a write by that much and
+    never fails it); so the WAL stays bounded under any load. The thread starts at the
+    first wake-up: a store that writes little never has one. If it cannot start, or
+    cannot open its connection, `wake` says so and the store goes back to SQLite's own
+    checkpoints.
     """
 
     def __init__(self, path: Path, synchronous: str) -> None:
-        self._path = path
+        self._path = path.resolve()  # the thread connects later: a chdir must not matter
         self._synchronous = synchronous
         self._wake = threading.Event()
         self._closing = False
         self._thread: threading.Thread | None = None
+        self._db: sqlite3.Connection | None = None  # the thread's connection, once open
         self.done = threading.Condition()
         """Notified after each checkpoint (tests and benchmarks wait on it)."""
         self._running = False
@@ -992,10 +1004,13 @@ class _Checkpointer:
         """The last checkpoint's `(busy, frames in the log, frames copied)`."""
 
     def wake(self) -> bool:
-        """Ask for a checkpoint soon; `False` if no thread can be started for it."""
+        """Ask for a checkpoint soon; `False` if no thread can do it (it could not start,
+        or could not open its connection)."""
+        if self._closing:
+            return True
+        if self._thread is not None and not self._thread.is_alive():
+            return False
         if self._thread is None:
-            if self._closing:
-                return True
             thread = threading.Thread(
                 target=self._run, name=f"rr-actors-checkpoint:{self._path.name}", daemon=True
             )
@@ -1015,20 +1030,32 @@ class _Checkpointer:
             )
 
     def close(self, timeout: float = 10.0) -> None:
-        """Stop the thread once the checkpoint in progress, if any, is done (seconds)."""
+        """Stop the thread, interrupting the checkpoint in progress (it is safe to cut one
+        short: the next one, or the next open, finishes the copy). Waits `timeout` s."""
         self._closing = True
         self._wake.set()
+        db = self._db
+        if db is not None:
+            with contextlib.suppress(sqlite3.Error):
+                db.interrupt()
         if self._thread is not None:
             self._thread.join(timeout)
 
     def _run(self) -> None:
         try:
-            db = sqlite3.connect(self._path, isolation_level=None, timeout=5.0)
-        except sqlite3.Error as exc:  # pragma: no cover - the writer opened the same file
-            logger.warning("catalog %s: no checkpoint connection: %s", self._path, exc)
-            return
-        try:
+            # by URI in `rw` mode: it never creates a file where the backup was
+            db = sqlite3.connect(
+                f"{self._path.as_uri()}?mode=rw",
+                uri=True,
+                isolation_level=None,
+                timeout=CHECKPOINT_BUSY_TIMEOUT,
+            )
             db.execute(f"PRAGMA synchronous = {self._synchronous}")
+        except sqlite3.Error as exc:
+            logger.warning("catalog %s: no checkpoint connection: %s", self._path, exc)
+            return  # `wake` sees the thread gone: the store checkpoints as SQLite does
+        self._db = db
+        try:
             while True:
                 self._wake.wait()
                 if self._closing:
@@ -1038,7 +1065,11 @@ class _Checkpointer:
                     self._running = True
                 self._checkpoint(db)
         finally:
+            self._db = None
             db.close()
+            with self.done:
+                self._running = False
+                self.done.notify_all()
 
     def _checkpoint(self, db: sqlite3.Connection) -> None:
         try:
@@ -1046,7 +1077,8 @@ class _Checkpointer:
             if log > WAL_LIMIT and copied < log:
                 busy, log, copied = db.execute("PRAGMA wal_checkpoint(RESTART)").fetchone()
         except sqlite3.Error as exc:  # the WAL keeps every commit; retried at the next wake
-            logger.warning("catalog %s: checkpoint failed: %s", self._path, exc)
+            if not self._closing:  # (closing interrupts it)
+                logger.warning("catalog %s: checkpoint failed: %s", self._path, exc)
             with self.done:
                 self._running = False
                 self.done.notify_all()

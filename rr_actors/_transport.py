@@ -167,15 +167,13 @@ def _plain_walk(item: Any, budget: int) -> int:
     if budget < 0:
         return -1
     items: Any
-    if kind in _PLAIN_SEQUENCES:
-        items = item
-    elif kind is dict:
-        items = (*item.keys(), *item.values())
-    elif kind in _PLAIN_RECORDS:
+    if kind in _PLAIN_SEQUENCES or kind is dict:
+        if len(item) > _PLAIN_WIDTH:
+            return -1
+        items = item if kind is not dict else (*item.keys(), *item.values())
+    elif kind in _PLAIN_RECORDS:  # a few fields each
         items = item.__dict__.values()
     else:
-        return -1
-    if len(items) > _PLAIN_WIDTH * (2 if kind is dict else 1):
         return -1
     for value in items:
         if type(value) not in _PLAIN_ATOMS:
@@ -356,8 +354,8 @@ class _Writer:
                 else:
                     self._queue.appendleft((memoryview(frame)[sent:], on_lost))
             self._busy = False
-            if self._queue:  # else the writer thread would wake to nothing (close notifies)
-                self._cond.notify_all()
+            if self._queue or self.closed:  # else the writer thread would wake to nothing
+                self._cond.notify_all()  # (once closed, it waits for `_busy` to clear)
         if lost and on_lost is not None:
             _run_lost([on_lost])
         return True

@@ -28,8 +28,9 @@ from rr_actors._sqlite_store import SqliteStore
 WAIT = 10.0  # seconds: the bound of every wait below
 
 
-def checkpointer_threads() -> list[threading.Thread]:
-    return [t for t in threading.enumerate() if t.name.startswith("rr-actors-checkpoint:")]
+def checkpointer_thread(store: SqliteStore) -> threading.Thread | None:
+    assert store._checkpointer is not None
+    return store._checkpointer._thread
 
 
 def write_changes(store: SqliteStore, catalog: Catalog, count: int) -> None:
@@ -50,10 +51,11 @@ def opened(path: Path) -> tuple[SqliteStore, Catalog]:
     return store, catalog
 
 
-def wait_checkpoints(store: SqliteStore, count: int) -> tuple[int, int, int]:
+def wait_checkpoints(store: SqliteStore, count: int, within: float = WAIT) -> tuple[int, int, int]:
+    assert store._checkpointer is not None
     done = store._checkpointer.done
     with done:
-        assert done.wait_for(lambda: store._checkpointer.checkpoints >= count, WAIT)
+        assert done.wait_for(lambda: store._checkpointer.checkpoints >= count, within)
         last = store._checkpointer.last
     assert last is not None
     return last
@@ -64,16 +66,19 @@ def test_the_writer_never_checkpoints_and_a_thread_copies_the_log(tmp_path: Path
     try:
         assert store._db.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 0
         store.checkpoint_every = 8
+        store._unchecked = 0  # the 8th change, and no later one, wakes it
         write_changes(store, catalog, 8)
         busy, log, copied = wait_checkpoints(store, 1)
         assert busy == 0
         assert 0 < copied == log  # the whole log is in the database file now
         assert store._checkpointer is not None
         assert store._checkpointer.wait_idle(WAIT)
-        assert len(checkpointer_threads()) == 1
+        thread = checkpointer_thread(store)
+        assert thread is not None
+        assert thread.is_alive()
     finally:
         store.close(erase=False)
-    assert checkpointer_threads() == []  # close stops it
+    assert not thread.is_alive()  # close stops it
     db = sqlite3.connect(tmp_path / "c.db")
     assert db.execute("SELECT count(*) FROM consumers").fetchone()[0] == 8
     db.close()
@@ -83,7 +88,7 @@ def test_a_store_that_writes_little_has_no_checkpointer_thread(tmp_path: Path) -
     store, catalog = opened(tmp_path / "c.db")
     try:
         write_changes(store, catalog, 10)
-        assert checkpointer_threads() == []
+        assert checkpointer_thread(store) is None
     finally:
         store.close(erase=False)
 
@@ -133,7 +138,6 @@ def test_without_a_thread_the_writer_falls_back_to_sqlites_own_checkpoints(
         assert store._db.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 1000
         assert store._checkpointer is None  # SQLite's own from now on: no second try
         write_changes(store, catalog, 4)  # and the writes go on
-        assert checkpointer_threads() == []
     finally:
         store.close(erase=False)
 
@@ -152,4 +156,73 @@ def test_a_registrar_checkpoints_in_the_background_only_when_it_flushes_in_burst
         expected = 0 if background else 1000  # SQLite's own threshold, in pages
         assert store._db.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == expected
     finally:
+        store.close(erase=False)
+
+
+def test_a_checkpointer_that_cannot_open_its_connection_hands_back_to_sqlite(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    real_connect = sqlite3.connect
+
+    def connect(database: object, *args: object, **kwargs: object) -> sqlite3.Connection:
+        if "mode=rw" in str(database):  # the checkpointer's connection only
+            raise sqlite3.OperationalError("unable to open database file")
+        return real_connect(database, *args, **kwargs)  # type: ignore[arg-type]
+
+    store, catalog = opened(tmp_path / "c.db")
+    try:
+        store.checkpoint_every = 4
+        store._unchecked = 0
+        monkeypatch.setattr(sqlite3, "connect", connect)
+        write_changes(store, catalog, 4)  # starts the thread, which gives up at once
+        thread = checkpointer_thread(store)
+        assert thread is not None
+        thread.join(WAIT)
+        assert not thread.is_alive()
+        write_changes(store, catalog, 4)  # the next wake-up finds no thread: SQLite's own
+        assert store._checkpointer is None
+        assert store._db.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 1000
+    finally:
+        store.close(erase=False)
+
+
+def test_a_relative_backup_path_is_checkpointed_after_a_chdir(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path)
+    store, catalog = opened(Path("c.db"))
+    try:
+        monkeypatch.chdir(tmp_path / "elsewhere")  # before the thread first connects
+        store.checkpoint_every = 4
+        store._unchecked = 0
+        write_changes(store, catalog, 4)
+        busy, log, copied = wait_checkpoints(store, 1)
+        assert (busy, copied == log) == (0, True)
+        assert log > 0  # the backup's own WAL, not a new empty file's (-1)
+        assert list((tmp_path / "elsewhere").iterdir()) == []
+    finally:
+        store.close(erase=False)
+
+
+def test_a_reader_that_lingers_past_the_limit_never_locks_the_writer_out(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # RESTART holds new writes back while it waits for readers: it must give up long
+    # before the writer's own busy timeout (5 s), or the writer fails "database is locked"
+    monkeypatch.setattr(store_module, "WAL_LIMIT", 4)
+    path = tmp_path / "c.db"
+    store, catalog = opened(path)
+    reader = sqlite3.connect(path, isolation_level=None)
+    try:
+        reader.execute("BEGIN")
+        reader.execute("SELECT count(*) FROM consumers").fetchone()  # `inspect`, say
+        store.checkpoint_every = 8
+        store._unchecked = 0
+        write_changes(store, catalog, 8)
+        busy, log, copied = wait_checkpoints(store, 1, within=2.5)  # gave up on the reader
+        assert (busy, copied < log) == (1, True)
+        write_changes(store, catalog, 3)  # and the writer goes on
+    finally:
+        reader.close()
         store.close(erase=False)

@@ -1002,3 +1002,50 @@ def test_anything_else_goes_through_cloudpickle(value: Any) -> None:
     decoded = cloudpickle.loads(payload)
     if not isinstance(value, dict):
         assert decoded == value
+
+
+def test_a_writer_closed_while_a_sender_writes_still_ends_its_thread_and_socket() -> None:
+    # close() wakes the writer thread before the sender is done; the sender, finishing
+    # with nothing queued, must wake it again or it waits for `_busy` forever
+    entered, release, sock_closed, in_final_wait = (threading.Event() for _ in range(4))
+
+    class Socket:  # holds the sender inside its send() until told
+        def send(self, data: bytes, flags: int) -> int:
+            entered.set()
+            release.wait(10)
+            return len(data)
+
+        def shutdown(self, how: int) -> None:
+            pass
+
+        def close(self) -> None:
+            sock_closed.set()
+
+    writer = _Writer(Socket(), lambda exc: None)  # type: ignore[arg-type]
+
+    class Cond(threading.Condition):
+        def wait(self, timeout: float | None = None) -> bool:
+            if writer.closed:  # the writer thread waits for the sender to finish
+                in_final_wait.set()
+            return super().wait(timeout)
+
+    writer._cond = Cond(threading.Lock())
+    writer.start("test-writer")
+    thread = next(t for t in threading.enumerate() if t.name == "test-writer")
+    sender = threading.Thread(target=writer.send, args=(b"frame",))
+    sender.start()
+    assert entered.wait(10)
+    writer.close()
+    assert in_final_wait.wait(10)
+    release.set()
+    sender.join(10)
+    thread.join(10)
+    assert not thread.is_alive()
+    assert sock_closed.is_set()
+
+
+def test_a_load_crosses_without_its_reply_and_otherwise_unchanged() -> None:
+    from rr_actors import _transport  # noqa: PLC0415 - private helper under test
+
+    load = Load("q", "leaf", {"n": 1}, "C", ("C",), object())  # type: ignore[arg-type]
+    assert _transport._without_reply(load) == dataclasses.replace(load, reply=None)
