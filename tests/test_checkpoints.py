@@ -51,6 +51,14 @@ def opened(path: Path) -> tuple[SqliteStore, Catalog]:
     return store, catalog
 
 
+def reader_on_old_snapshot(path: Path) -> sqlite3.Connection:
+    """A connection in a read transaction: the WAL cannot be copied past its snapshot."""
+    reader = sqlite3.connect(path, isolation_level=None)
+    reader.execute("BEGIN")
+    reader.execute("SELECT count(*) FROM consumers").fetchone()
+    return reader
+
+
 def wait_checkpoints(store: SqliteStore, count: int, within: float = WAIT) -> tuple[int, int, int]:
     assert store._checkpointer is not None
     done = store._checkpointer.done
@@ -99,11 +107,9 @@ def test_a_log_held_back_by_a_reader_is_restarted_once_it_passes_the_limit(
     monkeypatch.setattr(store_module, "WAL_LIMIT", 4)
     path = tmp_path / "c.db"
     store, catalog = opened(path)
-    reader = sqlite3.connect(path, isolation_level=None)
+    reader = reader_on_old_snapshot(path)
     checkpoint = sqlite3.connect(path, isolation_level=None, timeout=0.05)
     try:
-        reader.execute("BEGIN")
-        reader.execute("SELECT count(*) FROM consumers").fetchone()  # holds an old snapshot
         write_changes(store, catalog, 20)
         store._checkpointer._checkpoint(checkpoint)
         busy, log, copied = store._checkpointer.last or (0, 0, 0)
@@ -213,10 +219,8 @@ def test_a_reader_that_lingers_past_the_limit_never_locks_the_writer_out(
     monkeypatch.setattr(store_module, "WAL_LIMIT", 4)
     path = tmp_path / "c.db"
     store, catalog = opened(path)
-    reader = sqlite3.connect(path, isolation_level=None)
+    reader = reader_on_old_snapshot(path)  # `rr-actors inspect` on the live file, say
     try:
-        reader.execute("BEGIN")
-        reader.execute("SELECT count(*) FROM consumers").fetchone()  # `inspect`, say
         store.checkpoint_every = 8
         store._unchecked = 0
         write_changes(store, catalog, 8)
