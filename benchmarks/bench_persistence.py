@@ -76,11 +76,30 @@ def opened(path: Path, durability: Any, *, background: bool) -> tuple[SqliteStor
     return store, Catalog.restore(*rows)
 
 
-def store_rows(path: Path, durability: Any) -> tuple[dict[str, Sample], Sample]:
+def raw_rows(path: Path, durability: Any) -> tuple[sqlite3.Connection, Sample]:
+    """The floor: a bare SQLite commit to a one-row table (same pragmas), and its connection."""
+    raw = sqlite3.connect(path, isolation_level=None)
+    raw.execute("PRAGMA journal_mode = WAL")
+    raw.execute(f"PRAGMA synchronous = {'FULL' if durability == 'power' else 'NORMAL'}")
+    raw.execute("CREATE TABLE IF NOT EXISTS t (seq INTEGER PRIMARY KEY, query_id TEXT)")
+
+    def raw_commit() -> None:
+        raw.execute("BEGIN IMMEDIATE")
+        cursor = raw.execute("INSERT INTO t (query_id) VALUES ('q')")
+        raw.execute("COMMIT")
+        raw.execute("BEGIN IMMEDIATE")
+        raw.execute("DELETE FROM t WHERE seq = ?", (cursor.lastrowid,))
+        raw.execute("COMMIT")
+
+    return raw, raw_commit
+
+
+def store_rows(path: Path, durability: Any) -> tuple[dict[str, Sample], Sample, Sample]:
     """Per-change samples on the store alone, on a restored copy of the catalog.
 
     Also returns `settle()`, which waits until the batched store's background checkpoint
-    (started by a sample) is done, so that it does not slow the sample measured next.
+    (started by a sample) is done, so that it does not slow the sample measured next,
+    and `close()`, which closes what the samples opened.
     """
     store, catalog = opened(path, durability, background=False)  # as with save_on_modify
     # changes go to resources spread over the whole catalog (rows all over the file)
@@ -126,30 +145,28 @@ def store_rows(path: Path, durability: Any) -> tuple[dict[str, Sample], Sample]:
             plain.release(qid)
         plain.drain_changes()
 
-    raw = sqlite3.connect(path.with_suffix(".raw"), isolation_level=None)
-    raw.execute("PRAGMA journal_mode = WAL")
-    raw.execute(f"PRAGMA synchronous = {'FULL' if durability == 'power' else 'NORMAL'}")
-    raw.execute("CREATE TABLE IF NOT EXISTS t (seq INTEGER PRIMARY KEY, query_id TEXT)")
-
-    def raw_commit() -> None:
-        raw.execute("BEGIN IMMEDIATE")
-        cursor = raw.execute("INSERT INTO t (query_id) VALUES ('q')")
-        raw.execute("COMMIT")
-        raw.execute("BEGIN IMMEDIATE")
-        raw.execute("DELETE FROM t WHERE seq = ?", (cursor.lastrowid,))
-        raw.execute("COMMIT")
+    raw, raw_commit = raw_rows(path.with_suffix(".raw"), durability)
 
     def settle() -> None:
         if batch_store._checkpointer is not None:
             batch_store._checkpointer.wait_idle(30.0)
 
-    return {
-        "store write (2 changes)": persisted,
-        "no store (2 changes)": memory_only,
-        "raw SQLite (2 commits)": raw_commit,
-        f"store write, batched ({BATCHED} changes, 2 commits)": persisted_batch,
-        f"no store ({BATCHED} changes)": memory_only_batch,
-    }, settle
+    def close() -> None:
+        store.close(erase=False)
+        batch_store.close(erase=False)
+        raw.close()
+
+    return (
+        {
+            "store write (2 changes)": persisted,
+            "no store (2 changes)": memory_only,
+            "raw SQLite (2 commits)": raw_commit,
+            f"store write, batched ({BATCHED} changes, 2 commits)": persisted_batch,
+            f"no store ({BATCHED} changes)": memory_only_batch,
+        },
+        settle,
+        close,
+    )
 
 
 def registrar_rows(path: Path, durability: Any, keys: list[str]) -> tuple[dict[str, Sample], Any]:
@@ -253,7 +270,7 @@ def main() -> None:
                 f"({path.stat().st_size / 1e6:.1f} MB)",
                 file=sys.stderr,
             )
-            samples, settle = store_rows(path, args.durability)
+            samples, settle, close = store_rows(path, args.durability)
             more, registrars = registrar_rows(path, args.durability, keys)
             samples.update(more)
             os.sync()  # the copies just written must not be written back while we measure
@@ -268,6 +285,7 @@ def main() -> None:
             finally:
                 for registrar in registrars:
                     registrar.stop()
+                close()
             for label, values in measured.items():
                 change_table.setdefault(label, {})[size] = statistics.median(values)
             for label, ms in restore_rows(path, max(3, args.rounds // 5)).items():
