@@ -948,8 +948,10 @@ def quarantine_backup(path: str | os.PathLike[str]) -> Path:
 
 
 CHECKPOINT_EVERY = 256
-"""Statements written between two background checkpoints (each writes a page or a few;
-one holding a large request or response, more)."""
+"""WAL pages written between two background checkpoints, about: each statement counts
+one, plus a page per 4 KiB of a large request or response."""
+
+_PAGE = 4096
 
 CHECKPOINT_BUSY_TIMEOUT = 0.1
 """Seconds a `RESTART` checkpoint waits for readers; the writer waits at most as long."""
@@ -969,7 +971,7 @@ class _Checkpointer:
     flush in a few paid for copying the log into the file and syncing both, the largest
     part of a batched change's cost in a large catalog. A store opened with
     `background_checkpoints` (a registrar without `save_on_modify`) switches it off
-    (`wal_autocheckpoint = 0`) and wakes this thread every `CHECKPOINT_EVERY` statements
+    (`wal_autocheckpoint = 0`) and wakes this thread every `CHECKPOINT_EVERY` pages or so
     instead, as SQLite's WAL documentation suggests for writers that must not stall. It
     runs `PRAGMA wal_checkpoint(PASSIVE)` on its own connection, which never blocks the
     writer (and SQLite releases the GIL while it copies). A commit is exactly as durable
@@ -1116,7 +1118,7 @@ class SqliteStore:
             db.execute("PRAGMA wal_autocheckpoint = 0")  # the checkpointer's thread does it
             db.execute(f"PRAGMA journal_size_limit = {WAL_KEPT}")
             self._checkpointer = _Checkpointer(path, synchronous)
-        self._unchecked = 0  # statements written since the checkpointer was last woken
+        self._unchecked = 0  # pages (about) written since the checkpointer was last woken
         self.checkpoint_every = CHECKPOINT_EVERY
         self._created = created
         self._loaded = False
@@ -1316,6 +1318,10 @@ class SqliteStore:
         if self._checkpointer is None:
             return
         self._unchecked += len(ops)
+        for _, params in ops:  # a large request or response fills many pages
+            for value in params:
+                if type(value) is bytes and len(value) > _PAGE:
+                    self._unchecked += len(value) // _PAGE
         if self._unchecked >= self.checkpoint_every:
             self._unchecked = 0
             if not self._checkpointer.wake():  # no thread: SQLite's own, from now on

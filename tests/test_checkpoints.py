@@ -230,3 +230,16 @@ def test_a_reader_that_lingers_past_the_limit_never_locks_the_writer_out(
     finally:
         reader.close()
         store.close(erase=False)
+
+
+def test_a_large_response_counts_for_the_pages_it_fills(tmp_path: Path) -> None:
+    store, catalog = opened(tmp_path / "c.db")
+    try:
+        store.checkpoint_every = 8
+        store._unchecked = 0
+        catalog.begin_load("big", "leaf", {"n": 2})
+        catalog.finish_load("big", b"x" * (64 * 1024))  # 16 pages, in one statement or two
+        store.write(catalog.drain_changes())
+        wait_checkpoints(store, 1)
+    finally:
+        store.close(erase=False)
