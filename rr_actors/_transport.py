@@ -47,7 +47,7 @@ import struct
 import tempfile
 import threading
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from multiprocessing import AuthenticationError
 from multiprocessing.connection import Connection, answer_challenge, deliver_challenge
 from typing import TYPE_CHECKING, Any
@@ -220,6 +220,15 @@ def _frame(token: int, obj: Any) -> bytes:
     buffer.seek(0)
     buffer.write(_LENGTH.pack(size))
     return buffer.getvalue()
+
+
+def _frames(conn: Connection) -> Iterator[bytes]:
+    """The frames received on `conn`, until it ends (EOF or a socket error)."""
+    while True:
+        try:
+            yield conn.recv_bytes()
+        except (EOFError, OSError):
+            return
 
 
 def _unframe(data: bytes) -> tuple[int, memoryview]:
@@ -659,11 +668,7 @@ class RemotePeer:
     def _read(self, channel: _Channel, conn: Connection) -> None:
         """The reader thread of one connection: resolve answers until it ends."""
         try:
-            while True:
-                try:
-                    data = conn.recv_bytes()
-                except (EOFError, OSError):
-                    break
+            for data in _frames(conn):
                 try:
                     self._answer(channel, data)
                 except Exception:
@@ -822,11 +827,7 @@ class _Link:
                 logger.warning("registrar %s refused a connection: %s", listener.name, exc)
                 return
             self.writer.start(f"rr-answer-{listener.name}")
-            while True:
-                try:
-                    data = conn.recv_bytes()
-                except (EOFError, OSError):
-                    break
+            for data in _frames(conn):
                 try:
                     self._deliver(data)
                 except Exception:
