@@ -31,7 +31,7 @@ def main() -> None:
     context.set_forkserver_preload(["rr_actors", "rr_actors._sqlite_store", "cloudpickle"])
     multiprocessing.forkserver.ensure_running()
     started = time.monotonic()
-    done = loads = unloads = 0
+    done = loads = unloads = checkpoints = 0
     while done < args.kills:
         kills = min(args.round, args.kills - done)
         with tempfile.TemporaryDirectory() as directory:
@@ -39,7 +39,11 @@ def main() -> None:
         done += kills
         loads += len(model.loaded)
         unloads += len(model.unloaded)
-        print(f"{done:5d} kills, {loads} loads and {unloads} unloads acknowledged and checked")
+        checkpoints += model.checkpoints
+        print(
+            f"{done:5d} kills, {loads} loads and {unloads} unloads acknowledged and checked, "
+            f"{checkpoints} background checkpoints finished"
+        )
     print(f"OK: {done} kills in {time.monotonic() - started:.1f} s, no torn or lost state")
 
 

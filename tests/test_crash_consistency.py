@@ -11,7 +11,8 @@ kills it after a random number of reports, then opens both backups afresh and ch
 
 The next child restarts on the same backups (so restore, in-doubt settling and unloads of
 ids issued before a crash are exercised too). The child's stores checkpoint their WAL
-on a background thread every few statements, so kills also land in checkpoints.
+on a background thread every few statements, so kills also land in checkpoints (each
+report carries how many had finished, and the test checks that they ran).
 `run_kills` is shared with `benchmarks/stress_crash.py`, which runs 1,000 kills.
 """
 
@@ -56,24 +57,34 @@ def worker(names: tuple[str, str], paths: tuple[str, str], seed: int, conn: Any)
         return real_open(path, **{**options, "background_checkpoints": True})
 
     store_module.SqliteStore.open = open_in_background  # type: ignore[method-assign,assignment]
+    checkpoints = 0  # finished in this run; sent with every report, so the parent sees them
+    real_checkpoint = store_module._Checkpointer._checkpoint
+
+    def counted(self: store_module._Checkpointer, db: Any) -> None:
+        nonlocal checkpoints
+        before = self.checkpoints
+        real_checkpoint(self, db)
+        checkpoints += self.checkpoints - before  # a failed one does not count
+
+    store_module._Checkpointer._checkpoint = counted  # type: ignore[method-assign]
     p_name, _ = names
     _, consumer = start_pair(names, paths)
     held = [c.query.id for c in catalog_snapshot(consumer).clients if c.parent is None and c.loaded]
     while True:
         if held and (len(held) >= MAX_HELD or rng.random() < 0.45):
             query_id = held.pop(rng.randrange(len(held)))
-            conn.send(("unload-start", query_id))
+            conn.send(("unload-start", query_id, checkpoints))
             with contextlib.suppress(rr.UnknownQueryError):  # released while a run died
                 consumer.unload(query_id)
-            conn.send(("unload", query_id))
+            conn.send(("unload", query_id, checkpoints))
         elif rng.random() < 0.3:
             query = consumer.call(p_name, "nested", rng.randrange(NESTED))
             held.append(query.id)
-            conn.send(("load", query.id))
+            conn.send(("load", query.id, checkpoints))
         else:
             query = consumer.call(p_name, "leaf", {"n": rng.randrange(LEAVES)})
             held.append(query.id)
-            conn.send(("load", query.id))
+            conn.send(("load", query.id, checkpoints))
 
 
 # -- the parent ------------------------------------------------------------------------------
@@ -86,11 +97,19 @@ class Model:
     loaded: set[str] = dataclasses.field(default_factory=set)
     unload_started: set[str] = dataclasses.field(default_factory=set)
     unloaded: set[str] = dataclasses.field(default_factory=set)
+    checkpoints: int = 0
+    """Background checkpoints the runs reported as finished before their last report."""
+    _in_run: int = 0
 
-    def record(self, event: str, query_id: str) -> None:
+    def record(self, event: str, query_id: str, checkpoints: int) -> None:
         {"load": self.loaded, "unload-start": self.unload_started, "unload": self.unloaded}[
             event
         ].add(query_id)
+        self._in_run = max(self._in_run, checkpoints)
+
+    def end_run(self) -> None:
+        self.checkpoints += self._in_run
+        self._in_run = 0
 
 
 def restored(path: Path) -> Catalog:
@@ -156,6 +175,7 @@ def run_kills(
             while parent_end.poll(0):  # sent before the kill: acknowledged too
                 model.record(*parent_end.recv())
         parent_end.close()
+        model.end_run()
         assert process.exitcode == -signal.SIGKILL, f"the worker ended with {process.exitcode}"
         check(paths, model)
     return model
@@ -177,6 +197,7 @@ def test_fifty_random_kills_never_tear_a_catalog_nor_lose_an_acknowledged_operat
     model = run_kills(context, tmp_path, kills=50, seed=20240613)
 
     assert model.loaded, "the workload acknowledged no load at all"
+    assert model.checkpoints >= 10, "the kills never met background checkpoints"
 
 
 def test_a_fresh_registrar_restores_the_backups_left_by_random_kills(
