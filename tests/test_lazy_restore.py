@@ -7,6 +7,7 @@ listings, and what happens once the backup is closed. (Found by a review of the 
 
 from __future__ import annotations
 
+import os
 import sqlite3
 import uuid
 from pathlib import Path
@@ -274,3 +275,25 @@ def test_a_restore_that_trims_the_heap_still_finds_every_consumer(
         assert catalog.find("leaf", {"n": 3}) is not None
     finally:
         store.close(erase=False)
+
+
+def _resident_bytes() -> int:
+    with open("/proc/self/statm") as statm:
+        return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+@pytest.mark.skipif(store_module._malloc_trim() is None, reason="needs glibc's malloc_trim")
+def test_releasing_free_memory_hands_freed_heap_pages_back_to_the_system() -> None:
+    # 40 MB of C-heap blocks (bytes over 512 B bypass pymalloc); every 100th one and the
+    # last stay alive, so the freed space is in the middle of the heap, where glibc's
+    # free() keeps it resident
+    blocks = [bytes(1024) for _ in range(40_000)]
+    kept = blocks[::100] + blocks[-1:]
+    del blocks
+    freed = _resident_bytes()
+
+    store_module._release_free_memory()
+
+    assert len(kept) == 401
+    returned = freed - _resident_bytes()
+    assert returned > 20 * 2**20, f"only {returned / 2**20:.1f} MB went back to the system"
