@@ -7,8 +7,10 @@ Message flow (thesis 4.2, figures 4.3-4.5), all through pykka mailboxes:
   worker thread and answers the registrar actor, which answers every waiter.
 * `unload`: consumer registrar actor -> provider registrar actor; the last consumer id
   releases the resource's dependencies, then the server actor runs `unload`.
-* `send_status`: provider registrar actor -> each consumer registrar actor -> client
-  actors (status callbacks) and, for dependencies, on up to those resources' consumers.
+* `send_status`: provider registrar actor -> each consumer registrar actor (status
+  callbacks on worker threads) and, for dependencies, on up to those resources'
+  consumers. The acknowledgements travel back without entering a mailbox: each one is
+  counted where it arrives (`SharedJoin`), and the last one answers the sender.
 
 Registrar actors never wait: each question they ask another actor carries a token, and
 the answer arrives as a message that resumes the work (`Tokens`, `Join`). User callbacks
@@ -46,7 +48,15 @@ from rr_actors._messages import (
     Unload,
 )
 from rr_actors._persistence import Cancellable, Saver, gc_paused, open_store
-from rr_actors._replies import Answer, FutureReply, Join, Tokens, wait
+from rr_actors._replies import (
+    Answer,
+    CallbackReply,
+    FutureReply,
+    Join,
+    SharedJoin,
+    Tokens,
+    wait,
+)
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors._workers import Workers
 from rr_actors.config import RegistrarConfig
@@ -104,14 +114,6 @@ class _RunLoad:
 class _RunUnload:
     request: Any
     response: Any
-    reply: Reply
-
-
-@dataclasses.dataclass(frozen=True)
-class _RunStatus:
-    callback: StatusCallback
-    query: Query
-    update: StatusUpdate
     reply: Reply
 
 
@@ -253,7 +255,6 @@ class ServerActor(pykka.ThreadingActor):
         name: str,
         load: LoadCallback,
         unload: UnloadCallback,
-        on_status: StatusCallback | None,
         workers: Workers,
         *,
         persisted: bool = False,
@@ -264,7 +265,6 @@ class ServerActor(pykka.ThreadingActor):
         self.name = name
         self.load = load
         self.unload = unload
-        self.on_status = on_status
         self.workers = workers
 
     def on_receive(self, message: Any) -> None:
@@ -272,8 +272,6 @@ class ServerActor(pykka.ThreadingActor):
             self.workers.submit(lambda: self._load(message))
         elif isinstance(message, _RunUnload):
             self.workers.submit(lambda: self._unload(message))
-        elif isinstance(message, _RunStatus):
-            self.workers.submit(lambda: _run_status(message))
 
     def _load(self, message: _RunLoad) -> None:
         token = _LOADING.set(LoadContext(self.registrar, message.resource_id, message.chain))
@@ -297,21 +295,11 @@ class ServerActor(pykka.ThreadingActor):
             message.reply.set_result(None)
 
 
-def _run_status(message: _RunStatus) -> None:
-    try:
-        message.callback(message.query, message.update)
-    except Exception:
-        logger.exception("status callback for %s raised", message.query.id)
-    finally:
-        message.reply.set_result(None)
-
-
 class ClientActor(pykka.ThreadingActor):
     """A client: the consumer-side endpoint for one target server (thesis 4.3.3).
 
-    Created (and cached) by its registrar the first time it calls the server. It runs
-    the status callbacks of the queries made through it, on worker threads of the
-    consumer's process, and relays fetches. A load (and the give-up of a timed-out one) is
+    Created (and cached) by its registrar the first time it calls the server. It relays
+    fetches. A load (and the give-up of a timed-out one) is
     sent from the caller's thread along the client's route (see `ResourceRegistrar.call`).
     """
 
@@ -321,14 +309,12 @@ class ClientActor(pykka.ThreadingActor):
         origin_rr: str,
         target_rr: str,
         server: str,
-        workers: Workers,
     ) -> None:
         super().__init__()
         self.registrar_ref = registrar_ref
         self.origin_rr = origin_rr
         self.target_rr = target_rr
         self.server = server
-        self.workers = workers
 
     def on_receive(self, message: Any) -> None:
         if isinstance(message, _FetchVia):
@@ -338,8 +324,6 @@ class ClientActor(pykka.ThreadingActor):
                 )
             except RrError as exc:
                 message.reply.set_error(exc)
-        elif isinstance(message, _RunStatus):
-            self.workers.submit(lambda: _run_status(message))
 
 
 class _OpenReply:
@@ -814,7 +798,7 @@ class RegistrarActor(pykka.ThreadingActor):
         self.seen_events[key] = None
         if len(self.seen_events) > 4096:
             self.seen_events.popitem(last=False)
-        join = Join(then)
+        join = SharedJoin(then)  # acknowledgements: no trip back through this mailbox
         server = self.servers.get(resource.server)
         query_id = own_query_id or next(iter(resource.consumers), resource.id)
         if server is not None and server.on_status is not None:
@@ -826,25 +810,38 @@ class RegistrarActor(pykka.ThreadingActor):
                 resource.request,
                 resource.response,
             )
-            done = self.tokens.reply(self.actor_ref, join.add())
-            server.ref.tell(
-                _RunStatus(
-                    server.on_status, query, dataclasses.replace(update, query_id=query_id), done
-                )
+            self._run_status(
+                server.on_status, query, dataclasses.replace(update, query_id=query_id), join
             )
         for origin, ids in _consumers_by_origin(resource).items():
-            self._send(
-                origin,
-                functools.partial(
-                    StatusNotice, ids, update.status, update.message, update.source, event
-                ),
-                join.add(),
-            )
+            reply = CallbackReply(join.add())  # answered on the answering thread
+            try:
+                DIRECTORY.lookup(origin).tell(
+                    StatusNotice(ids, update.status, update.message, update.source, event, reply)
+                )
+            except RrError as exc:
+                reply.set_error(exc)
         join.seal()
+
+    def _run_status(
+        self, callback: StatusCallback, query: Query, update: StatusUpdate, join: SharedJoin
+    ) -> None:
+        """Run a status callback on a worker thread; its part of `join` is done after it."""
+        done = join.add()
+
+        def run() -> None:
+            try:
+                callback(query, update)
+            except Exception:
+                logger.exception("status callback for %s raised", query.id)
+            finally:
+                done()
+
+        self.workers.submit(run)
 
     def _on_status_notice(self, message: StatusNotice) -> None:
         """Consumer side: run the client callbacks, climb to the dependent resources."""
-        join = Join(lambda: message.reply.set_result(None))
+        join = SharedJoin(lambda: message.reply.set_result(None))
         for query_id in message.query_ids:
             record = self.catalog.clients.get(query_id)
             if record is None:
@@ -852,9 +849,7 @@ class RegistrarActor(pykka.ThreadingActor):
             update = StatusUpdate(query_id, message.status, message.message, message.source)
             callback = self.status_callbacks.get(query_id)
             if callback is not None:
-                done = self.tokens.reply(self.actor_ref, join.add())
-                client = self._client(record.query.serving_rr, record.query.server)
-                client.tell(_RunStatus(callback, record.query, update, done))
+                self._run_status(callback, record.query, update, join)
             if record.parent is not None and record.parent in self.catalog.resources:
                 parent = self.catalog.resources[record.parent]
                 self._notify(parent, update, message.event, None, join.add())
@@ -893,7 +888,7 @@ class RegistrarActor(pykka.ThreadingActor):
         key = (target_rr, server)
         client = self.clients.get(key)
         if client is None:
-            client = ClientActor.start(self.actor_ref, self.name, target_rr, server, self.workers)
+            client = ClientActor.start(self.actor_ref, self.name, target_rr, server)
             self.clients[key] = client
         return client
 
@@ -987,7 +982,6 @@ class RegistrarActor(pykka.ThreadingActor):
             name,
             load,
             unload,
-            on_status,
             self.workers,
             persisted=self.saver.store is not None,
         )

@@ -7,6 +7,7 @@ import dataclasses
 import itertools
 import logging
 import queue
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -14,7 +15,16 @@ import pykka
 
 from rr_actors.errors import CallTimeoutError
 
-__all__ = ["Answer", "FutureReply", "Join", "TokenReply", "Tokens", "wait"]
+__all__ = [
+    "Answer",
+    "CallbackReply",
+    "FutureReply",
+    "Join",
+    "SharedJoin",
+    "TokenReply",
+    "Tokens",
+    "wait",
+]
 
 logger = logging.getLogger("rr_actors")
 
@@ -83,6 +93,39 @@ class TokenReply:
 Continuation = Callable[[Any, BaseException | None], None]
 
 
+class CallbackReply:
+    """Answers by calling `then(value, error)` on the answering thread, at most once.
+
+    For continuations that touch no actor state (a status acknowledgement): no trip
+    through the asking actor's mailbox. `then` runs on whichever thread answers: a
+    connection's reader thread, a callback worker, or another registrar's actor thread;
+    so it must be quick and thread-safe. An exception from it is logged, never raised
+    into the answering thread.
+    """
+
+    __slots__ = ("_lock", "_then")
+
+    def __init__(self, then: Continuation) -> None:
+        self._then: Continuation | None = then
+        self._lock = threading.Lock()
+
+    def set_result(self, value: Any) -> None:
+        self._run(value, None)
+
+    def set_error(self, error: BaseException) -> None:
+        self._run(None, error)
+
+    def _run(self, value: Any, error: BaseException | None) -> None:
+        with self._lock:
+            then, self._then = self._then, None
+        if then is None:
+            return  # answered already (the first answer wins)
+        try:
+            then(value, error)
+        except Exception:
+            logger.exception("a reply's continuation raised")
+
+
 class Tokens:
     """The continuations an actor waits on, keyed by token (used in the actor thread only)."""
 
@@ -130,3 +173,44 @@ class Join:
         if self._sealed and self._open == 0:
             self._sealed = False  # fire once
             self._then()
+
+
+class SharedJoin:
+    """`Join` whose parts may report from any thread; `then()` runs once, on the thread
+    that completes the join (the last part's, or `seal()`'s).
+
+    `add()` and `seal()` are called by the thread that starts the parts.
+    """
+
+    __slots__ = ("_lock", "_open", "_sealed", "_then")
+
+    def __init__(self, then: Callable[[], None]) -> None:
+        self._then = then
+        self._lock = threading.Lock()
+        self._open = 0
+        self._sealed = False
+
+    def add(self) -> Callable[..., None]:
+        with self._lock:
+            self._open += 1
+        return self.done
+
+    def done(self, *_: Any) -> None:
+        with self._lock:
+            self._open -= 1
+            fire = self._fires()
+        if fire:
+            self._then()
+
+    def seal(self) -> None:
+        with self._lock:
+            self._sealed = True
+            fire = self._fires()
+        if fire:
+            self._then()
+
+    def _fires(self) -> bool:
+        if self._sealed and self._open == 0:
+            self._sealed = False  # fire once
+            return True
+        return False

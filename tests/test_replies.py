@@ -1,0 +1,80 @@
+"""Replies and joins that status acknowledgements use from any thread."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+import pytest
+
+from rr_actors._replies import CallbackReply, SharedJoin
+
+
+def _race(parts: int) -> tuple[list[str], set[str]]:
+    """Finish `parts` parts on as many threads while sealing: who ran `then`, who could."""
+    fired: list[str] = []
+    join = SharedJoin(lambda: fired.append(threading.current_thread().name))
+    dones = [join.add() for _ in range(parts)]
+    start = threading.Barrier(parts + 1)
+
+    def finish(done: Any) -> None:
+        start.wait(5)
+        done()
+
+    threads = [
+        threading.Thread(target=finish, args=(done,), name=f"part-{n}")
+        for n, done in enumerate(dones)
+    ]
+    for thread in threads:
+        thread.start()
+    start.wait(5)
+    join.seal()  # races with the parts: fires on whichever thread ends it
+    for thread in threads:
+        thread.join(5)
+    return fired, {t.name for t in threads} | {threading.current_thread().name}
+
+
+def test_a_shared_join_fires_once_after_its_last_part_whatever_thread_finishes_it() -> None:
+    for _ in range(200):
+        fired, threads = _race(8)
+
+        assert len(fired) == 1
+        assert fired[0] in threads
+
+
+def test_a_shared_join_waits_for_its_seal_and_fires_at_once_without_parts() -> None:
+    fired: list[int] = []
+    join = SharedJoin(lambda: fired.append(1))
+    join.add()()
+    assert fired == []  # not sealed: more parts may come
+    join.seal()
+    assert fired == [1]
+
+    empty = SharedJoin(lambda: fired.append(2))
+    empty.seal()
+    assert fired == [1, 2]
+
+
+def test_a_callback_reply_runs_its_continuation_for_the_first_answer_only() -> None:
+    answers: list[tuple[Any, BaseException | None]] = []
+    reply = CallbackReply(lambda value, error: answers.append((value, error)))
+
+    reply.set_result(1)
+    reply.set_error(RuntimeError("late"))
+    reply.set_result(2)
+
+    assert answers == [(1, None)]
+
+
+def test_a_callback_reply_logs_what_its_continuation_raises_instead_of_raising_it(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    def broken(_value: Any, _error: BaseException | None) -> None:
+        raise ValueError("boom")
+
+    with caplog.at_level(logging.ERROR, logger="rr_actors"):
+        CallbackReply(broken).set_result(None)  # the answering thread is not hurt
+
+    assert "continuation raised" in caplog.text
+    assert "boom" in caplog.text
