@@ -379,6 +379,38 @@ def test_save_on_modify_commits_a_load_before_the_caller_gets_the_answer(
     assert {query.id} == consumer_ids(tmp_path / "p.db")
 
 
+def test_save_on_modify_commits_the_consumers_record_before_the_caller_gets_the_answer(
+    tmp_path: Path, started: list[rr.ResourceRegistrar]
+) -> None:
+    provider = start(started, unique("P"), tmp_path / "p.db")
+    provider.register_server("leaf", load=leaf_load, unload=noop_unload)
+    consumer = start(started, unique("C"), tmp_path / "c.db", save_on_modify=True)
+    answered = threading.Event()
+    result: list[rr.Query] = []
+
+    def call() -> None:
+        result.append(consumer.call(provider.name, "leaf", 1, timeout=20))
+        answered.set()
+
+    # Another connection holds the consumer's backup's write lock: the provider can
+    # answer, but the consumer cannot commit its record, so the caller must not be told.
+    blocker = sqlite3.connect(tmp_path / "c.db", isolation_level=None)
+    blocker.execute("BEGIN IMMEDIATE")
+    caller = threading.Thread(target=call)
+    try:
+        caller.start()
+        assert not answered.wait(0.5), "answered before its client record was durable"
+    finally:
+        blocker.execute("ROLLBACK")
+        blocker.close()
+    caller.join(20)
+
+    assert answered.is_set()
+    assert [(result[0].id, True)] == [
+        (c.query.id, c.loaded) for c in read_backup(tmp_path / "c.db").clients
+    ]
+
+
 def test_save_on_modify_commits_an_unload_before_the_caller_gets_the_answer(
     tmp_path: Path, started: list[rr.ResourceRegistrar]
 ) -> None:

@@ -1,0 +1,125 @@
+"""What a restart must give back, clause by clause (rules 11, 15 and 16).
+
+Each test here covers a clause that a mutation audit found unguarded: breaking it failed
+no other test.
+
+- Rule 15: a backup that cannot be read raises `CatalogCorruptError` naming the file in
+  its message (not only in its `path` attribute).
+- Rules 12 and 16, the consumer's side: a consumer registrar killed after its provider
+  answered a call, but before it committed the answer, leaves a pending client record in
+  its backup while the provider holds the consumer id. The death watch does not release
+  a consumer that will be restarted, so the restarted registrar must give that id back;
+  otherwise the resource leaks at the provider for good.
+- Rule 11: `set_status_callback` re-attaches a callback to a query restored after a
+  restart, and statuses reach it.
+"""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors._catalog import Changes, ClientRecord
+from rr_actors._directory import DIRECTORY
+from rr_actors._sqlite_store import SqliteStore, read_backup
+from rr_actors.testing import crash
+
+
+def _name(prefix: str) -> str:
+    return f"{prefix}-{uuid.uuid4().hex[:8]}"
+
+
+def test_catalog_corrupt_error_names_the_file_in_its_message(tmp_path: Path) -> None:
+    path = tmp_path / "garbage.db"
+    path.write_bytes(b"this is not an SQLite database, not at all" * 100)
+
+    with pytest.raises(rr.CatalogCorruptError) as raised:
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=_name("P"), backup_path=path))
+
+    assert str(path) in str(raised.value)
+
+
+def test_a_restarted_consumer_gives_back_an_id_its_provider_answered_but_it_never_committed(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "consumer.db"
+    unloads: list[Any] = []
+    unloaded = threading.Event()
+
+    def unload(request: Any, _response: Any) -> None:
+        unloads.append(request)
+        unloaded.set()
+
+    provider = rr.ResourceRegistrar.start(_name("P"))
+    consumer_config = rr.RegistrarConfig(name=_name("C"), backup_path=path, save_on_modify=True)
+    consumer = rr.ResourceRegistrar.start(consumer_config)
+    restarted: rr.ResourceRegistrar | None = None
+    DIRECTORY.restart_expected.add(consumer.name)  # as a supervisor does: no death watch
+    try:
+        provider.register_server("leaf", load=lambda r: {"pid": r}, unload=unload)
+        query = consumer.call(provider.name, "leaf", "camera", timeout=5)
+        crash(consumer)
+        assert [query.id] == [q.id for q in provider.server_queries("leaf")]  # kept: restart
+        # The kill came after the provider answered and before the consumer committed the
+        # answer: its backup holds the record as written before the load went out.
+        store = SqliteStore.open(path)
+        try:
+            pending = ClientRecord(query.with_response(None), None, loaded=False)
+            store.write(Changes({}, {query.id: pending}))
+        finally:
+            store.close(erase=False)
+        assert [False] == [c.loaded for c in read_backup(path).clients]
+
+        restarted = rr.ResourceRegistrar.start(consumer_config)
+
+        assert unloaded.wait(5), "the provider still holds the id of the lost call"
+        assert (["camera"], [], []) == (
+            unloads,
+            provider.server_queries("leaf"),
+            restarted.client_queries(),
+        )
+    finally:
+        DIRECTORY.restart_expected.discard(consumer_config.name)
+        if restarted is not None:
+            restarted.stop()
+        provider.stop()
+
+
+def test_set_status_callback_reattaches_a_callback_to_a_query_restored_after_a_restart(
+    tmp_path: Path,
+) -> None:
+    """Rule 11: after a restart the consumer re-attaches its callback; status reaches it."""
+    path = tmp_path / "consumer.db"
+    updates: list[Any] = []
+    got = threading.Event()
+
+    def on_status(query: rr.Query, update: rr.StatusUpdate) -> None:
+        updates.append((query.id, update.query_id, update.status))
+        got.set()
+
+    provider = rr.ResourceRegistrar.start(_name("P"))
+    consumer_config = rr.RegistrarConfig(name=_name("C"), backup_path=path, save_on_modify=True)
+    consumer = rr.ResourceRegistrar.start(consumer_config)
+    restarted: rr.ResourceRegistrar | None = None
+    DIRECTORY.restart_expected.add(consumer.name)
+    try:
+        provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: None)
+        query = consumer.call(provider.name, "leaf", "camera", timeout=5)
+        crash(consumer)
+        restarted = rr.ResourceRegistrar.start(consumer_config)
+
+        restarted.set_status_callback(query.id, on_status)
+        provider.send_status(query.id, rr.Status.ERROR, "lost", timeout=5)
+
+        assert got.wait(5)
+        assert [(query.id, query.id, rr.Status.ERROR)] == updates
+    finally:
+        DIRECTORY.restart_expected.discard(consumer_config.name)
+        if restarted is not None:
+            restarted.stop()
+        provider.stop()
