@@ -790,7 +790,13 @@ class RegistrarActor(pykka.ThreadingActor):
         own_query_id: str | None,
         then: Callable[[], None],
     ) -> None:
-        """Run this server's `on_status` once and pass the status on to every consumer."""
+        """Run this server's `on_status` once and pass the status on to every consumer.
+
+        `then()` runs once every callback and consumer on the way acknowledged, on the
+        thread of the last acknowledgement (a reader thread, a worker, another registrar's
+        actor, or this one): it must not touch this actor's state, and must come back
+        through the mailbox (`self.tokens.reply`) if it has to.
+        """
         key = (event, resource.id)
         if key in self.seen_events:
             then()
@@ -1051,7 +1057,9 @@ class RegistrarActor(pykka.ThreadingActor):
                 self.catalog.release(qid)
             self._unload_resource(resource, done)
 
-        self._notify(resource, update, str(uuid.uuid4()), query_id, revoke_and_unload)
+        # the FATAL's acknowledgements may complete on any thread: come back to this one
+        back = self.tokens.reply(self.actor_ref, lambda *_: revoke_and_unload())
+        self._notify(resource, update, str(uuid.uuid4()), query_id, lambda: back.set_result(None))
 
     def op_send_status(self, query_id: str, status: Status, message: str, reply: Reply) -> None:
         resource = self.catalog.resource_of(query_id)
