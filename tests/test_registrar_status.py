@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
@@ -258,3 +259,98 @@ def test_only_the_provider_can_send_status_about_a_resource(make_registrar, serv
 
     with pytest.raises(rr.UnknownQueryError):
         consumer.send_status(query.id, rr.Status.OK, "")
+
+
+# -- clauses a mutation audit found unguarded ---------------------------------------
+
+
+def test_send_status_s_timeout_bounds_the_wait(make_registrar, serve, gates):
+    """Rule 9: "`send_status` returns when the notification has been delivered ... (a
+    `timeout` bounds it)".
+
+    Mutation caught: `send_status` ignores its `timeout` and waits the registrar's default
+    `call_timeout`. The existing timeout test still gets its `CallTimeoutError` (after the
+    default 10 s); here the default is long and the error must come within a few seconds.
+    """
+    provider = make_registrar("provider", call_timeout=30.0)
+    consumer = make_registrar("consumer")
+    serve(provider, "leaf")
+    gate = gates()
+    query = consumer.call(provider.name, "leaf", "x", on_status=lambda q, u: gate.wait(30))
+
+    with ThreadPoolExecutor(1) as pool:
+        sending = pool.submit(provider.send_status, query.id, rr.Status.OK, "", timeout=0.3)
+        try:
+            error = sending.exception(timeout=10)
+        finally:
+            gate.set()  # let the hung callback (and a send_status that ignored its timeout) end
+
+    assert isinstance(error, rr.CallTimeoutError)
+
+
+def test_a_status_callback_may_send_a_status_that_reaches_its_own_client(
+    make_registrar, serve, inbox, shared
+):
+    """Rule 9: a status callback may call `send_status` on the sender without deadlock.
+
+    Here the nested status is for another resource the same consumer holds at the same
+    server, so its client callback runs through the same client endpoint as the callback
+    that sends it. Mutation caught: the client actor runs status callbacks on its own
+    thread (not on a worker): the nested delivery then waits behind the running callback
+    (a deadlock, cut by the nested call's timeout).
+    """
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    serve(provider, "leaf")
+    box = inbox()
+    outcome = shared.list()
+    other = consumer.call(provider.name, "leaf", "b", on_status=box)
+
+    def reentrant(query, update):
+        try:
+            provider.send_status(other.id, rr.Status.OK, "nested", timeout=5)
+        except rr.CallTimeoutError:
+            outcome.append("deadlocked")
+        else:
+            outcome.append("delivered")
+
+    first = consumer.call(provider.name, "leaf", "a", on_status=reentrant)
+
+    provider.send_status(first.id, rr.Status.WARNING, "outer", timeout=15)
+
+    assert ["delivered"] == outcome
+    assert [(other.id, "nested")] == [(u.query_id, u.message) for _, u in box.updates]
+
+
+def test_a_server_on_status_may_call_and_send_status_on_its_own_server(make_registrar, shared):
+    """Rule 9: the provider server's `on_status` may `call` its own server and `send_status`
+    about another of its resources without deadlock.
+
+    Mutation caught: the server actor runs `on_status` on its own thread (not on a worker):
+    the nested load and the nested `on_status` then wait behind the running callback.
+    """
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    seen, outcome, other_ids = shared.list(), shared.list(), shared.list()
+
+    def on_status(query, update):
+        seen.append(query.request)
+        if query.request != "a":
+            return
+        try:
+            spare = provider.call(provider.name, "leaf", "spare", timeout=5)
+            provider.unload(spare.id, timeout=5)
+            provider.send_status(other_ids[0], rr.Status.OK, "nested", timeout=5)
+        except rr.CallTimeoutError as exc:
+            outcome.append(f"deadlocked: {exc}")
+        else:
+            outcome.append("done")
+
+    provider.register_server(
+        "leaf", load=lambda r: r, unload=lambda r, s: None, on_status=on_status
+    )
+    other_ids.append(consumer.call(provider.name, "leaf", "b").id)
+    query = consumer.call(provider.name, "leaf", "a")
+
+    provider.send_status(query.id, rr.Status.ERROR, "outer", timeout=20)
+
+    assert ["done"] == outcome
+    assert ["a", "b"] == seen

@@ -160,3 +160,73 @@ def test_an_equal_call_during_its_unload_waits_and_loads_the_resource_afresh(
 
     assert (["load", "unload", "load"], 3) == (journal, response)
     assert [again_id] == [q.id for q in provider.server_queries("leaf")]
+
+
+# -- clauses a mutation audit found caught only by chance --------------------------
+
+
+def test_a_resource_s_unload_runs_only_after_its_dependencies_finished_unloading(
+    make_registrar, shared
+):
+    """Rule 7: "after the resource's own dependencies are released".
+
+    Mutation caught: `_release_dependencies` sends the dependencies' `Unload`s and runs
+    `then()` at once instead of waiting for their answers. The journal-order test in
+    test_registrar_unload.py misses that about one run in five (the two unloads race); here
+    the dependency's unload stays busy until the composite's unload has started (bounded by
+    one second, which is what the correct order costs), so a composite unload that does not
+    wait always sees an unfinished dependency.
+    """
+    consumer, agent, producer = (make_registrar(n) for n in ("consumer", "agent", "producer"))
+    leaf_done, composite_started = shared.event(), shared.event()
+    leaf_done_when_composite_started = shared.list()
+
+    def leaf_unload(request, response):
+        composite_started.wait(1.0)  # in the right order nothing sets it: time out, finish
+        leaf_done.set()
+
+    def composite_unload(request, response):
+        leaf_done_when_composite_started.append(leaf_done.is_set())
+        composite_started.set()
+
+    producer.register_server("leaf", load=lambda r: r, unload=leaf_unload)
+    agent.register_server(
+        "composite",
+        load=lambda r: agent.call(producer.name, "leaf", r).response,
+        unload=composite_unload,
+    )
+    query = consumer.call(agent.name, "composite", "x")
+
+    consumer.unload(query.id)
+
+    assert [True] == leaf_done_when_composite_started
+
+
+def test_the_first_consumer_leaving_does_not_take_the_resource_s_dependency(
+    make_registrar, serve, inbox
+):
+    """Rule 7: "Dependencies belong to the resource, not to whichever consumer came first".
+
+    Mutation caught: releasing the first consumer id of a resource that keeps other
+    consumers also releases the resource's dependencies (without waiting for that). The
+    test in test_registrar_dependencies.py then passes whenever the stray release lands
+    after its check; here the provider is asked after it handled the release (its mailbox
+    is in order), and the status path through the dependency is checked too.
+    """
+    provider, first, second = (make_registrar(n) for n in ("provider", "first", "second"))
+    leaf = serve(provider, "leaf")
+    serve(provider, "composite", lambda r: provider.call(provider.name, "leaf", r).response)
+    box = inbox()
+    q1 = first.call(provider.name, "composite", "x")
+    q2 = second.call(provider.name, "composite", "x", on_status=box)
+    (dependency,) = provider.server_queries("leaf")
+
+    first.unload(q1.id)
+
+    assert [dependency.id] == [q.id for q in provider.server_queries("leaf")]
+    assert [dependency.id] == [q.id for q in provider.client_queries()]
+    provider.send_status(dependency.id, rr.Status.WARNING, "still held", timeout=5)
+    assert [(q2.id, rr.Status.WARNING)] == [(u.query_id, u.status) for _, u in box.updates]
+    assert [] == leaf.unloads
+    second.unload(q2.id)
+    assert ["x"] == [request for request, _ in leaf.unloads]
