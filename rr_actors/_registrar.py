@@ -922,6 +922,9 @@ class RegistrarActor(pykka.ThreadingActor):
                     RegistrarStoppedError(f"registrar {self.name!r} stopped during the call")
                 )
             return
+        if self._owner_gone(message.record):
+            self._give_back_late_dependency(message)
+            return
         if query.id in self.catalog.clients:  # written as pending before the load was sent
             self.catalog.client_loaded(query.id, query.response)
         else:
@@ -929,6 +932,40 @@ class RegistrarActor(pykka.ThreadingActor):
         if message.on_status is not None:
             self.status_callbacks[query.id] = message.on_status
         self._commit()
+        if message.answer_after_commit:
+            FutureReply(message.attempt).set_result(query.response)
+
+    def _owner_gone(self, record: ClientRecord) -> bool:
+        """Whether `record` is a dependency of a resource that failed or is unloading.
+
+        Its load returned (or raised) while a sub-call it started was still in flight:
+        the resource's dependencies were released already, so this one would never be.
+        """
+        if record.parent is None:
+            return False
+        owner = self.catalog.resources.get(record.parent)
+        return owner is None or owner.state is ResourceState.UNLOADING
+
+    def _give_back_late_dependency(self, message: _ClientLoaded) -> None:
+        """Release a dependency that arrived after its resource's own release (rule 4).
+
+        The call itself succeeded (its caller has the response, or gets it now), but the
+        id is given back at once: nothing could ever release it otherwise.
+        """
+        query = message.record.query
+        logger.warning(
+            "registrar %s: call %s to '%s/%s' returned after the load that made it had "
+            "failed or was unloading; releasing it",
+            self.name,
+            query.id,
+            query.serving_rr,
+            query.server,
+        )
+        with contextlib.suppress(RrError):
+            DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
+        if query.id in self.catalog.clients:  # a durable consumer's pending record
+            self.catalog.remove_client(query.id)
+            self._commit()
         if message.answer_after_commit:
             FutureReply(message.attempt).set_result(query.response)
 

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextvars
 import pickle
+import threading
 import uuid
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import pytest
 
@@ -120,6 +122,51 @@ def test_sub_resources_are_unloaded_when_the_load_callback_itself_raises(make_re
     assert {"part-1", "part-2"} == {request for request, _ in leaf.unloads}
     snapshot = catalog_snapshot(provider)
     assert ((), ()) == (snapshot.resources, snapshot.clients)
+
+
+@pytest.mark.parametrize("save_on_modify", [False, True], ids=["in-memory", "save-on-modify"])
+def test_a_sub_call_that_returns_after_its_load_failed_is_released_not_leaked(
+    tmp_path, save_on_modify
+):
+    # The load starts a sub-call on a thread of its own (in its context: a dependency),
+    # then raises before that sub-call returns. Its rollback released the dependencies
+    # it had; the late one must be given back too, or nothing ever releases it.
+    provider = rr.ResourceRegistrar.start(f"P-{uuid.uuid4().hex[:8]}")
+    agent = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(
+            name=f"A-{uuid.uuid4().hex[:8]}",
+            backup_path=tmp_path / "a.db" if save_on_modify else None,
+            save_on_modify=save_on_modify,
+        )
+    )
+    consumer = rr.ResourceRegistrar.start(f"C-{uuid.uuid4().hex[:8]}")
+    gate, unloaded = threading.Event(), threading.Event()
+    late: list[Future[rr.Query]] = []
+    pool = ThreadPoolExecutor(1)
+    try:
+        provider.register_server(
+            "leaf", load=lambda r: gate.wait(10) and r, unload=lambda r, s: unloaded.set()
+        )
+
+        def composite(request):
+            context = contextvars.copy_context()
+            late.append(pool.submit(context.run, agent.call, provider.name, "leaf", request))
+            raise SensorError("failed while its sub-call runs")
+
+        agent.register_server("composite", load=composite, unload=lambda r, s: None)
+        with pytest.raises(rr.ResourceLoadError):
+            consumer.call(agent.name, "composite", "x")
+        gate.set()
+
+        assert late[0].result(10).response == "x"  # the sub-call itself succeeded
+        assert unloaded.wait(10), "the late dependency leaked at its provider"
+        assert [] == provider.server_queries("leaf")
+        assert ((), ()) == (catalog_snapshot(agent).resources, catalog_snapshot(agent).clients)
+    finally:
+        gate.set()
+        pool.shutdown()
+        for registrar in (consumer, agent, provider):
+            registrar.stop()
 
 
 def test_sub_resources_are_unloaded_when_a_later_sub_call_fails(make_registrar, serve):
