@@ -108,7 +108,7 @@ class SupervisorGaveUpError(RrError):
 
 @dataclasses.dataclass(frozen=True)
 class ErrorFrame:
-    """One registrar's part of a [`ResourceLoadError`][rr_actors.errors.ResourceLoadError] stack.
+    """One failed load's part of a [`ResourceLoadError`][rr_actors.errors.ResourceLoadError] stack.
 
     Attributes:
         registrar: name of the registrar whose server failed to load.
@@ -129,9 +129,10 @@ class ResourceLoadError(RrError):
     """A `load` callback raised, here or further down the dependency chain.
 
     Like TeMoto's `TemotoErrorStack` (thesis 4.3.4): `stack` holds one
-    [`ErrorFrame`][rr_actors.errors.ErrorFrame] per registrar the error crossed, the
-    origin first. Sub-resources loaded inside the failed load were unloaded before
-    this error was raised.
+    [`ErrorFrame`][rr_actors.errors.ErrorFrame] per load the error failed on its way up,
+    the origin first: one per registrar it crossed, and one per server when a server's
+    load calls another server of the same registrar. Sub-resources loaded inside the
+    failed load were unloaded before this error was raised.
     """
 
     def __init__(self, stack: tuple[ErrorFrame, ...]) -> None:
