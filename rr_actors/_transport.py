@@ -902,6 +902,7 @@ class _Listener:
         self.path = system.address.socket_path(self.name)
         self.tombstone = system.address.tombstone_path(self.name)
         self._lock = threading.Lock()
+        self._closing = threading.Lock()  # a second close waits for the first to finish
         self._links: set[_Link] = set()
         self._closed = False
         self._lock_fd = _take_name_lock(system.address.lock_path(self.name), self.name)
@@ -955,7 +956,17 @@ class _Listener:
         threading.Thread(target=task, name=f"rr-run-{self.name}", daemon=True).start()
 
     def close(self, *, stopped: bool) -> None:
-        """Stop listening; with `stopped`, leave a tombstone so peers say "stopped"."""
+        """Stop listening; with `stopped`, leave a tombstone so peers say "stopped".
+
+        Two threads may close it at once (the registrar's watcher and the system's
+        `close`): the second returns only once the first has finished, so a process that
+        exits right after its own `close` never leaves the socket without its tombstone
+        (the watcher is a daemon thread, cut short by the exit).
+        """
+        with self._closing:
+            self._close(stopped=stopped)
+
+    def _close(self, *, stopped: bool) -> None:
         with self._lock:
             if self._closed:
                 return

@@ -453,6 +453,51 @@ def test_a_call_to_a_cleanly_stopped_process_fails_as_stopped(
         consumer.call(provider.name, "echo", "r", timeout=10)
 
 
+class _SlowShutdown:
+    """A listening socket whose `shutdown` waits for `release` (to hold a close mid-way)."""
+
+    def __init__(self, sock: socket.socket, entered: threading.Event, release: threading.Event):
+        self.sock, self.entered, self.release = sock, entered, release
+
+    def shutdown(self, how: int) -> None:
+        self.entered.set()
+        self.release.wait(10)
+        self.sock.shutdown(how)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def test_a_second_close_of_a_listener_returns_only_once_the_first_finished(
+    system: System, consumer: rr.ResourceRegistrar
+) -> None:
+    # The registrar's watcher and the system's close() may both close its listener; a
+    # process that exits after its own close() must not leave the socket half closed
+    # (the watcher is a daemon thread: the exit cuts it short).
+    listener = system._listeners[consumer.name]
+    entered, release, second_done = threading.Event(), threading.Event(), threading.Event()
+    listener._sock = _SlowShutdown(listener._sock, entered, release)  # type: ignore[assignment]
+
+    def second() -> None:
+        listener.close(stopped=True)
+        second_done.set()
+
+    first_thread = threading.Thread(target=listener.close, kwargs={"stopped": True})
+    second_thread = threading.Thread(target=second)
+    try:
+        first_thread.start()
+        assert entered.wait(10)
+        second_thread.start()
+        assert not second_done.wait(0.3), "returned while the first close was half way"
+    finally:
+        release.set()
+        first_thread.join(10)
+        second_thread.join(10)
+
+    assert second_done.is_set()
+    assert (True, False) == (os.path.exists(listener.tombstone), os.path.exists(listener.path))
+
+
 def test_a_call_to_a_name_nobody_serves_is_an_unknown_server(
     consumer: rr.ResourceRegistrar,
 ) -> None:
