@@ -299,8 +299,9 @@ class ClientActor(pykka.ThreadingActor):
     """A client: the consumer-side endpoint for one target server (thesis 4.3.3).
 
     Created (and cached) by its registrar the first time it calls the server. It relays
-    fetches. A load (and the give-up of a timed-out one) is
-    sent from the caller's thread along the client's route (see `ResourceRegistrar.call`).
+    fetches. A load (and the give-up of a timed-out one) is sent from the caller's thread
+    along the client's route (see `ResourceRegistrar.call`); status callbacks run on the
+    registrar's worker threads.
     """
 
     def __init__(
