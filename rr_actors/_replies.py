@@ -158,59 +158,44 @@ class Join:
         self._sealed = False
 
     def add(self) -> Callable[..., None]:
-        self._open += 1
+        self._update(1, seal=False)
         return self.done
 
     def done(self, *_: Any) -> None:
-        self._open -= 1
-        self._maybe_fire()
+        self._update(-1, seal=False)
 
     def seal(self) -> None:
-        self._sealed = True
-        self._maybe_fire()
+        self._update(0, seal=True)
 
-    def _maybe_fire(self) -> None:
-        if self._sealed and self._open == 0:
-            self._sealed = False  # fire once
+    def _update(self, parts: int, *, seal: bool) -> None:
+        if self._count(parts, seal=seal):
             self._then()
 
-
-class SharedJoin:
-    """`Join` whose parts may report from any thread; `then()` runs once, on the thread
-    that completes the join (the last part's, or `seal()`'s).
-
-    `add()` and `seal()` are called by the thread that starts the parts.
-    """
-
-    __slots__ = ("_lock", "_open", "_sealed", "_then")
-
-    def __init__(self, then: Callable[[], None]) -> None:
-        self._then = then
-        self._lock = threading.Lock()
-        self._open = 0
-        self._sealed = False
-
-    def add(self) -> Callable[..., None]:
-        with self._lock:
-            self._open += 1
-        return self.done
-
-    def done(self, *_: Any) -> None:
-        with self._lock:
-            self._open -= 1
-            fire = self._fires()
-        if fire:
-            self._then()
-
-    def seal(self) -> None:
-        with self._lock:
-            self._sealed = True
-            fire = self._fires()
-        if fire:
-            self._then()
-
-    def _fires(self) -> bool:
+    def _count(self, parts: int, *, seal: bool) -> bool:
+        """Count `parts` more open parts (or fewer), maybe seal; whether to fire now."""
+        self._open += parts
+        self._sealed = self._sealed or seal
         if self._sealed and self._open == 0:
             self._sealed = False  # fire once
             return True
         return False
+
+
+class SharedJoin(Join):
+    """`Join` whose parts may report from any thread; `then()` runs once, on the thread
+    that completes the join (the last part's, or `seal()`'s), outside its lock.
+
+    `add()` and `seal()` are called by the thread that starts the parts.
+    """
+
+    __slots__ = ("_lock",)
+
+    def __init__(self, then: Callable[[], None]) -> None:
+        super().__init__(then)
+        self._lock = threading.Lock()
+
+    def _update(self, parts: int, *, seal: bool) -> None:
+        with self._lock:
+            fire = self._count(parts, seal=seal)
+        if fire:
+            self._then()
