@@ -1112,11 +1112,12 @@ class AttachedSystem:
 
     def _watch(self, registrar: ResourceRegistrar, listener: _Listener) -> None:
         registrar._ref.actor_stopped.wait()  # the transport watches the registrar's actor
-        stopped = _stopped_cleanly(registrar)
+        # Close before letting go: while it is still listed, the system's own close()
+        # finds it and waits for this close to finish (a process may exit right after).
+        listener.close(stopped=_stopped_cleanly(registrar))
         with self._lock:
             if self._listeners.get(listener.name) is listener:
                 del self._listeners[listener.name]
-        listener.close(stopped=stopped)
 
 
 def _stopped_cleanly(registrar: ResourceRegistrar) -> bool:

@@ -498,6 +498,35 @@ def test_a_second_close_of_a_listener_returns_only_once_the_first_finished(
     assert (True, False) == (os.path.exists(listener.tombstone), os.path.exists(listener.path))
 
 
+def test_closing_the_system_waits_for_a_stopped_registrar_s_listener_to_close(
+    system: System,
+) -> None:
+    # The registrar's watcher thread closes its listener when the registrar stops, while
+    # the process may already be in `close()` of its system, on its way out.
+    registrar = rr.ResourceRegistrar.start(f"closing-{uuid.uuid4().hex[:8]}")
+    system.serve(registrar)
+    listener = system._listeners[registrar.name]
+    entered, release, closed = threading.Event(), threading.Event(), threading.Event()
+    listener._sock = _SlowShutdown(listener._sock, entered, release)  # type: ignore[assignment]
+
+    def close_system() -> None:
+        system.close()
+        closed.set()
+
+    closing = threading.Thread(target=close_system)
+    try:
+        registrar.stop()  # the watcher starts closing the listener, and is held half way
+        assert entered.wait(10)
+        closing.start()
+        assert not closed.wait(0.3), "the system closed while the listener was half closed"
+    finally:
+        release.set()
+        closing.join(10)
+
+    assert closed.is_set()
+    assert not os.path.exists(listener.path)  # (the system's close removed the tombstone)
+
+
 def test_a_call_to_a_name_nobody_serves_is_an_unknown_server(
     consumer: rr.ResourceRegistrar,
 ) -> None:
