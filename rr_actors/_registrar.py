@@ -328,7 +328,12 @@ class ClientActor(pykka.ThreadingActor):
 
 
 class _OpenReply:
-    """A handle request's reply, known to its actor until answered (a crash fails it)."""
+    """A handle request's reply, known to its actor until answered (a crash fails it).
+
+    Answered on the actor thread, or, for `send_status`, on the thread of the last
+    acknowledgement: so `open_requests` is only ever changed by single `set` operations
+    (add, discard) and read as a copy (`list(...)`), each atomic.
+    """
 
     __slots__ = ("open", "reply")
 
@@ -434,7 +439,8 @@ class RegistrarActor(pykka.ThreadingActor):
 
         They were reported to the manager as `in_doubt`; what they held as dependencies
         is released, so nothing they started at other servers leaks. A top-level call that
-        was in flight is given up at its provider (its caller died with the last run).
+        was in flight is given up at its provider (its caller died with the last run), and
+        so is a dependency whose resource is gone (a sub-call that outlived its load).
         """
         for resource in list(self.catalog.resources.values()):
             if resource.state is not ResourceState.LOADED:
@@ -443,7 +449,8 @@ class RegistrarActor(pykka.ThreadingActor):
                     resource.id, functools.partial(self._remove_resource, resource)
                 )
         for record in list(self.catalog.clients.values()):
-            if record.parent is None and not record.loaded:
+            orphan = record.parent is not None and record.parent not in self.catalog.resources
+            if orphan or (record.parent is None and not record.loaded):
                 query = record.query
                 with contextlib.suppress(RrError):
                     DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
@@ -844,7 +851,11 @@ class RegistrarActor(pykka.ThreadingActor):
             finally:
                 done()
 
-        self.workers.submit(run)
+        try:
+            self.workers.submit(run)
+        except RuntimeError:  # no thread could start: skip the callback, keep serving
+            logger.exception("no worker thread for the status callback of %s", query.id)
+            done()
 
     def _on_status_notice(self, message: StatusNotice) -> None:
         """Consumer side: run the client callbacks, climb to the dependent resources."""
@@ -903,7 +914,10 @@ class RegistrarActor(pykka.ThreadingActor):
         self.pending_attempts[message.record.query.id] = message.attempt
         if message.record.query.id in self.catalog.clients:  # a retry of a call it holds
             return
-        self.catalog.add_client(message.record)
+        record = message.record
+        if self._owner_gone(record):  # a late sub-call: kept as a call of its own, so a
+            record = ClientRecord(record.query, None)  # crash meanwhile gives it back
+        self.catalog.add_client(record)
         self._commit()
 
     def _on_client_loaded(self, message: _ClientLoaded) -> None:

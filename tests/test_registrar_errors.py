@@ -124,33 +124,83 @@ def test_sub_resources_are_unloaded_when_the_load_callback_itself_raises(make_re
     assert ((), ()) == (snapshot.resources, snapshot.clients)
 
 
-@pytest.mark.parametrize("save_on_modify", [False, True], ids=["in-memory", "save-on-modify"])
-def test_a_sub_call_that_returns_after_its_load_failed_is_released_not_leaked(
-    tmp_path, save_on_modify
-):
-    # The load starts a sub-call on a thread of its own (in its context: a dependency),
-    # then raises before that sub-call returns. Its rollback released the dependencies
-    # it had; the late one must be given back too, or nothing ever releases it.
-    provider = rr.ResourceRegistrar.start(f"P-{uuid.uuid4().hex[:8]}")
-    agent = rr.ResourceRegistrar.start(
+def _agent(tmp_path, save_on_modify):
+    return rr.ResourceRegistrar.start(
         rr.RegistrarConfig(
             name=f"A-{uuid.uuid4().hex[:8]}",
             backup_path=tmp_path / "a.db" if save_on_modify else None,
             save_on_modify=save_on_modify,
         )
     )
+
+
+DURABILITY = pytest.mark.parametrize(
+    "save_on_modify", [False, True], ids=["in-memory", "save-on-modify"]
+)
+
+
+@DURABILITY
+def test_a_sub_call_made_after_its_load_failed_is_released_not_leaked(tmp_path, save_on_modify):
+    # The load hands a sub-call to a thread of its own (in its context: a dependency) and
+    # raises; the sub-call goes out only after the load failed and its rollback is done.
+    # Nothing would ever release that late dependency: it is given back at once.
+    provider = rr.ResourceRegistrar.start(f"P-{uuid.uuid4().hex[:8]}")
+    agent = _agent(tmp_path, save_on_modify)
     consumer = rr.ResourceRegistrar.start(f"C-{uuid.uuid4().hex[:8]}")
-    gate, unloaded = threading.Event(), threading.Event()
+    failed, unloaded = threading.Event(), threading.Event()
     late: list[Future[rr.Query]] = []
     pool = ThreadPoolExecutor(1)
     try:
-        provider.register_server(
-            "leaf", load=lambda r: gate.wait(10) and r, unload=lambda r, s: unloaded.set()
-        )
+        provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: unloaded.set())
+
+        def sub_call(request):
+            assert failed.wait(10)
+            return agent.call(provider.name, "leaf", request)
+
+        def composite(request):
+            late.append(pool.submit(contextvars.copy_context().run, sub_call, request))
+            raise SensorError("failed before its sub-call went out")
+
+        agent.register_server("composite", load=composite, unload=lambda r, s: None)
+        with pytest.raises(rr.ResourceLoadError):
+            consumer.call(agent.name, "composite", "x")
+        failed.set()
+
+        assert late[0].result(10).response == "x"  # the sub-call itself succeeded
+        assert unloaded.wait(10), "the late dependency leaked at its provider"
+        assert [] == provider.server_queries("leaf")
+        assert ((), ()) == (catalog_snapshot(agent).resources, catalog_snapshot(agent).clients)
+    finally:
+        failed.set()
+        pool.shutdown()
+        for registrar in (consumer, agent, provider):
+            registrar.stop()
+
+
+@DURABILITY
+def test_a_sub_call_in_flight_when_its_load_fails_is_released_not_leaked(tmp_path, save_on_modify):
+    # The sub-call reached its provider before the load raised, and returns after the
+    # rollback. A durable agent wrote it down before sending it, so the rollback gives
+    # it up at the provider (its caller hears so); an in-memory one learns of it only
+    # from the answer, and gives it back then. Either way nothing is left anywhere.
+    provider = rr.ResourceRegistrar.start(f"P-{uuid.uuid4().hex[:8]}")
+    agent = _agent(tmp_path, save_on_modify)
+    consumer = rr.ResourceRegistrar.start(f"C-{uuid.uuid4().hex[:8]}")
+    started, gate, unloaded = threading.Event(), threading.Event(), threading.Event()
+    late: list[Future[rr.Query]] = []
+    pool = ThreadPoolExecutor(1)
+    try:
+
+        def leaf(request):
+            started.set()
+            return gate.wait(10) and request
+
+        provider.register_server("leaf", load=leaf, unload=lambda r, s: unloaded.set())
 
         def composite(request):
             context = contextvars.copy_context()
             late.append(pool.submit(context.run, agent.call, provider.name, "leaf", request))
+            assert started.wait(10)  # the sub-call is at its provider, loading
             raise SensorError("failed while its sub-call runs")
 
         agent.register_server("composite", load=composite, unload=lambda r, s: None)
@@ -158,8 +208,9 @@ def test_a_sub_call_that_returns_after_its_load_failed_is_released_not_leaked(
             consumer.call(agent.name, "composite", "x")
         gate.set()
 
-        assert late[0].result(10).response == "x"  # the sub-call itself succeeded
-        assert unloaded.wait(10), "the late dependency leaked at its provider"
+        outcome = late[0].exception(10)
+        assert outcome is None or isinstance(outcome, rr.CallTimeoutError)  # given up
+        assert unloaded.wait(10), "the dependency leaked at its provider"
         assert [] == provider.server_queries("leaf")
         assert ((), ()) == (catalog_snapshot(agent).resources, catalog_snapshot(agent).clients)
     finally:

@@ -5,10 +5,12 @@ from __future__ import annotations
 import threading
 import uuid
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import pytest
 
 import rr_actors as rr
+from rr_actors._workers import Workers
 from rr_actors.testing import catalog_snapshot
 
 
@@ -294,10 +296,9 @@ def test_a_status_callback_may_send_a_status_that_reaches_its_own_client(
     """Rule 9: a status callback may call `send_status` on the sender without deadlock.
 
     Here the nested status is for another resource the same consumer holds at the same
-    server, so its client callback runs through the same client endpoint as the callback
-    that sends it. Mutation caught: the client actor runs status callbacks on its own
-    thread (not on a worker): the nested delivery then waits behind the running callback
-    (a deadlock, cut by the nested call's timeout).
+    server. Mutation caught: status callbacks run on the registrar's actor thread, or on
+    any one thread per client, instead of on workers: the nested delivery then waits
+    behind the running callback (a deadlock, cut by the nested call's timeout).
     """
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
     serve(provider, "leaf")
@@ -325,8 +326,9 @@ def test_a_server_on_status_may_call_and_send_status_on_its_own_server(make_regi
     """Rule 9: the provider server's `on_status` may `call` its own server and `send_status`
     about another of its resources without deadlock.
 
-    Mutation caught: the server actor runs `on_status` on its own thread (not on a worker):
-    the nested load and the nested `on_status` then wait behind the running callback.
+    Mutation caught: `on_status` runs on an actor thread (the registrar's or the server's)
+    instead of on a worker: the nested load and the nested `on_status` then wait behind
+    the running callback.
     """
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
     seen, outcome, other_ids = shared.list(), shared.list(), shared.list()
@@ -354,3 +356,28 @@ def test_a_server_on_status_may_call_and_send_status_on_its_own_server(make_regi
 
     assert ["done"] == outcome
     assert ["a", "b"] == seen
+
+
+def test_a_status_callback_that_gets_no_thread_is_skipped_and_its_registrar_keeps_serving(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    provider = rr.ResourceRegistrar.start(f"P-{uuid.uuid4().hex[:8]}")
+    consumer = rr.ResourceRegistrar.start(f"C-{uuid.uuid4().hex[:8]}")
+    heard: list[rr.StatusUpdate] = []
+    try:
+        provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: None)
+        query = consumer.call(provider.name, "leaf", "a", on_status=lambda _q, u: heard.append(u))
+
+        def no_thread(_self: Workers, _task: Any) -> None:
+            raise RuntimeError("can't start new thread")
+
+        monkeypatch.setattr(Workers, "submit", no_thread)  # say, too many hung callbacks
+        provider.send_status(query.id, rr.Status.WARNING, "hot", timeout=5)
+
+        assert [] == heard
+        assert consumer.is_alive()
+        assert [query.id] == [q.id for q in consumer.client_queries()]
+    finally:
+        monkeypatch.undo()
+        consumer.stop()
+        provider.stop()

@@ -12,12 +12,20 @@ no other test.
   otherwise the resource leaks at the provider for good.
 - Rule 11: `set_status_callback` re-attaches a callback to a query restored after a
   restart, and statuses reach it.
+- Rules 4 and 16 (from a review): a sub-call that a failed load's thread sends after the
+  failure has no owner; a durable agent that crashes before its answer gives it back
+  after the restart, and so does a restart that finds a dependency whose resource is
+  gone.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+import sqlite3
 import threading
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +35,7 @@ import rr_actors as rr
 from rr_actors._catalog import Changes, ClientRecord
 from rr_actors._directory import DIRECTORY
 from rr_actors._sqlite_store import SqliteStore, read_backup
-from rr_actors.testing import crash
+from rr_actors.testing import catalog_snapshot, crash
 
 
 def _name(prefix: str) -> str:
@@ -123,3 +131,98 @@ def test_set_status_callback_reattaches_a_callback_to_a_query_restored_after_a_r
         if restarted is not None:
             restarted.stop()
         provider.stop()
+
+
+class SensorError(Exception):
+    """An application exception that knows nothing of rr_actors."""
+
+
+def test_a_sub_call_written_down_after_its_load_failed_is_given_back_after_a_crash(
+    tmp_path: Path,
+) -> None:
+    # A durable agent writes a call down before sending it. A sub-call that goes out
+    # after its load failed has no owner any more: a crash before its answer must still
+    # leave the restarted agent able to give the id back (rules 4 and 16).
+    config = rr.RegistrarConfig(name=_name("A"), backup_path=tmp_path / "a.db", save_on_modify=True)
+    provider = rr.ResourceRegistrar.start(_name("P"))
+    agent = rr.ResourceRegistrar.start(config)
+    consumer = rr.ResourceRegistrar.start(_name("C"))
+    restarted: rr.ResourceRegistrar | None = None
+    DIRECTORY.restart_expected.add(config.name)  # as a supervisor does: no death watch
+    failed, started, gate, unloaded = (threading.Event() for _ in range(4))
+    pool = ThreadPoolExecutor(1)
+    try:
+
+        def leaf(request: Any) -> Any:
+            started.set()
+            return gate.wait(10) and request
+
+        provider.register_server("leaf", load=leaf, unload=lambda r, s: unloaded.set())
+
+        def sub_call(request: Any) -> rr.Query:
+            assert failed.wait(10)
+            return agent.call(provider.name, "leaf", request, timeout=10)
+
+        def composite(request: Any) -> Any:
+            pool.submit(contextvars.copy_context().run, sub_call, request)
+            raise SensorError("failed before its sub-call went out")
+
+        agent.register_server("composite", load=composite, unload=lambda r, s: None)
+        with pytest.raises(rr.ResourceLoadError):
+            consumer.call(agent.name, "composite", "x")
+        failed.set()
+        assert started.wait(10)  # the sub-call is at the provider: written down before
+        agent.client_queries()  # the agent handled (and committed) what came before
+        crash(agent)
+
+        restarted = rr.ResourceRegistrar.start(config)
+        gate.set()
+
+        assert unloaded.wait(10), "the provider still holds the sub-call's id"
+        assert [] == provider.server_queries("leaf")
+        assert ((), ()) == (
+            catalog_snapshot(restarted).resources,
+            catalog_snapshot(restarted).clients,
+        )
+    finally:
+        gate.set()
+        failed.set()
+        pool.shutdown()
+        DIRECTORY.restart_expected.discard(config.name)
+        for registrar in (consumer, restarted, provider):
+            if registrar is not None:
+                registrar.stop()
+
+
+def test_a_restart_gives_back_a_dependency_whose_resource_is_gone(tmp_path: Path) -> None:
+    # A backup may hold a dependency whose resource is not there (written by an older
+    # version, which recorded a sub-call that outlived its failed load): nothing else
+    # would ever release it, so the restart gives it back at its provider.
+    path = tmp_path / "a.db"
+    config = rr.RegistrarConfig(name=_name("A"), backup_path=path, save_on_modify=True)
+    provider = rr.ResourceRegistrar.start(_name("P"))
+    agent = rr.ResourceRegistrar.start(config)
+    restarted: rr.ResourceRegistrar | None = None
+    DIRECTORY.restart_expected.add(config.name)
+    unloaded = threading.Event()
+    try:
+        provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: unloaded.set())
+        query = agent.call(provider.name, "leaf", "camera", timeout=5)
+        crash(agent)
+        with contextlib.closing(sqlite3.connect(tmp_path / "a.db")) as db, db:
+            db.execute(
+                "UPDATE clients SET parent = 'a-resource-that-is-gone' WHERE query_id = ?",
+                (query.id,),
+            )
+        assert ["a-resource-that-is-gone"] == [c.parent for c in read_backup(path).clients]
+
+        restarted = rr.ResourceRegistrar.start(config)
+
+        assert unloaded.wait(5), "the provider still holds the orphaned dependency"
+        assert [] == provider.server_queries("leaf")
+        assert () == catalog_snapshot(restarted).clients
+    finally:
+        DIRECTORY.restart_expected.discard(config.name)
+        for registrar in (restarted, provider):
+            if registrar is not None:
+                registrar.stop()
