@@ -418,9 +418,22 @@ def _file_problem(path: Path) -> str | None:
     page_size = 65536 if page_size == 1 else page_size
     pages = int.from_bytes(header[28:32], "big")
     change_counter, valid_for = header[24:28], header[92:96]
-    if change_counter == valid_for and pages and pages * page_size > size:
+    if change_counter == valid_for and pages and pages * page_size > size and not _has_log(path):
         return f"truncated: {size} bytes, its header says {pages} pages of {page_size} bytes"
     return None
+
+
+def _has_log(path: Path) -> bool:
+    """Whether a non-empty WAL lies next to `path`.
+
+    A checkpoint copies the log's pages in page order, page 1 (the header, with the new
+    page count) first: a process killed during one that grows the file leaves it shorter
+    than its header says, and SQLite completes it from the log when it is next opened.
+    """
+    try:
+        return Path(f"{path}-wal").stat().st_size > 0
+    except OSError:
+        return False
 
 
 def _schema_version(db: sqlite3.Connection, path: str) -> int:
@@ -558,11 +571,12 @@ def _prepare(db: sqlite3.Connection, name: str, durability: str, version: int) -
         raise ConfigError(f"backup_path {name!r} is not writable: {exc}") from exc
     with _as_corrupt(name):
         mode = db.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+    if mode != "wal":  # before anything is written: an older file stays as it was
+        raise ConfigError(f"backup_path {name!r}: SQLite cannot use WAL mode there ({mode})")
+    with _as_corrupt(name):
         db.execute(f"PRAGMA synchronous = {_SYNCHRONOUS[durability]}")
         _migrate(db, version)
     _refresh_digests(db, name)
-    if mode != "wal":
-        raise ConfigError(f"backup_path {name!r}: SQLite cannot use WAL mode there ({mode})")
 
 
 def _read_rows(
