@@ -169,6 +169,7 @@ def _die_with_parent(expected_parent: int | None) -> None:
     """
     if not sys.platform.startswith("linux"):
         return
+    _let_go_of_the_forkserver()
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
@@ -177,6 +178,27 @@ def _die_with_parent(expected_parent: int | None) -> None:
         return
     if expected_parent is not None and os.getppid() != expected_parent:
         os._exit(_PARENT_GONE_EXIT)  # it died before prctl: the signal will never come
+
+
+def _let_go_of_the_forkserver() -> None:
+    """Close this process's copy of the pipe that keeps the forkserver alive.
+
+    The forkserver exits when the process that started it dies: it sees EOF on a pipe
+    whose write end only that process holds. But CPython hands a copy of that write end
+    to every child the forkserver forks (`forkserver._forkserver._forkserver_alive_fd`),
+    so while one manager lived the forkserver outlived the supervisor's process, and the
+    parent-death signal never came. A forkserver child never uses its copy: one that
+    starts processes with the forkserver context starts a forkserver of its own.
+    """
+    from multiprocessing import forkserver  # noqa: PLC0415
+
+    server = getattr(forkserver, "_forkserver", None)
+    fd = getattr(server, "_forkserver_alive_fd", None)
+    if server is None or not isinstance(fd, int):
+        return  # spawn, or another CPython: nothing inherited here
+    with contextlib.suppress(OSError):
+        os.close(fd)
+    server._forkserver_alive_fd = None
 
 
 def stopped_cleanly(name: str) -> bool:

@@ -493,7 +493,7 @@ class _Child:
     running: _Running | None = None
     incarnation: int = 0
     last_exit: str | None = None
-    gave_up: SupervisorGaveUpError | None = None  # a nested supervisor's last incarnation
+    gave_up: SupervisorGaveUpError | None = None  # why it is down for good (a give-up)
 
     @property
     def name(self) -> str:
@@ -1466,6 +1466,8 @@ class Supervisor:
         )
         logger.error("%s", error)
         self._cancel_restarts()
+        for child in self._children:  # the snapshots published while they stop say why
+            child.gave_up = child.gave_up or error
         for child in reversed(self._children):
             if child is crashed or child.running is None:
                 dead = child.state != "exited"

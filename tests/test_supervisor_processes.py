@@ -95,6 +95,13 @@ def wait_gone(pids: list[int], timeout: float = 15.0) -> list[int]:
     return [p for p in pids if alive(p)]
 
 
+def pid_of(sup: rr.Supervisor, name: str) -> int:
+    """The pid of a running manager (never 0 or None: `os.kill(0, ...)` hits the group)."""
+    pid = sup.child(name).pid
+    assert pid, f"{name} has no pid"
+    return pid
+
+
 def echo_setup(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
 
@@ -161,7 +168,7 @@ def test_a_restarted_manager_restores_its_catalog_before_it_serves(
     sup.start()
     app = sup.registrar(f"app-{uid}")
     query = app.call(name, "res", "camera", timeout=10.0)
-    os.kill(sup.child(name).pid or 0, signal.SIGKILL)
+    os.kill(pid_of(sup, name), signal.SIGKILL)
     sup.wait_restarted(name, timeout=15.0)
 
     held = sup.run_in(name, lambda r: [q.id for q in r.server_queries("res")])
@@ -177,7 +184,7 @@ def test_a_consumer_id_from_before_the_crash_can_be_unloaded_after_it(
     sup.start()
     app = sup.registrar(f"app-{uid}")
     query = app.call(name, "res", "camera", timeout=10.0)
-    os.kill(sup.child(name).pid or 0, signal.SIGKILL)
+    os.kill(pid_of(sup, name), signal.SIGKILL)
     sup.wait_restarted(name, timeout=15.0)
     app.unload(query.id, timeout=10.0)
 
@@ -227,7 +234,7 @@ def test_a_retry_after_a_restart_of_an_answered_request_does_not_load_again(
     sup.start()
     app = sup.registrar(f"app-{uid}")
     first = app.call(name, "res", "camera", timeout=10.0)
-    os.kill(sup.child(name).pid or 0, signal.SIGKILL)
+    os.kill(pid_of(sup, name), signal.SIGKILL)
     second = sup.call_with_retry(app, name, "res", "camera", timeout=15.0)
 
     held = sup.run_in(name, lambda r: sorted(q.id for q in r.server_queries("res")))
@@ -261,7 +268,7 @@ def test_a_call_in_flight_to_a_manager_that_dies_fails_at_once(
     caller.start()
     assert loading.wait(10.0)  # the load runs in the manager: the call is in flight there
     started = time.monotonic()
-    os.kill(sup.child(name).pid or 0, signal.SIGKILL)
+    os.kill(pid_of(sup, name), signal.SIGKILL)
     caller.join(20.0)
 
     assert [rr.RegistrarUnavailableError] == [type(e) for e in errors]
@@ -273,7 +280,7 @@ def test_a_hung_manager_is_detected_by_the_heartbeat_and_restarted(
 ) -> None:
     name = f"erm-{uid}"
     sup = supervisors([process(name, heartbeat=0.1, heartbeat_timeout=1.0)]).start()
-    old = sup.child(name).pid or 0
+    old = pid_of(sup, name)
     os.kill(old, signal.SIGSTOP)
     info = sup.wait_restarted(name, timeout=15.0)
 
@@ -346,7 +353,7 @@ def test_a_temporary_consumer_process_that_is_killed_has_its_ids_released(
             process(c, consumer_setup(p), restart="temporary"),
         ]
     ).start()
-    os.kill(sup.child(c).pid or 0, signal.SIGKILL)
+    os.kill(pid_of(sup, c), signal.SIGKILL)
 
     assert unloaded.wait(10.0)
     assert ["load camera", "unload camera"] == lines(journal)
@@ -361,7 +368,7 @@ def test_a_consumer_process_that_will_be_restarted_keeps_its_ids(
         [process(p, journal_setup(str(journal))), process(c, consumer_setup(p))],
         state_dir=tmp_path / "state",
     ).start()
-    os.kill(sup.child(c).pid or 0, signal.SIGKILL)
+    os.kill(pid_of(sup, c), signal.SIGKILL)
     sup.wait_restarted(c, timeout=15.0)
 
     held = sup.run_in(p, lambda r: [q.origin_rr for q in r.server_queries("res")])
@@ -386,7 +393,7 @@ def test_a_manager_that_does_not_stop_in_time_is_killed(
 ) -> None:
     name = f"erm-{uid}"
     sup = supervisors([process(name, heartbeat=None, shutdown=0.5)]).start()
-    pid = sup.child(name).pid or 0
+    pid = pid_of(sup, name)
     os.kill(pid, signal.SIGSTOP)
     sup.stop()
 
@@ -504,7 +511,7 @@ def test_stop_with_a_timeout_kills_a_manager_process_before_its_shutdown_ran_out
 ) -> None:
     name = f"erm-{uid}"
     sup = supervisors([process(name, heartbeat=None, shutdown=30.0)]).start()
-    pid = sup.child(name).pid or 0
+    pid = pid_of(sup, name)
     os.kill(pid, signal.SIGSTOP)
     started = time.monotonic()
     sup.stop(timeout=0.5)
