@@ -342,6 +342,27 @@ def inbox(shared: Shared) -> Callable[[], StatusInbox]:
     return lambda: StatusInbox(shared.list())
 
 
+@pytest.fixture
+def uid() -> str:
+    """A fragment that makes this test's registrar names unique."""
+    return uuid.uuid4().hex[:8]
+
+
+@pytest.fixture
+def supervisors() -> Iterator[Callable[..., rr.Supervisor]]:
+    """Make supervisors; every one is stopped at teardown (newest first)."""
+    made: list[rr.Supervisor] = []
+
+    def make(children: list[Any], **kwargs: Any) -> rr.Supervisor:
+        sup = rr.Supervisor(children, **kwargs)
+        made.append(sup)
+        return sup
+
+    yield make
+    for sup in reversed(made):
+        sup.stop()
+
+
 def wait_for(predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
     """Poll `predicate` (each check is a round trip to an actor) until true or `timeout` s."""
     deadline = time.monotonic() + timeout

@@ -24,12 +24,12 @@ import tempfile
 import textwrap
 import threading
 import time
-import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+from supervision import FakeClock, ManualTimer
 
 import rr_actors as rr
 from rr_actors import testing
@@ -46,72 +46,6 @@ pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 def forkserver() -> None:
     """Start the forkserver before the leak check counts this process's children."""
     start_forkserver()
-
-
-@pytest.fixture
-def uid() -> str:
-    return uuid.uuid4().hex[:8]
-
-
-class FakeClock:
-    """A monotonic clock that moves only when the test says so."""
-
-    def __init__(self) -> None:
-        self.now = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
-class _Handle:
-    def __init__(self) -> None:
-        self.cancelled = False
-
-    def cancel(self) -> None:
-        self.cancelled = True
-
-
-class ManualTimer:
-    """A `timer` that records delays and fires only when the test calls `fire()`."""
-
-    def __init__(self) -> None:
-        self.cond = threading.Condition()
-        self.pending: list[tuple[float, Callable[[], None], _Handle]] = []
-        self.delays: list[float] = []
-
-    def __call__(self, delay: float, fn: Callable[[], None]) -> _Handle:
-        handle = _Handle()
-        with self.cond:
-            self.pending.append((delay, fn, handle))
-            self.delays.append(delay)
-            self.cond.notify_all()
-        return handle
-
-    def wait_scheduled(self, count: int, timeout: float = 5.0) -> bool:
-        with self.cond:
-            return self.cond.wait_for(lambda: len(self.delays) >= count, timeout)
-
-    def fire(self) -> None:
-        with self.cond:
-            pending, self.pending = self.pending, []
-        for _, fn, handle in pending:
-            if not handle.cancelled:
-                fn()
-
-
-@pytest.fixture
-def supervisors() -> Iterator[Callable[..., rr.Supervisor]]:
-    """Make supervisors; every one is stopped at teardown."""
-    made: list[rr.Supervisor] = []
-
-    def make(children: list[Any], **kwargs: Any) -> rr.Supervisor:
-        sup = rr.Supervisor(children, **kwargs)
-        made.append(sup)
-        return sup
-
-    yield make
-    for sup in reversed(made):
-        sup.stop()
 
 
 @pytest.fixture

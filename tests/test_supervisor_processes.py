@@ -20,8 +20,7 @@ import tempfile
 import textwrap
 import threading
 import time
-import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -38,26 +37,6 @@ pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 def forkserver() -> None:
     """Start the forkserver before the leak check counts this process's children."""
     start_forkserver()
-
-
-@pytest.fixture
-def uid() -> str:
-    return uuid.uuid4().hex[:8]
-
-
-@pytest.fixture
-def supervisors() -> Iterator[Callable[..., rr.Supervisor]]:
-    """Make supervisors; every one is stopped at teardown."""
-    made: list[rr.Supervisor] = []
-
-    def make(children: list[Any], **kwargs: Any) -> rr.Supervisor:
-        sup = rr.Supervisor(children, **kwargs)
-        made.append(sup)
-        return sup
-
-    yield make
-    for sup in reversed(made):
-        sup.stop()
 
 
 def alive(pid: int) -> bool:
