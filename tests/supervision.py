@@ -1,9 +1,16 @@
-"""A clock and a timer that supervisor tests drive by hand (injected into `Supervisor`)."""
+"""Helpers of the supervisor tests: a clock and a timer driven by hand, process facts."""
 
 from __future__ import annotations
 
+import os
+import select
 import threading
+import time
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import rr_actors as rr
 
 
 class FakeClock:
@@ -50,3 +57,46 @@ class ManualTimer:
         for _, fn, handle in pending:
             if not handle.cancelled:
                 fn()
+
+
+def alive(pid: int) -> bool:
+    """Whether process `pid` exists and is not a zombie."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        return not Path("/proc").exists()
+    return state != "Z"
+
+
+def wait_gone(pids: list[int], timeout: float = 15.0) -> list[int]:
+    """Wait (bounded) until none of `pids` lives; return those still alive.
+
+    Blocks on a pidfd per process (readable once it ended; pidfds work for processes that
+    are not our children); polls only where there are no pidfds.
+    """
+    deadline = time.monotonic() + timeout
+    for pid in pids:
+        try:
+            fd = os.pidfd_open(pid)
+        except (AttributeError, OSError):  # gone already, or no pidfds: polled below
+            continue
+        try:
+            select.select([fd], [], [], max(0.0, deadline - time.monotonic()))
+        finally:
+            os.close(fd)
+    pause = threading.Event()
+    while any(alive(p) for p in pids) and time.monotonic() < deadline:
+        pause.wait(0.02)
+    return [p for p in pids if alive(p)]
+
+
+def echo_setup(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
+
+
+def process(name: str, setup: Any = echo_setup, **kwargs: Any) -> rr.ManagerSpec:
+    return rr.ManagerSpec(name, setup, isolation="process", **kwargs)

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from supervision import FakeClock, ManualTimer
+from supervision import FakeClock, ManualTimer, alive, echo_setup, process, wait_gone
 
 import rr_actors as rr
 from rr_actors import testing
@@ -77,45 +77,6 @@ def logging_consumer(provider: str, events: list[str]) -> Callable[[rr.ResourceR
 def crash(sup: rr.Supervisor, name: str) -> None:
     """Make thread manager `name`'s registrar actor die (the in-process SIGKILL)."""
     testing.crash(sup.run_in(name, lambda r: r))
-
-
-def alive(pid: int) -> bool:
-    """Whether process `pid` exists and is not a zombie."""
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return False
-        return not Path("/proc").exists()
-    return state != "Z"
-
-
-def wait_gone(pids: list[int], timeout: float = 15.0) -> list[int]:
-    """Wait (bounded, on pidfds) until none of `pids` lives; return those still alive."""
-    deadline = time.monotonic() + timeout
-    for pid in pids:
-        try:
-            fd = os.pidfd_open(pid)
-        except (AttributeError, OSError):
-            continue
-        try:
-            select.select([fd], [], [], max(0.0, deadline - time.monotonic()))
-        finally:
-            os.close(fd)
-    pause = threading.Event()
-    while any(alive(p) for p in pids) and time.monotonic() < deadline:
-        pause.wait(0.02)
-    return [p for p in pids if alive(p)]
-
-
-def echo_setup(registrar: rr.ResourceRegistrar) -> None:
-    registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
-
-
-def process(name: str, setup: Any = echo_setup, **kwargs: Any) -> rr.ManagerSpec:
-    return rr.ManagerSpec(name, setup, isolation="process", **kwargs)
 
 
 # -- ordered start, reverse-ordered stop ----------------------------------------------------------

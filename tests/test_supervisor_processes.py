@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from supervision import alive, echo_setup, process, wait_gone
 
 import rr_actors as rr
 from rr_actors._manager import start_forkserver
@@ -39,50 +40,11 @@ def forkserver() -> None:
     start_forkserver()
 
 
-def alive(pid: int) -> bool:
-    """Whether process `pid` exists and is not a zombie."""
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return False
-        return not Path("/proc").exists()
-    return state != "Z"
-
-
-def wait_gone(pids: list[int], timeout: float = 15.0) -> list[int]:
-    """Wait (bounded) until none of `pids` lives; return those still alive.
-
-    Blocks on a pidfd per process (readable once it ended; pidfds work for processes that
-    are not our children); polls only where there are no pidfds.
-    """
-    deadline = time.monotonic() + timeout
-    for pid in pids:
-        try:
-            fd = os.pidfd_open(pid)
-        except (AttributeError, OSError):  # gone already, or no pidfds: polled below
-            continue
-        try:
-            select.select([fd], [], [], max(0.0, deadline - time.monotonic()))
-        finally:
-            os.close(fd)
-    pause = threading.Event()
-    while any(alive(p) for p in pids) and time.monotonic() < deadline:
-        pause.wait(0.02)
-    return [p for p in pids if alive(p)]
-
-
 def pid_of(sup: rr.Supervisor, name: str) -> int:
     """The pid of a running manager (never 0 or None: `os.kill(0, ...)` hits the group)."""
     pid = sup.child(name).pid
     assert pid, f"{name} has no pid"
     return pid
-
-
-def echo_setup(registrar: rr.ResourceRegistrar) -> None:
-    registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
 
 
 def journal_setup(
@@ -114,10 +76,6 @@ def journal_setup(
 
 def lines(path: Path) -> list[str]:
     return path.read_text().splitlines() if path.exists() else []
-
-
-def process(name: str, setup: Any = echo_setup, **kwargs: Any) -> rr.ManagerSpec:
-    return rr.ManagerSpec(name, setup, isolation="process", **kwargs)
 
 
 # -- crash detection and restart ------------------------------------------------------------
