@@ -343,6 +343,16 @@ def inbox(shared: Shared) -> Callable[[], StatusInbox]:
 
 
 @pytest.fixture
+def started() -> Iterator[list[rr.ResourceRegistrar]]:
+    """Registrars a test starts by hand (append them); stopped newest first at teardown."""
+    registrars: list[rr.ResourceRegistrar] = []
+    yield registrars
+    for registrar in reversed(registrars):
+        if registrar.is_alive():
+            registrar.stop()
+
+
+@pytest.fixture
 def uid() -> str:
     """A fragment that makes this test's registrar names unique."""
     return uuid.uuid4().hex[:8]

@@ -1,7 +1,9 @@
-"""The durable provider/consumer pair that the crash tests run in their child processes."""
+"""Durable registrars for the persistence tests: the provider/consumer pair that the crash
+tests run in their child processes, and `start` for a registrar a test stops at teardown."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import rr_actors as rr
@@ -43,3 +45,14 @@ def start_consumer(name: str, path: str) -> rr.ResourceRegistrar:
     return rr.ResourceRegistrar.start(
         rr.RegistrarConfig(name=name, backup_path=path, save_on_modify=True)
     )
+
+
+def start(
+    started: list[rr.ResourceRegistrar], name: str, path: Path | None, **config: Any
+) -> rr.ResourceRegistrar:
+    """Start registrar `name` on backup `path` (or none); `started` (a fixture) stops it."""
+    registrar = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=name, backup_path=path, **config)
+    )
+    started.append(registrar)
+    return registrar

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from durable_pair import leaf_load, noop_unload, start_consumer, start_pair, start_provider
+from durable_pair import leaf_load, noop_unload, start, start_consumer, start_pair, start_provider
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -124,26 +124,6 @@ def run_and_kill(context: multiprocessing.context.ForkServerContext) -> RunAndKi
 
 def unique(prefix: str) -> str:
     return f"{prefix}-{uuid.uuid4().hex[:8]}"
-
-
-@pytest.fixture
-def started() -> Iterator[list[rr.ResourceRegistrar]]:
-    """Registrars a test starts by hand (append them); stopped newest first at teardown."""
-    registrars: list[rr.ResourceRegistrar] = []
-    yield registrars
-    for registrar in reversed(registrars):
-        if registrar.is_alive():
-            registrar.stop()
-
-
-def start(
-    started: list[rr.ResourceRegistrar], name: str, path: Path | None, **config: Any
-) -> rr.ResourceRegistrar:
-    registrar = rr.ResourceRegistrar.start(
-        rr.RegistrarConfig(name=name, backup_path=path, **config)
-    )
-    started.append(registrar)
-    return registrar
 
 
 def ordered(view: Any) -> Any:

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from durable_pair import start
 
 import rr_actors as rr
 from rr_actors import _persistence
@@ -40,26 +41,6 @@ def unique(prefix: str) -> str:
 
 def noop_unload(_request: Any, _response: Any) -> None:
     return None
-
-
-@pytest.fixture
-def started() -> Iterator[list[rr.ResourceRegistrar]]:
-    """Registrars a test starts (append them); stopped newest first at teardown."""
-    registrars: list[rr.ResourceRegistrar] = []
-    yield registrars
-    for registrar in reversed(registrars):
-        if registrar.is_alive():
-            registrar.stop()
-
-
-def start(
-    started: list[rr.ResourceRegistrar], name: str, path: Path | None, **config: Any
-) -> rr.ResourceRegistrar:
-    registrar = rr.ResourceRegistrar.start(
-        rr.RegistrarConfig(name=name, backup_path=path, **config)
-    )
-    started.append(registrar)
-    return registrar
 
 
 def consumer_ids(path: Path) -> set[str]:
