@@ -227,12 +227,18 @@ def row(name: str, samples: list[float], floor: float) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=2000, help="timed round trips per row")
+    parser.add_argument(
+        "--only",
+        choices=["status"],
+        help="measure only the floor and this row (quick runs to alternate with other code)",
+    )
     args = parser.parse_args()
     rounds: int = args.rounds
+    every = args.only is None
     ctx = multiprocessing.get_context("forkserver")
 
     raw_bytes = raw_pipe(ctx, rounds, objects=False)
-    raw_objects = raw_pipe(ctx, rounds, objects=True)
+    raw_objects = raw_pipe(ctx, rounds, objects=True) if every else []
     floor = statistics.median(raw_bytes)
 
     suffix = uuid.uuid4().hex[:6]
@@ -245,9 +251,9 @@ def main() -> None:
         provider = f"provider-{suffix}"
         agent = f"agent-{suffix}"
         try:
-            in_process = dedup_hits(consumer, local.name, rounds)
+            in_process = dedup_hits(consumer, local.name, rounds) if every else []
             with registrar_process(ctx, system.address, provider, setup_echo):
-                cross = dedup_hits(consumer, provider, rounds)
+                cross = dedup_hits(consumer, provider, rounds) if every else []
                 with registrar_process(ctx, system.address, agent, agent_setup(provider)):
                     heard: list[Any] = []
                     query = consumer.call(
@@ -257,7 +263,7 @@ def main() -> None:
                     consumer.unload(query.id)
                     if len(heard) < rounds:
                         raise RuntimeError(f"only {len(heard)} statuses reached the consumer")
-            killed = kill_detection(ctx, system, consumer, repeats=10)
+            killed = kill_detection(ctx, system, consumer, repeats=10) if every else []
         finally:
             local.stop()
             consumer.stop()
@@ -268,17 +274,23 @@ def main() -> None:
     print()
     print("| measurement | median us | p90 us | ratio |")
     print("|---|---:|---:|---:|")
-    print(row("raw Pipe round trip, send_bytes (floor)", raw_bytes, floor))
-    print(row("raw Pipe round trip, send/recv objects", raw_objects, floor))
-    print(row("dedup-hit call, both registrars in one process", in_process, floor))
-    print(row("dedup-hit call across processes (target <= 3x)", cross, floor))
-    print(row("send_status over 3 process hops (target <= 1000 us)", status, floor))
-    print(row("SIGKILL of provider -> call in flight fails (10 kills)", killed, floor))
-    print()
-    print(
-        f"cross-process dedup hit vs raw object round trip: "
-        f"{statistics.median(cross) / statistics.median(raw_objects):.2f}x"
-    )
+    rows = [
+        ("raw Pipe round trip, send_bytes (floor)", raw_bytes),
+        ("raw Pipe round trip, send/recv objects", raw_objects),
+        ("dedup-hit call, both registrars in one process", in_process),
+        ("dedup-hit call across processes (target <= 3x)", cross),
+        ("send_status over 3 process hops (target <= 1000 us)", status),
+        ("SIGKILL of provider -> call in flight fails (10 kills)", killed),
+    ]
+    for name, samples in rows:
+        if samples:  # (`--only` skips some)
+            print(row(name, samples, floor))
+    if cross:
+        print()
+        print(
+            f"cross-process dedup hit vs raw object round trip: "
+            f"{statistics.median(cross) / statistics.median(raw_objects):.2f}x"
+        )
 
 
 if __name__ == "__main__":
