@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import select
+import shutil
+import subprocess
+import sys
+import tempfile
+import textwrap
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -100,3 +106,55 @@ def echo_setup(registrar: rr.ResourceRegistrar) -> None:
 
 def process(name: str, setup: Any = echo_setup, **kwargs: Any) -> rr.ManagerSpec:
     return rr.ManagerSpec(name, setup, isolation="process", **kwargs)
+
+
+OWNER = textwrap.dedent(
+    """
+    import sys, threading
+    import rr_actors as rr
+
+    def setup(registrar):
+        registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
+
+    if __name__ == "__main__":
+        uid, options = sys.argv[1], ({"heartbeat": None} if sys.argv[2] == "none" else {})
+        sup = rr.Supervisor([rr.ManagerSpec(f"{n}-{uid}", setup, isolation="process",
+                                            **options) for n in ("a", "b")])
+        sup.start()
+        print(" ".join(str(i.pid) for i in sup.which_children()), flush=True)
+        threading.Event().wait()
+    """
+)
+"""A user's main program: a supervisor of two manager processes; prints their pids."""
+
+
+@contextlib.contextmanager
+def killed_owner(uid: str, tmp_path: Path, *, heartbeat: bool = True) -> Iterator[list[int]]:
+    """Run `OWNER` in its own process; yield its managers' pids, then SIGKILL it.
+
+    `heartbeat=False` starts the managers without heartbeats. The owner's runtime
+    directory, which a SIGKILLed owner cannot remove, is kept in a short temporary
+    directory (AF_UNIX socket paths are limited to about 100 bytes) and removed here.
+    """
+    script = tmp_path / "owner.py"
+    script.write_text(OWNER)
+    runtime_parent = tempfile.mkdtemp(prefix="rr-test-")
+    owner = subprocess.Popen(
+        [sys.executable, str(script), uid, "default" if heartbeat else "none"],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "TMPDIR": runtime_parent},
+    )
+    try:
+        assert owner.stdout is not None
+        readable, _, _ = select.select([owner.stdout], [], [], 30.0)
+        assert [owner.stdout] == readable  # it prints its managers' pids once they run
+        pids = [int(p) for p in owner.stdout.readline().split()]
+        assert 2 == len(pids)
+        yield pids
+    finally:
+        owner.kill()
+        owner.wait(10.0)
+        if owner.stdout is not None:
+            owner.stdout.close()
+        shutil.rmtree(runtime_parent, ignore_errors=True)

@@ -59,6 +59,28 @@ def write_locked(path: Path) -> Iterator[None]:
         blocker.close()
 
 
+def finish_while_locked(
+    path: Path,
+    entered: threading.Event,
+    proceed: threading.Event,
+    answered: threading.Event,
+    thread: threading.Thread,
+    not_yet: str,
+) -> None:
+    """Once the callback runs (`entered`), let it finish (`proceed`) while the backup is
+    write-locked: the caller must stay unanswered (`not_yet` otherwise), then be answered
+    once the lock is gone."""
+    try:
+        assert entered.wait(WAIT)
+        with write_locked(path):
+            proceed.set()
+            assert not answered.wait(NOT_YET), not_yet
+    finally:
+        proceed.set()
+    assert answered.wait(WAIT)
+    thread.join(WAIT)
+
+
 def in_thread(call: Callable[[], Any]) -> tuple[threading.Thread, threading.Event, list[Any]]:
     """Run `call` on a thread; the event is set once it returned (or raised)."""
     done = threading.Event()
@@ -307,15 +329,10 @@ def test_save_on_modify_commits_a_finished_load_before_answering(
     thread, answered, result = in_thread(
         lambda: consumer.call(provider.name, "leaf", {"n": 1}, timeout=WAIT)
     )
-    try:
-        assert entered.wait(WAIT)  # the LOADING row is committed; the load runs
-        with write_locked(path):
-            proceed.set()
-            assert not answered.wait(NOT_YET), "answered before the LOADED row was durable"
-    finally:
-        proceed.set()
-    assert answered.wait(WAIT)
-    thread.join(WAIT)
+    # the LOADING row is committed; the load runs
+    finish_while_locked(
+        path, entered, proceed, answered, thread, "answered before the LOADED row was durable"
+    )
 
     query = result[0]
     assert isinstance(query, rr.Query)
@@ -338,15 +355,10 @@ def test_save_on_modify_commits_an_unload_before_answering(
     consumer = start(started, unique("C"), None)  # no backup: only the provider commits
     query = consumer.call(provider.name, "leaf", {"n": 1})
     thread, answered, result = in_thread(lambda: consumer.unload(query.id, timeout=WAIT))
-    try:
-        assert entered.wait(WAIT)  # the UNLOADING row is committed; the callback runs
-        with write_locked(path):
-            proceed.set()
-            assert not answered.wait(NOT_YET), "answered before the removal was durable"
-    finally:
-        proceed.set()
-    assert answered.wait(WAIT)
-    thread.join(WAIT)
+    # the UNLOADING row is committed; the callback runs
+    finish_while_locked(
+        path, entered, proceed, answered, thread, "answered before the removal was durable"
+    )
 
     assert ([None], []) == (result, read_backup(path).resources)
 
@@ -368,15 +380,10 @@ def test_save_on_modify_commits_the_loaded_client_record_before_answering(
     thread, answered, result = in_thread(
         lambda: consumer.call(provider.name, "leaf", 1, timeout=WAIT)
     )
-    try:
-        assert entered.wait(WAIT)  # the pending record is committed; the provider loads
-        with write_locked(path):
-            proceed.set()
-            assert not answered.wait(NOT_YET), "answered before the client record was durable"
-    finally:
-        proceed.set()
-    assert answered.wait(WAIT)
-    thread.join(WAIT)
+    # the pending record is committed; the provider loads
+    finish_while_locked(
+        path, entered, proceed, answered, thread, "answered before the client record was durable"
+    )
 
     query = result[0]
     assert isinstance(query, rr.Query)

@@ -15,13 +15,8 @@ from __future__ import annotations
 
 import contextlib
 import os
-import select
-import shutil
 import signal
-import subprocess
 import sys
-import tempfile
-import textwrap
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -29,7 +24,15 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from supervision import FakeClock, ManualTimer, alive, echo_setup, process, wait_gone
+from supervision import (
+    FakeClock,
+    ManualTimer,
+    alive,
+    echo_setup,
+    killed_owner,
+    process,
+    wait_gone,
+)
 
 import rr_actors as rr
 from rr_actors import testing
@@ -474,55 +477,17 @@ def test_a_consumer_process_whose_supervisor_gave_up_for_good_is_released_at_its
 
 # -- no orphans -----------------------------------------------------------------------------------
 
-PARENT = textwrap.dedent(
-    """
-    import sys, threading
-    import rr_actors as rr
-
-    def setup(registrar):
-        registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
-
-    if __name__ == "__main__":
-        uid = sys.argv[1]
-        sup = rr.Supervisor([rr.ManagerSpec(f"{n}-{uid}", setup, isolation="process",
-                                            heartbeat=None) for n in ("a", "b")])
-        sup.start()
-        print(" ".join(str(i.pid) for i in sup.which_children()), flush=True)
-        threading.Event().wait()
-    """
-)
-
 
 def test_killing_the_main_process_also_ends_a_manager_too_stuck_to_read_its_pipe(
     uid: str, tmp_path: Path
 ) -> None:
-    script = tmp_path / "parent.py"
-    script.write_text(PARENT)
-    runtime_parent = tempfile.mkdtemp(prefix="rr-test-")
-    parent = subprocess.Popen(
-        [sys.executable, str(script), uid],
-        stdout=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "TMPDIR": runtime_parent},
-    )
     pids: list[int] = []
     try:
-        try:
-            assert parent.stdout is not None
-            readable, _, _ = select.select([parent.stdout], [], [], 30.0)
-            assert [parent.stdout] == readable
-            pids = [int(p) for p in parent.stdout.readline().split()]
-            assert 2 == len(pids)
+        with killed_owner(uid, tmp_path, heartbeat=False) as pids:
             os.kill(pids[0], signal.SIGSTOP)  # stuck: it will never see EOF on its pipe
-        finally:
-            parent.kill()
-            parent.wait(10.0)
-            if parent.stdout is not None:
-                parent.stdout.close()
 
         assert [] == wait_gone(pids)
     finally:
         for pid in pids:
             with contextlib.suppress(OSError):
                 os.kill(pid, signal.SIGKILL)
-        shutil.rmtree(runtime_parent, ignore_errors=True)

@@ -11,12 +11,9 @@ from __future__ import annotations
 
 import contextlib
 import os
-import select
-import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import textwrap
 import threading
 import time
@@ -25,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from supervision import alive, echo_setup, process, wait_gone
+from supervision import alive, echo_setup, killed_owner, process, wait_gone
 
 import rr_actors as rr
 from rr_actors._manager import start_forkserver
@@ -337,52 +334,11 @@ def test_a_manager_that_does_not_stop_in_time_is_killed(
     assert ("killed", False) == ((sup.child(name).last_exit or "")[:6], alive(pid))
 
 
-PARENT = textwrap.dedent(
-    """
-    import sys, threading
-    import rr_actors as rr
-
-    def setup(registrar):
-        registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
-
-    if __name__ == "__main__":
-        uid = sys.argv[1]
-        sup = rr.Supervisor([rr.ManagerSpec(f"{n}-{uid}", setup, isolation="process")
-                             for n in ("a", "b")])
-        sup.start()
-        print(" ".join(str(i.pid) for i in sup.which_children()), flush=True)
-        threading.Event().wait()
-    """
-)
-
-
 def test_killing_the_users_main_process_leaves_no_manager_process(uid: str, tmp_path: Path) -> None:
-    script = tmp_path / "parent.py"
-    script.write_text(PARENT)
-    # A SIGKILLed owner cannot remove its system's runtime directory: keep it where this
-    # test removes it (short: AF_UNIX socket paths are limited to about 100 bytes).
-    runtime_parent = tempfile.mkdtemp(prefix="rr-test-")
-    parent = subprocess.Popen(
-        [sys.executable, str(script), uid],
-        stdout=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "TMPDIR": runtime_parent},
-    )
-    try:
-        assert parent.stdout is not None
-        readable, _, _ = select.select([parent.stdout], [], [], 30.0)
-        assert [parent.stdout] == readable  # it prints its managers' pids once they run
-        pids = [int(p) for p in parent.stdout.readline().split()]
-        assert 2 == len(pids)
+    with killed_owner(uid, tmp_path) as pids:
         assert all(alive(p) for p in pids)
-    finally:
-        parent.kill()
-        parent.wait(10.0)
-        if parent.stdout is not None:
-            parent.stdout.close()
 
     assert [] == wait_gone(pids)
-    shutil.rmtree(runtime_parent)
 
 
 # -- the same outcome in both placements ------------------------------------------------------
