@@ -8,7 +8,9 @@ forkserver), never with a plain `fork` of the threaded parent. In the child, `ma
 2. attaches to the system and starts the registrar, which restores its catalog,
 3. runs the (cloudpickled) `setup(registrar)`, then serves the registrar on the system,
 4. reports `ready` over its control pipe and answers control requests: `stop` and `ping`
-   (the heartbeat, answered through the registrar actor's mailbox),
+   (the heartbeat, answered through the registrar actor's mailbox); meanwhile a
+   low-priority thread moves its dense memory onto huge pages, so that the kernel frees
+   it faster when the process is killed (`rr_actors._memory`),
 5. exits at once when the control pipe reaches EOF: the supervisor's process is gone,
 6. exits with code 0 when its registrar was stopped cleanly by code in the manager (a
    `transient` manager is then not restarted, as in a thread), with code 71 when the
@@ -43,6 +45,7 @@ import cloudpickle
 import pykka
 
 from rr_actors._directory import DIRECTORY
+from rr_actors._memory import COLLAPSER
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (
     CallTimeoutError,
@@ -304,6 +307,7 @@ def _run_manager(setup: bytes, config: RegistrarConfig, address: Any, conn: Conn
 
     threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
     control.send(("ready", os.getpid()))
+    COLLAPSER.request()  # the restored catalog onto huge pages (a crash is seen sooner)
     _serve_control(conn, control, registrar, attached, stopping)
 
 
@@ -314,7 +318,8 @@ def _warm_up() -> None:
     (Python writes reference counts and GC headers everywhere) copies it, which made the
     first registrar start in a new process about twice as slow as in a warm one. A full
     collection touches every tracked object (and so most of the heap) once; opening an
-    in-memory SQLite database initialises the library.
+    in-memory SQLite database initialises the library. Then what the process holds is
+    moved onto huge pages in the background (`rr_actors._memory`).
     """
     import gc  # noqa: PLC0415
     import sqlite3  # noqa: PLC0415
@@ -322,6 +327,7 @@ def _warm_up() -> None:
     gc.collect()
     with contextlib.closing(sqlite3.connect(":memory:")) as db:
         db.execute("CREATE TABLE t (x)").fetchall()
+    COLLAPSER.request()
 
 
 def standby(conn: Connection, parent: int | None = None) -> None:
