@@ -19,8 +19,8 @@ every `interval` seconds, for what the catalog grew since. Elsewhere (another ke
 operating system) it does nothing.
 
 Measured (`benchmarks/bench_supervisor.py`, `docs/performance.md`): a manager restored
-with 100k entries holds about 34 MB, of which 18 MB are collapsed; its SIGKILL was seen
-after 4.1 ms instead of 5.4-5.8 ms in alternated runs.
+with 100k entries holds about 34 MB, of which 14-18 MB are collapsed; its SIGKILL was
+seen after 4.1-5.1 ms instead of 4.7-6.6 ms in runs alternated with the code before.
 """
 
 from __future__ import annotations
