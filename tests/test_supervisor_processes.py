@@ -21,11 +21,18 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cloudpickle
 import pytest
 from supervision import alive, echo_setup, killed_owner, process, wait_gone
 
 import rr_actors as rr
-from rr_actors._manager import start_forkserver
+from rr_actors._manager import (
+    ManagerExit,
+    ManagerProcess,
+    _forker_pid,
+    mp_context,
+    start_forkserver,
+)
 from rr_actors.testing import SharedObjects
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
@@ -459,3 +466,37 @@ def test_a_manager_whose_forking_process_died_before_prctl_exits_at_once(tmp_pat
     finally:
         with contextlib.suppress(OSError):
             os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.skipif(not hasattr(os, "pidfd_open"), reason="needs pidfd_open (Linux 5.3+)")
+@pytest.mark.usefixtures("process_helpers")
+def test_a_killed_manager_is_seen_dead_without_waiting_for_the_forkserver_to_reap_it(
+    uid: str,
+) -> None:
+    # The forkserver, the manager's parent, is stopped: it cannot reap the manager nor
+    # write its exit status to the sentinel. The pidfd and /proc/<pid>/stat still tell.
+    ctx = mp_context()
+    forker = _forker_pid(ctx)
+    if forker is None or forker == os.getpid():
+        pytest.skip("needs the forkserver start method")
+    exits: list[ManagerExit] = []
+    exited = threading.Event()
+    handle = ManagerProcess.start(
+        f"reap-{uid}",
+        cloudpickle.dumps(None),
+        rr.RegistrarConfig(name=f"reap-{uid}"),
+        None,
+        start_timeout=30.0,
+        heartbeat=None,
+        heartbeat_timeout=None,
+        on_exit=lambda how: (exits.append(how), exited.set()),
+    )
+    os.kill(forker, signal.SIGSTOP)
+    try:
+        os.kill(handle.pid, signal.SIGKILL)
+        seen = exited.wait(10.0)
+    finally:
+        os.kill(forker, signal.SIGCONT)
+    assert seen, "the exit was seen only once the forkserver reaped the manager"
+    assert [(e.reason, e.normal) for e in exits] == [("killed by SIGKILL", False)]
+    assert wait_gone([handle.pid]) == []
