@@ -9,8 +9,8 @@ forkserver), never with a plain `fork` of the threaded parent. In the child, `ma
 3. runs the (cloudpickled) `setup(registrar)`, then serves the registrar on the system,
 4. reports `ready` over its control pipe and answers control requests: `stop` and `ping`
    (the heartbeat, answered through the registrar actor's mailbox); meanwhile a
-   low-priority thread moves its dense memory onto huge pages, so that the kernel frees
-   it faster when the process is killed (`rr_actors._memory`),
+   thread moves its dense memory onto huge pages, so that the kernel frees it faster
+   when the process is killed (`rr_actors._memory`),
 5. exits at once when the control pipe reaches EOF: the supervisor's process is gone,
 6. exits with code 0 when its registrar was stopped cleanly by code in the manager (a
    `transient` manager is then not restarted, as in a thread), with code 71 when the
@@ -307,8 +307,8 @@ def _run_manager(setup: bytes, config: RegistrarConfig, address: Any, conn: Conn
         _exit(_ACTOR_DIED_EXIT, attached)
 
     threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
-    control.send(("ready", os.getpid()))
     COLLAPSER.request()  # the restored catalog onto huge pages (a crash is seen sooner)
+    control.send(("ready", os.getpid()))
     _serve_control(conn, control, registrar, attached, stopping)
 
 

@@ -10,8 +10,6 @@ from __future__ import annotations
 import ctypes
 import logging
 import mmap
-import os
-import platform
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -26,18 +24,15 @@ from rr_actors._memory import Collapser, collapse_dense_memory
 
 
 def _huge_pages_by_request() -> bool:
-    """Linux >= 6.1 (MADV_COLLAPSE) with THP on request only (`[madvise]`)."""
-    if platform.system() != "Linux":
-        return False
-    major, minor = (int(part) for part in platform.release().split(".")[:2])
+    """`MADV_COLLAPSE` works here, and THP comes on request only (`[madvise]`)."""
     try:
         enabled = Path("/sys/kernel/mm/transparent_hugepage/enabled").read_text()
     except OSError:
         return False
-    return (major, minor) >= (6, 1) and "[madvise]" in enabled
+    return _memory.supported() and "[madvise]" in enabled
 
 
-pytestmark = pytest.mark.skipif(
+collapsing = pytest.mark.skipif(
     not _huge_pages_by_request(),
     reason="needs Linux >= 6.1 with transparent huge pages set to `madvise`",
 )
@@ -87,6 +82,7 @@ def _smaps_of(address: int, pid: int | str = "self") -> dict[str, int]:
     return fields
 
 
+@collapsing
 def test_dense_chunks_go_onto_huge_pages_and_sparse_ones_stay() -> None:
     dense, sparse = _mapping(resident_every=1), _mapping(resident_every=4)
     try:
@@ -103,16 +99,47 @@ def test_dense_chunks_go_onto_huge_pages_and_sparse_ones_stay() -> None:
     assert sparse_after["Rss"] == sparse_before, "a quarter-resident chunk was filled up"
 
 
-def test_without_madv_collapse_nothing_is_collapsed_and_nothing_raises(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    monkeypatch.setattr(_memory, "_MADV_COLLAPSE", 0x7FFF)  # EINVAL, as on Linux < 6.1
+@collapsing
+def test_a_chunk_the_kernel_refuses_does_not_end_the_pass() -> None:
+    # the refused mapping is made second: it lies below the first, and is visited first
     dense = _mapping(resident_every=1)
+    refused = _mapping(resident_every=1)
     try:
-        assert collapse_dense_memory() == 0
-        assert _smaps_of(_address(dense))["AnonHugePages"] == 0
+        madvise = ctypes.CDLL(None).madvise
+        madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+        assert madvise(_address(refused), _SIZE, 15) == 0  # MADV_NOHUGEPAGE: EINVAL later
+        assert _address(refused) < _address(dense)
+        collapse_dense_memory()
+        assert _smaps_of(_address(refused))["AnonHugePages"] == 0
+        assert _smaps_of(_address(dense))["AnonHugePages"] >= 3 * 2048
     finally:
         dense.close()
+        refused.close()
+
+
+def test_nothing_is_collapsed_where_thp_is_never_or_unsupported(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    for enabled, advice in (("always madvise [never]", 25), ("[madvise] never", 0x7FFF)):
+        monkeypatch.setattr(_memory, "_MADV_COLLAPSE", advice)  # 0x7FFF: as on Linux < 6.1
+        monkeypatch.setattr(
+            _memory, "_thp_setting", lambda name, e=enabled: e if name == "enabled" else "2097152"
+        )
+        _memory._system.cache_clear()
+        try:
+            dense = _mapping(resident_every=1)
+            try:
+                assert not _memory.supported()
+                assert collapse_dense_memory() == 0
+                assert _smaps_of(_address(dense))["AnonHugePages"] == 0
+                ticker = Collapser()
+                assert ticker.request() == 0
+                assert ticker.wait(0, timeout=0.0)
+                assert not any(t.name == "rr-memory-collapse" for t in threading.enumerate())
+            finally:
+                dense.close()
+        finally:
+            _memory._system.cache_clear()
 
 
 @pytest.fixture
@@ -128,24 +155,25 @@ def collapser() -> Iterator[Callable[..., Collapser]]:
         one.close()
 
 
-def _priority_of(name: str) -> int:
-    (thread,) = (t for t in threading.enumerate() if t.name == name)
-    assert thread.native_id is not None
-    return os.getpriority(os.PRIO_PROCESS, thread.native_id)
-
-
-def test_the_collapser_passes_when_asked_and_then_periodically_at_the_lowest_priority(
-    collapser: Callable[..., Collapser],
-) -> None:
-    ticker = collapser(interval=0.01)
+@collapsing
+def test_the_collapser_passes_when_asked(collapser: Callable[..., Collapser]) -> None:
+    ticker = collapser(interval=60.0)
     dense = _mapping(resident_every=1)
     try:
         assert ticker.wait(ticker.request(), timeout=10.0)
         assert _smaps_of(_address(dense))["AnonHugePages"] >= 3 * 2048
-        assert ticker.wait_for_passes(ticker.passes + 3, timeout=10.0), "no periodic pass"
-        assert _priority_of("rr-memory-collapse") == 19
     finally:
         dense.close()
+
+
+def test_the_collapser_also_passes_periodically(
+    collapser: Callable[..., Collapser], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(_memory, "supported", lambda: True)
+    monkeypatch.setattr(_memory, "collapse_dense_memory", lambda: 0)
+    ticker = collapser(interval=0.01)
+    assert ticker.wait(ticker.request(), timeout=10.0)
+    assert ticker.wait_for_passes(ticker.passes + 3, timeout=10.0), "no periodic pass"
 
 
 def test_a_failing_pass_is_logged_and_the_collapser_goes_on(
@@ -160,6 +188,7 @@ def test_a_failing_pass_is_logged_and_the_collapser_goes_on(
             raise failure
         return 0
 
+    monkeypatch.setattr(_memory, "supported", lambda: True)
     monkeypatch.setattr(_memory, "collapse_dense_memory", collapse)
     ticker = collapser(interval=60.0)
     with caplog.at_level(logging.ERROR, logger="rr_actors"):
@@ -169,7 +198,10 @@ def test_a_failing_pass_is_logged_and_the_collapser_goes_on(
     assert "collapsing memory into huge pages failed" in caplog.text
 
 
-def test_closing_the_collapser_ends_its_thread(collapser: Callable[..., Collapser]) -> None:
+def test_closing_the_collapser_ends_its_thread(
+    collapser: Callable[..., Collapser], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(_memory, "supported", lambda: True)
     ticker = collapser(interval=60.0)
     assert ticker.wait(ticker.request(), timeout=10.0)
     ticker.close()
@@ -181,16 +213,16 @@ def _dense_setup(registrar: rr.ResourceRegistrar) -> None:
     registrar.dense_buffer = _mapping(resident_every=1)  # type: ignore[attr-defined]
 
 
-def _after_the_ready_pass(registrar: rr.ResourceRegistrar) -> tuple[int, int, int]:
-    """In the manager: wait for the pass asked for at ready; huge kB, Rss kB, priority."""
+def _after_the_ready_pass(registrar: rr.ResourceRegistrar) -> tuple[int, int]:
+    """In the manager: wait for the pass it asked for before ready; huge kB, Rss kB."""
     from rr_actors._memory import COLLAPSER  # noqa: PLC0415 - the manager's own
 
-    assert COLLAPSER.wait(COLLAPSER.latest, timeout=10.0)
-    buffer = registrar.dense_buffer  # type: ignore[attr-defined]
-    fields = _smaps_of(_address(buffer))
-    return fields["AnonHugePages"], fields["Rss"], _priority_of("rr-memory-collapse")
+    assert COLLAPSER.wait(COLLAPSER._requested, timeout=10.0)  # not a pass of our own
+    fields = _smaps_of(_address(registrar.dense_buffer))  # type: ignore[attr-defined]
+    return fields["AnonHugePages"], fields["Rss"]
 
 
+@collapsing
 @pytest.mark.usefixtures("process_helpers")  # the forkserver: not this test's leftover
 def test_a_manager_process_moves_what_setup_allocated_onto_huge_pages(
     supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path
@@ -199,7 +231,6 @@ def test_a_manager_process_moves_what_setup_allocated_onto_huge_pages(
     sup = supervisors([process(name, _dense_setup)], state_dir=tmp_path)
     sup.start()
 
-    huge, rss, priority = sup.run_in(name, _after_the_ready_pass, timeout=20.0)
+    huge, rss = sup.run_in(name, _after_the_ready_pass, timeout=20.0)
 
     assert huge >= 3 * 2048, (huge, rss)
-    assert priority == 19
