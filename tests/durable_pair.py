@@ -1,12 +1,38 @@
 """Durable registrars for the persistence tests: the provider/consumer pair that the crash
-tests run in their child processes, and `start` for a registrar a test stops at teardown."""
+tests run in their child processes, `start` for a registrar a test stops at teardown, and
+stores and schema-2 files to start from (`opened`, `schema_2_database`)."""
 
 from __future__ import annotations
 
+import sqlite3
 from pathlib import Path
 from typing import Any
 
 import rr_actors as rr
+from rr_actors import _sqlite_store as store_module
+from rr_actors._catalog import DIGEST_SCHEME, Catalog
+from rr_actors._sqlite_store import SqliteStore
+
+
+def opened(path: Path) -> tuple[SqliteStore, Catalog]:
+    """A store with background checkpoints on `path` that holds loaded resource `r1`."""
+    store = SqliteStore.open(path, background_checkpoints=True)
+    store.load()
+    catalog = Catalog()
+    catalog.begin_load("r1", "leaf", {"n": 1})
+    catalog.finish_load("r1", {"pid": 1})
+    store.write(catalog.drain_changes())
+    return store, catalog
+
+
+def schema_2_database(path: Path) -> sqlite3.Connection:
+    """An autocommit connection to a new, empty rr_actors backup at schema version 2."""
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute(f"PRAGMA application_id = {store_module.APPLICATION_ID}")
+    for step in store_module._MIGRATIONS[:2]:
+        step(db)
+    db.execute("UPDATE rr_actors_schema SET version = 2, digest_scheme = ?", (DIGEST_SCHEME,))
+    return db
 
 
 def leaf_load(request: Any) -> Any:

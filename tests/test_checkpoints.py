@@ -18,6 +18,7 @@ import uuid
 from pathlib import Path
 
 import pytest
+from durable_pair import opened
 
 import rr_actors as rr
 from rr_actors import _sqlite_store as store_module
@@ -39,16 +40,6 @@ def write_changes(store: SqliteStore, catalog: Catalog, count: int) -> None:
     for _ in range(count):
         catalog.add_consumer(rid, str(uuid.uuid4()), "C")
         store.write(catalog.drain_changes())
-
-
-def opened(path: Path) -> tuple[SqliteStore, Catalog]:
-    store = SqliteStore.open(path, background_checkpoints=True)
-    store.load()
-    catalog = Catalog()
-    catalog.begin_load("r1", "leaf", {"n": 1})
-    catalog.finish_load("r1", {"pid": 1})
-    store.write(catalog.drain_changes())
-    return store, catalog
 
 
 def reader_on_old_snapshot(path: Path) -> sqlite3.Connection:

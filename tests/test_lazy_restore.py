@@ -14,10 +14,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from durable_pair import schema_2_database
 
 import rr_actors as rr
 from rr_actors import _sqlite_store as store_module
-from rr_actors._catalog import DIGEST_SCHEME, Catalog, request_digest
+from rr_actors._catalog import Catalog, request_digest
 from rr_actors._sqlite_store import SqliteStore, read_backup
 
 
@@ -208,11 +209,7 @@ def write_v2_backup(path: Path) -> None:
     r0 (loaded, consumers q0 then q1 in arrival order, owner of dependency d0), r1 still
     loading (in doubt), r2 loaded; the consumer seqs are not in resource order.
     """
-    db = sqlite3.connect(path, isolation_level=None)
-    db.execute(f"PRAGMA application_id = {store_module.APPLICATION_ID}")
-    for step in store_module._MIGRATIONS[:2]:
-        step(db)
-    db.execute("UPDATE rr_actors_schema SET version = 2, digest_scheme = ?", (DIGEST_SCHEME,))
+    db = schema_2_database(path)
     dumps = store_module._dumps
     for seq, rid, state, request in ((1, "r0", 1, {"n": 0}), (2, "r1", 0, "x"), (5, "r2", 1, 2)):
         db.execute(

@@ -20,12 +20,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from durable_pair import start
+from durable_pair import opened, schema_2_database, start
 
 import rr_actors as rr
 from rr_actors import _persistence
 from rr_actors import _sqlite_store as store_module
-from rr_actors._catalog import DIGEST_SCHEME, Catalog, request_digest
+from rr_actors._catalog import Catalog, request_digest
 from rr_actors._cli import main
 from rr_actors._persistence import open_store
 from rr_actors._sqlite_store import SqliteStore, quarantine_backup, read_backup
@@ -150,11 +150,7 @@ def test_a_write_that_fails_half_way_leaves_none_of_its_statements_in_the_file(
 
 def write_v2_backup(path: Path) -> None:
     """A schema-2 backup (rowid consumers, no indexes): r0 loaded with consumer q0."""
-    db = sqlite3.connect(path, isolation_level=None)
-    db.execute(f"PRAGMA application_id = {store_module.APPLICATION_ID}")
-    for step in store_module._MIGRATIONS[:2]:
-        step(db)
-    db.execute("UPDATE rr_actors_schema SET version = 2, digest_scheme = ?", (DIGEST_SCHEME,))
+    db = schema_2_database(path)
     dumps = store_module._dumps
     db.execute(
         "INSERT INTO resources VALUES (1, 'r0', 'leaf', 1, ?, ?, ?)",
@@ -464,12 +460,7 @@ def test_below_the_limit_a_checkpoint_is_passive_and_does_not_wait_for_a_reader(
     tmp_path: Path,
 ) -> None:
     path = tmp_path / "c.db"
-    store = SqliteStore.open(path, background_checkpoints=True)
-    store.load()
-    catalog = Catalog()
-    catalog.begin_load("r1", "leaf", {"n": 1})
-    catalog.finish_load("r1", {"pid": 1})
-    store.write(catalog.drain_changes())
+    store, catalog = opened(path)
     reader = sqlite3.connect(path, isolation_level=None)
     reader.execute("BEGIN")
     reader.execute("SELECT count(*) FROM consumers").fetchone()  # an old snapshot
