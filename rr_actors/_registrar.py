@@ -35,6 +35,7 @@ from typing import Any, ClassVar
 import cloudpickle
 import pykka
 
+from rr_actors._actors import Actor, OneShotFuture
 from rr_actors._catalog import Catalog, ClientRecord, Resource, ResourceState
 from rr_actors._directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._messages import (
@@ -126,21 +127,21 @@ class _FetchVia:
 @dataclasses.dataclass(frozen=True)
 class _Pending:
     record: ClientRecord
-    attempt: pykka.ThreadingFuture[Any]
+    attempt: pykka.Future[Any]
 
 
 @dataclasses.dataclass(frozen=True)
 class _ClientLoaded:
     record: ClientRecord  # its query holds the response
     on_status: StatusCallback | None
-    attempt: pykka.ThreadingFuture[Any]  # the caller's future
+    attempt: pykka.Future[Any]  # the caller's future
     answer_after_commit: bool  # the caller is answered by the registrar, after the commit
 
 
 @dataclasses.dataclass(frozen=True)
 class _CallFailed:
     query_id: str
-    attempt: pykka.ThreadingFuture[Any]
+    attempt: pykka.Future[Any]
     gave_up: bool = False  # the caller timed out (an answer may still come)
 
 
@@ -178,7 +179,7 @@ class _ClientReply:
         registrar: pykka.ActorRef[Any],
         record: ClientRecord,
         on_status: StatusCallback | None,
-        future: pykka.ThreadingFuture[Any],
+        future: pykka.Future[Any],
         *,
         commit_first: bool,
     ) -> None:
@@ -242,7 +243,7 @@ def _load_error(registrar: str, server: str, exc: BaseException) -> RrError:
 # -- the actors ------------------------------------------------------------------------
 
 
-class ServerActor(pykka.ThreadingActor):
+class ServerActor(Actor):
     """A resource server: owns its callbacks and runs them on the registrar's workers.
 
     `load` and `unload` run on a worker thread of the registrar's process, never on an
@@ -295,7 +296,7 @@ class ServerActor(pykka.ThreadingActor):
             message.reply.set_result(None)
 
 
-class ClientActor(pykka.ThreadingActor):
+class ClientActor(Actor):
     """A client: the consumer-side endpoint for one target server (thesis 4.3.3).
 
     Created (and cached) by its registrar the first time it calls the server. It relays
@@ -381,7 +382,7 @@ class _Waiter:
     reply: Reply
 
 
-class RegistrarActor(pykka.ThreadingActor):
+class RegistrarActor(Actor):
     """The registrar actor: the only writer of its catalog.
 
     It never blocks: what it needs from another actor arrives later as a message.
@@ -413,8 +414,8 @@ class RegistrarActor(pykka.ThreadingActor):
         self.abandoned: set[str] = set()  # provider side: callers that gave up on a load
         # consumer side: attempts (the callers' futures) that timed out, and the futures
         # of durable calls in flight (answered by this actor after its commit)
-        self.given_up: set[pykka.ThreadingFuture[Any]] = set()
-        self.pending_attempts: dict[str, pykka.ThreadingFuture[Any]] = {}
+        self.given_up: set[pykka.Future[Any]] = set()
+        self.pending_attempts: dict[str, pykka.Future[Any]] = {}
         self.unload_waiters: dict[str, list[Reply]] = {}
         self.after_unload: dict[str, list[Load]] = {}
         self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
@@ -1487,7 +1488,7 @@ class ResourceRegistrar(RegistrarFacts):
                 parent = context.resource_id
         query = Query(query_id or str(uuid.uuid4()), server, target_rr, self.name, request)
         self._client(target_rr, server, limit)  # the client endpoint exists from the first call
-        future: pykka.ThreadingFuture[Any] = pykka.ThreadingFuture()
+        future: pykka.Future[Any] = OneShotFuture()
         try:
             # The load goes out from the caller's thread along the client's route rather
             # than through the client's mailbox: one thread hand-off less (a dedup hit

@@ -13,6 +13,7 @@ from typing import Any
 
 import pykka
 
+from rr_actors._actors import OneShotFuture
 from rr_actors.errors import CallTimeoutError
 
 __all__ = [
@@ -34,8 +35,8 @@ class FutureReply:
 
     __slots__ = ("future",)
 
-    def __init__(self, future: pykka.ThreadingFuture[Any] | None = None) -> None:
-        self.future: pykka.ThreadingFuture[Any] = future or pykka.ThreadingFuture()
+    def __init__(self, future: pykka.Future[Any] | None = None) -> None:
+        self.future: pykka.Future[Any] = future or OneShotFuture()
 
     def set_result(self, value: Any) -> None:
         with contextlib.suppress(queue.Full):
@@ -46,7 +47,7 @@ class FutureReply:
             self.future.set_exception((type(error), error, error.__traceback__))
 
 
-def wait(future: pykka.ThreadingFuture[Any], timeout: float, what: str) -> Any:
+def wait(future: pykka.Future[Any], timeout: float, what: str) -> Any:
     """Wait for `future` at most `timeout` seconds.
 
     Raises:

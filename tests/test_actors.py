@@ -1,0 +1,252 @@
+"""The actor base and its one-shot future keep pykka's contract.
+
+Every future test runs on pykka's own `ThreadingFuture` too, so each expectation is
+pykka's behaviour, not one we made up.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import queue
+import sys
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+import pykka
+import pytest
+
+from rr_actors._actors import Actor, OneShotFuture
+
+
+@pytest.fixture(params=[pykka.ThreadingFuture, OneShotFuture], ids=["pykka", "one_shot"])
+def future(request: pytest.FixtureRequest) -> pykka.Future[Any]:
+    made: pykka.Future[Any] = request.param()
+    return made
+
+
+def _waiters(future: pykka.Future[Any], count: int) -> tuple[list[Any], list[threading.Thread]]:
+    """`count` threads blocked in `future.get()`; what each got lands in the list."""
+    got: list[Any] = []
+    threads = [
+        threading.Thread(target=lambda: got.append(future.get(timeout=10))) for _ in range(count)
+    ]
+    for thread in threads:
+        thread.start()
+    return got, threads
+
+
+def test_get_returns_the_value_set_and_returns_it_again(future: pykka.Future[Any]) -> None:
+    value = {"cam": 1}
+    future.set(value)
+
+    assert value is future.get(timeout=1)
+    assert value is future.get()
+
+
+def test_every_thread_waiting_on_a_future_gets_its_value(future: pykka.Future[Any]) -> None:
+    got, threads = _waiters(future, 5)
+
+    future.set("ready")
+    for thread in threads:
+        thread.join(10)
+
+    assert ["ready"] * 5 == got
+
+
+def test_get_raises_pykka_timeout_when_nothing_is_set_in_time(future: pykka.Future[Any]) -> None:
+    with pytest.raises(pykka.Timeout):
+        future.get(timeout=0.01)
+    with pytest.raises(pykka.Timeout):
+        future.get(timeout=0)
+    with pytest.raises(pykka.Timeout):
+        future.get(timeout=-1)
+
+
+def test_a_timeout_beyond_what_a_lock_can_wait_still_waits() -> None:
+    # Here pykka's ThreadingFuture raises OverflowError; a registrar call with such a
+    # timeout (a finite call_timeout of 1e300, say) must not.
+    future: OneShotFuture[Any] = OneShotFuture()
+    got: list[Any] = []
+    waiting = threading.Thread(target=lambda: got.append(future.get(timeout=1e300)))
+    waiting.start()
+
+    future.set(7)
+    waiting.join(10)
+
+    assert [7] == got
+
+
+def test_a_second_set_raises_queue_full_and_keeps_the_first_value(
+    future: pykka.Future[Any],
+) -> None:
+    future.set(1)
+
+    with pytest.raises(queue.Full):
+        future.set(2)
+    with pytest.raises(queue.Full):
+        future.set_exception((ValueError, ValueError("late"), None))
+    with pytest.raises(queue.Full):
+        future.set_get_hook(lambda _timeout: 3)
+    assert 1 == future.get(timeout=1)
+
+
+def test_set_after_an_exception_raises_queue_full(future: pykka.Future[Any]) -> None:
+    future.set_exception((ValueError, ValueError("first"), None))
+
+    with pytest.raises(queue.Full):
+        future.set(2)
+    with pytest.raises(ValueError, match="first"):
+        future.get(timeout=1)
+
+
+def _raise_key_error() -> None:
+    raise KeyError("missing")
+
+
+def test_get_raises_the_exception_set_with_its_traceback(future: pykka.Future[Any]) -> None:
+    try:
+        _raise_key_error()
+    except KeyError:
+        exc_info = sys.exc_info()
+    future.set_exception(exc_info)
+
+    with pytest.raises(KeyError) as raised:
+        future.get(timeout=1)
+
+    assert exc_info[1] is raised.value
+    assert "_raise_key_error" in {entry.name for entry in raised.traceback}
+
+
+def test_set_exception_without_arguments_takes_the_exception_being_handled(
+    future: pykka.Future[Any],
+) -> None:
+    error = RuntimeError("handled")
+    try:
+        raise error
+    except RuntimeError:
+        future.set_exception()
+
+    with pytest.raises(RuntimeError) as raised:
+        future.get(timeout=1)
+    assert error is raised.value
+
+
+def test_an_exception_class_alone_is_raised_as_a_new_instance(future: pykka.Future[Any]) -> None:
+    future.set_exception((LookupError, None, None))
+
+    with pytest.raises(LookupError):
+        future.get(timeout=1)
+
+
+def test_a_get_hook_answers_get_and_blocks_a_later_set(future: pykka.Future[Any]) -> None:
+    timeouts: list[float | None] = []
+    future.set_get_hook(lambda timeout: timeouts.append(timeout) or "hooked")
+
+    assert "hooked" == future.get(timeout=2)
+    assert "hooked" == future.get(timeout=3)  # the hook runs once
+    assert [2] == timeouts
+    with pytest.raises(queue.Full):
+        future.set("late")
+
+
+def test_map_join_filter_and_reduce_build_on_the_same_future_type(
+    future: pykka.Future[Any],
+) -> None:
+    other = type(future)()
+    mapped = future.map(lambda value: value * 10)
+    joined = future.join(other)
+    filtered = other.filter(lambda item: item % 2 == 0)
+    reduced = other.reduce(lambda total, item: total + item)
+    future.set(4)
+    other.set([1, 2, 3, 4])
+
+    assert type(future) is type(mapped)
+    assert 40 == mapped.get(timeout=1)
+    assert [4, [1, 2, 3, 4]] == joined.get(timeout=1)
+    assert [2, 4] == filtered.get(timeout=1)
+    assert 10 == reduced.get(timeout=1)
+
+
+def test_a_future_can_be_awaited(future: pykka.Future[Any]) -> None:
+    async def waiting() -> Any:
+        return await future
+
+    future.set("awaited")
+
+    assert "awaited" == asyncio.run(waiting())
+
+
+# -- the actor --------------------------------------------------------------------------------
+
+
+class _Echo(Actor):
+    def __init__(self, gate: threading.Event | None = None) -> None:
+        super().__init__()
+        self.gate = gate
+
+    def on_receive(self, message: Any) -> Any:
+        if message == "wait" and self.gate is not None:
+            assert self.gate.wait(10)
+        if message == "fail":
+            raise ValueError("asked to fail")
+        return message
+
+
+@pytest.fixture
+def echo() -> Iterator[pykka.ActorRef[_Echo]]:
+    ref = _Echo.start()
+    yield ref
+    ref.stop()
+
+
+def test_an_actor_answers_asks_through_one_shot_futures_from_a_simple_queue(
+    echo: pykka.ActorRef[_Echo],
+) -> None:
+    future = echo.ask("hello", block=False)
+
+    assert isinstance(echo.actor_inbox, queue.SimpleQueue)
+    assert isinstance(future, OneShotFuture)
+    assert "hello" == future.get(timeout=5)
+
+
+def test_an_error_in_on_receive_reaches_the_asker(echo: pykka.ActorRef[_Echo]) -> None:
+    with pytest.raises(ValueError, match="asked to fail"):
+        echo.ask("fail", timeout=5)
+    assert "still here" == echo.ask("still here", timeout=5)
+
+
+def test_messages_are_handled_in_the_order_they_were_told() -> None:
+    class Recorder(Actor):
+        def __init__(self) -> None:
+            super().__init__()
+            self.seen: list[int] = []
+
+        def on_receive(self, message: Any) -> Any:
+            if message == "done":
+                return list(self.seen)
+            self.seen.append(message)
+            return None
+
+    ref = Recorder.start()
+    try:
+        for number in range(500):
+            ref.tell(number)
+
+        assert list(range(500)) == ref.ask("done", timeout=10)
+    finally:
+        ref.stop()
+
+
+def test_asks_still_queued_when_the_actor_stops_fail_with_actor_dead_error() -> None:
+    gate = threading.Event()
+    ref = _Echo.start(gate)
+    busy = ref.ask("wait", block=False)
+    stopped = ref.stop(block=False)
+    queued = ref.ask("after the stop", block=False)
+    gate.set()
+
+    assert "wait" == busy.get(timeout=10)
+    assert stopped.get(timeout=10) is True
+    with pytest.raises(pykka.ActorDeadError):
+        queued.get(timeout=10)
