@@ -60,7 +60,7 @@ from rr_actors._replies import (
 )
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors._workers import Workers
-from rr_actors.config import RegistrarConfig
+from rr_actors.config import RegistrarConfig, _check_duration
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
@@ -1710,8 +1710,7 @@ class ResourceRegistrar(RegistrarFacts):
     def _timeout(self, timeout: float | None) -> float:
         if timeout is None:
             return self._config.call_timeout
-        if isinstance(timeout, bool) or not isinstance(timeout, int | float) or timeout <= 0:
-            raise ConfigError(f"timeout must be a positive number of seconds, got {timeout!r}")
+        _check_duration("timeout", timeout, allow_none=False)
         return float(timeout)
 
     def _ask(

@@ -18,6 +18,7 @@ Durability = Literal["process", "power"]
 
 
 def _check_duration(field: str, value: object, *, allow_none: bool) -> None:
+    """Raise `ConfigError` naming `field` unless `value` is a finite, positive float or int."""
     if value is None and allow_none:
         return
     if (

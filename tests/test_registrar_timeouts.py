@@ -171,3 +171,15 @@ def test_retrying_a_timed_out_call_with_its_query_id_gets_the_resource(
 
 
 QUERY_ID = "0b4f8b8e-9a1e-4c55-8f43-2a7f3b1d6e10"
+
+
+def test_a_huge_finite_timeout_waits_and_a_non_finite_one_is_refused(make_registrar, serve):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    serve(provider, "leaf")
+
+    query = consumer.call(provider.name, "leaf", "x", timeout=1e300)  # beyond a lock's wait
+    consumer.unload(query.id, timeout=1e300)
+    for timeout in (float("inf"), float("nan")):
+        with pytest.raises(rr.ConfigError, match="timeout"):
+            consumer.call(provider.name, "leaf", "x", timeout=timeout)
+    assert [] == consumer.client_queries()
