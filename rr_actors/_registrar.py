@@ -212,6 +212,43 @@ class _ClientReply:
         FutureReply(self.future).set_error(error)
 
 
+class _DueAnswers:
+    """The query ids whose answer a consumer has not recorded yet, with their attempt.
+
+    Shared by the registrar's callers and its actor: a caller adds its query id before
+    its `Load` leaves; the actor removes it once it handled that attempt's answer
+    (`_ClientLoaded`) or failure (`_CallFailed`). Across processes the provider's notices
+    about a query (status, response update, revoke) travel on the provider's connection
+    to this registrar's listener, while the answer comes back on this process's
+    connection to the provider, read by another thread: a notice can overtake the answer
+    it is about. The actor holds such a notice until the query id is no longer due. The
+    lock makes "remove it if it is still this attempt's" atomic against a retry that
+    reuses the query id.
+    """
+
+    __slots__ = ("_attempts", "_lock")
+
+    def __init__(self) -> None:
+        self._attempts: dict[str, pykka.Future[Any]] = {}
+        self._lock = threading.Lock()
+
+    def __contains__(self, query_id: str) -> bool:
+        return query_id in self._attempts
+
+    def expect(self, query_id: str, attempt: pykka.Future[Any]) -> None:
+        """A call `attempt` with `query_id` is about to be sent (any thread)."""
+        with self._lock:
+            self._attempts[query_id] = attempt
+
+    def settle(self, query_id: str, attempt: pykka.Future[Any]) -> bool:
+        """`attempt`'s answer or failure was handled; whether it was the one due."""
+        with self._lock:
+            if self._attempts.get(query_id) is attempt:
+                del self._attempts[query_id]
+                return True
+        return False
+
+
 def _check_picklable(value: Any, what: str) -> None:
     """Raise `ConfigError` if `value` cannot be stored in a catalog backup."""
     try:
@@ -395,6 +432,7 @@ class RegistrarActor(Actor):
         saver: Saver,
         peer: LocalPeer,
         died: threading.Event,
+        due: _DueAnswers,
         *,
         setting_up: bool = False,
     ) -> None:
@@ -426,6 +464,8 @@ class RegistrarActor(Actor):
         self.setup_done = False  # start(setup=) finished: servers it did not register are gone
         self.open_requests: set[_OpenReply] = set()  # handle requests not answered yet
         self.died = died  # set once a crash was fully handled (see testing.crash)
+        self.due = due  # consumer side: calls whose answer is on its way
+        self.parked_notices: dict[str, list[StatusNotice | Revoke | ResponseUpdated]] = {}
         self.flush_timer: Cancellable | None = None
 
     # -- life cycle -------------------------------------------------------------------
@@ -509,6 +549,7 @@ class RegistrarActor(Actor):
             FutureReply(attempt).set_error(error)
         for request in list(self.open_requests):
             request.set_error(error)
+        self._fail_parked(error)
         while not self.actor_inbox.empty():
             message = self.actor_inbox.get().message
             pending = getattr(message, "reply", None)
@@ -519,6 +560,14 @@ class RegistrarActor(Actor):
                 with contextlib.suppress(RrError):
                     DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
                 FutureReply(message.attempt).set_error(error)
+
+    def _fail_parked(self, error: RrError) -> None:
+        """Answer the notices still waiting for an answer that will not be handled now."""
+        for notices in self.parked_notices.values():
+            for notice in notices:
+                if not isinstance(notice, Revoke):  # (a revoke wants no answer)
+                    notice.reply.set_error(error)
+        self.parked_notices.clear()
 
     def _stop_children(self) -> None:
         for server in self.servers.values():
@@ -860,6 +909,8 @@ class RegistrarActor(Actor):
 
     def _on_status_notice(self, message: StatusNotice) -> None:
         """Consumer side: run the client callbacks, climb to the dependent resources."""
+        if self._parked(message):
+            return
         join = SharedJoin(lambda: message.reply.set_result(None))
         for query_id in message.query_ids:
             record = self.catalog.clients.get(query_id)
@@ -889,6 +940,8 @@ class RegistrarActor(Actor):
         )
 
     def _on_revoke(self, message: Revoke) -> None:
+        if self._parked(message):
+            return
         for query_id in message.query_ids:
             if query_id in self.catalog.clients:
                 self.catalog.remove_client(query_id)
@@ -896,10 +949,29 @@ class RegistrarActor(Actor):
         self._commit()
 
     def _on_response_updated(self, message: ResponseUpdated) -> None:
+        if self._parked(message):
+            return
         for query_id in message.query_ids:
             self.catalog.client_loaded(query_id, message.response)
         self._commit()
         message.reply.set_result(None)
+
+    def _parked(self, notice: StatusNotice | Revoke | ResponseUpdated) -> bool:
+        """Hold `notice` if the answer to one of its queries is still on its way.
+
+        It is handled again (`_answered`) once that answer or the call's failure was.
+        """
+        for query_id in notice.query_ids:
+            if query_id in self.due:
+                self.parked_notices.setdefault(query_id, []).append(notice)
+                return True
+        return False
+
+    def _answered(self, query_id: str, attempt: pykka.Future[Any]) -> None:
+        """`attempt`'s answer or failure was handled: handle what waited for it."""
+        if self.due.settle(query_id, attempt):
+            for notice in self.parked_notices.pop(query_id, ()):
+                self.on_receive(notice)
 
     # -- consumer side ----------------------------------------------------------------
 
@@ -922,6 +994,10 @@ class RegistrarActor(Actor):
         self._commit()
 
     def _on_client_loaded(self, message: _ClientLoaded) -> None:
+        self._record_answer(message)
+        self._answered(message.record.query.id, message.attempt)
+
+    def _record_answer(self, message: _ClientLoaded) -> None:
         query = message.record.query
         self.pending_attempts.pop(query.id, None)
         gave_up = message.attempt in self.given_up  # its give-up released the id already
@@ -995,6 +1071,7 @@ class RegistrarActor(Actor):
             self.catalog.remove_client(message.query_id)
             self.status_callbacks.pop(message.query_id, None)
             self._commit()
+        self._answered(message.query_id, message.attempt)
 
     def _on_request(self, message: _Request) -> None:
         reply = _OpenReply(message.reply, self.open_requests)
@@ -1298,6 +1375,7 @@ class ResourceRegistrar(RegistrarFacts):
         self._in_doubt = in_doubt
         self._clients: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
         self._died = threading.Event()  # set when a crash of the actor was fully handled
+        self._due = _DueAnswers()  # shared with the actor (see `start`)
         self._commit_first = config.save_on_modify and config.backup_path is not None
 
     @classmethod
@@ -1350,8 +1428,9 @@ class ResourceRegistrar(RegistrarFacts):
                 if r.state is not ResourceState.LOADED
             )
             died = threading.Event()
+            due = _DueAnswers()
             ref = RegistrarActor.start(
-                config, catalog, saver, peer, died, setting_up=setup is not None
+                config, catalog, saver, peer, died, due, setting_up=setup is not None
             )
         except BaseException:
             if store is not None:
@@ -1360,6 +1439,7 @@ class ResourceRegistrar(RegistrarFacts):
             raise
         handle = cls(ref, config, restored=restored is not None, in_doubt=in_doubt)
         handle._died = died
+        handle._due = due
         if setup is not None:
             try:
                 setup(handle)
@@ -1500,6 +1580,7 @@ class ResourceRegistrar(RegistrarFacts):
             reply = _ClientReply(
                 self._ref, record, on_status, future, commit_first=self._commit_first
             )
+            self._due.expect(query.id, future)  # a notice that overtakes the answer waits
             try:
                 DIRECTORY.lookup(target_rr).tell(
                     Load(query.id, server, request, self.name, chain, reply)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import logging
 import multiprocessing
 import multiprocessing.connection
@@ -38,7 +39,8 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._directory import DIRECTORY
-from rr_actors._messages import Fetch, Load
+from rr_actors._messages import Fetch, Load, ResponseUpdated, Revoke, StatusNotice
+from rr_actors._registrar import RegistrarActor
 from rr_actors._transport import RemotePeer, System, _Channel, _Writer, attach
 
 Setup = Callable[[rr.ResourceRegistrar], None]
@@ -78,9 +80,41 @@ def _blocking_load(request: Any) -> Any:
     return request
 
 
+class _Gate:
+    """Holds this process's reader thread while it unpickles a `Gated` answer."""
+
+    def __init__(self) -> None:
+        self.entered = threading.Event()
+        self.release = threading.Event()
+
+
+GATE = _Gate()  # the test process's (the consumer's); reset by the `gate` fixture
+
+
+def _rebuild_gated(value: Any) -> Any:
+    GATE.entered.set()
+    GATE.release.wait(30)
+    return value
+
+
+class Gated:
+    """A response whose unpickling waits until `GATE.release` is set (it unpickles as `value`)."""
+
+    def __init__(self, value: Any) -> None:
+        self.value = value
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_rebuild_gated, (self.value,))
+
+
+def _gated_load(request: Any) -> Any:
+    return Gated(request)
+
+
 def setup_servers(registrar: rr.ResourceRegistrar) -> None:
     """The provider's servers: a recording `echo`, a `slow` one and one with a bad response."""
     registrar.register_server("echo", load=_record_load, unload=_record_unload)
+    registrar.register_server("gated", load=_gated_load, unload=_record_unload)
     registrar.register_server("slow", load=_blocking_load, unload=_record_unload)
     registrar.register_server("lock", load=lambda _request: threading.Lock(), unload=_record_unload)
 
@@ -398,6 +432,247 @@ def test_a_status_sent_in_the_provider_process_reaches_the_consumer_callback(
     assert [(query.id, rr.Status.WARNING, "hot")] == [
         (u.query_id, u.status, u.message) for u in heard
     ]
+
+
+# -- notices that overtake the answer they are about ---------------------------------------------
+#
+# The answer to a call comes back on the consumer's own connection to the provider, while the
+# provider's notices (status, response update, revoke) travel on the provider's connection to
+# the consumer's listener: another socket, read by another thread. A notice about a query
+# whose answer the consumer has not recorded yet waits for that answer.
+
+
+@pytest.fixture
+def gate() -> Iterator[_Gate]:
+    """A fresh `GATE`; released at the end so no reader thread stays held."""
+    GATE.entered.clear()
+    GATE.release.clear()
+    yield GATE
+    GATE.release.set()
+
+
+class _Watched:
+    """The consumer actor's handling of one kind of notice, and the answers it gave."""
+
+    def __init__(self) -> None:
+        self.handled = threading.Event()  # handled (or held) at least once
+        self.answers: list[tuple[str, Any]] = []  # ("result", value) or ("error", error)
+
+    def spy(self, reply: Any) -> Any:
+        watched = self
+
+        class Spy:
+            def set_result(self, value: Any) -> None:
+                watched.answers.append(("result", value))
+                reply.set_result(value)
+
+            def set_error(self, error: BaseException) -> None:
+                watched.answers.append(("error", error))
+                reply.set_error(error)
+
+        return Spy()
+
+
+def _watch(monkeypatch: pytest.MonkeyPatch, kind: type) -> _Watched:
+    """Watch how the consumer's registrar actor handles `kind` messages and answers them."""
+    handlers = RegistrarActor._handlers
+    original = handlers[kind]
+    watched = _Watched()
+    spied: set[int] = set()
+
+    def wrapper(actor: RegistrarActor, message: Any) -> None:
+        reply = getattr(message, "reply", None)
+        if reply is not None and id(message) not in spied:  # (a held one comes back)
+            spied.add(id(message))
+            object.__setattr__(message, "reply", watched.spy(reply))
+        original(actor, message)
+        watched.handled.set()
+
+    monkeypatch.setitem(handlers, kind, wrapper)
+    return watched
+
+
+def _in_thread(fn: Callable[[], Any]) -> tuple[list[Any], threading.Thread]:
+    """Run `fn` on a thread; what it returned (or raised) lands in the list."""
+    outcome: list[Any] = []
+
+    def run() -> None:
+        try:
+            outcome.append(fn())
+        except Exception as exc:
+            outcome.append(exc)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    return outcome, thread
+
+
+def _first_query_id(registrar: rr.ResourceRegistrar) -> str:
+    return registrar.server_queries("gated")[0].id
+
+
+def _revoke_first_query(registrar: rr.ResourceRegistrar, consumer: str) -> None:
+    """Tell `consumer` that the `gated` server's first query is revoked (as unregistering does)."""
+    DIRECTORY.lookup(consumer).tell(Revoke((_first_query_id(registrar),)))
+
+
+def test_a_status_that_overtakes_the_answer_to_its_call_still_reaches_the_callback(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    gate: _Gate,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    provider = start_provider()
+    watched = _watch(monkeypatch, StatusNotice)
+    heard: list[rr.StatusUpdate] = []
+    called, caller = _in_thread(
+        lambda: consumer.call(provider.name, "gated", "r", on_status=lambda _q, u: heard.append(u))
+    )
+    assert gate.entered.wait(10)  # the answer is being read, not yet recorded
+
+    sent, sender = _in_thread(
+        lambda: system.run(
+            provider.name,
+            lambda registrar: registrar.send_status(
+                _first_query_id(registrar), rr.Status.WARNING, "hot"
+            ),
+            timeout=20,
+        )
+    )
+    assert watched.handled.wait(10)  # the notice reached the consumer's actor first
+    gate.release.set()
+    caller.join(10)
+    sender.join(20)
+
+    [query] = called
+    assert [None] == sent
+    assert [(query.id, rr.Status.WARNING, "hot")] == [
+        (u.query_id, u.status, u.message) for u in heard
+    ]
+
+
+def test_a_response_update_that_overtakes_the_answer_is_not_undone_by_it(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    gate: _Gate,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    provider = start_provider()
+    watched = _watch(monkeypatch, ResponseUpdated)
+    called, caller = _in_thread(lambda: consumer.call(provider.name, "gated", "r"))
+    assert gate.entered.wait(10)
+
+    updated, updater = _in_thread(
+        lambda: system.run(
+            provider.name,
+            lambda registrar: registrar.update_response(_first_query_id(registrar), "new"),
+            timeout=20,
+        )
+    )
+    assert watched.handled.wait(10)
+    gate.release.set()
+    caller.join(10)
+    updater.join(20)
+
+    [query] = called
+    assert [None] == updated
+    assert {query.id: "new"} == {q.id: q.response for q in consumer.client_queries()}
+
+
+def test_a_revoke_that_overtakes_the_answer_leaves_no_client_record(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    gate: _Gate,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    provider = start_provider()
+    watched = _watch(monkeypatch, Revoke)
+    called, caller = _in_thread(lambda: consumer.call(provider.name, "gated", "r"))
+    assert gate.entered.wait(10)
+
+    revoked, revoker = _in_thread(  # its answer comes back on the held connection
+        lambda: system.run(
+            provider.name,
+            functools.partial(_revoke_first_query, consumer=consumer.name),
+            timeout=20,
+        )
+    )
+    assert watched.handled.wait(10)
+    gate.release.set()
+    caller.join(10)
+    revoker.join(20)
+
+    [query] = called
+    assert [None] == revoked
+    assert isinstance(query, rr.Query)
+    assert [] == consumer.client_queries()
+
+
+def _send_status_to_first_query(system: System, provider: Provider) -> Any:
+    return system.run(
+        provider.name,
+        lambda registrar: registrar.send_status(_first_query_id(registrar), rr.Status.ERROR, "x"),
+        timeout=20,
+    )
+
+
+def test_a_status_waiting_for_an_answer_is_settled_when_the_call_times_out_instead(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    gate: _Gate,
+    monkeypatch: pytest.MonkeyPatch,
+    eventually: Callable[..., bool],
+) -> None:
+    provider = start_provider()
+    watched = _watch(monkeypatch, StatusNotice)
+    heard: list[rr.StatusUpdate] = []
+    called, caller = _in_thread(
+        lambda: consumer.call(
+            provider.name, "gated", "r", on_status=lambda _q, u: heard.append(u), timeout=0.5
+        )
+    )
+    assert gate.entered.wait(10)
+    sent, sender = _in_thread(lambda: _send_status_to_first_query(system, provider))
+    assert watched.handled.wait(10)  # held: the answer is still being read
+
+    caller.join(10)  # the call times out while its answer is held
+
+    assert isinstance(called[0], rr.CallTimeoutError)
+    assert eventually(lambda: [("result", None)] == watched.answers, timeout=8)
+    assert [] == heard
+    gate.release.set()  # the late answer is given back
+    sender.join(20)
+    assert [None] == sent
+    assert eventually(lambda: [] == consumer.client_queries(), timeout=10)
+
+
+def test_a_status_waiting_for_an_answer_is_answered_when_the_consumer_stops(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    gate: _Gate,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    provider = start_provider()
+    watched = _watch(monkeypatch, StatusNotice)
+    called, caller = _in_thread(lambda: consumer.call(provider.name, "gated", "r"))
+    assert gate.entered.wait(10)
+    sent, sender = _in_thread(lambda: _send_status_to_first_query(system, provider))
+    assert watched.handled.wait(10)
+
+    consumer.stop()
+
+    [(kind, error)] = watched.answers
+    assert ("error", rr.RegistrarStoppedError) == (kind, type(error))
+    gate.release.set()
+    caller.join(10)
+    sender.join(20)
+    assert [None] == sent
+    assert isinstance(called[0], rr.RegistrarStoppedError)
 
 
 def test_run_reraises_what_the_function_raised_in_the_other_process(
