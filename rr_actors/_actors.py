@@ -9,14 +9,22 @@ against 16-18 us for a `threading.Lock` ping-pong between the same two threads
 (`benchmarks/bench_core.py` has the ask; docs/performance.md has the figures).
 
 `Actor` plugs two cheaper parts into pykka through its documented extension points for
-actor implementations (`_create_actor_inbox`, `_create_future`; pykka's own gevent and
-eventlet actors were built on them): a `queue.SimpleQueue` inbox (written in C, one
-lock per hand-off) and `OneShotFuture`, which hands its value over by releasing one lock.
-Everything else, the actor loop, `tell`, `ask`, `stop` and `on_failure`, is pykka's.
+actor implementations (`_create_actor_inbox`, `_create_future`, `_start_actor_loop`;
+pykka's own gevent and eventlet actors were built on them): a `queue.SimpleQueue` inbox
+(written in C, one lock per hand-off) and `OneShotFuture`, which hands its value over by
+releasing one lock. Everything else, the actor loop, `tell`, `ask`, `stop` and
+`on_failure`, is pykka's.
+
+It also closes a gap of pykka's: `ActorRef.ask` checks `is_alive()` and then puts its
+envelope, while a stopping actor drains its inbox once, so an ask that passes the check
+just before the actor stops can land after the drain and is never answered (its asker
+waits forever; `ResourceRegistrar.stop` hit it). `Mailbox` answers such late envelopes
+with `ActorDeadError`, as the drain would have.
 """
 
 from __future__ import annotations
 
+import itertools
 import queue
 import sys
 import threading
@@ -26,7 +34,7 @@ from typing import Any, TypeAlias, TypeVar
 
 import pykka
 
-__all__ = ["Actor", "OneShotFuture"]
+__all__ = ["Actor", "Mailbox", "OneShotFuture", "refuse"]
 
 T = TypeVar("T")
 
@@ -104,13 +112,72 @@ class OneShotFuture(pykka.Future[T]):
         self._ready.release()
 
 
+class Mailbox(queue.SimpleQueue[Any]):
+    """An actor's inbox that answers what still arrives once its actor's loop ended.
+
+    pykka's loop drains the inbox when it ends (`ActorDeadError` to each asker); `close()`
+    runs after that, and from then on whatever is put (by an `ask` that saw the actor
+    alive a moment earlier) is answered at once the same way. The put and the close each
+    drain after their own write, so an envelope is answered by whichever comes second.
+    """
+
+    closed = False
+
+    def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
+        super().put(item, block, timeout)
+        if self.closed:
+            self._drain()
+
+    def close(self) -> None:
+        """The actor's loop ended: answer what is here and what comes later."""
+        self.closed = True
+        self._drain()
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                refuse(self.get_nowait())
+            except queue.Empty:
+                return
+
+
+def refuse(envelope: Any) -> None:
+    """Answer a pykka envelope its actor will not handle, as pykka's own final drain does.
+
+    An `ask` (a blocking `ActorRef.stop` included) gets `ActorDeadError`; a `tell` has
+    nobody to answer.
+    """
+    if envelope.reply_to is not None:
+        error = pykka.ActorDeadError("the actor stopped before handling the message")
+        envelope.reply_to.set_exception((pykka.ActorDeadError, error, None))
+
+
+_numbers = itertools.count()
+
+
 class Actor(pykka.ThreadingActor):
-    """`pykka.ThreadingActor` with a `queue.SimpleQueue` mailbox and `OneShotFuture`s."""
+    """`pykka.ThreadingActor` with a `Mailbox` (a `queue.SimpleQueue`) and `OneShotFuture`s."""
+
+    actor_inbox: Mailbox
 
     @staticmethod
-    def _create_actor_inbox() -> queue.SimpleQueue[Any]:
-        return queue.SimpleQueue()
+    def _create_actor_inbox() -> Mailbox:
+        return Mailbox()
 
     @staticmethod
     def _create_future() -> pykka.Future[Any]:
         return OneShotFuture()
+
+    def _start_actor_loop(self) -> None:
+        # As pykka's ThreadingActor, plus closing the mailbox once the loop ended.
+        thread = threading.Thread(
+            target=self._run_actor_loop, name=f"{type(self).__name__}-{next(_numbers)}"
+        )
+        thread.daemon = self.use_daemon_thread
+        thread.start()
+
+    def _run_actor_loop(self) -> None:
+        try:
+            self._actor_loop()
+        finally:
+            self.actor_inbox.close()

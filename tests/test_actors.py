@@ -250,3 +250,29 @@ def test_asks_still_queued_when_the_actor_stops_fail_with_actor_dead_error() -> 
     assert stopped.get(timeout=10) is True
     with pytest.raises(pykka.ActorDeadError):
         queued.get(timeout=10)
+
+
+def test_an_ask_that_saw_the_actor_alive_just_before_it_stopped_is_answered(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # pykka's `ask` checks `is_alive()`, then puts: the actor may end in between. Faking
+    # the check puts the envelope exactly there, after the actor's final drain.
+    ref = _Echo.start()
+    assert ref.stop(block=True, timeout=10) is True
+    monkeypatch.setattr(ref, "is_alive", lambda: True)
+
+    with pytest.raises(pykka.ActorDeadError):
+        ref.ask("late", timeout=10)
+    assert ref.stop(block=True, timeout=10) is False  # a second stop says "not running"
+
+
+def test_what_is_told_to_an_ended_actor_is_dropped_without_error(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    ref = _Echo.start()
+    ref.stop(block=True, timeout=10)
+    monkeypatch.setattr(ref, "is_alive", lambda: True)
+
+    ref.tell("late")  # nobody waits for a tell: nothing to answer
+
+    assert ref.actor_inbox.empty()
