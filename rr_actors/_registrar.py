@@ -35,7 +35,7 @@ from typing import Any, ClassVar
 import cloudpickle
 import pykka
 
-from rr_actors._actors import Actor, OneShotFuture
+from rr_actors._actors import Actor, OneShotFuture, refuse
 from rr_actors._catalog import Catalog, ClientRecord, Resource, ResourceState
 from rr_actors._directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._messages import (
@@ -551,7 +551,9 @@ class RegistrarActor(Actor):
             request.set_error(error)
         self._fail_parked(error)
         while not self.actor_inbox.empty():
-            message = self.actor_inbox.get().message
+            envelope = self.actor_inbox.get()
+            refuse(envelope)  # a pykka ask, e.g. the handle's `ref.stop()`: it must hear
+            message = envelope.message
             pending = getattr(message, "reply", None)
             if pending is not None:
                 pending.set_error(error)

@@ -9,9 +9,12 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import pykka
 import pytest
 
 import rr_actors as rr
+from rr_actors._registrar import _Request
+from rr_actors._replies import FutureReply
 from rr_actors.testing import catalog_snapshot
 
 
@@ -173,3 +176,22 @@ def _wait_for(condition: Callable[[], bool], timeout: float = 5.0) -> bool:
         if condition():
             return True
     return False
+
+
+def test_a_pykka_ask_that_arrives_while_the_registrar_stops_is_answered(
+    started: Callable[..., rr.ResourceRegistrar],
+) -> None:
+    # The handle's stop() ends with pykka's `ref.stop()`, an ask; `op_stop` drains the
+    # mailbox to fail whoever waits. An ask in that mailbox must hear, not be dropped.
+    registrar = started("stopping")
+    gate = threading.Event()
+    busy, stopping = FutureReply(), FutureReply()
+    registrar._ref.tell(_Request(lambda _actor, reply: reply.set_result(gate.wait(10)), busy))
+    registrar._ref.tell(_Request(lambda actor, reply: actor.op_stop(reply), stopping))
+    asked = registrar._ref.ask("anything", block=False)  # queued behind the stop
+
+    gate.set()
+
+    assert stopping.future.get(timeout=10) is None
+    with pytest.raises(pykka.ActorDeadError):
+        asked.get(timeout=10)
