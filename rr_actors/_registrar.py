@@ -25,6 +25,7 @@ import contextvars
 import dataclasses
 import functools
 import logging
+import queue
 import threading
 import time
 import traceback
@@ -135,7 +136,7 @@ class _ClientLoaded:
     record: ClientRecord  # its query holds the response
     on_status: StatusCallback | None
     attempt: pykka.Future[Any]  # the caller's future
-    answer_after_commit: bool  # the caller is answered by the registrar, after the commit
+    answer_after_commit: bool = False  # the registrar answers the caller, after the commit
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,12 +165,17 @@ class _Crash:
 
 
 class _ClientReply:
-    """The answer to a consumer's load: record it in the consumer's catalog, answer the caller.
+    """The answer to a consumer's load: hand it to the caller, who records it.
 
-    The client record travels with the answer: the provider tells the consumer's
-    registrar before it can process any later status, so mailbox order puts the record
-    first. With `commit_first` (a durable consumer) the record was also written as
-    pending before the load was sent, and is committed before the caller is answered.
+    The caller's thread wakes with the value and tells the consumer's registrar the
+    client record itself (`ResourceRegistrar.call`): the answering thread (a
+    connection's reader, or the provider's actor) wakes one thread, not two, and the
+    caller's later `unload` follows the record in the mailbox. A notice about the query
+    that reaches the registrar before the record waits for it (`_DueAnswers`). If the
+    caller gave up first (it claimed the future on its timeout), the record is told
+    from here, so the registrar releases it. With `commit_first` (a durable consumer)
+    the record was written as pending before the load was sent; the registrar commits
+    the answer and then answers the caller.
     """
 
     __slots__ = ("commit_first", "future", "on_status", "record", "registrar")
@@ -190,6 +196,13 @@ class _ClientReply:
         self.commit_first = commit_first
 
     def set_result(self, value: Any) -> None:
+        if not self.commit_first:
+            try:
+                self.future.set(value)
+            except queue.Full:  # the caller gave up: the registrar releases the answer
+                pass
+            else:
+                return  # the caller records it
         query = self.record.query.with_response(value)
         record = ClientRecord(query, self.record.parent, loaded=True)
         try:
@@ -202,9 +215,6 @@ class _ClientReply:
             FutureReply(self.future).set_error(
                 RegistrarStoppedError(f"registrar {query.origin_rr!r} stopped during the call")
             )
-            return
-        if not self.commit_first:
-            FutureReply(self.future).set_result(value)
 
     def set_error(self, error: BaseException) -> None:
         with contextlib.suppress(pykka.ActorDeadError):
@@ -1594,16 +1604,41 @@ class ResourceRegistrar(RegistrarFacts):
         try:
             response = future.get(timeout=max(0.0, deadline - time.monotonic()))
         except pykka.Timeout:
-            # Given up from this thread, like the load: the provider sees the Abandon after
-            # the Load and before any retry this caller makes with the same id.
-            with contextlib.suppress(pykka.ActorDeadError):
-                self._ref.tell(_CallFailed(query.id, future, gave_up=True))
-            with contextlib.suppress(RrError):  # a provider that is gone holds nothing
-                DIRECTORY.lookup(target_rr).tell(Abandon(query.id, self.name))
-            raise CallTimeoutError(
-                f"call to '{target_rr}/{server}' timed out after {limit:g} s"
-            ) from None
-        return query.with_response(response)
+            response = self._give_up(future, query, limit)  # unless it arrived just now
+        answered = query.with_response(response)
+        if not self._commit_first:  # record it (see _ClientReply); a durable one is already
+            try:
+                self._ref.tell(
+                    _ClientLoaded(ClientRecord(answered, parent, loaded=True), on_status, future)
+                )
+            except pykka.ActorDeadError:  # stopped meanwhile: give the id back
+                with contextlib.suppress(RrError):
+                    DIRECTORY.lookup(target_rr).tell(Abandon(query.id, self.name))
+                raise RegistrarStoppedError(
+                    f"registrar {self.name!r} stopped during the call"
+                ) from None
+        return answered
+
+    def _give_up(self, future: pykka.Future[Any], query: Query, limit: float) -> Any:
+        """A call timed out: give it up, or return its answer if that won the race.
+
+        Raises:
+            CallTimeoutError: it was given up.
+        """
+        if not self._commit_first:
+            try:
+                future.set(None)  # claim it: an answer that comes now is released
+            except queue.Full:  # the answer came first
+                return future.get()
+        # Given up from this thread, like the load: the provider sees the Abandon after
+        # the Load and before any retry this caller makes with the same id.
+        with contextlib.suppress(pykka.ActorDeadError):
+            self._ref.tell(_CallFailed(query.id, future, gave_up=True))
+        with contextlib.suppress(RrError):  # a provider that is gone holds nothing
+            DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
+        raise CallTimeoutError(
+            f"call to '{query.serving_rr}/{query.server}' timed out after {limit:g} s"
+        ) from None
 
     def unload(self, query_id: str, *, timeout: float | None = None) -> None:
         """Release one consumer id obtained from `call` (rules 7-8).

@@ -5,9 +5,12 @@ from __future__ import annotations
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+import pykka
 import pytest
 
 import rr_actors as rr
+import rr_actors._registrar
+from rr_actors._actors import OneShotFuture
 from rr_actors.testing import catalog_snapshot, crash
 
 
@@ -183,3 +186,29 @@ def test_a_huge_finite_timeout_waits_and_a_non_finite_one_is_refused(make_regist
         with pytest.raises(rr.ConfigError, match="timeout"):
             consumer.call(provider.name, "leaf", "x", timeout=timeout)
     assert [] == consumer.client_queries()
+
+
+class _AnswerThenTimeout(OneShotFuture):
+    """A caller's future whose bounded wait times out just after its answer arrived."""
+
+    def get(self, *, timeout=None):
+        if timeout is None:
+            return super().get()
+        super().get(timeout=10)  # the answer lands...
+        raise pykka.Timeout("...as the caller's wait runs out")
+
+
+@pytest.mark.thread_only("replaces the caller's future class in this process")
+def test_an_answer_that_lands_as_the_wait_times_out_is_taken_not_lost(
+    make_registrar, serve, monkeypatch
+):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    serve(provider, "leaf")
+    monkeypatch.setattr(rr_actors._registrar, "OneShotFuture", _AnswerThenTimeout)
+
+    query = consumer.call(provider.name, "leaf", "x", timeout=1.0)
+
+    assert [query.id] == [q.id for q in consumer.client_queries()]
+    assert [query.id] == [q.id for q in provider.server_queries("leaf")]
+    consumer.unload(query.id)
+    assert [] == provider.server_queries("leaf")
