@@ -17,9 +17,10 @@ releasing one lock. Everything else, the actor loop, `tell`, `ask`, `stop` and
 
 It also closes a gap of pykka's: `ActorRef.ask` checks `is_alive()` and then puts its
 envelope, while a stopping actor drains its inbox once, so an ask that passes the check
-just before the actor stops can land after the drain and is never answered (its asker
-waits forever; `ResourceRegistrar.stop` hit it). `Mailbox` answers such late envelopes
-with `ActorDeadError`, as the drain would have.
+just before the actor stops can land after the drain and is never answered (its asker,
+say a blocking `ActorRef.stop`, waits forever). `Mailbox` answers such late envelopes
+with `ActorDeadError`, as the drain would have; `refuse` answers one envelope the same
+way, for an actor that drains its own inbox (the registrar does when it stops).
 """
 
 from __future__ import annotations

@@ -1075,7 +1075,9 @@ class RegistrarActor(Actor):
 
     def _on_call_failed(self, message: _CallFailed) -> None:
         self.pending_attempts.pop(message.query_id, None)
-        if message.gave_up:  # an answer may still come for this attempt: drop it then
+        record = self.catalog.clients.get(message.query_id)
+        answered = record is not None and record.loaded  # its answer overtook the give-up
+        if message.gave_up and not answered:  # the answer may still come: drop it then
             self.given_up.add(message.attempt)
         else:
             self.given_up.discard(message.attempt)

@@ -13,7 +13,9 @@ import pykka
 import pytest
 
 import rr_actors as rr
-from rr_actors._registrar import _Request
+from rr_actors._actors import OneShotFuture
+from rr_actors._catalog import ClientRecord
+from rr_actors._registrar import _CallFailed, _ClientLoaded, _Request
 from rr_actors._replies import FutureReply
 from rr_actors.testing import catalog_snapshot
 
@@ -195,3 +197,27 @@ def test_a_pykka_ask_that_arrives_while_the_registrar_stops_is_answered(
     assert stopping.future.get(timeout=10) is None
     with pytest.raises(pykka.ActorDeadError):
         asked.get(timeout=10)
+
+
+def test_a_give_up_that_arrives_after_its_answer_was_recorded_is_not_remembered(
+    started: Callable[..., rr.ResourceRegistrar],
+) -> None:
+    # A caller that timed out tells its registrar `_CallFailed(gave_up=True)`; the
+    # answering thread may have told the answer first. Nothing more comes for that
+    # attempt, so nothing may wait for it in `given_up` (it would stay there for good).
+    consumer = started("consumer")
+    attempt = OneShotFuture()
+    query = rr.Query(str(uuid.uuid4()), "leaf", "provider-gone", consumer.name, "x", "r")
+    consumer._ref.tell(_ClientLoaded(ClientRecord(query, None, loaded=True), None, attempt))
+    consumer._ref.tell(_CallFailed(query.id, attempt, gave_up=True))
+    state = FutureReply()
+    consumer._ref.tell(
+        _Request(
+            lambda actor, reply: reply.set_result(
+                (set(actor.given_up), set(actor.catalog.clients))
+            ),
+            state,
+        )
+    )
+
+    assert (set(), set()) == state.future.get(timeout=10)
