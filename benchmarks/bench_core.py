@@ -11,6 +11,8 @@ Usage:
 
 Operations:
     pykka ask           raw `ref.ask(x)` round trip to an echoing ThreadingActor
+    rr_actors ask       the same to rr_actors' actor type (SimpleQueue mailbox, one-shot
+                        futures), which the registrars are built on
     dedup-hit call      `call` of a request already loaded (a consumer is added, no load)
     dedup-hit unload    `unload` of one of those ids (not the last consumer, no unload)
     unique load+unload  `call` of a new request, then `unload` of its only id
@@ -34,10 +36,18 @@ from typing import Any
 import pykka
 
 import rr_actors as rr
+from rr_actors._actors import Actor
 
 
 class Echo(pykka.ThreadingActor):
     """The baseline: the cheapest useful pykka round trip."""
+
+    def on_receive(self, message: Any) -> Any:
+        return message
+
+
+class ActorEcho(Actor):
+    """The same echo on the actor type rr_actors' registrars use."""
 
     def on_receive(self, message: Any) -> Any:
         return message
@@ -49,6 +59,7 @@ class Bench:
     def __init__(self) -> None:
         suffix = uuid.uuid4().hex[:6]
         self.echo = Echo.start()
+        self.actor_echo = ActorEcho.start()
         self.provider = rr.ResourceRegistrar.start(f"bench-provider-{suffix}")
         self.consumer = rr.ResourceRegistrar.start(f"bench-consumer-{suffix}")
         self.provider.register_server("res", load=lambda request: request, unload=_noop)
@@ -61,11 +72,15 @@ class Bench:
         self.consumer.stop()
         self.provider.stop()
         self.echo.stop()
+        self.actor_echo.stop()
 
     # -- operations (each does one operation) -----------------------------------------
 
     def pykka_ask(self) -> None:
         self.echo.ask("ping")
+
+    def actor_ask(self) -> None:
+        self.actor_echo.ask("ping")
 
     def dedup_call(self) -> None:
         query = self.consumer.call(self.provider.name, "res", "shared")
@@ -108,6 +123,7 @@ def run(rounds: int, batch: int) -> list[tuple[str, float, float]]:
     try:
         ops: dict[str, Callable[[], None]] = {
             "pykka ask": bench.pykka_ask,
+            "rr_actors ask": bench.actor_ask,
             "dedup-hit call": bench.dedup_call,
             "dedup-hit unload": bench.dedup_unload,
             "unique load+unload": bench.unique_load_unload,
