@@ -41,7 +41,15 @@ import rr_actors as rr
 from rr_actors._directory import DIRECTORY
 from rr_actors._messages import Fetch, Load, ResponseUpdated, Revoke, StatusNotice
 from rr_actors._registrar import RegistrarActor
-from rr_actors._transport import RemotePeer, System, _Channel, _Writer, attach
+from rr_actors._transport import (
+    RemotePeer,
+    System,
+    _Channel,
+    _frame,
+    _frames,
+    _Writer,
+    attach,
+)
 
 Setup = Callable[[rr.ResourceRegistrar], None]
 
@@ -1398,3 +1406,67 @@ def test_a_load_crosses_without_its_reply_and_otherwise_unchanged() -> None:
 
     load = Load("q", "leaf", {"n": 1}, "C", ("C",), object())  # type: ignore[arg-type]
     assert _transport._without_reply(load) == dataclasses.replace(load, reply=None)
+
+
+# -- cutting frames out of the byte stream ------------------------------------------------------
+
+
+def _frames_of(chunks: list[bytes]) -> list[bytes]:
+    """What `_frames` yields for a peer that writes `chunks` one by one, then closes."""
+    ours, theirs = socket.socketpair()
+    conn = multiprocessing.connection.Connection(ours.detach())
+    got: list[bytes] = []
+    reader = threading.Thread(target=lambda: got.extend(_frames(conn)))
+    reader.start()
+    with theirs:
+        for chunk in chunks:
+            theirs.sendall(chunk)
+    reader.join(10)
+    conn.close()
+    return got
+
+
+def _wire(payload: bytes) -> bytes:
+    return struct.pack("!i", len(payload)) + payload
+
+
+def test_many_frames_that_arrive_in_one_read_are_each_handed_on() -> None:
+    payloads = [b"a", b"", b"bb" * 1000, b"c" * 70_000]
+
+    assert payloads == _frames_of([b"".join(_wire(p) for p in payloads)])
+
+
+def test_a_frame_that_arrives_a_byte_at_a_time_is_handed_on_whole() -> None:
+    wire = _wire(b"hello") + _wire(b"world")
+
+    assert [b"hello", b"world"] == _frames_of([wire[i : i + 1] for i in range(len(wire))])
+
+
+def test_a_frame_larger_than_a_read_is_handed_on_whole() -> None:
+    big = bytes(range(256)) * 4_000  # 1 MB: four reads' worth
+
+    assert [big, b"after"] == _frames_of([_wire(big) + _wire(b"after")])
+
+
+def test_the_long_header_of_multiprocessing_connection_is_understood() -> None:
+    # Frames over 2 GiB carry -1 and then an 8-byte length; any size may use it.
+    assert [b"long", b"short"] == _frames_of(
+        [struct.pack("!iQ", -1, 4) + b"long" + _wire(b"short")]
+    )
+
+
+def test_a_connection_that_ends_inside_a_frame_hands_on_only_the_whole_ones() -> None:
+    assert [b"whole"] == _frames_of([_wire(b"whole") + struct.pack("!i", 10) + b"cut"])
+
+
+def test_frames_read_match_what_connection_recv_bytes_reads() -> None:
+    frames = [_frame(token, value) for token, value in enumerate([1, "two", {"three": [3]}])]
+
+    got = _frames_of([b"".join(frames)])
+
+    left, right = multiprocessing.Pipe()
+    with left, right:
+        for frame in frames:
+            left.send_bytes(frame[4:])  # the payload; send_bytes adds the same header
+        expected = [right.recv_bytes() for _ in frames]
+    assert expected == got
