@@ -15,17 +15,19 @@ pykka's own gevent and eventlet actors were built on them): a `queue.SimpleQueue
 releasing one lock. Everything else, the actor loop, `tell`, `ask`, `stop` and
 `on_failure`, is pykka's.
 
-It also closes a gap of pykka's: `ActorRef.ask` checks `is_alive()` and then puts its
-envelope, while a stopping actor drains its inbox once, so an ask that passes the check
-just before the actor stops can land after the drain and is never answered (its asker,
-say a blocking `ActorRef.stop`, waits forever). `Mailbox` answers such late envelopes
-with `ActorDeadError`, as the drain would have; `refuse` answers one envelope the same
-way, for an actor that drains its own inbox (the registrar does when it stops).
+It also closes two gaps of pykka's around an actor's end. `ActorRef.tell` and `ask`
+check `is_alive()` and then put their envelope, while a stopping actor drains its inbox
+once: a message that passes the check just before the actor stops can land after the
+drain, and an ask is then never answered (its asker, say a blocking `ActorRef.stop`,
+waits forever). And pykka's drain drops tells, whatever they carried. Here every
+envelope left in the mailbox when the loop ends, and every one put later, goes to the
+actor's `on_late` (by default `refuse`: an ask gets `ActorDeadError`, as pykka's drain
+gives it), so an actor whose tells carry obligations (the registrar's carry replies and
+consumer ids) can honour them.
 """
 
 from __future__ import annotations
 
-import itertools
 import queue
 import sys
 import threading
@@ -35,7 +37,7 @@ from typing import Any, TypeAlias, TypeVar
 
 import pykka
 
-__all__ = ["Actor", "Mailbox", "OneShotFuture", "refuse"]
+__all__ = ["Actor", "Late", "Mailbox", "OneShotFuture", "refuse"]
 
 T = TypeVar("T")
 
@@ -68,15 +70,51 @@ class OneShotFuture(pykka.Future[T]):
     def __repr__(self) -> str:
         return "<rr_actors.OneShotFuture>"
 
-    def get(self, *, timeout: float | None = None) -> T:
-        if not self._settled:
+    @property
+    def claimed(self) -> bool:
+        """Whether something settled it already, or is settling it (claims are final)."""
+        return self._claim.locked()
+
+    @property
+    def failed(self) -> bool:
+        """Whether it was settled with an exception."""
+        return self._exc_info is not None
+
+    def claim(self) -> bool:
+        """Settle it with `None` unless something settled it first; whether this did.
+
+        Two parties that race to settle a future (an answer and a caller that stops
+        waiting for it) learn from this which of them won.
+        """
+        try:
+            self.set(None)
+        except queue.Full:
+            return False
+        return True
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until it is settled, at most `timeout` seconds; whether it is."""
+        if self._settled:
+            return True
+        acquired = False
+        try:
             if timeout is None:
-                self._ready.acquire()
-            elif not self._ready.acquire(timeout=min(max(timeout, 0.0), threading.TIMEOUT_MAX)):
-                raise pykka.Timeout(f"{timeout} seconds")
-            self._ready.release()  # the next waiter, if any, gets through too
+                acquired = self._ready.acquire()
+            else:
+                acquired = self._ready.acquire(
+                    timeout=min(max(timeout, 0.0), threading.TIMEOUT_MAX)
+                )
+        finally:  # (also if the wait is interrupted: other waiters must get through)
+            if acquired:
+                self._ready.release()  # the next waiter, if any, gets through too
+        return acquired
+
+    def get(self, *, timeout: float | None = None) -> T:
+        if not self.wait(timeout):
+            raise pykka.Timeout(f"{timeout} seconds")
         if self._get_hook is not None:
-            return super().get(timeout=timeout)
+            with self._hook_lock:  # the hook runs once, however many threads get
+                return super().get(timeout=timeout)
         if self._exc_info is not None:
             exc_type, exc_value, exc_traceback = self._exc_info
             assert exc_type is not None
@@ -101,6 +139,7 @@ class OneShotFuture(pykka.Future[T]):
 
     def set_get_hook(self, func: GetHookFunc[T]) -> None:
         self._take_claim()
+        self._hook_lock = threading.Lock()
         super().set_get_hook(func)
         self._settle()
 
@@ -113,33 +152,38 @@ class OneShotFuture(pykka.Future[T]):
         self._ready.release()
 
 
-class Mailbox(queue.SimpleQueue[Any]):
-    """An actor's inbox that answers what still arrives once its actor's loop ended.
+Late = Callable[[Any], None]
+"""Handles an envelope its actor will not handle any more (on any thread)."""
 
-    pykka's loop drains the inbox when it ends (`ActorDeadError` to each asker); `close()`
-    runs after that, and from then on whatever is put (by an `ask` that saw the actor
-    alive a moment earlier) is answered at once the same way. The put and the close each
-    drain after their own write, so an envelope is answered by whichever comes second.
+
+class Mailbox(queue.SimpleQueue[Any]):
+    """An actor's inbox that hands on what is left, and what still arrives, once it closes.
+
+    `close(late)` runs when the actor's loop ended; from then on whatever is put (by a
+    `tell` or `ask` that saw the actor alive a moment earlier) goes to `late` at once. The
+    put and the close each drain after their own write, so an envelope is handed on by
+    whichever comes second, and once (`get_nowait` is atomic).
     """
 
-    closed = False
+    _late: Late | None = None
 
     def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
         super().put(item, block, timeout)
-        if self.closed:
-            self._drain()
+        if self._late is not None:
+            self._drain(self._late)
 
-    def close(self) -> None:
-        """The actor's loop ended: answer what is here and what comes later."""
-        self.closed = True
-        self._drain()
+    def close(self, late: Late) -> None:
+        """The actor's loop ended: hand what is here, and what comes later, to `late`."""
+        self._late = late
+        self._drain(late)
 
-    def _drain(self) -> None:
+    def _drain(self, late: Late) -> None:
         while True:
             try:
-                refuse(self.get_nowait())
+                envelope = self.get_nowait()
             except queue.Empty:
                 return
+            late(envelope)
 
 
 def refuse(envelope: Any) -> None:
@@ -151,9 +195,6 @@ def refuse(envelope: Any) -> None:
     if envelope.reply_to is not None:
         error = pykka.ActorDeadError("the actor stopped before handling the message")
         envelope.reply_to.set_exception((pykka.ActorDeadError, error, None))
-
-
-_numbers = itertools.count()
 
 
 class Actor(pykka.ThreadingActor):
@@ -169,16 +210,16 @@ class Actor(pykka.ThreadingActor):
     def _create_future() -> pykka.Future[Any]:
         return OneShotFuture()
 
-    def _start_actor_loop(self) -> None:
-        # As pykka's ThreadingActor, plus closing the mailbox once the loop ended.
-        thread = threading.Thread(
-            target=self._run_actor_loop, name=f"{type(self).__name__}-{next(_numbers)}"
-        )
-        thread.daemon = self.use_daemon_thread
-        thread.start()
+    def _actor_loop_teardown(self) -> None:
+        # Instead of pykka's drain, which answers asks and drops tells.
+        self.actor_inbox.close(self.on_late)
 
-    def _run_actor_loop(self) -> None:
-        try:
-            self._actor_loop()
-        finally:
-            self.actor_inbox.close()
+    def on_late(self, envelope: Any) -> None:
+        """Handle an envelope that arrived after this actor's loop ended.
+
+        Runs on the actor's thread for what was left in its mailbox, and on the sender's
+        thread for what comes later. By default an ask gets `ActorDeadError` and a tell
+        is dropped, as in pykka; override it (thread-safely) for tells that carry
+        obligations.
+        """
+        refuse(envelope)

@@ -128,22 +128,23 @@ class _FetchVia:
 @dataclasses.dataclass(frozen=True)
 class _Pending:
     record: ClientRecord
-    attempt: pykka.Future[Any]
+    attempt: OneShotFuture[Any]
 
 
 @dataclasses.dataclass(frozen=True)
 class _ClientLoaded:
     record: ClientRecord  # its query holds the response
     on_status: StatusCallback | None
-    attempt: pykka.Future[Any]  # the caller's future
+    attempt: OneShotFuture[Any]  # the caller's future
     answer_after_commit: bool = False  # the registrar answers the caller, after the commit
 
 
 @dataclasses.dataclass(frozen=True)
 class _CallFailed:
+    """A call ended without an answer to record: it failed, or its caller withdrew it."""
+
     query_id: str
-    attempt: pykka.Future[Any]
-    gave_up: bool = False  # the caller timed out (an answer may still come)
+    attempt: OneShotFuture[Any]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -171,11 +172,15 @@ class _ClientReply:
     client record itself (`ResourceRegistrar.call`): the answering thread (a
     connection's reader, or the provider's actor) wakes one thread, not two, and the
     caller's later `unload` follows the record in the mailbox. A notice about the query
-    that reaches the registrar before the record waits for it (`_DueAnswers`). If the
-    caller gave up first (it claimed the future on its timeout), the record is told
-    from here, so the registrar releases it. With `commit_first` (a durable consumer)
-    the record was written as pending before the load was sent; the registrar commits
-    the answer and then answers the caller.
+    that reaches the registrar before the record waits for it (`_DueAnswers`).
+
+    Whoever settles the caller's one-shot future first owns the answer: this reply, by
+    setting it, or the caller, by claiming it when it stops waiting (a timeout, a
+    `KeyboardInterrupt`). A caller that claimed it withdrew the call and sent the
+    provider an `Abandon` after the `Load`, so an answer that comes later is dropped here.
+    With `commit_first` (a durable consumer) the record was written as pending before
+    the load was sent; the registrar commits the answer and then sets the future (or,
+    finding it claimed, drops the record).
     """
 
     __slots__ = ("commit_first", "future", "on_status", "record", "registrar")
@@ -185,7 +190,7 @@ class _ClientReply:
         registrar: pykka.ActorRef[Any],
         record: ClientRecord,
         on_status: StatusCallback | None,
-        future: pykka.Future[Any],
+        future: OneShotFuture[Any],
         *,
         commit_first: bool,
     ) -> None:
@@ -197,12 +202,9 @@ class _ClientReply:
 
     def set_result(self, value: Any) -> None:
         if not self.commit_first:
-            try:
+            with contextlib.suppress(queue.Full):  # (claimed: the caller withdrew the call)
                 self.future.set(value)
-            except queue.Full:  # the caller gave up: the registrar releases the answer
-                pass
-            else:
-                return  # the caller records it
+            return  # the caller records it
         query = self.record.query.with_response(value)
         record = ClientRecord(query, self.record.parent, loaded=True)
         try:
@@ -239,18 +241,18 @@ class _DueAnswers:
     __slots__ = ("_attempts", "_lock")
 
     def __init__(self) -> None:
-        self._attempts: dict[str, pykka.Future[Any]] = {}
+        self._attempts: dict[str, OneShotFuture[Any]] = {}
         self._lock = threading.Lock()
 
     def __contains__(self, query_id: str) -> bool:
         return query_id in self._attempts
 
-    def expect(self, query_id: str, attempt: pykka.Future[Any]) -> None:
+    def expect(self, query_id: str, attempt: OneShotFuture[Any]) -> None:
         """A call `attempt` with `query_id` is about to be sent (any thread)."""
         with self._lock:
             self._attempts[query_id] = attempt
 
-    def settle(self, query_id: str, attempt: pykka.Future[Any]) -> bool:
+    def settle(self, query_id: str, attempt: OneShotFuture[Any]) -> bool:
         """`attempt`'s answer or failure was handled; whether it was the one due."""
         with self._lock:
             if self._attempts.get(query_id) is attempt:
@@ -460,10 +462,9 @@ class RegistrarActor(Actor):
         self.loads: dict[str, list[_Waiter]] = {}  # resource id -> callers waiting for it
         self.loading_ids: dict[str, str] = {}  # waiting query id -> resource id
         self.abandoned: set[str] = set()  # provider side: callers that gave up on a load
-        # consumer side: attempts (the callers' futures) that timed out, and the futures
-        # of durable calls in flight (answered by this actor after its commit)
-        self.given_up: set[pykka.Future[Any]] = set()
-        self.pending_attempts: dict[str, pykka.Future[Any]] = {}
+        # consumer side: the futures of durable calls in flight (answered by this actor
+        # after its commit)
+        self.pending_attempts: dict[str, OneShotFuture[Any]] = {}
         self.unload_waiters: dict[str, list[Reply]] = {}
         self.after_unload: dict[str, list[Load]] = {}
         self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
@@ -561,17 +562,24 @@ class RegistrarActor(Actor):
             request.set_error(error)
         self._fail_parked(error)
         while not self.actor_inbox.empty():
-            envelope = self.actor_inbox.get()
-            refuse(envelope)  # a pykka ask, e.g. the handle's `ref.stop()`: it must hear
-            message = envelope.message
-            pending = getattr(message, "reply", None)
-            if pending is not None:
-                pending.set_error(error)
-            if isinstance(message, _ClientLoaded):  # its id would leak at the provider
-                query = message.record.query
-                with contextlib.suppress(RrError):
-                    DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
-                FutureReply(message.attempt).set_error(error)
+            self._refuse(self.actor_inbox.get(), error)
+
+    def on_late(self, envelope: Any) -> None:
+        """A message that arrived after this actor's loop ended (any thread)."""
+        self._refuse(envelope, DIRECTORY.gone_error(self.name))
+
+    def _refuse(self, envelope: Any, error: Exception) -> None:
+        """Answer a message this actor will not handle (it stops or died); any thread."""
+        refuse(envelope)  # a pykka ask, e.g. the handle's `ref.stop()`: it must hear
+        message = envelope.message
+        pending = getattr(message, "reply", None)
+        if pending is not None:
+            pending.set_error(error)
+        if isinstance(message, _ClientLoaded):  # its id would leak at the provider
+            query = message.record.query
+            with contextlib.suppress(RrError):
+                DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
+            FutureReply(message.attempt).set_error(error)
 
     def _fail_parked(self, error: RrError) -> None:
         """Answer the notices still waiting for an answer that will not be handled now."""
@@ -979,11 +987,19 @@ class RegistrarActor(Actor):
                 return True
         return False
 
-    def _answered(self, query_id: str, attempt: pykka.Future[Any]) -> None:
+    def _answered(self, query_id: str, attempt: OneShotFuture[Any]) -> None:
         """`attempt`'s answer or failure was handled: handle what waited for it."""
-        if self.due.settle(query_id, attempt):
-            for notice in self.parked_notices.pop(query_id, ()):
+        if not self.due.settle(query_id, attempt):
+            return
+        waiting = self.parked_notices.pop(query_id, [])
+        while waiting:
+            notice = waiting.pop(0)
+            try:
                 self.on_receive(notice)
+            except BaseException:  # the actor dies: `_fail_parked` answers the rest
+                if waiting:
+                    self.parked_notices[query_id] = waiting
+                raise
 
     # -- consumer side ----------------------------------------------------------------
 
@@ -1006,16 +1022,19 @@ class RegistrarActor(Actor):
         self._commit()
 
     def _on_client_loaded(self, message: _ClientLoaded) -> None:
-        self._record_answer(message)
-        self._answered(message.record.query.id, message.attempt)
+        try:
+            self._record_answer(message)
+        finally:  # (also when recording failed: what waits for it must not wait for good)
+            self._answered(message.record.query.id, message.attempt)
 
     def _record_answer(self, message: _ClientLoaded) -> None:
         query = message.record.query
         self.pending_attempts.pop(query.id, None)
-        gave_up = message.attempt in self.given_up  # its give-up released the id already
-        if gave_up or (self.stopping and message.record.parent is None):
-            self.given_up.discard(message.attempt)
-            if not gave_up:  # stopping: give the id back rather than hold it
+        # A durable call's caller may have withdrawn it (claimed its future, sent the
+        # provider an Abandon): then the answer is not kept.
+        withdrawn = message.answer_after_commit and message.attempt.claimed
+        if withdrawn or (self.stopping and message.record.parent is None):
+            if not withdrawn:  # stopping: give the id back rather than hold it
                 with contextlib.suppress(RrError):
                     DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
             if query.id in self.catalog.clients and not self.catalog.clients[query.id].loaded:
@@ -1037,7 +1056,12 @@ class RegistrarActor(Actor):
             self.status_callbacks[query.id] = message.on_status
         self._commit()
         if message.answer_after_commit:
-            FutureReply(message.attempt).set_result(query.response)
+            try:
+                message.attempt.set(query.response)
+            except queue.Full:  # withdrawn meanwhile (its caller sent the Abandon)
+                self.catalog.remove_client(query.id)
+                self.status_callbacks.pop(query.id, None)
+                self._commit()
 
     def _owner_gone(self, record: ClientRecord) -> bool:
         """Whether `record` is a dependency of a resource that failed or is unloading.
@@ -1075,17 +1099,13 @@ class RegistrarActor(Actor):
 
     def _on_call_failed(self, message: _CallFailed) -> None:
         self.pending_attempts.pop(message.query_id, None)
-        record = self.catalog.clients.get(message.query_id)
-        answered = record is not None and record.loaded  # its answer overtook the give-up
-        if message.gave_up and not answered:  # the answer may still come: drop it then
-            self.given_up.add(message.attempt)
-        else:
-            self.given_up.discard(message.attempt)
-        if message.query_id in self.catalog.clients:
-            self.catalog.remove_client(message.query_id)
-            self.status_callbacks.pop(message.query_id, None)
-            self._commit()
-        self._answered(message.query_id, message.attempt)
+        try:
+            if message.query_id in self.catalog.clients:
+                self.catalog.remove_client(message.query_id)
+                self.status_callbacks.pop(message.query_id, None)
+                self._commit()
+        finally:
+            self._answered(message.query_id, message.attempt)
 
     def _on_request(self, message: _Request) -> None:
         reply = _OpenReply(message.reply, self.open_requests)
@@ -1290,7 +1310,7 @@ class RegistrarActor(Actor):
             attempt = self.pending_attempts.pop(record.query.id, None)
             if record.parent is None and not record.loaded and attempt is not None:
                 # a durable call in flight: give it up, and tell its caller at once
-                self._on_call_failed(_CallFailed(record.query.id, attempt, gave_up=True))
+                self._on_call_failed(_CallFailed(record.query.id, attempt))
                 with contextlib.suppress(RrError):
                     DIRECTORY.lookup(record.query.serving_rr).tell(
                         Abandon(record.query.id, self.name)
@@ -1582,65 +1602,67 @@ class ResourceRegistrar(RegistrarFacts):
                 parent = context.resource_id
         query = Query(query_id or str(uuid.uuid4()), server, target_rr, self.name, request)
         self._client(target_rr, server, limit)  # the client endpoint exists from the first call
-        future: pykka.Future[Any] = OneShotFuture()
+        future: OneShotFuture[Any] = OneShotFuture()
+        record = ClientRecord(query, parent)
+        reply = _ClientReply(self._ref, record, on_status, future, commit_first=self._commit_first)
+        if self._commit_first:
+            try:
+                self._ref.tell(_Pending(record, future))
+            except pykka.ActorDeadError:
+                raise DIRECTORY.gone_error(self.name) from None
+        self._due.expect(query.id, future)  # a notice that overtakes the answer waits
+        answered = query
         try:
             # The load goes out from the caller's thread along the client's route rather
             # than through the client's mailbox: one thread hand-off less (a dedup hit
             # went from 3.1x to 2.0x a raw pykka ask). Mailbox order still holds: the
-            # pending record and a later give-up reach their actors after this.
-            record = ClientRecord(query, parent)
-            if self._commit_first:
-                self._ref.tell(_Pending(record, future))
-            reply = _ClientReply(
-                self._ref, record, on_status, future, commit_first=self._commit_first
-            )
-            self._due.expect(query.id, future)  # a notice that overtakes the answer waits
+            # pending record and a later withdrawal reach their actors after this.
             try:
                 DIRECTORY.lookup(target_rr).tell(
                     Load(query.id, server, request, self.name, chain, reply)
                 )
             except RrError as exc:
                 reply.set_error(exc)
-        except pykka.ActorDeadError:
-            raise DIRECTORY.gone_error(self.name) from None
-        try:
-            response = future.get(timeout=max(0.0, deadline - time.monotonic()))
-        except pykka.Timeout:
-            response = self._give_up(future, query, limit)  # unless it arrived just now
-        answered = query.with_response(response)
-        if not self._commit_first:  # record it (see _ClientReply); a durable one is already
-            try:
-                self._ref.tell(
-                    _ClientLoaded(ClientRecord(answered, parent, loaded=True), on_status, future)
-                )
-            except pykka.ActorDeadError:  # stopped meanwhile: give the id back
-                with contextlib.suppress(RrError):
-                    DIRECTORY.lookup(target_rr).tell(Abandon(query.id, self.name))
-                raise RegistrarStoppedError(
-                    f"registrar {self.name!r} stopped during the call"
-                ) from None
+            # Settled by the answer (see _ClientReply), or claimed here when the time is up.
+            answer_came = future.wait(max(0.0, deadline - time.monotonic())) or not future.claim()
+            if answer_came and not future.failed:
+                answered = query.with_response(future.get())
+                if not self._commit_first:  # a durable one the registrar recorded already
+                    self._ref.tell(
+                        _ClientLoaded(
+                            ClientRecord(answered, parent, loaded=True), on_status, future
+                        )
+                    )
+        except pykka.ActorDeadError:  # this registrar stopped meanwhile: give the id back
+            with contextlib.suppress(RrError):
+                DIRECTORY.lookup(target_rr).tell(Abandon(query.id, self.name))
+            raise RegistrarStoppedError(
+                f"registrar {self.name!r} stopped during the call"
+            ) from None
+        except BaseException:  # the caller stops waiting (KeyboardInterrupt, ...)
+            future.claim()
+            self._withdraw(query, future)
+            raise
+        if not answer_came:
+            self._withdraw(query, future)
+            raise CallTimeoutError(f"call to '{target_rr}/{server}' timed out after {limit:g} s")
+        if future.failed:
+            future.get()  # raises what the call failed with
         return answered
 
-    def _give_up(self, future: pykka.Future[Any], query: Query, limit: float) -> Any:
-        """A call timed out: give it up, or return its answer if that won the race.
+    def _withdraw(self, query: Query, future: OneShotFuture[Any]) -> None:
+        """Take back a call whose caller stopped waiting: leave nothing behind (rule 17).
 
-        Raises:
-            CallTimeoutError: it was given up.
+        The caller claimed `future`, so an answer that comes later is dropped (or, for a
+        durable call, not kept). Told from the caller's thread, like the `Load`: the
+        provider sees the `Abandon` after the `Load` and before any retry this caller makes
+        with the same id. Not for a call that failed: its provider may hold a committed id
+        that a retry with the same id must find (`Supervisor.call_with_retry`).
         """
-        if not self._commit_first:
-            try:
-                future.set(None)  # claim it: an answer that comes now is released
-            except queue.Full:  # the answer came first
-                return future.get()
-        # Given up from this thread, like the load: the provider sees the Abandon after
-        # the Load and before any retry this caller makes with the same id.
         with contextlib.suppress(pykka.ActorDeadError):
-            self._ref.tell(_CallFailed(query.id, future, gave_up=True))
+            self._ref.tell(_CallFailed(query.id, future))
         with contextlib.suppress(RrError):  # a provider that is gone holds nothing
             DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
-        raise CallTimeoutError(
-            f"call to '{query.serving_rr}/{query.server}' timed out after {limit:g} s"
-        ) from None
 
     def unload(self, query_id: str, *, timeout: float | None = None) -> None:
         """Release one consumer id obtained from `call` (rules 7-8).

@@ -168,6 +168,34 @@ def test_map_join_filter_and_reduce_build_on_the_same_future_type(
     assert 10 == reduced.get(timeout=1)
 
 
+def test_a_get_hook_runs_once_for_two_concurrent_getters(future: pykka.Future[Any]) -> None:
+    source = type(future)()
+    inside = threading.Semaphore(0)  # released each time a hook starts waiting on `source`
+    original_get = source.get
+
+    def counting_get(*, timeout: float | None = None) -> Any:
+        inside.release()
+        return original_get(timeout=timeout)
+
+    source.get = counting_get  # type: ignore[method-assign]
+    runs: list[int] = []
+    mapped = source.map(lambda value: runs.append(value) or value)
+    results: list[Any] = []
+    getters = [
+        threading.Thread(target=lambda: results.append(mapped.get(timeout=10))) for _ in "ab"
+    ]
+    for getter in getters:
+        getter.start()
+    assert inside.acquire(timeout=10)  # one getter runs the hook...
+    second_hook = inside.acquire(timeout=0.5)  # ...and the other waits outside it
+    source.set(7)
+    for getter in getters:
+        getter.join(10)
+
+    assert [7, 7] == results
+    assert (False, [7]) == (second_hook, runs)
+
+
 def test_a_future_can_be_awaited(future: pykka.Future[Any]) -> None:
     async def waiting() -> Any:
         return await future

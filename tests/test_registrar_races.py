@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import threading
 import time
 import uuid
@@ -13,9 +14,9 @@ import pykka
 import pytest
 
 import rr_actors as rr
+import rr_actors._registrar
 from rr_actors._actors import OneShotFuture
-from rr_actors._catalog import ClientRecord
-from rr_actors._registrar import _CallFailed, _ClientLoaded, _Request
+from rr_actors._registrar import RegistrarActor, _Request
 from rr_actors._replies import FutureReply
 from rr_actors.testing import catalog_snapshot
 
@@ -199,25 +200,169 @@ def test_a_pykka_ask_that_arrives_while_the_registrar_stops_is_answered(
         asked.get(timeout=10)
 
 
-def test_a_give_up_that_arrives_after_its_answer_was_recorded_is_not_remembered(
-    started: Callable[..., rr.ResourceRegistrar],
-) -> None:
-    # A caller that timed out tells its registrar `_CallFailed(gave_up=True)`; the
-    # answering thread may have told the answer first. Nothing more comes for that
-    # attempt, so nothing may wait for it in `given_up` (it would stay there for good).
-    consumer = started("consumer")
-    attempt = OneShotFuture()
-    query = rr.Query(str(uuid.uuid4()), "leaf", "provider-gone", consumer.name, "x", "r")
-    consumer._ref.tell(_ClientLoaded(ClientRecord(query, None, loaded=True), None, attempt))
-    consumer._ref.tell(_CallFailed(query.id, attempt, gave_up=True))
+# -- a caller that stops waiting, and the answers that come anyway ------------------------------
+
+
+def _left_behind(registrar: rr.ResourceRegistrar) -> tuple[set[str], set[str]]:
+    """Query ids the registrar still expects an answer for, and ones notices wait for."""
     state = FutureReply()
-    consumer._ref.tell(
+    registrar._ref.tell(
         _Request(
             lambda actor, reply: reply.set_result(
-                (set(actor.given_up), set(actor.catalog.clients))
+                (set(actor.due._attempts), set(actor.parked_notices))
             ),
             state,
         )
     )
+    left: tuple[set[str], set[str]] = state.future.get(timeout=10)
+    return left
 
-    assert (set(), set()) == state.future.get(timeout=10)
+
+def _busy(registrar: rr.ResourceRegistrar) -> tuple[threading.Event, FutureReply]:
+    """Keep the registrar's actor busy until the returned gate is set (a slow provider)."""
+    gate, busy = threading.Event(), FutureReply()
+    registrar._ref.tell(_Request(lambda _actor, reply: reply.set_result(gate.wait(10)), busy))
+    return gate, busy
+
+
+def test_a_call_interrupted_by_ctrl_c_leaves_nothing_behind(
+    started: Callable[..., rr.ResourceRegistrar],
+) -> None:
+    # The interrupted caller never records its answer: it withdraws the call (claims its
+    # future, tells its registrar, sends the provider an Abandon) before the exception
+    # leaves `call`. Its answer, when it comes, is dropped.
+    assert threading.current_thread() is threading.main_thread()
+    provider, consumer = started("provider"), started("consumer")
+    entered, release = threading.Event(), threading.Event()
+
+    def load(request: Any) -> Any:
+        entered.set()
+        assert release.wait(10)
+        return f"loaded {request}"
+
+    provider.register_server("slow", load=load, unload=lambda _request, _response: None)
+
+    def interrupt() -> None:
+        assert entered.wait(10)
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+
+    interrupter = threading.Thread(target=interrupt)
+    interrupter.start()
+    with pytest.raises(KeyboardInterrupt):
+        consumer.call(provider.name, "slow", "x", timeout=10)
+    interrupter.join(10)
+    release.set()
+    second = consumer.call(provider.name, "slow", "x", timeout=10)  # the same load's answer
+
+    assert [second.id] == [q.id for q in provider.server_queries("slow")]
+    assert [second.id] == [q.id for q in consumer.client_queries()]
+    assert (set(), set()) == _left_behind(consumer)
+    provider.send_status(second.id, rr.Status.WARNING, "hot", timeout=5)
+    provider.unregister_server("slow", timeout=5)
+    assert [] == consumer.client_queries()
+
+
+@pytest.mark.parametrize("durable", [False, True], ids=["plain", "save_on_modify"])
+def test_a_timed_out_retry_of_a_held_id_leaves_both_ends_agreeing(
+    started: Callable[..., rr.ResourceRegistrar], tmp_path: Path, durable: bool
+) -> None:
+    provider = started("provider")
+    config = {"backup_path": tmp_path / "c.db", "save_on_modify": True} if durable else {}
+    consumer = started("consumer", **config)
+    provider.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
+    first = consumer.call(provider.name, "leaf", "x")
+    gate, busy = _busy(provider)  # the provider answers the retry only after its timeout
+
+    with pytest.raises(rr.CallTimeoutError):
+        consumer.call(provider.name, "leaf", "x", query_id=first.id, timeout=0.3)
+    gate.set()
+    assert busy.future.get(timeout=10) is True
+
+    provider_holds = [q.id for q in provider.server_queries("leaf")]  # after Load, Abandon
+    assert provider_holds == [q.id for q in consumer.client_queries()]  # after the answer
+    assert (set(), set()) == _left_behind(consumer)
+
+
+class _ErrorAsTheWaitRunsOut(OneShotFuture):
+    """A caller's future whose wait runs out while an error answer is being set."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.erring = threading.Event()
+        self.withdrawn = threading.Event()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if timeout is None:
+            return super().wait()
+        assert self.erring.wait(10)  # the error answer is on its way...
+        return False  # ...as the caller's wait runs out
+
+    def set(self, value: Any = None) -> None:
+        super().set(value)
+        self.withdrawn.set()
+
+    def set_exception(self, exc_info: Any = None) -> None:
+        self.erring.set()
+        assert self.withdrawn.wait(10)  # the caller claims first
+        super().set_exception(exc_info)
+
+
+def test_an_error_answer_that_loses_to_the_timeout_leaves_nothing_behind(
+    started: Callable[..., rr.ResourceRegistrar], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    provider, consumer = started("provider"), started("consumer")
+
+    def load(request: Any) -> Any:
+        raise ValueError(request)
+
+    provider.register_server("bad", load=load, unload=lambda _request, _response: None)
+    monkeypatch.setattr(rr_actors._registrar, "OneShotFuture", _ErrorAsTheWaitRunsOut)
+
+    with pytest.raises(rr.CallTimeoutError):
+        consumer.call(provider.name, "bad", "x", timeout=5)
+
+    assert [] == consumer.client_queries()
+    assert (set(), set()) == _left_behind(consumer)
+
+
+def test_an_answer_recorded_as_the_consumer_stops_is_given_back(
+    started: Callable[..., rr.ResourceRegistrar], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The caller tells its registrar the answer while the actor, stopping, is past its
+    # last look at the mailbox (it took the stop message) but not yet marked stopped:
+    # the tell lands after the loop ended, and the id must still be given back.
+    provider, consumer = started("provider"), started("consumer")
+    entered, release = threading.Event(), threading.Event()
+    in_stop, resume = threading.Event(), threading.Event()
+
+    def load(request: Any) -> Any:
+        entered.set()
+        assert release.wait(10)
+        return request
+
+    provider.register_server("slow", load=load, unload=lambda _request, _response: None)
+    original = RegistrarActor._stop
+
+    def paused_stop(self: RegistrarActor) -> None:
+        if self.name == consumer.name:
+            in_stop.set()
+            assert resume.wait(10)
+        original(self)
+
+    monkeypatch.setattr(RegistrarActor, "_stop", paused_stop)
+    outcome: list[Any] = []
+    caller = threading.Thread(
+        target=lambda: outcome.append(consumer.call(provider.name, "slow", "x", timeout=10))
+    )
+    caller.start()
+    assert entered.wait(10)
+    stopper = threading.Thread(target=consumer.stop)
+    stopper.start()
+    assert in_stop.wait(10)
+    release.set()
+    caller.join(10)  # its _ClientLoaded went into the mailbox of an actor still "alive"
+    resume.set()
+    stopper.join(10)
+
+    assert isinstance(outcome[0], rr.Query)
+    assert [] == provider.server_queries("slow")
