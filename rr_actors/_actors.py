@@ -76,9 +76,30 @@ class OneShotFuture(pykka.Future[T]):
         return self._claim.locked()
 
     @property
+    def done(self) -> bool:
+        """Whether it is settled: a `get` returns (or raises) at once."""
+        return self._settled
+
+    @property
     def failed(self) -> bool:
         """Whether it was settled with an exception."""
         return self._exc_info is not None
+
+    def reserve(self) -> bool:
+        """Take the right to settle it, to `fulfil` it later; whether this got it.
+
+        Whoever tries to settle it meanwhile (`set`, `claim`) loses, and its waiters wait on
+        until `fulfil`: a holder must fulfil it on every path.
+        """
+        return self._claim.acquire(blocking=False)
+
+    def fulfil(self, value: Any = None, *, exc_info: OptExcInfo | None = None) -> None:
+        """Settle a future this caller `reserve`d: with `value`, or with an exception."""
+        if exc_info is not None:
+            self._exc_info = exc_info
+        else:
+            self._value = value
+        self._settle()
 
     def claim(self) -> bool:
         """Settle it with `None` unless something settled it first; whether this did.
@@ -189,12 +210,16 @@ class Mailbox(queue.SimpleQueue[Any]):
 def refuse(envelope: Any) -> None:
     """Answer a pykka envelope its actor will not handle, as pykka's own final drain does.
 
-    An `ask` (a blocking `ActorRef.stop` included) gets `ActorDeadError`; a `tell` has
-    nobody to answer.
+    A stop asked for is answered as done (`ActorRef.stop` returns True: the actor was
+    stopping); any other `ask` gets `ActorDeadError`; a `tell` has nobody to answer.
     """
-    if envelope.reply_to is not None:
-        error = pykka.ActorDeadError("the actor stopped before handling the message")
-        envelope.reply_to.set_exception((pykka.ActorDeadError, error, None))
+    if envelope.reply_to is None:
+        return
+    if isinstance(envelope.message, pykka.messages._ActorStop):  # (as pykka's own drain)
+        envelope.reply_to.set(None)
+        return
+    error = pykka.ActorDeadError("the actor stopped before handling the message")
+    envelope.reply_to.set_exception((pykka.ActorDeadError, error, None))
 
 
 class Actor(pykka.ThreadingActor):

@@ -127,8 +127,11 @@ class _FetchVia:
 
 @dataclasses.dataclass(frozen=True)
 class _Pending:
+    """A durable call about to go out: write its record as pending, then answer `reply`."""
+
     record: ClientRecord
     attempt: OneShotFuture[Any]
+    reply: Reply
 
 
 @dataclasses.dataclass(frozen=True)
@@ -367,6 +370,13 @@ class ClientActor(Actor):
         self.target_rr = target_rr
         self.server = server
 
+    def on_late(self, envelope: Any) -> None:
+        """A fetch that reached this client after it ended is answered, not dropped."""
+        refuse(envelope)
+        reply = getattr(envelope.message, "reply", None)
+        if reply is not None:
+            reply.set_error(DIRECTORY.gone_error(self.origin_rr))
+
     def on_receive(self, message: Any) -> None:
         if isinstance(message, _FetchVia):
             try:
@@ -445,6 +455,7 @@ class RegistrarActor(Actor):
         peer: LocalPeer,
         died: threading.Event,
         due: _DueAnswers,
+        ended: threading.Event,
         *,
         setting_up: bool = False,
     ) -> None:
@@ -475,6 +486,7 @@ class RegistrarActor(Actor):
         self.setup_done = False  # start(setup=) finished: servers it did not register are gone
         self.open_requests: set[_OpenReply] = set()  # handle requests not answered yet
         self.died = died  # set once a crash was fully handled (see testing.crash)
+        self.ended = ended  # set once the actor's thread handed on its last message
         self.due = due  # consumer side: calls whose answer is on its way
         self.parked_notices: dict[str, list[StatusNotice | Revoke | ResponseUpdated]] = {}
         self.flush_timer: Cancellable | None = None
@@ -563,6 +575,10 @@ class RegistrarActor(Actor):
         self._fail_parked(error)
         while not self.actor_inbox.empty():
             self._refuse(self.actor_inbox.get(), error)
+
+    def _actor_loop_teardown(self) -> None:
+        super()._actor_loop_teardown()  # what was left went to `on_late`
+        self.ended.set()
 
     def on_late(self, envelope: Any) -> None:
         """A message that arrived after this actor's loop ended (any thread)."""
@@ -1013,13 +1029,13 @@ class RegistrarActor(Actor):
 
     def _on_pending(self, message: _Pending) -> None:
         self.pending_attempts[message.record.query.id] = message.attempt
-        if message.record.query.id in self.catalog.clients:  # a retry of a call it holds
-            return
-        record = message.record
-        if self._owner_gone(record):  # a late sub-call: kept as a call of its own, so a
-            record = ClientRecord(record.query, None)  # crash meanwhile gives it back
-        self.catalog.add_client(record)
-        self._commit()
+        if message.record.query.id not in self.catalog.clients:  # (else a retry of one it holds)
+            record = message.record
+            if self._owner_gone(record):  # a late sub-call: kept as a call of its own, so a
+                record = ClientRecord(record.query, None)  # crash meanwhile gives it back
+            self.catalog.add_client(record)
+            self._commit()
+        message.reply.set_result(None)  # durable: the Load may leave now (rule 16)
 
     def _on_client_loaded(self, message: _ClientLoaded) -> None:
         try:
@@ -1029,39 +1045,46 @@ class RegistrarActor(Actor):
 
     def _record_answer(self, message: _ClientLoaded) -> None:
         query = message.record.query
-        self.pending_attempts.pop(query.id, None)
-        # A durable call's caller may have withdrawn it (claimed its future, sent the
-        # provider an Abandon): then the answer is not kept.
-        withdrawn = message.answer_after_commit and message.attempt.claimed
-        if withdrawn or (self.stopping and message.record.parent is None):
-            if not withdrawn:  # stopping: give the id back rather than hold it
-                with contextlib.suppress(RrError):
-                    DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
-            if query.id in self.catalog.clients and not self.catalog.clients[query.id].loaded:
-                self.catalog.remove_client(query.id)
-                self._commit()
+        ours = self.pending_attempts.get(query.id) is message.attempt  # (not a same-id retry's)
+        if ours:
+            del self.pending_attempts[query.id]
+        # A durable call's answer is kept only while its caller still waits: the actor takes
+        # the caller's future before it commits, so a caller whose time runs out meanwhile
+        # reads the answer instead. A caller that took it first withdrew the call (told the
+        # provider an Abandon after its Load): its answer is not kept.
+        withdrawn = message.answer_after_commit and not message.attempt.reserve()
+        try:
+            if withdrawn or (self.stopping and message.record.parent is None):
+                if not withdrawn or self.stopping:  # give the id back (when stopping, the
+                    # Abandon op_stop sent may have reached the provider before the Load)
+                    with contextlib.suppress(RrError):
+                        DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
+                record = self.catalog.clients.get(query.id)
+                if ours and record is not None and not record.loaded:  # its pending record
+                    self.catalog.remove_client(query.id)
+                    self._commit()
+                if message.answer_after_commit and not withdrawn:
+                    error = RegistrarStoppedError(
+                        f"registrar {self.name!r} stopped during the call"
+                    )
+                    message.attempt.fulfil(exc_info=(type(error), error, None))
+                return
+            if self._owner_gone(message.record):
+                self._give_back_late_dependency(message)
+                return
+            if query.id in self.catalog.clients:  # written as pending before the load was sent
+                self.catalog.client_loaded(query.id, query.response)
+            else:
+                self.catalog.add_client(message.record)
+            if message.on_status is not None:
+                self.status_callbacks[query.id] = message.on_status
+            self._commit()
             if message.answer_after_commit:
-                FutureReply(message.attempt).set_error(
-                    RegistrarStoppedError(f"registrar {self.name!r} stopped during the call")
-                )
-            return
-        if self._owner_gone(message.record):
-            self._give_back_late_dependency(message)
-            return
-        if query.id in self.catalog.clients:  # written as pending before the load was sent
-            self.catalog.client_loaded(query.id, query.response)
-        else:
-            self.catalog.add_client(message.record)
-        if message.on_status is not None:
-            self.status_callbacks[query.id] = message.on_status
-        self._commit()
-        if message.answer_after_commit:
-            try:
-                message.attempt.set(query.response)
-            except queue.Full:  # withdrawn meanwhile (its caller sent the Abandon)
-                self.catalog.remove_client(query.id)
-                self.status_callbacks.pop(query.id, None)
-                self._commit()
+                message.attempt.fulfil(query.response)
+        except BaseException as exc:  # a reserved future must be settled on every path
+            if message.answer_after_commit and not withdrawn and not message.attempt.done:
+                message.attempt.fulfil(exc_info=(type(exc), exc, exc.__traceback__))
+            raise
 
     def _owner_gone(self, record: ClientRecord) -> bool:
         """Whether `record` is a dependency of a resource that failed or is unloading.
@@ -1094,11 +1117,12 @@ class RegistrarActor(Actor):
         if query.id in self.catalog.clients:  # a durable consumer's pending record
             self.catalog.remove_client(query.id)
             self._commit()
-        if message.answer_after_commit:
-            FutureReply(message.attempt).set_result(query.response)
+        if message.answer_after_commit:  # (reserved by `_record_answer`)
+            message.attempt.fulfil(query.response)
 
     def _on_call_failed(self, message: _CallFailed) -> None:
-        self.pending_attempts.pop(message.query_id, None)
+        if self.pending_attempts.get(message.query_id) is message.attempt:
+            del self.pending_attempts[message.query_id]
         try:
             if message.query_id in self.catalog.clients:
                 self.catalog.remove_client(message.query_id)
@@ -1330,7 +1354,7 @@ class RegistrarActor(Actor):
             self._stop_children()
             reply.set_result(None)
             self._fail_waiting(RegistrarStoppedError(f"registrar {self.name!r} was stopped"))
-            self.stop()
+            self._stop()  # at once: what arrives from now on goes to `on_late`
 
         next_one()
 
@@ -1409,6 +1433,7 @@ class ResourceRegistrar(RegistrarFacts):
         self._in_doubt = in_doubt
         self._clients: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
         self._died = threading.Event()  # set when a crash of the actor was fully handled
+        self._ended = threading.Event()  # set when the actor handed on its last message
         self._due = _DueAnswers()  # shared with the actor (see `start`)
         self._commit_first = config.save_on_modify and config.backup_path is not None
 
@@ -1461,10 +1486,9 @@ class ResourceRegistrar(RegistrarFacts):
                 for r in catalog.resources.values()
                 if r.state is not ResourceState.LOADED
             )
-            died = threading.Event()
-            due = _DueAnswers()
+            died, ended, due = threading.Event(), threading.Event(), _DueAnswers()
             ref = RegistrarActor.start(
-                config, catalog, saver, peer, died, due, setting_up=setup is not None
+                config, catalog, saver, peer, died, due, ended, setting_up=setup is not None
             )
         except BaseException:
             if store is not None:
@@ -1473,6 +1497,7 @@ class ResourceRegistrar(RegistrarFacts):
             raise
         handle = cls(ref, config, restored=restored is not None, in_doubt=in_doubt)
         handle._died = died
+        handle._ended = ended
         handle._due = due
         if setup is not None:
             try:
@@ -1605,26 +1630,16 @@ class ResourceRegistrar(RegistrarFacts):
         future: OneShotFuture[Any] = OneShotFuture()
         record = ClientRecord(query, parent)
         reply = _ClientReply(self._ref, record, on_status, future, commit_first=self._commit_first)
-        if self._commit_first:
-            try:
-                self._ref.tell(_Pending(record, future))
-            except pykka.ActorDeadError:
-                raise DIRECTORY.gone_error(self.name) from None
-        self._due.expect(query.id, future)  # a notice that overtakes the answer waits
         answered = query
         try:
-            # The load goes out from the caller's thread along the client's route rather
-            # than through the client's mailbox: one thread hand-off less (a dedup hit
-            # went from 3.1x to 2.0x a raw pykka ask). Mailbox order still holds: the
-            # pending record and a later withdrawal reach their actors after this.
-            try:
-                DIRECTORY.lookup(target_rr).tell(
-                    Load(query.id, server, request, self.name, chain, reply)
-                )
-            except RrError as exc:
-                reply.set_error(exc)
+            self._due.expect(query.id, future)  # a notice that overtakes the answer waits
+            load = Load(query.id, server, request, self.name, chain, reply)
+            sent = self._send(load, reply, deadline)
             # Settled by the answer (see _ClientReply), or claimed here when the time is up.
-            answer_came = future.wait(max(0.0, deadline - time.monotonic())) or not future.claim()
+            left = max(0.0, deadline - time.monotonic())
+            answer_came = (sent and future.wait(left)) or not future.claim()
+            if answer_came:
+                future.wait()  # whoever holds the claim is writing the answer: read it whole
             if answer_came and not future.failed:
                 answered = query.with_response(future.get())
                 if not self._commit_first:  # a durable one the registrar recorded already
@@ -1636,9 +1651,7 @@ class ResourceRegistrar(RegistrarFacts):
         except pykka.ActorDeadError:  # this registrar stopped meanwhile: give the id back
             with contextlib.suppress(RrError):
                 DIRECTORY.lookup(target_rr).tell(Abandon(query.id, self.name))
-            raise RegistrarStoppedError(
-                f"registrar {self.name!r} stopped during the call"
-            ) from None
+            raise DIRECTORY.gone_error(self.name) from None
         except BaseException:  # the caller stops waiting (KeyboardInterrupt, ...)
             future.claim()
             self._withdraw(query, future)
@@ -1649,6 +1662,29 @@ class ResourceRegistrar(RegistrarFacts):
         if future.failed:
             future.get()  # raises what the call failed with
         return answered
+
+    def _send(self, load: Load, reply: _ClientReply, deadline: float) -> bool:
+        """Send a call's `load` from the caller's thread; whether it left before `deadline`.
+
+        Along the client's route rather than through the client's mailbox: one thread
+        hand-off less (a dedup hit went from 3.1x to 2.0x a raw pykka ask); mailbox order
+        still holds, a later withdrawal reaches its actors after this. A durable call's
+        record is committed as pending first (rule 16), so a crash of this process after
+        the load left still knows the call; a record that cannot be written raises here.
+        """
+        if self._commit_first:
+            committed = FutureReply()
+            self._ref.tell(_Pending(reply.record, reply.future, committed))
+            if not committed.future.wait(max(0.0, deadline - time.monotonic())):
+                return False
+            committed.future.get()
+            if reply.future.done:  # failed meanwhile (this registrar stops): nothing to send
+                return True
+        try:
+            DIRECTORY.lookup(reply.record.query.serving_rr).tell(load)
+        except RrError as exc:
+            reply.set_error(exc)
+        return True
 
     def _withdraw(self, query: Query, future: OneShotFuture[Any]) -> None:
         """Take back a call whose caller stopped waiting: leave nothing behind (rule 17).
@@ -1832,10 +1868,10 @@ class ResourceRegistrar(RegistrarFacts):
             self._ask(lambda actor, reply: actor.op_stop(reply), timeout, "stop()")
         except RegistrarStoppedError:
             return
-        try:
-            self._ref.stop(block=True, timeout=self._timeout(timeout))
-        except pykka.Timeout:
-            raise CallTimeoutError(f"stop() of {self.name!r} timed out") from None
+        # op_stop ended the actor; what reached its mailbox meanwhile (an answer to give
+        # back, a notice to acknowledge) is handled once its thread has handed it on.
+        if not self._ended.wait(self._timeout(timeout)):
+            raise CallTimeoutError(f"stop() of {self.name!r} timed out")
 
     def __enter__(self) -> ResourceRegistrar:
         return self

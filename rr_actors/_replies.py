@@ -35,8 +35,8 @@ class FutureReply:
 
     __slots__ = ("future",)
 
-    def __init__(self, future: pykka.Future[Any] | None = None) -> None:
-        self.future: pykka.Future[Any] = future or OneShotFuture()
+    def __init__(self, future: OneShotFuture[Any] | None = None) -> None:
+        self.future: OneShotFuture[Any] = future or OneShotFuture()
 
     def set_result(self, value: Any) -> None:
         with contextlib.suppress(queue.Full):

@@ -291,7 +291,7 @@ def test_an_ask_that_saw_the_actor_alive_just_before_it_stopped_is_answered(
 
     with pytest.raises(pykka.ActorDeadError):
         ref.ask("late", timeout=10)
-    assert ref.stop(block=True, timeout=10) is False  # a second stop says "not running"
+    assert ref.stop(block=True, timeout=10) is True  # (it saw the actor alive: as pykka's drain)
 
 
 def test_what_is_told_to_an_ended_actor_is_dropped_without_error(
@@ -304,3 +304,45 @@ def test_what_is_told_to_an_ended_actor_is_dropped_without_error(
     ref.tell("late")  # nobody waits for a tell: nothing to answer
 
     assert ref.actor_inbox.empty()
+
+
+class _Busy(Actor):
+    def __init__(self, gate: threading.Event) -> None:
+        super().__init__()
+        self.gate = gate
+
+    def on_receive(self, message: Any) -> Any:
+        assert self.gate.wait(10)
+        return message
+
+
+class _PykkaBusy(pykka.ThreadingActor):
+    def __init__(self, gate: threading.Event) -> None:
+        super().__init__()
+        self.gate = gate
+
+    def on_receive(self, message: Any) -> Any:
+        assert self.gate.wait(10)
+        return message
+
+
+@pytest.mark.parametrize("actor_class", [_PykkaBusy, _Busy], ids=["pykka", "rr_actors"])
+def test_a_stop_asked_while_the_actor_was_running_returns_true(
+    actor_class: type[pykka.ThreadingActor],
+) -> None:
+    # pykka: "Returns True if actor is stopped or was being stopped at the time of the
+    # call. False if actor was already dead." pykka's drain answers a queued `_ActorStop`
+    # with None (True); `Actor._actor_loop_teardown` -> `refuse` answers it with
+    # ActorDeadError, so the second of two concurrent stops now says "already dead".
+    gate = threading.Event()
+    ref = actor_class.start(gate)
+    busy = ref.ask("busy", block=False)
+    first = ref.stop(block=False)
+    second = ref.stop(block=False)  # the actor is alive and running
+    gate.set()
+
+    assert "busy" == busy.get(timeout=10)
+    assert (True, True) == (first.get(timeout=10), second.get(timeout=10))
+
+
+# -- 4. the withdrawal Abandon is fire-and-forget: a durable provider that dies first keeps the id

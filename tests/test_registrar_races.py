@@ -16,6 +16,8 @@ import pytest
 import rr_actors as rr
 import rr_actors._registrar
 from rr_actors._actors import OneShotFuture
+from rr_actors._directory import DIRECTORY
+from rr_actors._messages import Abandon
 from rr_actors._registrar import RegistrarActor, _Request
 from rr_actors._replies import FutureReply
 from rr_actors.testing import catalog_snapshot
@@ -366,3 +368,230 @@ def test_an_answer_recorded_as_the_consumer_stops_is_given_back(
 
     assert isinstance(outcome[0], rr.Query)
     assert [] == provider.server_queries("slow")
+
+
+# -- a registrar that stops while calls and requests are on their way --------------------------
+
+
+def test_stopping_a_durable_consumer_before_its_callers_load_leaves_leaves_no_id_behind(
+    started: Callable[..., rr.ResourceRegistrar],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # A durable call's Load leaves once its pending record is committed. If the consumer's
+    # stop runs just before the Load leaves, it fails the call and sends the provider an
+    # Abandon *before* the Load: the Abandon finds nothing, the Load then adds the id. The
+    # answer reaches the consumer while it still stops; it must give the id back.
+    provider = started("prov")
+    other = started("other")
+    consumer = started("cons", backup_path=tmp_path / "c.db", save_on_modify=True)
+    unload_entered, unload_gate = threading.Event(), threading.Event()
+
+    def sticky_unload(_request: Any, _response: Any) -> None:
+        unload_entered.set()  # the consumer's op_stop is past its pending records
+        assert unload_gate.wait(10)
+
+    provider.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
+    provider.register_server("sticky", load=lambda r: r, unload=sticky_unload)
+    held = other.call(provider.name, "leaf", "x")  # the consumer's Load will be a dedup hit
+    consumer.call(provider.name, "sticky", "s")  # keeps the consumer's stop busy
+    consumer.client_queries()  # (its client for leaf is started below, before the stop)
+
+    qid = str(uuid.uuid4())
+    expecting = threading.Event()
+    original_lookup = DIRECTORY.lookup
+    marked = threading.local()  # set on the calling thread
+
+    def lookup(name: str) -> Any:
+        if name == provider.name and getattr(marked, "caller", False):
+            expecting.set()  # its record is committed; hold its Load until the stop ran
+            assert unload_entered.wait(10)
+        return original_lookup(name)
+
+    monkeypatch.setattr(DIRECTORY, "lookup", lookup)
+
+    def call() -> rr.Query:
+        marked.caller = True
+        return consumer.call(provider.name, "leaf", "x", query_id=qid, timeout=10)
+
+    caller, outcome = _in_thread(call)
+    assert expecting.wait(10)
+    stopper, stopped = _in_thread(lambda: consumer.stop(timeout=20))
+    caller.join(10)  # its Load is in the provider's mailbox
+    assert [rr.RegistrarStoppedError] == [type(o) for o in outcome]
+    provider.server_queries("leaf")  # the provider handled that Load (and answered it)
+    unload_gate.set()  # the consumer's stop ends after it handled the answer
+    stopper.join(20)
+
+    assert [None] == stopped
+    assert not consumer.is_alive()
+    assert [held.id] == [q.id for q in provider.server_queries("leaf")]
+
+
+class _ErrorLandsAsTheWaitRunsOut(OneShotFuture):
+    """The error answer has claimed the future but not written it when the wait runs out."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.erring = threading.Event()  # set_exception took the claim
+        self.looked = threading.Event()  # the caller read `failed`
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if timeout is None:  # (a caller that waits for the settle before it looks)
+            self.looked.set()
+            return super().wait()
+        assert self.erring.wait(10)
+        return False  # the caller's wait runs out; its claim() will lose
+
+    @property
+    def failed(self) -> bool:
+        result = self._exc_info is not None
+        self.looked.set()
+        return result
+
+    def set_exception(self, exc_info: Any = None) -> None:
+        self._take_claim()
+        self.erring.set()
+        assert self.looked.wait(10)  # the caller looks before the error is written
+        self._exc_info = exc_info
+        self._settle()
+
+
+def test_a_failed_call_whose_error_races_the_timeout_is_not_withdrawn(
+    started: Callable[..., rr.ResourceRegistrar], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # DESIGN/failure-semantics: "A call that *failed* is not withdrawn" (a retry with the
+    # same id must find an id committed at a restarted provider). `call` decides
+    # `answer_came` by `not future.claim()`, then reads `future.failed` while the
+    # answering thread may still be writing the error: `failed` reads False,
+    # `future.get()` raises inside the protected region, and the `except BaseException`
+    # branch withdraws the failed call (a second `_CallFailed` and an `Abandon`).
+    provider, consumer = started("prov"), started("cons")
+
+    def load(request: Any) -> Any:
+        raise ValueError(request)
+
+    provider.register_server("bad", load=load, unload=lambda _q, _r: None)
+    abandons: list[str] = []
+    original = RegistrarActor._handlers[Abandon]
+
+    def spy(actor: RegistrarActor, message: Abandon) -> None:
+        if actor.name == provider.name:
+            abandons.append(message.query_id)
+        original(actor, message)
+
+    monkeypatch.setitem(RegistrarActor._handlers, Abandon, spy)
+    monkeypatch.setattr(rr_actors._registrar, "OneShotFuture", _ErrorLandsAsTheWaitRunsOut)
+
+    with pytest.raises(rr.ResourceLoadError):
+        consumer.call(provider.name, "bad", "x", query_id="q-failed", timeout=5)
+    provider.server_queries("bad")  # whatever the caller sent the provider was handled
+
+    assert [] == abandons
+
+
+def test_a_request_that_lands_as_op_stop_finishes_is_answered_not_left_to_time_out(
+    started: Callable[..., rr.ResourceRegistrar], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # op_stop: ... reply, `_fail_waiting` (drains the mailbox), then `self.stop()`, which
+    # *tells* pykka's stop message. Whatever is put between the drain and that tell (a
+    # handle request whose `is_alive()` check passed) is handled by the full handlers of
+    # a registrar whose servers, clients, saver and directory entry are gone; what it
+    # waits for comes back through the mailbox after the actor ended and is dropped.
+    provider, consumer = started("prov"), started("cons")
+    provider.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
+    held = consumer.call(provider.name, "leaf", "x")
+    in_gap, resume, put_seen = threading.Event(), threading.Event(), threading.Event()
+    original = RegistrarActor._fail_waiting
+
+    def fail_waiting(self: RegistrarActor, error: Any) -> None:
+        original(self, error)
+        if self.name == provider.name and not in_gap.is_set():
+            in_gap.set()  # op_stop drained its mailbox and has not told itself to stop
+            assert resume.wait(10)
+
+    monkeypatch.setattr(RegistrarActor, "_fail_waiting", fail_waiting)
+    stopping = FutureReply()  # (op_stop without the handle's own ref.stop() ask)
+    provider._ref.tell(_Request(lambda actor, reply: actor.op_stop(reply), stopping))
+    assert in_gap.wait(10)
+    inbox = provider._ref.actor_inbox
+    original_put = inbox.put
+
+    def put(item: Any, block: bool = True, timeout: float | None = None) -> None:
+        original_put(item, block, timeout)
+        if isinstance(item.message, _Request):
+            put_seen.set()
+
+    monkeypatch.setattr(inbox, "put", put)
+    updater, outcome = _in_thread(lambda: provider.update_response(held.id, "new", timeout=3))
+    assert put_seen.wait(10)
+    resume.set()
+    updater.join(10)
+
+    assert stopping.future.get(timeout=10) is None
+    assert [rr.RegistrarStoppedError] == [type(o) for o in outcome]
+
+
+def test_a_fetch_that_lands_after_its_client_ended_is_answered_not_left_to_time_out(
+    started: Callable[..., rr.ResourceRegistrar], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # fetch_queries tells the cached ClientActor a `_FetchVia(reply)`. If the client ends
+    # (its registrar stops) between the is_alive() checks and the put, the envelope goes
+    # to ClientActor.on_late, the default `refuse`, which answers asks only: the reply is
+    # dropped and fetch_queries waits out its whole timeout.
+    provider, consumer = started("prov"), started("cons")
+    provider.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
+    consumer.call(provider.name, "leaf", "x")
+    client = consumer._clients[(provider.name, "leaf")]
+    consumer.stop()
+    monkeypatch.setattr(client, "is_alive", lambda: True)  # both checks passed just before
+
+    with pytest.raises(rr.RrError) as raised:
+        consumer.fetch_queries(provider.name, "leaf", timeout=2)
+    assert not isinstance(raised.value, rr.CallTimeoutError)
+
+
+class _CommitRacesTheTimeout(OneShotFuture):
+    """A durable caller's future whose wait runs out while the registrar commits its answer."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.reserved = threading.Event()  # the registrar took it, to commit the answer
+        self.tried = threading.Event()  # the caller tried to claim it
+
+    def reserve(self) -> bool:
+        taken = super().reserve()
+        self.reserved.set()
+        assert self.tried.wait(10)  # the caller's time runs out before the commit
+        return taken
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if timeout is None:
+            return super().wait()
+        assert self.reserved.wait(10)
+        return False
+
+    def claim(self) -> bool:
+        won = super().claim()
+        self.tried.set()
+        return won
+
+
+def test_a_durable_caller_whose_time_runs_out_as_its_answer_is_committed_gets_it(
+    started: Callable[..., rr.ResourceRegistrar],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The registrar takes the caller's future before it commits the answer, so a caller
+    # whose time runs out meanwhile reads the answer (there is no window in which a
+    # committed answer is then withdrawn, which a crash could turn into a phantom record).
+    provider = started("provider")
+    consumer = started("consumer", backup_path=tmp_path / "c.db", save_on_modify=True)
+    provider.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
+    monkeypatch.setattr(rr_actors._registrar, "OneShotFuture", _CommitRacesTheTimeout)
+
+    query = consumer.call(provider.name, "leaf", "x", timeout=5)
+
+    assert "loaded x" == query.response
+    assert [query.id] == [q.id for q in consumer.client_queries()]
+    assert [query.id] == [q.id for q in provider.server_queries("leaf")]
