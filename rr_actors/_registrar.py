@@ -148,6 +148,7 @@ class _CallFailed:
 
     query_id: str
     attempt: OneShotFuture[Any]
+    withdrawn: bool = False  # given up by its caller, who told the provider an Abandon first
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1055,22 +1056,12 @@ class RegistrarActor(Actor):
         withdrawn = message.answer_after_commit and not message.attempt.reserve()
         try:
             if withdrawn or (self.stopping and message.record.parent is None):
-                if not withdrawn or self.stopping:  # give the id back (when stopping, the
-                    # Abandon op_stop sent may have reached the provider before the Load)
-                    with contextlib.suppress(RrError):
-                        DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
-                record = self.catalog.clients.get(query.id)
-                if ours and record is not None and not record.loaded:  # its pending record
-                    self.catalog.remove_client(query.id)
-                    self._commit()
-                if message.answer_after_commit and not withdrawn:
-                    error = RegistrarStoppedError(
-                        f"registrar {self.name!r} stopped during the call"
-                    )
-                    message.attempt.fulfil(exc_info=(type(error), error, None))
+                self._drop_answer(message, withdrawn=withdrawn, ours=ours)
                 return
             if self._owner_gone(message.record):
                 self._give_back_late_dependency(message)
+                return
+            if message.answer_after_commit and self._unstorable(message):
                 return
             if query.id in self.catalog.clients:  # written as pending before the load was sent
                 self.catalog.client_loaded(query.id, query.response)
@@ -1085,6 +1076,43 @@ class RegistrarActor(Actor):
             if message.answer_after_commit and not withdrawn and not message.attempt.done:
                 message.attempt.fulfil(exc_info=(type(exc), exc, exc.__traceback__))
             raise
+
+    def _drop_answer(self, message: _ClientLoaded, *, withdrawn: bool, ours: bool) -> None:
+        """An answer not kept: its caller withdrew the call, or this registrar stops.
+
+        `ours`: `message` is the attempt that wrote the pending record (not a same-id retry).
+        """
+        query = message.record.query
+        if not withdrawn or self.stopping:  # give the id back (when stopping, the Abandon
+            with contextlib.suppress(RrError):  # op_stop sent may have preceded the Load)
+                DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
+        record = self.catalog.clients.get(query.id)
+        if withdrawn and not self.stopping:
+            record = None  # its caller's _CallFailed removes it, after its Abandon
+        if ours and record is not None and not record.loaded:  # its pending record
+            self.catalog.remove_client(query.id)
+            self._commit()
+        if message.answer_after_commit and not withdrawn:
+            error = RegistrarStoppedError(f"registrar {self.name!r} stopped during the call")
+            message.attempt.fulfil(exc_info=(type(error), error, None))
+
+    def _unstorable(self, message: _ClientLoaded) -> bool:
+        """A durable call's response this catalog cannot store: give it back, fail the call.
+
+        (A caller that records its own answer checks the response itself, see `call`.)
+        """
+        query = message.record.query
+        try:
+            _check_picklable(query.response, f"the response of '{query.serving_rr}/{query.server}'")
+        except ConfigError as exc:
+            with contextlib.suppress(RrError):
+                DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
+            if query.id in self.catalog.clients and not self.catalog.clients[query.id].loaded:
+                self.catalog.remove_client(query.id)  # its pending record
+                self._commit()
+            message.attempt.fulfil(exc_info=(type(exc), exc, None))
+            return True
+        return False
 
     def _owner_gone(self, record: ClientRecord) -> bool:
         """Whether `record` is a dependency of a resource that failed or is unloading.
@@ -1121,10 +1149,16 @@ class RegistrarActor(Actor):
             message.attempt.fulfil(query.response)
 
     def _on_call_failed(self, message: _CallFailed) -> None:
-        if self.pending_attempts.get(message.query_id) is message.attempt:
+        current = self.pending_attempts.get(message.query_id)
+        if current is message.attempt:
             del self.pending_attempts[message.query_id]
+        record = self.catalog.clients.get(message.query_id)
         try:
-            if message.query_id in self.catalog.clients:
+            if current is not None and current is not message.attempt:
+                pass  # a stale failure of an earlier attempt: the record is a retry's
+            elif record is not None and record.loaded and not message.withdrawn:
+                pass  # a failed retry of an id this registrar holds: it still holds it
+            elif record is not None:
                 self.catalog.remove_client(message.query_id)
                 self.status_callbacks.pop(message.query_id, None)
                 self._commit()
@@ -1333,12 +1367,13 @@ class RegistrarActor(Actor):
         for record in list(self.catalog.clients.values()):
             attempt = self.pending_attempts.pop(record.query.id, None)
             if record.parent is None and not record.loaded and attempt is not None:
-                # a durable call in flight: give it up, and tell its caller at once
-                self._on_call_failed(_CallFailed(record.query.id, attempt))
+                # a durable call in flight: give it up (the Abandon first, then the record,
+                # so a crash in between leaves nothing at the provider), tell its caller
                 with contextlib.suppress(RrError):
                     DIRECTORY.lookup(record.query.serving_rr).tell(
                         Abandon(record.query.id, self.name)
                     )
+                self._on_call_failed(_CallFailed(record.query.id, attempt, withdrawn=True))
                 FutureReply(attempt).set_error(stopped)
         tops = [r for r in reversed(self.catalog.clients.values()) if r.parent is None and r.loaded]
 
@@ -1613,6 +1648,9 @@ class ResourceRegistrar(RegistrarFacts):
             CallTimeoutError: no answer in time; the query id is released if it loads later.
             RegistrarUnavailableError: the provider died (it may have executed the load).
             RegistrarStoppedError: this registrar or the provider was stopped.
+            ConfigError: `on_status` is not callable; or the request, or the response,
+                cannot be pickled where it must be: across processes, or into this
+                registrar's backup (its client record); the provider then holds nothing.
         """
         if on_status is not None and not callable(on_status):
             raise ConfigError(f"on_status must be callable, got {on_status!r}")
@@ -1625,6 +1663,8 @@ class ResourceRegistrar(RegistrarFacts):
             chain = context.chain
             if context.registrar == self.name:
                 parent = context.resource_id
+        if self._config.backup_path is not None:  # its client record is stored
+            _check_picklable(request, f"the request of a call to '{target_rr}/{server}'")
         query = Query(query_id or str(uuid.uuid4()), server, target_rr, self.name, request)
         self._client(target_rr, server, limit)  # the client endpoint exists from the first call
         future: OneShotFuture[Any] = OneShotFuture()
@@ -1642,6 +1682,10 @@ class ResourceRegistrar(RegistrarFacts):
                 future.wait()  # whoever holds the claim is writing the answer: read it whole
             if answer_came and not future.failed:
                 answered = query.with_response(future.get())
+                if self._config.backup_path is not None and not self._commit_first:
+                    _check_picklable(  # stored with its record at the next flush
+                        answered.response, f"the response of '{target_rr}/{server}'"
+                    )
                 if not self._commit_first:  # a durable one the registrar recorded already
                     self._ref.tell(
                         _ClientLoaded(
@@ -1695,10 +1739,10 @@ class ResourceRegistrar(RegistrarFacts):
         with the same id. Not for a call that failed: its provider may hold a committed id
         that a retry with the same id must find (`Supervisor.call_with_retry`).
         """
-        with contextlib.suppress(pykka.ActorDeadError):
-            self._ref.tell(_CallFailed(query.id, future))
         with contextlib.suppress(RrError):  # a provider that is gone holds nothing
             DIRECTORY.lookup(query.serving_rr).tell(Abandon(query.id, self.name))
+        with contextlib.suppress(pykka.ActorDeadError):  # after: a crash in between keeps
+            self._ref.tell(_CallFailed(query.id, future, withdrawn=True))  # the record
 
     def unload(self, query_id: str, *, timeout: float | None = None) -> None:
         """Release one consumer id obtained from `call` (rules 7-8).

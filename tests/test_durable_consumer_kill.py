@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import threading
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -96,3 +97,192 @@ def test_a_durable_call_leaves_only_after_its_pending_record_is_committed(
 
     held_at_provider, held_by_consumer = _both_ends(sup, p, c)
     assert held_at_provider == held_by_consumer
+
+
+def test_a_withdrawn_call_is_abandoned_at_its_provider_before_its_record_goes(
+    supervisors: Callable[..., rr.Supervisor],
+    tmp_path: Path,
+    process_helpers: SharedObjects,
+    eventually: Callable[..., bool],
+) -> None:
+    # A durable call's answer reaches the consumer; its actor is slow to take it, so the
+    # caller's time runs out: the caller claims its future and withdraws the call. Its
+    # pending record must stay on disk until the provider was told the Abandon: killed
+    # just before that, the restarted consumer finds the record and gives the id back
+    # (were the record gone, the provider would hold the id for good: a restart is
+    # expected, so no death watch; the answer was delivered, so the provider's release
+    # of an undelivered answer does not fire).
+    sup, p, c = _pair(supervisors, tmp_path)
+    qid = str(uuid.uuid4())
+    reached = process_helpers.event()
+
+    def arm(registrar: rr.ResourceRegistrar) -> None:
+        import threading  # noqa: PLC0415 - runs in the consumer's process
+
+        import rr_actors._registrar as m  # noqa: PLC0415
+        from rr_actors._actors import OneShotFuture  # noqa: PLC0415
+        from rr_actors._directory import DIRECTORY  # noqa: PLC0415
+
+        claimed, answer_handled = threading.Event(), threading.Event()
+        marked = threading.local()
+
+        class Future(OneShotFuture[Any]):
+            def claim(self) -> bool:
+                won = super().claim()
+                claimed.set()
+                return won
+
+        m.OneShotFuture = Future  # type: ignore[attr-defined] # (this process only)
+        original_loaded = m.RegistrarActor._handlers[m._ClientLoaded]
+
+        def slow_loaded(actor: Any, message: Any) -> None:
+            if message.record.query.id != qid:
+                original_loaded(actor, message)
+                return
+            assert claimed.wait(30)  # the actor is slow: the caller's time runs out first
+            original_loaded(actor, message)  # finds the call withdrawn
+            answer_handled.set()
+
+        m.RegistrarActor._handlers[m._ClientLoaded] = slow_loaded
+        original_lookup = DIRECTORY.lookup
+
+        def lookup(name: str) -> Any:
+            if name == p and getattr(marked, "caller", False) and claimed.is_set():
+                # `_withdraw` is about to tell the provider its Abandon; the actor has
+                # handled the answer (and what the caller told it before this)
+                assert answer_handled.wait(30)
+                reached.set()
+                threading.Event().wait()  # held until the process dies
+            return original_lookup(name)
+
+        DIRECTORY.lookup = lookup  # type: ignore[method-assign]
+
+        def run() -> None:
+            marked.caller = True
+            registrar.call(p, "leaf", "x", query_id=qid, timeout=1.0)
+
+        threading.Thread(target=run, daemon=True).start()
+
+    sup.run_in(c, arm)
+    assert reached.wait(20)
+    assert qid in sup.run_in(p, lambda r: [q.id for q in r.server_queries("leaf")])
+    assert [] == sup.run_in(c, lambda r: [q.id for q in r.client_queries()])
+    os.kill(sup.child(c).pid or 0, signal.SIGKILL)
+    sup.wait_restarted(c, timeout=15.0)
+
+    # (the restarted consumer's Abandon travels on a connection of its own)
+    assert eventually(lambda: ([], []) == _both_ends(sup, p, c), timeout=10)
+
+
+def _gated_provider_setup(unloading: Any, gate: Any) -> Callable[[rr.ResourceRegistrar], None]:
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        def unload(_request: Any, _response: Any) -> None:
+            unloading.set()
+            assert gate.wait(30)
+
+        registrar.register_server("leaf", load=lambda r: f"loaded {r}", unload=unload)
+
+    return setup
+
+
+def test_a_stale_failure_of_an_earlier_attempt_leaves_a_retrys_record_on_disk(
+    supervisors: Callable[..., rr.Supervisor],
+    tmp_path: Path,
+    process_helpers: SharedObjects,
+    eventually: Callable[..., bool],
+) -> None:
+    # The first attempt's Load is parked at the provider (its resource is unloading); the
+    # caller's time runs out, it withdraws, and retries with the same query id. The
+    # provider answers the parked Load with an error when the Abandon unparks it; that
+    # error reaches the consumer as a `_CallFailed` of the first attempt after the retry
+    # committed its pending record, and `_on_call_failed` removes that record. The retry's
+    # answer then reaches the consumer, whose actor is slow to record it; killed then, the
+    # restarted consumer has no record to give back, the provider holds the id.
+    uid = uuid.uuid4().hex[:8]
+    p, c = f"p-{uid}", f"c-{uid}"
+    unloading, gate = process_helpers.event(), process_helpers.event()
+    retry_pending, stale_handled = process_helpers.event(), process_helpers.event()
+    answer_arrived = process_helpers.event()
+    sup = supervisors(
+        [
+            rr.ManagerSpec(p, _gated_provider_setup(unloading, gate), isolation="process"),
+            rr.ManagerSpec(c, None, isolation="process", heartbeat=None),
+        ],
+        state_dir=tmp_path / "state",
+    ).start()
+    qid = str(uuid.uuid4())
+    app = sup.registrar(f"app-{uid}")
+    held = app.call(p, "leaf", "x")
+
+    def arm_provider(registrar: rr.ResourceRegistrar) -> None:
+        import rr_actors._registrar as m  # noqa: PLC0415 - runs in the provider's process
+        from rr_actors._messages import Abandon  # noqa: PLC0415
+
+        original = m.RegistrarActor._handlers[Abandon]
+
+        def slow_abandon(actor: Any, message: Any) -> None:
+            if message.query_id == qid:  # slow to take the withdrawal
+                assert retry_pending.wait(30)
+            original(actor, message)
+
+        m.RegistrarActor._handlers[Abandon] = slow_abandon
+
+    def arm_consumer(registrar: rr.ResourceRegistrar) -> None:
+        import threading  # noqa: PLC0415 - runs in the consumer's process
+
+        import rr_actors._registrar as m  # noqa: PLC0415
+
+        on_pending = m.RegistrarActor._handlers[m._Pending]
+        on_failed = m.RegistrarActor._handlers[m._CallFailed]
+        on_loaded = m.RegistrarActor._handlers[m._ClientLoaded]
+        seen = {"pending": 0, "failed": 0}
+
+        def pending(actor: Any, message: Any) -> None:
+            on_pending(actor, message)
+            if message.record.query.id == qid:
+                seen["pending"] += 1
+                if seen["pending"] == 2:
+                    retry_pending.set()
+
+        def failed(actor: Any, message: Any) -> None:
+            on_failed(actor, message)
+            if message.query_id == qid:
+                seen["failed"] += 1
+                if seen["failed"] == 2:  # the provider's error answer to the first attempt
+                    stale_handled.set()
+
+        def loaded(actor: Any, message: Any) -> None:
+            if message.record.query.id == qid:
+                answer_arrived.set()
+                threading.Event().wait()  # slow to record the retry's answer: killed first
+            on_loaded(actor, message)
+
+        m.RegistrarActor._handlers[m._Pending] = pending
+        m.RegistrarActor._handlers[m._CallFailed] = failed
+        m.RegistrarActor._handlers[m._ClientLoaded] = loaded
+
+        def run() -> None:
+            try:
+                registrar.call(p, "leaf", "x", query_id=qid, timeout=1.0)
+            except rr.CallTimeoutError:  # parked: the first attempt times out
+                registrar.call(p, "leaf", "x", query_id=qid, timeout=60)
+
+        threading.Thread(target=run, daemon=True).start()
+
+    unloader = threading.Thread(target=lambda: app.unload(held.id, timeout=60))
+    unloader.start()
+    try:
+        assert unloading.wait(10)  # "x" is unloading at the provider: Loads for it park
+        sup.run_in(p, arm_provider)
+        sup.run_in(c, arm_consumer)
+        assert stale_handled.wait(20)
+    finally:
+        gate.set()
+        unloader.join(30)
+    assert answer_arrived.wait(20)  # the retry's answer was delivered to the consumer
+    os.kill(sup.child(c).pid or 0, signal.SIGKILL)
+    sup.wait_restarted(c, timeout=15.0)
+
+    # The retry's pending record survived the stale failure, so the restarted consumer
+    # gives the id back (its Abandon travels on a connection of its own).
+    assert eventually(lambda: ([], []) == _both_ends(sup, p, c), timeout=10)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import uuid
 
 import pytest
@@ -182,3 +183,43 @@ def test_every_error_rr_actors_raises_derives_from_rr_error():
 
     assert all(issubclass(error, rr.RrError) for error in errors)
     assert issubclass(rr.CallTimeoutError, TimeoutError)
+
+
+@pytest.mark.thread_only("a lock cannot even reach a manager process")
+@pytest.mark.parametrize("policy", ["save_on_modify", "save_interval"])
+def test_an_unpicklable_request_of_a_consumer_with_a_backup_is_a_config_error(
+    make_registrar, serve, tmp_path, policy
+):
+    provider = make_registrar("provider")
+    consumer = make_registrar(
+        "consumer", backup_path=tmp_path / "c.db", save_on_modify=policy == "save_on_modify"
+    )
+    serve(provider, "leaf")
+
+    with pytest.raises(rr.ConfigError, match="request"):
+        consumer.call(provider.name, "leaf", threading.Lock(), timeout=5)
+
+    assert consumer.is_alive()
+    assert [] == provider.server_queries("leaf")
+    assert {"resource": "fine"} == consumer.call(provider.name, "leaf", "fine").response
+    consumer.save_catalog()  # (a save_interval flush stores what it holds)
+
+
+@pytest.mark.thread_only("an unpicklable response cannot leave a manager process at all")
+@pytest.mark.parametrize("policy", ["save_on_modify", "save_interval"])
+def test_an_unpicklable_response_to_a_consumer_with_a_backup_is_a_config_error(
+    make_registrar, tmp_path, policy
+):
+    provider = make_registrar("provider")  # no backup: it may hand any value on in-process
+    consumer = make_registrar(
+        "consumer", backup_path=tmp_path / "c.db", save_on_modify=policy == "save_on_modify"
+    )
+    provider.register_server("lock", load=lambda _r: threading.Lock(), unload=lambda _q, _r: None)
+
+    with pytest.raises(rr.ConfigError, match="response"):
+        consumer.call(provider.name, "lock", "x", timeout=5)
+
+    assert consumer.is_alive()
+    assert [] == provider.server_queries("lock")  # the id was given back
+    assert [] == consumer.client_queries()
+    consumer.save_catalog()

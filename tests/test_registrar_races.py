@@ -18,9 +18,9 @@ import rr_actors._registrar
 from rr_actors._actors import OneShotFuture
 from rr_actors._directory import DIRECTORY
 from rr_actors._messages import Abandon
-from rr_actors._registrar import RegistrarActor, _Request
+from rr_actors._registrar import RegistrarActor, _CallFailed, _Pending, _Request
 from rr_actors._replies import FutureReply
-from rr_actors.testing import catalog_snapshot
+from rr_actors.testing import catalog_snapshot, crash
 
 
 @pytest.fixture
@@ -595,3 +595,106 @@ def test_a_durable_caller_whose_time_runs_out_as_its_answer_is_committed_gets_it
     assert "loaded x" == query.response
     assert [query.id] == [q.id for q in consumer.client_queries()]
     assert [query.id] == [q.id for q in provider.server_queries("leaf")]
+
+
+def test_a_late_failure_of_a_withdrawn_attempt_keeps_the_retrys_pending_record(
+    started: Callable[..., rr.ResourceRegistrar],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    provider, other = started("prov"), started("other")
+    consumer = started("cons", backup_path=tmp_path / "c.db", save_on_modify=True)
+    unloading, gate = threading.Event(), threading.Event()
+
+    def gated_unload(_request: Any, _response: Any) -> None:
+        unloading.set()
+        assert gate.wait(10)
+
+    provider.register_server("leaf", load=lambda r: f"loaded {r}", unload=gated_unload)
+    held = other.call(provider.name, "leaf", "x")
+    unloader = threading.Thread(target=lambda: other.unload(held.id, timeout=20))
+    unloader.start()
+    assert unloading.wait(10)  # "x" is unloading: a Load for it is parked until it is gone
+
+    qid = str(uuid.uuid4())
+    retry_pending, stale_handled = threading.Event(), threading.Event()
+    failures: list[Any] = []
+    on_pending = RegistrarActor._handlers[_Pending]
+    on_failed = RegistrarActor._handlers[_CallFailed]
+    on_abandon = RegistrarActor._handlers[Abandon]
+    pendings: list[Any] = []
+
+    def pending(actor: RegistrarActor, message: _Pending) -> None:
+        on_pending(actor, message)
+        if message.record.query.id == qid:
+            pendings.append(message.attempt)
+            if len(pendings) == 2:
+                retry_pending.set()  # the retry's record is committed, its Load may leave
+
+    def failed(actor: RegistrarActor, message: _CallFailed) -> None:
+        on_failed(actor, message)
+        if message.query_id == qid:
+            failures.append(message.attempt)
+            if len(failures) == 2:  # the provider's error answer to the first attempt
+                stale_handled.set()
+
+    def abandon(actor: RegistrarActor, message: Abandon) -> None:
+        if message.query_id == qid:  # the provider is slow to take the withdrawal
+            assert retry_pending.wait(10)
+        on_abandon(actor, message)
+
+    monkeypatch.setitem(RegistrarActor._handlers, _Pending, pending)
+    monkeypatch.setitem(RegistrarActor._handlers, _CallFailed, failed)
+    monkeypatch.setitem(RegistrarActor._handlers, Abandon, abandon)
+
+    with pytest.raises(rr.CallTimeoutError):  # parked: the first attempt times out
+        consumer.call(provider.name, "leaf", "x", query_id=qid, timeout=0.5)
+    outcome: list[Any] = []
+    retry = threading.Thread(
+        target=lambda: outcome.append(
+            consumer.call(provider.name, "leaf", "x", query_id=qid, timeout=20)
+        )
+    )
+    retry.start()
+    assert stale_handled.wait(10)
+    assert failures[1] is pendings[0]  # (a stale failure of the first attempt)
+
+    try:
+        # the retry's Load is out (parked at the provider): its record must be on disk
+        assert qid in [c.query.id for c in catalog_snapshot(consumer).clients]
+    finally:
+        gate.set()
+        retry.join(20)
+        unloader.join(20)
+    assert [qid] == [q.id for q in outcome]
+    assert [qid] == [q.id for q in consumer.client_queries()]
+
+
+def test_a_failed_retry_of_a_held_id_keeps_the_held_record(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def serve(registrar: rr.ResourceRegistrar) -> None:
+        registrar.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
+
+    name = f"prov-{uuid.uuid4().hex[:8]}"
+    config = rr.RegistrarConfig(name=name, backup_path=tmp_path / "p.db", save_on_modify=True)
+    provider = rr.ResourceRegistrar.start(config, setup=serve)
+    consumer = rr.ResourceRegistrar.start(f"cons-{uuid.uuid4().hex[:8]}")
+    restarted: list[rr.ResourceRegistrar] = []
+    try:
+        held = consumer.call(name, "leaf", "x")
+        monkeypatch.setattr(DIRECTORY, "restart_expected", {name})  # (as a supervisor does)
+        crash(provider)
+
+        with pytest.raises(rr.RegistrarUnavailableError):  # an idempotent retry fails
+            consumer.call(name, "leaf", "x", query_id=held.id, timeout=5)
+
+        restarted.append(rr.ResourceRegistrar.start(config, setup=serve))
+        at_provider = [q.id for q in restarted[0].server_queries("leaf")]
+        at_consumer = [q.id for q in consumer.client_queries()]
+        assert at_provider == at_consumer
+        consumer.unload(held.id)
+    finally:
+        consumer.stop()
+        for registrar in restarted:
+            registrar.stop()
