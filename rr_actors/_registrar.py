@@ -1905,17 +1905,20 @@ class ResourceRegistrar(RegistrarFacts):
 
         Raises:
             CallTimeoutError: not finished within `timeout` seconds.
+            RegistrarUnavailableError: the registrar died while it stopped.
         """
         if not self._ref.is_alive():
             return
+        limit = self._timeout(timeout)
+        deadline = time.monotonic() + limit
         try:
-            self._ask(lambda actor, reply: actor.op_stop(reply), timeout, "stop()")
+            self._ask(lambda actor, reply: actor.op_stop(reply), limit, "stop()")
         except RegistrarStoppedError:
             return
         # op_stop ended the actor; what reached its mailbox meanwhile (an answer to give
         # back, a notice to acknowledge) is handled once its thread has handed it on.
-        if not self._ended.wait(self._timeout(timeout)):
-            raise CallTimeoutError(f"stop() of {self.name!r} timed out")
+        if not self._ended.wait(max(0.0, deadline - time.monotonic())):
+            raise CallTimeoutError(f"stop() of {self.name!r} timed out after {limit:g} s")
 
     def __enter__(self) -> ResourceRegistrar:
         return self
