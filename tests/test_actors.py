@@ -306,7 +306,9 @@ def test_what_is_told_to_an_ended_actor_is_dropped_without_error(
     assert ref.actor_inbox.empty()
 
 
-class _Busy(Actor):
+class _Waits:
+    """An actor body that answers each message once `gate` is set."""
+
     def __init__(self, gate: threading.Event) -> None:
         super().__init__()
         self.gate = gate
@@ -316,14 +318,12 @@ class _Busy(Actor):
         return message
 
 
-class _PykkaBusy(pykka.ThreadingActor):
-    def __init__(self, gate: threading.Event) -> None:
-        super().__init__()
-        self.gate = gate
+class _Busy(_Waits, Actor):
+    pass
 
-    def on_receive(self, message: Any) -> Any:
-        assert self.gate.wait(10)
-        return message
+
+class _PykkaBusy(_Waits, pykka.ThreadingActor):
+    pass
 
 
 @pytest.mark.parametrize("actor_class", [_PykkaBusy, _Busy], ids=["pykka", "rr_actors"])

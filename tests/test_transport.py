@@ -524,6 +524,38 @@ def _revoke_first_query(registrar: rr.ResourceRegistrar, consumer: str) -> None:
     DIRECTORY.lookup(consumer).tell(Revoke((_first_query_id(registrar),)))
 
 
+@dataclasses.dataclass
+class _Overtaken:
+    """What `_overtake` saw: the call's outcome, and what the provider's function returned."""
+
+    called: list[Any]
+    done: list[Any]
+
+
+def _overtake(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    provider: Provider,
+    gate: _Gate,
+    watched: _Watched,
+    fn: Callable[[rr.ResourceRegistrar], Any],
+    **call: Any,
+) -> _Overtaken:
+    """Call `gated`; while its answer is held in this process, run `fn` in the provider's.
+
+    The answer is released once the consumer's actor handled the notice `fn` sent (or held
+    it). `fn` runs on a thread: its own answer comes back on the held connection.
+    """
+    called, caller = _in_thread(lambda: consumer.call(provider.name, "gated", "r", **call))
+    assert gate.entered.wait(10)  # the answer is being read, not yet recorded
+    done, doer = _in_thread(lambda: system.run(provider.name, fn, timeout=20))
+    assert watched.handled.wait(10)  # the notice reached the consumer's actor first
+    gate.release.set()
+    caller.join(10)
+    doer.join(20)
+    return _Overtaken(called, done)
+
+
 def test_a_status_that_overtakes_the_answer_to_its_call_still_reaches_the_callback(
     system: System,
     consumer: rr.ResourceRegistrar,
@@ -531,30 +563,23 @@ def test_a_status_that_overtakes_the_answer_to_its_call_still_reaches_the_callba
     gate: _Gate,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    provider = start_provider()
     watched = _watch(monkeypatch, StatusNotice)
     heard: list[rr.StatusUpdate] = []
-    called, caller = _in_thread(
-        lambda: consumer.call(provider.name, "gated", "r", on_status=lambda _q, u: heard.append(u))
-    )
-    assert gate.entered.wait(10)  # the answer is being read, not yet recorded
 
-    sent, sender = _in_thread(
-        lambda: system.run(
-            provider.name,
-            lambda registrar: registrar.send_status(
-                _first_query_id(registrar), rr.Status.WARNING, "hot"
-            ),
-            timeout=20,
-        )
+    seen = _overtake(
+        system,
+        consumer,
+        start_provider(),
+        gate,
+        watched,
+        lambda registrar: registrar.send_status(
+            _first_query_id(registrar), rr.Status.WARNING, "hot"
+        ),
+        on_status=lambda _q, u: heard.append(u),
     )
-    assert watched.handled.wait(10)  # the notice reached the consumer's actor first
-    gate.release.set()
-    caller.join(10)
-    sender.join(20)
 
-    [query] = called
-    assert [None] == sent
+    [query] = seen.called
+    assert [None] == seen.done
     assert [(query.id, rr.Status.WARNING, "hot")] == [
         (u.query_id, u.status, u.message) for u in heard
     ]
@@ -567,25 +592,19 @@ def test_a_response_update_that_overtakes_the_answer_is_not_undone_by_it(
     gate: _Gate,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    provider = start_provider()
     watched = _watch(monkeypatch, ResponseUpdated)
-    called, caller = _in_thread(lambda: consumer.call(provider.name, "gated", "r"))
-    assert gate.entered.wait(10)
 
-    updated, updater = _in_thread(
-        lambda: system.run(
-            provider.name,
-            lambda registrar: registrar.update_response(_first_query_id(registrar), "new"),
-            timeout=20,
-        )
+    seen = _overtake(
+        system,
+        consumer,
+        start_provider(),
+        gate,
+        watched,
+        lambda registrar: registrar.update_response(_first_query_id(registrar), "new"),
     )
-    assert watched.handled.wait(10)
-    gate.release.set()
-    caller.join(10)
-    updater.join(20)
 
-    [query] = called
-    assert [None] == updated
+    [query] = seen.called
+    assert [None] == seen.done
     assert {query.id: "new"} == {q.id: q.response for q in consumer.client_queries()}
 
 
@@ -596,25 +615,19 @@ def test_a_revoke_that_overtakes_the_answer_leaves_no_client_record(
     gate: _Gate,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    provider = start_provider()
     watched = _watch(monkeypatch, Revoke)
-    called, caller = _in_thread(lambda: consumer.call(provider.name, "gated", "r"))
-    assert gate.entered.wait(10)
 
-    revoked, revoker = _in_thread(  # its answer comes back on the held connection
-        lambda: system.run(
-            provider.name,
-            functools.partial(_revoke_first_query, consumer=consumer.name),
-            timeout=20,
-        )
+    seen = _overtake(
+        system,
+        consumer,
+        start_provider(),
+        gate,
+        watched,
+        functools.partial(_revoke_first_query, consumer=consumer.name),
     )
-    assert watched.handled.wait(10)
-    gate.release.set()
-    caller.join(10)
-    revoker.join(20)
 
-    [query] = called
-    assert [None] == revoked
+    [query] = seen.called
+    assert [None] == seen.done
     assert isinstance(query, rr.Query)
     assert [] == consumer.client_queries()
 
