@@ -55,7 +55,14 @@ class OneShotFuture(pykka.Future[T]):
     Behaves as `pykka.ThreadingFuture`: `get(timeout=)` blocks until `set`,
     `set_exception` or `set_get_hook` settled it, raises `pykka.Timeout` after `timeout`
     seconds, and returns (or raises) the same value on every later `get`; settling it a
-    second time raises `queue.Full`. Any number of threads may wait on it at once.
+    second time raises `queue.Full`. Any number of threads may wait on it at once; a get
+    hook runs once.
+
+    Beyond pykka's interface, two parties may race to settle it and learn who won: `claim`
+    settles it with `None` unless something settled it first, `reserve` takes the right to
+    settle it later with `fulfil`, `wait` waits without raising, and `claimed`, `done`
+    and `failed` tell its state. A registrar's caller and the thread that brings its
+    answer race this way (`ResourceRegistrar.call`).
     """
 
     def __init__(self) -> None:
