@@ -526,52 +526,53 @@ def _revoke_first_query(registrar: rr.ResourceRegistrar, consumer: str) -> None:
 
 @dataclasses.dataclass
 class _Overtaken:
-    """What `_overtake` saw: the call's outcome, and what the provider's function returned."""
+    """What `overtake` saw: the call's outcome, and what the provider's function returned."""
 
     called: list[Any]
     done: list[Any]
 
 
-def _overtake(
-    system: System,
-    consumer: rr.ResourceRegistrar,
-    provider: Provider,
-    gate: _Gate,
-    watched: _Watched,
-    fn: Callable[[rr.ResourceRegistrar], Any],
-    **call: Any,
-) -> _Overtaken:
-    """Call `gated`; while its answer is held in this process, run `fn` in the provider's.
-
-    The answer is released once the consumer's actor handled the notice `fn` sent (or held
-    it). `fn` runs on a thread: its own answer comes back on the held connection.
-    """
-    called, caller = _in_thread(lambda: consumer.call(provider.name, "gated", "r", **call))
-    assert gate.entered.wait(10)  # the answer is being read, not yet recorded
-    done, doer = _in_thread(lambda: system.run(provider.name, fn, timeout=20))
-    assert watched.handled.wait(10)  # the notice reached the consumer's actor first
-    gate.release.set()
-    caller.join(10)
-    doer.join(20)
-    return _Overtaken(called, done)
+Overtake = Callable[..., _Overtaken]
 
 
-def test_a_status_that_overtakes_the_answer_to_its_call_still_reaches_the_callback(
+@pytest.fixture
+def overtake(
     system: System,
     consumer: rr.ResourceRegistrar,
     start_provider: ProviderFactory,
     gate: _Gate,
     monkeypatch: pytest.MonkeyPatch,
+) -> Overtake:
+    """`overtake(kind, fn, **call)`: a call to `gated` whose answer `fn`'s notice overtakes.
+
+    The consumer calls a fresh provider's `gated` server; while the answer is held in this
+    process, `fn(registrar)` runs in the provider's (on a thread: its own answer comes back
+    on the held connection). The answer is released once the consumer's actor handled the
+    `kind` notice `fn` sent (or held it).
+    """
+
+    def run(kind: type, fn: Callable[[rr.ResourceRegistrar], Any], **call: Any) -> _Overtaken:
+        provider = start_provider()
+        watched = _watch(monkeypatch, kind)
+        called, caller = _in_thread(lambda: consumer.call(provider.name, "gated", "r", **call))
+        assert gate.entered.wait(10)  # the answer is being read, not yet recorded
+        done, doer = _in_thread(lambda: system.run(provider.name, fn, timeout=20))
+        assert watched.handled.wait(10)  # the notice reached the consumer's actor first
+        gate.release.set()
+        caller.join(10)
+        doer.join(20)
+        return _Overtaken(called, done)
+
+    return run
+
+
+def test_a_status_that_overtakes_the_answer_to_its_call_still_reaches_the_callback(
+    overtake: Overtake,
 ) -> None:
-    watched = _watch(monkeypatch, StatusNotice)
     heard: list[rr.StatusUpdate] = []
 
-    seen = _overtake(
-        system,
-        consumer,
-        start_provider(),
-        gate,
-        watched,
+    seen = overtake(
+        StatusNotice,
         lambda registrar: registrar.send_status(
             _first_query_id(registrar), rr.Status.WARNING, "hot"
         ),
@@ -586,20 +587,10 @@ def test_a_status_that_overtakes_the_answer_to_its_call_still_reaches_the_callba
 
 
 def test_a_response_update_that_overtakes_the_answer_is_not_undone_by_it(
-    system: System,
-    consumer: rr.ResourceRegistrar,
-    start_provider: ProviderFactory,
-    gate: _Gate,
-    monkeypatch: pytest.MonkeyPatch,
+    overtake: Overtake, consumer: rr.ResourceRegistrar
 ) -> None:
-    watched = _watch(monkeypatch, ResponseUpdated)
-
-    seen = _overtake(
-        system,
-        consumer,
-        start_provider(),
-        gate,
-        watched,
+    seen = overtake(
+        ResponseUpdated,
         lambda registrar: registrar.update_response(_first_query_id(registrar), "new"),
     )
 
@@ -609,22 +600,9 @@ def test_a_response_update_that_overtakes_the_answer_is_not_undone_by_it(
 
 
 def test_a_revoke_that_overtakes_the_answer_leaves_no_client_record(
-    system: System,
-    consumer: rr.ResourceRegistrar,
-    start_provider: ProviderFactory,
-    gate: _Gate,
-    monkeypatch: pytest.MonkeyPatch,
+    overtake: Overtake, consumer: rr.ResourceRegistrar
 ) -> None:
-    watched = _watch(monkeypatch, Revoke)
-
-    seen = _overtake(
-        system,
-        consumer,
-        start_provider(),
-        gate,
-        watched,
-        functools.partial(_revoke_first_query, consumer=consumer.name),
-    )
+    seen = overtake(Revoke, functools.partial(_revoke_first_query, consumer=consumer.name))
 
     [query] = seen.called
     assert [None] == seen.done
