@@ -60,8 +60,8 @@ class OneShotFuture(pykka.Future[T]):
 
     Beyond pykka's interface, two parties may race to settle it and learn who won: `claim`
     settles it with `None` unless something settled it first, `reserve` takes the right to
-    settle it later with `fulfil`, `wait` waits without raising, and `claimed`, `done`
-    and `failed` tell its state. A registrar's caller and the thread that brings its
+    settle it later with `fulfil`, `wait` waits without raising, and `done` and
+    `failed` tell its state. A registrar's caller and the thread that brings its
     answer race this way (`ResourceRegistrar.call`).
     """
 
@@ -76,11 +76,6 @@ class OneShotFuture(pykka.Future[T]):
 
     def __repr__(self) -> str:
         return "<rr_actors.OneShotFuture>"
-
-    @property
-    def claimed(self) -> bool:
-        """Whether something settled it already, or is settling it (claims are final)."""
-        return self._claim.locked()
 
     @property
     def done(self) -> bool:
