@@ -36,7 +36,7 @@ from typing import Any
 import pykka
 
 import rr_actors as rr
-from rr_actors._actors import Actor
+from rr_actors._core.actor import Actor
 
 
 class Echo(pykka.ThreadingActor):

@@ -40,8 +40,8 @@ from typing import Any
 
 import rr_actors as rr
 from rr_actors._catalog import Changes, Resource, ResourceState
-from rr_actors._manager import start_forkserver
-from rr_actors._sqlite_store import SqliteStore
+from rr_actors._process.manager import start_forkserver
+from rr_actors._store.sqlite import SqliteStore
 
 TARGET_DETECT_MS = 5.0
 TARGET_SERVE_MS = {1_000: 30.0, 100_000: 250.0}

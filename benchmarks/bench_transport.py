@@ -30,7 +30,7 @@ from typing import Any
 import cloudpickle
 
 import rr_actors as rr
-from rr_actors._transport import System, SystemAddress, attach
+from rr_actors._transport.unix import System, SystemAddress, attach
 
 Setup = Callable[[rr.ResourceRegistrar], None]
 

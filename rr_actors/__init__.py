@@ -1,23 +1,16 @@
 """rr_actors: TeMoto's Resource Registrar as a Python actor framework.
 
-Registrars, resource servers and clients are pykka actors; see `DESIGN.md` for the
-semantics and the docs for a tutorial.
+Registrars, resource servers and clients are pykka actors; the docs hold a tutorial,
+the semantics (`docs/explanation/semantics.md`) and the architecture.
 """
 
 import logging
 
 from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, ResourceRegistrar
-from rr_actors._sqlite_store import quarantine_backup
-from rr_actors._supervisor import (
-    Backoff,
-    ChildCounts,
-    ChildInfo,
-    ManagerSpec,
-    Supervisor,
-    SupervisorSpec,
-)
+from rr_actors._store import quarantine_backup
+from rr_actors._supervision import ChildCounts, ChildInfo, Supervisor
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
-from rr_actors.config import RegistrarConfig
+from rr_actors.config import Backoff, ManagerSpec, RegistrarConfig, SupervisorSpec
 from rr_actors.errors import (
     CallTimeoutError,
     CatalogCorruptError,

@@ -1,33 +1,75 @@
-"""Registrar configuration (TeMoto's `Configuration`, thesis table 4.2)."""
+"""Configuration as frozen, validated data: registrars, managers, supervisors, backoff.
+
+`RegistrarConfig` is TeMoto's `Configuration` (thesis table 4.2); `ManagerSpec` and
+`SupervisorSpec` are OTP's child specifications; `Backoff` is what OTP lacks. Each is
+validated at construction (`ConfigError` names the field) and changed with
+`dataclasses.replace`.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import math
 import os
+import random as _random
 import re
-from typing import Any, Literal
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Literal
 
 from rr_actors.errors import ConfigError
 
-__all__ = ["RegistrarConfig"]
+if TYPE_CHECKING:
+    from rr_actors._registrar.registrar import ResourceRegistrar
+
+__all__ = [
+    "Backoff",
+    "Isolation",
+    "ManagerSpec",
+    "RegistrarConfig",
+    "RestartType",
+    "Setup",
+    "Strategy",
+    "SupervisorSpec",
+    "check_choice",
+    "check_seconds",
+    "tree_names",
+]
+
+RestartType = Literal["permanent", "transient", "temporary"]
+Strategy = Literal["one_for_one", "one_for_all", "rest_for_one"]
+Isolation = Literal["thread", "process"]
+Setup = Callable[["ResourceRegistrar"], object]
 
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 Durability = Literal["process", "power"]
 
 
-def _check_duration(field: str, value: object, *, allow_none: bool) -> None:
-    """Raise `ConfigError` naming `field` unless `value` is a finite, positive float or int."""
+def check_seconds(
+    field: str, value: object, *, allow_none: bool = False, allow_zero: bool = False
+) -> None:
+    """Raise `ConfigError` naming `field` unless `value` is a finite number of seconds.
+
+    It must be positive (or, with `allow_zero`, non-negative); `None` passes with
+    `allow_none`. Booleans are refused although they are ints.
+    """
     if value is None and allow_none:
         return
     if (
         isinstance(value, bool)
         or not isinstance(value, int | float)
         or not math.isfinite(value)
-        or value <= 0
+        or value < 0
+        or (value == 0 and not allow_zero)
     ):
-        raise ConfigError(f"{field} must be a positive number of seconds, got {value!r}")
+        kind = "non-negative" if allow_zero else "positive"
+        raise ConfigError(f"{field} must be a {kind} number of seconds, got {value!r}")
+
+
+def check_choice(field: str, value: object, choices: Sequence[str]) -> None:
+    """Raise `ConfigError` naming `field` unless `value` is one of `choices`."""
+    if value not in choices:
+        raise ConfigError(f"{field} must be one of {', '.join(map(repr, choices))}, got {value!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,8 +110,8 @@ class RegistrarConfig:
             )
         if self.backup_path is not None and not isinstance(self.backup_path, str | os.PathLike):
             raise ConfigError(f"backup_path must be a path or None, got {self.backup_path!r}")
-        _check_duration("save_interval", self.save_interval, allow_none=True)
-        _check_duration("call_timeout", self.call_timeout, allow_none=False)
+        check_seconds("save_interval", self.save_interval, allow_none=True)
+        check_seconds("call_timeout", self.call_timeout)
         for flag in ("save_on_modify", "erase_on_destruct"):
             if not isinstance(getattr(self, flag), bool):
                 raise ConfigError(f"{flag} must be a bool, got {getattr(self, flag)!r}")
@@ -97,3 +139,215 @@ class RegistrarConfig:
         if unknown:
             raise ConfigError(f"unknown RegistrarConfig fields: {sorted(unknown)}")
         return cls(**{k: v for k, v in data.items() if k in fields})
+
+
+# -- configuration -----------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Backoff:
+    """Exponential backoff with jitter before a restart (something OTP does not have).
+
+    The n-th restart within the supervisor's intensity window waits
+    `min(max, initial * factor ** (n - 1))` seconds, scaled by a random factor in
+    `[1 - jitter, 1 + jitter]` (never beyond `max`). The default (`initial=0`) restarts at once.
+
+    Attributes:
+        initial: delay before the first restart, in seconds (0: no delay at all).
+        factor: growth of the delay per further restart within the window (>= 1).
+        max: the longest delay, in seconds.
+        jitter: relative spread of the delay, from 0 (none) to 1.
+
+    Raises:
+        ConfigError: a field is invalid; the message names it.
+    """
+
+    initial: float = 0.0
+    factor: float = 2.0
+    max: float = 30.0
+    jitter: float = 0.2
+
+    def __post_init__(self) -> None:
+        check_seconds("Backoff.initial", self.initial, allow_zero=True)
+        check_seconds("Backoff.max", self.max, allow_zero=True)
+        if (
+            isinstance(self.factor, bool)
+            or not isinstance(self.factor, int | float)
+            or not (math.isfinite(self.factor) and self.factor >= 1)
+        ):
+            raise ConfigError(f"Backoff.factor must be a number >= 1, got {self.factor!r}")
+        if (
+            isinstance(self.jitter, bool)
+            or not isinstance(self.jitter, int | float)
+            or not (0 <= self.jitter <= 1)
+        ):
+            raise ConfigError(f"Backoff.jitter must be a number from 0 to 1, got {self.jitter!r}")
+        if self.max < self.initial:
+            raise ConfigError(
+                f"Backoff.max ({self.max!r}) must not be less than Backoff.initial "
+                f"({self.initial!r})"
+            )
+
+    def delay(self, attempt: int, random: Callable[[], float] = _random.random) -> float:
+        """The delay in seconds before restart number `attempt` (1 = first) of a window.
+
+        Args:
+            attempt: how many restarts (this one included) fall in the intensity window.
+            random: returns a float in `[0, 1)`; injectable for tests.
+        """
+        if self.initial == 0 or attempt < 1:
+            return 0.0
+        base = min(self.max, self.initial * self.factor ** min(attempt - 1, 1000))
+        spread = 1.0 + self.jitter * (2.0 * random() - 1.0)
+        return min(self.max, max(0.0, base * spread))
+
+
+@dataclasses.dataclass(frozen=True)
+class ManagerSpec:
+    """How to start and supervise one manager (OTP's child specification, as data).
+
+    Attributes:
+        name: the manager's registrar name, unique in the whole supervision tree.
+        setup: `setup(registrar)`, run in the manager after its catalog was restored and
+            before it accepts traffic; registers its servers. May be a closure (it is
+            cloudpickled for process managers). `None`: no servers. It runs on the main
+            thread of a process manager, and on the supervisor's own thread for a thread
+            manager. Either way the supervisor waits for it: supervision of the other
+            children (crash handling, restarts) pauses until it returns, so keep it short
+            (a process manager is bounded by `start_timeout`, a thread manager is not).
+        isolation: `"thread"` (the registrar runs in the supervisor's process) or
+            `"process"` (in its own OS process, so killing it kills nothing else).
+        restart: `"permanent"` (always restarted), `"transient"` (restarted only after an
+            abnormal exit) or `"temporary"` (never restarted).
+        config: the registrar's configuration; its `name` must equal `name`. Default:
+            `RegistrarConfig(name)`, with the supervisor's `state_dir` a backup at
+            `<state_dir>/<name>.db` with `save_on_modify=True`.
+        shutdown: seconds a clean stop may take before the manager is killed. A process
+            manager is SIGKILLed. A thread cannot be killed: its registrar actor is told
+            to crash, which takes effect once it finishes the callback it is stuck in; a
+            restart that comes before that fails with `DuplicateNameError` (the old
+            registrar still holds the name) and counts as another crash, so the
+            supervisor gives up if the actor stays stuck.
+        heartbeat: seconds between heartbeat pings to a process manager (`None`: off). A
+            ping is answered through the registrar actor's mailbox, so a frozen process
+            and a stuck registrar both count as hung. Thread managers have no heartbeat.
+        heartbeat_timeout: seconds without an answer to a ping after which a process
+            manager counts as hung: it is killed and handled like a crash. Default:
+            three heartbeat periods (0.75 s with the default `heartbeat`).
+        start_timeout: seconds a manager may take to restore, set up and serve.
+
+    Raises:
+        ConfigError: a field is invalid; the message names it.
+    """
+
+    name: str
+    setup: Setup | None = None
+    isolation: Isolation = "thread"
+    restart: RestartType = "permanent"
+    config: RegistrarConfig | None = None
+    shutdown: float = 5.0
+    heartbeat: float | None = 0.25
+    heartbeat_timeout: float | None = None
+    start_timeout: float = 30.0
+
+    def __post_init__(self) -> None:
+        RegistrarConfig(name=self.name)  # validates the name (ConfigError names the field)
+        if self.setup is not None and not callable(self.setup):
+            raise ConfigError(
+                f"setup of manager {self.name!r} must be callable, got {self.setup!r}"
+            )
+        check_choice("isolation", self.isolation, ("thread", "process"))
+        check_choice("restart", self.restart, ("permanent", "transient", "temporary"))
+        if self.config is not None:
+            if not isinstance(self.config, RegistrarConfig):
+                raise ConfigError(f"config must be a RegistrarConfig, got {self.config!r}")
+            if self.config.name != self.name:
+                raise ConfigError(
+                    f"config.name ({self.config.name!r}) must equal the manager's name "
+                    f"({self.name!r})"
+                )
+        check_seconds("shutdown", self.shutdown)
+        if self.heartbeat is not None:
+            check_seconds("heartbeat", self.heartbeat)
+        if self.heartbeat_timeout is not None:
+            check_seconds("heartbeat_timeout", self.heartbeat_timeout)
+        check_seconds("start_timeout", self.start_timeout)
+
+    @property
+    def hang_after(self) -> float | None:
+        """Seconds without a heartbeat answer after which it counts as hung (`None`: off)."""
+        if self.heartbeat is None:
+            return None
+        if self.heartbeat_timeout is not None:
+            return self.heartbeat_timeout
+        return 3.0 * self.heartbeat
+
+
+@dataclasses.dataclass(frozen=True)
+class SupervisorSpec:
+    """A nested supervisor as a child of another (its arguments are `Supervisor`'s).
+
+    When it gives up, its parent sees a crashed child and applies its own strategy
+    (escalation, as in OTP).
+
+    Attributes:
+        name: the child's name in its parent (unique in the tree).
+        children: its children, started in this order.
+        strategy, max_restarts, period, backoff: as for `Supervisor`.
+        restart: its restart type in the parent.
+        state_dir: where its managers keep their catalogs (default: the parent's).
+
+    Raises:
+        ConfigError: a field is invalid; the message names it.
+    """
+
+    name: str
+    children: tuple[ManagerSpec | SupervisorSpec, ...]
+    strategy: Strategy = "one_for_one"
+    max_restarts: int = 3
+    period: float = 5.0
+    backoff: Backoff = Backoff()
+    restart: RestartType = "permanent"
+    state_dir: str | os.PathLike[str] | None = None
+
+    def __post_init__(self) -> None:
+        RegistrarConfig(name=self.name)
+        object.__setattr__(self, "children", tuple(self.children))
+        check_choice("strategy", self.strategy, ("one_for_one", "one_for_all", "rest_for_one"))
+        check_choice("restart", self.restart, ("permanent", "transient", "temporary"))
+        if (
+            isinstance(self.max_restarts, bool)
+            or not isinstance(self.max_restarts, int)
+            or (self.max_restarts < 0)
+        ):
+            raise ConfigError(f"max_restarts must be an int >= 0, got {self.max_restarts!r}")
+        check_seconds("period", self.period)
+        if not isinstance(self.backoff, Backoff):
+            raise ConfigError(f"backoff must be an rr_actors.Backoff, got {self.backoff!r}")
+        seen: set[str] = set()
+        for child in self.children:
+            if not isinstance(child, ManagerSpec | SupervisorSpec):
+                raise ConfigError(
+                    f"children must be ManagerSpec or SupervisorSpec values, got {child!r}"
+                )
+        for name in tree_names(self):
+            if name in seen:
+                raise ConfigError(f"children: the name {name!r} is used twice in the tree")
+            seen.add(name)
+
+    def has_processes(self) -> bool:
+        """Whether any manager in this subtree runs in its own process."""
+        return any(
+            c.has_processes() if isinstance(c, SupervisorSpec) else c.isolation == "process"
+            for c in self.children
+        )
+
+
+def tree_names(spec: SupervisorSpec) -> list[str]:
+    """The names of every child below `spec`, depth first (duplicates kept)."""
+    names: list[str] = []
+    for child in spec.children:
+        names.append(child.name)
+        if isinstance(child, SupervisorSpec):
+            names.extend(tree_names(child))
+    return names

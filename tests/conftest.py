@@ -64,10 +64,10 @@ import pykka
 import pytest
 
 import rr_actors as rr
-from rr_actors._manager import start_forkserver
-from rr_actors._registrar import _Request
-from rr_actors._replies import FutureReply, wait
-from rr_actors._transport import System
+from rr_actors._core.replies import FutureReply, wait
+from rr_actors._process.manager import start_forkserver
+from rr_actors._registrar.registrar import _Request
+from rr_actors._transport.unix import System
 from rr_actors.testing import RemoteRegistrar, SharedObjects
 
 LEAK_GRACE = 5.0

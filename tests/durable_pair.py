@@ -9,9 +9,9 @@ from pathlib import Path
 from typing import Any
 
 import rr_actors as rr
-from rr_actors import _sqlite_store as store_module
 from rr_actors._catalog import DIGEST_SCHEME, Catalog
-from rr_actors._sqlite_store import SqliteStore
+from rr_actors._store import sqlite as store_module
+from rr_actors._store.sqlite import SqliteStore
 
 
 def opened(path: Path) -> tuple[SqliteStore, Catalog]:

@@ -16,7 +16,7 @@ from typing import Any
 import pykka
 import pytest
 
-from rr_actors._actors import Actor, OneShotFuture
+from rr_actors._core.actor import Actor, OneShotFuture
 
 
 @pytest.fixture(params=[pykka.ThreadingFuture, OneShotFuture], ids=["pykka", "one_shot"])

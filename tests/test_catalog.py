@@ -32,8 +32,8 @@ from rr_actors._catalog import (
     ResourceState,
     request_bucket,
     request_digest,
-    requests_equal,
 )
+from rr_actors._catalog.digest import requests_equal
 
 scalars = st.one_of(
     st.none(),

@@ -21,10 +21,10 @@ import pytest
 from durable_pair import opened
 
 import rr_actors as rr
-from rr_actors import _sqlite_store as store_module
 from rr_actors._catalog import Catalog
-from rr_actors._persistence import open_store
-from rr_actors._sqlite_store import SqliteStore
+from rr_actors._store import sqlite as store_module
+from rr_actors._store.saver import open_store
+from rr_actors._store.sqlite import SqliteStore
 
 WAIT = 10.0  # seconds: the bound of every wait below
 

@@ -15,10 +15,10 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors import _sqlite_store as store_module
 from rr_actors._catalog import Catalog
 from rr_actors._cli import main
-from rr_actors._sqlite_store import SCHEMA_VERSION, SqliteStore
+from rr_actors._store import sqlite as store_module
+from rr_actors._store.sqlite import SCHEMA_VERSION, SqliteStore
 
 
 def run(*argv: str) -> tuple[int, str]:

@@ -34,9 +34,9 @@ import pytest
 from durable_pair import start_pair
 
 import rr_actors as rr
-from rr_actors import _sqlite_store as store_module
 from rr_actors._catalog import Catalog
-from rr_actors._sqlite_store import SqliteStore
+from rr_actors._store import sqlite as store_module
+from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot
 
 LEAVES = 8
@@ -186,7 +186,7 @@ def context() -> multiprocessing.context.ForkServerContext:
     """The forkserver context, its server started before any leak check."""
     ctx = multiprocessing.get_context("forkserver")
     assert isinstance(ctx, multiprocessing.context.ForkServerContext)
-    ctx.set_forkserver_preload(["rr_actors", "rr_actors._sqlite_store", "cloudpickle"])
+    ctx.set_forkserver_preload(["rr_actors", "rr_actors._store.sqlite", "cloudpickle"])
     multiprocessing.forkserver.ensure_running()
     return ctx
 

@@ -21,7 +21,7 @@ import cloudpickle
 import pytest
 
 import rr_actors as rr
-from rr_actors._manager import start_forkserver
+from rr_actors._process.manager import start_forkserver
 from rr_actors.testing import SharedObjects
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
@@ -74,7 +74,7 @@ def test_a_durable_call_leaves_only_after_its_pending_record_is_committed(
     def arm(registrar: rr.ResourceRegistrar) -> None:
         import threading  # noqa: PLC0415 - runs in the consumer's process
 
-        import rr_actors._registrar as m  # noqa: PLC0415
+        import rr_actors._registrar.registrar as m  # noqa: PLC0415
 
         original_pending = m.RegistrarActor._handlers[m._Pending]
 
@@ -119,9 +119,9 @@ def test_a_withdrawn_call_is_abandoned_at_its_provider_before_its_record_goes(
     def arm(registrar: rr.ResourceRegistrar) -> None:
         import threading  # noqa: PLC0415 - runs in the consumer's process
 
-        import rr_actors._registrar as m  # noqa: PLC0415
-        from rr_actors._actors import OneShotFuture  # noqa: PLC0415
-        from rr_actors._directory import DIRECTORY  # noqa: PLC0415
+        import rr_actors._registrar.registrar as m  # noqa: PLC0415
+        from rr_actors._core.actor import OneShotFuture  # noqa: PLC0415
+        from rr_actors._core.directory import DIRECTORY  # noqa: PLC0415
 
         claimed, answer_handled = threading.Event(), threading.Event()
         marked = threading.local()
@@ -215,8 +215,8 @@ def test_a_stale_failure_of_an_earlier_attempt_leaves_a_retrys_record_on_disk(
     held = app.call(p, "leaf", "x")
 
     def arm_provider(registrar: rr.ResourceRegistrar) -> None:
-        import rr_actors._registrar as m  # noqa: PLC0415 - runs in the provider's process
-        from rr_actors._messages import Abandon  # noqa: PLC0415
+        import rr_actors._registrar.registrar as m  # noqa: PLC0415 - runs in the provider's process
+        from rr_actors._registrar.messages import Abandon  # noqa: PLC0415
 
         original = m.RegistrarActor._handlers[Abandon]
 
@@ -230,7 +230,7 @@ def test_a_stale_failure_of_an_earlier_attempt_leaves_a_retrys_record_on_disk(
     def arm_consumer(registrar: rr.ResourceRegistrar) -> None:
         import threading  # noqa: PLC0415 - runs in the consumer's process
 
-        import rr_actors._registrar as m  # noqa: PLC0415
+        import rr_actors._registrar.registrar as m  # noqa: PLC0415
 
         on_pending = m.RegistrarActor._handlers[m._Pending]
         on_failed = m.RegistrarActor._handlers[m._CallFailed]

@@ -17,9 +17,9 @@ import pytest
 from durable_pair import schema_2_database
 
 import rr_actors as rr
-from rr_actors import _sqlite_store as store_module
 from rr_actors._catalog import Catalog, request_digest
-from rr_actors._sqlite_store import SqliteStore, read_backup
+from rr_actors._store import sqlite as store_module
+from rr_actors._store.sqlite import SqliteStore, read_backup
 
 
 def write_catalog(path: Path, rows: list[tuple[str, str, Any, str]]) -> None:

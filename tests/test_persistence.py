@@ -33,8 +33,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import rr_actors as rr
-from rr_actors import _persistence
-from rr_actors import _sqlite_store as store_module
 from rr_actors._catalog import (
     DIGEST_SCHEME,
     Catalog,
@@ -43,7 +41,9 @@ from rr_actors._catalog import (
     ResourceState,
     request_digest,
 )
-from rr_actors._sqlite_store import SqliteStore, quarantine_backup, read_backup
+from rr_actors._store import saver as _persistence
+from rr_actors._store import sqlite as store_module
+from rr_actors._store.sqlite import SqliteStore, quarantine_backup, read_backup
 from rr_actors.testing import catalog_snapshot, crash
 
 # -- what runs in the child process ----------------------------------------------------------
@@ -84,7 +84,7 @@ def context() -> multiprocessing.context.ForkServerContext:
     """The forkserver context, its server started before any leak check."""
     ctx = multiprocessing.get_context("forkserver")
     assert isinstance(ctx, multiprocessing.context.ForkServerContext)
-    ctx.set_forkserver_preload(["rr_actors", "rr_actors._sqlite_store", "cloudpickle"])
+    ctx.set_forkserver_preload(["rr_actors", "rr_actors._store.sqlite", "cloudpickle"])
     multiprocessing.forkserver.ensure_running()
     return ctx
 

@@ -23,12 +23,12 @@ import pytest
 from durable_pair import opened, schema_2_database, start
 
 import rr_actors as rr
-from rr_actors import _persistence
-from rr_actors import _sqlite_store as store_module
 from rr_actors._catalog import Catalog, request_digest
 from rr_actors._cli import main
-from rr_actors._persistence import open_store
-from rr_actors._sqlite_store import SqliteStore, quarantine_backup, read_backup
+from rr_actors._store import saver as _persistence
+from rr_actors._store import sqlite as store_module
+from rr_actors._store.saver import open_store
+from rr_actors._store.sqlite import SqliteStore, quarantine_backup, read_backup
 from rr_actors.testing import catalog_snapshot, crash
 
 WAIT = 10.0  # seconds: the bound of every wait that must succeed

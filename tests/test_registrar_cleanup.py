@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors import _registrar
+from rr_actors._registrar import registrar as _registrar
 from rr_actors.testing import catalog_snapshot, crash
 
 

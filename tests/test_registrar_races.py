@@ -14,12 +14,12 @@ import pykka
 import pytest
 
 import rr_actors as rr
-import rr_actors._registrar
-from rr_actors._actors import OneShotFuture
-from rr_actors._directory import DIRECTORY
-from rr_actors._messages import Abandon
-from rr_actors._registrar import RegistrarActor, _CallFailed, _Pending, _Request
-from rr_actors._replies import FutureReply
+import rr_actors._registrar.registrar
+from rr_actors._core.actor import OneShotFuture
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.replies import FutureReply
+from rr_actors._registrar.messages import Abandon
+from rr_actors._registrar.registrar import RegistrarActor, _CallFailed, _Pending, _Request
 from rr_actors.testing import catalog_snapshot, crash
 
 
@@ -318,7 +318,7 @@ def test_an_error_answer_that_loses_to_the_timeout_leaves_nothing_behind(
         raise ValueError(request)
 
     provider.register_server("bad", load=load, unload=lambda _request, _response: None)
-    monkeypatch.setattr(rr_actors._registrar, "OneShotFuture", _ErrorAsTheWaitRunsOut)
+    monkeypatch.setattr(rr_actors._registrar.registrar, "OneShotFuture", _ErrorAsTheWaitRunsOut)
 
     with pytest.raises(rr.CallTimeoutError):
         consumer.call(provider.name, "bad", "x", timeout=5)
@@ -481,7 +481,9 @@ def test_a_failed_call_whose_error_races_the_timeout_is_not_withdrawn(
         original(actor, message)
 
     monkeypatch.setitem(RegistrarActor._handlers, Abandon, spy)
-    monkeypatch.setattr(rr_actors._registrar, "OneShotFuture", _ErrorLandsAsTheWaitRunsOut)
+    monkeypatch.setattr(
+        rr_actors._registrar.registrar, "OneShotFuture", _ErrorLandsAsTheWaitRunsOut
+    )
 
     with pytest.raises(rr.ResourceLoadError):
         consumer.call(provider.name, "bad", "x", query_id="q-failed", timeout=5)
@@ -588,7 +590,7 @@ def test_a_durable_caller_whose_time_runs_out_as_its_answer_is_committed_gets_it
     provider = started("provider")
     consumer = started("consumer", backup_path=tmp_path / "c.db", save_on_modify=True)
     provider.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
-    monkeypatch.setattr(rr_actors._registrar, "OneShotFuture", _CommitRacesTheTimeout)
+    monkeypatch.setattr(rr_actors._registrar.registrar, "OneShotFuture", _CommitRacesTheTimeout)
 
     query = consumer.call(provider.name, "leaf", "x", timeout=5)
 

@@ -10,9 +10,9 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors._directory import DIRECTORY, LocalPeer
-from rr_actors._registrar import RegistrarActor, _Request
-from rr_actors._replies import FutureReply
+from rr_actors._core.directory import DIRECTORY, LocalPeer
+from rr_actors._core.replies import FutureReply
+from rr_actors._registrar.registrar import RegistrarActor, _Request
 
 
 def _held_loads(name: str) -> int:

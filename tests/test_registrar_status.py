@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors._workers import Workers
+from rr_actors._core.workers import Workers
 from rr_actors.testing import catalog_snapshot
 
 

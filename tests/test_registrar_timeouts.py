@@ -8,8 +8,8 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 import rr_actors as rr
-import rr_actors._registrar
-from rr_actors._actors import OneShotFuture
+import rr_actors._registrar.registrar
+from rr_actors._core.actor import OneShotFuture
 from rr_actors.testing import catalog_snapshot, crash
 
 
@@ -203,7 +203,7 @@ def test_an_answer_that_lands_as_the_wait_times_out_is_taken_not_lost(
 ):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
     serve(provider, "leaf")
-    monkeypatch.setattr(rr_actors._registrar, "OneShotFuture", _AnswerThenTimeout)
+    monkeypatch.setattr(rr_actors._registrar.registrar, "OneShotFuture", _AnswerThenTimeout)
 
     query = consumer.call(provider.name, "leaf", "x", timeout=1.0)
 

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from rr_actors._replies import CallbackReply, SharedJoin
+from rr_actors._core.replies import CallbackReply, SharedJoin
 
 
 def _race(parts: int) -> tuple[list[str], set[str]]:

@@ -18,13 +18,8 @@ from supervision import FakeClock, ManualTimer
 
 import rr_actors as rr
 from rr_actors import testing
-from rr_actors._supervisor import (
-    Backoff,
-    ManagerSpec,
-    RestartIntensity,
-    Supervisor,
-    SupervisorSpec,
-)
+from rr_actors._supervision.supervisor import RestartIntensity, Supervisor
+from rr_actors.config import Backoff, ManagerSpec, SupervisorSpec
 
 
 @pytest.fixture

@@ -36,7 +36,7 @@ from supervision import (
 
 import rr_actors as rr
 from rr_actors import testing
-from rr_actors._manager import start_forkserver
+from rr_actors._process.manager import start_forkserver
 from rr_actors.testing import SharedObjects
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
@@ -361,8 +361,8 @@ def block_actor(gate: Any, survived: Any, seconds: float | None) -> Callable[[An
     """
 
     def fn(registrar: rr.ResourceRegistrar) -> None:
-        from rr_actors._registrar import _Request  # noqa: PLC0415 - test-only
-        from rr_actors._replies import FutureReply  # noqa: PLC0415
+        from rr_actors._core.replies import FutureReply  # noqa: PLC0415
+        from rr_actors._registrar.registrar import _Request  # noqa: PLC0415 - test-only
 
         def op(_actor: Any, reply: Any) -> None:
             gate.wait(seconds)

@@ -26,7 +26,7 @@ import pytest
 from supervision import alive, echo_setup, killed_owner, process, wait_gone
 
 import rr_actors as rr
-from rr_actors._manager import (
+from rr_actors._process.manager import (
     ManagerExit,
     ManagerProcess,
     _forker_pid,
@@ -431,7 +431,7 @@ GRANDCHILD = textwrap.dedent(
     expected = os.getppid()
     print(os.getpid(), flush=True)
     sys.stdin.read()  # EOF: the middle process (its parent) is exiting
-    from rr_actors._manager import _die_with_parent
+    from rr_actors._process.manager import _die_with_parent
     _die_with_parent(expected)
     threading.Event().wait(60)  # an orphan that nothing kills lives on
     """

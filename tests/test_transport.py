@@ -38,10 +38,10 @@ import cloudpickle
 import pytest
 
 import rr_actors as rr
-from rr_actors._directory import DIRECTORY
-from rr_actors._messages import Fetch, Load, ResponseUpdated, Revoke, StatusNotice
-from rr_actors._registrar import RegistrarActor
-from rr_actors._transport import (
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._registrar.messages import Fetch, Load, ResponseUpdated, Revoke, StatusNotice
+from rr_actors._registrar.registrar import RegistrarActor
+from rr_actors._transport.unix import (
     RemotePeer,
     System,
     _Channel,
@@ -218,7 +218,7 @@ def context() -> multiprocessing.context.ForkServerContext:
     """The forkserver context, with its helper processes started before any leak check."""
     ctx = multiprocessing.get_context("forkserver")
     assert isinstance(ctx, multiprocessing.context.ForkServerContext)
-    ctx.set_forkserver_preload(["rr_actors", "rr_actors._transport", "cloudpickle"])
+    ctx.set_forkserver_preload(["rr_actors", "rr_actors._transport.unix", "cloudpickle"])
     multiprocessing.forkserver.ensure_running()
     return ctx
 
@@ -1321,7 +1321,7 @@ def _nested(depth: int) -> list[Any]:
     ],
 )
 def test_small_builtin_data_is_pickled_by_the_c_pickler_as_cloudpickle_would(value: Any) -> None:
-    from rr_actors import _transport  # noqa: PLC0415 - private helpers under test
+    from rr_actors._transport import unix as _transport  # noqa: PLC0415 - private helpers under test
 
     assert _transport._plain(value)
     frame = _transport._frame(9, value)
@@ -1342,7 +1342,7 @@ def test_small_builtin_data_is_pickled_by_the_c_pickler_as_cloudpickle_would(val
     ],
 )
 def test_anything_else_goes_through_cloudpickle(value: Any) -> None:
-    from rr_actors import _transport  # noqa: PLC0415 - private helpers under test
+    from rr_actors._transport import unix as _transport  # noqa: PLC0415 - private helpers under test
 
     assert not _transport._plain(value)
     token, payload = _transport._unframe(_transport._frame(1, value)[4:])
@@ -1393,7 +1393,7 @@ def test_a_writer_closed_while_a_sender_writes_still_ends_its_thread_and_socket(
 
 
 def test_a_load_crosses_without_its_reply_and_otherwise_unchanged() -> None:
-    from rr_actors import _transport  # noqa: PLC0415 - private helper under test
+    from rr_actors._transport import unix as _transport  # noqa: PLC0415 - private helper under test
 
     load = Load("q", "leaf", {"n": 1}, "C", ("C",), object())  # type: ignore[arg-type]
     assert _transport._without_reply(load) == dataclasses.replace(load, reply=None)

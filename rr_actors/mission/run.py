@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any, Literal, TextIO
 
 import rr_actors as rr
-from rr_actors._supervisor import ManagerSpec, Supervisor
+from rr_actors._supervision.supervisor import ManagerSpec, Supervisor
 from rr_actors.mission import managers, programs
 from rr_actors.testing import catalog_snapshot
 

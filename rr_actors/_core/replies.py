@@ -13,7 +13,7 @@ from typing import Any
 
 import pykka
 
-from rr_actors._actors import OneShotFuture
+from rr_actors._core.actor import OneShotFuture
 from rr_actors.errors import CallTimeoutError
 
 __all__ = [

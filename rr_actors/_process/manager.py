@@ -8,9 +8,7 @@ forkserver), never with a plain `fork` of the threaded parent. In the child, `ma
 2. attaches to the system and starts the registrar, which restores its catalog,
 3. runs the (cloudpickled) `setup(registrar)`, then serves the registrar on the system,
 4. reports `ready` over its control pipe and answers control requests: `stop` and `ping`
-   (the heartbeat, answered through the registrar actor's mailbox); meanwhile a
-   thread moves its dense memory onto huge pages, so that the kernel frees it faster
-   when the process is killed (`rr_actors._memory`),
+   (the heartbeat, answered through the registrar actor's mailbox),
 5. exits at once when the control pipe reaches EOF: the supervisor's process is gone,
 6. exits with code 0 when its registrar was stopped cleanly by code in the manager (a
    `transient` manager is then not restarted, as in a thread), with code 71 when the
@@ -19,7 +17,7 @@ forkserver), never with a plain `fork` of the threaded parent. In the child, `ma
 Running a function against the registrar (`Supervisor.run_in`) goes over the system's
 transport (`AttachedSystem.run`), not over the control pipe.
 
-In the parent, [`ManagerProcess`][rr_actors._manager.ManagerProcess] owns the process and
+In the parent, [`ManagerProcess`][rr_actors._process.manager.ManagerProcess] owns the process and
 its control pipe; one watcher thread per process blocks on the process sentinel, a
 `pidfd` of the process (it tells the exit before the forkserver has reaped the child:
 `_ExitWatch`) and the pipe (no polling), and sends the heartbeat pings.
@@ -45,8 +43,7 @@ from typing import Any
 import cloudpickle
 import pykka
 
-from rr_actors._directory import DIRECTORY
-from rr_actors._memory import COLLAPSER
+from rr_actors._core.directory import DIRECTORY
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (
     CallTimeoutError,
@@ -81,7 +78,7 @@ def _install_lean_preparation() -> None:
 
     A forkserver or spawn child first "prepares": it re-imports the parent's main script
     as `__mp_main__` so that objects pickled by reference to `__main__` resolve. A manager
-    never needs that (its target lives in `rr_actors._manager`, its setup is cloudpickled by
+    never needs that (its target lives in `rr_actors._process.manager`, its setup is cloudpickled by
     value, its config is plain data), and it costs every start (and every restart) the
     import time of whatever the main script imports: 10-40 ms for a script that imports
     `argparse` and `statistics`. (The forkserver's own `__main__` preload, meant to make
@@ -115,10 +112,10 @@ def mp_context() -> multiprocessing.context.BaseContext:
         ctx = multiprocessing.get_context("forkserver")
         ctx.set_forkserver_preload(
             [
-                "rr_actors._manager",
-                "rr_actors._registrar",
-                "rr_actors._transport",
-                "rr_actors._sqlite_store",
+                "rr_actors._process.manager",
+                "rr_actors._registrar.registrar",
+                "rr_actors._transport.unix",
+                "rr_actors._store.sqlite",
                 "hmac",  # the transport's authkey handshake imports it lazily
             ]
         )
@@ -278,13 +275,13 @@ def main(
 
 
 def _run_manager(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) -> None:
-    from rr_actors._registrar import ResourceRegistrar  # noqa: PLC0415 - preloaded
+    from rr_actors._registrar.registrar import ResourceRegistrar  # noqa: PLC0415 - preloaded
 
     control = _Control(conn)
     attached: Any = None
     try:
         if address is not None:
-            from rr_actors._transport import attach  # noqa: PLC0415
+            from rr_actors._transport.unix import attach  # noqa: PLC0415
 
             attached = attach(address)
         registrar = ResourceRegistrar.start(config)
@@ -307,7 +304,6 @@ def _run_manager(setup: bytes, config: RegistrarConfig, address: Any, conn: Conn
         _exit(_ACTOR_DIED_EXIT, attached)
 
     threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
-    COLLAPSER.request()  # the restored catalog onto huge pages (a crash is seen sooner)
     control.send(("ready", os.getpid()))
     _serve_control(conn, control, registrar, attached, stopping)
 
@@ -319,8 +315,7 @@ def _warm_up() -> None:
     (Python writes reference counts and GC headers everywhere) copies it, which made the
     first registrar start in a new process about twice as slow as in a warm one. A full
     collection touches every tracked object (and so most of the heap) once; opening an
-    in-memory SQLite database initialises the library. Then what the process holds is
-    moved onto huge pages in the background (`rr_actors._memory`).
+    in-memory SQLite database initialises the library.
     """
     import gc  # noqa: PLC0415
     import sqlite3  # noqa: PLC0415
@@ -328,13 +323,12 @@ def _warm_up() -> None:
     gc.collect()
     with contextlib.closing(sqlite3.connect(":memory:")) as db:
         db.execute("CREATE TABLE t (x)").fetchall()
-    COLLAPSER.request()
 
 
 def standby(conn: Connection, parent: int | None = None) -> None:
     """Wait, started but idle, until the parent hands over a manager's arguments; run it.
 
-    Runs as the target of a spare manager process (see [`Spare`][rr_actors._manager.Spare]):
+    Runs as the target of a spare manager process (see [`Spare`][rr_actors._process.manager.Spare]):
     the interpreter start, the forkserver's fork and the child's bootstrap are paid before
     a manager crashes, not after. Exits when the control pipe reaches EOF.
 
@@ -359,7 +353,7 @@ def _serve_control(
     conn: Connection, control: _Control, registrar: Any, attached: Any, stopping: threading.Event
 ) -> None:
     """The child's control loop: answer pings, stop; exit on EOF."""
-    from rr_actors._registrar import _Request  # noqa: PLC0415 - preloaded by the forkserver
+    from rr_actors._registrar.registrar import _Request  # noqa: PLC0415 - preloaded by the forkserver
 
     while True:
         try:
@@ -425,7 +419,7 @@ class Spare:
 
     The supervisor keeps one so that a restart does not wait for a process to start:
     it only sends the manager's arguments, and the spare restores, sets up and serves.
-    A spare that is never used exits when [`close`][rr_actors._manager.Spare.close]d (or
+    A spare that is never used exits when [`close`][rr_actors._process.manager.Spare.close]d (or
     when its parent dies, like any manager process).
     """
 
@@ -532,7 +526,7 @@ class _ExitWatch:
 class ManagerProcess:
     """The parent's handle on one running manager process (one incarnation).
 
-    Start with [`start`][rr_actors._manager.ManagerProcess.start]; `on_exit(ManagerExit)`
+    Start with [`start`][rr_actors._process.manager.ManagerProcess.start]; `on_exit(ManagerExit)`
     runs once on the watcher thread when the process ends, whatever the cause.
     """
 

@@ -54,9 +54,9 @@ from typing import TYPE_CHECKING, Any
 
 import cloudpickle
 
-from rr_actors import _messages
-from rr_actors._directory import DIRECTORY, Peer, Reply
-from rr_actors._replies import FutureReply, wait
+from rr_actors._core.directory import DIRECTORY, Peer, Reply
+from rr_actors._core.replies import FutureReply, wait
+from rr_actors._registrar import messages as _messages
 from rr_actors._types import Query, Status, StatusUpdate
 from rr_actors.errors import (
     CallTimeoutError,
@@ -73,7 +73,7 @@ from rr_actors.errors import (
 )
 
 if TYPE_CHECKING:
-    from rr_actors._registrar import ResourceRegistrar
+    from rr_actors._registrar.registrar import ResourceRegistrar
 
 __all__ = ["AttachedSystem", "RemotePeer", "System", "SystemAddress", "attach"]
 

@@ -54,6 +54,7 @@ import contextlib
 import dataclasses
 import datetime
 import functools
+import gc
 import logging
 import os
 import pickle
@@ -75,7 +76,6 @@ from rr_actors._catalog import (
     ResourceState,
     request_digest,
 )
-from rr_actors._persistence import gc_paused
 from rr_actors._types import Query
 from rr_actors.errors import CatalogCorruptError, ConfigError, RegistrarStoppedError
 
@@ -85,11 +85,29 @@ __all__ = [
     "Backup",
     "SqliteStore",
     "Unreadable",
+    "gc_paused",
     "quarantine_backup",
     "read_backup",
 ]
 
 logger = logging.getLogger("rr_actors")
+
+
+@contextlib.contextmanager
+def gc_paused() -> Iterator[None]:
+    """Pause the cyclic garbage collector while a catalog is built (restores twice as fast).
+
+    Building 100k rows allocates many containers and no cycles; each allocation burst
+    would otherwise trigger collections that rescan every object built so far.
+    """
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
+
 
 APPLICATION_ID = 0x72724163  # "rrAc"
 """`PRAGMA application_id` of every rr_actors catalog file."""
@@ -1112,7 +1130,7 @@ class _Checkpointer:
 class SqliteStore:
     """A `CatalogStore` in one SQLite file. Used by one thread at a time (the registrar's).
 
-    Open it with [`SqliteStore.open`][rr_actors._sqlite_store.SqliteStore.open].
+    Open it with [`SqliteStore.open`][rr_actors._store.sqlite.SqliteStore.open].
     """
 
     def __init__(

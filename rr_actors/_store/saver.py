@@ -8,65 +8,20 @@ are flushed every `save_interval` seconds (a crash loses at most that window), o
 
 from __future__ import annotations
 
-import contextlib
-import gc
-import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
 from rr_actors._catalog import Changes, ClientRecord, Resource
+from rr_actors._core.timers import Cancellable, Timer, thread_timer
 from rr_actors.config import RegistrarConfig
 
 if TYPE_CHECKING:
-    from rr_actors._sqlite_store import Restored
+    from rr_actors._store.sqlite import Restored
 
-__all__ = [
-    "Cancellable",
-    "CatalogStore",
-    "Saver",
-    "TimerFactory",
-    "gc_paused",
-    "open_store",
-    "thread_timer",
-]
+__all__ = ["CatalogStore", "Saver", "open_store", "timer_factory"]
 
 
-@contextlib.contextmanager
-def gc_paused() -> Iterator[None]:
-    """Pause the cyclic garbage collector while a catalog is built (restores twice as fast).
-
-    Building 100k rows allocates many containers and no cycles; each allocation burst
-    would otherwise trigger collections that rescan every object built so far.
-    """
-    was_enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if was_enabled:
-            gc.enable()
-
-
-class Cancellable(Protocol):
-    """A started timer (`threading.Timer` is one)."""
-
-    def cancel(self) -> None:
-        """Stop the timer if it has not fired yet."""
-
-
-TimerFactory = Callable[[float, Callable[[], None]], Cancellable]
-"""`factory(delay, tick)` starts a timer that calls `tick()` once after `delay` seconds."""
-
-
-def thread_timer(delay: float, tick: Callable[[], None]) -> Cancellable:
-    """Run `tick()` on a daemon thread after `delay` seconds (the default `TimerFactory`)."""
-    timer = threading.Timer(delay, tick)
-    timer.daemon = True
-    timer.start()
-    return timer
-
-
-timer_factory: TimerFactory = thread_timer
+timer_factory: Timer = thread_timer
 """Starts every save-interval timer. Tests replace it (monkeypatch) with a manual clock."""
 
 
@@ -97,7 +52,7 @@ def open_store(config: RegistrarConfig) -> CatalogStore | None:
     """
     if config.backup_path is None:
         return None
-    from rr_actors._sqlite_store import SqliteStore  # noqa: PLC0415 - only with a backup
+    from rr_actors._store.sqlite import SqliteStore  # noqa: PLC0415 - only with a backup
 
     # Changes written in bursts (flushes: every `save_interval`, `save_catalog`, `stop`)
     # are checkpointed off the registrar's thread; a commit per change (`save_on_modify`)

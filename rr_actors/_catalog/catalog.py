@@ -3,346 +3,35 @@
 The catalog records what a registrar serves (resources, each with its consumers' query
 ids) and what it holds elsewhere (client records, some of them dependencies of its own
 resources). Only the registrar actor writes it, so it has no locks. Every change marks
-the touched rows dirty; the persistence layer drains them as one transaction.
-
-Dedup is by `==` on the request value, also for unhashable values: requests are bucketed
-by `request_digest`, a deterministic digest of a canonical form (mappings as item sets,
-sequences in order, numbers by their value), and within a bucket compared with `==`. The
-digest covers only built-in values whose `==` it mirrors (and subclasses that keep their
-base's `==`), so two such requests that are `==` meet in the same bucket. The digest may
-be stored: a restored catalog indexes its resources from their stored digests without
-decoding a request. Any other request (a custom class, a subclass with its own `__eq__`
-such as `Counter`, a value whose comparison raises) has no digest: it is bucketed by its
-in-process `hash()` when its class defines one together with its `__eq__`, otherwise with
-the unhashable ones, and compared with `==` against every candidate that could equal it.
-Finding a request never raises because of its value: a comparison that raises means
-"different".
+the touched rows dirty; the persistence layer drains them as one transaction. Requests
+are matched by `==` through digests (`rr_actors._catalog.digest`).
 """
 
 from __future__ import annotations
 
-import dataclasses
-import decimal
-import enum
-import fractions
-import hashlib
 import math
-import sys
-from collections import OrderedDict
-from collections.abc import Callable, Iterable, Iterator, Mapping, Set
-from typing import Any, Protocol
+from collections.abc import Iterable, Iterator
+from typing import Any
 
+from rr_actors._catalog.digest import (
+    NO_DIGEST,
+    candidates_without_digest,
+    identity_equality,
+    request_digest,
+    requests_equal,
+    runtime_key,
+)
+from rr_actors._catalog.records import (
+    Changes,
+    ClientRecord,
+    Resource,
+    ResourceState,
+    UnreadRows,
+)
 from rr_actors._types import Query
 from rr_actors.errors import UnknownQueryError
 
-__all__ = [
-    "DIGEST_SCHEME",
-    "NO_DIGEST",
-    "Catalog",
-    "Changes",
-    "ClientRecord",
-    "Resource",
-    "ResourceState",
-    "UnreadRows",
-    "request_bucket",
-    "request_digest",
-]
-
-_UNHASHABLE = ("<unhashable>",)
-
-NO_DIGEST = -1
-"""`Resource.digest` of a request that has no digest (`hash()` never returns -1 either)."""
-
-_TAG_NONE, _TAG_SEQ, _TAG_MAP, _TAG_SET, _TAG_NAN, _TAG_ENUM = range(0x5F3A_0000, 0x5F3A_0006)
-_NUMBERS = (int, float, complex, decimal.Decimal, fractions.Fraction)
-_STRINGS: dict[str, int] = {}  # str -> digest; strings repeat (keys, command names)
-_STRINGS_MAX = 4096
-
-DIGEST_SCHEME = (
-    f"rr3-py{sys.version_info[0]}.{sys.version_info[1]}-w{sys.hash_info.width}"
-    f"-{sys.hash_info.modulus}"
-)
-"""Names the digest function. It combines parts with `hash()` of tuples and frozensets
-of integers, which is deterministic but may change with Python's version or word size:
-a backup written under another scheme has its digests recomputed when it is opened."""
-
-
-def _blake(data: bytes) -> int:
-    digest = int.from_bytes(hashlib.blake2b(data, digest_size=8).digest(), "little", signed=True)
-    return -2 if digest == NO_DIGEST else digest
-
-
-def _number(value: Any) -> int:
-    # NaN != NaN, and its hash() is its address: every NaN gets one constant instead.
-    return _TAG_NAN if value != value else hash(value)  # noqa: PLR0124
-
-
-class _Opaque(Exception):  # noqa: N818 - control flow inside _digest, never escapes
-    pass
-
-
-def _digest(value: Any) -> int:  # noqa: PLR0911 - one return per kind of value
-    cls = type(value)
-    if cls is str:
-        digest = _STRINGS.get(value)
-        if digest is None:
-            if len(_STRINGS) >= _STRINGS_MAX:
-                _STRINGS.clear()
-            digest = _STRINGS[value] = _blake(value.encode("utf-8", "surrogatepass"))
-        return digest
-    if cls is int or cls is bool:
-        return hash(value)
-    if cls is float or cls is complex:
-        return _number(value)
-    if value is None:
-        return _TAG_NONE
-    if cls is dict or (isinstance(value, Mapping) and _keeps_eq(cls, _MAPPING_EQ)):
-        return hash((_TAG_MAP, frozenset([(_digest(k), _digest(v)) for k, v in value.items()])))
-    if cls is list or cls is tuple or (isinstance(value, list | tuple) and _keeps_eq(cls, _SEQ_EQ)):
-        return hash((_TAG_SEQ, *[_digest(item) for item in value]))
-    if isinstance(value, Set) and _keeps_eq(cls, _SET_EQ):
-        return hash((_TAG_SET, frozenset([_digest(item) for item in value])))
-    if cls is bytes or cls is bytearray:  # bytearray(b"a") == b"a"
-        return hash((_TAG_SEQ, _blake(value)))  # not the digest of the equal str
-    if isinstance(value, enum.Enum) and _identity_equality(value):
-        return _enum_member(value, cls)
-    return _digest_subclass(value, cls)
-
-
-def _enum_member(value: enum.Enum, cls: type) -> int:
-    """A plain enum member equals only itself: its class's path and its name name it.
-
-    Members are pickled by name, so the same member has the same digest in every process.
-    (IntEnum and StrEnum keep their base's `==` and are digested as that value.)
-    """
-    name = value._name_
-    if type(name) is not str:  # a composite Flag without a name: leave it to `==`
-        raise _Opaque
-    where = _blake(f"{cls.__module__}:{cls.__qualname__}".encode("utf-8", "surrogatepass"))
-    return hash((_TAG_ENUM, where, _blake(name.encode("utf-8", "surrogatepass"))))
-
-
-# The `==` of containers the digest mirrors: a subclass that overrides `__eq__` (Counter,
-# a case-insensitive dict, a tuple with a tolerance) may call values equal whose digests
-# differ, so it has no digest. OrderedDict's `==` is dict's when either side is a plain
-# dict and stricter (order too) between two OrderedDicts, so equal ones have equal items.
-_MAPPING_EQ: tuple[object, ...] = (dict.__eq__, OrderedDict.__eq__, Mapping.__eq__)
-_SEQ_EQ: tuple[object, ...] = (list.__eq__, tuple.__eq__)
-_SET_EQ: tuple[object, ...] = (set.__eq__, frozenset.__eq__, Set.__eq__)
-
-
-def _keeps_eq(cls: type, eqs: tuple[object, ...]) -> bool:
-    eq: object = cls.__eq__
-    return eq in eqs
-
-
-def _digest_subclass(value: Any, cls: type) -> int:
-    """Subclasses that keep their base's `==` and `hash()` (IntEnum, StrEnum, ...)."""
-    bases: tuple[type, ...] = (str, bytes, *_NUMBERS)
-    for base in bases:
-        same: object = (cls.__eq__, cls.__hash__) == (base.__eq__, base.__hash__)
-        if issubclass(cls, base) and same:
-            if base is str:
-                return _blake(str.encode(value, "utf-8", "surrogatepass"))
-            if base is bytes:
-                return hash((_TAG_SEQ, _blake(bytes(value))))
-            return _number(value)
-    raise _Opaque
-
-
-def request_digest(request: Any) -> int | None:
-    """A deterministic 64-bit digest of a request, such that `a == b` implies equal digests.
-
-    The same in every process (it may be stored): strings and bytes are digested with
-    BLAKE2b, numbers by their `hash()` (which Python defines from the value, so that
-    `1`, `1.0` and `True` agree, and which is not randomised), mappings as an
-    order-free combination of their items, sets likewise, lists and tuples in order.
-
-    Only values whose `==` the digest mirrors get one: built-in strings, bytes, numbers,
-    `None`, members of enums that keep identity equality (digested by class path and
-    name), and dicts, lists, tuples, sets (and other mappings and sets) of them, including
-    subclasses that keep their base's `__eq__` and `__hash__` (IntEnum, StrEnum,
-    namedtuple, OrderedDict, defaultdict).
-
-    Returns:
-        The digest (never `NO_DIGEST`), or `None` for a value with other parts (a
-        custom class, a container subclass with its own `__eq__` such as `Counter`, an
-        enum with its own `__eq__`) or one that raises while being digested (`Decimal("sNaN")`, a
-        mapping whose `items()` raises), whose equality only `==` can judge; the catalog
-        indexes those by their in-process `hash()` instead, which is never stored.
-    """
-    try:
-        return _digest(request)
-    except Exception:  # noqa: BLE001 - _Opaque, RecursionError, whatever user code raises
-        return None
-
-
-def _runtime_key(request: Any) -> Any:
-    """The in-process bucket of a request that has no digest (never stored).
-
-    A class that overrides `__eq__` but keeps a built-in `__hash__` (a tuple subclass
-    with a tolerance, say) hashes inconsistently with its `==`: it goes with the
-    unhashable requests, which are compared with every candidate.
-    """
-    cls = type(request)
-    hasher: object = cls.__hash__
-    owner = getattr(hasher, "__objclass__", None)
-    if isinstance(owner, type) and owner is not cls:
-        base_eq: object = owner.__eq__
-        own_eq: object = cls.__eq__
-        if base_eq is not own_eq:
-            return _UNHASHABLE
-    try:
-        return ("h", hash(request))
-    except Exception:  # noqa: BLE001 - unhashable, or a __hash__ that raises: compare by ==
-        return _UNHASHABLE
-
-
-def request_bucket(request: Any) -> Any:
-    """Return a hashable key such that `a == b` implies equal keys (for the usual types).
-
-    The key is the request's digest (`request_digest`); values without one fall back to
-    their `hash()`, and unhashable ones share one bucket compared by `==` alone.
-    """
-    digest = request_digest(request)
-    return digest if digest is not None else _runtime_key(request)
-
-
-def requests_equal(a: Any, b: Any) -> bool:
-    """`a == b`, made total: a comparison that raises or is ambiguous means "different"."""
-    try:
-        return bool(a == b)
-    except Exception:  # noqa: BLE001 - user __eq__ may raise anything; then they differ
-        return False
-
-
-class ResourceState(enum.Enum):
-    """Life cycle of a served resource."""
-
-    LOADING = "loading"
-    LOADED = "loaded"
-    UNLOADING = "unloading"
-
-
-@dataclasses.dataclass
-class Resource:
-    """A resource a server of this registrar serves.
-
-    A resource restored from a backup decodes its request and its response on first
-    access (most restored resources are not looked at before traffic resumes); a stored
-    value that cannot be decoded then raises `CatalogCorruptError` naming the backup.
-
-    Attributes:
-        id: resource id (UUID4 string), stable for the resource's life.
-        server: name of the server that loaded it.
-        request: the request that describes it.
-        response: what `load` returned (`None` while loading).
-        state: life-cycle state.
-        consumers: consumer query id -> origin registrar name, in arrival order.
-        digest: `request_digest(request)`, `NO_DIGEST` if it has none, `None` if not known
-            yet (computed when the catalog indexes it).
-        response_version: counts the catalog's writes of `response` (`finish_load`,
-            `set_response`), so the store writes each one even when the provider passes
-            the same, mutated object again; decoding a restored response leaves it alone.
-    """
-
-    id: str
-    server: str
-    request: Any
-    response: Any = None
-    state: ResourceState = ResourceState.LOADING
-    consumers: dict[str, str] = dataclasses.field(default_factory=dict)
-    digest: int | None = dataclasses.field(default=None, compare=False, repr=False)
-    response_version: int = dataclasses.field(default=0, compare=False, repr=False)
-
-    def __getattr__(self, name: str) -> Any:
-        # Only called when `name` is not in the instance: a restored, still encoded value.
-        if name in _LAZY:
-            encoded = self.__dict__.get("_encoded")
-            if encoded is not None:
-                decode, blobs = encoded
-                value = decode(self.id, name, blobs[_LAZY[name]])
-                values = self.__dict__
-                values[name] = value
-                if "request" in values and "response" in values:
-                    del values["_encoded"]  # both decoded: free the blobs
-                return value
-        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
-
-    @classmethod
-    def encoded(
-        cls,
-        rid: str,
-        server: str,
-        state: ResourceState,
-        digest: int,
-        blobs: tuple[bytes | None, bytes | None],
-        decode: Decoder,
-        order: int = 0,
-    ) -> Resource:
-        """A stored resource whose request and response are decoded on first access.
-
-        Args:
-            rid: resource id.
-            server: server name.
-            state: life-cycle state.
-            digest: the stored request digest (or `NO_DIGEST`).
-            blobs: the encoded request and response.
-            decode: `decode(rid, "request" | "response", blob)` returns the value or
-                raises `CatalogCorruptError`.
-            order: its place in the backup (row key), to list restored resources in
-                their stored order.
-        """
-        resource = cls.__new__(cls)
-        resource.__dict__ = {
-            "id": rid,
-            "server": server,
-            "state": state,
-            "consumers": {},
-            "digest": digest,
-            "response_version": 0,
-            "_encoded": (decode, blobs),
-            "_order": order,
-        }
-        return resource
-
-
-Decoder = Callable[[str, str, "bytes | None"], Any]
-"""`decode(resource_id, field, blob)`: turns a stored value back into an object."""
-
-_LAZY = {"request": 0, "response": 1}
-# Without class attributes the two values are looked up in the instance, and a missing
-# (still encoded) one reaches `__getattr__`. `__init__` keeps its defaults.
-del Resource.response
-
-
-@dataclasses.dataclass
-class ClientRecord:
-    """A query this registrar holds at some server (its own servers included).
-
-    Attributes:
-        query: the query, `origin_rr` being this registrar.
-        parent: id of this registrar's resource that owns the query as a dependency,
-            or `None` for a top-level call.
-        loaded: `False` while the call is in flight.
-        response_version: counts `client_loaded` calls, so the store writes each response.
-    """
-
-    query: Query
-    parent: str | None = None
-    loaded: bool = False
-    response_version: int = dataclasses.field(default=0, compare=False, repr=False)
-
-
-@dataclasses.dataclass
-class Changes:
-    """Rows changed since the last drain: id -> new row, or `None` when deleted."""
-
-    resources: dict[str, Resource | None]
-    clients: dict[str, ClientRecord | None]
-
-    def __bool__(self) -> bool:
-        return bool(self.resources or self.clients)
+__all__ = ["Catalog"]
 
 
 class _DirtySet(dict[str, None]):
@@ -357,32 +46,6 @@ class _NoDirt(_DirtySet):
 
     def add(self, key: str) -> None:
         pass
-
-
-class UnreadRows(Protocol):
-    """Served resources of a restored catalog still in its backup (see `Catalog.restore`).
-
-    Each method returns resources not returned before, with their consumers; once
-    returned, a resource lives in the catalog's memory and is never returned again.
-    """
-
-    remaining: int
-    """How many resources have not been returned yet."""
-
-    def by_request(self, server: str, digest: int) -> list[Resource]:
-        """Those of `server` whose request digest is `digest`."""
-
-    def by_consumer(self, query_id: str) -> Resource | None:
-        """The one that has consumer `query_id`, if any."""
-
-    def of_server(self, server: str) -> list[Resource]:
-        """Every one of `server`, oldest first."""
-
-    def with_origin(self, origin_rr: str) -> list[Resource]:
-        """Every one with a consumer from registrar `origin_rr`."""
-
-    def every(self) -> list[Resource]:
-        """All of them, oldest first."""
 
 
 class Catalog:
@@ -400,7 +63,7 @@ class Catalog:
         self.clients: dict[str, ClientRecord] = {}
         self._by_consumer: dict[str, str] = {}
         # Dedup index, per server: request digest -> resource ids (most requests), and
-        # in-process key (`_runtime_key`) -> resource ids for requests without a digest.
+        # in-process key (`runtime_key`) -> resource ids for requests without a digest.
         self._index: dict[str, dict[int, list[str]]] = {}
         self._others: dict[str, dict[Any, list[str]]] = {}
         self._other_keys: dict[str, Any] = {}  # resource id -> its key in `_others`
@@ -420,7 +83,7 @@ class Catalog:
             digest = request_digest(request)
             if digest is not None:
                 self._read(self._unread.by_request(server, digest))
-            elif not _identity_equality(request):  # may equal any value: read them all
+            elif not identity_equality(request):  # may equal any value: read them all
                 self._read(self._unread.of_server(server))
             else:
                 return None  # equal only to itself: never to a value read back from disk
@@ -435,10 +98,10 @@ class Catalog:
         if digest is not None:
             candidates = digested.get(digest, ()) if digested else ()
             if others:  # a request without a digest may still be equal (rare)
-                candidates = [*candidates, *_candidates(others, request)]
+                candidates = [*candidates, *candidates_without_digest(others, request)]
         else:
-            candidates = _candidates(others, request) if others else []
-            if digested and not _identity_equality(request):
+            candidates = candidates_without_digest(others, request) if others else []
+            if digested and not identity_equality(request):
                 # A custom `__eq__` may equal a plain value: compare with every one.
                 candidates = [*candidates, *(r for b in digested.values() for r in b)]
         for rid in candidates:
@@ -739,7 +402,7 @@ class Catalog:
             index = self._index.setdefault(resource.server, {})
             index.setdefault(digest, []).append(resource.id)
         else:
-            key = self._other_keys[resource.id] = _runtime_key(resource.request)
+            key = self._other_keys[resource.id] = runtime_key(resource.request)
             self._others.setdefault(resource.server, {}).setdefault(key, []).append(resource.id)
 
 
@@ -747,18 +410,3 @@ def _stored_order(item: tuple[str, Resource]) -> float:
     """Sort key: a restored resource's row key in its backup; one created since is newer."""
     order: float = item[1].__dict__.get("_order", math.inf)
     return order
-
-
-def _identity_equality(value: Any) -> bool:
-    """Whether `value` can only equal itself (its class keeps `object.__eq__`)."""
-    eq: object = type(value).__eq__
-    return eq is object.__eq__
-
-
-def _candidates(others: dict[Any, list[str]], request: Any) -> list[str]:
-    """The resource ids among requests without a digest that may `== request`."""
-    key = _runtime_key(request)
-    if key == _UNHASHABLE:
-        return [rid for bucket in others.values() for rid in bucket]
-    # Equal hashable values have equal hashes; unhashable stored ones are compared anyway.
-    return [*others.get(key, ()), *others.get(_UNHASHABLE, ())]

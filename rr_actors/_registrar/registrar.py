@@ -36,10 +36,21 @@ from typing import Any, ClassVar
 import cloudpickle
 import pykka
 
-from rr_actors._actors import Actor, OneShotFuture, refuse
 from rr_actors._catalog import Catalog, ClientRecord, Resource, ResourceState
-from rr_actors._directory import DIRECTORY, LocalPeer, Reply
-from rr_actors._messages import (
+from rr_actors._core.actor import Actor, OneShotFuture, refuse
+from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
+from rr_actors._core.replies import (
+    Answer,
+    CallbackReply,
+    FutureReply,
+    Join,
+    SharedJoin,
+    Tokens,
+    wait,
+)
+from rr_actors._core.timers import Cancellable
+from rr_actors._core.workers import Workers
+from rr_actors._registrar.messages import (
     Abandon,
     ConsumerDown,
     Fetch,
@@ -49,19 +60,9 @@ from rr_actors._messages import (
     StatusNotice,
     Unload,
 )
-from rr_actors._persistence import Cancellable, Saver, gc_paused, open_store
-from rr_actors._replies import (
-    Answer,
-    CallbackReply,
-    FutureReply,
-    Join,
-    SharedJoin,
-    Tokens,
-    wait,
-)
+from rr_actors._store import Saver, gc_paused, open_store
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
-from rr_actors._workers import Workers
-from rr_actors.config import RegistrarConfig, _check_duration
+from rr_actors.config import RegistrarConfig, check_seconds
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
@@ -1935,7 +1936,7 @@ class ResourceRegistrar(RegistrarFacts):
     def _timeout(self, timeout: float | None) -> float:
         if timeout is None:
             return self._config.call_timeout
-        _check_duration("timeout", timeout, allow_none=False)
+        check_seconds("timeout", timeout)
         return float(timeout)
 
     def _ask(

@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from rr_actors._directory import Reply
+from rr_actors._core.directory import Reply
 from rr_actors._types import Status
 
 __all__ = [

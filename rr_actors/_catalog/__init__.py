@@ -1,0 +1,31 @@
+"""The catalog: pure data (no threads, no I/O) of what a registrar serves and holds.
+
+- `records`: the rows (`Resource`, `ClientRecord`) and the `Changes` to store;
+- `digest`: request digests, so that equal (`==`) requests meet without comparing all;
+- `catalog`: the `Catalog` with its indexes, written only by its registrar actor.
+"""
+
+from rr_actors._catalog.catalog import Catalog
+from rr_actors._catalog.digest import DIGEST_SCHEME, NO_DIGEST, request_bucket, request_digest
+from rr_actors._catalog.records import (
+    Changes,
+    ClientRecord,
+    Decoder,
+    Resource,
+    ResourceState,
+    UnreadRows,
+)
+
+__all__ = [
+    "DIGEST_SCHEME",
+    "NO_DIGEST",
+    "Catalog",
+    "Changes",
+    "ClientRecord",
+    "Decoder",
+    "Resource",
+    "ResourceState",
+    "UnreadRows",
+    "request_bucket",
+    "request_digest",
+]

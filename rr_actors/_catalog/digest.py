@@ -1,0 +1,220 @@
+"""Request digests: when two requests are `==`, without comparing every pair.
+
+Dedup is by `==` on the request value, also for unhashable values: requests are bucketed
+by `request_digest`, a deterministic digest of a canonical form (mappings as item sets,
+sequences in order, numbers by their value), and within a bucket compared with `==`. The
+digest covers only built-in values whose `==` it mirrors (and subclasses that keep their
+base's `==`), so two such requests that are `==` meet in the same bucket. The digest may
+be stored: a restored catalog indexes its resources from their stored digests without
+decoding a request. Any other request (a custom class, a subclass with its own `__eq__`
+such as `Counter`, a value whose comparison raises) has no digest: it is bucketed by its
+in-process `hash()` when its class defines one together with its `__eq__`, otherwise with
+the unhashable ones, and compared with `==` against every candidate that could equal it.
+Finding a request never raises because of its value: a comparison that raises means
+"different".
+"""
+
+from __future__ import annotations
+
+import decimal
+import enum
+import fractions
+import hashlib
+import sys
+from collections import OrderedDict
+from collections.abc import Mapping, Set
+from typing import Any
+
+__all__ = [
+    "DIGEST_SCHEME",
+    "NO_DIGEST",
+    "UNHASHABLE",
+    "candidates_without_digest",
+    "identity_equality",
+    "request_bucket",
+    "request_digest",
+    "requests_equal",
+    "runtime_key",
+]
+
+UNHASHABLE = ("<unhashable>",)
+
+NO_DIGEST = -1
+"""`Resource.digest` of a request that has no digest (`hash()` never returns -1 either)."""
+
+_TAG_NONE, _TAG_SEQ, _TAG_MAP, _TAG_SET, _TAG_NAN, _TAG_ENUM = range(0x5F3A_0000, 0x5F3A_0006)
+_NUMBERS = (int, float, complex, decimal.Decimal, fractions.Fraction)
+_STRINGS: dict[str, int] = {}  # str -> digest; strings repeat (keys, command names)
+_STRINGS_MAX = 4096
+
+DIGEST_SCHEME = (
+    f"rr3-py{sys.version_info[0]}.{sys.version_info[1]}-w{sys.hash_info.width}"
+    f"-{sys.hash_info.modulus}"
+)
+"""Names the digest function. It combines parts with `hash()` of tuples and frozensets
+of integers, which is deterministic but may change with Python's version or word size:
+a backup written under another scheme has its digests recomputed when it is opened."""
+
+
+def _blake(data: bytes) -> int:
+    digest = int.from_bytes(hashlib.blake2b(data, digest_size=8).digest(), "little", signed=True)
+    return -2 if digest == NO_DIGEST else digest
+
+
+def _number(value: Any) -> int:
+    # NaN != NaN, and its hash() is its address: every NaN gets one constant instead.
+    return _TAG_NAN if value != value else hash(value)  # noqa: PLR0124
+
+
+class _Opaque(Exception):  # noqa: N818 - control flow inside _digest, never escapes
+    pass
+
+
+def _digest(value: Any) -> int:  # noqa: PLR0911 - one return per kind of value
+    cls = type(value)
+    if cls is str:
+        digest = _STRINGS.get(value)
+        if digest is None:
+            if len(_STRINGS) >= _STRINGS_MAX:
+                _STRINGS.clear()
+            digest = _STRINGS[value] = _blake(value.encode("utf-8", "surrogatepass"))
+        return digest
+    if cls is int or cls is bool:
+        return hash(value)
+    if cls is float or cls is complex:
+        return _number(value)
+    if value is None:
+        return _TAG_NONE
+    if cls is dict or (isinstance(value, Mapping) and _keeps_eq(cls, _MAPPING_EQ)):
+        return hash((_TAG_MAP, frozenset([(_digest(k), _digest(v)) for k, v in value.items()])))
+    if cls is list or cls is tuple or (isinstance(value, list | tuple) and _keeps_eq(cls, _SEQ_EQ)):
+        return hash((_TAG_SEQ, *[_digest(item) for item in value]))
+    if isinstance(value, Set) and _keeps_eq(cls, _SET_EQ):
+        return hash((_TAG_SET, frozenset([_digest(item) for item in value])))
+    if cls is bytes or cls is bytearray:  # bytearray(b"a") == b"a"
+        return hash((_TAG_SEQ, _blake(value)))  # not the digest of the equal str
+    if isinstance(value, enum.Enum) and identity_equality(value):
+        return _enum_member(value, cls)
+    return _digest_subclass(value, cls)
+
+
+def _enum_member(value: enum.Enum, cls: type) -> int:
+    """A plain enum member equals only itself: its class's path and its name name it.
+
+    Members are pickled by name, so the same member has the same digest in every process.
+    (IntEnum and StrEnum keep their base's `==` and are digested as that value.)
+    """
+    name = value._name_
+    if type(name) is not str:  # a composite Flag without a name: leave it to `==`
+        raise _Opaque
+    where = _blake(f"{cls.__module__}:{cls.__qualname__}".encode("utf-8", "surrogatepass"))
+    return hash((_TAG_ENUM, where, _blake(name.encode("utf-8", "surrogatepass"))))
+
+
+# The `==` of containers the digest mirrors: a subclass that overrides `__eq__` (Counter,
+# a case-insensitive dict, a tuple with a tolerance) may call values equal whose digests
+# differ, so it has no digest. OrderedDict's `==` is dict's when either side is a plain
+# dict and stricter (order too) between two OrderedDicts, so equal ones have equal items.
+_MAPPING_EQ: tuple[object, ...] = (dict.__eq__, OrderedDict.__eq__, Mapping.__eq__)
+_SEQ_EQ: tuple[object, ...] = (list.__eq__, tuple.__eq__)
+_SET_EQ: tuple[object, ...] = (set.__eq__, frozenset.__eq__, Set.__eq__)
+
+
+def _keeps_eq(cls: type, eqs: tuple[object, ...]) -> bool:
+    eq: object = cls.__eq__
+    return eq in eqs
+
+
+def _digest_subclass(value: Any, cls: type) -> int:
+    """Subclasses that keep their base's `==` and `hash()` (IntEnum, StrEnum, ...)."""
+    bases: tuple[type, ...] = (str, bytes, *_NUMBERS)
+    for base in bases:
+        same: object = (cls.__eq__, cls.__hash__) == (base.__eq__, base.__hash__)
+        if issubclass(cls, base) and same:
+            if base is str:
+                return _blake(str.encode(value, "utf-8", "surrogatepass"))
+            if base is bytes:
+                return hash((_TAG_SEQ, _blake(bytes(value))))
+            return _number(value)
+    raise _Opaque
+
+
+def request_digest(request: Any) -> int | None:
+    """A deterministic 64-bit digest of a request, such that `a == b` implies equal digests.
+
+    The same in every process (it may be stored): strings and bytes are digested with
+    BLAKE2b, numbers by their `hash()` (which Python defines from the value, so that
+    `1`, `1.0` and `True` agree, and which is not randomised), mappings as an
+    order-free combination of their items, sets likewise, lists and tuples in order.
+
+    Only values whose `==` the digest mirrors get one: built-in strings, bytes, numbers,
+    `None`, members of enums that keep identity equality (digested by class path and
+    name), and dicts, lists, tuples, sets (and other mappings and sets) of them, including
+    subclasses that keep their base's `__eq__` and `__hash__` (IntEnum, StrEnum,
+    namedtuple, OrderedDict, defaultdict).
+
+    Returns:
+        The digest (never `NO_DIGEST`), or `None` for a value with other parts (a
+        custom class, a container subclass with its own `__eq__` such as `Counter`, an
+        enum with its own `__eq__`) or one that raises while being digested (`Decimal("sNaN")`, a
+        mapping whose `items()` raises), whose equality only `==` can judge; the catalog
+        indexes those by their in-process `hash()` instead, which is never stored.
+    """
+    try:
+        return _digest(request)
+    except Exception:  # noqa: BLE001 - _Opaque, RecursionError, whatever user code raises
+        return None
+
+
+def runtime_key(request: Any) -> Any:
+    """The in-process bucket of a request that has no digest (never stored).
+
+    A class that overrides `__eq__` but keeps a built-in `__hash__` (a tuple subclass
+    with a tolerance, say) hashes inconsistently with its `==`: it goes with the
+    unhashable requests, which are compared with every candidate.
+    """
+    cls = type(request)
+    hasher: object = cls.__hash__
+    owner = getattr(hasher, "__objclass__", None)
+    if isinstance(owner, type) and owner is not cls:
+        base_eq: object = owner.__eq__
+        own_eq: object = cls.__eq__
+        if base_eq is not own_eq:
+            return UNHASHABLE
+    try:
+        return ("h", hash(request))
+    except Exception:  # noqa: BLE001 - unhashable, or a __hash__ that raises: compare by ==
+        return UNHASHABLE
+
+
+def request_bucket(request: Any) -> Any:
+    """Return a hashable key such that `a == b` implies equal keys (for the usual types).
+
+    The key is the request's digest (`request_digest`); values without one fall back to
+    their `hash()`, and unhashable ones share one bucket compared by `==` alone.
+    """
+    digest = request_digest(request)
+    return digest if digest is not None else runtime_key(request)
+
+
+def requests_equal(a: Any, b: Any) -> bool:
+    """`a == b`, made total: a comparison that raises or is ambiguous means "different"."""
+    try:
+        return bool(a == b)
+    except Exception:  # noqa: BLE001 - user __eq__ may raise anything; then they differ
+        return False
+
+
+def identity_equality(value: Any) -> bool:
+    """Whether `value` can only equal itself (its class keeps `object.__eq__`)."""
+    eq: object = type(value).__eq__
+    return eq is object.__eq__
+
+
+def candidates_without_digest(others: dict[Any, list[str]], request: Any) -> list[str]:
+    """The resource ids among requests without a digest that may `== request`."""
+    key = runtime_key(request)
+    if key == UNHASHABLE:
+        return [rid for bucket in others.values() for rid in bucket]
+    # Equal hashable values have equal hashes; unhashable stored ones are compared anyway.
+    return [*others.get(key, ()), *others.get(UNHASHABLE, ())]

@@ -1,0 +1,9 @@
+"""The generic actor machinery: knows nothing of registrars, catalogs or processes.
+
+- `actor`: pykka's threading actor with a one-lock mailbox and one-shot futures; every
+  pykka extension point (and every private name of pykka) rr_actors uses is in that file.
+- `replies`: where the answer to a message goes (`Reply` objects), and how to wait.
+- `workers`: the pool of threads that runs user callbacks off the mailboxes.
+- `directory`: names -> peers (`Peer.tell`), and why a name went away.
+- `timers`: one-shot timers with an injectable factory.
+"""

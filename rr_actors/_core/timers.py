@@ -1,0 +1,28 @@
+"""One-shot timers: the default runs on a daemon thread; tests inject their own."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from typing import Protocol
+
+__all__ = ["Cancellable", "Timer", "thread_timer"]
+
+
+class Cancellable(Protocol):
+    """A started timer (`threading.Timer` is one)."""
+
+    def cancel(self) -> None:
+        """Stop the timer if it has not fired yet."""
+
+
+Timer = Callable[[float, Callable[[], None]], Cancellable]
+"""`timer(delay, fn)`: run `fn()` once after `delay` seconds on some thread."""
+
+
+def thread_timer(delay: float, fn: Callable[[], None]) -> Cancellable:
+    """Run `fn()` on a daemon thread after `delay` seconds (the default `Timer`)."""
+    timer = threading.Timer(delay, fn)
+    timer.daemon = True
+    timer.start()
+    return timer

@@ -1,0 +1,1 @@
+"""Manager processes: the child's side, the parent's handle, spares, remote handles."""

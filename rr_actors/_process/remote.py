@@ -1,0 +1,484 @@
+"""A handle on a registrar that lives in a manager process of a system.
+
+`RemoteRegistrar` implements the same `Registrar` protocol as `ResourceRegistrar`: each
+method runs the registrar's own method in the registrar's process over the system's
+transport (`AttachedSystem.run`) and returns its result or re-raises its error. Tests run
+one body over both placements with it (`rr_actors.testing` re-exports it).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import functools
+import os
+import signal
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import cloudpickle
+
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._process.manager import ManagerExit, ManagerProcess
+from rr_actors._registrar.messages import ConsumerDown
+from rr_actors._registrar.registrar import (
+    _LOADING,
+    LoadContext,
+    RegistrarFacts,
+    ResourceRegistrar,
+)
+from rr_actors._transport import AttachedSystem, SystemAddress, attach
+from rr_actors._types import Query, Status, StatusCallback
+from rr_actors.config import RegistrarConfig
+from rr_actors.errors import (
+    CallTimeoutError,
+    ConfigError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    RrError,
+)
+
+__all__ = ["FORWARD_MARGIN", "RemoteRegistrar"]
+
+FORWARD_MARGIN = 10.0
+"""Seconds a forwarded call may take beyond its own `timeout` (transport and scheduling)."""
+
+
+class RemoteRegistrar(RegistrarFacts):
+    """A handle on a registrar that lives in a manager process of a system.
+
+    It has the methods and properties of a `ResourceRegistrar`, with the same arguments,
+    results and errors: each method runs the registrar's own method in the registrar's
+    process (over the system's authenticated channel) and returns its result or re-raises
+    its error (rr_actors errors pickle). Arguments, callbacks and results are cloudpickled,
+    so callbacks may be closures; they run in the registrar's process, on the threads a
+    local registrar would use. The handle itself pickles: a callback that captured it and
+    runs in the registrar's own process calls the registrar directly on its own thread (so
+    a call inside a `load` callback is still recorded as a dependency), and from any
+    other process of the system it forwards again.
+
+    Start one with [`start`][rr_actors.testing.RemoteRegistrar.start] (the *owner*
+    handle, which owns the manager process and can [`kill`][rr_actors.testing.RemoteRegistrar.kill]
+    it), or reach an existing registrar of a system (a supervised manager, say) with the
+    constructor. When an owned manager process dies without being stopped, the owner tells
+    every registrar of the system that this consumer is gone (death watch), as a
+    supervisor does for a child it will not restart.
+    """
+
+    def __init__(
+        self,
+        config: RegistrarConfig | str,
+        address: SystemAddress,
+        *,
+        restored: bool = False,
+        in_doubt: tuple[Query, ...] = (),
+    ) -> None:
+        """Make a handle on the running registrar `config.name` of the system at `address`.
+
+        Args:
+            config: the registrar's configuration (its `call_timeout` is the default
+                timeout of this handle's methods), or just its name.
+            address: the system's address.
+            restored: what `restored` reports (the owner handle learns it at start).
+            in_doubt: what `in_doubt` reports (likewise).
+        """
+        self._config = RegistrarConfig(name=config) if isinstance(config, str) else config
+        self._address = address
+        self._restored = restored
+        self._in_doubt = in_doubt
+        self._process: ManagerProcess | None = None
+        self._stopping = False
+        self._down = threading.Event()
+
+    @classmethod
+    def start(
+        cls,
+        config: RegistrarConfig | str,
+        system: AttachedSystem | SystemAddress,
+        *,
+        setup: Callable[[ResourceRegistrar], None] | None = None,
+        start_timeout: float = 10.0,
+    ) -> RemoteRegistrar:
+        """Start a registrar in a new manager process of `system`; return the owner handle.
+
+        The process is started with the forkserver (or spawn) context; there it attaches
+        the system, starts the registrar (restoring its catalog), runs `setup(registrar)`
+        and serves it. It dies with this process.
+
+        Args:
+            config: the registrar's configuration, or just its name.
+            system: the system (or its address) the registrar joins.
+            setup: cloudpickled and run in the manager process before it serves.
+            start_timeout: seconds the manager may take to be ready.
+
+        Returns:
+            The owner handle.
+
+        Raises:
+            ConfigError: `config` is invalid or `setup` does not pickle.
+            RegistrarUnavailableError: the manager failed to start (its traceback, say a
+                `DuplicateNameError` or `CatalogCorruptError`, is in the message).
+            CallTimeoutError: it was not ready within `start_timeout` seconds.
+        """
+        if isinstance(config, str):
+            config = RegistrarConfig(name=config)
+        elif not isinstance(config, RegistrarConfig):
+            raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
+        address = system.address if isinstance(system, AttachedSystem) else system
+        try:
+            payload = cloudpickle.dumps(setup)
+        except Exception as exc:
+            raise ConfigError(
+                f"setup of registrar {config.name!r} is not picklable: {exc}"
+            ) from exc
+        handle = cls(config, address)
+        handle._process = ManagerProcess.start(
+            config.name,
+            payload,
+            config,
+            address,
+            start_timeout=start_timeout,
+            heartbeat=None,
+            heartbeat_timeout=start_timeout,
+            on_exit=handle._exited,
+        )
+        try:
+            handle._restored, handle._in_doubt = handle.run(
+                _restored_and_in_doubt, timeout=start_timeout
+            )
+        except BaseException:
+            handle.kill()
+            raise
+        return handle
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickle as a plain (non-owner) handle: the manager process stays with its owner."""
+        return (_rebuild, (self._config, self._address, self._restored, self._in_doubt))
+
+    # -- properties -------------------------------------------------------------------
+
+    @property
+    def pid(self) -> int | None:
+        """The manager process's pid (owner handle), else `None`."""
+        return None if self._process is None else self._process.pid
+
+    def is_alive(self) -> bool:
+        """Whether the registrar (for the owner: its manager process) is running."""
+        if self._process is not None:
+            return not self._process.exited.is_set()
+        try:
+            alive: bool = self._forward(lambda reg: reg.is_alive(), None)
+        except RrError:
+            return False
+        return alive
+
+    # -- running code in the registrar's process ---------------------------------------
+
+    def run(self, fn: Callable[[ResourceRegistrar], Any], *, timeout: float | None = None) -> Any:
+        """Run `fn(registrar)` in the registrar's process and return its result.
+
+        `fn` is cloudpickled (closures work); in the registrar's own process it runs on
+        the calling thread, elsewhere on a fresh thread of the registrar's process.
+
+        Args:
+            fn: called with the `ResourceRegistrar`; its result must pickle.
+            timeout: seconds to wait for the result (default: the config's `call_timeout`).
+
+        Returns:
+            What `fn` returned.
+
+        Raises:
+            CallTimeoutError: no result within `timeout` seconds.
+            RegistrarUnavailableError: the registrar's process died or is unreachable.
+            RegistrarStoppedError: the registrar was stopped.
+            UnknownServerError: no registrar of that name was ever served on the system.
+            ConfigError: `fn` does not pickle.
+            Exception: whatever `fn` raised, re-raised here.
+        """
+        limit = self._config.call_timeout if timeout is None else timeout
+        return attach(self._address).run(self.name, fn, timeout=limit)
+
+    def _forward(self, fn: Callable[[ResourceRegistrar], Any], timeout: object) -> Any:
+        """Run a method remotely; wait for it a margin beyond its own `timeout`.
+
+        An invalid `timeout` is passed on untouched (the registrar rejects it with the same
+        `ConfigError` as a local one); the wait then uses the default.
+        """
+        valid = isinstance(timeout, int | float) and not isinstance(timeout, bool) and timeout > 0
+        limit = float(timeout) if valid else self._config.call_timeout  # type: ignore[arg-type]
+        return self.run(fn, timeout=limit + FORWARD_MARGIN)
+
+    # -- the ResourceRegistrar API ----------------------------------------------------
+
+    def register_server(
+        self,
+        name: str,
+        *,
+        load: Callable[[Any], Any],
+        unload: Callable[[Any, Any], None],
+        on_status: StatusCallback | None = None,
+        timeout: float | None = None,
+    ) -> None:
+        """`ResourceRegistrar.register_server`; the callbacks run in the registrar's process.
+
+        Raises:
+            ConfigError: a callback is not callable or does not pickle, or the name is bad.
+            DuplicateNameError: a server with this name exists on the registrar.
+            RegistrarUnavailableError: the registrar's process died.
+        """
+        self._forward(
+            lambda reg: reg.register_server(
+                name, load=load, unload=unload, on_status=on_status, timeout=timeout
+            ),
+            timeout,
+        )
+
+    def unregister_server(self, name: str, *, timeout: float | None = None) -> None:
+        """`ResourceRegistrar.unregister_server`.
+
+        Raises:
+            UnknownServerError: no such server there.
+            CallTimeoutError: not finished within `timeout` seconds.
+            RegistrarUnavailableError: the registrar's process died.
+        """
+        self._forward(lambda reg: reg.unregister_server(name, timeout=timeout), timeout)
+
+    def call(
+        self,
+        target_rr: str,
+        server: str,
+        request: Any,
+        *,
+        on_status: StatusCallback | None = None,
+        timeout: float | None = None,
+        query_id: str | None = None,
+    ) -> Query:
+        """`ResourceRegistrar.call`, made by the remote registrar.
+
+        Made from inside a `load` callback (of any process), the call carries that load's
+        context, exactly as a local handle's call would: a dependency when the load runs
+        on this registrar, and part of the chain for cycle detection.
+
+        Raises:
+            ResourceLoadError: `load` raised there or further down.
+            DependencyCycleError: the load would wait for itself further up its chain.
+            UnknownServerError: no such registrar or server.
+            CallTimeoutError: no answer in time.
+            RegistrarUnavailableError: the provider (or this registrar's process) died.
+            RegistrarStoppedError: this registrar or the provider was stopped.
+            ConfigError: `on_status` is not callable, or the request does not pickle.
+        """
+        context = _LOADING.get()
+        args = (target_rr, server, request)
+        kw = {"on_status": on_status, "timeout": timeout, "query_id": query_id}
+        query: Query = self._forward(
+            functools.partial(_call_in_context, context, args, kw), timeout
+        )
+        return query
+
+    def unload(self, query_id: str, *, timeout: float | None = None) -> None:
+        """`ResourceRegistrar.unload`.
+
+        Raises:
+            UnknownQueryError: the id is unknown there or already released.
+            CallTimeoutError: not finished within `timeout` seconds.
+            RegistrarUnavailableError: the provider or the registrar's process died.
+        """
+        self._forward(lambda reg: reg.unload(query_id, timeout=timeout), timeout)
+
+    def send_status(
+        self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
+    ) -> None:
+        """`ResourceRegistrar.send_status`.
+
+        Raises:
+            UnknownQueryError: `query_id` is not a consumer id of a resource served there.
+            CallTimeoutError: not delivered everywhere within `timeout` seconds.
+            ConfigError: `status` is not an `rr_actors.Status`.
+            RegistrarUnavailableError: the registrar's process died.
+        """
+        self._forward(
+            lambda reg: reg.send_status(query_id, status, message, timeout=timeout), timeout
+        )
+
+    def server_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
+        """`ResourceRegistrar.server_queries`.
+
+        Raises:
+            UnknownServerError: no such server there.
+            RegistrarUnavailableError: the registrar's process died.
+        """
+        result: list[Query] = self._forward(
+            lambda reg: reg.server_queries(server, timeout=timeout), timeout
+        )
+        return result
+
+    def fetch_queries(
+        self, target_rr: str, server: str, *, timeout: float | None = None
+    ) -> list[Query]:
+        """`ResourceRegistrar.fetch_queries`.
+
+        Raises:
+            UnknownServerError: no such registrar or server.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarUnavailableError: the provider or the registrar's process died.
+        """
+        result: list[Query] = self._forward(
+            lambda reg: reg.fetch_queries(target_rr, server, timeout=timeout), timeout
+        )
+        return result
+
+    def client_queries(self, *, timeout: float | None = None) -> list[Query]:
+        """`ResourceRegistrar.client_queries`.
+
+        Raises:
+            RegistrarUnavailableError: the registrar's process died.
+        """
+        result: list[Query] = self._forward(
+            lambda reg: reg.client_queries(timeout=timeout), timeout
+        )
+        return result
+
+    def set_status_callback(
+        self, query_id: str, callback: StatusCallback, *, timeout: float | None = None
+    ) -> None:
+        """`ResourceRegistrar.set_status_callback`; `callback` runs in the registrar's process.
+
+        Raises:
+            UnknownQueryError: the registrar holds no such query.
+            ConfigError: `callback` is not callable or does not pickle.
+            RegistrarUnavailableError: the registrar's process died.
+        """
+        self._forward(
+            lambda reg: reg.set_status_callback(query_id, callback, timeout=timeout), timeout
+        )
+
+    def update_response(
+        self, query_id: str, response: Any, *, timeout: float | None = None
+    ) -> None:
+        """`ResourceRegistrar.update_response`.
+
+        Raises:
+            UnknownQueryError: `query_id` is not a consumer id of a resource served there.
+            RegistrarUnavailableError: the registrar's process died.
+        """
+        self._forward(lambda reg: reg.update_response(query_id, response, timeout=timeout), timeout)
+
+    def save_catalog(self, *, timeout: float | None = None) -> None:
+        """`ResourceRegistrar.save_catalog`.
+
+        Raises:
+            RegistrarUnavailableError: the registrar's process died.
+        """
+        self._forward(lambda reg: reg.save_catalog(timeout=timeout), timeout)
+
+    def stop(self, *, timeout: float | None = None) -> None:
+        """Stop the registrar (rule 12) and, for the owner handle, its manager process.
+
+        Stopping a stopped (or dead) registrar is a no-op.
+
+        Args:
+            timeout: seconds the stop may take (default: the config's `call_timeout`);
+                the owner kills the process after that.
+
+        Raises:
+            CallTimeoutError: not finished within `timeout` seconds (the process was killed).
+            RrError: the registrar did not stop cleanly (the reason is in the message).
+        """
+        limit = self._config.call_timeout if timeout is None else timeout
+        if self._process is None:
+            with contextlib.suppress(RegistrarStoppedError, RegistrarUnavailableError):
+                self._forward(lambda reg: reg.stop(timeout=limit), limit)
+            return
+        if self._process.exited.is_set():
+            return
+        self._stopping = True
+        result = self._process.stop(limit)
+        self._down.wait(limit)
+        if result.normal:
+            return
+        if result.reason.startswith("killed: no clean stop"):
+            raise CallTimeoutError(f"stop() of registrar {self.name!r}: {result.reason}")
+        raise RrError(f"registrar {self.name!r} did not stop cleanly: {result.reason}")
+
+    def kill(self, *, timeout: float = 5.0) -> None:
+        """SIGKILL the registrar's manager process; return once it is dead.
+
+        For the owner handle, this also waits until the system's registrars were told
+        that this consumer is gone (death watch). From another handle, the process kills
+        itself and its owner does the rest.
+
+        Args:
+            timeout: seconds to wait for the death.
+
+        Raises:
+            CallTimeoutError: it was not seen dead within `timeout` seconds.
+        """
+        if self._process is None:
+            with contextlib.suppress(RegistrarUnavailableError, RegistrarStoppedError):
+                self.run(_kill_own_process, timeout=timeout)
+            return
+        self._process.kill()
+        if not self._down.wait(timeout):
+            raise CallTimeoutError(f"manager {self.name!r} not dead within {timeout:g} s")
+
+    def __enter__(self) -> RemoteRegistrar:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.stop()
+
+    def __repr__(self) -> str:
+        where = "" if self._process is None else f" pid {self._process.pid}"
+        return f"<RemoteRegistrar {self.name!r}{where}>"
+
+    # -- the owner's watcher ------------------------------------------------------------
+
+    def _exited(self, how: ManagerExit) -> None:
+        """Runs on the manager's watcher thread when the process ended."""
+        try:
+            if not how.normal and not self._stopping:
+                _consumer_down(self._address, self.name)
+        finally:
+            self._down.set()
+
+
+def _rebuild(
+    config: RegistrarConfig, address: SystemAddress, restored: bool, in_doubt: tuple[Query, ...]
+) -> RemoteRegistrar:
+    return RemoteRegistrar(config, address, restored=restored, in_doubt=in_doubt)
+
+
+def _restored_and_in_doubt(registrar: ResourceRegistrar) -> tuple[bool, tuple[Query, ...]]:
+    return registrar.restored, registrar.in_doubt
+
+
+def _call_in_context(
+    context: LoadContext | None, args: tuple[Any, ...], kw: Any, registrar: ResourceRegistrar
+) -> Query:
+    """`registrar.call(*args, **kw)` as if made from a thread whose load context is `context`."""
+    if context is None:
+        return registrar.call(*args, **kw)
+    scope = contextvars.copy_context()
+    scope.run(_LOADING.set, context)
+    return scope.run(registrar.call, *args, **kw)
+
+
+def _kill_own_process(_: ResourceRegistrar) -> None:
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _consumer_down(address: SystemAddress, name: str) -> None:
+    """Death watch: tell every registrar of the system (and of this process) `name` is gone."""
+    targets = {peer.name for peer in DIRECTORY.local_peers()}
+    with contextlib.suppress(OSError):
+        targets.update(
+            entry.removesuffix(".sock")
+            for entry in os.listdir(address.runtime_dir)
+            if entry.endswith(".sock")
+        )
+    targets.discard(name)
+    for target in sorted(targets):
+        with contextlib.suppress(RrError):
+            DIRECTORY.lookup(target).tell(ConsumerDown(name))
