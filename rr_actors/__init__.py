@@ -6,7 +6,7 @@ the semantics (`docs/explanation/semantics.md`) and the architecture.
 
 import logging
 
-from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, ResourceRegistrar
+from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, Registrar, ResourceRegistrar
 from rr_actors._store import quarantine_backup
 from rr_actors._supervision import ChildCounts, ChildInfo, Supervisor
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
@@ -41,6 +41,7 @@ __all__ = [
     "ErrorFrame",
     "ManagerSpec",
     "Query",
+    "Registrar",
     "RegistrarConfig",
     "RegistrarStoppedError",
     "RegistrarUnavailableError",

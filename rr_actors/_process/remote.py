@@ -15,7 +15,7 @@ import os
 import signal
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cloudpickle
 
@@ -482,3 +482,9 @@ def _consumer_down(address: SystemAddress, name: str) -> None:
     for target in sorted(targets):
         with contextlib.suppress(RrError):
             DIRECTORY.lookup(target).tell(ConsumerDown(name))
+
+
+if TYPE_CHECKING:  # mypy checks that the handle implements the protocol
+    from rr_actors._registrar import Registrar
+
+    _implements: type[Registrar] = RemoteRegistrar

@@ -60,6 +60,7 @@ from rr_actors._registrar.messages import (
     StatusNotice,
     Unload,
 )
+from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._store import Saver, gc_paused, open_store
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors.config import RegistrarConfig, check_seconds
@@ -83,9 +84,6 @@ logger = logging.getLogger("rr_actors")
 
 MAX_DEPENDENCY_DEPTH = 64
 """A load chain deeper than this is reported as a `DependencyCycleError` (runaway recursion)."""
-
-LoadCallback = Callable[[Any], Any]
-UnloadCallback = Callable[[Any, Any], None]
 
 
 @dataclasses.dataclass(frozen=True)

@@ -76,6 +76,7 @@ from rr_actors._catalog import (
     ResourceState,
     request_digest,
 )
+from rr_actors._platform import PLATFORM
 from rr_actors._types import Query
 from rr_actors.errors import CatalogCorruptError, ConfigError, RegistrarStoppedError
 
@@ -711,7 +712,7 @@ class _Consumers:
     id straight to its resource key as read (parsed when that consumer is looked up), so
     no list of places or place numbers is kept. The joined strings and the index's
     outgrown tables are freed once it is built, and the pages they leave are handed back
-    to the system (`_release_free_memory`): 100k ids then cost the process 19 MB, not 27.
+    to the system (`PLATFORM.release_free_memory`): 100k ids then cost the process 19 MB, not 27.
     Every page a manager process still maps when it is killed is freed by the kernel
     before its supervisor can see it exit (about 0.12 ms a MB).
     """
@@ -735,7 +736,7 @@ class _Consumers:
             raise ValueError(f"consumer query id {_first_duplicate(keys)} is stored twice")
         del keys, values
         if count >= _TRIM_AFTER:
-            _release_free_memory()
+            PLATFORM.release_free_memory()
 
     def resource_of(self, query_id: str) -> int | None:
         """The resource row key of consumer `query_id`, if it is stored."""
@@ -745,31 +746,6 @@ class _Consumers:
 
 _TRIM_AFTER = 10_000
 """Consumer ids from which building `_Consumers` frees enough (MBs) to hand it back."""
-
-
-@functools.cache
-def _malloc_trim() -> Callable[[int], object] | None:
-    """glibc's `malloc_trim`; `None` with another C library."""
-    try:
-        import ctypes  # noqa: PLC0415 - only where a restore is large enough to trim
-
-        trim = ctypes.CDLL(None).malloc_trim
-    except (ImportError, OSError, AttributeError, TypeError):
-        return None
-    trim.argtypes = [ctypes.c_size_t]
-    result: Callable[[int], object] = trim
-    return result
-
-
-def _release_free_memory() -> None:
-    """Return the C heap's free pages to the system now (glibc only; else nothing).
-
-    glibc keeps freed memory mapped for reuse, and returns only the heap's top; this
-    releases every free page (about 0.5 ms after a 100k restore, 4-6 MB).
-    """
-    trim = _malloc_trim()
-    if trim is not None:
-        trim(0)
 
 
 def _first_duplicate(values: list[Any]) -> Any:

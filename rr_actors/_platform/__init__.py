@@ -1,0 +1,29 @@
+"""OS- and CPython-specific tricks, chosen once, each with a plain fallback.
+
+Everything rr_actors does that only works on Linux, with glibc, or by reaching into
+CPython's private machinery lives in `linux`; `portable` does the same jobs plainly (or
+not at all, where the job is only an optimisation). `PLATFORM` is chosen once, at import:
+`linux` on Linux, `portable` elsewhere or when the environment variable
+`RR_ACTORS_PLATFORM=portable` is set (the test suite runs under both).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from rr_actors._platform import linux, portable
+from rr_actors._platform.base import Platform
+
+__all__ = ["PLATFORM", "Platform"]
+
+
+def _choose() -> Platform:
+    forced = os.environ.get("RR_ACTORS_PLATFORM", "")
+    if forced == "portable" or not sys.platform.startswith("linux"):
+        return portable.PortablePlatform()
+    return linux.LinuxPlatform()
+
+
+PLATFORM: Platform = _choose()
+"""The platform's tricks, chosen once for this process (its children choose again)."""
