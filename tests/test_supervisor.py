@@ -18,7 +18,9 @@ from supervision import FakeClock, ManualTimer
 
 import rr_actors as rr
 from rr_actors import testing
-from rr_actors._supervision.supervisor import RestartIntensity, Supervisor
+from rr_actors._supervision.policy import RestartIntensity
+from rr_actors._supervision.retry import abandon_after_restart
+from rr_actors._supervision.supervisor import Supervisor
 from rr_actors.config import Backoff, ManagerSpec, SupervisorSpec
 
 
@@ -75,6 +77,11 @@ def recording_provider(
         reg.register_server("res", load=lambda r: r, unload=lambda r, _: unloaded.set())
 
     return setup
+
+
+def abandon(sup: Supervisor, name: str, query_id: str, origin: str) -> None:
+    """What `call_with_retry` does with an id when its wait for a restart ran out."""
+    abandon_after_restart(sup._tree, sup._node, name, query_id, origin)
 
 
 def restarts(sup: Supervisor) -> dict[str, int]:
@@ -608,7 +615,7 @@ def test_an_id_abandoned_while_its_provider_runs_is_released_at_once(
     sup = supervisors([ManagerSpec(name, recording_provider(unloaded))]).start()
     app = sup.registrar(f"app-{uid}")
     app.call(name, "res", "camera", query_id="q-1")
-    sup._abandon_after_restart(name, "q-1", app.name)
+    abandon(sup, name, "q-1", app.name)
 
     assert unloaded.wait(5.0)
     assert [] == handle(sup, name).server_queries("res")
@@ -741,7 +748,7 @@ def test_an_id_abandoned_while_a_nested_supervisor_restarts_is_released_when_it_
     app.call(x, "res", "camera", query_id="q-1")
     crash(sup, x)
     assert timer.wait_scheduled(1)
-    sup._abandon_after_restart(x, "q-1", app.name)  # what a timed-out call_with_retry does
+    abandon(sup, x, "q-1", app.name)  # what a timed-out call_with_retry does
     timer.fire()
     sup.wait_restarted(x, timeout=5.0)
 

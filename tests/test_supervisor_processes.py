@@ -26,13 +26,9 @@ import pytest
 from supervision import alive, echo_setup, killed_owner, process, wait_gone
 
 import rr_actors as rr
-from rr_actors._process.manager import (
-    ManagerExit,
-    ManagerProcess,
-    _forker_pid,
-    mp_context,
-    start_forkserver,
-)
+from rr_actors._platform import PLATFORM
+from rr_actors._process.context import forker_pid, mp_context, start_forkserver
+from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors.testing import SharedObjects
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
@@ -431,8 +427,8 @@ GRANDCHILD = textwrap.dedent(
     expected = os.getppid()
     print(os.getpid(), flush=True)
     sys.stdin.read()  # EOF: the middle process (its parent) is exiting
-    from rr_actors._process.manager import _die_with_parent
-    _die_with_parent(expected)
+    from rr_actors._platform import PLATFORM
+    PLATFORM.die_with_parent(expected)
     threading.Event().wait(60)  # an orphan that nothing kills lives on
     """
 )
@@ -476,7 +472,7 @@ def test_a_killed_manager_is_seen_dead_without_waiting_for_the_forkserver_to_rea
     # The forkserver, the manager's parent, is stopped: it cannot reap the manager nor
     # write its exit status to the sentinel. The pidfd and /proc/<pid>/stat still tell.
     ctx = mp_context()
-    forker = _forker_pid(ctx)
+    forker = forker_pid(ctx)
     if forker is None or forker == os.getpid():
         pytest.skip("needs the forkserver start method")
     exits: list[ManagerExit] = []

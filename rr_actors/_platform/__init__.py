@@ -13,9 +13,9 @@ import os
 import sys
 
 from rr_actors._platform import linux, portable
-from rr_actors._platform.base import Platform
+from rr_actors._platform.base import ExitWatch, Platform
 
-__all__ = ["PLATFORM", "Platform"]
+__all__ = ["PLATFORM", "ExitWatch", "Platform"]
 
 
 def _choose() -> Platform:

@@ -1,10 +1,42 @@
-"""What a platform offers: each method is a job, done with a trick or plainly."""
+"""What a platform offers: each method is a job, done with a trick or plainly.
+
+Every job here is either an optimisation (the portable platform may skip it) or a second
+line of defence whose first line works everywhere (the portable platform relies on the
+first line alone). Nothing rr_actors promises depends on a trick.
+"""
 
 from __future__ import annotations
 
+import multiprocessing.context
+from collections.abc import Sequence
 from typing import Protocol
 
-__all__ = ["Platform"]
+__all__ = ["ExitWatch", "Platform"]
+
+
+class ExitWatch(Protocol):
+    """Something to wait on that becomes readable when one process has exited.
+
+    Made by [`Platform.watch_exit`][rr_actors._platform.base.Platform.watch_exit] while
+    the process runs; the parent's watcher thread waits on `fileno()` beside the process
+    sentinel.
+    """
+
+    def fileno(self) -> int:
+        """A descriptor that becomes readable once the process has exited."""
+        ...
+
+    def exitcode(self) -> int | None:
+        """The exit code as `Process.exitcode` gives it (`-N`: killed by signal N).
+
+        `None` while the process runs, or when it can no longer be read here (then the
+        process sentinel tells it).
+        """
+        ...
+
+    def close(self) -> None:
+        """Release the descriptors."""
+        ...
 
 
 class Platform(Protocol):
@@ -15,3 +47,43 @@ class Platform(Protocol):
 
     def release_free_memory(self) -> None:
         """Hand the C heap's free pages back to the system now (an optimisation)."""
+
+    def manager_context(
+        self, *, preload: Sequence[str] = (), lean_prefix: str | None = None
+    ) -> multiprocessing.context.BaseContext:
+        """The multiprocessing context manager processes are started with (in the parent).
+
+        Never a plain `fork` of the threaded parent: `forkserver` where there is one,
+        else `spawn`.
+
+        Args:
+            preload: modules a forkserver may import once for all its children.
+            lean_prefix: processes whose name starts with it need not re-import the
+                parent's main module (`None`: every process does).
+        """
+        ...
+
+    def forker_pid(self, ctx: multiprocessing.context.BaseContext) -> int | None:
+        """The pid of the process that forks manager processes (in the parent).
+
+        Handed to the child for `die_with_parent`; `None` if it cannot be known.
+        """
+        ...
+
+    def die_with_parent(self, expected_parent: int | None) -> None:
+        """Make this manager process end when the process that forked it dies (in the child).
+
+        A second line of defence: a manager first sees its supervisor's death as EOF on
+        its control pipe and exits. This is for a manager too stuck to read its pipe.
+        """
+
+    def watch_exit(self, pid: int) -> ExitWatch | None:
+        """Something that tells process `pid`'s exit early (in the parent), or `None`.
+
+        An optimisation: the process sentinel always tells the exit too, once the
+        process's parent has reaped it.
+        """
+        ...
+
+    def set_process_name(self, title: str) -> None:
+        """Name this process for `ps` and `top` (in the child; only a convenience)."""

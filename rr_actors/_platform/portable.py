@@ -1,14 +1,63 @@
-"""The plain fallback of every platform trick: correct everywhere, only slower."""
+"""The plain fallback of every platform trick: correct everywhere, only slower.
+
+Orphans: a manager process whose supervisor's process died sees EOF on its control pipe
+and exits (the first line everywhere); there is no parent-death signal for one too stuck
+to read it. Crashes: the process sentinel tells them, once the process's parent (the
+forkserver) has reaped it.
+"""
 
 from __future__ import annotations
 
-__all__ = ["PortablePlatform"]
+import multiprocessing
+import multiprocessing.context
+from collections.abc import Sequence
+
+from rr_actors._platform.base import ExitWatch
+
+__all__ = ["PARENT_GONE_EXIT", "PortablePlatform"]
+
+PARENT_GONE_EXIT = 70
+"""The exit code of a manager process that found its parent gone."""
 
 
 class PortablePlatform:
-    """Every job done with the standard library only."""
+    """Every job done with the standard library's public API only."""
 
     name = "portable"
 
     def release_free_memory(self) -> None:
         """Nothing: freed memory stays with the C allocator (it is reused)."""
+
+    def manager_context(
+        self, *, preload: Sequence[str] = (), lean_prefix: str | None = None
+    ) -> multiprocessing.context.BaseContext:
+        """The forkserver context (spawn where there is none), with no preload.
+
+        Each manager process imports what it needs after its fork, and re-imports the
+        parent's main module as `__mp_main__` (multiprocessing's own behaviour), so
+        `preload` and `lean_prefix` are ignored.
+        """
+        del preload, lean_prefix
+        if "forkserver" in multiprocessing.get_all_start_methods():
+            ctx = multiprocessing.get_context("forkserver")
+            ctx.set_forkserver_preload([])
+            return ctx
+        return multiprocessing.get_context("spawn")
+
+    def forker_pid(self, ctx: multiprocessing.context.BaseContext) -> int | None:
+        """`None`: the forkserver's pid is not public, and nothing here needs it."""
+        del ctx
+        return None
+
+    def die_with_parent(self, expected_parent: int | None) -> None:
+        """Nothing: the control pipe's EOF ends a manager whose supervisor died."""
+        del expected_parent
+
+    def watch_exit(self, pid: int) -> ExitWatch | None:
+        """`None`: the process sentinel alone tells the exit."""
+        del pid
+        return None
+
+    def set_process_name(self, title: str) -> None:
+        """Nothing (install `setproctitle` to name manager processes everywhere)."""
+        del title

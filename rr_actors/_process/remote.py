@@ -438,7 +438,7 @@ class RemoteRegistrar(RegistrarFacts):
     def _exited(self, how: ManagerExit) -> None:
         """Runs on the manager's watcher thread when the process ended."""
         try:
-            if not how.normal and not self._stopping:
+            if not how.clean and not self._stopping:
                 _consumer_down(self._address, self.name)
         finally:
             self._down.set()

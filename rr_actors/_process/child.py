@@ -1,0 +1,241 @@
+"""The child's side of a manager process: `main`, `standby` and the control loop.
+
+Runs only in manager processes (never in the supervisor's process). In the child, `main`:
+
+1. asks the platform to end it when the process that forked it dies
+   (`Platform.die_with_parent`: with the forkserver context that is the forkserver, not
+   the supervisor's process) and names the process for `ps` (`rr-actors: <name>`),
+2. attaches to the system and starts the registrar, which restores its catalog,
+3. runs the (cloudpickled) `setup(registrar)`, then serves the registrar on the system,
+4. reports `ready` over its control pipe and answers control requests: `stop` and `ping`
+   (the heartbeat, answered through the registrar actor's mailbox),
+5. exits at once when the control pipe reaches EOF: the supervisor's process is gone,
+6. exits with code 0 when its registrar was stopped cleanly by code in the manager (a
+   `transient` manager is then not restarted, as in a thread), with code 71 when the
+   registrar actor died.
+
+```
+ parent (ManagerProcess)            control pipe                child (this module)
+   start ─────────── ("start", setup, config, address) ───────►  standby (a spare only)
+         ◄──────────────── ("warm",)  (a spare, once warmed up)
+         ◄──────────────── ("ready", pid) | ("failed", traceback)
+   ping  ─────────────────── ("ping", n) ──────────────────────►  registrar mailbox
+         ◄──────────────── ("pong", n)
+   stop  ─────────────────── ("stop", timeout) ────────────────►  registrar.stop(); exit 0
+   (EOF: the parent is gone) ──────────────────────────────────►  exit 70
+```
+
+Running a function against the registrar (`Supervisor.run_in`) goes over the system's
+transport (`AttachedSystem.run`), not over the control pipe.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import sys
+import threading
+import traceback
+from multiprocessing.connection import Connection
+from typing import Any
+
+import cloudpickle
+import pykka
+
+from rr_actors._platform import PLATFORM
+from rr_actors._process.context import (
+    ACTOR_DIED_EXIT,
+    PARENT_GONE_EXIT,
+    TITLE_PREFIX,
+    stopped_cleanly,
+)
+from rr_actors.config import RegistrarConfig
+from rr_actors.errors import RrError
+
+__all__ = ["main", "set_title", "standby"]
+
+logger = logging.getLogger("rr_actors")
+
+
+def set_title(name: str) -> None:
+    """Name this process `rr-actors: <name>` for `ps`, `top` and `pstree`.
+
+    With the `setproctitle` package installed (extra `title`) the whole command line is
+    replaced (`ps aux` shows it); without it the platform sets the kernel's 15-byte
+    process name where it can (`ps -o comm`; Linux's `prctl(PR_SET_NAME)`).
+    """
+    title = f"{TITLE_PREFIX}{name}"
+    try:
+        import setproctitle  # noqa: PLC0415 - optional; preloaded by the forkserver
+    except ImportError:
+        PLATFORM.set_process_name(title)
+        return
+    setproctitle.setproctitle(title)
+
+
+class _Control:
+    """The child's end of the control pipe; `send` may be called from any thread."""
+
+    def __init__(self, conn: Connection) -> None:
+        self.conn = conn
+        self.lock = threading.Lock()
+
+    def send(self, message: tuple[Any, ...]) -> None:
+        # OSError: the parent is gone; the control loop sees EOF and exits
+        with self.lock, contextlib.suppress(OSError):
+            self.conn.send(message)
+
+
+class _Pong:
+    """A reply that answers a heartbeat ping once the registrar actor got to it."""
+
+    def __init__(self, control: _Control, number: int) -> None:
+        self.control = control
+        self.number = number
+
+    def set_result(self, _: Any) -> None:
+        self.control.send(("pong", self.number))
+
+    def set_error(self, _: BaseException) -> None:
+        pass  # no pong: the parent counts it as missed
+
+
+def _exit(code: int, attached: Any) -> None:
+    """Leave the system (peers then see "stopped" or "died" at once), flush, exit."""
+    if attached is not None:
+        with contextlib.suppress(Exception):
+            attached.close()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
+def main(
+    setup: bytes,
+    config: RegistrarConfig,
+    address: Any,
+    conn: Connection,
+    parent: int | None = None,
+) -> None:
+    """Run one manager: restore, set up, serve, then answer control requests until stopped.
+
+    Runs as the target of a manager process (never in the supervisor's process).
+
+    Args:
+        setup: `cloudpickle.dumps(setup_function_or_None)`.
+        config: the registrar's configuration (its backup is restored before `setup`).
+        address: the system's `SystemAddress`, or `None` to run unattached.
+        conn: the child's end of the control pipe.
+        parent: the pid of the process that forked this one (`Platform.die_with_parent`).
+    """
+    PLATFORM.die_with_parent(parent)
+    set_title(config.name)
+    _run_manager(setup, config, address, conn)
+
+
+def _warm_up() -> None:
+    """Pay a fresh process's first-use costs while it idles as a spare, not after a crash.
+
+    A forked child shares its parent's memory copy-on-write: the first write to a page
+    (Python writes reference counts and GC headers everywhere) copies it, which made the
+    first registrar start in a new process about twice as slow as in a warm one. A full
+    collection touches every tracked object (and so most of the heap) once; opening an
+    in-memory SQLite database initialises the library.
+    """
+    import gc  # noqa: PLC0415
+    import sqlite3  # noqa: PLC0415
+
+    gc.collect()
+    with contextlib.closing(sqlite3.connect(":memory:")) as db:
+        db.execute("CREATE TABLE t (x)").fetchall()
+
+
+def standby(conn: Connection, parent: int | None = None) -> None:
+    """Wait, started but idle, until the parent hands over a manager's arguments; run it.
+
+    Runs as the target of a spare manager process (see `rr_actors._process.spare`): the
+    interpreter start, the forkserver's fork and the child's bootstrap are paid before a
+    manager crashes, not after. It warms up (unless it was handed a manager already),
+    says `("warm",)`, and exits when the control pipe reaches EOF unused.
+
+    Args:
+        conn: the child's end of the control pipe; the first message is
+            `("start", setup, config, address)` with `main`'s arguments.
+        parent: the pid of the process that forked this one (`Platform.die_with_parent`).
+    """
+    PLATFORM.die_with_parent(parent)
+    set_title("spare")
+    try:
+        if not conn.poll(0):  # taken already: the warm-up would only delay the manager
+            _warm_up()
+            conn.send(("warm",))
+        message = conn.recv()
+    except (EOFError, OSError):
+        os._exit(0)  # released unused, or the parent is gone
+    if message[0] != "start":
+        os._exit(0)
+    _, setup, config, address = message
+    set_title(config.name)
+    _run_manager(setup, config, address, conn)
+
+
+def _run_manager(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) -> None:
+    from rr_actors._registrar.registrar import ResourceRegistrar  # noqa: PLC0415 - preloaded
+
+    control = _Control(conn)
+    attached: Any = None
+    try:
+        if address is not None:
+            from rr_actors._transport.unix import attach  # noqa: PLC0415
+
+            attached = attach(address)
+        registrar = ResourceRegistrar.start(config)
+        setup_fn = cloudpickle.loads(setup)
+        if setup_fn is not None:
+            setup_fn(registrar)
+        if attached is not None:
+            attached.serve(registrar)
+    except BaseException as exc:  # noqa: BLE001 - reported to the supervisor, then exit
+        control.send(("failed", "".join(traceback.format_exception(exc))))
+        os._exit(1)
+    stopping = threading.Event()
+
+    def watch_actor() -> None:
+        registrar._ref.actor_stopped.wait()
+        if stopping.is_set():
+            return  # the supervisor's `stop`: the control loop exits
+        if stopped_cleanly(registrar.name):  # code in the manager called registrar.stop()
+            _exit(0, attached)
+        _exit(ACTOR_DIED_EXIT, attached)
+
+    threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
+    control.send(("ready", os.getpid()))
+    _serve_control(conn, control, registrar, attached, stopping)
+
+
+def _serve_control(
+    conn: Connection, control: _Control, registrar: Any, attached: Any, stopping: threading.Event
+) -> None:
+    """The child's control loop: answer pings, stop; exit on EOF."""
+    from rr_actors._registrar.registrar import _Request  # noqa: PLC0415 - preloaded
+
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            os._exit(PARENT_GONE_EXIT)  # the supervisor's process is gone: no orphans
+        kind = message[0]
+        if kind == "ping":
+            pong = _Pong(control, message[1])
+            with contextlib.suppress(pykka.ActorDeadError):
+                registrar._ref.tell(_Request(lambda _actor, reply: reply.set_result(None), pong))
+        elif kind == "stop":
+            stopping.set()
+            code = 0
+            try:
+                registrar.stop(timeout=message[1])
+            except RrError:
+                logger.exception("manager %s did not stop cleanly", registrar.name)
+                code = 1
+            _exit(code, attached)

@@ -1,0 +1,175 @@
+"""Spare manager processes: started ahead of need, so that a restart does not wait for one.
+
+```
+ SparePool (root supervisor)                       spare process (child.standby)
+   refill() ──► filler thread ── Spare.start() ──►  fork, bootstrap, warm up
+                                                    ──► ("warm",)
+   take() ───► the warmest spare ── ManagerProcess.start(spare=...) ──► ("start", ...)
+   close() ──► every idle spare: EOF on its pipe ──► exits
+```
+
+A restart hands the manager's arguments to a process that already runs: the process
+start (forkserver fork and child bootstrap) and its first-use costs (`_warm_up`) are off
+the restart path. The pool keeps `size` spares; a crash that comes right after a restart
+then still finds one that has finished warming up (the one started last may not have).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from multiprocessing.connection import Connection
+from typing import Any
+
+from rr_actors._process.child import standby
+from rr_actors._process.context import PROCESS_PREFIX, forker_pid, mp_context
+from rr_actors.config import RegistrarConfig
+
+__all__ = ["Spare", "SparePool"]
+
+logger = logging.getLogger("rr_actors")
+
+
+class Spare:
+    """A manager process started ahead of need, idle until it is given a manager to run.
+
+    A spare that is never used exits when [`close`][rr_actors._process.spare.Spare.close]d
+    (or when its parent dies, like any manager process).
+    """
+
+    def __init__(self, process: Any, conn: Connection) -> None:
+        self.process = process
+        self.conn = conn
+        self.warm = False
+
+    @classmethod
+    def start(cls) -> Spare:
+        """Start a spare process (returns once it was forked; it idles on its pipe)."""
+        ctx = mp_context()
+        parent_conn, child_conn = ctx.Pipe(duplex=True)
+        process = ctx.Process(  # type: ignore[attr-defined]
+            target=standby,
+            args=(child_conn, forker_pid(ctx)),
+            name=f"{PROCESS_PREFIX}spare",
+            daemon=True,
+        )
+        process.start()
+        child_conn.close()
+        return cls(process, parent_conn)
+
+    def check_warm(self) -> bool:
+        """Whether it has finished warming up (reads its `("warm",)` without blocking)."""
+        if not self.warm:
+            with contextlib.suppress(OSError, EOFError):
+                if self.conn.poll(0):
+                    self.warm = self.conn.recv() == ("warm",)
+        return self.warm
+
+    def take(self, name: str, setup: bytes, config: RegistrarConfig, address: Any) -> bool:
+        """Hand manager `name`'s arguments to the spare; `False` if it is not usable."""
+        if not self.process.is_alive():
+            self.close()
+            return False
+        try:
+            self.conn.send(("start", setup, config, address))
+        except (OSError, ValueError):
+            self.close()
+            return False
+        self.process.name = f"{PROCESS_PREFIX}{name}"
+        return True
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Release an unused spare: it sees EOF and exits; killed after `timeout` seconds."""
+        with contextlib.suppress(OSError):
+            self.conn.close()
+        self.process.join(timeout)
+        if self.process.exitcode is None:
+            with contextlib.suppress(OSError, ValueError):
+                self.process.kill()
+            self.process.join(timeout)
+
+
+class SparePool:
+    """Up to `size` idle spare processes, started by a thread of its own.
+
+    [`take`][rr_actors._process.spare.SparePool.take] may be called from any thread;
+    [`refill`][rr_actors._process.spare.SparePool.refill] asks the filler thread to top the
+    pool up (the supervisor calls it once a start was published, so that a new spare's
+    fork and warm-up do not compete with the restart they follow).
+
+    Args:
+        size: how many spares to keep (0: none, `take` always returns `None`).
+        name: for the filler thread's name and log lines.
+    """
+
+    def __init__(self, size: int, name: str) -> None:
+        self.size = size
+        self.name = name
+        self._cond = threading.Condition()
+        self._idle: list[Spare] = []  # oldest first
+        self._wanted = False
+        self._closed = False
+        self._thread: threading.Thread | None = None
+
+    def take(self) -> Spare | None:
+        """The warmest idle spare (the oldest that has warmed up), if there is one."""
+        with self._cond:
+            if not self._idle:
+                return None
+            spare = next((s for s in self._idle if s.check_warm()), self._idle[0])
+            self._idle.remove(spare)
+            return spare
+
+    def refill(self) -> None:
+        """Have the filler thread start spares until there are `size` (returns at once)."""
+        with self._cond:
+            if self._closed or self.size == 0:
+                return
+            self._wanted = True
+            if self._thread is None:
+                self._thread = threading.Thread(
+                    target=self._fill, name=f"rr-spares-{self.name}", daemon=True
+                )
+                self._thread.start()
+            self._cond.notify_all()
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop refilling and release every idle spare (each sees EOF and exits)."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+            thread = self._thread
+        if thread is not None:
+            thread.join(timeout)
+        with self._cond:
+            idle, self._idle = self._idle, []
+        for spare in idle:
+            spare.close()
+
+    def _fill(self) -> None:
+        """The filler thread: start spares while fewer than `size` idle and not closed."""
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._closed or self._wanted)
+                if self._closed:
+                    return
+                if len(self._idle) >= self.size:
+                    self._wanted = False
+                    continue
+            try:
+                spare = Spare.start()
+            except Exception:
+                logger.exception("%s: could not start a spare manager process", self.name)
+                with self._cond:
+                    self._wanted = False
+                continue
+            with self._cond:
+                if self._closed:
+                    closing: Spare | None = spare
+                else:
+                    self._idle.append(spare)
+                    closing = None
+            if closing is not None:  # closed meanwhile
+                closing.close()
+                return

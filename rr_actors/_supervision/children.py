@@ -1,0 +1,284 @@
+"""A supervisor's children: the per-child record, its snapshots, and the running adapters.
+
+Every running child, whatever it is, offers `pid` and `stop(timeout) -> ManagerExit`:
+
+* `ThreadManager`: a registrar in this process; its death is seen by a watcher thread
+  blocked on the registrar actor's stop event;
+* `ProcessManager`: a manager process (`rr_actors._process.manager.ManagerProcess`),
+  started in a spare process when the tree has one; its death is seen by the process's
+  watcher thread;
+* `NestedSupervisor`: a supervisor below this one (`rr_actors._supervision.node.Node`).
+
+Each tells its end to the supervisor through an `on_exit(ManagerExit)` callback (run on
+the watcher thread), which posts it to the supervisor's mailbox.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import threading
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, Literal, Protocol
+
+from rr_actors._process.manager import ManagerExit, ManagerProcess, stopped_cleanly
+from rr_actors._registrar.registrar import ResourceRegistrar, _Crash
+from rr_actors.config import (
+    Isolation,
+    ManagerSpec,
+    RegistrarConfig,
+    RestartType,
+    SupervisorSpec,
+    tree_names,
+)
+from rr_actors.errors import RrError, SupervisorGaveUpError
+
+if TYPE_CHECKING:
+    from rr_actors._process.spare import SparePool
+    from rr_actors._supervision.node import Node
+
+__all__ = [
+    "Child",
+    "ChildCounts",
+    "ChildInfo",
+    "ChildState",
+    "NestedSupervisor",
+    "ProcessManager",
+    "Running",
+    "ThreadManager",
+]
+
+logger = logging.getLogger("rr_actors")
+
+ChildState = Literal["starting", "running", "restarting", "stopping", "stopped", "exited"]
+"""Where a child is in its life (see `ChildInfo.state`)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ChildInfo:
+    """An immutable snapshot of one child (OTP's `which_children`, with more to see).
+
+    Attributes:
+        name: the child's name.
+        kind: `"manager"` or `"supervisor"`.
+        isolation: `"thread"` or `"process"` for a manager, `None` for a supervisor.
+        restart: its restart type.
+        state: `"starting"`, `"running"`, `"restarting"` (down, restart pending),
+            `"stopping"`, `"stopped"` (by the supervisor) or `"exited"` (down on its own
+            and not restarted: temporary, or transient after a normal exit; a transient
+            one comes back when a sibling's crash restarts its group under
+            `one_for_all` or `rest_for_one`, as in OTP).
+        pid: the process id of a running process manager, else `None`.
+        restarts: how many times it was restarted so far, counting the times it came
+            back with its nested supervisor when the parent restarted that one.
+        last_exit: why its last incarnation ended (`None` before the first exit).
+    """
+
+    name: str
+    kind: Literal["manager", "supervisor"]
+    isolation: Isolation | None
+    restart: RestartType
+    state: ChildState
+    pid: int | None
+    restarts: int
+    last_exit: str | None
+
+
+@dataclasses.dataclass(frozen=True)
+class ChildCounts:
+    """OTP's `count_children`: how many children of which kind.
+
+    Attributes:
+        specs: every child, running or not.
+        active: children running now.
+        supervisors: children that are supervisors.
+        managers: children that are managers (OTP's workers).
+    """
+
+    specs: int
+    active: int
+    supervisors: int
+    managers: int
+
+
+def snapshot(
+    spec: ManagerSpec | SupervisorSpec,
+    state: ChildState,
+    pid: int | None,
+    restarts: int,
+    last_exit: str | None,
+) -> ChildInfo:
+    """The `ChildInfo` of a child of that spec."""
+    return ChildInfo(
+        name=spec.name,
+        kind="supervisor" if isinstance(spec, SupervisorSpec) else "manager",
+        isolation=spec.isolation if isinstance(spec, ManagerSpec) else None,
+        restart=spec.restart,
+        state=state,
+        pid=pid,
+        restarts=restarts,
+        last_exit=last_exit,
+    )
+
+
+# -- running children --------------------------------------------------------------------
+
+
+class Running(Protocol):
+    """What a supervisor holds of a running child."""
+
+    pid: int | None
+
+    def stop(self, timeout: float | None) -> ManagerExit:
+        """Stop it (within `timeout` seconds, `None`: its spec's `shutdown`); how it ended."""
+        ...
+
+
+class ThreadManager:
+    """A manager whose registrar runs in this process (its `setup` runs on this thread)."""
+
+    pid: int | None = None
+
+    def __init__(
+        self,
+        spec: ManagerSpec,
+        config: RegistrarConfig,
+        attached: Any,
+        on_exit: Callable[[ManagerExit], None],
+    ) -> None:
+        self.spec = spec
+        self.stopping = False
+        # setup runs before the registrar serves: loads arriving meanwhile wait for it
+        registrar = ResourceRegistrar.start(config, setup=spec.setup)
+        try:
+            if attached is not None:
+                attached.serve(registrar)
+        except BaseException:
+            with contextlib.suppress(RrError):
+                registrar.stop(timeout=spec.shutdown)
+            raise
+        self.registrar = registrar
+        ref = registrar._ref
+
+        def watch() -> None:
+            ref.actor_stopped.wait()
+            if self.stopping:
+                return
+            if stopped_cleanly(spec.name):  # code in the manager called registrar.stop()
+                on_exit(ManagerExit("normal", normal=True))
+            else:
+                on_exit(ManagerExit("crashed (registrar actor died)", normal=False))
+
+        threading.Thread(target=watch, name=f"rr-watch-{spec.name}", daemon=True).start()
+
+    def stop(self, timeout: float | None) -> ManagerExit:
+        """Stop the registrar cleanly; tell its actor to crash if that takes too long."""
+        timeout = self.spec.shutdown if timeout is None else timeout
+        self.stopping = True
+        ref = self.registrar._ref
+        if not ref.is_alive():
+            return ManagerExit("crashed (registrar actor died)", normal=False)
+        try:
+            self.registrar.stop(timeout=timeout)
+        except RrError as exc:
+            logger.error(  # noqa: TRY400 - the timeout is the news, not its traceback
+                "manager %s did not stop within %g s: %s", self.spec.name, timeout, exc
+            )
+            with contextlib.suppress(Exception):
+                ref.tell(_Crash())
+            ref.actor_stopped.wait(timeout)
+            return ManagerExit(f"killed: no clean stop within {timeout:g} s", normal=False)
+        return ManagerExit("shutdown", normal=True)
+
+
+class ProcessManager:
+    """A manager in its own OS process (see `rr_actors._process.manager`)."""
+
+    def __init__(self, handle: ManagerProcess, shutdown: float) -> None:
+        self.handle = handle
+        self.handle_shutdown = shutdown
+        self.pid: int | None = handle.pid
+
+    @classmethod
+    def start(
+        cls,
+        spec: ManagerSpec,
+        setup: bytes,
+        config: RegistrarConfig,
+        address: Any,
+        on_exit: Callable[[ManagerExit], None],
+        spares: SparePool | None,
+    ) -> ProcessManager:
+        """Start the manager (in a spare if there is one) and wait until it serves.
+
+        Raises:
+            RegistrarUnavailableError: it failed to start or died while starting.
+            CallTimeoutError: it was not ready within its `start_timeout`.
+        """
+        handle = ManagerProcess.start(
+            spec.name,
+            setup,
+            config,
+            address,
+            start_timeout=spec.start_timeout,
+            heartbeat=spec.heartbeat,
+            heartbeat_timeout=spec.hang_after,
+            on_exit=on_exit,
+            spare=spares.take() if spares is not None else None,
+        )
+        return cls(handle, spec.shutdown)
+
+    def stop(self, timeout: float | None) -> ManagerExit:
+        """Ask the process to stop; it is killed after `timeout` (or its `shutdown`) seconds."""
+        return self.handle.stop(self.handle_shutdown if timeout is None else timeout)
+
+
+class NestedSupervisor:
+    """A supervisor running as the child of another."""
+
+    pid: int | None = None
+
+    def __init__(self, node: Node) -> None:
+        self.node = node
+
+    def stop(self, timeout: float | None) -> ManagerExit:
+        """Stop the nested supervisor and its children (a clean `shutdown`)."""
+        self.node.stop(timeout=timeout)
+        return ManagerExit("shutdown", normal=True)
+
+
+# -- the record of one child ---------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class Child:
+    """What a supervisor knows of one child (mutated on the supervisor's thread only).
+
+    `published` is the snapshot waiters and `which_children` read (replaced under the
+    tree's lock at each publish); the other fields are the supervisor's working state.
+    """
+
+    spec: ManagerSpec | SupervisorSpec
+    state: ChildState = "stopped"
+    running: Running | None = None
+    incarnation: int = 0  # bumped at each start and stop: older exit events are stale
+    last_exit: str | None = None
+    gave_up: SupervisorGaveUpError | None = None  # why it is down for good (a give-up)
+    published: ChildInfo = dataclasses.field(init=False)
+    subtree: frozenset[str] = dataclasses.field(init=False)  # names below a supervisor
+
+    def __post_init__(self) -> None:
+        self.published = self.info(0)
+        spec = self.spec
+        self.subtree = frozenset(tree_names(spec) if isinstance(spec, SupervisorSpec) else ())
+
+    @property
+    def name(self) -> str:
+        """The child's name."""
+        return self.spec.name
+
+    def info(self, restarts: int) -> ChildInfo:
+        """A snapshot of the child now, with `restarts` (kept by the tree)."""
+        pid = self.running.pid if self.running is not None else None
+        return snapshot(self.spec, self.state, pid, restarts, self.last_exit)

@@ -1,0 +1,143 @@
+"""Calls that wait out a provider's restart, and ids abandoned while it was down.
+
+```
+ call_with_retry ── consumer.call ──► provider ── answer ──────────────────────► Query
+        │ RegistrarUnavailableError (it died), or stopped for a restart
+        ▼
+   wait_restarted ── back ──► the same call again, with the same query id
+        │ timed out
+        ▼
+   abandon_after_restart ── running? ── Abandon(id) to the provider now
+                            down?    ── kept in the tree; sent by its next start
+```
+
+Built on the `Registrar` protocol, so the consumer may be any registrar handle (in this
+process, or in a manager process).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+import uuid
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._registrar.messages import Abandon
+from rr_actors._registrar.protocol import Registrar
+from rr_actors._supervision.children import ChildInfo
+from rr_actors._supervision.tree import Level, Tree, find_child
+from rr_actors._types import Query, StatusCallback
+from rr_actors.errors import (
+    CallTimeoutError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    RrError,
+    UnknownServerError,
+)
+
+__all__ = ["Restarts", "abandon_after_restart", "call_with_retry", "give_back_abandoned"]
+
+_WAITING_STATES = ("stopping", "restarting", "starting")
+"""States of a provider that its supervisor stopped to restart it."""
+
+
+class Restarts(Protocol):
+    """What `call_with_retry` asks of a supervision tree (a `Supervisor`)."""
+
+    def child(self, name: str) -> ChildInfo:
+        """The snapshot of child `name` anywhere in the tree (`UnknownServerError`)."""
+        ...
+
+    def wait_restarted(
+        self, name: str, *, timeout: float, restarts: int | None = None
+    ) -> ChildInfo:
+        """Wait until child `name` was restarted (see `Supervisor.wait_restarted`)."""
+        ...
+
+
+def _lookup(tree: Restarts, name: str) -> ChildInfo | None:
+    try:
+        return tree.child(name)
+    except UnknownServerError:
+        return None
+
+
+def call_with_retry(
+    tree: Restarts,
+    abandon: Callable[[str, str, str], None],
+    consumer: Registrar,
+    target_rr: str,
+    server: str,
+    request: Any,
+    *,
+    on_status: StatusCallback | None = None,
+    timeout: float | None = None,
+    query_id: str | None = None,
+) -> Query:
+    """`Supervisor.call_with_retry` (which documents it).
+
+    Args:
+        tree: the supervisor whose tree holds `target_rr`.
+        abandon: `abandon(provider, query_id, origin)`: give the id back at the provider,
+            now or when it is back (see `abandon_after_restart`).
+        consumer, target_rr, server, request, on_status, timeout, query_id: as for
+            `Supervisor.call_with_retry`.
+    """
+    limit = timeout if timeout is not None else consumer.config.call_timeout
+    qid = query_id or str(uuid.uuid4())
+    deadline = time.monotonic() + limit
+    while True:
+        found = _lookup(tree, target_rr)
+        before = found.restarts if found is not None else 0
+        left = deadline - time.monotonic()
+        if left <= 0:
+            abandon(target_rr, qid, consumer.name)
+            raise CallTimeoutError(f"call to '{target_rr}/{server}' timed out after {limit:g} s")
+        try:
+            return consumer.call(
+                target_rr, server, request, on_status=on_status, timeout=left, query_id=qid
+            )
+        except RegistrarUnavailableError:
+            if found is None or found.restart == "temporary":
+                raise
+        except RegistrarStoppedError:
+            now = _lookup(tree, target_rr)  # stopped by its supervisor for a restart?
+            if now is None or now.state not in _WAITING_STATES:
+                raise
+        try:
+            tree.wait_restarted(
+                target_rr, timeout=max(deadline - time.monotonic(), 1e-3), restarts=before + 1
+            )
+        except CallTimeoutError:
+            abandon(target_rr, qid, consumer.name)
+            raise CallTimeoutError(
+                f"call to '{target_rr}/{server}' timed out after {limit:g} s while "
+                f"{target_rr!r} was restarting"
+            ) from None
+
+
+def abandon_after_restart(tree: Tree, root: Level, name: str, query_id: str, origin: str) -> None:
+    """Abandon `query_id` at provider `name`: now if it runs, else when it is back.
+
+    Under the tree's abandon lock, which `give_back_abandoned` takes after a child was
+    marked running: an id is either sent here or handed to the next start, never left
+    behind.
+    """
+    with tree.abandon_lock:
+        child = find_child(root, name)
+        if child is None or child.state != "running" or child.running is None:
+            tree.abandon_later.setdefault(name, []).append((query_id, origin))
+            return
+    with contextlib.suppress(RrError):
+        DIRECTORY.lookup(name).tell(Abandon(query_id, origin))
+
+
+def give_back_abandoned(tree: Tree, name: str) -> None:
+    """Send provider `name`, just started, the ids abandoned while it was down."""
+    with tree.abandon_lock:  # see abandon_after_restart
+        abandoned = tree.abandon_later.pop(name, [])
+    for query_id, origin in abandoned:
+        with contextlib.suppress(RrError):
+            DIRECTORY.lookup(name).tell(Abandon(query_id, origin))

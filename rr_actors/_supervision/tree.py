@@ -1,0 +1,265 @@
+"""What a whole supervision tree shares, and finding a child anywhere in it.
+
+```
+ Supervisor (public handle) ── owns ──► Tree ◄── shared by ── Node (root) ─► Node (nested) ─► ...
+                                         │                      each: children (Child records),
+   which_children / child / wait ──► published snapshots        gave_up, giving_up
+   (any thread, under tree.cond)         restart counts by name
+```
+
+Nested supervisors are replaced when their parent restarts them; what must outlive an
+incarnation lives in the `Tree`, keyed by child name (names are unique in a tree). Every
+supervisor of the tree publishes its children's snapshots under the tree's one condition,
+so one waiter (`wait_restarted`) can watch a child anywhere in the tree. A waiter learns
+an outcome only from a settled tree: while a supervisor on the child's path is giving up
+(stopping its children), nothing is concluded.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import random as _random
+import threading
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, Protocol
+
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.timers import Timer, thread_timer
+from rr_actors._registrar.messages import ConsumerDown
+from rr_actors._supervision.children import (
+    Child,
+    ChildInfo,
+    ChildState,
+    NestedSupervisor,
+    ProcessManager,
+    snapshot,
+)
+from rr_actors._supervision.policy import Clock, restarts_after
+from rr_actors.config import ManagerSpec, SupervisorSpec
+from rr_actors.errors import (
+    CallTimeoutError,
+    RegistrarUnavailableError,
+    RrError,
+    SupervisorGaveUpError,
+    UnknownServerError,
+)
+
+if TYPE_CHECKING:
+    from rr_actors._process.spare import SparePool
+
+__all__ = [
+    "Found",
+    "Level",
+    "Tree",
+    "consumer_down",
+    "find_child",
+    "locate",
+    "wait_restarted",
+]
+
+logger = logging.getLogger("rr_actors")
+
+
+class Level(Protocol):
+    """One supervisor of the tree, as lookups see it (a `Node`)."""
+
+    spec: SupervisorSpec
+    children: list[Child]
+    gave_up: SupervisorGaveUpError | None
+    giving_up: bool
+
+
+class Tree:
+    """What every supervisor of one tree shares (made by the root, kept across incarnations).
+
+    Args:
+        spec: the root supervisor's spec (the whole tree).
+        clock, timer, random: the injectable time and jitter sources of every supervisor
+            of the tree (see `Supervisor`).
+    """
+
+    def __init__(
+        self,
+        spec: SupervisorSpec,
+        *,
+        clock: Clock,
+        timer: Timer = thread_timer,
+        random: Callable[[], float] = _random.random,
+    ) -> None:
+        self.cond = threading.Condition()  # published snapshots of the whole tree; waiters
+        self.specs = _tree_specs(spec)
+        self.clock = clock
+        self.timer = timer
+        self.random = random
+        self.latest: dict[str, ChildInfo] = {}  # the last published snapshot of every child
+        self.restarts: dict[str, int] = {}  # starts after the first, across incarnations
+        self.started: set[str] = set()
+        self.setups: dict[str, bytes] = {}  # process managers' cloudpickled setups
+        self.abandon_lock = threading.Lock()
+        self.abandon_later: dict[str, list[tuple[str, str]]] = {}  # name -> (query id, origin)
+        self.wait_cursor: dict[str, int] = {}
+        self.attached: Any = None  # the transport system process managers attach to
+        self.spares: SparePool | None = None  # idle manager processes (with process managers)
+        self.root: Level | None = None
+
+    def count_start(self, name: str) -> None:
+        """Note that child `name` started (a restart if it had started before)."""
+        if name in self.started:  # a restart: by its supervisor, or of its parent
+            self.restarts[name] = self.restarts.get(name, 0) + 1
+        self.started.add(name)
+
+    def spec_info(self, name: str, state: ChildState) -> ChildInfo:
+        """The snapshot of a child whose supervisor is down: `state`, no pid."""
+        last = self.latest.get(name)
+        last_exit = last.last_exit if last is not None else None
+        return snapshot(self.specs[name], state, None, self.restarts.get(name, 0), last_exit)
+
+
+def _tree_specs(spec: SupervisorSpec) -> dict[str, ManagerSpec | SupervisorSpec]:
+    specs: dict[str, ManagerSpec | SupervisorSpec] = {}
+    for child in spec.children:
+        specs[child.name] = child
+        if isinstance(child, SupervisorSpec):
+            specs.update(_tree_specs(child))
+    return specs
+
+
+@dataclasses.dataclass(frozen=True)
+class Found:
+    """A child found anywhere in the tree.
+
+    Attributes:
+        info: its snapshot (as published).
+        gave_up: a give-up on its path that is final (nobody above restarts it).
+        settling: a supervisor on its path is giving up right now: its state is not final.
+        revivable: it exited (a `transient` child, after a normal exit) but a crash of a
+            sibling restarts it with its group (one_for_all, rest_for_one; as in OTP).
+    """
+
+    info: ChildInfo
+    gave_up: SupervisorGaveUpError | None
+    settling: bool = False
+    revivable: bool = False
+
+
+def locate(level: Level, tree: Tree, name: str, down: ChildState | None = None) -> Found | None:
+    """Find `name` below `level` by the specs, whether its supervisor runs or not.
+
+    Call with the tree's lock held. `down`: the state of a supervisor above that is down.
+    """
+    settling = level.giving_up and level.gave_up is None
+    for child in level.children:
+        info = child.published
+        if child.name == name:
+            if down is not None:
+                return Found(tree.spec_info(name, down), None)
+            final = child.gave_up if info.state in ("exited", "stopped") else None
+            revivable = (
+                info.state == "exited"
+                and child.spec.restart == "transient"
+                and level.spec.strategy != "one_for_one"
+            )
+            return Found(info, final, settling, revivable)
+        if name in child.subtree:
+            found = _locate_below(child, tree, name, down if down is not None else info.state)
+            if found is not None and settling:
+                return dataclasses.replace(found, settling=True)
+            return found
+    return None
+
+
+def _locate_below(child: Child, tree: Tree, name: str, state: ChildState) -> Found | None:
+    """`locate` in the subtree of nested supervisor `child`, whose state is `state`."""
+    running = child.running
+    if state == "running" and isinstance(running, NestedSupervisor):
+        nested = running.node
+        if nested.gave_up is None:
+            return locate(nested, tree, name)
+        if not restarts_after(child.spec.restart, normal=True):  # no one restarts it
+            found = locate(nested, tree, name)
+            return None if found is None else Found(found.info, nested.gave_up)
+        state = "restarting"  # its parent will restart it (or give up itself)
+    elif state == "running":
+        state = "starting"
+    final = child.gave_up if state in ("exited", "stopped") else None
+    return Found(tree.spec_info(name, state), final)
+
+
+def find_child(level: Level, name: str) -> Child | None:
+    """The live `Child` record of `name` below `level` (in running supervisors), if any."""
+    for child in list(level.children):
+        if child.name == name:
+            return child
+        running = child.running
+        if isinstance(running, NestedSupervisor):
+            found = find_child(running.node, name)
+            if found is not None:
+                return found
+    return None
+
+
+def _process_managers(level: Level) -> list[str]:
+    names: list[str] = []
+    for child in list(level.children):
+        running = child.running
+        if isinstance(running, NestedSupervisor):
+            names.extend(_process_managers(running.node))
+        elif isinstance(running, ProcessManager):
+            names.append(child.name)
+    return names
+
+
+def consumer_down(tree: Tree, name: str) -> None:
+    """Death watch: tell every living registrar that consumer `name` is gone for good."""
+    local = {peer.name for peer in DIRECTORY.local_peers()}
+    living = _process_managers(tree.root) if tree.root is not None else []
+    for target in sorted(local | set(living)):
+        if target == name:
+            continue
+        try:
+            DIRECTORY.lookup(target).tell(ConsumerDown(name))
+        except RrError:
+            logger.debug("death watch: %s unreachable", target)
+
+
+def wait_restarted(
+    tree: Tree, root: Level, root_name: str, name: str, timeout: float, restarts: int | None
+) -> ChildInfo:
+    """`Supervisor.wait_restarted` (which documents it): wait on the tree's condition."""
+    target = restarts if restarts is not None else tree.wait_cursor.get(name, 0) + 1
+    outcome: list[ChildInfo | RrError] = []
+
+    def settled() -> bool:  # runs with the tree lock held, at every publish
+        found = locate(root, tree, name)
+        if found is None:
+            outcome.append(
+                UnknownServerError(f"supervisor {root_name!r} has no child named {name!r}")
+            )
+            return True
+        info = found.info
+        error = root.gave_up or found.gave_up
+        if info.state == "running" and info.restarts >= target:
+            outcome.append(info)
+        elif found.settling:
+            return False  # a supervisor on its path is giving up: wait until it settled
+        elif error is not None:
+            outcome.append(error)
+        elif info.state in ("exited", "stopped") and info.restarts < target and not found.revivable:
+            outcome.append(
+                RegistrarUnavailableError(
+                    f"child {name!r} is {info.state} ({info.last_exit}) and will not be restarted"
+                )
+            )
+        return bool(outcome)
+
+    with tree.cond:
+        if not tree.cond.wait_for(settled, timeout):
+            found = locate(root, tree, name)
+            state = f" (state {found.info.state}, {found.info.restarts} restarts)" if found else ""
+            raise CallTimeoutError(f"child {name!r} was not restarted within {timeout:g} s{state}")
+    result = outcome[-1]
+    if isinstance(result, RrError):
+        raise result
+    tree.wait_cursor[name] = result.restarts
+    return result
