@@ -16,7 +16,17 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 import rr_actors as rr
+from rr_actors._platform import PLATFORM
+
+
+linux_trick = pytest.mark.skipif(
+    PLATFORM.name != "linux",
+    reason="tests a Linux trick; the portable platform (RR_ACTORS_PLATFORM=portable) has none",
+)
+"""Marks a test of what only a trick of `rr_actors._platform.linux` does."""
 
 
 class FakeClock:

@@ -30,6 +30,7 @@ from supervision import (
     alive,
     echo_setup,
     killed_owner,
+    linux_trick,
     process,
     wait_gone,
 )
@@ -478,6 +479,7 @@ def test_a_consumer_process_whose_supervisor_gave_up_for_good_is_released_at_its
 # -- no orphans -----------------------------------------------------------------------------------
 
 
+@linux_trick
 def test_killing_the_main_process_also_ends_a_manager_too_stuck_to_read_its_pipe(
     uid: str, tmp_path: Path
 ) -> None:

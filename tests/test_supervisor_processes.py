@@ -23,10 +23,9 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from supervision import alive, echo_setup, killed_owner, process, wait_gone
+from supervision import alive, echo_setup, killed_owner, linux_trick, process, wait_gone
 
 import rr_actors as rr
-from rr_actors._platform import PLATFORM
 from rr_actors._process.context import forker_pid, mp_context, start_forkserver
 from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors.testing import SharedObjects
@@ -427,8 +426,7 @@ GRANDCHILD = textwrap.dedent(
     expected = os.getppid()
     print(os.getpid(), flush=True)
     sys.stdin.read()  # EOF: the middle process (its parent) is exiting
-    from rr_actors._platform import PLATFORM
-    PLATFORM.die_with_parent(expected)
+        PLATFORM.die_with_parent(expected)
     threading.Event().wait(60)  # an orphan that nothing kills lives on
     """
 )
@@ -446,6 +444,7 @@ MIDDLE = textwrap.dedent(
 )
 
 
+@linux_trick
 def test_a_manager_whose_forking_process_died_before_prctl_exits_at_once(tmp_path: Path) -> None:
     (tmp_path / "middle.py").write_text(MIDDLE)
     (tmp_path / "grandchild.py").write_text(GRANDCHILD)
@@ -464,6 +463,7 @@ def test_a_manager_whose_forking_process_died_before_prctl_exits_at_once(tmp_pat
             os.kill(pid, signal.SIGKILL)
 
 
+@linux_trick
 @pytest.mark.skipif(not hasattr(os, "pidfd_open"), reason="needs pidfd_open (Linux 5.3+)")
 @pytest.mark.usefixtures("process_helpers")
 def test_a_killed_manager_is_seen_dead_without_waiting_for_the_forkserver_to_reap_it(

@@ -1,0 +1,103 @@
+"""The platform tricks and their plain fallback (`rr_actors._platform`).
+
+`PLATFORM` is `linux` on Linux and `portable` elsewhere or with
+`RR_ACTORS_PLATFORM=portable`. Every test that uses manager processes must pass on both:
+`test_the_process_tests_pass_on_the_portable_platform` runs those modules again, in a
+subprocess on the portable platform, as part of the normal run. Tests of what only a
+trick does are marked `linux_trick` (see `supervision.py`) and skipped there.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from supervision import linux_trick, process
+
+import rr_actors as rr
+from rr_actors._platform import PLATFORM
+from rr_actors._process.context import start_forkserver
+
+ROOT = Path(__file__).resolve().parent.parent
+
+PORTABLE_MODULES = (
+    "tests/test_platform.py",
+    "tests/test_supervisor_processes.py",
+    "tests/test_supervisor_contract.py",
+    "tests/test_supervisor_otp.py",
+    "tests/test_supervisor_state_dir.py",
+    "tests/test_restart_contract.py",
+    "tests/test_durable_consumer_kill.py",
+    "tests/test_registrar_crash.py",
+    "tests/test_transport.py",
+)
+"""The test modules that use manager processes, run again on the portable platform."""
+
+_FORCED = os.environ.get("RR_ACTORS_PLATFORM") == "portable"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def forkserver() -> None:
+    """Start the forkserver before the leak check counts this process's children."""
+    start_forkserver()
+
+
+def test_the_platform_is_the_one_the_environment_asks_for() -> None:
+    expected = "portable" if _FORCED or not sys.platform.startswith("linux") else "linux"
+
+    assert expected == PLATFORM.name
+
+
+@pytest.mark.skipif(PLATFORM.name != "linux", reason="this run is on the portable platform")
+@pytest.mark.timeout(900)
+def test_the_process_tests_pass_on_the_portable_platform() -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *PORTABLE_MODULES],
+        cwd=ROOT,
+        env={**os.environ, "RR_ACTORS_PLATFORM": "portable"},
+        capture_output=True,
+        text=True,
+        timeout=850,
+        check=False,
+    )
+
+    assert 0 == result.returncode, result.stdout[-6000:] + result.stderr[-2000:]
+
+
+# -- process titles -------------------------------------------------------------------------
+
+
+def _cmdline(pid: int) -> str:
+    return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode().strip()
+
+
+@pytest.mark.skipif(not Path("/proc").exists(), reason="reads /proc")
+def test_a_manager_process_is_named_after_its_manager_in_ps(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    pytest.importorskip("setproctitle", reason="the whole command line needs setproctitle")
+    name = f"erm-{uid}"
+    sup = supervisors([process(name)]).start()
+    pid = sup.child(name).pid
+    assert pid is not None
+
+    assert f"rr-actors: {name}" == _cmdline(pid)
+
+
+@linux_trick
+def test_without_setproctitle_the_kernel_name_of_a_manager_process_is_set() -> None:
+    script = (
+        "import sys; sys.modules['setproctitle'] = None\n"  # as if it were not installed
+        "from rr_actors._process.child import set_title\n"
+        "set_title('erm')\n"
+        "print(open('/proc/self/comm').read().strip())\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=True
+    )
+
+    assert "rr-actors: erm" == result.stdout.strip()
