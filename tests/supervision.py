@@ -21,7 +21,6 @@ import pytest
 import rr_actors as rr
 from rr_actors._platform import PLATFORM
 
-
 linux_trick = pytest.mark.skipif(
     PLATFORM.name != "linux",
     reason="tests a Linux trick; the portable platform (RR_ACTORS_PLATFORM=portable) has none",
