@@ -16,8 +16,10 @@ on. The kernel frees a process's memory before its parent can see it exit, so th
 grows with what the process holds.
 
 Crashes are spaced `--gap` seconds apart (default 0.2) so that each one meets a settled
-system: the supervisor's spare manager process, started after the previous restart, has
-warmed up. `--gap 0` measures back-to-back crashes (the spare may still be warming up).
+system: the supervisor's spare manager processes, topped up once restarts have been quiet
+for 0.1 s, have warmed up. `--gap 0` kills the manager right after each restart (a
+crash loop): the restart takes the second spare, and no spare's warm-up competes with it.
+Target (issue 16): serving with `--gap 0` within 2x of the spaced figure.
 
 Run: `python benchmarks/bench_supervisor.py [--sizes 1000 100000] [--crashes 10] [--gap 0.2]`
 """

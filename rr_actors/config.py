@@ -287,8 +287,9 @@ class ManagerSpec:
 class SupervisorSpec:
     """A nested supervisor as a child of another (its arguments are `Supervisor`'s).
 
-    When it gives up, its parent sees a crashed child and applies its own strategy
-    (escalation, as in OTP).
+    When it gives up, its parent sees a child that exited with OTP's `shutdown` (a
+    normal exit): a `permanent` one is restarted by the parent's own strategy and
+    intensity (escalation, as in OTP); a `transient` or `temporary` one stays down.
 
     Attributes:
         name: the child's name in its parent (unique in the tree).

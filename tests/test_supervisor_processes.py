@@ -426,7 +426,8 @@ GRANDCHILD = textwrap.dedent(
     expected = os.getppid()
     print(os.getpid(), flush=True)
     sys.stdin.read()  # EOF: the middle process (its parent) is exiting
-        PLATFORM.die_with_parent(expected)
+    from rr_actors._platform import PLATFORM
+    PLATFORM.die_with_parent(expected)
     threading.Event().wait(60)  # an orphan that nothing kills lives on
     """
 )

@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
+import time
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -95,20 +96,24 @@ class SparePool:
 
     [`take`][rr_actors._process.spare.SparePool.take] may be called from any thread;
     [`refill`][rr_actors._process.spare.SparePool.refill] asks the filler thread to top the
-    pool up (the supervisor calls it once a start was published, so that a new spare's
-    fork and warm-up do not compete with the restart they follow).
+    pool up once no refill was asked for `delay` seconds. The supervisor calls it once a
+    start was published: a new spare's fork and warm-up then compete neither with the
+    restart they follow nor with a crash that comes right after it (the other spare
+    serves that one).
 
     Args:
         size: how many spares to keep (0: none, `take` always returns `None`).
         name: for the filler thread's name and log lines.
+        delay: seconds from a `refill` to the start of the next spare.
     """
 
-    def __init__(self, size: int, name: str) -> None:
+    def __init__(self, size: int, name: str, *, delay: float = 0.0) -> None:
         self.size = size
         self.name = name
+        self.delay = delay
         self._cond = threading.Condition()
         self._idle: list[Spare] = []  # oldest first
-        self._wanted = False
+        self._due: float | None = None  # when the filler starts spares (monotonic)
         self._closed = False
         self._thread: threading.Thread | None = None
 
@@ -122,11 +127,16 @@ class SparePool:
             return spare
 
     def refill(self) -> None:
-        """Have the filler thread start spares until there are `size` (returns at once)."""
+        """Have the filler thread start spares until there are `size`, `delay` s from now.
+
+        Returns at once. Each call postpones a refill that is not under way yet: while
+        (re)starts follow each other closely (a crash loop), no spare's warm-up competes
+        with them; the pool is topped up once they have been quiet for `delay` seconds.
+        """
         with self._cond:
             if self._closed or self.size == 0:
                 return
-            self._wanted = True
+            self._due = time.monotonic() + self.delay
             if self._thread is None:
                 self._thread = threading.Thread(
                     target=self._fill, name=f"rr-spares-{self.name}", daemon=True
@@ -148,21 +158,22 @@ class SparePool:
             spare.close()
 
     def _fill(self) -> None:
-        """The filler thread: start spares while fewer than `size` idle and not closed."""
+        """The filler thread: when a refill is due, start spares until there are `size`."""
         while True:
             with self._cond:
-                self._cond.wait_for(lambda: self._closed or self._wanted)
+                while not self._closed and (self._due is None or self._due > time.monotonic()):
+                    self._cond.wait(None if self._due is None else self._due - time.monotonic())
                 if self._closed:
                     return
                 if len(self._idle) >= self.size:
-                    self._wanted = False
+                    self._due = None
                     continue
             try:
                 spare = Spare.start()
             except Exception:
                 logger.exception("%s: could not start a spare manager process", self.name)
                 with self._cond:
-                    self._wanted = False
+                    self._due = None
                 continue
             with self._cond:
                 if self._closed:

@@ -90,6 +90,10 @@ _SUPERVISOR_NAMES = itertools.count(1)
 SPARE_PROCESSES = 2
 """Idle manager processes a tree with process managers keeps ready (see `SparePool`)."""
 
+SPARE_DELAY = 0.1
+"""Seconds from a (re)start of a process manager to the start of the spare replacing the
+one it used: a crash within that time meets no warm-up competing for the CPU."""
+
 
 class Supervisor:
     """Starts managers in order, restarts them by policy, stops them in reverse order.
@@ -259,7 +263,7 @@ class Supervisor:
 
             self._system = System.create()  # also attaches this process
             self._tree.attached = self._system
-            self._tree.spares = SparePool(SPARE_PROCESSES, self.name)
+            self._tree.spares = SparePool(SPARE_PROCESSES, self.name, delay=SPARE_DELAY)
 
     def _release(self) -> None:
         """Release what the tree held: spares, the transport system, the state-dir lock."""
