@@ -28,7 +28,7 @@ from supervision import alive, echo_setup, killed_owner, linux_trick, process, w
 import rr_actors as rr
 from rr_actors._process.context import forker_pid, mp_context, start_forkserver
 from rr_actors._process.manager import ManagerExit, ManagerProcess
-from rr_actors.testing import SharedObjects
+from rr_actors.testing import RemoteRegistrar, SharedObjects
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -497,3 +497,22 @@ def test_a_killed_manager_is_seen_dead_without_waiting_for_the_forkserver_to_rea
     assert seen, "the exit was seen only once the forkserver reaped the manager"
     assert [(e.reason, e.normal) for e in exits] == [("killed by SIGKILL", False)]
     assert wait_gone([handle.pid]) == []
+
+
+def test_call_with_retry_works_for_a_consumer_registrar_in_another_manager_process(
+    supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path
+) -> None:
+    # call_with_retry is written against the Registrar protocol: the consumer may be a
+    # handle on a registrar that lives in a manager process.
+    p, c = f"p-{uid}", f"c-{uid}"
+    journal = tmp_path / "journal.txt"
+    sup = supervisors(
+        [process(p, journal_setup(str(journal))), process(c)], state_dir=tmp_path / "state"
+    ).start()
+    consumer = RemoteRegistrar(c, sup.system.address)
+    os.kill(pid_of(sup, p), signal.SIGKILL)
+
+    query = sup.call_with_retry(consumer, p, "res", "camera", timeout=15.0, query_id="q-1")
+
+    assert ("q-1", "camera") == (query.id, query.response["request"])
+    assert ["q-1"] == [q.id for q in consumer.client_queries(timeout=10.0)]
