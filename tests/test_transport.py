@@ -39,8 +39,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._registrar.messages import Fetch, Load, ResponseUpdated, Revoke, StatusNotice
-from rr_actors._registrar.registrar import RegistrarActor
+from rr_actors._registrar.messages import Fetch, Load, Revoke
 from rr_actors._transport.unix import (
     RemotePeer,
     System,
@@ -50,6 +49,7 @@ from rr_actors._transport.unix import (
     _Writer,
     attach,
 )
+from rr_actors.testing import intercept
 
 Setup = Callable[[rr.ResourceRegistrar], None]
 
@@ -481,22 +481,18 @@ class _Watched:
         return Spy()
 
 
-def _watch(monkeypatch: pytest.MonkeyPatch, kind: type) -> _Watched:
-    """Watch how the consumer's registrar actor handles `kind` messages and answers them."""
-    handlers = RegistrarActor._handlers
-    original = handlers[kind]
+def _watch(consumer: rr.ResourceRegistrar, step: str) -> _Watched:
+    """Watch how the consumer's registrar actor handles one kind of notice and answers it."""
     watched = _Watched()
     spied: set[int] = set()
 
-    def wrapper(actor: RegistrarActor, message: Any) -> None:
+    def before(message: Any) -> None:
         reply = getattr(message, "reply", None)
         if reply is not None and id(message) not in spied:  # (a held one comes back)
             spied.add(id(message))
             object.__setattr__(message, "reply", watched.spy(reply))
-        original(actor, message)
-        watched.handled.set()
 
-    monkeypatch.setitem(handlers, kind, wrapper)
+    intercept(consumer, step, before=before, after=lambda _: watched.handled.set())
     return watched
 
 
@@ -543,7 +539,7 @@ def overtake(
     gate: _Gate,
     monkeypatch: pytest.MonkeyPatch,
 ) -> Overtake:
-    """`overtake(kind, fn, **call)`: a call to `gated` whose answer `fn`'s notice overtakes.
+    """`overtake(step, fn, **call)`: a call to `gated` whose answer `fn`'s notice overtakes.
 
     The consumer calls a fresh provider's `gated` server; while the answer is held in this
     process, `fn(registrar)` runs in the provider's (on a thread: its own answer comes back
@@ -551,9 +547,9 @@ def overtake(
     `kind` notice `fn` sent (or held it).
     """
 
-    def run(kind: type, fn: Callable[[rr.ResourceRegistrar], Any], **call: Any) -> _Overtaken:
+    def run(step: str, fn: Callable[[rr.ResourceRegistrar], Any], **call: Any) -> _Overtaken:
         provider = start_provider()
-        watched = _watch(monkeypatch, kind)
+        watched = _watch(consumer, step)
         called, caller = _in_thread(lambda: consumer.call(provider.name, "gated", "r", **call))
         assert gate.entered.wait(10)  # the answer is being read, not yet recorded
         done, doer = _in_thread(lambda: system.run(provider.name, fn, timeout=20))
@@ -572,7 +568,7 @@ def test_a_status_that_overtakes_the_answer_to_its_call_still_reaches_the_callba
     heard: list[rr.StatusUpdate] = []
 
     seen = overtake(
-        StatusNotice,
+        "status_notice",
         lambda registrar: registrar.send_status(
             _first_query_id(registrar), rr.Status.WARNING, "hot"
         ),
@@ -590,7 +586,7 @@ def test_a_response_update_that_overtakes_the_answer_is_not_undone_by_it(
     overtake: Overtake, consumer: rr.ResourceRegistrar
 ) -> None:
     seen = overtake(
-        ResponseUpdated,
+        "response_updated",
         lambda registrar: registrar.update_response(_first_query_id(registrar), "new"),
     )
 
@@ -602,7 +598,7 @@ def test_a_response_update_that_overtakes_the_answer_is_not_undone_by_it(
 def test_a_revoke_that_overtakes_the_answer_leaves_no_client_record(
     overtake: Overtake, consumer: rr.ResourceRegistrar
 ) -> None:
-    seen = overtake(Revoke, functools.partial(_revoke_first_query, consumer=consumer.name))
+    seen = overtake("revoke", functools.partial(_revoke_first_query, consumer=consumer.name))
 
     [query] = seen.called
     assert [None] == seen.done
@@ -627,7 +623,7 @@ def test_a_status_waiting_for_an_answer_is_settled_when_the_call_times_out_inste
     eventually: Callable[..., bool],
 ) -> None:
     provider = start_provider()
-    watched = _watch(monkeypatch, StatusNotice)
+    watched = _watch(consumer, "status_notice")
     heard: list[rr.StatusUpdate] = []
     called, caller = _in_thread(
         lambda: consumer.call(
@@ -657,7 +653,7 @@ def test_a_status_waiting_for_an_answer_is_answered_when_the_consumer_stops(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     provider = start_provider()
-    watched = _watch(monkeypatch, StatusNotice)
+    watched = _watch(consumer, "status_notice")
     called, caller = _in_thread(lambda: consumer.call(provider.name, "gated", "r"))
     assert gate.entered.wait(10)
     sent, sender = _in_thread(lambda: _send_status_to_first_query(system, provider))

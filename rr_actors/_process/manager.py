@@ -113,7 +113,7 @@ def mp_context() -> multiprocessing.context.BaseContext:
         ctx.set_forkserver_preload(
             [
                 "rr_actors._process.manager",
-                "rr_actors._registrar.registrar",
+                "rr_actors._registrar",
                 "rr_actors._transport.unix",
                 "rr_actors._store.sqlite",
                 "hmac",  # the transport's authkey handshake imports it lazily
@@ -275,7 +275,7 @@ def main(
 
 
 def _run_manager(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) -> None:
-    from rr_actors._registrar.registrar import ResourceRegistrar  # noqa: PLC0415 - preloaded
+    from rr_actors._registrar import ResourceRegistrar  # noqa: PLC0415 - preloaded
 
     control = _Control(conn)
     attached: Any = None
@@ -353,7 +353,7 @@ def _serve_control(
     conn: Connection, control: _Control, registrar: Any, attached: Any, stopping: threading.Event
 ) -> None:
     """The child's control loop: answer pings, stop; exit on EOF."""
-    from rr_actors._registrar.registrar import _Request  # noqa: PLC0415 - preloaded by the forkserver
+    from rr_actors._registrar.messages import Request  # noqa: PLC0415 - preloaded
 
     while True:
         try:
@@ -364,7 +364,7 @@ def _serve_control(
         if kind == "ping":
             pong = _Pong(control, message[1])
             with contextlib.suppress(pykka.ActorDeadError):
-                registrar._ref.tell(_Request(lambda _actor, reply: reply.set_result(None), pong))
+                registrar._ref.tell(Request(lambda _actor, reply: reply.set_result(None), pong))
         elif kind == "stop":
             stopping.set()
             code = 0

@@ -1,26 +1,54 @@
-"""Messages registrars exchange (the wire protocol between registrars).
+"""Messages as data: what registrars tell each other, and what a registrar tells itself.
 
 Each is a frozen dataclass. A `reply` field holds where the answer goes: a local object
 in-process; a transport replaces it by a token when the message crosses processes.
+
+The wire protocol (between registrars, possibly across processes): `Load`, `Unload`,
+`Abandon`, `Fetch` (consumer -> provider); `StatusNotice`, `Revoke`, `ResponseUpdated`
+(provider -> consumer); `ConsumerDown` (death watch -> provider). The internal messages
+below them never leave their process: a registrar's handle, its server and client actors
+and its callers' threads tell them to the registrar actor.
+
+To add a message: define it here, handle it in one role of the registrar actor (its
+`handlers` table in `actor.py` names the step), and, for a wire message, make sure what it
+carries pickles (`docs/explanation/architecture.md`, "Adding a message").
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
-from rr_actors._core.directory import Reply
-from rr_actors._types import Status
+from rr_actors._catalog import ClientRecord
+from rr_actors._core.actor import OneShotFuture
+from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._types import Status, StatusCallback
+from rr_actors.errors import RrError
+
+if TYPE_CHECKING:
+    from rr_actors._registrar.actor import RegistrarActor
 
 __all__ = [
     "Abandon",
+    "CallFailed",
+    "ClientLoaded",
     "ConsumerDown",
+    "Crash",
     "Fetch",
+    "FetchVia",
+    "Flush",
     "Load",
+    "Pending",
+    "Request",
     "ResponseUpdated",
     "Revoke",
+    "RunLoad",
+    "RunUnload",
     "StatusNotice",
     "Unload",
+    "give_back",
 ]
 
 
@@ -106,3 +134,91 @@ class ConsumerDown:
     """Death watch -> provider: registrar `origin_rr` died and will not come back."""
 
     origin_rr: str
+
+
+def give_back(serving_rr: str, query_id: str, origin_rr: str) -> None:
+    """Tell provider `serving_rr` to release consumer id `query_id` whenever it can.
+
+    The one way a registrar gives an id back that its caller will not hold (a call given
+    up, an answer that cannot be kept, a dependency whose resource is gone). Best effort:
+    a provider that cannot be reached holds nothing this registrar could release (if it
+    died it restores the id, and its consumer's restart or death watch settles it).
+    """
+    with contextlib.suppress(RrError):
+        DIRECTORY.lookup(serving_rr).tell(Abandon(query_id, origin_rr))
+
+
+# -- internal messages (never leave the process) ---------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class RunLoad:
+    """Registrar -> its server actor: run `load(request)` for resource `resource_id`."""
+
+    resource_id: str
+    request: Any
+    chain: tuple[str, ...]
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class RunUnload:
+    """Registrar -> its server actor: run `unload(request, response)`."""
+
+    request: Any
+    response: Any
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class FetchVia:
+    """Handle -> a client actor: fetch the queries this registrar holds at `server`."""
+
+    server: str
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class Pending:
+    """A durable call about to go out: write its record as pending, then answer `reply`."""
+
+    record: ClientRecord
+    attempt: OneShotFuture[Any]
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class ClientLoaded:
+    """A call's answer to record: the client record (its query holds the response)."""
+
+    record: ClientRecord
+    on_status: StatusCallback | None
+    attempt: OneShotFuture[Any]  # the caller's future
+    answer_after_commit: bool = False  # the registrar answers the caller, after the commit
+
+
+@dataclasses.dataclass(frozen=True)
+class CallFailed:
+    """A call ended without an answer to record: it failed, or its caller withdrew it."""
+
+    query_id: str
+    attempt: OneShotFuture[Any]
+    withdrawn: bool = False  # given up by its caller, who told the provider an Abandon first
+
+
+@dataclasses.dataclass(frozen=True)
+class Request:
+    """A request from the handle: run `op(actor, reply)` in the actor thread."""
+
+    op: Callable[[RegistrarActor, Reply], None]
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class Flush:
+    """The save-interval timer fired: write what accumulated."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Crash:
+    """Die as if a bug hit (`rr_actors.testing.crash`, a thread manager's forced stop)."""

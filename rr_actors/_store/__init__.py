@@ -4,7 +4,7 @@ The store knows the catalog's rows and nothing of actors: the registrar hands it
 `Changes` it drained from its catalog, and gets back what a restart restores.
 """
 
-from rr_actors._store.saver import CatalogStore, Saver, open_store
+from rr_actors._store.saver import CatalogStore, Saver, open_catalog, open_store
 from rr_actors._store.sqlite import (
     APPLICATION_ID,
     SCHEMA_VERSION,
@@ -27,6 +27,7 @@ __all__ = [
     "SqliteStore",
     "Unreadable",
     "gc_paused",
+    "open_catalog",
     "open_store",
     "quarantine_backup",
     "read_backup",

@@ -11,14 +11,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
-from rr_actors._catalog import Changes, ClientRecord, Resource
+from rr_actors._catalog import Catalog, Changes, ClientRecord, Resource
 from rr_actors._core.timers import Cancellable, Timer, thread_timer
 from rr_actors.config import RegistrarConfig
 
 if TYPE_CHECKING:
     from rr_actors._store.sqlite import Restored
 
-__all__ = ["CatalogStore", "Saver", "open_store", "timer_factory"]
+__all__ = ["CatalogStore", "Saver", "open_catalog", "open_store", "timer_factory"]
 
 
 timer_factory: Timer = thread_timer
@@ -122,3 +122,32 @@ class Saver:
         finally:
             self.store.close(erase=erase)
             self.store = None
+
+
+def open_catalog(config: RegistrarConfig) -> tuple[Saver, Catalog, bool]:
+    """Open a registrar's backup and build its catalog from it (a fresh one without).
+
+    Returns:
+        The save policy over the opened store, the catalog, and whether it was restored
+        from an existing backup.
+
+    Raises:
+        ConfigError: the path cannot hold a backup (missing directory, read-only, ...).
+        CatalogCorruptError: the file exists but is not a readable catalog.
+    """
+    store = open_store(config)
+    try:
+        from rr_actors._store.sqlite import gc_paused  # noqa: PLC0415 - only with a backup
+
+        restored = None
+        catalog = Catalog(track_changes=store is not None)
+        if store is not None:
+            with gc_paused():  # building many rows allocates no cycles: skip the rescans
+                restored = store.restore()
+                if restored is not None:
+                    catalog = Catalog.restore(restored.resources, restored.clients, restored.unread)
+    except BaseException:
+        if store is not None:
+            store.close(erase=False)
+        raise
+    return Saver(store, config), catalog, restored is not None

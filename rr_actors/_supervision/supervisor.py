@@ -39,8 +39,8 @@ import cloudpickle
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.timers import Cancellable, Timer, thread_timer
 from rr_actors._process.manager import ManagerExit, stopped_cleanly
-from rr_actors._registrar.messages import Abandon, ConsumerDown
-from rr_actors._registrar.registrar import ResourceRegistrar, _Crash
+from rr_actors._registrar import ResourceRegistrar
+from rr_actors._registrar.messages import Abandon, ConsumerDown, Crash
 from rr_actors._types import Query, StatusCallback
 from rr_actors.config import (
     Backoff,
@@ -215,7 +215,7 @@ class _ThreadManager:
                 "manager %s did not stop within %g s: %s", self.spec.name, timeout, exc
             )
             with contextlib.suppress(Exception):
-                ref.tell(_Crash())
+                ref.tell(Crash())
             ref.actor_stopped.wait(timeout)
             return ManagerExit(f"killed: no clean stop within {timeout:g} s", normal=False)
         return ManagerExit("shutdown", normal=True)

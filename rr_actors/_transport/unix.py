@@ -73,7 +73,7 @@ from rr_actors.errors import (
 )
 
 if TYPE_CHECKING:
-    from rr_actors._registrar.registrar import ResourceRegistrar
+    from rr_actors._registrar import ResourceRegistrar
 
 __all__ = ["AttachedSystem", "RemotePeer", "System", "SystemAddress", "attach"]
 
