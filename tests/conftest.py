@@ -67,6 +67,8 @@ from rr_actors._process.manager import start_forkserver
 from rr_actors._transport.unix import System
 from rr_actors.testing import RemoteRegistrar, SharedObjects, pending_work
 
+pytest_plugins = ["carriers"]  # the transport tests' fixtures (tests/carriers.py)
+
 LEAK_GRACE = 5.0
 """Seconds a test's actors and child processes get to finish stopping after it ended."""
 

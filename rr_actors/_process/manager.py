@@ -114,7 +114,7 @@ def mp_context() -> multiprocessing.context.BaseContext:
             [
                 "rr_actors._process.manager",
                 "rr_actors._registrar",
-                "rr_actors._transport.unix",
+                "rr_actors._transport",
                 "rr_actors._store.sqlite",
                 "hmac",  # the transport's authkey handshake imports it lazily
             ]
@@ -275,21 +275,19 @@ def main(
 
 
 def _run_manager(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) -> None:
-    from rr_actors._registrar import ResourceRegistrar  # noqa: PLC0415 - preloaded
+    from rr_actors._registrar import ResourceRegistrar, Served  # noqa: PLC0415 - preloaded
 
     control = _Control(conn)
     attached: Any = None
     try:
         if address is not None:
-            from rr_actors._transport.unix import attach  # noqa: PLC0415
-
-            attached = attach(address)
+            attached = address.attach()
         registrar = ResourceRegistrar.start(config)
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
             setup_fn(registrar)
         if attached is not None:
-            attached.serve(registrar)
+            attached.serve(Served(registrar))
     except BaseException as exc:  # noqa: BLE001 - reported to the supervisor, then exit
         control.send(("failed", "".join(traceback.format_exception(exc))))
         os._exit(1)

@@ -24,7 +24,7 @@ from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors._registrar.handle import RegistrarFacts, ResourceRegistrar
 from rr_actors._registrar.loading import LOADING, LoadContext
 from rr_actors._registrar.messages import ConsumerDown
-from rr_actors._transport import AttachedSystem, SystemAddress, attach
+from rr_actors._transport import AttachedSystem, SystemAddress
 from rr_actors._types import Query, Status, StatusCallback
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (
@@ -193,7 +193,7 @@ class RemoteRegistrar(RegistrarFacts):
             Exception: whatever `fn` raised, re-raised here.
         """
         limit = self._config.call_timeout if timeout is None else timeout
-        return attach(self._address).run(self.name, fn, timeout=limit)
+        return self._address.attach().run(self.name, fn, timeout=limit)
 
     def _forward(self, fn: Callable[[ResourceRegistrar], Any], timeout: object) -> Any:
         """Run a method remotely; wait for it a margin beyond its own `timeout`.

@@ -12,7 +12,7 @@
 
 from typing import TYPE_CHECKING
 
-from rr_actors._registrar.handle import ResourceRegistrar
+from rr_actors._registrar.handle import ResourceRegistrar, Served
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH
 from rr_actors._registrar.protocol import LoadCallback, Registrar, UnloadCallback
 
@@ -21,6 +21,7 @@ __all__ = [
     "LoadCallback",
     "Registrar",
     "ResourceRegistrar",
+    "Served",
     "UnloadCallback",
 ]
 

@@ -35,7 +35,7 @@ from rr_actors.errors import (
     RegistrarStoppedError,
 )
 
-__all__ = ["RegistrarFacts", "ResourceRegistrar"]
+__all__ = ["RegistrarFacts", "ResourceRegistrar", "Served"]
 
 
 class RegistrarFacts:
@@ -517,3 +517,35 @@ class ResourceRegistrar(RegistrarFacts):
             )
             self._clients[key] = client
         return client
+
+
+class Served:
+    """A registrar of this process as a carrier serves it (`rr_actors._transport.base.Endpoint`).
+
+    Args:
+        registrar: the registrar to make reachable from the other processes of a system.
+    """
+
+    __slots__ = ("registrar",)
+
+    def __init__(self, registrar: ResourceRegistrar) -> None:
+        self.registrar = registrar
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        return self.registrar.name
+
+    def run(self, fn: Callable[[Any], Any]) -> Any:
+        """Run `fn(registrar)` on the calling thread."""
+        return fn(self.registrar)
+
+    def wait_ended(self, timeout: float | None = None) -> bool:
+        """Block until the registrar actor ended (stopped or died); whether it did."""
+        return self.registrar._ref.actor_stopped.wait(timeout)
+
+    def stopped_cleanly(self) -> bool:
+        """Whether it ended because its owner stopped it (not a crash, not still running)."""
+        if self.registrar.is_alive():
+            return False
+        return isinstance(DIRECTORY.gone_error(self.registrar.name), RegistrarStoppedError)

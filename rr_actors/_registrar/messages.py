@@ -18,14 +18,16 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import traceback
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from rr_actors._catalog import ClientRecord
 from rr_actors._core.actor import OneShotFuture
 from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.wire import WireMessage
 from rr_actors._types import Status, StatusCallback
-from rr_actors.errors import RrError
+from rr_actors.errors import ErrorFrame, ResourceLoadError, RrError
 
 if TYPE_CHECKING:
     from rr_actors._registrar.actor import RegistrarActor
@@ -53,7 +55,7 @@ __all__ = [
 
 
 @dataclasses.dataclass(frozen=True)
-class Load:
+class Load(WireMessage):
     """Consumer -> provider: load `request` on `server` for consumer id `query_id`.
 
     `chain` holds the ids of the resources being loaded further up the call chain
@@ -67,9 +69,47 @@ class Load:
     chain: tuple[str, ...]
     reply: Reply
 
+    def detached(self) -> Load:
+        """This load without its reply (built directly: the hot path of every call)."""
+        return Load(self.query_id, self.server, self.request, self.origin_rr, self.chain, None)  # type: ignore[arg-type]
+
+    def compensation(self) -> Abandon:
+        """A lost answer leaves a consumer id nobody holds: release it (rule 17)."""
+        return Abandon(self.query_id, self.origin_rr)
+
+    def unreadable_answer(self, target: str, exc: Exception) -> RrError:
+        """The response cannot be unpickled in the caller's process: a failed load."""
+        return ResourceLoadError(
+            (
+                ErrorFrame(
+                    registrar=target,
+                    server=self.server,
+                    exc_type=type(exc).__qualname__,
+                    message=f"the response cannot be unpickled in the process of "
+                    f"registrar {self.origin_rr!r}: {exc}",
+                    traceback="".join(traceback.format_exception(exc)),
+                ),
+            )
+        )
+
+    def unsendable_answer(self, target: str, value: Any, exc: Exception) -> RrError:
+        """The response cannot be pickled to reach the caller: a failed load."""
+        return ResourceLoadError(
+            (
+                ErrorFrame(
+                    registrar=target,
+                    server=self.server,
+                    exc_type=type(exc).__qualname__,
+                    message=f"the response is not picklable, so it cannot reach "
+                    f"registrar {self.origin_rr!r}: {exc} (value: {value!r:.200})",
+                    traceback="",
+                ),
+            )
+        )
+
 
 @dataclasses.dataclass(frozen=True)
-class Unload:
+class Unload(WireMessage):
     """Consumer -> provider: release consumer id `query_id`. Answer: `None` or an error."""
 
     query_id: str
@@ -78,7 +118,7 @@ class Unload:
 
 
 @dataclasses.dataclass(frozen=True)
-class Abandon:
+class Abandon(WireMessage):
     """Consumer -> provider: the caller gave up on `query_id`; release it when possible."""
 
     query_id: str
@@ -86,7 +126,7 @@ class Abandon:
 
 
 @dataclasses.dataclass(frozen=True)
-class Fetch:
+class Fetch(WireMessage):
     """Consumer -> provider: list the queries `origin_rr` holds at `server`."""
 
     server: str
@@ -95,7 +135,7 @@ class Fetch:
 
 
 @dataclasses.dataclass(frozen=True)
-class StatusNotice:
+class StatusNotice(WireMessage):
     """Provider -> consumer: a status about the resources behind `query_ids`.
 
     `event` identifies one `send_status` so that a callback reached twice (diamond
@@ -111,14 +151,14 @@ class StatusNotice:
 
 
 @dataclasses.dataclass(frozen=True)
-class Revoke:
+class Revoke(WireMessage):
     """Provider -> consumer: these consumer ids were released by the provider."""
 
     query_ids: tuple[str, ...]
 
 
 @dataclasses.dataclass(frozen=True)
-class ResponseUpdated:
+class ResponseUpdated(WireMessage):
     """Provider -> consumer: the stored response of these consumer ids changed.
 
     Answer: `None` once the consumer's client records hold the new response.
@@ -130,7 +170,7 @@ class ResponseUpdated:
 
 
 @dataclasses.dataclass(frozen=True)
-class ConsumerDown:
+class ConsumerDown(WireMessage):
     """Death watch -> provider: registrar `origin_rr` died and will not come back."""
 
     origin_rr: str

@@ -39,7 +39,7 @@ import cloudpickle
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.timers import Cancellable, Timer, thread_timer
 from rr_actors._process.manager import ManagerExit, stopped_cleanly
-from rr_actors._registrar import ResourceRegistrar
+from rr_actors._registrar import ResourceRegistrar, Served
 from rr_actors._registrar.messages import Abandon, ConsumerDown, Crash
 from rr_actors._types import Query, StatusCallback
 from rr_actors.config import (
@@ -183,7 +183,7 @@ class _ThreadManager:
         registrar = ResourceRegistrar.start(config, setup=spec.setup)
         try:
             if attached is not None:
-                attached.serve(registrar)
+                attached.serve(Served(registrar))
         except BaseException:
             with contextlib.suppress(RrError):
                 registrar.stop(timeout=spec.shutdown)
@@ -565,7 +565,7 @@ class Supervisor:
     def _prepare_root(self) -> None:
         self._pickle_setups(self._spec)
         if self._spec.has_processes():
-            from rr_actors._transport.unix import System  # noqa: PLC0415
+            from rr_actors._transport import System  # noqa: PLC0415
 
             self._system = System.create()  # also attaches this process
             self._owns_system = True
@@ -793,7 +793,7 @@ class Supervisor:
         registrar = ResourceRegistrar.start(config)
         if self._attached is not None:
             try:
-                self._attached.serve(registrar)
+                self._attached.serve(Served(registrar))
             except BaseException:
                 registrar.stop()
                 raise
