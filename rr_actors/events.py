@@ -343,8 +343,8 @@ class StatusSent:
 class StatusDelivered:
     """A status notification reached one consumer (one hop on its way to the top).
 
-    Published by the consumer registrar once its client's status callback (and, when it
-    passes the status on, its own server's `on_status`) ran for this query.
+    Published by the consumer registrar once its client's status callback for this query
+    ran (a consumer that passes the status on to its own consumers publishes this first).
 
     Attributes:
         registrar: name of the consumer registrar that received it.

@@ -113,7 +113,7 @@ def test_at_and_pid_can_be_given_by_keyword_only() -> None:
     event = events.ResourceUnloaded("erm", "s", RID, at=12.5, pid=7)
     assert (12.5, 7) == (event.at, event.pid)
     with pytest.raises(TypeError):
-        events.ResourceUnloaded("erm", "s", RID, 12.5)  # type: ignore[misc]
+        events.ResourceUnloaded("erm", "s", RID, 12.5)  # type: ignore[call-arg]
 
 
 def test_a_child_event_carries_the_childs_pid_in_its_own_fields() -> None:
