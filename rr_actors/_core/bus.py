@@ -92,6 +92,7 @@ class _Outbox(Generic[E]):
             self._put_slowly(item)
 
     def _put_slowly(self, item: E) -> None:
+        gap_opened = False
         with self._lock:
             full = self._items.qsize() >= self._maxsize
             if full:
@@ -101,7 +102,7 @@ class _Outbox(Generic[E]):
             else:
                 self._close_gap()
                 self._items.put(item)
-        if full and gap_opened:
+        if gap_opened:
             logger.warning(
                 "%s falls behind: its queue of %d events is full; dropping events until it "
                 "has room (they are counted and reported to it as one notice)",
@@ -158,19 +159,21 @@ class _Consumer(Generic[E]):
         """Wait until the thread handled everything put before this call."""
         if threading.current_thread() is self._thread:
             raise RuntimeError(f"{caller} on the {self._what}'s own thread would wait for itself")
-        if self._closed:
+        mark = _Mark()
+        with self._closing:  # a mark put after the stop mark would never be reached
+            closed = self._closed
+            if not closed:
+                self._outbox.put_mark(mark)
+        if closed:
             self._thread.join(timeout)
             return not self._thread.is_alive() and not self._abandoned
-        mark = _Mark()
-        self._outbox.put_mark(mark)
         return mark.reached.wait(timeout)
 
     def _stop(self, *, timeout: float | None) -> None:
         with self._closing:
-            first = not self._closed
-            self._closed = True
-        if first:
-            self._outbox.put_mark(_Mark(stop=True))
+            if not self._closed:
+                self._closed = True
+                self._outbox.put_mark(_Mark(stop=True))
         if threading.current_thread() is self._thread:
             return  # closed from its own callback: it ends once that returns
         self._thread.join(timeout)
