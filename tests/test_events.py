@@ -162,6 +162,10 @@ def test_from_dict_accepts_an_int_for_a_float() -> None:
     assert isinstance(event.restart_s, float)
 
 
+_DROP = object()
+"""Marks a key `_with` removes."""
+
+
 def _with(**changes: Any) -> dict[str, Any]:
     data = line(events.StatusDelivered("cm", QID, rr.Status.OK, 1, 0.001))
     for key, value in changes.items():
@@ -170,9 +174,6 @@ def _with(**changes: Any) -> dict[str, Any]:
         else:
             data[key] = value
     return data
-
-
-_DROP = object()
 
 
 @pytest.mark.parametrize(
