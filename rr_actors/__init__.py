@@ -6,6 +6,8 @@ the semantics (`docs/explanation/semantics.md`) and the architecture.
 
 import logging
 
+from rr_actors import events as events  # `rr.events.to_dict(...)`, as `rr.errors` is
+from rr_actors._core.bus import Subscription
 from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, Registrar, ResourceRegistrar
 from rr_actors._store import quarantine_backup
 from rr_actors._supervision import ChildCounts, ChildInfo, Supervisor
@@ -51,6 +53,7 @@ __all__ = [
     "Status",
     "StatusCallback",
     "StatusUpdate",
+    "Subscription",
     "Supervisor",
     "SupervisorGaveUpError",
     "SupervisorSpec",
