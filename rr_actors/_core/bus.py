@@ -448,14 +448,21 @@ class Publisher(Generic[E]):
         self._notice = notice
         self._lock = threading.Lock()  # for writers of `_sinks`; `publish` reads without it
         self._sinks: tuple[Sink[E], ...] = ()
+        self._upstream: Publisher[E] | None = None
+        self._watchers: tuple[Callable[[bool], object], ...] = ()
+        self._notifying = threading.Lock()
 
     @property
     def active(self) -> bool:
-        """Whether anyone listens: a sink (a subscription counts), or INFO on the logger."""
+        """Whether anyone listens: a sink (a subscription counts), INFO on the logger, or a
+        publisher this one relays to that has a listener."""
         if self._sinks:
             return True
         log = self._logger
-        return log is not None and log.isEnabledFor(logging.INFO)
+        if log is not None and log.isEnabledFor(logging.INFO):
+            return True
+        upstream = self._upstream
+        return upstream is not None and upstream.listened
 
     def publish(self, event: E) -> None:
         """Log `event` at INFO (if enabled) and hand it to every sink, in the order added.
@@ -466,11 +473,65 @@ class Publisher(Generic[E]):
         log = self._logger
         if log is not None and log.isEnabledFor(logging.INFO):
             self._log(log, event)
+        self.deliver(event)
+
+    def deliver(self, event: E) -> None:
+        """Hand `event` to every sink (and to the publisher this one relays to), no log line.
+
+        For events that were logged where they happened: relayed from another publisher
+        of this process, or forwarded from another process.
+        """
         for sink in self._sinks:
             try:
                 sink(event)
             except Exception:
                 logger.exception("event sink %r raised on %r", sink, event)
+        upstream = self._upstream
+        if upstream is not None:
+            upstream.deliver(event)
+
+    @property
+    def listened(self) -> bool:
+        """Whether a sink listens here or further up the relay (log lines do not count)."""
+        if self._sinks:
+            return True
+        upstream = self._upstream
+        return upstream is not None and upstream.listened
+
+    def relay_to(self, upstream: Publisher[E] | None) -> None:
+        """Hand every event published here on to `upstream`'s sinks too (`None`: stop).
+
+        This publisher is then `active` whenever `upstream` has a listener. Log lines stay
+        here: `upstream` does not log what it is relayed.
+        """
+        self._upstream = upstream
+
+    def watch_listeners(self, watcher: Callable[[bool], object]) -> Callable[[], None]:
+        """Call `watcher(True)` when this publisher gains its first sink, `watcher(False)`
+        when it loses its last one (on the thread that subscribes or closes).
+
+        Returns:
+            A function that stops the watching.
+        """
+        with self._lock:
+            self._watchers = (*self._watchers, watcher)
+
+        def unwatch() -> None:
+            with self._lock:
+                self._watchers = tuple(w for w in self._watchers if w is not watcher)
+
+        return unwatch
+
+    def _changed(self, before: bool, after: bool) -> None:
+        if before == after:
+            return
+        with self._notifying:  # one at a time, each telling the state as it is then
+            listened = bool(self._sinks)
+            for watcher in self._watchers:
+                try:
+                    watcher(listened)
+                except Exception:
+                    logger.exception("event listener watcher %r raised", watcher)
 
     def _log(self, log: logging.Logger, event: E) -> None:
         try:
@@ -521,7 +582,9 @@ class Publisher(Generic[E]):
         A sink must return at once (queue the event, do not handle it) and should not raise.
         """
         with self._lock:
+            before = bool(self._sinks)
             self._sinks = (*self._sinks, sink)
+        self._changed(before, True)
 
     def remove_sink(self, sink: Sink[E]) -> None:
         """Stop calling `sink` (the first one added that equals it); nothing if it is not there.
@@ -529,7 +592,10 @@ class Publisher(Generic[E]):
         A publish that already started on another thread may still call it once.
         """
         with self._lock:
+            before = bool(self._sinks)
             sinks = list(self._sinks)
             if sink in sinks:
                 sinks.remove(sink)
                 self._sinks = tuple(sinks)
+            after = bool(self._sinks)
+        self._changed(before, after)

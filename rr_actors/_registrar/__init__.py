@@ -12,7 +12,7 @@
 
 from typing import TYPE_CHECKING
 
-from rr_actors._registrar.handle import ResourceRegistrar, Served
+from rr_actors._registrar.handle import ResourceRegistrar, Served, start_registrar
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH
 from rr_actors._registrar.protocol import LoadCallback, Registrar, UnloadCallback
 
@@ -23,6 +23,7 @@ __all__ = [
     "ResourceRegistrar",
     "Served",
     "UnloadCallback",
+    "start_registrar",
 ]
 
 if TYPE_CHECKING:  # mypy checks that the handle implements the protocol

@@ -25,6 +25,7 @@ from typing import Any
 
 from rr_actors._catalog import Catalog
 from rr_actors._core.actor import Actor
+from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer
 from rr_actors._core.replies import Answer
 from rr_actors._registrar.calls import DueAnswers
@@ -52,6 +53,7 @@ from rr_actors._registrar.status import StatusRelay
 from rr_actors._store import Saver
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import RegistrarUnavailableError, RrError
+from rr_actors.events import Event
 
 __all__ = ["RegistrarActor"]
 
@@ -75,11 +77,12 @@ class RegistrarActor(Actor):
         died: threading.Event,
         due: DueAnswers,
         ended: threading.Event,
+        published: Publisher[Event],
         *,
         setting_up: bool = False,
     ) -> None:
         super().__init__()
-        self.shared = Shared(config, catalog, saver, peer, setting_up=setting_up)
+        self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
         self.consumer = Consumer(self.shared, due, self.on_receive)
         self.status = StatusRelay(self.shared, self.consumer)
         self.provider = Provider(self.shared, self.consumer, self.status)

@@ -8,6 +8,7 @@ catalog itself.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 import uuid
@@ -16,7 +17,9 @@ from typing import Any
 
 import pykka
 
+from rr_actors import events
 from rr_actors._catalog import ResourceState
+from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._registrar.actor import RegistrarActor
@@ -35,7 +38,10 @@ from rr_actors.errors import (
     RegistrarStoppedError,
 )
 
-__all__ = ["RegistrarFacts", "ResourceRegistrar", "Served"]
+__all__ = ["EVENT_LOG", "RegistrarFacts", "ResourceRegistrar", "Served", "start_registrar"]
+
+EVENT_LOG = logging.getLogger("rr_actors.events")
+"""Where registrars log their events at INFO (one line per event; off by default)."""
 
 
 class RegistrarFacts:
@@ -99,6 +105,7 @@ class ResourceRegistrar(RegistrarFacts):
         self._ended = threading.Event()  # set when the actor handed on its last message
         self._due = due or DueAnswers()  # shared with the actor (see `start`)
         self._probes: Probes | None = None  # `rr_actors.testing.intercept`
+        self._events: Publisher[events.Event] = events.publisher(EVENT_LOG)  # (see `start`)
         self._calls = Calls(
             ref,
             config.name,
@@ -122,8 +129,8 @@ class ResourceRegistrar(RegistrarFacts):
             setup: `setup(registrar)`, run on the calling thread after the catalog was
                 restored and before the registrar serves other registrars: loads that
                 arrive meanwhile for servers it has not registered yet wait for it (a
-                manager's start-up, DESIGN "Public API"). If it raises, the registrar is
-                stopped and the error propagates.
+                manager's start-up). If it raises, the registrar is stopped and the error
+                propagates.
 
         Returns:
             The handle of the running registrar.
@@ -133,46 +140,40 @@ class ResourceRegistrar(RegistrarFacts):
             CatalogCorruptError: the backup exists but cannot be read (it is left as is).
             ConfigError: the configuration, or its backup path, is invalid.
         """
-        if isinstance(config, str):
-            config = RegistrarConfig(name=config)
-        elif not isinstance(config, RegistrarConfig):
-            raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
-        peer = LocalPeer(config.name, None)
-        DIRECTORY.register(peer)
-        saver: Saver | None = None
-        try:
-            saver, catalog, restored = open_catalog(config)
-            in_doubt = tuple(
-                Query(r.id, r.server, config.name, config.name, r.request, r.response)
-                for r in catalog.resources.values()
-                if r.state is not ResourceState.LOADED
-            )
-            died, ended, due = threading.Event(), threading.Event(), DueAnswers()
-            ref = RegistrarActor.start(
-                config, catalog, saver, peer, died, due, ended, setting_up=setup is not None
-            )
-        except BaseException:
-            if saver is not None:
-                saver.close(erase=False, flush=False)
-            DIRECTORY.unregister(peer, "stopped")
-            raise
-        handle = cls(ref, config, restored=restored, in_doubt=in_doubt, due=due)
-        handle._died = died
-        handle._ended = ended
-        if setup is not None:
-            try:
-                setup(handle)
-            except BaseException:
-                handle.stop()
-                raise
-            handle._ask(lambda actor, reply: actor.lifecycle.op_ready(reply), None, "ready")
-        return handle
+        return start_registrar(config, setup=setup)
 
     # -- properties -------------------------------------------------------------------
 
     def is_alive(self) -> bool:
         """Whether the registrar actor is running."""
         return self._ref.is_alive()
+
+    def subscribe(
+        self,
+        callback: Callable[[events.Event], object],
+        *,
+        maxsize: int = DEFAULT_MAXSIZE,
+    ) -> Subscription[events.Event]:
+        """Call `callback(event)` for every event of this registrar from now on.
+
+        Events are the frozen dataclasses of `rr_actors.events` (a load, a failed load,
+        an unload, a consumer added or released, a status sent or delivered here, an
+        in-doubt query at restore). The callback runs on a subscriber thread of its own,
+        never in the registrar's mailbox, one event at a time in the order they happened;
+        a slow callback never slows the registrar: past `maxsize` queued events, new ones
+        are dropped, counted (`Subscription.dropped`) and reported by an `EventsDropped`.
+
+        Args:
+            callback: `callback(event)`; what it raises is logged.
+            maxsize: events queued for it before new ones are dropped.
+
+        Returns:
+            The subscription; `close()` it (or use it in a `with` block).
+
+        Raises:
+            ConfigError: `maxsize` is not a positive int.
+        """
+        return self._events.subscribe(callback, maxsize=maxsize, name=f"{self.name}-events")
 
     # -- servers ----------------------------------------------------------------------
 
@@ -549,3 +550,61 @@ class Served:
         if self.registrar.is_alive():
             return False
         return isinstance(DIRECTORY.gone_error(self.registrar.name), RegistrarStoppedError)
+
+
+def start_registrar(
+    config: RegistrarConfig | str,
+    *,
+    setup: Callable[[ResourceRegistrar], object] | None = None,
+    upstream: Publisher[events.Event] | None = None,
+) -> ResourceRegistrar:
+    """`ResourceRegistrar.start`, with its events also relayed to `upstream` from the first.
+
+    A supervisor passes its tree's publisher, so the events of a restore (`InDoubt`)
+    reach the tree's subscribers too.
+    """
+    if isinstance(config, str):
+        config = RegistrarConfig(name=config)
+    elif not isinstance(config, RegistrarConfig):
+        raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
+    peer = LocalPeer(config.name, None)
+    DIRECTORY.register(peer)
+    saver: Saver | None = None
+    try:
+        saver, catalog, restored = open_catalog(config)
+        in_doubt = tuple(
+            Query(r.id, r.server, config.name, config.name, r.request, r.response)
+            for r in catalog.resources.values()
+            if r.state is not ResourceState.LOADED
+        )
+        died, ended, due = threading.Event(), threading.Event(), DueAnswers()
+        published = events.publisher(EVENT_LOG)
+        published.relay_to(upstream)
+        ref = RegistrarActor.start(
+            config,
+            catalog,
+            saver,
+            peer,
+            died,
+            due,
+            ended,
+            published,
+            setting_up=setup is not None,
+        )
+    except BaseException:
+        if saver is not None:
+            saver.close(erase=False, flush=False)
+        DIRECTORY.unregister(peer, "stopped")
+        raise
+    handle = ResourceRegistrar(ref, config, restored=restored, in_doubt=in_doubt, due=due)
+    handle._died = died
+    handle._ended = ended
+    handle._events = published
+    if setup is not None:
+        try:
+            setup(handle)
+        except BaseException:
+            handle.stop()
+            raise
+        handle._ask(lambda actor, reply: actor.lifecycle.op_ready(reply), None, "ready")
+    return handle

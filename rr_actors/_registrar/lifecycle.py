@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import pykka
 
+from rr_actors import events
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
 from rr_actors._core.actor import refuse
 from rr_actors._core.directory import DIRECTORY, Reply
@@ -104,6 +105,8 @@ class Lifecycle:
         catalog = self.s.catalog
         for resource in list(catalog.resources.values()):
             if resource.state is not ResourceState.LOADED:
+                if self.s.events.active:
+                    self.s.events.publish(events.InDoubt(self.s.name, resource.id))
                 catalog.begin_unload(resource.id)
                 self.consumer.release_dependencies(
                     resource.id, functools.partial(self.provider.remove_resource, resource)

@@ -139,7 +139,9 @@ class StatusNotice(WireMessage):
     """Provider -> consumer: a status about the resources behind `query_ids`.
 
     `event` identifies one `send_status` so that a callback reached twice (diamond
-    dependencies) runs once. Answer: `None` once delivered along the whole path.
+    dependencies) runs once; `hop` counts the registrars it reached on the way (1: the
+    sender's own consumers) and `sent_at` is when it was sent (wall clock, seconds), for
+    the `StatusDelivered` event. Answer: `None` once delivered along the whole path.
     """
 
     query_ids: tuple[str, ...]
@@ -148,6 +150,8 @@ class StatusNotice(WireMessage):
     source: str
     event: str
     reply: Reply
+    hop: int = 1
+    sent_at: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

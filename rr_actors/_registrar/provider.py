@@ -19,10 +19,12 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import time
 import uuid
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from rr_actors import events
 from rr_actors._catalog import Resource, ResourceState
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import Join
@@ -48,6 +50,7 @@ from rr_actors.errors import (
     DependencyCycleError,
     DuplicateNameError,
     RegistrarStoppedError,
+    ResourceLoadError,
     RrError,
     UnknownQueryError,
     UnknownServerError,
@@ -86,6 +89,7 @@ class Provider:
         abandoned: query ids whose callers gave up while their load ran.
         held_loads: loads for servers `setup` has not registered yet.
         after_unload: resource id -> loads of an equal request, parked until it unloaded.
+        load_started: resource id -> when its load started (`time.monotonic()`).
         unload_waiters: resource id -> replies waiting for its unload to finish.
         parked_unloads: server name -> unloads of restored resources waiting for the
             server to be registered again.
@@ -100,6 +104,7 @@ class Provider:
         self.abandoned: set[str] = set()
         self.held_loads: list[Load] = []
         self.after_unload: dict[str, list[Load]] = {}
+        self.load_started: dict[str, float] = {}
         self.unload_waiters: dict[str, list[Reply]] = {}
         self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
 
@@ -137,6 +142,12 @@ class Provider:
             catalog.add_consumer(resource.id, message.query_id, message.origin_rr)
             self.s.commit()
             message.reply.set_result(resource.response)
+            if self.s.events.active:
+                self.s.events.publish(
+                    events.ConsumerAdded(
+                        self.s.name, resource.id, message.query_id, message.origin_rr
+                    )
+                )
             return
         waiter = Waiter(message.query_id, message.origin_rr, message.reply)
         rid = self.loading_ids.get(message.query_id)
@@ -171,6 +182,7 @@ class Provider:
         self.s.commit()
         self.loads[rid] = [waiter]
         self.loading_ids[message.query_id] = rid
+        self.load_started[rid] = time.monotonic()
         reply = self.s.come_back(lambda value, error: self.load_done(rid, value, error))
         server.ref.tell(RunLoad(rid, message.request, (*message.chain, rid), reply))
 
@@ -180,6 +192,9 @@ class Provider:
         for waiter in waiters:
             self.loading_ids.pop(waiter.query_id, None)
         resource = catalog.resources[rid]
+        started = self.load_started.pop(rid)
+        if self.s.events.active:
+            self._published_load(resource, waiters[0].query_id, started, error)
         if error is not None:
             catalog.begin_unload(rid)
             self.s.commit()
@@ -193,16 +208,7 @@ class Provider:
             self.consumer.release_dependencies(rid, failed)
             return
         catalog.finish_load(rid, response)
-        live = []
-        for waiter in waiters:
-            if waiter.query_id in self.abandoned:  # its caller gave up: answer, hold nothing
-                self.abandoned.discard(waiter.query_id)
-                waiter.reply.set_error(CallTimeoutError(f"call {waiter.query_id} was given up"))
-            elif not catalog.has_consumer(waiter.query_id):
-                catalog.add_consumer(rid, waiter.query_id, waiter.origin_rr)
-                live.append(waiter)
-            else:
-                live.append(waiter)
+        live = self._add_consumers(rid, waiters)
         self.s.commit()
         server = self.s.servers.get(resource.server)
         if server is None or server.closing:
@@ -217,6 +223,47 @@ class Provider:
             waiter.reply.set_result(response)
         if not resource.consumers:  # every caller gave up (or the server closed)
             self.unload_resource(resource, None)
+
+    def _add_consumers(self, rid: str, waiters: list[Waiter]) -> list[Waiter]:
+        """Make the waiters of a finished load its consumers; the ones still waiting.
+
+        A waiter whose caller gave up meanwhile is answered and holds nothing; a retry
+        listed twice is added once.
+        """
+        catalog = self.s.catalog
+        live = []
+        for waiter in waiters:
+            if waiter.query_id in self.abandoned:  # its caller gave up: answer, hold nothing
+                self.abandoned.discard(waiter.query_id)
+                waiter.reply.set_error(CallTimeoutError(f"call {waiter.query_id} was given up"))
+                continue
+            live.append(waiter)
+            if not catalog.has_consumer(waiter.query_id):
+                catalog.add_consumer(rid, waiter.query_id, waiter.origin_rr)
+                if self.s.events.active:
+                    self.s.events.publish(
+                        events.ConsumerAdded(self.s.name, rid, waiter.query_id, waiter.origin_rr)
+                    )
+        return live
+
+    def _published_load(
+        self, resource: Resource, query_id: str, started: float, error: BaseException | None
+    ) -> None:
+        """Publish how a load ended (`ResourceLoaded` or `LoadFailed`)."""
+        if error is None:
+            load_s = time.monotonic() - started
+            self.s.events.publish(
+                events.ResourceLoaded(self.s.name, resource.server, resource.id, query_id, load_s)
+            )
+            return
+        error_type, message = type(error).__qualname__, str(error)
+        if isinstance(error, ResourceLoadError):  # this registrar's frame: what load raised
+            error_type, message = error.stack[-1].exc_type, error.stack[-1].message
+        self.s.events.publish(
+            events.LoadFailed(
+                self.s.name, resource.server, resource.id, query_id, error_type, message
+            )
+        )
 
     def serve_held(self) -> None:
         """Setup is done: serve the loads that waited for it (unknown servers now fail),
@@ -261,18 +308,30 @@ class Provider:
             if reply is not None:
                 reply.set_result(None)
             return
+        origin = self._origin(query_id) if self.s.events.active else None
         try:
             resource = self.s.catalog.release(query_id)
         except UnknownQueryError as exc:
             if reply is not None:
                 reply.set_error(exc)
             return
+        if origin is not None:
+            self.s.events.publish(
+                events.ConsumerReleased(self.s.name, resource.id, query_id, origin)
+            )
         if resource.consumers or resource.state is not ResourceState.LOADED:
             self.s.commit()
             if reply is not None:
                 reply.set_result(None)
             return
         self.unload_resource(resource, reply)
+
+    def _origin(self, query_id: str) -> str | None:
+        """The registrar that holds consumer id `query_id` here (`None`: unknown id)."""
+        try:
+            return self.s.catalog.resource_of(query_id).consumers.get(query_id)
+        except UnknownQueryError:
+            return None
 
     def unpark(self, query_id: str) -> Load | None:
         """Take the load of `query_id` out of the held or parked loads, if it is there."""
@@ -310,6 +369,10 @@ class Provider:
                     exc_info=error,
                 )
             self.remove_resource(resource)
+            if self.s.events.active:
+                self.s.events.publish(
+                    events.ResourceUnloaded(self.s.name, resource.server, resource.id)
+                )
             for waiting in self.unload_waiters.pop(resource.id):
                 waiting.set_result(None)
 
@@ -428,10 +491,20 @@ class Provider:
             for origin, ids in consumers_by_origin(resource).items():
                 with contextlib.suppress(RrError):
                     DIRECTORY.lookup(origin).tell(Revoke(ids))
-            for qid in list(resource.consumers):
+            revoked = list(resource.consumers.items())
+            for qid, _ in revoked:
                 self.s.catalog.release(qid)
+            if self.s.events.active:
+                for qid, origin in revoked:
+                    self.s.events.publish(
+                        events.ConsumerReleased(self.s.name, resource.id, qid, origin)
+                    )
             self.unload_resource(resource, done)
 
+        if self.s.events.active:
+            self.s.events.publish(
+                events.StatusSent(self.s.name, query_id, update.status, update.message)
+            )
         # the FATAL's acknowledgements may complete on any thread: come back to this one
         back = self.s.come_back(lambda *_: revoke_and_unload())
         self.status.notify(

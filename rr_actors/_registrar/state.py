@@ -17,7 +17,9 @@ from typing import Any
 
 import pykka
 
+from rr_actors import events
 from rr_actors._catalog import Catalog
+from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Continuation, TokenReply, Tokens
 from rr_actors._core.workers import Workers
@@ -106,6 +108,8 @@ class Shared:
         tokens: continuations waiting for answers to this actor's own questions.
         probes: test probes on named steps (`rr_actors.testing.intercept`), or `None`.
         ref: the actor's own ref (set when it starts).
+        events: where its events are published (`ResourceRegistrar.subscribe`); build an
+            event only when it is `active`.
     """
 
     def __init__(
@@ -114,6 +118,7 @@ class Shared:
         catalog: Catalog,
         saver: Saver,
         peer: LocalPeer,
+        published: Publisher[events.Event],
         *,
         setting_up: bool,
     ) -> None:
@@ -129,6 +134,7 @@ class Shared:
         self.tokens = Tokens()
         self.probes: Probes | None = None
         self.ref: pykka.ActorRef[Any] | None = None
+        self.events = published
 
     @property
     def stopping(self) -> bool:

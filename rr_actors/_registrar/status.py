@@ -17,10 +17,12 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import time
 import uuid
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from rr_actors import events
 from rr_actors._catalog import Resource
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import CallbackReply, SharedJoin
@@ -51,6 +53,8 @@ class StatusRelay:
     def op_send_status(self, query_id: str, status: Status, message: str, reply: Reply) -> None:
         resource = self.s.catalog.resource_of(query_id)
         update = StatusUpdate(query_id, status, message, f"{self.s.name}/{resource.server}")
+        if self.s.events.active:
+            self.s.events.publish(events.StatusSent(self.s.name, query_id, status, message))
         self.notify(resource, update, str(uuid.uuid4()), query_id, lambda: reply.set_result(None))
 
     def notify(
@@ -60,8 +64,14 @@ class StatusRelay:
         event: str,
         own_query_id: str | None,
         then: Callable[[], None],
+        *,
+        hop: int = 1,
+        sent_at: float | None = None,
     ) -> None:
         """Run this server's `on_status` once and pass the status on to every consumer.
+
+        `hop` is the number of registrars the notices reach on the way from the sender
+        (its own consumers are hop 1); `sent_at` is when the status was sent (wall clock).
 
         `then()` runs once every callback and consumer on the way acknowledged, on the
         thread of the last acknowledgement (a reader thread, a worker, another registrar's
@@ -76,6 +86,7 @@ class StatusRelay:
         if len(self.seen_events) > _SEEN_EVENTS:
             self.seen_events.popitem(last=False)
         join = SharedJoin(then)  # acknowledgements: no trip back through this mailbox
+        sent = time.time() if sent_at is None else sent_at
         server = self.s.servers.get(resource.server)
         query_id = own_query_id or next(iter(resource.consumers), resource.id)
         if server is not None and server.on_status is not None:
@@ -94,7 +105,9 @@ class StatusRelay:
             reply = CallbackReply(join.add())  # answered on the answering thread
             try:
                 DIRECTORY.lookup(origin).tell(
-                    StatusNotice(ids, update.status, update.message, update.source, event, reply)
+                    StatusNotice(
+                        ids, update.status, update.message, update.source, event, reply, hop, sent
+                    )
                 )
             except RrError as exc:
                 reply.set_error(exc)
@@ -131,10 +144,25 @@ class StatusRelay:
             if record is None:
                 continue
             update = StatusUpdate(query_id, message.status, message.message, message.source)
+            if self.s.events.active:
+                latency = max(0.0, time.time() - message.sent_at)
+                self.s.events.publish(
+                    events.StatusDelivered(
+                        self.s.name, query_id, message.status, message.hop, latency
+                    )
+                )
             callback = self.consumer.status_callbacks.get(query_id)
             if callback is not None:
                 self.run_callback(callback, record.query, update, join)
             if record.parent is not None and record.parent in catalog.resources:
                 parent = catalog.resources[record.parent]
-                self.notify(parent, update, message.event, None, join.add())
+                self.notify(
+                    parent,
+                    update,
+                    message.event,
+                    None,
+                    join.add(),
+                    hop=message.hop + 1,
+                    sent_at=message.sent_at,
+                )
         join.seal()
