@@ -41,9 +41,10 @@ from rr_actors._catalog import (
     ResourceState,
     request_digest,
 )
+from rr_actors._store import codec, schema
 from rr_actors._store import saver as _persistence
-from rr_actors._store import sqlite as store_module
-from rr_actors._store.sqlite import SqliteStore, quarantine_backup, read_backup
+from rr_actors._store.files import quarantine_backup, read_backup
+from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot, crash
 
 # -- what runs in the child process ----------------------------------------------------------
@@ -525,7 +526,7 @@ def test_a_new_backup_records_its_schema_version_and_application_id(tmp_path: Pa
     finally:
         db.close()
 
-    assert ([(store_module.SCHEMA_VERSION,)], store_module.APPLICATION_ID) == found
+    assert ([(schema.SCHEMA_VERSION,)], schema.APPLICATION_ID) == found
 
 
 # -- the store on its own ---------------------------------------------------------------------
@@ -676,9 +677,9 @@ def test_an_older_schema_is_migrated_by_an_explicit_step(
     def add_note(db: sqlite3.Connection) -> None:
         db.execute("ALTER TABLE resources ADD COLUMN note TEXT")
 
-    next_version = store_module.SCHEMA_VERSION + 1
-    monkeypatch.setattr(store_module, "_MIGRATIONS", (*store_module._MIGRATIONS, add_note))
-    monkeypatch.setattr(store_module, "SCHEMA_VERSION", next_version)
+    next_version = schema.SCHEMA_VERSION + 1
+    monkeypatch.setattr(schema, "MIGRATIONS", (*schema.MIGRATIONS, add_note))
+    monkeypatch.setattr(schema, "SCHEMA_VERSION", next_version)
     SqliteStore.open(tmp_path / "p.db").close(erase=False)
 
     db = sqlite3.connect(tmp_path / "p.db")
@@ -1106,20 +1107,20 @@ def test_digests_written_under_another_scheme_are_recomputed_when_the_file_is_op
 def write_v1_backup(path: Path) -> None:
     """A backup as rr_actors wrote it with schema version 1."""
     db = sqlite3.connect(path, isolation_level=None)
-    db.execute(f"PRAGMA application_id = {store_module.APPLICATION_ID}")
-    store_module._create_v1(db)
+    db.execute(f"PRAGMA application_id = {schema.APPLICATION_ID}")
+    schema.MIGRATIONS[0](db)
     db.execute("UPDATE rr_actors_schema SET version = 1")
     db.execute("PRAGMA journal_mode = WAL")
     rows = [(1, "r0", "leaf", "loaded", {"n": 0}, "zero"), (2, "r1", "leaf", "loading", "x", None)]
     for seq, rid, server, state, request, response in rows:
         db.execute(
             "INSERT INTO resources VALUES (?, ?, ?, ?, ?, ?)",
-            (seq, rid, server, state, store_module._dumps(request), store_module._dumps(response)),
+            (seq, rid, server, state, codec.dumps(request), codec.dumps(response)),
         )
     db.execute("INSERT INTO consumers VALUES (3, 'q0', 'r0', 'C')")
     db.execute(
         "INSERT INTO clients VALUES (4, 'd0', 'leaf', 'P', 'me', ?, NULL, 'r0', 1)",
-        (store_module._dumps(5),),
+        (codec.dumps(5),),
     )
     db.close()
 
@@ -1133,12 +1134,12 @@ def test_a_version_1_backup_is_migrated_to_digests_integer_states_and_consumer_r
 
     db = sqlite3.connect(tmp_path / "p.db")
     try:
-        schema = db.execute("SELECT version, digest_scheme FROM rr_actors_schema").fetchall()
+        stored = db.execute("SELECT version, digest_scheme FROM rr_actors_schema").fetchall()
         digests = db.execute("SELECT digest, state FROM resources ORDER BY seq").fetchall()
         consumers = db.execute("SELECT query_id, resource FROM consumers").fetchall()
     finally:
         db.close()
-    assert [(store_module.SCHEMA_VERSION, DIGEST_SCHEME)] == schema
+    assert [(schema.SCHEMA_VERSION, DIGEST_SCHEME)] == stored
     assert [(request_digest({"n": 0}), 1), (request_digest("x"), 0)] == digests
     assert [("q0", 1)] == consumers
     assert (
@@ -1258,7 +1259,7 @@ def test_decoding_a_restored_response_writes_no_value(
     _ = catalog.resources["r1"].response, catalog.clients["d1"].query.response
     catalog.add_consumer("r1", "q2", "C")  # dirties the row
     dumped: list[Any] = []
-    monkeypatch.setattr(store_module, "_dumps", dumped.append)
+    monkeypatch.setattr(codec, "dumps", dumped.append)
     store.write(catalog.drain_changes())
     store.close(erase=False)
 

@@ -16,7 +16,7 @@ from rr_actors._core.timers import Cancellable, Timer, thread_timer
 from rr_actors.config import RegistrarConfig
 
 if TYPE_CHECKING:
-    from rr_actors._store.sqlite import Restored
+    from rr_actors._store.restore import Restored
 
 __all__ = ["CatalogStore", "Saver", "open_store", "timer_factory"]
 
