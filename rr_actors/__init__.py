@@ -14,6 +14,7 @@ from rr_actors.config import Backoff, ManagerSpec, RegistrarConfig, SupervisorSp
 from rr_actors.errors import (
     CallTimeoutError,
     CatalogCorruptError,
+    CatalogWriteError,
     ConfigError,
     DependencyCycleError,
     DuplicateNameError,
@@ -33,6 +34,7 @@ __all__ = [
     "Backoff",
     "CallTimeoutError",
     "CatalogCorruptError",
+    "CatalogWriteError",
     "ChildCounts",
     "ChildInfo",
     "ConfigError",

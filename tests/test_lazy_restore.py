@@ -173,7 +173,7 @@ def test_a_write_inside_a_transaction_left_open_fails_loudly_and_is_kept_for_the
     changes = catalog.drain_changes()
     store._db.execute("BEGIN")
     try:
-        with pytest.raises(sqlite3.OperationalError, match="within a transaction"):
+        with pytest.raises(rr.CatalogWriteError, match="within a transaction"):
             store.write(changes)
         store._db.execute("ROLLBACK")
         store.write(changes)

@@ -8,6 +8,7 @@ same backups. Module-level functions run in the child (sent by reference).
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import multiprocessing
 import multiprocessing.connection
@@ -31,6 +32,7 @@ import pytest
 from durable_pair import leaf_load, noop_unload, start, start_consumer, start_pair, start_provider
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from small_disk import mounted, remount_read_only
 
 import rr_actors as rr
 from rr_actors._catalog import (
@@ -843,13 +845,32 @@ def test_an_unusable_backup_path_raises_config_error_naming_it(
     assert (True, True) == (str(path) in str(raised.value), cause in str(raised.value))
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root may write to read-only files")
 def test_a_read_only_backup_raises_config_error(tmp_path: Path) -> None:
-    write_valid_backup(tmp_path / "p.db")
-    (tmp_path / "p.db").chmod(0o444)
+    if os.geteuid() == 0:
+        where = tmp_path / "ro"
+        with mounted(where, "1m"):
+            write_valid_backup(where / "p.db")
+            remount_read_only(where)
+            with pytest.raises(rr.ConfigError, match="not readable and writable") as raised:
+                SqliteStore.open(where / "p.db")
+    else:
+        where = tmp_path
+        write_valid_backup(where / "p.db")
+        (where / "p.db").chmod(0o444)
+        with pytest.raises(rr.ConfigError, match="not readable and writable") as raised:
+            SqliteStore.open(where / "p.db")
 
-    with pytest.raises(rr.ConfigError, match="not readable and writable"):
-        SqliteStore.open(tmp_path / "p.db")
+    assert str(where / "p.db") in str(raised.value)
+
+
+def test_a_backup_in_a_read_only_location_raises_config_error(tmp_path: Path) -> None:
+    where = tmp_path / "ro"
+    with mounted(where, "1m"):  # (skipped unless root: root ignores directory modes too)
+        remount_read_only(where)
+        with pytest.raises(rr.ConfigError, match="is not writable") as raised:
+            SqliteStore.open(where / "p.db")
+
+    assert str(where / "p.db") in str(raised.value)
 
 
 def test_quarantine_moves_a_corrupt_backup_aside_so_a_registrar_starts_empty(
@@ -1398,12 +1419,12 @@ def test_a_failed_commit_raises_its_own_error_not_one_from_the_rollback(tmp_path
     catalog.add_consumer("r1", "q1", "C")  # two statements: one transaction with a COMMIT
     store._db = CommitFails(store._db)  # type: ignore[assignment]
     try:
-        with pytest.raises(sqlite3.OperationalError) as raised:
+        with pytest.raises(rr.CatalogWriteError) as raised:
             store.write(catalog.drain_changes())
     finally:
         store.close(erase=False)
 
-    assert "disk I/O error (simulated)" == str(raised.value)
+    assert "disk I/O error (simulated)" == str(raised.value.__cause__)
 
 
 class InsertFailsOnce:
@@ -1440,7 +1461,7 @@ def test_a_one_statement_write_that_failed_is_written_again_with_the_next_change
     catalog.add_consumer("r1", "q1", "C")  # one INSERT: its own transaction
     failed = catalog.drain_changes()
     try:
-        with pytest.raises(sqlite3.OperationalError, match="simulated"):
+        with pytest.raises(rr.CatalogWriteError, match="simulated"):
             store.write(failed)
         catalog.add_consumer("r1", "q2", "C")
         store.write(catalog.drain_changes())  # the row holds q1 and q2: both are written
@@ -1468,7 +1489,7 @@ class FlakyStore:
     def write(self, changes: Changes) -> None:
         if self.fail:
             self.fail -= 1
-            raise OSError("disk full (simulated)")
+            raise rr.CatalogWriteError(self.path, "ENOSPC (simulated)", errno.ENOSPC)
         self.written.append((list(changes.resources), list(changes.clients)))
 
     def close(self, *, erase: bool) -> None:
@@ -1480,7 +1501,7 @@ def test_a_clean_stop_closes_the_store_even_when_the_last_flush_fails() -> None:
     saver = _persistence.Saver(store, rr.RegistrarConfig(name="x", backup_path="flaky"))
     saver.changed(Changes({"r1": None}, {}))
 
-    with pytest.raises(OSError, match="simulated"):
+    with pytest.raises(rr.CatalogWriteError, match="simulated"):
         saver.close(erase=False)
 
     assert (True, None) == (store.closed, saver.store)
@@ -1490,7 +1511,7 @@ def test_a_change_whose_save_on_modify_write_failed_is_written_with_the_next_cha
     store = FlakyStore(fail=1)
     config = rr.RegistrarConfig(name="x", backup_path="flaky", save_on_modify=True)
     saver = _persistence.Saver(store, config)
-    with pytest.raises(OSError, match="simulated"):
+    with pytest.raises(rr.CatalogWriteError, match="simulated"):
         saver.changed(Changes({"r1": None}, {}))
     saver.changed(Changes({"r2": None}, {"d1": None}))
 
@@ -1501,7 +1522,7 @@ def test_changes_whose_interval_flush_failed_are_written_with_the_next_flush() -
     store = FlakyStore(fail=1)
     saver = _persistence.Saver(store, rr.RegistrarConfig(name="x", backup_path="flaky"))
     saver.changed(Changes({"r1": None}, {}))
-    with pytest.raises(OSError, match="simulated"):
+    with pytest.raises(rr.CatalogWriteError, match="simulated"):
         saver.flush()
     saver.changed(Changes({"r2": None}, {"d1": None}))
     saver.flush()

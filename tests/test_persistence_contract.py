@@ -138,7 +138,7 @@ def test_a_write_that_fails_half_way_leaves_none_of_its_statements_in_the_file(
     catalog.add_consumer("r1", "q2", "C")  # one change of three statements
     store._db = FailsOnSecondInsert(store._db)  # type: ignore[assignment]
     try:
-        with pytest.raises(sqlite3.OperationalError, match="simulated"):
+        with pytest.raises(rr.CatalogWriteError, match="simulated"):
             store.write(catalog.drain_changes())
     finally:
         store.close(erase=False)

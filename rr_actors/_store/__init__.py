@@ -4,9 +4,10 @@ The store knows the catalog's rows and nothing of actors: the registrar hands it
 `Changes` it drained from its catalog, and gets back what a restart restores.
 
 Modules, lowest first: `codec` (stored values), `schema` (version, migrations),
-`restore` (reading rows back, lazily), `files` (the path and the file: create, validate,
-inspect, quarantine), `checkpoints` (the background checkpointer), `sqlite` (`SqliteStore`:
-writes), `saver` (the save policy).
+`restore` (reading rows back, lazily), `files` (the path and the file: check, create,
+validate, write again after a deletion, inspect, quarantine), `plan` (the statements of
+a write), `checkpoints` (the background checkpointer), `sqlite` (`SqliteStore`: writes),
+`saver` (the save policy).
 """
 
 from rr_actors._store.codec import Unreadable

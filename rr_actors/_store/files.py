@@ -4,6 +4,8 @@
  backup_path --check_location--> (no file) --create: temporary name, linked into place-->
    --validate: header, read-only connection, schema--> --prepare: WAL, durability, migrate-->
    a writable connection (`SqliteStore`)
+ file deleted or replaced under the store (`moved`) --copy_aside, then put_in_place-->
+   a new file at the path, the whole catalog in it
  read_backup: validate, then read every row through a read-only connection (inspection)
  quarantine_backup: rename the file and its companions aside (the one way to give one up)
 ```
@@ -12,6 +14,8 @@ A new file is built under a temporary name and linked into place complete, so th
 path either does not exist or holds a whole catalog. An existing file is validated
 through a read-only connection before anything writes to it; whatever is wrong raises
 `CatalogCorruptError` (or `ConfigError` for an unusable path) and leaves it untouched.
+Every file the store creates is readable and writable by its owner only (`FILE_MODE`),
+whatever the umask; SQLite gives the `-wal`, `-shm` and `-journal` files the same mode.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime
+import errno as errno_names
 import os
 import sqlite3
 import uuid
@@ -29,7 +34,7 @@ from rr_actors._catalog import ClientRecord, Resource
 from rr_actors._store import schema
 from rr_actors._store.codec import as_corrupt, lenient_decode
 from rr_actors._store.restore import gc_paused, read_rows
-from rr_actors.errors import CatalogCorruptError, ConfigError
+from rr_actors.errors import CatalogCorruptError, CatalogWriteError, ConfigError
 
 __all__ = [
     "SIDE_FILES",
@@ -53,20 +58,68 @@ SYNCHRONOUS = {"process": "NORMAL", "power": "FULL"}
 """SQLite's `synchronous` level for each `RegistrarConfig.durability`."""
 
 
+_LONGEST_SIDE = max(len(suffix) for suffix in SIDE_FILES)
+
+SQLITE_MAX_PATH = 512
+"""Bytes in the longest absolute path SQLite opens (its unix VFS's `MAX_PATHNAME`), side
+files' suffixes included."""
+
+
 def check_location(path: Path) -> None:
-    """Raise `ConfigError` if `path` cannot hold a backup."""
-    if path.is_dir():
-        raise ConfigError(f"backup_path {str(path)!r} is a directory, not a file")
+    """Raise `ConfigError` if `path` cannot hold a backup.
+
+    Raises:
+        ConfigError: naming `path`: its directory is missing, is a file or cannot be
+            written; its name (with SQLite's `-journal` suffix) is longer than the file
+            system allows, or the whole path longer than SQLite opens; it is a directory;
+            the file exists and cannot be read and written.
+    """
+    name = str(path)
     parent = path.parent
-    if not parent.is_dir():
-        raise ConfigError(f"backup_path {str(path)!r}: directory {str(parent)!r} does not exist")
-    if path.exists() and not os.access(path, os.R_OK | os.W_OK):
-        raise ConfigError(f"backup_path {str(path)!r} is not readable and writable")
+    try:
+        parent_is_dir = parent.is_dir()
+    except OSError as exc:  # a component too long, a loop of links, ...
+        raise ConfigError(f"backup_path {name!r}: {exc.strerror}") from exc
+    if not parent_is_dir:
+        what = "is a file, not a directory" if parent.exists() else "does not exist"
+        raise ConfigError(f"backup_path {name!r}: directory {str(parent)!r} {what}")
+    problem = _length_problem(path)
+    if problem is not None:
+        raise ConfigError(f"backup_path {name!r}: {problem}")
+    try:
+        is_dir, exists = path.is_dir(), path.exists()
+    except OSError as exc:
+        raise ConfigError(f"backup_path {name!r}: {exc.strerror}") from exc
+    if is_dir:
+        raise ConfigError(f"backup_path {name!r} is a directory, not a file")
+    if exists and not os.access(path, os.R_OK | os.W_OK):
+        raise ConfigError(f"backup_path {name!r} is not readable and writable")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise ConfigError(
-            f"backup_path {str(path)!r}: directory {str(parent)!r} is not writable "
+            f"backup_path {name!r}: directory {str(parent)!r} is not writable "
             f"(SQLite needs to create its -wal and -shm files there)"
         )
+
+
+def _length_problem(path: Path) -> str | None:
+    """Why SQLite could not name the file `path` or its side files (or `None`)."""
+    try:
+        name_max = os.pathconf(path.parent, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        name_max = 255
+    length = len(os.fsencode(path.name))
+    if length + _LONGEST_SIDE > name_max:
+        return (
+            f"the file name is {length} bytes long; this file system takes at most "
+            f"{name_max - _LONGEST_SIDE} (SQLite adds '-journal', '-wal', '-shm')"
+        )
+    full = len(os.fsencode(os.path.abspath(path)))
+    if full + _LONGEST_SIDE > SQLITE_MAX_PATH:
+        return (
+            f"the absolute path is {full} bytes long; SQLite opens at most "
+            f"{SQLITE_MAX_PATH - _LONGEST_SIDE}"
+        )
+    return None
 
 
 def connect(path: Path, *, read_only: bool) -> sqlite3.Connection:
@@ -111,16 +164,60 @@ def _has_log(path: Path) -> bool:
         return False
 
 
+FILE_MODE = 0o600
+"""Permissions of every file the store creates (SQLite gives its side files the same)."""
+
+
+def temporary_path(path: Path, purpose: str) -> Path:
+    """A new name next to `path` for a file built before it is moved into place.
+
+    `.<name>.<8 hex>.<purpose>` if SQLite can open that (see `check_location`), else
+    the shorter `.<8 hex>.<purpose>`.
+    """
+    token = uuid.uuid4().hex[:8]
+    named = path.with_name(f".{path.name}.{token}.{purpose}")
+    if _length_problem(named) is None:
+        return named
+    return path.with_name(f".{token}.{purpose}")
+
+
+def _private_file(path: Path) -> None:
+    """Create an empty file at `path` that only its owner may read and write.
+
+    SQLite opens an empty file as a new database and gives the `-wal`, `-shm` and
+    `-journal` files it makes for it the database file's permissions. `fchmod` sets them
+    whatever the umask (which `open` applies to its mode).
+    """
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, FILE_MODE)
+    try:
+        os.fchmod(fd, FILE_MODE)
+    finally:
+        os.close(fd)
+
+
+def remove_files(path: Path, suffixes: tuple[str, ...] = ("", *SIDE_FILES)) -> None:
+    """Remove `path` and its side files (those that exist)."""
+    for suffix in suffixes:
+        with contextlib.suppress(FileNotFoundError):
+            Path(f"{path}{suffix}").unlink()
+
+
 def create(path: Path) -> None:
     """Build an empty catalog under a temporary name, then link it into place.
 
     The backup path therefore never holds a half-created file. If another process
-    created it first, that file wins (and is validated like any existing file).
+    created it first, that file wins (and is validated like any existing file). The file
+    is created with mode `FILE_MODE` (0600), and so are SQLite's side files.
+
+    Raises:
+        ConfigError: the file cannot be created (naming `path` and the cause).
     """
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.creating")
+    tmp = temporary_path(path, "creating")
     try:
+        _private_file(tmp)
         db = sqlite3.connect(tmp, isolation_level=None)
-    except sqlite3.Error as exc:
+    except (sqlite3.Error, OSError) as exc:
+        remove_files(tmp)
         raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
     try:
         db.execute(f"PRAGMA application_id = {schema.APPLICATION_ID}")
@@ -133,9 +230,51 @@ def create(path: Path) -> None:
         raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
     finally:
         db.close()
-        for suffix in ("", *SIDE_FILES):
-            with contextlib.suppress(FileNotFoundError):
-                Path(f"{tmp}{suffix}").unlink()
+        remove_files(tmp)
+
+
+def copy_aside(db: sqlite3.Connection, path: Path) -> Path:
+    """Copy the database `db` has open into a new file next to `path`; return its name.
+
+    The copy holds every committed page as `db` sees it (its log included), in WAL mode,
+    with mode `FILE_MODE`. It reads through `db`, so it works when the file `db` opened
+    was deleted. On failure nothing is left behind.
+
+    Raises:
+        sqlite3.Error, OSError: the copy could not be written (a full disk, say).
+    """
+    tmp = temporary_path(path, "rewriting")
+    try:
+        _private_file(tmp)
+        copy = sqlite3.connect(tmp, isolation_level=None)
+        try:
+            db.backup(copy)
+            copy.execute("PRAGMA journal_mode = WAL")
+        finally:
+            copy.close()
+    except BaseException:
+        remove_files(tmp)
+        raise
+    return tmp
+
+
+def put_in_place(tmp: Path, path: Path) -> None:
+    """Move the complete file `tmp` to `path`, over whatever is there.
+
+    Side files at `path` are removed first: they belong to a file that is gone, and
+    SQLite would apply a stale `-wal` to the new one. Only call it once every connection
+    to the file that was at `path` is closed.
+
+    Raises:
+        OSError: the move failed (`tmp` is then removed).
+    """
+    try:
+        remove_files(path, SIDE_FILES)
+        os.replace(tmp, path)
+    except BaseException:
+        remove_files(tmp)
+        raise
+    remove_files(tmp, SIDE_FILES)
 
 
 @contextlib.contextmanager
@@ -203,6 +342,14 @@ class Backup:
     clients: list[ClientRecord]
 
 
+def _is_file(path: Path) -> bool:
+    """Whether `path` names a file (`False` for a name no file can have, too long, say)."""
+    try:
+        return path.is_file()
+    except OSError:
+        return False
+
+
 def read_backup(path: str | os.PathLike[str]) -> Backup:
     """Read a catalog backup without changing it (it may belong to a running registrar).
 
@@ -224,7 +371,7 @@ def read_backup(path: str | os.PathLike[str]) -> Backup:
         CatalogCorruptError: the file is not a readable rr_actors catalog.
     """
     file = Path(os.fspath(path))
-    if not file.is_file():
+    if not _is_file(file):
         raise ConfigError(f"no catalog backup at {str(file)!r}")
     version = validate(file, tidy=True)
     name = str(file)
@@ -273,7 +420,7 @@ def quarantine_backup(path: str | os.PathLike[str]) -> Path:
         ConfigError: there is no file at `path`.
     """
     file = Path(os.fspath(path))
-    if not file.is_file():
+    if not _is_file(file):
         raise ConfigError(f"no catalog backup to quarantine at {str(file)!r}")
     stamp = datetime.datetime.now(datetime.UTC).strftime("%Y%m%dT%H%M%S.%fZ")
     target = file.with_name(f"{file.name}.corrupt-{stamp}")
@@ -283,3 +430,53 @@ def quarantine_backup(path: str | os.PathLike[str]) -> Path:
             side.rename(f"{target}{suffix}")
     file.rename(target)
     return target
+
+
+FileId = tuple[int, int]
+"""A file's `(st_dev, st_ino)`: which file a name stands for."""
+
+
+def file_ids(path: Path) -> tuple[FileId | None, FileId | None]:
+    """Which files `path` and its `-wal` name now (`None` for a name that names none)."""
+    ids: list[FileId | None] = []
+    for name in (path, Path(f"{path}-wal")):
+        try:
+            st = os.stat(name)
+        except OSError:
+            ids.append(None)
+        else:
+            ids.append((st.st_dev, st.st_ino))
+    return ids[0], ids[1]
+
+
+def moved(path: Path, known: tuple[FileId | None, FileId | None]) -> str | None:
+    """Why `path` (or its `-wal`) no longer names the file a connection opened, or `None`.
+
+    A file deleted while it is open stays readable and writable through the connection,
+    but a crash takes it (and every commit in it) away; so does one replaced by another.
+    `known` is what `file_ids` said when the connection was opened (a `-wal` not known
+    yet is not checked).
+    """
+    now = file_ids(path)
+    for what, was, is_now in (("the file", known[0], now[0]), ("its -wal", known[1], now[1])):
+        if was is None or was == is_now:
+            continue
+        return f"{what} was deleted" if is_now is None else f"{what} was replaced"
+    return None
+
+
+def write_error(path: str, exc: BaseException) -> CatalogWriteError:
+    """The `CatalogWriteError` for a failed write to the backup `path`."""
+    if isinstance(exc, OSError) and exc.errno is not None:
+        name = errno_names.errorcode.get(exc.errno, str(exc.errno))
+        return CatalogWriteError(path, f"{name} ({exc.strerror})", exc.errno)
+    if isinstance(exc, sqlite3.Error):
+        code = getattr(exc, "sqlite_errorname", None) or type(exc).__name__
+        if code == "SQLITE_FULL":  # SQLite's unix VFS says so for ENOSPC (or a short write)
+            return CatalogWriteError(
+                path,
+                f"ENOSPC ({os.strerror(errno_names.ENOSPC)}): {exc} ({code})",
+                errno_names.ENOSPC,
+            )
+        return CatalogWriteError(path, f"{exc} ({code})")
+    return CatalogWriteError(path, f"{type(exc).__name__}: {exc}")

@@ -1,8 +1,10 @@
-"""The catalog backup: an embedded SQLite database (DESIGN.md rules 13-16).
+"""The catalog backup: an embedded SQLite database (semantics rules 13-16,
+docs/explanation/semantics.md).
 
 ```
- registrar --Changes--> Saver --write(changes)--> SqliteStore --plan: only what differs from
-   its mirror--> one transaction (WAL) --> file         (schema: `schema`, values: `codec`)
+ registrar --Changes--> Saver --write(changes)--> SqliteStore --`plan`: only what differs
+   from its mirror--> is the path still our file? (else copy it whole into place, `files`)
+   --> one transaction (WAL) --> file          (schema: `schema`, values: `codec`)
  SqliteStore.open: `files` checks, creates, validates and prepares the file
  SqliteStore.restore / load: `restore` reads it back; `checkpoints` copies the WAL off-thread
 ```
@@ -10,13 +12,16 @@
 One file per registrar, in WAL mode. Every `write` is one transaction, so a crash at any
 instant leaves the old or the new catalog, never a torn one. A write touches only the
 rows that changed (the store keeps a small mirror of what it wrote to compute the
-difference), so its cost does not grow with the catalog.
+difference), so its cost does not grow with the catalog. A write that fails (a full
+disk) raises `CatalogWriteError` and changes neither the file nor the mirror, so the same
+changes can be written again later.
 """
 
 from __future__ import annotations
 
 import contextlib
 import functools
+import logging
 import os
 import sqlite3
 from pathlib import Path
@@ -27,20 +32,25 @@ from rr_actors._catalog import (
     Changes,
     ClientRecord,
     Resource,
-    request_digest,
 )
 from rr_actors._store import checkpoints, codec
 from rr_actors._store.checkpoints import Checkpointer
-from rr_actors._store.codec import STATE_CODES, STATES_BY_CODE, as_corrupt, check_keys, check_row
+from rr_actors._store.codec import STATES_BY_CODE, as_corrupt, check_keys, check_row
 from rr_actors._store.files import (
-    SIDE_FILES,
     SYNCHRONOUS,
     check_location,
     connect,
+    copy_aside,
     create,
+    file_ids,
+    moved,
     prepare,
+    put_in_place,
+    remove_files,
     validate,
+    write_error,
 )
+from rr_actors._store.plan import GONE, Op, plan_client, plan_resource
 from rr_actors._store.restore import (
     CLIENTS,
     CONSUMERS_OF,
@@ -54,16 +64,11 @@ from rr_actors._store.restore import (
     read_rows,
 )
 from rr_actors._store.schema import rollback
-from rr_actors.errors import CatalogCorruptError, ConfigError
+from rr_actors.errors import CatalogCorruptError, CatalogWriteError, ConfigError
 
 __all__ = ["SqliteStore"]
 
-
-_Op = tuple[str, tuple[Any, ...]]
-"""One planned SQL statement and its parameters."""
-
-_GONE = object()
-"""Marks a mirror entry to delete once a write committed."""
+logger = logging.getLogger("rr_actors")
 
 
 class SqliteStore:
@@ -82,13 +87,14 @@ class SqliteStore:
         background_checkpoints: bool = False,
     ) -> None:
         self.path = str(path)
-        self._file = path
+        self._file = path.absolute()  # the same file after a chdir
         self._db = db
+        self._synchronous = synchronous
+        self._ids = file_ids(path)  # which files the connection opened (`_keep_in_place`)
+        self._aside: Path | None = None  # a whole copy not moved into place yet
         self._checkpointer: Checkpointer | None = None
         if background_checkpoints:
-            db.execute("PRAGMA wal_autocheckpoint = 0")  # the checkpointer's thread does it
-            db.execute(f"PRAGMA journal_size_limit = {checkpoints.WAL_KEPT}")
-            self._checkpointer = Checkpointer(path, synchronous)
+            self._hand_checkpoints_to_a_thread()
         self._unchecked = 0  # pages (about) written since the checkpointer was last woken
         self.checkpoint_every = checkpoints.CHECKPOINT_EVERY
         self._created = created
@@ -153,6 +159,11 @@ class SqliteStore:
             synchronous=SYNCHRONOUS[durability],
             background_checkpoints=background_checkpoints,
         )
+
+    def _hand_checkpoints_to_a_thread(self) -> None:
+        self._db.execute("PRAGMA wal_autocheckpoint = 0")  # the checkpointer's thread does it
+        self._db.execute(f"PRAGMA journal_size_limit = {checkpoints.WAL_KEPT}")
+        self._checkpointer = Checkpointer(self._file, self._synchronous)
 
     @property
     def connection(self) -> sqlite3.Connection:
@@ -261,26 +272,42 @@ class SqliteStore:
         before anything is written); a single statement is its own transaction (most
         changes: a consumer id added or released), several run between `BEGIN IMMEDIATE`
         and `COMMIT`. What the store remembers of the file changes only once committed.
+
+        Before it commits, it checks that the path still names the file it writes to
+        (`_keep_in_place`): a backup deleted or replaced while the registrar runs is
+        written again, whole, with a WARNING.
+
+        Raises:
+            CatalogWriteError: the write (or writing the file again) failed: a full
+                disk (`errno` `ENOSPC`), an I/O error, ... Nothing of `changes` was
+                written, and the store is as before: write them again later (with what
+                changed since) and they are written.
+            CatalogCorruptError: rows that the first write had to read first (`load`)
+                cannot be read.
         """
         if not self._loaded:
             self.load()
-        ops: list[_Op] = []
-        mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, new value | _GONE)
+        ops: list[Op] = []
+        mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, new value | GONE)
         seq = self._seq
         for rid, resource in changes.resources.items():
-            seq = self._plan_resource(ops, mirrors, rid, resource, seq)
+            seq = plan_resource(self._resources, ops, mirrors, rid, resource, seq)
         for qid, record in changes.clients.items():
-            seq = self._plan_client(ops, mirrors, qid, record, seq)
+            seq = plan_client(self._clients, ops, mirrors, qid, record, seq)
         if ops:
-            self._run(ops)
+            self._keep_in_place()
+            try:
+                self._run(ops)
+            except sqlite3.Error as exc:
+                raise write_error(self.path, exc) from exc
         self._seq = seq
         for table, key, value in mirrors:
-            if value is _GONE:
+            if value is GONE:
                 table.pop(key, None)
             else:
                 table[key] = value
 
-    def _run(self, ops: list[_Op]) -> None:
+    def _run(self, ops: list[Op]) -> None:
         db = self._db
         if len(ops) == 1 and not db.in_transaction:  # one statement: its own transaction
             sql, params = ops[0]
@@ -307,144 +334,74 @@ class SqliteStore:
                 db.execute("PRAGMA wal_autocheckpoint = 1000")
                 self._checkpointer = None
 
-    def _plan_resource(
-        self,
-        ops: list[_Op],
-        mirrors: list[tuple[dict[str, Any], str, Any]],
-        rid: str,
-        resource: Resource | None,
-        seq: int,
-    ) -> int:
-        old = self._resources.get(rid)
-        if resource is None:
-            if old is not None:
-                ops.append(("DELETE FROM resources WHERE seq = ?", (old.seq,)))
-                ops.append(("DELETE FROM consumers WHERE resource = ?", (old.seq,)))
-                mirrors.append((self._resources, rid, _GONE))
-            return seq
-        if old is None:
-            seq += 1
-            digest = resource.digest
-            if digest is None:
-                digest = request_digest(resource.request)
-            ops.append(
-                (
-                    "INSERT INTO resources (seq, id, server, state, digest, request, response) "
-                    "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    (
-                        seq,
-                        rid,
-                        resource.server,
-                        STATE_CODES[resource.state],
-                        None if digest == NO_DIGEST else digest,
-                        codec.dumps(resource.request),
-                        codec.dumps(resource.response),
-                    ),
-                )
-            )
-            old_consumers: dict[str, int] = {}
-            row = seq
-        else:
-            if old.response_version != resource.response_version:
-                ops.append(
-                    (
-                        "UPDATE resources SET state = ?, response = ? WHERE seq = ?",
-                        (STATE_CODES[resource.state], codec.dumps(resource.response), old.seq),
-                    )
-                )
-            elif old.state is not resource.state:
-                ops.append(
-                    (
-                        "UPDATE resources SET state = ? WHERE seq = ?",
-                        (STATE_CODES[resource.state], old.seq),
-                    )
-                )
-            old_consumers = old.consumers
-            row = old.seq
-        consumers = {}
-        kept = 0
-        for query_id, origin in resource.consumers.items():
-            key = old_consumers.get(query_id)
-            if key is None:
-                seq += 1
-                key = seq
-                ops.append(
-                    (
-                        "INSERT INTO consumers (resource, seq, query_id, origin_rr) "
-                        "VALUES (?, ?, ?, ?)",
-                        (row, key, query_id, origin),
-                    )
-                )
-            else:
-                kept += 1
-            consumers[query_id] = key
-        if kept != len(old_consumers):  # some consumers left since the last write
-            ops.extend(
-                ("DELETE FROM consumers WHERE resource = ? AND seq = ?", (row, key))
-                for query_id, key in old_consumers.items()
-                if query_id not in consumers
-            )
-        mirror = Mirror(row, resource.state, resource.response_version, consumers)
-        mirrors.append((self._resources, rid, mirror))
-        return seq
+    def _keep_in_place(self) -> None:
+        """Write the whole catalog to a new file if the path lost the one being written.
 
-    def _plan_client(
-        self,
-        ops: list[_Op],
-        mirrors: list[tuple[dict[str, Any], str, Any]],
-        qid: str,
-        record: ClientRecord | None,
-        seq: int,
-    ) -> int:
-        old = self._clients.get(qid)
-        if record is None:
-            if old is not None:
-                ops.append(("DELETE FROM clients WHERE seq = ?", (old[0],)))
-                mirrors.append((self._clients, qid, _GONE))
-            return seq
-        query = record.query
-        if old is None:
-            seq += 1
-            row = seq
-            ops.append(
-                (
-                    "INSERT INTO clients (seq, query_id, server, serving_rr, origin_rr, "
-                    "request, response, parent, loaded) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                    (
-                        seq,
-                        qid,
-                        query.server,
-                        query.serving_rr,
-                        query.origin_rr,
-                        codec.dumps(query.request),
-                        codec.dumps(query.response),
-                        record.parent,
-                        int(record.loaded),
-                    ),
-                )
-            )
-        elif old[1] == record.response_version:
-            row = old[0]
-            ops.append(("UPDATE clients SET loaded = ? WHERE seq = ?", (int(record.loaded), row)))
-        else:
-            row = old[0]
-            ops.append(
-                (
-                    "UPDATE clients SET response = ?, loaded = ? WHERE seq = ?",
-                    (codec.dumps(query.response), int(record.loaded), row),
-                )
-            )
-        mirrors.append((self._clients, qid, (row, record.response_version)))
-        return seq
+        A backup deleted while its registrar runs stays usable through the open
+        connection, so nothing would fail, and the next crash would take every commit
+        with it. So before each commit the store checks that the path and its `-wal`
+        still name the files it opened (two `stat` calls), and if not, copies what it
+        has (every committed page, read through its connection) to a new file and moves
+        it into place, then writes there. Nothing committed is lost; a crash between
+        the deletion and this commit loses the whole file (see failure-semantics.md).
 
-    def close(self, *, erase: bool) -> None:
-        """Close the database; with `erase`, delete the file and its companions."""
-        self.closed = True
+        Raises:
+            CatalogWriteError: the copy could not be written or moved into place (the
+                store keeps writing to the file it has, and tries again next time).
+        """
+        if self._aside is None:
+            if self._ids[1] is None:  # the -wal appears with the first transaction
+                self._ids = (self._ids[0], file_ids(self._file)[1])
+            why = moved(self._file, self._ids)
+            if why is None:
+                return
+            logger.warning(
+                "catalog backup %s: %s while its registrar runs; writing the whole catalog "
+                "to a new file there",
+                self.path,
+                why,
+            )
+            try:
+                self._aside = copy_aside(self._db, self._file)
+            except (sqlite3.Error, OSError) as exc:
+                raise write_error(self.path, exc) from exc
+            self._close_connections()
+        try:  # no connection is open on the old file now: SQLite would remove the new -wal
+            put_in_place(self._aside, self._file)
+            self._aside = None
+            db = connect(self._file, read_only=False)
+            db.execute(f"PRAGMA synchronous = {self._synchronous}")
+        except (sqlite3.Error, OSError) as exc:
+            raise write_error(self.path, exc) from exc
+        self._db = db
+        self._ids = file_ids(self._file)
+        if self._checkpointer is not None:
+            self._hand_checkpoints_to_a_thread()
+
+    def _close_connections(self) -> None:
         if self._checkpointer is not None:
             self._checkpointer.close()
         with contextlib.suppress(sqlite3.Error):
             self._db.close()
+
+    def close(self, *, erase: bool) -> None:
+        """Close the database; with `erase`, delete the file and its companions.
+
+        Without `erase`, a file deleted or replaced since the last commit is written
+        again first (as `write` does); if that fails, the failure is logged (ERROR) and
+        the store closed all the same: closing never raises.
+        """
+        if not self.closed:
+            if not erase:
+                try:
+                    self._keep_in_place()
+                except CatalogWriteError as exc:  # logged: a stop or a crash goes on
+                    kept = f"a whole copy is at {self._aside}" if self._aside else "it is lost"
+                    logger.error("%s; %s", exc, kept)  # noqa: TRY400 - the cause says it all
+            self.closed = True
+            if self._aside is None:
+                self._close_connections()
         if erase:
-            for suffix in ("", *SIDE_FILES):
-                with contextlib.suppress(FileNotFoundError):
-                    Path(f"{self._file}{suffix}").unlink()
+            remove_files(self._file)
+        if self._aside is not None and erase:
+            remove_files(self._aside)
