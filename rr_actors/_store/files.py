@@ -436,10 +436,10 @@ FileId = tuple[int, int]
 """A file's `(st_dev, st_ino)`: which file a name stands for."""
 
 
-def file_ids(path: Path) -> tuple[FileId | None, FileId | None]:
+def file_ids(path: Path | str) -> tuple[FileId | None, FileId | None]:
     """Which files `path` and its `-wal` name now (`None` for a name that names none)."""
     ids: list[FileId | None] = []
-    for name in (path, Path(f"{path}-wal")):
+    for name in (os.fspath(path), f"{path}-wal"):
         try:
             st = os.stat(name)
         except OSError:
@@ -449,13 +449,13 @@ def file_ids(path: Path) -> tuple[FileId | None, FileId | None]:
     return ids[0], ids[1]
 
 
-def moved(path: Path, known: tuple[FileId | None, FileId | None]) -> str | None:
+def moved(path: Path | str, known: tuple[FileId | None, FileId | None]) -> str | None:
     """Why `path` (or its `-wal`) no longer names the file a connection opened, or `None`.
 
     A file deleted while it is open stays readable and writable through the connection,
     but a crash takes it (and every commit in it) away; so does one replaced by another.
     `known` is what `file_ids` said when the connection was opened (a `-wal` not known
-    yet is not checked).
+    yet is not checked). Two `stat` calls (a few microseconds).
     """
     now = file_ids(path)
     for what, was, is_now in (("the file", known[0], now[0]), ("its -wal", known[1], now[1])):

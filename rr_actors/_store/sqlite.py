@@ -88,9 +88,10 @@ class SqliteStore:
     ) -> None:
         self.path = str(path)
         self._file = path.absolute()  # the same file after a chdir
+        self._name = str(self._file)  # (what `_keep_in_place` stats before each commit)
         self._db = db
         self._synchronous = synchronous
-        self._ids = file_ids(path)  # which files the connection opened (`_keep_in_place`)
+        self._ids = file_ids(self._name)  # the files the connection opened (`_keep_in_place`)
         self._aside: Path | None = None  # a whole copy not moved into place yet
         self._checkpointer: Checkpointer | None = None
         if background_checkpoints:
@@ -351,8 +352,8 @@ class SqliteStore:
         """
         if self._aside is None:
             if self._ids[1] is None:  # the -wal appears with the first transaction
-                self._ids = (self._ids[0], file_ids(self._file)[1])
-            why = moved(self._file, self._ids)
+                self._ids = (self._ids[0], file_ids(self._name)[1])
+            why = moved(self._name, self._ids)
             if why is None:
                 return
             logger.warning(
