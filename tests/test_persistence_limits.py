@@ -296,6 +296,33 @@ def test_a_manager_whose_backup_was_deleted_mid_run_restores_every_acknowledged_
     assert set(before + after) == held
 
 
+def test_a_copy_that_could_not_be_moved_into_place_is_moved_by_the_next_write(
+    tmp_path: Path, store_at: Callable[..., SqliteStore], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "p.db"
+    store = store_at(path)
+    catalog = Catalog()
+    store.write(loaded(catalog, "r1", "q1"))
+    delete_all(path)
+    real_replace = os.replace
+
+    def replace_fails_once(src: Any, dst: Any) -> None:
+        monkeypatch.setattr(os, "replace", real_replace)
+        raise OSError(errno.EIO, "Input/output error (injected)")
+
+    monkeypatch.setattr(os, "replace", replace_fails_once)
+    catalog.add_consumer("r1", "q2", "C")
+    changes = catalog.drain_changes()
+    with pytest.raises(rr.CatalogWriteError, match="EIO"):
+        store.write(changes)
+    copies = [p.name for p in tmp_path.iterdir() if p.name.endswith(".rewriting")]
+
+    store.write(changes)
+
+    assert (1, {"r1": ["q1", "q2"]}) == (len(copies), consumers_on_disk(path))
+    assert [] == [p.name for p in tmp_path.iterdir() if p.name.endswith(".rewriting")]
+
+
 # -- 8. a full disk: CatalogWriteError, and nothing is lost ------------------------------------
 
 

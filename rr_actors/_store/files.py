@@ -266,14 +266,10 @@ def put_in_place(tmp: Path, path: Path) -> None:
     to the file that was at `path` is closed.
 
     Raises:
-        OSError: the move failed (`tmp` is then removed).
+        OSError: the move failed; `tmp` is kept (it may be the only whole copy left).
     """
-    try:
-        remove_files(path, SIDE_FILES)
-        os.replace(tmp, path)
-    except BaseException:
-        remove_files(tmp)
-        raise
+    remove_files(path, SIDE_FILES)
+    os.replace(tmp, path)
     remove_files(tmp, SIDE_FILES)
 
 
