@@ -16,6 +16,7 @@ from rr_actors.config import Backoff, ManagerSpec, RegistrarConfig, SupervisorSp
 from rr_actors.errors import (
     CallTimeoutError,
     CatalogCorruptError,
+    CatalogWriteError,
     ConfigError,
     DependencyCycleError,
     DuplicateNameError,
@@ -35,6 +36,7 @@ __all__ = [
     "Backoff",
     "CallTimeoutError",
     "CatalogCorruptError",
+    "CatalogWriteError",
     "ChildCounts",
     "ChildInfo",
     "ConfigError",

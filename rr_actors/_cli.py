@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, TextIO
 
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
-from rr_actors._store.sqlite import Backup, Unreadable, read_backup
+from rr_actors._store import Backup, Unreadable, read_backup
 from rr_actors.errors import CatalogCorruptError, ConfigError
 
 __all__ = ["COMMANDS", "Command", "backup_to_dict", "main", "render_tree"]
