@@ -125,13 +125,19 @@ class Consumer:
     # -- answers ----------------------------------------------------------------------
 
     def on_pending(self, message: Pending) -> None:
-        self.pending_attempts[message.record.query.id] = message.attempt
-        if message.record.query.id not in self.s.catalog.clients:  # (else a retry of one held)
+        query_id = message.record.query.id
+        if query_id not in self.s.catalog.clients:  # (else a retry of one held)
             record = message.record
             if self.owner_gone(record):  # a late sub-call: kept as a call of its own, so a
                 record = ClientRecord(record.query, None)  # crash meanwhile gives it back
             self.s.catalog.add_client(record)
-            self.s.commit()
+            failed = self.s.commit()
+            if failed is not None:  # not durable: the Load must not leave (rule 16)
+                self.s.catalog.remove_client(query_id)
+                self.s.commit()
+                message.reply.set_error(failed)
+                return
+        self.pending_attempts[query_id] = message.attempt
         message.reply.set_result(None)  # durable: the Load may leave now (rule 16)
 
     def on_client_loaded(self, message: ClientLoaded) -> None:
@@ -164,9 +170,14 @@ class Consumer:
                 catalog.client_loaded(query.id, query.response)
             else:
                 catalog.add_client(message.record)
+            failed = self.s.commit()
+            if failed is not None and message.answer_after_commit:  # durable: not kept
+                give_back(query.serving_rr, query.id, self.s.name)
+                self.forget(query.id)
+                message.attempt.fulfil(exc_info=(type(failed), failed, None))
+                return
             if message.on_status is not None:
                 self.status_callbacks[query.id] = message.on_status
-            self.s.commit()
             if message.answer_after_commit:
                 message.attempt.fulfil(query.response)
         except BaseException as exc:  # a reserved future must be settled on every path

@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import logging
 import threading
 from typing import TYPE_CHECKING, Any
 
@@ -38,7 +39,12 @@ from rr_actors._registrar.messages import (
     give_back,
 )
 from rr_actors._registrar.state import OpenReply, Phase, Shared
-from rr_actors.errors import RegistrarStoppedError, RegistrarUnavailableError, RrError
+from rr_actors.errors import (
+    CatalogWriteError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    RrError,
+)
 
 if TYPE_CHECKING:
     from rr_actors._registrar.actor import RegistrarActor
@@ -46,6 +52,8 @@ if TYPE_CHECKING:
     from rr_actors._registrar.provider import Provider
 
 __all__ = ["CatalogView", "Lifecycle"]
+
+logger = logging.getLogger("rr_actors")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,8 +149,12 @@ class Lifecycle:
     def on_flush(self, _: Flush) -> None:
         if self.s.stopping:
             return
-        self.s.saver.flush()
-        self.arm_flush_timer()
+        try:
+            self.s.saver.flush()
+        except CatalogWriteError as exc:  # the changes stay pending: the next flush tries
+            logger.warning("registrar %s: the interval save failed: %s", self.s.name, exc)
+        finally:
+            self.arm_flush_timer()
 
     def op_save(self, reply: Reply) -> None:
         self.s.commit()
@@ -200,10 +212,18 @@ class Lifecycle:
             self.s.commit()
             if self.flush_timer is not None:
                 self.flush_timer.cancel()
-            self.s.saver.close(erase=self.s.config.erase_on_destruct)
+            unsaved: CatalogWriteError | None = None
+            try:
+                self.s.saver.close(erase=self.s.config.erase_on_destruct)
+            except CatalogWriteError as exc:  # stopped anyway; its caller hears what was lost
+                logger.error("registrar %s stopped without its last changes: %s", self.s.name, exc)  # noqa: TRY400
+                unsaved = exc
             DIRECTORY.unregister(self.s.peer, "stopped")
             self.stop_children()
-            reply.set_result(None)
+            if unsaved is None:
+                reply.set_result(None)
+            else:
+                reply.set_error(unsaved)
             self.fail_waiting(RegistrarStoppedError(f"registrar {self.s.name!r} was stopped"))
             self.s.probe("stop_drained", None)
             self.s.phase = Phase.ENDED

@@ -130,45 +130,53 @@ class Provider:
             self.held_loads.append(message)  # served once setup has registered its servers
             return
         refusal = self.refusal(message)
+        if refusal is None:
+            self.abandoned.discard(message.query_id)  # a retry: its caller is back
+            if catalog.has_consumer(message.query_id):  # a retry of an answered call
+                message.reply.set_result(catalog.resource_of(message.query_id).response)
+                return
+            refusal = self.s.unwritable()  # a full disk: serve what is stored, nothing new
         if refusal is not None:
             message.reply.set_error(refusal)
             return
-        self.abandoned.discard(message.query_id)  # a retry: its caller is back
-        if catalog.has_consumer(message.query_id):  # a retry of an answered call
-            message.reply.set_result(catalog.resource_of(message.query_id).response)
-            return
         resource = catalog.find(message.server, message.request)
         if resource is not None and resource.state is ResourceState.LOADED:  # the hot path
-            catalog.add_consumer(resource.id, message.query_id, message.origin_rr)
-            self.s.commit()
-            message.reply.set_result(resource.response)
-            if self.s.events.active:
-                self.s.events.publish(
-                    events.ConsumerAdded(
-                        self.s.name, resource.id, message.query_id, message.origin_rr
-                    )
-                )
+            self.share(resource, message)
             return
         waiter = Waiter(message.query_id, message.origin_rr, message.reply)
         rid = self.loading_ids.get(message.query_id)
         if rid is not None:  # a retry while its load runs
             self.loads[rid].append(waiter)
-            return
-        if resource is None:
+        elif resource is None:
             self.start_load(self.s.servers[message.server], message, waiter)
-        elif resource.state is ResourceState.LOADING:
-            if resource.id in message.chain:
-                message.reply.set_error(
-                    DependencyCycleError(
-                        f"'{self.s.name}/{message.server}' is asked for {message.request!r} "
-                        f"while loading it further up the same chain"
-                    )
+        elif resource.state is ResourceState.UNLOADING:  # load it afresh once it is gone
+            self.after_unload.setdefault(resource.id, []).append(message)
+        elif resource.id in message.chain:
+            message.reply.set_error(
+                DependencyCycleError(
+                    f"'{self.s.name}/{message.server}' is asked for {message.request!r} "
+                    f"while loading it further up the same chain"
                 )
-                return
+            )
+        else:  # loading: wait for it (one load per resource, rule 3)
             self.loads[resource.id].append(waiter)
             self.loading_ids[message.query_id] = resource.id
-        else:  # unloading: load it afresh once the unload finished
-            self.after_unload.setdefault(resource.id, []).append(message)
+
+    def share(self, resource: Resource, message: Load) -> None:
+        """A dedup hit: one more consumer of a loaded resource (rules 1-2)."""
+        catalog = self.s.catalog
+        catalog.add_consumer(resource.id, message.query_id, message.origin_rr)
+        failed = self.s.commit()
+        if failed is not None:  # not durable: the caller holds nothing
+            catalog.release(message.query_id)
+            self.s.commit()
+            message.reply.set_error(failed)
+            return
+        message.reply.set_result(resource.response)
+        if self.s.events.active:
+            self.s.events.publish(
+                events.ConsumerAdded(self.s.name, resource.id, message.query_id, message.origin_rr)
+            )
 
     def start_load(self, server: Server, message: Load, waiter: Waiter) -> None:
         if self.s.saver.store is not None:  # the backup must be able to hold the request
@@ -179,7 +187,12 @@ class Provider:
                 return
         rid = str(uuid.uuid4())
         self.s.catalog.begin_load(rid, message.server, message.request)
-        self.s.commit()
+        failed = self.s.commit()
+        if failed is not None:  # not durable: load nothing (rule 16 needs the record)
+            self.s.catalog.remove_resource(rid)
+            self.s.commit()
+            message.reply.set_error(failed)
+            return
         self.loads[rid] = [waiter]
         self.loading_ids[message.query_id] = rid
         self.load_started[rid] = time.monotonic()
@@ -209,15 +222,17 @@ class Provider:
             return
         catalog.finish_load(rid, response)
         live = self._add_consumers(rid, waiters)
-        self.s.commit()
+        refusal: RrError | None = self.s.commit()  # not durable: unload it, fail the callers
         server = self.s.servers.get(resource.server)
-        if server is None or server.closing:
+        if refusal is None and (server is None or server.closing):
+            refusal = UnknownServerError(
+                f"resource server '{self.s.name}/{resource.server}' closed"
+            )
+        if refusal is not None:
             for waiter in live:
                 if catalog.has_consumer(waiter.query_id):  # a retry may be listed twice
                     catalog.release(waiter.query_id)
-                waiter.reply.set_error(
-                    UnknownServerError(f"resource server '{self.s.name}/{resource.server}' closed")
-                )
+                waiter.reply.set_error(refusal)
             live = []
         for waiter in live:
             waiter.reply.set_result(response)
@@ -296,7 +311,16 @@ class Provider:
             self.release(query_id, None)
 
     def release(self, query_id: str, reply: Reply | None) -> None:
-        """Release consumer id `query_id` (rules 7-8); answer `reply` when it is done."""
+        """Release consumer id `query_id` (rules 7-8); answer `reply` when it is done.
+
+        While a durable registrar's backup cannot be written an `Unload` is refused
+        (nothing changes; the consumer keeps the id and may try again); a give-up
+        (`reply` is `None`) is carried out and written with the next write that succeeds.
+        """
+        unwritable = self.s.unwritable() if reply is not None else None
+        if unwritable is not None:
+            reply.set_error(unwritable)  # type: ignore[union-attr]
+            return
         parked = self.unpark(query_id)
         if parked is not None:  # it waited behind an unload or for setup: it never loads
             parked.reply.set_error(CallTimeoutError(f"call {query_id} was given up"))
@@ -308,30 +332,30 @@ class Provider:
             if reply is not None:
                 reply.set_result(None)
             return
-        origin = self._origin(query_id) if self.s.events.active else None
+        catalog = self.s.catalog
         try:
-            resource = self.s.catalog.release(query_id)
+            resource = catalog.resource_of(query_id)
         except UnknownQueryError as exc:
             if reply is not None:
                 reply.set_error(exc)
             return
-        if origin is not None:
+        origin = resource.consumers[query_id]
+        catalog.release(query_id)
+        failed = self.s.commit()
+        if failed is not None and reply is not None:  # not durable: nothing changes
+            catalog.add_consumer(resource.id, query_id, origin)
+            self.s.commit()
+            reply.set_error(failed)
+            return
+        if self.s.events.active:
             self.s.events.publish(
                 events.ConsumerReleased(self.s.name, resource.id, query_id, origin)
             )
         if resource.consumers or resource.state is not ResourceState.LOADED:
-            self.s.commit()
             if reply is not None:
                 reply.set_result(None)
             return
         self.unload_resource(resource, reply)
-
-    def _origin(self, query_id: str) -> str | None:
-        """The registrar that holds consumer id `query_id` here (`None`: unknown id)."""
-        try:
-            return self.s.catalog.resource_of(query_id).consumers.get(query_id)
-        except UnknownQueryError:
-            return None
 
     def unpark(self, query_id: str) -> Load | None:
         """Take the load of `query_id` out of the held or parked loads, if it is there."""

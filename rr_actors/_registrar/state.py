@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -28,9 +29,11 @@ from rr_actors._registrar.probes import Probes
 from rr_actors._store import Saver
 from rr_actors._types import StatusCallback
 from rr_actors.config import RegistrarConfig
-from rr_actors.errors import RrError
+from rr_actors.errors import CatalogWriteError, RrError
 
 __all__ = ["OpenReply", "Phase", "Server", "Shared", "Waiter"]
+
+logger = logging.getLogger("rr_actors")
 
 
 class Phase(enum.Enum):
@@ -141,13 +144,43 @@ class Shared:
         """Whether it stops (or ended): it takes no new loads and keeps no new answers."""
         return self.phase is Phase.STOPPING or self.phase is Phase.ENDED
 
-    def commit(self) -> None:
-        """Hand the catalog's changes to the save policy (durable now, or at the next flush)."""
+    def commit(self) -> CatalogWriteError | None:
+        """Hand the catalog's changes to the save policy (durable now, or at the next flush).
+
+        Returns:
+            `None`, or the error of a write that failed (a full disk): the changes stay
+            pending in memory and go with the next write that succeeds. A step whose
+            caller waits for durability undoes its change and fails the caller with it.
+        """
         if self.saver.store is None:  # nothing persists this catalog
-            return
+            return None
         changes = self.catalog.drain_changes()
-        if changes:
+        if not changes:
+            return None
+        healthy = self.saver.failure is None
+        try:
             self.saver.changed(changes)
+        except CatalogWriteError as exc:
+            if healthy:  # once per failing streak: the next success clears it
+                logger.warning(
+                    "registrar %s: %s; changes wait in memory, new loads are refused until "
+                    "a write succeeds",
+                    self.name,
+                    exc,
+                )
+            return exc
+        return None
+
+    def unwritable(self) -> CatalogWriteError | None:
+        """Why a durable registrar must refuse new loads now: its backup cannot be written.
+
+        While an earlier write failed, each new load first tries it again (`Saver.retry`);
+        `None` once it succeeds (or for a registrar without `save_on_modify`).
+        """
+        saver = self.saver
+        if not saver.durable or saver.failure is None or saver.retry():
+            return None
+        return saver.failure
 
     def come_back(self, then: Continuation) -> TokenReply:
         """A reply that runs `then(value, error)` back on this actor's thread."""
