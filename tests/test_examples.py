@@ -116,23 +116,3 @@ def test_filtered_camera_say_writes_whole_lines_from_many_threads(
 
     assert 8 * 300 == len(lines)
     assert [] == [line for line in lines if not re.fullmatch(r"\[ {6}t\d\] \d+", line)]
-
-
-ROOT = EXAMPLES.parent
-
-
-def test_readme_quickstart_is_examples_quickstart() -> None:
-    readme = (ROOT / "README.md").read_text()
-    block = readme.split("```python\n", 1)[1].split("```\n", 1)[0]
-
-    assert (EXAMPLES / "quickstart.py").read_text() == block
-
-
-def test_readme_starts_with_the_demo_and_the_test_command_that_ci_runs() -> None:
-    lines = (ROOT / "README.md").read_text().splitlines()
-    test_command = lines[2].split("&&", 1)[1].strip()
-
-    assert ["```bash", "```"] == [lines[0], lines[3]]
-    assert 'pip install -e ".[demo]" && rr-actors demo' == lines[1]
-    assert lines[2].startswith('pip install -e ".[dev]" && ')
-    assert f"\n{test_command} || status=$?\n" in (ROOT / ".ci" / "run").read_text()
