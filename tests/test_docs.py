@@ -37,6 +37,7 @@ A marker without a reason, or one that is not followed by a block, fails the tes
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -227,6 +228,9 @@ class Kernel:
         if self.proc.poll() is None:
             os.killpg(self.proc.pid, signal.SIGKILL)
         self.proc.wait(EXIT_TIMEOUT)
+        if self.proc.stdin is not None:
+            with contextlib.suppress(BrokenPipeError):
+                self.proc.stdin.close()
         self.replies.close()
 
 
@@ -481,3 +485,29 @@ def test_git_ignores_what_the_demo_writes_by_default() -> None:
     ignored = (ROOT / ".gitignore").read_text().splitlines()
 
     assert f"{DEFAULT_OUT}/" in ignored
+
+
+def test_a_page_that_leaves_a_registrar_running_fails(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(sys.modules[__name__], "EXIT_TIMEOUT", 2.0)
+    page = tmp_path / "page.md"
+    page.write_text(
+        "```python\nimport rr_actors as rr\nleft = rr.ResourceRegistrar.start('x')\n```\n"
+    )
+    (block,) = blocks(page)
+    kernel = Kernel(tmp_path)
+    kernel.run(block, block.code)
+
+    with pytest.raises(pytest.fail.Exception, match="leave something running"):
+        kernel.finish(page)
+
+
+def test_a_python_block_that_raises_fails_with_the_page_and_line(tmp_path: Path) -> None:
+    page = tmp_path / "page.md"
+    page.write_text("# t\n\n```python\nx = 1\nstart_camera()\n```\n")
+    (block,) = blocks(page)
+    kernel = Kernel(tmp_path)
+
+    with pytest.raises(pytest.fail.Exception, match=r"(?s)page.md:3 raised.*line 5.*NameError"):
+        kernel.run(block, block.code)

@@ -99,6 +99,15 @@ def _cells(row: TimelineRow) -> tuple[str, ...]:
     )
 
 
+def _notes(report: MissionReport) -> list[str]:
+    notes = []
+    if report.faults:
+        notes.append("detected, recovered: seconds after the injection")
+    if report.unplanned_restarts:
+        notes.append("-: a manager restart no fault caused, when the mission noticed it")
+    return notes
+
+
 def _totals(report: MissionReport) -> list[str]:
     return [
         f"mission time {report.mission_time_s:.2f} s (no stop: {report.nominal_time_s:.2f} s), "
@@ -126,8 +135,7 @@ def timeline(report: MissionReport) -> str:
         for row in rows
     ]
     lines.insert(1, "  ".join("-" * width for width in widths))
-    if report.faults:
-        lines.append("(detected, recovered: seconds after the injection)")
+    lines.extend(f"({note})" for note in _notes(report))
     return "\n".join([*lines, "", *_totals(report)])
 
 
@@ -208,8 +216,7 @@ def timeline_table(report: MissionReport) -> Table:
         table.add_column(header, justify="left" if i < 2 else "right", no_wrap=i != 1)
     for row in timeline_rows(report):
         table.add_row(*_cells(row))
-    if report.faults:
-        table.caption = "detected, recovered: seconds after the injection"
+    table.caption = "\n".join(_notes(report)) or None
     return table
 
 
@@ -284,6 +291,7 @@ class RichOutput:
         self._print("")
         if report.faults or report.unplanned_restarts:
             self._print(timeline_table(report))
+            self._print("")
         for line in [*_totals(report), "", *files]:
             self._print(line)
 
