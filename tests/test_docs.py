@@ -1,8 +1,8 @@
 """Every code block in README.md and docs/ runs, or says why it cannot.
 
 One test per page. The page's fenced blocks are taken in page order, in a fresh temporary
-working directory for the page (with `examples/` and `benchmarks/` linked into it, so the
-commands read as written):
+working directory for the page (with `examples/` linked into it, so the commands read as
+written):
 
 - `python` blocks run one after the other in one interpreter (`tests/docs_kernel.py`), as
   if pasted into one session: a later block sees what earlier ones defined, and
@@ -362,8 +362,7 @@ def python_block(block: Block) -> str | None:
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize("page", PAGES, ids=[str(p.relative_to(ROOT)) for p in PAGES])
 def test_every_code_block_of_the_page_runs_or_says_why_not(page: Path, tmp_path: Path) -> None:
-    for name in ("examples", "benchmarks"):
-        (tmp_path / name).symlink_to(ROOT / name)
+    (tmp_path / "examples").symlink_to(ROOT / "examples")
     kernel: Kernel | None = None
     done: set[tuple[str, ...]] = set()
     try:
@@ -511,3 +510,12 @@ def test_a_python_block_that_raises_fails_with_the_page_and_line(tmp_path: Path)
 
     with pytest.raises(pytest.fail.Exception, match=r"(?s)page.md:3 raised.*line 5.*NameError"):
         kernel.run(block, block.code)
+
+
+def test_the_readme_says_on_which_platforms_it_runs() -> None:
+    platform = [
+        line for line in (ROOT / "README.md").read_text().splitlines() if "Platform:" in line
+    ]
+
+    assert 1 == len(platform)
+    assert "Linux" in platform[0]
