@@ -456,24 +456,9 @@ def test_readme_starts_with_the_demo_and_the_test_command_that_ci_runs() -> None
     assert ci_test_command() == test_command
 
 
-ELSEWHERE_CITING_DESIGN = {
-    "rr_actors/_registrar/protocol.py",
-    "rr_actors/_registrar/registrar.py",
-    "rr_actors/_store/sqlite.py",
-}
-"""Modules under another refactoring that still cite the DESIGN document in a docstring.
-
-They may (until fixed there); nothing else may. Shrink it, never grow it.
-"""
-
-
 def test_no_page_example_or_docstring_cites_a_design_document_the_reader_does_not_have() -> None:
     readable = [*PAGES, *(ROOT / "examples").glob("*.py"), *(ROOT / "rr_actors").rglob("*.py")]
-    citing = [
-        rel(path)
-        for path in readable
-        if re.search(r"\bDESIGN\b", path.read_text()) and rel(path) not in ELSEWHERE_CITING_DESIGN
-    ]
+    citing = [rel(path) for path in readable if re.search(r"\bDESIGN\b", path.read_text())]
 
     assert [] == citing
 
