@@ -38,7 +38,7 @@ from typing import Any
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog
-from rr_actors._store.sqlite import SqliteStore, gc_paused
+from rr_actors._store import SqliteStore, gc_paused
 
 Sample = Callable[[], None]
 BATCHED = 100  # changes per sample in the batched (save_interval) rows

@@ -31,10 +31,18 @@ import rr_actors as rr
 # A stand-in for a device driver: it runs until its standard input is closed.
 PROGRAM = "import sys; sys.stdin.read()"
 
+# The story is told from several threads (the registrars' workers, the process watchers).
+# `print` writes the text and the line end separately, so another thread's line could
+# land between them: each line is written whole, under a lock.
+_SAY_LOCK = threading.Lock()
+
 
 def say(who: str, text: str) -> None:
-    """Print one line of the story."""
-    print(f"[{who:>8}] {text}", flush=True)
+    """Print one line of the story (safe from any thread: lines never interleave)."""
+    line = f"[{who:>8}] {text}\n"
+    with _SAY_LOCK:
+        sys.stdout.write(line)
+        sys.stdout.flush()
 
 
 class ProcessServer:

@@ -6,6 +6,8 @@ the semantics (`docs/explanation/semantics.md`) and the architecture.
 
 import logging
 
+from rr_actors import events as events  # `rr.events.to_dict(...)`, as `rr.errors` is
+from rr_actors._core.bus import Subscription
 from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, Registrar, ResourceRegistrar
 from rr_actors._store import quarantine_backup
 from rr_actors._supervision import ChildCounts, ChildInfo, Supervisor
@@ -14,6 +16,7 @@ from rr_actors.config import Backoff, ManagerSpec, RegistrarConfig, SupervisorSp
 from rr_actors.errors import (
     CallTimeoutError,
     CatalogCorruptError,
+    CatalogWriteError,
     ConfigError,
     DependencyCycleError,
     DuplicateNameError,
@@ -33,6 +36,7 @@ __all__ = [
     "Backoff",
     "CallTimeoutError",
     "CatalogCorruptError",
+    "CatalogWriteError",
     "ChildCounts",
     "ChildInfo",
     "ConfigError",
@@ -51,6 +55,7 @@ __all__ = [
     "Status",
     "StatusCallback",
     "StatusUpdate",
+    "Subscription",
     "Supervisor",
     "SupervisorGaveUpError",
     "SupervisorSpec",

@@ -3,24 +3,28 @@
 Each subcommand is one `Command`: a name, a one-line help, a function that adds its
 arguments, and a function that runs it. Add a subcommand by appending to `COMMANDS`.
 
+    rr-actors demo                          # the thesis's robot mission (Linux)
     rr-actors inspect state/erm.db          # a catalog backup as a tree
     rr-actors inspect state/erm.db --json   # the same as JSON
+    rr-actors --version
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.metadata
 import json
 import sys
 from collections.abc import Callable, Sequence
 from typing import Any, TextIO
 
+import rr_actors
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
-from rr_actors._store.sqlite import Backup, Unreadable, read_backup
+from rr_actors._store import Backup, Unreadable, read_backup
 from rr_actors.errors import CatalogCorruptError, ConfigError
 
-__all__ = ["COMMANDS", "Command", "backup_to_dict", "main", "render_tree"]
+__all__ = ["COMMANDS", "Command", "backup_to_dict", "main", "render_tree", "version"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -198,7 +202,7 @@ def _demo(args: argparse.Namespace, _out: TextIO) -> int:
 COMMANDS: list[Command] = [
     Command(
         "demo",
-        "run the thesis's fault-injected robot mission on real processes (the main demo)",
+        "run the thesis's fault-injected robot mission on real processes (the main demo; Linux)",
         _demo_arguments,
         _demo,
     ),
@@ -212,10 +216,21 @@ COMMANDS: list[Command] = [
 """The subcommands, in the order `--help` lists them."""
 
 
+def version() -> str:
+    """The installed distribution's version (the package's `__version__` if not installed)."""
+    try:
+        return importlib.metadata.version("rr-actors")
+    except importlib.metadata.PackageNotFoundError:
+        return rr_actors.__version__
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The `rr-actors` argument parser, one subparser per entry of `COMMANDS`."""
     parser = argparse.ArgumentParser(
         prog="rr-actors", description="Tools for rr_actors resource registrars."
+    )
+    parser.add_argument(
+        "--version", action="version", version=f"%(prog)s {version()}", help="print the version"
     )
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for command in COMMANDS:

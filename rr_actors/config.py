@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from rr_actors.errors import ConfigError
 
 if TYPE_CHECKING:
-    from rr_actors._registrar.registrar import ResourceRegistrar
+    from rr_actors._registrar import ResourceRegistrar
 
 __all__ = [
     "Backoff",

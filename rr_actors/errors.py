@@ -16,6 +16,7 @@ from typing import Any
 __all__ = [
     "CallTimeoutError",
     "CatalogCorruptError",
+    "CatalogWriteError",
     "ConfigError",
     "DependencyCycleError",
     "DuplicateNameError",
@@ -100,6 +101,30 @@ class CatalogCorruptError(RrError):
 
     def __reduce__(self) -> tuple[Any, ...]:
         return (type(self), (self.path, self.cause))
+
+
+class CatalogWriteError(RrError):
+    """A change could not be written to the catalog backup (a full disk, an I/O error).
+
+    The change is not lost: the registrar still holds it and writes it with the next
+    write that succeeds. What the file held before stays as it was (every write is one
+    transaction).
+
+    Attributes:
+        path: the backup file.
+        cause: what went wrong, e.g. `"ENOSPC (No space left on device): database or
+            disk is full (SQLITE_FULL)"`.
+        errno: the OS error number (`errno.ENOSPC`, ...) when it is known, else `None`.
+    """
+
+    def __init__(self, path: str, cause: str, errno: int | None = None) -> None:
+        super().__init__(f"catalog backup {path!r} could not be written: {cause}")
+        self.path = path
+        self.cause = cause
+        self.errno = errno
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (type(self), (self.path, self.cause, self.errno))
 
 
 class SupervisorGaveUpError(RrError):

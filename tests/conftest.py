@@ -48,7 +48,6 @@ processes running (in either placement).
 from __future__ import annotations
 
 import collections
-import functools
 import multiprocessing
 import os
 import sys
@@ -64,11 +63,11 @@ import pykka
 import pytest
 
 import rr_actors as rr
-from rr_actors._core.replies import FutureReply, wait
 from rr_actors._process.manager import start_forkserver
-from rr_actors._registrar.registrar import _Request
 from rr_actors._transport.unix import System
-from rr_actors.testing import RemoteRegistrar, SharedObjects
+from rr_actors.testing import RemoteRegistrar, SharedObjects, pending_work
+
+pytest_plugins = ["carriers"]  # the transport tests' fixtures (tests/carriers.py)
 
 LEAK_GRACE = 5.0
 """Seconds a test's actors and child processes get to finish stopping after it ended."""
@@ -411,26 +410,11 @@ def gates(make_registrar: MakeRegistrar, shared: Shared) -> Iterator[Callable[[]
 def waiting_query_ids(provider: Registrar, timeout: float = 5.0) -> collections.Counter[str]:
     """Consumer ids whose load the provider has taken but not answered yet (with repeats).
 
-    Reads the registrar actor's private state in its own thread (like
-    `rr_actors.testing.catalog_snapshot`): the ids waiting for a load that runs, and the
-    ids parked until an equal resource finished unloading. For a `RemoteRegistrar` this
-    runs in the registrar's process.
+    The ids waiting for a load that runs, and the ids parked until an equal resource
+    finished unloading (`rr_actors.testing.pending_work`, asked in the registrar's
+    process for a `RemoteRegistrar`).
     """
-    if isinstance(provider, RemoteRegistrar):
-        remote: collections.Counter[str] = provider.run(
-            functools.partial(waiting_query_ids, timeout=timeout), timeout=timeout + 5.0
-        )
-        return remote
-
-    def op(actor: Any, reply: Any) -> None:
-        ids = [w.query_id for waiters in actor.loads.values() for w in waiters]
-        ids += [load.query_id for loads in actor.after_unload.values() for load in loads]
-        reply.set_result(collections.Counter(ids))
-
-    reply = FutureReply()
-    provider._ref.tell(_Request(op, reply))  # test-only introspection
-    ids: collections.Counter[str] = wait(reply.future, timeout, "waiting_query_ids()")
-    return ids
+    return pending_work(provider, timeout=timeout).waiting_loads
 
 
 @pytest.fixture

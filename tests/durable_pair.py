@@ -10,7 +10,7 @@ from typing import Any
 
 import rr_actors as rr
 from rr_actors._catalog import DIGEST_SCHEME, Catalog
-from rr_actors._store import sqlite as store_module
+from rr_actors._store import schema
 from rr_actors._store.sqlite import SqliteStore
 
 
@@ -28,8 +28,8 @@ def opened(path: Path) -> tuple[SqliteStore, Catalog]:
 def schema_2_database(path: Path) -> sqlite3.Connection:
     """An autocommit connection to a new, empty rr_actors backup at schema version 2."""
     db = sqlite3.connect(path, isolation_level=None)
-    db.execute(f"PRAGMA application_id = {store_module.APPLICATION_ID}")
-    for step in store_module._MIGRATIONS[:2]:
+    db.execute(f"PRAGMA application_id = {schema.APPLICATION_ID}")
+    for step in schema.MIGRATIONS[:2]:
         step(db)
     db.execute("UPDATE rr_actors_schema SET version = 2, digest_scheme = ?", (DIGEST_SCHEME,))
     return db

@@ -3,9 +3,9 @@
 SQLite's automatic checkpoint copies the log into the database file inside whichever
 commit crosses its threshold; a store opened with `background_checkpoints` (what a
 registrar with a `save_interval` opens) switches it off and wakes a checkpointer thread
-instead (`_sqlite_store._Checkpointer`). These tests pin that it runs, that it keeps the
-WAL bounded when a reader holds it back, that it stops with the store, that a store that
-writes little never starts it, and which registrars use it. (Crashes in the middle of a
+instead (`rr_actors._store.checkpoints.Checkpointer`). These tests pin that it runs, that
+it keeps the WAL bounded when a reader holds it back, that it stops with the store, that a
+store that writes little never starts it, and which registrars use it. (Crashes in the middle of a
 checkpoint are covered by tests/test_crash_consistency.py, whose child checkpoints in the
 background every few statements.)
 """
@@ -22,7 +22,7 @@ from durable_pair import opened
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog
-from rr_actors._store import sqlite as store_module
+from rr_actors._store import checkpoints
 from rr_actors._store.saver import open_store
 from rr_actors._store.sqlite import SqliteStore
 
@@ -95,7 +95,7 @@ def test_a_store_that_writes_little_has_no_checkpointer_thread(tmp_path: Path) -
 def test_a_log_held_back_by_a_reader_is_restarted_once_it_passes_the_limit(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(store_module, "WAL_LIMIT", 4)
+    monkeypatch.setattr(checkpoints, "WAL_LIMIT", 4)
     path = tmp_path / "c.db"
     store, catalog = opened(path)
     reader = reader_on_old_snapshot(path)
@@ -207,7 +207,7 @@ def test_a_reader_that_lingers_past_the_limit_never_locks_the_writer_out(
 ) -> None:
     # RESTART holds new writes back while it waits for readers: it must give up long
     # before the writer's own busy timeout (5 s), or the writer fails "database is locked"
-    monkeypatch.setattr(store_module, "WAL_LIMIT", 4)
+    monkeypatch.setattr(checkpoints, "WAL_LIMIT", 4)
     path = tmp_path / "c.db"
     store, catalog = opened(path)
     reader = reader_on_old_snapshot(path)  # `rr-actors inspect` on the live file, say

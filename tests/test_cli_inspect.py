@@ -17,8 +17,9 @@ import pytest
 import rr_actors as rr
 from rr_actors._catalog import Catalog
 from rr_actors._cli import main
-from rr_actors._store import sqlite as store_module
-from rr_actors._store.sqlite import SCHEMA_VERSION, SqliteStore
+from rr_actors._store import codec, schema
+from rr_actors._store.schema import SCHEMA_VERSION
+from rr_actors._store.sqlite import SqliteStore
 
 
 def run(*argv: str) -> tuple[int, str]:
@@ -172,13 +173,13 @@ def test_the_command_line_runs_as_a_program(
 def write_v1_backup(path: Path) -> None:
     """A backup as rr_actors wrote it with schema version 1 (text states, no digests)."""
     db = sqlite3.connect(path, isolation_level=None)
-    db.execute(f"PRAGMA application_id = {store_module.APPLICATION_ID}")
-    store_module._create_v1(db)
+    db.execute(f"PRAGMA application_id = {schema.APPLICATION_ID}")
+    schema.MIGRATIONS[0](db)
     db.execute("UPDATE rr_actors_schema SET version = 1")
     db.execute("PRAGMA journal_mode = WAL")
     db.execute(
         "INSERT INTO resources VALUES (1, 'r1', 'leaf', 'loaded', ?, ?)",
-        (store_module._dumps({"cam": 1}), store_module._dumps({"pid": 42})),
+        (codec.dumps({"cam": 1}), codec.dumps({"pid": 42})),
     )
     db.execute("INSERT INTO consumers VALUES (2, 'q1', 'r1', 'C')")
     db.close()

@@ -35,7 +35,7 @@ from durable_pair import start_pair
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog
-from rr_actors._store import sqlite as store_module
+from rr_actors._store import checkpoints as checkpoint_module
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot
 
@@ -50,23 +50,23 @@ def worker(names: tuple[str, str], paths: tuple[str, str], seed: int, conn: Any)
     """Run P and C on the backups and drive random operations until killed."""
     rng = random.Random(seed)  # noqa: S311 - a reproducible workload, not crypto
     # background checkpoints (as with a save_interval) run, and are killed, often
-    store_module.CHECKPOINT_EVERY = 4
-    real_open = store_module.SqliteStore.open
+    checkpoint_module.CHECKPOINT_EVERY = 4
+    real_open = SqliteStore.open
 
-    def open_in_background(path: Any, **options: Any) -> store_module.SqliteStore:
+    def open_in_background(path: Any, **options: Any) -> SqliteStore:
         return real_open(path, **{**options, "background_checkpoints": True})
 
-    store_module.SqliteStore.open = open_in_background  # type: ignore[method-assign,assignment]
+    SqliteStore.open = open_in_background  # type: ignore[method-assign,assignment]
     checkpoints = 0  # finished in this run; sent with every report, so the parent sees them
-    real_checkpoint = store_module._Checkpointer._checkpoint
+    real_checkpoint = checkpoint_module.Checkpointer._checkpoint
 
-    def counted(self: store_module._Checkpointer, db: Any) -> None:
+    def counted(self: checkpoint_module.Checkpointer, db: Any) -> None:
         nonlocal checkpoints
         before = self.checkpoints
         real_checkpoint(self, db)
         checkpoints += self.checkpoints - before  # a failed one does not count
 
-    store_module._Checkpointer._checkpoint = counted  # type: ignore[method-assign]
+    checkpoint_module.Checkpointer._checkpoint = counted  # type: ignore[method-assign]
     p_name, _ = names
     _, consumer = start_pair(names, paths)
     held = [c.query.id for c in catalog_snapshot(consumer).clients if c.parent is None and c.loaded]

@@ -74,17 +74,14 @@ def test_a_durable_call_leaves_only_after_its_pending_record_is_committed(
     def arm(registrar: rr.ResourceRegistrar) -> None:
         import threading  # noqa: PLC0415 - runs in the consumer's process
 
-        import rr_actors._registrar.registrar as m  # noqa: PLC0415
+        from rr_actors.testing import intercept  # noqa: PLC0415
 
-        original_pending = m.RegistrarActor._handlers[m._Pending]
-
-        def busy_pending(actor: Any, message: Any) -> None:
+        def busy_pending(message: Any) -> None:
             if message.record.query.id == qid:
                 pending_reached.set()
                 threading.Event().wait()  # busy until the process dies
-            original_pending(actor, message)
 
-        m.RegistrarActor._handlers[m._Pending] = busy_pending
+        intercept(registrar, "pending", before=busy_pending)
         threading.Thread(
             target=lambda: registrar.call(p, "leaf", "x", query_id=qid, timeout=60), daemon=True
         ).start()
@@ -119,12 +116,10 @@ def test_a_withdrawn_call_is_abandoned_at_its_provider_before_its_record_goes(
     def arm(registrar: rr.ResourceRegistrar) -> None:
         import threading  # noqa: PLC0415 - runs in the consumer's process
 
-        import rr_actors._registrar.registrar as m  # noqa: PLC0415
         from rr_actors._core.actor import OneShotFuture  # noqa: PLC0415
-        from rr_actors._core.directory import DIRECTORY  # noqa: PLC0415
+        from rr_actors.testing import call_futures, intercept  # noqa: PLC0415
 
         claimed, answer_handled = threading.Event(), threading.Event()
-        marked = threading.local()
 
         class Future(OneShotFuture[Any]):
             def claim(self) -> bool:
@@ -132,33 +127,29 @@ def test_a_withdrawn_call_is_abandoned_at_its_provider_before_its_record_goes(
                 claimed.set()
                 return won
 
-        m.OneShotFuture = Future  # type: ignore[attr-defined] # (this process only)
-        original_loaded = m.RegistrarActor._handlers[m._ClientLoaded]
+        call_futures(registrar, Future)  # (until the process dies)
 
-        def slow_loaded(actor: Any, message: Any) -> None:
-            if message.record.query.id != qid:
-                original_loaded(actor, message)
-                return
-            assert claimed.wait(30)  # the actor is slow: the caller's time runs out first
-            original_loaded(actor, message)  # finds the call withdrawn
-            answer_handled.set()
+        def slow_loaded(message: Any) -> None:
+            if message.record.query.id == qid:  # the actor is slow: the caller's time
+                assert claimed.wait(30)  # runs out first, so it finds the call withdrawn
 
-        m.RegistrarActor._handlers[m._ClientLoaded] = slow_loaded
-        original_lookup = DIRECTORY.lookup
+        def loaded(message: Any) -> None:
+            if message.record.query.id == qid:
+                answer_handled.set()
 
-        def lookup(name: str) -> Any:
-            if name == p and getattr(marked, "caller", False) and claimed.is_set():
-                # `_withdraw` is about to tell the provider its Abandon; the actor has
+        intercept(registrar, "client_loaded", before=slow_loaded, after=loaded)
+
+        def hold_withdrawal(query: Any) -> None:
+            if query.id == qid:
+                # the caller is about to tell the provider its Abandon; the actor has
                 # handled the answer (and what the caller told it before this)
                 assert answer_handled.wait(30)
                 reached.set()
                 threading.Event().wait()  # held until the process dies
-            return original_lookup(name)
 
-        DIRECTORY.lookup = lookup  # type: ignore[method-assign]
+        intercept(registrar, "withdraw", before=hold_withdrawal)
 
         def run() -> None:
-            marked.caller = True
             registrar.call(p, "leaf", "x", query_id=qid, timeout=1.0)
 
         threading.Thread(target=run, daemon=True).start()
@@ -215,51 +206,41 @@ def test_a_stale_failure_of_an_earlier_attempt_leaves_a_retrys_record_on_disk(
     held = app.call(p, "leaf", "x")
 
     def arm_provider(registrar: rr.ResourceRegistrar) -> None:
-        import rr_actors._registrar.registrar as m  # noqa: PLC0415 - runs in the provider's process
-        from rr_actors._registrar.messages import Abandon  # noqa: PLC0415
+        from rr_actors.testing import intercept  # noqa: PLC0415 - runs in the provider's process
 
-        original = m.RegistrarActor._handlers[Abandon]
-
-        def slow_abandon(actor: Any, message: Any) -> None:
+        def slow_abandon(message: Any) -> None:
             if message.query_id == qid:  # slow to take the withdrawal
                 assert retry_pending.wait(30)
-            original(actor, message)
 
-        m.RegistrarActor._handlers[Abandon] = slow_abandon
+        intercept(registrar, "abandon", before=slow_abandon)
 
     def arm_consumer(registrar: rr.ResourceRegistrar) -> None:
         import threading  # noqa: PLC0415 - runs in the consumer's process
 
-        import rr_actors._registrar.registrar as m  # noqa: PLC0415
+        from rr_actors.testing import intercept  # noqa: PLC0415
 
-        on_pending = m.RegistrarActor._handlers[m._Pending]
-        on_failed = m.RegistrarActor._handlers[m._CallFailed]
-        on_loaded = m.RegistrarActor._handlers[m._ClientLoaded]
         seen = {"pending": 0, "failed": 0}
 
-        def pending(actor: Any, message: Any) -> None:
-            on_pending(actor, message)
+        def pending(message: Any) -> None:
             if message.record.query.id == qid:
                 seen["pending"] += 1
                 if seen["pending"] == 2:
                     retry_pending.set()
 
-        def failed(actor: Any, message: Any) -> None:
-            on_failed(actor, message)
+        def failed(message: Any) -> None:
             if message.query_id == qid:
                 seen["failed"] += 1
                 if seen["failed"] == 2:  # the provider's error answer to the first attempt
                     stale_handled.set()
 
-        def loaded(actor: Any, message: Any) -> None:
+        def loaded(message: Any) -> None:
             if message.record.query.id == qid:
                 answer_arrived.set()
                 threading.Event().wait()  # slow to record the retry's answer: killed first
-            on_loaded(actor, message)
 
-        m.RegistrarActor._handlers[m._Pending] = pending
-        m.RegistrarActor._handlers[m._CallFailed] = failed
-        m.RegistrarActor._handlers[m._ClientLoaded] = loaded
+        intercept(registrar, "pending", after=pending)
+        intercept(registrar, "call_failed", after=failed)
+        intercept(registrar, "client_loaded", before=loaded)
 
         def run() -> None:
             try:

@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import importlib.util
+import re
 import subprocess
 import sys
+import threading
 from pathlib import Path
+
+import pytest
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
@@ -29,44 +34,85 @@ def test_quickstart_loads_hears_a_status_unloads_and_exits_cleanly() -> None:
     assert 1 == result.stdout.count("unloaded 'hello, world'")
 
 
-def test_filtered_camera_is_loaded_once_for_two_actions() -> None:
-    result = run_example("filtered_camera.py")
+FILTERED_CAMERA_RUNS = 6
+"""How often the filtered camera story runs: its lines come from several threads."""
+
+STORY_LINE = re.compile(r"\[[ \w-]{8}\] \S.*")
+"""One line of the filtered camera story: an 8-column tag, a space, the text."""
+
+TAG = re.compile(r"\[[ \w-]{8}\] ")
+
+
+@pytest.fixture(scope="module")
+def filtered_camera_runs() -> list[subprocess.CompletedProcess[str]]:
+    """`examples/filtered_camera.py`, run `FILTERED_CAMERA_RUNS` times."""
+    return [run_example("filtered_camera.py") for _ in range(FILTERED_CAMERA_RUNS)]
+
+
+def test_filtered_camera_is_loaded_once_for_two_actions(
+    filtered_camera_runs: list[subprocess.CompletedProcess[str]],
+) -> None:
+    result = filtered_camera_runs[0]
 
     assert (0, "") == (result.returncode, result.stderr)
     assert "filtered_camera loaded 1 time(s) for 2 consumers" in result.stdout
     assert "both actions share one camera and one filter process: True" in result.stdout
 
 
-def test_filtered_camera_failure_reaches_both_actions_then_everything_stops() -> None:
-    result = run_example("filtered_camera.py")
-    out = result.stdout
+def test_filtered_camera_failure_reaches_both_actions_then_everything_stops(
+    filtered_camera_runs: list[subprocess.CompletedProcess[str]],
+) -> None:
+    for result in filtered_camera_runs:
+        out = result.stdout
 
-    assert 0 == result.returncode
-    assert "[      cm] filtered_camera hears FATAL from erm/camera" in out
-    assert "[action-1] heard FATAL" in out
-    assert "[action-2] heard FATAL" in out
-    assert 1 == out.count("stopped camera pid")
-    assert 1 == out.count("stopped filter pid")
-    for name in ("action-1", "action-2", "cm", "erm"):
-        assert f"stopped registrar {name}" in out
-    assert out.rstrip().endswith("done")
-
-
-ROOT = EXAMPLES.parent
-
-
-def test_readme_quickstart_is_examples_quickstart() -> None:
-    readme = (ROOT / "README.md").read_text()
-    block = readme.split("```python\n", 1)[1].split("```\n", 1)[0]
-
-    assert (EXAMPLES / "quickstart.py").read_text() == block
+        assert 0 == result.returncode
+        assert "[      cm] filtered_camera hears FATAL from erm/camera" in out
+        assert "[action-1] heard FATAL" in out
+        assert "[action-2] heard FATAL" in out
+        assert 1 == out.count("stopped camera pid")
+        assert 1 == out.count("stopped filter pid")
+        for name in ("action-1", "action-2", "cm", "erm"):
+            assert f"stopped registrar {name}" in out
+        assert out.rstrip().endswith("done")
 
 
-def test_readme_starts_with_the_demo_and_the_test_command_that_ci_runs() -> None:
-    lines = (ROOT / "README.md").read_text().splitlines()
-    test_command = lines[2].split("&&", 1)[1].strip()
+def test_filtered_camera_prints_every_line_whole_in_every_run(
+    filtered_camera_runs: list[subprocess.CompletedProcess[str]],
+) -> None:
+    glued = [
+        line
+        for result in filtered_camera_runs
+        for line in result.stdout.splitlines()
+        if not STORY_LINE.fullmatch(line) or len(TAG.findall(line)) != 1
+    ]
 
-    assert ["```bash", "```"] == [lines[0], lines[3]]
-    assert 'pip install -e ".[demo]" && rr-actors demo' == lines[1]
-    assert lines[2].startswith('pip install -e ".[dev]" && ')
-    assert f"\n{test_command} || status=$?\n" in (ROOT / ".ci" / "run").read_text()
+    assert [] == glued
+
+
+def test_filtered_camera_say_writes_whole_lines_from_many_threads(
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    spec = importlib.util.spec_from_file_location(
+        "filtered_camera", EXAMPLES / "filtered_camera.py"
+    )
+    assert spec is not None
+    assert spec.loader is not None
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as possible: races show at once
+    try:
+        threads = [
+            threading.Thread(target=lambda n=n: [example.say(f"t{n}", str(i)) for i in range(300)])
+            for n in range(8)
+        ]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(10)
+    finally:
+        sys.setswitchinterval(interval)
+    lines = capfd.readouterr().out.splitlines()
+
+    assert 8 * 300 == len(lines)
+    assert [] == [line for line in lines if not re.fullmatch(r"\[ {6}t\d\] \d+", line)]

@@ -19,8 +19,9 @@ from durable_pair import schema_2_database
 import rr_actors as rr
 from rr_actors._catalog import Catalog, request_digest
 from rr_actors._platform.linux import LinuxPlatform
-from rr_actors._store import sqlite as store_module
-from rr_actors._store.sqlite import SqliteStore, read_backup
+from rr_actors._store import codec, restore
+from rr_actors._store.files import read_backup
+from rr_actors._store.sqlite import SqliteStore
 
 
 def write_catalog(path: Path, rows: list[tuple[str, str, Any, str]]) -> None:
@@ -172,7 +173,7 @@ def test_a_write_inside_a_transaction_left_open_fails_loudly_and_is_kept_for_the
     changes = catalog.drain_changes()
     store._db.execute("BEGIN")
     try:
-        with pytest.raises(sqlite3.OperationalError, match="within a transaction"):
+        with pytest.raises(rr.CatalogWriteError, match="within a transaction"):
             store.write(changes)
         store._db.execute("ROLLBACK")
         store.write(changes)
@@ -211,7 +212,7 @@ def write_v2_backup(path: Path) -> None:
     loading (in doubt), r2 loaded; the consumer seqs are not in resource order.
     """
     db = schema_2_database(path)
-    dumps = store_module._dumps
+    dumps = codec.dumps
     for seq, rid, state, request in ((1, "r0", 1, {"n": 0}), (2, "r1", 0, "x"), (5, "r2", 1, 2)):
         db.execute(
             "INSERT INTO resources VALUES (?, ?, 'leaf', ?, ?, ?, ?)",
@@ -265,8 +266,8 @@ def test_a_restore_that_trims_the_heap_still_finds_every_consumer(
             trims.append(1)
             super().release_free_memory()
 
-    monkeypatch.setattr(store_module, "_TRIM_AFTER", 2)
-    monkeypatch.setattr(store_module, "PLATFORM", CountingPlatform())
+    monkeypatch.setattr(restore, "_TRIM_AFTER", 2)
+    monkeypatch.setattr(restore, "PLATFORM", CountingPlatform())
     path = tmp_path / "c.db"
     rows = [(f"r{n}", "leaf", {"n": n}, f"q{n}") for n in range(5)]
     write_catalog(path, rows)

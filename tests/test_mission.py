@@ -7,9 +7,12 @@ module; each fault also runs alone.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
+import io
 import json
 import os
+import signal
 import subprocess
 import sys
 import uuid
@@ -20,9 +23,12 @@ import pytest
 
 import rr_actors as rr
 from rr_actors.mission import FAULTS, MissionConfig, MissionReport, run_mission
+from rr_actors.mission.action import Mission
 from rr_actors.mission.managers import ProcessTable
+from rr_actors.mission.output import timeline
 from rr_actors.mission.programs import start_time
-from rr_actors.mission.run import Odometry, main
+from rr_actors.mission.report import Odometry
+from rr_actors.mission.run import main, prepare_out
 
 ROOT = Path(__file__).resolve().parent.parent
 REPORT_KEYS = {"mission_time_s", "distance_m", "faults", "leaked_processes", "catalog_entries_left"}
@@ -45,10 +51,19 @@ def programs_started(out: Path) -> list[dict[str, Any]]:
 
 
 @pytest.fixture(scope="module")
-def full_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, Path]:
-    """`rr-actors demo --fast` with all five faults: (exit code, output directory)."""
+def full_quiet_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, Path, str]:
+    """`rr-actors demo --fast --quiet`, all five faults: (exit code, output directory, stdout)."""
     out = tmp_path_factory.mktemp("mission")
-    return main(["--fast", "--quiet", "--out", str(out)]), out
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = main(["--fast", "--quiet", "--out", str(out)])
+    return code, out, printed.getvalue()
+
+
+@pytest.fixture(scope="module")
+def full_run(full_quiet_run: tuple[int, Path, str]) -> tuple[int, Path]:
+    """The full run: (exit code, output directory)."""
+    return full_quiet_run[0], full_quiet_run[1]
 
 
 @pytest.fixture(scope="module")
@@ -111,6 +126,19 @@ def test_the_full_mission_leaves_no_process_and_no_catalog_entry(
     assert {"erm": 0, "cm": 0, "rm": 0, "mission": 0} == full_report["catalog_entries_by_registrar"]
     assert [] == living_programs(full_run[1])
     assert 5 == len(started)  # driver, navigation, LiDAR 1, LiDAR 2, the restarted driver
+
+
+def test_quiet_prints_the_timeline_and_the_paths_and_no_story(
+    full_quiet_run: tuple[int, Path, str],
+) -> None:
+    lines = full_quiet_run[2].splitlines()
+    header = next(i for i, line in enumerate(lines) if line.startswith("fault  what"))
+
+    assert [] == [line for line in lines if line.startswith("[")]  # no story line
+    assert lines[header + 1].startswith("-----  ")
+    assert list(FAULTS) == [line.split()[0] for line in lines[header + 2 : header + 7]]
+    assert any(line.startswith("mission time ") for line in lines)
+    assert any(line.startswith("report: ") for line in lines)
 
 
 def test_the_full_mission_draws_its_plot(full_run: tuple[int, Path]) -> None:
@@ -212,3 +240,35 @@ def test_the_erm_does_not_adopt_a_process_whose_pid_was_reused(tmp_path: Path) -
         registrar.stop()
 
     assert [impostor] == dead
+
+
+# -- a manager killed by hand while the mission runs ---------------------------------------
+
+
+@pytest.mark.usefixtures("process_helpers")  # the forkserver predates the leak check
+@pytest.mark.parametrize("manager", ["erm", "cm", "rm"])
+def test_a_manager_killed_by_hand_mid_run_is_waited_for_and_shown_in_the_timeline(
+    manager: str, tmp_path: Path
+) -> None:
+    killed: list[int] = []
+    mission: Mission | None = None
+
+    def say(line: str) -> None:  # on the mission's thread, right after F1 was recovered
+        if "LiDAR 2 loaded" in line and not killed:
+            assert mission is not None
+            assert mission.supervisor is not None
+            pid = mission.supervisor.child(manager).pid
+            assert pid is not None
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+
+    mission = Mission(MissionConfig.fast(), prepare_out(tmp_path), say=say)
+    report = mission.run()
+
+    assert 1 == len(killed)
+    assert list(FAULTS) == [f.id for f in report.faults]
+    assert [] == [f.id for f in report.faults if f.recovered_after_s is None]
+    assert [manager] == [r.manager for r in report.unplanned_restarts]
+    assert (0, 0) == (report.leaked_processes, report.catalog_entries_left)
+    assert [] == living_programs(tmp_path)
+    assert f"-      {manager} restarted, no fault" in timeline(report)

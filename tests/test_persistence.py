@@ -8,6 +8,7 @@ same backups. Module-level functions run in the child (sent by reference).
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import multiprocessing
 import multiprocessing.connection
@@ -31,6 +32,7 @@ import pytest
 from durable_pair import leaf_load, noop_unload, start, start_consumer, start_pair, start_provider
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from small_disk import mounted, remount_read_only
 
 import rr_actors as rr
 from rr_actors._catalog import (
@@ -41,9 +43,10 @@ from rr_actors._catalog import (
     ResourceState,
     request_digest,
 )
+from rr_actors._store import codec, schema
 from rr_actors._store import saver as _persistence
-from rr_actors._store import sqlite as store_module
-from rr_actors._store.sqlite import SqliteStore, quarantine_backup, read_backup
+from rr_actors._store.files import quarantine_backup, read_backup
+from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot, crash
 
 # -- what runs in the child process ----------------------------------------------------------
@@ -525,7 +528,7 @@ def test_a_new_backup_records_its_schema_version_and_application_id(tmp_path: Pa
     finally:
         db.close()
 
-    assert ([(store_module.SCHEMA_VERSION,)], store_module.APPLICATION_ID) == found
+    assert ([(schema.SCHEMA_VERSION,)], schema.APPLICATION_ID) == found
 
 
 # -- the store on its own ---------------------------------------------------------------------
@@ -676,9 +679,9 @@ def test_an_older_schema_is_migrated_by_an_explicit_step(
     def add_note(db: sqlite3.Connection) -> None:
         db.execute("ALTER TABLE resources ADD COLUMN note TEXT")
 
-    next_version = store_module.SCHEMA_VERSION + 1
-    monkeypatch.setattr(store_module, "_MIGRATIONS", (*store_module._MIGRATIONS, add_note))
-    monkeypatch.setattr(store_module, "SCHEMA_VERSION", next_version)
+    next_version = schema.SCHEMA_VERSION + 1
+    monkeypatch.setattr(schema, "MIGRATIONS", (*schema.MIGRATIONS, add_note))
+    monkeypatch.setattr(schema, "SCHEMA_VERSION", next_version)
     SqliteStore.open(tmp_path / "p.db").close(erase=False)
 
     db = sqlite3.connect(tmp_path / "p.db")
@@ -842,13 +845,32 @@ def test_an_unusable_backup_path_raises_config_error_naming_it(
     assert (True, True) == (str(path) in str(raised.value), cause in str(raised.value))
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root may write to read-only files")
 def test_a_read_only_backup_raises_config_error(tmp_path: Path) -> None:
-    write_valid_backup(tmp_path / "p.db")
-    (tmp_path / "p.db").chmod(0o444)
+    if os.geteuid() == 0:
+        where = tmp_path / "ro"
+        with mounted(where, "1m"):
+            write_valid_backup(where / "p.db")
+            remount_read_only(where)
+            with pytest.raises(rr.ConfigError, match="not readable and writable") as raised:
+                SqliteStore.open(where / "p.db")
+    else:
+        where = tmp_path
+        write_valid_backup(where / "p.db")
+        (where / "p.db").chmod(0o444)
+        with pytest.raises(rr.ConfigError, match="not readable and writable") as raised:
+            SqliteStore.open(where / "p.db")
 
-    with pytest.raises(rr.ConfigError, match="not readable and writable"):
-        SqliteStore.open(tmp_path / "p.db")
+    assert str(where / "p.db") in str(raised.value)
+
+
+def test_a_backup_in_a_read_only_location_raises_config_error(tmp_path: Path) -> None:
+    where = tmp_path / "ro"
+    with mounted(where, "1m"):  # (skipped unless root: root ignores directory modes too)
+        remount_read_only(where)
+        with pytest.raises(rr.ConfigError, match="is not writable") as raised:
+            SqliteStore.open(where / "p.db")
+
+    assert str(where / "p.db") in str(raised.value)
 
 
 def test_quarantine_moves_a_corrupt_backup_aside_so_a_registrar_starts_empty(
@@ -1106,20 +1128,20 @@ def test_digests_written_under_another_scheme_are_recomputed_when_the_file_is_op
 def write_v1_backup(path: Path) -> None:
     """A backup as rr_actors wrote it with schema version 1."""
     db = sqlite3.connect(path, isolation_level=None)
-    db.execute(f"PRAGMA application_id = {store_module.APPLICATION_ID}")
-    store_module._create_v1(db)
+    db.execute(f"PRAGMA application_id = {schema.APPLICATION_ID}")
+    schema.MIGRATIONS[0](db)
     db.execute("UPDATE rr_actors_schema SET version = 1")
     db.execute("PRAGMA journal_mode = WAL")
     rows = [(1, "r0", "leaf", "loaded", {"n": 0}, "zero"), (2, "r1", "leaf", "loading", "x", None)]
     for seq, rid, server, state, request, response in rows:
         db.execute(
             "INSERT INTO resources VALUES (?, ?, ?, ?, ?, ?)",
-            (seq, rid, server, state, store_module._dumps(request), store_module._dumps(response)),
+            (seq, rid, server, state, codec.dumps(request), codec.dumps(response)),
         )
     db.execute("INSERT INTO consumers VALUES (3, 'q0', 'r0', 'C')")
     db.execute(
         "INSERT INTO clients VALUES (4, 'd0', 'leaf', 'P', 'me', ?, NULL, 'r0', 1)",
-        (store_module._dumps(5),),
+        (codec.dumps(5),),
     )
     db.close()
 
@@ -1133,12 +1155,12 @@ def test_a_version_1_backup_is_migrated_to_digests_integer_states_and_consumer_r
 
     db = sqlite3.connect(tmp_path / "p.db")
     try:
-        schema = db.execute("SELECT version, digest_scheme FROM rr_actors_schema").fetchall()
+        stored = db.execute("SELECT version, digest_scheme FROM rr_actors_schema").fetchall()
         digests = db.execute("SELECT digest, state FROM resources ORDER BY seq").fetchall()
         consumers = db.execute("SELECT query_id, resource FROM consumers").fetchall()
     finally:
         db.close()
-    assert [(store_module.SCHEMA_VERSION, DIGEST_SCHEME)] == schema
+    assert [(schema.SCHEMA_VERSION, DIGEST_SCHEME)] == stored
     assert [(request_digest({"n": 0}), 1), (request_digest("x"), 0)] == digests
     assert [("q0", 1)] == consumers
     assert (
@@ -1258,7 +1280,7 @@ def test_decoding_a_restored_response_writes_no_value(
     _ = catalog.resources["r1"].response, catalog.clients["d1"].query.response
     catalog.add_consumer("r1", "q2", "C")  # dirties the row
     dumped: list[Any] = []
-    monkeypatch.setattr(store_module, "_dumps", dumped.append)
+    monkeypatch.setattr(codec, "dumps", dumped.append)
     store.write(catalog.drain_changes())
     store.close(erase=False)
 
@@ -1397,12 +1419,12 @@ def test_a_failed_commit_raises_its_own_error_not_one_from_the_rollback(tmp_path
     catalog.add_consumer("r1", "q1", "C")  # two statements: one transaction with a COMMIT
     store._db = CommitFails(store._db)  # type: ignore[assignment]
     try:
-        with pytest.raises(sqlite3.OperationalError) as raised:
+        with pytest.raises(rr.CatalogWriteError) as raised:
             store.write(catalog.drain_changes())
     finally:
         store.close(erase=False)
 
-    assert "disk I/O error (simulated)" == str(raised.value)
+    assert "disk I/O error (simulated)" == str(raised.value.__cause__)
 
 
 class InsertFailsOnce:
@@ -1439,7 +1461,7 @@ def test_a_one_statement_write_that_failed_is_written_again_with_the_next_change
     catalog.add_consumer("r1", "q1", "C")  # one INSERT: its own transaction
     failed = catalog.drain_changes()
     try:
-        with pytest.raises(sqlite3.OperationalError, match="simulated"):
+        with pytest.raises(rr.CatalogWriteError, match="simulated"):
             store.write(failed)
         catalog.add_consumer("r1", "q2", "C")
         store.write(catalog.drain_changes())  # the row holds q1 and q2: both are written
@@ -1467,7 +1489,7 @@ class FlakyStore:
     def write(self, changes: Changes) -> None:
         if self.fail:
             self.fail -= 1
-            raise OSError("disk full (simulated)")
+            raise rr.CatalogWriteError(self.path, "ENOSPC (simulated)", errno.ENOSPC)
         self.written.append((list(changes.resources), list(changes.clients)))
 
     def close(self, *, erase: bool) -> None:
@@ -1479,7 +1501,7 @@ def test_a_clean_stop_closes_the_store_even_when_the_last_flush_fails() -> None:
     saver = _persistence.Saver(store, rr.RegistrarConfig(name="x", backup_path="flaky"))
     saver.changed(Changes({"r1": None}, {}))
 
-    with pytest.raises(OSError, match="simulated"):
+    with pytest.raises(rr.CatalogWriteError, match="simulated"):
         saver.close(erase=False)
 
     assert (True, None) == (store.closed, saver.store)
@@ -1489,7 +1511,7 @@ def test_a_change_whose_save_on_modify_write_failed_is_written_with_the_next_cha
     store = FlakyStore(fail=1)
     config = rr.RegistrarConfig(name="x", backup_path="flaky", save_on_modify=True)
     saver = _persistence.Saver(store, config)
-    with pytest.raises(OSError, match="simulated"):
+    with pytest.raises(rr.CatalogWriteError, match="simulated"):
         saver.changed(Changes({"r1": None}, {}))
     saver.changed(Changes({"r2": None}, {"d1": None}))
 
@@ -1500,7 +1522,7 @@ def test_changes_whose_interval_flush_failed_are_written_with_the_next_flush() -
     store = FlakyStore(fail=1)
     saver = _persistence.Saver(store, rr.RegistrarConfig(name="x", backup_path="flaky"))
     saver.changed(Changes({"r1": None}, {}))
-    with pytest.raises(OSError, match="simulated"):
+    with pytest.raises(rr.CatalogWriteError, match="simulated"):
         saver.flush()
     saver.changed(Changes({"r2": None}, {"d1": None}))
     saver.flush()

@@ -25,10 +25,11 @@ from durable_pair import opened, schema_2_database, start
 import rr_actors as rr
 from rr_actors._catalog import Catalog, request_digest
 from rr_actors._cli import main
+from rr_actors._store import checkpoints, codec, files, schema
 from rr_actors._store import saver as _persistence
-from rr_actors._store import sqlite as store_module
+from rr_actors._store.files import quarantine_backup, read_backup
 from rr_actors._store.saver import open_store
-from rr_actors._store.sqlite import SqliteStore, quarantine_backup, read_backup
+from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot, crash
 
 WAIT = 10.0  # seconds: the bound of every wait that must succeed
@@ -137,7 +138,7 @@ def test_a_write_that_fails_half_way_leaves_none_of_its_statements_in_the_file(
     catalog.add_consumer("r1", "q2", "C")  # one change of three statements
     store._db = FailsOnSecondInsert(store._db)  # type: ignore[assignment]
     try:
-        with pytest.raises(sqlite3.OperationalError, match="simulated"):
+        with pytest.raises(rr.CatalogWriteError, match="simulated"):
             store.write(catalog.drain_changes())
     finally:
         store.close(erase=False)
@@ -151,7 +152,7 @@ def test_a_write_that_fails_half_way_leaves_none_of_its_statements_in_the_file(
 def write_v2_backup(path: Path) -> None:
     """A schema-2 backup (rowid consumers, no indexes): r0 loaded with consumer q0."""
     db = schema_2_database(path)
-    dumps = store_module._dumps
+    dumps = codec.dumps
     db.execute(
         "INSERT INTO resources VALUES (1, 'r0', 'leaf', 1, ?, ?, ?)",
         (request_digest({"n": 0}), dumps({"n": 0}), dumps({"pid": 0})),
@@ -176,9 +177,9 @@ def test_a_version_2_backup_is_brought_to_the_current_schema_with_its_indexes(
         consumers_pk = [r[1] for r in db.execute("PRAGMA table_info(consumers)") if r[5]]
     finally:
         db.close()
-    assert (store_module.SCHEMA_VERSION, True, ["resource", "seq"]) == (
+    assert (schema.SCHEMA_VERSION, True, ["resource", "seq"]) == (
         version,
-        set(store_module._INDEXES) <= indexes,
+        set(schema.INDEXES) <= indexes,
         consumers_pk,
     )
 
@@ -193,8 +194,8 @@ def test_a_migration_step_that_fails_leaves_the_file_at_its_old_version(
         db.execute("ALTER TABLE resources ADD COLUMN note TEXT")
         raise sqlite3.OperationalError("disk I/O error (simulated)")
 
-    monkeypatch.setattr(store_module, "_MIGRATIONS", (*store_module._MIGRATIONS, half_done))
-    monkeypatch.setattr(store_module, "SCHEMA_VERSION", store_module.SCHEMA_VERSION + 1)
+    monkeypatch.setattr(schema, "MIGRATIONS", (*schema.MIGRATIONS, half_done))
+    monkeypatch.setattr(schema, "SCHEMA_VERSION", schema.SCHEMA_VERSION + 1)
     with pytest.raises((rr.CatalogCorruptError, sqlite3.Error)):
         SqliteStore.open(path)
     monkeypatch.undo()
@@ -205,7 +206,7 @@ def test_a_migration_step_that_fails_leaves_the_file_at_its_old_version(
         columns = [row[1] for row in db.execute("PRAGMA table_info(resources)")]
     finally:
         db.close()
-    assert (store_module.SCHEMA_VERSION, False) == (version, "note" in columns)
+    assert (schema.SCHEMA_VERSION, False) == (version, "note" in columns)
 
 
 # -- store: a database of another program ------------------------------------------------------
@@ -480,7 +481,7 @@ def test_below_the_limit_a_checkpoint_is_passive_and_does_not_wait_for_a_reader(
     assert last is not None
     busy, log, copied = last
     # PASSIVE copies what it can and reports no wait; any other mode waits and says busy
-    assert (busy, log < store_module.WAL_LIMIT, copied < log) == (0, True, True)
+    assert (busy, log < checkpoints.WAL_LIMIT, copied < log) == (0, True, True)
 
 
 # -- in doubt: unloads cut short too -------------------------------------------------------------
@@ -578,7 +579,7 @@ class WriterBetweenReads:
             writer.execute(
                 "INSERT INTO resources (seq, id, server, state, digest, request, response) "
                 "VALUES (50, 'r-new', 'leaf', 1, ?, ?, NULL)",
-                (request_digest(2), store_module._dumps(2)),
+                (request_digest(2), codec.dumps(2)),
             )
             writer.execute("INSERT INTO consumers VALUES (50, 51, 'q-new', 'C')")
             writer.execute("COMMIT")
@@ -609,7 +610,7 @@ def test_inspect_reads_one_snapshot_while_a_registrar_commits(
     catalog.finish_load("r1", 1)
     catalog.add_consumer("r1", "q1", "C")
     store.write(catalog.drain_changes())  # the live registrar keeps its store open
-    real_connect = store_module._connect
+    real_connect = files.connect
     wrappers: list[WriterBetweenReads] = []
 
     def connect(where: Path, *, read_only: bool) -> Any:
@@ -620,7 +621,7 @@ def test_inspect_reads_one_snapshot_while_a_registrar_commits(
         wrappers.append(wrapper)
         return wrapper
 
-    monkeypatch.setattr(store_module, "_connect", connect)
+    monkeypatch.setattr(files, "connect", connect)
     try:
         backup = read_backup(path)
     finally:

@@ -5,13 +5,11 @@ from __future__ import annotations
 import contextlib
 import threading
 import uuid
-from typing import Any
 
 import pytest
 
 import rr_actors as rr
-from rr_actors._registrar import registrar as _registrar
-from rr_actors.testing import catalog_snapshot, crash
+from rr_actors.testing import catalog_snapshot, crash, intercept
 
 
 def test_stop_unloads_everything_the_registrar_holds_as_a_consumer(make_registrar, serve):
@@ -115,31 +113,24 @@ def test_unregister_server_unloads_everything_it_serves_once(make_registrar, ser
         provider.server_queries("leaf")
 
 
-def test_unregister_server_unloads_in_the_providers_actor_thread_whoever_acknowledges(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+def test_unregister_server_unloads_in_the_providers_actor_thread_whoever_acknowledges() -> None:
     # The FATAL's acknowledgement arrives on the consumer's side (here its actor thread);
     # the revoke and the unload that follow touch the provider's catalog, so they must
     # run back in the provider's own actor thread.
     threads: dict[str, list[str]] = {"close": [], "unload": []}
-    close, unload = (
-        _registrar.RegistrarActor._close_resource,
-        _registrar.RegistrarActor._unload_resource,
-    )
-
-    def recording_close(self: Any, *args: Any) -> None:
-        threads["close"].append(threading.current_thread().name)
-        close(self, *args)
-
-    def recording_unload(self: Any, *args: Any) -> None:
-        threads["unload"].append(threading.current_thread().name)
-        unload(self, *args)
-
-    monkeypatch.setattr(_registrar.RegistrarActor, "_close_resource", recording_close)
-    monkeypatch.setattr(_registrar.RegistrarActor, "_unload_resource", recording_unload)
     provider = rr.ResourceRegistrar.start(f"P-{uuid.uuid4().hex[:8]}")
     consumer = rr.ResourceRegistrar.start(f"C-{uuid.uuid4().hex[:8]}")
     try:
+        intercept(
+            provider,
+            "close_resource",
+            before=lambda _: threads["close"].append(threading.current_thread().name),
+        )
+        intercept(
+            provider,
+            "unload_resource",
+            before=lambda _: threads["unload"].append(threading.current_thread().name),
+        )
         provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: None)
         consumer.call(provider.name, "leaf", "x")
 

@@ -14,13 +14,17 @@ import pykka
 import pytest
 
 import rr_actors as rr
-import rr_actors._registrar.registrar
 from rr_actors._core.actor import OneShotFuture
-from rr_actors._core.directory import DIRECTORY
-from rr_actors._core.replies import FutureReply
-from rr_actors._registrar.messages import Abandon
-from rr_actors._registrar.registrar import RegistrarActor, _CallFailed, _Pending, _Request
-from rr_actors.testing import catalog_snapshot, crash
+from rr_actors.testing import (
+    actor_ref,
+    call_futures,
+    catalog_snapshot,
+    crash,
+    expect_restart,
+    intercept,
+    pending_work,
+    run_on_actor,
+)
 
 
 @pytest.fixture
@@ -190,14 +194,18 @@ def test_a_pykka_ask_that_arrives_while_the_registrar_stops_is_answered(
     # mailbox to fail whoever waits. An ask in that mailbox must hear, not be dropped.
     registrar = started("stopping")
     gate = threading.Event()
-    busy, stopping = FutureReply(), FutureReply()
-    registrar._ref.tell(_Request(lambda _actor, reply: reply.set_result(gate.wait(10)), busy))
-    registrar._ref.tell(_Request(lambda actor, reply: actor.op_stop(reply), stopping))
-    asked = registrar._ref.ask("anything", block=False)  # queued behind the stop
+    busy = run_on_actor(registrar, lambda: gate.wait(10))
+    ref = actor_ref(registrar)
+    stopper = threading.Thread(target=registrar.stop)
+    stopper.start()
+    assert _wait_for(lambda: ref.actor_inbox.qsize() >= 1)  # the stop's request is queued
+    asked = ref.ask("anything", block=False)  # queued behind the stop
 
     gate.set()
 
-    assert stopping.future.get(timeout=10) is None
+    assert busy.get(timeout=10) is True
+    stopper.join(10)
+    assert not stopper.is_alive()
     with pytest.raises(pykka.ActorDeadError):
         asked.get(timeout=10)
 
@@ -207,24 +215,14 @@ def test_a_pykka_ask_that_arrives_while_the_registrar_stops_is_answered(
 
 def _left_behind(registrar: rr.ResourceRegistrar) -> tuple[set[str], set[str]]:
     """Query ids the registrar still expects an answer for, and ones notices wait for."""
-    state = FutureReply()
-    registrar._ref.tell(
-        _Request(
-            lambda actor, reply: reply.set_result(
-                (set(actor.due._attempts), set(actor.parked_notices))
-            ),
-            state,
-        )
-    )
-    left: tuple[set[str], set[str]] = state.future.get(timeout=10)
-    return left
+    work = pending_work(registrar, timeout=10)
+    return set(work.answers_due), set(work.parked_notices)
 
 
-def _busy(registrar: rr.ResourceRegistrar) -> tuple[threading.Event, FutureReply]:
+def _busy(registrar: rr.ResourceRegistrar) -> tuple[threading.Event, pykka.Future[bool]]:
     """Keep the registrar's actor busy until the returned gate is set (a slow provider)."""
-    gate, busy = threading.Event(), FutureReply()
-    registrar._ref.tell(_Request(lambda _actor, reply: reply.set_result(gate.wait(10)), busy))
-    return gate, busy
+    gate = threading.Event()
+    return gate, run_on_actor(registrar, lambda: gate.wait(10))
 
 
 def test_a_call_interrupted_by_ctrl_c_leaves_nothing_behind(
@@ -278,7 +276,7 @@ def test_a_timed_out_retry_of_a_held_id_leaves_both_ends_agreeing(
     with pytest.raises(rr.CallTimeoutError):
         consumer.call(provider.name, "leaf", "x", query_id=first.id, timeout=0.3)
     gate.set()
-    assert busy.future.get(timeout=10) is True
+    assert busy.get(timeout=10) is True
 
     provider_holds = [q.id for q in provider.server_queries("leaf")]  # after Load, Abandon
     assert provider_holds == [q.id for q in consumer.client_queries()]  # after the answer
@@ -318,9 +316,8 @@ def test_an_error_answer_that_loses_to_the_timeout_leaves_nothing_behind(
         raise ValueError(request)
 
     provider.register_server("bad", load=load, unload=lambda _request, _response: None)
-    monkeypatch.setattr(rr_actors._registrar.registrar, "OneShotFuture", _ErrorAsTheWaitRunsOut)
 
-    with pytest.raises(rr.CallTimeoutError):
+    with call_futures(consumer, _ErrorAsTheWaitRunsOut), pytest.raises(rr.CallTimeoutError):
         consumer.call(provider.name, "bad", "x", timeout=5)
 
     assert [] == consumer.client_queries()
@@ -343,15 +340,12 @@ def test_an_answer_recorded_as_the_consumer_stops_is_given_back(
         return request
 
     provider.register_server("slow", load=load, unload=lambda _request, _response: None)
-    original = RegistrarActor._stop
 
-    def paused_stop(self: RegistrarActor) -> None:
-        if self.name == consumer.name:
-            in_stop.set()
-            assert resume.wait(10)
-        original(self)
+    def paused_stop(_: Any) -> None:
+        in_stop.set()
+        assert resume.wait(10)
 
-    monkeypatch.setattr(RegistrarActor, "_stop", paused_stop)
+    intercept(consumer, "stop_drained", before=paused_stop)
     outcome: list[Any] = []
     caller = threading.Thread(
         target=lambda: outcome.append(consumer.call(provider.name, "slow", "x", timeout=10))
@@ -399,19 +393,15 @@ def test_stopping_a_durable_consumer_before_its_callers_load_leaves_leaves_no_id
 
     qid = str(uuid.uuid4())
     expecting = threading.Event()
-    original_lookup = DIRECTORY.lookup
-    marked = threading.local()  # set on the calling thread
 
-    def lookup(name: str) -> Any:
-        if name == provider.name and getattr(marked, "caller", False):
+    def hold_load(load: Any) -> None:
+        if load.query_id == qid:
             expecting.set()  # its record is committed; hold its Load until the stop ran
             assert unload_entered.wait(10)
-        return original_lookup(name)
 
-    monkeypatch.setattr(DIRECTORY, "lookup", lookup)
+    intercept(consumer, "send_load", before=hold_load)
 
     def call() -> rr.Query:
-        marked.caller = True
         return consumer.call(provider.name, "leaf", "x", query_id=qid, timeout=10)
 
     caller, outcome = _in_thread(call)
@@ -473,19 +463,12 @@ def test_a_failed_call_whose_error_races_the_timeout_is_not_withdrawn(
 
     provider.register_server("bad", load=load, unload=lambda _q, _r: None)
     abandons: list[str] = []
-    original = RegistrarActor._handlers[Abandon]
+    intercept(provider, "abandon", before=lambda message: abandons.append(message.query_id))
 
-    def spy(actor: RegistrarActor, message: Abandon) -> None:
-        if actor.name == provider.name:
-            abandons.append(message.query_id)
-        original(actor, message)
-
-    monkeypatch.setitem(RegistrarActor._handlers, Abandon, spy)
-    monkeypatch.setattr(
-        rr_actors._registrar.registrar, "OneShotFuture", _ErrorLandsAsTheWaitRunsOut
-    )
-
-    with pytest.raises(rr.ResourceLoadError):
+    with (
+        call_futures(consumer, _ErrorLandsAsTheWaitRunsOut),
+        pytest.raises(rr.ResourceLoadError),
+    ):
         consumer.call(provider.name, "bad", "x", query_id="q-failed", timeout=5)
     provider.server_queries("bad")  # whatever the caller sent the provider was handled
 
@@ -493,44 +476,32 @@ def test_a_failed_call_whose_error_races_the_timeout_is_not_withdrawn(
 
 
 def test_a_request_that_lands_as_op_stop_finishes_is_answered_not_left_to_time_out(
-    started: Callable[..., rr.ResourceRegistrar], monkeypatch: pytest.MonkeyPatch
+    started: Callable[..., rr.ResourceRegistrar],
 ) -> None:
-    # op_stop: ... reply, `_fail_waiting` (drains the mailbox), then `self.stop()`, which
-    # *tells* pykka's stop message. Whatever is put between the drain and that tell (a
-    # handle request whose `is_alive()` check passed) is handled by the full handlers of
-    # a registrar whose servers, clients, saver and directory entry are gone; what it
-    # waits for comes back through the mailbox after the actor ended and is dropped.
+    # stop(): ... reply, fail the waiting callers (drains the mailbox), then the actor
+    # ends. Whatever is put between the drain and the end (a handle request whose
+    # `is_alive()` check passed) must be refused (`on_late`), not handled by a registrar
+    # whose servers, clients, saver and directory entry are gone, nor dropped.
     provider, consumer = started("prov"), started("cons")
     provider.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
     held = consumer.call(provider.name, "leaf", "x")
-    in_gap, resume, put_seen = threading.Event(), threading.Event(), threading.Event()
-    original = RegistrarActor._fail_waiting
+    in_gap, resume = threading.Event(), threading.Event()
 
-    def fail_waiting(self: RegistrarActor, error: Any) -> None:
-        original(self, error)
-        if self.name == provider.name and not in_gap.is_set():
-            in_gap.set()  # op_stop drained its mailbox and has not told itself to stop
-            assert resume.wait(10)
+    def pause(_: Any) -> None:
+        in_gap.set()  # stop() drained the mailbox and the actor has not ended yet
+        assert resume.wait(10)
 
-    monkeypatch.setattr(RegistrarActor, "_fail_waiting", fail_waiting)
-    stopping = FutureReply()  # (op_stop without the handle's own ref.stop() ask)
-    provider._ref.tell(_Request(lambda actor, reply: actor.op_stop(reply), stopping))
+    intercept(provider, "stop_drained", before=pause)
+    stopper, stopped = _in_thread(lambda: provider.stop(timeout=10))
     assert in_gap.wait(10)
-    inbox = provider._ref.actor_inbox
-    original_put = inbox.put
-
-    def put(item: Any, block: bool = True, timeout: float | None = None) -> None:
-        original_put(item, block, timeout)
-        if isinstance(item.message, _Request):
-            put_seen.set()
-
-    monkeypatch.setattr(inbox, "put", put)
+    inbox = actor_ref(provider).actor_inbox
     updater, outcome = _in_thread(lambda: provider.update_response(held.id, "new", timeout=3))
-    assert put_seen.wait(10)
+    assert _wait_for(lambda: inbox.qsize() >= 1)  # its request landed in the gap
     resume.set()
     updater.join(10)
+    stopper.join(10)
 
-    assert stopping.future.get(timeout=10) is None
+    assert [None] == stopped
     assert [rr.RegistrarStoppedError] == [type(o) for o in outcome]
 
 
@@ -544,7 +515,7 @@ def test_a_fetch_that_lands_after_its_client_ended_is_answered_not_left_to_time_
     provider, consumer = started("prov"), started("cons")
     provider.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
     consumer.call(provider.name, "leaf", "x")
-    client = consumer._clients[(provider.name, "leaf")]
+    client = actor_ref(consumer, client=(provider.name, "leaf"))
     consumer.stop()
     monkeypatch.setattr(client, "is_alive", lambda: True)  # both checks passed just before
 
@@ -590,9 +561,8 @@ def test_a_durable_caller_whose_time_runs_out_as_its_answer_is_committed_gets_it
     provider = started("provider")
     consumer = started("consumer", backup_path=tmp_path / "c.db", save_on_modify=True)
     provider.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
-    monkeypatch.setattr(rr_actors._registrar.registrar, "OneShotFuture", _CommitRacesTheTimeout)
-
-    query = consumer.call(provider.name, "leaf", "x", timeout=5)
+    with call_futures(consumer, _CommitRacesTheTimeout):
+        query = consumer.call(provider.name, "leaf", "x", timeout=5)
 
     assert "loaded x" == query.response
     assert [query.id] == [q.id for q in consumer.client_queries()]
@@ -621,33 +591,27 @@ def test_a_late_failure_of_a_withdrawn_attempt_keeps_the_retrys_pending_record(
     qid = str(uuid.uuid4())
     retry_pending, stale_handled = threading.Event(), threading.Event()
     failures: list[Any] = []
-    on_pending = RegistrarActor._handlers[_Pending]
-    on_failed = RegistrarActor._handlers[_CallFailed]
-    on_abandon = RegistrarActor._handlers[Abandon]
     pendings: list[Any] = []
 
-    def pending(actor: RegistrarActor, message: _Pending) -> None:
-        on_pending(actor, message)
+    def pending(message: Any) -> None:
         if message.record.query.id == qid:
             pendings.append(message.attempt)
             if len(pendings) == 2:
                 retry_pending.set()  # the retry's record is committed, its Load may leave
 
-    def failed(actor: RegistrarActor, message: _CallFailed) -> None:
-        on_failed(actor, message)
+    def failed(message: Any) -> None:
         if message.query_id == qid:
             failures.append(message.attempt)
             if len(failures) == 2:  # the provider's error answer to the first attempt
                 stale_handled.set()
 
-    def abandon(actor: RegistrarActor, message: Abandon) -> None:
+    def abandon(message: Any) -> None:
         if message.query_id == qid:  # the provider is slow to take the withdrawal
             assert retry_pending.wait(10)
-        on_abandon(actor, message)
 
-    monkeypatch.setitem(RegistrarActor._handlers, _Pending, pending)
-    monkeypatch.setitem(RegistrarActor._handlers, _CallFailed, failed)
-    monkeypatch.setitem(RegistrarActor._handlers, Abandon, abandon)
+    intercept(consumer, "pending", after=pending)
+    intercept(consumer, "call_failed", after=failed)
+    intercept(provider, "abandon", before=abandon)
 
     with pytest.raises(rr.CallTimeoutError):  # parked: the first attempt times out
         consumer.call(provider.name, "leaf", "x", query_id=qid, timeout=0.5)
@@ -685,8 +649,8 @@ def test_a_failed_retry_of_a_held_id_keeps_the_held_record(
     restarted: list[rr.ResourceRegistrar] = []
     try:
         held = consumer.call(name, "leaf", "x")
-        monkeypatch.setattr(DIRECTORY, "restart_expected", {name})  # (as a supervisor does)
-        crash(provider)
+        with expect_restart(name):  # (as a supervisor does)
+            crash(provider)
 
         with pytest.raises(rr.RegistrarUnavailableError):  # an idempotent retry fails
             consumer.call(name, "leaf", "x", query_id=held.id, timeout=5)

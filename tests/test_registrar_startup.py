@@ -10,24 +10,12 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors._core.directory import DIRECTORY, LocalPeer
-from rr_actors._core.replies import FutureReply
-from rr_actors._registrar.registrar import RegistrarActor, _Request
+from rr_actors.testing import pending_work
 
 
 def _held_loads(name: str) -> int:
     """How many loads the starting registrar `name` holds (asked in its actor thread)."""
-    peer = DIRECTORY.lookup(name)
-    assert isinstance(peer, LocalPeer)
-    assert peer.ref is not None
-    reply = FutureReply()
-
-    def count(actor: RegistrarActor, answer: Any) -> None:
-        answer.set_result(len(actor.held_loads))
-
-    peer.ref.tell(_Request(count, reply))
-    held: int = reply.future.get(timeout=5)
-    return held
+    return len(pending_work(name).held_loads)
 
 
 def _wait_held(name: str, count: int, timeout: float = 5.0) -> bool:

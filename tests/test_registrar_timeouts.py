@@ -8,9 +8,8 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 import rr_actors as rr
-import rr_actors._registrar.registrar
 from rr_actors._core.actor import OneShotFuture
-from rr_actors.testing import catalog_snapshot, crash
+from rr_actors.testing import call_futures, catalog_snapshot, crash
 
 
 def stuck_load(gate, started):
@@ -198,14 +197,12 @@ class _AnswerThenTimeout(OneShotFuture):
 
 
 @pytest.mark.thread_only("replaces the caller's future class in this process")
-def test_an_answer_that_lands_as_the_wait_times_out_is_taken_not_lost(
-    make_registrar, serve, monkeypatch
-):
+def test_an_answer_that_lands_as_the_wait_times_out_is_taken_not_lost(make_registrar, serve):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
     serve(provider, "leaf")
-    monkeypatch.setattr(rr_actors._registrar.registrar, "OneShotFuture", _AnswerThenTimeout)
 
-    query = consumer.call(provider.name, "leaf", "x", timeout=1.0)
+    with call_futures(consumer, _AnswerThenTimeout):
+        query = consumer.call(provider.name, "leaf", "x", timeout=1.0)
 
     assert [query.id] == [q.id for q in consumer.client_queries()]
     assert [query.id] == [q.id for q in provider.server_queries("leaf")]

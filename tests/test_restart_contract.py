@@ -34,7 +34,8 @@ import pytest
 import rr_actors as rr
 from rr_actors._catalog import Changes, ClientRecord
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._store.sqlite import SqliteStore, read_backup
+from rr_actors._store.files import read_backup
+from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot, crash
 
 

@@ -38,7 +38,7 @@ from supervision import (
 import rr_actors as rr
 from rr_actors import testing
 from rr_actors._process.manager import start_forkserver
-from rr_actors.testing import SharedObjects
+from rr_actors.testing import SharedObjects, actor_ref
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -344,7 +344,7 @@ def test_a_thread_manager_stuck_past_its_shutdown_is_told_to_crash(
         sup.stop()
     finally:
         release.set()
-    assert registrar._ref.actor_stopped.wait(10.0)
+    assert actor_ref(registrar).actor_stopped.wait(10.0)
 
     assert "killed" == (sup.child(name).last_exit or "")[:6]
     with pytest.raises(rr.RegistrarUnavailableError):  # it died; a clean stop would say so
@@ -362,15 +362,13 @@ def block_actor(gate: Any, survived: Any, seconds: float | None) -> Callable[[An
     """
 
     def fn(registrar: rr.ResourceRegistrar) -> None:
-        from rr_actors._core.replies import FutureReply  # noqa: PLC0415
-        from rr_actors._registrar.registrar import _Request  # noqa: PLC0415 - test-only
+        from rr_actors.testing import run_on_actor  # noqa: PLC0415 - runs in the manager
 
-        def op(_actor: Any, reply: Any) -> None:
+        def op() -> None:
             gate.wait(seconds)
             survived.set()
-            reply.set_result(None)
 
-        registrar._ref.tell(_Request(op, FutureReply()))
+        run_on_actor(registrar, op)
 
     return fn
 

@@ -1,5 +1,8 @@
 """pykka's threading actor with hand-offs that wake the other thread once, not twice.
 
+Every use of pykka's extension points for actor implementations, and of its private
+names, is in this file (pykka is pinned below its next major version in pyproject.toml).
+
 `pykka.ThreadingActor` keeps its mailbox in a `queue.Queue` and answers asks through a
 `pykka.ThreadingFuture`; both are built on `threading.Condition`. A condition hands over
 in two steps: `notify()` wakes the waiter, which then blocks again on the condition's
@@ -240,6 +243,18 @@ class Actor(pykka.ThreadingActor):
     def _actor_loop_teardown(self) -> None:
         # Instead of pykka's drain, which answers asks and drops tells.
         self.actor_inbox.close(self.on_late)
+        self.on_ended()
+
+    def end_now(self) -> None:
+        """End this actor from its own thread at once, skipping the rest of its mailbox.
+
+        What is left in the mailbox, and what arrives later, goes to `on_late` (pykka's
+        own `_stop`, wrapped here so that no other module uses pykka's private names).
+        """
+        self._stop()
+
+    def on_ended(self) -> None:
+        """Run on the actor's thread once its loop ended and its mailbox went to `on_late`."""
 
     def on_late(self, envelope: Any) -> None:
         """Handle an envelope that arrived after this actor's loop ended.

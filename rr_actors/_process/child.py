@@ -181,21 +181,19 @@ def standby(conn: Connection, parent: int | None = None) -> None:
 
 
 def _run_manager(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) -> None:
-    from rr_actors._registrar.registrar import ResourceRegistrar  # noqa: PLC0415 - preloaded
+    from rr_actors._registrar import ResourceRegistrar, Served  # noqa: PLC0415 - preloaded
 
     control = _Control(conn)
     attached: Any = None
     try:
         if address is not None:
-            from rr_actors._transport.unix import attach  # noqa: PLC0415
-
-            attached = attach(address)
+            attached = address.attach()
         registrar = ResourceRegistrar.start(config)
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
             setup_fn(registrar)
         if attached is not None:
-            attached.serve(registrar)
+            attached.serve(Served(registrar))
     except BaseException as exc:  # noqa: BLE001 - reported to the supervisor, then exit
         control.send(("failed", "".join(traceback.format_exception(exc))))
         os._exit(1)
@@ -218,7 +216,7 @@ def _serve_control(
     conn: Connection, control: _Control, registrar: Any, attached: Any, stopping: threading.Event
 ) -> None:
     """The child's control loop: answer pings, stop; exit on EOF."""
-    from rr_actors._registrar.registrar import _Request  # noqa: PLC0415 - preloaded
+    from rr_actors._registrar.messages import Request  # noqa: PLC0415 - preloaded
 
     while True:
         try:
@@ -229,7 +227,7 @@ def _serve_control(
         if kind == "ping":
             pong = _Pong(control, message[1])
             with contextlib.suppress(pykka.ActorDeadError):
-                registrar._ref.tell(_Request(lambda _actor, reply: reply.set_result(None), pong))
+                registrar._ref.tell(Request(lambda _actor, reply: reply.set_result(None), pong))
         elif kind == "stop":
             stopping.set()
             code = 0

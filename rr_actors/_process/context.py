@@ -36,8 +36,8 @@ TITLE_PREFIX = "rr-actors: "
 
 _PRELOAD = (
     "rr_actors._process.child",
-    "rr_actors._registrar.registrar",
-    "rr_actors._transport.unix",
+    "rr_actors._registrar",
+    "rr_actors._transport",
     "rr_actors._store.sqlite",
     "hmac",  # the transport's authkey handshake imports it lazily
     "setproctitle",  # if installed (the forkserver skips what does not import)

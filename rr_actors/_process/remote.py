@@ -21,14 +21,10 @@ import cloudpickle
 
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._process.manager import ManagerExit, ManagerProcess
+from rr_actors._registrar.handle import RegistrarFacts, ResourceRegistrar
+from rr_actors._registrar.loading import LOADING, LoadContext
 from rr_actors._registrar.messages import ConsumerDown
-from rr_actors._registrar.registrar import (
-    _LOADING,
-    LoadContext,
-    RegistrarFacts,
-    ResourceRegistrar,
-)
-from rr_actors._transport import AttachedSystem, SystemAddress, attach
+from rr_actors._transport import AttachedSystem, SystemAddress
 from rr_actors._types import Query, Status, StatusCallback
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (
@@ -197,7 +193,7 @@ class RemoteRegistrar(RegistrarFacts):
             Exception: whatever `fn` raised, re-raised here.
         """
         limit = self._config.call_timeout if timeout is None else timeout
-        return attach(self._address).run(self.name, fn, timeout=limit)
+        return self._address.attach().run(self.name, fn, timeout=limit)
 
     def _forward(self, fn: Callable[[ResourceRegistrar], Any], timeout: object) -> Any:
         """Run a method remotely; wait for it a margin beyond its own `timeout`.
@@ -269,7 +265,7 @@ class RemoteRegistrar(RegistrarFacts):
             RegistrarStoppedError: this registrar or the provider was stopped.
             ConfigError: `on_status` is not callable, or the request does not pickle.
         """
-        context = _LOADING.get()
+        context = LOADING.get()
         args = (target_rr, server, request)
         kw = {"on_status": on_status, "timeout": timeout, "query_id": query_id}
         query: Query = self._forward(
@@ -461,7 +457,7 @@ def _call_in_context(
     if context is None:
         return registrar.call(*args, **kw)
     scope = contextvars.copy_context()
-    scope.run(_LOADING.set, context)
+    scope.run(LOADING.set, context)
     return scope.run(registrar.call, *args, **kw)
 
 

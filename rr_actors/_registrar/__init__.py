@@ -1,16 +1,29 @@
-"""The resource registrar: its messages, its actors (split by role) and its handle."""
+"""The resource registrar: its messages, its actor (split by role) and its handle.
+
+- `protocol`: the `Registrar` API both placements implement;
+- `handle`: `ResourceRegistrar`, what user code holds; `calls`: the call protocol on the
+  caller's thread;
+- `actor`: the registrar actor, dispatching to its roles `provider`, `consumer`,
+  `status` and `lifecycle`, which share `state`;
+- `endpoints`: the resource server and client actors; `messages`: everything they tell
+  each other, as data; `loading`: what a load callback runs inside; `probes`: the
+  testing seam on named steps.
+"""
 
 from typing import TYPE_CHECKING
 
+from rr_actors._registrar.handle import ResourceRegistrar, Served, start_registrar
+from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH
 from rr_actors._registrar.protocol import LoadCallback, Registrar, UnloadCallback
-from rr_actors._registrar.registrar import MAX_DEPENDENCY_DEPTH, ResourceRegistrar
 
 __all__ = [
     "MAX_DEPENDENCY_DEPTH",
     "LoadCallback",
     "Registrar",
     "ResourceRegistrar",
+    "Served",
     "UnloadCallback",
+    "start_registrar",
 ]
 
 if TYPE_CHECKING:  # mypy checks that the handle implements the protocol

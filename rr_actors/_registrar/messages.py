@@ -1,31 +1,61 @@
-"""Messages registrars exchange (the wire protocol between registrars).
+"""Messages as data: what registrars tell each other, and what a registrar tells itself.
 
 Each is a frozen dataclass. A `reply` field holds where the answer goes: a local object
 in-process; a transport replaces it by a token when the message crosses processes.
+
+The wire protocol (between registrars, possibly across processes): `Load`, `Unload`,
+`Abandon`, `Fetch` (consumer -> provider); `StatusNotice`, `Revoke`, `ResponseUpdated`
+(provider -> consumer); `ConsumerDown` (death watch -> provider). The internal messages
+below them never leave their process: a registrar's handle, its server and client actors
+and its callers' threads tell them to the registrar actor.
+
+To add a message: define it here, handle it in one role of the registrar actor (its
+`handlers` table in `actor.py` names the step), and, for a wire message, make sure what it
+carries pickles (`docs/explanation/architecture.md`, "Adding a message").
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
-from typing import Any
+import traceback
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
-from rr_actors._core.directory import Reply
-from rr_actors._types import Status
+from rr_actors._catalog import ClientRecord
+from rr_actors._core.actor import OneShotFuture
+from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.wire import WireMessage
+from rr_actors._types import Status, StatusCallback
+from rr_actors.errors import ErrorFrame, ResourceLoadError, RrError
+
+if TYPE_CHECKING:
+    from rr_actors._registrar.actor import RegistrarActor
 
 __all__ = [
     "Abandon",
+    "CallFailed",
+    "ClientLoaded",
     "ConsumerDown",
+    "Crash",
     "Fetch",
+    "FetchVia",
+    "Flush",
     "Load",
+    "Pending",
+    "Request",
     "ResponseUpdated",
     "Revoke",
+    "RunLoad",
+    "RunUnload",
     "StatusNotice",
     "Unload",
+    "give_back",
 ]
 
 
 @dataclasses.dataclass(frozen=True)
-class Load:
+class Load(WireMessage):
     """Consumer -> provider: load `request` on `server` for consumer id `query_id`.
 
     `chain` holds the ids of the resources being loaded further up the call chain
@@ -39,9 +69,47 @@ class Load:
     chain: tuple[str, ...]
     reply: Reply
 
+    def detached(self) -> Load:
+        """This load without its reply (built directly: the hot path of every call)."""
+        return Load(self.query_id, self.server, self.request, self.origin_rr, self.chain, None)  # type: ignore[arg-type]
+
+    def compensation(self) -> Abandon:
+        """A lost answer leaves a consumer id nobody holds: release it (rule 17)."""
+        return Abandon(self.query_id, self.origin_rr)
+
+    def unreadable_answer(self, target: str, exc: Exception) -> RrError:
+        """The response cannot be unpickled in the caller's process: a failed load."""
+        return ResourceLoadError(
+            (
+                ErrorFrame(
+                    registrar=target,
+                    server=self.server,
+                    exc_type=type(exc).__qualname__,
+                    message=f"the response cannot be unpickled in the process of "
+                    f"registrar {self.origin_rr!r}: {exc}",
+                    traceback="".join(traceback.format_exception(exc)),
+                ),
+            )
+        )
+
+    def unsendable_answer(self, target: str, value: Any, exc: Exception) -> RrError:
+        """The response cannot be pickled to reach the caller: a failed load."""
+        return ResourceLoadError(
+            (
+                ErrorFrame(
+                    registrar=target,
+                    server=self.server,
+                    exc_type=type(exc).__qualname__,
+                    message=f"the response is not picklable, so it cannot reach "
+                    f"registrar {self.origin_rr!r}: {exc} (value: {value!r:.200})",
+                    traceback="",
+                ),
+            )
+        )
+
 
 @dataclasses.dataclass(frozen=True)
-class Unload:
+class Unload(WireMessage):
     """Consumer -> provider: release consumer id `query_id`. Answer: `None` or an error."""
 
     query_id: str
@@ -50,7 +118,7 @@ class Unload:
 
 
 @dataclasses.dataclass(frozen=True)
-class Abandon:
+class Abandon(WireMessage):
     """Consumer -> provider: the caller gave up on `query_id`; release it when possible."""
 
     query_id: str
@@ -58,7 +126,7 @@ class Abandon:
 
 
 @dataclasses.dataclass(frozen=True)
-class Fetch:
+class Fetch(WireMessage):
     """Consumer -> provider: list the queries `origin_rr` holds at `server`."""
 
     server: str
@@ -67,11 +135,13 @@ class Fetch:
 
 
 @dataclasses.dataclass(frozen=True)
-class StatusNotice:
+class StatusNotice(WireMessage):
     """Provider -> consumer: a status about the resources behind `query_ids`.
 
     `event` identifies one `send_status` so that a callback reached twice (diamond
-    dependencies) runs once. Answer: `None` once delivered along the whole path.
+    dependencies) runs once; `hop` counts the registrars it reached on the way (1: the
+    sender's own consumers) and `sent_at` is when it was sent (wall clock, seconds), for
+    the `StatusDelivered` event. Answer: `None` once delivered along the whole path.
     """
 
     query_ids: tuple[str, ...]
@@ -80,17 +150,19 @@ class StatusNotice:
     source: str
     event: str
     reply: Reply
+    hop: int = 1
+    sent_at: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
-class Revoke:
+class Revoke(WireMessage):
     """Provider -> consumer: these consumer ids were released by the provider."""
 
     query_ids: tuple[str, ...]
 
 
 @dataclasses.dataclass(frozen=True)
-class ResponseUpdated:
+class ResponseUpdated(WireMessage):
     """Provider -> consumer: the stored response of these consumer ids changed.
 
     Answer: `None` once the consumer's client records hold the new response.
@@ -102,7 +174,95 @@ class ResponseUpdated:
 
 
 @dataclasses.dataclass(frozen=True)
-class ConsumerDown:
+class ConsumerDown(WireMessage):
     """Death watch -> provider: registrar `origin_rr` died and will not come back."""
 
     origin_rr: str
+
+
+def give_back(serving_rr: str, query_id: str, origin_rr: str) -> None:
+    """Tell provider `serving_rr` to release consumer id `query_id` whenever it can.
+
+    The one way a registrar gives an id back that its caller will not hold (a call given
+    up, an answer that cannot be kept, a dependency whose resource is gone). Best effort:
+    a provider that cannot be reached holds nothing this registrar could release (if it
+    died it restores the id, and its consumer's restart or death watch settles it).
+    """
+    with contextlib.suppress(RrError):
+        DIRECTORY.lookup(serving_rr).tell(Abandon(query_id, origin_rr))
+
+
+# -- internal messages (never leave the process) ---------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class RunLoad:
+    """Registrar -> its server actor: run `load(request)` for resource `resource_id`."""
+
+    resource_id: str
+    request: Any
+    chain: tuple[str, ...]
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class RunUnload:
+    """Registrar -> its server actor: run `unload(request, response)`."""
+
+    request: Any
+    response: Any
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class FetchVia:
+    """Handle -> a client actor: fetch the queries this registrar holds at `server`."""
+
+    server: str
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class Pending:
+    """A durable call about to go out: write its record as pending, then answer `reply`."""
+
+    record: ClientRecord
+    attempt: OneShotFuture[Any]
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class ClientLoaded:
+    """A call's answer to record: the client record (its query holds the response)."""
+
+    record: ClientRecord
+    on_status: StatusCallback | None
+    attempt: OneShotFuture[Any]  # the caller's future
+    answer_after_commit: bool = False  # the registrar answers the caller, after the commit
+
+
+@dataclasses.dataclass(frozen=True)
+class CallFailed:
+    """A call ended without an answer to record: it failed, or its caller withdrew it."""
+
+    query_id: str
+    attempt: OneShotFuture[Any]
+    withdrawn: bool = False  # given up by its caller, who told the provider an Abandon first
+
+
+@dataclasses.dataclass(frozen=True)
+class Request:
+    """A request from the handle: run `op(actor, reply)` in the actor thread."""
+
+    op: Callable[[RegistrarActor, Reply], None]
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class Flush:
+    """The save-interval timer fired: write what accumulated."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Crash:
+    """Die as if a bug hit (`rr_actors.testing.crash`, a thread manager's forced stop)."""

@@ -26,7 +26,7 @@ UnloadCallback = Callable[[Any, Any], None]
 
 @runtime_checkable
 class Registrar(Protocol):
-    """What every registrar handle offers, wherever the registrar runs (DESIGN "Public API").
+    """What every registrar handle offers, wherever the registrar runs.
 
     Every blocking method takes a keyword-only `timeout` in seconds (default: the
     registrar's `call_timeout`) and raises `CallTimeoutError` when it runs out.

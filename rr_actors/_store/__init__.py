@@ -1,21 +1,21 @@
-"""The catalog's backup: the save policy (`saver`) over an embedded SQLite file (`sqlite`).
+"""The catalog's backup: the save policy (`saver`) over an embedded SQLite file.
 
 The store knows the catalog's rows and nothing of actors: the registrar hands it the
 `Changes` it drained from its catalog, and gets back what a restart restores.
+
+Modules, lowest first: `codec` (stored values), `schema` (version, migrations),
+`restore` (reading rows back, lazily), `files` (the path and the file: check, create,
+validate, write again after a deletion, inspect, quarantine), `plan` (the statements of
+a write), `checkpoints` (the background checkpointer), `sqlite` (`SqliteStore`: writes),
+`saver` (the save policy).
 """
 
-from rr_actors._store.saver import CatalogStore, Saver, open_store
-from rr_actors._store.sqlite import (
-    APPLICATION_ID,
-    SCHEMA_VERSION,
-    Backup,
-    Restored,
-    SqliteStore,
-    Unreadable,
-    gc_paused,
-    quarantine_backup,
-    read_backup,
-)
+from rr_actors._store.codec import Unreadable
+from rr_actors._store.files import Backup, quarantine_backup, read_backup
+from rr_actors._store.restore import Restored, gc_paused
+from rr_actors._store.saver import CatalogStore, Saver, open_catalog, open_store
+from rr_actors._store.schema import APPLICATION_ID, SCHEMA_VERSION
+from rr_actors._store.sqlite import SqliteStore
 
 __all__ = [
     "APPLICATION_ID",
@@ -27,6 +27,7 @@ __all__ = [
     "SqliteStore",
     "Unreadable",
     "gc_paused",
+    "open_catalog",
     "open_store",
     "quarantine_backup",
     "read_backup",

@@ -4,6 +4,17 @@
 every change is written before the registrar answers; otherwise changes accumulate and
 are flushed every `save_interval` seconds (a crash loses at most that window), on
 `save_catalog()` and on a clean stop.
+
+```
+ registrar --changed(changes)--> pending --flush() / on_modify--> store.write(pending)
+                                    ^                                   |
+                                    +-- kept on CatalogWriteError ------+--> failure
+ registrar --retry()--> store.write(pending) --ok--> failure = None
+```
+
+A write that fails (a full disk) raises `CatalogWriteError`; its changes stay pending
+and are written, merged with what changed since, by the next write that succeeds, and
+`failure` tells the registrar that the backup is behind until then.
 """
 
 from __future__ import annotations
@@ -11,14 +22,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
-from rr_actors._catalog import Changes, ClientRecord, Resource
+from rr_actors._catalog import Catalog, Changes, ClientRecord, Resource
 from rr_actors._core.timers import Cancellable, Timer, thread_timer
 from rr_actors.config import RegistrarConfig
+from rr_actors.errors import CatalogWriteError
 
 if TYPE_CHECKING:
-    from rr_actors._store.sqlite import Restored
+    from rr_actors._store.restore import Restored
 
-__all__ = ["CatalogStore", "Saver", "open_store", "timer_factory"]
+__all__ = ["CatalogStore", "Saver", "open_catalog", "open_store", "timer_factory"]
 
 
 timer_factory: Timer = thread_timer
@@ -37,7 +49,11 @@ class CatalogStore(Protocol):
         """What a registrar needs to serve again (the rest read on first use), or `None`."""
 
     def write(self, changes: Changes) -> None:
-        """Apply `changes` as one transaction."""
+        """Apply `changes` as one transaction.
+
+        Raises:
+            CatalogWriteError: nothing of `changes` was written (a full disk, ...).
+        """
 
     def close(self, *, erase: bool) -> None:
         """Close the store; with `erase`, remove its files."""
@@ -65,7 +81,17 @@ def open_store(config: RegistrarConfig) -> CatalogStore | None:
 
 
 class Saver:
-    """Applies the save policy of a `RegistrarConfig` to a store (or to nothing)."""
+    """Applies the save policy of a `RegistrarConfig` to a store (or to nothing).
+
+    Runs on the registrar actor's thread (it is not thread-safe). When a write fails
+    (`CatalogWriteError`: a full disk, an I/O error), the changes it carried stay pending,
+    `failure` holds the error and `durable` does not change. Every later write (the next
+    change with `save_on_modify`, a `flush`, `retry`) writes everything pending, merged
+    with what changed since; the first that succeeds clears `failure`. So while `failure`
+    is set, the file holds what was written before it, and the registrar may serve all of
+    that; a registrar that promises durability (`durable`) refuses new loads until `retry`
+    succeeds.
+    """
 
     def __init__(self, store: CatalogStore | None, config: RegistrarConfig) -> None:
         self.store = store
@@ -74,11 +100,26 @@ class Saver:
             config.save_interval if store is not None and not config.save_on_modify else None
         )
         self._pending = Changes({}, {})
+        self._failure: CatalogWriteError | None = None
 
     @property
     def durable(self) -> bool:
         """Whether every change is written before it is acknowledged."""
         return self.store is not None and self.on_modify
+
+    @property
+    def failure(self) -> CatalogWriteError | None:
+        """The error of the last write if it failed; `None` once a write succeeded.
+
+        While it is set, changes wait in memory (`pending`) and the file holds what was
+        written before.
+        """
+        return self._failure
+
+    @property
+    def pending(self) -> bool:
+        """Whether changes wait to be written (none without a store)."""
+        return bool(self._pending)
 
     def schedule(self, tick: Callable[[], None]) -> Cancellable | None:
         """Start the save-interval timer: `tick()` runs once, `flush_interval` s from now.
@@ -91,7 +132,12 @@ class Saver:
         return timer_factory(self.flush_interval, tick)
 
     def changed(self, changes: Changes) -> None:
-        """Take changes just made to the catalog."""
+        """Take changes just made to the catalog; with `save_on_modify`, write them now.
+
+        Raises:
+            CatalogWriteError: with `save_on_modify`, the write failed: `changes` (and
+                whatever was pending) stay pending, and `failure` is this error.
+        """
         if self.store is None:
             return
         self._pending.resources.update(changes.resources)
@@ -104,15 +150,43 @@ class Saver:
 
         The changes are forgotten only once written: if the write raises they stay
         pending, and the next write (or flush) tries them again with what came since.
+
+        Raises:
+            CatalogWriteError: the write failed (the changes stay pending; `failure` is
+                this error until a write succeeds).
         """
-        if self.store is not None and self._pending:
+        if self.store is None or not self._pending:
+            return
+        try:
             self.store.write(self._pending)
-            self._pending = Changes({}, {})
+        except CatalogWriteError as exc:
+            self._failure = exc
+            raise
+        self._pending = Changes({}, {})
+        self._failure = None
+
+    def retry(self) -> bool:
+        """Try again to write what is pending (after a `CatalogWriteError`).
+
+        Returns:
+            `True` if nothing is pending any more (it was written now, or there was
+            nothing to write) and `failure` is `None`; `False` if the write failed again
+            (`failure` holds the new error). Never raises `CatalogWriteError`.
+        """
+        try:
+            self.flush()
+        except CatalogWriteError:
+            return False
+        return True
 
     def close(self, *, erase: bool, flush: bool = True) -> None:
         """Close the store: flush first (unless erasing, or `flush=False` after a crash).
 
-        The store is closed even if the flush raises (the error is then re-raised).
+        The store is closed even if the flush raises (the error is then re-raised, and
+        what was pending is lost with the process's memory).
+
+        Raises:
+            CatalogWriteError: the last flush failed.
         """
         if self.store is None:
             return
@@ -122,3 +196,32 @@ class Saver:
         finally:
             self.store.close(erase=erase)
             self.store = None
+
+
+def open_catalog(config: RegistrarConfig) -> tuple[Saver, Catalog, bool]:
+    """Open a registrar's backup and build its catalog from it (a fresh one without).
+
+    Returns:
+        The save policy over the opened store, the catalog, and whether it was restored
+        from an existing backup.
+
+    Raises:
+        ConfigError: the path cannot hold a backup (missing directory, read-only, ...).
+        CatalogCorruptError: the file exists but is not a readable catalog.
+    """
+    store = open_store(config)
+    try:
+        from rr_actors._store.restore import gc_paused  # noqa: PLC0415 - only with a backup
+
+        restored = None
+        catalog = Catalog(track_changes=store is not None)
+        if store is not None:
+            with gc_paused():  # building many rows allocates no cycles: skip the rescans
+                restored = store.restore()
+                if restored is not None:
+                    catalog = Catalog.restore(restored.resources, restored.clients, restored.unread)
+    except BaseException:
+        if store is not None:
+            store.close(erase=False)
+        raise
+    return Saver(store, config), catalog, restored is not None

@@ -23,7 +23,8 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 from rr_actors._process.manager import ManagerExit, ManagerProcess, stopped_cleanly
-from rr_actors._registrar.registrar import ResourceRegistrar, _Crash
+from rr_actors._registrar import ResourceRegistrar, Served
+from rr_actors._registrar.messages import Crash
 from rr_actors.config import (
     Isolation,
     ManagerSpec,
@@ -153,7 +154,7 @@ class ThreadManager:
         registrar = ResourceRegistrar.start(config, setup=spec.setup)
         try:
             if attached is not None:
-                attached.serve(registrar)
+                attached.serve(Served(registrar))
         except BaseException:
             with contextlib.suppress(RrError):
                 registrar.stop(timeout=spec.shutdown)
@@ -186,7 +187,7 @@ class ThreadManager:
                 "manager %s did not stop within %g s: %s", self.spec.name, timeout, exc
             )
             with contextlib.suppress(Exception):
-                ref.tell(_Crash())
+                ref.tell(Crash())
             ref.actor_stopped.wait(timeout)
             return ManagerExit(f"killed: no clean stop within {timeout:g} s", normal=False)
         return ManagerExit("shutdown", normal=True)

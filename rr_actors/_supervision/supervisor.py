@@ -45,8 +45,7 @@ import cloudpickle
 
 from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._process.spare import SparePool
-from rr_actors._registrar.protocol import Registrar
-from rr_actors._registrar.registrar import ResourceRegistrar
+from rr_actors._registrar import Registrar, ResourceRegistrar, Served
 from rr_actors._supervision import retry
 from rr_actors._supervision.children import (
     ChildCounts,
@@ -259,7 +258,7 @@ class Supervisor:
                         f"setup of manager {spec.name!r} is not picklable: {exc}"
                     ) from exc
         if self._spec.has_processes():
-            from rr_actors._transport.unix import System  # noqa: PLC0415
+            from rr_actors._transport import System  # noqa: PLC0415
 
             self._system = System.create()  # also attaches this process
             self._tree.attached = self._system
@@ -362,7 +361,7 @@ class Supervisor:
         registrar = ResourceRegistrar.start(config)
         if self._tree.attached is not None:
             try:
-                self._tree.attached.serve(registrar)
+                self._tree.attached.serve(Served(registrar))
             except BaseException:
                 registrar.stop()
                 raise

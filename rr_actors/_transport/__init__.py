@@ -1,5 +1,31 @@
-"""How registrar messages cross processes: the carrier interface and its implementations."""
+"""How registrar messages cross processes: the carrier interface and its carriers.
 
-from rr_actors._transport.unix import AttachedSystem, RemotePeer, System, SystemAddress, attach
+- `base`: the interface (`Transport`, `Address`, `Endpoint`) and the contract every
+  carrier keeps;
+- `codec`: frames and pickling; `writer`: sending without blocking on the peer;
+- the AF_UNIX carrier: `sockets` (connect and the authkey handshake), `outbound` (a
+  channel to another process's registrar), `inbound` (a registrar's listener), `unix`
+  (the system: runtime directory, authkey, `attach`).
+"""
 
-__all__ = ["AttachedSystem", "RemotePeer", "System", "SystemAddress", "attach"]
+from rr_actors._transport.base import Address, Endpoint, Transport
+from rr_actors._transport.outbound import RemotePeer
+from rr_actors._transport.unix import AttachedSystem, System, SystemAddress, attach
+
+__all__ = [
+    "Address",
+    "AttachedSystem",
+    "Endpoint",
+    "RemotePeer",
+    "System",
+    "SystemAddress",
+    "Transport",
+    "attach",
+]
+
+if __debug__:  # mypy checks that the AF_UNIX carrier implements the interface
+    from typing import TYPE_CHECKING
+
+    if TYPE_CHECKING:
+        _transport: type[Transport] = AttachedSystem
+        _address: type[Address] = SystemAddress

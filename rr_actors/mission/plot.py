@@ -15,7 +15,7 @@ mpl.use("Agg")  # no display needed
 import matplotlib.pyplot as plt
 
 if TYPE_CHECKING:
-    from rr_actors.mission.run import MissionReport
+    from rr_actors.mission.report import MissionReport
 
 __all__ = ["plot"]
 

@@ -1,0 +1,214 @@
+"""What publishing an event costs the publishing thread, next to a bare function call.
+
+A registrar publishes as `if publisher.active: publisher.publish(ResourceLoaded(...))`.
+Each row runs that line (or its baseline) `--batch` times in a loop and reports the time per
+iteration in ns, minus the time of an empty loop of the same length, and its ratio to a bare
+Python function call measured in the same run. Rows are interleaved round by round so that
+noise from other processes spreads evenly; the table shows the median over rounds. For scale,
+the last column compares each row with an in-process dedup-hit `call` (one consumer
+registrar calling a resource another one already serves), also measured in the same run.
+
+Rows:
+    bare function call          `noop(x)`: the baseline of the ratio column
+    build one event             `ResourceLoaded(...)` alone (what `active` saves)
+    nobody listening            the line above with no subscriber and INFO off: `active` only
+    one subscriber              the line with one subscription (a no-op callback); the
+                                publishing thread's time only
+    one subscriber + delivery   the same until `wait_delivered()` returned: the subscriber
+                                thread's work too (it competes for the GIL)
+    forwarder                   the line with a `Forwarder` (a no-op `send`) as the only sink
+    forwarder + send            the same until `wait_sent()` returned
+    INFO log line               no subscriber, INFO on (a handler that discards the record):
+                                `describe` plus a `LogRecord`
+    dedup-hit call              `consumer.call(provider, "res", "shared")`, per call (for scale)
+
+Pin it to one CPU for stable ratios (the subscriber thread then shares that CPU, as it
+shares the GIL anyway):
+
+    taskset -c 0 python benchmarks/bench_events.py [--rounds 20] [--batch 10000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import platform
+import statistics
+import sys
+import time
+import uuid
+from collections.abc import Callable
+from typing import Any
+
+import rr_actors as rr
+from rr_actors import events
+from rr_actors._core.bus import Forwarder, Publisher
+
+Row = Callable[[int], None]
+"""Runs one operation `n` times in a loop."""
+
+RID = str(uuid.uuid4())
+QID = str(uuid.uuid4())
+
+
+def noop(_: object) -> None:
+    return None
+
+
+class Bench:
+    """The publishers (and the registrars of the dedup-hit row), set up once."""
+
+    def __init__(self, batch: int) -> None:
+        quiet = logging.getLogger("rr_actors.bench.quiet")
+        quiet.setLevel(logging.WARNING)
+        loud = logging.getLogger("rr_actors.bench.loud")
+        loud.setLevel(logging.INFO)
+        loud.addHandler(logging.NullHandler())
+        loud.propagate = False
+        self.idle = events.publisher(quiet)
+        self.subscribed = events.publisher(quiet)
+        self.subscription = self.subscribed.subscribe(noop, maxsize=4 * batch, name="bench")
+        self.forwarded = events.publisher(quiet)
+        self.forwarder: Forwarder[events.Event] = Forwarder(noop, maxsize=4 * batch)
+        self.forwarded.add_sink(self.forwarder)
+        self.logged = events.publisher(loud)
+        suffix = uuid.uuid4().hex[:6]
+        self.provider = rr.ResourceRegistrar.start(f"bench-provider-{suffix}")
+        self.consumer = rr.ResourceRegistrar.start(f"bench-consumer-{suffix}")
+        self.provider.register_server("res", load=lambda request: request, unload=unload_noop)
+        self.consumer.call(self.provider.name, "res", "shared")
+        self.held: list[str] = []
+
+    def stop(self) -> None:
+        self.subscription.close()
+        self.forwarded.remove_sink(self.forwarder)
+        self.forwarder.close()
+        self.consumer.stop()
+        self.provider.stop()
+
+    # -- rows: each runs its line n times -----------------------------------------------
+
+    def empty(self, n: int) -> None:
+        for _ in range(n):
+            pass
+
+    def bare_call(self, n: int) -> None:
+        f = noop
+        for _ in range(n):
+            f(None)
+
+    def build(self, n: int) -> None:
+        for _ in range(n):
+            events.ResourceLoaded("erm", "res", RID, QID, 0.001)
+
+    def nobody(self, n: int) -> None:
+        publisher = self.idle
+        for _ in range(n):
+            if publisher.active:
+                publisher.publish(events.ResourceLoaded("erm", "res", RID, QID, 0.001))
+
+    def one_subscriber(self, n: int) -> None:
+        self._publish(self.subscribed, n)
+
+    def one_subscriber_delivered(self, n: int) -> None:
+        self._publish(self.subscribed, n)
+        assert self.subscription.wait_delivered(timeout=60.0)
+
+    def forwarder_only(self, n: int) -> None:
+        self._publish(self.forwarded, n)
+
+    def forwarder_sent(self, n: int) -> None:
+        self._publish(self.forwarded, n)
+        assert self.forwarder.wait_sent(timeout=60.0)
+
+    def info_line(self, n: int) -> None:
+        self._publish(self.logged, n)
+
+    def dedup_hit(self, n: int) -> None:
+        call, provider = self.consumer.call, self.provider.name
+        for _ in range(n):
+            self.held.append(call(provider, "res", "shared").id)
+
+    def settle(self) -> None:
+        """Untimed: let the consumers catch up and give the dedup-hit ids back."""
+        assert self.subscription.wait_delivered(timeout=60.0)
+        assert self.forwarder.wait_sent(timeout=60.0)
+        while self.held:
+            self.consumer.unload(self.held.pop())
+
+    @staticmethod
+    def _publish(publisher: Publisher[Any], n: int) -> None:
+        for _ in range(n):
+            if publisher.active:
+                publisher.publish(events.ResourceLoaded("erm", "res", RID, QID, 0.001))
+
+
+def unload_noop(*_: object) -> None:
+    return None
+
+
+def timed(row: Row, n: int) -> float:
+    """ns per iteration of `row` run `n` times."""
+    start = time.perf_counter_ns()
+    row(n)
+    return (time.perf_counter_ns() - start) / n
+
+
+def run(rounds: int, batch: int, dedup_batch: int) -> tuple[list[tuple[str, float]], int]:
+    """Median ns per operation of every row (empty loop subtracted), and events dropped."""
+    bench = Bench(batch)
+    try:
+        rows: dict[str, tuple[Row, int]] = {
+            "bare function call": (bench.bare_call, batch),
+            "build one event": (bench.build, batch),
+            "nobody listening (`active` only)": (bench.nobody, batch),
+            "one subscriber": (bench.one_subscriber, batch),
+            "one subscriber + delivery": (bench.one_subscriber_delivered, batch),
+            "forwarder": (bench.forwarder_only, batch),
+            "forwarder + send": (bench.forwarder_sent, batch),
+            "INFO log line": (bench.info_line, batch),
+            "dedup-hit call": (bench.dedup_hit, dedup_batch),
+        }
+        samples: dict[str, list[float]] = {name: [] for name in rows}
+        for row, n in rows.values():  # warm-up
+            row(min(n, 1000))
+            bench.settle()
+        for _ in range(rounds):
+            for name, (row, n) in rows.items():
+                loop = timed(bench.empty, n)
+                samples[name].append(timed(row, n) - loop)
+                bench.settle()
+        dropped = bench.subscription.dropped + bench.forwarder.dropped
+        return [(name, statistics.median(s)) for name, s in samples.items()], dropped
+    finally:
+        bench.stop()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse arguments, run, print the table."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=20, help="interleaved rounds (default 20)")
+    parser.add_argument("--batch", type=int, default=10_000, help="publishes per round and row")
+    parser.add_argument(
+        "--dedup-batch", type=int, default=200, help="dedup-hit calls per round (default 200)"
+    )
+    args = parser.parse_args(argv)
+
+    rows, dropped = run(args.rounds, args.batch, args.dedup_batch)
+    base = rows[0][1]
+    dedup = rows[-1][1]
+    print(
+        f"python {platform.python_version()}, {sys.platform}, {args.rounds} rounds x "
+        f"{args.batch} publishes per row (dedup hits: {args.dedup_batch}); "
+        f"events dropped: {dropped}"
+    )
+    print()
+    print("| operation | ns per event | / bare call | % of a dedup hit |")
+    print("|---|---:|---:|---:|")
+    for name, ns in rows:
+        print(f"| {name} | {ns:.0f} | {ns / base:.1f}x | {100 * ns / dedup:.2f}% |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,69 @@
+"""What a message must offer to cross between processes: the contract carriers rely on.
+
+A carrier (`rr_actors._transport`) moves messages between the processes of a system
+without knowing what they mean. Where it must act on a message's behalf, it asks the
+message:
+
+- `detached()`: the message as it crosses, without its `reply` (the sender keeps that);
+- `compensation()`: what undoes the effect of handling it, when its answer is lost on the
+  way back (the registrar's `Load` is undone by an `Abandon` of its consumer id);
+- `unreadable_answer()` / `unsendable_answer()`: the error its sender gets when the
+  answer cannot be unpickled there, or pickled here.
+
+Every subclass is listed in `WIRE_TYPES`, which the codec pickles by reference on its
+fast path.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from rr_actors.errors import RrError
+
+__all__ = ["WIRE_TYPES", "WireMessage"]
+
+WIRE_TYPES: set[type] = set()
+"""Every `WireMessage` subclass (filled in as they are defined)."""
+
+
+class WireMessage:
+    """Base of the frozen dataclasses that cross between processes.
+
+    A message that wants an answer has a `reply` field (a `Reply`); the others do not.
+    """
+
+    __slots__ = ()
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        WIRE_TYPES.add(cls)
+
+    def detached(self) -> Any:
+        """This message as it crosses to another process: without its `reply`."""
+        if not hasattr(self, "reply"):
+            return self
+        detached: Any = dataclasses.replace(self, reply=None)  # type: ignore[type-var]
+        return detached
+
+    def compensation(self) -> WireMessage | None:
+        """A message that undoes handling this one when its answer is lost, if any.
+
+        The carrier delivers it to the registrar that handled this message (the message's
+        target), as the one step that keeps a lost answer from leaking what it created.
+        """
+        return None
+
+    def unreadable_answer(self, target: str, exc: Exception) -> RrError:
+        """The error for an answer from `target` that cannot be unpickled in this process."""
+        return RrError(
+            f"the answer of registrar {target!r} to a {type(self).__name__} message "
+            f"cannot be unpickled here: {exc}"
+        )
+
+    def unsendable_answer(self, target: str, value: Any, exc: Exception) -> RrError:
+        """The error sent back instead of an answer of `target` that cannot be pickled."""
+        return RrError(
+            f"the answer of registrar {target!r} to a {type(self).__name__} message "
+            f"is not picklable: {exc}"
+        )

@@ -1,0 +1,272 @@
+"""The call protocol, on the caller's thread: send, then the answer, a death, or the timeout.
+
+```
+ caller thread                         consumer registrar actor          provider
+ ─────────────                         ────────────────────────          ────────
+ due.expect(id)
+ [durable: Pending ───────────────────► record written as pending ──┐
+  wait for the commit ◄─────────────────────────────────────────────┘]
+ Load ─────────────────────────────────────────────────────────────────► on_load
+ wait(answer | error | timeout) ◄──────────── ClientReply (the answering thread) ◄─┘
+   answer:   ClientLoaded ────────────► record it; notices parked behind it run
+   timeout:  claim the future, Abandon ─────────────────────────────────► release the id
+             CallFailed ──────────────► forget the attempt's record
+```
+
+Like OTP's `gen:do_call` (monitor, send, receive the reply, the 'DOWN' or the timeout):
+a provider that dies fails the reply at once (`RegistrarUnavailableError`), not after
+the timeout. Whoever settles the caller's one-shot future first owns the answer: the
+reply, by setting it, or the caller, by claiming it when it stops waiting.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import queue
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pykka
+
+from rr_actors._catalog import ClientRecord
+from rr_actors._core.actor import OneShotFuture
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.replies import FutureReply
+from rr_actors._registrar.loading import check_picklable
+from rr_actors._registrar.messages import CallFailed, ClientLoaded, Load, Pending, give_back
+from rr_actors._registrar.probes import Probes
+from rr_actors._types import Query, StatusCallback
+from rr_actors.errors import CallTimeoutError, RegistrarStoppedError, RrError
+
+__all__ = ["Calls", "ClientReply", "DueAnswers"]
+
+
+class DueAnswers:
+    """The query ids whose answer a consumer has not recorded yet, with their attempt.
+
+    Shared by the registrar's callers and its actor: a caller adds its query id before
+    its `Load` leaves; the actor removes it once it handled that attempt's answer
+    (`ClientLoaded`) or failure (`CallFailed`). Across processes the provider's notices
+    about a query (status, response update, revoke) travel on the provider's connection
+    to this registrar's listener, while the answer comes back on this process's
+    connection to the provider, read by another thread: a notice can overtake the answer
+    it is about. The actor holds such a notice until the query id is no longer due. The
+    lock makes "remove it if it is still this attempt's" atomic against a retry that
+    reuses the query id.
+    """
+
+    __slots__ = ("_attempts", "_lock")
+
+    def __init__(self) -> None:
+        self._attempts: dict[str, OneShotFuture[Any]] = {}
+        self._lock = threading.Lock()
+
+    def __contains__(self, query_id: str) -> bool:
+        return query_id in self._attempts
+
+    def ids(self) -> frozenset[str]:
+        """A snapshot of the query ids whose answer is due."""
+        with self._lock:
+            return frozenset(self._attempts)
+
+    def expect(self, query_id: str, attempt: OneShotFuture[Any]) -> None:
+        """A call `attempt` with `query_id` is about to be sent (any thread)."""
+        with self._lock:
+            self._attempts[query_id] = attempt
+
+    def settle(self, query_id: str, attempt: OneShotFuture[Any]) -> bool:
+        """`attempt`'s answer or failure was handled; whether it was the one due."""
+        with self._lock:
+            if self._attempts.get(query_id) is attempt:
+                del self._attempts[query_id]
+                return True
+        return False
+
+
+class ClientReply:
+    """The answer to a consumer's load: hand it to the caller, who records it.
+
+    The caller's thread wakes with the value and tells the consumer's registrar the
+    client record itself: the answering thread (a connection's reader, or the provider's
+    actor) wakes one thread, not two, and the caller's later `unload` follows the record
+    in the mailbox. A notice about the query that reaches the registrar before the
+    record waits for it (`DueAnswers`).
+
+    With `commit_first` (a durable consumer) the record was written as pending before
+    the load was sent; the registrar commits the answer and then sets the future (or,
+    finding it claimed, drops the record).
+    """
+
+    __slots__ = ("commit_first", "future", "on_status", "record", "registrar")
+
+    def __init__(
+        self,
+        registrar: pykka.ActorRef[Any],
+        record: ClientRecord,
+        on_status: StatusCallback | None,
+        future: OneShotFuture[Any],
+        *,
+        commit_first: bool,
+    ) -> None:
+        self.registrar = registrar
+        self.record = record
+        self.on_status = on_status
+        self.future = future
+        self.commit_first = commit_first
+
+    def set_result(self, value: Any) -> None:
+        if not self.commit_first:
+            with contextlib.suppress(queue.Full):  # (claimed: the caller withdrew the call)
+                self.future.set(value)
+            return  # the caller records it
+        query = self.record.query.with_response(value)
+        record = ClientRecord(query, self.record.parent, loaded=True)
+        try:
+            self.registrar.tell(ClientLoaded(record, self.on_status, self.future, True))
+        except pykka.ActorDeadError:  # the consumer stopped meanwhile: give the id back
+            give_back(query.serving_rr, query.id, query.origin_rr)
+            FutureReply(self.future).set_error(
+                RegistrarStoppedError(f"registrar {query.origin_rr!r} stopped during the call")
+            )
+
+    def set_error(self, error: BaseException) -> None:
+        with contextlib.suppress(pykka.ActorDeadError):
+            self.registrar.tell(CallFailed(self.record.query.id, self.future))
+        FutureReply(self.future).set_error(error)
+
+
+class Calls:
+    """The caller-thread side of one registrar's calls (its handle holds one).
+
+    Args:
+        ref: the consumer registrar actor.
+        name: its name.
+        due: the answers due, shared with the actor.
+        commit_first: its calls are durable (a backup with `save_on_modify`).
+        stored: its client records are stored (a backup), so requests and responses
+            must pickle.
+        probes: the registrar's test probes, read when a call is withdrawn.
+    """
+
+    def __init__(
+        self,
+        ref: pykka.ActorRef[Any],
+        name: str,
+        due: DueAnswers,
+        *,
+        commit_first: bool,
+        stored: bool,
+        probes: Callable[[], Probes | None],
+    ) -> None:
+        self.ref = ref
+        self.name = name
+        self.due = due
+        self.commit_first = commit_first
+        self.stored = stored
+        self.probes = probes
+        self.future_type: type[OneShotFuture[Any]] = OneShotFuture
+
+    def call(
+        self,
+        query: Query,
+        parent: str | None,
+        chain: tuple[str, ...],
+        on_status: StatusCallback | None,
+        limit: float,
+        deadline: float,
+    ) -> Query:
+        """Send `query`'s load and wait for its answer until `deadline` (rule 17).
+
+        Args:
+            query: the call (its id, provider, server and request).
+            parent: the resource of this registrar the call is a dependency of, if any.
+            chain: the resources being loaded further up (cycle detection).
+            on_status: the client status callback to record with the answer.
+            limit: the call's timeout in seconds (for the error message).
+            deadline: when to give up (`time.monotonic()` seconds).
+
+        Raises:
+            CallTimeoutError: no answer in time; the call was withdrawn.
+            RrError: what the call failed with.
+        """
+        future = self.future_type()
+        record = ClientRecord(query, parent)
+        reply = ClientReply(self.ref, record, on_status, future, commit_first=self.commit_first)
+        answered = query
+        try:
+            self.due.expect(query.id, future)  # a notice that overtakes the answer waits
+            load = Load(query.id, query.server, query.request, self.name, chain, reply)
+            sent = self.send(load, reply, deadline)
+            # Settled by the answer (see ClientReply), or claimed here when the time is up.
+            left = max(0.0, deadline - time.monotonic())
+            answer_came = (sent and future.wait(left)) or not future.claim()
+            if answer_came:
+                future.wait()  # whoever holds the claim is writing the answer: read it whole
+            if answer_came and not future.failed:
+                answered = query.with_response(future.get())
+                if self.stored and not self.commit_first:
+                    check_picklable(  # stored with its record at the next flush
+                        answered.response, f"the response of '{query.serving_rr}/{query.server}'"
+                    )
+                if not self.commit_first:  # a durable one the registrar recorded already
+                    loaded = ClientRecord(answered, parent, loaded=True)
+                    self.ref.tell(ClientLoaded(loaded, on_status, future))
+        except pykka.ActorDeadError:  # this registrar stopped meanwhile: give the id back
+            give_back(query.serving_rr, query.id, self.name)
+            raise DIRECTORY.gone_error(self.name) from None
+        except BaseException:  # the caller stops waiting (KeyboardInterrupt, ...)
+            future.claim()
+            self.withdraw(query, future)
+            raise
+        if not answer_came:
+            self.withdraw(query, future)
+            raise CallTimeoutError(
+                f"call to '{query.serving_rr}/{query.server}' timed out after {limit:g} s"
+            )
+        if future.failed:
+            future.get()  # raises what the call failed with
+        return answered
+
+    def send(self, load: Load, reply: ClientReply, deadline: float) -> bool:
+        """Send a call's `load` from the caller's thread; whether it left before `deadline`.
+
+        Along the client's route rather than through the client's mailbox: one thread
+        hand-off less; mailbox order still holds, a later withdrawal reaches its actors
+        after this. A durable call's record is committed as pending first (rule 16), so
+        a crash of this process after the load left still knows the call; a record that
+        cannot be written raises here.
+        """
+        if self.commit_first:
+            committed = FutureReply()
+            self.ref.tell(Pending(reply.record, reply.future, committed))
+            if not committed.future.wait(max(0.0, deadline - time.monotonic())):
+                return False
+            committed.future.get()
+            if reply.future.done:  # failed meanwhile (this registrar stops): nothing to send
+                return True
+        probes = self.probes()
+        if probes is not None:
+            probes.fire("send_load", load)
+        try:
+            DIRECTORY.lookup(reply.record.query.serving_rr).tell(load)
+        except RrError as exc:
+            reply.set_error(exc)
+        return True
+
+    def withdraw(self, query: Query, future: OneShotFuture[Any]) -> None:
+        """Take back a call whose caller stopped waiting: leave nothing behind (rule 17).
+
+        The caller claimed `future`, so an answer that comes later is dropped (or, for a
+        durable call, not kept). Told from the caller's thread, like the `Load`: the
+        provider sees the `Abandon` after the `Load` and before any retry this caller makes
+        with the same id. Not for a call that failed: its provider may hold a committed id
+        that a retry with the same id must find (`Supervisor.call_with_retry`).
+        """
+        probes = self.probes()
+        if probes is not None:
+            probes.fire("withdraw", query)
+        give_back(query.serving_rr, query.id, self.name)
+        with contextlib.suppress(pykka.ActorDeadError):  # after: a crash in between keeps
+            self.ref.tell(CallFailed(query.id, future, withdrawn=True))  # the record

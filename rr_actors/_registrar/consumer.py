@@ -1,0 +1,357 @@
+"""The consumer side of a registrar actor: the queries it holds at servers (its clients).
+
+```
+ caller thread ──Load──► provider          (calls.py: the call protocol)
+      │  durable: Pending ──► on_pending: record written as pending, then the Load leaves
+      ▼
+ answer ──► ClientLoaded ──► on_client_loaded: record (or give back), answer waiting notices
+ failure/withdrawal ──► CallFailed ──► on_call_failed: forget the attempt's record
+ Revoke / ResponseUpdated ──► held back while the answer they are about is on its way
+```
+
+A client record is one query this registrar holds (`ClientRecord`); a dependency's record
+names the resource of this registrar that owns it (rule 5). Releasing one is the one
+place a record is forgotten (`forget`); giving an id back to a provider is
+`messages.give_back`.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import pykka
+
+from rr_actors._catalog import ClientRecord, ResourceState
+from rr_actors._core.actor import OneShotFuture
+from rr_actors._core.directory import Reply
+from rr_actors._core.replies import FutureReply, Join
+from rr_actors._registrar.calls import DueAnswers
+from rr_actors._registrar.endpoints import ClientActor
+from rr_actors._registrar.loading import check_picklable
+from rr_actors._registrar.messages import (
+    CallFailed,
+    ClientLoaded,
+    Pending,
+    ResponseUpdated,
+    Revoke,
+    StatusNotice,
+    Unload,
+    give_back,
+)
+from rr_actors._registrar.state import Shared
+from rr_actors._types import StatusCallback
+from rr_actors.errors import (
+    ConfigError,
+    RegistrarStoppedError,
+    RrError,
+    UnknownQueryError,
+)
+
+__all__ = ["Consumer", "Notice"]
+
+logger = logging.getLogger("rr_actors")
+
+Notice = StatusNotice | Revoke | ResponseUpdated
+"""What a provider tells a consumer about queries it holds."""
+
+
+class Consumer:
+    """Holds this registrar's queries at servers, and what waits for their answers.
+
+    Attributes:
+        due: the query ids whose answers are on their way (shared with callers' threads).
+        clients: `(target registrar, server)` -> its client actor.
+        status_callbacks: query id -> the client status callback of that query.
+        pending_attempts: query id -> the future of a durable call in flight (this actor
+            answers it after its commit).
+        parked_notices: query id -> notices that overtook the answer they are about.
+    """
+
+    def __init__(
+        self, shared: Shared, due: DueAnswers, redeliver: Callable[[Notice], None]
+    ) -> None:
+        self.s = shared
+        self.due = due
+        self.redeliver = redeliver
+        self.clients: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
+        self.status_callbacks: dict[str, StatusCallback] = {}
+        self.pending_attempts: dict[str, OneShotFuture[Any]] = {}
+        self.parked_notices: dict[str, list[Notice]] = {}
+
+    # -- holding and forgetting queries -----------------------------------------------
+
+    def forget(self, query_id: str, *, commit: bool = True) -> None:
+        """Forget a query this registrar held: its record and its status callback.
+
+        With `commit=False` the caller commits (once, after forgetting several).
+        """
+        if query_id in self.s.catalog.clients:
+            self.s.catalog.remove_client(query_id)
+            self.status_callbacks.pop(query_id, None)
+            if commit:
+                self.s.commit()
+
+    def release_dependencies(self, rid: str, then: Callable[[], None]) -> None:
+        """Release every query resource `rid` holds as a dependency; then `then()`."""
+        join = Join(then)
+        for record in self.s.catalog.dependencies(rid):
+            self.release_client(record, join.add())
+        join.seal()
+
+    def release_client(self, record: ClientRecord, then: Callable[[], None]) -> None:
+        """Unload one query this registrar holds; the record goes whatever the answer."""
+        query = record.query
+
+        def answered(_: Any, error: BaseException | None) -> None:
+            if error is not None and not isinstance(error, UnknownQueryError):
+                logger.warning("releasing %s at %s failed: %s", query.id, query.serving_rr, error)
+            self.forget(query.id)
+            then()
+
+        self.s.send(query.serving_rr, lambda reply: Unload(query.id, self.s.name, reply), answered)
+
+    def client(self, target_rr: str, server: str) -> pykka.ActorRef[ClientActor]:
+        """The client actor for `target_rr/server`, started on first use (thesis 4.3.3)."""
+        key = (target_rr, server)
+        client = self.clients.get(key)
+        if client is None:
+            assert self.s.ref is not None
+            client = ClientActor.start(self.s.ref, self.s.name, target_rr, server)
+            self.clients[key] = client
+        return client
+
+    # -- answers ----------------------------------------------------------------------
+
+    def on_pending(self, message: Pending) -> None:
+        query_id = message.record.query.id
+        if query_id not in self.s.catalog.clients:  # (else a retry of one held)
+            record = message.record
+            if self.owner_gone(record):  # a late sub-call: kept as a call of its own, so a
+                record = ClientRecord(record.query, None)  # crash meanwhile gives it back
+            self.s.catalog.add_client(record)
+            failed = self.s.commit()
+            if failed is not None:  # not durable: the Load must not leave (rule 16)
+                self.s.catalog.remove_client(query_id)
+                self.s.commit()
+                message.reply.set_error(failed)
+                return
+        self.pending_attempts[query_id] = message.attempt
+        message.reply.set_result(None)  # durable: the Load may leave now (rule 16)
+
+    def on_client_loaded(self, message: ClientLoaded) -> None:
+        try:
+            self.record_answer(message)
+        finally:  # (also when recording failed: what waits for it must not wait for good)
+            self.answered(message.record.query.id, message.attempt)
+
+    def record_answer(self, message: ClientLoaded) -> None:
+        catalog = self.s.catalog
+        query = message.record.query
+        ours = self.pending_attempts.get(query.id) is message.attempt  # (not a same-id retry's)
+        if ours:
+            del self.pending_attempts[query.id]
+        # A durable call's answer is kept only while its caller still waits: the actor takes
+        # the caller's future before it commits, so a caller whose time runs out meanwhile
+        # reads the answer instead. A caller that took it first withdrew the call (told the
+        # provider an Abandon after its Load): its answer is not kept.
+        withdrawn = message.answer_after_commit and not message.attempt.reserve()
+        try:
+            if withdrawn or (self.s.stopping and message.record.parent is None):
+                self.drop_answer(message, withdrawn=withdrawn, ours=ours)
+                return
+            if self.owner_gone(message.record):
+                self.give_back_late_dependency(message)
+                return
+            if message.answer_after_commit and self.unstorable(message):
+                return
+            if query.id in catalog.clients:  # written as pending before the load was sent
+                catalog.client_loaded(query.id, query.response)
+            else:
+                catalog.add_client(message.record)
+            failed = self.s.commit()
+            if failed is not None and message.answer_after_commit:  # durable: not kept
+                give_back(query.serving_rr, query.id, self.s.name)
+                self.forget(query.id)
+                message.attempt.fulfil(exc_info=(type(failed), failed, None))
+                return
+            if message.on_status is not None:
+                self.status_callbacks[query.id] = message.on_status
+            if message.answer_after_commit:
+                message.attempt.fulfil(query.response)
+        except BaseException as exc:  # a reserved future must be settled on every path
+            if message.answer_after_commit and not withdrawn and not message.attempt.done:
+                message.attempt.fulfil(exc_info=(type(exc), exc, exc.__traceback__))
+            raise
+
+    def drop_answer(self, message: ClientLoaded, *, withdrawn: bool, ours: bool) -> None:
+        """An answer not kept: its caller withdrew the call, or this registrar stops.
+
+        `ours`: `message` is the attempt that wrote the pending record (not a same-id retry).
+        """
+        query = message.record.query
+        if not withdrawn or self.s.stopping:  # give the id back (when stopping, the Abandon
+            give_back(query.serving_rr, query.id, self.s.name)  # stop sent may have gone first
+        record = self.s.catalog.clients.get(query.id)
+        if withdrawn and not self.s.stopping:
+            record = None  # its caller's CallFailed removes it, after its Abandon
+        if ours and record is not None and not record.loaded:  # its pending record
+            self.s.catalog.remove_client(query.id)
+            self.s.commit()
+        if message.answer_after_commit and not withdrawn:
+            error = RegistrarStoppedError(f"registrar {self.s.name!r} stopped during the call")
+            message.attempt.fulfil(exc_info=(type(error), error, None))
+
+    def unstorable(self, message: ClientLoaded) -> bool:
+        """A durable call's response this catalog cannot store: give it back, fail the call.
+
+        (A caller that records its own answer checks the response itself, see `calls.py`.)
+        """
+        query = message.record.query
+        try:
+            check_picklable(query.response, f"the response of '{query.serving_rr}/{query.server}'")
+        except ConfigError as exc:
+            give_back(query.serving_rr, query.id, self.s.name)
+            record = self.s.catalog.clients.get(query.id)
+            if record is not None and not record.loaded:
+                self.s.catalog.remove_client(query.id)  # its pending record
+                self.s.commit()
+            message.attempt.fulfil(exc_info=(type(exc), exc, None))
+            return True
+        return False
+
+    def owner_gone(self, record: ClientRecord) -> bool:
+        """Whether `record` is a dependency of a resource that failed or is unloading.
+
+        Its load returned (or raised) while a sub-call it started was still in flight:
+        the resource's dependencies were released already, so this one would never be.
+        """
+        if record.parent is None:
+            return False
+        owner = self.s.catalog.resources.get(record.parent)
+        return owner is None or owner.state is ResourceState.UNLOADING
+
+    def give_back_late_dependency(self, message: ClientLoaded) -> None:
+        """Release a dependency that arrived after its resource's own release (rule 4).
+
+        The call itself succeeded (its caller has the response, or gets it now), but the
+        id is given back at once: nothing could ever release it otherwise.
+        """
+        query = message.record.query
+        logger.warning(
+            "registrar %s: call %s to '%s/%s' returned after the load that made it had "
+            "failed or was unloading; releasing it",
+            self.s.name,
+            query.id,
+            query.serving_rr,
+            query.server,
+        )
+        give_back(query.serving_rr, query.id, self.s.name)
+        if query.id in self.s.catalog.clients:  # a durable consumer's pending record
+            self.s.catalog.remove_client(query.id)
+            self.s.commit()
+        if message.answer_after_commit:  # (reserved by `record_answer`)
+            message.attempt.fulfil(query.response)
+
+    def on_call_failed(self, message: CallFailed) -> None:
+        current = self.pending_attempts.get(message.query_id)
+        if current is message.attempt:
+            del self.pending_attempts[message.query_id]
+        record = self.s.catalog.clients.get(message.query_id)
+        try:
+            if current is not None and current is not message.attempt:
+                pass  # a stale failure of an earlier attempt: the record is a retry's
+            elif record is not None and record.loaded and not message.withdrawn:
+                pass  # a failed retry of an id this registrar holds: it still holds it
+            elif record is not None:
+                self.forget(message.query_id)
+        finally:
+            self.answered(message.query_id, message.attempt)
+
+    # -- notices that overtake the answer they are about ------------------------------
+
+    def parked(self, notice: Notice) -> bool:
+        """Hold `notice` if the answer to one of its queries is still on its way.
+
+        It is handled again (`answered`) once that answer or the call's failure was.
+        """
+        for query_id in notice.query_ids:
+            if query_id in self.due:
+                self.parked_notices.setdefault(query_id, []).append(notice)
+                return True
+        return False
+
+    def answered(self, query_id: str, attempt: OneShotFuture[Any]) -> None:
+        """`attempt`'s answer or failure was handled: handle what waited for it."""
+        if not self.due.settle(query_id, attempt):
+            return
+        waiting = self.parked_notices.pop(query_id, [])
+        while waiting:
+            notice = waiting.pop(0)
+            try:
+                self.redeliver(notice)
+            except BaseException:  # the actor dies: `fail_waiting` answers the rest
+                if waiting:
+                    self.parked_notices[query_id] = waiting
+                raise
+
+    def on_revoke(self, message: Revoke) -> None:
+        if self.parked(message):
+            return
+        for query_id in message.query_ids:
+            self.forget(query_id, commit=False)
+        self.s.commit()
+
+    def on_response_updated(self, message: ResponseUpdated) -> None:
+        if self.parked(message):
+            return
+        for query_id in message.query_ids:
+            self.s.catalog.client_loaded(query_id, message.response)
+        self.s.commit()
+        message.reply.set_result(None)
+
+    def fail_waiting(self, error: RrError) -> None:
+        """Answer the durable callers and the held notices still waiting here."""
+        for attempt in self.pending_attempts.values():
+            FutureReply(attempt).set_error(error)
+        for notices in self.parked_notices.values():
+            for notice in notices:
+                if not isinstance(notice, Revoke):  # (a revoke wants no answer)
+                    notice.reply.set_error(error)
+        self.parked_notices.clear()
+
+    def stop_clients(self) -> None:
+        for client in self.clients.values():
+            client.stop(block=True, timeout=5.0)
+
+    # -- operations the handle asks for ----------------------------------------------
+
+    def op_unload(self, query_id: str, reply: Reply) -> None:
+        record = self.s.catalog.clients.get(query_id)
+        if record is None or not record.loaded:
+            raise UnknownQueryError(f"unknown or released query id {query_id!r}")
+        query = record.query
+
+        def answered(_: Any, error: BaseException | None) -> None:
+            if error is not None and not isinstance(error, UnknownQueryError):
+                reply.set_error(error)  # e.g. the provider is unavailable: keep the record
+                return
+            if error is not None:
+                logger.warning("provider %s no longer knew %s", query.serving_rr, query.id)
+            self.forget(query_id)
+            reply.set_result(None)
+
+        self.s.send(query.serving_rr, lambda r: Unload(query_id, self.s.name, r), answered)
+
+    def op_set_status_callback(self, query_id: str, callback: StatusCallback, reply: Reply) -> None:
+        if query_id not in self.s.catalog.clients:
+            raise UnknownQueryError(f"unknown or released query id {query_id!r}")
+        self.status_callbacks[query_id] = callback
+        reply.set_result(None)
+
+    def op_client_queries(self, reply: Reply) -> None:
+        reply.set_result([r.query for r in self.s.catalog.clients.values() if r.loaded])
+
+    def op_client(self, target_rr: str, server: str, reply: Reply) -> None:
+        reply.set_result(self.client(target_rr, server))

@@ -1,0 +1,117 @@
+"""A registrar's endpoint actors: its resource servers and its clients (thesis 4.3.3).
+
+```
+ registrar actor ──RunLoad/RunUnload──► ServerActor ──submit──► worker thread: load() / unload()
+        ▲                                                              │
+        └────────────────────── reply (a token back to the mailbox) ◄──┘
+ handle ──FetchVia──► ClientActor ──Fetch──► provider registrar
+```
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pykka
+
+from rr_actors._core.actor import Actor, refuse
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.workers import Workers
+from rr_actors._registrar.loading import LOADING, LoadContext, check_picklable, load_error
+from rr_actors._registrar.messages import Fetch, FetchVia, RunLoad, RunUnload
+from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
+from rr_actors.errors import RrError
+
+__all__ = ["ClientActor", "ServerActor"]
+
+
+class ServerActor(Actor):
+    """A resource server: owns its callbacks and runs them on the registrar's workers.
+
+    `load` and `unload` run on a worker thread of the registrar's process, never on an
+    actor thread, so different requests to one server load concurrently.
+    """
+
+    def __init__(
+        self,
+        registrar: str,
+        name: str,
+        load: LoadCallback,
+        unload: UnloadCallback,
+        workers: Workers,
+        *,
+        persisted: bool = False,
+    ) -> None:
+        super().__init__()
+        self.persisted = persisted  # responses must pickle: the catalog stores them
+        self.registrar = registrar
+        self.name = name
+        self.load = load
+        self.unload = unload
+        self.workers = workers
+
+    def on_receive(self, message: Any) -> None:
+        if isinstance(message, RunLoad):
+            self.workers.submit(lambda: self._load(message))
+        elif isinstance(message, RunUnload):
+            self.workers.submit(lambda: self._unload(message))
+
+    def _load(self, message: RunLoad) -> None:
+        token = LOADING.set(LoadContext(self.registrar, message.resource_id, message.chain))
+        try:
+            response = self.load(message.request)
+            if self.persisted:
+                check_picklable(response, "the response")
+        except BaseException as exc:  # noqa: BLE001 - any exception fails the load (rule 4)
+            message.reply.set_error(load_error(self.registrar, self.name, exc))
+        else:
+            message.reply.set_result(response)
+        finally:
+            LOADING.reset(token)
+
+    def _unload(self, message: RunUnload) -> None:
+        try:
+            self.unload(message.request, message.response)
+        except BaseException as exc:  # noqa: BLE001 - logged by the registrar, never lost
+            message.reply.set_error(exc)
+        else:
+            message.reply.set_result(None)
+
+
+class ClientActor(Actor):
+    """A client: the consumer-side endpoint for one target server (thesis 4.3.3).
+
+    Created (and cached) by its registrar the first time it calls the server. It relays
+    fetches. A load (and the give-up of a timed-out one) is sent from the caller's thread
+    along the client's route (see `ResourceRegistrar.call`); status callbacks run on the
+    registrar's worker threads.
+    """
+
+    def __init__(
+        self,
+        registrar_ref: pykka.ActorRef[Any],
+        origin_rr: str,
+        target_rr: str,
+        server: str,
+    ) -> None:
+        super().__init__()
+        self.registrar_ref = registrar_ref
+        self.origin_rr = origin_rr
+        self.target_rr = target_rr
+        self.server = server
+
+    def on_late(self, envelope: Any) -> None:
+        """A fetch that reached this client after it ended is answered, not dropped."""
+        refuse(envelope)
+        reply = getattr(envelope.message, "reply", None)
+        if reply is not None:
+            reply.set_error(DIRECTORY.gone_error(self.origin_rr))
+
+    def on_receive(self, message: Any) -> None:
+        if isinstance(message, FetchVia):
+            try:
+                DIRECTORY.lookup(self.target_rr).tell(
+                    Fetch(message.server, self.origin_rr, message.reply)
+                )
+            except RrError as exc:
+                message.reply.set_error(exc)

@@ -1,0 +1,610 @@
+"""The registrar's handle: what user code holds, callable from any thread.
+
+Each method sends the registrar actor a request (`Request`: run this on your thread,
+answer that reply) and waits for the answer at most `timeout` seconds; `call` runs the
+call protocol on the caller's own thread (`calls.py`). The handle never touches the
+catalog itself.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from typing import Any
+
+import pykka
+
+from rr_actors import events
+from rr_actors._catalog import ResourceState
+from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
+from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
+from rr_actors._core.replies import FutureReply, wait
+from rr_actors._registrar.actor import RegistrarActor
+from rr_actors._registrar.calls import Calls, DueAnswers
+from rr_actors._registrar.endpoints import ClientActor
+from rr_actors._registrar.loading import LOADING, check_picklable
+from rr_actors._registrar.messages import FetchVia, Request
+from rr_actors._registrar.probes import Probes
+from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
+from rr_actors._store import Saver, open_catalog
+from rr_actors._types import Query, Status, StatusCallback
+from rr_actors.config import RegistrarConfig, check_seconds
+from rr_actors.errors import (
+    CallTimeoutError,
+    ConfigError,
+    RegistrarStoppedError,
+)
+
+__all__ = ["EVENT_LOG", "RegistrarFacts", "ResourceRegistrar", "Served", "start_registrar"]
+
+EVENT_LOG = logging.getLogger("rr_actors.events")
+"""Where registrars log their events at INFO (one line per event; off by default)."""
+
+
+class RegistrarFacts:
+    """What a registrar handle knows without asking its actor (shared by every handle)."""
+
+    _config: RegistrarConfig
+    _restored: bool
+    _in_doubt: tuple[Query, ...]
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        return self._config.name
+
+    @property
+    def config(self) -> RegistrarConfig:
+        """The configuration it was started with."""
+        return self._config
+
+    @property
+    def restored(self) -> bool:
+        """Whether the catalog was restored from an existing backup at start."""
+        return self._restored
+
+    @property
+    def in_doubt(self) -> tuple[Query, ...]:
+        """Loads (or unloads) a crash cut short in the last run, found at restore (rule 16).
+
+        Each is a `Query` whose `id` is the resource id, whose `request` is what the load
+        was for and whose `response` is `None` for a load that never finished. They are
+        no longer in the catalog and their dependencies were released; the manager
+        decides whether something its callback started must be cleaned up.
+        """
+        return self._in_doubt
+
+
+class ResourceRegistrar(RegistrarFacts):
+    """A manager's resource registrar (thesis 4.3.1, `RrBase`).
+
+    Start one with [`ResourceRegistrar.start`][rr_actors.ResourceRegistrar.start]. Its
+    methods may be called from any thread, including from inside callbacks; each sends a
+    message to the registrar actor and waits for the answer at most `timeout` seconds
+    (default: the config's `call_timeout`).
+    """
+
+    def __init__(
+        self,
+        ref: pykka.ActorRef[RegistrarActor],
+        config: RegistrarConfig,
+        *,
+        restored: bool,
+        in_doubt: tuple[Query, ...],
+        due: DueAnswers | None = None,
+    ) -> None:
+        self._ref = ref
+        self._config = config
+        self._restored = restored
+        self._in_doubt = in_doubt
+        self._clients: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
+        self._died = threading.Event()  # set when a crash of the actor was fully handled
+        self._ended = threading.Event()  # set when the actor handed on its last message
+        self._due = due or DueAnswers()  # shared with the actor (see `start`)
+        self._probes: Probes | None = None  # `rr_actors.testing.intercept`
+        self._events: Publisher[events.Event] = events.publisher(EVENT_LOG)  # (see `start`)
+        self._calls = Calls(
+            ref,
+            config.name,
+            self._due,
+            commit_first=config.save_on_modify and config.backup_path is not None,
+            stored=config.backup_path is not None,
+            probes=lambda: self._probes,
+        )
+
+    @classmethod
+    def start(
+        cls,
+        config: RegistrarConfig | str,
+        *,
+        setup: Callable[[ResourceRegistrar], object] | None = None,
+    ) -> ResourceRegistrar:
+        """Start a registrar, restoring its catalog first if its backup exists.
+
+        Args:
+            config: a `RegistrarConfig`, or just a name (all other fields default).
+            setup: `setup(registrar)`, run on the calling thread after the catalog was
+                restored and before the registrar serves other registrars: loads that
+                arrive meanwhile for servers it has not registered yet wait for it (a
+                manager's start-up). If it raises, the registrar is stopped and the error
+                propagates.
+
+        Returns:
+            The handle of the running registrar.
+
+        Raises:
+            DuplicateNameError: a registrar with this name is already running here.
+            CatalogCorruptError: the backup exists but cannot be read (it is left as is).
+            ConfigError: the configuration, or its backup path, is invalid.
+        """
+        return start_registrar(config, setup=setup)
+
+    # -- properties -------------------------------------------------------------------
+
+    def is_alive(self) -> bool:
+        """Whether the registrar actor is running."""
+        return self._ref.is_alive()
+
+    def subscribe(
+        self,
+        callback: Callable[[events.Event], object],
+        *,
+        maxsize: int = DEFAULT_MAXSIZE,
+    ) -> Subscription[events.Event]:
+        """Call `callback(event)` for every event of this registrar from now on.
+
+        Events are the frozen dataclasses of `rr_actors.events` (a load, a failed load,
+        an unload, a consumer added or released, a status sent or delivered here, an
+        in-doubt query at restore). The callback runs on a subscriber thread of its own,
+        never in the registrar's mailbox, one event at a time in the order they happened;
+        a slow callback never slows the registrar: past `maxsize` queued events, new ones
+        are dropped, counted (`Subscription.dropped`) and reported by an `EventsDropped`.
+
+        Args:
+            callback: `callback(event)`; what it raises is logged.
+            maxsize: events queued for it before new ones are dropped.
+
+        Returns:
+            The subscription; `close()` it (or use it in a `with` block).
+
+        Raises:
+            ConfigError: `maxsize` is not a positive int.
+        """
+        return self._events.subscribe(callback, maxsize=maxsize, name=f"{self.name}-events")
+
+    # -- servers ----------------------------------------------------------------------
+
+    def register_server(
+        self,
+        name: str,
+        *,
+        load: LoadCallback,
+        unload: UnloadCallback,
+        on_status: StatusCallback | None = None,
+        timeout: float | None = None,
+    ) -> None:
+        """Register a resource server `"<registrar>/<name>"`.
+
+        Args:
+            name: server name, unique on this registrar.
+            load: `load(request) -> response`; runs on a worker thread of this process.
+            unload: `unload(request, response) -> None`; runs on a worker thread, after the
+                resource's dependencies were released.
+            on_status: `on_status(query, update)`, run once on a worker thread when a status
+                about one of this server's resources is sent or passes through.
+            timeout: seconds to wait for the registrar.
+
+        Raises:
+            ConfigError: a callback is not callable or the name is invalid.
+            DuplicateNameError: a server with this name exists on this registrar.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        if not isinstance(name, str) or not name or "/" in name:
+            raise ConfigError(f"server name must be a non-empty string without '/', got {name!r}")
+        for arg, fn in (("load", load), ("unload", unload), ("on_status", on_status)):
+            if fn is not None and not callable(fn):
+                raise ConfigError(f"{arg} must be callable, got {fn!r}")
+        self._ask(
+            lambda actor, reply: actor.provider.op_register(name, load, unload, on_status, reply),
+            timeout,
+            f"register_server({name!r})",
+        )
+
+    def unregister_server(self, name: str, *, timeout: float | None = None) -> None:
+        """Remove a server: send `FATAL` to its consumers and unload all it serves (rule 12).
+
+        Raises:
+            UnknownServerError: no such server here.
+            CallTimeoutError: not finished within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        limit = self._timeout(timeout)
+        self._ask(
+            lambda actor, reply: actor.provider.op_unregister(name, reply),
+            limit,
+            f"unregister_server({name!r})",
+        )
+
+    # -- consumer API -----------------------------------------------------------------
+
+    def call(
+        self,
+        target_rr: str,
+        server: str,
+        request: Any,
+        *,
+        on_status: StatusCallback | None = None,
+        timeout: float | None = None,
+        query_id: str | None = None,
+    ) -> Query:
+        """Ask `target_rr/server` for the resource `request` describes (rules 1-6, 17).
+
+        The provider runs `load(request)` unless an equal (`==`) request is loaded or
+        loading there; either way this call becomes one more consumer with its own id.
+        Called from inside a `load` callback of this registrar, the query is recorded as
+        a dependency of the resource being loaded.
+
+        Args:
+            target_rr: name of the provider registrar (this one's own name works too).
+            server: server name on it.
+            request: any value; equal requests mean the same resource. Between
+                registrars of one process it is passed, not copied (as pykka passes
+                messages): do not change it after the call, or the provider's catalog
+                holds the changed value and may no longer match equal requests to it.
+            on_status: client status callback `on_status(query, update)`, run on a worker
+                thread of this registrar's process.
+            timeout: seconds to wait for the answer.
+            query_id: the id to use (default: a fresh UUID4). Retrying with the same id is
+                idempotent: it never loads twice nor adds a second consumer.
+
+        Returns:
+            The `Query`, with the provider's `response` (in one process, the very object
+            `load` returned, shared by every consumer: treat it as read-only).
+
+        Raises:
+            ResourceLoadError: `load` raised here or further down; `stack` says where.
+            DependencyCycleError: the load would wait for itself further up its chain.
+            UnknownServerError: no such registrar or server.
+            CallTimeoutError: no answer in time; the query id is released if it loads later.
+            RegistrarUnavailableError: the provider died (it may have executed the load).
+            RegistrarStoppedError: this registrar or the provider was stopped.
+            ConfigError: `on_status` is not callable; or the request, or the response,
+                cannot be pickled where it must be: across processes, or into this
+                registrar's backup (its client record); the provider then holds nothing.
+        """
+        if on_status is not None and not callable(on_status):
+            raise ConfigError(f"on_status must be callable, got {on_status!r}")
+        limit = self._timeout(timeout)
+        deadline = time.monotonic() + limit
+        context = LOADING.get()
+        parent: str | None = None
+        chain: tuple[str, ...] = ()
+        if context is not None:
+            chain = context.chain
+            if context.registrar == self.name:
+                parent = context.resource_id
+        if self._config.backup_path is not None:  # its client record is stored
+            check_picklable(request, f"the request of a call to '{target_rr}/{server}'")
+        query = Query(query_id or str(uuid.uuid4()), server, target_rr, self.name, request)
+        self._client(target_rr, server, limit)  # the client endpoint exists from the first call
+        return self._calls.call(query, parent, chain, on_status, limit, deadline)
+
+    def unload(self, query_id: str, *, timeout: float | None = None) -> None:
+        """Release one consumer id obtained from `call` (rules 7-8).
+
+        The provider's `unload` callback runs when the last consumer id of the resource is
+        released, after that resource's own dependencies were released; this returns
+        when that is done.
+
+        Raises:
+            UnknownQueryError: the id is unknown here or already released (nothing changes).
+            CallTimeoutError: not finished within `timeout` seconds.
+            RegistrarUnavailableError: the provider died; the id is kept, retry later.
+            RegistrarStoppedError: this registrar was stopped.
+        """
+        self._ask(
+            lambda actor, reply: actor.consumer.op_unload(query_id, reply),
+            timeout,
+            f"unload({query_id!r})",
+        )
+
+    def send_status(
+        self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
+    ) -> None:
+        """Tell every consumer of the resource behind `query_id` about its status (rule 9).
+
+        This server's `on_status` runs once; each consumer's status callback runs with its
+        own query id; the status climbs every dependency path to the top consumers.
+        Returns once every callback on the way has run.
+
+        Args:
+            query_id: any consumer id of a resource this registrar serves.
+            status: the status code.
+            message: free text.
+            timeout: seconds to wait for delivery along the whole path.
+
+        Raises:
+            UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            CallTimeoutError: not delivered everywhere within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        if not isinstance(status, Status):
+            raise ConfigError(f"status must be an rr_actors.Status, got {status!r}")
+        self._ask(
+            lambda actor, reply: actor.status.op_send_status(query_id, status, message, reply),
+            timeout,
+            f"send_status({query_id!r})",
+        )
+
+    def server_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
+        """Every consumer query of this registrar's `server`, each id once (rule 10).
+
+        Raises:
+            UnknownServerError: no such server here.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        result: list[Query] = self._ask(
+            lambda actor, reply: actor.provider.op_server_queries(server, reply),
+            timeout,
+            f"server_queries({server!r})",
+        )
+        return result
+
+    def fetch_queries(
+        self, target_rr: str, server: str, *, timeout: float | None = None
+    ) -> list[Query]:
+        """The queries this registrar holds at `target_rr/server`, as the provider has them.
+
+        Used after a restart to learn what this registrar had asked for (thesis 4.2.5).
+
+        Raises:
+            UnknownServerError: no such registrar or server.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarUnavailableError: the provider died.
+        """
+        limit = self._timeout(timeout)
+        reply = FutureReply()
+        self._client(target_rr, server, limit).tell(FetchVia(server, reply))
+        result: list[Query] = wait(reply.future, limit, f"fetch_queries({target_rr!r})")
+        return result
+
+    def client_queries(self, *, timeout: float | None = None) -> list[Query]:
+        """Every query this registrar holds at servers (its own included), oldest first.
+
+        Raises:
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        result: list[Query] = self._ask(
+            lambda actor, reply: actor.consumer.op_client_queries(reply),
+            timeout,
+            "client_queries()",
+        )
+        return result
+
+    def set_status_callback(
+        self, query_id: str, callback: StatusCallback, *, timeout: float | None = None
+    ) -> None:
+        """Attach (or replace) the client status callback of a query this registrar holds.
+
+        Status callbacks are code, so they are not in the backup: re-attach them after a
+        restart (rule 11).
+
+        Raises:
+            UnknownQueryError: this registrar holds no such query.
+            ConfigError: `callback` is not callable.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        if not callable(callback):
+            raise ConfigError(f"callback must be callable, got {callback!r}")
+        self._ask(
+            lambda actor, reply: actor.consumer.op_set_status_callback(query_id, callback, reply),
+            timeout,
+            f"set_status_callback({query_id!r})",
+        )
+
+    def update_response(
+        self, query_id: str, response: Any, *, timeout: float | None = None
+    ) -> None:
+        """Replace the stored response of the resource behind `query_id` (asynchronous loads).
+
+        Like TeMoto's catalog response update (thesis 4.3.2). Returns once every
+        consumer's client record holds the new response too (a consumer that cannot be
+        reached is logged and skipped).
+
+        Args:
+            query_id: any consumer id of a resource this registrar serves.
+            response: the new response (it must pickle when the catalog has a backup).
+            timeout: seconds to wait for the update to reach every consumer.
+
+        Raises:
+            UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            CallTimeoutError: not delivered within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        self._ask(
+            lambda actor, reply: actor.provider.op_update_response(query_id, response, reply),
+            timeout,
+            f"update_response({query_id!r})",
+        )
+
+    def save_catalog(self, *, timeout: float | None = None) -> None:
+        """Write every pending change of the catalog to the backup now (no-op without one).
+
+        Raises:
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        self._ask(lambda actor, reply: actor.lifecycle.op_save(reply), timeout, "save_catalog()")
+
+    def stop(self, *, timeout: float | None = None) -> None:
+        """Stop the registrar (rule 12).
+
+        Unloads everything it holds as a consumer (newest first), then stops its servers
+        and clients. What its servers serve stays in the catalog for a restart. With
+        `erase_on_destruct` the backup is removed. Stopping a stopped registrar is a no-op.
+
+        Raises:
+            CallTimeoutError: not finished within `timeout` seconds.
+            RegistrarUnavailableError: the registrar died while it stopped.
+        """
+        if not self._ref.is_alive():
+            return
+        limit = self._timeout(timeout)
+        deadline = time.monotonic() + limit
+        try:
+            self._ask(lambda actor, reply: actor.lifecycle.op_stop(reply), limit, "stop()")
+        except RegistrarStoppedError:
+            return
+        # op_stop ended the actor; what reached its mailbox meanwhile (an answer to give
+        # back, a notice to acknowledge) is handled once its thread has handed it on.
+        if not self._ended.wait(max(0.0, deadline - time.monotonic())):
+            raise CallTimeoutError(f"stop() of {self.name!r} timed out after {limit:g} s")
+
+    def __enter__(self) -> ResourceRegistrar:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.stop()
+
+    def __repr__(self) -> str:
+        state = "running" if self._ref.is_alive() else "stopped"
+        return f"<ResourceRegistrar {self.name!r} {state}>"
+
+    # -- plumbing ---------------------------------------------------------------------
+
+    def _timeout(self, timeout: float | None) -> float:
+        if timeout is None:
+            return self._config.call_timeout
+        check_seconds("timeout", timeout)
+        return float(timeout)
+
+    def _ask(
+        self,
+        op: Callable[[RegistrarActor, Reply], None],
+        timeout: float | None,
+        what: str,
+    ) -> Any:
+        limit = self._timeout(timeout)
+        reply = FutureReply()
+        try:
+            self._ref.tell(Request(op, reply))
+        except pykka.ActorDeadError:
+            raise DIRECTORY.gone_error(self.name) from None
+        return wait(reply.future, limit, what)
+
+    def _client(self, target_rr: str, server: str, timeout: float) -> pykka.ActorRef[ClientActor]:
+        key = (target_rr, server)
+        client = self._clients.get(key)
+        if client is None or not client.is_alive():
+            client = self._ask(
+                lambda actor, reply: actor.consumer.op_client(target_rr, server, reply),
+                timeout,
+                "starting a client",
+            )
+            self._clients[key] = client
+        return client
+
+
+class Served:
+    """A registrar of this process as a carrier serves it (`rr_actors._transport.base.Endpoint`).
+
+    Args:
+        registrar: the registrar to make reachable from the other processes of a system.
+    """
+
+    __slots__ = ("registrar",)
+
+    def __init__(self, registrar: ResourceRegistrar) -> None:
+        self.registrar = registrar
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        return self.registrar.name
+
+    def run(self, fn: Callable[[Any], Any]) -> Any:
+        """Run `fn(registrar)` on the calling thread."""
+        return fn(self.registrar)
+
+    def wait_ended(self, timeout: float | None = None) -> bool:
+        """Block until the registrar actor ended (stopped or died); whether it did."""
+        return self.registrar._ref.actor_stopped.wait(timeout)
+
+    def stopped_cleanly(self) -> bool:
+        """Whether it ended because its owner stopped it (not a crash, not still running)."""
+        if self.registrar.is_alive():
+            return False
+        return isinstance(DIRECTORY.gone_error(self.registrar.name), RegistrarStoppedError)
+
+
+def start_registrar(
+    config: RegistrarConfig | str,
+    *,
+    setup: Callable[[ResourceRegistrar], object] | None = None,
+    upstream: Publisher[events.Event] | None = None,
+) -> ResourceRegistrar:
+    """`ResourceRegistrar.start`, with its events also relayed to `upstream` from the first.
+
+    A supervisor passes its tree's publisher, so the events of a restore (`InDoubt`)
+    reach the tree's subscribers too.
+    """
+    if isinstance(config, str):
+        config = RegistrarConfig(name=config)
+    elif not isinstance(config, RegistrarConfig):
+        raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
+    peer = LocalPeer(config.name, None)
+    DIRECTORY.register(peer)
+    saver: Saver | None = None
+    try:
+        saver, catalog, restored = open_catalog(config)
+        in_doubt = tuple(
+            Query(r.id, r.server, config.name, config.name, r.request, r.response)
+            for r in catalog.resources.values()
+            if r.state is not ResourceState.LOADED
+        )
+        died, ended, due = threading.Event(), threading.Event(), DueAnswers()
+        published = events.publisher(EVENT_LOG)
+        published.relay_to(upstream)
+        ref = RegistrarActor.start(
+            config,
+            catalog,
+            saver,
+            peer,
+            died,
+            due,
+            ended,
+            published,
+            setting_up=setup is not None,
+        )
+    except BaseException:
+        if saver is not None:
+            saver.close(erase=False, flush=False)
+        DIRECTORY.unregister(peer, "stopped")
+        raise
+    handle = ResourceRegistrar(ref, config, restored=restored, in_doubt=in_doubt, due=due)
+    handle._died = died
+    handle._ended = ended
+    handle._events = published
+    if setup is not None:
+        try:
+            setup(handle)
+        except BaseException:
+            handle.stop()
+            raise
+        handle._ask(lambda actor, reply: actor.lifecycle.op_ready(reply), None, "ready")
+    return handle

@@ -1,0 +1,281 @@
+"""A registrar actor's life: start (settle what a crash cut short), serve, stop or die.
+
+```
+ SETTING_UP ──ready──► SERVING ──stop()──► STOPPING ──► ENDED
+      └──────────────────┴── crash (a bug, testing.crash) ─────► ENDED (death)
+```
+
+Starting settles what the last run left in doubt (rule 16). A clean stop releases what
+this registrar holds as a consumer, newest first (rule 12), keeps what its servers serve
+(a restart needs it), flushes and closes the backup. A death fails every waiting caller
+at once (`RegistrarUnavailableError`), writes nothing more, and tells the providers this
+consumer is gone unless a supervisor will restart it (death watch).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import logging
+import threading
+from typing import TYPE_CHECKING, Any
+
+import pykka
+
+from rr_actors import events
+from rr_actors._catalog import ClientRecord, Resource, ResourceState
+from rr_actors._core.actor import refuse
+from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.replies import FutureReply
+from rr_actors._core.timers import Cancellable
+from rr_actors._registrar.messages import (
+    CallFailed,
+    ClientLoaded,
+    ConsumerDown,
+    Crash,
+    Flush,
+    Request,
+    give_back,
+)
+from rr_actors._registrar.state import OpenReply, Phase, Shared
+from rr_actors.errors import (
+    CatalogWriteError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    RrError,
+)
+
+if TYPE_CHECKING:
+    from rr_actors._registrar.actor import RegistrarActor
+    from rr_actors._registrar.consumer import Consumer
+    from rr_actors._registrar.provider import Provider
+
+__all__ = ["CatalogView", "Lifecycle"]
+
+logger = logging.getLogger("rr_actors")
+
+
+@dataclasses.dataclass(frozen=True)
+class CatalogView:
+    """An immutable copy of a registrar's catalog rows (for inspection and tests).
+
+    Attributes:
+        resources: the served resources, each with a copy of its consumers.
+        clients: the client records (queries this registrar holds).
+    """
+
+    resources: tuple[Resource, ...]
+    clients: tuple[ClientRecord, ...]
+
+
+class Lifecycle:
+    """Starts, stops and buries one registrar actor; answers the handle's requests.
+
+    Attributes:
+        open_requests: handle requests not answered yet (a death fails them).
+        died: set once a crash was fully handled (death watch included).
+        ended: set once the actor's thread handed on its last message.
+    """
+
+    def __init__(
+        self,
+        shared: Shared,
+        provider: Provider,
+        consumer: Consumer,
+        actor: RegistrarActor,
+        died: threading.Event,
+        ended: threading.Event,
+    ) -> None:
+        self.s = shared
+        self.provider = provider
+        self.consumer = consumer
+        self.actor = actor
+        self.died = died
+        self.ended = ended
+        self.open_requests: set[OpenReply] = set()
+        self.flush_timer: Cancellable | None = None
+
+    # -- start ------------------------------------------------------------------------
+
+    def on_start(self) -> None:
+        self.settle_in_doubt()
+        self.arm_flush_timer()
+
+    def settle_in_doubt(self) -> None:
+        """Drop restored resources whose load or unload a crash cut short (rule 16).
+
+        They were reported to the manager as `in_doubt`; what they held as dependencies
+        is released, so nothing they started at other servers leaks. A top-level call that
+        was in flight is given up at its provider (its caller died with the last run), and
+        so is a dependency whose resource is gone (a sub-call that outlived its load).
+        """
+        catalog = self.s.catalog
+        for resource in list(catalog.resources.values()):
+            if resource.state is not ResourceState.LOADED:
+                if self.s.events.active:
+                    self.s.events.publish(events.InDoubt(self.s.name, resource.id))
+                catalog.begin_unload(resource.id)
+                self.consumer.release_dependencies(
+                    resource.id, functools.partial(self.provider.remove_resource, resource)
+                )
+        for record in list(catalog.clients.values()):
+            orphan = record.parent is not None and record.parent not in catalog.resources
+            if orphan or (record.parent is None and not record.loaded):
+                query = record.query
+                give_back(query.serving_rr, query.id, self.s.name)
+                catalog.remove_client(query.id)
+        self.s.commit()
+
+    def op_ready(self, reply: Reply) -> None:
+        """Setup is done: serve what waited for it (unknown servers now fail)."""
+        self.s.phase = Phase.SERVING
+        self.s.servers_settled = True
+        self.provider.serve_held()
+        reply.set_result(None)
+
+    # -- the save interval ------------------------------------------------------------
+
+    def arm_flush_timer(self) -> None:
+        ref = self.s.ref
+
+        def tick() -> None:
+            with contextlib.suppress(pykka.ActorDeadError):
+                assert ref is not None
+                ref.tell(Flush())
+
+        self.flush_timer = self.s.saver.schedule(tick)
+
+    def on_flush(self, _: Flush) -> None:
+        if self.s.stopping:
+            return
+        try:
+            self.s.saver.flush()
+        except CatalogWriteError as exc:  # the changes stay pending: the next flush tries
+            logger.warning("registrar %s: the interval save failed: %s", self.s.name, exc)
+        finally:
+            self.arm_flush_timer()
+
+    def op_save(self, reply: Reply) -> None:
+        self.s.commit()
+        self.s.saver.flush()
+        reply.set_result(None)
+
+    # -- requests from the handle -----------------------------------------------------
+
+    def on_request(self, message: Request) -> None:
+        reply = OpenReply(message.reply, self.open_requests)
+        try:
+            message.op(self.actor, reply)
+        except RrError as exc:
+            reply.set_error(exc)
+
+    def op_snapshot(self, reply: Reply) -> None:
+        try:
+            self.s.catalog.check_invariants()
+        except AssertionError as exc:  # the test's error, not the registrar's death
+            reply.set_error(exc)
+            return
+        reply.set_result(
+            CatalogView(
+                resources=tuple(
+                    dataclasses.replace(r, consumers=dict(r.consumers))
+                    for r in self.s.catalog.read_all().values()
+                ),
+                clients=tuple(dataclasses.replace(c) for c in self.s.catalog.clients.values()),
+            )
+        )
+
+    # -- stop -------------------------------------------------------------------------
+
+    def op_stop(self, reply: Reply) -> None:
+        """Unload what this registrar holds as a consumer (newest first), then stop (rule 12)."""
+        self.s.phase = Phase.STOPPING
+        stopped = RegistrarStoppedError(f"registrar {self.s.name!r} stopped during the call")
+        consumer = self.consumer
+        for record in list(self.s.catalog.clients.values()):
+            attempt = consumer.pending_attempts.pop(record.query.id, None)
+            if record.parent is None and not record.loaded and attempt is not None:
+                # a durable call in flight: give it up (the Abandon first, then the record,
+                # so a crash in between leaves nothing at the provider), tell its caller
+                give_back(record.query.serving_rr, record.query.id, self.s.name)
+                consumer.on_call_failed(CallFailed(record.query.id, attempt, withdrawn=True))
+                FutureReply(attempt).set_error(stopped)
+        tops = [
+            r for r in reversed(self.s.catalog.clients.values()) if r.parent is None and r.loaded
+        ]
+
+        def next_one() -> None:
+            if tops:
+                consumer.release_client(tops.pop(0), next_one)
+                return
+            self.s.commit()
+            if self.flush_timer is not None:
+                self.flush_timer.cancel()
+            unsaved: CatalogWriteError | None = None
+            try:
+                self.s.saver.close(erase=self.s.config.erase_on_destruct)
+            except CatalogWriteError as exc:  # stopped anyway; its caller hears what was lost
+                logger.error("registrar %s stopped without its last changes: %s", self.s.name, exc)  # noqa: TRY400
+                unsaved = exc
+            DIRECTORY.unregister(self.s.peer, "stopped")
+            self.stop_children()
+            if unsaved is None:
+                reply.set_result(None)
+            else:
+                reply.set_error(unsaved)
+            self.fail_waiting(RegistrarStoppedError(f"registrar {self.s.name!r} was stopped"))
+            self.s.probe("stop_drained", None)
+            self.s.phase = Phase.ENDED
+            self.actor.end_now()  # at once: what arrives from now on goes to `on_late`
+
+        next_one()
+
+    def stop_children(self) -> None:
+        for server in self.s.servers.values():
+            server.ref.stop(block=True, timeout=5.0)
+        self.consumer.stop_clients()
+
+    # -- death --------------------------------------------------------------------------
+
+    def on_crash(self, _: Crash) -> None:
+        raise RuntimeError(f"registrar {self.s.name!r} was made to crash (rr_actors.testing)")
+
+    def die(self) -> None:
+        """A crash: fail every waiting caller, release this consumer's ids elsewhere."""
+        self.s.phase = Phase.ENDED
+        DIRECTORY.unregister(self.s.peer, "died")
+        self.fail_waiting(RegistrarUnavailableError(f"registrar {self.s.name!r} died"))
+        self.stop_children()
+        if self.flush_timer is not None:
+            self.flush_timer.cancel()
+        self.s.saver.close(erase=False, flush=False)  # a crash writes nothing more
+        if self.s.name not in DIRECTORY.restart_expected:
+            for peer in DIRECTORY.local_peers():
+                with contextlib.suppress(RrError):
+                    peer.tell(ConsumerDown(self.s.name))
+        self.died.set()
+
+    # -- whoever still waits ----------------------------------------------------------
+
+    def fail_waiting(self, error: RrError) -> None:
+        """Answer everyone still waiting on this actor with `error` (it stops or died)."""
+        self.provider.fail_waiting(error)
+        self.consumer.fail_waiting(error)
+        for request in list(self.open_requests):
+            request.set_error(error)
+        inbox = self.actor.actor_inbox
+        while not inbox.empty():
+            self.refuse(inbox.get(), error)
+
+    def refuse(self, envelope: Any, error: Exception) -> None:
+        """Answer a message this actor will not handle (it stops or died); any thread."""
+        refuse(envelope)  # a pykka ask, e.g. the handle's `ref.stop()`: it must hear
+        message = envelope.message
+        pending = getattr(message, "reply", None)
+        if pending is not None:
+            pending.set_error(error)
+        if isinstance(message, ClientLoaded):  # its id would leak at the provider
+            query = message.record.query
+            give_back(query.serving_rr, query.id, self.s.name)
+            FutureReply(message.attempt).set_error(error)

@@ -1,0 +1,88 @@
+"""What a `load` callback runs inside: its context, its errors, what must pickle.
+
+A call made while a `load` callback runs records a dependency of the resource being
+loaded (rule 5): the callback's thread carries a `LoadContext` in a context variable,
+which `call` reads. The context also carries the chain of resources being loaded further
+up, for cycle detection (rule 6).
+"""
+
+from __future__ import annotations
+
+import contextvars
+import dataclasses
+import traceback
+from typing import Any
+
+import cloudpickle
+
+from rr_actors.errors import (
+    ConfigError,
+    DependencyCycleError,
+    ErrorFrame,
+    ResourceLoadError,
+    RrError,
+)
+
+__all__ = [
+    "LOADING",
+    "MAX_DEPENDENCY_DEPTH",
+    "LoadContext",
+    "check_picklable",
+    "load_error",
+]
+
+MAX_DEPENDENCY_DEPTH = 64
+"""A load chain deeper than this is reported as a `DependencyCycleError` (runaway recursion)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadContext:
+    """What is being loaded on the current thread (read by `call` to record dependencies).
+
+    Attributes:
+        registrar: name of the registrar whose server runs the load.
+        resource_id: id of the resource being loaded.
+        chain: ids of the resources being loaded on the way here, this one last.
+    """
+
+    registrar: str
+    resource_id: str
+    chain: tuple[str, ...]
+
+
+LOADING: contextvars.ContextVar[LoadContext | None] = contextvars.ContextVar(
+    "rr_actors_loading", default=None
+)
+"""The `LoadContext` of the load callback running on this thread, if any."""
+
+
+def check_picklable(value: Any, what: str) -> None:
+    """Raise `ConfigError` if `value` cannot be stored in a catalog backup."""
+    try:
+        cloudpickle.dumps(value)
+    except Exception as exc:
+        raise ConfigError(
+            f"{what} cannot be pickled, so the catalog cannot store it: {exc}"
+        ) from exc
+
+
+def load_error(registrar: str, server: str, exc: BaseException) -> RrError:
+    """Turn what a `load` callback raised into the error its callers get (rule 4).
+
+    A `DependencyCycleError` raised further down passes through unchanged; anything else
+    becomes a `ResourceLoadError` whose stack gains this registrar's frame.
+    """
+    inner: BaseException | None = exc
+    while inner is not None and not isinstance(inner, ResourceLoadError | DependencyCycleError):
+        inner = inner.__cause__
+    if isinstance(inner, DependencyCycleError):
+        return inner
+    frame = ErrorFrame(
+        registrar=registrar,
+        server=server,
+        exc_type=type(exc).__qualname__,
+        message=str(exc),
+        traceback="".join(traceback.format_exception(exc)),
+    )
+    stack = inner.stack if isinstance(inner, ResourceLoadError) else ()
+    return ResourceLoadError((*stack, frame))

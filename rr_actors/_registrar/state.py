@@ -1,0 +1,206 @@
+"""What every role of one registrar actor shares: a small state record and its helpers.
+
+The registrar actor is split by role (`provider`, `consumer`, `status`, `lifecycle`), each
+owning the state of its side. What they all use lives here: the configuration, the
+catalog (the actor is its only writer), the save policy, the resource servers, the life-
+cycle `Phase`, the worker pool for user callbacks, and the way a role asks another
+registrar without waiting (`Shared.send`: the answer comes back through the mailbox as a
+continuation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import pykka
+
+from rr_actors import events
+from rr_actors._catalog import Catalog
+from rr_actors._core.bus import Publisher
+from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
+from rr_actors._core.replies import Continuation, TokenReply, Tokens
+from rr_actors._core.workers import Workers
+from rr_actors._registrar.endpoints import ServerActor
+from rr_actors._registrar.probes import Probes
+from rr_actors._store import Saver
+from rr_actors._types import StatusCallback
+from rr_actors.config import RegistrarConfig
+from rr_actors.errors import CatalogWriteError, RrError
+
+__all__ = ["OpenReply", "Phase", "Server", "Shared", "Waiter"]
+
+logger = logging.getLogger("rr_actors")
+
+
+class Phase(enum.Enum):
+    """Where a registrar actor is in its life (one phase, no lifecycle booleans)."""
+
+    SETTING_UP = "setting up"
+    """`start(setup=)` runs: loads for servers it has not registered yet are held."""
+    SERVING = "serving"
+    """Serving every request."""
+    STOPPING = "stopping"
+    """`stop()` releases what it holds as a consumer; new loads are refused."""
+    ENDED = "ended"
+    """Stopped or dead: what still arrives is refused (`on_late`)."""
+
+
+@dataclasses.dataclass
+class Server:
+    """A registered resource server: its actor, its status callback, whether it closes."""
+
+    name: str
+    ref: pykka.ActorRef[ServerActor]
+    on_status: StatusCallback | None
+    closing: bool = False
+
+
+@dataclasses.dataclass
+class Waiter:
+    """A caller waiting for a load: its consumer id, its registrar, where to answer."""
+
+    query_id: str
+    origin_rr: str
+    reply: Reply
+
+
+class OpenReply:
+    """A handle request's reply, known to its actor until answered (a crash fails it).
+
+    Answered on the actor thread, or, for `send_status`, on the thread of the last
+    acknowledgement: so `open_requests` is only ever changed by single `set` operations
+    (add, discard) and read as a copy (`list(...)`), each atomic.
+    """
+
+    __slots__ = ("open", "reply")
+
+    def __init__(self, reply: Reply, open_requests: set[OpenReply]) -> None:
+        self.reply = reply
+        self.open = open_requests
+        open_requests.add(self)
+
+    def set_result(self, value: Any) -> None:
+        self.open.discard(self)
+        self.reply.set_result(value)
+
+    def set_error(self, error: BaseException) -> None:
+        self.open.discard(self)
+        self.reply.set_error(error)
+
+
+class Shared:
+    """The state record every role of one registrar actor reads and writes.
+
+    Only the actor's thread touches it (but `probes`, read by callers' threads too).
+
+    Attributes:
+        config: the registrar's configuration.
+        name: its name.
+        catalog: its catalog; the actor is the only writer.
+        saver: the save policy over its backup (or over nothing).
+        peer: its entry in the directory.
+        phase: where it is in its life.
+        servers_settled: `start(setup=)` finished, so a restored resource of a server
+            that setup did not register is released without its unload callback.
+        servers: resource server name -> `Server`.
+        workers: the threads that run user callbacks.
+        tokens: continuations waiting for answers to this actor's own questions.
+        probes: test probes on named steps (`rr_actors.testing.intercept`), or `None`.
+        ref: the actor's own ref (set when it starts).
+        events: where its events are published (`ResourceRegistrar.subscribe`); build an
+            event only when it is `active`.
+    """
+
+    def __init__(
+        self,
+        config: RegistrarConfig,
+        catalog: Catalog,
+        saver: Saver,
+        peer: LocalPeer,
+        published: Publisher[events.Event],
+        *,
+        setting_up: bool,
+    ) -> None:
+        self.config = config
+        self.name = config.name
+        self.catalog = catalog
+        self.saver = saver
+        self.peer = peer
+        self.phase = Phase.SETTING_UP if setting_up else Phase.SERVING
+        self.servers_settled = False
+        self.servers: dict[str, Server] = {}
+        self.workers = Workers(config.name)
+        self.tokens = Tokens()
+        self.probes: Probes | None = None
+        self.ref: pykka.ActorRef[Any] | None = None
+        self.events = published
+
+    @property
+    def stopping(self) -> bool:
+        """Whether it stops (or ended): it takes no new loads and keeps no new answers."""
+        return self.phase is Phase.STOPPING or self.phase is Phase.ENDED
+
+    def commit(self) -> CatalogWriteError | None:
+        """Hand the catalog's changes to the save policy (durable now, or at the next flush).
+
+        Returns:
+            `None`, or the error of a write that failed (a full disk): the changes stay
+            pending in memory and go with the next write that succeeds. A step whose
+            caller waits for durability undoes its change and fails the caller with it.
+        """
+        if self.saver.store is None:  # nothing persists this catalog
+            return None
+        changes = self.catalog.drain_changes()
+        if not changes:
+            return None
+        healthy = self.saver.failure is None
+        try:
+            self.saver.changed(changes)
+        except CatalogWriteError as exc:
+            if healthy:  # once per failing streak: the next success clears it
+                logger.warning(
+                    "registrar %s: %s; changes wait in memory, new loads are refused until "
+                    "a write succeeds",
+                    self.name,
+                    exc,
+                )
+            return exc
+        return None
+
+    def unwritable(self) -> CatalogWriteError | None:
+        """Why a durable registrar must refuse new loads now: its backup cannot be written.
+
+        While an earlier write failed, each new load first tries it again (`Saver.retry`);
+        `None` once it succeeds (or for a registrar without `save_on_modify`).
+        """
+        saver = self.saver
+        if not saver.durable or saver.failure is None or saver.retry():
+            return None
+        return saver.failure
+
+    def come_back(self, then: Continuation) -> TokenReply:
+        """A reply that runs `then(value, error)` back on this actor's thread."""
+        assert self.ref is not None
+        return self.tokens.reply(self.ref, then)
+
+    def send(self, target: str, make: Callable[[Reply], Any], then: Continuation) -> None:
+        """Send `make(reply)` to registrar `target`; `then(value, error)` runs on the answer.
+
+        The actor never waits: the answer comes back through its mailbox. A target that
+        cannot be reached answers at once with its error.
+        """
+        reply = self.come_back(then)
+        try:
+            DIRECTORY.lookup(target).tell(make(reply))
+        except RrError as exc:
+            reply.set_error(exc)
+
+    def probe(self, step: str, subject: Any) -> None:
+        """Fire the test probes of a named point `step` (no-op without probes)."""
+        probes = self.probes
+        if probes is not None:
+            probes.fire(step, subject)

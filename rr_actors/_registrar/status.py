@@ -1,0 +1,168 @@
+"""Status notifications, climbing every dependency path to the top (rule 9, thesis 4.2.4).
+
+```
+ send_status(id) ──► notify(resource): server's on_status once ──► StatusNotice to each
+                       consumer registrar ──► on_status_notice: each client's callback,
+                       and for a dependency, notify(its parent resource) ──► ... top
+ acknowledgements: counted where they arrive (SharedJoin), the last one answers the sender
+```
+
+A `send_status` is one event (a UUID): a callback reached twice through a diamond of
+dependencies runs once. Callbacks run on worker threads, so a callback may call `call`,
+`unload` or `send_status` on any registrar without deadlock.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import time
+import uuid
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from rr_actors import events
+from rr_actors._catalog import Resource
+from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.replies import CallbackReply, SharedJoin
+from rr_actors._registrar.messages import StatusNotice
+from rr_actors._registrar.provider import consumers_by_origin
+from rr_actors._registrar.state import Shared
+from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
+from rr_actors.errors import RrError
+
+if TYPE_CHECKING:
+    from rr_actors._registrar.consumer import Consumer
+
+__all__ = ["StatusRelay"]
+
+logger = logging.getLogger("rr_actors")
+
+_SEEN_EVENTS = 4096  # (event, resource) pairs remembered to run each callback once
+
+
+class StatusRelay:
+    """Delivers statuses: this registrar's own, and those passing through it."""
+
+    def __init__(self, shared: Shared, consumer: Consumer) -> None:
+        self.s = shared
+        self.consumer = consumer
+        self.seen_events: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
+
+    def op_send_status(self, query_id: str, status: Status, message: str, reply: Reply) -> None:
+        resource = self.s.catalog.resource_of(query_id)
+        update = StatusUpdate(query_id, status, message, f"{self.s.name}/{resource.server}")
+        if self.s.events.active:
+            self.s.events.publish(events.StatusSent(self.s.name, query_id, status, message))
+        self.notify(resource, update, str(uuid.uuid4()), query_id, lambda: reply.set_result(None))
+
+    def notify(
+        self,
+        resource: Resource,
+        update: StatusUpdate,
+        event: str,
+        own_query_id: str | None,
+        then: Callable[[], None],
+        *,
+        hop: int = 1,
+        sent_at: float | None = None,
+    ) -> None:
+        """Run this server's `on_status` once and pass the status on to every consumer.
+
+        `hop` is the number of registrars the notices reach on the way from the sender
+        (its own consumers are hop 1); `sent_at` is when the status was sent (wall clock).
+
+        `then()` runs once every callback and consumer on the way acknowledged, on the
+        thread of the last acknowledgement (a reader thread, a worker, another registrar's
+        actor, or this one): it must not touch this actor's state, and must come back
+        through the mailbox (`Shared.come_back`) if it has to.
+        """
+        key = (event, resource.id)
+        if key in self.seen_events:
+            then()
+            return
+        self.seen_events[key] = None
+        if len(self.seen_events) > _SEEN_EVENTS:
+            self.seen_events.popitem(last=False)
+        join = SharedJoin(then)  # acknowledgements: no trip back through this mailbox
+        sent = time.time() if sent_at is None else sent_at
+        server = self.s.servers.get(resource.server)
+        query_id = own_query_id or next(iter(resource.consumers), resource.id)
+        if server is not None and server.on_status is not None:
+            query = Query(
+                query_id,
+                resource.server,
+                self.s.name,
+                resource.consumers.get(query_id, self.s.name),
+                resource.request,
+                resource.response,
+            )
+            self.run_callback(
+                server.on_status, query, dataclasses.replace(update, query_id=query_id), join
+            )
+        for origin, ids in consumers_by_origin(resource).items():
+            reply = CallbackReply(join.add())  # answered on the answering thread
+            try:
+                DIRECTORY.lookup(origin).tell(
+                    StatusNotice(
+                        ids, update.status, update.message, update.source, event, reply, hop, sent
+                    )
+                )
+            except RrError as exc:
+                reply.set_error(exc)
+        join.seal()
+
+    def run_callback(
+        self, callback: StatusCallback, query: Query, update: StatusUpdate, join: SharedJoin
+    ) -> None:
+        """Run a status callback on a worker thread; its part of `join` is done after it."""
+        done = join.add()
+
+        def run() -> None:
+            try:
+                callback(query, update)
+            except Exception:
+                logger.exception("status callback for %s raised", query.id)
+            finally:
+                done()
+
+        try:
+            self.s.workers.submit(run)
+        except RuntimeError:  # no thread could start: skip the callback, keep serving
+            logger.exception("no worker thread for the status callback of %s", query.id)
+            done()
+
+    def on_status_notice(self, message: StatusNotice) -> None:
+        """Consumer side: run the client callbacks, climb to the dependent resources."""
+        if self.consumer.parked(message):
+            return
+        catalog = self.s.catalog
+        join = SharedJoin(lambda: message.reply.set_result(None))
+        for query_id in message.query_ids:
+            record = catalog.clients.get(query_id)
+            if record is None:
+                continue
+            update = StatusUpdate(query_id, message.status, message.message, message.source)
+            if self.s.events.active:
+                latency = max(0.0, time.time() - message.sent_at)
+                self.s.events.publish(
+                    events.StatusDelivered(
+                        self.s.name, query_id, message.status, message.hop, latency
+                    )
+                )
+            callback = self.consumer.status_callbacks.get(query_id)
+            if callback is not None:
+                self.run_callback(callback, record.query, update, join)
+            if record.parent is not None and record.parent in catalog.resources:
+                parent = catalog.resources[record.parent]
+                self.notify(
+                    parent,
+                    update,
+                    message.event,
+                    None,
+                    join.add(),
+                    hop=message.hop + 1,
+                    sent_at=message.sent_at,
+                )
+        join.seal()

@@ -1,0 +1,478 @@
+"""Where a backup lives: the path's checks, creating, validating and opening the file.
+
+```
+ backup_path --check_location--> (no file) --create: temporary name, linked into place-->
+   --validate: header, read-only connection, schema--> --prepare: WAL, durability, migrate-->
+   a writable connection (`SqliteStore`)
+ file deleted or replaced under the store (`moved`) --copy_aside, then put_in_place-->
+   a new file at the path, the whole catalog in it
+ read_backup: validate, then read every row through a read-only connection (inspection)
+ quarantine_backup: rename the file and its companions aside (the one way to give one up)
+```
+
+A new file is built under a temporary name and linked into place complete, so the backup
+path either does not exist or holds a whole catalog. An existing file is validated
+through a read-only connection before anything writes to it; whatever is wrong raises
+`CatalogCorruptError` (or `ConfigError` for an unusable path) and leaves it untouched.
+Every file the store creates is readable and writable by its owner only (`FILE_MODE`),
+whatever the umask; SQLite gives the `-wal`, `-shm` and `-journal` files the same mode.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime
+import errno as errno_names
+import os
+import sqlite3
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+from rr_actors._catalog import ClientRecord, Resource
+from rr_actors._store import schema
+from rr_actors._store.codec import as_corrupt, lenient_decode
+from rr_actors._store.restore import gc_paused, read_rows
+from rr_actors.errors import CatalogCorruptError, CatalogWriteError, ConfigError
+
+__all__ = [
+    "SIDE_FILES",
+    "SYNCHRONOUS",
+    "Backup",
+    "check_location",
+    "connect",
+    "create",
+    "prepare",
+    "quarantine_backup",
+    "read_backup",
+    "validate",
+]
+
+_HEADER = b"SQLite format 3\x00"
+
+SIDE_FILES = ("-wal", "-shm", "-journal")
+"""The suffixes of the files SQLite keeps next to a database."""
+
+SYNCHRONOUS = {"process": "NORMAL", "power": "FULL"}
+"""SQLite's `synchronous` level for each `RegistrarConfig.durability`."""
+
+
+_LONGEST_SIDE = max(len(suffix) for suffix in SIDE_FILES)
+
+SQLITE_MAX_PATH = 512
+"""Bytes in the longest absolute path SQLite opens (its unix VFS's `MAX_PATHNAME`), side
+files' suffixes included."""
+
+
+def check_location(path: Path) -> None:
+    """Raise `ConfigError` if `path` cannot hold a backup.
+
+    Raises:
+        ConfigError: naming `path`: its directory is missing, is a file or cannot be
+            written; its name (with SQLite's `-journal` suffix) is longer than the file
+            system allows, or the whole path longer than SQLite opens; it is a directory;
+            the file exists and cannot be read and written.
+    """
+    name = str(path)
+    parent = path.parent
+    try:
+        parent_is_dir = parent.is_dir()
+    except OSError as exc:  # a component too long, a loop of links, ...
+        raise ConfigError(f"backup_path {name!r}: {exc.strerror}") from exc
+    if not parent_is_dir:
+        what = "is a file, not a directory" if parent.exists() else "does not exist"
+        raise ConfigError(f"backup_path {name!r}: directory {str(parent)!r} {what}")
+    problem = _length_problem(path)
+    if problem is not None:
+        raise ConfigError(f"backup_path {name!r}: {problem}")
+    try:
+        is_dir, exists = path.is_dir(), path.exists()
+    except OSError as exc:
+        raise ConfigError(f"backup_path {name!r}: {exc.strerror}") from exc
+    if is_dir:
+        raise ConfigError(f"backup_path {name!r} is a directory, not a file")
+    if exists and not os.access(path, os.R_OK | os.W_OK):
+        raise ConfigError(f"backup_path {name!r} is not readable and writable")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(
+            f"backup_path {name!r}: directory {str(parent)!r} is not writable "
+            f"(SQLite needs to create its -wal and -shm files there)"
+        )
+
+
+def _length_problem(path: Path) -> str | None:
+    """Why SQLite could not name the file `path` or its side files (or `None`)."""
+    try:
+        name_max = os.pathconf(path.parent, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        name_max = 255
+    length = len(os.fsencode(path.name))
+    if length + _LONGEST_SIDE > name_max:
+        return (
+            f"the file name is {length} bytes long; this file system takes at most "
+            f"{name_max - _LONGEST_SIDE} (SQLite adds '-journal', '-wal', '-shm')"
+        )
+    full = len(os.fsencode(os.path.abspath(path)))
+    if full + _LONGEST_SIDE > SQLITE_MAX_PATH:
+        return (
+            f"the absolute path is {full} bytes long; SQLite opens at most "
+            f"{SQLITE_MAX_PATH - _LONGEST_SIDE}"
+        )
+    return None
+
+
+def connect(path: Path, *, read_only: bool) -> sqlite3.Connection:
+    if read_only:
+        uri = f"{path.resolve().as_uri()}?mode=ro"
+        db = sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=False)
+    else:
+        db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+    return db
+
+
+def _file_problem(path: Path) -> str | None:
+    """What is wrong with the file itself, judged from its header (or `None`)."""
+    size = path.stat().st_size
+    if size == 0:
+        return "the file is empty (an rr_actors catalog is never empty)"
+    with path.open("rb") as file:
+        header = file.read(100)
+    if not header.startswith(_HEADER):
+        return f"not an SQLite database (starts with {header[:16]!r})"
+    if len(header) < 100:
+        return f"truncated: {size} bytes, shorter than an SQLite header"
+    page_size = int.from_bytes(header[16:18], "big")
+    page_size = 65536 if page_size == 1 else page_size
+    pages = int.from_bytes(header[28:32], "big")
+    change_counter, valid_for = header[24:28], header[92:96]
+    if change_counter == valid_for and pages and pages * page_size > size and not _has_log(path):
+        return f"truncated: {size} bytes, its header says {pages} pages of {page_size} bytes"
+    return None
+
+
+def _has_log(path: Path) -> bool:
+    """Whether a non-empty WAL lies next to `path`.
+
+    A checkpoint copies the log's pages in page order, page 1 (the header, with the new
+    page count) first: a process killed during one that grows the file leaves it shorter
+    than its header says, and SQLite completes it from the log when it is next opened.
+    """
+    try:
+        return Path(f"{path}-wal").stat().st_size > 0
+    except OSError:
+        return False
+
+
+FILE_MODE = 0o600
+"""Permissions of every file the store creates (SQLite gives its side files the same)."""
+
+
+def temporary_path(path: Path, purpose: str) -> Path:
+    """A new name next to `path` for a file built before it is moved into place.
+
+    `.<name>.<8 hex>.<purpose>` if SQLite can open that (see `check_location`), else
+    the shorter `.<8 hex>.<purpose>`.
+    """
+    token = uuid.uuid4().hex[:8]
+    named = path.with_name(f".{path.name}.{token}.{purpose}")
+    if _length_problem(named) is None:
+        return named
+    return path.with_name(f".{token}.{purpose}")
+
+
+def _private_file(path: Path) -> None:
+    """Create an empty file at `path` that only its owner may read and write.
+
+    SQLite opens an empty file as a new database and gives the `-wal`, `-shm` and
+    `-journal` files it makes for it the database file's permissions. `fchmod` sets them
+    whatever the umask (which `open` applies to its mode).
+    """
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, FILE_MODE)
+    try:
+        os.fchmod(fd, FILE_MODE)
+    finally:
+        os.close(fd)
+
+
+def remove_files(path: Path, suffixes: tuple[str, ...] = ("", *SIDE_FILES)) -> None:
+    """Remove `path` and its side files (those that exist)."""
+    for suffix in suffixes:
+        with contextlib.suppress(FileNotFoundError):
+            Path(f"{path}{suffix}").unlink()
+
+
+def create(path: Path) -> None:
+    """Build an empty catalog under a temporary name, then link it into place.
+
+    The backup path therefore never holds a half-created file. If another process
+    created it first, that file wins (and is validated like any existing file). The file
+    is created with mode `FILE_MODE` (0600), and so are SQLite's side files.
+
+    Raises:
+        ConfigError: the file cannot be created (naming `path` and the cause).
+    """
+    tmp = temporary_path(path, "creating")
+    try:
+        _private_file(tmp)
+        db = sqlite3.connect(tmp, isolation_level=None)
+    except (sqlite3.Error, OSError) as exc:
+        remove_files(tmp)
+        raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
+    try:
+        db.execute(f"PRAGMA application_id = {schema.APPLICATION_ID}")
+        schema.migrate(db, 0)
+        db.execute("PRAGMA journal_mode = WAL")
+        db.close()
+        with contextlib.suppress(FileExistsError):
+            os.link(tmp, path)
+    except (sqlite3.Error, OSError) as exc:
+        raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
+    finally:
+        db.close()
+        remove_files(tmp)
+
+
+def copy_aside(db: sqlite3.Connection, path: Path) -> Path:
+    """Copy the database `db` has open into a new file next to `path`; return its name.
+
+    The copy holds every committed page as `db` sees it (its log included), in WAL mode,
+    with mode `FILE_MODE`. It reads through `db`, so it works when the file `db` opened
+    was deleted. On failure nothing is left behind.
+
+    Raises:
+        sqlite3.Error, OSError: the copy could not be written (a full disk, say).
+    """
+    tmp = temporary_path(path, "rewriting")
+    try:
+        _private_file(tmp)
+        copy = sqlite3.connect(tmp, isolation_level=None)
+        try:
+            db.backup(copy)
+            copy.execute("PRAGMA journal_mode = WAL")
+        finally:
+            copy.close()
+    except BaseException:
+        remove_files(tmp)
+        raise
+    return tmp
+
+
+def put_in_place(tmp: Path, path: Path) -> None:
+    """Move the complete file `tmp` to `path`, over whatever is there.
+
+    Side files at `path` are removed first: they belong to a file that is gone, and
+    SQLite would apply a stale `-wal` to the new one. Only call it once every connection
+    to the file that was at `path` is closed.
+
+    Raises:
+        OSError: the move failed; `tmp` is kept (it may be the only whole copy left).
+    """
+    remove_files(path, SIDE_FILES)
+    os.replace(tmp, path)
+    remove_files(tmp, SIDE_FILES)
+
+
+@contextlib.contextmanager
+def _read_only(path: Path, *, tidy: bool) -> Iterator[sqlite3.Connection]:
+    """A read-only connection; with `tidy`, remove the `-wal`/`-shm` files it created.
+
+    A read-only connection to a WAL-mode file creates those files but cannot delete
+    them; an empty `-wal` holds nothing, so removing what we created changes nothing.
+    """
+    existed = {suffix: Path(f"{path}{suffix}").exists() for suffix in ("-wal", "-shm")}
+    db = connect(path, read_only=True)
+    try:
+        yield db
+    finally:
+        db.close()
+        wal = Path(f"{path}-wal")
+        if tidy and not existed["-wal"] and wal.exists() and wal.stat().st_size == 0:
+            for suffix in ("-wal", "-shm"):
+                if not existed[suffix]:
+                    with contextlib.suppress(FileNotFoundError):
+                        Path(f"{path}{suffix}").unlink()
+
+
+def validate(path: Path, *, tidy: bool) -> int:
+    """Check an existing file without writing to it; return its schema version."""
+    name = str(path)
+    problem = _file_problem(path)
+    if problem is not None:
+        raise CatalogCorruptError(name, problem)
+    with as_corrupt(name), _read_only(path, tidy=tidy) as db:
+        return schema.schema_version(db, name)
+
+
+def prepare(db: sqlite3.Connection, name: str, durability: str, version: int) -> None:
+    """Check that `db` is writable, switch on WAL and the durability, migrate it."""
+    try:
+        db.execute("BEGIN IMMEDIATE")  # can we write here at all?
+        db.execute("ROLLBACK")
+    except sqlite3.OperationalError as exc:
+        raise ConfigError(f"backup_path {name!r} is not writable: {exc}") from exc
+    with as_corrupt(name):
+        mode = db.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+    if mode != "wal":  # before anything is written: an older file stays as it was
+        raise ConfigError(f"backup_path {name!r}: SQLite cannot use WAL mode there ({mode})")
+    with as_corrupt(name):
+        db.execute(f"PRAGMA synchronous = {SYNCHRONOUS[durability]}")
+        schema.migrate(db, version)
+    schema.refresh_digests(db, name)
+
+
+@dataclasses.dataclass(frozen=True)
+class Backup:
+    """The content of a catalog backup, as `read_backup` returns it.
+
+    Attributes:
+        path: the file.
+        schema_version: its schema version.
+        resources: served resources, oldest first (consumers in arrival order).
+        clients: client records, oldest first.
+    """
+
+    path: str
+    schema_version: int
+    resources: list[Resource]
+    clients: list[ClientRecord]
+
+
+def _is_file(path: Path) -> bool:
+    """Whether `path` names a file (`False` for a name no file can have, too long, say)."""
+    try:
+        return path.is_file()
+    except OSError:
+        return False
+
+
+def read_backup(path: str | os.PathLike[str]) -> Backup:
+    """Read a catalog backup without changing it (it may belong to a running registrar).
+
+    A file of an older schema version is copied into memory and migrated there; the file
+    itself is never migrated by reading it.
+
+    Stored requests and responses that cannot be unpickled in this process (their
+    classes are not importable here) come back as `Unreadable` placeholders. Unpickling
+    runs code from the file: only read backups you trust.
+
+    Args:
+        path: the backup file.
+
+    Returns:
+        Its rows and schema version.
+
+    Raises:
+        ConfigError: `path` does not exist or is not a file.
+        CatalogCorruptError: the file is not a readable rr_actors catalog.
+    """
+    file = Path(os.fspath(path))
+    if not _is_file(file):
+        raise ConfigError(f"no catalog backup at {str(file)!r}")
+    version = validate(file, tidy=True)
+    name = str(file)
+    with as_corrupt(name), _read_only(file, tidy=True) as db:
+        check = db.execute("PRAGMA quick_check").fetchall()
+        if check != [("ok",)]:
+            raise CatalogCorruptError(name, f"integrity check failed: {check[:5]!r}")
+        with _migrated_copy(db, version) as current, gc_paused():
+            rows = read_rows(current, lenient_decode, lenient=True)
+    return Backup(name, version, rows.resources, rows.clients)
+
+
+@contextlib.contextmanager
+def _migrated_copy(db: sqlite3.Connection, version: int) -> Iterator[sqlite3.Connection]:
+    """`db` itself if it has the current schema, else a migrated copy in memory.
+
+    An older file is read as the code reads a current one, without writing to it.
+    """
+    if version == schema.SCHEMA_VERSION:
+        yield db
+        return
+    copy = sqlite3.connect(":memory:", isolation_level=None)
+    try:
+        db.backup(copy)
+        schema.migrate(copy, version)
+        yield copy
+    finally:
+        copy.close()
+
+
+def quarantine_backup(path: str | os.PathLike[str]) -> Path:
+    """Move a catalog backup that cannot be used out of the way, keeping it for analysis.
+
+    The file (and its `-wal`/`-shm` companions) is renamed to
+    `<path>.corrupt-<UTC timestamp>`; a registrar started on `path` afterwards starts with
+    an empty catalog. This is the one explicit way to give up a backup: rr_actors never
+    does it on its own. Only call it while no registrar uses the file.
+
+    Args:
+        path: the backup file, as in `RegistrarConfig.backup_path`.
+
+    Returns:
+        The new path of the quarantined file.
+
+    Raises:
+        ConfigError: there is no file at `path`.
+    """
+    file = Path(os.fspath(path))
+    if not _is_file(file):
+        raise ConfigError(f"no catalog backup to quarantine at {str(file)!r}")
+    stamp = datetime.datetime.now(datetime.UTC).strftime("%Y%m%dT%H%M%S.%fZ")
+    target = file.with_name(f"{file.name}.corrupt-{stamp}")
+    for suffix in SIDE_FILES:  # companions first: the main file's name is the anchor
+        side = Path(f"{file}{suffix}")
+        if side.exists():
+            side.rename(f"{target}{suffix}")
+    file.rename(target)
+    return target
+
+
+FileId = tuple[int, int]
+"""A file's `(st_dev, st_ino)`: which file a name stands for."""
+
+
+def file_ids(path: Path | str) -> tuple[FileId | None, FileId | None]:
+    """Which files `path` and its `-wal` name now (`None` for a name that names none)."""
+    ids: list[FileId | None] = []
+    for name in (os.fspath(path), f"{path}-wal"):
+        try:
+            st = os.stat(name)
+        except OSError:
+            ids.append(None)
+        else:
+            ids.append((st.st_dev, st.st_ino))
+    return ids[0], ids[1]
+
+
+def moved(path: Path | str, known: tuple[FileId | None, FileId | None]) -> str | None:
+    """Why `path` (or its `-wal`) no longer names the file a connection opened, or `None`.
+
+    A file deleted while it is open stays readable and writable through the connection,
+    but a crash takes it (and every commit in it) away; so does one replaced by another.
+    `known` is what `file_ids` said when the connection was opened (a `-wal` not known
+    yet is not checked). Two `stat` calls (a few microseconds).
+    """
+    now = file_ids(path)
+    for what, was, is_now in (("the file", known[0], now[0]), ("its -wal", known[1], now[1])):
+        if was is None or was == is_now:
+            continue
+        return f"{what} was deleted" if is_now is None else f"{what} was replaced"
+    return None
+
+
+def write_error(path: str, exc: BaseException) -> CatalogWriteError:
+    """The `CatalogWriteError` for a failed write to the backup `path`."""
+    if isinstance(exc, OSError) and exc.errno is not None:
+        name = errno_names.errorcode.get(exc.errno, str(exc.errno))
+        return CatalogWriteError(path, f"{name} ({exc.strerror})", exc.errno)
+    if isinstance(exc, sqlite3.Error):
+        code = getattr(exc, "sqlite_errorname", None) or type(exc).__name__
+        if code == "SQLITE_FULL":  # SQLite's unix VFS says so for ENOSPC (or a short write)
+            return CatalogWriteError(
+                path,
+                f"ENOSPC ({os.strerror(errno_names.ENOSPC)}): {exc} ({code})",
+                errno_names.ENOSPC,
+            )
+        return CatalogWriteError(path, f"{exc} ({code})")
+    return CatalogWriteError(path, f"{type(exc).__name__}: {exc}")

@@ -1,0 +1,177 @@
+"""What a write changes: the statements that bring the file from what the store last
+wrote (its mirror) to the catalog's current rows.
+
+```
+ Changes (rid -> Resource | None, qid -> ClientRecord | None)
+   --plan_resource / plan_client, against the mirror--> [(sql, params), ...] and the
+   mirror entries to set once they committed (`GONE`: remove)
+```
+
+Only what differs reaches the file, addressed by row key (`seq`): a consumer id added is
+one `INSERT`, a response set again (`response_version`) one `UPDATE`, so the cost of a
+change does not depend on the catalog's size. Values are pickled here (`codec.dumps`):
+one that cannot be raises before anything is written.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from rr_actors._catalog import NO_DIGEST, ClientRecord, Resource, request_digest
+from rr_actors._store import codec
+from rr_actors._store.codec import STATE_CODES
+from rr_actors._store.restore import Mirror
+
+__all__ = ["GONE", "Op", "plan_client", "plan_resource"]
+
+Op = tuple[str, tuple[Any, ...]]
+"""One planned SQL statement and its parameters."""
+
+GONE = object()
+"""Marks a mirror entry to delete once a write committed."""
+
+
+def plan_resource(
+    written: dict[str, Mirror],
+    ops: list[Op],
+    mirrors: list[tuple[dict[str, Any], str, Any]],
+    rid: str,
+    resource: Resource | None,
+    seq: int,
+) -> int:
+    """Plan the statements for resource `rid` (`None`: removed); return the last row key.
+
+    Args:
+        written: the mirror of every resource row (not changed here).
+        ops: statements planned so far; this resource's are appended.
+        mirrors: `(table, key, value)` entries to set in the mirror once `ops` committed.
+        rid: the resource's id.
+        resource: its current state in the catalog, or `None` if it was removed.
+        seq: the last row key used so far; new rows get the keys after it.
+    """
+    old = written.get(rid)
+    if resource is None:
+        if old is not None:
+            ops.append(("DELETE FROM resources WHERE seq = ?", (old.seq,)))
+            ops.append(("DELETE FROM consumers WHERE resource = ?", (old.seq,)))
+            mirrors.append((written, rid, GONE))
+        return seq
+    if old is None:
+        seq += 1
+        digest = resource.digest
+        if digest is None:
+            digest = request_digest(resource.request)
+        ops.append(
+            (
+                "INSERT INTO resources (seq, id, server, state, digest, request, response) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (
+                    seq,
+                    rid,
+                    resource.server,
+                    STATE_CODES[resource.state],
+                    None if digest == NO_DIGEST else digest,
+                    codec.dumps(resource.request),
+                    codec.dumps(resource.response),
+                ),
+            )
+        )
+        old_consumers: dict[str, int] = {}
+        row = seq
+    else:
+        if old.response_version != resource.response_version:
+            ops.append(
+                (
+                    "UPDATE resources SET state = ?, response = ? WHERE seq = ?",
+                    (STATE_CODES[resource.state], codec.dumps(resource.response), old.seq),
+                )
+            )
+        elif old.state is not resource.state:
+            ops.append(
+                (
+                    "UPDATE resources SET state = ? WHERE seq = ?",
+                    (STATE_CODES[resource.state], old.seq),
+                )
+            )
+        old_consumers = old.consumers
+        row = old.seq
+    consumers = {}
+    kept = 0
+    for query_id, origin in resource.consumers.items():
+        key = old_consumers.get(query_id)
+        if key is None:
+            seq += 1
+            key = seq
+            ops.append(
+                (
+                    "INSERT INTO consumers (resource, seq, query_id, origin_rr) "
+                    "VALUES (?, ?, ?, ?)",
+                    (row, key, query_id, origin),
+                )
+            )
+        else:
+            kept += 1
+        consumers[query_id] = key
+    if kept != len(old_consumers):  # some consumers left since the last write
+        ops.extend(
+            ("DELETE FROM consumers WHERE resource = ? AND seq = ?", (row, key))
+            for query_id, key in old_consumers.items()
+            if query_id not in consumers
+        )
+    mirror = Mirror(row, resource.state, resource.response_version, consumers)
+    mirrors.append((written, rid, mirror))
+    return seq
+
+
+def plan_client(
+    written: dict[str, tuple[int, int]],
+    ops: list[Op],
+    mirrors: list[tuple[dict[str, Any], str, Any]],
+    qid: str,
+    record: ClientRecord | None,
+    seq: int,
+) -> int:
+    """Plan the statements for client record `qid` (`None`: removed), as `plan_resource`.
+
+    `written` maps each written client query id to its `(row key, response_version)`.
+    """
+    old = written.get(qid)
+    if record is None:
+        if old is not None:
+            ops.append(("DELETE FROM clients WHERE seq = ?", (old[0],)))
+            mirrors.append((written, qid, GONE))
+        return seq
+    query = record.query
+    if old is None:
+        seq += 1
+        row = seq
+        ops.append(
+            (
+                "INSERT INTO clients (seq, query_id, server, serving_rr, origin_rr, "
+                "request, response, parent, loaded) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    seq,
+                    qid,
+                    query.server,
+                    query.serving_rr,
+                    query.origin_rr,
+                    codec.dumps(query.request),
+                    codec.dumps(query.response),
+                    record.parent,
+                    int(record.loaded),
+                ),
+            )
+        )
+    elif old[1] == record.response_version:
+        row = old[0]
+        ops.append(("UPDATE clients SET loaded = ? WHERE seq = ?", (int(record.loaded), row)))
+    else:
+        row = old[0]
+        ops.append(
+            (
+                "UPDATE clients SET response = ?, loaded = ? WHERE seq = ?",
+                (codec.dumps(query.response), int(record.loaded), row),
+            )
+        )
+    mirrors.append((written, qid, (row, record.response_version)))
+    return seq

@@ -1,0 +1,240 @@
+"""The backup's schema: its version, how a file is created and migrated, how it is checked.
+
+Layout (schema version 3):
+
+* `rr_actors_schema(version, digest_scheme)`: one row, the schema version and the
+  `DIGEST_SCHEME` of the stored digests; `PRAGMA application_id` marks the file as an
+  rr_actors catalog.
+* `resources(seq, id, server, state, digest, request, response)`: served resources, `seq`
+  being the insertion order, `state` 0/1/2 (loading/loaded/unloading), `digest` the
+  request's `request_digest` (`NULL` if it has none). Indexed by `id` (unique), by
+  `(server, digest)`, and (partial index) the rows not loaded or without a digest.
+* `consumers(resource, seq, query_id, origin_rr)`: consumer ids, `resource` being the `seq`
+  of their resource; clustered by `(resource, seq)` (`WITHOUT ROWID`), so a scan yields
+  each resource's consumers together, in arrival order, and adding or removing one
+  writes one page.
+* `clients(seq, query_id, server, serving_rr, origin_rr, request, response, parent,
+  loaded)`: outbound queries (`parent` set for dependencies).
+
+```
+ empty file --MIGRATIONS[0]--> v1 --MIGRATIONS[1]--> v2 --MIGRATIONS[2]--> v3 (SCHEMA_VERSION)
+```
+
+Each step is one transaction (`migrate`). The stored digest is deterministic (BLAKE2b of
+strings, numbers' own `hash()`), never the per-process `hash()` of a string, so a restore
+indexes every resource from its digest alone and leaves its request and response encoded
+until first used. A file whose digests were written under another `DIGEST_SCHEME`
+(another Python version or word size) has them recomputed, in one transaction, when it
+is opened (`refresh_digests`).
+
+`migrate` and `schema_version` read `SCHEMA_VERSION` and `MIGRATIONS` from this module
+when they run (tests replace them here to add a version).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sqlite3
+from collections.abc import Callable
+
+from rr_actors._catalog import DIGEST_SCHEME, request_digest
+from rr_actors._store.codec import as_corrupt, loads
+from rr_actors.errors import CatalogCorruptError
+
+__all__ = [
+    "APPLICATION_ID",
+    "INDEXES",
+    "MIGRATIONS",
+    "SCHEMA_VERSION",
+    "migrate",
+    "refresh_digests",
+    "rollback",
+    "schema_version",
+]
+
+APPLICATION_ID = 0x72724163  # "rrAc"
+"""`PRAGMA application_id` of every rr_actors catalog file."""
+
+SCHEMA_VERSION = 3
+"""The schema version this code writes; older files are migrated, newer ones refused."""
+
+
+def _create_v1(db: sqlite3.Connection) -> None:
+    db.execute("CREATE TABLE rr_actors_schema (version INTEGER NOT NULL)")
+    db.execute("INSERT INTO rr_actors_schema (version) VALUES (0)")
+    db.execute(
+        "CREATE TABLE resources (seq INTEGER PRIMARY KEY, id TEXT NOT NULL, "
+        "server TEXT NOT NULL, state TEXT NOT NULL, request BLOB, response BLOB)"
+    )
+    db.execute(
+        "CREATE TABLE consumers (seq INTEGER PRIMARY KEY, query_id TEXT NOT NULL, "
+        "resource_id TEXT NOT NULL, origin_rr TEXT NOT NULL)"
+    )
+    db.execute(
+        "CREATE TABLE clients (seq INTEGER PRIMARY KEY, query_id TEXT NOT NULL, "
+        "server TEXT NOT NULL, serving_rr TEXT NOT NULL, origin_rr TEXT NOT NULL, "
+        "request BLOB, response BLOB, parent TEXT, loaded INTEGER NOT NULL)"
+    )
+
+
+def _upgrade_v2(db: sqlite3.Connection) -> None:
+    """v1 -> v2: a digest column, integer states, consumers keyed by their resource's row.
+
+    The digests are filled in by `refresh_digests` (the scheme is still `NULL`). A row
+    with an unknown state or a consumer of a missing resource violates `NOT NULL`.
+    """
+    db.execute("ALTER TABLE rr_actors_schema ADD COLUMN digest_scheme TEXT")
+    db.execute(
+        "CREATE TABLE resources_v2 (seq INTEGER PRIMARY KEY, id TEXT NOT NULL, "
+        "server TEXT NOT NULL, state INTEGER NOT NULL, digest INTEGER, request BLOB, "
+        "response BLOB)"
+    )
+    db.execute(
+        "INSERT INTO resources_v2 (seq, id, server, state, request, response) "
+        "SELECT seq, id, server, CASE state WHEN 'loading' THEN 0 WHEN 'loaded' THEN 1 "
+        "WHEN 'unloading' THEN 2 END, request, response FROM resources"
+    )
+    db.execute(
+        "CREATE TABLE consumers_v2 (seq INTEGER PRIMARY KEY, query_id TEXT NOT NULL, "
+        "resource INTEGER NOT NULL, origin_rr TEXT NOT NULL)"
+    )
+    db.execute(
+        "INSERT INTO consumers_v2 (seq, query_id, resource, origin_rr) "
+        "SELECT c.seq, c.query_id, (SELECT r.seq FROM resources_v2 r WHERE r.id = c.resource_id), "
+        "c.origin_rr FROM consumers c"
+    )
+    for table in ("resources", "consumers"):
+        db.execute(f"DROP TABLE {table}")
+        db.execute(f"ALTER TABLE {table}_v2 RENAME TO {table}")
+
+
+def _upgrade_v3(db: sqlite3.Connection) -> None:
+    """v2 -> v3: indexes that let a restore leave served resources on disk until used.
+
+    Consumers are clustered by their resource (`WITHOUT ROWID`, key `(resource, seq)`),
+    so one table scan yields each resource's consumer ids together and in arrival order;
+    resources get a unique index on their id, one on `(server, digest)` (dedup of a
+    resource not read yet) and a partial one on the rows a restore reads at once. A file
+    with a resource id stored twice fails here (`UNIQUE constraint failed`).
+    """
+    db.execute(
+        "CREATE TABLE consumers_v3 (resource INTEGER NOT NULL, seq INTEGER NOT NULL, "
+        "query_id TEXT NOT NULL, origin_rr TEXT NOT NULL, PRIMARY KEY (resource, seq)) "
+        "WITHOUT ROWID"
+    )
+    db.execute(
+        "INSERT INTO consumers_v3 (resource, seq, query_id, origin_rr) "
+        "SELECT resource, seq, query_id, origin_rr FROM consumers"
+    )
+    db.execute("DROP TABLE consumers")
+    db.execute("ALTER TABLE consumers_v3 RENAME TO consumers")
+    db.execute("CREATE UNIQUE INDEX resources_by_id ON resources (id)")
+    db.execute("CREATE INDEX resources_by_request ON resources (server, digest)")
+    db.execute(f"CREATE INDEX resources_unsettled ON resources (seq) WHERE {_UNSETTLED}")
+
+
+INDEXES = ("resources_by_id", "resources_by_request", "resources_unsettled")
+"""The indexes of a current file: a restore relies on them (unique ids, dedup, doubt)."""
+
+_UNSETTLED = "state != 1 OR digest IS NULL"
+"""Resources a restore reads at once: in doubt (not loaded), or indexed by their value."""
+
+MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (
+    _create_v1,
+    _upgrade_v2,
+    _upgrade_v3,
+)
+"""`MIGRATIONS[v]` brings a version-`v` file to version `v + 1` (0 is an empty file).
+
+To change the schema: append a migration, bump `SCHEMA_VERSION`, add a test that opens a
+file written by the previous version. Never edit a released migration.
+"""
+assert len(MIGRATIONS) == SCHEMA_VERSION
+
+
+def rollback(db: sqlite3.Connection) -> None:
+    """Roll back after a failure without hiding it (a failed COMMIT may have ended it)."""
+    if db.in_transaction:
+        with contextlib.suppress(sqlite3.Error):
+            db.execute("ROLLBACK")
+
+
+def schema_version(db: sqlite3.Connection, path: str) -> int:
+    """Validate that `db` is an rr_actors catalog and return its schema version.
+
+    Raises:
+        CatalogCorruptError: it is not one (another program's database, a newer schema,
+            a missing index, ...), naming `path`.
+    """
+    application_id = db.execute("PRAGMA application_id").fetchone()[0]
+    tables = sorted(
+        row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
+    )
+    if application_id != APPLICATION_ID or "rr_actors_schema" not in tables:
+        raise CatalogCorruptError(
+            path,
+            f"not an rr_actors catalog (application_id {application_id:#x}, tables {tables})",
+        )
+    rows = db.execute("SELECT version FROM rr_actors_schema").fetchall()
+    if len(rows) != 1 or not isinstance(rows[0][0], int):
+        raise CatalogCorruptError(path, f"bad schema version rows {rows!r}")
+    version: int = rows[0][0]
+    if version > SCHEMA_VERSION:
+        raise CatalogCorruptError(
+            path,
+            f"schema version {version} is newer than this rr_actors supports "
+            f"({SCHEMA_VERSION}); upgrade rr_actors to read it",
+        )
+    if version < 1:
+        raise CatalogCorruptError(path, f"bad schema version {version}")
+    if version == SCHEMA_VERSION:
+        indexes = {
+            row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'index'")
+        }
+        for index in INDEXES:
+            if index not in indexes:
+                raise CatalogCorruptError(path, f"index {index} is missing")
+    return version
+
+
+def migrate(db: sqlite3.Connection, version: int) -> None:
+    """Bring `db` from `version` to `SCHEMA_VERSION`, each step one transaction."""
+    for step in range(version, SCHEMA_VERSION):
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            MIGRATIONS[step](db)
+            db.execute("UPDATE rr_actors_schema SET version = ?", (step + 1,))
+        except BaseException:
+            rollback(db)
+            raise
+        db.execute("COMMIT")
+
+
+def refresh_digests(db: sqlite3.Connection, name: str) -> None:
+    """Recompute every stored digest if they were written under another `DIGEST_SCHEME`.
+
+    One transaction; a request that cannot be decoded here keeps a `NULL` digest (the
+    restore then decodes it, and reports it as `CatalogCorruptError`).
+
+    Raises:
+        CatalogCorruptError: SQLite reports the file damaged (naming `name`).
+    """
+    with as_corrupt(name):
+        scheme = db.execute("SELECT digest_scheme FROM rr_actors_schema").fetchone()[0]
+        if scheme == DIGEST_SCHEME:
+            return
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            updates = []
+            for seq, blob in db.execute("SELECT seq, request FROM resources").fetchall():
+                try:
+                    digest = request_digest(loads(blob))
+                except Exception:  # noqa: BLE001 - reported when the row is restored
+                    digest = None
+                updates.append((digest, seq))
+            db.executemany("UPDATE resources SET digest = ? WHERE seq = ?", updates)
+            db.execute("UPDATE rr_actors_schema SET digest_scheme = ?", (DIGEST_SCHEME,))
+        except BaseException:
+            rollback(db)
+            raise
+        db.execute("COMMIT")

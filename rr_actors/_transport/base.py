@@ -1,0 +1,123 @@
+"""The carrier interface: how registrars of different processes (or hosts) reach each other.
+
+A registrar talks to other registrars only through the directory
+(`rr_actors._core.directory`): it looks a name up and `tell`s the `Peer` it gets a
+message (`Load`, `Unload`, `StatusNotice`, ...); a message that wants an answer carries a
+`Reply`. A *carrier* makes names of other processes resolvable and moves the messages:
+
+```
+ process A                                          process B
+ registrar ──lookup(name)──► Directory ──resolve──► Carrier.resolve(name) -> Peer
+    │                                                     │
+    └── peer.tell(message) ── bytes / samples ──► carrier delivers to the local registrar
+                                                      (DIRECTORY.lookup(name).tell(message))
+    reply.set_result/set_error ◄──── the answer ◄──── the message's stand-in reply
+```
+
+The contract every carrier keeps (the transport tests check it for each one):
+
+- **open a channel**: `resolve(name)` returns a `Peer` for a registrar served by another
+  process of the system, or `None` if the carrier does not know the name;
+- **send**: `Peer.tell(message)` never blocks on the other process; messages told to one
+  peer from one process arrive in the order they were told; a message that does not
+  pickle raises `ConfigError` at the sender and nothing is sent;
+- **receive**: `serve(endpoint)` makes a registrar of this process reachable; what arrives
+  for it is told to it through the directory, with a stand-in reply that sends the
+  answer back; a stand-in whose answer cannot be pickled sends an error instead, and one
+  whose answer cannot reach the sender hands the message's `compensation()` to the
+  registrar (`rr_actors._core.wire`);
+- **liveness ("peer gone")**: when the other process dies or its registrar stops, every
+  reply still waiting on it fails at once with `RegistrarUnavailableError` (or
+  `RegistrarStoppedError` after a clean stop), never by waiting out a timeout; a later
+  `tell` to a name that is served again (a restarted manager) reaches the new server;
+- **control**: `run(name, fn, timeout=)` runs `fn(registrar)` where that registrar lives;
+- **join**: `address` pickles; `address.attach()` in another process joins the system.
+
+Low-level errors (`EOFError`, `BrokenPipeError`, `OSError`, pickling errors) never reach
+a caller: a carrier translates them into rr_actors errors with `raise ... from exc`.
+
+Carriers: `unix` (AF_UNIX sockets in a private runtime directory, authenticated with a
+per-system key). A second carrier implements `Transport` and `Address` and needs no change
+in the registrar.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from rr_actors._core.directory import Peer
+
+__all__ = ["Address", "Endpoint", "Peer", "Transport"]
+
+
+class Endpoint(Protocol):
+    """A registrar of this process, as a carrier serves it."""
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        ...
+
+    def run(self, fn: Callable[[Any], Any]) -> Any:
+        """Run `fn(registrar)` on the calling thread and return what it returns."""
+        ...
+
+    def wait_ended(self, timeout: float | None = None) -> bool:
+        """Block until the registrar ended (stopped or died); whether it did."""
+        ...
+
+    def stopped_cleanly(self) -> bool:
+        """Whether it ended because its owner stopped it (not a crash)."""
+        ...
+
+
+class Address(Protocol):
+    """How another process joins the same system: it pickles; `attach()` joins there."""
+
+    def attach(self) -> Transport:
+        """Join the system from this process (idempotent per process)."""
+        ...
+
+
+class Transport(Protocol):
+    """One process's membership of a system of registrars, over one carrier."""
+
+    @property
+    def address(self) -> Address:
+        """What to hand to processes that should join the same system."""
+        ...
+
+    @property
+    def closed(self) -> bool:
+        """Whether this process left the system."""
+        ...
+
+    def resolve(self, name: str) -> Peer | None:
+        """A channel to registrar `name` of another process, or `None` if unknown here."""
+        ...
+
+    def serve(self, endpoint: Endpoint) -> None:
+        """Make a registrar of this process reachable; stops by itself when it ends.
+
+        Raises:
+            DuplicateNameError: another process of the system serves that name.
+            ConfigError: the carrier cannot serve it (a bad name or address).
+            RegistrarStoppedError: this process left the system.
+        """
+        ...
+
+    def run(self, name: str, fn: Callable[[Any], Any], *, timeout: float) -> Any:
+        """Run `fn(registrar)` where registrar `name` lives; return what it returns.
+
+        Raises:
+            UnknownServerError: nobody serves that name on the system.
+            CallTimeoutError: no result within `timeout` seconds.
+            RegistrarUnavailableError: its process died or cannot be reached.
+            RegistrarStoppedError: it was stopped.
+        """
+        ...
+
+    def close(self) -> None:
+        """Leave the system: stop serving, fail what waits (idempotent)."""
+        ...

@@ -1,0 +1,269 @@
+"""The outbound side of the AF_UNIX carrier: a channel to a registrar of another process.
+
+One connection per target per process, made lazily on the connection's writer thread;
+answers are read by one daemon thread per connection, which resolves the kept replies.
+When the connection ends (the peer died or its registrar stopped), every answer still
+outstanding on it fails at once: that is how a dead peer is seen, not by a timeout.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+import os
+import pickle
+import threading
+from collections.abc import Callable
+from multiprocessing import AuthenticationError
+from multiprocessing.connection import Connection
+from typing import TYPE_CHECKING, Any
+
+from rr_actors._core.directory import Reply
+from rr_actors._core.replies import FutureReply, wait
+from rr_actors._transport.codec import NO_REPLY, Run, frame, frames, unframe, what
+from rr_actors._transport.sockets import connect
+from rr_actors._transport.writer import Writer
+from rr_actors.errors import (
+    ConfigError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    RrError,
+)
+
+if TYPE_CHECKING:
+    from rr_actors._transport.unix import AttachedSystem
+
+__all__ = ["RemotePeer"]
+
+logger = logging.getLogger("rr_actors")
+
+
+class _Channel:
+    """One connection from this process to a remote registrar and its outstanding answers.
+
+    `pending` maps a token to the reply (and the message, for error texts) waiting for its
+    answer. Entries leave it only through atomic dict operations (`pop` by the reader,
+    `popitem` when the channel is lost), so each reply is answered exactly once.
+    """
+
+    __slots__ = ("pending", "writer")
+
+    def __init__(self, writer: Writer) -> None:
+        self.writer = writer
+        self.pending: dict[int, tuple[Reply, Any]] = {}
+
+
+class RemotePeer:
+    """A registrar in another process of the system, reached through its socket.
+
+    `tell` is what the registrar code calls for every message; it connects lazily (one
+    connection per target per process, made on the connection's writer thread) and is
+    safe from any thread. Answers are read by one daemon thread per connection, which
+    resolves the kept replies.
+    """
+
+    def __init__(self, system: AttachedSystem, name: str) -> None:
+        self.name = name
+        self._system = system
+        self._path = system.address.socket_path(name)
+        self._lock = threading.Lock()
+        self._channel: _Channel | None = None
+        self._tokens = itertools.count(1)
+
+    def tell(self, message: Any) -> None:
+        """Send `message` to the remote registrar; its reply (if any) is answered later.
+
+        Called from any thread of this process: a caller's thread (`call` sends its `Load`
+        from there), registrar and client actor threads, worker threads, and this
+        transport's reader threads. It never blocks on the peer: the frame is written
+        only if the socket takes it at once, otherwise it is queued for the connection's
+        writer thread, which also connects (the handshake is bounded by
+        `HANDSHAKE_TIMEOUT`). Messages told to one peer from one process arrive in the
+        order they were told. A peer that is unreachable, frozen or dies later fails the
+        reply (`RegistrarUnavailableError`, or `RegistrarStoppedError` if it was stopped);
+        a caller waiting on it with a timeout gets its `CallTimeoutError` in time.
+
+        Raises:
+            ConfigError: the message (say, the request of a call) cannot be pickled.
+            RegistrarUnavailableError: the registrar's process is known to be unreachable.
+            RegistrarStoppedError: it was stopped, or this process closed the system.
+        """
+        reply: Reply | None = getattr(message, "reply", None)
+        if reply is not None:
+            message = message.detached()
+        token = next(self._tokens) if reply is not None else NO_REPLY  # atomic in CPython
+        try:
+            data = frame(token, message)
+        except Exception as exc:
+            raise ConfigError(f"{what(message, self.name)} is not picklable: {exc}") from exc
+        for _attempt in (1, 2):
+            channel = self._channel
+            if channel is None or channel.writer.closed:
+                channel = self._open()
+            if reply is not None:
+                channel.pending[token] = (reply, message)
+            if channel.writer.send(data):
+                return
+            # The connection was lost before anything of the frame left: unless its loss
+            # already failed the reply, send once more on a fresh connection.
+            ours = reply is None or channel.pending.pop(token, None) is not None
+            self._lose(channel, None)
+            if not ours:
+                return
+        raise self._gone("lost its connection")
+
+    def run(self, fn: Callable[[Any], Any], *, timeout: float) -> Any:
+        """Run `fn(registrar)` in the remote registrar's process and return its result.
+
+        `fn` is cloudpickled (closures work) and runs on a fresh thread there, so it may
+        block, e.g. on `registrar.send_status(...)`.
+
+        Args:
+            fn: called with the remote `ResourceRegistrar`; its result must pickle.
+            timeout: seconds to wait for the result.
+
+        Returns:
+            What `fn` returned.
+
+        Raises:
+            CallTimeoutError: no result within `timeout` seconds.
+            RegistrarUnavailableError: the registrar's process died or is unreachable.
+            RegistrarStoppedError: the registrar was stopped.
+            ConfigError: `fn` does not pickle.
+            RrError: its result does not pickle (the message says so).
+            Exception: whatever `fn` raised, re-raised here.
+        """
+        reply = FutureReply()
+        try:
+            self.tell(Run(fn, reply))
+        except RrError as exc:
+            reply.set_error(exc)
+        return wait(reply.future, timeout, f"run() on registrar {self.name!r}")
+
+    def close(self, error: RrError) -> None:
+        """Close the connection; outstanding answers fail with `error`."""
+        channel = self._channel
+        if channel is not None:
+            self._lose(channel, error)
+
+    # -- plumbing --------------------------------------------------------------------------
+
+    def _open(self) -> _Channel:
+        """The current channel, or a new one whose writer thread connects."""
+        with self._lock:
+            channel = self._channel
+            if channel is not None and not channel.writer.closed:
+                return channel
+            if self._system.closed:
+                raise RegistrarStoppedError(f"the system of registrar {self.name!r} was closed")
+            if not os.path.exists(self._path):
+                raise self._gone("cannot be reached (it does not listen)")
+            fresh = _Channel(Writer(None, lambda exc: self._failed(fresh, exc)))
+            self._channel = channel = fresh
+        threading.Thread(
+            target=self._connect, args=(channel,), name=f"rr-write-{self.name}", daemon=True
+        ).start()
+        return channel
+
+    def _connect(self, channel: _Channel) -> None:
+        """The writer thread of `channel`: connect, start its reader, then write."""
+        try:
+            sock, conn = connect(self._path, self._system.address.authkey)
+        except AuthenticationError as exc:
+            error: RrError = RegistrarUnavailableError(
+                f"registrar {self.name!r} refused this process's authkey"
+            )
+            error.__cause__ = exc
+            channel.writer.fail(error)
+            return
+        except Exception as exc:  # noqa: BLE001 - OSError, EOFError, ...: not reachable
+            error = self._gone("cannot be reached", exc)
+            error.__cause__ = exc
+            channel.writer.fail(error)
+            return
+        if not channel.writer.attach(sock):  # closed while connecting
+            conn.close()
+            sock.close()
+            return
+        threading.Thread(
+            target=self._read, args=(channel, conn), name=f"rr-read-{self.name}", daemon=True
+        ).start()
+        channel.writer.run()
+
+    def _failed(self, channel: _Channel, exc: BaseException) -> None:
+        """`channel`'s writer failed (connect or write): fail what waits on it."""
+        if isinstance(exc, RrError):
+            self._lose(channel, exc)
+        else:
+            self._lose(channel, self._gone("lost its connection", exc))
+
+    def _gone(self, how: str, cause: BaseException | None = None) -> RrError:
+        if os.path.exists(self._system.address.tombstone_path(self.name)):
+            return RegistrarStoppedError(f"registrar {self.name!r} was stopped")
+        detail = f" ({type(cause).__name__}: {cause})" if cause is not None else ""
+        return RegistrarUnavailableError(f"registrar {self.name!r} {how}{detail}")
+
+    def _lose(self, channel: _Channel, error: RrError | None) -> None:
+        """Close `channel` and fail every reply still waiting on it (any thread)."""
+        channel.writer.close()
+        with self._lock:
+            if self._channel is channel:
+                self._channel = None
+        pending = channel.pending
+        failed: list[Reply] = []
+        while True:
+            try:
+                _, (reply, _message) = pending.popitem()  # atomic: the reader pops too
+            except KeyError:
+                break
+            failed.append(reply)
+        if not failed:
+            return
+        error = error or self._gone("died while answers were outstanding")
+        for reply in failed:
+            reply.set_error(error)
+
+    def _read(self, channel: _Channel, conn: Connection) -> None:
+        """The reader thread of one connection: resolve answers until it ends."""
+        try:
+            for data in frames(conn):
+                try:
+                    self._answer(channel, data)
+                except Exception:
+                    logger.exception("dropped a malformed answer from registrar %s", self.name)
+        finally:
+            self._lose(channel, None)
+            conn.close()
+
+    def _answer(self, channel: _Channel, data: bytes) -> None:
+        token, payload = unframe(data)
+        entry = channel.pending.pop(token, None)
+        if entry is None:
+            return
+        reply, message = entry
+        try:
+            value, error = pickle.loads(payload)
+        except Exception as exc:  # noqa: BLE001 - any unpickling failure fails this answer
+            reply.set_error(self._unreadable(message, exc))
+            return
+        if error is None:
+            reply.set_result(value)
+        elif isinstance(error, BaseException):
+            reply.set_error(error)
+        else:
+            reply.set_error(RrError(f"a malformed answer from registrar {self.name!r}"))
+
+    def _unreadable(self, message: Any, exc: Exception) -> RrError:
+        """The error for an answer that cannot be unpickled here; what it created is undone.
+
+        The message's `compensation()` (a `Load`'s: an `Abandon` of its consumer id) goes
+        back to the peer, since the caller gets an error instead of what it asked for.
+        """
+        compensation = message.compensation()
+        if compensation is not None:
+            with contextlib.suppress(RrError):
+                self.tell(compensation)
+        failure: RrError = message.unreadable_answer(self.name, exc)
+        failure.__cause__ = exc
+        return failure

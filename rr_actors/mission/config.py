@@ -1,0 +1,140 @@
+"""What the mission does: its faults, its configuration, its error, and where it can run."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+import sys
+from typing import Any, Literal
+
+import rr_actors as rr
+
+__all__ = [
+    "DEFAULT_FAULT_AT",
+    "FAULTS",
+    "FAULT_WHAT",
+    "MANAGERS",
+    "MANAGER_OF",
+    "MissionConfig",
+    "MissionError",
+    "unsupported_platform",
+]
+
+FAULTS = ("F1", "F2", "F3", "F4", "F5")
+"""The thesis's five faults, in the order the mission meets them."""
+
+FAULT_WHAT = {
+    "F1": "LiDAR 1 disconnected",
+    "F2": "motor driver failed",
+    "F3": "external resource manager killed",
+    "F4": "component manager killed",
+    "F5": "robot manager killed",
+}
+"""What each fault is, in words (the report's `what`)."""
+
+MANAGERS = ("erm", "cm", "rm")
+"""The mission's managers, in start order (each its own process under one supervisor)."""
+
+MANAGER_OF = {"F3": "erm", "F4": "cm", "F5": "rm"}
+"""Which manager each software fault kills."""
+
+DEFAULT_FAULT_AT = {"F1": 0.15, "F2": 0.35, "F3": 0.5, "F4": 0.65, "F5": 0.8}
+"""Where each fault is injected, as a fraction of the path."""
+
+
+class MissionError(rr.RrError):
+    """The mission could not be completed (a fault was not recovered, or it timed out)."""
+
+
+def unsupported_platform() -> str | None:
+    """Why the mission cannot run on this platform, or `None` if it can.
+
+    The mission watches and signals its programs through pidfds (`os.pidfd_open`,
+    `signal.pidfd_send_signal`: Linux 5.3 or later) and reads their creation times from
+    `/proc`, so it needs Linux. The rest of rr_actors does not.
+    """
+    if hasattr(os, "pidfd_open") and hasattr(signal, "pidfd_send_signal"):
+        return None
+    return (
+        f"the mission needs Linux: it watches and signals its programs through pidfds "
+        f"(os.pidfd_open), which this platform ({sys.platform}) does not have"
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class MissionConfig:
+    """What the mission does.
+
+    Attributes:
+        distance_m: length of the path, in metres.
+        speed: driving speed, in metres per second.
+        faults: which faults to inject (`"F1"` ... `"F5"`).
+        fault_at: where to inject each, as a fraction of the path (0..1).
+        seed: seeds the LiDAR noise and a small jitter of the injection points.
+        isolation: `"process"` (each manager an OS process) or `"thread"`.
+        lidar_rate: LiDAR scans per second.
+        driver_rate: odometry updates per second.
+        nav_rate: navigation updates per second.
+        scan_timeout: seconds after which navigation treats the last scan as stale.
+        cmd_timeout: seconds after which the driver's watchdog treats a command as stale.
+        recovery_timeout: seconds a fault may take to be recovered before the mission fails.
+        call_timeout: timeout of the mission's calls, in seconds.
+
+    Raises:
+        ConfigError: a field is invalid; the message names it.
+    """
+
+    distance_m: float = 16.0
+    speed: float = 0.5
+    faults: tuple[str, ...] = FAULTS
+    fault_at: dict[str, float] = dataclasses.field(default_factory=lambda: dict(DEFAULT_FAULT_AT))
+    seed: int = 0
+    isolation: Literal["process", "thread"] = "process"
+    lidar_rate: float = 20.0
+    driver_rate: float = 50.0
+    nav_rate: float = 20.0
+    scan_timeout: float = 0.5
+    cmd_timeout: float = 0.5
+    recovery_timeout: float = 20.0
+    call_timeout: float = 15.0
+
+    def __post_init__(self) -> None:
+        for field in ("distance_m", "speed", "lidar_rate", "driver_rate", "nav_rate"):
+            value = getattr(self, field)
+            if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
+                raise rr.ConfigError(f"{field} must be a positive number, got {value!r}")
+        unknown = [f for f in self.faults if f not in FAULTS]
+        if unknown:
+            raise rr.ConfigError(f"faults: unknown fault(s) {unknown}; known: {list(FAULTS)}")
+        object.__setattr__(self, "faults", tuple(f for f in FAULTS if f in self.faults))
+        for fault in self.faults:
+            point = self.fault_at.get(fault)
+            if point is None or not 0.0 < point < 1.0:
+                raise rr.ConfigError(
+                    f"fault_at[{fault!r}] must be a fraction of the path in (0, 1), got {point!r}"
+                )
+        if self.isolation not in ("process", "thread"):
+            raise rr.ConfigError(f"isolation must be 'process' or 'thread', got {self.isolation!r}")
+
+    @classmethod
+    def fast(cls, **changes: Any) -> MissionConfig:
+        """A mission of a few seconds (for CI): a short path at high speed.
+
+        Args:
+            **changes: fields to set on top of the fast defaults.
+        """
+        base: dict[str, Any] = {
+            "distance_m": 6.0,
+            "speed": 2.0,
+            "lidar_rate": 50.0,
+            "nav_rate": 50.0,
+            "fault_at": {"F1": 0.1, "F2": 0.25, "F3": 0.4, "F4": 0.55, "F5": 0.7},
+        }
+        base.update(changes)
+        return cls(**base)
+
+    @property
+    def nominal_time_s(self) -> float:
+        """How long the drive takes without faults: distance over speed, in seconds."""
+        return self.distance_m / self.speed

@@ -1,0 +1,246 @@
+"""Injecting the faults for real, and following the managers through their restarts.
+
+    Mission._drive ──inject(F1/F2)──► SIGKILL a program (pidfd; pid and creation time checked)
+                   ──inject(F3-F5)──► SIGKILL a manager ──► a thread waits on its pidfd (detected),
+                                                            then for the restart that follows it,
+                                                            then for an answer from its catalog
+                   ──notice_restarts()──► restarts that no injected fault caused (by hand, say)
+
+Every wait for a restart names the restart count it waits for, counted from the count
+before the kill, so a manager that was also killed by hand (before, or while the mission
+waits) cannot make a wait return early or miss its restart.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import signal
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import rr_actors as rr
+from rr_actors.mission import managers, programs
+from rr_actors.mission.config import FAULT_WHAT, MANAGER_OF, MANAGERS, MissionError
+from rr_actors.mission.report import FaultRecord
+
+__all__ = ["SERVER_OF", "Faults", "alive", "retry_through_restarts", "sigkill"]
+
+T = TypeVar("T")
+
+SERVER_OF = {"erm": managers.PROGRAM_SERVER, "cm": "lidar", "rm": "robot"}
+"""The server of each manager that the mission (or its dependencies) uses."""
+
+
+def alive(pid: int, created: int | None) -> bool:
+    """Whether `pid` is still the process that was created at `created` (clock ticks)."""
+    return created is not None and programs.start_time(pid) == created
+
+
+def sigkill(pid: int, created: int | None = None) -> int:
+    """SIGKILL `pid` through a pidfd (checking its creation time); return the pidfd.
+
+    Raises:
+        MissionError: `created` is given and `pid` is now another process.
+        ProcessLookupError: there is no process `pid` any more.
+    """
+    pidfd = os.pidfd_open(pid)
+    if created is not None and programs.start_time(pid) != created:
+        os.close(pidfd)
+        raise MissionError(f"process {pid} is not the one the mission started")
+    signal.pidfd_send_signal(pidfd, signal.SIGKILL)
+    return pidfd
+
+
+def retry_through_restarts(
+    sup: rr.Supervisor, name: str, action: Callable[[], T], *, timeout: float
+) -> T:
+    """Run `action`; if manager `name` was down or died meanwhile, wait for its restart, retry.
+
+    Args:
+        sup: the supervisor of `name`.
+        name: the manager `action` talks to.
+        action: what to do (a call, an unload, a `run_in`).
+        timeout: seconds for all attempts and waits together.
+
+    Returns:
+        What `action` returned.
+
+    Raises:
+        RegistrarUnavailableError: it still failed when `timeout` ran out, or `name` will
+            not be restarted.
+        CallTimeoutError: `name` was not restarted within `timeout`.
+        SupervisorGaveUpError: the supervisor gave up on `name`.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        before = sup.child(name)  # the restart to wait for is the one after this snapshot
+        try:
+            return action()
+        except rr.RegistrarUnavailableError:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise
+            sup.wait_restarted(name, timeout=remaining, restarts=before.restarts + 1)
+
+
+def _served_names(registrar: rr.ResourceRegistrar) -> list[str]:
+    """Names of the programs the ERM serves (run inside the ERM)."""
+    queries = registrar.server_queries(managers.PROGRAM_SERVER)
+    return sorted({q.response["name"] for q in queries})
+
+
+def _registrar(registrar: rr.ResourceRegistrar) -> rr.ResourceRegistrar:
+    return registrar
+
+
+class Faults:
+    """The faults injected into one run, and the managers' restarts seen meanwhile.
+
+    Args:
+        sup: the running supervisor of the managers.
+        app: the mission's registrar.
+        recovery_timeout: seconds a manager fault may take to be recovered.
+        say: tells one line of the story (called from several threads).
+    """
+
+    def __init__(
+        self,
+        sup: rr.Supervisor,
+        app: rr.ResourceRegistrar,
+        *,
+        recovery_timeout: float,
+        say: Callable[[str], None],
+    ) -> None:
+        self.sup = sup
+        self.app = app
+        self.recovery_timeout = recovery_timeout
+        self.say = say
+        self.lock = threading.Lock()
+        """Guards the records: recovery threads and the mission's thread both set them."""
+        self.records: list[FaultRecord] = []
+        self.unplanned: list[tuple[str, float, int | None]] = []
+        """`(manager, seen_at, pid)` of every restart that no injected fault caused."""
+        # Restarts of each manager accounted for: those before the drive, those our faults
+        # caused, and those already reported as unplanned.
+        self._accounted = {name: sup.child(name).restarts for name in MANAGERS}
+
+    def ready(self) -> bool:
+        """Whether every manager is running (a fault is injected only then)."""
+        return all(self.sup.child(name).state == "running" for name in MANAGERS)
+
+    def notice_restarts(self) -> None:
+        """Record every manager restart since the last look that no injected fault caused."""
+        now = time.monotonic()
+        for name in MANAGERS:
+            info = self.sup.child(name)
+            with self.lock:
+                extra = info.restarts - self._accounted[name]
+                if extra <= 0:
+                    continue
+                self._accounted[name] = info.restarts
+                self.unplanned.extend((name, now, info.pid) for _ in range(extra))
+            self.say(f"{name} was restarted, but no fault of the mission killed it")
+
+    def inject(self, fault: str) -> FaultRecord | None:
+        """Inject `fault` for real: SIGKILL the LiDAR, the driver or a manager.
+
+        Returns:
+            The fault's record, or `None` if it cannot be injected now (its manager just
+            died by other means): the caller tries again later.
+
+        Raises:
+            MissionError: the process to kill is not the one the mission started.
+        """
+        if fault in ("F1", "F2"):
+            return self._inject_program(fault)
+        return self._inject_manager(fault)
+
+    def _inject_program(self, fault: str) -> FaultRecord:
+        queries = self.app.client_queries()
+        if fault == "F1":
+            lidar = next(q for q in queries if q.server == "lidar").response
+            pid, created = lidar["pid"], lidar["start_time"]
+        else:
+            robot = next(q for q in queries if q.server == "robot").response
+            pid, created = robot["driver_pid"], robot["driver_start_time"]
+        record = FaultRecord(fault, time.monotonic())
+        with self.lock:
+            self.records.append(record)
+        os.close(sigkill(pid, created))
+        record.injected_at = time.monotonic()
+        self.say(f"{fault} injected: {FAULT_WHAT[fault]} (SIGKILL pid {pid})")
+        return record
+
+    def _inject_manager(self, fault: str) -> FaultRecord | None:
+        name = MANAGER_OF[fault]
+        info = self.sup.child(name)
+        if info.state != "running":
+            return None
+        pidfd: int | None = None
+        if info.pid is not None:
+            try:
+                pidfd = os.pidfd_open(info.pid)
+            except ProcessLookupError:  # it died just now, by other means
+                return None
+        record = FaultRecord(fault, time.monotonic())
+        with self.lock:
+            self.records.append(record)
+            self._accounted[name] += 1  # this restart is ours, not an unplanned one
+        if pidfd is not None:
+            signal.pidfd_send_signal(pidfd, signal.SIGKILL)
+            record.injected_at = time.monotonic()
+            self.say(f"{fault} injected: {FAULT_WHAT[fault]} (SIGKILL pid {info.pid})")
+        else:  # a thread manager: make its registrar actor die
+            from rr_actors.testing import crash  # noqa: PLC0415
+
+            record.injected_at = time.monotonic()
+            crash(self.sup.run_in(name, _registrar))
+            self.say(f"{fault} injected: {FAULT_WHAT[fault]} (its registrar crashed)")
+        threading.Thread(
+            target=self._await_manager,
+            args=(record, name, pidfd, info.restarts),
+            name=f"mission-{fault}",
+            daemon=True,
+        ).start()
+        return record
+
+    def _await_manager(
+        self, record: FaultRecord, name: str, pidfd: int | None, restarts_before: int
+    ) -> None:
+        """F3-F5: see the manager die, wait for its restart, check its restored catalog."""
+        deadline = record.injected_at + self.recovery_timeout
+        try:
+            if pidfd is not None:
+                select.select([pidfd], [], [], max(0.0, deadline - time.monotonic()))
+                os.close(pidfd)
+            with self.lock:
+                record.detected_at = time.monotonic()
+            target = restarts_before + 1  # the restart that follows our kill, not an earlier one
+            while True:
+                info = self.sup.wait_restarted(
+                    name, timeout=max(0.0, deadline - time.monotonic()), restarts=target
+                )
+                try:
+                    note = self._restored(name)
+                    break
+                except rr.RegistrarUnavailableError:
+                    target = info.restarts + 1  # killed again meanwhile: the next restart
+            with self.lock:
+                record.note = note
+                record.recovered_at = time.monotonic()
+            self.say(f"{record.id} recovered: {name} restarted and {note}")
+        except rr.RrError as exc:
+            self.say(f"{record.id}: {name} did not come back: {exc}")
+
+    def _restored(self, name: str) -> str:
+        """Ask the restarted manager what it restored; a short note for the report."""
+        mine = self.app.fetch_queries(name, SERVER_OF[name])
+        if name == "erm":
+            served: Any = self.sup.run_in(name, _served_names)
+            return "re-adopted " + ", ".join(served)
+        held = {q.id for q in self.app.client_queries()}
+        restored = sorted({q.id[:8] for q in mine if q.id in held})
+        return f"restored the mission's queries {', '.join(restored)}"

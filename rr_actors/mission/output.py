@@ -1,0 +1,308 @@
+"""What `rr-actors demo` shows: the story as it happens, a live progress line, the timeline.
+
+Two renderers with one interface (`MissionOutput`), chosen once by `make_output`:
+
+- `RichOutput` on a terminal, when `rich` is installed (`pip install 'rr-actors[demo]'`):
+  the story scrolls above a live progress line that `rich` redraws in place (never wider
+  than the terminal, so nothing wraps or stays behind), then the timeline as a table
+  that fits the terminal's width;
+- `PlainOutput` everywhere else (a pipe, a file, no `rich`): plain lines only, no
+  progress line, and a timeline that fits 80 columns.
+
+`--quiet` keeps the timeline and the report's paths and drops the story and the
+progress line, in both.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from collections.abc import Sequence
+from types import TracebackType
+from typing import TYPE_CHECKING, Any, Protocol, TextIO
+
+from rr_actors.mission.report import MissionReport, TimelineRow, timeline_rows
+
+if TYPE_CHECKING:
+    from rich.console import Console
+    from rich.live import Live
+    from rich.table import Table
+
+__all__ = [
+    "MissionOutput",
+    "PlainOutput",
+    "Progress",
+    "RichOutput",
+    "make_output",
+    "progress_table",
+    "timeline",
+    "timeline_table",
+]
+
+HEADERS = ("fault", "what", "injected at", "detected", "recovered", "robot stopped")
+"""The timeline's columns; "detected" and "recovered" count from the injection."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Progress:
+    """Where the mission is, for the live progress line.
+
+    Attributes:
+        elapsed_s: seconds since the mission started.
+        distance_m: distance driven, metres.
+        goal_m: length of the path, metres.
+        moving: whether the robot is moving.
+        status: the fault being recovered from (`""` if none).
+    """
+
+    elapsed_s: float
+    distance_m: float
+    goal_m: float
+    moving: bool
+    status: str
+
+
+class MissionOutput(Protocol):
+    """Where the demo's output goes. `story` and `progress` may be called from any thread."""
+
+    def __enter__(self) -> MissionOutput: ...
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None: ...
+
+    def story(self, line: str) -> None:
+        """Show one line of the story."""
+
+    def progress(self, progress: Progress) -> None:
+        """Show where the mission is (the latest call wins)."""
+
+    def summary(self, report: MissionReport, files: Sequence[str]) -> None:
+        """Show the timeline and the totals, then `files` (what was written where)."""
+
+
+def _seconds(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f} s"
+
+
+def _cells(row: TimelineRow) -> tuple[str, ...]:
+    return (
+        row.label,
+        row.what,
+        _seconds(row.at_s),
+        _seconds(row.detected_after_s),
+        _seconds(row.recovered_after_s),
+        _seconds(row.robot_stopped_s),
+    )
+
+
+def _notes(report: MissionReport) -> list[str]:
+    notes = []
+    if report.faults:
+        notes.append("detected, recovered: seconds after the injection")
+    if report.unplanned_restarts:
+        notes.append("-: a manager restart no fault caused, when the mission noticed it")
+    return notes
+
+
+def _totals(report: MissionReport) -> list[str]:
+    return [
+        f"mission time {report.mission_time_s:.2f} s (no stop: {report.nominal_time_s:.2f} s), "
+        f"distance {report.distance_m:.2f} m",
+        f"leaked processes: {report.leaked_processes}; catalog entries left: "
+        f"{report.catalog_entries_left}",
+    ]
+
+
+def timeline(report: MissionReport) -> str:
+    """The report as a plain-text table (at most 80 columns), then the totals.
+
+    One row per injected fault and per unplanned manager restart (`timeline_rows`);
+    "detected" and "recovered" count seconds from the injection.
+    """
+    rows = [HEADERS, *(_cells(row) for row in timeline_rows(report))]
+    if len(rows) == 1:
+        return "\n".join(_totals(report))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(HEADERS))]
+    lines = [
+        "  ".join(
+            cell.ljust(width) if i < 2 else cell.rjust(width)
+            for i, (cell, width) in enumerate(zip(row, widths, strict=True))
+        ).rstrip()
+        for row in rows
+    ]
+    lines.insert(1, "  ".join("-" * width for width in widths))
+    lines.extend(f"({note})" for note in _notes(report))
+    return "\n".join([*lines, "", *_totals(report)])
+
+
+class PlainOutput:
+    """Plain lines on a stream: the story (unless quiet) and the timeline; no progress line.
+
+    Args:
+        stream: where to write (standard output, a pipe, a file).
+        quiet: drop the story.
+    """
+
+    def __init__(self, stream: TextIO, *, quiet: bool = False) -> None:
+        self.stream = stream
+        self.quiet = quiet
+        self._lock = threading.Lock()  # lines from several threads must not run together
+
+    def __enter__(self) -> PlainOutput:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        return None
+
+    def _write(self, text: str) -> None:
+        with self._lock:
+            self.stream.write(text)
+            self.stream.flush()
+
+    def story(self, line: str) -> None:
+        """Write one line of the story (unless quiet)."""
+        if not self.quiet:
+            self._write(line + "\n")
+
+    def progress(self, progress: Progress) -> None:
+        """Nothing: a progress line needs a terminal to redraw it in place."""
+
+    def summary(self, report: MissionReport, files: Sequence[str]) -> None:
+        """Write the timeline, the totals and `files`."""
+        self._write("\n" + timeline(report) + "\n\n" + "".join(f"{f}\n" for f in files))
+
+
+# -- rich ----------------------------------------------------------------------------------
+
+
+def progress_table(progress: Progress) -> Table:
+    """The live progress line as a one-row grid that fits any width (the status gets cut)."""
+    from rich.progress_bar import ProgressBar  # noqa: PLC0415 - rich is optional
+    from rich.table import Table  # noqa: PLC0415
+
+    grid = Table.grid(padding=(0, 1), expand=True)
+    grid.add_column(justify="right", no_wrap=True, width=8)
+    grid.add_column(no_wrap=True, width=20)
+    grid.add_column(justify="right", no_wrap=True, width=len(f"{progress.goal_m:5.2f}") * 2 + 3)
+    grid.add_column(no_wrap=True, width=7)
+    grid.add_column(no_wrap=True, overflow="ellipsis", ratio=1)  # gets what is left
+    grid.add_row(
+        f"{progress.elapsed_s:6.2f} s",
+        ProgressBar(total=progress.goal_m, completed=progress.distance_m, width=20),
+        f"{progress.distance_m:5.2f}/{progress.goal_m:.2f} m",
+        "moving" if progress.moving else "stopped",
+        progress.status,
+    )
+    return grid
+
+
+def timeline_table(report: MissionReport) -> Table:
+    """The timeline as a `rich` table; it wraps its headers to fit narrow terminals."""
+    from rich import box  # noqa: PLC0415 - rich is optional
+    from rich.table import Table  # noqa: PLC0415
+
+    table = Table(
+        box=box.SIMPLE_HEAD,
+        show_edge=False,
+        pad_edge=False,
+        collapse_padding=True,
+        caption_justify="left",
+    )
+    for i, header in enumerate(HEADERS):
+        table.add_column(header, justify="left" if i < 2 else "right", no_wrap=i != 1)
+    for row in timeline_rows(report):
+        table.add_row(*_cells(row))
+    table.caption = "\n".join(_notes(report)) or None
+    return table
+
+
+class RichOutput:
+    """A terminal, through `rich`: the story above a live progress line, a fitted table.
+
+    Args:
+        console: the `rich` console (its width is the terminal's).
+        quiet: drop the story and the progress line.
+    """
+
+    def __init__(self, console: Console, *, quiet: bool = False) -> None:
+        self.console = console
+        self.quiet = quiet
+        self._live: Live | None = None
+
+    def __enter__(self) -> RichOutput:
+        from rich.live import Live  # noqa: PLC0415 - rich is optional
+
+        if not self.quiet:
+            # transient: the progress line is gone when the mission ends; the story stays.
+            self._live = Live(
+                console=self.console,
+                transient=True,
+                refresh_per_second=10,
+                redirect_stdout=False,
+                redirect_stderr=False,
+            )
+            self._live.start()
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self._stop_live()
+
+    def _stop_live(self) -> None:
+        if self._live is not None:
+            self._live.stop()
+            self._live = None
+
+    def _print(self, renderable: Any) -> None:
+        self.console.print(renderable, markup=False, highlight=False, emoji=False)
+
+    def story(self, line: str) -> None:
+        """Print one line of the story above the progress line (unless quiet).
+
+        A line stamped `[  1.23 s] ...` that is too long for the terminal wraps under its
+        text, not under its stamp.
+        """
+        if self.quiet:
+            return
+        stamp, bracket, text = line.partition("] ")
+        if not (line.startswith("[") and bracket):
+            self._print(line)
+            return
+        from rich.table import Table  # noqa: PLC0415 - rich is optional
+
+        grid = Table.grid(padding=(0, 1))
+        grid.add_column(no_wrap=True)
+        grid.add_column()
+        grid.add_row(stamp + "]", text)
+        self._print(grid)
+
+    def progress(self, progress: Progress) -> None:
+        """Redraw the progress line (at most 10 times a second)."""
+        live = self._live
+        if live is not None:
+            live.update(progress_table(progress))
+
+    def summary(self, report: MissionReport, files: Sequence[str]) -> None:
+        """Remove the progress line; print the timeline, the totals and `files`."""
+        self._stop_live()
+        self._print("")
+        if report.faults or report.unplanned_restarts:
+            self._print(timeline_table(report))
+            self._print("")
+        for line in [*_totals(report), "", *files]:
+            self._print(line)
+
+
+def make_output(stream: TextIO, *, quiet: bool = False) -> MissionOutput:
+    """`RichOutput` if `stream` is a terminal and `rich` is installed, else `PlainOutput`."""
+    if stream.isatty():
+        try:
+            from rich.console import Console  # noqa: PLC0415 - rich is optional
+        except ImportError:
+            pass
+        else:
+            return RichOutput(Console(file=stream), quiet=quiet)
+    return PlainOutput(stream, quiet=quiet)

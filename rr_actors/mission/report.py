@@ -1,0 +1,386 @@
+"""Timing and the report: the odometry log, what happened at each fault, and the timeline.
+
+    odom.jsonl ──► Odometry (samples, stops) ─┐
+    FaultRecord (one per injected fault) ─────┼─► build_report() ─► MissionReport ─► report.json
+    UnplannedRestart (restarts no fault made) ┘                          │
+                                                                         └─► timeline_rows()
+
+Every time is `time.monotonic()` (system-wide on Linux, so the programs' timestamps in
+`odom.jsonl` compare with the mission's); the report counts seconds from the start of
+the drive.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+from rr_actors.mission.config import FAULT_WHAT
+
+__all__ = [
+    "MOVING_GAP",
+    "THESIS",
+    "FaultRecord",
+    "FaultResult",
+    "MissionReport",
+    "Odometry",
+    "TimelineRow",
+    "UnplannedRestart",
+    "build_report",
+    "timeline_rows",
+]
+
+THESIS = {
+    "mission_time_s": {"without_faults": 32.0, "with_faults": 43.0},
+    "robot_stopped_s": {"F1": 3.0, "F2": 5.0, "F3": 0.0, "F4": 0.0, "F5": 0.0},
+}
+"""The thesis's figures (section 6.2), for the side-by-side comparison."""
+
+MOVING_GAP = 0.5
+"""Seconds without an odometry sample after which the robot counts as stopped."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FaultResult:
+    """What happened at one fault. Times are seconds; `injected_at_s` counts from the start.
+
+    Attributes:
+        id: `"F1"` ... `"F5"`.
+        what: a short description.
+        injected_at_s: when the SIGKILL was sent, from the start of the drive.
+        detected_after_s: from injection until the fault was seen (F1, F2: the mission
+            heard `FATAL`; F3-F5: the manager's death was seen from its pidfd, the event
+            the supervisor's process sentinel reports).
+        recovered_after_s: from injection until it was recovered (F1: LiDAR 2 serving and
+            the robot released; F2: the robot manager's `UPDATE`; F3-F5: the restarted
+            manager answered from its restored catalog).
+        robot_stopped_s: how long the robot stood still because of it (from odometry).
+        note: what the recovery found (e.g. what the restarted ERM re-adopted).
+    """
+
+    id: str
+    what: str
+    injected_at_s: float
+    detected_after_s: float | None
+    recovered_after_s: float | None
+    robot_stopped_s: float
+    note: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class UnplannedRestart:
+    """A restart of a manager that no injected fault caused (it was killed by hand, say).
+
+    The mission sees it from the supervisor's restart count, so it knows when it noticed
+    the restart, not when the manager died.
+
+    Attributes:
+        manager: the manager's name.
+        seen_at_s: when the mission noticed it, seconds from the start of the drive.
+        pid: the manager's process after the restart (`None` for a thread manager).
+    """
+
+    manager: str
+    seen_at_s: float
+    pid: int | None
+
+
+@dataclasses.dataclass(frozen=True)
+class MissionReport:
+    """The outcome of a mission (written as `report.json`).
+
+    Attributes:
+        mission_time_s: from the start of the drive until the goal was reached, seconds.
+        distance_m: distance the odometry measured.
+        nominal_time_s: distance over speed: the drive without any stop.
+        faults: one result per injected fault.
+        leaked_processes: mission programs still alive after everything was unloaded.
+        catalog_entries_left: catalog rows (resources and client records) left in all
+            registrars after everything was unloaded.
+        catalog_entries_by_registrar: the same, per registrar (-1: it could not be read).
+        trace: `(t, x)` odometry samples, seconds from the start of the drive and metres.
+        stops: `(start, end)` of every interval the robot stood still, seconds.
+        unplanned_restarts: manager restarts that no injected fault caused.
+    """
+
+    mission_time_s: float
+    distance_m: float
+    nominal_time_s: float
+    faults: tuple[FaultResult, ...]
+    leaked_processes: int
+    catalog_entries_left: int
+    catalog_entries_by_registrar: dict[str, int]
+    trace: tuple[tuple[float, float], ...]
+    stops: tuple[tuple[float, float], ...]
+    unplanned_restarts: tuple[UnplannedRestart, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        """Whether every fault was recovered and nothing was left behind."""
+        return (
+            all(f.recovered_after_s is not None for f in self.faults)
+            and self.leaked_processes == 0
+            and self.catalog_entries_left == 0
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """The report as JSON-able data (`report.json`)."""
+        return {
+            "mission_time_s": round(self.mission_time_s, 3),
+            "distance_m": round(self.distance_m, 3),
+            "nominal_time_s": round(self.nominal_time_s, 3),
+            "faults": [
+                {
+                    "id": f.id,
+                    "what": f.what,
+                    "injected_at_s": _round(f.injected_at_s),
+                    "detected_after_s": _round(f.detected_after_s),
+                    "recovered_after_s": _round(f.recovered_after_s),
+                    "robot_stopped_s": _round(f.robot_stopped_s),
+                    "note": f.note,
+                }
+                for f in self.faults
+            ],
+            "unplanned_restarts": [
+                {"manager": r.manager, "seen_at_s": _round(r.seen_at_s), "pid": r.pid}
+                for r in self.unplanned_restarts
+            ],
+            "leaked_processes": self.leaked_processes,
+            "catalog_entries_left": self.catalog_entries_left,
+            "catalog_entries_by_registrar": self.catalog_entries_by_registrar,
+            "thesis": THESIS,
+            "stops": [[_round(a), _round(b)] for a, b in self.stops],
+        }
+
+
+def _round(value: float | None) -> float | None:
+    return None if value is None else round(value, 3)
+
+
+# -- the timeline --------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class TimelineRow:
+    """One row of the timeline table. Times are seconds; `None` shows as "-".
+
+    Attributes:
+        label: the fault's id (`"F1"` ...), or `"-"` for something no fault caused.
+        what: what happened, in a few words.
+        at_s: when it was injected (or noticed), from the start of the drive.
+        detected_after_s: from `at_s` until it was detected.
+        recovered_after_s: from `at_s` until it was recovered.
+        robot_stopped_s: how long the robot stood still because of it.
+    """
+
+    label: str
+    what: str
+    at_s: float
+    detected_after_s: float | None
+    recovered_after_s: float | None
+    robot_stopped_s: float | None
+
+
+SHORT_WHAT = {
+    "F1": "LiDAR 1 disconnected",
+    "F2": "motor driver failed",
+    "F3": "manager erm killed",
+    "F4": "manager cm killed",
+    "F5": "manager rm killed",
+}
+"""Each fault in at most 20 columns, for the timeline (the report keeps `FAULT_WHAT`)."""
+
+
+def timeline_rows(report: MissionReport) -> list[TimelineRow]:
+    """Turn what happened into the timeline's rows, in time order.
+
+    This is the one place that decides what the timeline shows: every injected fault,
+    and every manager restart that no fault caused. Such a restart is known here only
+    from the supervisor's restart count (when the mission noticed it); once the
+    supervisor publishes events (`ChildExited`, `ChildRestarted`), they can fill in its
+    detection and recovery times here, and nothing else needs to change.
+    """
+    rows = [
+        TimelineRow(
+            f.id,
+            SHORT_WHAT.get(f.id, f.what),
+            f.injected_at_s,
+            f.detected_after_s,
+            f.recovered_after_s,
+            f.robot_stopped_s,
+        )
+        for f in report.faults
+    ]
+    rows.extend(
+        TimelineRow("-", f"{r.manager} restarted, no fault", r.seen_at_s, None, None, None)
+        for r in report.unplanned_restarts
+    )
+    return sorted(rows, key=lambda row: row.at_s)
+
+
+# -- odometry ------------------------------------------------------------------------------
+
+
+class Odometry:
+    """Follows the driver's `odom.jsonl` (every sample the drivers ever published).
+
+    Args:
+        path: the log file; it may not exist yet.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.samples: list[tuple[float, float, float]] = []  # (t, x, v), t monotonic
+        self._offset = 0
+        self._partial = b""
+
+    @property
+    def x(self) -> float:
+        """The latest distance, in metres."""
+        return self.samples[-1][1] if self.samples else 0.0
+
+    def moving(self, now: float) -> bool:
+        """Whether the distance grew at the latest sample, and that sample is recent."""
+        if len(self.samples) < 2 or now - self.samples[-1][0] > MOVING_GAP:
+            return False
+        return self.samples[-1][1] > self.samples[-2][1]
+
+    def read(self) -> None:
+        """Take the samples appended since the last read."""
+        try:
+            with self.path.open("rb") as f:
+                f.seek(self._offset)
+                data = f.read()
+        except FileNotFoundError:
+            return
+        self._offset += len(data)
+        lines = (self._partial + data).split(b"\n")
+        self._partial = lines.pop()
+        for line in lines:
+            with contextlib.suppress(ValueError, KeyError):
+                sample = json.loads(line)
+                self.samples.append((float(sample["t"]), float(sample["x"]), float(sample["v"])))
+
+    def arrival(self, distance_m: float) -> float | None:
+        """When the odometry first reached `distance_m` (monotonic seconds), if it did."""
+        for t, x, _ in self.samples:
+            if x >= distance_m:
+                return t
+        return None
+
+    def stops(self, start: float, end: float) -> list[tuple[float, float]]:
+        """Intervals within `[start, end]` in which the distance did not grow (monotonic s).
+
+        Between two consecutive samples the robot stood still if the distance did not
+        grow. A driver that died publishes nothing, and its successor starts from the last
+        distance, so the time without a driver counts as standing still too.
+        """
+        stops: list[tuple[float, float]] = []
+        previous: tuple[float, float] | None = None
+        for t, x, _ in self.samples:
+            if t > end:
+                break
+            if previous is not None and t > start and x - previous[1] <= 1e-9:
+                begin = max(previous[0], start)
+                if stops and stops[-1][1] >= begin:
+                    stops[-1] = (stops[-1][0], t)
+                else:
+                    stops.append((begin, t))
+            previous = (t, x)
+        return stops
+
+
+# -- building the report -------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class FaultRecord:
+    """One injected fault while the mission runs (monotonic seconds; set by several threads).
+
+    Attributes:
+        id: `"F1"` ... `"F5"`.
+        injected_at: when the SIGKILL was sent.
+        detected_at: when the fault was seen, once it was.
+        recovered_at: when it was recovered, once it was.
+        early_update_at: F2 only: an `UPDATE` that overtook its `FATAL`.
+        note: what the recovery found.
+    """
+
+    id: str
+    injected_at: float
+    detected_at: float | None = None
+    recovered_at: float | None = None
+    early_update_at: float | None = None
+    note: str = ""
+
+
+def build_report(
+    *,
+    odometry: Odometry,
+    faults: list[FaultRecord],
+    unplanned: list[tuple[str, float, int | None]],
+    start: float,
+    arrived: float,
+    nominal_time_s: float,
+    leaked: list[int],
+    entries: dict[str, int],
+) -> MissionReport:
+    """Turn the records of a run into its report.
+
+    Args:
+        odometry: the run's odometry (read once more here).
+        faults: the injected faults.
+        unplanned: `(manager, seen_at, pid)` of each restart no fault caused.
+        start: when the drive started (monotonic seconds).
+        arrived: when the goal was reached (monotonic seconds).
+        nominal_time_s: the drive's length without any stop, seconds.
+        leaked: pids of programs that were still alive at the end.
+        entries: catalog rows left per registrar (-1: it could not be read).
+    """
+    odometry.read()
+    stops = odometry.stops(start, arrived)
+    results = []
+    for fault in faults:
+        end = fault.recovered_at if fault.recovered_at is not None else arrived
+        stopped = sum(
+            (
+                max(0.0, b - max(a, fault.injected_at))
+                for a, b in stops
+                if b > fault.injected_at and a <= end
+            ),
+            0.0,
+        )
+        results.append(
+            FaultResult(
+                id=fault.id,
+                what=FAULT_WHAT[fault.id],
+                injected_at_s=fault.injected_at - start,
+                detected_after_s=None
+                if fault.detected_at is None
+                else max(0.0, fault.detected_at - fault.injected_at),
+                recovered_after_s=None
+                if fault.recovered_at is None
+                else fault.recovered_at - fault.injected_at,
+                robot_stopped_s=stopped,
+                note=fault.note,
+            )
+        )
+    trace = tuple((t - start, x) for t, x, _ in odometry.samples if start <= t <= arrived + 0.5)
+    return MissionReport(
+        mission_time_s=arrived - start,
+        distance_m=odometry.x,
+        nominal_time_s=nominal_time_s,
+        faults=tuple(results),
+        leaked_processes=len(leaked),
+        catalog_entries_left=sum(max(0, n) for n in entries.values())
+        + sum(1 for n in entries.values() if n < 0),
+        catalog_entries_by_registrar=entries,
+        trace=trace,
+        stops=tuple((a - start, b - start) for a, b in stops),
+        unplanned_restarts=tuple(
+            UnplannedRestart(name, seen - start, pid) for name, seen, pid in unplanned
+        ),
+    )

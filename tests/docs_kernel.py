@@ -1,0 +1,43 @@
+"""Run the Python blocks of one docs page in one namespace, as a reader pasting them would.
+
+`tests/test_docs.py` starts this as a program in the page's working directory and feeds it
+the page's Python blocks one by one, in page order, as JSON lines on standard input
+(`{"code": ..., "filename": ...}`). Each block runs with `exec` in one shared namespace
+whose `__name__` is `"__main__"`, so later blocks see what earlier blocks defined, and
+`if __name__ == "__main__":` guards run as in a script. After each block one JSON line goes
+to the file descriptor named by `argv[1]`: `{"ok": true}`, or `{"ok": false, "error":
+<traceback>}`. The block's own output goes to this program's standard output and error.
+
+At the end of its input it returns, so the interpreter exits only if the page left
+nothing running (a registrar's actor threads are not daemons): the test checks that too.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import traceback
+from typing import Any
+
+
+def main() -> None:
+    """Run every block that arrives on standard input; answer each on `argv[1]`."""
+    replies = os.fdopen(int(sys.argv[1]), "w", buffering=1)
+    namespace: dict[str, Any] = {"__name__": "__main__", "__builtins__": __builtins__}
+    for line in sys.stdin:
+        block = json.loads(line)
+        try:
+            exec(compile(block["code"], block["filename"], "exec"), namespace)  # noqa: S102
+        except BaseException:  # SystemExit and KeyboardInterrupt are reported too
+            reply = {"ok": False, "error": traceback.format_exc()}
+        else:
+            reply = {"ok": True}
+        sys.stdout.flush()
+        sys.stderr.flush()
+        replies.write(json.dumps(reply) + "\n")
+    replies.close()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,217 @@
+"""`rr-actors demo` as a newcomer meets it: its output on a terminal or a pipe, its errors.
+
+The mission itself is tested in `test_mission.py`; here: what is printed (and that it
+fits an 80-column terminal), `--quiet`, and the command-line errors (exit code 2, one
+line on standard error, no traceback).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from rich.console import Console
+
+from rr_actors.mission import FAULTS, FaultResult, MissionError, MissionReport, UnplannedRestart
+from rr_actors.mission.config import MissionConfig
+from rr_actors.mission.output import (
+    PlainOutput,
+    Progress,
+    RichOutput,
+    make_output,
+    progress_table,
+    timeline,
+)
+from rr_actors.mission.run import main, parser, run, run_mission
+
+ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+
+
+def report_with_everything() -> MissionReport:
+    """A report of a long mission: all five faults and an unplanned restart of each manager."""
+    faults = tuple(
+        FaultResult(f, "x" * 40, 100.0 + i, 12.345, 123.456, 99.999) for i, f in enumerate(FAULTS)
+    )
+    restarts = tuple(UnplannedRestart(m, 200.0, 4_194_304) for m in ("erm", "cm", "rm"))
+    return MissionReport(
+        mission_time_s=1234.5,
+        distance_m=160.0,
+        nominal_time_s=320.0,
+        faults=faults,
+        leaked_processes=0,
+        catalog_entries_left=0,
+        catalog_entries_by_registrar={},
+        trace=(),
+        stops=(),
+        unplanned_restarts=restarts,
+    )
+
+
+def widest(text: str) -> int:
+    return max(len(line) for line in ANSI.sub("", text).splitlines())
+
+
+class FakeTerminal(io.StringIO):
+    """A stream that says it is a terminal (as `rr-actors demo` on a real one sees it)."""
+
+    def isatty(self) -> bool:
+        return True
+
+
+# -- fitting 80 columns --------------------------------------------------------------------
+
+
+def test_the_plain_timeline_fits_80_columns() -> None:
+    text = timeline(report_with_everything())
+
+    assert widest(text) <= 80
+    assert 5 + 3 == sum(1 for line in text.splitlines() if re.match(r"(F\d|-) ", line))
+
+
+def test_the_rich_timeline_fits_an_80_column_terminal() -> None:
+    console = Console(file=io.StringIO(), width=80, record=True, force_terminal=True)
+
+    RichOutput(console, quiet=True).summary(report_with_everything(), ["report: x/report.json"])
+    text = console.export_text()
+
+    assert widest(text) <= 80
+    assert "erm restarted, no fault" in text
+    assert "leaked processes: 0; catalog entries left: 0" in text
+
+
+@pytest.mark.parametrize("status", ["", "F3: external resource manager killed" * 3])
+def test_the_progress_line_is_one_line_of_at_most_80_columns(status: str) -> None:
+    console = Console(file=io.StringIO(), width=80, record=True, force_terminal=True)
+
+    console.print(progress_table(Progress(1234.56, 123.45, 160.0, True, status)))
+    lines = console.export_text().splitlines()
+
+    assert 1 == len(lines)
+    assert len(lines[0]) <= 80
+
+
+def test_a_long_story_line_wraps_under_its_text_on_a_terminal() -> None:
+    console = Console(file=io.StringIO(), width=40, record=True, force_terminal=True)
+
+    RichOutput(console).story("[  1.23 s] " + "word " * 12)
+    lines = console.export_text().splitlines()
+
+    assert len(lines) > 1
+    assert all(line.startswith(" " * 11) for line in lines[1:])
+
+
+# -- choosing the output -------------------------------------------------------------------
+
+
+def test_a_pipe_gets_plain_lines_and_a_terminal_gets_rich() -> None:
+    assert isinstance(make_output(io.StringIO()), PlainOutput)
+    assert isinstance(make_output(FakeTerminal()), RichOutput)
+
+
+def test_a_terminal_without_rich_gets_plain_lines(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "rich.console", None)
+
+    assert isinstance(make_output(FakeTerminal()), PlainOutput)
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_on_an_80_column_terminal_the_demo_draws_nothing_wider(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("COLUMNS", "80")
+    monkeypatch.delenv("NO_COLOR", raising=False)
+    terminal = FakeTerminal()
+    args = parser().parse_args(
+        ["--fast", "--faults", "F1", "--distance", "2", "--out", str(tmp_path)]
+    )
+
+    code = run(args, terminal)
+    text = terminal.getvalue()
+
+    assert 0 == code
+    assert widest(text) <= 80
+    assert "F1 injected" in ANSI.sub("", text)
+    assert "LiDAR 1 disconnected" in ANSI.sub("", text)
+
+
+# -- --quiet -------------------------------------------------------------------------------
+
+
+def test_quiet_help_says_it_prints_only_the_timeline() -> None:
+    help_text = " ".join(parser().format_help().split())
+
+    assert "--quiet no story and no progress line: print only the timeline" in help_text
+
+
+# -- errors --------------------------------------------------------------------------------
+
+
+def demo(*argv: str) -> subprocess.CompletedProcess[str]:
+    """`rr-actors demo ARGV` as a separate program (60 s at most)."""
+    return subprocess.run(
+        [sys.executable, "-m", "rr_actors._cli", "demo", *argv],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+
+
+def test_out_pointing_at_a_file_is_a_clear_error_with_exit_code_2(tmp_path: Path) -> None:
+    target = tmp_path / "a-file"
+    target.write_text("not a directory\n")
+
+    result = demo("--fast", "--out", str(target))
+
+    assert (2, "") == (result.returncode, result.stdout)
+    assert f"rr-actors demo: --out '{target}' is a file, not a directory\n" == result.stderr
+
+
+def test_out_below_a_file_is_a_clear_error_with_exit_code_2(tmp_path: Path) -> None:
+    (tmp_path / "a-file").write_text("")
+    target = tmp_path / "a-file" / "sub"
+
+    result = demo("--fast", "--out", str(target))
+
+    assert 2 == result.returncode
+    assert result.stderr.startswith(f"rr-actors demo: --out '{target}': cannot write there (")
+    assert "Traceback" not in result.stderr
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write into a read-only directory")
+def test_out_in_a_read_only_directory_is_a_clear_error_with_exit_code_2(tmp_path: Path) -> None:
+    tmp_path.chmod(0o500)
+    try:
+        result = demo("--fast", "--out", str(tmp_path / "out"))
+    finally:
+        tmp_path.chmod(0o700)
+
+    assert 2 == result.returncode
+    assert "cannot write there (Permission denied)" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_without_pidfds_the_demo_says_it_needs_linux_with_exit_code_2(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.delattr(os, "pidfd_open")
+
+    code = main(["--fast", "--out", str(tmp_path)])
+
+    assert 2 == code
+    assert "needs Linux" in capsys.readouterr().err
+    assert [] == list(tmp_path.iterdir())  # nothing was started or written
+
+
+def test_without_pidfds_run_mission_raises_a_mission_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delattr(os, "pidfd_open")
+
+    with pytest.raises(MissionError, match="needs Linux"):
+        run_mission(MissionConfig.fast(), tmp_path)

@@ -1,0 +1,506 @@
+"""Every code block in README.md and docs/ runs, or says why it cannot.
+
+One test per page. The page's fenced blocks are taken in page order, in a fresh temporary
+working directory for the page (with `examples/` linked into it, so the commands read as
+written):
+
+- `python` blocks run one after the other in one interpreter (`tests/docs_kernel.py`), as
+  if pasted into one session: a later block sees what earlier ones defined, and
+  `__name__` is `"__main__"`. After the last block the interpreter must exit by itself:
+  a page that leaves a registrar running fails. A block that is only a snippet include
+  (`--8<-- "examples/x.py"`) is the example itself: the file must exist and a test in
+  `tests/` must run it by name (`test_examples.py` runs every example).
+- `bash` blocks run command by command (`&&` and line breaks separate commands; `#`
+  starts a comment):
+    - `rr-actors ...` runs the installed console script; `python examples/...` and
+      `python -m rr_actors...` run with this interpreter. Each must exit with 0 within
+      `COMMAND_TIMEOUT`. The same command twice on a page runs once. `rr-actors demo`
+      without `--fast` runs with `--fast` (the same mission, shorter: the full one takes
+      about 35 s).
+    - `pip install -e .[EXTRAS]` is not run: every extra it names must exist in
+      `pyproject.toml`.
+    - `python -m pytest -q` is not run (it is this very run): it must be the test
+      command of `.ci/run`.
+    - `python benchmarks/X.py ...` is not run (benchmarks take minutes and are not tests):
+      the script must exist and accept every option shown (it appears in its source).
+    - anything else fails the test, unless the block is marked (below).
+- `text` and `json` blocks are output and data: not run. A block without a language fails
+  (say which it is).
+
+A block that cannot run as shown carries a visible marker on the line right above its
+fence (blank lines and other HTML comments may come between), with the reason:
+
+    <!-- docs-test: skip: start() and stop() stand for your own code -->
+
+A marker without a reason, or one that is not followed by a block, fails the test.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import re
+import select
+import shlex
+import signal
+import subprocess
+import sys
+import sysconfig
+import tomllib
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+KERNEL = Path(__file__).resolve().parent / "docs_kernel.py"
+
+BLOCK_TIMEOUT = 60.0
+"""Seconds one Python block may take."""
+
+COMMAND_TIMEOUT = 120.0
+"""Seconds one shell command may take."""
+
+EXIT_TIMEOUT = 30.0
+"""Seconds the page's interpreter gets to exit after its last block."""
+
+PYTHON = ("python", "py", "python3")
+SHELL = ("bash", "sh", "shell", "console")
+DATA = ("text", "json")
+
+FENCE = re.compile(r"^(?P<indent>[ \t]*)(?P<fence>`{3,}|~{3,})[ \t]*(?P<info>[^`]*)$")
+MARKER = re.compile(r"^\s*<!--\s*docs-test:\s*(?P<body>.*?)\s*-->\s*$")
+COMMENT = re.compile(r"^\s*<!--.*-->\s*$")
+SNIPPET = re.compile(r'^--8<--\s+"(?P<path>[^"]+)"\s*$')
+
+
+@dataclasses.dataclass(frozen=True)
+class Block:
+    """One fenced code block of a page.
+
+    Attributes:
+        page: the Markdown file.
+        line: 1-based line number of the opening fence.
+        lang: the first word of the info string (`""` if none).
+        code: the content, with the fence's indentation removed.
+        skip: the reason of a `docs-test: skip:` marker above it, else `None`.
+    """
+
+    page: Path
+    line: int
+    lang: str
+    code: str
+    skip: str | None
+
+    @property
+    def where(self) -> str:
+        return f"{rel(self.page)}:{self.line}"
+
+
+def rel(page: Path) -> str:
+    """`page` relative to the repository (as it is named in failures)."""
+    return str(page.relative_to(ROOT)) if page.is_relative_to(ROOT) else str(page)
+
+
+def parse_marker(body: str, where: str) -> str:
+    """The reason of a marker's body `skip: REASON`."""
+    kind, _, reason = body.partition(":")
+    if kind.strip() != "skip" or len(reason.split()) < 3:
+        pytest.fail(f"{where}: a marker reads `docs-test: skip: <why, in a few words>`: {body!r}")
+    return reason.strip()
+
+
+def blocks(page: Path) -> list[Block]:
+    """The fenced blocks of `page`, in order, with their markers."""
+    lines = page.read_text().splitlines()
+    found: list[Block] = []
+    pending: tuple[int, str] | None = None  # a marker waiting for its block
+    i = 0
+    while i < len(lines):
+        line = lines[i]
+        marker = MARKER.match(line)
+        if marker is not None:
+            if pending is not None:
+                pytest.fail(f"{rel(page)}:{pending[0]}: a marker without a block")
+            pending = (i + 1, parse_marker(marker.group("body"), f"{rel(page)}:{i + 1}"))
+            i += 1
+            continue
+        opening = FENCE.match(line)
+        if opening is None:
+            if pending is not None and line.strip() and not COMMENT.match(line):
+                pytest.fail(f"{rel(page)}:{pending[0]}: a marker without a block")
+            i += 1
+            continue
+        indent, fence = opening.group("indent"), opening.group("fence")
+        info = opening.group("info").split()
+        content: list[str] = []
+        j = i + 1
+        while j < len(lines):
+            stripped = lines[j].strip()
+            if stripped.startswith(fence) and set(stripped) == {fence[0]}:
+                break
+            content.append(lines[j].removeprefix(indent))
+            j += 1
+        found.append(
+            Block(
+                page,
+                i + 1,
+                info[0] if info else "",
+                "\n".join(content) + "\n",
+                pending[1] if pending else None,
+            )
+        )
+        pending = None
+        i = j + 1
+    if pending is not None:
+        pytest.fail(f"{rel(page)}:{pending[0]}: a marker without a block")
+    return found
+
+
+# -- the page's interpreter ------------------------------------------------------------------
+
+
+class Kernel:
+    """`tests/docs_kernel.py` running in `cwd`: one namespace for the page's Python blocks."""
+
+    def __init__(self, cwd: Path) -> None:
+        self.cwd = cwd
+        self.log = cwd / ".docs-kernel.log"
+        read_end, write_end = os.pipe()
+        with self.log.open("w") as log:
+            self.proc = subprocess.Popen(
+                [sys.executable, str(KERNEL), str(write_end)],
+                cwd=cwd,
+                stdin=subprocess.PIPE,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                text=True,
+                pass_fds=(write_end,),
+                start_new_session=True,  # its own process group: killed together if stuck
+            )
+        os.close(write_end)
+        self.replies = os.fdopen(read_end, "r")
+
+    def output(self) -> str:
+        return self.log.read_text()[-4000:]
+
+    def run(self, block: Block, code: str) -> None:
+        """Run `code` (the block's); fail the test with the traceback if it raises."""
+        assert self.proc.stdin is not None
+        # Line numbers in a traceback are the page's: pad the code down to the block.
+        padded = "\n" * block.line + code
+        self.proc.stdin.write(json.dumps({"code": padded, "filename": str(block.page)}) + "\n")
+        self.proc.stdin.flush()
+        ready, _, _ = select.select([self.replies], [], [], BLOCK_TIMEOUT)
+        if not ready:
+            self.kill()
+            pytest.fail(f"{block.where}: no answer within {BLOCK_TIMEOUT:g} s\n{self.output()}")
+        line = self.replies.readline()
+        if not line:
+            self.kill()
+            pytest.fail(f"{block.where}: the interpreter died\n{self.output()}")
+        reply = json.loads(line)
+        if not reply["ok"]:
+            self.kill()
+            pytest.fail(f"{block.where} raised:\n{reply['error']}\noutput:\n{self.output()}")
+
+    def finish(self, page: Path) -> None:
+        """End the input; the interpreter must exit by itself (nothing left running)."""
+        assert self.proc.stdin is not None
+        self.proc.stdin.close()
+        try:
+            code = self.proc.wait(EXIT_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            pytest.fail(
+                f"{rel(page)}: its Python blocks leave something running: the "
+                f"interpreter did not exit within {EXIT_TIMEOUT:g} s\n{self.output()}"
+            )
+        finally:
+            self.replies.close()
+        assert 0 == code, self.output()
+
+    def kill(self) -> None:
+        """SIGKILL the interpreter's process group (it and what it started directly)."""
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        self.proc.wait(EXIT_TIMEOUT)
+        if self.proc.stdin is not None:
+            with contextlib.suppress(BrokenPipeError):
+                self.proc.stdin.close()
+        self.replies.close()
+
+
+# -- commands ----------------------------------------------------------------------------------
+
+
+def commands(code: str) -> Iterator[list[str]]:
+    """The commands of a shell block: lines joined at `\\`, split at `&&`, comments dropped."""
+    text = code.replace("\\\n", " ")
+    for line in text.splitlines():
+        words = shlex.split(line, comments=True)
+        command: list[str] = []
+        for word in words:
+            if word == "&&":
+                if command:
+                    yield command
+                command = []
+            else:
+                command.append(word)
+        if command:
+            yield command
+
+
+def extras() -> set[str]:
+    return set(
+        tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    )
+
+
+def ci_test_command() -> str:
+    """The test command `.ci/run` runs (the line that runs pytest)."""
+    for line in (ROOT / ".ci" / "run").read_text().splitlines():
+        if line.startswith("python -m pytest"):
+            return line.split("||")[0].strip()
+    pytest.fail(".ci/run does not run `python -m pytest`")
+
+
+def check_pip(block: Block, command: list[str]) -> None:
+    """`pip install -e .[extras]`: not run; the extras must exist."""
+    assert command[:3] == ["pip", "install", "-e"], f"{block.where}: {shlex.join(command)}"
+    match = re.fullmatch(r"\.(?:\[(?P<extras>[\w,-]+)\])?", command[3])
+    assert match is not None, f"{block.where}: installs {command[3]!r}, not this project"
+    named = set((match.group("extras") or "").split(",")) - {""}
+    assert named <= extras(), f"{block.where}: no such extra(s) {named - extras()}"
+
+
+def check_benchmark(block: Block, command: list[str]) -> None:
+    """`python benchmarks/X.py ...`: not run; the script must exist and know the options."""
+    script = ROOT / command[1]
+    assert script.is_file(), f"{block.where}: {command[1]} does not exist"
+    source = script.read_text()
+    unknown = [w for w in command[2:] if w.startswith("--") and w.split("=")[0] not in source]
+    assert [] == unknown, f"{block.where}: {command[1]} has no option(s) {unknown}"
+
+
+def run_command(block: Block, command: list[str], cwd: Path) -> None:
+    """Run one command where the page's blocks run; fail the test unless it exits with 0."""
+    if command[0] == "rr-actors":
+        argv = [str(Path(sysconfig.get_path("scripts")) / "rr-actors"), *command[1:]]
+    else:
+        argv = [sys.executable, *command[1:]]
+    result = subprocess.run(
+        argv,
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=COMMAND_TIMEOUT,
+        check=False,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    assert 0 == result.returncode, (
+        f"{block.where}: `{shlex.join(command)}` exited with {result.returncode}\n"
+        f"{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    )
+
+
+def runnable(command: list[str]) -> list[str] | None:
+    """The command as the test runs it, if it is one the test runs."""
+    if command[0] == "rr-actors":
+        if command[1:2] == ["demo"] and "--fast" not in command:
+            return [*command, "--fast"]
+        return command
+    if command[0] == "python" and len(command) > 1:
+        if command[1].startswith("examples/"):
+            return command
+        if command[1] == "-m" and command[2:3] and command[2].startswith("rr_actors"):
+            return command
+    return None
+
+
+def shell_block(block: Block, cwd: Path, done: set[tuple[str, ...]]) -> None:
+    """Run or check every command of a shell block (see the module docstring)."""
+    for command in commands(block.code):
+        if command[0] == "pip":
+            check_pip(block, command)
+            continue
+        if command[:3] == ["python", "-m", "pytest"]:
+            assert shlex.join(command) == ci_test_command(), f"{block.where}: not CI's tests"
+            continue
+        if command[0] == "python" and command[1:2] and command[1].startswith("benchmarks/"):
+            check_benchmark(block, command)
+            continue
+        argv = runnable(command)
+        if argv is None:
+            pytest.fail(
+                f"{block.where}: `{shlex.join(command)}` is not a command this test runs; "
+                "make the block runnable or mark it `<!-- docs-test: skip: <why> -->`"
+            )
+        if tuple(argv) not in done:
+            done.add(tuple(argv))
+            run_command(block, argv, cwd)
+
+
+def python_block(block: Block) -> str | None:
+    """The code to run for a Python block, or `None` for a snippet include (checked here)."""
+    first = block.code.strip()
+    include = SNIPPET.match(first)
+    if include is None:
+        return block.code
+    path = include.group("path")
+    assert (ROOT / path).is_file(), f"{block.where}: includes {path}, which does not exist"
+    runners = [
+        p.name for p in (ROOT / "tests").glob("test_*.py") if Path(path).name in p.read_text()
+    ]
+    assert runners, f"{block.where}: no test in tests/ runs {path}"
+    return None
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("page", PAGES, ids=[str(p.relative_to(ROOT)) for p in PAGES])
+def test_every_code_block_of_the_page_runs_or_says_why_not(page: Path, tmp_path: Path) -> None:
+    (tmp_path / "examples").symlink_to(ROOT / "examples")
+    kernel: Kernel | None = None
+    done: set[tuple[str, ...]] = set()
+    try:
+        for block in blocks(page):
+            if block.skip is not None or block.lang in DATA:
+                continue
+            if block.lang in PYTHON:
+                code = python_block(block)
+                if code is not None:
+                    kernel = kernel or Kernel(tmp_path)
+                    kernel.run(block, code)
+            elif block.lang in SHELL:
+                shell_block(block, tmp_path, done)
+            elif not block.lang:
+                pytest.fail(f"{block.where}: say what the block is (python, bash, text, ...)")
+            else:
+                pytest.fail(f"{block.where}: blocks in {block.lang!r} are not checked")
+        if kernel is not None:
+            kernel.finish(page)
+    finally:
+        if kernel is not None and kernel.proc.poll() is None:
+            kernel.kill()
+
+
+# -- the checker itself, and what the README promises -------------------------------------------
+
+
+def test_the_checker_finds_blocks_markers_and_snippets(tmp_path: Path) -> None:
+    page = tmp_path / "page.md"
+    page.write_text(
+        "# t\n\n```python\nx = 1\n```\n\n<!-- docs-test: skip: needs a camera here -->\n"
+        "<!-- fmt: off -->\n\n```bash\nrm -rf /\n```\n\n  ~~~text\n  out\n  ~~~\n"
+    )
+
+    found = blocks(page)
+
+    assert [("python", None), ("bash", "needs a camera here"), ("text", None)] == [
+        (b.lang, b.skip) for b in found
+    ]
+    assert [3, 10, 14] == [b.line for b in found]
+    assert "out\n" == found[2].code
+
+
+def test_a_marker_without_a_reason_fails(tmp_path: Path) -> None:
+    page = tmp_path / "page.md"
+    page.write_text("<!-- docs-test: skip -->\n```bash\nls\n```\n")
+
+    with pytest.raises(pytest.fail.Exception, match="a marker reads"):
+        blocks(page)
+
+
+def test_a_marker_without_a_block_fails(tmp_path: Path) -> None:
+    page = tmp_path / "page.md"
+    page.write_text("<!-- docs-test: skip: not a real reason here -->\nsome text\n")
+
+    with pytest.raises(pytest.fail.Exception, match="a marker without a block"):
+        blocks(page)
+
+
+def test_shell_commands_are_split_at_and_and_lines_and_lose_comments() -> None:
+    code = 'pip install -e ".[demo]" && rr-actors demo   # the demo\nrr-actors \\\n  demo --fast\n'
+
+    assert [
+        ["pip", "install", "-e", ".[demo]"],
+        ["rr-actors", "demo"],
+        ["rr-actors", "demo", "--fast"],
+    ] == list(commands(code))
+
+
+def test_an_unknown_command_in_an_unmarked_block_fails(tmp_path: Path) -> None:
+    block = Block(tmp_path / "p.md", 1, "bash", "make install\n", None)
+
+    with pytest.raises(pytest.fail.Exception, match="not a command this test runs"):
+        shell_block(block, tmp_path, set())
+
+
+def test_readme_quickstart_is_examples_quickstart() -> None:
+    readme = (ROOT / "README.md").read_text()
+    block = readme.split("```python\n", 1)[1].split("```\n", 1)[0]
+
+    assert (ROOT / "examples" / "quickstart.py").read_text() == block
+
+
+def test_readme_starts_with_the_demo_and_the_test_command_that_ci_runs() -> None:
+    lines = (ROOT / "README.md").read_text().splitlines()
+    test_command = lines[2].split("&&", 1)[1].strip()
+
+    assert ["```bash", "```"] == [lines[0], lines[3]]
+    assert 'pip install -e ".[demo]" && rr-actors demo' == lines[1]
+    assert lines[2].startswith('pip install -e ".[dev]" && ')
+    assert ci_test_command() == test_command
+
+
+def test_no_page_example_or_docstring_cites_a_design_document_the_reader_does_not_have() -> None:
+    readable = [*PAGES, *(ROOT / "examples").glob("*.py"), *(ROOT / "rr_actors").rglob("*.py")]
+    citing = [rel(path) for path in readable if re.search(r"\bDESIGN\b", path.read_text())]
+
+    assert [] == citing
+
+
+def test_git_ignores_what_the_demo_writes_by_default() -> None:
+    from rr_actors.mission.run import DEFAULT_OUT  # noqa: PLC0415
+
+    ignored = (ROOT / ".gitignore").read_text().splitlines()
+
+    assert f"{DEFAULT_OUT}/" in ignored
+
+
+def test_a_page_that_leaves_a_registrar_running_fails(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(sys.modules[__name__], "EXIT_TIMEOUT", 2.0)
+    page = tmp_path / "page.md"
+    page.write_text(
+        "```python\nimport rr_actors as rr\nleft = rr.ResourceRegistrar.start('x')\n```\n"
+    )
+    (block,) = blocks(page)
+    kernel = Kernel(tmp_path)
+    kernel.run(block, block.code)
+
+    with pytest.raises(pytest.fail.Exception, match="leave something running"):
+        kernel.finish(page)
+
+
+def test_a_python_block_that_raises_fails_with_the_page_and_line(tmp_path: Path) -> None:
+    page = tmp_path / "page.md"
+    page.write_text("# t\n\n```python\nx = 1\nstart_camera()\n```\n")
+    (block,) = blocks(page)
+    kernel = Kernel(tmp_path)
+
+    with pytest.raises(pytest.fail.Exception, match=r"(?s)page.md:3 raised.*line 5.*NameError"):
+        kernel.run(block, block.code)
+
+
+def test_the_readme_says_on_which_platforms_it_runs() -> None:
+    platform = [
+        line for line in (ROOT / "README.md").read_text().splitlines() if "Platform:" in line
+    ]
+
+    assert 1 == len(platform)
+    assert "Linux" in platform[0]

@@ -1,0 +1,560 @@
+"""The carrier contract (`rr_actors._transport.base`), checked for every carrier.
+
+Registrars talk across real processes: a call and its dedup, unloads, fetches and
+statuses; notices that overtake the answer they are about; a peer that dies, stops,
+freezes or answers what cannot be read. Each test runs once per carrier (`CARRIERS`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import pickle
+import signal
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+from carriers import (
+    BIG,
+    GATE,
+    Provider,
+    ProviderFactory,
+    _Gate,
+    in_thread,
+    load_count,
+    release_loads,
+    setup_big,
+    unloads,
+    wait_load_started,
+)
+
+import rr_actors as rr
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._registrar.messages import Revoke
+from rr_actors._transport import System
+from rr_actors.testing import intercept
+
+# -- calls across processes ----------------------------------------------------------------------
+
+
+def test_a_call_loads_once_and_an_equal_call_shares_the_resource(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+
+    first = consumer.call(provider.name, "echo", {"cam": 1})
+    second = consumer.call(provider.name, "echo", {"cam": 1})
+
+    assert ({"resource": {"cam": 1}}, {"resource": {"cam": 1}}) == (
+        first.response,
+        second.response,
+    )
+    assert first.id != second.id
+    assert 1 == system.run(provider.name, load_count, timeout=10)
+
+
+def test_unload_across_processes_runs_the_unload_callback_after_the_last_consumer(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    first = consumer.call(provider.name, "echo", "r")
+    second = consumer.call(provider.name, "echo", "r")
+
+    consumer.unload(first.id)
+    after_first = system.run(provider.name, unloads, timeout=10)
+    consumer.unload(second.id)
+
+    assert ([], ["r"]) == (after_first, system.run(provider.name, unloads, timeout=10))
+
+
+def test_fetch_across_processes_lists_each_consumer_id_once(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    ids = {consumer.call(provider.name, "echo", "r").id for _ in range(3)}
+
+    fetched = consumer.fetch_queries(provider.name, "echo")
+
+    assert ids == {q.id for q in fetched}
+    assert 3 == len(fetched)
+
+
+def test_a_status_sent_in_the_provider_process_reaches_the_consumer_callback(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    heard: list[rr.StatusUpdate] = []
+    query = consumer.call(provider.name, "echo", "r", on_status=lambda _q, u: heard.append(u))
+
+    system.run(
+        provider.name,
+        lambda registrar: registrar.send_status(query.id, rr.Status.WARNING, "hot"),
+        timeout=10,
+    )
+
+    assert [(query.id, rr.Status.WARNING, "hot")] == [
+        (u.query_id, u.status, u.message) for u in heard
+    ]
+
+
+# -- notices that overtake the answer they are about ---------------------------------------------
+#
+# The answer to a call comes back on the consumer's own connection to the provider, while the
+# provider's notices (status, response update, revoke) travel on the provider's connection to
+# the consumer's listener: another socket, read by another thread. A notice about a query
+# whose answer the consumer has not recorded yet waits for that answer.
+
+
+@pytest.fixture
+def gate() -> Iterator[_Gate]:
+    """A fresh `GATE`; released at the end so no reader thread stays held."""
+    GATE.entered.clear()
+    GATE.release.clear()
+    yield GATE
+    GATE.release.set()
+
+
+class _Watched:
+    """The consumer actor's handling of one kind of notice, and the answers it gave."""
+
+    def __init__(self) -> None:
+        self.handled = threading.Event()  # handled (or held) at least once
+        self.answers: list[tuple[str, Any]] = []  # ("result", value) or ("error", error)
+
+    def spy(self, reply: Any) -> Any:
+        watched = self
+
+        class Spy:
+            def set_result(self, value: Any) -> None:
+                watched.answers.append(("result", value))
+                reply.set_result(value)
+
+            def set_error(self, error: BaseException) -> None:
+                watched.answers.append(("error", error))
+                reply.set_error(error)
+
+        return Spy()
+
+
+def _watch(consumer: rr.ResourceRegistrar, step: str) -> _Watched:
+    """Watch how the consumer's registrar actor handles one kind of notice and answers it."""
+    watched = _Watched()
+    spied: set[int] = set()
+
+    def before(message: Any) -> None:
+        reply = getattr(message, "reply", None)
+        if reply is not None and id(message) not in spied:  # (a held one comes back)
+            spied.add(id(message))
+            object.__setattr__(message, "reply", watched.spy(reply))
+
+    intercept(consumer, step, before=before, after=lambda _: watched.handled.set())
+    return watched
+
+
+def _in_thread(fn: Callable[[], Any]) -> tuple[list[Any], threading.Thread]:
+    """Run `fn` on a thread; what it returned (or raised) lands in the list."""
+    outcome: list[Any] = []
+
+    def run() -> None:
+        try:
+            outcome.append(fn())
+        except Exception as exc:
+            outcome.append(exc)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    return outcome, thread
+
+
+def _first_query_id(registrar: rr.ResourceRegistrar) -> str:
+    return registrar.server_queries("gated")[0].id
+
+
+def _revoke_first_query(registrar: rr.ResourceRegistrar, consumer: str) -> None:
+    """Tell `consumer` that the `gated` server's first query is revoked (as unregistering does)."""
+    DIRECTORY.lookup(consumer).tell(Revoke((_first_query_id(registrar),)))
+
+
+@dataclasses.dataclass
+class _Overtaken:
+    """What `overtake` saw: the call's outcome, and what the provider's function returned."""
+
+    called: list[Any]
+    done: list[Any]
+
+
+Overtake = Callable[..., _Overtaken]
+
+
+@pytest.fixture
+def overtake(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    gate: _Gate,
+    monkeypatch: pytest.MonkeyPatch,
+) -> Overtake:
+    """`overtake(step, fn, **call)`: a call to `gated` whose answer `fn`'s notice overtakes.
+
+    The consumer calls a fresh provider's `gated` server; while the answer is held in this
+    process, `fn(registrar)` runs in the provider's (on a thread: its own answer comes back
+    on the held connection). The answer is released once the consumer's actor handled the
+    `kind` notice `fn` sent (or held it).
+    """
+
+    def run(step: str, fn: Callable[[rr.ResourceRegistrar], Any], **call: Any) -> _Overtaken:
+        provider = start_provider()
+        watched = _watch(consumer, step)
+        called, caller = _in_thread(lambda: consumer.call(provider.name, "gated", "r", **call))
+        assert gate.entered.wait(10)  # the answer is being read, not yet recorded
+        done, doer = _in_thread(lambda: system.run(provider.name, fn, timeout=20))
+        assert watched.handled.wait(10)  # the notice reached the consumer's actor first
+        gate.release.set()
+        caller.join(10)
+        doer.join(20)
+        return _Overtaken(called, done)
+
+    return run
+
+
+def test_a_status_that_overtakes_the_answer_to_its_call_still_reaches_the_callback(
+    overtake: Overtake,
+) -> None:
+    heard: list[rr.StatusUpdate] = []
+
+    seen = overtake(
+        "status_notice",
+        lambda registrar: registrar.send_status(
+            _first_query_id(registrar), rr.Status.WARNING, "hot"
+        ),
+        on_status=lambda _q, u: heard.append(u),
+    )
+
+    [query] = seen.called
+    assert [None] == seen.done
+    assert [(query.id, rr.Status.WARNING, "hot")] == [
+        (u.query_id, u.status, u.message) for u in heard
+    ]
+
+
+def test_a_response_update_that_overtakes_the_answer_is_not_undone_by_it(
+    overtake: Overtake, consumer: rr.ResourceRegistrar
+) -> None:
+    seen = overtake(
+        "response_updated",
+        lambda registrar: registrar.update_response(_first_query_id(registrar), "new"),
+    )
+
+    [query] = seen.called
+    assert [None] == seen.done
+    assert {query.id: "new"} == {q.id: q.response for q in consumer.client_queries()}
+
+
+def test_a_revoke_that_overtakes_the_answer_leaves_no_client_record(
+    overtake: Overtake, consumer: rr.ResourceRegistrar
+) -> None:
+    seen = overtake("revoke", functools.partial(_revoke_first_query, consumer=consumer.name))
+
+    [query] = seen.called
+    assert [None] == seen.done
+    assert isinstance(query, rr.Query)
+    assert [] == consumer.client_queries()
+
+
+def _send_status_to_first_query(system: System, provider: Provider) -> Any:
+    return system.run(
+        provider.name,
+        lambda registrar: registrar.send_status(_first_query_id(registrar), rr.Status.ERROR, "x"),
+        timeout=20,
+    )
+
+
+def test_a_status_waiting_for_an_answer_is_settled_when_the_call_times_out_instead(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    gate: _Gate,
+    monkeypatch: pytest.MonkeyPatch,
+    eventually: Callable[..., bool],
+) -> None:
+    provider = start_provider()
+    watched = _watch(consumer, "status_notice")
+    heard: list[rr.StatusUpdate] = []
+    called, caller = _in_thread(
+        lambda: consumer.call(
+            provider.name, "gated", "r", on_status=lambda _q, u: heard.append(u), timeout=0.5
+        )
+    )
+    assert gate.entered.wait(10)
+    sent, sender = _in_thread(lambda: _send_status_to_first_query(system, provider))
+    assert watched.handled.wait(10)  # held: the answer is still being read
+
+    caller.join(10)  # the call times out while its answer is held
+
+    assert isinstance(called[0], rr.CallTimeoutError)
+    assert eventually(lambda: [("result", None)] == watched.answers, timeout=8)
+    assert [] == heard
+    gate.release.set()  # the late answer is given back
+    sender.join(20)
+    assert [None] == sent
+    assert eventually(lambda: [] == consumer.client_queries(), timeout=10)
+
+
+def test_a_status_waiting_for_an_answer_is_answered_when_the_consumer_stops(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    gate: _Gate,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    provider = start_provider()
+    watched = _watch(consumer, "status_notice")
+    called, caller = _in_thread(lambda: consumer.call(provider.name, "gated", "r"))
+    assert gate.entered.wait(10)
+    sent, sender = _in_thread(lambda: _send_status_to_first_query(system, provider))
+    assert watched.handled.wait(10)
+
+    consumer.stop()
+
+    [(kind, error)] = watched.answers
+    assert ("error", rr.RegistrarStoppedError) == (kind, type(error))
+    gate.release.set()
+    caller.join(10)
+    sender.join(20)
+    assert [None] == sent
+    assert isinstance(called[0], rr.RegistrarStoppedError)
+
+
+def test_run_reraises_what_the_function_raised_in_the_other_process(
+    system: System, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+
+    with pytest.raises(rr.UnknownQueryError):
+        system.run(
+            provider.name,
+            lambda registrar: registrar.send_status("no-such-id", rr.Status.OK),
+            timeout=10,
+        )
+
+
+# -- failures -------------------------------------------------------------------------------------
+
+
+def test_a_call_in_flight_to_a_killed_process_fails_at_once_as_unavailable(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    done, outcome = in_thread(lambda: consumer.call(provider.name, "slow", "r", timeout=30))
+    assert system.run(provider.name, wait_load_started, timeout=10)
+
+    killed_at = time.monotonic()
+    provider.kill()
+
+    assert done.wait(10)
+    assert isinstance(outcome.get("error"), rr.RegistrarUnavailableError)
+    assert outcome["time"] - killed_at < 2.0  # far below the 30 s call timeout
+
+
+def test_a_call_to_a_killed_process_fails_as_unavailable(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    consumer.call(provider.name, "echo", "warm up the connection")
+    provider.kill()
+
+    with pytest.raises(rr.RegistrarUnavailableError):
+        consumer.call(provider.name, "echo", "r", timeout=10)
+
+
+def test_a_call_to_a_cleanly_stopped_process_fails_as_stopped(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    consumer.call(provider.name, "echo", "warm up the connection")
+    provider.stop()
+
+    with pytest.raises(rr.RegistrarStoppedError):
+        consumer.call(provider.name, "echo", "r", timeout=10)
+
+
+def test_a_call_to_a_name_nobody_serves_is_an_unknown_server(
+    consumer: rr.ResourceRegistrar,
+) -> None:
+    with pytest.raises(rr.UnknownServerError):
+        consumer.call(f"nobody-{uuid.uuid4().hex[:8]}", "echo", "r", timeout=10)
+
+
+def test_a_restarted_provider_is_reached_again_on_the_next_call(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    consumer.call(provider.name, "echo", "before")
+    provider.kill()
+    with pytest.raises(rr.RegistrarUnavailableError):
+        consumer.call(provider.name, "echo", "while dead", timeout=10)
+
+    again = start_provider(name=provider.name)
+    query = consumer.call(again.name, "echo", "after", timeout=10)
+
+    assert {"resource": "after"} == query.response
+    assert 1 == system.run(again.name, load_count, timeout=10)
+
+
+def test_an_unpicklable_request_is_a_config_error_at_the_caller_and_nothing_loads(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+
+    with pytest.raises(rr.ConfigError, match="not picklable") as caught:
+        consumer.call(provider.name, "echo", threading.Lock(), timeout=10)
+
+    assert f"'{provider.name}/echo'" in str(caught.value)
+    assert isinstance(caught.value.__cause__, TypeError)
+    assert 0 == system.run(provider.name, load_count, timeout=10)
+    assert [] == consumer.client_queries()
+
+
+def test_an_unpicklable_response_fails_the_call_and_releases_its_consumer_id(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    eventually: Callable[..., bool],
+) -> None:
+    provider = start_provider()
+
+    with pytest.raises(rr.ResourceLoadError, match="not picklable"):
+        consumer.call(provider.name, "lock", "r", timeout=10)
+
+    assert eventually(lambda: ["r"] == system.run(provider.name, unloads, timeout=10))
+    assert [] == system.run(
+        provider.name, lambda registrar: registrar.server_queries("lock"), timeout=10
+    )
+    assert [] == consumer.client_queries()
+
+
+def test_no_raw_low_level_error_reaches_a_caller(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider()
+    held = consumer.call(provider.name, "echo", "held")
+    done, outcome = in_thread(lambda: consumer.call(provider.name, "slow", "r", timeout=30))
+    assert system.run(provider.name, wait_load_started, timeout=10)
+    provider.kill()
+    assert done.wait(10)
+    errors: list[BaseException] = [outcome["error"]]
+    attempts: list[Callable[[], Any]] = [
+        lambda: consumer.call(provider.name, "echo", "r", timeout=10),
+        lambda: consumer.unload(held.id, timeout=10),
+        lambda: consumer.fetch_queries(provider.name, "echo", timeout=10),
+        lambda: system.run(provider.name, load_count, timeout=10),
+        lambda: consumer.call(provider.name, "echo", threading.Lock(), timeout=10),
+    ]
+    for attempt in attempts:
+        try:
+            attempt()
+        except BaseException as exc:
+            errors.append(exc)
+
+    raw = (EOFError, BrokenPipeError, ConnectionResetError, pickle.PickleError)
+    assert len(attempts) + 1 == len(errors)
+    assert [] == [e for e in errors if isinstance(e, raw) or not isinstance(e, rr.RrError)]
+
+
+# -- frozen peers (SIGSTOP) ---------------------------------------------------------------------
+
+
+def fetch_big(provider: str) -> Callable[[rr.ResourceRegistrar], int]:
+    """A function to run in a consumer process: call `provider/big`, return the size."""
+
+    def fetch(registrar: rr.ResourceRegistrar) -> int:
+        return len(registrar.call(provider, "big", "r", timeout=30).response)
+
+    return fetch
+
+
+def test_a_call_to_a_frozen_process_fails_within_its_timeout(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider(setup_big)
+    consumer.call(provider.name, "echo", "warm up the connection")
+    os.kill(provider.pid, signal.SIGSTOP)
+    try:
+        done, outcome = in_thread(
+            lambda: consumer.call(provider.name, "echo", b"x" * BIG, timeout=1.0)
+        )
+        assert done.wait(10), "the call outlived its timeout"
+    finally:
+        provider.kill()
+
+    assert isinstance(outcome.get("error"), rr.CallTimeoutError)
+
+
+def test_a_first_call_to_a_frozen_process_fails_within_its_timeout(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider(setup_big)
+    os.kill(provider.pid, signal.SIGSTOP)
+    try:
+        done, outcome = in_thread(lambda: consumer.call(provider.name, "echo", "r", timeout=1.0))
+        assert done.wait(10), "the call outlived its timeout"
+    finally:
+        provider.kill()
+
+    assert isinstance(outcome.get("error"), rr.CallTimeoutError)
+
+
+def test_a_frozen_consumer_process_does_not_hold_up_its_provider(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider(setup_big)
+    frozen = start_provider()
+    fetched, _ = in_thread(lambda: system.run(frozen.name, fetch_big(provider.name), timeout=30))
+    assert system.run(provider.name, wait_load_started, timeout=10)
+    os.kill(frozen.pid, signal.SIGSTOP)
+    try:
+        system.run(provider.name, release_loads, timeout=10)  # 20 MB go to the frozen one
+        query = consumer.call(provider.name, "echo", "r", timeout=10)
+    finally:
+        frozen.kill()
+
+    assert {"resource": "r"} == query.response
+    assert fetched.wait(10)
+
+
+# -- answers that cannot be read ------------------------------------------------------------------
+
+
+def test_an_answer_that_cannot_be_unpickled_here_fails_the_call_as_a_load_error(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider(setup_big)
+
+    with pytest.raises(rr.ResourceLoadError) as caught:
+        consumer.call(provider.name, "opaque", "r", timeout=10)
+
+    assert [(provider.name, "opaque", "RuntimeError")] == [
+        (frame.registrar, frame.server, frame.exc_type) for frame in caught.value.stack
+    ]
+
+
+def test_an_answer_that_cannot_be_unpickled_here_releases_its_consumer_id(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    eventually: Callable[..., bool],
+) -> None:
+    provider = start_provider(setup_big)
+    with pytest.raises(rr.ResourceLoadError):
+        consumer.call(provider.name, "opaque", "r", timeout=10)
+
+    assert eventually(lambda: ["r"] == system.run(provider.name, unloads, timeout=10))
+    assert [] == system.run(
+        provider.name, lambda registrar: registrar.server_queries("opaque"), timeout=10
+    )
+    assert [] == consumer.client_queries()
