@@ -33,7 +33,8 @@ PORTABLE_MODULES = (
     "tests/test_restart_contract.py",
     "tests/test_durable_consumer_kill.py",
     "tests/test_registrar_crash.py",
-    "tests/test_transport.py",
+    "tests/test_transport_unix.py",
+    "tests/test_transport_contract.py",
 )
 """The test modules that use manager processes, run again on the portable platform."""
 
