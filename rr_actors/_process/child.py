@@ -7,8 +7,9 @@ Runs only in manager processes (never in the supervisor's process). In the child
    the supervisor's process) and names the process for `ps` (`rr-actors: <name>`),
 2. attaches to the system and starts the registrar, which restores its catalog,
 3. runs the (cloudpickled) `setup(registrar)`, then serves the registrar on the system,
-4. reports `ready` over its control pipe and answers control requests: `stop` and `ping`
-   (the heartbeat, answered through the registrar actor's mailbox),
+4. reports `ready` over its control pipe and answers control requests: `stop`, `ping`
+   (the heartbeat, answered through the registrar actor's mailbox) and `events` (whether
+   to forward the registrar's events: only while the supervisor's process has listeners),
 5. exits at once when the control pipe reaches EOF: the supervisor's process is gone,
 6. exits with code 0 when its registrar was stopped cleanly by code in the manager (a
    `transient` manager is then not restarted, as in a thread), with code 71 when the
@@ -21,6 +22,10 @@ Runs only in manager processes (never in the supervisor's process). In the child
          ◄──────────────── ("ready", pid) | ("failed", traceback)
    ping  ─────────────────── ("ping", n) ──────────────────────►  registrar mailbox
          ◄──────────────── ("pong", n)
+   events ───────────────── ("events", on) ────────────────────►  forward events or not
+         ◄──────────────── ("events", [event, ...])  (batches, while on)
+   sync  ─────────────────── ("events-sync", n, timeout) ──────►  send what is buffered
+         ◄──────────────── ("events-synced", n)  (after those batches)
    stop  ─────────────────── ("stop", timeout) ────────────────►  registrar.stop(); exit 0
    (EOF: the parent is gone) ──────────────────────────────────►  exit 70
 ```
@@ -43,6 +48,8 @@ from typing import Any
 import cloudpickle
 import pykka
 
+from rr_actors import events
+from rr_actors._core.bus import Forwarder, Publisher
 from rr_actors._platform import PLATFORM
 from rr_actors._process.context import (
     ACTOR_DIED_EXIT,
@@ -117,6 +124,7 @@ def main(
     address: Any,
     conn: Connection,
     parent: int | None = None,
+    forward: bool = False,
 ) -> None:
     """Run one manager: restore, set up, serve, then answer control requests until stopped.
 
@@ -128,10 +136,11 @@ def main(
         address: the system's `SystemAddress`, or `None` to run unattached.
         conn: the child's end of the control pipe.
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
+        forward: forward the registrar's events from the start (until told otherwise).
     """
     PLATFORM.die_with_parent(parent)
     set_title(config.name)
-    _run_manager(setup, config, address, conn)
+    _run_manager(setup, config, address, conn, forward)
 
 
 def _warm_up() -> None:
@@ -161,7 +170,7 @@ def standby(conn: Connection, parent: int | None = None) -> None:
 
     Args:
         conn: the child's end of the control pipe; the first message is
-            `("start", setup, config, address)` with `main`'s arguments.
+            `("start", setup, config, address, forward)` with `main`'s arguments.
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
     """
     PLATFORM.die_with_parent(parent)
@@ -175,20 +184,59 @@ def standby(conn: Connection, parent: int | None = None) -> None:
         os._exit(0)  # released unused, or the parent is gone
     if message[0] != "start":
         os._exit(0)
-    _, setup, config, address = message
+    _, setup, config, address, forward = message
     set_title(config.name)
-    _run_manager(setup, config, address, conn)
+    _run_manager(setup, config, address, conn, forward)
 
 
-def _run_manager(setup: bytes, config: RegistrarConfig, address: Any, conn: Connection) -> None:
-    from rr_actors._registrar import ResourceRegistrar, Served  # noqa: PLC0415 - preloaded
+class _EventLine:
+    """Forwards this process's registrar events to the supervisor's process while asked to.
+
+    The registrar relays its events to `hub`; while forwarding is on, `hub`'s one sink is a
+    `Forwarder` that sends batches over the control pipe (its own thread), so the
+    registrar is `active` (builds events) only then.
+    """
+
+    def __init__(self, control: _Control, name: str, *, on: bool) -> None:
+        self.hub: Publisher[events.Event] = events.publisher()
+        self.forwarder: Forwarder[events.Event] = Forwarder(
+            lambda batch: control.send(("events", batch)),
+            notice=events.EventsDropped,
+            name=f"{name}-events",
+        )
+        self.on = False
+        self.switch(on=on)
+
+    def switch(self, *, on: bool) -> None:
+        """Forward from now on, or stop forwarding (control loop thread)."""
+        if on and not self.on:
+            self.hub.add_sink(self.forwarder)
+        elif self.on and not on:
+            self.hub.remove_sink(self.forwarder)
+        self.on = on
+
+    def flush(self, timeout: float) -> None:
+        """Send what is buffered (before a clean exit)."""
+        self.forwarder.close(timeout=timeout)
+
+    def sync(self, control: _Control, token: int, timeout: float) -> None:
+        """Send what is buffered, then `("events-synced", token)` after it (own thread)."""
+        self.forwarder.wait_sent(timeout=timeout)
+        control.send(("events-synced", token))
+
+
+def _run_manager(
+    setup: bytes, config: RegistrarConfig, address: Any, conn: Connection, forward: bool
+) -> None:
+    from rr_actors._registrar import Served, start_registrar  # noqa: PLC0415 - preloaded
 
     control = _Control(conn)
+    line = _EventLine(control, config.name, on=forward)
     attached: Any = None
     try:
         if address is not None:
             attached = address.attach()
-        registrar = ResourceRegistrar.start(config)
+        registrar = start_registrar(config, upstream=line.hub)
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
             setup_fn(registrar)
@@ -209,13 +257,18 @@ def _run_manager(setup: bytes, config: RegistrarConfig, address: Any, conn: Conn
 
     threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
     control.send(("ready", os.getpid()))
-    _serve_control(conn, control, registrar, attached, stopping)
+    _serve_control(conn, control, registrar, attached, stopping, line)
 
 
 def _serve_control(
-    conn: Connection, control: _Control, registrar: Any, attached: Any, stopping: threading.Event
+    conn: Connection,
+    control: _Control,
+    registrar: Any,
+    attached: Any,
+    stopping: threading.Event,
+    line: _EventLine,
 ) -> None:
-    """The child's control loop: answer pings, stop; exit on EOF."""
+    """The child's control loop: answer pings, forward events or not, stop; exit on EOF."""
     from rr_actors._registrar.messages import Request  # noqa: PLC0415 - preloaded
 
     while True:
@@ -228,6 +281,12 @@ def _serve_control(
             pong = _Pong(control, message[1])
             with contextlib.suppress(pykka.ActorDeadError):
                 registrar._ref.tell(Request(lambda _actor, reply: reply.set_result(None), pong))
+        elif kind == "events":
+            line.switch(on=bool(message[1]))
+        elif kind == "events-sync":  # (a thread: the loop keeps answering pings)
+            threading.Thread(
+                target=line.sync, args=(control, *message[1:3]), name="rr-events-sync", daemon=True
+            ).start()
         elif kind == "stop":
             stopping.set()
             code = 0
@@ -236,4 +295,5 @@ def _serve_control(
             except RrError:
                 logger.exception("manager %s did not stop cleanly", registrar.name)
                 code = 1
+            line.flush(timeout=1.0)  # its last events (the unloads of its stop) go too
             _exit(code, attached)

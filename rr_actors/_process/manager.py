@@ -22,6 +22,7 @@ pings. The child's side is `rr_actors._process.child`; spares are in
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import multiprocessing.connection
 import signal
@@ -126,6 +127,7 @@ class ManagerProcess:
         heartbeat: float | None,
         heartbeat_timeout: float | None,
         on_exit: Callable[[ManagerExit], None],
+        on_events: Callable[[list[Any]], None] | None = None,
     ) -> None:
         self.name = name
         self.process = process
@@ -135,6 +137,9 @@ class ManagerProcess:
         self._heartbeat = heartbeat
         self._heartbeat_timeout = heartbeat_timeout
         self._on_exit = on_exit
+        self._on_events = on_events
+        self._syncs: dict[int, threading.Event] = {}  # events-sync tokens waiting for answers
+        self._sync_tokens = itertools.count(1)
         self._hung_for: float | None = None
         self._stopping = False
         self.exited = threading.Event()
@@ -154,6 +159,8 @@ class ManagerProcess:
         heartbeat_timeout: float | None,
         on_exit: Callable[[ManagerExit], None],
         spare: Spare | None = None,
+        forward_events: bool = False,
+        on_events: Callable[[list[Any]], None] | None = None,
     ) -> ManagerProcess:
         """Start a manager process and wait until it serves (its catalog restored).
 
@@ -165,14 +172,20 @@ class ManagerProcess:
             on_exit: called once, on the watcher thread, with how it ended.
             spare: an idle pre-started process to run it in (else a new one is started;
                 also if the spare died meanwhile).
+            forward_events: whether the manager forwards its registrar's events from its
+                start (`forward_events` switches it later).
+            on_events: called on the watcher thread with each batch of events the
+                manager forwards (`rr_actors.events` values, in the order they happened).
 
         Raises:
             RegistrarUnavailableError: it failed (setup raised, its backup could not be
                 read, ...) or died before it was ready; the message holds its traceback.
             CallTimeoutError: it was not ready within `start_timeout` seconds (it is killed).
         """
-        process, parent_conn = _launch(name, setup, config, address, spare)
-        _await_ready(name, process, parent_conn, start_timeout)
+        process, parent_conn = _launch(name, setup, config, address, spare, forward_events)
+        early = _await_ready(name, process, parent_conn, start_timeout)
+        if early and on_events is not None:  # (its restore's in-doubt events, say)
+            on_events(early)
         handle = cls(
             name,
             process,
@@ -180,6 +193,7 @@ class ManagerProcess:
             heartbeat=heartbeat,
             heartbeat_timeout=heartbeat_timeout,
             on_exit=on_exit,
+            on_events=on_events,
         )
         threading.Thread(target=handle._watch, name=f"rr-watch-{name}", daemon=True).start()
         return handle
@@ -193,6 +207,29 @@ class ManagerProcess:
             except (OSError, ValueError):
                 return False
         return True
+
+    def forward_events(self, on: bool) -> None:
+        """Tell the manager to forward its registrar's events (`on`) or to stop forwarding."""
+        self._send(("events", on))
+
+    def sync_events(self, timeout: float) -> bool:
+        """Block until what the manager forwarded before this call reached `on_events`.
+
+        Also true once it has switched to what it was last told (`forward_events`): the
+        manager handles its control messages in order.
+
+        Returns:
+            Whether that happened within `timeout` seconds (`True` once it exited, too:
+            nothing more will come).
+        """
+        token = next(self._sync_tokens)  # atomic in CPython
+        done = self._syncs[token] = threading.Event()
+        try:
+            if self.exited.is_set() or not self._send(("events-sync", token, timeout)):
+                return self.exited.is_set()
+            return done.wait(timeout)
+        finally:
+            self._syncs.pop(token, None)
 
     def stop(self, timeout: float) -> ManagerExit:
         """Ask the manager to stop its registrar and exit; kill it after `timeout` seconds.
@@ -235,14 +272,8 @@ class ManagerProcess:
             ended, exitcode = self._ended(woke, waitables)
             if ended:
                 break
-            if self.conn in woke:
-                try:
-                    message = self.conn.recv()
-                except (EOFError, OSError):
-                    waitables.remove(self.conn)
-                    continue
-                if message[0] == "pong" and message[1] == sent:
-                    oldest_unanswered = None
+            if self.conn in woke and self._read_control(sent, waitables):
+                oldest_unanswered = None
             if period is None or self._stopping:
                 continue
             now = time.monotonic()
@@ -270,6 +301,27 @@ class ManagerProcess:
             waitables.remove(watch)  # reaped meanwhile: the sentinel says it
         return False, None
 
+    def _read_control(self, sent: int, waitables: list[Any]) -> bool:
+        """Read one message of the manager's: whether it answers heartbeat ping `sent`.
+
+        A batch of forwarded events is handed to `on_events` here (the watcher thread).
+        """
+        try:
+            message = self.conn.recv()
+        except (EOFError, OSError):
+            waitables.remove(self.conn)  # the exit follows: the sentinel says it
+            return False
+        if message[0] == "events" and self._on_events is not None:
+            try:
+                self._on_events(message[1])
+            except Exception:
+                logger.exception("events of manager %s could not be delivered", self.name)
+        elif message[0] == "events-synced":
+            waiting = self._syncs.get(message[1])
+            if waiting is not None:
+                waiting.set()
+        return bool(message[0] == "pong" and message[1] == sent)
+
     def _hang(self, silent_for: float) -> None:
         self._hung_for = silent_for
         logger.error(
@@ -292,6 +344,8 @@ class ManagerProcess:
             result = describe(exitcode)
         self.exit = result
         self.exited.set()
+        for waiting in list(self._syncs.values()):  # nothing more will come
+            waiting.set()
         try:
             self._on_exit(result)
         except Exception:
@@ -303,16 +357,21 @@ class ManagerProcess:
 
 
 def _launch(
-    name: str, setup: bytes, config: RegistrarConfig, address: Any, spare: Spare | None
+    name: str,
+    setup: bytes,
+    config: RegistrarConfig,
+    address: Any,
+    spare: Spare | None,
+    forward: bool,
 ) -> tuple[Any, Connection]:
     """Hand the manager to `spare`, or start a new process for it; the process and pipe."""
-    if spare is not None and spare.take(name, setup, config, address):
+    if spare is not None and spare.take(name, setup, config, address, forward=forward):
         return spare.process, spare.conn
     ctx = mp_context()
     parent_conn, child_conn = ctx.Pipe(duplex=True)
     process = ctx.Process(  # type: ignore[attr-defined]
         target=main,
-        args=(setup, config, address, child_conn, forker_pid(ctx)),
+        args=(setup, config, address, child_conn, forker_pid(ctx), forward),
         name=f"{PROCESS_PREFIX}{name}",
         daemon=True,
     )
@@ -321,10 +380,15 @@ def _launch(
     return process, parent_conn
 
 
-def _await_ready(name: str, process: Any, conn: Connection, start_timeout: float) -> None:
-    """Wait for the manager's `ready` (skipping a spare's `warm`); raise if it never comes."""
+def _await_ready(name: str, process: Any, conn: Connection, start_timeout: float) -> list[Any]:
+    """Wait for the manager's `ready` (skipping a spare's `warm`); raise if it never comes.
+
+    Returns:
+        The events it forwarded before it was ready (its restore's, its setup's).
+    """
     deadline = time.monotonic() + start_timeout
     ready: Any = None
+    early: list[Any] = []
     while ready is None:
         left = deadline - time.monotonic()
         woke = multiprocessing.connection.wait([conn, process.sentinel], max(left, 0))
@@ -334,6 +398,10 @@ def _await_ready(name: str, process: Any, conn: Connection, start_timeout: float
             except (EOFError, OSError):
                 woke = [process.sentinel]
             if ready == ("warm",):  # a spare that warmed up after it was taken
+                ready = None
+                continue
+            if ready is not None and ready[0] == "events":
+                early.extend(ready[1])
                 ready = None
                 continue
         if ready is None and (process.sentinel in woke or left <= 0):
@@ -350,3 +418,4 @@ def _await_ready(name: str, process: Any, conn: Connection, start_timeout: float
         process.join(5.0)
         conn.close()
         raise RegistrarUnavailableError(f"manager {name!r} failed to start:\n{ready[1]}")
+    return early

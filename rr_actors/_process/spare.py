@@ -67,13 +67,21 @@ class Spare:
                     self.warm = self.conn.recv() == ("warm",)
         return self.warm
 
-    def take(self, name: str, setup: bytes, config: RegistrarConfig, address: Any) -> bool:
+    def take(
+        self,
+        name: str,
+        setup: bytes,
+        config: RegistrarConfig,
+        address: Any,
+        *,
+        forward: bool = False,
+    ) -> bool:
         """Hand manager `name`'s arguments to the spare; `False` if it is not usable."""
         if not self.process.is_alive():
             self.close()
             return False
         try:
-            self.conn.send(("start", setup, config, address))
+            self.conn.send(("start", setup, config, address, forward))
         except (OSError, ValueError):
             self.close()
             return False

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 from rr_actors._process.manager import ManagerExit, ManagerProcess, stopped_cleanly
-from rr_actors._registrar import ResourceRegistrar, Served
+from rr_actors._registrar import Served, start_registrar
 from rr_actors._registrar.messages import Crash
 from rr_actors.config import (
     Isolation,
@@ -38,6 +38,7 @@ from rr_actors.errors import RrError, SupervisorGaveUpError
 if TYPE_CHECKING:
     from rr_actors._process.spare import SparePool
     from rr_actors._supervision.node import Node
+    from rr_actors._supervision.relay import EventRelay
 
 __all__ = [
     "Child",
@@ -147,11 +148,14 @@ class ThreadManager:
         config: RegistrarConfig,
         attached: Any,
         on_exit: Callable[[ManagerExit], None],
+        relay: EventRelay | None = None,
     ) -> None:
         self.spec = spec
         self.stopping = False
-        # setup runs before the registrar serves: loads arriving meanwhile wait for it
-        registrar = ResourceRegistrar.start(config, setup=spec.setup)
+        # setup runs before the registrar serves: loads arriving meanwhile wait for it;
+        # its events reach the tree's subscribers from the first (a restore's in-doubt)
+        upstream = relay.publisher if relay is not None else None
+        registrar = start_registrar(config, setup=spec.setup, upstream=upstream)
         try:
             if attached is not None:
                 attached.serve(Served(registrar))
@@ -210,13 +214,17 @@ class ProcessManager:
         address: Any,
         on_exit: Callable[[ManagerExit], None],
         spares: SparePool | None,
+        relay: EventRelay | None = None,
     ) -> ProcessManager:
         """Start the manager (in a spare if there is one) and wait until it serves.
+
+        Its registrar's events are forwarded to `relay` while the tree has listeners.
 
         Raises:
             RegistrarUnavailableError: it failed to start or died while starting.
             CallTimeoutError: it was not ready within its `start_timeout`.
         """
+        forwarding = relay.forwarding if relay is not None else False
         handle = ManagerProcess.start(
             spec.name,
             setup,
@@ -227,7 +235,11 @@ class ProcessManager:
             heartbeat_timeout=spec.hang_after,
             on_exit=on_exit,
             spare=spares.take() if spares is not None else None,
+            forward_events=forwarding,
+            on_events=relay.deliver if relay is not None else None,
         )
+        if relay is not None:
+            relay.attach(handle, forwarding=forwarding)
         return cls(handle, spec.shutdown)
 
     def stop(self, timeout: float | None) -> ManagerExit:

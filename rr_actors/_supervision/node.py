@@ -24,6 +24,7 @@ import os
 import time
 from collections.abc import Callable
 
+from rr_actors import events
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.timers import Cancellable
 from rr_actors._process.manager import ManagerExit
@@ -67,6 +68,13 @@ class Restart:
 
     names: tuple[str, ...]
     generation: int
+
+
+def _pid_of(child: Child) -> int:
+    """The process a child runs in: its own (a process manager), else this one."""
+    running = child.running
+    pid = running.pid if running is not None else None
+    return pid if pid is not None else os.getpid()
 
 
 def left(deadline: float | None) -> float | None:
@@ -199,19 +207,47 @@ class Node:
                 DIRECTORY.restart_expected.add(spec.name)  # death watch waits for us
             config = self._config(spec)
             if spec.isolation == "thread":
-                child.running = ThreadManager(spec, config, tree.attached, post)
+                child.running = ThreadManager(spec, config, tree.attached, post, tree.events)
             else:
                 address = tree.attached.address if tree.attached is not None else None
                 try:
                     child.running = ProcessManager.start(
-                        spec, tree.setups[spec.name], config, address, post, tree.spares
+                        spec,
+                        tree.setups[spec.name],
+                        config,
+                        address,
+                        post,
+                        tree.spares,
+                        tree.events,
                     )
                 finally:
                     if tree.spares is not None:  # after this start was published
                         self.cast(tree.spares.refill)
         child.state = "running"
+        restarted = child.name in tree.started
         tree.count_start(child.name)
+        self._published_start(child, restarted=restarted)
         give_back_abandoned(tree, child.name)
+
+    def _published_start(self, child: Child, *, restarted: bool) -> None:
+        """Publish `ChildStarted`, or `ChildRestarted` with the time it was down."""
+        down_since = self.tree.down_since.pop(child.name, None)
+        publisher = self.tree.events.publisher
+        if not publisher.active:
+            return
+        pid = _pid_of(child)
+        if not restarted:
+            publisher.publish(events.ChildStarted(self.name, child.name, pid))
+            return
+        restart_s = 0.0 if down_since is None else time.monotonic() - down_since
+        publisher.publish(events.ChildRestarted(self.name, child.name, pid, restart_s))
+
+    def _published_exit(self, child: Child, pid: int, reason: str) -> None:
+        """Note when `child` went down, and publish `ChildExited`."""
+        self.tree.down_since[child.name] = time.monotonic()
+        publisher = self.tree.events.publisher
+        if publisher.active:
+            publisher.publish(events.ChildExited(self.name, child.name, pid, reason))
 
     def _start_nested(self, spec: SupervisorSpec, incarnation: int) -> NestedSupervisor:
         nested = Node(spec, self.tree, self)
@@ -258,10 +294,12 @@ class Node:
         limit = left(deadline)
         if isinstance(child.spec, ManagerSpec):
             limit = child.spec.shutdown if limit is None else min(limit, child.spec.shutdown)
+        pid = _pid_of(child)
         result = running.stop(limit)
         child.running = None
         child.state = "stopped"
         child.last_exit = result.reason
+        self._published_exit(child, pid, result.reason)
         if final:
             self._forget(child, dead=not result.clean)
 
@@ -294,8 +332,10 @@ class Node:
             nested = child.running.node
             child.gave_up = nested.gave_up
             nested.stop()  # it gave up: end its mailbox thread
+        pid = _pid_of(child)
         child.running = None
         child.last_exit = event.exit.reason
+        self._published_exit(child, pid, event.exit.reason)
         logger.warning(
             "supervisor %s: child %s exited: %s", self.name, child.name, event.exit.reason
         )
@@ -379,5 +419,12 @@ class Node:
             child.gave_up = child.gave_up or error
         self.gave_up = error  # after the children stopped: waiters then see a settled tree
         self.publish()
+        publisher = self.tree.events.publisher
+        if publisher.active:
+            publisher.publish(
+                events.SupervisorGaveUp(
+                    self.name, str(error), self.spec.max_restarts, self.spec.period
+                )
+            )
         if self.on_gave_up is not None:
             self.on_gave_up(error)

@@ -43,9 +43,11 @@ from typing import Any
 
 import cloudpickle
 
+from rr_actors import events
+from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._process.spare import SparePool
-from rr_actors._registrar import Registrar, ResourceRegistrar, Served
+from rr_actors._registrar import Registrar, ResourceRegistrar, Served, start_registrar
 from rr_actors._supervision import retry
 from rr_actors._supervision.children import (
     ChildCounts,
@@ -275,6 +277,64 @@ class Supervisor:
         if self._lock is not None:
             self._lock.release()
 
+    # -- events -------------------------------------------------------------------------
+
+    def subscribe(
+        self,
+        callback: Callable[[events.Event], object],
+        *,
+        maxsize: int = DEFAULT_MAXSIZE,
+    ) -> Subscription[events.Event]:
+        """Call `callback(event)` for every event of the tree from now on, until closed.
+
+        Events are the frozen dataclasses of `rr_actors.events`: what every supervisor of
+        the tree does with its children (`ChildStarted`, `ChildExited`, `ChildRestarted`,
+        `SupervisorGaveUp`) and what every registrar of the tree does (its managers', in
+        threads or in processes, and those of `registrar()`). Events of manager processes
+        are forwarded to this process while anyone subscribes; subscribe before `start`
+        to see the children start.
+
+        The callback runs on a subscriber thread of its own, never in a registrar's
+        mailbox or the supervisor's, one event at a time, in the order they reached this
+        process (a manager process's own events in the order they happened there). A slow
+        callback never slows the tree: past `maxsize` queued events new ones are dropped,
+        counted (`Subscription.dropped`) and reported by one `EventsDropped`.
+
+        Args:
+            callback: `callback(event)`; what it raises is logged.
+            maxsize: events queued for it before new ones are dropped.
+
+        Returns:
+            The subscription; `close()` it, or use it as a context manager
+            (`with sup.subscribe(cb): ...`).
+
+        Raises:
+            ConfigError: `maxsize` is not a positive int.
+        """
+        return self._tree.events.publisher.subscribe(
+            callback, maxsize=maxsize, name=f"{self.name}-events"
+        )
+
+    def flush_events(self, *, timeout: float = 5.0) -> bool:
+        """Bring the events of every manager process that happened before the call here.
+
+        A manager process forwards its events in batches, so they reach this process a
+        little after they happened. This returns once each running manager process has
+        handed everything it had to this process's subscriptions (their queues); then
+        `Subscription.wait_delivered` waits for the callbacks.
+
+        Args:
+            timeout: the longest wait, in seconds.
+
+        Returns:
+            Whether every manager process answered within `timeout`.
+
+        Raises:
+            ConfigError: `timeout` is not a positive number of seconds.
+        """
+        check_seconds("timeout", timeout)
+        return self._tree.events.sync(timeout)
+
     # -- introspection ----------------------------------------------------------------
 
     def which_children(self) -> tuple[ChildInfo, ...]:
@@ -347,7 +407,8 @@ class Supervisor:
         """Start a consumer registrar in this process, on this supervisor's system.
 
         Process managers can reach it (status notifications, nested calls). It is not
-        supervised; the supervisor stops it first when it stops.
+        supervised; the supervisor stops it first when it stops. Its events go to the
+        supervisor's subscribers too (`subscribe`).
 
         Args:
             config: a `RegistrarConfig` or a name.
@@ -358,7 +419,7 @@ class Supervisor:
         """
         if not self._started or self._stopped:
             raise ConfigError(f"supervisor {self.name!r} is not running")
-        registrar = ResourceRegistrar.start(config)
+        registrar = start_registrar(config, upstream=self._tree.events.publisher)
         if self._tree.attached is not None:
             try:
                 self._tree.attached.serve(Served(registrar))

@@ -36,6 +36,7 @@ from rr_actors._supervision.children import (
     snapshot,
 )
 from rr_actors._supervision.policy import Clock, restarts_after
+from rr_actors._supervision.relay import EventRelay
 from rr_actors.config import ManagerSpec, SupervisorSpec
 from rr_actors.errors import (
     CallTimeoutError,
@@ -102,6 +103,8 @@ class Tree:
         self.attached: Any = None  # the transport system process managers attach to
         self.spares: SparePool | None = None  # idle manager processes (with process managers)
         self.root: Level | None = None
+        self.events = EventRelay()  # the tree's events (`Supervisor.subscribe`)
+        self.down_since: dict[str, float] = {}  # name -> when its last incarnation ended
 
     def count_start(self, name: str) -> None:
         """Note that child `name` started (a restart if it had started before)."""

@@ -1,0 +1,91 @@
+"""How a supervision tree's events reach its subscribers, in the supervisor's process.
+
+```
+ supervisors (Node) ── ChildStarted/Exited/Restarted, SupervisorGaveUp ──► publish ──┐
+ thread manager's registrar ── relay_to ─────────────────────────────────► deliver ──┤
+ process manager's registrar ─► its process's hub ─► Forwarder ─► control pipe       ├─► tree
+      ─► ManagerProcess watcher thread ─► EventRelay.deliver ────────────► deliver ──┘  publisher
+                                                                                  ─► subscriptions
+```
+
+Each event is logged at INFO once, where it happened (a manager process logs its own);
+the tree's publisher only logs the supervisors' events. Manager processes forward their
+events only while the tree has a listener, so a tree nobody watches builds no event in
+its manager processes (`watch_listeners` switches them on and off).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+from rr_actors import events
+from rr_actors._core.bus import Publisher
+from rr_actors._process.manager import ManagerProcess
+from rr_actors._registrar.handle import EVENT_LOG
+
+__all__ = ["SWITCH_TIMEOUT", "EventRelay"]
+
+SWITCH_TIMEOUT = 2.0
+"""Seconds a first subscriber waits, at most, for the manager processes to forward."""
+
+
+class EventRelay:
+    """A tree's publisher, and the switch of its manager processes' forwarding.
+
+    Attributes:
+        publisher: where the tree's events are published (`Supervisor.subscribe`).
+    """
+
+    def __init__(self) -> None:
+        self.publisher: Publisher[events.Event] = events.publisher(EVENT_LOG)
+        self._lock = threading.Lock()
+        self._listened = False
+        self._processes: list[ManagerProcess] = []
+        self.publisher.watch_listeners(self._switch)
+
+    @property
+    def forwarding(self) -> bool:
+        """Whether manager processes should forward their events now (someone listens)."""
+        return self._listened
+
+    def attach(self, process: ManagerProcess, *, forwarding: bool) -> None:
+        """Switch a manager process with the others from now on.
+
+        `forwarding` is what it was started with; if the tree's listeners changed since,
+        it is told at once, so no switch is missed.
+        """
+        with self._lock:
+            self._processes = [p for p in self._processes if not p.exited.is_set()]
+            self._processes.append(process)
+            if self._listened != forwarding:
+                process.forward_events(self._listened)
+
+    def sync(self, timeout: float) -> bool:
+        """Block until what every manager process forwarded before the call was delivered.
+
+        Returns:
+            Whether every one answered within `timeout` seconds.
+        """
+        deadline = time.monotonic() + timeout
+        with self._lock:
+            processes = [p for p in self._processes if not p.exited.is_set()]
+        answered = True
+        for process in processes:  # (every one, also after one did not answer)
+            answered = process.sync_events(max(0.0, deadline - time.monotonic())) and answered
+        return answered
+
+    def deliver(self, batch: list[Any]) -> None:
+        """Hand events a manager process forwarded to the tree's subscribers (watcher thread)."""
+        for event in batch:
+            self.publisher.deliver(event)
+
+    def _switch(self, listened: bool) -> None:
+        with self._lock:
+            self._listened = listened
+            self._processes = [p for p in self._processes if not p.exited.is_set()]
+            for process in self._processes:
+                process.forward_events(listened)
+        if listened:  # the new listener hears what happens from now on: they all switched
+            self.sync(SWITCH_TIMEOUT)

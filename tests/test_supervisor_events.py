@@ -1,0 +1,211 @@
+"""A supervision tree's event stream: child events in order, and registrar events of every
+manager (threads and processes) reaching subscribers in the supervisor's process."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+import uuid
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors import events
+from rr_actors.testing import SharedObjects
+
+
+class Heard:
+    """Collects the events a subscription delivers."""
+
+    def __init__(self) -> None:
+        self.events: list[events.Event] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, event: events.Event) -> None:
+        with self.lock:
+            self.events.append(event)
+
+    def of(self, kind: type[Any], **fields: Any) -> list[Any]:
+        with self.lock:
+            return [
+                e
+                for e in self.events
+                if isinstance(e, kind) and all(getattr(e, k) == v for k, v in fields.items())
+            ]
+
+
+def _serve(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("cam", load=lambda r: f"cam {r}", unload=lambda _q, _r: None)
+
+
+@pytest.fixture
+def uid() -> str:
+    return uuid.uuid4().hex[:8]
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_children_start_exit_and_restart_in_order_with_their_pids(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    proc, thread = f"p-{uid}", f"t-{uid}"
+    sup = supervisors([rr.ManagerSpec(proc, _serve, isolation="process"), rr.ManagerSpec(thread)])
+    heard = Heard()
+    subscription = sup.subscribe(heard)
+    sup.start()
+    first_pid = sup.child(proc).pid
+    assert first_pid is not None
+
+    os.kill(first_pid, signal.SIGKILL)
+    restarted = sup.wait_restarted(proc, timeout=10)
+    sup.stop()  # (its children's events are all here once they stopped)
+    assert subscription.wait_delivered(timeout=5)
+    subscription.close()
+
+    [started_p] = heard.of(events.ChildStarted, child=proc)
+    [started_t] = heard.of(events.ChildStarted, child=thread)
+    assert (first_pid, os.getpid()) == (started_p.pid, started_t.pid)
+    killed, shutdown = heard.of(events.ChildExited, child=proc)
+    assert (first_pid, "killed by SIGKILL") == (killed.pid, killed.reason)
+    [again] = heard.of(events.ChildRestarted, child=proc)
+    assert restarted.pid == again.pid == shutdown.pid
+    assert 0.0 < again.restart_s < 10.0
+    order = [e for e in heard.events if getattr(e, "child", None) == proc]
+    assert [started_p, killed, again, shutdown] == order
+    assert started_p.at <= killed.at <= again.at <= shutdown.at
+
+
+def test_a_give_up_is_published_after_its_children_stopped(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    name = f"t-{uid}"
+    sup = supervisors([rr.ManagerSpec(name, _serve)], max_restarts=0, period=5.0)
+    heard = Heard()
+    subscription = sup.subscribe(heard)
+    sup.start()
+
+    rr.testing.crash(sup.run_in(name, lambda r: r))
+    with pytest.raises(rr.SupervisorGaveUpError):
+        sup.wait_restarted(name, timeout=10)
+    assert subscription.wait_delivered(timeout=5)
+    subscription.close()
+
+    [gave_up] = heard.of(events.SupervisorGaveUp)
+    assert (sup.name, 0, 5.0) == (gave_up.supervisor, gave_up.max_restarts, gave_up.period)
+    [exited] = heard.of(events.ChildExited, child=name)
+    assert exited.at <= gave_up.at
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_the_events_of_a_manager_process_reach_the_supervisors_subscribers(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    erm = f"erm-{uid}"
+    sup = supervisors([rr.ManagerSpec(erm, _serve, isolation="process")]).start()
+    heard = Heard()
+    with sup.subscribe(heard) as subscription:
+        app = sup.registrar(f"app-{uid}")
+        query = app.call(erm, "cam", 1)
+        sup.run_in(erm, lambda r: r.send_status(query.id, rr.Status.WARNING, "hot"))
+        app.unload(query.id)
+        assert sup.flush_events(timeout=5)
+        assert subscription.wait_delivered(timeout=5)
+
+    pid = sup.child(erm).pid
+    [loaded] = heard.of(events.ResourceLoaded, registrar=erm)
+    assert (query.id, pid) == (loaded.query_id, loaded.pid)  # happened in the manager
+    assert [query.id] == [e.query_id for e in heard.of(events.ConsumerAdded, registrar=erm)]
+    assert 1 == len(heard.of(events.StatusSent, registrar=erm, pid=pid))
+    [delivered] = heard.of(events.StatusDelivered, registrar=app.name)
+    assert (query.id, 1, os.getpid()) == (delivered.query_id, delivered.hop, delivered.pid)
+    assert 1 == len(heard.of(events.ResourceUnloaded, registrar=erm))
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_a_manager_process_forwards_its_events_only_while_someone_listens(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    erm = f"erm-{uid}"
+    sup = supervisors([rr.ManagerSpec(erm, _serve, isolation="process")]).start()
+    app = sup.registrar(f"app-{uid}")
+    first, second = Heard(), Heard()
+
+    with sup.subscribe(first) as subscription:  # (returns once the manager forwards)
+        app.call(erm, "cam", "heard")
+        assert sup.flush_events(timeout=5)
+        assert subscription.wait_delivered(timeout=5)
+    unheard = app.call(erm, "cam", "unheard")  # nobody listens: the manager keeps it
+    with sup.subscribe(second) as subscription:
+        app.call(erm, "cam", "heard again")
+        assert sup.flush_events(timeout=5)
+        assert subscription.wait_delivered(timeout=5)
+        loaded_later = sup.run_in(erm, lambda r: [q.id for q in r.server_queries("cam")])
+
+    loaded = [e.query_id for h in (first, second) for e in h.of(events.ResourceLoaded)]
+    assert unheard.id not in loaded
+    assert 2 == len(loaded)
+    assert 3 == len(loaded_later)
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_a_restored_managers_in_doubt_loads_reach_a_subscriber_of_the_restart(
+    supervisors: Callable[..., rr.Supervisor],
+    uid: str,
+    tmp_path: Any,
+    process_helpers: SharedObjects,
+) -> None:
+    erm = f"erm-{uid}"
+    entered = process_helpers.event()
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        def hang(_request: Any) -> Any:
+            entered.set()
+            threading.Event().wait(60)  # killed while it loads
+
+        registrar.register_server("slow", load=hang, unload=lambda _q, _r: None)
+
+    sup = supervisors(
+        [rr.ManagerSpec(erm, setup, isolation="process")], state_dir=tmp_path / "state"
+    ).start()
+    app = sup.registrar(f"app-{uid}")
+    outcome: list[Any] = []
+
+    def call() -> None:
+        try:
+            app.call(erm, "slow", 1, timeout=30)
+        except rr.RrError as exc:  # its provider is killed under it
+            outcome.append(exc)
+
+    caller = threading.Thread(target=call)
+    caller.start()
+    assert entered.wait(10)
+    heard = Heard()
+    with sup.subscribe(heard) as subscription:
+        os.kill(sup.child(erm).pid or 0, signal.SIGKILL)
+        caller.join(10)
+        sup.wait_restarted(erm, timeout=10)
+        assert sup.flush_events(timeout=5)
+        assert subscription.wait_delivered(timeout=5)
+
+    assert [rr.RegistrarUnavailableError] == [type(e) for e in outcome]
+
+    [in_doubt] = heard.of(events.InDoubt, registrar=erm)
+    [restarted] = heard.of(events.ChildRestarted, child=erm)
+    assert in_doubt.pid == restarted.pid
+
+
+def test_every_child_event_is_also_an_info_log_line(
+    supervisors: Callable[..., rr.Supervisor], uid: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    name = f"t-{uid}"
+    sup = supervisors([rr.ManagerSpec(name, _serve)])
+    with caplog.at_level(logging.INFO, logger="rr_actors.events"):
+        sup.start()
+        sup.stop()
+
+    lines = [r.getMessage() for r in caplog.records if r.name == "rr_actors.events"]
+    assert f"{name} started (pid {os.getpid()})" in lines
+    assert f"{name} exited: shutdown (pid {os.getpid()})" in lines
