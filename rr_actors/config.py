@@ -40,7 +40,8 @@ Strategy = Literal["one_for_one", "one_for_all", "rest_for_one"]
 Isolation = Literal["thread", "process"]
 Setup = Callable[["ResourceRegistrar"], object]
 
-_NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
+_NAME = re.compile(r"[A-Za-z0-9_.\-]+")
+"""A valid name, matched whole (`fullmatch`: `$` would accept a trailing newline)."""
 
 Durability = Literal["process", "power"]
 
@@ -103,7 +104,7 @@ class RegistrarConfig:
     durability: Durability = "process"
 
     def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not _NAME.match(self.name):
+        if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
             raise ConfigError(
                 f"name must be a non-empty string of letters, digits, '_', '-' or '.', "
                 f"got {self.name!r}"

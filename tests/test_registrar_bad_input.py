@@ -98,6 +98,21 @@ def test_an_invalid_registrar_name_or_config_is_a_config_error(config):
         rr.ResourceRegistrar.start(config)
 
 
+@pytest.mark.parametrize("name", ["erm\n", "erm\r\n", "\nerm", "er\nm"])
+@pytest.mark.parametrize(
+    "spec",
+    [
+        lambda name: rr.RegistrarConfig(name),
+        lambda name: rr.ManagerSpec(name),
+        lambda name: rr.SupervisorSpec(name, ()),
+    ],
+    ids=["RegistrarConfig", "ManagerSpec", "SupervisorSpec"],
+)
+def test_a_name_with_a_line_break_is_a_config_error_naming_the_field(spec, name):
+    with pytest.raises(rr.ConfigError, match="name"):
+        spec(name)
+
+
 @pytest.mark.parametrize(
     "method",
     [
