@@ -77,6 +77,67 @@ def test_a_timeout_beyond_what_a_lock_can_wait_still_waits() -> None:
     assert [7] == got
 
 
+class _StagedLock:
+    """A one-shot future's hand-off lock, with pauses that stage a race between waiters.
+
+    A timed acquire (the waiter with a timeout) waits for `timed_go` before it tries the
+    lock; an untimed one (the other waiter) holds the lock it got until `untimed_go`.
+    """
+
+    def __init__(self, lock: Any) -> None:
+        self.lock = lock
+        self.timed_entered, self.timed_go = threading.Event(), threading.Event()
+        self.untimed_holds, self.untimed_go = threading.Event(), threading.Event()
+
+    def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
+        if timeout != -1:
+            self.timed_entered.set()
+            assert self.timed_go.wait(10)
+            return bool(self.lock.acquire(blocking, timeout))
+        got = bool(self.lock.acquire(blocking, timeout))
+        self.untimed_holds.set()
+        assert self.untimed_go.wait(10)  # preempted between its acquire and its release
+        return got
+
+    def release(self) -> None:
+        self.lock.release()
+
+
+class _StagedFuture(OneShotFuture[Any]):
+    def __init__(self) -> None:
+        super().__init__()
+        self.staged = self._ready = _StagedLock(self._ready)  # type: ignore[assignment]
+
+
+def test_a_waiter_whose_wait_ran_out_while_another_waiter_passed_the_value_on_gets_it() -> None:
+    # Two waiters: the one without a timeout takes the hand-off lock once the future is
+    # set, and is preempted before it passes the lock on; the one with a timeout runs out
+    # of time on the lock meanwhile. The future was set: it must not raise pykka.Timeout.
+    future = _StagedFuture()
+    got: list[Any] = []
+
+    def wait_with_a_timeout() -> None:
+        try:
+            got.append(future.get(timeout=0.2))
+        except pykka.Timeout as exc:
+            got.append(exc)
+
+    timed = threading.Thread(target=wait_with_a_timeout)
+    timed.start()
+    assert future.staged.timed_entered.wait(10)  # it saw the future unset
+    untimed = threading.Thread(target=future.wait)
+    untimed.start()
+
+    future.set("ready")
+    assert future.staged.untimed_holds.wait(10)
+    future.staged.timed_go.set()  # its acquire runs out while the other waiter holds
+    timed.join(10)
+    future.staged.untimed_go.set()
+    untimed.join(10)
+
+    assert ["ready"] == got
+
+
 def test_a_second_set_raises_queue_full_and_keeps_the_first_value(
     future: pykka.Future[Any],
 ) -> None:

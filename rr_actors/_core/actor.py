@@ -119,7 +119,13 @@ class OneShotFuture(pykka.Future[T]):
         return True
 
     def wait(self, timeout: float | None = None) -> bool:
-        """Block until it is settled, at most `timeout` seconds; whether it is."""
+        """Block until it is settled, at most `timeout` seconds; whether it is.
+
+        Waiters pass the hand-off lock on one after the other, so a waiter may run out of
+        time on it while another one holds it for a moment (preempted between taking and
+        passing it on) although the future was settled long before: a wait that runs out
+        therefore looks at the future once more before it reports a timeout.
+        """
         if self._settled:
             return True
         acquired = False
@@ -133,7 +139,7 @@ class OneShotFuture(pykka.Future[T]):
         finally:  # (also if the wait is interrupted: other waiters must get through)
             if acquired:
                 self._ready.release()  # the next waiter, if any, gets through too
-        return acquired
+        return acquired or self._settled
 
     def get(self, *, timeout: float | None = None) -> T:
         if not self.wait(timeout):
