@@ -1,7 +1,8 @@
 """pykka's threading actor with hand-offs that wake the other thread once, not twice.
 
 Every use of pykka's extension points for actor implementations, and of its private
-names, is in this file (pykka is pinned below its next major version in pyproject.toml).
+names (`_handle_receive` included, see `ContainedError`), is in this file (pykka is
+pinned below its next major version in pyproject.toml).
 
 `pykka.ThreadingActor` keeps its mailbox in a `queue.Queue` and answers asks through a
 `pykka.ThreadingFuture`; both are built on `threading.Condition`. A condition hands over
@@ -40,7 +41,7 @@ from typing import Any, TypeAlias, TypeVar
 
 import pykka
 
-__all__ = ["Actor", "Late", "Mailbox", "OneShotFuture", "refuse"]
+__all__ = ["Actor", "ContainedError", "Late", "Mailbox", "OneShotFuture", "refuse"]
 
 T = TypeVar("T")
 
@@ -233,10 +234,35 @@ def refuse(envelope: Any) -> None:
     envelope.reply_to.set_exception((pykka.ActorDeadError, error, None))
 
 
+class ContainedError(RuntimeError):
+    """An actor's handler raised a `BaseException` that is not an `Exception`.
+
+    pykka takes such an exception (`SystemExit`, `KeyboardInterrupt`, ...) for the
+    process going down, and stops every actor of the process. Raised by user code an
+    actor ran (an `__eq__`, a `__reduce__`), it is a failure of that actor alone: `Actor`
+    re-raises it as this error, which pykka handles like any other failure of a handler
+    (`on_failure` runs, that actor stops, the others go on).
+    """
+
+
 class Actor(pykka.ThreadingActor):
-    """`pykka.ThreadingActor` with a `Mailbox` (a `queue.SimpleQueue`) and `OneShotFuture`s."""
+    """`pykka.ThreadingActor` with a `Mailbox` (a `queue.SimpleQueue`) and `OneShotFuture`s.
+
+    A handler that raises a `BaseException` other than an `Exception` fails this actor
+    only (see `ContainedError`).
+    """
 
     actor_inbox: Mailbox
+
+    def _handle_receive(self, message: Any) -> Any:
+        try:
+            return super()._handle_receive(message)
+        except Exception:
+            raise
+        except BaseException as exc:  # pykka would stop every actor of the process
+            raise ContainedError(
+                f"{type(self).__name__} failed: a handler raised {type(exc).__qualname__}"
+            ) from exc
 
     @staticmethod
     def _create_actor_inbox() -> Mailbox:

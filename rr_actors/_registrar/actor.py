@@ -134,10 +134,14 @@ class RegistrarActor(Actor):
                 reply.set_error(exc)  # that request fails; the registrar keeps serving
             else:
                 logger.exception("registrar %s: %s failed", self.name, type(message).__name__)
-        except Exception as exc:
+        except BaseException as exc:  # (not only Exception: see `ContainedError`)
             reply = getattr(message, "reply", None)
             if reply is not None:  # a bug: the actor dies, but its caller hears of it now
-                reply.set_error(RegistrarUnavailableError(f"registrar {self.name!r} died: {exc!r}"))
+                reply.set_error(
+                    RegistrarUnavailableError(
+                        f"registrar {self.name!r} died in its {step} step: {exc!r}"
+                    )
+                )
             raise
 
     def on_failure(self, *_: object) -> None:

@@ -43,6 +43,7 @@ from rr_actors._registrar.messages import (
 from rr_actors._registrar.state import Shared
 from rr_actors._types import StatusCallback
 from rr_actors.errors import (
+    CallTimeoutError,
     ConfigError,
     RegistrarStoppedError,
     RrError,
@@ -334,13 +335,20 @@ class Consumer:
         query = record.query
 
         def answered(_: Any, error: BaseException | None) -> None:
-            if error is not None and not isinstance(error, UnknownQueryError):
-                reply.set_error(error)  # e.g. the provider is unavailable: keep the record
+            # The provider released the id unless it failed otherwise: it was unknown
+            # there, or its unload callback overran `unload_timeout` (a CallTimeoutError
+            # only the provider's answer carries here; the caller's own is its handle's).
+            released = error is None or isinstance(error, UnknownQueryError | CallTimeoutError)
+            if not released:
+                reply.set_error(error)  # type: ignore[arg-type]  # e.g. provider unavailable
                 return
-            if error is not None:
+            if isinstance(error, UnknownQueryError):
                 logger.warning("provider %s no longer knew %s", query.serving_rr, query.id)
             self.forget(query_id)
-            reply.set_result(None)
+            if isinstance(error, CallTimeoutError):
+                reply.set_error(error)
+            else:
+                reply.set_result(None)
 
         self.s.send(query.serving_rr, lambda r: Unload(query_id, self.s.name, r), answered)
 

@@ -207,11 +207,16 @@ class RunLoad:
 
 @dataclasses.dataclass(frozen=True)
 class RunUnload:
-    """Registrar -> its server actor: run `unload(request, response)`."""
+    """Registrar -> its server actor: run `unload(request, response)`.
+
+    Past `timeout` seconds (`None`: no bound) the reply gets `CallTimeoutError` and the
+    callback's worker is abandoned.
+    """
 
     request: Any
     response: Any
     reply: Reply
+    timeout: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
