@@ -16,7 +16,7 @@ from typing import Any
 import pykka
 import pytest
 
-from rr_actors._core.actor import Actor, OneShotFuture
+from rr_actors._core.actor import Actor, ContainedError, OneShotFuture
 
 
 @pytest.fixture(params=[pykka.ThreadingFuture, OneShotFuture], ids=["pykka", "one_shot"])
@@ -279,6 +279,8 @@ class _Echo(Actor):
             assert self.gate.wait(10)
         if message == "fail":
             raise ValueError("asked to fail")
+        if message == "exit":
+            raise SystemExit("user code said so")
         return message
 
 
@@ -302,6 +304,20 @@ def test_an_actor_answers_asks_through_one_shot_futures_from_a_simple_queue(
 def test_an_error_in_on_receive_reaches_the_asker(echo: pykka.ActorRef[_Echo]) -> None:
     with pytest.raises(ValueError, match="asked to fail"):
         echo.ask("fail", timeout=5)
+    assert "still here" == echo.ask("still here", timeout=5)
+
+
+def test_a_handler_that_raises_system_exit_stops_its_own_actor_and_no_other(
+    echo: pykka.ActorRef[_Echo],
+) -> None:
+    exiting = _Echo.start()
+
+    with pytest.raises(ContainedError) as raised:
+        exiting.ask("exit", timeout=5)  # an ask: the asker gets it
+    exiting.tell("exit")  # a tell: the actor fails (pykka would stop every actor)
+
+    assert exiting.actor_stopped.wait(5)
+    assert isinstance(raised.value.__cause__, SystemExit)
     assert "still here" == echo.ask("still here", timeout=5)
 
 
