@@ -286,6 +286,25 @@ class Catalog:
             if origin == origin_rr
         ]
 
+    def consumer_origins(self) -> set[str]:
+        """The registrars that hold consumer ids here (reading no resource from the backup)."""
+        origins = {o for resource in self.resources.values() for o in resource.consumers.values()}
+        if self._unread is not None:
+            origins |= self._unread.origins()
+        return origins
+
+    def consumer_ids_from(self, origin_rr: str) -> set[str]:
+        """The consumer ids here that `origin_rr` holds (reading no resource from the backup)."""
+        ids = {
+            query_id
+            for resource in self.resources.values()
+            for query_id, origin in resource.consumers.items()
+            if origin == origin_rr
+        }
+        if self._unread is not None:
+            ids.update(self._unread.consumer_ids_from(origin_rr))
+        return ids
+
     def read_all(self) -> dict[str, Resource]:
         """Every resource (reading those still in the backup), by id, oldest first."""
         if self._unread is not None:

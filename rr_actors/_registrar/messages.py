@@ -4,8 +4,9 @@ Each is a frozen dataclass. A `reply` field holds where the answer goes: a local
 in-process; a transport replaces it by a token when the message crosses processes.
 
 The wire protocol (between registrars, possibly across processes): `Load`, `Unload`,
-`Abandon`, `Fetch` (consumer -> provider); `StatusNotice`, `Revoke`, `ResponseUpdated`
-(provider -> consumer); `ConsumerDown` (death watch -> provider). The internal messages
+`Abandon`, `Fetch`, `Reconcile` (consumer -> provider); `StatusNotice`, `Revoke`,
+`ResponseUpdated`, `ReconcileAsk` (provider -> consumer); `ConsumerDown` (death watch ->
+provider). The internal messages
 below them never leave their process: a registrar's handle, its server and client actors
 and its callers' threads tell them to the registrar actor.
 
@@ -43,6 +44,8 @@ __all__ = [
     "Flush",
     "Load",
     "Pending",
+    "Reconcile",
+    "ReconcileAsk",
     "Request",
     "ResponseUpdated",
     "Revoke",
@@ -174,6 +177,30 @@ class ResponseUpdated(WireMessage):
 
 
 @dataclasses.dataclass(frozen=True)
+class Reconcile(WireMessage):
+    """Consumer -> provider: registrar `origin_rr` holds exactly `held` at you.
+
+    Sent after a restart of either side (a consumer's start, or a provider's
+    `ReconcileAsk`). `held` lists the consumer's client records at this provider, its
+    calls whose answer is due, and its calls that failed as this provider died (they may
+    be retried with the same id). The provider releases every consumer id of
+    `origin_rr` it holds that is not in `held`; it answers with the ids of `held` it
+    neither holds nor has a load under way for.
+    """
+
+    origin_rr: str
+    held: tuple[str, ...]
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class ReconcileAsk(WireMessage):
+    """Provider -> consumer: `serving_rr` (re)started with ids of yours: send a `Reconcile`."""
+
+    serving_rr: str
+
+
+@dataclasses.dataclass(frozen=True)
 class ConsumerDown(WireMessage):
     """Death watch -> provider: registrar `origin_rr` died and will not come back."""
 
@@ -253,6 +280,8 @@ class CallFailed:
     query_id: str
     attempt: OneShotFuture[Any]
     withdrawn: bool = False  # given up by its caller, who told the provider an Abandon first
+    serving_rr: str | None = None  # set if it failed as its provider died or stopped: it
+    # may have executed, and a retry with the same id may come (held until reconciled)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -37,6 +37,8 @@ from rr_actors._registrar.messages import (
     ConsumerDown,
     Fetch,
     Load,
+    Reconcile,
+    ReconcileAsk,
     ResponseUpdated,
     Revoke,
     RunLoad,
@@ -557,6 +559,41 @@ class Provider:
             for load in loads:
                 load.reply.set_error(error)
         self.matching.fail_waiting(error)
+
+    # -- reconciling with consumers after a restart -----------------------------------
+
+    def ask_to_reconcile(self) -> None:
+        """This registrar serves (again): ask every registrar holding ids here to
+        `Reconcile` (one that cannot be reached reconciles at its own start)."""
+        for origin in sorted(self.s.catalog.consumer_origins()):
+            with contextlib.suppress(RrError):
+                DIRECTORY.lookup(origin).tell(ReconcileAsk(self.s.name))
+
+    def on_reconcile(self, message: Reconcile) -> None:
+        """Release the ids of `origin_rr` it no longer holds; name those held here unknown.
+
+        An id whose load is still under way here (waiting, parked, matched) is neither.
+        """
+        catalog = self.s.catalog
+        held = set(message.held)
+        mine = catalog.consumer_ids_from(message.origin_rr)
+        stale = sorted(mine - held)
+        if stale:
+            logger.warning(
+                "registrar %s: %s no longer holds %d of its ids here (released while this "
+                "registrar was down, or lost in its own restart): releasing them",
+                self.s.name,
+                message.origin_rr,
+                len(stale),
+            )
+        for query_id in stale:
+            if catalog.has_consumer(query_id):  # (still: a release above may have cascaded)
+                self.release(query_id, None)
+        under_way = {*self.loading_ids, *(load.query_id for load in self.matching.waiting())}
+        under_way.update(load.query_id for load in self.held_loads)
+        under_way.update(load.query_id for loads in self.after_unload.values() for load in loads)
+        unknown = tuple(q for q in message.held if q not in mine and q not in under_way)
+        message.reply.set_result(unknown)
 
     # -- fetch and servers ------------------------------------------------------------
 
