@@ -249,3 +249,50 @@ def test_a_load_that_gets_no_worker_thread_fails_alone_and_the_registrar_serves_
     assert [] == provider.server_queries("leaf")
     assert {"resource": "x"} == consumer.call(provider.name, "leaf", "x", timeout=5).response
     assert ["x"] == leaf.loads
+
+
+# -- values that cross between processes ----------------------------------------------------
+
+
+class ExitsWhenUnpickled:
+    def __reduce__(self) -> Any:
+        return (_exit, ("unpickled",))
+
+
+def _exit(why: str) -> Any:
+    raise SystemExit(why)
+
+
+@pytest.mark.parametrize("kind", [ExitsWhenPickled, ExitsWhenUnpickled], ids=lambda k: k.__name__)
+def test_a_response_that_raises_system_exit_as_it_crosses_fails_that_call_alone(
+    make_registrar, registrar_placement, kind
+):
+    provider, consumer = serving(make_registrar("provider")), serving(make_registrar("consumer"))
+    provider.register_server("odd", load=lambda _r: kind(), unload=lambda r, s: None)
+
+    if registrar_placement == "thread":  # nothing crosses: nothing is pickled
+        assert isinstance(consumer.call(provider.name, "odd", "x", timeout=5).response, kind)
+    else:
+        with pytest.raises(rr.RrError):
+            consumer.call(provider.name, "odd", "x", timeout=5)
+
+    assert [("ok", "fresh")] * 2 == still_serve(provider, consumer)
+
+
+@pytest.mark.parametrize(
+    "value", [ExitsWhenPickled(), ExitsWhenUnpickled()], ids=lambda v: type(v).__name__
+)
+def test_a_request_that_raises_system_exit_as_it_crosses_fails_that_call_alone(
+    make_registrar, serve, registrar_placement, value
+):
+    provider, consumer = serving(make_registrar("provider")), serving(make_registrar("consumer"))
+    leaf = serve(provider, "leaf")
+
+    if registrar_placement == "thread":
+        consumer.call(provider.name, "leaf", value, timeout=5)
+    else:
+        with pytest.raises(rr.RrError):
+            consumer.call(provider.name, "leaf", value, timeout=5)
+
+    assert [("ok", "fresh")] * 2 == still_serve(provider, consumer)
+    assert len(leaf.loads) == (registrar_placement == "thread")

@@ -23,7 +23,7 @@ import traceback
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from rr_actors._catalog import ClientRecord
+from rr_actors._catalog import ClientRecord, describe
 from rr_actors._core.actor import OneShotFuture
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.wire import WireMessage
@@ -80,7 +80,7 @@ class Load(WireMessage):
         """A lost answer leaves a consumer id nobody holds: release it (rule 17)."""
         return Abandon(self.query_id, self.origin_rr)
 
-    def unreadable_answer(self, target: str, exc: Exception) -> RrError:
+    def unreadable_answer(self, target: str, exc: BaseException) -> RrError:
         """The response cannot be unpickled in the caller's process: a failed load."""
         return ResourceLoadError(
             (
@@ -95,7 +95,7 @@ class Load(WireMessage):
             )
         )
 
-    def unsendable_answer(self, target: str, value: Any, exc: Exception) -> RrError:
+    def unsendable_answer(self, target: str, value: Any, exc: BaseException) -> RrError:
         """The response cannot be pickled to reach the caller: a failed load."""
         return ResourceLoadError(
             (
@@ -104,7 +104,7 @@ class Load(WireMessage):
                     server=self.server,
                     exc_type=type(exc).__qualname__,
                     message=f"the response is not picklable, so it cannot reach "
-                    f"registrar {self.origin_rr!r}: {exc} (value: {value!r:.200})",
+                    f"registrar {self.origin_rr!r}: {exc} (value: {describe(value)})",
                     traceback="",
                 ),
             )
