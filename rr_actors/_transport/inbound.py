@@ -82,9 +82,7 @@ class _AnswerReply:
             with contextlib.suppress(RrError):
                 DIRECTORY.lookup(self._link.listener.name).tell(compensation)
 
-    def _unpicklable(
-        self, value: Any, error: BaseException | None, exc: BaseException
-    ) -> RrError:
+    def _unpicklable(self, value: Any, error: BaseException | None, exc: BaseException) -> RrError:
         if error is not None:
             return RrError(f"{type(error).__qualname__}: {error} (the error itself did not pickle)")
         self._compensate()  # its caller gets an error
