@@ -35,6 +35,10 @@ from rr_actors.errors import UnknownQueryError
 __all__ = ["Catalog"]
 
 
+_UNKNOWN: Any = object()
+"""A `digest` argument not given (`None` means "the request has none")."""
+
+
 class _DirtySet(dict[str, None]):
     """An insertion-ordered set of row ids (so the store can keep the rows' order)."""
 
@@ -93,7 +97,7 @@ class Catalog:
         return None
 
     def lookup(
-        self, server: str, request: Any, key: Any = None
+        self, server: str, request: Any, key: Any = None, *, digest: Any = _UNKNOWN
     ) -> tuple[Resource | None, list[Resource]]:
         """Look `request` up among the resources of `server` as far as plain values go.
 
@@ -108,13 +112,15 @@ class Catalog:
             request: the request to find.
             key: for a request without a digest, its `runtime_key` (the caller computes
                 it: it runs the request's `__hash__`); ignored for a plain request.
+            digest: `request_digest(request)`, if the caller has it already.
 
         Returns:
             `(found, undecided)`: the resource whose plain request `== request`, or
             `None`; and when none was found, the resources whose requests may still
             `== request` (in the order `find` compares them), else `[]`.
         """
-        digest = request_digest(request)
+        if digest is _UNKNOWN:
+            digest = request_digest(request)
         found, undecided = self._lookup(server, request, digest, key)
         if found is None and self._unread is not None:
             if digest is not None:

@@ -209,6 +209,8 @@ class Matching:
 
     def named(self, query_id: str) -> Load | None:
         """The load with `query_id` in flight or queued here, if any."""
+        if not self.in_flight and not self.queued:  # (the usual case: nothing here)
+            return None
         return next((load for load in self.waiting() if load.query_id == query_id), None)
 
     def waiting(self) -> list[Load]:

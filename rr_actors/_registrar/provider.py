@@ -152,8 +152,9 @@ class Provider:
             message.reply.set_error(refusal)
             return
         self.abandoned.discard(message.query_id)  # a retry: its caller is back
-        if request_digest(message.request) is not None:  # plain: decided on this thread
-            self.identify(message, None)
+        digest = request_digest(message.request)
+        if digest is not None:  # a plain value: decided on this thread
+            self.identify(message, None, digest)
             return
         pickled = None
         if self.s.saver.store is not None:  # the backup must be able to hold the request
@@ -161,7 +162,7 @@ class Provider:
 
         def prepared(key: Any, error: BaseException | None) -> None:
             if self.resumed(message, error):
-                self.identify(message, key)
+                self.identify(message, key, None)
 
         self.matching.run(
             message,
@@ -179,10 +180,11 @@ class Provider:
             return False
         return True
 
-    def identify(self, message: Load, key: Any) -> None:
+    def identify(self, message: Load, key: Any, digest: int | None) -> None:
         """Check what the load's query id names already: a retry, or an id reused (rule 2).
 
-        `key` is the request's `runtime_key` if it has no digest (else `None`).
+        `key` is the request's `runtime_key` if it has no digest (else `None`); `digest`
+        its digest, if it has one.
         """
         catalog = self.s.catalog
         known: Resource | None = None
@@ -196,7 +198,7 @@ class Provider:
                 message.reply.set_error(self.reused(message, other.server))
                 return
         if known is None:
-            self.look_up(message, key)
+            self.look_up(message, key, digest)
         elif known.server != message.server:
             message.reply.set_error(self.reused(message, known.server))
         elif key is None and known.digest not in (None, NO_DIGEST):  # both plain
@@ -232,11 +234,13 @@ class Provider:
             waiter = Waiter(message.query_id, message.origin_rr, message.reply)
             self.loads[self.loading_ids[message.query_id]].append(waiter)
         else:  # (released while its comparison ran: a new call now)
-            self.look_up(message, key)
+            self.look_up(message, key, request_digest(message.request))
 
-    def look_up(self, message: Load, key: Any) -> None:
+    def look_up(self, message: Load, key: Any, digest: int | None) -> None:
         """Find an equal request on the server (rule 1), user code off this thread."""
-        found, undecided = self.s.catalog.lookup(message.server, message.request, key)
+        found, undecided = self.s.catalog.lookup(
+            message.server, message.request, key, digest=digest
+        )
         if not undecided:
             self.matched(message, key, found)
             return
