@@ -22,6 +22,7 @@ if TYPE_CHECKING:
     from rr_actors._registrar import ResourceRegistrar
 
 __all__ = [
+    "DEFAULT_MAX_WORKERS",
     "Backoff",
     "Isolation",
     "ManagerSpec",
@@ -40,9 +41,13 @@ Strategy = Literal["one_for_one", "one_for_all", "rest_for_one"]
 Isolation = Literal["thread", "process"]
 Setup = Callable[["ResourceRegistrar"], object]
 
-_NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
+_NAME = re.compile(r"[A-Za-z0-9_.\-]+")
+"""A valid name, matched whole (`fullmatch`: `$` would accept a trailing newline)."""
 
 Durability = Literal["process", "power"]
+
+DEFAULT_MAX_WORKERS = 64
+"""Worker threads a registrar runs callbacks on at once, unless `max_workers` says otherwise."""
 
 
 def check_seconds(
@@ -89,6 +94,16 @@ class RegistrarConfig:
         call_timeout: default `timeout` of every blocking call, in seconds.
         durability: `"process"` survives a crash of the process (SQLite `synchronous=NORMAL`),
             `"power"` also survives power loss (`synchronous=FULL`, slower).
+        max_workers: worker threads that may run this registrar's callbacks at once
+            (`load`, `unload`, status callbacks, comparisons of requests without a
+            digest); callbacks beyond it wait in a queue, in order, for one to come free.
+        compare_timeout: seconds the user code that matches a request without a digest
+            (a custom class) with the requests served may run (its `__eq__`, `__hash__`,
+            and pickling it for the backup); past them the call fails with
+            `CallTimeoutError` and the registrar goes on serving.
+        unload_timeout: seconds an `unload` callback may run (`None`: no bound); past
+            them the resource is dropped from the catalog as failed, and a caller still
+            waiting for the unload gets `CallTimeoutError`.
 
     Raises:
         ConfigError: a field is invalid; the message names it.
@@ -101,9 +116,12 @@ class RegistrarConfig:
     erase_on_destruct: bool = False
     call_timeout: float = 10.0
     durability: Durability = "process"
+    max_workers: int = DEFAULT_MAX_WORKERS
+    compare_timeout: float = 5.0
+    unload_timeout: float | None = 60.0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not _NAME.match(self.name):
+        if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
             raise ConfigError(
                 f"name must be a non-empty string of letters, digits, '_', '-' or '.', "
                 f"got {self.name!r}"
@@ -117,6 +135,14 @@ class RegistrarConfig:
                 raise ConfigError(f"{flag} must be a bool, got {getattr(self, flag)!r}")
         if self.durability not in ("process", "power"):
             raise ConfigError(f"durability must be 'process' or 'power', got {self.durability!r}")
+        if (
+            isinstance(self.max_workers, bool)
+            or not isinstance(self.max_workers, int)
+            or self.max_workers < 1
+        ):
+            raise ConfigError(f"max_workers must be an int >= 1, got {self.max_workers!r}")
+        check_seconds("compare_timeout", self.compare_timeout)
+        check_seconds("unload_timeout", self.unload_timeout, allow_none=True)
 
     def to_dict(self) -> dict[str, Any]:
         """Return the configuration as plain JSON-able data (with a schema version)."""

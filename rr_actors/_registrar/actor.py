@@ -3,8 +3,9 @@
 ```
               ┌──────────────────── RegistrarActor (one mailbox, one thread) ───────────────┐
  message ───► │ handlers: type -> (step name, role method)                                   │
-              │   Provider   Load Unload Abandon Fetch ConsumerDown      (provider.py)       │
+              │   Provider   Load Unload Abandon Fetch ConsumerDown Reconcile (provider.py)  │
               │   Consumer   Pending ClientLoaded CallFailed Revoke ResponseUpdated          │
+              │              ReconcileAsk                                 (consumer.py)      │
               │   StatusRelay StatusNotice                               (status.py)         │
               │   Lifecycle  Request Flush Crash; start, stop, death     (lifecycle.py)      │
               │ Shared: config, catalog, saver, servers, phase, workers  (state.py)          │
@@ -41,6 +42,8 @@ from rr_actors._registrar.messages import (
     Flush,
     Load,
     Pending,
+    Reconcile,
+    ReconcileAsk,
     Request,
     ResponseUpdated,
     Revoke,
@@ -95,6 +98,8 @@ class RegistrarActor(Actor):
             Abandon: ("abandon", self.provider.on_abandon),
             Fetch: ("fetch", self.provider.on_fetch),
             ConsumerDown: ("consumer_down", self.provider.on_consumer_down),
+            Reconcile: ("reconcile", self.provider.on_reconcile),
+            ReconcileAsk: ("reconcile_ask", self.consumer.on_reconcile_ask),
             StatusNotice: ("status_notice", self.status.on_status_notice),
             Revoke: ("revoke", self.consumer.on_revoke),
             ResponseUpdated: ("response_updated", self.consumer.on_response_updated),
@@ -134,10 +139,14 @@ class RegistrarActor(Actor):
                 reply.set_error(exc)  # that request fails; the registrar keeps serving
             else:
                 logger.exception("registrar %s: %s failed", self.name, type(message).__name__)
-        except Exception as exc:
+        except BaseException as exc:  # (not only Exception: see `ContainedError`)
             reply = getattr(message, "reply", None)
             if reply is not None:  # a bug: the actor dies, but its caller hears of it now
-                reply.set_error(RegistrarUnavailableError(f"registrar {self.name!r} died: {exc!r}"))
+                reply.set_error(
+                    RegistrarUnavailableError(
+                        f"registrar {self.name!r} died in its {step} step: {exc!r}"
+                    )
+                )
             raise
 
     def on_failure(self, *_: object) -> None:

@@ -8,6 +8,7 @@ catalog itself.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -550,6 +551,15 @@ class Served:
         if self.registrar.is_alive():
             return False
         return isinstance(DIRECTORY.gone_error(self.registrar.name), RegistrarStoppedError)
+
+    def listening(self) -> None:
+        """The other processes of the system can reach it now: it reconciles with its peers
+        again (those in other processes could not answer it before)."""
+        reply = FutureReply()  # (nobody waits: the carrier's `serve` must not)
+        with contextlib.suppress(pykka.ActorDeadError):
+            self.registrar._ref.tell(
+                Request(lambda actor, r: actor.lifecycle.op_reachable(r), reply)
+            )
 
 
 def start_registrar(

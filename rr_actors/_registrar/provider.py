@@ -25,16 +25,20 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from rr_actors import events
-from rr_actors._catalog import Resource, ResourceState
+from rr_actors._catalog import NO_DIGEST, Resource, ResourceState, describe, request_digest
+from rr_actors._catalog.digest import requests_equal
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import Join
 from rr_actors._registrar.endpoints import ServerActor
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH, check_picklable
+from rr_actors._registrar.matching import Matching, first_equal, prepare
 from rr_actors._registrar.messages import (
     Abandon,
     ConsumerDown,
     Fetch,
     Load,
+    Reconcile,
+    ReconcileAsk,
     ResponseUpdated,
     Revoke,
     RunLoad,
@@ -49,6 +53,7 @@ from rr_actors.errors import (
     ConfigError,
     DependencyCycleError,
     DuplicateNameError,
+    DuplicateQueryIdError,
     RegistrarStoppedError,
     ResourceLoadError,
     RrError,
@@ -93,6 +98,7 @@ class Provider:
         unload_waiters: resource id -> replies waiting for its unload to finish.
         parked_unloads: server name -> unloads of restored resources waiting for the
             server to be registered again.
+        matching: loads whose match user code decides, off the actor thread.
     """
 
     def __init__(self, shared: Shared, consumer: Consumer, status: StatusRelay) -> None:
@@ -107,6 +113,7 @@ class Provider:
         self.load_started: dict[str, float] = {}
         self.unload_waiters: dict[str, list[Reply]] = {}
         self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
+        self.matching = Matching(shared, self.serve)
 
     # -- load -------------------------------------------------------------------------
 
@@ -125,37 +132,151 @@ class Provider:
         return None
 
     def on_load(self, message: Load) -> None:
-        catalog = self.s.catalog
         if self.s.phase is Phase.SETTING_UP and message.server not in self.s.servers:
             self.held_loads.append(message)  # served once setup has registered its servers
             return
+        if self.matching.busy(message.server):  # user code decides a match there now
+            self.matching.queue(message)
+            return
+        self.serve(message)
+
+    def serve(self, message: Load) -> None:
+        """Serve a load: find what its query id and its request name, then act (rules 1-3).
+
+        What only user code can decide (a request without a digest: its `__hash__`,
+        pickling it, its `__eq__`) runs on a worker (`Matching`), and the load goes on
+        from the step that waited for it.
+        """
         refusal = self.refusal(message)
-        if refusal is None:
-            self.abandoned.discard(message.query_id)  # a retry: its caller is back
-            if catalog.has_consumer(message.query_id):  # a retry of an answered call
-                message.reply.set_result(catalog.resource_of(message.query_id).response)
-                return
-            refusal = self.s.unwritable()  # a full disk: serve what is stored, nothing new
         if refusal is not None:
             message.reply.set_error(refusal)
             return
-        resource = catalog.find(message.server, message.request)
+        self.abandoned.discard(message.query_id)  # a retry: its caller is back
+        digest = request_digest(message.request)
+        if digest is not None:  # a plain value: decided on this thread
+            self.identify(message, None, digest)
+            return
+        pickled = None
+        if self.s.saver.store is not None:  # the backup must be able to hold the request
+            pickled = f"the request to '{self.s.name}/{message.server}'"
+
+        def prepared(key: Any, error: BaseException | None) -> None:
+            if self.resumed(message, error):
+                self.identify(message, key, None)
+
+        self.matching.run(
+            message,
+            "hashing the request",
+            functools.partial(prepare, message.request, pickled=pickled),
+            prepared,
+        )
+
+    def resumed(self, message: Load, error: BaseException | None) -> bool:
+        """Back from a worker: whether the load goes on (else its caller was answered)."""
+        if error is None:
+            error = self.refusal(message)  # (the server may have closed meanwhile)
+        if error is not None:
+            message.reply.set_error(error)
+            return False
+        return True
+
+    def identify(self, message: Load, key: Any, digest: int | None) -> None:
+        """Check what the load's query id names already: a retry, or an id reused (rule 2).
+
+        `key` is the request's `runtime_key` if it has no digest (else `None`); `digest`
+        its digest, if it has one.
+        """
+        catalog = self.s.catalog
+        known: Resource | None = None
+        if catalog.has_consumer(message.query_id):  # a retry of an answered call?
+            known = catalog.resource_of(message.query_id)
+        elif message.query_id in self.loading_ids:  # a retry while its load runs?
+            known = catalog.resources[self.loading_ids[message.query_id]]
+        else:
+            other = self.matching.named(message.query_id)  # (of another server)
+            if other is not None and other is not message:
+                message.reply.set_error(self.reused(message, other.server))
+                return
+        if known is None:
+            self.look_up(message, key, digest)
+        elif known.server != message.server:
+            message.reply.set_error(self.reused(message, known.server))
+        elif key is None and known.digest not in (None, NO_DIGEST):  # both plain
+            self.retried(message, known, key, same=requests_equal(known.request, message.request))
+        else:
+            candidate = known
+
+            def compared(index: int | None, error: BaseException | None) -> None:
+                if self.resumed(message, error):
+                    self.retried(message, candidate, key, same=index == 0)
+
+            self.matching.run(
+                message,
+                "comparing the request with the one its query id was used for",
+                functools.partial(first_equal, message.request, [known.request]),
+                compared,
+            )
+
+    def reused(self, message: Load, server: str) -> DuplicateQueryIdError:
+        return DuplicateQueryIdError(
+            f"query id {message.query_id!r} was used already for another call (to "
+            f"'{self.s.name}/{server}', with another request); an id is for one call and "
+            "its retries"
+        )
+
+    def retried(self, message: Load, known: Resource, key: Any, *, same: bool) -> None:
+        """A load with a query id known here: a retry of that call, or an id reused."""
+        if not same:
+            message.reply.set_error(self.reused(message, known.server))
+        elif self.s.catalog.has_consumer(message.query_id):  # answered: the stored response
+            message.reply.set_result(known.response)
+        elif message.query_id in self.loading_ids:  # it waits for the load again
+            waiter = Waiter(message.query_id, message.origin_rr, message.reply)
+            self.loads[self.loading_ids[message.query_id]].append(waiter)
+        else:  # (released while its comparison ran: a new call now)
+            self.look_up(message, key, request_digest(message.request))
+
+    def look_up(self, message: Load, key: Any, digest: int | None) -> None:
+        """Find an equal request on the server (rule 1), user code off this thread."""
+        found, undecided = self.s.catalog.lookup(
+            message.server, message.request, key, digest=digest
+        )
+        if not undecided:
+            self.matched(message, key, found)
+            return
+
+        def compared(index: int | None, error: BaseException | None) -> None:
+            if self.resumed(message, error):
+                self.matched(message, key, None if index is None else undecided[index])
+
+        self.matching.run(
+            message,
+            "comparing the request with the ones served",
+            functools.partial(first_equal, message.request, [r.request for r in undecided]),
+            compared,
+        )
+
+    def matched(self, message: Load, key: Any, resource: Resource | None) -> None:
+        """Act on what the request matched: share it, wait for it, or load it (rules 1-3, 6)."""
+        refusal = self.s.unwritable()  # a full disk: serve what is stored, nothing new
+        if refusal is not None:
+            message.reply.set_error(refusal)
+            return
+        if resource is not None and resource.id not in self.s.catalog.resources:
+            resource = None  # it left while user code compared: load afresh
         if resource is not None and resource.state is ResourceState.LOADED:  # the hot path
             self.share(resource, message)
             return
         waiter = Waiter(message.query_id, message.origin_rr, message.reply)
-        rid = self.loading_ids.get(message.query_id)
-        if rid is not None:  # a retry while its load runs
-            self.loads[rid].append(waiter)
-        elif resource is None:
-            self.start_load(self.s.servers[message.server], message, waiter)
+        if resource is None:
+            self.start_load(self.s.servers[message.server], message, waiter, key)
         elif resource.state is ResourceState.UNLOADING:  # load it afresh once it is gone
             self.after_unload.setdefault(resource.id, []).append(message)
         elif resource.id in message.chain:
             message.reply.set_error(
                 DependencyCycleError(
-                    f"'{self.s.name}/{message.server}' is asked for {message.request!r} "
-                    f"while loading it further up the same chain"
+                    f"'{self.s.name}/{message.server}' is asked for "
+                    f"{describe(message.request)} while loading it further up the same chain"
                 )
             )
         else:  # loading: wait for it (one load per resource, rule 3)
@@ -178,15 +299,16 @@ class Provider:
                 events.ConsumerAdded(self.s.name, resource.id, message.query_id, message.origin_rr)
             )
 
-    def start_load(self, server: Server, message: Load, waiter: Waiter) -> None:
-        if self.s.saver.store is not None:  # the backup must be able to hold the request
-            try:
+    def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
+        """Load a request not loaded here (`key`: its `runtime_key` if it has no digest)."""
+        if self.s.saver.store is not None and key is None:  # (else checked with the key)
+            try:  # the backup must be able to hold the request (a plain one: no user code)
                 check_picklable(message.request, f"the request to '{self.s.name}/{server.name}'")
             except ConfigError as exc:
                 message.reply.set_error(exc)
                 return
         rid = str(uuid.uuid4())
-        self.s.catalog.begin_load(rid, message.server, message.request)
+        self.s.catalog.begin_load(rid, message.server, message.request, key=key)
         failed = self.s.commit()
         if failed is not None:  # not durable: load nothing (rule 16 needs the record)
             self.s.catalog.remove_resource(rid)
@@ -324,6 +446,8 @@ class Provider:
         parked = self.unpark(query_id)
         if parked is not None:  # it waited behind an unload or for setup: it never loads
             parked.reply.set_error(CallTimeoutError(f"call {query_id} was given up"))
+        # (or user code compares its request now: it is answered as given up when done)
+        if parked is not None or self.matching.give_up(query_id):
             if reply is not None:
                 reply.set_result(None)
             return
@@ -358,13 +482,13 @@ class Provider:
         self.unload_resource(resource, reply)
 
     def unpark(self, query_id: str) -> Load | None:
-        """Take the load of `query_id` out of the held or parked loads, if it is there."""
+        """Take the load of `query_id` out of the held, parked or queued loads, if there."""
         for loads in [self.held_loads, *self.after_unload.values()]:
             for load in loads:
                 if load.query_id == query_id:
                     loads.remove(load)
                     return load
-        return None
+        return self.matching.take(query_id)
 
     def unload_resource(self, resource: Resource, reply: Reply | None) -> None:
         """The last consumer left: release the dependencies, then run `unload` (rule 7)."""
@@ -382,10 +506,21 @@ class Provider:
                 self.parked_unloads.setdefault(resource.server, []).append(run_unload)
                 return
             done = self.s.come_back(unloaded)
-            server.ref.tell(RunUnload(resource.request, resource.response, done))
+            timeout = self.s.config.unload_timeout
+            server.ref.tell(RunUnload(resource.request, resource.response, done, timeout))
 
         def unloaded(_: Any, error: BaseException | None) -> None:
-            if error is not None:
+            overdue = isinstance(error, CallTimeoutError)
+            if overdue:  # it hangs: the resource is dropped as failed, its callers told
+                logger.error(
+                    "registrar %s: %s; resource %s (request %s) is dropped as failed, and "
+                    "whatever it still holds is the server's to clean up",
+                    self.s.name,
+                    error,
+                    resource.id,
+                    describe(resource.request),
+                )
+            elif error is not None:
                 logger.error(
                     "unload callback of '%s/%s' raised; the resource is released anyway",
                     self.s.name,
@@ -398,7 +533,10 @@ class Provider:
                     events.ResourceUnloaded(self.s.name, resource.server, resource.id)
                 )
             for waiting in self.unload_waiters.pop(resource.id):
-                waiting.set_result(None)
+                if overdue:
+                    waiting.set_error(error)  # type: ignore[arg-type]
+                else:
+                    waiting.set_result(None)
 
         self.consumer.release_dependencies(resource.id, run_unload)
 
@@ -424,6 +562,42 @@ class Provider:
         for loads in [*self.after_unload.values(), self.held_loads]:
             for load in loads:
                 load.reply.set_error(error)
+        self.matching.fail_waiting(error)
+
+    # -- reconciling with consumers after a restart -----------------------------------
+
+    def ask_to_reconcile(self) -> None:
+        """This registrar serves (again): ask every registrar holding ids here to
+        `Reconcile` (one that cannot be reached reconciles at its own start)."""
+        for origin in sorted(self.s.catalog.consumer_origins()):
+            with contextlib.suppress(RrError):
+                DIRECTORY.lookup(origin).tell(ReconcileAsk(self.s.name))
+
+    def on_reconcile(self, message: Reconcile) -> None:
+        """Release the ids of `origin_rr` it no longer holds; name those held here unknown.
+
+        An id whose load is still under way here (waiting, parked, matched) is neither.
+        """
+        catalog = self.s.catalog
+        held = set(message.held)
+        mine = catalog.consumer_ids_from(message.origin_rr)
+        stale = sorted(mine - held)
+        if stale:
+            logger.warning(
+                "registrar %s: %s no longer holds %d of its ids here (released while this "
+                "registrar was down, or lost in its own restart): releasing them",
+                self.s.name,
+                message.origin_rr,
+                len(stale),
+            )
+        for query_id in stale:
+            if catalog.has_consumer(query_id):  # (still: a release above may have cascaded)
+                self.release(query_id, None)
+        under_way = {*self.loading_ids, *(load.query_id for load in self.matching.waiting())}
+        under_way.update(load.query_id for load in self.held_loads)
+        under_way.update(load.query_id for loads in self.after_unload.values() for load in loads)
+        unknown = tuple(q for q in message.held if q not in mine and q not in under_way)
+        message.reply.set_result(unknown)
 
     # -- fetch and servers ------------------------------------------------------------
 
