@@ -211,7 +211,7 @@ class ResourceRegistrar(RegistrarFacts):
             if fn is not None and not callable(fn):
                 raise ConfigError(f"{arg} must be callable, got {fn!r}")
         self._ask(
-            lambda actor, reply: actor.provider.op_register(name, load, unload, on_status, reply),
+            lambda actor, reply: actor.servers.op_register(name, load, unload, on_status, reply),
             timeout,
             f"register_server({name!r})",
         )
@@ -227,7 +227,7 @@ class ResourceRegistrar(RegistrarFacts):
         """
         limit = self._timeout(timeout)
         self._ask(
-            lambda actor, reply: actor.provider.op_unregister(name, reply),
+            lambda actor, reply: actor.servers.op_unregister(name, reply),
             limit,
             f"unregister_server({name!r})",
         )
@@ -354,7 +354,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarUnavailableError: this registrar died.
         """
         result: list[Query] = self._ask(
-            lambda actor, reply: actor.provider.op_server_queries(server, reply),
+            lambda actor, reply: actor.servers.op_server_queries(server, reply),
             timeout,
             f"server_queries({server!r})",
         )
@@ -437,7 +437,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarUnavailableError: this registrar died.
         """
         self._ask(
-            lambda actor, reply: actor.provider.op_update_response(query_id, response, reply),
+            lambda actor, reply: actor.servers.op_update_response(query_id, response, reply),
             timeout,
             f"update_response({query_id!r})",
         )

@@ -50,6 +50,7 @@ if TYPE_CHECKING:
     from rr_actors._registrar.actor import RegistrarActor
     from rr_actors._registrar.consumer import Consumer
     from rr_actors._registrar.provider import Provider
+    from rr_actors._registrar.unloading import Unloading
 
 __all__ = ["CatalogView", "Lifecycle"]
 
@@ -82,6 +83,7 @@ class Lifecycle:
         self,
         shared: Shared,
         provider: Provider,
+        unloading: Unloading,
         consumer: Consumer,
         actor: RegistrarActor,
         died: threading.Event,
@@ -89,6 +91,7 @@ class Lifecycle:
     ) -> None:
         self.s = shared
         self.provider = provider
+        self.unloading = unloading
         self.consumer = consumer
         self.actor = actor
         self.died = died
@@ -115,7 +118,7 @@ class Lifecycle:
         ids it holds (`Reconcile`): ids released while one side was down are released,
         and ids one side lost in its restart are reported to the consumer as `FATAL`.
         """
-        self.provider.ask_to_reconcile()
+        self.unloading.ask_to_reconcile()
         self.consumer.reconcile_all()
 
     def settle_in_doubt(self) -> None:
@@ -133,7 +136,7 @@ class Lifecycle:
                     self.s.events.publish(events.InDoubt(self.s.name, resource.id))
                 catalog.begin_unload(resource.id)
                 self.consumer.release_dependencies(
-                    resource.id, functools.partial(self.provider.remove_resource, resource)
+                    resource.id, functools.partial(self.unloading.remove_resource, resource)
                 )
         for record in list(catalog.clients.values()):
             orphan = record.parent is not None and record.parent not in catalog.resources
@@ -285,6 +288,7 @@ class Lifecycle:
     def fail_waiting(self, error: RrError) -> None:
         """Answer everyone still waiting on this actor with `error` (it stops or died)."""
         self.provider.fail_waiting(error)
+        self.unloading.fail_waiting(error)
         self.consumer.fail_waiting(error)
         for request in list(self.open_requests):
             request.set_error(error)

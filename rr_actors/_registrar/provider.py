@@ -1,88 +1,55 @@
-"""The provider side of a registrar actor: load, share, unload (thesis 4.2, rules 1-8).
+"""The provider side of a registrar actor, loading: one load per resource (rules 1-6).
 
 ```
  Load ──► on_load ── equal request loaded? ──yes──► add consumer, answer (a dedup hit)
-                 │
+                 │         (user code compares off the actor thread: matching.py)
                  ├── loading? ──► wait for it (one load per resource, rule 3)
+                 ├── unloading? ──► parked until it is gone, then loaded afresh
                  └── new ──► start_load ──RunLoad──► server ──► load_done ──► answer waiters
- Unload/Abandon ──► release ── last consumer? ──► unload_resource:
-                      release the resource's dependencies (consumer side), then RunUnload
 ```
 
 A resource belongs to its server; its consumers are query ids (one per call, rule 2).
 Callers that wait for a load, and loads parked behind an unload of the same resource,
-are this role's state.
+are this role's state; releasing and unloading is `unloading.py`'s, the servers
+themselves `servers.py`'s.
 """
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import logging
 import time
 import uuid
-from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from rr_actors import events
 from rr_actors._catalog import NO_DIGEST, Resource, ResourceState, describe, request_digest
 from rr_actors._catalog.digest import requests_equal
-from rr_actors._core.directory import DIRECTORY, Reply
-from rr_actors._core.replies import Join
-from rr_actors._registrar.endpoints import ServerActor
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH, check_picklable
 from rr_actors._registrar.matching import Matching, first_equal, prepare
 from rr_actors._registrar.messages import (
-    Abandon,
-    ConsumerDown,
-    Fetch,
     Load,
-    Reconcile,
-    ReconcileAsk,
-    ResponseUpdated,
-    Revoke,
     RunLoad,
-    RunUnload,
-    Unload,
 )
-from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._registrar.state import Phase, Server, Shared, Waiter
-from rr_actors._types import Status, StatusCallback, StatusUpdate
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
     DependencyCycleError,
-    DuplicateNameError,
     DuplicateQueryIdError,
     RegistrarStoppedError,
     ResourceLoadError,
     RrError,
-    UnknownQueryError,
     UnknownServerError,
 )
 
 if TYPE_CHECKING:
     from rr_actors._registrar.consumer import Consumer
-    from rr_actors._registrar.status import StatusRelay
+    from rr_actors._registrar.unloading import Unloading
 
-__all__ = ["Provider", "consumers_by_origin"]
+__all__ = ["Provider"]
 
 logger = logging.getLogger("rr_actors")
-
-
-def consumers_by_origin(resource: Resource) -> dict[str, tuple[str, ...]]:
-    """A resource's consumer ids, grouped by the registrar that holds them."""
-    by_origin: dict[str, list[str]] = {}
-    for query_id, origin in resource.consumers.items():
-        by_origin.setdefault(origin, []).append(query_id)
-    return {origin: tuple(ids) for origin, ids in by_origin.items()}
-
-
-def _log_failure(what: str, then: Callable[[], None], _: Any, error: BaseException | None) -> None:
-    """A continuation that logs a failed answer, then runs `then()`."""
-    if error is not None:
-        logger.warning("%s failed: %s", what, error)
-    then()
 
 
 class Provider:
@@ -95,24 +62,20 @@ class Provider:
         held_loads: loads for servers `setup` has not registered yet.
         after_unload: resource id -> loads of an equal request, parked until it unloaded.
         load_started: resource id -> when its load started (`time.monotonic()`).
-        unload_waiters: resource id -> replies waiting for its unload to finish.
-        parked_unloads: server name -> unloads of restored resources waiting for the
-            server to be registered again.
         matching: loads whose match user code decides, off the actor thread.
+        unloading: the role that releases and unloads (set by the actor).
     """
 
-    def __init__(self, shared: Shared, consumer: Consumer, status: StatusRelay) -> None:
+    def __init__(self, shared: Shared, consumer: Consumer) -> None:
         self.s = shared
         self.consumer = consumer
-        self.status = status
+        self.unloading: Unloading
         self.loads: dict[str, list[Waiter]] = {}
         self.loading_ids: dict[str, str] = {}
         self.abandoned: set[str] = set()
         self.held_loads: list[Load] = []
         self.after_unload: dict[str, list[Load]] = {}
         self.load_started: dict[str, float] = {}
-        self.unload_waiters: dict[str, list[Reply]] = {}
-        self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
         self.matching = Matching(shared, self.serve)
 
     # -- load -------------------------------------------------------------------------
@@ -335,7 +298,7 @@ class Provider:
             self.s.commit()
 
             def failed() -> None:
-                self.remove_resource(resource)
+                self.unloading.remove_resource(resource)
                 for waiter in waiters:
                     self.abandoned.discard(waiter.query_id)
                     waiter.reply.set_error(error)
@@ -359,7 +322,7 @@ class Provider:
         for waiter in live:
             waiter.reply.set_result(response)
         if not resource.consumers:  # every caller gave up (or the server closed)
-            self.unload_resource(resource, None)
+            self.unloading.unload_resource(resource, None)
 
     def _add_consumers(self, rid: str, waiters: list[Waiter]) -> list[Waiter]:
         """Make the waiters of a finished load its consumers; the ones still waiting.
@@ -408,78 +371,7 @@ class Provider:
         held, self.held_loads = self.held_loads, []
         for load in held:
             self.on_load(load)
-        for server, unloads in list(self.parked_unloads.items()):
-            if server not in self.s.servers:  # setup did not bring it back: release anyway
-                logger.warning(
-                    "registrar %s: server %r was not registered by setup; its restored "
-                    "resources are released without their unload callback",
-                    self.s.name,
-                    server,
-                )
-                del self.parked_unloads[server]
-                for run_unload in unloads:
-                    run_unload()
-
-    # -- unload -----------------------------------------------------------------------
-
-    def on_unload(self, message: Unload) -> None:
-        self.release(message.query_id, message.reply)
-
-    def on_abandon(self, message: Abandon) -> None:
-        self.release(message.query_id, None)
-
-    def on_consumer_down(self, message: ConsumerDown) -> None:
-        for query_id in self.s.catalog.consumers_from(message.origin_rr):
-            self.release(query_id, None)
-
-    def release(self, query_id: str, reply: Reply | None) -> None:
-        """Release consumer id `query_id` (rules 7-8); answer `reply` when it is done.
-
-        While a durable registrar's backup cannot be written an `Unload` is refused
-        (nothing changes; the consumer keeps the id and may try again); a give-up
-        (`reply` is `None`) is carried out and written with the next write that succeeds.
-        """
-        unwritable = self.s.unwritable() if reply is not None else None
-        if unwritable is not None:
-            reply.set_error(unwritable)  # type: ignore[union-attr]
-            return
-        parked = self.unpark(query_id)
-        if parked is not None:  # it waited behind an unload or for setup: it never loads
-            parked.reply.set_error(CallTimeoutError(f"call {query_id} was given up"))
-        # (or user code compares its request now: it is answered as given up when done)
-        if parked is not None or self.matching.give_up(query_id):
-            if reply is not None:
-                reply.set_result(None)
-            return
-        if query_id in self.loading_ids:  # its caller gave up while it loads
-            self.abandoned.add(query_id)
-            if reply is not None:
-                reply.set_result(None)
-            return
-        catalog = self.s.catalog
-        try:
-            resource = catalog.resource_of(query_id)
-        except UnknownQueryError as exc:
-            if reply is not None:
-                reply.set_error(exc)
-            return
-        origin = resource.consumers[query_id]
-        catalog.release(query_id)
-        failed = self.s.commit()
-        if failed is not None and reply is not None:  # not durable: nothing changes
-            catalog.add_consumer(resource.id, query_id, origin)
-            self.s.commit()
-            reply.set_error(failed)
-            return
-        if self.s.events.active:
-            self.s.events.publish(
-                events.ConsumerReleased(self.s.name, resource.id, query_id, origin)
-            )
-        if resource.consumers or resource.state is not ResourceState.LOADED:
-            if reply is not None:
-                reply.set_result(None)
-            return
-        self.unload_resource(resource, reply)
+        self.unloading.settle_parked()
 
     def unpark(self, query_id: str) -> Load | None:
         """Take the load of `query_id` out of the held, parked or queued loads, if there."""
@@ -490,240 +382,24 @@ class Provider:
                     return load
         return self.matching.take(query_id)
 
-    def unload_resource(self, resource: Resource, reply: Reply | None) -> None:
-        """The last consumer left: release the dependencies, then run `unload` (rule 7)."""
-        self.s.probe("unload_resource", resource)
-        self.s.catalog.begin_unload(resource.id)
-        self.s.commit()
-        self.unload_waiters[resource.id] = [] if reply is None else [reply]
-
-        def run_unload() -> None:
-            server = self.s.servers.get(resource.server)
-            if server is None and self.s.servers_settled:  # setup did not bring it back
-                unloaded(None, None)
-                return
-            if server is None:  # restored, and no one has registered the server yet
-                self.parked_unloads.setdefault(resource.server, []).append(run_unload)
-                return
-            done = self.s.come_back(unloaded)
-            timeout = self.s.config.unload_timeout
-            server.ref.tell(RunUnload(resource.request, resource.response, done, timeout))
-
-        def unloaded(_: Any, error: BaseException | None) -> None:
-            overdue = isinstance(error, CallTimeoutError)
-            if overdue:  # it hangs: the resource is dropped as failed, its callers told
-                logger.error(
-                    "registrar %s: %s; resource %s (request %s) is dropped as failed, and "
-                    "whatever it still holds is the server's to clean up",
-                    self.s.name,
-                    error,
-                    resource.id,
-                    describe(resource.request),
-                )
-            elif error is not None:
-                logger.error(
-                    "unload callback of '%s/%s' raised; the resource is released anyway",
-                    self.s.name,
-                    resource.server,
-                    exc_info=error,
-                )
-            self.remove_resource(resource)
-            if self.s.events.active:
-                self.s.events.publish(
-                    events.ResourceUnloaded(self.s.name, resource.server, resource.id)
-                )
-            for waiting in self.unload_waiters.pop(resource.id):
-                if overdue:
-                    waiting.set_error(error)  # type: ignore[arg-type]
-                else:
-                    waiting.set_result(None)
-
-        self.consumer.release_dependencies(resource.id, run_unload)
-
-    def remove_resource(self, resource: Resource) -> None:
-        """Forget a resource that is gone; serve the loads parked behind its unload."""
-        self.s.catalog.remove_resource(resource.id)
-        self.s.commit()
-        for load in self.after_unload.pop(resource.id, ()):
+    def after_unloaded(self, rid: str) -> None:
+        """Resource `rid` is gone: serve the loads that were parked behind its unload."""
+        for load in self.after_unload.pop(rid, ()):
             self.on_load(load)
-        server = self.s.servers.get(resource.server)
-        if server is not None and server.closing and not self.s.catalog.resources_of(server.name):
-            del self.s.servers[server.name]
-            server.ref.stop(block=False)
+
+    def under_way(self) -> set[str]:
+        """The query ids whose loads are under way here (waiting, parked, held, matched)."""
+        ids = {*self.loading_ids, *(load.query_id for load in self.matching.waiting())}
+        ids.update(load.query_id for load in self.held_loads)
+        ids.update(load.query_id for loads in self.after_unload.values() for load in loads)
+        return ids
 
     def fail_waiting(self, error: RrError) -> None:
-        """Answer every caller waiting on a load or an unload here with `error`."""
+        """Answer every caller waiting on a load here with `error`."""
         for waiters in self.loads.values():
             for waiter in waiters:
                 waiter.reply.set_error(error)
-        for replies in self.unload_waiters.values():
-            for reply in replies:
-                reply.set_error(error)
         for loads in [*self.after_unload.values(), self.held_loads]:
             for load in loads:
                 load.reply.set_error(error)
         self.matching.fail_waiting(error)
-
-    # -- reconciling with consumers after a restart -----------------------------------
-
-    def ask_to_reconcile(self) -> None:
-        """This registrar serves (again): ask every registrar holding ids here to
-        `Reconcile` (one that cannot be reached reconciles at its own start)."""
-        for origin in sorted(self.s.catalog.consumer_origins()):
-            with contextlib.suppress(RrError):
-                DIRECTORY.lookup(origin).tell(ReconcileAsk(self.s.name))
-
-    def on_reconcile(self, message: Reconcile) -> None:
-        """Release the ids of `origin_rr` it no longer holds; name those held here unknown.
-
-        An id whose load is still under way here (waiting, parked, matched) is neither.
-        """
-        catalog = self.s.catalog
-        held = set(message.held)
-        mine = catalog.consumer_ids_from(message.origin_rr)
-        stale = sorted(mine - held)
-        if stale:
-            logger.warning(
-                "registrar %s: %s no longer holds %d of its ids here (released while this "
-                "registrar was down, or lost in its own restart): releasing them",
-                self.s.name,
-                message.origin_rr,
-                len(stale),
-            )
-        for query_id in stale:
-            if catalog.has_consumer(query_id):  # (still: a release above may have cascaded)
-                self.release(query_id, None)
-        under_way = {*self.loading_ids, *(load.query_id for load in self.matching.waiting())}
-        under_way.update(load.query_id for load in self.held_loads)
-        under_way.update(load.query_id for loads in self.after_unload.values() for load in loads)
-        unknown = tuple(q for q in message.held if q not in mine and q not in under_way)
-        message.reply.set_result(unknown)
-
-    # -- fetch and servers ------------------------------------------------------------
-
-    def on_fetch(self, message: Fetch) -> None:
-        if message.server not in self.s.servers:
-            message.reply.set_error(
-                UnknownServerError(f"no resource server '{self.s.name}/{message.server}'")
-            )
-            return
-        message.reply.set_result(
-            [
-                query
-                for query in self.s.catalog.server_queries(message.server, self.s.name)
-                if query.origin_rr == message.origin_rr
-            ]
-        )
-
-    def server(self, name: str) -> Server:
-        """The open server `name`.
-
-        Raises:
-            UnknownServerError: there is none (or it is closing).
-        """
-        server = self.s.servers.get(name)
-        if server is None or server.closing:
-            raise UnknownServerError(f"no resource server '{self.s.name}/{name}'")
-        return server
-
-    def op_register(
-        self,
-        name: str,
-        load: LoadCallback,
-        unload: UnloadCallback,
-        on_status: StatusCallback | None,
-        reply: Reply,
-    ) -> None:
-        if name in self.s.servers:
-            raise DuplicateNameError(f"resource server '{self.s.name}/{name}' already exists")
-        ref = ServerActor.start(
-            self.s.name,
-            name,
-            load,
-            unload,
-            self.s.workers,
-            persisted=self.s.saver.store is not None,
-        )
-        self.s.servers[name] = Server(name, ref, on_status)
-        for run_unload in self.parked_unloads.pop(name, ()):
-            run_unload()
-        reply.set_result(None)
-
-    def op_unregister(self, name: str, reply: Reply) -> None:
-        server = self.server(name)
-        server.closing = True
-        resources = [
-            r for r in self.s.catalog.resources_of(name) if r.state is ResourceState.LOADED
-        ]
-
-        def finish() -> None:
-            if not self.s.catalog.resources_of(name) and name in self.s.servers:
-                del self.s.servers[name]
-                server.ref.stop(block=False)
-            reply.set_result(None)
-
-        join = Join(finish)
-        for resource in resources:
-            self.close_resource(resource, join.add())
-        join.seal()
-
-    def close_resource(self, resource: Resource, then: Callable[[], None]) -> None:
-        """Send FATAL to a resource's consumers, revoke their ids, unload it (rule 12)."""
-        self.s.probe("close_resource", resource)
-        query_id = next(iter(resource.consumers))
-        update = StatusUpdate(
-            query_id,
-            Status.FATAL,
-            "resource server was unregistered",
-            f"{self.s.name}/{resource.server}",
-        )
-
-        def revoke_and_unload() -> None:
-            done = self.s.come_back(lambda *_: then())
-            if resource.state is not ResourceState.LOADED:  # its consumers left meanwhile
-                if resource.id in self.unload_waiters:
-                    self.unload_waiters[resource.id].append(done)
-                else:
-                    done.set_result(None)
-                return
-            for origin, ids in consumers_by_origin(resource).items():
-                with contextlib.suppress(RrError):
-                    DIRECTORY.lookup(origin).tell(Revoke(ids))
-            revoked = list(resource.consumers.items())
-            for qid, _ in revoked:
-                self.s.catalog.release(qid)
-            if self.s.events.active:
-                for qid, origin in revoked:
-                    self.s.events.publish(
-                        events.ConsumerReleased(self.s.name, resource.id, qid, origin)
-                    )
-            self.unload_resource(resource, done)
-
-        if self.s.events.active:
-            self.s.events.publish(
-                events.StatusSent(self.s.name, query_id, update.status, update.message)
-            )
-        # the FATAL's acknowledgements may complete on any thread: come back to this one
-        back = self.s.come_back(lambda *_: revoke_and_unload())
-        self.status.notify(
-            resource, update, str(uuid.uuid4()), query_id, lambda: back.set_result(None)
-        )
-
-    def op_update_response(self, query_id: str, response: Any, reply: Reply) -> None:
-        resource = self.s.catalog.resource_of(query_id)
-        self.s.catalog.set_response(resource.id, response)
-        self.s.commit()
-        join = Join(lambda: reply.set_result(None))
-        for origin, ids in consumers_by_origin(resource).items():
-            self.s.send(
-                origin,
-                functools.partial(ResponseUpdated, ids, response),
-                functools.partial(
-                    _log_failure, f"telling {origin} about a new response", join.add()
-                ),
-            )
-        join.seal()
-
-    def op_server_queries(self, server: str, reply: Reply) -> None:
-        self.server(server)
-        reply.set_result(self.s.catalog.server_queries(server, self.s.name))
