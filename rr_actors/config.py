@@ -233,7 +233,9 @@ class ManagerSpec:
             and a stuck registrar both count as hung. Thread managers have no heartbeat.
         heartbeat_timeout: seconds without an answer to a ping after which a process
             manager counts as hung: it is killed and handled like a crash. Default:
-            three heartbeat periods (0.75 s with the default `heartbeat`).
+            three heartbeat periods (0.75 s with the default `heartbeat`). A manager
+            whose answers say that it has been unable to accept connections for that
+            long (out of file descriptors, say) is killed the same way, as unhealthy.
         start_timeout: seconds a manager may take to restore, set up and serve.
 
     Raises:

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import resource
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -221,6 +223,40 @@ def test_a_hung_manager_is_detected_by_the_heartbeat_and_restarted(
     info = sup.wait_restarted(name, timeout=15.0)
 
     assert (True, True) == (info.last_exit.startswith("hung"), info.pid != old)  # type: ignore[union-attr]
+
+
+def few_descriptors_setup(registrar: rr.ResourceRegistrar) -> None:
+    """`echo`, in a manager process allowed 64 open files."""
+    _soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (64, hard))
+    echo_setup(registrar)
+
+
+def test_a_manager_that_cannot_accept_connections_is_restarted(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # 60 connections that never pass the handshake take all of its file descriptors
+    # for the handshake's deadline (5 s), longer than it may go without accepting (1 s).
+    name = f"erm-{uid}"
+    spec = process(name, few_descriptors_setup, heartbeat=0.1, heartbeat_timeout=1.0)
+    sup = supervisors([spec]).start()
+    old = pid_of(sup, name)
+    raw = []
+    try:
+        for _ in range(60):
+            sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            raw.append(sock)
+            sock.settimeout(10)
+            sock.connect(sup.system.address.socket_path(name))
+        info = sup.wait_restarted(name, timeout=15.0)
+    finally:
+        for sock in raw:
+            sock.close()
+    app = sup.registrar(f"app-{uid}")
+
+    assert (True, True) == (info.last_exit.startswith("unhealthy"), info.pid != old)  # type: ignore[union-attr]
+    assert "accept" in info.last_exit  # type: ignore[operator]
+    assert "r" == app.call(name, "echo", "r", timeout=10).response
 
 
 def test_one_for_all_restarts_every_manager_process(

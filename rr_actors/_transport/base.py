@@ -31,6 +31,8 @@ The contract every carrier keeps (the transport tests check it for each one):
   `RegistrarStoppedError` after a clean stop), never by waiting out a timeout; a later
   `tell` to a name that is served again (a restarted manager) reaches the new server;
 - **control**: `run(name, fn, timeout=)` runs `fn(registrar)` where that registrar lives;
+- **health**: `serving_trouble(name)` says for how long a registrar served here has been
+  unable to take new connections (a listener out of file descriptors keeps trying);
 - **join**: `address` pickles; `address.attach()` in another process joins the system.
 
 Low-level errors (`EOFError`, `BrokenPipeError`, `OSError`, pickling errors) never reach
@@ -116,6 +118,11 @@ class Transport(Protocol):
             RegistrarUnavailableError: its process died or cannot be reached.
             RegistrarStoppedError: it was stopped.
         """
+        ...
+
+    def serving_trouble(self, name: str) -> tuple[float, str] | None:
+        """For how long (seconds) and why registrar `name`, served here, has been unable to
+        take new connections; `None` if it can, or if it is not served here."""
         ...
 
     def close(self) -> None:

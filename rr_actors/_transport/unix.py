@@ -166,6 +166,16 @@ class AttachedSystem:
         assert isinstance(peer, RemotePeer)
         return peer.run(fn, timeout=timeout)
 
+    def serving_trouble(self, name: str) -> tuple[float, str] | None:
+        """For how long (seconds) and why registrar `name` has been unable to take new
+        connections here; `None` if it can (or this process does not serve it).
+
+        A manager process reports it with each heartbeat answer, so its supervisor can
+        restart a manager that stays unable to accept (out of file descriptors, say).
+        """
+        listener = self._listeners.get(name)
+        return None if listener is None else listener.trouble()
+
     def close(self) -> None:
         """Leave the system: stop listening, close every connection (idempotent).
 
