@@ -22,6 +22,7 @@ if TYPE_CHECKING:
     from rr_actors._registrar import ResourceRegistrar
 
 __all__ = [
+    "DEFAULT_MAX_MESSAGE_BYTES",
     "Backoff",
     "Isolation",
     "ManagerSpec",
@@ -43,6 +44,10 @@ Setup = Callable[["ResourceRegistrar"], object]
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 Durability = Literal["process", "power"]
+
+DEFAULT_MAX_MESSAGE_BYTES = 16 * 1024 * 1024
+"""The largest message (pickled) a registrar takes from another process, unless its
+`max_message_bytes` says otherwise: 16 MiB."""
 
 
 def check_seconds(
@@ -89,6 +94,14 @@ class RegistrarConfig:
         call_timeout: default `timeout` of every blocking call, in seconds.
         durability: `"process"` survives a crash of the process (SQLite `synchronous=NORMAL`),
             `"power"` also survives power loss (`synchronous=FULL`, slower).
+        max_message_bytes: the largest message, in bytes once pickled, that crosses a
+            connection to this registrar from another process: a request or any other
+            message it receives, and every answer it sends back. A caller in another
+            process gets `MessageTooLargeError` before anything larger is sent; a larger
+            response fails its call the same way (the consumer id is released). Messages
+            within one process are not copied and not limited. Default: 16 MiB
+            (`DEFAULT_MAX_MESSAGE_BYTES`), so that a message of plain bytes costs a
+            manager far less than its default heartbeat timeout.
 
     Raises:
         ConfigError: a field is invalid; the message names it.
@@ -101,6 +114,7 @@ class RegistrarConfig:
     erase_on_destruct: bool = False
     call_timeout: float = 10.0
     durability: Durability = "process"
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not _NAME.match(self.name):
@@ -117,6 +131,14 @@ class RegistrarConfig:
                 raise ConfigError(f"{flag} must be a bool, got {getattr(self, flag)!r}")
         if self.durability not in ("process", "power"):
             raise ConfigError(f"durability must be 'process' or 'power', got {self.durability!r}")
+        if (
+            isinstance(self.max_message_bytes, bool)
+            or not isinstance(self.max_message_bytes, int)
+            or self.max_message_bytes < 1
+        ):
+            raise ConfigError(
+                f"max_message_bytes must be an int >= 1, got {self.max_message_bytes!r}"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         """Return the configuration as plain JSON-able data (with a schema version)."""

@@ -489,6 +489,32 @@ def test_a_message_without_a_reply_field_is_answered_with_an_error(
     assert isinstance(error, rr.RrError)
 
 
+def test_a_frame_over_the_limit_is_refused_before_its_body_arrives_and_the_link_keeps_serving(
+    system: System, start_provider: ProviderFactory
+) -> None:
+    limit = 1024 * 1024
+    provider = start_provider(max_message_bytes=limit)
+    conn = _raw_client(system, provider.name)
+    body = b"\x00" * (2 * limit)
+    try:
+        with socket.socket(fileno=os.dup(conn.fileno())) as raw:
+            raw.sendall(struct.pack("!i", 8 + len(body)) + struct.pack("<Q", 5))
+            _value, error = _answer_to(conn, 5)  # answered before the body was sent
+            raw.sendall(body)
+        fetch = Fetch("echo", "intruder", None)  # type: ignore[arg-type]
+        conn.send_bytes(struct.pack("<Q", 7) + cloudpickle.dumps(fetch))
+        answer = _answer_to(conn, 7)
+    finally:
+        conn.close()
+
+    assert (True, len(body), limit) == (
+        isinstance(error, rr.MessageTooLargeError),
+        error.size,
+        error.limit,
+    )
+    assert ([], None) == answer
+
+
 def _fake_provider(listening: socket.socket, authkey: bytes) -> None:
     """Accept one connection; before the first answer send a short frame, answer the rest."""
     try:

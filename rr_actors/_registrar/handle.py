@@ -537,6 +537,11 @@ class Served:
         """The registrar's name."""
         return self.registrar.name
 
+    @property
+    def max_message_bytes(self) -> int:
+        """Its config's `max_message_bytes`: the carrier bounds its connections by it."""
+        return self.registrar.config.max_message_bytes
+
     def run(self, fn: Callable[[Any], Any]) -> Any:
         """Run `fn(registrar)` on the calling thread."""
         return fn(self.registrar)

@@ -20,7 +20,11 @@ The contract every carrier keeps (the transport tests check it for each one):
   process of the system, or `None` if the carrier does not know the name;
 - **send**: `Peer.tell(message)` never blocks on the other process; messages told to one
   peer from one process arrive in the order they were told; a message that does not
-  pickle raises `ConfigError` at the sender and nothing is sent;
+  pickle raises `ConfigError` at the sender and nothing is sent; nor is one larger than
+  the receiving registrar's `max_message_bytes` (`MessageTooLargeError`, a `ConfigError`);
+- **size**: each connection is bounded by the `max_message_bytes` of the registrar it
+  leads to, both ways: the receiver skips a larger frame unread (answering the error),
+  and a larger answer becomes that error (its `compensation()` runs);
 - **receive**: `serve(endpoint)` makes a registrar of this process reachable; what arrives
   for it is told to it through the directory, with a stand-in reply that sends the
   answer back; a stand-in whose answer cannot be pickled sends an error instead, and one
@@ -59,6 +63,12 @@ class Endpoint(Protocol):
     @property
     def name(self) -> str:
         """The registrar's name."""
+        ...
+
+    @property
+    def max_message_bytes(self) -> int:
+        """The largest message (pickled, in bytes) it takes from another process, or
+        answers with; larger ones get `MessageTooLargeError` (the sender before it sends)."""
         ...
 
     def run(self, fn: Callable[[Any], Any]) -> Any:

@@ -25,15 +25,25 @@ from typing import TYPE_CHECKING, Any
 
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.codec import NO_REPLY, Run, frame, frames, unframe
+from rr_actors._transport.codec import (
+    NO_REPLY,
+    Oversized,
+    Run,
+    frame,
+    frames,
+    payload_size,
+    unframe,
+    what,
+)
 from rr_actors._transport.sockets import (
     HANDSHAKE_TIMEOUT,
     handshake,
+    publish_limit,
     split,
     take_name_lock,
 )
 from rr_actors._transport.writer import Lost, Writer
-from rr_actors.errors import ConfigError, RrError
+from rr_actors.errors import ConfigError, MessageTooLargeError, RrError
 
 if TYPE_CHECKING:
     from rr_actors._transport.unix import AttachedSystem
@@ -46,10 +56,11 @@ logger = logging.getLogger("rr_actors")
 class _AnswerReply:
     """The provider side's stand-in for a sender's reply: answers over the connection.
 
-    An answer that does not pickle becomes an error answer (the caller never hangs). When
-    a successful answer does not reach its caller (it does not pickle, or the caller's
-    connection ends first), the message's `compensation()` is told to the local
-    registrar: for a `Load`, the consumer id it created is released again.
+    An answer that does not pickle, or is over the registrar's `max_message_bytes`,
+    becomes an error answer (the caller never hangs). When a successful answer does not
+    reach its caller (it does not pickle, is too large, or the caller's connection ends
+    first), the message's `compensation()` is told to the local registrar: for a `Load`,
+    the consumer id it created is released again.
     """
 
     __slots__ = ("_done", "_link", "_message", "_token")
@@ -75,6 +86,19 @@ class _AnswerReply:
         except Exception as exc:  # noqa: BLE001 - any pickling failure becomes an error answer
             data = frame(self._token, (None, self._unpicklable(value, error, exc)))
             error = exc
+        limit = self._link.listener.max_message_bytes
+        if payload_size(data) > limit:
+            too_large = MessageTooLargeError(
+                f"the answer to the {what(self._message, self._link.listener.name)} is "
+                f"{payload_size(data)} bytes pickled, over registrar "
+                f"{self._link.listener.name!r}'s max_message_bytes ({limit})",
+                payload_size(data),
+                limit,
+            )
+            if error is None:
+                self._compensate()  # its caller gets an error
+            data = frame(self._token, (None, too_large))
+            error = too_large
         on_lost = self._compensate if error is None else None
         if not self._link.send(data, on_lost) and on_lost is not None:
             on_lost()
@@ -136,9 +160,12 @@ class _Link:
                 logger.warning("registrar %s refused a connection: %s", listener.name, exc)
                 return
             self.writer.start(f"rr-answer-{listener.name}")
-            for data in frames(conn):
+            for data in frames(conn, listener.max_message_bytes):
                 try:
-                    self._deliver(data)
+                    if isinstance(data, Oversized):
+                        self._refuse(data)
+                    else:
+                        self._deliver(data)
                 except Exception:
                     logger.exception("registrar %s dropped a malformed message", listener.name)
         finally:
@@ -146,7 +173,20 @@ class _Link:
             conn.close()
             listener.forget(self)
 
-    def _deliver(self, data: bytes) -> None:
+    def _refuse(self, oversized: Oversized) -> None:
+        """Answer a message over the limit with an error; it was skipped, never unpickled."""
+        listener = self.listener
+        error = MessageTooLargeError(
+            f"a message of {oversized.size} bytes for registrar {listener.name!r} is over "
+            f"its max_message_bytes ({listener.max_message_bytes}); it was not read",
+            oversized.size,
+            listener.max_message_bytes,
+        )
+        logger.warning("%s", error)
+        if oversized.token != NO_REPLY:
+            self.send(frame(oversized.token, (None, error)))
+
+    def _deliver(self, data: bytes | bytearray) -> None:
         """Unpickle one frame and hand the message to the local registrar."""
         name = self.listener.name
         token, payload = unframe(data)
@@ -206,6 +246,7 @@ class Listener:
     def __init__(self, system: AttachedSystem, endpoint: Endpoint) -> None:
         self.name = endpoint.name
         self.endpoint = endpoint
+        self.max_message_bytes = endpoint.max_message_bytes
         self.authkey = system.address.authkey
         self.path = system.address.socket_path(self.name)
         self.tombstone = system.address.tombstone_path(self.name)
@@ -217,8 +258,10 @@ class Listener:
         self._failing_since: float | None = None  # monotonic time of the first failed accept
         self._failure = ""
         self._lock_fd = take_name_lock(system.address.lock_path(self.name), self.name)
+        self.limit_path = system.address.limit_path(self.name)
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
+            publish_limit(self.limit_path, self.max_message_bytes)  # before anyone connects
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(self.path)  # left behind by a process that died
             self._sock.bind(self.path)
@@ -352,6 +395,8 @@ class Listener:
                 pass
         with contextlib.suppress(OSError):
             os.unlink(self.path)
+        with contextlib.suppress(OSError):
+            os.unlink(self.limit_path)
         with contextlib.suppress(OSError):
             self._sock.shutdown(socket.SHUT_RDWR)
         self._sock.close()

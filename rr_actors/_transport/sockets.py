@@ -16,12 +16,15 @@ import struct
 import time
 from multiprocessing.connection import Connection, answer_challenge, deliver_challenge
 
+from rr_actors.config import DEFAULT_MAX_MESSAGE_BYTES
 from rr_actors.errors import ConfigError, DuplicateNameError
 
 __all__ = [
     "HANDSHAKE_TIMEOUT",
     "connect",
     "handshake",
+    "publish_limit",
+    "read_limit",
     "shutdown",
     "split",
     "take_name_lock",
@@ -172,3 +175,37 @@ def take_name_lock(path: str, name: str) -> int:
         os.close(fd)
         raise DuplicateNameError(f"registrar {name!r} is already served on this system") from exc
     return fd
+
+
+def publish_limit(path: str, limit: int) -> None:
+    """Write `limit` (a registrar's `max_message_bytes`) to `path`, atomically.
+
+    Written to a temporary file, then renamed over `path`: a reader sees the old file or
+    the new one, never half of one. Called by the listener while it holds the name's
+    lock, so no other process writes the same file meanwhile.
+
+    Raises:
+        OSError: the file cannot be written.
+    """
+    folder, name = os.path.split(path)
+    temporary = os.path.join(folder, f".{name}")
+    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.write(fd, str(limit).encode("ascii"))
+    finally:
+        os.close(fd)
+    os.replace(temporary, path)
+
+
+def read_limit(path: str) -> int:
+    """The limit published at `path`; `DEFAULT_MAX_MESSAGE_BYTES` if there is none.
+
+    A missing or unreadable file means the registrar is not listening (the connect then
+    fails) or was started by an older version: the default is the best guess.
+    """
+    try:
+        with open(path, "rb") as published:
+            value = int(published.read(32))
+    except (OSError, ValueError):
+        return DEFAULT_MAX_MESSAGE_BYTES
+    return value if value > 0 else DEFAULT_MAX_MESSAGE_BYTES
