@@ -25,9 +25,18 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from supervision import alive, echo_setup, killed_owner, linux_trick, process, wait_gone
+from supervision import (
+    ManualTimer,
+    alive,
+    echo_setup,
+    killed_owner,
+    linux_trick,
+    process,
+    wait_gone,
+)
 
 import rr_actors as rr
+from rr_actors import testing
 from rr_actors._process.context import forker_pid, mp_context, start_forkserver
 from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors.testing import RemoteRegistrar, SharedObjects
@@ -272,6 +281,45 @@ def test_one_for_all_restarts_every_manager_process(
 
     assert [False, False] == [before[n] == after[n] for n in (a, b)]
     assert [] == wait_gone([p for p in before.values() if p is not None])
+
+
+@pytest.mark.parametrize("isolation", ["thread", "process"])
+def test_a_sibling_being_restarted_is_unavailable_and_one_stopped_for_good_is_stopped(
+    supervisors: Callable[..., rr.Supervisor], uid: str, isolation: str
+) -> None:
+    # one_for_all: b crashes, so a (permanent: it comes back) and t (temporary: it does
+    # not) are stopped; a's restart waits for the test's timer.
+    a, t, b = f"a-{uid}", f"t-{uid}", f"b-{uid}"
+    timer = ManualTimer()
+    sup = supervisors(
+        [
+            rr.ManagerSpec(a, echo_setup, isolation=isolation),  # type: ignore[arg-type]
+            rr.ManagerSpec(t, echo_setup, isolation=isolation, restart="temporary"),  # type: ignore[arg-type]
+            rr.ManagerSpec(b, echo_setup, isolation=isolation),  # type: ignore[arg-type]
+        ],
+        strategy="one_for_all",
+        backoff=rr.Backoff(initial=1.0),
+        timer=timer,
+    ).start()
+    app = sup.registrar(f"app-{uid}")
+    for name in (a, t):
+        app.call(name, "echo", "before", timeout=10)
+    if isolation == "process":
+        os.kill(pid_of(sup, b), signal.SIGKILL)
+    else:
+        testing.crash(sup.run_in(b, lambda registrar: registrar))
+    assert timer.wait_scheduled(1)  # (the siblings were stopped before the restart was due)
+    errors: dict[str, type[BaseException]] = {}
+    for name in (a, t):
+        try:
+            app.call(name, "echo", "during", timeout=10)
+        except rr.RrError as exc:
+            errors[name] = type(exc)
+    timer.fire()
+    sup.wait_restarted(a, timeout=15.0)
+
+    assert {a: rr.RegistrarUnavailableError, t: rr.RegistrarStoppedError} == errors
+    assert "after" == app.call(a, "echo", "after", timeout=10).response
 
 
 def test_a_setup_that_raises_in_the_manager_process_fails_start_with_its_traceback(

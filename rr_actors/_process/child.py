@@ -27,7 +27,7 @@ Runs only in manager processes (never in the supervisor's process). In the child
          ◄──────────────── ("events", [event, ...])  (batches, while on)
    sync  ─────────────────── ("events-sync", n, timeout) ──────►  send what is buffered
          ◄──────────────── ("events-synced", n)  (after those batches)
-   stop  ─────────────────── ("stop", timeout) ────────────────►  registrar.stop(); exit 0
+   stop  ─────────────────── ("stop", timeout, restarting) ────►  registrar.stop(); exit 0
    (EOF: the parent is gone) ──────────────────────────────────►  exit 70
 ```
 
@@ -52,6 +52,7 @@ import pykka
 
 from rr_actors import events
 from rr_actors._core.bus import Forwarder, Publisher
+from rr_actors._core.directory import DIRECTORY
 from rr_actors._platform import PLATFORM
 from rr_actors._process.context import (
     ACTOR_DIED_EXIT,
@@ -303,6 +304,8 @@ def _serve_control(
             ).start()
         elif kind == "stop":
             stopping.set()
+            if len(message) > 2 and message[2]:  # stopped to be restarted with its group:
+                DIRECTORY.restarting.add(registrar.name)  # no tombstone, peers see "unavailable"
             code = 0
             try:
                 registrar.stop(timeout=message[1])

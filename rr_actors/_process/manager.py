@@ -234,14 +234,19 @@ class ManagerProcess:
         finally:
             self._syncs.pop(token, None)
 
-    def stop(self, timeout: float) -> ManagerExit:
+    def stop(self, timeout: float, *, restarting: bool = False) -> ManagerExit:
         """Ask the manager to stop its registrar and exit; kill it after `timeout` seconds.
+
+        Args:
+            timeout: seconds it gets to stop cleanly.
+            restarting: it is stopped to be restarted (with its group): its peers then
+                see it unavailable for now, not stopped for good (it leaves no tombstone).
 
         Returns:
             How it ended (`"shutdown"`, or `"killed: shutdown timeout"`, or what it died of).
         """
         self._stopping = True
-        self._send(("stop", timeout))
+        self._send(("stop", timeout, restarting))
         if self.exited.wait(timeout) and self.exit is not None:
             if self.exit.normal:
                 return ManagerExit("shutdown", normal=True, clean=self.exit.clean)
