@@ -228,8 +228,13 @@ def refuse(envelope: Any) -> None:
 
 
 class Actor(pykka.ThreadingActor):
-    """`pykka.ThreadingActor` with a `Mailbox` (a `queue.SimpleQueue`) and `OneShotFuture`s."""
+    """`pykka.ThreadingActor` with a `Mailbox` (a `queue.SimpleQueue`) and `OneShotFuture`s.
 
+    Its thread is a daemon thread: a program whose main thread ends is not kept alive
+    by actors it forgot to stop (`rr_actors._core.exit` stops them cleanly first).
+    """
+
+    use_daemon_thread = True
     actor_inbox: Mailbox
 
     @staticmethod

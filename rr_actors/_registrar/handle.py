@@ -21,6 +21,7 @@ from rr_actors import events
 from rr_actors._catalog import ResourceState
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
+from rr_actors._core.exit import REGISTRARS, stop_at_exit
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.calls import Calls, DueAnswers
@@ -605,6 +606,7 @@ def start_registrar(
     handle._died = died
     handle._ended = ended
     handle._events = published
+    stop_at_exit(REGISTRARS, handle.is_alive, lambda timeout: handle.stop(timeout=timeout))
     if setup is not None:
         try:
             setup(handle)

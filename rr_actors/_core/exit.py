@@ -1,0 +1,100 @@
+"""Stop what a program left running when its main thread ends.
+
+A registrar's actors and a supervisor's threads are daemon threads: they never keep a
+program alive by themselves. So that a script that forgets `stop()`, or raises before it,
+still ends cleanly (durable catalogs written, manager processes stopped), every running
+supervisor and registrar is listed here and stopped when the main thread ends:
+
+```
+ main thread ends (returns, or an exception's traceback was printed)
+   └─ threading._shutdown ─► stop_everything(): supervisors, newest first (each stops its
+                              managers and the registrars it made), then the registrars
+                              still running, newest first; all within EXIT_TIMEOUT s
+      ─► the interpreter then joins non-daemon threads (none of ours) and runs atexit
+```
+
+`threading._register_atexit` is a private hook of the standard library, used in this file
+only (`concurrent.futures` uses it for the same reason): its callbacks run before the
+interpreter waits for threads, while every thread still runs. `atexit` would be too late.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+
+__all__ = ["EXIT_TIMEOUT", "REGISTRARS", "SUPERVISORS", "stop_at_exit", "stop_everything"]
+
+logger = logging.getLogger("rr_actors")
+
+EXIT_TIMEOUT = 10.0
+"""Seconds that stopping everything left running may take when the main thread ends."""
+
+SUPERVISORS = 0
+REGISTRARS = 1
+"""Tiers: supervisors stop first (they stop what they started), then registrars."""
+
+_MIN_STOP = 0.1  # seconds each stop still gets once EXIT_TIMEOUT ran out
+
+_lock = threading.Lock()
+_entries: dict[int, tuple[int, Callable[[], bool], Callable[[float], None]]] = {}
+_numbers = itertools.count()
+_hooked = False
+
+
+def stop_at_exit(tier: int, alive: Callable[[], bool], stop: Callable[[float], None]) -> None:
+    """Have `stop(timeout)` called when the main thread ends, if `alive()` then.
+
+    Entries whose `alive()` is false are dropped whenever one is added, so a program
+    that starts and stops many registrars keeps only the running ones listed.
+
+    Args:
+        tier: `SUPERVISORS` or `REGISTRARS` (lower tiers stop first).
+        alive: whether it still needs stopping (called on any thread, must be cheap).
+        stop: stops it within `timeout` seconds; what it raises is logged.
+    """
+    global _hooked  # (one process-wide hook)
+    with _lock:
+        for number in [n for n, (_, is_alive, _) in _entries.items() if not is_alive()]:
+            del _entries[number]
+        _entries[next(_numbers)] = (tier, alive, stop)
+        if not _hooked:
+            try:
+                threading._register_atexit(stop_everything)  # type: ignore[attr-defined]
+            except RuntimeError:  # the interpreter is shutting down already
+                return
+            _hooked = True
+
+
+def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
+    """Stop every listed supervisor and registrar that still runs; newest first per tier.
+
+    Runs on the main thread when it ends. A Ctrl-C while it runs skips the rest (the
+    threads are daemon threads: the program still ends).
+    """
+    deadline = time.monotonic() + timeout
+    with _lock:
+        entries = sorted(_entries.items(), key=lambda item: (item[1][0], -item[0]))
+        _entries.clear()
+    for _number, (_tier, alive, stop) in entries:
+        try:
+            if alive():
+                stop(max(_MIN_STOP, deadline - time.monotonic()))
+        except KeyboardInterrupt:
+            return
+        except Exception:
+            logger.exception("stopping what was left running at exit failed")
+
+
+def _forget_all() -> None:
+    """In a forked child: the parent's registrars and supervisors are not ours to stop."""
+    global _lock  # a thread of the parent may have held it at the fork
+    _lock = threading.Lock()
+    _entries.clear()
+
+
+os.register_at_fork(after_in_child=_forget_all)
