@@ -27,7 +27,14 @@ import threading
 import time
 from collections.abc import Callable
 
-__all__ = ["EXIT_TIMEOUT", "REGISTRARS", "SUPERVISORS", "stop_at_exit", "stop_everything"]
+__all__ = [
+    "EXIT_TIMEOUT",
+    "REGISTRARS",
+    "SUPERVISORS",
+    "left_running",
+    "stop_at_exit",
+    "stop_everything",
+]
 
 logger = logging.getLogger("rr_actors")
 
@@ -41,12 +48,14 @@ REGISTRARS = 1
 _MIN_STOP = 0.1  # seconds each stop still gets once EXIT_TIMEOUT ran out
 
 _lock = threading.Lock()
-_entries: dict[int, tuple[int, Callable[[], bool], Callable[[float], None]]] = {}
+_entries: dict[int, tuple[int, str, Callable[[], bool], Callable[[float], None]]] = {}
 _numbers = itertools.count()
 _hooked = False
 
 
-def stop_at_exit(tier: int, alive: Callable[[], bool], stop: Callable[[float], None]) -> None:
+def stop_at_exit(
+    tier: int, what: str, alive: Callable[[], bool], stop: Callable[[float], None]
+) -> None:
     """Have `stop(timeout)` called when the main thread ends, if `alive()` then.
 
     Entries whose `alive()` is false are dropped whenever one is added, so a program
@@ -54,14 +63,15 @@ def stop_at_exit(tier: int, alive: Callable[[], bool], stop: Callable[[float], N
 
     Args:
         tier: `SUPERVISORS` or `REGISTRARS` (lower tiers stop first).
+        what: what it is, for people (`"registrar 'erm'"`).
         alive: whether it still needs stopping (called on any thread, must be cheap).
         stop: stops it within `timeout` seconds; what it raises is logged.
     """
     global _hooked  # (one process-wide hook)
     with _lock:
-        for number in [n for n, (_, is_alive, _) in _entries.items() if not is_alive()]:
+        for number in [n for n, entry in _entries.items() if not entry[2]()]:
             del _entries[number]
-        _entries[next(_numbers)] = (tier, alive, stop)
+        _entries[next(_numbers)] = (tier, what, alive, stop)
         if not _hooked:
             try:
                 threading._register_atexit(stop_everything)  # type: ignore[attr-defined]
@@ -80,14 +90,21 @@ def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
     with _lock:
         entries = sorted(_entries.items(), key=lambda item: (item[1][0], -item[0]))
         _entries.clear()
-    for _number, (_tier, alive, stop) in entries:
+    for _number, (_tier, what, alive, stop) in entries:
         try:
             if alive():
+                logger.info("stopping %s: it was still running when the program ended", what)
                 stop(max(_MIN_STOP, deadline - time.monotonic()))
         except KeyboardInterrupt:
             return
         except Exception:
             logger.exception("stopping what was left running at exit failed")
+
+
+def left_running() -> list[str]:
+    """What of the listed supervisors and registrars still runs, oldest first."""
+    with _lock:
+        return [entry[1] for _, entry in sorted(_entries.items()) if entry[2]()]
 
 
 def _forget_all() -> None:

@@ -606,7 +606,12 @@ def start_registrar(
     handle._died = died
     handle._ended = ended
     handle._events = published
-    stop_at_exit(REGISTRARS, handle.is_alive, lambda timeout: handle.stop(timeout=timeout))
+    stop_at_exit(
+        REGISTRARS,
+        f"registrar {config.name!r}",
+        handle.is_alive,
+        lambda timeout: handle.stop(timeout=timeout),
+    )
     if setup is not None:
         try:
             setup(handle)

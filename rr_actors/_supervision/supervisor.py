@@ -208,7 +208,12 @@ class Supervisor:
             self._stopped = True
             self._release()
             raise
-        stop_at_exit(SUPERVISORS, lambda: not self._stopped, lambda t: self.stop(timeout=t))
+        stop_at_exit(
+            SUPERVISORS,
+            f"supervisor {self.name!r}",
+            lambda: not self._stopped,
+            lambda timeout: self.stop(timeout=timeout),
+        )
         return self
 
     def stop(self, *, timeout: float | None = None) -> None:
