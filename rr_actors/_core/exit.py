@@ -51,6 +51,7 @@ _lock = threading.Lock()
 _entries: dict[int, tuple[int, str, Callable[[], bool], Callable[[float], None]]] = {}
 _numbers = itertools.count()
 _hooked = False
+_prune_at = 64  # entries; doubled after each pruning, so adding stays O(1) amortised
 
 
 def stop_at_exit(
@@ -58,8 +59,9 @@ def stop_at_exit(
 ) -> None:
     """Have `stop(timeout)` called when the main thread ends, if `alive()` then.
 
-    Entries whose `alive()` is false are dropped whenever one is added, so a program
-    that starts and stops many registrars keeps only the running ones listed.
+    Entries whose `alive()` is false are dropped as more are added (whenever their
+    number doubled), so a program that starts and stops many registrars keeps about
+    twice the running ones listed at most.
 
     Args:
         tier: `SUPERVISORS` or `REGISTRARS` (lower tiers stop first).
@@ -67,10 +69,12 @@ def stop_at_exit(
         alive: whether it still needs stopping (called on any thread, must be cheap).
         stop: stops it within `timeout` seconds; what it raises is logged.
     """
-    global _hooked  # (one process-wide hook)
+    global _hooked, _prune_at  # (one process-wide list)
     with _lock:
-        for number in [n for n, entry in _entries.items() if not entry[2]()]:
-            del _entries[number]
+        if len(_entries) >= _prune_at:
+            for number in [n for n, entry in _entries.items() if not entry[2]()]:
+                del _entries[number]
+            _prune_at = max(64, 2 * len(_entries))
         _entries[next(_numbers)] = (tier, what, alive, stop)
         if not _hooked:
             try:
