@@ -323,7 +323,16 @@ class Listener:
                     link.conn.close()
                     return
                 self._links.add(link)
-            threading.Thread(target=link.serve, name=f"rr-link-{self.name}", daemon=True).start()
+            try:
+                threading.Thread(
+                    target=link.serve, name=f"rr-link-{self.name}", daemon=True
+                ).start()
+            except RuntimeError as exc:  # no thread for it (a limit on threads): as EMFILE
+                self.forget(link)
+                link.close()
+                link.conn.close()
+                self._cannot_accept(OSError(errno.EAGAIN, f"no thread: {exc}"), backoff)
+                backoff = min(2 * backoff, _BACKOFF_MAX)
 
     def _cannot_accept(self, exc: OSError, backoff: float) -> None:
         """Note a failed accept (log the first of a run), then wait before the next."""
