@@ -23,6 +23,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "DEFAULT_MAX_MESSAGE_BYTES",
+    "DEFAULT_MAX_WORKERS",
     "Backoff",
     "Isolation",
     "ManagerSpec",
@@ -41,9 +42,13 @@ Strategy = Literal["one_for_one", "one_for_all", "rest_for_one"]
 Isolation = Literal["thread", "process"]
 Setup = Callable[["ResourceRegistrar"], object]
 
-_NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
+_NAME = re.compile(r"[A-Za-z0-9_.\-]+")
+"""A valid name, matched whole (`fullmatch`: `$` would accept a trailing newline)."""
 
 Durability = Literal["process", "power"]
+
+DEFAULT_MAX_WORKERS = 64
+"""Worker threads a registrar runs callbacks on at once, unless `max_workers` says otherwise."""
 
 DEFAULT_MAX_MESSAGE_BYTES = 16 * 1024 * 1024
 """The largest message (pickled) a registrar takes from another process, unless its
@@ -94,6 +99,16 @@ class RegistrarConfig:
         call_timeout: default `timeout` of every blocking call, in seconds.
         durability: `"process"` survives a crash of the process (SQLite `synchronous=NORMAL`),
             `"power"` also survives power loss (`synchronous=FULL`, slower).
+        max_workers: worker threads that may run this registrar's callbacks at once
+            (`load`, `unload`, status callbacks, comparisons of requests without a
+            digest); callbacks beyond it wait in a queue, in order, for one to come free.
+        compare_timeout: seconds the user code that matches a request without a digest
+            (a custom class) with the requests served may run (its `__eq__`, `__hash__`,
+            and pickling it for the backup); past them the call fails with
+            `CallTimeoutError` and the registrar goes on serving.
+        unload_timeout: seconds an `unload` callback may run (`None`: no bound); past
+            them the resource is dropped from the catalog as failed, and a caller still
+            waiting for the unload gets `CallTimeoutError`.
         max_message_bytes: the largest message, in bytes once pickled, that crosses a
             connection to this registrar from another process: a request or any other
             message it receives, and every answer it sends back. A caller in another
@@ -114,10 +129,13 @@ class RegistrarConfig:
     erase_on_destruct: bool = False
     call_timeout: float = 10.0
     durability: Durability = "process"
+    max_workers: int = DEFAULT_MAX_WORKERS
+    compare_timeout: float = 5.0
+    unload_timeout: float | None = 60.0
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
 
     def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not _NAME.match(self.name):
+        if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
             raise ConfigError(
                 f"name must be a non-empty string of letters, digits, '_', '-' or '.', "
                 f"got {self.name!r}"
@@ -131,6 +149,14 @@ class RegistrarConfig:
                 raise ConfigError(f"{flag} must be a bool, got {getattr(self, flag)!r}")
         if self.durability not in ("process", "power"):
             raise ConfigError(f"durability must be 'process' or 'power', got {self.durability!r}")
+        if (
+            isinstance(self.max_workers, bool)
+            or not isinstance(self.max_workers, int)
+            or self.max_workers < 1
+        ):
+            raise ConfigError(f"max_workers must be an int >= 1, got {self.max_workers!r}")
+        check_seconds("compare_timeout", self.compare_timeout)
+        check_seconds("unload_timeout", self.unload_timeout, allow_none=True)
         if (
             isinstance(self.max_message_bytes, bool)
             or not isinstance(self.max_message_bytes, int)

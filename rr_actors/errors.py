@@ -20,6 +20,7 @@ __all__ = [
     "ConfigError",
     "DependencyCycleError",
     "DuplicateNameError",
+    "DuplicateQueryIdError",
     "ErrorFrame",
     "MessageTooLargeError",
     "RegistrarStoppedError",
@@ -43,6 +44,15 @@ class ConfigError(RrError, ValueError):
 
 class DuplicateNameError(ConfigError):
     """A registrar or resource server name is already in use where names must be unique."""
+
+
+class DuplicateQueryIdError(ConfigError):
+    """A call reused a query id that already names another call (another request, or
+    another server) at its provider.
+
+    A query id is for one call and its retries: a retry must repeat the same request
+    to the same server. The message names the id; the provider changed nothing.
+    """
 
 
 class MessageTooLargeError(ConfigError):

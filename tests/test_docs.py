@@ -284,11 +284,18 @@ def check_pip(block: Block, command: list[str]) -> None:
 
 
 def check_benchmark(block: Block, command: list[str]) -> None:
-    """`python benchmarks/X.py ...`: not run; the script must exist and know the options."""
+    """`python benchmarks/X.py ...`: not run; the script must exist and know the options.
+
+    For `alternate.py ... -- Y.py ...`, the options after `--` are `Y.py`'s.
+    """
     script = ROOT / command[1]
     assert script.is_file(), f"{block.where}: {command[1]} does not exist"
+    options = command[2:]
+    if "--" in options:
+        options, inner = options[: options.index("--")], options[options.index("--") + 1 :]
+        check_benchmark(block, ["python", f"benchmarks/{inner[0]}", *inner[1:]])
     source = script.read_text()
-    unknown = [w for w in command[2:] if w.startswith("--") and w.split("=")[0] not in source]
+    unknown = [w for w in options if w.startswith("--") and w.split("=")[0] not in source]
     assert [] == unknown, f"{block.where}: {command[1]} has no option(s) {unknown}"
 
 
@@ -329,7 +336,9 @@ def runnable(command: list[str]) -> list[str] | None:
 
 def shell_block(block: Block, cwd: Path, done: set[tuple[str, ...]]) -> None:
     """Run or check every command of a shell block (see the module docstring)."""
-    for command in commands(block.code):
+    for written in commands(block.code):
+        # pinned to a CPU (`taskset -c 0 ...`): the command after it
+        command = written[3:] if written[:2] == ["taskset", "-c"] else written
         if command[0] == "pip":
             check_pip(block, command)
             continue

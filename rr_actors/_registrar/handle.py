@@ -8,6 +8,7 @@ catalog itself.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -211,7 +212,7 @@ class ResourceRegistrar(RegistrarFacts):
             if fn is not None and not callable(fn):
                 raise ConfigError(f"{arg} must be callable, got {fn!r}")
         self._ask(
-            lambda actor, reply: actor.provider.op_register(name, load, unload, on_status, reply),
+            lambda actor, reply: actor.servers.op_register(name, load, unload, on_status, reply),
             timeout,
             f"register_server({name!r})",
         )
@@ -227,7 +228,7 @@ class ResourceRegistrar(RegistrarFacts):
         """
         limit = self._timeout(timeout)
         self._ask(
-            lambda actor, reply: actor.provider.op_unregister(name, reply),
+            lambda actor, reply: actor.servers.op_unregister(name, reply),
             limit,
             f"unregister_server({name!r})",
         )
@@ -354,7 +355,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarUnavailableError: this registrar died.
         """
         result: list[Query] = self._ask(
-            lambda actor, reply: actor.provider.op_server_queries(server, reply),
+            lambda actor, reply: actor.servers.op_server_queries(server, reply),
             timeout,
             f"server_queries({server!r})",
         )
@@ -437,7 +438,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarUnavailableError: this registrar died.
         """
         self._ask(
-            lambda actor, reply: actor.provider.op_update_response(query_id, response, reply),
+            lambda actor, reply: actor.servers.op_update_response(query_id, response, reply),
             timeout,
             f"update_response({query_id!r})",
         )
@@ -556,6 +557,15 @@ class Served:
         if self.registrar.is_alive():
             return False
         return isinstance(DIRECTORY.gone_error(self.registrar.name), RegistrarStoppedError)
+
+    def listening(self) -> None:
+        """The other processes of the system can reach it now: it reconciles with its peers
+        again (those in other processes could not answer it before)."""
+        reply = FutureReply()  # (nobody waits: the carrier's `serve` must not)
+        with contextlib.suppress(pykka.ActorDeadError):
+            self.registrar._ref.tell(
+                Request(lambda actor, r: actor.lifecycle.op_reachable(r), reply)
+            )
 
 
 def start_registrar(

@@ -83,6 +83,13 @@ class Endpoint(Protocol):
         """Whether it ended because its owner stopped it (not a crash)."""
         ...
 
+    def listening(self) -> None:
+        """Called once the carrier serves it: the other processes can reach it from now on.
+
+        It must return at once (the carrier's `serve` calls it).
+        """
+        ...
+
 
 class Address(Protocol):
     """How another process joins the same system: it pickles; `attach()` joins there."""

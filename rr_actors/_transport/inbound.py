@@ -83,7 +83,8 @@ class _AnswerReply:
         self._done = True
         try:
             data = frame(self._token, (value, error))
-        except Exception as exc:  # noqa: BLE001 - any pickling failure becomes an error answer
+        except BaseException as exc:  # noqa: BLE001 - any pickling failure (SystemExit from a
+            # user __reduce__ too) becomes an error answer
             data = frame(self._token, (None, self._unpicklable(value, error, exc)))
             error = exc
         limit = self._link.listener.max_message_bytes
@@ -110,7 +111,7 @@ class _AnswerReply:
             with contextlib.suppress(RrError):
                 DIRECTORY.lookup(self._link.listener.name).tell(compensation)
 
-    def _unpicklable(self, value: Any, error: BaseException | None, exc: Exception) -> RrError:
+    def _unpicklable(self, value: Any, error: BaseException | None, exc: BaseException) -> RrError:
         if error is not None:
             return RrError(f"{type(error).__qualname__}: {error} (the error itself did not pickle)")
         self._compensate()  # its caller gets an error
@@ -192,7 +193,7 @@ class _Link:
         token, payload = unframe(data)
         try:
             message = pickle.loads(payload)
-        except Exception as exc:  # noqa: BLE001 - answered as an error, never raised here
+        except BaseException as exc:  # noqa: BLE001 - answered as an error, never raised here
             if token != NO_REPLY:
                 error = RrError(f"a message for registrar {name!r} cannot be unpickled: {exc}")
                 self.send(frame(token, (None, error)))

@@ -113,7 +113,7 @@ class RemotePeer:
         token = next(self._tokens) if reply is not None else NO_REPLY  # atomic in CPython
         try:
             data = frame(token, message)
-        except Exception as exc:
+        except BaseException as exc:  # (a SystemExit from a user __reduce__ is contained too)
             raise ConfigError(f"{what(message, self.name)} is not picklable: {exc}") from exc
         for _attempt in (1, 2):
             channel = self._channel
@@ -293,7 +293,7 @@ class RemotePeer:
         reply, message = entry
         try:
             value, error = pickle.loads(payload)
-        except Exception as exc:  # noqa: BLE001 - any unpickling failure fails this answer
+        except BaseException as exc:  # noqa: BLE001 - any unpickling failure fails this answer
             reply.set_error(self._unreadable(message, exc))
             return
         if error is None:
@@ -303,7 +303,7 @@ class RemotePeer:
         else:
             reply.set_error(RrError(f"a malformed answer from registrar {self.name!r}"))
 
-    def _unreadable(self, message: Any, exc: Exception) -> RrError:
+    def _unreadable(self, message: Any, exc: BaseException) -> RrError:
         """The error for an answer that cannot be unpickled here; what it created is undone.
 
         The message's `compensation()` (a `Load`'s: an `Abandon` of its consumer id) goes

@@ -151,6 +151,7 @@ class AttachedSystem:
         threading.Thread(
             target=self._watch, args=(endpoint, listener), name=f"rr-watch-{name}", daemon=True
         ).start()
+        endpoint.listening()  # (it listens: Listener binds in its constructor)
 
     def run(self, registrar_name: str, fn: Callable[[Any], Any], *, timeout: float) -> Any:
         """Run `fn(registrar)` where registrar `registrar_name` lives and return the result.
