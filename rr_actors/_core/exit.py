@@ -15,11 +15,14 @@ supervisor and registrar is listed here and stopped when the main thread ends:
 
 `threading._register_atexit` is a private hook of the standard library, used in this file
 only (`concurrent.futures` uses it for the same reason): its callbacks run before the
-interpreter waits for threads, while every thread still runs. `atexit` would be too late.
+interpreter waits for threads, while every thread still runs, and before
+`multiprocessing`'s own `atexit` handler terminates daemonic child processes (manager
+processes among them) without a clean stop. Without it, `atexit` is the fallback.
 """
 
 from __future__ import annotations
 
+import atexit
 import itertools
 import logging
 import os
@@ -77,8 +80,12 @@ def stop_at_exit(
             _prune_at = max(64, 2 * len(_entries))
         _entries[next(_numbers)] = (tier, what, alive, stop)
         if not _hooked:
+            hook = getattr(threading, "_register_atexit", None)
             try:
-                threading._register_atexit(stop_everything)  # type: ignore[attr-defined]
+                if hook is not None:
+                    hook(stop_everything)
+                else:  # (later, but our threads are daemons: they still run in atexit)
+                    atexit.register(stop_everything)
             except RuntimeError:  # the interpreter is shutting down already
                 return
             _hooked = True
