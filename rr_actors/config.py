@@ -22,6 +22,7 @@ if TYPE_CHECKING:
     from rr_actors._registrar import ResourceRegistrar
 
 __all__ = [
+    "DEFAULT_MAX_MESSAGE_BYTES",
     "DEFAULT_MAX_WORKERS",
     "Backoff",
     "Isolation",
@@ -48,6 +49,10 @@ Durability = Literal["process", "power"]
 
 DEFAULT_MAX_WORKERS = 64
 """Worker threads a registrar runs callbacks on at once, unless `max_workers` says otherwise."""
+
+DEFAULT_MAX_MESSAGE_BYTES = 16 * 1024 * 1024
+"""The largest message (pickled) a registrar takes from another process, unless its
+`max_message_bytes` says otherwise: 16 MiB."""
 
 
 def check_seconds(
@@ -104,6 +109,14 @@ class RegistrarConfig:
         unload_timeout: seconds an `unload` callback may run (`None`: no bound); past
             them the resource is dropped from the catalog as failed, and a caller still
             waiting for the unload gets `CallTimeoutError`.
+        max_message_bytes: the largest message, in bytes once pickled, that crosses a
+            connection to this registrar from another process: a request or any other
+            message it receives, and every answer it sends back. A caller in another
+            process gets `MessageTooLargeError` before anything larger is sent; a larger
+            response fails its call the same way (the consumer id is released). Messages
+            within one process are not copied and not limited. Default: 16 MiB
+            (`DEFAULT_MAX_MESSAGE_BYTES`), so that a message of plain bytes costs a
+            manager far less than its default heartbeat timeout.
 
     Raises:
         ConfigError: a field is invalid; the message names it.
@@ -119,6 +132,7 @@ class RegistrarConfig:
     max_workers: int = DEFAULT_MAX_WORKERS
     compare_timeout: float = 5.0
     unload_timeout: float | None = 60.0
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
@@ -143,6 +157,14 @@ class RegistrarConfig:
             raise ConfigError(f"max_workers must be an int >= 1, got {self.max_workers!r}")
         check_seconds("compare_timeout", self.compare_timeout)
         check_seconds("unload_timeout", self.unload_timeout, allow_none=True)
+        if (
+            isinstance(self.max_message_bytes, bool)
+            or not isinstance(self.max_message_bytes, int)
+            or self.max_message_bytes < 1
+        ):
+            raise ConfigError(
+                f"max_message_bytes must be an int >= 1, got {self.max_message_bytes!r}"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         """Return the configuration as plain JSON-able data (with a schema version)."""
@@ -259,7 +281,9 @@ class ManagerSpec:
             and a stuck registrar both count as hung. Thread managers have no heartbeat.
         heartbeat_timeout: seconds without an answer to a ping after which a process
             manager counts as hung: it is killed and handled like a crash. Default:
-            three heartbeat periods (0.75 s with the default `heartbeat`).
+            three heartbeat periods (0.75 s with the default `heartbeat`). A manager
+            whose answers say that it has been unable to accept connections for that
+            long (out of file descriptors, say) is killed the same way, as unhealthy.
         start_timeout: seconds a manager may take to restore, set up and serve.
 
     Raises:

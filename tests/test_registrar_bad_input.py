@@ -254,3 +254,9 @@ def test_an_unpicklable_response_to_a_consumer_with_a_backup_is_a_config_error(
     assert [] == provider.server_queries("lock")  # the id was given back
     assert [] == consumer.client_queries()
     consumer.save_catalog()
+
+
+@pytest.mark.parametrize("value", [0, -1, True, 1.5, "1024", None])
+def test_an_invalid_max_message_bytes_is_a_config_error_naming_it(value):
+    with pytest.raises(rr.ConfigError, match="max_message_bytes"):
+        rr.RegistrarConfig("erm", max_message_bytes=value)

@@ -249,9 +249,12 @@ class Actor(pykka.ThreadingActor):
     """`pykka.ThreadingActor` with a `Mailbox` (a `queue.SimpleQueue`) and `OneShotFuture`s.
 
     A handler that raises a `BaseException` other than an `Exception` fails this actor
-    only (see `ContainedError`).
+    only (see `ContainedError`). Its thread is a daemon thread: a program whose main
+    thread ends is not kept alive by actors it forgot to stop (`rr_actors._core.exit`
+    stops them cleanly first).
     """
 
+    use_daemon_thread = True
     actor_inbox: Mailbox
 
     def _handle_receive(self, message: Any) -> Any:

@@ -22,6 +22,7 @@ from rr_actors import events
 from rr_actors._catalog import ResourceState
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
+from rr_actors._core.exit import REGISTRARS, stop_at_exit
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.calls import Calls, DueAnswers
@@ -538,6 +539,11 @@ class Served:
         """The registrar's name."""
         return self.registrar.name
 
+    @property
+    def max_message_bytes(self) -> int:
+        """Its config's `max_message_bytes`: the carrier bounds its connections by it."""
+        return self.registrar.config.max_message_bytes
+
     def run(self, fn: Callable[[Any], Any]) -> Any:
         """Run `fn(registrar)` on the calling thread."""
         return fn(self.registrar)
@@ -610,6 +616,12 @@ def start_registrar(
     handle._died = died
     handle._ended = ended
     handle._events = published
+    stop_at_exit(
+        REGISTRARS,
+        f"registrar {config.name!r}",
+        handle.is_alive,
+        lambda timeout: handle.stop(timeout=timeout),
+    )
     if setup is not None:
         try:
             setup(handle)
