@@ -13,22 +13,22 @@ supervisor and registrar is listed here and stopped when the main thread ends:
       ─► the interpreter then joins non-daemon threads (none of ours) and runs atexit
 ```
 
-`threading._register_atexit` is a private hook of the standard library, used in this file
-only (`concurrent.futures` uses it for the same reason): its callbacks run before the
-interpreter waits for threads, while every thread still runs, and before
-`multiprocessing`'s own `atexit` handler terminates daemonic child processes (manager
-processes among them) without a clean stop. Without it, `atexit` is the fallback.
+The hook is the platform's (`PLATFORM.at_main_thread_end`: CPython's private
+`threading._register_atexit` on the `linux` platform, `atexit` on the portable one): it
+runs while every thread still runs, and before `multiprocessing`'s own `atexit` handler
+terminates daemonic child processes (manager processes among them) without a clean stop.
 """
 
 from __future__ import annotations
 
-import atexit
 import itertools
 import logging
 import os
 import threading
 import time
 from collections.abc import Callable
+
+from rr_actors._platform import PLATFORM
 
 __all__ = [
     "EXIT_TIMEOUT",
@@ -80,12 +80,8 @@ def stop_at_exit(
             _prune_at = max(64, 2 * len(_entries))
         _entries[next(_numbers)] = (tier, what, alive, stop)
         if not _hooked:
-            hook = getattr(threading, "_register_atexit", None)
             try:
-                if hook is not None:
-                    hook(stop_everything)
-                else:  # (later, but our threads are daemons: they still run in atexit)
-                    atexit.register(stop_everything)
+                PLATFORM.at_main_thread_end(stop_everything)
             except RuntimeError:  # the interpreter is shutting down already
                 return
             _hooked = True
