@@ -13,9 +13,10 @@
 
 from typing import TYPE_CHECKING
 
-from rr_actors._registrar.handle import ResourceRegistrar, Served, start_registrar
+from rr_actors._registrar.handle import ResourceRegistrar, start_registrar
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH
 from rr_actors._registrar.protocol import LoadCallback, Registrar, UnloadCallback
+from rr_actors._registrar.starting import Served
 
 __all__ = [
     "MAX_DEPENDENCY_DEPTH",
