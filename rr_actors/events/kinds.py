@@ -1,38 +1,18 @@
-"""What a supervision tree and its registrars do, as frozen dataclasses (one per event kind).
+"""The event kinds: one frozen dataclass per thing a tree or a registrar does.
 
-Subscribe with `Supervisor.subscribe(callback)` (every child and every registrar of the
-tree, manager processes included) or `ResourceRegistrar.subscribe(callback)` (one
-registrar); both return an [`rr_actors.Subscription`][rr_actors.Subscription], and the
-callback runs on a subscriber thread of its own, never in a registrar's mailbox.
-
-Every event has its own fields first, then two keyword-only ones:
-
-- `at`: when it happened, wall clock (`time.time()` seconds), so that events of several
-  processes can be put on one timeline;
-- `pid`: the process it happened in (for child events, the child's process).
-
-Events pickle (they cross from manager processes to the supervisor's), and
-[`to_dict`][rr_actors.events.to_dict] / [`from_dict`][rr_actors.events.from_dict] turn them
-into JSON-able dicts and back (one JSON line per event is how experiments write
-`events.jsonl`). [`describe`][rr_actors.events.describe] gives the one human line that is
-also logged at INFO.
-
-Durations are in seconds. Query and resource ids are UUID4 strings; `describe` shows their
-first 8 characters.
+Each has its own fields first, then the keyword-only `at` (wall clock, `time.time()`
+seconds) and `pid` (the process it happened in). Adding a kind: its class here, in the
+`Event` union, and its line in `text.describe`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import logging
 import os
 import time
-import typing
 from typing import Any, TypeAlias
 
-from rr_actors._core.bus import Publisher
 from rr_actors._types import Status
-from rr_actors.errors import ConfigError
 
 __all__ = [
     "ChildExited",
@@ -49,13 +29,7 @@ __all__ = [
     "StatusDelivered",
     "StatusSent",
     "SupervisorGaveUp",
-    "describe",
-    "from_dict",
-    "to_dict",
 ]
-
-SCHEMA = 1
-"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads this one."""
 
 
 def _now() -> Any:
@@ -427,187 +401,3 @@ Event: TypeAlias = (
     | EventsDropped
 )
 """Any event of this module (a subscriber's callback receives these)."""
-
-_TYPES: dict[str, type[Event]] = {cls.__name__: cls for cls in typing.get_args(Event)}
-
-
-# -- JSON lines -----------------------------------------------------------------------------
-
-
-def to_dict(event: Event) -> dict[str, Any]:
-    """Return `event` as JSON-able data: `"type"` (the class name), its fields, `"schema"`.
-
-    A `Status` becomes its name (`"FATAL"`). `json.dumps(to_dict(event))` is one line of
-    an `events.jsonl` file; [`from_dict`][rr_actors.events.from_dict] reads it back.
-
-    Args:
-        event: any event of this module.
-
-    Returns:
-        A new dict of strings, numbers and `"type"`/`"schema"` keys.
-    """
-    data: dict[str, Any] = {"type": type(event).__name__}
-    for field in dataclasses.fields(event):
-        value = getattr(event, field.name)
-        data[field.name] = value.name if isinstance(value, Status) else value
-    data["schema"] = SCHEMA
-    return data
-
-
-def from_dict(data: dict[str, Any]) -> Event:
-    """Rebuild an event from [`to_dict`][rr_actors.events.to_dict] output.
-
-    Every field must be present (`at` and `pid` too: they say when and where it
-    happened, not when it was read) and of its type; an `int` is accepted for a `float`.
-
-    Args:
-        data: a dict as `to_dict` returns it (for example, one parsed JSON line).
-
-    Returns:
-        An event equal to the one `to_dict` was given.
-
-    Raises:
-        ConfigError: `data` is not a dict, has another `"schema"`, an unknown `"type"`,
-            unknown or missing fields, or a value of the wrong type; the message names
-            what was wrong.
-    """
-    if not isinstance(data, dict):
-        raise ConfigError(f"an event must be a dict, got {type(data).__name__}")
-    if data.get("schema") != SCHEMA:
-        raise ConfigError(f"unsupported event schema {data.get('schema')!r} (expected {SCHEMA})")
-    name = data.get("type")
-    cls = _TYPES.get(name) if isinstance(name, str) else None
-    if cls is None:
-        raise ConfigError(f"unknown event type {name!r}")
-    types = _field_types(cls)
-    given = set(data) - {"type", "schema"}
-    unknown = sorted(given - set(types))
-    missing = [field for field in types if field not in given]
-    if unknown or missing:
-        problems = [f"unknown fields {unknown}"] * bool(unknown)
-        problems += [f"missing fields {missing}"] * bool(missing)
-        raise ConfigError(f"{name}: {', '.join(problems)}")
-    values = {f: _convert(cls.__name__, f, kind, data[f]) for f, kind in types.items()}
-    return cls(**values)
-
-
-def _field_types(cls: type[Event]) -> dict[str, type]:
-    hints = typing.get_type_hints(cls)
-    return {field.name: hints[field.name] for field in dataclasses.fields(cls)}
-
-
-def _convert(event: str, field: str, kind: type, value: object) -> Any:
-    """Check one field's value from a dict (and turn a status name into a `Status`)."""
-    if kind is Status and isinstance(value, str) and value in Status.__members__:
-        return Status[value]
-    if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
-        return float(value)
-    if kind in (int, str) and isinstance(value, kind) and not isinstance(value, bool):
-        return value
-    expected = "a Status name" if kind is Status else kind.__name__
-    raise ConfigError(f"{event}.{field} must be {expected}, got {value!r}")
-
-
-# -- one human line -------------------------------------------------------------------------
-
-
-def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per event kind
-    """Return one human line about `event` (the INFO log line and terminal timelines).
-
-    Ids are shortened to their first 8 characters; durations are in ms below a second.
-    The `at` and `pid` every event has are left to the log record's own fields, except
-    for child events, where the pid says which incarnation it was.
-
-    Args:
-        event: any event of this module.
-
-    Returns:
-        One line without a line break, for example `"erm restarted after 23.1 ms (pid 4242)"`.
-    """
-    match event:
-        case ChildStarted():
-            return f"{event.child} started (pid {event.pid})"
-        case ChildExited():
-            return f"{event.child} exited: {_text(event.reason)} (pid {event.pid})"
-        case ChildRestarted():
-            return f"{event.child} restarted after {_seconds(event.restart_s)} (pid {event.pid})"
-        case SupervisorGaveUp():
-            return (
-                f"supervisor {event.supervisor} gave up (more than {event.max_restarts} "
-                f"restarts within {event.period:g} s): {_text(event.reason)}"
-            )
-        case ResourceLoaded():
-            return (
-                f"{event.registrar}/{event.server} loaded {_id(event.resource_id)} "
-                f"in {_seconds(event.load_s)} (query {_id(event.query_id)})"
-            )
-        case LoadFailed():
-            return (
-                f"{event.registrar}/{event.server} failed to load {_id(event.resource_id)} "
-                f"(query {_id(event.query_id)}): {event.error_type}: {_text(event.message)}"
-            )
-        case ResourceUnloaded():
-            return f"{event.registrar}/{event.server} unloaded {_id(event.resource_id)}"
-        case ConsumerAdded():
-            return (
-                f"{event.registrar}: {event.consumer} consumes {_id(event.resource_id)} "
-                f"(query {_id(event.query_id)})"
-            )
-        case ConsumerReleased():
-            return (
-                f"{event.registrar}: {event.consumer} released {_id(event.resource_id)} "
-                f"(query {_id(event.query_id)})"
-            )
-        case StatusSent():
-            return (
-                f"{event.registrar} sent {event.status.name} for query {_id(event.query_id)}: "
-                f"{_text(event.message)}"
-            )
-        case StatusDelivered():
-            return (
-                f"{event.registrar} received {event.status.name} for query "
-                f"{_id(event.query_id)} (hop {event.hop}, {_seconds(event.latency_s)} after "
-                f"it was sent)"
-            )
-        case InDoubt():
-            return (
-                f"{event.registrar}: query {_id(event.query_id)} is in doubt "
-                f"(its load started before a crash and was never committed)"
-            )
-        case EventsDropped():
-            return f"{event.count} events dropped (a subscriber or forwarder fell behind)"
-    typing.assert_never(event)
-
-
-def _id(value: str) -> str:
-    return value[:8]
-
-
-def _seconds(value: float) -> str:
-    return f"{value * 1e3:.1f} ms" if abs(value) < 1.0 else f"{value:.2f} s"
-
-
-_LONGEST_TEXT = 200
-"""Characters of free text (messages, reasons) `describe` keeps; the rest becomes `...`."""
-
-
-def _text(value: str) -> str:
-    line = value.replace("\r", "\\r").replace("\n", "\\n")
-    if len(line) > _LONGEST_TEXT:
-        return line[: _LONGEST_TEXT - 3] + "..."
-    return line
-
-
-# -- for rr_actors' own publishers -------------------------------------------------------------
-
-
-def publisher(logger: logging.Logger | None = None) -> Publisher[Event]:
-    """A `Publisher` of these events: INFO lines through `describe`, `EventsDropped` notices.
-
-    What registrars and supervisors publish on; not needed by programs that subscribe.
-
-    Args:
-        logger: where each event is also logged at INFO (when that logger is enabled
-            for INFO), or `None` for no log lines.
-    """
-    return Publisher(logger=logger, describe=describe, notice=EventsDropped)

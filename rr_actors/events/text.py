@@ -1,0 +1,111 @@
+"""One human line per event: the INFO log line and what terminal timelines show."""
+
+from __future__ import annotations
+
+import typing
+
+from rr_actors.events.kinds import (
+    ChildExited,
+    ChildRestarted,
+    ChildStarted,
+    ConsumerAdded,
+    ConsumerReleased,
+    Event,
+    EventsDropped,
+    InDoubt,
+    LoadFailed,
+    ResourceLoaded,
+    ResourceUnloaded,
+    StatusDelivered,
+    StatusSent,
+    SupervisorGaveUp,
+)
+
+__all__ = ["describe"]
+
+
+def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per event kind
+    """Return one human line about `event` (the INFO log line and terminal timelines).
+
+    Ids are shortened to their first 8 characters; durations are in ms below a second.
+    The `at` and `pid` every event has are left to the log record's own fields, except
+    for child events, where the pid says which incarnation it was.
+
+    Args:
+        event: any event of this module.
+
+    Returns:
+        One line without a line break, for example `"erm restarted after 23.1 ms (pid 4242)"`.
+    """
+    match event:
+        case ChildStarted():
+            return f"{event.child} started (pid {event.pid})"
+        case ChildExited():
+            return f"{event.child} exited: {_text(event.reason)} (pid {event.pid})"
+        case ChildRestarted():
+            return f"{event.child} restarted after {_seconds(event.restart_s)} (pid {event.pid})"
+        case SupervisorGaveUp():
+            return (
+                f"supervisor {event.supervisor} gave up (more than {event.max_restarts} "
+                f"restarts within {event.period:g} s): {_text(event.reason)}"
+            )
+        case ResourceLoaded():
+            return (
+                f"{event.registrar}/{event.server} loaded {_id(event.resource_id)} "
+                f"in {_seconds(event.load_s)} (query {_id(event.query_id)})"
+            )
+        case LoadFailed():
+            return (
+                f"{event.registrar}/{event.server} failed to load {_id(event.resource_id)} "
+                f"(query {_id(event.query_id)}): {event.error_type}: {_text(event.message)}"
+            )
+        case ResourceUnloaded():
+            return f"{event.registrar}/{event.server} unloaded {_id(event.resource_id)}"
+        case ConsumerAdded():
+            return (
+                f"{event.registrar}: {event.consumer} consumes {_id(event.resource_id)} "
+                f"(query {_id(event.query_id)})"
+            )
+        case ConsumerReleased():
+            return (
+                f"{event.registrar}: {event.consumer} released {_id(event.resource_id)} "
+                f"(query {_id(event.query_id)})"
+            )
+        case StatusSent():
+            return (
+                f"{event.registrar} sent {event.status.name} for query {_id(event.query_id)}: "
+                f"{_text(event.message)}"
+            )
+        case StatusDelivered():
+            return (
+                f"{event.registrar} received {event.status.name} for query "
+                f"{_id(event.query_id)} (hop {event.hop}, {_seconds(event.latency_s)} after "
+                f"it was sent)"
+            )
+        case InDoubt():
+            return (
+                f"{event.registrar}: query {_id(event.query_id)} is in doubt "
+                f"(its load started before a crash and was never committed)"
+            )
+        case EventsDropped():
+            return f"{event.count} events dropped (a subscriber or forwarder fell behind)"
+    typing.assert_never(event)
+
+
+def _id(value: str) -> str:
+    return value[:8]
+
+
+def _seconds(value: float) -> str:
+    return f"{value * 1e3:.1f} ms" if abs(value) < 1.0 else f"{value:.2f} s"
+
+
+_LONGEST_TEXT = 200
+"""Characters of free text (messages, reasons) `describe` keeps; the rest becomes `...`."""
+
+
+def _text(value: str) -> str:
+    line = value.replace("\r", "\\r").replace("\n", "\\n")
+    if len(line) > _LONGEST_TEXT:
+        return line[: _LONGEST_TEXT - 3] + "..."
+    return line
