@@ -1,0 +1,66 @@
+"""Helpers for testing code built on rr_actors (and rr_actors itself).
+
+Placement-independent helpers: [`crash`][rr_actors.testing.crash] and
+[`catalog_snapshot`][rr_actors.testing.catalog_snapshot] accept a `ResourceRegistrar` (a
+registrar in this process) or a [`RemoteRegistrar`][rr_actors.testing.RemoteRegistrar] (a
+registrar in a manager process of a system). A `RemoteRegistrar` has the methods of a
+`ResourceRegistrar`, so one test body exercises both placements.
+
+State that a test shares with callbacks which may run in another process (journals,
+events, barriers) comes from [`SharedObjects`][rr_actors.testing.SharedObjects].
+
+Seams for tests that must make a race happen on purpose, or look at what a registrar
+still waits for. They name the registrar's steps (`intercept`) and what it holds
+(`pending_work`) in words that are part of this module's contract, so a test never
+reaches into private handler tables, and renaming a step breaks such a test loudly
+(`ConfigError`) instead of turning it into a test that races nothing:
+
+- [`run_on_actor`][rr_actors.testing.run_on_actor]: run code on a registrar's actor
+  thread (hold it busy at a chosen moment);
+- [`intercept`][rr_actors.testing.intercept]: run hooks before or after one of its named
+  steps ([`STEPS`][rr_actors.testing.STEPS]);
+- [`call_futures`][rr_actors.testing.call_futures]: choose the future class its callers
+  wait on (to make an answer race a timeout);
+- [`pending_work`][rr_actors.testing.pending_work]: what it still waits for;
+- [`expect_restart`][rr_actors.testing.expect_restart]: say a restart is coming, as a
+  supervisor does (no death watch when the registrar dies).
+
+Where they live: `helpers.py`, `seams.py`, `shared.py` (re-exported here).
+"""
+
+from __future__ import annotations
+
+from rr_actors._process.remote import RemoteRegistrar
+from rr_actors._registrar.lifecycle import CatalogView
+from rr_actors._registrar.probes import STEPS
+from rr_actors.testing.helpers import catalog_snapshot, crash, running_actors
+from rr_actors.testing.seams import (
+    Installed,
+    PendingWork,
+    actor_ref,
+    call_futures,
+    expect_restart,
+    intercept,
+    pending_work,
+    run_on_actor,
+)
+from rr_actors.testing.shared import Records, SharedObjects
+
+__all__ = [
+    "STEPS",
+    "CatalogView",
+    "Installed",
+    "PendingWork",
+    "Records",
+    "RemoteRegistrar",
+    "SharedObjects",
+    "actor_ref",
+    "call_futures",
+    "catalog_snapshot",
+    "crash",
+    "expect_restart",
+    "intercept",
+    "pending_work",
+    "run_on_actor",
+    "running_actors",
+]
