@@ -233,6 +233,8 @@ class Supervisor:
         if timeout is not None:
             check_seconds("timeout", timeout)
         deadline = None if timeout is None else time.monotonic() + timeout
+        if not self._started:
+            self._close_observers()  # opened on a supervisor that never started
         if not self._started or self._stopped:
             return
         for registrar in reversed(self._registrars):
@@ -244,9 +246,6 @@ class Supervisor:
         self._node.stop(deadline=deadline)
         self._stopped = True
         self._release()
-        for observer in self._observers:  # after the stop: its pages saw it to the end
-            observer.close()
-        self._observers.clear()
 
     def __enter__(self) -> Supervisor:
         return self.start()
@@ -283,6 +282,12 @@ class Supervisor:
         self._tree.attached = None
         if self._lock is not None:
             self._lock.release()
+        self._close_observers()  # last: their pages saw the tree stop
+
+    def _close_observers(self) -> None:
+        observers, self._observers = self._observers, []
+        for observer in observers:
+            observer.close()
 
     # -- events -------------------------------------------------------------------------
 
@@ -401,7 +406,7 @@ class Supervisor:
         self._observers.append(observer)
         return observer
 
-    def graph(self, format: str = "mermaid") -> str:  # noqa: A002 - the CLI's --format
+    def graph(self, format: str = "mermaid") -> str:
         """The tree and the dependency graph across its registrars, as text, now.
 
         Supervisors are hexagons with an arrow to each child; a manager's registrar is

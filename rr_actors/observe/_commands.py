@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import threading
 from typing import TextIO
 
@@ -55,7 +56,9 @@ def observe_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def run_observe(args: argparse.Namespace, out: TextIO, *, stop: threading.Event | None = None) -> int:
+def run_observe(
+    args: argparse.Namespace, out: TextIO, *, stop: threading.Event | None = None
+) -> int:
     """Serve the page until Ctrl-C, `--for` seconds, or `stop` is set; returns 0.
 
     Raises:
@@ -69,10 +72,8 @@ def run_observe(args: argparse.Namespace, out: TextIO, *, stop: threading.Event 
     try:
         out.write(f"observer: {observer.url} (backups in {args.state}; Ctrl-C stops)\n")
         out.flush()
-        try:
+        with contextlib.suppress(KeyboardInterrupt):
             stop.wait(args.duration)
-        except KeyboardInterrupt:
-            pass
     finally:
         observer.close()
     return 0
@@ -83,7 +84,9 @@ def graph_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--state", required=True, metavar="DIR", help="a supervisor's state_dir (its *.db files)"
     )
-    parser.add_argument("--format", choices=FORMATS, default="mermaid", help="mermaid (default) or dot")
+    parser.add_argument(
+        "--format", choices=FORMATS, default="mermaid", help="mermaid (default) or dot"
+    )
 
 
 def run_graph(args: argparse.Namespace, out: TextIO) -> int:

@@ -23,9 +23,8 @@ from typing import Any
 
 from rr_actors._registrar import ResourceRegistrar
 from rr_actors._types import Status
-from rr_actors.config import ManagerSpec
+from rr_actors.config import ManagerSpec, SupervisorSpec
 from rr_actors.observe._sources import Observable, managers
-from rr_actors.config import SupervisorSpec
 
 __all__ = ["FATAL_MESSAGE", "FaultRefused", "Faults"]
 
@@ -100,7 +99,9 @@ class Faults:
         self._forget(pid)
         return f"SIGCONT sent to {child} (pid {pid}): it runs again"
 
-    def _signal(self, child: str, pid: int, sig: signal.Signals, *, keep: bool = False) -> int | None:
+    def _signal(
+        self, child: str, pid: int, sig: signal.Signals, *, keep: bool = False
+    ) -> int | None:
         spec = self.specs.get(child)
         if spec is None:
             raise FaultRefused(f"{child!r} is not a manager of this tree", 404)
@@ -174,7 +175,7 @@ class Faults:
         send = functools.partial(_send_fatal, query_id)
         try:
             self.sup.run_in(registrar, send, timeout=FATAL_TIMEOUT + 1.0)
-        except Exception as exc:  # noqa: BLE001 - told to the page as it is
+        except Exception as exc:
             raise FaultRefused(f"the FATAL could not be sent: {type(exc).__name__}: {exc}") from exc
         return (
             f"FATAL sent on {registrar}/{resource['server']} {resource['request']} "

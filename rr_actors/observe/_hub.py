@@ -89,7 +89,9 @@ class Hub:
     def keys(self, prefix: str = "") -> list[str]:
         """The keys of the sections that have a value, starting with `prefix`."""
         with self._lock:
-            return [k for k, (_, v) in self._sections.items() if k.startswith(prefix) and v is not None]
+            return [
+                k for k, (_, v) in self._sections.items() if k.startswith(prefix) and v is not None
+            ]
 
     def add_events(self, events: list[dict[str, Any]]) -> None:
         """Append events (JSON-able dicts); each gets its `"seq"` number."""

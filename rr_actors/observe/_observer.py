@@ -179,7 +179,9 @@ def observe_supervisor(
     """Open the live page of a supervision tree (what `Supervisor.observe` does)."""
     hub = Hub()
     source = LiveSource(sup, access, hub)
-    faults = Faults(sup, access.spec, lambda name: hub.get(f"catalog/{name}")) if allow_faults else None
+    faults = (
+        Faults(sup, access.spec, lambda name: hub.get(f"catalog/{name}")) if allow_faults else None
+    )
     hello = {"mode": "live", "title": f"supervisor {sup.name}", "pid": os.getpid()}
     try:
         return Observer(

@@ -57,8 +57,10 @@ ASGIApp = Callable[[Scope, Any, Any], Awaitable[None]]
 
 _HEADERS = {
     "Content-Security-Policy": (
-        "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; "
-        "connect-src 'self'; frame-ancestors 'none'; base-uri 'none'; form-action 'none'"
+        # cytoscape.js sets styles of its own elements: 'unsafe-inline' for styles only
+        "default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
+        "img-src 'self' data:; connect-src 'self'; frame-ancestors 'none'; base-uri 'none'; "
+        "form-action 'none'"
     ),
     "X-Content-Type-Options": "nosniff",
     "Referrer-Policy": "no-referrer",
@@ -135,9 +137,11 @@ def build_app(
     async def stream(request: Request) -> Response:
         return EventSourceResponse(_stream(hub, hello, request), ping=PING, send_timeout=10.0)
 
-    async def fault(request: Request) -> Response:
+    async def fault(request: Request) -> Response:  # noqa: PLR0911 - one answer per check
         if faults is None:
-            return _refuse("teaching mode is off: the observer was opened without allow_faults", 403)
+            return _refuse(
+                "teaching mode is off: the observer was opened without allow_faults", 403
+            )
         given = request.headers.get("x-rr-token", "")
         if not secrets.compare_digest(given.encode(), token.encode()):
             return _refuse("wrong or missing token: open the URL the observer printed", 403)
@@ -157,7 +161,9 @@ def build_app(
             message = await anyio.to_thread.run_sync(_inject, faults, kind, data)
         except FaultRefused as exc:
             return _refuse(str(exc), exc.status)
-        hub.add_events([{"type": "ObserverFault", "kind": kind, "text": message, "at": time.time()}])
+        hub.add_events(
+            [{"type": "ObserverFault", "kind": kind, "text": message, "at": time.time()}]
+        )
         return JSONResponse({"ok": True, "message": message})
 
     app = Starlette(

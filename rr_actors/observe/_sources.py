@@ -2,10 +2,10 @@
 
 ```
  LiveSource (a running Supervisor)
-   tree watcher thread ── waits on the tree's condition (every snapshot publish) ──► "tree"
-   event subscription ─── every event (to_dict + describe) ─────────────────────────► events
-        └─ marks registrars dirty ──► catalog refresher thread ── Supervisor.run_in ──► "catalog/<name>"
-                                                                   (catalog_of)       "graph"
+   tree watcher thread ── waits on the tree's condition (each publish) ──► "tree"
+   event subscription ─── every event (to_dict + describe) ──────────────► events
+        └─ marks registrars dirty ──► catalog refresher thread ──────────► "catalog/<name>",
+                                      (Supervisor.run_in(name, catalog_of))  "graph"
  BackupSource (a state directory)
    poller thread ── a backup file changed ── read_backup ──► "files", "catalog/<name>", "graph"
 ```
@@ -339,9 +339,7 @@ class LiveSource:
             section = self._read(name, local)
             self._catalogs[name] = section
             self.hub.put(f"catalog/{name}", section)
-        catalogs = {
-            name: (s["catalog"] if s["available"] else None) for name, s in self._catalogs.items()
-        }
+        catalogs = {name: s["catalog"] for name, s in self._catalogs.items()}  # (or last seen)
         states = {name: s["state"] for name, s in self._catalogs.items()}
         self.hub.put("graph", dependency_graph(catalogs, states))
 

@@ -126,7 +126,7 @@ def _mermaid(graph: dict[str, Any], tree: dict[str, Any] | None) -> str:
         lines.append("  end")
     for key, _, parent in supervisors:
         if parent:
-            lines.append(f"  {name(parent, 's')} --> {name(key, 'r' if key.startswith('reg:') else 's')}")
+            lines.append(f"  {name(parent, 's')} --> {_tree(name, key)}")
     for edge in graph["edges"]:
         source, target = _node(name, edge["source"]), _node(name, edge["target"])
         lines.append(f'  {source} -. "{edge["label"]}" .-> {target}')
@@ -134,7 +134,35 @@ def _mermaid(graph: dict[str, Any], tree: dict[str, Any] | None) -> str:
 
 
 def _node(name: Callable[[str, str], str], key: str) -> str:
+    """A graph node's short name: a registrar or a resource."""
     return name(key, "r" if key.startswith("reg:") else "n")
+
+
+def _tree(name: Callable[[str, str], str], key: str) -> str:
+    """A tree node's short name: a registrar or a supervisor."""
+    return name(key, "r" if key.startswith("reg:") else "s")
+
+
+def _dot_registrar(
+    name: Callable[[str, str], str],
+    reg: str,
+    label: str,
+    held: list[dict[str, Any]],
+    anchors: dict[str, str],
+) -> list[str]:
+    """A registrar: a node, or a cluster of its resources (its first one is its anchor)."""
+    reg_name = name(reg, "r")
+    if not held:
+        return [f'  {reg_name} [label="{_dot_text(label)}"];']
+    lines = [f"  subgraph cluster_{reg_name} {{", f'    label="{_dot_text(label)}"; style=rounded;']
+    for res in held:
+        mark = " (in doubt)" if res.get("in_doubt") else ""
+        node_name = name(res["id"], "n")
+        anchors.setdefault(reg, node_name)
+        style = ", style=dashed" if res.get("in_doubt") else ""
+        lines.append(f'    {node_name} [label="{_dot_text(_cut(res["label"]) + mark)}"{style}];')
+    lines.append("  }")
+    return lines
 
 
 def _dot(graph: dict[str, Any], tree: dict[str, Any] | None) -> str:
@@ -149,32 +177,15 @@ def _dot(graph: dict[str, Any], tree: dict[str, Any] | None) -> str:
     for key, label, _ in supervisors:
         if key.startswith("sup:"):
             lines.append(f'  {name(key, "s")} [label="{_dot_text(label)}", shape=hexagon];')
-    anchors: dict[str, str] = {}
+    anchors: dict[str, str] = {}  # registrar drawn as a cluster -> its first resource
     for reg in order:
-        label = _dot_text(labels[reg])
-        held = resources.get(reg, [])
-        reg_name = name(reg, "r")
-        if not held:
-            lines.append(f'  {reg_name} [label="{label}"];')
-            continue
-        lines.append(f"  subgraph cluster_{reg_name} {{")
-        lines.append(f'    label="{label}"; style=rounded;')
-        for index, res in enumerate(held):
-            mark = " (in doubt)" if res.get("in_doubt") else ""
-            node_name = name(res["id"], "n")
-            if index == 0:
-                anchors[reg] = node_name
-            style = ", style=dashed" if res.get("in_doubt") else ""
-            lines.append(f'    {node_name} [label="{_dot_text(_cut(res["label"]) + mark)}"{style}];')
-        lines.append("  }")
+        lines.extend(_dot_registrar(name, reg, labels[reg], resources.get(reg, []), anchors))
     for key, _, parent in supervisors:
-        if not parent:
-            continue
-        if key in anchors:
-            reg_name = name(key, "r")
-            lines.append(f"  {name(parent, 's')} -> {anchors[key]} [lhead=cluster_{reg_name}];")
-        else:
-            lines.append(f"  {name(parent, 's')} -> {_node(name, key) if key.startswith('reg:') else name(key, 's')};")
+        if parent and key in anchors:
+            cluster = f"cluster_{_tree(name, key)}"
+            lines.append(f"  {name(parent, 's')} -> {anchors[key]} [lhead={cluster}];")
+        elif parent:
+            lines.append(f"  {name(parent, 's')} -> {_tree(name, key)};")
     for edge in graph["edges"]:
         source, target = _node(name, edge["source"]), _node(name, edge["target"])
         extra = ""

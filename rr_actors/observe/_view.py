@@ -138,6 +138,85 @@ def _resource_node(registrar: str, resource_id: str) -> str:
     return f"res:{registrar}:{resource_id}"
 
 
+class _Graph:
+    """The nodes and edges `dependency_graph` collects, keyed by id."""
+
+    def __init__(
+        self, catalogs: Mapping[str, dict[str, Any] | None], states: Mapping[str, str]
+    ) -> None:
+        self.catalogs = catalogs
+        self.states = states
+        self.nodes: dict[str, dict[str, Any]] = {}
+        self.edges: dict[str, dict[str, Any]] = {}
+        self.serving: dict[str, str] = {}  # query id -> the provider's resource node
+
+    def registrar(self, name: str) -> str:
+        node = f"reg:{name}"
+        if node not in self.nodes:
+            known = self.catalogs.get(name) is not None
+            state = self.states.get(name, "known" if known else "external")
+            self.nodes[node] = {"id": node, "kind": "registrar", "label": name, "state": state}
+        return node
+
+    def known(self) -> Iterable[tuple[str, dict[str, Any]]]:
+        return ((n, c) for n, c in self.catalogs.items() if c is not None)
+
+    def add_resources(self) -> None:
+        for name, catalog in self.known():
+            for resource in catalog["resources"]:
+                node = _resource_node(name, resource["id"])
+                self.nodes[node] = {
+                    "id": node,
+                    "kind": "resource",
+                    "parent": f"reg:{name}",
+                    "label": f"{resource['server']}: {resource['request']}",
+                    "server": resource["server"],
+                    "resource_id": resource["id"],
+                    "registrar": name,
+                    "state": resource["state"],
+                    "in_doubt": resource["in_doubt"],
+                    "consumers": len(resource["consumers"]),
+                }
+                for consumer in resource["consumers"]:
+                    self.serving[consumer["query_id"]] = node
+
+    def add_queries(self) -> None:
+        """One edge per client record: from its owner resource (or registrar) to the provider's."""
+        for name, catalog in self.known():
+            for client in catalog["clients"]:
+                qid, parent = client["query_id"], client["parent"]
+                source = _resource_node(name, parent) if parent else self.registrar(name)
+                if source not in self.nodes:
+                    source = self.registrar(name)
+                target = self.serving.get(qid) or self.registrar(client["serving_rr"])
+                self.edge(qid, source, target, loaded=client["loaded"], orphan=False)
+
+    def add_unexplained(self) -> None:
+        """Consumer ids at a provider that no known client record explains."""
+        for name, catalog in self.known():
+            for resource in catalog["resources"]:
+                for consumer in resource["consumers"]:
+                    qid = consumer["query_id"]
+                    if qid in self.edges:
+                        continue
+                    # its consumer's catalog is known and does not hold it: nobody will
+                    # release it unless the consumer comes back for it (or dies for good)
+                    orphan = self.catalogs.get(consumer["origin"]) is not None
+                    source = self.registrar(consumer["origin"])
+                    target = _resource_node(name, resource["id"])
+                    self.edge(qid, source, target, loaded=True, orphan=orphan)
+
+    def edge(self, qid: str, source: str, target: str, *, loaded: bool, orphan: bool) -> None:
+        self.edges[qid] = {
+            "id": f"q:{qid}",
+            "source": source,
+            "target": target,
+            "label": qid[:8],
+            "loaded": loaded,
+            "orphan": orphan,
+        }
+
+
 def dependency_graph(
     catalogs: Mapping[str, dict[str, Any] | None],
     states: Mapping[str, str] | None = None,
@@ -156,77 +235,19 @@ def dependency_graph(
 
     Returns:
         `{"nodes": [{"id", "kind", "label", "parent", "state", ...}], "edges": [{"id",
-        "source", "target", "label", "loaded"}]}`, in a stable order.
+        "source", "target", "label", "loaded", "orphan"}]}`, in a stable order. An
+        orphan edge is a consumer id at a provider whose consumer's catalog is known and
+        holds no such query (a consumer restarted without a backup, say).
     """
-    states = states or {}
-    nodes: dict[str, dict[str, Any]] = {}
-    serving: dict[str, str] = {}  # query id -> provider resource node
-
-    def registrar_node(name: str) -> str:
-        node = f"reg:{name}"
-        if node not in nodes:
-            known = catalogs.get(name) is not None
-            state = states.get(name, "known" if known else "external")
-            nodes[node] = {"id": node, "kind": "registrar", "label": name, "state": state}
-        return node
-
+    graph = _Graph(catalogs, states or {})
     for name in catalogs:
-        registrar_node(name)
-    for name, catalog in catalogs.items():
-        if catalog is None:
-            continue
-        for resource in catalog["resources"]:
-            node = _resource_node(name, resource["id"])
-            nodes[node] = {
-                "id": node,
-                "kind": "resource",
-                "parent": f"reg:{name}",
-                "label": f"{resource['server']}: {resource['request']}",
-                "server": resource["server"],
-                "resource_id": resource["id"],
-                "registrar": name,
-                "state": resource["state"],
-                "in_doubt": resource["in_doubt"],
-                "consumers": len(resource["consumers"]),
-            }
-            for consumer in resource["consumers"]:
-                serving[consumer["query_id"]] = node
-    edges: dict[str, dict[str, Any]] = {}
-    for name, catalog in catalogs.items():
-        if catalog is None:
-            continue
-        for client in catalog["clients"]:
-            qid = client["query_id"]
-            parent = client["parent"]
-            source = _resource_node(name, parent) if parent else registrar_node(name)
-            if source not in nodes:
-                source = registrar_node(name)
-            target = serving.get(qid) or registrar_node(client["serving_rr"])
-            edges[qid] = {
-                "id": f"q:{qid}",
-                "source": source,
-                "target": target,
-                "label": qid[:8],
-                "loaded": client["loaded"],
-            }
-    for name, catalog in catalogs.items():  # consumers whose own catalog is not known
-        if catalog is None:
-            continue
-        for resource in catalog["resources"]:
-            for consumer in resource["consumers"]:
-                qid = consumer["query_id"]
-                if qid in edges or catalogs.get(consumer["origin"]) is not None:
-                    continue
-                edges[qid] = {
-                    "id": f"q:{qid}",
-                    "source": registrar_node(consumer["origin"]),
-                    "target": _resource_node(name, resource["id"]),
-                    "label": qid[:8],
-                    "loaded": True,
-                }
+        graph.registrar(name)
+    graph.add_resources()
+    graph.add_queries()
+    graph.add_unexplained()
     return {
-        "nodes": list(nodes.values()),
-        "edges": sorted(edges.values(), key=lambda e: (e["source"], e["target"], e["id"])),
+        "nodes": list(graph.nodes.values()),
+        "edges": sorted(graph.edges.values(), key=lambda e: (e["source"], e["target"], e["id"])),
     }
 
 

@@ -492,17 +492,24 @@
         },
       })),
       ...graph.edges.map((e) => ({
-        data: { id: e.id, source: e.source, target: e.target, label: e.label, loaded: e.loaded ? "yes" : "no" },
+        data: {
+          id: e.id,
+          source: e.source,
+          target: e.target,
+          label: e.orphan ? `${e.label} (no client record)` : e.label,
+          loaded: e.loaded ? "yes" : "no",
+          orphan: e.orphan ? "yes" : "no",
+        },
       })),
     ];
     if (!cy) {
       cy = cytoscape({
         container: $("graph"),
         elements: [],
-        wheelSensitivity: 0.3,
         style: [
           { selector: "node", style: { label: "data(label)", "font-size": 10, "text-wrap": "wrap", "text-max-width": 160, "text-valign": "center", "background-color": "#dcf3e5", "border-width": 1, "border-color": "#1f8a4c", shape: "round-rectangle", width: 170, height: 46 } },
           { selector: 'node[kind = "registrar"]', style: { "background-color": "#eef1f6", "border-color": "#667085", "font-weight": "bold", "text-valign": "top", "text-halign": "center", "font-size": 12 } },
+          { selector: 'node[kind = "registrar"]:childless', style: { "text-valign": "center", width: 120, height: 36 } },
           { selector: "$node > node", style: { "padding-top": 22, "padding-left": 10, "padding-right": 10, "padding-bottom": 10 } },
           { selector: 'node[kind = "registrar"][state = "restarting"], node[kind = "registrar"][state = "starting"]', style: { "border-style": "dashed", "border-color": "#b7791f", "background-color": "#fff8e6" } },
           { selector: 'node[kind = "registrar"][state = "stopped"], node[kind = "registrar"][state = "exited"], node[kind = "registrar"][state = "external"]', style: { "border-style": "dotted", opacity: 0.6 } },
@@ -511,6 +518,7 @@
           { selector: "node.fatal", style: { "background-color": "#c53030", color: "#fff" } },
           { selector: "edge", style: { width: 1.5, "curve-style": "bezier", "target-arrow-shape": "triangle", "line-color": "#7c8aa5", "target-arrow-color": "#7c8aa5", label: "data(label)", "font-size": 9, "text-background-color": "#fbfcfd", "text-background-opacity": 1 } },
           { selector: 'edge[loaded = "no"]', style: { "line-style": "dashed" } },
+          { selector: 'edge[orphan = "yes"]', style: { "line-style": "dashed", "line-color": "#c53030", "target-arrow-color": "#c53030", color: "#c53030" } },
         ],
       });
     }
