@@ -57,6 +57,7 @@
   }
   const ms = (s) => (s < 1 ? `${(s * 1000).toFixed(1)} ms` : `${s.toFixed(2)} s`);
   const plural = (n, word) => `${n} ${word}${n === 1 ? "" : "s"}`;
+  const cut = (text, width) => (text.length <= width ? text : `${text.slice(0, width - 1)}…`);
 
   // -- the stream ----------------------------------------------------------------------
   function connect() {
@@ -454,12 +455,13 @@
     const rows = {};
     for (const n of graph.nodes) if (n.kind === "registrar") (rows[rank[n.id]] = rows[rank[n.id]] || []).push(n);
     const positions = {};
-    const W = 190;
-    const H = 150;
+    const W = 200;
+    const H = 160;
+    const GAP = 70;
     let widest = 0;
     const widths = {};
     for (const [r, regs] of Object.entries(rows)) {
-      widths[r] = regs.reduce((sum, reg) => sum + Math.max(1, (children[reg.id] || []).length) * W + 40, 0);
+      widths[r] = regs.reduce((sum, reg) => sum + Math.max(1, (children[reg.id] || []).length) * W + GAP, 0);
       widest = Math.max(widest, widths[r]);
     }
     for (const [r, regs] of Object.entries(rows)) {
@@ -468,7 +470,7 @@
         const kids = children[reg.id] || [];
         if (!kids.length) positions[reg.id] = { x: x + W / 2, y: Number(r) * H };
         kids.forEach((kid, i) => (positions[kid.id] = { x: x + W / 2 + i * W, y: Number(r) * H }));
-        x += Math.max(1, kids.length) * W + 40;
+        x += Math.max(1, kids.length) * W + GAP;
       }
     }
     return positions;
@@ -485,7 +487,7 @@
         data: {
           id: n.id,
           parent: n.parent,
-          label: n.kind === "registrar" ? n.label : `${n.label}${n.consumers > 1 ? ` ×${n.consumers}` : ""}`,
+          label: n.kind === "registrar" ? n.label : `${cut(n.label, 72)}${n.consumers > 1 ? ` ×${n.consumers}` : ""}`,
           kind: n.kind,
           state: n.state || "",
           doubt: n.in_doubt ? "yes" : "no",
@@ -507,7 +509,7 @@
         container: $("graph"),
         elements: [],
         style: [
-          { selector: "node", style: { label: "data(label)", "font-size": 10, "text-wrap": "wrap", "text-max-width": 160, "text-valign": "center", "background-color": "#dcf3e5", "border-width": 1, "border-color": "#1f8a4c", shape: "round-rectangle", width: 170, height: 46 } },
+          { selector: "node", style: { label: "data(label)", "font-size": 10, "text-wrap": "wrap", "text-max-width": 160, "text-overflow-wrap": "anywhere", "text-valign": "center", "background-color": "#dcf3e5", "border-width": 1, "border-color": "#1f8a4c", shape: "round-rectangle", width: 170, height: 56 } },
           { selector: 'node[kind = "registrar"]', style: { "background-color": "#eef1f6", "border-color": "#667085", "font-weight": "bold", "text-valign": "top", "text-halign": "center", "font-size": 12 } },
           { selector: 'node[kind = "registrar"]:childless', style: { "text-valign": "center", width: 120, height: 36 } },
           { selector: "$node > node", style: { "padding-top": 22, "padding-left": 10, "padding-right": 10, "padding-bottom": 10 } },
