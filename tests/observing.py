@@ -172,7 +172,7 @@ class Stream:
         """
         name, data = "message", []
         while True:
-            raw = self.response.fp.readline()
+            raw = self.response.readline()
             if not raw:
                 raise EOFError("the stream ended")
             line = raw.decode().rstrip("\r\n")

@@ -1,4 +1,4 @@
-"""`rr-actors observe --state DIR`, `rr-actors graph --state DIR`, `rr-actors demo --observe/--step`."""
+"""`rr-actors observe --state DIR`, `rr-actors graph --state DIR`, `demo --observe/--step`."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from observing import REQUEST, figure_27, get_json, request, wait_state
 
 import rr_actors as rr
-from observing import REQUEST, figure_27, get_json, request, wait_state
 from rr_actors._cli import main
 from rr_actors.observe import observe_backups
 
@@ -51,7 +51,8 @@ def test_graph_prints_the_dependency_graph_of_the_backups_as_mermaid(state: Path
 
     assert 0 == code
     assert text.startswith("flowchart TB\n")
-    assert 'subgraph r2["cm"]' in text and 'subgraph r3["erm"]' in text
+    assert 'subgraph r2["cm"]' in text
+    assert 'subgraph r3["erm"]' in text
     assert 3 == text.count(" .-> ")  # action -> cm -> erm (camera, filter)
 
 
@@ -200,7 +201,7 @@ def test_demo_observe_prints_the_url_and_serves_for_the_whole_run(
 
     assert 0 == code
     url = next(line for line in out.getvalue().splitlines() if line.startswith("observer: "))
-    with pytest.raises(OSError):  # closed with the mission's supervisor
+    with pytest.raises(ConnectionRefusedError):  # closed with the mission's supervisor
         request(url.split()[1], "/", timeout=2.0)
 
 
@@ -218,7 +219,8 @@ def test_demo_step_pauses_before_each_fault_and_prints_the_pids(
     assert 0 == code
     assert 5 == text.count("press Enter to inject it")
     assert "next: F3, external resource manager killed" in text
-    assert "erm: running, pid" in text and "<- SIGKILL" in text
+    assert "erm: running, pid" in text
+    assert "<- SIGKILL" in text
     assert "lidar program (erm runs it for cm): pid" in text
 
 

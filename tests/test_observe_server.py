@@ -9,11 +9,8 @@ import socket
 from typing import Any
 
 import pytest
-
-import rr_actors as rr
 from observing import (
     REQUEST,
-    base,
     child,
     erm_setup,
     figure_27,
@@ -24,6 +21,8 @@ from observing import (
     stream,
     wait_state,
 )
+
+import rr_actors as rr
 from rr_actors.observe import Observer
 
 
@@ -194,11 +193,10 @@ def test_a_stream_ends_when_the_supervisor_stops(tree: rr.Supervisor) -> None:
         events.until(lambda s: "tree" in s.sections, timeout=10)
         tree.stop()
         with pytest.raises(EOFError):
-            while True:
-                events.next()
+            events.until(lambda _: False, timeout=10)  # reads until the end
 
     assert observer.closed
-    with pytest.raises(OSError):
+    with pytest.raises(ConnectionRefusedError):
         request(observer.url, "/", timeout=2.0)
 
 
@@ -474,3 +472,20 @@ def test_observer_is_a_context_manager(tree: rr.Supervisor) -> None:
         assert "live" == get_json(observer.url, "/api/state")["hello"]["mode"]
 
     assert observer.closed
+
+
+def test_a_fault_of_the_page_is_in_the_stream_as_an_event(tree: rr.Supervisor) -> None:
+    observer = tree.observe(allow_faults=True)
+    pid = tree.child("cm").pid
+
+    with stream(observer.url) as events:
+        events.until(lambda s: "tree" in s.sections, timeout=10)
+        post_fault(observer.url, "kill", {"child": "cm", "pid": pid})
+        events.until(lambda s: any(e["type"] == "ObserverFault" for e in s.events), timeout=10)
+        events.until(lambda s: child(s.sections["tree"], "cm")["restarts"] == 1, timeout=10)
+
+    fault = next(e for e in events.events if e["type"] == "ObserverFault")
+    assert ("kill", f"SIGKILL sent to cm (pid {pid}); its supervisor restarts it") == (
+        fault["kind"],
+        fault["text"],
+    )

@@ -24,7 +24,13 @@ from typing import TYPE_CHECKING, Any
 from rr_actors.errors import ConfigError
 from rr_actors.observe._faults import Faults
 from rr_actors.observe._hub import Hub
-from rr_actors.observe._sources import BackupSource, LiveSource, Observable, TreeAccess
+from rr_actors.observe._sources import (
+    BackupSource,
+    LiveSource,
+    Observable,
+    TreeAccess,
+    event_dict,
+)
 
 if TYPE_CHECKING:
     from rr_actors.observe._server import Server
@@ -177,7 +183,7 @@ def observe_supervisor(
     allow_remote: bool,
 ) -> Observer:
     """Open the live page of a supervision tree (what `Supervisor.observe` does)."""
-    hub = Hub()
+    hub = Hub(convert=event_dict)
     source = LiveSource(sup, access, hub)
     faults = (
         Faults(sup, access.spec, lambda name: hub.get(f"catalog/{name}")) if allow_faults else None

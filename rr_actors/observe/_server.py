@@ -43,8 +43,11 @@ from rr_actors.observe._hub import Hub
 
 __all__ = ["COALESCE", "Server", "build_app"]
 
-COALESCE = 0.03
+COALESCE = 0.01
 """Seconds a page's stream waits after a change, so that changes close together go as one."""
+
+EVENTS_EVERY = 0.1
+"""Seconds between two batches of events to a page (a change of a section goes at once)."""
 
 PING = 10.0
 """Seconds between keep-alive comments on an idle stream."""
@@ -161,9 +164,7 @@ def build_app(
             message = await anyio.to_thread.run_sync(_inject, faults, kind, data)
         except FaultRefused as exc:
             return _refuse(str(exc), exc.status)
-        hub.add_events(
-            [{"type": "ObserverFault", "kind": kind, "text": message, "at": time.time()}]
-        )
+        hub.add_event({"type": "ObserverFault", "kind": kind, "text": message, "at": time.time()})
         return JSONResponse({"ok": True, "message": message})
 
     app = Starlette(
@@ -210,26 +211,39 @@ async def _stream(hub: Hub, hello: dict[str, Any], request: Request) -> AsyncIte
             loop.call_soon_threadsafe(wake.set)
 
     unlisten = hub.listen(listener)
+    counted = hub.stream()
+    counted.__enter__()
     seen: dict[str, int] = {}
     last_seq = 0
+    events_at = 0.0  # when the last batch of events went (loop time)
+    later: asyncio.TimerHandle | None = None
     try:
         yield ServerSentEvent(json.dumps({**hello, "instance": hub.instance}), event="hello")
         while not hub.closed:
             flagged[0] = False
-            changes = hub.changes(seen, last_seq)
+            due = loop.time() - events_at >= EVENTS_EVERY
+            changes = hub.changes(seen, last_seq, with_events=due)
             for key, _, value in changes.sections:
                 yield ServerSentEvent(json.dumps({"key": key, "value": value}), event="section")
             if changes.events or changes.missed:
-                last_seq = changes.events[-1]["seq"] if changes.events else last_seq
+                events_at = loop.time()
+                last_seq = changes.events[-1]["seq"] if changes.events else hub.last_seq
                 data = {"events": changes.events, "missed": changes.missed}
                 yield ServerSentEvent(json.dumps(data), event="events")
+            elif not due and hub.last_seq > last_seq and later is None:
+                wait = EVENTS_EVERY - (loop.time() - events_at)
+                later = loop.call_later(wait, wake.set)  # the events that wait go then
             await wake.wait()
             wake.clear()
+            later = None if later is None or later.when() <= loop.time() else later
             await asyncio.sleep(COALESCE)
             if await request.is_disconnected():
                 return
     finally:
+        if later is not None:
+            later.cancel()
         unlisten()
+        counted.__exit__(None, None, None)
 
 
 class _Uvicorn(uvicorn.Server):

@@ -3,7 +3,7 @@
 //   EventSource /api/stream ── "hello" ── mode, title, teaching mode on/off, hub instance
 //                           ── "section" {key, value} ── tree | files | graph | catalog/<name>
 //                           ── "events" {events, missed} ── the tree's events (to_dict + text)
-//   state ──(render, at most every 16 ms)──► tree, catalogs, graph (cytoscape), timeline, log
+//   state ──(render, once per burst of messages)──► tree, catalogs, graph (cytoscape), timeline, log
 //
 // Everything from the server is shown through textContent (never parsed as HTML). The page
 // keeps bounded state: at most MAX_EVENTS events, MAX_ROWS timeline rows, MAX_LOG log lines.
@@ -114,8 +114,12 @@
     for (const key of keys) state.dirty.add(key);
     if (state.scheduled) return;
     state.scheduled = true;
-    setTimeout(render, 16);
+    setTimeout(render, 0); // (after the messages that arrived together)
   }
+
+  const LISTS_EVERY = 250; // ms between two redraws of the timeline and the log
+  let listsAt = 0;
+  let listsLater = null;
 
   function render() {
     state.scheduled = false;
@@ -125,9 +129,14 @@
     if (dirty.has("tree") || dirty.has("files")) renderTree();
     if (dirty.has("catalogs")) renderCatalogs();
     if (dirty.has("graph")) renderGraph();
-    if (dirty.has("events")) {
-      renderTimeline();
-      renderLog();
+    if (dirty.has("events") && listsLater === null) {
+      const wait = Math.max(0, listsAt + LISTS_EVERY - Date.now());
+      listsLater = setTimeout(() => {
+        listsLater = null;
+        listsAt = Date.now();
+        renderTimeline();
+        renderLog();
+      }, wait);
     }
   }
 
