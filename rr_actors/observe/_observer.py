@@ -127,14 +127,18 @@ class Observer:
         hosts = None
         if is_loopback(host):
             hosts = {f"{h}:{self.port}" for h in ("127.0.0.1", "localhost", "[::1]", name)}
-        app = _server.build_app(
-            hub,
-            hello={**hello, "faults": faults is not None},
-            faults=faults,
-            token=self._token,
-            hosts=hosts,
-        )
-        self._server: Server = _server.Server(app, sock, f"rr-observe-http-{self.port}")
+        try:
+            app = _server.build_app(
+                hub,
+                hello={**hello, "faults": faults is not None},
+                faults=faults,
+                token=self._token,
+                hosts=hosts,
+            )
+            self._server: Server = _server.Server(app, sock, f"rr-observe-http-{self.port}")
+        except BaseException:
+            sock.close()
+            raise
         source.start()
         if not self._server.start(START_TIMEOUT):
             self.close()
