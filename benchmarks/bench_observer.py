@@ -272,13 +272,20 @@ def mission_with(context: Any) -> Any:
 # -- memory -------------------------------------------------------------------------------
 
 
-def browser_rss(profile: str) -> float:
-    total = 0
+def browser_memory(profile: str) -> tuple[float, float]:
+    """MiB of the browser's processes (those started with this profile): RSS, and USS.
+
+    RSS counts the pages they share once per process; USS (unique set size) counts only
+    what each one holds alone, so its sum does not grow with sharing.
+    """
+    rss = uss = 0
     for proc in psutil.process_iter(["cmdline"]):
         with contextlib.suppress(psutil.Error):
             if any(profile in part for part in proc.info["cmdline"] or ()):
-                total += proc.memory_info().rss
-    return total / 2**20
+                info = proc.memory_full_info()
+                rss += info.rss
+                uss += info.uss
+    return rss / 2**20, uss / 2**20
 
 
 def bench_memory(soak: float, sample: float) -> None:
@@ -327,10 +334,12 @@ def bench_memory(soak: float, sample: float) -> None:
         while runner.is_alive():
             heap = page.evaluate("() => performance.memory ? performance.memory.usedJSHeapSize : 0")
             nodes = page.evaluate("() => document.getElementsByTagName('*').length")
+            rss, uss = browser_memory(profile)
             rows.append(
                 (
                     f"{time.monotonic() - start:.0f}",
-                    f"{browser_rss(profile):.0f}",
+                    f"{rss:.0f}",
+                    f"{uss:.0f}",
                     f"{heap / 2**20:.1f}",
                     nodes,
                     f"{me.memory_info().rss / 2**20:.0f}",
@@ -342,7 +351,14 @@ def bench_memory(soak: float, sample: float) -> None:
     table(
         f"a page open for a mission of {soak:.0f} s (WARNING every 0.2 s), "
         f"sampled every {sample:g} s",
-        ("t, s", "browser RSS, MiB", "page JS heap, MiB", "DOM nodes", "this process RSS, MiB"),
+        (
+            "t, s",
+            "browser RSS, MiB",
+            "browser USS, MiB",
+            "page JS heap, MiB",
+            "DOM nodes",
+            "this process RSS, MiB",
+        ),
         rows,
     )
     print(f"mission ok: {result[0].ok if result else None}")
