@@ -85,6 +85,8 @@ def tree(supervisors: Any, process_helpers: Any) -> rr.Supervisor:
 
 def test_the_page_shows_the_tree(tree: rr.Supervisor, page: Any, tmp_path: Path) -> None:
     observer = tree.observe()
+    actions = [tree.registrar(name) for name in ("action1", "action2")]  # figure 2.7 ...
+    queries = [action.call("cm", "filtered_camera", REQUEST) for action in actions]
 
     page.goto(observer.url)
     page.wait_for_selector('.node[data-child="cm"][data-state="running"]')
@@ -96,7 +98,10 @@ def test_the_page_shows_the_tree(tree: rr.Supervisor, page: Any, tmp_path: Path)
     assert "0 restarts" == row(page, "cm").locator('[data-field="restarts"]').inner_text()
     assert "live" == page.locator("#connection").inner_text()
     assert 0 == page.locator("[data-fault]").count()  # no teaching mode: no buttons
+    page.wait_for_selector('#catalogs [data-registrar="action2"] .client')  # ... on the page
     screenshot(page, "observer-tree.png", tmp_path)
+    for action, query in zip(actions, queries, strict=True):
+        action.unload(query.id)
 
 
 def test_a_sigkill_of_a_manager_shows_its_restart_count_going_to_1_within_a_second(

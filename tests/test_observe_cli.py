@@ -245,3 +245,17 @@ def test_demo_observe_on_a_port_in_use_fails_before_the_mission(
 
     assert 2 == code
     assert "in use" in capsys.readouterr().err
+
+
+def test_help_lists_observe_and_graph() -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "rr_actors._cli", "--help"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
+
+    assert 0 == done.returncode
+    assert "observe" in done.stdout
+    assert "graph" in done.stdout

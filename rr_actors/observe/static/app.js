@@ -517,6 +517,8 @@
       cy = cytoscape({
         container: $("graph"),
         elements: [],
+        minZoom: 0.2,
+        maxZoom: 1.3, // (a fit of a small graph would blow it up)
         style: [
           { selector: "node", style: { label: "data(label)", "font-size": 10, "text-wrap": "wrap", "text-max-width": 160, "text-overflow-wrap": "anywhere", "text-valign": "center", "background-color": "#dcf3e5", "border-width": 1, "border-color": "#1f8a4c", shape: "round-rectangle", width: 170, height: 56 } },
           { selector: 'node[kind = "registrar"]', style: { "background-color": "#eef1f6", "border-color": "#667085", "font-weight": "bold", "text-valign": "top", "text-halign": "center", "font-size": 12 } },
