@@ -208,7 +208,8 @@ async def _stream(hub: Hub, hello: dict[str, Any], request: Request) -> AsyncIte
     def listener() -> None:  # any thread; at most one wake-up per look
         if not flagged[0]:
             flagged[0] = True
-            loop.call_soon_threadsafe(wake.set)
+            with contextlib.suppress(RuntimeError):  # its loop closed: the stream is over
+                loop.call_soon_threadsafe(wake.set)
 
     unlisten = hub.listen(listener)
     counted = hub.stream()

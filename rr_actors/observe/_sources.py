@@ -261,11 +261,10 @@ class LiveSource:
             while not self._closing.is_set():
                 try:
                     tree = self.tree()
-                except Exception:
-                    logger.exception("observer of %s: reading the tree failed", self.sup.name)
-                else:
                     self.hub.put("tree", tree)
                     self._note_states(tree)
+                except Exception:
+                    logger.exception("observer of %s: reading the tree failed", self.sup.name)
                 cond.wait(FULL_REFRESH)
 
     def _note_states(self, tree: dict[str, Any]) -> None:
