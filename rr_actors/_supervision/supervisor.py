@@ -364,7 +364,7 @@ class Supervisor:
         across registrars (the TeMoto thesis's figure 2.7, live) and a timeline of the
         status notifications with their hops and latencies. It follows the tree's
         events (`subscribe`) and reads each registrar's catalog in the registrar's own
-        process (`run_in`), about five times a second at most. The server runs on a
+        process (`run_in`), at most twice a second. The server runs on a
         thread of its own in this process (uvicorn); the observer is closed with the
         supervisor (`stop`) or by its `close()`. May be called before `start` (the page
         then sees the children start) but not after `stop`.

@@ -52,8 +52,11 @@ __all__ = [
 
 logger = logging.getLogger("rr_actors")
 
-CATALOG_INTERVAL = 0.2
-"""Seconds between two rounds of catalog snapshots (changes within it are shown together)."""
+CATALOG_INTERVAL = 0.5
+"""Seconds between two rounds of catalog snapshots (changes within it are shown together).
+
+Each round asks every registrar that changed for a copy of its catalog, in its own
+process: it competes with the work it shows, so a round at most twice a second."""
 
 FULL_REFRESH = 5.0
 """Seconds after which every catalog is read again, even without an event about it."""

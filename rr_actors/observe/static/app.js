@@ -126,7 +126,7 @@
     const dirty = state.dirty;
     state.dirty = new Set();
     if (!state.hello) return;
-    if (dirty.has("tree") || dirty.has("files")) renderTree();
+    if (dirty.has("tree") || dirty.has("files")) renderTree(); // at once: restarts show fast
     if (dirty.has("catalogs")) renderCatalogs();
     if (dirty.has("graph")) renderGraph();
     if (dirty.has("events") && listsLater === null) {
