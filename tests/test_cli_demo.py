@@ -80,7 +80,7 @@ def test_the_rich_timeline_fits_an_80_column_terminal() -> None:
     text = console.export_text()
 
     assert widest(text) <= 80
-    assert "erm restarted, no fault" in text
+    assert "erm exited, no fault" in text
     assert "leaked processes: 0; catalog entries left: 0" in text
 
 

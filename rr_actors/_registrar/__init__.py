@@ -3,8 +3,9 @@
 - `protocol`: the `Registrar` API both placements implement;
 - `handle`: `ResourceRegistrar`, what user code holds; `calls`: the call protocol on the
   caller's thread;
-- `actor`: the registrar actor, dispatching to its roles `provider`, `consumer`,
-  `status` and `lifecycle`, which share `state`;
+- `actor`: the registrar actor, dispatching to its roles `provider` (loads; `matching`
+  runs user code off the actor), `unloading`, `servers`, `consumer`, `status` and
+  `lifecycle`, which share `state`;
 - `endpoints`: the resource server and client actors; `messages`: everything they tell
   each other, as data; `loading`: what a load callback runs inside; `probes`: the
   testing seam on named steps.

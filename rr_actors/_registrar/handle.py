@@ -8,6 +8,7 @@ catalog itself.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -21,6 +22,7 @@ from rr_actors import events
 from rr_actors._catalog import ResourceState
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
+from rr_actors._core.exit import REGISTRARS, stop_at_exit
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.calls import Calls, DueAnswers
@@ -210,7 +212,7 @@ class ResourceRegistrar(RegistrarFacts):
             if fn is not None and not callable(fn):
                 raise ConfigError(f"{arg} must be callable, got {fn!r}")
         self._ask(
-            lambda actor, reply: actor.provider.op_register(name, load, unload, on_status, reply),
+            lambda actor, reply: actor.servers.op_register(name, load, unload, on_status, reply),
             timeout,
             f"register_server({name!r})",
         )
@@ -226,7 +228,7 @@ class ResourceRegistrar(RegistrarFacts):
         """
         limit = self._timeout(timeout)
         self._ask(
-            lambda actor, reply: actor.provider.op_unregister(name, reply),
+            lambda actor, reply: actor.servers.op_unregister(name, reply),
             limit,
             f"unregister_server({name!r})",
         )
@@ -353,7 +355,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarUnavailableError: this registrar died.
         """
         result: list[Query] = self._ask(
-            lambda actor, reply: actor.provider.op_server_queries(server, reply),
+            lambda actor, reply: actor.servers.op_server_queries(server, reply),
             timeout,
             f"server_queries({server!r})",
         )
@@ -436,7 +438,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarUnavailableError: this registrar died.
         """
         self._ask(
-            lambda actor, reply: actor.provider.op_update_response(query_id, response, reply),
+            lambda actor, reply: actor.servers.op_update_response(query_id, response, reply),
             timeout,
             f"update_response({query_id!r})",
         )
@@ -537,6 +539,11 @@ class Served:
         """The registrar's name."""
         return self.registrar.name
 
+    @property
+    def max_message_bytes(self) -> int:
+        """Its config's `max_message_bytes`: the carrier bounds its connections by it."""
+        return self.registrar.config.max_message_bytes
+
     def run(self, fn: Callable[[Any], Any]) -> Any:
         """Run `fn(registrar)` on the calling thread."""
         return fn(self.registrar)
@@ -550,6 +557,15 @@ class Served:
         if self.registrar.is_alive():
             return False
         return isinstance(DIRECTORY.gone_error(self.registrar.name), RegistrarStoppedError)
+
+    def listening(self) -> None:
+        """The other processes of the system can reach it now: it reconciles with its peers
+        again (those in other processes could not answer it before)."""
+        reply = FutureReply()  # (nobody waits: the carrier's `serve` must not)
+        with contextlib.suppress(pykka.ActorDeadError):
+            self.registrar._ref.tell(
+                Request(lambda actor, r: actor.lifecycle.op_reachable(r), reply)
+            )
 
 
 def start_registrar(
@@ -600,6 +616,12 @@ def start_registrar(
     handle._died = died
     handle._ended = ended
     handle._events = published
+    stop_at_exit(
+        REGISTRARS,
+        f"registrar {config.name!r}",
+        handle.is_alive,
+        lambda timeout: handle.stop(timeout=timeout),
+    )
     if setup is not None:
         try:
             setup(handle)
