@@ -44,7 +44,13 @@ from rr_actors.mission.config import MissionConfig
 from rr_actors.mission.run import run_mission
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from observing import CHROMIUM_ARGS, chromium, erm_setup, stream
+from observing import CHROMIUM_ARGS, chromium, stream
+
+
+def erm_setup(registrar: rr.ResourceRegistrar) -> None:
+    """The manager of these measurements (defined here: a manager process unpickles it by
+    value, without importing the tests' helpers, which import pytest)."""
+    registrar.register_server("camera", load=lambda r: {"device": r}, unload=lambda q, r: None)
 
 
 def pct(values: list[float], q: float) -> float:

@@ -22,7 +22,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from observing import CHROMIUM_ARGS, REQUEST, chromium, figure_27
+from observed_tree import REQUEST, figure_27
+from observing import CHROMIUM_ARGS, chromium
 
 import rr_actors as rr
 

@@ -11,7 +11,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from observing import REQUEST, figure_27, get_json, request, wait_state
+from observed_tree import REQUEST, figure_27
+from observing import get_json, request, wait_state
 
 import rr_actors as rr
 from rr_actors._cli import main

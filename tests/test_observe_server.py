@@ -9,18 +9,8 @@ import socket
 from typing import Any
 
 import pytest
-from observing import (
-    REQUEST,
-    child,
-    erm_setup,
-    figure_27,
-    get_json,
-    post_fault,
-    process_state,
-    request,
-    stream,
-    wait_state,
-)
+from observed_tree import REQUEST, erm_setup, figure_27
+from observing import child, get_json, post_fault, process_state, request, stream, wait_state
 
 import rr_actors as rr
 from rr_actors.observe import Observer
