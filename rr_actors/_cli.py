@@ -6,6 +6,8 @@ arguments, and a function that runs it. Add a subcommand by appending to `COMMAN
     rr-actors demo                          # the thesis's robot mission (Linux)
     rr-actors inspect state/erm.db          # a catalog backup as a tree
     rr-actors inspect state/erm.db --json   # the same as JSON
+    rr-actors observe --state state/        # the observer's page of the backups
+    rr-actors graph --state state/          # the dependency graph as Mermaid (or --format dot)
     rr-actors --version
 """
 
@@ -23,6 +25,7 @@ import rr_actors
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
 from rr_actors._store import Backup, Unreadable, read_backup
 from rr_actors.errors import CatalogCorruptError, ConfigError
+from rr_actors.observe import _commands as observe_commands
 
 __all__ = ["COMMANDS", "Command", "backup_to_dict", "main", "render_tree", "version"]
 
@@ -211,6 +214,18 @@ COMMANDS: list[Command] = [
         "print a catalog backup as a tree (safe on a live file; unpickles its values)",
         _inspect_arguments,
         _inspect,
+    ),
+    Command(
+        "observe",
+        observe_commands.OBSERVE_HELP,
+        observe_commands.observe_arguments,
+        observe_commands.run_observe,
+    ),
+    Command(
+        "graph",
+        observe_commands.GRAPH_HELP,
+        observe_commands.graph_arguments,
+        observe_commands.run_graph,
     ),
 ]
 """The subcommands, in the order `--help` lists them."""

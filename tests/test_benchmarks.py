@@ -16,6 +16,10 @@ ROOT = Path(__file__).resolve().parent.parent
 
 SMALLEST = {
     "bench_core.py": ["--rounds", "1", "--batch", "5"],
+    "bench_observer.py": [
+        *("--kills", "1", "--settle", "0.1", "--calls", "5", "--rounds", "1"),
+        *("--missions", "1", "--soak", "1", "--sample", "0.5"),
+    ],
     "bench_events.py": ["--rounds", "1", "--batch", "50", "--dedup-batch", "5"],
     "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1"],

@@ -25,7 +25,7 @@ written):
     - `python benchmarks/X.py ...` is not run (benchmarks take minutes and are not tests):
       the script must exist and accept every option shown (it appears in its source).
     - anything else fails the test, unless the block is marked (below).
-- `text` and `json` blocks are output and data: not run. A block without a language fails
+- `text`, `json` and `mermaid` blocks are output and data: not run. A block without a language fails
   (say which it is).
 
 A block that cannot run as shown carries a visible marker on the line right above its
@@ -70,7 +70,7 @@ EXIT_TIMEOUT = 30.0
 
 PYTHON = ("python", "py", "python3")
 SHELL = ("bash", "sh", "shell", "console")
-DATA = ("text", "json")
+DATA = ("text", "json", "mermaid")
 
 FENCE = re.compile(r"^(?P<indent>[ \t]*)(?P<fence>`{3,}|~{3,})[ \t]*(?P<info>[^`]*)$")
 MARKER = re.compile(r"^\s*<!--\s*docs-test:\s*(?P<body>.*?)\s*-->\s*$")

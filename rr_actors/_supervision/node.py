@@ -207,6 +207,7 @@ class Node:
         """Start one incarnation of `child`; raise what its start raised."""
         child.incarnation += 1
         child.state = "starting"
+        self.tree.restart_due.pop(child.name, None)
         self.publish()
         spec, tree = child.spec, self.tree
         post = self._post_exit(child)
@@ -419,6 +420,8 @@ class Node:
             self._mailbox.post(event)
             return
         logger.info("supervisor %s: restarting %s in %.3f s", self.name, ", ".join(names), delay)
+        tree.restart_due.update(dict.fromkeys(names, time.time() + delay))  # (the observer's)
+        self.publish()
         self._timers.append(tree.timer(delay, lambda: self._mailbox.post(event)))
 
     def _on_restart(self, event: Restart) -> None:

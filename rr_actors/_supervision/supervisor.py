@@ -39,7 +39,7 @@ import os
 import random as _random
 import time
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cloudpickle
 
@@ -76,6 +76,9 @@ from rr_actors.errors import (
     SupervisorGaveUpError,
     UnknownServerError,
 )
+
+if TYPE_CHECKING:
+    from rr_actors.observe import Observer
 
 __all__ = [
     "Backoff",
@@ -164,6 +167,7 @@ class Supervisor:
         self._system: Any = None
         self._lock: StateDirLock | None = None
         self._registrars: list[ResourceRegistrar] = []
+        self._observers: list[Observer] = []
         self._started = False
         self._stopped = False
 
@@ -236,6 +240,8 @@ class Supervisor:
         if timeout is not None:
             check_seconds("timeout", timeout)
         deadline = None if timeout is None else time.monotonic() + timeout
+        if not self._started:
+            self._close_observers()  # opened on a supervisor that never started
         if not self._started or self._stopped:
             return
         for registrar in reversed(self._registrars):
@@ -283,6 +289,12 @@ class Supervisor:
         self._tree.attached = None
         if self._lock is not None:
             self._lock.release()
+        self._close_observers()  # last: their pages saw the tree stop
+
+    def _close_observers(self) -> None:
+        observers, self._observers = self._observers, []
+        for observer in observers:
+            observer.close()
 
     # -- events -------------------------------------------------------------------------
 
@@ -341,6 +353,102 @@ class Supervisor:
         """
         check_seconds("timeout", timeout)
         return self._tree.events.sync(timeout)
+
+    # -- the observer -------------------------------------------------------------------
+
+    def observe(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        *,
+        allow_faults: bool = False,
+        allow_remote: bool = False,
+    ) -> Observer:
+        """Serve a live web page of this tree at the returned observer's `url`.
+
+        The page shows the supervision tree (state, pid, restarts, last exit, backoff
+        countdown; a restart flashes), each registrar's catalog, the dependency graph
+        across registrars (the TeMoto thesis's figure 2.7, live) and a timeline of the
+        status notifications with their hops and latencies. It follows the tree's
+        events (`subscribe`) and reads each registrar's catalog in the registrar's own
+        process (`run_in`), at most twice a second. The server runs on a
+        thread of its own in this process (uvicorn); the observer is closed with the
+        supervisor (`stop`) or by its `close()`. May be called before `start` (the page
+        then sees the children start) but not after `stop`.
+
+        Args:
+            host: the address to listen on. A loopback address (the default) keeps the
+                page on this machine; any other needs `allow_remote=True`.
+            port: the port (0: a free one; the `url` says which).
+            allow_faults: teaching mode: buttons on the page SIGKILL a process manager,
+                SIGSTOP it (a hang; its heartbeat makes the supervisor kill and restart
+                it, or a resume button sends SIGCONT) and send FATAL on a resource, each
+                after a confirmation. The `url` then carries a token (`#token=...`)
+                that the buttons must send back: share it only with whom may use them.
+            allow_remote: allow a `host` that other machines can reach. They then see
+                every catalog (requests and responses as `repr`s), and with
+                `allow_faults` whoever has the URL can kill managers. Nothing from the
+                browser is ever unpickled.
+
+        Returns:
+            The open [`Observer`][rr_actors.observe.Observer] (`url`, `close()`).
+
+        Raises:
+            ConfigError: the `observe` extra is not installed (`pip install
+                'rr-actors[observe]'`), the port is in use, `host` is not a loopback
+                address and `allow_remote` is false, or the supervisor was stopped.
+        """
+        if self._stopped:
+            raise ConfigError(f"supervisor {self.name!r} was stopped: nothing to observe")
+        from rr_actors.observe._observer import observe_supervisor  # noqa: PLC0415 - an extra
+
+        observer = observe_supervisor(
+            self,
+            self._observed(),
+            host=host,
+            port=port,
+            allow_faults=allow_faults,
+            allow_remote=allow_remote,
+        )
+        self._observers.append(observer)
+        return observer
+
+    def graph(self, format: str = "mermaid") -> str:
+        """The tree and the dependency graph across its registrars, as text, now.
+
+        Supervisors are hexagons with an arrow to each child; a manager's registrar is
+        a box holding its resources; each query is a dashed arrow from the resource that
+        holds it as a dependency (or the registrar, for a top-level call) to the
+        provider's resource (the TeMoto thesis's figure 2.7). Catalogs are read in the
+        registrars' own processes, as the observer does; a manager that is down is
+        drawn without its resources.
+
+        Args:
+            format: `"mermaid"` (a flowchart, for Markdown) or `"dot"` (Graphviz).
+
+        Returns:
+            The text, ending with a newline.
+
+        Raises:
+            ConfigError: `format` is neither.
+        """
+        from rr_actors.observe._sources import LiveSource  # noqa: PLC0415
+        from rr_actors.observe._text import render  # noqa: PLC0415
+
+        tree, graph = LiveSource(self, self._observed()).snapshot()
+        return render(graph, tree, format)
+
+    def _observed(self) -> Any:
+        """What the observer needs of this tree besides the public methods."""
+        from rr_actors.observe._sources import TreeAccess  # noqa: PLC0415
+
+        return TreeAccess(
+            spec=self._spec,
+            cond=self._tree.cond,
+            restart_due=self._tree.restart_due,
+            running=lambda: self._started and not self._stopped,
+            registrars=lambda: list(self._registrars),
+        )
 
     # -- introspection ----------------------------------------------------------------
 

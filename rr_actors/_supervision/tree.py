@@ -105,6 +105,7 @@ class Tree:
         self.root: Level | None = None
         self.events = EventRelay()  # the tree's events (`Supervisor.subscribe`)
         self.down_since: dict[str, float] = {}  # name -> when its last incarnation ended
+        self.restart_due: dict[str, float] = {}  # name -> when its backoff ends (time.time())
 
     def count_start(self, name: str) -> None:
         """Note that child `name` started (a restart if it had started before)."""

@@ -68,6 +68,11 @@ class Mission:
             those two are emptied at the start.
         say: called with each line of the story (from the mission's and other threads).
         progress: called with where the mission is, about every `TICK` seconds.
+        on_supervisor: called with the managers' supervisor before it starts (to open
+            its observer: `rr-actors demo --observe`); what it raises fails the run.
+        before_fault: called on the mission's thread before each fault, with the fault
+            and the processes it involves (one line each), while the robot waits
+            (`rr-actors demo --step`); the fault is injected when it returns.
 
     Attributes:
         supervisor: the managers' supervisor while the mission runs, else `None`.
@@ -80,8 +85,12 @@ class Mission:
         *,
         say: Callable[[str], None] = lambda _: None,
         progress: Callable[[Progress], None] = lambda _: None,
+        on_supervisor: Callable[[rr.Supervisor], object] | None = None,
+        before_fault: Callable[[str, list[str]], object] | None = None,
     ) -> None:
         self.config = config
+        self._on_supervisor = on_supervisor
+        self._before_fault = before_fault
         self.out = out
         self.bus = out / "bus"
         self.state = out / "state"
@@ -126,6 +135,12 @@ class Mission:
             specs, strategy="one_for_one", max_restarts=10, period=10.0, state_dir=self.state
         )
         entries: dict[str, int] = {}
+        if self._on_supervisor is not None:
+            try:
+                self._on_supervisor(sup)  # before the start: an observer sees it start
+            except BaseException:
+                sup.stop()  # (closes what it opened on it)
+                raise
         try:
             with sup:
                 self.supervisor = sup
@@ -297,6 +312,8 @@ class Mission:
                 and self._odom.x >= self._points[pending[0]] * cfg.distance_m
                 and faults.ready()  # not while a manager is down for another reason
             ):
+                if self._before_fault is not None:
+                    deadline += self._pause_for(pending[0], faults)
                 active = faults.inject(pending[0])
                 if active is not None:
                     pending.pop(0)
@@ -315,6 +332,15 @@ class Mission:
                     status=f"{active.id}: {FAULT_WHAT[active.id]}" if active is not None else "",
                 )
             )
+
+    def _pause_for(self, fault: str, faults: Faults) -> float:
+        """Stop the robot, hand the fault to `before_fault`, drive on; the seconds it took."""
+        assert self._before_fault is not None
+        paused = time.monotonic()
+        self._goal(paused=True)
+        self._before_fault(fault, faults.pids(fault))
+        self._goal(paused=False)
+        return time.monotonic() - paused
 
     def _handle(
         self,

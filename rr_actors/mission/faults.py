@@ -179,6 +179,27 @@ class Faults:
         for line in news:
             self.say(line)
 
+    def pids(self, fault: str) -> list[str]:
+        """The processes `fault` involves, one line each (`rr-actors demo --step`)."""
+        lines = [f"the mission (this process): pid {os.getpid()}"]
+        for name in MANAGERS:
+            info = self.sup.child(name)
+            mark = "  <- SIGKILL" if MANAGER_OF.get(fault) == name else ""
+            lines.append(f"{name}: {info.state}, pid {info.pid}, {info.restarts} restart(s){mark}")
+        programs_of = {"lidar": ("lidar", "pid", "F1"), "robot": ("driver", "driver_pid", "F2")}
+        for query in self.app.client_queries():
+            entry = programs_of.get(query.server)
+            if entry is None or not isinstance(query.response, dict):
+                continue
+            what, key, kills = entry
+            mark = "  <- SIGKILL" if fault == kills else ""
+            pid = query.response[key]
+            lines.append(f"{what} program (erm runs it for {query.serving_rr}): pid {pid}{mark}")
+            if query.server == "robot":
+                pid = query.response["navigation_pid"]
+                lines.append(f"navigation program (erm runs it for rm): pid {pid}")
+        return lines
+
     def inject(self, fault: str) -> FaultRecord | None:
         """Inject `fault` for real: SIGKILL the LiDAR, the driver or a manager.
 

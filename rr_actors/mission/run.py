@@ -38,8 +38,13 @@ from typing import Any, TextIO
 
 import rr_actors as rr
 from rr_actors.mission.action import Mission
-from rr_actors.mission.config import MissionConfig, MissionError, unsupported_platform
-from rr_actors.mission.output import Progress, make_output
+from rr_actors.mission.config import (
+    FAULT_WHAT,
+    MissionConfig,
+    MissionError,
+    unsupported_platform,
+)
+from rr_actors.mission.output import MissionOutput, PlainOutput, Progress, make_output
 from rr_actors.mission.report import MissionReport
 
 __all__ = [
@@ -89,6 +94,8 @@ def run_mission(
     *,
     say: Callable[[str], None] = lambda _: None,
     progress: Callable[[Progress], None] = lambda _: None,
+    on_supervisor: Callable[[rr.Supervisor], object] | None = None,
+    before_fault: Callable[[str, list[str]], object] | None = None,
 ) -> MissionReport:
     """Run the mission and write `report.json` (and `mission.png` if matplotlib is there).
 
@@ -97,6 +104,11 @@ def run_mission(
         out: output directory (created if needed).
         say: receives each line of the story (from the mission's and other threads).
         progress: receives where the mission is, about 50 times a second while it drives.
+        on_supervisor: receives the managers' supervisor before it starts (for example,
+            to open its observer: `sup.observe()`, closed with the supervisor).
+        before_fault: called on the mission's thread before each fault with the fault
+            and the processes it involves (one line each), while the robot waits; the
+            fault is injected when it returns (`rr-actors demo --step`).
 
     Returns:
         The report.
@@ -110,7 +122,14 @@ def run_mission(
     if reason is not None:
         raise MissionError(reason)
     path = prepare_out(Path(out))
-    report = Mission(config, path, say=say, progress=progress).run()
+    report = Mission(
+        config,
+        path,
+        say=say,
+        progress=progress,
+        on_supervisor=on_supervisor,
+        before_fault=before_fault,
+    ).run()
     (path / "report.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
     with contextlib.suppress(ImportError):
         from rr_actors.mission.plot import plot  # noqa: PLC0415
@@ -162,6 +181,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--quiet",
         action="store_true",
         help="no story and no progress line: print only the timeline and where the report went",
+    )
+    p.add_argument(
+        "--observe",
+        action="store_true",
+        help="serve the observer's live page (tree, catalogs, dependency graph, statuses) while "
+        "the mission runs, on 127.0.0.1; prints its URL (needs the observe extra)",
+    )
+    p.add_argument("--port", type=int, default=0, help="the observer's port (default: a free one)")
+    p.add_argument(
+        "--step",
+        action="store_true",
+        help="classroom mode: before each fault, stop the robot, print the processes involved "
+        "and wait for Enter",
     )
 
 
@@ -236,9 +268,25 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
         return 2
     failure: str | None = None
     report: MissionReport | None = None
-    with make_output(stream, quiet=args.quiet) as output:
+    output: MissionOutput = (
+        PlainOutput(stream, quiet=args.quiet)
+        if args.step
+        else make_output(stream, quiet=args.quiet)
+    )
+    with output:
+        hooks = _hooks(args, output, stream)
         try:
-            report = run_mission(config, out, say=output.story, progress=output.progress)
+            report = run_mission(
+                config,
+                out,
+                say=output.story,
+                progress=output.progress,
+                on_supervisor=hooks[0],
+                before_fault=hooks[1],
+            )
+        except rr.ConfigError as exc:  # the observer could not open (port in use, no extra)
+            _error(str(exc))
+            return 2
         except MissionError as exc:
             failure = str(exc)
         except OSError as exc:  # the directory became unwritable, or the disk is full
@@ -249,6 +297,32 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
         _error(failure or "the mission did not report")
         return 1
     return 0 if report.ok else 1
+
+
+def _hooks(
+    args: argparse.Namespace, output: MissionOutput, stream: TextIO
+) -> tuple[Callable[[rr.Supervisor], object] | None, Callable[[str, list[str]], object] | None]:
+    """`--observe` and `--step` as the mission's `on_supervisor` and `before_fault`."""
+
+    def tell(line: str) -> None:  # shown even with --quiet: it is what these options are for
+        if args.quiet:
+            stream.write(line + "\n")
+            stream.flush()
+        else:
+            output.story(line)
+
+    def observe(sup: rr.Supervisor) -> None:
+        observer = sup.observe(port=args.port)  # closed with the supervisor, at the end
+        tell(f"observer: {observer.url} (open it in a browser; it serves until the mission ends)")
+
+    def step(fault: str, pids: list[str]) -> None:
+        tell(f"next: {fault}, {FAULT_WHAT[fault]}; the robot waits. The processes:")
+        for line in pids:
+            tell(f"    {line}")
+        tell("press Enter to inject it")
+        sys.stdin.readline()  # (at the end of the input: go on at once)
+
+    return (observe if args.observe else None), (step if args.step else None)
 
 
 def _files(out: Path) -> list[str]:

@@ -1,0 +1,401 @@
+"""The observer's figures: how fast a restart shows, what an open page costs, its memory.
+
+Three parts (each can be run alone with `--only`):
+
+    restart     SIGKILL a process manager `--kills` times; for each, the time from the kill to
+                the page (a real chromium, Playwright) showing the new restart count, next to
+                the restart itself (ChildRestarted.restart_s) and to the event stream (an SSE
+                client of the same observer); median and p90 (target: page under 250 ms)
+    overhead    a dedup-hit call (+ its unload) against a process manager, per call, with no
+                observer, with an observer, and with an observer and a page open; and the
+                mission's stops (F1, F2: robot stopped) and time, `--missions` runs each
+                without and with an observer and a page (target: under 10 % more)
+    memory      one mission stretched over `--soak` seconds with a page open and a WARNING
+                every 0.2 s: browser memory (its processes' RSS, the page's JS heap) and this
+                process's RSS every `--sample` seconds (flat: no growth after the warm-up)
+
+    python benchmarks/bench_observer.py                      # about 3 minutes (soak 60 s)
+    python benchmarks/bench_observer.py --only memory --soak 600 --sample 60   # 10 minutes
+
+It needs the dev extra (playwright, psutil) and Debian's chromium (`RR_CHROMIUM` to use
+another). Prints tables; asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import signal
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import psutil
+from playwright.sync_api import sync_playwright
+
+import rr_actors as rr
+from rr_actors.mission.config import MissionConfig
+from rr_actors.mission.run import run_mission
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from observing import CHROMIUM_ARGS, chromium, stream
+
+
+def erm_setup(registrar: rr.ResourceRegistrar) -> None:
+    """The manager of these measurements (defined here: a manager process unpickles it by
+    value, without importing the tests' helpers, which import pytest)."""
+    registrar.register_server("camera", load=lambda r: {"device": r}, unload=lambda q, r: None)
+
+
+def pct(values: list[float], q: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))]
+
+
+def table(title: str, header: tuple[str, ...], rows: list[tuple[Any, ...]]) -> None:
+    cells = [tuple(str(c) for c in header), *(tuple(str(c) for c in r) for r in rows)]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
+    print(f"\n{title}")
+    for index, row in enumerate(cells):
+        print(
+            "  ".join(
+                c.rjust(w) if i else c.ljust(w)
+                for i, (c, w) in enumerate(zip(row, widths, strict=True))
+            )
+        )
+        if index == 0:
+            print("  ".join("-" * w for w in widths))
+
+
+@contextlib.contextmanager
+def browser() -> Iterator[tuple[Any, str]]:
+    path = chromium()
+    if path is None:
+        raise SystemExit("no chromium: apt-get install -y chromium (or set RR_CHROMIUM)")
+    with sync_playwright() as playwright, tempfile.TemporaryDirectory() as profile:
+        context = playwright.chromium.launch_persistent_context(
+            profile,
+            executable_path=path,
+            headless=True,
+            args=CHROMIUM_ARGS,
+            viewport={"width": 1400, "height": 1000},
+        )
+        try:
+            yield context, profile
+        finally:
+            context.close()
+
+
+def ms(seconds: float) -> str:
+    return f"{seconds * 1e3:.1f}"
+
+
+# -- restart ------------------------------------------------------------------------------
+
+
+def bench_restart(kills: int, settle: float) -> None:
+    page_s: list[float] = []
+    stream_s: list[float] = []
+    restart_s: list[float] = []
+    sup = rr.Supervisor(
+        [rr.ManagerSpec("erm", erm_setup, isolation="process")],
+        max_restarts=kills + 5,
+        period=3600.0,
+    )
+    restarted: list[float] = []
+    done = threading.Event()
+
+    def on_event(event: rr.events.Event) -> None:
+        if isinstance(event, rr.events.ChildRestarted):
+            restarted.append(event.restart_s)
+            done.set()
+
+    with sup, sup.subscribe(on_event), browser() as (context, _):
+        observer = sup.observe()
+        page = context.new_page()
+        page.goto(observer.url)
+        page.wait_for_selector('.node[data-child="erm"][data-state="running"]')
+        with stream(observer.url) as events:
+            events.until(lambda s: "tree" in s.sections, timeout=10)
+            for n in range(1, kills + 1):
+                pid = sup.child("erm").pid
+                assert pid is not None
+                done.clear()
+                killed = time.monotonic()
+                os.kill(pid, signal.SIGKILL)
+                events.until(
+                    lambda s, n=n: (
+                        next(c for c in s.sections["tree"]["children"] if c["name"] == "erm")[
+                            "restarts"
+                        ]
+                        == n
+                    ),
+                    timeout=10,
+                )
+                stream_s.append(time.monotonic() - killed)
+                page.wait_for_selector(
+                    f'.node[data-child="erm"][data-restarts="{n}"]', timeout=10_000
+                )
+                page_s.append(time.monotonic() - killed)
+                done.wait(5)
+                sup.wait_restarted("erm", timeout=10, restarts=n)
+                time.sleep(settle)  # the spare process pool refills (as between real crashes)
+        restart_s.extend(restarted)
+    rows = [
+        ("the restart itself (ChildRestarted.restart_s)", *summary(restart_s)),
+        ("kill -> event stream shows restarts + 1", *summary(stream_s)),
+        ("kill -> page shows restarts + 1 (chromium)", *summary(page_s)),
+    ]
+    table(
+        f"SIGKILL of a process manager to the page ({kills} kills), ms",
+        ("from the kill to", "median", "p90", "max"),
+        rows,
+    )
+
+
+def summary(values: list[float]) -> tuple[str, str, str]:
+    if not values:
+        return ("-", "-", "-")
+    return ms(statistics.median(values)), ms(pct(values, 0.9)), ms(max(values))
+
+
+# -- overhead -----------------------------------------------------------------------------
+
+
+def dedup_calls(app: rr.ResourceRegistrar, calls: int) -> float:
+    """Seconds per dedup-hit call + unload over `calls` calls."""
+    start = time.perf_counter()
+    for _ in range(calls):
+        app.unload(app.call("erm", "camera", "shared").id)
+    return (time.perf_counter() - start) / calls
+
+
+def bench_overhead(calls: int, rounds: int, missions: int) -> None:
+    """Rows interleaved round by round (noise from other programs spreads evenly)."""
+    rows = ("no observer", "a no-op subscriber", "observer open", "observer + page")
+    samples: dict[str, list[float]] = {row: [] for row in rows}
+    sup = rr.Supervisor([rr.ManagerSpec("erm", erm_setup, isolation="process")])
+    with sup, browser() as (context, _):
+        app = sup.registrar("bench")
+        holder = app.call("erm", "camera", "shared")  # the resource stays loaded: dedup hits
+        dedup_calls(app, calls)  # warm-up
+        for _ in range(rounds):
+            samples["no observer"].append(dedup_calls(app, calls))
+            with sup.subscribe(lambda _: None):
+                samples["a no-op subscriber"].append(dedup_calls(app, calls))
+            with sup.observe() as observer:
+                samples["observer open"].append(dedup_calls(app, calls))
+                page = context.new_page()
+                page.goto(observer.url)
+                page.wait_for_selector('.node[data-child="erm"][data-state="running"]')
+                samples["observer + page"].append(dedup_calls(app, calls))
+                page.close()
+        app.unload(holder.id)
+    medians = {row: statistics.median(values) for row, values in samples.items()}
+    base, subscribed = medians["no observer"], medians["a no-op subscriber"]
+    table(
+        f"dedup-hit call + unload against a process manager, median of {rounds} rounds of "
+        f"{calls}, us",
+        ("observer", "per call", "vs none", "vs a no-op subscriber"),
+        [
+            (
+                row,
+                f"{v * 1e6:.0f}",
+                f"{(v / base - 1) * 100:+.1f} %",
+                f"{(v / subscribed - 1) * 100:+.1f} %",
+            )
+            for row, v in medians.items()
+        ],
+    )
+    bench_mission_stops(missions)
+
+
+STOP_ROWS = ("no observer", "observer open", "observer + page")
+
+
+def bench_mission_stops(missions: int) -> None:
+    stops: dict[str, list[float]] = {row: [] for row in STOP_ROWS}
+    times: dict[str, list[float]] = {row: [] for row in STOP_ROWS}
+    with browser() as (context, _):
+        for round_ in range(missions):
+            for label, values in stops.items():
+                report = mission_with(label, context)
+                values.extend(f.robot_stopped_s for f in report.faults if f.id in ("F1", "F2"))
+                times[label].append(report.mission_time_s)
+            print(f"  mission round {round_ + 1}/{missions} done", file=sys.stderr)
+    base_stop = statistics.median(stops["no observer"])
+    base_time = statistics.median(times["no observer"])
+    rows = []
+    for label in STOP_ROWS:
+        stop, took = statistics.median(stops[label]), statistics.median(times[label])
+        rows.append(
+            (
+                label,
+                f"{stop * 1e3:.0f}",
+                f"{(stop / base_stop - 1) * 100:+.1f} %",
+                f"{took:.2f}",
+                f"{(took / base_time - 1) * 100:+.1f} %",
+            )
+        )
+    table(
+        f"the mission (--fast), {missions} runs each, medians: robot stopped per stop "
+        "(F1, F2), mission time",
+        ("observer", "stop, ms", "vs none", "mission, s", "vs none"),
+        rows,
+    )
+
+
+def mission_with(label: str, context: Any) -> Any:
+    """One fast mission: no observer, an observer, or an observer open in a page throughout."""
+    urls: list[str] = []
+    opened = threading.Event()
+
+    def observe(sup: rr.Supervisor) -> None:
+        urls.append(sup.observe().url)
+        opened.set()
+
+    with tempfile.TemporaryDirectory() as out:
+        result: list[Any] = []
+        hook = None if label == "no observer" else observe
+        runner = threading.Thread(
+            target=lambda: result.append(run_mission(MissionConfig.fast(), out, on_supervisor=hook))
+        )
+        runner.start()
+        if label == "observer + page":
+            page = context.new_page()
+            if opened.wait(30):
+                page.goto(urls[0])
+            while runner.is_alive():
+                page.wait_for_timeout(100)  # (the page lives on in the browser meanwhile)
+            page.close()
+        runner.join()
+    return result[0]
+
+
+# -- memory -------------------------------------------------------------------------------
+
+
+def browser_memory(profile: str) -> tuple[float, float]:
+    """MiB of the browser's processes (those started with this profile): RSS, and USS.
+
+    RSS counts the pages they share once per process; USS (unique set size) counts only
+    what each one holds alone, so its sum does not grow with sharing.
+    """
+    rss = uss = 0
+    for proc in psutil.process_iter(["cmdline"]):
+        with contextlib.suppress(psutil.Error):
+            if any(profile in part for part in proc.info["cmdline"] or ()):
+                info = proc.memory_full_info()
+                rss += info.rss
+                uss += info.uss
+    return rss / 2**20, uss / 2**20
+
+
+def bench_memory(soak: float, sample: float) -> None:
+    speed = 2.0
+    config = MissionConfig.fast()
+    import dataclasses  # noqa: PLC0415
+
+    config = dataclasses.replace(
+        config, distance_m=max(config.distance_m, speed * soak), speed=speed
+    )
+    me = psutil.Process()
+    rows: list[tuple[Any, ...]] = []
+    opened: list[rr.Supervisor] = []
+    urls: list[str] = []
+
+    def observe(sup: rr.Supervisor) -> None:
+        urls.append(sup.observe().url)
+        opened.append(sup)
+
+    stop_statuses = threading.Event()
+
+    def statuses() -> None:  # a WARNING on the robot every 0.2 s: timeline rows and events
+        while not stop_statuses.wait(0.2):
+            with contextlib.suppress(rr.RrError, IndexError):
+                opened[0].run_in(
+                    "rm",
+                    lambda reg: reg.send_status(
+                        reg.server_queries("robot")[0].id, rr.Status.WARNING, "soak"
+                    ),
+                )
+
+    with browser() as (context, profile), tempfile.TemporaryDirectory() as out:
+        result: list[Any] = []
+        runner = threading.Thread(
+            target=lambda: result.append(run_mission(config, out, on_supervisor=observe))
+        )
+        runner.start()
+        page = context.new_page()
+        deadline = time.monotonic() + 30
+        while not urls and time.monotonic() < deadline:
+            page.wait_for_timeout(10)
+        page.goto(urls[0])
+        page.wait_for_selector('.node[data-child="rm"][data-state="running"]')
+        threading.Thread(target=statuses, daemon=True).start()
+        start = time.monotonic()
+        while runner.is_alive():
+            heap = page.evaluate("() => performance.memory ? performance.memory.usedJSHeapSize : 0")
+            nodes = page.evaluate("() => document.getElementsByTagName('*').length")
+            rss, uss = browser_memory(profile)
+            rows.append(
+                (
+                    f"{time.monotonic() - start:.0f}",
+                    f"{rss:.0f}",
+                    f"{uss:.0f}",
+                    f"{heap / 2**20:.1f}",
+                    nodes,
+                    f"{me.memory_info().rss / 2**20:.0f}",
+                )
+            )
+            page.wait_for_timeout(sample * 1000)
+        stop_statuses.set()
+        runner.join()
+    table(
+        f"a page open for a mission of {soak:.0f} s (WARNING every 0.2 s), "
+        f"sampled every {sample:g} s",
+        (
+            "t, s",
+            "browser RSS, MiB",
+            "browser USS, MiB",
+            "page JS heap, MiB",
+            "DOM nodes",
+            "this process RSS, MiB",
+        ),
+        rows,
+    )
+    print(f"mission ok: {result[0].ok if result else None}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", choices=("restart", "overhead", "stops", "memory"), default=None)
+    parser.add_argument("--kills", type=int, default=20)
+    parser.add_argument(
+        "--settle", type=float, default=1.0, help="seconds between a restart and the next kill"
+    )
+    parser.add_argument("--calls", type=int, default=300, help="dedup-hit calls per round")
+    parser.add_argument("--rounds", type=int, default=15)
+    parser.add_argument("--missions", type=int, default=5)
+    parser.add_argument("--soak", type=float, default=60.0, help="seconds of the memory run")
+    parser.add_argument("--sample", type=float, default=10.0, help="seconds between samples")
+    args = parser.parse_args()
+    print(f"python {sys.version.split()[0]}, {os.cpu_count()} CPUs, chromium {chromium()}")
+    if args.only in (None, "restart"):
+        bench_restart(args.kills, args.settle)
+    if args.only in (None, "overhead"):
+        bench_overhead(args.calls, args.rounds, args.missions)
+    elif args.only == "stops":
+        bench_mission_stops(args.missions)
+    if args.only in (None, "memory"):
+        bench_memory(args.soak, args.sample)
+
+
+if __name__ == "__main__":
+    main()

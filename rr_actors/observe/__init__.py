@@ -1,0 +1,26 @@
+"""The observer: a live web page of a supervision tree, and its text drawings.
+
+Open one with [`Supervisor.observe`][rr_actors.Supervisor.observe] (or `rr-actors demo
+--observe`); `rr-actors observe --state DIR` shows a state directory's backups the same
+way, and [`Supervisor.graph`][rr_actors.Supervisor.graph] / `rr-actors graph` draw the
+tree and the dependency graph as Mermaid or DOT text.
+
+```
+ Supervisor ── events (subscribe) ──────────► LiveSource ─┐
+     │    └── snapshots (tree condition) ────►            │
+     └── run_in(name, catalog_of) ───────────►            ├─► Hub ─► web server ─► pages
+ state directory ── read_backup (read-only) ─► BackupSource┘     (SSE: sections, events)
+```
+
+Modules: `_view` (what is shown, as data), `_probe` (a registrar's catalog, read in its
+own process), `_hub` (the sections and recent events, for every page), `_sources` (live
+tree, backups), `_faults` (teaching mode), `_server` (Starlette app, uvicorn thread),
+`_observer` (the `Observer` handle), `_text` (Mermaid and DOT), `_commands` (the
+command line). The web server's dependencies are the `observe` extra and are imported
+only when an observer opens; the drawings need nothing more than rr_actors.
+"""
+
+from rr_actors.observe._observer import Observer, observe_backups
+from rr_actors.observe._text import FORMATS
+
+__all__ = ["FORMATS", "Observer", "observe_backups"]

@@ -1,0 +1,238 @@
+"""The `Observer` handle: a source, a hub and a server, opened together and closed together.
+
+```
+ Supervisor.observe(...) ─► observe_supervisor ─┐                ┌─► LiveSource (threads)
+ rr-actors observe --state DIR ─► observe_backups ┴─► Observer ──┼─► Hub
+                                                                 └─► Server (uvicorn thread)
+```
+
+The server's dependencies (Starlette, sse-starlette, uvicorn) are the `observe` extra;
+they are imported only here, when an observer opens.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import ipaddress
+import os
+import secrets
+import socket
+import threading
+from typing import TYPE_CHECKING, Any
+
+from rr_actors.errors import ConfigError
+from rr_actors.observe._faults import Faults
+from rr_actors.observe._hub import Hub
+from rr_actors.observe._sources import (
+    BackupSource,
+    LiveSource,
+    Observable,
+    TreeAccess,
+    event_dict,
+)
+
+if TYPE_CHECKING:
+    from rr_actors.observe._server import Server
+
+__all__ = ["START_TIMEOUT", "Observer", "observe_backups", "observe_supervisor"]
+
+START_TIMEOUT = 10.0
+"""Seconds the web server may take to start serving."""
+
+EXTRA_HINT = "the observer needs the observe extra: pip install 'rr-actors[observe]'"
+
+
+def is_loopback(host: str) -> bool:
+    """Whether `host` names this machine only (`localhost`, 127.0.0.0/8, `::1`)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _bind(host: str, port: int, *, allow_remote: bool) -> socket.socket:
+    """A listening TCP socket on `host:port`, or a `ConfigError` that says why not."""
+    if not isinstance(host, str) or not host:
+        raise ConfigError(f"host must be a non-empty string, got {host!r}")
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise ConfigError(f"port must be an int from 0 to 65535, got {port!r}")
+    if not is_loopback(host) and not allow_remote:
+        raise ConfigError(
+            f"host {host!r} is not a loopback address: the observer would be reachable from "
+            "other machines (it shows every catalog, and with allow_faults its buttons kill "
+            "managers). Pass allow_remote=True (--allow-remote) to do that on purpose"
+        )
+    address = "127.0.0.1" if host == "localhost" else host
+    family = socket.AF_INET6 if ":" in address else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((address, port))
+        sock.listen(64)
+    except OSError as exc:
+        sock.close()
+        if exc.errno == errno.EADDRINUSE:
+            raise ConfigError(f"port {port} on {host} is in use: choose another port") from exc
+        raise ConfigError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from exc
+    return sock
+
+
+class Observer:
+    """An open observer page: its `url`, and `close()`.
+
+    Made by [`Supervisor.observe`][rr_actors.Supervisor.observe] (a live tree) or by
+    `rr-actors observe --state DIR` (backups); not constructed directly.
+
+    Attributes:
+        url: the page's address (with `#token=...` when teaching mode is on: the
+            token is what the fault buttons send back; give the URL only to whom may
+            use them).
+        host: the address it listens on.
+        port: the port it listens on.
+        allow_faults: whether the teaching mode's buttons work.
+    """
+
+    def __init__(
+        self,
+        source: LiveSource | BackupSource,
+        hub: Hub,
+        *,
+        host: str,
+        port: int,
+        allow_remote: bool,
+        hello: dict[str, Any],
+        faults: Faults | None,
+    ) -> None:
+        try:
+            from rr_actors.observe import _server  # noqa: PLC0415 - the observe extra
+        except ImportError as exc:
+            raise ConfigError(f"{EXTRA_HINT} ({exc})") from exc
+        self._source = source
+        self._hub = hub
+        self._faults = faults
+        self._lock = threading.Lock()
+        self._closed = False
+        sock = _bind(host, port, allow_remote=allow_remote)
+        self.host = host
+        self.port: int = sock.getsockname()[1]
+        self.allow_faults = faults is not None
+        self._token = secrets.token_urlsafe(18)
+        name = f"[{host}]" if ":" in host else host
+        self.url = f"http://{name}:{self.port}/" + (
+            f"#token={self._token}" if faults is not None else ""
+        )
+        hosts = None
+        if is_loopback(host):
+            hosts = {f"{h}:{self.port}" for h in ("127.0.0.1", "localhost", "[::1]", name)}
+        try:
+            app = _server.build_app(
+                hub,
+                hello={**hello, "faults": faults is not None},
+                faults=faults,
+                token=self._token,
+                hosts=hosts,
+            )
+            self._server: Server = _server.Server(app, sock, f"rr-observe-http-{self.port}")
+        except BaseException:
+            sock.close()
+            raise
+        source.start()
+        if not self._server.start(START_TIMEOUT):
+            self.close()
+            raise ConfigError(f"the observer's web server did not start within {START_TIMEOUT:g} s")
+
+    @property
+    def closed(self) -> bool:
+        """Whether it was closed."""
+        return self._closed
+
+    def close(self, *, timeout: float = 5.0) -> None:
+        """Stop serving: open pages show that they are disconnected. Idempotent.
+
+        A manager that a hang button stopped (SIGSTOP) and that still exists gets
+        SIGCONT. Runs on the calling thread; waits for the observer's threads at most
+        `timeout` seconds each.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        self._source.close(timeout)
+        self._hub.close()
+        self._server.close(timeout)
+        if self._faults is not None:
+            self._faults.resume_all()
+
+    def __enter__(self) -> Observer:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else "open"
+        return f"<Observer {self.host}:{self.port} {state}>"
+
+
+def observe_supervisor(
+    sup: Observable,
+    access: TreeAccess,
+    *,
+    host: str,
+    port: int,
+    allow_faults: bool,
+    allow_remote: bool,
+) -> Observer:
+    """Open the live page of a supervision tree (what `Supervisor.observe` does)."""
+    hub = Hub(convert=event_dict)
+    source = LiveSource(sup, access, hub)
+    faults = (
+        Faults(sup, access.spec, lambda name: hub.get(f"catalog/{name}")) if allow_faults else None
+    )
+    hello = {"mode": "live", "title": f"supervisor {sup.name}", "pid": os.getpid()}
+    try:
+        return Observer(
+            source, hub, host=host, port=port, allow_remote=allow_remote, hello=hello, faults=faults
+        )
+    except BaseException:
+        with contextlib.suppress(Exception):
+            source.close()
+        raise
+
+
+def observe_backups(
+    state_dir: str | os.PathLike[str],
+    *,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    allow_remote: bool = False,
+) -> Observer:
+    """Open the page of a state directory's backups: no live system, nothing written.
+
+    The page shows every backup's catalog and the dependency graph across them, and
+    follows the files as a running tree changes them (every `POLL_INTERVAL` seconds).
+
+    Args:
+        state_dir: a supervisor's `state_dir` (its `<name>.db` files).
+        host: the address to listen on (a loopback address unless `allow_remote`).
+        port: the port (0: a free one).
+        allow_remote: allow a `host` that other machines can reach.
+
+    Returns:
+        The open observer; `close()` it.
+
+    Raises:
+        ConfigError: the directory does not exist or holds no backup; the port is in
+            use; the host is not a loopback address and `allow_remote` is false; the
+            `observe` extra is not installed.
+        CatalogCorruptError: a backup cannot be read (the error names the file).
+    """
+    hub = Hub()
+    source = BackupSource(state_dir, hub)
+    hello = {"mode": "backups", "title": f"backups in {state_dir}", "pid": os.getpid()}
+    return Observer(
+        source, hub, host=host, port=port, allow_remote=allow_remote, hello=hello, faults=None
+    )

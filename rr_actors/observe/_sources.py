@@ -1,0 +1,516 @@
+"""Where the page's sections come from: a live supervision tree, or a directory of backups.
+
+```
+ LiveSource (a running Supervisor)
+   tree watcher thread ── waits on the tree's condition (each publish) ──► "tree"
+   event subscription ─── every event (to_dict + describe) ──────────────► events
+        └─ marks registrars dirty ──► catalog refresher thread ──────────► "catalog/<name>",
+                                      (Supervisor.run_in(name, catalog_of))  "graph"
+ BackupSource (a state directory)
+   poller thread ── a backup file changed ── read_backup ──► "files", "catalog/<name>", "graph"
+```
+
+Both only read: the live source asks each registrar for a copy of its rows (in its own
+process, see `_probe.py`), the backup source reads the files read-only
+(`rr_actors._store.read_backup`). Every wait is bounded; `close()` ends the threads.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
+
+from rr_actors import events
+from rr_actors._store import read_backup
+from rr_actors.config import ManagerSpec, SupervisorSpec
+from rr_actors.errors import ConfigError
+from rr_actors.observe._hub import Hub
+from rr_actors.observe._probe import catalog_of
+from rr_actors.observe._view import dependency_graph, summarise_catalog
+
+if TYPE_CHECKING:
+    from rr_actors._core.bus import Subscription
+    from rr_actors._registrar import ResourceRegistrar
+    from rr_actors._supervision.children import ChildInfo
+
+__all__ = [
+    "CATALOG_INTERVAL",
+    "FULL_REFRESH",
+    "BackupSource",
+    "LiveSource",
+    "Observable",
+    "TreeAccess",
+    "backup_files",
+]
+
+logger = logging.getLogger("rr_actors")
+
+CATALOG_INTERVAL = 0.5
+"""Seconds between two rounds of catalog snapshots (changes within it are shown together).
+
+Each round asks every registrar that changed for a copy of its catalog, in its own
+process: it competes with the work it shows, so a round at most twice a second."""
+
+FULL_REFRESH = 5.0
+"""Seconds after which every catalog is read again, even without an event about it."""
+
+SNAPSHOT_TIMEOUT = 1.0
+"""Seconds the observer waits for one registrar's catalog (a hung manager is skipped)."""
+
+POLL_INTERVAL = 1.0
+"""Seconds between two looks at a state directory's backup files."""
+
+
+class Observable(Protocol):
+    """The public part of a `Supervisor` the observer uses."""
+
+    @property
+    def name(self) -> str:
+        """The supervisor's name."""
+
+    @property
+    def gave_up(self) -> Exception | None:
+        """Its give-up error, if it gave up."""
+
+    def child(self, name: str) -> ChildInfo:
+        """The snapshot of child `name`."""
+
+    def subscribe(
+        self, callback: Callable[[events.Event], object], *, maxsize: int = ...
+    ) -> Subscription[events.Event]:
+        """Subscribe to the tree's events."""
+
+    def run_in(
+        self, name: str, fn: Callable[[ResourceRegistrar], Any], *, timeout: float = ...
+    ) -> Any:
+        """Run `fn(registrar)` in manager `name`'s process."""
+
+
+@dataclasses.dataclass(frozen=True)
+class TreeAccess:
+    """What `Supervisor.observe` hands the observer besides the supervisor's public methods.
+
+    Attributes:
+        spec: the whole tree's specs.
+        cond: the tree's condition, notified at every publish of a child's snapshot.
+        restart_due: child name -> when its scheduled restart is due (wall clock, s).
+        running: whether the supervisor has started and not stopped.
+        registrars: the consumer registrars `Supervisor.registrar` started (this process).
+    """
+
+    spec: SupervisorSpec
+    cond: threading.Condition
+    restart_due: Mapping[str, float]
+    running: Callable[[], bool]
+    registrars: Callable[[], list[ResourceRegistrar]]
+
+
+def managers(spec: SupervisorSpec) -> list[ManagerSpec]:
+    """Every manager of the tree, depth first."""
+    found: list[ManagerSpec] = []
+    for child in spec.children:
+        if isinstance(child, SupervisorSpec):
+            found.extend(managers(child))
+        else:
+            found.append(child)
+    return found
+
+
+def event_dict(event: events.Event) -> dict[str, Any]:
+    """An event as the page gets it: `to_dict` plus its `describe` line as `"text"`."""
+    data = events.to_dict(event)
+    data["text"] = events.describe(event)
+    return data
+
+
+def _touched(event: events.Event) -> tuple[str, ...] | None:
+    """The registrars whose catalog an event changed (`None`: possibly every one)."""
+    match event:
+        case events.ConsumerAdded() | events.ConsumerReleased():
+            return (event.registrar, event.consumer)
+        case (
+            events.ResourceLoaded()
+            | events.LoadFailed()
+            | events.ResourceUnloaded()
+            | events.InDoubt()
+        ):
+            return (event.registrar,)
+        case events.ChildStarted() | events.ChildRestarted() | events.ChildExited():
+            return (event.child,)
+        case events.StatusSent() | events.StatusDelivered():
+            return ()
+        case events.SupervisorGaveUp() | events.EventsDropped():
+            return None
+    return None
+
+
+class LiveSource:
+    """Keeps the hub's sections up to date with a running supervision tree.
+
+    Args:
+        sup: the supervisor.
+        access: what the supervisor hands over besides its public methods.
+        hub: where the sections go.
+    """
+
+    def __init__(self, sup: Observable, access: TreeAccess, hub: Hub | None = None) -> None:
+        self.sup = sup
+        self.access = access
+        self.hub = hub if hub is not None else Hub()
+        self.specs = {m.name: m for m in managers(access.spec)}
+        self._closing = threading.Event()
+        self._dirty_cond = threading.Condition()
+        self._dirty: set[str] | None = None  # None: every registrar
+        self._states: dict[str, str] = {}
+        self._catalogs: dict[str, dict[str, Any]] = {}
+        self._subscription: Subscription[events.Event] | None = None
+        self._threads: list[threading.Thread] = []
+
+    def start(self) -> None:
+        """Subscribe to the tree's events and start the watcher and refresher threads."""
+        self._subscription = self.sup.subscribe(self._on_event)
+        for target, role in ((self._watch_tree, "tree"), (self._refresh_catalogs, "catalogs")):
+            thread = threading.Thread(
+                target=target, name=f"rr-observe-{self.sup.name}-{role}", daemon=True
+            )
+            thread.start()
+            self._threads.append(thread)
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Unsubscribe and end the threads (each within `timeout` seconds)."""
+        self._closing.set()
+        with self.access.cond:
+            self.access.cond.notify_all()
+        with self._dirty_cond:
+            self._dirty_cond.notify_all()
+        if self._subscription is not None:
+            self._subscription.close(timeout=timeout)
+        for thread in self._threads:
+            thread.join(timeout)
+
+    def snapshot(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """The tree and the dependency graph now, read on the calling thread (no threads).
+
+        Returns:
+            `(tree, graph)` as the page gets them.
+        """
+        with self.access.cond:
+            tree = self.tree()
+            self._note_states(tree)
+        self._refresh(None)
+        graph: dict[str, Any] = self.hub.get("graph")
+        return tree, graph
+
+    # -- the supervision tree -------------------------------------------------------------
+
+    def tree(self) -> dict[str, Any]:
+        """The tree's snapshot as the page shows it (call with the tree's lock held)."""
+        spec = self.access.spec
+        gave_up = self.sup.gave_up
+        if gave_up is not None:
+            state = "gave up"
+        elif self.access.running():
+            state = "running"
+        else:
+            state = "stopped"
+        return {
+            **self._supervisor(spec, self.sup.name),
+            "state": state,
+            "gave_up": str(gave_up) if gave_up is not None else None,
+            "server_time": time.time(),
+        }
+
+    def _supervisor(self, spec: SupervisorSpec, name: str) -> dict[str, Any]:
+        due = self.access.restart_due
+        children = []
+        for child in spec.children:
+            info = self.sup.child(child.name)
+            entry: dict[str, Any] = {
+                "name": child.name,
+                "kind": info.kind,
+                "isolation": info.isolation,
+                "restart": info.restart,
+                "state": info.state,
+                "pid": info.pid,
+                "restarts": info.restarts,
+                "last_exit": info.last_exit,
+                "restart_due": due.get(child.name) if info.state == "restarting" else None,
+            }
+            if isinstance(child, SupervisorSpec):
+                entry.update(self._supervisor(child, child.name))
+                entry["state"] = info.state
+            else:
+                entry["hang_after"] = child.hang_after if child.isolation == "process" else None
+            children.append(entry)
+        return {
+            "name": name,
+            "kind": "supervisor",
+            "strategy": spec.strategy,
+            "max_restarts": spec.max_restarts,
+            "period": spec.period,
+            "children": children,
+        }
+
+    def _watch_tree(self) -> None:
+        cond = self.access.cond
+        with cond:  # read at each publish: the wait releases the lock, a publish notifies
+            while not self._closing.is_set():
+                try:
+                    tree = self.tree()
+                    self.hub.put("tree", tree)
+                    self._note_states(tree)
+                except Exception:
+                    logger.exception("observer of %s: reading the tree failed", self.sup.name)
+                cond.wait(FULL_REFRESH)
+
+    def _note_states(self, tree: dict[str, Any]) -> None:
+        states: dict[str, str] = {}
+
+        def walk(node: dict[str, Any]) -> None:
+            for child in node["children"]:
+                if child["kind"] == "manager":
+                    states[child["name"]] = child["state"]
+                else:
+                    walk(child)
+
+        walk(tree)
+        changed = [name for name, state in states.items() if self._states.get(name) != state]
+        self._states = states
+        if changed:
+            self._mark(tuple(changed))
+
+    # -- events ---------------------------------------------------------------------------
+
+    def _on_event(self, event: events.Event) -> None:
+        """Runs on the subscription's thread, one event at a time (kept as it is: cheap)."""
+        self.hub.add_event(event)
+        touched = _touched(event)
+        if touched != ():
+            self._mark(touched)
+
+    def _mark(self, names: tuple[str, ...] | None) -> None:
+        with self._dirty_cond:
+            if names is None:
+                self._dirty = None
+            elif self._dirty is not None:
+                self._dirty.update(names)
+            self._dirty_cond.notify()
+
+    # -- the catalogs ---------------------------------------------------------------------
+
+    def _registrars(self) -> dict[str, ResourceRegistrar | None]:
+        """Every registrar to show: the managers (`None`), then the local consumers."""
+        names: dict[str, ResourceRegistrar | None] = dict.fromkeys(self.specs)
+        for registrar in self.access.registrars():
+            if registrar.is_alive():
+                names.setdefault(registrar.name, registrar)
+        return names
+
+    def _refresh_catalogs(self) -> None:
+        while not self._closing.is_set():
+            with self._dirty_cond:
+                if self._dirty is not None and not self._dirty:
+                    self._dirty_cond.wait(FULL_REFRESH)
+                    if self._dirty is not None and not self._dirty:
+                        self._dirty = None  # nothing happened for a while: read them all
+                dirty, self._dirty = self._dirty, set()
+            if self._closing.is_set():
+                return
+            try:
+                self._refresh(dirty)
+            except Exception:
+                logger.exception("observer of %s: reading the catalogs failed", self.sup.name)
+            self._closing.wait(CATALOG_INTERVAL)  # at most one round per interval
+
+    def _refresh(self, dirty: set[str] | None) -> None:
+        registrars = self._registrars()
+        for name in list(self._catalogs):
+            if name not in registrars:
+                del self._catalogs[name]
+                self.hub.remove(f"catalog/{name}")
+        for name, local in registrars.items():
+            if dirty is not None and name not in dirty and name in self._catalogs:
+                continue
+            section = self._read(name, local)
+            self._catalogs[name] = section
+            self.hub.put(f"catalog/{name}", section)
+        catalogs = {name: s["catalog"] for name, s in self._catalogs.items()}  # (or last seen)
+        states = {name: s["state"] for name, s in self._catalogs.items()}
+        self.hub.put("graph", dependency_graph(catalogs, states))
+
+    def _read(self, name: str, local: ResourceRegistrar | None) -> dict[str, Any]:
+        """One registrar's catalog section; the last one known if it cannot be read now."""
+        last = self._catalogs.get(name)
+        known = last["catalog"] if last is not None else None
+        if local is not None:
+            state, kind = "running", "consumer"
+        else:
+            state = self._states.get(name) or self.sup.child(name).state
+            kind = f"{self.specs[name].isolation} manager"
+        section = {"registrar": name, "kind": kind, "state": state, "available": False}
+        if state != "running":
+            return {**section, "catalog": known, "error": None}
+        try:
+            if local is not None:
+                catalog = catalog_of(local, timeout=SNAPSHOT_TIMEOUT)
+            else:
+                read = functools.partial(catalog_of, timeout=SNAPSHOT_TIMEOUT)
+                catalog = self.sup.run_in(name, read, timeout=SNAPSHOT_TIMEOUT + 0.5)
+        except Exception as exc:  # noqa: BLE001 - dead, hung, stopping: show it, keep the last
+            return {**section, "catalog": known, "error": f"{type(exc).__name__}: {exc}"}
+        return {**section, "available": True, "catalog": catalog, "error": None}
+
+
+# -- backups ---------------------------------------------------------------------------------
+
+
+def backup_files(state_dir: str | os.PathLike[str]) -> list[Path]:
+    """The catalog backups (`*.db`) of a state directory, sorted by name.
+
+    Raises:
+        ConfigError: `state_dir` does not exist, is not a directory, or holds no backup.
+    """
+    path = Path(os.fspath(state_dir))
+    if not path.exists():
+        raise ConfigError(f"state directory {str(path)!r} does not exist")
+    if not path.is_dir():
+        raise ConfigError(f"state directory {str(path)!r} is not a directory")
+    files = sorted(p for p in path.glob("*.db") if p.is_file())
+    if not files:
+        raise ConfigError(f"state directory {str(path)!r} holds no catalog backup (*.db)")
+    return files
+
+
+def read_catalogs(files: list[Path]) -> dict[str, dict[str, Any]]:
+    """Read every backup (registrar name: the file's stem) into catalog summaries.
+
+    Raises:
+        CatalogCorruptError: a file is not a readable catalog (the error names it).
+    """
+    catalogs = {}
+    for file in files:
+        backup = read_backup(file)
+        catalogs[file.stem] = {
+            **summarise_catalog(file.stem, backup.resources, backup.clients),
+            "schema_version": backup.schema_version,
+        }
+    return catalogs
+
+
+def _signature(file: Path) -> tuple[int, ...]:
+    sig: list[int] = []
+    for suffix in ("", "-wal"):
+        try:
+            stat = os.stat(f"{file}{suffix}")
+        except OSError:
+            sig.extend((0, 0))
+        else:
+            sig.extend((stat.st_mtime_ns, stat.st_size))
+    return tuple(sig)
+
+
+class BackupSource:
+    """Keeps the hub's sections up to date with the backups of a state directory.
+
+    Reads them once at construction (so a bad directory fails before anything is
+    served), then looks for changes every `POLL_INTERVAL` seconds on a thread. Nothing
+    is written to the directory.
+
+    Args:
+        state_dir: the directory (a supervisor's `state_dir`).
+        hub: where the sections go.
+
+    Raises:
+        ConfigError: the directory does not exist or holds no backup.
+        CatalogCorruptError: a backup is not a readable catalog (the error names it).
+    """
+
+    def __init__(self, state_dir: str | os.PathLike[str], hub: Hub) -> None:
+        self.state_dir = Path(os.fspath(state_dir))
+        self.hub = hub
+        self._files = backup_files(self.state_dir)
+        self._catalogs = read_catalogs(self._files)  # raises before anything is served
+        self._signatures = {f.stem: _signature(f) for f in self._files}
+        self._errors: dict[str, str] = {}
+        self._closing = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._publish()
+
+    def start(self) -> None:
+        """Start looking for changes."""
+        self._thread = threading.Thread(target=self._poll, name="rr-observe-backups", daemon=True)
+        self._thread.start()
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Stop looking (within `timeout` seconds)."""
+        self._closing.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def _poll(self) -> None:
+        while not self._closing.wait(POLL_INTERVAL):
+            try:
+                self._look()
+            except Exception:
+                logger.exception("observer: reading the backups in %s failed", self.state_dir)
+
+    def _look(self) -> None:
+        files = sorted(p for p in self.state_dir.glob("*.db") if p.is_file())
+        changed = {f.stem for f in files} != set(self._catalogs) | set(self._errors)
+        for file in files:
+            signature = _signature(file)
+            if self._signatures.get(file.stem) == signature:
+                continue
+            self._signatures[file.stem] = signature
+            changed = True
+            try:
+                self._catalogs.update(read_catalogs([file]))
+                self._errors.pop(file.stem, None)
+            except Exception as exc:  # noqa: BLE001 - shown on the page, named
+                self._catalogs.pop(file.stem, None)
+                self._errors[file.stem] = str(exc)
+        names = {f.stem for f in files}
+        for gone in (set(self._catalogs) | set(self._errors)) - names:
+            self._catalogs.pop(gone, None)
+            self._errors.pop(gone, None)
+            self._signatures.pop(gone, None)
+            self.hub.remove(f"catalog/{gone}")
+        self._files = files
+        if changed:
+            self._publish()
+
+    def _publish(self) -> None:
+        files = []
+        for file in self._files:
+            name = file.stem
+            catalog = self._catalogs.get(name)
+            files.append(
+                {
+                    "registrar": name,
+                    "path": str(file),
+                    "schema_version": catalog["schema_version"] if catalog else None,
+                    "resources": len(catalog["resources"]) if catalog else None,
+                    "clients": len(catalog["clients"]) if catalog else None,
+                    "error": self._errors.get(name),
+                }
+            )
+            self.hub.put(
+                f"catalog/{name}",
+                {
+                    "registrar": name,
+                    "kind": "backup",
+                    "state": "backup" if catalog else "unreadable",
+                    "available": catalog is not None,
+                    "catalog": catalog,
+                    "error": self._errors.get(name),
+                },
+            )
+        self.hub.put("files", {"state_dir": str(self.state_dir), "files": files})
+        self.hub.put("graph", dependency_graph(dict(self._catalogs)))

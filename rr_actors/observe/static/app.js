@@ -1,0 +1,676 @@
+// rr_actors observer: renders what /api/stream sends (server-sent events).
+//
+//   EventSource /api/stream ── "hello" ── mode, title, teaching mode on/off, hub instance
+//                           ── "section" {key, value} ── tree | files | graph | catalog/<name>
+//                           ── "events" {events, missed} ── the tree's events (to_dict + text)
+//   state ──(render, once per burst of messages)──► tree, catalogs, graph (cytoscape), timeline, log
+//
+// Everything from the server is shown through textContent (never parsed as HTML). The page
+// keeps bounded state: at most MAX_EVENTS events, MAX_ROWS timeline rows, MAX_LOG log lines.
+"use strict";
+
+(() => {
+  const MAX_EVENTS = 500;
+  const MAX_ROWS = 120;
+  const MAX_LOG = 200;
+  const MATCH_S = 0.05; // a delivery belongs to the send at (at - latency) within this
+
+  const state = {
+    hello: null,
+    instance: null,
+    sections: {},
+    lastSeq: 0,
+    events: [],
+    dirty: new Set(),
+    scheduled: false,
+    offset: 0, // server clock - browser clock, seconds
+    restarts: {}, // child -> last restart count seen (to flash a restart)
+    rows: [], // timeline rows, newest last
+    orphans: [], // deliveries whose send has not arrived yet
+    log: [],
+  };
+  const token = (/(?:^|[#&])token=([^&]+)/.exec(location.hash) || [])[1] || "";
+
+  // -- small DOM helpers ---------------------------------------------------------------
+  function el(tag, props, ...children) {
+    const node = document.createElement(tag);
+    for (const [key, value] of Object.entries(props || {})) {
+      if (value === undefined || value === null || value === false) continue;
+      if (key === "class") node.className = value;
+      else if (key === "text") node.textContent = value;
+      else if (key.startsWith("data-")) node.setAttribute(key, String(value));
+      else if (key === "onclick") node.addEventListener("click", value);
+      else node.setAttribute(key, String(value));
+    }
+    for (const child of children) {
+      if (child === null || child === undefined || child === false) continue;
+      node.append(typeof child === "string" ? document.createTextNode(child) : child);
+    }
+    return node;
+  }
+  const $ = (id) => document.getElementById(id);
+  const slug = (text) => String(text).replace(/\s+/g, "-");
+  function clock(at) {
+    const d = new Date(at * 1000);
+    const pad = (n, w) => String(n).padStart(w, "0");
+    return `${pad(d.getHours(), 2)}:${pad(d.getMinutes(), 2)}:${pad(d.getSeconds(), 2)}.${pad(d.getMilliseconds(), 3)}`;
+  }
+  const ms = (s) => (s < 1 ? `${(s * 1000).toFixed(1)} ms` : `${s.toFixed(2)} s`);
+  const plural = (n, word) => `${n} ${word}${n === 1 ? "" : "s"}`;
+  const cut = (text, width) => (text.length <= width ? text : `${text.slice(0, width - 1)}…`);
+
+  // -- the stream ----------------------------------------------------------------------
+  function connect() {
+    const source = new EventSource("/api/stream");
+    source.addEventListener("hello", (e) => {
+      const hello = JSON.parse(e.data);
+      if (state.instance !== null && state.instance !== hello.instance) reset();
+      state.instance = hello.instance;
+      state.hello = hello;
+      setConnection(true);
+      renderHeader();
+      schedule("tree", "files", "events", "catalogs");
+    });
+    source.addEventListener("section", (e) => {
+      const { key, value } = JSON.parse(e.data);
+      if (value === null) delete state.sections[key];
+      else state.sections[key] = value;
+      if (key === "tree" && value) state.offset = value.server_time - Date.now() / 1000;
+      schedule(key.startsWith("catalog/") ? "catalogs" : key);
+    });
+    source.addEventListener("events", (e) => {
+      const { events, missed } = JSON.parse(e.data);
+      if (missed) addLog({ at: Date.now() / 1000, text: `${missed} events missed (the page fell behind)` });
+      for (const event of events) {
+        if (event.seq <= state.lastSeq) continue;
+        state.lastSeq = event.seq;
+        addEvent(event);
+      }
+      schedule("events");
+    });
+    source.onerror = () => setConnection(false);
+    source.onopen = () => setConnection(true);
+  }
+
+  function reset() {
+    state.sections = {};
+    state.lastSeq = 0;
+    state.events = [];
+    state.rows = [];
+    state.orphans = [];
+    state.log = [];
+    state.restarts = {};
+    treeRows.clear();
+    $("tree").replaceChildren();
+  }
+
+  function setConnection(up) {
+    const badge = $("connection");
+    badge.textContent = up ? "live" : "disconnected";
+    badge.className = `badge ${up ? "up" : "down"}`;
+  }
+
+  function schedule(...keys) {
+    for (const key of keys) state.dirty.add(key);
+    if (state.scheduled) return;
+    state.scheduled = true;
+    setTimeout(render, 0); // (after the messages that arrived together)
+  }
+
+  const LISTS_EVERY = 250; // ms between two redraws of the timeline and the log
+  let listsAt = 0;
+  let listsLater = null;
+
+  function render() {
+    state.scheduled = false;
+    const dirty = state.dirty;
+    state.dirty = new Set();
+    if (!state.hello) return;
+    if (dirty.has("tree") || dirty.has("files")) renderTree(); // at once: restarts show fast
+    if (dirty.has("catalogs")) renderCatalogs();
+    if (dirty.has("graph")) renderGraph();
+    if (dirty.has("events") && listsLater === null) {
+      const wait = Math.max(0, listsAt + LISTS_EVERY - Date.now());
+      listsLater = setTimeout(() => {
+        listsLater = null;
+        listsAt = Date.now();
+        renderTimeline();
+        renderLog();
+      }, wait);
+    }
+  }
+
+  function renderHeader() {
+    const hello = state.hello;
+    $("title").textContent = hello.title;
+    $("mode").textContent =
+      hello.mode === "backups" ? "offline: backups" : hello.faults ? "live · teaching mode" : "live";
+    document.body.dataset.mode = hello.mode;
+  }
+
+  // -- notices and the confirmation ----------------------------------------------------
+  let noticeTimer = null;
+  function notice(text, refused) {
+    const box = $("notice");
+    box.textContent = text;
+    box.className = refused ? "refused" : "";
+    box.hidden = false;
+    clearTimeout(noticeTimer);
+    noticeTimer = setTimeout(() => (box.hidden = true), 8000);
+  }
+
+  function confirmThen(question, detail, label, action) {
+    $("confirm-text").textContent = question;
+    $("confirm-detail").textContent = detail;
+    $("confirm-ok").textContent = label;
+    const modal = $("confirm");
+    modal.hidden = false;
+    const close = () => {
+      modal.hidden = true;
+      $("confirm-ok").onclick = null;
+      $("confirm-cancel").onclick = null;
+    };
+    $("confirm-ok").onclick = () => {
+      close();
+      action();
+    };
+    $("confirm-cancel").onclick = close;
+    $("confirm-ok").focus();
+  }
+
+  async function fault(kind, body) {
+    try {
+      const response = await fetch(`/api/faults/${kind}`, {
+        method: "POST",
+        headers: { "Content-Type": "application/json", "X-RR-Token": token },
+        body: JSON.stringify(body),
+      });
+      const answer = await response.json();
+      notice(answer.message, !answer.ok);
+    } catch (error) {
+      notice(`the request failed: ${error}`, true);
+    }
+  }
+
+  // -- the supervision tree ------------------------------------------------------------
+  const treeRows = new Map(); // child name -> {row, fields}
+  let treeShape = "";
+
+  function shapeOf(node) {
+    return `${node.name}(${node.children.map((c) => (c.kind === "supervisor" ? shapeOf(c) : c.name)).join(",")})`;
+  }
+
+  function renderTree() {
+    if (state.hello.mode === "backups") return renderFiles();
+    const tree = state.sections.tree;
+    if (!tree) return;
+    const shape = shapeOf(tree);
+    if (shape !== treeShape) {
+      treeShape = shape;
+      treeRows.clear();
+      $("tree").replaceChildren(el("ul", { class: "tree" }, buildNode(tree, true)));
+    }
+    updateNode(tree, true);
+  }
+
+  function buildNode(node, root) {
+    const fields = {
+      state: el("span", { class: "badge state", "data-field": "state" }),
+      pid: el("span", { class: "mono", "data-field": "pid" }),
+      restarts: el("span", { class: "restarts", "data-field": "restarts" }),
+      countdown: el("span", { class: "countdown", "data-field": "countdown" }),
+      exit: el("span", { class: "exit", "data-field": "last-exit" }),
+    };
+    const isManager = node.kind === "manager";
+    const what = isManager
+      ? `${node.isolation} manager · ${node.restart}`
+      : `supervisor · ${node.strategy} · at most ${node.max_restarts} restarts in ${node.period} s`;
+    const row = el(
+      "div",
+      { class: "node", "data-child": node.name, "data-kind": node.kind },
+      el("span", { class: "name", text: node.name }),
+      el("span", { class: "what", text: what }),
+      fields.state,
+      fields.pid,
+      root ? null : fields.restarts,
+      fields.countdown,
+      isManager && node.isolation === "process" && state.hello.faults ? faultButtons(node.name) : null,
+      fields.exit,
+    );
+    treeRows.set(root ? "\u0000root" : node.name, { row, fields });
+    const item = el("li", {}, row);
+    if (!isManager) item.append(el("ul", {}, ...node.children.map((c) => buildNode(c, false))));
+    return item;
+  }
+
+  function faultButtons(name) {
+    const pidOf = () => {
+      const entry = treeRows.get(name);
+      return entry ? Number(entry.row.dataset.pid) : NaN;
+    };
+    const button = (label, title, kind, question, detail) =>
+      el("button", {
+        class: "danger",
+        "data-fault": kind,
+        title,
+        text: label,
+        onclick: () => {
+          const pid = pidOf();
+          if (!pid) return notice(`${name} has no process right now`, true);
+          confirmThen(question(pid), detail, label, () => fault(kind, { child: name, pid }));
+        },
+      });
+    return el(
+      "span",
+      { class: "faults" },
+      button("kill", "SIGKILL its process", "kill", (pid) => `SIGKILL ${name} (pid ${pid})?`,
+        "Its supervisor sees the exit from the process sentinel and restarts it by its policy."),
+      button("hang", "SIGSTOP its process", "hang", (pid) => `SIGSTOP ${name} (pid ${pid})?`,
+        "It hangs: its heartbeat stops, and after its hang time the supervisor kills and restarts it. Resume sends SIGCONT before that."),
+      button("resume", "SIGCONT its process", "resume", (pid) => `SIGCONT ${name} (pid ${pid})?`,
+        "A process stopped by hang runs again."),
+    );
+  }
+
+  function updateNode(node, root) {
+    const entry = treeRows.get(root ? "\u0000root" : node.name);
+    if (entry) {
+      const { row, fields } = entry;
+      const stateClass = `state-${slug(node.state)}`;
+      row.className = `node ${stateClass}${row.classList.contains("flash") ? " flash" : ""}`;
+      row.dataset.state = node.state;
+      row.dataset.pid = node.pid || "";
+      row.dataset.restarts = node.restarts || 0;
+      row.dataset.restartDue = node.restart_due || "";
+      fields.state.textContent = node.state;
+      fields.state.className = `badge state ${stateClass}`;
+      fields.pid.textContent = node.pid ? `pid ${node.pid}` : "";
+      fields.restarts.textContent = root ? "" : plural(node.restarts || 0, "restart");
+      fields.exit.textContent = node.last_exit ? `last exit: ${node.last_exit}` : node.gave_up ? `gave up: ${node.gave_up}` : "";
+      const before = state.restarts[node.name];
+      if (!root && before !== undefined && (node.restarts || 0) > before) flash(row);
+      if (!root) state.restarts[node.name] = node.restarts || 0;
+    }
+    for (const child of node.children || []) updateNode(child, false);
+  }
+
+  function flash(row) {
+    row.classList.remove("flash");
+    void row.offsetWidth; // restart the animation
+    row.classList.add("flash");
+  }
+
+  function tickCountdowns() {
+    const now = Date.now() / 1000 + state.offset;
+    for (const { row, fields } of treeRows.values()) {
+      const due = Number(row.dataset.restartDue);
+      fields.countdown.textContent =
+        due && row.dataset.state === "restarting" ? `restart in ${Math.max(0, due - now).toFixed(1)} s` : "";
+    }
+  }
+
+  function renderFiles() {
+    const files = state.sections.files;
+    $("tree-heading").textContent = "Backups (offline: no live system)";
+    if (!files) return;
+    const rows = files.files.map((f) =>
+      el(
+        "tr",
+        { "data-registrar": f.registrar },
+        el("td", { text: f.registrar }),
+        el("td", { class: "mono", text: f.path }),
+        el("td", { text: f.error ? "unreadable" : `schema ${f.schema_version}` }),
+        el("td", { text: f.error ? f.error : `${plural(f.resources, "resource")}, ${plural(f.clients, "client record")}` }),
+      ),
+    );
+    $("tree").replaceChildren(
+      el("p", { class: "muted", text: `The catalog backups in ${files.state_dir}, read-only, re-read when they change.` }),
+      el("table", { class: "files" }, el("tr", {}, el("th", { text: "registrar" }), el("th", { text: "file" }), el("th", { text: "" }), el("th", { text: "" })), ...rows),
+    );
+  }
+
+  // -- catalogs ------------------------------------------------------------------------
+  function catalogOrder() {
+    const names = Object.keys(state.sections)
+      .filter((k) => k.startsWith("catalog/"))
+      .map((k) => k.slice(8));
+    const order = [];
+    const walk = (node) => {
+      for (const child of node.children || []) {
+        if (child.kind === "manager") order.push(child.name);
+        else walk(child);
+      }
+    };
+    if (state.sections.tree) walk(state.sections.tree);
+    return names.sort((a, b) => {
+      const ia = order.indexOf(a);
+      const ib = order.indexOf(b);
+      return (ia < 0 ? 1e9 : ia) - (ib < 0 ? 1e9 : ib) || a.localeCompare(b);
+    });
+  }
+
+  function renderCatalogs() {
+    const cards = catalogOrder().map((name) => catalogCard(state.sections[`catalog/${name}`]));
+    $("catalogs").replaceChildren(...cards);
+  }
+
+  function catalogCard(section) {
+    const catalog = section.catalog;
+    const stale = !section.available;
+    const card = el(
+      "article",
+      { class: `catalog${stale ? " stale" : ""}`, "data-registrar": section.registrar },
+      el("h3", {}, `${section.registrar} `, el("small", { text: `${section.kind} · ${section.state}${stale && catalog ? " · last seen" : ""}` })),
+    );
+    if (section.error) card.append(el("div", { class: "error", text: section.error }));
+    if (!catalog) {
+      card.append(el("div", { class: "muted", text: "catalog not known" }));
+      return card;
+    }
+    const deps = new Map();
+    const top = [];
+    for (const client of catalog.clients) {
+      if (client.parent) {
+        if (!deps.has(client.parent)) deps.set(client.parent, []);
+        deps.get(client.parent).push(client);
+      } else top.push(client);
+    }
+    for (const server of catalog.servers) {
+      const resources = catalog.resources.filter((r) => r.server === server);
+      const list = el("ul", {}, ...resources.map((r) => resourceItem(section, r, deps.get(r.id) || [])));
+      card.append(
+        el("div", { class: "server", "data-server": server },
+          el("h4", { text: `server ${server} · ${plural(resources.length, "resource")}` }),
+          resources.length ? list : null),
+      );
+    }
+    if (top.length) {
+      card.append(
+        el("h4", { text: "queries held elsewhere" }),
+        el("ul", {}, ...top.map((c) => el("li", { class: "client", "data-query": c.query_id },
+          el("code", { text: c.query_id.slice(0, 8) }), ` → ${c.serving_rr}/${c.server} `, el("code", { text: c.request }),
+          c.loaded ? "" : " (in flight)"))),
+      );
+    }
+    if (catalog.in_doubt && catalog.in_doubt.length) {
+      card.append(
+        el("h4", { text: "in doubt (a crash cut these loads short; found at restore)" }),
+        el("ul", {}, ...catalog.in_doubt.map((q) => el("li", { class: "error" }, el("code", { text: q.id.slice(0, 8) }), " ", el("code", { text: q.request })))),
+      );
+    }
+    return card;
+  }
+
+  function resourceItem(section, resource, deps) {
+    const fatal =
+      state.hello.faults && section.available && section.kind.endsWith("manager") && resource.consumers.length
+        ? el("button", {
+            class: "danger",
+            "data-fault": "fatal",
+            text: "FATAL",
+            title: "send FATAL to every consumer of this resource",
+            onclick: () =>
+              confirmThen(
+                `Send FATAL on ${section.registrar}/${resource.server} ${resource.request}?`,
+                `Every one of its ${resource.consumers.length} consumer(s) hears it, and so does every resource that depends on it, up to the top.`,
+                "Send FATAL",
+                () => fault("fatal", { registrar: section.registrar, resource_id: resource.id }),
+              ),
+          })
+        : null;
+    return el(
+      "li",
+      { class: `resource${resource.in_doubt ? " in-doubt" : ""}`, "data-resource": resource.id },
+      el("span", { class: "line" },
+        el("code", { text: resource.request }), " = ", el("code", { text: resource.response }), " ",
+        el("span", { class: `badge state-${resource.state}`, text: resource.in_doubt && section.kind === "backup" ? `in doubt: ${resource.state}` : resource.state }),
+        ` ${plural(resource.consumers.length, "consumer")} `, fatal),
+      el("ul", { class: "sub" },
+        ...resource.consumers.map((c) => el("li", {}, "consumer ", el("code", { text: c.query_id.slice(0, 8) }), ` from ${c.origin}`)),
+        ...deps.map((d) => el("li", {}, "depends on ", `${d.serving_rr}/${d.server} `, el("code", { text: d.request }), " via ", el("code", { text: d.query_id.slice(0, 8) }), d.loaded ? "" : " (in flight)"))),
+    );
+  }
+
+  // -- the dependency graph ------------------------------------------------------------
+  let cy = null;
+  let graphKey = "";
+
+  function ranks(graph) {
+    const owner = {};
+    for (const n of graph.nodes) owner[n.id] = n.parent || n.id;
+    const above = {};
+    for (const n of graph.nodes) if (n.kind === "registrar") above[n.id] = new Set();
+    for (const e of graph.edges) {
+      const c = owner[e.source];
+      const p = owner[e.target];
+      if (c && p && c !== p && above[p]) above[p].add(c);
+    }
+    const rank = {};
+    const visit = (id, path) => {
+      if (rank[id] !== undefined) return rank[id];
+      let best = -1;
+      for (const c of above[id] || []) if (!path.has(c)) best = Math.max(best, visit(c, new Set([...path, id])));
+      rank[id] = best + 1;
+      return rank[id];
+    };
+    for (const id of Object.keys(above)) visit(id, new Set());
+    return rank;
+  }
+
+  function layout(graph) {
+    const rank = ranks(graph);
+    const children = {};
+    for (const n of graph.nodes) if (n.parent) (children[n.parent] = children[n.parent] || []).push(n);
+    const rows = {};
+    for (const n of graph.nodes) if (n.kind === "registrar") (rows[rank[n.id]] = rows[rank[n.id]] || []).push(n);
+    const positions = {};
+    const W = 200;
+    const H = 160;
+    const GAP = 70;
+    let widest = 0;
+    const widths = {};
+    for (const [r, regs] of Object.entries(rows)) {
+      widths[r] = regs.reduce((sum, reg) => sum + Math.max(1, (children[reg.id] || []).length) * W + GAP, 0);
+      widest = Math.max(widest, widths[r]);
+    }
+    for (const [r, regs] of Object.entries(rows)) {
+      let x = (widest - widths[r]) / 2;
+      for (const reg of regs) {
+        const kids = children[reg.id] || [];
+        if (!kids.length) positions[reg.id] = { x: x + W / 2, y: Number(r) * H };
+        kids.forEach((kid, i) => (positions[kid.id] = { x: x + W / 2 + i * W, y: Number(r) * H }));
+        x += Math.max(1, kids.length) * W + GAP;
+      }
+    }
+    return positions;
+  }
+
+  function renderGraph() {
+    const graph = state.sections.graph;
+    if (!graph || typeof cytoscape !== "function") return;
+    const key = JSON.stringify(graph);
+    if (key === graphKey) return;
+    graphKey = key;
+    const elements = [
+      ...graph.nodes.map((n) => ({
+        data: {
+          id: n.id,
+          parent: n.parent,
+          label: n.kind === "registrar" ? n.label : `${cut(n.label, 72)}${n.consumers > 1 ? ` ×${n.consumers}` : ""}`,
+          kind: n.kind,
+          state: n.state || "",
+          doubt: n.in_doubt ? "yes" : "no",
+        },
+      })),
+      ...graph.edges.map((e) => ({
+        data: {
+          id: e.id,
+          source: e.source,
+          target: e.target,
+          label: e.orphan ? `${e.label} (no client record)` : e.label,
+          loaded: e.loaded ? "yes" : "no",
+          orphan: e.orphan ? "yes" : "no",
+        },
+      })),
+    ];
+    if (!cy) {
+      cy = cytoscape({
+        container: $("graph"),
+        elements: [],
+        minZoom: 0.2,
+        maxZoom: 1.3, // (a fit of a small graph would blow it up)
+        style: [
+          { selector: "node", style: { label: "data(label)", "font-size": 10, "text-wrap": "wrap", "text-max-width": 160, "text-overflow-wrap": "anywhere", "text-valign": "center", "background-color": "#dcf3e5", "border-width": 1, "border-color": "#1f8a4c", shape: "round-rectangle", width: 170, height: 56 } },
+          { selector: 'node[kind = "registrar"]', style: { "background-color": "#eef1f6", "border-color": "#667085", "font-weight": "bold", "text-valign": "top", "text-halign": "center", "font-size": 12 } },
+          { selector: 'node[kind = "registrar"]:childless', style: { "text-valign": "center", width: 120, height: 36 } },
+          { selector: "$node > node", style: { "padding-top": 22, "padding-left": 10, "padding-right": 10, "padding-bottom": 10 } },
+          { selector: 'node[kind = "registrar"][state = "restarting"], node[kind = "registrar"][state = "starting"]', style: { "border-style": "dashed", "border-color": "#b7791f", "background-color": "#fff8e6" } },
+          { selector: 'node[kind = "registrar"][state = "stopped"], node[kind = "registrar"][state = "exited"], node[kind = "registrar"][state = "external"]', style: { "border-style": "dotted", opacity: 0.6 } },
+          { selector: 'node[state = "loading"], node[state = "unloading"]', style: { "background-color": "#fdf0d2", "border-color": "#b7791f" } },
+          { selector: 'node[doubt = "yes"]', style: { "border-color": "#c53030", "border-width": 3 } },
+          { selector: "node.fatal", style: { "background-color": "#c53030", color: "#fff" } },
+          { selector: "edge", style: { width: 1.5, "curve-style": "bezier", "target-arrow-shape": "triangle", "line-color": "#7c8aa5", "target-arrow-color": "#7c8aa5", label: "data(label)", "font-size": 9, "text-background-color": "#fbfcfd", "text-background-opacity": 1 } },
+          { selector: 'edge[loaded = "no"]', style: { "line-style": "dashed" } },
+          { selector: 'edge[orphan = "yes"]', style: { "line-style": "dashed", "line-color": "#c53030", "target-arrow-color": "#c53030", color: "#c53030" } },
+        ],
+      });
+    }
+    const positions = layout(graph);
+    cy.batch(() => {
+      cy.elements().remove();
+      cy.add(elements);
+    });
+    cy.layout({ name: "preset", positions: (node) => positions[node.id()] || { x: 0, y: 0 }, fit: true, padding: 24 }).run();
+  }
+
+  function flashResourceOf(registrar, queryId) {
+    const section = state.sections[`catalog/${registrar}`];
+    const catalog = section && section.catalog;
+    if (!cy || !catalog) return;
+    const resource = catalog.resources.find((r) => r.consumers.some((c) => c.query_id === queryId));
+    if (!resource) return;
+    const node = cy.getElementById(`res:${registrar}:${resource.id}`);
+    node.addClass("fatal");
+    setTimeout(() => node.removeClass("fatal"), 3000);
+  }
+
+  // -- events: the timeline and the log -----------------------------------------------
+  function addEvent(event) {
+    state.events.push(event);
+    if (state.events.length > MAX_EVENTS) state.events.splice(0, state.events.length - MAX_EVENTS);
+    addLog(event);
+    switch (event.type) {
+      case "StatusSent": {
+        const row = { kind: "status", event, hops: [] };
+        state.orphans = state.orphans.filter((d) => !(matches(event, d) && row.hops.push(d)));
+        pushRow(row);
+        if (event.status === "FATAL" || event.status === "ERROR") flashResourceOf(event.registrar, event.query_id);
+        break;
+      }
+      case "StatusDelivered": {
+        const row = findSent(event);
+        if (row) row.hops.push(event);
+        else state.orphans.push(event);
+        break;
+      }
+      case "ChildExited":
+      case "ChildRestarted":
+      case "SupervisorGaveUp":
+      case "LoadFailed":
+      case "InDoubt":
+        pushRow({ kind: "child", event });
+        break;
+      case "ObserverFault":
+        pushRow({ kind: "fault", event });
+        break;
+      default:
+        break;
+    }
+    const now = Date.now() / 1000;
+    state.orphans = state.orphans.filter((d) => {
+      if (now - d.at < 2) return true;
+      pushRow({ kind: "status", event: null, hops: [d] }); // its send never came (dropped?)
+      return false;
+    });
+  }
+
+  function matches(sent, delivered) {
+    return sent.status === delivered.status && Math.abs(delivered.at - delivered.latency_s - sent.at) < MATCH_S;
+  }
+
+  function findSent(delivered) {
+    for (let i = state.rows.length - 1; i >= 0; i--) {
+      const row = state.rows[i];
+      if (row.kind === "status" && row.event && matches(row.event, delivered)) return row;
+    }
+    return null;
+  }
+
+  function pushRow(row) {
+    state.rows.push(row);
+    if (state.rows.length > MAX_ROWS) state.rows.splice(0, state.rows.length - MAX_ROWS);
+  }
+
+  function addLog(event) {
+    state.log.push(event);
+    if (state.log.length > MAX_LOG) state.log.splice(0, state.log.length - MAX_LOG);
+  }
+
+  function resourceName(registrar, queryId) {
+    const section = state.sections[`catalog/${registrar}`];
+    const catalog = section && section.catalog;
+    const resource = catalog && catalog.resources.find((r) => r.consumers.some((c) => c.query_id === queryId));
+    return resource ? `${registrar}/${resource.server} ${resource.request}` : `${registrar} (query ${queryId.slice(0, 8)})`;
+  }
+
+  function renderTimeline() {
+    if (state.hello.mode === "backups") {
+      $("timeline").replaceChildren(el("li", { class: "muted", text: "No live events: this page reads backups." }));
+      return;
+    }
+    const items = [];
+    for (let i = state.rows.length - 1; i >= 0; i--) items.push(timelineItem(state.rows[i]));
+    if (!items.length) items.push(el("li", { class: "muted", text: "No status sent yet." }));
+    $("timeline").replaceChildren(...items);
+  }
+
+  function timelineItem(row) {
+    if (row.kind === "status") {
+      const sent = row.event;
+      const first = sent || row.hops[0];
+      const hops = [...row.hops].sort((a, b) => a.hop - b.hop || a.latency_s - b.latency_s);
+      return el(
+        "li",
+        { class: `status status-${first.status}`, "data-kind": "status", "data-status": first.status },
+        el("time", { text: clock(sent ? sent.at : first.at - first.latency_s) }),
+        el("span", { class: `badge status-${first.status}`, text: first.status }),
+        " ",
+        sent ? `${resourceName(sent.registrar, sent.query_id)}: ${sent.message}` : "(its send was not seen)",
+        el("ol", { class: "hops" },
+          ...hops.map((d) => el("li", { "data-hop": d.hop }, `hop ${d.hop} → ${d.registrar} (query ${d.query_id.slice(0, 8)}) after ${ms(d.latency_s)}`)),
+          hops.length ? null : el("li", { text: "no consumer heard it yet" })),
+      );
+    }
+    const event = row.event;
+    return el(
+      "li",
+      { class: row.kind, "data-kind": row.kind, "data-type": event.type },
+      el("time", { text: clock(event.at) }),
+      event.text,
+    );
+  }
+
+  function renderLog() {
+    const items = [];
+    for (let i = state.log.length - 1; i >= 0; i--) {
+      const event = state.log[i];
+      items.push(el("li", { "data-type": event.type || "" }, el("time", { text: clock(event.at) }), event.text));
+    }
+    $("log").replaceChildren(...items);
+    $("log-note").textContent = `the last ${Math.min(state.log.length, MAX_LOG)}, newest first`;
+  }
+
+  // -- start ---------------------------------------------------------------------------
+  setInterval(tickCountdowns, 100);
+  connect();
+})();

@@ -1,0 +1,48 @@
+"""The observer tests' supervision tree: the TeMoto thesis's figure 2.7.
+
+Its own module, importing nothing of pytest: a manager process unpickles these setups by
+reference, so it imports this module when it (re)starts, and every millisecond of that
+import is a millisecond of every restart the tests measure.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import rr_actors as rr
+
+__all__ = ["REQUEST", "cm_setup", "erm_setup", "figure_27"]
+
+
+def erm_setup(registrar: rr.ResourceRegistrar) -> None:
+    """The external resource manager: a camera and a filter (stand-ins for processes)."""
+    registrar.register_server("camera", load=lambda r: {"device": r}, unload=lambda q, r: None)
+    registrar.register_server("filter", load=lambda r: {"filter": r}, unload=lambda q, r: None)
+
+
+def cm_setup(registrar: rr.ResourceRegistrar) -> None:
+    """The component manager: a filtered camera made of the ERM's camera and filter."""
+
+    def load(request: dict[str, str]) -> dict[str, Any]:
+        camera = registrar.call("erm", "camera", request["device"])
+        filtered = registrar.call("erm", "filter", request["filter"])
+        return {"camera": camera.response, "filter": filtered.response}
+
+    registrar.register_server("filtered_camera", load=load, unload=lambda q, r: None)
+
+
+REQUEST = {"device": "/dev/video0", "filter": "blur"}
+
+
+def figure_27(
+    make: Callable[..., rr.Supervisor], isolation: str = "process", **kwargs: Any
+) -> rr.Supervisor:
+    """A supervisor of the ERM and the CM (not started)."""
+    return make(
+        [
+            rr.ManagerSpec("erm", erm_setup, isolation=isolation),  # type: ignore[arg-type]
+            rr.ManagerSpec("cm", cm_setup, isolation=isolation),  # type: ignore[arg-type]
+        ],
+        **kwargs,
+    )

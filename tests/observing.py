@@ -1,0 +1,202 @@
+"""Helpers of the observer tests: the figure 2.7 tree, a real HTTP client, an SSE reader.
+
+The observer is tested against its real server: uvicorn on a loopback port, spoken to over
+TCP (`http.client`), never through Starlette's `TestClient`, which buffers an endless
+event stream.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import http.client
+import json
+import os
+import shutil
+import signal
+import threading
+import time
+import urllib.parse
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+CHROMIUM = os.environ.get("RR_CHROMIUM", "/usr/bin/chromium")
+"""The browser the browser tests drive (Debian's chromium; `.ci/run` installs it)."""
+
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--no-first-run",
+    "--disable-sync",
+]
+
+
+# -- HTTP ---------------------------------------------------------------------------------------
+
+
+def base(url: str) -> str:
+    """The observer's URL without its `#token=...`."""
+    return url.split("#", 1)[0]
+
+
+def token(url: str) -> str:
+    """The token in an observer's URL."""
+    return urllib.parse.parse_qs(urllib.parse.urlsplit(url).fragment)["token"][0]
+
+
+def request(
+    url: str,
+    path: str,
+    *,
+    method: str = "GET",
+    body: bytes | None = None,
+    headers: dict[str, str] | None = None,
+    timeout: float = 10.0,
+) -> tuple[int, dict[str, str], bytes]:
+    """One request to the observer at `url`; `(status, headers, body)`."""
+    parts = urllib.parse.urlsplit(url)
+    conn = http.client.HTTPConnection(parts.hostname, parts.port, timeout=timeout)
+    try:
+        conn.request(method, path, body=body, headers=headers or {})
+        response = conn.getresponse()
+        return response.status, {k.lower(): v for k, v in response.getheaders()}, response.read()
+    finally:
+        conn.close()
+
+
+def get_json(url: str, path: str) -> Any:
+    status, _, body = request(url, path)
+    assert 200 == status, body
+    return json.loads(body)
+
+
+def post_fault(url: str, kind: str, data: Any, *, with_token: bool = True) -> tuple[int, Any]:
+    """POST a fault request as the page does; `(status, answer)`."""
+    headers = {"Content-Type": "application/json"}
+    if with_token:
+        headers["X-RR-Token"] = token(url)
+    status, _, body = request(
+        url, f"/api/faults/{kind}", method="POST", body=json.dumps(data).encode(), headers=headers
+    )
+    return status, json.loads(body)
+
+
+def wait_state(url: str, predicate: Callable[[Any], bool], timeout: float = 10.0) -> Any:
+    """Poll `/api/state` until `predicate(state)` (each poll is a real request)."""
+    deadline = time.monotonic() + timeout
+    pause = threading.Event()
+    state = get_json(url, "/api/state")
+    while not predicate(state):
+        if time.monotonic() > deadline:
+            pytest.fail(f"the observer's state did not get there within {timeout:g} s: {state}")
+        pause.wait(0.02)
+        state = get_json(url, "/api/state")
+    return state
+
+
+def child(tree: dict[str, Any], name: str) -> dict[str, Any]:
+    """The child `name` anywhere in a tree section."""
+    for entry in tree["children"]:
+        if entry["name"] == name:
+            return entry
+        if entry["kind"] == "supervisor":
+            with contextlib.suppress(KeyError):
+                return child(entry, name)
+    raise KeyError(name)
+
+
+class Stream:
+    """The observer's event stream, read over a real connection (`http.client`).
+
+    Args:
+        url: the observer's URL.
+        timeout: seconds one read may wait.
+    """
+
+    def __init__(self, url: str, timeout: float = 10.0) -> None:
+        parts = urllib.parse.urlsplit(url)
+        self.conn = http.client.HTTPConnection(parts.hostname, parts.port, timeout=timeout)
+        self.conn.request("GET", "/api/stream", headers={"Accept": "text/event-stream"})
+        self.response = self.conn.getresponse()
+        assert 200 == self.response.status
+        self.sections: dict[str, Any] = {}
+        self.events: list[dict[str, Any]] = []
+
+    def next(self) -> tuple[str, Any]:
+        """The next message: `(event name, parsed data)` (keep-alive comments skipped).
+
+        Raises:
+            EOFError: the server ended the stream.
+        """
+        name, data = "message", []
+        while True:
+            raw = self.response.readline()
+            if not raw:
+                raise EOFError("the stream ended")
+            line = raw.decode().rstrip("\r\n")
+            if not line:
+                if data:
+                    value = json.loads("\n".join(data))
+                    if name == "section":
+                        self.sections[value["key"]] = value["value"]
+                    elif name == "events":
+                        self.events.extend(value["events"])
+                    return name, value
+                continue
+            if line.startswith(":"):
+                continue
+            field, _, value = line.partition(":")
+            value = value.removeprefix(" ")
+            if field == "event":
+                name = value
+            elif field == "data":
+                data.append(value)
+
+    def until(self, predicate: Callable[[Stream], bool], timeout: float) -> float:
+        """Read until `predicate(self)`; the seconds it took (fails the test past `timeout`)."""
+        start = time.monotonic()
+        while not predicate(self):
+            if time.monotonic() - start > timeout:
+                pytest.fail(f"the stream did not get there within {timeout:g} s")
+            self.next()
+        return time.monotonic() - start
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+@contextlib.contextmanager
+def stream(url: str, timeout: float = 10.0) -> Iterator[Stream]:
+    """An open `Stream`, closed at the end of the block."""
+    opened = Stream(url, timeout)
+    try:
+        yield opened
+    finally:
+        opened.close()
+
+
+# -- processes ----------------------------------------------------------------------------------
+
+
+def process_state(pid: int) -> str | None:
+    """The state letter of process `pid` (`"T"`: stopped), or `None` if it is gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat.rsplit(")", 1)[1].split()[0]
+
+
+def kill(pid: int) -> None:
+    os.kill(pid, signal.SIGKILL)
+
+
+def chromium() -> str | None:
+    """The browser to drive, if there is one."""
+    if os.path.isfile(CHROMIUM) and os.access(CHROMIUM, os.X_OK):
+        return CHROMIUM
+    return shutil.which("chromium")
