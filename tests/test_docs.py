@@ -22,6 +22,8 @@ written):
       `pyproject.toml`.
     - `python -m pytest -q` is not run (it is this very run): it must be the test
       command of `.ci/run`.
+    - `apt-get update` and `apt-get install -y PKG...` are not run (they need root and the
+      network): `.ci/run` must install every package named the same way.
     - `python benchmarks/X.py ...` is not run (benchmarks take minutes and are not tests):
       the script must exist and accept every option shown (it appears in its source).
     - anything else fails the test, unless the block is marked (below).
@@ -283,6 +285,16 @@ def check_pip(block: Block, command: list[str]) -> None:
     assert named <= extras(), f"{block.where}: no such extra(s) {named - extras()}"
 
 
+def check_apt(block: Block, command: list[str]) -> None:
+    """`apt-get update`, `apt-get install -y PKG...`: not run; `.ci/run` installs them too."""
+    if command[1:] == ["update"]:
+        return
+    assert command[1:3] == ["install", "-y"], f"{block.where}: {shlex.join(command)}"
+    ci = (ROOT / ".ci" / "run").read_text()
+    missing = [p for p in command[3:] if not re.search(rf"apt-get install -y .*\b{p}\b", ci)]
+    assert [] == missing, f"{block.where}: .ci/run does not install {missing}"
+
+
 def check_benchmark(block: Block, command: list[str]) -> None:
     """`python benchmarks/X.py ...`: not run; the script must exist and know the options.
 
@@ -341,6 +353,9 @@ def shell_block(block: Block, cwd: Path, done: set[tuple[str, ...]]) -> None:
         command = written[3:] if written[:2] == ["taskset", "-c"] else written
         if command[0] == "pip":
             check_pip(block, command)
+            continue
+        if command[0] == "apt-get":
+            check_apt(block, command)
             continue
         if command[:3] == ["python", "-m", "pytest"]:
             assert shlex.join(command) == ci_test_command(), f"{block.where}: not CI's tests"
@@ -454,6 +469,15 @@ def test_an_unknown_command_in_an_unmarked_block_fails(tmp_path: Path) -> None:
         shell_block(block, tmp_path, set())
 
 
+def test_a_system_package_that_ci_does_not_install_fails(tmp_path: Path) -> None:
+    installed = Block(tmp_path / "p.md", 1, "bash", "apt-get install -y chromium\n", None)
+    other = Block(tmp_path / "p.md", 1, "bash", "apt-get install -y cowsay\n", None)
+
+    shell_block(installed, tmp_path, set())
+    with pytest.raises(AssertionError, match=r"does not install \['cowsay'\]"):
+        shell_block(other, tmp_path, set())
+
+
 def test_readme_quickstart_is_examples_quickstart() -> None:
     readme = (ROOT / "README.md").read_text()
     block = readme.split("```python\n", 1)[1].split("```\n", 1)[0]
@@ -463,11 +487,11 @@ def test_readme_quickstart_is_examples_quickstart() -> None:
 
 def test_readme_starts_with_the_demo_and_the_test_command_that_ci_runs() -> None:
     lines = (ROOT / "README.md").read_text().splitlines()
-    test_command = lines[2].split("&&", 1)[1].strip()
+    install, test_command = lines[2].rsplit(" && ", 1)
 
     assert ["```bash", "```"] == [lines[0], lines[3]]
     assert 'pip install -e ".[demo]" && rr-actors demo' == lines[1]
-    assert lines[2].startswith('pip install -e ".[dev]" && ')
+    assert install.endswith('pip install -e ".[dev]"')
     assert ci_test_command() == test_command
 
 
