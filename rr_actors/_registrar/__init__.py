@@ -13,18 +13,21 @@
 
 from typing import TYPE_CHECKING
 
-from rr_actors._registrar.handle import ResourceRegistrar, start_registrar
+from rr_actors._registrar.handle import ResourceRegistrar, snapshot, start_registrar
+from rr_actors._registrar.lifecycle import CatalogView
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH
 from rr_actors._registrar.protocol import LoadCallback, Registrar, UnloadCallback
 from rr_actors._registrar.starting import Served
 
 __all__ = [
     "MAX_DEPENDENCY_DEPTH",
+    "CatalogView",
     "LoadCallback",
     "Registrar",
     "ResourceRegistrar",
     "Served",
     "UnloadCallback",
+    "snapshot",
     "start_registrar",
 ]
 

@@ -23,6 +23,7 @@ from rr_actors._core.replies import FutureReply, wait
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.calls import Calls
 from rr_actors._registrar.endpoints import ClientActor
+from rr_actors._registrar.lifecycle import CatalogView
 from rr_actors._registrar.loading import LOADING, check_picklable
 from rr_actors._registrar.messages import FetchVia, Request
 from rr_actors._registrar.probes import Probes
@@ -36,7 +37,7 @@ from rr_actors.errors import (
     RegistrarStoppedError,
 )
 
-__all__ = ["RegistrarFacts", "ResourceRegistrar", "start_registrar"]
+__all__ = ["RegistrarFacts", "ResourceRegistrar", "snapshot", "start_registrar"]
 
 
 class RegistrarFacts:
@@ -536,3 +537,23 @@ def start_registrar(
             raise
         handle._ask(lambda actor, reply: actor.lifecycle.op_ready(reply), None, "ready")
     return handle
+
+
+def snapshot(registrar: ResourceRegistrar, *, timeout: float, check: bool) -> CatalogView:
+    """A consistent copy of `registrar`'s catalog rows and servers, made on its actor thread.
+
+    For `rr_actors.testing.catalog_snapshot` (with `check`: the catalog's invariants are
+    checked first) and the observer (without). Runs on the caller's thread, in the
+    registrar's process; the actor is held for the copy only.
+
+    Raises:
+        AssertionError: with `check`, an index of the catalog disagrees with its rows.
+        CallTimeoutError: no answer within `timeout` seconds.
+        RegistrarStoppedError, RegistrarUnavailableError: it was stopped, or it died.
+    """
+    view: CatalogView = registrar._ask(
+        lambda actor, reply: actor.lifecycle.op_snapshot(reply, check),
+        timeout,
+        "catalog_snapshot()" if check else "a snapshot of the catalog",
+    )
+    return view

@@ -7,11 +7,10 @@ from typing import Any
 
 import pykka
 
-from rr_actors._core.replies import FutureReply, wait
 from rr_actors._process.remote import FORWARD_MARGIN, RemoteRegistrar
-from rr_actors._registrar import ResourceRegistrar
+from rr_actors._registrar import ResourceRegistrar, snapshot
 from rr_actors._registrar.lifecycle import CatalogView
-from rr_actors._registrar.messages import Crash, Request
+from rr_actors._registrar.messages import Crash
 
 __all__ = ["catalog_snapshot", "crash", "running_actors"]
 
@@ -52,13 +51,10 @@ def catalog_snapshot(
         RegistrarUnavailableError: the registrar died.
     """
     if isinstance(registrar, RemoteRegistrar):
-        snapshot = functools.partial(catalog_snapshot, timeout=timeout)
-        remote: CatalogView = registrar.run(snapshot, timeout=timeout + FORWARD_MARGIN)
+        there = functools.partial(catalog_snapshot, timeout=timeout)
+        remote: CatalogView = registrar.run(there, timeout=timeout + FORWARD_MARGIN)
         return remote
-    reply = FutureReply()
-    registrar._ref.tell(Request(lambda actor, r: actor.lifecycle.op_snapshot(r), reply))
-    view: CatalogView = wait(reply.future, timeout, "catalog_snapshot()")
-    return view
+    return snapshot(registrar, timeout=timeout, check=True)
 
 
 def running_actors() -> list[Any]:
