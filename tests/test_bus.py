@@ -16,6 +16,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors._core import queues
 from rr_actors._core.bus import Forwarder, Publisher, Subscription
 
 WAIT = 5.0
@@ -630,6 +631,28 @@ def test_forwarder_close_sends_what_is_buffered_and_is_idempotent(
     assert not thread.is_alive()
     forwarder.close()
     assert [[0], [1, 2, 3]] == send.got
+
+
+def test_a_forwarder_ships_a_lone_event_at_once_and_a_burst_after_lingering(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(queues, "FORWARD_LINGER", 3600.0)  # lingers until a wait hurries it
+    batches: list[list[int]] = []
+    shipped = threading.Event()
+
+    def send(batch: list[int]) -> None:
+        batches.append(batch)
+        shipped.set()
+
+    forwarder: Forwarder[int] = Forwarder(send)
+    forwarder(0)
+    assert shipped.wait(WAIT)  # nothing waited for it: a lone event goes at once
+    for i in range(1, 101):
+        forwarder(i)  # while it lingers: no wake-up per event, one batch later
+    assert forwarder.wait_sent(timeout=WAIT)  # a wait cuts the linger short
+    forwarder(101)
+    forwarder.close(timeout=WAIT)  # so does a close
+    assert [[0], list(range(1, 101)), [101]] == batches
 
 
 def test_max_batch_must_be_a_positive_int() -> None:

@@ -12,14 +12,13 @@ import enum
 import logging
 import queue
 import threading
-import time
 from collections.abc import Callable
 from types import TracebackType
 from typing import Generic, TypeVar
 
 from rr_actors.errors import ConfigError
 
-__all__ = ["DEFAULT_MAXSIZE", "LINGER", "Forwarder", "Subscription"]
+__all__ = ["DEFAULT_MAXSIZE", "FORWARD_LINGER", "LINGER", "Forwarder", "Subscription"]
 
 logger = logging.getLogger("rr_actors")
 
@@ -29,13 +28,23 @@ DEFAULT_MAXSIZE = 10_000
 """Events a subscription (or forwarder) holds before it drops new ones."""
 
 LINGER = 0.001
-"""Seconds a subscription's (or forwarder's) thread lets events pile up after a batch.
+"""Seconds a subscription's thread lets events pile up after a batch.
 
 A publish wakes the consumer thread only when it waits for an event; while it lingers,
 a burst of events (a call every 30-40 us) is put without waking anyone, and the next batch
 takes them all. On one CPU, one wake-up per event cost a dedup-hit call about 20% with
 one subscriber (`benchmarks/bench_core.py`); lingering costs each event up to this much
 delivery latency.
+"""
+
+FORWARD_LINGER = 0.02
+"""Seconds a forwarder's thread lets events pile up after it shipped a batch.
+
+Longer than a subscription's `LINGER`: each batch a manager process ships wakes a thread
+in it and two in the supervisor's process (the reader, the subscriber). Calls every
+200-400 us into a manager process made a batch of 2-5 events with 1 ms, and an open
+observer cost a dedup-hit call +30 to +70% (`benchmarks/bench_observer.py`). An event
+after a quiet spell is shipped at once; only the events of a burst wait, at most this long.
 """
 
 
@@ -139,9 +148,15 @@ class _Consumer(Generic[E]):
         self._closing = threading.Lock()
         self._closed = False
         self._abandoned = False  # close() timed out: stop after the current item
+        self._hurry = threading.Event()  # a wait or a close is due: linger no longer
 
     def _run(self) -> None:
         raise NotImplementedError
+
+    def _linger(self, seconds: float) -> None:
+        """Let a burst pile up for `seconds`, unless a wait or a close came meanwhile."""
+        if self._hurry.wait(seconds):
+            self._hurry.clear()
 
     def _reach_mark(self, *, timeout: float | None, caller: str) -> bool:
         """Wait until the thread handled everything put before this call."""
@@ -152,6 +167,7 @@ class _Consumer(Generic[E]):
             closed = self._closed
             if not closed:
                 self._outbox.put_mark(mark)
+                self._hurry.set()
         if closed:
             self._thread.join(timeout)
             return not self._thread.is_alive() and not self._abandoned
@@ -162,6 +178,7 @@ class _Consumer(Generic[E]):
             if not self._closed:
                 self._closed = True
                 self._outbox.put_mark(_Mark(stop=True))
+                self._hurry.set()
         if threading.current_thread() is self._thread:
             return  # closed from its own callback: it ends once that returns
         self._thread.join(timeout)
@@ -287,7 +304,7 @@ class Subscription(_Consumer[E]):
                 if self._abandoned:
                     return
                 item = outbox.get_nowait()
-            time.sleep(LINGER)  # a burst piles up meanwhile, without a wake-up per event
+            self._linger(LINGER)  # a burst piles up meanwhile, without a wake-up per event
 
 
 class Forwarder(_Consumer[E]):
@@ -393,7 +410,7 @@ class Forwarder(_Consumer[E]):
                     return
                 item = outbox.get_nowait()
             self._ship(batch)
-            time.sleep(LINGER)  # a burst piles up meanwhile, without a wake-up per event
+            self._linger(FORWARD_LINGER)  # a burst piles up meanwhile, without a wake-up each
 
     def _ship(self, batch: list[E]) -> None:
         if not batch:
