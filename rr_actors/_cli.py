@@ -6,6 +6,7 @@ arguments, and a function that runs it. Add a subcommand by appending to `COMMAN
     rr-actors demo                          # the thesis's robot mission (Linux)
     rr-actors inspect state/erm.db          # a catalog backup as a tree
     rr-actors inspect state/erm.db --json   # the same as JSON
+    rr-actors experiment plan.toml --out results   # a supervision experiment
     rr-actors --version
 """
 
@@ -199,6 +200,18 @@ def _demo(args: argparse.Namespace, _out: TextIO) -> int:
     return run.run(args)
 
 
+def _experiment_arguments(parser: argparse.ArgumentParser) -> None:
+    from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
+
+    cli.add_arguments(parser)
+
+
+def _experiment(args: argparse.Namespace, out: TextIO) -> int:
+    from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
+
+    return cli.main(args, out)
+
+
 COMMANDS: list[Command] = [
     Command(
         "demo",
@@ -211,6 +224,12 @@ COMMANDS: list[Command] = [
         "print a catalog backup as a tree (safe on a live file; unpickles its values)",
         _inspect_arguments,
         _inspect,
+    ),
+    Command(
+        "experiment",
+        "run a supervision experiment from a TOML plan: faults, workload, repeats, plots",
+        _experiment_arguments,
+        _experiment,
     ),
 ]
 """The subcommands, in the order `--help` lists them."""
