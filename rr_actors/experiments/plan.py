@@ -308,7 +308,9 @@ class Plan:
     workload: Workload = Workload(clients=0)
     faults: tuple[FaultPlan, ...] = ()
     compare: Compare | None = None
-    variants: tuple[tuple[Any, Plan], ...] = dataclasses.field(default=(), repr=False, compare=False)
+    variants: tuple[tuple[Any, Plan], ...] = dataclasses.field(
+        default=(), repr=False, compare=False
+    )
     source: str | None = None
 
     def managers(self) -> list[ManagerPlan]:
