@@ -124,7 +124,9 @@ class _FaultableRegistrar:
         return getattr(self._registrar, attribute)
 
 
-def instrumented_setup(path: str, options: Mapping[str, Any], registrar: Any) -> None:
+def instrumented_setup(
+    path: str, options: Mapping[str, Any], base_dir: str | None, registrar: Any
+) -> None:
     """Import the setup at `path` and run it on a registrar whose loads can be made to fail.
 
     On the main thread of a process manager it also installs the `CUT_SIGNAL` handler.
@@ -132,13 +134,14 @@ def instrumented_setup(path: str, options: Mapping[str, Any], registrar: Any) ->
     Args:
         path: the setup's import path (`"module:function"`).
         options: keyword arguments for the setup.
+        base_dir: a directory searched first for `path` (the plan's), or `None`.
         registrar: the manager's registrar (given by the supervisor).
     """
     from rr_actors.experiments.plan import import_object  # noqa: PLC0415 - runs in managers
 
     if threading.current_thread() is threading.main_thread():
         signal.signal(CUT_SIGNAL, _on_cut_signal)
-    setup = import_object(path)
+    setup = import_object(path, base_dir=base_dir)
     setup(_FaultableRegistrar(registrar, registrar.name), **options)
 
 

@@ -16,6 +16,7 @@ The format is documented in `docs/reference/plan.md`.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import importlib
@@ -23,9 +24,10 @@ import inspect
 import math
 import os
 import string
+import sys
 import tomllib
 import typing
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, Literal, TypeAlias
 
@@ -49,6 +51,7 @@ __all__ = [
     "import_object",
     "load_plan",
     "parse_plan",
+    "search_path",
 ]
 
 FaultKind = Literal[
@@ -295,6 +298,8 @@ class Plan:
         variants: `(value, plan)` per compared value (`((None, self),)` without
             `compare`); each plan has that value applied and `compare` set to `None`.
         source: the file it was read from (`None` for text).
+        base_dir: the directory searched first for the plan's import paths (the plan
+            file's own), or `None`.
     """
 
     name: str
@@ -312,6 +317,7 @@ class Plan:
         default=(), repr=False, compare=False
     )
     source: str | None = None
+    base_dir: str | None = None
 
     def managers(self) -> list[ManagerPlan]:
         """Every manager of the tree, depth first, in start order."""
@@ -409,7 +415,8 @@ def parse_plan(text: str, *, source: str = "<plan>", name: str = "plan") -> Plan
         line = _decode_line(str(exc))
         raise PlanError(source, line, "", f"is not valid TOML: {exc}") from exc
     lines = key_lines(text)
-    reader = _Reader(source, lines)
+    base_dir = None if source == "<plan>" else os.path.dirname(os.path.abspath(source))
+    reader = _Reader(source, lines, base_dir)
     compare = reader.compare(data)
     base = reader.plan(data, name=name)
     if compare is None:
@@ -439,8 +446,26 @@ def _decode_line(message: str) -> int:
     return 0
 
 
-def import_object(path: str) -> Any:
+@contextlib.contextmanager
+def search_path(directory: str | None) -> Iterator[None]:
+    """Put `directory` first on `sys.path` while the block runs (nothing if `None`)."""
+    if directory is None or directory in sys.path:
+        yield
+        return
+    sys.path.insert(0, directory)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(ValueError):
+            sys.path.remove(directory)
+
+
+def import_object(path: str, *, base_dir: str | None = None) -> Any:
     """Import `"package.module:attribute"` (the attribute may be dotted) and return it.
+
+    Args:
+        path: the import path.
+        base_dir: a directory searched first (a plan's own directory), or `None`.
 
     Raises:
         ConfigError: the path is malformed, the module does not import, or it has no such
@@ -450,7 +475,8 @@ def import_object(path: str) -> Any:
     if not colon or not module_name or not attribute:
         raise ConfigError(f"{path!r} is not an import path of the form 'package.module:name'")
     try:
-        target: Any = importlib.import_module(module_name)
+        with search_path(base_dir):
+            target: Any = importlib.import_module(module_name)
     except ImportError as exc:
         raise ConfigError(f"{path!r} does not import: {exc}") from exc
     except Exception as exc:
@@ -484,9 +510,10 @@ Table: TypeAlias = dict[str, Any]
 class _Reader:
     """Validates plan data, turning every problem into a `PlanError` with its line."""
 
-    def __init__(self, source: str, lines: dict[KeyPath, int]) -> None:
+    def __init__(self, source: str, lines: dict[KeyPath, int], base_dir: str | None) -> None:
         self.source = source
         self.lines = lines
+        self.base_dir = base_dir
 
     # -- locating -------------------------------------------------------------------------
 
@@ -610,6 +637,7 @@ class _Reader:
             workload=workload,
             faults=faults,
             source=None if self.source == "<plan>" else self.source,
+            base_dir=self.base_dir,
         )
 
     def tree(self, value: Any) -> tuple[SupervisorPlan, bool]:
@@ -738,7 +766,7 @@ class _Reader:
 
     def importable(self, path: KeyPath, import_path: str) -> Callable[..., Any]:
         try:
-            target = import_object(import_path)
+            target = import_object(import_path, base_dir=self.base_dir)
         except ConfigError as exc:
             raise self.error(path, str(exc)) from None
         if not callable(target):

@@ -33,7 +33,7 @@ def _label(results: Results, value: Any) -> str:
 
 
 def plot_recovery(results: Results, path: Path) -> None:
-    """Box plots of recovery time and of failed calls, one box per compared value.
+    """Box plots per compared value: recovery per fault, downtime and failed calls per run.
 
     Args:
         results: the experiment's results.
@@ -41,14 +41,32 @@ def plot_recovery(results: Results, path: Path) -> None:
     """
     groups = [(value, runs) for value, runs in results.by_value() if runs]
     labels = [_label(results, value) for value, _ in groups]
-    recovery = [[r * 1e3 for run in runs for r in run.recoveries()] for _, runs in groups]
-    failed = [[float(run.calls_failed) for run in runs] for _, runs in groups]
-    fig, (left, right) = plt.subplots(
-        1, 2, figsize=(10, 4.2), dpi=110, gridspec_kw={"width_ratios": [3, 2]}
+    panels = [
+        (
+            [[r * 1e3 for run in runs for r in run.recoveries()] for _, runs in groups],
+            "tab:blue",
+            "recovery time (ms)",
+            f"recovery per fault, by {results.plan.setting_label() or 'strategy'}",
+        ),
+        (
+            [[sum(run.unavailable_s.values()) for run in runs] for _, runs in groups],
+            "tab:purple",
+            "seconds (all managers)",
+            "not serving, per run",
+        ),
+        (
+            [[float(run.calls_failed) for run in runs] for _, runs in groups],
+            "tab:red",
+            "calls",
+            "failed calls, per run",
+        ),
+    ]
+    fig, axes = plt.subplots(
+        1, 3, figsize=(12, 4.2), dpi=110, gridspec_kw={"width_ratios": [3, 2, 2]}
     )
     try:
         jitter = random.Random(0)  # noqa: S311 - where dots go, not a secret
-        for ax, data, colour in ((left, recovery, "tab:blue"), (right, failed, "tab:red")):
+        for ax, (data, colour, ylabel, title) in zip(axes, panels, strict=True):
             ax.boxplot(
                 [d if d else [float("nan")] for d in data],
                 showfliers=False,
@@ -60,11 +78,15 @@ def plot_recovery(results: Results, path: Path) -> None:
                 ax.scatter(xs, values, s=10, color=colour, alpha=0.5, zorder=3)
             ax.grid(visible=True, axis="y", alpha=0.3)
             ax.set_ylim(bottom=0)
+            ax.set_ylabel(ylabel)
+            ax.set_title(title, fontsize=10)
         for index, (_, runs) in enumerate(groups, start=1):
             faults = sum(1 for run in runs for f in run.faults if not f.skipped)
             lost = sum(run.unrecovered for run in runs)
+            gave_up = sum(1 for run in runs if run.gave_up)
             note = f"{faults} faults" + (f"\n{lost} not recovered" if lost else "")
-            left.annotate(
+            note += f"\ngave up in {gave_up} run(s)" if gave_up else ""
+            axes[0].annotate(
                 note,
                 (index, 0),
                 xytext=(0, -30),
@@ -74,12 +96,11 @@ def plot_recovery(results: Results, path: Path) -> None:
                 fontsize=8,
                 annotation_clip=False,
             )
-        setting = results.plan.setting_label() or "strategy"
-        left.set_ylabel("recovery time (ms)")
-        left.set_title(f"recovery per fault, by {setting}")
-        right.set_ylabel("failed calls per run")
-        right.set_title(f"failed calls ({len(results.runs)} runs)")
-        fig.suptitle(f"{results.plan.name}: {len(results.runs)} runs", fontweight="bold")
+        fig.suptitle(
+            f"{results.plan.name}: {len(results.runs)} runs "
+            f"({results.plan.repeat} per value, {results.plan.duration:g} s each)",
+            fontweight="bold",
+        )
         fig.tight_layout()
         fig.savefig(path)
     finally:

@@ -85,7 +85,7 @@ def build_tree(plan: Plan, state_dir: Path | None) -> rr.Supervisor:
     """The plan's supervision tree as an (unstarted) `Supervisor`, every setup instrumented."""
     top = plan.tree
     return rr.Supervisor(
-        [_child_spec(child) for child in top.children],
+        [_child_spec(child, plan.base_dir) for child in top.children],
         strategy=top.strategy,
         max_restarts=top.max_restarts,
         period=top.period,
@@ -95,11 +95,13 @@ def build_tree(plan: Plan, state_dir: Path | None) -> rr.Supervisor:
     )
 
 
-def _child_spec(child: ManagerPlan | SupervisorPlan) -> rr.ManagerSpec | rr.SupervisorSpec:
+def _child_spec(
+    child: ManagerPlan | SupervisorPlan, base_dir: str | None
+) -> rr.ManagerSpec | rr.SupervisorSpec:
     if isinstance(child, SupervisorPlan):
         return rr.SupervisorSpec(
             name=child.name,
-            children=tuple(_child_spec(c) for c in child.children),
+            children=tuple(_child_spec(c, base_dir) for c in child.children),
             strategy=child.strategy,
             max_restarts=child.max_restarts,
             period=child.period,
@@ -108,7 +110,7 @@ def _child_spec(child: ManagerPlan | SupervisorPlan) -> rr.ManagerSpec | rr.Supe
         )
     return rr.ManagerSpec(
         child.name,
-        setup=functools.partial(instrumented_setup, child.setup, dict(child.options)),
+        setup=functools.partial(instrumented_setup, child.setup, dict(child.options), base_dir),
         isolation=child.isolation,
         restart=child.restart,
         heartbeat=child.heartbeat,
@@ -219,6 +221,8 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
     stop = stop if stop is not None else threading.Event()
     sys.setswitchinterval(SWITCH_INTERVAL)
     plan = spec.plan
+    if plan.base_dir is not None and plan.base_dir not in sys.path:
+        sys.path.insert(0, plan.base_dir)  # the plan's modules, here and in its managers
     (run_dir / "work").mkdir(parents=True, exist_ok=True)
     sup = build_tree(plan, run_dir / "state" if plan.state else None)
     drive = _Drive()
@@ -336,6 +340,8 @@ def _result(
         )
         for record in records
     ]
+    heard = sorted(t for client in clients for t in client.heard)
+    finished = [_unheld(record, heard, plan.workload.timeout) for record in finished]
     with (run_dir / "events.jsonl").open("a", encoding="utf-8") as out:
         for record in finished:
             line = fault_line(record, run=spec.run, seed=spec.seed, wall_t0=wall_t0)
@@ -367,7 +373,9 @@ def _result(
         ),
         recovery_median_s=metrics.percentile(recoveries, 50),
         recovery_p90_s=metrics.percentile(recoveries, 90),
-        unrecovered=sum(1 for f in finished if not f.skipped and f.recovery_s is None),
+        unrecovered=sum(
+            1 for f in finished if not f.skipped and f.recovery_s is None and UNHELD not in f.detail
+        ),
         leaked_processes=leaked,
         catalog_entries_left=drive.entries,
         events=len(seen),
@@ -382,6 +390,20 @@ def _result(
             if isinstance(e, events.SupervisorGaveUp) and e.at - wall_t0 <= until_s
         ),
     )
+
+
+UNHELD = "no client held it"
+"""Said of a killed resource process about which no client heard: nothing to recover."""
+
+
+def _unheld(record: FaultRecord, heard: list[float], window: float) -> FaultRecord:
+    """Mark a `kill_resource` that no client heard about (within `window` s) as unheld."""
+    if record.kind != "kill_resource" or record.injected_s is None or record.recovery_s:
+        return record
+    start = record.injected_s
+    if any(start <= t <= start + window for t in heard):
+        return record
+    return dataclasses.replace(record, detail=f"{record.detail}; {UNHELD}")
 
 
 def _load_error_until(

@@ -170,6 +170,7 @@ class Client:
         self.index = index
         self.sup = sup
         self.workload: Workload = plan.workload
+        self.base_dir = plan.base_dir
         self.t0 = 0.0
         self.deadline = 0.0
         self.run_dir = run_dir
@@ -180,6 +181,8 @@ class Client:
         self.calls: list[CallRecord] = []
         self.recoveries: list[float] = []
         """Times (from `t0`) at which this client got a resource back after a failure."""
+        self.heard: list[float] = []
+        """Times (from `t0`) at which a `FATAL` or `UPDATE` about a resource it held came."""
         self.unload_failures = 0
         self._notes: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._held: list[_Held] = []
@@ -268,7 +271,9 @@ class Client:
         if mix.factory is not None:
             factory = self._factories.get(mix.factory)
             if factory is None:
-                factory = self._factories[mix.factory] = import_object(mix.factory)
+                factory = self._factories[mix.factory] = import_object(
+                    mix.factory, base_dir=self.base_dir
+                )
             return factory(key, context)
         return render_request(mix.request, key, context)
 
@@ -347,6 +352,7 @@ class Client:
     def _on_status(self, query: rr.Query, update: rr.StatusUpdate) -> None:
         """Client status callback (a worker thread of this client's registrar): queue it."""
         if update.status in (rr.Status.FATAL, rr.Status.UPDATE):
+            self.heard.append(self._now())
             self._notes.put((query.id, update.status, self._now()))
 
     def _handle(self, note: tuple[str, rr.Status, float]) -> None:
