@@ -29,7 +29,7 @@ SERVICE = "rr_actors.experiments.services:service"
 
 EVERY_FAULT = f"""\
 name = "every-fault"
-duration = 3.0
+duration = 3.2
 seed = 21
 
 [tree]
@@ -71,19 +71,19 @@ delay = 0.2
 [[faults]]
 kind = "hang_manager"
 target = "api"
-at = 1.2
+at = 1.5
 for = 1.0
 
 [[faults]]
 kind = "load_error"
 target = "db"
-at = 2.0
+at = 2.2
 loads = 2
 
 [[faults]]
 kind = "cut_connections"
 target = "db"
-at = 2.5
+at = 2.6
 """
 
 

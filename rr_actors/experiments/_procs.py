@@ -16,7 +16,7 @@ import signal
 import time
 from pathlib import Path
 
-__all__ = ["TOKEN_VARIABLE", "kill", "processes_with", "wait_gone"]
+__all__ = ["TOKEN_VARIABLE", "cmdline", "kill", "parent", "processes_with", "wait_gone"]
 
 TOKEN_VARIABLE = "RR_ACTORS_EXPERIMENT"  # noqa: S105 - a variable's name, not a secret
 """The environment variable that marks the processes of one run."""
@@ -50,6 +50,14 @@ def cmdline(pid: int) -> str:
         return (Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()).strip()
     except OSError:
         return ""
+
+
+def parent(pid: int) -> int | None:
+    """The parent pid of `pid` (`None` if gone)."""
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def wait_gone(pids: list[int], timeout: float) -> list[int]:

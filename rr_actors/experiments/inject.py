@@ -2,31 +2,38 @@
 
     schedule (timed) ─────────────► heap of (monotonic time, action) ◄── on_event: a trigger
                                           │                               matched (n-th event)
-                            injector thread: wait for the earliest, fire it
+              injector thread: PREPARE_AHEAD before each fault, look up its target
                                           │
-        kill_manager ──► SIGKILL through a pidfd (a thread manager: its registrar crashes)
-        hang_manager ──► SIGSTOP through a pidfd ──► (after `for`) SIGCONT
-        kill_resource ─► SIGKILL a child process of a manager (pid and creation time checked)
-        cut_connections ► SIGUSR2: the manager's handler shuts its connections (_instrument.py)
+        kill_manager ──► SIGKILL ─┐
+        hang_manager ──► SIGSTOP ─┼─ a pidfd and the due time ──► trigger process (_trigger.py)
+        kill_resource ─► SIGKILL ─┤                               sends it at the due time;
+        cut_connections ► SIGUSR2 ┘  (the manager's handler       the reply is recorded
+                                      shuts its connections)
+        hang_manager, after `for` ──► SIGCONT (from here)
+        kill_manager of a thread manager ──► its registrar crashes (at the due time, here)
         load_error ────► Supervisor.run_in(manager, arm_load_error): its next loads raise
 
 Signals go through pidfds, which always mean the process that was looked up, never a
-later one that reused its pid. A fault whose manager is not running when it is due is
-recorded as skipped (the schedule stays the same for the same seed; what it meets may
-not). The injector thread does nothing but wait and fire, so it is on time: the run
-process also switches threads every millisecond (see `runner.py`).
+later one that reused its pid. They leave from a separate single-threaded process so that
+a busy run process (its clients hold the interpreter lock) does not make them late. A
+fault whose manager is not running when it is prepared is recorded as skipped (the
+schedule stays the same for the same seed; what it meets may not).
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import functools
 import heapq
 import itertools
 import logging
 import os
 import signal
+import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -35,25 +42,26 @@ from typing import Any
 
 import rr_actors as rr
 from rr_actors import events
+from rr_actors.experiments import _trigger
 from rr_actors.experiments._instrument import CUT_SIGNAL, arm_load_error, catches_cut_signal
 from rr_actors.experiments.plan import Plan
 from rr_actors.experiments.results import FaultRecord
 from rr_actors.experiments.schedule import ScheduledFault
 
-__all__ = ["Injector", "resource_processes"]
+__all__ = ["Injector", "Trigger", "resource_processes"]
 
 logger = logging.getLogger("rr_actors.experiments")
 
 RUN_IN_TIMEOUT = 2.0
 """Seconds `load_error` waits for its manager to take the switch."""
 
-PREPARE_AHEAD = 0.003
-"""Seconds before a signal is due that the injector wakes to look up its target and open a
-pidfd, so that at the due time only the signal itself is left to send."""
+PREPARE_AHEAD = 0.02
+"""Seconds before a fault is due that the injector looks up its target and, for a signal,
+hands a pidfd to the trigger process, which sends it at the due time."""
 
 SPIN = 0.0003
-"""The last seconds before a due signal are waited by spinning, not by a timed wait (whose
-wake-up can come late by a scheduler tick)."""
+"""The last seconds before a fault fired from this process (a thread manager's crash, a
+load error's switch) are waited by spinning, not by a timed wait."""
 
 
 def _registrar_of(registrar: rr.ResourceRegistrar) -> rr.ResourceRegistrar:
@@ -102,6 +110,87 @@ def resource_processes(sup: rr.Supervisor, managers: list[str]) -> list[tuple[st
     return [(name, pid, created) for _, created, pid, name in found]
 
 
+class Trigger:
+    """The run process's end of the trigger process (`_trigger.py`), which sends signals.
+
+    `send` hands it a pidfd, a signal and a due time; `on_sent(sent_at, errno)` is called
+    on this object's reader thread when the signal went out (or could not: `errno`).
+    """
+
+    def __init__(self) -> None:
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        try:
+            self._process = subprocess.Popen(  # noqa: S603 - this interpreter, our own script
+                [sys.executable, "-I", _trigger.__file__, str(theirs.fileno())],
+                pass_fds=(theirs.fileno(),),
+                stdin=subprocess.DEVNULL,
+            )
+        finally:
+            theirs.close()
+        self._sock = ours
+        self._seq = itertools.count(1)
+        self._lock = threading.Lock()
+        self._idle = threading.Condition(self._lock)
+        self._pending: dict[int, Callable[[float, int], None]] = {}
+        self._reader = threading.Thread(target=self._read, name="rr-trigger", daemon=True)
+        self._reader.start()
+
+    def send(
+        self, due: float, signum: int, pidfd: int, on_sent: Callable[[float, int], None]
+    ) -> None:
+        """Send `signum` through (a copy of) `pidfd` at monotonic time `due`."""
+        seq = next(self._seq)
+        with self._lock:
+            self._pending[seq] = on_sent
+        message = _trigger.REQUEST.pack(seq, due, int(signum))
+        try:
+            socket.send_fds(self._sock, [message], [pidfd])
+        except OSError as exc:
+            with self._lock:
+                self._pending.pop(seq, None)
+            on_sent(0.0, exc.errno or errno.EIO)
+
+    def close(self, *, timeout: float) -> None:
+        """Wait (bounded) for the replies still due, then end the trigger process."""
+        deadline = time.monotonic() + timeout
+        with self._idle:
+            while self._pending and time.monotonic() < deadline:
+                self._idle.wait(max(0.0, deadline - time.monotonic()))
+        with contextlib.suppress(OSError):
+            self._sock.shutdown(socket.SHUT_RDWR)
+        self._reader.join(timeout)
+        self._sock.close()
+        try:
+            self._process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait()
+
+    def _read(self) -> None:
+        while True:
+            try:
+                data = self._sock.recv(_trigger.REPLY.size)
+            except OSError:
+                data = b""
+            if len(data) < _trigger.REPLY.size:
+                break
+            seq, sent_at, code = _trigger.REPLY.unpack(data)
+            with self._lock:
+                on_sent = self._pending.pop(seq, None)
+            if on_sent is not None:
+                try:
+                    on_sent(sent_at, code)
+                except Exception:
+                    logger.exception("recording a fault failed")
+            with self._idle:
+                self._idle.notify_all()
+        with self._idle:  # the trigger is gone: what it did not answer was not sent
+            pending, self._pending = self._pending, {}
+            self._idle.notify_all()
+        for on_sent in pending.values():
+            on_sent(0.0, errno.ESRCH)
+
+
 @dataclasses.dataclass(order=True)
 class _Due:
     at: float  # monotonic
@@ -145,6 +234,7 @@ class Injector:
         self._hung: dict[int, tuple[str, int]] = {}  # pidfd -> (manager, pid)
         self._waiting: list[list[Any]] = []  # [scheduled fault, matches seen]
         self._threads: list[threading.Thread] = []
+        self._trigger = Trigger()
         for fault in schedule:
             if fault.at is None:
                 self._waiting.append([fault, 0])
@@ -163,9 +253,11 @@ class Injector:
         with self._cond:
             self._stopped = True
             self._cond.notify_all()
-        self._thread.join(timeout)
+        if self._thread.ident is not None:
+            self._thread.join(timeout)
         for thread in self._threads:
             thread.join(timeout)
+        self._trigger.close(timeout=timeout)
         with self._lock:
             hung = list(self._hung)
         for pidfd in hung:
@@ -177,6 +269,8 @@ class Injector:
 
     def on_event(self, event: events.Event) -> None:
         """Look at one event of the run (from the subscriber thread); fire what it triggers."""
+        if not self._waiting:  # no trigger left: the common case, without the lock
+            return
         name = type(event).__name__
         due: list[tuple[ScheduledFault, float]] = []
         with self._lock:
@@ -307,42 +401,60 @@ class Injector:
         except ProcessLookupError:
             self._record(fault, scheduled, None, f"{fault.target} had just died", skipped=True)
             return
-        if fault.kind == "kill_manager":
-            self._signal(fault, scheduled, pidfd, signal.SIGKILL, f"SIGKILL pid {info.pid}")
+        if fault.kind == "cut_connections" and not catches_cut_signal(info.pid):
             os.close(pidfd)
-        elif fault.kind == "hang_manager":
-            if self._signal(fault, scheduled, pidfd, signal.SIGSTOP, f"SIGSTOP pid {info.pid}"):
-                for_s = self.plan.faults[fault.fault].for_s or 0.0
-                with self._lock:
-                    self._hung[pidfd] = (fault.target, info.pid)
-                self._push(time.monotonic() + for_s, functools.partial(self._resume, pidfd))
-            else:
-                os.close(pidfd)
-        else:  # cut_connections
-            if not catches_cut_signal(info.pid):
-                os.close(pidfd)
-                self._record(
-                    fault,
-                    scheduled,
-                    None,
-                    f"{fault.target} (pid {info.pid}) has no handler for {CUT_SIGNAL.name} yet",
-                    skipped=True,
-                )
-                return
-            self._signal(fault, scheduled, pidfd, CUT_SIGNAL, f"cut pid {info.pid}'s connections")
+            self._record(
+                fault,
+                scheduled,
+                None,
+                f"{fault.target} (pid {info.pid}) has no handler for {CUT_SIGNAL.name} yet",
+                skipped=True,
+            )
+            return
+        signum, what = {
+            "kill_manager": (signal.SIGKILL, f"SIGKILL pid {info.pid}"),
+            "hang_manager": (signal.SIGSTOP, f"SIGSTOP pid {info.pid}"),
+            "cut_connections": (CUT_SIGNAL, f"cut pid {info.pid}'s connections"),
+        }[fault.kind]
+        keep = fault.kind == "hang_manager"  # its pidfd sends the SIGCONT later
+        on_sent = functools.partial(
+            self._sent, fault, scheduled, what, pidfd if keep else None, info.pid
+        )
+        self._trigger.send(self.t0 + scheduled, signum, pidfd, on_sent)
+        if not keep:
             os.close(pidfd)
 
-    def _signal(
-        self, fault: ScheduledFault, scheduled: float, pidfd: int, signum: int, what: str
-    ) -> bool:
-        self._until(scheduled)
-        try:
-            signal.pidfd_send_signal(pidfd, signum)
-        except ProcessLookupError:
-            self._record(fault, scheduled, None, f"{fault.target} had just died", skipped=True)
-            return False
-        self._record(fault, scheduled, self._now(), what)
-        return True
+    def _sent(
+        self,
+        fault: ScheduledFault,
+        scheduled: float,
+        what: str,
+        pidfd: int | None,
+        pid: int,
+        sent_at: float,
+        code: int,
+        *,
+        target: str | None = None,
+    ) -> None:
+        """The trigger sent (or could not send) a fault's signal: record it (its thread)."""
+        if code:
+            if pidfd is not None:
+                os.close(pidfd)
+            self._record(
+                fault,
+                scheduled,
+                None,
+                f"pid {pid} had just exited ({errno.errorcode.get(code, code)})",
+                target=target,
+                skipped=True,
+            )
+            return
+        self._record(fault, scheduled, sent_at - self.t0, what, target=target)
+        if pidfd is not None and fault.target is not None:  # a hang: resume it later
+            for_s = self.plan.faults[fault.fault].for_s or 0.0
+            with self._lock:
+                self._hung[pidfd] = (fault.target, pid)
+            self._push(sent_at + for_s, functools.partial(self._resume, pidfd))
 
     def _resume(self, pidfd: int) -> None:
         """SIGCONT a hung manager (if nobody killed it meanwhile)."""
@@ -377,23 +489,21 @@ class Injector:
         except ProcessLookupError:
             self._record(fault, scheduled, None, f"process {pid} had just exited", skipped=True)
             return
-        try:
-            if _start_time(pid) != created:
-                self._record(fault, scheduled, None, f"process {pid} had just exited", skipped=True)
-                return
-            self._until(scheduled)
-            signal.pidfd_send_signal(pidfd, signal.SIGKILL)
-            self._record(
-                fault,
-                scheduled,
-                self._now(),
-                f"SIGKILL pid {pid} (a process of {name})",
-                target=name,
-            )
-        except ProcessLookupError:
-            self._record(fault, scheduled, None, f"process {pid} had just exited", skipped=True)
-        finally:
+        if _start_time(pid) != created:
             os.close(pidfd)
+            self._record(fault, scheduled, None, f"process {pid} had just exited", skipped=True)
+            return
+        on_sent = functools.partial(
+            self._sent,
+            fault,
+            scheduled,
+            f"SIGKILL pid {pid} (a process of {name})",
+            None,
+            pid,
+            target=name,
+        )
+        self._trigger.send(self.t0 + scheduled, signal.SIGKILL, pidfd, on_sent)
+        os.close(pidfd)
 
     def _load_error(self, fault: ScheduledFault, scheduled: float) -> None:
         assert fault.target is not None

@@ -2,12 +2,13 @@
 
     execute(spec)
       ├─ Supervisor(the plan's tree; every setup wrapped by _instrument.instrumented_setup)
-      ├─ subscribe ─► _EventLog: events.jsonl (+ run, seed), the events kept, triggers
+      ├─ subscribe ─► _EventLog: keeps every event, feeds the injector's triggers
       ├─ start the tree; clients (workload.py); t0; injector (inject.py) and clients go
       ├─ wait `duration` (or until told to stop: SIGTERM from the experiment)
       ├─ stop the injector (hung managers resumed); wait until every manager serves again
       ├─ clients unload everything; count what the catalogs still hold
-      ├─ stop the tree; processes of this run still alive are leaks (then killed)
+      ├─ stop the tree; events.jsonl (+ run, seed); processes of this run still alive
+      │  are leaks (then killed)
       └─ metrics.py ─► RunResult
 
 The run process is started by `rr_actors.experiments.experiment` with `python -m
@@ -25,7 +26,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import rr_actors as rr
 from rr_actors import events
@@ -140,23 +141,34 @@ def fault_line(record: FaultRecord, *, run: int, seed: int, wall_t0: float) -> d
 
 
 class _EventLog:
-    """The run's subscriber: keeps every event, writes it as a JSON line, feeds triggers."""
+    """The run's subscriber: keeps every event and feeds the injector's triggers.
 
-    def __init__(self, out: IO[str], run: int, seed: int) -> None:
-        self.out = out
-        self.extra = {"run": run, "seed": seed}
+    It does no more on the subscriber thread than append (the JSON lines are written
+    after the tree stopped, by `write`), so that recording costs the workload as little
+    as it can (`benchmarks/bench_experiments.py` measures it).
+    """
+
+    def __init__(self) -> None:
         self.seen: list[events.Event] = []
-        self.dropped = 0
         self.injector: Injector | None = None
 
     def __call__(self, event: events.Event) -> None:
         self.seen.append(event)
-        if isinstance(event, events.EventsDropped):
-            self.dropped += event.count
-        self.out.write(json.dumps({**events.to_dict(event), **self.extra}) + "\n")
         injector = self.injector
         if injector is not None:
             injector.on_event(event)
+
+    @property
+    def dropped(self) -> int:
+        """Events lost to a full queue (from the `EventsDropped` notices)."""
+        return sum(e.count for e in self.seen if isinstance(e, events.EventsDropped))
+
+    def write(self, path: Path, run: int, seed: int) -> None:
+        """Write every event as a JSON line with `run` and `seed` (`events.jsonl`)."""
+        extra = {"run": run, "seed": seed}
+        with path.open("w", encoding="utf-8") as out:
+            for event in self.seen:
+                out.write(json.dumps({**events.to_dict(event), **extra}) + "\n")
 
 
 def _catalog_size(registrar: rr.ResourceRegistrar) -> int:
@@ -184,11 +196,13 @@ def _leaked(token: str) -> int:
     """Processes of this run still alive after its tree stopped (killed, and counted)."""
     if not token:
         return 0
-    ours = frozenset({os.getpid(), os.getppid()})
+    me = os.getpid()
     alive = [
         pid
-        for pid in _procs.processes_with(token, exclude=ours)
-        if "multiprocessing" not in _procs.cmdline(pid)  # forkserver, resource tracker
+        for pid in _procs.processes_with(token, exclude=frozenset({me, os.getppid()}))
+        # This process's forkserver and resource tracker end with it. (Manager processes
+        # also show the forkserver's command line, but they are its children, not ours.)
+        if not (_procs.parent(pid) == me and "multiprocessing" in _procs.cmdline(pid))
     ]
     left = _procs.wait_gone(alive, LEAK_GRACE)
     _procs.kill(left)
@@ -226,22 +240,22 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
     (run_dir / "work").mkdir(parents=True, exist_ok=True)
     sup = build_tree(plan, run_dir / "state" if plan.state else None)
     drive = _Drive()
-    with (run_dir / "events.jsonl").open("w", encoding="utf-8") as out:
-        log = _EventLog(out, spec.run, spec.seed)
-        subscription = sup.subscribe(log, maxsize=EVENT_QUEUE) if spec.record_events else None
+    log = _EventLog()
+    subscription = sup.subscribe(log, maxsize=EVENT_QUEUE) if spec.record_events else None
+    try:
+        sup.start()
         try:
-            sup.start()
-            try:
-                _drive(sup, spec, log, run_dir / "work", stop, drive)
-            finally:
-                if drive.injector is not None:
-                    drive.injector.stop()
-                sup.stop()
-            if subscription is not None:
-                subscription.wait_delivered()
+            _drive(sup, spec, log, run_dir / "work", stop, drive)
         finally:
-            if subscription is not None:
-                subscription.close()
+            if drive.injector is not None:
+                drive.injector.stop()
+            sup.stop()
+        if subscription is not None:
+            subscription.wait_delivered()
+    finally:
+        if subscription is not None:
+            subscription.close()
+    log.write(run_dir / "events.jsonl", spec.run, spec.seed)
     leaked = _leaked(spec.token)
     assert drive.injector is not None
     return _result(

@@ -186,6 +186,7 @@ class Client:
         self.unload_failures = 0
         self._notes: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._held: list[_Held] = []
+        self._given_up: list[tuple[CallMix, Any, str]] = []
         self._by_id: dict[str, _Held] = {}
         self._seq = itertools.count()
         self._unique = itertools.count()
@@ -214,6 +215,28 @@ class Client:
         while self._held:
             held = heapq.heappop(self._held)
             self._unload(held, deadline)
+        for mix, request, query_id in self._given_up:
+            self._release_given_up(mix, request, query_id, deadline)
+
+    def _release_given_up(self, mix: CallMix, request: Any, query_id: str, deadline: float) -> None:
+        """Release the id of a call that gave up during an outage, in case it was taken.
+
+        A call in flight when its provider died may or may not have been recorded by it;
+        the client gave up on it, so nobody would release it. Calling again with the same
+        id is idempotent (the provider answers from its restored catalog, or loads), and
+        the unload that follows releases it either way. (`Supervisor.call_with_retry`
+        abandons such ids itself; this workload retries on its own, to also retry at once
+        through cut connections.)
+        """
+        call = functools.partial(self.registrar.call, mix.manager, mix.server, request)
+        with contextlib.suppress(rr.RrError):
+            retrying(
+                self.sup,
+                mix.manager,
+                lambda: call(query_id=query_id, timeout=max(1e-3, deadline - time.monotonic())),
+                deadline=max(deadline, time.monotonic() + 1e-3),
+            )
+            self.registrar.unload(query_id)
 
     # -- the thread -----------------------------------------------------------------------
 
@@ -297,13 +320,14 @@ class Client:
             nonlocal retried
             retried = True
 
+        query_id = str(uuid.uuid4())
         call = functools.partial(
             self.registrar.call,
             mix.manager,
             mix.server,
             request,
             on_status=self._on_status,
-            query_id=str(uuid.uuid4()),
+            query_id=query_id,
         )
         deadline = time.monotonic() + self.workload.timeout
         try:
@@ -327,6 +351,8 @@ class Client:
                     type(exc).__name__,
                 )
             )
+            if retried:  # its provider may have taken the id before it died
+                self._given_up.append((mix, request, query_id))
             return None
         self.calls.append(
             CallRecord(self.index, mix.manager, mix.server, start, self._now(), True, retried)
@@ -363,17 +389,27 @@ class Client:
         if status is rr.Status.UPDATE:
             self.recoveries.append(self._now())
             return
-        # FATAL: the resource is gone; release our id and load it again.
-        self._by_id.pop(query_id, None)
-        with contextlib.suppress(ValueError):
-            self._held.remove(held)
-            heapq.heapify(self._held)
-        with contextlib.suppress(rr.RrError):
-            self.registrar.unload(query_id)
-        query = self._reload(held)
-        if query is not None:
-            self.recoveries.append(self._now())
-            renewed = dataclasses.replace(held, query=query, seq=next(self._seq))
+        # FATAL: the resource is gone. Release every id this client holds of it (the
+        # same resource may be held twice: equal requests), then load it again once and
+        # give each of them the new one.
+        dead = [
+            h for h in self._held if h.mix is held.mix and h.query.response == held.query.response
+        ]
+        for entry in dead:
+            self._by_id.pop(entry.query.id, None)
+            with contextlib.suppress(rr.RrError):
+                self.registrar.unload(entry.query.id)
+        self._held = [h for h in self._held if h not in dead]
+        heapq.heapify(self._held)
+        recovered = False
+        for entry in dead:
+            query = self._reload(entry)
+            if query is None:
+                continue
+            if not recovered:
+                self.recoveries.append(self._now())
+                recovered = True
+            renewed = dataclasses.replace(entry, query=query, seq=next(self._seq))
             heapq.heappush(self._held, renewed)
             self._by_id[query.id] = renewed
 
