@@ -4,6 +4,7 @@ prints its summary, and Ctrl-C (a real SIGINT) stops every process and keeps fin
 from __future__ import annotations
 
 import csv
+import io
 import os
 import signal
 import subprocess
@@ -15,6 +16,8 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._cli import main
+from rr_actors.experiments import Progress, RunResult
+from rr_actors.experiments.cli import _Display
 
 SERVICE = "rr_actors.experiments.services:service"
 
@@ -202,3 +205,54 @@ def test_ctrl_c_stops_every_process_and_keeps_the_runs_finished_so_far(
     assert "interrupted: " in stdout
     assert (out / "recovery.png").exists()
     assert "Traceback" not in stderr
+
+
+class FakeTerminal(io.StringIO):
+    """A stream that says it is a terminal (as the command on a real one sees it)."""
+
+    def isatty(self) -> bool:
+        return True
+
+
+def finished_run() -> RunResult:
+    return RunResult(
+        plan="tiny",
+        setting="tree.strategy",
+        value="one_for_all",
+        run=1,
+        repeat=1,
+        seed=7,
+        version=rr.__version__,
+        started_at=0.0,
+        duration_s=1.0,
+        calls_ok=9,
+        calls_failed=1,
+        calls_retried=2,
+        unavailable_s={"db": 0.25},
+        restarts=3,
+        gave_up=False,
+        recovery_median_s=0.125,
+        recovery_p90_s=0.25,
+        unrecovered=0,
+        leaked_processes=0,
+        catalog_entries_left=0,
+        events=10,
+        events_dropped=0,
+    )
+
+
+@pytest.mark.parametrize("stream", [FakeTerminal(), io.StringIO()], ids=["terminal", "pipe"])
+def test_progress_draws_a_bar_on_a_terminal_and_one_line_per_run_everywhere(
+    stream: io.StringIO,
+) -> None:
+    with _Display(stream, quiet=False) as display:
+        for elapsed in (0.25, 0.5, 1.0):
+            display(Progress(1, 2, "tree.strategy", "one_for_all", 7, elapsed, 1.0))
+        display(Progress(1, 2, "tree.strategy", "one_for_all", 7, 1.0, 1.0, finished_run()))
+
+    line = (
+        "run 1/2 tree.strategy=one_for_all seed 7: 9 calls ok, 1 failed, 3 restarts, "
+        "recovery median 125 ms"
+    )
+    assert line in stream.getvalue()
+    assert (display.bar is not None) == isinstance(stream, FakeTerminal)

@@ -91,6 +91,7 @@ def test_a_killed_resource_process_is_heard_and_loaded_again() -> None:
 
 
 def test_the_workload_plan_calls_through_its_factory_in_lidars_py() -> None:
+    # workload.toml names `factory = "lidars:lidar"`: examples/experiments/lidars.py
     (result,) = shortened("workload", 2.0).runs
 
     assert result.calls_ok > 0

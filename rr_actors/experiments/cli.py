@@ -180,7 +180,7 @@ class _Display:
 
     def say(self, line: str) -> None:
         if self.bar is not None:
-            self.bar.console.print(line, highlight=False, markup=False)
+            self.bar.console.print(line, highlight=False, markup=False, soft_wrap=True)
         else:
             self.stream.write(line + "\n")
             self.stream.flush()
