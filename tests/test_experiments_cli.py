@@ -256,3 +256,19 @@ def test_progress_draws_a_bar_on_a_terminal_and_one_line_per_run_everywhere(
     )
     assert line in stream.getvalue()
     assert (display.bar is not None) == isinstance(stream, FakeTerminal)
+
+
+def test_a_run_that_fails_exits_1_quoting_its_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "broken_managers.py").write_text(
+        "def setup(registrar):\n    raise RuntimeError('the driver is missing')\n"
+    )
+    plan = write_plan(tmp_path, PLAN.format(duration=1.0).replace(SERVICE, "broken_managers:setup"))
+
+    code = main(["experiment", str(plan), "--out", str(tmp_path / "out")])
+
+    assert 1 == code
+    err = capsys.readouterr().err
+    assert err.startswith("rr-actors experiment: run 1 failed (exit code 1):")
+    assert "the driver is missing" in err

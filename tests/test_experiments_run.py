@@ -19,7 +19,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors.experiments import Progress, Results, parse_plan, run
+from rr_actors.experiments import ExperimentError, Progress, Results, parse_plan, run
 from rr_actors.experiments._instrument import CUT_SIGNAL
 from rr_actors.experiments._procs import processes_with
 from rr_actors.experiments.runner import build_tree
@@ -29,7 +29,7 @@ SERVICE = "rr_actors.experiments.services:service"
 
 EVERY_FAULT = f"""\
 name = "every-fault"
-duration = 3.2
+duration = 3.4
 seed = 21
 
 [tree]
@@ -71,19 +71,19 @@ delay = 0.2
 [[faults]]
 kind = "hang_manager"
 target = "api"
-at = 1.5
+at = 1.7
 for = 1.0
 
 [[faults]]
 kind = "load_error"
 target = "db"
-at = 2.2
+at = 2.4
 loads = 2
 
 [[faults]]
 kind = "cut_connections"
 target = "db"
-at = 2.6
+at = 2.8
 """
 
 
@@ -370,3 +370,63 @@ def test_an_output_directory_that_is_not_empty_is_refused_unless_forced(tmp_path
         run(parse_plan(RANDOM_KILLS), out=tmp_path)
 
     assert ["notes.txt"] == [p.name for p in tmp_path.iterdir()]
+
+
+MANAGERS_NEXT_TO_THE_PLAN = """\
+def counter_setup(registrar, *, greeting):
+    registrar.register_server("hello", load=lambda r: f"{greeting} {r}", unload=lambda q, r: None)
+
+
+def broken_setup(registrar):
+    raise RuntimeError("no camera on this bench")
+
+
+def request(key, context):
+    return f"{key} from client {context.client}"
+"""
+
+OWN_PLAN = """\
+duration = 0.5
+
+[tree]
+[[tree.children]]
+name = "mine"
+setup = "bench_managers:SETUP"
+OPTIONS
+
+[workload]
+clients = 1
+rate = 20.0
+[[workload.calls]]
+manager = "mine"
+server = "hello"
+factory = "bench_managers:request"
+"""
+
+
+def test_a_plan_names_managers_and_factories_in_a_module_next_to_it(tmp_path: Path) -> None:
+    (tmp_path / "bench_managers.py").write_text(MANAGERS_NEXT_TO_THE_PLAN)
+    plan = tmp_path / "plan.toml"
+    plan.write_text(
+        OWN_PLAN.replace("SETUP", "counter_setup").replace(
+            "OPTIONS", 'options = { greeting = "hi" }'
+        )
+    )
+
+    (result,) = run(plan).runs
+
+    assert result.calls_ok > 0
+    assert 0 == result.calls_failed
+
+
+def test_a_manager_that_cannot_start_fails_the_experiment_with_its_error(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "bench_managers.py").write_text(MANAGERS_NEXT_TO_THE_PLAN)
+    plan = tmp_path / "plan.toml"
+    plan.write_text(OWN_PLAN.replace("SETUP", "broken_setup").replace("OPTIONS", ""))
+
+    with pytest.raises(ExperimentError, match="no camera on this bench"):
+        run(plan, out=tmp_path / "out")
+
+    assert [] == ours()

@@ -271,6 +271,9 @@ class _Experiment:
             results = self._results(interrupted=True)
             self._plot(results)
             raise ExperimentInterruptedError(results) from None
+        except ExperimentError:
+            self._plot(self._results(interrupted=False))  # what finished before it
+            raise
         finally:
             shutil.rmtree(work, ignore_errors=True)
         results = self._results(interrupted=False)
@@ -298,6 +301,9 @@ class _Experiment:
         run_dir.mkdir(parents=True)
         (run_dir / "spec.pickle").write_bytes(pickle.dumps(spec))
         env = {**os.environ, _procs.TOKEN_VARIABLE: spec.token}
+        # The run process imports this very rr_actors, installed or not.
+        package_root = str(Path(rr.__file__).resolve().parent.parent)
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [package_root, env.get("PYTHONPATH")]))
         started = time.monotonic()
         with (run_dir / "stderr.txt").open("wb") as stderr:
             process = subprocess.Popen(  # noqa: S603 - this interpreter, our own module

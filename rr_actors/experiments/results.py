@@ -226,7 +226,7 @@ class Results:
         grouped: list[tuple[Any, list[RunResult]]] = [(v, []) for v, _ in self.plan.variants]
         for run in self.runs:
             for value, runs in grouped:
-                if value == run.value:
+                if type(value) is type(run.value) and value == run.value:  # False is not 0
                     runs.append(run)
                     break
         return grouped
