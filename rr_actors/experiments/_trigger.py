@@ -56,6 +56,8 @@ def serve(sock: socket.socket) -> None:
             seq, at, signum = REQUEST.unpack(message)
             heapq.heappush(due, (at, seq, signum, fds[0]))
             continue
+        if due[0][0] - time.monotonic() > SPIN:
+            continue  # woke early: never spin longer than SPIN (this may run real-time)
         at, seq, signum, pidfd = heapq.heappop(due)
         while time.monotonic() < at:
             pass  # the last fraction of a millisecond
