@@ -15,6 +15,8 @@ Operations:
                         futures), which the registrars are built on
     dedup-hit call      `call` of a request already loaded (a consumer is added, no load)
     dedup-hit unload    `unload` of one of those ids (not the last consumer, no unload)
+    ... 1 subscriber    the same two against a provider whose events one subscriber
+                        receives (`ResourceRegistrar.subscribe`): the event stream's cost
     unique load+unload  `call` of a new request, then `unload` of its only id
     status delivery     `send_status` to one consumer; returns after its callback ran
 """
@@ -67,9 +69,16 @@ class Bench:
         self.watched = self.consumer.call(self.provider.name, "res", "watched", on_status=_noop)
         self._unique = itertools.count()
         self._dedup_ids: list[str] = []
+        self.observed = rr.ResourceRegistrar.start(f"bench-observed-{suffix}")
+        self.observed.register_server("res", load=lambda request: request, unload=_noop)
+        self.consumer.call(self.observed.name, "res", "shared")
+        self.subscription = self.observed.subscribe(_noop)
+        self._observed_ids: list[str] = []
 
     def stop(self) -> None:
+        self.subscription.close()
         self.consumer.stop()
+        self.observed.stop()
         self.provider.stop()
         self.echo.stop()
         self.actor_echo.stop()
@@ -88,6 +97,13 @@ class Bench:
 
     def dedup_unload(self) -> None:
         self.consumer.unload(self._dedup_ids.pop())
+
+    def observed_call(self) -> None:
+        query = self.consumer.call(self.observed.name, "res", "shared")
+        self._observed_ids.append(query.id)
+
+    def observed_unload(self) -> None:
+        self.consumer.unload(self._observed_ids.pop())
 
     def unique_load_unload(self) -> None:
         query = self.consumer.call(self.provider.name, "res", ("unique", next(self._unique)))
@@ -126,6 +142,8 @@ def run(rounds: int, batch: int) -> list[tuple[str, float, float]]:
             "rr_actors ask": bench.actor_ask,
             "dedup-hit call": bench.dedup_call,
             "dedup-hit unload": bench.dedup_unload,
+            "dedup-hit call, 1 subscriber": bench.observed_call,
+            "dedup-hit unload, 1 subscriber": bench.observed_unload,
             "unique load+unload": bench.unique_load_unload,
             "status delivery": bench.status_delivery,
         }

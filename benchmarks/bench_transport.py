@@ -30,6 +30,7 @@ from typing import Any
 import cloudpickle
 
 import rr_actors as rr
+from rr_actors._registrar import Served
 from rr_actors._transport.unix import System, SystemAddress, attach
 
 Setup = Callable[[rr.ResourceRegistrar], None]
@@ -56,7 +57,7 @@ def _registrar_main(
     registrar = rr.ResourceRegistrar.start(name)
     try:
         cloudpickle.loads(setup)(registrar)
-        attached.serve(registrar)
+        attached.serve(Served(registrar))
         control.send("ready")
         with contextlib.suppress(EOFError, OSError):
             control.recv()
@@ -245,7 +246,7 @@ def main() -> None:
     system = System.create()
     try:
         consumer = rr.ResourceRegistrar.start(f"main-{suffix}")
-        system.serve(consumer)
+        system.serve(Served(consumer))
         local = rr.ResourceRegistrar.start(f"local-{suffix}")
         setup_echo(local)
         provider = f"provider-{suffix}"

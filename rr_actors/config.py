@@ -22,6 +22,8 @@ if TYPE_CHECKING:
     from rr_actors._registrar import ResourceRegistrar
 
 __all__ = [
+    "DEFAULT_MAX_MESSAGE_BYTES",
+    "DEFAULT_MAX_WORKERS",
     "Backoff",
     "Isolation",
     "ManagerSpec",
@@ -40,9 +42,17 @@ Strategy = Literal["one_for_one", "one_for_all", "rest_for_one"]
 Isolation = Literal["thread", "process"]
 Setup = Callable[["ResourceRegistrar"], object]
 
-_NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
+_NAME = re.compile(r"[A-Za-z0-9_.\-]+")
+"""A valid name, matched whole (`fullmatch`: `$` would accept a trailing newline)."""
 
 Durability = Literal["process", "power"]
+
+DEFAULT_MAX_WORKERS = 64
+"""Worker threads a registrar runs callbacks on at once, unless `max_workers` says otherwise."""
+
+DEFAULT_MAX_MESSAGE_BYTES = 16 * 1024 * 1024
+"""The largest message (pickled) a registrar takes from another process, unless its
+`max_message_bytes` says otherwise: 16 MiB."""
 
 
 def check_seconds(
@@ -89,6 +99,24 @@ class RegistrarConfig:
         call_timeout: default `timeout` of every blocking call, in seconds.
         durability: `"process"` survives a crash of the process (SQLite `synchronous=NORMAL`),
             `"power"` also survives power loss (`synchronous=FULL`, slower).
+        max_workers: worker threads that may run this registrar's callbacks at once
+            (`load`, `unload`, status callbacks, comparisons of requests without a
+            digest); callbacks beyond it wait in a queue, in order, for one to come free.
+        compare_timeout: seconds the user code that matches a request without a digest
+            (a custom class) with the requests served may run (its `__eq__`, `__hash__`,
+            and pickling it for the backup); past them the call fails with
+            `CallTimeoutError` and the registrar goes on serving.
+        unload_timeout: seconds an `unload` callback may run (`None`: no bound); past
+            them the resource is dropped from the catalog as failed, and a caller still
+            waiting for the unload gets `CallTimeoutError`.
+        max_message_bytes: the largest message, in bytes once pickled, that crosses a
+            connection to this registrar from another process: a request or any other
+            message it receives, and every answer it sends back. A caller in another
+            process gets `MessageTooLargeError` before anything larger is sent; a larger
+            response fails its call the same way (the consumer id is released). Messages
+            within one process are not copied and not limited. Default: 16 MiB
+            (`DEFAULT_MAX_MESSAGE_BYTES`), so that a message of plain bytes costs a
+            manager far less than its default heartbeat timeout.
 
     Raises:
         ConfigError: a field is invalid; the message names it.
@@ -101,9 +129,13 @@ class RegistrarConfig:
     erase_on_destruct: bool = False
     call_timeout: float = 10.0
     durability: Durability = "process"
+    max_workers: int = DEFAULT_MAX_WORKERS
+    compare_timeout: float = 5.0
+    unload_timeout: float | None = 60.0
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
 
     def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not _NAME.match(self.name):
+        if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
             raise ConfigError(
                 f"name must be a non-empty string of letters, digits, '_', '-' or '.', "
                 f"got {self.name!r}"
@@ -117,6 +149,22 @@ class RegistrarConfig:
                 raise ConfigError(f"{flag} must be a bool, got {getattr(self, flag)!r}")
         if self.durability not in ("process", "power"):
             raise ConfigError(f"durability must be 'process' or 'power', got {self.durability!r}")
+        if (
+            isinstance(self.max_workers, bool)
+            or not isinstance(self.max_workers, int)
+            or self.max_workers < 1
+        ):
+            raise ConfigError(f"max_workers must be an int >= 1, got {self.max_workers!r}")
+        check_seconds("compare_timeout", self.compare_timeout)
+        check_seconds("unload_timeout", self.unload_timeout, allow_none=True)
+        if (
+            isinstance(self.max_message_bytes, bool)
+            or not isinstance(self.max_message_bytes, int)
+            or self.max_message_bytes < 1
+        ):
+            raise ConfigError(
+                f"max_message_bytes must be an int >= 1, got {self.max_message_bytes!r}"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         """Return the configuration as plain JSON-able data (with a schema version)."""
@@ -233,7 +281,9 @@ class ManagerSpec:
             and a stuck registrar both count as hung. Thread managers have no heartbeat.
         heartbeat_timeout: seconds without an answer to a ping after which a process
             manager counts as hung: it is killed and handled like a crash. Default:
-            three heartbeat periods (0.75 s with the default `heartbeat`).
+            three heartbeat periods (0.75 s with the default `heartbeat`). A manager
+            whose answers say that it has been unable to accept connections for that
+            long (out of file descriptors, say) is killed the same way, as unhealthy.
         start_timeout: seconds a manager may take to restore, set up and serve.
 
     Raises:

@@ -20,7 +20,9 @@ __all__ = [
     "ConfigError",
     "DependencyCycleError",
     "DuplicateNameError",
+    "DuplicateQueryIdError",
     "ErrorFrame",
+    "MessageTooLargeError",
     "RegistrarStoppedError",
     "RegistrarUnavailableError",
     "ResourceLoadError",
@@ -42,6 +44,38 @@ class ConfigError(RrError, ValueError):
 
 class DuplicateNameError(ConfigError):
     """A registrar or resource server name is already in use where names must be unique."""
+
+
+class DuplicateQueryIdError(ConfigError):
+    """A call reused a query id that already names another call (another request, or
+    another server) at its provider.
+
+    A query id is for one call and its retries: a retry must repeat the same request
+    to the same server. The message names the id; the provider changed nothing.
+    """
+
+
+class MessageTooLargeError(ConfigError):
+    """A message is larger than the receiving registrar's `max_message_bytes`.
+
+    Raised at the sender before anything of the message is sent (a request, a status
+    message, ...), or instead of an answer that is too large (the consumer id of the
+    call is released again). A `ConfigError`, like a message that does not pickle: what
+    was asked for cannot be sent as it is, and sending it again fails the same way;
+    send less, or raise the receiver's `RegistrarConfig.max_message_bytes`.
+
+    Attributes:
+        size: the message's size in bytes, pickled.
+        limit: the `max_message_bytes` it exceeds.
+    """
+
+    def __init__(self, message: str, size: int, limit: int) -> None:
+        super().__init__(message)
+        self.size = size
+        self.limit = limit
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (type(self), (str(self), self.size, self.limit))
 
 
 class UnknownServerError(RrError, LookupError):

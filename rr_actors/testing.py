@@ -317,11 +317,14 @@ class PendingWork:
 
     Attributes:
         waiting_loads: callers waiting for a load here (including loads parked behind an
-            unload of an equal request); an id counted twice is a retry with the same id.
+            unload of an equal request, and loads whose request is being compared off
+            the actor thread); an id counted twice is a retry with the same id.
         held_loads: loads held until `setup` registers their server.
         answers_due: its own calls whose answer it has not recorded yet.
         parked_notices: its queries whose notices wait for their answer.
         open_requests: handle requests it has not answered yet.
+        queued_callbacks: callbacks (loads, unloads, status callbacks, comparisons of
+            requests) waiting for a worker thread, all `max_workers` being busy.
     """
 
     waiting_loads: collections.Counter[str]
@@ -329,12 +332,14 @@ class PendingWork:
     answers_due: frozenset[str]
     parked_notices: frozenset[str]
     open_requests: int
+    queued_callbacks: int = 0
 
 
 def _pending_work(actor: RegistrarActor, reply: Reply) -> None:
     provider, consumer = actor.provider, actor.consumer
     ids = [w.query_id for waiters in provider.loads.values() for w in waiters]
     ids += [load.query_id for loads in provider.after_unload.values() for load in loads]
+    ids += [load.query_id for load in provider.matching.waiting()]
     reply.set_result(
         PendingWork(
             waiting_loads=collections.Counter(ids),
@@ -342,6 +347,7 @@ def _pending_work(actor: RegistrarActor, reply: Reply) -> None:
             answers_due=consumer.due.ids(),
             parked_notices=frozenset(consumer.parked_notices),
             open_requests=len(actor.lifecycle.open_requests) - 1,  # (not this request)
+            queued_callbacks=actor.shared.workers.queued,
         )
     )
 

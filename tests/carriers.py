@@ -105,12 +105,25 @@ def _gated_load(request: Any) -> Any:
     return Gated(request)
 
 
+def _sized_load(size: int) -> bytes:
+    return b"x" * size
+
+
 def setup_servers(registrar: rr.ResourceRegistrar) -> None:
-    """The provider's servers: a recording `echo`, a `slow` one and one with a bad response."""
+    """The provider's servers: a recording `echo`, a `slow` one, one with a bad response
+    (`lock`) and `sized`, whose response to `n` is `n` bytes."""
     registrar.register_server("echo", load=_record_load, unload=_record_unload)
+    registrar.register_server("sized", load=_sized_load, unload=_record_unload)
     registrar.register_server("gated", load=_gated_load, unload=_record_unload)
     registrar.register_server("slow", load=_blocking_load, unload=_record_unload)
     registrar.register_server("lock", load=lambda _request: threading.Lock(), unload=_record_unload)
+
+
+def bytes_read(pid: int) -> int:
+    """How many bytes process `pid` has read so far (sockets included; Linux's `rchar`)."""
+    with open(f"/proc/{pid}/io", encoding="ascii") as io:
+        fields = dict(line.split(": ") for line in io.read().splitlines())
+    return int(fields["rchar"])
 
 
 def load_count(_registrar: rr.ResourceRegistrar) -> int:
@@ -178,12 +191,26 @@ def warnings_logged(_registrar: rr.ResourceRegistrar) -> list[str]:
         return list(CHILD.warnings)
 
 
+PROVIDER_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+"""The providers' `max_message_bytes` unless a test says otherwise: `BIG` answers pass."""
+
+
 def provider_main(
-    address: Any, name: str, setup: bytes, control: multiprocessing.connection.Connection
+    address: Any,
+    name: str,
+    setup: bytes,
+    control: multiprocessing.connection.Connection,
+    config: dict[str, Any] | None = None,
 ) -> None:
-    """A provider process: serve a registrar until told to stop (or the parent is gone)."""
+    """A provider process: serve a registrar until told to stop (or the parent is gone).
+
+    `config` holds `RegistrarConfig` fields beyond its name and `call_timeout` (10 s).
+    """
+    settings = {"max_message_bytes": PROVIDER_MAX_MESSAGE_BYTES, **(config or {})}
     attached = address.attach()
-    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, call_timeout=10.0))
+    registrar = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=name, call_timeout=10.0, **settings)
+    )
     try:
         cloudpickle.loads(setup)(registrar)
         attached.serve(Served(registrar))
@@ -266,15 +293,18 @@ ProviderFactory = Callable[..., Provider]
 def start_provider(
     context: multiprocessing.context.ForkServerContext, system: Transport
 ) -> Iterator[ProviderFactory]:
-    """Start provider processes: `start_provider(setup, name=None)`; all are reaped after."""
+    """Start provider processes: `start_provider(setup, name=None, **config)`; all are reaped.
+
+    Keyword arguments are `RegistrarConfig` fields of the provider's registrar.
+    """
     started: list[Provider] = []
 
-    def start(setup: Setup = setup_servers, name: str | None = None) -> Provider:
+    def start(setup: Setup = setup_servers, name: str | None = None, **config: Any) -> Provider:
         name = name or f"provider-{uuid.uuid4().hex[:8]}"
         parent_end, child_end = context.Pipe()
         process = context.Process(
             target=provider_main,
-            args=(system.address, name, cloudpickle.dumps(setup), child_end),
+            args=(system.address, name, cloudpickle.dumps(setup), child_end, config),
             name=name,
             daemon=True,
         )

@@ -8,8 +8,10 @@ whose `__name__` is `"__main__"`, so later blocks see what earlier blocks define
 to the file descriptor named by `argv[1]`: `{"ok": true}`, or `{"ok": false, "error":
 <traceback>}`. The block's own output goes to this program's standard output and error.
 
-At the end of its input it returns, so the interpreter exits only if the page left
-nothing running (a registrar's actor threads are not daemons): the test checks that too.
+At the end of its input it writes one more line, `{"left": [...]}`: the registrars and
+supervisors the page left running (which the interpreter would stop as it exits: see
+`rr_actors._core.exit`), and returns; the test fails a page that leaves any, or that
+leaves anything else that keeps the interpreter from exiting.
 """
 
 from __future__ import annotations
@@ -36,6 +38,12 @@ def main() -> None:
         sys.stdout.flush()
         sys.stderr.flush()
         replies.write(json.dumps(reply) + "\n")
+    left: list[str] = []
+    if "rr_actors" in sys.modules:  # (a page that never imported it left none)
+        from rr_actors._core.exit import left_running  # noqa: PLC0415
+
+        left = left_running()
+    replies.write(json.dumps({"left": left}) + "\n")
     replies.close()
 
 

@@ -16,7 +16,7 @@ from typing import Any
 import pykka
 import pytest
 
-from rr_actors._core.actor import Actor, OneShotFuture
+from rr_actors._core.actor import Actor, ContainedError, OneShotFuture
 
 
 @pytest.fixture(params=[pykka.ThreadingFuture, OneShotFuture], ids=["pykka", "one_shot"])
@@ -75,6 +75,67 @@ def test_a_timeout_beyond_what_a_lock_can_wait_still_waits() -> None:
     waiting.join(10)
 
     assert [7] == got
+
+
+class _StagedLock:
+    """A one-shot future's hand-off lock, with pauses that stage a race between waiters.
+
+    A timed acquire (the waiter with a timeout) waits for `timed_go` before it tries the
+    lock; an untimed one (the other waiter) holds the lock it got until `untimed_go`.
+    """
+
+    def __init__(self, lock: Any) -> None:
+        self.lock = lock
+        self.timed_entered, self.timed_go = threading.Event(), threading.Event()
+        self.untimed_holds, self.untimed_go = threading.Event(), threading.Event()
+
+    def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
+        if timeout != -1:
+            self.timed_entered.set()
+            assert self.timed_go.wait(10)
+            return bool(self.lock.acquire(blocking, timeout))
+        got = bool(self.lock.acquire(blocking, timeout))
+        self.untimed_holds.set()
+        assert self.untimed_go.wait(10)  # preempted between its acquire and its release
+        return got
+
+    def release(self) -> None:
+        self.lock.release()
+
+
+class _StagedFuture(OneShotFuture[Any]):
+    def __init__(self) -> None:
+        super().__init__()
+        self.staged = self._ready = _StagedLock(self._ready)  # type: ignore[assignment]
+
+
+def test_a_waiter_whose_wait_ran_out_while_another_waiter_passed_the_value_on_gets_it() -> None:
+    # Two waiters: the one without a timeout takes the hand-off lock once the future is
+    # set, and is preempted before it passes the lock on; the one with a timeout runs out
+    # of time on the lock meanwhile. The future was set: it must not raise pykka.Timeout.
+    future = _StagedFuture()
+    got: list[Any] = []
+
+    def wait_with_a_timeout() -> None:
+        try:
+            got.append(future.get(timeout=0.2))
+        except pykka.Timeout as exc:
+            got.append(exc)
+
+    timed = threading.Thread(target=wait_with_a_timeout)
+    timed.start()
+    assert future.staged.timed_entered.wait(10)  # it saw the future unset
+    untimed = threading.Thread(target=future.wait)
+    untimed.start()
+
+    future.set("ready")
+    assert future.staged.untimed_holds.wait(10)
+    future.staged.timed_go.set()  # its acquire runs out while the other waiter holds
+    timed.join(10)
+    future.staged.untimed_go.set()
+    untimed.join(10)
+
+    assert ["ready"] == got
 
 
 def test_a_second_set_raises_queue_full_and_keeps_the_first_value(
@@ -218,6 +279,8 @@ class _Echo(Actor):
             assert self.gate.wait(10)
         if message == "fail":
             raise ValueError("asked to fail")
+        if message == "exit":
+            raise SystemExit("user code said so")
         return message
 
 
@@ -241,6 +304,20 @@ def test_an_actor_answers_asks_through_one_shot_futures_from_a_simple_queue(
 def test_an_error_in_on_receive_reaches_the_asker(echo: pykka.ActorRef[_Echo]) -> None:
     with pytest.raises(ValueError, match="asked to fail"):
         echo.ask("fail", timeout=5)
+    assert "still here" == echo.ask("still here", timeout=5)
+
+
+def test_a_handler_that_raises_system_exit_stops_its_own_actor_and_no_other(
+    echo: pykka.ActorRef[_Echo],
+) -> None:
+    exiting = _Echo.start()
+
+    with pytest.raises(ContainedError) as raised:
+        exiting.ask("exit", timeout=5)  # an ask: the asker gets it
+    exiting.tell("exit")  # a tell: the actor fails (pykka would stop every actor)
+
+    assert exiting.actor_stopped.wait(5)
+    assert isinstance(raised.value.__cause__, SystemExit)
     assert "still here" == echo.ask("still here", timeout=5)
 
 

@@ -6,10 +6,11 @@ written):
 
 - `python` blocks run one after the other in one interpreter (`tests/docs_kernel.py`), as
   if pasted into one session: a later block sees what earlier ones defined, and
-  `__name__` is `"__main__"`. After the last block the interpreter must exit by itself:
-  a page that leaves a registrar running fails. A block that is only a snippet include
-  (`--8<-- "examples/x.py"`) is the example itself: the file must exist and a test in
-  `tests/` must run it by name (`test_examples.py` runs every example).
+  `__name__` is `"__main__"`. After the last block nothing may be left running: a page
+  that leaves a registrar or a supervisor running fails, and the interpreter must exit.
+  A block that is only a snippet include (`--8<-- "examples/x.py"`) is the example
+  itself: the file must exist and a test in `tests/` must run it by name
+  (`test_examples.py` runs every example).
 - `bash` blocks run command by command (`&&` and line breaks separate commands; `#`
   starts a comment):
     - `rr-actors ...` runs the installed console script; `python examples/...` and
@@ -214,9 +215,14 @@ class Kernel:
             pytest.fail(f"{block.where} raised:\n{reply['error']}\noutput:\n{self.output()}")
 
     def finish(self, page: Path) -> None:
-        """End the input; the interpreter must exit by itself (nothing left running)."""
+        """End the input; nothing may be left running, and the interpreter must exit."""
         assert self.proc.stdin is not None
         self.proc.stdin.close()
+        ready, _, _ = select.select([self.replies], [], [], EXIT_TIMEOUT)
+        left = json.loads(self.replies.readline() or "{}").get("left") if ready else None
+        if left:
+            self.kill()
+            pytest.fail(f"{rel(page)}: its Python blocks leave something running: {left}")
         try:
             code = self.proc.wait(EXIT_TIMEOUT)
         except subprocess.TimeoutExpired:
@@ -284,11 +290,18 @@ def check_pip(block: Block, command: list[str]) -> None:
 
 
 def check_benchmark(block: Block, command: list[str]) -> None:
-    """`python benchmarks/X.py ...`: not run; the script must exist and know the options."""
+    """`python benchmarks/X.py ...`: not run; the script must exist and know the options.
+
+    For `alternate.py ... -- Y.py ...`, the options after `--` are `Y.py`'s.
+    """
     script = ROOT / command[1]
     assert script.is_file(), f"{block.where}: {command[1]} does not exist"
+    options = command[2:]
+    if "--" in options:
+        options, inner = options[: options.index("--")], options[options.index("--") + 1 :]
+        check_benchmark(block, ["python", f"benchmarks/{inner[0]}", *inner[1:]])
     source = script.read_text()
-    unknown = [w for w in command[2:] if w.startswith("--") and w.split("=")[0] not in source]
+    unknown = [w for w in options if w.startswith("--") and w.split("=")[0] not in source]
     assert [] == unknown, f"{block.where}: {command[1]} has no option(s) {unknown}"
 
 
@@ -329,7 +342,9 @@ def runnable(command: list[str]) -> list[str] | None:
 
 def shell_block(block: Block, cwd: Path, done: set[tuple[str, ...]]) -> None:
     """Run or check every command of a shell block (see the module docstring)."""
-    for command in commands(block.code):
+    for written in commands(block.code):
+        # pinned to a CPU (`taskset -c 0 ...`): the command after it
+        command = written[3:] if written[:2] == ["taskset", "-c"] else written
         if command[0] == "pip":
             check_pip(block, command)
             continue

@@ -271,4 +271,7 @@ def test_a_manager_killed_by_hand_mid_run_is_waited_for_and_shown_in_the_timelin
     assert [manager] == [r.manager for r in report.unplanned_restarts]
     assert (0, 0) == (report.leaked_processes, report.catalog_entries_left)
     assert [] == living_programs(tmp_path)
-    assert f"-      {manager} restarted, no fault" in timeline(report)
+    assert f"-      {manager} exited, no fault" in timeline(report)
+    [exit] = report.unplanned_restarts
+    assert exit.restarted_after_s is not None  # its restart, from the supervisor's events
+    assert 0.0 < exit.restarted_after_s < 10.0

@@ -98,6 +98,37 @@ def test_an_invalid_registrar_name_or_config_is_a_config_error(config):
         rr.ResourceRegistrar.start(config)
 
 
+@pytest.mark.parametrize("name", ["erm\n", "erm\r\n", "\nerm", "er\nm"])
+@pytest.mark.parametrize(
+    "spec",
+    [
+        rr.RegistrarConfig,
+        rr.ManagerSpec,
+        lambda name: rr.SupervisorSpec(name, ()),
+    ],
+    ids=["RegistrarConfig", "ManagerSpec", "SupervisorSpec"],
+)
+def test_a_name_with_a_line_break_is_a_config_error_naming_the_field(spec, name):
+    with pytest.raises(rr.ConfigError, match="name"):
+        spec(name)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("max_workers", 0),
+        ("max_workers", 1.5),
+        ("max_workers", True),
+        ("compare_timeout", 0),
+        ("compare_timeout", None),
+        ("unload_timeout", -1.0),
+    ],
+)
+def test_an_invalid_bound_on_user_code_is_a_config_error_naming_the_field(field, value):
+    with pytest.raises(rr.ConfigError, match=field):
+        rr.RegistrarConfig("erm", **{field: value})
+
+
 @pytest.mark.parametrize(
     "method",
     [
@@ -223,3 +254,9 @@ def test_an_unpicklable_response_to_a_consumer_with_a_backup_is_a_config_error(
     assert [] == provider.server_queries("lock")  # the id was given back
     assert [] == consumer.client_queries()
     consumer.save_catalog()
+
+
+@pytest.mark.parametrize("value", [0, -1, True, 1.5, "1024", None])
+def test_an_invalid_max_message_bytes_is_a_config_error_naming_it(value):
+    with pytest.raises(rr.ConfigError, match="max_message_bytes"):
+        rr.RegistrarConfig("erm", max_message_bytes=value)

@@ -147,6 +147,45 @@ def test_retrying_a_call_with_the_same_query_id_neither_loads_nor_adds_a_consume
     assert [chosen] == [q.id for q in consumer.client_queries()]
 
 
+class Camera:
+    """A request of a custom class (no digest: its `==` runs off the actor thread)."""
+
+    def __init__(self, rate):
+        self.rate = rate
+
+    def __eq__(self, other):
+        return isinstance(other, Camera) and other.rate == self.rate
+
+    def __hash__(self):
+        return hash(self.rate)
+
+
+@pytest.mark.parametrize(
+    ("first", "second", "server"),
+    [
+        ("camera", "lidar", "leaf"),
+        (Camera(30), Camera(60), "leaf"),
+        ("camera", Camera(30), "leaf"),
+        ("camera", "camera", "other"),
+    ],
+    ids=["plain", "custom", "plain-then-custom", "other-server"],
+)
+def test_a_query_id_reused_for_another_call_is_refused_naming_the_id(
+    make_registrar, serve, first, second, server
+):
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    leaf, other = serve(provider, "leaf"), serve(provider, "other")
+    chosen = str(uuid.uuid4())
+    held = consumer.call(provider.name, "leaf", first, query_id=chosen)
+
+    with pytest.raises(rr.DuplicateQueryIdError, match=chosen):
+        consumer.call(provider.name, server, second, query_id=chosen, timeout=5)
+
+    assert ([held], [held]) == (provider.server_queries("leaf"), consumer.client_queries())
+    assert ([first], []) == (leaf.loads, other.loads)
+    assert held == consumer.call(provider.name, "leaf", first, query_id=chosen)  # a retry
+
+
 def test_concurrent_equal_requests_run_load_exactly_once(
     make_registrar, serve, gates, arrived, shared
 ):

@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from supervision import FakeClock, ManualTimer
+from supervision import FakeClock, ManualTimer, echo_setup
 
 import rr_actors as rr
 from rr_actors import testing
@@ -281,6 +281,26 @@ def test_one_for_all_restarts_every_child(supervisors: Callable[..., Supervisor]
     sup.wait_restarted(f"c-{uid}", timeout=5.0)
 
     assert {f"a-{uid}": 1, f"b-{uid}": 1, f"c-{uid}": 1} == restarts(sup)
+
+
+def test_the_managers_of_a_nested_sibling_being_restarted_are_unavailable_not_stopped(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    x, b = f"x-{uid}", f"b-{uid}"
+    inner = SupervisorSpec(f"inner-{uid}", (ManagerSpec(x, echo_setup),))
+    timer = ManualTimer()
+    sup = supervisors(
+        [inner, ManagerSpec(b)], strategy="one_for_all", backoff=Backoff(initial=1.0), timer=timer
+    ).start()
+    app = sup.registrar(f"app-{uid}")
+    crash(sup, b)
+    assert timer.wait_scheduled(1)  # the inner supervisor was stopped; its restart is due
+
+    with pytest.raises(rr.RegistrarUnavailableError):
+        app.call(x, "echo", "during", timeout=5)
+    timer.fire()
+    sup.wait_restarted(x, timeout=5.0)
+    assert "after" == app.call(x, "echo", "after", timeout=5).response
 
 
 def test_rest_for_one_restarts_the_crashed_child_and_those_started_after_it(

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import resource
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -23,9 +25,18 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from supervision import alive, echo_setup, killed_owner, linux_trick, process, wait_gone
+from supervision import (
+    ManualTimer,
+    alive,
+    echo_setup,
+    killed_owner,
+    linux_trick,
+    process,
+    wait_gone,
+)
 
 import rr_actors as rr
+from rr_actors import testing
 from rr_actors._process.context import forker_pid, mp_context, start_forkserver
 from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors.testing import RemoteRegistrar, SharedObjects
@@ -223,6 +234,40 @@ def test_a_hung_manager_is_detected_by_the_heartbeat_and_restarted(
     assert (True, True) == (info.last_exit.startswith("hung"), info.pid != old)  # type: ignore[union-attr]
 
 
+def few_descriptors_setup(registrar: rr.ResourceRegistrar) -> None:
+    """`echo`, in a manager process allowed 64 open files."""
+    _soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (64, hard))
+    echo_setup(registrar)
+
+
+def test_a_manager_that_cannot_accept_connections_is_restarted(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # 60 connections that never pass the handshake take all of its file descriptors
+    # for the handshake's deadline (5 s), longer than it may go without accepting (1 s).
+    name = f"erm-{uid}"
+    spec = process(name, few_descriptors_setup, heartbeat=0.1, heartbeat_timeout=1.0)
+    sup = supervisors([spec]).start()
+    old = pid_of(sup, name)
+    raw = []
+    try:
+        for _ in range(60):
+            sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            raw.append(sock)
+            sock.settimeout(10)
+            sock.connect(sup.system.address.socket_path(name))
+        info = sup.wait_restarted(name, timeout=15.0)
+    finally:
+        for sock in raw:
+            sock.close()
+    app = sup.registrar(f"app-{uid}")
+
+    assert (True, True) == (info.last_exit.startswith("unhealthy"), info.pid != old)  # type: ignore[union-attr]
+    assert "accept" in info.last_exit  # type: ignore[operator]
+    assert "r" == app.call(name, "echo", "r", timeout=10).response
+
+
 def test_one_for_all_restarts_every_manager_process(
     supervisors: Callable[..., rr.Supervisor], uid: str
 ) -> None:
@@ -236,6 +281,45 @@ def test_one_for_all_restarts_every_manager_process(
 
     assert [False, False] == [before[n] == after[n] for n in (a, b)]
     assert [] == wait_gone([p for p in before.values() if p is not None])
+
+
+@pytest.mark.parametrize("isolation", ["thread", "process"])
+def test_a_sibling_being_restarted_is_unavailable_and_one_stopped_for_good_is_stopped(
+    supervisors: Callable[..., rr.Supervisor], uid: str, isolation: str
+) -> None:
+    # one_for_all: b crashes, so a (permanent: it comes back) and t (temporary: it does
+    # not) are stopped; a's restart waits for the test's timer.
+    a, t, b = f"a-{uid}", f"t-{uid}", f"b-{uid}"
+    timer = ManualTimer()
+    sup = supervisors(
+        [
+            rr.ManagerSpec(a, echo_setup, isolation=isolation),  # type: ignore[arg-type]
+            rr.ManagerSpec(t, echo_setup, isolation=isolation, restart="temporary"),  # type: ignore[arg-type]
+            rr.ManagerSpec(b, echo_setup, isolation=isolation),  # type: ignore[arg-type]
+        ],
+        strategy="one_for_all",
+        backoff=rr.Backoff(initial=1.0),
+        timer=timer,
+    ).start()
+    app = sup.registrar(f"app-{uid}")
+    for name in (a, t):
+        app.call(name, "echo", "before", timeout=10)
+    if isolation == "process":
+        os.kill(pid_of(sup, b), signal.SIGKILL)
+    else:
+        testing.crash(sup.run_in(b, lambda registrar: registrar))
+    assert timer.wait_scheduled(1)  # (the siblings were stopped before the restart was due)
+    errors: dict[str, type[BaseException]] = {}
+    for name in (a, t):
+        try:
+            app.call(name, "echo", "during", timeout=10)
+        except rr.RrError as exc:
+            errors[name] = type(exc)
+    timer.fire()
+    sup.wait_restarted(a, timeout=15.0)
+
+    assert {a: rr.RegistrarUnavailableError, t: rr.RegistrarStoppedError} == errors
+    assert "after" == app.call(a, "echo", "after", timeout=10).response
 
 
 def test_a_setup_that_raises_in_the_manager_process_fails_start_with_its_traceback(

@@ -25,6 +25,7 @@ from carriers import (
     Provider,
     ProviderFactory,
     _Gate,
+    bytes_read,
     in_thread,
     load_count,
     release_loads,
@@ -434,6 +435,44 @@ def test_an_unpicklable_response_fails_the_call_and_releases_its_consumer_id(
     assert eventually(lambda: ["r"] == system.run(provider.name, unloads, timeout=10))
     assert [] == system.run(
         provider.name, lambda registrar: registrar.server_queries("lock"), timeout=10
+    )
+    assert [] == consumer.client_queries()
+
+
+MIB = 1024 * 1024
+
+
+def test_a_request_over_the_providers_max_message_bytes_fails_before_anything_is_sent(
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+) -> None:
+    provider = start_provider(max_message_bytes=MIB)
+    consumer.call(provider.name, "echo", "warm up the connection", timeout=10)
+    read_before = bytes_read(provider.pid)
+
+    with pytest.raises(rr.MessageTooLargeError, match="nothing was sent") as caught:
+        consumer.call(provider.name, "echo", b"x" * (2 * MIB), timeout=10)
+
+    assert (True, MIB) == (isinstance(caught.value, rr.ConfigError), caught.value.limit)
+    assert bytes_read(provider.pid) - read_before < MIB
+    assert 1 == system.run(provider.name, load_count, timeout=10)  # (the warm-up)
+    assert {"resource": "after"} == consumer.call(provider.name, "echo", "after").response
+
+
+def test_a_response_over_the_providers_max_message_bytes_fails_the_call_and_releases_its_id(
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    start_provider: ProviderFactory,
+    eventually: Callable[..., bool],
+) -> None:
+    provider = start_provider(max_message_bytes=MIB)
+
+    with pytest.raises(rr.MessageTooLargeError, match="answer") as caught:
+        consumer.call(provider.name, "sized", 2 * MIB, timeout=10)
+
+    assert MIB == caught.value.limit
+    assert eventually(lambda: [2 * MIB] == system.run(provider.name, unloads, timeout=10))
+    assert [] == system.run(
+        provider.name, lambda registrar: registrar.server_queries("sized"), timeout=10
     )
     assert [] == consumer.client_queries()
 

@@ -12,13 +12,17 @@ import multiprocessing.forkserver
 import multiprocessing.synchronize
 import os
 import pickle
+import resource
+import select
+import signal
 import socket
 import stat
 import struct
 import sys
 import threading
+import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +32,7 @@ from carriers import (
     ProviderFactory,
     load_count,
     record_warnings,
+    setup_servers,
     warnings_logged,
 )
 
@@ -38,6 +43,7 @@ from rr_actors._registrar.messages import Fetch, Load, Revoke
 from rr_actors._transport import RemotePeer, System, attach
 from rr_actors._transport.codec import frame, frames, plain, unframe
 from rr_actors._transport.outbound import _Channel
+from rr_actors._transport.sockets import HANDSHAKE_TIMEOUT, connect
 from rr_actors._transport.writer import Writer
 
 
@@ -269,6 +275,172 @@ def test_a_remote_peer_is_what_the_directory_hands_out_for_another_process(
     assert not isinstance(DIRECTORY.lookup(consumer.name), RemotePeer)
 
 
+# -- crowds, slow handshakes and a full descriptor table -----------------------------------------
+
+
+def _raw_connections(path: str, count: int) -> list[socket.socket]:
+    """`count` connections to `path` that never say a word (no handshake)."""
+    made = []
+    for _ in range(count):
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        sock.settimeout(10)
+        sock.connect(path)
+        made.append(sock)
+    return made
+
+
+def few_descriptors(registrar: rr.ResourceRegistrar) -> None:
+    """The provider's servers, in a process allowed 64 open files."""
+    _soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (64, hard))
+    setup_servers(registrar)
+
+
+def test_a_listener_out_of_file_descriptors_accepts_again_once_some_are_free(
+    system: System, start_provider: ProviderFactory, eventually: Callable[..., bool]
+) -> None:
+    provider = start_provider(few_descriptors)
+    system.run(provider.name, record_warnings, timeout=10)  # (over a connection made now)
+    raw = _raw_connections(system.address.socket_path(provider.name), 60)
+    try:
+        assert eventually(
+            lambda: any(
+                "cannot accept" in warning
+                for warning in system.run(provider.name, warnings_logged, timeout=10)
+            ),
+            timeout=10,
+        ), "the listener did not report that it cannot accept"
+    finally:
+        for sock in raw:
+            sock.close()
+    newcomer = RemotePeer(system, provider.name)  # a peer with a connection of its own
+    try:
+        assert 0 == newcomer.run(load_count, timeout=10)
+    finally:
+        newcomer.close(rr.RegistrarStoppedError("the test is over"))
+
+
+def _handshake_as_listener(listening: socket.socket, authkey: bytes, count: int) -> None:
+    """Accept `count` connections, one after the other, and pass the handshake with each."""
+    for _ in range(count):
+        accepted, _ = listening.accept()
+        accepted.settimeout(None)  # (each client gives up after its own deadline)
+        conn = multiprocessing.connection.Connection(accepted.detach())
+        with conn, contextlib.suppress(EOFError, OSError):
+            multiprocessing.connection.deliver_challenge(conn, authkey)
+            multiprocessing.connection.answer_challenge(conn, authkey)
+
+
+def _pending_connections(path: str) -> int:
+    """How many connections to the listener at `path` it has not accepted yet (Linux).
+
+    Each one is a socket listed in `/proc/net/unix` with the listener's path and the
+    state "connecting" (02); the listener is "unconnected" (01), accepted ones "connected".
+    """
+    with open("/proc/net/unix", encoding="ascii") as table:
+        rows = [line.split() for line in table.readlines()[1:]]
+    return sum(1 for row in rows if len(row) == 8 and row[7] == path and row[5] == "02")
+
+
+def _stopped(pid: int) -> bool:
+    """Whether every thread of process `pid` is stopped (SIGSTOP takes effect a bit later)."""
+    states = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):
+            states.append((task / "stat").read_text().rsplit(")", 1)[1].split()[0])
+    return bool(states) and all(state in ("T", "t") for state in states)
+
+
+def test_a_connect_to_a_full_backlog_waits_for_room_instead_of_failing(
+    system: System, eventually: Callable[..., bool]
+) -> None:
+    path = system.address.socket_path(f"crowded-{uuid.uuid4().hex[:8]}")
+    peers = 5
+    entered: list[int] = []
+    outcomes: list[Any] = []
+
+    def connect_once() -> None:
+        entered.append(1)
+        try:
+            sock, conn = connect(path, system.address.authkey)
+        except Exception as exc:
+            outcomes.append(exc)
+            return
+        conn.close()
+        sock.close()
+        outcomes.append("connected")
+
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as listening:
+        listening.bind(path)
+        listening.listen(1)  # room for one: the others find the backlog full
+        listening.settimeout(10)
+        threads = [threading.Thread(target=connect_once) for _ in range(peers)]
+        for thread in threads:
+            thread.start()
+        # the backlog is full (two queued: Linux counts one more than asked) and every peer
+        # is trying to connect before the listener accepts anyone
+        assert eventually(lambda: len(entered) == peers and _pending_connections(path) >= 2)
+        _handshake_as_listener(listening, system.address.authkey, peers)
+        for thread in threads:
+            thread.join(10)
+
+    assert ["connected"] * peers == outcomes
+
+
+def test_two_hundred_peers_connecting_at_once_to_a_busy_listener_all_get_through(
+    system: System, start_provider: ProviderFactory, eventually: Callable[..., bool]
+) -> None:
+    provider = start_provider()
+    path = system.address.socket_path(provider.name)
+    peers = [RemotePeer(system, provider.name) for _ in range(200)]
+    outcomes: list[Any] = []
+
+    def run(peer: RemotePeer) -> None:
+        try:
+            outcomes.append(peer.run(load_count, timeout=30))
+        except Exception as exc:
+            outcomes.append(exc)
+
+    threads = [threading.Thread(target=run, args=(peer,)) for peer in peers]
+    os.kill(provider.pid, signal.SIGSTOP)  # it accepts nobody until every peer has tried
+    try:
+        assert eventually(lambda: _stopped(provider.pid))
+        for thread in threads:
+            thread.start()
+        eventually(lambda: _pending_connections(path) + len(outcomes) >= len(peers), timeout=20)
+    finally:
+        os.kill(provider.pid, signal.SIGCONT)
+    for thread in threads:
+        thread.join(40)
+    for peer in peers:
+        peer.close(rr.RegistrarStoppedError("the test is over"))
+
+    assert [0] * len(peers) == outcomes
+
+
+def test_a_handshake_trickled_byte_by_byte_is_cut_off_at_its_deadline(
+    system: System, consumer: rr.ResourceRegistrar
+) -> None:
+    # Each byte comes well within the time one read may take; the whole handshake does not.
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as slow:
+        slow.connect(system.address.socket_path(consumer.name))
+        started = time.monotonic()
+        slow.settimeout(10)
+        challenge = slow.recv(4096)  # the listener's challenge
+        assert challenge
+        slow.sendall(struct.pack("!i", 200))  # an answer of 200 bytes is coming ...
+        closed = False
+        while not closed and time.monotonic() - started < HANDSHAKE_TIMEOUT + 5:
+            readable, _, _ = select.select([slow], [], [], 0.5)  # ... one byte per 0.5 s
+            if readable:
+                closed = slow.recv(4096) == b""
+            else:
+                slow.sendall(b"\x00")
+        took = time.monotonic() - started
+
+    assert (True, True) == (closed, took < HANDSHAKE_TIMEOUT + 1.5), f"took {took:.1f} s"
+
+
 # -- malformed frames from an authenticated peer -------------------------------------------------
 
 
@@ -315,6 +487,32 @@ def test_a_message_without_a_reply_field_is_answered_with_an_error(
         conn.close()
 
     assert isinstance(error, rr.RrError)
+
+
+def test_a_frame_over_the_limit_is_refused_before_its_body_arrives_and_the_link_keeps_serving(
+    system: System, start_provider: ProviderFactory
+) -> None:
+    limit = 1024 * 1024
+    provider = start_provider(max_message_bytes=limit)
+    conn = _raw_client(system, provider.name)
+    body = b"\x00" * (2 * limit)
+    try:
+        with socket.socket(fileno=os.dup(conn.fileno())) as raw:
+            raw.sendall(struct.pack("!i", 8 + len(body)) + struct.pack("<Q", 5))
+            _value, error = _answer_to(conn, 5)  # answered before the body was sent
+            raw.sendall(body)
+        fetch = Fetch("echo", "intruder", None)  # type: ignore[arg-type]
+        conn.send_bytes(struct.pack("<Q", 7) + cloudpickle.dumps(fetch))
+        answer = _answer_to(conn, 7)
+    finally:
+        conn.close()
+
+    assert (True, len(body), limit) == (
+        isinstance(error, rr.MessageTooLargeError),
+        error.size,
+        error.limit,
+    )
+    assert ([], None) == answer
 
 
 def _fake_provider(listening: socket.socket, authkey: bytes) -> None:

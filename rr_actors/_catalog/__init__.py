@@ -6,7 +6,14 @@
 """
 
 from rr_actors._catalog.catalog import Catalog
-from rr_actors._catalog.digest import DIGEST_SCHEME, NO_DIGEST, request_bucket, request_digest
+from rr_actors._catalog.digest import (
+    DIGEST_SCHEME,
+    NO_DIGEST,
+    describe,
+    request_bucket,
+    request_digest,
+    runtime_key,
+)
 from rr_actors._catalog.records import (
     Changes,
     ClientRecord,
@@ -26,6 +33,8 @@ __all__ = [
     "Resource",
     "ResourceState",
     "UnreadRows",
+    "describe",
     "request_bucket",
     "request_digest",
+    "runtime_key",
 ]

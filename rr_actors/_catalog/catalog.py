@@ -15,6 +15,7 @@ from typing import Any
 
 from rr_actors._catalog.digest import (
     NO_DIGEST,
+    UNHASHABLE,
     candidates_without_digest,
     identity_equality,
     request_digest,
@@ -32,6 +33,10 @@ from rr_actors._types import Query
 from rr_actors.errors import UnknownQueryError
 
 __all__ = ["Catalog"]
+
+
+_UNKNOWN: Any = object()
+"""A `digest` argument not given (`None` means "the request has none")."""
 
 
 class _DirtySet(dict[str, None]):
@@ -77,43 +82,91 @@ class Catalog:
     # -- served resources -------------------------------------------------------------
 
     def find(self, server: str, request: Any) -> Resource | None:
-        """Return the resource of `server` whose request `== request`, if any."""
-        found = self._find(server, request)
-        if found is None and self._unread is not None:
+        """Return the resource of `server` whose request `== request`, if any.
+
+        Runs `==` (and the request's `hash()`) itself, user code included: the registrar
+        uses `lookup` instead, and runs what user code remains off its actor thread.
+        """
+        key = None if request_digest(request) is not None else runtime_key(request)
+        found, undecided = self.lookup(server, request, key)
+        if found is not None:
+            return found
+        for resource in undecided:
+            if requests_equal(resource.request, request):
+                return resource
+        return None
+
+    def lookup(
+        self, server: str, request: Any, key: Any = None, *, digest: Any = _UNKNOWN
+    ) -> tuple[Resource | None, list[Resource]]:
+        """Look `request` up among the resources of `server` as far as plain values go.
+
+        Runs no code of the request's classes, nor of the stored requests' classes:
+        plain values (those with a digest, `request_digest`) are compared here; the
+        resources only a `==` that runs such code can judge are returned, for the
+        caller to compare (the registrar does it off its actor thread, with a bound).
+        Restored requests it needs are read from the backup first.
+
+        Args:
+            server: the server's name.
+            request: the request to find.
+            key: for a request without a digest, its `runtime_key` (the caller computes
+                it: it runs the request's `__hash__`); ignored for a plain request.
+            digest: `request_digest(request)`, if the caller has it already.
+
+        Returns:
+            `(found, undecided)`: the resource whose plain request `== request`, or
+            `None`; and when none was found, the resources whose requests may still
+            `== request` (in the order `find` compares them), else `[]`.
+        """
+        if digest is _UNKNOWN:
             digest = request_digest(request)
+        found, undecided = self._lookup(server, request, digest, key)
+        if found is None and self._unread is not None:
             if digest is not None:
                 self._read(self._unread.by_request(server, digest))
             elif not identity_equality(request):  # may equal any value: read them all
                 self._read(self._unread.of_server(server))
             else:
-                return None  # equal only to itself: never to a value read back from disk
-            found = self._find(server, request)
-        return found
+                return None, undecided  # equal only to itself: never to a value read back
+            found, undecided = self._lookup(server, request, digest, key)
+        return found, undecided
 
-    def _find(self, server: str, request: Any) -> Resource | None:
+    def _lookup(
+        self, server: str, request: Any, digest: int | None, key: Any
+    ) -> tuple[Resource | None, list[Resource]]:
         digested = self._index.get(server)
         others = self._others.get(server)
-        digest = request_digest(request)
-        candidates: Iterable[str]
+        undecided: list[str]
         if digest is not None:
-            candidates = digested.get(digest, ()) if digested else ()
-            if others:  # a request without a digest may still be equal (rare)
-                candidates = [*candidates, *candidates_without_digest(others, request)]
+            for rid in digested.get(digest, ()) if digested else ():
+                resource = self.resources[rid]
+                if requests_equal(resource.request, request):  # both plain: no user code
+                    return resource, []
+            # A stored request without a digest may still be equal (rare). A plain
+            # request's `runtime_key` is a built-in `hash()` (or none): no user code.
+            undecided = candidates_without_digest(others, runtime_key(request)) if others else []
         else:
-            candidates = candidates_without_digest(others, request) if others else []
+            undecided = candidates_without_digest(others, key) if others else []
             if digested and not identity_equality(request):
                 # A custom `__eq__` may equal a plain value: compare with every one.
-                candidates = [*candidates, *(r for b in digested.values() for r in b)]
-        for rid in candidates:
-            resource = self.resources[rid]
-            if requests_equal(resource.request, request):
-                return resource
-        return None
+                undecided += [rid for bucket in digested.values() for rid in bucket]
+        return None, [self.resources[rid] for rid in undecided]
 
-    def begin_load(self, rid: str, server: str, request: Any) -> Resource:
-        """Add a resource in the `LOADING` state."""
+    def begin_load(self, rid: str, server: str, request: Any, *, key: Any = None) -> Resource:
+        """Add a resource in the `LOADING` state.
+
+        Args:
+            rid: its id.
+            server: its server's name.
+            request: its request.
+            key: for a request without a digest, its `runtime_key` if the caller computed
+                it already (off the actor thread: it runs the request's `__hash__`).
+        """
         resource = Resource(rid, server, request)
-        self._insert(resource)
+        self.resources[rid] = resource
+        self._index_request(resource, key)
+        self._dirty_resources.add(rid)
         return resource
 
     def finish_load(self, rid: str, response: Any) -> Resource:
@@ -238,6 +291,25 @@ class Catalog:
             for query_id, origin in resource.consumers.items()
             if origin == origin_rr
         ]
+
+    def consumer_origins(self) -> set[str]:
+        """The registrars that hold consumer ids here (reading no resource from the backup)."""
+        origins = {o for resource in self.resources.values() for o in resource.consumers.values()}
+        if self._unread is not None:
+            origins |= self._unread.origins()
+        return origins
+
+    def consumer_ids_from(self, origin_rr: str) -> set[str]:
+        """The consumer ids here that `origin_rr` holds (reading no resource from the backup)."""
+        ids = {
+            query_id
+            for resource in self.resources.values()
+            for query_id, origin in resource.consumers.items()
+            if origin == origin_rr
+        }
+        if self._unread is not None:
+            ids.update(self._unread.consumer_ids_from(origin_rr))
+        return ids
 
     def read_all(self) -> dict[str, Resource]:
         """Every resource (reading those still in the backup), by id, oldest first."""
@@ -388,21 +460,23 @@ class Catalog:
         if self._unread is not None and not self._unread.remaining:
             self._unread = None  # everything is in memory: stop asking
 
-    def _insert(self, resource: Resource) -> None:
-        self.resources[resource.id] = resource
-        self._index_request(resource)
-        self._dirty_resources.add(resource.id)
+    def _index_request(self, resource: Resource, key: Any = None) -> None:
+        """Index a resource new here (`key`: see `begin_load`) or read back (no key).
 
-    def _index_request(self, resource: Resource) -> None:
+        A request read back from the backup without a digest is indexed with the
+        unhashable ones rather than by its `hash()`: no code of its class runs for that.
+        """
         digest = resource.digest
         if digest is None:
             digest = request_digest(resource.request)
             resource.digest = NO_DIGEST if digest is None else digest
+            if key is None and digest is None:
+                key = runtime_key(resource.request)
         if digest is not None and digest != NO_DIGEST:
             index = self._index.setdefault(resource.server, {})
             index.setdefault(digest, []).append(resource.id)
         else:
-            key = self._other_keys[resource.id] = runtime_key(resource.request)
+            key = self._other_keys[resource.id] = UNHASHABLE if key is None else key
             self._others.setdefault(resource.server, {}).setdefault(key, []).append(resource.id)
 
 

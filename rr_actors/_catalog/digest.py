@@ -20,9 +20,9 @@ import decimal
 import enum
 import fractions
 import hashlib
+import reprlib
 import sys
 from collections import OrderedDict
-from collections.abc import Mapping, Set
 from typing import Any
 
 __all__ = [
@@ -30,6 +30,7 @@ __all__ = [
     "NO_DIGEST",
     "UNHASHABLE",
     "candidates_without_digest",
+    "describe",
     "identity_equality",
     "request_bucket",
     "request_digest",
@@ -48,7 +49,7 @@ _STRINGS: dict[str, int] = {}  # str -> digest; strings repeat (keys, command na
 _STRINGS_MAX = 4096
 
 DIGEST_SCHEME = (
-    f"rr3-py{sys.version_info[0]}.{sys.version_info[1]}-w{sys.hash_info.width}"
+    f"rr4-py{sys.version_info[0]}.{sys.version_info[1]}-w{sys.hash_info.width}"
     f"-{sys.hash_info.modulus}"
 )
 """Names the digest function. It combines parts with `hash()` of tuples and frozensets
@@ -85,15 +86,23 @@ def _digest(value: Any) -> int:  # noqa: PLR0911 - one return per kind of value
         return _number(value)
     if value is None:
         return _TAG_NONE
-    if cls is dict or (isinstance(value, Mapping) and _keeps_eq(cls, _MAPPING_EQ)):
-        return hash((_TAG_MAP, frozenset([(_digest(k), _digest(v)) for k, v in value.items()])))
-    if cls is list or cls is tuple or (isinstance(value, list | tuple) and _keeps_eq(cls, _SEQ_EQ)):
+    # Containers are read through their base class's own methods (`dict.items`, ...), so
+    # digesting one runs no code of a subclass: a value with a digest is a plain value,
+    # which the registrar's actor compares with `==` itself (see `plain_value`).
+    if cls is dict or (issubclass(cls, dict) and _keeps_eq(cls, _MAPPING_EQ)):
+        items = dict.items(value)
+        return hash((_TAG_MAP, frozenset([(_digest(k), _digest(v)) for k, v in items])))
+    if cls is list or cls is tuple:
         return hash((_TAG_SEQ, *[_digest(item) for item in value]))
-    if isinstance(value, Set) and _keeps_eq(cls, _SET_EQ):
-        return hash((_TAG_SET, frozenset([_digest(item) for item in value])))
+    if issubclass(cls, list | tuple) and _keeps_eq(cls, _SEQ_EQ):
+        base: Any = list if issubclass(cls, list) else tuple
+        return hash((_TAG_SEQ, *[_digest(item) for item in base.__iter__(value)]))
+    if issubclass(cls, set | frozenset) and _keeps_eq(cls, _SET_EQ):
+        base = set if issubclass(cls, set) else frozenset
+        return hash((_TAG_SET, frozenset([_digest(item) for item in base.__iter__(value)])))
     if cls is bytes or cls is bytearray:  # bytearray(b"a") == b"a"
         return hash((_TAG_SEQ, _blake(value)))  # not the digest of the equal str
-    if isinstance(value, enum.Enum) and identity_equality(value):
+    if issubclass(cls, enum.Enum) and identity_equality(value):
         return _enum_member(value, cls)
     return _digest_subclass(value, cls)
 
@@ -115,9 +124,11 @@ def _enum_member(value: enum.Enum, cls: type) -> int:
 # a case-insensitive dict, a tuple with a tolerance) may call values equal whose digests
 # differ, so it has no digest. OrderedDict's `==` is dict's when either side is a plain
 # dict and stricter (order too) between two OrderedDicts, so equal ones have equal items.
-_MAPPING_EQ: tuple[object, ...] = (dict.__eq__, OrderedDict.__eq__, Mapping.__eq__)
+# Other mappings and sets (the `Mapping` and `Set` ABCs) compare through their own
+# methods, which may hang: they have no digest.
+_MAPPING_EQ: tuple[object, ...] = (dict.__eq__, OrderedDict.__eq__)
 _SEQ_EQ: tuple[object, ...] = (list.__eq__, tuple.__eq__)
-_SET_EQ: tuple[object, ...] = (set.__eq__, frozenset.__eq__, Set.__eq__)
+_SET_EQ: tuple[object, ...] = (set.__eq__, frozenset.__eq__)
 
 
 def _keeps_eq(cls: type, eqs: tuple[object, ...]) -> bool:
@@ -149,20 +160,23 @@ def request_digest(request: Any) -> int | None:
 
     Only values whose `==` the digest mirrors get one: built-in strings, bytes, numbers,
     `None`, members of enums that keep identity equality (digested by class path and
-    name), and dicts, lists, tuples, sets (and other mappings and sets) of them, including
-    subclasses that keep their base's `__eq__` and `__hash__` (IntEnum, StrEnum,
-    namedtuple, OrderedDict, defaultdict).
+    name), and dicts, lists, tuples, sets and frozensets of them, including subclasses
+    that keep their base's `__eq__` and `__hash__` (IntEnum, StrEnum, namedtuple,
+    OrderedDict, defaultdict). Such a *plain value* is digested and compared without
+    running any code of its classes (containers are read through their base's methods):
+    neither can raise nor hang.
 
     Returns:
         The digest (never `NO_DIGEST`), or `None` for a value with other parts (a
-        custom class, a container subclass with its own `__eq__` such as `Counter`, an
-        enum with its own `__eq__`) or one that raises while being digested (`Decimal("sNaN")`, a
-        mapping whose `items()` raises), whose equality only `==` can judge; the catalog
-        indexes those by their in-process `hash()` instead, which is never stored.
+        custom class, a container subclass with its own `__eq__` such as `Counter`, a
+        `Mapping` that is not a dict, an enum with its own `__eq__`) or one that raises
+        while being digested (`Decimal("sNaN")`, a nesting too deep), whose equality only
+        `==` can judge; the catalog indexes those by their in-process `hash()` instead,
+        which is never stored.
     """
     try:
         return _digest(request)
-    except Exception:  # noqa: BLE001 - _Opaque, RecursionError, whatever user code raises
+    except Exception:  # noqa: BLE001 - _Opaque, RecursionError, InvalidOperation (sNaN)
         return None
 
 
@@ -211,10 +225,26 @@ def identity_equality(value: Any) -> bool:
     return eq is object.__eq__
 
 
-def candidates_without_digest(others: dict[Any, list[str]], request: Any) -> list[str]:
-    """The resource ids among requests without a digest that may `== request`."""
-    key = runtime_key(request)
+def candidates_without_digest(others: dict[Any, list[str]], key: Any) -> list[str]:
+    """The resource ids among requests without a digest that may `==` a request.
+
+    Args:
+        others: `runtime_key` -> resource ids, of requests without a digest.
+        key: the request's `runtime_key`.
+    """
     if key == UNHASHABLE:
         return [rid for bucket in others.values() for rid in bucket]
     # Equal hashable values have equal hashes; unhashable stored ones are compared anyway.
     return [*others.get(key, ()), *others.get(UNHASHABLE, ())]
+
+
+def describe(value: Any, limit: int = 200) -> str:
+    """A `repr` of a plain value (cut at `limit` characters), else its type's name.
+
+    For log lines and error messages written on an actor's thread: a custom class's
+    `__repr__` is user code, which may raise or hang; a plain value's is not.
+    """
+    if request_digest(value) is None:
+        return f"<{type(value).__module__}.{type(value).__qualname__} object>"
+    text = reprlib.repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."

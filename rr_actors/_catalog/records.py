@@ -170,5 +170,11 @@ class UnreadRows(Protocol):
     def with_origin(self, origin_rr: str) -> list[Resource]:
         """Every one with a consumer from registrar `origin_rr`."""
 
+    def origins(self) -> set[str]:
+        """The registrars their consumers belong to (reading no resource)."""
+
+    def consumer_ids_from(self, origin_rr: str) -> list[str]:
+        """Their consumer ids that registrar `origin_rr` holds (reading no resource)."""
+
     def every(self) -> list[Resource]:
         """All of them, oldest first."""

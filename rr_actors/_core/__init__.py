@@ -4,6 +4,8 @@
   pykka extension point (and every private name of pykka) rr_actors uses is in that file.
 - `replies`: where the answer to a message goes (`Reply` objects), and how to wait.
 - `workers`: the pool of threads that runs user callbacks off the mailboxes.
+- `bus` and `queues`: events published to subscriptions and forwarders that never slow
+  the publisher; `wire`: what a message offers to cross processes.
 - `directory`: names -> peers (`Peer.tell`), and why a name went away.
 - `timers`: one-shot timers with an injectable factory.
 """

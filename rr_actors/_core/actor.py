@@ -1,7 +1,8 @@
 """pykka's threading actor with hand-offs that wake the other thread once, not twice.
 
 Every use of pykka's extension points for actor implementations, and of its private
-names, is in this file (pykka is pinned below its next major version in pyproject.toml).
+names (`_handle_receive` included, see `ContainedError`), is in this file (pykka is
+pinned below its next major version in pyproject.toml).
 
 `pykka.ThreadingActor` keeps its mailbox in a `queue.Queue` and answers asks through a
 `pykka.ThreadingFuture`; both are built on `threading.Condition`. A condition hands over
@@ -40,7 +41,7 @@ from typing import Any, TypeAlias, TypeVar
 
 import pykka
 
-__all__ = ["Actor", "Late", "Mailbox", "OneShotFuture", "refuse"]
+__all__ = ["Actor", "ContainedError", "Late", "Mailbox", "OneShotFuture", "refuse"]
 
 T = TypeVar("T")
 
@@ -119,7 +120,13 @@ class OneShotFuture(pykka.Future[T]):
         return True
 
     def wait(self, timeout: float | None = None) -> bool:
-        """Block until it is settled, at most `timeout` seconds; whether it is."""
+        """Block until it is settled, at most `timeout` seconds; whether it is.
+
+        Waiters pass the hand-off lock on one after the other, so a waiter may run out of
+        time on it while another one holds it for a moment (preempted between taking and
+        passing it on) although the future was settled long before: a wait that runs out
+        therefore looks at the future once more before it reports a timeout.
+        """
         if self._settled:
             return True
         acquired = False
@@ -133,7 +140,7 @@ class OneShotFuture(pykka.Future[T]):
         finally:  # (also if the wait is interrupted: other waiters must get through)
             if acquired:
                 self._ready.release()  # the next waiter, if any, gets through too
-        return acquired
+        return acquired or self._settled
 
     def get(self, *, timeout: float | None = None) -> T:
         if not self.wait(timeout):
@@ -227,10 +234,38 @@ def refuse(envelope: Any) -> None:
     envelope.reply_to.set_exception((pykka.ActorDeadError, error, None))
 
 
-class Actor(pykka.ThreadingActor):
-    """`pykka.ThreadingActor` with a `Mailbox` (a `queue.SimpleQueue`) and `OneShotFuture`s."""
+class ContainedError(RuntimeError):
+    """An actor's handler raised a `BaseException` that is not an `Exception`.
 
+    pykka takes such an exception (`SystemExit`, `KeyboardInterrupt`, ...) for the
+    process going down, and stops every actor of the process. Raised by user code an
+    actor ran (an `__eq__`, a `__reduce__`), it is a failure of that actor alone: `Actor`
+    re-raises it as this error, which pykka handles like any other failure of a handler
+    (`on_failure` runs, that actor stops, the others go on).
+    """
+
+
+class Actor(pykka.ThreadingActor):
+    """`pykka.ThreadingActor` with a `Mailbox` (a `queue.SimpleQueue`) and `OneShotFuture`s.
+
+    A handler that raises a `BaseException` other than an `Exception` fails this actor
+    only (see `ContainedError`). Its thread is a daemon thread: a program whose main
+    thread ends is not kept alive by actors it forgot to stop (`rr_actors._core.exit`
+    stops them cleanly first).
+    """
+
+    use_daemon_thread = True
     actor_inbox: Mailbox
+
+    def _handle_receive(self, message: Any) -> Any:
+        try:
+            return super()._handle_receive(message)
+        except Exception:
+            raise
+        except BaseException as exc:  # pykka would stop every actor of the process
+            raise ContainedError(
+                f"{type(self).__name__} failed: a handler raised {type(exc).__qualname__}"
+            ) from exc
 
     @staticmethod
     def _create_actor_inbox() -> Mailbox:

@@ -3,7 +3,9 @@
 A *peer* is anything with `tell(message)`: a registrar actor in this process, or (with
 manager processes) a channel to a registrar in another process. The directory maps names
 to peers, remembers why a name went away (stopped or died, so callers get the right
-error), and tells the living registrars when a consumer died for good (death watch).
+error: and a registrar that its supervisor is bringing back is neither, it is
+unavailable for now), and tells the living registrars when a consumer died for good
+(death watch).
 """
 
 from __future__ import annotations
@@ -65,6 +67,10 @@ class Directory:
         self._gone: dict[str, str] = {}  # name -> "stopped" | "died"
         self._resolvers: list[Callable[[str], Peer | None]] = []
         self.restart_expected: set[str] = set()
+        self.restarting: set[str] = set()
+        """Names of registrars that are down while their supervisor brings them back:
+        stopped (a group restart stops the crashed child's siblings) or crashed, a
+        caller gets `RegistrarUnavailableError` (retry), not `RegistrarStoppedError`."""
 
     def register(self, peer: Peer) -> None:
         """Publish a registrar under its name.
@@ -101,8 +107,8 @@ class Directory:
 
         Raises:
             UnknownRegistrarError: no registrar of that name was ever seen.
-            RegistrarStoppedError: it was stopped.
-            RegistrarUnavailableError: it died.
+            RegistrarStoppedError: it was stopped for good.
+            RegistrarUnavailableError: it died, or is being restarted.
         """
         peer = self._peers.get(name)  # a dict read is atomic; writers hold the lock
         if peer is not None:
@@ -116,7 +122,14 @@ class Directory:
         raise self.gone_error(name)
 
     def gone_error(self, name: str) -> Exception:
-        """The error for a registrar that is not (or no longer) reachable."""
+        """The error for a registrar that is not (or no longer) reachable.
+
+        `RegistrarUnavailableError` while its supervisor restarts it (`restarting`), even
+        if it was stopped for the restart; else `RegistrarStoppedError` if it was stopped,
+        `RegistrarUnavailableError` if it died, `UnknownRegistrarError` if never seen.
+        """
+        if name in self.restarting:
+            return RegistrarUnavailableError(f"registrar {name!r} is being restarted")
         reason = self._gone.get(name)
         if reason == "stopped":
             return RegistrarStoppedError(f"registrar {name!r} was stopped")

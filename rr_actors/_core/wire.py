@@ -54,14 +54,14 @@ class WireMessage:
         """
         return None
 
-    def unreadable_answer(self, target: str, exc: Exception) -> RrError:
+    def unreadable_answer(self, target: str, exc: BaseException) -> RrError:
         """The error for an answer from `target` that cannot be unpickled in this process."""
         return RrError(
             f"the answer of registrar {target!r} to a {type(self).__name__} message "
             f"cannot be unpickled here: {exc}"
         )
 
-    def unsendable_answer(self, target: str, value: Any, exc: Exception) -> RrError:
+    def unsendable_answer(self, target: str, value: Any, exc: BaseException) -> RrError:
         """The error sent back instead of an answer of `target` that cannot be pickled."""
         return RrError(
             f"the answer of registrar {target!r} to a {type(self).__name__} message "

@@ -1,60 +1,295 @@
-"""An elastic pool of daemon threads that runs user callbacks off the actors' mailboxes.
+"""A bounded pool of daemon threads that runs user callbacks off the actors' mailboxes.
 
-A task never waits for a busy worker: when no worker is idle a new one starts, so a
-callback that blocks (on a nested `call`, a `send_status`, or forever) cannot starve
-another. Idle workers exit after `idle_timeout` seconds.
+```
+ submit(task) ──► an idle worker? ──yes──────────────► it runs the task
+                       │ no
+                       ├── fewer than max_workers? ──► a new worker thread runs it
+                       └── otherwise ────────────────► queued (FIFO): the next worker
+                                                       that is free takes it
+ a job with a timeout ──► the watchdog (one thread, while jobs are watched): overdue ──►
+     abandon it (its thread no longer counts; another may start) ──► on_overdue()
+```
+
+A worker busy with a task that blocks (a nested `call`, a `send_status`, a hung
+callback) holds its thread, so tasks beyond `max_workers` wait for one to come free: a
+burst of blocked loads costs at most `max_workers` threads, not one each. A task that
+the pool cannot start a thread for, when none is free or may be added, raises
+`RuntimeError` from `submit`: that task alone fails (its caller answers its reply).
+
+A thread cannot be killed. A job that overran its `timeout` is *abandoned*: it stops
+counting against `max_workers` (so one hung callback cannot shrink the pool for good),
+its thread finishes it whenever it returns (if ever) and then exits, and whatever the
+task answers after that is the owner's to ignore. Each hung callback therefore costs one
+thread for as long as it hangs, and nothing else. Idle workers exit after
+`idle_timeout` seconds.
 """
 
 from __future__ import annotations
 
+import enum
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 
-__all__ = ["Workers"]
+from rr_actors.config import DEFAULT_MAX_WORKERS
+
+__all__ = ["Job", "Workers"]
 
 logger = logging.getLogger("rr_actors")
 
 
-class Workers:
-    """Run zero-argument callables on reused or fresh daemon threads."""
+class _State(enum.Enum):
+    QUEUED = "queued"
+    RUNNING = "running"
+    DONE = "done"
+    CANCELLED = "cancelled"  # abandoned before it ran: it never will
+    ABANDONED = "abandoned"  # abandoned while it ran: its thread no longer counts
 
-    def __init__(self, name: str, *, idle_timeout: float = 10.0) -> None:
+
+class Job:
+    """One task submitted to a `Workers` pool (see `Workers.submit`)."""
+
+    __slots__ = ("_deadline", "_on_overdue", "_pool", "_state", "_timeout", "task")
+
+    def __init__(
+        self,
+        pool: Workers,
+        task: Callable[[], None],
+        timeout: float | None,
+        on_overdue: Callable[[], None] | None,
+    ) -> None:
+        self._pool = pool
+        self.task = task
+        self._timeout = timeout
+        self._on_overdue = on_overdue
+        self._state = _State.QUEUED
+        self._deadline = 0.0
+
+    @property
+    def running(self) -> bool:
+        """Whether a worker runs it now (and it was not abandoned)."""
+        return self._state is _State.RUNNING
+
+    def abandon(self) -> bool:
+        """Give up on it: a queued job never runs; a running one stops counting.
+
+        Returns:
+            Whether it had not finished (nor been abandoned) yet.
+        """
+        return self._pool._abandon(self)
+
+
+class Workers:
+    """Run zero-argument callables on at most `max_workers` reused daemon threads.
+
+    Args:
+        name: names the threads (`rr-<name>-worker-<n>`).
+        max_workers: threads that may run tasks at once; further tasks queue.
+        idle_timeout: seconds an idle worker waits for a task before it exits.
+    """
+
+    def __init__(
+        self, name: str, *, max_workers: int = DEFAULT_MAX_WORKERS, idle_timeout: float = 10.0
+    ) -> None:
         self._name = name
+        self._max = max_workers
         self._idle_timeout = idle_timeout
         self._lock = threading.Lock()
-        self._tasks: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
-        self._idle = 0  # workers waiting for a task, minus tasks queued for them
-        self._count = 0
+        self._jobs: queue.SimpleQueue[Job] = queue.SimpleQueue()
+        self._idle = 0  # workers waiting for a job, minus jobs queued (negative: a backlog)
+        self._live = 0  # worker threads that count against max_workers
+        self._numbered = 0
+        self._abandoned = 0
+        self._watched: dict[Job, float] = {}  # running jobs with a timeout -> deadline
+        self._watching = threading.Condition(self._lock)
+        self._watchdog = False  # a watchdog thread runs
 
-    def submit(self, task: Callable[[], None]) -> None:
-        """Run `task` soon on a worker thread; its exceptions are logged, never raised."""
+    @property
+    def max_workers(self) -> int:
+        """Threads that may run tasks at once."""
+        return self._max
+
+    @property
+    def queued(self) -> int:
+        """Tasks waiting for a worker thread to come free."""
+        return max(0, -self._idle)
+
+    @property
+    def abandoned(self) -> int:
+        """Jobs given up on while they ran (their threads run on until they return)."""
+        return self._abandoned
+
+    def submit(
+        self,
+        task: Callable[[], None],
+        *,
+        timeout: float | None = None,
+        on_overdue: Callable[[], None] | None = None,
+    ) -> Job:
+        """Run `task` on a worker thread once one is free; its exceptions are logged.
+
+        Args:
+            task: what to run; whatever it raises (`BaseException` included) is logged and
+                the worker goes on.
+            timeout: seconds the task may run (counted from its start, not from the
+                queue); past them the job is abandoned and `on_overdue()` runs on the
+                watchdog's thread (it must be quick, and thread-safe).
+            on_overdue: see `timeout`.
+
+        Returns:
+            The job (`abandon()` it to give up on it).
+
+        Raises:
+            RuntimeError: no worker was free or could be added, and no thread could be
+                started (the OS refused it); the task will not run.
+        """
+        job = Job(self, task, timeout, on_overdue)
         with self._lock:
-            if self._idle > 0:
-                self._idle -= 1
-                self._tasks.put(task)
-                return
-            self._count += 1
-            number = self._count
+            if self._idle > 0 or self._live >= self._max:
+                self._idle -= 1  # an idle worker takes it, or the next one that comes free
+                self._jobs.put(job)
+                return job
+            self._live += 1
+        try:
+            self._start_worker(job)
+        except RuntimeError:
+            with self._lock:
+                self._live -= 1
+            raise
+        return job
+
+    def _start_worker(self, job: Job | None) -> None:
+        with self._lock:
+            self._numbered += 1
+            number = self._numbered
         threading.Thread(
-            target=self._run, args=(task,), name=f"rr-{self._name}-worker-{number}", daemon=True
+            target=self._run, args=(job,), name=f"rr-{self._name}-worker-{number}", daemon=True
         ).start()
 
-    def _run(self, task: Callable[[], None]) -> None:
+    def _run(self, job: Job | None) -> None:
         while True:
-            try:
-                task()
-            except BaseException:  # a worker must survive anything a task does
-                logger.exception("uncaught exception in an rr_actors worker task")
+            if job is not None:
+                if self._begin(job):
+                    try:
+                        job.task()
+                    except BaseException:  # a worker must survive anything a task does
+                        logger.exception("uncaught exception in an rr_actors worker task")
+                if not self._end(job):  # abandoned while it ran: no longer one of ours
+                    return
             with self._lock:
                 self._idle += 1
-            while True:
-                try:
-                    task = self._tasks.get(timeout=self._idle_timeout)
-                    break
-                except queue.Empty:
-                    with self._lock:
-                        if self._idle > 0:  # nobody counts on this worker: leave
-                            self._idle -= 1
-                            return
+            job = self._next_job()
+            if job is None:
+                return
+
+    def _next_job(self) -> Job | None:
+        """Wait for a queued job; `None` once idle for `idle_timeout` with nobody counting on it."""
+        while True:
+            try:
+                return self._jobs.get(timeout=self._idle_timeout)
+            except queue.Empty:
+                with self._lock:
+                    if self._idle > 0:  # nobody counts on this worker: leave
+                        self._idle -= 1
+                        self._live -= 1
+                        return None
+
+    def _begin(self, job: Job) -> bool:
+        """A worker takes `job`: whether to run it (an abandoned queued job is skipped)."""
+        with self._lock:
+            if job._state is not _State.QUEUED:
+                return False
+            job._state = _State.RUNNING
+            if job._timeout is None:
+                return True
+            job._deadline = time.monotonic() + job._timeout
+            self._watched[job] = job._deadline
+            start_watchdog = not self._watchdog
+            self._watchdog = True
+            self._watching.notify()
+        if start_watchdog:
+            self._start_watchdog()
+        return True
+
+    def _end(self, job: Job) -> bool:
+        """A worker is done with `job`: whether the worker still counts (not abandoned)."""
+        with self._lock:
+            self._watched.pop(job, None)
+            if job._state is _State.ABANDONED:
+                return False
+            if job._state is _State.RUNNING:
+                job._state = _State.DONE
+            return True
+
+    def _abandon(self, job: Job) -> bool:
+        with self._lock:
+            state = job._state
+            if state is not _State.QUEUED and state is not _State.RUNNING:
+                return False
+            self._watched.pop(job, None)
+            if state is _State.QUEUED:
+                job._state = _State.CANCELLED  # the worker that takes it skips it
+                return True
+            job._state = _State.ABANDONED
+            self._abandoned += 1
+            self._live -= 1  # its thread runs on, uncounted
+            backlog = self._idle < 0 and self._live < self._max
+            if backlog:
+                self._live += 1
+        logger.warning(
+            "registrar %s: a callback overran its time and was abandoned; its thread "
+            "runs on until it returns (%d abandoned so far)",
+            self._name,
+            self._abandoned,
+        )
+        if backlog:  # a queued job may run now on a new worker
+            try:
+                self._start_worker(None)
+            except RuntimeError:
+                with self._lock:
+                    self._live -= 1
+        return True
+
+    # -- the watchdog -----------------------------------------------------------------
+
+    def _start_watchdog(self) -> None:
+        try:
+            threading.Thread(
+                target=self._watch, name=f"rr-{self._name}-watchdog", daemon=True
+            ).start()
+        except RuntimeError:  # no thread: jobs run unbounded until a later start works
+            logger.exception("registrar %s: no thread to bound callbacks' time", self._name)
+            with self._lock:
+                self._watchdog = False
+
+    def _watch(self) -> None:
+        while True:
+            with self._lock:
+                overdue = self._overdue()
+                if overdue is None:
+                    self._watchdog = False
+                    return
+            for job in overdue:
+                if job.abandon() and job._on_overdue is not None:
+                    try:
+                        job._on_overdue()
+                    except Exception:
+                        logger.exception("an overdue job's handler raised")
+
+    def _overdue(self) -> list[Job] | None:
+        """Wait (holding the lock) until some jobs are overdue; `None` when idle long."""
+        idle_since = time.monotonic()
+        while True:
+            now = time.monotonic()
+            if not self._watched:
+                if now - idle_since >= self._idle_timeout:
+                    return None
+                self._watching.wait(self._idle_timeout - (now - idle_since))
+                continue
+            overdue = [job for job, deadline in self._watched.items() if deadline <= now]
+            if overdue:
+                return overdue
+            self._watching.wait(min(self._watched.values()) - now)
+            idle_since = time.monotonic()

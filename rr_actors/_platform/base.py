@@ -8,7 +8,7 @@ first line alone). Nothing rr_actors promises depends on a trick.
 from __future__ import annotations
 
 import multiprocessing.context
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Protocol
 
 __all__ = ["ExitWatch", "Platform"]
@@ -87,3 +87,11 @@ class Platform(Protocol):
 
     def set_process_name(self, title: str) -> None:
         """Name this process for `ps` and `top` (in the child; only a convenience)."""
+
+    def at_main_thread_end(self, fn: Callable[[], None]) -> None:
+        """Have `fn()` called on the main thread when it ends (in any process).
+
+        It runs while every daemon thread still runs and before `multiprocessing`'s own
+        exit handler terminates daemonic child processes. Raises `RuntimeError` when the
+        interpreter is shutting down already.
+        """

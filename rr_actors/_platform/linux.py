@@ -256,3 +256,16 @@ class LinuxPlatform:
         libc = _libc()
         with contextlib.suppress(AttributeError):
             libc.prctl(_PR_SET_NAME, ctypes.c_char_p(title.encode()[:15]), 0, 0, 0)
+
+    def at_main_thread_end(self, fn: Callable[[], None]) -> None:
+        """CPython's private `threading._register_atexit` (as `concurrent.futures` uses it).
+
+        What it buys: `fn` runs as soon as the main thread ends, before the interpreter
+        waits for non-daemon threads and before any `atexit` handler; `atexit` (the
+        portable way) where the hook is missing.
+        """
+        hook = getattr(threading, "_register_atexit", None)
+        if hook is None:
+            portable.PortablePlatform().at_main_thread_end(fn)
+        else:
+            hook(fn)

@@ -8,9 +8,10 @@ forkserver) has reaped it.
 
 from __future__ import annotations
 
+import atexit
 import multiprocessing
 import multiprocessing.context
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from rr_actors._platform.base import ExitWatch
 
@@ -61,3 +62,8 @@ class PortablePlatform:
     def set_process_name(self, title: str) -> None:
         """Nothing (install `setproctitle` to name manager processes everywhere)."""
         del title
+
+    def at_main_thread_end(self, fn: Callable[[], None]) -> None:
+        """`atexit`: after the interpreter joined its non-daemon threads (ours are daemons,
+        so they still run), and before `multiprocessing`'s handler, registered earlier."""
+        atexit.register(fn)

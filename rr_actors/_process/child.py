@@ -8,8 +8,9 @@ Runs only in manager processes (never in the supervisor's process). In the child
 2. attaches to the system and starts the registrar, which restores its catalog,
 3. runs the (cloudpickled) `setup(registrar)`, then serves the registrar on the system,
 4. reports `ready` over its control pipe and answers control requests: `stop`, `ping`
-   (the heartbeat, answered through the registrar actor's mailbox) and `events` (whether
-   to forward the registrar's events: only while the supervisor's process has listeners),
+   (the heartbeat, answered through the registrar actor's mailbox, with how long its
+   listener has been unable to accept connections, if it has) and `events` (whether to
+   forward the registrar's events: only while the supervisor's process has listeners),
 5. exits at once when the control pipe reaches EOF: the supervisor's process is gone,
 6. exits with code 0 when its registrar was stopped cleanly by code in the manager (a
    `transient` manager is then not restarted, as in a thread), with code 71 when the
@@ -21,12 +22,12 @@ Runs only in manager processes (never in the supervisor's process). In the child
          ◄──────────────── ("warm",)  (a spare, once warmed up)
          ◄──────────────── ("ready", pid) | ("failed", traceback)
    ping  ─────────────────── ("ping", n) ──────────────────────►  registrar mailbox
-         ◄──────────────── ("pong", n)
+         ◄──────────────── ("pong", n, trouble)  (None, or (seconds, why) it cannot accept)
    events ───────────────── ("events", on) ────────────────────►  forward events or not
          ◄──────────────── ("events", [event, ...])  (batches, while on)
    sync  ─────────────────── ("events-sync", n, timeout) ──────►  send what is buffered
          ◄──────────────── ("events-synced", n)  (after those batches)
-   stop  ─────────────────── ("stop", timeout) ────────────────►  registrar.stop(); exit 0
+   stop  ─────────────────── ("stop", timeout, restarting) ────►  registrar.stop(); exit 0
    (EOF: the parent is gone) ──────────────────────────────────►  exit 70
 ```
 
@@ -42,6 +43,7 @@ import os
 import sys
 import threading
 import traceback
+from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -50,6 +52,7 @@ import pykka
 
 from rr_actors import events
 from rr_actors._core.bus import Forwarder, Publisher
+from rr_actors._core.directory import DIRECTORY
 from rr_actors._platform import PLATFORM
 from rr_actors._process.context import (
     ACTOR_DIED_EXIT,
@@ -95,14 +98,20 @@ class _Control:
 
 
 class _Pong:
-    """A reply that answers a heartbeat ping once the registrar actor got to it."""
+    """A reply that answers a heartbeat ping once the registrar actor got to it.
 
-    def __init__(self, control: _Control, number: int) -> None:
+    The answer carries how long (and why) the registrar's listener has been unable to
+    accept connections, if it has: a manager that can no longer accept is as useless to
+    new peers as a hung one, and its supervisor judges both by the same bound.
+    """
+
+    def __init__(self, control: _Control, number: int, trouble: Callable[[], Any]) -> None:
         self.control = control
         self.number = number
+        self.trouble = trouble
 
     def set_result(self, _: Any) -> None:
-        self.control.send(("pong", self.number))
+        self.control.send(("pong", self.number, self.trouble()))
 
     def set_error(self, _: BaseException) -> None:
         pass  # no pong: the parent counts it as missed
@@ -271,6 +280,12 @@ def _serve_control(
     """The child's control loop: answer pings, forward events or not, stop; exit on EOF."""
     from rr_actors._registrar.messages import Request  # noqa: PLC0415 - preloaded
 
+    def trouble() -> tuple[float, str] | None:
+        if attached is None:
+            return None
+        found: tuple[float, str] | None = attached.serving_trouble(registrar.name)
+        return found
+
     while True:
         try:
             message = conn.recv()
@@ -278,7 +293,7 @@ def _serve_control(
             os._exit(PARENT_GONE_EXIT)  # the supervisor's process is gone: no orphans
         kind = message[0]
         if kind == "ping":
-            pong = _Pong(control, message[1])
+            pong = _Pong(control, message[1], trouble)
             with contextlib.suppress(pykka.ActorDeadError):
                 registrar._ref.tell(Request(lambda _actor, reply: reply.set_result(None), pong))
         elif kind == "events":
@@ -289,6 +304,8 @@ def _serve_control(
             ).start()
         elif kind == "stop":
             stopping.set()
+            if len(message) > 2 and message[2]:  # stopped to be restarted with its group:
+                DIRECTORY.restarting.add(registrar.name)  # no tombstone, peers see "unavailable"
             code = 0
             try:
                 registrar.stop(timeout=message[1])

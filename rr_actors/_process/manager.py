@@ -7,7 +7,7 @@
                                waits on: process sentinel, control pipe,
                                the platform's exit watch (a pidfd on Linux)
                                ── ("ping", n) every `heartbeat` s ─────►  registrar mailbox
-                               ◄── ("pong", n) ─────────────────────────
+                               ◄── ("pong", n, trouble) ────────────────
                                exit seen ──► on_exit(ManagerExit) ──► the supervisor's mailbox
 ```
 
@@ -15,8 +15,10 @@
 control pipe; one watcher thread per process blocks on the process sentinel, the pipe and,
 where the platform has one, an early exit watch (`Platform.watch_exit`: on Linux a pidfd,
 which tells the exit before the forkserver has reaped the child), and sends the heartbeat
-pings. The child's side is `rr_actors._process.child`; spares are in
-`rr_actors._process.spare`.
+pings. A manager is killed and reported like a crash when it is *hung* (no answer to a
+ping for `heartbeat_timeout` seconds) or *unhealthy*: its answers say that its listener
+has been unable to accept connections (out of file descriptors, say) for that long. The
+child's side is `rr_actors._process.child`; spares are in `rr_actors._process.spare`.
 """
 
 from __future__ import annotations
@@ -141,6 +143,7 @@ class ManagerProcess:
         self._syncs: dict[int, threading.Event] = {}  # events-sync tokens waiting for answers
         self._sync_tokens = itertools.count(1)
         self._hung_for: float | None = None
+        self._unhealthy: str | None = None  # why it was killed although it answered
         self._stopping = False
         self.exited = threading.Event()
         self.exit: ManagerExit | None = None
@@ -231,14 +234,19 @@ class ManagerProcess:
         finally:
             self._syncs.pop(token, None)
 
-    def stop(self, timeout: float) -> ManagerExit:
+    def stop(self, timeout: float, *, restarting: bool = False) -> ManagerExit:
         """Ask the manager to stop its registrar and exit; kill it after `timeout` seconds.
+
+        Args:
+            timeout: seconds it gets to stop cleanly.
+            restarting: it is stopped to be restarted (with its group): its peers then
+                see it unavailable for now, not stopped for good (it leaves no tombstone).
 
         Returns:
             How it ended (`"shutdown"`, or `"killed: shutdown timeout"`, or what it died of).
         """
         self._stopping = True
-        self._send(("stop", timeout))
+        self._send(("stop", timeout, restarting))
         if self.exited.wait(timeout) and self.exit is not None:
             if self.exit.normal:
                 return ManagerExit("shutdown", normal=True, clean=self.exit.clean)
@@ -272,13 +280,17 @@ class ManagerProcess:
             ended, exitcode = self._ended(woke, waitables)
             if ended:
                 break
-            if self.conn in woke and self._read_control(sent, waitables):
+            answer = self._read_control(sent, waitables) if self.conn in woke else None
+            if answer is not None:
                 oldest_unanswered = None
             if period is None or self._stopping:
                 continue
             now = time.monotonic()
             hung_after = self._heartbeat_timeout or 3.0 * period
-            if oldest_unanswered is not None and now - oldest_unanswered > hung_after:
+            if answer is not None and answer[0] > hung_after:
+                self._kill_unhealthy(*answer)
+                period = None
+            elif oldest_unanswered is not None and now - oldest_unanswered > hung_after:
                 self._hang(now - oldest_unanswered)
                 period = None
             elif now >= next_ping:
@@ -301,16 +313,20 @@ class ManagerProcess:
             waitables.remove(watch)  # reaped meanwhile: the sentinel says it
         return False, None
 
-    def _read_control(self, sent: int, waitables: list[Any]) -> bool:
-        """Read one message of the manager's: whether it answers heartbeat ping `sent`.
+    def _read_control(self, sent: int, waitables: list[Any]) -> tuple[float, str] | None:
+        """Read one message of the manager's; if it answers heartbeat ping `sent`, its health.
 
-        A batch of forwarded events is handed to `on_events` here (the watcher thread).
+        Returns:
+            `None` unless the message answers ping `sent`; then for how long (seconds)
+            and why the manager has been unable to accept connections (`0.0, ""` if it
+            can). A batch of forwarded events is handed to `on_events` here (the
+            watcher thread).
         """
         try:
             message = self.conn.recv()
         except (EOFError, OSError):
             waitables.remove(self.conn)  # the exit follows: the sentinel says it
-            return False
+            return None
         if message[0] == "events" and self._on_events is not None:
             try:
                 self._on_events(message[1])
@@ -320,13 +336,23 @@ class ManagerProcess:
             waiting = self._syncs.get(message[1])
             if waiting is not None:
                 waiting.set()
-        return bool(message[0] == "pong" and message[1] == sent)
+        if message[0] != "pong" or message[1] != sent:
+            return None
+        trouble = message[2] if len(message) > 2 else None
+        return (0.0, "") if trouble is None else (float(trouble[0]), str(trouble[1]))
 
     def _hang(self, silent_for: float) -> None:
         self._hung_for = silent_for
         logger.error(
             "manager %s hangs (no heartbeat answer for %.3f s): killing it", self.name, silent_for
         )
+        self.kill()
+
+    def _kill_unhealthy(self, unable_for: float, why: str) -> None:
+        self._unhealthy = (
+            f"unhealthy: could not accept connections for {unable_for:.3f} s ({why}) (killed)"
+        )
+        logger.error("manager %s is %s", self.name, self._unhealthy)
         self.kill()
 
     def _finish(self, exitcode: int | None) -> None:
@@ -340,6 +366,8 @@ class ManagerProcess:
             result = ManagerExit(
                 f"hung: no heartbeat answer for {self._hung_for:.3f} s (killed)", normal=False
             )
+        elif self._unhealthy is not None:
+            result = ManagerExit(self._unhealthy, normal=False)
         else:
             result = describe(exitcode)
         self.exit = result

@@ -3,8 +3,9 @@
 - `protocol`: the `Registrar` API both placements implement;
 - `handle`: `ResourceRegistrar`, what user code holds; `calls`: the call protocol on the
   caller's thread;
-- `actor`: the registrar actor, dispatching to its roles `provider`, `consumer`,
-  `status` and `lifecycle`, which share `state`;
+- `actor`: the registrar actor, dispatching to its roles `provider` (loads; `matching`
+  runs user code off the actor), `unloading`, `servers`, `consumer`, `status` and
+  `lifecycle`, which share `state`;
 - `endpoints`: the resource server and client actors; `messages`: everything they tell
   each other, as data; `loading`: what a load callback runs inside; `probes`: the
   testing seam on named steps.
@@ -12,9 +13,10 @@
 
 from typing import TYPE_CHECKING
 
-from rr_actors._registrar.handle import ResourceRegistrar, Served, start_registrar
+from rr_actors._registrar.handle import ResourceRegistrar, start_registrar
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH
 from rr_actors._registrar.protocol import LoadCallback, Registrar, UnloadCallback
+from rr_actors._registrar.starting import Served
 
 __all__ = [
     "MAX_DEPENDENCY_DEPTH",

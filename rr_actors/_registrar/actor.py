@@ -1,10 +1,13 @@
-"""The registrar actor: the only writer of its catalog, split into four roles.
+"""The registrar actor: the only writer of its catalog, split into roles.
 
 ```
               ┌──────────────────── RegistrarActor (one mailbox, one thread) ───────────────┐
  message ───► │ handlers: type -> (step name, role method)                                   │
-              │   Provider   Load Unload Abandon Fetch ConsumerDown      (provider.py)       │
+              │   Provider   Load                        (provider.py, matching.py)          │
+              │   Unloading  Unload Abandon ConsumerDown Reconcile       (unloading.py)      │
+              │   Servers    Fetch; register, unregister, update         (servers.py)        │
               │   Consumer   Pending ClientLoaded CallFailed Revoke ResponseUpdated          │
+              │              ReconcileAsk                                 (consumer.py)      │
               │   StatusRelay StatusNotice                               (status.py)         │
               │   Lifecycle  Request Flush Crash; start, stop, death     (lifecycle.py)      │
               │ Shared: config, catalog, saver, servers, phase, workers  (state.py)          │
@@ -41,6 +44,8 @@ from rr_actors._registrar.messages import (
     Flush,
     Load,
     Pending,
+    Reconcile,
+    ReconcileAsk,
     Request,
     ResponseUpdated,
     Revoke,
@@ -48,8 +53,10 @@ from rr_actors._registrar.messages import (
     Unload,
 )
 from rr_actors._registrar.provider import Provider
+from rr_actors._registrar.servers import Servers
 from rr_actors._registrar.state import Shared
 from rr_actors._registrar.status import StatusRelay
+from rr_actors._registrar.unloading import Unloading
 from rr_actors._store import Saver
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import RegistrarUnavailableError, RrError
@@ -65,7 +72,7 @@ class RegistrarActor(Actor):
 
     Attributes:
         shared: the state every role uses.
-        provider, consumer, status, lifecycle: the roles.
+        provider, unloading, servers, consumer, status, lifecycle: the roles.
     """
 
     def __init__(
@@ -85,16 +92,23 @@ class RegistrarActor(Actor):
         self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
         self.consumer = Consumer(self.shared, due, self.on_receive)
         self.status = StatusRelay(self.shared, self.consumer)
-        self.provider = Provider(self.shared, self.consumer, self.status)
-        self.lifecycle = Lifecycle(self.shared, self.provider, self.consumer, self, died, ended)
+        self.provider = Provider(self.shared, self.consumer)
+        self.unloading = Unloading(self.shared, self.provider, self.consumer)
+        self.provider.unloading = self.unloading
+        self.servers = Servers(self.shared, self.unloading, self.status)
+        self.lifecycle = Lifecycle(
+            self.shared, self.provider, self.unloading, self.consumer, self, died, ended
+        )
         tokens = self.shared.tokens
         self.handlers: dict[type, tuple[str, Callable[[Any], None]]] = {
             Answer: ("answer", lambda m: tokens.answer(m.token, m.value, m.error)),
             Load: ("load", self.provider.on_load),
-            Unload: ("unload", self.provider.on_unload),
-            Abandon: ("abandon", self.provider.on_abandon),
-            Fetch: ("fetch", self.provider.on_fetch),
-            ConsumerDown: ("consumer_down", self.provider.on_consumer_down),
+            Unload: ("unload", self.unloading.on_unload),
+            Abandon: ("abandon", self.unloading.on_abandon),
+            Fetch: ("fetch", self.servers.on_fetch),
+            ConsumerDown: ("consumer_down", self.unloading.on_consumer_down),
+            Reconcile: ("reconcile", self.unloading.on_reconcile),
+            ReconcileAsk: ("reconcile_ask", self.consumer.on_reconcile_ask),
             StatusNotice: ("status_notice", self.status.on_status_notice),
             Revoke: ("revoke", self.consumer.on_revoke),
             ResponseUpdated: ("response_updated", self.consumer.on_response_updated),
@@ -134,10 +148,14 @@ class RegistrarActor(Actor):
                 reply.set_error(exc)  # that request fails; the registrar keeps serving
             else:
                 logger.exception("registrar %s: %s failed", self.name, type(message).__name__)
-        except Exception as exc:
+        except BaseException as exc:  # (not only Exception: see `ContainedError`)
             reply = getattr(message, "reply", None)
             if reply is not None:  # a bug: the actor dies, but its caller hears of it now
-                reply.set_error(RegistrarUnavailableError(f"registrar {self.name!r} died: {exc!r}"))
+                reply.set_error(
+                    RegistrarUnavailableError(
+                        f"registrar {self.name!r} died in its {step} step: {exc!r}"
+                    )
+                )
             raise
 
     def on_failure(self, *_: object) -> None:

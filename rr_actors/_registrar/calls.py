@@ -25,7 +25,7 @@ import contextlib
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import pykka
@@ -38,7 +38,12 @@ from rr_actors._registrar.loading import check_picklable
 from rr_actors._registrar.messages import CallFailed, ClientLoaded, Load, Pending, give_back
 from rr_actors._registrar.probes import Probes
 from rr_actors._types import Query, StatusCallback
-from rr_actors.errors import CallTimeoutError, RegistrarStoppedError, RrError
+from rr_actors.errors import (
+    CallTimeoutError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    RrError,
+)
 
 __all__ = ["Calls", "ClientReply", "DueAnswers"]
 
@@ -70,6 +75,16 @@ class DueAnswers:
         """A snapshot of the query ids whose answer is due."""
         with self._lock:
             return frozenset(self._attempts)
+
+    @contextlib.contextmanager
+    def frozen(self) -> Iterator[frozenset[str]]:
+        """The ids due, with no call starting until the block ends.
+
+        A caller's `expect` waits for the block, so whatever it sends follows what the
+        block sent on the same channel (a `Reconcile` lists every call sent before it).
+        """
+        with self._lock:
+            yield frozenset(self._attempts)
 
     def expect(self, query_id: str, attempt: OneShotFuture[Any]) -> None:
         """A call `attempt` with `query_id` is about to be sent (any thread)."""
@@ -132,8 +147,13 @@ class ClientReply:
             )
 
     def set_error(self, error: BaseException) -> None:
+        query = self.record.query
+        # A provider that died (or was stopped) may have executed the call: its id is
+        # held until reconciled with the provider's next start, for a retry (rule 17).
+        gone = isinstance(error, RegistrarUnavailableError | RegistrarStoppedError)
+        failed = CallFailed(query.id, self.future, serving_rr=query.serving_rr if gone else None)
         with contextlib.suppress(pykka.ActorDeadError):
-            self.registrar.tell(CallFailed(self.record.query.id, self.future))
+            self.registrar.tell(failed)
         FutureReply(self.future).set_error(error)
 
 

@@ -18,6 +18,8 @@ place a record is forgotten (`forget`); giving an id back to a provider is
 from __future__ import annotations
 
 import logging
+import time
+import uuid
 from collections.abc import Callable
 from typing import Any
 
@@ -34,15 +36,18 @@ from rr_actors._registrar.messages import (
     CallFailed,
     ClientLoaded,
     Pending,
+    Reconcile,
+    ReconcileAsk,
     ResponseUpdated,
     Revoke,
     StatusNotice,
     Unload,
     give_back,
 )
-from rr_actors._registrar.state import Shared
-from rr_actors._types import StatusCallback
+from rr_actors._registrar.state import Phase, Shared
+from rr_actors._types import Status, StatusCallback
 from rr_actors.errors import (
+    CallTimeoutError,
     ConfigError,
     RegistrarStoppedError,
     RrError,
@@ -67,6 +72,10 @@ class Consumer:
         pending_attempts: query id -> the future of a durable call in flight (this actor
             answers it after its commit).
         parked_notices: query id -> notices that overtook the answer they are about.
+        unsettled: query id -> provider, of calls that failed as their provider died or
+            stopped (it may hold the id; a retry may come): held until reconciled.
+        releasing: query ids whose `Unload` is on its way.
+        asked_to_reconcile: providers that asked for a `Reconcile` during setup.
     """
 
     def __init__(
@@ -79,6 +88,9 @@ class Consumer:
         self.status_callbacks: dict[str, StatusCallback] = {}
         self.pending_attempts: dict[str, OneShotFuture[Any]] = {}
         self.parked_notices: dict[str, list[Notice]] = {}
+        self.unsettled: dict[str, str] = {}
+        self.releasing: set[str] = set()
+        self.asked_to_reconcile: set[str] = set()
 
     # -- holding and forgetting queries -----------------------------------------------
 
@@ -101,15 +113,21 @@ class Consumer:
         join.seal()
 
     def release_client(self, record: ClientRecord, then: Callable[[], None]) -> None:
-        """Unload one query this registrar holds; the record goes whatever the answer."""
+        """Unload one query this registrar holds; the record goes whatever the answer.
+
+        A provider that cannot be reached keeps the id until it reconciles with this
+        registrar after its restart (`reconcile`).
+        """
         query = record.query
 
         def answered(_: Any, error: BaseException | None) -> None:
+            self.releasing.discard(query.id)
             if error is not None and not isinstance(error, UnknownQueryError):
                 logger.warning("releasing %s at %s failed: %s", query.id, query.serving_rr, error)
             self.forget(query.id)
             then()
 
+        self.releasing.add(query.id)
         self.s.send(query.serving_rr, lambda reply: Unload(query.id, self.s.name, reply), answered)
 
     def client(self, target_rr: str, server: str) -> pykka.ActorRef[ClientActor]:
@@ -149,6 +167,7 @@ class Consumer:
     def record_answer(self, message: ClientLoaded) -> None:
         catalog = self.s.catalog
         query = message.record.query
+        self.unsettled.pop(query.id, None)  # (a retry of a call that failed as it died)
         ours = self.pending_attempts.get(query.id) is message.attempt  # (not a same-id retry's)
         if ours:
             del self.pending_attempts[query.id]
@@ -258,6 +277,10 @@ class Consumer:
         current = self.pending_attempts.get(message.query_id)
         if current is message.attempt:
             del self.pending_attempts[message.query_id]
+        if current is None or current is message.attempt:
+            self.unsettled.pop(message.query_id, None)
+            if message.serving_rr is not None:  # it may hold the id: a retry may follow
+                self.unsettled[message.query_id] = message.serving_rr
         record = self.s.catalog.clients.get(message.query_id)
         try:
             if current is not None and current is not message.attempt:
@@ -325,6 +348,109 @@ class Consumer:
         for client in self.clients.values():
             client.stop(block=True, timeout=5.0)
 
+    # -- reconciling with a provider after a restart ---------------------------------
+
+    def reconcile_all(self) -> None:
+        """This registrar serves (again): reconcile with every provider it holds ids at.
+
+        Also with those that asked while setup ran (`ReconcileAsk`).
+        """
+        providers = {record.query.serving_rr for record in self.s.catalog.clients.values()}
+        providers |= self.asked_to_reconcile
+        self.asked_to_reconcile.clear()
+        for serving_rr in sorted(providers):
+            self.reconcile(serving_rr)
+
+    def on_reconcile_ask(self, message: ReconcileAsk) -> None:
+        if self.s.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
+            self.asked_to_reconcile.add(message.serving_rr)
+            return
+        self.reconcile(message.serving_rr)
+
+    def reconcile(self, serving_rr: str) -> None:
+        """Tell `serving_rr` which ids this registrar holds there (`Reconcile`).
+
+        The provider releases the others it holds for this registrar, and names the ones
+        it no longer knows: their status callbacks get `FATAL` and they are forgotten.
+        The list and the message leave while no call can start (`DueAnswers.frozen`), so
+        a call sent later reaches the provider after it.
+        """
+        with self.due.frozen() as due:
+            held = {
+                query_id
+                for query_id, record in self.s.catalog.clients.items()
+                if record.query.serving_rr == serving_rr
+            }
+            held |= {q for q, provider in self.unsettled.items() if provider == serving_rr}
+            held |= due  # (ids due at other providers too: harmless, reported unknown)
+            self.s.send(
+                serving_rr,
+                lambda reply: Reconcile(self.s.name, tuple(sorted(held)), reply),
+                lambda unknown, error: self.reconciled(serving_rr, unknown, error),
+            )
+
+    def reconciled(self, serving_rr: str, unknown: Any, error: BaseException | None) -> None:
+        """The provider's answer to a `Reconcile`: report and forget what it lost."""
+        if error is not None:  # not reachable: it asks for a Reconcile when it is back
+            logger.debug("reconciling %s with %s failed: %s", self.s.name, serving_rr, error)
+            return
+        lost: dict[str, list[str]] = {}
+        for query_id in unknown:
+            if self.unsettled.get(query_id) == serving_rr:
+                del self.unsettled[query_id]  # it does not hold it: nothing to retry for
+            record = self.s.catalog.clients.get(query_id)
+            if (
+                record is None
+                or not record.loaded
+                or record.query.serving_rr != serving_rr
+                or query_id in self.due
+                or query_id in self.releasing
+            ):
+                continue
+            lost.setdefault(record.query.server, []).append(query_id)
+        # What was unsettled and survived the reconcile is held by the provider now: a
+        # retry finds it; a call never retried is released at its next restart.
+        for query_id in [q for q, p in self.unsettled.items() if p == serving_rr]:
+            del self.unsettled[query_id]
+        for server, ids in lost.items():
+            logger.warning(
+                "registrar %s: %s/%s no longer knows %d of the queries held there "
+                "(its restart lost them): FATAL, and they are forgotten",
+                self.s.name,
+                serving_rr,
+                server,
+                len(ids),
+            )
+            self.report_lost(f"{serving_rr}/{server}", tuple(ids))
+
+    def report_lost(self, source: str, ids: tuple[str, ...]) -> None:
+        """`FATAL` to the status callbacks of `ids` (and up their dependents), then forget them.
+
+        Delivered as a provider's `StatusNotice` would be (rule 9), on this thread: the
+        callbacks and the dependents it reaches are taken from the records before they
+        are forgotten, right after.
+        """
+        notice = StatusNotice(
+            ids,
+            Status.FATAL,
+            "the provider no longer knows this query (it lost it in a restart)",
+            source,
+            str(uuid.uuid4()),
+            FutureReply(),  # (nobody waits for the acknowledgements)
+            sent_at=time.time(),
+        )
+        self.redeliver(notice)
+        for query_id in ids:
+            self.forget(query_id, commit=False)
+        self.s.commit()
+
+    def give_back_unsettled(self) -> None:
+        """This registrar stops: give back the ids of calls that failed as their provider
+        died, which it would no longer retry."""
+        for query_id, serving_rr in self.unsettled.items():
+            give_back(serving_rr, query_id, self.s.name)
+        self.unsettled.clear()
+
     # -- operations the handle asks for ----------------------------------------------
 
     def op_unload(self, query_id: str, reply: Reply) -> None:
@@ -334,14 +460,23 @@ class Consumer:
         query = record.query
 
         def answered(_: Any, error: BaseException | None) -> None:
-            if error is not None and not isinstance(error, UnknownQueryError):
-                reply.set_error(error)  # e.g. the provider is unavailable: keep the record
+            self.releasing.discard(query_id)
+            # The provider released the id unless it failed otherwise: it was unknown
+            # there, or its unload callback overran `unload_timeout` (a CallTimeoutError
+            # only the provider's answer carries here; the caller's own is its handle's).
+            released = error is None or isinstance(error, UnknownQueryError | CallTimeoutError)
+            if not released:
+                reply.set_error(error)  # type: ignore[arg-type]  # e.g. provider unavailable
                 return
-            if error is not None:
+            if isinstance(error, UnknownQueryError):
                 logger.warning("provider %s no longer knew %s", query.serving_rr, query.id)
             self.forget(query_id)
-            reply.set_result(None)
+            if isinstance(error, CallTimeoutError):
+                reply.set_error(error)
+            else:
+                reply.set_result(None)
 
+        self.releasing.add(query_id)
         self.s.send(query.serving_rr, lambda r: Unload(query_id, self.s.name, r), answered)
 
     def op_set_status_callback(self, query_id: str, callback: StatusCallback, reply: Reply) -> None:

@@ -20,9 +20,16 @@ from rr_actors._core.workers import Workers
 from rr_actors._registrar.loading import LOADING, LoadContext, check_picklable, load_error
 from rr_actors._registrar.messages import Fetch, FetchVia, RunLoad, RunUnload
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
-from rr_actors.errors import RrError
+from rr_actors.errors import CallTimeoutError, RrError
 
 __all__ = ["ClientActor", "ServerActor"]
+
+
+def _no_thread(exc: RuntimeError) -> RuntimeError:
+    """What a callback that got no worker thread fails with (the OS refused a thread)."""
+    error = RuntimeError(f"no worker thread could be started for the callback: {exc}")
+    error.__cause__ = exc
+    return error
 
 
 class ServerActor(Actor):
@@ -52,9 +59,29 @@ class ServerActor(Actor):
 
     def on_receive(self, message: Any) -> None:
         if isinstance(message, RunLoad):
-            self.workers.submit(lambda: self._load(message))
+            try:
+                self.workers.submit(lambda: self._load(message))
+            except RuntimeError as exc:  # no thread could start: this load fails, no other
+                message.reply.set_error(load_error(self.registrar, self.name, _no_thread(exc)))
         elif isinstance(message, RunUnload):
-            self.workers.submit(lambda: self._unload(message))
+            timeout = message.timeout
+
+            def overdue() -> None:
+                message.reply.set_error(
+                    CallTimeoutError(
+                        f"the unload callback of '{self.registrar}/{self.name}' did not "
+                        f"return within {timeout:g} s"
+                    )
+                )
+
+            try:
+                self.workers.submit(
+                    lambda: self._unload(message),
+                    timeout=timeout,
+                    on_overdue=None if timeout is None else overdue,
+                )
+            except RuntimeError as exc:
+                message.reply.set_error(_no_thread(exc))
 
     def _load(self, message: RunLoad) -> None:
         token = LOADING.set(LoadContext(self.registrar, message.resource_id, message.chain))

@@ -3,13 +3,11 @@
 Each method sends the registrar actor a request (`Request`: run this on your thread,
 answer that reply) and waits for the answer at most `timeout` seconds; `call` runs the
 call protocol on the caller's own thread (`calls.py`). The handle never touches the
-catalog itself.
+catalog itself. Starting the actor, before there is a handle, is `starting.py`'s.
 """
 
 from __future__ import annotations
 
-import logging
-import threading
 import time
 import uuid
 from collections.abc import Callable
@@ -18,18 +16,18 @@ from typing import Any
 import pykka
 
 from rr_actors import events
-from rr_actors._catalog import ResourceState
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
-from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
+from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.exit import REGISTRARS, stop_at_exit
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._registrar.actor import RegistrarActor
-from rr_actors._registrar.calls import Calls, DueAnswers
+from rr_actors._registrar.calls import Calls
 from rr_actors._registrar.endpoints import ClientActor
 from rr_actors._registrar.loading import LOADING, check_picklable
 from rr_actors._registrar.messages import FetchVia, Request
 from rr_actors._registrar.probes import Probes
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
-from rr_actors._store import Saver, open_catalog
+from rr_actors._registrar.starting import Launched, launch
 from rr_actors._types import Query, Status, StatusCallback
 from rr_actors.config import RegistrarConfig, check_seconds
 from rr_actors.errors import (
@@ -38,10 +36,7 @@ from rr_actors.errors import (
     RegistrarStoppedError,
 )
 
-__all__ = ["EVENT_LOG", "RegistrarFacts", "ResourceRegistrar", "Served", "start_registrar"]
-
-EVENT_LOG = logging.getLogger("rr_actors.events")
-"""Where registrars log their events at INFO (one line per event; off by default)."""
+__all__ = ["RegistrarFacts", "ResourceRegistrar", "start_registrar"]
 
 
 class RegistrarFacts:
@@ -87,25 +82,20 @@ class ResourceRegistrar(RegistrarFacts):
     (default: the config's `call_timeout`).
     """
 
-    def __init__(
-        self,
-        ref: pykka.ActorRef[RegistrarActor],
-        config: RegistrarConfig,
-        *,
-        restored: bool,
-        in_doubt: tuple[Query, ...],
-        due: DueAnswers | None = None,
-    ) -> None:
+    def __init__(self, launched: Launched) -> None:
+        """Wrap a registrar `launch` started (use `ResourceRegistrar.start`)."""
+        config = launched.config
+        ref = launched.ref
         self._ref = ref
         self._config = config
-        self._restored = restored
-        self._in_doubt = in_doubt
+        self._restored = launched.restored
+        self._in_doubt = launched.in_doubt
         self._clients: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
-        self._died = threading.Event()  # set when a crash of the actor was fully handled
-        self._ended = threading.Event()  # set when the actor handed on its last message
-        self._due = due or DueAnswers()  # shared with the actor (see `start`)
+        self._died = launched.died  # set when a crash of the actor was fully handled
+        self._ended = launched.ended  # set when the actor handed on its last message
+        self._due = launched.due  # shared with the actor
         self._probes: Probes | None = None  # `rr_actors.testing.intercept`
-        self._events: Publisher[events.Event] = events.publisher(EVENT_LOG)  # (see `start`)
+        self._events = launched.published
         self._calls = Calls(
             ref,
             config.name,
@@ -210,7 +200,7 @@ class ResourceRegistrar(RegistrarFacts):
             if fn is not None and not callable(fn):
                 raise ConfigError(f"{arg} must be callable, got {fn!r}")
         self._ask(
-            lambda actor, reply: actor.provider.op_register(name, load, unload, on_status, reply),
+            lambda actor, reply: actor.servers.op_register(name, load, unload, on_status, reply),
             timeout,
             f"register_server({name!r})",
         )
@@ -226,7 +216,7 @@ class ResourceRegistrar(RegistrarFacts):
         """
         limit = self._timeout(timeout)
         self._ask(
-            lambda actor, reply: actor.provider.op_unregister(name, reply),
+            lambda actor, reply: actor.servers.op_unregister(name, reply),
             limit,
             f"unregister_server({name!r})",
         )
@@ -353,7 +343,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarUnavailableError: this registrar died.
         """
         result: list[Query] = self._ask(
-            lambda actor, reply: actor.provider.op_server_queries(server, reply),
+            lambda actor, reply: actor.servers.op_server_queries(server, reply),
             timeout,
             f"server_queries({server!r})",
         )
@@ -436,7 +426,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarUnavailableError: this registrar died.
         """
         self._ask(
-            lambda actor, reply: actor.provider.op_update_response(query_id, response, reply),
+            lambda actor, reply: actor.servers.op_update_response(query_id, response, reply),
             timeout,
             f"update_response({query_id!r})",
         )
@@ -520,38 +510,6 @@ class ResourceRegistrar(RegistrarFacts):
         return client
 
 
-class Served:
-    """A registrar of this process as a carrier serves it (`rr_actors._transport.base.Endpoint`).
-
-    Args:
-        registrar: the registrar to make reachable from the other processes of a system.
-    """
-
-    __slots__ = ("registrar",)
-
-    def __init__(self, registrar: ResourceRegistrar) -> None:
-        self.registrar = registrar
-
-    @property
-    def name(self) -> str:
-        """The registrar's name."""
-        return self.registrar.name
-
-    def run(self, fn: Callable[[Any], Any]) -> Any:
-        """Run `fn(registrar)` on the calling thread."""
-        return fn(self.registrar)
-
-    def wait_ended(self, timeout: float | None = None) -> bool:
-        """Block until the registrar actor ended (stopped or died); whether it did."""
-        return self.registrar._ref.actor_stopped.wait(timeout)
-
-    def stopped_cleanly(self) -> bool:
-        """Whether it ended because its owner stopped it (not a crash, not still running)."""
-        if self.registrar.is_alive():
-            return False
-        return isinstance(DIRECTORY.gone_error(self.registrar.name), RegistrarStoppedError)
-
-
 def start_registrar(
     config: RegistrarConfig | str,
     *,
@@ -563,43 +521,13 @@ def start_registrar(
     A supervisor passes its tree's publisher, so the events of a restore (`InDoubt`)
     reach the tree's subscribers too.
     """
-    if isinstance(config, str):
-        config = RegistrarConfig(name=config)
-    elif not isinstance(config, RegistrarConfig):
-        raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
-    peer = LocalPeer(config.name, None)
-    DIRECTORY.register(peer)
-    saver: Saver | None = None
-    try:
-        saver, catalog, restored = open_catalog(config)
-        in_doubt = tuple(
-            Query(r.id, r.server, config.name, config.name, r.request, r.response)
-            for r in catalog.resources.values()
-            if r.state is not ResourceState.LOADED
-        )
-        died, ended, due = threading.Event(), threading.Event(), DueAnswers()
-        published = events.publisher(EVENT_LOG)
-        published.relay_to(upstream)
-        ref = RegistrarActor.start(
-            config,
-            catalog,
-            saver,
-            peer,
-            died,
-            due,
-            ended,
-            published,
-            setting_up=setup is not None,
-        )
-    except BaseException:
-        if saver is not None:
-            saver.close(erase=False, flush=False)
-        DIRECTORY.unregister(peer, "stopped")
-        raise
-    handle = ResourceRegistrar(ref, config, restored=restored, in_doubt=in_doubt, due=due)
-    handle._died = died
-    handle._ended = ended
-    handle._events = published
+    handle = ResourceRegistrar(launch(config, setting_up=setup is not None, upstream=upstream))
+    stop_at_exit(
+        REGISTRARS,
+        f"registrar {handle.name!r}",
+        handle.is_alive,
+        lambda timeout: handle.stop(timeout=timeout),
+    )
     if setup is not None:
         try:
             setup(handle)

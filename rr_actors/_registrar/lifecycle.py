@@ -50,6 +50,7 @@ if TYPE_CHECKING:
     from rr_actors._registrar.actor import RegistrarActor
     from rr_actors._registrar.consumer import Consumer
     from rr_actors._registrar.provider import Provider
+    from rr_actors._registrar.unloading import Unloading
 
 __all__ = ["CatalogView", "Lifecycle"]
 
@@ -82,6 +83,7 @@ class Lifecycle:
         self,
         shared: Shared,
         provider: Provider,
+        unloading: Unloading,
         consumer: Consumer,
         actor: RegistrarActor,
         died: threading.Event,
@@ -89,6 +91,7 @@ class Lifecycle:
     ) -> None:
         self.s = shared
         self.provider = provider
+        self.unloading = unloading
         self.consumer = consumer
         self.actor = actor
         self.died = died
@@ -99,8 +102,24 @@ class Lifecycle:
     # -- start ------------------------------------------------------------------------
 
     def on_start(self) -> None:
+        # every provider the restored catalog knows, also those settle_in_doubt forgets
+        providers = {record.query.serving_rr for record in self.s.catalog.clients.values()}
+        self.consumer.asked_to_reconcile.update(providers)
         self.settle_in_doubt()
         self.arm_flush_timer()
+        if self.s.phase is Phase.SERVING:  # (else once setup is done: `op_ready`)
+            self.reconcile()
+
+    def reconcile(self) -> None:
+        """It serves: reconcile what its restored catalog says with its peers' catalogs.
+
+        As a provider it asks every consumer holding ids here for the ids it holds
+        (`ReconcileAsk`), as a consumer it tells every provider it holds ids at which
+        ids it holds (`Reconcile`): ids released while one side was down are released,
+        and ids one side lost in its restart are reported to the consumer as `FATAL`.
+        """
+        self.unloading.ask_to_reconcile()
+        self.consumer.reconcile_all()
 
     def settle_in_doubt(self) -> None:
         """Drop restored resources whose load or unload a crash cut short (rule 16).
@@ -117,7 +136,7 @@ class Lifecycle:
                     self.s.events.publish(events.InDoubt(self.s.name, resource.id))
                 catalog.begin_unload(resource.id)
                 self.consumer.release_dependencies(
-                    resource.id, functools.partial(self.provider.remove_resource, resource)
+                    resource.id, functools.partial(self.unloading.remove_resource, resource)
                 )
         for record in list(catalog.clients.values()):
             orphan = record.parent is not None and record.parent not in catalog.resources
@@ -127,11 +146,18 @@ class Lifecycle:
                 catalog.remove_client(query.id)
         self.s.commit()
 
+    def op_reachable(self, reply: Reply) -> None:
+        """A carrier serves it: the other processes can reach it (and answer it) now."""
+        if self.s.phase is Phase.SERVING:  # (during setup, `op_ready` reconciles)
+            self.reconcile()
+        reply.set_result(None)
+
     def op_ready(self, reply: Reply) -> None:
         """Setup is done: serve what waited for it (unknown servers now fail)."""
         self.s.phase = Phase.SERVING
         self.s.servers_settled = True
         self.provider.serve_held()
+        self.reconcile()
         reply.set_result(None)
 
     # -- the save interval ------------------------------------------------------------
@@ -201,6 +227,7 @@ class Lifecycle:
                 give_back(record.query.serving_rr, record.query.id, self.s.name)
                 consumer.on_call_failed(CallFailed(record.query.id, attempt, withdrawn=True))
                 FutureReply(attempt).set_error(stopped)
+        consumer.give_back_unsettled()
         tops = [
             r for r in reversed(self.s.catalog.clients.values()) if r.parent is None and r.loaded
         ]
@@ -261,6 +288,7 @@ class Lifecycle:
     def fail_waiting(self, error: RrError) -> None:
         """Answer everyone still waiting on this actor with `error` (it stops or died)."""
         self.provider.fail_waiting(error)
+        self.unloading.fail_waiting(error)
         self.consumer.fail_waiting(error)
         for request in list(self.open_requests):
             request.set_error(error)

@@ -57,10 +57,13 @@ LOADING: contextvars.ContextVar[LoadContext | None] = contextvars.ContextVar(
 
 
 def check_picklable(value: Any, what: str) -> None:
-    """Raise `ConfigError` if `value` cannot be stored in a catalog backup."""
+    """Raise `ConfigError` if `value` cannot be stored in a catalog backup.
+
+    Whatever pickling it raises (a user `__reduce__` raising `SystemExit` too) is that.
+    """
     try:
         cloudpickle.dumps(value)
-    except Exception as exc:
+    except BaseException as exc:  # (user code: a SystemExit from __reduce__ is contained too)
         raise ConfigError(
             f"{what} cannot be pickled, so the catalog cannot store it: {exc}"
         ) from exc

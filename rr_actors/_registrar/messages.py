@@ -4,8 +4,9 @@ Each is a frozen dataclass. A `reply` field holds where the answer goes: a local
 in-process; a transport replaces it by a token when the message crosses processes.
 
 The wire protocol (between registrars, possibly across processes): `Load`, `Unload`,
-`Abandon`, `Fetch` (consumer -> provider); `StatusNotice`, `Revoke`, `ResponseUpdated`
-(provider -> consumer); `ConsumerDown` (death watch -> provider). The internal messages
+`Abandon`, `Fetch`, `Reconcile` (consumer -> provider); `StatusNotice`, `Revoke`,
+`ResponseUpdated`, `ReconcileAsk` (provider -> consumer); `ConsumerDown` (death watch ->
+provider). The internal messages
 below them never leave their process: a registrar's handle, its server and client actors
 and its callers' threads tell them to the registrar actor.
 
@@ -22,7 +23,7 @@ import traceback
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from rr_actors._catalog import ClientRecord
+from rr_actors._catalog import ClientRecord, describe
 from rr_actors._core.actor import OneShotFuture
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.wire import WireMessage
@@ -43,6 +44,8 @@ __all__ = [
     "Flush",
     "Load",
     "Pending",
+    "Reconcile",
+    "ReconcileAsk",
     "Request",
     "ResponseUpdated",
     "Revoke",
@@ -77,7 +80,7 @@ class Load(WireMessage):
         """A lost answer leaves a consumer id nobody holds: release it (rule 17)."""
         return Abandon(self.query_id, self.origin_rr)
 
-    def unreadable_answer(self, target: str, exc: Exception) -> RrError:
+    def unreadable_answer(self, target: str, exc: BaseException) -> RrError:
         """The response cannot be unpickled in the caller's process: a failed load."""
         return ResourceLoadError(
             (
@@ -92,7 +95,7 @@ class Load(WireMessage):
             )
         )
 
-    def unsendable_answer(self, target: str, value: Any, exc: Exception) -> RrError:
+    def unsendable_answer(self, target: str, value: Any, exc: BaseException) -> RrError:
         """The response cannot be pickled to reach the caller: a failed load."""
         return ResourceLoadError(
             (
@@ -101,7 +104,7 @@ class Load(WireMessage):
                     server=self.server,
                     exc_type=type(exc).__qualname__,
                     message=f"the response is not picklable, so it cannot reach "
-                    f"registrar {self.origin_rr!r}: {exc} (value: {value!r:.200})",
+                    f"registrar {self.origin_rr!r}: {exc} (value: {describe(value)})",
                     traceback="",
                 ),
             )
@@ -174,6 +177,30 @@ class ResponseUpdated(WireMessage):
 
 
 @dataclasses.dataclass(frozen=True)
+class Reconcile(WireMessage):
+    """Consumer -> provider: registrar `origin_rr` holds exactly `held` at you.
+
+    Sent after a restart of either side (a consumer's start, or a provider's
+    `ReconcileAsk`). `held` lists the consumer's client records at this provider, its
+    calls whose answer is due, and its calls that failed as this provider died (they may
+    be retried with the same id). The provider releases every consumer id of
+    `origin_rr` it holds that is not in `held`; it answers with the ids of `held` it
+    neither holds nor has a load under way for.
+    """
+
+    origin_rr: str
+    held: tuple[str, ...]
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class ReconcileAsk(WireMessage):
+    """Provider -> consumer: `serving_rr` (re)started with ids of yours: send a `Reconcile`."""
+
+    serving_rr: str
+
+
+@dataclasses.dataclass(frozen=True)
 class ConsumerDown(WireMessage):
     """Death watch -> provider: registrar `origin_rr` died and will not come back."""
 
@@ -207,11 +234,16 @@ class RunLoad:
 
 @dataclasses.dataclass(frozen=True)
 class RunUnload:
-    """Registrar -> its server actor: run `unload(request, response)`."""
+    """Registrar -> its server actor: run `unload(request, response)`.
+
+    Past `timeout` seconds (`None`: no bound) the reply gets `CallTimeoutError` and the
+    callback's worker is abandoned.
+    """
 
     request: Any
     response: Any
     reply: Reply
+    timeout: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -248,6 +280,8 @@ class CallFailed:
     query_id: str
     attempt: OneShotFuture[Any]
     withdrawn: bool = False  # given up by its caller, who told the provider an Abandon first
+    serving_rr: str | None = None  # set if it failed as its provider died or stopped: it
+    # may have executed, and a retry with the same id may come (held until reconciled)
 
 
 @dataclasses.dataclass(frozen=True)

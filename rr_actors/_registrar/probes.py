@@ -30,6 +30,8 @@ MESSAGE_STEPS: frozenset[str] = frozenset(
         "revoke",  # a Revoke arrives at a consumer
         "response_updated",  # a ResponseUpdated arrives at a consumer
         "consumer_down",  # death watch: a consumer is gone for good
+        "reconcile",  # a Reconcile arrives at the provider (a consumer lists what it holds)
+        "reconcile_ask",  # a ReconcileAsk arrives at a consumer (its provider restarted)
         "pending",  # a durable call's pending record is to be committed
         "client_loaded",  # a call's answer is to be recorded
         "call_failed",  # a call failed or was withdrawn

@@ -133,7 +133,7 @@ class Shared:
         self.phase = Phase.SETTING_UP if setting_up else Phase.SERVING
         self.servers_settled = False
         self.servers: dict[str, Server] = {}
-        self.workers = Workers(config.name)
+        self.workers = Workers(config.name, max_workers=config.max_workers)
         self.tokens = Tokens()
         self.probes: Probes | None = None
         self.ref: pykka.ActorRef[Any] | None = None

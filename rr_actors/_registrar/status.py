@@ -27,7 +27,7 @@ from rr_actors._catalog import Resource
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import CallbackReply, SharedJoin
 from rr_actors._registrar.messages import StatusNotice
-from rr_actors._registrar.provider import consumers_by_origin
+from rr_actors._registrar.servers import consumers_by_origin
 from rr_actors._registrar.state import Shared
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors.errors import RrError

@@ -314,6 +314,29 @@ class Unread:
             (origin_rr, self._last),
         )
 
+    def origins(self) -> set[str]:
+        """The registrars that consumers of unread resources belong to (none is read)."""
+        if not self.remaining:
+            return set()
+        self._check_open()
+        with as_corrupt(self._store.path):
+            rows = self._store.connection.execute(
+                "SELECT DISTINCT origin_rr FROM consumers WHERE resource <= ?", (self._last,)
+            ).fetchall()
+        return {origin for (origin,) in rows}
+
+    def consumer_ids_from(self, origin_rr: str) -> list[str]:
+        """The consumer ids of unread resources that `origin_rr` holds (none is read)."""
+        if not self.remaining:
+            return []
+        self._check_open()
+        with as_corrupt(self._store.path):
+            rows = self._store.connection.execute(
+                "SELECT query_id, resource FROM consumers WHERE origin_rr = ? AND resource <= ?",
+                (origin_rr, self._last),
+            ).fetchall()
+        return [query_id for query_id, resource in rows if resource not in self._read]
+
     def every(self) -> list[Resource]:
         """Every unread resource, oldest first."""
         return self._fetch("SELECT seq FROM resources WHERE seq <= ? ORDER BY seq", (self._last,))

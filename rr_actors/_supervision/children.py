@@ -132,8 +132,12 @@ class Running(Protocol):
 
     pid: int | None
 
-    def stop(self, timeout: float | None) -> ManagerExit:
-        """Stop it (within `timeout` seconds, `None`: its spec's `shutdown`); how it ended."""
+    def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
+        """Stop it (within `timeout` seconds, `None`: its spec's `shutdown`); how it ended.
+
+        With `restarting`, it is stopped to be started again (a group restart): its
+        callers meanwhile get `RegistrarUnavailableError`, not `RegistrarStoppedError`.
+        """
         ...
 
 
@@ -177,8 +181,11 @@ class ThreadManager:
 
         threading.Thread(target=watch, name=f"rr-watch-{spec.name}", daemon=True).start()
 
-    def stop(self, timeout: float | None) -> ManagerExit:
-        """Stop the registrar cleanly; tell its actor to crash if that takes too long."""
+    def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
+        """Stop the registrar cleanly; tell its actor to crash if that takes too long.
+
+        (`restarting`: its name is in `DIRECTORY.restarting` already, this process's.)
+        """
         timeout = self.spec.shutdown if timeout is None else timeout
         self.stopping = True
         ref = self.registrar._ref
@@ -242,9 +249,10 @@ class ProcessManager:
             relay.attach(handle, forwarding=forwarding)
         return cls(handle, spec.shutdown)
 
-    def stop(self, timeout: float | None) -> ManagerExit:
+    def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
         """Ask the process to stop; it is killed after `timeout` (or its `shutdown`) seconds."""
-        return self.handle.stop(self.handle_shutdown if timeout is None else timeout)
+        limit = self.handle_shutdown if timeout is None else timeout
+        return self.handle.stop(limit, restarting=restarting)
 
 
 class NestedSupervisor:
@@ -255,9 +263,9 @@ class NestedSupervisor:
     def __init__(self, node: Node) -> None:
         self.node = node
 
-    def stop(self, timeout: float | None) -> ManagerExit:
+    def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
         """Stop the nested supervisor and its children (a clean `shutdown`)."""
-        self.node.stop(timeout=timeout)
+        self.node.stop(timeout=timeout, restarting=restarting)
         return ManagerExit("shutdown", normal=True)
 
 

@@ -113,6 +113,7 @@ class Node:
         self._generation = 0
         self._timers: list[Cancellable] = []
         self._running = False
+        self._stopping_to_restart = False  # the parent stops this tree to start it again
 
     @property
     def name(self) -> str:
@@ -136,8 +137,18 @@ class Node:
             self._mailbox.quit(30.0)
             raise
 
-    def stop(self, timeout: float | None = None, *, deadline: float | None = None) -> None:
-        """Stop every child in reverse start order, then the mailbox thread (idempotent)."""
+    def stop(
+        self,
+        timeout: float | None = None,
+        *,
+        deadline: float | None = None,
+        restarting: bool = False,
+    ) -> None:
+        """Stop every child in reverse start order, then the mailbox thread (idempotent).
+
+        With `restarting`, the parent stops this supervisor to start it again (a group
+        restart): its managers' callers meanwhile get `RegistrarUnavailableError`.
+        """
         if deadline is None and timeout is not None:
             deadline = time.monotonic() + timeout
         if not self._running:
@@ -145,7 +156,7 @@ class Node:
         self._running = False
         if self._mailbox.is_alive():
             try:
-                self._mailbox.call(lambda: self._stop_all(deadline))
+                self._mailbox.call(lambda: self._stop_all(deadline, restarting=restarting))
             except RrError:
                 logger.exception("supervisor %s: stopping its children failed", self.name)
             self._mailbox.quit(60.0)
@@ -224,6 +235,7 @@ class Node:
                     if tree.spares is not None:  # after this start was published
                         self.cast(tree.spares.refill)
         child.state = "running"
+        self._unmark(child)  # it serves again
         restarted = child.name in tree.started
         tree.count_start(child.name)
         self._published_start(child, restarted=restarted)
@@ -278,8 +290,18 @@ class Node:
             started.append(child)
             self.publish()
 
-    def _stop_child(self, child: Child, *, final: bool, deadline: float | None = None) -> None:
-        """Stop a running child (its spec's shutdown, bounded by `deadline`, then a kill)."""
+    def _stop_child(
+        self,
+        child: Child,
+        *,
+        final: bool,
+        deadline: float | None = None,
+        restarting: bool = False,
+    ) -> None:
+        """Stop a running child (its spec's shutdown, bounded by `deadline`, then a kill).
+
+        `restarting`: it is stopped to be started again (marked in `DIRECTORY.restarting`).
+        """
         running = child.running
         if running is None:
             if final:
@@ -295,7 +317,7 @@ class Node:
         if isinstance(child.spec, ManagerSpec):
             limit = child.spec.shutdown if limit is None else min(limit, child.spec.shutdown)
         pid = _pid_of(child)
-        result = running.stop(limit)
+        result = running.stop(limit, restarting=restarting)
         child.running = None
         child.state = "stopped"
         child.last_exit = result.reason
@@ -304,11 +326,27 @@ class Node:
             self._forget(child, dead=not result.clean)
 
     def _forget(self, child: Child, *, dead: bool) -> None:
-        """The child will not come back: release what it held (death watch) if it died."""
+        """The child will not come back: release what it held (death watch) if it died.
+
+        Its callers get `RegistrarStoppedError` (or, if it died, `...UnavailableError`)
+        from now on, unless the parent is stopping this whole supervisor to restart it.
+        """
+        if not self._stopping_to_restart:
+            self._unmark(child)
         if isinstance(child.spec, ManagerSpec):
             DIRECTORY.restart_expected.discard(child.name)
             if dead:
                 consumer_down(self.tree, child.name)
+
+    @staticmethod
+    def _mark(child: Child) -> None:
+        """`child` (its managers, for a nested supervisor) is down and will be restarted:
+        its callers get `RegistrarUnavailableError` (retry), not `RegistrarStoppedError`."""
+        DIRECTORY.restarting.update(_registrar_names(child.spec))
+
+    @staticmethod
+    def _unmark(child: Child) -> None:
+        DIRECTORY.restarting.difference_update(_registrar_names(child.spec))
 
     def _cancel_restarts(self) -> None:
         """Make every scheduled restart stale (new generation) and cancel its timer."""
@@ -317,10 +355,11 @@ class Node:
             timer.cancel()
         self._timers.clear()
 
-    def _stop_all(self, deadline: float | None = None) -> None:
+    def _stop_all(self, deadline: float | None = None, *, restarting: bool = False) -> None:
         self._cancel_restarts()
+        self._stopping_to_restart = restarting
         for child in reversed(self.children):
-            self._stop_child(child, final=True, deadline=deadline)
+            self._stop_child(child, final=True, deadline=deadline, restarting=restarting)
 
     # -- crashes and restarts (mailbox thread) ------------------------------------------
 
@@ -344,6 +383,7 @@ class Node:
             self._forget(child, dead=not event.exit.clean)
             return
         child.state = "restarting"
+        self._mark(child)
         self.publish()
         if not self.intensity.add():
             self._give_up(child)
@@ -362,8 +402,10 @@ class Node:
             if other is crashed:
                 continue
             comes_back = restarts_with_group(other.spec.restart)
+            if comes_back:  # down for a moment, not stopped: callers may retry
+                self._mark(other)
             if other.running is not None:
-                self._stop_child(other, final=not comes_back)
+                self._stop_child(other, final=not comes_back, restarting=comes_back)
                 other.state = "restarting" if comes_back else "exited"
             elif other.state == "exited" and comes_back:
                 other.state = "restarting"
@@ -428,3 +470,10 @@ class Node:
             )
         if self.on_gave_up is not None:
             self.on_gave_up(error)
+
+
+def _registrar_names(spec: ManagerSpec | SupervisorSpec) -> list[str]:
+    """The registrar names of a child: its own, or those of the managers below it."""
+    if isinstance(spec, ManagerSpec):
+        return [spec.name]
+    return [name for child in spec.children for name in _registrar_names(child)]

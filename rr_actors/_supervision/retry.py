@@ -17,14 +17,12 @@ process, or in a manager process).
 
 from __future__ import annotations
 
-import contextlib
 import time
 import uuid
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from rr_actors._core.directory import DIRECTORY
-from rr_actors._registrar.messages import Abandon
+from rr_actors._registrar.messages import give_back
 from rr_actors._registrar.protocol import Registrar
 from rr_actors._supervision.children import ChildInfo
 from rr_actors._supervision.tree import Level, Tree, find_child
@@ -33,7 +31,6 @@ from rr_actors.errors import (
     CallTimeoutError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
-    RrError,
     UnknownServerError,
 )
 
@@ -130,8 +127,7 @@ def abandon_after_restart(tree: Tree, root: Level, name: str, query_id: str, ori
         if child is None or child.state != "running" or child.running is None:
             tree.abandon_later.setdefault(name, []).append((query_id, origin))
             return
-    with contextlib.suppress(RrError):
-        DIRECTORY.lookup(name).tell(Abandon(query_id, origin))
+    give_back(name, query_id, origin)
 
 
 def give_back_abandoned(tree: Tree, name: str) -> None:
@@ -139,5 +135,4 @@ def give_back_abandoned(tree: Tree, name: str) -> None:
     with tree.abandon_lock:  # see abandon_after_restart
         abandoned = tree.abandon_later.pop(name, [])
     for query_id, origin in abandoned:
-        with contextlib.suppress(RrError):
-            DIRECTORY.lookup(name).tell(Abandon(query_id, origin))
+        give_back(name, query_id, origin)

@@ -45,6 +45,7 @@ import cloudpickle
 
 from rr_actors import events
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
+from rr_actors._core.exit import SUPERVISORS, stop_at_exit
 from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._process.spare import SparePool
 from rr_actors._registrar import Registrar, ResourceRegistrar, Served, start_registrar
@@ -207,6 +208,12 @@ class Supervisor:
             self._stopped = True
             self._release()
             raise
+        stop_at_exit(
+            SUPERVISORS,
+            f"supervisor {self.name!r}",
+            lambda: not self._stopped,
+            lambda timeout: self.stop(timeout=timeout),
+        )
         return self
 
     def stop(self, *, timeout: float | None = None) -> None:

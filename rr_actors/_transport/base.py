@@ -20,7 +20,11 @@ The contract every carrier keeps (the transport tests check it for each one):
   process of the system, or `None` if the carrier does not know the name;
 - **send**: `Peer.tell(message)` never blocks on the other process; messages told to one
   peer from one process arrive in the order they were told; a message that does not
-  pickle raises `ConfigError` at the sender and nothing is sent;
+  pickle raises `ConfigError` at the sender and nothing is sent; nor is one larger than
+  the receiving registrar's `max_message_bytes` (`MessageTooLargeError`, a `ConfigError`);
+- **size**: each connection is bounded by the `max_message_bytes` of the registrar it
+  leads to, both ways: the receiver skips a larger frame unread (answering the error),
+  and a larger answer becomes that error (its `compensation()` runs);
 - **receive**: `serve(endpoint)` makes a registrar of this process reachable; what arrives
   for it is told to it through the directory, with a stand-in reply that sends the
   answer back; a stand-in whose answer cannot be pickled sends an error instead, and one
@@ -31,6 +35,8 @@ The contract every carrier keeps (the transport tests check it for each one):
   `RegistrarStoppedError` after a clean stop), never by waiting out a timeout; a later
   `tell` to a name that is served again (a restarted manager) reaches the new server;
 - **control**: `run(name, fn, timeout=)` runs `fn(registrar)` where that registrar lives;
+- **health**: `serving_trouble(name)` says for how long a registrar served here has been
+  unable to take new connections (a listener out of file descriptors keeps trying);
 - **join**: `address` pickles; `address.attach()` in another process joins the system.
 
 Low-level errors (`EOFError`, `BrokenPipeError`, `OSError`, pickling errors) never reach
@@ -59,6 +65,12 @@ class Endpoint(Protocol):
         """The registrar's name."""
         ...
 
+    @property
+    def max_message_bytes(self) -> int:
+        """The largest message (pickled, in bytes) it takes from another process, or
+        answers with; larger ones get `MessageTooLargeError` (the sender before it sends)."""
+        ...
+
     def run(self, fn: Callable[[Any], Any]) -> Any:
         """Run `fn(registrar)` on the calling thread and return what it returns."""
         ...
@@ -69,6 +81,13 @@ class Endpoint(Protocol):
 
     def stopped_cleanly(self) -> bool:
         """Whether it ended because its owner stopped it (not a crash)."""
+        ...
+
+    def listening(self) -> None:
+        """Called once the carrier serves it: the other processes can reach it from now on.
+
+        It must return at once (the carrier's `serve` calls it).
+        """
         ...
 
 
@@ -116,6 +135,11 @@ class Transport(Protocol):
             RegistrarUnavailableError: its process died or cannot be reached.
             RegistrarStoppedError: it was stopped.
         """
+        ...
+
+    def serving_trouble(self, name: str) -> tuple[float, str] | None:
+        """For how long (seconds) and why registrar `name`, served here, has been unable to
+        take new connections; `None` if it can, or if it is not served here."""
         ...
 
     def close(self) -> None:

@@ -4,13 +4,16 @@ Wire format: one frame per message (`multiprocessing.connection` framing), `8-by
 (little endian) + payload`. Small builtin data and the wire protocol's own records are
 pickled by the C pickler alone (`plain`); everything else, the user's requests and
 responses included, by cloudpickle (so they may be closures). A message's `reply` never
-crosses: the sender keeps it under the token (0: no answer wanted).
+crosses: the sender keeps it under the token (0: no answer wanted). A receiver reads a
+frame's header before its body: a frame whose payload is over its limit is skipped
+without being kept (`Oversized`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import io
+import os
 import pickle
 import struct
 from collections.abc import Callable, Iterator
@@ -27,6 +30,7 @@ from rr_actors.errors import (
     ConfigError,
     DependencyCycleError,
     ErrorFrame,
+    MessageTooLargeError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
     ResourceLoadError,
@@ -35,7 +39,17 @@ from rr_actors.errors import (
     UnknownServerError,
 )
 
-__all__ = ["NO_REPLY", "Run", "frame", "frames", "plain", "unframe", "what"]
+__all__ = [
+    "NO_REPLY",
+    "Oversized",
+    "Run",
+    "frame",
+    "frames",
+    "payload_size",
+    "plain",
+    "unframe",
+    "what",
+]
 
 NO_REPLY = 0
 """The token of a message that wants no answer."""
@@ -62,6 +76,7 @@ _VALUES_BY_REFERENCE: frozenset[type] = frozenset(
         Status,
         StatusUpdate,
         ErrorFrame,
+        MessageTooLargeError,
         ResourceLoadError,
         DependencyCycleError,
         UnknownServerError,
@@ -154,16 +169,99 @@ def frame(token: int, obj: Any) -> bytes:
     return buffer.getvalue()
 
 
-def frames(conn: Connection) -> Iterator[bytes]:
-    """The frames received on `conn`, until it ends (EOF or a socket error)."""
-    while True:
-        try:
-            yield conn.recv_bytes()
-        except (EOFError, OSError):
-            return
+@dataclasses.dataclass(frozen=True)
+class Oversized:
+    """A received frame whose payload was over the limit: skipped, only its token kept.
+
+    Attributes:
+        token: the frame's token (`NO_REPLY`: no answer wanted).
+        size: its payload's size in bytes.
+    """
+
+    token: int
+    size: int
 
 
-def unframe(data: bytes) -> tuple[int, memoryview]:
+def payload_size(data: bytes | memoryview) -> int:
+    """The size in bytes of the payload (the pickled message) of a frame made by `frame`."""
+    header = _LONG_LENGTH.size if data[:4] == b"\xff\xff\xff\xff" else _LENGTH.size
+    return len(data) - header - _TOKEN.size
+
+
+_SKIP_CHUNK = 64 * 1024
+
+
+def frames(conn: Connection, limit: int | None = None) -> Iterator[bytes | bytearray | Oversized]:
+    """The frames received on `conn`, until it ends (EOF, a socket error, a bad header).
+
+    Reads each frame's header first (`multiprocessing.connection`'s framing), then its
+    body. A frame whose payload is over `limit` bytes is not kept: once its token is
+    read, an `Oversized` stands in for it (so it can be answered at once), then the rest
+    of it is read into a small buffer and dropped; the connection stays in step for the
+    frames after it.
+    """
+    fd = conn.fileno()
+    try:
+        while True:
+            header = _read(fd, _LENGTH.size, at_start=True)
+            if header is None:
+                return
+            (size,) = _LENGTH.unpack(header)
+            if size == -1:
+                (size,) = struct.unpack("!Q", _read(fd, 8))
+            elif size < 0:
+                return  # not a frame of ours: the stream cannot be followed any further
+            if limit is not None and size - _TOKEN.size > limit:
+                (token,) = _TOKEN.unpack(_read(fd, _TOKEN.size))
+                yield Oversized(token, size - _TOKEN.size)  # (answered before the rest comes)
+                _skip(fd, size - _TOKEN.size)
+                continue
+            yield _read(fd, size)
+    except (EOFError, OSError):
+        return
+
+
+def _read(fd: int, size: int, *, at_start: bool = False) -> Any:
+    """Exactly `size` bytes from `fd` (a `bytes`, or a `bytearray` if it took several reads).
+
+    Returns `None` at an end of the stream before the first byte when `at_start`.
+
+    Raises:
+        EOFError: the stream ended part of the way.
+    """
+    if size == 0:
+        return b""
+    data = os.read(fd, size)
+    if len(data) == size:
+        return data
+    if not data:
+        if at_start:
+            return None
+        raise EOFError
+    buffer = bytearray(size)
+    buffer[: len(data)] = data
+    view = memoryview(buffer)
+    got = len(data)
+    while got < size:
+        count = os.readv(fd, [view[got:]])
+        if count == 0:
+            raise EOFError
+        got += count
+    return buffer
+
+
+def _skip(fd: int, size: int) -> None:
+    """Read `size` bytes from `fd` and drop them, a small buffer at a time."""
+    buffer = bytearray(min(size, _SKIP_CHUNK))
+    view = memoryview(buffer)
+    while size > 0:
+        count = os.readv(fd, [view[: min(size, len(buffer))]])
+        if count == 0:
+            raise EOFError
+        size -= count
+
+
+def unframe(data: bytes | bytearray) -> tuple[int, memoryview]:
     """Split a received frame into token and payload; raises ValueError if it is too short."""
     if len(data) < _TOKEN.size:
         raise ValueError(f"a frame of {len(data)} bytes is too short to hold a token")

@@ -2,33 +2,48 @@
 
 The listener holds the name's lock file for as long as it listens, so the socket path is
 its own. Each accepted connection passes the authkey handshake on a thread of its own
-before anything it sends is unpickled; then every message is told to the local
-registrar with a stand-in reply that answers over the same connection.
+(all of it within `HANDSHAKE_TIMEOUT` seconds of the accept) before anything it sends is
+unpickled; then every message is told to the local registrar with a stand-in reply that
+answers over the same connection. The accept thread survives running out of file
+descriptors: it backs off and tries again, and reports how long it has been unable to
+accept (`Listener.trouble`) for the manager's heartbeat answer.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
+import math
 import os
 import pickle
 import socket
 import threading
+import time
 from multiprocessing import AuthenticationError
-from multiprocessing.connection import answer_challenge, deliver_challenge
 from typing import TYPE_CHECKING, Any
 
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.codec import NO_REPLY, Run, frame, frames, unframe
+from rr_actors._transport.codec import (
+    NO_REPLY,
+    Oversized,
+    Run,
+    frame,
+    frames,
+    payload_size,
+    unframe,
+    what,
+)
 from rr_actors._transport.sockets import (
     HANDSHAKE_TIMEOUT,
-    set_io_timeout,
+    handshake,
+    publish_limit,
     split,
     take_name_lock,
 )
 from rr_actors._transport.writer import Lost, Writer
-from rr_actors.errors import ConfigError, RrError
+from rr_actors.errors import ConfigError, MessageTooLargeError, RrError
 
 if TYPE_CHECKING:
     from rr_actors._transport.unix import AttachedSystem
@@ -41,10 +56,11 @@ logger = logging.getLogger("rr_actors")
 class _AnswerReply:
     """The provider side's stand-in for a sender's reply: answers over the connection.
 
-    An answer that does not pickle becomes an error answer (the caller never hangs). When
-    a successful answer does not reach its caller (it does not pickle, or the caller's
-    connection ends first), the message's `compensation()` is told to the local
-    registrar: for a `Load`, the consumer id it created is released again.
+    An answer that does not pickle, or is over the registrar's `max_message_bytes`,
+    becomes an error answer (the caller never hangs). When a successful answer does not
+    reach its caller (it does not pickle, is too large, or the caller's connection ends
+    first), the message's `compensation()` is told to the local registrar: for a `Load`,
+    the consumer id it created is released again.
     """
 
     __slots__ = ("_done", "_link", "_message", "_token")
@@ -67,9 +83,23 @@ class _AnswerReply:
         self._done = True
         try:
             data = frame(self._token, (value, error))
-        except Exception as exc:  # noqa: BLE001 - any pickling failure becomes an error answer
+        except BaseException as exc:  # noqa: BLE001 - any pickling failure (SystemExit from a
+            # user __reduce__ too) becomes an error answer
             data = frame(self._token, (None, self._unpicklable(value, error, exc)))
             error = exc
+        limit = self._link.listener.max_message_bytes
+        if payload_size(data) > limit:
+            too_large = MessageTooLargeError(
+                f"the answer to the {what(self._message, self._link.listener.name)} is "
+                f"{payload_size(data)} bytes pickled, over registrar "
+                f"{self._link.listener.name!r}'s max_message_bytes ({limit})",
+                payload_size(data),
+                limit,
+            )
+            if error is None:
+                self._compensate()  # its caller gets an error
+            data = frame(self._token, (None, too_large))
+            error = too_large
         on_lost = self._compensate if error is None else None
         if not self._link.send(data, on_lost) and on_lost is not None:
             on_lost()
@@ -81,7 +111,7 @@ class _AnswerReply:
             with contextlib.suppress(RrError):
                 DIRECTORY.lookup(self._link.listener.name).tell(compensation)
 
-    def _unpicklable(self, value: Any, error: BaseException | None, exc: Exception) -> RrError:
+    def _unpicklable(self, value: Any, error: BaseException | None, exc: BaseException) -> RrError:
         if error is not None:
             return RrError(f"{type(error).__qualname__}: {error} (the error itself did not pickle)")
         self._compensate()  # its caller gets an error
@@ -90,10 +120,15 @@ class _AnswerReply:
 
 
 class _Link:
-    """One accepted connection on the provider side; its reader runs on its own thread."""
+    """One accepted connection on the provider side; its reader runs on its own thread.
 
-    def __init__(self, listener: Listener, sock: socket.socket) -> None:
+    Raises:
+        OSError: no file descriptor is left for its reading side (`EMFILE`, ...).
+    """
+
+    def __init__(self, listener: Listener, sock: socket.socket, deadline: float) -> None:
         self.listener = listener
+        self.deadline = deadline  # for the whole handshake
         self.sock, self.conn = split(sock)
         self.writer = Writer(self.sock, self._failed)
 
@@ -112,36 +147,53 @@ class _Link:
         logger.debug("connection to a caller of %s lost: %s", self.listener.name, exc)
 
     def serve(self) -> None:
-        """Handshake, then deliver every message to the local registrar (its own thread)."""
+        """Handshake, then deliver every message to the local registrar (its own thread).
+
+        The whole handshake must be done within `HANDSHAKE_TIMEOUT` seconds of the accept:
+        a peer that trickles it byte by byte is cut off at that deadline.
+        """
         listener = self.listener
         conn = self.conn
         try:
             try:
-                set_io_timeout(conn, HANDSHAKE_TIMEOUT)
-                deliver_challenge(conn, listener.authkey)
-                answer_challenge(conn, listener.authkey)
-                set_io_timeout(conn, 0)
+                handshake(self.sock, listener.authkey, self.deadline, server=True)
             except (AuthenticationError, EOFError, OSError) as exc:
                 logger.warning("registrar %s refused a connection: %s", listener.name, exc)
                 return
             self.writer.start(f"rr-answer-{listener.name}")
-            for data in frames(conn):
+            for data in frames(conn, listener.max_message_bytes):
                 try:
-                    self._deliver(data)
+                    if isinstance(data, Oversized):
+                        self._refuse(data)
+                    else:
+                        self._deliver(data)
                 except Exception:
                     logger.exception("registrar %s dropped a malformed message", listener.name)
         finally:
-            listener.forget(self)
             self.writer.close()
             conn.close()
+            listener.forget(self)
 
-    def _deliver(self, data: bytes) -> None:
+    def _refuse(self, oversized: Oversized) -> None:
+        """Answer a message over the limit with an error; it was skipped, never unpickled."""
+        listener = self.listener
+        error = MessageTooLargeError(
+            f"a message of {oversized.size} bytes for registrar {listener.name!r} is over "
+            f"its max_message_bytes ({listener.max_message_bytes}); it was not read",
+            oversized.size,
+            listener.max_message_bytes,
+        )
+        logger.warning("%s", error)
+        if oversized.token != NO_REPLY:
+            self.send(frame(oversized.token, (None, error)))
+
+    def _deliver(self, data: bytes | bytearray) -> None:
         """Unpickle one frame and hand the message to the local registrar."""
         name = self.listener.name
         token, payload = unframe(data)
         try:
             message = pickle.loads(payload)
-        except Exception as exc:  # noqa: BLE001 - answered as an error, never raised here
+        except BaseException as exc:  # noqa: BLE001 - answered as an error, never raised here
             if token != NO_REPLY:
                 error = RrError(f"a message for registrar {name!r} cannot be unpickled: {exc}")
                 self.send(frame(token, (None, error)))
@@ -167,16 +219,35 @@ class _Link:
             reply.set_error(exc if isinstance(exc, RrError) else RrError(f"{exc!r}"))
 
 
+_SHORTAGE = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM})
+"""`accept` errors that mean "out of resources for now": back off and try again."""
+
+_BACKOFF_FIRST = 0.01
+_BACKOFF_MAX = 0.5
+"""Seconds the listener waits before it retries an `accept` that failed (doubling).
+
+Well below `HANDSHAKE_TIMEOUT`: a peer waiting in the backlog meanwhile still gets
+through once descriptors are free again."""
+
+
 class Listener:
     """Accepts connections for one registrar served by this process.
 
     It holds the name's lock file for as long as it listens, so the socket path is its own:
     a socket left there by a process that died can be unlinked without asking anyone.
+
+    Its accept thread outlives failures: when `accept` fails for lack of resources (the
+    process is out of file descriptors: `EMFILE`), it logs once, waits (exponential
+    backoff, cut short when one of its connections ends) and tries again, while peers
+    wait in the backlog. [`trouble`][rr_actors._transport.inbound.Listener.trouble] says
+    for how long it has been unable to accept, so a manager process can report it with
+    its heartbeat answer and its supervisor restart a manager that stays unable to.
     """
 
     def __init__(self, system: AttachedSystem, endpoint: Endpoint) -> None:
         self.name = endpoint.name
         self.endpoint = endpoint
+        self.max_message_bytes = endpoint.max_message_bytes
         self.authkey = system.address.authkey
         self.path = system.address.socket_path(self.name)
         self.tombstone = system.address.tombstone_path(self.name)
@@ -184,13 +255,18 @@ class Listener:
         self._closing = threading.Lock()  # a second close waits for the first to finish
         self._links: set[_Link] = set()
         self._closed = False
+        self._wake = threading.Event()  # a connection ended, or the listener closes
+        self._failing_since: float | None = None  # monotonic time of the first failed accept
+        self._failure = ""
         self._lock_fd = take_name_lock(system.address.lock_path(self.name), self.name)
+        self.limit_path = system.address.limit_path(self.name)
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
+            publish_limit(self.limit_path, self.max_message_bytes)  # before anyone connects
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(self.path)  # left behind by a process that died
             self._sock.bind(self.path)
-            self._sock.listen(64)
+            self._sock.listen(socket.SOMAXCONN)  # (connecting peers also wait for room)
         except OSError as exc:
             self._sock.close()
             os.close(self._lock_fd)
@@ -199,25 +275,96 @@ class Listener:
             os.unlink(self.tombstone)
         threading.Thread(target=self._accept, name=f"rr-listen-{self.name}", daemon=True).start()
 
+    def trouble(self) -> tuple[float, str] | None:
+        """For how long (seconds) and why it has been unable to accept; `None` if it can.
+
+        Infinite seconds if its accept thread died (it never comes back by itself).
+        """
+        since = self._failing_since
+        if since is None:
+            return None
+        return time.monotonic() - since, self._failure
+
     def _accept(self) -> None:
+        try:
+            self._accept_until_closed()
+        except BaseException as exc:  # a bug: say so, and let the heartbeat report it
+            self._failing_since = -math.inf
+            self._failure = f"its accept thread died: {exc!r}"
+            logger.exception("registrar %s stopped accepting connections", self.name)
+
+    def _accept_until_closed(self) -> None:
+        backoff = _BACKOFF_FIRST
         while True:
             try:
                 sock, _ = self._sock.accept()
-            except OSError:
-                return  # closed
-            sock.setblocking(True)
-            link = _Link(self, sock)
+                sock.setblocking(True)
+            except OSError as exc:
+                if self._closed:
+                    return
+                if exc.errno == errno.ECONNABORTED:  # the peer gave up before the accept
+                    continue
+                self._cannot_accept(exc, backoff)
+                backoff = min(2 * backoff, _BACKOFF_MAX)
+                continue
+            deadline = time.monotonic() + HANDSHAKE_TIMEOUT
+            try:
+                link = _Link(self, sock, deadline)
+            except OSError as exc:  # no descriptor for its reading side
+                sock.close()
+                self._cannot_accept(exc, backoff)
+                backoff = min(2 * backoff, _BACKOFF_MAX)
+                continue
+            if self._failing_since is not None:
+                self._accepting_again()
+            backoff = _BACKOFF_FIRST
             with self._lock:
                 if self._closed:
                     link.close()
                     link.conn.close()
                     return
                 self._links.add(link)
-            threading.Thread(target=link.serve, name=f"rr-link-{self.name}", daemon=True).start()
+            try:
+                threading.Thread(
+                    target=link.serve, name=f"rr-link-{self.name}", daemon=True
+                ).start()
+            except RuntimeError as exc:  # no thread for it (a limit on threads): as EMFILE
+                self.forget(link)
+                link.close()
+                link.conn.close()
+                self._cannot_accept(OSError(errno.EAGAIN, f"no thread: {exc}"), backoff)
+                backoff = min(2 * backoff, _BACKOFF_MAX)
+
+    def _cannot_accept(self, exc: OSError, backoff: float) -> None:
+        """Note a failed accept (log the first of a run), then wait before the next."""
+        if self._failing_since is None:
+            self._failing_since = time.monotonic()
+            self._failure = f"{type(exc).__name__}: {exc}"
+            with self._lock:
+                open_links = len(self._links)
+            logger.warning(
+                "registrar %s cannot accept connections (%s; %d open): retrying",
+                self.name,
+                exc,
+                open_links,
+            )
+        if exc.errno not in _SHORTAGE:
+            logger.debug("registrar %s: accept failed: %s", self.name, exc)
+        self._wake.clear()
+        self._wake.wait(backoff)  # cut short when a connection ends or the listener closes
+
+    def _accepting_again(self) -> None:
+        trouble = self.trouble()
+        self._failing_since = None
+        if trouble is not None:
+            logger.info(
+                "registrar %s accepts connections again after %.3f s", self.name, trouble[0]
+            )
 
     def forget(self, link: _Link) -> None:
         with self._lock:
             self._links.discard(link)
+        self._wake.set()  # its descriptors are free: a listener backing off tries again
 
     def run(self, message: Run) -> None:
         """Run a control function on a fresh thread (it may block; it is rare)."""
@@ -252,11 +399,14 @@ class Listener:
             self._closed = True
             links = list(self._links)
             self._links.clear()
+        self._wake.set()
         if stopped:
             with contextlib.suppress(OSError), open(self.tombstone, "w"):
                 pass
         with contextlib.suppress(OSError):
             os.unlink(self.path)
+        with contextlib.suppress(OSError):
+            os.unlink(self.limit_path)
         with contextlib.suppress(OSError):
             self._sock.shutdown(socket.SHUT_RDWR)
         self._sock.close()

@@ -2,6 +2,9 @@
 
 One connection per target per process, made lazily on the connection's writer thread;
 answers are read by one daemon thread per connection, which resolves the kept replies.
+Each connection is bounded by the target's `max_message_bytes`, read from the file its
+listener publishes when the connection is made: a larger message is refused before
+anything of it is sent, a larger answer is skipped unread.
 When the connection ends (the peer died or its registrar stopped), every answer still
 outstanding on it fails at once: that is how a dead peer is seen, not by a timeout.
 """
@@ -21,11 +24,22 @@ from typing import TYPE_CHECKING, Any
 
 from rr_actors._core.directory import Reply
 from rr_actors._core.replies import FutureReply, wait
-from rr_actors._transport.codec import NO_REPLY, Run, frame, frames, unframe, what
-from rr_actors._transport.sockets import connect
+from rr_actors._transport.codec import (
+    NO_REPLY,
+    Oversized,
+    Run,
+    frame,
+    frames,
+    payload_size,
+    unframe,
+    what,
+)
+from rr_actors._transport.sockets import connect, read_limit
 from rr_actors._transport.writer import Writer
+from rr_actors.config import DEFAULT_MAX_MESSAGE_BYTES
 from rr_actors.errors import (
     ConfigError,
+    MessageTooLargeError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
     RrError,
@@ -44,13 +58,15 @@ class _Channel:
 
     `pending` maps a token to the reply (and the message, for error texts) waiting for its
     answer. Entries leave it only through atomic dict operations (`pop` by the reader,
-    `popitem` when the channel is lost), so each reply is answered exactly once.
+    `popitem` when the channel is lost), so each reply is answered exactly once. `limit`
+    is the target's `max_message_bytes`, both ways.
     """
 
-    __slots__ = ("pending", "writer")
+    __slots__ = ("limit", "pending", "writer")
 
-    def __init__(self, writer: Writer) -> None:
+    def __init__(self, writer: Writer, limit: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
         self.writer = writer
+        self.limit = limit
         self.pending: dict[int, tuple[Reply, Any]] = {}
 
 
@@ -86,6 +102,8 @@ class RemotePeer:
 
         Raises:
             ConfigError: the message (say, the request of a call) cannot be pickled.
+            MessageTooLargeError: pickled, it is larger than the remote registrar's
+                `max_message_bytes`; nothing of it was sent.
             RegistrarUnavailableError: the registrar's process is known to be unreachable.
             RegistrarStoppedError: it was stopped, or this process closed the system.
         """
@@ -95,12 +113,20 @@ class RemotePeer:
         token = next(self._tokens) if reply is not None else NO_REPLY  # atomic in CPython
         try:
             data = frame(token, message)
-        except Exception as exc:
+        except BaseException as exc:  # (a SystemExit from a user __reduce__ is contained too)
             raise ConfigError(f"{what(message, self.name)} is not picklable: {exc}") from exc
         for _attempt in (1, 2):
             channel = self._channel
             if channel is None or channel.writer.closed:
                 channel = self._open()
+            if payload_size(data) > channel.limit:
+                raise MessageTooLargeError(
+                    f"the {what(message, self.name)} is {payload_size(data)} bytes pickled, "
+                    f"over registrar {self.name!r}'s max_message_bytes ({channel.limit}); "
+                    f"nothing was sent",
+                    payload_size(data),
+                    channel.limit,
+                )
             if reply is not None:
                 channel.pending[token] = (reply, message)
             if channel.writer.send(data):
@@ -159,7 +185,8 @@ class RemotePeer:
                 raise RegistrarStoppedError(f"the system of registrar {self.name!r} was closed")
             if not os.path.exists(self._path):
                 raise self._gone("cannot be reached (it does not listen)")
-            fresh = _Channel(Writer(None, lambda exc: self._failed(fresh, exc)))
+            limit = read_limit(self._system.address.limit_path(self.name))
+            fresh = _Channel(Writer(None, lambda exc: self._failed(fresh, exc)), limit)
             self._channel = channel = fresh
         threading.Thread(
             target=self._connect, args=(channel,), name=f"rr-write-{self.name}", daemon=True
@@ -227,16 +254,38 @@ class RemotePeer:
     def _read(self, channel: _Channel, conn: Connection) -> None:
         """The reader thread of one connection: resolve answers until it ends."""
         try:
-            for data in frames(conn):
+            for data in frames(conn, channel.limit):
                 try:
-                    self._answer(channel, data)
+                    if isinstance(data, Oversized):
+                        self._too_large(channel, data)
+                    else:
+                        self._answer(channel, data)
                 except Exception:
                     logger.exception("dropped a malformed answer from registrar %s", self.name)
         finally:
             self._lose(channel, None)
             conn.close()
 
-    def _answer(self, channel: _Channel, data: bytes) -> None:
+    def _too_large(self, channel: _Channel, oversized: Oversized) -> None:
+        """An answer over the limit was skipped unread: fail its reply, undo what it made."""
+        entry = channel.pending.pop(oversized.token, None)
+        if entry is None:
+            return
+        reply, message = entry
+        compensation = message.compensation()
+        if compensation is not None:
+            with contextlib.suppress(RrError):
+                self.tell(compensation)
+        reply.set_error(
+            MessageTooLargeError(
+                f"the answer to the {what(message, self.name)} is {oversized.size} bytes "
+                f"pickled, over registrar {self.name!r}'s max_message_bytes ({channel.limit})",
+                oversized.size,
+                channel.limit,
+            )
+        )
+
+    def _answer(self, channel: _Channel, data: bytes | bytearray) -> None:
         token, payload = unframe(data)
         entry = channel.pending.pop(token, None)
         if entry is None:
@@ -244,7 +293,7 @@ class RemotePeer:
         reply, message = entry
         try:
             value, error = pickle.loads(payload)
-        except Exception as exc:  # noqa: BLE001 - any unpickling failure fails this answer
+        except BaseException as exc:  # noqa: BLE001 - any unpickling failure fails this answer
             reply.set_error(self._unreadable(message, exc))
             return
         if error is None:
@@ -254,7 +303,7 @@ class RemotePeer:
         else:
             reply.set_error(RrError(f"a malformed answer from registrar {self.name!r}"))
 
-    def _unreadable(self, message: Any, exc: Exception) -> RrError:
+    def _unreadable(self, message: Any, exc: BaseException) -> RrError:
         """The error for an answer that cannot be unpickled here; what it created is undone.
 
         The message's `compensation()` (a `Load`'s: an `Abandon` of its consumer id) goes

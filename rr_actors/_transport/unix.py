@@ -10,6 +10,10 @@ Another process reaches that registrar through a
 for names that are not registered locally, so the registrar code sends a `Load` the same
 way whether its target lives in this process or another one.
 
+Each listener also publishes its registrar's `max_message_bytes` in
+`<runtime_dir>/<registrar>.limit`, so that a sender refuses a message that is too large
+before it sends anything of it (the listener refuses such a frame unread, too).
+
 Wire format: one frame per message (`multiprocessing.connection` framing), `8-byte token
 (little endian) + cloudpickle payload`. A message's `reply` never crosses: the sender keeps
 it in a table under the token (0: no answer wanted) and the receiver substitutes a reply
@@ -58,7 +62,7 @@ __all__ = ["AttachedSystem", "System", "SystemAddress", "attach"]
 logger = logging.getLogger("rr_actors")
 
 _MAX_SOCKET_PATH = 107  # sun_path is 108 bytes with the terminating NUL (Linux)
-_RUNTIME_SUFFIXES = (".sock", ".stopped", ".lock")  # the files a system puts in its directory
+_RUNTIME_SUFFIXES = (".sock", ".stopped", ".lock", ".limit")  # the files a system makes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,6 +88,10 @@ class SystemAddress:
     def lock_path(self, name: str) -> str:
         """The file whose `flock` the process serving registrar `name` holds."""
         return os.path.join(self.runtime_dir, f"{name}.lock")
+
+    def limit_path(self, name: str) -> str:
+        """A file that holds registrar `name`'s `max_message_bytes` (decimal), for senders."""
+        return os.path.join(self.runtime_dir, f"{name}.limit")
 
     def attach(self) -> AttachedSystem:
         """Join this system from the calling process (see `attach`)."""
@@ -143,6 +151,7 @@ class AttachedSystem:
         threading.Thread(
             target=self._watch, args=(endpoint, listener), name=f"rr-watch-{name}", daemon=True
         ).start()
+        endpoint.listening()  # (it listens: Listener binds in its constructor)
 
     def run(self, registrar_name: str, fn: Callable[[Any], Any], *, timeout: float) -> Any:
         """Run `fn(registrar)` where registrar `registrar_name` lives and return the result.
@@ -165,6 +174,16 @@ class AttachedSystem:
             raise UnknownServerError(f"no registrar named {registrar_name!r} on this system")
         assert isinstance(peer, RemotePeer)
         return peer.run(fn, timeout=timeout)
+
+    def serving_trouble(self, name: str) -> tuple[float, str] | None:
+        """For how long (seconds) and why registrar `name` has been unable to take new
+        connections here; `None` if it can (or this process does not serve it).
+
+        A manager process reports it with each heartbeat answer, so its supervisor can
+        restart a manager that stays unable to accept (out of file descriptors, say).
+        """
+        listener = self._listeners.get(name)
+        return None if listener is None else listener.trouble()
 
     def close(self) -> None:
         """Leave the system: stop listening, close every connection (idempotent).

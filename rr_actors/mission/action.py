@@ -137,6 +137,8 @@ class Mission:
                     start, arrived = self._mission(sup, app)
                 finally:
                     entries = self._unload_all(sup, app)
+                    sup.flush_events()  # the last exits and restarts of the drive are heard
+                    self._faults.close()
         except MissionError:
             raise
         except rr.RrError as exc:

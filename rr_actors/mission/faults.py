@@ -1,20 +1,24 @@
 """Injecting the faults for real, and following the managers through their restarts.
 
     Mission._drive ──inject(F1/F2)──► SIGKILL a program (pidfd; pid and creation time checked)
-                   ──inject(F3-F5)──► SIGKILL a manager ──► a thread waits on its pidfd (detected),
-                                                            then for the restart that follows it,
-                                                            then for an answer from its catalog
-                   ──notice_restarts()──► restarts that no injected fault caused (by hand, say)
+                   ──inject(F3-F5)──► SIGKILL a manager ──► a thread waits for the supervisor's
+                                                            `ChildExited` (detected), then for the
+                                                            restart that follows, then for an
+                                                            answer from its catalog (recovered)
+                   ──notice_restarts()──► exits that no injected fault caused (by hand, say), with
+                                          their `ChildRestarted.restart_s`
 
-Every wait for a restart names the restart count it waits for, counted from the count
-before the kill, so a manager that was also killed by hand (before, or while the mission
-waits) cannot make a wait return early or miss its restart.
+The times come from the supervisor's event stream (`Supervisor.subscribe`): when it saw a
+manager exit, and how long the restart took. Every wait for a restart names the restart
+count it waits for, counted from the count before the kill, so a manager that was also
+killed by hand (before, or while the mission waits) cannot make a wait return early or
+miss its restart.
 """
 
 from __future__ import annotations
 
 import os
-import select
+import queue
 import signal
 import threading
 import time
@@ -24,7 +28,7 @@ from typing import Any, TypeVar
 import rr_actors as rr
 from rr_actors.mission import managers, programs
 from rr_actors.mission.config import FAULT_WHAT, MANAGER_OF, MANAGERS, MissionError
-from rr_actors.mission.report import FaultRecord
+from rr_actors.mission.report import FaultRecord, UnplannedExit
 
 __all__ = ["SERVER_OF", "Faults", "alive", "retry_through_restarts", "sigkill"]
 
@@ -96,6 +100,11 @@ def _registrar(registrar: rr.ResourceRegistrar) -> rr.ResourceRegistrar:
     return registrar
 
 
+def _monotonic(at: float) -> float:
+    """An event's wall-clock `at` as a `time.monotonic()` reading."""
+    return time.monotonic() - (time.time() - at)
+
+
 class Faults:
     """The faults injected into one run, and the managers' restarts seen meanwhile.
 
@@ -119,30 +128,56 @@ class Faults:
         self.recovery_timeout = recovery_timeout
         self.say = say
         self.lock = threading.Lock()
-        """Guards the records: recovery threads and the mission's thread both set them."""
+        """Guards the records: recovery threads, the event thread and the mission's."""
         self.records: list[FaultRecord] = []
-        self.unplanned: list[tuple[str, float, int | None]] = []
-        """`(manager, seen_at, pid)` of every restart that no injected fault caused."""
-        # Restarts of each manager accounted for: those before the drive, those our faults
-        # caused, and those already reported as unplanned.
-        self._accounted = {name: sup.child(name).restarts for name in MANAGERS}
+        self.unplanned: list[UnplannedExit] = []
+        """Every manager exit that no injected fault caused (killed by hand, say)."""
+        self._injected = dict.fromkeys(MANAGERS, 0)  # injected exits not seen yet
+        self._seen: dict[str, queue.SimpleQueue[float]] = {
+            name: queue.SimpleQueue() for name in MANAGERS
+        }  # when the supervisor saw the injected exits (monotonic)
+        self._news: list[str] = []
+        self._subscription = sup.subscribe(self._on_event)
+
+    def close(self) -> None:
+        """Stop following the supervisor's events."""
+        self._subscription.close()
 
     def ready(self) -> bool:
         """Whether every manager is running (a fault is injected only then)."""
         return all(self.sup.child(name).state == "running" for name in MANAGERS)
 
-    def notice_restarts(self) -> None:
-        """Record every manager restart since the last look that no injected fault caused."""
-        now = time.monotonic()
-        for name in MANAGERS:
-            info = self.sup.child(name)
+    def _on_event(self, event: rr.events.Event) -> None:
+        """The supervisor's events (its subscriber thread): exits, and restarts' durations."""
+        if isinstance(event, rr.events.ChildExited) and event.child in MANAGERS:
+            if event.reason.startswith("shutdown"):  # stopped by the supervisor itself
+                return
             with self.lock:
-                extra = info.restarts - self._accounted[name]
-                if extra <= 0:
-                    continue
-                self._accounted[name] = info.restarts
-                self.unplanned.extend((name, now, info.pid) for _ in range(extra))
-            self.say(f"{name} was restarted, but no fault of the mission killed it")
+                if self._injected[event.child] > 0:  # ours
+                    self._injected[event.child] -= 1
+                    self._seen[event.child].put(_monotonic(event.at))
+                    return
+                self.unplanned.append(UnplannedExit(event.child, _monotonic(event.at), event.pid))
+                self._news.append(
+                    f"{event.child} exited ({event.reason}), but no fault of the mission killed it"
+                )
+        elif isinstance(event, rr.events.ChildRestarted) and event.child in MANAGERS:
+            with self.lock:
+                exit = next(
+                    (u for u in self.unplanned if u.manager == event.child and u.restart_s is None),
+                    None,
+                )
+                if exit is not None:
+                    exit.restart_s = event.restart_s
+                    self._news.append(f"{event.child} restarted after {event.restart_s:.3f} s")
+
+    def notice_restarts(self) -> None:
+        """Tell the story of the exits and restarts no injected fault caused, since the last
+        look (on the mission's thread)."""
+        with self.lock:
+            news, self._news = self._news, []
+        for line in news:
+            self.say(line)
 
     def inject(self, fault: str) -> FaultRecord | None:
         """Inject `fault` for real: SIGKILL the LiDAR, the driver or a manager.
@@ -188,10 +223,11 @@ class Faults:
         record = FaultRecord(fault, time.monotonic())
         with self.lock:
             self.records.append(record)
-            self._accounted[name] += 1  # this restart is ours, not an unplanned one
+            self._injected[name] += 1  # its exit is ours, not an unplanned one
         if pidfd is not None:
             signal.pidfd_send_signal(pidfd, signal.SIGKILL)
             record.injected_at = time.monotonic()
+            os.close(pidfd)
             self.say(f"{fault} injected: {FAULT_WHAT[fault]} (SIGKILL pid {info.pid})")
         else:  # a thread manager: make its registrar actor die
             from rr_actors.testing import crash  # noqa: PLC0415
@@ -201,23 +237,22 @@ class Faults:
             self.say(f"{fault} injected: {FAULT_WHAT[fault]} (its registrar crashed)")
         threading.Thread(
             target=self._await_manager,
-            args=(record, name, pidfd, info.restarts),
+            args=(record, name, info.restarts),
             name=f"mission-{fault}",
             daemon=True,
         ).start()
         return record
 
-    def _await_manager(
-        self, record: FaultRecord, name: str, pidfd: int | None, restarts_before: int
-    ) -> None:
-        """F3-F5: see the manager die, wait for its restart, check its restored catalog."""
+    def _await_manager(self, record: FaultRecord, name: str, restarts_before: int) -> None:
+        """F3-F5: see the supervisor see the exit, wait for the restart, check the catalog."""
         deadline = record.injected_at + self.recovery_timeout
         try:
-            if pidfd is not None:
-                select.select([pidfd], [], [], max(0.0, deadline - time.monotonic()))
-                os.close(pidfd)
+            try:
+                seen = self._seen[name].get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                raise rr.CallTimeoutError(f"the exit of {name} was not seen") from None
             with self.lock:
-                record.detected_at = time.monotonic()
+                record.detected_at = seen
             target = restarts_before + 1  # the restart that follows our kill, not an earlier one
             while True:
                 info = self.sup.wait_restarted(

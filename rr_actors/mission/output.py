@@ -104,7 +104,7 @@ def _notes(report: MissionReport) -> list[str]:
     if report.faults:
         notes.append("detected, recovered: seconds after the injection")
     if report.unplanned_restarts:
-        notes.append("-: a manager restart no fault caused, when the mission noticed it")
+        notes.append("-: a manager exit no fault caused; recovered: its restart took")
     return notes
 
 

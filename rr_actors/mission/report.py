@@ -28,6 +28,7 @@ __all__ = [
     "MissionReport",
     "Odometry",
     "TimelineRow",
+    "UnplannedExit",
     "UnplannedRestart",
     "build_report",
     "timeline_rows",
@@ -72,20 +73,39 @@ class FaultResult:
 
 @dataclasses.dataclass(frozen=True)
 class UnplannedRestart:
-    """A restart of a manager that no injected fault caused (it was killed by hand, say).
+    """A manager exit that no injected fault caused (it was killed by hand, say).
 
-    The mission sees it from the supervisor's restart count, so it knows when it noticed
-    the restart, not when the manager died.
+    Its times come from the supervisor's events (`ChildExited`, `ChildRestarted`).
 
     Attributes:
         manager: the manager's name.
-        seen_at_s: when the mission noticed it, seconds from the start of the drive.
-        pid: the manager's process after the restart (`None` for a thread manager).
+        seen_at_s: when the supervisor saw it exit, seconds from the start of the drive.
+        pid: the process that exited.
+        restarted_after_s: how long its restart took (`ChildRestarted.restart_s`), or
+            `None` if it had not come back by the end.
     """
 
     manager: str
     seen_at_s: float
     pid: int | None
+    restarted_after_s: float | None = None
+
+
+@dataclasses.dataclass
+class UnplannedExit:
+    """What the mission records of an exit no fault caused, as the events arrive.
+
+    Attributes:
+        manager: the manager's name.
+        seen_at: when the supervisor saw it exit (monotonic seconds).
+        pid: the process that exited.
+        restart_s: how long its restart took, once it came back.
+    """
+
+    manager: str
+    seen_at: float
+    pid: int | None
+    restart_s: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,7 +165,12 @@ class MissionReport:
                 for f in self.faults
             ],
             "unplanned_restarts": [
-                {"manager": r.manager, "seen_at_s": _round(r.seen_at_s), "pid": r.pid}
+                {
+                    "manager": r.manager,
+                    "seen_at_s": _round(r.seen_at_s),
+                    "pid": r.pid,
+                    "restarted_after_s": _round(r.restarted_after_s),
+                }
                 for r in self.unplanned_restarts
             ],
             "leaked_processes": self.leaked_processes,
@@ -198,10 +223,8 @@ def timeline_rows(report: MissionReport) -> list[TimelineRow]:
     """Turn what happened into the timeline's rows, in time order.
 
     This is the one place that decides what the timeline shows: every injected fault,
-    and every manager restart that no fault caused. Such a restart is known here only
-    from the supervisor's restart count (when the mission noticed it); once the
-    supervisor publishes events (`ChildExited`, `ChildRestarted`), they can fill in its
-    detection and recovery times here, and nothing else needs to change.
+    and every manager exit that no fault caused, at the time the supervisor saw it, with
+    how long its restart took (the supervisor's `ChildExited` and `ChildRestarted`).
     """
     rows = [
         TimelineRow(
@@ -215,7 +238,9 @@ def timeline_rows(report: MissionReport) -> list[TimelineRow]:
         for f in report.faults
     ]
     rows.extend(
-        TimelineRow("-", f"{r.manager} restarted, no fault", r.seen_at_s, None, None, None)
+        TimelineRow(
+            "-", f"{r.manager} exited, no fault", r.seen_at_s, None, r.restarted_after_s, None
+        )
         for r in report.unplanned_restarts
     )
     return sorted(rows, key=lambda row: row.at_s)
@@ -321,7 +346,7 @@ def build_report(
     *,
     odometry: Odometry,
     faults: list[FaultRecord],
-    unplanned: list[tuple[str, float, int | None]],
+    unplanned: list[UnplannedExit],
     start: float,
     arrived: float,
     nominal_time_s: float,
@@ -333,7 +358,7 @@ def build_report(
     Args:
         odometry: the run's odometry (read once more here).
         faults: the injected faults.
-        unplanned: `(manager, seen_at, pid)` of each restart no fault caused.
+        unplanned: each manager exit no fault caused.
         start: when the drive started (monotonic seconds).
         arrived: when the goal was reached (monotonic seconds).
         nominal_time_s: the drive's length without any stop, seconds.
@@ -381,6 +406,6 @@ def build_report(
         trace=trace,
         stops=tuple((a - start, b - start) for a, b in stops),
         unplanned_restarts=tuple(
-            UnplannedRestart(name, seen - start, pid) for name, seen, pid in unplanned
+            UnplannedRestart(u.manager, u.seen_at - start, u.pid, u.restart_s) for u in unplanned
         ),
     )

@@ -1,0 +1,124 @@
+"""Stop what a program left running when its main thread ends.
+
+A registrar's actors and a supervisor's threads are daemon threads: they never keep a
+program alive by themselves. So that a script that forgets `stop()`, or raises before it,
+still ends cleanly (durable catalogs written, manager processes stopped), every running
+supervisor and registrar is listed here and stopped when the main thread ends:
+
+```
+ main thread ends (returns, or an exception's traceback was printed)
+   └─ threading._shutdown ─► stop_everything(): supervisors, newest first (each stops its
+                              managers and the registrars it made), then the registrars
+                              still running, newest first; all within EXIT_TIMEOUT s
+      ─► the interpreter then joins non-daemon threads (none of ours) and runs atexit
+```
+
+The hook is the platform's (`PLATFORM.at_main_thread_end`: CPython's private
+`threading._register_atexit` on the `linux` platform, `atexit` on the portable one): it
+runs while every thread still runs, and before `multiprocessing`'s own `atexit` handler
+terminates daemonic child processes (manager processes among them) without a clean stop.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+
+from rr_actors._platform import PLATFORM
+
+__all__ = [
+    "EXIT_TIMEOUT",
+    "REGISTRARS",
+    "SUPERVISORS",
+    "left_running",
+    "stop_at_exit",
+    "stop_everything",
+]
+
+logger = logging.getLogger("rr_actors")
+
+EXIT_TIMEOUT = 10.0
+"""Seconds that stopping everything left running may take when the main thread ends."""
+
+SUPERVISORS = 0
+REGISTRARS = 1
+"""Tiers: supervisors stop first (they stop what they started), then registrars."""
+
+_MIN_STOP = 0.1  # seconds each stop still gets once EXIT_TIMEOUT ran out
+
+_lock = threading.Lock()
+_entries: dict[int, tuple[int, str, Callable[[], bool], Callable[[float], None]]] = {}
+_numbers = itertools.count()
+_hooked = False
+_prune_at = 64  # entries; doubled after each pruning, so adding stays O(1) amortised
+
+
+def stop_at_exit(
+    tier: int, what: str, alive: Callable[[], bool], stop: Callable[[float], None]
+) -> None:
+    """Have `stop(timeout)` called when the main thread ends, if `alive()` then.
+
+    Entries whose `alive()` is false are dropped as more are added (whenever their
+    number doubled), so a program that starts and stops many registrars keeps about
+    twice the running ones listed at most.
+
+    Args:
+        tier: `SUPERVISORS` or `REGISTRARS` (lower tiers stop first).
+        what: what it is, for people (`"registrar 'erm'"`).
+        alive: whether it still needs stopping (called on any thread, must be cheap).
+        stop: stops it within `timeout` seconds; what it raises is logged.
+    """
+    global _hooked, _prune_at  # (one process-wide list)
+    with _lock:
+        if len(_entries) >= _prune_at:
+            for number in [n for n, entry in _entries.items() if not entry[2]()]:
+                del _entries[number]
+            _prune_at = max(64, 2 * len(_entries))
+        _entries[next(_numbers)] = (tier, what, alive, stop)
+        if not _hooked:
+            try:
+                PLATFORM.at_main_thread_end(stop_everything)
+            except RuntimeError:  # the interpreter is shutting down already
+                return
+            _hooked = True
+
+
+def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
+    """Stop every listed supervisor and registrar that still runs; newest first per tier.
+
+    Runs on the main thread when it ends. A Ctrl-C while it runs skips the rest (the
+    threads are daemon threads: the program still ends).
+    """
+    deadline = time.monotonic() + timeout
+    with _lock:
+        entries = sorted(_entries.items(), key=lambda item: (item[1][0], -item[0]))
+        _entries.clear()
+    for _number, (_tier, what, alive, stop) in entries:
+        try:
+            if alive():
+                logger.info("stopping %s: it was still running when the program ended", what)
+                stop(max(_MIN_STOP, deadline - time.monotonic()))
+        except KeyboardInterrupt:
+            return
+        except Exception:
+            logger.exception("stopping what was left running at exit failed")
+
+
+def left_running() -> list[str]:
+    """What of the listed supervisors and registrars still runs, oldest first."""
+    with _lock:
+        return [entry[1] for _, entry in sorted(_entries.items()) if entry[2]()]
+
+
+def _forget_all() -> None:
+    """In a forked child: the parent's registrars and supervisors are not ours to stop."""
+    global _lock  # a thread of the parent may have held it at the fork
+    _lock = threading.Lock()
+    _entries.clear()
+
+
+os.register_at_fork(after_in_child=_forget_all)

@@ -1,0 +1,182 @@
+"""A registrar's resource servers: register, unregister (rule 12), fetch, update responses.
+
+`unregister_server` sends `FATAL` to every consumer of the server's resources, revokes
+their ids and unloads the resources (through `unloading.py`); `fetch_queries` asked of
+this registrar lists what a consumer holds at one of its servers (rule 10);
+`update_response` replaces a stored response and tells every consumer (rule 11).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+import uuid
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from rr_actors import events
+from rr_actors._catalog import Resource, ResourceState
+from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.replies import Join
+from rr_actors._registrar.endpoints import ServerActor
+from rr_actors._registrar.messages import Fetch, ResponseUpdated, Revoke
+from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
+from rr_actors._registrar.state import Server, Shared
+from rr_actors._types import Status, StatusCallback, StatusUpdate
+from rr_actors.errors import DuplicateNameError, RrError, UnknownServerError
+
+if TYPE_CHECKING:
+    from rr_actors._registrar.status import StatusRelay
+    from rr_actors._registrar.unloading import Unloading
+
+__all__ = ["Servers", "consumers_by_origin"]
+
+logger = logging.getLogger("rr_actors")
+
+
+def consumers_by_origin(resource: Resource) -> dict[str, tuple[str, ...]]:
+    """A resource's consumer ids, grouped by the registrar that holds them."""
+    by_origin: dict[str, list[str]] = {}
+    for query_id, origin in resource.consumers.items():
+        by_origin.setdefault(origin, []).append(query_id)
+    return {origin: tuple(ids) for origin, ids in by_origin.items()}
+
+
+def _log_failure(what: str, then: Callable[[], None], _: Any, error: BaseException | None) -> None:
+    """A continuation that logs a failed answer, then runs `then()`."""
+    if error is not None:
+        logger.warning("%s failed: %s", what, error)
+    then()
+
+
+class Servers:
+    """The resource servers of one registrar, and what is done to a whole server."""
+
+    def __init__(self, shared: Shared, unloading: Unloading, status: StatusRelay) -> None:
+        self.s = shared
+        self.unloading = unloading
+        self.status = status
+
+    def on_fetch(self, message: Fetch) -> None:
+        if message.server not in self.s.servers:
+            message.reply.set_error(
+                UnknownServerError(f"no resource server '{self.s.name}/{message.server}'")
+            )
+            return
+        message.reply.set_result(
+            [
+                query
+                for query in self.s.catalog.server_queries(message.server, self.s.name)
+                if query.origin_rr == message.origin_rr
+            ]
+        )
+
+    def server(self, name: str) -> Server:
+        """The open server `name`.
+
+        Raises:
+            UnknownServerError: there is none (or it is closing).
+        """
+        server = self.s.servers.get(name)
+        if server is None or server.closing:
+            raise UnknownServerError(f"no resource server '{self.s.name}/{name}'")
+        return server
+
+    def op_register(
+        self,
+        name: str,
+        load: LoadCallback,
+        unload: UnloadCallback,
+        on_status: StatusCallback | None,
+        reply: Reply,
+    ) -> None:
+        if name in self.s.servers:
+            raise DuplicateNameError(f"resource server '{self.s.name}/{name}' already exists")
+        ref = ServerActor.start(
+            self.s.name,
+            name,
+            load,
+            unload,
+            self.s.workers,
+            persisted=self.s.saver.store is not None,
+        )
+        self.s.servers[name] = Server(name, ref, on_status)
+        self.unloading.run_parked(name)
+        reply.set_result(None)
+
+    def op_unregister(self, name: str, reply: Reply) -> None:
+        server = self.server(name)
+        server.closing = True
+        resources = [
+            r for r in self.s.catalog.resources_of(name) if r.state is ResourceState.LOADED
+        ]
+
+        def finish() -> None:
+            if not self.s.catalog.resources_of(name) and name in self.s.servers:
+                del self.s.servers[name]
+                server.ref.stop(block=False)
+            reply.set_result(None)
+
+        join = Join(finish)
+        for resource in resources:
+            self.close_resource(resource, join.add())
+        join.seal()
+
+    def close_resource(self, resource: Resource, then: Callable[[], None]) -> None:
+        """Send FATAL to a resource's consumers, revoke their ids, unload it (rule 12)."""
+        self.s.probe("close_resource", resource)
+        query_id = next(iter(resource.consumers))
+        update = StatusUpdate(
+            query_id,
+            Status.FATAL,
+            "resource server was unregistered",
+            f"{self.s.name}/{resource.server}",
+        )
+
+        def revoke_and_unload() -> None:
+            done = self.s.come_back(lambda *_: then())
+            if resource.state is not ResourceState.LOADED:  # its consumers left meanwhile
+                self.unloading.wait_for_unload(resource, done)
+                return
+            for origin, ids in consumers_by_origin(resource).items():
+                with contextlib.suppress(RrError):
+                    DIRECTORY.lookup(origin).tell(Revoke(ids))
+            revoked = list(resource.consumers.items())
+            for qid, _ in revoked:
+                self.s.catalog.release(qid)
+            if self.s.events.active:
+                for qid, origin in revoked:
+                    self.s.events.publish(
+                        events.ConsumerReleased(self.s.name, resource.id, qid, origin)
+                    )
+            self.unloading.unload_resource(resource, done)
+
+        if self.s.events.active:
+            self.s.events.publish(
+                events.StatusSent(self.s.name, query_id, update.status, update.message)
+            )
+        # the FATAL's acknowledgements may complete on any thread: come back to this one
+        back = self.s.come_back(lambda *_: revoke_and_unload())
+        self.status.notify(
+            resource, update, str(uuid.uuid4()), query_id, lambda: back.set_result(None)
+        )
+
+    def op_update_response(self, query_id: str, response: Any, reply: Reply) -> None:
+        resource = self.s.catalog.resource_of(query_id)
+        self.s.catalog.set_response(resource.id, response)
+        self.s.commit()
+        join = Join(lambda: reply.set_result(None))
+        for origin, ids in consumers_by_origin(resource).items():
+            self.s.send(
+                origin,
+                functools.partial(ResponseUpdated, ids, response),
+                functools.partial(
+                    _log_failure, f"telling {origin} about a new response", join.add()
+                ),
+            )
+        join.seal()
+
+    def op_server_queries(self, server: str, reply: Reply) -> None:
+        self.server(server)
+        reply.set_result(self.s.catalog.server_queries(server, self.s.name))

@@ -1,0 +1,159 @@
+"""Starting a registrar: its catalog restored, its actor started (before any handle).
+
+`launch` is the start protocol up to a running actor: the name is claimed in this
+process's directory, the catalog is opened (restored from its backup if there is one),
+what the restore left in doubt is listed, and the actor is started with the shared
+signals its handle waits on. If anything fails, the name and the backup are let go.
+`ResourceRegistrar.start` (in `handle.py`) wraps what it returns in a handle and runs the
+manager's `setup`. `Served` is how a carrier sees a started registrar.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import pykka
+
+from rr_actors import events
+from rr_actors._catalog import ResourceState
+from rr_actors._core.bus import Publisher
+from rr_actors._core.directory import DIRECTORY, LocalPeer
+from rr_actors._core.replies import FutureReply
+from rr_actors._registrar.actor import RegistrarActor
+from rr_actors._registrar.calls import DueAnswers
+from rr_actors._registrar.messages import Request
+from rr_actors._store import Saver, open_catalog
+from rr_actors._types import Query
+from rr_actors.config import RegistrarConfig
+from rr_actors.errors import ConfigError, RegistrarStoppedError
+
+if TYPE_CHECKING:
+    from rr_actors._registrar.handle import ResourceRegistrar
+
+__all__ = ["EVENT_LOG", "Launched", "Served", "launch"]
+
+EVENT_LOG = logging.getLogger("rr_actors.events")
+"""Where registrars log their events at INFO (one line per event; off by default)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Launched:
+    """A registrar actor just started, and what its handle shares with it."""
+
+    config: RegistrarConfig
+    ref: pykka.ActorRef[RegistrarActor]
+    restored: bool
+    """Whether its catalog was restored from a backup."""
+    in_doubt: tuple[Query, ...]
+    """Resources the restore found neither loaded nor unloaded (thesis 4.3.3)."""
+    due: DueAnswers
+    died: threading.Event
+    """Set when a crash of the actor was fully handled."""
+    ended: threading.Event
+    """Set when the actor handed on its last message."""
+    published: Publisher[events.Event]
+
+
+def launch(
+    config: RegistrarConfig | str,
+    *,
+    setting_up: bool,
+    upstream: Publisher[events.Event] | None,
+) -> Launched:
+    """Restore the catalog and start the actor (on the calling thread).
+
+    Args:
+        config: a `RegistrarConfig`, or just a name.
+        setting_up: whether a `setup` runs before it serves others (loads wait for it).
+        upstream: a publisher its events are relayed to as well (a supervisor's tree).
+
+    Raises:
+        DuplicateNameError: a registrar with this name is already running here.
+        CatalogCorruptError: the backup exists but cannot be read (it is left as is).
+        ConfigError: the configuration, or its backup path, is invalid.
+    """
+    if isinstance(config, str):
+        config = RegistrarConfig(name=config)
+    elif not isinstance(config, RegistrarConfig):
+        raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
+    peer = LocalPeer(config.name, None)
+    DIRECTORY.register(peer)
+    saver: Saver | None = None
+    try:
+        saver, catalog, restored = open_catalog(config)
+        in_doubt = tuple(
+            Query(r.id, r.server, config.name, config.name, r.request, r.response)
+            for r in catalog.resources.values()
+            if r.state is not ResourceState.LOADED
+        )
+        died, ended, due = threading.Event(), threading.Event(), DueAnswers()
+        published = events.publisher(EVENT_LOG)
+        published.relay_to(upstream)
+        ref = RegistrarActor.start(
+            config,
+            catalog,
+            saver,
+            peer,
+            died,
+            due,
+            ended,
+            published,
+            setting_up=setting_up,
+        )
+    except BaseException:
+        if saver is not None:
+            saver.close(erase=False, flush=False)
+        DIRECTORY.unregister(peer, "stopped")
+        raise
+    return Launched(config, ref, restored, in_doubt, due, died, ended, published)
+
+
+class Served:
+    """A registrar of this process as a carrier serves it (`rr_actors._transport.base.Endpoint`).
+
+    Args:
+        registrar: the registrar to make reachable from the other processes of a system.
+    """
+
+    __slots__ = ("registrar",)
+
+    def __init__(self, registrar: ResourceRegistrar) -> None:
+        self.registrar = registrar
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        return self.registrar.name
+
+    @property
+    def max_message_bytes(self) -> int:
+        """Its config's `max_message_bytes`: the carrier bounds its connections by it."""
+        return self.registrar.config.max_message_bytes
+
+    def run(self, fn: Callable[[Any], Any]) -> Any:
+        """Run `fn(registrar)` on the calling thread."""
+        return fn(self.registrar)
+
+    def wait_ended(self, timeout: float | None = None) -> bool:
+        """Block until the registrar actor ended (stopped or died); whether it did."""
+        return self.registrar._ref.actor_stopped.wait(timeout)
+
+    def stopped_cleanly(self) -> bool:
+        """Whether it ended because its owner stopped it (not a crash, not still running)."""
+        if self.registrar.is_alive():
+            return False
+        return isinstance(DIRECTORY.gone_error(self.registrar.name), RegistrarStoppedError)
+
+    def listening(self) -> None:
+        """The other processes of the system can reach it now: it reconciles with its peers
+        again (those in other processes could not answer it before)."""
+        reply = FutureReply()  # (nobody waits: the carrier's `serve` must not)
+        with contextlib.suppress(pykka.ActorDeadError):
+            self.registrar._ref.tell(
+                Request(lambda actor, r: actor.lifecycle.op_reachable(r), reply)
+            )

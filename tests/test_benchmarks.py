@@ -1,0 +1,73 @@
+"""Every benchmark still runs: each script, at its smallest, exits 0 and prints its table.
+
+Benchmarks are not timed tests (nothing here asserts a speed); this only keeps them from
+rotting when the code under them changes (a renamed import, a changed signature).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+SMALLEST = {
+    "bench_core.py": ["--rounds", "1", "--batch", "5"],
+    "bench_events.py": ["--rounds", "1", "--batch", "50", "--dedup-batch", "5"],
+    "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
+    "bench_supervisor.py": ["--sizes", "10", "--crashes", "1"],
+    "bench_transport.py": ["--rounds", "20"],
+    "stress_crash.py": ["--kills", "4", "--round", "2"],
+}
+"""The quickest arguments of each benchmark script (every script must be listed here)."""
+
+
+def test_every_benchmark_script_is_smoke_tested() -> None:
+    scripts = {p.name for p in (ROOT / "benchmarks").glob("*.py")} - {"alternate.py"}
+
+    assert sorted(scripts) == sorted(SMALLEST)
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("script", sorted(SMALLEST))
+def test_the_benchmark_runs_and_prints_a_table(script: str) -> None:
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), *SMALLEST[script]],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=110,
+        check=False,
+    )
+
+    assert 0 == done.returncode, done.stderr[-3000:]
+    assert done.stdout.strip(), f"{script} printed nothing"
+
+
+@pytest.mark.timeout(120)
+def test_alternate_runs_a_benchmark_against_two_trees_and_sums_up_the_ratios() -> None:
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "alternate.py"),
+            "--before",
+            str(ROOT),
+            sys.executable,
+            "--pairs",
+            "1",
+            "--",
+            "bench_core.py",
+            *SMALLEST["bench_core.py"],
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=110,
+        check=False,
+    )
+
+    assert 0 == done.returncode, done.stderr[-3000:]
+    assert "dedup-hit call: " in done.stdout.split("== last column per run")[-1]

@@ -1,0 +1,245 @@
+"""Provider and consumers reconcile their catalogs after a restart (issue 16).
+
+Real manager processes on a system, real SIGKILL, real backups: a provider killed while
+a consumer releases an id there, restarted on its backup; backups that lost a commit
+(the row removed by hand, as a truncated WAL or a non-durable save would lose it).
+
+- Ids a consumer no longer holds (it released them while the provider was down, or its
+  own restart lost them) are released at the provider.
+- Ids the provider no longer knows are reported to the consumer as `FATAL` (its status
+  callback) and forgotten there.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sqlite3
+import sys
+import threading
+import uuid
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import cloudpickle
+import pytest
+
+import rr_actors as rr
+from rr_actors._process.manager import start_forkserver
+from rr_actors._transport.unix import System
+from rr_actors.testing import RemoteRegistrar, SharedObjects, crash, expect_restart, intercept
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def by_value() -> Iterator[None]:
+    start_forkserver()
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    yield
+    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+
+
+@pytest.fixture
+def system() -> Iterator[System]:
+    made = System.create()
+    yield made
+    made.close()
+
+
+@pytest.fixture
+def managers(system: System) -> Iterator[Callable[..., RemoteRegistrar]]:
+    """Start a registrar in a manager process of `system`; the living ones stop at teardown."""
+    started: list[RemoteRegistrar] = []
+
+    def start(config: rr.RegistrarConfig, setup: Any) -> RemoteRegistrar:
+        registrar = RemoteRegistrar.start(config, system, setup=setup)
+        started.append(registrar)
+        return registrar
+
+    yield start
+    for registrar in reversed(started):
+        if registrar.is_alive():
+            registrar.stop()
+
+
+def provider_setup(unloads: Any, unloaded: Any = None) -> Callable[[rr.ResourceRegistrar], None]:
+    """A provider with a server "leaf" whose unloads are recorded in `unloads`.
+
+    `unloaded` (a shared event) is set after each unload was recorded.
+    """
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        def unload(request: Any, _response: Any) -> None:
+            unloads.append(request)
+            if unloaded is not None:
+                unloaded.set()
+
+        registrar.register_server("leaf", load=lambda r: {"for": r}, unload=unload)
+
+    return setup
+
+
+def composite_setup(provider: str) -> Callable[[rr.ResourceRegistrar], None]:
+    """A consumer with a server "composite" whose load calls `provider`/leaf (a dependency)."""
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        def load(request: Any) -> Any:
+            return registrar.call(provider, "leaf", request, timeout=10).response
+
+        registrar.register_server("composite", load=load, unload=lambda _r, _s: None)
+
+    return setup
+
+
+def durable(prefix: str, tmp_path: Path) -> rr.RegistrarConfig:
+    name = f"{prefix}-{uuid.uuid4().hex[:8]}"
+    return rr.RegistrarConfig(name, backup_path=tmp_path / f"{name}.db", save_on_modify=True)
+
+
+def delete_rows(backup: Path, table: str, query_id: str) -> None:
+    """Remove a row from a dead registrar's backup, as a lost commit would leave it."""
+    with contextlib.closing(sqlite3.connect(backup)) as db, db:
+        deleted = db.execute(f"DELETE FROM {table} WHERE query_id = ?", (query_id,))  # noqa: S608
+        assert 1 == deleted.rowcount
+
+
+def test_an_id_released_while_its_provider_was_down_is_released_after_its_restart(
+    managers: Callable[..., RemoteRegistrar], tmp_path: Path, process_helpers: SharedObjects
+) -> None:
+    unloads, unloaded = process_helpers.list(), process_helpers.event()
+    config = durable("provider", tmp_path)
+    provider = managers(config, provider_setup(unloads, unloaded))
+    consumer = managers(durable("consumer", tmp_path), composite_setup(config.name))
+    top = consumer.call(consumer.name, "composite", "camera", timeout=10)
+    assert 1 == len(provider.server_queries("leaf"))  # the composite's dependency
+
+    provider.kill()
+    consumer.unload(top.id, timeout=10)  # releases the dependency: the provider is down
+    assert [] == consumer.client_queries()
+    restarted = managers(config, provider_setup(unloads, unloaded))
+
+    assert unloaded.wait(10)
+    assert (["camera"], []) == (unloads, restarted.server_queries("leaf"))
+
+
+def test_an_id_the_restarted_provider_lost_is_reported_fatal_and_forgotten(
+    managers: Callable[..., RemoteRegistrar],
+    tmp_path: Path,
+    process_helpers: SharedObjects,
+    eventually: Callable[..., bool],
+) -> None:
+    unloads, heard = process_helpers.list(), process_helpers.list()
+    config = durable("provider", tmp_path)
+    provider = managers(config, provider_setup(unloads))
+    consumer = managers(durable("consumer", tmp_path), None)
+
+    def note(query: rr.Query, update: rr.StatusUpdate) -> None:
+        heard.append((query.id, update.status))
+
+    kept = consumer.call(config.name, "leaf", "camera", on_status=note, timeout=10)
+    lost = consumer.call(config.name, "leaf", "camera", on_status=note, timeout=10)
+    provider.kill()
+    delete_rows(Path(config.backup_path), "consumers", lost.id)  # type: ignore[arg-type]
+    restarted = managers(config, provider_setup(unloads))
+
+    assert eventually(lambda: len(heard) > 0, timeout=10)  # its callback runs on a worker
+    assert [(lost.id, rr.Status.FATAL)] == heard
+    assert [kept.id] == [q.id for q in consumer.client_queries()]
+    assert [kept.id] == [q.id for q in restarted.server_queries("leaf")]
+    assert [] == unloads
+
+
+def test_an_id_a_restarted_consumer_lost_is_released_at_its_provider(
+    tmp_path: Path, started: list[rr.ResourceRegistrar]
+) -> None:
+    unloads: list[Any] = []
+    unloaded = threading.Event()
+
+    def unload(request: Any, _response: Any) -> None:
+        unloads.append(request)
+        unloaded.set()
+
+    provider = rr.ResourceRegistrar.start(f"provider-{uuid.uuid4().hex[:8]}")
+    started.append(provider)
+    provider.register_server("leaf", load=lambda r: r, unload=unload)
+    config = durable("consumer", tmp_path)
+    consumer = rr.ResourceRegistrar.start(config)
+    kept = consumer.call(provider.name, "leaf", "camera", timeout=10)
+    lost = consumer.call(provider.name, "leaf", "lidar", timeout=10)
+    with expect_restart(config.name):  # as its supervisor would: no death watch
+        crash(consumer)
+    delete_rows(Path(config.backup_path), "clients", lost.id)  # type: ignore[arg-type]
+
+    restarted = rr.ResourceRegistrar.start(config)
+    started.append(restarted)
+
+    assert unloaded.wait(10)
+    assert (["lidar"], [kept.id]) == (unloads, [q.id for q in provider.server_queries("leaf")])
+    assert [kept.id] == [q.id for q in restarted.client_queries()]
+
+
+def test_a_retry_after_the_provider_reconciled_finds_the_id_it_committed_before_it_died(
+    tmp_path: Path, started: list[rr.ResourceRegistrar]
+) -> None:
+    # Rule 17, case 3: the provider committed the consumer id and died before its answer
+    # left; the call failed with RegistrarUnavailableError. The restarted provider
+    # reconciles with the consumer before the retry comes: the id must stay held there.
+    loads: list[Any] = []
+    gate, entered = threading.Event(), threading.Event()
+
+    def load(request: Any) -> Any:
+        loads.append(request)
+        entered.set()
+        assert gate.wait(10)
+        return {"for": request}
+
+    def serve(registrar: rr.ResourceRegistrar) -> None:
+        registrar.register_server("leaf", load=load, unload=lambda _r, _s: None)
+
+    config = durable("provider", tmp_path)
+    provider = rr.ResourceRegistrar.start(config, setup=serve)
+    consumer = rr.ResourceRegistrar.start(f"consumer-{uuid.uuid4().hex[:8]}")
+    started.append(consumer)
+    qid = str(uuid.uuid4())
+    with ThreadPoolExecutor(1) as pool:
+        call = pool.submit(consumer.call, config.name, "leaf", "camera", query_id=qid, timeout=10)
+        assert entered.wait(10)
+        crash(provider)
+        with pytest.raises(rr.RegistrarUnavailableError):
+            call.result(timeout=10)
+    gate.set()
+    commit_as_answered(Path(config.backup_path), qid, consumer.name)  # type: ignore[arg-type]
+    reconciled = threading.Event()
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        serve(registrar)
+        intercept(registrar, "reconcile", after=lambda _message: reconciled.set())
+
+    restarted = rr.ResourceRegistrar.start(config, setup=setup)
+    started.append(restarted)
+    assert reconciled.wait(10)
+
+    retry = consumer.call(config.name, "leaf", "camera", query_id=qid, timeout=10)
+
+    assert ({"for": "camera"}, ["camera"]) == (retry.response, loads)
+    assert [qid] == [q.id for q in restarted.server_queries("leaf")]
+
+
+def commit_as_answered(backup: Path, query_id: str, origin: str) -> None:
+    """Write the commit the provider's crash cut short: its one resource, loaded, held by
+    `query_id` (what a provider killed after its commit, before its answer, leaves)."""
+    with contextlib.closing(sqlite3.connect(backup)) as db, db:
+        (seq,) = db.execute("SELECT seq FROM resources").fetchone()
+        (last,) = db.execute(
+            "SELECT max(seq) FROM (SELECT seq FROM resources UNION SELECT seq FROM consumers)"
+        ).fetchone()
+        db.execute(
+            "UPDATE resources SET state = 1, response = ? WHERE seq = ?",
+            (cloudpickle.dumps({"for": "camera"}), seq),
+        )
+        db.execute(
+            "INSERT INTO consumers (resource, seq, query_id, origin_rr) VALUES (?, ?, ?, ?)",
+            (seq, last + 1, query_id, origin),
+        )
