@@ -187,6 +187,7 @@ class Client:
         self._notes: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._held: list[_Held] = []
         self._given_up: list[tuple[CallMix, Any, str]] = []
+        self._release_later: list[tuple[str, str]] = []  # (manager, query id)
         self._by_id: dict[str, _Held] = {}
         self._seq = itertools.count()
         self._unique = itertools.count()
@@ -217,6 +218,14 @@ class Client:
             self._unload(held, deadline)
         for mix, request, query_id in self._given_up:
             self._release_given_up(mix, request, query_id, deadline)
+        for manager, query_id in self._release_later:
+            with contextlib.suppress(rr.RrError):
+                retrying(
+                    self.sup,
+                    manager,
+                    functools.partial(self.registrar.unload, query_id),
+                    deadline=max(deadline, time.monotonic() + 1e-3),
+                )
 
     def _release_given_up(self, mix: CallMix, request: Any, query_id: str, deadline: float) -> None:
         """Release the id of a call that gave up during an outage, in case it was taken.
@@ -236,7 +245,12 @@ class Client:
                 lambda: call(query_id=query_id, timeout=max(1e-3, deadline - time.monotonic())),
                 deadline=max(deadline, time.monotonic() + 1e-3),
             )
-            self.registrar.unload(query_id)
+            retrying(
+                self.sup,
+                mix.manager,
+                functools.partial(self.registrar.unload, query_id),
+                deadline=max(deadline, time.monotonic() + 1e-3),
+            )
 
     # -- the thread -----------------------------------------------------------------------
 
@@ -397,8 +411,7 @@ class Client:
         ]
         for entry in dead:
             self._by_id.pop(entry.query.id, None)
-            with contextlib.suppress(rr.RrError):
-                self.registrar.unload(entry.query.id)
+            self._release(entry.mix.manager, entry.query.id)
         self._held = [h for h in self._held if h not in dead]
         heapq.heapify(self._held)
         recovered = False
@@ -412,6 +425,15 @@ class Client:
             renewed = dataclasses.replace(entry, query=query, seq=next(self._seq))
             heapq.heappush(self._held, renewed)
             self._by_id[query.id] = renewed
+
+    def _release(self, manager: str, query_id: str) -> None:
+        """Unload `query_id` now; if its provider is out, again when the run ends."""
+        try:
+            self.registrar.unload(query_id)
+        except rr.UnknownQueryError:
+            pass  # released already
+        except rr.RrError:
+            self._release_later.append((manager, query_id))
 
     def _reload(self, held: _Held) -> rr.Query | None:
         """Load a failed resource again, until the answer is not the dead one.
@@ -427,8 +449,7 @@ class Client:
             query = self._call(held.mix, held.request)
             if query is None or query.response != held.query.response:
                 return query
-            with contextlib.suppress(rr.RrError):
-                self.registrar.unload(query.id)
+            self._release(held.mix.manager, query.id)
             if time.monotonic() + pause > deadline:
                 return None
             self._stopping.wait(pause)
