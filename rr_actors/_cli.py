@@ -8,6 +8,7 @@ arguments, and a function that runs it. Add a subcommand by appending to `COMMAN
     rr-actors inspect state/erm.db --json   # the same as JSON
     rr-actors observe --state state/        # the observer's page of the backups
     rr-actors graph --state state/          # the dependency graph as Mermaid (or --format dot)
+    rr-actors experiment plan.toml --out results   # a supervision experiment
     rr-actors --version
 """
 
@@ -202,6 +203,18 @@ def _demo(args: argparse.Namespace, _out: TextIO) -> int:
     return run.run(args)
 
 
+def _experiment_arguments(parser: argparse.ArgumentParser) -> None:
+    from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
+
+    cli.add_arguments(parser)
+
+
+def _experiment(args: argparse.Namespace, out: TextIO) -> int:
+    from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
+
+    return cli.main(args, out)
+
+
 COMMANDS: list[Command] = [
     Command(
         "demo",
@@ -226,6 +239,12 @@ COMMANDS: list[Command] = [
         observe_commands.GRAPH_HELP,
         observe_commands.graph_arguments,
         observe_commands.run_graph,
+    ),
+    Command(
+        "experiment",
+        "run a supervision experiment from a TOML plan: faults, workload, repeats, plots",
+        _experiment_arguments,
+        _experiment,
     ),
 ]
 """The subcommands, in the order `--help` lists them."""

@@ -27,8 +27,11 @@ written):
     - `python benchmarks/X.py ...` is not run (benchmarks take minutes and are not tests):
       the script must exist and accept every option shown (it appears in its source).
     - anything else fails the test, unless the block is marked (below).
-- `text`, `json` and `mermaid` blocks are output and data: not run. A block without a language fails
-  (say which it is).
+- `text`, `json` and `mermaid` blocks are output and data: not run. `toml` blocks are data too, but
+  must parse (`tomllib`), and one that is a whole experiment plan (it has `duration` and
+  `[tree]`) must be a valid plan; a `toml` block that is only a snippet include
+  (`--8<-- "examples/experiments/x.toml"`) is checked as that file. A block without a
+  language fails (say which it is).
 
 A block that cannot run as shown carries a visible marker on the line right above its
 fence (blank lines and other HTML comments may come between), with the reason:
@@ -57,6 +60,8 @@ from pathlib import Path
 
 import pytest
 
+from rr_actors.experiments import parse_plan
+
 ROOT = Path(__file__).resolve().parent.parent
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 KERNEL = Path(__file__).resolve().parent / "docs_kernel.py"
@@ -73,6 +78,7 @@ EXIT_TIMEOUT = 30.0
 PYTHON = ("python", "py", "python3")
 SHELL = ("bash", "sh", "shell", "console")
 DATA = ("text", "json", "mermaid")
+TOML = ("toml",)
 
 FENCE = re.compile(r"^(?P<indent>[ \t]*)(?P<fence>`{3,}|~{3,})[ \t]*(?P<info>[^`]*)$")
 MARKER = re.compile(r"^\s*<!--\s*docs-test:\s*(?P<body>.*?)\s*-->\s*$")
@@ -374,6 +380,22 @@ def shell_block(block: Block, cwd: Path, done: set[tuple[str, ...]]) -> None:
             run_command(block, argv, cwd)
 
 
+def toml_block(block: Block) -> None:
+    """A `toml` block parses; a whole experiment plan in it is valid (see the docstring)."""
+    text, source = block.code, block.where
+    include = SNIPPET.match(text.strip())
+    if include is not None:
+        path = ROOT / include.group("path")
+        assert path.is_file(), f"{block.where}: includes {path}, which does not exist"
+        text, source = path.read_text(), str(path)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        pytest.fail(f"{source}: not TOML: {exc}")
+    if "duration" in data and "tree" in data:
+        parse_plan(text, source=source)
+
+
 def python_block(block: Block) -> str | None:
     """The code to run for a Python block, or `None` for a snippet include (checked here)."""
     first = block.code.strip()
@@ -406,6 +428,8 @@ def test_every_code_block_of_the_page_runs_or_says_why_not(page: Path, tmp_path:
                     kernel.run(block, code)
             elif block.lang in SHELL:
                 shell_block(block, tmp_path, done)
+            elif block.lang in TOML:
+                toml_block(block)
             elif not block.lang:
                 pytest.fail(f"{block.where}: say what the block is (python, bash, text, ...)")
             else:

@@ -20,7 +20,7 @@ command line). The web server's dependencies are the `observe` extra and are imp
 only when an observer opens; the drawings need nothing more than rr_actors.
 """
 
-from rr_actors.observe._observer import Observer, observe_backups
+from rr_actors.observe._observer import Observer, observe_backups, require_extra
 from rr_actors.observe._text import FORMATS
 
-__all__ = ["FORMATS", "Observer", "observe_backups"]
+__all__ = ["FORMATS", "Observer", "observe_backups", "require_extra"]

@@ -43,6 +43,19 @@ START_TIMEOUT = 10.0
 EXTRA_HINT = "the observer needs the observe extra: pip install 'rr-actors[observe]'"
 
 
+def require_extra() -> None:
+    """Check that the observer's web server can start, before anything else does.
+
+    Raises:
+        ConfigError: the `observe` extra (Starlette, sse-starlette, uvicorn) is not
+            installed; the message says how to install it.
+    """
+    try:
+        from rr_actors.observe import _server  # noqa: F401, PLC0415 - the observe extra
+    except ImportError as exc:
+        raise ConfigError(f"{EXTRA_HINT} ({exc})") from exc
+
+
 def is_loopback(host: str) -> bool:
     """Whether `host` names this machine only (`localhost`, 127.0.0.0/8, `::1`)."""
     if host == "localhost":
@@ -106,10 +119,9 @@ class Observer:
         hello: dict[str, Any],
         faults: Faults | None,
     ) -> None:
-        try:
-            from rr_actors.observe import _server  # noqa: PLC0415 - the observe extra
-        except ImportError as exc:
-            raise ConfigError(f"{EXTRA_HINT} ({exc})") from exc
+        require_extra()
+        from rr_actors.observe import _server  # noqa: PLC0415 - the observe extra
+
         self._source = source
         self._hub = hub
         self._faults = faults

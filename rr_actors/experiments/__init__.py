@@ -1,0 +1,59 @@
+"""Supervision experiments: a tree, a workload and faults from a TOML plan, run and measured.
+
+```python
+from rr_actors import experiments
+
+results = experiments.run("examples/experiments/strategies.toml", out="results", repeat=3)
+for row in results.rows():
+    print(row["value"], row["recovery_median_s"], row["calls_failed"])
+```
+
+`rr-actors experiment PLAN.toml --out DIR` does the same from the command line. A plan
+names the managers by the import path of their `setup`, the clients' calls, the faults
+(SIGKILL a manager or a resource's process, SIGSTOP a manager for a while, make loads
+raise, cut a manager's connections) and when they come (fixed times, seeded random
+intervals, or after an event). Every run is a fresh run process; the same seed gives the
+same fault schedule. The plan format: `docs/reference/plan.md`.
+
+Modules: `plan` (reading and validating plans), `schedule` (the seeded fault schedule),
+`runner` / `workload` / `inject` (one run, in its run process), `metrics` (numbers from
+events), `experiment` (`run`: the runs and the output files), `plot` (figures),
+`services` (a generic manager for plans), `cli` (`rr-actors experiment`).
+It needs Linux (pidfds, `/proc`).
+"""
+
+from rr_actors.experiments.experiment import (
+    ExperimentError,
+    ExperimentInterruptedError,
+    Progress,
+    run,
+)
+from rr_actors.experiments.plan import (
+    FAULT_KINDS,
+    Plan,
+    PlanError,
+    load_plan,
+    parse_plan,
+)
+from rr_actors.experiments.results import CallRecord, FaultRecord, Results, RunResult
+from rr_actors.experiments.schedule import ScheduledFault, fault_schedule
+from rr_actors.experiments.workload import RequestContext
+
+__all__ = [
+    "FAULT_KINDS",
+    "CallRecord",
+    "ExperimentError",
+    "ExperimentInterruptedError",
+    "FaultRecord",
+    "Plan",
+    "PlanError",
+    "Progress",
+    "RequestContext",
+    "Results",
+    "RunResult",
+    "ScheduledFault",
+    "fault_schedule",
+    "load_plan",
+    "parse_plan",
+    "run",
+]

@@ -1,0 +1,64 @@
+"""The run process: `python -m rr_actors.experiments._child RUN_DIR` runs one run.
+
+It reads `RUN_DIR/spec.pickle` (a `RunSpec` the experiment wrote), runs it with
+`runner.execute`, and writes `RUN_DIR/result.pickle` (a `RunResult`). SIGTERM or SIGINT,
+or the death of the experiment that started it, ends the run early: the tree is stopped
+and no result is written (exit code 3).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import pickle
+import select
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from pathlib import Path
+
+from rr_actors.experiments.runner import RunSpec, execute
+
+STOPPED_EXIT = 3
+"""Exit code of a run that was told to stop before it finished."""
+
+
+def _watch_parent(stop: threading.Event) -> None:
+    """Set `stop` when the process that started this one dies."""
+    try:
+        pidfd = os.pidfd_open(os.getppid())
+    except ProcessLookupError:
+        stop.set()
+        return
+    select.select([pidfd], [], [])
+    os.close(pidfd)
+    stop.set()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the run in the directory named by `argv[0]`; return the exit code."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    run_dir = Path(args[0])
+    spec: RunSpec = pickle.loads((run_dir / "spec.pickle").read_bytes())
+    logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
+    stop = threading.Event()
+
+    def on_signal(_signum: int, _frame: object) -> None:
+        # Not stop.set() here: the main thread may hold the event's lock right now.
+        threading.Thread(target=stop.set, daemon=True).start()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    threading.Thread(target=_watch_parent, args=(stop,), name="rr-parent", daemon=True).start()
+    result = execute(spec, run_dir, stop=stop)
+    if stop.is_set():
+        return STOPPED_EXIT
+    partial = run_dir / "result.pickle.tmp"
+    partial.write_bytes(pickle.dumps(result))
+    partial.replace(run_dir / "result.pickle")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,199 @@
+"""What an experiment adds inside each manager: a switch that makes loads raise, and a cut.
+
+Runs where the manager runs (its own process, or the run process for a thread manager).
+The run builds every `ManagerSpec` with `setup=functools.partial(instrumented_setup, path,
+options)`, so the manager imports its real setup by path and calls it with a registrar
+whose `register_server` wraps each `load`:
+
+    injector ──Supervisor.run_in(name, arm_load_error(...))──► _ARMED[name] (this module)
+    client ──call──► registrar ──load(request)──► _guarded: _ARMED says raise? ──► InjectedLoadError
+                                                              else ──► the setup's own load
+
+`cut_connections` (run on the manager's main thread by a SIGUSR2 handler, so that the
+injector fires it at an exact time with one signal) shuts down every connection of the
+manager's registrar over the system's AF_UNIX sockets: calls in flight on them fail with
+`RegistrarUnavailableError` and the next message connects again, as after a network blip.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import os
+import signal
+import socket
+import stat
+import threading
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+__all__ = [
+    "CUT_SIGNAL",
+    "InjectedLoadError",
+    "arm_load_error",
+    "catches_cut_signal",
+    "cut_connections",
+    "instrumented_setup",
+]
+
+CUT_SIGNAL = signal.SIGUSR2
+"""The signal that makes a manager process cut its connections (`cut_connections`)."""
+
+
+class InjectedLoadError(RuntimeError):
+    """Raised by a `load` while a `load_error` fault is armed (callers get `ResourceLoadError`)."""
+
+
+@dataclasses.dataclass
+class _Armed:
+    server: str | None
+    remaining: int | None  # loads left to fail; None: every load until `until`
+    until: float | None  # monotonic deadline (CLOCK_MONOTONIC is system-wide on Linux)
+    message: str
+
+
+_ARMED: dict[str, _Armed] = {}
+_LOCK = threading.Lock()
+
+
+def arm_load_error(
+    manager: str,
+    server: str | None,
+    loads: int,
+    for_s: float | None,
+    message: str,
+    registrar: object = None,
+) -> None:
+    """Make the next `loads` loads of `manager` raise (or every load for `for_s` seconds).
+
+    Run it in the manager with `Supervisor.run_in(manager, functools.partial(...))`.
+
+    Args:
+        manager: the manager's name.
+        server: only loads of this server raise (`None`: any server).
+        loads: how many loads raise (ignored with `for_s`).
+        for_s: raise on every load for this many seconds instead.
+        message: the exception's message.
+        registrar: the manager's registrar (given by `run_in`; not used).
+    """
+    del registrar
+    until = None if for_s is None else time.monotonic() + for_s
+    with _LOCK:
+        _ARMED[manager] = _Armed(server, None if for_s is not None else loads, until, message)
+
+
+def _should_fail(manager: str, server: str) -> str | None:
+    """The message to raise with if a load of `manager/server` must fail now, else `None`."""
+    with _LOCK:
+        armed = _ARMED.get(manager)
+        if armed is None or (armed.server is not None and armed.server != server):
+            return None
+        if armed.until is not None:
+            if time.monotonic() < armed.until:
+                return armed.message
+            del _ARMED[manager]
+            return None
+        assert armed.remaining is not None
+        armed.remaining -= 1
+        if armed.remaining <= 0:
+            del _ARMED[manager]
+        return armed.message
+
+
+def _guarded(manager: str, server: str, load: Callable[[Any], Any], request: Any) -> Any:
+    message = _should_fail(manager, server)
+    if message is not None:
+        raise InjectedLoadError(message)
+    return load(request)
+
+
+class _FaultableRegistrar:
+    """The registrar as a manager's setup sees it: the same, but loads can be made to fail."""
+
+    def __init__(self, registrar: Any, manager: str) -> None:
+        self._registrar = registrar
+        self._manager = manager
+
+    def register_server(self, name: str, *, load: Callable[[Any], Any], **kwargs: Any) -> None:
+        guarded = functools.partial(_guarded, self._manager, name, load)
+        self._registrar.register_server(name, load=guarded, **kwargs)
+
+    def __getattr__(self, attribute: str) -> Any:
+        return getattr(self._registrar, attribute)
+
+
+def instrumented_setup(
+    path: str, options: Mapping[str, Any], base_dir: str | None, registrar: Any
+) -> None:
+    """Import the setup at `path` and run it on a registrar whose loads can be made to fail.
+
+    On the main thread of a process manager it also installs the `CUT_SIGNAL` handler.
+
+    Args:
+        path: the setup's import path (`"module:function"`).
+        options: keyword arguments for the setup.
+        base_dir: a directory searched first for `path` (the plan's), or `None`.
+        registrar: the manager's registrar (given by the supervisor).
+    """
+    from rr_actors.experiments.plan import import_object  # noqa: PLC0415 - runs in managers
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(CUT_SIGNAL, _on_cut_signal)
+    setup = import_object(path, base_dir=base_dir)
+    setup(_FaultableRegistrar(registrar, registrar.name), **options)
+
+
+def _on_cut_signal(_signum: int, _frame: object) -> None:
+    cut_connections()
+
+
+def cut_connections() -> int:
+    """Shut down this process's connections on the system's sockets; return how many.
+
+    A connection counts if it is an AF_UNIX stream socket, not listening, whose own or
+    peer address is a registrar socket (`<runtime_dir>/<name>.sock`). Control pipes
+    (unnamed socket pairs) and listeners are left alone, so the manager keeps serving
+    and its supervisor keeps seeing it.
+    """
+    cut = 0
+    for entry in os.listdir("/proc/self/fd"):
+        fd = int(entry)
+        try:
+            if not stat.S_ISSOCK(os.fstat(fd).st_mode):
+                continue
+            sock = socket.socket(fileno=os.dup(fd))
+        except OSError:
+            continue
+        with sock:
+            try:
+                if sock.family != socket.AF_UNIX or sock.getsockopt(
+                    socket.SOL_SOCKET, socket.SO_ACCEPTCONN
+                ):
+                    continue
+                names = [sock.getsockname()]
+                with contextlib.suppress(OSError):
+                    names.append(sock.getpeername())
+                if any(isinstance(n, str) and n.endswith(".sock") for n in names):
+                    sock.shutdown(socket.SHUT_RDWR)
+                    cut += 1
+            except OSError:
+                continue
+    return cut
+
+
+def catches_cut_signal(pid: int) -> bool:
+    """Whether process `pid` has a handler for `CUT_SIGNAL` (from `/proc/<pid>/status`).
+
+    Without one the signal would kill it, so the injector checks before it sends.
+    """
+    try:
+        with open(f"/proc/{pid}/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("SigCgt:"):
+                    mask = int(line.split()[1], 16)
+                    return bool(mask >> (int(CUT_SIGNAL) - 1) & 1)
+    except (OSError, ValueError):
+        return False
+    return False

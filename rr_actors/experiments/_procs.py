@@ -1,0 +1,96 @@
+"""Finding every process an experiment started, wherever it ended up in the process tree.
+
+Each run process is started with `RR_ACTORS_EXPERIMENT=<token>` in its environment. Every
+process it starts inherits it: the forkserver and the manager processes forked from it,
+and the programs managers start (`subprocess` passes the environment on), even those in
+sessions of their own or re-parented after their parent died. `/proc/<pid>/environ` shows
+the environment a process started with, so a scan of `/proc` finds them all (Linux).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import signal
+import time
+from pathlib import Path
+
+__all__ = ["TOKEN_VARIABLE", "cmdline", "kill", "parent", "processes_with", "wait_gone"]
+
+TOKEN_VARIABLE = "RR_ACTORS_EXPERIMENT"  # noqa: S105 - a variable's name, not a secret
+"""The environment variable that marks the processes of one run."""
+
+
+def processes_with(token: str, *, exclude: frozenset[int] = frozenset()) -> list[int]:
+    """Pids of living processes whose environment has `RR_ACTORS_EXPERIMENT=<token>`.
+
+    Args:
+        token: the run's token.
+        exclude: pids to leave out (the caller itself, say).
+    """
+    wanted = f"{TOKEN_VARIABLE}={token}".encode()
+    found: list[int] = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) in exclude:
+            continue
+        try:
+            environ = (entry / "environ").read_bytes()
+            state = (entry / "stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (OSError, IndexError):
+            continue
+        if state != "Z" and wanted in environ.split(b"\0"):
+            found.append(int(entry.name))
+    return sorted(found)
+
+
+def cmdline(pid: int) -> str:
+    """The command line of `pid` (arguments joined by spaces; `""` if gone)."""
+    try:
+        return (Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()).strip()
+    except OSError:
+        return ""
+
+
+def parent(pid: int) -> int | None:
+    """The parent pid of `pid` (`None` if gone)."""
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def wait_gone(pids: list[int], timeout: float) -> list[int]:
+    """Wait (through pidfds, no polling) until `pids` exited; return those still alive."""
+    fds: dict[int, int] = {}
+    for pid in pids:
+        with contextlib.suppress(ProcessLookupError):
+            fds[os.pidfd_open(pid)] = pid
+    deadline = time.monotonic() + timeout
+    try:
+        while fds:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            ready, _, _ = select.select(list(fds), [], [], left)
+            for fd in ready:
+                os.close(fd)
+                del fds[fd]
+        return sorted(fds.values())
+    finally:
+        for fd in fds:
+            os.close(fd)
+
+
+def kill(pids: list[int]) -> None:
+    """SIGKILL each of `pids` (through a pidfd; those already gone are skipped)."""
+    for pid in pids:
+        try:
+            fd = os.pidfd_open(pid)
+        except ProcessLookupError:
+            continue
+        try:
+            with contextlib.suppress(ProcessLookupError):
+                signal.pidfd_send_signal(fd, signal.SIGKILL)
+        finally:
+            os.close(fd)

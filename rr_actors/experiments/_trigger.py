@@ -1,0 +1,102 @@
+"""The trigger: a tiny single-threaded process that sends a run's signals at their due times.
+
+    run process (injector thread)                      trigger process (this file)
+      due - PREPARE_AHEAD: look up the target,
+      open a pidfd ──── (seq, due, signum) + pidfd ───► heap of due signals
+                                                        wait (select), spin the last 0.2 ms
+                                                        pidfd_send_signal ── time.monotonic()
+      record the fault ◄──── (seq, sent_at, errno) ─── reply
+
+Why a process: the run process is busy (clients, registrars, event delivery), and a
+thread that wakes there must wait for Python's interpreter lock first. This process has
+one thread and does nothing else, so a signal leaves within a fraction of a millisecond
+of its due time unless the machine itself has no CPU to give. CLOCK_MONOTONIC is
+system-wide on Linux, so due times and send times mean the same in both processes.
+
+It runs as a script (`python _trigger.py FD`) and imports only the standard library, so
+it is up in tens of milliseconds; it takes real-time priority when it may (see
+`prioritise`). It exits when the run process closes its end.
+"""
+
+from __future__ import annotations
+
+import errno
+import heapq
+import os
+import select
+import signal
+import socket
+import struct
+import sys
+import time
+
+REQUEST = struct.Struct("<Qdi")
+"""seq (u64), due (monotonic seconds, f64), signal number (i32); one pidfd rides along."""
+
+REPLY = struct.Struct("<Qdi")
+"""seq, sent_at (monotonic seconds; 0 if not sent), errno (0: sent)."""
+
+NO_REALTIME = "RR_ACTORS_NO_REALTIME"
+"""Set to `1` to keep the trigger at normal scheduling priority."""
+
+SPIN = 0.0002
+"""The last seconds before a due signal are spun, not slept (a sleep can wake late)."""
+
+
+def serve(sock: socket.socket) -> None:
+    """Send each requested signal at its due time and reply; return when `sock` closes."""
+    due: list[tuple[float, int, int, int]] = []  # (due, seq, signum, pidfd)
+    while True:
+        timeout = None if not due else max(0.0, due[0][0] - time.monotonic() - SPIN)
+        readable, _, _ = select.select([sock], [], [], timeout)
+        if readable:
+            message, fds, _, _ = socket.recv_fds(sock, REQUEST.size, 1)
+            if not message:
+                return
+            seq, at, signum = REQUEST.unpack(message)
+            heapq.heappush(due, (at, seq, signum, fds[0]))
+            continue
+        if due[0][0] - time.monotonic() > SPIN:
+            continue  # woke early: never spin longer than SPIN (this may run real-time)
+        at, seq, signum, pidfd = heapq.heappop(due)
+        while time.monotonic() < at:
+            pass  # the last fraction of a millisecond
+        try:
+            signal.pidfd_send_signal(pidfd, signum)
+            sent, code = time.monotonic(), 0
+        except OSError as exc:
+            sent, code = 0.0, exc.errno or errno.EIO
+        finally:
+            os.close(pidfd)
+        sock.sendall(REPLY.pack(seq, sent, code))
+
+
+def prioritise() -> bool:
+    """Run at real-time priority if allowed (root or CAP_SYS_NICE); whether it could.
+
+    This process sleeps, then spins at most `SPIN` seconds per signal, so a real-time
+    policy costs the machine next to nothing and keeps the signals on time when every
+    CPU is busy (the rest of an experiment, other programs). `RR_ACTORS_NO_REALTIME=1`
+    in the environment keeps the normal policy.
+    """
+    if os.environ.get(NO_REALTIME) == "1":
+        return False
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except (PermissionError, OSError, AttributeError):
+        return False
+    return True
+
+
+def main() -> None:
+    """`python _trigger.py FD`: serve the socket inherited as file descriptor FD."""
+    prioritise()
+    sock = socket.socket(fileno=int(sys.argv[1]))
+    try:
+        serve(sock)
+    finally:
+        sock.close()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,441 @@
+"""`run(plan)`: every run of an experiment in a fresh run process, and what they leave in `out`.
+
+run(plan) ── validate everything (plan, out, platform, --observe) ── nothing started yet
+   for repeat r, for each compared value v:            (values interleaved, so slow
+      run process (python -m ..._child)                 periods of the machine spread
+        RR_ACTORS_EXPERIMENT=<token> in its env         over all of them)
+        ── runner.execute ──► result.pickle, events.jsonl
+      the run's processes still alive: leaks (killed)
+      out/: events.jsonl += the run's events; runs.csv += its row; faults.csv += its faults
+   plots (matplotlib): recovery.png, timeline.png
+Ctrl-C: the run process is told to stop (SIGTERM), every process of the run is
+        killed, the runs finished so far stay written and plotted.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import dataclasses
+import logging
+import os
+import pickle
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import rr_actors as rr
+from rr_actors.errors import ConfigError, RrError
+from rr_actors.experiments import _procs
+from rr_actors.experiments.plan import Plan, load_plan
+from rr_actors.experiments.results import Results, RunResult, show_value
+from rr_actors.experiments.runner import RunSpec
+from rr_actors.observe import require_extra
+
+__all__ = [
+    "OUTPUT_FILES",
+    "ExperimentError",
+    "ExperimentInterruptedError",
+    "Progress",
+    "prepare_out",
+    "run",
+    "unsupported_platform",
+]
+
+logger = logging.getLogger("rr_actors.experiments")
+
+OUTPUT_FILES = (
+    "events.jsonl",
+    "runs.csv",
+    "faults.csv",
+    "recovery.png",
+    "timeline.png",
+    "plan.toml",
+)
+"""The files an experiment writes in its output directory (`--force` replaces these)."""
+
+STOP_TIMEOUT = 20.0
+"""Seconds an interrupted run process gets to stop its tree before it is killed."""
+
+SWEEP_GRACE = 3.0
+"""Seconds the processes of a finished run get to exit before they count as leaked."""
+
+
+class ExperimentError(RrError):
+    """A run process failed (a bug, or a setup that crashed it); its stderr is quoted."""
+
+
+class ExperimentInterruptedError(KeyboardInterrupt):
+    """The experiment was interrupted (Ctrl-C); every process it started was stopped.
+
+    Attributes:
+        results: the runs that finished before the interruption (also written to `out`).
+    """
+
+    def __init__(self, results: Results) -> None:
+        super().__init__(f"interrupted after {len(results.runs)} finished run(s)")
+        self.results = results
+
+
+@dataclasses.dataclass(frozen=True)
+class Progress:
+    """Where an experiment is (given to `run`'s `progress` callback about 10 times a second).
+
+    Attributes:
+        run: the number of the run under way (1, 2, ...).
+        runs: how many runs the experiment has.
+        setting: the compared setting (`""` without `compare`).
+        value: the value of this run.
+        seed: the seed of this run.
+        elapsed_s: seconds since this run's process started.
+        duration_s: the plan's duration.
+        finished: the result, once the run has finished (then `elapsed_s` stops).
+    """
+
+    run: int
+    runs: int
+    setting: str
+    value: Any
+    seed: int
+    elapsed_s: float
+    duration_s: float
+    finished: RunResult | None = None
+
+
+def unsupported_platform() -> str | None:
+    """Why experiments cannot run here, or `None` if they can (they need Linux: pidfds, /proc)."""
+    if hasattr(os, "pidfd_open") and Path("/proc/self/environ").exists():
+        return None
+    return f"experiments need Linux (pidfds and /proc); this is {sys.platform}"
+
+
+def prepare_out(path: Path, *, force: bool, what: str = "out") -> Path:
+    """Make `path` ready for an experiment's files, or refuse before anything starts.
+
+    Args:
+        path: the output directory (created if missing).
+        force: replace the files an experiment writes (`OUTPUT_FILES`) if `path` is not
+            empty; other files in it are left alone.
+        what: how error messages name it (`"--out"` on the command line).
+
+    Raises:
+        ConfigError: `path` is a file, cannot be written, or is not empty without `force`.
+    """
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{what} {str(path)!r} is a file, not a directory")
+    if path.is_dir() and any(path.iterdir()) and not force:
+        raise ConfigError(
+            f"{what} {str(path)!r} exists and is not empty; choose another directory, or "
+            "force it (--force, force=True) to replace the experiment files in it"
+        )
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        for name in OUTPUT_FILES:
+            (path / name).unlink(missing_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path, prefix=".rr-actors-probe-"):
+            pass
+    except OSError as exc:
+        cause = exc.strerror or type(exc).__name__
+        raise ConfigError(f"{what} {str(path)!r}: cannot write there ({cause})") from exc
+    return path
+
+
+def _runs(plan: Plan) -> Iterator[tuple[int, int, Any, Plan, int]]:
+    """`(run, repeat, value, plan, seed)` in the order they run: values interleaved."""
+    number = 0
+    for repeat in range(1, plan.repeat + 1):
+        for value, variant in plan.variants:
+            number += 1
+            yield number, repeat, value, variant, plan.seed + repeat - 1
+
+
+def run(
+    plan: Plan | str | os.PathLike[str],
+    *,
+    out: str | os.PathLike[str] | None = None,
+    repeat: int | None = None,
+    seed: int | None = None,
+    duration: float | None = None,
+    force: bool = False,
+    observe: bool = False,
+    record_events: bool = True,
+    progress: Callable[[Progress], None] | None = None,
+    on_observe: Callable[[int, str], None] | None = None,
+) -> Results:
+    """Run every run of an experiment, each in a fresh run process; return the results.
+
+    The runs of a repeat take the compared values in turn (repeat 1 of every value, then
+    repeat 2, ...); repeat `r` of every value uses the seed `seed + r - 1`, so compared
+    values meet the same fault schedule. Everything is validated before the first run
+    starts.
+
+    Args:
+        plan: a `Plan`, or the path of a plan file.
+        out: directory for `events.jsonl`, `runs.csv`, `faults.csv`, `recovery.png`,
+            `timeline.png` (and `plan.toml`, a copy of the plan file); `None`: write
+            nothing, return the results only.
+        repeat: runs per compared value instead of the plan's `repeat`.
+        seed: the seed of the first repeat instead of the plan's `seed`.
+        duration: seconds per run instead of the plan's `duration` (faults scheduled after
+            it are dropped).
+        force: replace the experiment files in a non-empty `out`.
+        observe: serve the live observer page of each run (`Supervisor.observe`).
+        record_events: subscribe to the tree (needed for every metric that comes from
+            events: restarts, unavailability, recovery); off only to measure its cost.
+        progress: called with a `Progress` about 10 times a second (on this thread).
+        on_observe: called with `(run, url)` when a run's observer page is up.
+
+    Returns:
+        The results of every run.
+
+    Raises:
+        PlanError: the plan is invalid (names the file, line and key).
+        ConfigError: an override is out of range, `out` is not usable (or not empty
+            without `force`), this platform cannot run experiments, or `observe` was asked
+            for and the `observe` extra is not installed.
+        ExperimentError: a run process failed; the runs finished before it are kept.
+        ExperimentInterruptedError: Ctrl-C (a `KeyboardInterrupt`); every process of the
+            experiment was stopped, the runs finished so far are kept (its `results`).
+    """
+    if not isinstance(plan, Plan):
+        plan = load_plan(plan)
+    plan = plan.with_changes(repeat=repeat, seed=seed, duration=duration)
+    reason = unsupported_platform()
+    if reason is not None:
+        raise ConfigError(reason)
+    if observe:
+        require_extra()
+    out_path = prepare_out(Path(out), force=force) if out is not None else None
+    if out_path is not None and plan.source is not None:
+        shutil.copyfile(plan.source, out_path / "plan.toml")
+    return _Experiment(plan, out_path, record_events, observe, progress, on_observe).run()
+
+
+class _Experiment:
+    """The loop over the runs, with the files it appends to."""
+
+    def __init__(
+        self,
+        plan: Plan,
+        out: Path | None,
+        record_events: bool,
+        observe: bool,
+        progress: Callable[[Progress], None] | None,
+        on_observe: Callable[[int, str], None] | None,
+    ) -> None:
+        self.plan = plan
+        self.out = out
+        self.record_events = record_events
+        self.observe = observe
+        self.progress = progress or (lambda _: None)
+        self.on_observe = on_observe or (lambda _run, _url: None)
+        self.finished: list[RunResult] = []
+        self.current: tuple[subprocess.Popen[bytes], str] | None = None
+        self.total = plan.repeat * len(plan.variants)
+
+    def run(self) -> Results:
+        work = Path(tempfile.mkdtemp(prefix="rr-experiment-"))
+        try:
+            for number, repeat, value, variant, seed in _runs(self.plan):
+                spec = RunSpec(
+                    plan=variant,
+                    setting=self.plan.setting_label(),
+                    value=value,
+                    run=number,
+                    repeat=repeat,
+                    seed=seed,
+                    record_events=self.record_events,
+                    observe=self.observe,
+                    token=f"{os.getpid()}-{uuid.uuid4().hex[:12]}",
+                )
+                result = self._one(spec, work / f"run-{number}")
+                self.finished.append(result)
+                self._write(result, work / f"run-{number}")
+                self.progress(self._progress(spec, result.duration_s, result))
+        except KeyboardInterrupt:
+            with _ignoring_sigint():
+                if self.current is not None:
+                    process, token = self.current
+                    _stop(process)
+                    _procs.kill(_procs.processes_with(token))
+            results = self._results(interrupted=True)
+            self._plot(results)
+            raise ExperimentInterruptedError(results) from None
+        except ExperimentError:
+            self._plot(self._results(interrupted=False))  # what finished before it
+            raise
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+        results = self._results(interrupted=False)
+        self._plot(results)
+        return results
+
+    def _results(self, *, interrupted: bool) -> Results:
+        return Results(self.plan, tuple(self.finished), self.out, interrupted)
+
+    def _progress(self, spec: RunSpec, elapsed: float, result: RunResult | None) -> Progress:
+        return Progress(
+            run=spec.run,
+            runs=self.total,
+            setting=self.plan.setting_label(),
+            value=spec.value,
+            seed=spec.seed,
+            elapsed_s=elapsed,
+            duration_s=spec.plan.duration,
+            finished=result,
+        )
+
+    # -- one run process --------------------------------------------------------------------
+
+    def _one(self, spec: RunSpec, run_dir: Path) -> RunResult:
+        run_dir.mkdir(parents=True)
+        (run_dir / "spec.pickle").write_bytes(pickle.dumps(spec))
+        env = {**os.environ, _procs.TOKEN_VARIABLE: spec.token}
+        # The run process imports this very rr_actors, installed or not.
+        package_root = str(Path(rr.__file__).resolve().parent.parent)
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [package_root, env.get("PYTHONPATH")]))
+        started = time.monotonic()
+        with (run_dir / "stderr.txt").open("wb") as stderr:
+            process = subprocess.Popen(  # noqa: S603 - this interpreter, our own module
+                [sys.executable, "-m", "rr_actors.experiments._child", str(run_dir)],
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=stderr,
+                start_new_session=True,  # Ctrl-C is ours to handle: we stop it cleanly
+            )
+        self.current = (process, spec.token)
+        reader = threading.Thread(
+            target=self._read_stdout, args=(spec.run, process), name="rr-run-out", daemon=True
+        )
+        reader.start()
+        while True:
+            try:
+                code = process.wait(timeout=0.1)
+                break
+            except subprocess.TimeoutExpired:
+                self.progress(self._progress(spec, time.monotonic() - started, None))
+        reader.join(5.0)
+        if not reader.is_alive() and process.stdout is not None:
+            process.stdout.close()
+        self.current = None
+        leftover = _procs.wait_gone(_procs.processes_with(spec.token), SWEEP_GRACE)
+        _procs.kill(leftover)
+        result_file = run_dir / "result.pickle"
+        if code != 0 or not result_file.exists():
+            tail = (run_dir / "stderr.txt").read_text(errors="replace")[-3000:]
+            raise ExperimentError(f"run {spec.run} failed (exit code {code}):\n{tail}")
+        result: RunResult = pickle.loads(result_file.read_bytes())
+        if leftover:
+            result = dataclasses.replace(
+                result, leaked_processes=result.leaked_processes + len(leftover)
+            )
+        return result
+
+    def _read_stdout(self, run_number: int, process: subprocess.Popen[bytes]) -> None:
+        assert process.stdout is not None
+        import json  # noqa: PLC0415
+
+        for raw in process.stdout:
+            with contextlib.suppress(ValueError, TypeError):
+                message = json.loads(raw)
+                if isinstance(message, dict) and "observe" in message:
+                    self.on_observe(run_number, str(message["observe"]))
+
+    # -- files ----------------------------------------------------------------------------
+
+    def _write(self, result: RunResult, run_dir: Path) -> None:
+        if self.out is None:
+            return
+        with (
+            (run_dir / "events.jsonl").open("rb") as source,
+            (self.out / "events.jsonl").open("ab") as target,
+        ):
+            shutil.copyfileobj(source, target)
+        _append_csv(self.out / "runs.csv", [result.row()])
+        _append_csv(self.out / "faults.csv", fault_rows(result))
+
+    def _plot(self, results: Results) -> None:
+        if self.out is None or not results.runs:
+            return
+        try:
+            from rr_actors.experiments import plot  # noqa: PLC0415
+        except ImportError:
+            logger.warning("plots not drawn: matplotlib is not installed")
+            return
+        plot.plot_recovery(results, self.out / "recovery.png")
+        plot.plot_timeline(results, self.out / "timeline.png")
+
+
+def fault_rows(result: RunResult) -> list[dict[str, Any]]:
+    """The faults of a run as rows of `faults.csv`."""
+    rows = []
+    for fault in result.faults:
+        late = fault.late_s
+        rows.append(
+            {
+                "run": result.run,
+                "setting": result.setting,
+                "value": "" if result.value is None else show_value(result.value),
+                "seed": result.seed,
+                "fault": fault.fault,
+                "n": fault.n,
+                "kind": fault.kind,
+                "target": fault.target or "",
+                "scheduled_s": _blank(fault.scheduled_s),
+                "injected_s": _blank(fault.injected_s),
+                "late_ms": "" if late is None else round(late * 1e3, 3),
+                "skipped": fault.skipped,
+                "recovery_s": _blank(fault.recovery_s),
+                "detail": fault.detail,
+            }
+        )
+    return rows
+
+
+def _blank(value: float | None) -> float | str:
+    return "" if value is None else round(value, 6)
+
+
+def _append_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    if not rows:
+        return
+    new = not path.exists()
+    with path.open("a", newline="", encoding="utf-8") as file:
+        writer = csv.DictWriter(file, fieldnames=list(rows[0]), extrasaction="ignore")
+        if new:
+            writer.writeheader()
+        writer.writerows(rows)
+
+
+def _stop(process: subprocess.Popen[bytes]) -> None:
+    """Tell a run process to stop; kill it if it has not within `STOP_TIMEOUT` seconds."""
+    if process.poll() is not None:
+        return
+    with contextlib.suppress(ProcessLookupError):
+        process.send_signal(signal.SIGTERM)
+    try:
+        process.wait(STOP_TIMEOUT)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
+@contextlib.contextmanager
+def _ignoring_sigint() -> Iterator[None]:
+    """A second Ctrl-C must not cut the cleanup short (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -1,0 +1,196 @@
+"""From a run's events, faults and calls to its numbers: pure functions, no I/O.
+
+    events (ChildExited / ChildStarted / ChildRestarted) ──down_intervals──► per manager, down
+    faults (kill, hang) ──────────────────────────────────┘ (a kill or hang starts the interval)
+    down + events + calls + client recoveries ──recovery_time(fault)──► seconds, or None
+
+Times are seconds from the start of the run's workload; events carry wall-clock `at`,
+so the run's wall-clock start `t0` converts them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+
+from rr_actors import events
+from rr_actors.experiments.results import FaultRecord
+
+__all__ = [
+    "Down",
+    "down_intervals",
+    "percentile",
+    "recovery_time",
+    "unavailable",
+]
+
+Down = dict[str, list[tuple[float, float | None]]]
+"""Per manager, the intervals it did not serve: `(start, end)`, `end` `None` if never back."""
+
+_MANAGER_FAULTS = ("kill_manager", "hang_manager")
+
+
+def down_intervals(
+    seen: Iterable[events.Event],
+    managers: Sequence[str],
+    t0: float,
+    faults: Sequence[FaultRecord] = (),
+    resumed: Sequence[tuple[str, float]] = (),
+    until: float | None = None,
+) -> Down:
+    """When each manager did not serve, from the child events of a run.
+
+    An interval opens at a `ChildExited` of the manager and closes at its next
+    `ChildStarted` or `ChildRestarted`. A kill or hang injected into a manager opens its
+    interval at the injection instead (the supervisor sees the exit a little later, a
+    hang much later), unless the manager was already down; a hung manager that was
+    resumed (`SIGCONT`) before anyone killed it serves again from then.
+
+    Args:
+        seen: the run's events, in any order.
+        managers: the managers' names.
+        t0: the wall-clock start of the run (`time.time()` seconds).
+        faults: the run's faults.
+        resumed: `(manager, time)` of each hung manager resumed while still alive.
+        until: ignore what happened after this time (the run's own shutdown of the tree).
+
+    Returns:
+        Per manager, its intervals in time order.
+    """
+    changes: list[tuple[float, int, str, bool]] = []  # (time, order, manager, up)
+    for event in seen:
+        if isinstance(event, events.ChildExited) and event.child in managers:
+            changes.append((event.at - t0, 1, event.child, False))
+        elif isinstance(event, events.ChildStarted | events.ChildRestarted) and (
+            event.child in managers
+        ):
+            changes.append((event.at - t0, 2, event.child, True))
+    changes.extend(
+        (fault.injected_s, 0, fault.target, False)
+        for fault in faults
+        if fault.kind in _MANAGER_FAULTS and fault.injected_s is not None and fault.target
+    )
+    changes.extend((at, 3, name, True) for name, at in resumed if name in managers)
+    if until is not None:
+        changes = [change for change in changes if change[0] <= until]
+    changes.sort()
+    down: Down = {name: [] for name in managers}
+    opened: dict[str, float] = {}
+    for at, _, name, up in changes:
+        if up:
+            if name in opened:
+                down[name].append((opened.pop(name), at))
+        elif name not in opened:
+            opened[name] = at
+    for name, at in opened.items():
+        down[name].append((at, None))
+    for intervals in down.values():
+        intervals.sort(key=lambda i: i[0])
+    return down
+
+
+def unavailable(down: Down, end: float) -> dict[str, float]:
+    """Seconds each manager did not serve between the run's start (0) and `end`."""
+    total: dict[str, float] = {}
+    for name, intervals in down.items():
+        seconds = 0.0
+        for start, stop in intervals:
+            lo, hi = max(0.0, start), min(end, end if stop is None else stop)
+            seconds += max(0.0, hi - lo)
+        total[name] = seconds
+    return total
+
+
+def recovery_time(
+    fault: FaultRecord,
+    down: Down,
+    seen: Sequence[events.Event],
+    t0: float,
+    client_recoveries: Sequence[float],
+    *,
+    load_error_until: float | None = None,
+) -> float | None:
+    """Seconds from `fault`'s injection until the system served again, or `None`.
+
+    What "served again" means depends on the kind (`docs/reference/plan.md`):
+
+    - `kill_manager`, `hang_manager`: the manager served again and every other manager
+      that went down meanwhile too (one_for_all and rest_for_one restart siblings);
+    - `kill_resource`: a client got its resource back (reloaded after the `FATAL`, or
+      told `UPDATE` by a manager that replaced the process itself);
+    - `load_error`: the manager completed a load after the fault ended (its last
+      failing load, or the end of `for`);
+    - `cut_connections`: the manager answered a call again (a consumer was added at
+      it: a client's call, or a nested load of another manager).
+
+    Args:
+        fault: an injected fault.
+        down: `down_intervals` of the run.
+        seen: the run's events.
+        t0: the wall-clock start of the run.
+        client_recoveries: times at which a client got a resource back.
+        load_error_until: for `load_error`, when the fault ended (its last injected load
+            failure, or the end of `for`), or `None` if it never ended.
+    """
+    if fault.injected_s is None or fault.target is None:
+        return None
+    t = fault.injected_s
+    if fault.kind in _MANAGER_FAULTS:
+        back = _all_up_after(down, fault.target, t)
+        return None if back is None else back - t
+    if fault.kind == "kill_resource":
+        later = [r for r in client_recoveries if r >= t]
+        return min(later) - t if later else None
+    if fault.kind == "load_error":
+        if load_error_until is None:
+            return None
+        loads = [
+            e.at - t0
+            for e in seen
+            if isinstance(e, events.ResourceLoaded)
+            and e.registrar == fault.target
+            and e.at - t0 >= load_error_until
+        ]
+        return min(loads) - t if loads else None
+    answered = [
+        e.at - t0
+        for e in seen
+        if isinstance(e, events.ConsumerAdded) and e.registrar == fault.target and e.at - t0 >= t
+    ]
+    return min(answered) - t if answered else None
+
+
+def _all_up_after(down: Down, target: str, t: float) -> float | None:
+    """The first time after `t` when `target` is back from the interval `t` is in, and no
+    manager is down (a sibling taken down meanwhile counts)."""
+    back: float | None = None
+    for start, end in down.get(target, []):
+        if start <= t + 1e-9 and (end is None or end >= t):
+            back = end
+            if back is None:
+                return None
+            break
+    if back is None:
+        return None  # it never went down: nothing to recover from
+    moved = True
+    while moved:
+        moved = False
+        for intervals in down.values():
+            for start, end in intervals:
+                if start <= back and (end is None or end > back):
+                    if end is None:
+                        return None
+                    back = end
+                    moved = True
+    return back
+
+
+def percentile(values: Sequence[float], q: float) -> float | None:
+    """The `q`-th percentile (0-100) of `values`, linearly interpolated; `None` if empty."""
+    if not values:
+        return None
+    ordered = sorted(values)
+    rank = (len(ordered) - 1) * q / 100.0
+    low = math.floor(rank)
+    high = math.ceil(rank)
+    return ordered[low] + (ordered[high] - ordered[low]) * (rank - low)

@@ -1,0 +1,238 @@
+"""What an experiment gives back: one `RunResult` per run, its faults and calls, and `Results`.
+
+All times of a run are seconds from the start of its workload (`t = 0`), except the
+wall-clock `started_at` (`time.time()`), which places the run in `events.jsonl` (whose
+events carry wall-clock `at`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from rr_actors.experiments.plan import Plan
+
+__all__ = ["CallRecord", "FaultRecord", "Results", "RunResult", "show_value"]
+
+
+@dataclasses.dataclass(frozen=True)
+class FaultRecord:
+    """One scheduled fault of one run: when it was meant to fire, when it did, what it did.
+
+    Attributes:
+        fault: index of the fault in the plan's `[[faults]]`.
+        n: which injection of that fault (0, 1, ...).
+        kind: the fault kind.
+        target: the manager it hit (for `kill_resource`, the manager of the process).
+        scheduled_s: when it was meant to fire (for a triggered fault: the trigger's
+            time plus its delay).
+        injected_s: when it fired (right after the signal or the switch), or `None` if
+            it was skipped.
+        detail: what it did, for people (`"SIGKILL pid 4242"`), or why it was skipped.
+        skipped: whether it did nothing (its manager was not running, no process to kill,
+            the run ended before its trigger).
+        recovery_s: seconds from the injection until the system served again (see
+            `docs/reference/plan.md`, "Recovery"), or `None` if it did not within the run.
+    """
+
+    fault: int
+    n: int
+    kind: str
+    target: str | None
+    scheduled_s: float | None
+    injected_s: float | None
+    detail: str
+    skipped: bool = False
+    recovery_s: float | None = None
+
+    @property
+    def late_s(self) -> float | None:
+        """Seconds from the scheduled time to the injection (the injector's error)."""
+        if self.injected_s is None or self.scheduled_s is None:
+            return None
+        return self.injected_s - self.scheduled_s
+
+
+@dataclasses.dataclass(frozen=True)
+class CallRecord:
+    """One call the workload made (a first call, or a reload after a `FATAL`).
+
+    Attributes:
+        client: the client's index.
+        manager: the provider called.
+        server: its server.
+        start_s: when the call started.
+        end_s: when it returned or failed.
+        ok: whether it returned a response.
+        retried: whether it needed more than one attempt (the provider died, was being
+            restarted, or a connection was cut).
+        error: the error's type name if it failed.
+    """
+
+    client: int
+    manager: str
+    server: str
+    start_s: float
+    end_s: float
+    ok: bool
+    retried: bool
+    error: str | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class RunResult:
+    """One run: its row of `runs.csv` and what the plots need.
+
+    Attributes:
+        plan: the plan's name.
+        setting: the compared setting (`""` without `compare`).
+        value: the compared value for this run (`None` without `compare`).
+        run: the run's number in the experiment (1, 2, ...).
+        repeat: its number among the runs of its value (1, 2, ...).
+        seed: the run's seed (the same seed gives the same fault schedule).
+        version: the rr_actors version that ran it.
+        started_at: wall-clock start of the workload (`time.time()` seconds).
+        duration_s: seconds of workload and faults.
+        calls_ok: calls that returned a response.
+        calls_failed: calls that failed (after retries, or at once: a load that raised).
+        calls_retried: calls that needed more than one attempt (ok or not).
+        unavailable_s: per manager, seconds it did not serve (from a kill or hang of it,
+            or from its exit, until it served again).
+        restarts: restarts of children in the whole tree.
+        gave_up: whether the top supervisor gave up (restart intensity exceeded).
+        recovery_median_s: median recovery time of the run's faults (`None`: none recovered).
+        recovery_p90_s: 90th percentile of the same.
+        unrecovered: faults injected that did not recover within the run.
+        leaked_processes: processes the run started that were still alive after it.
+        catalog_entries_left: rows left in every registrar's catalog after the clients
+            unloaded everything (`-1` if a catalog could not be read).
+        events: events recorded.
+        events_dropped: events lost to a full queue (then the metrics are incomplete).
+        faults: every scheduled fault of the run.
+        calls: every call of the run.
+        down: per manager, the `(start, end)` intervals it did not serve (`end` is
+            `None` if it was still down when the run ended).
+        restart_times: per manager, when it served again after each exit.
+        give_ups: `(supervisor, time)` of each supervisor that gave up (restart intensity
+            exceeded).
+    """
+
+    plan: str
+    setting: str
+    value: Any
+    run: int
+    repeat: int
+    seed: int
+    version: str
+    started_at: float
+    duration_s: float
+    calls_ok: int
+    calls_failed: int
+    calls_retried: int
+    unavailable_s: dict[str, float]
+    restarts: int
+    gave_up: bool
+    recovery_median_s: float | None
+    recovery_p90_s: float | None
+    unrecovered: int
+    leaked_processes: int
+    catalog_entries_left: int
+    events: int
+    events_dropped: int
+    faults: tuple[FaultRecord, ...] = ()
+    calls: tuple[CallRecord, ...] = dataclasses.field(default=(), repr=False)
+    down: dict[str, tuple[tuple[float, float | None], ...]] = dataclasses.field(
+        default_factory=dict, repr=False
+    )
+    restart_times: dict[str, tuple[float, ...]] = dataclasses.field(
+        default_factory=dict, repr=False
+    )
+    give_ups: tuple[tuple[str, float], ...] = ()
+
+    def row(self) -> dict[str, Any]:
+        """This run as one row of `runs.csv` (`unavailable_s_<manager>` per manager)."""
+        row: dict[str, Any] = {
+            "plan": self.plan,
+            "setting": self.setting,
+            "value": "" if self.value is None else show_value(self.value),
+            "run": self.run,
+            "repeat": self.repeat,
+            "seed": self.seed,
+            "version": self.version,
+            "duration_s": round(self.duration_s, 3),
+            "calls_ok": self.calls_ok,
+            "calls_failed": self.calls_failed,
+            "calls_retried": self.calls_retried,
+        }
+        for name, seconds in self.unavailable_s.items():
+            row[f"unavailable_s_{name}"] = round(seconds, 4)
+        row.update(
+            {
+                "restarts": self.restarts,
+                "gave_up": self.gave_up,
+                "faults": sum(1 for f in self.faults if not f.skipped),
+                "faults_skipped": sum(1 for f in self.faults if f.skipped),
+                "recovery_median_s": _rounded(self.recovery_median_s),
+                "recovery_p90_s": _rounded(self.recovery_p90_s),
+                "unrecovered": self.unrecovered,
+                "leaked_processes": self.leaked_processes,
+                "catalog_entries_left": self.catalog_entries_left,
+                "events": self.events,
+                "events_dropped": self.events_dropped,
+            }
+        )
+        return row
+
+    def recoveries(self) -> list[float]:
+        """The recovery times of the run's faults that recovered, in seconds."""
+        return [f.recovery_s for f in self.faults if f.recovery_s is not None]
+
+
+def show_value(value: Any) -> str:
+    """A compared value as the plan writes it (`false`, not `False`)."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    return str(value)
+
+
+def _rounded(value: float | None) -> float | str:
+    return "" if value is None else round(value, 4)
+
+
+@dataclasses.dataclass(frozen=True)
+class Results:
+    """Everything an experiment produced.
+
+    Attributes:
+        plan: the plan that ran (with the overrides of `run`).
+        runs: the finished runs, in the order they ran.
+        out: the output directory, or `None` if nothing was written.
+        interrupted: whether it was stopped (Ctrl-C) before every run finished.
+    """
+
+    plan: Plan
+    runs: tuple[RunResult, ...]
+    out: Path | None = None
+    interrupted: bool = False
+
+    def rows(self) -> list[dict[str, Any]]:
+        """Every run as a row of `runs.csv`."""
+        return [run.row() for run in self.runs]
+
+    def by_value(self) -> list[tuple[Any, list[RunResult]]]:
+        """The runs grouped by compared value, in the plan's order of values."""
+        grouped: list[tuple[Any, list[RunResult]]] = [(v, []) for v, _ in self.plan.variants]
+        for run in self.runs:
+            for value, runs in grouped:
+                if type(value) is type(run.value) and value == run.value:  # False is not 0
+                    runs.append(run)
+                    break
+        return grouped
+
+    def faults(self) -> Iterator[tuple[RunResult, FaultRecord]]:
+        """Every fault of every run, with its run."""
+        for run in self.runs:
+            for fault in run.faults:
+                yield run, fault

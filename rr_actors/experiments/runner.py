@@ -1,0 +1,440 @@
+"""One run, inside its own run process: build the tree, drive the workload, inject, measure.
+
+    execute(spec)
+      ├─ Supervisor(the plan's tree; every setup wrapped by _instrument.instrumented_setup)
+      ├─ subscribe ─► _EventLog: keeps every event, feeds the injector's triggers
+      ├─ start the tree; clients (workload.py); t0; injector (inject.py) and clients go
+      ├─ wait `duration` (or until told to stop: SIGTERM from the experiment)
+      ├─ stop the injector (hung managers resumed); wait until every manager serves again
+      ├─ clients unload everything; count what the catalogs still hold
+      ├─ stop the tree; events.jsonl (+ run, seed); processes of this run still alive
+      │  are leaks (then killed)
+      └─ metrics.py ─► RunResult
+
+The run process is started by `rr_actors.experiments.experiment` with `python -m
+rr_actors.experiments._child RUN_DIR`; `execute` is also callable in-process (tests).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import logging
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import rr_actors as rr
+from rr_actors import events
+from rr_actors.experiments import _procs, metrics
+from rr_actors.experiments._instrument import instrumented_setup
+from rr_actors.experiments.inject import Injector
+from rr_actors.experiments.plan import ManagerPlan, Plan, SupervisorPlan
+from rr_actors.experiments.results import FaultRecord, RunResult
+from rr_actors.experiments.schedule import fault_schedule
+from rr_actors.experiments.workload import Client
+from rr_actors.testing import catalog_snapshot
+
+__all__ = ["RunSpec", "build_tree", "execute", "fault_line"]
+
+logger = logging.getLogger("rr_actors.experiments")
+
+SWITCH_INTERVAL = 0.001
+"""Seconds between forced thread switches in a run process (Python's default is 0.005):
+the injector's thread gets the interpreter within a millisecond of its wake-up."""
+
+LEAK_GRACE = 1.0
+"""Seconds the processes of a stopped tree get to exit before they count as leaked."""
+
+EVENT_QUEUE = 200_000
+"""Events the run's subscription may queue before it drops (and counts) new ones."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSpec:
+    """What one run process is asked to do.
+
+    Attributes:
+        plan: the plan, for one compared value.
+        setting: the compared setting (`""` without `compare`).
+        value: the compared value (`None` without `compare`).
+        run: the run's number in the experiment (1, 2, ...).
+        repeat: its number among the runs of its value (1, 2, ...).
+        seed: its seed.
+        record_events: subscribe to the tree and write `events.jsonl` (without, the
+            metrics that come from events stay empty: for measuring what recording costs).
+        observe: serve the live observer page (`Supervisor.observe`) during the run.
+        token: the value of `RR_ACTORS_EXPERIMENT` that marks this run's processes.
+    """
+
+    plan: Plan
+    setting: str
+    value: Any
+    run: int
+    repeat: int
+    seed: int
+    record_events: bool = True
+    observe: bool = False
+    token: str = ""
+
+
+def build_tree(plan: Plan, state_dir: Path | None) -> rr.Supervisor:
+    """The plan's supervision tree as an (unstarted) `Supervisor`, every setup instrumented."""
+    top = plan.tree
+    return rr.Supervisor(
+        [_child_spec(child, plan.base_dir) for child in top.children],
+        strategy=top.strategy,
+        max_restarts=top.max_restarts,
+        period=top.period,
+        backoff=top.backoff,
+        state_dir=state_dir,
+        name=top.name,
+    )
+
+
+def _child_spec(
+    child: ManagerPlan | SupervisorPlan, base_dir: str | None
+) -> rr.ManagerSpec | rr.SupervisorSpec:
+    if isinstance(child, SupervisorPlan):
+        return rr.SupervisorSpec(
+            name=child.name,
+            children=tuple(_child_spec(c, base_dir) for c in child.children),
+            strategy=child.strategy,
+            max_restarts=child.max_restarts,
+            period=child.period,
+            backoff=child.backoff,
+            restart=child.restart,
+        )
+    return rr.ManagerSpec(
+        child.name,
+        setup=functools.partial(instrumented_setup, child.setup, dict(child.options), base_dir),
+        isolation=child.isolation,
+        restart=child.restart,
+        heartbeat=child.heartbeat,
+        heartbeat_timeout=child.heartbeat_timeout,
+        shutdown=child.shutdown,
+        start_timeout=child.start_timeout,
+    )
+
+
+def fault_line(record: FaultRecord, *, run: int, seed: int, wall_t0: float) -> dict[str, Any]:
+    """A fault as a line of `events.jsonl` (`"type": "FaultInjected"` or `"FaultSkipped"`)."""
+    at = record.injected_s if record.injected_s is not None else record.scheduled_s
+    return {
+        "type": "FaultSkipped" if record.skipped else "FaultInjected",
+        "fault": record.fault,
+        "n": record.n,
+        "kind": record.kind,
+        "target": record.target,
+        "detail": record.detail,
+        "scheduled_s": record.scheduled_s,
+        "injected_s": record.injected_s,
+        "recovery_s": record.recovery_s,
+        "at": None if at is None else wall_t0 + at,
+        "run": run,
+        "seed": seed,
+    }
+
+
+class _EventLog:
+    """The run's subscriber: keeps every event and feeds the injector's triggers.
+
+    It does no more on the subscriber thread than append (the JSON lines are written
+    after the tree stopped, by `write`), so that recording costs the workload as little
+    as it can (`benchmarks/bench_experiments.py` measures it).
+    """
+
+    def __init__(self) -> None:
+        self.seen: list[events.Event] = []
+        self.injector: Injector | None = None
+
+    def __call__(self, event: events.Event) -> None:
+        self.seen.append(event)
+        injector = self.injector
+        if injector is not None:
+            injector.on_event(event)
+
+    @property
+    def dropped(self) -> int:
+        """Events lost to a full queue (from the `EventsDropped` notices)."""
+        return sum(e.count for e in self.seen if isinstance(e, events.EventsDropped))
+
+    def write(self, path: Path, run: int, seed: int) -> None:
+        """Write every event as a JSON line with `run` and `seed` (`events.jsonl`)."""
+        extra = {"run": run, "seed": seed}
+        with path.open("w", encoding="utf-8") as out:
+            for event in self.seen:
+                out.write(json.dumps({**events.to_dict(event), **extra}) + "\n")
+
+
+def _catalog_size(registrar: rr.ResourceRegistrar) -> int:
+    """Rows in a registrar's catalog (run where the registrar lives, via `run_in`)."""
+    view = catalog_snapshot(registrar)
+    return len(view.resources) + len(view.clients)
+
+
+def _wait_all_serving(sup: rr.Supervisor, names: list[str], timeout: float) -> None:
+    """Wait (bounded) until every manager runs again; give up on those that will not."""
+    deadline = time.monotonic() + timeout
+    for name in names:
+        info = sup.child(name)
+        while info.state != "running":
+            left = deadline - time.monotonic()
+            if left <= 0 or sup.gave_up is not None or info.state in ("exited", "stopped"):
+                return
+            try:
+                info = sup.wait_restarted(name, timeout=left, restarts=info.restarts + 1)
+            except rr.RrError:
+                return
+
+
+def _leaked(token: str) -> int:
+    """Processes of this run still alive after its tree stopped (killed, and counted)."""
+    if not token:
+        return 0
+    me = os.getpid()
+    alive = [
+        pid
+        for pid in _procs.processes_with(token, exclude=frozenset({me, os.getppid()}))
+        # This process's forkserver and resource tracker end with it. (Manager processes
+        # also show the forkserver's command line, but they are its children, not ours.)
+        if not (_procs.parent(pid) == me and "multiprocessing" in _procs.cmdline(pid))
+    ]
+    left = _procs.wait_gone(alive, LEAK_GRACE)
+    _procs.kill(left)
+    return len(left)
+
+
+@dataclasses.dataclass
+class _Drive:
+    """One run while its tree runs: the clients, the injector and what they measured."""
+
+    clients: list[Client] = dataclasses.field(default_factory=list)
+    injector: Injector | None = None
+    wall_t0: float = 0.0
+    end_s: float = 0.0  # the end of the workload (seconds from t0)
+    until_s: float = 0.0  # the last instant measured, just before the tree's shutdown
+    entries: int = 0
+
+
+def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None) -> RunResult:
+    """Run one run of `spec` in this process; return its result.
+
+    Args:
+        spec: what to run.
+        run_dir: a fresh directory for the run's files (`events.jsonl`, `state/`, `work/`).
+        stop: set it to end the run early (the result is then incomplete).
+
+    Returns:
+        The run's result (its `leaked_processes` counts what this process could see).
+    """
+    stop = stop if stop is not None else threading.Event()
+    sys.setswitchinterval(SWITCH_INTERVAL)
+    plan = spec.plan
+    if plan.base_dir is not None and plan.base_dir not in sys.path:
+        sys.path.insert(0, plan.base_dir)  # the plan's modules, here and in its managers
+    (run_dir / "work").mkdir(parents=True, exist_ok=True)
+    sup = build_tree(plan, run_dir / "state" if plan.state else None)
+    drive = _Drive()
+    log = _EventLog()
+    subscription = sup.subscribe(log, maxsize=EVENT_QUEUE) if spec.record_events else None
+    try:
+        sup.start()
+        try:
+            _drive(sup, spec, log, run_dir / "work", stop, drive)
+        finally:
+            if drive.injector is not None:
+                drive.injector.stop()
+            sup.stop()
+        if subscription is not None:
+            subscription.wait_delivered()
+    finally:
+        if subscription is not None:
+            subscription.close()
+    log.write(run_dir / "events.jsonl", spec.run, spec.seed)
+    leaked = _leaked(spec.token)
+    assert drive.injector is not None
+    return _result(
+        spec,
+        log,
+        drive,
+        leaked=leaked,
+        dropped=subscription.dropped if subscription is not None else 0,
+        run_dir=run_dir,
+    )
+
+
+def _drive(
+    sup: rr.Supervisor,
+    spec: RunSpec,
+    log: _EventLog,
+    work: Path,
+    stop: threading.Event,
+    drive: _Drive,
+) -> None:
+    """The run itself, on a started tree: workload and faults, then unload and count."""
+    plan = spec.plan
+    managers = [m.name for m in plan.managers()]
+    if spec.observe:
+        observer = sup.observe(host="127.0.0.1", port=0)
+        print(json.dumps({"observe": observer.url}), flush=True)  # noqa: T201 - to the experiment
+    drive.clients = [
+        Client(i, sup, plan, spec.seed, run_dir=work) for i in range(plan.workload.clients)
+    ]
+    t0, drive.wall_t0 = time.monotonic(), time.time()
+    injector = drive.injector = Injector(
+        sup, plan, fault_schedule(plan, spec.seed), t0=t0, wall_t0=drive.wall_t0
+    )
+    log.injector = injector
+    for client in drive.clients:
+        client.start(t0=t0, deadline=t0 + plan.duration)
+    injector.start()
+    stop.wait(plan.duration)
+    drive.end_s = time.monotonic() - t0
+    injector.stop()
+    if not stop.is_set():
+        _wait_all_serving(sup, managers, plan.recovery_timeout)
+    for client in drive.clients:
+        client.stop(timeout=0.5 if stop.is_set() else plan.workload.timeout)
+    drive.entries = _count_entries(sup, managers, drive.clients)
+    if spec.record_events:
+        sup.flush_events()
+    drive.until_s = time.monotonic() - t0
+
+
+def _count_entries(sup: rr.Supervisor, managers: list[str], clients: list[Client]) -> int:
+    total = 0
+    for name in managers:
+        try:
+            total += int(sup.run_in(name, _catalog_size))
+        except rr.RrError:
+            return -1
+    for client in clients:
+        total += _catalog_size(client.registrar)
+    return total
+
+
+def _result(
+    spec: RunSpec,
+    log: _EventLog,
+    drive: _Drive,
+    *,
+    leaked: int,
+    dropped: int,
+    run_dir: Path,
+) -> RunResult:
+    plan = spec.plan
+    injector, clients = drive.injector, drive.clients
+    assert injector is not None
+    wall_t0, end_s, until_s = drive.wall_t0, drive.end_s, drive.until_s
+    seen = log.seen
+    managers = [m.name for m in plan.managers()]
+    records = sorted(
+        injector.records,
+        key=lambda r: (r.scheduled_s if r.scheduled_s is not None else float("inf"), r.fault),
+    )
+    down = metrics.down_intervals(seen, managers, wall_t0, records, injector.resumed, until=until_s)
+    calls = sorted((c for client in clients for c in client.calls), key=lambda c: c.start_s)
+    client_recoveries = sorted(r for client in clients for r in client.recoveries)
+    finished = [
+        dataclasses.replace(
+            record,
+            recovery_s=metrics.recovery_time(
+                record,
+                down,
+                seen,
+                wall_t0,
+                client_recoveries,
+                load_error_until=_load_error_until(record, plan, seen, wall_t0),
+            ),
+        )
+        for record in records
+    ]
+    heard = sorted(t for client in clients for t in client.heard)
+    finished = [_unheld(record, heard, plan.workload.timeout) for record in finished]
+    with (run_dir / "events.jsonl").open("a", encoding="utf-8") as out:
+        for record in finished:
+            line = fault_line(record, run=spec.run, seed=spec.seed, wall_t0=wall_t0)
+            out.write(json.dumps(line) + "\n")
+    recoveries = [f.recovery_s for f in finished if f.recovery_s is not None]
+    restart_times = {
+        name: tuple(
+            e.at - wall_t0 for e in seen if isinstance(e, events.ChildRestarted) and e.child == name
+        )
+        for name in managers
+    }
+    return RunResult(
+        plan=plan.name,
+        setting=spec.setting,
+        value=spec.value,
+        run=spec.run,
+        repeat=spec.repeat,
+        seed=spec.seed,
+        version=rr.__version__,
+        started_at=wall_t0,
+        duration_s=end_s,
+        calls_ok=sum(1 for c in calls if c.ok),
+        calls_failed=sum(1 for c in calls if not c.ok),
+        calls_retried=sum(1 for c in calls if c.retried),
+        unavailable_s=metrics.unavailable(down, end_s),
+        restarts=sum(1 for e in seen if isinstance(e, events.ChildRestarted)),
+        gave_up=any(
+            isinstance(e, events.SupervisorGaveUp) and e.supervisor == plan.tree.name for e in seen
+        ),
+        recovery_median_s=metrics.percentile(recoveries, 50),
+        recovery_p90_s=metrics.percentile(recoveries, 90),
+        unrecovered=sum(
+            1 for f in finished if not f.skipped and f.recovery_s is None and UNHELD not in f.detail
+        ),
+        leaked_processes=leaked,
+        catalog_entries_left=drive.entries,
+        events=len(seen),
+        events_dropped=log.dropped + dropped,
+        faults=tuple(finished),
+        calls=tuple(calls),
+        down={name: tuple(intervals) for name, intervals in down.items()},
+        restart_times=restart_times,
+        give_ups=tuple(
+            (e.supervisor, e.at - wall_t0)
+            for e in seen
+            if isinstance(e, events.SupervisorGaveUp) and e.at - wall_t0 <= until_s
+        ),
+    )
+
+
+UNHELD = "no client held it"
+"""Said of a killed resource process about which no client heard: nothing to recover."""
+
+
+def _unheld(record: FaultRecord, heard: list[float], window: float) -> FaultRecord:
+    """Mark a `kill_resource` that no client heard about (within `window` s) as unheld."""
+    if record.kind != "kill_resource" or record.injected_s is None or record.recovery_s:
+        return record
+    start = record.injected_s
+    if any(start <= t <= start + window for t in heard):
+        return record
+    return dataclasses.replace(record, detail=f"{record.detail}; {UNHELD}")
+
+
+def _load_error_until(
+    record: FaultRecord, plan: Plan, seen: list[events.Event], wall_t0: float
+) -> float | None:
+    """When a `load_error` fault ended: after `for`, or at its last injected failure."""
+    if record.kind != "load_error" or record.injected_s is None:
+        return None
+    fault = plan.faults[record.fault]
+    if fault.for_s is not None:
+        return record.injected_s + fault.for_s
+    failures = sorted(
+        e.at - wall_t0
+        for e in seen
+        if isinstance(e, events.LoadFailed)
+        and e.registrar == record.target
+        and e.error_type == "InjectedLoadError"
+        and e.at - wall_t0 >= record.injected_s
+    )
+    return failures[fault.loads - 1] if len(failures) >= fault.loads else None

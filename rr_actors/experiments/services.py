@@ -1,0 +1,66 @@
+"""A generic manager for experiments: one resource server with a chosen load time and dependencies.
+
+Use it in a plan when the managers' own work does not matter, only the shape of the tree:
+
+```toml
+[[tree.children]]
+name = "db"
+setup = "rr_actors.experiments.services:service"
+
+[[tree.children]]
+name = "api"
+setup = "rr_actors.experiments.services:service"
+options = { load_s = 0.005, uses = ["db/resource"] }   # each load loads from db too
+```
+
+The thesis mission's managers (`rr_actors.mission.managers:erm_setup`, `cm_setup`,
+`rm_setup`) are the other ready-made choice: their resources are real OS processes.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import rr_actors as rr
+
+__all__ = ["service"]
+
+
+def service(
+    registrar: rr.ResourceRegistrar,
+    *,
+    server: str = "resource",
+    load_s: float = 0.0,
+    unload_s: float = 0.0,
+    uses: Sequence[str] = (),
+) -> None:
+    """Register one resource server whose loads take `load_s` and load what it `uses`.
+
+    Runs in the manager (its process or thread), as every `setup` does. The response to a
+    request is `{"server": "<registrar>/<server>", "request": request}`.
+
+    Args:
+        registrar: the manager's registrar.
+        server: the server's name.
+        load_s: seconds each load takes (simulated work; the load's worker thread waits).
+        unload_s: seconds each unload takes.
+        uses: `"manager/server"` of other managers: each load calls every one of them
+            with the same request (nested loads: dependencies of the resource, released
+            with it). A bare `"manager"` means its server `resource`.
+    """
+
+    def load(request: Any) -> dict[str, Any]:
+        for target in uses:
+            manager, _, name = target.partition("/")
+            registrar.call(manager, name or "resource", request)
+        if load_s > 0:
+            time.sleep(load_s)
+        return {"server": f"{registrar.name}/{server}", "request": request}
+
+    def unload(_request: Any, _response: Any) -> None:
+        if unload_s > 0:
+            time.sleep(unload_s)
+
+    registrar.register_server(server, load=load, unload=unload)

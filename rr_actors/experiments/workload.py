@@ -1,0 +1,457 @@
+"""The workload: client threads that load and unload resources while faults hit the tree.
+
+Each client has a consumer registrar of its own (`Supervisor.registrar`) and one thread:
+
+    next call due? ──► pick a call of the mix (weighted), a shared or a unique key ──► call
+                         (retried through restarts and cut connections, same query id)
+    a resource's hold ran out? ──► unload it (retried likewise)
+    a status came (its callback queues it) ──► FATAL: unload, load again (a recovery)
+                                               UPDATE: the manager replaced it (a recovery)
+
+Calls come at `rate` per second per client (seeded Poisson or fixed gaps); a call that
+waits out a restart delays the client's next ones, as it would in a real client. Every
+call is recorded (`CallRecord`); so are the times a client got a resource back after a
+failure (`recoveries`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import heapq
+import itertools
+import os
+import queue
+import random
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import rr_actors as rr
+from rr_actors.experiments.plan import CallMix, Plan, Workload, import_object
+from rr_actors.experiments.results import CallRecord
+
+__all__ = ["Client", "RequestContext", "render_request", "retrying"]
+
+T = TypeVar("T")
+
+_RETRY_PAUSE = 0.01
+"""Seconds before the first retry of a call whose provider is running (a cut connection);
+the pause doubles up to `_RETRY_PAUSE_MAX`."""
+
+_RETRY_PAUSE_MAX = 0.2
+
+
+@dataclasses.dataclass(frozen=True)
+class RequestContext:
+    """What a request factory (`factory = "module:function"`) is told besides the key.
+
+    Attributes:
+        client: the client's index (0, 1, ...).
+        run_dir: a directory of this run (for files a resource may need).
+        pid: the run process's pid (for programs that should exit with the run).
+        manager: the provider the call goes to.
+        server: the server on it.
+    """
+
+    client: int
+    run_dir: str
+    pid: int
+    manager: str
+    server: str
+
+
+def render_request(template: Any, key: str, context: RequestContext) -> Any:
+    """Fill a request template: `{key}`, `{client}`, `{run_dir}` in strings; `"{pid}"` -> pid.
+
+    Args:
+        template: the template from the plan (any TOML value).
+        key: the request's key (`"shared-2"`, `"unique-0-17"`).
+        context: the call's context.
+
+    Returns:
+        The request (a new value; the template is not changed).
+    """
+    if isinstance(template, dict):
+        return {k: render_request(v, key, context) for k, v in template.items()}
+    if isinstance(template, list):
+        return [render_request(v, key, context) for v in template]
+    if isinstance(template, str):
+        if template == "{pid}":
+            return context.pid
+        return template.format(
+            key=key, client=context.client, run_dir=context.run_dir, pid=context.pid
+        )
+    return template
+
+
+def retrying(
+    sup: rr.Supervisor,
+    provider: str,
+    action: Callable[[], T],
+    *,
+    deadline: float,
+    retried: Callable[[], None] = lambda: None,
+) -> T:
+    """Run `action` until it succeeds, waiting out restarts of `provider` and cut connections.
+
+    When `action` fails with `RegistrarUnavailableError` or `RegistrarStoppedError`: if
+    the provider was restarted or is down, wait for its next restart; if it still runs
+    (a cut connection), try again after a short pause.
+
+    Args:
+        sup: the supervisor of `provider`.
+        provider: the manager `action` talks to.
+        action: the call or unload (with a fixed query id, so a retry is idempotent).
+        deadline: monotonic time after which the last error is raised.
+        retried: called before each retry.
+
+    Raises:
+        CallTimeoutError: the provider was not back before `deadline`.
+        RrError: what `action` raised otherwise, or its last failure.
+    """
+    pause = _RETRY_PAUSE
+    while True:
+        before = sup.child(provider)
+        try:
+            return action()
+        except (rr.RegistrarUnavailableError, rr.RegistrarStoppedError):
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise
+            retried()
+            now = sup.child(provider)
+            if now.state == "running" and now.restarts == before.restarts:
+                threading.Event().wait(min(pause, left))  # a short pause, not a sync point
+                pause = min(2 * pause, _RETRY_PAUSE_MAX)
+                continue
+            sup.wait_restarted(provider, timeout=left, restarts=before.restarts + 1)
+
+
+@dataclasses.dataclass
+class _Held:
+    unload_at: float
+    seq: int
+    query: rr.Query = dataclasses.field(compare=False)
+    mix: CallMix = dataclasses.field(compare=False)
+    request: Any = dataclasses.field(compare=False)
+
+    def __lt__(self, other: _Held) -> bool:
+        return (self.unload_at, self.seq) < (other.unload_at, other.seq)
+
+
+_STOP = object()
+
+
+class Client:
+    """One client of the workload: a consumer registrar and the thread that drives it.
+
+    Args:
+        index: the client's index.
+        sup: the run's supervisor.
+        plan: the plan (its `workload` says what to do).
+        seed: the run's seed (each client draws from its own generator).
+        run_dir: the run's directory (for `{run_dir}`).
+    """
+
+    def __init__(
+        self,
+        index: int,
+        sup: rr.Supervisor,
+        plan: Plan,
+        seed: int,
+        *,
+        run_dir: Path,
+    ) -> None:
+        self.index = index
+        self.sup = sup
+        self.workload: Workload = plan.workload
+        self.base_dir = plan.base_dir
+        self.t0 = 0.0
+        self.deadline = 0.0
+        self.run_dir = run_dir
+        self.registrar = sup.registrar(
+            rr.RegistrarConfig(name=f"client-{index}", call_timeout=self.workload.timeout)
+        )
+        self.rng = random.Random(f"rr-actors/{seed}/client/{index}")  # noqa: S311
+        self.calls: list[CallRecord] = []
+        self.recoveries: list[float] = []
+        """Times (from `t0`) at which this client got a resource back after a failure."""
+        self.heard: list[float] = []
+        """Times (from `t0`) at which a `FATAL` or `UPDATE` about a resource it held came."""
+        self.unload_failures = 0
+        self._notes: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._held: list[_Held] = []
+        self._given_up: list[tuple[CallMix, Any, str]] = []
+        self._release_later: list[tuple[str, str]] = []  # (manager, query id)
+        self._by_id: dict[str, _Held] = {}
+        self._seq = itertools.count()
+        self._unique = itertools.count()
+        self._stopping = threading.Event()
+        self._factories: dict[str, Callable[..., Any]] = {}
+        self._thread = threading.Thread(target=self._run, name=f"rr-client-{index}", daemon=True)
+
+    # -- life cycle -----------------------------------------------------------------------
+
+    def start(self, *, t0: float, deadline: float) -> None:
+        """Start calling.
+
+        Args:
+            t0: the monotonic start of the workload (the first call comes one gap after).
+            deadline: the monotonic end of the workload (no call starts after it).
+        """
+        self.t0, self.deadline = t0, deadline
+        self._thread.start()
+
+    def stop(self, *, timeout: float) -> None:
+        """Stop calling, unload everything held (retrying for up to `timeout` s), return."""
+        self._stopping.set()
+        self._notes.put(_STOP)
+        self._thread.join(timeout + self.workload.timeout + 5.0)
+        deadline = time.monotonic() + timeout
+        while self._held:
+            held = heapq.heappop(self._held)
+            self._unload(held, deadline)
+        for mix, request, query_id in self._given_up:
+            self._release_given_up(mix, request, query_id, deadline)
+        for manager, query_id in self._release_later:
+            with contextlib.suppress(rr.RrError):
+                retrying(
+                    self.sup,
+                    manager,
+                    functools.partial(self.registrar.unload, query_id),
+                    deadline=max(deadline, time.monotonic() + 1e-3),
+                )
+
+    def _release_given_up(self, mix: CallMix, request: Any, query_id: str, deadline: float) -> None:
+        """Release the id of a call that gave up during an outage, in case it was taken.
+
+        A call in flight when its provider died may or may not have been recorded by it;
+        the client gave up on it, so nobody would release it. Calling again with the same
+        id is idempotent (the provider answers from its restored catalog, or loads), and
+        the unload that follows releases it either way. (`Supervisor.call_with_retry`
+        abandons such ids itself; this workload retries on its own, to also retry at once
+        through cut connections.)
+        """
+        call = functools.partial(self.registrar.call, mix.manager, mix.server, request)
+        with contextlib.suppress(rr.RrError):
+            retrying(
+                self.sup,
+                mix.manager,
+                lambda: call(query_id=query_id, timeout=max(1e-3, deadline - time.monotonic())),
+                deadline=max(deadline, time.monotonic() + 1e-3),
+            )
+            retrying(
+                self.sup,
+                mix.manager,
+                functools.partial(self.registrar.unload, query_id),
+                deadline=max(deadline, time.monotonic() + 1e-3),
+            )
+
+    # -- the thread -----------------------------------------------------------------------
+
+    def _gap(self) -> float:
+        rate = self.workload.rate
+        if rate is None:
+            return 0.0
+        if self.workload.arrivals == "fixed":
+            return 1.0 / rate
+        return self.rng.expovariate(rate)
+
+    def _run(self) -> None:
+        next_call = self.t0 + self._gap()
+        while not self._stopping.is_set():
+            now = time.monotonic()
+            while self._held and self._held[0].unload_at <= now:
+                self._unload(heapq.heappop(self._held), now + self.workload.timeout)
+            if now >= next_call:
+                if now >= self.deadline:
+                    break
+                self._call_one()
+                next_call += self._gap()
+                if self.workload.rate is None:
+                    next_call = time.monotonic()
+                continue
+            wake = next_call
+            if self._held:
+                wake = min(wake, self._held[0].unload_at)
+            try:
+                note = self._notes.get(timeout=max(0.0, wake - time.monotonic()))
+            except queue.Empty:
+                continue
+            if note is _STOP:
+                break
+            self._handle(note)
+        # Statuses that came after the end: nothing more to do than unload at stop().
+
+    def _now(self) -> float:
+        return time.monotonic() - self.t0
+
+    def _choose(self) -> CallMix:
+        mix = self.workload.calls
+        if len(mix) == 1:
+            return mix[0]
+        return self.rng.choices(mix, weights=[m.weight for m in mix])[0]
+
+    def _request(self, mix: CallMix) -> Any:
+        if self.rng.random() < mix.shared:
+            key = f"shared-{self.rng.randrange(mix.keys)}"
+        else:
+            key = f"unique-{self.index}-{next(self._unique)}"
+        context = RequestContext(
+            self.index, str(self.run_dir), os.getpid(), mix.manager, mix.server
+        )
+        if mix.factory is not None:
+            factory = self._factories.get(mix.factory)
+            if factory is None:
+                factory = self._factories[mix.factory] = import_object(
+                    mix.factory, base_dir=self.base_dir
+                )
+            return factory(key, context)
+        return render_request(mix.request, key, context)
+
+    def _call_one(self) -> None:
+        mix = self._choose()
+        request = self._request(mix)
+        query = self._call(mix, request)
+        if query is not None:
+            held = _Held(
+                time.monotonic() + self.workload.hold, next(self._seq), query, mix, request
+            )
+            heapq.heappush(self._held, held)
+            self._by_id[query.id] = held
+
+    def _call(self, mix: CallMix, request: Any) -> rr.Query | None:
+        """One call with retries; recorded; returns the query, or `None` if it failed."""
+        start = self._now()
+        retried = False
+
+        def again() -> None:
+            nonlocal retried
+            retried = True
+
+        query_id = str(uuid.uuid4())
+        call = functools.partial(
+            self.registrar.call,
+            mix.manager,
+            mix.server,
+            request,
+            on_status=self._on_status,
+            query_id=query_id,
+        )
+        deadline = time.monotonic() + self.workload.timeout
+        try:
+            query = retrying(
+                self.sup,
+                mix.manager,
+                lambda: call(timeout=max(1e-3, deadline - time.monotonic())),
+                deadline=deadline,
+                retried=again,
+            )
+        except rr.RrError as exc:
+            self.calls.append(
+                CallRecord(
+                    self.index,
+                    mix.manager,
+                    mix.server,
+                    start,
+                    self._now(),
+                    False,
+                    retried,
+                    type(exc).__name__,
+                )
+            )
+            if retried:  # its provider may have taken the id before it died
+                self._given_up.append((mix, request, query_id))
+            return None
+        self.calls.append(
+            CallRecord(self.index, mix.manager, mix.server, start, self._now(), True, retried)
+        )
+        return query
+
+    def _unload(self, held: _Held, deadline: float) -> None:
+        self._by_id.pop(held.query.id, None)
+        try:
+            retrying(
+                self.sup,
+                held.mix.manager,
+                functools.partial(self.registrar.unload, held.query.id),
+                deadline=max(deadline, time.monotonic() + 1e-3),
+            )
+        except rr.UnknownQueryError:
+            pass  # released already (its provider sent FATAL and forgot it, say)
+        except rr.RrError:
+            self.unload_failures += 1
+
+    # -- statuses ---------------------------------------------------------------------------
+
+    def _on_status(self, query: rr.Query, update: rr.StatusUpdate) -> None:
+        """Client status callback (a worker thread of this client's registrar): queue it."""
+        if update.status in (rr.Status.FATAL, rr.Status.UPDATE):
+            self.heard.append(self._now())
+            self._notes.put((query.id, update.status, self._now()))
+
+    def _handle(self, note: tuple[str, rr.Status, float]) -> None:
+        query_id, status, _ = note
+        held = self._by_id.get(query_id)
+        if held is None:
+            return
+        if status is rr.Status.UPDATE:
+            self.recoveries.append(self._now())
+            return
+        # FATAL: the resource is gone. Release every id this client holds of it (the
+        # same resource may be held twice: equal requests), then load it again once and
+        # give each of them the new one.
+        dead = [
+            h for h in self._held if h.mix is held.mix and h.query.response == held.query.response
+        ]
+        for entry in dead:
+            self._by_id.pop(entry.query.id, None)
+            self._release(entry.mix.manager, entry.query.id)
+        self._held = [h for h in self._held if h not in dead]
+        heapq.heapify(self._held)
+        recovered = False
+        for entry in dead:
+            query = self._reload(entry)
+            if query is None:
+                continue
+            if not recovered:
+                self.recoveries.append(self._now())
+                recovered = True
+            renewed = dataclasses.replace(entry, query=query, seq=next(self._seq))
+            heapq.heappush(self._held, renewed)
+            self._by_id[query.id] = renewed
+
+    def _release(self, manager: str, query_id: str) -> None:
+        """Unload `query_id` now; if its provider is out, again when the run ends."""
+        try:
+            self.registrar.unload(query_id)
+        except rr.UnknownQueryError:
+            pass  # released already
+        except rr.RrError:
+            self._release_later.append((manager, query_id))
+
+    def _reload(self, held: _Held) -> rr.Query | None:
+        """Load a failed resource again, until the answer is not the dead one.
+
+        Equal requests mean the same resource: while another consumer still holds the dead
+        one (it heard the same `FATAL` and has not released it yet), a reload gets the dead
+        one back. Release it again and retry after a pause, until every holder let go and
+        the provider loads a new one (bounded by the workload's `timeout`).
+        """
+        deadline = time.monotonic() + self.workload.timeout
+        pause = _RETRY_PAUSE
+        while not self._stopping.is_set() and time.monotonic() < self.deadline:
+            query = self._call(held.mix, held.request)
+            if query is None or query.response != held.query.response:
+                return query
+            self._release(held.mix.manager, query.id)
+            if time.monotonic() + pause > deadline:
+                return None
+            self._stopping.wait(pause)
+            pause = min(2 * pause, _RETRY_PAUSE_MAX)
+        return None

@@ -1,0 +1,100 @@
+"""Every shipped plan in examples/experiments/ runs (shortened: one repeat, a shorter
+duration) and shows what its docs page says it shows.
+
+The full runs (`--repeat 3`, under a minute each) made the figures of docs/experiments/.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from rr_actors.experiments import Results, RunResult, load_plan, run
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples" / "experiments"
+
+SHIPPED = {"strategies", "crashloop", "hang", "resource", "workload", "first"}
+"""Every plan in examples/experiments/; the tutorial's `first` runs in the docs test."""
+
+
+def shortened(name: str, duration: float) -> Results:
+    return run(load_plan(EXAMPLES / f"{name}.toml"), repeat=1, duration=duration)
+
+
+def by_value(results: Results) -> dict[object, RunResult]:
+    return {value: runs[0] for value, runs in results.by_value()}
+
+
+def test_this_test_knows_every_shipped_plan() -> None:
+    assert SHIPPED == {p.stem for p in EXAMPLES.glob("*.toml")}
+
+
+def restarted_after_first_kill(result: RunResult) -> set[str]:
+    """Managers that served again after the run's first kill, before its second one."""
+    kills = [f for f in result.faults if f.injected_s is not None]
+    start = kills[0].injected_s
+    assert start is not None
+    end = kills[1].injected_s if len(kills) > 1 else float("inf")
+    assert end is not None
+    return {
+        name for name, times in result.restart_times.items() if any(start < t < end for t in times)
+    }
+
+
+def test_strategies_restart_one_all_or_the_rest_after_a_kill() -> None:
+    runs = by_value(shortened("strategies", 2.0))
+
+    for strategy, result in runs.items():
+        first = next(f for f in result.faults if f.injected_s is not None)
+        restarted = restarted_after_first_kill(result)
+        order = ["erm", "cm", "rm"]
+        expected = {
+            "one_for_one": {first.target},
+            "one_for_all": set(order),
+            "rest_for_one": set(order[order.index(str(first.target)) :]),
+        }[str(strategy)]
+        assert expected == restarted, (strategy, first)
+        assert 0 == result.leaked_processes
+
+
+def test_the_crash_loop_escalates_and_only_a_tolerant_top_survives_it() -> None:
+    runs = by_value(shortened("crashloop", 2.5))
+
+    for result in runs.values():
+        assert "pool" in {supervisor for supervisor, _ in result.give_ups}
+    assert runs[0].gave_up
+    assert not runs[5].gave_up
+    assert 0 == runs[5].calls_failed
+
+
+def test_the_heartbeat_finds_a_hang_and_without_it_the_hang_lasts() -> None:
+    runs = by_value(shortened("hang", 2.0))
+
+    off, fast = runs[False], runs[0.1]
+    assert 0 == off.restarts
+    assert 1.2 == pytest.approx(off.unavailable_s["planner"], abs=0.1)
+    assert 1 == fast.restarts
+    (hang,) = fast.faults
+    assert hang.recovery_s is not None
+    assert hang.recovery_s < 0.8
+
+
+def test_a_killed_resource_process_is_heard_and_loaded_again() -> None:
+    results = shortened("resource", 2.5)
+
+    killed = [f for _, f in results.faults() if f.injected_s is not None]
+    assert killed
+    assert all("a process of erm" in f.detail for f in killed)
+    assert any(f.recovery_s is not None for f in killed)
+    assert [0, 0] == [r.leaked_processes for r in results.runs]
+
+
+def test_the_workload_plan_calls_through_its_factory_in_lidars_py() -> None:
+    # workload.toml names `factory = "lidars:lidar"`: examples/experiments/lidars.py
+    (result,) = shortened("workload", 2.0).runs
+
+    assert result.calls_ok > 0
+    assert {"cm"} == {c.manager for c in result.calls}
+    (kill,) = result.faults
+    assert kill.recovery_s is not None
