@@ -15,7 +15,8 @@ raise, cut a manager's connections) and when they come (fixed times, seeded rand
 intervals, or after an event). Every run is a fresh run process; the same seed gives the
 same fault schedule. The plan format: `docs/reference/plan.md`.
 
-Modules: `plan` (reading and validating plans), `schedule` (the seeded fault schedule),
+Modules: `plan` (a plan as data), `reading` (reading and validating plans, on the
+typed checks of `_checks`), `schedule` (the seeded fault schedule),
 `runner` / `workload` / `inject` (one run, in its run process), `metrics` (numbers from
 events), `experiment` (`run`: the runs and the output files), `plot` (figures),
 `services` (a generic manager for plans), `cli` (`rr-actors experiment`).
@@ -28,13 +29,8 @@ from rr_actors.experiments.experiment import (
     Progress,
     run,
 )
-from rr_actors.experiments.plan import (
-    FAULT_KINDS,
-    Plan,
-    PlanError,
-    load_plan,
-    parse_plan,
-)
+from rr_actors.experiments.plan import FAULT_KINDS, Plan, PlanError
+from rr_actors.experiments.reading import load_plan, parse_plan
 from rr_actors.experiments.results import CallRecord, FaultRecord, Results, RunResult
 from rr_actors.experiments.schedule import ScheduledFault, fault_schedule
 from rr_actors.experiments.workload import RequestContext

@@ -26,7 +26,7 @@ from rr_actors.experiments.experiment import (
     Progress,
 )
 from rr_actors.experiments.metrics import percentile
-from rr_actors.experiments.plan import load_plan
+from rr_actors.experiments.reading import load_plan
 from rr_actors.experiments.results import Results, RunResult, show_value
 from rr_actors.observe import require_extra
 

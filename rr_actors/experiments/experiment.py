@@ -35,7 +35,8 @@ from typing import Any
 import rr_actors as rr
 from rr_actors.errors import ConfigError, RrError
 from rr_actors.experiments import _procs
-from rr_actors.experiments.plan import Plan, load_plan
+from rr_actors.experiments.plan import Plan
+from rr_actors.experiments.reading import load_plan
 from rr_actors.experiments.results import Results, RunResult, show_value
 from rr_actors.experiments.runner import RunSpec
 from rr_actors.observe import require_extra

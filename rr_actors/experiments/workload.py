@@ -32,7 +32,8 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import rr_actors as rr
-from rr_actors.experiments.plan import CallMix, Plan, Workload, import_object
+from rr_actors.experiments._imports import import_object
+from rr_actors.experiments.plan import CallMix, Plan, Workload
 from rr_actors.experiments.results import CallRecord
 
 __all__ = ["Client", "RequestContext", "render_request", "retrying"]
