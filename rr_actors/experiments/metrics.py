@@ -3,6 +3,7 @@
     events (ChildExited / ChildStarted / ChildRestarted) ──down_intervals──► per manager, down
     faults (kill, hang) ──────────────────────────────────┘ (a kill or hang starts the interval)
     down + events + calls + client recoveries ──recovery_time(fault)──► seconds, or None
+    events ──restarts──► restarts of managers, restarts of nested supervisors
 
 Times are seconds from the start of the run's workload; events carry wall-clock `at`,
 so the run's wall-clock start `t0` converts them.
@@ -12,15 +13,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
+from typing import NamedTuple
 
 from rr_actors import events
 from rr_actors.experiments.results import FaultRecord
 
 __all__ = [
+    "ClientRecovery",
     "Down",
     "down_intervals",
     "percentile",
     "recovery_time",
+    "restarts",
     "unavailable",
 ]
 
@@ -28,6 +32,24 @@ Down = dict[str, list[tuple[float, float | None]]]
 """Per manager, the intervals it did not serve: `(start, end)`, `end` `None` if never back."""
 
 _MANAGER_FAULTS = ("kill_manager", "hang_manager")
+
+_EPS = 1e-9
+"""Seconds of slack when comparing a fault's injection with an interval's start."""
+
+
+class ClientRecovery(NamedTuple):
+    """A client got a resource back after its provider said it failed (`workload.Client`).
+
+    Attributes:
+        manager: the provider the client called (it may hold the failed resource through
+            a nested load of another manager's).
+        heard_s: when the client heard the `FATAL` or `UPDATE` (seconds from the run's start).
+        back_s: when it had the resource back (seconds from the run's start).
+    """
+
+    manager: str
+    heard_s: float
+    back_s: float
 
 
 def down_intervals(
@@ -106,7 +128,7 @@ def recovery_time(
     down: Down,
     seen: Sequence[events.Event],
     t0: float,
-    client_recoveries: Sequence[float],
+    client_recoveries: Sequence[ClientRecovery],
     *,
     load_error_until: float | None = None,
 ) -> float | None:
@@ -115,9 +137,13 @@ def recovery_time(
     What "served again" means depends on the kind (`docs/reference/plan.md`):
 
     - `kill_manager`, `hang_manager`: the manager served again and every other manager
-      that went down meanwhile too (one_for_all and rest_for_one restart siblings);
+      that went down meanwhile too (one_for_all and rest_for_one restart siblings); an
+      outage of another manager that began before the fault is not this fault's;
     - `kill_resource`: a client got its resource back (reloaded after the `FATAL`, or
-      told `UPDATE` by a manager that replaced the process itself);
+      told `UPDATE` by a manager that replaced the process itself), having heard of the
+      failure after the kill from the manager whose process was killed, or from one that
+      holds resources of it (a `ConsumerAdded` at it names that one, directly or through
+      others);
     - `load_error`: the manager completed a load after the fault ended (its last
       failing load, or the end of `for`);
     - `cut_connections`: the manager answered a call again (a consumer was added at
@@ -127,10 +153,15 @@ def recovery_time(
         fault: an injected fault.
         down: `down_intervals` of the run.
         seen: the run's events.
-        t0: the wall-clock start of the run.
-        client_recoveries: times at which a client got a resource back.
+        t0: the wall-clock start of the run (`time.time()` seconds).
+        client_recoveries: every time a client got a resource back.
         load_error_until: for `load_error`, when the fault ended (its last injected load
-            failure, or the end of `for`), or `None` if it never ended.
+            failure, or the end of `for`; seconds from the run's start), or `None` if it
+            never ended.
+
+    Returns:
+        Seconds from the injection to the recovery; `None` if the fault was not injected,
+        has no target, or the system did not recover from it within the events given.
     """
     if fault.injected_s is None or fault.target is None:
         return None
@@ -139,7 +170,12 @@ def recovery_time(
         back = _all_up_after(down, fault.target, t)
         return None if back is None else back - t
     if fault.kind == "kill_resource":
-        later = [r for r in client_recoveries if r >= t]
+        holders = _holders_of(fault.target, seen)
+        later = [
+            r.back_s
+            for r in client_recoveries
+            if r.manager in holders and r.heard_s >= t - _EPS and r.back_s >= t
+        ]
         return min(later) - t if later else None
     if fault.kind == "load_error":
         if load_error_until is None:
@@ -160,12 +196,53 @@ def recovery_time(
     return min(answered) - t if answered else None
 
 
+def restarts(seen: Iterable[events.Event], managers: Sequence[str]) -> tuple[int, int]:
+    """How many times the tree restarted a manager, and a nested supervisor.
+
+    A nested supervisor's restart also restarts each of its managers (each has its own
+    `ChildRestarted`): those count among the managers' restarts, the supervisor's own
+    restart among the supervisors'.
+
+    Args:
+        seen: the run's events.
+        managers: the managers' names (every other restarted child is a supervisor).
+
+    Returns:
+        `(restarts of managers, restarts of nested supervisors)`.
+    """
+    of_managers = of_supervisors = 0
+    for event in seen:
+        if isinstance(event, events.ChildRestarted):
+            if event.child in managers:
+                of_managers += 1
+            else:
+                of_supervisors += 1
+    return of_managers, of_supervisors
+
+
+def _holders_of(manager: str, seen: Iterable[events.Event]) -> set[str]:
+    """`manager` and every registrar that holds its resources, directly or through others."""
+    consumers: dict[str, set[str]] = {}
+    for event in seen:
+        if isinstance(event, events.ConsumerAdded):
+            consumers.setdefault(event.registrar, set()).add(event.consumer)
+    holders = {manager}
+    todo = [manager]
+    while todo:
+        for consumer in consumers.get(todo.pop(), ()):
+            if consumer not in holders:
+                holders.add(consumer)
+                todo.append(consumer)
+    return holders
+
+
 def _all_up_after(down: Down, target: str, t: float) -> float | None:
     """The first time after `t` when `target` is back from the interval `t` is in, and no
-    manager is down (a sibling taken down meanwhile counts)."""
+    manager that went down at or after `t` is still down (a sibling taken down meanwhile
+    counts; an outage that began before the fault belongs to another fault)."""
     back: float | None = None
     for start, end in down.get(target, []):
-        if start <= t + 1e-9 and (end is None or end >= t):
+        if start <= t + _EPS and (end is None or end >= t):
             back = end
             if back is None:
                 return None
@@ -177,7 +254,7 @@ def _all_up_after(down: Down, target: str, t: float) -> float | None:
         moved = False
         for intervals in down.values():
             for start, end in intervals:
-                if start <= back and (end is None or end > back):
+                if t - _EPS <= start <= back and (end is None or end > back):
                     if end is None:
                         return None
                     back = end

@@ -8,8 +8,9 @@ Each client has a consumer registrar of its own (`Supervisor.registrar`) and one
     a status came (its callback queues it) ──► FATAL: unload, load again (a recovery)
                                                UPDATE: the manager replaced it (a recovery)
 
-Calls come at `rate` per second per client (seeded Poisson or fixed gaps); a call that
-waits out a restart delays the client's next ones, as it would in a real client. Every
+Calls come at `rate` per second per client (seeded Poisson or fixed gaps), on a schedule
+fixed in advance (an open-loop load): the calls that fell due while one call waited out a
+restart follow it back to back, as the requests of many independent users would. Every
 call is recorded (`CallRecord`); so are the times a client got a resource back after a
 failure (`recoveries`).
 """
@@ -33,6 +34,7 @@ from typing import Any, TypeVar
 
 import rr_actors as rr
 from rr_actors.experiments._imports import import_object
+from rr_actors.experiments.metrics import ClientRecovery
 from rr_actors.experiments.plan import CallMix, Plan, Workload
 from rr_actors.experiments.results import CallRecord
 
@@ -180,8 +182,10 @@ class Client:
         )
         self.rng = random.Random(f"rr-actors/{seed}/client/{index}")  # noqa: S311
         self.calls: list[CallRecord] = []
-        self.recoveries: list[float] = []
-        """Times (from `t0`) at which this client got a resource back after a failure."""
+        self.recoveries: list[ClientRecovery] = []
+        """Each time this client got a resource back after a failure: the manager it
+        called, when it heard of the failure and when it had the resource back (seconds
+        from `t0`)."""
         self.heard: list[float] = []
         """Times (from `t0`) at which a `FATAL` or `UPDATE` about a resource it held came."""
         self.unload_failures = 0
@@ -397,12 +401,12 @@ class Client:
             self._notes.put((query.id, update.status, self._now()))
 
     def _handle(self, note: tuple[str, rr.Status, float]) -> None:
-        query_id, status, _ = note
+        query_id, status, heard = note
         held = self._by_id.get(query_id)
         if held is None:
             return
         if status is rr.Status.UPDATE:
-            self.recoveries.append(self._now())
+            self.recoveries.append(ClientRecovery(held.mix.manager, heard, self._now()))
             return
         # FATAL: the resource is gone. Release every id this client holds of it (the
         # same resource may be held twice: equal requests), then load it again once and
@@ -421,7 +425,7 @@ class Client:
             if query is None:
                 continue
             if not recovered:
-                self.recoveries.append(self._now())
+                self.recoveries.append(ClientRecovery(entry.mix.manager, heard, self._now()))
                 recovered = True
             renewed = dataclasses.replace(entry, query=query, seq=next(self._seq))
             heapq.heappush(self._held, renewed)
