@@ -100,14 +100,15 @@ class RunResult:
         calls_retried: calls that needed more than one attempt (ok or not).
         unavailable_s: per manager, seconds it did not serve (from a kill or hang of it,
             or from its exit, until it served again).
-        restarts: restarts of children in the whole tree.
+        restarts: restarts of managers in the whole tree (a manager restarted with its
+            nested supervisor counts too).
         gave_up: whether the top supervisor gave up (restart intensity exceeded).
         recovery_median_s: median recovery time of the run's faults (`None`: none recovered).
         recovery_p90_s: 90th percentile of the same.
         unrecovered: faults injected that did not recover within the run.
         leaked_processes: processes the run started that were still alive after it.
-        catalog_entries_left: rows left in every registrar's catalog after the clients
-            unloaded everything (`-1` if a catalog could not be read).
+        catalog_entries_left: rows left in the catalogs of the clients and of the managers
+            that could be read after the clients unloaded everything.
         events: events recorded.
         events_dropped: events lost to a full queue (then the metrics are incomplete).
         faults: every scheduled fault of the run.
@@ -117,6 +118,10 @@ class RunResult:
         restart_times: per manager, when it served again after each exit.
         give_ups: `(supervisor, time)` of each supervisor that gave up (restart intensity
             exceeded).
+        supervisor_restarts: restarts of nested supervisors.
+        catalogs_unread: managers whose catalog could not be read at the end (not
+            running: a temporary one that exited, a subtree that gave up); their rows are
+            not in `catalog_entries_left`.
     """
 
     plan: str
@@ -150,6 +155,8 @@ class RunResult:
         default_factory=dict, repr=False
     )
     give_ups: tuple[tuple[str, float], ...] = ()
+    supervisor_restarts: int = 0
+    catalogs_unread: int = 0
 
     def row(self) -> dict[str, Any]:
         """This run as one row of `runs.csv` (`unavailable_s_<manager>` per manager)."""
@@ -171,6 +178,7 @@ class RunResult:
         row.update(
             {
                 "restarts": self.restarts,
+                "supervisor_restarts": self.supervisor_restarts,
                 "gave_up": self.gave_up,
                 "faults": sum(1 for f in self.faults if not f.skipped),
                 "faults_skipped": sum(1 for f in self.faults if f.skipped),
@@ -179,6 +187,7 @@ class RunResult:
                 "unrecovered": self.unrecovered,
                 "leaked_processes": self.leaked_processes,
                 "catalog_entries_left": self.catalog_entries_left,
+                "catalogs_unread": self.catalogs_unread,
                 "events": self.events,
                 "events_dropped": self.events_dropped,
             }

@@ -22,6 +22,7 @@ import functools
 import json
 import logging
 import os
+import random
 import sys
 import threading
 import time
@@ -82,9 +83,24 @@ class RunSpec:
     token: str = ""
 
 
-def build_tree(plan: Plan, state_dir: Path | None) -> rr.Supervisor:
-    """The plan's supervision tree as an (unstarted) `Supervisor`, every setup instrumented."""
+def build_tree(plan: Plan, state_dir: Path | None, *, seed: int = 0) -> rr.Supervisor:
+    """The plan's supervision tree as an (unstarted) `Supervisor`, every setup instrumented.
+
+    Args:
+        plan: the plan.
+        state_dir: the directory of the managers' durable catalogs (`None`: in memory).
+        seed: the run's seed: the backoff jitter of the whole tree draws from a generator
+            seeded with it, so the same seed gives the same restart delays.
+
+    Returns:
+        The supervisor, not started.
+
+    Raises:
+        ConfigError: the plan's tree is not a valid supervision tree (`parse_plan`
+            checked it already, so only for a plan built by hand).
+    """
     top = plan.tree
+    jitter = random.Random(f"rr-actors/{seed}/backoff")  # noqa: S311 - not for secrets
     return rr.Supervisor(
         [_child_spec(child, plan.base_dir) for child in top.children],
         strategy=top.strategy,
@@ -93,6 +109,7 @@ def build_tree(plan: Plan, state_dir: Path | None) -> rr.Supervisor:
         backoff=top.backoff,
         state_dir=state_dir,
         name=top.name,
+        random=jitter.random,
     )
 
 
@@ -160,7 +177,13 @@ class _EventLog:
 
     @property
     def dropped(self) -> int:
-        """Events lost to a full queue (from the `EventsDropped` notices)."""
+        """Events lost to a full queue (from the `EventsDropped` notices).
+
+        The notices count both the drops of the run's own subscription (its notice comes
+        once the queue has room again, at the latest when it is drained) and those of
+        the manager processes' event forwarders, so they are the whole count: adding
+        `Subscription.dropped` would count the subscription's drops twice.
+        """
         return sum(e.count for e in self.seen if isinstance(e, events.EventsDropped))
 
     def write(self, path: Path, run: int, seed: int) -> None:
@@ -178,18 +201,20 @@ def _catalog_size(registrar: rr.ResourceRegistrar) -> int:
 
 
 def _wait_all_serving(sup: rr.Supervisor, names: list[str], timeout: float) -> None:
-    """Wait (bounded) until every manager runs again; give up on those that will not."""
+    """Wait (bounded) until every manager runs again; skip those that will not come back."""
     deadline = time.monotonic() + timeout
     for name in names:
         info = sup.child(name)
         while info.state != "running":
             left = deadline - time.monotonic()
-            if left <= 0 or sup.gave_up is not None or info.state in ("exited", "stopped"):
-                return
+            if left <= 0 or sup.gave_up is not None:
+                return  # nothing more comes back
+            if info.state in ("exited", "stopped"):
+                break  # this one stays down (temporary, or its nested supervisor gave up)
             try:
                 info = sup.wait_restarted(name, timeout=left, restarts=info.restarts + 1)
             except rr.RrError:
-                return
+                break  # it will not come back; the next may
 
 
 def _leaked(token: str) -> int:
@@ -219,6 +244,7 @@ class _Drive:
     end_s: float = 0.0  # the end of the workload (seconds from t0)
     until_s: float = 0.0  # the last instant measured, just before the tree's shutdown
     entries: int = 0
+    unread: int = 0  # managers whose catalog could not be read at the end
 
 
 def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None) -> RunResult:
@@ -231,6 +257,12 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
 
     Returns:
         The run's result (its `leaked_processes` counts what this process could see).
+
+    Raises:
+        RrError: the tree did not start (a manager's setup raised, say:
+            `ManagerStartError`), or could not be built (`ConfigError`, for a plan
+            built by hand). Anything raised by the plan's own code in the run process
+            (a setup, a request factory) comes out as it was raised.
     """
     stop = stop if stop is not None else threading.Event()
     sys.setswitchinterval(SWITCH_INTERVAL)
@@ -238,7 +270,7 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
     if plan.base_dir is not None and plan.base_dir not in sys.path:
         sys.path.insert(0, plan.base_dir)  # the plan's modules, here and in its managers
     (run_dir / "work").mkdir(parents=True, exist_ok=True)
-    sup = build_tree(plan, run_dir / "state" if plan.state else None)
+    sup = build_tree(plan, run_dir / "state" if plan.state else None, seed=spec.seed)
     drive = _Drive()
     log = _EventLog()
     subscription = sup.subscribe(log, maxsize=EVENT_QUEUE) if spec.record_events else None
@@ -258,14 +290,7 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
     log.write(run_dir / "events.jsonl", spec.run, spec.seed)
     leaked = _leaked(spec.token)
     assert drive.injector is not None
-    return _result(
-        spec,
-        log,
-        drive,
-        leaked=leaked,
-        dropped=subscription.dropped if subscription is not None else 0,
-        run_dir=run_dir,
-    )
+    return _result(spec, log, drive, leaked=leaked, run_dir=run_dir)
 
 
 def _drive(
@@ -300,22 +325,25 @@ def _drive(
         _wait_all_serving(sup, managers, plan.recovery_timeout)
     for client in drive.clients:
         client.stop(timeout=0.5 if stop.is_set() else plan.workload.timeout)
-    drive.entries = _count_entries(sup, managers, drive.clients)
+    drive.entries, drive.unread = _count_entries(sup, managers, drive.clients)
     if spec.record_events:
         sup.flush_events()
     drive.until_s = time.monotonic() - t0
 
 
-def _count_entries(sup: rr.Supervisor, managers: list[str], clients: list[Client]) -> int:
-    total = 0
+def _count_entries(
+    sup: rr.Supervisor, managers: list[str], clients: list[Client]
+) -> tuple[int, int]:
+    """Rows left in the catalogs that can be read; how many managers' could not be."""
+    total = unread = 0
     for name in managers:
         try:
             total += int(sup.run_in(name, _catalog_size))
         except rr.RrError:
-            return -1
+            unread += 1  # not running (a temporary one killed, a gave-up subtree)
     for client in clients:
         total += _catalog_size(client.registrar)
-    return total
+    return total, unread
 
 
 def _result(
@@ -324,7 +352,6 @@ def _result(
     drive: _Drive,
     *,
     leaked: int,
-    dropped: int,
     run_dir: Path,
 ) -> RunResult:
     plan = spec.plan
@@ -339,7 +366,7 @@ def _result(
     )
     down = metrics.down_intervals(seen, managers, wall_t0, records, injector.resumed, until=until_s)
     calls = sorted((c for client in clients for c in client.calls), key=lambda c: c.start_s)
-    client_recoveries = sorted(r for client in clients for r in client.recoveries)
+    client_recoveries = [r for client in clients for r in client.recoveries]
     finished = [
         dataclasses.replace(
             record,
@@ -361,6 +388,7 @@ def _result(
             line = fault_line(record, run=spec.run, seed=spec.seed, wall_t0=wall_t0)
             out.write(json.dumps(line) + "\n")
     recoveries = [f.recovery_s for f in finished if f.recovery_s is not None]
+    restarts, supervisor_restarts = metrics.restarts(seen, managers)
     restart_times = {
         name: tuple(
             e.at - wall_t0 for e in seen if isinstance(e, events.ChildRestarted) and e.child == name
@@ -381,7 +409,7 @@ def _result(
         calls_failed=sum(1 for c in calls if not c.ok),
         calls_retried=sum(1 for c in calls if c.retried),
         unavailable_s=metrics.unavailable(down, end_s),
-        restarts=sum(1 for e in seen if isinstance(e, events.ChildRestarted)),
+        restarts=restarts,
         gave_up=any(
             isinstance(e, events.SupervisorGaveUp) and e.supervisor == plan.tree.name for e in seen
         ),
@@ -393,7 +421,7 @@ def _result(
         leaked_processes=leaked,
         catalog_entries_left=drive.entries,
         events=len(seen),
-        events_dropped=log.dropped + dropped,
+        events_dropped=log.dropped,
         faults=tuple(finished),
         calls=tuple(calls),
         down={name: tuple(intervals) for name, intervals in down.items()},
@@ -403,6 +431,8 @@ def _result(
             for e in seen
             if isinstance(e, events.SupervisorGaveUp) and e.at - wall_t0 <= until_s
         ),
+        supervisor_restarts=supervisor_restarts,
+        catalogs_unread=drive.unread,
     )
 
 
