@@ -196,6 +196,8 @@ class _Due:
     at: float  # monotonic
     seq: int
     action: Callable[[], None] = dataclasses.field(compare=False)
+    # A fault's firing (not a hung manager's resumption): `(fault, due time from t0)`.
+    fires: tuple[ScheduledFault, float] | None = dataclasses.field(default=None, compare=False)
 
 
 class Injector:
@@ -249,10 +251,21 @@ class Injector:
         self._thread.start()
 
     def stop(self, *, timeout: float = 5.0) -> None:
-        """Stop firing; resume every hung manager now; record triggers that never came."""
+        """Stop firing; resume every hung manager now; record what did not fire as skipped.
+
+        Every scheduled fault ends up in `records`: a trigger that never came, and a
+        triggered fault that came due after the run ended (its event happened in the run,
+        its `delay` took it past the end), are recorded as skipped.
+
+        Args:
+            timeout: seconds to wait for each of the injector's threads and for the
+                trigger process's last replies.
+        """
         with self._cond:
             self._stopped = True
             self._cond.notify_all()
+            unfired = [due.fires for due in self._heap if due.fires is not None]
+            self._heap = []
         if self._thread.ident is not None:
             self._thread.join(timeout)
         for thread in self._threads:
@@ -266,6 +279,8 @@ class Injector:
             waiting, self._waiting = self._waiting, []
         for fault, _ in waiting:
             self._record(fault, None, None, "its trigger did not happen in the run", skipped=True)
+        for fault, at in sorted(unfired, key=lambda fires: fires[1]):
+            self._record(fault, at, None, "due after the run ended", skipped=True)
 
     def on_event(self, event: events.Event) -> None:
         """Look at one event of the run (from the subscriber thread); fire what it triggers."""
@@ -295,7 +310,9 @@ class Injector:
 
     def _schedule(self, fault: ScheduledFault, at: float) -> None:
         """Fire `fault` at `at` (seconds from `t0`), waking `PREPARE_AHEAD` earlier."""
-        self._push(self.t0 + at - PREPARE_AHEAD, functools.partial(self._fire, fault, at))
+        self._push(
+            self.t0 + at - PREPARE_AHEAD, functools.partial(self._fire, fault, at), (fault, at)
+        )
 
     def _until(self, at: float) -> None:
         """Return at `at` (seconds from `t0`): a timed wait, then a short spin."""
@@ -310,12 +327,19 @@ class Injector:
                         return
                     self._cond.wait(left - SPIN)
 
-    def _push(self, at: float, action: Callable[[], None]) -> None:
+    def _push(
+        self,
+        at: float,
+        action: Callable[[], None],
+        fires: tuple[ScheduledFault, float] | None = None,
+    ) -> None:
         with self._cond:
-            if self._stopped:
-                return
-            heapq.heappush(self._heap, _Due(at, next(self._seq), action))
-            self._cond.notify_all()
+            stopped = self._stopped
+            if not stopped:
+                heapq.heappush(self._heap, _Due(at, next(self._seq), action, fires))
+                self._cond.notify_all()
+        if stopped and fires is not None:  # a trigger that matched as the run ended
+            self._record(fires[0], fires[1], None, "due after the run ended", skipped=True)
 
     def _loop(self) -> None:
         while True:
