@@ -1,9 +1,10 @@
-"""The run process: `python -m rr_actors.experiments._child RUN_DIR` runs one run.
+"""The run process: `python -m rr_actors.experiments._child RUN_DIR PARENT_PID` runs one run.
 
 It reads `RUN_DIR/spec.pickle` (a `RunSpec` the experiment wrote), runs it with
 `runner.execute`, and writes `RUN_DIR/result.pickle` (a `RunResult`). SIGTERM or SIGINT,
-or the death of the experiment that started it, ends the run early: the tree is stopped
-and no result is written (exit code 3).
+or the death of the experiment that started it (`PARENT_PID`; if it died before this
+process looked, this one was re-parented and ends at once), ends the run early: the tree
+is stopped and no result is written (exit code 3).
 """
 
 from __future__ import annotations
@@ -24,11 +25,15 @@ STOPPED_EXIT = 3
 """Exit code of a run that was told to stop before it finished."""
 
 
-def _watch_parent(stop: threading.Event) -> None:
-    """Set `stop` when the process that started this one dies."""
+def _watch_parent(stop: threading.Event, parent: int) -> None:
+    """Set `stop` when the process that started this one (pid `parent`) dies."""
     try:
-        pidfd = os.pidfd_open(os.getppid())
+        pidfd = os.pidfd_open(parent)
     except ProcessLookupError:
+        stop.set()
+        return
+    if os.getppid() != parent:  # it died before we looked (we were re-parented): pid reused?
+        os.close(pidfd)
         stop.set()
         return
     select.select([pidfd], [], [])
@@ -37,9 +42,14 @@ def _watch_parent(stop: threading.Event) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the run in the directory named by `argv[0]`; return the exit code."""
+    """Run the run in the directory `argv[0]` for the experiment `argv[1]` (its pid).
+
+    Returns:
+        The exit code: 0 (`result.pickle` written), or `STOPPED_EXIT`.
+    """
     args = list(sys.argv[1:] if argv is None else argv)
     run_dir = Path(args[0])
+    parent = int(args[1]) if len(args) > 1 else os.getppid()
     spec: RunSpec = pickle.loads((run_dir / "spec.pickle").read_bytes())
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
     stop = threading.Event()
@@ -50,7 +60,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
-    threading.Thread(target=_watch_parent, args=(stop,), name="rr-parent", daemon=True).start()
+    watch = threading.Thread(
+        target=_watch_parent, args=(stop, parent), name="rr-parent", daemon=True
+    )
+    watch.start()
     result = execute(spec, run_dir, stop=stop)
     if stop.is_set():
         return STOPPED_EXIT

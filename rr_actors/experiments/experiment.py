@@ -77,6 +77,10 @@ class ExperimentError(RrError):
 class ExperimentInterruptedError(KeyboardInterrupt):
     """The experiment was interrupted (Ctrl-C); every process it started was stopped.
 
+    It is a `KeyboardInterrupt`, not an `RrError`: the user stopped it, nothing failed,
+    and an `except RrError` (or `except Exception`) around `run` must not swallow a Ctrl-C.
+    Catch it by name to get the runs that finished.
+
     Attributes:
         results: the runs that finished before the interruption (also written to `out`).
     """
@@ -239,7 +243,7 @@ class _Experiment:
         self.progress = progress or (lambda _: None)
         self.on_observe = on_observe or (lambda _run, _url: None)
         self.finished: list[RunResult] = []
-        self.current: tuple[subprocess.Popen[bytes], str] | None = None
+        self.current: _Current | None = None  # the run under way, from before its start
         self.total = plan.repeat * len(plan.variants)
 
     def run(self) -> Results:
@@ -258,15 +262,10 @@ class _Experiment:
                     token=f"{os.getpid()}-{uuid.uuid4().hex[:12]}",
                 )
                 result = self._one(spec, work / f"run-{number}")
-                self.finished.append(result)
-                self._write(result, work / f"run-{number}")
                 self.progress(self._progress(spec, result.duration_s, result))
         except KeyboardInterrupt:
             with _ignoring_sigint():
-                if self.current is not None:
-                    process, token = self.current
-                    _stop(process)
-                    _procs.kill(_procs.processes_with(token))
+                self._interrupted()
             results = self._results(interrupted=True)
             self._plot(results)
             raise ExperimentInterruptedError(results) from None
@@ -278,6 +277,31 @@ class _Experiment:
         results = self._results(interrupted=False)
         self._plot(results)
         return results
+
+    def _interrupted(self) -> None:
+        """After a Ctrl-C: stop the run under way, kill its processes, keep it if it ended.
+
+        `current` is set before the run process starts and cleared only once its result
+        was kept, so a Ctrl-C at any point of `_one` finds the processes to kill (by the
+        run's token) and a run that had already finished is not lost.
+        """
+        current = self.current
+        if current is None:
+            return
+        if current.process is not None:
+            _stop(current.process)
+        leftover = _procs.processes_with(current.token)
+        _procs.kill(leftover)
+        if current.process is not None and current.process.returncode == 0 and not current.kept:
+            with contextlib.suppress(ExperimentError, OSError, pickle.UnpicklingError):
+                self._keep(current, self._collect(current, 0, len(leftover)))
+        self.current = None
+
+    def _keep(self, current: _Current, result: RunResult) -> None:
+        """A finished run: into the results and the output files."""
+        current.kept = True
+        self.finished.append(result)
+        self._write(result, current.run_dir)
 
     def _results(self, *, interrupted: bool) -> Results:
         return Results(self.plan, tuple(self.finished), self.out, interrupted)
@@ -297,6 +321,7 @@ class _Experiment:
     # -- one run process --------------------------------------------------------------------
 
     def _one(self, spec: RunSpec, run_dir: Path) -> RunResult:
+        current = self.current = _Current(spec, run_dir)
         run_dir.mkdir(parents=True)
         (run_dir / "spec.pickle").write_bytes(pickle.dumps(spec))
         env = {**os.environ, _procs.TOKEN_VARIABLE: spec.token}
@@ -304,15 +329,21 @@ class _Experiment:
         package_root = str(Path(rr.__file__).resolve().parent.parent)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [package_root, env.get("PYTHONPATH")]))
         started = time.monotonic()
+        argv = [
+            sys.executable,
+            "-m",
+            "rr_actors.experiments._child",
+            str(run_dir),
+            str(os.getpid()),
+        ]
         with (run_dir / "stderr.txt").open("wb") as stderr:
-            process = subprocess.Popen(  # noqa: S603 - this interpreter, our own module
-                [sys.executable, "-m", "rr_actors.experiments._child", str(run_dir)],
+            process = current.process = subprocess.Popen(  # noqa: S603 - our own module
+                argv,
                 env=env,
                 stdout=subprocess.PIPE,
                 stderr=stderr,
                 start_new_session=True,  # Ctrl-C is ours to handle: we stop it cleanly
             )
-        self.current = (process, spec.token)
         reader = threading.Thread(
             target=self._read_stdout, args=(spec.run, process), name="rr-run-out", daemon=True
         )
@@ -326,18 +357,23 @@ class _Experiment:
         reader.join(5.0)
         if not reader.is_alive() and process.stdout is not None:
             process.stdout.close()
-        self.current = None
         leftover = _procs.wait_gone(_procs.processes_with(spec.token), SWEEP_GRACE)
         _procs.kill(leftover)
+        result = self._collect(current, code, len(leftover))
+        self._keep(current, result)
+        self.current = None
+        return result
+
+    def _collect(self, current: _Current, code: int, leaked: int) -> RunResult:
+        """The result a run process left, with `leaked` more leaked processes."""
+        spec, run_dir = current.spec, current.run_dir
         result_file = run_dir / "result.pickle"
         if code != 0 or not result_file.exists():
             tail = (run_dir / "stderr.txt").read_text(errors="replace")[-3000:]
             raise ExperimentError(f"run {spec.run} failed (exit code {code}):\n{tail}")
         result: RunResult = pickle.loads(result_file.read_bytes())
-        if leftover:
-            result = dataclasses.replace(
-                result, leaked_processes=result.leaked_processes + len(leftover)
-            )
+        if leaked:
+            result = dataclasses.replace(result, leaked_processes=result.leaked_processes + leaked)
         return result
 
     def _read_stdout(self, run_number: int, process: subprocess.Popen[bytes]) -> None:
@@ -373,6 +409,21 @@ class _Experiment:
             return
         plot.plot_recovery(results, self.out / "recovery.png")
         plot.plot_timeline(results, self.out / "timeline.png")
+
+
+@dataclasses.dataclass
+class _Current:
+    """The run under way: what `_interrupted` needs to stop it and to keep it if it ended."""
+
+    spec: RunSpec
+    run_dir: Path
+    process: subprocess.Popen[bytes] | None = None  # None until it is started
+    kept: bool = False  # its result is in `finished` and the files
+
+    @property
+    def token(self) -> str:
+        """The value of `RR_ACTORS_EXPERIMENT` that marks the run's processes."""
+        return self.spec.token
 
 
 def fault_rows(result: RunResult) -> list[dict[str, Any]]:
