@@ -10,25 +10,41 @@ import csv
 import functools
 import json
 import os
+import pickle
+import signal
+import subprocess
 import sys
 import threading
 import urllib.request
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import pytest
 
 import rr_actors as rr
 import rr_actors.observe
 from rr_actors import events
-from rr_actors.experiments import ExperimentError, Progress, Results, parse_plan, run
+from rr_actors.experiments import (
+    ExperimentError,
+    ExperimentInterruptedError,
+    Progress,
+    Results,
+    experiment,
+    parse_plan,
+    run,
+    runner,
+)
+from rr_actors.experiments._child import STOPPED_EXIT
 from rr_actors.experiments._instrument import CUT_SIGNAL
-from rr_actors.experiments._procs import processes_with
+from rr_actors.experiments._procs import processes_with, wait_gone
 from rr_actors.experiments.runner import build_tree
 from rr_actors.testing import pending_work
 
 SERVICE = "rr_actors.experiments.services:service"
+
+LIDAR = '{ name = "lidar-{key}", bus = "{run_dir}/bus", watch_pid = "{pid}", rate = 5.0, seed = 0 }'
+"""A request of the mission's cm: a LiDAR program that erm starts (a process to kill)."""
 
 EVERY_FAULT = f"""\
 name = "every-fault"
@@ -48,6 +64,14 @@ setup = "{SERVICE}"
 options = {{ uses = ["db"] }}
 heartbeat = 0.1
 
+[[tree.children]]
+name = "erm"
+setup = "rr_actors.mission.managers:erm_setup"
+
+[[tree.children]]
+name = "cm"
+setup = "rr_actors.mission.managers:cm_setup"
+
 [workload]
 clients = 2
 rate = 20.0
@@ -60,6 +84,13 @@ server = "resource"
 shared = 0.3
 keys = 2
 
+[[workload.calls]]
+manager = "cm"
+server = "lidar"
+shared = 1.0
+keys = 1
+request = {LIDAR}
+
 [[faults]]
 kind = "kill_manager"
 target = "db"
@@ -70,6 +101,11 @@ kind = "kill_manager"
 target = "api"
 after = {{ event = "ChildRestarted", child = "db" }}
 delay = 0.2
+
+[[faults]]
+kind = "kill_resource"
+target = "erm"
+at = 1.3
 
 [[faults]]
 kind = "hang_manager"
@@ -180,7 +216,7 @@ def test_every_scheduled_fault_is_in_faults_csv_and_events_jsonl(
     rows = read_csv(out / "faults.csv")
     injected = [line for line in lines(out) if line["type"] in ("FaultInjected", "FaultSkipped")]
 
-    assert 2 * 5 == len(rows) == len(injected)
+    assert 2 * 6 == len(rows) == len(injected)
     assert sorted(r["kind"] for r in rows) == sorted(f.kind for _, f in results.faults())
 
 
@@ -192,6 +228,7 @@ def test_every_fault_kind_fires_on_time_in_every_run(every_fault: tuple[Results,
         assert [] == [f.detail for f in run_result.faults if f.skipped]
         assert {
             "kill_manager",
+            "kill_resource",
             "hang_manager",
             "load_error",
             "cut_connections",
@@ -228,6 +265,33 @@ def test_a_fault_triggered_by_an_event_fires_its_delay_after_that_event(
 
         assert triggered.scheduled_s is not None
         assert 0.2 == pytest.approx(triggered.scheduled_s - db_back, abs=1e-3)
+
+
+def test_a_killed_resource_process_is_recovered_by_a_client_of_the_manager_holding_it(
+    every_fault: tuple[Results, Path],
+) -> None:
+    results, _ = every_fault
+    for run_result in results.runs:
+        kill = next(f for f in run_result.faults if f.kind == "kill_resource")
+
+        assert "erm" == kill.target
+        assert kill.recovery_s is not None, kill  # a client of cm reloaded its LiDAR
+        assert 0 < kill.recovery_s < 3.0
+
+
+def test_the_every_fault_runs_count_what_they_did(every_fault: tuple[Results, Path]) -> None:
+    results, out = every_fault
+    for number, run_result in enumerate(results.runs, start=1):
+        seen = run_events(out, number)
+        restarted = [e.child for e in seen if isinstance(e, events.ChildRestarted)]
+
+        assert len(run_result.calls) == run_result.calls_ok + run_result.calls_failed
+        assert 0 == run_result.catalog_entries_left
+        assert 0 == run_result.catalogs_unread
+        assert 0 == run_result.events_dropped
+        assert 0 == run_result.supervisor_restarts
+        assert len(restarted) == run_result.restarts
+        assert {"db", "api"} == set(restarted)  # killed, killed, hung: erm and cm stay up
 
 
 def test_a_hung_manager_is_found_by_its_heartbeat_killed_and_restarted(
@@ -449,4 +513,248 @@ def test_a_manager_that_cannot_start_fails_the_experiment_with_its_error(
     with pytest.raises(ExperimentError, match="no camera on this bench"):
         run(plan, out=tmp_path / "out")
 
+    assert [] == ours()
+
+
+def _plan(text: str) -> Any:
+    return parse_plan(text.replace("\n        ", "\n"))
+
+
+ONE_FOR_ALL = f"""\
+        duration = 1.2
+        seed = 3
+        [tree]
+        strategy = "one_for_all"
+        max_restarts = 5
+        [[tree.children]]
+        name = "a"
+        setup = "{SERVICE}"
+        [[tree.children]]
+        name = "b"
+        setup = "{SERVICE}"
+        [[tree.children]]
+        name = "c"
+        setup = "{SERVICE}"
+        [workload]
+        clients = 2
+        rate = 20.0
+        hold = 0.1
+        timeout = 5.0
+        [[workload.calls]]
+        manager = "c"
+        server = "resource"
+        [[faults]]
+        kind = "kill_manager"
+        target = "b"
+        at = 0.4
+        """
+
+
+def test_one_kill_under_one_for_all_restarts_every_manager_once_and_leaves_nothing() -> None:
+    (result,) = run(_plan(ONE_FOR_ALL)).runs
+    (kill,) = result.faults
+
+    assert 3 == result.restarts
+    assert 0 == result.supervisor_restarts
+    assert {"a": 1, "b": 1, "c": 1} == {n: len(t) for n, t in result.restart_times.items()}
+    assert 0 == result.calls_failed  # every call waited the restart out
+    assert len(result.calls) == result.calls_ok > 0
+    assert result.calls_retried >= 1
+    assert 0 == result.catalog_entries_left
+    assert 0 == result.catalogs_unread
+    assert 0 == result.events_dropped
+    assert 0 == result.leaked_processes
+    assert 0 == result.unrecovered
+    assert kill.recovery_s is not None
+    assert all(0 < result.unavailable_s[n] <= kill.recovery_s + 1e-6 for n in "abc")
+    assert not result.gave_up
+
+
+NESTED = f"""\
+        duration = 1.2
+        [tree]
+        max_restarts = 5
+        [[tree.children]]
+        name = "db"
+        setup = "{SERVICE}"
+        [[tree.children]]
+        name = "pool"
+        strategy = "one_for_all"
+        max_restarts = 0
+        [[tree.children.children]]
+        name = "w1"
+        setup = "{SERVICE}"
+        [[tree.children.children]]
+        name = "w2"
+        setup = "{SERVICE}"
+        [[faults]]
+        kind = "kill_manager"
+        target = "w1"
+        at = 0.4
+        """
+
+
+def test_a_nested_supervisor_restarted_by_its_parent_counts_apart_from_its_managers() -> None:
+    (result,) = run(_plan(NESTED)).runs
+
+    assert 2 == result.restarts  # w1 and w2, started again with their supervisor
+    assert 1 == result.supervisor_restarts  # pool gave up (max_restarts = 0): root restarted it
+    assert {"db": 0, "w1": 1, "w2": 1} == {n: len(t) for n, t in result.restart_times.items()}
+    assert 0 == result.unrecovered
+
+
+def test_a_trigger_that_comes_due_after_the_end_is_recorded_as_skipped() -> None:
+    plan = _plan(
+        f"""\
+        duration = 1.0
+        [tree]
+        [[tree.children]]
+        name = "a"
+        setup = "{SERVICE}"
+        [[faults]]
+        kind = "kill_manager"
+        target = "a"
+        at = 0.3
+        [[faults]]
+        kind = "kill_manager"
+        target = "a"
+        after = {{ event = "ChildRestarted", child = "a" }}
+        delay = 0.9
+        """
+    )
+
+    (result,) = run(plan).runs
+    late = next(f for f in result.faults if f.fault == 1)
+
+    assert 2 == len(result.faults)
+    assert late.skipped
+    assert "due after the run ended" == late.detail
+    assert late.scheduled_s is not None
+    assert late.scheduled_s > 1.0
+    assert 1 == result.row()["faults_skipped"]
+
+
+def test_a_killed_temporary_manager_does_not_void_the_count_of_the_other_catalogs() -> None:
+    plan = _plan(
+        f"""\
+        duration = 1.0
+        [tree]
+        backoff = {{ initial = 0.4 }}
+        [[tree.children]]
+        name = "gone"
+        setup = "{SERVICE}"
+        restart = "temporary"
+        [[tree.children]]
+        name = "db"
+        setup = "{SERVICE}"
+        [workload]
+        clients = 1
+        rate = 20.0
+        hold = 0.1
+        [[workload.calls]]
+        manager = "db"
+        server = "resource"
+        [[faults]]
+        kind = "kill_manager"
+        target = "gone"
+        at = 0.2
+        [[faults]]
+        kind = "kill_manager"
+        target = "db"
+        at = 0.9
+        """
+    )
+
+    (result,) = run(plan).runs
+
+    assert 1 == result.catalogs_unread  # gone: exited for good
+    assert 0 == result.catalog_entries_left  # db was waited for (back after its backoff)
+    assert 1 == len(result.restart_times["db"])
+
+
+def test_with_a_small_event_queue_each_dropped_event_is_counted_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(runner, "EVENT_QUEUE", 1)
+    plan = _plan(ONE_FOR_ALL.replace("duration = 1.2", "duration = 0.6"))
+    spec = runner.RunSpec(plan, "", None, run=1, repeat=1, seed=3)
+
+    result = runner.execute(spec, tmp_path)
+    notices = sum(e.count for e in run_events(tmp_path, 1) if isinstance(e, events.EventsDropped))
+
+    assert notices > 0  # the queue of one overflowed
+    assert notices == result.events_dropped
+
+
+class _Recording(rr.Supervisor):
+    """A `Supervisor` that keeps the backoff jitter source it was given."""
+
+    jitter: ClassVar[list[Callable[[], float]]] = []
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        _Recording.jitter.append(kwargs["random"])
+        super().__init__(*args, **kwargs)
+
+
+def test_the_same_seed_gives_the_same_backoff_delays(monkeypatch: pytest.MonkeyPatch) -> None:
+    plan = _plan(
+        RANDOM_KILLS.replace("[tree]", "[tree]\nbackoff = { initial = 0.1, jitter = 0.5 }")
+    )
+    backoff = plan.tree.backoff
+    assert backoff is not None
+    monkeypatch.setattr(rr, "Supervisor", _Recording)
+    _Recording.jitter = []
+
+    def delays(seed: int) -> list[float]:
+        build_tree(plan, None, seed=seed)
+        jitter = _Recording.jitter[-1]
+        return [backoff.delay(attempt, jitter) for attempt in (1, 1, 2, 3)]
+
+    first, second = delays(4), delays(4)
+
+    assert first == second
+    assert first != delays(5)
+
+
+def test_a_run_process_whose_experiment_already_died_stops_at_once(tmp_path: Path) -> None:
+    plan = _plan(RANDOM_KILLS.replace("duration = 2.0", "duration = 50.0"))
+    token = f"{os.getpid()}-orphan"
+    (tmp_path / "spec.pickle").write_bytes(
+        pickle.dumps(runner.RunSpec(plan, "", None, run=1, repeat=1, seed=0, token=token))
+    )
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait(10)
+    child = subprocess.Popen(
+        [sys.executable, "-m", "rr_actors.experiments._child", str(tmp_path), str(gone.pid)],
+        env={**os.environ, "RR_ACTORS_EXPERIMENT": token},
+        stdin=subprocess.DEVNULL,
+    )
+    try:
+        code = child.wait(30)  # well before the plan's 50 s
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+
+    assert STOPPED_EXIT == code
+    assert not (tmp_path / "result.pickle").exists()
+    assert [] == wait_gone(processes_with(token), 10.0)  # its forkserver ends after it
+
+
+def test_a_ctrl_c_after_a_run_finished_keeps_it_and_leaves_no_process(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    sweep = experiment._procs.wait_gone
+
+    def interrupted_sweep(pids: list[int], timeout: float) -> list[int]:
+        signal.raise_signal(signal.SIGINT)  # Ctrl-C while the finished run is swept
+        return sweep(pids, timeout)
+
+    monkeypatch.setattr(experiment._procs, "wait_gone", interrupted_sweep)
+
+    with pytest.raises(ExperimentInterruptedError) as caught:
+        run(_plan(RANDOM_KILLS), duration=0.5, repeat=2)
+
+    assert [1] == [r.run for r in caught.value.results.runs]
+    assert caught.value.results.interrupted
     assert [] == ours()
