@@ -329,6 +329,14 @@ class Plan:
 
         A shorter `duration` drops the faults that would come after the new end.
 
+        Args:
+            repeat: runs per compared value (an int >= 1); `None`: keep the plan's.
+            seed: the seed of the first repeat; `None`: keep the plan's.
+            duration: seconds each run's workload lasts (> 0); `None`: keep the plan's.
+
+        Returns:
+            The changed plan (this one is not changed).
+
         Raises:
             ConfigError: a value is out of range.
         """

@@ -32,7 +32,7 @@ class FaultRecord:
             it was skipped.
         detail: what it did, for people (`"SIGKILL pid 4242"`), or why it was skipped.
         skipped: whether it did nothing (its manager was not running, no process to kill,
-            the run ended before its trigger).
+            the run ended before its trigger, or before the trigger's `delay` ran out).
         recovery_s: seconds from the injection until the system served again (see
             `docs/reference/plan.md`, "Recovery"), or `None` if it did not within the run.
     """

@@ -78,6 +78,11 @@ def render_request(template: Any, key: str, context: RequestContext) -> Any:
 
     Returns:
         The request (a new value; the template is not changed).
+
+    Raises:
+        ValueError, KeyError, IndexError: a string of the template that `str.format`
+            cannot fill (a field other than `key`, `client`, `run_dir`, `pid`, or a
+            bad format spec); no rr_actors error.
     """
     if isinstance(template, dict):
         return {k: render_request(v, key, context) for k, v in template.items()}
