@@ -283,7 +283,8 @@ def _drive(
         observer = sup.observe(host="127.0.0.1", port=0)
         print(json.dumps({"observe": observer.url}), flush=True)  # noqa: T201 - to the experiment
     drive.clients = [
-        Client(i, sup, plan, spec.seed, run_dir=work) for i in range(plan.workload.clients)
+        Client(i, sup, plan, spec.seed, run_dir=work, on_failure=stop.set)
+        for i in range(plan.workload.clients)
     ]
     t0, drive.wall_t0 = time.monotonic(), time.time()
     injector = drive.injector = Injector(
@@ -300,6 +301,9 @@ def _drive(
         _wait_all_serving(sup, managers, plan.recovery_timeout)
     for client in drive.clients:
         client.stop(timeout=0.5 if stop.is_set() else plan.workload.timeout)
+    failed = next((c.failure for c in drive.clients if c.failure is not None), None)
+    if failed is not None:  # a request a client could not build: the run fails with it
+        raise failed
     drive.entries = _count_entries(sup, managers, drive.clients)
     if spec.record_events:
         sup.flush_events()
