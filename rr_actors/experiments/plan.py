@@ -260,10 +260,18 @@ class FaultPlan:
     message: str = "injected load error"
 
     def most_injections(self, duration: float) -> int:
-        """At most how many injections this fault makes in a run of `duration` seconds.
+        """At most how many injections this fault makes in one run.
 
         An upper bound (the exact number of an `every` fault with random intervals is
         known only from the schedule); plans keep it within `MAX_INJECTIONS`.
+
+        Args:
+            duration: the run's duration, in seconds.
+
+        Returns:
+            The bound: 1 for a triggered fault, the number of `at` times, or for `every`
+            the span from `start` to `stop` (or `duration`) over the shortest interval,
+            within `count`.
         """
         if self.after is not None:
             return 1
