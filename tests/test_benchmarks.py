@@ -21,7 +21,14 @@ SMALLEST = {
         *("--missions", "1", "--soak", "1", "--sample", "0.5"),
     ],
     "bench_events.py": ["--rounds", "1", "--batch", "50", "--dedup-batch", "5"],
-    "bench_experiments.py": ["--runs", "1", "--rounds", "1", "--duration", "0.5"],
+    "bench_experiments.py": [
+        "--runs",
+        "1",
+        "--rounds",
+        "1",
+        "--duration",
+        "1.5",
+    ],  # > 1 s: a hang comes every 1-2 s
     "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1"],
     "bench_transport.py": ["--rounds", "20"],

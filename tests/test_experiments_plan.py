@@ -292,3 +292,241 @@ def test_the_key_scanner_finds_tables_arrays_of_tables_and_inline_keys() -> None
     assert 12 == lines[("tree", "children", 1, "children", 0, "name")]
     assert 16 == lines[("faults", 0, "at", 1)]
     assert ("not a table",) not in lines
+
+
+# -- limits: times and counts that would hang or crash a run (review items 1 and 2) ----------
+
+KILL_DB = '[[faults]]\nkind = "kill_manager"\ntarget = "db"\n'
+
+
+def test_an_interval_below_a_millisecond_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + "every = 1e-6\n")
+
+    assert (25, "faults[0].every") == (error.line, error.key)
+    assert "must be at least 0.001 s, got 1e-06" == error.problem
+
+
+def test_a_random_interval_below_a_millisecond_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + "every = { min = 1e-6, max = 1.0 }\n")
+
+    assert (25, "faults[0].every.min") == (error.line, error.key)
+
+
+def test_a_fault_that_would_inject_too_often_is_refused() -> None:
+    text = BASE.replace("duration = 2.0", "duration = 1000.0")
+    error = plan_error(text + KILL_DB + "every = 0.001\n")
+
+    assert (25, "faults[0].every") == (error.line, error.key)
+    assert error.problem.startswith("would inject up to 1000000 times in a run (at most 100000")
+
+
+def test_a_count_keeps_a_short_interval_within_the_limit() -> None:
+    text = BASE.replace("duration = 2.0", "duration = 1000.0")
+
+    plan = parse_plan(text + KILL_DB + "every = 0.001\ncount = 10\n")
+
+    assert 10 == plan.faults[0].count
+
+
+@pytest.mark.parametrize(
+    ("text", "line", "key"),
+    [
+        (BASE.replace("duration = 2.0", "duration = 1e300"), 2, "duration"),
+        (BASE.replace("clients = 1", "clients = 1\nhold = 1e300"), 18, "workload.hold"),
+        (BASE.replace("clients = 1", "clients = 1\ntimeout = 1e10"), 18, "workload.timeout"),
+        (
+            BASE.replace('name = "db"', 'name = "db"\nheartbeat = 1e10'),
+            9,
+            "tree.children[0].heartbeat",
+        ),
+        (
+            BASE + KILL_DB.replace("kill_manager", "hang_manager") + "at = 1\nfor = 1e10\n",
+            26,
+            "faults[0].for",
+        ),
+        (BASE.replace("[tree]", "[tree]\nbackoff = { max = 1e300 }"), 5, "tree.backoff.max"),
+    ],
+)
+def test_seconds_above_a_million_are_refused(text: str, line: int, key: str) -> None:
+    error = plan_error(text)
+
+    assert (line, key) == (error.line, error.key)
+    assert error.problem.startswith("must be at most 1e+06 s")
+
+
+def test_a_rate_so_low_that_its_gaps_overflow_is_refused() -> None:
+    error = plan_error(BASE.replace("clients = 1", "clients = 1\nrate = 1e-300"))
+
+    assert (18, "workload.rate") == (error.line, error.key)
+
+
+def test_a_trigger_delay_past_the_end_of_the_run_is_refused() -> None:
+    text = KILL_DB + 'after = { event = "ChildRestarted" }\ndelay = 2.0\n'
+    error = plan_error(BASE + text)
+
+    assert (26, "faults[0].delay") == (error.line, error.key)
+    assert "never fires" in error.problem
+
+
+def test_a_longer_duration_override_that_would_inject_too_often_is_refused() -> None:
+    plan = parse_plan(BASE + KILL_DB + "every = 0.001\n")
+
+    with pytest.raises(rr.ConfigError, match=r"faults\[0\] would inject more than 100000"):
+        plan.with_changes(duration=1000.0)
+
+
+def test_a_duration_override_above_a_million_seconds_is_refused() -> None:
+    plan = parse_plan(BASE)
+
+    with pytest.raises(rr.ConfigError, match="up to 1e"):
+        plan.with_changes(duration=1e300)
+
+
+# -- bad types give a PlanError, not a traceback (review item 8) -------------------------------
+
+
+def test_a_table_as_a_fault_target_is_refused() -> None:
+    error = plan_error(BASE + '[[faults]]\nkind = "kill_manager"\ntarget = {a=1}\nat = 1\n')
+
+    assert (24, "faults[0].target") == (error.line, error.key)
+    assert "must be a manager's name, got {'a': 1}" == error.problem
+
+
+def test_a_nested_list_as_a_fault_target_is_refused() -> None:
+    error = plan_error(BASE + '[[faults]]\nkind = "kill_manager"\ntarget = [["db"]]\nat = 1\n')
+
+    assert (24, "faults[0].target[0]") == (error.line, error.key)
+
+
+def test_a_list_as_the_manager_of_a_call_is_refused() -> None:
+    error = plan_error(BASE.replace('manager = "api"', 'manager = ["api"]'))
+
+    assert (20, "workload.calls[0].manager") == (error.line, error.key)
+    assert "must be a manager's name, got ['api']" == error.problem
+
+
+def test_a_setup_module_that_exits_on_import_is_a_plan_error(tmp_path: Path) -> None:
+    (tmp_path / "exits_on_import.py").write_text("import sys\nsys.exit(3)\n")
+    plan_file = tmp_path / "plan.toml"
+    plan_file.write_text(BASE.replace(SERVICE, "exits_on_import:setup", 1))
+
+    with pytest.raises(PlanError) as caught:
+        load_plan(plan_file)
+
+    assert (9, "tree.children[0].setup") == (caught.value.line, caught.value.key)
+    assert "raised SystemExit(3)" in caught.value.problem
+
+
+# -- templates that would fail in a client (review item 3) -------------------------------------
+
+
+@pytest.mark.parametrize("template", ["{client:zz}", "{key!x}", "{key!r}", "{key:{client}}"])
+def test_a_placeholder_with_a_conversion_or_format_is_refused(template: str) -> None:
+    error = plan_error(BASE + f'request = {{ name = "{template}" }}\n')
+
+    assert (22, "workload.calls[0].request.name") == (error.line, error.key)
+    assert "a placeholder is only a name" in error.problem
+
+
+# -- inputs that would do nothing (review item 9) ----------------------------------------------
+
+
+def test_an_empty_list_of_times_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + "at = []\n")
+
+    assert (25, "faults[0].at") == (error.line, error.key)
+    assert "must give at least one time (seconds)" == error.problem
+
+
+def test_an_every_that_starts_after_the_end_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + "every = 0.5\nstart = 2.0\n")
+
+    assert (26, "faults[0].start") == (error.line, error.key)
+
+
+def test_an_every_whose_first_interval_ends_after_the_run_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + "every = 0.5\nstart = 1.6\n")
+
+    assert (25, "faults[0].every") == (error.line, error.key)
+    assert "would not come before the end of the run (2 s)" in error.problem
+
+
+def test_a_stop_after_the_end_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + "every = 0.5\nstop = 3.0\n")
+
+    assert (26, "faults[0].stop") == (error.line, error.key)
+
+
+def test_a_trigger_on_a_child_not_in_the_tree_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + 'after = { event = "ChildRestarted", child = "nosuch" }\n')
+
+    assert (25, "faults[0].after.child") == (error.line, error.key)
+    assert error.problem.startswith("'nosuch' names nothing in this run (it may be: api, db)")
+
+
+def test_a_trigger_value_of_the_wrong_type_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + 'after = { event = "ChildRestarted", child = 3 }\n')
+
+    assert (25, "faults[0].after.child") == (error.line, error.key)
+    assert "must be a string, got 3" == error.problem
+
+
+def test_a_trigger_on_a_status_matches_the_status_itself() -> None:
+    text = KILL_DB + 'after = { event = "StatusSent", registrar = "api", status = "FATAL" }\n'
+
+    plan = parse_plan(BASE + text)
+
+    assert {"registrar": "api", "status": rr.Status.FATAL} == plan.faults[0].after.match
+
+
+def test_a_trigger_on_an_unknown_status_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + 'after = { event = "StatusSent", status = "fatal" }\n')
+
+    assert "faults[0].after.status" == error.key
+
+
+def test_a_load_error_with_for_and_loads_is_refused() -> None:
+    text = '[[faults]]\nkind = "load_error"\ntarget = "db"\nat = 1\nfor = 0.5\nloads = 3\n'
+    error = plan_error(BASE + text)
+
+    assert (27, "faults[0].loads") == (error.line, error.key)
+
+
+def test_kill_resource_in_a_tree_of_thread_managers_is_refused() -> None:
+    text = BASE.replace('setup = "', 'isolation = "thread"\nsetup = "')
+    error = plan_error(text + '[[faults]]\nkind = "kill_resource"\nat = 1\n')
+
+    assert (24, "faults[0]") == (error.line, error.key)
+    assert "every manager of this tree has isolation 'thread'" in error.problem
+
+
+# -- compare settings that would be ignored or mis-grouped (review item 7) ---------------------
+
+
+@pytest.mark.parametrize("setting", ["seed", "repeat", "name", "description", "compare.values"])
+def test_a_setting_the_experiment_reads_from_the_top_plan_cannot_be_compared(
+    setting: str,
+) -> None:
+    error = plan_error(BASE + f'[compare]\nsetting = "{setting}"\nvalues = [1, 2]\n')
+
+    assert (23, "compare.setting") == (error.line, error.key)
+    assert error.problem.startswith(f"{setting!r} cannot be compared")
+
+
+def test_a_compared_value_given_twice_is_refused() -> None:
+    text = (
+        '[compare]\nsetting = "tree.strategy"\n'
+        'values = ["one_for_one", "one_for_all", "one_for_one"]\n'
+    )
+    error = plan_error(BASE + text)
+
+    assert (24, "compare.values[2]") == (error.line, error.key)
+    assert "'one_for_one' is given twice: each value runs once" == error.problem
+
+
+def test_equal_values_of_other_types_are_different_compared_values() -> None:
+    text = '[compare]\nsetting = "tree.children.db.heartbeat"\nvalues = [1, 1.0, false]\n'
+
+    plan = parse_plan(BASE + text)
+
+    assert 3 == len(plan.variants)

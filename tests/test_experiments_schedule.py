@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
+import pytest
+
+from rr_actors.errors import ConfigError
 from rr_actors.experiments import fault_schedule, parse_plan
+from rr_actors.experiments.plan import FaultPlan
 
 SERVICE = "rr_actors.experiments.services:service"
 
@@ -95,3 +101,23 @@ def test_a_triggered_fault_has_its_trigger_and_no_time() -> None:
         dict(only.trigger.match),
         only.trigger.nth,
     )
+
+
+def test_a_plan_built_by_hand_with_a_tiny_interval_is_refused_not_scheduled_forever() -> None:
+    plan = parse_plan(TREE)
+    tiny = dataclasses.replace(
+        plan, faults=(FaultPlan(kind="kill_manager", targets=("a",), every=1e-6),)
+    )
+
+    with pytest.raises(ConfigError, match=r"faults\[0\] could inject more than 100000 times"):
+        fault_schedule(tiny, 1)
+
+
+def test_an_interval_of_a_millisecond_over_a_long_run_ends() -> None:
+    plan = parse_plan(TREE.replace("duration = 10.0", "duration = 1e6"))
+    fault = FaultPlan(kind="kill_manager", targets=("a",), every=0.001, start=999_990.0)
+
+    times = fault_schedule(dataclasses.replace(plan, faults=(fault,)), 1)
+
+    assert 9999 <= len(times) <= 10000
+    assert all(999_990.0 < f.at < 1e6 for f in times if f.at is not None)

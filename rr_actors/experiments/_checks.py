@@ -15,7 +15,7 @@ from typing import Any, TypeAlias
 from rr_actors.errors import ConfigError
 from rr_actors.experiments._imports import import_object
 from rr_actors.experiments._lines import KeyPath
-from rr_actors.experiments.plan import PlanError, is_number
+from rr_actors.experiments.plan import MAX_SECONDS, PlanError, is_number
 
 __all__ = ["Checks", "Table", "dotted"]
 
@@ -62,15 +62,38 @@ class Checks:
     # -- typed values ---------------------------------------------------------------------
 
     def seconds(
-        self, table: Table, path: KeyPath, key: str, default: Any, *, zero: bool = False
+        self,
+        table: Table,
+        path: KeyPath,
+        key: str,
+        default: Any,
+        *,
+        zero: bool = False,
+        low: float = 0.0,
     ) -> Any:
+        """`table[key]` as seconds in `[low, MAX_SECONDS]` (`default` if absent).
+
+        Zero is allowed only with `zero=True`; a `low` above zero is a minimum.
+        """
         value = table.get(key, default)
         if key not in table:
             return value
+        self.check_seconds(value, (*path, key), zero=zero, low=low)
+        return float(value)
+
+    def check_seconds(
+        self, value: Any, path: KeyPath, *, zero: bool = False, low: float = 0.0
+    ) -> None:
+        """Refuse `value` unless it is seconds in `[low, MAX_SECONDS]` (0 only if `zero`)."""
         if not is_number(value) or value < 0 or (value == 0 and not zero):
             kind = "a number of seconds >= 0" if zero else "a positive number of seconds"
-            raise self.error((*path, key), f"must be {kind}, got {value!r}")
-        return float(value)
+            raise self.error(path, f"must be {kind}, got {value!r}")
+        if value < low:
+            raise self.error(path, f"must be at least {low:g} s, got {value!r}")
+        if value > MAX_SECONDS:
+            raise self.error(
+                path, f"must be at most {MAX_SECONDS:g} s (about 11.6 days), got {value!r}"
+            )
 
     def integer(self, table: Table, path: KeyPath, key: str, default: Any, *, low: int) -> Any:
         value = table.get(key, default)

@@ -39,8 +39,10 @@ def import_object(path: str, *, base_dir: str | None = None) -> Any:
         base_dir: a directory searched first (a plan's own directory), or `None`.
 
     Raises:
-        ConfigError: the path is malformed, the module does not import, or it has no such
-            attribute; the message says which.
+        ConfigError: the path is malformed, the module does not import (it raised, or
+            exited: a `SystemExit` on import is a `ConfigError` too; only
+            `KeyboardInterrupt` goes through), or it has no such attribute; the message
+            says which.
     """
     module_name, colon, attribute = path.partition(":")
     if not colon or not module_name or not attribute:
@@ -50,7 +52,9 @@ def import_object(path: str, *, base_dir: str | None = None) -> Any:
             target: Any = importlib.import_module(module_name)
     except ImportError as exc:
         raise ConfigError(f"{path!r} does not import: {exc}") from exc
-    except Exception as exc:
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:  # a module that calls sys.exit() on import, too
         raise ConfigError(f"{path!r}: importing {module_name} raised {exc!r}") from exc
     for part in attribute.split("."):
         try:

@@ -6,13 +6,18 @@ Part of `reading._Reader`; every problem is a `PlanError` with its line (`_check
 from __future__ import annotations
 
 import dataclasses
+import typing
+from collections.abc import Mapping
 from typing import Any
 
+from rr_actors._types import Status
 from rr_actors.experiments._checks import Checks, Table
 from rr_actors.experiments._lines import KeyPath
 from rr_actors.experiments.plan import (
     EVENT_TYPES,
     FAULT_KINDS,
+    MAX_INJECTIONS,
+    MIN_EVERY,
     NEEDS_PROCESS,
     FaultPlan,
     ManagerPlan,
@@ -27,8 +32,14 @@ class FaultChecks(Checks):
     """Reads one `[[faults]]` entry: kind, targets, `at`/`every`/`after`, and its trigger."""
 
     def fault(
-        self, value: Any, path: KeyPath, managers: dict[str, ManagerPlan], duration: float
+        self,
+        value: Any,
+        path: KeyPath,
+        managers: dict[str, ManagerPlan],
+        duration: float,
+        names: Mapping[str, frozenset[str]],
     ) -> FaultPlan:
+        """One `[[faults]]` entry; `names` are the values an `after` field may name."""
         table = self.table(
             value,
             path,
@@ -52,11 +63,8 @@ class FaultChecks(Checks):
             raise self.error(path, f"'kind' is missing: one of {', '.join(FAULT_KINDS)}")
         kind = self.choice(table, path, "kind", "", FAULT_KINDS)
         targets = self.targets(table, path, kind, managers)
-        at, every, after = self.when(table, path, duration)
-        start = self.seconds(table, path, "start", 0.0, zero=True)
-        stop = self.seconds(table, path, "stop", None)
-        if stop is not None and stop <= start:
-            raise self.error((*path, "stop"), f"must be after 'start' ({start:g} s)")
+        at, every, after = self.when(table, path, duration, names)
+        start, stop = self.span(table, path, every, duration)
         for_s = self.seconds(table, path, "for", None)
         if kind == "hang_manager" and for_s is None:
             raise self.error(path, "'for' is missing: how many seconds the manager stays stopped")
@@ -65,7 +73,17 @@ class FaultChecks(Checks):
         for key in ("loads", "server", "message"):
             if key in table and kind != "load_error":
                 raise self.error((*path, key), "only goes with kind 'load_error'")
-        return FaultPlan(
+        if "for" in table and "loads" in table:
+            raise self.error(
+                (*path, "loads"), "give either 'for' (seconds) or 'loads' (a number), not both"
+            )
+        delay = self.seconds(table, path, "delay", 0.0, zero=True)
+        if delay >= duration:
+            raise self.error(
+                (*path, "delay"),
+                f"{delay:g} s is not before the end of the run ({duration:g} s): it never fires",
+            )
+        fault = FaultPlan(
             kind=kind,
             targets=targets,
             at=at,
@@ -74,15 +92,61 @@ class FaultChecks(Checks):
             stop=stop,
             count=self.integer(table, path, "count", None, low=1),
             after=after,
-            delay=self.seconds(table, path, "delay", 0.0, zero=True),
+            delay=delay,
             for_s=for_s,
             loads=self.integer(table, path, "loads", 1, low=1),
             server=self.text(table, path, "server", None),
             message=self.text(table, path, "message", "injected load error"),
         )
+        most = fault.most_injections(duration)
+        if most > MAX_INJECTIONS:
+            raise self.error(
+                (*path, "every"),
+                f"would inject up to {most} times in a run (at most {MAX_INJECTIONS} per "
+                "fault): give a longer interval, a 'count' or a 'stop'",
+            )
+        return fault
+
+    def span(
+        self,
+        table: Table,
+        path: KeyPath,
+        every: float | tuple[float, float] | None,
+        duration: float,
+    ) -> tuple[float, float | None]:
+        """`start` and `stop` of an `every` fault, refused if no injection could come."""
+        start = self.seconds(table, path, "start", 0.0, zero=True)
+        stop = self.seconds(table, path, "stop", None)
+        if start >= duration:
+            raise self.error(
+                (*path, "start"),
+                f"{start:g} s is not before the end of the run ({duration:g} s)",
+            )
+        if stop is not None and stop <= start:
+            raise self.error((*path, "stop"), f"must be after 'start' ({start:g} s)")
+        if stop is not None and stop > duration:
+            raise self.error(
+                (*path, "stop"),
+                f"{stop:g} s is after the end of the run ({duration:g} s); leave it out to "
+                "inject until the end",
+            )
+        if every is not None:
+            low = every if isinstance(every, float) else every[0]
+            end = duration if stop is None else stop
+            if start + low >= end:
+                raise self.error(
+                    (*path, "every"),
+                    f"the first injection ({start:g} + {low:g} s) would not come before "
+                    f"{'stop' if stop is not None else 'the end of the run'} ({end:g} s)",
+                )
+        return start, stop
 
     def when(
-        self, table: Table, path: KeyPath, duration: float
+        self,
+        table: Table,
+        path: KeyPath,
+        duration: float,
+        names: Mapping[str, frozenset[str]],
     ) -> tuple[tuple[float, ...], float | tuple[float, float] | None, Trigger | None]:
         """A fault's `at`, `every` and `after` (exactly one of them is given)."""
         given = [key for key in ("at", "every", "after") if key in table]
@@ -99,9 +163,11 @@ class FaultChecks(Checks):
         if "every" in table:
             return (), self.every(table, path), None
         if "after" in table:
-            return (), None, self.trigger(table["after"], (*path, "after"))
+            return (), None, self.trigger(table["after"], (*path, "after"), names)
         raw = table["at"] if isinstance(table["at"], list) else [table["at"]]
         where = (*path, "at")
+        if not raw:
+            raise self.error(where, "must give at least one time (seconds)")
         for index, item in enumerate(raw):
             item_path = (*where, index) if isinstance(table["at"], list) else where
             if not is_number(item) or item < 0:
@@ -120,12 +186,20 @@ class FaultChecks(Checks):
         if value is None:
             if kind != "kill_resource":
                 raise self.error(path, "'target' is missing: which manager (or a list of them)")
+            if not any(m.isolation == "process" for m in managers.values()):
+                raise self.error(
+                    path,
+                    "kill_resource kills resource processes of process managers; every "
+                    "manager of this tree has isolation 'thread'",
+                )
             return ()
         names = value if isinstance(value, list) else [value]
         if not names:
             raise self.error(where, "must name at least one manager")
         for index, name in enumerate(names):
             at = (*where, index) if isinstance(value, list) else where
+            if not isinstance(name, str):
+                raise self.error(at, f"must be a manager's name, got {name!r}")
             if name not in managers:
                 raise self.error(
                     at, f"no manager {name!r} in the tree (managers: {', '.join(managers)})"
@@ -139,20 +213,19 @@ class FaultChecks(Checks):
     def every(self, table: Table, path: KeyPath) -> float | tuple[float, float]:
         value = table["every"]
         where = (*path, "every")
-        if is_number(value):
-            if value <= 0:
-                raise self.error(where, f"must be a positive number of seconds, got {value!r}")
+        if not isinstance(value, dict):
+            self.check_seconds(value, where, low=MIN_EVERY)
             return float(value)
         span = self.table(value, where, ("min", "max"))
-        low = self.seconds(span, where, "min", None)
-        high = self.seconds(span, where, "max", None)
+        low = self.seconds(span, where, "min", None, low=MIN_EVERY)
+        high = self.seconds(span, where, "max", None, low=MIN_EVERY)
         if low is None or high is None:
             raise self.error(where, "needs both 'min' and 'max' (seconds)")
         if high < low:
             raise self.error((*where, "max"), f"must not be less than min ({low:g} s)")
         return (low, high)
 
-    def trigger(self, value: Any, path: KeyPath) -> Trigger:
+    def trigger(self, value: Any, path: KeyPath, names: Mapping[str, frozenset[str]]) -> Trigger:
         if not isinstance(value, dict):
             raise self.error(
                 path, f'must be a table like {{ event = "ChildRestarted" }}, got {value!r}'
@@ -166,5 +239,36 @@ class FaultChecks(Checks):
             )
         fields = [f.name for f in dataclasses.fields(cls) if f.name != "at"]
         self.table(value, path, ("event", "nth", *fields))
-        match = {k: v for k, v in value.items() if k not in ("event", "nth")}
+        hints = typing.get_type_hints(cls)
+        match = {
+            key: self.match_value(item, hints[key], (*path, key), names.get(key))
+            for key, item in value.items()
+            if key not in ("event", "nth")
+        }
         return Trigger(event=event, match=match, nth=self.integer(value, path, "nth", 1, low=1))
+
+    def match_value(
+        self, value: Any, kind: Any, path: KeyPath, known: frozenset[str] | None
+    ) -> Any:
+        """An `after` field's value, of the field's type; a name must be one in `known`.
+
+        A value of another type, or a name nobody in the run has, would never match: the
+        fault would silently never fire.
+        """
+        if kind is Status:
+            if value not in Status.__members__:
+                raise self.error(
+                    path, f"must be one of {', '.join(Status.__members__)}, got {value!r}"
+                )
+            return Status[value]
+        if kind is str and not isinstance(value, str):
+            raise self.error(path, f"must be a string, got {value!r}")
+        if kind is int and (isinstance(value, bool) or not isinstance(value, int)):
+            raise self.error(path, f"must be an integer, got {value!r}")
+        if kind is float and not is_number(value):
+            raise self.error(path, f"must be a number, got {value!r}")
+        if known is not None and value not in known:
+            raise self.error(
+                path, f"{value!r} names nothing in this run (it may be: {', '.join(sorted(known))})"
+            )
+        return value

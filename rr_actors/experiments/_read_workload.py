@@ -10,7 +10,14 @@ from typing import Any
 
 from rr_actors.experiments._checks import Checks
 from rr_actors.experiments._lines import KeyPath
-from rr_actors.experiments.plan import PLACEHOLDERS, CallMix, ManagerPlan, Workload, is_number
+from rr_actors.experiments.plan import (
+    MAX_SECONDS,
+    PLACEHOLDERS,
+    CallMix,
+    ManagerPlan,
+    Workload,
+    is_number,
+)
 
 __all__ = ["WorkloadChecks"]
 
@@ -25,9 +32,10 @@ class WorkloadChecks(Checks):
         rate: Any = table.get("rate", 5.0)
         if rate == "max":
             rate = None
-        elif not is_number(rate) or rate <= 0:
+        elif not is_number(rate) or rate < 1 / MAX_SECONDS:
             raise self.error(
-                (*path, "rate"), f'must be calls per second (> 0) or "max", got {rate!r}'
+                (*path, "rate"),
+                f'must be calls per second (at least {1 / MAX_SECONDS:g}) or "max", got {rate!r}',
             )
         calls_data = table.get("calls", [])
         if not isinstance(calls_data, list):
@@ -52,6 +60,8 @@ class WorkloadChecks(Checks):
             value, path, ("manager", "server", "weight", "shared", "keys", "request", "factory")
         )
         manager = self.required(table, path, "manager")
+        if not isinstance(manager, str):
+            raise self.error((*path, "manager"), f"must be a manager's name, got {manager!r}")
         if manager not in managers:
             raise self.error(
                 (*path, "manager"),
@@ -85,7 +95,12 @@ class WorkloadChecks(Checks):
         )
 
     def template(self, value: Any, path: KeyPath) -> None:
-        """Check the placeholders of every string in a request template."""
+        """Check the placeholders of every string in a request template.
+
+        A placeholder is only a name: `{key}`, not `{key!r}` or `{client:03d}`. With no
+        conversion, format spec, attribute or index, every template renders at run time
+        for any key and client, so a template that passes here cannot fail in a client.
+        """
         if isinstance(value, dict):
             for key, item in value.items():
                 self.template(item, (*path, key))
@@ -94,9 +109,17 @@ class WorkloadChecks(Checks):
                 self.template(item, (*path, index))
         elif isinstance(value, str):
             try:
-                fields = [f for _, f, _, _ in string.Formatter().parse(value) if f is not None]
+                parsed = [p for p in string.Formatter().parse(value) if p[1] is not None]
             except ValueError as exc:
                 raise self.error(path, f"{value!r} is not a valid template: {exc}") from None
+            for _, field, spec, conversion in parsed:
+                if spec or conversion:
+                    raise self.error(
+                        path,
+                        f"{value!r}: a placeholder is only a name, like {{{field}}}, without "
+                        "a conversion ('!r') or a format ('03d')",
+                    )
+            fields = [field for _, field, _, _ in parsed]
             unknown = [f for f in fields if f not in PLACEHOLDERS]
             if unknown:
                 raise self.error(

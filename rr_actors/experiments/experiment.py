@@ -6,7 +6,8 @@ run(plan) ── validate everything (plan, out, platform, --observe) ── not
         RR_ACTORS_EXPERIMENT=<token> in its env         over all of them)
         ── runner.execute ──► result.pickle, events.jsonl
       the run's processes still alive: leaks (killed)
-      out/: events.jsonl += the run's events; runs.csv += its row; faults.csv += its faults
+      out/: events.jsonl += the run's events; faults.csv += its faults;
+            runs.csv rewritten: every finished run, under the union of their columns
    plots (matplotlib): recovery.png, timeline.png
 Ctrl-C: the run process is told to stop (SIGTERM), every process of the run is
         killed, the runs finished so far stay written and plotted.
@@ -396,7 +397,7 @@ class _Experiment:
             (self.out / "events.jsonl").open("ab") as target,
         ):
             shutil.copyfileobj(source, target)
-        _append_csv(self.out / "runs.csv", [result.row()])
+        _write_csv(self.out / "runs.csv", [run.row() for run in self.finished])
         _append_csv(self.out / "faults.csv", fault_rows(result))
 
     def _plot(self, results: Results) -> None:
@@ -454,6 +455,28 @@ def fault_rows(result: RunResult) -> list[dict[str, Any]]:
 
 def _blank(value: float | None) -> float | str:
     return "" if value is None else round(value, 6)
+
+
+def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    """Write `path` anew: every row, under the union of their columns.
+
+    Runs of different compared values may have different columns (a compared manager
+    name makes its own `unavailable_s_<name>`); a column new in a row goes before the
+    column after it in that row (at the end if none), and rows without it leave it empty.
+    """
+    columns: list[str] = []
+    for row in rows:
+        keys = list(row)
+        for index, key in enumerate(keys):
+            if key not in columns:
+                after = next((k for k in keys[index + 1 :] if k in columns), None)
+                columns.insert(columns.index(after) if after else len(columns), key)
+    partial = path.with_name(path.name + ".tmp")
+    with partial.open("w", newline="", encoding="utf-8") as file:
+        writer = csv.DictWriter(file, fieldnames=columns, restval="")
+        writer.writeheader()
+        writer.writerows(rows)
+    partial.replace(path)
 
 
 def _append_csv(path: Path, rows: list[dict[str, Any]]) -> None:

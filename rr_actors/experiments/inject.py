@@ -342,6 +342,25 @@ class Injector:
             self._record(fires[0], fires[1], None, "due after the run ended", skipped=True)
 
     def _loop(self) -> None:
+        try:
+            self._fire_when_due()
+        except Exception as exc:  # a bug, or a wait too long for `threading` (OverflowError)
+            self._abandon(f"not fired: the injector failed ({exc!r})")
+            logger.exception("the injector stopped")
+
+    def _abandon(self, detail: str) -> None:
+        """Record every fault still to come as skipped with `detail` (the loop failed)."""
+        with self._lock:
+            left, self._heap = sorted(self._heap), []
+            waiting, self._waiting = self._waiting, []
+        for due in left:  # a hang's resume is not a fault: stop() resumes every hung manager
+            if due.fires is not None:
+                fault, scheduled = due.fires
+                self._record(fault, scheduled, None, detail, skipped=True)
+        for fault, _ in waiting:
+            self._record(fault, None, None, detail, skipped=True)
+
+    def _fire_when_due(self) -> None:
         while True:
             with self._cond:
                 while not self._stopped:

@@ -21,6 +21,9 @@ from rr_actors.errors import ConfigError
 
 __all__ = [
     "FAULT_KINDS",
+    "MAX_INJECTIONS",
+    "MAX_SECONDS",
+    "MIN_EVERY",
     "PLACEHOLDERS",
     "CallMix",
     "Compare",
@@ -43,6 +46,19 @@ FAULT_KINDS: tuple[FaultKind, ...] = typing.get_args(FaultKind)
 
 NEEDS_PROCESS = frozenset({"kill_resource", "hang_manager", "cut_connections"})
 """Fault kinds that act on a manager's OS process (its isolation must be `"process"`)."""
+
+MAX_SECONDS = 1e6
+"""The longest duration, time or wait a plan may give, in seconds (about 11.6 days).
+
+Longer ones overflow the waits of `threading` (about 292 years) once added to the clock,
+and no experiment needs them: a bound here is a clear error before the run, not a dead
+thread in it."""
+
+MIN_EVERY = 1e-3
+"""The shortest interval of an `every` fault, in seconds (one injection per millisecond)."""
+
+MAX_INJECTIONS = 100_000
+"""The most injections one fault may make in one run (`every` with a short interval)."""
 
 PLACEHOLDERS = frozenset({"key", "client", "run_dir", "pid"})
 """Names a request template may use in its strings: `{key}`, `{client}`, `{run_dir}`, `{pid}`."""
@@ -243,6 +259,31 @@ class FaultPlan:
     server: str | None = None
     message: str = "injected load error"
 
+    def most_injections(self, duration: float) -> int:
+        """At most how many injections this fault makes in one run.
+
+        An upper bound (the exact number of an `every` fault with random intervals is
+        known only from the schedule); plans keep it within `MAX_INJECTIONS`.
+
+        Args:
+            duration: the run's duration, in seconds.
+
+        Returns:
+            The bound: 1 for a triggered fault, the number of `at` times, or for `every`
+            the span from `start` to `stop` (or `duration`) over the shortest interval,
+            within `count`.
+        """
+        if self.after is not None:
+            return 1
+        if self.every is None:
+            return len(self.at)
+        low = self.every if isinstance(self.every, float) else self.every[0]
+        stop = duration if self.stop is None else min(duration, self.stop)
+        if low <= 0:  # only a plan built by hand: reading refuses it
+            return MAX_INJECTIONS + 1
+        bound = max(0, math.ceil((stop - self.start) / low))
+        return bound if self.count is None else min(bound, self.count)
+
 
 @dataclasses.dataclass(frozen=True)
 class Compare:
@@ -338,12 +379,24 @@ class Plan:
             The changed plan (this one is not changed).
 
         Raises:
-            ConfigError: a value is out of range.
+            ConfigError: a value is out of range (`duration` above `MAX_SECONDS`, or so
+                long that an `every` fault would inject more than `MAX_INJECTIONS` times).
         """
         if repeat is not None and (isinstance(repeat, bool) or repeat < 1):
             raise ConfigError(f"repeat must be an int >= 1, got {repeat!r}")
-        if duration is not None and not (is_number(duration) and duration > 0):
-            raise ConfigError(f"duration must be a positive number of seconds, got {duration!r}")
+        if duration is not None and not (is_number(duration) and 0 < duration <= MAX_SECONDS):
+            raise ConfigError(
+                f"duration must be a positive number of seconds up to {MAX_SECONDS:g}, "
+                f"got {duration!r}"
+            )
+        if duration is not None:
+            for _, plan in self.variants:
+                for index, fault in enumerate(plan.faults):
+                    if fault.most_injections(duration) > MAX_INJECTIONS:
+                        raise ConfigError(
+                            f"duration {duration:g} s: faults[{index}] would inject more than "
+                            f"{MAX_INJECTIONS} times in a run"
+                        )
         changes: dict[str, Any] = {}
         if repeat is not None:
             changes["repeat"] = repeat

@@ -43,6 +43,16 @@ from rr_actors.experiments.plan import (
 __all__ = ["load_plan", "parse_plan"]
 
 
+NOT_COMPARED = {
+    "name": "every run of an experiment belongs to one plan",
+    "description": "it changes nothing in a run",
+    "seed": "each run's seed comes from the top 'seed' and its repeat",
+    "repeat": "every compared value runs 'repeat' times",
+    "compare": "compare is not a setting of a run",
+}
+"""Top-level keys `[compare]` refuses, and why (the experiment reads them from the top plan)."""
+
+
 def load_plan(path: str | os.PathLike[str]) -> Plan:
     """Read and validate the plan in the TOML file `path`.
 
@@ -155,8 +165,15 @@ class _Reader(WorkloadChecks, FaultChecks):
         faults_data = top.get("faults", [])
         if not isinstance(faults_data, list):
             raise self.error(("faults",), "must be an array of tables ([[faults]])")
+        nested = frozenset(s.name for s in tree.supervisors()[1:])
+        names = {  # what the fields of an `after` trigger may name
+            "supervisor": frozenset(s.name for s in tree.supervisors()),
+            "child": frozenset(managers) | nested,
+            "registrar": frozenset(managers)
+            | frozenset(f"client-{i}" for i in range(workload.clients)),
+        }
         faults = tuple(
-            self.fault(entry, ("faults", index), managers, duration)
+            self.fault(entry, ("faults", index), managers, duration, names)
             for index, entry in enumerate(faults_data)
         )
         return Plan(
@@ -244,6 +261,8 @@ class _Reader(WorkloadChecks, FaultChecks):
         for key, item in table.items():
             if not is_number(item):
                 raise self.error((*path, key), f"must be a number, got {item!r}")
+            if key in ("initial", "max"):
+                self.check_seconds(item, (*path, key), zero=True)
         try:
             return Backoff(**{key: float(item) for key, item in table.items()})
         except ConfigError as exc:
@@ -284,6 +303,8 @@ class _Reader(WorkloadChecks, FaultChecks):
                 (*path, "heartbeat"),
                 f"must be a positive number of seconds or false (off), got {heartbeat!r}",
             )
+        else:
+            self.check_seconds(heartbeat, (*path, "heartbeat"))
         return ManagerPlan(
             name=name,
             setup=setup,
@@ -306,11 +327,21 @@ class _Reader(WorkloadChecks, FaultChecks):
         path: KeyPath = ("compare",)
         table = self.table(data["compare"], path, ("setting", "values"))
         setting = self.required(table, path, "setting")
-        if not isinstance(setting, str) or not setting or setting.startswith("compare"):
+        if not isinstance(setting, str) or not setting:
             raise self.error((*path, "setting"), f"must be a plan key, got {setting!r}")
+        if setting.split(".")[0] in NOT_COMPARED:
+            raise self.error(
+                (*path, "setting"),
+                f"{setting!r} cannot be compared: {NOT_COMPARED[setting.split('.')[0]]}",
+            )
         values = self.required(table, path, "values")
         if not isinstance(values, list) or not values:
             raise self.error((*path, "values"), "must be a non-empty array")
+        for index, item in enumerate(values):
+            if any(type(item) is type(other) and item == other for other in values[:index]):
+                raise self.error(
+                    (*path, "values", index), f"{item!r} is given twice: each value runs once"
+                )
         self.locate(data, setting, (*path, "setting"))
         return Compare(setting=setting, values=tuple(values))
 

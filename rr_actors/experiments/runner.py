@@ -261,8 +261,10 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
     Raises:
         RrError: the tree did not start (a manager's setup raised, say:
             `ManagerStartError`), or could not be built (`ConfigError`, for a plan
-            built by hand). Anything raised by the plan's own code in the run process
-            (a setup, a request factory) comes out as it was raised.
+            built by hand), or a client could not build a request (`ConfigError`
+            naming `workload.calls[i]`, the key and the cause: a request factory or
+            template raised). Anything else the plan's own code raises in the run
+            process (a setup) comes out as it was raised.
     """
     stop = stop if stop is not None else threading.Event()
     sys.setswitchinterval(SWITCH_INTERVAL)
@@ -308,7 +310,8 @@ def _drive(
         observer = sup.observe(host="127.0.0.1", port=0)
         print(json.dumps({"observe": observer.url}), flush=True)  # noqa: T201 - to the experiment
     drive.clients = [
-        Client(i, sup, plan, spec.seed, run_dir=work) for i in range(plan.workload.clients)
+        Client(i, sup, plan, spec.seed, run_dir=work, on_failure=stop.set)
+        for i in range(plan.workload.clients)
     ]
     t0, drive.wall_t0 = time.monotonic(), time.time()
     injector = drive.injector = Injector(
@@ -325,6 +328,9 @@ def _drive(
         _wait_all_serving(sup, managers, plan.recovery_timeout)
     for client in drive.clients:
         client.stop(timeout=0.5 if stop.is_set() else plan.workload.timeout)
+    failed = next((c.failure for c in drive.clients if c.failure is not None), None)
+    if failed is not None:  # a request a client could not build: the run fails with it
+        raise failed
     drive.entries, drive.unread = _count_entries(sup, managers, drive.clients)
     if spec.record_events:
         sup.flush_events()

@@ -12,7 +12,8 @@ from __future__ import annotations
 import dataclasses
 import random
 
-from rr_actors.experiments.plan import FaultPlan, Plan, Trigger
+from rr_actors.errors import ConfigError
+from rr_actors.experiments.plan import MAX_INJECTIONS, FaultPlan, Plan, Trigger
 
 __all__ = ["ScheduledFault", "fault_schedule"]
 
@@ -52,11 +53,20 @@ def fault_schedule(plan: Plan, seed: int) -> tuple[ScheduledFault, ...]:
 
     Returns:
         The schedule; equal for equal plans and seeds.
+
+    Raises:
+        ConfigError: a fault could inject more than `MAX_INJECTIONS` times (only a plan
+            built by hand: reading refuses such a plan, and bounding the count is what
+            makes the loop of an `every` fault end).
     """
     timed: list[ScheduledFault] = []
     triggered: list[ScheduledFault] = []
     for index, fault in enumerate(plan.faults):
         rng = random.Random(f"rr-actors/{seed}/{index}")  # noqa: S311 - a schedule, not a secret
+        if fault.most_injections(plan.duration) > MAX_INJECTIONS:
+            raise ConfigError(
+                f"faults[{index}] could inject more than {MAX_INJECTIONS} times in a run"
+            )
         if fault.after is not None:
             triggered.append(_one(index, 0, fault, None, rng))
             continue

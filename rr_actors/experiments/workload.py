@@ -13,6 +13,11 @@ fixed in advance (an open-loop load): the calls that fell due while one call wai
 restart follow it back to back, as the requests of many independent users would. Every
 call is recorded (`CallRecord`); so are the times a client got a resource back after a
 failure (`recoveries`).
+
+A request the client cannot build (its factory raised, say) is a mistake in the plan, not
+a failure of the tree: it is not recorded as a failed call, which would count it as
+unavailability. The client stops, keeps the error in `failure`, calls `on_failure`, and
+the run fails with it (`runner` raises it once the clients have stopped).
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import rr_actors as rr
+from rr_actors.errors import ConfigError
 from rr_actors.experiments._imports import import_object
 from rr_actors.experiments.metrics import ClientRecovery
 from rr_actors.experiments.plan import CallMix, Plan, Workload
@@ -164,6 +170,8 @@ class Client:
         plan: the plan (its `workload` says what to do).
         seed: the run's seed (each client draws from its own generator).
         run_dir: the run's directory (for `{run_dir}`).
+        on_failure: called (on the client's thread) when the client stopped on an error
+            of its own, kept in `failure`; the runner ends the run early with it.
     """
 
     def __init__(
@@ -174,6 +182,7 @@ class Client:
         seed: int,
         *,
         run_dir: Path,
+        on_failure: Callable[[], None] = lambda: None,
     ) -> None:
         self.index = index
         self.sup = sup
@@ -194,6 +203,10 @@ class Client:
         self.heard: list[float] = []
         """Times (from `t0`) at which a `FATAL` or `UPDATE` about a resource it held came."""
         self.unload_failures = 0
+        self.failure: Exception | None = None
+        """Why this client stopped calling before the end, or `None`: a `ConfigError` for
+        a request it could not build (naming the call and the cause), else the bug."""
+        self._on_failure = on_failure
         self._notes: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._held: list[_Held] = []
         self._given_up: list[tuple[CallMix, Any, str]] = []
@@ -273,6 +286,13 @@ class Client:
         return self.rng.expovariate(rate)
 
     def _run(self) -> None:
+        try:
+            self._calls()
+        except Exception as exc:  # noqa: BLE001 - kept in `failure`: the run fails with it
+            self.failure = exc
+            self._on_failure()
+
+    def _calls(self) -> None:
         next_call = self.t0 + self._gap()
         while not self._stopping.is_set():
             now = time.monotonic()
@@ -308,6 +328,12 @@ class Client:
         return self.rng.choices(mix, weights=[m.weight for m in mix])[0]
 
     def _request(self, mix: CallMix) -> Any:
+        """A request of `mix` with a shared or a unique key.
+
+        Raises:
+            ConfigError: the factory (or the template) raised; the message names the
+                call of the plan, the key and the cause.
+        """
         if self.rng.random() < mix.shared:
             key = f"shared-{self.rng.randrange(mix.keys)}"
         else:
@@ -315,14 +341,22 @@ class Client:
         context = RequestContext(
             self.index, str(self.run_dir), os.getpid(), mix.manager, mix.server
         )
-        if mix.factory is not None:
-            factory = self._factories.get(mix.factory)
-            if factory is None:
-                factory = self._factories[mix.factory] = import_object(
-                    mix.factory, base_dir=self.base_dir
-                )
-            return factory(key, context)
-        return render_request(mix.request, key, context)
+        try:
+            if mix.factory is not None:
+                factory = self._factories.get(mix.factory)
+                if factory is None:
+                    factory = self._factories[mix.factory] = import_object(
+                        mix.factory, base_dir=self.base_dir
+                    )
+                return factory(key, context)
+            return render_request(mix.request, key, context)
+        except Exception as exc:
+            how = f"factory {mix.factory!r}" if mix.factory else "its request template"
+            number = self.workload.calls.index(mix)
+            raise ConfigError(
+                f"workload.calls[{number}]: {how} raised {exc!r} for key {key!r} "
+                f"(client {self.index})"
+            ) from exc
 
     def _call_one(self) -> None:
         mix = self._choose()
