@@ -5,6 +5,10 @@ process it starts inherits it: the forkserver and the manager processes forked f
 and the programs managers start (`subprocess` passes the environment on), even those in
 sessions of their own or re-parented after their parent died. `/proc/<pid>/environ` shows
 the environment a process started with, so a scan of `/proc` finds them all (Linux).
+
+It also finds the processes a fault may kill: the OS processes a manager started for its
+resources (`resource_processes`), each with its creation time (`start_time`), so that a
+pid reused by another process is never taken for the one looked up.
 """
 
 from __future__ import annotations
@@ -15,8 +19,21 @@ import select
 import signal
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-__all__ = ["TOKEN_VARIABLE", "cmdline", "kill", "parent", "processes_with", "wait_gone"]
+if TYPE_CHECKING:
+    import rr_actors as rr
+
+__all__ = [
+    "TOKEN_VARIABLE",
+    "cmdline",
+    "kill",
+    "parent",
+    "processes_with",
+    "resource_processes",
+    "start_time",
+    "wait_gone",
+]
 
 TOKEN_VARIABLE = "RR_ACTORS_EXPERIMENT"  # noqa: S105 - a variable's name, not a secret
 """The environment variable that marks the processes of one run."""
@@ -94,3 +111,45 @@ def kill(pids: list[int]) -> None:
                 signal.pidfd_send_signal(fd, signal.SIGKILL)
         finally:
             os.close(fd)
+
+
+def start_time(pid: int) -> int | None:
+    """Creation time of `pid` in clock ticks (`/proc/<pid>/stat` field 22), `None` if gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat.rsplit(")", 1)[1].split()
+    return None if fields[0] == "Z" else int(fields[19])
+
+
+def _children(pid: int) -> list[int]:
+    pids: list[int] = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        with contextlib.suppress(OSError, ValueError):
+            pids.extend(int(p) for p in (task / "children").read_text().split())
+    return pids
+
+
+def resource_processes(sup: rr.Supervisor, managers: list[str]) -> list[tuple[str, int, int]]:
+    """The child processes of the running process managers among `managers`.
+
+    Args:
+        sup: the run's supervisor.
+        managers: the managers to look at, in order.
+
+    Returns:
+        `(manager, pid, creation time)` sorted by manager order, creation time and pid
+        (a stable order, so a seeded pick chooses alike in alike runs).
+    """
+    found: list[tuple[int, int, int, str]] = []
+    for order, name in enumerate(managers):
+        info = sup.child(name)
+        if info.pid is None or info.state != "running":
+            continue
+        for child in _children(info.pid):
+            created = start_time(child)
+            if created is not None:
+                found.append((order, created, child, name))
+    found.sort()
+    return [(name, pid, created) for _, created, pid, name in found]

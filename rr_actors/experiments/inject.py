@@ -31,24 +31,21 @@ import itertools
 import logging
 import os
 import signal
-import socket
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors.experiments import _trigger
 from rr_actors.experiments._instrument import CUT_SIGNAL, arm_load_error, catches_cut_signal
+from rr_actors.experiments._procs import resource_processes, start_time
+from rr_actors.experiments._sender import Trigger
 from rr_actors.experiments.plan import Plan
 from rr_actors.experiments.results import FaultRecord
 from rr_actors.experiments.schedule import ScheduledFault
 
-__all__ = ["Injector", "Trigger", "resource_processes"]
+__all__ = ["Injector"]
 
 logger = logging.getLogger("rr_actors.experiments")
 
@@ -66,129 +63,6 @@ load error's switch) are waited by spinning, not by a timed wait."""
 
 def _registrar_of(registrar: rr.ResourceRegistrar) -> rr.ResourceRegistrar:
     return registrar
-
-
-def _start_time(pid: int) -> int | None:
-    """Creation time of `pid` in clock ticks (`/proc/<pid>/stat` field 22), `None` if gone."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return None
-    fields = stat.rsplit(")", 1)[1].split()
-    return None if fields[0] == "Z" else int(fields[19])
-
-
-def _children(pid: int) -> list[int]:
-    pids: list[int] = []
-    for task in Path(f"/proc/{pid}/task").glob("*"):
-        with contextlib.suppress(OSError, ValueError):
-            pids.extend(int(p) for p in (task / "children").read_text().split())
-    return pids
-
-
-def resource_processes(sup: rr.Supervisor, managers: list[str]) -> list[tuple[str, int, int]]:
-    """The child processes of the running process managers among `managers`.
-
-    Args:
-        sup: the run's supervisor.
-        managers: the managers to look at, in order.
-
-    Returns:
-        `(manager, pid, creation time)` sorted by manager order, creation time and pid
-        (a stable order, so a seeded pick chooses alike in alike runs).
-    """
-    found: list[tuple[int, int, int, str]] = []
-    for order, name in enumerate(managers):
-        info = sup.child(name)
-        if info.pid is None or info.state != "running":
-            continue
-        for child in _children(info.pid):
-            created = _start_time(child)
-            if created is not None:
-                found.append((order, created, child, name))
-    found.sort()
-    return [(name, pid, created) for _, created, pid, name in found]
-
-
-class Trigger:
-    """The run process's end of the trigger process (`_trigger.py`), which sends signals.
-
-    `send` hands it a pidfd, a signal and a due time; `on_sent(sent_at, errno)` is called
-    on this object's reader thread when the signal went out (or could not: `errno`).
-    """
-
-    def __init__(self) -> None:
-        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        try:
-            self._process = subprocess.Popen(  # noqa: S603 - this interpreter, our own script
-                [sys.executable, "-I", _trigger.__file__, str(theirs.fileno())],
-                pass_fds=(theirs.fileno(),),
-                stdin=subprocess.DEVNULL,
-            )
-        finally:
-            theirs.close()
-        self._sock = ours
-        self._seq = itertools.count(1)
-        self._lock = threading.Lock()
-        self._idle = threading.Condition(self._lock)
-        self._pending: dict[int, Callable[[float, int], None]] = {}
-        self._reader = threading.Thread(target=self._read, name="rr-trigger", daemon=True)
-        self._reader.start()
-
-    def send(
-        self, due: float, signum: int, pidfd: int, on_sent: Callable[[float, int], None]
-    ) -> None:
-        """Send `signum` through (a copy of) `pidfd` at monotonic time `due`."""
-        seq = next(self._seq)
-        with self._lock:
-            self._pending[seq] = on_sent
-        message = _trigger.REQUEST.pack(seq, due, int(signum))
-        try:
-            socket.send_fds(self._sock, [message], [pidfd])
-        except OSError as exc:
-            with self._lock:
-                self._pending.pop(seq, None)
-            on_sent(0.0, exc.errno or errno.EIO)
-
-    def close(self, *, timeout: float) -> None:
-        """Wait (bounded) for the replies still due, then end the trigger process."""
-        deadline = time.monotonic() + timeout
-        with self._idle:
-            while self._pending and time.monotonic() < deadline:
-                self._idle.wait(max(0.0, deadline - time.monotonic()))
-        with contextlib.suppress(OSError):
-            self._sock.shutdown(socket.SHUT_RDWR)
-        self._reader.join(timeout)
-        self._sock.close()
-        try:
-            self._process.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self._process.kill()
-            self._process.wait()
-
-    def _read(self) -> None:
-        while True:
-            try:
-                data = self._sock.recv(_trigger.REPLY.size)
-            except OSError:
-                data = b""
-            if len(data) < _trigger.REPLY.size:
-                break
-            seq, sent_at, code = _trigger.REPLY.unpack(data)
-            with self._lock:
-                on_sent = self._pending.pop(seq, None)
-            if on_sent is not None:
-                try:
-                    on_sent(sent_at, code)
-                except Exception:
-                    logger.exception("recording a fault failed")
-            with self._idle:
-                self._idle.notify_all()
-        with self._idle:  # the trigger is gone: what it did not answer was not sent
-            pending, self._pending = self._pending, {}
-            self._idle.notify_all()
-        for on_sent in pending.values():
-            on_sent(0.0, errno.ESRCH)
 
 
 @dataclasses.dataclass(order=True)
@@ -532,7 +406,7 @@ class Injector:
         except ProcessLookupError:
             self._record(fault, scheduled, None, f"process {pid} had just exited", skipped=True)
             return
-        if _start_time(pid) != created:
+        if start_time(pid) != created:
             os.close(pidfd)
             self._record(fault, scheduled, None, f"process {pid} had just exited", skipped=True)
             return
