@@ -25,7 +25,8 @@ def trigger() -> Iterator[Trigger]:
 
 @pytest.fixture
 def sleeper() -> Iterator[subprocess.Popen[bytes]]:
-    process = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    body = "import time; time.sleep(30)"  # allowed: the target lives until killed; no wait
+    process = subprocess.Popen([sys.executable, "-c", body])
     yield process
     process.kill()
     process.wait()

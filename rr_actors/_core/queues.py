@@ -150,7 +150,7 @@ class _Consumer(Generic[E]):
         self._abandoned = False  # close() timed out: stop after the current item
         self._hurry = threading.Event()  # a wait or a close is due: linger no longer
 
-    def _run(self) -> None:
+    def _run(self) -> None:  # each consumer's loop (a subclass's)
         raise NotImplementedError
 
     def _linger(self, seconds: float) -> None:
