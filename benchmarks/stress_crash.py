@@ -1,6 +1,6 @@
 """Crash-consistency stress: 1,000 random SIGKILLs (the normal suite runs 50).
 
-Runs `run_kills` from `tests/test_crash_consistency.py` in rounds of 50 kills on fresh
+Runs `run_kills` from `tests/store/test_crash_consistency.py` in rounds of 50 kills on fresh
 backups, and prints how many operations were acknowledged and checked.
 
     python benchmarks/stress_crash.py [--kills 1000] [--seed 1]
@@ -16,9 +16,10 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+TESTS = Path(__file__).resolve().parent.parent / "tests"
+sys.path[:0] = [str(TESTS / "store"), str(TESTS)]  # the test module and its helpers
 
-from test_crash_consistency import run_kills
+from test_crash_consistency import run_kills  # noqa: E402 (after the path above)
 
 
 def main() -> None:

@@ -7,7 +7,7 @@ missing; a missing browser or Playwright fails these tests, it never skips them.
 
 Screenshots for the docs are taken here too: with `RR_DOCS_SCREENSHOTS=1` they are
 written to `docs/img/` (`RR_DOCS_SCREENSHOTS=1 python -m pytest
-tests/test_observe_browser.py`), otherwise to the test's temporary directory.
+tests/observe/test_observe_browser.py`), otherwise to the test's temporary directory.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from observing import CHROMIUM_ARGS, chromium
 
 import rr_actors as rr
 
-DOCS_IMG = Path(__file__).resolve().parent.parent / "docs" / "img"
+DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -25,7 +25,7 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from supervision import (
+from supervising import (
     ManualTimer,
     alive,
     echo_setup,

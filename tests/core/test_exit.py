@@ -17,7 +17,7 @@ import uuid
 from pathlib import Path
 
 import pytest
-from supervision import wait_gone
+from supervising import wait_gone
 
 import rr_actors as rr
 

@@ -6,7 +6,7 @@ registrar with a `save_interval` opens) switches it off and wakes a checkpointer
 instead (`rr_actors._store.checkpoints.Checkpointer`). These tests pin that it runs, that
 it keeps the WAL bounded when a reader holds it back, that it stops with the store, that a
 store that writes little never starts it, and which registrars use it. (Crashes in the middle of a
-checkpoint are covered by tests/test_crash_consistency.py, whose child checkpoints in the
+checkpoint are covered by tests/store/test_crash_consistency.py, whose child checkpoints in the
 background every few statements.)
 """
 

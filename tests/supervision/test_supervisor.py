@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from supervision import FakeClock, ManualTimer, echo_setup
+from supervising import FakeClock, ManualTimer, echo_setup
 
 import rr_actors as rr
 from rr_actors import testing

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from supervision import (
+from supervising import (
     FakeClock,
     ManualTimer,
     alive,

@@ -16,25 +16,25 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from supervision import linux_trick, process
+from supervising import linux_trick, process
 
 import rr_actors as rr
 from rr_actors._platform import PLATFORM
 from rr_actors._process.context import start_forkserver
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 PORTABLE_MODULES = (
-    "tests/test_platform.py",
-    "tests/test_supervisor_processes.py",
-    "tests/test_supervisor_contract.py",
-    "tests/test_supervisor_otp.py",
-    "tests/test_supervisor_state_dir.py",
-    "tests/test_restart_contract.py",
-    "tests/test_durable_consumer_kill.py",
-    "tests/test_registrar_crash.py",
-    "tests/test_transport_unix.py",
-    "tests/test_transport_contract.py",
+    "tests/core/test_platform.py",
+    "tests/supervision/test_supervisor_processes.py",
+    "tests/supervision/test_supervisor_contract.py",
+    "tests/supervision/test_supervisor_otp.py",
+    "tests/supervision/test_supervisor_state_dir.py",
+    "tests/supervision/test_restart_contract.py",
+    "tests/registrar/test_durable_consumer_kill.py",
+    "tests/registrar/test_registrar_crash.py",
+    "tests/transport/test_transport_unix.py",
+    "tests/transport/test_transport_contract.py",
 )
 """The test modules that use manager processes, run again on the portable platform."""
 

@@ -19,7 +19,7 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
-from supervision import FakeClock, echo_setup, process
+from supervising import FakeClock, echo_setup, process
 
 import rr_actors as rr
 from rr_actors import testing

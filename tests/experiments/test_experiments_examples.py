@@ -12,7 +12,7 @@ import pytest
 
 from rr_actors.experiments import Results, RunResult, load_plan, run
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples" / "experiments"
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "experiments"
 
 SHIPPED = {"strategies", "crashloop", "hang", "resource", "workload", "first"}
 """Every plan in examples/experiments/; the tutorial's `first` runs in the docs test."""

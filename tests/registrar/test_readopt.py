@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from types import ModuleType
 
-EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "readopt_processes.py"
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "readopt_processes.py"
 
 
 def load_example() -> ModuleType:

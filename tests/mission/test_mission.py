@@ -30,7 +30,7 @@ from rr_actors.mission.programs import start_time
 from rr_actors.mission.report import Odometry
 from rr_actors.mission.run import main, prepare_out
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 REPORT_KEYS = {"mission_time_s", "distance_m", "faults", "leaked_processes", "catalog_entries_left"}
 FAULT_KEYS = {"id", "injected_at_s", "detected_after_s", "recovered_after_s", "robot_stopped_s"}
 
