@@ -21,7 +21,7 @@ import contextlib
 import dataclasses
 import traceback
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from rr_actors._catalog import ClientRecord, describe
 from rr_actors._core.actor import OneShotFuture
@@ -29,9 +29,6 @@ from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.wire import WireMessage
 from rr_actors._types import Status, StatusCallback
 from rr_actors.errors import ErrorFrame, ResourceLoadError, RrError
-
-if TYPE_CHECKING:
-    from rr_actors._registrar.actor import RegistrarActor
 
 __all__ = [
     "Abandon",
@@ -288,7 +285,7 @@ class CallFailed:
 class Request:
     """A request from the handle: run `op(actor, reply)` in the actor thread."""
 
-    op: Callable[[RegistrarActor, Reply], None]
+    op: Callable[[Any, Reply], None]  # (the `RegistrarActor`: no role is imported here)
     reply: Reply
 
 

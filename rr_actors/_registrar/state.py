@@ -19,7 +19,7 @@ from typing import Any
 import pykka
 
 from rr_actors import events
-from rr_actors._catalog import Catalog
+from rr_actors._catalog import Catalog, Resource
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Continuation, TokenReply, Tokens
@@ -31,9 +31,17 @@ from rr_actors._types import StatusCallback
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CatalogWriteError, RrError
 
-__all__ = ["OpenReply", "Phase", "Server", "Shared", "Waiter"]
+__all__ = ["OpenReply", "Phase", "Server", "Shared", "Waiter", "consumers_by_origin"]
 
 logger = logging.getLogger("rr_actors")
+
+
+def consumers_by_origin(resource: Resource) -> dict[str, tuple[str, ...]]:
+    """A resource's consumer ids, grouped by the registrar that holds them."""
+    by_origin: dict[str, list[str]] = {}
+    for query_id, origin in resource.consumers.items():
+        by_origin.setdefault(origin, []).append(query_id)
+    return {origin: tuple(ids) for origin, ids in by_origin.items()}
 
 
 class Phase(enum.Enum):
