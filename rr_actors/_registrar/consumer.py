@@ -26,10 +26,9 @@ from typing import Any
 import pykka
 
 from rr_actors._catalog import ClientRecord, ResourceState
-from rr_actors._core.actor import OneShotFuture
 from rr_actors._core.directory import Reply
 from rr_actors._core.replies import FutureReply, Join
-from rr_actors._registrar.calls import DueAnswers
+from rr_actors._registrar.calls import AttemptState, CallAttempt, DueAnswers
 from rr_actors._registrar.endpoints import ClientActor
 from rr_actors._registrar.loading import check_picklable
 from rr_actors._registrar.messages import (
@@ -86,7 +85,7 @@ class Consumer:
         self.redeliver = redeliver
         self.clients: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
         self.status_callbacks: dict[str, StatusCallback] = {}
-        self.pending_attempts: dict[str, OneShotFuture[Any]] = {}
+        self.pending_attempts: dict[str, CallAttempt] = {}
         self.parked_notices: dict[str, list[Notice]] = {}
         self.unsettled: dict[str, str] = {}
         self.releasing: set[str] = set()
@@ -133,7 +132,7 @@ class Consumer:
             if record.parent is None and not record.loaded and attempt is not None:
                 give_back(record.query.serving_rr, record.query.id, self.registrar.name)
                 self.on_call_failed(CallFailed(record.query.id, attempt, withdrawn=True))
-                FutureReply(attempt).set_error(error)
+                attempt.fail(error)
 
     def release_dependencies(self, rid: str, then: Callable[[], None]) -> None:
         """Release every query resource `rid` holds as a dependency; then `then()`."""
@@ -204,10 +203,12 @@ class Consumer:
         if ours:
             del self.pending_attempts[query.id]
         # A durable call's answer is kept only while its caller still waits: the actor takes
-        # the caller's future before it commits, so a caller whose time runs out meanwhile
-        # reads the answer instead. A caller that took it first withdrew the call (told the
-        # provider an Abandon after its Load): its answer is not kept.
-        withdrawn = message.answer_after_commit and not message.attempt.reserve()
+        # the attempt before it commits, so a caller whose time runs out meanwhile reads
+        # the answer instead. A caller that withdrew first told the provider an Abandon
+        # after its Load; a stop failed it: its answer is not kept.
+        withdrawn = (
+            message.answer_after_commit and message.attempt.take() is not AttemptState.RECORDING
+        )
         try:
             if withdrawn or (self.registrar.stopping and message.record.parent is None):
                 self.drop_answer(message, withdrawn=withdrawn, ours=ours)
@@ -225,15 +226,15 @@ class Consumer:
             if failed is not None and message.answer_after_commit:  # durable: not kept
                 give_back(query.serving_rr, query.id, self.registrar.name)
                 self.forget(query.id)
-                message.attempt.fulfil(exc_info=(type(failed), failed, None))
+                message.attempt.settle(error=failed)
                 return
             if message.on_status is not None:
                 self.status_callbacks[query.id] = message.on_status
             if message.answer_after_commit:
-                message.attempt.fulfil(query.response)
-        except BaseException as exc:  # a reserved future must be settled on every path
-            if message.answer_after_commit and not withdrawn and not message.attempt.done:
-                message.attempt.fulfil(exc_info=(type(exc), exc, exc.__traceback__))
+                message.attempt.settle(query.response)
+        except BaseException as exc:  # an attempt taken must be settled on every path
+            if message.answer_after_commit and not withdrawn:
+                message.attempt.settle(error=exc)  # (no-op if it was)
             raise
 
     def drop_answer(self, message: ClientLoaded, *, withdrawn: bool, ours: bool) -> None:
@@ -250,7 +251,7 @@ class Consumer:
             error = RegistrarStoppedError(
                 f"registrar {self.registrar.name!r} stopped during the call"
             )
-            message.attempt.fulfil(exc_info=(type(error), error, None))
+            message.attempt.settle(error=error)
 
     def unstorable(self, message: ClientLoaded) -> bool:
         """A durable call's response this catalog cannot store: give it back, fail the call.
@@ -262,7 +263,7 @@ class Consumer:
             check_picklable(query.response, f"the response of '{query.serving_rr}/{query.server}'")
         except ConfigError as exc:
             self.drop_pending(query)
-            message.attempt.fulfil(exc_info=(type(exc), exc, None))
+            message.attempt.settle(error=exc)
             return True
         return False
 
@@ -293,8 +294,8 @@ class Consumer:
             query.server,
         )
         self.drop_pending(query)  # (a durable consumer wrote its record as pending)
-        if message.answer_after_commit:  # (reserved by `record_answer`)
-            message.attempt.fulfil(query.response)
+        if message.answer_after_commit:  # (taken by `record_answer`)
+            message.attempt.settle(query.response)
 
     def on_call_failed(self, message: CallFailed) -> None:
         current = self.pending_attempts.get(message.query_id)
@@ -328,7 +329,7 @@ class Consumer:
                 return True
         return False
 
-    def answered(self, query_id: str, attempt: OneShotFuture[Any]) -> None:
+    def answered(self, query_id: str, attempt: CallAttempt) -> None:
         """`attempt`'s answer or failure was handled: handle what waited for it."""
         if not self.due.settle(query_id, attempt):
             return
@@ -360,7 +361,7 @@ class Consumer:
     def fail_waiting(self, error: RrError) -> None:
         """Answer the durable callers and the held notices still waiting here."""
         for attempt in self.pending_attempts.values():
-            FutureReply(attempt).set_error(error)
+            attempt.fail(error)
         for notices in self.parked_notices.values():
             for notice in notices:
                 if not isinstance(notice, Revoke):  # (a revoke wants no answer)

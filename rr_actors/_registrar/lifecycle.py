@@ -27,7 +27,6 @@ from rr_actors import events
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
 from rr_actors._core.actor import refuse
 from rr_actors._core.directory import DIRECTORY, Reply
-from rr_actors._core.replies import FutureReply
 from rr_actors._core.timers import Cancellable
 from rr_actors._registrar.messages import (
     ClientLoaded,
@@ -314,4 +313,4 @@ class Lifecycle:
         if isinstance(message, ClientLoaded):  # its id would leak at the provider
             query = message.record.query
             give_back(query.serving_rr, query.id, self.registrar.name)
-            FutureReply(message.attempt).set_error(error)
+            message.attempt.fail(error)
