@@ -68,7 +68,7 @@ class Consumer:
         due: the query ids whose answers are on their way (shared with callers' threads).
         clients: `(target registrar, server)` -> its client actor.
         status_callbacks: query id -> the client status callback of that query.
-        pending_attempts: query id -> the future of a durable call in flight (this actor
+        pending_attempts: query id -> the attempt of a durable call in flight (this actor
             answers it after its commit).
         parked_notices: query id -> notices that overtook the answer they are about.
         unsettled: query id -> provider, of calls that failed as their provider died or

@@ -1,7 +1,9 @@
 """What every role of one registrar actor shares: a small state record and its helpers.
 
-The registrar actor is split by role (`provider`, `consumer`, `status`, `lifecycle`), each
-owning the state of its side. What they all use lives here: the configuration, the
+The registrar actor is split by role (`lifecycle`, `servers`, `status`, `unloading`,
+`provider`, `consumer`), each owning the state of its side and calling only the roles
+below it. What they all use lives here, the registrar's record (`Shared`, which each role
+holds as `self.registrar`): the configuration, the
 catalog (the actor is its only writer), the save policy, the resource servers, the life-
 cycle `Phase`, the worker pool for user callbacks, and the way a role asks another
 registrar without waiting (`Shared.send`: the answer comes back through the mailbox as a
@@ -101,7 +103,7 @@ class OpenReply:
 
 
 class Shared:
-    """The state record every role of one registrar actor reads and writes.
+    """The registrar's record: what every role of its actor reads (as `self.registrar`).
 
     Only the actor's thread touches it (but `probes`, read by callers' threads too).
 
