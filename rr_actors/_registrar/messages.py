@@ -21,12 +21,14 @@ import contextlib
 import dataclasses
 import traceback
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from rr_actors._catalog import ClientRecord, describe
 from rr_actors._core.actor import OneShotFuture
 from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.replies import FutureReply
 from rr_actors._core.wire import WireMessage
+from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._types import Status, StatusCallback
 from rr_actors.errors import ErrorFrame, ResourceLoadError, RrError
 
@@ -35,6 +37,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "Abandon",
+    "Asked",
     "CallFailed",
     "ClientLoaded",
     "ConsumerDown",
@@ -42,17 +45,32 @@ __all__ = [
     "Fetch",
     "FetchVia",
     "Flush",
+    "ListClientQueries",
+    "ListServerQueries",
     "Load",
+    "OpenClient",
     "Pending",
+    "Ping",
+    "Reachable",
+    "Ready",
     "Reconcile",
     "ReconcileAsk",
-    "Request",
+    "RegisterServer",
+    "Release",
     "ResponseUpdated",
     "Revoke",
     "RunLoad",
+    "RunOnActor",
     "RunUnload",
+    "Save",
+    "SendStatus",
+    "SetStatusCallback",
+    "Snapshot",
     "StatusNotice",
+    "Stop",
     "Unload",
+    "UnregisterServer",
+    "UpdateResponse",
     "give_back",
 ]
 
@@ -285,14 +303,6 @@ class CallFailed:
 
 
 @dataclasses.dataclass(frozen=True)
-class Request:
-    """A request from the handle: run `op(actor, reply)` in the actor thread."""
-
-    op: Callable[[RegistrarActor, Reply], None]
-    reply: Reply
-
-
-@dataclasses.dataclass(frozen=True)
 class Flush:
     """The save-interval timer fired: write what accumulated."""
 
@@ -300,3 +310,147 @@ class Flush:
 @dataclasses.dataclass(frozen=True)
 class Crash:
     """Die as if a bug hit (`rr_actors.testing.crash`, a thread manager's forced stop)."""
+
+
+# -- from the handle (never leave the process) ------------------------------------------
+# Each carries its reply: the handle waits on it (a `FutureReply`), or, for `Reachable`
+# and `Ping`, nobody or the manager's control loop does. The actor answers them through an
+# open reply, so a death fails whoever still waits.
+
+
+class Asked(Protocol):
+    """A message from the handle whose answer the handle waits for."""
+
+    @property
+    def reply(self) -> FutureReply: ...
+
+
+@dataclasses.dataclass(frozen=True)
+class RegisterServer:
+    """Register resource server `name` with its callbacks. Answer: `None`."""
+
+    name: str
+    load: LoadCallback
+    unload: UnloadCallback
+    on_status: StatusCallback | None
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class UnregisterServer:
+    """Remove server `name`: FATAL to its consumers, unload what it serves. Answer: `None`."""
+
+    name: str
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class Release:
+    """Release consumer id `query_id` this registrar holds (`unload`). Answer: `None`."""
+
+    query_id: str
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class SendStatus:
+    """Send a status about the resource behind `query_id`. Answer: `None` once delivered."""
+
+    query_id: str
+    status: Status
+    message: str
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class ListServerQueries:
+    """The queries this registrar's `server` holds. Answer: a list of `Query`."""
+
+    server: str
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class ListClientQueries:
+    """The queries this registrar holds at servers. Answer: a list of `Query`."""
+
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class SetStatusCallback:
+    """Attach `callback` to query `query_id` this registrar holds. Answer: `None`."""
+
+    query_id: str
+    callback: StatusCallback
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class UpdateResponse:
+    """Replace the response of the resource behind `query_id`. Answer: `None` once the
+    consumers hold it too."""
+
+    query_id: str
+    response: Any
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class Save:
+    """Write what the catalog has pending to the backup. Answer: `None`."""
+
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class Stop:
+    """Stop the registrar (rule 12). Answer: `None` once stopped."""
+
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class Ready:
+    """The manager's setup is done: serve. Answer: `None`."""
+
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class Reachable:
+    """A carrier serves the registrar: reconcile with the peers of other processes."""
+
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class Snapshot:
+    """Copy the catalog's rows (`check`: its invariants first). Answer: a `CatalogView`."""
+
+    check: bool
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class Ping:
+    """A manager's heartbeat: answered (`None`) as soon as the actor gets to it."""
+
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class OpenClient:
+    """The client actor for `target_rr/server`, started on first use. Answer: its ref."""
+
+    target_rr: str
+    server: str
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class RunOnActor:
+    """Test only (`rr_actors.testing`): run `op(actor, reply)` on the actor's thread."""
+
+    op: Callable[[RegistrarActor, Reply], None]
+    reply: Reply
