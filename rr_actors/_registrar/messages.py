@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import traceback
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -28,9 +27,10 @@ from rr_actors._core.actor import OneShotFuture
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import FutureReply
 from rr_actors._core.wire import WireMessage
+from rr_actors._registrar.loading import error_frame
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._types import Status, StatusCallback
-from rr_actors.errors import ErrorFrame, ResourceLoadError, RrError
+from rr_actors.errors import ResourceLoadError, RrError
 
 if TYPE_CHECKING:
     from rr_actors._registrar.actor import RegistrarActor
@@ -102,13 +102,12 @@ class Load(WireMessage):
         """The response cannot be unpickled in the caller's process: a failed load."""
         return ResourceLoadError(
             (
-                ErrorFrame(
-                    registrar=target,
-                    server=self.server,
-                    exc_type=type(exc).__qualname__,
-                    message=f"the response cannot be unpickled in the process of "
+                error_frame(
+                    target,
+                    self.server,
+                    exc,
+                    f"the response cannot be unpickled in the process of "
                     f"registrar {self.origin_rr!r}: {exc}",
-                    traceback="".join(traceback.format_exception(exc)),
                 ),
             )
         )
@@ -117,13 +116,13 @@ class Load(WireMessage):
         """The response cannot be pickled to reach the caller: a failed load."""
         return ResourceLoadError(
             (
-                ErrorFrame(
-                    registrar=target,
-                    server=self.server,
-                    exc_type=type(exc).__qualname__,
-                    message=f"the response is not picklable, so it cannot reach "
+                error_frame(
+                    target,
+                    self.server,
+                    exc,
+                    f"the response is not picklable, so it cannot reach "
                     f"registrar {self.origin_rr!r}: {exc} (value: {describe(value)})",
-                    traceback="",
+                    with_traceback=False,
                 ),
             )
         )
