@@ -10,9 +10,13 @@ provider). The internal messages
 below them never leave their process: a registrar's handle, its server and client actors
 and its callers' threads tell them to the registrar actor.
 
-To add a message: define it here, handle it in one role of the registrar actor (its
-`handlers` table in `actor.py` names the step), and, for a wire message, make sure what it
-carries pickles (`docs/explanation/architecture.md`, "Adding a message").
+The handle's messages (`RegisterServer`, `Release`, `Stop`, ...) come last: each carries
+its reply, and the handle sends it with `_ask` (`handle.py`).
+
+To add a message: define it here, add it to the actor's one dispatch table (`DISPATCH`
+in `actor.py`: its step name and the role that handles it), and, for a wire message,
+make sure what it carries pickles (`docs/explanation/architecture.md`, "Adding a
+message").
 """
 
 from __future__ import annotations

@@ -24,6 +24,7 @@ from rr_actors._registrar.messages import Abandon
 from rr_actors._registrar.probes import POINTS
 from rr_actors.testing import (
     STEPS,
+    actor_ref,
     catalog_snapshot,
     crash,
     intercept,
@@ -328,3 +329,16 @@ def test_intercept_on_a_message_step_runs_its_hook_when_that_message_is_handled(
     assert fired.wait(5.0)
     kinds = [kind for kind, (name, _) in DISPATCH.items() if name == step]
     assert kinds == seen[:1]  # the hook saw the message of that table entry
+
+
+def test_a_second_call_to_a_server_finds_its_client_without_asking_the_actor(
+    pair: Pair,
+) -> None:
+    opened: list[object] = []
+    intercept(pair.consumer, "open_client", before=opened.append)
+
+    pair.held()
+    pair.held()
+
+    assert 1 == len(opened)
+    assert actor_ref(pair.consumer, client=(pair.provider.name, "leaf")).is_alive()
