@@ -22,12 +22,14 @@ __all__ = [
     "DuplicateNameError",
     "DuplicateQueryIdError",
     "ErrorFrame",
+    "InternalError",
     "MessageTooLargeError",
     "RegistrarStoppedError",
     "RegistrarUnavailableError",
     "ResourceLoadError",
     "RrError",
     "SupervisorGaveUpError",
+    "TransferError",
     "UnknownQueryError",
     "UnknownRegistrarError",
     "UnknownServerError",
@@ -163,6 +165,25 @@ class CatalogWriteError(RrError):
 
 class SupervisorGaveUpError(RrError):
     """A supervisor exceeded its restart intensity (`max_restarts` within `period` s)."""
+
+
+class TransferError(RrError):
+    """A message, its answer, or an error could not cross between processes.
+
+    It does not pickle in the process that sends it, or does not unpickle in the one it
+    reached (a class or module that process lacks, a `__reduce__` that raises); the
+    message says which and why. Where rr_actors can tell before sending (a request, a
+    stored response), it raises `ConfigError` instead; a lost `Load` answer is a
+    `ResourceLoadError`, and its consumer id is released.
+    """
+
+
+class InternalError(RrError):
+    """What should not happen did: a bug in rr_actors, not in the code that called it.
+
+    For example an answer in no form a carrier sends, or an answer to a message that
+    wants none. The message says what was seen; please report it.
+    """
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,10 +1,15 @@
-"""The resource catalog: pure data, no threads, no I/O.
+"""The resource catalog: data and its indexes, no threads; stored rows read when needed.
 
 The catalog records what a registrar serves (resources, each with its consumers' query
 ids) and what it holds elsewhere (client records, some of them dependencies of its own
 resources). Only the registrar actor writes it, so it has no locks. Every change marks
 the touched rows dirty; the persistence layer drains them as one transaction. Requests
 are matched by `==` through digests (`rr_actors._catalog.digest`).
+
+It opens no file itself, but it is not free of I/O: a restored catalog asks the
+`UnreadRows` it was given (the store's reader of the backup) for the resources a lookup
+needs and has not read yet, and a restored resource decodes its request and response
+from their stored bytes on first use (`records.Resource`).
 """
 
 from __future__ import annotations

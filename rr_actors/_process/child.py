@@ -48,7 +48,6 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 import cloudpickle
-import pykka
 
 from rr_actors import events
 from rr_actors._core.bus import Forwarder, Publisher
@@ -257,7 +256,7 @@ def _run_manager(
     stopping = threading.Event()
 
     def watch_actor() -> None:
-        registrar._ref.actor_stopped.wait()
+        registrar._wait_stopped()
         if stopping.is_set():
             return  # the supervisor's `stop`: the control loop exits
         if stopped_cleanly(registrar.name):  # code in the manager called registrar.stop()
@@ -278,7 +277,6 @@ def _serve_control(
     line: _EventLine,
 ) -> None:
     """The child's control loop: answer pings, forward events or not, stop; exit on EOF."""
-    from rr_actors._registrar.messages import Request  # noqa: PLC0415 - preloaded
 
     def trouble() -> tuple[float, str] | None:
         if attached is None:
@@ -293,9 +291,7 @@ def _serve_control(
             os._exit(PARENT_GONE_EXIT)  # the supervisor's process is gone: no orphans
         kind = message[0]
         if kind == "ping":
-            pong = _Pong(control, message[1], trouble)
-            with contextlib.suppress(pykka.ActorDeadError):
-                registrar._ref.tell(Request(lambda _actor, reply: reply.set_result(None), pong))
+            registrar._ping(_Pong(control, message[1], trouble))
         elif kind == "events":
             line.switch(on=bool(message[1]))
         elif kind == "events-sync":  # (a thread: the loop keeps answering pings)

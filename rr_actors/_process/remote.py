@@ -380,7 +380,8 @@ class RemoteRegistrar(RegistrarFacts):
 
         Raises:
             CallTimeoutError: not finished within `timeout` seconds (the process was killed).
-            RrError: the registrar did not stop cleanly (the reason is in the message).
+            RegistrarUnavailableError: the registrar died (or its process exited) while it
+                stopped; the reason is in the message.
         """
         limit = self._config.call_timeout if timeout is None else timeout
         if self._process is None:
@@ -396,7 +397,9 @@ class RemoteRegistrar(RegistrarFacts):
             return
         if result.reason.startswith("killed: no clean stop"):
             raise CallTimeoutError(f"stop() of registrar {self.name!r}: {result.reason}")
-        raise RrError(f"registrar {self.name!r} did not stop cleanly: {result.reason}")
+        raise RegistrarUnavailableError(
+            f"registrar {self.name!r} did not stop cleanly: {result.reason}"
+        )
 
     def kill(self, *, timeout: float = 5.0) -> None:
         """SIGKILL the registrar's manager process; return once it is dead.

@@ -33,7 +33,6 @@ from rr_actors._registrar.messages import (
     ConsumerDown,
     Crash,
     Flush,
-    Request,
     give_back,
 )
 from rr_actors._registrar.state import OpenReply, Phase, Shared
@@ -188,13 +187,6 @@ class Lifecycle:
         reply.set_result(None)
 
     # -- requests from the handle -----------------------------------------------------
-
-    def on_request(self, message: Request) -> None:
-        reply = OpenReply(message.reply, self.open_requests)
-        try:
-            message.op(self.actor, reply)
-        except RrError as exc:
-            reply.set_error(exc)
 
     def op_snapshot(self, reply: Reply, check: bool) -> None:
         """Copy the catalog's rows (a restored row decodes its values here, once); with

@@ -24,7 +24,6 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 from rr_actors._process.manager import ManagerExit, ManagerProcess, stopped_cleanly
 from rr_actors._registrar import Served, start_registrar
-from rr_actors._registrar.messages import Crash
 from rr_actors.config import (
     Isolation,
     ManagerSpec,
@@ -168,10 +167,9 @@ class ThreadManager:
                 registrar.stop(timeout=spec.shutdown)
             raise
         self.registrar = registrar
-        ref = registrar._ref
 
         def watch() -> None:
-            ref.actor_stopped.wait()
+            registrar._wait_stopped()
             if self.stopping:
                 return
             if stopped_cleanly(spec.name):  # code in the manager called registrar.stop()
@@ -188,18 +186,18 @@ class ThreadManager:
         """
         timeout = self.spec.shutdown if timeout is None else timeout
         self.stopping = True
-        ref = self.registrar._ref
-        if not ref.is_alive():
+        registrar = self.registrar
+        if not registrar.is_alive():
             return ManagerExit("crashed (registrar actor died)", normal=False)
         try:
-            self.registrar.stop(timeout=timeout)
+            registrar.stop(timeout=timeout)
         except RrError as exc:
             logger.error(  # noqa: TRY400 - the timeout is the news, not its traceback
                 "manager %s did not stop within %g s: %s", self.spec.name, timeout, exc
             )
             with contextlib.suppress(Exception):
-                ref.tell(Crash())
-            ref.actor_stopped.wait(timeout)
+                registrar._crash()
+            registrar._wait_stopped(timeout)
             return ManagerExit(f"killed: no clean stop within {timeout:g} s", normal=False)
         return ManagerExit("shutdown", normal=True)
 

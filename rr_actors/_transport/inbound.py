@@ -43,7 +43,13 @@ from rr_actors._transport.sockets import (
     take_name_lock,
 )
 from rr_actors._transport.writer import Lost, Writer
-from rr_actors.errors import ConfigError, MessageTooLargeError, RrError
+from rr_actors.errors import (
+    ConfigError,
+    InternalError,
+    MessageTooLargeError,
+    RrError,
+    TransferError,
+)
 
 if TYPE_CHECKING:
     from rr_actors._transport.unix import AttachedSystem
@@ -113,7 +119,9 @@ class _AnswerReply:
 
     def _unpicklable(self, value: Any, error: BaseException | None, exc: BaseException) -> RrError:
         if error is not None:
-            return RrError(f"{type(error).__qualname__}: {error} (the error itself did not pickle)")
+            return TransferError(
+                f"{type(error).__qualname__}: {error} (the error itself did not pickle)"
+            )
         self._compensate()  # its caller gets an error
         failure: RrError = self._message.unsendable_answer(self._link.listener.name, value, exc)
         return failure
@@ -195,13 +203,15 @@ class _Link:
             message = pickle.loads(payload)
         except BaseException as exc:  # noqa: BLE001 - answered as an error, never raised here
             if token != NO_REPLY:
-                error = RrError(f"a message for registrar {name!r} cannot be unpickled: {exc}")
-                self.send(frame(token, (None, error)))
+                unreadable = TransferError(
+                    f"a message for registrar {name!r} cannot be unpickled: {exc}"
+                )
+                self.send(frame(token, (None, unreadable)))
             return
         reply = None
         if token != NO_REPLY:
             if not hasattr(message, "reply"):
-                error = RrError(
+                error = InternalError(
                     f"a {type(message).__name__} message for registrar {name!r} cannot be answered"
                 )
                 self.send(frame(token, (None, error)))

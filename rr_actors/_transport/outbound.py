@@ -39,6 +39,7 @@ from rr_actors._transport.writer import Writer
 from rr_actors.config import DEFAULT_MAX_MESSAGE_BYTES
 from rr_actors.errors import (
     ConfigError,
+    InternalError,
     MessageTooLargeError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
@@ -301,7 +302,7 @@ class RemotePeer:
         elif isinstance(error, BaseException):
             reply.set_error(error)
         else:
-            reply.set_error(RrError(f"a malformed answer from registrar {self.name!r}"))
+            reply.set_error(InternalError(f"a malformed answer from registrar {self.name!r}"))
 
     def _unreadable(self, message: Any, exc: BaseException) -> RrError:
         """The error for an answer that cannot be unpickled here; what it created is undone.

@@ -31,8 +31,8 @@ Where they live: `helpers.py`, `seams.py`, `shared.py` (re-exported here).
 from __future__ import annotations
 
 from rr_actors._process.remote import RemoteRegistrar
+from rr_actors._registrar.actor import STEPS
 from rr_actors._registrar.lifecycle import CatalogView
-from rr_actors._registrar.probes import STEPS
 from rr_actors.testing.helpers import catalog_snapshot, crash, running_actors
 from rr_actors.testing.seams import (
     Installed,
