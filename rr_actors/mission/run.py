@@ -32,7 +32,7 @@ import json
 import os
 import sys
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -49,8 +49,10 @@ from rr_actors.mission.report import MissionReport
 
 __all__ = [
     "DEFAULT_OUT",
+    "OUT_LOCK",
     "add_arguments",
     "config_from_args",
+    "lock_out",
     "main",
     "parser",
     "prepare_out",
@@ -116,26 +118,66 @@ def run_mission(
     Raises:
         MissionError: the mission could not be completed (it still cleaned up), or this
             platform cannot run it (it needs Linux).
-        ConfigError: `out` is a file, or cannot be created or written to.
+        ConfigError: `out` is a file, or cannot be created or written to, or another
+            mission is running there (`lock_out`).
     """
     reason = unsupported_platform()
     if reason is not None:
         raise MissionError(reason)
     path = prepare_out(Path(out))
-    report = Mission(
-        config,
-        path,
-        say=say,
-        progress=progress,
-        on_supervisor=on_supervisor,
-        before_fault=before_fault,
-    ).run()
-    (path / "report.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
-    with contextlib.suppress(ImportError):
-        from rr_actors.mission.plot import plot  # noqa: PLC0415
+    with lock_out(path):  # before the mission empties its state/ and bus/
+        report = Mission(
+            config,
+            path,
+            say=say,
+            progress=progress,
+            on_supervisor=on_supervisor,
+            before_fault=before_fault,
+        ).run()
+        (path / "report.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
+        with contextlib.suppress(ImportError):
+            from rr_actors.mission.plot import plot  # noqa: PLC0415
 
-        plot(report, path / "mission.png")
+            plot(report, path / "mission.png")
     return report
+
+
+OUT_LOCK = ".demo.lock"
+"""The lock file a running mission holds in its output directory."""
+
+
+@contextlib.contextmanager
+def lock_out(path: Path) -> Iterator[None]:
+    """Hold an exclusive `flock` on `path/.demo.lock` (with this pid in it) meanwhile.
+
+    A mission empties its folder's `state/` and `bus/` before it starts, which would
+    pull them from under another mission running there (and around the supervisor's
+    lock on `state/`); so it takes this lock first. The kernel drops it when the file is
+    closed, at the end or when the process dies, however it dies.
+
+    Raises:
+        ConfigError: another mission holds the lock; the message names the folder, that
+            mission's pid and the way out (another `--out`).
+    """
+    import fcntl  # noqa: PLC0415 - POSIX only; the mission needs Linux (checked first)
+
+    fd = os.open(path / OUT_LOCK, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = "unknown"
+            with contextlib.suppress(OSError, ValueError):
+                holder = str(int(os.pread(fd, 32, 0).decode().strip()))
+            raise rr.ConfigError(
+                f"{str(path)!r} is in use by another demo (pid {holder}); wait for it to "
+                "end, or give this one another folder with --out"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 # -- the command line --------------------------------------------------------------------
