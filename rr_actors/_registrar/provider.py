@@ -41,6 +41,7 @@ from rr_actors.errors import (
     ResourceLoadError,
     RrError,
     UnknownServerError,
+    known_names,
 )
 
 if TYPE_CHECKING:
@@ -84,7 +85,12 @@ class Provider:
         """Why this registrar cannot take `message` at all, if it cannot."""
         server = self.s.servers.get(message.server)
         if server is None or server.closing:
-            return UnknownServerError(f"no resource server '{self.s.name}/{message.server}'")
+            return UnknownServerError(
+                f"no resource server '{self.s.name}/{message.server}'"
+                + known_names(
+                    message.server, (n for n, s in self.s.servers.items() if not s.closing)
+                )
+            )
         if self.s.stopping:
             return RegistrarStoppedError(f"registrar {self.s.name!r} is stopping")
         if len(message.chain) >= MAX_DEPENDENCY_DEPTH:

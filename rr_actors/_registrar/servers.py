@@ -24,7 +24,7 @@ from rr_actors._registrar.messages import Fetch, ResponseUpdated, Revoke
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._registrar.state import Server, Shared
 from rr_actors._types import Status, StatusCallback, StatusUpdate
-from rr_actors.errors import DuplicateNameError, RrError, UnknownServerError
+from rr_actors.errors import DuplicateNameError, RrError, UnknownServerError, known_names
 
 if TYPE_CHECKING:
     from rr_actors._registrar.status import StatusRelay
@@ -61,7 +61,12 @@ class Servers:
     def on_fetch(self, message: Fetch) -> None:
         if message.server not in self.s.servers:
             message.reply.set_error(
-                UnknownServerError(f"no resource server '{self.s.name}/{message.server}'")
+                UnknownServerError(
+                    f"no resource server '{self.s.name}/{message.server}'"
+                    + known_names(
+                        message.server, (n for n, s in self.s.servers.items() if not s.closing)
+                    )
+                )
             )
             return
         message.reply.set_result(
@@ -80,7 +85,10 @@ class Servers:
         """
         server = self.s.servers.get(name)
         if server is None or server.closing:
-            raise UnknownServerError(f"no resource server '{self.s.name}/{name}'")
+            raise UnknownServerError(
+                f"no resource server '{self.s.name}/{name}'"
+                + known_names(name, (n for n, s in self.s.servers.items() if not s.closing))
+            )
         return server
 
     def op_register(
