@@ -44,7 +44,7 @@ from rr_actors.mission.config import (
     MissionError,
     unsupported_platform,
 )
-from rr_actors.mission.output import MissionOutput, PlainOutput, Progress, make_output
+from rr_actors.mission.output import MissionOutput, Progress, make_output
 from rr_actors.mission.report import MissionReport
 
 __all__ = [
@@ -235,7 +235,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--step",
         action="store_true",
         help="classroom mode: before each fault, stop the robot, print the processes involved "
-        "and wait for Enter",
+        "and wait for Enter (the waits are left out of every time shown)",
     )
 
 
@@ -310,11 +310,7 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
         return 2
     failure: str | None = None
     report: MissionReport | None = None
-    output: MissionOutput = (
-        PlainOutput(stream, quiet=args.quiet)
-        if args.step
-        else make_output(stream, quiet=args.quiet)
-    )
+    output: MissionOutput = make_output(stream, quiet=args.quiet)
     with output:
         hooks = _hooks(args, output, stream)
         try:
@@ -357,12 +353,13 @@ def _hooks(
         observer = sup.observe(port=args.port)  # closed with the supervisor, at the end
         tell(f"observer: {observer.url} (open it in a browser; it serves until the mission ends)")
 
-    def step(fault: str, pids: list[str]) -> None:
-        tell(f"next: {fault}, {FAULT_WHAT[fault]}; the robot waits. The processes:")
-        for line in pids:
-            tell(f"    {line}")
-        tell("press Enter to inject it")
-        sys.stdin.readline()  # (at the end of the input: go on at once)
+    def step(fault: str, pids: list[str]) -> None:  # the clock stops meanwhile
+        with output.hold():  # no progress line over the prompt
+            tell(f"next: {fault}, {FAULT_WHAT[fault]}; the robot waits. The processes:")
+            for line in pids:
+                tell(f"    {line}")
+            tell("press Enter to inject it (the mission clock stops while it waits)")
+            sys.stdin.readline()  # (at the end of the input: go on at once)
 
     return (observe if args.observe else None), (step if args.step else None)
 
