@@ -79,3 +79,65 @@ def test_step_on_an_80_column_terminal_fits_and_leaves_the_pauses_out_of_every_t
         report["drive_started_at_s"] + report["mission_time_s"], abs=0.1
     )
     assert float(arrived[2]) == pytest.approx(report["mission_time_s"], abs=0.01)
+
+
+@pytest.mark.usefixtures("process_helpers")
+@pytest.mark.timeout(120)
+def test_step_in_a_real_80_column_terminal_waits_for_each_enter(tmp_path: Path) -> None:
+    import fcntl  # noqa: PLC0415 - POSIX only, as the demo
+    import os  # noqa: PLC0415
+    import select  # noqa: PLC0415
+    import struct  # noqa: PLC0415
+    import subprocess  # noqa: PLC0415
+    import termios  # noqa: PLC0415
+    import time  # noqa: PLC0415
+
+    master, slave = os.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES", "NO_COLOR")}
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "rr_actors._cli", "demo", "--fast", "--step"],
+        cwd=tmp_path,
+        stdin=slave,
+        stdout=slave,
+        stderr=slave,
+        env={**env, "TERM": "xterm-256color"},
+    )
+    os.close(slave)
+    output = b""
+    enter_due: float | None = None  # the class presses Enter PAUSE s after each prompt
+    enters = 0
+    deadline = time.monotonic() + 100
+    try:
+        while time.monotonic() < deadline:
+            wait = 1.0 if enter_due is None else max(0.0, enter_due - time.monotonic())
+            readable, _, _ = select.select([master], [], [], wait)
+            if readable:
+                try:
+                    chunk = os.read(master, 65536)
+                except OSError:  # the demo ended: its side of the terminal closed
+                    break
+                if not chunk:
+                    break
+                output += chunk
+            if enter_due is None and output.count(b"press Enter") > enters:
+                enter_due = time.monotonic() + PAUSE
+            elif enter_due is not None and time.monotonic() >= enter_due:
+                os.write(master, b"\n")
+                enters += 1
+                enter_due = None
+        code = demo.wait(30)
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait(10)
+        os.close(master)
+
+    text = ANSI.sub("", output.decode(errors="replace"))
+    report = json.loads((tmp_path / "rr-actors-demo" / "report.json").read_text())
+    assert 0 == code, text[-3000:]
+    assert 5 == enters
+    assert "━" in text  # rich's progress bar: rich drew it, not plain lines
+    assert max(len(line) for line in text.splitlines()) <= 80
+    assert 5 * PAUSE <= report["paused_for_enter_s"]
+    assert report["mission_time_s"] < report["nominal_time_s"] + PAUSE
