@@ -40,7 +40,7 @@ class RrError(Exception):
     """Base class of every error rr_actors raises."""
 
 
-def known_names(name: str, known: Iterable[str], *, shown: int = 12) -> str:
+def _known_names(name: str, known: Iterable[str], *, shown: int = 12) -> str:
     """What to add to an error about an unknown `name`: the closest known name, the known.
 
     For example `"; did you mean 'camera'? (known: 'camera', 'filter')"`, or

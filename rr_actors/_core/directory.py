@@ -21,7 +21,7 @@ from rr_actors.errors import (
     RegistrarStoppedError,
     RegistrarUnavailableError,
     UnknownRegistrarError,
-    known_names,
+    _known_names,
 )
 
 __all__ = ["DIRECTORY", "Directory", "LocalPeer", "Peer", "Reply"]
@@ -157,7 +157,7 @@ class Directory:
         if reason == "died":
             return RegistrarUnavailableError(f"registrar {name!r} died")
         return UnknownRegistrarError(
-            f"no registrar named {name!r}" + known_names(name, self.known() - {name})
+            f"no registrar named {name!r}" + _known_names(name, self.known() - {name})
         )
 
     def local_peers(self) -> list[Peer]:

@@ -41,7 +41,7 @@ from rr_actors.errors import (
     ResourceLoadError,
     RrError,
     UnknownServerError,
-    known_names,
+    _known_names,
 )
 
 if TYPE_CHECKING:
@@ -87,7 +87,7 @@ class Provider:
         if server is None or server.closing:
             return UnknownServerError(
                 f"no resource server '{self.s.name}/{message.server}'"
-                + known_names(
+                + _known_names(
                     message.server, (n for n, s in self.s.servers.items() if not s.closing)
                 )
             )

@@ -24,7 +24,7 @@ from rr_actors._registrar.messages import Fetch, ResponseUpdated, Revoke
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._registrar.state import Server, Shared
 from rr_actors._types import Status, StatusCallback, StatusUpdate
-from rr_actors.errors import DuplicateNameError, RrError, UnknownServerError, known_names
+from rr_actors.errors import DuplicateNameError, RrError, UnknownServerError, _known_names
 
 if TYPE_CHECKING:
     from rr_actors._registrar.status import StatusRelay
@@ -63,7 +63,7 @@ class Servers:
             message.reply.set_error(
                 UnknownServerError(
                     f"no resource server '{self.s.name}/{message.server}'"
-                    + known_names(
+                    + _known_names(
                         message.server, (n for n, s in self.s.servers.items() if not s.closing)
                     )
                 )
@@ -87,7 +87,7 @@ class Servers:
         if server is None or server.closing:
             raise UnknownServerError(
                 f"no resource server '{self.s.name}/{name}'"
-                + known_names(name, (n for n, s in self.s.servers.items() if not s.closing))
+                + _known_names(name, (n for n, s in self.s.servers.items() if not s.closing))
             )
         return server
 

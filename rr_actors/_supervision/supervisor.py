@@ -75,7 +75,7 @@ from rr_actors.errors import (
     RrError,
     SupervisorGaveUpError,
     UnknownServerError,
-    known_names,
+    _known_names,
 )
 
 if TYPE_CHECKING:
@@ -321,7 +321,7 @@ class Supervisor(TreeWatching):
         if found is None:
             raise UnknownServerError(
                 f"supervisor {self.name!r} has no child named {name!r}"
-                + known_names(name, self._tree.specs)
+                + _known_names(name, self._tree.specs)
             )
         return found.info
 
@@ -431,7 +431,7 @@ class Supervisor(TreeWatching):
             managers = (n for n, s in self._tree.specs.items() if isinstance(s, ManagerSpec))
             raise UnknownServerError(
                 f"supervisor {self.name!r}: {name!r} is not in the tree"
-                + known_names(name, managers)
+                + _known_names(name, managers)
             )
         child = find_child(self._node, name)
         running = child.running if child is not None else None

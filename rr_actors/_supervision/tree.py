@@ -44,7 +44,7 @@ from rr_actors.errors import (
     RrError,
     SupervisorGaveUpError,
     UnknownServerError,
-    known_names,
+    _known_names,
 )
 
 if TYPE_CHECKING:
@@ -241,7 +241,7 @@ def wait_restarted(
             outcome.append(
                 UnknownServerError(
                     f"supervisor {root_name!r} has no child named {name!r}"
-                    + known_names(name, tree.specs)
+                    + _known_names(name, tree.specs)
                 )
             )
             return True

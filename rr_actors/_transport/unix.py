@@ -55,7 +55,7 @@ from rr_actors.errors import (
     RegistrarStoppedError,
     RegistrarUnavailableError,
     UnknownServerError,
-    known_names,
+    _known_names,
 )
 
 __all__ = ["AttachedSystem", "System", "SystemAddress", "attach"]
@@ -174,7 +174,7 @@ class AttachedSystem:
         if peer is None:
             raise UnknownServerError(
                 f"no registrar named {registrar_name!r} on this system"
-                + known_names(registrar_name, self.names())
+                + _known_names(registrar_name, self.names())
             )
         assert isinstance(peer, RemotePeer)
         return peer.run(fn, timeout=timeout)
