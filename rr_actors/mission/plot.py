@@ -144,7 +144,14 @@ def _main_panel(ax: Axes, report: MissionReport) -> None:
     for pause in report.pauses_s:
         ax.plot([pause], [0], marker="^", color="tab:purple", markersize=6, clip_on=False)
     if report.pauses_s:
-        ax.plot([], [], marker="^", color="tab:purple", linestyle="", label="paused for Enter")
+        ax.plot(
+            [],
+            [],
+            marker="^",
+            color="tab:purple",
+            linestyle="",
+            label="paused for Enter (not counted)",
+        )
     ax.plot([], [], color=STOPPED, alpha=0.4, linewidth=8, label="this run's robot stopped")
     ax.plot([], [], color=THEIRS, alpha=0.3, linewidth=8, label="the thesis's robot stopped")
     ax.set_xlabel("mission time (s): the story's and the timeline's clock")
