@@ -266,7 +266,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--version", action="version", version=f"%(prog)s {version()}", help="print the version"
     )
-    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")  # none: the help
     for command in COMMANDS:
         sub = subparsers.add_parser(command.name, help=command.help, description=command.help)
         command.add_arguments(sub)
@@ -283,9 +283,14 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
 
     Returns:
         The exit code: 0 on success, 1 when the backup cannot be read (the message names
-        the file and the cause), 2 for a usage error.
+        the file and the cause), 2 for a usage error, and 2 without a command (after
+        printing the help on standard output: nothing was done).
     """
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help(out)
+        return 2
     try:
         code: int = args.run(args, out if out is not None else sys.stdout)
     except (CatalogCorruptError, ConfigError) as exc:

@@ -11,7 +11,7 @@ unavailable for now), and tells the living registrars when a consumer died for g
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
 import pykka
@@ -21,6 +21,7 @@ from rr_actors.errors import (
     RegistrarStoppedError,
     RegistrarUnavailableError,
     UnknownRegistrarError,
+    _known_names,
 )
 
 __all__ = ["DIRECTORY", "Directory", "LocalPeer", "Peer", "Reply"]
@@ -66,6 +67,7 @@ class Directory:
         self._peers: dict[str, Peer] = {}
         self._gone: dict[str, str] = {}  # name -> "stopped" | "died"
         self._resolvers: list[Callable[[str], Peer | None]] = []
+        self._namers: dict[Callable[[str], Peer | None], Callable[[], Iterable[str]]] = {}
         self.restart_expected: set[str] = set()
         self.restarting: set[str] = set()
         """Names of registrars that are down while their supervisor brings them back:
@@ -91,16 +93,35 @@ class Directory:
                 del self._peers[peer.name]
                 self._gone[peer.name] = reason
 
-    def add_resolver(self, resolver: Callable[[str], Peer | None]) -> None:
-        """Consult `resolver(name)` for names not registered in this process."""
+    def add_resolver(
+        self,
+        resolver: Callable[[str], Peer | None],
+        names: Callable[[], Iterable[str]] | None = None,
+    ) -> None:
+        """Consult `resolver(name)` for names not registered in this process.
+
+        `names()`, if given, lists the names it knows, for the message of an unknown name.
+        """
         with self._lock:
             self._resolvers.append(resolver)
+            if names is not None:
+                self._namers[resolver] = names
 
     def remove_resolver(self, resolver: Callable[[str], Peer | None]) -> None:
         """Stop consulting `resolver` (no-op if it was not added)."""
         with self._lock:
             if resolver in self._resolvers:
                 self._resolvers.remove(resolver)
+            self._namers.pop(resolver, None)
+
+    def known(self) -> set[str]:
+        """Every registrar name this process knows of: its own and its resolvers'."""
+        with self._lock:
+            names = set(self._peers) | set(self._gone)
+            namers = list(self._namers.values())
+        for namer in namers:
+            names.update(namer())
+        return names
 
     def lookup(self, name: str) -> Peer:
         """Return the peer of registrar `name`.
@@ -135,7 +156,9 @@ class Directory:
             return RegistrarStoppedError(f"registrar {name!r} was stopped")
         if reason == "died":
             return RegistrarUnavailableError(f"registrar {name!r} died")
-        return UnknownRegistrarError(f"no registrar named {name!r}")
+        return UnknownRegistrarError(
+            f"no registrar named {name!r}" + _known_names(name, self.known() - {name})
+        )
 
     def local_peers(self) -> list[Peer]:
         """Every registrar registered in this process."""

@@ -43,6 +43,7 @@ from rr_actors.errors import (
     ResourceLoadError,
     RrError,
     UnknownServerError,
+    _known_names,
 )
 
 if TYPE_CHECKING:
@@ -90,6 +91,9 @@ class Provider:
         if server is None or server.closing:
             return UnknownServerError(
                 f"no resource server '{self.registrar.name}/{message.server}'"
+                + _known_names(
+                    message.server, (n for n, s in self.registrar.servers.items() if not s.closing)
+                )
             )
         if self.registrar.stopping:
             return RegistrarStoppedError(f"registrar {self.registrar.name!r} is stopping")

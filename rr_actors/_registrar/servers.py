@@ -24,7 +24,7 @@ from rr_actors._registrar.messages import Fetch, ResponseUpdated, Revoke
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._registrar.state import Server, Shared, consumers_by_origin
 from rr_actors._types import Status, StatusCallback, StatusUpdate
-from rr_actors.errors import DuplicateNameError, RrError, UnknownServerError
+from rr_actors.errors import DuplicateNameError, RrError, UnknownServerError, _known_names
 
 if TYPE_CHECKING:
     from rr_actors._registrar.provider import Provider
@@ -53,7 +53,13 @@ class Servers:
     def on_fetch(self, message: Fetch) -> None:
         if message.server not in self.registrar.servers:
             message.reply.set_error(
-                UnknownServerError(f"no resource server '{self.registrar.name}/{message.server}'")
+                UnknownServerError(
+                    f"no resource server '{self.registrar.name}/{message.server}'"
+                    + _known_names(
+                        message.server,
+                        (n for n, s in self.registrar.servers.items() if not s.closing),
+                    )
+                )
             )
             return
         message.reply.set_result(
@@ -74,7 +80,12 @@ class Servers:
         """
         server = self.registrar.servers.get(name)
         if server is None or server.closing:
-            raise UnknownServerError(f"no resource server '{self.registrar.name}/{name}'")
+            raise UnknownServerError(
+                f"no resource server '{self.registrar.name}/{name}'"
+                + _known_names(
+                    name, (n for n, s in self.registrar.servers.items() if not s.closing)
+                )
+            )
         return server
 
     def op_register(

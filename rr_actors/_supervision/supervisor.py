@@ -75,6 +75,7 @@ from rr_actors.errors import (
     RrError,
     SupervisorGaveUpError,
     UnknownServerError,
+    _known_names,
 )
 
 if TYPE_CHECKING:
@@ -307,7 +308,10 @@ class Supervisor(TreeWatching):
         """The snapshot of the child `name`, searched through nested supervisors too.
 
         A child of a nested supervisor that is down (being restarted by its parent, say)
-        has that supervisor's state (`"restarting"`, ...) and no pid.
+        has that supervisor's state (`"restarting"`, ...) and no pid. Before `start` and
+        after `stop` every child is `"stopped"`, with no pid: a snapshot, as
+        `which_children` gives it (the observer shows a tree before it starts); start the
+        supervisor (`with sup:`) before acting on a child's pid.
 
         Raises:
             UnknownServerError: no child of that name in this tree.
@@ -315,7 +319,10 @@ class Supervisor(TreeWatching):
         with self._tree.cond:
             found = locate(self._node, self._tree, name)
         if found is None:
-            raise UnknownServerError(f"supervisor {self.name!r} has no child named {name!r}")
+            raise UnknownServerError(
+                f"supervisor {self.name!r} has no child named {name!r}"
+                + _known_names(name, self._tree.specs)
+            )
         return found.info
 
     def wait_restarted(
@@ -368,8 +375,16 @@ class Supervisor(TreeWatching):
             DuplicateNameError: a registrar of that name runs in this process.
             ConfigError: the configuration is invalid or the supervisor is not running.
         """
-        if not self._started or self._stopped:
-            raise ConfigError(f"supervisor {self.name!r} is not running")
+        if not self._started:
+            raise ConfigError(
+                f"supervisor {self.name!r} is not running yet: start it first (`with sup:` "
+                "or `sup.start()`), then call `registrar()`"
+            )
+        if self._stopped:
+            raise ConfigError(
+                f"supervisor {self.name!r} was stopped: call `registrar()` while it runs "
+                "(inside `with sup:`, or between `sup.start()` and `sup.stop()`)"
+            )
         registrar = start_registrar(config, upstream=self._tree.events.publisher)
         if self._tree.attached is not None:
             try:
@@ -409,8 +424,15 @@ class Supervisor(TreeWatching):
         """
         spec = self._tree.specs.get(name)
         if not isinstance(spec, ManagerSpec):
-            what = "a supervisor, not a manager" if spec is not None else "not in the tree"
-            raise UnknownServerError(f"supervisor {self.name!r}: {name!r} is {what}")
+            if spec is not None:
+                raise UnknownServerError(
+                    f"supervisor {self.name!r}: {name!r} is a supervisor, not a manager"
+                )
+            managers = (n for n, s in self._tree.specs.items() if isinstance(s, ManagerSpec))
+            raise UnknownServerError(
+                f"supervisor {self.name!r}: {name!r} is not in the tree"
+                + _known_names(name, managers)
+            )
         child = find_child(self._node, name)
         running = child.running if child is not None else None
         if isinstance(running, ThreadManager):

@@ -44,6 +44,7 @@ from rr_actors.errors import (
     RrError,
     SupervisorGaveUpError,
     UnknownServerError,
+    _known_names,
 )
 
 if TYPE_CHECKING:
@@ -238,7 +239,10 @@ def wait_restarted(
         found = locate(root, tree, name)
         if found is None:
             outcome.append(
-                UnknownServerError(f"supervisor {root_name!r} has no child named {name!r}")
+                UnknownServerError(
+                    f"supervisor {root_name!r} has no child named {name!r}"
+                    + _known_names(name, tree.specs)
+                )
             )
             return True
         info = found.info
