@@ -101,8 +101,8 @@ class SqliteStore:
         self._created = created
         self._loaded = False
         self._resources: dict[str, Mirror] = {}
-        # query id -> (row key, response_version)
-        self._clients: dict[str, tuple[int, int]] = {}
+        # query id -> (row key, response_version, request_text)
+        self._clients: dict[str, tuple[int, int, str | None]] = {}
         self._seq = 0
         self.closed = False
         self._decode = functools.partial(codec.decode, self.path)  # decodes a stored value lazily
@@ -185,7 +185,8 @@ class SqliteStore:
             raise
         self._resources = rows.mirror
         self._clients = {
-            c.query.id: (rows.client_seqs[c.query.id], c.response_version) for c in rows.clients
+            c.query.id: (rows.client_seqs[c.query.id], c.response_version, c.request_text)
+            for c in rows.clients
         }
         self._seq = rows.max_seq
         self._loaded = True
@@ -231,7 +232,8 @@ class SqliteStore:
                         resource.digest = None  # indexed from its (decoded) request
                         _ = resource.request
                 clients, client_seqs = client_records(client_rows, self._decode)
-                self._clients = {qid: (seq, 0) for qid, seq in client_seqs.items()}
+                texts = {c.query.id: c.request_text for c in clients}
+                self._clients = {qid: (seq, 0, texts[qid]) for qid, seq in client_seqs.items()}
         except CatalogCorruptError:
             self.close(erase=False)
             raise
@@ -247,7 +249,7 @@ class SqliteStore:
 
         Called by `restore` and by `Unread` when it reads a resource left on disk.
         """
-        seq, rid, server, state, digest, request, response = row
+        seq, rid, server, state, digest, request, response, *texts = row
         resource = Resource.encoded(
             rid,
             server,
@@ -256,12 +258,13 @@ class SqliteStore:
             (request, response),
             self._decode,
             seq,
+            (texts[0], texts[1], texts[2]),
         )
         keys = {}
         for key, query_id, origin in consumer_rows:
             resource.consumers[query_id] = origin
             keys[query_id] = key
-        self._resources[rid] = Mirror(seq, resource.state, 0, keys)
+        self._resources[rid] = Mirror(seq, resource.state, 0, keys, (texts[0], texts[1], texts[2]))
         return resource
 
     def write(self, changes: Changes) -> None:
