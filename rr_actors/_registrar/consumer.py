@@ -30,6 +30,7 @@ from rr_actors._core.actor import OneShotFuture
 from rr_actors._core.directory import Reply
 from rr_actors._core.replies import FutureReply, Join
 from rr_actors._registrar.calls import DueAnswers
+from rr_actors._registrar.display import show_client
 from rr_actors._registrar.endpoints import ClientActor
 from rr_actors._registrar.loading import check_picklable
 from rr_actors._registrar.messages import (
@@ -149,6 +150,7 @@ class Consumer:
             if self.owner_gone(record):  # a late sub-call: kept as a call of its own, so a
                 record = ClientRecord(record.query, None)  # crash meanwhile gives it back
             self.s.catalog.add_client(record)
+            show_client(self.s, query_id)
             failed = self.s.commit()
             if failed is not None:  # not durable: the Load must not leave (rule 16)
                 self.s.catalog.remove_client(query_id)
@@ -189,6 +191,7 @@ class Consumer:
                 catalog.client_loaded(query.id, query.response)
             else:
                 catalog.add_client(message.record)
+                show_client(self.s, query.id)
             failed = self.s.commit()
             if failed is not None and message.answer_after_commit:  # durable: not kept
                 give_back(query.serving_rr, query.id, self.s.name)

@@ -19,6 +19,7 @@ from rr_actors import events
 from rr_actors._catalog import Resource, ResourceState
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import Join
+from rr_actors._registrar.display import show_response
 from rr_actors._registrar.endpoints import ServerActor
 from rr_actors._registrar.messages import Fetch, ResponseUpdated, Revoke
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
@@ -90,6 +91,7 @@ class Servers:
         unload: UnloadCallback,
         on_status: StatusCallback | None,
         reply: Reply,
+        label: Callable[[Any], Any] | None = None,
     ) -> None:
         if name in self.s.servers:
             raise DuplicateNameError(f"resource server '{self.s.name}/{name}' already exists")
@@ -101,7 +103,7 @@ class Servers:
             self.s.workers,
             persisted=self.s.saver.store is not None,
         )
-        self.s.servers[name] = Server(name, ref, on_status)
+        self.s.servers[name] = Server(name, ref, on_status, label=label)
         self.unloading.run_parked(name)
         reply.set_result(None)
 
@@ -165,6 +167,7 @@ class Servers:
     def op_update_response(self, query_id: str, response: Any, reply: Reply) -> None:
         resource = self.s.catalog.resource_of(query_id)
         self.s.catalog.set_response(resource.id, response)
+        show_response(self.s, resource)
         self.s.commit()
         join = Join(lambda: reply.set_result(None))
         for origin, ids in consumers_by_origin(resource).items():

@@ -57,6 +57,8 @@ class Launched:
     ended: threading.Event
     """Set when the actor handed on its last message."""
     published: Publisher[events.Event]
+    in_doubt_texts: tuple[tuple[str, str | None], ...] = ()
+    """Each in-doubt resource's id and its stored request display text (`display.py`)."""
 
 
 def launch(
@@ -86,11 +88,11 @@ def launch(
     saver: Saver | None = None
     try:
         saver, catalog, restored = open_catalog(config)
+        doubtful = [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]
         in_doubt = tuple(
-            Query(r.id, r.server, config.name, config.name, r.request, r.response)
-            for r in catalog.resources.values()
-            if r.state is not ResourceState.LOADED
+            Query(r.id, r.server, config.name, config.name, r.request, r.response) for r in doubtful
         )
+        in_doubt_texts = tuple((r.id, r.request_text) for r in doubtful)
         died, ended, due = threading.Event(), threading.Event(), DueAnswers()
         published = events.publisher(EVENT_LOG)
         published.relay_to(upstream)
@@ -110,7 +112,7 @@ def launch(
             saver.close(erase=False, flush=False)
         DIRECTORY.unregister(peer, "stopped")
         raise
-    return Launched(config, ref, restored, in_doubt, due, died, ended, published)
+    return Launched(config, ref, restored, in_doubt, due, died, ended, published, in_doubt_texts)
 
 
 class Served:

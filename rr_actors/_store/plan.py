@@ -130,7 +130,8 @@ def _resource_update(old: Mirror, resource: Resource, texts: Texts) -> Op | None
     if not columns:
         return None
     assignments = ", ".join(f"{column} = ?" for column in columns)
-    return (f"UPDATE resources SET {assignments} WHERE seq = ?", (*values, old.seq))
+    sql = f"UPDATE resources SET {assignments} WHERE seq = ?"  # noqa: S608 - our column names
+    return (sql, (*values, old.seq))
 
 
 def plan_client(

@@ -50,8 +50,8 @@ __all__ = [
     "CLIENTS",
     "CLIENT_COLUMNS",
     "CONSUMERS_OF",
-    "RESOURCE_COLUMNS",
     "RESOURCES_AT_ONCE",
+    "RESOURCE_COLUMNS",
     "Consumers",
     "Mirror",
     "Restored",
@@ -111,8 +111,7 @@ RESOURCE_COLUMNS = (
 """The columns of a resource row, in the order every reader reads them."""
 
 CLIENT_COLUMNS = (
-    "seq, query_id, server, serving_rr, origin_rr, request, response, parent, loaded, "
-    "request_text"
+    "seq, query_id, server, serving_rr, origin_rr, request, response, parent, loaded, request_text"
 )
 """The columns of a client row, in the order every reader reads them."""
 
@@ -143,11 +142,11 @@ def read_rows(
     """
     db.execute("BEGIN")
     try:
-        rows = db.execute(f"SELECT {RESOURCE_COLUMNS} FROM resources ORDER BY seq").fetchall()
+        rows = db.execute(RESOURCES).fetchall()
         consumer_rows = db.execute(
             "SELECT seq, query_id, resource, origin_rr FROM consumers ORDER BY seq"
         ).fetchall()
-        client_rows = db.execute(f"SELECT {CLIENT_COLUMNS} FROM clients ORDER BY seq").fetchall()
+        client_rows = db.execute(CLIENTS).fetchall()
     finally:
         db.execute("COMMIT")
     if not lenient:
@@ -216,9 +215,11 @@ def client_records(
     return clients, seqs
 
 
-_RESOURCE_BY_SEQ = f"SELECT {RESOURCE_COLUMNS} FROM resources WHERE seq = ?"
+# (S608: the SQL is built from this module's constants only)
+RESOURCES = f"SELECT {RESOURCE_COLUMNS} FROM resources ORDER BY seq"  # noqa: S608
+_RESOURCE_BY_SEQ = f"SELECT {RESOURCE_COLUMNS} FROM resources WHERE seq = ?"  # noqa: S608
 RESOURCES_AT_ONCE = (  # what a restore reads as rows: in doubt, no digest, or a parent
-    f"SELECT {RESOURCE_COLUMNS} FROM resources "
+    f"SELECT {RESOURCE_COLUMNS} FROM resources "  # noqa: S608
     "WHERE state != 1 OR digest IS NULL "  # == _UNSETTLED: the partial index serves it
     f"UNION SELECT {RESOURCE_COLUMNS} FROM resources "
     "WHERE id IN (SELECT parent FROM clients WHERE parent IS NOT NULL) ORDER BY seq"
@@ -226,7 +227,7 @@ RESOURCES_AT_ONCE = (  # what a restore reads as rows: in doubt, no digest, or a
 CONSUMERS_OF = (  # one key range of the (resource, seq) key: in arrival order
     "SELECT seq, query_id, origin_rr FROM consumers WHERE resource = ?"
 )
-CLIENTS = f"SELECT {CLIENT_COLUMNS} FROM clients ORDER BY seq"
+CLIENTS = f"SELECT {CLIENT_COLUMNS} FROM clients ORDER BY seq"  # noqa: S608
 _SEP = "\x1f"  # joins the consumer ids in one string (checked: a collision reads rows)
 
 

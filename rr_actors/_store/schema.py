@@ -52,6 +52,7 @@ from collections.abc import Callable
 from typing import Any
 
 from rr_actors._catalog import DIGEST_SCHEME, request_digest
+from rr_actors._catalog.texts import NOT_SHOWN_OLD
 from rr_actors._store.codec import as_corrupt, loads
 from rr_actors.errors import CatalogCorruptError
 
@@ -59,7 +60,6 @@ __all__ = [
     "APPLICATION_ID",
     "INDEXES",
     "MIGRATIONS",
-    "NOT_SHOWN_OLD",
     "SCHEMA_VERSION",
     "check_objects",
     "migrate",
@@ -147,10 +147,6 @@ def _upgrade_v3(db: sqlite3.Connection) -> None:
     db.execute("CREATE UNIQUE INDEX resources_by_id ON resources (id)")
     db.execute("CREATE INDEX resources_by_request ON resources (server, digest)")
     db.execute(f"CREATE INDEX resources_unsettled ON resources (seq) WHERE {_UNSETTLED}")
-
-
-NOT_SHOWN_OLD = "<not shown: written by an older version>"
-"""The display text of a value a version without display texts stored (before v4)."""
 
 
 def _upgrade_v4(db: sqlite3.Connection) -> None:

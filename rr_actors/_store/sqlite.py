@@ -43,6 +43,7 @@ from rr_actors._store.files import (
     copy_aside,
     create,
     file_ids,
+    foreign_owner,
     moved,
     prepare,
     put_in_place,
@@ -132,7 +133,8 @@ class SqliteStore:
 
         Raises:
             ConfigError: the path cannot hold a backup (missing directory, a directory,
-                read-only file or location).
+                read-only file or location), or the file (or its `-wal`) belongs to another
+                user (restoring it would unpickle, so run, what that user wrote).
             CatalogCorruptError: the file exists but is not a usable rr_actors catalog
                 (garbage, truncated, another program's database, a newer schema, ...).
         """
@@ -142,6 +144,11 @@ class SqliteStore:
         if not file.exists():
             create(file)
             created = True
+        foreign = foreign_owner(file)
+        if foreign is not None:
+            raise ConfigError(
+                f"backup_path {foreign}: restoring it would run code from it (unpickling)"
+            )
         version = validate(file, tidy=True)
         name = str(file)
         try:
