@@ -268,16 +268,17 @@ def check_objects(db: sqlite3.Connection, path: str, version: int) -> None:
     expected = _objects_of(tuple(MIGRATIONS[:version]))
     rows = db.execute("SELECT type, name, tbl_name, sql FROM sqlite_master LIMIT 1000").fetchall()
     found = {(kind, name, table, _normal(sql)) for kind, name, table, sql in rows}
-    unexpected = sorted(found - expected, key=lambda o: (o[1], o[0]))
-    if unexpected:
-        kind, name, _, sql = unexpected[0]
-        known = {o[1]: o[0] for o in expected}
+    known = {o[1]: o[0] for o in expected}
+    problems = []
+    for kind, name, _, sql in found - expected:
         if name in known and known[name] != kind:
-            why = f"{name!r} is a {kind}, not a {known[name]}"
+            problems.append((0, name, f"{name!r} is a {kind}, not a {known[name]}"))
         elif name in known:
-            why = f"the {kind} {name!r} is not as rr_actors creates it: {sql}"
+            problems.append((1, name, f"the {kind} {name!r} is not as rr_actors creates it: {sql}"))
         else:
-            why = f"an unknown {kind} {name!r}"
+            problems.append((2, name, f"an unknown {kind} {name!r}"))
+    if problems:
+        why = min(problems)[2]  # the most telling one: a known name of another kind first
         raise CatalogCorruptError(path, f"not an rr_actors schema (version {version}): {why}")
     missing = sorted(o[1] for o in expected - found)
     if missing:
