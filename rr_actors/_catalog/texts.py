@@ -19,6 +19,7 @@ __all__ = [
     "display_text",
     "is_plain",
     "label_text",
+    "plain_text",
 ]
 
 NOT_SHOWN_OLD = "<not shown: written by an older version>"
@@ -69,6 +70,47 @@ def label_text(label: Callable[[Any], Any], request: Any) -> str:
     if type(text) is not str:
         return f"<label failed: returned {type(text).__name__}>"
     return _cut(text, LABEL_WIDTH)
+
+
+_SMALL = 2000  # characters and items a plain value may hold to be shown by `repr` itself
+_TEXTS = (str, bytes)
+_NUMBERS = (int, float, bool, type(None))
+
+
+def _small(value: Any, budget: int) -> int:  # noqa: PLR0911 - one return per kind
+    """What is left of `budget` after a plain value's items and characters (-1: over it,
+    or not plain). Everything is looked at, so `repr` of a value within budget runs no
+    user code and costs little."""
+    kind = type(value)
+    if kind in _TEXTS:
+        return budget - len(value)
+    if kind in _NUMBERS:
+        return budget - 1 if kind is not int or -(10**60) < value < 10**60 else -1
+    if kind in _SEQUENCES or kind is set or kind is frozenset:
+        budget -= len(value)
+        for item in value:
+            if budget < 0:
+                return -1
+            budget = _small(item, budget)
+        return budget
+    if kind is dict:
+        budget -= len(value)
+        for key, item in value.items():
+            if budget < 0:
+                return -1
+            budget = _small(item, _small(key, budget))
+        return budget
+    return -1
+
+
+def plain_text(value: Any) -> str | None:
+    """The display text of a plain value, made here (no user code runs); `None` for any
+    other value (its `repr` is user code: run it on a worker, `display_text`)."""
+    if _small(value, _SMALL) >= 0:
+        return _cut(repr(value), TEXT_WIDTH)  # (the same text as reprlib's, faster)
+    if is_plain(value):
+        return display_text(value)
+    return None
 
 
 def is_plain(value: Any, level: int = _REPR.maxlevel) -> bool:

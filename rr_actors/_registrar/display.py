@@ -24,7 +24,7 @@ from collections.abc import Callable
 from typing import Any
 
 from rr_actors._catalog import Resource
-from rr_actors._catalog.texts import display_text, is_plain, label_text
+from rr_actors._catalog.texts import display_text, label_text, plain_text
 from rr_actors._registrar.state import Shared
 
 __all__ = ["show_client", "show_request", "show_response"]
@@ -49,10 +49,10 @@ def _off_actor(
 
 
 def _text_now_or_later(shared: Shared, value: Any, then: Callable[[str], None]) -> str | None:
-    if is_plain(value):
-        return display_text(value)
-    _off_actor(shared, lambda: display_text(value), "repr", then)
-    return None
+    text = plain_text(value)
+    if text is None:
+        _off_actor(shared, lambda: display_text(value), "repr", then)
+    return text
 
 
 def show_request(shared: Shared, resource: Resource, label: Callable[[Any], Any] | None) -> None:
