@@ -8,12 +8,14 @@ import io
 import os
 import pickle
 import sqlite3
+import sys
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cloudpickle
 import pytest
 from observed_tree import figure_27
 
@@ -299,6 +301,54 @@ def test_a_hanging_or_exiting_repr_shows_failed_and_the_graph_keeps_updating_wit
     assert "repr failed: SystemExit" in last
     assert "after" in last  # the graph still follows the catalog
     assert after <= before + 1  # (not one more hung thread per look)
+
+
+class HangsForGood:
+    """A request whose `repr` never returns (in a manager process: no gate reaches it)."""
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, HangsForGood)
+
+    def __hash__(self) -> int:
+        return 3
+
+    def __repr__(self) -> str:
+        threading.Event().wait(60)
+        return "HangsForGood()"
+
+
+def threads_in(sup: rr.Supervisor, name: str) -> int:
+    return int(sup.run_in(name, lambda _: threading.active_count(), timeout=5))
+
+
+@pytest.mark.timeout(60)
+def test_a_hanging_repr_in_a_process_manager_costs_one_thread_once_not_one_per_refresh(
+    supervisors: Any, process_helpers: Any
+) -> None:
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # (for the manager process)
+    sup = supervisors(
+        [
+            rr.ManagerSpec(
+                "erm",
+                setup=hostile_setup,
+                isolation="process",
+                config=rr.RegistrarConfig("erm", compare_timeout=0.5),
+            )
+        ]
+    ).start()
+    app = sup.registrar(rr.RegistrarConfig("action", compare_timeout=0.5))
+    app.call("erm", "leaf", HangsForGood(), timeout=5)
+    drawn = [sup.graph()]
+    deadline = time.monotonic() + 10
+    while "repr failed: TimeoutError" not in drawn[-1] and time.monotonic() < deadline:
+        drawn.append(sup.graph())
+
+    before = threads_in(sup, "erm")
+    drawn += [sup.graph() for _ in range(20)]  # each reads erm's catalog in its process
+    after = threads_in(sup, "erm")
+
+    assert "repr failed: TimeoutError" in drawn[-1]
+    assert after <= before  # (one thread hangs, once: not one more per refresh)
 
 
 # -- issue 24, item 2: labels ------------------------------------------------------------------
