@@ -56,17 +56,12 @@ GetHookFunc: TypeAlias = Callable[[float | None], T]
 class OneShotFuture(pykka.Future[T]):
     """A pykka future whose value is handed over by releasing one lock.
 
-    Behaves as `pykka.ThreadingFuture`: `get(timeout=)` blocks until `set`,
-    `set_exception` or `set_get_hook` settled it, raises `pykka.Timeout` after `timeout`
-    seconds, and returns (or raises) the same value on every later `get`; settling it a
-    second time raises `queue.Full`. Any number of threads may wait on it at once; a get
-    hook runs once.
-
-    Beyond pykka's interface, two parties may race to settle it and learn who won: `claim`
-    settles it with `None` unless something settled it first, `reserve` takes the right to
-    settle it later with `fulfil`, `wait` waits without raising, and `done` and
-    `failed` tell its state. A registrar's caller and the thread that brings its
-    answer race this way (`ResourceRegistrar.call`).
+    Behaves as `pykka.ThreadingFuture`, with its interface and no more: `get(timeout=)`
+    blocks until `set`, `set_exception` or `set_get_hook` settled it, raises
+    `pykka.Timeout` after `timeout` seconds, and returns (or raises) the same value on
+    every later `get`; settling it a second time raises `queue.Full`. Any number of
+    threads may wait on it at once; a get hook runs once. (Who settles a registrar
+    call's future, when an answer races a timeout, is decided by its `CallAttempt`.)
     """
 
     def __init__(self) -> None:
@@ -81,45 +76,7 @@ class OneShotFuture(pykka.Future[T]):
     def __repr__(self) -> str:
         return "<rr_actors.OneShotFuture>"
 
-    @property
-    def done(self) -> bool:
-        """Whether it is settled: a `get` returns (or raises) at once."""
-        return self._settled
-
-    @property
-    def failed(self) -> bool:
-        """Whether it was settled with an exception."""
-        return self._exc_info is not None
-
-    def reserve(self) -> bool:
-        """Take the right to settle it, to `fulfil` it later; whether this got it.
-
-        Whoever tries to settle it meanwhile (`set`, `claim`) loses, and its waiters wait on
-        until `fulfil`: a holder must fulfil it on every path.
-        """
-        return self._claim.acquire(blocking=False)
-
-    def fulfil(self, value: Any = None, *, exc_info: OptExcInfo | None = None) -> None:
-        """Settle a future this caller `reserve`d: with `value`, or with an exception."""
-        if exc_info is not None:
-            self._exc_info = exc_info
-        else:
-            self._value = value
-        self._settle()
-
-    def claim(self) -> bool:
-        """Settle it with `None` unless something settled it first; whether this did.
-
-        Two parties that race to settle a future (an answer and a caller that stops
-        waiting for it) learn from this which of them won.
-        """
-        try:
-            self.set(None)
-        except queue.Full:
-            return False
-        return True
-
-    def wait(self, timeout: float | None = None) -> bool:
+    def _wait(self, timeout: float | None = None) -> bool:
         """Block until it is settled, at most `timeout` seconds; whether it is.
 
         Waiters pass the hand-off lock on one after the other, so a waiter may run out of
@@ -143,7 +100,7 @@ class OneShotFuture(pykka.Future[T]):
         return acquired or self._settled
 
     def get(self, *, timeout: float | None = None) -> T:
-        if not self.wait(timeout):
+        if not self._wait(timeout):
             raise pykka.Timeout(f"{timeout} seconds")
         if self._get_hook is not None:
             with self._hook_lock:  # the hook runs once, however many threads get

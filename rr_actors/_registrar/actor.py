@@ -90,12 +90,13 @@ class RegistrarActor(Actor):
     ) -> None:
         super().__init__()
         self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
+        # Each role is built after the roles it calls, and calls only those (one way):
+        # lifecycle -> servers -> status | unloading -> provider -> consumer.
         self.consumer = Consumer(self.shared, due, self.on_receive)
-        self.status = StatusRelay(self.shared, self.consumer)
         self.provider = Provider(self.shared, self.consumer)
-        self.unloading = Unloading(self.shared, self.provider, self.consumer)
-        self.provider.unloading = self.unloading
-        self.servers = Servers(self.shared, self.unloading, self.status)
+        self.unloading = Unloading(self.shared, self.provider)
+        self.status = StatusRelay(self.shared, self.consumer)
+        self.servers = Servers(self.shared, self.provider, self.status)
         self.lifecycle = Lifecycle(
             self.shared, self.provider, self.unloading, self.consumer, self, died, ended
         )

@@ -3,26 +3,26 @@
 ```
  caller thread                         consumer registrar actor          provider
  ─────────────                         ────────────────────────          ────────
- due.expect(id)
+ due.expect(id, attempt)
  [durable: Pending ───────────────────► record written as pending ──┐
   wait for the commit ◄─────────────────────────────────────────────┘]
- Load ─────────────────────────────────────────────────────────────────► on_load
- wait(answer | error | timeout) ◄──────────── ClientReply (the answering thread) ◄─┘
-   answer:   ClientLoaded ────────────► record it; notices parked behind it run
-   timeout:  claim the future, Abandon ─────────────────────────────────► release the id
+ attempt.sent(); Load ─────────────────────────────────────────────────► on_load
+ attempt.wait(answer | error | timeout) ◄──── ClientReply (the answering thread) ◄─┘
+   answered: ClientLoaded ────────────► record it; notices parked behind it run
+   timeout:  attempt.withdraw(), Abandon ───────────────────────────────► release the id
              CallFailed ──────────────► forget the attempt's record
 ```
 
 Like OTP's `gen:do_call` (monitor, send, receive the reply, the 'DOWN' or the timeout):
 a provider that dies fails the reply at once (`RegistrarUnavailableError`), not after
-the timeout. Whoever settles the caller's one-shot future first owns the answer: the
-reply, by setting it, or the caller, by claiming it when it stops waiting.
+the timeout. What a reply that races the timeout (or a stop) does is decided by one
+state, the call's `CallAttempt`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import queue
+import enum
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -45,7 +45,136 @@ from rr_actors.errors import (
     RrError,
 )
 
-__all__ = ["Calls", "ClientReply", "DueAnswers"]
+__all__ = ["AttemptState", "CallAttempt", "Calls", "ClientReply", "DueAnswers"]
+
+
+class AttemptState(enum.Enum):
+    """Where one call attempt is (see `CallAttempt`)."""
+
+    SENDING = "sending"
+    """Its `Load` has not left yet (a durable call: its record is written as pending)."""
+    SENT = "sent"
+    """Its `Load` left; its caller waits."""
+    RECORDING = "recording"
+    """A durable call's answer: the registrar actor commits its record, then settles it."""
+    ANSWERED = "answered"
+    """Its caller has the answer (and, for a plain call, records it)."""
+    FAILED = "failed"
+    """It failed (an error answer, the provider died, the registrar stopped or died)."""
+    WITHDRAWN = "withdrawn"
+    """Its caller stopped waiting first: an answer that comes later is not kept."""
+
+
+_OPEN = (AttemptState.SENDING, AttemptState.SENT)
+
+
+class CallAttempt(OneShotFuture[Any]):
+    """One attempt of a call: the future its caller waits on, settled through one `state`.
+
+    Three threads race over an attempt: its caller (whose time may run out), the thread
+    that brings the answer (a connection's reader, or the provider's actor), and its
+    registrar's actor (which commits a durable call's answer, and fails the calls in
+    flight when it stops or dies). Each transition is taken under one lock and returns
+    the state it leaves the attempt in; the party that called it acts on that state.
+
+    ```
+              sent()            answer(value): a plain call (its caller records it)
+     SENDING ───────► SENT ─────────────────────────────────────────► ANSWERED
+        │              │ └─take(): a durable call's answer ──► RECORDING  ▲
+        │              │     settle(value): committed ───────────┴───────┘
+        │              │     settle(error): not kept ──────────────────┐
+        │              │  fail(error): an error answer, the provider    ▼
+        ├──────────────┴─ died, the registrar stopped or died ──────► FAILED
+        │              │  withdraw(): the caller's time ran out, or it
+        └──────────────┴─ was interrupted ──────────────────────────► WITHDRAWN
+    ```
+
+    ```
+     transition (who)                returns    what its caller does then
+     sent() (the caller)             SENT       sends the Load
+                                     FAILED     sends nothing: the registrar stopped
+     answer(v) (answering thread)    ANSWERED   nothing: the caller wakes, records it
+                                     WITHDRAWN  nothing: the caller gave the id back
+     take() (actor: durable answer)  RECORDING  commits the record, then settle() on
+                                                every path
+                                     WITHDRAWN  drops the answer (the caller gave the
+                                     or FAILED  id back; a stopping registrar does too)
+     settle(v | e) (the actor)       ANSWERED   nothing more: the caller wakes
+                                     or FAILED
+     fail(e) (any)                   FAILED     nothing more: the caller wakes
+     withdraw() (the caller)         WITHDRAWN  gives the id back (Abandon), tells its
+                                                registrar (CallFailed): nothing is left
+                                     RECORDING  waits for the commit, reads the outcome
+                                     ANSWERED   reads the outcome (the answer won)
+                                     or FAILED
+    ```
+
+    A transition that does not apply leaves the state as it is (the first settle wins;
+    only the actor that took a `RECORDING` attempt settles it). Entering `ANSWERED` or
+    `FAILED` wakes the caller (`get` returns the value or raises the error).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._state_lock = threading.Lock()
+        self.state = AttemptState.SENDING
+
+    def __repr__(self) -> str:
+        return f"<rr_actors.CallAttempt {self.state.value}>"
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait (the caller) until it is answered or failed, at most `timeout` seconds."""
+        return self._wait(timeout)
+
+    def sent(self) -> AttemptState:
+        """The caller: its `Load` leaves now (`SENT`), unless it failed meanwhile."""
+        with self._state_lock:
+            if self.state is AttemptState.SENDING:
+                self.state = AttemptState.SENT
+            return self.state
+
+    def answer(self, value: Any) -> AttemptState:
+        """The answering thread: a plain call's answer came; its caller records it."""
+        with self._state_lock:
+            if self.state in _OPEN:
+                self._settle_as(AttemptState.ANSWERED, value, None)
+            return self.state
+
+    def take(self) -> AttemptState:
+        """The registrar actor: a durable call's answer came; commit it (`RECORDING`)."""
+        with self._state_lock:
+            if self.state in _OPEN:
+                self.state = AttemptState.RECORDING
+            return self.state
+
+    def settle(self, value: Any = None, error: BaseException | None = None) -> AttemptState:
+        """The actor that took it: the answer is committed (`value`), or not kept (`error`)."""
+        with self._state_lock:
+            if self.state is AttemptState.RECORDING:
+                state = AttemptState.ANSWERED if error is None else AttemptState.FAILED
+                self._settle_as(state, value, error)
+            return self.state
+
+    def fail(self, error: BaseException) -> AttemptState:
+        """Any party: the call failed with `error` (unless it was settled or taken)."""
+        with self._state_lock:
+            if self.state in _OPEN:
+                self._settle_as(AttemptState.FAILED, None, error)
+            return self.state
+
+    def withdraw(self) -> AttemptState:
+        """The caller: it stops waiting (`WITHDRAWN`), unless the answer won the race."""
+        with self._state_lock:
+            if self.state in _OPEN:
+                self._settle_as(AttemptState.WITHDRAWN, None, None)
+            return self.state
+
+    def _settle_as(self, state: AttemptState, value: Any, error: BaseException | None) -> None:
+        self.state = state  # (under the state lock)
+        if error is None:
+            self.set(value)
+        else:
+            self.set_exception((type(error), error, error.__traceback__))
 
 
 class DueAnswers:
@@ -65,7 +194,7 @@ class DueAnswers:
     __slots__ = ("_attempts", "_lock")
 
     def __init__(self) -> None:
-        self._attempts: dict[str, OneShotFuture[Any]] = {}
+        self._attempts: dict[str, CallAttempt] = {}
         self._lock = threading.Lock()
 
     def __contains__(self, query_id: str) -> bool:
@@ -86,12 +215,12 @@ class DueAnswers:
         with self._lock:
             yield frozenset(self._attempts)
 
-    def expect(self, query_id: str, attempt: OneShotFuture[Any]) -> None:
+    def expect(self, query_id: str, attempt: CallAttempt) -> None:
         """A call `attempt` with `query_id` is about to be sent (any thread)."""
         with self._lock:
             self._attempts[query_id] = attempt
 
-    def settle(self, query_id: str, attempt: OneShotFuture[Any]) -> bool:
+    def settle(self, query_id: str, attempt: CallAttempt) -> bool:
         """`attempt`'s answer or failure was handled; whether it was the one due."""
         with self._lock:
             if self._attempts.get(query_id) is attempt:
@@ -110,39 +239,38 @@ class ClientReply:
     record waits for it (`DueAnswers`).
 
     With `commit_first` (a durable consumer) the record was written as pending before
-    the load was sent; the registrar commits the answer and then sets the future (or,
-    finding it claimed, drops the record).
+    the load was sent; the registrar takes the attempt, commits the answer and then
+    settles it (or, finding it withdrawn, drops the record).
     """
 
-    __slots__ = ("commit_first", "future", "on_status", "record", "registrar")
+    __slots__ = ("attempt", "commit_first", "on_status", "record", "registrar")
 
     def __init__(
         self,
         registrar: pykka.ActorRef[Any],
         record: ClientRecord,
         on_status: StatusCallback | None,
-        future: OneShotFuture[Any],
+        attempt: CallAttempt,
         *,
         commit_first: bool,
     ) -> None:
         self.registrar = registrar
         self.record = record
         self.on_status = on_status
-        self.future = future
+        self.attempt = attempt
         self.commit_first = commit_first
 
     def set_result(self, value: Any) -> None:
         if not self.commit_first:
-            with contextlib.suppress(queue.Full):  # (claimed: the caller withdrew the call)
-                self.future.set(value)
+            self.attempt.answer(value)  # (withdrawn: dropped, its caller gave the id back)
             return  # the caller records it
         query = self.record.query.with_response(value)
         record = ClientRecord(query, self.record.parent, loaded=True)
         try:
-            self.registrar.tell(ClientLoaded(record, self.on_status, self.future, True))
+            self.registrar.tell(ClientLoaded(record, self.on_status, self.attempt, True))
         except pykka.ActorDeadError:  # the consumer stopped meanwhile: give the id back
             give_back(query.serving_rr, query.id, query.origin_rr)
-            FutureReply(self.future).set_error(
+            self.attempt.fail(
                 RegistrarStoppedError(f"registrar {query.origin_rr!r} stopped during the call")
             )
 
@@ -151,10 +279,10 @@ class ClientReply:
         # A provider that died (or was stopped) may have executed the call: its id is
         # held until reconciled with the provider's next start, for a retry (rule 17).
         gone = isinstance(error, RegistrarUnavailableError | RegistrarStoppedError)
-        failed = CallFailed(query.id, self.future, serving_rr=query.serving_rr if gone else None)
+        failed = CallFailed(query.id, self.attempt, serving_rr=query.serving_rr if gone else None)
         with contextlib.suppress(pykka.ActorDeadError):
             self.registrar.tell(failed)
-        FutureReply(self.future).set_error(error)
+        self.attempt.fail(error)
 
 
 class Calls:
@@ -186,7 +314,7 @@ class Calls:
         self.commit_first = commit_first
         self.stored = stored
         self.probes = probes
-        self.future_type: type[OneShotFuture[Any]] = OneShotFuture
+        self.attempt_type: type[CallAttempt] = CallAttempt
 
     def call(
         self,
@@ -211,42 +339,43 @@ class Calls:
             CallTimeoutError: no answer in time; the call was withdrawn.
             RrError: what the call failed with.
         """
-        future = self.future_type()
+        attempt = self.attempt_type()
         record = ClientRecord(query, parent)
-        reply = ClientReply(self.ref, record, on_status, future, commit_first=self.commit_first)
+        reply = ClientReply(self.ref, record, on_status, attempt, commit_first=self.commit_first)
         answered = query
+        withdrawn = False
         try:
-            self.due.expect(query.id, future)  # a notice that overtakes the answer waits
+            self.due.expect(query.id, attempt)  # a notice that overtakes the answer waits
             load = Load(query.id, query.server, query.request, self.name, chain, reply)
             sent = self.send(load, reply, deadline)
-            # Settled by the answer (see ClientReply), or claimed here when the time is up.
             left = max(0.0, deadline - time.monotonic())
-            answer_came = (sent and future.wait(left)) or not future.claim()
-            if answer_came:
-                future.wait()  # whoever holds the claim is writing the answer: read it whole
-            if answer_came and not future.failed:
-                answered = query.with_response(future.get())
+            if not (sent and attempt.wait(left)):  # the time is up: withdraw, unless the
+                withdrawn = attempt.withdraw() is AttemptState.WITHDRAWN  # answer won
+                if not withdrawn:  # (being recorded: its outcome comes with the commit)
+                    attempt.wait()
+            if attempt.state is AttemptState.ANSWERED:
+                answered = query.with_response(attempt.get())
                 if self.stored and not self.commit_first:
                     check_picklable(  # stored with its record at the next flush
                         answered.response, f"the response of '{query.serving_rr}/{query.server}'"
                     )
                 if not self.commit_first:  # a durable one the registrar recorded already
                     loaded = ClientRecord(answered, parent, loaded=True)
-                    self.ref.tell(ClientLoaded(loaded, on_status, future))
+                    self.ref.tell(ClientLoaded(loaded, on_status, attempt))
         except pykka.ActorDeadError:  # this registrar stopped meanwhile: give the id back
             give_back(query.serving_rr, query.id, self.name)
             raise DIRECTORY.gone_error(self.name) from None
         except BaseException:  # the caller stops waiting (KeyboardInterrupt, ...)
-            future.claim()
-            self.withdraw(query, future)
+            attempt.withdraw()
+            self.withdraw(query, attempt)
             raise
-        if not answer_came:
-            self.withdraw(query, future)
+        if withdrawn:
+            self.withdraw(query, attempt)
             raise CallTimeoutError(
                 f"call to '{query.serving_rr}/{query.server}' timed out after {limit:g} s"
             )
-        if future.failed:
-            future.get()  # raises what the call failed with
+        if attempt.state is AttemptState.FAILED:
+            attempt.get()  # raises what the call failed with
         return answered
 
     def send(self, load: Load, reply: ClientReply, deadline: float) -> bool:
@@ -260,12 +389,13 @@ class Calls:
         """
         if self.commit_first:
             committed = FutureReply()
-            self.ref.tell(Pending(reply.record, reply.future, committed))
-            if not committed.future.wait(max(0.0, deadline - time.monotonic())):
+            self.ref.tell(Pending(reply.record, reply.attempt, committed))
+            try:
+                committed.future.get(timeout=max(0.0, deadline - time.monotonic()))
+            except pykka.Timeout:
                 return False
-            committed.future.get()
-            if reply.future.done:  # failed meanwhile (this registrar stops): nothing to send
-                return True
+        if reply.attempt.sent() is not AttemptState.SENT:  # this registrar stopped
+            return True  # meanwhile and failed it: nothing to send
         probes = self.probes()
         if probes is not None:
             probes.fire("send_load", load)
@@ -275,10 +405,10 @@ class Calls:
             reply.set_error(exc)
         return True
 
-    def withdraw(self, query: Query, future: OneShotFuture[Any]) -> None:
+    def withdraw(self, query: Query, attempt: CallAttempt) -> None:
         """Take back a call whose caller stopped waiting: leave nothing behind (rule 17).
 
-        The caller claimed `future`, so an answer that comes later is dropped (or, for a
+        The caller withdrew `attempt`, so an answer that comes later is dropped (or, for a
         durable call, not kept). Told from the caller's thread, like the `Load`: the
         provider sees the `Abandon` after the `Load` and before any retry this caller makes
         with the same id. Not for a call that failed: its provider may hold a committed id
@@ -289,4 +419,4 @@ class Calls:
             probes.fire("withdraw", query)
         give_back(query.serving_rr, query.id, self.name)
         with contextlib.suppress(pykka.ActorDeadError):  # after: a crash in between keeps
-            self.ref.tell(CallFailed(query.id, future, withdrawn=True))  # the record
+            self.ref.tell(CallFailed(query.id, attempt, withdrawn=True))  # the record

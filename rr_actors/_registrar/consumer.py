@@ -20,16 +20,15 @@ from __future__ import annotations
 import logging
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import pykka
 
 from rr_actors._catalog import ClientRecord, ResourceState
-from rr_actors._core.actor import OneShotFuture
 from rr_actors._core.directory import Reply
 from rr_actors._core.replies import FutureReply, Join
-from rr_actors._registrar.calls import DueAnswers
+from rr_actors._registrar.calls import AttemptState, CallAttempt, DueAnswers
 from rr_actors._registrar.display import show_client
 from rr_actors._registrar.endpoints import ClientActor
 from rr_actors._registrar.loading import check_picklable
@@ -46,7 +45,7 @@ from rr_actors._registrar.messages import (
     give_back,
 )
 from rr_actors._registrar.state import Phase, Shared
-from rr_actors._types import Status, StatusCallback
+from rr_actors._types import Query, Status, StatusCallback
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
@@ -70,7 +69,7 @@ class Consumer:
         due: the query ids whose answers are on their way (shared with callers' threads).
         clients: `(target registrar, server)` -> its client actor.
         status_callbacks: query id -> the client status callback of that query.
-        pending_attempts: query id -> the future of a durable call in flight (this actor
+        pending_attempts: query id -> the attempt of a durable call in flight (this actor
             answers it after its commit).
         parked_notices: query id -> notices that overtook the answer they are about.
         unsettled: query id -> provider, of calls that failed as their provider died or
@@ -82,12 +81,12 @@ class Consumer:
     def __init__(
         self, shared: Shared, due: DueAnswers, redeliver: Callable[[Notice], None]
     ) -> None:
-        self.s = shared
+        self.registrar = shared
         self.due = due
         self.redeliver = redeliver
         self.clients: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
         self.status_callbacks: dict[str, StatusCallback] = {}
-        self.pending_attempts: dict[str, OneShotFuture[Any]] = {}
+        self.pending_attempts: dict[str, CallAttempt] = {}
         self.parked_notices: dict[str, list[Notice]] = {}
         self.unsettled: dict[str, str] = {}
         self.releasing: set[str] = set()
@@ -100,16 +99,46 @@ class Consumer:
 
         With `commit=False` the caller commits (once, after forgetting several).
         """
-        if query_id in self.s.catalog.clients:
-            self.s.catalog.remove_client(query_id)
+        if query_id in self.registrar.catalog.clients:
+            self.registrar.catalog.remove_client(query_id)
             self.status_callbacks.pop(query_id, None)
             if commit:
-                self.s.commit()
+                self.registrar.commit()
+
+    def drop_pending(self, query: Query, *, forget_record: bool = True) -> None:
+        """An answer this registrar does not keep: give `query`'s id back to its provider
+        and forget its pending record, if it has one (with `forget_record`)."""
+        give_back(query.serving_rr, query.id, self.registrar.name)
+        record = self.registrar.catalog.clients.get(query.id)
+        if forget_record and record is not None and not record.loaded:
+            self.registrar.catalog.remove_client(query.id)
+            self.registrar.commit()
+
+    def callback_of(self, query_id: str) -> StatusCallback | None:
+        """The client status callback of query `query_id`, if it has one."""
+        return self.status_callbacks.get(query_id)
+
+    def expect_reconcile(self, providers: Iterable[str]) -> None:
+        """Reconcile with `providers` too once this registrar serves (`reconcile_all`)."""
+        self.asked_to_reconcile.update(providers)
+
+    def withdraw_pending(self, error: RrError) -> None:
+        """This registrar stops: give up its durable calls in flight; their callers get `error`.
+
+        The `Abandon` first, then the record, so a crash in between leaves nothing at the
+        provider.
+        """
+        for record in list(self.registrar.catalog.clients.values()):
+            attempt = self.pending_attempts.pop(record.query.id, None)
+            if record.parent is None and not record.loaded and attempt is not None:
+                give_back(record.query.serving_rr, record.query.id, self.registrar.name)
+                self.on_call_failed(CallFailed(record.query.id, attempt, withdrawn=True))
+                attempt.fail(error)
 
     def release_dependencies(self, rid: str, then: Callable[[], None]) -> None:
         """Release every query resource `rid` holds as a dependency; then `then()`."""
         join = Join(then)
-        for record in self.s.catalog.dependencies(rid):
+        for record in self.registrar.catalog.dependencies(rid):
             self.release_client(record, join.add())
         join.seal()
 
@@ -129,15 +158,17 @@ class Consumer:
             then()
 
         self.releasing.add(query.id)
-        self.s.send(query.serving_rr, lambda reply: Unload(query.id, self.s.name, reply), answered)
+        self.registrar.send(
+            query.serving_rr, lambda reply: Unload(query.id, self.registrar.name, reply), answered
+        )
 
     def client(self, target_rr: str, server: str) -> pykka.ActorRef[ClientActor]:
         """The client actor for `target_rr/server`, started on first use (thesis 4.3.3)."""
         key = (target_rr, server)
         client = self.clients.get(key)
         if client is None:
-            assert self.s.ref is not None
-            client = ClientActor.start(self.s.ref, self.s.name, target_rr, server)
+            assert self.registrar.ref is not None
+            client = ClientActor.start(self.registrar.ref, self.registrar.name, target_rr, server)
             self.clients[key] = client
         return client
 
@@ -145,16 +176,16 @@ class Consumer:
 
     def on_pending(self, message: Pending) -> None:
         query_id = message.record.query.id
-        if query_id not in self.s.catalog.clients:  # (else a retry of one held)
+        if query_id not in self.registrar.catalog.clients:  # (else a retry of one held)
             record = message.record
             if self.owner_gone(record):  # a late sub-call: kept as a call of its own, so a
                 record = ClientRecord(record.query, None)  # crash meanwhile gives it back
-            self.s.catalog.add_client(record)
-            show_client(self.s, query_id)
-            failed = self.s.commit()
+            self.registrar.catalog.add_client(record)
+            show_client(self.registrar, query_id)
+            failed = self.registrar.commit()
             if failed is not None:  # not durable: the Load must not leave (rule 16)
-                self.s.catalog.remove_client(query_id)
-                self.s.commit()
+                self.registrar.catalog.remove_client(query_id)
+                self.registrar.commit()
                 message.reply.set_error(failed)
                 return
         self.pending_attempts[query_id] = message.attempt
@@ -167,19 +198,21 @@ class Consumer:
             self.answered(message.record.query.id, message.attempt)
 
     def record_answer(self, message: ClientLoaded) -> None:
-        catalog = self.s.catalog
+        catalog = self.registrar.catalog
         query = message.record.query
         self.unsettled.pop(query.id, None)  # (a retry of a call that failed as it died)
         ours = self.pending_attempts.get(query.id) is message.attempt  # (not a same-id retry's)
         if ours:
             del self.pending_attempts[query.id]
         # A durable call's answer is kept only while its caller still waits: the actor takes
-        # the caller's future before it commits, so a caller whose time runs out meanwhile
-        # reads the answer instead. A caller that took it first withdrew the call (told the
-        # provider an Abandon after its Load): its answer is not kept.
-        withdrawn = message.answer_after_commit and not message.attempt.reserve()
+        # the attempt before it commits, so a caller whose time runs out meanwhile reads
+        # the answer instead. A caller that withdrew first told the provider an Abandon
+        # after its Load; a stop failed it: its answer is not kept.
+        withdrawn = (
+            message.answer_after_commit and message.attempt.take() is not AttemptState.RECORDING
+        )
         try:
-            if withdrawn or (self.s.stopping and message.record.parent is None):
+            if withdrawn or (self.registrar.stopping and message.record.parent is None):
                 self.drop_answer(message, withdrawn=withdrawn, ours=ours)
                 return
             if self.owner_gone(message.record):
@@ -191,20 +224,20 @@ class Consumer:
                 catalog.client_loaded(query.id, query.response)
             else:
                 catalog.add_client(message.record)
-                show_client(self.s, query.id)
-            failed = self.s.commit()
+                show_client(self.registrar, query.id)
+            failed = self.registrar.commit()
             if failed is not None and message.answer_after_commit:  # durable: not kept
-                give_back(query.serving_rr, query.id, self.s.name)
+                give_back(query.serving_rr, query.id, self.registrar.name)
                 self.forget(query.id)
-                message.attempt.fulfil(exc_info=(type(failed), failed, None))
+                message.attempt.settle(error=failed)
                 return
             if message.on_status is not None:
                 self.status_callbacks[query.id] = message.on_status
             if message.answer_after_commit:
-                message.attempt.fulfil(query.response)
-        except BaseException as exc:  # a reserved future must be settled on every path
-            if message.answer_after_commit and not withdrawn and not message.attempt.done:
-                message.attempt.fulfil(exc_info=(type(exc), exc, exc.__traceback__))
+                message.attempt.settle(query.response)
+        except BaseException as exc:  # an attempt taken must be settled on every path
+            if message.answer_after_commit and not withdrawn:
+                message.attempt.settle(error=exc)  # (no-op if it was)
             raise
 
     def drop_answer(self, message: ClientLoaded, *, withdrawn: bool, ours: bool) -> None:
@@ -213,17 +246,15 @@ class Consumer:
         `ours`: `message` is the attempt that wrote the pending record (not a same-id retry).
         """
         query = message.record.query
-        if not withdrawn or self.s.stopping:  # give the id back (when stopping, the Abandon
-            give_back(query.serving_rr, query.id, self.s.name)  # stop sent may have gone first
-        record = self.s.catalog.clients.get(query.id)
-        if withdrawn and not self.s.stopping:
-            record = None  # its caller's CallFailed removes it, after its Abandon
-        if ours and record is not None and not record.loaded:  # its pending record
-            self.s.catalog.remove_client(query.id)
-            self.s.commit()
+        # A withdrawn call's caller gave the id back and its CallFailed removes the record.
+        # When stopping, give it back here too: the Abandon stop sent may have gone first.
+        if not withdrawn or self.registrar.stopping:
+            self.drop_pending(query, forget_record=ours)
         if message.answer_after_commit and not withdrawn:
-            error = RegistrarStoppedError(f"registrar {self.s.name!r} stopped during the call")
-            message.attempt.fulfil(exc_info=(type(error), error, None))
+            error = RegistrarStoppedError(
+                f"registrar {self.registrar.name!r} stopped during the call"
+            )
+            message.attempt.settle(error=error)
 
     def unstorable(self, message: ClientLoaded) -> bool:
         """A durable call's response this catalog cannot store: give it back, fail the call.
@@ -234,12 +265,8 @@ class Consumer:
         try:
             check_picklable(query.response, f"the response of '{query.serving_rr}/{query.server}'")
         except ConfigError as exc:
-            give_back(query.serving_rr, query.id, self.s.name)
-            record = self.s.catalog.clients.get(query.id)
-            if record is not None and not record.loaded:
-                self.s.catalog.remove_client(query.id)  # its pending record
-                self.s.commit()
-            message.attempt.fulfil(exc_info=(type(exc), exc, None))
+            self.drop_pending(query)
+            message.attempt.settle(error=exc)
             return True
         return False
 
@@ -251,7 +278,7 @@ class Consumer:
         """
         if record.parent is None:
             return False
-        owner = self.s.catalog.resources.get(record.parent)
+        owner = self.registrar.catalog.resources.get(record.parent)
         return owner is None or owner.state is ResourceState.UNLOADING
 
     def give_back_late_dependency(self, message: ClientLoaded) -> None:
@@ -264,17 +291,14 @@ class Consumer:
         logger.warning(
             "registrar %s: call %s to '%s/%s' returned after the load that made it had "
             "failed or was unloading; releasing it",
-            self.s.name,
+            self.registrar.name,
             query.id,
             query.serving_rr,
             query.server,
         )
-        give_back(query.serving_rr, query.id, self.s.name)
-        if query.id in self.s.catalog.clients:  # a durable consumer's pending record
-            self.s.catalog.remove_client(query.id)
-            self.s.commit()
-        if message.answer_after_commit:  # (reserved by `record_answer`)
-            message.attempt.fulfil(query.response)
+        self.drop_pending(query)  # (a durable consumer wrote its record as pending)
+        if message.answer_after_commit:  # (taken by `record_answer`)
+            message.attempt.settle(query.response)
 
     def on_call_failed(self, message: CallFailed) -> None:
         current = self.pending_attempts.get(message.query_id)
@@ -284,7 +308,7 @@ class Consumer:
             self.unsettled.pop(message.query_id, None)
             if message.serving_rr is not None:  # it may hold the id: a retry may follow
                 self.unsettled[message.query_id] = message.serving_rr
-        record = self.s.catalog.clients.get(message.query_id)
+        record = self.registrar.catalog.clients.get(message.query_id)
         try:
             if current is not None and current is not message.attempt:
                 pass  # a stale failure of an earlier attempt: the record is a retry's
@@ -308,7 +332,7 @@ class Consumer:
                 return True
         return False
 
-    def answered(self, query_id: str, attempt: OneShotFuture[Any]) -> None:
+    def answered(self, query_id: str, attempt: CallAttempt) -> None:
         """`attempt`'s answer or failure was handled: handle what waited for it."""
         if not self.due.settle(query_id, attempt):
             return
@@ -327,20 +351,20 @@ class Consumer:
             return
         for query_id in message.query_ids:
             self.forget(query_id, commit=False)
-        self.s.commit()
+        self.registrar.commit()
 
     def on_response_updated(self, message: ResponseUpdated) -> None:
         if self.parked(message):
             return
         for query_id in message.query_ids:
-            self.s.catalog.client_loaded(query_id, message.response)
-        self.s.commit()
+            self.registrar.catalog.client_loaded(query_id, message.response)
+        self.registrar.commit()
         message.reply.set_result(None)
 
     def fail_waiting(self, error: RrError) -> None:
         """Answer the durable callers and the held notices still waiting here."""
         for attempt in self.pending_attempts.values():
-            FutureReply(attempt).set_error(error)
+            attempt.fail(error)
         for notices in self.parked_notices.values():
             for notice in notices:
                 if not isinstance(notice, Revoke):  # (a revoke wants no answer)
@@ -358,14 +382,14 @@ class Consumer:
 
         Also with those that asked while setup ran (`ReconcileAsk`).
         """
-        providers = {record.query.serving_rr for record in self.s.catalog.clients.values()}
+        providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
         providers |= self.asked_to_reconcile
         self.asked_to_reconcile.clear()
         for serving_rr in sorted(providers):
             self.reconcile(serving_rr)
 
     def on_reconcile_ask(self, message: ReconcileAsk) -> None:
-        if self.s.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
+        if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
             self.asked_to_reconcile.add(message.serving_rr)
             return
         self.reconcile(message.serving_rr)
@@ -381,27 +405,29 @@ class Consumer:
         with self.due.frozen() as due:
             held = {
                 query_id
-                for query_id, record in self.s.catalog.clients.items()
+                for query_id, record in self.registrar.catalog.clients.items()
                 if record.query.serving_rr == serving_rr
             }
             held |= {q for q, provider in self.unsettled.items() if provider == serving_rr}
             held |= due  # (ids due at other providers too: harmless, reported unknown)
-            self.s.send(
+            self.registrar.send(
                 serving_rr,
-                lambda reply: Reconcile(self.s.name, tuple(sorted(held)), reply),
+                lambda reply: Reconcile(self.registrar.name, tuple(sorted(held)), reply),
                 lambda unknown, error: self.reconciled(serving_rr, unknown, error),
             )
 
     def reconciled(self, serving_rr: str, unknown: Any, error: BaseException | None) -> None:
         """The provider's answer to a `Reconcile`: report and forget what it lost."""
         if error is not None:  # not reachable: it asks for a Reconcile when it is back
-            logger.debug("reconciling %s with %s failed: %s", self.s.name, serving_rr, error)
+            logger.debug(
+                "reconciling %s with %s failed: %s", self.registrar.name, serving_rr, error
+            )
             return
         lost: dict[str, list[str]] = {}
         for query_id in unknown:
             if self.unsettled.get(query_id) == serving_rr:
                 del self.unsettled[query_id]  # it does not hold it: nothing to retry for
-            record = self.s.catalog.clients.get(query_id)
+            record = self.registrar.catalog.clients.get(query_id)
             if (
                 record is None
                 or not record.loaded
@@ -419,7 +445,7 @@ class Consumer:
             logger.warning(
                 "registrar %s: %s/%s no longer knows %d of the queries held there "
                 "(its restart lost them): FATAL, and they are forgotten",
-                self.s.name,
+                self.registrar.name,
                 serving_rr,
                 server,
                 len(ids),
@@ -445,19 +471,19 @@ class Consumer:
         self.redeliver(notice)
         for query_id in ids:
             self.forget(query_id, commit=False)
-        self.s.commit()
+        self.registrar.commit()
 
     def give_back_unsettled(self) -> None:
         """This registrar stops: give back the ids of calls that failed as their provider
         died, which it would no longer retry."""
         for query_id, serving_rr in self.unsettled.items():
-            give_back(serving_rr, query_id, self.s.name)
+            give_back(serving_rr, query_id, self.registrar.name)
         self.unsettled.clear()
 
     # -- operations the handle asks for ----------------------------------------------
 
     def op_unload(self, query_id: str, reply: Reply) -> None:
-        record = self.s.catalog.clients.get(query_id)
+        record = self.registrar.catalog.clients.get(query_id)
         if record is None or not record.loaded:
             raise UnknownQueryError(f"unknown or released query id {query_id!r}")
         query = record.query
@@ -480,16 +506,18 @@ class Consumer:
                 reply.set_result(None)
 
         self.releasing.add(query_id)
-        self.s.send(query.serving_rr, lambda r: Unload(query_id, self.s.name, r), answered)
+        self.registrar.send(
+            query.serving_rr, lambda r: Unload(query_id, self.registrar.name, r), answered
+        )
 
     def op_set_status_callback(self, query_id: str, callback: StatusCallback, reply: Reply) -> None:
-        if query_id not in self.s.catalog.clients:
+        if query_id not in self.registrar.catalog.clients:
             raise UnknownQueryError(f"unknown or released query id {query_id!r}")
         self.status_callbacks[query_id] = callback
         reply.set_result(None)
 
     def op_client_queries(self, reply: Reply) -> None:
-        reply.set_result([r.query for r in self.s.catalog.clients.values() if r.loaded])
+        reply.set_result([r.query for r in self.registrar.catalog.clients.values() if r.loaded])
 
     def op_client(self, target_rr: str, server: str, reply: Reply) -> None:
         reply.set_result(self.client(target_rr, server))

@@ -27,10 +27,8 @@ from rr_actors import events
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
 from rr_actors._core.actor import refuse
 from rr_actors._core.directory import DIRECTORY, Reply
-from rr_actors._core.replies import FutureReply
 from rr_actors._core.timers import Cancellable
 from rr_actors._registrar.messages import (
-    CallFailed,
     ClientLoaded,
     ConsumerDown,
     Crash,
@@ -94,7 +92,7 @@ class Lifecycle:
         died: threading.Event,
         ended: threading.Event,
     ) -> None:
-        self.s = shared
+        self.registrar = shared
         self.provider = provider
         self.unloading = unloading
         self.consumer = consumer
@@ -108,11 +106,11 @@ class Lifecycle:
 
     def on_start(self) -> None:
         # every provider the restored catalog knows, also those settle_in_doubt forgets
-        providers = {record.query.serving_rr for record in self.s.catalog.clients.values()}
-        self.consumer.asked_to_reconcile.update(providers)
+        providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
+        self.consumer.expect_reconcile(providers)
         self.settle_in_doubt()
         self.arm_flush_timer()
-        if self.s.phase is Phase.SERVING:  # (else once setup is done: `op_ready`)
+        if self.registrar.phase is Phase.SERVING:  # (else once setup is done: `op_ready`)
             self.reconcile()
 
     def reconcile(self) -> None:
@@ -134,33 +132,33 @@ class Lifecycle:
         was in flight is given up at its provider (its caller died with the last run), and
         so is a dependency whose resource is gone (a sub-call that outlived its load).
         """
-        catalog = self.s.catalog
+        catalog = self.registrar.catalog
         for resource in list(catalog.resources.values()):
             if resource.state is not ResourceState.LOADED:
-                if self.s.events.active:
-                    self.s.events.publish(events.InDoubt(self.s.name, resource.id))
+                if self.registrar.events.active:
+                    self.registrar.events.publish(events.InDoubt(self.registrar.name, resource.id))
                 catalog.begin_unload(resource.id)
                 self.consumer.release_dependencies(
-                    resource.id, functools.partial(self.unloading.remove_resource, resource)
+                    resource.id, functools.partial(self.provider.remove_resource, resource)
                 )
         for record in list(catalog.clients.values()):
             orphan = record.parent is not None and record.parent not in catalog.resources
             if orphan or (record.parent is None and not record.loaded):
                 query = record.query
-                give_back(query.serving_rr, query.id, self.s.name)
+                give_back(query.serving_rr, query.id, self.registrar.name)
                 catalog.remove_client(query.id)
-        self.s.commit()
+        self.registrar.commit()
 
     def op_reachable(self, reply: Reply) -> None:
         """A carrier serves it: the other processes can reach it (and answer it) now."""
-        if self.s.phase is Phase.SERVING:  # (during setup, `op_ready` reconciles)
+        if self.registrar.phase is Phase.SERVING:  # (during setup, `op_ready` reconciles)
             self.reconcile()
         reply.set_result(None)
 
     def op_ready(self, reply: Reply) -> None:
         """Setup is done: serve what waited for it (unknown servers now fail)."""
-        self.s.phase = Phase.SERVING
-        self.s.servers_settled = True
+        self.registrar.phase = Phase.SERVING
+        self.registrar.servers_settled = True
         self.provider.serve_held()
         self.reconcile()
         reply.set_result(None)
@@ -168,28 +166,28 @@ class Lifecycle:
     # -- the save interval ------------------------------------------------------------
 
     def arm_flush_timer(self) -> None:
-        ref = self.s.ref
+        ref = self.registrar.ref
 
         def tick() -> None:
             with contextlib.suppress(pykka.ActorDeadError):
                 assert ref is not None
                 ref.tell(Flush())
 
-        self.flush_timer = self.s.saver.schedule(tick)
+        self.flush_timer = self.registrar.saver.schedule(tick)
 
     def on_flush(self, _: Flush) -> None:
-        if self.s.stopping:
+        if self.registrar.stopping:
             return
         try:
-            self.s.saver.flush()
+            self.registrar.saver.flush()
         except CatalogWriteError as exc:  # the changes stay pending: the next flush tries
-            logger.warning("registrar %s: the interval save failed: %s", self.s.name, exc)
+            logger.warning("registrar %s: the interval save failed: %s", self.registrar.name, exc)
         finally:
             self.arm_flush_timer()
 
     def op_save(self, reply: Reply) -> None:
-        self.s.commit()
-        self.s.saver.flush()
+        self.registrar.commit()
+        self.registrar.saver.flush()
         reply.set_result(None)
 
     # -- requests from the handle -----------------------------------------------------
@@ -207,14 +205,16 @@ class Lifecycle:
         `AssertionError`, not this registrar's death)."""
         try:
             if check:
-                self.s.catalog.check_invariants()
+                self.registrar.catalog.check_invariants()
             view = CatalogView(
                 resources=tuple(
                     dataclasses.replace(r, consumers=dict(r.consumers))
-                    for r in self.s.catalog.read_all().values()
+                    for r in self.registrar.catalog.read_all().values()
                 ),
-                clients=tuple(dataclasses.replace(c) for c in self.s.catalog.clients.values()),
-                servers=tuple(self.s.servers),
+                clients=tuple(
+                    dataclasses.replace(c) for c in self.registrar.catalog.clients.values()
+                ),
+                servers=tuple(self.registrar.servers),
             )
         except Exception as exc:  # noqa: BLE001 - an exception here would kill the registrar
             reply.set_error(exc)
@@ -225,71 +225,73 @@ class Lifecycle:
 
     def op_stop(self, reply: Reply) -> None:
         """Unload what this registrar holds as a consumer (newest first), then stop (rule 12)."""
-        self.s.phase = Phase.STOPPING
-        stopped = RegistrarStoppedError(f"registrar {self.s.name!r} stopped during the call")
+        self.registrar.phase = Phase.STOPPING
+        stopped = RegistrarStoppedError(
+            f"registrar {self.registrar.name!r} stopped during the call"
+        )
         consumer = self.consumer
-        for record in list(self.s.catalog.clients.values()):
-            attempt = consumer.pending_attempts.pop(record.query.id, None)
-            if record.parent is None and not record.loaded and attempt is not None:
-                # a durable call in flight: give it up (the Abandon first, then the record,
-                # so a crash in between leaves nothing at the provider), tell its caller
-                give_back(record.query.serving_rr, record.query.id, self.s.name)
-                consumer.on_call_failed(CallFailed(record.query.id, attempt, withdrawn=True))
-                FutureReply(attempt).set_error(stopped)
+        consumer.withdraw_pending(stopped)
         consumer.give_back_unsettled()
         tops = [
-            r for r in reversed(self.s.catalog.clients.values()) if r.parent is None and r.loaded
+            r
+            for r in reversed(self.registrar.catalog.clients.values())
+            if r.parent is None and r.loaded
         ]
 
         def next_one() -> None:
             if tops:
                 consumer.release_client(tops.pop(0), next_one)
                 return
-            self.s.commit()
+            self.registrar.commit()
             if self.flush_timer is not None:
                 self.flush_timer.cancel()
             unsaved: CatalogWriteError | None = None
             try:
-                self.s.saver.close(erase=self.s.config.erase_on_destruct)
+                self.registrar.saver.close(erase=self.registrar.config.erase_on_destruct)
             except CatalogWriteError as exc:  # stopped anyway; its caller hears what was lost
-                logger.error("registrar %s stopped without its last changes: %s", self.s.name, exc)  # noqa: TRY400
+                name = self.registrar.name
+                logger.error("registrar %s stopped without its last changes: %s", name, exc)  # noqa: TRY400
                 unsaved = exc
-            DIRECTORY.unregister(self.s.peer, "stopped")
+            DIRECTORY.unregister(self.registrar.peer, "stopped")
             self.stop_children()
             if unsaved is None:
                 reply.set_result(None)
             else:
                 reply.set_error(unsaved)
-            self.fail_waiting(RegistrarStoppedError(f"registrar {self.s.name!r} was stopped"))
-            self.s.probe("stop_drained", None)
-            self.s.phase = Phase.ENDED
+            self.fail_waiting(
+                RegistrarStoppedError(f"registrar {self.registrar.name!r} was stopped")
+            )
+            self.registrar.probe("stop_drained", None)
+            self.registrar.phase = Phase.ENDED
             self.actor.end_now()  # at once: what arrives from now on goes to `on_late`
 
         next_one()
 
     def stop_children(self) -> None:
-        for server in self.s.servers.values():
+        for server in self.registrar.servers.values():
             server.ref.stop(block=True, timeout=5.0)
         self.consumer.stop_clients()
 
     # -- death --------------------------------------------------------------------------
 
     def on_crash(self, _: Crash) -> None:
-        raise RuntimeError(f"registrar {self.s.name!r} was made to crash (rr_actors.testing)")
+        raise RuntimeError(
+            f"registrar {self.registrar.name!r} was made to crash (rr_actors.testing)"
+        )
 
     def die(self) -> None:
         """A crash: fail every waiting caller, release this consumer's ids elsewhere."""
-        self.s.phase = Phase.ENDED
-        DIRECTORY.unregister(self.s.peer, "died")
-        self.fail_waiting(RegistrarUnavailableError(f"registrar {self.s.name!r} died"))
+        self.registrar.phase = Phase.ENDED
+        DIRECTORY.unregister(self.registrar.peer, "died")
+        self.fail_waiting(RegistrarUnavailableError(f"registrar {self.registrar.name!r} died"))
         self.stop_children()
         if self.flush_timer is not None:
             self.flush_timer.cancel()
-        self.s.saver.close(erase=False, flush=False)  # a crash writes nothing more
-        if self.s.name not in DIRECTORY.restart_expected:
+        self.registrar.saver.close(erase=False, flush=False)  # a crash writes nothing more
+        if self.registrar.name not in DIRECTORY.restart_expected:
             for peer in DIRECTORY.local_peers():
                 with contextlib.suppress(RrError):
-                    peer.tell(ConsumerDown(self.s.name))
+                    peer.tell(ConsumerDown(self.registrar.name))
         self.died.set()
 
     # -- whoever still waits ----------------------------------------------------------
@@ -297,7 +299,6 @@ class Lifecycle:
     def fail_waiting(self, error: RrError) -> None:
         """Answer everyone still waiting on this actor with `error` (it stops or died)."""
         self.provider.fail_waiting(error)
-        self.unloading.fail_waiting(error)
         self.consumer.fail_waiting(error)
         for request in list(self.open_requests):
             request.set_error(error)
@@ -314,5 +315,5 @@ class Lifecycle:
             pending.set_error(error)
         if isinstance(message, ClientLoaded):  # its id would leak at the provider
             query = message.record.query
-            give_back(query.serving_rr, query.id, self.s.name)
-            FutureReply(message.attempt).set_error(error)
+            give_back(query.serving_rr, query.id, self.registrar.name)
+            message.attempt.fail(error)

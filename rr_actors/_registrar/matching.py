@@ -98,7 +98,7 @@ class Matching:
     """
 
     def __init__(self, shared: Shared, serve: Callable[[Load], None]) -> None:
-        self.s = shared
+        self.registrar = shared
         self.serve = serve
         self.in_flight: dict[str, Load] = {}
         self.queued: dict[str, collections.deque[Load]] = {}
@@ -131,8 +131,8 @@ class Matching:
         """
         server = load.server
         self.in_flight[server] = load
-        where = f"'{self.s.name}/{server}'"
-        limit = self.s.config.compare_timeout
+        where = f"'{self.registrar.name}/{server}'"
+        limit = self.registrar.config.compare_timeout
 
         def back(value: Any, error: BaseException | None) -> None:
             if self.in_flight.get(server) is not load:  # failed by `fail_waiting` already
@@ -147,7 +147,7 @@ class Matching:
             finally:
                 self.next_in_line(server)
 
-        done = self.s.come_back(back)
+        done = self.registrar.come_back(back)
 
         def task() -> None:
             try:
@@ -173,7 +173,7 @@ class Matching:
             )
 
         try:
-            self.s.workers.submit(task, timeout=limit, on_overdue=overdue)
+            self.registrar.workers.submit(task, timeout=limit, on_overdue=overdue)
         except RuntimeError as exc:
             done.set_error(RuntimeError(f"no worker thread could start for {what}: {exc}"))
 

@@ -24,14 +24,13 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from rr_actors._catalog import ClientRecord, describe
-from rr_actors._core.actor import OneShotFuture
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.wire import WireMessage
 from rr_actors._types import Status, StatusCallback
 from rr_actors.errors import ErrorFrame, ResourceLoadError, RrError
 
 if TYPE_CHECKING:
-    from rr_actors._registrar.actor import RegistrarActor
+    from rr_actors._registrar.calls import CallAttempt
 
 __all__ = [
     "Abandon",
@@ -259,7 +258,7 @@ class Pending:
     """A durable call about to go out: write its record as pending, then answer `reply`."""
 
     record: ClientRecord
-    attempt: OneShotFuture[Any]
+    attempt: CallAttempt
     reply: Reply
 
 
@@ -269,7 +268,7 @@ class ClientLoaded:
 
     record: ClientRecord
     on_status: StatusCallback | None
-    attempt: OneShotFuture[Any]  # the caller's future
+    attempt: CallAttempt  # the caller's
     answer_after_commit: bool = False  # the registrar answers the caller, after the commit
 
 
@@ -278,7 +277,7 @@ class CallFailed:
     """A call ended without an answer to record: it failed, or its caller withdrew it."""
 
     query_id: str
-    attempt: OneShotFuture[Any]
+    attempt: CallAttempt
     withdrawn: bool = False  # given up by its caller, who told the provider an Abandon first
     serving_rr: str | None = None  # set if it failed as its provider died or stopped: it
     # may have executed, and a retry with the same id may come (held until reconciled)
@@ -288,7 +287,7 @@ class CallFailed:
 class Request:
     """A request from the handle: run `op(actor, reply)` in the actor thread."""
 
-    op: Callable[[RegistrarActor, Reply], None]
+    op: Callable[[Any, Reply], None]  # (the `RegistrarActor`: no role is imported here)
     reply: Reply
 
 

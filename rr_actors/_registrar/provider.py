@@ -1,4 +1,4 @@
-"""The provider side of a registrar actor, loading: one load per resource (rules 1-6).
+"""The provider side of a registrar actor: a resource's life, loaded once (rules 1-7).
 
 ```
  Load ──► on_load ── equal request loaded? ──yes──► add consumer, answer (a dedup hit)
@@ -6,11 +6,14 @@
                  ├── loading? ──► wait for it (one load per resource, rule 3)
                  ├── unloading? ──► parked until it is gone, then loaded afresh
                  └── new ──► start_load ──RunLoad──► server ──► load_done ──► answer waiters
+ last consumer released (unloading.py) ──► unload_resource: the resource's dependencies
+      (consumer side), then RunUnload ──► server ──► remove_resource ──► parked loads
 ```
 
 A resource belongs to its server; its consumers are query ids (one per call, rule 2).
-Callers that wait for a load, and loads parked behind an unload of the same resource,
-are this role's state; releasing and unloading is `unloading.py`'s, the servers
+Callers that wait for a load, loads parked behind an unload of the same resource, and
+callers that wait for an unload are this role's state; releasing consumer ids is
+`unloading.py`'s (it calls `give_up` and `unload_resource` here), the servers
 themselves `servers.py`'s.
 """
 
@@ -20,18 +23,17 @@ import functools
 import logging
 import time
 import uuid
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from rr_actors import events
 from rr_actors._catalog import NO_DIGEST, Resource, ResourceState, describe, request_digest
 from rr_actors._catalog.digest import requests_equal
+from rr_actors._core.directory import Reply
 from rr_actors._registrar.display import show_request, show_response
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH, check_picklable
 from rr_actors._registrar.matching import Matching, first_equal, prepare
-from rr_actors._registrar.messages import (
-    Load,
-    RunLoad,
-)
+from rr_actors._registrar.messages import Load, RunLoad, RunUnload
 from rr_actors._registrar.state import Phase, Server, Shared, Waiter
 from rr_actors.errors import (
     CallTimeoutError,
@@ -46,7 +48,6 @@ from rr_actors.errors import (
 
 if TYPE_CHECKING:
     from rr_actors._registrar.consumer import Consumer
-    from rr_actors._registrar.unloading import Unloading
 
 __all__ = ["Provider"]
 
@@ -64,13 +65,14 @@ class Provider:
         after_unload: resource id -> loads of an equal request, parked until it unloaded.
         load_started: resource id -> when its load started (`time.monotonic()`).
         matching: loads whose match user code decides, off the actor thread.
-        unloading: the role that releases and unloads (set by the actor).
+        unload_waiters: resource id -> replies waiting for its unload to finish.
+        parked_unloads: server name -> unloads of restored resources waiting for the
+            server to be registered again.
     """
 
     def __init__(self, shared: Shared, consumer: Consumer) -> None:
-        self.s = shared
+        self.registrar = shared
         self.consumer = consumer
-        self.unloading: Unloading
         self.loads: dict[str, list[Waiter]] = {}
         self.loading_ids: dict[str, str] = {}
         self.abandoned: set[str] = set()
@@ -78,25 +80,32 @@ class Provider:
         self.after_unload: dict[str, list[Load]] = {}
         self.load_started: dict[str, float] = {}
         self.matching = Matching(shared, self.serve)
+        self.unload_waiters: dict[str, list[Reply]] = {}
+        self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
 
     # -- load -------------------------------------------------------------------------
 
     def refusal(self, message: Load) -> RrError | None:
         """Why this registrar cannot take `message` at all, if it cannot."""
-        server = self.s.servers.get(message.server)
+        server = self.registrar.servers.get(message.server)
         if server is None or server.closing:
-            return UnknownServerError(f"no resource server '{self.s.name}/{message.server}'")
-        if self.s.stopping:
-            return RegistrarStoppedError(f"registrar {self.s.name!r} is stopping")
+            return UnknownServerError(
+                f"no resource server '{self.registrar.name}/{message.server}'"
+            )
+        if self.registrar.stopping:
+            return RegistrarStoppedError(f"registrar {self.registrar.name!r} is stopping")
         if len(message.chain) >= MAX_DEPENDENCY_DEPTH:
             return DependencyCycleError(
-                f"load chain deeper than {MAX_DEPENDENCY_DEPTH} at '{self.s.name}/"
+                f"load chain deeper than {MAX_DEPENDENCY_DEPTH} at '{self.registrar.name}/"
                 f"{message.server}': runaway recursion"
             )
         return None
 
     def on_load(self, message: Load) -> None:
-        if self.s.phase is Phase.SETTING_UP and message.server not in self.s.servers:
+        if (
+            self.registrar.phase is Phase.SETTING_UP
+            and message.server not in self.registrar.servers
+        ):
             self.held_loads.append(message)  # served once setup has registered its servers
             return
         if self.matching.busy(message.server):  # user code decides a match there now
@@ -121,8 +130,8 @@ class Provider:
             self.identify(message, None, digest)
             return
         pickled = None
-        if self.s.saver.store is not None:  # the backup must be able to hold the request
-            pickled = f"the request to '{self.s.name}/{message.server}'"
+        if self.registrar.saver.store is not None:  # the backup must be able to hold the request
+            pickled = f"the request to '{self.registrar.name}/{message.server}'"
 
         def prepared(key: Any, error: BaseException | None) -> None:
             if self.resumed(message, error):
@@ -150,7 +159,7 @@ class Provider:
         `key` is the request's `runtime_key` if it has no digest (else `None`); `digest`
         its digest, if it has one.
         """
-        catalog = self.s.catalog
+        catalog = self.registrar.catalog
         known: Resource | None = None
         if catalog.has_consumer(message.query_id):  # a retry of an answered call?
             known = catalog.resource_of(message.query_id)
@@ -184,7 +193,7 @@ class Provider:
     def reused(self, message: Load, server: str) -> DuplicateQueryIdError:
         return DuplicateQueryIdError(
             f"query id {message.query_id!r} was used already for another call (to "
-            f"'{self.s.name}/{server}', with another request); an id is for one call and "
+            f"'{self.registrar.name}/{server}', with another request); an id is for one call and "
             "its retries"
         )
 
@@ -192,7 +201,7 @@ class Provider:
         """A load with a query id known here: a retry of that call, or an id reused."""
         if not same:
             message.reply.set_error(self.reused(message, known.server))
-        elif self.s.catalog.has_consumer(message.query_id):  # answered: the stored response
+        elif self.registrar.catalog.has_consumer(message.query_id):  # answered: the stored response
             message.reply.set_result(known.response)
         elif message.query_id in self.loading_ids:  # it waits for the load again
             waiter = Waiter(message.query_id, message.origin_rr, message.reply)
@@ -202,7 +211,7 @@ class Provider:
 
     def look_up(self, message: Load, key: Any, digest: int | None) -> None:
         """Find an equal request on the server (rule 1), user code off this thread."""
-        found, undecided = self.s.catalog.lookup(
+        found, undecided = self.registrar.catalog.lookup(
             message.server, message.request, key, digest=digest
         )
         if not undecided:
@@ -222,24 +231,24 @@ class Provider:
 
     def matched(self, message: Load, key: Any, resource: Resource | None) -> None:
         """Act on what the request matched: share it, wait for it, or load it (rules 1-3, 6)."""
-        refusal = self.s.unwritable()  # a full disk: serve what is stored, nothing new
+        refusal = self.registrar.unwritable()  # a full disk: serve what is stored, nothing new
         if refusal is not None:
             message.reply.set_error(refusal)
             return
-        if resource is not None and resource.id not in self.s.catalog.resources:
+        if resource is not None and resource.id not in self.registrar.catalog.resources:
             resource = None  # it left while user code compared: load afresh
         if resource is not None and resource.state is ResourceState.LOADED:  # the hot path
             self.share(resource, message)
             return
         waiter = Waiter(message.query_id, message.origin_rr, message.reply)
         if resource is None:
-            self.start_load(self.s.servers[message.server], message, waiter, key)
+            self.start_load(self.registrar.servers[message.server], message, waiter, key)
         elif resource.state is ResourceState.UNLOADING:  # load it afresh once it is gone
             self.after_unload.setdefault(resource.id, []).append(message)
         elif resource.id in message.chain:
             message.reply.set_error(
                 DependencyCycleError(
-                    f"'{self.s.name}/{message.server}' is asked for "
+                    f"'{self.registrar.name}/{message.server}' is asked for "
                     f"{describe(message.request)} while loading it further up the same chain"
                 )
             )
@@ -249,71 +258,77 @@ class Provider:
 
     def share(self, resource: Resource, message: Load) -> None:
         """A dedup hit: one more consumer of a loaded resource (rules 1-2)."""
-        catalog = self.s.catalog
+        catalog = self.registrar.catalog
         catalog.add_consumer(resource.id, message.query_id, message.origin_rr)
-        failed = self.s.commit()
+        failed = self.registrar.commit()
         if failed is not None:  # not durable: the caller holds nothing
             catalog.release(message.query_id)
-            self.s.commit()
+            self.registrar.commit()
             message.reply.set_error(failed)
             return
         message.reply.set_result(resource.response)
-        if self.s.events.active:
-            self.s.events.publish(
-                events.ConsumerAdded(self.s.name, resource.id, message.query_id, message.origin_rr)
+        if self.registrar.events.active:
+            self.registrar.events.publish(
+                events.ConsumerAdded(
+                    self.registrar.name, resource.id, message.query_id, message.origin_rr
+                )
             )
 
     def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
         """Load a request not loaded here (`key`: its `runtime_key` if it has no digest)."""
-        if self.s.saver.store is not None and key is None:  # (else checked with the key)
+        if self.registrar.saver.store is not None and key is None:  # (else checked with the key)
             try:  # the backup must be able to hold the request (a plain one: no user code)
-                check_picklable(message.request, f"the request to '{self.s.name}/{server.name}'")
+                check_picklable(
+                    message.request, f"the request to '{self.registrar.name}/{server.name}'"
+                )
             except ConfigError as exc:
                 message.reply.set_error(exc)
                 return
         rid = str(uuid.uuid4())
-        resource = self.s.catalog.begin_load(rid, message.server, message.request, key=key)
-        show_request(self.s, resource, server.label)
-        failed = self.s.commit()
+        resource = self.registrar.catalog.begin_load(rid, message.server, message.request, key=key)
+        show_request(self.registrar, resource, server.label)
+        failed = self.registrar.commit()
         if failed is not None:  # not durable: load nothing (rule 16 needs the record)
-            self.s.catalog.remove_resource(rid)
-            self.s.commit()
+            self.registrar.catalog.remove_resource(rid)
+            self.registrar.commit()
             message.reply.set_error(failed)
             return
         self.loads[rid] = [waiter]
         self.loading_ids[message.query_id] = rid
         self.load_started[rid] = time.monotonic()
-        reply = self.s.come_back(lambda value, error: self.load_done(rid, value, error))
+        reply = self.registrar.come_back(lambda value, error: self.load_done(rid, value, error))
         server.ref.tell(RunLoad(rid, message.request, (*message.chain, rid), reply))
 
     def load_done(self, rid: str, response: Any, error: BaseException | None) -> None:
-        catalog = self.s.catalog
+        catalog = self.registrar.catalog
         waiters = self.loads.pop(rid)
         for waiter in waiters:
             self.loading_ids.pop(waiter.query_id, None)
         resource = catalog.resources[rid]
         started = self.load_started.pop(rid)
-        if self.s.events.active:
+        if self.registrar.events.active:
             self._published_load(resource, waiters[0].query_id, started, error)
         if error is not None:
             catalog.begin_unload(rid)
-            self.s.commit()
+            self.registrar.commit()
 
             def failed() -> None:
-                self.unloading.remove_resource(resource)
+                self.remove_resource(resource)
                 for waiter in waiters:
                     self.abandoned.discard(waiter.query_id)
                     waiter.reply.set_error(error)
 
             self.consumer.release_dependencies(rid, failed)
             return
-        show_response(self.s, catalog.finish_load(rid, response))
+        show_response(self.registrar, catalog.finish_load(rid, response))
         live = self._add_consumers(rid, waiters)
-        refusal: RrError | None = self.s.commit()  # not durable: unload it, fail the callers
-        server = self.s.servers.get(resource.server)
+        refusal: RrError | None = (
+            self.registrar.commit()
+        )  # not durable: unload it, fail the callers
+        server = self.registrar.servers.get(resource.server)
         if refusal is None and (server is None or server.closing):
             refusal = UnknownServerError(
-                f"resource server '{self.s.name}/{resource.server}' closed"
+                f"resource server '{self.registrar.name}/{resource.server}' closed"
             )
         if refusal is not None:
             for waiter in live:
@@ -324,7 +339,7 @@ class Provider:
         for waiter in live:
             waiter.reply.set_result(response)
         if not resource.consumers:  # every caller gave up (or the server closed)
-            self.unloading.unload_resource(resource, None)
+            self.unload_resource(resource, None)
 
     def _add_consumers(self, rid: str, waiters: list[Waiter]) -> list[Waiter]:
         """Make the waiters of a finished load its consumers; the ones still waiting.
@@ -332,7 +347,7 @@ class Provider:
         A waiter whose caller gave up meanwhile is answered and holds nothing; a retry
         listed twice is added once.
         """
-        catalog = self.s.catalog
+        catalog = self.registrar.catalog
         live = []
         for waiter in waiters:
             if waiter.query_id in self.abandoned:  # its caller gave up: answer, hold nothing
@@ -342,9 +357,11 @@ class Provider:
             live.append(waiter)
             if not catalog.has_consumer(waiter.query_id):
                 catalog.add_consumer(rid, waiter.query_id, waiter.origin_rr)
-                if self.s.events.active:
-                    self.s.events.publish(
-                        events.ConsumerAdded(self.s.name, rid, waiter.query_id, waiter.origin_rr)
+                if self.registrar.events.active:
+                    self.registrar.events.publish(
+                        events.ConsumerAdded(
+                            self.registrar.name, rid, waiter.query_id, waiter.origin_rr
+                        )
                     )
         return live
 
@@ -354,16 +371,18 @@ class Provider:
         """Publish how a load ended (`ResourceLoaded` or `LoadFailed`)."""
         if error is None:
             load_s = time.monotonic() - started
-            self.s.events.publish(
-                events.ResourceLoaded(self.s.name, resource.server, resource.id, query_id, load_s)
+            self.registrar.events.publish(
+                events.ResourceLoaded(
+                    self.registrar.name, resource.server, resource.id, query_id, load_s
+                )
             )
             return
         error_type, message = type(error).__qualname__, str(error)
         if isinstance(error, ResourceLoadError):  # this registrar's frame: what load raised
             error_type, message = error.stack[-1].exc_type, error.stack[-1].message
-        self.s.events.publish(
+        self.registrar.events.publish(
             events.LoadFailed(
-                self.s.name, resource.server, resource.id, query_id, error_type, message
+                self.registrar.name, resource.server, resource.id, query_id, error_type, message
             )
         )
 
@@ -373,7 +392,7 @@ class Provider:
         held, self.held_loads = self.held_loads, []
         for load in held:
             self.on_load(load)
-        self.unloading.settle_parked()
+        self.settle_parked()
 
     def unpark(self, query_id: str) -> Load | None:
         """Take the load of `query_id` out of the held, parked or queued loads, if there."""
@@ -384,10 +403,116 @@ class Provider:
                     return load
         return self.matching.take(query_id)
 
-    def after_unloaded(self, rid: str) -> None:
-        """Resource `rid` is gone: serve the loads that were parked behind its unload."""
-        for load in self.after_unload.pop(rid, ()):
+    def unload_resource(self, resource: Resource, reply: Reply | None) -> None:
+        """The last consumer left: release the dependencies, then run `unload` (rule 7)."""
+        self.registrar.probe("unload_resource", resource)
+        self.registrar.catalog.begin_unload(resource.id)
+        self.registrar.commit()
+        self.unload_waiters[resource.id] = [] if reply is None else [reply]
+
+        def run_unload() -> None:
+            server = self.registrar.servers.get(resource.server)
+            if server is None and self.registrar.servers_settled:  # setup did not bring it back
+                unloaded(None, None)
+                return
+            if server is None:  # restored, and no one has registered the server yet
+                self.parked_unloads.setdefault(resource.server, []).append(run_unload)
+                return
+            done = self.registrar.come_back(unloaded)
+            timeout = self.registrar.config.unload_timeout
+            server.ref.tell(RunUnload(resource.request, resource.response, done, timeout))
+
+        def unloaded(_: Any, error: BaseException | None) -> None:
+            overdue = isinstance(error, CallTimeoutError)
+            if overdue:  # it hangs: the resource is dropped as failed, its callers told
+                logger.error(
+                    "registrar %s: %s; resource %s (request %s) is dropped as failed, and "
+                    "whatever it still holds is the server's to clean up",
+                    self.registrar.name,
+                    error,
+                    resource.id,
+                    describe(resource.request),
+                )
+            elif error is not None:
+                logger.error(
+                    "unload callback of '%s/%s' raised; the resource is released anyway",
+                    self.registrar.name,
+                    resource.server,
+                    exc_info=error,
+                )
+            self.remove_resource(resource)
+            if self.registrar.events.active:
+                self.registrar.events.publish(
+                    events.ResourceUnloaded(self.registrar.name, resource.server, resource.id)
+                )
+            for waiting in self.unload_waiters.pop(resource.id):
+                if overdue:
+                    waiting.set_error(error)  # type: ignore[arg-type]
+                else:
+                    waiting.set_result(None)
+
+        self.consumer.release_dependencies(resource.id, run_unload)
+
+    def remove_resource(self, resource: Resource) -> None:
+        """Forget a resource that is gone (unloaded, or its load failed); serve the loads
+        parked behind its unload."""
+        self.registrar.catalog.remove_resource(resource.id)
+        self.registrar.commit()
+        for load in self.after_unload.pop(resource.id, ()):  # parked behind its unload
             self.on_load(load)
+        server = self.registrar.servers.get(resource.server)
+        if (
+            server is not None
+            and server.closing
+            and not self.registrar.catalog.resources_of(server.name)
+        ):
+            del self.registrar.servers[server.name]
+            server.ref.stop(block=False)
+
+    def wait_for_unload(self, resource: Resource, reply: Reply) -> None:
+        """Answer `reply` once `resource`'s unload is done (at once if it is not unloading)."""
+        if resource.id in self.unload_waiters:
+            self.unload_waiters[resource.id].append(reply)
+        else:
+            reply.set_result(None)
+
+    def run_parked(self, server: str) -> None:
+        """Server `server` was registered: run the unloads of its restored resources."""
+        for run_unload in self.parked_unloads.pop(server, ()):
+            run_unload()
+
+    def settle_parked(self) -> None:
+        """Setup is done: release restored resources of servers it did not bring back."""
+        for server, unloads in list(self.parked_unloads.items()):
+            if server not in self.registrar.servers:  # setup did not bring it back: release anyway
+                logger.warning(
+                    "registrar %s: server %r was not registered by setup; its restored "
+                    "resources are released without their unload callback",
+                    self.registrar.name,
+                    server,
+                )
+                del self.parked_unloads[server]
+                for run_unload in unloads:
+                    run_unload()
+
+    def give_up(self, query_id: str) -> bool:
+        """The caller of `query_id` gave up: drop its load if it is under way here.
+
+        Whether it was: a load not started yet (held, parked behind an unload, queued for
+        a match) never starts and its caller is answered as given up; one whose request
+        user code compares is answered when that is done; one that runs is answered,
+        holding nothing, when it finishes.
+        """
+        parked = self.unpark(query_id)
+        if parked is not None:
+            parked.reply.set_error(CallTimeoutError(f"call {query_id} was given up"))
+            return True
+        if self.matching.give_up(query_id):
+            return True
+        if query_id in self.loading_ids:  # it loads: answered when it finishes
+            self.abandoned.add(query_id)
+            return True
+        return False
 
     def under_way(self) -> set[str]:
         """The query ids whose loads are under way here (waiting, parked, held, matched)."""
@@ -397,7 +522,7 @@ class Provider:
         return ids
 
     def fail_waiting(self, error: RrError) -> None:
-        """Answer every caller waiting on a load here with `error`."""
+        """Answer every caller waiting on a load or an unload here with `error`."""
         for waiters in self.loads.values():
             for waiter in waiters:
                 waiter.reply.set_error(error)
@@ -405,3 +530,6 @@ class Provider:
             for load in loads:
                 load.reply.set_error(error)
         self.matching.fail_waiting(error)
+        for replies in self.unload_waiters.values():
+            for reply in replies:
+                reply.set_error(error)

@@ -1,7 +1,7 @@
 """A registrar's resource servers: register, unregister (rule 12), fetch, update responses.
 
 `unregister_server` sends `FATAL` to every consumer of the server's resources, revokes
-their ids and unloads the resources (through `unloading.py`); `fetch_queries` asked of
+their ids and unloads the resources (through `provider.py`); `fetch_queries` asked of
 this registrar lists what a consumer holds at one of its servers (rule 10);
 `update_response` replaces a stored response and tells every consumer (rule 11).
 """
@@ -23,25 +23,17 @@ from rr_actors._registrar.display import show_response
 from rr_actors._registrar.endpoints import ServerActor
 from rr_actors._registrar.messages import Fetch, ResponseUpdated, Revoke
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
-from rr_actors._registrar.state import Server, Shared
+from rr_actors._registrar.state import Server, Shared, consumers_by_origin
 from rr_actors._types import Status, StatusCallback, StatusUpdate
 from rr_actors.errors import DuplicateNameError, RrError, UnknownServerError
 
 if TYPE_CHECKING:
+    from rr_actors._registrar.provider import Provider
     from rr_actors._registrar.status import StatusRelay
-    from rr_actors._registrar.unloading import Unloading
 
-__all__ = ["Servers", "consumers_by_origin"]
+__all__ = ["Servers"]
 
 logger = logging.getLogger("rr_actors")
-
-
-def consumers_by_origin(resource: Resource) -> dict[str, tuple[str, ...]]:
-    """A resource's consumer ids, grouped by the registrar that holds them."""
-    by_origin: dict[str, list[str]] = {}
-    for query_id, origin in resource.consumers.items():
-        by_origin.setdefault(origin, []).append(query_id)
-    return {origin: tuple(ids) for origin, ids in by_origin.items()}
 
 
 def _log_failure(what: str, then: Callable[[], None], _: Any, error: BaseException | None) -> None:
@@ -54,21 +46,23 @@ def _log_failure(what: str, then: Callable[[], None], _: Any, error: BaseExcepti
 class Servers:
     """The resource servers of one registrar, and what is done to a whole server."""
 
-    def __init__(self, shared: Shared, unloading: Unloading, status: StatusRelay) -> None:
-        self.s = shared
-        self.unloading = unloading
+    def __init__(self, shared: Shared, provider: Provider, status: StatusRelay) -> None:
+        self.registrar = shared
+        self.provider = provider
         self.status = status
 
     def on_fetch(self, message: Fetch) -> None:
-        if message.server not in self.s.servers:
+        if message.server not in self.registrar.servers:
             message.reply.set_error(
-                UnknownServerError(f"no resource server '{self.s.name}/{message.server}'")
+                UnknownServerError(f"no resource server '{self.registrar.name}/{message.server}'")
             )
             return
         message.reply.set_result(
             [
                 query
-                for query in self.s.catalog.server_queries(message.server, self.s.name)
+                for query in self.registrar.catalog.server_queries(
+                    message.server, self.registrar.name
+                )
                 if query.origin_rr == message.origin_rr
             ]
         )
@@ -79,9 +73,9 @@ class Servers:
         Raises:
             UnknownServerError: there is none (or it is closing).
         """
-        server = self.s.servers.get(name)
+        server = self.registrar.servers.get(name)
         if server is None or server.closing:
-            raise UnknownServerError(f"no resource server '{self.s.name}/{name}'")
+            raise UnknownServerError(f"no resource server '{self.registrar.name}/{name}'")
         return server
 
     def op_register(
@@ -93,30 +87,32 @@ class Servers:
         reply: Reply,
         label: Callable[[Any], Any] | None = None,
     ) -> None:
-        if name in self.s.servers:
-            raise DuplicateNameError(f"resource server '{self.s.name}/{name}' already exists")
+        if name in self.registrar.servers:
+            raise DuplicateNameError(
+                f"resource server '{self.registrar.name}/{name}' already exists"
+            )
         ref = ServerActor.start(
-            self.s.name,
+            self.registrar.name,
             name,
             load,
             unload,
-            self.s.workers,
-            persisted=self.s.saver.store is not None,
+            self.registrar.workers,
+            persisted=self.registrar.saver.store is not None,
         )
-        self.s.servers[name] = Server(name, ref, on_status, label=label)
-        self.unloading.run_parked(name)
+        self.registrar.servers[name] = Server(name, ref, on_status, label=label)
+        self.provider.run_parked(name)
         reply.set_result(None)
 
     def op_unregister(self, name: str, reply: Reply) -> None:
         server = self.server(name)
         server.closing = True
         resources = [
-            r for r in self.s.catalog.resources_of(name) if r.state is ResourceState.LOADED
+            r for r in self.registrar.catalog.resources_of(name) if r.state is ResourceState.LOADED
         ]
 
         def finish() -> None:
-            if not self.s.catalog.resources_of(name) and name in self.s.servers:
-                del self.s.servers[name]
+            if not self.registrar.catalog.resources_of(name) and name in self.registrar.servers:
+                del self.registrar.servers[name]
                 server.ref.stop(block=False)
             reply.set_result(None)
 
@@ -127,51 +123,51 @@ class Servers:
 
     def close_resource(self, resource: Resource, then: Callable[[], None]) -> None:
         """Send FATAL to a resource's consumers, revoke their ids, unload it (rule 12)."""
-        self.s.probe("close_resource", resource)
+        self.registrar.probe("close_resource", resource)
         query_id = next(iter(resource.consumers))
         update = StatusUpdate(
             query_id,
             Status.FATAL,
             "resource server was unregistered",
-            f"{self.s.name}/{resource.server}",
+            f"{self.registrar.name}/{resource.server}",
         )
 
         def revoke_and_unload() -> None:
-            done = self.s.come_back(lambda *_: then())
+            done = self.registrar.come_back(lambda *_: then())
             if resource.state is not ResourceState.LOADED:  # its consumers left meanwhile
-                self.unloading.wait_for_unload(resource, done)
+                self.provider.wait_for_unload(resource, done)
                 return
             for origin, ids in consumers_by_origin(resource).items():
                 with contextlib.suppress(RrError):
                     DIRECTORY.lookup(origin).tell(Revoke(ids))
             revoked = list(resource.consumers.items())
             for qid, _ in revoked:
-                self.s.catalog.release(qid)
-            if self.s.events.active:
+                self.registrar.catalog.release(qid)
+            if self.registrar.events.active:
                 for qid, origin in revoked:
-                    self.s.events.publish(
-                        events.ConsumerReleased(self.s.name, resource.id, qid, origin)
+                    self.registrar.events.publish(
+                        events.ConsumerReleased(self.registrar.name, resource.id, qid, origin)
                     )
-            self.unloading.unload_resource(resource, done)
+            self.provider.unload_resource(resource, done)
 
-        if self.s.events.active:
-            self.s.events.publish(
-                events.StatusSent(self.s.name, query_id, update.status, update.message)
+        if self.registrar.events.active:
+            self.registrar.events.publish(
+                events.StatusSent(self.registrar.name, query_id, update.status, update.message)
             )
         # the FATAL's acknowledgements may complete on any thread: come back to this one
-        back = self.s.come_back(lambda *_: revoke_and_unload())
+        back = self.registrar.come_back(lambda *_: revoke_and_unload())
         self.status.notify(
             resource, update, str(uuid.uuid4()), query_id, lambda: back.set_result(None)
         )
 
     def op_update_response(self, query_id: str, response: Any, reply: Reply) -> None:
-        resource = self.s.catalog.resource_of(query_id)
-        self.s.catalog.set_response(resource.id, response)
-        show_response(self.s, resource)
-        self.s.commit()
+        resource = self.registrar.catalog.resource_of(query_id)
+        self.registrar.catalog.set_response(resource.id, response)
+        show_response(self.registrar, resource)
+        self.registrar.commit()
         join = Join(lambda: reply.set_result(None))
         for origin, ids in consumers_by_origin(resource).items():
-            self.s.send(
+            self.registrar.send(
                 origin,
                 functools.partial(ResponseUpdated, ids, response),
                 functools.partial(
@@ -182,4 +178,4 @@ class Servers:
 
     def op_server_queries(self, server: str, reply: Reply) -> None:
         self.server(server)
-        reply.set_result(self.s.catalog.server_queries(server, self.s.name))
+        reply.set_result(self.registrar.catalog.server_queries(server, self.registrar.name))

@@ -1,7 +1,9 @@
 """What every role of one registrar actor shares: a small state record and its helpers.
 
-The registrar actor is split by role (`provider`, `consumer`, `status`, `lifecycle`), each
-owning the state of its side. What they all use lives here: the configuration, the
+The registrar actor is split by role (`lifecycle`, `servers`, `status`, `unloading`,
+`provider`, `consumer`), each owning the state of its side and calling only the roles
+below it. What they all use lives here, the registrar's record (`Shared`, which each role
+holds as `self.registrar`): the configuration, the
 catalog (the actor is its only writer), the save policy, the resource servers, the life-
 cycle `Phase`, the worker pool for user callbacks, and the way a role asks another
 registrar without waiting (`Shared.send`: the answer comes back through the mailbox as a
@@ -19,7 +21,7 @@ from typing import Any
 import pykka
 
 from rr_actors import events
-from rr_actors._catalog import Catalog
+from rr_actors._catalog import Catalog, Resource
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Continuation, TokenReply, Tokens
@@ -31,9 +33,17 @@ from rr_actors._types import StatusCallback
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CatalogWriteError, RrError
 
-__all__ = ["OpenReply", "Phase", "Server", "Shared", "Waiter"]
+__all__ = ["OpenReply", "Phase", "Server", "Shared", "Waiter", "consumers_by_origin"]
 
 logger = logging.getLogger("rr_actors")
+
+
+def consumers_by_origin(resource: Resource) -> dict[str, tuple[str, ...]]:
+    """A resource's consumer ids, grouped by the registrar that holds them."""
+    by_origin: dict[str, list[str]] = {}
+    for query_id, origin in resource.consumers.items():
+        by_origin.setdefault(origin, []).append(query_id)
+    return {origin: tuple(ids) for origin, ids in by_origin.items()}
 
 
 class Phase(enum.Enum):
@@ -95,7 +105,7 @@ class OpenReply:
 
 
 class Shared:
-    """The state record every role of one registrar actor reads and writes.
+    """The registrar's record: what every role of its actor reads (as `self.registrar`).
 
     Only the actor's thread touches it (but `probes`, read by callers' threads too).
 

@@ -27,8 +27,7 @@ from rr_actors._catalog import Resource
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import CallbackReply, SharedJoin
 from rr_actors._registrar.messages import StatusNotice
-from rr_actors._registrar.servers import consumers_by_origin
-from rr_actors._registrar.state import Shared
+from rr_actors._registrar.state import Shared, consumers_by_origin
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors.errors import RrError
 
@@ -46,15 +45,17 @@ class StatusRelay:
     """Delivers statuses: this registrar's own, and those passing through it."""
 
     def __init__(self, shared: Shared, consumer: Consumer) -> None:
-        self.s = shared
+        self.registrar = shared
         self.consumer = consumer
         self.seen_events: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
 
     def op_send_status(self, query_id: str, status: Status, message: str, reply: Reply) -> None:
-        resource = self.s.catalog.resource_of(query_id)
-        update = StatusUpdate(query_id, status, message, f"{self.s.name}/{resource.server}")
-        if self.s.events.active:
-            self.s.events.publish(events.StatusSent(self.s.name, query_id, status, message))
+        resource = self.registrar.catalog.resource_of(query_id)
+        update = StatusUpdate(query_id, status, message, f"{self.registrar.name}/{resource.server}")
+        if self.registrar.events.active:
+            self.registrar.events.publish(
+                events.StatusSent(self.registrar.name, query_id, status, message)
+            )
         self.notify(resource, update, str(uuid.uuid4()), query_id, lambda: reply.set_result(None))
 
     def notify(
@@ -87,14 +88,14 @@ class StatusRelay:
             self.seen_events.popitem(last=False)
         join = SharedJoin(then)  # acknowledgements: no trip back through this mailbox
         sent = time.time() if sent_at is None else sent_at
-        server = self.s.servers.get(resource.server)
+        server = self.registrar.servers.get(resource.server)
         query_id = own_query_id or next(iter(resource.consumers), resource.id)
         if server is not None and server.on_status is not None:
             query = Query(
                 query_id,
                 resource.server,
-                self.s.name,
-                resource.consumers.get(query_id, self.s.name),
+                self.registrar.name,
+                resource.consumers.get(query_id, self.registrar.name),
                 resource.request,
                 resource.response,
             )
@@ -128,7 +129,7 @@ class StatusRelay:
                 done()
 
         try:
-            self.s.workers.submit(run)
+            self.registrar.workers.submit(run)
         except RuntimeError:  # no thread could start: skip the callback, keep serving
             logger.exception("no worker thread for the status callback of %s", query.id)
             done()
@@ -137,21 +138,21 @@ class StatusRelay:
         """Consumer side: run the client callbacks, climb to the dependent resources."""
         if self.consumer.parked(message):
             return
-        catalog = self.s.catalog
+        catalog = self.registrar.catalog
         join = SharedJoin(lambda: message.reply.set_result(None))
         for query_id in message.query_ids:
             record = catalog.clients.get(query_id)
             if record is None:
                 continue
             update = StatusUpdate(query_id, message.status, message.message, message.source)
-            if self.s.events.active:
+            if self.registrar.events.active:
                 latency = max(0.0, time.time() - message.sent_at)
-                self.s.events.publish(
+                self.registrar.events.publish(
                     events.StatusDelivered(
-                        self.s.name, query_id, message.status, message.hop, latency
+                        self.registrar.name, query_id, message.status, message.hop, latency
                     )
                 )
-            callback = self.consumer.status_callbacks.get(query_id)
+            callback = self.consumer.callback_of(query_id)
             if callback is not None:
                 self.run_callback(callback, record.query, update, join)
             if record.parent is not None and record.parent in catalog.resources:

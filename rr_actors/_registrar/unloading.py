@@ -1,41 +1,38 @@
-"""The provider side of a registrar actor, unloading: releases, unloads, reconciling.
+"""The provider side of a registrar actor, releasing: consumer ids given back, reconciling.
 
 ```
- Unload/Abandon/ConsumerDown ──► release ── last consumer? ──► unload_resource:
-      release the resource's dependencies (consumer side), then RunUnload ──► server
-      ──► remove_resource ──► the loads parked behind it are served (provider.py)
+ Unload/Abandon/ConsumerDown ──► release ── load under way? ──► Provider.give_up
+                                     └── last consumer? ──► Provider.unload_resource
  after a restart: ReconcileAsk ──► consumers ──► Reconcile ──► on_reconcile: the ids a
       consumer no longer holds are released; those it holds and this one lost, named
 ```
 
-Rules 7-8 (an unload runs when the last consumer id is released, after the resource's
-dependencies), rule 12 (`unregister_server` unloads through here) and the reconcile
-after a restart (`docs/explanation/failure-semantics.md`).
+Rules 7-8 (a consumer id is released once; the resource is unloaded when its last one
+is, by the provider role) and the reconcile after a restart
+(`docs/explanation/failure-semantics.md`). This role holds no state of its own: what it
+changes is the catalog's consumers, and the provider's loads through its methods.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from rr_actors import events
-from rr_actors._catalog import Resource, ResourceState, describe
+from rr_actors._catalog import ResourceState
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._registrar.messages import (
     Abandon,
     ConsumerDown,
     Reconcile,
     ReconcileAsk,
-    RunUnload,
     Unload,
 )
 from rr_actors._registrar.state import Shared
-from rr_actors.errors import CallTimeoutError, RrError, UnknownQueryError
+from rr_actors.errors import RrError, UnknownQueryError
 
 if TYPE_CHECKING:
-    from rr_actors._registrar.consumer import Consumer
     from rr_actors._registrar.provider import Provider
 
 __all__ = ["Unloading"]
@@ -44,20 +41,11 @@ logger = logging.getLogger("rr_actors")
 
 
 class Unloading:
-    """Releases consumer ids and unloads resources nobody holds any more.
+    """Releases consumer ids; a resource nobody holds any more is unloaded (`Provider`)."""
 
-    Attributes:
-        unload_waiters: resource id -> replies waiting for its unload to finish.
-        parked_unloads: server name -> unloads of restored resources waiting for the
-            server to be registered again.
-    """
-
-    def __init__(self, shared: Shared, provider: Provider, consumer: Consumer) -> None:
-        self.s = shared
+    def __init__(self, shared: Shared, provider: Provider) -> None:
+        self.registrar = shared
         self.provider = provider
-        self.consumer = consumer
-        self.unload_waiters: dict[str, list[Reply]] = {}
-        self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
 
     def on_unload(self, message: Unload) -> None:
         self.release(message.query_id, message.reply)
@@ -66,7 +54,7 @@ class Unloading:
         self.release(message.query_id, None)
 
     def on_consumer_down(self, message: ConsumerDown) -> None:
-        for query_id in self.s.catalog.consumers_from(message.origin_rr):
+        for query_id in self.registrar.catalog.consumers_from(message.origin_rr):
             self.release(query_id, None)
 
     def release(self, query_id: str, reply: Reply | None) -> None:
@@ -76,24 +64,15 @@ class Unloading:
         (nothing changes; the consumer keeps the id and may try again); a give-up
         (`reply` is `None`) is carried out and written with the next write that succeeds.
         """
-        unwritable = self.s.unwritable() if reply is not None else None
+        unwritable = self.registrar.unwritable() if reply is not None else None
         if unwritable is not None:
             reply.set_error(unwritable)  # type: ignore[union-attr]
             return
-        parked = self.provider.unpark(query_id)
-        if parked is not None:  # it waited behind an unload or for setup: it never loads
-            parked.reply.set_error(CallTimeoutError(f"call {query_id} was given up"))
-        # (or user code compares its request now: it is answered as given up when done)
-        if parked is not None or self.provider.matching.give_up(query_id):
+        if self.provider.give_up(query_id):  # its load had not finished: it never holds it
             if reply is not None:
                 reply.set_result(None)
             return
-        if query_id in self.provider.loading_ids:  # its caller gave up while it loads
-            self.provider.abandoned.add(query_id)
-            if reply is not None:
-                reply.set_result(None)
-            return
-        catalog = self.s.catalog
+        catalog = self.registrar.catalog
         try:
             resource = catalog.resource_of(query_id)
         except UnknownQueryError as exc:
@@ -102,95 +81,35 @@ class Unloading:
             return
         origin = resource.consumers[query_id]
         catalog.release(query_id)
-        failed = self.s.commit()
+        failed = self.registrar.commit()
         if failed is not None and reply is not None:  # not durable: nothing changes
             catalog.add_consumer(resource.id, query_id, origin)
-            self.s.commit()
+            self.registrar.commit()
             reply.set_error(failed)
             return
-        if self.s.events.active:
-            self.s.events.publish(
-                events.ConsumerReleased(self.s.name, resource.id, query_id, origin)
+        if self.registrar.events.active:
+            self.registrar.events.publish(
+                events.ConsumerReleased(self.registrar.name, resource.id, query_id, origin)
             )
         if resource.consumers or resource.state is not ResourceState.LOADED:
             if reply is not None:
                 reply.set_result(None)
             return
-        self.unload_resource(resource, reply)
-
-    def unload_resource(self, resource: Resource, reply: Reply | None) -> None:
-        """The last consumer left: release the dependencies, then run `unload` (rule 7)."""
-        self.s.probe("unload_resource", resource)
-        self.s.catalog.begin_unload(resource.id)
-        self.s.commit()
-        self.unload_waiters[resource.id] = [] if reply is None else [reply]
-
-        def run_unload() -> None:
-            server = self.s.servers.get(resource.server)
-            if server is None and self.s.servers_settled:  # setup did not bring it back
-                unloaded(None, None)
-                return
-            if server is None:  # restored, and no one has registered the server yet
-                self.parked_unloads.setdefault(resource.server, []).append(run_unload)
-                return
-            done = self.s.come_back(unloaded)
-            timeout = self.s.config.unload_timeout
-            server.ref.tell(RunUnload(resource.request, resource.response, done, timeout))
-
-        def unloaded(_: Any, error: BaseException | None) -> None:
-            overdue = isinstance(error, CallTimeoutError)
-            if overdue:  # it hangs: the resource is dropped as failed, its callers told
-                logger.error(
-                    "registrar %s: %s; resource %s (request %s) is dropped as failed, and "
-                    "whatever it still holds is the server's to clean up",
-                    self.s.name,
-                    error,
-                    resource.id,
-                    describe(resource.request),
-                )
-            elif error is not None:
-                logger.error(
-                    "unload callback of '%s/%s' raised; the resource is released anyway",
-                    self.s.name,
-                    resource.server,
-                    exc_info=error,
-                )
-            self.remove_resource(resource)
-            if self.s.events.active:
-                self.s.events.publish(
-                    events.ResourceUnloaded(self.s.name, resource.server, resource.id)
-                )
-            for waiting in self.unload_waiters.pop(resource.id):
-                if overdue:
-                    waiting.set_error(error)  # type: ignore[arg-type]
-                else:
-                    waiting.set_result(None)
-
-        self.consumer.release_dependencies(resource.id, run_unload)
-
-    def remove_resource(self, resource: Resource) -> None:
-        """Forget a resource that is gone; serve the loads parked behind its unload."""
-        self.s.catalog.remove_resource(resource.id)
-        self.s.commit()
-        self.provider.after_unloaded(resource.id)
-        server = self.s.servers.get(resource.server)
-        if server is not None and server.closing and not self.s.catalog.resources_of(server.name):
-            del self.s.servers[server.name]
-            server.ref.stop(block=False)
+        self.provider.unload_resource(resource, reply)
 
     def ask_to_reconcile(self) -> None:
         """This registrar serves (again): ask every registrar holding ids here to
         `Reconcile` (one that cannot be reached reconciles at its own start)."""
-        for origin in sorted(self.s.catalog.consumer_origins()):
+        for origin in sorted(self.registrar.catalog.consumer_origins()):
             with contextlib.suppress(RrError):
-                DIRECTORY.lookup(origin).tell(ReconcileAsk(self.s.name))
+                DIRECTORY.lookup(origin).tell(ReconcileAsk(self.registrar.name))
 
     def on_reconcile(self, message: Reconcile) -> None:
         """Release the ids of `origin_rr` it no longer holds; name those held here unknown.
 
         An id whose load is still under way here (waiting, parked, matched) is neither.
         """
-        catalog = self.s.catalog
+        catalog = self.registrar.catalog
         held = set(message.held)
         mine = catalog.consumer_ids_from(message.origin_rr)
         stale = sorted(mine - held)
@@ -198,7 +117,7 @@ class Unloading:
             logger.warning(
                 "registrar %s: %s no longer holds %d of its ids here (released while this "
                 "registrar was down, or lost in its own restart): releasing them",
-                self.s.name,
+                self.registrar.name,
                 message.origin_rr,
                 len(stale),
             )
@@ -208,35 +127,3 @@ class Unloading:
         under_way = self.provider.under_way()
         unknown = tuple(q for q in message.held if q not in mine and q not in under_way)
         message.reply.set_result(unknown)
-
-    def wait_for_unload(self, resource: Resource, reply: Reply) -> None:
-        """Answer `reply` once `resource`'s unload is done (at once if it is not unloading)."""
-        if resource.id in self.unload_waiters:
-            self.unload_waiters[resource.id].append(reply)
-        else:
-            reply.set_result(None)
-
-    def run_parked(self, server: str) -> None:
-        """Server `server` was registered: run the unloads of its restored resources."""
-        for run_unload in self.parked_unloads.pop(server, ()):
-            run_unload()
-
-    def settle_parked(self) -> None:
-        """Setup is done: release restored resources of servers it did not bring back."""
-        for server, unloads in list(self.parked_unloads.items()):
-            if server not in self.s.servers:  # setup did not bring it back: release anyway
-                logger.warning(
-                    "registrar %s: server %r was not registered by setup; its restored "
-                    "resources are released without their unload callback",
-                    self.s.name,
-                    server,
-                )
-                del self.parked_unloads[server]
-                for run_unload in unloads:
-                    run_unload()
-
-    def fail_waiting(self, error: RrError) -> None:
-        """Answer every caller waiting on an unload here with `error`."""
-        for replies in self.unload_waiters.values():
-            for reply in replies:
-                reply.set_error(error)

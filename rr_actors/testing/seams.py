@@ -15,12 +15,12 @@ from typing import Any, TypeVar
 
 import pykka
 
-from rr_actors._core.actor import OneShotFuture
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._process.remote import FORWARD_MARGIN, RemoteRegistrar
 from rr_actors._registrar import ResourceRegistrar
 from rr_actors._registrar.actor import RegistrarActor
+from rr_actors._registrar.calls import CallAttempt
 from rr_actors._registrar.messages import Request
 from rr_actors._registrar.probes import STEPS, Hook, Probes
 from rr_actors.errors import ConfigError, RegistrarUnavailableError
@@ -180,14 +180,15 @@ def intercept(
     return Installed(functools.partial(probes.remove, step, before=before, after=after))
 
 
-def call_futures(registrar: ResourceRegistrar, future_type: type[OneShotFuture[Any]]) -> Installed:
+def call_futures(registrar: ResourceRegistrar, future_type: type[CallAttempt]) -> Installed:
     """Make the registrar's callers wait on `future_type` futures until `close()`.
 
-    A caller waits for its answer on a one-shot future that the answering thread settles,
-    or that the caller claims when its time runs out (see
-    `docs/explanation/failure-semantics.md`). A subclass that overrides `wait`, `claim`,
-    `reserve`, `set` or `set_exception` to wait on events makes an answer race a timeout
-    at a chosen instant.
+    A caller waits for its answer on the future of its call attempt
+    (`rr_actors._registrar.calls.CallAttempt`, a one-shot future with one state), which
+    the answering thread settles, or the caller withdraws when its time runs out (see
+    `docs/explanation/failure-semantics.md`). A subclass that overrides `wait` or a
+    transition (`answer`, `fail`, `take`, `settle`, `withdraw`) to wait on events makes
+    an answer race a timeout at a chosen instant.
 
     Returns:
         What was installed; `close()` it, or use it as a context manager.
@@ -197,11 +198,14 @@ def call_futures(registrar: ResourceRegistrar, future_type: type[OneShotFuture[A
             subclass of the one-shot future.
     """
     local = _local(registrar, "call_futures")
-    if not (isinstance(future_type, type) and issubclass(future_type, OneShotFuture)):
-        raise ConfigError(f"future_type must subclass OneShotFuture, got {future_type!r}")
+    if not (isinstance(future_type, type) and issubclass(future_type, CallAttempt)):
+        raise ConfigError(
+            f"future_type must subclass CallAttempt (the OneShotFuture of a call), "
+            f"got {future_type!r}"
+        )
     calls = local._calls
-    before, calls.future_type = calls.future_type, future_type
-    return Installed(lambda: setattr(calls, "future_type", before))
+    before, calls.attempt_type = calls.attempt_type, future_type
+    return Installed(lambda: setattr(calls, "attempt_type", before))
 
 
 @contextlib.contextmanager

@@ -125,7 +125,7 @@ def test_a_waiter_whose_wait_ran_out_while_another_waiter_passed_the_value_on_ge
     timed = threading.Thread(target=wait_with_a_timeout)
     timed.start()
     assert future.staged.timed_entered.wait(10)  # it saw the future unset
-    untimed = threading.Thread(target=future.wait)
+    untimed = threading.Thread(target=future.get)
     untimed.start()
 
     future.set("ready")

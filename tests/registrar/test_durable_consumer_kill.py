@@ -103,7 +103,7 @@ def test_a_withdrawn_call_is_abandoned_at_its_provider_before_its_record_goes(
     eventually: Callable[..., bool],
 ) -> None:
     # A durable call's answer reaches the consumer; its actor is slow to take it, so the
-    # caller's time runs out: the caller claims its future and withdraws the call. Its
+    # caller's time runs out: the caller withdraws its call attempt. Its
     # pending record must stay on disk until the provider was told the Abandon: killed
     # just before that, the restarted consumer finds the record and gives the id back
     # (were the record gone, the provider would hold the id for good: a restart is
@@ -116,16 +116,16 @@ def test_a_withdrawn_call_is_abandoned_at_its_provider_before_its_record_goes(
     def arm(registrar: rr.ResourceRegistrar) -> None:
         import threading  # noqa: PLC0415 - runs in the consumer's process
 
-        from rr_actors._core.actor import OneShotFuture  # noqa: PLC0415
+        from rr_actors._registrar.calls import AttemptState, CallAttempt  # noqa: PLC0415
         from rr_actors.testing import call_futures, intercept  # noqa: PLC0415
 
         claimed, answer_handled = threading.Event(), threading.Event()
 
-        class Future(OneShotFuture[Any]):
-            def claim(self) -> bool:
-                won = super().claim()
+        class Future(CallAttempt):
+            def withdraw(self) -> AttemptState:
+                state = super().withdraw()
                 claimed.set()
-                return won
+                return state
 
         call_futures(registrar, Future)  # (until the process dies)
 

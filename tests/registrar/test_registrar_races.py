@@ -14,7 +14,7 @@ import pykka
 import pytest
 
 import rr_actors as rr
-from rr_actors._core.actor import OneShotFuture
+from rr_actors._registrar.calls import AttemptState, CallAttempt
 from rr_actors.testing import (
     actor_ref,
     call_futures,
@@ -228,8 +228,8 @@ def _busy(registrar: rr.ResourceRegistrar) -> tuple[threading.Event, pykka.Futur
 def test_a_call_interrupted_by_ctrl_c_leaves_nothing_behind(
     started: Callable[..., rr.ResourceRegistrar],
 ) -> None:
-    # The interrupted caller never records its answer: it withdraws the call (claims its
-    # future, tells its registrar, sends the provider an Abandon) before the exception
+    # The interrupted caller never records its answer: it withdraws the call (withdraws its
+    # attempt, tells its registrar, sends the provider an Abandon) before the exception
     # leaves `call`. Its answer, when it comes, is dropped.
     assert threading.current_thread() is threading.main_thread()
     provider, consumer = started("provider"), started("consumer")
@@ -283,8 +283,8 @@ def test_a_timed_out_retry_of_a_held_id_leaves_both_ends_agreeing(
     assert (set(), set()) == _left_behind(consumer)
 
 
-class _ErrorAsTheWaitRunsOut(OneShotFuture):
-    """A caller's future whose wait runs out while an error answer is being set."""
+class _ErrorAsTheWaitRunsOut(CallAttempt):
+    """A caller's attempt whose wait runs out while an error answer is being set."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -297,14 +297,15 @@ class _ErrorAsTheWaitRunsOut(OneShotFuture):
         assert self.erring.wait(10)  # the error answer is on its way...
         return False  # ...as the caller's wait runs out
 
-    def set(self, value: Any = None) -> None:
-        super().set(value)
+    def withdraw(self) -> AttemptState:
+        state = super().withdraw()
         self.withdrawn.set()
+        return state
 
-    def set_exception(self, exc_info: Any = None) -> None:
+    def fail(self, error: BaseException) -> AttemptState:
         self.erring.set()
-        assert self.withdrawn.wait(10)  # the caller claims first
-        super().set_exception(exc_info)
+        assert self.withdrawn.wait(10)  # the caller withdraws first
+        return super().fail(error)
 
 
 def test_an_error_answer_that_loses_to_the_timeout_leaves_nothing_behind(
@@ -418,44 +419,33 @@ def test_stopping_a_durable_consumer_before_its_callers_load_leaves_leaves_no_id
     assert [held.id] == [q.id for q in provider.server_queries("leaf")]
 
 
-class _ErrorLandsAsTheWaitRunsOut(OneShotFuture):
-    """The error answer has claimed the future but not written it when the wait runs out."""
+class _ErrorLandsAsTheWaitRunsOut(CallAttempt):
+    """The error answer has settled the attempt as the caller's wait runs out."""
 
     def __init__(self) -> None:
         super().__init__()
-        self.erring = threading.Event()  # set_exception took the claim
-        self.looked = threading.Event()  # the caller read `failed`
+        self.erring = threading.Event()  # the attempt failed (the error is in it)
 
     def wait(self, timeout: float | None = None) -> bool:
-        if timeout is None:  # (a caller that waits for the settle before it looks)
-            self.looked.set()
+        if timeout is None:
             return super().wait()
         assert self.erring.wait(10)
-        return False  # the caller's wait runs out; its claim() will lose
+        return False  # the caller's wait runs out; its withdraw() will lose
 
-    @property
-    def failed(self) -> bool:
-        result = self._exc_info is not None
-        self.looked.set()
-        return result
-
-    def set_exception(self, exc_info: Any = None) -> None:
-        self._take_claim()
+    def fail(self, error: BaseException) -> AttemptState:
+        state = super().fail(error)
         self.erring.set()
-        assert self.looked.wait(10)  # the caller looks before the error is written
-        self._exc_info = exc_info
-        self._settle()
+        return state
 
 
 def test_a_failed_call_whose_error_races_the_timeout_is_not_withdrawn(
     started: Callable[..., rr.ResourceRegistrar], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # DESIGN/failure-semantics: "A call that *failed* is not withdrawn" (a retry with the
-    # same id must find an id committed at a restarted provider). `call` decides
-    # `answer_came` by `not future.claim()`, then reads `future.failed` while the
-    # answering thread may still be writing the error: `failed` reads False,
-    # `future.get()` raises inside the protected region, and the `except BaseException`
-    # branch withdraws the failed call (a second `_CallFailed` and an `Abandon`).
+    # same id must find an id committed at a restarted provider). The error settles the
+    # call's attempt as the caller's wait runs out: the caller's withdraw() then finds
+    # it FAILED and raises its error; it must not withdraw the failed call (a second
+    # `CallFailed` and an `Abandon`).
     provider, consumer = started("prov"), started("cons")
 
     def load(request: Any) -> Any:
@@ -524,16 +514,16 @@ def test_a_fetch_that_lands_after_its_client_ended_is_answered_not_left_to_time_
     assert not isinstance(raised.value, rr.CallTimeoutError)
 
 
-class _CommitRacesTheTimeout(OneShotFuture):
-    """A durable caller's future whose wait runs out while the registrar commits its answer."""
+class _CommitRacesTheTimeout(CallAttempt):
+    """A durable caller's attempt whose wait runs out while the registrar commits its answer."""
 
     def __init__(self) -> None:
         super().__init__()
         self.reserved = threading.Event()  # the registrar took it, to commit the answer
-        self.tried = threading.Event()  # the caller tried to claim it
+        self.tried = threading.Event()  # the caller tried to withdraw it
 
-    def reserve(self) -> bool:
-        taken = super().reserve()
+    def take(self) -> AttemptState:
+        taken = super().take()
         self.reserved.set()
         assert self.tried.wait(10)  # the caller's time runs out before the commit
         return taken
@@ -544,10 +534,10 @@ class _CommitRacesTheTimeout(OneShotFuture):
         assert self.reserved.wait(10)
         return False
 
-    def claim(self) -> bool:
-        won = super().claim()
+    def withdraw(self) -> AttemptState:
+        state = super().withdraw()
         self.tried.set()
-        return won
+        return state
 
 
 def test_a_durable_caller_whose_time_runs_out_as_its_answer_is_committed_gets_it(

@@ -8,7 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 import rr_actors as rr
-from rr_actors._core.actor import OneShotFuture
+from rr_actors._registrar.calls import CallAttempt
 from rr_actors.testing import call_futures, catalog_snapshot, crash
 
 
@@ -186,7 +186,7 @@ def test_a_huge_finite_timeout_waits_and_a_non_finite_one_is_refused(make_regist
     assert [] == consumer.client_queries()
 
 
-class _AnswerThenTimeout(OneShotFuture):
+class _AnswerThenTimeout(CallAttempt):
     """A caller's future whose bounded wait runs out just after its answer arrived."""
 
     def wait(self, timeout=None):

@@ -1,0 +1,62 @@
+"""Fixtures of the store tests: the forkserver context, run-and-kill, a manual save clock."""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import multiprocessing.connection
+import multiprocessing.context
+import multiprocessing.forkserver
+import os
+import signal
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+from persisting import ManualTimers, RunAndKill
+
+from rr_actors._store import saver as _persistence
+
+
+@pytest.fixture(scope="session")
+def context() -> multiprocessing.context.ForkServerContext:
+    """The forkserver context, its server started before any leak check."""
+    ctx = multiprocessing.get_context("forkserver")
+    assert isinstance(ctx, multiprocessing.context.ForkServerContext)
+    ctx.set_forkserver_preload(["rr_actors", "rr_actors._store.sqlite", "cloudpickle"])
+    multiprocessing.forkserver.ensure_running()
+    return ctx
+
+
+@pytest.fixture
+def run_and_kill(context: multiprocessing.context.ForkServerContext) -> RunAndKill:
+    """`run_and_kill(target, *args, messages=1)`: run `target(*args, conn)` in a child,
+    receive `messages` messages from it, SIGKILL it, and return the messages."""
+
+    def run(target: Callable[..., None], *args: Any, messages: int = 1) -> list[Any]:
+        parent_end, child_end = context.Pipe()
+        process = context.Process(target=target, args=(*args, child_end), daemon=True)
+        process.start()
+        child_end.close()
+        received = []
+        try:
+            for _ in range(messages):
+                assert parent_end.poll(30), "the child did not report in time"
+                received.append(parent_end.recv())
+        finally:
+            assert process.pid is not None
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(process.pid, signal.SIGKILL)
+            process.join(10)
+            parent_end.close()
+        assert process.exitcode == -signal.SIGKILL
+        return received
+
+    return run
+
+
+@pytest.fixture
+def timers(monkeypatch: pytest.MonkeyPatch) -> ManualTimers:
+    manual = ManualTimers()
+    monkeypatch.setattr(_persistence, "timer_factory", manual)
+    return manual

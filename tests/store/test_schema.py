@@ -1,0 +1,283 @@
+"""Restore without decoding, digests and older schemas (`_store/schema.py`, `codec.py`)."""
+
+from __future__ import annotations
+
+import os
+import sqlite3
+import subprocess
+import sys
+import uuid
+from pathlib import Path
+
+import pytest
+from persisting import (
+    catalog_with_a_gone_class,
+    lazily_restored,
+    reopen,
+    stored_catalog,
+    write_v1_backup,
+)
+
+import rr_actors as rr
+from rr_actors._catalog import (
+    DIGEST_SCHEME,
+    Catalog,
+    ResourceState,
+    request_digest,
+)
+from rr_actors._store import schema
+from rr_actors._store.files import read_backup
+from rr_actors._store.sqlite import SqliteStore
+
+
+def test_a_restore_reads_a_served_resource_only_when_a_lookup_needs_it(tmp_path: Path) -> None:
+    stored_catalog(tmp_path / "p.db", [{"n": n} for n in range(6)])
+    store, catalog, waiting = lazily_restored(tmp_path / "p.db")
+    try:
+        in_memory = len(catalog.resources)
+        found = catalog.find("leaf", {"n": 2})  # by digest, through the index
+        by_consumer = catalog.resource_of("q4")  # by consumer id, from the columns
+        known = (catalog.has_consumer("q5"), catalog.has_consumer("q-never"))
+        after = sorted(catalog.resources)
+        of_server = [r.id for r in catalog.resources_of("leaf")]
+        catalog.check_invariants()
+    finally:
+        store.close(erase=False)
+
+    assert (6, 0, "r2", "r4", (True, False), ["r2", "r4", "r5"]) == (
+        waiting,
+        in_memory,
+        found.id if found else None,
+        by_consumer.id,
+        known,
+        after,
+    )
+    assert sorted(of_server) == [f"r{n}" for n in range(6)]
+
+
+def test_a_consumer_id_holding_the_column_separator_is_restored_all_the_same(
+    tmp_path: Path,
+) -> None:
+    store = SqliteStore.open(tmp_path / "p.db")
+    store.load()
+    catalog = Catalog()
+    for n, query_id in enumerate(["plain", "with\x1funit separator", "with,comma"]):
+        catalog.begin_load(f"r{n}", "leaf", n)
+        catalog.finish_load(f"r{n}", n)
+        catalog.add_consumer(f"r{n}", query_id, "C")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    store, restored, _ = lazily_restored(tmp_path / "p.db")
+    try:
+        found = [restored.resource_of(q).id for q in ("with,comma", "with\x1funit separator")]
+        missing = restored.has_consumer("with")
+    finally:
+        store.close(erase=False)
+
+    assert (["r2", "r1"], False) == (found, missing)
+
+
+def test_memory_wins_over_rows_not_written_yet_for_a_lazily_restored_catalog(
+    tmp_path: Path,
+) -> None:
+    """A release or removal not flushed yet (save_interval) must not come back from disk."""
+    stored_catalog(tmp_path / "p.db", [{"n": n} for n in range(4)])
+    store, catalog, _ = lazily_restored(tmp_path / "p.db")
+    try:
+        resource = catalog.resource_of("q1")
+        catalog.release("q1")
+        catalog.begin_unload(resource.id)
+        catalog.remove_resource(resource.id)
+        pending = catalog.drain_changes()  # held back, as a save_interval registrar does
+        seen = (
+            catalog.has_consumer("q1"),
+            catalog.find("leaf", {"n": 1}),
+            "r1" in catalog.read_all(),
+        )
+        store.write(pending)
+    finally:
+        store.close(erase=False)
+
+    assert ((False, None, False), ["r0", "r2", "r3"]) == (
+        seen,
+        sorted(r.id for r in read_backup(tmp_path / "p.db").resources),
+    )
+
+
+def test_consumers_from_an_origin_include_those_of_resources_still_on_disk(
+    tmp_path: Path,
+) -> None:
+    store = SqliteStore.open(tmp_path / "p.db")
+    store.load()
+    catalog = Catalog()
+    for n in range(6):
+        catalog.begin_load(f"r{n}", "leaf", n)
+        catalog.finish_load(f"r{n}", n)
+        catalog.add_consumer(f"r{n}", f"a{n}", "A")
+        if n % 2:
+            catalog.add_consumer(f"r{n}", f"b{n}", "B")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    store, restored, _ = lazily_restored(tmp_path / "p.db")
+    try:
+        from_b = restored.consumers_from("B")
+        listed = [r.id for r in restored.read_all().values()]
+    finally:
+        store.close(erase=False)
+
+    assert (["b1", "b3", "b5"], [f"r{n}" for n in range(6)]) == (sorted(from_b), listed)
+
+
+def test_a_restore_leaves_requests_and_responses_encoded_until_first_used(tmp_path: Path) -> None:
+    stored_catalog(tmp_path / "p.db", [{"n": n} for n in range(5)])
+    store = SqliteStore.open(tmp_path / "p.db")
+    rows = store.load()
+    store.close(erase=False)
+    assert rows is not None
+
+    catalog = Catalog.restore(*rows)
+    found = catalog.find("leaf", {"n": 3})
+
+    assert found is not None
+    decoded = [sorted({"request", "response"} & set(vars(r))) for r in catalog.resources.values()]
+    assert [[], [], [], ["request"], []] == decoded
+    assert ({"n": 3}, {"pid": 3}) == (found.request, found.response)
+
+
+def test_a_stored_value_whose_class_is_gone_raises_catalog_corrupt_error_when_first_used(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    catalog_with_a_gone_class(tmp_path / "p.db", monkeypatch)
+
+    catalog = reopen(tmp_path / "p.db")
+    with pytest.raises(rr.CatalogCorruptError) as raised:
+        _ = catalog.resources["r1"].response
+
+    assert (str(tmp_path / "p.db"), True, {"pid": 0}) == (
+        raised.value.path,
+        "response of resource r1 cannot be read" in raised.value.cause,
+        catalog.resources["r0"].response,
+    )
+
+
+def test_a_new_response_for_a_restored_resource_reaches_the_file(tmp_path: Path) -> None:
+    stored_catalog(tmp_path / "p.db", ["a", "b"])
+    store = SqliteStore.open(tmp_path / "p.db")
+    rows = store.load()
+    assert rows is not None
+    catalog = Catalog.restore(*rows)
+    _ = catalog.resources["r0"].response  # decoded: not a change
+    catalog.set_response("r0", "old one decoded, then kept")
+    catalog.set_response("r1", "replaced without a look")
+    catalog.set_response("r0", catalog.resources["r0"].response)
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    assert ["old one decoded, then kept", "replaced without a look"] == [
+        r.response for r in reopen(tmp_path / "p.db").resources.values()
+    ]
+
+
+def test_the_stored_digest_is_the_same_in_a_process_with_another_string_hash_seed(
+    tmp_path: Path,
+) -> None:
+    request = {
+        "cmd": ["driver", "--id", "7"],
+        "on": True,
+        "rate": 2.5,
+        "mode": ResourceState.LOADED,
+    }
+    stored_catalog(tmp_path / "p.db", [request])
+    code = (
+        "from rr_actors._catalog import ResourceState, request_digest; "
+        "print(request_digest({'rate': 2.5, 'on': 1, 'cmd': ['driver', '--id', '7'], "
+        "'mode': ResourceState.LOADED}))"
+    )
+    env = {**os.environ, "PYTHONHASHSEED": "12345"}
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    ).stdout
+    db = sqlite3.connect(tmp_path / "p.db")
+    try:
+        [(stored,)] = db.execute("SELECT digest FROM resources").fetchall()
+    finally:
+        db.close()
+
+    assert int(out) == stored
+
+
+def test_digests_written_under_another_scheme_are_recomputed_when_the_file_is_opened(
+    tmp_path: Path,
+) -> None:
+    stored_catalog(tmp_path / "p.db", [{"n": 1}, ["x"]])
+    db = sqlite3.connect(tmp_path / "p.db")
+    db.execute("UPDATE resources SET digest = 42")
+    db.execute("UPDATE rr_actors_schema SET digest_scheme = 'another-python'")
+    db.commit()
+    db.close()
+
+    catalog = reopen(tmp_path / "p.db")
+
+    assert ("r0", "r1") == (catalog.find("leaf", {"n": 1.0}).id, catalog.find("leaf", ["x"]).id)
+
+
+def test_a_version_1_backup_is_migrated_to_digests_integer_states_and_consumer_rows(
+    tmp_path: Path,
+) -> None:
+    write_v1_backup(tmp_path / "p.db")
+
+    catalog = reopen(tmp_path / "p.db")
+
+    db = sqlite3.connect(tmp_path / "p.db")
+    try:
+        stored = db.execute("SELECT version, digest_scheme FROM rr_actors_schema").fetchall()
+        digests = db.execute("SELECT digest, state FROM resources ORDER BY seq").fetchall()
+        consumers = db.execute("SELECT query_id, resource FROM consumers").fetchall()
+    finally:
+        db.close()
+    assert [(schema.SCHEMA_VERSION, DIGEST_SCHEME)] == stored
+    assert [(request_digest({"n": 0}), 1), (request_digest("x"), 0)] == digests
+    assert [("q0", 1)] == consumers
+    assert (
+        "r0",
+        ["q0"],
+        ResourceState.LOADING,
+        ["d0"],
+    ) == (
+        catalog.find("leaf", {"n": 0}).id,
+        list(catalog.resources["r0"].consumers),
+        catalog.resources["r1"].state,
+        [c.query.id for c in catalog.dependencies("r0")],
+    )
+
+
+def test_a_request_without_a_digest_is_restored_and_found_by_equality(tmp_path: Path) -> None:
+    stored_catalog(tmp_path / "p.db", [ResourceState.LOADED, ("tuple", ResourceState.LOADING)])
+
+    catalog = reopen(tmp_path / "p.db")
+
+    assert ("r0", "r1") == (
+        catalog.find("leaf", ResourceState.LOADED).id,
+        catalog.find("leaf", ("tuple", ResourceState.LOADING)).id,
+    )
+
+
+def test_a_call_that_meets_an_unreadable_restored_value_fails_and_the_registrar_keeps_serving(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    catalog_with_a_gone_class(tmp_path / "p.db", monkeypatch)
+    name = f"p-{uuid.uuid4().hex[:8]}"
+    provider = rr.ResourceRegistrar.start(rr.RegistrarConfig(name, backup_path=tmp_path / "p.db"))
+    consumer = rr.ResourceRegistrar.start(f"c-{uuid.uuid4().hex[:8]}")
+    try:
+        provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: None)
+        with pytest.raises(rr.CatalogCorruptError):
+            consumer.call(name, "leaf", "other", timeout=5)
+        served = consumer.call(name, "leaf", "plain", timeout=5)
+
+        assert ({"pid": 0}, True) == (served.response, provider.is_alive())
+    finally:
+        consumer.stop()
+        provider.stop()
