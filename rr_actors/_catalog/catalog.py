@@ -190,6 +190,24 @@ class Catalog:
         resource.response_version += 1
         self._dirty_resources.add(rid)
 
+    def set_texts(
+        self,
+        rid: str,
+        *,
+        request_text: str | None = None,
+        response_text: str | None = None,
+        label: str | None = None,
+    ) -> None:
+        """Set a resource's display texts or label (those given; `None`: keep it)."""
+        resource = self.resources[rid]
+        if request_text is not None:
+            resource.request_text = request_text
+        if response_text is not None:
+            resource.response_text = response_text
+        if label is not None:
+            resource.label = label
+        self._dirty_resources.add(rid)
+
     def begin_unload(self, rid: str) -> Resource:
         """Mark a resource `UNLOADING` (its last consumer left)."""
         resource = self.resources[rid]
@@ -355,6 +373,11 @@ class Catalog:
         record.response_version += 1
         self._dirty_clients.add(query_id)
         return record
+
+    def set_client_text(self, query_id: str, request_text: str) -> None:
+        """Set a client record's request display text."""
+        self.clients[query_id].request_text = request_text
+        self._dirty_clients.add(query_id)
 
     def remove_client(self, query_id: str) -> ClientRecord:
         """Delete an outbound query record.

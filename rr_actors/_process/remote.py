@@ -215,6 +215,7 @@ class RemoteRegistrar(RegistrarFacts):
         unload: Callable[[Any, Any], None],
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
+        label: Callable[[Any], str] | None = None,
     ) -> None:
         """`ResourceRegistrar.register_server`; the callbacks run in the registrar's process.
 
@@ -225,7 +226,7 @@ class RemoteRegistrar(RegistrarFacts):
         """
         self._forward(
             lambda reg: reg.register_server(
-                name, load=load, unload=unload, on_status=on_status, timeout=timeout
+                name, load=load, unload=unload, on_status=on_status, timeout=timeout, label=label
             ),
             timeout,
         )

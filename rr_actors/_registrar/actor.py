@@ -145,7 +145,9 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     # -- from the handle (`handle.py`), each answered through its reply --
     RegisterServer: (
         "register_server",
-        asked(lambda a, m, r: a.servers.op_register(m.name, m.load, m.unload, m.on_status, r)),
+        asked(
+            lambda a, m, r: a.servers.op_register(m.name, m.load, m.unload, m.on_status, r, m.label)
+        ),
     ),
     UnregisterServer: (
         "unregister_server",

@@ -29,6 +29,7 @@ from rr_actors._catalog import ClientRecord, ResourceState
 from rr_actors._core.directory import Reply
 from rr_actors._core.replies import FutureReply, Join
 from rr_actors._registrar.calls import AttemptState, CallAttempt, DueAnswers
+from rr_actors._registrar.display import show_client
 from rr_actors._registrar.endpoints import ClientActor, Clients
 from rr_actors._registrar.loading import check_picklable
 from rr_actors._registrar.messages import (
@@ -179,6 +180,7 @@ class Consumer:
             if self.owner_gone(record):  # a late sub-call: kept as a call of its own, so a
                 record = ClientRecord(record.query, None)  # crash meanwhile gives it back
             self.registrar.catalog.add_client(record)
+            show_client(self.registrar, query_id)
             failed = self.registrar.commit()
             if failed is not None:  # not durable: the Load must not leave (rule 16)
                 self.registrar.catalog.remove_client(query_id)
@@ -221,6 +223,7 @@ class Consumer:
                 catalog.client_loaded(query.id, query.response)
             else:
                 catalog.add_client(message.record)
+                show_client(self.registrar, query.id)
             failed = self.registrar.commit()
             if failed is not None and message.answer_after_commit:  # durable: not kept
                 give_back(query.serving_rr, query.id, self.registrar.name)

@@ -13,6 +13,7 @@ else holds the actor's ref or builds a message to it from a closure.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import uuid
 from collections.abc import Callable
@@ -114,6 +115,7 @@ class ResourceRegistrar(RegistrarFacts):
         self._config = config
         self._restored = launched.restored
         self._in_doubt = launched.in_doubt
+        self._in_doubt_texts = launched.in_doubt_texts
         self._clients = launched.clients  # one cache: the actor starts, the handle looks up
         self._died = launched.died  # set when a crash of the actor was fully handled
         self._ended = launched.ended  # set when the actor handed on its last message
@@ -199,6 +201,7 @@ class ResourceRegistrar(RegistrarFacts):
         unload: UnloadCallback,
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
+        label: Callable[[Any], str] | None = None,
     ) -> None:
         """Register a resource server `"<registrar>/<name>"`.
 
@@ -210,6 +213,14 @@ class ResourceRegistrar(RegistrarFacts):
             on_status: `on_status(query, update)`, run once on a worker thread when a status
                 about one of this server's resources is sent or passes through.
             timeout: seconds to wait for the registrar.
+            label: `label(request) -> str`, a short name for a resource that the observer
+                shows (`lidar2` rather than the whole request). It runs once per resource,
+                when its load starts, on a worker thread of this process, bounded by
+                `RegistrarConfig.compare_timeout`; the text is kept in the catalog (and
+                its backup), cut to 40 characters. If it raises (anything, `SystemExit`
+                included), returns something else than a `str` or overruns the bound,
+                the label reads `<label failed: ...>`; the load is not affected. Without
+                it, the observer shows what tells the server's requests apart.
 
         Raises:
             ConfigError: a callback is not callable or the name is invalid.
@@ -220,11 +231,12 @@ class ResourceRegistrar(RegistrarFacts):
         """
         if not isinstance(name, str) or not name or "/" in name:
             raise ConfigError(f"server name must be a non-empty string without '/', got {name!r}")
-        for arg, fn in (("load", load), ("unload", unload), ("on_status", on_status)):
+        callbacks = (("load", load), ("unload", unload), ("on_status", on_status), ("label", label))
+        for arg, fn in callbacks:
             if fn is not None and not callable(fn):
                 raise ConfigError(f"{arg} must be callable, got {fn!r}")
         self._ask(
-            RegisterServer(name, load, unload, on_status, FutureReply()),
+            RegisterServer(name, load, unload, on_status, label, FutureReply()),
             timeout,
             f"register_server({name!r})",
         )
@@ -589,4 +601,4 @@ def snapshot(registrar: ResourceRegistrar, *, timeout: float, check: bool) -> Ca
         timeout,
         "catalog_snapshot()" if check else "a snapshot of the catalog",
     )
-    return view
+    return dataclasses.replace(view, in_doubt=registrar._in_doubt_texts)

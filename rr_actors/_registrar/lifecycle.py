@@ -62,11 +62,14 @@ class CatalogView:
         resources: the served resources, each with a copy of its consumers.
         clients: the client records (queries this registrar holds).
         servers: the names of its registered resource servers.
+        in_doubt: the id and request display text of each resource found in doubt at
+            its restore (`ResourceRegistrar.in_doubt`).
     """
 
     resources: tuple[Resource, ...]
     clients: tuple[ClientRecord, ...]
     servers: tuple[str, ...] = ()
+    in_doubt: tuple[tuple[str, str | None], ...] = ()
 
 
 class Lifecycle:

@@ -335,6 +335,7 @@ class RegisterServer:
     load: LoadCallback
     unload: UnloadCallback
     on_status: StatusCallback | None
+    label: Callable[[Any], Any] | None
     reply: FutureReply
 
 

@@ -19,6 +19,7 @@ from rr_actors import events
 from rr_actors._catalog import Resource, ResourceState
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import Join
+from rr_actors._registrar.display import show_response
 from rr_actors._registrar.endpoints import ServerActor
 from rr_actors._registrar.messages import Fetch, ResponseUpdated, Revoke
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
@@ -95,6 +96,7 @@ class Servers:
         unload: UnloadCallback,
         on_status: StatusCallback | None,
         reply: Reply,
+        label: Callable[[Any], Any] | None = None,
     ) -> None:
         if name in self.registrar.servers:
             raise DuplicateNameError(
@@ -108,7 +110,7 @@ class Servers:
             self.registrar.workers,
             persisted=self.registrar.saver.store is not None,
         )
-        self.registrar.servers[name] = Server(name, ref, on_status)
+        self.registrar.servers[name] = Server(name, ref, on_status, label=label)
         self.provider.run_parked(name)
         reply.set_result(None)
 
@@ -172,6 +174,7 @@ class Servers:
     def op_update_response(self, query_id: str, response: Any, reply: Reply) -> None:
         resource = self.registrar.catalog.resource_of(query_id)
         self.registrar.catalog.set_response(resource.id, response)
+        show_response(self.registrar, resource)
         self.registrar.commit()
         join = Join(lambda: reply.set_result(None))
         for origin, ids in consumers_by_origin(resource).items():

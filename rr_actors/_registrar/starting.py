@@ -59,6 +59,8 @@ class Launched:
     published: Publisher[events.Event]
     clients: Clients
     """Its client actors: the actor starts them, the handle looks them up."""
+    in_doubt_texts: tuple[tuple[str, str | None], ...] = ()
+    """Each in-doubt resource's id and its stored request display text (`display.py`)."""
 
 
 def launch(
@@ -88,11 +90,11 @@ def launch(
     saver: Saver | None = None
     try:
         saver, catalog, restored = open_catalog(config)
+        doubtful = [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]
         in_doubt = tuple(
-            Query(r.id, r.server, config.name, config.name, r.request, r.response)
-            for r in catalog.resources.values()
-            if r.state is not ResourceState.LOADED
+            Query(r.id, r.server, config.name, config.name, r.request, r.response) for r in doubtful
         )
+        in_doubt_texts = tuple((r.id, r.request_text) for r in doubtful)
         died, ended, due, clients = threading.Event(), threading.Event(), DueAnswers(), Clients()
         published = events.publisher(EVENT_LOG)
         published.relay_to(upstream)
@@ -113,7 +115,9 @@ def launch(
             saver.close(erase=False, flush=False)
         DIRECTORY.unregister(peer, "stopped")
         raise
-    return Launched(config, ref, restored, in_doubt, due, died, ended, published, clients)
+    return Launched(
+        config, ref, restored, in_doubt, due, died, ended, published, clients, in_doubt_texts
+    )
 
 
 class Served:

@@ -12,7 +12,9 @@
 
 Both only read: the live source asks each registrar for a copy of its rows (in its own
 process, see `_probe.py`), the backup source reads the files read-only
-(`rr_actors._store.read_backup`). Every wait is bounded; `close()` ends the threads.
+(`rr_actors._store.read_backup`) and unpickles nothing: it shows the display texts each
+registrar stored with its values (unpickling would run code from a file that may be
+another user's). Every wait is bounded; `close()` ends the threads.
 """
 
 from __future__ import annotations
@@ -391,12 +393,15 @@ def backup_files(state_dir: str | os.PathLike[str]) -> list[Path]:
 def read_catalogs(files: list[Path]) -> dict[str, dict[str, Any]]:
     """Read every backup (registrar name: the file's stem) into catalog summaries.
 
+    Nothing is unpickled (`read_backup(unpickle=False)`): a summary shows the display
+    texts the registrar stored, so a backup any user wrote can be looked at safely.
+
     Raises:
         CatalogCorruptError: a file is not a readable catalog (the error names it).
     """
     catalogs = {}
     for file in files:
-        backup = read_backup(file)
+        backup = read_backup(file, unpickle=False)
         catalogs[file.stem] = {
             **summarise_catalog(file.stem, backup.resources, backup.clients),
             "schema_version": backup.schema_version,
