@@ -380,8 +380,20 @@ class ManagerProcess:
             logger.exception("exit handler of manager %s raised", self.name)
         finally:
             self.process.join(5.0)  # reaped by now, or soon: the forkserver's word
+            release(self.process)
             if self._exit_watch is not None:
                 self._exit_watch.close()
+
+
+def release(process: Any) -> None:
+    """Close the descriptors a reaped process object holds (its sentinel pipe, ...).
+
+    Not left to the garbage collector: whoever keeps a reference (an error's traceback
+    that went through `Supervisor.run_in`, say) would keep them open. A process that is
+    not reaped yet keeps them (`close` refuses); they go with the object then.
+    """
+    with contextlib.suppress(ValueError, OSError):
+        process.close()
 
 
 def _launch(
@@ -437,13 +449,14 @@ def _await_ready(name: str, process: Any, conn: Connection, start_timeout: float
                 process.kill()
             process.join(5.0)
             conn.close()
+            reason = describe(process.exitcode).reason
+            release(process)
             if left <= 0:
                 raise CallTimeoutError(f"manager {name!r} was not ready within {start_timeout:g} s")
-            raise RegistrarUnavailableError(
-                f"manager {name!r} died while starting ({describe(process.exitcode).reason})"
-            )
+            raise RegistrarUnavailableError(f"manager {name!r} died while starting ({reason})")
     if ready[0] != "ready":
         process.join(5.0)
         conn.close()
+        release(process)
         raise RegistrarUnavailableError(f"manager {name!r} failed to start:\n{ready[1]}")
     return early

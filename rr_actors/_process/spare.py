@@ -97,6 +97,8 @@ class Spare:
             with contextlib.suppress(OSError, ValueError):
                 self.process.kill()
             self.process.join(timeout)
+        with contextlib.suppress(OSError, ValueError):  # its sentinel pipe, now
+            self.process.close()
 
 
 class SparePool:
