@@ -14,12 +14,10 @@ import os
 import random as _random
 import re
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
+from rr_actors._types import Setup
 from rr_actors.errors import ConfigError
-
-if TYPE_CHECKING:
-    from rr_actors._registrar import ResourceRegistrar
 
 __all__ = [
     "DEFAULT_MAX_MESSAGE_BYTES",
@@ -40,7 +38,6 @@ __all__ = [
 RestartType = Literal["permanent", "transient", "temporary"]
 Strategy = Literal["one_for_one", "one_for_all", "rest_for_one"]
 Isolation = Literal["thread", "process"]
-Setup = Callable[["ResourceRegistrar"], object]
 
 _NAME = re.compile(r"[A-Za-z0-9_.\-]+")
 """A valid name, matched whole (`fullmatch`: `$` would accept a trailing newline)."""

@@ -38,7 +38,6 @@ from rr_actors.observe._view import dependency_graph, summarise_catalog
 if TYPE_CHECKING:
     from rr_actors._core.bus import Subscription
     from rr_actors._registrar import ResourceRegistrar
-    from rr_actors._supervision.children import ChildInfo
 
 __all__ = [
     "CATALOG_INTERVAL",
@@ -68,6 +67,25 @@ POLL_INTERVAL = 1.0
 """Seconds between two looks at a state directory's backup files."""
 
 
+class ChildView(Protocol):
+    """What the observer reads of a child's snapshot (`rr_actors.ChildInfo`, a layer up)."""
+
+    @property
+    def kind(self) -> str: ...
+    @property
+    def isolation(self) -> str | None: ...
+    @property
+    def restart(self) -> str: ...
+    @property
+    def state(self) -> str: ...
+    @property
+    def pid(self) -> int | None: ...
+    @property
+    def restarts(self) -> int: ...
+    @property
+    def last_exit(self) -> str | None: ...
+
+
 class Observable(Protocol):
     """The public part of a `Supervisor` the observer uses."""
 
@@ -79,7 +97,7 @@ class Observable(Protocol):
     def gave_up(self) -> Exception | None:
         """Its give-up error, if it gave up."""
 
-    def child(self, name: str) -> ChildInfo:
+    def child(self, name: str) -> ChildView:
         """The snapshot of child `name`."""
 
     def subscribe(
