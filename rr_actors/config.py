@@ -13,7 +13,7 @@ import math
 import os
 import random as _random
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Literal
 
 from rr_actors._types import Setup
@@ -32,7 +32,9 @@ __all__ = [
     "SupervisorSpec",
     "check_choice",
     "check_seconds",
+    "managers",
     "tree_names",
+    "walk",
 ]
 
 RestartType = Literal["permanent", "transient", "temporary"]
@@ -385,17 +387,32 @@ class SupervisorSpec:
 
     def has_processes(self) -> bool:
         """Whether any manager in this subtree runs in its own process."""
-        return any(
-            c.has_processes() if isinstance(c, SupervisorSpec) else c.isolation == "process"
-            for c in self.children
-        )
+        return any(isinstance(c, ManagerSpec) and c.isolation == "process" for c, _ in walk(self))
+
+
+def walk(
+    spec: SupervisorSpec, path: tuple[SupervisorSpec, ...] = ()
+) -> Iterator[tuple[ManagerSpec | SupervisorSpec, tuple[SupervisorSpec, ...]]]:
+    """Every child below `spec`, depth first, each with the supervisors above it.
+
+    The one walk over a spec tree: names, managers and state directories are read
+    through it.
+
+    Yields:
+        `(child, path)`: `path` runs from `spec` down to the child's own supervisor.
+    """
+    path = (*path, spec)
+    for child in spec.children:
+        yield child, path
+        if isinstance(child, SupervisorSpec):
+            yield from walk(child, path)
 
 
 def tree_names(spec: SupervisorSpec) -> list[str]:
     """The names of every child below `spec`, depth first (duplicates kept)."""
-    names: list[str] = []
-    for child in spec.children:
-        names.append(child.name)
-        if isinstance(child, SupervisorSpec):
-            names.extend(tree_names(child))
-    return names
+    return [child.name for child, _ in walk(spec)]
+
+
+def managers(spec: SupervisorSpec) -> list[ManagerSpec]:
+    """Every manager below `spec`, depth first."""
+    return [child for child, _ in walk(spec) if isinstance(child, ManagerSpec)]

@@ -363,7 +363,7 @@ class _ControlLoop:
         registrar = self.registrar
         self.stopping.set()
         if message.restarting:  # stopped to be restarted with its group:
-            DIRECTORY.restarting.add(registrar.name)  # no tombstone, peers see "unavailable"
+            DIRECTORY.mark_restarting([registrar.name])  # no tombstone: "unavailable"
         code = 0
         try:
             registrar.stop(timeout=message.timeout)

@@ -283,10 +283,8 @@ class Lifecycle:
         if self.flush_timer is not None:
             self.flush_timer.cancel()
         self.s.saver.close(erase=False, flush=False)  # a crash writes nothing more
-        if self.s.name not in DIRECTORY.restart_expected:
-            for peer in DIRECTORY.local_peers():
-                with contextlib.suppress(RrError):
-                    peer.tell(ConsumerDown(self.s.name))
+        if not DIRECTORY.restart_expected(self.s.name):
+            DIRECTORY.broadcast(ConsumerDown(self.s.name), skip=self.s.name)
         self.died.set()
 
     # -- whoever still waits ----------------------------------------------------------

@@ -24,8 +24,8 @@ from typing import Any
 
 from rr_actors._registrar import ResourceRegistrar
 from rr_actors._types import Status
-from rr_actors.config import ManagerSpec, SupervisorSpec
-from rr_actors.observe._sources import Observable, managers
+from rr_actors.config import ManagerSpec, SupervisorSpec, managers
+from rr_actors.observe._sources import Observable
 
 __all__ = ["FATAL_MESSAGE", "FaultRefused", "Faults"]
 
