@@ -64,41 +64,22 @@ from rr_actors.errors import (
 __all__ = ["RegistrarFacts", "ResourceRegistrar", "snapshot", "start_registrar"]
 
 
+@dataclasses.dataclass(frozen=True)
 class RegistrarFacts:
-    """What a registrar handle knows without asking its actor (shared by every handle)."""
+    """What a registrar handle knows without asking its actor; every handle holds one.
 
-    _config: RegistrarConfig
-    _restored: bool
-    _in_doubt: tuple[Query, ...]
+    Attributes:
+        config: the configuration it was started with.
+        restored: whether the catalog was restored from an existing backup at start.
+        in_doubt: loads (or unloads) a crash cut short in the last run, found at restore.
+    """
 
-    @property
-    def name(self) -> str:
-        """The registrar's name."""
-        return self._config.name
-
-    @property
-    def config(self) -> RegistrarConfig:
-        """The configuration it was started with."""
-        return self._config
-
-    @property
-    def restored(self) -> bool:
-        """Whether the catalog was restored from an existing backup at start."""
-        return self._restored
-
-    @property
-    def in_doubt(self) -> tuple[Query, ...]:
-        """Loads (or unloads) a crash cut short in the last run, found at restore (rule 16).
-
-        Each is a `Query` whose `id` is the resource id, whose `request` is what the load
-        was for and whose `response` is `None` for a load that never finished. They are
-        no longer in the catalog and their dependencies were released; the manager
-        decides whether something its callback started must be cleaned up.
-        """
-        return self._in_doubt
+    config: RegistrarConfig
+    restored: bool = False
+    in_doubt: tuple[Query, ...] = ()
 
 
-class ResourceRegistrar(RegistrarFacts):
+class ResourceRegistrar:
     """A manager's resource registrar (thesis 4.3.1, `RrBase`).
 
     Start one with [`ResourceRegistrar.start`][rr_actors.ResourceRegistrar.start]. Its
@@ -113,8 +94,7 @@ class ResourceRegistrar(RegistrarFacts):
         ref = launched.ref
         self._ref = ref
         self._config = config
-        self._restored = launched.restored
-        self._in_doubt = launched.in_doubt
+        self._facts = RegistrarFacts(config, launched.restored, launched.in_doubt)
         self._in_doubt_texts = launched.in_doubt_texts
         self._clients = launched.clients  # one cache: the actor starts, the handle looks up
         self._died = launched.died  # set when a crash of the actor was fully handled
@@ -130,6 +110,32 @@ class ResourceRegistrar(RegistrarFacts):
             stored=config.backup_path is not None,
             probes=lambda: self._probes,
         )
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        return self._facts.config.name
+
+    @property
+    def config(self) -> RegistrarConfig:
+        """The configuration it was started with."""
+        return self._facts.config
+
+    @property
+    def restored(self) -> bool:
+        """Whether the catalog was restored from an existing backup at start."""
+        return self._facts.restored
+
+    @property
+    def in_doubt(self) -> tuple[Query, ...]:
+        """Loads (or unloads) a crash cut short in the last run, found at restore (rule 16).
+
+        Each is a `Query` whose `id` is the resource id, whose `request` is what the load
+        was for and whose `response` is `None` for a load that never finished. They are
+        no longer in the catalog and their dependencies were released; the manager
+        decides whether something its callback started must be cleaned up.
+        """
+        return self._facts.in_doubt
 
     @classmethod
     def start(

@@ -280,10 +280,8 @@ class Lifecycle:
         if self.flush_timer is not None:
             self.flush_timer.cancel()
         self.registrar.saver.close(erase=False, flush=False)  # a crash writes nothing more
-        if self.registrar.name not in DIRECTORY.restart_expected:
-            for peer in DIRECTORY.local_peers():
-                with contextlib.suppress(RrError):
-                    peer.tell(ConsumerDown(self.registrar.name))
+        if not DIRECTORY.restart_expected(self.registrar.name):
+            DIRECTORY.broadcast(ConsumerDown(self.registrar.name), skip=self.registrar.name)
         self.died.set()
 
     # -- whoever still waits ----------------------------------------------------------

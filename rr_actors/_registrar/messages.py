@@ -36,7 +36,7 @@ from rr_actors._types import Status, StatusCallback
 from rr_actors.errors import ResourceLoadError, RrError
 
 if TYPE_CHECKING:
-    from rr_actors._registrar.calls import CallAttempt
+    from rr_actors._registrar.attempt import CallAttempt
 
 __all__ = [
     "Abandon",

@@ -20,7 +20,7 @@ import dataclasses
 import logging
 import threading
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Literal, Protocol
+from typing import TYPE_CHECKING, Literal, Protocol
 
 from rr_actors._process.manager import ManagerExit, ManagerProcess, stopped_cleanly
 from rr_actors._registrar import Served, start_registrar
@@ -38,6 +38,7 @@ if TYPE_CHECKING:
     from rr_actors._process.spare import SparePool
     from rr_actors._supervision.node import Node
     from rr_actors._supervision.relay import EventRelay
+    from rr_actors._transport.base import Address, Transport
 
 __all__ = [
     "Child",
@@ -149,7 +150,7 @@ class ThreadManager:
         self,
         spec: ManagerSpec,
         config: RegistrarConfig,
-        attached: Any,
+        attached: Transport | None,
         on_exit: Callable[[ManagerExit], None],
         relay: EventRelay | None = None,
     ) -> None:
@@ -182,7 +183,7 @@ class ThreadManager:
     def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
         """Stop the registrar cleanly; tell its actor to crash if that takes too long.
 
-        (`restarting`: its name is in `DIRECTORY.restarting` already, this process's.)
+        (`restarting`: `DIRECTORY.mark_restarting` has its name already, this process's.)
         """
         timeout = self.spec.shutdown if timeout is None else timeout
         self.stopping = True
@@ -216,7 +217,7 @@ class ProcessManager:
         spec: ManagerSpec,
         setup: bytes,
         config: RegistrarConfig,
-        address: Any,
+        address: Address | None,
         on_exit: Callable[[ManagerExit], None],
         spares: SparePool | None,
         relay: EventRelay | None = None,

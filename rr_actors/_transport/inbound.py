@@ -21,10 +21,10 @@ import socket
 import threading
 import time
 from multiprocessing import AuthenticationError
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._transport.base import Endpoint
+from rr_actors._transport.base import Endpoint, Member
 from rr_actors._transport.codec import (
     NO_REPLY,
     Oversized,
@@ -50,9 +50,6 @@ from rr_actors.errors import (
     RrError,
     TransferError,
 )
-
-if TYPE_CHECKING:
-    from rr_actors._transport.unix import AttachedSystem
 
 __all__ = ["Listener"]
 
@@ -254,7 +251,7 @@ class Listener:
     its heartbeat answer and its supervisor restart a manager that stays unable to.
     """
 
-    def __init__(self, system: AttachedSystem, endpoint: Endpoint) -> None:
+    def __init__(self, system: Member, endpoint: Endpoint) -> None:
         self.name = endpoint.name
         self.endpoint = endpoint
         self.max_message_bytes = endpoint.max_message_bytes

@@ -20,10 +20,11 @@ import threading
 from collections.abc import Callable
 from multiprocessing import AuthenticationError
 from multiprocessing.connection import Connection
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from rr_actors._core.directory import Reply
 from rr_actors._core.replies import FutureReply, wait
+from rr_actors._transport.base import Member
 from rr_actors._transport.codec import (
     NO_REPLY,
     Oversized,
@@ -45,9 +46,6 @@ from rr_actors.errors import (
     RegistrarUnavailableError,
     RrError,
 )
-
-if TYPE_CHECKING:
-    from rr_actors._transport.unix import AttachedSystem
 
 __all__ = ["RemotePeer"]
 
@@ -80,7 +78,7 @@ class RemotePeer:
     resolves the kept replies.
     """
 
-    def __init__(self, system: AttachedSystem, name: str) -> None:
+    def __init__(self, system: Member, name: str) -> None:
         self.name = name
         self._system = system
         self._path = system.address.socket_path(name)

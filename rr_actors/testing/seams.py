@@ -216,13 +216,13 @@ def expect_restart(name: str) -> Iterator[None]:
     A supervisor says so for every child it will restart: the providers then keep the
     dead registrar's consumer ids for its restored catalog (no death watch).
     """
-    known = name in DIRECTORY.restart_expected
-    DIRECTORY.restart_expected.add(name)
+    known = DIRECTORY.restart_expected(name)
+    DIRECTORY.expect_restart(name)
     try:
         yield
     finally:
         if not known:
-            DIRECTORY.restart_expected.discard(name)
+            DIRECTORY.expect_restart(name, expected=False)
 
 
 @dataclasses.dataclass(frozen=True)

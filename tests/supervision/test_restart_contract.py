@@ -68,7 +68,7 @@ def test_a_restarted_consumer_gives_back_an_id_its_provider_answered_but_it_neve
     consumer_config = rr.RegistrarConfig(name=_name("C"), backup_path=path, save_on_modify=True)
     consumer = rr.ResourceRegistrar.start(consumer_config)
     restarted: rr.ResourceRegistrar | None = None
-    DIRECTORY.restart_expected.add(consumer.name)  # as a supervisor does: no death watch
+    DIRECTORY.expect_restart(consumer.name)  # as a supervisor does: no death watch
     try:
         provider.register_server("leaf", load=lambda r: {"pid": r}, unload=unload)
         query = consumer.call(provider.name, "leaf", "camera", timeout=5)
@@ -93,7 +93,7 @@ def test_a_restarted_consumer_gives_back_an_id_its_provider_answered_but_it_neve
             restarted.client_queries(),
         )
     finally:
-        DIRECTORY.restart_expected.discard(consumer_config.name)
+        DIRECTORY.expect_restart(consumer_config.name, expected=False)
         if restarted is not None:
             restarted.stop()
         provider.stop()
@@ -115,7 +115,7 @@ def test_set_status_callback_reattaches_a_callback_to_a_query_restored_after_a_r
     consumer_config = rr.RegistrarConfig(name=_name("C"), backup_path=path, save_on_modify=True)
     consumer = rr.ResourceRegistrar.start(consumer_config)
     restarted: rr.ResourceRegistrar | None = None
-    DIRECTORY.restart_expected.add(consumer.name)
+    DIRECTORY.expect_restart(consumer.name)
     try:
         provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: None)
         query = consumer.call(provider.name, "leaf", "camera", timeout=5)
@@ -128,7 +128,7 @@ def test_set_status_callback_reattaches_a_callback_to_a_query_restored_after_a_r
         assert got.wait(5)
         assert [(query.id, query.id, rr.Status.ERROR)] == updates
     finally:
-        DIRECTORY.restart_expected.discard(consumer_config.name)
+        DIRECTORY.expect_restart(consumer_config.name, expected=False)
         if restarted is not None:
             restarted.stop()
         provider.stop()
@@ -149,7 +149,7 @@ def test_a_sub_call_written_down_after_its_load_failed_is_given_back_after_a_cra
     agent = rr.ResourceRegistrar.start(config)
     consumer = rr.ResourceRegistrar.start(_name("C"))
     restarted: rr.ResourceRegistrar | None = None
-    DIRECTORY.restart_expected.add(config.name)  # as a supervisor does: no death watch
+    DIRECTORY.expect_restart(config.name)  # as a supervisor does: no death watch
     failed, started, gate, unloaded = (threading.Event() for _ in range(4))
     pool = ThreadPoolExecutor(1)
     try:
@@ -189,7 +189,7 @@ def test_a_sub_call_written_down_after_its_load_failed_is_given_back_after_a_cra
         gate.set()
         failed.set()
         pool.shutdown()
-        DIRECTORY.restart_expected.discard(config.name)
+        DIRECTORY.expect_restart(config.name, expected=False)
         for registrar in (consumer, restarted, provider):
             if registrar is not None:
                 registrar.stop()
@@ -204,7 +204,7 @@ def test_a_restart_gives_back_a_dependency_whose_resource_is_gone(tmp_path: Path
     provider = rr.ResourceRegistrar.start(_name("P"))
     agent = rr.ResourceRegistrar.start(config)
     restarted: rr.ResourceRegistrar | None = None
-    DIRECTORY.restart_expected.add(config.name)
+    DIRECTORY.expect_restart(config.name)
     unloaded = threading.Event()
     try:
         provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: unloaded.set())
@@ -223,7 +223,7 @@ def test_a_restart_gives_back_a_dependency_whose_resource_is_gone(tmp_path: Path
         assert [] == provider.server_queries("leaf")
         assert () == catalog_snapshot(restarted).clients
     finally:
-        DIRECTORY.restart_expected.discard(config.name)
+        DIRECTORY.expect_restart(config.name, expected=False)
         for registrar in (restarted, provider):
             if registrar is not None:
                 registrar.stop()
