@@ -89,19 +89,20 @@ logger = logging.getLogger("rr_actors")
 
 
 def set_title(name: str) -> None:
-    """Name this process `rr-actors: <name>` for `ps`, `top` and `pstree`.
+    """Name this process after its manager for `ps`, `top` and `pstree`.
 
-    With the `setproctitle` package installed (extra `title`) the whole command line is
-    replaced (`ps aux` shows it); without it the platform sets the kernel's 15-byte
-    process name where it can (`ps -o comm`; Linux's `prctl(PR_SET_NAME)`).
+    The kernel's 15-byte process name (`ps -o comm`, `top`; Linux's `prctl(PR_SET_NAME)`)
+    becomes the name itself, which a prefix would crowd out. With the `setproctitle`
+    package installed (extra `title`) the command line becomes `rr-actors: <name>` too
+    (`ps aux`).
     """
-    title = f"{TITLE_PREFIX}{name}"
     try:
         import setproctitle  # noqa: PLC0415 - optional; preloaded by the forkserver
     except ImportError:
-        PLATFORM.set_process_name(title)
-        return
-    setproctitle.setproctitle(title)
+        pass
+    else:
+        setproctitle.setproctitle(f"{TITLE_PREFIX}{name}")
+    PLATFORM.set_process_name(name)  # after setproctitle, which may set it to the title
 
 
 class _Control:
