@@ -15,8 +15,9 @@ raise, cut a manager's connections) and when they come (fixed times, seeded rand
 intervals, or after an event). Every run is a fresh run process; the same seed gives the
 same fault schedule. The plan format: `docs/reference/plan.md`.
 
-Modules: `plan` (a plan as data), `reading` (reading and validating plans, on the
-typed checks of `_checks`), `schedule` (the seeded fault schedule),
+Modules: `plan` (a plan as data; its field types are the schema), `reading` (reading
+and validating plans: msgspec checks the types, `reading` the rules between values),
+`schedule` (the seeded fault schedule),
 `runner` / `workload` / `inject` (one run, in its run process), `metrics` (numbers from
 events), `experiment` (`run`: the runs and the output files), `plot` (figures),
 `services` (a generic manager for plans), `cli` (`rr-actors experiment`).
