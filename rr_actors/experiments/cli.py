@@ -1,6 +1,7 @@
-"""`rr-actors experiment PLAN.toml --out DIR`: run an experiment from the command line.
+"""`rr-actors experiment PLAN --out DIR`: run an experiment from the command line.
 
-    rr-actors experiment examples/experiments/strategies.toml --out results
+    rr-actors experiment --list                  # the shipped plans
+    rr-actors experiment strategies --out results
     rr-actors experiment plan.toml --out results --repeat 5 --seed 42 --force
 
 On a terminal with `rich` installed (`pip install 'rr-actors[experiments]'`) a progress
@@ -20,7 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 from rr_actors.errors import ConfigError
-from rr_actors.experiments import experiment
+from rr_actors.experiments import experiment, plans
 from rr_actors.experiments.experiment import (
     ExperimentError,
     ExperimentInterruptedError,
@@ -59,12 +60,17 @@ def _positive_float(text: str) -> float:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the `experiment` subcommand's arguments to `parser`."""
-    parser.add_argument("plan", help="the plan file (TOML; see docs/reference/plan.md)")
+    parser.add_argument(
+        "plan",
+        nargs="?",
+        help="a plan file (TOML), or the name of a plan shipped with rr_actors (--list); "
+        f"the format: {plans.REFERENCE} (also docs/reference/plan.md in the documentation)",
+    )
+    parser.add_argument("--list", action="store_true", help="name the shipped plans and exit")
     parser.add_argument(
         "--out",
-        required=True,
-        help="output directory: events.jsonl, runs.csv, faults.csv, recovery.png, "
-        "timeline.png, plan.toml (must be empty or new, unless --force)",
+        help="output directory (required to run): events.jsonl, runs.csv, faults.csv, "
+        "recovery.png, timeline.png, plan.toml (must be empty or new, unless --force)",
     )
     parser.add_argument(
         "--repeat",
@@ -261,10 +267,15 @@ def main(args: argparse.Namespace, stream: TextIO) -> int:
     Returns:
         0 done; 1 a run failed; 2 bad input (nothing was started); 130 interrupted.
     """
+    if args.list:
+        return _list(stream)
+    if args.plan is None or args.out is None:
+        _error(f"give {'a PLAN and ' if args.plan is None else ''}--out DIR (or --list)")
+        return 2
     display = _Display(stream, quiet=args.quiet)
     interrupted = False
     try:
-        plan = load_plan(args.plan)
+        plan = load_plan(_plan_file(args.plan))
         if args.observe:
             require_extra()  # before --out is made
         experiment.prepare_out(Path(args.out), force=args.force, what="--out")
@@ -291,6 +302,25 @@ def main(args: argparse.Namespace, stream: TextIO) -> int:
         interrupted = True
     _summary(display, results, interrupted=interrupted)
     return INTERRUPTED_EXIT if interrupted else 0
+
+
+def _list(stream: TextIO) -> int:
+    for name, path in plans.shipped().items():
+        description = load_plan(path).description
+        stream.write(f"{name:<12} {description}\n")
+    stream.write(f"(in {plans.HERE}; the format: {plans.REFERENCE})\n")
+    return 0
+
+
+def _plan_file(plan: str) -> Path:
+    """The file `plan` names (see `plans.find`), or a `ConfigError` naming the shipped ones."""
+    path = plans.find(plan)
+    if not path.exists() and path.parent == Path():
+        raise ConfigError(
+            f"{plan}: no such file, and no shipped plan of that name "
+            f"(shipped: {', '.join(plans.shipped())})"
+        )
+    return path
 
 
 def _summary(display: _Display, results: Results, *, interrupted: bool) -> None:
