@@ -8,15 +8,21 @@ On a terminal with `rich` installed (`pip install 'rr-actors[experiments]'`) a p
 bar shows the runs; elsewhere one line per finished run. At the end: a summary per
 compared value and the files written. Exit codes: 0 done; 1 a run failed; 2 bad input
 (the plan, an option, the output directory, the platform), found before anything
-started; 130 interrupted (Ctrl-C), with the finished runs kept.
+started; 130 interrupted (Ctrl-C), 143 stopped (SIGTERM), with the finished runs kept and
+nothing else left behind. A full disk under `--out` is exit 1, one line; the files then
+hold the runs written before it, and agree with each other.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import statistics
 import sys
 import textwrap
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -265,15 +271,41 @@ def main(args: argparse.Namespace, stream: TextIO) -> int:
         stream: where progress and the summary go (errors go to standard error).
 
     Returns:
-        0 done; 1 a run failed; 2 bad input (nothing was started); 130 interrupted.
+        0 done; 1 a run failed (or `--out` could not be written); 2 bad input (nothing was
+        started); 130 interrupted (Ctrl-C); 143 stopped (SIGTERM).
     """
     if args.list:
         return _list(stream)
     if args.plan is None or args.out is None:
         _error(f"give {'a PLAN and ' if args.plan is None else ''}--out DIR (or --list)")
         return 2
+    with _one_ctrl_c():
+        return _run(args, stream)
+
+
+@contextlib.contextmanager
+def _one_ctrl_c() -> Iterator[None]:
+    """The first Ctrl-C stops the experiment; the ones after it are ignored (it is stopping:
+    they would cut its cleanup, its plots or its summary short)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def first(_signum: int, _frame: object) -> None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, first)
+    try:
+        yield
+    finally:
+        if signal.getsignal(signal.SIGINT) is first:  # after a Ctrl-C, ignored to the end
+            signal.signal(signal.SIGINT, previous)
+
+
+def _run(args: argparse.Namespace, stream: TextIO) -> int:
     display = _Display(stream, quiet=args.quiet)
-    interrupted = False
+    interrupted = 0
     try:
         plan = load_plan(_plan_file(args.plan))
         if args.observe:
@@ -299,9 +331,9 @@ def main(args: argparse.Namespace, stream: TextIO) -> int:
         return 1
     except ExperimentInterruptedError as exc:
         results = exc.results
-        interrupted = True
-    _summary(display, results, interrupted=interrupted)
-    return INTERRUPTED_EXIT if interrupted else 0
+        interrupted = 128 + exc.signum  # 130 after Ctrl-C, 143 after SIGTERM
+    _summary(display, results, interrupted=bool(interrupted))
+    return interrupted or 0
 
 
 def _list(stream: TextIO) -> int:
