@@ -163,3 +163,31 @@ def test_a_full_disk_under_out_is_one_line_exit_1_and_files_that_agree(tmp_path:
     assert [] == leftovers
     assert [] == list(temp.glob("rr-experiment-*"))
     assert "Traceback" not in stdout + stderr
+
+
+def test_a_disk_that_fills_up_after_a_run_keeps_that_run_in_every_file(tmp_path: Path) -> None:
+    measure = tmp_path / "measure"
+    measured, _ = start(tmp_path, measure, "--repeat", "1")
+    assert 0 == measured.wait(timeout=60)
+    finish(measured)
+    one_run = sum(p.stat().st_size for p in measure.iterdir() if not p.name.endswith(".png"))
+    (tmp_path / "temp").rename(tmp_path / "measured-temp")
+    with mounted(tmp_path / "disk", size="4m") as disk:
+        filler = fill(disk)
+        room = (one_run * 3 // 2 // 4096 + 1) * 4096  # run 1 fits (same seed), run 2 does not
+        os.truncate(filler, max(0, filler.stat().st_size - room))
+        out = disk / "out"
+        cli, temp = start(tmp_path, out, "--repeat", "2")
+        stdout, stderr = finish(cli)
+
+        events = (out / "events.jsonl").read_bytes()
+        listed = {row["run"] for row in rows(out / "runs.csv")}
+        logged = {str(json.loads(line)["run"]) for line in events.splitlines()}
+        faulted = {row["run"] for row in rows(out / "faults.csv")}
+
+    assert 1 == cli.returncode, stdout + stderr
+    assert 1 == len(stderr.splitlines()), stderr
+    assert "run 2 was not added; the files hold the 1 run(s) before it" in stderr
+    assert events.endswith(b"\n")
+    assert listed == logged == faulted == {"1"}
+    assert [] == list(temp.glob("rr-experiment-*"))
