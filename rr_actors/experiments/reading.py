@@ -421,31 +421,17 @@ class _Reader:
             raise self.error(
                 path, say if when else "say when: give one of 'at', 'every' or 'after'"
             )
-        rules = [  # (key, whether it is wrong here, what is wrong)
-            *(
-                (k, "every" not in table, "only goes with 'every'")
-                for k in ("start", "stop", "count")
-            ),
-            ("delay", "after" not in table, "only goes with 'after'"),
-            *(
-                (k, kind != "load_error", "only goes with kind 'load_error'")
-                for k in ("loads", "server", "message")
-            ),
-            ("for", kind not in ("hang_manager", "load_error"), f"does not go with kind {kind!r}"),
-            (
-                "loads",
-                "for" in table,
-                "give either 'for' (seconds) or 'loads' (a number), not both",
-            ),
-        ]
-        for key, wrong, problem in rules:
-            if key in table and wrong:
-                raise self.error((*path, key), problem)
-        given: dict[str, Any] = {
-            k: table[k] if isinstance(table[k], list) else [table[k]]
-            for k in ("at", "target")
-            if k in table
-        }
+        for key in table:
+            if key in ONLY_WITH and ONLY_WITH[key] not in table:
+                raise self.error((*path, key), f"only goes with {ONLY_WITH[key]!r}")
+            if key in ("loads", "server", "message") and kind != "load_error":
+                raise self.error((*path, key), "only goes with kind 'load_error'")
+        if "for" in table and kind not in ("hang_manager", "load_error"):
+            raise self.error((*path, "for"), f"does not go with kind {kind!r}")
+        if "for" in table and "loads" in table:
+            problem = "give either 'for' (seconds) or 'loads' (a number), not both"
+            raise self.error((*path, "loads"), problem)
+        given = {k: v if isinstance(v, list) else [v] for k, v in table.items() if k in LISTS}
         every = table.get("every")  # read here: msgspec 0.22 crashes on its union type
         if isinstance(every, dict):
             self.table(every, (*path, "every"), ("min", "max"))
@@ -456,16 +442,12 @@ class _Reader:
             )
             if high < low:
                 raise self.error((*path, "every", "max"), f"must not be less than min ({low:g} s)")
-        given["every"] = (
-            None
-            if every is None
-            else (low, high)
-            if isinstance(every, dict)
-            else self.check(every, Interval, (*path, "every"))
-        )
+            every = (low, high)
+        elif every is not None:
+            every = self.check(every, Interval, (*path, "every"))
         after = self.trigger(table["after"], (*path, "after"), names) if "after" in table else None
         fault: FaultPlan = self.build(
-            FaultPlan, {**table, **given}, path, kind=kind, after=after, every=given["every"]
+            FaultPlan, {**table, **given}, path, kind=kind, after=after, every=every
         )
         self.targets(fault, table, path, managers)
         self.timing(fault, table, path, duration)
@@ -621,5 +603,7 @@ class _Reader:
 
 
 SUPERVISOR = ("name", "strategy", "max_restarts", "period", "backoff", "children")
+ONLY_WITH = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
+LISTS = ("at", "target")  # a fault's keys that take one value or an array of them
 WORKLOAD = ("clients", "rate", "arrivals", "hold", "timeout", "calls")
 FAULT = (*(TOML_KEY.get(f.name, f.name) for f in dataclasses.fields(FaultPlan)),)
