@@ -17,6 +17,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
 from small_disk import fill, mounted
 
 SERVICE = "rr_actors.experiments.services:service"
@@ -97,6 +98,7 @@ def finish(cli: subprocess.Popen[str]) -> tuple[str, str]:
             cli.communicate()
 
 
+@pytest.mark.timeout(180)
 def test_a_second_ctrl_c_while_the_runs_are_plotted_prints_no_traceback(
     tmp_path: Path, eventually: Callable[..., bool]
 ) -> None:
@@ -121,6 +123,7 @@ def test_a_second_ctrl_c_while_the_runs_are_plotted_prints_no_traceback(
     assert [] == list(temp.glob("rr-experiment-*"))
 
 
+@pytest.mark.timeout(180)
 def test_sigterm_stops_it_like_ctrl_c_and_leaves_no_work_directory(
     tmp_path: Path, eventually: Callable[..., bool]
 ) -> None:
@@ -140,6 +143,7 @@ def test_sigterm_stops_it_like_ctrl_c_and_leaves_no_work_directory(
     assert "interrupted: " in stdout
 
 
+@pytest.mark.timeout(180)
 def test_a_full_disk_under_out_is_one_line_exit_1_and_files_that_agree(tmp_path: Path) -> None:
     with mounted(tmp_path / "disk", size="1m") as disk:
         filler = fill(disk)
@@ -165,6 +169,7 @@ def test_a_full_disk_under_out_is_one_line_exit_1_and_files_that_agree(tmp_path:
     assert "Traceback" not in stdout + stderr
 
 
+@pytest.mark.timeout(180)
 def test_a_disk_that_fills_up_after_a_run_keeps_that_run_in_every_file(tmp_path: Path) -> None:
     measure = tmp_path / "measure"
     measured, _ = start(tmp_path, measure, "--repeat", "1")

@@ -15,6 +15,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from rr_actors.experiments import parse_plan
 from rr_actors.experiments.cli import summary_lines
 from rr_actors.experiments.results import Results, RunResult
@@ -82,6 +84,7 @@ def on_a_terminal(argv: list[str], *, columns: int, timeout: float) -> tuple[int
     return code, ANSI.sub("", b"".join(chunks).decode(errors="replace"))
 
 
+@pytest.mark.timeout(150)
 def test_on_an_80_column_terminal_the_experiment_draws_nothing_wider(tmp_path: Path) -> None:
     plan = tmp_path / "plan.toml"
     plan.write_text(PLAN)
