@@ -204,14 +204,23 @@ def _demo(args: argparse.Namespace, _out: TextIO) -> int:
 
 
 def _experiment_arguments(parser: argparse.ArgumentParser) -> None:
-    from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
-
+    try:
+        from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
+    except ImportError:  # the experiments extra is missing: say so when it is used
+        parser.add_argument("rest", nargs=argparse.REMAINDER)
+        return
     cli.add_arguments(parser)
 
 
 def _experiment(args: argparse.Namespace, out: TextIO) -> int:
-    from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
-
+    try:
+        from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
+    except ImportError as exc:
+        sys.stderr.write(
+            f"rr-actors experiment: needs the experiments extra: "
+            f"pip install 'rr-actors[experiments]' ({exc})\n"
+        )
+        return 2
     return cli.main(args, out)
 
 
