@@ -11,7 +11,7 @@ unavailable for now), and tells the living registrars when a consumer died for g
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
 import pykka
@@ -66,6 +66,7 @@ class Directory:
         self._peers: dict[str, Peer] = {}
         self._gone: dict[str, str] = {}  # name -> "stopped" | "died"
         self._resolvers: list[Callable[[str], Peer | None]] = []
+        self._listers: list[Callable[[], Iterable[str]]] = []
         self.restart_expected: set[str] = set()
         self.restarting: set[str] = set()
         """Names of registrars that are down while their supervisor brings them back:
@@ -101,6 +102,29 @@ class Directory:
         with self._lock:
             if resolver in self._resolvers:
                 self._resolvers.remove(resolver)
+
+    def add_lister(self, lister: Callable[[], Iterable[str]]) -> None:
+        """Consult `lister()` for the names of registrars reachable in other processes."""
+        with self._lock:
+            self._listers.append(lister)
+
+    def remove_lister(self, lister: Callable[[], Iterable[str]]) -> None:
+        """Stop consulting `lister` (no-op if it was not added)."""
+        with self._lock:
+            if lister in self._listers:
+                self._listers.remove(lister)
+
+    def names(self) -> set[str]:
+        """Every registrar this process can reach now: its own, and those its listers name.
+
+        (A provider that starts tells them all to reconcile: rule 20.)
+        """
+        with self._lock:
+            names = set(self._peers)
+            listers = list(self._listers)
+        for lister in listers:
+            names.update(lister())
+        return names
 
     def lookup(self, name: str) -> Peer:
         """Return the peer of registrar `name`.

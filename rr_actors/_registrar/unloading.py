@@ -32,7 +32,13 @@ from rr_actors._registrar.messages import (
     Unload,
 )
 from rr_actors._registrar.state import Shared
-from rr_actors.errors import CallTimeoutError, RrError, UnknownQueryError
+from rr_actors.errors import (
+    CallTimeoutError,
+    CatalogWriteError,
+    RegistrarStoppedError,
+    RrError,
+    UnknownQueryError,
+)
 
 if TYPE_CHECKING:
     from rr_actors._registrar.consumer import Consumer
@@ -156,6 +162,7 @@ class Unloading:
                     exc_info=error,
                 )
             self.remove_resource(resource)
+            self.record_unloaded()
             if self.s.events.active:
                 self.s.events.publish(
                     events.ResourceUnloaded(self.s.name, resource.server, resource.id)
@@ -167,6 +174,18 @@ class Unloading:
                     waiting.set_result(None)
 
         self.consumer.release_dependencies(resource.id, run_unload)
+
+    def record_unloaded(self) -> None:
+        """An `unload` ran: write it before anyone hears of it, also without
+        `save_on_modify` (a crash before the next flush would restore the resource, and
+        reconciling with its consumers would run its `unload` a second time)."""
+        saver = self.s.saver
+        if saver.store is None or saver.durable or not saver.pending:
+            return
+        try:
+            saver.flush()
+        except CatalogWriteError as exc:  # pending: the next flush tries again
+            logger.warning("registrar %s: writing an unload failed: %s", self.s.name, exc)
 
     def remove_resource(self, resource: Resource) -> None:
         """Forget a resource that is gone; serve the loads parked behind its unload."""
@@ -180,10 +199,41 @@ class Unloading:
 
     def ask_to_reconcile(self) -> None:
         """This registrar serves (again): ask every registrar holding ids here to
-        `Reconcile` (one that cannot be reached reconciles at its own start)."""
-        for origin in sorted(self.s.catalog.consumer_origins()):
-            with contextlib.suppress(RrError):
+        `Reconcile` (one that cannot be reached reconciles at its own start); release
+        the ids of one that was stopped for good meanwhile; and tell every other
+        registrar of the system, which may hold ids this one lost (rule 20)."""
+        origins = self.s.catalog.consumer_origins()
+        for origin in sorted(origins):
+            try:
                 DIRECTORY.lookup(origin).tell(ReconcileAsk(self.s.name))
+            except RegistrarStoppedError:
+                self.release_stopped(origin)
+            except RrError:
+                pass
+        self.ask_everyone(set(origins))
+
+    def ask_everyone(self, asked: set[str]) -> None:
+        """Tell every registrar of the system not in `asked` that this one (re)started:
+        those that hold ids here reconcile (the ids this one lost are reported `FATAL`)."""
+        for name in sorted(DIRECTORY.names() - asked - {self.s.name}):
+            with contextlib.suppress(RrError):
+                DIRECTORY.lookup(name).tell(ReconcileAsk(self.s.name, holds_yours=False))
+
+    def release_stopped(self, origin: str) -> None:
+        """Consumer `origin` was stopped for good while this registrar was down: it holds
+        nothing (rule 12), so every id of it here is released (each `unload` runs once)."""
+        ids = self.s.catalog.consumers_from(origin)
+        if ids:
+            logger.warning(
+                "registrar %s: consumer %s was stopped while this registrar was down; "
+                "releasing the %d ids it held here",
+                self.s.name,
+                origin,
+                len(ids),
+            )
+        for query_id in ids:
+            if self.s.catalog.has_consumer(query_id):  # (a release may have cascaded)
+                self.release(query_id, None)
 
     def on_reconcile(self, message: Reconcile) -> None:
         """Release the ids of `origin_rr` it no longer holds; name those held here unknown.

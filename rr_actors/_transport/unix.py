@@ -112,6 +112,7 @@ class AttachedSystem:
         self._peers: dict[str, RemotePeer] = {}
         self._listeners: dict[str, Listener] = {}
         DIRECTORY.add_resolver(self.resolve)
+        DIRECTORY.add_lister(self.names)
 
     def serve(self, endpoint: Endpoint) -> None:
         """Make a registrar of this process reachable from the other processes of the system.
@@ -200,6 +201,7 @@ class AttachedSystem:
             self._listeners.clear()
             self._peers.clear()
         DIRECTORY.remove_resolver(self.resolve)
+        DIRECTORY.remove_lister(self.names)
         for listener in listeners:
             listener.close(stopped=listener.endpoint.stopped_cleanly())
         for peer in peers:
@@ -230,6 +232,16 @@ class AttachedSystem:
             return None
         with self._lock:
             return self._peers.setdefault(name, RemotePeer(self, name))
+
+    def names(self) -> list[str]:
+        """The names of the registrars that listen in the system now (any process)."""
+        if self.closed:
+            return []
+        try:
+            entries = os.listdir(self.address.runtime_dir)
+        except OSError:
+            return []
+        return [e.removesuffix(".sock") for e in entries if e.endswith(".sock")]
 
     def _watch(self, endpoint: Endpoint, listener: Listener) -> None:
         endpoint.wait_ended()  # the carrier watches the registrar's end
