@@ -10,6 +10,8 @@
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
 import uuid
 from collections.abc import Callable, Iterator
@@ -152,3 +154,34 @@ def test_an_answered_unload_does_not_run_again_after_a_restart_lost_the_save_int
 
     assert sorted([f"device-{n}" for n in range(5)] + ["kept"]) == sorted(unloads)
     assert [] == restarted.server_queries("leaf")
+
+
+def serve_leaf(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("leaf", load=lambda r: {"for": r}, unload=lambda _r, _s: None)
+
+
+def test_a_supervised_provider_killed_before_its_first_flush_reports_every_id_fatal(
+    tmp_path: Path, eventually: Callable[..., bool]
+) -> None:
+    # The consumer is the application's registrar in the supervisor's process.
+    name = f"provider-{uuid.uuid4().hex[:8]}"
+    config = rr.RegistrarConfig(
+        name, backup_path=tmp_path / f"{name}.db", save_on_modify=False, save_interval=3600.0
+    )
+    spec = rr.ManagerSpec(name, serve_leaf, isolation="process", config=config)
+    heard: list[tuple[str, rr.Status]] = []
+
+    def note(query: rr.Query, update: rr.StatusUpdate) -> None:
+        heard.append((query.id, update.status))
+
+    with rr.Supervisor([spec], max_restarts=5, period=10.0) as sup:
+        app = sup.registrar(f"app-{uuid.uuid4().hex[:8]}")
+        held = [app.call(name, "leaf", n, on_status=note, timeout=10).id for n in range(10)]
+        (info,) = sup.which_children()
+        assert info.pid is not None
+        os.kill(info.pid, signal.SIGKILL)
+        sup.wait_restarted(name, timeout=10)
+
+        assert eventually(lambda: len(heard) == 10, timeout=10)
+        assert sorted((q, rr.Status.FATAL) for q in held) == sorted(heard)
+        assert [] == app.client_queries()
