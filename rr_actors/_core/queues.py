@@ -137,7 +137,11 @@ class _Outbox(Generic[E]):
                 self._gap += 1
                 if self._gap == 1 and self._warned.due():  # (at most every LOG_EVERY s)
                     warn, first = True, not self._warned.logged
-                    gaps, self._warned.unlogged, self._warned.logged = self._warned.unlogged, 0, True
+                    gaps, self._warned.unlogged, self._warned.logged = (
+                        self._warned.unlogged,
+                        0,
+                        True,
+                    )
                     since, self._reported = self.dropped - 1 - self._reported, self.dropped - 1
             else:
                 self._close_gap()
@@ -252,8 +256,7 @@ class _Consumer(Generic[E]):
             self._abandoned = True
             dropped = self._outbox.drain()  # (counted in `dropped`)
             logger.warning(
-                "%s did not finish within %s s; the %d events it had not handled yet are "
-                "dropped",
+                "%s did not finish within %s s; the %d events it had not handled yet are dropped",
                 self._what,
                 timeout,
                 dropped,
@@ -372,7 +375,7 @@ class Subscription(_Consumer[E]):
                 else:
                     try:
                         callback(item)
-                    except BaseException as exc:  # the thread must outlive any callback
+                    except BaseException as exc:  # noqa: BLE001 - the thread must outlive any callback
                         if self._raising.due():
                             self._report_raised((item, exc))
                 if self._abandoned:
@@ -380,7 +383,6 @@ class Subscription(_Consumer[E]):
                     return
                 item = outbox.get_nowait()
             self._linger(LINGER)  # a burst piles up meanwhile, without a wake-up per event
-
 
     def _report_raised(self, latest: tuple[E, BaseException] | None) -> None:
         """Log the callback's exceptions: the first in full, later ones as a count

@@ -35,8 +35,8 @@ from rr_actors._catalog import (
 )
 from rr_actors._store import checkpoints, codec
 from rr_actors._store.checkpoints import Checkpointer
-from rr_actors._store.commits import CommitCount, lost_commits
 from rr_actors._store.codec import STATES_BY_CODE, as_corrupt, check_keys, check_row
+from rr_actors._store.commits import CommitCount, lost_commits
 from rr_actors._store.files import (
     SYNCHRONOUS,
     check_location,
