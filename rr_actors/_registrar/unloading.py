@@ -200,7 +200,8 @@ class Unloading:
     def ask_to_reconcile(self) -> None:
         """This registrar serves (again): ask every registrar holding ids here to
         `Reconcile` (one that cannot be reached reconciles at its own start); release
-        the ids of one that was stopped for good meanwhile; and tell every other
+        the ids of one that was stopped for good meanwhile; and, with a backup (which
+        may have lost ids: a save interval, a truncated WAL), tell every other
         registrar of the system, which may hold ids this one lost (rule 20)."""
         origins = self.s.catalog.consumer_origins()
         for origin in sorted(origins):
@@ -210,7 +211,8 @@ class Unloading:
                 self.release_stopped(origin)
             except RrError:
                 pass
-        self.ask_everyone(set(origins))
+        if self.s.saver.store is not None:
+            self.ask_everyone(set(origins))
 
     def ask_everyone(self, asked: set[str]) -> None:
         """Tell every registrar of the system not in `asked` that this one (re)started:
