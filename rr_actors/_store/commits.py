@@ -19,7 +19,10 @@ the commit frames already in the log, once. A clean close removes the
 count (SQLite then removes the log).
 
 The check reads the log's frame headers only (24 bytes a frame), not its pages, and not
-the checksums: a log cut short is what it detects, not one damaged in its middle.
+the checksums: a log cut short is what it detects, not one damaged in its middle. A
+database file written after the last count (a checkpoint, by this store or by another
+program that opened the backup and removed its log on closing) holds what the log held:
+nothing is reported then.
 """
 
 from __future__ import annotations
@@ -103,6 +106,8 @@ def lost_commits(file: Path) -> tuple[int, str] | None:
     """
     try:
         record = Path(f"{file}{SUFFIX}").read_bytes()[: _RECORD.size]
+        if os.stat(file).st_mtime_ns > os.stat(f"{file}{SUFFIX}").st_mtime_ns:
+            return None  # a checkpoint wrote the file after the last count: it holds them
     except OSError:
         return None
     if len(record) < _RECORD.size:

@@ -10,8 +10,10 @@ drops the rest without a word).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import sqlite3
 import struct
 import sys
 import uuid
@@ -201,3 +203,26 @@ def test_a_cut_after_a_restart_that_replayed_the_log_is_still_seen(
         for m in (r.getMessage() for r in caplog.records)
         if "commits are lost" in m
     ]
+
+
+def test_a_log_another_program_checkpointed_and_removed_is_not_reported(
+    managers: Callable[..., RemoteRegistrar],
+    tmp_path: Path,
+    started: list[rr.ResourceRegistrar],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    config = durable("provider", tmp_path)
+    provider = managers(config, serve_leaf)
+    for n in range(20):
+        provider.call(config.name, "leaf", n, timeout=10)
+    provider.kill()
+    with contextlib.closing(sqlite3.connect(str(config.backup_path))) as db:
+        db.execute("SELECT count(*) FROM resources").fetchone()  # closing checkpoints
+    assert not Path(f"{config.backup_path}-wal").exists()
+
+    caplog.set_level(logging.WARNING, logger="rr_actors")
+    restarted = rr.ResourceRegistrar.start(config, setup=serve_leaf)
+    started.append(restarted)
+
+    assert [] == [r.getMessage() for r in caplog.records if "commits" in r.getMessage()]
+    assert 20 == len(restarted.server_queries("leaf"))
