@@ -106,14 +106,12 @@ def lost_commits(file: Path) -> tuple[int, str] | None:
     """
     try:
         record = Path(f"{file}{SUFFIX}").read_bytes()[: _RECORD.size]
-        if os.stat(file).st_mtime_ns > os.stat(f"{file}{SUFFIX}").st_mtime_ns:
-            return None  # a checkpoint wrote the file after the last count: it holds them
+        checkpointed = os.stat(file).st_mtime_ns > os.stat(f"{file}{SUFFIX}").st_mtime_ns
     except OSError:
         return None
-    if len(record) < _RECORD.size:
-        return None
-    salts, counted = _RECORD.unpack(record)
-    if counted == 0:
+    # (a checkpoint that wrote the file after the last count left it holding them)
+    salts, counted = _RECORD.unpack(record) if len(record) == _RECORD.size else (b"", 0)
+    if checkpointed or counted == 0:
         return None
     try:
         with open(f"{file}-wal", "rb") as wal:
