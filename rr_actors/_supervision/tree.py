@@ -54,6 +54,7 @@ __all__ = [
     "Level",
     "Tree",
     "consumer_down",
+    "death_watch_missed",
     "find_child",
     "locate",
     "wait_restarted",
@@ -99,6 +100,7 @@ class Tree:
         self.setups: dict[str, bytes] = {}  # process managers' cloudpickled setups
         self.abandon_lock = threading.Lock()
         self.abandon_later: dict[str, list[tuple[str, str]]] = {}  # name -> (query id, origin)
+        self.gone_for_good: set[str] = set()  # managers that died and will not come back
         self.wait_cursor: dict[str, int] = {}
         self.attached: Any = None  # the transport system process managers attach to
         self.spares: SparePool | None = None  # idle manager processes (with process managers)
@@ -225,6 +227,21 @@ def consumer_down(tree: Tree, name: str) -> None:
             DIRECTORY.lookup(target).tell(ConsumerDown(name))
         except RrError:
             logger.debug("death watch: %s unreachable", target)
+
+
+def death_watch_missed(tree: Tree, name: str) -> None:
+    """Manager `name` (re)started: tell it which consumers died for good in the tree.
+
+    It may have been down when their death watch went out (`consumer_down`), and have
+    restored their ids from its backup; those are released now. (One that holds none of
+    their ids releases nothing.)
+    """
+    for gone in sorted(tree.gone_for_good - {name}):
+        try:
+            DIRECTORY.lookup(name).tell(ConsumerDown(gone))
+        except RrError:
+            logger.debug("death watch: %s unreachable", name)
+            return
 
 
 def wait_restarted(

@@ -20,6 +20,7 @@ from typing import Any
 
 import cloudpickle
 import pytest
+from supervising import ManualTimer
 
 import rr_actors as rr
 from rr_actors._process.manager import start_forkserver
@@ -185,3 +186,43 @@ def test_a_supervised_provider_killed_before_its_first_flush_reports_every_id_fa
         assert eventually(lambda: len(heard) == 10, timeout=10)
         assert sorted((q, rr.Status.FATAL) for q in held) == sorted(heard)
         assert [] == app.client_queries()
+
+
+def consumer_of(provider: str) -> Callable[[rr.ResourceRegistrar], None]:
+    """A manager whose setup holds ten ids at `provider`."""
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        for n in range(10):
+            registrar.call(provider, "leaf", f"device-{n}", timeout=10)
+
+    return setup
+
+
+def test_a_consumer_that_died_for_good_while_its_provider_was_down_has_its_ids_released(
+    tmp_path: Path, process_helpers: SharedObjects, eventually: Callable[..., bool]
+) -> None:
+    unloads = process_helpers.list()
+    uid = uuid.uuid4().hex[:8]
+    provider, consumer = f"provider-{uid}", f"consumer-{uid}"
+    timer = ManualTimer()  # the provider's restart waits for the test
+    specs = [
+        rr.ManagerSpec(provider, provider_setup(unloads), isolation="process"),
+        rr.ManagerSpec(consumer, consumer_of(provider), isolation="process", restart="temporary"),
+    ]
+    sup = rr.Supervisor(
+        specs, state_dir=tmp_path, backoff=rr.Backoff(initial=1.0, jitter=0.0), timer=timer
+    )
+    with sup:
+        pids = {info.name: info.pid for info in sup.which_children()}
+        os.kill(pids[provider], signal.SIGKILL)
+        assert timer.wait_scheduled(1, timeout=10)  # its restart is due, not done
+        os.kill(pids[consumer], signal.SIGKILL)  # for good: its death watch misses the provider
+        assert eventually(
+            lambda: [i.state for i in sup.which_children()] == ["restarting", "exited"],
+            timeout=10,
+        )
+        timer.fire()
+        sup.wait_restarted(provider, timeout=10)
+
+        assert eventually(lambda: len(unloads) == 10, timeout=10)
+        assert sorted(f"device-{n}" for n in range(10)) == sorted(unloads)
