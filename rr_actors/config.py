@@ -41,8 +41,10 @@ RestartType = Literal["permanent", "transient", "temporary"]
 Strategy = Literal["one_for_one", "one_for_all", "rest_for_one"]
 Isolation = Literal["thread", "process"]
 
-_NAME = re.compile(r"[A-Za-z0-9_.\-]+")
-"""A valid name, matched whole (`fullmatch`: `$` would accept a trailing newline)."""
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
+"""A valid name, matched whole (`fullmatch`: `$` would accept a trailing newline). It
+names files (`<name>.db`, `<name>.sock`), so it never starts with `.` (`.`, `..`, hidden
+files) or `-` (read as an option by command-line tools)."""
 
 Durability = Literal["process", "power"]
 
@@ -88,7 +90,8 @@ class RegistrarConfig:
     Validated at construction; change a copy with `dataclasses.replace`.
 
     Attributes:
-        name: registrar name, unique within its system; letters, digits, `_`, `-`, `.`.
+        name: registrar name, unique within its system; letters, digits, `_`, `-`, `.`,
+            not starting with `.` or `-`.
         backup_path: SQLite file that keeps the catalog, or `None` for an in-memory catalog.
         save_interval: with a backup, flush changes every this many seconds (`None`: never
             on a timer). A crash loses at most one interval of changes.
@@ -137,7 +140,7 @@ class RegistrarConfig:
         if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
             raise ConfigError(
                 f"name must be a non-empty string of letters, digits, '_', '-' or '.', "
-                f"got {self.name!r}"
+                f"not starting with '.' or '-', got {self.name!r}"
             )
         if self.backup_path is not None and not isinstance(self.backup_path, str | os.PathLike):
             raise ConfigError(f"backup_path must be a path or None, got {self.backup_path!r}")

@@ -127,6 +127,18 @@ class Directory:
             names.update(namer())
         return names
 
+    def names(self) -> set[str]:
+        """Every registrar this process can reach now: its own, and those its resolvers name.
+
+        (A provider that starts tells them all to reconcile: rule 20.)
+        """
+        with self._lock:
+            names = set(self._peers)
+            namers = list(self._namers.values())
+        for namer in namers:
+            names.update(namer())
+        return names
+
     def lookup(self, name: str) -> Peer:
         """Return the peer of registrar `name`.
 

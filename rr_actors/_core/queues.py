@@ -12,13 +12,21 @@ import enum
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 from types import TracebackType
 from typing import Generic, TypeVar
 
 from rr_actors.errors import ConfigError
 
-__all__ = ["DEFAULT_MAXSIZE", "FORWARD_LINGER", "LINGER", "Forwarder", "Subscription"]
+__all__ = [
+    "DEFAULT_MAXSIZE",
+    "FORWARD_LINGER",
+    "LINGER",
+    "LOG_EVERY",
+    "Forwarder",
+    "Subscription",
+]
 
 logger = logging.getLogger("rr_actors")
 
@@ -46,6 +54,36 @@ in it and two in the supervisor's process (the reader, the subscriber). Calls ev
 observer cost a dedup-hit call +30 to +70% (`benchmarks/bench_observer.py`). An event
 after a quiet spell is shipped at once; only the events of a burst wait, at most this long.
 """
+
+
+LOG_EVERY = 10.0
+"""Seconds between two log lines about the same trouble of one subscriber or forwarder.
+
+The first time a callback raises (or a queue overflows) is logged in full; what happens
+again is counted, and reported in one line at most this often (and when it closes): a
+callback that raises on every event must not write a traceback per event.
+"""
+
+
+class _Throttle:
+    """Says when a repeated trouble may be logged again: the first time, then every
+    `LOG_EVERY` seconds. Counts what happened in between."""
+
+    __slots__ = ("logged", "next_at", "unlogged")
+
+    def __init__(self) -> None:
+        self.next_at = float("-inf")
+        self.logged = False  # whether the first one was logged (in full)
+        self.unlogged = 0  # how many happened since the last log line
+
+    def due(self) -> bool:
+        """Count one more; whether a line may be logged now (then the count restarts)."""
+        self.unlogged += 1
+        now = time.monotonic()
+        if now < self.next_at:
+            return False
+        self.next_at = now + LOG_EVERY
+        return True
 
 
 class _Empty(enum.Enum):
@@ -81,6 +119,8 @@ class _Outbox(Generic[E]):
         self._lock = threading.Lock()  # gap and drop counts; the queue is thread-safe itself
         self._gap = 0
         self.dropped = 0
+        self._warned = _Throttle()  # (gaps opened; `_reported`: drops already logged)
+        self._reported = 0
 
     def put(self, item: E) -> None:
         if not self._gap and self._items.qsize() < self._maxsize:
@@ -89,23 +129,53 @@ class _Outbox(Generic[E]):
             self._put_slowly(item)
 
     def _put_slowly(self, item: E) -> None:
-        gap_opened = False
+        warn = first = False
         with self._lock:
             full = self._items.qsize() >= self._maxsize
             if full:
                 self.dropped += 1
                 self._gap += 1
-                gap_opened = self._gap == 1
+                if self._gap == 1 and self._warned.due():  # (at most every LOG_EVERY s)
+                    warn, first = True, not self._warned.logged
+                    gaps, self._warned.unlogged, self._warned.logged = (
+                        self._warned.unlogged,
+                        0,
+                        True,
+                    )
+                    since, self._reported = self.dropped - 1 - self._reported, self.dropped - 1
             else:
                 self._close_gap()
                 self._items.put(item)
-        if gap_opened:
+        if warn and first:
             logger.warning(
                 "%s falls behind: its queue of %d events is full; dropping events until it "
                 "has room (they are counted and reported to it as one notice)",
                 self._owner,
                 self._maxsize,
             )
+        elif warn:
+            logger.warning(
+                "%s falls behind again: %d events dropped in %d gaps since the last warning",
+                self._owner,
+                since,
+                gaps - 1,
+            )
+
+    def drain(self) -> int:
+        """Drop what is queued (its consumer gave up): count the events, pass the marks."""
+        events = 0
+        while True:
+            try:
+                item = self._items.get_nowait()
+            except queue.Empty:
+                break
+            if isinstance(item, _Mark):
+                item.reached.set()
+            else:
+                events += 1
+        with self._lock:
+            self.dropped += events
+        return events
 
     def _close_gap(self) -> None:
         """Put the notice for the events dropped since the last put (hold `_lock`)."""
@@ -184,10 +254,12 @@ class _Consumer(Generic[E]):
         self._thread.join(timeout)
         if self._thread.is_alive() and not self._abandoned:
             self._abandoned = True
+            dropped = self._outbox.drain()  # (counted in `dropped`)
             logger.warning(
-                "%s did not finish within %s s; what it had not handled yet is dropped",
+                "%s did not finish within %s s; the %d events it had not handled yet are dropped",
                 self._what,
                 timeout,
+                dropped,
             )
 
 
@@ -202,7 +274,10 @@ class Subscription(_Consumer[E]):
     is room again the callback gets one notice of the gap (`EventsDropped(count)` for
     rr_actors' events) where the lost events would have been.
 
-    An exception from the callback is logged (logger `rr_actors`) and delivery goes on.
+    An exception from the callback is logged (logger `rr_actors`) and delivery goes on:
+    the first with its traceback, later ones as a count, at most once every `LOG_EVERY`
+    seconds (and when the subscription ends). Falling behind is likewise warned about
+    once, then at most once every `LOG_EVERY` seconds with the events dropped meanwhile.
 
     Use it as a context manager (`with sup.subscribe(cb): ...`) or call `close()`.
 
@@ -222,6 +297,7 @@ class Subscription(_Consumer[E]):
         self.name = name
         self._callback = callback
         self._unsubscribe = unsubscribe
+        self._raising = _Throttle()  # the callback's exceptions: logged first, then counted
         what = f"event subscriber {name!r}"
         super().__init__(_Outbox(what, maxsize, notice), thread_name=f"rr-events-{name}", what=what)
         self._offer = self._outbox.put  # the publisher's sink: never blocks
@@ -229,7 +305,8 @@ class Subscription(_Consumer[E]):
 
     @property
     def dropped(self) -> int:
-        """How many events this subscription dropped so far because its queue was full."""
+        """How many events this subscription dropped so far: because its queue was full,
+        or because a `close()` that ran out of time left them unhandled."""
         return self._outbox.dropped
 
     @property
@@ -293,18 +370,44 @@ class Subscription(_Consumer[E]):
                 if isinstance(item, _Mark):
                     item.reached.set()
                     if item.stop:
+                        self._report_raised(None)
                         return
                 else:
                     try:
                         callback(item)
-                    except BaseException:  # the thread must outlive any callback
-                        logger.exception(
-                            "event subscriber %r: the callback raised on %r", self.name, item
-                        )
+                    except BaseException as exc:  # noqa: BLE001 - the thread must outlive any callback
+                        if self._raising.due():
+                            self._report_raised((item, exc))
                 if self._abandoned:
+                    self._report_raised(None)
                     return
                 item = outbox.get_nowait()
             self._linger(LINGER)  # a burst piles up meanwhile, without a wake-up per event
+
+    def _report_raised(self, latest: tuple[E, BaseException] | None) -> None:
+        """Log the callback's exceptions: the first in full, later ones as a count
+        (`latest`: the one that just happened; `None`: the subscription ends)."""
+        raising = self._raising
+        if latest is not None and not raising.logged:
+            raising.logged, raising.unlogged = True, 0
+            item, exc = latest
+            logger.error(
+                "event subscriber %r: the callback raised on %r (later exceptions are "
+                "counted, and logged once every %g s)",
+                self.name,
+                item,
+                LOG_EVERY,
+                exc_info=exc,
+            )
+        elif raising.unlogged:
+            count, raising.unlogged = raising.unlogged, 0
+            detail = "" if latest is None else f"; the latest: {type(latest[1]).__name__}"
+            logger.error(
+                "event subscriber %r: the callback raised %d more times%s",
+                self.name,
+                count,
+                detail,
+            )
 
 
 class Forwarder(_Consumer[E]):
@@ -359,7 +462,8 @@ class Forwarder(_Consumer[E]):
 
     @property
     def dropped(self) -> int:
-        """Events lost so far: dropped for a full buffer, or in a batch whose `send` raised."""
+        """Events lost so far: dropped for a full buffer, in a batch whose `send` raised, or
+        left unsent by a `close()` that ran out of time."""
         return self._outbox.dropped + self._failed
 
     def wait_sent(self, *, timeout: float | None = 5.0) -> bool:

@@ -387,10 +387,19 @@ class Consumer:
             self.reconcile(serving_rr)
 
     def on_reconcile_ask(self, message: ReconcileAsk) -> None:
+        if not message.holds_yours and not self.holds_at(message.serving_rr):
+            return  # (told as every registrar of the system is: nothing to reconcile)
         if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
             self.asked_to_reconcile.add(message.serving_rr)
             return
         self.reconcile(message.serving_rr)
+
+    def holds_at(self, serving_rr: str) -> bool:
+        """Whether this registrar holds ids at `serving_rr` (records, or failed calls)."""
+        return serving_rr in self.unsettled.values() or any(
+            record.query.serving_rr == serving_rr
+            for record in self.registrar.catalog.clients.values()
+        )
 
     def reconcile(self, serving_rr: str) -> None:
         """Tell `serving_rr` which ids this registrar holds there (`Reconcile`).

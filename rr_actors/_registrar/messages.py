@@ -215,9 +215,14 @@ class Reconcile(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class ReconcileAsk(WireMessage):
-    """Provider -> consumer: `serving_rr` (re)started with ids of yours: send a `Reconcile`."""
+    """Provider -> consumer: `serving_rr` (re)started with ids of yours: send a `Reconcile`.
+
+    With `holds_yours=False` it names none of yours (it tells every registrar of the
+    system: its restart may have lost ids you hold): send one only if you hold ids there.
+    """
 
     serving_rr: str
+    holds_yours: bool = True
 
 
 @dataclasses.dataclass(frozen=True)

@@ -37,6 +37,7 @@ from rr_actors._registrar.messages import Load, RunLoad, RunUnload
 from rr_actors._registrar.state import Phase, Server, Shared, Waiter
 from rr_actors.errors import (
     CallTimeoutError,
+    CatalogWriteError,
     ConfigError,
     DependencyCycleError,
     DuplicateQueryIdError,
@@ -445,6 +446,7 @@ class Provider:
                     exc_info=error,
                 )
             self.remove_resource(resource)
+            self.record_unloaded()
             if self.registrar.events.active:
                 self.registrar.events.publish(
                     events.ResourceUnloaded(self.registrar.name, resource.server, resource.id)
@@ -456,6 +458,18 @@ class Provider:
                     waiting.set_result(None)
 
         self.consumer.release_dependencies(resource.id, run_unload)
+
+    def record_unloaded(self) -> None:
+        """An `unload` ran: write it before anyone hears of it, also without
+        `save_on_modify` (a crash before the next flush would restore the resource, and
+        reconciling with its consumers would run its `unload` a second time)."""
+        saver = self.registrar.saver
+        if saver.store is None or saver.durable or not saver.pending:
+            return
+        try:
+            saver.flush()
+        except CatalogWriteError as exc:  # pending: the next flush tries again
+            logger.warning("registrar %s: writing an unload failed: %s", self.registrar.name, exc)
 
     def remove_resource(self, resource: Resource) -> None:
         """Forget a resource that is gone (unloaded, or its load failed); serve the loads

@@ -30,7 +30,7 @@ from rr_actors._registrar.messages import (
     Unload,
 )
 from rr_actors._registrar.state import Shared
-from rr_actors.errors import RrError, UnknownQueryError
+from rr_actors.errors import RegistrarStoppedError, RrError, UnknownQueryError
 
 if TYPE_CHECKING:
     from rr_actors._registrar.provider import Provider
@@ -99,10 +99,43 @@ class Unloading:
 
     def ask_to_reconcile(self) -> None:
         """This registrar serves (again): ask every registrar holding ids here to
-        `Reconcile` (one that cannot be reached reconciles at its own start)."""
-        for origin in sorted(self.registrar.catalog.consumer_origins()):
-            with contextlib.suppress(RrError):
+        `Reconcile` (one that cannot be reached reconciles at its own start); release
+        the ids of one that was stopped for good meanwhile; and, with a backup (which
+        may have lost ids: a save interval, a truncated WAL), tell every other
+        registrar of the system, which may hold ids this one lost (rule 20)."""
+        origins = self.registrar.catalog.consumer_origins()
+        for origin in sorted(origins):
+            try:
                 DIRECTORY.lookup(origin).tell(ReconcileAsk(self.registrar.name))
+            except RegistrarStoppedError:
+                self.release_stopped(origin)
+            except RrError:
+                pass
+        if self.registrar.saver.store is not None:
+            self.ask_everyone(set(origins))
+
+    def ask_everyone(self, asked: set[str]) -> None:
+        """Tell every registrar of the system not in `asked` that this one (re)started:
+        those that hold ids here reconcile (the ids this one lost are reported `FATAL`)."""
+        for name in sorted(DIRECTORY.names() - asked - {self.registrar.name}):
+            with contextlib.suppress(RrError):
+                DIRECTORY.lookup(name).tell(ReconcileAsk(self.registrar.name, holds_yours=False))
+
+    def release_stopped(self, origin: str) -> None:
+        """Consumer `origin` was stopped for good while this registrar was down: it holds
+        nothing (rule 12), so every id of it here is released (each `unload` runs once)."""
+        ids = self.registrar.catalog.consumers_from(origin)
+        if ids:
+            logger.warning(
+                "registrar %s: consumer %s was stopped while this registrar was down; "
+                "releasing the %d ids it held here",
+                self.registrar.name,
+                origin,
+                len(ids),
+            )
+        for query_id in ids:
+            if self.registrar.catalog.has_consumer(query_id):  # (a release may have cascaded)
+                self.release(query_id, None)
 
     def on_reconcile(self, message: Reconcile) -> None:
         """Release the ids of `origin_rr` it no longer holds; name those held here unknown.

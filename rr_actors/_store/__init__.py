@@ -6,7 +6,8 @@ The store knows the catalog's rows and nothing of actors: the registrar hands it
 Modules, lowest first: `codec` (stored values), `schema` (version, migrations),
 `restore` (reading rows back, lazily), `files` (the path and the file: check, create,
 validate, write again after a deletion, inspect, quarantine), `plan` (the statements of
-a write), `checkpoints` (the background checkpointer), `sqlite` (`SqliteStore`: writes),
+a write), `checkpoints` (the background checkpointer), `commits` (the log's commits
+counted beside it: a WAL cut short is reported), `sqlite` (`SqliteStore`: writes),
 `saver` (the save policy).
 """
 

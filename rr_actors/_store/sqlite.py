@@ -36,6 +36,7 @@ from rr_actors._catalog import (
 from rr_actors._store import checkpoints, codec
 from rr_actors._store.checkpoints import Checkpointer
 from rr_actors._store.codec import STATES_BY_CODE, as_corrupt, check_keys, check_row
+from rr_actors._store.commits import CommitCount, lost_commits
 from rr_actors._store.files import (
     SYNCHRONOUS,
     check_location,
@@ -107,6 +108,9 @@ class SqliteStore:
         self._seq = 0
         self.closed = False
         self._decode = functools.partial(codec.decode, self.path)  # decodes a stored value lazily
+        self._commits = CommitCount(self._file)  # beside the WAL: a log cut short is seen
+        self.lost_commits = 0
+        """Commits of the last run that its WAL no longer held when this store opened."""
 
     @classmethod
     def open(
@@ -141,6 +145,7 @@ class SqliteStore:
         file = Path(os.fspath(path))
         check_location(file)
         created = False
+        lost = None
         if not file.exists():
             create(file)
             created = True
@@ -149,6 +154,8 @@ class SqliteStore:
             raise ConfigError(
                 f"backup_path {foreign}: restoring it would run code from it (unpickling)"
             )
+        if not created:
+            lost = lost_commits(file)  # before SQLite replays (and may remove) the log
         version = validate(file, tidy=True)
         name = str(file)
         try:
@@ -160,13 +167,25 @@ class SqliteStore:
         except BaseException:
             db.close()
             raise
-        return cls(
+        store = cls(
             file,
             db,
             created=created,
             synchronous=SYNCHRONOUS[durability],
             background_checkpoints=background_checkpoints,
         )
+        if lost is not None:
+            store.lost_commits, why = lost
+            logger.warning(
+                "catalog backup %s: %s: %d acknowledged commits are lost (their loads, "
+                "releases and unloads are not restored; consumers holding ids it lost are "
+                "told FATAL when they reconcile)",
+                name,
+                why,
+                store.lost_commits,
+            )
+            store._commits.close()  # reported once: the next commit counts the log afresh
+        return store
 
     def _hand_checkpoints_to_a_thread(self) -> None:
         self._db.execute("PRAGMA wal_autocheckpoint = 0")  # the checkpointer's thread does it
@@ -332,6 +351,7 @@ class SqliteStore:
             except BaseException:
                 rollback(db)
                 raise
+        self._commits.committed()
         if self._checkpointer is None:
             return
         self._unchecked += len(ops)
@@ -386,6 +406,7 @@ class SqliteStore:
             raise write_error(self.path, exc) from exc
         self._db = db
         self._ids = file_ids(self._file)
+        self._commits.reopen()
         if self._checkpointer is not None:
             self._hand_checkpoints_to_a_thread()
 
@@ -410,6 +431,7 @@ class SqliteStore:
                     kept = f"a whole copy is at {self._aside}" if self._aside else "it is lost"
                     logger.error("%s; %s", exc, kept)  # noqa: TRY400 - the cause says it all
             self.closed = True
+            self._commits.close()  # (first: SQLite removes the log as the connection closes)
             if self._aside is None:
                 self._close_connections()
         if erase:

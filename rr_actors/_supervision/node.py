@@ -42,7 +42,7 @@ from rr_actors._supervision.policy import (
     restarts_with_group,
 )
 from rr_actors._supervision.retry import give_back_abandoned
-from rr_actors._supervision.tree import Tree, consumer_down
+from rr_actors._supervision.tree import Tree, consumer_down, death_watch_missed
 from rr_actors.config import ManagerSpec, RegistrarConfig, SupervisorSpec, managers
 from rr_actors.errors import RrError, SupervisorGaveUpError
 
@@ -215,6 +215,7 @@ class Node:
         child.incarnation += 1
         child.state = "starting"
         self.tree.restart_due.pop(child.name, None)
+        self.tree.gone_for_good.discard(child.name)  # it comes back
         self.publish()
         spec, tree = child.spec, self.tree
         post = self._post_exit(child)
@@ -250,6 +251,8 @@ class Node:
         tree.count_start(child.name)
         self._published_start(child, restarted=restarted)
         give_back_abandoned(tree, child.name)
+        if restarted and isinstance(spec, ManagerSpec):
+            death_watch_missed(tree, child.name)
 
     def _published_start(self, child: Child, *, restarted: bool) -> None:
         """Publish `ChildStarted`, or `ChildRestarted` with the time it was down."""
@@ -347,6 +350,7 @@ class Node:
             DIRECTORY.expect_restart(child.name, expected=False)
             if dead:
                 consumer_down(self.root(), child.name)
+                self.tree.gone_for_good.add(child.name)  # (for those down meanwhile)
 
     @staticmethod
     def _mark(child: Child) -> None:

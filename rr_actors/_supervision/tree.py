@@ -60,6 +60,7 @@ __all__ = [
     "Level",
     "Tree",
     "consumer_down",
+    "death_watch_missed",
     "find_child",
     "locate",
     "wait_restarted",
@@ -157,6 +158,7 @@ class Tree:
         self.started: set[str] = set()
         self.abandon_lock = threading.Lock()
         self.abandon_later: dict[str, list[tuple[str, str]]] = {}  # name -> (query id, origin)
+        self.gone_for_good: set[str] = set()  # managers that died and will not come back
         self.wait_cursor: dict[str, int] = {}
         self.processes = Processes(spec)  # what process managers share (from the start)
         self.events = EventRelay()  # the tree's events (`Supervisor.subscribe`)
@@ -292,6 +294,21 @@ def consumer_down(root: Level, name: str) -> None:
     """
     living = _process_managers(root)
     DIRECTORY.broadcast(ConsumerDown(name), also=living, skip=name)
+
+
+def death_watch_missed(tree: Tree, name: str) -> None:
+    """Manager `name` (re)started: tell it which consumers died for good in the tree.
+
+    It may have been down when their death watch went out (`consumer_down`), and have
+    restored their ids from its backup; those are released now. (One that holds none of
+    their ids releases nothing.)
+    """
+    for gone in sorted(tree.gone_for_good - {name}):
+        try:
+            DIRECTORY.lookup(name).tell(ConsumerDown(gone))
+        except RrError:
+            logger.debug("death watch: %s unreachable", name)
+            return
 
 
 def wait_restarted(

@@ -14,6 +14,7 @@ import os
 import socket
 import struct
 import time
+from multiprocessing import AuthenticationError
 from multiprocessing.connection import Connection, answer_challenge, deliver_challenge
 
 from rr_actors.config import DEFAULT_MAX_MESSAGE_BYTES
@@ -93,17 +94,23 @@ def handshake(sock: socket.socket, authkey: bytes, deadline: float, *, server: b
         server: whether this is the listening side.
 
     Raises:
-        AuthenticationError: the other side does not know `authkey`.
+        AuthenticationError: the other side does not know `authkey`, or sent a malformed
+            challenge.
         TimeoutError: it was not done by `deadline`.
         OSError, EOFError: the connection broke or the other side sent garbage.
     """
     timed = _Timed(sock, deadline)
-    if server:
-        deliver_challenge(timed, authkey)  # type: ignore[arg-type]
-        answer_challenge(timed, authkey)  # type: ignore[arg-type]
-    else:
-        answer_challenge(timed, authkey)  # type: ignore[arg-type]
-        deliver_challenge(timed, authkey)  # type: ignore[arg-type]
+    try:
+        if server:
+            deliver_challenge(timed, authkey)  # type: ignore[arg-type]
+            answer_challenge(timed, authkey)  # type: ignore[arg-type]
+        else:
+            answer_challenge(timed, authkey)  # type: ignore[arg-type]
+            deliver_challenge(timed, authkey)  # type: ignore[arg-type]
+    except (AuthenticationError, OSError, EOFError):
+        raise
+    except Exception as exc:  # a malformed challenge: multiprocessing asserts, or indexes
+        raise AuthenticationError(f"malformed handshake: {type(exc).__name__}: {exc}") from exc
     sock.settimeout(None)
 
 

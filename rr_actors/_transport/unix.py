@@ -220,14 +220,6 @@ class AttachedSystem:
 
     # -- plumbing ------------------------------------------------------------------------
 
-    def names(self) -> list[str]:
-        """The names of the registrars served on the system (their sockets)."""
-        try:
-            entries = os.listdir(self.address.runtime_dir)
-        except OSError:
-            return []
-        return [e.removesuffix(".sock") for e in entries if e.endswith(".sock")]
-
     def resolve(self, name: str) -> Peer | None:
         """The directory resolver: a peer for a registrar of another process, or None."""
         peer = self._peers.get(name)
@@ -242,6 +234,16 @@ class AttachedSystem:
             return None
         with self._lock:
             return self._peers.setdefault(name, RemotePeer(self, name))
+
+    def names(self) -> list[str]:
+        """The names of the registrars that listen in the system now (any process)."""
+        if self.closed:
+            return []
+        try:
+            entries = os.listdir(self.address.runtime_dir)
+        except OSError:
+            return []
+        return [e.removesuffix(".sock") for e in entries if e.endswith(".sock")]
 
     def _watch(self, endpoint: Endpoint, listener: Listener) -> None:
         endpoint.wait_ended()  # the carrier watches the registrar's end

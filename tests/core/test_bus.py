@@ -210,7 +210,9 @@ def test_each_gap_is_warned_about_once(
     publisher: Publisher[Any],
     gates: Callable[[], threading.Event],
     caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    monkeypatch.setattr(queues, "LOG_EVERY", 0.0)  # (gaps further apart than the rate limit)
     caplog.set_level(logging.WARNING, logger="rr_actors")
     first, second = gates(), gates()
     entered = [threading.Event(), threading.Event()]

@@ -1,0 +1,153 @@
+"""Commits counted outside the WAL, so that a restore can tell when the WAL lost some.
+
+```
+ each commit --> read the -wal's header (its salts: which generation of the log this is)
+             --> `<file>-commits` := (salts, commits of that generation)    (8 + 8 bytes)
+ open after a crash --> count the -wal's complete commit frames of those salts: fewer?
+             --> WARNING naming the file and how many commits are gone
+```
+
+SQLite replays the WAL up to its first incomplete frame and drops everything after it
+without a word, so a log cut short (a copy made without it, a failing disk, an OS crash
+with `durability="process"`) loses acknowledged commits silently. The count kept beside
+it (written after each commit, not fsynced: a count that did not reach the disk only
+hides a loss, it never invents one) tells how many commits the last generation of the
+log held. A generation ends when a checkpoint copied all of it into the database file
+and the log restarts (new salts): the count restarts with it. The first commit of a
+generation (or of a store: a restarted registrar appends to the log it replayed) counts
+the commit frames already in the log, once. A clean close removes the
+count (SQLite then removes the log).
+
+The check reads the log's frame headers only (24 bytes a frame), not its pages, and not
+the checksums: a log cut short is what it detects, not one damaged in its middle. A
+database file written after the last count (a checkpoint, by this store or by another
+program that opened the backup and removed its log on closing) holds what the log held:
+nothing is reported then.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import struct
+from pathlib import Path
+
+__all__ = ["SUFFIX", "CommitCount", "lost_commits"]
+
+logger = logging.getLogger("rr_actors")
+
+SUFFIX = "-commits"
+"""The suffix of the count's file, beside the backup (`erm.db-commits`)."""
+
+_RECORD = struct.Struct(">8sQ")  # the log's salts, the commits of that generation
+_WAL_HEADER = 32
+_FRAME_HEADER = 24
+
+
+class CommitCount:
+    """Counts the commits of the current WAL generation of backup `file`.
+
+    Used by the thread that writes the backup (the registrar's). Never raises: a count
+    that cannot be kept only costs the check at the next restore.
+    """
+
+    def __init__(self, file: Path) -> None:
+        self.path = f"{file}{SUFFIX}"
+        self._wal = f"{file}-wal"
+        self._salts = b""
+        self._count = 0
+        self._fd: int | None = None
+        self._wal_fd: int | None = None
+
+    def committed(self) -> None:
+        """A write transaction was committed (call it after each one)."""
+        try:
+            if self._wal_fd is None:
+                self._wal_fd = os.open(self._wal, os.O_RDONLY | os.O_CLOEXEC)
+            header = os.pread(self._wal_fd, _WAL_HEADER, 0)
+            if len(header) < _WAL_HEADER:
+                return
+            salts = header[16:24]
+            if salts == self._salts:
+                self._count += 1
+            else:  # the first commit of this store, or the log restarted: count them all
+                self._salts, self._count = salts, _commit_frames(self._wal_fd, header)
+            if self._fd is None:
+                self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+                os.fchmod(self._fd, 0o600)  # (whatever the umask: like SQLite's side files)
+            os.pwrite(self._fd, _RECORD.pack(salts, self._count), 0)
+        except OSError as exc:
+            logger.debug("the commit count %s cannot be kept: %s", self.path, exc)
+
+    def reopen(self) -> None:
+        """The store writes to a new file (it was deleted and written again): a new log."""
+        self._close_fds()
+        self._salts, self._count = b"", 0
+
+    def close(self) -> None:
+        """The backup was closed cleanly (SQLite removed its log): forget the count."""
+        self._close_fds()
+        with contextlib.suppress(OSError):
+            os.unlink(self.path)
+
+    def _close_fds(self) -> None:
+        for fd in (self._fd, self._wal_fd):
+            if fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._fd = self._wal_fd = None
+
+
+def lost_commits(file: Path) -> tuple[int, str] | None:
+    """How many counted commits the WAL of `file` no longer holds, and why; else `None`.
+
+    Call it before anything opens the file (SQLite may checkpoint and remove the log).
+    """
+    try:
+        record = Path(f"{file}{SUFFIX}").read_bytes()[: _RECORD.size]
+        checkpointed = os.stat(file).st_mtime_ns > os.stat(f"{file}{SUFFIX}").st_mtime_ns
+    except OSError:
+        return None
+    # (a checkpoint that wrote the file after the last count left it holding them)
+    salts, counted = _RECORD.unpack(record) if len(record) == _RECORD.size else (b"", 0)
+    if checkpointed or counted == 0:
+        return None
+    try:
+        with open(f"{file}-wal", "rb") as wal:
+            return _compare(wal.fileno(), salts, counted)
+    except FileNotFoundError:
+        return counted, f"its -wal file is missing; it held the last {counted} commits"
+    except OSError as exc:
+        logger.debug("the WAL of %s cannot be read: %s", file, exc)
+        return None
+
+
+def _compare(fd: int, salts: bytes, counted: int) -> tuple[int, str] | None:
+    header = os.pread(fd, _WAL_HEADER, 0)
+    if len(header) < _WAL_HEADER:
+        return counted, f"its -wal file is cut short ({len(header)} bytes)"
+    if header[16:24] != salts:
+        return None  # another generation of the log than the one counted: cannot tell
+    found = _commit_frames(fd, header, counted)
+    if found >= counted:
+        return None
+    return counted - found, f"its -wal file holds {found} of the last {counted} commits"
+
+
+def _commit_frames(fd: int, header: bytes, limit: int | None = None) -> int:
+    """The complete commit frames of the log generation `header` starts (up to `limit`)."""
+    salts = header[16:24]
+    page_size = struct.unpack(">I", header[8:12])[0]
+    size = os.fstat(fd).st_size
+    frame = _FRAME_HEADER + page_size
+    found = 0
+    offset = _WAL_HEADER
+    while offset + frame <= size and (limit is None or found < limit):
+        head = os.pread(fd, _FRAME_HEADER, offset)
+        if head[8:16] != salts:  # a frame of an earlier generation: the log ends here
+            break
+        if struct.unpack(">I", head[4:8])[0] != 0:  # a commit frame
+            found += 1
+        offset += frame
+    return found
