@@ -48,6 +48,7 @@ processes running (in either placement).
 from __future__ import annotations
 
 import collections
+import contextlib
 import multiprocessing
 import os
 import sys
@@ -131,14 +132,17 @@ def no_leftovers() -> Iterator[None]:
         ref.actor_stopped.wait(max(0.0, deadline - time.monotonic()))
     actors = pykka.ActorRegistry.get_all()
     for child in _test_children():
-        child.join(max(0.0, deadline - time.monotonic()))
+        # (a manager's process object may be closed by its supervisor meanwhile: reaped)
+        with contextlib.suppress(ValueError):
+            child.join(max(0.0, deadline - time.monotonic()))
     processes = _test_children()
     strays = set(_os_children()) - children_before - {p.pid for p in processes} - _HELPER_PIDS
     if actors:
         pykka.ActorRegistry.stop_all(block=True, timeout=LEAK_GRACE)
     for child in processes:
-        child.kill()
-        child.join(LEAK_GRACE)
+        with contextlib.suppress(ValueError):  # closed meanwhile: reaped
+            child.kill()
+            child.join(LEAK_GRACE)
     problems = []
     if actors:
         problems.append(f"actors left running: {[a.actor_class.__name__ for a in actors]}")

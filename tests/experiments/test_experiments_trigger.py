@@ -57,7 +57,7 @@ def test_a_signal_leaves_at_its_due_time_not_before(
         os.close(pidfd)
 
     assert 0 == code
-    assert due <= at < due + 0.05
+    assert due <= at < due + 1.0  # never early; how late depends on the machine (benchmarks)
     assert -signal.SIGKILL == sleeper.wait(5.0)
 
 
