@@ -281,26 +281,22 @@ def test_a_failed_load_leaves_nothing_so_an_equal_request_loads_afresh(
     assert [query.id] == [q.id for q in consumer.client_queries()]
 
 
-def test_every_waiter_of_a_failing_load_gets_the_error(
-    make_registrar, serve, gates, arrived, shared
-):
+def test_every_waiter_of_a_failing_load_gets_the_error(make_registrar, serve, gated_load, arrived):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), shared.event()
 
-    def fails_later(request):
-        started.set()
-        assert gate.wait(10)
+    def fail(request):
         raise SensorError("late failure")
 
+    fails_later = gated_load(fail)
     serve(provider, "leaf", fails_later)
     ids = [str(uuid.uuid4()) for _ in range(3)]
     with ThreadPoolExecutor(3) as pool:
         futures = [
             pool.submit(consumer.call, provider.name, "leaf", "x", query_id=qid) for qid in ids
         ]
-        assert started.wait(5)
+        assert fails_later.started.wait(5)
         assert arrived(provider, ids)
-        gate.set()
+        fails_later.gate.set()
         errors = [f.exception(timeout=10) for f in futures]
 
     assert all(isinstance(e, rr.ResourceLoadError) for e in errors)
