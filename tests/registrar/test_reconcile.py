@@ -24,6 +24,7 @@ from typing import Any
 
 import cloudpickle
 import pytest
+from gating import GatedLoad
 
 import rr_actors as rr
 from rr_actors._process.manager import start_forkserver
@@ -186,14 +187,8 @@ def test_a_retry_after_the_provider_reconciled_finds_the_id_it_committed_before_
     # Rule 17, case 3: the provider committed the consumer id and died before its answer
     # left; the call failed with RegistrarUnavailableError. The restarted provider
     # reconciles with the consumer before the retry comes: the id must stay held there.
-    loads: list[Any] = []
-    gate, entered = threading.Event(), threading.Event()
-
-    def load(request: Any) -> Any:
-        loads.append(request)
-        entered.set()
-        assert gate.wait(10)
-        return {"for": request}
+    load = GatedLoad(threading.Event(), threading.Event(), lambda request: {"for": request})
+    loads, gate, entered = load.requests, load.gate, load.started
 
     def serve(registrar: rr.ResourceRegistrar) -> None:
         registrar.register_server("leaf", load=load, unload=lambda _r, _s: None)

@@ -9,6 +9,7 @@ import uuid
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import pytest
+from gating import GatedLoad
 
 import rr_actors as rr
 from rr_actors.testing import catalog_snapshot
@@ -186,15 +187,11 @@ def test_a_sub_call_in_flight_when_its_load_fails_is_released_not_leaked(tmp_pat
     provider = rr.ResourceRegistrar.start(f"P-{uuid.uuid4().hex[:8]}")
     agent = _agent(tmp_path, save_on_modify)
     consumer = rr.ResourceRegistrar.start(f"C-{uuid.uuid4().hex[:8]}")
-    started, gate, unloaded = threading.Event(), threading.Event(), threading.Event()
+    leaf = GatedLoad(threading.Event(), threading.Event())
+    started, gate, unloaded = leaf.started, leaf.gate, threading.Event()
     late: list[Future[rr.Query]] = []
     pool = ThreadPoolExecutor(1)
     try:
-
-        def leaf(request):
-            started.set()
-            return gate.wait(10) and request
-
         provider.register_server("leaf", load=leaf, unload=lambda r, s: unloaded.set())
 
         def composite(request):
