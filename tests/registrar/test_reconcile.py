@@ -24,6 +24,7 @@ from typing import Any
 
 import cloudpickle
 import pytest
+from durable_pair import durable_config
 from gating import GatedLoad
 
 import rr_actors as rr
@@ -94,11 +95,6 @@ def composite_setup(provider: str) -> Callable[[rr.ResourceRegistrar], None]:
     return setup
 
 
-def durable(prefix: str, tmp_path: Path) -> rr.RegistrarConfig:
-    name = f"{prefix}-{uuid.uuid4().hex[:8]}"
-    return rr.RegistrarConfig(name, backup_path=tmp_path / f"{name}.db", save_on_modify=True)
-
-
 def delete_rows(backup: Path, table: str, query_id: str) -> None:
     """Remove a row from a dead registrar's backup, as a lost commit would leave it."""
     with contextlib.closing(sqlite3.connect(backup)) as db, db:
@@ -110,9 +106,9 @@ def test_an_id_released_while_its_provider_was_down_is_released_after_its_restar
     managers: Callable[..., RemoteRegistrar], tmp_path: Path, process_helpers: SharedObjects
 ) -> None:
     unloads, unloaded = process_helpers.list(), process_helpers.event()
-    config = durable("provider", tmp_path)
+    config = durable_config("provider", tmp_path)
     provider = managers(config, provider_setup(unloads, unloaded))
-    consumer = managers(durable("consumer", tmp_path), composite_setup(config.name))
+    consumer = managers(durable_config("consumer", tmp_path), composite_setup(config.name))
     top = consumer.call(consumer.name, "composite", "camera", timeout=10)
     assert 1 == len(provider.server_queries("leaf"))  # the composite's dependency
 
@@ -132,9 +128,9 @@ def test_an_id_the_restarted_provider_lost_is_reported_fatal_and_forgotten(
     eventually: Callable[..., bool],
 ) -> None:
     unloads, heard = process_helpers.list(), process_helpers.list()
-    config = durable("provider", tmp_path)
+    config = durable_config("provider", tmp_path)
     provider = managers(config, provider_setup(unloads))
-    consumer = managers(durable("consumer", tmp_path), None)
+    consumer = managers(durable_config("consumer", tmp_path), None)
 
     def note(query: rr.Query, update: rr.StatusUpdate) -> None:
         heard.append((query.id, update.status))
@@ -165,7 +161,7 @@ def test_an_id_a_restarted_consumer_lost_is_released_at_its_provider(
     provider = rr.ResourceRegistrar.start(f"provider-{uuid.uuid4().hex[:8]}")
     started.append(provider)
     provider.register_server("leaf", load=lambda r: r, unload=unload)
-    config = durable("consumer", tmp_path)
+    config = durable_config("consumer", tmp_path)
     consumer = rr.ResourceRegistrar.start(config)
     kept = consumer.call(provider.name, "leaf", "camera", timeout=10)
     lost = consumer.call(provider.name, "leaf", "lidar", timeout=10)
@@ -193,7 +189,7 @@ def test_a_retry_after_the_provider_reconciled_finds_the_id_it_committed_before_
     def serve(registrar: rr.ResourceRegistrar) -> None:
         registrar.register_server("leaf", load=load, unload=lambda _r, _s: None)
 
-    config = durable("provider", tmp_path)
+    config = durable_config("provider", tmp_path)
     provider = rr.ResourceRegistrar.start(config, setup=serve)
     consumer = rr.ResourceRegistrar.start(f"consumer-{uuid.uuid4().hex[:8]}")
     started.append(consumer)
