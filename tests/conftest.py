@@ -65,9 +65,13 @@ import pytest
 from gating import GatedLoad, same
 
 import rr_actors as rr
-from rr_actors._process.manager import start_forkserver
-from rr_actors._transport.unix import System
-from rr_actors.testing import RemoteRegistrar, SharedObjects, pending_work
+from rr_actors.testing import (
+    RemoteRegistrar,
+    SharedObjects,
+    System,
+    pending_work,
+    start_forkserver,
+)
 
 pytest_plugins = ["carriers"]  # the transport tests' fixtures (tests/carriers.py)
 

@@ -20,8 +20,7 @@ import pytest
 from supervising import kill_and_wait_restarted
 
 import rr_actors as rr
-from rr_actors._process.manager import start_forkserver
-from rr_actors.testing import SharedObjects
+from rr_actors.testing import SharedObjects, start_forkserver
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -114,8 +113,12 @@ def test_a_withdrawn_call_is_abandoned_at_its_provider_before_its_record_goes(
     def arm(registrar: rr.ResourceRegistrar) -> None:
         import threading  # noqa: PLC0415 - runs in the consumer's process
 
-        from rr_actors._registrar.calls import AttemptState, CallAttempt  # noqa: PLC0415
-        from rr_actors.testing import call_futures, intercept  # noqa: PLC0415
+        from rr_actors.testing import (  # noqa: PLC0415
+            AttemptState,
+            CallAttempt,
+            call_futures,
+            intercept,
+        )
 
         claimed, answer_handled = threading.Event(), threading.Event()
 

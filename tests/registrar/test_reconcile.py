@@ -28,9 +28,15 @@ from durable_pair import durable_config
 from gating import GatedLoad
 
 import rr_actors as rr
-from rr_actors._process.manager import start_forkserver
-from rr_actors._transport.unix import System
-from rr_actors.testing import RemoteRegistrar, SharedObjects, crash, expect_restart, intercept
+from rr_actors.testing import (
+    RemoteRegistrar,
+    SharedObjects,
+    System,
+    crash,
+    expect_restart,
+    intercept,
+    start_forkserver,
+)
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

@@ -15,8 +15,9 @@ import pytest
 from gating import GatedLoad
 
 import rr_actors as rr
-from rr_actors._registrar.calls import AttemptState, CallAttempt
 from rr_actors.testing import (
+    AttemptState,
+    CallAttempt,
     actor_ref,
     call_futures,
     catalog_snapshot,

@@ -8,8 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 import rr_actors as rr
-from rr_actors._registrar.calls import CallAttempt
-from rr_actors.testing import call_futures, catalog_snapshot, crash
+from rr_actors.testing import CallAttempt, call_futures, catalog_snapshot, crash
 
 
 def test_a_call_whose_load_hangs_raises_call_timeout_error(make_registrar, serve, gated_load):

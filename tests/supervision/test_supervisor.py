@@ -17,10 +17,9 @@ import pytest
 from supervising import FakeClock, ManualTimer, crash, echo_setup
 
 import rr_actors as rr
-from rr_actors import testing
+from rr_actors import Supervisor, testing
 from rr_actors._supervision.policy import RestartIntensity
 from rr_actors._supervision.retry import abandon_after_restart
-from rr_actors._supervision.supervisor import Supervisor
 from rr_actors.config import Backoff, ManagerSpec, SupervisorSpec
 
 

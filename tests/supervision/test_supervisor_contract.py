@@ -38,8 +38,7 @@ from supervising import (
 )
 
 import rr_actors as rr
-from rr_actors._process.manager import start_forkserver
-from rr_actors.testing import SharedObjects, actor_ref
+from rr_actors.testing import SharedObjects, actor_ref, start_forkserver
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

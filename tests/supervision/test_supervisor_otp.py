@@ -22,8 +22,7 @@ import pytest
 from supervising import FakeClock, crash, echo_setup, pid_of, process
 
 import rr_actors as rr
-from rr_actors._process.context import start_forkserver
-from rr_actors.testing import SharedObjects
+from rr_actors.testing import SharedObjects, start_forkserver
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
