@@ -266,7 +266,7 @@ def test_one_for_all_restarts_every_manager_process(
     a, b = f"a-{uid}", f"b-{uid}"
     sup = supervisors([process(a), process(b)], strategy="one_for_all").start()
     before = {i.name: i.pid for i in sup.which_children()}
-    os.kill(before[b] or 0, signal.SIGKILL)
+    sigkill(sup, b)
     sup.wait_restarted(a, timeout=15.0)
     sup.wait_restarted(b, timeout=15.0)
     after = {i.name: i.pid for i in sup.which_children()}
