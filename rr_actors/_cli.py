@@ -204,14 +204,23 @@ def _demo(args: argparse.Namespace, _out: TextIO) -> int:
 
 
 def _experiment_arguments(parser: argparse.ArgumentParser) -> None:
-    from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
-
+    try:
+        from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
+    except ImportError:  # the experiments extra is missing: say so when it is used
+        parser.add_argument("rest", nargs=argparse.REMAINDER)
+        return
     cli.add_arguments(parser)
 
 
 def _experiment(args: argparse.Namespace, out: TextIO) -> int:
-    from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
-
+    try:
+        from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
+    except ImportError as exc:
+        sys.stderr.write(
+            f"rr-actors experiment: needs the experiments extra: "
+            f"pip install 'rr-actors[experiments]' ({exc})\n"
+        )
+        return 2
     return cli.main(args, out)
 
 
@@ -266,7 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--version", action="version", version=f"%(prog)s {version()}", help="print the version"
     )
-    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")  # none: the help
     for command in COMMANDS:
         sub = subparsers.add_parser(command.name, help=command.help, description=command.help)
         command.add_arguments(sub)
@@ -283,9 +292,14 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
 
     Returns:
         The exit code: 0 on success, 1 when the backup cannot be read (the message names
-        the file and the cause), 2 for a usage error.
+        the file and the cause), 2 for a usage error, and 2 without a command (after
+        printing the help on standard output: nothing was done).
     """
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help(out)
+        return 2
     try:
         code: int = args.run(args, out if out is not None else sys.stdout)
     except (CatalogCorruptError, ConfigError) as exc:

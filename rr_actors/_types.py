@@ -5,9 +5,21 @@ from __future__ import annotations
 import dataclasses
 import enum
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
-__all__ = ["Query", "Status", "StatusCallback", "StatusUpdate"]
+__all__ = ["Query", "Setup", "Status", "StatusCallback", "StatusUpdate"]
+
+
+class Setup(Protocol):
+    """A manager's setup: `setup(registrar)`, called once with its `ResourceRegistrar`.
+
+    It runs after the catalog was restored and before the registrar serves (registering
+    its servers, say). Any callable of one positional argument is one; the registrar's
+    type is not named here, below the layer that defines it (`rr_actors._registrar`).
+    """
+
+    def __call__(self, registrar: Any, /) -> object:
+        """Set the registrar up; what it returns is ignored."""
 
 
 class Status(enum.Enum):

@@ -13,13 +13,11 @@ import math
 import os
 import random as _random
 import re
-from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any, Literal
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, Literal
 
+from rr_actors._types import Setup
 from rr_actors.errors import ConfigError
-
-if TYPE_CHECKING:
-    from rr_actors._registrar import ResourceRegistrar
 
 __all__ = [
     "DEFAULT_MAX_MESSAGE_BYTES",
@@ -34,13 +32,14 @@ __all__ = [
     "SupervisorSpec",
     "check_choice",
     "check_seconds",
+    "managers",
     "tree_names",
+    "walk",
 ]
 
 RestartType = Literal["permanent", "transient", "temporary"]
 Strategy = Literal["one_for_one", "one_for_all", "rest_for_one"]
 Isolation = Literal["thread", "process"]
-Setup = Callable[["ResourceRegistrar"], object]
 
 _NAME = re.compile(r"[A-Za-z0-9_.\-]+")
 """A valid name, matched whole (`fullmatch`: `$` would accept a trailing newline)."""
@@ -388,17 +387,32 @@ class SupervisorSpec:
 
     def has_processes(self) -> bool:
         """Whether any manager in this subtree runs in its own process."""
-        return any(
-            c.has_processes() if isinstance(c, SupervisorSpec) else c.isolation == "process"
-            for c in self.children
-        )
+        return any(isinstance(c, ManagerSpec) and c.isolation == "process" for c, _ in walk(self))
+
+
+def walk(
+    spec: SupervisorSpec, path: tuple[SupervisorSpec, ...] = ()
+) -> Iterator[tuple[ManagerSpec | SupervisorSpec, tuple[SupervisorSpec, ...]]]:
+    """Every child below `spec`, depth first, each with the supervisors above it.
+
+    The one walk over a spec tree: names, managers and state directories are read
+    through it.
+
+    Yields:
+        `(child, path)`: `path` runs from `spec` down to the child's own supervisor.
+    """
+    path = (*path, spec)
+    for child in spec.children:
+        yield child, path
+        if isinstance(child, SupervisorSpec):
+            yield from walk(child, path)
 
 
 def tree_names(spec: SupervisorSpec) -> list[str]:
     """The names of every child below `spec`, depth first (duplicates kept)."""
-    names: list[str] = []
-    for child in spec.children:
-        names.append(child.name)
-        if isinstance(child, SupervisorSpec):
-            names.extend(tree_names(child))
-    return names
+    return [child.name for child, _ in walk(spec)]
+
+
+def managers(spec: SupervisorSpec) -> list[ManagerSpec]:
+    """Every manager below `spec`, depth first."""
+    return [child for child, _ in walk(spec) if isinstance(child, ManagerSpec)]

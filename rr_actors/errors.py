@@ -11,6 +11,8 @@ All errors pickle (they cross process boundaries) and keep their attributes when
 from __future__ import annotations
 
 import dataclasses
+import difflib
+from collections.abc import Iterable
 from typing import Any
 
 __all__ = [
@@ -22,12 +24,14 @@ __all__ = [
     "DuplicateNameError",
     "DuplicateQueryIdError",
     "ErrorFrame",
+    "InternalError",
     "MessageTooLargeError",
     "RegistrarStoppedError",
     "RegistrarUnavailableError",
     "ResourceLoadError",
     "RrError",
     "SupervisorGaveUpError",
+    "TransferError",
     "UnknownQueryError",
     "UnknownRegistrarError",
     "UnknownServerError",
@@ -36,6 +40,22 @@ __all__ = [
 
 class RrError(Exception):
     """Base class of every error rr_actors raises."""
+
+
+def _known_names(name: str, known: Iterable[str], *, shown: int = 12) -> str:
+    """What to add to an error about an unknown `name`: the closest known name, the known.
+
+    For example `"; did you mean 'camera'? (known: 'camera', 'filter')"`, or
+    `" (none known)"`; at most `shown` names are listed.
+    """
+    names = sorted(set(known))
+    if not names:
+        return " (none known)"
+    close = difflib.get_close_matches(name, names, n=1)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    listed = ", ".join(repr(n) for n in names[:shown])
+    more = f", ... ({len(names) - shown} more)" if len(names) > shown else ""
+    return f"{hint} (known: {listed}{more})"
 
 
 class ConfigError(RrError, ValueError):
@@ -165,6 +185,25 @@ class SupervisorGaveUpError(RrError):
     """A supervisor exceeded its restart intensity (`max_restarts` within `period` s)."""
 
 
+class TransferError(RrError):
+    """A message, its answer, or an error could not cross between processes.
+
+    It does not pickle in the process that sends it, or does not unpickle in the one it
+    reached (a class or module that process lacks, a `__reduce__` that raises); the
+    message says which and why. Where rr_actors can tell before sending (a request, a
+    stored response), it raises `ConfigError` instead; a lost `Load` answer is a
+    `ResourceLoadError`, and its consumer id is released.
+    """
+
+
+class InternalError(RrError):
+    """What should not happen did: a bug in rr_actors, not in the code that called it.
+
+    For example an answer in no form a carrier sends, or an answer to a message that
+    wants none. The message says what was seen; please report it.
+    """
+
+
 @dataclasses.dataclass(frozen=True)
 class ErrorFrame:
     """One failed load's part of a [`ResourceLoadError`][rr_actors.errors.ResourceLoadError] stack.
@@ -184,6 +223,13 @@ class ErrorFrame:
     traceback: str
 
 
+class _RemoteTraceback(Exception):  # noqa: N818 - named as concurrent.futures names it
+    """The traceback text of a load that failed elsewhere (a `ResourceLoadError`'s cause)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
 class ResourceLoadError(RrError):
     """A `load` callback raised, here or further down the dependency chain.
 
@@ -192,6 +238,11 @@ class ResourceLoadError(RrError):
     the origin first: one per registrar it crossed, and one per server when a server's
     load calls another server of the same registrar. Sub-resources loaded inside the
     failed load were unloaded before this error was raised.
+
+    The origin's traceback (the failing `load`'s file and line) is its `__cause__`, a
+    `_RemoteTraceback` whose text it is, so an uncaught one prints it, as
+    `concurrent.futures` does for an exception raised in a worker process. It is set
+    again from `stack` when the error is unpickled in another process.
     """
 
     def __init__(self, stack: tuple[ErrorFrame, ...]) -> None:
@@ -199,6 +250,11 @@ class ResourceLoadError(RrError):
         path = " <- ".join(f"{f.registrar}/{f.server}" for f in stack)
         super().__init__(f"{origin.exc_type}: {origin.message} (at {path})")
         self.stack = stack
+        if origin.traceback:
+            self.__cause__ = _RemoteTraceback(
+                f"the load of '{origin.registrar}/{origin.server}' raised:\n"
+                f'"""\n{origin.traceback.rstrip()}\n"""'
+            )
 
     def __reduce__(self) -> tuple[Any, ...]:
         return (type(self), (self.stack,))

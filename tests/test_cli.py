@@ -42,3 +42,12 @@ def test_help_lists_every_subcommand_and_the_version_option() -> None:
     assert 0 == result.returncode
     for word in ("demo", "inspect", "--version"):
         assert word in result.stdout
+
+
+def test_without_a_command_it_prints_the_help_and_exits_2() -> None:
+    result = rr_actors_command()
+
+    assert (2, "") == (result.returncode, result.stderr)
+    assert result.stdout.startswith("usage: rr-actors [-h] [--version] COMMAND ...\n")
+    listed = {line.split()[0] for line in result.stdout.splitlines() if line.startswith("    ")}
+    assert {"demo", "inspect", "observe", "graph", "experiment"} <= listed

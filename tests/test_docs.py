@@ -405,7 +405,7 @@ def python_block(block: Block) -> str | None:
     path = include.group("path")
     assert (ROOT / path).is_file(), f"{block.where}: includes {path}, which does not exist"
     runners = [
-        p.name for p in (ROOT / "tests").glob("test_*.py") if Path(path).name in p.read_text()
+        p.name for p in (ROOT / "tests").rglob("test_*.py") if Path(path).name in p.read_text()
     ]
     assert runners, f"{block.where}: no test in tests/ runs {path}"
     return None

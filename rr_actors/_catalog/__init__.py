@@ -1,8 +1,9 @@
-"""The catalog: pure data (no threads, no I/O) of what a registrar serves and holds.
+"""The catalog: what a registrar serves and holds, as data (no threads, no files opened).
 
 - `records`: the rows (`Resource`, `ClientRecord`) and the `Changes` to store;
 - `digest`: request digests, so that equal (`==`) requests meet without comparing all;
-- `catalog`: the `Catalog` with its indexes, written only by its registrar actor.
+- `catalog`: the `Catalog` with its indexes, written only by its registrar actor; a
+  restored one reads rows it has not read yet through the store (`UnreadRows`).
 """
 
 from rr_actors._catalog.catalog import Catalog

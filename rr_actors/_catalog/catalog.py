@@ -1,10 +1,15 @@
-"""The resource catalog: pure data, no threads, no I/O.
+"""The resource catalog: data and its indexes, no threads; stored rows read when needed.
 
 The catalog records what a registrar serves (resources, each with its consumers' query
 ids) and what it holds elsewhere (client records, some of them dependencies of its own
 resources). Only the registrar actor writes it, so it has no locks. Every change marks
 the touched rows dirty; the persistence layer drains them as one transaction. Requests
 are matched by `==` through digests (`rr_actors._catalog.digest`).
+
+It opens no file itself, but it is not free of I/O: a restored catalog asks the
+`UnreadRows` it was given (the store's reader of the backup) for the resources a lookup
+needs and has not read yet, and a restored resource decodes its request and response
+from their stored bytes on first use (`records.Resource`).
 """
 
 from __future__ import annotations
@@ -185,6 +190,24 @@ class Catalog:
         resource.response_version += 1
         self._dirty_resources.add(rid)
 
+    def set_texts(
+        self,
+        rid: str,
+        *,
+        request_text: str | None = None,
+        response_text: str | None = None,
+        label: str | None = None,
+    ) -> None:
+        """Set a resource's display texts or label (those given; `None`: keep it)."""
+        resource = self.resources[rid]
+        if request_text is not None:
+            resource.request_text = request_text
+        if response_text is not None:
+            resource.response_text = response_text
+        if label is not None:
+            resource.label = label
+        self._dirty_resources.add(rid)
+
     def begin_unload(self, rid: str) -> Resource:
         """Mark a resource `UNLOADING` (its last consumer left)."""
         resource = self.resources[rid]
@@ -350,6 +373,11 @@ class Catalog:
         record.response_version += 1
         self._dirty_clients.add(query_id)
         return record
+
+    def set_client_text(self, query_id: str, request_text: str) -> None:
+        """Set a client record's request display text."""
+        self.clients[query_id].request_text = request_text
+        self._dirty_clients.add(query_id)
 
     def remove_client(self, query_id: str) -> ClientRecord:
         """Delete an outbound query record.

@@ -47,6 +47,9 @@ class Resource:
         response_version: counts the catalog's writes of `response` (`finish_load`,
             `set_response`), so the store writes each one even when the provider passes
             the same, mutated object again; decoding a restored response leaves it alone.
+        request_text, response_text: bounded `repr`s of the values, made once by the
+            registrar that owns them (`None`: not made yet); what observers show.
+        label: what its server's `label(request)` returned (`None`: none, or not yet).
     """
 
     id: str
@@ -57,6 +60,9 @@ class Resource:
     consumers: dict[str, str] = dataclasses.field(default_factory=dict)
     digest: int | None = dataclasses.field(default=None, compare=False, repr=False)
     response_version: int = dataclasses.field(default=0, compare=False, repr=False)
+    request_text: str | None = dataclasses.field(default=None, compare=False, repr=False)
+    response_text: str | None = dataclasses.field(default=None, compare=False, repr=False)
+    label: str | None = dataclasses.field(default=None, compare=False, repr=False)
 
     def __getattr__(self, name: str) -> Any:
         # Only called when `name` is not in the instance: a restored, still encoded value.
@@ -82,6 +88,7 @@ class Resource:
         blobs: tuple[bytes | None, bytes | None],
         decode: Decoder,
         order: int = 0,
+        texts: tuple[str | None, str | None, str | None] = (None, None, None),
     ) -> Resource:
         """A stored resource whose request and response are decoded on first access.
 
@@ -95,6 +102,7 @@ class Resource:
                 raises `CatalogCorruptError`.
             order: its place in the backup (row key), to list restored resources in
                 their stored order.
+            texts: the stored `(request_text, response_text, label)`.
         """
         resource = cls.__new__(cls)
         resource.__dict__ = {
@@ -104,6 +112,9 @@ class Resource:
             "consumers": {},
             "digest": digest,
             "response_version": 0,
+            "request_text": texts[0],
+            "response_text": texts[1],
+            "label": texts[2],
             "_encoded": (decode, blobs),
             "_order": order,
         }
@@ -129,12 +140,15 @@ class ClientRecord:
             or `None` for a top-level call.
         loaded: `False` while the call is in flight.
         response_version: counts `client_loaded` calls, so the store writes each response.
+        request_text: a bounded `repr` of the request, made once by this registrar
+            (`None`: not made yet); what observers show.
     """
 
     query: Query
     parent: str | None = None
     loaded: bool = False
     response_version: int = dataclasses.field(default=0, compare=False, repr=False)
+    request_text: str | None = dataclasses.field(default=None, compare=False, repr=False)
 
 
 @dataclasses.dataclass

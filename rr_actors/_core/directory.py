@@ -10,8 +10,9 @@ unavailable for now), and tells the living registrars when a consumer died for g
 
 from __future__ import annotations
 
+import logging
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
 import pykka
@@ -20,10 +21,14 @@ from rr_actors.errors import (
     DuplicateNameError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
+    RrError,
     UnknownRegistrarError,
+    _known_names,
 )
 
 __all__ = ["DIRECTORY", "Directory", "LocalPeer", "Peer", "Reply"]
+
+logger = logging.getLogger("rr_actors")
 
 
 class Reply(Protocol):
@@ -66,8 +71,9 @@ class Directory:
         self._peers: dict[str, Peer] = {}
         self._gone: dict[str, str] = {}  # name -> "stopped" | "died"
         self._resolvers: list[Callable[[str], Peer | None]] = []
-        self.restart_expected: set[str] = set()
-        self.restarting: set[str] = set()
+        self._namers: dict[Callable[[str], Peer | None], Callable[[], Iterable[str]]] = {}
+        self._restart_expected: set[str] = set()  # a crash is not "gone for good"
+        self._restarting: set[str] = set()
         """Names of registrars that are down while their supervisor brings them back:
         stopped (a group restart stops the crashed child's siblings) or crashed, a
         caller gets `RegistrarUnavailableError` (retry), not `RegistrarStoppedError`."""
@@ -91,16 +97,35 @@ class Directory:
                 del self._peers[peer.name]
                 self._gone[peer.name] = reason
 
-    def add_resolver(self, resolver: Callable[[str], Peer | None]) -> None:
-        """Consult `resolver(name)` for names not registered in this process."""
+    def add_resolver(
+        self,
+        resolver: Callable[[str], Peer | None],
+        names: Callable[[], Iterable[str]] | None = None,
+    ) -> None:
+        """Consult `resolver(name)` for names not registered in this process.
+
+        `names()`, if given, lists the names it knows, for the message of an unknown name.
+        """
         with self._lock:
             self._resolvers.append(resolver)
+            if names is not None:
+                self._namers[resolver] = names
 
     def remove_resolver(self, resolver: Callable[[str], Peer | None]) -> None:
         """Stop consulting `resolver` (no-op if it was not added)."""
         with self._lock:
             if resolver in self._resolvers:
                 self._resolvers.remove(resolver)
+            self._namers.pop(resolver, None)
+
+    def known(self) -> set[str]:
+        """Every registrar name this process knows of: its own and its resolvers'."""
+        with self._lock:
+            names = set(self._peers) | set(self._gone)
+            namers = list(self._namers.values())
+        for namer in namers:
+            names.update(namer())
+        return names
 
     def lookup(self, name: str) -> Peer:
         """Return the peer of registrar `name`.
@@ -128,19 +153,66 @@ class Directory:
         if it was stopped for the restart; else `RegistrarStoppedError` if it was stopped,
         `RegistrarUnavailableError` if it died, `UnknownRegistrarError` if never seen.
         """
-        if name in self.restarting:
+        if name in self._restarting:
             return RegistrarUnavailableError(f"registrar {name!r} is being restarted")
         reason = self._gone.get(name)
         if reason == "stopped":
             return RegistrarStoppedError(f"registrar {name!r} was stopped")
         if reason == "died":
             return RegistrarUnavailableError(f"registrar {name!r} died")
-        return UnknownRegistrarError(f"no registrar named {name!r}")
+        return UnknownRegistrarError(
+            f"no registrar named {name!r}" + _known_names(name, self.known() - {name})
+        )
 
     def local_peers(self) -> list[Peer]:
         """Every registrar registered in this process."""
         with self._lock:
             return list(self._peers.values())
+
+    # -- restarts: what a supervisor (or a test) says of a registrar's next end ------------
+
+    def expect_restart(self, name: str, expected: bool = True) -> None:
+        """Say whether a crash of registrar `name` will be followed by a restart.
+
+        While one is expected, its crash is not a consumer gone for good: no death watch
+        (`broadcast`) from the registrar itself; its supervisor decides.
+        """
+        with self._lock:
+            if expected:
+                self._restart_expected.add(name)
+            else:
+                self._restart_expected.discard(name)
+
+    def restart_expected(self, name: str) -> bool:
+        """Whether a crash of registrar `name` will be followed by a restart."""
+        return name in self._restart_expected
+
+    def mark_restarting(self, names: Iterable[str], restarting: bool = True) -> None:
+        """Say that registrars `names` are down for a restart (or no longer are).
+
+        While they are, a message to one of them fails with `RegistrarUnavailableError`
+        (retry), not `RegistrarStoppedError`, even after a clean stop for the restart.
+        """
+        with self._lock:
+            if restarting:
+                self._restarting.update(names)
+            else:
+                self._restarting.difference_update(names)
+
+    def broadcast(self, message: object, *, also: Iterable[str] = (), skip: str = "") -> None:
+        """Tell `message` to every registrar of this process and to those named in `also`.
+
+        The death watch (`ConsumerDown`) reaches everyone who may hold a consumer's ids
+        this way. Registrar `skip` is left out; one that cannot be reached is skipped
+        (logged at debug level).
+        """
+        targets = {peer.name for peer in self.local_peers()} | set(also)
+        targets.discard(skip)
+        for target in sorted(targets):
+            try:
+                self.lookup(target).tell(message)
+            except RrError:
+                logger.debug("%s: registrar %s unreachable", type(message).__name__, target)
 
 
 DIRECTORY = Directory()

@@ -19,7 +19,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from rr_actors.errors import RrError
+from rr_actors.errors import RrError, TransferError
 
 __all__ = ["WIRE_TYPES", "WireMessage"]
 
@@ -56,14 +56,14 @@ class WireMessage:
 
     def unreadable_answer(self, target: str, exc: BaseException) -> RrError:
         """The error for an answer from `target` that cannot be unpickled in this process."""
-        return RrError(
+        return TransferError(
             f"the answer of registrar {target!r} to a {type(self).__name__} message "
             f"cannot be unpickled here: {exc}"
         )
 
     def unsendable_answer(self, target: str, value: Any, exc: BaseException) -> RrError:
         """The error sent back instead of an answer of `target` that cannot be pickled."""
-        return RrError(
+        return TransferError(
             f"the answer of registrar {target!r} to a {type(self).__name__} message "
             f"is not picklable: {exc}"
         )

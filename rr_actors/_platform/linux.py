@@ -250,12 +250,15 @@ class LinuxPlatform:
     def set_process_name(self, title: str) -> None:
         """Set the kernel's name of this process (`prctl(PR_SET_NAME)`, 15 bytes kept).
 
+        The bytes kept end at a whole UTF-8 character.
+
         What it buys: manager processes told apart in `ps -o comm`, `top`, `pstree`
         without the `setproctitle` package (which also rewrites the command line).
         """
         libc = _libc()
         with contextlib.suppress(AttributeError):
-            libc.prctl(_PR_SET_NAME, ctypes.c_char_p(title.encode()[:15]), 0, 0, 0)
+            kept = title.encode()[:15].decode(errors="ignore").encode()
+            libc.prctl(_PR_SET_NAME, ctypes.c_char_p(kept), 0, 0, 0)
 
     def at_main_thread_end(self, fn: Callable[[], None]) -> None:
         """CPython's private `threading._register_atexit` (as `concurrent.futures` uses it).

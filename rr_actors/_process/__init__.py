@@ -1,1 +1,2 @@
-"""Manager processes: the child's side, the parent's handle, spares, remote handles."""
+"""Manager processes: the child's side, the parent's handle, the control pipe's messages
+(`control`), spares, remote handles."""

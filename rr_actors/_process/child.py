@@ -18,18 +18,21 @@ Runs only in manager processes (never in the supervisor's process). In the child
 
 ```
  parent (ManagerProcess)            control pipe                child (this module)
-   start ─────────── ("start", setup, config, address) ───────►  standby (a spare only)
-         ◄──────────────── ("warm",)  (a spare, once warmed up)
-         ◄──────────────── ("ready", pid) | ("failed", traceback)
-   ping  ─────────────────── ("ping", n) ──────────────────────►  registrar mailbox
-         ◄──────────────── ("pong", n, trouble)  (None, or (seconds, why) it cannot accept)
-   events ───────────────── ("events", on) ────────────────────►  forward events or not
-         ◄──────────────── ("events", [event, ...])  (batches, while on)
-   sync  ─────────────────── ("events-sync", n, timeout) ──────►  send what is buffered
-         ◄──────────────── ("events-synced", n)  (after those batches)
-   stop  ─────────────────── ("stop", timeout, restarting) ────►  registrar.stop(); exit 0
+   start ─────────── Start(setup, config, address, forward) ──►  standby (a spare only)
+         ◄──────────────── Warm()  (a spare, once warmed up)
+         ◄──────────────── Ready(pid) | Failed(traceback)
+   ping  ─────────────────── Ping(n) ──────────────────────────►  registrar mailbox
+         ◄──────────────── Pong(n, trouble)  (None, or (seconds, why) it cannot accept)
+   events ───────────────── Forward(on) ───────────────────────►  forward events or not
+         ◄──────────────── Events([event, ...])  (batches, while on)
+   sync  ─────────────────── SyncEvents(n, timeout) ───────────►  send what is buffered
+         ◄──────────────── EventsSynced(n)  (after those batches)
+   stop  ─────────────────── Stop(timeout, restarting) ────────►  registrar.stop(); exit 0
    (EOF: the parent is gone) ──────────────────────────────────►  exit 70
 ```
+
+The messages are `rr_actors._process.control`'s classes; the control loop dispatches on
+their type through one table (`_HANDLERS`).
 
 Running a function against the registrar (`Supervisor.run_in`) goes over the system's
 transport (`AttachedSystem.run`), not over the control pipe.
@@ -45,10 +48,9 @@ import threading
 import traceback
 from collections.abc import Callable
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cloudpickle
-import pykka
 
 from rr_actors import events
 from rr_actors._core.bus import Forwarder, Publisher
@@ -60,8 +62,26 @@ from rr_actors._process.context import (
     TITLE_PREFIX,
     stopped_cleanly,
 )
+from rr_actors._process.control import (
+    Events,
+    EventsSynced,
+    Failed,
+    Forward,
+    FromChild,
+    Ping,
+    Pong,
+    Ready,
+    Start,
+    Stop,
+    SyncEvents,
+    Warm,
+)
+from rr_actors._transport.base import Address, Transport
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import RrError
+
+if TYPE_CHECKING:
+    from rr_actors._registrar import ResourceRegistrar
 
 __all__ = ["main", "set_title", "standby"]
 
@@ -69,19 +89,20 @@ logger = logging.getLogger("rr_actors")
 
 
 def set_title(name: str) -> None:
-    """Name this process `rr-actors: <name>` for `ps`, `top` and `pstree`.
+    """Name this process after its manager for `ps`, `top` and `pstree`.
 
-    With the `setproctitle` package installed (extra `title`) the whole command line is
-    replaced (`ps aux` shows it); without it the platform sets the kernel's 15-byte
-    process name where it can (`ps -o comm`; Linux's `prctl(PR_SET_NAME)`).
+    The kernel's 15-byte process name (`ps -o comm`, `top`; Linux's `prctl(PR_SET_NAME)`)
+    becomes the name itself, which a prefix would crowd out. With the `setproctitle`
+    package installed (extra `title`) the command line becomes `rr-actors: <name>` too
+    (`ps aux`).
     """
-    title = f"{TITLE_PREFIX}{name}"
     try:
         import setproctitle  # noqa: PLC0415 - optional; preloaded by the forkserver
     except ImportError:
-        PLATFORM.set_process_name(title)
-        return
-    setproctitle.setproctitle(title)
+        pass
+    else:
+        setproctitle.setproctitle(f"{TITLE_PREFIX}{name}")
+    PLATFORM.set_process_name(name)  # after setproctitle, which may set it to the title
 
 
 class _Control:
@@ -91,7 +112,7 @@ class _Control:
         self.conn = conn
         self.lock = threading.Lock()
 
-    def send(self, message: tuple[Any, ...]) -> None:
+    def send(self, message: FromChild) -> None:
         # OSError: the parent is gone; the control loop sees EOF and exits
         with self.lock, contextlib.suppress(OSError):
             self.conn.send(message)
@@ -105,19 +126,21 @@ class _Pong:
     new peers as a hung one, and its supervisor judges both by the same bound.
     """
 
-    def __init__(self, control: _Control, number: int, trouble: Callable[[], Any]) -> None:
+    def __init__(
+        self, control: _Control, number: int, trouble: Callable[[], tuple[float, str] | None]
+    ) -> None:
         self.control = control
         self.number = number
         self.trouble = trouble
 
     def set_result(self, _: Any) -> None:
-        self.control.send(("pong", self.number, self.trouble()))
+        self.control.send(Pong(self.number, self.trouble()))
 
     def set_error(self, _: BaseException) -> None:
         pass  # no pong: the parent counts it as missed
 
 
-def _exit(code: int, attached: Any) -> None:
+def _exit(code: int, attached: Transport | None) -> None:
     """Leave the system (peers then see "stopped" or "died" at once), flush, exit."""
     if attached is not None:
         with contextlib.suppress(Exception):
@@ -130,7 +153,7 @@ def _exit(code: int, attached: Any) -> None:
 def main(
     setup: bytes,
     config: RegistrarConfig,
-    address: Any,
+    address: Address | None,
     conn: Connection,
     parent: int | None = None,
     forward: bool = False,
@@ -175,11 +198,11 @@ def standby(conn: Connection, parent: int | None = None) -> None:
     Runs as the target of a spare manager process (see `rr_actors._process.spare`): the
     interpreter start, the forkserver's fork and the child's bootstrap are paid before a
     manager crashes, not after. It warms up (unless it was handed a manager already),
-    says `("warm",)`, and exits when the control pipe reaches EOF unused.
+    says `Warm()`, and exits when the control pipe reaches EOF unused.
 
     Args:
-        conn: the child's end of the control pipe; the first message is
-            `("start", setup, config, address, forward)` with `main`'s arguments.
+        conn: the child's end of the control pipe; the first message is a `Start` with
+            `main`'s arguments.
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
     """
     PLATFORM.die_with_parent(parent)
@@ -187,15 +210,14 @@ def standby(conn: Connection, parent: int | None = None) -> None:
     try:
         if not conn.poll(0):  # taken already: the warm-up would only delay the manager
             _warm_up()
-            conn.send(("warm",))
-        message = conn.recv()
+            conn.send(Warm())
+        start = conn.recv()
     except (EOFError, OSError):
         os._exit(0)  # released unused, or the parent is gone
-    if message[0] != "start":
+    if not isinstance(start, Start):
         os._exit(0)
-    _, setup, config, address, forward = message
-    set_title(config.name)
-    _run_manager(setup, config, address, conn, forward)
+    set_title(start.config.name)
+    _run_manager(start.setup, start.config, start.address, conn, start.forward)
 
 
 class _EventLine:
@@ -209,7 +231,7 @@ class _EventLine:
     def __init__(self, control: _Control, name: str, *, on: bool) -> None:
         self.hub: Publisher[events.Event] = events.publisher()
         self.forwarder: Forwarder[events.Event] = Forwarder(
-            lambda batch: control.send(("events", batch)),
+            lambda batch: control.send(Events(batch)),
             notice=events.EventsDropped,
             name=f"{name}-events",
         )
@@ -229,19 +251,23 @@ class _EventLine:
         self.forwarder.close(timeout=timeout)
 
     def sync(self, control: _Control, token: int, timeout: float) -> None:
-        """Send what is buffered, then `("events-synced", token)` after it (own thread)."""
+        """Send what is buffered, then `EventsSynced(token)` after it (own thread)."""
         self.forwarder.wait_sent(timeout=timeout)
-        control.send(("events-synced", token))
+        control.send(EventsSynced(token))
 
 
 def _run_manager(
-    setup: bytes, config: RegistrarConfig, address: Any, conn: Connection, forward: bool
+    setup: bytes,
+    config: RegistrarConfig,
+    address: Address | None,
+    conn: Connection,
+    forward: bool,
 ) -> None:
     from rr_actors._registrar import Served, start_registrar  # noqa: PLC0415 - preloaded
 
     control = _Control(conn)
     line = _EventLine(control, config.name, on=forward)
-    attached: Any = None
+    attached: Transport | None = None
     try:
         if address is not None:
             attached = address.attach()
@@ -252,12 +278,12 @@ def _run_manager(
         if attached is not None:
             attached.serve(Served(registrar))
     except BaseException as exc:  # noqa: BLE001 - reported to the supervisor, then exit
-        control.send(("failed", "".join(traceback.format_exception(exc))))
+        control.send(Failed("".join(traceback.format_exception(exc))))
         os._exit(1)
     stopping = threading.Event()
 
     def watch_actor() -> None:
-        registrar._ref.actor_stopped.wait()
+        registrar._wait_stopped()
         if stopping.is_set():
             return  # the supervisor's `stop`: the control loop exits
         if stopped_cleanly(registrar.name):  # code in the manager called registrar.stop()
@@ -265,52 +291,88 @@ def _run_manager(
         _exit(ACTOR_DIED_EXIT, attached)
 
     threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
-    control.send(("ready", os.getpid()))
-    _serve_control(conn, control, registrar, attached, stopping, line)
+    control.send(Ready(os.getpid()))
+    _ControlLoop(conn, control, registrar, attached, stopping, line).run()
 
 
-def _serve_control(
-    conn: Connection,
-    control: _Control,
-    registrar: Any,
-    attached: Any,
-    stopping: threading.Event,
-    line: _EventLine,
-) -> None:
-    """The child's control loop: answer pings, forward events or not, stop; exit on EOF."""
-    from rr_actors._registrar.messages import Request  # noqa: PLC0415 - preloaded
+class _ControlLoop:
+    """The child's control loop: answer pings, forward events or not, stop; exit on EOF.
 
-    def trouble() -> tuple[float, str] | None:
-        if attached is None:
-            return None
-        found: tuple[float, str] | None = attached.serving_trouble(registrar.name)
-        return found
+    Each message of the parent's is handled by the method its type maps to in
+    `_HANDLERS`, on the control loop's thread.
+    """
 
-    while True:
-        try:
-            message = conn.recv()
-        except (EOFError, OSError):
-            os._exit(PARENT_GONE_EXIT)  # the supervisor's process is gone: no orphans
-        kind = message[0]
-        if kind == "ping":
-            pong = _Pong(control, message[1], trouble)
-            with contextlib.suppress(pykka.ActorDeadError):
-                registrar._ref.tell(Request(lambda _actor, reply: reply.set_result(None), pong))
-        elif kind == "events":
-            line.switch(on=bool(message[1]))
-        elif kind == "events-sync":  # (a thread: the loop keeps answering pings)
-            threading.Thread(
-                target=line.sync, args=(control, *message[1:3]), name="rr-events-sync", daemon=True
-            ).start()
-        elif kind == "stop":
-            stopping.set()
-            if len(message) > 2 and message[2]:  # stopped to be restarted with its group:
-                DIRECTORY.restarting.add(registrar.name)  # no tombstone, peers see "unavailable"
-            code = 0
+    def __init__(
+        self,
+        conn: Connection,
+        control: _Control,
+        registrar: ResourceRegistrar,
+        attached: Transport | None,
+        stopping: threading.Event,
+        line: _EventLine,
+    ) -> None:
+        self.conn = conn
+        self.control = control
+        self.registrar = registrar
+        self.attached = attached
+        self.stopping = stopping
+        self.line = line
+
+    def run(self) -> None:
+        """Handle the parent's messages in order until `Stop`, or EOF (the parent is gone)."""
+        while True:
             try:
-                registrar.stop(timeout=message[1])
-            except RrError:
-                logger.exception("manager %s did not stop cleanly", registrar.name)
-                code = 1
-            line.flush(timeout=1.0)  # its last events (the unloads of its stop) go too
-            _exit(code, attached)
+                message = self.conn.recv()
+            except (EOFError, OSError):
+                os._exit(PARENT_GONE_EXIT)  # the supervisor's process is gone: no orphans
+            handler = _HANDLERS.get(type(message))
+            if handler is None:
+                logger.error("manager %s: unknown control message %r", self.registrar.name, message)
+                continue
+            handler(self, message)
+
+    def trouble(self) -> tuple[float, str] | None:
+        """For how long and why the registrar's listener cannot accept connections, if so."""
+        if self.attached is None:
+            return None
+        return self.attached.serving_trouble(self.registrar.name)
+
+    def ping(self, message: Ping) -> None:
+        """Answer through the registrar actor's mailbox: a hung actor sends no pong."""
+        self.registrar._ping(_Pong(self.control, message.number, self.trouble))
+
+    def forward(self, message: Forward) -> None:
+        self.line.switch(on=message.on)
+
+    def sync_events(self, message: SyncEvents) -> None:
+        """On a thread of its own: the loop keeps answering pings meanwhile."""
+        threading.Thread(
+            target=self.line.sync,
+            args=(self.control, message.token, message.timeout),
+            name="rr-events-sync",
+            daemon=True,
+        ).start()
+
+    def stop(self, message: Stop) -> None:
+        """Stop the registrar, send its last events, exit (0, or 1 if it did not stop)."""
+        registrar = self.registrar
+        self.stopping.set()
+        if message.restarting:  # stopped to be restarted with its group:
+            DIRECTORY.mark_restarting([registrar.name])  # no tombstone: "unavailable"
+        code = 0
+        try:
+            registrar.stop(timeout=message.timeout)
+        except RrError:
+            logger.exception("manager %s did not stop cleanly", registrar.name)
+            code = 1
+        self.line.flush(timeout=1.0)  # its last events (the unloads of its stop) go too
+        _exit(code, self.attached)
+
+
+_HANDLERS: dict[type[Any], Callable[[_ControlLoop, Any], None]] = {
+    Ping: _ControlLoop.ping,
+    Forward: _ControlLoop.forward,
+    SyncEvents: _ControlLoop.sync_events,
+    Stop: _ControlLoop.stop,
+}
+"""What the child does with each message of the parent's (`Start` is `standby`'s)."""

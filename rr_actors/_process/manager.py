@@ -3,11 +3,11 @@
 ```
  supervisor's thread           watcher thread (one per process)           manager process
    ManagerProcess.start ──────────────────────────────────────────────►  child.main / standby
-        ◄── ("ready", pid) ──────────────────────────────────────────────
+        ◄── Ready(pid) ──────────────────────────────────────────────────
                                waits on: process sentinel, control pipe,
                                the platform's exit watch (a pidfd on Linux)
-                               ── ("ping", n) every `heartbeat` s ─────►  registrar mailbox
-                               ◄── ("pong", n, trouble) ────────────────
+                               ── Ping(n) every `heartbeat` s ─────────►  registrar mailbox
+                               ◄── Pong(n, trouble) ────────────────────
                                exit seen ──► on_exit(ManagerExit) ──► the supervisor's mailbox
 ```
 
@@ -18,7 +18,8 @@ which tells the exit before the forkserver has reaped the child), and sends the 
 pings. A manager is killed and reported like a crash when it is *hung* (no answer to a
 ping for `heartbeat_timeout` seconds) or *unhealthy*: its answers say that its listener
 has been unable to accept connections (out of file descriptors, say) for that long. The
-child's side is `rr_actors._process.child`; spares are in `rr_actors._process.spare`.
+child's side is `rr_actors._process.child`; spares are in `rr_actors._process.spare`;
+the messages of the control pipe are `rr_actors._process.control`'s.
 """
 
 from __future__ import annotations
@@ -44,6 +45,19 @@ from rr_actors._process.context import (
     start_forkserver,
     stopped_cleanly,
 )
+from rr_actors._process.control import (
+    Events,
+    EventsSynced,
+    Failed,
+    Forward,
+    FromParent,
+    Ping,
+    Pong,
+    Ready,
+    Stop,
+    SyncEvents,
+)
+from rr_actors._transport.base import Address
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CallTimeoutError, RegistrarUnavailableError
 
@@ -155,7 +169,7 @@ class ManagerProcess:
         name: str,
         setup: bytes,
         config: RegistrarConfig,
-        address: Any,
+        address: Address | None,
         *,
         start_timeout: float,
         heartbeat: float | None,
@@ -203,7 +217,7 @@ class ManagerProcess:
 
     # -- requests ---------------------------------------------------------------------
 
-    def _send(self, message: tuple[Any, ...]) -> bool:
+    def _send(self, message: FromParent) -> bool:
         with self._send_lock:
             try:
                 self.conn.send(message)
@@ -213,7 +227,7 @@ class ManagerProcess:
 
     def forward_events(self, on: bool) -> None:
         """Tell the manager to forward its registrar's events (`on`) or to stop forwarding."""
-        self._send(("events", on))
+        self._send(Forward(on))
 
     def sync_events(self, timeout: float) -> bool:
         """Block until what the manager forwarded before this call reached `on_events`.
@@ -228,7 +242,7 @@ class ManagerProcess:
         token = next(self._sync_tokens)  # atomic in CPython
         done = self._syncs[token] = threading.Event()
         try:
-            if self.exited.is_set() or not self._send(("events-sync", token, timeout)):
+            if self.exited.is_set() or not self._send(SyncEvents(token, timeout)):
                 return self.exited.is_set()
             return done.wait(timeout)
         finally:
@@ -246,7 +260,7 @@ class ManagerProcess:
             How it ended (`"shutdown"`, or `"killed: shutdown timeout"`, or what it died of).
         """
         self._stopping = True
-        self._send(("stop", timeout, restarting))
+        self._send(Stop(timeout, restarting))
         if self.exited.wait(timeout) and self.exit is not None:
             if self.exit.normal:
                 return ManagerExit("shutdown", normal=True, clean=self.exit.clean)
@@ -297,7 +311,7 @@ class ManagerProcess:
                 if oldest_unanswered is None:  # one ping in flight at a time
                     sent += 1
                     oldest_unanswered = now
-                    self._send(("ping", sent))
+                    self._send(Ping(sent))
                 next_ping = now + period
         self._finish(exitcode)
 
@@ -327,18 +341,31 @@ class ManagerProcess:
         except (EOFError, OSError):
             waitables.remove(self.conn)  # the exit follows: the sentinel says it
             return None
-        if message[0] == "events" and self._on_events is not None:
-            try:
-                self._on_events(message[1])
-            except Exception:
-                logger.exception("events of manager %s could not be delivered", self.name)
-        elif message[0] == "events-synced":
-            waiting = self._syncs.get(message[1])
-            if waiting is not None:
-                waiting.set()
-        if message[0] != "pong" or message[1] != sent:
+        handler = _HANDLERS.get(type(message))
+        if handler is None:
+            logger.error("manager %s sent an unknown control message %r", self.name, message)
             return None
-        trouble = message[2] if len(message) > 2 else None
+        return handler(self, message, sent)
+
+    def _events(self, message: Events, _sent: int) -> None:
+        """A batch of forwarded events: to `on_events` (the watcher thread)."""
+        if self._on_events is None:
+            return
+        try:
+            self._on_events(message.batch)
+        except Exception:
+            logger.exception("events of manager %s could not be delivered", self.name)
+
+    def _synced(self, message: EventsSynced, _sent: int) -> None:
+        waiting = self._syncs.get(message.token)
+        if waiting is not None:
+            waiting.set()
+
+    def _pong(self, message: Pong, sent: int) -> tuple[float, str] | None:
+        """The health a pong of ping `sent` says; `None` for a late one (an older ping)."""
+        if message.number != sent:
+            return None
+        trouble = message.trouble
         return (0.0, "") if trouble is None else (float(trouble[0]), str(trouble[1]))
 
     def _hang(self, silent_for: float) -> None:
@@ -380,15 +407,36 @@ class ManagerProcess:
             logger.exception("exit handler of manager %s raised", self.name)
         finally:
             self.process.join(5.0)  # reaped by now, or soon: the forkserver's word
+            release(self.process)
             if self._exit_watch is not None:
                 self._exit_watch.close()
+
+
+_HANDLERS: dict[type[Any], Callable[[ManagerProcess, Any, int], tuple[float, str] | None]] = {
+    Events: ManagerProcess._events,
+    EventsSynced: ManagerProcess._synced,
+    Pong: ManagerProcess._pong,
+}
+"""What the watcher thread does with each message of a running manager's (`Ready`,
+`Failed` and `Warm` come before it runs: `_await_ready`)."""
+
+
+def release(process: Any) -> None:
+    """Close the descriptors a reaped process object holds (its sentinel pipe, ...).
+
+    Not left to the garbage collector: whoever keeps a reference (an error's traceback
+    that went through `Supervisor.run_in`, say) would keep them open. A process that is
+    not reaped yet keeps them (`close` refuses); they go with the object then.
+    """
+    with contextlib.suppress(ValueError, OSError):
+        process.close()
 
 
 def _launch(
     name: str,
     setup: bytes,
     config: RegistrarConfig,
-    address: Any,
+    address: Address | None,
     spare: Spare | None,
     forward: bool,
 ) -> tuple[Any, Connection]:
@@ -415,35 +463,35 @@ def _await_ready(name: str, process: Any, conn: Connection, start_timeout: float
         The events it forwarded before it was ready (its restore's, its setup's).
     """
     deadline = time.monotonic() + start_timeout
-    ready: Any = None
+    ready: Ready | Failed | None = None
     early: list[Any] = []
     while ready is None:
         left = deadline - time.monotonic()
         woke = multiprocessing.connection.wait([conn, process.sentinel], max(left, 0))
         if conn in woke:
             try:
-                ready = conn.recv()
+                message = conn.recv()
             except (EOFError, OSError):
                 woke = [process.sentinel]
-            if ready == ("warm",):  # a spare that warmed up after it was taken
-                ready = None
-                continue
-            if ready is not None and ready[0] == "events":
-                early.extend(ready[1])
-                ready = None
-                continue
+            else:
+                if isinstance(message, Events):  # (its restore's in-doubt events, say)
+                    early.extend(message.batch)
+                elif isinstance(message, Ready | Failed):
+                    ready = message
+                # else: Warm, from a spare that warmed up after it was taken
         if ready is None and (process.sentinel in woke or left <= 0):
             if left <= 0:
                 process.kill()
             process.join(5.0)
             conn.close()
+            reason = describe(process.exitcode).reason
+            release(process)
             if left <= 0:
                 raise CallTimeoutError(f"manager {name!r} was not ready within {start_timeout:g} s")
-            raise RegistrarUnavailableError(
-                f"manager {name!r} died while starting ({describe(process.exitcode).reason})"
-            )
-    if ready[0] != "ready":
+            raise RegistrarUnavailableError(f"manager {name!r} died while starting ({reason})")
+    if isinstance(ready, Failed):
         process.join(5.0)
         conn.close()
-        raise RegistrarUnavailableError(f"manager {name!r} failed to start:\n{ready[1]}")
+        release(process)
+        raise RegistrarUnavailableError(f"manager {name!r} failed to start:\n{ready.traceback}")
     return early

@@ -41,7 +41,7 @@ FORWARD_MARGIN = 10.0
 """Seconds a forwarded call may take beyond its own `timeout` (transport and scheduling)."""
 
 
-class RemoteRegistrar(RegistrarFacts):
+class RemoteRegistrar:
     """A handle on a registrar that lives in a manager process of a system.
 
     It has the methods and properties of a `ResourceRegistrar`, with the same arguments,
@@ -81,8 +81,7 @@ class RemoteRegistrar(RegistrarFacts):
         """
         self._config = RegistrarConfig(name=config) if isinstance(config, str) else config
         self._address = address
-        self._restored = restored
-        self._in_doubt = in_doubt
+        self._facts = RegistrarFacts(self._config, restored, in_doubt)
         self._process: ManagerProcess | None = None
         self._stopping = False
         self._down = threading.Event()
@@ -140,9 +139,8 @@ class RemoteRegistrar(RegistrarFacts):
             on_exit=handle._exited,
         )
         try:
-            handle._restored, handle._in_doubt = handle.run(
-                _restored_and_in_doubt, timeout=start_timeout
-            )
+            restored, in_doubt = handle.run(_restored_and_in_doubt, timeout=start_timeout)
+            handle._facts = RegistrarFacts(config, restored, in_doubt)
         except BaseException:
             handle.kill()
             raise
@@ -150,9 +148,30 @@ class RemoteRegistrar(RegistrarFacts):
 
     def __reduce__(self) -> tuple[Any, ...]:
         """Pickle as a plain (non-owner) handle: the manager process stays with its owner."""
-        return (_rebuild, (self._config, self._address, self._restored, self._in_doubt))
+        facts = self._facts
+        return (_rebuild, (facts.config, self._address, facts.restored, facts.in_doubt))
 
     # -- properties -------------------------------------------------------------------
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        return self._facts.config.name
+
+    @property
+    def config(self) -> RegistrarConfig:
+        """The configuration it was started with."""
+        return self._facts.config
+
+    @property
+    def restored(self) -> bool:
+        """Whether the catalog was restored from an existing backup at start."""
+        return self._facts.restored
+
+    @property
+    def in_doubt(self) -> tuple[Query, ...]:
+        """Loads a crash cut short in the last run (see `ResourceRegistrar.in_doubt`)."""
+        return self._facts.in_doubt
 
     @property
     def pid(self) -> int | None:
@@ -215,6 +234,7 @@ class RemoteRegistrar(RegistrarFacts):
         unload: Callable[[Any, Any], None],
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
+        label: Callable[[Any], str] | None = None,
     ) -> None:
         """`ResourceRegistrar.register_server`; the callbacks run in the registrar's process.
 
@@ -225,7 +245,7 @@ class RemoteRegistrar(RegistrarFacts):
         """
         self._forward(
             lambda reg: reg.register_server(
-                name, load=load, unload=unload, on_status=on_status, timeout=timeout
+                name, load=load, unload=unload, on_status=on_status, timeout=timeout, label=label
             ),
             timeout,
         )
@@ -380,7 +400,8 @@ class RemoteRegistrar(RegistrarFacts):
 
         Raises:
             CallTimeoutError: not finished within `timeout` seconds (the process was killed).
-            RrError: the registrar did not stop cleanly (the reason is in the message).
+            RegistrarUnavailableError: the registrar died (or its process exited) while it
+                stopped; the reason is in the message.
         """
         limit = self._config.call_timeout if timeout is None else timeout
         if self._process is None:
@@ -396,7 +417,9 @@ class RemoteRegistrar(RegistrarFacts):
             return
         if result.reason.startswith("killed: no clean stop"):
             raise CallTimeoutError(f"stop() of registrar {self.name!r}: {result.reason}")
-        raise RrError(f"registrar {self.name!r} did not stop cleanly: {result.reason}")
+        raise RegistrarUnavailableError(
+            f"registrar {self.name!r} did not stop cleanly: {result.reason}"
+        )
 
     def kill(self, *, timeout: float = 5.0) -> None:
         """SIGKILL the registrar's manager process; return once it is dead.
@@ -467,17 +490,14 @@ def _kill_own_process(_: ResourceRegistrar) -> None:
 
 def _consumer_down(address: SystemAddress, name: str) -> None:
     """Death watch: tell every registrar of the system (and of this process) `name` is gone."""
-    targets = {peer.name for peer in DIRECTORY.local_peers()}
+    served: list[str] = []
     with contextlib.suppress(OSError):
-        targets.update(
+        served = [
             entry.removesuffix(".sock")
             for entry in os.listdir(address.runtime_dir)
             if entry.endswith(".sock")
-        )
-    targets.discard(name)
-    for target in sorted(targets):
-        with contextlib.suppress(RrError):
-            DIRECTORY.lookup(target).tell(ConsumerDown(name))
+        ]
+    DIRECTORY.broadcast(ConsumerDown(name), also=served, skip=name)
 
 
 if TYPE_CHECKING:  # mypy checks that the handle implements the protocol

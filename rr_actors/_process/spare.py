@@ -3,8 +3,8 @@
 ```
  SparePool (root supervisor)                       spare process (child.standby)
    refill() ──► filler thread ── Spare.start() ──►  fork, bootstrap, warm up
-                                                    ──► ("warm",)
-   take() ───► the warmest spare ── ManagerProcess.start(spare=...) ──► ("start", ...)
+                                                    ──► Warm()
+   take() ───► the warmest spare ── ManagerProcess.start(spare=...) ──► Start(...)
    close() ──► every idle spare: EOF on its pipe ──► exits
 ```
 
@@ -25,6 +25,8 @@ from typing import Any
 
 from rr_actors._process.child import standby
 from rr_actors._process.context import PROCESS_PREFIX, forker_pid, mp_context
+from rr_actors._process.control import Start, Warm
+from rr_actors._transport.base import Address
 from rr_actors.config import RegistrarConfig
 
 __all__ = ["Spare", "SparePool"]
@@ -60,11 +62,11 @@ class Spare:
         return cls(process, parent_conn)
 
     def check_warm(self) -> bool:
-        """Whether it has finished warming up (reads its `("warm",)` without blocking)."""
+        """Whether it has finished warming up (reads its `Warm()` without blocking)."""
         if not self.warm:
             with contextlib.suppress(OSError, EOFError):
                 if self.conn.poll(0):
-                    self.warm = self.conn.recv() == ("warm",)
+                    self.warm = isinstance(self.conn.recv(), Warm)
         return self.warm
 
     def take(
@@ -72,7 +74,7 @@ class Spare:
         name: str,
         setup: bytes,
         config: RegistrarConfig,
-        address: Any,
+        address: Address | None,
         *,
         forward: bool = False,
     ) -> bool:
@@ -81,7 +83,7 @@ class Spare:
             self.close()
             return False
         try:
-            self.conn.send(("start", setup, config, address, forward))
+            self.conn.send(Start(setup, config, address, forward))
         except (OSError, ValueError):
             self.close()
             return False
@@ -97,6 +99,8 @@ class Spare:
             with contextlib.suppress(OSError, ValueError):
                 self.process.kill()
             self.process.join(timeout)
+        with contextlib.suppress(OSError, ValueError):  # its sentinel pipe, now
+            self.process.close()
 
 
 class SparePool:

@@ -2,18 +2,20 @@
 
 ```
               ┌──────────────────── RegistrarActor (one mailbox, one thread) ───────────────┐
- message ───► │ handlers: type -> (step name, role method)                                   │
+ message ───► │ DISPATCH: type -> (step name, the role's handler)                            │
               │   Provider   Load                        (provider.py, matching.py)          │
               │   Unloading  Unload Abandon ConsumerDown Reconcile       (unloading.py)      │
-              │   Servers    Fetch; register, unregister, update         (servers.py)        │
+              │   Servers    Fetch RegisterServer UnregisterServer UpdateResponse            │
+              │              ListServerQueries                            (servers.py)       │
               │   Consumer   Pending ClientLoaded CallFailed Revoke ResponseUpdated          │
-              │              ReconcileAsk                                 (consumer.py)      │
-              │   StatusRelay StatusNotice                               (status.py)         │
-              │   Lifecycle  Request Flush Crash; start, stop, death     (lifecycle.py)      │
+              │              ReconcileAsk Release SetStatusCallback ListClientQueries        │
+              │              OpenClient                                   (consumer.py)      │
+              │   StatusRelay StatusNotice SendStatus                    (status.py)         │
+              │   Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot; death           │
+              │                                                           (lifecycle.py)     │
               │ Shared: config, catalog, saver, servers, phase, workers  (state.py)          │
               └──────────────────────────────────────────────────────────────────────────────┘
 ```
-
 It never blocks: what it needs from another actor arrives later as a message that
 resumes the work (`Shared.send`, `Join`). User callbacks run on worker threads, so a
 slow or hung callback never blocks the mailbox.
@@ -29,10 +31,11 @@ from typing import Any
 from rr_actors._catalog import Catalog
 from rr_actors._core.actor import Actor
 from rr_actors._core.bus import Publisher
-from rr_actors._core.directory import DIRECTORY, LocalPeer
-from rr_actors._core.replies import Answer
+from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
+from rr_actors._core.replies import Answer, Tokens
 from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.consumer import Consumer
+from rr_actors._registrar.endpoints import Clients
 from rr_actors._registrar.lifecycle import Lifecycle
 from rr_actors._registrar.messages import (
     Abandon,
@@ -42,19 +45,35 @@ from rr_actors._registrar.messages import (
     Crash,
     Fetch,
     Flush,
+    ListClientQueries,
+    ListServerQueries,
     Load,
+    OpenClient,
     Pending,
+    Ping,
+    Reachable,
+    Ready,
     Reconcile,
     ReconcileAsk,
-    Request,
+    RegisterServer,
+    Release,
     ResponseUpdated,
     Revoke,
+    RunOnActor,
+    Save,
+    SendStatus,
+    SetStatusCallback,
+    Snapshot,
     StatusNotice,
+    Stop,
     Unload,
+    UnregisterServer,
+    UpdateResponse,
 )
+from rr_actors._registrar.probes import POINTS
 from rr_actors._registrar.provider import Provider
 from rr_actors._registrar.servers import Servers
-from rr_actors._registrar.state import Shared
+from rr_actors._registrar.state import OpenReply, Shared
 from rr_actors._registrar.status import StatusRelay
 from rr_actors._registrar.unloading import Unloading
 from rr_actors._store import Saver
@@ -62,9 +81,118 @@ from rr_actors.config import RegistrarConfig
 from rr_actors.errors import RegistrarUnavailableError, RrError
 from rr_actors.events import Event
 
-__all__ = ["RegistrarActor"]
+__all__ = ["DISPATCH", "MESSAGE_STEPS", "STEPS", "RegistrarActor", "asked"]
 
 logger = logging.getLogger("rr_actors")
+
+Handler = Callable[[Any], None]
+"""`handle(message)`, run on the actor's thread."""
+
+Binder = Callable[["RegistrarActor"], Handler]
+"""What makes a `Handler` of one actor (run once, when the actor is built)."""
+
+
+def asked(op: Callable[[RegistrarActor, Any, Reply], None]) -> Binder:
+    """The handler of a message from the handle: `op(actor, message, reply)`.
+
+    The reply is open while unanswered (a death fails it, `Lifecycle.fail_waiting`), and
+    an `RrError` the op raises is its caller's answer: the registrar keeps serving.
+    """
+
+    def bind(actor: RegistrarActor) -> Handler:
+        open_requests = actor.lifecycle.open_requests
+
+        def handle(message: Any) -> None:
+            reply = OpenReply(message.reply, open_requests)
+            try:
+                op(actor, message, reply)
+            except RrError as exc:
+                reply.set_error(exc)
+
+        return handle
+
+    return bind
+
+
+def _answering(tokens: Tokens) -> Handler:
+    return lambda m: tokens.answer(m.token, m.value, m.error)
+
+
+def _answer_now(_actor: RegistrarActor, _message: Ping, reply: Reply) -> None:
+    reply.set_result(None)
+
+
+DISPATCH: dict[type, tuple[str, Binder]] = {
+    # message: (step name, its handler). The step names are `rr_actors.testing.STEPS`.
+    # -- between registrars (the wire protocol) --
+    Load: ("load", lambda a: a.provider.on_load),  # at the provider
+    Unload: ("unload", lambda a: a.unloading.on_unload),  # at the provider
+    Abandon: ("abandon", lambda a: a.unloading.on_abandon),  # at the provider
+    Fetch: ("fetch", lambda a: a.servers.on_fetch),  # at the provider
+    ConsumerDown: ("consumer_down", lambda a: a.unloading.on_consumer_down),  # death watch
+    Reconcile: ("reconcile", lambda a: a.unloading.on_reconcile),  # a consumer lists its ids
+    ReconcileAsk: ("reconcile_ask", lambda a: a.consumer.on_reconcile_ask),  # provider restarted
+    StatusNotice: ("status_notice", lambda a: a.status.on_status_notice),  # at a consumer
+    Revoke: ("revoke", lambda a: a.consumer.on_revoke),  # at a consumer
+    ResponseUpdated: ("response_updated", lambda a: a.consumer.on_response_updated),
+    # -- from this registrar's callers' threads and its own helpers --
+    Pending: ("pending", lambda a: a.consumer.on_pending),  # a durable call's record to commit
+    ClientLoaded: ("client_loaded", lambda a: a.consumer.on_client_loaded),  # an answer to record
+    CallFailed: ("call_failed", lambda a: a.consumer.on_call_failed),  # failed or withdrawn
+    Answer: ("answer", lambda a: _answering(a.shared.tokens)),  # to one of its own questions
+    Flush: ("flush", lambda a: a.lifecycle.on_flush),  # the save-interval timer fired
+    Crash: ("crash", lambda a: a.lifecycle.on_crash),  # `rr_actors.testing.crash`
+    # -- from the handle (`handle.py`), each answered through its reply --
+    RegisterServer: (
+        "register_server",
+        asked(
+            lambda a, m, r: a.servers.op_register(m.name, m.load, m.unload, m.on_status, r, m.label)
+        ),
+    ),
+    UnregisterServer: (
+        "unregister_server",
+        asked(lambda a, m, r: a.servers.op_unregister(m.name, r)),
+    ),
+    Release: ("release", asked(lambda a, m, r: a.consumer.op_unload(m.query_id, r))),
+    SendStatus: (
+        "send_status",
+        asked(lambda a, m, r: a.status.op_send_status(m.query_id, m.status, m.message, r)),
+    ),
+    ListServerQueries: (
+        "server_queries",
+        asked(lambda a, m, r: a.servers.op_server_queries(m.server, r)),
+    ),
+    ListClientQueries: (
+        "client_queries",
+        asked(lambda a, _m, r: a.consumer.op_client_queries(r)),
+    ),
+    SetStatusCallback: (
+        "set_status_callback",
+        asked(lambda a, m, r: a.consumer.op_set_status_callback(m.query_id, m.callback, r)),
+    ),
+    UpdateResponse: (
+        "update_response",
+        asked(lambda a, m, r: a.servers.op_update_response(m.query_id, m.response, r)),
+    ),
+    Save: ("save", asked(lambda a, _m, r: a.lifecycle.op_save(r))),
+    Stop: ("stop", asked(lambda a, _m, r: a.lifecycle.op_stop(r))),
+    Ready: ("ready", asked(lambda a, _m, r: a.lifecycle.op_ready(r))),  # setup is done
+    Reachable: ("reachable", asked(lambda a, _m, r: a.lifecycle.op_reachable(r))),  # a carrier
+    Snapshot: ("snapshot", asked(lambda a, m, r: a.lifecycle.op_snapshot(r, m.check))),
+    Ping: ("ping", asked(_answer_now)),  # a manager process's heartbeat
+    OpenClient: (
+        "open_client",
+        asked(lambda a, m, r: a.consumer.op_client(m.target_rr, m.server, r)),
+    ),
+    RunOnActor: ("run_on_actor", asked(lambda a, m, r: m.op(a, r))),  # test only
+}
+"""The one dispatch table: which role handles each message, under which step name."""
+
+MESSAGE_STEPS: frozenset[str] = frozenset(step for step, _ in DISPATCH.values())
+"""Steps that handle one message on the actor's thread (`before`/`after` it)."""
+
+STEPS: frozenset[str] = MESSAGE_STEPS | POINTS
+"""Every name `rr_actors.testing.intercept` accepts: the message steps and the points."""
 
 
 class RegistrarActor(Actor):
@@ -74,6 +202,14 @@ class RegistrarActor(Actor):
         shared: the state every role uses.
         provider, unloading, servers, consumer, status, lifecycle: the roles.
     """
+
+    shared: Shared
+    provider: Provider
+    unloading: Unloading
+    servers: Servers
+    consumer: Consumer
+    status: StatusRelay
+    lifecycle: Lifecycle
 
     def __init__(
         self,
@@ -85,6 +221,7 @@ class RegistrarActor(Actor):
         due: DueAnswers,
         ended: threading.Event,
         published: Publisher[Event],
+        clients: Clients,
         *,
         setting_up: bool = False,
     ) -> None:
@@ -92,7 +229,7 @@ class RegistrarActor(Actor):
         self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
         # Each role is built after the roles it calls, and calls only those (one way):
         # lifecycle -> servers -> status | unloading -> provider -> consumer.
-        self.consumer = Consumer(self.shared, due, self.on_receive)
+        self.consumer = Consumer(self.shared, due, self.on_receive, clients)
         self.provider = Provider(self.shared, self.consumer)
         self.unloading = Unloading(self.shared, self.provider)
         self.status = StatusRelay(self.shared, self.consumer)
@@ -100,25 +237,8 @@ class RegistrarActor(Actor):
         self.lifecycle = Lifecycle(
             self.shared, self.provider, self.unloading, self.consumer, self, died, ended
         )
-        tokens = self.shared.tokens
-        self.handlers: dict[type, tuple[str, Callable[[Any], None]]] = {
-            Answer: ("answer", lambda m: tokens.answer(m.token, m.value, m.error)),
-            Load: ("load", self.provider.on_load),
-            Unload: ("unload", self.unloading.on_unload),
-            Abandon: ("abandon", self.unloading.on_abandon),
-            Fetch: ("fetch", self.servers.on_fetch),
-            ConsumerDown: ("consumer_down", self.unloading.on_consumer_down),
-            Reconcile: ("reconcile", self.unloading.on_reconcile),
-            ReconcileAsk: ("reconcile_ask", self.consumer.on_reconcile_ask),
-            StatusNotice: ("status_notice", self.status.on_status_notice),
-            Revoke: ("revoke", self.consumer.on_revoke),
-            ResponseUpdated: ("response_updated", self.consumer.on_response_updated),
-            Pending: ("pending", self.consumer.on_pending),
-            ClientLoaded: ("client_loaded", self.consumer.on_client_loaded),
-            CallFailed: ("call_failed", self.consumer.on_call_failed),
-            Request: ("request", self.lifecycle.on_request),
-            Flush: ("flush", self.lifecycle.on_flush),
-            Crash: ("crash", self.lifecycle.on_crash),
+        self.handlers: dict[type, tuple[str, Handler]] = {
+            kind: (step, bind(self)) for kind, (step, bind) in DISPATCH.items()
         }
 
     @property

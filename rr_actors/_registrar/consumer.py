@@ -29,7 +29,8 @@ from rr_actors._catalog import ClientRecord, ResourceState
 from rr_actors._core.directory import Reply
 from rr_actors._core.replies import FutureReply, Join
 from rr_actors._registrar.calls import AttemptState, CallAttempt, DueAnswers
-from rr_actors._registrar.endpoints import ClientActor
+from rr_actors._registrar.display import show_client
+from rr_actors._registrar.endpoints import ClientActor, Clients
 from rr_actors._registrar.loading import check_picklable
 from rr_actors._registrar.messages import (
     CallFailed,
@@ -66,7 +67,7 @@ class Consumer:
 
     Attributes:
         due: the query ids whose answers are on their way (shared with callers' threads).
-        clients: `(target registrar, server)` -> its client actor.
+        clients: its client actors (shared with its handle, which looks them up).
         status_callbacks: query id -> the client status callback of that query.
         pending_attempts: query id -> the attempt of a durable call in flight (this actor
             answers it after its commit).
@@ -78,12 +79,16 @@ class Consumer:
     """
 
     def __init__(
-        self, shared: Shared, due: DueAnswers, redeliver: Callable[[Notice], None]
+        self,
+        shared: Shared,
+        due: DueAnswers,
+        redeliver: Callable[[Notice], None],
+        clients: Clients,
     ) -> None:
         self.registrar = shared
         self.due = due
         self.redeliver = redeliver
-        self.clients: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
+        self.clients = clients
         self.status_callbacks: dict[str, StatusCallback] = {}
         self.pending_attempts: dict[str, CallAttempt] = {}
         self.parked_notices: dict[str, list[Notice]] = {}
@@ -163,13 +168,8 @@ class Consumer:
 
     def client(self, target_rr: str, server: str) -> pykka.ActorRef[ClientActor]:
         """The client actor for `target_rr/server`, started on first use (thesis 4.3.3)."""
-        key = (target_rr, server)
-        client = self.clients.get(key)
-        if client is None:
-            assert self.registrar.ref is not None
-            client = ClientActor.start(self.registrar.ref, self.registrar.name, target_rr, server)
-            self.clients[key] = client
-        return client
+        assert self.registrar.ref is not None
+        return self.clients.start(self.registrar.ref, self.registrar.name, target_rr, server)
 
     # -- answers ----------------------------------------------------------------------
 
@@ -180,6 +180,7 @@ class Consumer:
             if self.owner_gone(record):  # a late sub-call: kept as a call of its own, so a
                 record = ClientRecord(record.query, None)  # crash meanwhile gives it back
             self.registrar.catalog.add_client(record)
+            show_client(self.registrar, query_id)
             failed = self.registrar.commit()
             if failed is not None:  # not durable: the Load must not leave (rule 16)
                 self.registrar.catalog.remove_client(query_id)
@@ -222,6 +223,7 @@ class Consumer:
                 catalog.client_loaded(query.id, query.response)
             else:
                 catalog.add_client(message.record)
+                show_client(self.registrar, query.id)
             failed = self.registrar.commit()
             if failed is not None and message.answer_after_commit:  # durable: not kept
                 give_back(query.serving_rr, query.id, self.registrar.name)
@@ -369,8 +371,7 @@ class Consumer:
         self.parked_notices.clear()
 
     def stop_clients(self) -> None:
-        for client in self.clients.values():
-            client.stop(block=True, timeout=5.0)
+        self.clients.stop_all()
 
     # -- reconciling with a provider after a restart ---------------------------------
 

@@ -22,7 +22,7 @@ from rr_actors._registrar.messages import Fetch, FetchVia, RunLoad, RunUnload
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors.errors import CallTimeoutError, RrError
 
-__all__ = ["ClientActor", "ServerActor"]
+__all__ = ["ClientActor", "Clients", "ServerActor"]
 
 
 def _no_thread(exc: RuntimeError) -> RuntimeError:
@@ -142,3 +142,37 @@ class ClientActor(Actor):
                 )
             except RrError as exc:
                 message.reply.set_error(exc)
+
+
+class Clients:
+    """A registrar's client actors by `(target registrar, server)`: its one client cache.
+
+    Its actor starts them (`start`, on the actor's thread) and stops them; its handle
+    looks them up from any thread (`get`, one dict read), so that a call to a server it
+    called before does not ask the actor first.
+    """
+
+    __slots__ = ("_refs",)
+
+    def __init__(self) -> None:
+        self._refs: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
+
+    def get(self, target_rr: str, server: str) -> pykka.ActorRef[ClientActor] | None:
+        """The client actor for `target_rr/server`, if one was started (any thread)."""
+        return self._refs.get((target_rr, server))
+
+    def start(
+        self, registrar_ref: pykka.ActorRef[Any], origin_rr: str, target_rr: str, server: str
+    ) -> pykka.ActorRef[ClientActor]:
+        """The client actor for `target_rr/server`, started on first use (actor thread)."""
+        key = (target_rr, server)
+        client = self._refs.get(key)
+        if client is None:
+            client = ClientActor.start(registrar_ref, origin_rr, target_rr, server)
+            self._refs[key] = client
+        return client
+
+    def stop_all(self) -> None:
+        """Stop every client actor (the registrar stops or died; actor thread)."""
+        for client in list(self._refs.values()):
+            client.stop(block=True, timeout=5.0)

@@ -1,13 +1,19 @@
 """The registrar's handle: what user code holds, callable from any thread.
 
-Each method sends the registrar actor a request (`Request`: run this on your thread,
-answer that reply) and waits for the answer at most `timeout` seconds; `call` runs the
-call protocol on the caller's own thread (`calls.py`). The handle never touches the
-catalog itself. Starting the actor, before there is a handle, is `starting.py`'s.
+Each method sends the registrar actor one message of `messages.py` (`RegisterServer`,
+`Release`, ...: data that carries its reply) and waits for the answer at most `timeout`
+seconds; `call` runs the call protocol on the caller's own thread (`calls.py`). The
+handle never touches the catalog itself. Starting the actor, before there is a handle,
+is `starting.py`'s.
+
+The rest of the package reaches the actor only through the handle's small internal
+surface (`_tell`, `_ask`, `_wait_stopped`, `_crash`, `_ping`, `_actor_ref`): nothing
+else holds the actor's ref or builds a message to it from a closure.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import uuid
 from collections.abc import Callable
@@ -25,7 +31,25 @@ from rr_actors._registrar.calls import Calls
 from rr_actors._registrar.endpoints import ClientActor
 from rr_actors._registrar.lifecycle import CatalogView
 from rr_actors._registrar.loading import LOADING, check_picklable
-from rr_actors._registrar.messages import FetchVia, Request
+from rr_actors._registrar.messages import (
+    Asked,
+    Crash,
+    FetchVia,
+    ListClientQueries,
+    ListServerQueries,
+    OpenClient,
+    Ping,
+    Ready,
+    RegisterServer,
+    Release,
+    Save,
+    SendStatus,
+    SetStatusCallback,
+    Snapshot,
+    Stop,
+    UnregisterServer,
+    UpdateResponse,
+)
 from rr_actors._registrar.probes import Probes
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._registrar.starting import Launched, launch
@@ -40,41 +64,22 @@ from rr_actors.errors import (
 __all__ = ["RegistrarFacts", "ResourceRegistrar", "snapshot", "start_registrar"]
 
 
+@dataclasses.dataclass(frozen=True)
 class RegistrarFacts:
-    """What a registrar handle knows without asking its actor (shared by every handle)."""
+    """What a registrar handle knows without asking its actor; every handle holds one.
 
-    _config: RegistrarConfig
-    _restored: bool
-    _in_doubt: tuple[Query, ...]
+    Attributes:
+        config: the configuration it was started with.
+        restored: whether the catalog was restored from an existing backup at start.
+        in_doubt: loads (or unloads) a crash cut short in the last run, found at restore.
+    """
 
-    @property
-    def name(self) -> str:
-        """The registrar's name."""
-        return self._config.name
-
-    @property
-    def config(self) -> RegistrarConfig:
-        """The configuration it was started with."""
-        return self._config
-
-    @property
-    def restored(self) -> bool:
-        """Whether the catalog was restored from an existing backup at start."""
-        return self._restored
-
-    @property
-    def in_doubt(self) -> tuple[Query, ...]:
-        """Loads (or unloads) a crash cut short in the last run, found at restore (rule 16).
-
-        Each is a `Query` whose `id` is the resource id, whose `request` is what the load
-        was for and whose `response` is `None` for a load that never finished. They are
-        no longer in the catalog and their dependencies were released; the manager
-        decides whether something its callback started must be cleaned up.
-        """
-        return self._in_doubt
+    config: RegistrarConfig
+    restored: bool = False
+    in_doubt: tuple[Query, ...] = ()
 
 
-class ResourceRegistrar(RegistrarFacts):
+class ResourceRegistrar:
     """A manager's resource registrar (thesis 4.3.1, `RrBase`).
 
     Start one with [`ResourceRegistrar.start`][rr_actors.ResourceRegistrar.start]. Its
@@ -89,9 +94,9 @@ class ResourceRegistrar(RegistrarFacts):
         ref = launched.ref
         self._ref = ref
         self._config = config
-        self._restored = launched.restored
-        self._in_doubt = launched.in_doubt
-        self._clients: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
+        self._facts = RegistrarFacts(config, launched.restored, launched.in_doubt)
+        self._in_doubt_texts = launched.in_doubt_texts
+        self._clients = launched.clients  # one cache: the actor starts, the handle looks up
         self._died = launched.died  # set when a crash of the actor was fully handled
         self._ended = launched.ended  # set when the actor handed on its last message
         self._due = launched.due  # shared with the actor
@@ -105,6 +110,32 @@ class ResourceRegistrar(RegistrarFacts):
             stored=config.backup_path is not None,
             probes=lambda: self._probes,
         )
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        return self._facts.config.name
+
+    @property
+    def config(self) -> RegistrarConfig:
+        """The configuration it was started with."""
+        return self._facts.config
+
+    @property
+    def restored(self) -> bool:
+        """Whether the catalog was restored from an existing backup at start."""
+        return self._facts.restored
+
+    @property
+    def in_doubt(self) -> tuple[Query, ...]:
+        """Loads (or unloads) a crash cut short in the last run, found at restore (rule 16).
+
+        Each is a `Query` whose `id` is the resource id, whose `request` is what the load
+        was for and whose `response` is `None` for a load that never finished. They are
+        no longer in the catalog and their dependencies were released; the manager
+        decides whether something its callback started must be cleaned up.
+        """
+        return self._facts.in_doubt
 
     @classmethod
     def start(
@@ -176,6 +207,7 @@ class ResourceRegistrar(RegistrarFacts):
         unload: UnloadCallback,
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
+        label: Callable[[Any], str] | None = None,
     ) -> None:
         """Register a resource server `"<registrar>/<name>"`.
 
@@ -187,6 +219,14 @@ class ResourceRegistrar(RegistrarFacts):
             on_status: `on_status(query, update)`, run once on a worker thread when a status
                 about one of this server's resources is sent or passes through.
             timeout: seconds to wait for the registrar.
+            label: `label(request) -> str`, a short name for a resource that the observer
+                shows (`lidar2` rather than the whole request). It runs once per resource,
+                when its load starts, on a worker thread of this process, bounded by
+                `RegistrarConfig.compare_timeout`; the text is kept in the catalog (and
+                its backup), cut to 40 characters. If it raises (anything, `SystemExit`
+                included), returns something else than a `str` or overruns the bound,
+                the label reads `<label failed: ...>`; the load is not affected. Without
+                it, the observer shows what tells the server's requests apart.
 
         Raises:
             ConfigError: a callback is not callable or the name is invalid.
@@ -197,11 +237,12 @@ class ResourceRegistrar(RegistrarFacts):
         """
         if not isinstance(name, str) or not name or "/" in name:
             raise ConfigError(f"server name must be a non-empty string without '/', got {name!r}")
-        for arg, fn in (("load", load), ("unload", unload), ("on_status", on_status)):
+        callbacks = (("load", load), ("unload", unload), ("on_status", on_status), ("label", label))
+        for arg, fn in callbacks:
             if fn is not None and not callable(fn):
                 raise ConfigError(f"{arg} must be callable, got {fn!r}")
         self._ask(
-            lambda actor, reply: actor.servers.op_register(name, load, unload, on_status, reply),
+            RegisterServer(name, load, unload, on_status, label, FutureReply()),
             timeout,
             f"register_server({name!r})",
         )
@@ -216,11 +257,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarUnavailableError: this registrar died.
         """
         limit = self._timeout(timeout)
-        self._ask(
-            lambda actor, reply: actor.servers.op_unregister(name, reply),
-            limit,
-            f"unregister_server({name!r})",
-        )
+        self._ask(UnregisterServer(name, FutureReply()), limit, f"unregister_server({name!r})")
 
     # -- consumer API -----------------------------------------------------------------
 
@@ -299,11 +336,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarUnavailableError: the provider died; the id is kept, retry later.
             RegistrarStoppedError: this registrar was stopped.
         """
-        self._ask(
-            lambda actor, reply: actor.consumer.op_unload(query_id, reply),
-            timeout,
-            f"unload({query_id!r})",
-        )
+        self._ask(Release(query_id, FutureReply()), timeout, f"unload({query_id!r})")
 
     def send_status(
         self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
@@ -329,7 +362,7 @@ class ResourceRegistrar(RegistrarFacts):
         if not isinstance(status, Status):
             raise ConfigError(f"status must be an rr_actors.Status, got {status!r}")
         self._ask(
-            lambda actor, reply: actor.status.op_send_status(query_id, status, message, reply),
+            SendStatus(query_id, status, message, FutureReply()),
             timeout,
             f"send_status({query_id!r})",
         )
@@ -344,9 +377,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarUnavailableError: this registrar died.
         """
         result: list[Query] = self._ask(
-            lambda actor, reply: actor.servers.op_server_queries(server, reply),
-            timeout,
-            f"server_queries({server!r})",
+            ListServerQueries(server, FutureReply()), timeout, f"server_queries({server!r})"
         )
         return result
 
@@ -377,9 +408,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarUnavailableError: this registrar died.
         """
         result: list[Query] = self._ask(
-            lambda actor, reply: actor.consumer.op_client_queries(reply),
-            timeout,
-            "client_queries()",
+            ListClientQueries(FutureReply()), timeout, "client_queries()"
         )
         return result
 
@@ -401,7 +430,7 @@ class ResourceRegistrar(RegistrarFacts):
         if not callable(callback):
             raise ConfigError(f"callback must be callable, got {callback!r}")
         self._ask(
-            lambda actor, reply: actor.consumer.op_set_status_callback(query_id, callback, reply),
+            SetStatusCallback(query_id, callback, FutureReply()),
             timeout,
             f"set_status_callback({query_id!r})",
         )
@@ -427,7 +456,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarUnavailableError: this registrar died.
         """
         self._ask(
-            lambda actor, reply: actor.servers.op_update_response(query_id, response, reply),
+            UpdateResponse(query_id, response, FutureReply()),
             timeout,
             f"update_response({query_id!r})",
         )
@@ -440,7 +469,7 @@ class ResourceRegistrar(RegistrarFacts):
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        self._ask(lambda actor, reply: actor.lifecycle.op_save(reply), timeout, "save_catalog()")
+        self._ask(Save(FutureReply()), timeout, "save_catalog()")
 
     def stop(self, *, timeout: float | None = None) -> None:
         """Stop the registrar (rule 12).
@@ -458,10 +487,10 @@ class ResourceRegistrar(RegistrarFacts):
         limit = self._timeout(timeout)
         deadline = time.monotonic() + limit
         try:
-            self._ask(lambda actor, reply: actor.lifecycle.op_stop(reply), limit, "stop()")
+            self._ask(Stop(FutureReply()), limit, "stop()")
         except RegistrarStoppedError:
             return
-        # op_stop ended the actor; what reached its mailbox meanwhile (an answer to give
+        # Stop ended the actor; what reached its mailbox meanwhile (an answer to give
         # back, a notice to acknowledge) is handled once its thread has handed it on.
         if not self._ended.wait(max(0.0, deadline - time.monotonic())):
             raise CallTimeoutError(f"stop() of {self.name!r} timed out after {limit:g} s")
@@ -484,30 +513,52 @@ class ResourceRegistrar(RegistrarFacts):
         check_seconds("timeout", timeout)
         return float(timeout)
 
-    def _ask(
-        self,
-        op: Callable[[RegistrarActor, Reply], None],
-        timeout: float | None,
-        what: str,
-    ) -> Any:
-        limit = self._timeout(timeout)
-        reply = FutureReply()
+    # -- the internal surface: how the package reaches the actor ----------------------
+
+    def _tell(self, message: Any) -> bool:
+        """Send the actor `message` without waiting; whether the actor was running."""
         try:
-            self._ref.tell(Request(op, reply))
+            self._ref.tell(message)
         except pykka.ActorDeadError:
+            return False
+        return True
+
+    def _ask(self, message: Asked, timeout: float | None, what: str) -> Any:
+        """Send the actor `message` and wait at most `timeout` seconds for its answer.
+
+        Raises:
+            CallTimeoutError: no answer in time (`what` names the operation).
+            RegistrarStoppedError, RegistrarUnavailableError: it was stopped, or it died.
+            RrError: the error the actor answered with.
+        """
+        limit = self._timeout(timeout)
+        if not self._tell(message):
             raise DIRECTORY.gone_error(self.name) from None
-        return wait(reply.future, limit, what)
+        return wait(message.reply.future, limit, what)
+
+    def _wait_stopped(self, timeout: float | None = None) -> bool:
+        """Block until the actor's thread ended (stopped or died); whether it did."""
+        return self._ref.actor_stopped.wait(timeout)
+
+    def _crash(self) -> None:
+        """Make the actor die as if a bug hit it (`testing.crash`, a forced stop)."""
+        self._ref.tell(Crash())
+
+    def _ping(self, reply: Reply) -> None:
+        """Ask the actor to answer `reply` (`None`) once it gets to it (a heartbeat)."""
+        self._tell(Ping(reply))
+
+    def _actor_ref(self) -> pykka.ActorRef[RegistrarActor]:
+        """The actor's pykka ref (`rr_actors.testing.actor_ref` gives it to tests)."""
+        return self._ref
 
     def _client(self, target_rr: str, server: str, timeout: float) -> pykka.ActorRef[ClientActor]:
-        key = (target_rr, server)
-        client = self._clients.get(key)
+        client = self._clients.get(target_rr, server)
         if client is None or not client.is_alive():
-            client = self._ask(
-                lambda actor, reply: actor.consumer.op_client(target_rr, server, reply),
-                timeout,
-                "starting a client",
+            started: pykka.ActorRef[ClientActor] = self._ask(
+                OpenClient(target_rr, server, FutureReply()), timeout, "starting a client"
             )
-            self._clients[key] = client
+            return started
         return client
 
 
@@ -535,7 +586,7 @@ def start_registrar(
         except BaseException:
             handle.stop()
             raise
-        handle._ask(lambda actor, reply: actor.lifecycle.op_ready(reply), None, "ready")
+        handle._ask(Ready(FutureReply()), None, "ready")
     return handle
 
 
@@ -552,8 +603,8 @@ def snapshot(registrar: ResourceRegistrar, *, timeout: float, check: bool) -> Ca
         RegistrarStoppedError, RegistrarUnavailableError: it was stopped, or it died.
     """
     view: CatalogView = registrar._ask(
-        lambda actor, reply: actor.lifecycle.op_snapshot(reply, check),
+        Snapshot(check, FutureReply()),
         timeout,
         "catalog_snapshot()" if check else "a snapshot of the catalog",
     )
-    return view
+    return dataclasses.replace(view, in_doubt=registrar._in_doubt_texts)

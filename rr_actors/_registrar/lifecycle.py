@@ -33,7 +33,6 @@ from rr_actors._registrar.messages import (
     ConsumerDown,
     Crash,
     Flush,
-    Request,
     give_back,
 )
 from rr_actors._registrar.state import OpenReply, Phase, Shared
@@ -63,11 +62,14 @@ class CatalogView:
         resources: the served resources, each with a copy of its consumers.
         clients: the client records (queries this registrar holds).
         servers: the names of its registered resource servers.
+        in_doubt: the id and request display text of each resource found in doubt at
+            its restore (`ResourceRegistrar.in_doubt`).
     """
 
     resources: tuple[Resource, ...]
     clients: tuple[ClientRecord, ...]
     servers: tuple[str, ...] = ()
+    in_doubt: tuple[tuple[str, str | None], ...] = ()
 
 
 class Lifecycle:
@@ -189,13 +191,6 @@ class Lifecycle:
 
     # -- requests from the handle -----------------------------------------------------
 
-    def on_request(self, message: Request) -> None:
-        reply = OpenReply(message.reply, self.open_requests)
-        try:
-            message.op(self.actor, reply)
-        except RrError as exc:
-            reply.set_error(exc)
-
     def op_snapshot(self, reply: Reply, check: bool) -> None:
         """Copy the catalog's rows (a restored row decodes its values here, once); with
         `check`, after checking the catalog's invariants (a failure is the caller's
@@ -285,10 +280,8 @@ class Lifecycle:
         if self.flush_timer is not None:
             self.flush_timer.cancel()
         self.registrar.saver.close(erase=False, flush=False)  # a crash writes nothing more
-        if self.registrar.name not in DIRECTORY.restart_expected:
-            for peer in DIRECTORY.local_peers():
-                with contextlib.suppress(RrError):
-                    peer.tell(ConsumerDown(self.registrar.name))
+        if not DIRECTORY.restart_expected(self.registrar.name):
+            DIRECTORY.broadcast(ConsumerDown(self.registrar.name), skip=self.registrar.name)
         self.died.set()
 
     # -- whoever still waits ----------------------------------------------------------

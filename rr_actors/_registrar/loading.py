@@ -28,6 +28,7 @@ __all__ = [
     "MAX_DEPENDENCY_DEPTH",
     "LoadContext",
     "check_picklable",
+    "error_frame",
     "load_error",
 ]
 
@@ -69,6 +70,32 @@ def check_picklable(value: Any, what: str) -> None:
         ) from exc
 
 
+def error_frame(
+    registrar: str,
+    server: str,
+    exc: BaseException,
+    message: str | None = None,
+    *,
+    with_traceback: bool = True,
+) -> ErrorFrame:
+    """The frame a failed load adds to a `ResourceLoadError`'s stack (the one builder).
+
+    Args:
+        registrar: the registrar whose server failed.
+        server: that server's name.
+        exc: what failed it.
+        message: what to say (default: `str(exc)`).
+        with_traceback: whether the frame carries `exc`'s formatted traceback.
+    """
+    return ErrorFrame(
+        registrar=registrar,
+        server=server,
+        exc_type=type(exc).__qualname__,
+        message=str(exc) if message is None else message,
+        traceback="".join(traceback.format_exception(exc)) if with_traceback else "",
+    )
+
+
 def load_error(registrar: str, server: str, exc: BaseException) -> RrError:
     """Turn what a `load` callback raised into the error its callers get (rule 4).
 
@@ -80,12 +107,6 @@ def load_error(registrar: str, server: str, exc: BaseException) -> RrError:
         inner = inner.__cause__
     if isinstance(inner, DependencyCycleError):
         return inner
-    frame = ErrorFrame(
-        registrar=registrar,
-        server=server,
-        exc_type=type(exc).__qualname__,
-        message=str(exc),
-        traceback="".join(traceback.format_exception(exc)),
-    )
+    frame = error_frame(registrar, server, exc)
     stack = inner.stack if isinstance(inner, ResourceLoadError) else ()
     return ResourceLoadError((*stack, frame))

@@ -10,30 +10,37 @@ provider). The internal messages
 below them never leave their process: a registrar's handle, its server and client actors
 and its callers' threads tell them to the registrar actor.
 
-To add a message: define it here, handle it in one role of the registrar actor (its
-`handlers` table in `actor.py` names the step), and, for a wire message, make sure what it
-carries pickles (`docs/explanation/architecture.md`, "Adding a message").
+The handle's messages (`RegisterServer`, `Release`, `Stop`, ...) come last: each carries
+its reply, and the handle sends it with `_ask` (`handle.py`).
+
+To add a message: define it here, add it to the actor's one dispatch table (`DISPATCH`
+in `actor.py`: its step name and the role that handles it), and, for a wire message,
+make sure what it carries pickles (`docs/explanation/architecture.md`, "Adding a
+message").
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import traceback
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from rr_actors._catalog import ClientRecord, describe
 from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.replies import FutureReply
 from rr_actors._core.wire import WireMessage
+from rr_actors._registrar.loading import error_frame
+from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._types import Status, StatusCallback
-from rr_actors.errors import ErrorFrame, ResourceLoadError, RrError
+from rr_actors.errors import ResourceLoadError, RrError
 
 if TYPE_CHECKING:
-    from rr_actors._registrar.calls import CallAttempt
+    from rr_actors._registrar.attempt import CallAttempt
 
 __all__ = [
     "Abandon",
+    "Asked",
     "CallFailed",
     "ClientLoaded",
     "ConsumerDown",
@@ -41,17 +48,32 @@ __all__ = [
     "Fetch",
     "FetchVia",
     "Flush",
+    "ListClientQueries",
+    "ListServerQueries",
     "Load",
+    "OpenClient",
     "Pending",
+    "Ping",
+    "Reachable",
+    "Ready",
     "Reconcile",
     "ReconcileAsk",
-    "Request",
+    "RegisterServer",
+    "Release",
     "ResponseUpdated",
     "Revoke",
     "RunLoad",
+    "RunOnActor",
     "RunUnload",
+    "Save",
+    "SendStatus",
+    "SetStatusCallback",
+    "Snapshot",
     "StatusNotice",
+    "Stop",
     "Unload",
+    "UnregisterServer",
+    "UpdateResponse",
     "give_back",
 ]
 
@@ -83,13 +105,12 @@ class Load(WireMessage):
         """The response cannot be unpickled in the caller's process: a failed load."""
         return ResourceLoadError(
             (
-                ErrorFrame(
-                    registrar=target,
-                    server=self.server,
-                    exc_type=type(exc).__qualname__,
-                    message=f"the response cannot be unpickled in the process of "
+                error_frame(
+                    target,
+                    self.server,
+                    exc,
+                    f"the response cannot be unpickled in the process of "
                     f"registrar {self.origin_rr!r}: {exc}",
-                    traceback="".join(traceback.format_exception(exc)),
                 ),
             )
         )
@@ -98,13 +119,13 @@ class Load(WireMessage):
         """The response cannot be pickled to reach the caller: a failed load."""
         return ResourceLoadError(
             (
-                ErrorFrame(
-                    registrar=target,
-                    server=self.server,
-                    exc_type=type(exc).__qualname__,
-                    message=f"the response is not picklable, so it cannot reach "
+                error_frame(
+                    target,
+                    self.server,
+                    exc,
+                    f"the response is not picklable, so it cannot reach "
                     f"registrar {self.origin_rr!r}: {exc} (value: {describe(value)})",
-                    traceback="",
+                    with_traceback=False,
                 ),
             )
         )
@@ -284,14 +305,6 @@ class CallFailed:
 
 
 @dataclasses.dataclass(frozen=True)
-class Request:
-    """A request from the handle: run `op(actor, reply)` in the actor thread."""
-
-    op: Callable[[Any, Reply], None]  # (the `RegistrarActor`: no role is imported here)
-    reply: Reply
-
-
-@dataclasses.dataclass(frozen=True)
 class Flush:
     """The save-interval timer fired: write what accumulated."""
 
@@ -299,3 +312,148 @@ class Flush:
 @dataclasses.dataclass(frozen=True)
 class Crash:
     """Die as if a bug hit (`rr_actors.testing.crash`, a thread manager's forced stop)."""
+
+
+# -- from the handle (never leave the process) ------------------------------------------
+# Each carries its reply: the handle waits on it (a `FutureReply`), or, for `Reachable`
+# and `Ping`, nobody or the manager's control loop does. The actor answers them through an
+# open reply, so a death fails whoever still waits.
+
+
+class Asked(Protocol):
+    """A message from the handle whose answer the handle waits for."""
+
+    @property
+    def reply(self) -> FutureReply: ...
+
+
+@dataclasses.dataclass(frozen=True)
+class RegisterServer:
+    """Register resource server `name` with its callbacks. Answer: `None`."""
+
+    name: str
+    load: LoadCallback
+    unload: UnloadCallback
+    on_status: StatusCallback | None
+    label: Callable[[Any], Any] | None
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class UnregisterServer:
+    """Remove server `name`: FATAL to its consumers, unload what it serves. Answer: `None`."""
+
+    name: str
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class Release:
+    """Release consumer id `query_id` this registrar holds (`unload`). Answer: `None`."""
+
+    query_id: str
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class SendStatus:
+    """Send a status about the resource behind `query_id`. Answer: `None` once delivered."""
+
+    query_id: str
+    status: Status
+    message: str
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class ListServerQueries:
+    """The queries this registrar's `server` holds. Answer: a list of `Query`."""
+
+    server: str
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class ListClientQueries:
+    """The queries this registrar holds at servers. Answer: a list of `Query`."""
+
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class SetStatusCallback:
+    """Attach `callback` to query `query_id` this registrar holds. Answer: `None`."""
+
+    query_id: str
+    callback: StatusCallback
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class UpdateResponse:
+    """Replace the response of the resource behind `query_id`. Answer: `None` once the
+    consumers hold it too."""
+
+    query_id: str
+    response: Any
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class Save:
+    """Write what the catalog has pending to the backup. Answer: `None`."""
+
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class Stop:
+    """Stop the registrar (rule 12). Answer: `None` once stopped."""
+
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class Ready:
+    """The manager's setup is done: serve. Answer: `None`."""
+
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class Reachable:
+    """A carrier serves the registrar: reconcile with the peers of other processes."""
+
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class Snapshot:
+    """Copy the catalog's rows (`check`: its invariants first). Answer: a `CatalogView`."""
+
+    check: bool
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class Ping:
+    """A manager's heartbeat: answered (`None`) as soon as the actor gets to it."""
+
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class OpenClient:
+    """The client actor for `target_rr/server`, started on first use. Answer: its ref."""
+
+    target_rr: str
+    server: str
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class RunOnActor:
+    """Test only (`rr_actors.testing`): run `op(actor, reply)` on the actor's thread."""
+
+    op: Callable[[Any, Reply], None]  # (the `RegistrarActor`: no role is imported here)
+    reply: Reply

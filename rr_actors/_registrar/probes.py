@@ -5,6 +5,9 @@ after it committed a pending record, as it ends) or to watch which thread runs a
 They do it through step *names*, never through private handler tables: a name that no
 step has raises `ConfigError`, so renaming a step cannot turn a race test into a test
 that passes without racing anything.
+
+The message steps are the step names of the actor's dispatch table (`actor.DISPATCH`,
+one per message); the points inside steps are listed here; `actor.STEPS` is both.
 """
 
 from __future__ import annotations
@@ -13,35 +16,10 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from rr_actors.errors import ConfigError
-
-__all__ = ["STEPS", "Hook", "Probes"]
+__all__ = ["POINTS", "Hook", "Probes"]
 
 Hook = Callable[[Any], None]
 """`hook(subject)`: the message a step handles, or what a point is about."""
-
-MESSAGE_STEPS: frozenset[str] = frozenset(
-    {
-        "load",  # a Load arrives at the provider
-        "unload",  # an Unload arrives at the provider
-        "abandon",  # an Abandon arrives at the provider
-        "fetch",  # a Fetch arrives at the provider
-        "status_notice",  # a StatusNotice arrives at a consumer
-        "revoke",  # a Revoke arrives at a consumer
-        "response_updated",  # a ResponseUpdated arrives at a consumer
-        "consumer_down",  # death watch: a consumer is gone for good
-        "reconcile",  # a Reconcile arrives at the provider (a consumer lists what it holds)
-        "reconcile_ask",  # a ReconcileAsk arrives at a consumer (its provider restarted)
-        "pending",  # a durable call's pending record is to be committed
-        "client_loaded",  # a call's answer is to be recorded
-        "call_failed",  # a call failed or was withdrawn
-        "request",  # a request from the handle (run in the actor thread)
-        "answer",  # the answer to one of this actor's own questions
-        "flush",  # the save-interval timer fired
-        "crash",  # `rr_actors.testing.crash`
-    }
-)
-"""Steps that handle one message on the registrar's actor thread (`before`/`after` it)."""
 
 POINTS: frozenset[str] = frozenset(
     {
@@ -54,9 +32,6 @@ POINTS: frozenset[str] = frozenset(
 )
 """Points inside a step (`before` runs there; `after` is the same as `before`)."""
 
-STEPS: frozenset[str] = MESSAGE_STEPS | POINTS
-"""Every name `rr_actors.testing.intercept` accepts."""
-
 
 class Probes:
     """The hooks installed on one registrar, by step name (any thread may fire them)."""
@@ -67,13 +42,7 @@ class Probes:
         self._after: dict[str, tuple[Hook, ...]] = {}
 
     def add(self, step: str, *, before: Hook | None, after: Hook | None) -> None:
-        """Install hooks on `step`.
-
-        Raises:
-            ConfigError: no step has that name.
-        """
-        if step not in STEPS:
-            raise ConfigError(f"no registrar step is named {step!r}; steps: {sorted(STEPS)}")
+        """Install hooks on `step` (`intercept` checks that a step has that name)."""
         with self._lock:
             if before is not None:
                 self._before[step] = (*self._before.get(step, ()), before)

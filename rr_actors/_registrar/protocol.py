@@ -64,6 +64,7 @@ class Registrar(Protocol):
         unload: UnloadCallback,
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
+        label: Callable[[Any], str] | None = None,
     ) -> None:
         """Register a resource server `"<registrar>/<name>"`."""
         ...

@@ -30,6 +30,7 @@ from rr_actors import events
 from rr_actors._catalog import NO_DIGEST, Resource, ResourceState, describe, request_digest
 from rr_actors._catalog.digest import requests_equal
 from rr_actors._core.directory import Reply
+from rr_actors._registrar.display import show_request, show_response
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH, check_picklable
 from rr_actors._registrar.matching import Matching, first_equal, prepare
 from rr_actors._registrar.messages import Load, RunLoad, RunUnload
@@ -43,6 +44,7 @@ from rr_actors.errors import (
     ResourceLoadError,
     RrError,
     UnknownServerError,
+    _known_names,
 )
 
 if TYPE_CHECKING:
@@ -90,6 +92,9 @@ class Provider:
         if server is None or server.closing:
             return UnknownServerError(
                 f"no resource server '{self.registrar.name}/{message.server}'"
+                + _known_names(
+                    message.server, (n for n, s in self.registrar.servers.items() if not s.closing)
+                )
             )
         if self.registrar.stopping:
             return RegistrarStoppedError(f"registrar {self.registrar.name!r} is stopping")
@@ -284,7 +289,8 @@ class Provider:
                 message.reply.set_error(exc)
                 return
         rid = str(uuid.uuid4())
-        self.registrar.catalog.begin_load(rid, message.server, message.request, key=key)
+        resource = self.registrar.catalog.begin_load(rid, message.server, message.request, key=key)
+        show_request(self.registrar, resource, server.label)
         failed = self.registrar.commit()
         if failed is not None:  # not durable: load nothing (rule 16 needs the record)
             self.registrar.catalog.remove_resource(rid)
@@ -318,7 +324,7 @@ class Provider:
 
             self.consumer.release_dependencies(rid, failed)
             return
-        catalog.finish_load(rid, response)
+        show_response(self.registrar, catalog.finish_load(rid, response))
         live = self._add_consumers(rid, waiters)
         refusal: RrError | None = (
             self.registrar.commit()

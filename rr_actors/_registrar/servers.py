@@ -19,12 +19,13 @@ from rr_actors import events
 from rr_actors._catalog import Resource, ResourceState
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import Join
+from rr_actors._registrar.display import show_response
 from rr_actors._registrar.endpoints import ServerActor
 from rr_actors._registrar.messages import Fetch, ResponseUpdated, Revoke
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._registrar.state import Server, Shared, consumers_by_origin
 from rr_actors._types import Status, StatusCallback, StatusUpdate
-from rr_actors.errors import DuplicateNameError, RrError, UnknownServerError
+from rr_actors.errors import DuplicateNameError, RrError, UnknownServerError, _known_names
 
 if TYPE_CHECKING:
     from rr_actors._registrar.provider import Provider
@@ -53,7 +54,13 @@ class Servers:
     def on_fetch(self, message: Fetch) -> None:
         if message.server not in self.registrar.servers:
             message.reply.set_error(
-                UnknownServerError(f"no resource server '{self.registrar.name}/{message.server}'")
+                UnknownServerError(
+                    f"no resource server '{self.registrar.name}/{message.server}'"
+                    + _known_names(
+                        message.server,
+                        (n for n, s in self.registrar.servers.items() if not s.closing),
+                    )
+                )
             )
             return
         message.reply.set_result(
@@ -74,7 +81,12 @@ class Servers:
         """
         server = self.registrar.servers.get(name)
         if server is None or server.closing:
-            raise UnknownServerError(f"no resource server '{self.registrar.name}/{name}'")
+            raise UnknownServerError(
+                f"no resource server '{self.registrar.name}/{name}'"
+                + _known_names(
+                    name, (n for n, s in self.registrar.servers.items() if not s.closing)
+                )
+            )
         return server
 
     def op_register(
@@ -84,6 +96,7 @@ class Servers:
         unload: UnloadCallback,
         on_status: StatusCallback | None,
         reply: Reply,
+        label: Callable[[Any], Any] | None = None,
     ) -> None:
         if name in self.registrar.servers:
             raise DuplicateNameError(
@@ -97,7 +110,7 @@ class Servers:
             self.registrar.workers,
             persisted=self.registrar.saver.store is not None,
         )
-        self.registrar.servers[name] = Server(name, ref, on_status)
+        self.registrar.servers[name] = Server(name, ref, on_status, label=label)
         self.provider.run_parked(name)
         reply.set_result(None)
 
@@ -161,6 +174,7 @@ class Servers:
     def op_update_response(self, query_id: str, response: Any, reply: Reply) -> None:
         resource = self.registrar.catalog.resource_of(query_id)
         self.registrar.catalog.set_response(resource.id, response)
+        show_response(self.registrar, resource)
         self.registrar.commit()
         join = Join(lambda: reply.set_result(None))
         for origin, ids in consumers_by_origin(resource).items():

@@ -10,7 +10,6 @@ manager's `setup`. `Served` is how a carrier sees a started registrar.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import threading
 from collections.abc import Callable
@@ -26,7 +25,8 @@ from rr_actors._core.directory import DIRECTORY, LocalPeer
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.calls import DueAnswers
-from rr_actors._registrar.messages import Request
+from rr_actors._registrar.endpoints import Clients
+from rr_actors._registrar.messages import Reachable
 from rr_actors._store import Saver, open_catalog
 from rr_actors._types import Query
 from rr_actors.config import RegistrarConfig
@@ -57,6 +57,10 @@ class Launched:
     ended: threading.Event
     """Set when the actor handed on its last message."""
     published: Publisher[events.Event]
+    clients: Clients
+    """Its client actors: the actor starts them, the handle looks them up."""
+    in_doubt_texts: tuple[tuple[str, str | None], ...] = ()
+    """Each in-doubt resource's id and its stored request display text (`display.py`)."""
 
 
 def launch(
@@ -86,12 +90,12 @@ def launch(
     saver: Saver | None = None
     try:
         saver, catalog, restored = open_catalog(config)
+        doubtful = [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]
         in_doubt = tuple(
-            Query(r.id, r.server, config.name, config.name, r.request, r.response)
-            for r in catalog.resources.values()
-            if r.state is not ResourceState.LOADED
+            Query(r.id, r.server, config.name, config.name, r.request, r.response) for r in doubtful
         )
-        died, ended, due = threading.Event(), threading.Event(), DueAnswers()
+        in_doubt_texts = tuple((r.id, r.request_text) for r in doubtful)
+        died, ended, due, clients = threading.Event(), threading.Event(), DueAnswers(), Clients()
         published = events.publisher(EVENT_LOG)
         published.relay_to(upstream)
         ref = RegistrarActor.start(
@@ -103,6 +107,7 @@ def launch(
             due,
             ended,
             published,
+            clients,
             setting_up=setting_up,
         )
     except BaseException:
@@ -110,7 +115,9 @@ def launch(
             saver.close(erase=False, flush=False)
         DIRECTORY.unregister(peer, "stopped")
         raise
-    return Launched(config, ref, restored, in_doubt, due, died, ended, published)
+    return Launched(
+        config, ref, restored, in_doubt, due, died, ended, published, clients, in_doubt_texts
+    )
 
 
 class Served:
@@ -141,7 +148,7 @@ class Served:
 
     def wait_ended(self, timeout: float | None = None) -> bool:
         """Block until the registrar actor ended (stopped or died); whether it did."""
-        return self.registrar._ref.actor_stopped.wait(timeout)
+        return self.registrar._wait_stopped(timeout)
 
     def stopped_cleanly(self) -> bool:
         """Whether it ended because its owner stopped it (not a crash, not still running)."""
@@ -152,8 +159,4 @@ class Served:
     def listening(self) -> None:
         """The other processes of the system can reach it now: it reconciles with its peers
         again (those in other processes could not answer it before)."""
-        reply = FutureReply()  # (nobody waits: the carrier's `serve` must not)
-        with contextlib.suppress(pykka.ActorDeadError):
-            self.registrar._ref.tell(
-                Request(lambda actor, r: actor.lifecycle.op_reachable(r), reply)
-            )
+        self.registrar._tell(Reachable(FutureReply()))  # (nobody waits: `serve` must not)

@@ -61,12 +61,14 @@ class Phase(enum.Enum):
 
 @dataclasses.dataclass
 class Server:
-    """A registered resource server: its actor, its status callback, whether it closes."""
+    """A registered resource server: its actor, its status callback, whether it closes,
+    and its `label(request)` (`display.py`)."""
 
     name: str
     ref: pykka.ActorRef[ServerActor]
     on_status: StatusCallback | None
     closing: bool = False
+    label: Callable[[Any], Any] | None = None
 
 
 @dataclasses.dataclass

@@ -33,6 +33,7 @@ from rr_actors.errors import CatalogCorruptError
 __all__ = [
     "STATES_BY_CODE",
     "STATE_CODES",
+    "NotUnpickled",
     "Unreadable",
     "as_corrupt",
     "check_keys",
@@ -43,6 +44,7 @@ __all__ = [
     "first_duplicate",
     "lenient_decode",
     "loads",
+    "not_unpickled",
 ]
 
 STATE_CODES = {ResourceState.LOADING: 0, ResourceState.LOADED: 1, ResourceState.UNLOADING: 2}
@@ -149,6 +151,26 @@ class Unreadable:
 
     def __repr__(self) -> str:
         return f"<unreadable, {self.size} bytes: {self.error}>"
+
+
+@dataclasses.dataclass(frozen=True)
+class NotUnpickled:
+    """Stands for a stored request or response that was not unpickled (a reader that
+    shows the stored display texts instead: unpickling runs code from the file).
+
+    Attributes:
+        size: length of the pickle, in bytes.
+    """
+
+    size: int
+
+    def __repr__(self) -> str:
+        return f"<not unpickled, {self.size} bytes>"
+
+
+def not_unpickled(_rid: str, _field: str, blob: bytes | None) -> Any:
+    """Stand for a stored value without decoding it (`None` stays `None`)."""
+    return None if blob is None else NotUnpickled(len(blob) if type(blob) is bytes else 0)
 
 
 def lenient_decode(_rid: str, _field: str, blob: bytes | None) -> Any:

@@ -32,7 +32,7 @@ from pathlib import Path
 
 from rr_actors._catalog import ClientRecord, Resource
 from rr_actors._store import schema
-from rr_actors._store.codec import as_corrupt, lenient_decode
+from rr_actors._store.codec import as_corrupt, lenient_decode, not_unpickled
 from rr_actors._store.restore import gc_paused, read_rows
 from rr_actors.errors import CatalogCorruptError, CatalogWriteError, ConfigError
 
@@ -43,6 +43,7 @@ __all__ = [
     "check_location",
     "connect",
     "create",
+    "foreign_owner",
     "prepare",
     "quarantine_backup",
     "read_backup",
@@ -346,7 +347,24 @@ def _is_file(path: Path) -> bool:
         return False
 
 
-def read_backup(path: str | os.PathLike[str]) -> Backup:
+def foreign_owner(path: Path) -> str | None:
+    """Why `path` (or its `-wal`) is not the current user's to unpickle, or `None`.
+
+    Unpickling runs code from the file: a backup another user wrote must not be decoded
+    by this one (root included), whatever the file's mode lets it read.
+    """
+    me = os.geteuid()
+    for name in (str(path), f"{path}-wal"):
+        try:
+            owner = os.stat(name).st_uid
+        except OSError:
+            continue
+        if owner != me:
+            return f"{name!r} belongs to uid {owner}, not to this user (uid {me})"
+    return None
+
+
+def read_backup(path: str | os.PathLike[str], *, unpickle: bool = True) -> Backup:
     """Read a catalog backup without changing it (it may belong to a running registrar).
 
     A file of an older schema version is copied into memory and migrated there; the file
@@ -354,21 +372,33 @@ def read_backup(path: str | os.PathLike[str]) -> Backup:
 
     Stored requests and responses that cannot be unpickled in this process (their
     classes are not importable here) come back as `Unreadable` placeholders. Unpickling
-    runs code from the file: only read backups you trust.
+    runs code from the file: a file (or `-wal`) another user owns is refused. Without
+    `unpickle`, nothing is unpickled (every value is a `NotUnpickled`), any owner's file
+    is read, and only the display texts the registrar stored show the values.
 
     Args:
         path: the backup file.
+        unpickle: decode the stored requests and responses.
 
     Returns:
         Its rows and schema version.
 
     Raises:
-        ConfigError: `path` does not exist or is not a file.
+        ConfigError: `path` does not exist or is not a file; with `unpickle`, it belongs
+            to another user.
         CatalogCorruptError: the file is not a readable rr_actors catalog.
     """
     file = Path(os.fspath(path))
     if not _is_file(file):
         raise ConfigError(f"no catalog backup at {str(file)!r}")
+    if unpickle:
+        foreign = foreign_owner(file)
+        if foreign is not None:
+            raise ConfigError(
+                f"catalog backup {foreign}: reading its values would run code from it "
+                "(unpickling); `rr-actors observe --state` and `graph --state` show it "
+                "without unpickling anything"
+            )
     version = validate(file, tidy=True)
     name = str(file)
     with as_corrupt(name), _read_only(file, tidy=True) as db:
@@ -376,7 +406,7 @@ def read_backup(path: str | os.PathLike[str]) -> Backup:
         if check != [("ok",)]:
             raise CatalogCorruptError(name, f"integrity check failed: {check[:5]!r}")
         with _migrated_copy(db, version) as current, gc_paused():
-            rows = read_rows(current, lenient_decode, lenient=True)
+            rows = read_rows(current, lenient_decode if unpickle else not_unpickled, lenient=True)
     return Backup(name, version, rows.resources, rows.clients)
 
 

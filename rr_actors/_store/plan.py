@@ -20,7 +20,7 @@ from typing import Any
 from rr_actors._catalog import NO_DIGEST, ClientRecord, Resource, request_digest
 from rr_actors._store import codec
 from rr_actors._store.codec import STATE_CODES
-from rr_actors._store.restore import Mirror
+from rr_actors._store.restore import Mirror, Texts
 
 __all__ = ["GONE", "Op", "plan_client", "plan_resource"]
 
@@ -56,6 +56,7 @@ def plan_resource(
             ops.append(("DELETE FROM consumers WHERE resource = ?", (old.seq,)))
             mirrors.append((written, rid, GONE))
         return seq
+    texts = (resource.request_text, resource.response_text, resource.label)
     if old is None:
         seq += 1
         digest = resource.digest
@@ -63,8 +64,8 @@ def plan_resource(
             digest = request_digest(resource.request)
         ops.append(
             (
-                "INSERT INTO resources (seq, id, server, state, digest, request, response) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                "INSERT INTO resources (seq, id, server, state, digest, request, response, "
+                "request_text, response_text, label) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     seq,
                     rid,
@@ -73,26 +74,16 @@ def plan_resource(
                     None if digest == NO_DIGEST else digest,
                     codec.dumps(resource.request),
                     codec.dumps(resource.response),
+                    *texts,
                 ),
             )
         )
         old_consumers: dict[str, int] = {}
         row = seq
     else:
-        if old.response_version != resource.response_version:
-            ops.append(
-                (
-                    "UPDATE resources SET state = ?, response = ? WHERE seq = ?",
-                    (STATE_CODES[resource.state], codec.dumps(resource.response), old.seq),
-                )
-            )
-        elif old.state is not resource.state:
-            ops.append(
-                (
-                    "UPDATE resources SET state = ? WHERE seq = ?",
-                    (STATE_CODES[resource.state], old.seq),
-                )
-            )
+        update = _resource_update(old, resource, texts)
+        if update is not None:
+            ops.append(update)
         old_consumers = old.consumers
         row = old.seq
     consumers = {}
@@ -118,13 +109,33 @@ def plan_resource(
             for query_id, key in old_consumers.items()
             if query_id not in consumers
         )
-    mirror = Mirror(row, resource.state, resource.response_version, consumers)
+    mirror = Mirror(row, resource.state, resource.response_version, consumers, texts)
     mirrors.append((written, rid, mirror))
     return seq
 
 
+def _resource_update(old: Mirror, resource: Resource, texts: Texts) -> Op | None:
+    """The one `UPDATE` that brings a written resource row up to date (`None`: none needed)."""
+    columns: list[str] = []
+    values: list[Any] = []
+    if old.response_version != resource.response_version:
+        columns += ["state", "response"]
+        values += [STATE_CODES[resource.state], codec.dumps(resource.response)]
+    elif old.state is not resource.state:
+        columns.append("state")
+        values.append(STATE_CODES[resource.state])
+    if old.texts != texts:
+        columns += ["request_text", "response_text", "label"]
+        values += texts
+    if not columns:
+        return None
+    assignments = ", ".join(f"{column} = ?" for column in columns)
+    sql = f"UPDATE resources SET {assignments} WHERE seq = ?"  # noqa: S608 - our column names
+    return (sql, (*values, old.seq))
+
+
 def plan_client(
-    written: dict[str, tuple[int, int]],
+    written: dict[str, tuple[int, int, str | None]],
     ops: list[Op],
     mirrors: list[tuple[dict[str, Any], str, Any]],
     qid: str,
@@ -133,7 +144,8 @@ def plan_client(
 ) -> int:
     """Plan the statements for client record `qid` (`None`: removed), as `plan_resource`.
 
-    `written` maps each written client query id to its `(row key, response_version)`.
+    `written` maps each written client query id to its `(row key, response_version,
+    request_text)`.
     """
     old = written.get(qid)
     if record is None:
@@ -147,8 +159,8 @@ def plan_client(
         row = seq
         ops.append(
             (
-                "INSERT INTO clients (seq, query_id, server, serving_rr, origin_rr, "
-                "request, response, parent, loaded) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "INSERT INTO clients (seq, query_id, server, serving_rr, origin_rr, request, "
+                "response, parent, loaded, request_text) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     seq,
                     qid,
@@ -159,19 +171,25 @@ def plan_client(
                     codec.dumps(query.response),
                     record.parent,
                     int(record.loaded),
+                    record.request_text,
                 ),
             )
         )
     elif old[1] == record.response_version:
         row = old[0]
-        ops.append(("UPDATE clients SET loaded = ? WHERE seq = ?", (int(record.loaded), row)))
+        ops.append(
+            (
+                "UPDATE clients SET loaded = ?, request_text = ? WHERE seq = ?",
+                (int(record.loaded), record.request_text, row),
+            )
+        )
     else:
         row = old[0]
         ops.append(
             (
-                "UPDATE clients SET response = ?, loaded = ? WHERE seq = ?",
-                (codec.dumps(query.response), int(record.loaded), row),
+                "UPDATE clients SET response = ?, loaded = ?, request_text = ? WHERE seq = ?",
+                (codec.dumps(query.response), int(record.loaded), record.request_text, row),
             )
         )
-    mirrors.append((written, qid, (row, record.response_version)))
+    mirrors.append((written, qid, (row, record.response_version, record.request_text)))
     return seq

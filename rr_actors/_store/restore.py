@@ -48,12 +48,15 @@ if TYPE_CHECKING:
 
 __all__ = [
     "CLIENTS",
+    "CLIENT_COLUMNS",
     "CONSUMERS_OF",
     "RESOURCES_AT_ONCE",
+    "RESOURCE_COLUMNS",
     "Consumers",
     "Mirror",
     "Restored",
     "Rows",
+    "Texts",
     "Unread",
     "client_records",
     "gc_paused",
@@ -80,10 +83,15 @@ def gc_paused() -> Iterator[None]:
 class Mirror:
     """What the store last wrote for one resource (to write only the difference)."""
 
-    __slots__ = ("consumers", "response_version", "seq", "state")
+    __slots__ = ("consumers", "response_version", "seq", "state", "texts")
 
     def __init__(
-        self, seq: int, state: ResourceState, response_version: int, consumers: dict[str, int]
+        self,
+        seq: int,
+        state: ResourceState,
+        response_version: int,
+        consumers: dict[str, int],
+        texts: Texts = (None, None, None),
     ) -> None:
         self.seq = seq  # the row's key
         self.state = state
@@ -91,6 +99,21 @@ class Mirror:
         # the same object again, mutated); decoding a restored one does not.
         self.response_version = response_version
         self.consumers = consumers  # consumer query id -> its row's key
+        self.texts = texts  # (request_text, response_text, label) as written
+
+
+Texts = tuple[str | None, str | None, str | None]
+"""A resource row's `(request_text, response_text, label)`."""
+
+RESOURCE_COLUMNS = (
+    "seq, id, server, state, digest, request, response, request_text, response_text, label"
+)
+"""The columns of a resource row, in the order every reader reads them."""
+
+CLIENT_COLUMNS = (
+    "seq, query_id, server, serving_rr, origin_rr, request, response, parent, loaded, request_text"
+)
+"""The columns of a client row, in the order every reader reads them."""
 
 
 _Op = tuple[str, tuple[Any, ...]]
@@ -119,16 +142,11 @@ def read_rows(
     """
     db.execute("BEGIN")
     try:
-        rows = db.execute(
-            "SELECT seq, id, server, state, digest, request, response FROM resources ORDER BY seq"
-        ).fetchall()
+        rows = db.execute(RESOURCES).fetchall()
         consumer_rows = db.execute(
             "SELECT seq, query_id, resource, origin_rr FROM consumers ORDER BY seq"
         ).fetchall()
-        client_rows = db.execute(
-            "SELECT seq, query_id, server, serving_rr, origin_rr, request, response, parent, "
-            "loaded FROM clients ORDER BY seq"
-        ).fetchall()
+        client_rows = db.execute(CLIENTS).fetchall()
     finally:
         db.execute("COMMIT")
     if not lenient:
@@ -145,8 +163,10 @@ def read_rows(
             NO_DIGEST if digest is None else digest,
             (request, response),
             decode,
+            0,
+            texts,
         )
-        for _, rid, server, state, digest, request, response in rows
+        for _, rid, server, state, digest, request, response, *texts in rows
     ]
     for resource in resources:
         if lenient:
@@ -155,7 +175,7 @@ def read_rows(
             resource.digest = None  # the catalog indexes it from its (decoded) request
             _ = resource.request
     mirrors = [
-        Mirror(row[0], r.state, r.response_version, {})
+        Mirror(row[0], r.state, r.response_version, {}, (row[7], row[8], row[9]))
         for row, r in zip(rows, resources, strict=True)
     ]
     by_seq = {row[0]: (r, m) for row, r, m in zip(rows, resources, mirrors, strict=True)}
@@ -180,7 +200,8 @@ def client_records(
     """Client records from their rows (oldest first), with each record's row key."""
     clients = []
     seqs = {}
-    for seq, qid, server, serving, origin, request, response, parent, loaded in client_rows:
+    for row in client_rows:
+        seq, qid, server, serving, origin, request, response, parent, loaded, text = row
         query = Query(
             qid,
             server,
@@ -189,27 +210,24 @@ def client_records(
             decode(qid, "request", request),
             decode(qid, "response", response),
         )
-        clients.append(ClientRecord(query, parent, bool(loaded)))
+        clients.append(ClientRecord(query, parent, bool(loaded), request_text=text))
         seqs[qid] = seq
     return clients, seqs
 
 
-_RESOURCE_BY_SEQ = (
-    "SELECT seq, id, server, state, digest, request, response FROM resources WHERE seq = ?"
-)
+# (S608: the SQL is built from this module's constants only)
+RESOURCES = f"SELECT {RESOURCE_COLUMNS} FROM resources ORDER BY seq"  # noqa: S608
+_RESOURCE_BY_SEQ = f"SELECT {RESOURCE_COLUMNS} FROM resources WHERE seq = ?"  # noqa: S608
 RESOURCES_AT_ONCE = (  # what a restore reads as rows: in doubt, no digest, or a parent
-    "SELECT seq, id, server, state, digest, request, response FROM resources "
+    f"SELECT {RESOURCE_COLUMNS} FROM resources "  # noqa: S608
     "WHERE state != 1 OR digest IS NULL "  # == _UNSETTLED: the partial index serves it
-    "UNION SELECT seq, id, server, state, digest, request, response FROM resources "
+    f"UNION SELECT {RESOURCE_COLUMNS} FROM resources "
     "WHERE id IN (SELECT parent FROM clients WHERE parent IS NOT NULL) ORDER BY seq"
 )
 CONSUMERS_OF = (  # one key range of the (resource, seq) key: in arrival order
     "SELECT seq, query_id, origin_rr FROM consumers WHERE resource = ?"
 )
-CLIENTS = (
-    "SELECT seq, query_id, server, serving_rr, origin_rr, request, response, parent, loaded "
-    "FROM clients ORDER BY seq"
-)
+CLIENTS = f"SELECT {CLIENT_COLUMNS} FROM clients ORDER BY seq"  # noqa: S608
 _SEP = "\x1f"  # joins the consumer ids in one string (checked: a collision reads rows)
 
 

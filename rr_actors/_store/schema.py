@@ -1,23 +1,30 @@
 """The backup's schema: its version, how a file is created and migrated, how it is checked.
 
-Layout (schema version 3):
+Layout (schema version 4):
 
 * `rr_actors_schema(version, digest_scheme)`: one row, the schema version and the
   `DIGEST_SCHEME` of the stored digests; `PRAGMA application_id` marks the file as an
   rr_actors catalog.
-* `resources(seq, id, server, state, digest, request, response)`: served resources, `seq`
-  being the insertion order, `state` 0/1/2 (loading/loaded/unloading), `digest` the
-  request's `request_digest` (`NULL` if it has none). Indexed by `id` (unique), by
-  `(server, digest)`, and (partial index) the rows not loaded or without a digest.
+* `resources(seq, id, server, state, digest, request, response, request_text,
+  response_text, label)`: served resources, `seq` being the insertion order, `state`
+  0/1/2 (loading/loaded/unloading), `digest` the request's `request_digest` (`NULL` if it
+  has none), the `*_text` columns the bounded `repr`s the owning registrar made of the
+  values, `label` what its server's `label(request)` returned (`NULL`: not made yet, or
+  none). Indexed by `id` (unique), by `(server, digest)`, and (partial index) the rows
+  not loaded or without a digest.
 * `consumers(resource, seq, query_id, origin_rr)`: consumer ids, `resource` being the `seq`
   of their resource; clustered by `(resource, seq)` (`WITHOUT ROWID`), so a scan yields
   each resource's consumers together, in arrival order, and adding or removing one
   writes one page.
 * `clients(seq, query_id, server, serving_rr, origin_rr, request, response, parent,
-  loaded)`: outbound queries (`parent` set for dependencies).
+  loaded, request_text)`: outbound queries (`parent` set for dependencies).
+
+The display texts let a reader show a backup without unpickling anything (unpickling
+runs code from the file: `rr-actors observe --state` and `graph --state` never do).
 
 ```
- empty file --MIGRATIONS[0]--> v1 --MIGRATIONS[1]--> v2 --MIGRATIONS[2]--> v3 (SCHEMA_VERSION)
+ empty file --MIGRATIONS[0]--> v1 --MIGRATIONS[1]--> v2 --MIGRATIONS[2]--> v3 --MIGRATIONS[3]--> v4
+                                                                               (SCHEMA_VERSION)
 ```
 
 Each step is one transaction (`migrate`). The stored digest is deterministic (BLAKE2b of
@@ -27,6 +34,11 @@ until first used. A file whose digests were written under another `DIGEST_SCHEME
 (another Python version or word size) has them recomputed, in one transaction, when it
 is opened (`refresh_digests`).
 
+A file is trusted only if its schema is exactly what these migrations create
+(`check_objects`: every table a table, every index an index, the same SQL text, no view
+or trigger): a `resources` that is a view over an endless query would otherwise make a
+plain read fill the disk.
+
 `migrate` and `schema_version` read `SCHEMA_VERSION` and `MIGRATIONS` from this module
 when they run (tests replace them here to add a version).
 """
@@ -34,10 +46,13 @@ when they run (tests replace them here to add a version).
 from __future__ import annotations
 
 import contextlib
+import functools
 import sqlite3
 from collections.abc import Callable
+from typing import Any
 
 from rr_actors._catalog import DIGEST_SCHEME, request_digest
+from rr_actors._catalog.texts import NOT_SHOWN_OLD
 from rr_actors._store.codec import as_corrupt, loads
 from rr_actors.errors import CatalogCorruptError
 
@@ -46,6 +61,7 @@ __all__ = [
     "INDEXES",
     "MIGRATIONS",
     "SCHEMA_VERSION",
+    "check_objects",
     "migrate",
     "refresh_digests",
     "rollback",
@@ -55,7 +71,7 @@ __all__ = [
 APPLICATION_ID = 0x72724163  # "rrAc"
 """`PRAGMA application_id` of every rr_actors catalog file."""
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 """The schema version this code writes; older files are migrated, newer ones refused."""
 
 
@@ -133,6 +149,25 @@ def _upgrade_v3(db: sqlite3.Connection) -> None:
     db.execute(f"CREATE INDEX resources_unsettled ON resources (seq) WHERE {_UNSETTLED}")
 
 
+def _upgrade_v4(db: sqlite3.Connection) -> None:
+    """v3 -> v4: display texts (and a label) beside every stored value.
+
+    Rows written before have none: they read `NOT_SHOWN_OLD` (nothing is unpickled to
+    make one: the file may not be the reader's).
+    """
+    for table, column in (
+        ("resources", "request_text"),
+        ("resources", "response_text"),
+        ("resources", "label"),
+        ("clients", "request_text"),
+    ):
+        db.execute(f"ALTER TABLE {table} ADD COLUMN {column} TEXT")
+    db.execute(
+        "UPDATE resources SET request_text = ?, response_text = ?", (NOT_SHOWN_OLD, NOT_SHOWN_OLD)
+    )
+    db.execute("UPDATE clients SET request_text = ?", (NOT_SHOWN_OLD,))
+
+
 INDEXES = ("resources_by_id", "resources_by_request", "resources_unsettled")
 """The indexes of a current file: a restore relies on them (unique ids, dedup, doubt)."""
 
@@ -143,6 +178,7 @@ MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (
     _create_v1,
     _upgrade_v2,
     _upgrade_v3,
+    _upgrade_v4,
 )
 """`MIGRATIONS[v]` brings a version-`v` file to version `v + 1` (0 is an empty file).
 
@@ -175,7 +211,7 @@ def schema_version(db: sqlite3.Connection, path: str) -> int:
             path,
             f"not an rr_actors catalog (application_id {application_id:#x}, tables {tables})",
         )
-    rows = db.execute("SELECT version FROM rr_actors_schema").fetchall()
+    rows = db.execute("SELECT version FROM rr_actors_schema LIMIT 2").fetchall()
     if len(rows) != 1 or not isinstance(rows[0][0], int):
         raise CatalogCorruptError(path, f"bad schema version rows {rows!r}")
     version: int = rows[0][0]
@@ -187,14 +223,66 @@ def schema_version(db: sqlite3.Connection, path: str) -> int:
         )
     if version < 1:
         raise CatalogCorruptError(path, f"bad schema version {version}")
-    if version == SCHEMA_VERSION:
+    if version == SCHEMA_VERSION:  # (first: its own message)
         indexes = {
             row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'index'")
         }
         for index in INDEXES:
             if index not in indexes:
                 raise CatalogCorruptError(path, f"index {index} is missing")
+    check_objects(db, path, version)
     return version
+
+
+def _normal(sql: str | None) -> str | None:
+    """SQL text compared as words: case, quotes and spacing aside."""
+    if sql is None:
+        return None
+    return " ".join(sql.replace('"', " ").replace("(", " ( ").replace(",", " , ").split()).lower()
+
+
+@functools.cache
+def _objects_of(migrations: tuple[Callable[[sqlite3.Connection], None], ...]) -> frozenset[Any]:
+    """The schema objects `(type, name, table, SQL)` these migrations create, in memory."""
+    db = sqlite3.connect(":memory:", isolation_level=None)
+    try:
+        for step in migrations:
+            step(db)
+        rows = db.execute("SELECT type, name, tbl_name, sql FROM sqlite_master").fetchall()
+    finally:
+        db.close()
+    return frozenset((kind, name, table, _normal(sql)) for kind, name, table, sql in rows)
+
+
+def check_objects(db: sqlite3.Connection, path: str, version: int) -> None:
+    """Raise `CatalogCorruptError` unless `db`'s schema is exactly what version `version` has.
+
+    Every table, index, view and trigger is compared with what `MIGRATIONS[:version]`
+    create (type, name and SQL text): a view or a trigger in place of, or next to, a
+    table could make a read run any query (an endless recursive one fills the disk
+    with temporary data). Nothing but `sqlite_master` is read.
+
+    Raises:
+        CatalogCorruptError: an object is not what it should be, naming `path` and it.
+    """
+    expected = _objects_of(tuple(MIGRATIONS[:version]))
+    rows = db.execute("SELECT type, name, tbl_name, sql FROM sqlite_master LIMIT 1000").fetchall()
+    found = {(kind, name, table, _normal(sql)) for kind, name, table, sql in rows}
+    known = {o[1]: o[0] for o in expected}
+    problems = []
+    for kind, name, _, sql in found - expected:
+        if name in known and known[name] != kind:
+            problems.append((0, name, f"{name!r} is a {kind}, not a {known[name]}"))
+        elif name in known:
+            problems.append((1, name, f"the {kind} {name!r} is not as rr_actors creates it: {sql}"))
+        else:
+            problems.append((2, name, f"an unknown {kind} {name!r}"))
+    if problems:
+        why = min(problems)[2]  # the most telling one: a known name of another kind first
+        raise CatalogCorruptError(path, f"not an rr_actors schema (version {version}): {why}")
+    missing = sorted(o[1] for o in expected - found)
+    if missing:
+        raise CatalogCorruptError(path, f"schema version {version} lacks {', '.join(missing)}")
 
 
 def migrate(db: sqlite3.Connection, version: int) -> None:

@@ -43,6 +43,7 @@ from rr_actors._store.files import (
     copy_aside,
     create,
     file_ids,
+    foreign_owner,
     moved,
     prepare,
     put_in_place,
@@ -101,8 +102,8 @@ class SqliteStore:
         self._created = created
         self._loaded = False
         self._resources: dict[str, Mirror] = {}
-        # query id -> (row key, response_version)
-        self._clients: dict[str, tuple[int, int]] = {}
+        # query id -> (row key, response_version, request_text)
+        self._clients: dict[str, tuple[int, int, str | None]] = {}
         self._seq = 0
         self.closed = False
         self._decode = functools.partial(codec.decode, self.path)  # decodes a stored value lazily
@@ -132,7 +133,8 @@ class SqliteStore:
 
         Raises:
             ConfigError: the path cannot hold a backup (missing directory, a directory,
-                read-only file or location).
+                read-only file or location), or the file (or its `-wal`) belongs to another
+                user (restoring it would unpickle, so run, what that user wrote).
             CatalogCorruptError: the file exists but is not a usable rr_actors catalog
                 (garbage, truncated, another program's database, a newer schema, ...).
         """
@@ -142,6 +144,11 @@ class SqliteStore:
         if not file.exists():
             create(file)
             created = True
+        foreign = foreign_owner(file)
+        if foreign is not None:
+            raise ConfigError(
+                f"backup_path {foreign}: restoring it would run code from it (unpickling)"
+            )
         version = validate(file, tidy=True)
         name = str(file)
         try:
@@ -185,7 +192,8 @@ class SqliteStore:
             raise
         self._resources = rows.mirror
         self._clients = {
-            c.query.id: (rows.client_seqs[c.query.id], c.response_version) for c in rows.clients
+            c.query.id: (rows.client_seqs[c.query.id], c.response_version, c.request_text)
+            for c in rows.clients
         }
         self._seq = rows.max_seq
         self._loaded = True
@@ -231,7 +239,8 @@ class SqliteStore:
                         resource.digest = None  # indexed from its (decoded) request
                         _ = resource.request
                 clients, client_seqs = client_records(client_rows, self._decode)
-                self._clients = {qid: (seq, 0) for qid, seq in client_seqs.items()}
+                texts = {c.query.id: c.request_text for c in clients}
+                self._clients = {qid: (seq, 0, texts[qid]) for qid, seq in client_seqs.items()}
         except CatalogCorruptError:
             self.close(erase=False)
             raise
@@ -247,7 +256,7 @@ class SqliteStore:
 
         Called by `restore` and by `Unread` when it reads a resource left on disk.
         """
-        seq, rid, server, state, digest, request, response = row
+        seq, rid, server, state, digest, request, response, *texts = row
         resource = Resource.encoded(
             rid,
             server,
@@ -256,12 +265,13 @@ class SqliteStore:
             (request, response),
             self._decode,
             seq,
+            (texts[0], texts[1], texts[2]),
         )
         keys = {}
         for key, query_id, origin in consumer_rows:
             resource.consumers[query_id] = origin
             keys[query_id] = key
-        self._resources[rid] = Mirror(seq, resource.state, 0, keys)
+        self._resources[rid] = Mirror(seq, resource.state, 0, keys, (texts[0], texts[1], texts[2]))
         return resource
 
     def write(self, changes: Changes) -> None:

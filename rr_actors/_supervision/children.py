@@ -20,11 +20,10 @@ import dataclasses
 import logging
 import threading
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Literal, Protocol
+from typing import TYPE_CHECKING, Literal, Protocol
 
 from rr_actors._process.manager import ManagerExit, ManagerProcess, stopped_cleanly
 from rr_actors._registrar import Served, start_registrar
-from rr_actors._registrar.messages import Crash
 from rr_actors.config import (
     Isolation,
     ManagerSpec,
@@ -39,6 +38,7 @@ if TYPE_CHECKING:
     from rr_actors._process.spare import SparePool
     from rr_actors._supervision.node import Node
     from rr_actors._supervision.relay import EventRelay
+    from rr_actors._transport.base import Address, Transport
 
 __all__ = [
     "Child",
@@ -150,7 +150,7 @@ class ThreadManager:
         self,
         spec: ManagerSpec,
         config: RegistrarConfig,
-        attached: Any,
+        attached: Transport | None,
         on_exit: Callable[[ManagerExit], None],
         relay: EventRelay | None = None,
     ) -> None:
@@ -168,10 +168,9 @@ class ThreadManager:
                 registrar.stop(timeout=spec.shutdown)
             raise
         self.registrar = registrar
-        ref = registrar._ref
 
         def watch() -> None:
-            ref.actor_stopped.wait()
+            registrar._wait_stopped()
             if self.stopping:
                 return
             if stopped_cleanly(spec.name):  # code in the manager called registrar.stop()
@@ -184,22 +183,22 @@ class ThreadManager:
     def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
         """Stop the registrar cleanly; tell its actor to crash if that takes too long.
 
-        (`restarting`: its name is in `DIRECTORY.restarting` already, this process's.)
+        (`restarting`: `DIRECTORY.mark_restarting` has its name already, this process's.)
         """
         timeout = self.spec.shutdown if timeout is None else timeout
         self.stopping = True
-        ref = self.registrar._ref
-        if not ref.is_alive():
+        registrar = self.registrar
+        if not registrar.is_alive():
             return ManagerExit("crashed (registrar actor died)", normal=False)
         try:
-            self.registrar.stop(timeout=timeout)
+            registrar.stop(timeout=timeout)
         except RrError as exc:
             logger.error(  # noqa: TRY400 - the timeout is the news, not its traceback
                 "manager %s did not stop within %g s: %s", self.spec.name, timeout, exc
             )
             with contextlib.suppress(Exception):
-                ref.tell(Crash())
-            ref.actor_stopped.wait(timeout)
+                registrar._crash()
+            registrar._wait_stopped(timeout)
             return ManagerExit(f"killed: no clean stop within {timeout:g} s", normal=False)
         return ManagerExit("shutdown", normal=True)
 
@@ -218,7 +217,7 @@ class ProcessManager:
         spec: ManagerSpec,
         setup: bytes,
         config: RegistrarConfig,
-        address: Any,
+        address: Address | None,
         on_exit: Callable[[ManagerExit], None],
         spares: SparePool | None,
         relay: EventRelay | None = None,

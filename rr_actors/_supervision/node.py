@@ -43,7 +43,7 @@ from rr_actors._supervision.policy import (
 )
 from rr_actors._supervision.retry import give_back_abandoned
 from rr_actors._supervision.tree import Tree, consumer_down
-from rr_actors.config import ManagerSpec, RegistrarConfig, SupervisorSpec
+from rr_actors.config import ManagerSpec, RegistrarConfig, SupervisorSpec, managers
 from rr_actors.errors import RrError, SupervisorGaveUpError
 
 __all__ = ["Node"]
@@ -120,6 +120,13 @@ class Node:
         """The supervisor's name."""
         return self.spec.name
 
+    def root(self) -> Node:
+        """The tree's root supervisor (this one, or the top of its parents)."""
+        node = self
+        while node.parent is not None:
+            node = node.parent
+        return node
+
     # -- life cycle (any thread but its own) -------------------------------------------
 
     def start(self) -> None:
@@ -180,7 +187,7 @@ class Node:
             for child in self.children:
                 child.published = child.info(tree.restarts.get(child.name, 0))
                 tree.latest[child.name] = child.published
-            tree.cond.notify_all()
+            tree.changed()
 
     def _post_exit(self, child: Child) -> Callable[[ManagerExit], None]:
         name, incarnation = child.name, child.incarnation
@@ -216,25 +223,27 @@ class Node:
             child.gave_up = None
         else:
             if spec.restart != "temporary":
-                DIRECTORY.restart_expected.add(spec.name)  # death watch waits for us
+                DIRECTORY.expect_restart(spec.name)  # death watch waits for us
             config = self._config(spec)
             if spec.isolation == "thread":
-                child.running = ThreadManager(spec, config, tree.attached, post, tree.events)
+                system = tree.processes.system
+                child.running = ThreadManager(spec, config, system, post, tree.events)
             else:
-                address = tree.attached.address if tree.attached is not None else None
+                processes = tree.processes
+                address = processes.system.address if processes.system is not None else None
                 try:
                     child.running = ProcessManager.start(
                         spec,
-                        tree.setups[spec.name],
+                        processes.setups[spec.name],
                         config,
                         address,
                         post,
-                        tree.spares,
+                        processes.spares,
                         tree.events,
                     )
                 finally:
-                    if tree.spares is not None:  # after this start was published
-                        self.cast(tree.spares.refill)
+                    if processes.spares is not None:  # after this start was published
+                        self.cast(processes.spares.refill)
         child.state = "running"
         self._unmark(child)  # it serves again
         restarted = child.name in tree.started
@@ -301,7 +310,7 @@ class Node:
     ) -> None:
         """Stop a running child (its spec's shutdown, bounded by `deadline`, then a kill).
 
-        `restarting`: it is stopped to be started again (marked in `DIRECTORY.restarting`).
+        `restarting`: it is stopped to be started again (marked `DIRECTORY.mark_restarting`).
         """
         running = child.running
         if running is None:
@@ -335,19 +344,19 @@ class Node:
         if not self._stopping_to_restart:
             self._unmark(child)
         if isinstance(child.spec, ManagerSpec):
-            DIRECTORY.restart_expected.discard(child.name)
+            DIRECTORY.expect_restart(child.name, expected=False)
             if dead:
-                consumer_down(self.tree, child.name)
+                consumer_down(self.root(), child.name)
 
     @staticmethod
     def _mark(child: Child) -> None:
         """`child` (its managers, for a nested supervisor) is down and will be restarted:
         its callers get `RegistrarUnavailableError` (retry), not `RegistrarStoppedError`."""
-        DIRECTORY.restarting.update(_registrar_names(child.spec))
+        DIRECTORY.mark_restarting(_registrar_names(child.spec))
 
     @staticmethod
     def _unmark(child: Child) -> None:
-        DIRECTORY.restarting.difference_update(_registrar_names(child.spec))
+        DIRECTORY.mark_restarting(_registrar_names(child.spec), restarting=False)
 
     def _cancel_restarts(self) -> None:
         """Make every scheduled restart stale (new generation) and cancel its timer."""
@@ -479,4 +488,4 @@ def _registrar_names(spec: ManagerSpec | SupervisorSpec) -> list[str]:
     """The registrar names of a child: its own, or those of the managers below it."""
     if isinstance(spec, ManagerSpec):
         return [spec.name]
-    return [name for child in spec.children for name in _registrar_names(child)]
+    return [manager.name for manager in managers(spec)]

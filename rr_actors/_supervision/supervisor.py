@@ -17,7 +17,7 @@ Who does what (each in its own module of `rr_actors._supervision`):
 
 ```
  Supervisor (this module: the public handle; owns the transport, spares, state-dir lock)
-   ├─ TreeWatching (watching.py: subscribe, flush_events, observe, graph)
+   ├─ TreeWatch (watching.py: subscribe, flush_events, observe, graph)
    └─ Node (node.py: one supervisor's state record + steps, on its Mailbox thread)
         ├─ policy.py: restart or not, which siblings, intensity (pure)
         ├─ children.py: Child records; ThreadManager / ProcessManager / NestedSupervisor
@@ -42,11 +42,10 @@ import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
-import cloudpickle
-
+from rr_actors import events
+from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.exit import SUPERVISORS, stop_at_exit
 from rr_actors._core.timers import Timer, thread_timer
-from rr_actors._process.spare import SparePool
 from rr_actors._registrar import Registrar, ResourceRegistrar, Served, start_registrar
 from rr_actors._supervision import retry
 from rr_actors._supervision.children import (
@@ -59,7 +58,7 @@ from rr_actors._supervision.node import Node, left
 from rr_actors._supervision.policy import Clock, RestartIntensity
 from rr_actors._supervision.statedir import StateDirLock
 from rr_actors._supervision.tree import Tree, find_child, locate, wait_restarted
-from rr_actors._supervision.watching import TreeWatching
+from rr_actors._supervision.watching import TreeWatch
 from rr_actors._types import Query, StatusCallback
 from rr_actors.config import (
     Backoff,
@@ -68,6 +67,7 @@ from rr_actors.config import (
     Strategy,
     SupervisorSpec,
     check_seconds,
+    walk,
 )
 from rr_actors.errors import (
     ConfigError,
@@ -75,9 +75,11 @@ from rr_actors.errors import (
     RrError,
     SupervisorGaveUpError,
     UnknownServerError,
+    _known_names,
 )
 
 if TYPE_CHECKING:
+    from rr_actors._transport.base import Transport
     from rr_actors.observe import Observer
 
 __all__ = [
@@ -100,7 +102,7 @@ SPARE_DELAY = 0.1
 one it used: a crash within that time meets no warm-up competing for the CPU."""
 
 
-class Supervisor(TreeWatching):
+class Supervisor:
     """Starts managers in order, restarts them by policy, stops them in reverse order.
 
     Follows Erlang/OTP's supervisor (strategies, restart types, restart intensity with
@@ -163,13 +165,16 @@ class Supervisor(TreeWatching):
         )
         self._tree = Tree(self._spec, clock=clock, timer=timer, random=random)
         self._node = Node(self._spec, self._tree)
-        self._tree.root = self._node
-        self._system: Any = None
         self._lock: StateDirLock | None = None
         self._registrars: list[ResourceRegistrar] = []
-        self._observers: list[Observer] = []
         self._started = False
         self._stopped = False
+        self._watch = TreeWatch(
+            self,
+            self._tree,
+            running=lambda: self._started and not self._stopped,
+            registrars=lambda: list(self._registrars),
+        )
 
     # -- properties -------------------------------------------------------------------
 
@@ -179,9 +184,14 @@ class Supervisor(TreeWatching):
         return self._node.gave_up
 
     @property
-    def system(self) -> Any:
+    def system(self) -> Transport | None:
         """The transport system its process managers are attached to (`None` without any)."""
-        return self._system
+        return self._tree.processes.system
+
+    @property
+    def name(self) -> str:
+        """This supervisor's name."""
+        return self._spec.name
 
     # -- life cycle -------------------------------------------------------------------
 
@@ -201,7 +211,7 @@ class Supervisor(TreeWatching):
         self._started = True
         try:
             self._lock = StateDirLock.acquire(_state_dirs(self._spec))
-            self._prepare()
+            self._tree.processes.open(SPARE_PROCESSES, SPARE_DELAY)
             self._node.start()
         except BaseException:
             self._stopped = True
@@ -236,15 +246,14 @@ class Supervisor(TreeWatching):
             check_seconds("timeout", timeout)
         deadline = None if timeout is None else time.monotonic() + timeout
         if not self._started:
-            self._close_observers()  # opened on a supervisor that never started
+            self._watch.close_observers()  # opened on a supervisor that never started
         if not self._started or self._stopped:
             return
         for registrar in reversed(self._registrars):
             with contextlib.suppress(RrError):
                 registrar.stop(timeout=left(deadline))
         self._registrars.clear()
-        if self._tree.spares is not None:
-            self._tree.spares.close()  # no new spare while the children stop
+        self._tree.processes.close_spares()  # no new spare while the children stop
         self._node.stop(deadline=deadline)
         self._stopped = True
         self._release()
@@ -257,34 +266,12 @@ class Supervisor(TreeWatching):
         if exc_type is None and self._node.gave_up is not None:
             raise self._node.gave_up
 
-    def _prepare(self) -> None:
-        """Pickle the process managers' setups; with any, a transport system and spares."""
-        for spec in self._tree.specs.values():
-            if isinstance(spec, ManagerSpec) and spec.isolation == "process":
-                try:
-                    self._tree.setups[spec.name] = cloudpickle.dumps(spec.setup)
-                except Exception as exc:
-                    raise ConfigError(
-                        f"setup of manager {spec.name!r} is not picklable: {exc}"
-                    ) from exc
-        if self._spec.has_processes():
-            from rr_actors._transport import System  # noqa: PLC0415
-
-            self._system = System.create()  # also attaches this process
-            self._tree.attached = self._system
-            self._tree.spares = SparePool(SPARE_PROCESSES, self.name, delay=SPARE_DELAY)
-
     def _release(self) -> None:
         """Release what the tree held: spares, the transport system, the state-dir lock."""
-        if self._tree.spares is not None:
-            self._tree.spares.close()
-        if self._system is not None:
-            with contextlib.suppress(Exception):
-                self._system.close()
-        self._tree.attached = None
+        self._tree.processes.close()
         if self._lock is not None:
             self._lock.release()
-        self._close_observers()  # last: their pages saw the tree stop
+        self._watch.close_observers()  # last: their pages saw the tree stop
 
     # -- introspection ----------------------------------------------------------------
 
@@ -307,7 +294,10 @@ class Supervisor(TreeWatching):
         """The snapshot of the child `name`, searched through nested supervisors too.
 
         A child of a nested supervisor that is down (being restarted by its parent, say)
-        has that supervisor's state (`"restarting"`, ...) and no pid.
+        has that supervisor's state (`"restarting"`, ...) and no pid. Before `start` and
+        after `stop` every child is `"stopped"`, with no pid: a snapshot, as
+        `which_children` gives it (the observer shows a tree before it starts); start the
+        supervisor (`with sup:`) before acting on a child's pid.
 
         Raises:
             UnknownServerError: no child of that name in this tree.
@@ -315,7 +305,10 @@ class Supervisor(TreeWatching):
         with self._tree.cond:
             found = locate(self._node, self._tree, name)
         if found is None:
-            raise UnknownServerError(f"supervisor {self.name!r} has no child named {name!r}")
+            raise UnknownServerError(
+                f"supervisor {self.name!r} has no child named {name!r}"
+                + _known_names(name, self._tree.specs)
+            )
         return found.info
 
     def wait_restarted(
@@ -368,12 +361,21 @@ class Supervisor(TreeWatching):
             DuplicateNameError: a registrar of that name runs in this process.
             ConfigError: the configuration is invalid or the supervisor is not running.
         """
-        if not self._started or self._stopped:
-            raise ConfigError(f"supervisor {self.name!r} is not running")
+        if not self._started:
+            raise ConfigError(
+                f"supervisor {self.name!r} is not running yet: start it first (`with sup:` "
+                "or `sup.start()`), then call `registrar()`"
+            )
+        if self._stopped:
+            raise ConfigError(
+                f"supervisor {self.name!r} was stopped: call `registrar()` while it runs "
+                "(inside `with sup:`, or between `sup.start()` and `sup.stop()`)"
+            )
         registrar = start_registrar(config, upstream=self._tree.events.publisher)
-        if self._tree.attached is not None:
+        system = self._tree.processes.system
+        if system is not None:
             try:
-                self._tree.attached.serve(Served(registrar))
+                system.serve(Served(registrar))
             except BaseException:
                 registrar.stop()
                 raise
@@ -409,14 +411,22 @@ class Supervisor(TreeWatching):
         """
         spec = self._tree.specs.get(name)
         if not isinstance(spec, ManagerSpec):
-            what = "a supervisor, not a manager" if spec is not None else "not in the tree"
-            raise UnknownServerError(f"supervisor {self.name!r}: {name!r} is {what}")
+            if spec is not None:
+                raise UnknownServerError(
+                    f"supervisor {self.name!r}: {name!r} is a supervisor, not a manager"
+                )
+            managers = (n for n, s in self._tree.specs.items() if isinstance(s, ManagerSpec))
+            raise UnknownServerError(
+                f"supervisor {self.name!r}: {name!r} is not in the tree"
+                + _known_names(name, managers)
+            )
         child = find_child(self._node, name)
         running = child.running if child is not None else None
         if isinstance(running, ThreadManager):
             return fn(running.registrar)
-        if isinstance(running, ProcessManager) and self._system is not None:
-            return self._system.run(name, fn, timeout=timeout)
+        system = self._tree.processes.system
+        if isinstance(running, ProcessManager) and system is not None:
+            return system.run(name, fn, timeout=timeout)
         raise RegistrarUnavailableError(f"manager {name!r} is not running")
 
     def call_with_retry(
@@ -475,12 +485,136 @@ class Supervisor(TreeWatching):
             query_id=query_id,
         )
 
+    # -- watching the tree (watching.py) ----------------------------------------------
 
-def _state_dirs(spec: SupervisorSpec, inherited: Any = None) -> list[Any]:
-    """Every state directory a tree's managers use by default."""
-    own = spec.state_dir if spec.state_dir is not None else inherited
-    dirs = [own] if own is not None else []
-    for child in spec.children:
+    def subscribe(
+        self,
+        callback: Callable[[events.Event], object],
+        *,
+        maxsize: int = DEFAULT_MAXSIZE,
+    ) -> Subscription[events.Event]:
+        """Call `callback(event)` for every event of the tree from now on, until closed.
+
+        Events are the frozen dataclasses of `rr_actors.events`: what every supervisor of
+        the tree does with its children (`ChildStarted`, `ChildExited`, `ChildRestarted`,
+        `SupervisorGaveUp`) and what every registrar of the tree does (its managers', in
+        threads or in processes, and those of `registrar()`). Events of manager processes
+        are forwarded to this process while anyone subscribes; subscribe before `start`
+        to see the children start.
+
+        The callback runs on a subscriber thread of its own, never in a registrar's
+        mailbox or the supervisor's, one event at a time, in the order they reached this
+        process (a manager process's own events in the order they happened there). A slow
+        callback never slows the tree: past `maxsize` queued events new ones are dropped,
+        counted (`Subscription.dropped`) and reported by one `EventsDropped`.
+
+        Args:
+            callback: `callback(event)`; what it raises is logged.
+            maxsize: events queued for it before new ones are dropped.
+
+        Returns:
+            The subscription; `close()` it, or use it as a context manager
+            (`with sup.subscribe(cb): ...`).
+
+        Raises:
+            ConfigError: `maxsize` is not a positive int.
+        """
+        return self._watch.subscribe(callback, maxsize=maxsize)
+
+    def flush_events(self, *, timeout: float = 5.0) -> bool:
+        """Bring the events of every manager process that happened before the call here.
+
+        A manager process forwards its events in batches, so they reach this process a
+        little after they happened. This returns once each running manager process has
+        handed everything it had to this process's subscriptions (their queues); then
+        `Subscription.wait_delivered` waits for the callbacks.
+
+        Args:
+            timeout: the longest wait, in seconds.
+
+        Returns:
+            Whether every manager process answered within `timeout`.
+
+        Raises:
+            ConfigError: `timeout` is not a positive number of seconds.
+        """
+        return self._watch.flush_events(timeout=timeout)
+
+    def observe(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        *,
+        allow_faults: bool = False,
+        allow_remote: bool = False,
+    ) -> Observer:
+        """Serve a live web page of this tree at the returned observer's `url`.
+
+        The page shows the supervision tree (state, pid, restarts, last exit, backoff
+        countdown; a restart flashes), each registrar's catalog, the dependency graph
+        across registrars (the TeMoto thesis's figure 2.7, live) and a timeline of the
+        status notifications with their hops and latencies. It follows the tree's
+        events (`subscribe`) and reads each registrar's catalog in the registrar's own
+        process (`run_in`), at most twice a second. The server runs on a
+        thread of its own in this process (uvicorn); the observer is closed with the
+        supervisor (`stop`) or by its `close()`. May be called before `start` (the page
+        then sees the children start) but not after `stop`.
+
+        Args:
+            host: the address to listen on. A loopback address (the default) keeps the
+                page on this machine; any other needs `allow_remote=True`.
+            port: the port (0: a free one; the `url` says which).
+            allow_faults: teaching mode: buttons on the page SIGKILL a process manager,
+                SIGSTOP it (a hang; its heartbeat makes the supervisor kill and restart
+                it, or a resume button sends SIGCONT) and send FATAL on a resource, each
+                after a confirmation. The `url` then carries a token (`#token=...`)
+                that the buttons must send back: share it only with whom may use them.
+            allow_remote: allow a `host` that other machines can reach. They then see
+                every catalog (requests and responses as `repr`s), and with
+                `allow_faults` whoever has the URL can kill managers. Nothing from the
+                browser is ever unpickled.
+
+        Returns:
+            The open [`Observer`][rr_actors.observe.Observer] (`url`, `close()`).
+
+        Raises:
+            ConfigError: the `observe` extra is not installed (`pip install
+                'rr-actors[observe]'`), the port is in use, `host` is not a loopback
+                address and `allow_remote` is false, or the supervisor was stopped.
+        """
+        if self._stopped:
+            raise ConfigError(f"supervisor {self.name!r} was stopped: nothing to observe")
+        return self._watch.observe(host, port, allow_faults=allow_faults, allow_remote=allow_remote)
+
+    def graph(self, format: str = "mermaid") -> str:
+        """The tree and the dependency graph across its registrars, as text, now.
+
+        Supervisors are hexagons with an arrow to each child; a manager's registrar is
+        a box holding its resources; each query is a dashed arrow from the resource that
+        holds it as a dependency (or the registrar, for a top-level call) to the
+        provider's resource (the TeMoto thesis's figure 2.7). Catalogs are read in the
+        registrars' own processes, as the observer does; a manager that is down is
+        drawn without its resources.
+
+        Args:
+            format: `"mermaid"` (a flowchart, for Markdown) or `"dot"` (Graphviz).
+
+        Returns:
+            The text, ending with a newline.
+
+        Raises:
+            ConfigError: `format` is neither.
+        """
+        return self._watch.graph(format)
+
+
+def _state_dirs(spec: SupervisorSpec) -> list[Any]:
+    """Every state directory a tree's managers use by default (a supervisor's own, or the
+    nearest one above it)."""
+    dirs = [spec.state_dir] if spec.state_dir is not None else []
+    for child, path in walk(spec):
         if isinstance(child, SupervisorSpec):
-            dirs.extend(_state_dirs(child, own))
+            own = next((s.state_dir for s in (child, *path[::-1]) if s.state_dir is not None), None)
+            if own is not None:
+                dirs.append(own)
     return dirs

@@ -17,15 +17,19 @@ an outcome only from a settled tree: while a supervisor on the child's path is g
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import random as _random
 import threading
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Protocol
+
+import cloudpickle
 
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.timers import Timer, thread_timer
+from rr_actors._process.spare import SparePool
 from rr_actors._registrar.messages import ConsumerDown
 from rr_actors._supervision.children import (
     Child,
@@ -37,17 +41,19 @@ from rr_actors._supervision.children import (
 )
 from rr_actors._supervision.policy import Clock, restarts_after
 from rr_actors._supervision.relay import EventRelay
-from rr_actors.config import ManagerSpec, SupervisorSpec
+from rr_actors.config import SupervisorSpec, managers, walk
 from rr_actors.errors import (
     CallTimeoutError,
+    ConfigError,
     RegistrarUnavailableError,
     RrError,
     SupervisorGaveUpError,
     UnknownServerError,
+    _known_names,
 )
 
 if TYPE_CHECKING:
-    from rr_actors._process.spare import SparePool
+    from rr_actors._transport.base import Transport
 
 __all__ = [
     "Found",
@@ -71,6 +77,57 @@ class Level(Protocol):
     giving_up: bool
 
 
+class Processes:
+    """What the process managers of a tree share while it runs.
+
+    Their cloudpickled setups, the transport system they attach to (this process is
+    attached too) and the spare processes they start in. Empty until `open` (at the
+    supervisor's start), and again after `close`.
+
+    Args:
+        spec: the whole tree's specs.
+    """
+
+    def __init__(self, spec: SupervisorSpec) -> None:
+        self.spec = spec
+        self.setups: dict[str, bytes] = {}
+        self.system: Transport | None = None
+        self.spares: SparePool | None = None
+
+    def open(self, spares: int, spare_delay: float) -> None:
+        """Pickle the process managers' setups; with any, create the system and spares.
+
+        Raises:
+            ConfigError: a setup cannot be pickled.
+        """
+        for manager in managers(self.spec):
+            if manager.isolation == "process":
+                try:
+                    self.setups[manager.name] = cloudpickle.dumps(manager.setup)
+                except Exception as exc:
+                    raise ConfigError(
+                        f"setup of manager {manager.name!r} is not picklable: {exc}"
+                    ) from exc
+        if self.spec.has_processes():
+            from rr_actors._transport import System  # noqa: PLC0415
+
+            self.system = System.create()  # also attaches this process
+            self.spares = SparePool(spares, self.spec.name, delay=spare_delay)
+
+    def close_spares(self) -> None:
+        """Release the idle spares and start no more (before the children stop)."""
+        if self.spares is not None:
+            self.spares.close()
+
+    def close(self) -> None:
+        """Release the spares and leave the system (its files are removed)."""
+        self.close_spares()
+        system, self.system = self.system, None
+        if system is not None:
+            with contextlib.suppress(Exception):
+                system.close()
+
+
 class Tree:
     """What every supervisor of one tree shares (made by the root, kept across incarnations).
 
@@ -88,24 +145,47 @@ class Tree:
         timer: Timer = thread_timer,
         random: Callable[[], float] = _random.random,
     ) -> None:
+        self.spec = spec
         self.cond = threading.Condition()  # published snapshots of the whole tree; waiters
-        self.specs = _tree_specs(spec)
+        self._version = 0  # changes published so far (`wait_changed`)
+        self.specs = {child.name: child for child, _ in walk(spec)}
         self.clock = clock
         self.timer = timer
         self.random = random
         self.latest: dict[str, ChildInfo] = {}  # the last published snapshot of every child
         self.restarts: dict[str, int] = {}  # starts after the first, across incarnations
         self.started: set[str] = set()
-        self.setups: dict[str, bytes] = {}  # process managers' cloudpickled setups
         self.abandon_lock = threading.Lock()
         self.abandon_later: dict[str, list[tuple[str, str]]] = {}  # name -> (query id, origin)
         self.wait_cursor: dict[str, int] = {}
-        self.attached: Any = None  # the transport system process managers attach to
-        self.spares: SparePool | None = None  # idle manager processes (with process managers)
-        self.root: Level | None = None
+        self.processes = Processes(spec)  # what process managers share (from the start)
         self.events = EventRelay()  # the tree's events (`Supervisor.subscribe`)
         self.down_since: dict[str, float] = {}  # name -> when its last incarnation ended
         self.restart_due: dict[str, float] = {}  # name -> when its backoff ends (time.time())
+
+    # -- changes: what waiters (wait_restarted, the observer) wait for ----------------------
+
+    def changed(self) -> None:
+        """A supervisor published its children's snapshots: wake every waiter (lock held)."""
+        self._version += 1
+        self.cond.notify_all()
+
+    def version(self) -> int:
+        """How many changes were published so far."""
+        return self._version
+
+    def wait_changed(self, since: int, *, timeout: float) -> int:
+        """Block until a change after version `since` is published, `wake` is called or
+        `timeout` seconds pass (whichever first); return the version then."""
+        with self.cond:
+            if self._version == since:
+                self.cond.wait(timeout)
+            return self._version
+
+    def wake(self) -> None:
+        """Wake every `wait_changed` now (an observer that closes)."""
+        with self.cond:
+            self.cond.notify_all()
 
     def count_start(self, name: str) -> None:
         """Note that child `name` started (a restart if it had started before)."""
@@ -118,15 +198,6 @@ class Tree:
         last = self.latest.get(name)
         last_exit = last.last_exit if last is not None else None
         return snapshot(self.specs[name], state, None, self.restarts.get(name, 0), last_exit)
-
-
-def _tree_specs(spec: SupervisorSpec) -> dict[str, ManagerSpec | SupervisorSpec]:
-    specs: dict[str, ManagerSpec | SupervisorSpec] = {}
-    for child in spec.children:
-        specs[child.name] = child
-        if isinstance(child, SupervisorSpec):
-            specs.update(_tree_specs(child))
-    return specs
 
 
 @dataclasses.dataclass(frozen=True)
@@ -214,17 +285,13 @@ def _process_managers(level: Level) -> list[str]:
     return names
 
 
-def consumer_down(tree: Tree, name: str) -> None:
-    """Death watch: tell every living registrar that consumer `name` is gone for good."""
-    local = {peer.name for peer in DIRECTORY.local_peers()}
-    living = _process_managers(tree.root) if tree.root is not None else []
-    for target in sorted(local | set(living)):
-        if target == name:
-            continue
-        try:
-            DIRECTORY.lookup(target).tell(ConsumerDown(name))
-        except RrError:
-            logger.debug("death watch: %s unreachable", target)
+def consumer_down(root: Level, name: str) -> None:
+    """Death watch: tell every living registrar that consumer `name` is gone for good.
+
+    `root`: the tree's root supervisor (its living process managers are told too).
+    """
+    living = _process_managers(root)
+    DIRECTORY.broadcast(ConsumerDown(name), also=living, skip=name)
 
 
 def wait_restarted(
@@ -238,7 +305,10 @@ def wait_restarted(
         found = locate(root, tree, name)
         if found is None:
             outcome.append(
-                UnknownServerError(f"supervisor {root_name!r} has no child named {name!r}")
+                UnknownServerError(
+                    f"supervisor {root_name!r} has no child named {name!r}"
+                    + _known_names(name, tree.specs)
+                )
             )
             return True
         info = found.info

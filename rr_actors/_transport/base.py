@@ -54,7 +54,7 @@ from typing import Any, Protocol
 
 from rr_actors._core.directory import Peer
 
-__all__ = ["Address", "Endpoint", "Peer", "Transport"]
+__all__ = ["Address", "Endpoint", "Member", "Peer", "Rendezvous", "Transport"]
 
 
 class Endpoint(Protocol):
@@ -144,4 +144,47 @@ class Transport(Protocol):
 
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits (idempotent)."""
+        ...
+
+
+class Rendezvous(Protocol):
+    """Where a carrier that meets in a directory finds a registrar (the `unix` carrier).
+
+    What its listener (`inbound.py`) and its peers (`outbound.py`) need of the system's
+    address: the paths of one registrar's files and the system's secret.
+    """
+
+    @property
+    def authkey(self) -> bytes:
+        """The system's secret; a connection that cannot prove it is refused."""
+        ...
+
+    def socket_path(self, name: str) -> str:
+        """The path registrar `name` listens on."""
+        ...
+
+    def tombstone_path(self, name: str) -> str:
+        """A file that says registrar `name` was stopped cleanly (not crashed)."""
+        ...
+
+    def lock_path(self, name: str) -> str:
+        """The file whose lock the process serving registrar `name` holds."""
+        ...
+
+    def limit_path(self, name: str) -> str:
+        """A file that holds registrar `name`'s `max_message_bytes`, for senders."""
+        ...
+
+
+class Member(Protocol):
+    """A process's membership as a carrier's channels see it: its rendezvous, closed or not."""
+
+    @property
+    def address(self) -> Rendezvous:
+        """Where registrars of the system are found."""
+        ...
+
+    @property
+    def closed(self) -> bool:
+        """Whether this process left the system (no new channel is opened then)."""
         ...

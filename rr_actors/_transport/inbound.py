@@ -21,10 +21,10 @@ import socket
 import threading
 import time
 from multiprocessing import AuthenticationError
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._transport.base import Endpoint
+from rr_actors._transport.base import Endpoint, Member
 from rr_actors._transport.codec import (
     NO_REPLY,
     Oversized,
@@ -43,10 +43,13 @@ from rr_actors._transport.sockets import (
     take_name_lock,
 )
 from rr_actors._transport.writer import Lost, Writer
-from rr_actors.errors import ConfigError, MessageTooLargeError, RrError
-
-if TYPE_CHECKING:
-    from rr_actors._transport.unix import AttachedSystem
+from rr_actors.errors import (
+    ConfigError,
+    InternalError,
+    MessageTooLargeError,
+    RrError,
+    TransferError,
+)
 
 __all__ = ["Listener"]
 
@@ -113,7 +116,9 @@ class _AnswerReply:
 
     def _unpicklable(self, value: Any, error: BaseException | None, exc: BaseException) -> RrError:
         if error is not None:
-            return RrError(f"{type(error).__qualname__}: {error} (the error itself did not pickle)")
+            return TransferError(
+                f"{type(error).__qualname__}: {error} (the error itself did not pickle)"
+            )
         self._compensate()  # its caller gets an error
         failure: RrError = self._message.unsendable_answer(self._link.listener.name, value, exc)
         return failure
@@ -195,13 +200,15 @@ class _Link:
             message = pickle.loads(payload)
         except BaseException as exc:  # noqa: BLE001 - answered as an error, never raised here
             if token != NO_REPLY:
-                error = RrError(f"a message for registrar {name!r} cannot be unpickled: {exc}")
-                self.send(frame(token, (None, error)))
+                unreadable = TransferError(
+                    f"a message for registrar {name!r} cannot be unpickled: {exc}"
+                )
+                self.send(frame(token, (None, unreadable)))
             return
         reply = None
         if token != NO_REPLY:
             if not hasattr(message, "reply"):
-                error = RrError(
+                error = InternalError(
                     f"a {type(message).__name__} message for registrar {name!r} cannot be answered"
                 )
                 self.send(frame(token, (None, error)))
@@ -244,7 +251,7 @@ class Listener:
     its heartbeat answer and its supervisor restart a manager that stays unable to.
     """
 
-    def __init__(self, system: AttachedSystem, endpoint: Endpoint) -> None:
+    def __init__(self, system: Member, endpoint: Endpoint) -> None:
         self.name = endpoint.name
         self.endpoint = endpoint
         self.max_message_bytes = endpoint.max_message_bytes

@@ -20,10 +20,11 @@ import threading
 from collections.abc import Callable
 from multiprocessing import AuthenticationError
 from multiprocessing.connection import Connection
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from rr_actors._core.directory import Reply
 from rr_actors._core.replies import FutureReply, wait
+from rr_actors._transport.base import Member
 from rr_actors._transport.codec import (
     NO_REPLY,
     Oversized,
@@ -39,14 +40,12 @@ from rr_actors._transport.writer import Writer
 from rr_actors.config import DEFAULT_MAX_MESSAGE_BYTES
 from rr_actors.errors import (
     ConfigError,
+    InternalError,
     MessageTooLargeError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
     RrError,
 )
-
-if TYPE_CHECKING:
-    from rr_actors._transport.unix import AttachedSystem
 
 __all__ = ["RemotePeer"]
 
@@ -79,7 +78,7 @@ class RemotePeer:
     resolves the kept replies.
     """
 
-    def __init__(self, system: AttachedSystem, name: str) -> None:
+    def __init__(self, system: Member, name: str) -> None:
         self.name = name
         self._system = system
         self._path = system.address.socket_path(name)
@@ -301,7 +300,7 @@ class RemotePeer:
         elif isinstance(error, BaseException):
             reply.set_error(error)
         else:
-            reply.set_error(RrError(f"a malformed answer from registrar {self.name!r}"))
+            reply.set_error(InternalError(f"a malformed answer from registrar {self.name!r}"))
 
     def _unreadable(self, message: Any, exc: BaseException) -> RrError:
         """The error for an answer that cannot be unpickled here; what it created is undone.

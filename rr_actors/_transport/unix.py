@@ -55,6 +55,7 @@ from rr_actors.errors import (
     RegistrarStoppedError,
     RegistrarUnavailableError,
     UnknownServerError,
+    _known_names,
 )
 
 __all__ = ["AttachedSystem", "System", "SystemAddress", "attach"]
@@ -111,7 +112,7 @@ class AttachedSystem:
         self._lock = threading.Lock()
         self._peers: dict[str, RemotePeer] = {}
         self._listeners: dict[str, Listener] = {}
-        DIRECTORY.add_resolver(self.resolve)
+        DIRECTORY.add_resolver(self.resolve, self.names)
 
     def serve(self, endpoint: Endpoint) -> None:
         """Make a registrar of this process reachable from the other processes of the system.
@@ -171,7 +172,10 @@ class AttachedSystem:
             return listener.endpoint.run(fn)
         peer = self.resolve(registrar_name)
         if peer is None:
-            raise UnknownServerError(f"no registrar named {registrar_name!r} on this system")
+            raise UnknownServerError(
+                f"no registrar named {registrar_name!r} on this system"
+                + _known_names(registrar_name, self.names())
+            )
         assert isinstance(peer, RemotePeer)
         return peer.run(fn, timeout=timeout)
 
@@ -215,6 +219,14 @@ class AttachedSystem:
         self.close()
 
     # -- plumbing ------------------------------------------------------------------------
+
+    def names(self) -> list[str]:
+        """The names of the registrars served on the system (their sockets)."""
+        try:
+            entries = os.listdir(self.address.runtime_dir)
+        except OSError:
+            return []
+        return [e.removesuffix(".sock") for e in entries if e.endswith(".sock")]
 
     def resolve(self, name: str) -> Peer | None:
         """The directory resolver: a peer for a registrar of another process, or None."""

@@ -1,25 +1,33 @@
-"""`rr-actors experiment PLAN.toml --out DIR`: run an experiment from the command line.
+"""`rr-actors experiment PLAN --out DIR`: run an experiment from the command line.
 
-    rr-actors experiment examples/experiments/strategies.toml --out results
+    rr-actors experiment --list                  # the shipped plans
+    rr-actors experiment strategies --out results
     rr-actors experiment plan.toml --out results --repeat 5 --seed 42 --force
 
 On a terminal with `rich` installed (`pip install 'rr-actors[experiments]'`) a progress
 bar shows the runs; elsewhere one line per finished run. At the end: a summary per
 compared value and the files written. Exit codes: 0 done; 1 a run failed; 2 bad input
 (the plan, an option, the output directory, the platform), found before anything
-started; 130 interrupted (Ctrl-C), with the finished runs kept.
+started; 130 interrupted (Ctrl-C), 143 stopped (SIGTERM), with the finished runs kept and
+nothing else left behind. A full disk under `--out` is exit 1, one line; the files then
+hold the runs written before it, and agree with each other.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import statistics
 import sys
+import textwrap
+import threading
+from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from rr_actors.errors import ConfigError
-from rr_actors.experiments import experiment
+from rr_actors.experiments import experiment, plans
 from rr_actors.experiments.experiment import (
     ExperimentError,
     ExperimentInterruptedError,
@@ -31,8 +39,10 @@ from rr_actors.experiments.results import Results, RunResult, show_value
 from rr_actors.observe import require_extra
 
 if TYPE_CHECKING:
+    from rich.console import Console
     from rich.progress import Progress as RichProgress
     from rich.progress import TaskID
+    from rich.table import Table as RichTable
 
 __all__ = ["INTERRUPTED_EXIT", "add_arguments", "main", "summary_lines"]
 
@@ -56,12 +66,17 @@ def _positive_float(text: str) -> float:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the `experiment` subcommand's arguments to `parser`."""
-    parser.add_argument("plan", help="the plan file (TOML; see docs/reference/plan.md)")
+    parser.add_argument(
+        "plan",
+        nargs="?",
+        help="a plan file (TOML), or the name of a plan shipped with rr_actors (--list); "
+        f"the format: {plans.REFERENCE} (also docs/reference/plan.md in the documentation)",
+    )
+    parser.add_argument("--list", action="store_true", help="name the shipped plans and exit")
     parser.add_argument(
         "--out",
-        required=True,
-        help="output directory: events.jsonl, runs.csv, faults.csv, recovery.png, "
-        "timeline.png, plan.toml (must be empty or new, unless --force)",
+        help="output directory (required to run): events.jsonl, runs.csv, faults.csv, "
+        "recovery.png, timeline.png, plan.toml (must be empty or new, unless --force)",
     )
     parser.add_argument(
         "--repeat",
@@ -113,33 +128,70 @@ def run_line(result: RunResult, runs: int) -> str:
     )
 
 
-def summary_lines(results: Results) -> list[str]:
-    """The summary per compared value: recovery, calls, unavailability, leftovers."""
-    label = results.plan.setting_label() or "strategy"
-    lines = [
-        f"{label:<20} {'runs':>4} {'faults':>6} {'recovery p50':>12} {'p90':>8} "
-        f"{'calls failed':>12} {'down s':>7} {'left':>5}"
-    ]
+SUMMARY_HEADERS = ("runs", "faults", "rec. p50", "p90", "failed", "retried", "down s", "left")
+SUMMARY_WIDTHS = (18, 4, 6, 8, 7, 6, 7, 6, 4)  # with the spaces between: 74 columns
+SUMMARY_NOTE = (
+    "rec. p50, p90: recovery per fault, from the injection until the system served again; "
+    "failed, retried (calls) and down s (not serving, all managers): mean per run; "
+    "left: catalog entries and processes left, all runs"
+)
+
+
+def summary_rows(results: Results) -> list[list[str]]:
+    """The summary's cells per compared value (the first: the value, or the strategy)."""
+    rows = []
     for value, runs in results.by_value():
         if not runs:
             continue
-        shown = results.plan.tree.strategy if value is None else show_value(value)
         recoveries = [r for run in runs for r in run.recoveries()]
-        faults = sum(1 for run in runs for f in run.faults if not f.skipped)
-        failed = statistics.mean(run.calls_failed for run in runs)
-        down = statistics.mean(sum(run.unavailable_s.values()) for run in runs)
-        left = sum(max(0, run.catalog_entries_left) + run.leaked_processes for run in runs)
-        lines.append(
-            f"{shown[:20]:<20} {len(runs):>4} {faults:>6} "
-            f"{_ms(percentile(recoveries, 50)):>12} {_ms(percentile(recoveries, 90)):>8} "
-            f"{failed:>12.1f} {down:>7.2f} {left:>5}"
+        rows.append(
+            [
+                results.plan.tree.strategy if value is None else show_value(value),
+                str(len(runs)),
+                str(sum(1 for run in runs for f in run.faults if not f.skipped)),
+                _ms(percentile(recoveries, 50)),
+                _ms(percentile(recoveries, 90)),
+                f"{statistics.mean(run.calls_failed for run in runs):.1f}",
+                f"{statistics.mean(run.calls_retried for run in runs):.1f}",
+                f"{statistics.mean(sum(run.unavailable_s.values()) for run in runs):.2f}",
+                str(sum(max(0, run.catalog_entries_left) + run.leaked_processes for run in runs)),
+            ]
         )
-    lines.append(
-        "recovery: per fault, from the injection until the system served again; "
-        "calls failed and down s (all managers): mean per run; left: catalog entries and "
-        "processes left, all runs"
+    return rows
+
+
+def summary_lines(results: Results) -> list[str]:
+    """The summary per compared value as plain lines of at most 80 columns."""
+    label = results.plan.setting_label() or "strategy"
+
+    def line(cells: list[str]) -> str:
+        first = cells[0] if len(cells[0]) <= SUMMARY_WIDTHS[0] else cells[0][:17] + "~"
+        rest = (f"{c:>{w}}" for c, w in zip(cells[1:], SUMMARY_WIDTHS[1:], strict=True))
+        return " ".join([f"{first:<{SUMMARY_WIDTHS[0]}}", *rest])
+
+    rows = [line([label, *SUMMARY_HEADERS]), *(line(row) for row in summary_rows(results))]
+    return [*rows, *textwrap.wrap(SUMMARY_NOTE, 80)]
+
+
+def summary_table(results: Results) -> RichTable:
+    """The summary as a `rich` table: it fits the terminal, its note wraps under it."""
+    from rich import box  # noqa: PLC0415 - rich is optional
+    from rich.table import Table  # noqa: PLC0415
+
+    table = Table(
+        box=box.SIMPLE_HEAD,
+        show_edge=False,
+        pad_edge=False,
+        collapse_padding=True,
+        caption=SUMMARY_NOTE,
+        caption_justify="left",
     )
-    return lines
+    table.add_column(results.plan.setting_label() or "strategy", overflow="fold")
+    for header in SUMMARY_HEADERS:
+        table.add_column(header, justify="right", no_wrap=True)
+    for row in summary_rows(results):
+        table.add_row(*row)
+    return table
 
 
 class _Display:
@@ -149,9 +201,10 @@ class _Display:
         self.stream = stream
         self.quiet = quiet
         self.bar: RichProgress | None = None
+        self.console: Console | None = None  # on a terminal with rich: it fits the width
         self.task: TaskID | None = None
         self.done = 0.0
-        if not quiet and stream.isatty():
+        if stream.isatty():
             try:
                 from rich.console import Console  # noqa: PLC0415
                 from rich.progress import (  # noqa: PLC0415
@@ -162,11 +215,14 @@ class _Display:
                 from rich.progress import Progress as RichProgress  # noqa: PLC0415
             except ImportError:
                 return
+            self.console = Console(file=stream)
+            if quiet:
+                return
             self.bar = RichProgress(
                 TextColumn("{task.description}"),
                 BarColumn(),
                 TimeRemainingColumn(),
-                console=Console(file=stream),
+                console=self.console,
                 transient=True,
             )
 
@@ -179,11 +235,12 @@ class _Display:
         if self.bar is not None:
             self.bar.stop()
 
-    def say(self, line: str) -> None:
-        if self.bar is not None:
-            self.bar.console.print(line, highlight=False, markup=False, soft_wrap=True)
+    def say(self, line: Any) -> None:
+        """Print a line (or, on a terminal, a `rich` renderable) that fits the width."""
+        if self.console is not None:
+            self.console.print(line, highlight=False, markup=False, emoji=False)
         else:
-            self.stream.write(line + "\n")
+            self.stream.write(f"{line}\n")
             self.stream.flush()
 
     def __call__(self, progress: Progress) -> None:
@@ -214,12 +271,43 @@ def main(args: argparse.Namespace, stream: TextIO) -> int:
         stream: where progress and the summary go (errors go to standard error).
 
     Returns:
-        0 done; 1 a run failed; 2 bad input (nothing was started); 130 interrupted.
+        0 done; 1 a run failed (or `--out` could not be written); 2 bad input (nothing was
+        started); 130 interrupted (Ctrl-C); 143 stopped (SIGTERM).
     """
-    display = _Display(stream, quiet=args.quiet)
-    interrupted = False
+    if args.list:
+        return _list(stream)
+    if args.plan is None or args.out is None:
+        _error(f"give {'a PLAN and ' if args.plan is None else ''}--out DIR (or --list)")
+        return 2
+    with _one_ctrl_c():
+        return _run(args, stream)
+
+
+@contextlib.contextmanager
+def _one_ctrl_c() -> Iterator[None]:
+    """The first Ctrl-C stops the experiment; the ones after it are ignored (it is stopping:
+    they would cut its cleanup, its plots or its summary short)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def first(_signum: int, _frame: object) -> None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, first)
     try:
-        plan = load_plan(args.plan)
+        yield
+    finally:
+        if signal.getsignal(signal.SIGINT) is first:  # after a Ctrl-C, ignored to the end
+            signal.signal(signal.SIGINT, previous)
+
+
+def _run(args: argparse.Namespace, stream: TextIO) -> int:
+    display = _Display(stream, quiet=args.quiet)
+    interrupted = 0
+    try:
+        plan = load_plan(_plan_file(args.plan))
         if args.observe:
             require_extra()  # before --out is made
         experiment.prepare_out(Path(args.out), force=args.force, what="--out")
@@ -243,27 +331,46 @@ def main(args: argparse.Namespace, stream: TextIO) -> int:
         return 1
     except ExperimentInterruptedError as exc:
         results = exc.results
-        interrupted = True
-    _summary(stream, results, interrupted=interrupted)
-    return INTERRUPTED_EXIT if interrupted else 0
+        interrupted = 128 + exc.signum  # 130 after Ctrl-C, 143 after SIGTERM
+    _summary(display, results, interrupted=bool(interrupted))
+    return interrupted or 0
 
 
-def _summary(stream: TextIO, results: Results, *, interrupted: bool) -> None:
-    out: list[str] = []
+def _list(stream: TextIO) -> int:
+    for name, path in plans.shipped().items():
+        description = load_plan(path).description
+        stream.write(f"{name:<12} {description}\n")
+    stream.write(f"(in {plans.HERE}; the format: {plans.REFERENCE})\n")
+    return 0
+
+
+def _plan_file(plan: str) -> Path:
+    """The file `plan` names (see `plans.find`), or a `ConfigError` naming the shipped ones."""
+    path = plans.find(plan)
+    if not path.exists() and path.parent == Path():
+        raise ConfigError(
+            f"{plan}: no such file, and no shipped plan of that name "
+            f"(shipped: {', '.join(plans.shipped())})"
+        )
+    return path
+
+
+def _summary(display: _Display, results: Results, *, interrupted: bool) -> None:
     if interrupted:
-        out.append(
+        display.say(
             f"interrupted: {len(results.runs)} run(s) finished and kept; every process "
             "the experiment started was stopped"
         )
-    if results.runs:
-        out.extend(summary_lines(results))
+    if results.runs and display.console is not None:
+        display.say(summary_table(results))
+    elif results.runs:
+        for line in summary_lines(results):
+            display.say(line)
     if results.out is not None:
         written = [name for name in experiment.OUTPUT_FILES if (results.out / name).exists()]
-        out.append(f"written to {results.out}/: {', '.join(written)}")
+        display.say(f"written to {results.out}/: {', '.join(written)}")
         if "recovery.png" not in written and results.runs:
-            out.append(
+            display.say(
                 "plots not drawn: matplotlib is not installed "
                 "(pip install 'rr-actors[experiments]')"
             )
-    stream.write("\n".join(out) + "\n")
-    stream.flush()

@@ -72,7 +72,8 @@ SWEEP_GRACE = 3.0
 
 
 class ExperimentError(RrError):
-    """A run process failed (a bug, or a setup that crashed it); its stderr is quoted."""
+    """A run process failed (a bug, or a setup that crashed it; its stderr is quoted), or
+    the output directory could not be written (a full disk: its files still agree)."""
 
 
 class ExperimentInterruptedError(KeyboardInterrupt):
@@ -84,11 +85,17 @@ class ExperimentInterruptedError(KeyboardInterrupt):
 
     Attributes:
         results: the runs that finished before the interruption (also written to `out`).
+        signum: the signal that interrupted it: `SIGINT` (Ctrl-C) or `SIGTERM`.
     """
 
-    def __init__(self, results: Results) -> None:
+    def __init__(self, results: Results, signum: int = signal.SIGINT) -> None:
         super().__init__(f"interrupted after {len(results.runs)} finished run(s)")
         self.results = results
+        self.signum = signum
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread: stopped as a Ctrl-C is (nothing left behind)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -221,7 +228,11 @@ def run(
         require_extra()
     out_path = prepare_out(Path(out), force=force) if out is not None else None
     if out_path is not None and plan.source is not None:
-        shutil.copyfile(plan.source, out_path / "plan.toml")
+        try:
+            shutil.copyfile(plan.source, out_path / "plan.toml")
+        except OSError as exc:
+            (out_path / "plan.toml").unlink(missing_ok=True)
+            raise ExperimentError(f"cannot write to {out_path}/ ({exc.strerror})") from exc
     return _Experiment(plan, out_path, record_events, observe, progress, on_observe).run()
 
 
@@ -248,36 +259,44 @@ class _Experiment:
         self.total = plan.repeat * len(plan.variants)
 
     def run(self) -> Results:
-        work = Path(tempfile.mkdtemp(prefix="rr-experiment-"))
+        work: Path | None = None
         try:
-            for number, repeat, value, variant, seed in _runs(self.plan):
-                spec = RunSpec(
-                    plan=variant,
-                    setting=self.plan.setting_label(),
-                    value=value,
-                    run=number,
-                    repeat=repeat,
-                    seed=seed,
-                    record_events=self.record_events,
-                    observe=self.observe,
-                    token=f"{os.getpid()}-{uuid.uuid4().hex[:12]}",
-                )
-                result = self._one(spec, work / f"run-{number}")
-                self.progress(self._progress(spec, result.duration_s, result))
-        except KeyboardInterrupt:
-            with _ignoring_sigint():
+            with _terminating_as_interrupt():
+                work = Path(tempfile.mkdtemp(prefix="rr-experiment-"))
+                self._all(work)
+        except KeyboardInterrupt as exc:
+            with _ignoring_signals():  # a second Ctrl-C must not cut the cleanup or plots short
                 self._interrupted()
-            results = self._results(interrupted=True)
-            self._plot(results)
-            raise ExperimentInterruptedError(results) from None
+                results = self._results(interrupted=True)
+                self._plot(results)
+            signum = signal.SIGTERM if isinstance(exc, _Terminated) else signal.SIGINT
+            raise ExperimentInterruptedError(results, signum) from None
         except ExperimentError:
             self._plot(self._results(interrupted=False))  # what finished before it
             raise
         finally:
-            shutil.rmtree(work, ignore_errors=True)
+            if work is not None:
+                shutil.rmtree(work, ignore_errors=True)
         results = self._results(interrupted=False)
         self._plot(results)
         return results
+
+    def _all(self, work: Path) -> None:
+        """Every run, in order, each in its own directory under `work`."""
+        for number, repeat, value, variant, seed in _runs(self.plan):
+            spec = RunSpec(
+                plan=variant,
+                setting=self.plan.setting_label(),
+                value=value,
+                run=number,
+                repeat=repeat,
+                seed=seed,
+                record_events=self.record_events,
+                observe=self.observe,
+                token=f"{os.getpid()}-{uuid.uuid4().hex[:12]}",
+            )
+            result = self._one(spec, work / f"run-{number}")
+            self.progress(self._progress(spec, result.duration_s, result))
 
     def _interrupted(self) -> None:
         """After a Ctrl-C: stop the run under way, kill its processes, keep it if it ended.
@@ -299,10 +318,17 @@ class _Experiment:
         self.current = None
 
     def _keep(self, current: _Current, result: RunResult) -> None:
-        """A finished run: into the results and the output files."""
-        current.kept = True
+        """A finished run: into the results and the output files (all of them, or none)."""
         self.finished.append(result)
-        self._write(result, current.run_dir)
+        try:
+            self._write(result, current.run_dir)
+        except OSError as exc:
+            self.finished.pop()
+            raise ExperimentError(
+                f"cannot write to {self.out}/ ({exc.strerror or exc}): run {result.run} was "
+                f"not added; the files hold the {len(self.finished)} run(s) before it"
+            ) from exc
+        current.kept = True
 
     def _results(self, *, interrupted: bool) -> Results:
         return Results(self.plan, tuple(self.finished), self.out, interrupted)
@@ -390,15 +416,31 @@ class _Experiment:
     # -- files ----------------------------------------------------------------------------
 
     def _write(self, result: RunResult, run_dir: Path) -> None:
+        """Add a run to the files; if a write fails (a full disk), put them back as they were.
+
+        The appended files are cut back to their sizes before this run, and `runs.csv` is
+        replaced only once it is whole, so the three files always hold the same runs.
+        """
         if self.out is None:
             return
-        with (
-            (run_dir / "events.jsonl").open("rb") as source,
-            (self.out / "events.jsonl").open("ab") as target,
-        ):
-            shutil.copyfileobj(source, target)
-        _write_csv(self.out / "runs.csv", [run.row() for run in self.finished])
-        _append_csv(self.out / "faults.csv", fault_rows(result))
+        appended = [self.out / "events.jsonl", self.out / "faults.csv"]
+        sizes = [path.stat().st_size if path.exists() else None for path in appended]
+        try:
+            with (
+                (run_dir / "events.jsonl").open("rb") as source,
+                appended[0].open("ab") as target,
+            ):
+                shutil.copyfileobj(source, target)
+            _append_csv(appended[1], fault_rows(result))
+            _write_csv(self.out / "runs.csv", [run.row() for run in self.finished])
+        except OSError:
+            for path, size in zip(appended, sizes, strict=True):
+                with contextlib.suppress(OSError):  # cutting a file back needs no space
+                    if size is None:
+                        path.unlink(missing_ok=True)
+                    else:
+                        os.truncate(path, size)
+            raise
 
     def _plot(self, results: Results) -> None:
         if self.out is None or not results.runs:
@@ -408,8 +450,15 @@ class _Experiment:
         except ImportError:
             logger.warning("plots not drawn: matplotlib is not installed")
             return
-        plot.plot_recovery(results, self.out / "recovery.png")
-        plot.plot_timeline(results, self.out / "timeline.png")
+        for draw, name in (
+            (plot.plot_recovery, "recovery.png"),
+            (plot.plot_timeline, "timeline.png"),
+        ):
+            try:
+                draw(results, self.out / name)
+            except OSError as exc:  # a full disk: no half-written figure
+                (self.out / name).unlink(missing_ok=True)
+                logger.warning("%s not drawn: %s", name, exc.strerror or exc)
 
 
 @dataclasses.dataclass
@@ -472,10 +521,14 @@ def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
                 after = next((k for k in keys[index + 1 :] if k in columns), None)
                 columns.insert(columns.index(after) if after else len(columns), key)
     partial = path.with_name(path.name + ".tmp")
-    with partial.open("w", newline="", encoding="utf-8") as file:
-        writer = csv.DictWriter(file, fieldnames=columns, restval="")
-        writer.writeheader()
-        writer.writerows(rows)
+    try:
+        with partial.open("w", newline="", encoding="utf-8") as file:
+            writer = csv.DictWriter(file, fieldnames=columns, restval="")
+            writer.writeheader()
+            writer.writerows(rows)
+    except OSError:
+        partial.unlink(missing_ok=True)
+        raise
     partial.replace(path)
 
 
@@ -504,13 +557,35 @@ def _stop(process: subprocess.Popen[bytes]) -> None:
 
 
 @contextlib.contextmanager
-def _ignoring_sigint() -> Iterator[None]:
-    """A second Ctrl-C must not cut the cleanup short (main thread only)."""
+def _ignoring_signals() -> Iterator[None]:
+    """A second Ctrl-C (or a SIGTERM) must not cut the cleanup short (main thread only)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    previous = {n: signal.signal(n, signal.SIG_IGN) for n in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+
+
+@contextlib.contextmanager
+def _terminating_as_interrupt() -> Iterator[None]:
+    """SIGTERM raises `_Terminated` (a `KeyboardInterrupt`) while the runs go on.
+
+    Without it a SIGTERM ends the process at once: the run's processes and the work
+    directory in the temporary directory would be left behind (main thread only).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def terminated(_signum: int, _frame: object) -> None:
+        raise _Terminated
+
+    previous = signal.signal(signal.SIGTERM, terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -1,10 +1,9 @@
-"""A plan as data: the supervision tree, the workload, the faults and the repeats.
+"""A plan as data and as its schema: the tree, the workload, the faults and the repeats.
 
-Frozen dataclasses, built only by `reading` (`load_plan`, `parse_plan`) after every value
-was checked, and read by the run (`runner`, `workload`, `inject`, `schedule`). `PlanError`
-is the error every invalid plan raises.
-
-The TOML format is documented in `docs/reference/plan.md`.
+Frozen dataclasses whose field types carry the plan's limits (`Annotated[..., Meta(...)]`):
+`reading` has msgspec check every TOML value against them, and the run (`runner`,
+`workload`, `inject`, `schedule`) reads them. `PlanError` is the error every invalid plan
+raises. The TOML format is documented in `docs/reference/plan.md`.
 """
 
 from __future__ import annotations
@@ -13,7 +12,9 @@ import dataclasses
 import math
 import typing
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
+
+from msgspec import Meta
 
 from rr_actors import events
 from rr_actors.config import Backoff
@@ -34,7 +35,6 @@ __all__ = [
     "SupervisorPlan",
     "Trigger",
     "Workload",
-    "is_number",
 ]
 
 FaultKind = Literal[
@@ -60,12 +60,34 @@ MIN_EVERY = 1e-3
 MAX_INJECTIONS = 100_000
 """The most injections one fault may make in one run (`every` with a short interval)."""
 
+MAX_CLIENTS = 1_000
+"""The most client threads of a workload (each has a consumer registrar)."""
+
+MAX_REPEAT = 10_000
+"""The most runs per compared value."""
+
+MAX_COUNT = 1_000_000
+"""The most of any other count: `keys`, `max_restarts`, `loads`, `nth`."""
+
+MAX_RATE = 1e6
+"""The most calls per second per client (and the largest `weight`)."""
+
 PLACEHOLDERS = frozenset({"key", "client", "run_dir", "pid"})
 """Names a request template may use in its strings: `{key}`, `{client}`, `{run_dir}`, `{pid}`."""
 
 EVENT_TYPES: dict[str, type[Any]] = {  # the events an `after` trigger may name
     cls.__name__: cls for cls in typing.get_args(events.Event) if cls is not events.EventsDropped
 }
+
+# The types of plan values, with their limits (msgspec checks them; `reading` words the errors).
+Seconds = Annotated[float, Meta(gt=0, le=MAX_SECONDS)]
+SecondsOrZero = Annotated[float, Meta(ge=0, le=MAX_SECONDS)]
+Interval = Annotated[float, Meta(ge=MIN_EVERY, le=MAX_SECONDS)]
+Name = Annotated[str, Meta(pattern=r"\A[\w.-]+\Z")]
+Text = Annotated[str, Meta(max_length=10_000)]
+Count = Annotated[int, Meta(ge=1, le=MAX_COUNT)]
+Seed = Annotated[int, Meta(ge=-(2**63), le=2**63 - 1)]
+Restart = Literal["permanent", "transient", "temporary"]
 
 
 class PlanError(ConfigError):
@@ -96,53 +118,30 @@ class PlanError(ConfigError):
 
 @dataclasses.dataclass(frozen=True)
 class ManagerPlan:
-    """One manager of the tree: what `ManagerSpec` it becomes in every run.
+    """One manager of the tree: what `ManagerSpec` it becomes in every run (times in seconds)."""
 
-    Attributes:
-        name: the manager's (registrar's) name.
-        setup: import path of its `setup(registrar, **options)`, as `"module:function"`.
-        options: keyword arguments for `setup`.
-        isolation: `"process"` (default in plans) or `"thread"`.
-        restart: `"permanent"`, `"transient"` or `"temporary"`.
-        heartbeat: seconds between heartbeat pings, or `None` (off).
-        heartbeat_timeout: seconds of silence before it counts as hung (`None`: three
-            heartbeats).
-        shutdown: seconds a clean stop may take before it is killed.
-        start_timeout: seconds it may take to restore, set up and serve.
-    """
-
-    name: str
-    setup: str
-    options: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    name: Name  # the manager's (registrar's) name
+    setup: str  # import path of its `setup(registrar, **options)`: "module:function"
+    options: Mapping[str, Any] = dataclasses.field(default_factory=dict)  # for `setup`
     isolation: Literal["thread", "process"] = "process"
-    restart: Literal["permanent", "transient", "temporary"] = "permanent"
-    heartbeat: float | None = 0.25
-    heartbeat_timeout: float | None = None
-    shutdown: float = 5.0
-    start_timeout: float = 30.0
+    restart: Restart = "permanent"
+    heartbeat: Seconds | None = 0.25  # between heartbeat pings; `None`: off
+    heartbeat_timeout: Seconds | None = None  # silence until hung (`None`: 3 heartbeats)
+    shutdown: Seconds = 5.0  # a clean stop may take this long before it is killed
+    start_timeout: Seconds = 30.0  # to restore, set up and serve
 
 
 @dataclasses.dataclass(frozen=True)
 class SupervisorPlan:
-    """A supervisor of the tree (the top one is `Plan.tree`).
+    """A supervisor of the tree (the top one is `Plan.tree`)."""
 
-    Attributes:
-        name: its name.
-        children: its managers and nested supervisors, in start order.
-        strategy: `"one_for_one"`, `"one_for_all"` or `"rest_for_one"`.
-        max_restarts: restart intensity: at most this many restarts ...
-        period: ... within this many seconds.
-        backoff: delay before restarts.
-        restart: its restart type in its parent (nested supervisors only).
-    """
-
-    name: str
-    children: tuple[ManagerPlan | SupervisorPlan, ...]
+    name: Name
+    children: tuple[ManagerPlan | SupervisorPlan, ...]  # in start order
     strategy: Literal["one_for_one", "one_for_all", "rest_for_one"] = "one_for_one"
-    max_restarts: int = 3
-    period: float = 5.0
-    backoff: Backoff = dataclasses.field(default_factory=Backoff)
-    restart: Literal["permanent", "transient", "temporary"] = "permanent"
+    max_restarts: Annotated[int, Meta(ge=0, le=MAX_COUNT)] = 3  # at most this many restarts
+    period: Seconds = 5.0  # ... within this many seconds
+    backoff: Backoff = dataclasses.field(default_factory=Backoff)  # delay before restarts
+    restart: Restart = "permanent"  # its restart type in its parent (nested ones only)
 
     def managers(self) -> list[ManagerPlan]:
         """Every manager below this supervisor, depth first, in start order."""
@@ -164,114 +163,71 @@ class SupervisorPlan:
 class CallMix:
     """One kind of call the workload makes (an entry of `[[workload.calls]]`).
 
-    Attributes:
-        manager: the provider registrar called.
-        server: the resource server on it.
-        weight: relative frequency of this kind among the workload's calls.
-        shared: fraction of these calls that ask for one of `keys` shared requests
-            (deduplicated by the provider); the rest ask for a request of their own.
-        keys: how many distinct shared requests there are.
-        request: the request template (strings may use `{key}`, `{client}`,
-            `{run_dir}`; a string that is exactly `"{pid}"` becomes the run process's pid).
-        factory: import path of `factory(key, context) -> request` instead of a template.
+    `shared` is the fraction of these calls that ask for one of `keys` shared requests
+    (deduplicated by the provider); the rest ask for a request of their own. `request` is
+    a template: its strings may use `{key}`, `{client}`, `{run_dir}`, and a string that is
+    exactly `"{pid}"` becomes the run process's pid.
     """
 
-    manager: str
-    server: str
-    weight: float = 1.0
-    shared: float = 0.5
-    keys: int = 4
+    manager: str  # the provider registrar called
+    server: Annotated[str, Meta(min_length=1)]  # the resource server on it
+    weight: Annotated[float, Meta(gt=0, le=MAX_RATE)] = 1.0  # relative frequency
+    shared: Annotated[float, Meta(ge=0, le=1)] = 0.5
+    keys: Count = 4
     request: Any = "{key}"
-    factory: str | None = None
+    factory: str | None = None  # import path of `factory(key, context) -> request`
 
 
 @dataclasses.dataclass(frozen=True)
 class Workload:
-    """What the clients do while faults hit the tree.
+    """What the clients do while faults hit the tree (times in seconds)."""
 
-    Attributes:
-        clients: how many client threads call (each with a consumer registrar).
-        rate: calls per second per client, or `None` for as fast as they can.
-        arrivals: `"poisson"` (seeded random gaps of mean `1/rate`) or `"fixed"`.
-        hold: seconds a client keeps each resource before it unloads it.
-        timeout: seconds a call may take, retries through restarts included.
-        calls: the mix of calls.
-    """
-
-    clients: int = 1
-    rate: float | None = 5.0
-    arrivals: Literal["poisson", "fixed"] = "poisson"
-    hold: float = 0.5
-    timeout: float = 5.0
+    clients: Annotated[int, Meta(ge=0, le=MAX_CLIENTS)] = 1  # threads, each a registrar
+    rate: Annotated[float, Meta(ge=1 / MAX_SECONDS, le=MAX_RATE)] | None = 5.0  # None: max
+    arrivals: Literal["poisson", "fixed"] = "poisson"  # seeded gaps of mean 1/rate, or fixed
+    hold: SecondsOrZero = 0.5  # a client keeps each resource this long, then unloads it
+    timeout: Seconds = 5.0  # a call may take this long, retries through restarts included
     calls: tuple[CallMix, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
 class Trigger:
-    """`after = { event = "ChildRestarted", child = "erm", nth = 1 }`: when a fault fires.
+    """`after = { event = "ChildRestarted", child = "erm", nth = 1 }`: when a fault fires."""
 
-    Attributes:
-        event: an event type of `rr_actors.events` (e.g. `"ChildRestarted"`).
-        match: field values the event must have (e.g. `{"child": "erm"}`).
-        nth: the fault fires after the n-th matching event of the run.
-    """
-
-    event: str
-    match: Mapping[str, Any] = dataclasses.field(default_factory=dict)
-    nth: int = 1
+    event: str  # an event type of `rr_actors.events`
+    match: Mapping[str, Any] = dataclasses.field(default_factory=dict)  # its field values
+    nth: Count = 1  # the fault fires after the n-th matching event of the run
 
 
 @dataclasses.dataclass(frozen=True)
 class FaultPlan:
-    """One entry of `[[faults]]`: what to do, to whom, and when.
+    """One entry of `[[faults]]`: what to do, to whom, and when (times in seconds).
 
-    Exactly one of `at`, `every` and `after` says when.
-
-    Attributes:
-        kind: one of `FAULT_KINDS`.
-        targets: the managers it may hit (one is picked per injection, seeded); for
-            `kill_resource`, whose processes (empty: any process manager's).
-        at: fixed times, seconds from the start of the workload.
-        every: a fixed interval in seconds, or `(low, high)` for seeded random
-            intervals drawn uniformly in between.
-        start: with `every`: the first interval starts here (seconds).
-        stop: with `every`: no injection at or after this time (default: the duration).
-        count: with `every`: at most this many injections.
-        after: inject when an event happens (then `delay` seconds later).
-        delay: seconds from the trigger event to the injection.
-        for_s: how long a hang (or a load error) lasts, in seconds.
-        loads: `load_error`: how many loads raise (when `for_s` is not given).
-        server: `load_error`: only loads of this server raise (default: any).
-        message: `load_error`: the message of the exception the load raises.
+    Exactly one of `at`, `every` and `after` says when. `targets` are the managers it may
+    hit (one is picked per injection, seeded); for `kill_resource`, whose processes
+    (empty: any process manager's). `every` is a fixed interval, or `(low, high)` for
+    seeded random intervals drawn uniformly in between.
     """
 
     kind: FaultKind
     targets: tuple[str, ...] = ()
-    at: tuple[float, ...] = ()
-    every: float | tuple[float, float] | None = None
-    start: float = 0.0
-    stop: float | None = None
-    count: int | None = None
-    after: Trigger | None = None
-    delay: float = 0.0
-    for_s: float | None = None
-    loads: int = 1
-    server: str | None = None
-    message: str = "injected load error"
+    at: tuple[SecondsOrZero, ...] = ()  # fixed times from the start of the workload
+    every: Interval | tuple[Interval, Interval] | None = None
+    start: SecondsOrZero = 0.0  # with `every`: the first interval starts here
+    stop: Seconds | None = None  # with `every`: none at or after this (default: the end)
+    count: Annotated[int, Meta(ge=1, le=MAX_INJECTIONS)] | None = None  # with `every`
+    after: Trigger | None = None  # inject when an event happens, `delay` later
+    delay: SecondsOrZero = 0.0
+    for_s: Seconds | None = None  # how long a hang (or a load error) lasts
+    loads: Count = 1  # load_error: how many loads raise (without `for_s`)
+    server: str | None = None  # load_error: only loads of this server (default: any)
+    message: Text = "injected load error"  # load_error: the exception's message
 
     def most_injections(self, duration: float) -> int:
-        """At most how many injections this fault makes in one run.
+        """At most how many injections this fault makes in a run of `duration` seconds.
 
-        An upper bound (the exact number of an `every` fault with random intervals is
-        known only from the schedule); plans keep it within `MAX_INJECTIONS`.
-
-        Args:
-            duration: the run's duration, in seconds.
-
-        Returns:
-            The bound: 1 for a triggered fault, the number of `at` times, or for `every`
-            the span from `start` to `stop` (or `duration`) over the shortest interval,
-            within `count`.
+        1 for a triggered fault, the number of `at` times, or for `every` the span from
+        `start` to `stop` (or `duration`) over the shortest interval, within `count`.
         """
         if self.after is not None:
             return 1
@@ -289,56 +245,38 @@ class FaultPlan:
 class Compare:
     """`[compare]`: run the same plan once per value of one setting.
 
-    Attributes:
-        setting: the setting's dotted key (`"tree.strategy"`; a child by its name:
-            `"tree.children.erm.heartbeat"`; a fault by its index: `"faults.0.every"`).
-        values: the values, in the order the runs take them.
+    `setting` is a dotted key: `"tree.strategy"`; a child by its name:
+    `"tree.children.erm.heartbeat"`; a fault by its index: `"faults.0.every"`.
     """
 
     setting: str
-    values: tuple[Any, ...]
+    values: tuple[Any, ...]  # in the order the runs take them
 
 
 @dataclasses.dataclass(frozen=True)
 class Plan:
     """A whole experiment: validated, ready to run with `rr_actors.experiments.run`.
 
-    Attributes:
-        name: the plan's name (the `runs.csv` column `plan`).
-        description: free text.
-        duration: seconds of workload and faults per run.
-        repeat: runs per compared value.
-        seed: seed of the first run (run `i` of a value uses `seed + i`).
-        recovery_timeout: seconds a run waits at its end for every manager to serve
-            again before it unloads what the clients hold.
-        tree: the top supervisor.
-        state: whether managers keep durable catalogs (a state directory per run).
-        workload: the clients.
-        faults: the faults.
-        compare: the compared setting, or `None`.
-        variants: `(value, plan)` per compared value (`((None, self),)` without
-            `compare`); each plan has that value applied and `compare` set to `None`.
-        source: the file it was read from (`None` for text).
-        base_dir: the directory searched first for the plan's import paths (the plan
-            file's own), or `None`.
+    `variants` holds `(value, plan)` per compared value (`((None, self),)` without
+    `compare`); each plan has that value applied and `compare` set to `None`.
     """
 
-    name: str
-    duration: float
+    name: str  # the `runs.csv` column `plan`
+    duration: Seconds  # of workload and faults per run
     tree: SupervisorPlan
     description: str = ""
-    repeat: int = 1
-    seed: int = 0
-    recovery_timeout: float = 10.0
-    state: bool = True
+    repeat: Annotated[int, Meta(ge=1, le=MAX_REPEAT)] = 1  # runs per compared value
+    seed: Seed = 0  # of the first run (run `i` of a value uses `seed + i`)
+    recovery_timeout: Seconds = 10.0  # at the end, to wait for every manager to serve
+    state: bool = True  # whether managers keep durable catalogs (a state directory per run)
     workload: Workload = Workload(clients=0)
     faults: tuple[FaultPlan, ...] = ()
     compare: Compare | None = None
     variants: tuple[tuple[Any, Plan], ...] = dataclasses.field(
         default=(), repr=False, compare=False
     )
-    source: str | None = None
-    base_dir: str | None = None
+    source: str | None = None  # the file it was read from (`None` for text)
+    base_dir: str | None = None  # searched first for its import paths (the file's own)
 
     def managers(self) -> list[ManagerPlan]:
         """Every manager of the tree, depth first, in start order."""
@@ -371,7 +309,7 @@ class Plan:
         A shorter `duration` drops the faults that would come after the new end.
 
         Args:
-            repeat: runs per compared value (an int >= 1); `None`: keep the plan's.
+            repeat: runs per compared value (1 to `MAX_REPEAT`); `None`: keep the plan's.
             seed: the seed of the first repeat; `None`: keep the plan's.
             duration: seconds each run's workload lasts (> 0); `None`: keep the plan's.
 
@@ -379,12 +317,15 @@ class Plan:
             The changed plan (this one is not changed).
 
         Raises:
-            ConfigError: a value is out of range (`duration` above `MAX_SECONDS`, or so
+            ConfigError: a value is out of range (`repeat` above `MAX_REPEAT`, a seed
+                beyond 64 bits, `duration` above `MAX_SECONDS`, or so
                 long that an `every` fault would inject more than `MAX_INJECTIONS` times).
         """
-        if repeat is not None and (isinstance(repeat, bool) or repeat < 1):
-            raise ConfigError(f"repeat must be an int >= 1, got {repeat!r}")
-        if duration is not None and not (is_number(duration) and 0 < duration <= MAX_SECONDS):
+        if repeat is not None and (isinstance(repeat, bool) or not 1 <= repeat <= MAX_REPEAT):
+            raise ConfigError(f"repeat must be an int from 1 to {MAX_REPEAT}, got {repeat!r}")
+        if seed is not None and not -(2**63) <= seed < 2**63:
+            raise ConfigError(f"seed must be a 64-bit integer, got {seed!r}")
+        if duration is not None and not (_is_number(duration) and 0 < duration <= MAX_SECONDS):
             raise ConfigError(
                 f"duration must be a positive number of seconds up to {MAX_SECONDS:g}, "
                 f"got {duration!r}"
@@ -410,10 +351,8 @@ class Plan:
         return dataclasses.replace(self, **changes, variants=variants)
 
 
-def is_number(value: object) -> bool:
-    """Whether `value` is a finite int or float (not a bool)."""
-    return (
-        isinstance(value, int | float)
-        and not isinstance(value, bool)
-        and math.isfinite(float(value))
-    )
+def _is_number(value: object) -> bool:
+    """Whether `value` is an int or a finite float (not a bool; a huge int is no error)."""
+    if isinstance(value, float):
+        return math.isfinite(value)
+    return isinstance(value, int) and not isinstance(value, bool)

@@ -2,55 +2,90 @@
 
     PLAN.toml ──tomllib──► data ──_lines.key_lines──► {key path: line}
                              │
-                             └──_Reader (one method per table)──► Plan (frozen dataclasses)
-                                  every error: PlanError(file:line: key: what is wrong)
+                             └──_Reader.build, per table: unknown keys; each value
+                                ──msgspec.convert(value, its annotated type in `plan`)──►
+                                then the rules between values ──► Plan (frozen dataclasses)
+                                every error: PlanError(file:line: key: what is wrong)
 
-`load_plan(path)` and `parse_plan(text)` validate everything a run needs before anything
-starts: unknown keys, types and ranges, setup and factory import paths (imported here,
-with their options checked against their signatures), managers named by the workload and
-the faults, fault kinds that need a process manager, and every value of `compare`
-(each compared value makes one whole plan, validated like the first). The typed reads
-every table shares (seconds, integers, choices, import paths) are in `_checks`; the
-plan's data classes in `plan`.
-
-The format is documented in `docs/reference/plan.md`.
+msgspec checks what the types in `plan` say (types, choices, ranges); `_problem` words its
+errors. The rules no type can say are here: names that must exist in the tree, import
+paths and their signatures, times within the run, the keys that go with a fault's kind,
+request templates, and every value of `compare` (each makes a whole plan, validated like
+the first). The format is documented in `docs/reference/plan.md`.
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
+import inspect
 import os
+import re
+import string
 import tomllib
+import typing
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
+from rr_actors._types import Status
 from rr_actors.config import Backoff
 from rr_actors.errors import ConfigError
-from rr_actors.experiments._checks import Table
+from rr_actors.experiments._imports import import_object
 from rr_actors.experiments._lines import KeyPath, key_lines
-from rr_actors.experiments._read_faults import FaultChecks
-from rr_actors.experiments._read_workload import WorkloadChecks
 from rr_actors.experiments.plan import (
+    EVENT_TYPES,
+    FAULT_KINDS,
+    MAX_INJECTIONS,
+    MAX_RATE,
+    MAX_SECONDS,
+    NEEDS_PROCESS,
+    PLACEHOLDERS,
+    CallMix,
     Compare,
+    FaultKind,
+    FaultPlan,
+    Interval,
     ManagerPlan,
     Plan,
     PlanError,
+    Seconds,
+    SecondsOrZero,
     SupervisorPlan,
-    is_number,
+    Trigger,
+    Workload,
 )
 
 __all__ = ["load_plan", "parse_plan"]
 
-
-NOT_COMPARED = {
+NOT_COMPARED = {  # top-level keys `[compare]` refuses, and why
     "name": "every run of an experiment belongs to one plan",
     "description": "it changes nothing in a run",
     "seed": "each run's seed comes from the top 'seed' and its repeat",
     "repeat": "every compared value runs 'repeat' times",
     "compare": "compare is not a setting of a run",
 }
-"""Top-level keys `[compare]` refuses, and why (the experiment reads them from the top plan)."""
+WHAT = {  # what a key must be, where its type alone words it badly (the last key of the path)
+    "target": "a manager's name",
+    "manager": "a manager's name",
+    "setup": "an import path string",
+    "name": "letters, digits, '_', '-' or '.'",
+    "server": "a server name",
+    "heartbeat": "a positive number of seconds or false (off)",
+    "rate": f'calls per second (at least {1 / MAX_SECONDS:g}, at most {MAX_RATE:g}) or "max"',
+    "weight": f"a positive number (at most {MAX_RATE:g})",
+    "shared": "a fraction from 0 to 1",
+    "factor": f"a number from 1 to {MAX_SECONDS:g}",
+}
+MISSING = {  # what a missing key is for
+    "duration": " (seconds of workload and faults per run)",
+    "kind": f": one of {', '.join(FAULT_KINDS)}",
+    "target": ": which manager (or a list of them)",
+}
+TYPES = {"float": "a number", "int": "an integer", "str": "a string", "bool": "true or false"}
+TYPES |= {"array": "an array", "object": "a table"}
+TOML_KEY = {"targets": "target", "for_s": "for"}  # field name -> key, where they differ
 
 
 def load_plan(path: str | os.PathLike[str]) -> Plan:
@@ -93,288 +128,482 @@ def parse_plan(text: str, *, source: str = "<plan>", name: str = "plan") -> Plan
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        line = _decode_line(str(exc))
-        raise PlanError(source, line, "", f"is not valid TOML: {exc}") from exc
-    lines = key_lines(text)
+        line = re.search(r"\(at line (\d+)", str(exc))
+        problem = f"is not valid TOML: {exc}"
+        raise PlanError(source, int(line[1]) if line else 0, "", problem) from exc
     base_dir = None if source == "<plan>" else os.path.dirname(os.path.abspath(source))
-    reader = _Reader(source, lines, base_dir)
+    reader = _Reader(source, key_lines(text), base_dir)
     compare = reader.compare(data)
     base = reader.plan(data, name=name)
     if compare is None:
         return dataclasses.replace(base, variants=((None, base),))
     variants: list[tuple[Any, Plan]] = []
     for index, value in enumerate(compare.values):
-        changed = copy.deepcopy(data)
-        reader.apply(changed, compare.setting, value, ("compare", "values", index))
+        changed, where = copy.deepcopy(data), ("compare", "values", index)
+        container, key = reader.locate(changed, compare.setting, where)
+        container[key] = value
         try:
-            variant = reader.plan(changed, name=name)
+            variants.append((value, reader.plan(changed, name=name)))
         except PlanError as exc:
-            raise reader.error(
-                ("compare", "values", index),
-                f"with {compare.setting} = {value!r}: {exc.key}: {exc.problem}",
-            ) from exc
-        variants.append((value, variant))
+            problem = f"with {compare.setting} = {_show(value)}: {exc.key}: {exc.problem}"
+            raise reader.error(where, problem) from exc
     return dataclasses.replace(variants[0][1], compare=compare, variants=tuple(variants))
 
 
-def _decode_line(message: str) -> int:
-    marker = "(at line "
-    if marker in message:
-        tail = message.split(marker, 1)[1]
-        digits = tail.split(",", 1)[0].split(")", 1)[0]
-        if digits.isdigit():
-            return int(digits)
-    return 0
+def _show(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else f"{text[:57]}..."
 
 
-class _Reader(WorkloadChecks, FaultChecks):
-    """Validates plan data table by table, turning every problem into a `PlanError`.
+def _problem(message: str, key: str, value: Any, hint: Any) -> str:
+    """msgspec's `message` about `value` of `key` (of type `hint`), in the plan's words."""
+    bound = re.fullmatch(r"Expected `(int|float)` ([<>]=?) (\S+)", message)
+    typed = re.fullmatch(r"Expected `([^`]*)`, got `\w+`", message)
+    what = f"{message[0].lower()}{message[1:]}"  # msgspec's own words, if none of these
+    if key in WHAT and not (bound and key == "heartbeat"):
+        what = f"must be {WHAT[key]}"
+    elif message.startswith("Invalid enum value"):
+        what = f"must be one of {', '.join(map(repr, typing.get_args(hint)))}"
+    elif bound and bound[1] == "int":
+        what = f"must be an integer {bound[2]} {bound[3]}"
+    elif bound and bound[2] == "<=":
+        what = f"must be at most {float(bound[3]):g} s (about {float(bound[3]) / 86400:.1f} days)"
+    elif bound:
+        zero = {">": "a positive number of seconds", ">=": "seconds >= 0"}[bound[2]]
+        what = f"must be {zero if float(bound[3]) == 0 else f'at least {float(bound[3]):g} s'}"
+    elif typed:
+        kinds = [TYPES.get(kind, kind) for kind in typed[1].split(" | ") if kind != "null"]
+        if _in_seconds(hint):
+            kinds = [f"{kind} of seconds" if kind == "a number" else kind for kind in kinds]
+        what = f"must be {' or '.join(kinds)}"
+    return f"{what}, got {_show(value)}"
 
-    The tree and `compare` are read here, the workload and the faults by its bases.
-    """
 
-    # -- the plan -------------------------------------------------------------------------
+def _in_seconds(hint: Any) -> bool:
+    return hint in (Seconds, SecondsOrZero, Interval) or any(
+        map(_in_seconds, typing.get_args(hint))
+    )
 
-    def plan(self, data: Table, *, name: str) -> Plan:
-        top = self.table(
-            data,
-            (),
-            (
-                "name",
-                "description",
-                "duration",
-                "repeat",
-                "seed",
-                "recovery_timeout",
-                "tree",
-                "workload",
-                "faults",
-                "compare",
-            ),
-        )
-        plan_name = self.text(top, (), "name", name)
-        duration = self.seconds(top, (), "duration", None)
-        if duration is None:
-            raise self.error((), "'duration' is missing (seconds of workload and faults per run)")
-        seed = top.get("seed", 0)
-        if isinstance(seed, bool) or not isinstance(seed, int):
-            raise self.error(("seed",), f"must be an integer, got {seed!r}")
-        tree, state = self.tree(self.required(top, (), "tree"))
-        managers = {m.name: m for m in tree.managers()}
+
+class _Reader:
+    """Validates plan data table by table, turning every problem into a `PlanError`."""
+
+    def __init__(self, source: str, lines: dict[KeyPath, int], base_dir: str | None) -> None:
+        self.source, self.lines, self.base_dir = source, lines, base_dir
+        self.data: dict[str, Any] = {}
+
+    # -- the generic part: where, unknown keys, typed values --------------------------------
+
+    def error(self, path: KeyPath, problem: str) -> PlanError:
+        known = [path[:end] for end in range(len(path), 0, -1) if path[:end] in self.lines]
+        key = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in path).lstrip(".")
+        return PlanError(self.source, self.lines[known[0]] if known else 0, key, problem)
+
+    def at(self, path: KeyPath) -> Any:
+        """The value at `path` as the plan gives it."""
+        node: Any = self.data
+        for part in path:
+            node = node[part]
+        return node
+
+    def table(self, value: Any, path: KeyPath, known: tuple[str, ...]) -> dict[str, Any]:
+        """`value` as a table with only `known` keys (else an error at the first other)."""
+        if not isinstance(value, dict):
+            raise self.error(path, f"must be a table, got {_show(value)}")
+        for key in value:
+            if key not in known:
+                problem = f"unknown key; known here: {', '.join(sorted(known))}"
+                raise self.error((*path, key), problem)
+        return value
+
+    def check(self, value: Any, hint: Any, path: KeyPath) -> Any:
+        """`value` converted to the annotated type `hint` by msgspec, or a `PlanError`."""
+        try:
+            return msgspec.convert(value, hint)
+        except msgspec.ValidationError as exc:
+            message, _, inner = str(exc).partition(" - at `$")
+            raw = self.at(path)  # `at = 1` is checked as `[1]`: the error stays at `at`
+            for index, key in re.findall(r"\[(\d+)\]|\.(\w+)", inner):
+                step: str | int = int(index) if index else key
+                inside = isinstance(raw, list if isinstance(step, int) else dict)
+                if not inside:
+                    break
+                path, raw = (*path, step), raw[step]
+            key = next((p for p in reversed(path) if isinstance(p, str)), "")
+            raise self.error(path, _problem(message, key, raw, hint)) from None
+
+    def build(
+        self, cls: Any, value: Any, path: KeyPath, *, skip: Any = (), extra: Any = (), **given: Any
+    ) -> Any:
+        """A `cls` from a table: keys are its fields (less `skip`, plus `extra`), each value
+        checked against its field's type unless `given`."""
+        fields = [f for f in dataclasses.fields(cls) if f.name not in skip]
+        table = self.table(value, path, (*(TOML_KEY.get(f.name, f.name) for f in fields), *extra))
+        hints = typing.get_type_hints(cls, include_extras=True)
+        for field in (f for f in fields if f.name not in given):
+            key = TOML_KEY.get(field.name, field.name)
+            if key in table:
+                given[field.name] = self.check(table[key], hints[field.name], (*path, key))
+            elif field.default is field.default_factory is dataclasses.MISSING:
+                raise self.error(path, f"{key!r} is missing{MISSING.get(key, '')}")
+        return cls(**given)
+
+    def importable(self, path: KeyPath, name: str, call: KeyPath, *args: Any, **kw: Any) -> None:
+        """Import `name`; check that it can be called with `args` and `kw` (at `call`)."""
+        try:
+            target = import_object(name, base_dir=self.base_dir)
+        except ConfigError as exc:
+            raise self.error(path, str(exc)) from None
+        if not callable(target):
+            raise self.error(path, f"{name!r} is not callable")
+        try:
+            inspect.signature(target).bind(*args, **kw)
+        except ValueError:
+            return  # a builtin without a signature: it will tell at run time
+        except TypeError as exc:
+            raise self.error(call, f"{name} cannot be called with these: {exc}") from None
+
+    # -- the plan, its tree and its workload ------------------------------------------------
+
+    def plan(self, data: dict[str, Any], *, name: str) -> Plan:
+        self.data, top = data, {"name": name, **data}
+        if "tree" not in top:
+            raise self.error((), "'tree' is missing")
+        tree = self.table(top["tree"], ("tree",), ("state", *SUPERVISOR))
+        root = self.supervisor({"name": "root", **tree}, ("tree",), top=True)
+        self.unique_names(root, ("tree",), set())
+        managers = {m.name: m for m in root.managers()}
         workload = self.workload(top.get("workload", {"clients": 0}), managers)
-        faults_data = top.get("faults", [])
-        if not isinstance(faults_data, list):
-            raise self.error(("faults",), "must be an array of tables ([[faults]])")
-        nested = frozenset(s.name for s in tree.supervisors()[1:])
-        names = {  # what the fields of an `after` trigger may name
-            "supervisor": frozenset(s.name for s in tree.supervisors()),
-            "child": frozenset(managers) | nested,
-            "registrar": frozenset(managers)
-            | frozenset(f"client-{i}" for i in range(workload.clients)),
-        }
-        faults = tuple(
-            self.fault(entry, ("faults", index), managers, duration, names)
-            for index, entry in enumerate(faults_data)
+        skip = ("state", "variants", "source", "base_dir")
+        plan: Plan = self.build(
+            Plan, top, (), skip=skip, tree=root, workload=workload, faults=(), compare=None
         )
-        return Plan(
-            name=plan_name,
-            description=self.text(top, (), "description", ""),
-            duration=duration,
-            repeat=self.integer(top, (), "repeat", 1, low=1),
-            seed=seed,
-            recovery_timeout=self.seconds(top, (), "recovery_timeout", 10.0),
-            tree=tree,
-            state=state,
-            workload=workload,
-            faults=faults,
+        names = {  # what the fields of an `after` trigger may name
+            "supervisor": frozenset(s.name for s in root.supervisors()),
+            "child": frozenset(managers) | {s.name for s in root.supervisors()[1:]},
+            "registrar": frozenset(managers) | {f"client-{i}" for i in range(workload.clients)},
+        }
+        faults = self.check(top.get("faults", []), list[dict[str, Any]], ("faults",))
+        return dataclasses.replace(
+            plan,
+            state=self.check(tree.get("state", True), bool, ("tree", "state")),
+            faults=tuple(
+                self.fault(entry, ("faults", i), managers, plan.duration, names)
+                for i, entry in enumerate(faults)
+            ),
             source=None if self.source == "<plan>" else self.source,
             base_dir=self.base_dir,
         )
 
-    def tree(self, value: Any) -> tuple[SupervisorPlan, bool]:
-        path: KeyPath = ("tree",)
-        table = self.table(
-            value,
-            path,
-            ("name", "strategy", "max_restarts", "period", "backoff", "state", "children"),
-        )
-        state = table.get("state", True)
-        if not isinstance(state, bool):
-            raise self.error((*path, "state"), f"must be true or false, got {state!r}")
-        table = {"name": "root", **table}
-        table.pop("state", None)
-        top = self.supervisor(table, path, top=True)
-        seen: dict[str, KeyPath] = {}
-        self.unique_names(top, path, seen)
-        return top, state
-
-    def unique_names(self, sup: SupervisorPlan, path: KeyPath, seen: dict[str, KeyPath]) -> None:
+    def unique_names(self, sup: SupervisorPlan, path: KeyPath, seen: set[str]) -> None:
         for index, child in enumerate(sup.children):
             child_path = (*path, "children", index)
             if child.name in seen or child.name == sup.name:
-                raise self.error(
-                    (*child_path, "name"), f"the name {child.name!r} is used twice in the tree"
-                )
-            seen[child.name] = child_path
+                problem = f"the name {child.name!r} is used twice in the tree"
+                raise self.error((*child_path, "name"), problem)
+            seen.add(child.name)
             if isinstance(child, SupervisorPlan):
                 self.unique_names(child, child_path, seen)
 
-    def supervisor(self, table: Table, path: KeyPath, *, top: bool = False) -> SupervisorPlan:
-        known = ("name", "strategy", "max_restarts", "period", "backoff", "children")
-        self.table(table, path, known if top else (*known, "restart"))
-        children = self.required(table, path, "children")
-        if not isinstance(children, list) or not children:
-            raise self.error(
-                (*path, "children"), "must be a non-empty array of tables ([[...children]])"
-            )
-        parsed: list[ManagerPlan | SupervisorPlan] = []
-        for index, child in enumerate(children):
-            child_path = (*path, "children", index)
-            if not isinstance(child, dict):
-                raise self.error(child_path, f"must be a table, got {child!r}")
-            if "children" in child:
-                parsed.append(self.supervisor(child, child_path))
-            else:
-                parsed.append(self.manager(child, child_path))
-        return SupervisorPlan(
-            name=self.name(table, path),
-            children=tuple(parsed),
-            strategy=self.choice(
-                table,
-                path,
-                "strategy",
-                "one_for_one",
-                ("one_for_one", "one_for_all", "rest_for_one"),
-            ),
-            max_restarts=self.integer(table, path, "max_restarts", 3, low=0),
-            period=self.seconds(table, path, "period", 5.0),
-            backoff=self.backoff(table.get("backoff"), (*path, "backoff")),
-            restart=self.choice(
-                table, path, "restart", "permanent", ("permanent", "transient", "temporary")
-            ),
-        )
-
-    def backoff(self, value: Any, path: KeyPath) -> Backoff:
-        if value is None:
-            return Backoff()
-        table = self.table(value, path, ("initial", "factor", "max", "jitter"))
-        for key, item in table.items():
-            if not is_number(item):
-                raise self.error((*path, key), f"must be a number, got {item!r}")
-            if key in ("initial", "max"):
-                self.check_seconds(item, (*path, key), zero=True)
-        try:
-            return Backoff(**{key: float(item) for key, item in table.items()})
-        except ConfigError as exc:
-            field = str(exc).split(" ", 1)[0].removeprefix("Backoff.")
-            key = field if field in table else ""
-            raise self.error((*path, key) if key else path, str(exc)) from None
-
-    def manager(self, table: Table, path: KeyPath) -> ManagerPlan:
-        self.table(
+    def supervisor(self, table: Any, path: KeyPath, *, top: bool = False) -> SupervisorPlan:
+        self.table(table, path, (*SUPERVISOR, "state") if top else (*SUPERVISOR, "restart"))
+        children = self.check(table.get("children"), list[dict[str, Any]], (*path, "children"))
+        if not children:
+            problem = "must be a non-empty array of tables ([[...children]])"
+            raise self.error((*path, "children"), problem)
+        parsed = [
+            self.supervisor(child, (*path, "children", i))
+            if "children" in child
+            else self.manager(child, (*path, "children", i))
+            for i, child in enumerate(children)
+        ]
+        backoff = self.backoff(table.get("backoff", {}), (*path, "backoff"))
+        skip, extra = ("restart",) if top else (), ("state",) if top else ()
+        sup: SupervisorPlan = self.build(
+            SupervisorPlan,
             table,
             path,
-            (
-                "name",
-                "setup",
-                "options",
-                "isolation",
-                "restart",
-                "heartbeat",
-                "heartbeat_timeout",
-                "shutdown",
-                "start_timeout",
-            ),
+            skip=skip,
+            extra=extra,
+            children=tuple(parsed),
+            backoff=backoff,
         )
-        name = self.name(table, path)
-        setup = self.required(table, path, "setup")
-        if not isinstance(setup, str):
-            raise self.error((*path, "setup"), f"must be an import path string, got {setup!r}")
-        options = table.get("options", {})
-        if not isinstance(options, dict):
-            raise self.error((*path, "options"), f"must be a table, got {options!r}")
-        function = self.importable((*path, "setup"), setup)
-        self.signature_takes((*path, "options"), function, setup, (None,), options)
-        heartbeat = table.get("heartbeat", 0.25)
-        if heartbeat is False:
-            heartbeat = None
-        elif heartbeat is True or not is_number(heartbeat) or heartbeat <= 0:
+        return sup
+
+    def backoff(self, value: Any, path: KeyPath) -> Backoff:
+        table = self.table(value, path, ("initial", "factor", "max", "jitter"))
+        hint = {"initial": SecondsOrZero, "max": SecondsOrZero, "factor": float, "jitter": float}
+        numbers = {k: self.check(v, hint[k], (*path, k)) for k, v in table.items()}
+        try:
+            return Backoff(**numbers)
+        except ConfigError as exc:
+            field = str(exc).split(" ", 1)[0].removeprefix("Backoff.")
+            raise self.error((*path, field) if field in table else path, str(exc)) from None
+
+    def manager(self, table: dict[str, Any], path: KeyPath) -> ManagerPlan:
+        off = {"heartbeat": None} if table.get("heartbeat") is False else {}
+        manager: ManagerPlan = self.build(ManagerPlan, table, path, **off)
+        self.importable(
+            (*path, "setup"), manager.setup, (*path, "options"), None, **manager.options
+        )
+        return manager
+
+    def workload(self, value: Any, managers: dict[str, ManagerPlan]) -> Workload:
+        path: KeyPath = ("workload",)
+        calls = self.check(
+            self.table(value, path, WORKLOAD).get("calls", []),
+            list[dict[str, Any]],
+            (*path, "calls"),
+        )
+        calls = tuple(
+            self.call(entry, (*path, "calls", i), managers) for i, entry in enumerate(calls)
+        )
+        rate = {"rate": None} if value.get("rate") == "max" else {}
+        workload: Workload = self.build(Workload, value, path, calls=calls, **rate)
+        if workload.clients and not calls:
+            raise self.error(path, "'calls' is missing: what do the clients call?")
+        return workload
+
+    def call(self, value: Any, path: KeyPath, managers: dict[str, ManagerPlan]) -> CallMix:
+        call: CallMix = self.build(CallMix, value, path)
+        if call.manager not in managers:
+            problem = f"no manager {call.manager!r} in the tree (managers: {', '.join(managers)})"
+            raise self.error((*path, "manager"), problem)
+        if "request" in value and call.factory is not None:
+            raise self.error((*path, "factory"), "give either 'request' or 'factory', not both")
+        if call.factory is not None:
+            self.importable((*path, "factory"), call.factory, (*path, "factory"), "key", None)
+        self.template(call.request, (*path, "request"))
+        return call
+
+    def template(self, value: Any, path: KeyPath) -> None:
+        """Check the placeholders of every string in a request template.
+
+        A placeholder is only a name: `{key}`, not `{key!r}` or `{client:03d}`. With no
+        conversion, format spec, attribute or index, every template renders at run time
+        for any key and client, so a template that passes here cannot fail in a client.
+        """
+        if isinstance(value, dict | list):
+            for key, item in value.items() if isinstance(value, dict) else enumerate(value):
+                self.template(item, (*path, key))
+        if not isinstance(value, str):
+            return
+        try:
+            parsed = [p for p in string.Formatter().parse(value) if p[1] is not None]
+        except ValueError as exc:
+            raise self.error(path, f"{value!r} is not a valid template: {exc}") from None
+        for _, field, spec, conversion in parsed:
+            if spec or conversion:
+                problem = f"{value!r}: a placeholder is only a name, like {{{field}}}, without "
+                raise self.error(path, problem + "a conversion ('!r') or a format ('03d')")
+            if field not in PLACEHOLDERS:
+                known = ", ".join(f"{{{p}}}" for p in sorted(PLACEHOLDERS))
+                raise self.error(path, f"unknown placeholder {{{field}}}; known: {known}")
+
+    # -- the faults -------------------------------------------------------------------------
+
+    def fault(
+        self,
+        value: Any,
+        path: KeyPath,
+        managers: dict[str, ManagerPlan],
+        duration: float,
+        names: dict[str, frozenset[str]],
+    ) -> FaultPlan:
+        """One `[[faults]]` entry; `names` are the values an `after` field may name."""
+        table = self.table(value, path, FAULT)
+        if "kind" not in table:
+            raise self.error(path, f"'kind' is missing{MISSING['kind']}")
+        kind = self.check(table["kind"], FaultKind, (*path, "kind"))
+        when = [key for key in ("at", "every", "after") if key in table]
+        if len(when) != 1:
+            say = f"give only one of 'at', 'every' or 'after', not {' and '.join(when)}"
             raise self.error(
-                (*path, "heartbeat"),
-                f"must be a positive number of seconds or false (off), got {heartbeat!r}",
+                path, say if when else "say when: give one of 'at', 'every' or 'after'"
             )
-        else:
-            self.check_seconds(heartbeat, (*path, "heartbeat"))
-        return ManagerPlan(
-            name=name,
-            setup=setup,
-            options=options,
-            isolation=self.choice(table, path, "isolation", "process", ("process", "thread")),
-            restart=self.choice(
-                table, path, "restart", "permanent", ("permanent", "transient", "temporary")
-            ),
-            heartbeat=None if heartbeat is None else float(heartbeat),
-            heartbeat_timeout=self.seconds(table, path, "heartbeat_timeout", None),
-            shutdown=self.seconds(table, path, "shutdown", 5.0),
-            start_timeout=self.seconds(table, path, "start_timeout", 30.0),
+        for key in table:
+            if key in ONLY_WITH and ONLY_WITH[key] not in table:
+                raise self.error((*path, key), f"only goes with {ONLY_WITH[key]!r}")
+            if key in ("loads", "server", "message") and kind != "load_error":
+                raise self.error((*path, key), "only goes with kind 'load_error'")
+        if "for" in table and kind not in ("hang_manager", "load_error"):
+            raise self.error((*path, "for"), f"does not go with kind {kind!r}")
+        if "for" in table and "loads" in table:
+            problem = "give either 'for' (seconds) or 'loads' (a number), not both"
+            raise self.error((*path, "loads"), problem)
+        given = {k: v if isinstance(v, list) else [v] for k, v in table.items() if k in LISTS}
+        every = table.get("every")  # read here: msgspec 0.22 crashes on its union type
+        if isinstance(every, dict):
+            self.table(every, (*path, "every"), ("min", "max"))
+            if not {"min", "max"} <= set(every):
+                raise self.error((*path, "every"), "needs both 'min' and 'max' (seconds)")
+            low, high = (
+                self.check(every[k], Interval, (*path, "every", k)) for k in ("min", "max")
+            )
+            if high < low:
+                raise self.error((*path, "every", "max"), f"must not be less than min ({low:g} s)")
+            every = (low, high)
+        elif every is not None:
+            every = self.check(every, Interval, (*path, "every"))
+        after = self.trigger(table["after"], (*path, "after"), names) if "after" in table else None
+        fault: FaultPlan = self.build(
+            FaultPlan, {**table, **given}, path, kind=kind, after=after, every=every
         )
+        self.targets(fault, table, path, managers)
+        self.timing(fault, table, path, duration)
+        return fault
 
-    # -- compare --------------------------------------------------------------------------
+    def targets(
+        self,
+        fault: FaultPlan,
+        table: dict[str, Any],
+        path: KeyPath,
+        managers: dict[str, ManagerPlan],
+    ) -> None:
+        if "target" not in table and fault.kind != "kill_resource":
+            raise self.error(path, f"'target' is missing{MISSING['target']}")
+        if "target" not in table and all(m.isolation == "thread" for m in managers.values()):
+            problem = "kill_resource kills resource processes of process managers; every "
+            raise self.error(path, problem + "manager of this tree has isolation 'thread'")
+        if "target" in table and not fault.targets:
+            raise self.error((*path, "target"), "must name at least one manager")
+        for index, name in enumerate(fault.targets):
+            at = (
+                (*path, "target", index) if isinstance(table["target"], list) else (*path, "target")
+            )
+            if name not in managers:
+                problem = f"no manager {name!r} in the tree (managers: {', '.join(managers)})"
+                raise self.error(at, problem)
+            if fault.kind in NEEDS_PROCESS and managers[name].isolation != "process":
+                problem = f"{fault.kind} needs a process manager; {name!r} has isolation 'thread'"
+                raise self.error(at, problem)
 
-    def compare(self, data: Table) -> Compare | None:
+    def timing(
+        self, fault: FaultPlan, table: dict[str, Any], path: KeyPath, duration: float
+    ) -> None:
+        """Refuse a fault that would never come (or come too often) within `duration`."""
+        if fault.kind == "hang_manager" and fault.for_s is None:
+            raise self.error(path, "'for' is missing: how many seconds the manager stays stopped")
+        if "at" in table and not fault.at:
+            raise self.error((*path, "at"), "must give at least one time (seconds)")
+        end = f"the end of the run ({duration:g} s)"
+        for index, at in enumerate(fault.at):
+            where = (*path, "at", index) if isinstance(table["at"], list) else (*path, "at")
+            if at >= duration:
+                raise self.error(where, f"{self.at(where)!r} s is not before {end}")
+        stop = duration if fault.stop is None else fault.stop
+        low = fault.every if isinstance(fault.every, float) else (fault.every or (0.0,))[0]
+        first = f"stop ({stop:g} s)" if fault.stop is not None else end
+        most = fault.most_injections(duration)
+        rules = [  # (key, whether it is wrong here, what is wrong)
+            (
+                "delay",
+                fault.delay >= duration,
+                f"{fault.delay:g} s is not before {end}: it never fires",
+            ),
+            ("start", fault.start >= duration, f"{fault.start:g} s is not before {end}"),
+            ("stop", stop <= fault.start, f"must be after 'start' ({fault.start:g} s)"),
+            (
+                "stop",
+                stop > duration,
+                f"{stop:g} s is after {end}; leave it out to inject until the end",
+            ),
+            (
+                "every",
+                fault.every is not None and fault.start + low >= stop,
+                f"the first injection ({fault.start:g} + {low:g} s) would not come before {first}",
+            ),
+            (
+                "every",
+                most > MAX_INJECTIONS,
+                f"would inject up to {most} times in a run (at most {MAX_INJECTIONS} per "
+                "fault): give a longer interval, a 'count' or a 'stop'",
+            ),
+        ]
+        for key, wrong, problem in rules:
+            if wrong:
+                raise self.error((*path, key), problem)
+
+    def trigger(self, value: Any, path: KeyPath, names: dict[str, frozenset[str]]) -> Trigger:
+        if not isinstance(value, dict):
+            problem = f'must be a table like {{ event = "ChildRestarted" }}, got {_show(value)}'
+            raise self.error(path, problem)
+        if "event" not in value:
+            raise self.error(path, "'event' is missing")
+        event = value["event"]
+        if not isinstance(event, str) or event not in EVENT_TYPES:
+            known = ", ".join(sorted(EVENT_TYPES))
+            raise self.error((*path, "event"), f"unknown event {event!r}; events: {known}")
+        hints = typing.get_type_hints(EVENT_TYPES[event])
+        self.table(value, path, ("event", "nth", *(f for f in hints if f != "at")))
+        match = {}
+        for key, item in ((k, v) for k, v in value.items() if k not in ("event", "nth")):
+            if hints[key] is Status and not (isinstance(item, str) and item in Status.__members__):
+                problem = f"must be one of {', '.join(Status.__members__)}, got {item!r}"
+                raise self.error((*path, key), problem)
+            match[key] = (
+                Status[item] if hints[key] is Status else self.check(item, hints[key], (*path, key))
+            )
+            if key in names and item not in names[key]:  # it would never match: never fire
+                known = ", ".join(sorted(names[key]))
+                raise self.error(
+                    (*path, key), f"{item!r} names nothing in this run (it may be: {known})"
+                )
+        trigger: Trigger = self.build(
+            Trigger, value, path, skip=("match",), extra=tuple(match), match=match
+        )
+        return trigger
+
+    # -- compare ----------------------------------------------------------------------------
+
+    def compare(self, data: dict[str, Any]) -> Compare | None:
         if "compare" not in data:
             return None
         path: KeyPath = ("compare",)
-        table = self.table(data["compare"], path, ("setting", "values"))
-        setting = self.required(table, path, "setting")
-        if not isinstance(setting, str) or not setting:
-            raise self.error((*path, "setting"), f"must be a plan key, got {setting!r}")
-        if setting.split(".")[0] in NOT_COMPARED:
-            raise self.error(
-                (*path, "setting"),
-                f"{setting!r} cannot be compared: {NOT_COMPARED[setting.split('.')[0]]}",
+        self.data = data
+        compare: Compare = self.build(Compare, data["compare"], path)
+        setting, values = compare.setting, compare.values
+        if not setting or setting.split(".")[0] in NOT_COMPARED:
+            why = NOT_COMPARED.get(setting.split(".")[0])
+            problem = (
+                f"{setting!r} cannot be compared: {why}" if why else "must be a plan key, got ''"
             )
-        values = self.required(table, path, "values")
-        if not isinstance(values, list) or not values:
+            raise self.error((*path, "setting"), problem)
+        if not values:
             raise self.error((*path, "values"), "must be a non-empty array")
         for index, item in enumerate(values):
             if any(type(item) is type(other) and item == other for other in values[:index]):
-                raise self.error(
-                    (*path, "values", index), f"{item!r} is given twice: each value runs once"
-                )
+                problem = f"{item!r} is given twice: each value runs once"
+                raise self.error((*path, "values", index), problem)
         self.locate(data, setting, (*path, "setting"))
-        return Compare(setting=setting, values=tuple(values))
+        return compare
 
-    def locate(self, data: Table, setting: str, where: KeyPath) -> tuple[Any, str | int]:
+    def locate(self, data: dict[str, Any], setting: str, where: KeyPath) -> tuple[Any, str | int]:
         """The container and key that `setting` names in `data` (its parent must exist)."""
-        parts = setting.split(".")
         node: Any = data
-        for part in parts[:-1]:
-            node = self.step(node, part, setting, where)
-        last = parts[-1]
-        if isinstance(node, list):
-            return node, self.index(node, last, setting, where)
-        if not isinstance(node, dict):
-            raise self.error(where, f"{setting!r} does not name a setting of this plan")
-        return node, last
-
-    def step(self, node: Any, part: str, setting: str, where: KeyPath) -> Any:
-        if isinstance(node, dict):
-            if part not in node:
+        parts = setting.split(".")
+        for n, part in enumerate(parts):
+            if isinstance(node, list):
+                named = [
+                    i for i, x in enumerate(node) if isinstance(x, dict) and x.get("name") == part
+                ]
+                if not named and not (part.isdigit() and int(part) < len(node)):
+                    raise self.error(where, f"{setting!r}: no element named {part!r}")
+                key: str | int = named[0] if named else int(part)
+            elif not isinstance(node, dict):
+                raise self.error(where, f"{setting!r} does not name a setting of this plan")
+            elif part not in node and n < len(parts) - 1:
                 raise self.error(where, f"{setting!r}: this plan has no {part!r} there")
-            return node[part]
-        if isinstance(node, list):
-            return node[self.index(node, part, setting, where)]
-        raise self.error(where, f"{setting!r} does not name a setting of this plan")
+            else:
+                key = part
+            if n == len(parts) - 1:
+                return node, key
+            node = node[key]
+        raise AssertionError("unreachable")
 
-    def index(self, node: list[Any], part: str, setting: str, where: KeyPath) -> int:
-        for index, item in enumerate(node):
-            if isinstance(item, dict) and item.get("name") == part:
-                return index
-        if part.isdigit() and int(part) < len(node):
-            return int(part)
-        raise self.error(where, f"{setting!r}: no element named {part!r}")
 
-    def apply(self, data: Table, setting: str, value: Any, where: KeyPath) -> None:
-        container, key = self.locate(data, setting, where)
-        container[key] = value
+SUPERVISOR = ("name", "strategy", "max_restarts", "period", "backoff", "children")
+ONLY_WITH = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
+LISTS = ("at", "target")  # a fault's keys that take one value or an array of them
+WORKLOAD = ("clients", "rate", "arrivals", "hold", "timeout", "calls")
+FAULT = (*(TOML_KEY.get(f.name, f.name) for f in dataclasses.fields(FaultPlan)),)

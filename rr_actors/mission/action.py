@@ -36,7 +36,13 @@ from rr_actors.mission import managers, programs
 from rr_actors.mission.config import FAULT_WHAT, MANAGERS, MissionConfig, MissionError
 from rr_actors.mission.faults import Faults, alive, retry_through_restarts, sigkill
 from rr_actors.mission.output import Progress
-from rr_actors.mission.report import FaultRecord, MissionReport, Odometry, build_report
+from rr_actors.mission.report import (
+    FaultRecord,
+    MissionClock,
+    MissionReport,
+    Odometry,
+    build_report,
+)
 from rr_actors.testing import catalog_snapshot
 
 __all__ = ["TICK", "Mission"]
@@ -76,6 +82,8 @@ class Mission:
 
     Attributes:
         supervisor: the managers' supervisor while the mission runs, else `None`.
+        clock: the mission clock (since the mission started, without `--step`'s pauses)
+            of the story's stamps, the progress line and the report.
     """
 
     def __init__(
@@ -99,7 +107,7 @@ class Mission:
         self._progress = progress
         self._events: queue.SimpleQueue[_Event] = queue.SimpleQueue()
         self._odom = Odometry(self.bus / "odom.jsonl")
-        self._t0 = time.monotonic()
+        self.clock = MissionClock(time.monotonic())
         self._held: list[tuple[str, str]] = []  # (query id, provider) the mission holds
         self._faults: Faults | None = None
         rng = random.Random(config.seed)  # noqa: S311 - jitter, not cryptography
@@ -109,8 +117,8 @@ class Mission:
         }
 
     def say(self, text: str) -> None:
-        """One line of the story, stamped with the mission time."""
-        self._say(f"[{time.monotonic() - self._t0:6.2f} s] {text}")
+        """One line of the story, stamped with the mission time (`clock`)."""
+        self._say(f"[{self.clock.now():6.2f} s] {text}")
 
     # -- the run ----------------------------------------------------------------------
 
@@ -166,6 +174,7 @@ class Mission:
         faults = self._faults
         return build_report(
             odometry=self._odom,
+            clock=self.clock,
             faults=faults.records,
             unplanned=faults.unplanned,
             start=start,
@@ -205,7 +214,7 @@ class Mission:
         self._goal(paused=False)
         self.say(f"driving {cfg.distance_m:g} m at {cfg.speed:g} m/s")
         arrived = self._drive(sup, app)
-        self.say(f"goal reached after {arrived - start:.2f} s")
+        self.say(f"goal reached after {self.clock.at(arrived) - self.clock.at(start):.2f} s")
         return start, arrived
 
     def _unload_all(self, sup: rr.Supervisor, app: rr.ResourceRegistrar) -> dict[str, int]:
@@ -325,7 +334,7 @@ class Mission:
             now = time.monotonic()
             self._progress(
                 Progress(
-                    elapsed_s=now - self._t0,
+                    elapsed_s=self.clock.at(now),
                     distance_m=self._odom.x,
                     goal_m=cfg.distance_m,
                     moving=self._odom.moving(now),
@@ -334,13 +343,21 @@ class Mission:
             )
 
     def _pause_for(self, fault: str, faults: Faults) -> float:
-        """Stop the robot, hand the fault to `before_fault`, drive on; the seconds it took."""
+        """Stop the robot, hand the fault to `before_fault`, drive on; the seconds it took.
+
+        The pause is left out of the mission clock: no stamp, timeline row or plot
+        counts the time the class took to press Enter.
+        """
         assert self._before_fault is not None
         paused = time.monotonic()
         self._goal(paused=True)
-        self._before_fault(fault, faults.pids(fault))
-        self._goal(paused=False)
-        return time.monotonic() - paused
+        try:
+            self._before_fault(fault, faults.pids(fault))
+        finally:
+            self._goal(paused=False)
+            resumed = time.monotonic()
+            self.clock.add_pause(paused, resumed)
+        return resumed - paused
 
     def _handle(
         self,

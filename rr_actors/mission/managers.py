@@ -288,6 +288,15 @@ def _kill_if_same(pid: int, created: int) -> None:
         os.close(pidfd)
 
 
+def _named(key: str) -> Callable[[dict[str, Any]], str]:
+    """A server's `label=`: the observer names each resource by its request's `key`."""
+
+    def label(request: dict[str, Any]) -> str:
+        return str(request[key])
+
+    return label
+
+
 def erm_setup(registrar: rr.ResourceRegistrar) -> None:
     """Set up the external resource manager: server `program`, then re-adopt.
 
@@ -296,7 +305,9 @@ def erm_setup(registrar: rr.ResourceRegistrar) -> None:
     background thread, once setup has returned and the ERM serves again.
     """
     table = ProcessTable(registrar)
-    registrar.register_server(PROGRAM_SERVER, load=table.load, unload=table.unload)
+    registrar.register_server(
+        PROGRAM_SERVER, load=table.load, unload=table.unload, label=_named("name")
+    )
     table.stop_strays(registrar.in_doubt)
     dead = table.adopt(registrar.server_queries(PROGRAM_SERVER))
     if dead:
@@ -339,7 +350,7 @@ def cm_setup(registrar: rr.ResourceRegistrar, *, erm: str = "erm") -> None:
     def unload(request: dict[str, Any], response: dict[str, Any]) -> None:
         """Nothing to do: the LiDAR process (a dependency) was released just before."""
 
-    registrar.register_server("lidar", load=load, unload=unload)
+    registrar.register_server("lidar", load=load, unload=unload, label=_named("name"))
 
 
 @dataclasses.dataclass
@@ -440,7 +451,9 @@ def rm_setup(registrar: rr.ResourceRegistrar, *, erm: str = "erm") -> None:
     is restarted.
     """
     manager = _RobotManager(registrar, erm)
-    registrar.register_server("robot", load=manager.load, unload=manager.unload)
+    registrar.register_server(
+        "robot", load=manager.load, unload=manager.unload, label=_named("robot")
+    )
     manager.reattach()
 
 

@@ -10,14 +10,16 @@ Two renderers with one interface (`MissionOutput`), chosen once by `make_output`
   progress line, and a timeline that fits 80 columns.
 
 `--quiet` keeps the timeline and the report's paths and drops the story and the
-progress line, in both.
+progress line, in both. `--step` uses the same renderers: while it waits for Enter
+(`hold`), the progress line is taken down so the prompt and the typing show.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import threading
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
@@ -83,6 +85,9 @@ class MissionOutput(Protocol):
     def summary(self, report: MissionReport, files: Sequence[str]) -> None:
         """Show the timeline and the totals, then `files` (what was written where)."""
 
+    def hold(self) -> contextlib.AbstractContextManager[None]:
+        """Show nothing live meanwhile (while the terminal waits for the user's input)."""
+
 
 def _seconds(value: float | None) -> str:
     return "-" if value is None else f"{value:.3f} s"
@@ -109,9 +114,18 @@ def _notes(report: MissionReport) -> list[str]:
 
 
 def _totals(report: MissionReport) -> list[str]:
+    paused = (
+        [
+            f"paused for Enter {len(report.pauses_s)} time(s), {report.paused_s:.2f} s in all "
+            "(left out of every time)"
+        ]
+        if report.pauses_s
+        else []
+    )
     return [
         f"mission time {report.mission_time_s:.2f} s (no stop: {report.nominal_time_s:.2f} s), "
         f"distance {report.distance_m:.2f} m",
+        *paused,
         f"leaked processes: {report.leaked_processes}; catalog entries left: "
         f"{report.catalog_entries_left}",
     ]
@@ -170,6 +184,11 @@ class PlainOutput:
 
     def progress(self, progress: Progress) -> None:
         """Nothing: a progress line needs a terminal to redraw it in place."""
+
+    @contextlib.contextmanager
+    def hold(self) -> Iterator[None]:
+        """Nothing to hold: plain output has nothing live."""
+        yield
 
     def summary(self, report: MissionReport, files: Sequence[str]) -> None:
         """Write the timeline, the totals and `files`."""
@@ -232,6 +251,7 @@ class RichOutput:
         self.console = console
         self.quiet = quiet
         self._live: Live | None = None
+        self._held = False
 
     def __enter__(self) -> RichOutput:
         from rich.live import Live  # noqa: PLC0415 - rich is optional
@@ -282,8 +302,23 @@ class RichOutput:
     def progress(self, progress: Progress) -> None:
         """Redraw the progress line (at most 10 times a second)."""
         live = self._live
-        if live is not None:
+        if live is not None and not self._held:
             live.update(progress_table(progress))
+
+    @contextlib.contextmanager
+    def hold(self) -> Iterator[None]:
+        """Take the progress line down meanwhile (a prompt and its typing show); put it back."""
+        live = self._live
+        if live is None:
+            yield
+            return
+        self._held = True
+        live.stop()
+        try:
+            yield
+        finally:
+            live.start()
+            self._held = False
 
     def summary(self, report: MissionReport, files: Sequence[str]) -> None:
         """Remove the progress line; print the timeline, the totals and `files`."""

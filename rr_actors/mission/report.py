@@ -6,8 +6,9 @@
                                                                          └─► timeline_rows()
 
 Every time is `time.monotonic()` (system-wide on Linux, so the programs' timestamps in
-`odom.jsonl` compare with the mission's); the report counts seconds from the start of
-the drive.
+`odom.jsonl` compare with the mission's) until the report, which counts *mission time*
+(`MissionClock`): seconds since the mission started, without the pauses for Enter of
+`rr-actors demo --step`. The story's stamps, the timeline and the plot share that clock.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +27,7 @@ __all__ = [
     "THESIS",
     "FaultRecord",
     "FaultResult",
+    "MissionClock",
     "MissionReport",
     "Odometry",
     "TimelineRow",
@@ -44,14 +47,48 @@ MOVING_GAP = 0.5
 """Seconds without an odometry sample after which the robot counts as stopped."""
 
 
+class MissionClock:
+    """Mission time: seconds since `start`, without the pauses (`--step`'s waits for Enter).
+
+    Times of day are `time.monotonic()` seconds. A time inside a pause reads as the
+    pause's start, so a pause takes no mission time and a stop during it lasts nothing.
+
+    Args:
+        start: when the mission started (monotonic seconds).
+    """
+
+    def __init__(self, start: float) -> None:
+        self.start = start
+        self.pauses: list[tuple[float, float]] = []  # (begin, end), monotonic, in order
+
+    def add_pause(self, begin: float, end: float) -> None:
+        """Leave `[begin, end]` (monotonic seconds) out of mission time."""
+        self.pauses.append((begin, end))
+
+    @property
+    def paused_s(self) -> float:
+        """The seconds left out, all pauses together."""
+        return sum(end - begin for begin, end in self.pauses)
+
+    def at(self, t: float) -> float:
+        """The mission time of monotonic time `t`."""
+        left_out = sum(max(0.0, min(end, t) - begin) for begin, end in self.pauses if begin < t)
+        return t - self.start - left_out
+
+    def now(self) -> float:
+        """The mission time now."""
+        return self.at(time.monotonic())
+
+
 @dataclasses.dataclass(frozen=True)
 class FaultResult:
-    """What happened at one fault. Times are seconds; `injected_at_s` counts from the start.
+    """What happened at one fault. Times are seconds; `injected_at_s` is mission time.
 
     Attributes:
         id: `"F1"` ... `"F5"`.
         what: a short description.
-        injected_at_s: when the SIGKILL was sent, from the start of the drive.
+        injected_at_s: when the SIGKILL was sent (mission time: since the mission started,
+            without `--step`'s pauses).
         detected_after_s: from injection until the fault was seen (F1, F2: the mission
             heard `FATAL`; F3-F5: the manager's death was seen from its pidfd, the event
             the supervisor's process sentinel reports).
@@ -79,7 +116,7 @@ class UnplannedRestart:
 
     Attributes:
         manager: the manager's name.
-        seen_at_s: when the supervisor saw it exit, seconds from the start of the drive.
+        seen_at_s: when the supervisor saw it exit (mission time).
         pid: the process that exited.
         restarted_after_s: how long its restart took (`ChildRestarted.restart_s`), or
             `None` if it had not come back by the end.
@@ -112,8 +149,12 @@ class UnplannedExit:
 class MissionReport:
     """The outcome of a mission (written as `report.json`).
 
+    Every time (`injected_at_s`, `trace`, `stops`, ...) is mission time: seconds since
+    the mission started (as the story's stamps), without `--step`'s pauses for Enter.
+
     Attributes:
-        mission_time_s: from the start of the drive until the goal was reached, seconds.
+        mission_time_s: from the start of the drive until the goal was reached, seconds
+            (without pauses).
         distance_m: distance the odometry measured.
         nominal_time_s: distance over speed: the drive without any stop.
         faults: one result per injected fault.
@@ -121,9 +162,13 @@ class MissionReport:
         catalog_entries_left: catalog rows (resources and client records) left in all
             registrars after everything was unloaded.
         catalog_entries_by_registrar: the same, per registrar (-1: it could not be read).
-        trace: `(t, x)` odometry samples, seconds from the start of the drive and metres.
-        stops: `(start, end)` of every interval the robot stood still, seconds.
+        trace: `(t, x)` odometry samples, mission time and metres.
+        stops: `(start, end)` of every interval the robot stood still, mission time.
         unplanned_restarts: manager restarts that no injected fault caused.
+        drive_started_s: when the drive started (mission time); the drive ended at
+            `drive_started_s + mission_time_s`.
+        pauses_s: when the mission paused for Enter (`--step`), mission time.
+        paused_s: how long those pauses took together (left out of every time).
     """
 
     mission_time_s: float
@@ -136,6 +181,9 @@ class MissionReport:
     trace: tuple[tuple[float, float], ...]
     stops: tuple[tuple[float, float], ...]
     unplanned_restarts: tuple[UnplannedRestart, ...] = ()
+    drive_started_s: float = 0.0
+    pauses_s: tuple[float, ...] = ()
+    paused_s: float = 0.0
 
     @property
     def ok(self) -> bool:
@@ -150,6 +198,7 @@ class MissionReport:
         """The report as JSON-able data (`report.json`)."""
         return {
             "mission_time_s": round(self.mission_time_s, 3),
+            "drive_started_at_s": round(self.drive_started_s, 3),
             "distance_m": round(self.distance_m, 3),
             "nominal_time_s": round(self.nominal_time_s, 3),
             "faults": [
@@ -178,6 +227,8 @@ class MissionReport:
             "catalog_entries_by_registrar": self.catalog_entries_by_registrar,
             "thesis": THESIS,
             "stops": [[_round(a), _round(b)] for a, b in self.stops],
+            "paused_for_enter_s": round(self.paused_s, 3),
+            "pauses_at_s": [round(t, 3) for t in self.pauses_s],
         }
 
 
@@ -195,7 +246,7 @@ class TimelineRow:
     Attributes:
         label: the fault's id (`"F1"` ...), or `"-"` for something no fault caused.
         what: what happened, in a few words.
-        at_s: when it was injected (or noticed), from the start of the drive.
+        at_s: when it was injected (or noticed), mission time.
         detected_after_s: from `at_s` until it was detected.
         recovered_after_s: from `at_s` until it was recovered.
         robot_stopped_s: how long the robot stood still because of it.
@@ -345,6 +396,7 @@ class FaultRecord:
 def build_report(
     *,
     odometry: Odometry,
+    clock: MissionClock,
     faults: list[FaultRecord],
     unplanned: list[UnplannedExit],
     start: float,
@@ -353,10 +405,11 @@ def build_report(
     leaked: list[int],
     entries: dict[str, int],
 ) -> MissionReport:
-    """Turn the records of a run into its report.
+    """Turn the records of a run into its report, on the mission clock.
 
     Args:
         odometry: the run's odometry (read once more here).
+        clock: the mission clock (its start, its pauses).
         faults: the injected faults.
         unplanned: each manager exit no fault caused.
         start: when the drive started (monotonic seconds).
@@ -366,36 +419,35 @@ def build_report(
         entries: catalog rows left per registrar (-1: it could not be read).
     """
     odometry.read()
-    stops = odometry.stops(start, arrived)
+    at = clock.at
+    # A stop during a pause lasts nothing on the mission clock: it is not a stop.
+    stops = [(at(a), at(b)) for a, b in odometry.stops(start, arrived) if at(b) - at(a) > 1e-9]
     results = []
     for fault in faults:
-        end = fault.recovered_at if fault.recovered_at is not None else arrived
+        injected = at(fault.injected_at)
+        end = at(fault.recovered_at if fault.recovered_at is not None else arrived)
         stopped = sum(
-            (
-                max(0.0, b - max(a, fault.injected_at))
-                for a, b in stops
-                if b > fault.injected_at and a <= end
-            ),
+            (max(0.0, b - max(a, injected)) for a, b in stops if b > injected and a <= end),
             0.0,
         )
         results.append(
             FaultResult(
                 id=fault.id,
                 what=FAULT_WHAT[fault.id],
-                injected_at_s=fault.injected_at - start,
+                injected_at_s=injected,
                 detected_after_s=None
                 if fault.detected_at is None
-                else max(0.0, fault.detected_at - fault.injected_at),
+                else max(0.0, at(fault.detected_at) - injected),
                 recovered_after_s=None
                 if fault.recovered_at is None
-                else fault.recovered_at - fault.injected_at,
+                else at(fault.recovered_at) - injected,
                 robot_stopped_s=stopped,
                 note=fault.note,
             )
         )
-    trace = tuple((t - start, x) for t, x, _ in odometry.samples if start <= t <= arrived + 0.5)
+    trace = tuple((at(t), x) for t, x, _ in odometry.samples if start <= t <= arrived + 0.5)
     return MissionReport(
-        mission_time_s=arrived - start,
+        mission_time_s=at(arrived) - at(start),
         distance_m=odometry.x,
         nominal_time_s=nominal_time_s,
         faults=tuple(results),
@@ -404,8 +456,11 @@ def build_report(
         + sum(1 for n in entries.values() if n < 0),
         catalog_entries_by_registrar=entries,
         trace=trace,
-        stops=tuple((a - start, b - start) for a, b in stops),
+        stops=tuple(stops),
         unplanned_restarts=tuple(
-            UnplannedRestart(u.manager, u.seen_at - start, u.pid, u.restart_s) for u in unplanned
+            UnplannedRestart(u.manager, at(u.seen_at), u.pid, u.restart_s) for u in unplanned
         ),
+        drive_started_s=at(start),
+        pauses_s=tuple(at(begin) for begin, _ in clock.pauses),
+        paused_s=clock.paused_s,
     )

@@ -32,7 +32,7 @@ import json
 import os
 import sys
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -44,13 +44,15 @@ from rr_actors.mission.config import (
     MissionError,
     unsupported_platform,
 )
-from rr_actors.mission.output import MissionOutput, PlainOutput, Progress, make_output
+from rr_actors.mission.output import MissionOutput, Progress, make_output
 from rr_actors.mission.report import MissionReport
 
 __all__ = [
     "DEFAULT_OUT",
+    "OUT_LOCK",
     "add_arguments",
     "config_from_args",
+    "lock_out",
     "main",
     "parser",
     "prepare_out",
@@ -116,26 +118,66 @@ def run_mission(
     Raises:
         MissionError: the mission could not be completed (it still cleaned up), or this
             platform cannot run it (it needs Linux).
-        ConfigError: `out` is a file, or cannot be created or written to.
+        ConfigError: `out` is a file, or cannot be created or written to, or another
+            mission is running there (`lock_out`).
     """
     reason = unsupported_platform()
     if reason is not None:
         raise MissionError(reason)
     path = prepare_out(Path(out))
-    report = Mission(
-        config,
-        path,
-        say=say,
-        progress=progress,
-        on_supervisor=on_supervisor,
-        before_fault=before_fault,
-    ).run()
-    (path / "report.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
-    with contextlib.suppress(ImportError):
-        from rr_actors.mission.plot import plot  # noqa: PLC0415
+    with lock_out(path):  # before the mission empties its state/ and bus/
+        report = Mission(
+            config,
+            path,
+            say=say,
+            progress=progress,
+            on_supervisor=on_supervisor,
+            before_fault=before_fault,
+        ).run()
+        (path / "report.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
+        with contextlib.suppress(ImportError):
+            from rr_actors.mission.plot import plot  # noqa: PLC0415
 
-        plot(report, path / "mission.png")
+            plot(report, path / "mission.png")
     return report
+
+
+OUT_LOCK = ".demo.lock"
+"""The lock file a running mission holds in its output directory."""
+
+
+@contextlib.contextmanager
+def lock_out(path: Path) -> Iterator[None]:
+    """Hold an exclusive `flock` on `path/.demo.lock` (with this pid in it) meanwhile.
+
+    A mission empties its folder's `state/` and `bus/` before it starts, which would
+    pull them from under another mission running there (and around the supervisor's
+    lock on `state/`); so it takes this lock first. The kernel drops it when the file is
+    closed, at the end or when the process dies, however it dies.
+
+    Raises:
+        ConfigError: another mission holds the lock; the message names the folder, that
+            mission's pid and the way out (another `--out`).
+    """
+    import fcntl  # noqa: PLC0415 - POSIX only; the mission needs Linux (checked first)
+
+    fd = os.open(path / OUT_LOCK, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = "unknown"
+            with contextlib.suppress(OSError, ValueError):
+                holder = str(int(os.pread(fd, 32, 0).decode().strip()))
+            raise rr.ConfigError(
+                f"{str(path)!r} is in use by another demo (pid {holder}); wait for it to "
+                "end, or give this one another folder with --out"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 # -- the command line --------------------------------------------------------------------
@@ -193,7 +235,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--step",
         action="store_true",
         help="classroom mode: before each fault, stop the robot, print the processes involved "
-        "and wait for Enter",
+        "and wait for Enter (the waits are left out of every time shown)",
     )
 
 
@@ -268,11 +310,7 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
         return 2
     failure: str | None = None
     report: MissionReport | None = None
-    output: MissionOutput = (
-        PlainOutput(stream, quiet=args.quiet)
-        if args.step
-        else make_output(stream, quiet=args.quiet)
-    )
+    output: MissionOutput = make_output(stream, quiet=args.quiet)
     with output:
         hooks = _hooks(args, output, stream)
         try:
@@ -315,12 +353,13 @@ def _hooks(
         observer = sup.observe(port=args.port)  # closed with the supervisor, at the end
         tell(f"observer: {observer.url} (open it in a browser; it serves until the mission ends)")
 
-    def step(fault: str, pids: list[str]) -> None:
-        tell(f"next: {fault}, {FAULT_WHAT[fault]}; the robot waits. The processes:")
-        for line in pids:
-            tell(f"    {line}")
-        tell("press Enter to inject it")
-        sys.stdin.readline()  # (at the end of the input: go on at once)
+    def step(fault: str, pids: list[str]) -> None:  # the clock stops meanwhile
+        with output.hold():  # no progress line over the prompt
+            tell(f"next: {fault}, {FAULT_WHAT[fault]}; the robot waits. The processes:")
+            for line in pids:
+                tell(f"    {line}")
+            tell("press Enter to inject it (the mission clock stops while it waits)")
+            sys.stdin.readline()  # (at the end of the input: go on at once)
 
     return (observe if args.observe else None), (step if args.step else None)
 

@@ -17,14 +17,15 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+import select
 import signal
 import threading
 from typing import Any
 
 from rr_actors._registrar import ResourceRegistrar
 from rr_actors._types import Status
-from rr_actors.config import ManagerSpec, SupervisorSpec
-from rr_actors.observe._sources import Observable, managers
+from rr_actors.config import ManagerSpec, SupervisorSpec, managers
+from rr_actors.observe._sources import Observable
 
 __all__ = ["FATAL_MESSAGE", "FaultRefused", "Faults"]
 
@@ -72,12 +73,14 @@ class Faults:
 
     def kill(self, child: str, pid: int) -> str:
         """SIGKILL process manager `child`, whose pid the page shows as `pid`."""
+        self._forget_exited()
         self._signal(child, pid, signal.SIGKILL)
         self._forget(pid)
         return f"SIGKILL sent to {child} (pid {pid}); its supervisor restarts it"
 
     def hang(self, child: str, pid: int) -> str:
         """SIGSTOP process manager `child` (a hang); say how it resumes."""
+        self._forget_exited()
         fd = self._signal(child, pid, signal.SIGSTOP, keep=True)
         with self._lock:
             self._stopped[pid] = fd
@@ -141,17 +144,36 @@ class Faults:
         if fd is not None:
             os.close(fd)
 
+    def _forget_exited(self) -> None:
+        """Close the pidfds of stopped processes that have exited since (a heartbeat's kill).
+
+        A pidfd becomes readable when its process exits; one hang's pidfd at most stays
+        open after the heartbeat ended that hang, until the next button or `resume_all`.
+        """
+        with self._lock:
+            gone = [pid for pid, fd in self._stopped.items() if fd is not None and _exited(fd)]
+            fds = [self._stopped.pop(pid) for pid in gone]
+        for fd in fds:
+            if fd is not None:
+                os.close(fd)
+
     def resume_all(self) -> None:
-        """SIGCONT every process a hang button stopped that still exists (at close)."""
+        """SIGCONT every process a hang button stopped that still exists (at close).
+
+        Closes every pidfd it kept, also of processes that have exited meanwhile.
+        """
         with self._lock:
             stopped, self._stopped = self._stopped, {}
         for pid, fd in stopped.items():
-            with contextlib.suppress(OSError):
+            try:
+                with contextlib.suppress(OSError):
+                    if fd is not None:
+                        signal.pidfd_send_signal(fd, signal.SIGCONT)
+                    else:
+                        os.kill(pid, signal.SIGCONT)
+            finally:
                 if fd is not None:
-                    signal.pidfd_send_signal(fd, signal.SIGCONT)
                     os.close(fd)
-                else:
-                    os.kill(pid, signal.SIGCONT)
 
     # -- a FATAL ----------------------------------------------------------------------------
 
@@ -181,6 +203,11 @@ class Faults:
             f"FATAL sent on {registrar}/{resource['server']} {resource['request']} "
             f"(resource {resource_id[:8]}) to its {len(resource['consumers'])} consumer(s)"
         )
+
+
+def _exited(pidfd: int) -> bool:
+    """Whether the process of `pidfd` has exited (its pidfd polls readable then)."""
+    return bool(select.select([pidfd], [], [], 0)[0])
 
 
 def _send_fatal(query_id: str, registrar: ResourceRegistrar) -> None:

@@ -2,13 +2,13 @@
 
     LiveSource ──Supervisor.run_in(name, catalog_of)──► manager process: catalog_of(registrar)
                                                           ├─ actor thread: copy the rows (one turn)
-                                                          └─ this thread: summarise (bounded reprs)
+                                                          └─ this thread: summarise (stored texts)
                ◄── catalog summary (plain dicts and strings: nothing of the user's to unpickle)
 
 The registrar copies its rows and its servers' names on its own actor thread
 (`rr_actors._registrar.snapshot`, as `rr_actors.testing.catalog_snapshot` does), so the copy
-is consistent and the registrar is held for a copy only; the `repr`s are made on the
-calling thread.
+is consistent and the registrar is held for a copy only. No `repr` runs here: the summary
+shows the display texts the registrar made once, when it stored each value.
 """
 
 from __future__ import annotations
@@ -48,5 +48,5 @@ def catalog_of(registrar: ResourceRegistrar, *, timeout: float = SNAPSHOT_TIMEOU
         view.resources,
         view.clients,
         servers=view.servers,
-        in_doubt=registrar.in_doubt,
+        in_doubt=view.in_doubt,
     )

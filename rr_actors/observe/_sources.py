@@ -12,7 +12,9 @@
 
 Both only read: the live source asks each registrar for a copy of its rows (in its own
 process, see `_probe.py`), the backup source reads the files read-only
-(`rr_actors._store.read_backup`). Every wait is bounded; `close()` ends the threads.
+(`rr_actors._store.read_backup`) and unpickles nothing: it shows the display texts each
+registrar stored with its values (unpickling would run code from a file that may be
+another user's). Every wait is bounded; `close()` ends the threads.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from rr_actors import events
 from rr_actors._store import read_backup
-from rr_actors.config import ManagerSpec, SupervisorSpec
+from rr_actors.config import SupervisorSpec, managers
 from rr_actors.errors import ConfigError
 from rr_actors.observe._hub import Hub
 from rr_actors.observe._probe import catalog_of
@@ -38,7 +40,6 @@ from rr_actors.observe._view import dependency_graph, summarise_catalog
 if TYPE_CHECKING:
     from rr_actors._core.bus import Subscription
     from rr_actors._registrar import ResourceRegistrar
-    from rr_actors._supervision.children import ChildInfo
 
 __all__ = [
     "CATALOG_INTERVAL",
@@ -68,6 +69,25 @@ POLL_INTERVAL = 1.0
 """Seconds between two looks at a state directory's backup files."""
 
 
+class ChildView(Protocol):
+    """What the observer reads of a child's snapshot (`rr_actors.ChildInfo`, a layer up)."""
+
+    @property
+    def kind(self) -> str: ...
+    @property
+    def isolation(self) -> str | None: ...
+    @property
+    def restart(self) -> str: ...
+    @property
+    def state(self) -> str: ...
+    @property
+    def pid(self) -> int | None: ...
+    @property
+    def restarts(self) -> int: ...
+    @property
+    def last_exit(self) -> str | None: ...
+
+
 class Observable(Protocol):
     """The public part of a `Supervisor` the observer uses."""
 
@@ -79,7 +99,7 @@ class Observable(Protocol):
     def gave_up(self) -> Exception | None:
         """Its give-up error, if it gave up."""
 
-    def child(self, name: str) -> ChildInfo:
+    def child(self, name: str) -> ChildView:
         """The snapshot of child `name`."""
 
     def subscribe(
@@ -93,34 +113,40 @@ class Observable(Protocol):
         """Run `fn(registrar)` in manager `name`'s process."""
 
 
+class Changes(Protocol):
+    """How the observer learns that the tree published a change (the supervision `Tree`)."""
+
+    def version(self) -> int:
+        """How many changes the tree has published so far."""
+        ...
+
+    def wait_changed(self, since: int, *, timeout: float) -> int:
+        """Block until the tree publishes a change after `since` (or is woken, or
+        `timeout` seconds pass); the version then."""
+        ...
+
+    def wake(self) -> None:
+        """Wake every `wait_changed` now (the observer closes)."""
+        ...
+
+
 @dataclasses.dataclass(frozen=True)
 class TreeAccess:
     """What `Supervisor.observe` hands the observer besides the supervisor's public methods.
 
     Attributes:
         spec: the whole tree's specs.
-        cond: the tree's condition, notified at every publish of a child's snapshot.
+        changes: the tree's published changes (a wait for the next one).
         restart_due: child name -> when its scheduled restart is due (wall clock, s).
         running: whether the supervisor has started and not stopped.
         registrars: the consumer registrars `Supervisor.registrar` started (this process).
     """
 
     spec: SupervisorSpec
-    cond: threading.Condition
+    changes: Changes
     restart_due: Mapping[str, float]
     running: Callable[[], bool]
     registrars: Callable[[], list[ResourceRegistrar]]
-
-
-def managers(spec: SupervisorSpec) -> list[ManagerSpec]:
-    """Every manager of the tree, depth first."""
-    found: list[ManagerSpec] = []
-    for child in spec.children:
-        if isinstance(child, SupervisorSpec):
-            found.extend(managers(child))
-        else:
-            found.append(child)
-    return found
 
 
 def event_dict(event: events.Event) -> dict[str, Any]:
@@ -186,8 +212,7 @@ class LiveSource:
     def close(self, timeout: float = 5.0) -> None:
         """Unsubscribe and end the threads (each within `timeout` seconds)."""
         self._closing.set()
-        with self.access.cond:
-            self.access.cond.notify_all()
+        self.access.changes.wake()
         with self._dirty_cond:
             self._dirty_cond.notify_all()
         if self._subscription is not None:
@@ -201,9 +226,8 @@ class LiveSource:
         Returns:
             `(tree, graph)` as the page gets them.
         """
-        with self.access.cond:
-            tree = self.tree()
-            self._note_states(tree)
+        tree = self.tree()
+        self._note_states(tree)
         self._refresh(None)
         graph: dict[str, Any] = self.hub.get("graph")
         return tree, graph
@@ -211,7 +235,7 @@ class LiveSource:
     # -- the supervision tree -------------------------------------------------------------
 
     def tree(self) -> dict[str, Any]:
-        """The tree's snapshot as the page shows it (call with the tree's lock held)."""
+        """The tree's snapshot as the page shows it (each child's as last published)."""
         spec = self.access.spec
         gave_up = self.sup.gave_up
         if gave_up is not None:
@@ -259,16 +283,16 @@ class LiveSource:
         }
 
     def _watch_tree(self) -> None:
-        cond = self.access.cond
-        with cond:  # read at each publish: the wait releases the lock, a publish notifies
-            while not self._closing.is_set():
-                try:
-                    tree = self.tree()
-                    self.hub.put("tree", tree)
-                    self._note_states(tree)
-                except Exception:
-                    logger.exception("observer of %s: reading the tree failed", self.sup.name)
-                cond.wait(FULL_REFRESH)
+        changes = self.access.changes
+        while not self._closing.is_set():  # read again at each publish
+            seen = changes.version()  # (before the read: a publish during it wakes at once)
+            try:
+                tree = self.tree()
+                self.hub.put("tree", tree)
+                self._note_states(tree)
+            except Exception:
+                logger.exception("observer of %s: reading the tree failed", self.sup.name)
+            changes.wait_changed(seen, timeout=FULL_REFRESH)
 
     def _note_states(self, tree: dict[str, Any]) -> None:
         states: dict[str, str] = {}
@@ -391,12 +415,15 @@ def backup_files(state_dir: str | os.PathLike[str]) -> list[Path]:
 def read_catalogs(files: list[Path]) -> dict[str, dict[str, Any]]:
     """Read every backup (registrar name: the file's stem) into catalog summaries.
 
+    Nothing is unpickled (`read_backup(unpickle=False)`): a summary shows the display
+    texts the registrar stored, so a backup any user wrote can be looked at safely.
+
     Raises:
         CatalogCorruptError: a file is not a readable catalog (the error names it).
     """
     catalogs = {}
     for file in files:
-        backup = read_backup(file)
+        backup = read_backup(file, unpickle=False)
         catalogs[file.stem] = {
             **summarise_catalog(file.stem, backup.resources, backup.clients),
             "schema_version": backup.schema_version,

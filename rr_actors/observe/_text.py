@@ -7,10 +7,12 @@
 
 The drawing: supervisors are hexagons, with an arrow to each child; a registrar with
 resources is a box (a Mermaid subgraph, a DOT cluster) holding them, one without is a
-plain node; each query is a dashed arrow from the resource (or registrar) that holds it
-to the provider's resource, labelled with the query id's first 8 characters: the TeMoto
-thesis's figure 2.7. Node names (`s1`, `r1`, `n1`, ...) are given in drawing order, so
-the same state draws the same text.
+plain node; a resource reads its label (`dependency_graph`: its server's `label(request)`,
+else what tells it apart from the server's other resources); each query is a dashed
+arrow from the resource (or registrar) that holds it to the provider's resource: the
+TeMoto thesis's figure 2.7. Arrows carry no query ids (on crossing arrows they overlap);
+only an orphan's says "no client record". Node names (`s1`, `r1`, `n1`, ...) are given
+in drawing order, so the same state draws the same text.
 """
 
 from __future__ import annotations
@@ -129,7 +131,10 @@ def _mermaid(graph: dict[str, Any], tree: dict[str, Any] | None) -> str:
             lines.append(f"  {name(parent, 's')} --> {_tree(name, key)}")
     for edge in graph["edges"]:
         source, target = _node(name, edge["source"]), _node(name, edge["target"])
-        lines.append(f'  {source} -. "{edge["label"]}" .-> {target}')
+        if edge["label"]:
+            lines.append(f'  {source} -. "{_mermaid_text(edge["label"])}" .-> {target}')
+        else:
+            lines.append(f"  {source} -.-> {target}")
     return "\n".join(lines) + "\n"
 
 
@@ -195,7 +200,9 @@ def _dot(graph: dict[str, Any], tree: dict[str, Any] | None) -> str:
         if edge["target"] in anchors:
             extra += f", lhead=cluster_{target}"
             target = anchors[edge["target"]]
-        lines.append(f'  {source} -> {target} [style=dashed, label="{edge["label"]}"{extra}];')
+        if edge["label"]:
+            extra += f', label="{_dot_text(edge["label"])}"'
+        lines.append(f"  {source} -> {target} [style=dashed{extra}];")
     lines.append("}")
     return "\n".join(lines) + "\n"
 

@@ -16,73 +16,65 @@ A catalog summary is::
      "clients": [{"query_id", "serving_rr", "server", "request", "parent", "loaded"}],
      "in_doubt": [{"id", "request"}]}
 
-Requests and responses are shown as bounded `repr`s (`reprlib`): a huge value costs a
-bounded time to show, and the page never gets more than `REPR_WIDTH` characters of one.
+Requests and responses are shown by the display texts their registrar made once, when
+it stored them (`rr_actors._catalog.texts`): a summary never calls `repr` and never
+decodes a stored value, so a `__repr__` that hangs cannot stop a refresh, and a backup is
+shown without unpickling anything (that would run code from the file). A resource's
+`label` is what its server's `label(request)` returned, else what tells its request
+apart from the server's other requests (`default_labels`).
 """
 
 from __future__ import annotations
 
-import reprlib
+import re
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
-from rr_actors._types import Query
+from rr_actors._catalog.texts import LABEL_WIDTH, NOT_SHOWN_YET, TEXT_WIDTH, display_text
 
 __all__ = [
     "REPR_WIDTH",
+    "default_labels",
     "dependency_graph",
     "registrar_ranks",
     "short",
+    "shown",
     "summarise_catalog",
 ]
 
-REPR_WIDTH = 80
-"""Characters of a request's or response's `repr` the observer keeps."""
+REPR_WIDTH = TEXT_WIDTH
+"""Characters of a request's or response's display text the observer shows."""
 
-_REPR = reprlib.Repr()  # (Python 3.11 takes no keyword arguments here)
-_REPR.maxlevel = 3
-_REPR.maxstring = _REPR.maxother = REPR_WIDTH
-_REPR.maxlong = 40
-_REPR.maxdict = _REPR.maxlist = _REPR.maxtuple = _REPR.maxset = 6
+short = display_text
+"""A bounded `repr` (the one registrars make their display texts with)."""
 
 
-def short(value: Any, width: int = REPR_WIDTH) -> str:
-    """A bounded `repr` of `value` (never raises: a failing `repr` is named instead)."""
-    try:
-        text = _REPR.repr(value)
-    except Exception as exc:  # noqa: BLE001 - any user object: show that it failed
-        text = f"<repr failed: {type(exc).__name__}>"
+def shown(text: Any, width: int = REPR_WIDTH) -> str:
+    """A stored display text as the page gets it: a string, at most `width` characters.
+
+    A backup is not the reader's: its texts are checked (a non-string is not shown).
+    """
+    if text is None:
+        return NOT_SHOWN_YET
+    if type(text) is not str:
+        return "<not shown: not a text>"
     return text if len(text) <= width else text[: width - 3] + "..."
 
 
 def _resource(resource: Resource) -> dict[str, Any]:
     state = resource.state
+    label = resource.label
     return {
         "id": resource.id,
         "server": resource.server,
         "state": state.value,
         "in_doubt": state is not ResourceState.LOADED,
-        "request": short(_field(resource, "request")),
-        "response": short(_field(resource, "response")),
+        "request": shown(resource.request_text),
+        "response": shown(resource.response_text),
+        "label": None if label is None else shown(label, LABEL_WIDTH),
         "consumers": [{"query_id": q, "origin": o} for q, o in list(resource.consumers.items())],
     }
-
-
-def _field(resource: Resource, name: str) -> Any:
-    """A restored resource decodes its values on first access; that may fail."""
-    try:
-        return getattr(resource, name)
-    except Exception as exc:  # noqa: BLE001 - a value that cannot be decoded is shown as such
-        return _Unshowable(f"<cannot decode: {exc}>")
-
-
-class _Unshowable:
-    def __init__(self, text: str) -> None:
-        self.text = text
-
-    def __repr__(self) -> str:
-        return self.text
 
 
 def _client(record: ClientRecord) -> dict[str, Any]:
@@ -91,7 +83,7 @@ def _client(record: ClientRecord) -> dict[str, Any]:
         "query_id": query.id,
         "serving_rr": query.serving_rr,
         "server": query.server,
-        "request": short(query.request),
+        "request": shown(record.request_text),
         "parent": record.parent,
         "loaded": record.loaded,
     }
@@ -103,7 +95,7 @@ def summarise_catalog(
     clients: Iterable[ClientRecord],
     *,
     servers: Sequence[str] | None = None,
-    in_doubt: Iterable[Query] = (),
+    in_doubt: Iterable[tuple[str, str | None]] = (),
 ) -> dict[str, Any]:
     """One registrar's catalog rows as the observer shows them.
 
@@ -112,7 +104,8 @@ def summarise_catalog(
         resources: its served resources.
         clients: its client records (the queries it holds, its own servers' included).
         servers: its registered servers (`None`: those that serve a resource).
-        in_doubt: the loads a crash cut short, found when it was restored (rule 16).
+        in_doubt: the loads a crash cut short, found when it was restored (rule 16): each
+            resource's id and request display text.
 
     Returns:
         The catalog summary (see the module docstring).
@@ -127,7 +120,7 @@ def summarise_catalog(
         "servers": known,
         "resources": rows,
         "clients": [_client(c) for c in clients],
-        "in_doubt": [{"id": q.id, "request": short(q.request)} for q in in_doubt],
+        "in_doubt": [{"id": rid, "request": shown(text)} for rid, text in in_doubt],
     }
 
 
@@ -163,13 +156,15 @@ class _Graph:
 
     def add_resources(self) -> None:
         for name, catalog in self.known():
-            for resource in catalog["resources"]:
+            labels = _labels(catalog["resources"])
+            for resource, label in zip(catalog["resources"], labels, strict=True):
                 node = _resource_node(name, resource["id"])
                 self.nodes[node] = {
                     "id": node,
                     "kind": "resource",
                     "parent": f"reg:{name}",
-                    "label": f"{resource['server']}: {resource['request']}",
+                    "label": label,
+                    "request": resource["request"],
                     "server": resource["server"],
                     "resource_id": resource["id"],
                     "registrar": name,
@@ -211,10 +206,96 @@ class _Graph:
             "id": f"q:{qid}",
             "source": source,
             "target": target,
-            "label": qid[:8],
+            "label": "no client record" if orphan else "",  # (ids overlap: in "query_id")
+            "query_id": qid,
             "loaded": loaded,
             "orphan": orphan,
         }
+
+
+def _labels(resources: list[dict[str, Any]]) -> list[str]:
+    """Each resource's label: its own, else its default among its server's resources."""
+    by_server: dict[str, list[int]] = {}
+    for index, resource in enumerate(resources):
+        by_server.setdefault(resource["server"], []).append(index)
+    labels = [""] * len(resources)
+    for indexes in by_server.values():
+        defaults = default_labels([resources[i]["request"] for i in indexes])
+        for i, default in zip(indexes, defaults, strict=True):
+            labels[i] = resources[i].get("label") or default
+    return labels
+
+
+def default_labels(texts: Sequence[str]) -> list[str]:
+    """Short labels for one server's resources, from their requests' display texts.
+
+    A server's requests often share most of their items (the demo's all name the same
+    bus); what tells them apart is the rest. So for dict requests, each label is the
+    items whose text differs between the server's requests (just the value if one item
+    is left: `jackal-driver`, not `'name': 'jackal-driver'`). Any other request, a
+    server's only resource, or requests that differ nowhere visible keep the whole text.
+
+    Computed here, from the stored display texts, not stored: what differs depends on
+    which resources the server holds now, and a backup's reader decodes no value. A text
+    is a bounded `repr`, so items past its cut are not compared.
+
+    Args:
+        texts: the display texts of one server's requests.
+
+    Returns:
+        One label per text, at most `LABEL_WIDTH` characters each.
+    """
+    parsed = [_dict_items(text) for text in texts]
+    if len(texts) < 2 or any(items is None for items in parsed):
+        return [_fit(text) for text in texts]
+    everywhere = set.intersection(*(set(items) for items in parsed if items is not None))
+    labels = []
+    for text, items in zip(texts, parsed, strict=True):
+        rest = [item for item in items or () if item not in everywhere]
+        if not rest:
+            labels.append(_fit(text))
+        elif len(rest) == 1:
+            labels.append(_fit(_value_of(rest[0])))
+        else:
+            labels.append(_fit(", ".join(rest)))
+    return labels
+
+
+_STRING = re.compile(r"'[^'\\]*'|\"[^\"\\]*\"")
+
+
+def _dict_items(text: str) -> list[str] | None:
+    """The top-level `key: value` items of a dict's `repr`, or `None` if it is not one."""
+    if len(text) < 2 or text[0] != "{" or text[-1] != "}" or ":" not in text:
+        return None
+    items: list[str] = []
+    depth, start, quote = 0, 1, ""
+    body = text[1:-1]
+    for index, char in enumerate(body, 1):
+        if quote:
+            if char == quote and text[index - 1] != "\\":
+                quote = ""
+        elif char in "'\"":
+            quote = char
+        elif char in "([{":
+            depth += 1
+        elif char in ")]}":
+            depth -= 1
+        elif char == "," and depth == 0:
+            items.append(text[start:index].strip())
+            start = index + 1
+    items.append(text[start:-1].strip())
+    return items if all(":" in item for item in items) else None
+
+
+def _value_of(item: str) -> str:
+    """An item's value; a plain string value without its quotes."""
+    value = item.split(":", 1)[1].strip() if ":" in item else item
+    return value[1:-1] if _STRING.fullmatch(value) else value
+
+
+def _fit(text: str) -> str:
+    return text if len(text) <= LABEL_WIDTH else text[: LABEL_WIDTH - 3] + "..."
 
 
 def dependency_graph(
@@ -224,7 +305,9 @@ def dependency_graph(
     """The dependency graph across registrars: who holds which resource, through which query.
 
     Nodes are registrars (`"reg:<name>"`, compound: their resources are inside) and
-    resources (`"res:<registrar>:<id>"`, labelled `server: request`). An edge is one
+    resources (`"res:<registrar>:<id>"`, labelled with their server's `label(request)`,
+    else with what tells them apart from their server's other resources:
+    `default_labels`). An edge is one
     query, from the resource that holds it as a dependency (or from the registrar, for
     a top-level call) to the provider's resource that serves it: the thesis's figure
     2.7. A query whose provider's catalog is not known points to the provider registrar.
@@ -235,7 +318,9 @@ def dependency_graph(
 
     Returns:
         `{"nodes": [{"id", "kind", "label", "parent", "state", ...}], "edges": [{"id",
-        "source", "target", "label", "loaded", "orphan"}]}`, in a stable order. An
+        "source", "target", "label", "query_id", "loaded", "orphan"}]}`, in a stable
+        order. An edge's label is empty (query ids drawn on crossing edges overlap),
+        except an orphan's. An
         orphan edge is a consumer id at a provider whose consumer's catalog is known and
         holds no such query (a consumer restarted without a backup, say).
     """

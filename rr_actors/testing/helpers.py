@@ -10,7 +10,6 @@ import pykka
 from rr_actors._process.remote import FORWARD_MARGIN, RemoteRegistrar
 from rr_actors._registrar import ResourceRegistrar, snapshot
 from rr_actors._registrar.lifecycle import CatalogView
-from rr_actors._registrar.messages import Crash
 
 __all__ = ["catalog_snapshot", "crash", "running_actors"]
 
@@ -31,7 +30,7 @@ def crash(registrar: ResourceRegistrar | RemoteRegistrar, *, timeout: float = 5.
     if isinstance(registrar, RemoteRegistrar):
         registrar.kill(timeout=timeout)
         return
-    registrar._ref.tell(Crash())
+    registrar._crash()
     registrar._died.wait(timeout)  # the actor's death handling ran, death watch included
 
 

@@ -19,10 +19,10 @@ from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._process.remote import FORWARD_MARGIN, RemoteRegistrar
 from rr_actors._registrar import ResourceRegistrar
-from rr_actors._registrar.actor import RegistrarActor
+from rr_actors._registrar.actor import STEPS, RegistrarActor
 from rr_actors._registrar.calls import CallAttempt
-from rr_actors._registrar.messages import Request
-from rr_actors._registrar.probes import STEPS, Hook, Probes
+from rr_actors._registrar.messages import RunOnActor
+from rr_actors._registrar.probes import Hook, Probes
 from rr_actors.errors import ConfigError, RegistrarUnavailableError
 
 __all__ = [
@@ -51,9 +51,10 @@ def _local(registrar: ResourceRegistrar | RemoteRegistrar, what: str) -> Resourc
 def _ask_actor(
     ref: pykka.ActorRef[Any], op: Callable[[RegistrarActor, Reply], None]
 ) -> FutureReply:
+    """Run `op(actor, reply)` on the actor's thread: the one test-only message."""
     reply = FutureReply()
     try:
-        ref.tell(Request(op, reply))
+        ref.tell(RunOnActor(op, reply))
     except pykka.ActorDeadError:
         reply.set_error(RegistrarUnavailableError("the registrar actor is not running"))
     return reply
@@ -85,7 +86,7 @@ def run_on_actor(registrar: ResourceRegistrar, fn: Callable[[], T]) -> pykka.Fut
         else:
             reply.set_result(result)
 
-    future: pykka.Future[T] = _ask_actor(local._ref, op).future
+    future: pykka.Future[T] = _ask_actor(local._actor_ref(), op).future
     return future
 
 
@@ -104,8 +105,8 @@ def actor_ref(
     """
     local = _local(registrar, "actor_ref")
     if client is None:
-        return local._ref
-    ref = local._clients.get(client)
+        return local._actor_ref()
+    ref = local._clients.get(*client)
     if ref is None:
         raise ConfigError(f"registrar {local.name!r} has no client for {client!r}")
     return ref
@@ -174,7 +175,7 @@ def intercept(
             actor.shared.probes = installed
             reply.set_result(None)
 
-        wait(_ask_actor(local._ref, install).future, 10.0, "installing probes")
+        wait(_ask_actor(local._actor_ref(), install).future, 10.0, "installing probes")
         local._probes = probes
     probes.add(step, before=before, after=after)
     return Installed(functools.partial(probes.remove, step, before=before, after=after))
@@ -215,13 +216,13 @@ def expect_restart(name: str) -> Iterator[None]:
     A supervisor says so for every child it will restart: the providers then keep the
     dead registrar's consumer ids for its restored catalog (no death watch).
     """
-    known = name in DIRECTORY.restart_expected
-    DIRECTORY.restart_expected.add(name)
+    known = DIRECTORY.restart_expected(name)
+    DIRECTORY.expect_restart(name)
     try:
         yield
     finally:
         if not known:
-            DIRECTORY.restart_expected.discard(name)
+            DIRECTORY.expect_restart(name, expected=False)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -259,7 +260,7 @@ def _pending_work(actor: RegistrarActor, reply: Reply) -> None:
             held_loads=tuple(load.query_id for load in provider.held_loads),
             answers_due=consumer.due.ids(),
             parked_notices=frozenset(consumer.parked_notices),
-            open_requests=len(actor.lifecycle.open_requests) - 1,  # (not this request)
+            open_requests=len(actor.lifecycle.open_requests) - 1,  # (not this one)
             queued_callbacks=actor.shared.workers.queued,
         )
     )
@@ -291,6 +292,6 @@ def pending_work(
             raise RegistrarUnavailableError(f"registrar {registrar!r} is not running here")
         ref = peer.ref
     else:
-        ref = registrar._ref
+        ref = registrar._actor_ref()
     work: PendingWork = wait(_ask_actor(ref, _pending_work).future, timeout, "pending_work()")
     return work

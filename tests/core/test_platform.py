@@ -69,4 +69,4 @@ def test_without_setproctitle_the_kernel_name_of_a_manager_process_is_set() -> N
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=True
     )
 
-    assert "rr-actors: erm" == result.stdout.strip()
+    assert "erm" == result.stdout.strip()

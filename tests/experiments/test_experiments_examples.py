@@ -1,5 +1,5 @@
-"""Every shipped plan in examples/experiments/ runs (shortened: one repeat, a shorter
-duration) and shows what its docs page says it shows.
+"""Every shipped plan (rr_actors/experiments/plans/, and examples/experiments/) runs
+(shortened: one repeat, a shorter duration) and shows what its docs page says it shows.
 
 The full runs (`--repeat 3`, under a minute each) made the figures of docs/experiments/.
 """
@@ -10,16 +10,17 @@ from pathlib import Path
 
 import pytest
 
-from rr_actors.experiments import Results, RunResult, load_plan, run
+from rr_actors.experiments import Results, RunResult, load_plan, plans, run
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "experiments"
 
-SHIPPED = {"strategies", "crashloop", "hang", "resource", "workload", "first"}
-"""Every plan in examples/experiments/; the tutorial's `first` runs in the docs test."""
+SHIPPED = {"strategies", "crashloop", "hang", "resource", "first"}
+"""Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 
 
 def shortened(name: str, duration: float) -> Results:
-    return run(load_plan(EXAMPLES / f"{name}.toml"), repeat=1, duration=duration)
+    path = EXAMPLES / "workload.toml" if name == "workload" else plans.find(name)
+    return run(load_plan(path), repeat=1, duration=duration)
 
 
 def by_value(results: Results) -> dict[object, RunResult]:
@@ -27,7 +28,8 @@ def by_value(results: Results) -> dict[object, RunResult]:
 
 
 def test_this_test_knows_every_shipped_plan() -> None:
-    assert SHIPPED == {p.stem for p in EXAMPLES.glob("*.toml")}
+    assert SHIPPED == set(plans.shipped())
+    assert {"workload"} == {p.stem for p in EXAMPLES.glob("*.toml")}
 
 
 def restarted_after_first_kill(result: RunResult) -> set[str]:

@@ -12,7 +12,7 @@ import rr_actors as rr
 from rr_actors.experiments import PlanError, load_plan, parse_plan
 from rr_actors.experiments._lines import key_lines
 
-EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "experiments"
+EXAMPLES = Path(__file__).resolve().parents[2] / "rr_actors" / "experiments" / "plans"
 
 SERVICE = "rr_actors.experiments.services:service"
 

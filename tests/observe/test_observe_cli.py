@@ -54,7 +54,7 @@ def test_graph_prints_the_dependency_graph_of_the_backups_as_mermaid(state: Path
     assert text.startswith("flowchart TB\n")
     assert 'subgraph r2["cm"]' in text
     assert 'subgraph r3["erm"]' in text
-    assert 3 == text.count(" .-> ")  # action -> cm -> erm (camera, filter)
+    assert 3 == text.count(" -.")  # action -> cm -> erm (camera, filter)
 
 
 def test_graph_prints_dot(state: Path) -> None:
@@ -63,7 +63,7 @@ def test_graph_prints_dot(state: Path) -> None:
     assert 0 == code
     assert text.startswith("digraph rr_actors {")
     assert "subgraph cluster_r3 {" in text
-    assert 3 == text.count("style=dashed, label=")
+    assert 3 == text.count("style=dashed")
 
 
 def test_graph_of_a_missing_directory_is_a_clear_error(

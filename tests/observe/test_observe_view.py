@@ -14,7 +14,9 @@ from rr_actors.observe._view import dependency_graph, registrar_ranks, short, su
 
 
 def resource(rid: str, server: str, request: Any, consumers: dict[str, str]) -> Resource:
-    return Resource(rid, server, request, {"r": request}, ResourceState.LOADED, consumers)
+    made = Resource(rid, server, request, {"r": request}, ResourceState.LOADED, consumers)
+    made.request_text = short(request)  # (a registrar makes it when it stores the request)
+    return made
 
 
 def client(qid: str, serving: str, server: str, parent: str | None) -> ClientRecord:
@@ -42,7 +44,7 @@ def figure_27() -> dict[str, Any]:
 
 
 def edges(graph: dict[str, Any]) -> set[tuple[str, str, str, bool]]:
-    return {(e["source"], e["target"], e["label"], e["orphan"]) for e in graph["edges"]}
+    return {(e["source"], e["target"], e["query_id"], e["orphan"]) for e in graph["edges"]}
 
 
 def test_the_graph_has_one_edge_per_query_from_its_owner_to_the_providers_resource() -> None:
@@ -216,7 +218,7 @@ def test_dot_labels_are_escaped() -> None:
 
     text = render(dependency_graph(catalogs), None, "dot")
 
-    assert 'n1 [label="s: \'a\\"b' in text  # the quote is escaped; the label goes on
+    assert 'n1 [label="\'a\\"b' in text  # the quote is escaped; the label goes on
 
 
 def test_the_same_catalogs_draw_the_same_text() -> None:

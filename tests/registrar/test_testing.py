@@ -43,13 +43,13 @@ def test_every_message_the_actor_handles_is_a_step_that_intercept_reaches(pair: 
     seen: list[str] = []
     for step in ("load", "unload"):
         intercept(provider, step, before=lambda _m, step=step: seen.append(step))
-    intercept(consumer, "request", before=lambda _m: seen.append("request"))
+    intercept(consumer, "release", before=lambda _m: seen.append("release"))
 
     query = consumer.call(provider.name, "leaf", "x")
     consumer.unload(query.id)
 
-    assert ["load", "unload"] == [step for step in seen if step != "request"]
-    assert "request" in seen  # (the handle asked its own actor for the unload)
+    assert ["load", "unload"] == [step for step in seen if step != "release"]
+    assert "release" in seen  # (the handle asked its own actor for the unload)
     assert {"load", "unload", "abandon", "withdraw", "stop_drained"} <= STEPS
 
 

@@ -372,7 +372,7 @@ def duplicate_consumer(db: sqlite3.Connection) -> None:
 def duplicate_client(db: sqlite3.Connection) -> None:
     db.execute(
         "INSERT INTO clients SELECT 102, query_id, server, serving_rr, origin_rr, request, "
-        "response, parent, loaded FROM clients"
+        "response, parent, loaded, request_text FROM clients"
     )
 
 

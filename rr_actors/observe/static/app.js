@@ -507,7 +507,7 @@
           id: e.id,
           source: e.source,
           target: e.target,
-          label: e.orphan ? `${e.label} (no client record)` : e.label,
+          label: e.label, // (no query ids: crossing edges' ids overlapped; "no client record" for an orphan)
           loaded: e.loaded ? "yes" : "no",
           orphan: e.orphan ? "yes" : "no",
         },
@@ -540,6 +540,7 @@
       cy.elements().remove();
       cy.add(elements);
     });
+    $("graph").dataset.labels = JSON.stringify(cy.nodes('[kind = "resource"]').map((n) => n.data("label"))); // (the canvas's text, readable)
     cy.layout({ name: "preset", positions: (node) => positions[node.id()] || { x: 0, y: 0 }, fit: true, padding: 24 }).run();
   }
 

@@ -1,0 +1,157 @@
+"""The control pipe's vocabulary: what a manager process and its parent tell each other.
+
+```
+ parent (ManagerProcess, SparePool)          control pipe          child (child.py)
+   Start(setup, config, address, forward) ──────────────────────►  standby (a spare only)
+                                          ◄──────── Warm()           (a spare, once warm)
+                                          ◄──────── Ready(pid) | Failed(traceback)
+   Ping(number) ────────────────────────────────────────────────►  registrar mailbox
+                                          ◄──────── Pong(number, trouble)
+   Forward(on) ─────────────────────────────────────────────────►  forward events or not
+                                          ◄──────── Events(batch)   (while on)
+   SyncEvents(token, timeout) ──────────────────────────────────►  send what is buffered
+                                          ◄──────── EventsSynced(token)
+   Stop(timeout, restarting) ───────────────────────────────────►  registrar.stop(); exit
+```
+
+Each message is a frozen dataclass; each end dispatches on its type through one table
+(`child._HANDLERS`, `ManagerProcess._HANDLERS`). They are pickled by the pipe
+(`multiprocessing.connection`), between processes of one machine and one installation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from rr_actors._transport.base import Address
+from rr_actors.config import RegistrarConfig
+
+__all__ = [
+    "Events",
+    "EventsSynced",
+    "Failed",
+    "Forward",
+    "FromChild",
+    "FromParent",
+    "Ping",
+    "Pong",
+    "Ready",
+    "Start",
+    "Stop",
+    "SyncEvents",
+    "Warm",
+]
+
+
+# -- parent to child --------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Start:
+    """Run this manager (to a spare idling in `standby`): `child.main`'s arguments.
+
+    Attributes:
+        setup: `cloudpickle.dumps(setup_function_or_None)`.
+        config: the registrar's configuration.
+        address: the system to attach to, or `None` to run unattached.
+        forward: forward the registrar's events from the start.
+    """
+
+    setup: bytes
+    config: RegistrarConfig
+    address: Address | None
+    forward: bool = False
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Ping:
+    """The heartbeat: answer `Pong(number, ...)` once the registrar actor got to it."""
+
+    number: int
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Forward:
+    """Forward the registrar's events (`on`), or stop forwarding them."""
+
+    on: bool
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class SyncEvents:
+    """Send what is buffered, then `EventsSynced(token)`, within `timeout` seconds."""
+
+    token: int
+    timeout: float
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Stop:
+    """Stop the registrar within `timeout` seconds and exit.
+
+    Attributes:
+        timeout: seconds the registrar's clean stop may take.
+        restarting: it is stopped to be restarted with its group: no tombstone, so its
+            peers see it unavailable for now, not stopped for good.
+    """
+
+    timeout: float
+    restarting: bool = False
+
+
+# -- child to parent --------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Warm:
+    """A spare has finished warming up."""
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Ready:
+    """The manager serves: its catalog is restored and its setup ran."""
+
+    pid: int
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Failed:
+    """The manager could not start (its setup raised, say); the traceback, as text."""
+
+    traceback: str
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Pong:
+    """The answer to `Ping(number)`.
+
+    Attributes:
+        number: the ping's number.
+        trouble: `None`, or for how long (seconds) and why the registrar's listener has
+            been unable to accept connections.
+    """
+
+    number: int
+    trouble: tuple[float, str] | None = None
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Events:
+    """A batch of the registrar's events (`rr_actors.events` values), in order."""
+
+    batch: list[Any]
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class EventsSynced:
+    """What was buffered when `SyncEvents(token)` arrived has been sent (before this)."""
+
+    token: int
+
+
+FromParent = Start | Ping | Forward | SyncEvents | Stop
+"""What the parent sends down a control pipe."""
+
+FromChild = Warm | Ready | Failed | Pong | Events | EventsSynced
+"""What a manager process sends up its control pipe."""

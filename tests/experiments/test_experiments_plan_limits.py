@@ -1,0 +1,134 @@
+"""Huge numbers in a plan are a PlanError naming the key, at once (issue 21, bug 7).
+
+Before, 400 digits raised a raw `OverflowError` and `clients = 100000000` a `MemoryError`
+after 26 s; the command line now exits 2 within a second with `file:line: key: ...`.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from rr_actors._cli import main
+from rr_actors.experiments import PlanError, parse_plan
+
+SERVICE = "rr_actors.experiments.services:service"
+HUGE = "9" * 400
+
+BASE = f"""\
+name = "t"
+duration = 2.0
+repeat = 1
+
+[tree]
+max_restarts = 3
+
+[[tree.children]]
+name = "db"
+setup = "{SERVICE}"
+
+[workload]
+clients = 1
+
+[[workload.calls]]
+manager = "db"
+server = "resource"
+keys = 4
+
+[[faults]]
+kind = "load_error"
+target = "db"
+every = 0.5
+count = 2
+loads = 1
+"""
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "line", "key", "problem"),
+    [
+        ("duration = 2.0", f"duration = {HUGE}", 2, "duration", "number out of range"),
+        (
+            "clients = 1",
+            "clients = 100000000",
+            13,
+            "workload.clients",
+            "must be an integer <= 1000",
+        ),
+        ("clients = 1", f"clients = {HUGE}", 13, "workload.clients", "must be an integer <= 1000"),
+        ("repeat = 1", "repeat = 100000000", 3, "repeat", "must be an integer <= 10000"),
+        ("keys = 4", "keys = 10000000000", 18, "workload.calls[0].keys", "must be an integer <="),
+        ("max_restarts = 3", f"max_restarts = {HUGE}", 6, "tree.max_restarts", "must be an"),
+        ("count = 2", "count = 1000000000", 24, "faults[0].count", "must be an integer <= 100000"),
+        ("loads = 1", f"loads = {HUGE}", 25, "faults[0].loads", "must be an integer <= 1000000"),
+        ('name = "t"', f'name = "t"\nseed = {HUGE}', 2, "seed", "must be an integer <="),
+        ("every = 0.5", f"every = {HUGE}", 23, "faults[0].every", "number out of range"),
+    ],
+)
+def test_a_huge_number_is_a_plan_error_naming_its_key_within_a_second(
+    old: str, new: str, line: int, key: str, problem: str
+) -> None:
+    started = time.monotonic()
+    with pytest.raises(PlanError) as caught:
+        parse_plan(BASE.replace(old, new), source="plan.toml")
+
+    assert time.monotonic() - started < 1.0
+    assert (line, key) == (caught.value.line, caught.value.key)
+    assert caught.value.problem.startswith(problem)
+    assert len(str(caught.value)) < 200  # the value is shown cut short, not 400 digits
+
+
+def test_a_huge_compared_value_is_a_plan_error_at_that_value() -> None:
+    text = BASE + f'[compare]\nsetting = "duration"\nvalues = [1.0, {HUGE}]\n'
+
+    with pytest.raises(PlanError) as caught:
+        parse_plan(text, source="plan.toml")
+
+    assert "compare.values[1]" == caught.value.key
+    assert "duration: number out of range" in caught.value.problem
+
+
+def test_the_command_line_exits_2_within_a_second_on_a_hundred_million_clients(
+    tmp_path: Path,
+) -> None:
+    plan = tmp_path / "plan.toml"
+    plan.write_text(BASE.replace("clients = 1", "clients = 100000000"))
+    code = "import sys; from rr_actors._cli import main; sys.exit(main(sys.argv[1:]))"
+    started = time.monotonic()
+
+    done = subprocess.run(
+        [sys.executable, "-c", code, "experiment", str(plan), "--out", str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
+
+    assert 2 == done.returncode, done.stderr
+    assert time.monotonic() - started < 10.0  # the interpreter's start included
+    assert f"{plan}:13: workload.clients: must be an integer <= 1000" in done.stderr
+    assert "Traceback" not in done.stderr
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "message"),
+    [
+        ("--repeat", "100000000", "repeat must be an int from 1 to 10000"),
+        ("--seed", HUGE, "seed must be a 64-bit integer"),
+    ],
+)
+def test_a_huge_repeat_or_seed_on_the_command_line_exits_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str, value: str, message: str
+) -> None:
+    plan = tmp_path / "plan.toml"
+    plan.write_text(BASE)
+
+    code = main(["experiment", str(plan), "--out", str(tmp_path / "out"), option, value])
+
+    assert 2 == code
+    assert message in capsys.readouterr().err

@@ -1,0 +1,143 @@
+"""`rr-actors demo --step` on an 80-column terminal: rich output, and pauses left out of time.
+
+A class takes its time before pressing Enter: here each Enter comes `PAUSE` seconds
+after the prompt. None of that may count as mission time (the story's stamps, the
+timeline, the totals) or as the robot standing still (the plot's shading).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from rr_actors.mission.run import parser, run
+
+ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+PAUSE = 1.5
+"""Seconds the class takes before each Enter."""
+
+
+class FakeTerminal(io.StringIO):
+    """A stream that says it is a terminal (as `rr-actors demo` on a real one sees it)."""
+
+    def isatty(self) -> bool:
+        return True
+
+
+class SlowClass(io.StringIO):
+    """Standard input where every Enter comes `PAUSE` seconds after it is waited for."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.enters = 0
+
+    def readline(self, size: int | None = -1) -> str:  # type: ignore[override]
+        del size
+        threading.Event().wait(PAUSE)  # a person, not a synchronisation
+        self.enters += 1
+        return "\n"
+
+
+@pytest.mark.usefixtures("process_helpers")
+@pytest.mark.timeout(120)
+def test_step_on_an_80_column_terminal_fits_and_leaves_the_pauses_out_of_every_time(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("COLUMNS", "80")
+    monkeypatch.delenv("NO_COLOR", raising=False)
+    stdin = SlowClass()
+    monkeypatch.setattr(sys, "stdin", stdin)
+    terminal = FakeTerminal()
+    args = parser().parse_args(["--fast", "--step", "--out", str(tmp_path)])
+
+    code = run(args, terminal)
+    text = "\n".join(ANSI.sub("", terminal.getvalue()).splitlines())  # \r: live redraws
+    report = json.loads((tmp_path / "report.json").read_text())
+    stamps = [float(m) for m in re.findall(r"^\[\s*([0-9.]+) s\]", text, re.MULTILINE)]
+    arrived = re.search(r"^\[\s*([0-9.]+) s\] goal reached after ([0-9.]+) s", text, re.M)
+
+    assert 0 == code
+    assert 5 == stdin.enters
+    assert max(len(line) for line in text.splitlines()) <= 80  # rich wrapped the long lines
+    assert 5 * PAUSE <= report["paused_for_enter_s"] < 5 * PAUSE + 2.0
+    assert 5 == len(report["pauses_at_s"])
+    assert "paused for Enter 5 time(s)" in text
+    # No time shown counts a pause: not the drive, not a stop, not a stamp.
+    assert report["mission_time_s"] < report["nominal_time_s"] + PAUSE
+    assert all(b - a < PAUSE / 2 for a, b in report["stops"])
+    assert all(f["robot_stopped_s"] < PAUSE / 2 for f in report["faults"])
+    assert stamps[-1] < report["drive_started_at_s"] + report["mission_time_s"] + PAUSE
+    # One clock: the story's "goal reached" stamp is where the report's drive ends.
+    assert arrived is not None
+    assert float(arrived[1]) == pytest.approx(
+        report["drive_started_at_s"] + report["mission_time_s"], abs=0.1
+    )
+    assert float(arrived[2]) == pytest.approx(report["mission_time_s"], abs=0.01)
+
+
+@pytest.mark.usefixtures("process_helpers")
+@pytest.mark.timeout(120)
+def test_step_in_a_real_80_column_terminal_waits_for_each_enter(tmp_path: Path) -> None:
+    import fcntl  # noqa: PLC0415 - POSIX only, as the demo
+    import os  # noqa: PLC0415
+    import select  # noqa: PLC0415
+    import struct  # noqa: PLC0415
+    import subprocess  # noqa: PLC0415
+    import termios  # noqa: PLC0415
+    import time  # noqa: PLC0415
+
+    master, slave = os.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES", "NO_COLOR")}
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "rr_actors._cli", "demo", "--fast", "--step"],
+        cwd=tmp_path,
+        stdin=slave,
+        stdout=slave,
+        stderr=slave,
+        env={**env, "TERM": "xterm-256color"},
+    )
+    os.close(slave)
+    output = b""
+    enter_due: float | None = None  # the class presses Enter PAUSE s after each prompt
+    enters = 0
+    deadline = time.monotonic() + 100
+    try:
+        while time.monotonic() < deadline:
+            wait = 1.0 if enter_due is None else max(0.0, enter_due - time.monotonic())
+            readable, _, _ = select.select([master], [], [], wait)
+            if readable:
+                try:
+                    chunk = os.read(master, 65536)
+                except OSError:  # the demo ended: its side of the terminal closed
+                    break
+                if not chunk:
+                    break
+                output += chunk
+            if enter_due is None and output.count(b"press Enter") > enters:
+                enter_due = time.monotonic() + PAUSE
+            elif enter_due is not None and time.monotonic() >= enter_due:
+                os.write(master, b"\n")
+                enters += 1
+                enter_due = None
+        code = demo.wait(30)
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait(10)
+        os.close(master)
+
+    text = ANSI.sub("", output.decode(errors="replace"))
+    report = json.loads((tmp_path / "rr-actors-demo" / "report.json").read_text())
+    assert 0 == code, text[-3000:]
+    assert 5 == enters
+    assert "━" in text  # rich's progress bar: rich drew it, not plain lines
+    assert max(len(line) for line in text.splitlines()) <= 80
+    assert 5 * PAUSE <= report["paused_for_enter_s"]
+    assert report["mission_time_s"] < report["nominal_time_s"] + PAUSE

@@ -1,0 +1,412 @@
+"""The observer's trust boundary (issue 21, bugs 1, 5, 6) and its resource labels (issue 24,
+item 2): looking at a backup runs nothing from it, a crafted file fails fast, a hostile
+`__repr__` stops nothing, and a resource reads by what tells it apart."""
+
+from __future__ import annotations
+
+import io
+import os
+import pickle
+import sqlite3
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cloudpickle
+import pytest
+from observed_tree import figure_27
+
+import rr_actors as rr
+from rr_actors._catalog import Catalog
+from rr_actors._catalog.texts import NOT_SHOWN_OLD
+from rr_actors._cli import main
+from rr_actors._store import SqliteStore, read_backup, schema
+from rr_actors._store.codec import dumps
+from rr_actors.observe._sources import read_catalogs
+from rr_actors.observe._text import render
+from rr_actors.observe._view import default_labels, dependency_graph, summarise_catalog
+
+
+def run(*argv: str) -> tuple[int, str]:
+    out = io.StringIO()
+    code = main(list(argv), out)
+    return code, out.getvalue()
+
+
+class Planted:
+    """Unpickling it creates the file `path`: what a hostile backup would run."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __reduce__(self) -> Any:
+        return (open, (str(self.path), "w"))
+
+
+def stored_backup(path: Path) -> None:
+    """A backup as a registrar writes it: one resource with its display texts."""
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    resource = catalog.begin_load("r0", "lidar", {"name": "lidar2"})
+    resource.request_text = "{'name': 'lidar2'}"
+    catalog.finish_load("r0", "ok").response_text = "'ok'"
+    catalog.add_consumer("r0", "q0", "action")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+
+def plant(path: Path, marker: Path) -> None:
+    """Replace the stored request with a pickle that creates `marker` when unpickled."""
+    db = sqlite3.connect(path)
+    db.execute("UPDATE resources SET request = ?", (pickle.dumps(Planted(marker), protocol=5),))
+    db.commit()
+    db.close()
+
+
+# -- bug 1: looking at a backup runs no code from it -------------------------------------------
+
+
+@pytest.fixture
+def foreign_state(tmp_path: Path) -> tuple[Path, Path]:
+    """A state directory whose backup another user (uid 65534) owns, holding a planted pickle."""
+    if os.geteuid() != 0:
+        pytest.skip("giving a file to another uid needs root (chown)")
+    state = tmp_path / "state"
+    state.mkdir()
+    marker = tmp_path / "ran-code-from-the-backup"
+    stored_backup(state / "cm.db")
+    plant(state / "cm.db", marker)
+    for file in state.iterdir():
+        os.chown(file, 65534, 65534)
+    return state, marker
+
+
+def test_graph_of_another_users_backup_shows_its_texts_and_unpickles_nothing(
+    foreign_state: tuple[Path, Path],
+) -> None:
+    state, marker = foreign_state
+
+    code, text = run("graph", "--state", str(state))
+
+    assert (0, False) == (code, marker.exists())
+    assert "lidar2" in text
+
+
+def test_observe_of_another_users_backup_shows_its_texts_and_unpickles_nothing(
+    foreign_state: tuple[Path, Path],
+) -> None:
+    state, marker = foreign_state
+
+    catalogs = read_catalogs(sorted(state.glob("*.db")))
+
+    resource = catalogs["cm"]["resources"][0]
+    assert ("{'name': 'lidar2'}", "'ok'") == (resource["request"], resource["response"])
+    assert not marker.exists()
+
+
+def test_inspect_and_restore_refuse_another_users_backup(
+    foreign_state: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    state, marker = foreign_state
+
+    with pytest.raises(rr.ConfigError, match="belongs to uid 65534"):
+        read_backup(state / "cm.db")
+    with pytest.raises(rr.ConfigError, match="belongs to uid 65534"):
+        rr.ResourceRegistrar.start(rr.RegistrarConfig("cm", backup_path=str(state / "cm.db")))
+    code, _ = run("inspect", str(state / "cm.db"))
+
+    assert (1, False) == (code, marker.exists())
+    assert "belongs to uid 65534" in capsys.readouterr().err
+
+
+def write_v3_backup(path: Path) -> None:
+    """A backup as rr_actors wrote it with schema version 3 (no display texts)."""
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute(f"PRAGMA application_id = {schema.APPLICATION_ID}")
+    for step in schema.MIGRATIONS[:3]:
+        step(db)
+    db.execute("UPDATE rr_actors_schema SET version = 3")
+    db.execute(
+        "INSERT INTO resources (seq, id, server, state, digest, request, response) "
+        "VALUES (1, 'r0', 'lidar', 1, NULL, ?, ?)",
+        (dumps({"name": "lidar1"}), dumps("ok")),
+    )
+    db.execute("INSERT INTO consumers VALUES (1, 2, 'q0', 'action')")
+    db.close()
+
+
+def test_an_older_backup_reads_not_shown_and_still_restores(tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    state.mkdir()
+    write_v3_backup(state / "cm.db")
+
+    catalogs = read_catalogs([state / "cm.db"])
+    code, text = run("graph", "--state", str(state))
+    store = SqliteStore.open(state / "cm.db")
+    try:
+        restored = store.load()
+    finally:
+        store.close(erase=False)
+
+    resource = catalogs["cm"]["resources"][0]
+    assert (NOT_SHOWN_OLD, NOT_SHOWN_OLD) == (resource["request"], resource["response"])
+    assert 0 == code
+    assert "not shown" in text
+    assert restored is not None
+    assert {"name": "lidar1"} == restored[0][0].request
+
+
+# -- bug 5: a crafted backup fails fast -------------------------------------------------------
+
+
+ENDLESS = (
+    "WITH RECURSIVE n(i) AS (SELECT 1 UNION ALL SELECT i + 1 FROM n) "
+    "SELECT i AS seq, 'r' || i AS id, 'lidar' AS server, 1 AS state, NULL AS digest, "
+    "randomblob(100000) AS request, NULL AS response, NULL AS request_text, "
+    "NULL AS response_text, NULL AS label FROM n"
+)
+
+
+def resources_a_view(path: Path) -> None:
+    """`resources` a view over an endless query; its indexes' names kept on another table."""
+    db = sqlite3.connect(path)
+    db.execute("DROP TABLE resources")
+    db.execute(f"CREATE VIEW resources AS {ENDLESS}")
+    db.execute("CREATE TABLE decoy (seq INTEGER, server TEXT, digest INTEGER, id TEXT)")
+    db.execute("CREATE UNIQUE INDEX resources_by_id ON decoy (id)")
+    db.execute("CREATE INDEX resources_by_request ON decoy (server, digest)")
+    db.execute("CREATE INDEX resources_unsettled ON decoy (seq)")
+    db.commit()
+    db.close()
+
+
+def a_trigger_besides(path: Path) -> None:
+    db = sqlite3.connect(path)
+    db.execute(
+        "CREATE TRIGGER grow AFTER INSERT ON consumers BEGIN "
+        "INSERT INTO consumers SELECT resource, seq + 1, query_id, origin_rr "
+        "FROM consumers; END"
+    )
+    db.commit()
+    db.close()
+
+
+def a_table_of_another_shape(path: Path) -> None:
+    db = sqlite3.connect(path)
+    db.execute("ALTER TABLE clients ADD COLUMN extra BLOB DEFAULT (randomblob(10))")
+    db.commit()
+    db.close()
+
+
+@pytest.mark.timeout(30)
+@pytest.mark.parametrize(
+    ("craft", "why"),
+    [
+        (resources_a_view, "'resources' is a view, not a table"),
+        (a_trigger_besides, "an unknown trigger 'grow'"),
+        (a_table_of_another_shape, "the table 'clients' is not as rr_actors creates it"),
+    ],
+    ids=["view", "trigger", "other-table"],
+)
+def test_a_crafted_schema_is_catalog_corrupt_naming_the_file_before_any_read(
+    tmp_path: Path, craft: Callable[[Path], None], why: str
+) -> None:
+    state = tmp_path / "state"
+    state.mkdir()
+    path = state / "cm.db"
+    stored_backup(path)
+    craft(path)
+
+    code, _ = run("graph", "--state", str(state))
+    with pytest.raises(rr.CatalogCorruptError, match=why) as caught:
+        read_catalogs([path])
+    with pytest.raises(rr.CatalogCorruptError, match=why):
+        SqliteStore.open(path)
+
+    assert 1 == code
+    assert str(path) == caught.value.path
+    assert os.path.getsize(path) < 100_000  # (nothing was written to it)
+
+
+# -- bug 6: a hostile __repr__ stops nothing -----------------------------------------------------
+
+
+class HangsWhenShown:
+    def __init__(self, gate: threading.Event) -> None:
+        self.gate = gate
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, HangsWhenShown)
+
+    def __hash__(self) -> int:
+        return 1
+
+    def __repr__(self) -> str:
+        self.gate.wait(30)
+        return "HangsWhenShown()"
+
+
+class ExitsWhenShown:
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, ExitsWhenShown)
+
+    def __hash__(self) -> int:
+        return 2
+
+    def __repr__(self) -> str:
+        raise SystemExit("shown")
+
+
+def hostile_setup(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("leaf", load=lambda r: "ok", unload=lambda r, s: None)
+
+
+@pytest.mark.timeout(60)
+def test_a_hanging_or_exiting_repr_shows_failed_and_the_graph_keeps_updating_without_new_threads(
+    supervisors: Any,
+) -> None:
+    gate = threading.Event()
+    sup = supervisors(
+        [
+            rr.ManagerSpec(
+                "erm",
+                setup=hostile_setup,
+                config=rr.RegistrarConfig("erm", compare_timeout=0.5),
+            )
+        ]
+    ).start()
+    observer = sup.observe()
+    try:
+        app = sup.registrar(rr.RegistrarConfig("action", compare_timeout=0.5))
+        app.call("erm", "leaf", HangsWhenShown(gate), timeout=5)
+        app.call("erm", "leaf", ExitsWhenShown(), timeout=5)
+        before = threading.active_count()
+        drawn = [sup.graph()]
+        deadline = time.monotonic() + 10
+        while "repr failed: TimeoutError" not in drawn[-1] and time.monotonic() < deadline:
+            drawn.append(sup.graph())  # (the text is made once compare_timeout is over)
+        drawn += [sup.graph() for _ in range(10)]
+        app.call("erm", "leaf", "after", timeout=5)
+        last = sup.graph()
+        after = threading.active_count()
+    finally:
+        gate.set()
+        observer.close()
+
+    assert "repr failed: TimeoutError" in drawn[-1]
+    assert "repr failed: SystemExit" in last
+    assert "after" in last  # the graph still follows the catalog
+    assert after <= before + 1  # (not one more hung thread per look)
+
+
+class HangsForGood:
+    """A request whose `repr` never returns (in a manager process: no gate reaches it)."""
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, HangsForGood)
+
+    def __hash__(self) -> int:
+        return 3
+
+    def __repr__(self) -> str:
+        threading.Event().wait(60)
+        return "HangsForGood()"
+
+
+def threads_in(sup: rr.Supervisor, name: str) -> int:
+    return int(sup.run_in(name, lambda _: threading.active_count(), timeout=5))
+
+
+@pytest.mark.timeout(60)
+def test_a_hanging_repr_in_a_process_manager_costs_one_thread_once_not_one_per_refresh(
+    supervisors: Any, process_helpers: Any
+) -> None:
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # (for the manager process)
+    sup = supervisors(
+        [
+            rr.ManagerSpec(
+                "erm",
+                setup=hostile_setup,
+                isolation="process",
+                config=rr.RegistrarConfig("erm", compare_timeout=0.5),
+            )
+        ]
+    ).start()
+    app = sup.registrar(rr.RegistrarConfig("action", compare_timeout=0.5))
+    app.call("erm", "leaf", HangsForGood(), timeout=5)
+    drawn = [sup.graph()]
+    deadline = time.monotonic() + 10
+    while "repr failed: TimeoutError" not in drawn[-1] and time.monotonic() < deadline:
+        drawn.append(sup.graph())
+
+    before = threads_in(sup, "erm")
+    drawn += [sup.graph() for _ in range(20)]  # each reads erm's catalog in its process
+    after = threads_in(sup, "erm")
+
+    assert "repr failed: TimeoutError" in drawn[-1]
+    assert after <= before  # (one thread hangs, once: not one more per refresh)
+
+
+# -- issue 24, item 2: labels ------------------------------------------------------------------
+
+
+def test_a_servers_requests_are_labelled_by_what_tells_them_apart() -> None:
+    bus = "'bus': 'rr-actors-demo/bus'"
+
+    labels = default_labels(
+        [
+            f"{{{bus}, 'name': 'jackal-driver', 'rate': 50}}",
+            f"{{{bus}, 'name': 'jackal-navigation', 'rate': 20}}",
+            f"{{{bus}, 'name': 'lidar2', 'rate': 10}}",
+        ]
+    )
+
+    assert [
+        "'name': 'jackal-driver', 'rate': 50",
+        "'name': 'jackal-navigation', 'rate': 20",
+        "'name': 'lidar2', 'rate': 10",
+    ] == labels
+    assert ["jackal-driver", "lidar2"] == default_labels(
+        [f"{{{bus}, 'name': 'jackal-driver'}}", f"{{{bus}, 'name': 'lidar2'}}"]
+    )
+    assert ["'/dev/video0'"] == default_labels(["'/dev/video0'"])  # alone: the whole text
+    assert ["1", "<not shown yet>"] == default_labels(["1", "<not shown yet>"])
+
+
+def test_graph_text_reads_each_resource_by_its_label_and_draws_no_query_ids(
+    supervisors: Any,
+) -> None:
+    sup = figure_27(supervisors, isolation="thread").start()
+    app = sup.registrar("action")
+    held = [
+        app.call("erm", "camera", {"bus": "b", "name": name}, timeout=5)
+        for name in ("jackal-driver", "jackal-navigation")
+    ]
+
+    text = sup.graph()
+    dot = sup.graph(format="dot")
+
+    assert '["jackal-driver"]' in text
+    assert '["jackal-navigation"]' in text
+    assert 'label="jackal-driver"' in dot
+    for q in held:
+        assert q.id[:8] not in text
+        assert q.id[:8] not in dot
+        app.unload(q.id)
+
+
+def test_a_label_given_by_the_server_wins_over_the_default() -> None:
+    from rr_actors._catalog import Resource, ResourceState  # noqa: PLC0415
+
+    named = Resource("r1", "program", {"name": "a"}, "ok", ResourceState.LOADED, {})
+    named.request_text, named.label = "{'name': 'a'}", "the driver"
+    other = Resource("r2", "program", {"name": "b"}, "ok", ResourceState.LOADED, {})
+    other.request_text = "{'name': 'b'}"
+    graph = dependency_graph({"erm": summarise_catalog("erm", [named, other], [])})
+
+    assert ["the driver", "b"] == [n["label"] for n in graph["nodes"] if n["kind"] == "resource"]
+    assert '["the driver"]' in render(graph, None, "mermaid")

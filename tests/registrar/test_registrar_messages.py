@@ -1,0 +1,344 @@
+"""The registrar's vocabulary as data: one dispatch table, and every step name in it fires.
+
+`intercept` accepts the step names of the actor's dispatch table; each test below makes a
+registrar handle one message, through the public API where one reaches it, and checks
+that a hook on that message's step ran. A message added to the table without a way to
+reach it here fails `test_every_message_step_has_a_driver_here`.
+"""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+import rr_actors as rr
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.replies import FutureReply
+from rr_actors._registrar import Served
+from rr_actors._registrar.actor import DISPATCH, MESSAGE_STEPS
+from rr_actors._registrar.messages import Abandon
+from rr_actors._registrar.probes import POINTS
+from rr_actors.testing import (
+    STEPS,
+    actor_ref,
+    catalog_snapshot,
+    crash,
+    intercept,
+    run_on_actor,
+)
+
+Hook = Callable[[object], None]
+
+
+class Pair:
+    """A provider with a `leaf` server and a consumer, both in this process."""
+
+    def __init__(self, tmp_path: Path) -> None:
+        uid = uuid.uuid4().hex[:8]
+        self.tmp_path = tmp_path
+        self.started: list[rr.ResourceRegistrar] = []
+        self.provider = self.start(f"prov-{uid}")
+        self.consumer = self.start(f"cons-{uid}")
+        self.provider.register_server("leaf", load=lambda r: f"got {r}", unload=_no_unload)
+
+    def start(self, config: rr.RegistrarConfig | str, **kwargs: object) -> rr.ResourceRegistrar:
+        registrar = rr.ResourceRegistrar.start(config, **kwargs)  # type: ignore[arg-type]
+        self.started.append(registrar)
+        return registrar
+
+    def held(self) -> rr.Query:
+        """A query the consumer holds at the provider's `leaf`."""
+        return self.consumer.call(self.provider.name, "leaf", uuid.uuid4().hex)
+
+    def close(self) -> None:
+        for registrar in reversed(self.started):
+            registrar.stop()
+
+
+def _no_unload(_request: object, _response: object) -> None:
+    return None
+
+
+def _raise(request: object) -> object:
+    raise ValueError(f"no {request}")
+
+
+# Each driver hooks `hook` on its step and makes the registrar handle that message.
+
+
+def _load(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "load", before=hook)
+    p.held()
+
+
+def _unload(p: Pair, hook: Hook) -> None:
+    query = p.held()
+    intercept(p.provider, "unload", before=hook)
+    p.consumer.unload(query.id)
+
+
+def _abandon(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "abandon", before=hook)
+    DIRECTORY.lookup(p.provider.name).tell(Abandon("no-such-id", p.consumer.name))
+
+
+def _fetch(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "fetch", before=hook)
+    p.consumer.fetch_queries(p.provider.name, "leaf")
+
+
+def _status_notice(p: Pair, hook: Hook) -> None:
+    query = p.held()
+    intercept(p.consumer, "status_notice", before=hook)
+    p.provider.send_status(query.id, rr.Status.WARNING, "hot")
+
+
+def _revoke(p: Pair, hook: Hook) -> None:
+    p.held()
+    intercept(p.consumer, "revoke", before=hook)
+    p.provider.unregister_server("leaf")
+
+
+def _response_updated(p: Pair, hook: Hook) -> None:
+    query = p.held()
+    intercept(p.consumer, "response_updated", before=hook)
+    p.provider.update_response(query.id, "new")
+
+
+def _consumer_down(p: Pair, hook: Hook) -> None:
+    p.held()
+    intercept(p.provider, "consumer_down", before=hook)
+    crash(p.consumer)
+
+
+def _reconcile(p: Pair, hook: Hook) -> None:
+    p.held()
+    intercept(p.provider, "reconcile", before=hook)
+    Served(p.consumer).listening()  # reachable: it tells its providers what it holds
+
+
+def _reconcile_ask(p: Pair, hook: Hook) -> None:
+    p.held()
+    intercept(p.consumer, "reconcile_ask", before=hook)
+    Served(p.provider).listening()  # reachable: it asks its consumers what they hold
+
+
+def _pending(p: Pair, hook: Hook) -> None:
+    config = rr.RegistrarConfig(
+        name=f"durable-{uuid.uuid4().hex[:8]}", backup_path=p.tmp_path / "d.db", save_on_modify=True
+    )
+    durable = p.start(config)
+    intercept(durable, "pending", before=hook)
+    durable.call(p.provider.name, "leaf", "x")
+
+
+def _client_loaded(p: Pair, hook: Hook) -> None:
+    intercept(p.consumer, "client_loaded", before=hook)
+    p.held()
+
+
+def _call_failed(p: Pair, hook: Hook) -> None:
+    p.provider.register_server("broken", load=_raise, unload=_no_unload)
+    intercept(p.consumer, "call_failed", before=hook)
+    with pytest.raises(rr.ResourceLoadError):
+        p.consumer.call(p.provider.name, "broken", "x")
+
+
+def _answer(p: Pair, hook: Hook) -> None:
+    query = p.held()
+    intercept(p.consumer, "answer", before=hook)  # the provider's answer to its Unload
+    p.consumer.unload(query.id)
+
+
+def _flush(p: Pair, hook: Hook) -> None:
+    config = rr.RegistrarConfig(
+        name=f"flushing-{uuid.uuid4().hex[:8]}",
+        backup_path=p.tmp_path / "f.db",
+        save_on_modify=False,
+        save_interval=0.05,
+    )
+    intercept(p.start(config), "flush", before=hook)
+
+
+def _crash(p: Pair, hook: Hook) -> None:
+    intercept(p.consumer, "crash", before=hook)
+    crash(p.consumer)
+
+
+def _register_server(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "register_server", before=hook)
+    p.provider.register_server("other", load=str, unload=_no_unload)
+
+
+def _unregister_server(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "unregister_server", before=hook)
+    p.provider.unregister_server("leaf")
+
+
+def _release(p: Pair, hook: Hook) -> None:
+    query = p.held()
+    intercept(p.consumer, "release", before=hook)
+    p.consumer.unload(query.id)
+
+
+def _send_status(p: Pair, hook: Hook) -> None:
+    query = p.held()
+    intercept(p.provider, "send_status", before=hook)
+    p.provider.send_status(query.id, rr.Status.OK)
+
+
+def _server_queries(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "server_queries", before=hook)
+    p.provider.server_queries("leaf")
+
+
+def _client_queries(p: Pair, hook: Hook) -> None:
+    intercept(p.consumer, "client_queries", before=hook)
+    p.consumer.client_queries()
+
+
+def _set_status_callback(p: Pair, hook: Hook) -> None:
+    query = p.held()
+    intercept(p.consumer, "set_status_callback", before=hook)
+    p.consumer.set_status_callback(query.id, lambda _q, _u: None)
+
+
+def _update_response(p: Pair, hook: Hook) -> None:
+    query = p.held()
+    intercept(p.provider, "update_response", before=hook)
+    p.provider.update_response(query.id, "new")
+
+
+def _save(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "save", before=hook)
+    p.provider.save_catalog()
+
+
+def _stop(p: Pair, hook: Hook) -> None:
+    intercept(p.consumer, "stop", before=hook)
+    p.consumer.stop()
+
+
+def _ready(p: Pair, hook: Hook) -> None:
+    p.start(
+        f"setup-{uuid.uuid4().hex[:8]}",
+        setup=lambda registrar: intercept(registrar, "ready", before=hook),
+    )
+
+
+def _reachable(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "reachable", before=hook)
+    Served(p.provider).listening()
+
+
+def _snapshot(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "snapshot", before=hook)
+    catalog_snapshot(p.provider)
+
+
+def _ping(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "ping", before=hook)
+    pong = FutureReply()
+    p.provider._ping(pong)  # a manager process's heartbeat
+    assert pong.future.get(timeout=5) is None
+
+
+def _open_client(p: Pair, hook: Hook) -> None:
+    intercept(p.consumer, "open_client", before=hook)
+    p.held()  # the first call to a server starts its client
+
+
+def _run_on_actor(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "run_on_actor", before=hook)
+    run_on_actor(p.provider, lambda: None).get(timeout=5)
+
+
+DRIVERS: dict[str, Callable[[Pair, Hook], None]] = {
+    "load": _load,
+    "unload": _unload,
+    "abandon": _abandon,
+    "fetch": _fetch,
+    "status_notice": _status_notice,
+    "revoke": _revoke,
+    "response_updated": _response_updated,
+    "consumer_down": _consumer_down,
+    "reconcile": _reconcile,
+    "reconcile_ask": _reconcile_ask,
+    "pending": _pending,
+    "client_loaded": _client_loaded,
+    "call_failed": _call_failed,
+    "answer": _answer,
+    "flush": _flush,
+    "crash": _crash,
+    "register_server": _register_server,
+    "unregister_server": _unregister_server,
+    "release": _release,
+    "send_status": _send_status,
+    "server_queries": _server_queries,
+    "client_queries": _client_queries,
+    "set_status_callback": _set_status_callback,
+    "update_response": _update_response,
+    "save": _save,
+    "stop": _stop,
+    "ready": _ready,
+    "reachable": _reachable,
+    "snapshot": _snapshot,
+    "ping": _ping,
+    "open_client": _open_client,
+    "run_on_actor": _run_on_actor,
+}
+
+
+@pytest.fixture
+def pair(tmp_path: Path) -> Iterator[Pair]:
+    made = Pair(tmp_path)
+    yield made
+    made.close()
+
+
+def test_the_message_steps_are_the_step_names_of_the_dispatch_table() -> None:
+    names = [step for step, _ in DISPATCH.values()]
+
+    assert len(set(names)) == len(names)  # one step per message, none shared
+    assert frozenset(names) == MESSAGE_STEPS
+    assert MESSAGE_STEPS | POINTS == STEPS
+    assert not MESSAGE_STEPS & POINTS
+
+
+def test_every_message_step_has_a_driver_here() -> None:
+    assert sorted(MESSAGE_STEPS) == sorted(DRIVERS)
+
+
+@pytest.mark.parametrize("step", sorted(DRIVERS))
+def test_intercept_on_a_message_step_runs_its_hook_when_that_message_is_handled(
+    pair: Pair, step: str
+) -> None:
+    fired = threading.Event()
+    seen: list[type] = []
+
+    def hook(message: object) -> None:
+        seen.append(type(message))
+        fired.set()
+
+    DRIVERS[step](pair, hook)
+
+    assert fired.wait(5.0)
+    kinds = [kind for kind, (name, _) in DISPATCH.items() if name == step]
+    assert kinds == seen[:1]  # the hook saw the message of that table entry
+
+
+def test_a_second_call_to_a_server_finds_its_client_without_asking_the_actor(
+    pair: Pair,
+) -> None:
+    opened: list[object] = []
+    intercept(pair.consumer, "open_client", before=opened.append)
+
+    pair.held()
+    pair.held()
+
+    assert 1 == len(opened)
+    assert actor_ref(pair.consumer, client=(pair.provider.name, "leaf")).is_alive()

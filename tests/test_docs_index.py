@@ -1,0 +1,35 @@
+"""A newcomer who reads only the README or the docs' index starts the same way and finds
+every tutorial."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+TUTORIALS = sorted(p.name for p in (ROOT / "docs" / "tutorial").glob("*.md"))
+
+
+def first_block(page: Path) -> str:
+    match = re.search(r"```bash\n(.*?)```", page.read_text(), re.DOTALL)
+    assert match is not None, f"{page} has no bash block"
+    return match.group(1)
+
+
+def test_the_docs_index_starts_with_the_readmes_two_commands() -> None:
+    index = (ROOT / "docs" / "index.md").read_text().splitlines()
+
+    assert index[2] == "```bash"  # right under the title, as in the README
+    assert first_block(ROOT / "README.md") == first_block(ROOT / "docs" / "index.md")
+
+
+@pytest.mark.parametrize("tutorial", TUTORIALS)
+def test_every_tutorial_is_linked_from_the_index_and_the_readme(tutorial: str) -> None:
+    index = (ROOT / "docs" / "index.md").read_text()
+    where_next = index[index.index("## Where to go next") :]
+    readme = (ROOT / "README.md").read_text()
+
+    assert f"(tutorial/{tutorial})" in where_next
+    assert f"(docs/tutorial/{tutorial})" in readme

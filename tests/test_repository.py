@@ -1,0 +1,34 @@
+"""The repository itself: what the README's commands write when run from a checkout."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+GIT = shutil.which("git")
+
+
+@pytest.mark.skipif(GIT is None or not (ROOT / ".git").exists(), reason="not a git checkout")
+@pytest.mark.parametrize(
+    "written",
+    [
+        "rr-actors-demo/report.json",  # rr-actors demo
+        "state/erm.db",  # the README's supervisor snippet
+        "first-results/runs.csv",  # the README's experiment command
+        "results/runs.csv",  # the experiment tutorial's
+    ],
+)
+def test_what_the_readme_and_tutorials_write_is_ignored_by_git(written: str) -> None:
+    result = subprocess.run(
+        [str(GIT), "check-ignore", "--quiet", "--no-index", written],
+        cwd=ROOT,
+        capture_output=True,
+        timeout=30,
+        check=False,
+    )
+
+    assert 0 == result.returncode, f"{written} is not in .gitignore"
