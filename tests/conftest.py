@@ -60,13 +60,19 @@ from pathlib import Path
 from typing import Any
 
 import cloudpickle
+import gating
 import pykka
 import pytest
+from gating import GatedLoad, same
 
 import rr_actors as rr
-from rr_actors._process.manager import start_forkserver
-from rr_actors._transport.unix import System
-from rr_actors.testing import RemoteRegistrar, SharedObjects, pending_work
+from rr_actors.testing import (
+    RemoteRegistrar,
+    SharedObjects,
+    System,
+    pending_work,
+    start_forkserver,
+)
 
 pytest_plugins = ["carriers"]  # the transport tests' fixtures (tests/carriers.py)
 
@@ -235,6 +241,7 @@ def make_registrar(
     system: System | None = None
     if registrar_placement == "process":
         cloudpickle.register_pickle_by_value(sys.modules[__name__])
+        cloudpickle.register_pickle_by_value(gating)
         cloudpickle.register_pickle_by_value(request.module)
         system = System.create()
 
@@ -409,6 +416,21 @@ def gates(make_registrar: MakeRegistrar, shared: Shared) -> Iterator[Callable[[]
     yield make
     for event in made:
         event.set()
+
+
+@pytest.fixture
+def gated_load(gates: Callable[[], Any], shared: Shared) -> Callable[..., GatedLoad]:
+    """Make gated slow loads: `slow = gated_load(respond)`; `serve(provider, "leaf", slow)`.
+
+    Then `slow.started.wait(5)` (the load runs) and `slow.gate.set()` (let it answer). The
+    gate comes from `gates` (opened at teardown), the event and the request list from
+    `shared` (so the load may run in a manager process). `wait=20` for a longer bound.
+    """
+
+    def make(respond: Callable[[Any], Any] = same, *, wait: float = 10.0) -> GatedLoad:
+        return GatedLoad(gates(), shared.event(), respond, wait=wait, requests=shared.list())
+
+    return make
 
 
 def waiting_query_ids(provider: Registrar, timeout: float = 5.0) -> collections.Counter[str]:

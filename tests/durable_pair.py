@@ -1,12 +1,18 @@
-"""Durable registrars for the persistence tests: the provider/consumer pair that the crash
-tests run in their child processes, `start` for a registrar a test stops at teardown, and
-stores and schema-2 files to start from (`opened`, `schema_2_database`)."""
+"""The durable pair: a provider P and a consumer C with backups (`save_on_modify`).
+
+`pair_backups` names the pair and its backup files; `start_pair` (or `start_provider` and
+`start_consumer`) starts it, in a crash test's child process or in the test itself;
+`durable_config` is one durable registrar's config (for a manager process). Also `start`
+for a registrar a test stops at teardown, and stores and schema-2 files to start from
+(`opened`, `schema_2_database`)."""
 
 from __future__ import annotations
 
 import sqlite3
+import uuid
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import rr_actors as rr
 from rr_actors._catalog import DIGEST_SCHEME, Catalog
@@ -39,16 +45,37 @@ def leaf_load(request: Any) -> Any:
     return {"leaf": request}
 
 
+class PairBackups(NamedTuple):
+    """Unique names of P and C and their backup files (`p.db` and `c.db`)."""
+
+    names: tuple[str, str]
+    paths: tuple[Path, Path]
+
+
+def pair_backups(directory: Path) -> PairBackups:
+    """Names `P-<8 hex>` and `C-<8 hex>`, backups `directory`/p.db and c.db."""
+    tag = uuid.uuid4().hex
+    return PairBackups((f"P-{tag[:8]}", f"C-{tag[8:16]}"), (directory / "p.db", directory / "c.db"))
+
+
+def durable_config(prefix: str, directory: Path) -> rr.RegistrarConfig:
+    """Registrar `<prefix>-<8 hex>` with `save_on_modify` on backup `directory`/<name>.db."""
+    name = f"{prefix}-{uuid.uuid4().hex[:8]}"
+    return rr.RegistrarConfig(name, backup_path=directory / f"{name}.db", save_on_modify=True)
+
+
 def noop_unload(_request: Any, _response: Any) -> None:
     return None
 
 
-def start_provider(name: str, path: str) -> rr.ResourceRegistrar:
-    """Provider `name` with `save_on_modify` on `path` and a `leaf` server."""
+def start_provider(
+    name: str, path: str | Path, load: Callable[[Any], Any] = leaf_load
+) -> rr.ResourceRegistrar:
+    """Provider `name` with `save_on_modify` on `path` and a `leaf` server (`load`)."""
     provider = rr.ResourceRegistrar.start(
         rr.RegistrarConfig(name=name, backup_path=path, save_on_modify=True)
     )
-    provider.register_server("leaf", load=leaf_load, unload=noop_unload)
+    provider.register_server("leaf", load=load, unload=noop_unload)
     return provider
 
 

@@ -1,4 +1,5 @@
-"""Helpers of the supervisor tests: a clock and a timer driven by hand, process facts."""
+"""Helpers of the supervisor tests: a clock and a timer driven by hand, process facts, and
+the kill scaffold (`sigkill`, `kill_and_wait_restarted`, `crash` for a thread manager)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import contextlib
 import os
 import select
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -19,6 +21,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors import testing
 from rr_actors._platform import PLATFORM
 
 linux_trick = pytest.mark.skipif(
@@ -107,6 +110,34 @@ def wait_gone(pids: list[int], timeout: float = 15.0) -> list[int]:
     while any(alive(p) for p in pids) and time.monotonic() < deadline:
         pause.wait(0.02)
     return [p for p in pids if alive(p)]
+
+
+def pid_of(sup: rr.Supervisor, name: str) -> int:
+    """The pid of running manager process `name` (never 0 or None: `os.kill(0, ...)`
+    signals the whole process group)."""
+    pid = sup.child(name).pid
+    assert pid, f"{name} has no pid"
+    return pid
+
+
+def sigkill(sup: rr.Supervisor, name: str) -> int:
+    """SIGKILL supervised manager process `name` (a real crash); return the pid it had."""
+    pid = pid_of(sup, name)
+    os.kill(pid, signal.SIGKILL)
+    return pid
+
+
+def kill_and_wait_restarted(
+    sup: rr.Supervisor, name: str, *, timeout: float = 15.0
+) -> rr.ChildInfo:
+    """SIGKILL manager process `name`, then wait (bounded) until `sup` restarted it."""
+    sigkill(sup, name)
+    return sup.wait_restarted(name, timeout=timeout)
+
+
+def crash(sup: rr.Supervisor, name: str) -> None:
+    """Make thread manager `name`'s registrar actor die (the in-process SIGKILL)."""
+    testing.crash(sup.run_in(name, lambda r: r))
 
 
 def echo_setup(registrar: rr.ResourceRegistrar) -> None:

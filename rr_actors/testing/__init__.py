@@ -25,14 +25,27 @@ reaches into private handler tables, and renaming a step breaks such a test loud
 - [`expect_restart`][rr_actors.testing.expect_restart]: say a restart is coming, as a
   supervisor does (no death watch when the registrar dies).
 
+What those seams and `RemoteRegistrar` take, so a test needs no private module:
+
+- [`CallAttempt`][rr_actors.testing.CallAttempt] (and its
+  [`AttemptState`][rr_actors.testing.AttemptState]): the class to subclass for
+  `call_futures`;
+- [`System`][rr_actors.testing.System]: the system of registrars across processes that
+  `RemoteRegistrar.start` starts a manager process on (`System.create()`, `close()`);
+- [`start_forkserver`][rr_actors.testing.start_forkserver]: start the forkserver that
+  manager processes are forked from now, before a check that counts child processes.
+
 Where they live: `helpers.py`, `seams.py`, `shared.py` (re-exported here).
 """
 
 from __future__ import annotations
 
+from rr_actors._process.context import start_forkserver
 from rr_actors._process.remote import RemoteRegistrar
 from rr_actors._registrar.actor import STEPS
+from rr_actors._registrar.attempt import AttemptState, CallAttempt
 from rr_actors._registrar.lifecycle import CatalogView
+from rr_actors._transport.unix import System
 from rr_actors.testing.helpers import catalog_snapshot, crash, running_actors
 from rr_actors.testing.seams import (
     Installed,
@@ -48,12 +61,15 @@ from rr_actors.testing.shared import Records, SharedObjects
 
 __all__ = [
     "STEPS",
+    "AttemptState",
+    "CallAttempt",
     "CatalogView",
     "Installed",
     "PendingWork",
     "Records",
     "RemoteRegistrar",
     "SharedObjects",
+    "System",
     "actor_ref",
     "call_futures",
     "catalog_snapshot",
@@ -63,4 +79,5 @@ __all__ = [
     "pending_work",
     "run_on_actor",
     "running_actors",
+    "start_forkserver",
 ]

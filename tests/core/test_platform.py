@@ -2,9 +2,9 @@
 
 `PLATFORM` is `linux` on Linux and `portable` elsewhere or with
 `RR_ACTORS_PLATFORM=portable`. Every test that uses manager processes must pass on both:
-`test_the_process_tests_pass_on_the_portable_platform` runs those modules again, in a
+`tests/test_portable_platform.py` runs those modules (this one too) again, in a
 subprocess on the portable platform, as part of the normal run. Tests of what only a
-trick does are marked `linux_trick` (see `supervision.py`) and skipped there.
+trick does are marked `linux_trick` (see `supervising.py`) and skipped there.
 """
 
 from __future__ import annotations
@@ -22,22 +22,6 @@ import rr_actors as rr
 from rr_actors._platform import PLATFORM
 from rr_actors._process.context import start_forkserver
 
-ROOT = Path(__file__).resolve().parents[2]
-
-PORTABLE_MODULES = (
-    "tests/core/test_platform.py",
-    "tests/supervision/test_supervisor_processes.py",
-    "tests/supervision/test_supervisor_contract.py",
-    "tests/supervision/test_supervisor_otp.py",
-    "tests/supervision/test_supervisor_state_dir.py",
-    "tests/supervision/test_restart_contract.py",
-    "tests/registrar/test_durable_consumer_kill.py",
-    "tests/registrar/test_registrar_crash.py",
-    "tests/transport/test_transport_unix.py",
-    "tests/transport/test_transport_contract.py",
-)
-"""The test modules that use manager processes, run again on the portable platform."""
-
 _FORCED = os.environ.get("RR_ACTORS_PLATFORM") == "portable"
 
 
@@ -51,22 +35,6 @@ def test_the_platform_is_the_one_the_environment_asks_for() -> None:
     expected = "portable" if _FORCED or not sys.platform.startswith("linux") else "linux"
 
     assert expected == PLATFORM.name
-
-
-@pytest.mark.skipif(PLATFORM.name != "linux", reason="this run is on the portable platform")
-@pytest.mark.timeout(900)
-def test_the_process_tests_pass_on_the_portable_platform() -> None:
-    result = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *PORTABLE_MODULES],
-        cwd=ROOT,
-        env={**os.environ, "RR_ACTORS_PLATFORM": "portable"},
-        capture_output=True,
-        text=True,
-        timeout=850,
-        check=False,
-    )
-
-    assert 0 == result.returncode, result.stdout[-6000:] + result.stderr[-2000:]
 
 
 # -- process titles -------------------------------------------------------------------------

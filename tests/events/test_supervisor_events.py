@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import logging
 import os
-import signal
 import threading
 import uuid
 from collections.abc import Callable
 from typing import Any
 
 import pytest
+from supervising import kill_and_wait_restarted, pid_of, sigkill
 
 import rr_actors as rr
 from rr_actors import events
@@ -56,11 +56,9 @@ def test_children_start_exit_and_restart_in_order_with_their_pids(
     heard = Heard()
     subscription = sup.subscribe(heard)
     sup.start()
-    first_pid = sup.child(proc).pid
-    assert first_pid is not None
+    first_pid = pid_of(sup, proc)
 
-    os.kill(first_pid, signal.SIGKILL)
-    restarted = sup.wait_restarted(proc, timeout=10)
+    restarted = kill_and_wait_restarted(sup, proc, timeout=10)
     sup.stop()  # (its children's events are all here once they stopped)
     assert subscription.wait_delivered(timeout=5)
     subscription.close()
@@ -184,7 +182,7 @@ def test_a_restored_managers_in_doubt_loads_reach_a_subscriber_of_the_restart(
     assert entered.wait(10)
     heard = Heard()
     with sup.subscribe(heard) as subscription:
-        os.kill(sup.child(erm).pid or 0, signal.SIGKILL)
+        sigkill(sup, erm)
         caller.join(10)
         sup.wait_restarted(erm, timeout=10)
         assert sup.flush_events(timeout=5)

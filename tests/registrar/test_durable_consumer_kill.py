@@ -8,8 +8,6 @@ test once shared events say the interleaving was reached.
 
 from __future__ import annotations
 
-import os
-import signal
 import sys
 import threading
 import uuid
@@ -19,10 +17,10 @@ from typing import Any
 
 import cloudpickle
 import pytest
+from supervising import kill_and_wait_restarted
 
 import rr_actors as rr
-from rr_actors._process.manager import start_forkserver
-from rr_actors.testing import SharedObjects
+from rr_actors.testing import SharedObjects, start_forkserver
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -89,8 +87,7 @@ def test_a_durable_call_leaves_only_after_its_pending_record_is_committed(
     sup.run_in(c, arm)
     assert pending_reached.wait(10)
     assert qid not in sup.run_in(p, lambda r: [q.id for q in r.server_queries("leaf")])
-    os.kill(sup.child(c).pid or 0, signal.SIGKILL)
-    sup.wait_restarted(c, timeout=15.0)
+    kill_and_wait_restarted(sup, c)
 
     held_at_provider, held_by_consumer = _both_ends(sup, p, c)
     assert held_at_provider == held_by_consumer
@@ -116,8 +113,12 @@ def test_a_withdrawn_call_is_abandoned_at_its_provider_before_its_record_goes(
     def arm(registrar: rr.ResourceRegistrar) -> None:
         import threading  # noqa: PLC0415 - runs in the consumer's process
 
-        from rr_actors._registrar.calls import AttemptState, CallAttempt  # noqa: PLC0415
-        from rr_actors.testing import call_futures, intercept  # noqa: PLC0415
+        from rr_actors.testing import (  # noqa: PLC0415
+            AttemptState,
+            CallAttempt,
+            call_futures,
+            intercept,
+        )
 
         claimed, answer_handled = threading.Event(), threading.Event()
 
@@ -158,8 +159,7 @@ def test_a_withdrawn_call_is_abandoned_at_its_provider_before_its_record_goes(
     assert reached.wait(20)
     assert qid in sup.run_in(p, lambda r: [q.id for q in r.server_queries("leaf")])
     assert [] == sup.run_in(c, lambda r: [q.id for q in r.client_queries()])
-    os.kill(sup.child(c).pid or 0, signal.SIGKILL)
-    sup.wait_restarted(c, timeout=15.0)
+    kill_and_wait_restarted(sup, c)
 
     # (the restarted consumer's Abandon travels on a connection of its own)
     assert eventually(lambda: ([], []) == _both_ends(sup, p, c), timeout=10)
@@ -261,8 +261,7 @@ def test_a_stale_failure_of_an_earlier_attempt_leaves_a_retrys_record_on_disk(
         gate.set()
         unloader.join(30)
     assert answer_arrived.wait(20)  # the retry's answer was delivered to the consumer
-    os.kill(sup.child(c).pid or 0, signal.SIGKILL)
-    sup.wait_restarted(c, timeout=15.0)
+    kill_and_wait_restarted(sup, c)
 
     # The retry's pending record survived the stale failure, so the restarted consumer
     # gives the id back (its Abandon travels on a connection of its own).

@@ -24,11 +24,19 @@ from typing import Any
 
 import cloudpickle
 import pytest
+from durable_pair import durable_config
+from gating import GatedLoad
 
 import rr_actors as rr
-from rr_actors._process.manager import start_forkserver
-from rr_actors._transport.unix import System
-from rr_actors.testing import RemoteRegistrar, SharedObjects, crash, expect_restart, intercept
+from rr_actors.testing import (
+    RemoteRegistrar,
+    SharedObjects,
+    System,
+    crash,
+    expect_restart,
+    intercept,
+    start_forkserver,
+)
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -93,11 +101,6 @@ def composite_setup(provider: str) -> Callable[[rr.ResourceRegistrar], None]:
     return setup
 
 
-def durable(prefix: str, tmp_path: Path) -> rr.RegistrarConfig:
-    name = f"{prefix}-{uuid.uuid4().hex[:8]}"
-    return rr.RegistrarConfig(name, backup_path=tmp_path / f"{name}.db", save_on_modify=True)
-
-
 def delete_rows(backup: Path, table: str, query_id: str) -> None:
     """Remove a row from a dead registrar's backup, as a lost commit would leave it."""
     with contextlib.closing(sqlite3.connect(backup)) as db, db:
@@ -109,9 +112,9 @@ def test_an_id_released_while_its_provider_was_down_is_released_after_its_restar
     managers: Callable[..., RemoteRegistrar], tmp_path: Path, process_helpers: SharedObjects
 ) -> None:
     unloads, unloaded = process_helpers.list(), process_helpers.event()
-    config = durable("provider", tmp_path)
+    config = durable_config("provider", tmp_path)
     provider = managers(config, provider_setup(unloads, unloaded))
-    consumer = managers(durable("consumer", tmp_path), composite_setup(config.name))
+    consumer = managers(durable_config("consumer", tmp_path), composite_setup(config.name))
     top = consumer.call(consumer.name, "composite", "camera", timeout=10)
     assert 1 == len(provider.server_queries("leaf"))  # the composite's dependency
 
@@ -131,9 +134,9 @@ def test_an_id_the_restarted_provider_lost_is_reported_fatal_and_forgotten(
     eventually: Callable[..., bool],
 ) -> None:
     unloads, heard = process_helpers.list(), process_helpers.list()
-    config = durable("provider", tmp_path)
+    config = durable_config("provider", tmp_path)
     provider = managers(config, provider_setup(unloads))
-    consumer = managers(durable("consumer", tmp_path), None)
+    consumer = managers(durable_config("consumer", tmp_path), None)
 
     def note(query: rr.Query, update: rr.StatusUpdate) -> None:
         heard.append((query.id, update.status))
@@ -164,7 +167,7 @@ def test_an_id_a_restarted_consumer_lost_is_released_at_its_provider(
     provider = rr.ResourceRegistrar.start(f"provider-{uuid.uuid4().hex[:8]}")
     started.append(provider)
     provider.register_server("leaf", load=lambda r: r, unload=unload)
-    config = durable("consumer", tmp_path)
+    config = durable_config("consumer", tmp_path)
     consumer = rr.ResourceRegistrar.start(config)
     kept = consumer.call(provider.name, "leaf", "camera", timeout=10)
     lost = consumer.call(provider.name, "leaf", "lidar", timeout=10)
@@ -186,19 +189,13 @@ def test_a_retry_after_the_provider_reconciled_finds_the_id_it_committed_before_
     # Rule 17, case 3: the provider committed the consumer id and died before its answer
     # left; the call failed with RegistrarUnavailableError. The restarted provider
     # reconciles with the consumer before the retry comes: the id must stay held there.
-    loads: list[Any] = []
-    gate, entered = threading.Event(), threading.Event()
-
-    def load(request: Any) -> Any:
-        loads.append(request)
-        entered.set()
-        assert gate.wait(10)
-        return {"for": request}
+    load = GatedLoad(threading.Event(), threading.Event(), lambda request: {"for": request})
+    loads, gate, entered = load.requests, load.gate, load.started
 
     def serve(registrar: rr.ResourceRegistrar) -> None:
         registrar.register_server("leaf", load=load, unload=lambda _r, _s: None)
 
-    config = durable("provider", tmp_path)
+    config = durable_config("provider", tmp_path)
     provider = rr.ResourceRegistrar.start(config, setup=serve)
     consumer = rr.ResourceRegistrar.start(f"consumer-{uuid.uuid4().hex[:8]}")
     started.append(consumer)

@@ -244,23 +244,17 @@ def test_without_erase_on_destruct_a_clean_stop_keeps_the_backup(make_registrar,
 
 
 def test_consumer_records_are_cleared_when_a_consumer_stops_while_a_load_runs(
-    make_registrar, serve, gates, shared
+    make_registrar, serve, gated_load
 ):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), shared.event()
-
-    def slow(request):
-        started.set()
-        assert gate.wait(10)
-        return request
-
+    slow = gated_load()
     leaf = serve(provider, "slow", slow)
     caller = threading.Thread(target=_call_ignoring_errors, args=(consumer, provider.name))
     caller.start()
-    assert started.wait(5)
+    assert slow.started.wait(5)
 
     consumer.stop()
-    gate.set()
+    slow.gate.set()
     caller.join(10)
 
     assert leaf.unloaded.wait(5)
@@ -273,23 +267,17 @@ def _call_ignoring_errors(consumer, provider_name):
 
 
 def test_a_consumer_that_crashes_while_its_call_loads_is_released_when_the_load_ends(
-    make_registrar, serve, gates, shared
+    make_registrar, serve, gated_load
 ):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), shared.event()
-
-    def slow(request):
-        started.set()
-        assert gate.wait(10)
-        return request
-
+    slow = gated_load()
     leaf = serve(provider, "slow", slow)
     caller = threading.Thread(target=_call_ignoring_errors, args=(consumer, provider.name))
     caller.start()
-    assert started.wait(5)
+    assert slow.started.wait(5)
 
     crash(consumer)
-    gate.set()
+    slow.gate.set()
     caller.join(10)
 
     assert leaf.unloaded.wait(5)

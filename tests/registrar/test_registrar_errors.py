@@ -9,6 +9,7 @@ import uuid
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import pytest
+from gating import GatedLoad
 
 import rr_actors as rr
 from rr_actors.testing import catalog_snapshot
@@ -186,15 +187,11 @@ def test_a_sub_call_in_flight_when_its_load_fails_is_released_not_leaked(tmp_pat
     provider = rr.ResourceRegistrar.start(f"P-{uuid.uuid4().hex[:8]}")
     agent = _agent(tmp_path, save_on_modify)
     consumer = rr.ResourceRegistrar.start(f"C-{uuid.uuid4().hex[:8]}")
-    started, gate, unloaded = threading.Event(), threading.Event(), threading.Event()
+    leaf = GatedLoad(threading.Event(), threading.Event())
+    started, gate, unloaded = leaf.started, leaf.gate, threading.Event()
     late: list[Future[rr.Query]] = []
     pool = ThreadPoolExecutor(1)
     try:
-
-        def leaf(request):
-            started.set()
-            return gate.wait(10) and request
-
         provider.register_server("leaf", load=leaf, unload=lambda r, s: unloaded.set())
 
         def composite(request):
@@ -281,26 +278,22 @@ def test_a_failed_load_leaves_nothing_so_an_equal_request_loads_afresh(
     assert [query.id] == [q.id for q in consumer.client_queries()]
 
 
-def test_every_waiter_of_a_failing_load_gets_the_error(
-    make_registrar, serve, gates, arrived, shared
-):
+def test_every_waiter_of_a_failing_load_gets_the_error(make_registrar, serve, gated_load, arrived):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), shared.event()
 
-    def fails_later(request):
-        started.set()
-        assert gate.wait(10)
+    def fail(request):
         raise SensorError("late failure")
 
+    fails_later = gated_load(fail)
     serve(provider, "leaf", fails_later)
     ids = [str(uuid.uuid4()) for _ in range(3)]
     with ThreadPoolExecutor(3) as pool:
         futures = [
             pool.submit(consumer.call, provider.name, "leaf", "x", query_id=qid) for qid in ids
         ]
-        assert started.wait(5)
+        assert fails_later.started.wait(5)
         assert arrived(provider, ids)
-        gate.set()
+        fails_later.gate.set()
         errors = [f.exception(timeout=10) for f in futures]
 
     assert all(isinstance(e, rr.ResourceLoadError) for e in errors)

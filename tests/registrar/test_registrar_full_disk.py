@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from gating import GatedLoad
 from small_disk import fill, mounted
 
 import rr_actors as rr
@@ -138,13 +139,8 @@ def test_loads_are_served_again_once_a_write_succeeds(provider: Provider, disk: 
 def test_a_load_that_cannot_be_recorded_when_it_finishes_is_unloaded_and_fails_its_caller(
     provider: Provider, disk: Path
 ) -> None:
-    entered, gate = threading.Event(), threading.Event()
-
-    def slow(request: Any) -> Any:
-        entered.set()
-        assert gate.wait(10)
-        return f"slow {request}"
-
+    slow = GatedLoad(threading.Event(), threading.Event(), lambda request: f"slow {request}")
+    entered, gate = slow.started, slow.gate
     provider.registrar.register_server("slow", load=slow, unload=provider.unload)
     outcome: list[Any] = []
 

@@ -187,16 +187,10 @@ def test_a_query_id_reused_for_another_call_is_refused_naming_the_id(
 
 
 def test_concurrent_equal_requests_run_load_exactly_once(
-    make_registrar, serve, gates, arrived, shared
+    make_registrar, serve, gated_load, arrived
 ):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), shared.event()
-
-    def slow(request):
-        started.set()
-        assert gate.wait(10)
-        return {"resource": request}
-
+    slow = gated_load(lambda request: {"resource": request})
     leaf = serve(provider, "leaf", slow)
     ids = [str(uuid.uuid4()) for _ in range(5)]
     with ThreadPoolExecutor(5) as pool:
@@ -204,9 +198,9 @@ def test_concurrent_equal_requests_run_load_exactly_once(
             pool.submit(consumer.call, provider.name, "leaf", {"cam": 1}, query_id=qid)
             for qid in ids
         ]
-        assert started.wait(5)
+        assert slow.started.wait(5)
         assert arrived(provider, ids)  # all five wait at the provider
-        gate.set()
+        slow.gate.set()
         queries = [f.result(timeout=10) for f in futures]
 
     assert [{"cam": 1}] == leaf.loads
@@ -216,17 +210,11 @@ def test_concurrent_equal_requests_run_load_exactly_once(
 
 
 def test_concurrent_equal_requests_from_different_registrars_run_load_once(
-    make_registrar, serve, gates, arrived, shared
+    make_registrar, serve, gated_load, arrived
 ):
     provider = make_registrar("provider")
     consumers = [make_registrar(f"consumer{i}") for i in range(3)]
-    gate, started = gates(), shared.event()
-
-    def slow(request):
-        started.set()
-        assert gate.wait(10)
-        return "shared"
-
+    slow = gated_load(lambda _request: "shared")
     leaf = serve(provider, "leaf", slow)
     ids = [str(uuid.uuid4()) for _ in consumers]
     with ThreadPoolExecutor(3) as pool:
@@ -234,9 +222,9 @@ def test_concurrent_equal_requests_from_different_registrars_run_load_once(
             pool.submit(c.call, provider.name, "leaf", ["x"], query_id=qid)
             for c, qid in zip(consumers, ids, strict=True)
         ]
-        assert started.wait(5)
+        assert slow.started.wait(5)
         assert arrived(provider, ids)
-        gate.set()
+        slow.gate.set()
         responses = [f.result(timeout=10).response for f in futures]
 
     assert 1 == len(leaf.loads)
@@ -259,27 +247,19 @@ def test_different_requests_to_one_server_load_concurrently(make_registrar, serv
         assert ["a", "b"] == [f.result(timeout=10).response for f in futures]
 
 
-def test_a_slow_load_on_one_server_does_not_stall_another_server(
-    make_registrar, serve, gates, shared
-):
+def test_a_slow_load_on_one_server_does_not_stall_another_server(make_registrar, serve, gated_load):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), shared.event()
-
-    def stuck(request):
-        started.set()
-        assert gate.wait(10)
-        return request
-
+    stuck = gated_load()
     serve(provider, "slow", stuck)
     serve(provider, "fast")
     with ThreadPoolExecutor(1) as pool:
         slow_call = pool.submit(consumer.call, provider.name, "slow", "s")
-        assert started.wait(5)
+        assert stuck.started.wait(5)
 
         fast = consumer.call(provider.name, "fast", "f", timeout=5)
 
         assert {"resource": "f"} == fast.response
-        gate.set()
+        stuck.gate.set()
         assert "s" == slow_call.result(timeout=10).response
 
 

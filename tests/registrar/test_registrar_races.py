@@ -12,10 +12,12 @@ from typing import Any
 
 import pykka
 import pytest
+from gating import GatedLoad
 
 import rr_actors as rr
-from rr_actors._registrar.calls import AttemptState, CallAttempt
 from rr_actors.testing import (
+    AttemptState,
+    CallAttempt,
     actor_ref,
     call_futures,
     catalog_snapshot,
@@ -59,15 +61,9 @@ def _in_thread(fn: Callable[[], Any]) -> tuple[threading.Thread, list[Any]]:
 
 def _gated_server(registrar: rr.ResourceRegistrar) -> tuple[threading.Event, threading.Event]:
     """A server `slow` whose load waits for the returned gate; `entered` is set on entry."""
-    entered, gate = threading.Event(), threading.Event()
-
-    def load(request: Any) -> Any:
-        entered.set()
-        assert gate.wait(10)
-        return f"loaded {request}"
-
+    load = GatedLoad(threading.Event(), threading.Event(), lambda request: f"loaded {request}")
     registrar.register_server("slow", load=load, unload=lambda r, s: None)
-    return entered, gate
+    return load.started, load.gate
 
 
 def test_stopping_a_provider_fails_the_calls_waiting_on_its_loads_at_once(started: Any) -> None:

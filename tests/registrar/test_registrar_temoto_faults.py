@@ -42,16 +42,10 @@ def test_fault_dependencies_were_keyed_to_the_first_consumer(make_registrar, ser
 
 
 def test_fault_concurrent_identical_requests_loaded_twice(
-    make_registrar, serve, gates, arrived, shared
+    make_registrar, serve, gated_load, arrived
 ):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), shared.event()
-
-    def slow(request):
-        started.set()
-        assert gate.wait(10)
-        return request
-
+    slow = gated_load()
     leaf = serve(provider, "leaf", slow)
     ids = [str(uuid.uuid4()) for _ in range(2)]
     with ThreadPoolExecutor(2) as pool:
@@ -59,9 +53,9 @@ def test_fault_concurrent_identical_requests_loaded_twice(
             pool.submit(consumer.call, provider.name, "leaf", {"a": [1]}, query_id=qid)
             for qid in ids
         ]
-        assert started.wait(5)
+        assert slow.started.wait(5)
         assert arrived(provider, ids)
-        gate.set()
+        slow.gate.set()
         for future in futures:
             future.result(timeout=10)
 

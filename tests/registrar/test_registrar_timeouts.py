@@ -8,22 +8,12 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 import rr_actors as rr
-from rr_actors._registrar.calls import CallAttempt
-from rr_actors.testing import call_futures, catalog_snapshot, crash
+from rr_actors.testing import CallAttempt, call_futures, catalog_snapshot, crash
 
 
-def stuck_load(gate, started):
-    def load(request):
-        started.set()
-        assert gate.wait(20)
-        return request
-
-    return load
-
-
-def test_a_call_whose_load_hangs_raises_call_timeout_error(make_registrar, serve, gates, shared):
+def test_a_call_whose_load_hangs_raises_call_timeout_error(make_registrar, serve, gated_load):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    serve(provider, "leaf", stuck_load(gates(), shared.event()))
+    serve(provider, "leaf", gated_load(wait=20))
 
     with pytest.raises(rr.CallTimeoutError) as info:
         consumer.call(provider.name, "leaf", "x", timeout=0.3)
@@ -31,9 +21,9 @@ def test_a_call_whose_load_hangs_raises_call_timeout_error(make_registrar, serve
     assert isinstance(info.value, TimeoutError)
 
 
-def test_the_default_timeout_comes_from_the_registrar_config(make_registrar, serve, gates, shared):
+def test_the_default_timeout_comes_from_the_registrar_config(make_registrar, serve, gated_load):
     provider, consumer = make_registrar("provider"), make_registrar("consumer", call_timeout=0.3)
-    serve(provider, "leaf", stuck_load(gates(), shared.event()))
+    serve(provider, "leaf", gated_load(wait=20))
     began = time.monotonic()
 
     with pytest.raises(rr.CallTimeoutError):
@@ -43,15 +33,15 @@ def test_the_default_timeout_comes_from_the_registrar_config(make_registrar, ser
 
 
 def test_a_load_that_completes_after_its_caller_timed_out_is_released(
-    make_registrar, serve, gates, shared, eventually
+    make_registrar, serve, gated_load, eventually
 ):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), shared.event()
-    leaf = serve(provider, "leaf", stuck_load(gate, started))
+    stuck = gated_load(wait=20)
+    leaf = serve(provider, "leaf", stuck)
     with pytest.raises(rr.CallTimeoutError):
         consumer.call(provider.name, "leaf", "x", timeout=0.3)
 
-    gate.set()
+    stuck.gate.set()
 
     assert leaf.unloaded.wait(5)
     assert [("x", "x")] == leaf.unloads
@@ -61,17 +51,17 @@ def test_a_load_that_completes_after_its_caller_timed_out_is_released(
 
 
 def test_a_timed_out_waiter_does_not_take_the_resource_from_a_patient_caller(
-    make_registrar, serve, gates, arrived, shared
+    make_registrar, serve, gated_load, arrived
 ):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), shared.event()
-    leaf = serve(provider, "leaf", stuck_load(gate, started))
+    stuck = gated_load(wait=20)
+    leaf = serve(provider, "leaf", stuck)
     with ThreadPoolExecutor(1) as pool:
         patient = pool.submit(consumer.call, provider.name, "leaf", "x", timeout=20)
-        assert started.wait(5)
+        assert stuck.started.wait(5)
         with pytest.raises(rr.CallTimeoutError):
             consumer.call(provider.name, "leaf", "x", timeout=0.3)
-        gate.set()
+        stuck.gate.set()
         query = patient.result(timeout=20)
 
     assert [query.id] == [q.id for q in provider.server_queries("leaf")]
@@ -80,11 +70,11 @@ def test_a_timed_out_waiter_does_not_take_the_resource_from_a_patient_caller(
 
 
 def test_a_timed_out_call_inside_a_load_leaves_no_dependency_behind(
-    make_registrar, serve, gates, shared, eventually
+    make_registrar, serve, gated_load, eventually
 ):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate = gates()
-    slow = serve(provider, "slow", stuck_load(gate, shared.event()))
+    stuck = gated_load(wait=20)
+    slow = serve(provider, "slow", stuck)
 
     def impatient(request):
         return provider.call(provider.name, "slow", request, timeout=0.3)
@@ -92,7 +82,7 @@ def test_a_timed_out_call_inside_a_load_leaves_no_dependency_behind(
     serve(provider, "composite", impatient)
     with pytest.raises(rr.ResourceLoadError) as info:
         consumer.call(provider.name, "composite", "x", timeout=10)
-    gate.set()
+    stuck.gate.set()
 
     assert "CallTimeoutError" == info.value.stack[0].exc_type
     assert slow.unloaded.wait(5)
@@ -124,15 +114,13 @@ def test_unregister_server_with_a_hanging_unload_raises_call_timeout_error(make_
         provider.unregister_server("leaf", timeout=0.3)
 
 
-def test_a_call_in_flight_to_a_registrar_that_dies_fails_at_once(
-    make_registrar, serve, gates, shared
-):
+def test_a_call_in_flight_to_a_registrar_that_dies_fails_at_once(make_registrar, serve, gated_load):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    started = shared.event()
-    serve(provider, "leaf", stuck_load(gates(), started))
+    stuck = gated_load(wait=20)
+    serve(provider, "leaf", stuck)
     with ThreadPoolExecutor(1) as pool:
         call = pool.submit(consumer.call, provider.name, "leaf", "x", timeout=30)
-        assert started.wait(5)
+        assert stuck.started.wait(5)
         began = time.monotonic()
 
         crash(provider)
@@ -151,11 +139,11 @@ def test_an_invalid_timeout_is_a_config_error(make_registrar, serve, timeout):
 
 
 def test_retrying_a_timed_out_call_with_its_query_id_gets_the_resource(
-    make_registrar, serve, gates, arrived, shared
+    make_registrar, serve, gated_load, arrived
 ):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    gate, started = gates(), shared.event()
-    leaf = serve(provider, "leaf", stuck_load(gate, started))
+    stuck = gated_load(wait=20)
+    leaf = serve(provider, "leaf", stuck)
     with pytest.raises(rr.CallTimeoutError):
         consumer.call(provider.name, "leaf", "x", timeout=0.3, query_id=QUERY_ID)
     with ThreadPoolExecutor(1) as pool:
@@ -163,7 +151,7 @@ def test_retrying_a_timed_out_call_with_its_query_id_gets_the_resource(
             consumer.call, provider.name, "leaf", "x", timeout=10, query_id=QUERY_ID
         )
         assert arrived(provider, [QUERY_ID, QUERY_ID])  # the retry joined the running load
-        gate.set()
+        stuck.gate.set()
         query = retry.result(timeout=20)
 
     assert (QUERY_ID, "x") == (query.id, query.response)

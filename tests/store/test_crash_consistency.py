@@ -30,8 +30,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-import pytest
-from durable_pair import start_pair
+from durable_pair import pair_backups, start_pair
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog
@@ -149,8 +148,7 @@ def run_kills(
     Returns the model of what was acknowledged (the checks ran after every kill).
     """
     rng = random.Random(seed)  # noqa: S311 - reproducible kill moments
-    paths = (directory / "p.db", directory / "c.db")
-    names = (f"P-{uuid.uuid4().hex[:8]}", f"C-{uuid.uuid4().hex[:8]}")
+    names, paths = pair_backups(directory)
     model = Model()
     for _ in range(kills):
         parent_end, child_end = context.Pipe(duplex=False)
@@ -179,16 +177,6 @@ def run_kills(
         assert process.exitcode == -signal.SIGKILL, f"the worker ended with {process.exitcode}"
         check(paths, model)
     return model
-
-
-@pytest.fixture(scope="session")
-def context() -> multiprocessing.context.ForkServerContext:
-    """The forkserver context, its server started before any leak check."""
-    ctx = multiprocessing.get_context("forkserver")
-    assert isinstance(ctx, multiprocessing.context.ForkServerContext)
-    ctx.set_forkserver_preload(["rr_actors", "rr_actors._store.sqlite", "cloudpickle"])
-    multiprocessing.forkserver.ensure_running()
-    return ctx
 
 
 def test_fifty_random_kills_never_tear_a_catalog_nor_lose_an_acknowledged_operation(

@@ -26,8 +26,7 @@ from small_disk import fill, mounted
 import rr_actors as rr
 from rr_actors._catalog import Catalog, Changes
 from rr_actors._store import Saver, SqliteStore, quarantine_backup, read_backup
-from rr_actors._transport.unix import System
-from rr_actors.testing import RemoteRegistrar
+from rr_actors.testing import RemoteRegistrar, System
 
 
 def unique(prefix: str) -> str:

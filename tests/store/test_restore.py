@@ -10,8 +10,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from durable_pair import leaf_load, noop_unload, start
-from persisting import Recorder, RunAndKill, child_hold, child_stuck_in_load, ordered, unique
+from durable_pair import leaf_load, noop_unload, pair_backups, start
+from persisting import Recorder, RunAndKill, child_hold, child_stuck_in_load, ordered
 
 import rr_actors as rr
 from rr_actors.testing import catalog_snapshot
@@ -20,7 +20,7 @@ from rr_actors.testing import catalog_snapshot
 def test_a_registrar_restarted_after_a_kill_restores_every_served_query_and_client_record(
     tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
 ) -> None:
-    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    names, paths = pair_backups(tmp_path)
     [(_, provider_view, consumer_view)] = run_and_kill(child_hold, names, tuple(map(str, paths)))
 
     provider = start(started, names[0], paths[0], save_on_modify=True)
@@ -36,7 +36,7 @@ def test_a_registrar_restarted_after_a_kill_restores_every_served_query_and_clie
 def test_setup_code_sees_the_restored_queries_before_it_registers_its_servers(
     tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
 ) -> None:
-    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    names, paths = pair_backups(tmp_path)
     [((first, second, _), _, _)] = run_and_kill(child_hold, names, tuple(map(str, paths)))
     provider = start(started, names[0], paths[0], save_on_modify=True)
     provider.register_server("leaf", load=leaf_load, unload=noop_unload)
@@ -49,7 +49,7 @@ def test_setup_code_sees_the_restored_queries_before_it_registers_its_servers(
 def test_consumer_ids_issued_before_a_kill_unload_after_the_restart(
     tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
 ) -> None:
-    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    names, paths = pair_backups(tmp_path)
     [((first, second, _), _, _)] = run_and_kill(child_hold, names, tuple(map(str, paths)))
     provider = start(started, names[0], paths[0], save_on_modify=True)
     leaf = Recorder()
@@ -66,7 +66,7 @@ def test_consumer_ids_issued_before_a_kill_unload_after_the_restart(
 def test_a_nested_resource_restored_after_a_kill_releases_its_dependency_when_unloaded(
     tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
 ) -> None:
-    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    names, paths = pair_backups(tmp_path)
     [((_, _, third), _, _)] = run_and_kill(child_hold, names, tuple(map(str, paths)))
     provider = start(started, names[0], paths[0], save_on_modify=True)
     leaf, nested = Recorder(), Recorder()
@@ -83,7 +83,7 @@ def test_an_equal_request_after_a_restart_in_another_process_reuses_the_restored
     tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
 ) -> None:
     # The child hashed its strings with another seed: only requests are stored, never hashes.
-    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    names, paths = pair_backups(tmp_path)
     run_and_kill(child_hold, names, tuple(map(str, paths)))
     provider = start(started, names[0], paths[0], save_on_modify=True)
     leaf = Recorder()
@@ -99,7 +99,7 @@ def test_an_equal_request_after_a_restart_in_another_process_reuses_the_restored
 def test_a_load_killed_inside_its_callback_is_reported_in_doubt_after_the_restart(
     tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
 ) -> None:
-    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    names, paths = pair_backups(tmp_path)
     run_and_kill(child_stuck_in_load, names, tuple(map(str, paths)))
 
     provider = start(started, names[0], paths[0], save_on_modify=True)
@@ -113,7 +113,7 @@ def test_the_dependency_of_an_in_doubt_load_is_released_after_the_restart(
     started: list[rr.ResourceRegistrar],
     eventually: Callable[..., bool],
 ) -> None:
-    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    names, paths = pair_backups(tmp_path)
     run_and_kill(child_stuck_in_load, names, tuple(map(str, paths)))
     provider = start(started, names[0], paths[0], save_on_modify=True)
     leaf = Recorder()
@@ -128,7 +128,7 @@ def test_the_dependency_of_an_in_doubt_load_is_released_after_the_restart(
 def test_a_registrar_without_in_doubt_loads_reports_none(
     tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
 ) -> None:
-    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    names, paths = pair_backups(tmp_path)
     run_and_kill(child_hold, names, tuple(map(str, paths)))
 
     provider = start(started, names[0], paths[0], save_on_modify=True)

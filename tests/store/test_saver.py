@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from durable_pair import leaf_load, noop_unload, start
+from durable_pair import leaf_load, noop_unload, pair_backups, start
 from persisting import ManualTimers, RunAndKill, child_hold, consumer_ids, unique
 
 import rr_actors as rr
@@ -181,7 +181,7 @@ def test_erase_on_destruct_removes_the_backup_after_a_clean_stop(tmp_path: Path)
 def test_erase_on_destruct_keeps_the_backup_after_a_kill(
     tmp_path: Path, run_and_kill: RunAndKill
 ) -> None:
-    names, paths = (unique("P"), unique("C")), (tmp_path / "p.db", tmp_path / "c.db")
+    names, paths = pair_backups(tmp_path)
 
     run_and_kill(child_hold, names, tuple(map(str, paths)))
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from durable_pair import noop_unload
+from durable_pair import start_provider
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from persisting import (
@@ -174,19 +174,12 @@ def test_a_registrar_restarted_writes_update_response_to_none_on_a_restored_quer
     path = tmp_path / "p.db"
     name = unique("P")
 
-    def start_provider() -> rr.ResourceRegistrar:
-        provider = rr.ResourceRegistrar.start(
-            rr.RegistrarConfig(name=name, backup_path=path, save_on_modify=True)
-        )
-        provider.register_server("leaf", load=lambda r: {"pid": 42}, unload=noop_unload)
-        return provider
-
-    provider = start_provider()
+    provider = start_provider(name, path, lambda _request: {"pid": 42})
     consumer = rr.ResourceRegistrar.start(unique("C"))
     try:
         query = consumer.call(name, "leaf", {"cmd": "x"}, timeout=5)
         provider.stop()
-        provider = start_provider()
+        provider = start_provider(name, path, lambda _request: {"pid": 42})
         provider.update_response(query.id, None)
         provider.stop()
     finally:

@@ -30,13 +30,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from gating import GatedLoad
 
 import rr_actors as rr
 from rr_actors._catalog import Changes, ClientRecord
-from rr_actors._core.directory import DIRECTORY
 from rr_actors._store.files import read_backup
 from rr_actors._store.sqlite import SqliteStore
-from rr_actors.testing import catalog_snapshot, crash
+from rr_actors.testing import catalog_snapshot, crash, expect_restart
 
 
 def _name(prefix: str) -> str:
@@ -68,35 +68,34 @@ def test_a_restarted_consumer_gives_back_an_id_its_provider_answered_but_it_neve
     consumer_config = rr.RegistrarConfig(name=_name("C"), backup_path=path, save_on_modify=True)
     consumer = rr.ResourceRegistrar.start(consumer_config)
     restarted: rr.ResourceRegistrar | None = None
-    DIRECTORY.expect_restart(consumer.name)  # as a supervisor does: no death watch
-    try:
-        provider.register_server("leaf", load=lambda r: {"pid": r}, unload=unload)
-        query = consumer.call(provider.name, "leaf", "camera", timeout=5)
-        crash(consumer)
-        assert [query.id] == [q.id for q in provider.server_queries("leaf")]  # kept: restart
-        # The kill came after the provider answered and before the consumer committed the
-        # answer: its backup holds the record as written before the load went out.
-        store = SqliteStore.open(path)
+    with expect_restart(consumer.name):  # as a supervisor does: no death watch
         try:
-            pending = ClientRecord(query.with_response(None), None, loaded=False)
-            store.write(Changes({}, {query.id: pending}))
+            provider.register_server("leaf", load=lambda r: {"pid": r}, unload=unload)
+            query = consumer.call(provider.name, "leaf", "camera", timeout=5)
+            crash(consumer)
+            assert [query.id] == [q.id for q in provider.server_queries("leaf")]  # kept: restart
+            # The kill came after the provider answered and before the consumer committed the
+            # answer: its backup holds the record as written before the load went out.
+            store = SqliteStore.open(path)
+            try:
+                pending = ClientRecord(query.with_response(None), None, loaded=False)
+                store.write(Changes({}, {query.id: pending}))
+            finally:
+                store.close(erase=False)
+            assert [False] == [c.loaded for c in read_backup(path).clients]
+
+            restarted = rr.ResourceRegistrar.start(consumer_config)
+
+            assert unloaded.wait(5), "the provider still holds the id of the lost call"
+            assert (["camera"], [], []) == (
+                unloads,
+                provider.server_queries("leaf"),
+                restarted.client_queries(),
+            )
         finally:
-            store.close(erase=False)
-        assert [False] == [c.loaded for c in read_backup(path).clients]
-
-        restarted = rr.ResourceRegistrar.start(consumer_config)
-
-        assert unloaded.wait(5), "the provider still holds the id of the lost call"
-        assert (["camera"], [], []) == (
-            unloads,
-            provider.server_queries("leaf"),
-            restarted.client_queries(),
-        )
-    finally:
-        DIRECTORY.expect_restart(consumer_config.name, expected=False)
-        if restarted is not None:
-            restarted.stop()
-        provider.stop()
+            if restarted is not None:
+                restarted.stop()
+            provider.stop()
 
 
 def test_set_status_callback_reattaches_a_callback_to_a_query_restored_after_a_restart(
@@ -115,23 +114,22 @@ def test_set_status_callback_reattaches_a_callback_to_a_query_restored_after_a_r
     consumer_config = rr.RegistrarConfig(name=_name("C"), backup_path=path, save_on_modify=True)
     consumer = rr.ResourceRegistrar.start(consumer_config)
     restarted: rr.ResourceRegistrar | None = None
-    DIRECTORY.expect_restart(consumer.name)
-    try:
-        provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: None)
-        query = consumer.call(provider.name, "leaf", "camera", timeout=5)
-        crash(consumer)
-        restarted = rr.ResourceRegistrar.start(consumer_config)
+    with expect_restart(consumer.name):
+        try:
+            provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: None)
+            query = consumer.call(provider.name, "leaf", "camera", timeout=5)
+            crash(consumer)
+            restarted = rr.ResourceRegistrar.start(consumer_config)
 
-        restarted.set_status_callback(query.id, on_status)
-        provider.send_status(query.id, rr.Status.ERROR, "lost", timeout=5)
+            restarted.set_status_callback(query.id, on_status)
+            provider.send_status(query.id, rr.Status.ERROR, "lost", timeout=5)
 
-        assert got.wait(5)
-        assert [(query.id, query.id, rr.Status.ERROR)] == updates
-    finally:
-        DIRECTORY.expect_restart(consumer_config.name, expected=False)
-        if restarted is not None:
-            restarted.stop()
-        provider.stop()
+            assert got.wait(5)
+            assert [(query.id, query.id, rr.Status.ERROR)] == updates
+        finally:
+            if restarted is not None:
+                restarted.stop()
+            provider.stop()
 
 
 class SensorError(Exception):
@@ -149,50 +147,45 @@ def test_a_sub_call_written_down_after_its_load_failed_is_given_back_after_a_cra
     agent = rr.ResourceRegistrar.start(config)
     consumer = rr.ResourceRegistrar.start(_name("C"))
     restarted: rr.ResourceRegistrar | None = None
-    DIRECTORY.expect_restart(config.name)  # as a supervisor does: no death watch
-    failed, started, gate, unloaded = (threading.Event() for _ in range(4))
-    pool = ThreadPoolExecutor(1)
-    try:
+    with expect_restart(config.name):  # as a supervisor does: no death watch
+        failed, started, gate, unloaded = (threading.Event() for _ in range(4))
+        pool = ThreadPoolExecutor(1)
+        try:
+            leaf = GatedLoad(gate, started)
+            provider.register_server("leaf", load=leaf, unload=lambda r, s: unloaded.set())
 
-        def leaf(request: Any) -> Any:
-            started.set()
-            return gate.wait(10) and request
+            def sub_call(request: Any) -> rr.Query:
+                assert failed.wait(10)
+                return agent.call(provider.name, "leaf", request, timeout=10)
 
-        provider.register_server("leaf", load=leaf, unload=lambda r, s: unloaded.set())
+            def composite(request: Any) -> Any:
+                pool.submit(contextvars.copy_context().run, sub_call, request)
+                raise SensorError("failed before its sub-call went out")
 
-        def sub_call(request: Any) -> rr.Query:
-            assert failed.wait(10)
-            return agent.call(provider.name, "leaf", request, timeout=10)
+            agent.register_server("composite", load=composite, unload=lambda r, s: None)
+            with pytest.raises(rr.ResourceLoadError):
+                consumer.call(agent.name, "composite", "x")
+            failed.set()
+            assert started.wait(10)  # the sub-call is at the provider: written down before
+            agent.client_queries()  # the agent handled (and committed) what came before
+            crash(agent)
 
-        def composite(request: Any) -> Any:
-            pool.submit(contextvars.copy_context().run, sub_call, request)
-            raise SensorError("failed before its sub-call went out")
+            restarted = rr.ResourceRegistrar.start(config)
+            gate.set()
 
-        agent.register_server("composite", load=composite, unload=lambda r, s: None)
-        with pytest.raises(rr.ResourceLoadError):
-            consumer.call(agent.name, "composite", "x")
-        failed.set()
-        assert started.wait(10)  # the sub-call is at the provider: written down before
-        agent.client_queries()  # the agent handled (and committed) what came before
-        crash(agent)
-
-        restarted = rr.ResourceRegistrar.start(config)
-        gate.set()
-
-        assert unloaded.wait(10), "the provider still holds the sub-call's id"
-        assert [] == provider.server_queries("leaf")
-        assert ((), ()) == (
-            catalog_snapshot(restarted).resources,
-            catalog_snapshot(restarted).clients,
-        )
-    finally:
-        gate.set()
-        failed.set()
-        pool.shutdown()
-        DIRECTORY.expect_restart(config.name, expected=False)
-        for registrar in (consumer, restarted, provider):
-            if registrar is not None:
-                registrar.stop()
+            assert unloaded.wait(10), "the provider still holds the sub-call's id"
+            assert [] == provider.server_queries("leaf")
+            assert ((), ()) == (
+                catalog_snapshot(restarted).resources,
+                catalog_snapshot(restarted).clients,
+            )
+        finally:
+            gate.set()
+            failed.set()
+            pool.shutdown()
+            for registrar in (consumer, restarted, provider):
+                if registrar is not None:
+                    registrar.stop()
 
 
 def test_a_restart_gives_back_a_dependency_whose_resource_is_gone(tmp_path: Path) -> None:
@@ -204,26 +197,25 @@ def test_a_restart_gives_back_a_dependency_whose_resource_is_gone(tmp_path: Path
     provider = rr.ResourceRegistrar.start(_name("P"))
     agent = rr.ResourceRegistrar.start(config)
     restarted: rr.ResourceRegistrar | None = None
-    DIRECTORY.expect_restart(config.name)
-    unloaded = threading.Event()
-    try:
-        provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: unloaded.set())
-        query = agent.call(provider.name, "leaf", "camera", timeout=5)
-        crash(agent)
-        with contextlib.closing(sqlite3.connect(tmp_path / "a.db")) as db, db:
-            db.execute(
-                "UPDATE clients SET parent = 'a-resource-that-is-gone' WHERE query_id = ?",
-                (query.id,),
-            )
-        assert ["a-resource-that-is-gone"] == [c.parent for c in read_backup(path).clients]
+    with expect_restart(config.name):
+        unloaded = threading.Event()
+        try:
+            provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: unloaded.set())
+            query = agent.call(provider.name, "leaf", "camera", timeout=5)
+            crash(agent)
+            with contextlib.closing(sqlite3.connect(tmp_path / "a.db")) as db, db:
+                db.execute(
+                    "UPDATE clients SET parent = 'a-resource-that-is-gone' WHERE query_id = ?",
+                    (query.id,),
+                )
+            assert ["a-resource-that-is-gone"] == [c.parent for c in read_backup(path).clients]
 
-        restarted = rr.ResourceRegistrar.start(config)
+            restarted = rr.ResourceRegistrar.start(config)
 
-        assert unloaded.wait(5), "the provider still holds the orphaned dependency"
-        assert [] == provider.server_queries("leaf")
-        assert () == catalog_snapshot(restarted).clients
-    finally:
-        DIRECTORY.expect_restart(config.name, expected=False)
-        for registrar in (restarted, provider):
-            if registrar is not None:
-                registrar.stop()
+            assert unloaded.wait(5), "the provider still holds the orphaned dependency"
+            assert [] == provider.server_queries("leaf")
+            assert () == catalog_snapshot(restarted).clients
+        finally:
+            for registrar in (restarted, provider):
+                if registrar is not None:
+                    registrar.stop()

@@ -14,13 +14,12 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from supervising import FakeClock, ManualTimer, echo_setup
+from supervising import FakeClock, ManualTimer, crash, echo_setup
 
 import rr_actors as rr
-from rr_actors import testing
+from rr_actors import Supervisor, testing
 from rr_actors._supervision.policy import RestartIntensity
 from rr_actors._supervision.retry import abandon_after_restart
-from rr_actors._supervision.supervisor import Supervisor
 from rr_actors.config import Backoff, ManagerSpec, SupervisorSpec
 
 
@@ -49,10 +48,6 @@ def handle(sup: Supervisor, name: str) -> rr.ResourceRegistrar:
     """The registrar of thread manager `name` (its current incarnation)."""
     registrar: rr.ResourceRegistrar = sup.run_in(name, lambda r: r)
     return registrar
-
-
-def crash(sup: Supervisor, name: str) -> None:
-    testing.crash(handle(sup, name))
 
 
 def once_waiting(sup: Supervisor, monkeypatch: pytest.MonkeyPatch) -> threading.Event:

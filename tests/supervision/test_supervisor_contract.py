@@ -28,17 +28,17 @@ from supervising import (
     FakeClock,
     ManualTimer,
     alive,
+    crash,
     echo_setup,
     killed_owner,
     linux_trick,
     process,
+    sigkill,
     wait_gone,
 )
 
 import rr_actors as rr
-from rr_actors import testing
-from rr_actors._process.manager import start_forkserver
-from rr_actors.testing import SharedObjects, actor_ref
+from rr_actors.testing import SharedObjects, actor_ref, start_forkserver
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -76,11 +76,6 @@ def logging_consumer(provider: str, events: list[str]) -> Callable[[rr.ResourceR
         reg.call(provider, "log", reg.name)
 
     return setup
-
-
-def crash(sup: rr.Supervisor, name: str) -> None:
-    """Make thread manager `name`'s registrar actor die (the in-process SIGKILL)."""
-    testing.crash(sup.run_in(name, lambda r: r))
 
 
 # -- ordered start, reverse-ordered stop ----------------------------------------------------------
@@ -433,9 +428,7 @@ def test_a_temporary_consumer_that_dies_has_its_ids_released_at_every_provider(
             process(c, consumer_of(p1, p2), restart="temporary"),
         ]
     ).start()
-    pid = sup.child(c).pid
-    assert pid is not None
-    os.kill(pid, signal.SIGKILL)
+    sigkill(sup, c)
 
     assert [True, True] == [unloaded1.wait(10.0), unloaded2.wait(10.0)]
     held = [sup.run_in(p, lambda r: r.server_queries("res"), timeout=10.0) for p in (p1, p2)]
@@ -449,9 +442,7 @@ def test_a_temporary_consumer_that_dies_is_released_at_a_provider_in_a_nested_su
     unloaded = process_helpers.event()
     inner = rr.SupervisorSpec(f"inner-{uid}", (process(p, unload_flag(unloaded)),))
     sup = supervisors([inner, process(c, consumer_of(p), restart="temporary")]).start()
-    pid = sup.child(c).pid
-    assert pid is not None
-    os.kill(pid, signal.SIGKILL)
+    sigkill(sup, c)
 
     assert unloaded.wait(10.0)
     assert [] == sup.run_in(p, lambda r: r.server_queries("res"), timeout=10.0)
@@ -466,9 +457,7 @@ def test_a_consumer_process_whose_supervisor_gave_up_for_good_is_released_at_its
         f"inner-{uid}", (process(c, consumer_of(p)),), max_restarts=0, restart="temporary"
     )
     sup = supervisors([process(p, unload_flag(unloaded)), inner]).start()
-    pid = sup.child(c).pid
-    assert pid is not None
-    os.kill(pid, signal.SIGKILL)  # c is permanent, but its supervisor gives up for good
+    sigkill(sup, c)  # c is permanent, but its supervisor gives up for good
 
     assert unloaded.wait(10.0)
     assert [] == sup.run_in(p, lambda r: r.server_queries("res"), timeout=10.0)

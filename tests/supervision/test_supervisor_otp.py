@@ -19,12 +19,10 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
-from supervising import FakeClock, echo_setup, process
+from supervising import FakeClock, crash, echo_setup, pid_of, process
 
 import rr_actors as rr
-from rr_actors import testing
-from rr_actors._process.context import start_forkserver
-from rr_actors.testing import SharedObjects
+from rr_actors.testing import SharedObjects, start_forkserver
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -33,17 +31,6 @@ pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 def forkserver() -> None:
     """Start the forkserver before the leak check counts this process's children."""
     start_forkserver()
-
-
-def crash(sup: rr.Supervisor, name: str) -> None:
-    """Make thread manager `name`'s registrar actor die (the in-process SIGKILL)."""
-    testing.crash(sup.run_in(name, lambda r: r))
-
-
-def pid_of(sup: rr.Supervisor, name: str) -> int:
-    pid = sup.child(name).pid
-    assert pid, f"{name} has no pid"  # never os.kill(0, ...): that signals the group
-    return pid
 
 
 # -- SIGTERM is a request to stop (OTP's `shutdown`) ----------------------------------------------

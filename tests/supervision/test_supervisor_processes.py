@@ -29,9 +29,12 @@ from supervising import (
     ManualTimer,
     alive,
     echo_setup,
+    kill_and_wait_restarted,
     killed_owner,
     linux_trick,
+    pid_of,
     process,
+    sigkill,
     wait_gone,
 )
 
@@ -48,13 +51,6 @@ pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 def forkserver() -> None:
     """Start the forkserver before the leak check counts this process's children."""
     start_forkserver()
-
-
-def pid_of(sup: rr.Supervisor, name: str) -> int:
-    """The pid of a running manager (never 0 or None: `os.kill(0, ...)` hits the group)."""
-    pid = sup.child(name).pid
-    assert pid, f"{name} has no pid"
-    return pid
 
 
 def journal_setup(
@@ -97,10 +93,8 @@ def test_a_sigkilled_manager_process_is_restarted_with_a_new_pid_and_serves(
     name = f"erm-{uid}"
     sup = supervisors([process(name)]).start()
     app = sup.registrar(f"app-{uid}")
-    old = sup.child(name).pid
-    assert old is not None
-    os.kill(old, signal.SIGKILL)
-    info = sup.wait_restarted(name, timeout=15.0)
+    old = pid_of(sup, name)
+    info = kill_and_wait_restarted(sup, name)
 
     assert ("killed by SIGKILL", True) == (info.last_exit, info.pid not in (None, old))
     assert "hi" == app.call(name, "echo", "hi", timeout=10.0).response
@@ -115,8 +109,7 @@ def test_a_restarted_manager_restores_its_catalog_before_it_serves(
     sup.start()
     app = sup.registrar(f"app-{uid}")
     query = app.call(name, "res", "camera", timeout=10.0)
-    os.kill(pid_of(sup, name), signal.SIGKILL)
-    sup.wait_restarted(name, timeout=15.0)
+    kill_and_wait_restarted(sup, name)
 
     held = sup.run_in(name, lambda r: [q.id for q in r.server_queries("res")])
     assert ([query.id], True) == (held, (tmp_path / "state" / f"{name}.db").exists())
@@ -131,8 +124,7 @@ def test_a_consumer_id_from_before_the_crash_can_be_unloaded_after_it(
     sup.start()
     app = sup.registrar(f"app-{uid}")
     query = app.call(name, "res", "camera", timeout=10.0)
-    os.kill(pid_of(sup, name), signal.SIGKILL)
-    sup.wait_restarted(name, timeout=15.0)
+    kill_and_wait_restarted(sup, name)
     app.unload(query.id, timeout=10.0)
 
     assert ["load camera", "unload camera"] == lines(journal)
@@ -181,7 +173,7 @@ def test_a_retry_after_a_restart_of_an_answered_request_does_not_load_again(
     sup.start()
     app = sup.registrar(f"app-{uid}")
     first = app.call(name, "res", "camera", timeout=10.0)
-    os.kill(pid_of(sup, name), signal.SIGKILL)
+    sigkill(sup, name)
     second = sup.call_with_retry(app, name, "res", "camera", timeout=15.0)
 
     held = sup.run_in(name, lambda r: sorted(q.id for q in r.server_queries("res")))
@@ -215,7 +207,7 @@ def test_a_call_in_flight_to_a_manager_that_dies_fails_at_once(
     caller.start()
     assert loading.wait(10.0)  # the load runs in the manager: the call is in flight there
     started = time.monotonic()
-    os.kill(pid_of(sup, name), signal.SIGKILL)
+    sigkill(sup, name)
     caller.join(20.0)
 
     assert [rr.RegistrarUnavailableError] == [type(e) for e in errors]
@@ -274,7 +266,7 @@ def test_one_for_all_restarts_every_manager_process(
     a, b = f"a-{uid}", f"b-{uid}"
     sup = supervisors([process(a), process(b)], strategy="one_for_all").start()
     before = {i.name: i.pid for i in sup.which_children()}
-    os.kill(before[b] or 0, signal.SIGKILL)
+    sigkill(sup, b)
     sup.wait_restarted(a, timeout=15.0)
     sup.wait_restarted(b, timeout=15.0)
     after = {i.name: i.pid for i in sup.which_children()}
@@ -305,7 +297,7 @@ def test_a_sibling_being_restarted_is_unavailable_and_one_stopped_for_good_is_st
     for name in (a, t):
         app.call(name, "echo", "before", timeout=10)
     if isolation == "process":
-        os.kill(pid_of(sup, b), signal.SIGKILL)
+        sigkill(sup, b)
     else:
         testing.crash(sup.run_in(b, lambda registrar: registrar))
     assert timer.wait_scheduled(1)  # (the siblings were stopped before the restart was due)
@@ -373,7 +365,7 @@ def test_a_temporary_consumer_process_that_is_killed_has_its_ids_released(
             process(c, consumer_setup(p), restart="temporary"),
         ]
     ).start()
-    os.kill(pid_of(sup, c), signal.SIGKILL)
+    sigkill(sup, c)
 
     assert unloaded.wait(10.0)
     assert ["load camera", "unload camera"] == lines(journal)
@@ -388,8 +380,7 @@ def test_a_consumer_process_that_will_be_restarted_keeps_its_ids(
         [process(p, journal_setup(str(journal))), process(c, consumer_setup(p))],
         state_dir=tmp_path / "state",
     ).start()
-    os.kill(pid_of(sup, c), signal.SIGKILL)
-    sup.wait_restarted(c, timeout=15.0)
+    kill_and_wait_restarted(sup, c)
 
     held = sup.run_in(p, lambda r: [q.origin_rr for q in r.server_queries("res")])
     assert ([c], ["load camera"]) == (held, lines(journal))
@@ -594,7 +585,7 @@ def test_call_with_retry_works_for_a_consumer_registrar_in_another_manager_proce
         [process(p, journal_setup(str(journal))), process(c)], state_dir=tmp_path / "state"
     ).start()
     consumer = RemoteRegistrar(c, sup.system.address)
-    os.kill(pid_of(sup, p), signal.SIGKILL)
+    sigkill(sup, p)
 
     query = sup.call_with_retry(consumer, p, "res", "camera", timeout=15.0, query_id="q-1")
 
