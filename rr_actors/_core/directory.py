@@ -118,15 +118,6 @@ class Directory:
                 self._resolvers.remove(resolver)
             self._namers.pop(resolver, None)
 
-    def known(self) -> set[str]:
-        """Every registrar name this process knows of: its own and its resolvers'."""
-        with self._lock:
-            names = set(self._peers) | set(self._gone)
-            namers = list(self._namers.values())
-        for namer in namers:
-            names.update(namer())
-        return names
-
     def names(self) -> set[str]:
         """Every registrar this process can reach now: its own, and those its resolvers name.
 
@@ -173,7 +164,7 @@ class Directory:
         if reason == "died":
             return RegistrarUnavailableError(f"registrar {name!r} died")
         return UnknownRegistrarError(
-            f"no registrar named {name!r}" + _known_names(name, self.known() - {name})
+            f"no registrar named {name!r}" + _known_names(name, self.names() - {name})
         )
 
     def local_peers(self) -> list[Peer]:
