@@ -1,17 +1,14 @@
 """Reading a plan: TOML text to a validated `Plan`, every problem a `PlanError` with its line.
 
     PLAN.toml ──tomllib──► data ──_lines.key_lines──► {key path: line}
-                             │
-                             └──_Reader.build, per table: unknown keys; each value
-                                ──msgspec.convert(value, its annotated type in `plan`)──►
-                                then the rules between values ──► Plan (frozen dataclasses)
-                                every error: PlanError(file:line: key: what is wrong)
+        data ──_Reader, table by table: unknown keys; each value ──msgspec.convert(value,
+               its annotated type in `plan`)──► the rules between values ──► Plan
 
-msgspec checks what the types in `plan` say (types, choices, ranges); `_problem` words its
-errors. The rules no type can say are here: names that must exist in the tree, import
-paths and their signatures, times within the run, the keys that go with a fault's kind,
-request templates, and every value of `compare` (each makes a whole plan, validated like
-the first). The format is documented in `docs/reference/plan.md`.
+msgspec checks what the types in `plan` say (types, choices, ranges) and `_problem` words
+its errors, all alike. The rules no type can say are code here, a few lines each: names
+that must be in the tree, import paths and their signatures, times within the run, keys
+that go with a fault's kind, request templates, and every compared value (each makes a
+whole plan, validated like the first). The format is in `docs/reference/plan.md`.
 """
 
 from __future__ import annotations
@@ -32,40 +29,14 @@ import msgspec
 from rr_actors._types import Status
 from rr_actors.config import Backoff
 from rr_actors.errors import ConfigError
+from rr_actors.experiments import plan as schema
 from rr_actors.experiments._imports import import_object
 from rr_actors.experiments._lines import KeyPath, key_lines
-from rr_actors.experiments.plan import (
-    EVENT_TYPES,
-    FAULT_KINDS,
-    MAX_INJECTIONS,
-    MAX_RATE,
-    MAX_SECONDS,
-    NEEDS_PROCESS,
-    PLACEHOLDERS,
-    CallMix,
-    Compare,
-    FaultKind,
-    FaultPlan,
-    Interval,
-    ManagerPlan,
-    Plan,
-    PlanError,
-    Seconds,
-    SecondsOrZero,
-    SupervisorPlan,
-    Trigger,
-    Workload,
-)
+from rr_actors.experiments.plan import Plan, PlanError
 
 __all__ = ["load_plan", "parse_plan"]
 
-NOT_COMPARED = {  # top-level keys `[compare]` refuses, and why
-    "name": "every run of an experiment belongs to one plan",
-    "description": "it changes nothing in a run",
-    "seed": "each run's seed comes from the top 'seed' and its repeat",
-    "repeat": "every compared value runs 'repeat' times",
-    "compare": "compare is not a setting of a run",
-}
+# -- the words of the errors, as data ---------------------------------------------------------
 WHAT = {  # what a key must be, where its type alone words it badly (the last key of the path)
     "target": "a manager's name",
     "manager": "a manager's name",
@@ -73,29 +44,44 @@ WHAT = {  # what a key must be, where its type alone words it badly (the last ke
     "name": "letters, digits, '_', '-' or '.'",
     "server": "a server name",
     "heartbeat": "a positive number of seconds or false (off)",
-    "rate": f'calls per second (at least {1 / MAX_SECONDS:g}, at most {MAX_RATE:g}) or "max"',
-    "weight": f"a positive number (at most {MAX_RATE:g})",
+    "rate": f"calls per second (at least {1 / schema.MAX_SECONDS:g}, at most {schema.MAX_RATE:g})"
+    ' or "max"',
+    "weight": f"a positive number (at most {schema.MAX_RATE:g})",
     "shared": "a fraction from 0 to 1",
-    "factor": f"a number from 1 to {MAX_SECONDS:g}",
+    "factor": f"a number from 1 to {schema.MAX_SECONDS:g}",
 }
 MISSING = {  # what a missing key is for
     "duration": " (seconds of workload and faults per run)",
-    "kind": f": one of {', '.join(FAULT_KINDS)}",
+    "kind": f": one of {', '.join(schema.FAULT_KINDS)}",
     "target": ": which manager (or a list of them)",
+    "for": ": how many seconds the manager stays stopped",
 }
 TYPES = {"float": "a number", "int": "an integer", "str": "a string", "bool": "true or false"}
 TYPES |= {"array": "an array", "object": "a table"}
-TOML_KEY = {"targets": "target", "for_s": "for"}  # field name -> key, where they differ
+SECONDS = (schema.Seconds, schema.SecondsOrZero, schema.Interval)
+NOT_COMPARED = {  # top-level keys `[compare]` refuses, and why
+    "name": "every run of an experiment belongs to one plan",
+    "description": "it changes nothing in a run",
+    "seed": "each run's seed comes from the top 'seed' and its repeat",
+    "repeat": "every compared value runs 'repeat' times",
+    "compare": "compare is not a setting of a run",
+}
+# -- the keys of each table (field names, less those read apart; `for` is `for_s`) ------------
+TOML_KEY = {"targets": "target", "for_s": "for"}
+SUPERVISOR = ("name", "strategy", "max_restarts", "period", "backoff", "children")
+WORKLOAD = ("clients", "rate", "arrivals", "hold", "timeout", "calls")
+TOP = ("name", "duration", "tree", "description", "repeat", "seed", "recovery_timeout")
+TOP += ("workload", "faults", "compare")
+LISTS = ("at", "target")  # a fault's keys that take one value or an array of them
+FAULT = tuple(TOML_KEY.get(f.name, f.name) for f in dataclasses.fields(schema.FaultPlan))
+# -- a fault's keys that only go with another key, or with some kinds ---------------------------
+NEEDS_KEY = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
+NEEDS_KIND = {"loads": ("load_error",), "server": ("load_error",), "message": ("load_error",)}
+NEEDS_KIND |= {"for": ("hang_manager", "load_error")}
 
 
 def load_plan(path: str | os.PathLike[str]) -> Plan:
-    """Read and validate the plan in the TOML file `path`.
-
-    Args:
-        path: the plan file.
-
-    Returns:
-        The plan; its `name` defaults to the file's stem.
+    """Read and validate the plan in the TOML file `path` (its `name` defaults to the stem).
 
     Raises:
         PlanError: the file cannot be read, is not TOML, or is not a valid plan; the
@@ -112,15 +98,10 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
 
 
 def parse_plan(text: str, *, source: str = "<plan>", name: str = "plan") -> Plan:
-    """Validate the plan in the TOML `text`.
+    """Validate the plan in the TOML `text`: one variant per compared value.
 
-    Args:
-        text: the TOML document.
-        source: how error messages name it (a file name).
-        name: the plan's name if the text has no `name` key.
-
-    Returns:
-        The plan, with one variant per compared value.
+    `source` names the text in error messages (a file name); `name` is the plan's name if
+    the text has no `name` key.
 
     Raises:
         PlanError: the text is not TOML or not a valid plan.
@@ -173,16 +154,10 @@ def _problem(message: str, key: str, value: Any, hint: Any) -> str:
         what = f"must be {zero if float(bound[3]) == 0 else f'at least {float(bound[3]):g} s'}"
     elif typed:
         kinds = [TYPES.get(kind, kind) for kind in typed[1].split(" | ") if kind != "null"]
-        if _in_seconds(hint):
-            kinds = [f"{kind} of seconds" if kind == "a number" else kind for kind in kinds]
+        seconds = hint in SECONDS or any(h in SECONDS for h in typing.get_args(hint))
+        kinds = [f"{k} of seconds" if seconds and k == "a number" else k for k in kinds]
         what = f"must be {' or '.join(kinds)}"
     return f"{what}, got {_show(value)}"
-
-
-def _in_seconds(hint: Any) -> bool:
-    return hint in (Seconds, SecondsOrZero, Interval) or any(
-        map(_in_seconds, typing.get_args(hint))
-    )
 
 
 class _Reader:
@@ -192,28 +167,19 @@ class _Reader:
         self.source, self.lines, self.base_dir = source, lines, base_dir
         self.data: dict[str, Any] = {}
 
-    # -- the generic part: where, unknown keys, typed values --------------------------------
+    # -- the generic part: where, unknown and missing keys, typed values ---------------------
 
     def error(self, path: KeyPath, problem: str) -> PlanError:
         known = [path[:end] for end in range(len(path), 0, -1) if path[:end] in self.lines]
         key = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in path).lstrip(".")
         return PlanError(self.source, self.lines[known[0]] if known else 0, key, problem)
 
-    def at(self, path: KeyPath) -> Any:
-        """The value at `path` as the plan gives it."""
-        node: Any = self.data
-        for part in path:
-            node = node[part]
-        return node
-
     def table(self, value: Any, path: KeyPath, known: tuple[str, ...]) -> dict[str, Any]:
         """`value` as a table with only `known` keys (else an error at the first other)."""
         if not isinstance(value, dict):
             raise self.error(path, f"must be a table, got {_show(value)}")
-        for key in value:
-            if key not in known:
-                problem = f"unknown key; known here: {', '.join(sorted(known))}"
-                raise self.error((*path, key), problem)
+        for key in (k for k in value if k not in known):
+            raise self.error((*path, key), f"unknown key; known here: {', '.join(sorted(known))}")
         return value
 
     def check(self, value: Any, hint: Any, path: KeyPath) -> Any:
@@ -222,25 +188,26 @@ class _Reader:
             return msgspec.convert(value, hint)
         except msgspec.ValidationError as exc:
             message, _, inner = str(exc).partition(" - at `$")
-            raw = self.at(path)  # `at = 1` is checked as `[1]`: the error stays at `at`
+            raw = self.raw(path)  # as written: `at = 1` is checked as `[1]`, its error at `at`
             for index, key in re.findall(r"\[(\d+)\]|\.(\w+)", inner):
                 step: str | int = int(index) if index else key
-                inside = isinstance(raw, list if isinstance(step, int) else dict)
-                if not inside:
+                if not isinstance(raw, list if isinstance(step, int) else dict):
                     break
                 path, raw = (*path, step), raw[step]
             key = next((p for p in reversed(path) if isinstance(p, str)), "")
             raise self.error(path, _problem(message, key, raw, hint)) from None
 
-    def build(
-        self, cls: Any, value: Any, path: KeyPath, *, skip: Any = (), extra: Any = (), **given: Any
-    ) -> Any:
-        """A `cls` from a table: keys are its fields (less `skip`, plus `extra`), each value
-        checked against its field's type unless `given`."""
-        fields = [f for f in dataclasses.fields(cls) if f.name not in skip]
-        table = self.table(value, path, (*(TOML_KEY.get(f.name, f.name) for f in fields), *extra))
+    def raw(self, path: KeyPath) -> Any:
+        """The value at `path` as the plan gives it."""
+        node: Any = self.data
+        for part in path:
+            node = node[part]
+        return node
+
+    def build(self, cls: Any, table: dict[str, Any], path: KeyPath, **given: Any) -> Any:
+        """A `cls` from `table`: each of its fields not `given` from its key, checked."""
         hints = typing.get_type_hints(cls, include_extras=True)
-        for field in (f for f in fields if f.name not in given):
+        for field in (f for f in dataclasses.fields(cls) if f.name not in given):
             key = TOML_KEY.get(field.name, field.name)
             if key in table:
                 given[field.name] = self.check(table[key], hints[field.name], (*path, key))
@@ -263,118 +230,118 @@ class _Reader:
         except TypeError as exc:
             raise self.error(call, f"{name} cannot be called with these: {exc}") from None
 
-    # -- the plan, its tree and its workload ------------------------------------------------
+    # -- the plan, its tree and its workload --------------------------------------------------
 
     def plan(self, data: dict[str, Any], *, name: str) -> Plan:
         self.data, top = data, {"name": name, **data}
         if "tree" not in top:
             raise self.error((), "'tree' is missing")
+        self.table(top, (), TOP)
         tree = self.table(top["tree"], ("tree",), ("state", *SUPERVISOR))
-        root = self.supervisor({"name": "root", **tree}, ("tree",), top=True)
+        root = self.supervisor({"name": "root", **tree}, ("tree",))
         self.unique_names(root, ("tree",), set())
         managers = {m.name: m for m in root.managers()}
         workload = self.workload(top.get("workload", {"clients": 0}), managers)
-        skip = ("state", "variants", "source", "base_dir")
         plan: Plan = self.build(
-            Plan, top, (), skip=skip, tree=root, workload=workload, faults=(), compare=None
+            Plan, top, (), tree=root, workload=workload, faults=(), compare=None
         )
         names = {  # what the fields of an `after` trigger may name
-            "supervisor": frozenset(s.name for s in root.supervisors()),
-            "child": frozenset(managers) | {s.name for s in root.supervisors()[1:]},
-            "registrar": frozenset(managers) | {f"client-{i}" for i in range(workload.clients)},
+            "supervisor": {s.name for s in root.supervisors()},
+            "child": set(managers) | {s.name for s in root.supervisors()[1:]},
+            "registrar": set(managers) | {f"client-{i}" for i in range(workload.clients)},
         }
         faults = self.check(top.get("faults", []), list[dict[str, Any]], ("faults",))
+        faults = [
+            self.fault(f, ("faults", i), managers, plan.duration, names)
+            for i, f in enumerate(faults)
+        ]
         return dataclasses.replace(
             plan,
             state=self.check(tree.get("state", True), bool, ("tree", "state")),
-            faults=tuple(
-                self.fault(entry, ("faults", i), managers, plan.duration, names)
-                for i, entry in enumerate(faults)
-            ),
+            faults=tuple(faults),
             source=None if self.source == "<plan>" else self.source,
             base_dir=self.base_dir,
         )
 
-    def unique_names(self, sup: SupervisorPlan, path: KeyPath, seen: set[str]) -> None:
-        for index, child in enumerate(sup.children):
-            child_path = (*path, "children", index)
-            if child.name in seen or child.name == sup.name:
-                problem = f"the name {child.name!r} is used twice in the tree"
-                raise self.error((*child_path, "name"), problem)
-            seen.add(child.name)
-            if isinstance(child, SupervisorPlan):
-                self.unique_names(child, child_path, seen)
-
-    def supervisor(self, table: Any, path: KeyPath, *, top: bool = False) -> SupervisorPlan:
-        self.table(table, path, (*SUPERVISOR, "state") if top else (*SUPERVISOR, "restart"))
+    def supervisor(self, table: Any, path: KeyPath) -> schema.SupervisorPlan:
+        top = path == ("tree",)
+        self.table(table, path, (*SUPERVISOR, "state" if top else "restart"))
         children = self.check(table.get("children"), list[dict[str, Any]], (*path, "children"))
         if not children:
             problem = "must be a non-empty array of tables ([[...children]])"
             raise self.error((*path, "children"), problem)
-        parsed = [
-            self.supervisor(child, (*path, "children", i))
-            if "children" in child
-            else self.manager(child, (*path, "children", i))
+        parsed = tuple(
+            (self.supervisor if "children" in child else self.manager)(
+                child, (*path, "children", i)
+            )
             for i, child in enumerate(children)
-        ]
+        )
         backoff = self.backoff(table.get("backoff", {}), (*path, "backoff"))
-        skip, extra = ("restart",) if top else (), ("state",) if top else ()
-        sup: SupervisorPlan = self.build(
-            SupervisorPlan,
-            table,
-            path,
-            skip=skip,
-            extra=extra,
-            children=tuple(parsed),
-            backoff=backoff,
+        given = {"restart": "permanent"} if top else {}  # a nested one's restart type, only
+        sup: schema.SupervisorPlan = self.build(
+            schema.SupervisorPlan, table, path, children=parsed, backoff=backoff, **given
         )
         return sup
 
+    def unique_names(self, sup: schema.SupervisorPlan, path: KeyPath, seen: set[str]) -> None:
+        for index, child in enumerate(sup.children):
+            at = (*path, "children", index)
+            if child.name in seen or child.name == sup.name:
+                raise self.error(
+                    (*at, "name"), f"the name {child.name!r} is used twice in the tree"
+                )
+            seen.add(child.name)
+            if isinstance(child, schema.SupervisorPlan):
+                self.unique_names(child, at, seen)
+
     def backoff(self, value: Any, path: KeyPath) -> Backoff:
         table = self.table(value, path, ("initial", "factor", "max", "jitter"))
-        hint = {"initial": SecondsOrZero, "max": SecondsOrZero, "factor": float, "jitter": float}
-        numbers = {k: self.check(v, hint[k], (*path, k)) for k, v in table.items()}
+        hint = {"initial": schema.SecondsOrZero, "max": schema.SecondsOrZero}
+        numbers = {k: self.check(v, hint.get(k, float), (*path, k)) for k, v in table.items()}
         try:
             return Backoff(**numbers)
         except ConfigError as exc:
             field = str(exc).split(" ", 1)[0].removeprefix("Backoff.")
             raise self.error((*path, field) if field in table else path, str(exc)) from None
 
-    def manager(self, table: dict[str, Any], path: KeyPath) -> ManagerPlan:
-        off = {"heartbeat": None} if table.get("heartbeat") is False else {}
-        manager: ManagerPlan = self.build(ManagerPlan, table, path, **off)
-        self.importable(
-            (*path, "setup"), manager.setup, (*path, "options"), None, **manager.options
+    def manager(self, table: dict[str, Any], path: KeyPath) -> schema.ManagerPlan:
+        fields = tuple(f.name for f in dataclasses.fields(schema.ManagerPlan))
+        off = (
+            {"heartbeat": None} if self.table(table, path, fields).get("heartbeat") is False else {}
         )
+        manager: schema.ManagerPlan = self.build(schema.ManagerPlan, table, path, **off)
+        options = (*path, "options")
+        self.importable((*path, "setup"), manager.setup, options, None, **manager.options)
         return manager
 
-    def workload(self, value: Any, managers: dict[str, ManagerPlan]) -> Workload:
+    def workload(self, value: Any, managers: dict[str, schema.ManagerPlan]) -> schema.Workload:
         path: KeyPath = ("workload",)
-        calls = self.check(
-            self.table(value, path, WORKLOAD).get("calls", []),
-            list[dict[str, Any]],
-            (*path, "calls"),
-        )
-        calls = tuple(
-            self.call(entry, (*path, "calls", i), managers) for i, entry in enumerate(calls)
-        )
+        calls = self.table(value, path, WORKLOAD).get("calls", [])
+        calls = self.check(calls, list[dict[str, Any]], (*path, "calls"))
+        calls = [self.call(c, (*path, "calls", i), managers) for i, c in enumerate(calls)]
         rate = {"rate": None} if value.get("rate") == "max" else {}
-        workload: Workload = self.build(Workload, value, path, calls=calls, **rate)
+        workload: schema.Workload = self.build(
+            schema.Workload, value, path, calls=tuple(calls), **rate
+        )
         if workload.clients and not calls:
             raise self.error(path, "'calls' is missing: what do the clients call?")
         return workload
 
-    def call(self, value: Any, path: KeyPath, managers: dict[str, ManagerPlan]) -> CallMix:
-        call: CallMix = self.build(CallMix, value, path)
-        if call.manager not in managers:
-            problem = f"no manager {call.manager!r} in the tree (managers: {', '.join(managers)})"
-            raise self.error((*path, "manager"), problem)
+    def call(self, value: Any, path: KeyPath, managers: dict[str, Any]) -> schema.CallMix:
+        fields = tuple(f.name for f in dataclasses.fields(schema.CallMix))
+        call: schema.CallMix = self.build(schema.CallMix, self.table(value, path, fields), path)
+        self.named(call.manager, managers, (*path, "manager"))
         if "request" in value and call.factory is not None:
             raise self.error((*path, "factory"), "give either 'request' or 'factory', not both")
         if call.factory is not None:
             self.importable((*path, "factory"), call.factory, (*path, "factory"), "key", None)
         self.template(call.request, (*path, "request"))
         return call
+
+    def named(self, name: str, managers: dict[str, Any], path: KeyPath) -> None:
+        if name not in managers:
+            problem = f"no manager {name!r} in the tree (managers: {', '.join(managers)})"
+            raise self.error(path, problem)
 
     def template(self, value: Any, path: KeyPath) -> None:
         """Check the placeholders of every string in a request template.
@@ -396,25 +363,20 @@ class _Reader:
             if spec or conversion:
                 problem = f"{value!r}: a placeholder is only a name, like {{{field}}}, without "
                 raise self.error(path, problem + "a conversion ('!r') or a format ('03d')")
-            if field not in PLACEHOLDERS:
-                known = ", ".join(f"{{{p}}}" for p in sorted(PLACEHOLDERS))
+            if field not in schema.PLACEHOLDERS:
+                known = ", ".join(f"{{{p}}}" for p in sorted(schema.PLACEHOLDERS))
                 raise self.error(path, f"unknown placeholder {{{field}}}; known: {known}")
 
-    # -- the faults -------------------------------------------------------------------------
+    # -- the faults ---------------------------------------------------------------------------
 
     def fault(
-        self,
-        value: Any,
-        path: KeyPath,
-        managers: dict[str, ManagerPlan],
-        duration: float,
-        names: dict[str, frozenset[str]],
-    ) -> FaultPlan:
+        self, value: Any, path: KeyPath, managers: dict[str, Any], duration: float, names: Any
+    ) -> schema.FaultPlan:
         """One `[[faults]]` entry; `names` are the values an `after` field may name."""
         table = self.table(value, path, FAULT)
         if "kind" not in table:
             raise self.error(path, f"'kind' is missing{MISSING['kind']}")
-        kind = self.check(table["kind"], FaultKind, (*path, "kind"))
+        kind = self.check(table["kind"], schema.FaultKind, (*path, "kind"))
         when = [key for key in ("at", "every", "after") if key in table]
         if len(when) != 1:
             say = f"give only one of 'at', 'every' or 'after', not {' and '.join(when)}"
@@ -422,43 +384,42 @@ class _Reader:
                 path, say if when else "say when: give one of 'at', 'every' or 'after'"
             )
         for key in table:
-            if key in ONLY_WITH and ONLY_WITH[key] not in table:
-                raise self.error((*path, key), f"only goes with {ONLY_WITH[key]!r}")
-            if key in ("loads", "server", "message") and kind != "load_error":
-                raise self.error((*path, key), "only goes with kind 'load_error'")
-        if "for" in table and kind not in ("hang_manager", "load_error"):
-            raise self.error((*path, "for"), f"does not go with kind {kind!r}")
+            if key in NEEDS_KEY and NEEDS_KEY[key] not in table:
+                raise self.error((*path, key), f"only goes with {NEEDS_KEY[key]!r}")
+            if kind not in NEEDS_KIND.get(key, (kind,)):
+                allowed = " or ".join(map(repr, NEEDS_KIND[key]))
+                raise self.error((*path, key), f"does not go with kind {kind!r} (only {allowed})")
         if "for" in table and "loads" in table:
             problem = "give either 'for' (seconds) or 'loads' (a number), not both"
             raise self.error((*path, "loads"), problem)
-        given = {k: v if isinstance(v, list) else [v] for k, v in table.items() if k in LISTS}
-        every = table.get("every")  # read here: msgspec 0.22 crashes on its union type
-        if isinstance(every, dict):
-            self.table(every, (*path, "every"), ("min", "max"))
-            if not {"min", "max"} <= set(every):
-                raise self.error((*path, "every"), "needs both 'min' and 'max' (seconds)")
-            low, high = (
-                self.check(every[k], Interval, (*path, "every", k)) for k in ("min", "max")
-            )
-            if high < low:
-                raise self.error((*path, "every", "max"), f"must not be less than min ({low:g} s)")
-            every = (low, high)
-        elif every is not None:
-            every = self.check(every, Interval, (*path, "every"))
-        after = self.trigger(table["after"], (*path, "after"), names) if "after" in table else None
-        fault: FaultPlan = self.build(
-            FaultPlan, {**table, **given}, path, kind=kind, after=after, every=every
+        lists = {k: v if isinstance(v, list) else [v] for k, v in table.items() if k in LISTS}
+        after = table.get("after")
+        fault: schema.FaultPlan = self.build(
+            schema.FaultPlan,
+            {**table, **lists},
+            path,
+            kind=kind,
+            every=self.every(table.get("every"), (*path, "every")),
+            after=None if after is None else self.trigger(after, (*path, "after"), names),
         )
         self.targets(fault, table, path, managers)
         self.timing(fault, table, path, duration)
         return fault
 
+    def every(self, every: Any, path: KeyPath) -> Any:
+        """`every = 0.5` or `every = { min = 0.5, max = 2 }` (msgspec 0.22 crashes on its type)."""
+        if not isinstance(every, dict):
+            return None if every is None else self.check(every, schema.Interval, path)
+        self.table(every, path, ("min", "max"))
+        if not {"min", "max"} <= set(every):
+            raise self.error(path, "needs both 'min' and 'max' (seconds)")
+        low, high = (self.check(every[k], schema.Interval, (*path, k)) for k in ("min", "max"))
+        if high < low:
+            raise self.error((*path, "max"), f"must not be less than min ({low:g} s)")
+        return low, high
+
     def targets(
-        self,
-        fault: FaultPlan,
-        table: dict[str, Any],
-        path: KeyPath,
-        managers: dict[str, ManagerPlan],
+        self, fault: schema.FaultPlan, table: dict[str, Any], path: KeyPath, managers: Any
     ) -> None:
         if "target" not in table and fault.kind != "kill_resource":
             raise self.error(path, f"'target' is missing{MISSING['target']}")
@@ -471,31 +432,28 @@ class _Reader:
             at = (
                 (*path, "target", index) if isinstance(table["target"], list) else (*path, "target")
             )
-            if name not in managers:
-                problem = f"no manager {name!r} in the tree (managers: {', '.join(managers)})"
-                raise self.error(at, problem)
-            if fault.kind in NEEDS_PROCESS and managers[name].isolation != "process":
+            self.named(name, managers, at)
+            if fault.kind in schema.NEEDS_PROCESS and managers[name].isolation != "process":
                 problem = f"{fault.kind} needs a process manager; {name!r} has isolation 'thread'"
                 raise self.error(at, problem)
 
     def timing(
-        self, fault: FaultPlan, table: dict[str, Any], path: KeyPath, duration: float
+        self, fault: schema.FaultPlan, table: dict[str, Any], path: KeyPath, duration: float
     ) -> None:
         """Refuse a fault that would never come (or come too often) within `duration`."""
         if fault.kind == "hang_manager" and fault.for_s is None:
-            raise self.error(path, "'for' is missing: how many seconds the manager stays stopped")
+            raise self.error(path, f"'for' is missing{MISSING['for']}")
         if "at" in table and not fault.at:
             raise self.error((*path, "at"), "must give at least one time (seconds)")
         end = f"the end of the run ({duration:g} s)"
         for index, at in enumerate(fault.at):
             where = (*path, "at", index) if isinstance(table["at"], list) else (*path, "at")
             if at >= duration:
-                raise self.error(where, f"{self.at(where)!r} s is not before {end}")
+                raise self.error(where, f"{self.raw(where)!r} s is not before {end}")
         stop = duration if fault.stop is None else fault.stop
         low = fault.every if isinstance(fault.every, float) else (fault.every or (0.0,))[0]
-        first = f"stop ({stop:g} s)" if fault.stop is not None else end
-        most = fault.most_injections(duration)
-        rules = [  # (key, whether it is wrong here, what is wrong)
+        most, first = fault.most_injections(duration), f"stop ({stop:g} s)" if fault.stop else end
+        for key, wrong, problem in [  # (key, whether it is wrong here, what is wrong)
             (
                 "delay",
                 fault.delay >= duration,
@@ -515,53 +473,52 @@ class _Reader:
             ),
             (
                 "every",
-                most > MAX_INJECTIONS,
-                f"would inject up to {most} times in a run (at most {MAX_INJECTIONS} per "
+                most > schema.MAX_INJECTIONS,
+                f"would inject up to {most} times in a run (at most {schema.MAX_INJECTIONS} per "
                 "fault): give a longer interval, a 'count' or a 'stop'",
             ),
-        ]
-        for key, wrong, problem in rules:
+        ]:
             if wrong:
                 raise self.error((*path, key), problem)
 
-    def trigger(self, value: Any, path: KeyPath, names: dict[str, frozenset[str]]) -> Trigger:
+    def trigger(self, value: Any, path: KeyPath, names: dict[str, set[str]]) -> schema.Trigger:
         if not isinstance(value, dict):
             problem = f'must be a table like {{ event = "ChildRestarted" }}, got {_show(value)}'
             raise self.error(path, problem)
         if "event" not in value:
             raise self.error(path, "'event' is missing")
         event = value["event"]
-        if not isinstance(event, str) or event not in EVENT_TYPES:
-            known = ", ".join(sorted(EVENT_TYPES))
+        if not isinstance(event, str) or event not in schema.EVENT_TYPES:
+            known = ", ".join(sorted(schema.EVENT_TYPES))
             raise self.error((*path, "event"), f"unknown event {event!r}; events: {known}")
-        hints = typing.get_type_hints(EVENT_TYPES[event])
+        hints = typing.get_type_hints(schema.EVENT_TYPES[event])
         self.table(value, path, ("event", "nth", *(f for f in hints if f != "at")))
         match = {}
         for key, item in ((k, v) for k, v in value.items() if k not in ("event", "nth")):
-            if hints[key] is Status and not (isinstance(item, str) and item in Status.__members__):
-                problem = f"must be one of {', '.join(Status.__members__)}, got {item!r}"
-                raise self.error((*path, key), problem)
+            if hints[key] is Status:  # a status by its name
+                statuses = Status.__members__
+                if not (isinstance(item, str) and item in statuses):
+                    problem = f"must be one of {', '.join(statuses)}, got {item!r}"
+                    raise self.error((*path, key), problem)
             match[key] = (
                 Status[item] if hints[key] is Status else self.check(item, hints[key], (*path, key))
             )
             if key in names and item not in names[key]:  # it would never match: never fire
                 known = ", ".join(sorted(names[key]))
-                raise self.error(
-                    (*path, key), f"{item!r} names nothing in this run (it may be: {known})"
-                )
-        trigger: Trigger = self.build(
-            Trigger, value, path, skip=("match",), extra=tuple(match), match=match
-        )
+                problem = f"{item!r} names nothing in this run (it may be: {known})"
+                raise self.error((*path, key), problem)
+        trigger: schema.Trigger = self.build(schema.Trigger, value, path, match=match)
         return trigger
 
-    # -- compare ----------------------------------------------------------------------------
+    # -- compare ------------------------------------------------------------------------------
 
-    def compare(self, data: dict[str, Any]) -> Compare | None:
+    def compare(self, data: dict[str, Any]) -> schema.Compare | None:
         if "compare" not in data:
             return None
         path: KeyPath = ("compare",)
         self.data = data
-        compare: Compare = self.build(Compare, data["compare"], path)
+        table = self.table(data["compare"], path, ("setting", "values"))
+        compare: schema.Compare = self.build(schema.Compare, table, path)
         setting, values = compare.setting, compare.values
         if not setting or setting.split(".")[0] in NOT_COMPARED:
             why = NOT_COMPARED.get(setting.split(".")[0])
@@ -600,10 +557,3 @@ class _Reader:
                 return node, key
             node = node[key]
         raise AssertionError("unreachable")
-
-
-SUPERVISOR = ("name", "strategy", "max_restarts", "period", "backoff", "children")
-ONLY_WITH = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
-LISTS = ("at", "target")  # a fault's keys that take one value or an array of them
-WORKLOAD = ("clients", "rate", "arrivals", "hold", "timeout", "calls")
-FAULT = (*(TOML_KEY.get(f.name, f.name) for f in dataclasses.fields(FaultPlan)),)
