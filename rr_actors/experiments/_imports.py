@@ -1,7 +1,6 @@
 """Import paths of a plan (`"package.module:attribute"`), searched first in the plan's directory.
 
-Used while a plan is read (to check setups, factories and request functions) and again in
-the run process and in manager processes, which import the same paths.
+Used while a plan is read, and again in the run and manager processes (the same paths).
 """
 
 from __future__ import annotations
@@ -32,17 +31,11 @@ def search_path(directory: str | None) -> Iterator[None]:
 
 
 def import_object(path: str, *, base_dir: str | None = None) -> Any:
-    """Import `"package.module:attribute"` (the attribute may be dotted) and return it.
-
-    Args:
-        path: the import path.
-        base_dir: a directory searched first (a plan's own directory), or `None`.
+    """Import `"package.module:attribute"` (the attribute may be dotted), `base_dir` first.
 
     Raises:
         ConfigError: the path is malformed, the module does not import (it raised, or
-            exited: a `SystemExit` on import is a `ConfigError` too; only
-            `KeyboardInterrupt` goes through), or it has no such attribute; the message
-            says which.
+            exited: only `KeyboardInterrupt` goes through), or it has no such attribute.
     """
     module_name, colon, attribute = path.partition(":")
     if not colon or not module_name or not attribute:

@@ -1,13 +1,9 @@
 """Where each key of a TOML file is: the line of every key path, for a plan's errors.
 
-`tomllib` (and msgspec, which decodes with it) gives the data but no positions, and a
-plan's errors must name the line. One regular expression splits the text (already
-accepted by `tomllib`) into tokens, and a small walk records the line of every key, table
-header and array element, addressed as in the data (array elements by index):
-
-    [[tree.children]]            ("tree", "children", 0)            -> 3
-    name = "erm"                 ("tree", "children", 0, "name")    -> 4
-    options = { rate = 2 }       ("tree", "children", 0, "options", "rate") -> 5
+`tomllib` gives the data but no positions. One regular expression splits the text (that
+`tomllib` accepted) into tokens, and a small walk records the line of every key, table
+header and array element, addressed as in the data: `[[tree.children]]` on line 3 is
+`("tree", "children", 0)` -> 3, its `name = "erm"` `("tree", "children", 0, "name")` -> 4.
 """
 
 from __future__ import annotations
@@ -16,8 +12,7 @@ import re
 
 __all__ = ["KeyPath", "key_lines"]
 
-KeyPath = tuple[str | int, ...]
-"""A path into the data: table keys (`str`) and array indices (`int`)."""
+KeyPath = tuple[str | int, ...]  # a path into the data: table keys and array indices
 
 _TOKEN = re.compile(
     r'(?P<s>"""(?:[^\\]|\\[\s\S])*?"""(?!")|\'\'\'[\s\S]*?\'\'\'(?!\')'
@@ -27,39 +22,28 @@ _TOKEN = re.compile(
 
 
 def key_lines(text: str) -> dict[KeyPath, int]:
-    """Map every key, table and array element of `text` to its 1-based line.
-
-    Args:
-        text: a TOML document that `tomllib` parses (invalid TOML gives meaningless lines).
-
-    Returns:
-        `{path: line}`, e.g. `{("tree", "children", 0, "name"): 4}`.
-    """
-    tokens: list[tuple[str, int]] = []
-    line = 1
+    """Map every key, table and array element of `text` (valid TOML) to its 1-based line."""
+    tokens, line = [], 1
     for match in _TOKEN.finditer(text):
         if match.lastgroup != "c":
             tokens.append((match.group(), line))
         line += match.group().count("\n")
-    tokens.append(("", line))
-    return _Walk(tokens).lines
+    return _Walk([*tokens, ("", line)]).lines
 
 
 class _Walk:
     """One pass over the tokens, from the top: headers, `key = value`, nested values."""
 
     def __init__(self, tokens: list[tuple[str, int]]) -> None:
-        self.tokens, self.i = tokens, 0
-        self.lines: dict[KeyPath, int] = {}
+        self.tokens, self.i, self.lines = tokens, 0, dict[KeyPath, int]()
         arrays: dict[KeyPath, int] = {}  # arrays of tables: the index of their last element
         table: KeyPath = ()
         while self.skip("\n") != "":
-            line = self.tokens[self.i][1]
             if self.peek() != "[":
                 self.pair(table)
                 continue
-            double = self.tokens[self.i + 1][0] == "["
-            self.i += 2 if double else 1
+            line, double = self.tokens[self.i][1], self.tokens[self.i + 1][0] == "["
+            self.i += 1 + double
             parts, resolved = self.key(), []
             for n, part in enumerate(parts):
                 resolved.append(part)
@@ -70,7 +54,7 @@ class _Walk:
                     resolved.append(arrays[tuple(resolved)])
             table = tuple(resolved)
             self.lines.setdefault(table, line)
-            self.i += 2 if double else 1
+            self.i += 1 + double
 
     def peek(self) -> str:
         return self.tokens[self.i][0]
@@ -89,8 +73,7 @@ class _Walk:
         return tuple(p[1:-1] if p[0] in "\"'" else p for p in parts)
 
     def pair(self, table: KeyPath) -> None:
-        line = self.tokens[self.i][1]
-        path = table + self.key()
+        line, path = self.tokens[self.i][1], table + self.key()
         self.lines.setdefault(path, line)
         self.i += 1  # "="
         self.value(path)
@@ -101,8 +84,7 @@ class _Walk:
             while self.peek() not in (",", "]", "}", "\n", ""):
                 self.i += 1  # a scalar: a string, or words and dots (1.5, dates)
             return
-        self.i += 1
-        index = 0
+        self.i, index = self.i + 1, 0
         while self.skip("\n", ",") not in ("]", "}"):
             if opening == "{":
                 self.pair(path)

@@ -279,7 +279,11 @@ class Plan:
             if duration is not None and fault.most_injections(duration) > MAX_INJECTIONS:
                 problem = f"would inject more than {MAX_INJECTIONS} times in a run"
                 raise ConfigError(f"duration {duration:g} s: faults[{index}] {problem}")
-        given = {"repeat": repeat, "seed": seed, "duration": duration}
-        changes = {k: float(v) if k == "duration" else v for k, v in given.items() if v is not None}
+        given = {
+            "repeat": repeat,
+            "seed": seed,
+            "duration": None if duration is None else float(duration),
+        }
+        changes: dict[str, Any] = {k: v for k, v in given.items() if v is not None}
         variants = tuple((v, dataclasses.replace(p, **changes)) for v, p in self.variants)
         return dataclasses.replace(self, **changes, variants=variants)

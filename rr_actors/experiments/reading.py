@@ -70,13 +70,17 @@ NOT_COMPARED = {  # top-level keys `[compare]` refuses, and why
 TOML_KEY = {"targets": "target", "for_s": "for"}
 SUPERVISOR = ("name", "strategy", "max_restarts", "period", "backoff", "children")
 WORKLOAD = ("clients", "rate", "arrivals", "hold", "timeout", "calls")
-TOP = ("name", "duration", "tree", "description", "repeat", "seed", "recovery_timeout")
-TOP += ("workload", "faults", "compare")
+NOT_TOP = ("state", "variants", "source", "base_dir")  # `Plan` fields that are no top keys
+TOP = tuple(f.name for f in dataclasses.fields(Plan) if f.name not in NOT_TOP)
 LISTS = ("at", "target")  # a fault's keys that take one value or an array of them
 FAULT = tuple(TOML_KEY.get(f.name, f.name) for f in dataclasses.fields(schema.FaultPlan))
 # -- a fault's keys that only go with another key, or with some kinds ---------------------------
 NEEDS_KEY = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
-NEEDS_KIND = {"loads": ("load_error",), "server": ("load_error",), "message": ("load_error",)}
+NEEDS_KIND: dict[str, tuple[str, ...]] = {
+    "loads": ("load_error",),
+    "server": ("load_error",),
+    "message": ("load_error",),
+}
 NEEDS_KIND |= {"for": ("hang_manager", "load_error")}
 
 
@@ -191,7 +195,8 @@ class _Reader:
             raw = self.raw(path)  # as written: `at = 1` is checked as `[1]`, its error at `at`
             for index, key in re.findall(r"\[(\d+)\]|\.(\w+)", inner):
                 step: str | int = int(index) if index else key
-                if not isinstance(raw, list if isinstance(step, int) else dict):
+                inside = isinstance(raw, list if isinstance(step, int) else dict)
+                if not inside:
                     break
                 path, raw = (*path, step), raw[step]
             key = next((p for p in reversed(path) if isinstance(p, str)), "")
