@@ -1,14 +1,15 @@
 """Reading a plan: TOML text to a validated `Plan`, every problem a `PlanError` with its line.
 
     PLAN.toml ──tomllib──► data ──_lines.key_lines──► {key path: line}
-        data ──_Reader, table by table: unknown keys; each value ──msgspec.convert(value,
-               its annotated type in `plan`)──► the rules between values ──► Plan
+        data ──_Reader.decode(Plan): per table, unknown and missing keys; per value,
+               msgspec.convert(value, its field's annotated type) ──► Plan ──► the rules
 
-msgspec checks what the types in `plan` say (types, choices, ranges) and `_problem` words
-its errors, all alike. The rules no type can say are code here, a few lines each: names
-that must be in the tree, import paths and their signatures, times within the run, keys
-that go with a fault's kind, request templates, and every compared value (each makes a
-whole plan, validated like the first). The format is in `docs/reference/plan.md`.
+One generic part reads every table into its dataclass of `plan`, whose field types carry
+the limits (msgspec checks them; `_problem` words its errors), and says where a problem is.
+The rules no type can say are code below, a few lines each: names that must be in the
+tree, import paths, times within the run, keys that go with a fault's kind, request
+templates, and the compared values (each makes a whole plan, validated like the first).
+The format is documented in `docs/reference/plan.md`.
 """
 
 from __future__ import annotations
@@ -21,13 +22,13 @@ import re
 import string
 import tomllib
 import typing
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import msgspec
 
 from rr_actors._types import Status
-from rr_actors.config import Backoff
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import plan as schema
 from rr_actors.experiments._imports import import_object
@@ -49,6 +50,7 @@ WHAT = {  # what a key must be, where its type alone words it badly (the last ke
     "weight": f"a positive number (at most {schema.MAX_RATE:g})",
     "shared": "a fraction from 0 to 1",
     "factor": f"a number from 1 to {schema.MAX_SECONDS:g}",
+    "children": "a non-empty array of tables ([[...children]])",
 }
 MISSING = {  # what a missing key is for
     "duration": " (seconds of workload and faults per run)",
@@ -66,21 +68,17 @@ NOT_COMPARED = {  # top-level keys `[compare]` refuses, and why
     "repeat": "every compared value runs 'repeat' times",
     "compare": "compare is not a setting of a run",
 }
-# -- the keys of each table (field names, less those read apart; `for` is `for_s`) ------------
-TOML_KEY = {"targets": "target", "for_s": "for"}
-SUPERVISOR = ("name", "strategy", "max_restarts", "period", "backoff", "children")
-WORKLOAD = ("clients", "rate", "arrivals", "hold", "timeout", "calls")
-NOT_TOP = ("state", "variants", "source", "base_dir")  # `Plan` fields that are no top keys
-TOP = tuple(f.name for f in dataclasses.fields(Plan) if f.name not in NOT_TOP)
+# -- how keys become fields -------------------------------------------------------------------
+TOML_KEY = {"targets": "target", "for_s": "for"}  # field -> key, where they differ
+NOT_KEYS = ("state", "variants", "source", "base_dir")  # `Plan` fields no key gives
+OFF = {"heartbeat": False, "rate": "max"}  # the value that makes the field `None`
+HINT = {"initial": schema.SecondsOrZero, "max": schema.SecondsOrZero}  # `Backoff`'s, limited
 LISTS = ("at", "target")  # a fault's keys that take one value or an array of them
-FAULT = tuple(TOML_KEY.get(f.name, f.name) for f in dataclasses.fields(schema.FaultPlan))
 # -- a fault's keys that only go with another key, or with some kinds ---------------------------
 NEEDS_KEY = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
-NEEDS_KIND: dict[str, tuple[str, ...]] = {
-    "loads": ("load_error",),
-    "server": ("load_error",),
-    "message": ("load_error",),
-}
+NEEDS_KIND: dict[str, tuple[str, ...]] = dict.fromkeys(
+    ("loads", "server", "message"), ("load_error",)
+)
 NEEDS_KIND |= {"for": ("hang_manager", "load_error")}
 
 
@@ -165,11 +163,14 @@ def _problem(message: str, key: str, value: Any, hint: Any) -> str:
 
 
 class _Reader:
-    """Validates plan data table by table, turning every problem into a `PlanError`."""
+    """Reads plan data into a `Plan`, turning every problem into a `PlanError`."""
 
     def __init__(self, source: str, lines: dict[KeyPath, int], base_dir: str | None) -> None:
         self.source, self.lines, self.base_dir = source, lines, base_dir
         self.data: dict[str, Any] = {}
+        self.state = True  # `[tree] state`, a field of `Plan`
+        self.hooks = {"tree": self.root, "every": self.every, "after": self.trigger}
+        self.hooks["compare"] = lambda value, path: None  # read apart, before
 
     # -- the generic part: where, unknown and missing keys, typed values ---------------------
 
@@ -209,16 +210,42 @@ class _Reader:
             node = node[part]
         return node
 
-    def build(self, cls: Any, table: dict[str, Any], path: KeyPath, **given: Any) -> Any:
-        """A `cls` from `table`: each of its fields not `given` from its key, checked."""
+    def decode(self, cls: Any, value: Any, path: KeyPath) -> Any:
+        """A `cls` (a dataclass of `plan`) from the table `value`, every field checked."""
         hints = typing.get_type_hints(cls, include_extras=True)
-        for field in (f for f in dataclasses.fields(cls) if f.name not in given):
-            key = TOML_KEY.get(field.name, field.name)
-            if key in table:
-                given[field.name] = self.check(table[key], hints[field.name], (*path, key))
-            elif field.default is field.default_factory is dataclasses.MISSING:
+        fields = [f for f in dataclasses.fields(cls) if f.name not in NOT_KEYS]
+        keys = {TOML_KEY.get(f.name, f.name): f for f in fields}
+        table, given = self.table(value, path, tuple(keys)), {}
+        for key, field in keys.items():
+            item, at = table.get(key), (*path, key)
+            if key not in table and field.default is field.default_factory is dataclasses.MISSING:
                 raise self.error(path, f"{key!r} is missing{MISSING.get(key, '')}")
-        return cls(**given)
+            if key in self.hooks and key in table:
+                given[field.name] = self.hooks[key](item, at)
+            elif key in OFF and type(item) is type(OFF[key]) and item == OFF[key]:
+                given[field.name] = None
+            elif key in table:
+                item = [item] if key in LISTS and not isinstance(item, list) else item
+                given[field.name] = self.value(item, HINT.get(key, hints[field.name]), at)
+        try:
+            return cls(**given)
+        except ConfigError as exc:  # a `Backoff` checks itself
+            bad = str(exc).split(" ", 1)[0].removeprefix("Backoff.")
+            raise self.error((*path, bad) if bad in table else path, str(exc)) from None
+
+    def value(self, item: Any, hint: Any, path: KeyPath) -> Any:
+        """`item` as `hint`: a plan dataclass (or a tuple of them) decoded, else by msgspec."""
+        if dataclasses.is_dataclass(hint):
+            return self.decode(hint, item, path)
+        element = typing.get_args(hint)[0] if typing.get_origin(hint) is tuple else None
+        classes = [c for c in typing.get_args(element) or (element,) if dataclasses.is_dataclass(c)]
+        if not classes:
+            return self.check(item, hint, path)
+        items = self.check(item, list[dict[str, Any]], path)  # a supervisor has children:
+        return tuple(
+            self.decode(classes[-1] if "children" in x else classes[0], x, (*path, i))
+            for i, x in enumerate(items)
+        )
 
     def importable(self, path: KeyPath, name: str, call: KeyPath, *args: Any, **kw: Any) -> None:
         """Import `name`; check that it can be called with `args` and `kw` (at `call`)."""
@@ -235,113 +262,59 @@ class _Reader:
         except TypeError as exc:
             raise self.error(call, f"{name} cannot be called with these: {exc}") from None
 
-    # -- the plan, its tree and its workload --------------------------------------------------
+    # -- the plan and the rules between its values ---------------------------------------------
 
     def plan(self, data: dict[str, Any], *, name: str) -> Plan:
-        self.data, top = data, {"name": name, **data}
-        if "tree" not in top:
-            raise self.error((), "'tree' is missing")
-        self.table(top, (), TOP)
-        tree = self.table(top["tree"], ("tree",), ("state", *SUPERVISOR))
-        root = self.supervisor({"name": "root", **tree}, ("tree",))
-        self.unique_names(root, ("tree",), set())
-        managers = {m.name: m for m in root.managers()}
-        workload = self.workload(top.get("workload", {"clients": 0}), managers)
-        plan: Plan = self.build(
-            Plan, top, (), tree=root, workload=workload, faults=(), compare=None
-        )
+        self.data = {"name": name, **data}
+        plan: Plan = self.decode(Plan, self.data, ())
+        source = None if self.source == "<plan>" else self.source
+        plan = dataclasses.replace(plan, state=self.state, source=source, base_dir=self.base_dir)
+        managers = {m.name: m for m in plan.managers()}
+        self.tree(plan.tree)
+        self.calls(plan.workload, managers)
         names = {  # what the fields of an `after` trigger may name
-            "supervisor": {s.name for s in root.supervisors()},
-            "child": set(managers) | {s.name for s in root.supervisors()[1:]},
-            "registrar": set(managers) | {f"client-{i}" for i in range(workload.clients)},
+            "supervisor": {s.name for s in plan.tree.supervisors()},
+            "child": set(managers) | {s.name for s in plan.tree.supervisors()[1:]},
+            "registrar": set(managers) | {f"client-{i}" for i in range(plan.workload.clients)},
         }
-        faults = self.check(top.get("faults", []), list[dict[str, Any]], ("faults",))
-        faults = [
-            self.fault(f, ("faults", i), managers, plan.duration, names)
-            for i, f in enumerate(faults)
-        ]
-        return dataclasses.replace(
-            plan,
-            state=self.check(tree.get("state", True), bool, ("tree", "state")),
-            faults=tuple(faults),
-            source=None if self.source == "<plan>" else self.source,
-            base_dir=self.base_dir,
-        )
+        for index, fault in enumerate(plan.faults):
+            self.fault(fault, ("faults", index), managers, plan.duration, names)
+        return plan
 
-    def supervisor(self, table: Any, path: KeyPath) -> schema.SupervisorPlan:
-        top = path == ("tree",)
-        self.table(table, path, (*SUPERVISOR, "state" if top else "restart"))
-        children = self.check(table.get("children"), list[dict[str, Any]], (*path, "children"))
-        if not children:
-            problem = "must be a non-empty array of tables ([[...children]])"
-            raise self.error((*path, "children"), problem)
-        parsed = tuple(
-            (self.supervisor if "children" in child else self.manager)(
-                child, (*path, "children", i)
-            )
-            for i, child in enumerate(children)
-        )
-        backoff = self.backoff(table.get("backoff", {}), (*path, "backoff"))
-        given = {"restart": "permanent"} if top else {}  # a nested one's restart type, only
-        sup: schema.SupervisorPlan = self.build(
-            schema.SupervisorPlan, table, path, children=parsed, backoff=backoff, **given
-        )
-        return sup
+    def root(self, value: Any, path: KeyPath) -> schema.SupervisorPlan:
+        """The top supervisor: named "root" unless named, no `restart`, and the plan's `state`."""
+        keys = [TOML_KEY.get(f.name, f.name) for f in dataclasses.fields(schema.SupervisorPlan)]
+        table = self.table(value, path, (*(k for k in keys if k != "restart"), "state"))
+        self.state = self.check(table.get("state", True), bool, (*path, "state"))
+        tree = {"name": "root", **{k: v for k, v in table.items() if k != "state"}}
+        root: schema.SupervisorPlan = self.decode(schema.SupervisorPlan, tree, path)
+        return root
 
-    def unique_names(self, sup: schema.SupervisorPlan, path: KeyPath, seen: set[str]) -> None:
-        for index, child in enumerate(sup.children):
-            at = (*path, "children", index)
-            if child.name in seen or child.name == sup.name:
+    def tree(self, root: schema.SupervisorPlan) -> None:
+        seen: set[str] = set()
+        for path, node in _nodes(root, ("tree",)):
+            if isinstance(node, schema.SupervisorPlan) and not node.children:
+                raise self.error((*path, "children"), f"must be {WHAT['children']}")
+            if node.name in seen:
                 raise self.error(
-                    (*at, "name"), f"the name {child.name!r} is used twice in the tree"
+                    (*path, "name"), f"the name {node.name!r} is used twice in the tree"
                 )
-            seen.add(child.name)
-            if isinstance(child, schema.SupervisorPlan):
-                self.unique_names(child, at, seen)
+            seen.add(node.name)
+            if isinstance(node, schema.ManagerPlan):
+                options = (*path, "options")
+                self.importable((*path, "setup"), node.setup, options, None, **node.options)
 
-    def backoff(self, value: Any, path: KeyPath) -> Backoff:
-        table = self.table(value, path, ("initial", "factor", "max", "jitter"))
-        hint = {"initial": schema.SecondsOrZero, "max": schema.SecondsOrZero}
-        numbers = {k: self.check(v, hint.get(k, float), (*path, k)) for k, v in table.items()}
-        try:
-            return Backoff(**numbers)
-        except ConfigError as exc:
-            field = str(exc).split(" ", 1)[0].removeprefix("Backoff.")
-            raise self.error((*path, field) if field in table else path, str(exc)) from None
-
-    def manager(self, table: dict[str, Any], path: KeyPath) -> schema.ManagerPlan:
-        fields = tuple(f.name for f in dataclasses.fields(schema.ManagerPlan))
-        off = (
-            {"heartbeat": None} if self.table(table, path, fields).get("heartbeat") is False else {}
-        )
-        manager: schema.ManagerPlan = self.build(schema.ManagerPlan, table, path, **off)
-        options = (*path, "options")
-        self.importable((*path, "setup"), manager.setup, options, None, **manager.options)
-        return manager
-
-    def workload(self, value: Any, managers: dict[str, schema.ManagerPlan]) -> schema.Workload:
-        path: KeyPath = ("workload",)
-        calls = self.table(value, path, WORKLOAD).get("calls", [])
-        calls = self.check(calls, list[dict[str, Any]], (*path, "calls"))
-        calls = [self.call(c, (*path, "calls", i), managers) for i, c in enumerate(calls)]
-        rate = {"rate": None} if value.get("rate") == "max" else {}
-        workload: schema.Workload = self.build(
-            schema.Workload, value, path, calls=tuple(calls), **rate
-        )
-        if workload.clients and not calls:
-            raise self.error(path, "'calls' is missing: what do the clients call?")
-        return workload
-
-    def call(self, value: Any, path: KeyPath, managers: dict[str, Any]) -> schema.CallMix:
-        fields = tuple(f.name for f in dataclasses.fields(schema.CallMix))
-        call: schema.CallMix = self.build(schema.CallMix, self.table(value, path, fields), path)
-        self.named(call.manager, managers, (*path, "manager"))
-        if "request" in value and call.factory is not None:
-            raise self.error((*path, "factory"), "give either 'request' or 'factory', not both")
-        if call.factory is not None:
-            self.importable((*path, "factory"), call.factory, (*path, "factory"), "key", None)
-        self.template(call.request, (*path, "request"))
-        return call
+    def calls(self, workload: schema.Workload, managers: dict[str, Any]) -> None:
+        for index, call in enumerate(workload.calls):
+            path = ("workload", "calls", index)
+            self.named(call.manager, managers, (*path, "manager"))
+            if "request" in self.raw(path) and call.factory is not None:
+                raise self.error((*path, "factory"), "give either 'request' or 'factory', not both")
+            if call.factory is not None:
+                self.importable((*path, "factory"), call.factory, (*path, "factory"), "key", None)
+            self.template(call.request, (*path, "request"))
+        if workload.clients and not workload.calls:
+            raise self.error(("workload",), "'calls' is missing: what do the clients call?")
 
     def named(self, name: str, managers: dict[str, Any], path: KeyPath) -> None:
         if name not in managers:
@@ -375,13 +348,10 @@ class _Reader:
     # -- the faults ---------------------------------------------------------------------------
 
     def fault(
-        self, value: Any, path: KeyPath, managers: dict[str, Any], duration: float, names: Any
-    ) -> schema.FaultPlan:
-        """One `[[faults]]` entry; `names` are the values an `after` field may name."""
-        table = self.table(value, path, FAULT)
-        if "kind" not in table:
-            raise self.error(path, f"'kind' is missing{MISSING['kind']}")
-        kind = self.check(table["kind"], schema.FaultKind, (*path, "kind"))
+        self, fault: schema.FaultPlan, path: KeyPath, managers: Any, duration: float, names: Any
+    ) -> None:
+        """The rules of one `[[faults]]` entry; `names` are the values an `after` may name."""
+        table, kind = self.raw(path), fault.kind
         when = [key for key in ("at", "every", "after") if key in table]
         if len(when) != 1:
             say = f"give only one of 'at', 'every' or 'after', not {' and '.join(when)}"
@@ -397,19 +367,13 @@ class _Reader:
         if "for" in table and "loads" in table:
             problem = "give either 'for' (seconds) or 'loads' (a number), not both"
             raise self.error((*path, "loads"), problem)
-        lists = {k: v if isinstance(v, list) else [v] for k, v in table.items() if k in LISTS}
-        after = table.get("after")
-        fault: schema.FaultPlan = self.build(
-            schema.FaultPlan,
-            {**table, **lists},
-            path,
-            kind=kind,
-            every=self.every(table.get("every"), (*path, "every")),
-            after=None if after is None else self.trigger(after, (*path, "after"), names),
-        )
+        for key, item in fault.after.match.items() if fault.after else ():
+            if key in names and item not in names[key]:  # it would never match: never fire
+                known = ", ".join(sorted(names[key]))
+                problem = f"{item!r} names nothing in this run (it may be: {known})"
+                raise self.error((*path, "after", key), problem)
         self.targets(fault, table, path, managers)
         self.timing(fault, table, path, duration)
-        return fault
 
     def every(self, every: Any, path: KeyPath) -> Any:
         """`every = 0.5` or `every = { min = 0.5, max = 2 }` (msgspec 0.22 crashes on its type)."""
@@ -486,7 +450,7 @@ class _Reader:
             if wrong:
                 raise self.error((*path, key), problem)
 
-    def trigger(self, value: Any, path: KeyPath, names: dict[str, set[str]]) -> schema.Trigger:
+    def trigger(self, value: Any, path: KeyPath) -> schema.Trigger:
         if not isinstance(value, dict):
             problem = f'must be a table like {{ event = "ChildRestarted" }}, got {_show(value)}'
             raise self.error(path, problem)
@@ -500,20 +464,14 @@ class _Reader:
         self.table(value, path, ("event", "nth", *(f for f in hints if f != "at")))
         match = {}
         for key, item in ((k, v) for k, v in value.items() if k not in ("event", "nth")):
-            if hints[key] is Status:  # a status by its name
-                statuses = Status.__members__
-                if not (isinstance(item, str) and item in statuses):
-                    problem = f"must be one of {', '.join(statuses)}, got {item!r}"
-                    raise self.error((*path, key), problem)
-            match[key] = (
-                Status[item] if hints[key] is Status else self.check(item, hints[key], (*path, key))
-            )
-            if key in names and item not in names[key]:  # it would never match: never fire
-                known = ", ".join(sorted(names[key]))
-                problem = f"{item!r} names nothing in this run (it may be: {known})"
+            statuses = Status.__members__
+            if hints[key] is Status and not (isinstance(item, str) and item in statuses):
+                problem = f"must be one of {', '.join(statuses)}, got {item!r}"
                 raise self.error((*path, key), problem)
-        trigger: schema.Trigger = self.build(schema.Trigger, value, path, match=match)
-        return trigger
+            hint, at = hints[key], (*path, key)
+            match[key] = Status[item] if hint is Status else self.check(item, hint, at)
+        nth = self.check(value.get("nth", 1), schema.Count, (*path, "nth"))
+        return schema.Trigger(event, match, nth)
 
     # -- compare ------------------------------------------------------------------------------
 
@@ -522,8 +480,7 @@ class _Reader:
             return None
         path: KeyPath = ("compare",)
         self.data = data
-        table = self.table(data["compare"], path, ("setting", "values"))
-        compare: schema.Compare = self.build(schema.Compare, table, path)
+        compare: schema.Compare = self.decode(schema.Compare, data["compare"], path)
         setting, values = compare.setting, compare.values
         if not setting or setting.split(".")[0] in NOT_COMPARED:
             why = NOT_COMPARED.get(setting.split(".")[0])
@@ -562,3 +519,10 @@ class _Reader:
                 return node, key
             node = node[key]
         raise AssertionError("unreachable")
+
+
+def _nodes(node: Any, path: KeyPath) -> Iterator[tuple[KeyPath, Any]]:
+    """`node` of the tree and every node below it, depth first, with their paths."""
+    yield path, node
+    for index, child in enumerate(getattr(node, "children", ())):
+        yield from _nodes(child, (*path, "children", index))
