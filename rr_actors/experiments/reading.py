@@ -100,10 +100,7 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
 
 
 def parse_plan(text: str, *, source: str = "<plan>", name: str = "plan") -> Plan:
-    """Validate the plan in the TOML `text`: one variant per compared value.
-
-    `source` names the text in error messages (a file name); `name` is the plan's name if
-    the text has no `name` key.
+    """Validate the plan in the TOML `text` (`source` names it in errors): a variant per value.
 
     Raises:
         PlanError: the text is not TOML or not a valid plan.
@@ -168,7 +165,7 @@ class _Reader:
     def __init__(self, source: str, lines: dict[KeyPath, int], base_dir: str | None) -> None:
         self.source, self.lines, self.base_dir = source, lines, base_dir
         self.data: dict[str, Any] = {}
-        self.state = True  # `[tree] state`, a field of `Plan`
+        self.state, self.managers = True, dict[str, schema.ManagerPlan]()  # of the last plan
         self.hooks = {"tree": self.root, "every": self.every, "after": self.trigger}
         self.hooks["compare"] = lambda value, path: None  # read apart, before
 
@@ -269,16 +266,16 @@ class _Reader:
         plan: Plan = self.decode(Plan, self.data, ())
         source = None if self.source == "<plan>" else self.source
         plan = dataclasses.replace(plan, state=self.state, source=source, base_dir=self.base_dir)
-        managers = {m.name: m for m in plan.managers()}
+        self.managers = managers = {m.name: m for m in plan.managers()}
         self.tree(plan.tree)
-        self.calls(plan.workload, managers)
+        self.calls(plan.workload)
         names = {  # what the fields of an `after` trigger may name
             "supervisor": {s.name for s in plan.tree.supervisors()},
             "child": set(managers) | {s.name for s in plan.tree.supervisors()[1:]},
             "registrar": set(managers) | {f"client-{i}" for i in range(plan.workload.clients)},
         }
         for index, fault in enumerate(plan.faults):
-            self.fault(fault, ("faults", index), managers, plan.duration, names)
+            self.fault(fault, ("faults", index), plan.duration, names)
         return plan
 
     def root(self, value: Any, path: KeyPath) -> schema.SupervisorPlan:
@@ -296,18 +293,17 @@ class _Reader:
             if isinstance(node, schema.SupervisorPlan) and not node.children:
                 raise self.error((*path, "children"), f"must be {WHAT['children']}")
             if node.name in seen:
-                raise self.error(
-                    (*path, "name"), f"the name {node.name!r} is used twice in the tree"
-                )
+                problem = f"the name {node.name!r} is used twice in the tree"
+                raise self.error((*path, "name"), problem)
             seen.add(node.name)
             if isinstance(node, schema.ManagerPlan):
                 options = (*path, "options")
                 self.importable((*path, "setup"), node.setup, options, None, **node.options)
 
-    def calls(self, workload: schema.Workload, managers: dict[str, Any]) -> None:
+    def calls(self, workload: schema.Workload) -> None:
         for index, call in enumerate(workload.calls):
             path = ("workload", "calls", index)
-            self.named(call.manager, managers, (*path, "manager"))
+            self.named(call.manager, (*path, "manager"))
             if "request" in self.raw(path) and call.factory is not None:
                 raise self.error((*path, "factory"), "give either 'request' or 'factory', not both")
             if call.factory is not None:
@@ -316,18 +312,14 @@ class _Reader:
         if workload.clients and not workload.calls:
             raise self.error(("workload",), "'calls' is missing: what do the clients call?")
 
-    def named(self, name: str, managers: dict[str, Any], path: KeyPath) -> None:
-        if name not in managers:
-            problem = f"no manager {name!r} in the tree (managers: {', '.join(managers)})"
+    def named(self, name: str, path: KeyPath) -> None:
+        if name not in self.managers:
+            problem = f"no manager {name!r} in the tree (managers: {', '.join(self.managers)})"
             raise self.error(path, problem)
 
     def template(self, value: Any, path: KeyPath) -> None:
-        """Check the placeholders of every string in a request template.
-
-        A placeholder is only a name: `{key}`, not `{key!r}` or `{client:03d}`. With no
-        conversion, format spec, attribute or index, every template renders at run time
-        for any key and client, so a template that passes here cannot fail in a client.
-        """
+        """Check every string of a request template: a placeholder is only a known name
+        (`{key}`, not `{key!r}` or `{client:03d}`), so a template that passes renders."""
         if isinstance(value, dict | list):
             for key, item in value.items() if isinstance(value, dict) else enumerate(value):
                 self.template(item, (*path, key))
@@ -347,9 +339,7 @@ class _Reader:
 
     # -- the faults ---------------------------------------------------------------------------
 
-    def fault(
-        self, fault: schema.FaultPlan, path: KeyPath, managers: Any, duration: float, names: Any
-    ) -> None:
+    def fault(self, fault: schema.FaultPlan, path: KeyPath, duration: float, names: Any) -> None:
         """The rules of one `[[faults]]` entry; `names` are the values an `after` may name."""
         table, kind = self.raw(path), fault.kind
         when = [key for key in ("at", "every", "after") if key in table]
@@ -372,7 +362,7 @@ class _Reader:
                 known = ", ".join(sorted(names[key]))
                 problem = f"{item!r} names nothing in this run (it may be: {known})"
                 raise self.error((*path, "after", key), problem)
-        self.targets(fault, table, path, managers)
+        self.targets(fault, table, path)
         self.timing(fault, table, path, duration)
 
     def every(self, every: Any, path: KeyPath) -> Any:
@@ -387,9 +377,8 @@ class _Reader:
             raise self.error((*path, "max"), f"must not be less than min ({low:g} s)")
         return low, high
 
-    def targets(
-        self, fault: schema.FaultPlan, table: dict[str, Any], path: KeyPath, managers: Any
-    ) -> None:
+    def targets(self, fault: schema.FaultPlan, table: dict[str, Any], path: KeyPath) -> None:
+        managers = self.managers
         if "target" not in table and fault.kind != "kill_resource":
             raise self.error(path, f"'target' is missing{MISSING['target']}")
         if "target" not in table and all(m.isolation == "thread" for m in managers.values()):
@@ -398,10 +387,8 @@ class _Reader:
         if "target" in table and not fault.targets:
             raise self.error((*path, "target"), "must name at least one manager")
         for index, name in enumerate(fault.targets):
-            at = (
-                (*path, "target", index) if isinstance(table["target"], list) else (*path, "target")
-            )
-            self.named(name, managers, at)
+            at = (*path, "target", index)[: 4 if isinstance(table["target"], list) else 3]
+            self.named(name, at)
             if fault.kind in schema.NEEDS_PROCESS and managers[name].isolation != "process":
                 problem = f"{fault.kind} needs a process manager; {name!r} has isolation 'thread'"
                 raise self.error(at, problem)
@@ -416,39 +403,32 @@ class _Reader:
             raise self.error((*path, "at"), "must give at least one time (seconds)")
         end = f"the end of the run ({duration:g} s)"
         for index, at in enumerate(fault.at):
-            where = (*path, "at", index) if isinstance(table["at"], list) else (*path, "at")
+            where = (*path, "at", index)[: 4 if isinstance(table["at"], list) else 3]
             if at >= duration:
                 raise self.error(where, f"{self.raw(where)!r} s is not before {end}")
-        stop = duration if fault.stop is None else fault.stop
+        stop, start = duration if fault.stop is None else fault.stop, fault.start
         low = fault.every if isinstance(fault.every, float) else (fault.every or (0.0,))[0]
         most, first = fault.most_injections(duration), f"stop ({stop:g} s)" if fault.stop else end
-        for key, wrong, problem in [  # (key, whether it is wrong here, what is wrong)
-            (
-                "delay",
-                fault.delay >= duration,
-                f"{fault.delay:g} s is not before {end}: it never fires",
-            ),
-            ("start", fault.start >= duration, f"{fault.start:g} s is not before {end}"),
-            ("stop", stop <= fault.start, f"must be after 'start' ({fault.start:g} s)"),
-            (
-                "stop",
-                stop > duration,
-                f"{stop:g} s is after {end}; leave it out to inject until the end",
-            ),
-            (
-                "every",
-                fault.every is not None and fault.start + low >= stop,
-                f"the first injection ({fault.start:g} + {low:g} s) would not come before {first}",
-            ),
-            (
-                "every",
-                most > schema.MAX_INJECTIONS,
-                f"would inject up to {most} times in a run (at most {schema.MAX_INJECTIONS} per "
-                "fault): give a longer interval, a 'count' or a 'stop'",
-            ),
-        ]:
-            if wrong:
-                raise self.error((*path, key), problem)
+        if fault.delay >= duration:
+            raise self.error(
+                (*path, "delay"), f"{fault.delay:g} s is not before {end}: it never fires"
+            )
+        if start >= duration:
+            raise self.error((*path, "start"), f"{start:g} s is not before {end}")
+        if stop <= start:
+            raise self.error((*path, "stop"), f"must be after 'start' ({start:g} s)")
+        if stop > duration:
+            problem = f"{stop:g} s is after {end}; leave it out to inject until the end"
+            raise self.error((*path, "stop"), problem)
+        if fault.every is not None and start + low >= stop:
+            problem = f"the first injection ({start:g} + {low:g} s) would not come before {first}"
+            raise self.error((*path, "every"), problem)
+        if most > schema.MAX_INJECTIONS:
+            problem = f"would inject up to {most} times in a run (at most {schema.MAX_INJECTIONS}"
+            raise self.error(
+                (*path, "every"),
+                f"{problem} per fault): give a longer interval, a 'count' or a 'stop'",
+            )
 
     def trigger(self, value: Any, path: KeyPath) -> schema.Trigger:
         if not isinstance(value, dict):
@@ -484,10 +464,8 @@ class _Reader:
         setting, values = compare.setting, compare.values
         if not setting or setting.split(".")[0] in NOT_COMPARED:
             why = NOT_COMPARED.get(setting.split(".")[0])
-            problem = (
-                f"{setting!r} cannot be compared: {why}" if why else "must be a plan key, got ''"
-            )
-            raise self.error((*path, "setting"), problem)
+            problem = f"cannot be compared: {why}" if why else "must be a plan key, got ''"
+            raise self.error((*path, "setting"), f"{setting!r} {problem}" if why else problem)
         if not values:
             raise self.error((*path, "values"), "must be a non-empty array")
         for index, item in enumerate(values):
@@ -503,9 +481,8 @@ class _Reader:
         parts = setting.split(".")
         for n, part in enumerate(parts):
             if isinstance(node, list):
-                named = [
-                    i for i, x in enumerate(node) if isinstance(x, dict) and x.get("name") == part
-                ]
+                names = [x.get("name") if isinstance(x, dict) else None for x in node]
+                named = [i for i, name in enumerate(names) if name == part]
                 if not named and not (part.isdigit() and int(part) < len(node)):
                     raise self.error(where, f"{setting!r}: no element named {part!r}")
                 key: str | int = named[0] if named else int(part)
