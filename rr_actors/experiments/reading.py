@@ -1,15 +1,11 @@
 """Reading a plan: TOML text to a validated `Plan`, every problem a `PlanError` with its line.
 
-    PLAN.toml ──tomllib──► data ──_lines.key_lines──► {key path: line}
-        data ──_Reader.decode(Plan): per table, unknown and missing keys; per value,
-               msgspec.convert(value, its field's annotated type) ──► Plan ──► the rules
+    PLAN.toml ──tomllib──► data ──_Reader.decode(Plan), table by table: unknown and missing
+    keys, each value ──msgspec.convert(value, its field's annotated type)──► Plan ──► rules
 
-One generic part reads every table into its dataclass of `plan`, whose field types carry
-the limits (msgspec checks them; `_problem` words its errors), and says where a problem is.
-The rules no type can say are code below, a few lines each: names that must be in the
-tree, import paths, times within the run, keys that go with a fault's kind, request
-templates, and the compared values (each makes a whole plan, validated like the first).
-The format is documented in `docs/reference/plan.md`.
+One generic part decodes every table into its dataclass of `plan` and words msgspec's
+errors (`_problem`); the rules no type can say follow, a few lines each. The lines come
+from `_lines.key_lines`. The format is documented in `docs/reference/plan.md`.
 """
 
 from __future__ import annotations
@@ -28,7 +24,6 @@ from typing import Any
 
 import msgspec
 
-from rr_actors._types import Status
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import plan as schema
 from rr_actors.experiments._imports import import_object
@@ -143,7 +138,8 @@ def _problem(message: str, key: str, value: Any, hint: Any) -> str:
     if key in WHAT and not (bound and key == "heartbeat"):
         what = f"must be {WHAT[key]}"
     elif message.startswith("Invalid enum value"):
-        what = f"must be one of {', '.join(map(repr, typing.get_args(hint)))}"
+        choices = typing.get_args(hint) or tuple(getattr(hint, "__members__", ()))
+        what = f"must be one of {', '.join(map(repr, choices))}"
     elif bound and bound[1] == "int":
         what = f"must be an integer {bound[2]} {bound[3]}"
     elif bound and bound[2] == "<=":
@@ -442,14 +438,8 @@ class _Reader:
             raise self.error((*path, "event"), f"unknown event {event!r}; events: {known}")
         hints = typing.get_type_hints(schema.EVENT_TYPES[event])
         self.table(value, path, ("event", "nth", *(f for f in hints if f != "at")))
-        match = {}
-        for key, item in ((k, v) for k, v in value.items() if k not in ("event", "nth")):
-            statuses = Status.__members__
-            if hints[key] is Status and not (isinstance(item, str) and item in statuses):
-                problem = f"must be one of {', '.join(statuses)}, got {item!r}"
-                raise self.error((*path, key), problem)
-            hint, at = hints[key], (*path, key)
-            match[key] = Status[item] if hint is Status else self.check(item, hint, at)
+        fields = (k for k in value if k not in ("event", "nth"))  # a `Status` by its name, too
+        match = {key: self.check(value[key], hints[key], (*path, key)) for key in fields}
         nth = self.check(value.get("nth", 1), schema.Count, (*path, "nth"))
         return schema.Trigger(event, match, nth)
 
