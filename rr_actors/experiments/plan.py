@@ -12,6 +12,7 @@ import typing
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
+import msgspec
 from msgspec import Meta
 
 from rr_actors import events
@@ -64,6 +65,7 @@ Name = Annotated[str, Meta(pattern=r"\A[\w.-]+\Z")]
 Text = Annotated[str, Meta(max_length=10_000)]
 Count = Annotated[int, Meta(ge=1, le=MAX_COUNT)]
 Seed = Annotated[int, Meta(ge=-(2**63), le=2**63 - 1)]
+Repeat = Annotated[int, Meta(ge=1, le=MAX_REPEAT)]
 Restart = Literal["permanent", "transient", "temporary"]
 
 
@@ -226,7 +228,7 @@ class Plan:
     duration: Seconds  # of workload and faults per run
     tree: SupervisorPlan
     description: str = ""
-    repeat: Annotated[int, Meta(ge=1, le=MAX_REPEAT)] = 1  # runs per compared value
+    repeat: Repeat = 1  # runs per compared value
     seed: Seed = 0  # of the first run (run `i` of a value uses `seed + i`)
     recovery_timeout: Seconds = 10.0  # at the end, to wait for every manager to serve
     state: bool = True  # whether managers keep durable catalogs (a state directory per run)
@@ -252,11 +254,7 @@ class Plan:
         return self.compare.setting if self.compare is not None else ""
 
     def with_changes(
-        self,
-        *,
-        repeat: int | None = None,
-        seed: int | None = None,
-        duration: float | None = None,
+        self, *, repeat: int | None = None, seed: int | None = None, duration: float | None = None
     ) -> Plan:
         """A copy with another `repeat`, `seed` or `duration` (`None`: keep), for every variant.
 
@@ -267,23 +265,19 @@ class Plan:
                 `duration` not in (0, `MAX_SECONDS`], or so long that an `every` fault
                 would inject more than `MAX_INJECTIONS` times.
         """
-        if repeat is not None and (isinstance(repeat, bool) or not 1 <= repeat <= MAX_REPEAT):
-            raise ConfigError(f"repeat must be an int from 1 to {MAX_REPEAT}, got {repeat!r}")
-        if seed is not None and not -(2**63) <= seed < 2**63:
-            raise ConfigError(f"seed must be a 64-bit integer, got {seed!r}")
-        number = isinstance(duration, int | float) and not isinstance(duration, bool)
-        if duration is not None and not (number and 0 < duration <= MAX_SECONDS):
-            problem = f"a positive number of seconds up to {MAX_SECONDS:g}, got {duration!r}"
-            raise ConfigError(f"duration must be {problem}")
+        changes: dict[str, Any] = {}
+        for key, value, hint, what in (
+            ("repeat", repeat, Repeat, f"an int from 1 to {MAX_REPEAT}"),
+            ("seed", seed, Seed, "a 64-bit integer"),
+            ("duration", duration, Seconds, f"a positive number of seconds up to {MAX_SECONDS:g}"),
+        ):
+            try:
+                changes |= {} if value is None else {key: msgspec.convert(value, hint)}
+            except msgspec.ValidationError:
+                raise ConfigError(f"{key} must be {what}, got {value!r}") from None
         for index, fault in (x for _, p in self.variants for x in enumerate(p.faults)):
             if duration is not None and fault.most_injections(duration) > MAX_INJECTIONS:
                 problem = f"would inject more than {MAX_INJECTIONS} times in a run"
                 raise ConfigError(f"duration {duration:g} s: faults[{index}] {problem}")
-        given = {
-            "repeat": repeat,
-            "seed": seed,
-            "duration": None if duration is None else float(duration),
-        }
-        changes: dict[str, Any] = {k: v for k, v in given.items() if v is not None}
         variants = tuple((v, dataclasses.replace(p, **changes)) for v, p in self.variants)
         return dataclasses.replace(self, **changes, variants=variants)
