@@ -271,7 +271,8 @@ class _Reader:
             "registrar": set(managers) | {f"client-{i}" for i in range(plan.workload.clients)},
         }
         for index, fault in enumerate(plan.faults):
-            self.fault(fault, ("faults", index), plan.duration, names)
+            self.fault(fault, ("faults", index), names)
+            self.timing(fault, ("faults", index), plan.duration)
         return plan
 
     def root(self, value: Any, path: KeyPath) -> schema.SupervisorPlan:
@@ -335,9 +336,9 @@ class _Reader:
 
     # -- the faults ---------------------------------------------------------------------------
 
-    def fault(self, fault: schema.FaultPlan, path: KeyPath, duration: float, names: Any) -> None:
+    def fault(self, fault: schema.FaultPlan, path: KeyPath, names: Any) -> None:
         """The rules of one `[[faults]]` entry; `names` are the values an `after` may name."""
-        table, kind = self.raw(path), fault.kind
+        table, kind, managers = self.raw(path), fault.kind, self.managers
         when = [key for key in ("at", "every", "after") if key in table]
         if len(when) != 1:
             say = f"give only one of 'at', 'every' or 'after', not {' and '.join(when)}"
@@ -358,24 +359,7 @@ class _Reader:
                 known = ", ".join(sorted(names[key]))
                 problem = f"{item!r} names nothing in this run (it may be: {known})"
                 raise self.error((*path, "after", key), problem)
-        self.targets(fault, table, path)
-        self.timing(fault, table, path, duration)
-
-    def every(self, every: Any, path: KeyPath) -> Any:
-        """`every = 0.5` or `every = { min = 0.5, max = 2 }` (msgspec 0.22 crashes on its type)."""
-        if not isinstance(every, dict):
-            return None if every is None else self.check(every, schema.Interval, path)
-        self.table(every, path, ("min", "max"))
-        if not {"min", "max"} <= set(every):
-            raise self.error(path, "needs both 'min' and 'max' (seconds)")
-        low, high = (self.check(every[k], schema.Interval, (*path, k)) for k in ("min", "max"))
-        if high < low:
-            raise self.error((*path, "max"), f"must not be less than min ({low:g} s)")
-        return low, high
-
-    def targets(self, fault: schema.FaultPlan, table: dict[str, Any], path: KeyPath) -> None:
-        managers = self.managers
-        if "target" not in table and fault.kind != "kill_resource":
+        if "target" not in table and kind != "kill_resource":
             raise self.error(path, f"'target' is missing{MISSING['target']}")
         if "target" not in table and all(m.isolation == "thread" for m in managers.values()):
             problem = "kill_resource kills resource processes of process managers; every "
@@ -385,30 +369,28 @@ class _Reader:
         for index, name in enumerate(fault.targets):
             at = (*path, "target", index)[: 4 if isinstance(table["target"], list) else 3]
             self.named(name, at)
-            if fault.kind in schema.NEEDS_PROCESS and managers[name].isolation != "process":
-                problem = f"{fault.kind} needs a process manager; {name!r} has isolation 'thread'"
+            if kind in schema.NEEDS_PROCESS and managers[name].isolation != "process":
+                problem = f"{kind} needs a process manager; {name!r} has isolation 'thread'"
                 raise self.error(at, problem)
 
-    def timing(
-        self, fault: schema.FaultPlan, table: dict[str, Any], path: KeyPath, duration: float
-    ) -> None:
+    def timing(self, fault: schema.FaultPlan, path: KeyPath, duration: float) -> None:
         """Refuse a fault that would never come (or come too often) within `duration`."""
+        table = self.raw(path)
         if fault.kind == "hang_manager" and fault.for_s is None:
             raise self.error(path, f"'for' is missing{MISSING['for']}")
         if "at" in table and not fault.at:
             raise self.error((*path, "at"), "must give at least one time (seconds)")
         end = f"the end of the run ({duration:g} s)"
-        for index, at in enumerate(fault.at):
-            where = (*path, "at", index)[: 4 if isinstance(table["at"], list) else 3]
-            if at >= duration:
-                raise self.error(where, f"{self.raw(where)!r} s is not before {end}")
+        for index, time in enumerate(fault.at):
+            at = (*path, "at", index)[: 4 if isinstance(table["at"], list) else 3]
+            if time >= duration:
+                raise self.error(at, f"{self.raw(at)!r} s is not before {end}")
         stop, start = duration if fault.stop is None else fault.stop, fault.start
         low = fault.every if isinstance(fault.every, float) else (fault.every or (0.0,))[0]
         most, first = fault.most_injections(duration), f"stop ({stop:g} s)" if fault.stop else end
         if fault.delay >= duration:
-            raise self.error(
-                (*path, "delay"), f"{fault.delay:g} s is not before {end}: it never fires"
-            )
+            problem = f"{fault.delay:g} s is not before {end}: it never fires"
+            raise self.error((*path, "delay"), problem)
         if start >= duration:
             raise self.error((*path, "start"), f"{start:g} s is not before {end}")
         if stop <= start:
@@ -421,10 +403,20 @@ class _Reader:
             raise self.error((*path, "every"), problem)
         if most > schema.MAX_INJECTIONS:
             problem = f"would inject up to {most} times in a run (at most {schema.MAX_INJECTIONS}"
-            raise self.error(
-                (*path, "every"),
-                f"{problem} per fault): give a longer interval, a 'count' or a 'stop'",
-            )
+            problem += " per fault): give a longer interval, a 'count' or a 'stop'"
+            raise self.error((*path, "every"), problem)
+
+    def every(self, every: Any, path: KeyPath) -> Any:
+        """`every = 0.5` or `every = { min = 0.5, max = 2 }` (msgspec 0.22 crashes on its type)."""
+        if not isinstance(every, dict):
+            return None if every is None else self.check(every, schema.Interval, path)
+        self.table(every, path, ("min", "max"))
+        if not {"min", "max"} <= set(every):
+            raise self.error(path, "needs both 'min' and 'max' (seconds)")
+        low, high = (self.check(every[k], schema.Interval, (*path, k)) for k in ("min", "max"))
+        if high < low:
+            raise self.error((*path, "max"), f"must not be less than min ({low:g} s)")
+        return low, high
 
     def trigger(self, value: Any, path: KeyPath) -> schema.Trigger:
         if not isinstance(value, dict):
@@ -470,18 +462,16 @@ class _Reader:
         node: Any = data
         parts = setting.split(".")
         for n, part in enumerate(parts):
-            if isinstance(node, list):
+            key: str | int = part
+            if isinstance(node, list):  # an element by its name, or by its index
                 names = [x.get("name") if isinstance(x, dict) else None for x in node]
-                named = [i for i, name in enumerate(names) if name == part]
-                if not named and not (part.isdigit() and int(part) < len(node)):
+                if part not in names and not (part.isdigit() and int(part) < len(node)):
                     raise self.error(where, f"{setting!r}: no element named {part!r}")
-                key: str | int = named[0] if named else int(part)
+                key = names.index(part) if part in names else int(part)
             elif not isinstance(node, dict):
                 raise self.error(where, f"{setting!r} does not name a setting of this plan")
             elif part not in node and n < len(parts) - 1:
                 raise self.error(where, f"{setting!r}: this plan has no {part!r} there")
-            else:
-                key = part
             if n == len(parts) - 1:
                 return node, key
             node = node[key]
