@@ -107,7 +107,7 @@ def parse_plan(text: str, *, source: str = "<plan>", name: str = "plan") -> Plan
         problem = f"is not valid TOML: {exc}"
         raise PlanError(source, int(line[1]) if line else 0, "", problem) from exc
     base_dir = None if source == "<plan>" else os.path.dirname(os.path.abspath(source))
-    reader = _Reader(source, key_lines(text), base_dir)
+    reader = _Reader(source, text, base_dir)
     compare = reader.compare(data)
     base = reader.plan(data, name=name)
     if compare is None:
@@ -158,8 +158,9 @@ def _problem(message: str, key: str, value: Any, hint: Any) -> str:
 class _Reader:
     """Reads plan data into a `Plan`, turning every problem into a `PlanError`."""
 
-    def __init__(self, source: str, lines: dict[KeyPath, int], base_dir: str | None) -> None:
-        self.source, self.lines, self.base_dir = source, lines, base_dir
+    def __init__(self, source: str, text: str, base_dir: str | None) -> None:
+        self.source, self.text, self.base_dir = source, text, base_dir
+        self.lines: dict[KeyPath, int] | None = None  # found at the first error
         self.data: dict[str, Any] = {}
         self.state, self.managers = True, dict[str, schema.ManagerPlan]()  # of the last plan
         self.hooks = {"tree": self.root, "every": self.every, "after": self.trigger}
@@ -168,6 +169,7 @@ class _Reader:
     # -- the generic part: where, unknown and missing keys, typed values ---------------------
 
     def error(self, path: KeyPath, problem: str) -> PlanError:
+        self.lines = key_lines(self.text) if self.lines is None else self.lines
         known = [path[:end] for end in range(len(path), 0, -1) if path[:end] in self.lines]
         key = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in path).lstrip(".")
         return PlanError(self.source, self.lines[known[0]] if known else 0, key, problem)
