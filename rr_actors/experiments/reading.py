@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import inspect
+import operator
 import os
 import re
 import string
@@ -199,11 +201,8 @@ class _Reader:
             raise self.error(path, _problem(message, key, raw, hint)) from None
 
     def raw(self, path: KeyPath) -> Any:
-        """The value at `path` as the plan gives it."""
-        node: Any = self.data
-        for part in path:
-            node = node[part]
-        return node
+        data: Any = self.data
+        return functools.reduce(operator.getitem, path, data)  # the value as written
 
     def decode(self, cls: Any, value: Any, path: KeyPath) -> Any:
         """A `cls` (a dataclass of `plan`) from the table `value`, every field checked."""
@@ -272,9 +271,9 @@ class _Reader:
             "child": set(managers) | {s.name for s in plan.tree.supervisors()[1:]},
             "registrar": set(managers) | {f"client-{i}" for i in range(plan.workload.clients)},
         }
-        for index, fault in enumerate(plan.faults):
-            self.fault(fault, ("faults", index), names)
-            self.timing(fault, ("faults", index), plan.duration)
+        for path, fault in ((("faults", i), f) for i, f in enumerate(plan.faults)):
+            self.fault(fault, path, names)
+            self.timing(fault, path, plan.duration)
         return plan
 
     def root(self, value: Any, path: KeyPath) -> schema.SupervisorPlan:
