@@ -139,7 +139,7 @@ def _problem(message: str, key: str, value: Any, hint: Any) -> str:
     what = f"{message[0].lower()}{message[1:]}"  # msgspec's own words, if none of these
     if key in WHAT and not (bound and key == "heartbeat"):
         what = f"must be {WHAT[key]}"
-    elif message.startswith("Invalid enum value"):
+    elif message.startswith("Invalid enum value") or hasattr(hint, "__members__"):
         choices = typing.get_args(hint) or tuple(getattr(hint, "__members__", ()))
         what = f"must be one of {', '.join(map(repr, choices))}"
     elif bound and bound[1] == "int":
