@@ -176,6 +176,11 @@ class _Reader:
         key = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in path).lstrip(".")
         return PlanError(self.source, self.lines[known[0]] if known else 0, key, problem)
 
+    def refuse(self, wrong: object, path: KeyPath, problem: str) -> None:
+        """A rule: a `PlanError` at `path` if `wrong` is true."""
+        if wrong:
+            raise self.error(path, problem)
+
     def table(self, value: Any, path: KeyPath, known: tuple[str, ...]) -> dict[str, Any]:
         """`value` as a table with only `known` keys (else an error at the first other)."""
         if not isinstance(value, dict):
@@ -272,8 +277,7 @@ class _Reader:
             "registrar": set(managers) | {f"client-{i}" for i in range(plan.workload.clients)},
         }
         for path, fault in ((("faults", i), f) for i, f in enumerate(plan.faults)):
-            self.fault(fault, path, names)
-            self.timing(fault, path, plan.duration)
+            self.fault(fault, path, names, plan.duration)
         return plan
 
     def root(self, value: Any, path: KeyPath) -> schema.SupervisorPlan:
@@ -288,11 +292,10 @@ class _Reader:
     def tree(self, root: schema.SupervisorPlan) -> None:
         seen: set[str] = set()
         for path, node in _nodes(root, ("tree",)):
-            if isinstance(node, schema.SupervisorPlan) and not node.children:
-                raise self.error((*path, "children"), f"must be {WHAT['children']}")
-            if node.name in seen:
-                problem = f"the name {node.name!r} is used twice in the tree"
-                raise self.error((*path, "name"), problem)
+            empty = isinstance(node, schema.SupervisorPlan) and not node.children
+            self.refuse(empty, (*path, "children"), f"must be {WHAT['children']}")
+            twice = f"the name {node.name!r} is used twice in the tree"
+            self.refuse(node.name in seen, (*path, "name"), twice)
             seen.add(node.name)
             if isinstance(node, schema.ManagerPlan):
                 options = (*path, "options")
@@ -302,13 +305,13 @@ class _Reader:
         for index, call in enumerate(workload.calls):
             path = ("workload", "calls", index)
             self.named(call.manager, (*path, "manager"))
-            if "request" in self.raw(path) and call.factory is not None:
-                raise self.error((*path, "factory"), "give either 'request' or 'factory', not both")
+            both = "request" in self.raw(path) and call.factory is not None
+            self.refuse(both, (*path, "factory"), "give either 'request' or 'factory', not both")
             if call.factory is not None:
                 self.importable((*path, "factory"), call.factory, (*path, "factory"), "key", None)
             self.template(call.request, (*path, "request"))
-        if workload.clients and not workload.calls:
-            raise self.error(("workload",), "'calls' is missing: what do the clients call?")
+        problem = "'calls' is missing: what do the clients call?"
+        self.refuse(workload.clients and not workload.calls, ("workload",), problem)
 
     def named(self, name: str, path: KeyPath) -> None:
         if name not in self.managers:
@@ -337,94 +340,76 @@ class _Reader:
 
     # -- the faults ---------------------------------------------------------------------------
 
-    def fault(self, fault: schema.FaultPlan, path: KeyPath, names: Any) -> None:
+    def fault(self, fault: schema.FaultPlan, path: KeyPath, names: Any, duration: float) -> None:
         """The rules of one `[[faults]]` entry; `names` are the values an `after` may name."""
-        table, kind, managers = self.raw(path), fault.kind, self.managers
+        table, kind, managers, refuse = self.raw(path), fault.kind, self.managers, self.refuse
         when = [key for key in ("at", "every", "after") if key in table]
-        if len(when) != 1:
-            say = f"give only one of 'at', 'every' or 'after', not {' and '.join(when)}"
-            raise self.error(
-                path, say if when else "say when: give one of 'at', 'every' or 'after'"
-            )
+        say = f"give only one of 'at', 'every' or 'after', not {' and '.join(when)}"
+        say = say if when else "say when: give one of 'at', 'every' or 'after'"
+        refuse(len(when) != 1, path, say)
         for key in table:
-            if key in NEEDS_KEY and NEEDS_KEY[key] not in table:
-                raise self.error((*path, key), f"only goes with {NEEDS_KEY[key]!r}")
-            if kind not in NEEDS_KIND.get(key, (kind,)):
-                allowed = " or ".join(map(repr, NEEDS_KIND[key]))
-                raise self.error((*path, key), f"does not go with kind {kind!r} (only {allowed})")
-        if "for" in table and "loads" in table:
-            problem = "give either 'for' (seconds) or 'loads' (a number), not both"
-            raise self.error((*path, "loads"), problem)
-        for key, item in fault.after.match.items() if fault.after else ():
-            if key in names and item not in names[key]:  # it would never match: never fire
-                known = ", ".join(sorted(names[key]))
-                problem = f"{item!r} names nothing in this run (it may be: {known})"
-                raise self.error((*path, "after", key), problem)
-        if "target" not in table and kind != "kill_resource":
-            raise self.error(path, f"'target' is missing{MISSING['target']}")
-        if "target" not in table and all(m.isolation == "thread" for m in managers.values()):
-            problem = "kill_resource kills resource processes of process managers; every "
-            raise self.error(path, problem + "manager of this tree has isolation 'thread'")
-        if "target" in table and not fault.targets:
-            raise self.error((*path, "target"), "must name at least one manager")
+            needs, kinds = NEEDS_KEY.get(key), NEEDS_KIND.get(key, (kind,))
+            refuse(needs and needs not in table, (*path, key), f"only goes with {needs!r}")
+            only = f"(only {' or '.join(map(repr, kinds))})"
+            refuse(kind not in kinds, (*path, key), f"does not go with kind {kind!r} {only}")
+        both = "give either 'for' (seconds) or 'loads' (a number), not both"
+        refuse("for" in table and "loads" in table, (*path, "loads"), both)
+        for key, item in fault.after.match.items() if fault.after else ():  # or it never fires
+            known = ", ".join(sorted(names.get(key, ())))
+            problem = f"{item!r} names nothing in this run (it may be: {known})"
+            refuse(key in names and item not in names[key], (*path, "after", key), problem)
+        # -- whom: the targets
+        given = "target" in table
+        missing = f"'target' is missing{MISSING['target']}"
+        refuse(not given and kind != "kill_resource", path, missing)
+        threads = all(m.isolation == "thread" for m in managers.values())
+        problem = "kill_resource kills resource processes of process managers; every manager of "
+        refuse(not given and threads, path, problem + "this tree has isolation 'thread'")
+        refuse(given and not fault.targets, (*path, "target"), "must name at least one manager")
         for index, name in enumerate(fault.targets):
             at = (*path, "target", index)[: 4 if isinstance(table["target"], list) else 3]
-            self.named(name, at)
-            if kind in schema.NEEDS_PROCESS and managers[name].isolation != "process":
-                problem = f"{kind} needs a process manager; {name!r} has isolation 'thread'"
-                raise self.error(at, problem)
-
-    def timing(self, fault: schema.FaultPlan, path: KeyPath, duration: float) -> None:
-        """Refuse a fault that would never come (or come too often) within `duration`."""
-        table = self.raw(path)
-        if fault.kind == "hang_manager" and fault.for_s is None:
-            raise self.error(path, f"'for' is missing{MISSING['for']}")
-        if "at" in table and not fault.at:
-            raise self.error((*path, "at"), "must give at least one time (seconds)")
+            self.named(name, at)  # the element, or the key if it gives one name
+            thread = kind in schema.NEEDS_PROCESS and managers[name].isolation != "process"
+            refuse(thread, at, f"{kind} needs a process manager; {name!r} has isolation 'thread'")
+        # -- when: within the run, not too often
+        hang = kind == "hang_manager" and fault.for_s is None
+        refuse(hang, path, f"'for' is missing{MISSING['for']}")
+        none = "must give at least one time (seconds)"
+        refuse("at" in table and not fault.at, (*path, "at"), none)
         end = f"the end of the run ({duration:g} s)"
         for index, time in enumerate(fault.at):
             at = (*path, "at", index)[: 4 if isinstance(table["at"], list) else 3]
-            if time >= duration:
-                raise self.error(at, f"{self.raw(at)!r} s is not before {end}")
+            refuse(time >= duration, at, f"{self.raw(at)!r} s is not before {end}")
         stop, start = duration if fault.stop is None else fault.stop, fault.start
         low = fault.every if isinstance(fault.every, float) else (fault.every or (0.0,))[0]
         most, first = fault.most_injections(duration), f"stop ({stop:g} s)" if fault.stop else end
-        if fault.delay >= duration:
-            problem = f"{fault.delay:g} s is not before {end}: it never fires"
-            raise self.error((*path, "delay"), problem)
-        if start >= duration:
-            raise self.error((*path, "start"), f"{start:g} s is not before {end}")
-        if stop <= start:
-            raise self.error((*path, "stop"), f"must be after 'start' ({start:g} s)")
-        if stop > duration:
-            problem = f"{stop:g} s is after {end}; leave it out to inject until the end"
-            raise self.error((*path, "stop"), problem)
-        if fault.every is not None and start + low >= stop:
-            problem = f"the first injection ({start:g} + {low:g} s) would not come before {first}"
-            raise self.error((*path, "every"), problem)
-        if most > schema.MAX_INJECTIONS:
-            problem = f"would inject up to {most} times in a run (at most {schema.MAX_INJECTIONS}"
-            problem += " per fault): give a longer interval, a 'count' or a 'stop'"
-            raise self.error((*path, "every"), problem)
+        never = f"{fault.delay:g} s is not before {end}: it never fires"
+        refuse(fault.delay >= duration, (*path, "delay"), never)
+        refuse(start >= duration, (*path, "start"), f"{start:g} s is not before {end}")
+        refuse(stop <= start, (*path, "stop"), f"must be after 'start' ({start:g} s)")
+        after = f"{stop:g} s is after {end}; leave it out to inject until the end"
+        refuse(stop > duration, (*path, "stop"), after)
+        late = f"the first injection ({start:g} + {low:g} s) would not come before {first}"
+        refuse(fault.every is not None and start + low >= stop, (*path, "every"), late)
+        often = f"would inject up to {most} times in a run (at most {schema.MAX_INJECTIONS} per "
+        often += "fault): give a longer interval, a 'count' or a 'stop'"
+        refuse(most > schema.MAX_INJECTIONS, (*path, "every"), often)
 
     def every(self, every: Any, path: KeyPath) -> Any:
         """`every = 0.5` or `every = { min = 0.5, max = 2 }` (msgspec 0.22 crashes on its type)."""
         if not isinstance(every, dict):
             return None if every is None else self.check(every, schema.Interval, path)
         self.table(every, path, ("min", "max"))
-        if not {"min", "max"} <= set(every):
-            raise self.error(path, "needs both 'min' and 'max' (seconds)")
+        self.refuse(len(every) != 2, path, "needs both 'min' and 'max' (seconds)")
         low, high = (self.check(every[k], schema.Interval, (*path, k)) for k in ("min", "max"))
-        if high < low:
-            raise self.error((*path, "max"), f"must not be less than min ({low:g} s)")
+        self.refuse(high < low, (*path, "max"), f"must not be less than min ({low:g} s)")
         return low, high
 
     def trigger(self, value: Any, path: KeyPath) -> schema.Trigger:
         if not isinstance(value, dict):
             problem = f'must be a table like {{ event = "ChildRestarted" }}, got {_show(value)}'
             raise self.error(path, problem)
-        if "event" not in value:
-            raise self.error(path, "'event' is missing")
+        self.refuse("event" not in value, path, "'event' is missing")
         event = value["event"]
         if not isinstance(event, str) or event not in schema.EVENT_TYPES:
             known = ", ".join(sorted(schema.EVENT_TYPES))
@@ -449,12 +434,12 @@ class _Reader:
             why = NOT_COMPARED.get(setting.split(".")[0])
             problem = f"cannot be compared: {why}" if why else "must be a plan key, got ''"
             raise self.error((*path, "setting"), f"{setting!r} {problem}" if why else problem)
-        if not values:
-            raise self.error((*path, "values"), "must be a non-empty array")
+        self.refuse(not values, (*path, "values"), "must be a non-empty array")
         for index, item in enumerate(values):
-            if any(type(item) is type(other) and item == other for other in values[:index]):
-                problem = f"{item!r} is given twice: each value runs once"
-                raise self.error((*path, "values", index), problem)
+            twice = any(type(item) is type(other) and item == other for other in values[:index])
+            self.refuse(
+                twice, (*path, "values", index), f"{item!r} is given twice: each value runs once"
+            )
         self.locate(data, setting, (*path, "setting"))
         return compare
 
