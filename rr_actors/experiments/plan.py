@@ -212,7 +212,7 @@ class Compare:
     `"tree.children.erm.heartbeat"`; a fault by its index: `"faults.0.every"`.
     """
 
-    setting: str
+    setting: Annotated[str, Meta(min_length=1)]
     values: tuple[Any, ...]  # in the order the runs take them
 
 

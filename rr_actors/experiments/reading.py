@@ -48,6 +48,7 @@ WHAT = {  # what a key must be, where its type alone words it badly (the last ke
     "shared": "a fraction from 0 to 1",
     "factor": f"a number from 1 to {schema.MAX_SECONDS:g}",
     "children": "a non-empty array of tables ([[...children]])",
+    "setting": "a plan key",
 }
 MISSING = {  # what a missing key is for
     "duration": " (seconds of workload and faults per run)",
@@ -314,9 +315,8 @@ class _Reader:
         self.refuse(workload.clients and not workload.calls, ("workload",), problem)
 
     def named(self, name: str, path: KeyPath) -> None:
-        if name not in self.managers:
-            problem = f"no manager {name!r} in the tree (managers: {', '.join(self.managers)})"
-            raise self.error(path, problem)
+        problem = f"no manager {name!r} in the tree (managers: {', '.join(self.managers)})"
+        self.refuse(name not in self.managers, path, problem)
 
     def template(self, value: Any, path: KeyPath) -> None:
         """Check every string of a request template: a placeholder is only a known name
@@ -430,10 +430,8 @@ class _Reader:
         self.data = data
         compare: schema.Compare = self.decode(schema.Compare, data["compare"], path)
         setting, values = compare.setting, compare.values
-        if not setting or setting.split(".")[0] in NOT_COMPARED:
-            why = NOT_COMPARED.get(setting.split(".")[0])
-            problem = f"cannot be compared: {why}" if why else "must be a plan key, got ''"
-            raise self.error((*path, "setting"), f"{setting!r} {problem}" if why else problem)
+        why = NOT_COMPARED.get(setting.split(".")[0])
+        self.refuse(why, (*path, "setting"), f"{setting!r} cannot be compared: {why}")
         self.refuse(not values, (*path, "values"), "must be a non-empty array")
         for index, item in enumerate(values):
             twice = any(type(item) is type(other) and item == other for other in values[:index])
