@@ -330,13 +330,12 @@ class _Reader:
             parsed = [p for p in string.Formatter().parse(value) if p[1] is not None]
         except ValueError as exc:
             raise self.error(path, f"{value!r} is not a valid template: {exc}") from None
+        known = ", ".join(f"{{{p}}}" for p in sorted(schema.PLACEHOLDERS))
         for _, field, spec, conversion in parsed:
-            if spec or conversion:
-                problem = f"{value!r}: a placeholder is only a name, like {{{field}}}, without "
-                raise self.error(path, problem + "a conversion ('!r') or a format ('03d')")
-            if field not in schema.PLACEHOLDERS:
-                known = ", ".join(f"{{{p}}}" for p in sorted(schema.PLACEHOLDERS))
-                raise self.error(path, f"unknown placeholder {{{field}}}; known: {known}")
+            bare = f"{value!r}: a placeholder is only a name, like {{{field}}}, without a "
+            self.refuse(spec or conversion, path, bare + "conversion ('!r') or a format ('03d')")
+            unknown = f"unknown placeholder {{{field}}}; known: {known}"
+            self.refuse(field not in schema.PLACEHOLDERS, path, unknown)
 
     # -- the faults ---------------------------------------------------------------------------
 
@@ -406,14 +405,12 @@ class _Reader:
         return low, high
 
     def trigger(self, value: Any, path: KeyPath) -> schema.Trigger:
-        if not isinstance(value, dict):
-            problem = f'must be a table like {{ event = "ChildRestarted" }}, got {_show(value)}'
-            raise self.error(path, problem)
+        table = f'must be a table like {{ event = "ChildRestarted" }}, got {_show(value)}'
+        self.refuse(not isinstance(value, dict), path, table)
         self.refuse("event" not in value, path, "'event' is missing")
-        event = value["event"]
-        if not isinstance(event, str) or event not in schema.EVENT_TYPES:
-            known = ", ".join(sorted(schema.EVENT_TYPES))
-            raise self.error((*path, "event"), f"unknown event {event!r}; events: {known}")
+        event, known = value["event"], ", ".join(sorted(schema.EVENT_TYPES))
+        unknown = not isinstance(event, str) or event not in schema.EVENT_TYPES
+        self.refuse(unknown, (*path, "event"), f"unknown event {event!r}; events: {known}")
         hints = typing.get_type_hints(schema.EVENT_TYPES[event])
         self.table(value, path, ("event", "nth", *(f for f in hints if f != "at")))
         fields = (k for k in value if k not in ("event", "nth"))  # a `Status` by its name, too
