@@ -1,64 +1,45 @@
 """Import paths of a plan (`"package.module:attribute"`), searched first in the plan's directory.
 
-Used while a plan is read (to check setups, factories and request functions) and again in
-the run process and in manager processes, which import the same paths.
+Used while a plan is read, and again in the run and manager processes (the same paths).
 """
 
 from __future__ import annotations
 
-import contextlib
+import functools
 import importlib
 import sys
-from collections.abc import Iterator
 from typing import Any
 
 from rr_actors.errors import ConfigError
 
-__all__ = ["import_object", "search_path"]
-
-
-@contextlib.contextmanager
-def search_path(directory: str | None) -> Iterator[None]:
-    """Put `directory` first on `sys.path` while the block runs (nothing if `None`)."""
-    if directory is None or directory in sys.path:
-        yield
-        return
-    sys.path.insert(0, directory)
-    try:
-        yield
-    finally:
-        with contextlib.suppress(ValueError):
-            sys.path.remove(directory)
+__all__ = ["import_object"]
 
 
 def import_object(path: str, *, base_dir: str | None = None) -> Any:
-    """Import `"package.module:attribute"` (the attribute may be dotted) and return it.
-
-    Args:
-        path: the import path.
-        base_dir: a directory searched first (a plan's own directory), or `None`.
+    """Import `"package.module:attribute"` (the attribute may be dotted), `base_dir` first.
 
     Raises:
         ConfigError: the path is malformed, the module does not import (it raised, or
-            exited: a `SystemExit` on import is a `ConfigError` too; only
-            `KeyboardInterrupt` goes through), or it has no such attribute; the message
-            says which.
+            exited: only `KeyboardInterrupt` goes through), or it has no such attribute.
     """
     module_name, colon, attribute = path.partition(":")
     if not colon or not module_name or not attribute:
         raise ConfigError(f"{path!r} is not an import path of the form 'package.module:name'")
+    added = base_dir if base_dir is not None and base_dir not in sys.path else None
+    if added is not None:  # first on `sys.path` while it imports
+        sys.path.insert(0, added)
     try:
-        with search_path(base_dir):
-            target: Any = importlib.import_module(module_name)
+        module = importlib.import_module(module_name)
     except ImportError as exc:
         raise ConfigError(f"{path!r} does not import: {exc}") from exc
     except KeyboardInterrupt:
         raise
     except BaseException as exc:  # a module that calls sys.exit() on import, too
         raise ConfigError(f"{path!r}: importing {module_name} raised {exc!r}") from exc
-    for part in attribute.split("."):
-        try:
-            target = getattr(target, part)
-        except AttributeError:
-            raise ConfigError(f"{path!r}: {module_name} has no attribute {attribute!r}") from None
-    return target
+    finally:
+        if added is not None and added in sys.path:
+            sys.path.remove(added)
+    try:
+        return functools.reduce(getattr, attribute.split("."), module)
+    except AttributeError:
+        raise ConfigError(f"{path!r}: {module_name} has no attribute {attribute!r}") from None

@@ -1,113 +1,96 @@
 """Where each key of a TOML file is: the line of every key path, for a plan's errors.
 
-`tomllib` (and msgspec, which decodes with it) gives the data but no positions, and a
-plan's errors must name the line. One regular expression splits the text (already
-accepted by `tomllib`) into tokens, and a small walk records the line of every key, table
-header and array element, addressed as in the data (array elements by index):
-
-    [[tree.children]]            ("tree", "children", 0)            -> 3
-    name = "erm"                 ("tree", "children", 0, "name")    -> 4
-    options = { rate = 2 }       ("tree", "children", 0, "options", "rate") -> 5
+`tomllib` gives the data but no positions. A key's line is the first line at which the
+text up to there (closed by a bracket or quotes if it stops inside an array or a string)
+holds it: `[[tree.children]]` on line 3 is `("tree", "children", 0)` -> 3, and its
+`name = "erm"` on line 4 `("tree", "children", 0, "name")` -> 4.
 """
 
 from __future__ import annotations
 
-import re
+import tomllib
+from collections.abc import Iterator
+from typing import Any
 
-__all__ = ["KeyPath", "key_lines"]
+__all__ = ["KeyPath", "key_lines", "line_of"]
 
-KeyPath = tuple[str | int, ...]
-"""A path into the data: table keys (`str`) and array indices (`int`)."""
+KeyPath = tuple[str | int, ...]  # a path into the data: table keys and array indices
 
-_TOKEN = re.compile(
-    r'(?P<s>"""(?:[^\\]|\\[\s\S])*?"""(?!")|\'\'\'[\s\S]*?\'\'\'(?!\')'
-    r'|"(?:[^"\\\n]|\\.)*"|\'[^\'\n]*\')|(?P<c>#[^\n]*)|(?P<p>[\n\[\]{}=,.])'
-    r"|(?P<w>[^\s\[\]{}=,.#\"']+)"
-)
+_CLOSERS = ("", "]", "]]", "]]]", '"""', "'''")  # what may end a prefix cut inside a value
+
+
+EXACT_LINES = 200
+"""Up to this many lines, every key's line is found by reading each prefix (quadratic);
+beyond, one key's line is found by bisection (`line_of`), so a long plan's error still
+comes within a second."""
 
 
 def key_lines(text: str) -> dict[KeyPath, int]:
-    """Map every key, table and array element of `text` to its 1-based line.
+    """Map every key, table and array element of `text` (valid TOML) to its 1-based line."""
+    lines: dict[KeyPath, int] = {}
+    rows = text.splitlines(keepends=True)
+    for line in range(1, len(rows) + 1):
+        data = _prefix(rows, line)
+        for path in _paths(data or {}, ()):
+            lines.setdefault(path, line)
+    return lines
 
-    Args:
-        text: a TOML document that `tomllib` parses (invalid TOML gives meaningless lines).
 
-    Returns:
-        `{path: line}`, e.g. `{("tree", "children", 0, "name"): 4}`.
+def line_of(text: str, paths: list[KeyPath]) -> int:
+    """The line of the first of `paths` (most specific first) that `text` holds; 0 if none.
+
+    Exact for short texts (`key_lines`); by bisection over the prefixes for long ones.
     """
-    tokens: list[tuple[str, int]] = []
-    line = 1
-    for match in _TOKEN.finditer(text):
-        if match.lastgroup != "c":
-            tokens.append((match.group(), line))
-        line += match.group().count("\n")
-    tokens.append(("", line))
-    return _Walk(tokens).lines
-
-
-class _Walk:
-    """One pass over the tokens, from the top: headers, `key = value`, nested values."""
-
-    def __init__(self, tokens: list[tuple[str, int]]) -> None:
-        self.tokens, self.i = tokens, 0
-        self.lines: dict[KeyPath, int] = {}
-        arrays: dict[KeyPath, int] = {}  # arrays of tables: the index of their last element
-        table: KeyPath = ()
-        while self.skip("\n") != "":
-            line = self.tokens[self.i][1]
-            if self.peek() != "[":
-                self.pair(table)
-                continue
-            double = self.tokens[self.i + 1][0] == "["
-            self.i += 2 if double else 1
-            parts, resolved = self.key(), []
-            for n, part in enumerate(parts):
-                resolved.append(part)
-                if double and n == len(parts) - 1:
-                    arrays[tuple(resolved)] = arrays.get(tuple(resolved), -1) + 1
-                    self.lines.setdefault(tuple(resolved), line)
-                if tuple(resolved) in arrays:
-                    resolved.append(arrays[tuple(resolved)])
-            table = tuple(resolved)
-            self.lines.setdefault(table, line)
-            self.i += 2 if double else 1
-
-    def peek(self) -> str:
-        return self.tokens[self.i][0]
-
-    def skip(self, *tokens: str) -> str:
-        while self.peek() in tokens and self.peek() != "":
-            self.i += 1
-        return self.peek()
-
-    def key(self) -> KeyPath:
-        parts = [self.peek()]
-        while self.tokens[self.i + 1][0] == ".":
-            self.i += 2
-            parts.append(self.peek())
-        self.i += 1
-        return tuple(p[1:-1] if p[0] in "\"'" else p for p in parts)
-
-    def pair(self, table: KeyPath) -> None:
-        line = self.tokens[self.i][1]
-        path = table + self.key()
-        self.lines.setdefault(path, line)
-        self.i += 1  # "="
-        self.value(path)
-
-    def value(self, path: KeyPath) -> None:
-        opening = self.peek()
-        if opening not in ("[", "{"):
-            while self.peek() not in (",", "]", "}", "\n", ""):
-                self.i += 1  # a scalar: a string, or words and dots (1.5, dates)
-            return
-        self.i += 1
-        index = 0
-        while self.skip("\n", ",") not in ("]", "}"):
-            if opening == "{":
-                self.pair(path)
+    rows = text.splitlines(keepends=True)
+    if len(rows) <= EXACT_LINES:
+        lines = key_lines(text)
+        return next((lines[p] for p in paths if p in lines), 0)
+    whole = _prefix(rows, len(rows)) or {}
+    for path in paths:
+        if not _holds(whole, path):
+            continue
+        low, high = 1, len(rows)
+        while low < high:
+            middle = (low + high) // 2
+            if _holds(_prefix(rows, middle) or {}, path):
+                high = middle
             else:
-                self.lines.setdefault((*path, index), self.tokens[self.i][1])
-                self.value((*path, index))
-                index += 1
-        self.i += 1
+                low = middle + 1
+        return low
+    return 0
+
+
+def _prefix(rows: list[str], line: int) -> dict[str, Any] | None:
+    """The data of the first `line` rows, closed if cut inside a value; None if unreadable."""
+    prefix = "".join(rows[:line])
+    for closer in _CLOSERS:
+        try:
+            return tomllib.loads(f"{prefix}\n{closer}")
+        except tomllib.TOMLDecodeError:
+            continue
+    return None
+
+
+def _holds(data: Any, path: KeyPath) -> bool:
+    node = data
+    for key in path:
+        in_table = isinstance(node, dict) and key in node
+        in_array = isinstance(node, list) and isinstance(key, int) and 0 <= key < len(node)
+        if in_table or in_array:
+            node = node[key]
+        else:
+            return False
+    return True
+
+
+def _paths(node: Any, path: KeyPath) -> Iterator[KeyPath]:
+    items = (
+        node.items()
+        if isinstance(node, dict)
+        else enumerate(node)
+        if isinstance(node, list)
+        else ()
+    )
+    for key, child in items:
+        yield (*path, key)
+        yield from _paths(child, (*path, key))

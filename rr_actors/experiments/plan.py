@@ -1,9 +1,7 @@
-"""A plan as data and as its schema: the tree, the workload, the faults and the repeats.
+"""A plan as data and as its schema: frozen dataclasses whose field types carry the limits.
 
-Frozen dataclasses whose field types carry the plan's limits (`Annotated[..., Meta(...)]`):
-`reading` has msgspec check every TOML value against them, and the run (`runner`,
-`workload`, `inject`, `schedule`) reads them. `PlanError` is the error every invalid plan
-raises. The TOML format is documented in `docs/reference/plan.md`.
+`reading` has msgspec check every TOML value against these types (`Annotated[..., Meta]`);
+the run reads the result. The TOML format is documented in `docs/reference/plan.md`.
 """
 
 from __future__ import annotations
@@ -14,6 +12,7 @@ import typing
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
+import msgspec
 from msgspec import Meta
 
 from rr_actors import events
@@ -41,39 +40,18 @@ FaultKind = Literal[
     "kill_manager", "kill_resource", "hang_manager", "load_error", "cut_connections"
 ]
 
-FAULT_KINDS: tuple[FaultKind, ...] = typing.get_args(FaultKind)
-"""Every fault kind a plan may name (see `docs/reference/plan.md`)."""
-
-NEEDS_PROCESS = frozenset({"kill_resource", "hang_manager", "cut_connections"})
-"""Fault kinds that act on a manager's OS process (its isolation must be `"process"`)."""
-
-MAX_SECONDS = 1e6
-"""The longest duration, time or wait a plan may give, in seconds (about 11.6 days).
-
-Longer ones overflow the waits of `threading` (about 292 years) once added to the clock,
-and no experiment needs them: a bound here is a clear error before the run, not a dead
-thread in it."""
-
-MIN_EVERY = 1e-3
-"""The shortest interval of an `every` fault, in seconds (one injection per millisecond)."""
-
-MAX_INJECTIONS = 100_000
-"""The most injections one fault may make in one run (`every` with a short interval)."""
-
-MAX_CLIENTS = 1_000
-"""The most client threads of a workload (each has a consumer registrar)."""
-
-MAX_REPEAT = 10_000
-"""The most runs per compared value."""
-
-MAX_COUNT = 1_000_000
-"""The most of any other count: `keys`, `max_restarts`, `loads`, `nth`."""
-
-MAX_RATE = 1e6
-"""The most calls per second per client (and the largest `weight`)."""
-
-PLACEHOLDERS = frozenset({"key", "client", "run_dir", "pid"})
-"""Names a request template may use in its strings: `{key}`, `{client}`, `{run_dir}`, `{pid}`."""
+FAULT_KINDS: tuple[FaultKind, ...] = typing.get_args(FaultKind)  # every kind a plan may name
+NEEDS_PROCESS = frozenset({"kill_resource", "hang_manager", "cut_connections"})  # OS process
+# The limits (docs/reference/plan.md). Longer than MAX_SECONDS (11.6 days) overflows the waits
+# of `threading` once added to the clock: a bound here is a clear error, not a dead thread.
+MAX_SECONDS = 1e6  # the longest duration, time or wait, in seconds
+MIN_EVERY = 1e-3  # the shortest interval of an `every` fault, in seconds
+MAX_INJECTIONS = 100_000  # the most injections of one fault in one run
+MAX_CLIENTS = 1_000  # the most client threads of a workload (each has a registrar)
+MAX_REPEAT = 10_000  # the most runs per compared value
+MAX_COUNT = 1_000_000  # the most of any other count: `keys`, `max_restarts`, `loads`, `nth`
+MAX_RATE = 1e6  # the most calls per second per client (and the largest `weight`)
+PLACEHOLDERS = frozenset({"key", "client", "run_dir", "pid"})  # of request templates: `{key}`
 
 EVENT_TYPES: dict[str, type[Any]] = {  # the events an `after` trigger may name
     cls.__name__: cls for cls in typing.get_args(events.Event) if cls is not events.EventsDropped
@@ -87,6 +65,7 @@ Name = Annotated[str, Meta(pattern=r"\A[\w.-]+\Z")]
 Text = Annotated[str, Meta(max_length=10_000)]
 Count = Annotated[int, Meta(ge=1, le=MAX_COUNT)]
 Seed = Annotated[int, Meta(ge=-(2**63), le=2**63 - 1)]
+Repeat = Annotated[int, Meta(ge=1, le=MAX_REPEAT)]
 Restart = Literal["permanent", "transient", "temporary"]
 
 
@@ -95,8 +74,7 @@ class PlanError(ConfigError):
 
     Attributes:
         source: the plan's file name (or `"<plan>"` for text without a file).
-        line: the 1-based line of the key (0 if the plan has no such key, e.g. a
-            missing one at the top).
+        line: the 1-based line of the key (0 if there is no such key, e.g. a missing one).
         key: the key's dotted path, array elements as `[i]` (e.g. `faults[1].target`).
         problem: what is wrong, without the location.
     """
@@ -104,16 +82,10 @@ class PlanError(ConfigError):
     def __init__(self, source: str, line: int, key: str, problem: str) -> None:
         where = f"{source}:{line}" if line else source
         super().__init__(f"{where}: {key}: {problem}" if key else f"{where}: {problem}")
-        self.source = source
-        self.line = line
-        self.key = key
-        self.problem = problem
+        self.source, self.line, self.key, self.problem = source, line, key, problem
 
     def __reduce__(self) -> tuple[Any, ...]:
         return (type(self), (self.source, self.line, self.key, self.problem))
-
-
-# -- the plan as data -------------------------------------------------------------------------
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,18 +117,13 @@ class SupervisorPlan:
 
     def managers(self) -> list[ManagerPlan]:
         """Every manager below this supervisor, depth first, in start order."""
-        found: list[ManagerPlan] = []
-        for child in self.children:
-            found.extend(child.managers() if isinstance(child, SupervisorPlan) else [child])
-        return found
+        nested = (c.managers() if isinstance(c, SupervisorPlan) else [c] for c in self.children)
+        return [manager for managers in nested for manager in managers]
 
     def supervisors(self) -> list[SupervisorPlan]:
         """This supervisor and every nested one, depth first."""
-        found = [self]
-        for child in self.children:
-            if isinstance(child, SupervisorPlan):
-                found.extend(child.supervisors())
-        return found
+        nested = (c.supervisors() for c in self.children if isinstance(c, SupervisorPlan))
+        return [self, *(supervisor for supervisors in nested for supervisor in supervisors)]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -224,11 +191,7 @@ class FaultPlan:
     message: Text = "injected load error"  # load_error: the exception's message
 
     def most_injections(self, duration: float) -> int:
-        """At most how many injections this fault makes in a run of `duration` seconds.
-
-        1 for a triggered fault, the number of `at` times, or for `every` the span from
-        `start` to `stop` (or `duration`) over the shortest interval, within `count`.
-        """
+        """At most how many injections this fault makes in a run of `duration` seconds."""
         if self.after is not None:
             return 1
         if self.every is None:
@@ -249,7 +212,7 @@ class Compare:
     `"tree.children.erm.heartbeat"`; a fault by its index: `"faults.0.every"`.
     """
 
-    setting: str
+    setting: Annotated[str, Meta(min_length=1)]
     values: tuple[Any, ...]  # in the order the runs take them
 
 
@@ -265,7 +228,7 @@ class Plan:
     duration: Seconds  # of workload and faults per run
     tree: SupervisorPlan
     description: str = ""
-    repeat: Annotated[int, Meta(ge=1, le=MAX_REPEAT)] = 1  # runs per compared value
+    repeat: Repeat = 1  # runs per compared value
     seed: Seed = 0  # of the first run (run `i` of a value uses `seed + i`)
     recovery_timeout: Seconds = 10.0  # at the end, to wait for every manager to serve
     state: bool = True  # whether managers keep durable catalogs (a state directory per run)
@@ -283,76 +246,38 @@ class Plan:
         return self.tree.managers()
 
     def manager(self, name: str) -> ManagerPlan:
-        """The manager called `name`.
-
-        Raises:
-            KeyError: no manager of that name.
-        """
-        for manager in self.managers():
-            if manager.name == name:
-                return manager
-        raise KeyError(name)
+        """The manager called `name` (`KeyError` if none)."""
+        return {manager.name: manager for manager in self.managers()}[name]
 
     def setting_label(self) -> str:
         """The compared setting's key, or `""` without `compare`."""
         return self.compare.setting if self.compare is not None else ""
 
     def with_changes(
-        self,
-        *,
-        repeat: int | None = None,
-        seed: int | None = None,
-        duration: float | None = None,
+        self, *, repeat: int | None = None, seed: int | None = None, duration: float | None = None
     ) -> Plan:
-        """A copy with another `repeat`, `seed` or `duration` (for every compared value).
+        """A copy with another `repeat`, `seed` or `duration` (`None`: keep), for every variant.
 
         A shorter `duration` drops the faults that would come after the new end.
 
-        Args:
-            repeat: runs per compared value (1 to `MAX_REPEAT`); `None`: keep the plan's.
-            seed: the seed of the first repeat; `None`: keep the plan's.
-            duration: seconds each run's workload lasts (> 0); `None`: keep the plan's.
-
-        Returns:
-            The changed plan (this one is not changed).
-
         Raises:
-            ConfigError: a value is out of range (`repeat` above `MAX_REPEAT`, a seed
-                beyond 64 bits, `duration` above `MAX_SECONDS`, or so
-                long that an `every` fault would inject more than `MAX_INJECTIONS` times).
+            ConfigError: `repeat` is not from 1 to `MAX_REPEAT`, `seed` not 64 bits,
+                `duration` not in (0, `MAX_SECONDS`], or so long that an `every` fault
+                would inject more than `MAX_INJECTIONS` times.
         """
-        if repeat is not None and (isinstance(repeat, bool) or not 1 <= repeat <= MAX_REPEAT):
-            raise ConfigError(f"repeat must be an int from 1 to {MAX_REPEAT}, got {repeat!r}")
-        if seed is not None and not -(2**63) <= seed < 2**63:
-            raise ConfigError(f"seed must be a 64-bit integer, got {seed!r}")
-        if duration is not None and not (_is_number(duration) and 0 < duration <= MAX_SECONDS):
-            raise ConfigError(
-                f"duration must be a positive number of seconds up to {MAX_SECONDS:g}, "
-                f"got {duration!r}"
-            )
-        if duration is not None:
-            for _, plan in self.variants:
-                for index, fault in enumerate(plan.faults):
-                    if fault.most_injections(duration) > MAX_INJECTIONS:
-                        raise ConfigError(
-                            f"duration {duration:g} s: faults[{index}] would inject more than "
-                            f"{MAX_INJECTIONS} times in a run"
-                        )
         changes: dict[str, Any] = {}
-        if repeat is not None:
-            changes["repeat"] = repeat
-        if seed is not None:
-            changes["seed"] = seed
-        if duration is not None:
-            changes["duration"] = float(duration)
-        variants = tuple(
-            (value, dataclasses.replace(plan, **changes)) for value, plan in self.variants
-        )
+        for key, value, hint, what in (
+            ("repeat", repeat, Repeat, f"an int from 1 to {MAX_REPEAT}"),
+            ("seed", seed, Seed, "a 64-bit integer"),
+            ("duration", duration, Seconds, f"a positive number of seconds up to {MAX_SECONDS:g}"),
+        ):
+            try:
+                changes |= {} if value is None else {key: msgspec.convert(value, hint)}
+            except msgspec.ValidationError:
+                raise ConfigError(f"{key} must be {what}, got {value!r}") from None
+        for index, fault in (x for _, p in self.variants for x in enumerate(p.faults)):
+            if duration is not None and fault.most_injections(duration) > MAX_INJECTIONS:
+                problem = f"would inject more than {MAX_INJECTIONS} times in a run"
+                raise ConfigError(f"duration {duration:g} s: faults[{index}] {problem}")
+        variants = tuple((v, dataclasses.replace(p, **changes)) for v, p in self.variants)
         return dataclasses.replace(self, **changes, variants=variants)
-
-
-def _is_number(value: object) -> bool:
-    """Whether `value` is an int or a finite float (not a bool; a huge int is no error)."""
-    if isinstance(value, float):
-        return math.isfinite(value)
-    return isinstance(value, int) and not isinstance(value, bool)

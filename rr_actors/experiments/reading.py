@@ -1,71 +1,40 @@
 """Reading a plan: TOML text to a validated `Plan`, every problem a `PlanError` with its line.
 
-    PLAN.toml ──tomllib──► data ──_lines.key_lines──► {key path: line}
-                             │
-                             └──_Reader.build, per table: unknown keys; each value
-                                ──msgspec.convert(value, its annotated type in `plan`)──►
-                                then the rules between values ──► Plan (frozen dataclasses)
-                                every error: PlanError(file:line: key: what is wrong)
+    PLAN.toml ──tomllib──► data ──_Reader.decode(Plan), table by table: unknown and missing
+    keys, each value ──msgspec.convert(value, its field's annotated type)──► Plan ──► rules
 
-msgspec checks what the types in `plan` say (types, choices, ranges); `_problem` words its
-errors. The rules no type can say are here: names that must exist in the tree, import
-paths and their signatures, times within the run, the keys that go with a fault's kind,
-request templates, and every value of `compare` (each makes a whole plan, validated like
-the first). The format is documented in `docs/reference/plan.md`.
+One generic part decodes every table into its dataclass of `plan` and words msgspec's
+errors (`_problem`); the rules no type can say follow, a few lines each. The lines come
+from `_lines.key_lines`. The format is documented in `docs/reference/plan.md`.
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import inspect
+import operator
 import os
 import re
 import string
 import tomllib
 import typing
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import msgspec
 
-from rr_actors._types import Status
-from rr_actors.config import Backoff
 from rr_actors.errors import ConfigError
+from rr_actors.experiments import plan as schema
 from rr_actors.experiments._imports import import_object
-from rr_actors.experiments._lines import KeyPath, key_lines
-from rr_actors.experiments.plan import (
-    EVENT_TYPES,
-    FAULT_KINDS,
-    MAX_INJECTIONS,
-    MAX_RATE,
-    MAX_SECONDS,
-    NEEDS_PROCESS,
-    PLACEHOLDERS,
-    CallMix,
-    Compare,
-    FaultKind,
-    FaultPlan,
-    Interval,
-    ManagerPlan,
-    Plan,
-    PlanError,
-    Seconds,
-    SecondsOrZero,
-    SupervisorPlan,
-    Trigger,
-    Workload,
-)
+from rr_actors.experiments._lines import KeyPath, line_of
+from rr_actors.experiments.plan import Plan, PlanError
 
 __all__ = ["load_plan", "parse_plan"]
 
-NOT_COMPARED = {  # top-level keys `[compare]` refuses, and why
-    "name": "every run of an experiment belongs to one plan",
-    "description": "it changes nothing in a run",
-    "seed": "each run's seed comes from the top 'seed' and its repeat",
-    "repeat": "every compared value runs 'repeat' times",
-    "compare": "compare is not a setting of a run",
-}
+# -- the words of the errors, as data ---------------------------------------------------------
 WHAT = {  # what a key must be, where its type alone words it badly (the last key of the path)
     "target": "a manager's name",
     "manager": "a manager's name",
@@ -73,29 +42,46 @@ WHAT = {  # what a key must be, where its type alone words it badly (the last ke
     "name": "letters, digits, '_', '-' or '.'",
     "server": "a server name",
     "heartbeat": "a positive number of seconds or false (off)",
-    "rate": f'calls per second (at least {1 / MAX_SECONDS:g}, at most {MAX_RATE:g}) or "max"',
-    "weight": f"a positive number (at most {MAX_RATE:g})",
+    "rate": f"calls per second (at least {1 / schema.MAX_SECONDS:g}, at most {schema.MAX_RATE:g})"
+    ' or "max"',
+    "weight": f"a positive number (at most {schema.MAX_RATE:g})",
     "shared": "a fraction from 0 to 1",
-    "factor": f"a number from 1 to {MAX_SECONDS:g}",
+    "factor": f"a number from 1 to {schema.MAX_SECONDS:g}",
+    "children": "a non-empty array of tables ([[...children]])",
+    "setting": "a plan key",
 }
 MISSING = {  # what a missing key is for
     "duration": " (seconds of workload and faults per run)",
-    "kind": f": one of {', '.join(FAULT_KINDS)}",
+    "kind": f": one of {', '.join(schema.FAULT_KINDS)}",
     "target": ": which manager (or a list of them)",
+    "for": ": how many seconds the manager stays stopped",
 }
 TYPES = {"float": "a number", "int": "an integer", "str": "a string", "bool": "true or false"}
 TYPES |= {"array": "an array", "object": "a table"}
-TOML_KEY = {"targets": "target", "for_s": "for"}  # field name -> key, where they differ
+SECONDS = (schema.Seconds, schema.SecondsOrZero, schema.Interval)
+NOT_COMPARED = {  # top-level keys `[compare]` refuses, and why
+    "name": "every run of an experiment belongs to one plan",
+    "description": "it changes nothing in a run",
+    "seed": "each run's seed comes from the top 'seed' and its repeat",
+    "repeat": "every compared value runs 'repeat' times",
+    "compare": "compare is not a setting of a run",
+}
+# -- how keys become fields -------------------------------------------------------------------
+TOML_KEY = {"targets": "target", "for_s": "for"}  # field -> key, where they differ
+NOT_KEYS = ("state", "variants", "source", "base_dir")  # `Plan` fields no key gives
+OFF = {"heartbeat": False, "rate": "max"}  # the value that makes the field `None`
+HINT = {"initial": schema.SecondsOrZero, "max": schema.SecondsOrZero}  # `Backoff`'s, limited
+LISTS = ("at", "target")  # a fault's keys that take one value or an array of them
+# -- a fault's keys that only go with another key, or with some kinds ---------------------------
+NEEDS_KEY = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
+NEEDS_KIND: dict[str, tuple[str, ...]] = dict.fromkeys(
+    ("loads", "server", "message"), ("load_error",)
+)
+NEEDS_KIND |= {"for": ("hang_manager", "load_error")}
 
 
 def load_plan(path: str | os.PathLike[str]) -> Plan:
-    """Read and validate the plan in the TOML file `path`.
-
-    Args:
-        path: the plan file.
-
-    Returns:
-        The plan; its `name` defaults to the file's stem.
+    """Read and validate the plan in the TOML file `path` (its `name` defaults to the stem).
 
     Raises:
         PlanError: the file cannot be read, is not TOML, or is not a valid plan; the
@@ -112,15 +98,7 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
 
 
 def parse_plan(text: str, *, source: str = "<plan>", name: str = "plan") -> Plan:
-    """Validate the plan in the TOML `text`.
-
-    Args:
-        text: the TOML document.
-        source: how error messages name it (a file name).
-        name: the plan's name if the text has no `name` key.
-
-    Returns:
-        The plan, with one variant per compared value.
+    """Validate the plan in the TOML `text` (`source` names it in errors): a variant per value.
 
     Raises:
         PlanError: the text is not TOML or not a valid plan.
@@ -132,7 +110,7 @@ def parse_plan(text: str, *, source: str = "<plan>", name: str = "plan") -> Plan
         problem = f"is not valid TOML: {exc}"
         raise PlanError(source, int(line[1]) if line else 0, "", problem) from exc
     base_dir = None if source == "<plan>" else os.path.dirname(os.path.abspath(source))
-    reader = _Reader(source, key_lines(text), base_dir)
+    reader = _Reader(source, text, base_dir)
     compare = reader.compare(data)
     base = reader.plan(data, name=name)
     if compare is None:
@@ -162,8 +140,9 @@ def _problem(message: str, key: str, value: Any, hint: Any) -> str:
     what = f"{message[0].lower()}{message[1:]}"  # msgspec's own words, if none of these
     if key in WHAT and not (bound and key == "heartbeat"):
         what = f"must be {WHAT[key]}"
-    elif message.startswith("Invalid enum value"):
-        what = f"must be one of {', '.join(map(repr, typing.get_args(hint)))}"
+    elif message.startswith("Invalid enum value") or hasattr(hint, "__members__"):
+        choices = typing.get_args(hint) or tuple(getattr(hint, "__members__", ()))
+        what = f"must be one of {', '.join(map(repr, choices))}"
     elif bound and bound[1] == "int":
         what = f"must be an integer {bound[2]} {bound[3]}"
     elif bound and bound[2] == "<=":
@@ -173,47 +152,40 @@ def _problem(message: str, key: str, value: Any, hint: Any) -> str:
         what = f"must be {zero if float(bound[3]) == 0 else f'at least {float(bound[3]):g} s'}"
     elif typed:
         kinds = [TYPES.get(kind, kind) for kind in typed[1].split(" | ") if kind != "null"]
-        if _in_seconds(hint):
-            kinds = [f"{kind} of seconds" if kind == "a number" else kind for kind in kinds]
+        seconds = hint in SECONDS or any(h in SECONDS for h in typing.get_args(hint))
+        kinds = [f"{k} of seconds" if seconds and k == "a number" else k for k in kinds]
         what = f"must be {' or '.join(kinds)}"
     return f"{what}, got {_show(value)}"
 
 
-def _in_seconds(hint: Any) -> bool:
-    return hint in (Seconds, SecondsOrZero, Interval) or any(
-        map(_in_seconds, typing.get_args(hint))
-    )
-
-
 class _Reader:
-    """Validates plan data table by table, turning every problem into a `PlanError`."""
+    """Reads plan data into a `Plan`, turning every problem into a `PlanError`."""
 
-    def __init__(self, source: str, lines: dict[KeyPath, int], base_dir: str | None) -> None:
-        self.source, self.lines, self.base_dir = source, lines, base_dir
+    def __init__(self, source: str, text: str, base_dir: str | None) -> None:
+        self.source, self.text, self.base_dir = source, text, base_dir
         self.data: dict[str, Any] = {}
+        self.state, self.managers = True, dict[str, schema.ManagerPlan]()  # of the last plan
+        self.hooks = {"tree": self.root, "every": self.every, "after": self.trigger}
+        self.hooks["compare"] = lambda value, path: None  # read apart, before
 
-    # -- the generic part: where, unknown keys, typed values --------------------------------
+    # -- the generic part: where, unknown and missing keys, typed values ---------------------
 
     def error(self, path: KeyPath, problem: str) -> PlanError:
-        known = [path[:end] for end in range(len(path), 0, -1) if path[:end] in self.lines]
+        line = line_of(self.text, [path[:end] for end in range(len(path), 0, -1)])
         key = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in path).lstrip(".")
-        return PlanError(self.source, self.lines[known[0]] if known else 0, key, problem)
+        return PlanError(self.source, line, key, problem)
 
-    def at(self, path: KeyPath) -> Any:
-        """The value at `path` as the plan gives it."""
-        node: Any = self.data
-        for part in path:
-            node = node[part]
-        return node
+    def refuse(self, wrong: object, path: KeyPath, problem: str) -> None:
+        """A rule: a `PlanError` at `path` if `wrong` is true."""
+        if wrong:
+            raise self.error(path, problem)
 
     def table(self, value: Any, path: KeyPath, known: tuple[str, ...]) -> dict[str, Any]:
         """`value` as a table with only `known` keys (else an error at the first other)."""
         if not isinstance(value, dict):
             raise self.error(path, f"must be a table, got {_show(value)}")
-        for key in value:
-            if key not in known:
-                problem = f"unknown key; known here: {', '.join(sorted(known))}"
-                raise self.error((*path, key), problem)
+        for key in (k for k in value if k not in known):
+            raise self.error((*path, key), f"unknown key; known here: {', '.join(sorted(known))}")
         return value
 
     def check(self, value: Any, hint: Any, path: KeyPath) -> Any:
@@ -222,7 +194,7 @@ class _Reader:
             return msgspec.convert(value, hint)
         except msgspec.ValidationError as exc:
             message, _, inner = str(exc).partition(" - at `$")
-            raw = self.at(path)  # `at = 1` is checked as `[1]`: the error stays at `at`
+            raw = self.raw(path)  # as written: `at = 1` is checked as `[1]`, its error at `at`
             for index, key in re.findall(r"\[(\d+)\]|\.(\w+)", inner):
                 step: str | int = int(index) if index else key
                 inside = isinstance(raw, list if isinstance(step, int) else dict)
@@ -232,21 +204,46 @@ class _Reader:
             key = next((p for p in reversed(path) if isinstance(p, str)), "")
             raise self.error(path, _problem(message, key, raw, hint)) from None
 
-    def build(
-        self, cls: Any, value: Any, path: KeyPath, *, skip: Any = (), extra: Any = (), **given: Any
-    ) -> Any:
-        """A `cls` from a table: keys are its fields (less `skip`, plus `extra`), each value
-        checked against its field's type unless `given`."""
-        fields = [f for f in dataclasses.fields(cls) if f.name not in skip]
-        table = self.table(value, path, (*(TOML_KEY.get(f.name, f.name) for f in fields), *extra))
+    def raw(self, path: KeyPath) -> Any:
+        data: Any = self.data
+        return functools.reduce(operator.getitem, path, data)  # the value as written
+
+    def decode(self, cls: Any, value: Any, path: KeyPath) -> Any:
+        """A `cls` (a dataclass of `plan`) from the table `value`, every field checked."""
         hints = typing.get_type_hints(cls, include_extras=True)
-        for field in (f for f in fields if f.name not in given):
-            key = TOML_KEY.get(field.name, field.name)
-            if key in table:
-                given[field.name] = self.check(table[key], hints[field.name], (*path, key))
-            elif field.default is field.default_factory is dataclasses.MISSING:
+        fields = [f for f in dataclasses.fields(cls) if f.name not in NOT_KEYS]
+        keys = {TOML_KEY.get(f.name, f.name): f for f in fields}
+        table, given = self.table(value, path, tuple(keys)), {}
+        for key, field in keys.items():
+            item, at = table.get(key), (*path, key)
+            if key not in table and field.default is field.default_factory is dataclasses.MISSING:
                 raise self.error(path, f"{key!r} is missing{MISSING.get(key, '')}")
-        return cls(**given)
+            if key in self.hooks and key in table:
+                given[field.name] = self.hooks[key](item, at)
+            elif key in OFF and type(item) is type(OFF[key]) and item == OFF[key]:
+                given[field.name] = None
+            elif key in table:
+                item = [item] if key in LISTS and not isinstance(item, list) else item
+                given[field.name] = self.value(item, HINT.get(key, hints[field.name]), at)
+        try:
+            return cls(**given)
+        except ConfigError as exc:  # a `Backoff` checks itself
+            bad = str(exc).split(" ", 1)[0].removeprefix("Backoff.")
+            raise self.error((*path, bad) if bad in table else path, str(exc)) from None
+
+    def value(self, item: Any, hint: Any, path: KeyPath) -> Any:
+        """`item` as `hint`: a plan dataclass (or a tuple of them) decoded, else by msgspec."""
+        if dataclasses.is_dataclass(hint):
+            return self.decode(hint, item, path)
+        element = typing.get_args(hint)[0] if typing.get_origin(hint) is tuple else None
+        classes = [c for c in typing.get_args(element) or (element,) if dataclasses.is_dataclass(c)]
+        if not classes:
+            return self.check(item, hint, path)
+        items = self.check(item, list[dict[str, Any]], path)  # a supervisor has children:
+        return tuple(
+            self.decode(classes[-1] if "children" in x else classes[0], x, (*path, i))
+            for i, x in enumerate(items)
+        )
 
     def importable(self, path: KeyPath, name: str, call: KeyPath, *args: Any, **kw: Any) -> None:
         """Import `name`; check that it can be called with `args` and `kw` (at `call`)."""
@@ -263,126 +260,65 @@ class _Reader:
         except TypeError as exc:
             raise self.error(call, f"{name} cannot be called with these: {exc}") from None
 
-    # -- the plan, its tree and its workload ------------------------------------------------
+    # -- the plan and the rules between its values ---------------------------------------------
 
     def plan(self, data: dict[str, Any], *, name: str) -> Plan:
-        self.data, top = data, {"name": name, **data}
-        if "tree" not in top:
-            raise self.error((), "'tree' is missing")
-        tree = self.table(top["tree"], ("tree",), ("state", *SUPERVISOR))
-        root = self.supervisor({"name": "root", **tree}, ("tree",), top=True)
-        self.unique_names(root, ("tree",), set())
-        managers = {m.name: m for m in root.managers()}
-        workload = self.workload(top.get("workload", {"clients": 0}), managers)
-        skip = ("state", "variants", "source", "base_dir")
-        plan: Plan = self.build(
-            Plan, top, (), skip=skip, tree=root, workload=workload, faults=(), compare=None
-        )
+        self.data = {"name": name, **data}
+        plan: Plan = self.decode(Plan, self.data, ())
+        source = None if self.source == "<plan>" else self.source
+        plan = dataclasses.replace(plan, state=self.state, source=source, base_dir=self.base_dir)
+        self.managers = managers = {m.name: m for m in plan.managers()}
+        self.tree(plan.tree)
+        self.calls(plan.workload)
         names = {  # what the fields of an `after` trigger may name
-            "supervisor": frozenset(s.name for s in root.supervisors()),
-            "child": frozenset(managers) | {s.name for s in root.supervisors()[1:]},
-            "registrar": frozenset(managers) | {f"client-{i}" for i in range(workload.clients)},
+            "supervisor": {s.name for s in plan.tree.supervisors()},
+            "child": set(managers) | {s.name for s in plan.tree.supervisors()[1:]},
+            "registrar": set(managers) | {f"client-{i}" for i in range(plan.workload.clients)},
         }
-        faults = self.check(top.get("faults", []), list[dict[str, Any]], ("faults",))
-        return dataclasses.replace(
-            plan,
-            state=self.check(tree.get("state", True), bool, ("tree", "state")),
-            faults=tuple(
-                self.fault(entry, ("faults", i), managers, plan.duration, names)
-                for i, entry in enumerate(faults)
-            ),
-            source=None if self.source == "<plan>" else self.source,
-            base_dir=self.base_dir,
-        )
+        for path, fault in ((("faults", i), f) for i, f in enumerate(plan.faults)):
+            self.fault(fault, path, names, plan.duration)
+        return plan
 
-    def unique_names(self, sup: SupervisorPlan, path: KeyPath, seen: set[str]) -> None:
-        for index, child in enumerate(sup.children):
-            child_path = (*path, "children", index)
-            if child.name in seen or child.name == sup.name:
-                problem = f"the name {child.name!r} is used twice in the tree"
-                raise self.error((*child_path, "name"), problem)
-            seen.add(child.name)
-            if isinstance(child, SupervisorPlan):
-                self.unique_names(child, child_path, seen)
+    def root(self, value: Any, path: KeyPath) -> schema.SupervisorPlan:
+        """The top supervisor: named "root" unless named, no `restart`, and the plan's `state`."""
+        keys = [TOML_KEY.get(f.name, f.name) for f in dataclasses.fields(schema.SupervisorPlan)]
+        table = self.table(value, path, (*(k for k in keys if k != "restart"), "state"))
+        self.state = self.check(table.get("state", True), bool, (*path, "state"))
+        tree = {"name": "root", **{k: v for k, v in table.items() if k != "state"}}
+        root: schema.SupervisorPlan = self.decode(schema.SupervisorPlan, tree, path)
+        return root
 
-    def supervisor(self, table: Any, path: KeyPath, *, top: bool = False) -> SupervisorPlan:
-        self.table(table, path, (*SUPERVISOR, "state") if top else (*SUPERVISOR, "restart"))
-        children = self.check(table.get("children"), list[dict[str, Any]], (*path, "children"))
-        if not children:
-            problem = "must be a non-empty array of tables ([[...children]])"
-            raise self.error((*path, "children"), problem)
-        parsed = [
-            self.supervisor(child, (*path, "children", i))
-            if "children" in child
-            else self.manager(child, (*path, "children", i))
-            for i, child in enumerate(children)
-        ]
-        backoff = self.backoff(table.get("backoff", {}), (*path, "backoff"))
-        skip, extra = ("restart",) if top else (), ("state",) if top else ()
-        sup: SupervisorPlan = self.build(
-            SupervisorPlan,
-            table,
-            path,
-            skip=skip,
-            extra=extra,
-            children=tuple(parsed),
-            backoff=backoff,
-        )
-        return sup
+    def tree(self, root: schema.SupervisorPlan) -> None:
+        seen: set[str] = set()
+        for path, node in _nodes(root, ("tree",)):
+            empty = isinstance(node, schema.SupervisorPlan) and not node.children
+            self.refuse(empty, (*path, "children"), f"must be {WHAT['children']}")
+            twice = f"the name {node.name!r} is used twice in the tree"
+            self.refuse(node.name in seen, (*path, "name"), twice)
+            seen.add(node.name)
+            if isinstance(node, schema.ManagerPlan):
+                options = (*path, "options")
+                self.importable((*path, "setup"), node.setup, options, None, **node.options)
 
-    def backoff(self, value: Any, path: KeyPath) -> Backoff:
-        table = self.table(value, path, ("initial", "factor", "max", "jitter"))
-        hint = {"initial": SecondsOrZero, "max": SecondsOrZero, "factor": float, "jitter": float}
-        numbers = {k: self.check(v, hint[k], (*path, k)) for k, v in table.items()}
-        try:
-            return Backoff(**numbers)
-        except ConfigError as exc:
-            field = str(exc).split(" ", 1)[0].removeprefix("Backoff.")
-            raise self.error((*path, field) if field in table else path, str(exc)) from None
+    def calls(self, workload: schema.Workload) -> None:
+        for index, call in enumerate(workload.calls):
+            path = ("workload", "calls", index)
+            self.named(call.manager, (*path, "manager"))
+            both = "request" in self.raw(path) and call.factory is not None
+            self.refuse(both, (*path, "factory"), "give either 'request' or 'factory', not both")
+            if call.factory is not None:
+                self.importable((*path, "factory"), call.factory, (*path, "factory"), "key", None)
+            self.template(call.request, (*path, "request"))
+        problem = "'calls' is missing: what do the clients call?"
+        self.refuse(workload.clients and not workload.calls, ("workload",), problem)
 
-    def manager(self, table: dict[str, Any], path: KeyPath) -> ManagerPlan:
-        off = {"heartbeat": None} if table.get("heartbeat") is False else {}
-        manager: ManagerPlan = self.build(ManagerPlan, table, path, **off)
-        self.importable(
-            (*path, "setup"), manager.setup, (*path, "options"), None, **manager.options
-        )
-        return manager
-
-    def workload(self, value: Any, managers: dict[str, ManagerPlan]) -> Workload:
-        path: KeyPath = ("workload",)
-        calls = self.check(
-            self.table(value, path, WORKLOAD).get("calls", []),
-            list[dict[str, Any]],
-            (*path, "calls"),
-        )
-        calls = tuple(
-            self.call(entry, (*path, "calls", i), managers) for i, entry in enumerate(calls)
-        )
-        rate = {"rate": None} if value.get("rate") == "max" else {}
-        workload: Workload = self.build(Workload, value, path, calls=calls, **rate)
-        if workload.clients and not calls:
-            raise self.error(path, "'calls' is missing: what do the clients call?")
-        return workload
-
-    def call(self, value: Any, path: KeyPath, managers: dict[str, ManagerPlan]) -> CallMix:
-        call: CallMix = self.build(CallMix, value, path)
-        if call.manager not in managers:
-            problem = f"no manager {call.manager!r} in the tree (managers: {', '.join(managers)})"
-            raise self.error((*path, "manager"), problem)
-        if "request" in value and call.factory is not None:
-            raise self.error((*path, "factory"), "give either 'request' or 'factory', not both")
-        if call.factory is not None:
-            self.importable((*path, "factory"), call.factory, (*path, "factory"), "key", None)
-        self.template(call.request, (*path, "request"))
-        return call
+    def named(self, name: str, path: KeyPath) -> None:
+        problem = f"no manager {name!r} in the tree (managers: {', '.join(self.managers)})"
+        self.refuse(name not in self.managers, path, problem)
 
     def template(self, value: Any, path: KeyPath) -> None:
-        """Check the placeholders of every string in a request template.
-
-        A placeholder is only a name: `{key}`, not `{key!r}` or `{client:03d}`. With no
-        conversion, format spec, attribute or index, every template renders at run time
-        for any key and client, so a template that passes here cannot fail in a client.
-        """
+        """Check every string of a request template: a placeholder is only a known name
+        (`{key}`, not `{key!r}` or `{client:03d}`), so a template that passes renders."""
         if isinstance(value, dict | list):
             for key, item in value.items() if isinstance(value, dict) else enumerate(value):
                 self.template(item, (*path, key))
@@ -392,189 +328,111 @@ class _Reader:
             parsed = [p for p in string.Formatter().parse(value) if p[1] is not None]
         except ValueError as exc:
             raise self.error(path, f"{value!r} is not a valid template: {exc}") from None
+        known = ", ".join(f"{{{p}}}" for p in sorted(schema.PLACEHOLDERS))
         for _, field, spec, conversion in parsed:
-            if spec or conversion:
-                problem = f"{value!r}: a placeholder is only a name, like {{{field}}}, without "
-                raise self.error(path, problem + "a conversion ('!r') or a format ('03d')")
-            if field not in PLACEHOLDERS:
-                known = ", ".join(f"{{{p}}}" for p in sorted(PLACEHOLDERS))
-                raise self.error(path, f"unknown placeholder {{{field}}}; known: {known}")
+            bare = f"{value!r}: a placeholder is only a name, like {{{field}}}, without a "
+            self.refuse(spec or conversion, path, bare + "conversion ('!r') or a format ('03d')")
+            unknown = f"unknown placeholder {{{field}}}; known: {known}"
+            self.refuse(field not in schema.PLACEHOLDERS, path, unknown)
 
-    # -- the faults -------------------------------------------------------------------------
+    # -- the faults ---------------------------------------------------------------------------
 
-    def fault(
-        self,
-        value: Any,
-        path: KeyPath,
-        managers: dict[str, ManagerPlan],
-        duration: float,
-        names: dict[str, frozenset[str]],
-    ) -> FaultPlan:
-        """One `[[faults]]` entry; `names` are the values an `after` field may name."""
-        table = self.table(value, path, FAULT)
-        if "kind" not in table:
-            raise self.error(path, f"'kind' is missing{MISSING['kind']}")
-        kind = self.check(table["kind"], FaultKind, (*path, "kind"))
+    def fault(self, fault: schema.FaultPlan, path: KeyPath, names: Any, duration: float) -> None:
+        """The rules of one `[[faults]]` entry; `names` are the values an `after` may name."""
+        table, kind, managers, refuse = self.raw(path), fault.kind, self.managers, self.refuse
         when = [key for key in ("at", "every", "after") if key in table]
-        if len(when) != 1:
-            say = f"give only one of 'at', 'every' or 'after', not {' and '.join(when)}"
-            raise self.error(
-                path, say if when else "say when: give one of 'at', 'every' or 'after'"
-            )
+        say = f"give only one of 'at', 'every' or 'after', not {' and '.join(when)}"
+        say = say if when else "say when: give one of 'at', 'every' or 'after'"
+        refuse(len(when) != 1, path, say)
         for key in table:
-            if key in ONLY_WITH and ONLY_WITH[key] not in table:
-                raise self.error((*path, key), f"only goes with {ONLY_WITH[key]!r}")
-            if key in ("loads", "server", "message") and kind != "load_error":
-                raise self.error((*path, key), "only goes with kind 'load_error'")
-        if "for" in table and kind not in ("hang_manager", "load_error"):
-            raise self.error((*path, "for"), f"does not go with kind {kind!r}")
-        if "for" in table and "loads" in table:
-            problem = "give either 'for' (seconds) or 'loads' (a number), not both"
-            raise self.error((*path, "loads"), problem)
-        given = {k: v if isinstance(v, list) else [v] for k, v in table.items() if k in LISTS}
-        every = table.get("every")  # read here: msgspec 0.22 crashes on its union type
-        if isinstance(every, dict):
-            self.table(every, (*path, "every"), ("min", "max"))
-            if not {"min", "max"} <= set(every):
-                raise self.error((*path, "every"), "needs both 'min' and 'max' (seconds)")
-            low, high = (
-                self.check(every[k], Interval, (*path, "every", k)) for k in ("min", "max")
-            )
-            if high < low:
-                raise self.error((*path, "every", "max"), f"must not be less than min ({low:g} s)")
-            every = (low, high)
-        elif every is not None:
-            every = self.check(every, Interval, (*path, "every"))
-        after = self.trigger(table["after"], (*path, "after"), names) if "after" in table else None
-        fault: FaultPlan = self.build(
-            FaultPlan, {**table, **given}, path, kind=kind, after=after, every=every
-        )
-        self.targets(fault, table, path, managers)
-        self.timing(fault, table, path, duration)
-        return fault
-
-    def targets(
-        self,
-        fault: FaultPlan,
-        table: dict[str, Any],
-        path: KeyPath,
-        managers: dict[str, ManagerPlan],
-    ) -> None:
-        if "target" not in table and fault.kind != "kill_resource":
-            raise self.error(path, f"'target' is missing{MISSING['target']}")
-        if "target" not in table and all(m.isolation == "thread" for m in managers.values()):
-            problem = "kill_resource kills resource processes of process managers; every "
-            raise self.error(path, problem + "manager of this tree has isolation 'thread'")
-        if "target" in table and not fault.targets:
-            raise self.error((*path, "target"), "must name at least one manager")
+            needs, kinds = NEEDS_KEY.get(key), NEEDS_KIND.get(key, (kind,))
+            refuse(needs and needs not in table, (*path, key), f"only goes with {needs!r}")
+            only = f"(only {' or '.join(map(repr, kinds))})"
+            refuse(kind not in kinds, (*path, key), f"does not go with kind {kind!r} {only}")
+        both = "give either 'for' (seconds) or 'loads' (a number), not both"
+        refuse("for" in table and "loads" in table, (*path, "loads"), both)
+        for key, item in fault.after.match.items() if fault.after else ():  # or it never fires
+            known = ", ".join(sorted(names.get(key, ())))
+            problem = f"{item!r} names nothing in this run (it may be: {known})"
+            refuse(key in names and item not in names[key], (*path, "after", key), problem)
+        # -- whom: the targets
+        given = "target" in table
+        missing = f"'target' is missing{MISSING['target']}"
+        refuse(not given and kind != "kill_resource", path, missing)
+        threads = all(m.isolation == "thread" for m in managers.values())
+        problem = "kill_resource kills resource processes of process managers; every manager of "
+        refuse(not given and threads, path, problem + "this tree has isolation 'thread'")
+        refuse(given and not fault.targets, (*path, "target"), "must name at least one manager")
         for index, name in enumerate(fault.targets):
-            at = (
-                (*path, "target", index) if isinstance(table["target"], list) else (*path, "target")
-            )
-            if name not in managers:
-                problem = f"no manager {name!r} in the tree (managers: {', '.join(managers)})"
-                raise self.error(at, problem)
-            if fault.kind in NEEDS_PROCESS and managers[name].isolation != "process":
-                problem = f"{fault.kind} needs a process manager; {name!r} has isolation 'thread'"
-                raise self.error(at, problem)
-
-    def timing(
-        self, fault: FaultPlan, table: dict[str, Any], path: KeyPath, duration: float
-    ) -> None:
-        """Refuse a fault that would never come (or come too often) within `duration`."""
-        if fault.kind == "hang_manager" and fault.for_s is None:
-            raise self.error(path, "'for' is missing: how many seconds the manager stays stopped")
-        if "at" in table and not fault.at:
-            raise self.error((*path, "at"), "must give at least one time (seconds)")
+            at = (*path, "target", index)[: 4 if isinstance(table["target"], list) else 3]
+            self.named(name, at)  # the element, or the key if it gives one name
+            thread = kind in schema.NEEDS_PROCESS and managers[name].isolation != "process"
+            refuse(thread, at, f"{kind} needs a process manager; {name!r} has isolation 'thread'")
+        # -- when: within the run, not too often
+        hang = kind == "hang_manager" and fault.for_s is None
+        refuse(hang, path, f"'for' is missing{MISSING['for']}")
+        none = "must give at least one time (seconds)"
+        refuse("at" in table and not fault.at, (*path, "at"), none)
         end = f"the end of the run ({duration:g} s)"
-        for index, at in enumerate(fault.at):
-            where = (*path, "at", index) if isinstance(table["at"], list) else (*path, "at")
-            if at >= duration:
-                raise self.error(where, f"{self.at(where)!r} s is not before {end}")
-        stop = duration if fault.stop is None else fault.stop
+        for index, time in enumerate(fault.at):
+            at = (*path, "at", index)[: 4 if isinstance(table["at"], list) else 3]
+            refuse(time >= duration, at, f"{self.raw(at)!r} s is not before {end}")
+        stop, start = duration if fault.stop is None else fault.stop, fault.start
         low = fault.every if isinstance(fault.every, float) else (fault.every or (0.0,))[0]
-        first = f"stop ({stop:g} s)" if fault.stop is not None else end
-        most = fault.most_injections(duration)
-        rules = [  # (key, whether it is wrong here, what is wrong)
-            (
-                "delay",
-                fault.delay >= duration,
-                f"{fault.delay:g} s is not before {end}: it never fires",
-            ),
-            ("start", fault.start >= duration, f"{fault.start:g} s is not before {end}"),
-            ("stop", stop <= fault.start, f"must be after 'start' ({fault.start:g} s)"),
-            (
-                "stop",
-                stop > duration,
-                f"{stop:g} s is after {end}; leave it out to inject until the end",
-            ),
-            (
-                "every",
-                fault.every is not None and fault.start + low >= stop,
-                f"the first injection ({fault.start:g} + {low:g} s) would not come before {first}",
-            ),
-            (
-                "every",
-                most > MAX_INJECTIONS,
-                f"would inject up to {most} times in a run (at most {MAX_INJECTIONS} per "
-                "fault): give a longer interval, a 'count' or a 'stop'",
-            ),
-        ]
-        for key, wrong, problem in rules:
-            if wrong:
-                raise self.error((*path, key), problem)
+        most, first = fault.most_injections(duration), f"stop ({stop:g} s)" if fault.stop else end
+        never = f"{fault.delay:g} s is not before {end}: it never fires"
+        refuse(fault.delay >= duration, (*path, "delay"), never)
+        refuse(start >= duration, (*path, "start"), f"{start:g} s is not before {end}")
+        refuse(stop <= start, (*path, "stop"), f"must be after 'start' ({start:g} s)")
+        after = f"{stop:g} s is after {end}; leave it out to inject until the end"
+        refuse(stop > duration, (*path, "stop"), after)
+        late = f"the first injection ({start:g} + {low:g} s) would not come before {first}"
+        refuse(fault.every is not None and start + low >= stop, (*path, "every"), late)
+        often = f"would inject up to {most} times in a run (at most {schema.MAX_INJECTIONS} per "
+        often += "fault): give a longer interval, a 'count' or a 'stop'"
+        refuse(most > schema.MAX_INJECTIONS, (*path, "every"), often)
 
-    def trigger(self, value: Any, path: KeyPath, names: dict[str, frozenset[str]]) -> Trigger:
-        if not isinstance(value, dict):
-            problem = f'must be a table like {{ event = "ChildRestarted" }}, got {_show(value)}'
-            raise self.error(path, problem)
-        if "event" not in value:
-            raise self.error(path, "'event' is missing")
-        event = value["event"]
-        if not isinstance(event, str) or event not in EVENT_TYPES:
-            known = ", ".join(sorted(EVENT_TYPES))
-            raise self.error((*path, "event"), f"unknown event {event!r}; events: {known}")
-        hints = typing.get_type_hints(EVENT_TYPES[event])
+    def every(self, every: Any, path: KeyPath) -> Any:
+        """`every = 0.5` or `every = { min = 0.5, max = 2 }` (msgspec 0.22 crashes on its type)."""
+        if not isinstance(every, dict):
+            return None if every is None else self.check(every, schema.Interval, path)
+        self.table(every, path, ("min", "max"))
+        self.refuse(len(every) != 2, path, "needs both 'min' and 'max' (seconds)")
+        low, high = (self.check(every[k], schema.Interval, (*path, k)) for k in ("min", "max"))
+        self.refuse(high < low, (*path, "max"), f"must not be less than min ({low:g} s)")
+        return low, high
+
+    def trigger(self, value: Any, path: KeyPath) -> schema.Trigger:
+        table = f'must be a table like {{ event = "ChildRestarted" }}, got {_show(value)}'
+        self.refuse(not isinstance(value, dict), path, table)
+        self.refuse("event" not in value, path, "'event' is missing")
+        event, known = value["event"], ", ".join(sorted(schema.EVENT_TYPES))
+        unknown = not isinstance(event, str) or event not in schema.EVENT_TYPES
+        self.refuse(unknown, (*path, "event"), f"unknown event {event!r}; events: {known}")
+        hints = typing.get_type_hints(schema.EVENT_TYPES[event])
         self.table(value, path, ("event", "nth", *(f for f in hints if f != "at")))
-        match = {}
-        for key, item in ((k, v) for k, v in value.items() if k not in ("event", "nth")):
-            if hints[key] is Status and not (isinstance(item, str) and item in Status.__members__):
-                problem = f"must be one of {', '.join(Status.__members__)}, got {item!r}"
-                raise self.error((*path, key), problem)
-            match[key] = (
-                Status[item] if hints[key] is Status else self.check(item, hints[key], (*path, key))
-            )
-            if key in names and item not in names[key]:  # it would never match: never fire
-                known = ", ".join(sorted(names[key]))
-                raise self.error(
-                    (*path, key), f"{item!r} names nothing in this run (it may be: {known})"
-                )
-        trigger: Trigger = self.build(
-            Trigger, value, path, skip=("match",), extra=tuple(match), match=match
-        )
-        return trigger
+        fields = (k for k in value if k not in ("event", "nth"))  # a `Status` by its name, too
+        match = {key: self.check(value[key], hints[key], (*path, key)) for key in fields}
+        nth = self.check(value.get("nth", 1), schema.Count, (*path, "nth"))
+        return schema.Trigger(event, match, nth)
 
-    # -- compare ----------------------------------------------------------------------------
+    # -- compare ------------------------------------------------------------------------------
 
-    def compare(self, data: dict[str, Any]) -> Compare | None:
+    def compare(self, data: dict[str, Any]) -> schema.Compare | None:
         if "compare" not in data:
             return None
         path: KeyPath = ("compare",)
         self.data = data
-        compare: Compare = self.build(Compare, data["compare"], path)
+        compare: schema.Compare = self.decode(schema.Compare, data["compare"], path)
         setting, values = compare.setting, compare.values
-        if not setting or setting.split(".")[0] in NOT_COMPARED:
-            why = NOT_COMPARED.get(setting.split(".")[0])
-            problem = (
-                f"{setting!r} cannot be compared: {why}" if why else "must be a plan key, got ''"
-            )
-            raise self.error((*path, "setting"), problem)
-        if not values:
-            raise self.error((*path, "values"), "must be a non-empty array")
+        why = NOT_COMPARED.get(setting.split(".")[0])
+        self.refuse(why, (*path, "setting"), f"{setting!r} cannot be compared: {why}")
+        self.refuse(not values, (*path, "values"), "must be a non-empty array")
         for index, item in enumerate(values):
-            if any(type(item) is type(other) and item == other for other in values[:index]):
-                problem = f"{item!r} is given twice: each value runs once"
-                raise self.error((*path, "values", index), problem)
+            twice = any(type(item) is type(other) and item == other for other in values[:index])
+            self.refuse(
+                twice, (*path, "values", index), f"{item!r} is given twice: each value runs once"
+            )
         self.locate(data, setting, (*path, "setting"))
         return compare
 
@@ -583,27 +441,24 @@ class _Reader:
         node: Any = data
         parts = setting.split(".")
         for n, part in enumerate(parts):
-            if isinstance(node, list):
-                named = [
-                    i for i, x in enumerate(node) if isinstance(x, dict) and x.get("name") == part
-                ]
-                if not named and not (part.isdigit() and int(part) < len(node)):
+            key: str | int = part
+            if isinstance(node, list):  # an element by its name, or by its index
+                names = [x.get("name") if isinstance(x, dict) else None for x in node]
+                if part not in names and not (part.isdigit() and int(part) < len(node)):
                     raise self.error(where, f"{setting!r}: no element named {part!r}")
-                key: str | int = named[0] if named else int(part)
+                key = names.index(part) if part in names else int(part)
             elif not isinstance(node, dict):
                 raise self.error(where, f"{setting!r} does not name a setting of this plan")
             elif part not in node and n < len(parts) - 1:
                 raise self.error(where, f"{setting!r}: this plan has no {part!r} there")
-            else:
-                key = part
             if n == len(parts) - 1:
                 return node, key
             node = node[key]
         raise AssertionError("unreachable")
 
 
-SUPERVISOR = ("name", "strategy", "max_restarts", "period", "backoff", "children")
-ONLY_WITH = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
-LISTS = ("at", "target")  # a fault's keys that take one value or an array of them
-WORKLOAD = ("clients", "rate", "arrivals", "hold", "timeout", "calls")
-FAULT = (*(TOML_KEY.get(f.name, f.name) for f in dataclasses.fields(FaultPlan)),)
+def _nodes(node: Any, path: KeyPath) -> Iterator[tuple[KeyPath, Any]]:
+    """`node` of the tree and every node below it, depth first, with their paths."""
+    yield path, node
+    for index, child in enumerate(getattr(node, "children", ())):
+        yield from _nodes(child, (*path, "children", index))
