@@ -46,7 +46,7 @@ class TreeWatching:
     def _close_observers(self) -> None:
         observers, self._observers = self._observers, []
         for observer in observers:
-            observer.close()
+            observer.source_ended()  # (closes it, unless it was opened with keep_serving)
 
     # -- events -------------------------------------------------------------------------
 
@@ -115,6 +115,7 @@ class TreeWatching:
         *,
         allow_faults: bool = False,
         allow_remote: bool = False,
+        keep_serving: bool = False,
     ) -> Observer:
         """Serve a live web page of this tree at the returned observer's `url`.
 
@@ -125,8 +126,12 @@ class TreeWatching:
         events (`subscribe`) and reads each registrar's catalog in the registrar's own
         process (`run_in`), at most twice a second. The server runs on a
         thread of its own in this process (uvicorn); the observer is closed with the
-        supervisor (`stop`) or by its `close()`. May be called before `start` (the page
-        then sees the children start) but not after `stop`.
+        supervisor (`stop`), unless `keep_serving`, or by its `close()`. May be called
+        before `start` (the page then sees the children start) but not after `stop`.
+
+        Every request to the page must carry the token of its `url` (`?token=...`):
+        the page shows every catalog, request values included, so only whoever has
+        the URL sees it. At most 32 pages are open at once.
 
         Args:
             host: the address to listen on. A loopback address (the default) keeps the
@@ -141,6 +146,9 @@ class TreeWatching:
                 every catalog (requests and responses as `repr`s), and with
                 `allow_faults` whoever has the URL can kill managers. Nothing from the
                 browser is ever unpickled.
+            keep_serving: after the supervisor stops, keep serving its final state
+                (the page says it ended) until the observer's `close()`, so that it
+                can be discussed (`rr-actors demo --observe --linger`).
 
         Returns:
             The open [`Observer`][rr_actors.observe.Observer] (`url`, `close()`).
@@ -161,6 +169,7 @@ class TreeWatching:
             port=port,
             allow_faults=allow_faults,
             allow_remote=allow_remote,
+            keep_serving=keep_serving,
         )
         self._observers.append(observer)
         return observer
