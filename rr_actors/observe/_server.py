@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import html
 import json
 import secrets
 import socket
@@ -169,6 +170,23 @@ def _static(name: str) -> str:
     return resources.files("rr_actors.observe").joinpath("static", name).read_text("utf-8")
 
 
+def _index(hello: dict[str, Any]) -> str:
+    """index.html as its first paint should look for this observer (before any data)."""
+    offline = hello.get("mode") == "backups"
+    fields = {
+        "mode": str(hello.get("mode", "live")),
+        "title": str(hello.get("title", "")),
+        "badge": "offline" if offline else "connecting",
+        "badge_class": "still" if offline else "down",
+        "tree_heading": "Backups (read-only)" if offline else "Supervision tree",
+        "waiting": "Reading the backups…" if offline else "Waiting for the tree…",
+    }
+    page = _static("index.html")
+    for name, value in fields.items():
+        page = page.replace("{{" + name + "}}", html.escape(value))
+    return page
+
+
 def build_app(
     hub: Hub,
     *,
@@ -188,7 +206,7 @@ def build_app(
         hosts: the accepted names in the `Host` header (without a port).
         cookie: the name of the cookie that keeps the token for the page's requests.
     """
-    index = _static("index.html")
+    index = _index(hello)
     static = StaticFiles(directory=str(resources.files("rr_actors.observe").joinpath("static")))
 
     def state() -> dict[str, Any]:
