@@ -136,11 +136,15 @@ class Stream:
             headers={"Accept": "text/event-stream", "X-RR-Token": token(url)},
         )
         self.response = self.conn.getresponse()
+        if self.response.status != 200:
+            self.response.read()
+            self.conn.close()
         assert 200 == self.response.status
         self.sections: dict[str, Any] = {}
         self.versions: dict[str, int] = {}
         self.events: list[dict[str, Any]] = []
         self.patches = 0
+        self.largest_patch = 0
 
     def next(self) -> tuple[str, Any]:
         """The next message: `(event name, parsed data)` (keep-alive comments skipped).
@@ -165,6 +169,7 @@ class Stream:
                         self.sections[key] = apply(self.sections.get(key), value["patch"])
                         self.versions[key] = value["version"]
                         self.patches += 1
+                        self.largest_patch = max(self.largest_patch, len(data[0]))
                     elif name == "events":
                         self.events.extend(value["events"])
                     return name, value

@@ -30,15 +30,19 @@ __all__ = ["apply", "diff"]
 _KEYS = ("id", "query_id", "name")
 
 
-def _row_key(rows: list[Any]) -> str | None:
-    """The field that identifies each row of `rows` (`None`: they are not rows with ids)."""
-    if not rows or not all(isinstance(r, dict) for r in rows):
+def _row_key(old: list[Any], new: list[Any]) -> str | None:
+    """The field that identifies each row of both lists (`None`: they are not rows with ids)."""
+    if not (old or new) or not all(isinstance(r, dict) for r in (*old, *new)):
         return None
     for key in _KEYS:
-        ids = [r.get(key) for r in rows]
-        if all(isinstance(i, str) for i in ids) and len(set(ids)) == len(ids):
+        if all(_unique_ids(rows, key) for rows in (old, new)):
             return key
     return None
+
+
+def _unique_ids(rows: list[dict[str, Any]], key: str) -> bool:
+    ids = [r.get(key) for r in rows]
+    return all(isinstance(i, str) for i in ids) and len(set(ids)) == len(ids)
 
 
 def diff(old: Any, new: Any) -> dict[str, Any] | None:
@@ -56,7 +60,7 @@ def diff(old: Any, new: Any) -> dict[str, Any] | None:
                     changed[key] = patch
         return {"d": changed, "x": [k for k in old if k not in new]}
     if isinstance(old, list) and isinstance(new, list):
-        key = _row_key(old + new)
+        key = _row_key(old, new)
         if key is not None:
             return _diff_rows(old, new, key)
     return {"v": new}

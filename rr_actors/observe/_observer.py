@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import ipaddress
+import logging
 import os
 import secrets
 import socket
@@ -37,6 +38,8 @@ if TYPE_CHECKING:
     from rr_actors.observe._server import Server
 
 __all__ = ["START_TIMEOUT", "Observer", "observe_backups", "observe_supervisor"]
+
+logger = logging.getLogger("rr_actors")
 
 START_TIMEOUT = 10.0
 """Seconds the web server may take to start serving."""
@@ -206,6 +209,12 @@ class Observer:
             if self._closed:
                 return
         self._source.close(5.0)
+        if isinstance(self._source, LiveSource):  # its final state: the tree stopped
+            try:
+                tree, _ = self._source.snapshot()
+                self._hub.put("tree", tree)
+            except Exception:  # noqa: BLE001 - the page keeps what it had
+                logger.exception("observer: reading the final state failed")
         self._hub.put("ended", {"at": time.time()})
 
     def close(self, *, timeout: float = 5.0) -> None:

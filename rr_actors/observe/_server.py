@@ -49,6 +49,7 @@ from urllib.parse import parse_qs
 import anyio.to_thread
 import uvicorn
 from sse_starlette import EventSourceResponse
+from sse_starlette.sse import SendTimeoutError
 from starlette.applications import Starlette
 from starlette.requests import Request
 from starlette.responses import HTMLResponse, JSONResponse, Response
@@ -78,6 +79,12 @@ SEND_TIMEOUT = 5.0
 
 ABORT_AFTER = 5.0
 """Seconds a closed connection may keep unsent bytes for a peer that does not read."""
+
+SEND_BUFFER = 256 * 1024
+"""Bytes of a connection's kernel send buffer (fixed: not grown for a peer that never reads)."""
+
+_CONNECTIONS: dict[tuple[int, str, int], asyncio.Transport] = {}
+"""(local port, peer host, peer port) -> the transport: what a stream aborts when it times out."""
 
 Scope = MutableMapping[str, Any]
 ASGIApp = Callable[[Scope, Any, Any], Awaitable[None]]
@@ -297,6 +304,14 @@ class _CountedStream(EventSourceResponse):
     async def __call__(self, scope: Scope, receive: Any, send: Any) -> None:
         try:
             await super().__call__(scope, receive, send)
+        except SendTimeoutError:  # its client takes nothing: its connection goes, unsent bytes too
+            server, client = scope.get("server"), scope.get("client")
+            if server and client:
+                transport = _CONNECTIONS.get((server[1], client[0], client[1]))
+                if transport is not None:
+                    transport.abort()
+                    for _ in range(3):  # (its connection_lost runs: uvicorn sees a disconnect)
+                        await asyncio.sleep(0)
         finally:
             self._hub.close_stream()
 
@@ -375,15 +390,29 @@ class _Protocol(H11Protocol):
     (A private extension point of uvicorn, used only here: `Config(http=<class>)`.)
     A connection that sends no request is closed after the keep-alive timeout, as
     an idle keep-alive connection is; a closed one whose peer does not read is
-    aborted (`_Transport`).
+    aborted (`_Transport`); its kernel send buffer is `SEND_BUFFER` bytes, so that a
+    peer that does not read makes a stream's send wait (and time out) soon.
     """
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)  # noqa: S101 - (TCP only)
+        sock = transport.get_extra_info("socket")
+        with contextlib.suppress(OSError, AttributeError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
+        self._key: tuple[int, str, int] | None = None
+        with contextlib.suppress(TypeError, IndexError):
+            local, peer = transport.get_extra_info("sockname"), transport.get_extra_info("peername")
+            self._key = (local[1], str(peer[0]), peer[1])
+            _CONNECTIONS[self._key] = transport
         super().connection_made(_Transport(transport, self.loop))  # type: ignore[arg-type]
         self.timeout_keep_alive_task = self.loop.call_later(
             self.timeout_keep_alive, self.timeout_keep_alive_handler
         )
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self._key is not None:
+            _CONNECTIONS.pop(self._key, None)
+        super().connection_lost(exc)
 
 
 class _Uvicorn(uvicorn.Server):
