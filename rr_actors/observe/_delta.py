@@ -71,9 +71,9 @@ def _diff_rows(old: list[Any], new: list[Any], key: str) -> dict[str, Any]:
     after = {r[key]: r for r in new}
     changed = {}
     for ident, row in after.items():
-        patch = {"v": row} if ident not in before else diff(before[ident], row)
-        if patch is not None:
-            changed[ident] = patch
+        change = {"v": row} if ident not in before else diff(before[ident], row)
+        if change is not None:
+            changed[ident] = change
     removed = [i for i in before if i not in after]
     order = [i for i in before if i in after] + [i for i in after if i not in before]
     patch: dict[str, Any] = {"l": changed, "k": key, "x": removed}

@@ -12,11 +12,13 @@ since, so a slow page skips intermediate values instead of queueing them: what a
 costs is bounded whatever happens. What a stream sends is encoded here once and shared
 by every page (`messages`): a page that has the previous version gets the change as a
 patch (`_delta.diff`), any other page the whole value; neither is encoded per page.
-At most `MAX_STREAMS` streams are open at once (`open_stream`). Events are kept in a ring of the last `RING` events,
-each with a sequence number; a page that fell further behind is told how many it missed.
-An event is turned into its JSON-able dict (`convert`) only when a page first asks for
-it, and a page gets at most `BATCH` events at a time: with no page open, keeping an
-event costs an append, and a flood of events costs a page a bounded amount.
+At most `MAX_STREAMS` streams are open at once (`open_stream`).
+
+Events are kept in a ring of the last `RING` events, each with a sequence number; a
+page that fell further behind is told how many it missed. An event is turned into its
+JSON-able dict (`convert`) and its JSON only when a page first asks for it, and a page
+gets at most `BATCH` events at a time: with no page open, keeping an event costs an
+append, and a flood of events costs a page a bounded amount.
 """
 
 from __future__ import annotations

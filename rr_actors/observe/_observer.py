@@ -213,7 +213,7 @@ class Observer:
             try:
                 tree, _ = self._source.snapshot()
                 self._hub.put("tree", tree)
-            except Exception:  # noqa: BLE001 - the page keeps what it had
+            except Exception:
                 logger.exception("observer: reading the final state failed")
         self._hub.put("ended", {"at": time.time()})
 

@@ -233,7 +233,9 @@ def build_app(
     async def stream(request: Request) -> Response:
         if not hub.open_stream():
             return _refuse(f"too many pages open (at most {MAX_STREAMS}): close one", 503)
-        return _CountedStream(hub, _stream(hub, hello, request), ping=PING, send_timeout=SEND_TIMEOUT)
+        return _CountedStream(
+            hub, _stream(hub, hello, request), ping=PING, send_timeout=SEND_TIMEOUT
+        )
 
     async def fault(request: Request) -> Response:  # noqa: PLR0911 - one answer per check
         if faults is None:
@@ -395,7 +397,7 @@ class _Protocol(H11Protocol):
     """
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)  # noqa: S101 - (TCP only)
+        assert isinstance(transport, asyncio.Transport)
         sock = transport.get_extra_info("socket")
         with contextlib.suppress(OSError, AttributeError):
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)

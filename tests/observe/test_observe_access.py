@@ -46,9 +46,7 @@ def _items(n: int) -> list[str]:
 
 
 @pytest.mark.parametrize(("method", "path"), ROUTES)
-def test_every_route_without_the_token_is_401(
-    tree: rr.Supervisor, method: str, path: str
-) -> None:
+def test_every_route_without_the_token_is_401(tree: rr.Supervisor, method: str, path: str) -> None:
     observer = tree.observe(allow_faults=True)
 
     status, _, body = request(observer.url, path, method=method, with_token=False)
@@ -58,9 +56,7 @@ def test_every_route_without_the_token_is_401(
 
 
 @pytest.mark.parametrize(("method", "path"), ROUTES)
-def test_every_route_with_a_wrong_token_is_403(
-    tree: rr.Supervisor, method: str, path: str
-) -> None:
+def test_every_route_with_a_wrong_token_is_403(tree: rr.Supervisor, method: str, path: str) -> None:
     observer = tree.observe(allow_faults=True)
 
     status, _, _ = request(

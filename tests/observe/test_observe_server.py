@@ -219,7 +219,9 @@ def test_allow_remote_binds_another_address_on_purpose(tree: rr.Supervisor) -> N
     observer = tree.observe(host="0.0.0.0", allow_remote=True)  # noqa: S104 - on purpose
 
     status, _, _ = request(
-        f"http://127.0.0.1:{observer.port}/", "/api/state", headers={"X-RR-Token": token(observer.url)}
+        f"http://127.0.0.1:{observer.port}/",
+        "/api/state",
+        headers={"X-RR-Token": token(observer.url)},
     )
 
     assert 200 == status
