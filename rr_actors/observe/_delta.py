@@ -11,11 +11,11 @@ A patch is a JSON object with exactly one of these keys:
 - `{"v": value}`: the value is replaced whole;
 - `{"d": {key: patch, ...}, "x": [key, ...]}`: a dict whose keys in `d` changed (each
   by its own patch; a new key's patch is `{"v": ...}`) and whose keys in `x` went;
-- `{"l": {id: patch, ...}, "k": field, "x": [id, ...], "o": [id, ...]}`: a list of rows
-  that each carry a unique id in `field` (`"id"`, `"query_id"` or `"name"`, the first
-  that every row has): rows changed or added by id, rows removed, and the new order of
-  the ids (`"o"` only when it is not the old order with the removals and the additions
-  at the end).
+- `{"l": {id: patch, ...}, "k": field, "x": [id, ...], "i": [[index, id], ...]}`: a list
+  of rows that each carry a unique id in `field` (`"id"`, `"query_id"` or `"name"`, the
+  first that every row has): rows changed or added by id, rows removed, and where the
+  added rows go (`"i"`, ascending indexes in the new list; the kept rows keep their
+  order). When the kept rows were reordered, `"o"` gives the whole new order instead.
 
 So a catalog of 10,000 resources in which one consumer was added costs the page a few
 hundred bytes, not the whole catalog again.
@@ -75,9 +75,10 @@ def _diff_rows(old: list[Any], new: list[Any], key: str) -> dict[str, Any]:
         if change is not None:
             changed[ident] = change
     removed = [i for i in before if i not in after]
-    order = [i for i in before if i in after] + [i for i in after if i not in before]
     patch: dict[str, Any] = {"l": changed, "k": key, "x": removed}
-    if order != list(after):
+    if [i for i in before if i in after] == [i for i in after if i in before]:
+        patch["i"] = [[index, i] for index, i in enumerate(after) if i not in before]
+    else:
         patch["o"] = list(after)
     return patch
 
@@ -95,7 +96,12 @@ def apply(value: Any, patch: dict[str, Any]) -> Any:
     rows = {r[key]: r for r in value}
     for ident in patch["x"]:
         rows.pop(ident, None)
+    order = list(rows)
     for ident, sub in patch["l"].items():
         rows[ident] = apply(rows.get(ident), sub)
-    order = patch["o"] if "o" in patch else list(rows)
+    if "o" in patch:
+        order = patch["o"]
+    else:
+        for index, ident in patch["i"]:
+            order.insert(index, ident)
     return [rows[i] for i in order]

@@ -60,7 +60,20 @@ def test_a_removed_row_goes_by_its_id_and_the_order_is_kept() -> None:
 
     patch = diff(old, new)
 
-    assert {"d": {"resources": {"l": {}, "k": "id", "x": ["r1"]}}, "x": []} == patch
+    assert {"d": {"resources": {"l": {}, "k": "id", "x": ["r1"], "i": []}}, "x": []} == patch
+
+
+def test_a_row_added_in_the_middle_goes_with_its_place_not_the_whole_order() -> None:
+    old = _catalog(1000)
+    new = {**old, "resources": [*old["resources"][:500], {"id": "new"}, *old["resources"][500:]]}
+
+    patch = diff(old, new)
+
+    assert patch is not None
+    assert {"l": {"new": {"v": {"id": "new"}}}, "k": "id", "x": [], "i": [[500, "new"]]} == (
+        patch["d"]["resources"]
+    )
+    assert new == apply(old, patch)
 
 
 def test_equal_values_need_no_patch() -> None:

@@ -119,7 +119,7 @@
   }
 
   // A patch (observe/_delta.py): {v} replaces; {d, x} changes and removes keys of a dict;
-  // {l, k, x, o} changes, removes and orders the rows of a list by their field k.
+  // {l, k, x, i | o} changes, removes, inserts (or reorders) the rows of a list by their field k.
   function applyPatch(value, patch) {
     if ("v" in patch) return patch.v;
     if ("d" in patch) {
@@ -130,8 +130,10 @@
     }
     const rows = new Map(value.map((row) => [row[patch.k], row]));
     for (const id of patch.x) rows.delete(id);
+    let order = [...rows.keys()];
     for (const [id, sub] of Object.entries(patch.l)) rows.set(id, applyPatch(rows.get(id), sub));
-    const order = patch.o || [...rows.keys()];
+    if (patch.o) order = patch.o;
+    else for (const [index, id] of patch.i) order.splice(index, 0, id);
     return order.map((id) => rows.get(id));
   }
 
