@@ -211,19 +211,22 @@ class Hub:
         return out, last_seq
 
     def _encoded(self, key: str, section: _Section, *, patch: bool) -> bytes:
-        """Section `key` as its whole value, or as the patch from the version before."""
+        """Section `key` as its whole value, or as the patch from the version before.
+
+        Each is encoded when a page first needs it: while every page keeps up, the
+        whole value of a changed section is never encoded at all.
+        """
+        if patch:
+            if section.patch is None:
+                change = diff(section.old, section.value)
+                data = {"key": key, "version": section.version, "patch": change}
+                section.patch = sse("patch", json.dumps(data))
+                section.old = None  # (the patch is made: the old value is not needed any more)
+            return section.patch
         if section.full is None:
             data = {"key": key, "version": section.version, "value": section.value}
             section.full = sse("section", json.dumps(data))
-        if not patch:
-            return section.full
-        if section.patch is None:
-            change = diff(section.old, section.value)
-            data = {"key": key, "version": section.version, "patch": change}
-            encoded = sse("patch", json.dumps(data))
-            section.patch = encoded if len(encoded) < len(section.full) else section.full
-            section.old = None  # (the patch is made: the old value is not needed any more)
-        return section.patch
+        return section.full
 
     def listen(self, listener: Callable[[], None]) -> Callable[[], None]:
         """Call `listener()` (on the changing thread; it must not block) after each change.
