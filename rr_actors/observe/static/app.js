@@ -96,8 +96,10 @@
     });
     source.addEventListener("patch", (e) => {
       const { key, patch } = JSON.parse(e.data);
-      state.sections[key] = applyPatch(state.sections[key], patch);
-      if (key === "tree") state.offset = state.sections.tree.server_time - Date.now() / 1000;
+      const value = applyPatch(state.sections[key], patch);
+      if (value === null) delete state.sections[key];
+      else state.sections[key] = value;
+      if (key === "tree" && value) state.offset = state.sections.tree.server_time - Date.now() / 1000;
       schedule(key.startsWith("catalog/") ? "catalogs" : key);
     });
     source.addEventListener("events", (e) => {
@@ -178,7 +180,7 @@
     if (!state.hello) return;
     if (dirty.has("ended")) {
       setConnection(false);
-      renderTree(); // (the buttons go: there is nothing left to kill)
+      dirty.add("tree").add("catalogs"); // (the buttons go: there is nothing left to kill)
     }
     if (dirty.has("clock") || dirty.has("ended")) renderClock();
     if (dirty.has("tree") || dirty.has("files")) renderTree(); // at once: restarts show fast
@@ -492,7 +494,7 @@
 
   function resourceItem(section, resource, deps) {
     const fatal =
-      state.hello.faults && section.available && section.kind.endsWith("manager") && resource.consumers.length
+      state.hello.faults && !state.sections.ended && section.available && section.kind.endsWith("manager") && resource.consumers.length
         ? el("button", {
             class: "danger",
             "data-fault": "fatal",
