@@ -140,8 +140,8 @@ class TreeWatching:
             allow_faults: teaching mode: buttons on the page SIGKILL a process manager,
                 SIGSTOP it (a hang; its heartbeat makes the supervisor kill and restart
                 it, or a resume button sends SIGCONT) and send FATAL on a resource, each
-                after a confirmation. The `url` then carries a token (`#token=...`)
-                that the buttons must send back: share it only with whom may use them.
+                after a confirmation. The buttons send the `url`'s token back:
+                share the URL only with whom may use them.
             allow_remote: allow a `host` that other machines can reach. They then see
                 every catalog (requests and responses as `repr`s), and with
                 `allow_faults` whoever has the URL can kill managers. Nothing from the
