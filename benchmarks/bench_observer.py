@@ -459,14 +459,11 @@ def first_paint_bytes(page: Any, n: int) -> int:
     while True:
         raw = page.response.readline()
         total += len(raw)
-        if raw in (b"\n", b"\r\n") and "graph" in page.sections:
-            section = page.sections.get("catalog/erm")
-            if section and len(section["catalog"]["resources"]) == n:
-                return total
         if raw.startswith(b"data:"):
-            page.response.readline()  # (the blank line ending it)
-            total += 1
             parse(page, raw)
+            section = page.sections.get("catalog/erm")
+            if "graph" in page.sections and section and len(section["catalog"]["resources"]) == n:
+                return total + len(page.response.readline())  # (and the line that ends it)
 
 
 def parse(page: Any, raw: bytes) -> None:
