@@ -454,16 +454,27 @@ def wait_until(url: str, predicate: Any, timeout: float = 60.0) -> None:
 
 
 def first_paint_bytes(page: Any, n: int) -> int:
-    """Bytes a new page reads until it holds the catalog of `n` resources and the graph."""
+    """Bytes a new page reads until it holds the catalogs of `n` resources and the graph."""
     total = 0
     while True:
         raw = page.response.readline()
         total += len(raw)
         if raw.startswith(b"data:"):
             parse(page, raw)
-            section = page.sections.get("catalog/erm")
-            if "graph" in page.sections and section and len(section["catalog"]["resources"]) == n:
+            if painted(page.sections, n):
                 return total + len(page.response.readline())  # (and the line that ends it)
+
+
+def painted(sections: dict[str, Any], n: int) -> bool:
+    """Whether a page holds both catalogs (`n` resources, `n` client records) and the graph."""
+    erm, bench = sections.get("catalog/erm"), sections.get("catalog/bench")
+    return bool(
+        erm
+        and bench
+        and len(erm["catalog"]["resources"]) == n
+        and len(bench["catalog"]["clients"]) == n
+        and len(sections.get("graph", {}).get("edges", ())) == n
+    )
 
 
 def parse(page: Any, raw: bytes) -> None:
