@@ -455,14 +455,21 @@ def wait_until(url: str, predicate: Any, timeout: float = 60.0) -> None:
 
 def first_paint_bytes(page: Any, n: int) -> int:
     """Bytes a new page reads until it holds the catalogs of `n` resources and the graph."""
-    total = 0
-    while True:
-        raw = page.response.readline()
-        total += len(raw)
-        if raw.startswith(b"data:"):
-            parse(page, raw)
-            if painted(page.sections, n):
-                return total + len(page.response.readline())  # (and the line that ends it)
+    got = [0]
+    readline = page.response.readline
+
+    def counted() -> bytes:
+        line: bytes = readline()
+        got[0] += len(line)
+        return line
+
+    page.response.readline = counted
+    try:
+        while not painted(page.sections, n):
+            page.next()  # (sections, and patches applied)
+    finally:
+        page.response.readline = readline
+    return got[0]
 
 
 def painted(sections: dict[str, Any], n: int) -> bool:
@@ -475,14 +482,6 @@ def painted(sections: dict[str, Any], n: int) -> bool:
         and len(bench["catalog"]["clients"]) == n
         and len(sections.get("graph", {}).get("edges", ())) == n
     )
-
-
-def parse(page: Any, raw: bytes) -> None:
-    import json  # noqa: PLC0415
-
-    value = json.loads(raw[5:])
-    if "value" in value:
-        page.sections[value["key"]] = value["value"]
 
 
 def read_on(page: Any, got: list[int]) -> None:
