@@ -465,7 +465,7 @@ def first_paint_bytes(page: Any, n: int) -> int:
 
     page.response.readline = counted
     try:
-        while not painted(page.sections, n):
+        while not (painted(page.sections, n) and page.events):  # (the recent events too)
             page.next()  # (sections, and patches applied)
     finally:
         page.response.readline = readline
