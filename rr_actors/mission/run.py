@@ -365,9 +365,9 @@ def _linger(args: argparse.Namespace, observer: Observer, stream: TextIO) -> Non
     if args.linger == 0:
         return
     how = "press Ctrl-C to stop" if args.linger is None else f"for {args.linger:g} s"
-    stream.write(f"observer: the mission ended; {observer.url} shows its final state ({how})\n")
-    stream.flush()
-    with contextlib.suppress(KeyboardInterrupt):
+    with contextlib.suppress(KeyboardInterrupt):  # (a Ctrl-C right after the line is caught too)
+        stream.write(f"observer: the mission ended; {observer.url} shows its final state ({how})\n")
+        stream.flush()
         threading.Event().wait(args.linger)
 
 
