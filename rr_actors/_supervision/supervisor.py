@@ -245,6 +245,7 @@ class Supervisor(TreeWatching):
         self._registrars.clear()
         if self._tree.spares is not None:
             self._tree.spares.close()  # no new spare while the children stop
+        self._last_look()  # a page kept after the stop shows the catalogs as they end
         self._node.stop(deadline=deadline)
         self._stopped = True
         self._release()

@@ -43,6 +43,12 @@ class TreeWatching:
         """This supervisor's name."""
         return self._spec.name
 
+    def _last_look(self) -> None:
+        """Observers that outlive the tree read its catalogs once more, before it stops."""
+        for observer in self._observers:
+            if observer.keep_serving:
+                observer.refresh()
+
     def _close_observers(self) -> None:
         observers, self._observers = self._observers, []
         for observer in observers:

@@ -195,6 +195,14 @@ class Observer:
         """
         self._hub.put("clock", {"origin": origin, "label": label})
 
+    def refresh(self) -> None:
+        """Read every catalog now, on the calling thread (a live tree only; errors logged)."""
+        if isinstance(self._source, LiveSource) and not self._closed:
+            try:
+                self._source.snapshot()
+            except Exception:
+                logger.exception("observer: reading the catalogs failed")
+
     def source_ended(self) -> None:
         """What it shows will not change any more (its supervisor stopped).
 

@@ -286,5 +286,6 @@ def test_keep_serving_shows_the_final_state_after_the_stop_until_closed(
     observer.close()
 
     assert "stopped" == state["sections"]["tree"]["state"]
+    assert 0 == _resources(state, "cm")  # the action's stop released it: the final state
     with pytest.raises(ConnectionRefusedError):
         request(base(observer.url), "/", timeout=2.0)
