@@ -13,9 +13,14 @@ Three parts (each can be run alone with `--only`):
     memory      one mission stretched over `--soak` seconds with a page open and a WARNING
                 every 0.2 s: browser memory (its processes' RSS, the page's JS heap) and this
                 process's RSS every `--sample` seconds (flat: no growth after the warm-up)
+    page        what one open page costs per catalog size (`--resources 1000,5000`): the
+                bytes of its first paint and of one change, this process's CPU per change
+                with no page and with one stream reading, and a chromium page's time to
+                draw the catalogs and its JS heap
 
     python benchmarks/bench_observer.py                      # about 3 minutes (soak 60 s)
     python benchmarks/bench_observer.py --only memory --soak 600 --sample 60   # 10 minutes
+    python benchmarks/bench_observer.py --only page --resources 1000,2000       # a minute
 
 It needs the dev extra (playwright, psutil) and Debian's chromium (`RR_CHROMIUM` to use
 another). Prints tables; asserts nothing.
@@ -373,9 +378,146 @@ def bench_memory(soak: float, sample: float) -> None:
     print(f"mission ok: {result[0].ok if result else None}")
 
 
+# -- page ---------------------------------------------------------------------------------
+
+
+def bench_page(sizes: list[int], changes: int) -> None:
+    """One page's cost against a catalog of `n` resources (a thread manager: no IPC noise)."""
+    rows: list[tuple[Any, ...]] = []
+    me = psutil.Process()
+    with browser() as (context, _):
+        for n in sizes:
+            sup = rr.Supervisor([rr.ManagerSpec("erm", erm_setup, isolation="thread")])
+            with sup:
+                observer = sup.observe()
+                app = sup.registrar("bench")
+                held = [app.call("erm", "camera", f"/dev/video{i}") for i in range(n)]
+
+                def shown(state: Any, n: int = n) -> bool:
+                    section = state["sections"].get("catalog/erm")
+                    return bool(section and len(section["catalog"]["resources"]) == n)
+
+                wait_until(observer.url, shown)
+                cpu_none = cpu_per_change(me, app, changes)
+                with stream(observer.url) as page:
+                    first = first_paint_bytes(page, n)
+                    got = [0]
+                    reader = threading.Thread(target=read_on, args=(page, got), daemon=True)
+                    reader.start()
+                    cpu_page = cpu_per_change(me, app, changes)
+                    per_change = got[0] / changes
+                tab = context.new_page()
+                start = time.perf_counter()
+                tab.goto(observer.url)
+                tab.wait_for_selector('#catalogs [data-registrar="erm"] .resource', timeout=120_000)
+                drawn = time.perf_counter() - start
+                heap = tab.evaluate(
+                    "() => performance.memory ? performance.memory.usedJSHeapSize : 0"
+                )
+                tab.close()
+                for query in held:
+                    app.unload(query.id)
+            rows.append(
+                (
+                    n,
+                    f"{first / 1024:.0f}",
+                    f"{per_change / 1024:.1f}",
+                    f"{cpu_none * 1e3:.1f}",
+                    f"{cpu_page * 1e3:.1f}",
+                    f"{drawn * 1e3:.0f}",
+                    f"{heap / 2**20:.1f}",
+                )
+            )
+    table(
+        f"one open page against a catalog of n resources ({changes} changes each)",
+        (
+            "resources",
+            "first paint, KiB",
+            "stream per change, KiB",
+            "CPU per change, no page, ms",
+            "with a page, ms",
+            "chromium draws it, ms",
+            "page JS heap, MiB",
+        ),
+        rows,
+    )
+
+
+def wait_until(url: str, predicate: Any, timeout: float = 60.0) -> None:
+    from observing import get_json  # noqa: PLC0415
+
+    deadline = time.monotonic() + timeout
+    while not predicate(get_json(url, "/api/state")):
+        if time.monotonic() > deadline:
+            raise SystemExit("the observer did not show the catalog")
+        time.sleep(0.05)
+
+
+def first_paint_bytes(page: Any, n: int) -> int:
+    """Bytes a new page reads until it holds the catalogs of `n` resources and the graph."""
+    got = [0]
+    readline = page.response.readline
+
+    def counted() -> bytes:
+        line: bytes = readline()
+        got[0] += len(line)
+        return line
+
+    page.response.readline = counted
+    try:
+        while not (painted(page.sections, n) and page.events):  # (the recent events too)
+            page.next()  # (sections, and patches applied)
+    finally:
+        page.response.readline = readline
+    return got[0]
+
+
+def painted(sections: dict[str, Any], n: int) -> bool:
+    """Whether a page holds both catalogs (`n` resources, `n` client records) and the graph."""
+    erm, bench = sections.get("catalog/erm"), sections.get("catalog/bench")
+    return bool(
+        erm
+        and bench
+        and len(erm["catalog"]["resources"]) == n
+        and len(bench["catalog"]["clients"]) == n
+        and len(sections.get("graph", {}).get("edges", ())) == n
+    )
+
+
+def read_on(page: Any, got: list[int]) -> None:
+    """Read the stream to its end, counting its bytes in `got[0]`."""
+    with contextlib.suppress(Exception):
+        while line := page.response.readline():
+            got[0] += len(line)
+
+
+def cpu_per_change(me: Any, app: rr.ResourceRegistrar, changes: int) -> float:
+    """This process's CPU seconds per change of the catalog (a load, then its unload, each
+    after the observer's catalog interval: the page gets every one), the observer's own
+    catalog reads included."""
+    before = sum(me.cpu_times()[:2])
+    held = None
+    for i in range(changes):
+        if held is None:
+            held = app.call("erm", "camera", f"change-{i}")
+        else:
+            app.unload(held.id)
+            held = None
+        time.sleep(0.6)
+    if held is not None:
+        app.unload(held.id)
+    return (sum(me.cpu_times()[:2]) - before) / changes
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", choices=("restart", "overhead", "stops", "memory"), default=None)
+    parser.add_argument(
+        "--only", choices=("restart", "overhead", "stops", "memory", "page"), default=None
+    )
+    parser.add_argument(
+        "--resources", default="1000,5000", help="catalog sizes of the page part, comma-separated"
+    )
+    parser.add_argument("--changes", type=int, default=30, help="changes per size (page part)")
     parser.add_argument("--kills", type=int, default=20)
     parser.add_argument(
         "--settle", type=float, default=1.0, help="seconds between a restart and the next kill"
@@ -395,6 +537,8 @@ def main() -> None:
         bench_mission_stops(args.missions)
     if args.only in (None, "memory"):
         bench_memory(args.soak, args.sample)
+    if args.only in (None, "page"):
+        bench_page([int(n) for n in args.resources.split(",")], args.changes)
 
 
 if __name__ == "__main__":

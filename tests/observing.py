@@ -22,6 +22,8 @@ from typing import Any
 
 import pytest
 
+from rr_actors.observe._delta import apply
+
 CHROMIUM = os.environ.get("RR_CHROMIUM", "/usr/bin/chromium")
 """The browser the browser tests drive (Debian's chromium; `.ci/run` installs it)."""
 
@@ -39,13 +41,13 @@ CHROMIUM_ARGS = [
 
 
 def base(url: str) -> str:
-    """The observer's URL without its `#token=...`."""
-    return url.split("#", 1)[0]
+    """The observer's URL without its `?token=...`."""
+    return url.split("?", 1)[0]
 
 
 def token(url: str) -> str:
-    """The token in an observer's URL."""
-    return urllib.parse.parse_qs(urllib.parse.urlsplit(url).fragment)["token"][0]
+    """The token in an observer's URL (`?token=...`)."""
+    return urllib.parse.parse_qs(urllib.parse.urlsplit(url).query)["token"][0]
 
 
 def request(
@@ -56,12 +58,17 @@ def request(
     body: bytes | None = None,
     headers: dict[str, str] | None = None,
     timeout: float = 10.0,
+    with_token: bool = True,
 ) -> tuple[int, dict[str, str], bytes]:
-    """One request to the observer at `url`; `(status, headers, body)`."""
+    """One request to the observer at `url` (with its token, as the page's cookie does, unless
+    `with_token` is false); `(status, headers, body)`."""
     parts = urllib.parse.urlsplit(url)
     conn = http.client.HTTPConnection(parts.hostname, parts.port, timeout=timeout)
+    headers = dict(headers or {})
+    if with_token and "token=" in url:
+        headers.setdefault("X-RR-Token", token(url))
     try:
-        conn.request(method, path, body=body, headers=headers or {})
+        conn.request(method, path, body=body, headers=headers)
         response = conn.getresponse()
         return response.status, {k.lower(): v for k, v in response.getheaders()}, response.read()
     finally:
@@ -77,10 +84,13 @@ def get_json(url: str, path: str) -> Any:
 def post_fault(url: str, kind: str, data: Any, *, with_token: bool = True) -> tuple[int, Any]:
     """POST a fault request as the page does; `(status, answer)`."""
     headers = {"Content-Type": "application/json"}
-    if with_token:
-        headers["X-RR-Token"] = token(url)
     status, _, body = request(
-        url, f"/api/faults/{kind}", method="POST", body=json.dumps(data).encode(), headers=headers
+        url,
+        f"/api/faults/{kind}",
+        method="POST",
+        body=json.dumps(data).encode(),
+        headers=headers,
+        with_token=with_token,
     )
     return status, json.loads(body)
 
@@ -120,11 +130,21 @@ class Stream:
     def __init__(self, url: str, timeout: float = 10.0) -> None:
         parts = urllib.parse.urlsplit(url)
         self.conn = http.client.HTTPConnection(parts.hostname, parts.port, timeout=timeout)
-        self.conn.request("GET", "/api/stream", headers={"Accept": "text/event-stream"})
+        self.conn.request(
+            "GET",
+            "/api/stream",
+            headers={"Accept": "text/event-stream", "X-RR-Token": token(url)},
+        )
         self.response = self.conn.getresponse()
+        if self.response.status != 200:
+            self.response.read()
+            self.conn.close()
         assert 200 == self.response.status
         self.sections: dict[str, Any] = {}
+        self.versions: dict[str, int] = {}
         self.events: list[dict[str, Any]] = []
+        self.patches = 0
+        self.largest_patch = 0
 
     def next(self) -> tuple[str, Any]:
         """The next message: `(event name, parsed data)` (keep-alive comments skipped).
@@ -143,6 +163,13 @@ class Stream:
                     value = json.loads("\n".join(data))
                     if name == "section":
                         self.sections[value["key"]] = value["value"]
+                        self.versions[value["key"]] = value["version"]
+                    elif name == "patch":  # (as the page does: app.js applyPatch)
+                        key = value["key"]
+                        self.sections[key] = apply(self.sections.get(key), value["patch"])
+                        self.versions[key] = value["version"]
+                        self.patches += 1
+                        self.largest_patch = max(self.largest_patch, len(data[0]))
                     elif name == "events":
                         self.events.extend(value["events"])
                     return name, value

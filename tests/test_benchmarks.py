@@ -19,6 +19,7 @@ SMALLEST = {
     "bench_observer.py": [
         *("--kills", "1", "--settle", "0.1", "--calls", "5", "--rounds", "1"),
         *("--missions", "1", "--soak", "1", "--sample", "0.5"),
+        *("--resources", "10", "--changes", "2"),
     ],
     "bench_events.py": ["--rounds", "1", "--batch", "50", "--dedup-batch", "5"],
     "bench_experiments.py": [

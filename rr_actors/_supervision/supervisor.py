@@ -254,6 +254,7 @@ class Supervisor:
                 registrar.stop(timeout=left(deadline))
         self._registrars.clear()
         self._tree.processes.close_spares()  # no new spare while the children stop
+        self._watch.last_look()  # a page kept after the stop shows the catalogs as they end
         self._node.stop(deadline=deadline)
         self._stopped = True
         self._release()
@@ -547,6 +548,7 @@ class Supervisor:
         *,
         allow_faults: bool = False,
         allow_remote: bool = False,
+        keep_serving: bool = False,
     ) -> Observer:
         """Serve a live web page of this tree at the returned observer's `url`.
 
@@ -557,8 +559,12 @@ class Supervisor:
         events (`subscribe`) and reads each registrar's catalog in the registrar's own
         process (`run_in`), at most twice a second. The server runs on a
         thread of its own in this process (uvicorn); the observer is closed with the
-        supervisor (`stop`) or by its `close()`. May be called before `start` (the page
-        then sees the children start) but not after `stop`.
+        supervisor (`stop`), unless `keep_serving`, or by its `close()`. May be called
+        before `start` (the page then sees the children start) but not after `stop`.
+
+        Every request to the page must carry the token of its `url` (`?token=...`):
+        the page shows every catalog, request values included, so only whoever has
+        the URL sees it. At most 32 pages are open at once.
 
         Args:
             host: the address to listen on. A loopback address (the default) keeps the
@@ -567,12 +573,15 @@ class Supervisor:
             allow_faults: teaching mode: buttons on the page SIGKILL a process manager,
                 SIGSTOP it (a hang; its heartbeat makes the supervisor kill and restart
                 it, or a resume button sends SIGCONT) and send FATAL on a resource, each
-                after a confirmation. The `url` then carries a token (`#token=...`)
-                that the buttons must send back: share it only with whom may use them.
+                after a confirmation. The buttons send the `url`'s token back:
+                share the URL only with whom may use them.
             allow_remote: allow a `host` that other machines can reach. They then see
                 every catalog (requests and responses as `repr`s), and with
                 `allow_faults` whoever has the URL can kill managers. Nothing from the
                 browser is ever unpickled.
+            keep_serving: after the supervisor stops, keep serving its final state
+                (the page says it ended) until the observer's `close()`, so that it
+                can be discussed (`rr-actors demo --observe --linger`).
 
         Returns:
             The open [`Observer`][rr_actors.observe.Observer] (`url`, `close()`).
@@ -584,7 +593,13 @@ class Supervisor:
         """
         if self._stopped:
             raise ConfigError(f"supervisor {self.name!r} was stopped: nothing to observe")
-        return self._watch.observe(host, port, allow_faults=allow_faults, allow_remote=allow_remote)
+        return self._watch.observe(
+            host,
+            port,
+            allow_faults=allow_faults,
+            allow_remote=allow_remote,
+            keep_serving=keep_serving,
+        )
 
     def graph(self, format: str = "mermaid") -> str:
         """The tree and the dependency graph across its registrars, as text, now.

@@ -62,7 +62,9 @@ class TreeWatch:
         check_seconds("timeout", timeout)
         return self.tree.events.sync(timeout)
 
-    def observe(self, host: str, port: int, *, allow_faults: bool, allow_remote: bool) -> Observer:
+    def observe(
+        self, host: str, port: int, *, allow_faults: bool, allow_remote: bool, keep_serving: bool
+    ) -> Observer:
         """`Supervisor.observe` (once the supervisor checked it is not stopped)."""
         from rr_actors.observe._observer import observe_supervisor  # noqa: PLC0415 - an extra
 
@@ -73,6 +75,7 @@ class TreeWatch:
             port=port,
             allow_faults=allow_faults,
             allow_remote=allow_remote,
+            keep_serving=keep_serving,
         )
         self.observers.append(observer)
         return observer
@@ -85,11 +88,18 @@ class TreeWatch:
         tree, graph = LiveSource(self.sup, self.access()).snapshot()
         return render(graph, tree, format)
 
+    def last_look(self) -> None:
+        """Observers that outlive the tree read its catalogs once more, before it stops."""
+        for observer in self.observers:
+            if observer.keep_serving:
+                observer.refresh()
+
     def close_observers(self) -> None:
-        """Close every observer opened so far (the supervisor stops)."""
+        """The supervisor stopped: close every observer opened so far, but those opened
+        with `keep_serving`, which go on showing the final state until their `close()`."""
         observers, self.observers = self.observers, []
         for observer in observers:
-            observer.close()
+            observer.source_ended()
 
     def access(self) -> TreeAccess:
         """What the observer needs of this tree besides the supervisor's public methods."""

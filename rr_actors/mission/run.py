@@ -29,12 +29,15 @@ import argparse
 import contextlib
 import dataclasses
 import json
+import math
 import os
 import sys
 import tempfile
+import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import rr_actors as rr
 from rr_actors.mission.action import Mission
@@ -46,6 +49,12 @@ from rr_actors.mission.config import (
 )
 from rr_actors.mission.output import MissionOutput, Progress, make_output
 from rr_actors.mission.report import MissionReport
+
+if TYPE_CHECKING:
+    from rr_actors.observe import Observer
+
+CLOCK_SLACK = 0.05
+"""Seconds the page's mission clock may be off before it is set again (`--observe`)."""
 
 __all__ = [
     "DEFAULT_OUT",
@@ -232,6 +241,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--port", type=int, default=0, help="the observer's port (default: a free one)")
     p.add_argument(
+        "--allow-faults",
+        action="store_true",
+        help="teaching mode (with --observe): the page's buttons kill, hang and resume managers "
+        "and send FATAL, each after a confirmation",
+    )
+    p.add_argument(
+        "--linger",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="with --observe: after the mission, keep serving its final state this long "
+        "(default: until Ctrl-C; 0: stop with the mission)",
+    )
+    p.add_argument(
         "--step",
         action="store_true",
         help="classroom mode: before each fault, stop the robot, print the processes involved "
@@ -304,6 +327,7 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
         return 2
     try:
         config = config_from_args(args)
+        _check_observe_args(args)
         out = prepare_out(Path(args.out), what="--out")
     except rr.ConfigError as exc:
         _error(str(exc))
@@ -311,14 +335,15 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
     failure: str | None = None
     report: MissionReport | None = None
     output: MissionOutput = make_output(stream, quiet=args.quiet)
-    with output:
-        hooks = _hooks(args, output, stream)
+    observers: list[Observer] = []
+    with output, _closing(observers):
+        hooks = _hooks(args, output, stream, observers)
         try:
             report = run_mission(
                 config,
                 out,
                 say=output.story,
-                progress=output.progress,
+                progress=_mission_clock(output.progress, observers),
                 on_supervisor=hooks[0],
                 before_fault=hooks[1],
             )
@@ -331,14 +356,61 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
             failure = f"cannot write to {str(out)!r}: {exc}"
         else:
             output.summary(report, _files(out))
+        if observers and report is not None:
+            _linger(args, observers[0], stream)
     if failure is not None or report is None:
         _error(failure or "the mission did not report")
         return 1
     return 0 if report.ok else 1
 
 
+def _check_observe_args(args: argparse.Namespace) -> None:
+    """`--allow-faults` and `--linger` go with `--observe`; `--linger` is not negative."""
+    if not args.observe and (args.allow_faults or args.linger is not None):
+        raise rr.ConfigError("--allow-faults and --linger need --observe")
+    if args.linger is not None and not (args.linger >= 0 and math.isfinite(args.linger)):
+        raise rr.ConfigError(f"--linger must be a number of seconds >= 0, got {args.linger}")
+
+
+@contextlib.contextmanager
+def _closing(observers: list[Observer]) -> Iterator[None]:
+    """Close the observer (kept serving after its supervisor stopped) however the run ends."""
+    try:
+        yield
+    finally:
+        for observer in observers:
+            observer.close()
+
+
+def _mission_clock(
+    progress: Callable[[Progress], None], observers: list[Observer]
+) -> Callable[[Progress], None]:
+    """`progress`, and the page's clock set to the mission's (`elapsed_s` says when 0 s was)."""
+    shown = [0.0]
+
+    def tick(where: Progress) -> None:
+        progress(where)
+        origin = time.time() - where.elapsed_s
+        if observers and abs(origin - shown[0]) > CLOCK_SLACK:
+            shown[0] = origin
+            observers[0].set_clock(origin, "mission time")
+
+    return tick
+
+
+def _linger(args: argparse.Namespace, observer: Observer, stream: TextIO) -> None:
+    """Keep serving the mission's final state: `--linger` seconds, or until Ctrl-C."""
+    if args.linger == 0:
+        return
+    how = "press Ctrl-C to stop" if args.linger is None else f"for {args.linger:g} s"
+    with contextlib.suppress(KeyboardInterrupt):  # (a Ctrl-C right after the line is caught too)
+        stream.write(f"observer: the mission ended; {observer.url} shows its final state ({how})\n")
+        stream.flush()
+        threading.Event().wait(args.linger)
+
+
 def _hooks(
-    args: argparse.Namespace, output: MissionOutput, stream: TextIO
+    args: argparse.Namespace, output: MissionOutput, stream: TextIO, observers: list[Observer]
 ) -> tuple[Callable[[rr.Supervisor], object] | None, Callable[[str, list[str]], object] | None]:
     """`--observe` and `--step` as the mission's `on_supervisor` and `before_fault`."""
 
@@ -350,8 +422,13 @@ def _hooks(
             output.story(line)
 
     def observe(sup: rr.Supervisor) -> None:
-        observer = sup.observe(port=args.port)  # closed with the supervisor, at the end
-        tell(f"observer: {observer.url} (open it in a browser; it serves until the mission ends)")
+        observer = sup.observe(  # serving after the mission while it lingers; then closed
+            port=args.port, allow_faults=args.allow_faults, keep_serving=True
+        )
+        observer.set_clock(time.time(), "mission time")  # (made exact by the first progress)
+        observers.append(observer)
+        buttons = "; teaching mode: its buttons kill, hang and FATAL" if args.allow_faults else ""
+        tell(f"observer: {observer.url} (open it in a browser{buttons})")
 
     def step(fault: str, pids: list[str]) -> None:  # the clock stops meanwhile
         with output.hold():  # no progress line over the prompt

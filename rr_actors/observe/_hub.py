@@ -9,30 +9,57 @@
 A section (`"tree"`, `"graph"`, `"catalog/<registrar>"`, ...) holds one JSON-able value
 and a version; a page's stream remembers the versions it sent and asks for what changed
 since, so a slow page skips intermediate values instead of queueing them: what a page
-costs is bounded whatever happens. Events are kept in a ring of the last `RING` events,
-each with a sequence number; a page that fell further behind is told how many it missed.
-An event is turned into its JSON-able dict (`convert`) only when a page first asks for
-it, and a page gets at most `BATCH` events at a time: with no page open, keeping an
-event costs an append, and a flood of events costs a page a bounded amount.
+costs is bounded whatever happens. What a stream sends is encoded here once and shared
+by every page (`messages`): a page that has the previous version gets the change as a
+patch (`_delta.diff`), any other page the whole value; neither is encoded per page.
+At most `MAX_STREAMS` streams are open at once (`open_stream`).
+
+Events are kept in a ring of the last `RING` events, each with a sequence number; a
+page that fell further behind is told how many it missed. An event is turned into its
+JSON-able dict (`convert`) and its JSON only when a page first asks for it, and a page
+gets at most `BATCH` events at a time: with no page open, keeping an event costs an
+append, and a flood of events costs a page a bounded amount.
 """
 
 from __future__ import annotations
 
 import collections
-import contextlib
 import dataclasses
+import json
 import threading
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
-__all__ = ["BATCH", "RING", "Changes", "Hub"]
+from rr_actors.observe._delta import diff
+
+__all__ = ["BATCH", "MAX_STREAMS", "RING", "Changes", "Hub", "sse"]
 
 RING = 500
 """Events the hub keeps for pages that connect or reconnect."""
 
 BATCH = 200
 """Events a page gets at most in one look (the older ones of a burst count as missed)."""
+
+MAX_STREAMS = 32
+"""Pages (event streams) open at once; one more is refused (503) until one closes."""
+
+
+def sse(event: str, data: str) -> bytes:
+    """One server-sent event: its name and its data (one line of JSON)."""
+    return f"event: {event}\ndata: {data}\n\n".encode()
+
+
+@dataclasses.dataclass
+class _Section:
+    """A section's value and version, the one before, and their encodings (made once)."""
+
+    version: int
+    value: Any
+    before: int = 0  # the previous version (0: none)
+    old: Any = None  # its value (kept until the patch from it is made)
+    full: bytes | None = None
+    patch: bytes | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,7 +91,7 @@ class Hub:
     ) -> None:
         self.instance = uuid.uuid4().hex[:12]  # a page that reconnects to another hub resets
         self._lock = threading.Lock()
-        self._sections: dict[str, tuple[int, Any]] = {}
+        self._sections: dict[str, _Section] = {}
         self._version = 0
         self._events: collections.deque[list[Any]] = collections.deque(maxlen=ring)  # [seq, e]
         self._convert = convert or dict
@@ -82,10 +109,13 @@ class Hub:
         """
         with self._lock:
             current = self._sections.get(key)
-            if current is not None and current[1] == value:
+            if current is not None and current.value == value:
                 return False
             self._version += 1
-            self._sections[key] = (self._version, value)
+            if current is None:
+                self._sections[key] = _Section(self._version, value)
+            else:
+                self._sections[key] = _Section(self._version, value, current.version, current.value)
         self._notify()
         return True
 
@@ -97,13 +127,15 @@ class Hub:
         """The current value of section `key` (`None` if there is none)."""
         with self._lock:
             current = self._sections.get(key)
-        return None if current is None else current[1]
+        return None if current is None else current.value
 
     def keys(self, prefix: str = "") -> list[str]:
         """The keys of the sections that have a value, starting with `prefix`."""
         with self._lock:
             return [
-                k for k, (_, v) in self._sections.items() if k.startswith(prefix) and v is not None
+                k
+                for k, section in self._sections.items()
+                if k.startswith(prefix) and section.value is not None
             ]
 
     def add_event(self, event: Any) -> None:
@@ -123,21 +155,78 @@ class Hub:
         """
         with self._lock:
             sections = []
-            for key, (version, value) in self._sections.items():
-                if seen.get(key, 0) < version and (value is not None or key in seen):
-                    sections.append((key, version, value))
-                    seen[key] = version
-            entries = [e for e in self._events if e[0] > last_seq][-BATCH:] if with_events else []
-            first = entries[0][0] if entries else self._seq + 1
-            missed = max(0, first - last_seq - 1) if with_events and last_seq < self._seq else 0
-        events = []
-        for entry in entries:  # (converting twice at once, for two pages, does no harm)
-            if not isinstance(entry[1], dict):
-                converted = self._convert(entry[1])
-                converted["seq"] = entry[0]
-                entry[1] = converted
-            events.append(entry[1])
-        return Changes(sections, events, missed)
+            for key, section in self._sections.items():
+                if seen.get(key, 0) < section.version and (
+                    section.value is not None or key in seen
+                ):
+                    sections.append((key, section.version, section.value))
+                    seen[key] = section.version
+            entries, missed = self._new_events(last_seq, with_events)
+        return Changes(sections, [self._event(entry)[0] for entry in entries], missed)
+
+    def _new_events(self, last_seq: int, with_events: bool) -> tuple[list[list[Any]], int]:
+        """The ring's entries after `last_seq` (at most `BATCH`), and how many were missed."""
+        if not with_events:
+            return [], 0
+        entries = [e for e in self._events if e[0] > last_seq][-BATCH:]
+        first = entries[0][0] if entries else self._seq + 1
+        return entries, max(0, first - last_seq - 1) if last_seq < self._seq else 0
+
+    def _event(self, entry: list[Any]) -> tuple[dict[str, Any], str]:
+        """A ring entry `[seq, event]` as a dict and as JSON (each made once, then kept)."""
+        if len(entry) == 2:  # (converting twice at once, for two pages, does no harm)
+            event = entry[1]
+            if not isinstance(event, dict):
+                event = self._convert(event)
+                event["seq"] = entry[0]
+            entry[1:] = [event, json.dumps(event)]
+        return entry[1], entry[2]
+
+    def messages(
+        self, seen: dict[str, int], last_seq: int, *, with_events: bool = True
+    ) -> tuple[list[bytes], int]:
+        """What a page's stream sends next, encoded: the changed sections, then new events.
+
+        A section the page has at its previous version goes as a `patch` event, any other
+        as a `section` event; both encodings are made once and shared by every page.
+        `seen` is updated as in `changes`.
+
+        Returns:
+            The messages, and the sequence number of the last event they hold (or
+            `last_seq` when they hold none).
+        """
+        out = []
+        with self._lock:
+            for key, section in self._sections.items():
+                had = seen.get(key, 0)
+                if had >= section.version or (section.value is None and key not in seen):
+                    continue
+                out.append(self._encoded(key, section, patch=had == section.before and had > 0))
+                seen[key] = section.version
+            entries, missed = self._new_events(last_seq, with_events)
+        if entries or missed:
+            events = ",".join(self._event(entry)[1] for entry in entries)
+            out.append(sse("events", f'{{"events":[{events}],"missed":{missed}}}'))
+            last_seq = entries[-1][0] if entries else self._seq
+        return out, last_seq
+
+    def _encoded(self, key: str, section: _Section, *, patch: bool) -> bytes:
+        """Section `key` as its whole value, or as the patch from the version before.
+
+        Each is encoded when a page first needs it: while every page keeps up, the
+        whole value of a changed section is never encoded at all.
+        """
+        if patch:
+            if section.patch is None:
+                change = diff(section.old, section.value)
+                data = {"key": key, "version": section.version, "patch": change}
+                section.patch = sse("patch", json.dumps(data))
+                section.old = None  # (the patch is made: the old value is not needed any more)
+            return section.patch
+        if section.full is None:
+            data = {"key": key, "version": section.version, "value": section.value}
+            section.full = sse("section", json.dumps(data))
+        return section.full
 
     def listen(self, listener: Callable[[], None]) -> Callable[[], None]:
         """Call `listener()` (on the changing thread; it must not block) after each change.
@@ -172,17 +261,28 @@ class Hub:
         with self._streams:
             return self._streams.wait_for(lambda: self._open_streams == 0, timeout)
 
-    @contextlib.contextmanager
-    def stream(self) -> Iterator[None]:
-        """Count an open page stream while the block runs (`close` waits for them)."""
+    def open_stream(self, limit: int = MAX_STREAMS) -> bool:
+        """Count one more open page stream, unless `limit` are open (`close` waits for them).
+
+        Returns:
+            Whether it was counted; if so, `close_stream()` must follow.
+        """
         with self._streams:
+            if self._open_streams >= limit:
+                return False
             self._open_streams += 1
-        try:
-            yield
-        finally:
-            with self._streams:
-                self._open_streams -= 1
-                self._streams.notify_all()
+            return True
+
+    def close_stream(self) -> None:
+        """A stream counted by `open_stream` ended."""
+        with self._streams:
+            self._open_streams -= 1
+            self._streams.notify_all()
+
+    @property
+    def open_streams(self) -> int:
+        """How many page streams are open."""
+        return self._open_streams
 
     def _notify(self) -> None:
         with self._lock:

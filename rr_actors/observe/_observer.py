@@ -15,10 +15,12 @@ from __future__ import annotations
 import contextlib
 import errno
 import ipaddress
+import logging
 import os
 import secrets
 import socket
 import threading
+import time
 from typing import TYPE_CHECKING, Any
 
 from rr_actors.errors import ConfigError
@@ -36,6 +38,8 @@ if TYPE_CHECKING:
     from rr_actors.observe._server import Server
 
 __all__ = ["START_TIMEOUT", "Observer", "observe_backups", "observe_supervisor"]
+
+logger = logging.getLogger("rr_actors")
 
 START_TIMEOUT = 10.0
 """Seconds the web server may take to start serving."""
@@ -64,6 +68,26 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
+
+
+def allowed_hosts(host: str) -> frozenset[str]:
+    """The names a request's `Host` header may give (its port aside) for an observer on `host`.
+
+    The loopback names, `host` itself and, for a wildcard address (`0.0.0.0`, `::`), this
+    machine's host name, its fully qualified name and the addresses they resolve to.
+    Anything else is refused: a page of another site whose name resolves to this
+    machine (DNS rebinding) cannot read the page, even with `allow_remote`.
+    """
+    names = set(LOOPBACK_NAMES) | {host.lower().strip("[]")}
+    if host in ("0.0.0.0", "::", ""):  # noqa: S104 - recognising the wildcard, not binding it
+        for name in {socket.gethostname(), socket.getfqdn()}:
+            names.add(name.lower())
+            with contextlib.suppress(OSError):
+                names.update(str(info[4][0]).lower() for info in socket.getaddrinfo(name, None))
+    return frozenset(names)
 
 
 def _bind(host: str, port: int, *, allow_remote: bool) -> socket.socket:
@@ -100,12 +124,15 @@ class Observer:
     `rr-actors observe --state DIR` (backups); not constructed directly.
 
     Attributes:
-        url: the page's address (with `#token=...` when teaching mode is on: the
-            token is what the fault buttons send back; give the URL only to whom may
-            use them).
+        url: the page's address, with its token (`?token=...`): every request to the
+            observer must carry it (the page keeps it in a cookie, and the buttons
+            send it back), so whoever has the URL sees every catalog, and in
+            teaching mode may use the buttons; give it only to them.
         host: the address it listens on.
         port: the port it listens on.
         allow_faults: whether the teaching mode's buttons work.
+        keep_serving: whether the page outlives the supervisor (it then shows the
+            final state until `close()`).
     """
 
     def __init__(
@@ -118,6 +145,7 @@ class Observer:
         allow_remote: bool,
         hello: dict[str, Any],
         faults: Faults | None,
+        keep_serving: bool = False,
     ) -> None:
         require_extra()
         from rr_actors.observe import _server  # noqa: PLC0415 - the observe extra
@@ -131,21 +159,18 @@ class Observer:
         self.host = host
         self.port: int = sock.getsockname()[1]
         self.allow_faults = faults is not None
+        self.keep_serving = keep_serving
         self._token = secrets.token_urlsafe(18)
         name = f"[{host}]" if ":" in host else host
-        self.url = f"http://{name}:{self.port}/" + (
-            f"#token={self._token}" if faults is not None else ""
-        )
-        hosts = None
-        if is_loopback(host):
-            hosts = {f"{h}:{self.port}" for h in ("127.0.0.1", "localhost", "[::1]", name)}
+        self.url = f"http://{name}:{self.port}/?token={self._token}"
         try:
             app = _server.build_app(
                 hub,
                 hello={**hello, "faults": faults is not None},
                 faults=faults,
                 token=self._token,
-                hosts=hosts,
+                hosts=allowed_hosts(host),
+                cookie=f"rr-observer-{self.port}",
             )
             self._server: Server = _server.Server(app, sock, f"rr-observe-http-{self.port}")
         except BaseException:
@@ -160,6 +185,45 @@ class Observer:
     def closed(self) -> bool:
         """Whether it was closed."""
         return self._closed
+
+    def set_clock(self, origin: float, label: str = "mission time") -> None:
+        """Show times on the page also as seconds since `origin`, under `label`.
+
+        Args:
+            origin: the wall-clock time (`time.time()` seconds) of "0 s".
+            label: what that clock is called on the page.
+        """
+        self._hub.put("clock", {"origin": origin, "label": label})
+
+    def refresh(self) -> None:
+        """Read every catalog now, on the calling thread (a live tree only; errors logged)."""
+        if isinstance(self._source, LiveSource) and not self._closed:
+            try:
+                self._source.snapshot()
+            except Exception:
+                logger.exception("observer: reading the catalogs failed")
+
+    def source_ended(self) -> None:
+        """What it shows will not change any more (its supervisor stopped).
+
+        Without `keep_serving`, the observer closes. With it, the live source stops,
+        the page says the tree ended and keeps showing its final state until
+        `close()`.
+        """
+        if not self.keep_serving:
+            self.close()
+            return
+        with self._lock:
+            if self._closed:
+                return
+        self._source.close(5.0)
+        if isinstance(self._source, LiveSource):  # its final state: the tree stopped
+            try:
+                tree, _ = self._source.snapshot()
+                self._hub.put("tree", tree)
+            except Exception:
+                logger.exception("observer: reading the final state failed")
+        self._hub.put("ended", {"at": time.time()})
 
     def close(self, *, timeout: float = 5.0) -> None:
         """Stop serving: open pages show that they are disconnected. Idempotent.
@@ -197,6 +261,7 @@ def observe_supervisor(
     port: int,
     allow_faults: bool,
     allow_remote: bool,
+    keep_serving: bool = False,
 ) -> Observer:
     """Open the live page of a supervision tree (what `Supervisor.observe` does)."""
     hub = Hub(convert=event_dict)
@@ -205,9 +270,17 @@ def observe_supervisor(
         Faults(sup, access.spec, lambda name: hub.get(f"catalog/{name}")) if allow_faults else None
     )
     hello = {"mode": "live", "title": f"supervisor {sup.name}", "pid": os.getpid()}
+    hub.put("clock", {"origin": time.time(), "label": "since the observer opened"})
     try:
         return Observer(
-            source, hub, host=host, port=port, allow_remote=allow_remote, hello=hello, faults=faults
+            source,
+            hub,
+            host=host,
+            port=port,
+            allow_remote=allow_remote,
+            hello=hello,
+            faults=faults,
+            keep_serving=keep_serving,
         )
     except BaseException:
         with contextlib.suppress(Exception):

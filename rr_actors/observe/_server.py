@@ -1,47 +1,66 @@
 """The observer's web server: a Starlette app on uvicorn, in a thread of its own.
 
 ```
- browser ── GET /                 ── index.html, /static/app.js, app.css, vendor/cytoscape.min.js
+ browser ── GET /?token=T         ── index.html (sets the cookie), /static/app.js, app.css, ...
          ── GET /api/state        ── every section and the recent events, as one JSON document
-         ── GET /api/stream       ── server-sent events: "hello", then "section" and "events"
-         ── POST /api/faults/KIND ── teaching mode only: JSON in, JSON out, with the token
+         ── GET /api/stream       ── server-sent events: "hello", then "section", "patch",
+                                     "events" (encoded once in the hub, shared by every page)
+         ── POST /api/faults/KIND ── teaching mode only: JSON in, JSON out
  uvicorn thread (asyncio loop) ◄── Hub listeners (call_soon_threadsafe) ◄── source threads
 ```
 
-Everything the browser sends is JSON or a URL; nothing from it is ever unpickled. Every
-request must name this server in its `Host` header (a page of another site that
-resolves its own name to 127.0.0.1, DNS rebinding, gets 400); the fault endpoints also
-need the token of the observer's URL (`#token=...`, sent back in the `X-RR-Token`
-header) and a JSON content type, which a page of another origin cannot send without
-a CORS preflight this server never answers.
+Who gets in (the trust model, see docs/explanation/failure-semantics.md):
+
+- Every route needs the observer's token: the `?token=` of the URL it printed, an
+  `X-RR-Token` header, or the cookie the page's first answer set (`HttpOnly`,
+  `SameSite=Strict`, named after the port); none is 401, a wrong one 403. The page
+  shows every catalog, request values included, so it is as private as the backups.
+- Every request must name an allowed host in its `Host` header: the loopback names, the
+  address the observer listens on, and for a wildcard address this machine's names. A
+  page of another site that resolves its own name to this machine (DNS rebinding) gets
+  400, with or without `allow_remote`.
+- The fault endpoints also want the token in the `X-RR-Token` header (a cookie alone is
+  not enough) and a JSON content type: a page of another origin cannot send either
+  without a CORS preflight this server never answers.
+- Cost is bounded: at most `MAX_STREAMS` streams (one more gets 503); a stream whose
+  client does not take a message within `SEND_TIMEOUT` seconds is ended, and a closed
+  connection whose peer still does not read is aborted after `ABORT_AFTER` seconds (its
+  unsent bytes freed); a connection that sends no request is closed after uvicorn's
+  keep-alive timeout. Everything the browser sends is JSON or a URL; nothing from it is
+  ever unpickled.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import html
 import json
 import secrets
 import socket
 import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, MutableMapping
+from http.cookies import SimpleCookie
 from importlib import resources
 from typing import Any
+from urllib.parse import parse_qs
 
 import anyio.to_thread
 import uvicorn
-from sse_starlette import EventSourceResponse, ServerSentEvent
+from sse_starlette import EventSourceResponse
+from sse_starlette.sse import SendTimeoutError
 from starlette.applications import Starlette
 from starlette.requests import Request
 from starlette.responses import HTMLResponse, JSONResponse, Response
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
+from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from rr_actors.observe._faults import FaultRefused, Faults
-from rr_actors.observe._hub import Hub
+from rr_actors.observe._hub import MAX_STREAMS, Hub, sse
 
-__all__ = ["COALESCE", "Server", "build_app"]
+__all__ = ["ABORT_AFTER", "COALESCE", "SEND_TIMEOUT", "Server", "build_app", "host_name"]
 
 COALESCE = 0.01
 """Seconds a page's stream waits after a change, so that changes close together go as one."""
@@ -54,6 +73,18 @@ PING = 10.0
 
 MAX_BODY = 4096
 """Bytes a fault request's body may have."""
+
+SEND_TIMEOUT = 5.0
+"""Seconds a page's stream may wait for its client to take one message; then it ends."""
+
+ABORT_AFTER = 5.0
+"""Seconds a closed connection may keep unsent bytes for a peer that does not read."""
+
+SEND_BUFFER = 256 * 1024
+"""Bytes of a connection's kernel send buffer (fixed: not grown for a peer that never reads)."""
+
+_CONNECTIONS: dict[tuple[int, str, int], asyncio.Transport] = {}
+"""(local port, peer host, peer port) -> the transport: what a stream aborts when it times out."""
 
 Scope = MutableMapping[str, Any]
 ASGIApp = Callable[[Scope, Any, Any], Awaitable[None]]
@@ -71,28 +102,71 @@ _HEADERS = {
 }
 
 
-class _Guard:
-    """ASGI middleware: check the `Host` header, add the security headers."""
+def host_name(header: str) -> str:
+    """The name in a `Host` header, without its port (`[::1]:80` -> `::1`), lowercased."""
+    header = header.strip().lower()
+    if header.startswith("["):
+        return header[1:].partition("]")[0]
+    return header.rpartition(":")[0] if header.count(":") == 1 else header
 
-    def __init__(self, app: ASGIApp, hosts: set[str] | None) -> None:
+
+class _Guard:
+    """ASGI middleware: check the `Host` header and the token, add the security headers."""
+
+    def __init__(self, app: ASGIApp, hosts: frozenset[str], token: str, cookie: str) -> None:
         self.app = app
         self.hosts = hosts
+        self.token = token.encode()
+        self.cookie = cookie
+
+    def _given(self, scope: Scope) -> tuple[str | None, bool]:
+        """The token a request carries, and whether it came in the URL's query."""
+        headers = dict(scope["headers"])
+        if b"x-rr-token" in headers:
+            return headers[b"x-rr-token"].decode("latin-1"), False
+        query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
+        if "token" in query:
+            return query["token"][0], True
+        cookies = SimpleCookie()
+        try:
+            cookies.load(headers.get(b"cookie", b"").decode("latin-1"))
+        except Exception:  # noqa: BLE001 - a malformed cookie header is no token
+            return None, False
+        morsel = cookies.get(self.cookie)
+        return (morsel.value if morsel is not None else None), False
 
     async def __call__(self, scope: Scope, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        if self.hosts is not None:
-            host = dict(scope["headers"]).get(b"host", b"").decode("latin-1").lower()
-            if host not in self.hosts:
-                response = Response("unknown Host header", status_code=400)
-                await response(scope, receive, send)
-                return
+        host = dict(scope["headers"]).get(b"host", b"").decode("latin-1")
+        if host_name(host) not in self.hosts:
+            await _refuse("unknown Host header: open the URL the observer printed", 400)(
+                scope, receive, send
+            )
+            return
+        given, in_query = self._given(scope)
+        if given is None:
+            message = "this page needs its token: open the URL the observer printed (?token=...)"
+            await _refuse(message, 401)(scope, receive, send)
+            return
+        if not secrets.compare_digest(given.encode("utf-8", "replace"), self.token):
+            await _refuse("wrong token: open the URL the observer printed", 403)(
+                scope, receive, send
+            )
+            return
+        cookie = (
+            f"{self.cookie}={given}; Path=/; HttpOnly; SameSite=Strict".encode()
+            if in_query
+            else None
+        )
 
         async def secured(message: MutableMapping[str, Any]) -> None:
             if message["type"] == "http.response.start":
                 headers = list(message.get("headers", []))
                 headers.extend((k.lower().encode(), v.encode()) for k, v in _HEADERS.items())
+                if cookie is not None:  # the page's own requests carry it from now on
+                    headers.append((b"set-cookie", cookie))
                 message["headers"] = headers
             await send(message)
 
@@ -103,13 +177,31 @@ def _static(name: str) -> str:
     return resources.files("rr_actors.observe").joinpath("static", name).read_text("utf-8")
 
 
+def _index(hello: dict[str, Any]) -> str:
+    """index.html as its first paint should look for this observer (before any data)."""
+    offline = hello.get("mode") == "backups"
+    fields = {
+        "mode": str(hello.get("mode", "live")),
+        "title": str(hello.get("title", "")),
+        "badge": "offline" if offline else "connecting",
+        "badge_class": "still" if offline else "down",
+        "tree_heading": "Backups (read-only)" if offline else "Supervision tree",
+        "waiting": "Reading the backups…" if offline else "Waiting for the tree…",
+    }
+    page = _static("index.html")
+    for name, value in fields.items():
+        page = page.replace("{{" + name + "}}", html.escape(value))
+    return page
+
+
 def build_app(
     hub: Hub,
     *,
     hello: dict[str, Any],
     faults: Faults | None,
     token: str,
-    hosts: set[str] | None,
+    hosts: frozenset[str],
+    cookie: str = "rr-observer",
 ) -> ASGIApp:
     """The observer's ASGI app.
 
@@ -117,10 +209,11 @@ def build_app(
         hub: what the page shows.
         hello: the first message of every stream (mode, title, whether faults are on).
         faults: the teaching mode's faults (`None`: off; the endpoints answer 403).
-        token: what a fault request's `X-RR-Token` header must be.
-        hosts: the accepted `Host` headers (`None`: any).
+        token: what every request must carry (query, header or cookie).
+        hosts: the accepted names in the `Host` header (without a port).
+        cookie: the name of the cookie that keeps the token for the page's requests.
     """
-    index = _static("index.html")
+    index = _index(hello)
     static = StaticFiles(directory=str(resources.files("rr_actors.observe").joinpath("static")))
 
     def state() -> dict[str, Any]:
@@ -138,15 +231,19 @@ def build_app(
         return JSONResponse(state())
 
     async def stream(request: Request) -> Response:
-        return EventSourceResponse(_stream(hub, hello, request), ping=PING, send_timeout=10.0)
+        if not hub.open_stream():
+            return _refuse(f"too many pages open (at most {MAX_STREAMS}): close one", 503)
+        return _CountedStream(
+            hub, _stream(hub, hello, request), ping=PING, send_timeout=SEND_TIMEOUT
+        )
 
     async def fault(request: Request) -> Response:  # noqa: PLR0911 - one answer per check
         if faults is None:
             return _refuse(
                 "teaching mode is off: the observer was opened without allow_faults", 403
             )
-        given = request.headers.get("x-rr-token", "")
-        if not secrets.compare_digest(given.encode(), token.encode()):
+        given = request.headers.get("x-rr-token", "")  # (the header: a cookie is not enough)
+        if not secrets.compare_digest(given.encode("utf-8", "replace"), token.encode()):
             return _refuse("wrong or missing token: open the URL the observer printed", 403)
         if request.headers.get("content-type", "").split(";")[0].strip() != "application/json":
             return _refuse("a fault request is JSON (Content-Type: application/json)", 415)
@@ -176,7 +273,7 @@ def build_app(
             Mount("/static", app=static, name="static"),
         ]
     )
-    return _Guard(app, hosts)
+    return _Guard(app, hosts, token, cookie)
 
 
 def _refuse(message: str, status: int) -> Response:
@@ -199,7 +296,29 @@ def _inject(faults: Faults, kind: str, data: dict[str, Any]) -> str:
     raise FaultRefused(f"no fault {kind!r} (kill, hang, resume, fatal)", 404)
 
 
-async def _stream(hub: Hub, hello: dict[str, Any], request: Request) -> AsyncIterator[Any]:
+class _CountedStream(EventSourceResponse):
+    """A page's stream that gives its place back (`Hub.close_stream`) however it ends."""
+
+    def __init__(self, hub: Hub, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._hub = hub
+
+    async def __call__(self, scope: Scope, receive: Any, send: Any) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        except SendTimeoutError:  # its client takes nothing: its connection goes, unsent bytes too
+            server, client = scope.get("server"), scope.get("client")
+            if server and client:
+                transport = _CONNECTIONS.get((server[1], client[0], client[1]))
+                if transport is not None:
+                    transport.abort()
+                    for _ in range(3):  # (its connection_lost runs: uvicorn sees a disconnect)
+                        await asyncio.sleep(0)
+        finally:
+            self._hub.close_stream()
+
+
+async def _stream(hub: Hub, hello: dict[str, Any], request: Request) -> AsyncIterator[bytes]:
     """One page's stream: the hello, then what changed since it last looked, until closed."""
     loop = asyncio.get_running_loop()
     wake = asyncio.Event()
@@ -212,25 +331,21 @@ async def _stream(hub: Hub, hello: dict[str, Any], request: Request) -> AsyncIte
                 loop.call_soon_threadsafe(wake.set)
 
     unlisten = hub.listen(listener)
-    counted = hub.stream()
-    counted.__enter__()
     seen: dict[str, int] = {}
     last_seq = 0
     events_at = 0.0  # when the last batch of events went (loop time)
     later: asyncio.TimerHandle | None = None
     try:
-        yield ServerSentEvent(json.dumps({**hello, "instance": hub.instance}), event="hello")
+        yield sse("hello", json.dumps({**hello, "instance": hub.instance}))
         while not hub.closed:
             flagged[0] = False
             due = loop.time() - events_at >= EVENTS_EVERY
-            changes = hub.changes(seen, last_seq, with_events=due)
-            for key, _, value in changes.sections:
-                yield ServerSentEvent(json.dumps({"key": key, "value": value}), event="section")
-            if changes.events or changes.missed:
+            before = last_seq
+            messages, last_seq = hub.messages(seen, last_seq, with_events=due)
+            for message in messages:
+                yield message
+            if last_seq != before:
                 events_at = loop.time()
-                last_seq = changes.events[-1]["seq"] if changes.events else hub.last_seq
-                data = {"events": changes.events, "missed": changes.missed}
-                yield ServerSentEvent(json.dumps(data), event="events")
             elif not due and hub.last_seq > last_seq and later is None:
                 wait = EVENTS_EVERY - (loop.time() - events_at)
                 later = loop.call_later(wait, wake.set)  # the events that wait go then
@@ -244,7 +359,62 @@ async def _stream(hub: Hub, hello: dict[str, Any], request: Request) -> AsyncIte
         if later is not None:
             later.cancel()
         unlisten()
-        counted.__exit__(None, None, None)
+
+
+class _Transport:
+    """An asyncio transport that aborts a closed connection whose peer does not read.
+
+    `transport.close()` keeps the unsent bytes until the peer takes them, which a peer
+    that never reads never does: after `ABORT_AFTER` seconds they are dropped
+    (`abort()`). Everything else is the transport's own.
+    """
+
+    def __init__(self, transport: asyncio.Transport, loop: asyncio.AbstractEventLoop) -> None:
+        self._transport = transport
+        self._loop = loop
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._transport, name)
+
+    def close(self) -> None:
+        self._transport.close()
+        if self._transport.get_write_buffer_size():
+            self._loop.call_later(ABORT_AFTER, self._abort_if_stuck)
+
+    def _abort_if_stuck(self) -> None:
+        if self._transport.get_write_buffer_size():
+            self._transport.abort()
+
+
+class _Protocol(H11Protocol):
+    """uvicorn's HTTP/1.1 protocol, with two bounds of a connection's life.
+
+    (A private extension point of uvicorn, used only here: `Config(http=<class>)`.)
+    A connection that sends no request is closed after the keep-alive timeout, as
+    an idle keep-alive connection is; a closed one whose peer does not read is
+    aborted (`_Transport`); its kernel send buffer is `SEND_BUFFER` bytes, so that a
+    peer that does not read makes a stream's send wait (and time out) soon.
+    """
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        sock = transport.get_extra_info("socket")
+        with contextlib.suppress(OSError, AttributeError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
+        self._key: tuple[int, str, int] | None = None
+        with contextlib.suppress(TypeError, IndexError):
+            local, peer = transport.get_extra_info("sockname"), transport.get_extra_info("peername")
+            self._key = (local[1], str(peer[0]), peer[1])
+            _CONNECTIONS[self._key] = transport
+        super().connection_made(_Transport(transport, self.loop))  # type: ignore[arg-type]
+        self.timeout_keep_alive_task = self.loop.call_later(
+            self.timeout_keep_alive, self.timeout_keep_alive_handler
+        )
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self._key is not None:
+            _CONNECTIONS.pop(self._key, None)
+        super().connection_lost(exc)
 
 
 class _Uvicorn(uvicorn.Server):
@@ -275,8 +445,9 @@ class Server:
             access_log=False,
             lifespan="off",
             loop="asyncio",
-            http="h11",
+            http=_Protocol,
             ws="none",
+            timeout_keep_alive=5,
             timeout_graceful_shutdown=2,
         )
         self._server = _Uvicorn(config)

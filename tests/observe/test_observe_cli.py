@@ -196,13 +196,15 @@ def test_demo_observe_prints_the_url_and_serves_for_the_whole_run(
 ) -> None:
     from rr_actors.mission import run as demo  # noqa: PLC0415
 
-    args = demo.parser().parse_args(["--fast", "--observe", "--out", str(tmp_path), "--quiet"])
+    args = demo.parser().parse_args(
+        ["--fast", "--observe", "--linger", "0", "--out", str(tmp_path), "--quiet"]
+    )
     out = io.StringIO()
     code = demo.run(args, out)
 
     assert 0 == code
     url = next(line for line in out.getvalue().splitlines() if line.startswith("observer: "))
-    with pytest.raises(ConnectionRefusedError):  # closed with the mission's supervisor
+    with pytest.raises(ConnectionRefusedError):  # --linger 0: closed with the mission
         request(url.split()[1], "/", timeout=2.0)
 
 

@@ -10,7 +10,16 @@ from typing import Any
 
 import pytest
 from observed_tree import REQUEST, erm_setup, figure_27
-from observing import child, get_json, post_fault, process_state, request, stream, wait_state
+from observing import (
+    child,
+    get_json,
+    post_fault,
+    process_state,
+    request,
+    stream,
+    token,
+    wait_state,
+)
 
 import rr_actors as rr
 from rr_actors.observe import Observer
@@ -61,7 +70,7 @@ def test_the_observer_listens_on_loopback_at_a_free_port_by_default(tree: rr.Sup
     observer = tree.observe()
 
     assert "127.0.0.1" == observer.host
-    assert observer.url == f"http://127.0.0.1:{observer.port}/"
+    assert observer.url.startswith(f"http://127.0.0.1:{observer.port}/?token=")
     assert not observer.allow_faults
 
 
@@ -209,7 +218,11 @@ def test_a_host_other_machines_reach_needs_allow_remote(tree: rr.Supervisor) -> 
 def test_allow_remote_binds_another_address_on_purpose(tree: rr.Supervisor) -> None:
     observer = tree.observe(host="0.0.0.0", allow_remote=True)  # noqa: S104 - on purpose
 
-    status, _, _ = request(f"http://127.0.0.1:{observer.port}/", "/api/state")
+    status, _, _ = request(
+        f"http://127.0.0.1:{observer.port}/",
+        "/api/state",
+        headers={"X-RR-Token": token(observer.url)},
+    )
 
     assert 200 == status
 
@@ -271,9 +284,7 @@ def test_fault_buttons_are_refused_without_teaching_mode(tree: rr.Supervisor) ->
     observer = tree.observe()
     pid = tree.child("erm").pid
 
-    status, answer = post_fault(
-        observer.url, "kill", {"child": "erm", "pid": pid}, with_token=False
-    )
+    status, answer = post_fault(observer.url, "kill", {"child": "erm", "pid": pid})
 
     assert (403, False) == (status, answer["ok"])
     assert pid == tree.child("erm").pid
@@ -287,7 +298,7 @@ def test_a_fault_without_the_token_is_refused(tree: rr.Supervisor) -> None:
         observer.url, "kill", {"child": "erm", "pid": pid}, with_token=False
     )
 
-    assert 403 == status
+    assert 401 == status
     assert "token" in answer["message"]
     assert pid == tree.child("erm").pid
 
@@ -295,7 +306,7 @@ def test_a_fault_without_the_token_is_refused(tree: rr.Supervisor) -> None:
 def test_a_fault_request_is_json_and_nothing_else_is_read(tree: rr.Supervisor) -> None:
     observer = tree.observe(allow_faults=True)
     pid = tree.child("erm").pid
-    headers = {"X-RR-Token": observer.url.split("token=")[1]}
+    headers: dict[str, str] = {}
     pickled = pickle.dumps({"child": "erm", "pid": pid})
 
     as_form = request(

@@ -1,12 +1,18 @@
 // rr_actors observer: renders what /api/stream sends (server-sent events).
 //
 //   EventSource /api/stream ── "hello" ── mode, title, teaching mode on/off, hub instance
-//                           ── "section" {key, value} ── tree | files | graph | catalog/<name>
+//                           ── "section" {key, version, value} ── tree | files | graph |
+//                                         catalog/<name> | clock | ended
+//                           ── "patch" {key, version, patch} ── what changed in a section
+//                                         (applyPatch; the server's observe/_delta.py)
 //                           ── "events" {events, missed} ── the tree's events (to_dict + text)
 //   state ──(render, once per burst of messages)──► tree, catalogs, graph (cytoscape), timeline, log
 //
+// Every request carries the page's token (the URL's ?token=; the server also sets a cookie).
 // Everything from the server is shown through textContent (never parsed as HTML). The page
-// keeps bounded state: at most MAX_EVENTS events, MAX_ROWS timeline rows, MAX_LOG log lines.
+// keeps bounded state: at most MAX_EVENTS events, MAX_ROWS timeline rows, MAX_LOG log lines;
+// a catalog shows PAGE resources per server at a time, and a graph of more than GRAPH_MAX
+// resources is drawn as registrars only (the arrows between them counted).
 "use strict";
 
 (() => {
@@ -14,6 +20,9 @@
   const MAX_ROWS = 120;
   const MAX_LOG = 200;
   const MATCH_S = 0.05; // a delivery belongs to the send at (at - latency) within this
+  const ORPHAN_S = 2; // a delivery whose send has not arrived this long after it (browser time) is shown alone
+  const PAGE = 50; // resources of a server shown at a time
+  const GRAPH_MAX = 200; // resources drawn one by one in the graph
 
   const state = {
     hello: null,
@@ -26,10 +35,11 @@
     offset: 0, // server clock - browser clock, seconds
     restarts: {}, // child -> last restart count seen (to flash a restart)
     rows: [], // timeline rows, newest last
-    orphans: [], // deliveries whose send has not arrived yet
+    orphans: [], // deliveries whose send has not arrived yet: {event, arrived}
     log: [],
+    shown: {}, // "registrar/server" -> resources shown (paging)
   };
-  const token = (/(?:^|[#&])token=([^&]+)/.exec(location.hash) || [])[1] || "";
+  const token = (/(?:^|[?#&])token=([^&#]+)/.exec(location.search + location.hash) || [])[1] || "";
 
   // -- small DOM helpers ---------------------------------------------------------------
   function el(tag, props, ...children) {
@@ -55,13 +65,19 @@
     const pad = (n, w) => String(n).padStart(w, "0");
     return `${pad(d.getHours(), 2)}:${pad(d.getMinutes(), 2)}:${pad(d.getSeconds(), 2)}.${pad(d.getMilliseconds(), 3)}`;
   }
+  function since(at) {
+    const clockSection = state.sections.clock;
+    if (!clockSection) return "";
+    const t = at - clockSection.origin;
+    return `${t < 0 ? "-" : "+"}${Math.abs(t).toFixed(2)} s`;
+  }
   const ms = (s) => (s < 1 ? `${(s * 1000).toFixed(1)} ms` : `${s.toFixed(2)} s`);
   const plural = (n, word) => `${n} ${word}${n === 1 ? "" : "s"}`;
   const cut = (text, width) => (text.length <= width ? text : `${text.slice(0, width - 1)}…`);
 
   // -- the stream ----------------------------------------------------------------------
   function connect() {
-    const source = new EventSource("/api/stream");
+    const source = new EventSource(`/api/stream?token=${encodeURIComponent(token)}`);
     source.addEventListener("hello", (e) => {
       const hello = JSON.parse(e.data);
       if (state.instance !== null && state.instance !== hello.instance) reset();
@@ -78,6 +94,14 @@
       if (key === "tree" && value) state.offset = value.server_time - Date.now() / 1000;
       schedule(key.startsWith("catalog/") ? "catalogs" : key);
     });
+    source.addEventListener("patch", (e) => {
+      const { key, patch } = JSON.parse(e.data);
+      const value = applyPatch(state.sections[key], patch);
+      if (value === null) delete state.sections[key];
+      else state.sections[key] = value;
+      if (key === "tree" && value) state.offset = state.sections.tree.server_time - Date.now() / 1000;
+      schedule(key.startsWith("catalog/") ? "catalogs" : key);
+    });
     source.addEventListener("events", (e) => {
       const { events, missed } = JSON.parse(e.data);
       if (missed) addLog({ at: Date.now() / 1000, text: `${missed} events missed (the page fell behind)` });
@@ -86,10 +110,33 @@
         state.lastSeq = event.seq;
         addEvent(event);
       }
+      flushOrphans();
       schedule("events");
     });
-    source.onerror = () => setConnection(false);
+    source.onerror = () => {
+      if (state.sections.ended) source.close(); // (the final state stays on the page)
+      setConnection(false);
+    };
     source.onopen = () => setConnection(true);
+  }
+
+  // A patch (observe/_delta.py): {v} replaces; {d, x} changes and removes keys of a dict;
+  // {l, k, x, i | o} changes, removes, inserts (or reorders) the rows of a list by their field k.
+  function applyPatch(value, patch) {
+    if ("v" in patch) return patch.v;
+    if ("d" in patch) {
+      const result = { ...value };
+      for (const key of patch.x) delete result[key];
+      for (const [key, sub] of Object.entries(patch.d)) result[key] = applyPatch(result[key], sub);
+      return result;
+    }
+    const rows = new Map(value.map((row) => [row[patch.k], row]));
+    for (const id of patch.x) rows.delete(id);
+    let order = [...rows.keys()];
+    for (const [id, sub] of Object.entries(patch.l)) rows.set(id, applyPatch(rows.get(id), sub));
+    if (patch.o) order = patch.o;
+    else for (const [index, id] of patch.i) order.splice(index, 0, id);
+    return order.map((id) => rows.get(id));
   }
 
   function reset() {
@@ -104,10 +151,15 @@
     $("tree").replaceChildren();
   }
 
+  // One badge says what the page is: live, disconnected, ended (the final state), offline.
   function setConnection(up) {
     const badge = $("connection");
-    badge.textContent = up ? "live" : "disconnected";
-    badge.className = `badge ${up ? "up" : "down"}`;
+    const mode = state.hello ? state.hello.mode : document.body.dataset.mode;
+    let text = up ? "live" : "disconnected";
+    if (mode === "backups") text = "offline";
+    else if (state.sections.ended) text = "ended";
+    badge.textContent = text;
+    badge.className = `badge ${text === "live" ? "up" : text === "disconnected" ? "down" : "still"}`;
   }
 
   function schedule(...keys) {
@@ -126,6 +178,11 @@
     const dirty = state.dirty;
     state.dirty = new Set();
     if (!state.hello) return;
+    if (dirty.has("ended")) {
+      setConnection(false);
+      dirty.add("tree").add("catalogs"); // (the buttons go: there is nothing left to kill)
+    }
+    if (dirty.has("clock") || dirty.has("ended")) renderClock();
     if (dirty.has("tree") || dirty.has("files")) renderTree(); // at once: restarts show fast
     if (dirty.has("catalogs")) renderCatalogs();
     if (dirty.has("graph")) renderGraph();
@@ -143,9 +200,23 @@
   function renderHeader() {
     const hello = state.hello;
     $("title").textContent = hello.title;
-    $("mode").textContent =
-      hello.mode === "backups" ? "offline: backups" : hello.faults ? "live · teaching mode" : "live";
+    $("mode").textContent = hello.faults ? "teaching mode" : "";
+    $("mode").hidden = !hello.faults;
     document.body.dataset.mode = hello.mode;
+    setConnection(true);
+  }
+
+  function renderClock() {
+    const clockSection = state.sections.clock;
+    const box = $("clock");
+    if (!clockSection || state.hello.mode === "backups") {
+      box.hidden = true;
+      return;
+    }
+    const ended = state.sections.ended;
+    const now = ended ? ended.at : Date.now() / 1000 + state.offset;
+    box.hidden = false;
+    box.textContent = `${clockSection.label} ${(now - clockSection.origin).toFixed(1)} s${ended ? " (ended)" : ""}`;
   }
 
   // -- notices and the confirmation ----------------------------------------------------
@@ -204,7 +275,7 @@
     if (state.hello.mode === "backups") return renderFiles();
     const tree = state.sections.tree;
     if (!tree) return;
-    const shape = shapeOf(tree);
+    const shape = `${shapeOf(tree)}${state.sections.ended ? ":ended" : ""}`;
     if (shape !== treeShape) {
       treeShape = shape;
       treeRows.clear();
@@ -234,7 +305,7 @@
       fields.pid,
       root ? null : fields.restarts,
       fields.countdown,
-      isManager && node.isolation === "process" && state.hello.faults ? faultButtons(node.name) : null,
+      isManager && node.isolation === "process" && state.hello.faults && !state.sections.ended ? faultButtons(node.name) : null,
       fields.exit,
     );
     treeRows.set(root ? "\u0000root" : node.name, { row, fields });
@@ -311,7 +382,7 @@
 
   function renderFiles() {
     const files = state.sections.files;
-    $("tree-heading").textContent = "Backups (offline: no live system)";
+    $("tree-heading").textContent = "Backups (read-only)";
     if (!files) return;
     const rows = files.files.map((f) =>
       el(
@@ -351,7 +422,13 @@
 
   function renderCatalogs() {
     const cards = catalogOrder().map((name) => catalogCard(state.sections[`catalog/${name}`]));
-    $("catalogs").replaceChildren(...cards);
+    if (cards.length) $("catalogs").replaceChildren(...cards);
+    else renderPlaceholders();
+  }
+
+  function renderPlaceholders() {
+    if (!Object.keys(state.sections).some((k) => k.startsWith("catalog/")))
+      $("catalogs").replaceChildren(el("p", { class: "muted", text: "No registrar yet." }));
   }
 
   function catalogCard(section) {
@@ -377,11 +454,25 @@
     }
     for (const server of catalog.servers) {
       const resources = catalog.resources.filter((r) => r.server === server);
-      const list = el("ul", {}, ...resources.map((r) => resourceItem(section, r, deps.get(r.id) || [])));
+      const pageKey = `${section.registrar}/${server}`;
+      const shown = Math.min(resources.length, state.shown[pageKey] || PAGE);
+      const list = el("ul", {}, ...resources.slice(0, shown).map((r) => resourceItem(section, r, deps.get(r.id) || [])));
+      const more =
+        shown < resources.length
+          ? el("button", {
+              class: "more",
+              "data-more": server,
+              text: `show ${Math.min(PAGE, resources.length - shown)} more (${shown} of ${resources.length} shown)`,
+              onclick: () => {
+                state.shown[pageKey] = shown + PAGE;
+                schedule("catalogs");
+              },
+            })
+          : null;
       card.append(
         el("div", { class: "server", "data-server": server },
           el("h4", { text: `server ${server} · ${plural(resources.length, "resource")}` }),
-          resources.length ? list : null),
+          resources.length ? list : null, more),
       );
     }
     if (top.length) {
@@ -403,7 +494,7 @@
 
   function resourceItem(section, resource, deps) {
     const fatal =
-      state.hello.faults && section.available && section.kind.endsWith("manager") && resource.consumers.length
+      state.hello.faults && !state.sections.ended && section.available && section.kind.endsWith("manager") && resource.consumers.length
         ? el("button", {
             class: "danger",
             "data-fault": "fatal",
@@ -485,12 +576,36 @@
     return positions;
   }
 
+  // A graph of more than GRAPH_MAX resources: its registrars, one arrow per pair with a count.
+  function summarised(graph) {
+    const owner = {};
+    for (const n of graph.nodes) owner[n.id] = n.parent || n.id;
+    const nodes = graph.nodes.filter((n) => n.kind === "registrar").map((n) => ({ ...n }));
+    const resources = {};
+    for (const n of graph.nodes) if (n.parent) resources[n.parent] = (resources[n.parent] || 0) + 1;
+    for (const n of nodes) if (resources[n.id]) n.label = `${n.label}\n${plural(resources[n.id], "resource")}`;
+    const pairs = new Map();
+    for (const e of graph.edges) {
+      const key = `${owner[e.source]}>${owner[e.target]}`;
+      const pair = pairs.get(key) || { id: `sum:${key}`, source: owner[e.source], target: owner[e.target], count: 0, loaded: true, orphan: false };
+      pair.count += 1;
+      pair.loaded = pair.loaded && e.loaded;
+      pair.orphan = pair.orphan || e.orphan;
+      pairs.set(key, pair);
+    }
+    const edges = [...pairs.values()].map((p) => ({ ...p, label: plural(p.count, "query") }));
+    return { nodes, edges };
+  }
+
   function renderGraph() {
-    const graph = state.sections.graph;
+    let graph = state.sections.graph;
     if (!graph || typeof cytoscape !== "function") return;
     const key = JSON.stringify(graph);
     if (key === graphKey) return;
     graphKey = key;
+    const many = graph.nodes.length - graph.nodes.filter((n) => n.kind === "registrar").length;
+    $("graph-note").textContent = many > GRAPH_MAX ? `${many} resources: registrars only, arrows counted (the catalogs list them)` : "";
+    if (many > GRAPH_MAX) graph = summarised(graph);
     const elements = [
       ...graph.nodes.map((n) => ({
         data: {
@@ -563,7 +678,7 @@
     switch (event.type) {
       case "StatusSent": {
         const row = { kind: "status", event, hops: [] };
-        state.orphans = state.orphans.filter((d) => !(matches(event, d) && row.hops.push(d)));
+        state.orphans = state.orphans.filter((o) => !(matches(event, o.event) && row.hops.push(o.event)));
         pushRow(row);
         if (event.status === "FATAL" || event.status === "ERROR") flashResourceOf(event.registrar, event.query_id);
         break;
@@ -571,7 +686,7 @@
       case "StatusDelivered": {
         const row = findSent(event);
         if (row) row.hops.push(event);
-        else state.orphans.push(event);
+        else state.orphans.push({ event, arrived: Date.now() / 1000 });
         break;
       }
       case "ChildExited":
@@ -587,12 +702,21 @@
       default:
         break;
     }
+  }
+
+  // A delivery can reach the page before its send (they come from different processes);
+  // it waits ORPHAN_S seconds of the page's own time after it arrived, so that a page
+  // opened late, which gets the whole history at once, draws it as a live page did.
+  function flushOrphans() {
     const now = Date.now() / 1000;
-    state.orphans = state.orphans.filter((d) => {
-      if (now - d.at < 2) return true;
-      pushRow({ kind: "status", event: null, hops: [d] }); // its send never came (dropped?)
+    let flushed = false;
+    state.orphans = state.orphans.filter((o) => {
+      if (now - o.arrived < ORPHAN_S) return true;
+      pushRow({ kind: "status", event: null, hops: [o.event] }); // its send never came (dropped?)
+      flushed = true;
       return false;
     });
+    if (flushed) schedule("events");
   }
 
   function matches(sent, delivered) {
@@ -643,7 +767,7 @@
       return el(
         "li",
         { class: `status status-${first.status}`, "data-kind": "status", "data-status": first.status },
-        el("time", { text: clock(sent ? sent.at : first.at - first.latency_s) }),
+        timeEl(sent ? sent.at : first.at - first.latency_s),
         el("span", { class: `badge status-${first.status}`, text: first.status }),
         " ",
         sent ? `${resourceName(sent.registrar, sent.query_id)}: ${sent.message}` : "(its send was not seen)",
@@ -656,22 +780,32 @@
     return el(
       "li",
       { class: row.kind, "data-kind": row.kind, "data-type": event.type },
-      el("time", { text: clock(event.at) }),
+      timeEl(event.at),
       event.text,
     );
+  }
+
+  function timeEl(at) {
+    const t = since(at);
+    return el("time", { text: clock(at), title: t ? `${t} (${state.sections.clock.label})` : null },
+      t ? el("span", { class: "since", text: ` ${t}` }) : null);
   }
 
   function renderLog() {
     const items = [];
     for (let i = state.log.length - 1; i >= 0; i--) {
       const event = state.log[i];
-      items.push(el("li", { "data-type": event.type || "" }, el("time", { text: clock(event.at) }), event.text));
+      items.push(el("li", { "data-type": event.type || "" }, timeEl(event.at), event.text));
     }
     $("log").replaceChildren(...items);
     $("log-note").textContent = `the last ${Math.min(state.log.length, MAX_LOG)}, newest first`;
   }
 
   // -- start ---------------------------------------------------------------------------
-  setInterval(tickCountdowns, 100);
+  setInterval(() => {
+    tickCountdowns();
+    if (state.hello && !state.sections.ended && state.sections.clock) renderClock();
+  }, 100);
+  setInterval(flushOrphans, 500);
   connect();
 })();
