@@ -300,7 +300,7 @@ def test_a_hanging_or_exiting_repr_shows_failed_and_the_graph_keeps_updating_wit
     assert "repr failed: TimeoutError" in drawn[-1]
     assert "repr failed: SystemExit" in last
     assert "after" in last  # the graph still follows the catalog
-    assert after <= before + 1  # (not one more hung thread per look)
+    assert after <= before + 3  # (a worker or two may start; not one hung thread per look: 12+)
 
 
 class HangsForGood:
