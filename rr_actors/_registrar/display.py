@@ -110,12 +110,13 @@ class ClientTexts:
     """The request texts of one registrar's client records: one per request object held.
 
     A consumer's records of calls made with the same request object (the dedup hits of a
-    caller that reuses its request) share that object's text: a record added while
-    another one holding the very same object (`is`: no user code) has its text, or has
-    one on its way from a worker, gets that text, made once. Another object, even an
+    caller that reuses its request) share that object's text: the first record to hold
+    the object (`is`: no user code) makes it, and each record added while that one is
+    held takes it (or waits with it for the worker that makes it). Once that record went,
+    the next one makes the text again and holds it for the rest. Another object, even an
     equal one, gets a text of its own (`==` would run user code on the actor thread).
-    Nothing outlives the records: the table maps an object's `id` to a query id whose
-    record holds that object (so the id cannot be reused while the entry is valid), and is
+    Nothing outlives the records: the table maps an object's `id` to the query id of a
+    record that holds it (so the id is not reused while that record is there), and is
     rebuilt from the records when it outgrows them.
     """
 
