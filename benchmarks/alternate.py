@@ -16,13 +16,15 @@ Example (the restructuring of issue 13 against 0.1.0's last commit):
     python benchmarks/alternate.py --before /tmp/before /tmp/venv-before/bin/python \\
         --pairs 3 --pin -- bench_core.py --rounds 10
 
-`--pin` runs each benchmark under `taskset -c 0` (one CPU: the ratios hold better, the
+Each run imports `rr_actors` from its tree (`PYTHONPATH`), whichever tree the venv has
+installed. `--pin` runs each benchmark under `taskset -c 0` (one CPU: the ratios hold better, the
 absolute figures are slower).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import subprocess
 import sys
@@ -37,7 +39,8 @@ def run(tree: Path, python: str, script: str, args: list[str], *, pin: bool) -> 
     command = [python, str(tree / "benchmarks" / script), *args]
     if pin:
         command = ["taskset", "-c", "0", *command]
-    done = subprocess.run(command, cwd=tree, capture_output=True, text=True, check=False)
+    env = {**os.environ, "PYTHONPATH": str(tree)}  # its own tree, wherever the venv points
+    done = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         sys.stderr.write(done.stderr)
         raise SystemExit(f"{' '.join(command)} failed with exit code {done.returncode}")

@@ -33,6 +33,8 @@ SMALLEST = {
     "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1"],
     "bench_transport.py": ["--rounds", "20"],
+    "bench_xoscar.py": ["--rounds", "1", "--batch", "5", "--no-load"],
+    "count_dedup.py": ["--calls", "5", "--profile"],
     "stress_crash.py": ["--kills", "4", "--round", "2"],
 }
 """The quickest arguments of each benchmark script (every script must be listed here)."""

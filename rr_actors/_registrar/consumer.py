@@ -29,7 +29,7 @@ from rr_actors._catalog import ClientRecord, ResourceState
 from rr_actors._core.directory import Reply
 from rr_actors._core.replies import FutureReply, Join
 from rr_actors._registrar.calls import AttemptState, CallAttempt, DueAnswers
-from rr_actors._registrar.display import show_client
+from rr_actors._registrar.display import ClientTexts
 from rr_actors._registrar.endpoints import ClientActor, Clients
 from rr_actors._registrar.loading import check_picklable
 from rr_actors._registrar.messages import (
@@ -76,6 +76,7 @@ class Consumer:
             stopped (it may hold the id; a retry may come): held until reconciled.
         releasing: query ids whose `Unload` is on its way.
         asked_to_reconcile: providers that asked for a `Reconcile` during setup.
+        texts: makes its records' request display texts (`display.py`).
     """
 
     def __init__(
@@ -95,6 +96,7 @@ class Consumer:
         self.unsettled: dict[str, str] = {}
         self.releasing: set[str] = set()
         self.asked_to_reconcile: set[str] = set()
+        self.texts = ClientTexts(shared)
 
     # -- holding and forgetting queries -----------------------------------------------
 
@@ -180,7 +182,7 @@ class Consumer:
             if self.owner_gone(record):  # a late sub-call: kept as a call of its own, so a
                 record = ClientRecord(record.query, None)  # crash meanwhile gives it back
             self.registrar.catalog.add_client(record)
-            show_client(self.registrar, query_id)
+            self.texts.show(query_id)
             failed = self.registrar.commit()
             if failed is not None:  # not durable: the Load must not leave (rule 16)
                 self.registrar.catalog.remove_client(query_id)
@@ -223,7 +225,7 @@ class Consumer:
                 catalog.client_loaded(query.id, query.response)
             else:
                 catalog.add_client(message.record)
-                show_client(self.registrar, query.id)
+                self.texts.show(query.id)
             failed = self.registrar.commit()
             if failed is not None and message.answer_after_commit:  # durable: not kept
                 give_back(query.serving_rr, query.id, self.registrar.name)

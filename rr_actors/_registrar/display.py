@@ -18,6 +18,17 @@ stored, never a refresh of the observer (`rr_actors.observe`). A text is a bound
 `rr_actors._catalog.texts` (pure functions). The cost: a plain value's text on the actor
 thread (a few microseconds for a small dict), a worker round trip and one more write for
 any other value or a label.
+
+A consumer's client records get their texts from `ClientTexts`: one text per request
+object it holds, not one per call. Made per call, a dedup hit with a request of a user
+class (a dataclass, say) cost a worker round trip and a second write on every call, and a
+`repr` that hangs held a worker thread for `compare_timeout` on every call: "costs once"
+did not hold for a caller that reuses its request. Made only when read (a snapshot, a
+write to the backup) would have kept the per-call cost at zero, but a stored record is
+written when it is added, so the texts would have been made two ways. Sharing by identity
+runs no user code, keeps nothing alive that no record holds, and covers the common case,
+a caller (or a `Supervisor`'s retry) passing the same object again; an equal new object
+gets its own text, as before.
 """
 
 from __future__ import annotations
@@ -29,7 +40,7 @@ from rr_actors._catalog import Resource
 from rr_actors._catalog.texts import display_text, label_text, plain_text
 from rr_actors._registrar.state import Shared
 
-__all__ = ["show_client", "show_request", "show_response"]
+__all__ = ["ClientTexts", "show_request", "show_response"]
 
 
 def _off_actor(
@@ -95,16 +106,61 @@ def show_response(shared: Shared, resource: Resource) -> None:
     resource.response_text = _text_now_or_later(shared, resource.response, later)
 
 
-def show_client(shared: Shared, query_id: str) -> None:
-    """Give a client record just added its request's text (before its write)."""
-    catalog = shared.catalog
-    record = catalog.clients.get(query_id)
-    if record is None or record.request_text is not None:
-        return
+class ClientTexts:
+    """The request texts of one registrar's client records: one per request object held.
 
-    def later(text: str) -> None:
-        if catalog.clients.get(query_id) is record:
-            catalog.set_client_text(query_id, text)
-            shared.commit()
+    A consumer's records of calls made with the same request object (the dedup hits of a
+    caller that reuses its request) share that object's text: the first record to hold
+    the object (`is`: no user code) makes it, and each record added while that one is
+    held takes it (or waits with it for the worker that makes it). Once that record went,
+    the next one makes the text again and holds it for the rest. Another object, even an
+    equal one, gets a text of its own (`==` would run user code on the actor thread).
+    Nothing outlives the records: the table maps an object's `id` to the query id of a
+    record that holds it (so the id is not reused while that record is there), and is
+    rebuilt from the records when it outgrows them.
+    """
 
-    record.request_text = _text_now_or_later(shared, record.query.request, later)
+    __slots__ = ("holders", "shared", "waiting")
+
+    def __init__(self, shared: Shared) -> None:
+        self.shared = shared
+        self.holders: dict[int, str] = {}  # id(request) -> a query id whose record holds it
+        self.waiting: dict[str, list[str]] = {}  # query id whose text a worker makes -> others
+
+    def show(self, query_id: str) -> None:
+        """Give a client record just added its request's text (before its write)."""
+        clients = self.shared.catalog.clients
+        record = clients.get(query_id)
+        if record is None or record.request_text is not None:
+            return
+        request = record.query.request
+        holder_id = self.holders.get(id(request))
+        holder = None if holder_id is None else clients.get(holder_id)
+        if holder is not None and holder.query.request is request:
+            if holder.request_text is not None:
+                record.request_text = holder.request_text
+                return
+            waiting = self.waiting.get(holder.query.id)
+            if waiting is not None:  # its text is on its way
+                waiting.append(query_id)
+                return
+        if len(self.holders) > 2 * len(clients) + 64:  # stale entries: records gone
+            self.holders = {id(r.query.request): q for q, r in clients.items()}
+        self.holders[id(request)] = query_id
+        text = plain_text(request)
+        if text is not None:
+            record.request_text = text
+            return
+        self.waiting[query_id] = []
+        _off_actor(
+            self.shared, lambda: display_text(request), "repr", lambda t: self.shown(query_id, t)
+        )
+
+    def shown(self, query_id: str, text: str) -> None:
+        """A worker made the text of `query_id`'s request: give it to each record waiting."""
+        catalog = self.shared.catalog
+        for waiting_id in [query_id, *self.waiting.pop(query_id, ())]:
+            record = catalog.clients.get(waiting_id)
+            if record is not None and record.request_text is None:
+                catalog.set_client_text(waiting_id, text)
+        self.shared.commit()

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-import uuid
 from collections.abc import Callable
 from typing import Any
 
@@ -25,6 +24,7 @@ from rr_actors import events
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.exit import REGISTRARS, stop_at_exit
+from rr_actors._core.ids import new_id
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.calls import Calls
@@ -319,7 +319,7 @@ class ResourceRegistrar:
                 parent = context.resource_id
         if self._config.backup_path is not None:  # its client record is stored
             check_picklable(request, f"the request of a call to '{target_rr}/{server}'")
-        query = Query(query_id or str(uuid.uuid4()), server, target_rr, self.name, request)
+        query = Query(query_id or new_id(), server, target_rr, self.name, request)
         self._client(target_rr, server, limit)  # the client endpoint exists from the first call
         return self._calls.call(query, parent, chain, on_status, limit, deadline)
 
