@@ -42,7 +42,7 @@ from rr_actors._supervision.policy import (
     restarts_with_group,
 )
 from rr_actors._supervision.retry import give_back_abandoned
-from rr_actors._supervision.tree import Tree, consumer_down, death_watch_missed
+from rr_actors._supervision.tree import Tree, consumer_down, death_watch_missed, lost_everything
 from rr_actors.config import ManagerSpec, RegistrarConfig, SupervisorSpec, managers
 from rr_actors.errors import RrError, SupervisorGaveUpError
 
@@ -253,6 +253,8 @@ class Node:
         give_back_abandoned(tree, child.name)
         if restarted and isinstance(spec, ManagerSpec):
             death_watch_missed(tree, child.name)
+            if self._config(spec).backup_path is None:  # (one with a backup asks itself)
+                lost_everything(self.root(), child.name)
 
     def _published_start(self, child: Child, *, restarted: bool) -> None:
         """Publish `ChildStarted`, or `ChildRestarted` with the time it was down."""

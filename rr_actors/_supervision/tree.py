@@ -30,7 +30,7 @@ import cloudpickle
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._process.spare import SparePool
-from rr_actors._registrar.messages import ConsumerDown
+from rr_actors._registrar.messages import ConsumerDown, ReconcileAsk
 from rr_actors._supervision.children import (
     Child,
     ChildInfo,
@@ -63,6 +63,7 @@ __all__ = [
     "death_watch_missed",
     "find_child",
     "locate",
+    "lost_everything",
     "wait_restarted",
 ]
 
@@ -294,6 +295,17 @@ def consumer_down(root: Level, name: str) -> None:
     """
     living = _process_managers(root)
     DIRECTORY.broadcast(ConsumerDown(name), also=living, skip=name)
+
+
+def lost_everything(root: Level, name: str) -> None:
+    """Manager `name`, which keeps no backup, restarted with an empty catalog: every
+    registrar of the tree that holds ids there reconciles with it, and hears `FATAL` for
+    each (rule 20; a manager with a backup asks them itself when it serves again).
+
+    `root`: the tree's root supervisor (its living process managers are told too).
+    """
+    living = _process_managers(root)
+    DIRECTORY.broadcast(ReconcileAsk(name, holds_yours=False), also=living, skip=name)
 
 
 def death_watch_missed(tree: Tree, name: str) -> None:

@@ -20,7 +20,7 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from supervising import ManualTimer
+from supervising import ManualTimer, crash
 
 import rr_actors as rr
 from rr_actors._process.manager import start_forkserver
@@ -184,6 +184,35 @@ def test_a_supervised_provider_killed_before_its_first_flush_reports_every_id_fa
         sup.wait_restarted(name, timeout=10)
 
         assert eventually(lambda: len(heard) == 10, timeout=10)
+        assert sorted((q, rr.Status.FATAL) for q in held) == sorted(heard)
+        assert [] == app.client_queries()
+
+
+@pytest.mark.parametrize("isolation", ["process", "thread"])
+def test_a_supervised_provider_without_a_backup_restarted_reports_every_id_fatal(
+    isolation: str, eventually: Callable[..., bool]
+) -> None:
+    # No backup: the restarted provider serves an empty catalog, so every id held there
+    # was lost; its supervisor has every registrar of the tree reconcile with it.
+    name = f"provider-{uuid.uuid4().hex[:8]}"
+    spec = rr.ManagerSpec(name, serve_leaf, isolation=isolation)
+    heard: list[tuple[str, rr.Status]] = []
+
+    def note(query: rr.Query, update: rr.StatusUpdate) -> None:
+        heard.append((query.id, update.status))
+
+    with rr.Supervisor([spec], max_restarts=5, period=10.0) as sup:
+        app = sup.registrar(f"app-{uuid.uuid4().hex[:8]}")
+        held = [app.call(name, "leaf", n, on_status=note, timeout=10).id for n in range(5)]
+        if isolation == "process":
+            (info,) = sup.which_children()
+            assert info.pid is not None
+            os.kill(info.pid, signal.SIGKILL)
+        else:
+            crash(sup, name)  # the registrar actor dies, as a thread manager's SIGKILL
+        sup.wait_restarted(name, timeout=10)
+
+        assert eventually(lambda: len(heard) == 5, timeout=10)
         assert sorted((q, rr.Status.FATAL) for q in held) == sorted(heard)
         assert [] == app.client_queries()
 
