@@ -30,6 +30,9 @@ PORTABLE_MODULES = (
     "tests/registrar/test_registrar_crash.py",
     "tests/transport/test_transport_unix.py",
     "tests/transport/test_transport_contract.py",
+    "tests/registrar/test_reconcile_edges.py",
+    "tests/supervision/test_descriptor_leaks.py",
+    "tests/supervision/test_spare_warm_up.py",
 )
 """The test modules that use manager processes, run again on the portable platform."""
 
