@@ -222,6 +222,29 @@ def shared(registrar_placement: str, process_helpers: SharedObjects) -> Shared:
     return process_helpers
 
 
+@pytest.fixture
+def managers(request: pytest.FixtureRequest) -> Iterator[Callable[..., RemoteRegistrar]]:
+    """`managers(config, setup)`: a registrar in a manager process of a fresh `System`,
+    whatever the placement (the test module's functions are pickled by value); the living
+    ones stop at teardown, newest first. For tests that kill and restart registrars by
+    hand, with their backups."""
+    start_forkserver()
+    cloudpickle.register_pickle_by_value(request.module)
+    system = System.create()
+    started: list[RemoteRegistrar] = []
+
+    def start(config: rr.RegistrarConfig, setup: Any) -> RemoteRegistrar:
+        registrar = RemoteRegistrar.start(config, system, setup=setup)
+        started.append(registrar)
+        return registrar
+
+    yield start
+    for registrar in reversed(started):
+        if registrar.is_alive():
+            registrar.stop()
+    system.close()
+
+
 Registrar = rr.ResourceRegistrar | RemoteRegistrar
 MakeRegistrar = Callable[..., Registrar]
 

@@ -31,7 +31,6 @@ import rr_actors as rr
 from rr_actors.testing import (
     RemoteRegistrar,
     SharedObjects,
-    System,
     crash,
     expect_restart,
     intercept,
@@ -47,29 +46,6 @@ def by_value() -> Iterator[None]:
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
     yield
     cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
-
-
-@pytest.fixture
-def system() -> Iterator[System]:
-    made = System.create()
-    yield made
-    made.close()
-
-
-@pytest.fixture
-def managers(system: System) -> Iterator[Callable[..., RemoteRegistrar]]:
-    """Start a registrar in a manager process of `system`; the living ones stop at teardown."""
-    started: list[RemoteRegistrar] = []
-
-    def start(config: rr.RegistrarConfig, setup: Any) -> RemoteRegistrar:
-        registrar = RemoteRegistrar.start(config, system, setup=setup)
-        started.append(registrar)
-        return registrar
-
-    yield start
-    for registrar in reversed(started):
-        if registrar.is_alive():
-            registrar.stop()
 
 
 def provider_setup(unloads: Any, unloaded: Any = None) -> Callable[[rr.ResourceRegistrar], None]:

@@ -19,14 +19,12 @@ import sys
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
 
 import cloudpickle
 import pytest
 
 import rr_actors as rr
 from rr_actors._process.manager import start_forkserver
-from rr_actors._transport.unix import System
 from rr_actors.testing import RemoteRegistrar, SharedObjects
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
@@ -38,28 +36,6 @@ def by_value() -> Iterator[None]:
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
     yield
     cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
-
-
-@pytest.fixture
-def system() -> Iterator[System]:
-    made = System.create()
-    yield made
-    made.close()
-
-
-@pytest.fixture
-def managers(system: System) -> Iterator[Callable[..., RemoteRegistrar]]:
-    started: list[RemoteRegistrar] = []
-
-    def start(config: rr.RegistrarConfig, setup: Any) -> RemoteRegistrar:
-        registrar = RemoteRegistrar.start(config, system, setup=setup)
-        started.append(registrar)
-        return registrar
-
-    yield start
-    for registrar in reversed(started):
-        if registrar.is_alive():
-            registrar.stop()
 
 
 def serve_leaf(registrar: rr.ResourceRegistrar) -> None:
