@@ -8,6 +8,7 @@ event stream.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import http.client
 import json
 import os
@@ -227,3 +228,49 @@ def chromium() -> str | None:
     if os.path.isfile(CHROMIUM) and os.access(CHROMIUM, os.X_OK):
         return CHROMIUM
     return shutil.which("chromium")
+
+
+@dataclasses.dataclass
+class HeldMission:
+    """The fast demo mission running on a thread, with an observer (`url`); it is `held`
+    before one fault until the `mission_held_before` block ends. `result`: its report."""
+
+    url: str
+    held: threading.Event
+    result: list[Any]
+    thread: threading.Thread
+
+
+@contextlib.contextmanager
+def mission_held_before(fault: str, out: Path) -> Iterator[HeldMission]:
+    """Run the `--fast` mission under an observer; it stops before `fault` (e.g. "F4")
+    until the block ends, then finishes (joined, with a bound)."""
+    from rr_actors.mission.config import MissionConfig  # noqa: PLC0415 - the mission is big
+    from rr_actors.mission.run import run_mission  # noqa: PLC0415
+
+    urls: list[str] = []
+    opened, held, go_on = threading.Event(), threading.Event(), threading.Event()
+
+    def observe(sup: Any) -> None:
+        urls.append(sup.observe().url)
+        opened.set()
+
+    def before_fault(name: str, _pids: list[str]) -> None:  # on the mission's thread
+        if name == fault:
+            held.set()
+            go_on.wait(60)
+
+    result: list[Any] = []
+    thread = threading.Thread(
+        target=lambda: result.append(
+            run_mission(MissionConfig.fast(), out, on_supervisor=observe, before_fault=before_fault)
+        ),
+        daemon=True,
+    )
+    thread.start()
+    try:
+        assert opened.wait(30)
+        yield HeldMission(urls[0], held, result, thread)
+    finally:
+        go_on.set()
+        thread.join(120)

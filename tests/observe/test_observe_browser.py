@@ -14,53 +14,19 @@ from __future__ import annotations
 
 import os
 import signal
-import tempfile
-import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import playwright.sync_api as playwright_api  # (the dev extra; a missing one fails, never skips)
 import pytest
 from observed_tree import REQUEST, figure_27
-from observing import CHROMIUM_ARGS, chromium
+from observing import mission_held_before
 
 import rr_actors as rr
 
 DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
 
 pytestmark = pytest.mark.timeout(120)
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    """A headless chromium for the module's tests (its own fresh profile)."""
-    path = chromium()
-    if path is None:
-        pytest.fail("no chromium to drive (apt-get install -y chromium; .ci/run does)")
-    with playwright_api.sync_playwright() as playwright, tempfile.TemporaryDirectory() as profile:
-        context = playwright.chromium.launch_persistent_context(
-            profile,
-            executable_path=path,
-            headless=True,
-            args=CHROMIUM_ARGS,
-            viewport={"width": 1400, "height": 1000},
-        )
-        yield context
-        context.close()
-
-
-@pytest.fixture
-def page(browser: Any) -> Iterator[Any]:
-    """A new tab; fails the test if the page logs an error."""
-    tab = browser.new_page()
-    errors: list[str] = []
-    tab.on("pageerror", lambda exc: errors.append(str(exc)))
-    tab.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    yield tab
-    tab.close()
-    assert [] == errors
 
 
 def screenshot(page: Any, name: str, tmp_path: Path) -> Path:
@@ -222,47 +188,15 @@ def test_the_offline_page_shows_the_backups(
 
 def test_the_mission_right_after_f3(page: Any, process_helpers: Any, tmp_path: Path) -> None:
     """The demo's page once F3 was recovered, the mission held before F4 (the tutorial's)."""
-    from rr_actors.mission.config import MissionConfig  # noqa: PLC0415
-    from rr_actors.mission.run import run_mission  # noqa: PLC0415
-
-    urls: list[str] = []
-    opened, at_f4, go_on = threading.Event(), threading.Event(), threading.Event()
-
-    def observe(sup: rr.Supervisor) -> None:
-        urls.append(sup.observe().url)
-        opened.set()
-
-    def before_fault(fault: str, _pids: list[str]) -> None:  # on the mission's thread
-        if fault == "F4":
-            at_f4.set()
-            go_on.wait(60)
-
-    result: list[Any] = []
-    mission = threading.Thread(
-        target=lambda: result.append(
-            run_mission(
-                MissionConfig.fast(),
-                tmp_path / "demo",
-                on_supervisor=observe,
-                before_fault=before_fault,
-            )
-        ),
-        daemon=True,
-    )
-    mission.start()
-    try:
-        assert opened.wait(30)
-        page.goto(urls[0])
-        assert at_f4.wait(60)
+    with mission_held_before("F4", tmp_path / "demo") as mission:
+        page.goto(mission.url)
+        assert mission.held.wait(60)
         page.wait_for_selector('.node[data-child="erm"][data-restarts="1"]')
         page.wait_for_selector('#catalogs [data-registrar="erm"]:not(.stale) .resource')
         screenshot(page, "observer-mission-f3.png", tmp_path)
         timeline = page.locator("#timeline").inner_text()
-    finally:
-        go_on.set()
-        mission.join(120)
 
     assert "erm restarted after" in timeline
     assert "FATAL" in timeline  # F1 and F2 before it
-    assert not mission.is_alive()
-    assert [True] == [report.ok for report in result]
+    assert not mission.thread.is_alive()
+    assert [True] == [report.ok for report in mission.result]

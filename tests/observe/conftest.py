@@ -1,0 +1,42 @@
+"""Fixtures of the observer's browser tests: one headless chromium per module, a tab each."""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Iterator
+from typing import Any
+
+import playwright.sync_api as playwright_api  # (the dev extra; a missing one fails, never skips)
+import pytest
+from observing import CHROMIUM_ARGS, chromium
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    """A headless chromium for the module's tests (its own fresh profile)."""
+    path = chromium()
+    if path is None:
+        pytest.fail("no chromium to drive (apt-get install -y chromium; .ci/run does)")
+    with playwright_api.sync_playwright() as playwright, tempfile.TemporaryDirectory() as profile:
+        context = playwright.chromium.launch_persistent_context(
+            profile,
+            executable_path=path,
+            headless=True,
+            args=CHROMIUM_ARGS,
+            viewport={"width": 1400, "height": 1000},
+        )
+        yield context
+        context.close()
+
+
+@pytest.fixture
+def page(browser: Any) -> Iterator[Any]:
+    """A new tab; fails the test if the page logs an error."""
+    tab = browser.new_page()
+    errors: list[str] = []
+    tab.on("pageerror", lambda exc: errors.append(str(exc)))
+    tab.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    yield tab
+    if not tab.is_closed():
+        tab.close()
+    assert [] == errors
