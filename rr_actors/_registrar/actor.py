@@ -13,6 +13,7 @@
               │   StatusRelay StatusNotice SendStatus                    (status.py)         │
               │   Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot; death           │
               │                                                           (lifecycle.py)     │
+              │   Presence   PeerLost PeerReachable                       (presence.py)      │
               │ Shared: config, catalog, saver, servers, phase, workers  (state.py)          │
               └──────────────────────────────────────────────────────────────────────────────┘
 ```
@@ -49,6 +50,8 @@ from rr_actors._registrar.messages import (
     ListServerQueries,
     Load,
     OpenClient,
+    PeerLost,
+    PeerReachable,
     Pending,
     Ping,
     Reachable,
@@ -70,6 +73,7 @@ from rr_actors._registrar.messages import (
     UnregisterServer,
     UpdateResponse,
 )
+from rr_actors._registrar.presence import Presence
 from rr_actors._registrar.probes import POINTS
 from rr_actors._registrar.provider import Provider
 from rr_actors._registrar.servers import Servers
@@ -132,6 +136,9 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     ConsumerDown: ("consumer_down", lambda a: a.unloading.on_consumer_down),  # death watch
     Reconcile: ("reconcile", lambda a: a.unloading.on_reconcile),  # a consumer lists its ids
     ReconcileAsk: ("reconcile_ask", lambda a: a.consumer.on_reconcile_ask),  # provider restarted
+    # -- from a carrier's presence callbacks (`Served`) --
+    PeerLost: ("peer_lost", lambda a: a.presence.on_peer_lost),  # gone, nobody restarts it
+    PeerReachable: ("peer_reachable", lambda a: a.presence.on_peer_reachable),  # link healed
     StatusNotice: ("status_notice", lambda a: a.status.on_status_notice),  # at a consumer
     Revoke: ("revoke", lambda a: a.consumer.on_revoke),  # at a consumer
     ResponseUpdated: ("response_updated", lambda a: a.consumer.on_response_updated),
@@ -200,7 +207,7 @@ class RegistrarActor(Actor):
 
     Attributes:
         shared: the state every role uses.
-        provider, unloading, servers, consumer, status, lifecycle: the roles.
+        provider, unloading, servers, consumer, status, lifecycle, presence: the roles.
     """
 
     shared: Shared
@@ -210,6 +217,7 @@ class RegistrarActor(Actor):
     consumer: Consumer
     status: StatusRelay
     lifecycle: Lifecycle
+    presence: Presence
 
     def __init__(
         self,
@@ -234,6 +242,7 @@ class RegistrarActor(Actor):
         self.unloading = Unloading(self.shared, self.provider)
         self.status = StatusRelay(self.shared, self.consumer)
         self.servers = Servers(self.shared, self.provider, self.status)
+        self.presence = Presence(self.shared, self.unloading, self.consumer)
         self.lifecycle = Lifecycle(
             self.shared, self.provider, self.unloading, self.consumer, self, died, ended
         )

@@ -461,7 +461,37 @@ class Consumer:
             )
             self.report_lost(f"{serving_rr}/{server}", tuple(ids))
 
-    def report_lost(self, source: str, ids: tuple[str, ...]) -> None:
+    def lose_provider(self, serving_rr: str) -> None:
+        """Provider `serving_rr` is gone and nobody will restart it (DESIGN rule 19): the ids
+        held there get `FATAL` (and up their dependents), then they are forgotten."""
+        lost: dict[str, list[str]] = {}
+        for query_id, record in list(self.registrar.catalog.clients.items()):
+            if record.query.serving_rr == serving_rr and record.loaded:
+                lost.setdefault(record.query.server, []).append(query_id)
+        for query_id in [q for q, p in self.unsettled.items() if p == serving_rr]:
+            del self.unsettled[query_id]  # nobody holds it there any more
+        for server, ids in sorted(lost.items()):
+            logger.warning(
+                "registrar %s: %s is gone and nobody will restart it: FATAL to the %d "
+                "queries held at %s/%s, and they are forgotten",
+                self.registrar.name,
+                serving_rr,
+                len(ids),
+                serving_rr,
+                server,
+            )
+            self.report_lost(
+                f"{serving_rr}/{server}",
+                tuple(ids),
+                "the provider is gone and nobody will restart it",
+            )
+
+    def report_lost(
+        self,
+        source: str,
+        ids: tuple[str, ...],
+        why: str = "the provider no longer knows this query (it lost it in a restart)",
+    ) -> None:
         """`FATAL` to the status callbacks of `ids` (and up their dependents), then forget them.
 
         Delivered as a provider's `StatusNotice` would be (rule 9), on this thread: the
@@ -471,7 +501,7 @@ class Consumer:
         notice = StatusNotice(
             ids,
             Status.FATAL,
-            "the provider no longer knows this query (it lost it in a restart)",
+            why,
             source,
             str(uuid.uuid4()),
             FutureReply(),  # (nobody waits for the acknowledgements)

@@ -52,6 +52,8 @@ __all__ = [
     "ListServerQueries",
     "Load",
     "OpenClient",
+    "PeerLost",
+    "PeerReachable",
     "Pending",
     "Ping",
     "Reachable",
@@ -430,6 +432,22 @@ class Reachable:
     """A carrier serves the registrar: reconcile with the peers of other processes."""
 
     reply: Reply
+
+
+@dataclasses.dataclass(frozen=True)
+class PeerLost:
+    """A carrier: registrar `name` of another process is gone and nobody will restart it
+    (DESIGN rule 19). Handled by `presence.py`."""
+
+    name: str
+
+
+@dataclasses.dataclass(frozen=True)
+class PeerReachable:
+    """A carrier: registrar `name` of another process can be reached again after it could
+    not be (a healed link, not a restart). Handled by `presence.py`."""
+
+    name: str
 
 
 @dataclasses.dataclass(frozen=True)

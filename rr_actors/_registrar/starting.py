@@ -26,7 +26,7 @@ from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.endpoints import Clients
-from rr_actors._registrar.messages import Reachable
+from rr_actors._registrar.messages import PeerLost, PeerReachable, Reachable
 from rr_actors._store import Saver, open_catalog
 from rr_actors._types import Query
 from rr_actors.config import RegistrarConfig
@@ -160,3 +160,11 @@ class Served:
         """The other processes of the system can reach it now: it reconciles with its peers
         again (those in other processes could not answer it before)."""
         self.registrar._tell(Reachable(FutureReply()))  # (nobody waits: `serve` must not)
+
+    def peer_lost(self, name: str) -> None:
+        """Registrar `name` of another process is gone for good (rule 19): `presence.py`."""
+        self.registrar._tell(PeerLost(name))
+
+    def peer_reachable(self, name: str) -> None:
+        """Registrar `name` of another process answers again (a healed link): `presence.py`."""
+        self.registrar._tell(PeerReachable(name))

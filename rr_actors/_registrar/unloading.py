@@ -54,8 +54,14 @@ class Unloading:
         self.release(message.query_id, None)
 
     def on_consumer_down(self, message: ConsumerDown) -> None:
-        for query_id in self.registrar.catalog.consumers_from(message.origin_rr):
-            self.release(query_id, None)
+        self.release_all_of(message.origin_rr)
+
+    def release_all_of(self, origin_rr: str) -> None:
+        """Consumer `origin_rr` is gone for good (death watch, or a carrier's `peer_lost`):
+        release every id it held here (each `unload` runs once; a second call finds none)."""
+        for query_id in self.registrar.catalog.consumers_from(origin_rr):
+            if self.registrar.catalog.has_consumer(query_id):  # (a release may have cascaded)
+                self.release(query_id, None)
 
     def release(self, query_id: str, reply: Reply | None) -> None:
         """Release consumer id `query_id` (rules 7-8); answer `reply` when it is done.

@@ -35,6 +35,10 @@ The contract every carrier keeps (the transport tests check it for each one):
   `RegistrarStoppedError` after a clean stop), never by waiting out a timeout; a later
   `tell` to a name that is served again (a restarted manager) reaches the new server;
 - **control**: `run(name, fn, timeout=)` runs `fn(registrar)` where that registrar lives;
+- **presence**: a carrier calls `Endpoint.peer_lost(name)` on every registrar it serves
+  when registrar `name` of another process is gone and nobody will restart it (rule 19),
+  and `Endpoint.peer_reachable(name)` when one that could not be reached answers again
+  (a healed link); `names()` lists the registrars it can reach;
 - **health**: `serving_trouble(name)` says for how long a registrar served here has been
   unable to take new connections (a listener out of file descriptors keeps trying);
 - **join**: `address` pickles; `address.attach()` in another process joins the system.
@@ -90,6 +94,25 @@ class Endpoint(Protocol):
         """
         ...
 
+    def peer_lost(self, name: str) -> None:
+        """Registrar `name` of another process is gone and nobody will restart it (DESIGN
+        rule 19: its process ended and no supervisor started it, or its supervisor is
+        gone or unreachable too). The registrar releases the ids `name` held here and
+        reports the ids it held at `name` `FATAL`.
+
+        Called on a carrier thread; returns at once. Calling it twice is harmless.
+        """
+        ...
+
+    def peer_reachable(self, name: str) -> None:
+        """Registrar `name` of another process can be reached again after it could not be
+        (a healed link, not a restart: a restarted registrar reconciles by itself). The
+        registrar reconciles with it (rule 20).
+
+        Called on a carrier thread; returns at once.
+        """
+        ...
+
 
 class Address(Protocol):
     """How another process joins the same system: it pickles; `attach()` joins there."""
@@ -114,6 +137,11 @@ class Transport(Protocol):
 
     def resolve(self, name: str) -> Peer | None:
         """A channel to registrar `name` of another process, or `None` if unknown here."""
+        ...
+
+    def names(self) -> list[str]:
+        """The registrars of other processes of the system that can be reached now (any
+        host): for the death watch and a restarted provider's reconciliation."""
         ...
 
     def serve(self, endpoint: Endpoint) -> None:

@@ -235,6 +235,16 @@ def _reachable(p: Pair, hook: Hook) -> None:
     Served(p.provider).listening()
 
 
+def _peer_lost(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "peer_lost", before=hook)
+    Served(p.provider).peer_lost(p.consumer.name)
+
+
+def _peer_reachable(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "peer_reachable", before=hook)
+    Served(p.provider).peer_reachable(p.consumer.name)
+
+
 def _snapshot(p: Pair, hook: Hook) -> None:
     intercept(p.provider, "snapshot", before=hook)
     catalog_snapshot(p.provider)
@@ -286,6 +296,8 @@ DRIVERS: dict[str, Callable[[Pair, Hook], None]] = {
     "stop": _stop,
     "ready": _ready,
     "reachable": _reachable,
+    "peer_lost": _peer_lost,
+    "peer_reachable": _peer_reachable,
     "snapshot": _snapshot,
     "ping": _ping,
     "open_client": _open_client,
