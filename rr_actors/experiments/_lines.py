@@ -12,7 +12,7 @@ import tomllib
 from collections.abc import Iterator
 from typing import Any
 
-__all__ = ["KeyPath", "key_lines", "line_of"]
+__all__ = ["KeyPath", "held", "key_lines", "line_of"]
 
 KeyPath = tuple[str | int, ...]  # a path into the data: table keys and array indices
 
@@ -42,21 +42,23 @@ def key_lines(text: str) -> dict[KeyPath, int]:
     return {path: line_of(text, [path]) for path in paths(tomllib.loads(text), ())}
 
 
+def held(data: Any, path: KeyPath) -> KeyPath:
+    """The longest start of `path` that `data` has."""
+    for n, key in enumerate(path):
+        keys = (
+            data if isinstance(data, dict) else range(len(data)) if isinstance(data, list) else ()
+        )
+        if key not in keys:
+            return path[:n]
+        data = data[key]
+    return path
+
+
 def _holds(rows: list[str], path: KeyPath) -> bool:
     """Whether the data of `rows`, closed if cut inside a value, has a value at `path`."""
     for closer in ("", "]", "]]", "]]]", '"""', "'''"):
         try:
-            node: Any = tomllib.loads(f"{''.join(rows)}\n{closer}")
-            break
+            return held(tomllib.loads(f"{''.join(rows)}\n{closer}"), path) == path
         except tomllib.TOMLDecodeError:
             continue
-    else:
-        return False
-    for key in path:
-        keys = (
-            node if isinstance(node, dict) else range(len(node)) if isinstance(node, list) else ()
-        )
-        if key not in keys:
-            return False
-        node = node[key]
-    return True
+    return False
