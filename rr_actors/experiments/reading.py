@@ -19,6 +19,7 @@ import re
 import string
 import tomllib
 import typing
+from dataclasses import MISSING
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +49,7 @@ WHAT = {  # what a key must be, where its type alone words it badly (the last ke
     "children": "a non-empty array of tables ([[...children]])",
     "setting": "a plan key",
 }
-MISSING = {  # what a missing key is for
+PURPOSE = {  # what a missing key is for
     "duration": " (seconds of workload and faults per run)",
     "kind": f": one of {', '.join(schema.FAULT_KINDS)}",
     "target": ": which manager (or a list of them)",
@@ -118,9 +119,8 @@ def parse_plan(text: str, *, source: str = "<plan>", name: str = "plan") -> Plan
         container, key = reader.locate(changed, compare.setting, where)
         container[key] = value
         try:
-            variants.append(
-                (value, dataclasses.replace(reader.plan(changed, name=name), compare=None))
-            )
+            plan = reader.plan(changed, name=name, variant=True)
+            variants.append((value, dataclasses.replace(plan, compare=None)))
         except PlanError as exc:
             problem = f"with {compare.setting} = {_show(value)}: {exc.key}: {exc.problem}"
             raise reader.error(where, problem) from exc
@@ -205,23 +205,18 @@ class _Reader:
     def decode(self, cls: Any, value: Any, path: KeyPath) -> Any:
         """A `cls` (a dataclass of `plan`) from the table `value`, every field checked."""
         hints = typing.get_type_hints(cls, include_extras=True)
-        fields = [f for f in dataclasses.fields(cls) if f.name not in NOT_KEYS]
-        keys = {TOML_KEY.get(f.name, f.name): f for f in fields}
-        table = self.table(value, path, tuple(keys))
-        for key, field in keys.items():
-            needed = field.default is field.default_factory is dataclasses.MISSING
-            self.refuse(
-                needed and key not in table, path, f"{key!r} is missing{MISSING.get(key, '')}"
-            )
+        keys = {TOML_KEY.get(f.name, f.name): f for f in dataclasses.fields(cls)}
+        table = self.table(value, path, tuple(k for k in keys if k not in NOT_KEYS))
+        for key in (k for k, f in keys.items() if f.default is f.default_factory is MISSING):
+            self.refuse(key not in table, path, f"{key!r} is missing{PURPOSE.get(key, '')}")
         given = {
             keys[k].name: self.value(k, x, hints[keys[k].name], path) for k, x in table.items()
         }
         try:
             return cls(**given)
         except ConfigError as exc:  # a `Backoff` checks itself: "Backoff.max must ..."
-            raise self.error(
-                (*path, str(exc).split()[0].removeprefix("Backoff.")), str(exc)
-            ) from None
+            bad = str(exc).split()[0].removeprefix("Backoff.")
+            raise self.error((*path, bad), str(exc)) from None
 
     def value(self, key: str, item: Any, hint: Any, table: KeyPath) -> Any:
         """`item` of `key` as `hint`: by a hook, or a plan dataclass decoded, else by msgspec."""
@@ -238,10 +233,9 @@ class _Reader:
             return self.check(item, HINT.get(key, hint), path)
         if not many:
             return self.decode(classes[0], item, path)
-        items = self.check(item, list[dict[str, Any]], path)  # a supervisor has children:
+        items, kinds = self.check(item, list[dict[str, Any]], path), (classes[0], classes[-1])
         return tuple(
-            self.decode(classes[-1] if "children" in x else classes[0], x, (*path, i))
-            for i, x in enumerate(items)
+            self.decode(kinds["children" in x], x, (*path, i)) for i, x in enumerate(items)
         )
 
     def importable(self, path: KeyPath, name: str, call: KeyPath, *args: Any, **kw: Any) -> None:
@@ -260,7 +254,7 @@ class _Reader:
 
     # -- the plan and the rules between its values ---------------------------------------------
 
-    def plan(self, data: dict[str, Any], *, name: str) -> Plan:
+    def plan(self, data: dict[str, Any], *, name: str, variant: bool = False) -> Plan:
         self.data = {"name": name, **data}
         plan: Plan = self.decode(Plan, self.data, ())
         source = None if self.source == "<plan>" else self.source
@@ -275,7 +269,7 @@ class _Reader:
         }
         for path, fault in ((("faults", i), f) for i, f in enumerate(plan.faults)):
             self.fault(fault, path, names, plan.duration)
-        if plan.compare is not None:
+        if plan.compare is not None and not variant:  # a variant's setting has its value
             self.compare(plan.compare)
         return plan
 
@@ -357,7 +351,7 @@ class _Reader:
             refuse(key in names and item not in names[key], (*path, "after", key), problem)
         # -- whom: the targets
         given = "target" in table
-        missing = f"'target' is missing{MISSING['target']}"
+        missing = f"'target' is missing{PURPOSE['target']}"
         refuse(not given and kind != "kill_resource", path, missing)
         threads = all(m.isolation == "thread" for m in managers.values())
         problem = "kill_resource kills resource processes of process managers; every manager of "
@@ -369,7 +363,7 @@ class _Reader:
             refuse(thread, at, f"{kind} needs a process manager; {name!r} has isolation 'thread'")
         # -- when: within the run, not too often
         hang = kind == "hang_manager" and fault.for_s is None
-        refuse(hang, path, f"'for' is missing{MISSING['for']}")
+        refuse(hang, path, f"'for' is missing{PURPOSE['for']}")
         none = "must give at least one time (seconds)"
         refuse("at" in table and not fault.at, (*path, "at"), none)
         end = f"the end of the run ({duration:g} s)"
