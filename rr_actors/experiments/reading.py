@@ -73,10 +73,8 @@ HINT = {"initial": schema.SecondsOrZero, "max": schema.SecondsOrZero}  # `Backof
 LISTS = ("at", "target")  # a fault's keys that take one value or an array of them
 # -- a fault's keys that only go with another key, or with some kinds ---------------------------
 NEEDS_KEY = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
-NEEDS_KIND: dict[str, tuple[str, ...]] = dict.fromkeys(
-    ("loads", "server", "message"), ("load_error",)
-)
-NEEDS_KIND |= {"for": ("hang_manager", "load_error")}
+NEEDS_KIND = {"for": ("hang_manager", "load_error"), "loads": ("load_error",)}
+NEEDS_KIND |= {"server": ("load_error",), "message": ("load_error",)}
 
 
 def load_plan(path: str | os.PathLike[str]) -> Plan:
