@@ -56,7 +56,7 @@ def held(data: Any, path: KeyPath) -> KeyPath:
 
 def _holds(rows: list[str], path: KeyPath) -> bool:
     """Whether the data of `rows`, closed if cut inside a value, has a value at `path`."""
-    for closer in ("", "]", "]]", "]]]", '"""', "'''"):
+    for closer in ("", "]", "]]", "]]]", '"""', "'''", '"""]', "''']"):
         try:
             return held(tomllib.loads(f"{''.join(rows)}\n{closer}"), path) == path
         except tomllib.TOMLDecodeError:
