@@ -231,9 +231,10 @@ class _Reader:
             return self.check(item, HINT.get(key, hint), path)
         if not many:
             return self.decode(classes[0], item, path)
-        items, kinds = self.check(item, list[dict[str, Any]], path), (classes[0], classes[-1])
+        items = self.check(item, list[dict[str, Any]], path)  # a supervisor has children:
         return tuple(
-            self.decode(kinds["children" in x], x, (*path, i)) for i, x in enumerate(items)
+            self.decode(classes[-1] if "children" in x else classes[0], x, (*path, i))
+            for i, x in enumerate(items)
         )
 
     def importable(self, path: KeyPath, name: str, call: KeyPath, *args: Any, **kw: Any) -> None:
