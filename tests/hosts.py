@@ -392,6 +392,21 @@ class Worker:
             reader.join(STOP_TIMEOUT)
 
 
+def _kill_and_wait(pids: list[int]) -> None:
+    """SIGKILL `pids` and wait (bounded) until each has ended (pidfds: children or not)."""
+    pidfds = []
+    for pid in pids:
+        with contextlib.suppress(ProcessLookupError):
+            pidfds.append(os.pidfd_open(pid))
+            os.kill(pid, signal.SIGKILL)
+    try:
+        for pidfd in pidfds:
+            select.select([pidfd], [], [], STOP_TIMEOUT)
+    finally:
+        for pidfd in pidfds:
+            os.close(pidfd)
+
+
 def _pythonpath() -> list[str]:
     return [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
 
@@ -458,10 +473,24 @@ class Host:
             raise RuntimeError(f"{' '.join(command)} in {self.namespace}: {done.stderr.strip()}")
         return done.stdout
 
+    def pids(self) -> list[int]:
+        """Every process in this host's namespace (`ip netns pids`; none for a local host)."""
+        if self.namespace is None:
+            return []
+        done = subprocess.run(
+            ["ip", "netns", "pids", self.namespace],  # noqa: S607
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        return [int(pid) for pid in done.stdout.split()]
+
     def close(self) -> None:
+        """Stop every worker, then SIGKILL whatever they left running in the namespace."""
         for worker in reversed(self._workers):
             worker.stop()
         self._default = None
+        _kill_and_wait(self.pids())
 
 
 class TwoHosts:

@@ -119,6 +119,33 @@ def test_leaving_the_hosts_stops_the_workers_and_deletes_the_namespaces_also_aft
     assert [False, False] == [worker.alive for worker in workers]
 
 
+def start_detached() -> int:
+    """Start a process that survives its worker (a new session, no death signal); its pid."""
+    process = subprocess.Popen(
+        [sys.executable, "-c", "import select; select.select([], [], [], 60)"],
+        start_new_session=True,
+    )
+    return process.pid
+
+
+def test_leaving_the_hosts_kills_what_a_worker_left_running_in_its_namespace() -> None:
+    reason = hosts.require_root()
+    if reason is not None:
+        pytest.skip(reason)
+
+    with hosts.TwoHosts() as made:
+        left = made.a.call(start_detached, timeout=10)
+        made.a.worker.stop()
+        assert [left] == made.a.pids()
+        pidfd = os.pidfd_open(left)
+
+    try:
+        gone, _, _ = select.select([pidfd], [], [], 0)
+    finally:
+        os.close(pidfd)
+    assert gone, f"process {left} outlived its host"
+
+
 ORPHANED = textwrap.dedent(
     """
     import os, sys, select
