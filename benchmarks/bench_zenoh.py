@@ -406,6 +406,8 @@ def report(rounds: int, trips: Trips, ends: Ends) -> None:
         print("| event -> seen | runs | median ms | max ms | target |")
         print("|---|---:|---:|---:|---|")
         for name, samples, target in ends:
+            if not samples:  # (`--kills 0`, `--cuts 0`)
+                continue
             median, _ = stats(samples)
             worst = max(samples)
             print(
