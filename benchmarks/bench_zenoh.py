@@ -40,8 +40,6 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import hosts  # noqa: E402 (tests/hosts.py: the two-host harness)
 
-import rr_actors as rr  # noqa: E402
-
 PORT = 7447
 """The Zenoh port inside each namespace (a namespace has its own ports: no clash)."""
 
@@ -109,43 +107,9 @@ def raw_token_ends(two: hosts.TwoHosts, repeats: int, *, cut: bool) -> list[floa
 # Written against the public API of issue 22 before its carrier landed:
 #     net = rr.ZenohNetwork(system=, listen=, connect=, tls=None, lease=)
 #     rr.ResourceRegistrar.start(config, setup=..., network=net)
-# Each function below runs in a worker: one `ZenohNetwork` per worker process (a process belongs
-# to one system), kept in the worker's `hosts.KEPT` with its registrars.
-
-
-def has_carrier() -> bool:
-    """Whether this rr_actors has the Zenoh carrier (`rr.ZenohNetwork`)."""
-    return hasattr(rr, "ZenohNetwork")
-
-
-def rr_join(listen: list[str], connect: list[str]) -> None:
-    """Make this worker's `ZenohNetwork` (plain TCP: `tls=None`, as issue 22's step 1)."""
-    import rr_actors as rr  # noqa: PLC0415
-
-    hosts.KEPT["network"] = rr.ZenohNetwork(
-        system=SYSTEM, listen=listen, connect=connect, tls=None, lease=LEASE
-    )
-    hosts.KEPT["registrars"] = {}
-
-
-def rr_start(name: str, setup: Callable[[Any], None] | None) -> None:
-    """Start registrar `name` in this worker, served on its network."""
-    import rr_actors as rr  # noqa: PLC0415
-
-    registrar = rr.ResourceRegistrar.start(
-        rr.RegistrarConfig(name=name), setup=setup, network=hosts.KEPT["network"]
-    )
-    hosts.KEPT["registrars"][name] = registrar
-
-
-def rr_stop() -> None:
-    """Stop this worker's registrars, then its network (if it has `close`)."""
-    for registrar in reversed(list(hosts.KEPT.get("registrars", {}).values())):
-        with contextlib.suppress(Exception):
-            registrar.stop()
-    close = getattr(hosts.KEPT.get("network"), "close", None)
-    if close is not None:
-        close()
+# (`hosts.rr_join`, `hosts.rr_start`). Each function below runs in a worker: one `ZenohNetwork`
+# per worker process (a process belongs to one system), kept in the worker's `hosts.KEPT` with
+# its registrars.
 
 
 def setup_echo(registrar: Any) -> None:
@@ -179,23 +143,6 @@ def agent_setup(provider: str) -> Callable[[Any], None]:
         registrar.register_server("composite", load=load, unload=lambda _q, _r: None)
 
     return setup
-
-
-def rr_until_answered(consumer: str, provider: str, server: str, timeout: float) -> None:
-    """Call until `provider` answers (its host may still be joining); unload what was loaded."""
-    import rr_actors as rr  # noqa: PLC0415
-
-    registrar = hosts.KEPT["registrars"][consumer]
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            query = registrar.call(provider, server, {"probe": 1}, timeout=5)
-        except (rr.UnknownRegistrarError, rr.RegistrarUnavailableError):
-            if time.monotonic() > deadline:
-                raise
-            continue
-        registrar.unload(query.id)
-        return
 
 
 def timed(fn: Callable[[], Any], rounds: int, warmup: int = 100) -> list[float]:
@@ -268,14 +215,14 @@ def rr_worker(
     """A worker on `host` with its network and the registrars `(name, setup)`; stopped after."""
     worker = host.spawn()
     try:
-        worker.call(rr_join, listen, connect, timeout=30)
+        worker.call(hosts.rr_join, system=SYSTEM, listen=listen, connect=connect, timeout=30)
         for name, setup in names:
-            worker.call(rr_start, name, setup, timeout=30)
+            worker.call(hosts.rr_start, name, setup, timeout=30)
         yield worker
     finally:
         if worker.alive:
             with contextlib.suppress(Exception):
-                worker.call(rr_stop, timeout=30)
+                worker.call(hosts.rr_stop, timeout=30)
             worker.stop()
 
 
@@ -288,7 +235,7 @@ def rr_dedup(
         rr_worker(server, [near], [], ("erm", setup_echo)),
         rr_worker(client, [far], [near], ("app", None)) as consumer,
     ):
-        consumer.call(rr_until_answered, "app", "erm", "echo", 30.0, timeout=60)
+        consumer.call(hosts.rr_until_answered, "app", "erm", "echo", 30.0, timeout=60)
         return consumer.call(rr_dedup_hits, "app", "erm", rounds, timeout=600)
 
 
@@ -299,7 +246,7 @@ def rr_status(two: hosts.TwoHosts, rounds: int) -> list[float]:
         rr_worker(two.a, [a], [], ("provider", setup_echo), ("main", None)) as near,
         rr_worker(two.b, [b], [a], ("agent", agent_setup("provider"))),
     ):
-        near.call(rr_until_answered, "main", "agent", "composite", 30.0, timeout=60)
+        near.call(hosts.rr_until_answered, "main", "agent", "composite", 30.0, timeout=60)
         near.call(rr_hold_composite, "main", "agent", timeout=30)
         samples = near.call(rr_status_timings, "provider", rounds, timeout=600)
         heard = near.call(rr_heard, timeout=10)
@@ -324,7 +271,7 @@ def rr_failures(two: hosts.TwoHosts, repeats: int, *, cut: bool) -> list[float]:
             name = f"victim-{next(_victims)}"
             listen = [two.a.endpoint(PORT + 1)]
             with rr_worker(two.a, listen, [b], (name, setup_hang)) as victim:
-                consumer.call(rr_until_answered, "app", name, "echo", 30.0, timeout=60)
+                consumer.call(hosts.rr_until_answered, "app", name, "echo", 30.0, timeout=60)
                 in_flight: Future[float] = consumer.submit(rr_call_in_flight, "app", name)
                 if not consumer.call(rr_wait_started, "app", name, timeout=30):
                     raise RuntimeError("the load never started")
@@ -428,7 +375,7 @@ def main() -> None:
     why_not_rr = None
     if args.only == "raw":
         why_not_rr = "--only raw"
-    elif not has_carrier():
+    elif not hosts.has_carrier():
         why_not_rr = "rr_actors has no ZenohNetwork yet (issue 22)"
 
     trips = measure_loopback(args.rounds, with_rr=why_not_rr is None)

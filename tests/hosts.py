@@ -722,3 +722,70 @@ def zenoh_close() -> None:
     KEPT.clear()
     if session is not None:
         session.close()
+
+
+# -- rr_actors in a worker (issue 22's API: `rr.ZenohNetwork`, `start(..., network=)`) ---------
+#
+# One `ZenohNetwork` per worker (a process belongs to one system), kept in its `KEPT` with the
+# registrars it started there. `rr_run` runs any function with one of them in the worker.
+
+
+def has_carrier() -> bool:
+    """Whether this rr_actors has the Zenoh carrier (`rr.ZenohNetwork`)."""
+    import rr_actors as rr  # noqa: PLC0415
+
+    return hasattr(rr, "ZenohNetwork")
+
+
+def rr_join(*, system: str, listen: list[str], connect: list[str], lease: float = 1.0) -> None:
+    """Make this worker's `ZenohNetwork` (plain TCP: `tls=None`, issue 22's step 1)."""
+    import rr_actors as rr  # noqa: PLC0415
+
+    make = getattr(rr, "ZenohNetwork")  # noqa: B009 (not in rr_actors until the carrier lands)
+    KEPT["network"] = make(system=system, listen=listen, connect=connect, tls=None, lease=lease)
+    KEPT["registrars"] = {}
+
+
+def rr_start(name: str, setup: Callable[[Any], object] | None = None) -> None:
+    """Start registrar `name` in this worker, served on its network."""
+    import rr_actors as rr  # noqa: PLC0415
+
+    start: Any = rr.ResourceRegistrar.start
+    KEPT["registrars"][name] = start(
+        rr.RegistrarConfig(name=name), setup=setup, network=KEPT["network"]
+    )
+
+
+def rr_run(name: str, fn: Callable[..., T], *args: Any) -> T:
+    """`fn(registrar, *args)` with this worker's registrar `name`."""
+    return fn(KEPT["registrars"][name], *args)
+
+
+def rr_until_answered(consumer: str, provider: str, server: str, timeout: float) -> None:
+    """Call `provider/server` from `consumer` until it answers (its host may still be joining;
+    a retry, not a sleep: each failure is immediate), then unload what was loaded."""
+    import time  # noqa: PLC0415
+
+    import rr_actors as rr  # noqa: PLC0415
+
+    registrar = KEPT["registrars"][consumer]
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            query = registrar.call(provider, server, {"probe": 1}, timeout=5)
+        except (rr.UnknownRegistrarError, rr.RegistrarUnavailableError):
+            if time.monotonic() > deadline:
+                raise
+            continue
+        registrar.unload(query.id)
+        return
+
+
+def rr_stop() -> None:
+    """Stop this worker's registrars (newest first), then its network (if it has `close`)."""
+    for registrar in reversed(list(KEPT.get("registrars", {}).values())):
+        with contextlib.suppress(Exception):
+            registrar.stop()
+    close = getattr(KEPT.get("network"), "close", None)
+    if close is not None:
+        close()
