@@ -31,10 +31,10 @@ Why these choices:
   connection (accepted with a bound, watching the worker's pidfd so a worker that died at
   start fails at once with its output).
 
-Functions sent with `call` are cloudpickled; those of a test module or a benchmark are sent by
-value (their module is registered with cloudpickle), those of this module by reference, so a
-function can keep state in the worker between calls in `KEPT` (this module's dict, in the
-worker's own copy of this module).
+Functions sent with `call`, and their arguments, are cloudpickled; those of test modules and
+benchmarks are sent by value (every such module is registered with cloudpickle), those of this
+module by reference, so a function can keep state in the worker between calls in `KEPT` (this
+module's dict, in the worker's own copy of this module).
 """
 
 from __future__ import annotations
@@ -54,7 +54,6 @@ import sys
 import tempfile
 import threading
 import traceback
-import types
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
@@ -195,16 +194,20 @@ def _exit_at_eof() -> None:  # pragma: no cover (runs in the worker)
 # -- the test's side ---------------------------------------------------------------------------
 
 
-def _by_value(fn: Callable[..., Any]) -> None:
-    """Send `fn`'s module by value if it is a test or benchmark module (workers lack it)."""
-    module = sys.modules.get(getattr(fn, "__module__", "") or "")
-    path = getattr(module, "__file__", None)
-    if not isinstance(module, types.ModuleType) or module.__name__ in {__name__, "__main__"}:
-        return
-    if path and (
-        Path(path).is_relative_to(TESTS) or Path(path).is_relative_to(ROOT / "benchmarks")
-    ):
-        cloudpickle.register_pickle_by_value(module)
+_BY_VALUE: set[str] = set()
+"""The modules already registered with cloudpickle to be sent by value."""
+
+
+def _by_value() -> None:
+    """Send test and benchmark modules by value (workers cannot import them by name)."""
+    for name, module in list(sys.modules.items()):
+        path = getattr(module, "__file__", None)
+        if name in _BY_VALUE or name in {__name__, "__main__"} or not path:
+            continue
+        where = Path(path)
+        if where.is_relative_to(TESTS) or where.is_relative_to(ROOT / "benchmarks"):
+            cloudpickle.register_pickle_by_value(module)
+            _BY_VALUE.add(name)
 
 
 class Worker:
@@ -335,7 +338,7 @@ class Worker:
 
     def submit(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> Future[T]:
         """Run `fn(*args, **kwargs)` in the worker; the future holds its result or exception."""
-        _by_value(fn)
+        _by_value()
         payload = cloudpickle.dumps((fn, args, kwargs))
         future: Future[T] = Future()
         with self._lock:
