@@ -267,3 +267,85 @@ def test_a_call_to_a_name_of_another_system_fails_at_once_naming_the_callers_sys
 
     assert time.monotonic() - started < 2.0
     other.call(hosts.rr_stop, timeout=30)
+
+
+# -- a supervisor on each host -----------------------------------------------------------------
+
+
+def cm_setup(registrar: rr.ResourceRegistrar) -> None:
+    """`filtered` depends on the camera of `erm`, on the other host."""
+
+    def load(request: Any) -> Any:
+        return registrar.call("erm", "camera", request, timeout=10).response
+
+    registrar.register_server("filtered", load=load, unload=lambda _q, _r: None)
+
+
+def start_tree(manager: str, setup: Any, state_dir: str, consumer: str | None = None) -> None:
+    """A supervisor in this worker with one process manager, on the worker's network."""
+    make: Any = rr.Supervisor
+    sup = make(
+        [rr.ManagerSpec(manager, setup=setup, isolation="process")],
+        state_dir=state_dir,
+        network=hosts.KEPT["network"],
+    )
+    sup.start()
+    hosts.KEPT["sup"] = sup
+    if consumer is not None:
+        hosts.KEPT["registrars"][consumer] = sup.registrar(consumer)
+
+
+def manager_pid(name: str) -> int:
+    pid = hosts.KEPT["sup"].child(name).pid
+    assert pid is not None
+    return int(pid)
+
+
+def wait_restarted(name: str, timeout: float) -> None:
+    hosts.KEPT["sup"].wait_restarted(name, timeout=timeout)
+
+
+def stop_tree() -> None:
+    sup = hosts.KEPT.pop("sup", None)
+    if sup is not None:
+        sup.stop()
+
+
+def call_filtered(registrar: rr.ResourceRegistrar, device: int) -> str:
+    return registrar.call(
+        "cm", "filtered", {"device": device}, on_status=record_status, timeout=10
+    ).id
+
+
+def until_filtered(registrar: rr.ResourceRegistrar, device: int, timeout: float) -> str:
+    """`call_filtered` until it succeeds (each failure is immediate: a retry, not a sleep)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return call_filtered(registrar, device)
+        except rr.RegistrarUnavailableError:
+            if time.monotonic() > deadline:
+                raise
+
+
+@pytest.mark.timeout(120)
+def test_a_supervised_manager_killed_on_one_host_comes_back_without_fatal_for_the_other(
+    two_hosts: hosts.TwoHosts,
+) -> None:
+    a, b = two_hosts.a.spawn(), two_hosts.b.spawn()
+    here, there = two_hosts.a.endpoint(PORT), two_hosts.b.endpoint(PORT)
+    a.call(hosts.rr_join, system=SYSTEM, listen=[here], connect=[], timeout=30)
+    b.call(hosts.rr_join, system=SYSTEM, listen=[there], connect=[here], timeout=30)
+    a.call(start_tree, "erm", provider_setup, str(two_hosts.directory / "a"), timeout=60)
+    b.call(start_tree, "cm", cm_setup, str(two_hosts.directory / "b"), "app-b", timeout=60)
+    try:
+        b.call(hosts.rr_run, "app-b", until_filtered, 9, 15.0, timeout=30)
+
+        os.kill(a.call(manager_pid, "erm", timeout=10), signal.SIGKILL)
+        a.call(wait_restarted, "erm", 10.0, timeout=15)
+        b.call(hosts.rr_run, "app-b", until_filtered, 10, 10.0, timeout=15)
+
+        assert 0 == b.call(more_statuses, timeout=5)  # no FATAL: erm was not lost
+    finally:
+        b.call(stop_tree, timeout=60)
+        a.call(stop_tree, timeout=60)
