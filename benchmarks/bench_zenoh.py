@@ -79,27 +79,47 @@ def raw_round_trips(server: hosts.Host, client: hosts.Host, port: int, rounds: i
         near.stop()
 
 
-def raw_token_ends(two: hosts.TwoHosts, repeats: int, *, cut: bool) -> list[float]:
-    """Seconds from a SIGKILL of the token's process (or a link cut) to its end seen from b."""
+def raw_kills(two: hosts.TwoHosts, repeats: int) -> list[float]:
+    """Seconds from a SIGKILL of the token's process on a to its end seen from b."""
     samples = []
     for _ in range(repeats):
         near, far = raw_pair(two.a, two.b, PORT)
         try:
             start = time.monotonic()
-            if cut:
-                two.link_down()
-            else:
-                os.kill(near.pid, signal.SIGKILL)
-            kind, _, seen = far.call(hosts.zenoh_next_event, 30.0, timeout=40)
-            if kind != "delete":
-                raise RuntimeError(f"expected the token's end, saw {kind}")
-            samples.append(seen - start)
+            os.kill(near.pid, signal.SIGKILL)
+            samples.append(next_change(far, "delete") - start)
         finally:
-            if cut:
-                two.link_up()
             far.stop()
             near.kill()
     return samples
+
+
+def raw_cuts(two: hosts.TwoHosts, repeats: int) -> tuple[list[float], list[float]]:
+    """Seconds from a link cut to the token's end seen from b, and from the link up again
+    to the token back (Zenoh reconnects by itself)."""
+    gone, back = [], []
+    for _ in range(repeats):
+        near, far = raw_pair(two.a, two.b, PORT)
+        try:
+            start = time.monotonic()
+            two.link_down()
+            gone.append(next_change(far, "delete") - start)
+            start = time.monotonic()
+            two.link_up()
+            back.append(next_change(far, "put") - start)
+        finally:
+            two.link_up()
+            far.stop()
+            near.stop()
+    return gone, back
+
+
+def next_change(worker: hosts.Worker, expected: str) -> float:
+    """When the next liveliness change seen by `worker` happened; it must be `expected`."""
+    kind, _, seen = worker.call(hosts.zenoh_next_event, 30.0, timeout=40)
+    if kind != expected:
+        raise RuntimeError(f"expected a token's {expected}, saw its {kind}")
+    return seen
 
 
 # -- rr_actors over Zenoh (issue 22) -------------------------------------------------------------
@@ -258,14 +278,16 @@ def rr_status(two: hosts.TwoHosts, rounds: int) -> list[float]:
 _victims = itertools.count()
 
 
-def rr_failures(two: hosts.TwoHosts, repeats: int, *, cut: bool) -> list[float]:
-    """ROWS "SIGKILL of a remote manager to calls failing" and "link cut to calls failing".
+def rr_failures(two: hosts.TwoHosts, repeats: int, *, cut: bool) -> tuple[list[float], list[float]]:
+    """ROWS "SIGKILL of a remote manager to calls failing", "link cut to calls failing" and
+    "link up to calls working".
 
     Seconds from the SIGKILL of a provider's process on host a (or from the link cut) to
-    the failure of a call in flight to it from host b.
+    the failure of a call in flight to it from host b; after a cut, also from the link up
+    again to the first call that succeeds (an empty list for kills).
     """
     b = two.b.endpoint(PORT)
-    samples = []
+    failed, working = [], []
     with rr_worker(two.b, [b], [], ("app", None)) as consumer:
         for _ in range(repeats):
             name = f"victim-{next(_victims)}"
@@ -281,11 +303,15 @@ def rr_failures(two: hosts.TwoHosts, repeats: int, *, cut: bool) -> list[float]:
                 else:
                     os.kill(victim.pid, signal.SIGKILL)
                 try:
-                    samples.append(in_flight.result(30) - start)
+                    failed.append(in_flight.result(30) - start)
                 finally:
                     if cut:
+                        start = time.monotonic()
                         two.link_up()
-    return samples
+                if cut:
+                    consumer.call(hosts.rr_until_answered, "app", name, "echo", 30.0, timeout=60)
+                    working.append(time.monotonic() - start)
+    return failed, working
 
 
 # -- report -----------------------------------------------------------------------------------
@@ -322,18 +348,21 @@ def measure_hosts(rounds: int, kills: int, cuts: int, *, with_rr: bool) -> tuple
     with hosts.TwoHosts() as two:
         floor = raw_round_trips(two.a, two.b, PORT, rounds)
         trips = [("raw Zenoh get, across the veth (floor)", floor, floor)]
+        gone, back = raw_cuts(two, cuts)
         ends = [
-            ("raw: SIGKILL -> token gone", raw_token_ends(two, kills, cut=False), ""),
-            ("raw: link cut -> token gone", raw_token_ends(two, cuts, cut=True), ""),
+            ("raw: SIGKILL -> token gone", raw_kills(two, kills), ""),
+            ("raw: link cut -> token gone", gone, ""),
+            ("raw: link up -> token back", back, ""),
         ]
         if with_rr:
             dedup = rr_dedup(two.a, two.b, (PORT, PORT), rounds)
             trips.append(("rr_actors cross-host dedup hit (target <= 2x)", dedup, floor))
             trips.append(("send_status over 3 hops across hosts", rr_status(two, rounds), floor))
-            killed = rr_failures(two, kills, cut=False)
+            killed, _ = rr_failures(two, kills, cut=False)
             ends.append(("SIGKILL of a remote manager -> call fails", killed, "< 50 ms"))
-            cut = rr_failures(two, cuts, cut=True)
+            cut, healed = rr_failures(two, cuts, cut=True)
             ends.append(("link cut -> call fails", cut, f"the lease, {LEASE:g} s"))
+            ends.append(("link up -> a call works again", healed, "< 10 s"))
     return trips, ends
 
 
