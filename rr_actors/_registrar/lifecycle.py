@@ -218,6 +218,7 @@ class Lifecycle:
     def op_stop(self, reply: Reply) -> None:
         """Unload what this registrar holds as a consumer (newest first), then stop (rule 12)."""
         self.registrar.phase = Phase.STOPPING
+        self.actor.presence.close()  # no more reconcile retries
         stopped = RegistrarStoppedError(
             f"registrar {self.registrar.name!r} stopped during the call"
         )
@@ -274,6 +275,7 @@ class Lifecycle:
     def die(self) -> None:
         """A crash: fail every waiting caller, release this consumer's ids elsewhere."""
         self.registrar.phase = Phase.ENDED
+        self.actor.presence.close()
         DIRECTORY.unregister(self.registrar.peer, "died")
         self.fail_waiting(RegistrarUnavailableError(f"registrar {self.registrar.name!r} died"))
         self.stop_children()
