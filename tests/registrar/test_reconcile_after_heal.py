@@ -9,6 +9,7 @@ reconcile by itself, and only the consumer's retries can settle what it lost.
 
 from __future__ import annotations
 
+import itertools
 import sys
 import threading
 import time
@@ -77,7 +78,7 @@ def test_the_reconcile_backoff_doubles_up_to_its_bound() -> None:
     delays = [retry_delay(n) for n in range(1, 12)]
 
     assert RETRY_FIRST == delays[0]
-    assert all(b == min(2 * a, RETRY_MAX) for a, b in zip(delays, delays[1:], strict=False))
+    assert all(b == min(2 * a, RETRY_MAX) for a, b in itertools.pairwise(delays))
     assert RETRY_MAX == max(delays) == retry_delay(10**6)
 
 
