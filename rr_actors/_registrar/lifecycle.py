@@ -282,8 +282,10 @@ class Lifecycle:
         if self.flush_timer is not None:
             self.flush_timer.cancel()
         self.registrar.saver.close(erase=False, flush=False)  # a crash writes nothing more
-        if not DIRECTORY.restart_expected(self.registrar.name):
-            DIRECTORY.broadcast(ConsumerDown(self.registrar.name), skip=self.registrar.name)
+        if not DIRECTORY.restart_expected(self.registrar.name):  # gone for good (rule 19):
+            DIRECTORY.broadcast(  # every registrar of the system, other processes too
+                ConsumerDown(self.registrar.name), also=DIRECTORY.names(), skip=self.registrar.name
+            )
         self.died.set()
 
     # -- whoever still waits ----------------------------------------------------------

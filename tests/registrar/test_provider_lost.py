@@ -28,6 +28,7 @@ from rr_actors.testing import (
     SharedObjects,
     System,
     catalog_snapshot,
+    crash,
     start_forkserver,
 )
 
@@ -236,3 +237,21 @@ def test_a_provider_lost_twice_reports_each_callback_once_and_unloads_once(
     assert [(top.id, rr.Status.FATAL)] == server_heard
     assert ["camera", "lidar"] == sorted(unloads)  # each resource's unload, once
     assert [] == [r for r in catalog_snapshot(provider).resources if r.server == "leaf"]
+
+
+def test_an_unsupervised_registrar_of_this_process_that_dies_is_lost_for_other_processes(
+    system: System, process_helpers: SharedObjects
+) -> None:
+    heard = process_helpers.list()
+    provider = rr.ResourceRegistrar.start(named("provider"), setup=leaf_setup(), network=system)
+    consumer = RemoteRegistrar.start(named("consumer"), system)
+    try:
+        query = consumer.call(provider.name, "leaf", "camera", on_status=Heard(heard))
+
+        crash(provider)  # its actor dies; nobody restarts it
+        assert wait_until(lambda: len(heard) > 0, BOUND)
+
+        assert [(query.id, rr.Status.FATAL, f"{provider.name}/leaf")] == list(heard)
+        assert [] == consumer.client_queries()
+    finally:
+        consumer.stop()

@@ -152,3 +152,23 @@ def test_an_id_released_while_the_provider_could_not_answer_is_unloaded_once_it_
         assert ["camera"] == list(unloads)  # once, whoever reconciled first
     finally:
         back.stop()
+
+
+def test_a_consumer_that_stops_while_it_retries_stops_cleanly_and_retries_no_more(
+    system: System, process_helpers: SharedObjects
+) -> None:
+    unloads = process_helpers.list()
+    name = named("provider")
+    provider = RemoteRegistrar.start(name, system, setup=leaf_setup(unloads))
+    consumer = rr.ResourceRegistrar.start(named("consumer"), network=system)
+    retries = threading.Event()
+    intercept(consumer, "reconcile_retry", before=lambda _m: retries.set())
+    consumer.call(name, "leaf", "camera", timeout=10)
+    with expect_restart(name):
+        provider.kill()
+    Served(consumer).peer_reachable(name)
+    assert retries.wait(5)
+
+    consumer.stop(timeout=5)  # its release cannot reach the provider: it goes anyway
+
+    assert not consumer.is_alive()
