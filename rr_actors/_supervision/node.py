@@ -254,7 +254,7 @@ class Node:
         if restarted and isinstance(spec, ManagerSpec):
             death_watch_missed(tree, child.name)
             if self._config(spec).backup_path is None:  # (one with a backup asks itself)
-                lost_everything(self.root(), child.name)
+                lost_everything(self.root(), child.name, tree.processes.system)
 
     def _published_start(self, child: Child, *, restarted: bool) -> None:
         """Publish `ChildStarted`, or `ChildRestarted` with the time it was down."""

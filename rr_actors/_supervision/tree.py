@@ -320,14 +320,17 @@ def consumer_down(root: Level, name: str, network: Transport | None = None) -> N
     DIRECTORY.broadcast(ConsumerDown(name), also=living, skip=name)
 
 
-def lost_everything(root: Level, name: str) -> None:
+def lost_everything(root: Level, name: str, network: Transport | None = None) -> None:
     """Manager `name`, which keeps no backup, restarted with an empty catalog: every
-    registrar of the tree that holds ids there reconciles with it, and hears `FATAL` for
-    each (rule 20; a manager with a backup asks them itself when it serves again).
+    registrar of the system that holds ids there reconciles with it, and hears `FATAL`
+    for each (rule 20; a manager with a backup asks them itself when it serves again).
 
-    `root`: the tree's root supervisor (its living process managers are told too).
+    `root`: the tree's root supervisor (its living process managers are told too);
+    `network`: the tree's carrier, whose registrars are told too.
     """
     living = _process_managers(root)
+    if network is not None and not network.closed:
+        living.extend(network.names())
     DIRECTORY.broadcast(ReconcileAsk(name, holds_yours=False), also=living, skip=name)
 
 

@@ -8,16 +8,18 @@ plugs into the same keywords.
 from __future__ import annotations
 
 import sys
+import threading
+import time
 import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import cloudpickle
 import pytest
-from supervising import echo_setup, process
+from supervising import echo_setup, kill_and_wait_restarted, process
 
 import rr_actors as rr
-from rr_actors.testing import RemoteRegistrar, System, start_forkserver
+from rr_actors.testing import RemoteRegistrar, SharedObjects, System, start_forkserver
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -149,3 +151,43 @@ def test_a_registrar_given_something_else_as_its_network_raises_config_error_and
         rr.ResourceRegistrar.start(name, network=object())  # type: ignore[arg-type]
     registrar = rr.ResourceRegistrar.start(name)  # the name is free
     started.append(registrar)
+
+
+def test_a_consumer_outside_the_tree_hears_fatal_for_ids_a_restart_without_backup_lost(
+    network: System,
+    outsider: Callable[[], RemoteRegistrar],
+    supervisors: Callable[..., rr.Supervisor],
+    process_helpers: SharedObjects,
+) -> None:
+    name = named("proc")
+    heard = process_helpers.list()
+    sup = supervisors([process(name)], network=network)  # no state_dir: no backup
+    with sup:
+        other = outsider()
+        query = other.call(name, "echo", "camera", on_status=Heard(heard), timeout=10)
+
+        kill_and_wait_restarted(sup, name)
+        assert wait_until(lambda: len(heard) > 0, 10)
+
+        assert [(query.id, rr.Status.FATAL)] == list(heard)
+        assert [] == other.client_queries()
+
+
+class Heard:
+    """A status callback that records `(query id, status)` in a shared list."""
+
+    def __init__(self, records: Any) -> None:
+        self.records = records
+
+    def __call__(self, query: rr.Query, update: rr.StatusUpdate) -> None:
+        self.records.append((query.id, update.status))
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    pause = threading.Event()
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        pause.wait(0.005)
+    return True
