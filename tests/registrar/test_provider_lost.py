@@ -237,6 +237,7 @@ def test_a_provider_lost_twice_reports_each_callback_once_and_unloads_once(
     assert [(top.id, rr.Status.FATAL)] == server_heard
     assert ["camera", "lidar"] == sorted(unloads)  # each resource's unload, once
     assert [] == [r for r in catalog_snapshot(provider).resources if r.server == "leaf"]
+    assert () == catalog_snapshot(middle).clients  # (its invariants hold: checked)
 
 
 def test_an_unsupervised_registrar_of_this_process_that_dies_is_lost_for_other_processes(
