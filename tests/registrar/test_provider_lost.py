@@ -256,3 +256,43 @@ def test_an_unsupervised_registrar_of_this_process_that_dies_is_lost_for_other_p
         assert [] == consumer.client_queries()
     finally:
         consumer.stop()
+
+
+def test_managers_of_a_nested_supervisor_that_gave_up_and_is_restarted_are_not_lost(
+    supervisors: Callable[..., rr.Supervisor], tmp_path: Any
+) -> None:
+    name = named("provider")
+    nested = rr.SupervisorSpec(named("nested"), (process(name, leaf_setup()),), max_restarts=0)
+    sup = supervisors([nested], state_dir=tmp_path)  # restarts the nested one (permanent)
+    heard: list[Any] = []
+    with sup:
+        app = sup.registrar(named("app"))
+        held = app.call(name, "leaf", "camera", on_status=Heard(heard), timeout=10)
+
+        sigkill(sup, name)  # the nested supervisor gives up at once; its parent restarts it
+        sup.wait_restarted(nested.name, timeout=15)
+        sup.wait_restarted(name, timeout=15)
+        app.unload(held.id, timeout=10)  # still held: not lost
+
+        assert [] == heard
+
+
+def test_managers_of_a_nested_supervisor_that_gave_up_for_good_are_lost(
+    supervisors: Callable[..., rr.Supervisor],
+) -> None:
+    name = named("provider")
+    nested = rr.SupervisorSpec(
+        named("nested"), (process(name, leaf_setup()),), max_restarts=0, restart="temporary"
+    )
+    sup = supervisors([nested])
+    heard: list[Any] = []
+    with sup:
+        app = sup.registrar(named("app"))
+        held = app.call(name, "leaf", "camera", on_status=Heard(heard), timeout=10)
+
+        sigkill(sup, name)  # it gives up; a temporary supervisor is not restarted
+        assert wait_until(lambda: len(heard) > 0, 15)
+
+        assert [(held.id, rr.Status.FATAL, f"{name}/leaf")] == heard
+        with pytest.raises(rr.UnknownQueryError):
+            app.unload(held.id, timeout=5)
