@@ -66,6 +66,7 @@ import pytest
 from gating import GatedLoad, same
 
 import rr_actors as rr
+from rr_actors._transport.base import Transport
 from rr_actors.testing import (
     RemoteRegistrar,
     SharedObjects,
@@ -249,6 +250,13 @@ Registrar = rr.ResourceRegistrar | RemoteRegistrar
 MakeRegistrar = Callable[..., Registrar]
 
 
+def placement_network(placement: str) -> Transport:
+    """A fresh system (any carrier's `Transport`) for a placement's manager processes."""
+    if placement == "process":
+        return System.create()
+    raise AssertionError(f"no carrier for placement {placement!r}")
+
+
 @pytest.fixture
 def make_registrar(
     registrar_placement: str, request: pytest.FixtureRequest, process_helpers: SharedObjects
@@ -261,12 +269,12 @@ def make_registrar(
     first.
     """
     started: list[Registrar] = []
-    system: System | None = None
-    if registrar_placement == "process":
+    system: Transport | None = None
+    if registrar_placement != "thread":
         cloudpickle.register_pickle_by_value(sys.modules[__name__])
         cloudpickle.register_pickle_by_value(gating)
         cloudpickle.register_pickle_by_value(request.module)
-        system = System.create()
+        system = placement_network(registrar_placement)
 
     def make(prefix: str = "rr", **config: Any) -> Registrar:
         settings = rr.RegistrarConfig(name=f"{prefix}-{uuid.uuid4().hex[:8]}", **config)

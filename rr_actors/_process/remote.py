@@ -2,7 +2,7 @@
 
 `RemoteRegistrar` implements the same `Registrar` protocol as `ResourceRegistrar`: each
 method runs the registrar's own method in the registrar's process over the system's
-transport (`AttachedSystem.run`) and returns its result or re-raises its error. Tests run
+carrier (`Transport.run`, any carrier) and returns its result or re-raises its error. Tests run
 one body over both placements with it (`rr_actors.testing` re-exports it).
 """
 
@@ -15,7 +15,7 @@ import os
 import signal
 import threading
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import cloudpickle
 
@@ -24,7 +24,7 @@ from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors._registrar.handle import RegistrarFacts, ResourceRegistrar
 from rr_actors._registrar.loading import LOADING, LoadContext
 from rr_actors._registrar.messages import ConsumerDown
-from rr_actors._transport import AttachedSystem, SystemAddress
+from rr_actors._transport.base import Address, Transport
 from rr_actors._types import Query, Status, StatusCallback
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (
@@ -59,13 +59,15 @@ class RemoteRegistrar:
     it), or reach an existing registrar of a system (a supervised manager, say) with the
     constructor. When an owned manager process dies without being stopped, the owner tells
     every registrar of the system that this consumer is gone (death watch), as a
-    supervisor does for a child it will not restart.
+    supervisor does for a child it will not restart (unless a restart is expected:
+    `rr_actors.testing.expect_restart`): its consumers' ids are released and the ids
+    held there get `FATAL` at their consumers (DESIGN rule 19).
     """
 
     def __init__(
         self,
         config: RegistrarConfig | str,
-        address: SystemAddress,
+        address: Address,
         *,
         restored: bool = False,
         in_doubt: tuple[Query, ...] = (),
@@ -75,7 +77,7 @@ class RemoteRegistrar:
         Args:
             config: the registrar's configuration (its `call_timeout` is the default
                 timeout of this handle's methods), or just its name.
-            address: the system's address.
+            address: the system's address (any carrier's `Address`; it pickles).
             restored: what `restored` reports (the owner handle learns it at start).
             in_doubt: what `in_doubt` reports (likewise).
         """
@@ -90,7 +92,7 @@ class RemoteRegistrar:
     def start(
         cls,
         config: RegistrarConfig | str,
-        system: AttachedSystem | SystemAddress,
+        system: Transport | Address,
         *,
         setup: Callable[[ResourceRegistrar], None] | None = None,
         start_timeout: float = 10.0,
@@ -103,7 +105,8 @@ class RemoteRegistrar:
 
         Args:
             config: the registrar's configuration, or just its name.
-            system: the system (or its address) the registrar joins.
+            system: the system the registrar joins: any carrier's `Transport` (the
+                AF_UNIX `System`, a `ZenohNetwork`) or its `Address`.
             setup: cloudpickled and run in the manager process before it serves.
             start_timeout: seconds the manager may take to be ready.
 
@@ -120,7 +123,8 @@ class RemoteRegistrar:
             config = RegistrarConfig(name=config)
         elif not isinstance(config, RegistrarConfig):
             raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
-        address = system.address if isinstance(system, AttachedSystem) else system
+        # a Transport has its `address`; an Address has none (both are protocols)
+        address = cast("Address", getattr(system, "address", system))
         try:
             payload = cloudpickle.dumps(setup)
         except Exception as exc:
@@ -457,14 +461,15 @@ class RemoteRegistrar:
     def _exited(self, how: ManagerExit) -> None:
         """Runs on the manager's watcher thread when the process ended."""
         try:
-            if not how.clean and not self._stopping:
+            gone = not how.clean and not self._stopping
+            if gone and not DIRECTORY.restart_expected(self.name):
                 _consumer_down(self._address, self.name)
         finally:
             self._down.set()
 
 
 def _rebuild(
-    config: RegistrarConfig, address: SystemAddress, restored: bool, in_doubt: tuple[Query, ...]
+    config: RegistrarConfig, address: Address, restored: bool, in_doubt: tuple[Query, ...]
 ) -> RemoteRegistrar:
     return RemoteRegistrar(config, address, restored=restored, in_doubt=in_doubt)
 
@@ -488,15 +493,12 @@ def _kill_own_process(_: ResourceRegistrar) -> None:
     os.kill(os.getpid(), signal.SIGKILL)
 
 
-def _consumer_down(address: SystemAddress, name: str) -> None:
-    """Death watch: tell every registrar of the system (and of this process) `name` is gone."""
+def _consumer_down(address: Address, name: str) -> None:
+    """Death watch: tell every registrar of the system (and of this process) `name` is
+    gone for good (rule 19; `presence.py` handles it)."""
     served: list[str] = []
-    with contextlib.suppress(OSError):
-        served = [
-            entry.removesuffix(".sock")
-            for entry in os.listdir(address.runtime_dir)
-            if entry.endswith(".sock")
-        ]
+    with contextlib.suppress(RrError):
+        served = address.attach().names()
     DIRECTORY.broadcast(ConsumerDown(name), also=served, skip=name)
 
 

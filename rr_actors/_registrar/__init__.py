@@ -4,8 +4,9 @@
 - `handle`: `ResourceRegistrar`, what user code holds; `calls`: the call protocol on the
   caller's thread;
 - `actor`: the registrar actor, dispatching to its roles `provider` (loads; `matching`
-  runs user code off the actor), `unloading`, `servers`, `consumer`, `status` and
-  `lifecycle`, which share `state`;
+  runs user code off the actor), `unloading`, `servers`, `consumer`, `status`,
+  `presence` (peers lost for good or reachable again) and `lifecycle`, which share
+  `state`; `starting`: the start protocol, and `Served`/`Network`, how a carrier sees it;
 - `endpoints`: the resource server and client actors; `messages`: everything they tell
   each other, as data; `loading`: what a load callback runs inside; `probes`: the
   testing seam on named steps.

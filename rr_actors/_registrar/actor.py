@@ -4,7 +4,7 @@
               ┌──────────────────── RegistrarActor (one mailbox, one thread) ───────────────┐
  message ───► │ DISPATCH: type -> (step name, the role's handler)                            │
               │   Provider   Load                        (provider.py, matching.py)          │
-              │   Unloading  Unload Abandon ConsumerDown Reconcile       (unloading.py)      │
+              │   Unloading  Unload Abandon Reconcile                    (unloading.py)      │
               │   Servers    Fetch RegisterServer UnregisterServer UpdateResponse            │
               │              ListServerQueries                            (servers.py)       │
               │   Consumer   Pending ClientLoaded CallFailed Revoke ResponseUpdated          │
@@ -13,7 +13,8 @@
               │   StatusRelay StatusNotice SendStatus                    (status.py)         │
               │   Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot; death           │
               │                                                           (lifecycle.py)     │
-              │   Presence   PeerLost PeerReachable                       (presence.py)      │
+              │   Presence   PeerLost ConsumerDown PeerReachable ReconcileRetry              │
+              │                                                           (presence.py)      │
               │ Shared: config, catalog, saver, servers, phase, workers  (state.py)          │
               └──────────────────────────────────────────────────────────────────────────────┘
 ```
@@ -58,6 +59,7 @@ from rr_actors._registrar.messages import (
     Ready,
     Reconcile,
     ReconcileAsk,
+    ReconcileRetry,
     RegisterServer,
     Release,
     ResponseUpdated,
@@ -133,12 +135,13 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     Unload: ("unload", lambda a: a.unloading.on_unload),  # at the provider
     Abandon: ("abandon", lambda a: a.unloading.on_abandon),  # at the provider
     Fetch: ("fetch", lambda a: a.servers.on_fetch),  # at the provider
-    ConsumerDown: ("consumer_down", lambda a: a.unloading.on_consumer_down),  # death watch
+    ConsumerDown: ("consumer_down", lambda a: a.presence.on_consumer_down),  # death watch
     Reconcile: ("reconcile", lambda a: a.unloading.on_reconcile),  # a consumer lists its ids
     ReconcileAsk: ("reconcile_ask", lambda a: a.consumer.on_reconcile_ask),  # provider restarted
     # -- from a carrier's presence callbacks (`Served`) --
     PeerLost: ("peer_lost", lambda a: a.presence.on_peer_lost),  # gone, nobody restarts it
     PeerReachable: ("peer_reachable", lambda a: a.presence.on_peer_reachable),  # link healed
+    ReconcileRetry: ("reconcile_retry", lambda a: a.presence.on_reconcile_retry),  # its timer
     StatusNotice: ("status_notice", lambda a: a.status.on_status_notice),  # at a consumer
     Revoke: ("revoke", lambda a: a.consumer.on_revoke),  # at a consumer
     ResponseUpdated: ("response_updated", lambda a: a.consumer.on_response_updated),

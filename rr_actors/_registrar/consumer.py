@@ -403,13 +403,17 @@ class Consumer:
             for record in self.registrar.catalog.clients.values()
         )
 
-    def reconcile(self, serving_rr: str) -> None:
+    def reconcile(
+        self, serving_rr: str, then: Callable[[BaseException | None], None] | None = None
+    ) -> None:
         """Tell `serving_rr` which ids this registrar holds there (`Reconcile`).
 
         The provider releases the others it holds for this registrar, and names the ones
         it no longer knows: their status callbacks get `FATAL` and they are forgotten.
         The list and the message leave while no call can start (`DueAnswers.frozen`), so
-        a call sent later reaches the provider after it.
+        a call sent later reaches the provider after it. `then(error)` runs (on this
+        actor) once the answer was handled: `None`, or why it failed (`presence.py`
+        retries).
         """
         with self.due.frozen() as due:
             held = {
@@ -422,16 +426,30 @@ class Consumer:
             self.registrar.send(
                 serving_rr,
                 lambda reply: Reconcile(self.registrar.name, tuple(sorted(held)), reply),
-                lambda unknown, error: self.reconciled(serving_rr, unknown, error),
+                lambda unknown, error: self.reconciled(serving_rr, unknown, error, then),
             )
 
-    def reconciled(self, serving_rr: str, unknown: Any, error: BaseException | None) -> None:
+    def reconciled(
+        self,
+        serving_rr: str,
+        unknown: Any,
+        error: BaseException | None,
+        then: Callable[[BaseException | None], None] | None = None,
+    ) -> None:
         """The provider's answer to a `Reconcile`: report and forget what it lost."""
         if error is not None:  # not reachable: it asks for a Reconcile when it is back
             logger.debug(
                 "reconciling %s with %s failed: %s", self.registrar.name, serving_rr, error
             )
+            if then is not None:
+                then(error)
             return
+        self.settle_reconciled(serving_rr, unknown)
+        if then is not None:
+            then(None)
+
+    def settle_reconciled(self, serving_rr: str, unknown: Any) -> None:
+        """Report and forget the ids `serving_rr` answered it no longer knows."""
         lost: dict[str, list[str]] = {}
         for query_id in unknown:
             if self.unsettled.get(query_id) == serving_rr:

@@ -52,7 +52,7 @@ from rr_actors._registrar.messages import (
 )
 from rr_actors._registrar.probes import Probes
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
-from rr_actors._registrar.starting import Launched, launch
+from rr_actors._registrar.starting import Launched, Network, check_network, launch, serve_on
 from rr_actors._types import Query, Status, StatusCallback
 from rr_actors.config import RegistrarConfig, check_seconds
 from rr_actors.errors import (
@@ -143,6 +143,7 @@ class ResourceRegistrar:
         config: RegistrarConfig | str,
         *,
         setup: Callable[[ResourceRegistrar], object] | None = None,
+        network: Network | None = None,
     ) -> ResourceRegistrar:
         """Start a registrar, restoring its catalog first if its backup exists.
 
@@ -153,16 +154,30 @@ class ResourceRegistrar:
                 arrive meanwhile for servers it has not registered yet wait for it (a
                 manager's start-up). If it raises, the registrar is stopped and the error
                 propagates.
+            network: a carrier (any `Transport`: an AF_UNIX `System`, a `ZenohNetwork`)
+                to serve it on, after `setup`, from the calling thread: the registrars
+                of the system's other processes (and hosts) reach it by name from then
+                on, and it reaches theirs. It stops being served when it stops or dies.
+                `None`: reachable from this process only (unless a system this process
+                serves on reaches it otherwise).
 
         Returns:
             The handle of the running registrar.
 
         Raises:
-            DuplicateNameError: a registrar with this name is already running here.
+            DuplicateNameError: a registrar with this name is already running here, or
+                (with `network`) another process of the system serves that name; it was
+                stopped again.
             CatalogCorruptError: the backup exists but cannot be read (it is left as is).
-            ConfigError: the configuration, or its backup path, is invalid.
+            ConfigError: the configuration, or its backup path, is invalid; `network` is
+                not a carrier, or cannot serve it.
+            RegistrarStoppedError: this process left `network`'s system (it was closed).
         """
-        return start_registrar(config, setup=setup)
+        check_network(network)
+        registrar = start_registrar(config, setup=setup)
+        if network is not None:
+            serve_on(network, registrar)
+        return registrar
 
     # -- properties -------------------------------------------------------------------
 

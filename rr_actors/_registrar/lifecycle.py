@@ -218,6 +218,7 @@ class Lifecycle:
     def op_stop(self, reply: Reply) -> None:
         """Unload what this registrar holds as a consumer (newest first), then stop (rule 12)."""
         self.registrar.phase = Phase.STOPPING
+        self.actor.presence.close()  # no more reconcile retries
         stopped = RegistrarStoppedError(
             f"registrar {self.registrar.name!r} stopped during the call"
         )
@@ -274,14 +275,17 @@ class Lifecycle:
     def die(self) -> None:
         """A crash: fail every waiting caller, release this consumer's ids elsewhere."""
         self.registrar.phase = Phase.ENDED
+        self.actor.presence.close()
         DIRECTORY.unregister(self.registrar.peer, "died")
         self.fail_waiting(RegistrarUnavailableError(f"registrar {self.registrar.name!r} died"))
         self.stop_children()
         if self.flush_timer is not None:
             self.flush_timer.cancel()
         self.registrar.saver.close(erase=False, flush=False)  # a crash writes nothing more
-        if not DIRECTORY.restart_expected(self.registrar.name):
-            DIRECTORY.broadcast(ConsumerDown(self.registrar.name), skip=self.registrar.name)
+        if not DIRECTORY.restart_expected(self.registrar.name):  # gone for good (rule 19):
+            DIRECTORY.broadcast(  # every registrar of the system, other processes too
+                ConsumerDown(self.registrar.name), also=DIRECTORY.names(), skip=self.registrar.name
+            )
         self.died.set()
 
     # -- whoever still waits ----------------------------------------------------------

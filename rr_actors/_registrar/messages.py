@@ -6,7 +6,7 @@ in-process; a transport replaces it by a token when the message crosses processe
 The wire protocol (between registrars, possibly across processes): `Load`, `Unload`,
 `Abandon`, `Fetch`, `Reconcile` (consumer -> provider); `StatusNotice`, `Revoke`,
 `ResponseUpdated`, `ReconcileAsk` (provider -> consumer); `ConsumerDown` (death watch ->
-provider). The internal messages
+every registrar: the consumer and provider `origin_rr` is gone for good). The internal messages
 below them never leave their process: a registrar's handle, its server and client actors
 and its callers' threads tell them to the registrar actor.
 
@@ -60,6 +60,7 @@ __all__ = [
     "Ready",
     "Reconcile",
     "ReconcileAsk",
+    "ReconcileRetry",
     "RegisterServer",
     "Release",
     "ResponseUpdated",
@@ -229,7 +230,10 @@ class ReconcileAsk(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class ConsumerDown(WireMessage):
-    """Death watch -> provider: registrar `origin_rr` died and will not come back."""
+    """Death watch -> every registrar: registrar `origin_rr` died and will not come back.
+
+    Handled by `presence.py` on both sides (DESIGN rule 19): the ids it held here are
+    released, and the ids held there get `FATAL` and are forgotten."""
 
     origin_rr: str
 
@@ -448,6 +452,16 @@ class PeerReachable:
     not be (a healed link, not a restart). Handled by `presence.py`."""
 
     name: str
+
+
+@dataclasses.dataclass(frozen=True)
+class ReconcileRetry:
+    """Presence's own timer: send `Reconcile` attempt `attempt` of round `round` to `name`
+    (the last one failed, or was not answered in time). Handled by `presence.py`."""
+
+    name: str
+    round: int
+    attempt: int
 
 
 @dataclasses.dataclass(frozen=True)

@@ -14,7 +14,7 @@ import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import pykka
 
@@ -35,7 +35,7 @@ from rr_actors.errors import ConfigError, RegistrarStoppedError
 if TYPE_CHECKING:
     from rr_actors._registrar.handle import ResourceRegistrar
 
-__all__ = ["EVENT_LOG", "Launched", "Served", "launch"]
+__all__ = ["EVENT_LOG", "Launched", "Network", "Served", "check_network", "launch", "serve_on"]
 
 EVENT_LOG = logging.getLogger("rr_actors.events")
 """Where registrars log their events at INFO (one line per event; off by default)."""
@@ -118,6 +118,44 @@ def launch(
     return Launched(
         config, ref, restored, in_doubt, due, died, ended, published, clients, in_doubt_texts
     )
+
+
+class Network(Protocol):
+    """What `ResourceRegistrar.start(network=)` needs of a carrier: to serve a registrar.
+
+    Every carrier's `Transport` is one (`rr_actors._transport.base`; the registrar layer
+    does not import the carriers). `serve` returns once the other processes of the
+    system can reach the registrar, and the carrier stops serving it by itself when the
+    registrar stops or dies.
+    """
+
+    def serve(self, endpoint: Served) -> None:
+        """Make the registrar reachable from the other processes (and hosts) of the system.
+
+        Raises:
+            DuplicateNameError: another process of the system serves that name.
+            ConfigError: the carrier cannot serve it.
+            RegistrarStoppedError: this process left the system.
+        """
+        ...
+
+
+def check_network(network: object) -> None:
+    """Raise `ConfigError` naming `network` unless it is `None` or has a `serve` method."""
+    if network is not None and not callable(getattr(network, "serve", None)):
+        raise ConfigError(
+            f"network must be a carrier's Transport (an AF_UNIX System, a ZenohNetwork) "
+            f"or None, got {network!r}"
+        )
+
+
+def serve_on(network: Network, registrar: ResourceRegistrar) -> None:
+    """Serve `registrar` on `network`; if that fails, stop it and raise what failed."""
+    try:
+        network.serve(Served(registrar))
+    except BaseException:
+        registrar.stop()
+        raise
 
 
 class Served:

@@ -1,7 +1,7 @@
 """The provider side of a registrar actor, releasing: consumer ids given back, reconciling.
 
 ```
- Unload/Abandon/ConsumerDown ──► release ── load under way? ──► Provider.give_up
+ Unload/Abandon ──► release ── load under way? ──► Provider.give_up
                                      └── last consumer? ──► Provider.unload_resource
  after a restart: ReconcileAsk ──► consumers ──► Reconcile ──► on_reconcile: the ids a
       consumer no longer holds are released; those it holds and this one lost, named
@@ -24,7 +24,6 @@ from rr_actors._catalog import ResourceState
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._registrar.messages import (
     Abandon,
-    ConsumerDown,
     Reconcile,
     ReconcileAsk,
     Unload,
@@ -53,12 +52,10 @@ class Unloading:
     def on_abandon(self, message: Abandon) -> None:
         self.release(message.query_id, None)
 
-    def on_consumer_down(self, message: ConsumerDown) -> None:
-        self.release_all_of(message.origin_rr)
-
     def release_all_of(self, origin_rr: str) -> None:
-        """Consumer `origin_rr` is gone for good (death watch, or a carrier's `peer_lost`):
-        release every id it held here (each `unload` runs once; a second call finds none)."""
+        """Consumer `origin_rr` is gone for good (`presence.py`: the death watch, or a
+        carrier's `peer_lost`): release every id it held here (each `unload` runs once;
+        a second call finds none)."""
         for query_id in self.registrar.catalog.consumers_from(origin_rr):
             if self.registrar.catalog.has_consumer(query_id):  # (a release may have cascaded)
                 self.release(query_id, None)

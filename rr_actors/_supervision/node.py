@@ -254,7 +254,7 @@ class Node:
         if restarted and isinstance(spec, ManagerSpec):
             death_watch_missed(tree, child.name)
             if self._config(spec).backup_path is None:  # (one with a backup asks itself)
-                lost_everything(self.root(), child.name)
+                lost_everything(self.root(), child.name, tree.processes.system)
 
     def _published_start(self, child: Child, *, restarted: bool) -> None:
         """Publish `ChildStarted`, or `ChildRestarted` with the time it was down."""
@@ -351,8 +351,17 @@ class Node:
         if isinstance(child.spec, ManagerSpec):
             DIRECTORY.expect_restart(child.name, expected=False)
             if dead:
-                consumer_down(self.root(), child.name)
-                self.tree.gone_for_good.add(child.name)  # (for those down meanwhile)
+                self._lose(child.name)
+        elif child.gave_up is not None:  # a nested supervisor gave up, and stays down:
+            for name in _registrar_names(child.spec):  # nobody restarts its managers
+                self._lose(name)
+
+    def _lose(self, name: str) -> None:
+        """Manager `name` is gone and nobody will restart it (death watch, DESIGN rule 19):
+        its consumers' ids are released, and the ids held at it are `FATAL`."""
+        DIRECTORY.expect_restart(name, expected=False)
+        consumer_down(self.root(), name, self.tree.processes.system)
+        self.tree.gone_for_good.add(name)  # (for those down meanwhile)
 
     @staticmethod
     def _mark(child: Child) -> None:
@@ -470,11 +479,15 @@ class Node:
         self._cancel_restarts()
         for child in reversed(self.children):
             if child is crashed or child.running is None:
-                dead = child.state != "exited"
+                # (below the root, the parent decides: it may restart this supervisor)
+                dead = child.state != "exited" and self.parent is None
                 child.state = "stopped"
                 self._forget(child, dead=dead)
             else:
                 self._stop_child(child, final=True)
+        if self.parent is None:  # nobody restarts this tree: every manager is lost
+            for name in _registrar_names(self.spec):
+                self._lose(name)
         for child in self.children:
             child.gave_up = child.gave_up or error
         self.gave_up = error  # after the children stopped: waiters then see a settled tree

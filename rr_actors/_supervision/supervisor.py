@@ -135,6 +135,11 @@ class Supervisor:
         timer: `timer(delay, fn)` that runs `fn` after `delay` seconds (injectable for tests);
             a zero delay restarts without a timer.
         random: float in `[0, 1)` for the backoff jitter (injectable for tests).
+        network: the carrier the tree's managers and `registrar()`s are served on: any
+            `Transport` (an AF_UNIX `System`, a `ZenohNetwork`); its process managers
+            join it through its `address`. The supervisor does not close it (its owner
+            does, after `stop`). Default: a private AF_UNIX system made at `start` when
+            the tree has process managers, closed at `stop`.
 
     Raises:
         ConfigError: an argument is invalid; the message names it.
@@ -153,7 +158,9 @@ class Supervisor:
         clock: Clock = time.monotonic,
         timer: Timer = thread_timer,
         random: Callable[[], float] = _random.random,
+        network: Transport | None = None,
     ) -> None:
+        _check_network(network)
         self._spec = SupervisorSpec(
             name=name or f"supervisor-{next(_SUPERVISOR_NAMES)}",
             children=tuple(children),
@@ -163,7 +170,7 @@ class Supervisor:
             backoff=backoff if backoff is not None else Backoff(),
             state_dir=state_dir,
         )
-        self._tree = Tree(self._spec, clock=clock, timer=timer, random=random)
+        self._tree = Tree(self._spec, clock=clock, timer=timer, random=random, network=network)
         self._node = Node(self._spec, self._tree)
         self._lock: StateDirLock | None = None
         self._registrars: list[ResourceRegistrar] = []
@@ -185,7 +192,8 @@ class Supervisor:
 
     @property
     def system(self) -> Transport | None:
-        """The transport system its process managers are attached to (`None` without any)."""
+        """The carrier its managers are served on while it runs: the `network` it was
+        given, or its private AF_UNIX system (`None` without either)."""
         return self._tree.processes.system
 
     @property
@@ -349,9 +357,10 @@ class Supervisor:
     # -- registrars, calls, manager access ----------------------------------------------
 
     def registrar(self, config: RegistrarConfig | str) -> ResourceRegistrar:
-        """Start a consumer registrar in this process, on this supervisor's system.
+        """Start a consumer registrar in this process, served on this supervisor's carrier.
 
-        Process managers can reach it (status notifications, nested calls). It is not
+        Process managers (and, with a `network`, the other processes and hosts of that
+        system) can reach it (status notifications, nested calls). It is not
         supervised; the supervisor stops it first when it stops. Its events go to the
         supervisor's subscribers too (`subscribe`).
 
@@ -389,7 +398,7 @@ class Supervisor:
         """Run `fn(registrar)` against manager `name`'s registrar, where it lives.
 
         For a process manager `fn` is cloudpickled and runs on a fresh thread of that
-        process, over the system's transport (`AttachedSystem.run`); its result must
+        process, over the tree's carrier (`Transport.run`); its result must
         pickle. For a thread manager it runs on the calling thread.
 
         Args:
@@ -621,6 +630,19 @@ class Supervisor:
             ConfigError: `format` is neither.
         """
         return self._watch.graph(format)
+
+
+def _check_network(network: object) -> None:
+    """`Supervisor(network=)`: `None` or a carrier (`serve`, `run`, `names`, `address`)."""
+    if network is None:
+        return
+    needed = ("serve", "run", "names", "resolve", "close")
+    missing = [n for n in needed if not callable(getattr(network, n, None))]
+    if missing or not hasattr(network, "address"):
+        raise ConfigError(
+            f"network must be a carrier's Transport (an AF_UNIX System, a ZenohNetwork) or "
+            f"None, got {network!r}"
+        )
 
 
 def _state_dirs(spec: SupervisorSpec) -> list[Any]:

@@ -82,25 +82,30 @@ class Level(Protocol):
 class Processes:
     """What the process managers of a tree share while it runs.
 
-    Their cloudpickled setups, the transport system they attach to (this process is
-    attached too) and the spare processes they start in. Empty until `open` (at the
-    supervisor's start), and again after `close`.
+    Their cloudpickled setups, the carrier they join (this process is a member too) and
+    the spare processes they start in. Empty until `open` (at the supervisor's start),
+    and again after `close`.
 
     Args:
         spec: the whole tree's specs.
+        network: the carrier given to the supervisor (`Supervisor(network=)`), or `None`
+            for a private AF_UNIX `System` made at `open` when the tree has process
+            managers (and closed at `close`; a given one is left open).
     """
 
-    def __init__(self, spec: SupervisorSpec) -> None:
+    def __init__(self, spec: SupervisorSpec, network: Transport | None = None) -> None:
         self.spec = spec
+        self.network = network
         self.setups: dict[str, bytes] = {}
         self.system: Transport | None = None
         self.spares: SparePool | None = None
 
     def open(self, spares: int, spare_delay: float) -> None:
-        """Pickle the process managers' setups; with any, create the system and spares.
+        """Pickle the process managers' setups; take the carrier (a given one, or a new
+        private system if there are process managers); start the spares.
 
         Raises:
-            ConfigError: a setup cannot be pickled.
+            ConfigError: a setup cannot be pickled, or the given carrier was closed.
         """
         for manager in managers(self.spec):
             if manager.isolation == "process":
@@ -110,10 +115,18 @@ class Processes:
                     raise ConfigError(
                         f"setup of manager {manager.name!r} is not picklable: {exc}"
                     ) from exc
-        if self.spec.has_processes():
+        if self.network is not None:
+            if self.network.closed:
+                raise ConfigError(
+                    f"supervisor {self.spec.name!r}: its network was closed (this process "
+                    "left that system); give it an open one"
+                )
+            self.system = self.network
+        elif self.spec.has_processes():
             from rr_actors._transport import System  # noqa: PLC0415
 
             self.system = System.create()  # also attaches this process
+        if self.spec.has_processes():
             self.spares = SparePool(spares, self.spec.name, delay=spare_delay)
 
     def close_spares(self) -> None:
@@ -122,10 +135,11 @@ class Processes:
             self.spares.close()
 
     def close(self) -> None:
-        """Release the spares and leave the system (its files are removed)."""
+        """Release the spares and leave the system it made (its files are removed); a
+        network given to the supervisor stays open (its owner closes it)."""
         self.close_spares()
         system, self.system = self.system, None
-        if system is not None:
+        if system is not None and system is not self.network:
             with contextlib.suppress(Exception):
                 system.close()
 
@@ -137,6 +151,7 @@ class Tree:
         spec: the root supervisor's spec (the whole tree).
         clock, timer, random: the injectable time and jitter sources of every supervisor
             of the tree (see `Supervisor`).
+        network: the carrier the tree's managers are served on (see `Processes`).
     """
 
     def __init__(
@@ -146,6 +161,7 @@ class Tree:
         clock: Clock,
         timer: Timer = thread_timer,
         random: Callable[[], float] = _random.random,
+        network: Transport | None = None,
     ) -> None:
         self.spec = spec
         self.cond = threading.Condition()  # published snapshots of the whole tree; waiters
@@ -161,7 +177,7 @@ class Tree:
         self.abandon_later: dict[str, list[tuple[str, str]]] = {}  # name -> (query id, origin)
         self.gone_for_good: set[str] = set()  # managers that died and will not come back
         self.wait_cursor: dict[str, int] = {}
-        self.processes = Processes(spec)  # what process managers share (from the start)
+        self.processes = Processes(spec, network)  # what process managers share
         self.events = EventRelay()  # the tree's events (`Supervisor.subscribe`)
         self.down_since: dict[str, float] = {}  # name -> when its last incarnation ended
         self.restart_due: dict[str, float] = {}  # name -> when its backoff ends (time.time())
@@ -288,23 +304,33 @@ def _process_managers(level: Level) -> list[str]:
     return names
 
 
-def consumer_down(root: Level, name: str) -> None:
-    """Death watch: tell every living registrar that consumer `name` is gone for good.
+def consumer_down(root: Level, name: str, network: Transport | None = None) -> None:
+    """Death watch: tell every living registrar that registrar `name` is gone for good.
 
-    `root`: the tree's root supervisor (its living process managers are told too).
+    Its consumers' ids are released where it held them, and the ids held at it get
+    `FATAL` at their consumers (DESIGN rule 19; `_registrar/presence.py`).
+
+    `root`: the tree's root supervisor (its living process managers are told too);
+    `network`: the tree's carrier, whose registrars (other processes, other hosts) are
+    told too.
     """
     living = _process_managers(root)
+    if network is not None and not network.closed:
+        living.extend(network.names())
     DIRECTORY.broadcast(ConsumerDown(name), also=living, skip=name)
 
 
-def lost_everything(root: Level, name: str) -> None:
+def lost_everything(root: Level, name: str, network: Transport | None = None) -> None:
     """Manager `name`, which keeps no backup, restarted with an empty catalog: every
-    registrar of the tree that holds ids there reconciles with it, and hears `FATAL` for
-    each (rule 20; a manager with a backup asks them itself when it serves again).
+    registrar of the system that holds ids there reconciles with it, and hears `FATAL`
+    for each (rule 20; a manager with a backup asks them itself when it serves again).
 
-    `root`: the tree's root supervisor (its living process managers are told too).
+    `root`: the tree's root supervisor (its living process managers are told too);
+    `network`: the tree's carrier, whose registrars are told too.
     """
     living = _process_managers(root)
+    if network is not None and not network.closed:
+        living.extend(network.names())
     DIRECTORY.broadcast(ReconcileAsk(name, holds_yours=False), also=living, skip=name)
 
 

@@ -35,10 +35,20 @@ The contract every carrier keeps (the transport tests check it for each one):
   `RegistrarStoppedError` after a clean stop), never by waiting out a timeout; a later
   `tell` to a name that is served again (a restarted manager) reaches the new server;
 - **control**: `run(name, fn, timeout=)` runs `fn(registrar)` where that registrar lives;
-- **presence**: a carrier calls `Endpoint.peer_lost(name)` on every registrar it serves
-  when registrar `name` of another process is gone and nobody will restart it (rule 19),
-  and `Endpoint.peer_reachable(name)` when one that could not be reached answers again
-  (a healed link); `names()` lists the registrars it can reach;
+- **lost for good (DESIGN rule 19)**: when a registrar of another process is gone and
+  nobody will restart it, every registrar of the system hears so, at least once: from
+  the death watch (`ConsumerDown`, which whoever started it, a supervisor that gave up
+  or the owner of an unsupervised manager process, tells every name `names()` lists),
+  or from the carrier, which calls `Endpoint.peer_lost(name)` on every registrar it
+  serves when the one who would say so is gone too (a host lost with its supervisor).
+  Its consumers then report `FATAL` for the ids they held there and forget them. A
+  carrier never calls `peer_lost` for a registrar whose supervisor is alive: that one
+  restarts it, and its restored catalog keeps its consumers' ids (rule 15). The AF_UNIX
+  carrier leaves it to the death watch (one machine: whoever started a process outlives
+  it or dies with it);
+- **presence**: `Endpoint.peer_reachable(name)` when a registrar that could not be
+  reached answers again (a healed link, not a restart); the consumer side retries its
+  `Reconcile` until it is answered; `names()` lists the registrars it can reach;
 - **health**: `serving_trouble(name)` says for how long a registrar served here has been
   unable to take new connections (a listener out of file descriptors keeps trying);
 - **join**: `address` pickles; `address.attach()` in another process joins the system.
@@ -98,7 +108,8 @@ class Endpoint(Protocol):
         """Registrar `name` of another process is gone and nobody will restart it (DESIGN
         rule 19: its process ended and no supervisor started it, or its supervisor is
         gone or unreachable too). The registrar releases the ids `name` held here and
-        reports the ids it held at `name` `FATAL`.
+        reports the ids it held at `name` `FATAL` (its status callbacks, and up their
+        dependents), then forgets them; the death watch's `ConsumerDown` does the same.
 
         Called on a carrier thread; returns at once. Calling it twice is harmless.
         """
@@ -107,7 +118,9 @@ class Endpoint(Protocol):
     def peer_reachable(self, name: str) -> None:
         """Registrar `name` of another process can be reached again after it could not be
         (a healed link, not a restart: a restarted registrar reconciles by itself). The
-        registrar reconciles with it (rule 20).
+        registrar reconciles with it (rule 20): as a consumer it retries its `Reconcile`
+        (backoff up to 2 s, or when one is unanswered for `call_timeout`) until it is
+        answered, `name` is lost or stopped, or the registrar stops.
 
         Called on a carrier thread; returns at once.
         """

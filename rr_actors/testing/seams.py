@@ -211,10 +211,13 @@ def call_futures(registrar: ResourceRegistrar, future_type: type[CallAttempt]) -
 
 @contextlib.contextmanager
 def expect_restart(name: str) -> Iterator[None]:
-    """While the block runs, registrar `name` dying is not a consumer gone for good.
+    """While the block runs, registrar `name` dying is not a registrar gone for good.
 
     A supervisor says so for every child it will restart: the providers then keep the
-    dead registrar's consumer ids for its restored catalog (no death watch).
+    dead registrar's consumer ids for its restored catalog, and its consumers keep the
+    ids they hold there without a `FATAL` (no death watch, DESIGN rule 19). It holds for
+    a registrar of this process and for the manager process of a `RemoteRegistrar`
+    whose owner handle is in this process (`kill()` inside the block).
     """
     known = DIRECTORY.restart_expected(name)
     DIRECTORY.expect_restart(name)

@@ -94,7 +94,8 @@ def test_an_id_released_while_its_provider_was_down_is_released_after_its_restar
     top = consumer.call(consumer.name, "composite", "camera", timeout=10)
     assert 1 == len(provider.server_queries("leaf"))  # the composite's dependency
 
-    provider.kill()
+    with expect_restart(config.name):  # as its supervisor would: no death watch
+        provider.kill()
     consumer.unload(top.id, timeout=10)  # releases the dependency: the provider is down
     assert [] == consumer.client_queries()
     restarted = managers(config, provider_setup(unloads, unloaded))
@@ -119,7 +120,8 @@ def test_an_id_the_restarted_provider_lost_is_reported_fatal_and_forgotten(
 
     kept = consumer.call(config.name, "leaf", "camera", on_status=note, timeout=10)
     lost = consumer.call(config.name, "leaf", "camera", on_status=note, timeout=10)
-    provider.kill()
+    with expect_restart(config.name):  # as its supervisor would: no death watch
+        provider.kill()
     delete_rows(Path(config.backup_path), "consumers", lost.id)  # type: ignore[arg-type]
     restarted = managers(config, provider_setup(unloads))
 
@@ -179,7 +181,8 @@ def test_a_retry_after_the_provider_reconciled_finds_the_id_it_committed_before_
     with ThreadPoolExecutor(1) as pool:
         call = pool.submit(consumer.call, config.name, "leaf", "camera", query_id=qid, timeout=10)
         assert entered.wait(10)
-        crash(provider)
+        with expect_restart(config.name):  # as its supervisor would: no death watch
+            crash(provider)
         with pytest.raises(rr.RegistrarUnavailableError):
             call.result(timeout=10)
     gate.set()

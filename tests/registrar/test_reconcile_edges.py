@@ -24,7 +24,7 @@ from supervising import ManualTimer, crash
 
 import rr_actors as rr
 from rr_actors._process.manager import start_forkserver
-from rr_actors.testing import RemoteRegistrar, SharedObjects, intercept
+from rr_actors.testing import RemoteRegistrar, SharedObjects, expect_restart, intercept
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -70,13 +70,15 @@ def test_a_consumer_stopped_while_its_provider_was_down_has_its_ids_released_at_
     consumer = managers(named("consumer", tmp_path, save_on_modify=True), None)
     for n in range(10):
         consumer.call(config.name, "leaf", f"device-{n}", timeout=10)
-    provider.kill()
+    with expect_restart(config.name):  # as its supervisor would: no death watch
+        provider.kill()
     consumer.stop()  # for good: its releases cannot reach the provider
 
     restarted = managers(config, provider_setup(unloads))
     assert eventually(lambda: len(unloads) == 10, timeout=10)
     assert [] == restarted.server_queries("leaf")
-    restarted.kill()
+    with expect_restart(config.name):  # as its supervisor would: no death watch
+        restarted.kill()
     again = managers(config, provider_setup(unloads))
 
     assert [] == again.server_queries("leaf")
@@ -101,7 +103,8 @@ def test_ids_a_provider_lost_with_its_save_interval_are_reported_fatal_to_their_
         consumer.call(config.name, "leaf", f"device-{n}", on_status=note, timeout=10).id
         for n in range(10)
     ]
-    provider.kill()  # before its first flush: the backup names no consumer
+    with expect_restart(config.name):  # as its supervisor would: no death watch
+        provider.kill()  # before its first flush: the backup names no consumer
     managers(config, provider_setup(unloads))
 
     assert eventually(lambda: len(heard) == 10, timeout=10)
@@ -123,7 +126,8 @@ def test_an_answered_unload_does_not_run_again_after_a_restart_lost_the_save_int
     provider.save_catalog()  # the loads are on disk
     for query in gone:
         consumer.unload(query.id, timeout=10)  # answered: their unload ran
-    provider.kill()  # before the next flush
+    with expect_restart(config.name):  # as its supervisor would: no death watch
+        provider.kill()  # before the next flush
 
     restarted = managers(config, provider_setup(unloads, reconciled))
     assert reconciled.wait(10)  # the consumer told it what it holds (`kept`)

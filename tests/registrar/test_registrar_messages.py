@@ -27,6 +27,7 @@ from rr_actors.testing import (
     actor_ref,
     catalog_snapshot,
     crash,
+    expect_restart,
     intercept,
     run_on_actor,
 )
@@ -245,6 +246,14 @@ def _peer_reachable(p: Pair, hook: Hook) -> None:
     Served(p.provider).peer_reachable(p.consumer.name)
 
 
+def _reconcile_retry(p: Pair, hook: Hook) -> None:
+    p.held()
+    with expect_restart(p.provider.name):  # (no death watch: it may come back)
+        crash(p.provider)
+    intercept(p.consumer, "reconcile_retry", before=hook)
+    Served(p.consumer).peer_reachable(p.provider.name)  # it cannot answer: retried
+
+
 def _snapshot(p: Pair, hook: Hook) -> None:
     intercept(p.provider, "snapshot", before=hook)
     catalog_snapshot(p.provider)
@@ -298,6 +307,7 @@ DRIVERS: dict[str, Callable[[Pair, Hook], None]] = {
     "reachable": _reachable,
     "peer_lost": _peer_lost,
     "peer_reachable": _peer_reachable,
+    "reconcile_retry": _reconcile_retry,
     "snapshot": _snapshot,
     "ping": _ping,
     "open_client": _open_client,

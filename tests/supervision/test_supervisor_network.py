@@ -1,0 +1,193 @@
+"""The process layer over any carrier: `Supervisor(network=)`, `ResourceRegistrar.start(
+network=)`, `RemoteRegistrar.start` with a `Transport` (issue 22, "The seam").
+
+Each with the AF_UNIX carrier (a `System` the test makes and closes); the Zenoh carrier
+plugs into the same keywords.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import cloudpickle
+import pytest
+from supervising import echo_setup, kill_and_wait_restarted, process
+
+import rr_actors as rr
+from rr_actors.testing import RemoteRegistrar, SharedObjects, System, start_forkserver
+
+
+@pytest.fixture(scope="module", autouse=True)
+def by_value() -> Iterator[None]:
+    start_forkserver()
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    yield
+    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+
+
+@pytest.fixture
+def network() -> Iterator[System]:
+    made = System.create()
+    yield made
+    made.close()
+
+
+@pytest.fixture
+def outsider(network: System) -> Iterator[Callable[[], RemoteRegistrar]]:
+    """A registrar in a manager process of `network` that no supervisor started."""
+    made: list[RemoteRegistrar] = []
+
+    def make() -> RemoteRegistrar:
+        registrar = RemoteRegistrar.start(named("outsider"), network)
+        made.append(registrar)
+        return registrar
+
+    yield make
+    for registrar in reversed(made):
+        registrar.stop()
+
+
+def named(prefix: str) -> str:
+    return f"{prefix}-{uuid.uuid4().hex[:8]}"
+
+
+def thread(name: str, setup: Any = echo_setup) -> rr.ManagerSpec:
+    return rr.ManagerSpec(name, setup, isolation="thread")
+
+
+def test_a_supervisor_serves_its_managers_and_registrars_on_the_network_it_is_given(
+    network: System,
+    outsider: Callable[[], RemoteRegistrar],
+    supervisors: Callable[..., rr.Supervisor],
+) -> None:
+    in_process, in_thread = named("proc"), named("thr")
+    sup = supervisors([process(in_process), thread(in_thread)], network=network)
+    with sup:
+        app = sup.registrar(named("app"))
+        app.register_server("echo", load=lambda r: r, unload=lambda _r, _s: None)
+        other = outsider()
+
+        assert network is sup.system
+        for target in (in_process, in_thread, app.name):
+            query = other.call(target, "echo", f"to {target}", timeout=10)
+            assert f"to {target}" == query.response
+            other.unload(query.id, timeout=10)
+    assert not network.closed  # the supervisor leaves a network it was given open
+    after = rr.ResourceRegistrar.start(named("after"), setup=echo_setup, network=network)
+    try:
+        assert "still" == other.call(after.name, "echo", "still", timeout=10).response
+    finally:
+        after.stop()
+
+
+def test_a_supervisor_with_thread_managers_only_serves_them_on_its_network(
+    network: System,
+    outsider: Callable[[], RemoteRegistrar],
+    supervisors: Callable[..., rr.Supervisor],
+) -> None:
+    name = named("thr")
+    with supervisors([thread(name)], network=network):
+        assert "hello" == outsider().call(name, "echo", "hello", timeout=10).response
+
+
+def test_a_supervisor_given_something_else_as_its_network_raises_config_error() -> None:
+    with pytest.raises(rr.ConfigError, match="network"):
+        rr.Supervisor([thread(named("thr"))], network="tcp/10.0.0.1:7447")  # type: ignore[arg-type]
+
+
+def test_a_supervisor_given_a_closed_network_does_not_start(
+    supervisors: Callable[..., rr.Supervisor],
+) -> None:
+    closed = System.create()
+    closed.close()
+    sup = supervisors([process(named("proc"))], network=closed)
+
+    with pytest.raises(rr.ConfigError, match="network was closed"):
+        sup.start()
+
+
+def test_a_registrar_started_with_a_network_is_reached_from_another_process_until_it_stops(
+    network: System, outsider: Callable[[], RemoteRegistrar]
+) -> None:
+    registrar = rr.ResourceRegistrar.start(named("erm"), setup=echo_setup, network=network)
+    other = outsider()
+    try:
+        query = other.call(registrar.name, "echo", "camera", timeout=10)
+        assert "camera" == query.response
+        other.unload(query.id, timeout=10)
+    finally:
+        registrar.stop()
+
+    with pytest.raises(rr.RegistrarStoppedError):
+        other.call(registrar.name, "echo", "camera", timeout=10)
+
+
+def test_a_registrar_whose_name_another_process_serves_is_refused_and_leaves_nothing(
+    network: System, started: list[rr.ResourceRegistrar]
+) -> None:
+    name = named("erm")
+    remote = RemoteRegistrar.start(name, network, setup=echo_setup)
+    try:
+        with pytest.raises(rr.DuplicateNameError):
+            rr.ResourceRegistrar.start(name, setup=echo_setup, network=network)
+        caller = rr.ResourceRegistrar.start(named("caller"))
+        started.append(caller)
+
+        assert "x" == caller.call(name, "echo", "x", timeout=10).response  # the remote one
+    finally:
+        remote.stop()
+
+
+def test_a_registrar_given_something_else_as_its_network_raises_config_error_and_starts_nothing(
+    started: list[rr.ResourceRegistrar],
+) -> None:
+    name = named("erm")
+    with pytest.raises(rr.ConfigError, match="network"):
+        rr.ResourceRegistrar.start(name, network=object())  # type: ignore[arg-type]
+    registrar = rr.ResourceRegistrar.start(name)  # the name is free
+    started.append(registrar)
+
+
+def test_a_consumer_outside_the_tree_hears_fatal_for_ids_a_restart_without_backup_lost(
+    network: System,
+    outsider: Callable[[], RemoteRegistrar],
+    supervisors: Callable[..., rr.Supervisor],
+    process_helpers: SharedObjects,
+) -> None:
+    name = named("proc")
+    heard = process_helpers.list()
+    sup = supervisors([process(name)], network=network)  # no state_dir: no backup
+    with sup:
+        other = outsider()
+        query = other.call(name, "echo", "camera", on_status=Heard(heard), timeout=10)
+
+        kill_and_wait_restarted(sup, name)
+        assert wait_until(lambda: len(heard) > 0, 10)
+
+        assert [(query.id, rr.Status.FATAL)] == list(heard)
+        assert [] == other.client_queries()
+
+
+class Heard:
+    """A status callback that records `(query id, status)` in a shared list."""
+
+    def __init__(self, records: Any) -> None:
+        self.records = records
+
+    def __call__(self, query: rr.Query, update: rr.StatusUpdate) -> None:
+        self.records.append((query.id, update.status))
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    pause = threading.Event()
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        pause.wait(0.005)
+    return True
