@@ -1,8 +1,5 @@
-"""A plan as data and as its schema: frozen dataclasses whose field types carry the limits.
-
-`reading` has msgspec check every TOML value against these types (`Annotated[..., Meta]`);
-the run reads the result. The TOML format is documented in `docs/reference/plan.md`.
-"""
+"""A plan as data and as its schema: msgspec Structs whose field types carry the limits
+(`Annotated[..., Meta]`), which `reading` decodes the TOML into; `docs/reference/plan.md`."""
 
 from __future__ import annotations
 
@@ -68,6 +65,7 @@ Count = Annotated[int, Meta(ge=1, le=MAX_COUNT)]
 Seed = Annotated[int, Meta(ge=-(2**63), le=2**63 - 1)]
 Repeat = Annotated[int, Meta(ge=1, le=MAX_REPEAT)]
 Restart = Literal["permanent", "transient", "temporary"]
+Names = Annotated[tuple[str, ...], Meta(min_length=1)]
 
 
 class PlanError(ConfigError):
@@ -139,19 +137,14 @@ class BackoffPlan(_Table, frozen=True):
 
 
 class CallMix(_Table, frozen=True):
-    """One kind of call the workload makes (an entry of `[[workload.calls]]`).
-
-    `shared` is the fraction of these calls that ask for one of `keys` shared requests
-    (deduplicated by the provider); the rest ask for a request of their own. `request` is
-    a template: its strings may use `{key}`, `{client}`, `{run_dir}`, and a string that is
-    exactly `"{pid}"` becomes the run process's pid.
-    """
+    """One kind of call the workload makes (an entry of `[[workload.calls]]`); `request` is a
+    template (`{key}`, `{client}`, `{run_dir}`; a string that is exactly `"{pid}"`: the pid)."""
 
     manager: str  # the provider registrar called
     server: Annotated[str, Meta(min_length=1)]  # the resource server on it
     weight: Annotated[float, Meta(gt=0, le=MAX_RATE)] = 1.0  # relative frequency
-    shared: Annotated[float, Meta(ge=0, le=1)] = 0.5
-    keys: Count = 4
+    shared: Annotated[float, Meta(ge=0, le=1)] = 0.5  # of calls for one of `keys` shared requests
+    keys: Count = 4  # the rest ask for a request of their own
     request: Any = "{key}"
     factory: str | None = None  # import path of `factory(key, context) -> request`
 
@@ -189,18 +182,12 @@ AFTER: Any = functools.reduce(operator.or_, map(_after, EVENT_TYPES, EVENT_TYPES
 
 
 class FaultPlan(_Table, frozen=True):
-    """One entry of `[[faults]]`: what to do, to whom, and when (times in seconds).
-
-    Exactly one of `at`, `every` and `after` says when. `targets` are the managers it may
-    hit (one is picked per injection, seeded); for `kill_resource`, whose processes
-    (empty: any process manager's). `every` is a fixed interval, or `(low, high)` for
-    seeded random intervals drawn uniformly in between.
-    """
+    """One entry of `[[faults]]`: what to do, to whom (one of `targets`, seeded; empty, for
+    `kill_resource`: any process manager's), and when: one of `at`, `every` (an interval, or
+    `(low, high)` for seeded random ones in between) and `after` (times in seconds)."""
 
     kind: FaultKind
-    targets: Annotated[tuple[str, ...], Meta(min_length=1)] = msgspec.field(
-        default=(), name="target"
-    )
+    targets: Names = msgspec.field(default=(), name="target")
     at: Annotated[tuple[SecondsOrZero, ...], Meta(min_length=1)] = ()  # from the workload's start
     every: float | tuple[float, float] | None = None  # `reading` checks it: Interval or Every
     start: SecondsOrZero = 0.0  # with `every`: the first interval starts here
@@ -239,11 +226,8 @@ class Every(_Table, frozen=True):
 
 
 class Compare(_Table, frozen=True):
-    """`[compare]`: run the same plan once per value of one setting.
-
-    `setting` is a dotted key: `"tree.strategy"`; a child by its name:
-    `"tree.children.erm.heartbeat"`; a fault by its index: `"faults.0.every"`.
-    """
+    """`[compare]`: run the plan once per value of one setting, a dotted key: `"tree.strategy"`,
+    a child by its name `"tree.children.erm.heartbeat"`, a fault by its index `"faults.0.every"`."""
 
     setting: Annotated[str, Meta(min_length=1)]
     values: Annotated[tuple[Any, ...], Meta(min_length=1)]  # in the order the runs take them
@@ -251,11 +235,8 @@ class Compare(_Table, frozen=True):
 
 @dataclasses.dataclass(frozen=True)
 class Plan:
-    """A whole experiment: validated, ready to run with `rr_actors.experiments.run`.
-
-    `variants` holds `(value, plan)` per compared value (`((None, self),)` without
-    `compare`); each plan has that value applied and `compare` set to `None`.
-    """
+    """A whole experiment: validated, ready to run with `rr_actors.experiments.run`. `variants`
+    holds `(value, plan)` per compared value (`((None, self),)` without `compare`)."""
 
     name: str  # the `runs.csv` column `plan`
     duration: Seconds  # of workload and faults per run
@@ -289,9 +270,8 @@ class Plan:
     def with_changes(
         self, *, repeat: int | None = None, seed: int | None = None, duration: float | None = None
     ) -> Plan:
-        """A copy with another `repeat`, `seed` or `duration` (`None`: keep), for every variant.
-
-        A shorter `duration` drops the faults that would come after the new end.
+        """A copy with another `repeat`, `seed` or `duration` (`None`: keep), for every variant
+        (a shorter `duration` drops the faults after the new end).
 
         Raises:
             ConfigError: `repeat` is not from 1 to `MAX_REPEAT`, `seed` not 64 bits,

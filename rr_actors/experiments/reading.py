@@ -200,21 +200,19 @@ class _Reader:
             message, _, inner = str(exc).partition(" - at `$")
             steps = tuple(int(i) if i else k for i, k in re.findall(r"\[(\d+)\]|\.(\w+)", inner))
             at, info = (*path, *steps), _type_at(mi.type_info(hint), steps, value)
-            field = re.fullmatch(
-                r"Object (contains unknown|missing required) field `(\w+)`", message
+            key = re.fullmatch(
+                r"Object (?:contains unknown|missing required) field `(\w+)`", message
             )
-            if field and field[1] == "missing required":
-                raise self.error(
-                    at, f"{field[2]!r} is missing{PURPOSE.get(field[2], '')}"
-                ) from None
-            if field:
-                known = ", ".join(sorted(f.encode_name for f in info.fields))
-                raise self.error((*at, field[2]), f"unknown key; known here: {known}") from None
-            at = held(self.data, at)
-            key = next((p for p in reversed(at) if isinstance(p, str)), "")
-            raise self.error(
-                at, f"{_allowed(message, info, key)}, got {_show(self.raw(at))}"
-            ) from None
+            if key and message.startswith("Object missing"):
+                problem = f"{key[1]!r} is missing{PURPOSE.get(key[1], '')}"
+            elif key:
+                at, known = (*at, key[1]), ", ".join(sorted(f.encode_name for f in info.fields))
+                problem = f"unknown key; known here: {known}"
+            else:
+                at = held(self.data, at)
+                last = next((p for p in reversed(at) if isinstance(p, str)), "")
+                problem = f"{_allowed(message, info, last)}, got {_show(self.raw(at))}"
+            raise self.error(at, problem) from None
 
     # -- what TOML spells its own way, in the shapes of `plan`'s types --------------------------
 
@@ -232,14 +230,11 @@ class _Reader:
             workload["rate"] = None
         for index, fault in _tables(data, "faults"):
             path = ("faults", index)
-            fault |= {
-                k: [v] for k, v in fault.items() if k in ("at", "target") and type(v) is not list
-            }
-            if "every" in fault:
-                every = self.check(fault["every"], schema.Every | schema.Interval, (*path, "every"))
-                fault["every"] = (
-                    (every.min, every.max) if isinstance(every, schema.Every) else every
-                )
+            fault |= {k: [fault[k]] for k in ("at", "target") if type(fault.get(k, [])) is not list}
+            every = self.check(
+                fault.get("every"), schema.Every | schema.Interval | None, (*path, "every")
+            )
+            fault["every"] = (every.min, every.max) if isinstance(every, schema.Every) else every
             if "after" in fault:  # `after = { event = "ChildRestarted", child = "db" }`
                 after = self.check(fault["after"], schema.AFTER, (*path, "after"))
                 match = {k: v for k, v in msgspec.structs.asdict(after).items() if v is not UNSET}
