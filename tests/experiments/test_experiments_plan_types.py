@@ -33,10 +33,8 @@ def plan_error(text: str) -> PlanError:
 
 
 def test_a_nested_supervisor_names_the_keys_a_supervisor_takes() -> None:
-    text = BASE.replace(
-        '[[tree.children]]\nname = "db"',
-        '[[tree.children]]\nname = "pool"\nheartbeat = 1.0\n\n[[tree.children.children]]\nname = "db"',
-    )
+    pool = '[[tree.children]]\nname = "pool"\nheartbeat = 1.0\n\n[[tree.children.children]]\n'
+    text = BASE.replace('[[tree.children]]\nname = "db"', pool + 'name = "db"')
     error = plan_error(text)
 
     assert (8, "tree.children[0].heartbeat") == (error.line, error.key)
