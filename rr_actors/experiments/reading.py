@@ -222,7 +222,8 @@ class _Reader:
             raise self.error((key,), f"unknown key; known here: {', '.join(sorted(KEYS))}")
         data = copy.deepcopy(data)
         if isinstance(tree := data.get("tree"), dict):  # the top supervisor: `state`, no `restart`
-            top = "unknown key: the top supervisor has no restart type"
+            known = {f.encode_name for f in msgspec.structs.fields(schema.SupervisorPlan)}
+            top = f"unknown key; known here: {', '.join(sorted(known - {'restart'} | {'state'}))}"
             self.refuse("restart" in tree, ("tree", "restart"), top)
             data["state"] = self.check(tree.pop("state", True), bool, ("tree", "state"))
             data["tree"] = self.node({"name": "root", **tree}, ("tree",))

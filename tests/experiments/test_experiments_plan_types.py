@@ -70,6 +70,11 @@ def test_a_top_supervisor_with_a_restart_type_is_refused() -> None:
     error = plan_error(BASE.replace("[tree]", '[tree]\nrestart = "transient"'))
 
     assert (5, "tree.restart") == (error.line, error.key)
+    assert (
+        "unknown key; known here: backoff, children, max_restarts, name, period, state, "
+        + ("strategy")
+        == error.problem
+    )
 
 
 def test_the_spellings_of_toml_become_the_plan_s_values() -> None:
