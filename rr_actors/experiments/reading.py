@@ -149,8 +149,13 @@ def _allowed(message: str, info: Any, key: str) -> str:
     if isinstance(info, mi.LiteralType | mi.EnumType):
         values = info.values if isinstance(info, mi.LiteralType) else tuple(info.cls.__members__)
         what = f"one of {', '.join(map(repr, values))}"
-    elif bound and bound[2]:  # a length
-        what = f"a non-empty {TYPES[bound[1]].split()[-1]}"
+    elif bound and bound[2]:  # a length: `min_length=1` (an array, a name) or `max_length`
+        empty = op == ">=" and bound[4] == "1"
+        what = (
+            f"a non-empty {TYPES[bound[1]].split()[-1]}"
+            if empty
+            else f"{TYPES[bound[1]]} of length {op} {bound[4]}"
+        )
     elif key in WHAT and not (bound and key == "heartbeat"):
         what = WHAT[key]
     elif bound and bound[1] == "int":
@@ -164,7 +169,8 @@ def _allowed(message: str, info: Any, key: str) -> str:
         kinds = [TYPES.get(kind, kind) for kind in typed[1].split(" | ") if kind != "null"]
         what = " or ".join(f"{k} of seconds" if k == "a number" else k for k in kinds)
     else:
-        return f"{message[0].lower()}{message[1:]}"  # msgspec's own words
+        words = message.split(maxsplit=1)[0].isalpha()  # msgspec's own, or a check's
+        return f"{message[0].lower()}{message[1:]}" if words else message
     return f"must be {what}"
 
 

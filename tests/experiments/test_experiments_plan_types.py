@@ -85,3 +85,11 @@ def test_the_spellings_of_toml_become_the_plan_s_values() -> None:
 
     assert (None, None) == (plan.workload.rate, plan.manager("db").heartbeat)
     assert ((0.5, 1.0), ("db",)) == (plan.faults[0].every, plan.faults[0].targets)
+
+
+def test_a_message_too_long_names_its_limit() -> None:
+    text = '[[faults]]\nkind = "load_error"\ntarget = "db"\nat = 1.0\nmessage = "' + "x" * 10_001
+    error = plan_error(BASE + text + '"\n')
+
+    assert (20, "faults[0].message") == (error.line, error.key)
+    assert error.problem.startswith("must be a string of length <= 10000, got 'xxx")
