@@ -1,15 +1,13 @@
-"""A plan as data and as its schema: frozen dataclasses whose field types carry the limits.
-
-`reading` has msgspec check every TOML value against these types (`Annotated[..., Meta]`);
-the run reads the result. The TOML format is documented in `docs/reference/plan.md`.
-"""
+"""A plan as data and as its schema: msgspec Structs whose field types carry the limits
+(`Annotated[..., Meta]`), which `reading` decodes the TOML into; `docs/reference/plan.md`."""
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import operator
 import typing
-from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
 import msgspec
@@ -67,6 +65,7 @@ Count = Annotated[int, Meta(ge=1, le=MAX_COUNT)]
 Seed = Annotated[int, Meta(ge=-(2**63), le=2**63 - 1)]
 Repeat = Annotated[int, Meta(ge=1, le=MAX_REPEAT)]
 Restart = Literal["permanent", "transient", "temporary"]
+Names = Annotated[tuple[str, ...], Meta(min_length=1)]
 
 
 class PlanError(ConfigError):
@@ -88,31 +87,33 @@ class PlanError(ConfigError):
         return (type(self), (self.source, self.line, self.key, self.problem))
 
 
-@dataclasses.dataclass(frozen=True)
-class ManagerPlan:
+class _Table(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A table of a plan: its fields are its keys (`encode_name`); other keys are refused."""
+
+
+class ManagerPlan(_Table, frozen=True, tag_field="_node", tag="manager"):
     """One manager of the tree: what `ManagerSpec` it becomes in every run (times in seconds)."""
 
     name: Name  # the manager's (registrar's) name
     setup: str  # import path of its `setup(registrar, **options)`: "module:function"
-    options: Mapping[str, Any] = dataclasses.field(default_factory=dict)  # for `setup`
+    options: dict[str, Any] = {}  # for `setup`
     isolation: Literal["thread", "process"] = "process"
     restart: Restart = "permanent"
-    heartbeat: Seconds | None = 0.25  # between heartbeat pings; `None`: off
+    heartbeat: Seconds | None = 0.25  # between heartbeat pings; `None` (`false`): off
     heartbeat_timeout: Seconds | None = None  # silence until hung (`None`: 3 heartbeats)
     shutdown: Seconds = 5.0  # a clean stop may take this long before it is killed
     start_timeout: Seconds = 30.0  # to restore, set up and serve
 
 
-@dataclasses.dataclass(frozen=True)
-class SupervisorPlan:
-    """A supervisor of the tree (the top one is `Plan.tree`)."""
+class SupervisorPlan(_Table, frozen=True, tag_field="_node", tag="supervisor"):
+    """A supervisor of the tree (the top one is `Plan.tree`); a child with `children` is one."""
 
     name: Name
-    children: tuple[ManagerPlan | SupervisorPlan, ...]  # in start order
+    children: Annotated[tuple[ManagerPlan | SupervisorPlan, ...], Meta(min_length=1)]
     strategy: Literal["one_for_one", "one_for_all", "rest_for_one"] = "one_for_one"
     max_restarts: Annotated[int, Meta(ge=0, le=MAX_COUNT)] = 3  # at most this many restarts
     period: Seconds = 5.0  # ... within this many seconds
-    backoff: Backoff = dataclasses.field(default_factory=Backoff)  # delay before restarts
+    backoff: Backoff = msgspec.field(default_factory=Backoff)  # delay before restarts
     restart: Restart = "permanent"  # its restart type in its parent (nested ones only)
 
     def managers(self) -> list[ManagerPlan]:
@@ -126,66 +127,75 @@ class SupervisorPlan:
         return [self, *(supervisor for supervisors in nested for supervisor in supervisors)]
 
 
-@dataclasses.dataclass(frozen=True)
-class CallMix:
-    """One kind of call the workload makes (an entry of `[[workload.calls]]`).
+class BackoffPlan(_Table, frozen=True):
+    """`backoff = { ... }`: the keys of `Backoff`, within a plan's limits."""
 
-    `shared` is the fraction of these calls that ask for one of `keys` shared requests
-    (deduplicated by the provider); the rest ask for a request of their own. `request` is
-    a template: its strings may use `{key}`, `{client}`, `{run_dir}`, and a string that is
-    exactly `"{pid}"` becomes the run process's pid.
-    """
+    initial: SecondsOrZero = 0.0
+    factor: Annotated[float, Meta(ge=1, le=MAX_SECONDS)] = 2.0
+    max: SecondsOrZero = 30.0
+    jitter: Annotated[float, Meta(ge=0, le=1)] = 0.2
+
+
+class CallMix(_Table, frozen=True):
+    """One kind of call the workload makes (an entry of `[[workload.calls]]`); `request` is a
+    template (`{key}`, `{client}`, `{run_dir}`; a string that is exactly `"{pid}"`: the pid)."""
 
     manager: str  # the provider registrar called
     server: Annotated[str, Meta(min_length=1)]  # the resource server on it
     weight: Annotated[float, Meta(gt=0, le=MAX_RATE)] = 1.0  # relative frequency
-    shared: Annotated[float, Meta(ge=0, le=1)] = 0.5
-    keys: Count = 4
+    shared: Annotated[float, Meta(ge=0, le=1)] = 0.5  # of calls for one of `keys` shared requests
+    keys: Count = 4  # the rest ask for a request of their own
     request: Any = "{key}"
     factory: str | None = None  # import path of `factory(key, context) -> request`
 
 
-@dataclasses.dataclass(frozen=True)
-class Workload:
+class Workload(_Table, frozen=True):
     """What the clients do while faults hit the tree (times in seconds)."""
 
     clients: Annotated[int, Meta(ge=0, le=MAX_CLIENTS)] = 1  # threads, each a registrar
-    rate: Annotated[float, Meta(ge=1 / MAX_SECONDS, le=MAX_RATE)] | None = 5.0  # None: max
+    rate: Annotated[float, Meta(ge=1 / MAX_SECONDS, le=MAX_RATE)] | None = 5.0  # None: "max"
     arrivals: Literal["poisson", "fixed"] = "poisson"  # seeded gaps of mean 1/rate, or fixed
     hold: SecondsOrZero = 0.5  # a client keeps each resource this long, then unloads it
     timeout: Seconds = 5.0  # a call may take this long, retries through restarts included
     calls: tuple[CallMix, ...] = ()
 
 
-@dataclasses.dataclass(frozen=True)
-class Trigger:
+class Trigger(_Table, frozen=True):
     """`after = { event = "ChildRestarted", child = "erm", nth = 1 }`: when a fault fires."""
 
     event: str  # an event type of `rr_actors.events`
-    match: Mapping[str, Any] = dataclasses.field(default_factory=dict)  # its field values
+    match: dict[str, Any] = {}  # its field values
     nth: Count = 1  # the fault fires after the n-th matching event of the run
 
 
-@dataclasses.dataclass(frozen=True)
-class FaultPlan:
-    """One entry of `[[faults]]`: what to do, to whom, and when (times in seconds).
+def _after(name: str, event: type[Any]) -> type[msgspec.Struct]:
+    """The table `after = { event = name, ... }` takes: `nth` and any field of the event."""
+    hints = typing.get_type_hints(event)
+    keys = [field.name for field in dataclasses.fields(event) if field.name != "at"]
+    fields = [(key, hints[key] | msgspec.UnsetType, msgspec.UNSET) for key in keys]
+    return msgspec.defstruct(
+        name, [("nth", Count, 1), *fields], bases=(_Table,), tag=name, tag_field="event"
+    )
 
-    Exactly one of `at`, `every` and `after` says when. `targets` are the managers it may
-    hit (one is picked per injection, seeded); for `kill_resource`, whose processes
-    (empty: any process manager's). `every` is a fixed interval, or `(low, high)` for
-    seeded random intervals drawn uniformly in between.
-    """
+
+AFTER: Any = functools.reduce(operator.or_, map(_after, EVENT_TYPES, EVENT_TYPES.values()))
+
+
+class FaultPlan(_Table, frozen=True):
+    """One entry of `[[faults]]`: what to do, to whom (one of `targets`, seeded; empty, for
+    `kill_resource`: any process manager's), and when: one of `at`, `every` (an interval, or
+    `(low, high)` for seeded random ones in between) and `after` (times in seconds)."""
 
     kind: FaultKind
-    targets: tuple[str, ...] = ()
-    at: tuple[SecondsOrZero, ...] = ()  # fixed times from the start of the workload
-    every: Interval | tuple[Interval, Interval] | None = None
+    targets: Names = msgspec.field(default=(), name="target")
+    at: Annotated[tuple[SecondsOrZero, ...], Meta(min_length=1)] = ()  # from the workload's start
+    every: float | tuple[float, float] | None = None  # `reading` checks it: Interval or Every
     start: SecondsOrZero = 0.0  # with `every`: the first interval starts here
     stop: Seconds | None = None  # with `every`: none at or after this (default: the end)
     count: Annotated[int, Meta(ge=1, le=MAX_INJECTIONS)] | None = None  # with `every`
     after: Trigger | None = None  # inject when an event happens, `delay` later
     delay: SecondsOrZero = 0.0
-    for_s: Seconds | None = None  # how long a hang (or a load error) lasts
+    for_s: Seconds | None = msgspec.field(default=None, name="for")  # a hang's (or load error's)
     loads: Count = 1  # load_error: how many loads raise (without `for_s`)
     server: str | None = None  # load_error: only loads of this server (default: any)
     message: Text = "injected load error"  # load_error: the exception's message
@@ -204,25 +214,29 @@ class FaultPlan:
         return bound if self.count is None else min(bound, self.count)
 
 
-@dataclasses.dataclass(frozen=True)
-class Compare:
-    """`[compare]`: run the same plan once per value of one setting.
+class Every(_Table, frozen=True):
+    """`every = { min = 0.5, max = 2 }`: seeded random intervals drawn in between."""
 
-    `setting` is a dotted key: `"tree.strategy"`; a child by its name:
-    `"tree.children.erm.heartbeat"`; a fault by its index: `"faults.0.every"`.
-    """
+    min: Interval
+    max: Interval
+
+    def __post_init__(self) -> None:
+        if self.max < self.min:
+            raise ValueError(f"max ({self.max:g} s) must not be less than min ({self.min:g} s)")
+
+
+class Compare(_Table, frozen=True):
+    """`[compare]`: run the plan once per value of one setting, a dotted key: `"tree.strategy"`,
+    a child by its name `"tree.children.erm.heartbeat"`, a fault by its index `"faults.0.every"`."""
 
     setting: Annotated[str, Meta(min_length=1)]
-    values: tuple[Any, ...]  # in the order the runs take them
+    values: Annotated[tuple[Any, ...], Meta(min_length=1)]  # in the order the runs take them
 
 
 @dataclasses.dataclass(frozen=True)
 class Plan:
-    """A whole experiment: validated, ready to run with `rr_actors.experiments.run`.
-
-    `variants` holds `(value, plan)` per compared value (`((None, self),)` without
-    `compare`); each plan has that value applied and `compare` set to `None`.
-    """
+    """A whole experiment: validated, ready to run with `rr_actors.experiments.run`. `variants`
+    holds `(value, plan)` per compared value (`((None, self),)` without `compare`)."""
 
     name: str  # the `runs.csv` column `plan`
     duration: Seconds  # of workload and faults per run
@@ -232,7 +246,7 @@ class Plan:
     seed: Seed = 0  # of the first run (run `i` of a value uses `seed + i`)
     recovery_timeout: Seconds = 10.0  # at the end, to wait for every manager to serve
     state: bool = True  # whether managers keep durable catalogs (a state directory per run)
-    workload: Workload = Workload(clients=0)
+    workload: Workload = Workload(clients=0)  # noqa: RUF009 - frozen, so shared safely
     faults: tuple[FaultPlan, ...] = ()
     compare: Compare | None = None
     variants: tuple[tuple[Any, Plan], ...] = dataclasses.field(
@@ -256,9 +270,8 @@ class Plan:
     def with_changes(
         self, *, repeat: int | None = None, seed: int | None = None, duration: float | None = None
     ) -> Plan:
-        """A copy with another `repeat`, `seed` or `duration` (`None`: keep), for every variant.
-
-        A shorter `duration` drops the faults that would come after the new end.
+        """A copy with another `repeat`, `seed` or `duration` (`None`: keep), for every variant
+        (a shorter `duration` drops the faults after the new end).
 
         Raises:
             ConfigError: `repeat` is not from 1 to `MAX_REPEAT`, `seed` not 64 bits,

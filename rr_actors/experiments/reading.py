@@ -1,10 +1,11 @@
 """Reading a plan: TOML text to a validated `Plan`, every problem a `PlanError` with its line.
 
-    PLAN.toml ─tomllib─► data ─_Reader.decode: table by table into `plan`'s dataclasses, each
-    value ─msgspec.convert(value, its field's annotated type)─► Plan ─► the rules between values
+    PLAN.toml ─tomllib─► data ─_Reader.shape: what TOML spells its own way (`at = 1`,
+    `rate = "max"`, `heartbeat = false`, `every`, `after`, `backoff`)─► data in the shapes of
+    `plan`'s types ─msgspec.convert: every key, type and limit─► Plan ─► the rules between values
 
-`_problem` words msgspec's errors, `_lines.line_of` finds their line. The format is
-documented in `docs/reference/plan.md`.
+`_Reader.check` words msgspec's errors from the type that refused the value, `_lines.line_of`
+finds their line. The format is documented in `docs/reference/plan.md`.
 """
 
 from __future__ import annotations
@@ -18,12 +19,12 @@ import os
 import re
 import string
 import tomllib
-import typing
-from dataclasses import MISSING
 from pathlib import Path
 from typing import Any
 
 import msgspec
+import msgspec.inspect as mi
+from msgspec import UNSET
 
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import plan as schema
@@ -33,22 +34,18 @@ from rr_actors.experiments.plan import Plan, PlanError
 
 __all__ = ["load_plan", "parse_plan"]
 
-# -- the words of the errors, as data ---------------------------------------------------------
 WHAT = {  # what a key must be, where its type alone words it badly (the last key of the path)
     "target": "a manager's name",
     "manager": "a manager's name",
-    "setup": "an import path string",
     "name": "letters, digits, '_', '-' or '.'",
-    "server": "a server name",
     "heartbeat": "a positive number of seconds or false (off)",
     "rate": f"calls per second (at least {1 / schema.MAX_SECONDS:g}, at most {schema.MAX_RATE:g})"
     ' or "max"',
     "weight": f"a positive number (at most {schema.MAX_RATE:g})",
     "shared": "a fraction from 0 to 1",
+    "jitter": "a fraction from 0 to 1",
     "factor": f"a number from 1 to {schema.MAX_SECONDS:g}",
-    "children": "a non-empty array of tables ([[...children]])",
-    "setting": "a plan key",
-}
+}  # any other number is seconds
 PURPOSE = {  # what a missing key is for
     "duration": " (seconds of workload and faults per run)",
     "kind": f": one of {', '.join(schema.FAULT_KINDS)}",
@@ -57,7 +54,7 @@ PURPOSE = {  # what a missing key is for
 }
 TYPES = {"float": "a number", "int": "an integer", "str": "a string", "bool": "true or false"}
 TYPES |= {"array": "an array", "object": "a table"}
-SECONDS = (schema.Seconds, schema.SecondsOrZero, schema.Interval)
+NOT_KEYS = ("state", "variants", "source", "base_dir")  # `Plan` fields no top key gives
 NOT_COMPARED = {  # top-level keys `[compare]` refuses, and why
     "name": "every run of an experiment belongs to one plan",
     "description": "it changes nothing in a run",
@@ -65,12 +62,7 @@ NOT_COMPARED = {  # top-level keys `[compare]` refuses, and why
     "repeat": "every compared value runs 'repeat' times",
     "compare": "compare is not a setting of a run",
 }
-# -- how keys become fields -------------------------------------------------------------------
-TOML_KEY = {"targets": "target", "for_s": "for"}  # field -> key, where they differ
-NOT_KEYS = ("state", "variants", "source", "base_dir")  # `Plan` fields no key gives
-OFF = {"heartbeat": False, "rate": "max"}  # the value that makes the field `None`
-HINT = {"initial": schema.SecondsOrZero, "max": schema.SecondsOrZero}  # `Backoff`'s, limited
-LISTS = ("at", "target")  # a fault's keys that take one value or an array of them
+KEYS = [f.name for f in dataclasses.fields(Plan) if f.init and f.name not in NOT_KEYS]
 # -- a fault's keys that only go with another key, or with some kinds ---------------------------
 NEEDS_KEY = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
 NEEDS_KIND = {"for": ("hang_manager", "load_error"), "loads": ("load_error",)}
@@ -130,29 +122,56 @@ def _show(value: Any) -> str:
     return text if len(text) <= 60 else f"{text[:57]}..."
 
 
-def _problem(message: str, key: str, value: Any, hint: Any) -> str:
-    """msgspec's `message` about `value` of `key` (of type `hint`), in the plan's words."""
-    bound = re.fullmatch(r"Expected `(int|float)` ([<>]=?) (\S+)", message)
+def _type_at(info: Any, steps: KeyPath, data: Any) -> Any:
+    """The type (of `msgspec.inspect`) at `steps` of `data` decoded as `info`: of a union, the
+    member `data` takes there (a tagged one by its tag; at a wrong tag, the tags allowed)."""
+    for step in (*steps, None):
+        if isinstance(info, mi.UnionType):
+            members: list[Any] = [t for t in info.types if t != mi.NoneType()]
+            tags = {t.tag: t for t in members if getattr(t, "tag", None) is not None}
+            field = next((t.tag_field for t in tags.values()), None)
+            if field is not None and step == field:
+                return mi.LiteralType(tuple(tags))
+            given = data.get(field) if isinstance(data, dict) else None
+            info = tags.get(given, members[0])
+        if step is None:
+            return info
+        fields = {f.encode_name: f.type for f in getattr(info, "fields", ())}
+        info, data = fields[step] if isinstance(step, str) else info.item_type, data[step]
+    raise AssertionError("unreachable")
+
+
+def _allowed(message: str, info: Any, key: str) -> str:
+    """What a value of `key` must be, from msgspec's `message` and the type `info` it refused."""
+    bound = re.fullmatch(r"Expected `(\w+)` (of length )?([<>]=?) (\S+)", message)
     typed = re.fullmatch(r"Expected `([^`]*)`, got `\w+`", message)
-    what = f"{message[0].lower()}{message[1:]}"  # msgspec's own words, if none of these
-    if key in WHAT and not (bound and key == "heartbeat"):
-        what = f"must be {WHAT[key]}"
-    elif message.startswith("Invalid enum value") or hasattr(hint, "__members__"):
-        choices = typing.get_args(hint) or tuple(getattr(hint, "__members__", ()))
-        what = f"must be one of {', '.join(map(repr, choices))}"
+    op, number = (bound[3], float(bound[4])) if bound else ("", 0.0)
+    if isinstance(info, mi.LiteralType | mi.EnumType):
+        values = info.values if isinstance(info, mi.LiteralType) else tuple(info.cls.__members__)
+        what = f"one of {', '.join(map(repr, values))}"
+    elif bound and bound[2]:  # a length: `min_length=1` (an array, a name) or `max_length`
+        empty = op == ">=" and bound[4] == "1"
+        what = (
+            f"a non-empty {TYPES[bound[1]].split()[-1]}"
+            if empty
+            else f"{TYPES[bound[1]]} of length {op} {bound[4]}"
+        )
+    elif key in WHAT and not (bound and key == "heartbeat"):
+        what = WHAT[key]
     elif bound and bound[1] == "int":
-        what = f"must be an integer {bound[2]} {bound[3]}"
-    elif bound and bound[2] == "<=":
-        what = f"must be at most {float(bound[3]):g} s (about {float(bound[3]) / 86400:.1f} days)"
+        what = f"an integer {op} {bound[4]}"
+    elif bound and op == "<=":
+        what = f"at most {number:g} s (about {number / 86400:.1f} days)"
     elif bound:
-        zero = {">": "a positive number of seconds", ">=": "seconds >= 0"}[bound[2]]
-        what = f"must be {zero if float(bound[3]) == 0 else f'at least {float(bound[3]):g} s'}"
+        zero = {">": "a positive number of seconds", ">=": "seconds >= 0"}[op]
+        what = f"at least {number:g} s" if number else zero
     elif typed:
         kinds = [TYPES.get(kind, kind) for kind in typed[1].split(" | ") if kind != "null"]
-        seconds = hint in SECONDS or any(h in SECONDS for h in typing.get_args(hint))
-        kinds = [f"{k} of seconds" if seconds and k == "a number" else k for k in kinds]
-        what = f"must be {' or '.join(kinds)}"
-    return f"{what}, got {_show(value)}"
+        what = " or ".join(f"{k} of seconds" if k == "a number" else k for k in kinds)
+    else:
+        words = message.split(maxsplit=1)[0].isalpha()  # msgspec's own, or a check's
+        return f"{message[0].lower()}{message[1:]}" if words else message
+    return f"must be {what}"
 
 
 class _Reader:
@@ -161,10 +180,7 @@ class _Reader:
     def __init__(self, source: str, text: str, base_dir: str | None) -> None:
         self.source, self.text, self.base_dir = source, text, base_dir
         self.data: dict[str, Any] = {}
-        self.state, self.managers = True, dict[str, schema.ManagerPlan]()  # of the last plan
-        self.hooks = {"tree": self.root, "every": self.every, "after": self.trigger}
-
-    # -- the generic part: where, unknown and missing keys, typed values ---------------------
+        self.managers = dict[str, schema.ManagerPlan]()  # of the last plan
 
     def error(self, path: KeyPath, problem: str) -> PlanError:
         """A `PlanError` at the part of `path` written (`at = 1` is checked as `[1]`)."""
@@ -178,86 +194,79 @@ class _Reader:
         if wrong:
             raise self.error(path, problem)
 
-    def table(self, value: Any, path: KeyPath, known: tuple[str, ...]) -> dict[str, Any]:
-        """`value` as a table with only `known` keys (else an error at the first other)."""
-        self.refuse(not isinstance(value, dict), path, f"must be a table, got {_show(value)}")
-        for key in (k for k in value if k not in known):
-            raise self.error((*path, key), f"unknown key; known here: {', '.join(sorted(known))}")
-        return typing.cast(dict[str, Any], value)
-
-    def check(self, value: Any, hint: Any, path: KeyPath) -> Any:
-        """`value` converted to the annotated type `hint` by msgspec, or a `PlanError`."""
-        try:
-            return msgspec.convert(value, hint)
-        except msgspec.ValidationError as exc:
-            message, _, inner = str(exc).partition(" - at `$")
-            steps = (int(i) if i else k for i, k in re.findall(r"\[(\d+)\]|\.(\w+)", inner))
-            path = held(self.data, (*path, *steps))
-            key = next((p for p in reversed(path) if isinstance(p, str)), "")
-            raise self.error(path, _problem(message, key, self.raw(path), hint)) from None
-
     def raw(self, path: KeyPath) -> Any:
         data: Any = self.data
         return functools.reduce(operator.getitem, path, data)  # the value as written
 
-    def decode(self, cls: Any, value: Any, path: KeyPath) -> Any:
-        """A `cls` (a dataclass of `plan`) from the table `value`, every field checked."""
-        hints = typing.get_type_hints(cls, include_extras=True)
-        keys = {TOML_KEY.get(f.name, f.name): f for f in dataclasses.fields(cls)}
-        table = self.table(value, path, tuple(k for k in keys if k not in NOT_KEYS))
-        for key in (k for k, f in keys.items() if f.default is f.default_factory is MISSING):
-            self.refuse(key not in table, path, f"{key!r} is missing{PURPOSE.get(key, '')}")
-        given = {
-            keys[k].name: self.value(k, x, hints[keys[k].name], path) for k, x in table.items()
-        }
+    def check(self, value: Any, hint: Any, path: KeyPath) -> Any:
+        """`value` (at `path`) decoded as the type `hint` by msgspec, or a `PlanError`."""
         try:
-            return cls(**given)
-        except ConfigError as exc:  # a `Backoff` checks itself: "Backoff.max must ..."
-            bad = str(exc).split()[0].removeprefix("Backoff.")
-            raise self.error((*path, bad), str(exc)) from None
+            return msgspec.convert(value, hint)
+        except msgspec.ValidationError as exc:
+            message, _, inner = str(exc).partition(" - at `$")
+            steps = tuple(int(i) if i else k for i, k in re.findall(r"\[(\d+)\]|\.(\w+)", inner))
+            at, info = (*path, *steps), _type_at(mi.type_info(hint), steps, value)
+            key = re.fullmatch(
+                r"Object (?:contains unknown|missing required) field `(\w+)`", message
+            )
+            if key and message.startswith("Object missing"):
+                problem = f"{key[1]!r} is missing{PURPOSE.get(key[1], '')}"
+            elif key:
+                at, known = (*at, key[1]), ", ".join(sorted(f.encode_name for f in info.fields))
+                problem = f"unknown key; known here: {known}"
+            else:
+                at = held(self.data, at)
+                last = next((p for p in reversed(at) if isinstance(p, str)), "")
+                problem = f"{_allowed(message, info, last)}, got {_show(self.raw(at))}"
+            raise self.error(at, problem) from None
 
-    def value(self, key: str, item: Any, hint: Any, table: KeyPath) -> Any:
-        """`item` of `key` as `hint`: by a hook, or a plan dataclass decoded, else by msgspec."""
-        path = (*table, key)
-        if key in self.hooks:
-            return self.hooks[key](item, path)
-        if key in OFF and type(item) is type(OFF[key]) and item == OFF[key]:
-            return None
-        many = typing.get_origin(hint) is tuple  # an array of tables, or a table
-        inner = typing.get_args(hint)[0] if many else hint
-        classes = [c for c in typing.get_args(inner) or (inner,) if dataclasses.is_dataclass(c)]
-        if not classes:
-            item = [item] if key in LISTS and not isinstance(item, list) else item
-            return self.check(item, HINT.get(key, hint), path)
-        if not many:
-            return self.decode(classes[0], item, path)
-        items = self.check(item, list[dict[str, Any]], path)  # a supervisor has children:
-        return tuple(
-            self.decode(classes[-1] if "children" in x else classes[0], x, (*path, i))
-            for i, x in enumerate(items)
-        )
+    # -- what TOML spells its own way, in the shapes of `plan`'s types --------------------------
 
-    def importable(self, path: KeyPath, name: str, call: KeyPath, *args: Any, **kw: Any) -> None:
-        """Import `name`; check that it can be called with `args` and `kw` (at `call`)."""
-        try:
-            target = import_object(name, base_dir=self.base_dir)
-        except ConfigError as exc:
-            raise self.error(path, str(exc)) from None
-        self.refuse(not callable(target), path, f"{name!r} is not callable")
-        try:
-            inspect.signature(target).bind(*args, **kw)
-        except ValueError:
-            return  # a builtin without a signature: it will tell at run time
-        except TypeError as exc:
-            raise self.error(call, f"{name} cannot be called with these: {exc}") from None
+    def shape(self, data: dict[str, Any]) -> dict[str, Any]:
+        """A copy of the plan's `data` in the shapes msgspec decodes into a `Plan`."""
+        for key in (k for k in data if k not in KEYS):
+            raise self.error((key,), f"unknown key; known here: {', '.join(sorted(KEYS))}")
+        data = copy.deepcopy(data)
+        if isinstance(tree := data.get("tree"), dict):  # the top supervisor: `state`, no `restart`
+            known = {f.encode_name for f in msgspec.structs.fields(schema.SupervisorPlan)}
+            top = f"unknown key; known here: {', '.join(sorted(known - {'restart'} | {'state'}))}"
+            self.refuse("restart" in tree, ("tree", "restart"), top)
+            data["state"] = self.check(tree.pop("state", True), bool, ("tree", "state"))
+            data["tree"] = self.node({"name": "root", **tree}, ("tree",))
+        if isinstance(workload := data.get("workload"), dict) and workload.get("rate") == "max":
+            workload["rate"] = None
+        for index, fault in _tables(data, "faults"):
+            path = ("faults", index)
+            fault |= {k: [fault[k]] for k in ("at", "target") if type(fault.get(k, [])) is not list}
+            every = self.check(
+                fault.get("every"), schema.Every | schema.Interval | None, (*path, "every")
+            )
+            fault["every"] = (every.min, every.max) if isinstance(every, schema.Every) else every
+            if "after" in fault:  # `after = { event = "ChildRestarted", child = "db" }`
+                after = self.check(fault["after"], schema.AFTER, (*path, "after"))
+                match = {k: v for k, v in msgspec.structs.asdict(after).items() if v is not UNSET}
+                nth = match.pop("nth")
+                fault["after"] = schema.Trigger(event=type(after).__name__, match=match, nth=nth)
+        return data
+
+    def node(self, node: dict[str, Any], path: KeyPath) -> dict[str, Any]:
+        """A tree node tagged for msgspec, `heartbeat = false` as None, `backoff` checked."""
+        node["_node"] = "supervisor" if "children" in node or path == ("tree",) else "manager"
+        if node.get("heartbeat") is False:
+            node["heartbeat"] = None
+        if "backoff" in node:  # `Backoff` takes any number: the plan's limits, unknown keys
+            self.check(node["backoff"], schema.BackoffPlan, (*path, "backoff"))
+        for index, child in _tables(node, "children"):
+            self.node(child, (*path, "children", index))
+        return node
 
     # -- the plan and the rules between its values ---------------------------------------------
 
     def plan(self, data: dict[str, Any], *, name: str, variant: bool = False) -> Plan:
         self.data = {"name": name, **data}
-        plan: Plan = self.decode(Plan, self.data, ())
+        plan: Plan = self.check(self.shape(self.data), Plan, ())
         source = None if self.source == "<plan>" else self.source
-        plan = dataclasses.replace(plan, state=self.state, source=source, base_dir=self.base_dir)
+        plan = dataclasses.replace(plan, source=source, base_dir=self.base_dir)
         self.managers = managers = {m.name: m for m in plan.managers()}
         self.tree(plan.tree, ("tree",), set())
         self.calls(plan.workload)
@@ -272,26 +281,29 @@ class _Reader:
             self.compare(plan.compare)
         return plan
 
-    def root(self, value: Any, path: KeyPath) -> schema.SupervisorPlan:
-        """The top supervisor: named "root" unless named, no `restart`, and the plan's `state`."""
-        keys = [TOML_KEY.get(f.name, f.name) for f in dataclasses.fields(schema.SupervisorPlan)]
-        table = self.table(value, path, (*(k for k in keys if k != "restart"), "state"))
-        self.state = self.check(table.get("state", True), bool, (*path, "state"))
-        tree = {"name": "root", **{k: v for k, v in table.items() if k != "state"}}
-        root: schema.SupervisorPlan = self.decode(schema.SupervisorPlan, tree, path)
-        return root
-
     def tree(self, node: Any, path: KeyPath, seen: set[str]) -> None:
         """The rules of the tree node `node` and its children (`seen`: the names above)."""
         twice = f"the name {node.name!r} is used twice in the tree"
         self.refuse(node.name in seen, (*path, "name"), twice)
         seen.add(node.name)
-        empty = isinstance(node, schema.SupervisorPlan) and not node.children
-        self.refuse(empty, (*path, "children"), f"must be {WHAT['children']}")
         if isinstance(node, schema.ManagerPlan):
             self.importable((*path, "setup"), node.setup, (*path, "options"), None, **node.options)
         for index, child in enumerate(getattr(node, "children", ())):
             self.tree(child, (*path, "children", index), seen)
+
+    def importable(self, path: KeyPath, name: str, call: KeyPath, *args: Any, **kw: Any) -> None:
+        """Import `name`; check that it can be called with `args` and `kw` (at `call`)."""
+        try:
+            target = import_object(name, base_dir=self.base_dir)
+        except ConfigError as exc:
+            raise self.error(path, str(exc)) from None
+        self.refuse(not callable(target), path, f"{name!r} is not callable")
+        try:
+            inspect.signature(target).bind(*args, **kw)
+        except ValueError:
+            return  # a builtin without a signature: it will tell at run time
+        except TypeError as exc:
+            raise self.error(call, f"{name} cannot be called with these: {exc}") from None
 
     def calls(self, workload: schema.Workload) -> None:
         for index, call in enumerate(workload.calls):
@@ -355,7 +367,6 @@ class _Reader:
         threads = all(m.isolation == "thread" for m in managers.values())
         problem = "kill_resource kills resource processes of process managers; every manager of "
         refuse(not given and threads, path, problem + "this tree has isolation 'thread'")
-        refuse(given and not fault.targets, (*path, "target"), "must name at least one manager")
         for at, name in (((*path, "target", i), name) for i, name in enumerate(fault.targets)):
             self.named(name, at)  # the element, or the key if it gives one name
             thread = kind in schema.NEEDS_PROCESS and managers[name].isolation != "process"
@@ -363,8 +374,6 @@ class _Reader:
         # -- when: within the run, not too often
         hang = kind == "hang_manager" and fault.for_s is None
         refuse(hang, path, f"'for' is missing{PURPOSE['for']}")
-        none = "must give at least one time (seconds)"
-        refuse("at" in table and not fault.at, (*path, "at"), none)
         end = f"the end of the run ({duration:g} s)"
         for index, time in enumerate(fault.at):
             refuse(time >= duration, (*path, "at", index), f"{time!r} s is not before {end}")
@@ -383,37 +392,12 @@ class _Reader:
         often += "fault): give a longer interval, a 'count' or a 'stop'"
         refuse(most > schema.MAX_INJECTIONS, (*path, "every"), often)
 
-    def every(self, every: Any, path: KeyPath) -> Any:
-        """`every = 0.5` or `every = { min = 0.5, max = 2 }` (msgspec 0.22 crashes on its type)."""
-        if not isinstance(every, dict):
-            return None if every is None else self.check(every, schema.Interval, path)
-        self.table(every, path, ("min", "max"))
-        self.refuse(len(every) != 2, path, "needs both 'min' and 'max' (seconds)")
-        low, high = (self.check(every[k], schema.Interval, (*path, k)) for k in ("min", "max"))
-        self.refuse(high < low, (*path, "max"), f"must not be less than min ({low:g} s)")
-        return low, high
-
-    def trigger(self, value: Any, path: KeyPath) -> schema.Trigger:
-        table = f'must be a table like {{ event = "ChildRestarted" }}, got {_show(value)}'
-        self.refuse(not isinstance(value, dict), path, table)
-        self.refuse("event" not in value, path, "'event' is missing")
-        event, known = value["event"], ", ".join(sorted(schema.EVENT_TYPES))
-        unknown = not isinstance(event, str) or event not in schema.EVENT_TYPES
-        self.refuse(unknown, (*path, "event"), f"unknown event {event!r}; events: {known}")
-        hints = typing.get_type_hints(schema.EVENT_TYPES[event])
-        self.table(value, path, ("event", "nth", *(f for f in hints if f != "at")))
-        fields = (k for k in value if k not in ("event", "nth"))  # a `Status` by its name, too
-        match = {key: self.check(value[key], hints[key], (*path, key)) for key in fields}
-        nth = self.check(value.get("nth", 1), schema.Count, (*path, "nth"))
-        return schema.Trigger(event, match, nth)
-
     # -- compare ------------------------------------------------------------------------------
 
     def compare(self, compare: schema.Compare) -> None:
         path, setting, values = ("compare",), compare.setting, compare.values
         why = NOT_COMPARED.get(setting.split(".")[0])
         self.refuse(why, (*path, "setting"), f"{setting!r} cannot be compared: {why}")
-        self.refuse(not values, (*path, "values"), "must be a non-empty array")
         for index, item in enumerate(values):
             same = [x for x in values[:index] if type(x) is type(item) and x == item]
             self.refuse(
@@ -440,3 +424,11 @@ class _Reader:
                 return node, key
             node = node[key]
         raise AssertionError("unreachable")
+
+
+def _tables(data: dict[str, Any], key: str) -> list[tuple[int, dict[str, Any]]]:
+    """The tables of the array `data[key]`, with their indices (msgspec refuses anything else)."""
+    items = data.get(key)
+    return (
+        [(i, x) for i, x in enumerate(items) if isinstance(x, dict)] if type(items) is list else []
+    )
