@@ -61,7 +61,7 @@ class RemoteRegistrar:
     every registrar of the system that this consumer is gone (death watch), as a
     supervisor does for a child it will not restart (unless a restart is expected:
     `rr_actors.testing.expect_restart`): its consumers' ids are released and the ids
-    held there get `FATAL` at their consumers (DESIGN rule 19).
+    held there get `FATAL` at their consumers (rule 19).
     """
 
     def __init__(

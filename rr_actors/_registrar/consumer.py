@@ -480,7 +480,7 @@ class Consumer:
             self.report_lost(f"{serving_rr}/{server}", tuple(ids))
 
     def lose_provider(self, serving_rr: str) -> None:
-        """Provider `serving_rr` is gone and nobody will restart it (DESIGN rule 19): the ids
+        """Provider `serving_rr` is gone and nobody will restart it (rule 19): the ids
         held there get `FATAL` (and up their dependents), then they are forgotten."""
         lost: dict[str, list[str]] = {}
         for query_id, record in list(self.registrar.catalog.clients.items()):

@@ -232,7 +232,7 @@ class ReconcileAsk(WireMessage):
 class ConsumerDown(WireMessage):
     """Death watch -> every registrar: registrar `origin_rr` died and will not come back.
 
-    Handled by `presence.py` on both sides (DESIGN rule 19): the ids it held here are
+    Handled by `presence.py` on both sides (rule 19): the ids it held here are
     released, and the ids held there get `FATAL` and are forgotten."""
 
     origin_rr: str
@@ -441,7 +441,7 @@ class Reachable:
 @dataclasses.dataclass(frozen=True)
 class PeerLost:
     """A carrier: registrar `name` of another process is gone and nobody will restart it
-    (DESIGN rule 19). Handled by `presence.py`."""
+    (rule 19). Handled by `presence.py`."""
 
     name: str
 

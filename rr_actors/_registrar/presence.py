@@ -8,7 +8,7 @@ place that decides what they mean for the catalog:
 
 ```
  carrier ── Endpoint.peer_lost(name) ──► PeerLost ──────┐
- death watch (supervisor, owner handle, ─► ConsumerDown ┴─► lose(name)     (DESIGN rule 19)
+ death watch (supervisor, owner handle, ─► ConsumerDown ┴─► lose(name)     (rule 19)
    a registrar that died unsupervised)
      as a provider: every id `name` held here is released (each `unload` runs once)
      as a consumer: the ids held at `name` get `FATAL` (and up their dependents), then

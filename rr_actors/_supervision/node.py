@@ -357,7 +357,7 @@ class Node:
                 self._lose(name)
 
     def _lose(self, name: str) -> None:
-        """Manager `name` is gone and nobody will restart it (death watch, DESIGN rule 19):
+        """Manager `name` is gone and nobody will restart it (death watch, rule 19):
         its consumers' ids are released, and the ids held at it are `FATAL`."""
         DIRECTORY.expect_restart(name, expected=False)
         consumer_down(self.root(), name, self.tree.processes.system)

@@ -308,7 +308,7 @@ def consumer_down(root: Level, name: str, network: Transport | None = None) -> N
     """Death watch: tell every living registrar that registrar `name` is gone for good.
 
     Its consumers' ids are released where it held them, and the ids held at it get
-    `FATAL` at their consumers (DESIGN rule 19; `_registrar/presence.py`).
+    `FATAL` at their consumers (rule 19; `_registrar/presence.py`).
 
     `root`: the tree's root supervisor (its living process managers are told too);
     `network`: the tree's carrier, whose registrars (other processes, other hosts) are

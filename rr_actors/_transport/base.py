@@ -35,7 +35,7 @@ The contract every carrier keeps (the transport tests check it for each one):
   `RegistrarStoppedError` after a clean stop), never by waiting out a timeout; a later
   `tell` to a name that is served again (a restarted manager) reaches the new server;
 - **control**: `run(name, fn, timeout=)` runs `fn(registrar)` where that registrar lives;
-- **lost for good (DESIGN rule 19)**: when a registrar of another process is gone and
+- **lost for good (rule 19)**: when a registrar of another process is gone and
   nobody will restart it, every registrar of the system hears so, at least once: from
   the death watch (`ConsumerDown`, which whoever started it, a supervisor that gave up
   or the owner of an unsupervised manager process, tells every name `names()` lists),
@@ -105,8 +105,8 @@ class Endpoint(Protocol):
         ...
 
     def peer_lost(self, name: str) -> None:
-        """Registrar `name` of another process is gone and nobody will restart it (DESIGN
-        rule 19: its process ended and no supervisor started it, or its supervisor is
+        """Registrar `name` of another process is gone and nobody will restart it (rule
+        19: its process ended and no supervisor started it, or its supervisor is
         gone or unreachable too). The registrar releases the ids `name` held here and
         reports the ids it held at `name` `FATAL` (its status callbacks, and up their
         dependents), then forgets them; the death watch's `ConsumerDown` does the same.

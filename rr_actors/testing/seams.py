@@ -215,7 +215,7 @@ def expect_restart(name: str) -> Iterator[None]:
 
     A supervisor says so for every child it will restart: the providers then keep the
     dead registrar's consumer ids for its restored catalog, and its consumers keep the
-    ids they hold there without a `FATAL` (no death watch, DESIGN rule 19). It holds for
+    ids they hold there without a `FATAL` (no death watch, rule 19). It holds for
     a registrar of this process and for the manager process of a `RemoteRegistrar`
     whose owner handle is in this process (`kill()` inside the block).
     """
