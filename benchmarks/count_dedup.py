@@ -11,7 +11,8 @@ every thread (the caller, the provider's actor, the consumer's actor):
 
 Operations (`--what`): `call`, a dedup-hit call with a plain request (a string);
 `user`, the same with a request of a user class (its `repr`, `==` and `hash` are user
-code); `pykka`, a raw pykka ask to an echoing actor (the baseline). With `--profile`
+code); `pykka`, a raw pykka ask to an echoing actor (the baseline); `actor`, the
+same ask to rr_actors' own actor type. With `--profile`
 it prints each Python function called at least once per operation, with the thread
 that called it (a cheap way to see what an operation does).
 
@@ -24,6 +25,7 @@ from __future__ import annotations
 import argparse
 import collections
 import os
+import resource
 import sys
 import threading
 from types import FrameType
@@ -32,9 +34,17 @@ from typing import Any
 import pykka
 
 import rr_actors as rr
+from rr_actors._core.actor import Actor
 
 
 class Echo(pykka.ThreadingActor):
+    def on_receive(self, message: Any) -> Any:
+        return message
+
+
+class ActorEcho(Actor):
+    """The same echo on rr_actors' own actor type (the registrars are built on it)."""
+
     def on_receive(self, message: Any) -> Any:
         return message
 
@@ -62,7 +72,7 @@ def _noop(*_: object) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--calls", type=int, default=1000, help="operations (default 1000)")
-    parser.add_argument("--what", choices=["call", "user", "pykka"], default="call")
+    parser.add_argument("--what", choices=["call", "user", "pykka", "actor"], default="call")
     parser.add_argument("--profile", action="store_true", help="print Python calls per op")
     args = parser.parse_args()
     counts: collections.Counter[tuple[str, str, str]] = collections.Counter()
@@ -77,7 +87,7 @@ def main() -> int:
     if args.profile:  # (before the actors start: their threads inherit it)
         threading.setprofile(tracer)
         sys.setprofile(tracer)
-    echo = Echo.start()
+    echo = Echo.start() if args.what != "actor" else ActorEcho.start()
     provider = rr.ResourceRegistrar.start("count-provider")
     consumer = rr.ResourceRegistrar.start("count-consumer")
     try:
@@ -88,12 +98,14 @@ def main() -> int:
             consumer.unload(query_id)  # (warm-up)
         ids: list[str] = []
         counting.set()
+        before = resource.getrusage(resource.RUSAGE_SELF)
         for _ in range(args.calls):
-            if args.what == "pykka":
+            if args.what in ("pykka", "actor"):
                 echo.ask("ping")
             else:
                 ids.append(consumer.call(provider.name, "res", request).id)
         consumer.client_queries()  # (after the consumer recorded every answer)
+        after = resource.getrusage(resource.RUSAGE_SELF)
         counting.clear()
         for query_id in ids:
             consumer.unload(query_id)
@@ -104,6 +116,12 @@ def main() -> int:
         provider.stop()
         echo.stop()
     print(f"{args.calls} x {args.what}")
+    cpu = (after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime) * 1e6
+    switches = after.ru_nvcsw + after.ru_nivcsw - before.ru_nvcsw - before.ru_nivcsw
+    print(
+        f"per operation: {cpu / args.calls:.1f} us of CPU (every thread), "
+        f"{switches / args.calls:.2f} context switches"
+    )
     for (thread, where, name), count in sorted(counts.items(), key=lambda kv: -kv[1]):
         if count >= args.calls:
             print(f"{count / args.calls:5.1f}  {thread:16} {where:20} {name}")
