@@ -71,6 +71,7 @@ from rr_actors._registrar.messages import (
     Snapshot,
     StatusNotice,
     Stop,
+    TakeOutcomes,
     Unload,
     UnregisterServer,
     UpdateResponse,
@@ -124,6 +125,10 @@ def _answering(tokens: Tokens) -> Handler:
     return lambda m: tokens.answer(m.token, m.value, m.error)
 
 
+def _taken(_message: TakeOutcomes) -> None:
+    """The outcomes waiting were taken before this message (`RegistrarActor.on_receive`)."""
+
+
 def _answer_now(_actor: RegistrarActor, _message: Ping, reply: Reply) -> None:
     reply.set_result(None)
 
@@ -149,6 +154,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     Pending: ("pending", lambda a: a.consumer.on_pending),  # a durable call's record to commit
     ClientLoaded: ("client_loaded", lambda a: a.consumer.on_client_loaded),  # an answer to record
     CallFailed: ("call_failed", lambda a: a.consumer.on_call_failed),  # failed or withdrawn
+    TakeOutcomes: ("take_outcomes", lambda _a: _taken),  # (taken before each message)
     Answer: ("answer", lambda a: _answering(a.shared.tokens)),  # to one of its own questions
     Flush: ("flush", lambda a: a.lifecycle.on_flush),  # the save-interval timer fired
     Crash: ("crash", lambda a: a.lifecycle.on_crash),  # `rr_actors.testing.crash`
@@ -240,7 +246,7 @@ class RegistrarActor(Actor):
         self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
         # Each role is built after the roles it calls, and calls only those (one way):
         # lifecycle -> servers -> status | unloading -> provider -> consumer.
-        self.consumer = Consumer(self.shared, due, self.on_receive, clients)
+        self.consumer = Consumer(self.shared, due, self.dispatch, clients)
         self.provider = Provider(self.shared, self.consumer)
         self.unloading = Unloading(self.shared, self.provider)
         self.status = StatusRelay(self.shared, self.consumer)
@@ -264,6 +270,12 @@ class RegistrarActor(Actor):
         self.lifecycle.on_start()
 
     def on_receive(self, message: Any) -> None:
+        if not self.consumer.due.outcomes.empty():  # call outcomes handed over before
+            self.consumer.take_outcomes()  # this message: recorded first (`calls.py`)
+        self.dispatch(message)
+
+    def dispatch(self, message: Any) -> None:
+        """Handle `message` with its role's handler (the outcomes waiting are not taken)."""
         entry = self.handlers.get(type(message))
         if entry is None:
             logger.warning("registrar %s ignored an unknown message %r", self.name, message)
@@ -295,6 +307,8 @@ class RegistrarActor(Actor):
         self.lifecycle.die()
 
     def on_ended(self) -> None:
+        error = DIRECTORY.gone_error(self.name)  # outcomes left, or handed over later:
+        self.consumer.due.outcomes.close(lambda m: self.lifecycle.refuse_message(m, error))
         self.lifecycle.ended.set()
 
     def on_late(self, envelope: Any) -> None:

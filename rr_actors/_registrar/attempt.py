@@ -86,6 +86,9 @@ class CallAttempt(OneShotFuture[Any]):
         super().__init__()
         self._state_lock = threading.Lock()
         self.state = AttemptState.SENDING
+        self.awaited = False
+        """Set by the registrar actor when a notice waits for this call's answer: its
+        caller then wakes the actor for the outcome it hands over (`DueAnswers`)."""
 
     def __repr__(self) -> str:
         return f"<rr_actors.CallAttempt {self.state.value}>"

@@ -8,15 +8,26 @@
   wait for the commit ◄─────────────────────────────────────────────┘]
  attempt.sent(); Load ─────────────────────────────────────────────────► on_load
  attempt.wait(answer | error | timeout) ◄──── ClientReply (the answering thread) ◄─┘
-   answered: ClientLoaded ────────────► record it; notices parked behind it run
+   answered: ClientLoaded ──► due.outcomes ──► recorded before the actor's next message
    timeout:  attempt.withdraw(), Abandon ───────────────────────────────► release the id
-             CallFailed ──────────────► forget the attempt's record
+             CallFailed ────► due.outcomes + TakeOutcomes ──► forget the attempt's record
 ```
 
 Like OTP's `gen:do_call` (monitor, send, receive the reply, the 'DOWN' or the timeout):
 a provider that dies fails the reply at once (`RegistrarUnavailableError`), not after
 the timeout. What a reply that races the timeout (or a stop) does is decided by one
 state, the call's `CallAttempt`.
+
+A plain call's outcome (its answer to record, or its failure) does not wake the
+registrar actor by itself: it waits in `DueAnswers.outcomes`, which the actor takes, in
+order, before it handles any message. So everything sent after a call returned (an
+`unload` of its id, a status notice, a stop, a snapshot) finds its record, and a dedup
+hit costs two thread hand-offs (the `Load` and its answer), not three. The actor is
+woken (`TakeOutcomes`) when something waits for an outcome: a failure (its parked
+notices are answered), a dependency's answer (the load that made it may have failed
+meanwhile: the id is then given back at once), a notice held back for that answer
+(`CallAttempt.awaited`), or `BACKLOG` outcomes waiting. A durable call's outcomes go
+through the mailbox: the actor commits its answer before its caller gets it.
 """
 
 from __future__ import annotations
@@ -30,11 +41,19 @@ from typing import Any
 import pykka
 
 from rr_actors._catalog import ClientRecord
+from rr_actors._core.actor import Mailbox
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.attempt import AttemptState, CallAttempt
 from rr_actors._registrar.loading import check_picklable
-from rr_actors._registrar.messages import CallFailed, ClientLoaded, Load, Pending, give_back
+from rr_actors._registrar.messages import (
+    CallFailed,
+    ClientLoaded,
+    Load,
+    Pending,
+    TakeOutcomes,
+    give_back,
+)
 from rr_actors._registrar.probes import Probes
 from rr_actors._types import Query, StatusCallback
 from rr_actors.errors import (
@@ -44,7 +63,12 @@ from rr_actors.errors import (
     RrError,
 )
 
-__all__ = ["AttemptState", "CallAttempt", "Calls", "ClientReply", "DueAnswers"]
+__all__ = ["BACKLOG", "AttemptState", "CallAttempt", "Calls", "ClientReply", "DueAnswers"]
+
+BACKLOG = 64
+"""Plain outcomes that may wait for the registrar actor before a caller wakes it."""
+
+Outcome = ClientLoaded | CallFailed
 
 
 class DueAnswers:
@@ -59,13 +83,19 @@ class DueAnswers:
     it is about. The actor holds such a notice until the query id is no longer due. The
     lock makes "remove it if it is still this attempt's" atomic against a retry that
     reuses the query id.
+
+    `outcomes` holds the outcomes of plain calls (`ClientLoaded`, `CallFailed`) in the
+    order their threads handed them over; the actor takes them before each message
+    (module docstring). Once the actor ended, an outcome handed over goes to its
+    `late` handler at once (a `Mailbox`), which gives the id back.
     """
 
-    __slots__ = ("_attempts", "_lock")
+    __slots__ = ("_attempts", "_lock", "outcomes")
 
     def __init__(self) -> None:
         self._attempts: dict[str, CallAttempt] = {}
         self._lock = threading.Lock()
+        self.outcomes = Mailbox()
 
     def __contains__(self, query_id: str) -> bool:
         return query_id in self._attempts
@@ -90,6 +120,19 @@ class DueAnswers:
         with self._lock:
             self._attempts[query_id] = attempt
 
+    def awaited(self, query_id: str) -> bool:
+        """The actor: a notice waits for `query_id`'s answer; whether it is still due.
+
+        Marks its attempt (`CallAttempt.awaited`): its caller, reading the mark after it
+        handed the outcome over, wakes the actor for it. The actor takes the outcomes
+        once more after marking, so one of the two sees the other's write.
+        """
+        attempt = self._attempts.get(query_id)
+        if attempt is None:
+            return False
+        attempt.awaited = True
+        return True
+
     def settle(self, query_id: str, attempt: CallAttempt) -> bool:
         """`attempt`'s answer or failure was handled; whether it was the one due."""
         with self._lock:
@@ -113,22 +156,20 @@ class ClientReply:
     settles it (or, finding it withdrawn, drops the record).
     """
 
-    __slots__ = ("attempt", "commit_first", "on_status", "record", "registrar")
+    __slots__ = ("attempt", "calls", "commit_first", "on_status", "record")
 
     def __init__(
         self,
-        registrar: pykka.ActorRef[Any],
+        calls: Calls,
         record: ClientRecord,
         on_status: StatusCallback | None,
         attempt: CallAttempt,
-        *,
-        commit_first: bool,
     ) -> None:
-        self.registrar = registrar
+        self.calls = calls
         self.record = record
         self.on_status = on_status
         self.attempt = attempt
-        self.commit_first = commit_first
+        self.commit_first = calls.commit_first
 
     def set_result(self, value: Any) -> None:
         if not self.commit_first:
@@ -137,7 +178,7 @@ class ClientReply:
         query = self.record.query.with_response(value)
         record = ClientRecord(query, self.record.parent, loaded=True)
         try:
-            self.registrar.tell(ClientLoaded(record, self.on_status, self.attempt, True))
+            self.calls.ref.tell(ClientLoaded(record, self.on_status, self.attempt, True))
         except pykka.ActorDeadError:  # the consumer stopped meanwhile: give the id back
             give_back(query.serving_rr, query.id, query.origin_rr)
             self.attempt.fail(
@@ -151,7 +192,7 @@ class ClientReply:
         gone = isinstance(error, RegistrarUnavailableError | RegistrarStoppedError)
         failed = CallFailed(query.id, self.attempt, serving_rr=query.serving_rr if gone else None)
         with contextlib.suppress(pykka.ActorDeadError):
-            self.registrar.tell(failed)
+            self.calls.hand_over(failed, wake=True)
         self.attempt.fail(error)
 
 
@@ -211,7 +252,7 @@ class Calls:
         """
         attempt = self.attempt_type()
         record = ClientRecord(query, parent)
-        reply = ClientReply(self.ref, record, on_status, attempt, commit_first=self.commit_first)
+        reply = ClientReply(self, record, on_status, attempt)
         answered = query
         withdrawn = False
         try:
@@ -231,7 +272,9 @@ class Calls:
                     )
                 if not self.commit_first:  # a durable one the registrar recorded already
                     loaded = ClientRecord(answered, parent, loaded=True)
-                    self.ref.tell(ClientLoaded(loaded, on_status, attempt))
+                    # (a dependency's owner may be gone: it is given back at once)
+                    outcome = ClientLoaded(loaded, on_status, attempt)
+                    self.hand_over(outcome, wake=parent is not None)
         except pykka.ActorDeadError:  # this registrar stopped meanwhile: give the id back
             give_back(query.serving_rr, query.id, self.name)
             raise DIRECTORY.gone_error(self.name) from None
@@ -289,4 +332,25 @@ class Calls:
             probes.fire("withdraw", query)
         give_back(query.serving_rr, query.id, self.name)
         with contextlib.suppress(pykka.ActorDeadError):  # after: a crash in between keeps
-            self.ref.tell(CallFailed(query.id, attempt, withdrawn=True))  # the record
+            self.hand_over(CallFailed(query.id, attempt, withdrawn=True), wake=True)  # the record
+
+    def hand_over(self, outcome: Outcome, *, wake: bool) -> None:
+        """Give the registrar actor a call's `outcome` to record (any thread).
+
+        A plain call's waits in `due.outcomes` (module docstring); the actor is woken for
+        it with `wake`, when a notice waits for its answer, or when `BACKLOG` wait. A
+        durable registrar's go through its mailbox, in order with its `Pending` records.
+
+        Raises:
+            pykka.ActorDeadError: the registrar actor is not running.
+        """
+        if self.commit_first:
+            self.ref.tell(outcome)
+            return
+        if not self.ref.is_alive():
+            raise pykka.ActorDeadError(f"registrar {self.name!r} is not running")
+        outcomes = self.due.outcomes
+        outcomes.put(outcome)  # (then read the mark: see `DueAnswers.awaited`)
+        if wake or outcome.attempt.awaited or outcomes.qsize() >= BACKLOG:
+            with contextlib.suppress(pykka.ActorDeadError):  # (it ended: the outcome
+                self.ref.tell(TakeOutcomes())  # went to its late handler)

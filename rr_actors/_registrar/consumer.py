@@ -4,8 +4,9 @@
  caller thread ──Load──► provider          (calls.py: the call protocol)
       │  durable: Pending ──► on_pending: record written as pending, then the Load leaves
       ▼
- answer ──► ClientLoaded ──► on_client_loaded: record (or give back), answer waiting notices
- failure/withdrawal ──► CallFailed ──► on_call_failed: forget the attempt's record
+ answer ──► ClientLoaded ─┐ due.outcomes, taken before each message (take_outcomes):
+ failure/withdrawal ──► CallFailed ─┘   on_client_loaded: record (or give back), answer
+                                        waiting notices; on_call_failed: forget the record
  Revoke / ResponseUpdated ──► held back while the answer they are about is on its way
 ```
 
@@ -83,7 +84,7 @@ class Consumer:
         self,
         shared: Shared,
         due: DueAnswers,
-        redeliver: Callable[[Notice], None],
+        redeliver: Callable[[Any], None],
         clients: Clients,
     ) -> None:
         self.registrar = shared
@@ -322,12 +323,21 @@ class Consumer:
 
     # -- notices that overtake the answer they are about ------------------------------
 
+    def take_outcomes(self) -> None:
+        """Record the call outcomes handed over so far, in order (`calls.py`)."""
+        outcomes = self.due.outcomes
+        while not outcomes.empty():
+            self.redeliver(outcomes.get())
+
     def parked(self, notice: Notice) -> bool:
         """Hold `notice` if the answer to one of its queries is still on its way.
 
-        It is handled again (`answered`) once that answer or the call's failure was.
+        It is handled again (`answered`) once that answer or the call's failure was. The
+        caller that hands that outcome over wakes this actor for it (`DueAnswers.awaited`).
         """
         for query_id in notice.query_ids:
+            if self.due.awaited(query_id):
+                self.take_outcomes()  # (handed over before the mark was read?)
             if query_id in self.due:
                 self.parked_notices.setdefault(query_id, []).append(notice)
                 return True

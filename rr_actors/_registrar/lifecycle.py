@@ -299,11 +299,17 @@ class Lifecycle:
         inbox = self.actor.actor_inbox
         while not inbox.empty():
             self.refuse(inbox.get(), error)
+        outcomes = self.consumer.due.outcomes
+        while not outcomes.empty():
+            self.refuse_message(outcomes.get(), error)
 
     def refuse(self, envelope: Any, error: Exception) -> None:
         """Answer a message this actor will not handle (it stops or died); any thread."""
         refuse(envelope)  # a pykka ask, e.g. the handle's `ref.stop()`: it must hear
-        message = envelope.message
+        self.refuse_message(envelope.message, error)
+
+    def refuse_message(self, message: Any, error: Exception) -> None:
+        """Answer what `message` obliges this actor to, as it will not handle it; any thread."""
         pending = getattr(message, "reply", None)
         if pending is not None:
             pending.set_error(error)

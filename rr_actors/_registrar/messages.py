@@ -74,6 +74,7 @@ __all__ = [
     "Snapshot",
     "StatusNotice",
     "Stop",
+    "TakeOutcomes",
     "Unload",
     "UnregisterServer",
     "UpdateResponse",
@@ -313,6 +314,15 @@ class CallFailed:
     withdrawn: bool = False  # given up by its caller, who told the provider an Abandon first
     serving_rr: str | None = None  # set if it failed as its provider died or stopped: it
     # may have executed, and a retry with the same id may come (held until reconciled)
+
+
+@dataclasses.dataclass(frozen=True)
+class TakeOutcomes:
+    """Record the call outcomes waiting in `DueAnswers.outcomes` now (see `calls.py`).
+
+    The actor takes them before every message it handles; this one only wakes it for
+    outcomes something waits for (a failure, a notice held back, a full backlog).
+    """
 
 
 @dataclasses.dataclass(frozen=True)

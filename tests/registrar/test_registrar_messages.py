@@ -140,12 +140,20 @@ def _pending(p: Pair, hook: Hook) -> None:
 def _client_loaded(p: Pair, hook: Hook) -> None:
     intercept(p.consumer, "client_loaded", before=hook)
     p.held()
+    p.consumer.client_queries()  # (the answer is recorded before the next message)
 
 
 def _call_failed(p: Pair, hook: Hook) -> None:
     p.provider.register_server("broken", load=_raise, unload=_no_unload)
     intercept(p.consumer, "call_failed", before=hook)
     with pytest.raises(rr.ResourceLoadError):
+        p.consumer.call(p.provider.name, "broken", "x")
+
+
+def _take_outcomes(p: Pair, hook: Hook) -> None:
+    p.provider.register_server("broken", load=_raise, unload=_no_unload)
+    intercept(p.consumer, "take_outcomes", before=hook)
+    with pytest.raises(rr.ResourceLoadError):  # a failure wakes the consumer at once
         p.consumer.call(p.provider.name, "broken", "x")
 
 
@@ -290,6 +298,7 @@ DRIVERS: dict[str, Callable[[Pair, Hook], None]] = {
     "pending": _pending,
     "client_loaded": _client_loaded,
     "call_failed": _call_failed,
+    "take_outcomes": _take_outcomes,
     "answer": _answer,
     "flush": _flush,
     "crash": _crash,
