@@ -145,38 +145,65 @@ class DueAnswers:
 class ClientReply:
     """The answer to a consumer's load: hand it to the caller, who records it.
 
-    The caller's thread wakes with the value and tells the consumer's registrar the
+    The caller's thread wakes with the value and hands the consumer's registrar the
     client record itself: the answering thread (a connection's reader, or the provider's
-    actor) wakes one thread, not two, and the caller's later `unload` follows the record
-    in the mailbox. A notice about the query that reaches the registrar before the
-    record waits for it (`DueAnswers`).
+    actor) wakes one thread, not two, and the caller's later `unload` finds the record
+    (`DueAnswers.outcomes`). A notice about the query that reaches the registrar before
+    the record waits for it (`DueAnswers`).
 
     With `commit_first` (a durable consumer) the record was written as pending before
     the load was sent; the registrar takes the attempt, commits the answer and then
     settles it (or, finding it withdrawn, drops the record).
+
+    It also describes the call (its id, provider, server, request and parent), so that
+    the caller's thread builds one `Query`, the answered one.
     """
 
-    __slots__ = ("attempt", "calls", "commit_first", "on_status", "record")
+    __slots__ = (
+        "attempt",
+        "calls",
+        "commit_first",
+        "on_status",
+        "parent",
+        "query_id",
+        "request",
+        "server",
+        "serving_rr",
+    )
 
     def __init__(
         self,
         calls: Calls,
-        record: ClientRecord,
+        query_id: str,
+        serving_rr: str,
+        server: str,
+        request: Any,
+        parent: str | None,
         on_status: StatusCallback | None,
         attempt: CallAttempt,
     ) -> None:
         self.calls = calls
-        self.record = record
+        self.query_id = query_id
+        self.serving_rr = serving_rr
+        self.server = server
+        self.request = request
+        self.parent = parent
         self.on_status = on_status
         self.attempt = attempt
         self.commit_first = calls.commit_first
+
+    def query(self, response: Any = None) -> Query:
+        """The call's query, with `response`."""
+        return Query(
+            self.query_id, self.server, self.serving_rr, self.calls.name, self.request, response
+        )
 
     def set_result(self, value: Any) -> None:
         if not self.commit_first:
             self.attempt.answer(value)  # (withdrawn: dropped, its caller gave the id back)
             return  # the caller records it
-        query = self.record.query.with_response(value)
-        record = ClientRecord(query, self.record.parent, loaded=True)
+        query = self.query(value)
+        record = ClientRecord(query, self.parent, loaded=True)
         try:
             self.calls.ref.tell(ClientLoaded(record, self.on_status, self.attempt, True))
         except pykka.ActorDeadError:  # the consumer stopped meanwhile: give the id back
@@ -186,11 +213,12 @@ class ClientReply:
             )
 
     def set_error(self, error: BaseException) -> None:
-        query = self.record.query
         # A provider that died (or was stopped) may have executed the call: its id is
         # held until reconciled with the provider's next start, for a retry (rule 17).
         gone = isinstance(error, RegistrarUnavailableError | RegistrarStoppedError)
-        failed = CallFailed(query.id, self.attempt, serving_rr=query.serving_rr if gone else None)
+        failed = CallFailed(
+            self.query_id, self.attempt, serving_rr=self.serving_rr if gone else None
+        )
         with contextlib.suppress(pykka.ActorDeadError):
             self.calls.hand_over(failed, wake=True)
         self.attempt.fail(error)
@@ -229,35 +257,43 @@ class Calls:
 
     def call(
         self,
-        query: Query,
+        query_id: str,
+        serving_rr: str,
+        server: str,
+        request: Any,
         parent: str | None,
         chain: tuple[str, ...],
         on_status: StatusCallback | None,
         limit: float,
         deadline: float,
     ) -> Query:
-        """Send `query`'s load and wait for its answer until `deadline` (rule 17).
+        """Send a call's load and wait for its answer until `deadline` (rule 17).
 
         Args:
-            query: the call (its id, provider, server and request).
+            query_id: the call's query id.
+            serving_rr: the provider registrar's name.
+            server: the server's name there.
+            request: what the call asks for.
             parent: the resource of this registrar the call is a dependency of, if any.
             chain: the resources being loaded further up (cycle detection).
             on_status: the client status callback to record with the answer.
             limit: the call's timeout in seconds (for the error message).
             deadline: when to give up (`time.monotonic()` seconds).
 
+        Returns:
+            The call's `Query`, with its response.
+
         Raises:
             CallTimeoutError: no answer in time; the call was withdrawn.
             RrError: what the call failed with.
         """
         attempt = self.attempt_type()
-        record = ClientRecord(query, parent)
-        reply = ClientReply(self, record, on_status, attempt)
-        answered = query
+        reply = ClientReply(self, query_id, serving_rr, server, request, parent, on_status, attempt)
+        answered: Query | None = None
         withdrawn = False
         try:
-            self.due.expect(query.id, attempt)  # a notice that overtakes the answer waits
-            load = Load(query.id, query.server, query.request, self.name, chain, reply)
+            self.due.expect(query_id, attempt)  # a notice that overtakes the answer waits
+            load = Load(query_id, server, request, self.name, chain, reply)
             sent = self.send(load, reply, deadline)
             left = max(0.0, deadline - time.monotonic())
             if not (sent and attempt.wait(left)):  # the time is up: withdraw, unless the
@@ -265,10 +301,10 @@ class Calls:
                 if not withdrawn:  # (being recorded: its outcome comes with the commit)
                     attempt.wait()
             if attempt.state is AttemptState.ANSWERED:
-                answered = query.with_response(attempt.get())
+                answered = reply.query(attempt.get())
                 if self.stored and not self.commit_first:
                     check_picklable(  # stored with its record at the next flush
-                        answered.response, f"the response of '{query.serving_rr}/{query.server}'"
+                        answered.response, f"the response of '{serving_rr}/{server}'"
                     )
                 if not self.commit_first:  # a durable one the registrar recorded already
                     loaded = ClientRecord(answered, parent, loaded=True)
@@ -276,19 +312,18 @@ class Calls:
                     outcome = ClientLoaded(loaded, on_status, attempt)
                     self.hand_over(outcome, wake=parent is not None)
         except pykka.ActorDeadError:  # this registrar stopped meanwhile: give the id back
-            give_back(query.serving_rr, query.id, self.name)
+            give_back(serving_rr, query_id, self.name)
             raise DIRECTORY.gone_error(self.name) from None
         except BaseException:  # the caller stops waiting (KeyboardInterrupt, ...)
             attempt.withdraw()
-            self.withdraw(query, attempt)
+            self.withdraw(reply, attempt)
             raise
         if withdrawn:
-            self.withdraw(query, attempt)
-            raise CallTimeoutError(
-                f"call to '{query.serving_rr}/{query.server}' timed out after {limit:g} s"
-            )
+            self.withdraw(reply, attempt)
+            raise CallTimeoutError(f"call to '{serving_rr}/{server}' timed out after {limit:g} s")
         if attempt.state is AttemptState.FAILED:
             attempt.get()  # raises what the call failed with
+        assert answered is not None  # (answered, as neither withdrawn nor failed)
         return answered
 
     def send(self, load: Load, reply: ClientReply, deadline: float) -> bool:
@@ -302,7 +337,8 @@ class Calls:
         """
         if self.commit_first:
             committed = FutureReply()
-            self.ref.tell(Pending(reply.record, reply.attempt, committed))
+            record = ClientRecord(reply.query(), reply.parent)
+            self.ref.tell(Pending(record, reply.attempt, committed))
             try:
                 committed.future.get(timeout=max(0.0, deadline - time.monotonic()))
             except pykka.Timeout:
@@ -313,12 +349,12 @@ class Calls:
         if probes is not None:
             probes.fire("send_load", load)
         try:
-            DIRECTORY.lookup(reply.record.query.serving_rr).tell(load)
+            DIRECTORY.lookup(reply.serving_rr).tell(load)
         except RrError as exc:
             reply.set_error(exc)
         return True
 
-    def withdraw(self, query: Query, attempt: CallAttempt) -> None:
+    def withdraw(self, reply: ClientReply, attempt: CallAttempt) -> None:
         """Take back a call whose caller stopped waiting: leave nothing behind (rule 17).
 
         The caller withdrew `attempt`, so an answer that comes later is dropped (or, for a
@@ -329,10 +365,12 @@ class Calls:
         """
         probes = self.probes()
         if probes is not None:
-            probes.fire("withdraw", query)
-        give_back(query.serving_rr, query.id, self.name)
+            probes.fire("withdraw", reply.query())
+        give_back(reply.serving_rr, reply.query_id, self.name)
         with contextlib.suppress(pykka.ActorDeadError):  # after: a crash in between keeps
-            self.hand_over(CallFailed(query.id, attempt, withdrawn=True), wake=True)  # the record
+            self.hand_over(
+                CallFailed(reply.query_id, attempt, withdrawn=True), wake=True
+            )  # the record
 
     def hand_over(self, outcome: Outcome, *, wake: bool) -> None:
         """Give the registrar actor a call's `outcome` to record (any thread).

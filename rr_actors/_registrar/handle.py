@@ -334,9 +334,18 @@ class ResourceRegistrar:
                 parent = context.resource_id
         if self._config.backup_path is not None:  # its client record is stored
             check_picklable(request, f"the request of a call to '{target_rr}/{server}'")
-        query = Query(query_id or new_id(), server, target_rr, self.name, request)
         self._client(target_rr, server, limit)  # the client endpoint exists from the first call
-        return self._calls.call(query, parent, chain, on_status, limit, deadline)
+        return self._calls.call(
+            query_id or new_id(),
+            target_rr,
+            server,
+            request,
+            parent,
+            chain,
+            on_status,
+            limit,
+            deadline,
+        )
 
     def unload(self, query_id: str, *, timeout: float | None = None) -> None:
         """Release one consumer id obtained from `call` (rules 7-8).
