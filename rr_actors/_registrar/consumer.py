@@ -347,7 +347,7 @@ class Consumer:
         """`attempt`'s answer or failure was handled: handle what waited for it."""
         if not self.due.settle(query_id, attempt):
             return
-        waiting = self.parked_notices.pop(query_id, [])
+        waiting = self.parked_notices.pop(query_id, None)
         while waiting:
             notice = waiting.pop(0)
             try:
