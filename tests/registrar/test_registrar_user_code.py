@@ -220,7 +220,10 @@ def test_loads_beyond_max_workers_wait_in_line_for_a_free_worker(
     with ThreadPoolExecutor(3) as pool:
         calls = [pool.submit(provider.call, provider.name, "leaf", n, timeout=20) for n in "abc"]
         assert eventually(lambda: pending_work(provider).queued_callbacks == 1)
-        assert 2 == len(started)  # two workers, both held: the third load waits its turn
+        # two workers, both held: the third load waits its turn (a worker that took its
+        # load may not have reached `started.append` yet when the third one is queued)
+        assert eventually(lambda: 2 == len(started))
+        assert 1 == pending_work(provider).queued_callbacks
 
         gate.set()
 
