@@ -81,12 +81,13 @@ def __getattr__(name: str) -> object:
     """`rr.ZenohNetwork`, imported at first use: `import rr_actors` never imports zenoh."""
     if name == "ZenohNetwork":
         try:
-            from rr_actors._transport.zenoh_net import ZenohNetwork
+            from rr_actors._transport.zenoh_net import ZenohNetwork  # noqa: PLC0415 - lazily
         except ImportError as exc:
             raise ImportError(
                 f"rr.ZenohNetwork needs eclipse-zenoh: pip install 'rr-actors[zenoh]' ({exc})"
             ) from exc
         return ZenohNetwork
     raise AttributeError(f"module 'rr_actors' has no attribute {name!r}")
+
 
 logging.getLogger("rr_actors").addHandler(logging.NullHandler())

@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import functools
 import itertools
 import logging
 import pickle
@@ -192,7 +193,7 @@ class _Outbox:
         """Stop sending: what is still queued is lost (its `on_lost` runs)."""
         lost = [on_lost for _, on_lost in self._queue.close() if on_lost is not None]
         with contextlib.suppress(Exception):
-            self._publisher.undeclare()
+            self._publisher.undeclare()  # type: ignore[no-untyped-call]
         run_lost(lost)
 
 
@@ -398,7 +399,9 @@ class ZenohMember:
             f"{self._prefix}/reg/{name}",
             lambda sample: self._on_message(local, sample),
         )
-        token_key = f"{self._prefix}/live/reg/{name}/{self.zid}/{supervisor}/{local.max_message_bytes}"
+        token_key = (
+            f"{self._prefix}/live/reg/{name}/{self.zid}/{supervisor}/{local.max_message_bytes}"
+        )
         local.token = self._session.liveliness().declare_token(token_key)
         with self._lock:
             self._locals[name] = local
@@ -445,7 +448,7 @@ class ZenohMember:
             inbox.close()
         self._presence.close()
         with contextlib.suppress(Exception):
-            self._session.close()
+            self._session.close()  # type: ignore[no-untyped-call]
         if self._on_close is not None:
             self._on_close()
 
@@ -484,7 +487,7 @@ class ZenohMember:
                         )
                     self._changed.wait(left)
         finally:
-            claim.undeclare()
+            claim.undeclare()  # type: ignore[no-untyped-call]
 
     def _barrier(self, key: str) -> None:
         """Return once the router this process talks to has seen the token `key`.
@@ -561,14 +564,14 @@ class ZenohMember:
             )
         if reply is not None:
             self._waiting[token] = _Waiting(name, reply, message, server.limit)
-        if self._server(name) is None:  # gone meanwhile: its presence may have missed us
-            if reply is None or self._waiting.pop(token, None) is not None:
-                raise self._gone_error(name)
-            return
         outbox = self._outbox(f"{self._prefix}/reg/{name}")
-        if outbox is None or not outbox.send(header(MESSAGE, self.zid) + data):
-            if reply is None or self._waiting.pop(token, None) is not None:
-                raise self._gone_error(name)
+        sent = (  # (gone meanwhile: its presence may have missed this reply)
+            self._server(name) is not None
+            and outbox is not None
+            and outbox.send(header(MESSAGE, self.zid) + data)
+        )
+        if not sent and (reply is None or self._waiting.pop(token, None) is not None):
+            raise self._gone_error(name)
 
     def _outbox(self, key: str) -> _Outbox | None:
         outbox = self._outboxes.get(key)
@@ -622,15 +625,15 @@ class ZenohMember:
             self._refuse_version(name, head, token)
             return
         if len(payload) > local.max_message_bytes:
-            error = MessageTooLargeError(
+            too_large = MessageTooLargeError(
                 f"a message of {len(payload)} bytes for registrar {name!r} is over its "
                 f"max_message_bytes ({local.max_message_bytes}); it was not read",
                 len(payload),
                 local.max_message_bytes,
             )
-            logger.warning("%s", error)
+            logger.warning("%s", too_large)
             if token != NO_REPLY:
-                self._answer_to(head.sender, frame(token, (None, error)), None)
+                self._answer_to(head.sender, frame(token, (None, too_large)), None)
             return
         try:
             message = pickle.loads(payload)
@@ -644,7 +647,7 @@ class ZenohMember:
         reply = None
         if token != NO_REPLY:
             if not hasattr(message, "reply"):
-                error = InternalError(
+                error: RrError = InternalError(
                     f"a {type(message).__name__} message for registrar {name!r} cannot be answered"
                 )
                 self._answer_to(head.sender, frame(token, (None, error)), None)
@@ -767,9 +770,7 @@ class ZenohMember:
             replies = self._session.liveliness().get(
                 f"{self._prefix}/live/*/{name}/**", timeout=ASK_TIMEOUT
             )
-            for reply in replies:
-                if reply.ok is not None:
-                    keys.append(str(reply.ok.key_expr))
+            keys.extend(str(reply.ok.key_expr) for reply in replies if reply.ok is not None)
         done = threading.Event()
         for key in keys:
             self._presence.put((True, key, asked_at))
@@ -797,65 +798,71 @@ class ZenohMember:
     def _change(self, put: bool, parts: list[str]) -> list[Callable[[], None]]:
         """Apply one event to the tables (holding the lock); what to do after."""
         kind = parts[0]
-        actions: list[Callable[[], None]] = []
-        if kind == "proc" and len(parts) == 2:
-            zid = parts[1]
-            if zid == self.zid:
-                return actions
+        if kind == "proc" and len(parts) == 2 and parts[1] != self.zid:
+            return self._process_event(put, parts[1])
+        if kind == "reg" and len(parts) == 5 and parts[2] != self.zid:
+            return self._server_event(put, parts[1], _Server(parts[2], parts[3], int(parts[4])))
+        if kind == "claim" and len(parts) == 3:
+            claims = self._claims.setdefault(parts[1], set())
             if put:
-                self._procs.add(zid)
-                return actions
-            self._procs.discard(zid)
-            self._vanished.add(zid)
-            for name, supervisor in list(self._awaiting.items()):
-                if supervisor == zid:
-                    del self._awaiting[name]
-                    actions.append(lambda name=name: self._lost(name))  # type: ignore[misc]
-            answers = self._outboxes.pop(f"{self._prefix}/ans/{zid}", None)
-            if answers is not None:
-                actions.append(answers.close)
-        elif kind == "reg" and len(parts) == 5:
-            name, zid, supervisor, limit = parts[1], parts[2], parts[3], parts[4]
-            if zid == self.zid:
-                return actions
-            servers = self._servers.setdefault(name, {})
-            if put:
-                if zid in servers:
-                    return actions
-                servers[zid] = _Server(zid, supervisor, int(limit))
-                self._gone.pop(name, None)
-                self._awaiting.pop(name, None)
-                if self._last.get(name) == zid and zid in self._vanished:
-                    actions.append(lambda: self._reachable(name))
-                return actions
-            if servers.pop(zid, None) is None or servers:
-                return actions  # unknown, or a rival that yielded: another one serves
-            stopped = (name, zid) in self._stopped
-            self._gone[name] = "stopped" if stopped else "died"
-            self._last[name] = zid
-            error = self._gone_error(name)
-            actions.append(lambda: self._fail_waiting(lambda w: w.name == name, error))
-            outbox = self._outboxes.pop(f"{self._prefix}/reg/{name}", None)
-            if outbox is not None:
-                actions.append(outbox.close)
-            if not stopped:
-                if supervisor == "none" or (
-                    supervisor != self.zid and supervisor not in self._procs
-                ):
-                    actions.append(lambda: self._lost(name))
-                else:
-                    self._awaiting[name] = supervisor  # lost if its supervisor goes too
-        elif kind == "claim" and len(parts) == 3:
-            name, zid = parts[1], parts[2]
-            if put:
-                self._claims.setdefault(name, set()).add(zid)
+                claims.add(parts[2])
             else:
-                self._claims.get(name, set()).discard(zid)
+                claims.discard(parts[2])
         elif kind == "stopped" and len(parts) == 3:
             if put:
                 self._stopped.add((parts[1], parts[2]))
             else:
                 self._stopped.discard((parts[1], parts[2]))
+        return []
+
+    def _process_event(self, put: bool, zid: str) -> list[Callable[[], None]]:
+        """Process `zid`'s token came or went: registrars it supervised are lost now."""
+        if put:
+            self._procs.add(zid)
+            return []
+        self._procs.discard(zid)
+        self._vanished.add(zid)
+        lost = [name for name, supervisor in self._awaiting.items() if supervisor == zid]
+        for name in lost:
+            del self._awaiting[name]
+        actions: list[Callable[[], None]] = [functools.partial(self._lost, n) for n in lost]
+        answers = self._outboxes.pop(f"{self._prefix}/ans/{zid}", None)
+        if answers is not None:
+            actions.append(answers.close)
+        return actions
+
+    def _server_event(self, put: bool, name: str, server: _Server) -> list[Callable[[], None]]:
+        """A server's token of registrar `name` came or went."""
+        servers = self._servers.setdefault(name, {})
+        zid = server.zid
+        if put:
+            if zid in servers:
+                return []
+            servers[zid] = server
+            self._gone.pop(name, None)
+            self._awaiting.pop(name, None)
+            if self._last.get(name) == zid and zid in self._vanished:
+                return [functools.partial(self._reachable, name)]  # a healed link
+            return []
+        if servers.pop(zid, None) is None or servers:
+            return []  # unknown, or a rival that yielded: another one serves
+        stopped = (name, zid) in self._stopped
+        self._gone[name] = "stopped" if stopped else "died"
+        self._last[name] = zid
+        error = self._gone_error(name)
+        actions: list[Callable[[], None]] = [
+            functools.partial(self._fail_waiting, lambda w: w.name == name, error)
+        ]
+        outbox = self._outboxes.pop(f"{self._prefix}/reg/{name}", None)
+        if outbox is not None:
+            actions.append(outbox.close)
+        if stopped:
+            return actions
+        supervisor = server.supervisor
+        if supervisor == "none" or (supervisor != self.zid and supervisor not in self._procs):
+            actions.append(functools.partial(self._lost, name))
+        else:
+            self._awaiting[name] = supervisor  # lost if its supervisor goes too
         return actions
 
     def _lost(self, name: str) -> None:

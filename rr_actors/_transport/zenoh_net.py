@@ -48,7 +48,9 @@ __all__ = ["ZenohAddress", "ZenohNetwork"]
 logger = logging.getLogger("rr_actors")
 
 _SYSTEM = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
-_ENDPOINT = re.compile(r"tcp/(\[(?P<v6>[0-9A-Fa-f:.]+)\]|(?P<host>[A-Za-z0-9_.\-]+)):(?P<port>\d{1,5})")
+_ENDPOINT = re.compile(
+    r"tcp/(\[(?P<v6>[0-9A-Fa-f:.]+)\]|(?P<host>[A-Za-z0-9_.\-]+)):(?P<port>\d{1,5})"
+)
 _PROBE_TIMEOUT = 0.5  # seconds a `connect` endpoint gets to accept the probe at open
 
 
@@ -110,7 +112,9 @@ def _config(mode: str, listen: list[str], connect: list[str], lease: float) -> z
                     "keep_alive": 4,
                     # a link blocked for half the lease is closed: a frozen reader does
                     # not stall the router's other links until the lease of theirs runs out
-                    "queue": {"congestion_control": {"block": {"wait_before_close": lease_ms * 500}}},
+                    "queue": {
+                        "congestion_control": {"block": {"wait_before_close": lease_ms * 500}}
+                    },
                 }
             }
         },
@@ -318,8 +322,7 @@ class ZenohNetwork:
                     pass
             except OSError as exc:
                 logger.warning(
-                    "ZenohNetwork %r cannot reach connect endpoint %s now (%s); Zenoh keeps "
-                    "trying",
+                    "ZenohNetwork %r cannot reach connect endpoint %s now (%s); Zenoh keeps trying",
                     self.system,
                     endpoint,
                     exc,
