@@ -110,7 +110,6 @@ CLAIM_TIMEOUT = 5.0
 """Seconds `serve` waits for a rival claim of the same name to serve or withdraw."""
 
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
-_VERSION_FRAME = struct.Struct("!iQ")  # a frame with a token and no pickle (VERSION answers)
 
 
 class _Queue:
@@ -353,12 +352,10 @@ class ZenohMember:
         """
         if self.closed or name in self._locals:
             return None  # served here: the directory's own record says stopped or died
-        peer = self._peers.get(name)
-        if peer is not None:
-            return peer
-        if not isinstance(DIRECTORY.gone_error(name), UnknownRegistrarError):
+        known = bool(self._servers.get(name))  # (served elsewhere now: before a local record)
+        if not known and not isinstance(DIRECTORY.gone_error(name), UnknownRegistrarError):
             return None  # a registrar of this process that stopped or died
-        known = name in self._gone or bool(self._servers.get(name))
+        known = known or name in self._gone
         if not known and _NAME.fullmatch(name):
             self._ask(name)
             known = bool(self._servers.get(name))
@@ -678,7 +675,9 @@ class ZenohMember:
         if token != NO_REPLY:
             outbox = self._outbox(f"{self._prefix}/ans/{head.sender}")
             if outbox is not None:
-                outbox.send(header(VERSION, self.zid) + _VERSION_FRAME.pack(8, token))
+                outbox.send(
+                    header(VERSION, self.zid) + struct.pack("!i", 8) + struct.pack("<Q", token)
+                )
 
     def _run(self, local: _Local, message: Run) -> None:
         reply = message.reply
