@@ -135,6 +135,12 @@ class _Queue:
                 self._cond.notify()
             return True
 
+    def finish(self) -> None:
+        """Take no more items; the thread handles those queued, then ends."""
+        with self._cond:
+            self.closed = True
+            self._cond.notify_all()
+
     def close(self) -> list[Any]:
         """Stop; the items not yet handled are returned."""
         with self._cond:
@@ -574,44 +580,57 @@ class ZenohMember:
         outbox = self._outboxes.get(key)
         if outbox is not None and not outbox.closed:
             return outbox
-        with self._lock:
-            if self.closed:
-                return None
+        if self.closed:
+            return None
+        fresh = _Outbox(self._session, key)  # (no Zenoh call under our lock: its callbacks
+        with self._lock:  # take it)
             outbox = self._outboxes.get(key)
             if outbox is None or outbox.closed:
-                outbox = self._outboxes[key] = _Outbox(self._session, key)
-            return outbox
+                self._outboxes[key] = outbox = fresh
+        if outbox is not fresh:
+            fresh.close()
+        return outbox
 
     def _answer_to(self, sender: str, data: bytes, on_lost: Lost | None) -> bool:
-        """Send an answer frame to process `sender`; False if it is gone (not sent)."""
-        if sender not in self._procs:
+        """Send an answer frame to process `sender`; False if it is gone (not sent).
+
+        (A sender whose token has not been seen yet is not gone: its message may overtake
+        its token on the way through this process's threads.)
+        """
+        if sender in self._vanished and sender not in self._procs:
             return False
         outbox = self._outbox(f"{self._prefix}/ans/{sender}")
         return outbox is not None and outbox.send(header(ANSWER, self.zid) + data, on_lost)
 
     # -- receiving (Zenoh's callbacks queue; one thread per sending process decodes) ------
 
-    def _inbox(self, sender: str, kind: int) -> _Queue:
-        inbox = self._inboxes.get((sender, kind))
-        if inbox is None:
-            handle = self._deliver if kind == MESSAGE else self._answered
-            with self._lock:
-                inbox = self._inboxes.setdefault(
-                    (sender, kind), _Queue(f"rr-zread-{sender[:8]}-{kind}", handle)
-                )
-        return inbox
+    def _receive(self, sender: str, kind: int, item: Any) -> None:
+        """Queue `item` for the decode thread of (`sender`, `kind`) (Zenoh's callbacks)."""
+        for _attempt in (1, 2):  # (its inbox may have just finished: the sender went)
+            inbox = self._inboxes.get((sender, kind))
+            if inbox is None or inbox.closed:
+                handle = self._deliver if kind == MESSAGE else self._answered
+                with self._lock:
+                    if self.closed:
+                        return
+                    inbox = self._inboxes.get((sender, kind))
+                    if inbox is None or inbox.closed:
+                        inbox = _Queue(f"rr-zread-{sender[:8]}-{kind}", handle)
+                        self._inboxes[(sender, kind)] = inbox
+            if inbox.put(item):
+                return
 
     def _on_message(self, local: _Local, sample: zenoh.Sample) -> None:
         data = sample.payload.to_bytes()
         head = parse(data)
         if head is not None:
-            self._inbox(head.sender, MESSAGE).put((local, data, head))
+            self._receive(head.sender, MESSAGE, (local, data, head))
 
     def _on_answer(self, sample: zenoh.Sample) -> None:
         data = sample.payload.to_bytes()
         head = parse(data)
         if head is not None:
-            self._inbox(head.sender, ANSWER).put((data, head))
+            self._receive(head.sender, ANSWER, (data, head))
 
     def _deliver(self, item: tuple[_Local, bytes, Header]) -> None:
         """Decode one message for a registrar of this process and tell it (decode thread)."""
@@ -828,6 +847,10 @@ class ZenohMember:
         answers = self._outboxes.pop(f"{self._prefix}/ans/{zid}", None)
         if answers is not None:
             actions.append(answers.close)
+        for kind in (MESSAGE, ANSWER):  # what it sent before it went is still delivered
+            inbox = self._inboxes.pop((zid, kind), None)
+            if inbox is not None:
+                actions.append(inbox.finish)
         return actions
 
     def _server_event(self, put: bool, name: str, server: _Server) -> list[Callable[[], None]]:
