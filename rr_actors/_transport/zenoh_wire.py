@@ -40,6 +40,7 @@ from rr_actors._transport.codec import NO_REPLY
 __all__ = [
     "ANSWER",
     "MESSAGE",
+    "PLAIN",
     "PYTHON",
     "VERSION",
     "Header",
@@ -55,6 +56,10 @@ ANSWER = 1
 """An answer: its frame's token is the one of the message it answers."""
 VERSION = 2
 """An answer saying the message was of another version and was not read."""
+PLAIN = 0x80
+"""Set in the kind byte when the pickle holds only small builtin data and wire records
+(`codec.plain`): unpickling it runs no user code, so the receiver may decode it on
+Zenoh's own thread (when nothing of that sender waits before it)."""
 
 PYTHON = (sys.version_info.major, sys.version_info.minor)
 
@@ -65,12 +70,13 @@ _FIXED = struct.Struct("!2sBBBBB")  # magic, wire version, Python major, minor, 
 class Header:
     """What a payload's header says: who sent it, in which versions, what kind it is."""
 
-    __slots__ = ("kind", "python", "sender", "size", "wire")
+    __slots__ = ("kind", "plain", "python", "sender", "size", "wire")
 
     def __init__(self, wire: int, python: tuple[int, int], kind: int, sender: str, size: int):
         self.wire = wire
         self.python = python
-        self.kind = kind
+        self.kind = kind & ~PLAIN
+        self.plain = bool(kind & PLAIN)
         self.sender = sender
         self.size = size  # bytes of the header: the frame starts there
 
@@ -80,10 +86,12 @@ class Header:
         return self.wire == WIRE_VERSION and self.python == PYTHON
 
 
-def header(kind: int, sender: str) -> bytes:
+def header(kind: int, sender: str, *, plain: bool = False) -> bytes:
     """The header of a payload of `kind` sent by the process whose Zenoh id is `sender`."""
     zid = sender.encode("ascii")
-    return _FIXED.pack(_MAGIC, WIRE_VERSION, *PYTHON, kind, len(zid)) + zid
+    return (
+        _FIXED.pack(_MAGIC, WIRE_VERSION, *PYTHON, kind | (PLAIN if plain else 0), len(zid)) + zid
+    )
 
 
 def parse(data: bytes) -> Header | None:
