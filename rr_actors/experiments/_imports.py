@@ -20,7 +20,7 @@ def import_object(path: str, *, base_dir: str | None = None) -> Any:
 
     Raises:
         ConfigError: the path is malformed, the module does not import (it raised, or
-            exited: only `KeyboardInterrupt` goes through), or it has no such attribute.
+            exited; a `KeyboardInterrupt` goes through), or it has no such attribute.
     """
     module_name, colon, attribute = path.partition(":")
     if not colon or not module_name or not attribute:
@@ -32,9 +32,7 @@ def import_object(path: str, *, base_dir: str | None = None) -> Any:
         module = importlib.import_module(module_name)
     except ImportError as exc:
         raise ConfigError(f"{path!r} does not import: {exc}") from exc
-    except KeyboardInterrupt:
-        raise
-    except BaseException as exc:  # a module that calls sys.exit() on import, too
+    except (Exception, SystemExit) as exc:  # a module that calls sys.exit() on import, too
         raise ConfigError(f"{path!r}: importing {module_name} raised {exc!r}") from exc
     finally:
         if added is not None and added in sys.path:

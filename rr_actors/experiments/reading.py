@@ -1,11 +1,10 @@
 """Reading a plan: TOML text to a validated `Plan`, every problem a `PlanError` with its line.
 
-    PLAN.toml ──tomllib──► data ──_Reader.decode(Plan), table by table: unknown and missing
-    keys, each value ──msgspec.convert(value, its field's annotated type)──► Plan ──► rules
+    PLAN.toml ─tomllib─► data ─_Reader.decode: table by table into `plan`'s dataclasses, each
+    value ─msgspec.convert(value, its field's annotated type)─► Plan ─► the rules between values
 
-One generic part decodes every table into its dataclass of `plan` and words msgspec's
-errors (`_problem`); the rules no type can say follow, a few lines each. The lines come
-from `_lines.key_lines`. The format is documented in `docs/reference/plan.md`.
+`_problem` words msgspec's errors, `_lines.line_of` finds their line. The format is
+documented in `docs/reference/plan.md`.
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ import re
 import string
 import tomllib
 import typing
-from collections.abc import Iterator
+from dataclasses import MISSING
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +28,7 @@ import msgspec
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import plan as schema
 from rr_actors.experiments._imports import import_object
-from rr_actors.experiments._lines import KeyPath, line_of
+from rr_actors.experiments._lines import KeyPath, held, line_of
 from rr_actors.experiments.plan import Plan, PlanError
 
 __all__ = ["load_plan", "parse_plan"]
@@ -50,7 +49,7 @@ WHAT = {  # what a key must be, where its type alone words it badly (the last ke
     "children": "a non-empty array of tables ([[...children]])",
     "setting": "a plan key",
 }
-MISSING = {  # what a missing key is for
+PURPOSE = {  # what a missing key is for
     "duration": " (seconds of workload and faults per run)",
     "kind": f": one of {', '.join(schema.FAULT_KINDS)}",
     "target": ": which manager (or a list of them)",
@@ -74,10 +73,8 @@ HINT = {"initial": schema.SecondsOrZero, "max": schema.SecondsOrZero}  # `Backof
 LISTS = ("at", "target")  # a fault's keys that take one value or an array of them
 # -- a fault's keys that only go with another key, or with some kinds ---------------------------
 NEEDS_KEY = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
-NEEDS_KIND: dict[str, tuple[str, ...]] = dict.fromkeys(
-    ("loads", "server", "message"), ("load_error",)
-)
-NEEDS_KIND |= {"for": ("hang_manager", "load_error")}
+NEEDS_KIND = {"for": ("hang_manager", "load_error"), "loads": ("load_error",)}
+NEEDS_KIND |= {"server": ("load_error",), "message": ("load_error",)}
 
 
 def load_plan(path: str | os.PathLike[str]) -> Plan:
@@ -111,9 +108,8 @@ def parse_plan(text: str, *, source: str = "<plan>", name: str = "plan") -> Plan
         raise PlanError(source, int(line[1]) if line else 0, "", problem) from exc
     base_dir = None if source == "<plan>" else os.path.dirname(os.path.abspath(source))
     reader = _Reader(source, text, base_dir)
-    compare = reader.compare(data)
     base = reader.plan(data, name=name)
-    if compare is None:
+    if (compare := base.compare) is None:
         return dataclasses.replace(base, variants=((None, base),))
     variants: list[tuple[Any, Plan]] = []
     for index, value in enumerate(compare.values):
@@ -121,7 +117,8 @@ def parse_plan(text: str, *, source: str = "<plan>", name: str = "plan") -> Plan
         container, key = reader.locate(changed, compare.setting, where)
         container[key] = value
         try:
-            variants.append((value, reader.plan(changed, name=name)))
+            plan = reader.plan(changed, name=name, variant=True)
+            variants.append((value, dataclasses.replace(plan, compare=None)))
         except PlanError as exc:
             problem = f"with {compare.setting} = {_show(value)}: {exc.key}: {exc.problem}"
             raise reader.error(where, problem) from exc
@@ -166,11 +163,12 @@ class _Reader:
         self.data: dict[str, Any] = {}
         self.state, self.managers = True, dict[str, schema.ManagerPlan]()  # of the last plan
         self.hooks = {"tree": self.root, "every": self.every, "after": self.trigger}
-        self.hooks["compare"] = lambda value, path: None  # read apart, before
 
     # -- the generic part: where, unknown and missing keys, typed values ---------------------
 
     def error(self, path: KeyPath, problem: str) -> PlanError:
+        """A `PlanError` at the part of `path` written (`at = 1` is checked as `[1]`)."""
+        path = held(self.data, path)
         line = line_of(self.text, [path[:end] for end in range(len(path), 0, -1)])
         key = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in path).lstrip(".")
         return PlanError(self.source, line, key, problem)
@@ -182,11 +180,10 @@ class _Reader:
 
     def table(self, value: Any, path: KeyPath, known: tuple[str, ...]) -> dict[str, Any]:
         """`value` as a table with only `known` keys (else an error at the first other)."""
-        if not isinstance(value, dict):
-            raise self.error(path, f"must be a table, got {_show(value)}")
+        self.refuse(not isinstance(value, dict), path, f"must be a table, got {_show(value)}")
         for key in (k for k in value if k not in known):
             raise self.error((*path, key), f"unknown key; known here: {', '.join(sorted(known))}")
-        return value
+        return typing.cast(dict[str, Any], value)
 
     def check(self, value: Any, hint: Any, path: KeyPath) -> Any:
         """`value` converted to the annotated type `hint` by msgspec, or a `PlanError`."""
@@ -194,15 +191,10 @@ class _Reader:
             return msgspec.convert(value, hint)
         except msgspec.ValidationError as exc:
             message, _, inner = str(exc).partition(" - at `$")
-            raw = self.raw(path)  # as written: `at = 1` is checked as `[1]`, its error at `at`
-            for index, key in re.findall(r"\[(\d+)\]|\.(\w+)", inner):
-                step: str | int = int(index) if index else key
-                inside = isinstance(raw, list if isinstance(step, int) else dict)
-                if not inside:
-                    break
-                path, raw = (*path, step), raw[step]
+            steps = (int(i) if i else k for i, k in re.findall(r"\[(\d+)\]|\.(\w+)", inner))
+            path = held(self.data, (*path, *steps))
             key = next((p for p in reversed(path) if isinstance(p, str)), "")
-            raise self.error(path, _problem(message, key, raw, hint)) from None
+            raise self.error(path, _problem(message, key, self.raw(path), hint)) from None
 
     def raw(self, path: KeyPath) -> Any:
         data: Any = self.data
@@ -211,34 +203,34 @@ class _Reader:
     def decode(self, cls: Any, value: Any, path: KeyPath) -> Any:
         """A `cls` (a dataclass of `plan`) from the table `value`, every field checked."""
         hints = typing.get_type_hints(cls, include_extras=True)
-        fields = [f for f in dataclasses.fields(cls) if f.name not in NOT_KEYS]
-        keys = {TOML_KEY.get(f.name, f.name): f for f in fields}
-        table, given = self.table(value, path, tuple(keys)), {}
-        for key, field in keys.items():
-            item, at = table.get(key), (*path, key)
-            if key not in table and field.default is field.default_factory is dataclasses.MISSING:
-                raise self.error(path, f"{key!r} is missing{MISSING.get(key, '')}")
-            if key in self.hooks and key in table:
-                given[field.name] = self.hooks[key](item, at)
-            elif key in OFF and type(item) is type(OFF[key]) and item == OFF[key]:
-                given[field.name] = None
-            elif key in table:
-                item = [item] if key in LISTS and not isinstance(item, list) else item
-                given[field.name] = self.value(item, HINT.get(key, hints[field.name]), at)
+        keys = {TOML_KEY.get(f.name, f.name): f for f in dataclasses.fields(cls)}
+        table = self.table(value, path, tuple(k for k in keys if k not in NOT_KEYS))
+        for key in (k for k, f in keys.items() if f.default is f.default_factory is MISSING):
+            self.refuse(key not in table, path, f"{key!r} is missing{PURPOSE.get(key, '')}")
+        given = {
+            keys[k].name: self.value(k, x, hints[keys[k].name], path) for k, x in table.items()
+        }
         try:
             return cls(**given)
-        except ConfigError as exc:  # a `Backoff` checks itself
-            bad = str(exc).split(" ", 1)[0].removeprefix("Backoff.")
-            raise self.error((*path, bad) if bad in table else path, str(exc)) from None
+        except ConfigError as exc:  # a `Backoff` checks itself: "Backoff.max must ..."
+            bad = str(exc).split()[0].removeprefix("Backoff.")
+            raise self.error((*path, bad), str(exc)) from None
 
-    def value(self, item: Any, hint: Any, path: KeyPath) -> Any:
-        """`item` as `hint`: a plan dataclass (or a tuple of them) decoded, else by msgspec."""
-        if dataclasses.is_dataclass(hint):
-            return self.decode(hint, item, path)
-        element = typing.get_args(hint)[0] if typing.get_origin(hint) is tuple else None
-        classes = [c for c in typing.get_args(element) or (element,) if dataclasses.is_dataclass(c)]
+    def value(self, key: str, item: Any, hint: Any, table: KeyPath) -> Any:
+        """`item` of `key` as `hint`: by a hook, or a plan dataclass decoded, else by msgspec."""
+        path = (*table, key)
+        if key in self.hooks:
+            return self.hooks[key](item, path)
+        if key in OFF and type(item) is type(OFF[key]) and item == OFF[key]:
+            return None
+        many = typing.get_origin(hint) is tuple  # an array of tables, or a table
+        inner = typing.get_args(hint)[0] if many else hint
+        classes = [c for c in typing.get_args(inner) or (inner,) if dataclasses.is_dataclass(c)]
         if not classes:
-            return self.check(item, hint, path)
+            item = [item] if key in LISTS and not isinstance(item, list) else item
+            return self.check(item, HINT.get(key, hint), path)
+        if not many:
+            return self.decode(classes[0], item, path)
         items = self.check(item, list[dict[str, Any]], path)  # a supervisor has children:
         return tuple(
             self.decode(classes[-1] if "children" in x else classes[0], x, (*path, i))
@@ -251,8 +243,7 @@ class _Reader:
             target = import_object(name, base_dir=self.base_dir)
         except ConfigError as exc:
             raise self.error(path, str(exc)) from None
-        if not callable(target):
-            raise self.error(path, f"{name!r} is not callable")
+        self.refuse(not callable(target), path, f"{name!r} is not callable")
         try:
             inspect.signature(target).bind(*args, **kw)
         except ValueError:
@@ -262,13 +253,13 @@ class _Reader:
 
     # -- the plan and the rules between its values ---------------------------------------------
 
-    def plan(self, data: dict[str, Any], *, name: str) -> Plan:
+    def plan(self, data: dict[str, Any], *, name: str, variant: bool = False) -> Plan:
         self.data = {"name": name, **data}
         plan: Plan = self.decode(Plan, self.data, ())
         source = None if self.source == "<plan>" else self.source
         plan = dataclasses.replace(plan, state=self.state, source=source, base_dir=self.base_dir)
         self.managers = managers = {m.name: m for m in plan.managers()}
-        self.tree(plan.tree)
+        self.tree(plan.tree, ("tree",), set())
         self.calls(plan.workload)
         names = {  # what the fields of an `after` trigger may name
             "supervisor": {s.name for s in plan.tree.supervisors()},
@@ -277,6 +268,8 @@ class _Reader:
         }
         for path, fault in ((("faults", i), f) for i, f in enumerate(plan.faults)):
             self.fault(fault, path, names, plan.duration)
+        if plan.compare is not None and not variant:  # a variant's setting has its value
+            self.compare(plan.compare)
         return plan
 
     def root(self, value: Any, path: KeyPath) -> schema.SupervisorPlan:
@@ -288,17 +281,17 @@ class _Reader:
         root: schema.SupervisorPlan = self.decode(schema.SupervisorPlan, tree, path)
         return root
 
-    def tree(self, root: schema.SupervisorPlan) -> None:
-        seen: set[str] = set()
-        for path, node in _nodes(root, ("tree",)):
-            empty = isinstance(node, schema.SupervisorPlan) and not node.children
-            self.refuse(empty, (*path, "children"), f"must be {WHAT['children']}")
-            twice = f"the name {node.name!r} is used twice in the tree"
-            self.refuse(node.name in seen, (*path, "name"), twice)
-            seen.add(node.name)
-            if isinstance(node, schema.ManagerPlan):
-                options = (*path, "options")
-                self.importable((*path, "setup"), node.setup, options, None, **node.options)
+    def tree(self, node: Any, path: KeyPath, seen: set[str]) -> None:
+        """The rules of the tree node `node` and its children (`seen`: the names above)."""
+        twice = f"the name {node.name!r} is used twice in the tree"
+        self.refuse(node.name in seen, (*path, "name"), twice)
+        seen.add(node.name)
+        empty = isinstance(node, schema.SupervisorPlan) and not node.children
+        self.refuse(empty, (*path, "children"), f"must be {WHAT['children']}")
+        if isinstance(node, schema.ManagerPlan):
+            self.importable((*path, "setup"), node.setup, (*path, "options"), None, **node.options)
+        for index, child in enumerate(getattr(node, "children", ())):
+            self.tree(child, (*path, "children", index), seen)
 
     def calls(self, workload: schema.Workload) -> None:
         for index, call in enumerate(workload.calls):
@@ -357,26 +350,24 @@ class _Reader:
             refuse(key in names and item not in names[key], (*path, "after", key), problem)
         # -- whom: the targets
         given = "target" in table
-        missing = f"'target' is missing{MISSING['target']}"
+        missing = f"'target' is missing{PURPOSE['target']}"
         refuse(not given and kind != "kill_resource", path, missing)
         threads = all(m.isolation == "thread" for m in managers.values())
         problem = "kill_resource kills resource processes of process managers; every manager of "
         refuse(not given and threads, path, problem + "this tree has isolation 'thread'")
         refuse(given and not fault.targets, (*path, "target"), "must name at least one manager")
-        for index, name in enumerate(fault.targets):
-            at = (*path, "target", index)[: 4 if isinstance(table["target"], list) else 3]
+        for at, name in (((*path, "target", i), name) for i, name in enumerate(fault.targets)):
             self.named(name, at)  # the element, or the key if it gives one name
             thread = kind in schema.NEEDS_PROCESS and managers[name].isolation != "process"
             refuse(thread, at, f"{kind} needs a process manager; {name!r} has isolation 'thread'")
         # -- when: within the run, not too often
         hang = kind == "hang_manager" and fault.for_s is None
-        refuse(hang, path, f"'for' is missing{MISSING['for']}")
+        refuse(hang, path, f"'for' is missing{PURPOSE['for']}")
         none = "must give at least one time (seconds)"
         refuse("at" in table and not fault.at, (*path, "at"), none)
         end = f"the end of the run ({duration:g} s)"
         for index, time in enumerate(fault.at):
-            at = (*path, "at", index)[: 4 if isinstance(table["at"], list) else 3]
-            refuse(time >= duration, at, f"{self.raw(at)!r} s is not before {end}")
+            refuse(time >= duration, (*path, "at", index), f"{time!r} s is not before {end}")
         stop, start = duration if fault.stop is None else fault.stop, fault.start
         low = fault.every if isinstance(fault.every, float) else (fault.every or (0.0,))[0]
         most, first = fault.most_injections(duration), f"stop ({stop:g} s)" if fault.stop else end
@@ -418,23 +409,17 @@ class _Reader:
 
     # -- compare ------------------------------------------------------------------------------
 
-    def compare(self, data: dict[str, Any]) -> schema.Compare | None:
-        if "compare" not in data:
-            return None
-        path: KeyPath = ("compare",)
-        self.data = data
-        compare: schema.Compare = self.decode(schema.Compare, data["compare"], path)
-        setting, values = compare.setting, compare.values
+    def compare(self, compare: schema.Compare) -> None:
+        path, setting, values = ("compare",), compare.setting, compare.values
         why = NOT_COMPARED.get(setting.split(".")[0])
         self.refuse(why, (*path, "setting"), f"{setting!r} cannot be compared: {why}")
         self.refuse(not values, (*path, "values"), "must be a non-empty array")
         for index, item in enumerate(values):
-            twice = any(type(item) is type(other) and item == other for other in values[:index])
+            same = [x for x in values[:index] if type(x) is type(item) and x == item]
             self.refuse(
-                twice, (*path, "values", index), f"{item!r} is given twice: each value runs once"
+                same, (*path, "values", index), f"{item!r} is given twice: each value runs once"
             )
-        self.locate(data, setting, (*path, "setting"))
-        return compare
+        self.locate(self.data, setting, (*path, "setting"))
 
     def locate(self, data: dict[str, Any], setting: str, where: KeyPath) -> tuple[Any, str | int]:
         """The container and key that `setting` names in `data` (its parent must exist)."""
@@ -455,10 +440,3 @@ class _Reader:
                 return node, key
             node = node[key]
         raise AssertionError("unreachable")
-
-
-def _nodes(node: Any, path: KeyPath) -> Iterator[tuple[KeyPath, Any]]:
-    """`node` of the tree and every node below it, depth first, with their paths."""
-    yield path, node
-    for index, child in enumerate(getattr(node, "children", ())):
-        yield from _nodes(child, (*path, "children", index))

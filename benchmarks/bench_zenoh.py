@@ -1,0 +1,424 @@
+"""Zenoh benchmark: rr_actors across two hosts next to a raw Zenoh `get` between the same two.
+
+Run: `python benchmarks/bench_zenoh.py [--rounds N] [--kills N] [--cuts N] [--only raw]`. The two
+hosts are two Linux network namespaces joined by a veth pair (`tests/hosts.py`), which needs
+root; without root only the loopback rows run. Everything is measured in one run, so the
+ratios are comparable:
+
+* the floor: a raw Zenoh `get` round trip (a queryable that echoes 200 bytes) between two
+  processes on loopback and between the two namespaces; a raw liveliness token's end seen
+  from the other host after a SIGKILL of its process, and after a link cut (lease 1 s);
+* rr_actors over Zenoh (issue 22's `rr.ZenohNetwork`; these rows run once `rr_actors` has
+  it, and say so when it has not): a dedup-hit `call` to a registrar on the other host
+  (target: <= 2x the raw get between the same two), `send_status` over 3 hops across hosts,
+  from a SIGKILL of a remote manager to its calls failing (target: < 50 ms), and from a link
+  cut to the calls failing (target: the lease).
+
+Each host's workers are fresh interpreters started inside its namespace; the functions below
+run in them (sent with cloudpickle), and every time is taken with `time.monotonic` or
+`time.perf_counter`, one clock for every namespace of the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import itertools
+import os
+import signal
+import statistics
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "tests"))
+
+import hosts  # noqa: E402 (tests/hosts.py: the two-host harness)
+
+PORT = 7447
+"""The Zenoh port inside each namespace (a namespace has its own ports: no clash)."""
+
+LEASE = 1.0
+"""Seconds of silence after which a peer counts as gone (the default of `rr.ZenohNetwork`)."""
+
+SYSTEM = "bench"
+
+KEY = "rr/bench/echo"
+
+
+# -- raw Zenoh --------------------------------------------------------------------------------
+
+
+def raw_pair(
+    server: hosts.Host, client: hosts.Host, port: int
+) -> tuple[hosts.Worker, hosts.Worker]:
+    """A raw Zenoh peer on `server` (echo queryable, a token) and one on `client` that sees it."""
+    near, far = server.spawn(), client.spawn()
+    near.call(hosts.zenoh_open, listen=[server.endpoint(port)], lease=LEASE, timeout=30)
+    near.call(hosts.zenoh_echo, KEY, timeout=10)
+    near.call(hosts.zenoh_token, "rr/bench/alive", timeout=10)
+    far.call(hosts.zenoh_open, connect=[server.endpoint(port)], lease=LEASE, timeout=30)
+    far.call(hosts.zenoh_watch, "rr/bench/alive", timeout=10)
+    kind, _, _ = far.call(hosts.zenoh_next_event, 15.0, timeout=20)
+    if kind != "put":
+        raise RuntimeError("the raw peers did not meet")
+    return near, far
+
+
+def raw_round_trips(server: hosts.Host, client: hosts.Host, port: int, rounds: int) -> list[float]:
+    near, far = raw_pair(server, client, port)
+    try:
+        return far.call(hosts.zenoh_round_trips, KEY, rounds, timeout=600)
+    finally:
+        far.stop()
+        near.stop()
+
+
+def raw_kills(two: hosts.TwoHosts, repeats: int) -> list[float]:
+    """Seconds from a SIGKILL of the token's process on a to its end seen from b."""
+    samples = []
+    for _ in range(repeats):
+        near, far = raw_pair(two.a, two.b, PORT)
+        try:
+            start = time.monotonic()
+            os.kill(near.pid, signal.SIGKILL)
+            samples.append(next_change(far, "delete") - start)
+        finally:
+            far.stop()
+            near.kill()
+    return samples
+
+
+def raw_cuts(two: hosts.TwoHosts, repeats: int) -> tuple[list[float], list[float]]:
+    """Seconds from a link cut to the token's end seen from b, and from the link up again
+    to the token back (Zenoh reconnects by itself)."""
+    gone, back = [], []
+    for _ in range(repeats):
+        near, far = raw_pair(two.a, two.b, PORT)
+        try:
+            start = time.monotonic()
+            two.link_down()
+            gone.append(next_change(far, "delete") - start)
+            start = time.monotonic()
+            two.link_up()
+            back.append(next_change(far, "put") - start)
+        finally:
+            two.link_up()
+            far.stop()
+            near.stop()
+    return gone, back
+
+
+def next_change(worker: hosts.Worker, expected: str) -> float:
+    """When the next liveliness change seen by `worker` happened; it must be `expected`."""
+    kind, _, seen = worker.call(hosts.zenoh_next_event, 30.0, timeout=40)
+    if kind != expected:
+        raise RuntimeError(f"expected a token's {expected}, saw its {kind}")
+    return seen
+
+
+# -- rr_actors over Zenoh (issue 22) -------------------------------------------------------------
+#
+# Written against the public API of issue 22 before its carrier landed:
+#     net = rr.ZenohNetwork(system=, listen=, connect=, tls=None, lease=)
+#     rr.ResourceRegistrar.start(config, setup=..., network=net)
+# (`hosts.rr_join`, `hosts.rr_start`). Each function below runs in a worker: one `ZenohNetwork`
+# per worker process (a process belongs to one system), kept in the worker's `hosts.KEPT` with
+# its registrars.
+
+
+def setup_echo(registrar: Any) -> None:
+    registrar.register_server(
+        "echo", load=lambda request: {"resource": request}, unload=lambda _q, _r: None
+    )
+
+
+def setup_hang(registrar: Any) -> None:
+    """`hang` blocks its load; a load of `started` returns once a `hang` load runs."""
+    started = threading.Event()
+
+    def hang(_request: Any) -> Any:
+        started.set()
+        threading.Event().wait(60)
+
+    registrar.register_server("echo", load=lambda r: r, unload=lambda _q, _r: None)
+    registrar.register_server("hang", load=hang, unload=lambda _q, _r: None)
+    registrar.register_server(
+        "started", load=lambda _request: started.wait(10), unload=lambda _q, _r: None
+    )
+
+
+def agent_setup(provider: str) -> Callable[[Any], None]:
+    """The agent's `composite` server depends on the provider's `echo` (a dependency)."""
+
+    def setup(registrar: Any) -> None:
+        def load(request: Any) -> Any:
+            return registrar.call(provider, "echo", request).response
+
+        registrar.register_server("composite", load=load, unload=lambda _q, _r: None)
+
+    return setup
+
+
+def timed(fn: Callable[[], Any], rounds: int, warmup: int = 100) -> list[float]:
+    """Seconds per call of `fn`, `rounds` times after `warmup` untimed calls."""
+    for _ in range(warmup):
+        fn()
+    samples = []
+    for _ in range(rounds):
+        start = time.perf_counter()
+        fn()
+        samples.append(time.perf_counter() - start)
+    return samples
+
+
+def rr_dedup_hits(consumer: str, provider: str, rounds: int) -> list[float]:
+    registrar = hosts.KEPT["registrars"][consumer]
+    ids: list[str] = []
+
+    def once() -> None:
+        ids.append(registrar.call(provider, "echo", {"cam": 1}).id)
+
+    samples = timed(once, rounds)
+    for query_id in ids:
+        registrar.unload(query_id)
+    return samples
+
+
+def rr_hold_composite(consumer: str, agent: str) -> str:
+    """Load the agent's `composite` and count the statuses it brings (`KEPT["heard"]`)."""
+    registrar = hosts.KEPT["registrars"][consumer]
+    heard: list[Any] = []
+    hosts.KEPT["heard"] = heard
+    query = registrar.call(agent, "composite", {"cam": 2}, on_status=lambda _q, u: heard.append(u))
+    return str(query.id)
+
+
+def rr_heard() -> int:
+    return len(hosts.KEPT["heard"])
+
+
+def rr_status_timings(provider: str, rounds: int) -> list[float]:
+    """In the provider's worker: time `send_status` of its first `echo` query."""
+    import rr_actors as rr  # noqa: PLC0415
+
+    registrar = hosts.KEPT["registrars"][provider]
+    query_id = registrar.server_queries("echo")[0].id
+    return timed(lambda: registrar.send_status(query_id, rr.Status.UPDATE, "tick"), rounds)
+
+
+def rr_call_in_flight(consumer: str, provider: str) -> float:
+    """Call `hang` on `provider`; `time.monotonic()` when it failed as unavailable."""
+    import rr_actors as rr  # noqa: PLC0415
+
+    try:
+        hosts.KEPT["registrars"][consumer].call(provider, "hang", "r", timeout=30)
+    except rr.RegistrarUnavailableError:
+        return time.monotonic()
+    raise RuntimeError("the call in flight did not fail as unavailable")
+
+
+def rr_wait_started(consumer: str, provider: str) -> bool:
+    query = hosts.KEPT["registrars"][consumer].call(provider, "started", None, timeout=10)
+    return bool(query.response)
+
+
+@contextlib.contextmanager
+def rr_worker(
+    host: hosts.Host, listen: list[str], connect: list[str], *names: tuple[str, Any]
+) -> Iterator[hosts.Worker]:
+    """A worker on `host` with its network and the registrars `(name, setup)`; stopped after."""
+    worker = host.spawn()
+    try:
+        worker.call(hosts.rr_join, system=SYSTEM, listen=listen, connect=connect, timeout=30)
+        for name, setup in names:
+            worker.call(hosts.rr_start, name, setup, timeout=30)
+        yield worker
+    finally:
+        if worker.alive:
+            with contextlib.suppress(Exception):
+                worker.call(hosts.rr_stop, timeout=30)
+            worker.stop()
+
+
+def rr_dedup(
+    server: hosts.Host, client: hosts.Host, ports: tuple[int, int], rounds: int
+) -> list[float]:
+    """ROW "rr_actors cross-host dedup hit": a call from `client` to a registrar on `server`."""
+    near, far = server.endpoint(ports[0]), client.endpoint(ports[1])
+    with (
+        rr_worker(server, [near], [], ("erm", setup_echo)),
+        rr_worker(client, [far], [near], ("app", None)) as consumer,
+    ):
+        consumer.call(hosts.rr_until_answered, "app", "erm", "echo", 30.0, timeout=60)
+        return consumer.call(rr_dedup_hits, "app", "erm", rounds, timeout=600)
+
+
+def rr_status(two: hosts.TwoHosts, rounds: int) -> list[float]:
+    """ROW "status over 3 hops across hosts": provider (a) -> agent (b) -> consumer (a)."""
+    a, b = two.a.endpoint(PORT), two.b.endpoint(PORT)
+    with (
+        rr_worker(two.a, [a], [], ("provider", setup_echo), ("main", None)) as near,
+        rr_worker(two.b, [b], [a], ("agent", agent_setup("provider"))),
+    ):
+        near.call(hosts.rr_until_answered, "main", "agent", "composite", 30.0, timeout=60)
+        near.call(rr_hold_composite, "main", "agent", timeout=30)
+        samples = near.call(rr_status_timings, "provider", rounds, timeout=600)
+        heard = near.call(rr_heard, timeout=10)
+        if heard < rounds:
+            raise RuntimeError(f"only {heard} statuses reached the consumer")
+        return samples
+
+
+_victims = itertools.count()
+
+
+def rr_failures(two: hosts.TwoHosts, repeats: int, *, cut: bool) -> tuple[list[float], list[float]]:
+    """ROWS "SIGKILL of a remote manager to calls failing", "link cut to calls failing" and
+    "link up to calls working".
+
+    Seconds from the SIGKILL of a provider's process on host a (or from the link cut) to
+    the failure of a call in flight to it from host b; after a cut, also from the link up
+    again to the first call that succeeds (an empty list for kills).
+    """
+    b = two.b.endpoint(PORT)
+    failed, working = [], []
+    with rr_worker(two.b, [b], [], ("app", None)) as consumer:
+        for _ in range(repeats):
+            name = f"victim-{next(_victims)}"
+            listen = [two.a.endpoint(PORT + 1)]
+            with rr_worker(two.a, listen, [b], (name, setup_hang)) as victim:
+                consumer.call(hosts.rr_until_answered, "app", name, "echo", 30.0, timeout=60)
+                in_flight: Future[float] = consumer.submit(rr_call_in_flight, "app", name)
+                if not consumer.call(rr_wait_started, "app", name, timeout=30):
+                    raise RuntimeError("the load never started")
+                start = time.monotonic()
+                if cut:
+                    two.link_down()
+                else:
+                    os.kill(victim.pid, signal.SIGKILL)
+                try:
+                    failed.append(in_flight.result(30) - start)
+                finally:
+                    if cut:
+                        start = time.monotonic()
+                        two.link_up()
+                if cut:
+                    consumer.call(hosts.rr_until_answered, "app", name, "echo", 30.0, timeout=60)
+                    working.append(time.monotonic() - start)
+    return failed, working
+
+
+# -- report -----------------------------------------------------------------------------------
+
+
+def stats(samples: list[float]) -> tuple[float, float]:
+    """Median and p90 (the largest sample when there are too few for deciles)."""
+    median = statistics.median(samples)
+    p90 = statistics.quantiles(samples, n=10)[-1] if len(samples) >= 10 else max(samples)
+    return median, p90
+
+
+Trips = list[tuple[str, list[float], list[float]]]
+"""Round-trip rows: (name, samples, the samples of the floor the ratio divides by)."""
+
+Ends = list[tuple[str, list[float], str]]
+"""Failure-detection rows: (name, samples, target)."""
+
+
+def measure_loopback(rounds: int, *, with_rr: bool) -> Trips:
+    with hosts.local_host() as local:
+        ports = (hosts.free_port(), hosts.free_port())
+        floor = raw_round_trips(local, local, ports[0], rounds)
+        trips = [("raw Zenoh get, loopback (floor)", floor, floor)]
+        if with_rr:
+            ports = (hosts.free_port(), hosts.free_port())
+            trips.append(
+                ("rr_actors dedup-hit call, loopback", rr_dedup(local, local, ports, rounds), floor)
+            )
+    return trips
+
+
+def measure_hosts(rounds: int, kills: int, cuts: int, *, with_rr: bool) -> tuple[Trips, Ends]:
+    with hosts.TwoHosts() as two:
+        floor = raw_round_trips(two.a, two.b, PORT, rounds)
+        trips = [("raw Zenoh get, across the veth (floor)", floor, floor)]
+        gone, back = raw_cuts(two, cuts)
+        ends = [
+            ("raw: SIGKILL -> token gone", raw_kills(two, kills), ""),
+            ("raw: link cut -> token gone", gone, ""),
+            ("raw: link up -> token back", back, ""),
+        ]
+        if with_rr:
+            dedup = rr_dedup(two.a, two.b, (PORT, PORT), rounds)
+            trips.append(("rr_actors cross-host dedup hit (target <= 2x)", dedup, floor))
+            trips.append(("send_status over 3 hops across hosts", rr_status(two, rounds), floor))
+            killed, _ = rr_failures(two, kills, cut=False)
+            ends.append(("SIGKILL of a remote manager -> call fails", killed, "< 50 ms"))
+            cut, healed = rr_failures(two, cuts, cut=True)
+            ends.append(("link cut -> call fails", cut, f"the lease, {LEASE:g} s"))
+            ends.append(("link up -> a call works again", healed, "< 10 s"))
+    return trips, ends
+
+
+def report(rounds: int, trips: Trips, ends: Ends) -> None:
+    print(f"rounds per row: {rounds}; times in microseconds; ratio = median / the floor's median")
+    print()
+    print("| measurement | median us | p90 us | ratio |")
+    print("|---|---:|---:|---:|")
+    for name, samples, floor in trips:
+        median, p90 = stats(samples)
+        ratio = median / statistics.median(floor)
+        print(f"| {name} | {median * 1e6:9.1f} | {p90 * 1e6:9.1f} | {ratio:6.2f}x |")
+    if ends:
+        print()
+        print(f"failure detection, lease {LEASE:g} s; times in milliseconds")
+        print()
+        print("| event -> seen | runs | median ms | max ms | target |")
+        print("|---|---:|---:|---:|---|")
+        for name, samples, target in ends:
+            if not samples:  # (`--kills 0`, `--cuts 0`)
+                continue
+            median, _ = stats(samples)
+            worst = max(samples)
+            print(
+                f"| {name} | {len(samples)} | {median * 1e3:8.1f} | {worst * 1e3:8.1f} | {target} |"
+            )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=2000, help="timed round trips per row")
+    parser.add_argument("--kills", type=int, default=10, help="SIGKILLs per failure row")
+    parser.add_argument("--cuts", type=int, default=3, help="link cuts per failure row")
+    parser.add_argument(
+        "--only", choices=["raw"], help="measure the raw Zenoh rows only (no rr_actors rows)"
+    )
+    args = parser.parse_args()
+    why_not_hosts = hosts.require_root()
+    why_not_rr = None
+    if args.only == "raw":
+        why_not_rr = "--only raw"
+    elif not hosts.has_carrier():
+        why_not_rr = "rr_actors has no ZenohNetwork yet (issue 22)"
+
+    trips = measure_loopback(args.rounds, with_rr=why_not_rr is None)
+    ends: Ends = []
+    if why_not_hosts is None:
+        more, ends = measure_hosts(args.rounds, args.kills, args.cuts, with_rr=why_not_rr is None)
+        trips += more
+    report(args.rounds, trips, ends)
+    print()
+    if why_not_hosts is not None:
+        print(f"not measured across hosts: {why_not_hosts}")
+    if why_not_rr is not None:
+        print(f"rr_actors rows not measured: {why_not_rr}")
+
+
+if __name__ == "__main__":
+    main()
