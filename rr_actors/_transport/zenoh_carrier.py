@@ -114,6 +114,10 @@ CLAIM_TIMEOUT = 5.0
 
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
 
+_NO_WAITING = threading.local()
+"""`active` on threads that must not wait on the network: Zenoh's callback threads (a
+frame decoded there, and what its reply's continuation sends) and the presence thread."""
+
 
 class _Queue:
     """Items handled one at a time in order: by its thread (started at the first item), or
@@ -595,6 +599,9 @@ class ZenohMember:
         except BaseException as exc:  # (a SystemExit from a user __reduce__ is contained too)
             raise ConfigError(f"{what(message, name)} is not picklable: {exc}") from exc
         server = self._server(name)
+        if server is None and not self.closed:  # maybe served again, not yet heard here
+            self._ask(name)
+            server = self._server(name)
         if server is None:
             raise self._gone_error(name)
         size = payload_size(data)
@@ -674,12 +681,14 @@ class ZenohMember:
         data = sample.payload.to_bytes()
         head = parse(data)
         if head is not None:
+            _NO_WAITING.active = True
             self._receive(head, MESSAGE, (local, data, head))
 
     def _on_answer(self, sample: zenoh.Sample) -> None:
         data = sample.payload.to_bytes()
         head = parse(data)
         if head is not None:
+            _NO_WAITING.active = True
             self._receive(head, ANSWER, (data, head))
 
     def _deliver(self, item: tuple[_Local, bytes, Header]) -> None:
@@ -831,6 +840,8 @@ class ZenohMember:
         An answer for a token whose deletion was seen after the question was asked is
         stale and left out.
         """
+        if getattr(_NO_WAITING, "active", False):
+            return  # (on Zenoh's or the presence thread: what the tables say must do)
         with self._lock:
             asked_at = self._seq
         keys: list[str] = []
@@ -847,6 +858,7 @@ class ZenohMember:
 
     def _apply(self, item: tuple[bool | None, str, Any]) -> None:
         """Apply one liveliness event (the presence thread): tables, then what follows."""
+        _NO_WAITING.active = True
         put, key, extra = item
         if put is None:  # a marker: everything queued before it was applied
             extra.set()
