@@ -322,13 +322,24 @@ def _raw_session(network: ZenohNetwork) -> zenoh.Session:
     return zenoh.open(config)
 
 
-def _header(kind: int, sender: str, wire: int) -> bytes:
+def _header(kind: int, sender: str, wire: int, python: tuple[int, int] = PYTHON) -> bytes:
     zid = sender.encode("ascii")
-    return struct.pack("!2sBBBBB", b"rz", wire, *PYTHON, kind, len(zid)) + zid
+    return struct.pack("!2sBBBBB", b"rz", wire, *python, kind, len(zid)) + zid
 
 
-def test_a_message_of_another_wire_version_is_refused_unread_naming_both_versions(
-    net: ZenohNetwork, tmp_path: Any, caplog: pytest.LogCaptureFixture
+OTHER_VERSIONS = [
+    pytest.param(WIRE_VERSION + 98, PYTHON, id="wire"),
+    pytest.param(WIRE_VERSION, (PYTHON[0], PYTHON[1] + 1), id="python-minor"),
+]
+
+
+@pytest.mark.parametrize(("wire", "python"), OTHER_VERSIONS)
+def test_a_message_of_another_version_is_refused_unread_naming_both_versions(
+    net: ZenohNetwork,
+    tmp_path: Any,
+    caplog: pytest.LogCaptureFixture,
+    wire: int,
+    python: tuple[int, int],
 ) -> None:
     target = Recorder(f"target-{uuid.uuid4().hex[:6]}")
     net.serve(target)
@@ -348,7 +359,7 @@ def test_a_message_of_another_wire_version_is_refused_unread_naming_both_version
         with caplog.at_level(logging.WARNING, logger="rr_actors"):
             raw.put(
                 f"rr/{net.system}/reg/{target.name}",
-                _header(MESSAGE, sender, WIRE_VERSION + 98) + frame(7, _CreatesAFile(str(evil))),
+                _header(MESSAGE, sender, wire, python) + frame(7, _CreatesAFile(str(evil))),
             )
             assert answered.wait(10)
         subscriber.undeclare()
@@ -362,12 +373,13 @@ def test_a_message_of_another_wire_version_is_refused_unread_naming_both_version
     assert (VERSION, 7) == (head.kind, struct.unpack_from("<Q", answers[0], head.size + 4)[0])
     assert not evil.exists()
     warned = " ".join(r.getMessage() for r in caplog.records)
-    assert f"wire version {WIRE_VERSION + 98}" in warned
-    assert f"wire version {WIRE_VERSION} on Python {PYTHON[0]}.{PYTHON[1]}" in warned
+    assert f"wire version {wire} on Python {python[0]}.{python[1]} there" in warned
+    assert f"wire version {WIRE_VERSION} on Python {PYTHON[0]}.{PYTHON[1]} here" in warned
 
 
+@pytest.mark.parametrize(("wire", "python"), OTHER_VERSIONS)
 def test_a_call_to_a_registrar_of_another_version_fails_naming_both_versions(
-    net: ZenohNetwork,
+    net: ZenohNetwork, wire: int, python: tuple[int, int]
 ) -> None:
     consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
     net.serve(Served(consumer))
@@ -382,9 +394,7 @@ def test_a_call_to_a_registrar_of_another_version_fails_naming_both_versions(
         token = struct.unpack_from("<Q", data, head.size + 4)[0]
         raw.put(
             f"rr/{net.system}/ans/{head.sender}",
-            _header(VERSION, zid, WIRE_VERSION + 98)
-            + struct.pack("!i", 8)
-            + struct.pack("<Q", token),
+            _header(VERSION, zid, wire, python) + struct.pack("!i", 8) + struct.pack("<Q", token),
         )
 
     try:
@@ -402,8 +412,10 @@ def test_a_call_to_a_registrar_of_another_version_fails_naming_both_versions(
         raw.close()
         consumer.stop()
 
-    assert f"wire version {WIRE_VERSION + 98}" in str(caught.value)
-    assert f"wire version {WIRE_VERSION} on Python" in str(caught.value)
+    assert f"wire version {wire} on Python {python[0]}.{python[1]} there" in str(caught.value)
+    assert f"wire version {WIRE_VERSION} on Python {PYTHON[0]}.{PYTHON[1]} here" in str(
+        caught.value
+    )
 
 
 # -- names ----------------------------------------------------------------------------------------
