@@ -439,17 +439,25 @@ class ZenohMember:
         mark = self._stop_marks.pop(name, None)
         if mark is not None:
             mark.undeclare()
-        self._claim(name)
-        local = _Local(endpoint)
-        supervisor = self._supervisor or (self.zid if DIRECTORY.restart_expected(name) else "none")
-        local.subscriber = self._session.declare_subscriber(
-            f"{self._prefix}/reg/{name}",
-            lambda sample: self._on_message(local, sample),
+        claim = self._session.liveliness().declare_token(
+            f"{self._prefix}/live/claim/{name}/{self.zid}"
         )
-        token_key = (
-            f"{self._prefix}/live/reg/{name}/{self.zid}/{supervisor}/{local.max_message_bytes}"
-        )
-        local.token = self._session.liveliness().declare_token(token_key)
+        try:
+            self._claim(name)
+            local = _Local(endpoint)
+            supervisor = self._supervisor or (
+                self.zid if DIRECTORY.restart_expected(name) else "none"
+            )
+            local.subscriber = self._session.declare_subscriber(
+                f"{self._prefix}/reg/{name}",
+                lambda sample: self._on_message(local, sample),
+            )
+            token_key = (
+                f"{self._prefix}/live/reg/{name}/{self.zid}/{supervisor}/{local.max_message_bytes}"
+            )
+            local.token = self._session.liveliness().declare_token(token_key)
+        finally:  # after the token: a rival sees this one serve before the claim goes
+            claim.undeclare()  # type: ignore[no-untyped-call]
         with self._lock:
             self._locals[name] = local
         self._barrier(token_key)
@@ -502,39 +510,37 @@ class ZenohMember:
     # -- serving ---------------------------------------------------------------------------
 
     def _claim(self, name: str) -> None:
-        """Declare a claim on `name`; raise `DuplicateNameError` if another process has it."""
+        """With this process's claim on `name` declared: return once it may serve it.
+
+        Raises:
+            DuplicateNameError: another process serves it, or claims it and wins.
+        """
         me = int(self.zid, 16)
-        claim = self._session.liveliness().declare_token(
-            f"{self._prefix}/live/claim/{name}/{self.zid}"
-        )
-        try:
-            self._ask(name)
-            deadline = time.monotonic() + CLAIM_TIMEOUT
-            with self._changed:
-                while True:
-                    others = [z for z in self._servers.get(name, {}) if z != self.zid]
-                    if others:
-                        raise DuplicateNameError(
-                            f"a registrar named {name!r} is already served on system "
-                            f"{self.system!r} (by process {others[0]})"
-                        )
-                    rivals = [z for z in self._claims.get(name, ()) if z != self.zid]
-                    if any(int(z, 16) < me for z in rivals):
-                        raise DuplicateNameError(
-                            f"another process of system {self.system!r} starts a registrar "
-                            f"named {name!r} at the same time, and wins the tie-break"
-                        )
-                    if not rivals:
-                        return
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        raise DuplicateNameError(
-                            f"another process of system {self.system!r} is starting a "
-                            f"registrar named {name!r}"
-                        )
-                    self._changed.wait(left)
-        finally:
-            claim.undeclare()  # type: ignore[no-untyped-call]
+        self._ask(name)
+        deadline = time.monotonic() + CLAIM_TIMEOUT
+        with self._changed:
+            while True:
+                others = [z for z in self._servers.get(name, {}) if z != self.zid]
+                if others:
+                    raise DuplicateNameError(
+                        f"a registrar named {name!r} is already served on system "
+                        f"{self.system!r} (by process {others[0]})"
+                    )
+                rivals = [z for z in self._claims.get(name, ()) if z != self.zid]
+                if any(int(z, 16) < me for z in rivals):
+                    raise DuplicateNameError(
+                        f"another process of system {self.system!r} starts a registrar "
+                        f"named {name!r} at the same time, and wins the tie-break"
+                    )
+                if not rivals:
+                    return
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise DuplicateNameError(
+                        f"another process of system {self.system!r} is starting a "
+                        f"registrar named {name!r}"
+                    )
+                self._changed.wait(left)
 
     def _barrier(self, key: str) -> None:
         """Return once the router this process talks to has seen the token `key`.

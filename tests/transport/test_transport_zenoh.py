@@ -446,7 +446,7 @@ def test_a_name_served_by_another_process_is_a_duplicate_and_leaves_nothing_behi
 def test_of_two_processes_serving_one_name_at_once_exactly_one_does(
     net: ZenohNetwork, children: Started
 ) -> None:
-    for _round in range(3):
+    for _round in range(5):
         name = f"race-{uuid.uuid4().hex[:6]}"
         go = children.context.Event()
         controls = [children.start(_racer, net.address, name, go, ready=False)[1] for _ in range(2)]
