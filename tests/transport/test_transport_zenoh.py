@@ -31,6 +31,7 @@ import zenoh
 from carriers import in_thread, setup_servers, wait_load_started
 
 import rr_actors as rr
+from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.wire import WIRE_VERSION
 from rr_actors._registrar import Served
 from rr_actors._transport.codec import frame
@@ -570,3 +571,62 @@ def test_a_frozen_remote_router_is_lost_then_reachable_again_with_the_same_proce
 
     assert eventually(lambda: [provider] == [n for n, _ in watcher.reachable], timeout=15)
     watcher.end()
+
+
+# -- order ----------------------------------------------------------------------------------------
+
+
+class Boxed:
+    """A message that is not plain data: decoded on the sender's decode thread, not inline."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+
+class Inbox:
+    """A peer registered in the directory in place of a registrar: keeps what it is told."""
+
+    def __init__(self, name: str, expected: int) -> None:
+        self.name = name
+        self.told: list[int] = []
+        self.expected = expected
+        self.all_told = threading.Event()
+
+    def tell(self, message: Any) -> None:
+        self.told.append(message.n if isinstance(message, Boxed) else message[1])
+        if len(self.told) == self.expected:
+            self.all_told.set()
+
+
+def teller_main(
+    address: Any, name: str, count: int, control: multiprocessing.connection.Connection
+) -> None:
+    """Attach, tell `count` messages to `name` (plain ones and `Boxed` ones mixed), say done."""
+    member = address.attach()
+    try:
+        peer = member.resolve(name)
+        for n in range(count):
+            peer.tell(Boxed(n) if n % 7 == 0 else ("n", n))
+        control.send("ready")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        member.close()
+
+
+def test_messages_from_one_process_to_one_registrar_arrive_in_the_order_told(
+    net: ZenohNetwork, children: Started
+) -> None:
+    count = 2000
+    inbox = Inbox(f"inbox-{uuid.uuid4().hex[:6]}", count)
+    endpoint = Recorder(inbox.name)
+    DIRECTORY.register(inbox)
+    try:
+        net.serve(endpoint)
+        children.start(teller_main, net.address, inbox.name, count)
+        assert inbox.all_told.wait(30)
+    finally:
+        endpoint.end()
+        DIRECTORY.unregister(inbox, "stopped")
+
+    assert list(range(count)) == inbox.told
