@@ -15,6 +15,7 @@ import multiprocessing
 import multiprocessing.connection
 import multiprocessing.context
 import os
+import pickle
 import signal
 import socket
 import struct
@@ -36,7 +37,7 @@ from rr_actors._core.wire import WIRE_VERSION
 from rr_actors._registrar import Served
 from rr_actors._transport.codec import frame
 from rr_actors._transport.zenoh_net import ZenohNetwork
-from rr_actors._transport.zenoh_wire import MESSAGE, PYTHON, VERSION, parse
+from rr_actors._transport.zenoh_wire import MESSAGE, PYTHON, VERSION, parse, payload_of
 
 # -- configuration ---------------------------------------------------------------------------
 
@@ -630,3 +631,39 @@ def test_messages_from_one_process_to_one_registrar_arrive_in_the_order_told(
         DIRECTORY.unregister(inbox, "stopped")
 
     assert list(range(count)) == inbox.told
+
+
+def test_a_message_over_the_registrars_limit_is_answered_unread(
+    net: ZenohNetwork, tmp_path: Any
+) -> None:
+    target = Recorder(f"target-{uuid.uuid4().hex[:6]}")  # max_message_bytes: 1 MiB
+    net.serve(target)
+    raw = _raw_session(net)
+    sender = str(raw.zid())
+    answers: list[bytes] = []
+    answered = threading.Event()
+    evil = tmp_path / "created-by-unpickling"
+
+    def heard(sample: zenoh.Sample) -> None:
+        answers.append(sample.payload.to_bytes())
+        answered.set()
+
+    try:
+        subscriber = raw.declare_subscriber(f"rr/{net.system}/ans/{sender}", heard)
+        raw.put(
+            f"rr/{net.system}/reg/{target.name}",
+            _header(MESSAGE, sender, WIRE_VERSION)
+            + frame(9, (_CreatesAFile(str(evil)), b"x" * (2 * target.max_message_bytes))),
+        )
+        assert answered.wait(10)
+        subscriber.undeclare()
+    finally:
+        raw.close()
+        target.end()
+
+    head = parse(answers[0])
+    assert head is not None
+    token, payload = payload_of(answers[0], head)
+    _value, error = pickle.loads(payload)
+    assert (9, True) == (token, isinstance(error, rr.MessageTooLargeError))
+    assert not evil.exists()
