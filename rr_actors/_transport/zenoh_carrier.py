@@ -53,7 +53,10 @@ Presence (liveliness tokens, one presence thread applies them in order):
 One name, one server: `serve` first declares a claim token, then asks the network for
 servers and claims of the name. A server of another process is a `DuplicateNameError`;
 of two claims that see each other the lower Zenoh id wins; a claim that sees a higher
-one waits until that one either serves (then it yields) or withdraws.
+one waits until that one either serves (then it yields) or withdraws. A claim is held
+until the registrar's token is declared, so a rival never sees it go before the token
+comes. (The router orders declarations and queries, so of two claims at least one sees
+the other.)
 """
 
 from __future__ import annotations

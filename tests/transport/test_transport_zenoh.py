@@ -381,7 +381,7 @@ def test_a_message_of_another_version_is_refused_unread_naming_both_versions(
 
 @pytest.mark.parametrize(("wire", "python"), OTHER_VERSIONS)
 def test_a_call_to_a_registrar_of_another_version_fails_naming_both_versions(
-    net: ZenohNetwork, wire: int, python: tuple[int, int]
+    net: ZenohNetwork, wire: int, python: tuple[int, int], eventually: Callable[..., bool]
 ) -> None:
     consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
     net.serve(Served(consumer))
@@ -405,6 +405,7 @@ def test_a_call_to_a_registrar_of_another_version_fails_naming_both_versions(
             raw.liveliness().declare_token(f"rr/{net.system}/live/proc/{zid}"),
             raw.liveliness().declare_token(f"rr/{net.system}/live/reg/{old}/{zid}/none/1000000"),
         ]
+        assert eventually(lambda: old in net.names(), timeout=10)  # (declared, now seen)
         with pytest.raises(rr.RrError) as caught:
             consumer.call(old, "echo", "r", timeout=10)
         inbox.undeclare()
