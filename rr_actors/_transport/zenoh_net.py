@@ -21,7 +21,6 @@ manager processes with forkserver or spawn.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import ipaddress
 import json
@@ -34,12 +33,12 @@ import socket
 import tempfile
 import threading
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
 from rr_actors._core.directory import Peer
-from rr_actors._transport.base import Endpoint
+from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.zenoh_carrier import ZenohMember
 from rr_actors.errors import ConfigError, RegistrarUnavailableError
 
@@ -381,12 +380,7 @@ class ZenohNetwork:
         self.close()
 
 
-with contextlib.suppress(ImportError):  # mypy checks that the carrier implements the interface
-    from typing import TYPE_CHECKING
-
-    if TYPE_CHECKING:
-        from rr_actors._transport.base import Address, Transport
-
-        _network: type[Transport] = ZenohNetwork
-        _member: type[Transport] = ZenohMember
-        _address: type[Address] = ZenohAddress
+if TYPE_CHECKING:  # mypy checks that the carrier implements the interface
+    _network: type[Transport] = ZenohNetwork
+    _member: type[Transport] = ZenohMember
+    _address: type[Address] = ZenohAddress
