@@ -5,6 +5,7 @@ the semantics (`docs/explanation/semantics.md`) and the architecture.
 """
 
 import logging
+from typing import TYPE_CHECKING
 
 from rr_actors import events as events  # `rr.events.to_dict(...)`, as `rr.errors` is
 from rr_actors._core.bus import Subscription
@@ -32,6 +33,9 @@ from rr_actors.errors import (
     UnknownRegistrarError,
     UnknownServerError,
 )
+
+if TYPE_CHECKING:  # at run time, `__getattr__` below imports it (and zenoh) at first use
+    from rr_actors._transport.zenoh_net import ZenohNetwork
 
 __all__ = [
     "MAX_DEPENDENCY_DEPTH",
@@ -66,9 +70,24 @@ __all__ = [
     "UnknownQueryError",
     "UnknownRegistrarError",
     "UnknownServerError",
+    "ZenohNetwork",
     "quarantine_backup",
 ]
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str) -> object:
+    """`rr.ZenohNetwork`, imported at first use: `import rr_actors` never imports zenoh."""
+    if name == "ZenohNetwork":
+        try:
+            from rr_actors._transport.zenoh_net import ZenohNetwork  # noqa: PLC0415 - lazily
+        except ImportError as exc:
+            raise ImportError(
+                f"rr.ZenohNetwork needs eclipse-zenoh: pip install 'rr-actors[zenoh]' ({exc})"
+            ) from exc
+        return ZenohNetwork
+    raise AttributeError(f"module 'rr_actors' has no attribute {name!r}")
+
 
 logging.getLogger("rr_actors").addHandler(logging.NullHandler())

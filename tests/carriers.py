@@ -236,7 +236,12 @@ def context() -> multiprocessing.context.ForkServerContext:
     return ctx
 
 
-CARRIERS: dict[str, Callable[[], Transport]] = {"unix": System.create}
+def _zenoh_network() -> Transport:
+    """A fresh Zenoh system on loopback: this process is its router (lease 1 s)."""
+    return rr.ZenohNetwork(system=f"test-{uuid.uuid4().hex[:8]}", tls=None)
+
+
+CARRIERS: dict[str, Callable[[], Transport]] = {"unix": System.create, "zenoh": _zenoh_network}
 """Every carrier the transport contract runs over, by name: makes a fresh system."""
 
 

@@ -734,10 +734,14 @@ def zenoh_close() -> None:
 
 
 def has_carrier() -> bool:
-    """Whether this rr_actors has the Zenoh carrier (`rr.ZenohNetwork`)."""
+    """Whether this rr_actors has the Zenoh carrier (`rr.ZenohNetwork`) and the process layer
+    that serves registrars on it (`ResourceRegistrar.start(..., network=)`)."""
+    import inspect  # noqa: PLC0415
+
     import rr_actors as rr  # noqa: PLC0415
 
-    return hasattr(rr, "ZenohNetwork")
+    start = inspect.signature(rr.ResourceRegistrar.start)
+    return hasattr(rr, "ZenohNetwork") and "network" in start.parameters
 
 
 def rr_join(*, system: str, listen: list[str], connect: list[str], lease: float = 1.0) -> None:

@@ -21,7 +21,12 @@ from typing import Any
 
 from rr_actors.errors import RrError, TransferError
 
-__all__ = ["WIRE_TYPES", "WireMessage"]
+__all__ = ["WIRE_TYPES", "WIRE_VERSION", "WireMessage"]
+
+WIRE_VERSION = 1
+"""The version of what crosses between processes (these messages, pickled): a carrier
+that can meet a process of another version (the Zenoh one, across hosts) refuses its
+messages unread. Raise it when a `WireMessage` changes incompatibly."""
 
 WIRE_TYPES: set[type] = set()
 """Every `WireMessage` subclass (filled in as they are defined)."""

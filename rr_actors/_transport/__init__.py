@@ -5,7 +5,10 @@
 - `codec`: frames and pickling; `writer`: sending without blocking on the peer;
 - the AF_UNIX carrier: `sockets` (connect and the authkey handshake), `outbound` (a
   channel to another process's registrar), `inbound` (a registrar's listener), `unix`
-  (the system: runtime directory, authkey, `attach`).
+  (the system: runtime directory, authkey, `attach`);
+- the Zenoh carrier (extra `zenoh`, imported only when used): `zenoh_net`
+  (`ZenohNetwork`: the router per host and its config), `zenoh_carrier` (a process's
+  membership: sending, receiving, presence), `zenoh_wire` (key expressions and header).
 """
 
 from rr_actors._transport.base import Address, Endpoint, Transport

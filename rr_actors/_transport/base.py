@@ -56,9 +56,13 @@ The contract every carrier keeps (the transport tests check it for each one):
 Low-level errors (`EOFError`, `BrokenPipeError`, `OSError`, pickling errors) never reach
 a caller: a carrier translates them into rr_actors errors with `raise ... from exc`.
 
+A carrier with a lease (Zenoh) counts a process silent for longer than it (frozen, or
+behind a cut link) as gone: its replies fail with `RegistrarUnavailableError` then.
+
 Carriers: `unix` (AF_UNIX sockets in a private runtime directory, authenticated with a
-per-system key). A second carrier implements `Transport` and `Address` and needs no change
-in the registrar.
+per-system key) and `zenoh` (`zenoh_net.ZenohNetwork`, `zenoh_carrier`: Eclipse Zenoh
+across hosts, presence by liveliness tokens). Each implements `Transport` and `Address`
+and needs no change in the registrar.
 """
 
 from __future__ import annotations

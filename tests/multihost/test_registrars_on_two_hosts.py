@@ -26,7 +26,9 @@ import pytest
 import rr_actors as rr
 
 pytestmark = pytest.mark.skipif(
-    not hosts.has_carrier(), reason="rr.ZenohNetwork (issue 22's carrier) has not landed yet"
+    not hosts.has_carrier(),
+    reason="rr.ZenohNetwork (issue 22's carrier) or ResourceRegistrar.start(..., network=) "
+    "has not landed yet",
 )
 
 SYSTEM = "lab"

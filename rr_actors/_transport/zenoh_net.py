@@ -1,0 +1,386 @@
+"""`ZenohNetwork`: a system of registrars across hosts, over Eclipse Zenoh (step 1: plain TCP).
+
+The process that makes a `ZenohNetwork` is its host's router (as rmw_zenoh's router per
+host): at first use it opens a ROUTER-mode Zenoh session that listens on `listen` and on
+a Unix socket in a private (0700) runtime directory, and connects to `connect`. Manager
+processes join through that socket (`net.address.attach()`: a CLIENT-mode session),
+never over TCP on loopback, which any local user could reach and send pickles to:
+
+```
+ host A                                            host B
+ router process (ZenohNetwork) ── tcp/<A>:7447 ── router process (ZenohNetwork)
+   │ unixsock-stream/<runtime_dir>/router.sock       │
+ manager processes (address.attach())              manager processes
+```
+
+What crosses and how presence works: `zenoh_carrier`. A process belongs to one system
+(the registrar directory is per process): joining a second one is a `ConfigError`. A
+process that opened a Zenoh session must not fork (the child hangs): rr_actors starts
+manager processes with forkserver or spawn.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import ipaddress
+import json
+import logging
+import math
+import os
+import re
+import shutil
+import socket
+import tempfile
+import threading
+from collections.abc import Callable, Iterable
+from typing import TYPE_CHECKING, Any
+
+import zenoh
+
+from rr_actors._core.directory import Peer
+from rr_actors._transport.base import Address, Endpoint, Transport
+from rr_actors._transport.zenoh_carrier import ZenohMember
+from rr_actors.errors import ConfigError, RegistrarUnavailableError
+
+__all__ = ["ZenohAddress", "ZenohNetwork"]
+
+logger = logging.getLogger("rr_actors")
+
+_SYSTEM = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
+_ENDPOINT = re.compile(
+    r"tcp/(\[(?P<v6>[0-9A-Fa-f:.]+)\]|(?P<host>[A-Za-z0-9_.\-]+)):(?P<port>\d{1,5})"
+)
+_PROBE_TIMEOUT = 0.5  # seconds a `connect` endpoint gets to accept the probe at open
+
+
+def _parse_endpoint(role: str, endpoint: object) -> tuple[str, int]:
+    """The host and port of a `tcp/<address>:<port>` endpoint; ConfigError naming it."""
+    match = _ENDPOINT.fullmatch(endpoint) if isinstance(endpoint, str) else None
+    port = int(match["port"]) if match else -1
+    if match is None or not 0 <= port <= 65535 or (role == "connect" and port == 0):
+        raise ConfigError(
+            f"{role} endpoint {endpoint!r} is malformed: expected 'tcp/<address>:<port>' "
+            f"(a host name, an IPv4 address or [an IPv6 address], and a port"
+            f"{' from 1' if role == 'connect' else ' from 0'} to 65535)"
+        )
+    host = match["v6"] or match["host"]
+    if match["v6"] is not None:
+        try:
+            ipaddress.IPv6Address(host)
+        except ValueError as exc:
+            raise ConfigError(f"{role} endpoint {endpoint!r} is malformed: {exc}") from None
+    return host, port
+
+
+def _endpoints(role: str, given: object) -> tuple[str, ...]:
+    if isinstance(given, str | bytes) or not isinstance(given, Iterable):
+        raise ConfigError(
+            f"{role} must be a list of endpoints such as ['tcp/10.0.0.1:7447'], not {given!r}"
+        )
+    endpoints = tuple(given)
+    for endpoint in endpoints:
+        _parse_endpoint(role, endpoint)
+    return endpoints
+
+
+def _loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _config(mode: str, listen: list[str], connect: list[str], lease: float) -> zenoh.Config:
+    """The session's Zenoh config: only the endpoints given, `lease` seconds, no scouting."""
+    lease_ms = max(1, round(lease * 1000))
+    settings: dict[str, Any] = {
+        "mode": mode,
+        "listen": {"endpoints": listen},
+        "connect": {
+            "endpoints": connect,
+            "exit_on_failure": mode == "client",
+            "retry": {"period_init_ms": 250, "period_max_ms": 1000},
+        },
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tx": {
+                    "lease": lease_ms,
+                    "keep_alive": 4,
+                    # a link blocked for half the lease is closed: a frozen reader does
+                    # not stall the router's other links until the lease of theirs runs out
+                    "queue": {
+                        "congestion_control": {"block": {"wait_before_close": lease_ms * 500}}
+                    },
+                }
+            }
+        },
+    }
+    return zenoh.Config.from_json5(json.dumps(settings))
+
+
+# -- one system per process ----------------------------------------------------------------------
+
+_MEMBER: ZenohMember | None = None
+_MEMBER_OWNER: object = None
+_MEMBER_LOCK = threading.Lock()
+
+
+def _join(system: str, owner: object, open_member: Callable[[], ZenohMember]) -> ZenohMember:
+    """This process's member of `system`: the one it has, or a new one from `open_member`.
+
+    Raises:
+        ConfigError: this process is a member of another system, or (for a second
+            `ZenohNetwork` of the same system) a router of it already.
+    """
+    global _MEMBER, _MEMBER_OWNER
+    with _MEMBER_LOCK:
+        member = _MEMBER
+        if member is not None and not member.closed:
+            if member.system != system:
+                raise ConfigError(
+                    f"this process is a member of system {member.system!r}; a process "
+                    f"belongs to one system (the registrar directory is per process), so it "
+                    f"cannot serve on system {system!r}"
+                )
+            if owner is None or owner is _MEMBER_OWNER:
+                return member
+            raise ConfigError(
+                f"this process already joined system {system!r} through another "
+                f"ZenohNetwork or address; use that one"
+            )
+        member = open_member()
+        _MEMBER, _MEMBER_OWNER = member, owner
+        return member
+
+
+def _left(member: ZenohMember) -> None:
+    global _MEMBER, _MEMBER_OWNER
+    with _MEMBER_LOCK:
+        if _MEMBER is member:
+            _MEMBER, _MEMBER_OWNER = None, None
+
+
+@dataclasses.dataclass(frozen=True)
+class ZenohAddress:
+    """How a process of this host joins the system: through its router's Unix socket.
+
+    Attributes:
+        system: the system's name.
+        socket_path: the router's Unix socket (in its 0700 runtime directory).
+        lease: seconds after which a silent peer counts as gone.
+        router: the router process's Zenoh id (it supervises what is served through it).
+    """
+
+    system: str
+    socket_path: str
+    lease: float
+    router: str
+
+    def attach(self) -> ZenohMember:
+        """Join the system from this process (idempotent): a CLIENT-mode session.
+
+        Raises:
+            ConfigError: this process is a member of another system.
+            RegistrarUnavailableError: the router cannot be reached.
+        """
+        return _join(self.system, None, self._open)
+
+    def _open(self) -> ZenohMember:
+        config = _config("client", [], [f"unixsock-stream/{self.socket_path}"], self.lease)
+        try:
+            session = zenoh.open(config)
+        except Exception as exc:
+            raise RegistrarUnavailableError(
+                f"cannot join system {self.system!r} through {self.socket_path!r}: {exc}"
+            ) from exc
+        member = ZenohMember(self.system, session, supervisor=self.router)
+        member._on_close = lambda: _left(member)
+        member._address = self
+        return member
+
+
+class ZenohNetwork:
+    """A system of registrars across hosts over Eclipse Zenoh (`pip install rr-actors[zenoh]`).
+
+    Hand it to `ResourceRegistrar.start(..., network=net)` and
+    `Supervisor(..., network=net)`: the process that makes it is its host's router; it
+    opens its Zenoh session at first use. All arguments are keyword-only.
+
+    Args:
+        system: the system's name, as a registrar name (`[A-Za-z0-9_.-]+`); every key
+            expression starts with `rr/<system>/`, so systems sharing a network never
+            see each other.
+        listen: Zenoh endpoints to listen on, `tcp/<address>:<port>` (the firewall must
+            let that port in). A listen endpoint that is not loopback gets a WARNING
+            while `tls=None`.
+        connect: endpoints of other hosts' routers, `tcp/<address>:<port>`. One that
+            cannot be reached yet is no error (the other host may start later; Zenoh
+            keeps trying): a WARNING names it.
+        tls: required. `None` asks for plain TCP (step 1); TLS comes with step 2.
+        lease: seconds (default 1.0) after which a silent peer (a cut link, a frozen
+            process) counts as gone. Zenoh's own default is 10 s.
+
+    Raises:
+        ConfigError: a bad `system`, a malformed endpoint, a `tls` other than `None`, a
+            `lease` that is not a positive number of seconds.
+    """
+
+    def __init__(
+        self,
+        *,
+        system: str,
+        listen: Iterable[str] = (),
+        connect: Iterable[str] = (),
+        tls: None,
+        lease: float = 1.0,
+    ) -> None:
+        if not isinstance(system, str) or not _SYSTEM.fullmatch(system):
+            raise ConfigError(
+                f"system must be a name of letters, digits, '_', '.' and '-' (not starting "
+                f"with '.' or '-'), not {system!r}"
+            )
+        self.system = system
+        self.listen = _endpoints("listen", listen)
+        self.connect = _endpoints("connect", connect)
+        if tls is not None:
+            raise ConfigError(
+                f"tls={tls!r} is not supported yet (mutual TLS comes with step 2); "
+                f"pass tls=None for plain TCP"
+            )
+        self.tls = tls
+        if (
+            isinstance(lease, bool)
+            or not isinstance(lease, int | float)
+            or not math.isfinite(lease)
+            or not 0.01 <= lease <= 3600
+        ):
+            raise ConfigError(f"lease must be seconds from 0.01 to 3600, not {lease!r}")
+        self.lease = float(lease)
+        for endpoint in self.listen:
+            host, _ = _parse_endpoint("listen", endpoint)
+            if not _loopback(host):
+                logger.warning(
+                    "ZenohNetwork %r listens on %s in plain TCP (tls=None): anyone who "
+                    "reaches it can send pickles to this system's registrars",
+                    system,
+                    endpoint,
+                )
+        self._lock = threading.Lock()
+        self._member: ZenohMember | None = None
+        self._runtime_dir: str | None = None
+        self._address: ZenohAddress | None = None
+
+    def __repr__(self) -> str:
+        return (
+            f"ZenohNetwork(system={self.system!r}, listen={list(self.listen)!r}, "
+            f"connect={list(self.connect)!r}, tls=None, lease={self.lease!r})"
+        )
+
+    # -- opening ---------------------------------------------------------------------------
+
+    def _open(self) -> ZenohMember:
+        with self._lock:
+            if self._member is not None:
+                return self._member
+            self._member = _join(self.system, self, self._open_router)
+            return self._member
+
+    def _open_router(self) -> ZenohMember:
+        runtime_dir = tempfile.mkdtemp(prefix="rr-zenoh-")  # mode 0700
+        path = os.path.join(runtime_dir, "router.sock")
+        config = _config(
+            "router", [*self.listen, f"unixsock-stream/{path}"], list(self.connect), self.lease
+        )
+        try:
+            session = zenoh.open(config)
+        except Exception as exc:
+            shutil.rmtree(runtime_dir, ignore_errors=True)
+            raise ConfigError(
+                f"ZenohNetwork {self.system!r} cannot listen on {list(self.listen)!r}: {exc}"
+            ) from exc
+        self._warn_unreachable()
+        member = ZenohMember(self.system, session)
+        self._runtime_dir = runtime_dir
+        self._address = member._address = ZenohAddress(self.system, path, self.lease, member.zid)
+
+        def closed() -> None:
+            _left(member)
+            shutil.rmtree(runtime_dir, ignore_errors=True)
+
+        member._on_close = closed
+        return member
+
+    def _warn_unreachable(self) -> None:
+        for endpoint in self.connect:
+            host, port = _parse_endpoint("connect", endpoint)
+            try:
+                with socket.create_connection((host, port), timeout=_PROBE_TIMEOUT):
+                    pass
+            except OSError as exc:
+                logger.warning(
+                    "ZenohNetwork %r cannot reach connect endpoint %s now (%s); Zenoh keeps trying",
+                    self.system,
+                    endpoint,
+                    exc,
+                )
+
+    # -- Transport -------------------------------------------------------------------------
+
+    @property
+    def address(self) -> ZenohAddress:
+        """What manager processes of this host join through (opens the session)."""
+        self._open()
+        assert self._address is not None
+        return self._address
+
+    @property
+    def closed(self) -> bool:
+        """Whether this process left the system (a network never opened is not closed)."""
+        return self._member is not None and self._member.closed
+
+    @property
+    def runtime_dir(self) -> str | None:
+        """The private directory of the router's Unix socket, once open."""
+        return self._runtime_dir
+
+    def resolve(self, name: str) -> Peer | None:
+        """See `Transport.resolve`."""
+        return self._open().resolve(name)
+
+    def names(self) -> list[str]:
+        """See `Transport.names`."""
+        return self._open().names()
+
+    def serve(self, endpoint: Endpoint) -> None:
+        """See `Transport.serve`."""
+        self._open().serve(endpoint)
+
+    def run(self, name: str, fn: Callable[[Any], Any], *, timeout: float) -> Any:
+        """See `Transport.run`."""
+        return self._open().run(name, fn, timeout=timeout)
+
+    def serving_trouble(self, name: str) -> tuple[float, str] | None:
+        """See `Transport.serving_trouble` (always `None` over Zenoh)."""
+        member = self._member
+        return None if member is None else member.serving_trouble(name)
+
+    def close(self) -> None:
+        """Leave the system: stop serving, fail what waits, close the session (idempotent)."""
+        member = self._member
+        if member is not None:
+            member.close()
+
+    def __enter__(self) -> ZenohNetwork:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+
+if TYPE_CHECKING:  # mypy checks that the carrier implements the interface
+    _network: type[Transport] = ZenohNetwork
+    _member: type[Transport] = ZenohMember
+    _address: type[Address] = ZenohAddress

@@ -1,0 +1,134 @@
+"""The Zenoh carrier's wire: key expressions and the header in front of every payload.
+
+Every key expression starts with `rr/<system>/`, so systems that share a network never
+see each other:
+
+```
+ rr/<system>/reg/<name>                       messages for registrar <name> (its subscriber)
+ rr/<system>/ans/<zid>                        answers for the process whose Zenoh id is <zid>
+ rr/<system>/live/proc/<zid>                  liveliness: process <zid> is a member
+ rr/<system>/live/reg/<name>/<zid>/<sup>/<limit>
+                                              liveliness: <zid> serves <name>; <sup> is the
+                                              process that restarts it ("none": nobody),
+                                              <limit> its max_message_bytes
+ rr/<system>/live/claim/<name>/<zid>          liveliness: <zid> is about to serve <name>
+ rr/<system>/live/stopped/<name>/<zid>        liveliness: <name> at <zid> was stopped cleanly
+```
+
+A payload is `header + frame`, where the frame is the AF_UNIX carrier's
+(`codec.frame`: length, 8-byte token, pickle) and the header says who speaks:
+
+```
+ b"rz" | wire version (1 byte) | Python major, minor (1 byte each) | kind (1 byte)
+       | length of the sender's Zenoh id (1 byte) | the id (ASCII hex)
+```
+
+The header's layout never changes, so a process of another rr_actors wire version or
+Python minor version can always read it: nothing after it is unpickled unless both
+versions match (pickles do not cross those safely); a message of another version is
+answered with a `VERSION` frame that carries no pickle, only the header.
+"""
+
+from __future__ import annotations
+
+import struct
+import sys
+
+from rr_actors._core.wire import WIRE_VERSION
+from rr_actors._transport.codec import NO_REPLY
+
+__all__ = [
+    "ANSWER",
+    "MESSAGE",
+    "PLAIN",
+    "PYTHON",
+    "VERSION",
+    "Header",
+    "header",
+    "parse",
+    "payload_of",
+    "versions_text",
+]
+
+MESSAGE = 0
+"""A message for a registrar (its frame's token says whether it wants an answer)."""
+ANSWER = 1
+"""An answer: its frame's token is the one of the message it answers."""
+VERSION = 2
+"""An answer saying the message was of another version and was not read."""
+PLAIN = 0x80
+"""Set in the kind byte when the pickle holds only small builtin data and wire records
+(`codec.plain`): unpickling it runs no user code, so the receiver may decode it on
+Zenoh's own thread (when nothing of that sender waits before it)."""
+
+PYTHON = (sys.version_info.major, sys.version_info.minor)
+
+_MAGIC = b"rz"
+_FIXED = struct.Struct("!2sBBBBB")  # magic, wire version, Python major, minor, kind, id length
+
+
+class Header:
+    """What a payload's header says: who sent it, in which versions, what kind it is."""
+
+    __slots__ = ("kind", "plain", "python", "sender", "size", "wire")
+
+    def __init__(self, wire: int, python: tuple[int, int], kind: int, sender: str, size: int):
+        self.wire = wire
+        self.python = python
+        self.kind = kind & ~PLAIN
+        self.plain = bool(kind & PLAIN)
+        self.sender = sender
+        self.size = size  # bytes of the header: the frame starts there
+
+    @property
+    def ours(self) -> bool:
+        """Whether it was written by a process of this wire version and Python minor."""
+        return self.wire == WIRE_VERSION and self.python == PYTHON
+
+
+def header(kind: int, sender: str, *, plain: bool = False) -> bytes:
+    """The header of a payload of `kind` sent by the process whose Zenoh id is `sender`."""
+    zid = sender.encode("ascii")
+    return (
+        _FIXED.pack(_MAGIC, WIRE_VERSION, *PYTHON, kind | (PLAIN if plain else 0), len(zid)) + zid
+    )
+
+
+def parse(data: bytes) -> Header | None:
+    """The header of `data`, or `None` if it is not one of ours."""
+    if len(data) < _FIXED.size:
+        return None
+    magic, wire, major, minor, kind, length = _FIXED.unpack_from(data)
+    end = _FIXED.size + length
+    if magic != _MAGIC or len(data) < end:
+        return None
+    try:
+        sender = data[_FIXED.size : end].decode("ascii")
+    except UnicodeDecodeError:
+        return None
+    return Header(wire, (major, minor), kind, sender, end)
+
+
+_TOKEN = struct.Struct("<Q")
+
+
+def payload_of(data: bytes, head: Header) -> tuple[int, memoryview]:
+    """The token and the pickle of the frame after `head` (nothing is unpickled).
+
+    The frame's own length field (`multiprocessing.connection`'s: 4 bytes, or 12 for a
+    frame over 2 GiB) is skipped: the Zenoh sample's length is the frame's.
+    """
+    body = memoryview(data)[head.size :]
+    skip = 12 if bytes(body[:4]) == b"\xff\xff\xff\xff" else 4
+    if len(body) < skip + _TOKEN.size:
+        return NO_REPLY, body[len(body) :]
+    (token,) = _TOKEN.unpack_from(body, skip)
+    return token, body[skip + _TOKEN.size :]
+
+
+def versions_text(theirs: Header) -> str:
+    """`wire version W on Python X.Y` for the sender of `theirs` and for this process."""
+    return (
+        f"rr_actors wire version {theirs.wire} on Python {theirs.python[0]}.{theirs.python[1]}"
+        f" there, wire version {WIRE_VERSION} on Python {PYTHON[0]}.{PYTHON[1]} here"
+    )

@@ -1,0 +1,670 @@
+"""What only the Zenoh carrier has: its configuration, versions, names across processes,
+systems, and presence (`peer_lost`, `peer_reachable`).
+
+The carrier contract itself runs over Zenoh in `test_transport_contract.py` (`CARRIERS`).
+Here the test process is a system's router; a "remote" process is another router that
+connects to it over TCP on loopback (an unsupervised host of its own), a "manager"
+process attaches through the test process's Unix socket (supervised by it).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import multiprocessing.connection
+import multiprocessing.context
+import os
+import pickle
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+import zenoh
+from carriers import in_thread, setup_servers, wait_load_started
+
+import rr_actors as rr
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.wire import WIRE_VERSION
+from rr_actors._registrar import Served
+from rr_actors._transport.codec import frame
+from rr_actors._transport.zenoh_net import ZenohNetwork
+from rr_actors._transport.zenoh_wire import MESSAGE, PYTHON, VERSION, parse, payload_of
+
+# -- configuration ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("system", ["", "a/b", "*", ".hidden", "-x", "lab lab", "rr/**", 7, None])
+def test_a_bad_system_name_is_a_config_error_naming_system(system: Any) -> None:
+    with pytest.raises(rr.ConfigError, match="system"):
+        rr.ZenohNetwork(system=system, tls=None)
+
+
+@pytest.mark.parametrize(
+    "endpoint",
+    [
+        "10.0.0.1:7447",
+        "udp/10.0.0.1:7447",
+        "tcp/10.0.0.1",
+        "tcp/10.0.0.1:port",
+        "tcp/10.0.0.1:70000",
+        "tcp/:7447",
+        "tcp/[nonsense]:7447",
+        "tcp/10.0.0.1:7447/extra",
+        7447,
+    ],
+)
+@pytest.mark.parametrize("role", ["listen", "connect"])
+def test_a_malformed_endpoint_is_a_config_error_naming_it(role: str, endpoint: Any) -> None:
+    with pytest.raises(rr.ConfigError, match=role) as caught:
+        rr.ZenohNetwork(system="lab", tls=None, **{role: [endpoint]})
+
+    assert repr(endpoint) in str(caught.value)
+
+
+def test_endpoints_given_as_one_string_are_a_config_error() -> None:
+    with pytest.raises(rr.ConfigError, match="listen must be a list"):
+        rr.ZenohNetwork(system="lab", listen="tcp/127.0.0.1:7447", tls=None)  # type: ignore[arg-type]
+
+
+def test_tls_has_no_default() -> None:
+    with pytest.raises(TypeError, match="tls"):
+        rr.ZenohNetwork(system="lab")  # type: ignore[call-arg]
+
+
+@pytest.mark.parametrize("tls", [True, "mtls", {"ca": "ca.pem"}])
+def test_tls_other_than_none_is_a_config_error_until_step_2(tls: Any) -> None:
+    with pytest.raises(rr.ConfigError, match="tls=None"):
+        rr.ZenohNetwork(system="lab", tls=tls)
+
+
+@pytest.mark.parametrize("lease", [0, -1.0, float("nan"), float("inf"), True, "1", 1e6])
+def test_a_bad_lease_is_a_config_error_naming_lease(lease: Any) -> None:
+    with pytest.raises(rr.ConfigError, match="lease"):
+        rr.ZenohNetwork(system="lab", tls=None, lease=lease)
+
+
+def test_plain_tcp_on_a_non_loopback_endpoint_is_a_warning_naming_it(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    with caplog.at_level(logging.WARNING, logger="rr_actors"):
+        rr.ZenohNetwork(
+            system="lab",
+            listen=["tcp/127.0.0.1:7447", "tcp/0.0.0.0:7448", "tcp/[::1]:7449"],
+            tls=None,
+        )
+
+    warned = [r.getMessage() for r in caplog.records if "plain TCP" in r.getMessage()]
+    assert 1 == len(warned)
+    assert "tcp/0.0.0.0:7448" in warned[0]
+
+
+def test_an_unreachable_connect_endpoint_is_a_warning_not_an_error(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    port = _free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    net = rr.ZenohNetwork(system=_system(), connect=[endpoint], tls=None)
+    try:
+        with caplog.at_level(logging.WARNING, logger="rr_actors"):
+            assert [] == net.names()  # opens it
+
+        assert any(endpoint in r.getMessage() for r in caplog.records)
+    finally:
+        net.close()
+
+
+def test_import_rr_actors_does_not_import_zenoh() -> None:
+    code = "import sys, rr_actors; assert 'zenoh' not in sys.modules; rr_actors.ZenohNetwork"
+    code += "; assert 'zenoh' in sys.modules"
+
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+
+
+def test_the_runtime_directory_is_private_and_removed_at_close() -> None:
+    net = rr.ZenohNetwork(system=_system(), tls=None)
+    path = net.address.socket_path
+    directory = os.path.dirname(path)
+    mode = os.stat(directory).st_mode & 0o777
+    net.close()
+
+    assert (0o700, False) == (mode, os.path.exists(directory))
+
+
+def test_a_process_belongs_to_one_system() -> None:
+    first = rr.ZenohNetwork(system=_system(), tls=None)
+    second = rr.ZenohNetwork(system=_system(), tls=None)
+    try:
+        first.names()
+        with pytest.raises(rr.ConfigError, match=f"system {second.system!r}"):
+            second.names()
+    finally:
+        first.close()
+        second.close()
+
+
+# -- helpers -------------------------------------------------------------------------------------
+
+
+def _system() -> str:
+    return f"test-{uuid.uuid4().hex[:8]}"
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port: int = probe.getsockname()[1]
+        return port
+
+
+class Recorder:
+    """An `Endpoint` that records the presence callbacks it gets (no registrar behind it)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.max_message_bytes = 1024 * 1024
+        self.lost: list[tuple[str, float]] = []
+        self.reachable: list[tuple[str, float]] = []
+        self.heard = threading.Event()
+        self._ended = threading.Event()
+
+    def run(self, fn: Callable[[Any], Any]) -> Any:
+        return fn(None)
+
+    def wait_ended(self, timeout: float | None = None) -> bool:
+        return self._ended.wait(timeout)
+
+    def stopped_cleanly(self) -> bool:
+        return self._ended.is_set()
+
+    def listening(self) -> None:
+        pass
+
+    def peer_lost(self, name: str) -> None:
+        self.lost.append((name, time.monotonic()))
+        self.heard.set()
+
+    def peer_reachable(self, name: str) -> None:
+        self.reachable.append((name, time.monotonic()))
+        self.heard.set()
+
+    def end(self) -> None:
+        self._ended.set()
+
+
+@pytest.fixture
+def net() -> Iterator[ZenohNetwork]:
+    """A fresh system whose router is the test process, listening on loopback TCP."""
+    network = rr.ZenohNetwork(system=_system(), listen=[f"tcp/127.0.0.1:{_free_port()}"], tls=None)
+    yield network
+    network.close()
+
+
+def remote_main(
+    system: str, connect: str, name: str, *pipes: multiprocessing.connection.Connection
+) -> None:
+    """A router process of its own (another "host"): serves registrar `name` until told
+    on its control pipe (the last one).
+
+    With two pipes, it also sends its address on the first, for a manager to attach.
+    """
+    control = pipes[-1]
+    attach_here = pipes[0] if len(pipes) == 2 else None
+    network = rr.ZenohNetwork(system=system, connect=[connect], tls=None)
+    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, call_timeout=10.0))
+    try:
+        setup_servers(registrar)
+        network.serve(Served(registrar))
+        if attach_here is not None:
+            attach_here.send(network.address)
+        control.send("ready")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        registrar.stop()
+        network.close()
+
+
+def manager_main(
+    address: Any, name: str, control: multiprocessing.connection.Connection, go: Any = None
+) -> None:
+    """A process that attaches through a router's socket and serves registrar `name`.
+
+    With `go` (an event), it waits for it before serving, and says whether it served.
+    """
+    member = address.attach()
+    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, call_timeout=10.0))
+    try:
+        setup_servers(registrar)
+        if go is not None:
+            go.wait(30)
+            try:
+                member.serve(Served(registrar))
+            except rr.DuplicateNameError:
+                control.send("duplicate")
+            else:
+                control.send("served")
+        else:
+            member.serve(Served(registrar))
+            control.send("ready")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        registrar.stop()
+        member.close()
+
+
+class Started:
+    """Child processes of a test; all are stopped and reaped at its end."""
+
+    def __init__(self, context: multiprocessing.context.ForkServerContext) -> None:
+        self.context = context
+        self.children: list[tuple[multiprocessing.process.BaseProcess, Any]] = []
+
+    def start(self, target: Callable[..., None], *args: Any, ready: bool = True) -> Any:
+        parent_end, child_end = self.context.Pipe()
+        process = self.context.Process(target=target, args=(*args, child_end), daemon=True)
+        process.start()
+        child_end.close()
+        self.children.append((process, parent_end))
+        if ready:
+            assert parent_end.poll(30), "the child did not get ready"
+            assert "ready" == parent_end.recv()
+        return process, parent_end
+
+    def close(self) -> None:
+        for _, control in self.children:
+            with contextlib.suppress(OSError):
+                control.send("stop")
+        for process, control in self.children:
+            process.join(10)
+            if process.is_alive():
+                process.kill()
+                process.join(5)
+            control.close()
+
+
+@pytest.fixture
+def children(context: multiprocessing.context.ForkServerContext) -> Iterator[Started]:
+    started = Started(context)
+    yield started
+    started.close()
+
+
+def _tcp(network: ZenohNetwork) -> str:
+    return network.listen[0]
+
+
+# -- versions -------------------------------------------------------------------------------------
+
+
+class _CreatesAFile:
+    """Unpickling it would create a file (it must never be unpickled)."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (open, (self.path, "w"))
+
+
+def _raw_session(network: ZenohNetwork) -> zenoh.Session:
+    config = zenoh.Config.from_json5(
+        '{"mode": "client", "scouting": {"multicast": {"enabled": false}}, '
+        f'"connect": {{"endpoints": ["unixsock-stream/{network.address.socket_path}"]}}}}'
+    )
+    return zenoh.open(config)
+
+
+def _header(kind: int, sender: str, wire: int, python: tuple[int, int] = PYTHON) -> bytes:
+    zid = sender.encode("ascii")
+    return struct.pack("!2sBBBBB", b"rz", wire, *python, kind, len(zid)) + zid
+
+
+OTHER_VERSIONS = [
+    pytest.param(WIRE_VERSION + 98, PYTHON, id="wire"),
+    pytest.param(WIRE_VERSION, (PYTHON[0], PYTHON[1] + 1), id="python-minor"),
+]
+
+
+@pytest.mark.parametrize(("wire", "python"), OTHER_VERSIONS)
+def test_a_message_of_another_version_is_refused_unread_naming_both_versions(
+    net: ZenohNetwork,
+    tmp_path: Any,
+    caplog: pytest.LogCaptureFixture,
+    wire: int,
+    python: tuple[int, int],
+) -> None:
+    target = Recorder(f"target-{uuid.uuid4().hex[:6]}")
+    net.serve(target)
+    raw = _raw_session(net)
+    answers: list[bytes] = []
+    answered = threading.Event()
+    sender = str(raw.zid())
+
+    def heard(sample: zenoh.Sample) -> None:
+        answers.append(sample.payload.to_bytes())
+        answered.set()
+
+    evil = tmp_path / "created-by-unpickling"
+    try:
+        subscriber = raw.declare_subscriber(f"rr/{net.system}/ans/{sender}", heard)
+        liveliness = raw.liveliness().declare_token(f"rr/{net.system}/live/proc/{sender}")
+        with caplog.at_level(logging.WARNING, logger="rr_actors"):
+            raw.put(
+                f"rr/{net.system}/reg/{target.name}",
+                _header(MESSAGE, sender, wire, python) + frame(7, _CreatesAFile(str(evil))),
+            )
+            assert answered.wait(10)
+        subscriber.undeclare()
+        liveliness.undeclare()
+    finally:
+        raw.close()
+        target.end()
+
+    head = parse(answers[0])
+    assert head is not None
+    assert (VERSION, 7) == (head.kind, struct.unpack_from("<Q", answers[0], head.size + 4)[0])
+    assert not evil.exists()
+    warned = " ".join(r.getMessage() for r in caplog.records)
+    assert f"wire version {wire} on Python {python[0]}.{python[1]} there" in warned
+    assert f"wire version {WIRE_VERSION} on Python {PYTHON[0]}.{PYTHON[1]} here" in warned
+
+
+@pytest.mark.parametrize(("wire", "python"), OTHER_VERSIONS)
+def test_a_call_to_a_registrar_of_another_version_fails_naming_both_versions(
+    net: ZenohNetwork, wire: int, python: tuple[int, int], eventually: Callable[..., bool]
+) -> None:
+    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
+    net.serve(Served(consumer))
+    raw = _raw_session(net)
+    zid = str(raw.zid())
+    old = f"old-{uuid.uuid4().hex[:6]}"
+
+    def answer(sample: zenoh.Sample) -> None:  # an old process: "not my version"
+        data = sample.payload.to_bytes()
+        head = parse(data)
+        assert head is not None
+        token = struct.unpack_from("<Q", data, head.size + 4)[0]
+        raw.put(
+            f"rr/{net.system}/ans/{head.sender}",
+            _header(VERSION, zid, wire, python) + struct.pack("!i", 8) + struct.pack("<Q", token),
+        )
+
+    try:
+        inbox = raw.declare_subscriber(f"rr/{net.system}/reg/{old}", answer)
+        tokens = [
+            raw.liveliness().declare_token(f"rr/{net.system}/live/proc/{zid}"),
+            raw.liveliness().declare_token(f"rr/{net.system}/live/reg/{old}/{zid}/none/1000000"),
+        ]
+        assert eventually(lambda: old in net.names(), timeout=10)  # (declared, now seen)
+        with pytest.raises(rr.RrError) as caught:
+            consumer.call(old, "echo", "r", timeout=10)
+        inbox.undeclare()
+        for token in tokens:
+            token.undeclare()
+    finally:
+        raw.close()
+        consumer.stop()
+
+    assert f"wire version {wire} on Python {python[0]}.{python[1]} there" in str(caught.value)
+    assert f"wire version {WIRE_VERSION} on Python {PYTHON[0]}.{PYTHON[1]} here" in str(
+        caught.value
+    )
+
+
+# -- names ----------------------------------------------------------------------------------------
+
+
+def test_a_name_served_by_another_process_is_a_duplicate_and_leaves_nothing_behind(
+    net: ZenohNetwork, children: Started
+) -> None:
+    name = f"dup-{uuid.uuid4().hex[:6]}"
+    children.start(manager_main, net.address, name)
+    local = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
+    try:
+        with pytest.raises(rr.DuplicateNameError, match=name):
+            net.serve(Served(local))
+    finally:
+        local.stop()
+    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
+    try:
+        net.serve(Served(consumer))
+        query = consumer.call(name, "echo", "r", timeout=10)  # the remote one still answers
+    finally:
+        consumer.stop()
+
+    assert {"resource": "r"} == query.response
+    assert [name] == [n for n in net.names() if n == name]
+
+
+def test_of_two_processes_serving_one_name_at_once_exactly_one_does(
+    net: ZenohNetwork, children: Started
+) -> None:
+    for _round in range(5):
+        name = f"race-{uuid.uuid4().hex[:6]}"
+        go = children.context.Event()
+        controls = [children.start(_racer, net.address, name, go, ready=False)[1] for _ in range(2)]
+        go.set()
+        outcomes = []
+        for control in controls:
+            assert control.poll(30)
+            outcomes.append(control.recv())
+
+        assert ["duplicate", "served"] == sorted(outcomes)
+        assert name in net.names()
+
+
+def _racer(
+    address: Any, name: str, go: Any, control: multiprocessing.connection.Connection
+) -> None:
+    manager_main(address, name, control, go)
+
+
+def test_a_name_of_another_system_is_unknown_at_once_naming_this_system(
+    net: ZenohNetwork, children: Started
+) -> None:
+    elsewhere = f"elsewhere-{uuid.uuid4().hex[:6]}"
+    children.start(remote_main, _system(), _tcp(net), elsewhere)
+    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
+    try:
+        net.serve(Served(consumer))
+        started = time.monotonic()
+        with pytest.raises(rr.UnknownRegistrarError, match=f"system {net.system!r}"):
+            consumer.call(elsewhere, "echo", "r", timeout=30)
+        took = time.monotonic() - started
+    finally:
+        consumer.stop()
+
+    assert took < 2.0
+
+
+# -- presence --------------------------------------------------------------------------------------
+
+
+def test_a_killed_unsupervised_provider_is_lost_on_every_endpoint_within_a_second(
+    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+) -> None:
+    provider = f"remote-{uuid.uuid4().hex[:6]}"
+    process, _ = children.start(remote_main, net.system, _tcp(net), provider)
+    endpoints = [Recorder(f"e{i}-{uuid.uuid4().hex[:6]}") for i in range(2)]
+    for endpoint in endpoints:
+        net.serve(endpoint)
+    assert eventually(lambda: provider in net.names(), timeout=10)
+
+    killed_at = time.monotonic()
+    os.kill(process.pid, signal.SIGKILL)
+
+    for endpoint in endpoints:
+        assert endpoint.heard.wait(5)
+        assert [provider] == [name for name, _ in endpoint.lost]
+        assert endpoint.lost[0][1] - killed_at < 1.0
+        endpoint.end()
+
+
+def test_a_killed_supervised_manager_is_not_lost_until_its_supervisor_goes_too(
+    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+) -> None:
+    router = f"router-{uuid.uuid4().hex[:6]}"
+    parent_end, child_end = children.context.Pipe()
+    router_process, _ = children.start(remote_main, net.system, _tcp(net), router, child_end)
+    assert parent_end.poll(30)
+    address = parent_end.recv()
+    manager = f"manager-{uuid.uuid4().hex[:6]}"
+    manager_process, _ = children.start(manager_main, address, manager)
+    watcher = Recorder(f"w-{uuid.uuid4().hex[:6]}")
+    net.serve(watcher)
+    assert eventually(lambda: {router, manager} <= set(net.names()), timeout=10)
+
+    os.kill(manager_process.pid, signal.SIGKILL)  # its supervisor (the router) lives on
+    assert eventually(lambda: manager not in net.names(), timeout=5)
+    assert not watcher.heard.wait(1.0)
+    os.kill(router_process.pid, signal.SIGKILL)  # now nobody restarts it
+
+    assert watcher.heard.wait(5)
+    assert eventually(lambda: {manager, router} == {name for name, _ in watcher.lost})
+    watcher.end()
+
+
+def test_a_call_in_flight_to_a_killed_remote_router_fails_at_once_as_unavailable(
+    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+) -> None:
+    provider = f"remote-{uuid.uuid4().hex[:6]}"
+    process, _ = children.start(remote_main, net.system, _tcp(net), provider)
+    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
+    try:
+        net.serve(Served(consumer))
+        done, outcome = in_thread(lambda: consumer.call(provider, "slow", "r", timeout=30))
+        assert net.run(provider, wait_load_started, timeout=10)
+        killed_at = time.monotonic()
+        os.kill(process.pid, signal.SIGKILL)
+        assert done.wait(10)
+        with pytest.raises(rr.RegistrarUnavailableError):
+            consumer.call(provider, "echo", "later", timeout=10)
+    finally:
+        consumer.stop()
+
+    assert isinstance(outcome.get("error"), rr.RegistrarUnavailableError)
+    assert outcome["time"] - killed_at < 1.0
+
+
+def test_a_frozen_remote_router_is_lost_then_reachable_again_with_the_same_process(
+    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+) -> None:
+    provider = f"remote-{uuid.uuid4().hex[:6]}"
+    process, _ = children.start(remote_main, net.system, _tcp(net), provider)
+    watcher = Recorder(f"w-{uuid.uuid4().hex[:6]}")
+    net.serve(watcher)
+    assert eventually(lambda: provider in net.names(), timeout=10)
+
+    os.kill(process.pid, signal.SIGSTOP)  # silent longer than the lease: counted gone
+    try:
+        assert eventually(lambda: [provider] == [n for n, _ in watcher.lost], timeout=10)
+    finally:
+        os.kill(process.pid, signal.SIGCONT)  # the link heals: same process, same Zenoh id
+
+    assert eventually(lambda: [provider] == [n for n, _ in watcher.reachable], timeout=15)
+    watcher.end()
+
+
+# -- order ----------------------------------------------------------------------------------------
+
+
+class Boxed:
+    """A message that is not plain data: decoded on the sender's decode thread, not inline."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+
+class Inbox:
+    """A peer registered in the directory in place of a registrar: keeps what it is told."""
+
+    def __init__(self, name: str, expected: int) -> None:
+        self.name = name
+        self.told: list[int] = []
+        self.expected = expected
+        self.all_told = threading.Event()
+
+    def tell(self, message: Any) -> None:
+        self.told.append(message.n if isinstance(message, Boxed) else message[1])
+        if len(self.told) == self.expected:
+            self.all_told.set()
+
+
+def teller_main(
+    address: Any, name: str, count: int, control: multiprocessing.connection.Connection
+) -> None:
+    """Attach, tell `count` messages to `name` (plain ones and `Boxed` ones mixed), say done."""
+    member = address.attach()
+    try:
+        peer = member.resolve(name)
+        for n in range(count):
+            peer.tell(Boxed(n) if n % 7 == 0 else ("n", n))
+        control.send("ready")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        member.close()
+
+
+def test_messages_from_one_process_to_one_registrar_arrive_in_the_order_told(
+    net: ZenohNetwork, children: Started
+) -> None:
+    count = 2000
+    inbox = Inbox(f"inbox-{uuid.uuid4().hex[:6]}", count)
+    endpoint = Recorder(inbox.name)
+    DIRECTORY.register(inbox)
+    try:
+        net.serve(endpoint)
+        children.start(teller_main, net.address, inbox.name, count)
+        assert inbox.all_told.wait(30)
+    finally:
+        endpoint.end()
+        DIRECTORY.unregister(inbox, "stopped")
+
+    assert list(range(count)) == inbox.told
+
+
+def test_a_message_over_the_registrars_limit_is_answered_unread(
+    net: ZenohNetwork, tmp_path: Any
+) -> None:
+    target = Recorder(f"target-{uuid.uuid4().hex[:6]}")  # max_message_bytes: 1 MiB
+    net.serve(target)
+    raw = _raw_session(net)
+    sender = str(raw.zid())
+    answers: list[bytes] = []
+    answered = threading.Event()
+    evil = tmp_path / "created-by-unpickling"
+
+    def heard(sample: zenoh.Sample) -> None:
+        answers.append(sample.payload.to_bytes())
+        answered.set()
+
+    try:
+        subscriber = raw.declare_subscriber(f"rr/{net.system}/ans/{sender}", heard)
+        raw.put(
+            f"rr/{net.system}/reg/{target.name}",
+            _header(MESSAGE, sender, WIRE_VERSION)
+            + frame(9, (_CreatesAFile(str(evil)), b"x" * (2 * target.max_message_bytes))),
+        )
+        assert answered.wait(10)
+        subscriber.undeclare()
+    finally:
+        raw.close()
+        target.end()
+
+    head = parse(answers[0])
+    assert head is not None
+    token, payload = payload_of(answers[0], head)
+    _value, error = pickle.loads(payload)
+    assert (9, True) == (token, isinstance(error, rr.MessageTooLargeError))
+    assert not evil.exists()
