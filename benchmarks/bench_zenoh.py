@@ -12,7 +12,9 @@ ratios are comparable:
   it, and say so when it has not): a dedup-hit `call` to a registrar on the other host
   (target: <= 2x the raw get between the same two), `send_status` over 3 hops across hosts,
   from a SIGKILL of a remote manager to its calls failing (target: < 50 ms), and from a link
-  cut to the calls failing (target: the lease).
+  cut to the calls failing (target: the lease);
+* a reference: the AF_UNIX carrier's dedup-hit `call` across two processes of one host (the
+  carrier of `bench_transport.py`), against the loopback floor.
 
 Each host's workers are fresh interpreters started inside its namespace; the functions below
 run in them (sent with cloudpickle), and every time is taken with `time.monotonic` or
@@ -314,6 +316,39 @@ def rr_failures(two: hosts.TwoHosts, repeats: int, *, cut: bool) -> tuple[list[f
     return failed, working
 
 
+# -- the AF_UNIX carrier (a reference row) ----------------------------------------------------
+
+
+def unix_dedup(rounds: int) -> list[float]:
+    """ROW "AF_UNIX carrier cross-process dedup hit": from this process to a registrar in
+    another process of the same host, over the AF_UNIX carrier (as `bench_transport.py`)."""
+    import multiprocessing  # noqa: PLC0415
+    import uuid  # noqa: PLC0415
+
+    import bench_transport  # noqa: PLC0415 (benchmarks/: this script's directory)
+
+    import rr_actors as rr  # noqa: PLC0415
+    from rr_actors._registrar import Served  # noqa: PLC0415
+    from rr_actors._transport.unix import System  # noqa: PLC0415
+
+    ctx = multiprocessing.get_context("forkserver")
+    suffix = uuid.uuid4().hex[:6]
+    system = System.create()
+    try:
+        consumer = rr.ResourceRegistrar.start(f"main-{suffix}")
+        try:
+            system.serve(Served(consumer))
+            provider = f"provider-{suffix}"
+            with bench_transport.registrar_process(
+                ctx, system.address, provider, bench_transport.setup_echo
+            ):
+                return bench_transport.dedup_hits(consumer, provider, rounds)
+        finally:
+            consumer.stop()
+    finally:
+        system.close()
+
+
 # -- report -----------------------------------------------------------------------------------
 
 
@@ -340,6 +375,9 @@ def measure_loopback(rounds: int, *, with_rr: bool) -> Trips:
             ports = (hosts.free_port(), hosts.free_port())
             trips.append(
                 ("rr_actors dedup-hit call, loopback", rr_dedup(local, local, ports, rounds), floor)
+            )
+            trips.append(
+                ("AF_UNIX carrier dedup hit, 2 processes (reference)", unix_dedup(rounds), floor)
             )
     return trips
 
