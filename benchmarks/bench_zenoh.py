@@ -6,7 +6,10 @@ root; without root only the loopback rows run. Everything is measured in one run
 ratios are comparable:
 
 * the floor: a raw Zenoh `get` round trip (a queryable that echoes 200 bytes) between two
-  processes on loopback and between the two namespaces; a raw liveliness token's end seen
+  processes on loopback and between the two namespaces; next to it a raw put/subscribe
+  ping-pong between the same two, the pattern the carrier uses (one-way puts on
+  publishers as its outboxes declare them, the echo put from Zenoh's callback, the
+  answer handed to the waiting thread); a raw liveliness token's end seen
   from the other host after a SIGKILL of its process, and after a link cut (lease 1 s);
 * rr_actors over Zenoh (issue 22's `rr.ZenohNetwork`; these rows run once `rr_actors` has
   it, and say so when it has not): a dedup-hit `call` to a registrar on the other host
@@ -72,13 +75,74 @@ def raw_pair(
     return near, far
 
 
-def raw_round_trips(server: hosts.Host, client: hosts.Host, port: int, rounds: int) -> list[float]:
+def raw_round_trips(
+    server: hosts.Host, client: hosts.Host, port: int, rounds: int
+) -> tuple[list[float], list[float]]:
+    """A raw `get` round trip, and a raw put/subscribe ping-pong, between the same two."""
     near, far = raw_pair(server, client, port)
     try:
-        return far.call(hosts.zenoh_round_trips, KEY, rounds, timeout=600)
+        gets = far.call(hosts.zenoh_round_trips, KEY, rounds, timeout=600)
+        near.call(put_echo, f"{KEY}/ping", f"{KEY}/pong", timeout=10)
+        puts = far.call(put_round_trips, f"{KEY}/ping", f"{KEY}/pong", rounds, timeout=600)
+        return gets, puts
     finally:
         far.stop()
         near.stop()
+
+
+def _publisher(session: Any, key: str) -> Any:
+    """A publisher as the carrier's outboxes make them (reliable, BLOCK, express)."""
+    import zenoh  # noqa: PLC0415
+
+    return session.declare_publisher(
+        key,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+        express=True,
+        reliability=zenoh.Reliability.RELIABLE,
+    )
+
+
+def put_echo(ping: str, pong: str) -> None:
+    """In a worker: put every sample of `ping` back on `pong`, from Zenoh's callback."""
+    session = hosts.KEPT["session"]
+    publisher = _publisher(session, pong)
+    subscriber = session.declare_subscriber(
+        ping, lambda sample: publisher.put(sample.payload.to_bytes())
+    )
+    hosts.KEPT.setdefault("kept", []).extend([publisher, subscriber])
+
+
+def put_round_trips(ping: str, pong: str, rounds: int, warmup: int = 100) -> list[float]:
+    """In a worker: seconds per put on `ping` until its echo on `pong` wakes this thread
+    (the carrier's pattern: one-way puts, the answer handed over from Zenoh's callback)."""
+    import queue  # noqa: PLC0415
+
+    session = hosts.KEPT["session"]
+    answers: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+    subscriber = session.declare_subscriber(pong, lambda s: answers.put(s.payload.to_bytes()))
+    publisher = _publisher(session, ping)
+    payload = b"x" * 200
+    try:
+        deadline = time.monotonic() + 15
+        while True:  # until the routes are there both ways (earlier puts are dropped)
+            publisher.put(payload)
+            try:
+                answers.get(timeout=0.2)
+                break
+            except queue.Empty:
+                if time.monotonic() > deadline:
+                    raise RuntimeError("the put echo never answered") from None
+        samples = []
+        for number in range(warmup + rounds):
+            start = time.perf_counter()
+            publisher.put(payload)
+            answers.get(timeout=5)
+            if number >= warmup:
+                samples.append(time.perf_counter() - start)
+        return samples
+    finally:
+        publisher.undeclare()
+        subscriber.undeclare()
 
 
 def raw_kills(two: hosts.TwoHosts, repeats: int) -> list[float]:
@@ -403,8 +467,11 @@ Ends = list[tuple[str, list[float], str]]
 def measure_loopback(rounds: int, *, with_rr: bool) -> Trips:
     with hosts.local_host() as local:
         ports = (hosts.free_port(), hosts.free_port())
-        floor = raw_round_trips(local, local, ports[0], rounds)
-        trips = [("raw Zenoh get, loopback (floor)", floor, floor)]
+        floor, puts = raw_round_trips(local, local, ports[0], rounds)
+        trips = [
+            ("raw Zenoh get, loopback (floor)", floor, floor),
+            ("raw Zenoh put ping-pong, loopback", puts, floor),
+        ]
         if with_rr:
             ports = (hosts.free_port(), hosts.free_port())
             trips.append(
@@ -418,8 +485,11 @@ def measure_loopback(rounds: int, *, with_rr: bool) -> Trips:
 
 def measure_hosts(rounds: int, kills: int, cuts: int, *, with_rr: bool) -> tuple[Trips, Ends]:
     with hosts.TwoHosts() as two:
-        floor = raw_round_trips(two.a, two.b, PORT, rounds)
-        trips = [("raw Zenoh get, across the veth (floor)", floor, floor)]
+        floor, puts = raw_round_trips(two.a, two.b, PORT, rounds)
+        trips = [
+            ("raw Zenoh get, across the veth (floor)", floor, floor),
+            ("raw Zenoh put ping-pong, across the veth", puts, floor),
+        ]
         gone, back = raw_cuts(two, cuts)
         ends = [
             ("raw: SIGKILL -> token gone", raw_kills(two, kills), ""),
