@@ -6,13 +6,18 @@ root; without root only the loopback rows run. Everything is measured in one run
 ratios are comparable:
 
 * the floor: a raw Zenoh `get` round trip (a queryable that echoes 200 bytes) between two
-  processes on loopback and between the two namespaces; a raw liveliness token's end seen
+  processes on loopback and between the two namespaces; next to it a raw put/subscribe
+  ping-pong between the same two, the pattern the carrier uses (one-way puts on
+  publishers as its outboxes declare them, the echo put from Zenoh's callback, the
+  answer handed to the waiting thread); a raw liveliness token's end seen
   from the other host after a SIGKILL of its process, and after a link cut (lease 1 s);
 * rr_actors over Zenoh (issue 22's `rr.ZenohNetwork`; these rows run once `rr_actors` has
   it, and say so when it has not): a dedup-hit `call` to a registrar on the other host
   (target: <= 2x the raw get between the same two), `send_status` over 3 hops across hosts,
   from a SIGKILL of a remote manager to its calls failing (target: < 50 ms), and from a link
-  cut to the calls failing (target: the lease).
+  cut to the calls failing (target: the lease);
+* a reference: the AF_UNIX carrier's dedup-hit `call` across two processes of one host (the
+  carrier of `bench_transport.py`), against the loopback floor.
 
 Each host's workers are fresh interpreters started inside its namespace; the functions below
 run in them (sent with cloudpickle), and every time is taken with `time.monotonic` or
@@ -70,13 +75,74 @@ def raw_pair(
     return near, far
 
 
-def raw_round_trips(server: hosts.Host, client: hosts.Host, port: int, rounds: int) -> list[float]:
+def raw_round_trips(
+    server: hosts.Host, client: hosts.Host, port: int, rounds: int
+) -> tuple[list[float], list[float]]:
+    """A raw `get` round trip, and a raw put/subscribe ping-pong, between the same two."""
     near, far = raw_pair(server, client, port)
     try:
-        return far.call(hosts.zenoh_round_trips, KEY, rounds, timeout=600)
+        gets = far.call(hosts.zenoh_round_trips, KEY, rounds, timeout=600)
+        near.call(put_echo, f"{KEY}/ping", f"{KEY}/pong", timeout=10)
+        puts = far.call(put_round_trips, f"{KEY}/ping", f"{KEY}/pong", rounds, timeout=600)
+        return gets, puts
     finally:
         far.stop()
         near.stop()
+
+
+def _publisher(session: Any, key: str) -> Any:
+    """A publisher as the carrier's outboxes make them (reliable, BLOCK, express)."""
+    import zenoh  # noqa: PLC0415
+
+    return session.declare_publisher(
+        key,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+        express=True,
+        reliability=zenoh.Reliability.RELIABLE,
+    )
+
+
+def put_echo(ping: str, pong: str) -> None:
+    """In a worker: put every sample of `ping` back on `pong`, from Zenoh's callback."""
+    session = hosts.KEPT["session"]
+    publisher = _publisher(session, pong)
+    subscriber = session.declare_subscriber(
+        ping, lambda sample: publisher.put(sample.payload.to_bytes())
+    )
+    hosts.KEPT.setdefault("kept", []).extend([publisher, subscriber])
+
+
+def put_round_trips(ping: str, pong: str, rounds: int, warmup: int = 100) -> list[float]:
+    """In a worker: seconds per put on `ping` until its echo on `pong` wakes this thread
+    (the carrier's pattern: one-way puts, the answer handed over from Zenoh's callback)."""
+    import queue  # noqa: PLC0415
+
+    session = hosts.KEPT["session"]
+    answers: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+    subscriber = session.declare_subscriber(pong, lambda s: answers.put(s.payload.to_bytes()))
+    publisher = _publisher(session, ping)
+    payload = b"x" * 200
+    try:
+        deadline = time.monotonic() + 15
+        while True:  # until the routes are there both ways (earlier puts are dropped)
+            publisher.put(payload)
+            try:
+                answers.get(timeout=0.2)
+                break
+            except queue.Empty:
+                if time.monotonic() > deadline:
+                    raise RuntimeError("the put echo never answered") from None
+        samples = []
+        for number in range(warmup + rounds):
+            start = time.perf_counter()
+            publisher.put(payload)
+            answers.get(timeout=5)
+            if number >= warmup:
+                samples.append(time.perf_counter() - start)
+        return samples
+    finally:
+        publisher.undeclare()
+        subscriber.undeclare()
 
 
 def raw_kills(two: hosts.TwoHosts, repeats: int) -> list[float]:
@@ -224,8 +290,36 @@ def rr_call_in_flight(consumer: str, provider: str) -> float:
 
 
 def rr_wait_started(consumer: str, provider: str) -> bool:
-    query = hosts.KEPT["registrars"][consumer].call(provider, "started", None, timeout=10)
+    registrar = hosts.KEPT["registrars"][consumer]
+    query = registrar.call(provider, "started", None, timeout=10)
+    registrar.unload(query.id)  # (held over a cut, it would only add a reconciliation)
     return bool(query.response)
+
+
+def rr_until_working(consumer: str, provider: str, server: str, timeout: float) -> list[str]:
+    """After a healed link: call until a call succeeds, then unload it. What went wrong on
+    the way, as the bench reports it instead of failing: "timeout" for a call that timed
+    out (sent right after the heal, it got no answer), "revoked" if the successful call's
+    id was gone by its unload (released by the reconciliation after the heal)."""
+    import rr_actors as rr  # noqa: PLC0415
+
+    registrar = hosts.KEPT["registrars"][consumer]
+    deadline = time.monotonic() + timeout
+    trouble = []
+    while True:
+        try:
+            query = registrar.call(provider, server, {"probe": 1}, timeout=2)
+        except (rr.UnknownRegistrarError, rr.RegistrarUnavailableError, rr.CallTimeoutError) as exc:
+            if time.monotonic() > deadline:
+                raise
+            if isinstance(exc, rr.CallTimeoutError):
+                trouble.append("timeout")
+            continue
+        try:
+            registrar.unload(query.id)
+        except rr.UnknownQueryError:
+            trouble.append("revoked")
+        return trouble
 
 
 @contextlib.contextmanager
@@ -309,9 +403,48 @@ def rr_failures(two: hosts.TwoHosts, repeats: int, *, cut: bool) -> tuple[list[f
                         start = time.monotonic()
                         two.link_up()
                 if cut:
-                    consumer.call(hosts.rr_until_answered, "app", name, "echo", 30.0, timeout=60)
+                    AFTER_HEALS.extend(
+                        consumer.call(rr_until_working, "app", name, "echo", 30.0, timeout=60)
+                    )
                     working.append(time.monotonic() - start)
     return failed, working
+
+
+AFTER_HEALS: list[str] = []
+"""What went wrong right after the heals (`rr_until_working`): "timeout", "revoked"."""
+
+
+# -- the AF_UNIX carrier (a reference row) ----------------------------------------------------
+
+
+def unix_dedup(rounds: int) -> list[float]:
+    """ROW "AF_UNIX carrier cross-process dedup hit": from this process to a registrar in
+    another process of the same host, over the AF_UNIX carrier (as `bench_transport.py`)."""
+    import multiprocessing  # noqa: PLC0415
+    import uuid  # noqa: PLC0415
+
+    import bench_transport  # noqa: PLC0415 (benchmarks/: this script's directory)
+
+    import rr_actors as rr  # noqa: PLC0415
+    from rr_actors._registrar import Served  # noqa: PLC0415
+    from rr_actors._transport.unix import System  # noqa: PLC0415
+
+    ctx = multiprocessing.get_context("forkserver")
+    suffix = uuid.uuid4().hex[:6]
+    system = System.create()
+    try:
+        consumer = rr.ResourceRegistrar.start(f"main-{suffix}")
+        try:
+            system.serve(Served(consumer))
+            provider = f"provider-{suffix}"
+            with bench_transport.registrar_process(
+                ctx, system.address, provider, bench_transport.setup_echo
+            ):
+                return bench_transport.dedup_hits(consumer, provider, rounds)
+        finally:
+            consumer.stop()
+    finally:
+        system.close()
 
 
 # -- report -----------------------------------------------------------------------------------
@@ -334,20 +467,29 @@ Ends = list[tuple[str, list[float], str]]
 def measure_loopback(rounds: int, *, with_rr: bool) -> Trips:
     with hosts.local_host() as local:
         ports = (hosts.free_port(), hosts.free_port())
-        floor = raw_round_trips(local, local, ports[0], rounds)
-        trips = [("raw Zenoh get, loopback (floor)", floor, floor)]
+        floor, puts = raw_round_trips(local, local, ports[0], rounds)
+        trips = [
+            ("raw Zenoh get, loopback (floor)", floor, floor),
+            ("raw Zenoh put ping-pong, loopback", puts, floor),
+        ]
         if with_rr:
             ports = (hosts.free_port(), hosts.free_port())
             trips.append(
                 ("rr_actors dedup-hit call, loopback", rr_dedup(local, local, ports, rounds), floor)
+            )
+            trips.append(
+                ("AF_UNIX carrier dedup hit, 2 processes (reference)", unix_dedup(rounds), floor)
             )
     return trips
 
 
 def measure_hosts(rounds: int, kills: int, cuts: int, *, with_rr: bool) -> tuple[Trips, Ends]:
     with hosts.TwoHosts() as two:
-        floor = raw_round_trips(two.a, two.b, PORT, rounds)
-        trips = [("raw Zenoh get, across the veth (floor)", floor, floor)]
+        floor, puts = raw_round_trips(two.a, two.b, PORT, rounds)
+        trips = [
+            ("raw Zenoh get, across the veth (floor)", floor, floor),
+            ("raw Zenoh put ping-pong, across the veth", puts, floor),
+        ]
         gone, back = raw_cuts(two, cuts)
         ends = [
             ("raw: SIGKILL -> token gone", raw_kills(two, kills), ""),
@@ -418,6 +560,12 @@ def main() -> None:
         print(f"not measured across hosts: {why_not_hosts}")
     if why_not_rr is not None:
         print(f"rr_actors rows not measured: {why_not_rr}")
+    if AFTER_HEALS:
+        print(
+            f"right after {args.cuts} heals: {AFTER_HEALS.count('timeout')} calls timed out "
+            f"(2 s) before one was answered; {AFTER_HEALS.count('revoked')} answered ids were "
+            f"released by the reconciliation before their unload (UnknownQueryError)"
+        )
 
 
 if __name__ == "__main__":

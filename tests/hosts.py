@@ -364,6 +364,8 @@ class Worker:
         try:
             return future.result(timeout)
         except FutureTimeout:
+            if future.done():  # the worker's own TimeoutError (a CallTimeoutError): the
+                return future.result()  # builtin one, which `concurrent.futures` raises too
             name = getattr(fn, "__qualname__", repr(fn))
             raise TimeoutError(f"{name} on {self!r}: no answer within {timeout:g} s") from None
 

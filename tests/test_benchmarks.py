@@ -34,8 +34,7 @@ SMALLEST = {
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1"],
     "bench_transport.py": ["--rounds", "20"],
     "bench_xoscar.py": ["--rounds", "1", "--batch", "5", "--no-load"],
-    # (the rr_actors rows run once rr.ZenohNetwork lands: then drop "--only", "raw")
-    "bench_zenoh.py": ["--rounds", "20", "--kills", "1", "--cuts", "1", "--only", "raw"],
+    "bench_zenoh.py": ["--rounds", "20", "--kills", "1", "--cuts", "1"],
     "count_dedup.py": ["--calls", "5", "--profile"],
     "stress_crash.py": ["--kills", "4", "--round", "2"],
 }
