@@ -122,7 +122,7 @@ def own_provider_main(
         transport.close()
 
 
-# -- per carrier -------------------------------------------------------------------------------------
+# -- per carrier ----------------------------------------------------------------------------------
 
 
 def _free_port() -> int:
@@ -215,7 +215,7 @@ def kill(process: multiprocessing.process.BaseProcess) -> float:
     return killed_at
 
 
-# -- the tests ----------------------------------------------------------------------------------------
+# -- the tests ------------------------------------------------------------------------------------
 
 
 def test_a_killed_unsupervised_provider_is_lost_its_consumer_hears_fatal_once_and_forgets(
@@ -230,7 +230,10 @@ def test_a_killed_unsupervised_provider_is_lost_its_consumer_hears_fatal_once_an
     )
     try:
         query = consumer.call(
-            name, "echo", {"cam": 1}, on_status=lambda q, u: heard.append((q.id, u.status, u.source))
+            name,
+            "echo",
+            {"cam": 1},
+            on_status=lambda q, u: heard.append((q.id, u.status, u.source)),
         )
 
         killed_at = kill(process)
