@@ -69,8 +69,9 @@ the name's lock serves it (after a grace of `ENDING_GRACE` s, for a process stil
 exiting); otherwise, with no speaker or a speaker gone (or a zombie), every endpoint
 served in this process gets `peer_lost(name)` once (until the name is served again);
 with a living speaker, the name is *awaited*: polled every `AWAIT_POLL` s until it is
-served again (then this process connects to it at once, so that its next death is seen
-too), stopped, or its speaker is gone too (then lost). Limits:
+served again (then this process, if it serves an endpoint, connects to it at once, so
+that its next death is seen too), stopped, or its speaker is gone too (then lost). The
+speaker's own process judges nothing of what it speaks for: it decides itself. Limits:
 
 - a process hears it only if it has, or tries, a connection to that registrar: one that
   holds ids there has one (its calls opened it; it lasts until the peer ends), so the

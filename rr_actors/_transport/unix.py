@@ -346,7 +346,8 @@ class AttachedSystem:
 
     def _verdict(self, name: str) -> str:
         """`served` (here, or by a process that holds its lock), `stopped`, `lost`,
-        `awaited` (its speaker lives) or `unknown` (it published no `.restart` file)."""
+        `awaited` (its speaker lives), `ours` (this process speaks for it) or `unknown`
+        (it published no `.restart` file)."""
         address = self.address
         if name in self._listeners:
             return "served"
@@ -359,6 +360,8 @@ class AttachedSystem:
                 speaker = published.read(64).strip()
         except (OSError, ValueError):
             return "unknown"
+        if speaker.split()[:1] == [str(os.getpid())]:
+            return "ours"  # this process restarts it, or sends its death watch
         if speaker == NOBODY or not _speaks(speaker):
             return "lost"
         return "awaited"
@@ -366,10 +369,9 @@ class AttachedSystem:
     def _act(self, name: str, verdict: str, *, awaited: bool) -> None:
         if verdict == "served":
             self._lost.discard(name)
-            if awaited:  # restarted: connect now, so that its next end is seen too
-                peer = self._peers.get(name)
-                if peer is not None:
-                    peer.connect()
+            peer = self._peers.get(name)
+            if awaited and peer is not None and any(n != name for n in self._listeners):
+                peer.connect()  # restarted: connect now, so that its next end is seen too
         elif verdict == "awaited":
             with self._presence:
                 self._awaited.add(name)
