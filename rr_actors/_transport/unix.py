@@ -360,11 +360,7 @@ class AttachedSystem:
                 speaker = published.read(64).strip()
         except (OSError, ValueError):
             return "unknown"
-        if speaker.split()[:1] == [str(os.getpid())]:
-            return "ours"  # this process restarts it, or sends its death watch
-        if speaker == NOBODY or not _speaks(speaker):
-            return "lost"
-        return "awaited"
+        return _verdict_of(speaker)
 
     def _act(self, name: str, verdict: str, *, awaited: bool) -> None:
         if verdict == "served":
@@ -441,6 +437,15 @@ def _speaks(speaker: str) -> bool:
     if start == "":
         return False  # a zombie
     return start is None or len(parts) < 2 or start == parts[1]
+
+
+def _verdict_of(speaker: str) -> str:
+    """What a `.restart` file's `speaker` makes of a registrar gone from a free lock."""
+    if speaker.split()[:1] == [str(os.getpid())]:
+        return "ours"  # this process restarts it, or sends its death watch
+    if speaker == NOBODY or not _speaks(speaker):
+        return "lost"
+    return "awaited"
 
 
 def _lock_held(path: str) -> bool:
