@@ -182,6 +182,8 @@ class Lab:
                 process.kill()
                 process.join(5)
             control.close()
+            with contextlib.suppress(ValueError):  # its sentinel now, not at a later GC
+                process.close()
         for recorder in self.endpoints:
             recorder.end()
         self.system.close()

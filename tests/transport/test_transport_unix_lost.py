@@ -88,6 +88,8 @@ class Processes:
                 process.kill()
                 process.join(5)
             control.close()
+            with contextlib.suppress(ValueError):  # its sentinel now, not at a later GC
+                process.close()
 
 
 @pytest.fixture
