@@ -5,7 +5,9 @@ Runs only in manager processes (never in the supervisor's process). In the child
 1. asks the platform to end it when the process that forked it dies
    (`Platform.die_with_parent`: with the forkserver context that is the forkserver, not
    the supervisor's process) and names the process for `ps` (`rr-actors: <name>`),
-2. attaches to the system and starts the registrar, which restores its catalog,
+2. attaches to the system (on the AF_UNIX carrier saying that the supervisor's process
+   speaks for its registrar if this process dies: rule 19, `AttachedSystem.supervised_by`)
+   and starts the registrar, which restores its catalog,
 3. runs the (cloudpickled) `setup(registrar)`, then serves the registrar on the system,
 4. reports `ready` over its control pipe and answers control requests: `stop`, `ping`
    (the heartbeat, answered through the registrar actor's mailbox, with how long its
@@ -43,6 +45,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import socket
+import struct
 import sys
 import threading
 import traceback
@@ -78,6 +82,7 @@ from rr_actors._process.control import (
 )
 from rr_actors._store.schema import expected_objects
 from rr_actors._transport.base import Address, Transport
+from rr_actors._transport.unix import AttachedSystem
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import RrError
 
@@ -139,6 +144,28 @@ class _Pong:
 
     def set_error(self, _: BaseException) -> None:
         pass  # no pong: the parent counts it as missed
+
+
+def _supervisor_pid(conn: Connection) -> int:
+    """The pid of the supervisor's process: the one that made the control pipe.
+
+    Both ends of a socket pair carry the credentials of the process that made it (Linux
+    `SO_PEERCRED`); elsewhere, the parent process (the supervisor's with "fork").
+    """
+    option = getattr(socket, "SO_PEERCRED", None)
+    if option is not None:
+        fd = os.dup(conn.fileno())
+        try:
+            pipe = socket.socket(fileno=fd)
+        except OSError:  # not a socket pair
+            os.close(fd)
+        else:
+            with pipe, contextlib.suppress(OSError):
+                credentials = pipe.getsockopt(socket.SOL_SOCKET, option, 12)
+                pid, _uid, _gid = struct.unpack("3i", credentials)
+                if pid > 0:
+                    return int(pid)
+    return os.getppid()
 
 
 def _exit(code: int, attached: Transport | None) -> None:
@@ -272,6 +299,8 @@ def _run_manager(
     try:
         if address is not None:
             attached = address.attach()
+            if isinstance(attached, AttachedSystem):  # it restarts this one (rule 19)
+                attached.supervised_by(_supervisor_pid(conn))
         registrar = start_registrar(config, upstream=line.hub)
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:

@@ -45,6 +45,7 @@ from rr_actors._transport.sockets import (
 from rr_actors._transport.writer import Lost, Writer
 from rr_actors.errors import (
     ConfigError,
+    DuplicateNameError,
     InternalError,
     MessageTooLargeError,
     RrError,
@@ -226,6 +227,37 @@ class _Link:
             reply.set_error(exc if isinstance(exc, RrError) else RrError(f"{exc!r}"))
 
 
+LOCK_RETRY = 0.2
+"""Seconds a listener keeps trying to take a name lock that is held: another process may
+be probing it for a few microseconds (`unix._lock_held`, rule 19), which is no owner."""
+
+
+def _take_lock(path: str, name: str) -> int:
+    """`take_name_lock`, retried for `LOCK_RETRY` seconds while it is held."""
+    deadline = time.monotonic() + LOCK_RETRY
+    pause = 0.002
+    while True:
+        try:
+            return take_name_lock(path, name)
+        except DuplicateNameError:
+            if time.monotonic() >= deadline:
+                raise
+        time.sleep(pause)  # (a probe is over in microseconds; an owner stays)
+        pause = min(2 * pause, 0.05)
+
+
+def _publish(path: str, text: str) -> None:
+    """Write `text` to `path` atomically (a temporary file renamed over it)."""
+    folder, name = os.path.split(path)
+    temporary = os.path.join(folder, f".{name}")
+    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.write(fd, text.encode("ascii"))
+    finally:
+        os.close(fd)
+    os.replace(temporary, path)
+
+
 _SHORTAGE = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM})
 """`accept` errors that mean "out of resources for now": back off and try again."""
 
@@ -265,11 +297,13 @@ class Listener:
         self._wake = threading.Event()  # a connection ended, or the listener closes
         self._failing_since: float | None = None  # monotonic time of the first failed accept
         self._failure = ""
-        self._lock_fd = take_name_lock(system.address.lock_path(self.name), self.name)
+        self._lock_fd = _take_lock(system.address.lock_path(self.name), self.name)
         self.limit_path = system.address.limit_path(self.name)
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
             publish_limit(self.limit_path, self.max_message_bytes)  # before anyone connects
+            # who speaks for it if this process dies (rule 19), kept after it ends
+            _publish(system.address.restart_path(self.name), system.supervisor(self.name))
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(self.path)  # left behind by a process that died
             self._sock.bind(self.path)

@@ -172,6 +172,11 @@ class RemotePeer:
         if channel is not None:
             self._lose(channel, error)
 
+    def connect(self) -> None:
+        """Open a connection now if there is none (its end is then seen: rule 19)."""
+        with contextlib.suppress(RrError):
+            self._open()
+
     # -- plumbing --------------------------------------------------------------------------
 
     def _open(self) -> _Channel:
@@ -183,6 +188,7 @@ class RemotePeer:
             if self._system.closed:
                 raise RegistrarStoppedError(f"the system of registrar {self.name!r} was closed")
             if not os.path.exists(self._path):
+                self._system.peer_ended(self.name)  # (is it lost? rule 19)
                 raise self._gone("cannot be reached (it does not listen)")
             limit = read_limit(self._system.address.limit_path(self.name))
             fresh = _Channel(Writer(None, lambda exc: self._failed(fresh, exc)), limit)
@@ -223,6 +229,8 @@ class RemotePeer:
             self._lose(channel, exc)
         else:
             self._lose(channel, self._gone("lost its connection", exc))
+        if not self._system.closed:
+            self._system.peer_ended(self.name)  # (is it lost? rule 19)
 
     def _gone(self, how: str, cause: BaseException | None = None) -> RrError:
         if os.path.exists(self._system.address.tombstone_path(self.name)):
@@ -264,6 +272,8 @@ class RemotePeer:
         finally:
             self._lose(channel, None)
             conn.close()
+            if not self._system.closed:
+                self._system.peer_ended(self.name)  # (is it lost? rule 19)
 
     def _too_large(self, channel: _Channel, oversized: Oversized) -> None:
         """An answer over the limit was skipped unread: fail its reply, undo what it made."""

@@ -12,7 +12,10 @@ way whether its target lives in this process or another one.
 
 Each listener also publishes its registrar's `max_message_bytes` in
 `<runtime_dir>/<registrar>.limit`, so that a sender refuses a message that is too large
-before it sends anything of it (the listener refuses such a frame unread, too).
+before it sends anything of it (the listener refuses such a frame unread, too), and who
+speaks for it if its process dies in `<runtime_dir>/<registrar>.restart` (rule 19: a
+registrar gone that nobody restarts is *lost*; how a process finds out, and the limits,
+are in `rr_actors._transport.base`).
 
 Wire format: one frame per message (`multiprocessing.connection` framing), `8-byte token
 (little endian) + cloudpickle payload`. A message's `reply` never crosses: the sender keeps
@@ -39,10 +42,12 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import fcntl
 import logging
 import os
 import tempfile
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -63,7 +68,19 @@ __all__ = ["AttachedSystem", "System", "SystemAddress", "attach"]
 logger = logging.getLogger("rr_actors")
 
 _MAX_SOCKET_PATH = 107  # sun_path is 108 bytes with the terminating NUL (Linux)
-_RUNTIME_SUFFIXES = (".sock", ".stopped", ".lock", ".limit")  # the files a system makes
+_RUNTIME_SUFFIXES = (".sock", ".stopped", ".lock", ".limit", ".restart")  # a system's files
+
+ENDING_GRACE = 0.5
+"""Seconds a registrar whose connection ended may still hold its lock (its process is
+still exiting) before the process that holds it counts as serving it."""
+
+AWAIT_POLL = 0.1
+"""Seconds between two looks at a registrar awaited (gone, its speaker alive): served
+again, stopped, or its speaker gone too (then it is lost)."""
+
+NOBODY = "0"
+"""What a `.restart` file holds when nobody speaks for the registrar: it is lost when
+its process dies."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,6 +111,11 @@ class SystemAddress:
         """A file that holds registrar `name`'s `max_message_bytes` (decimal), for senders."""
         return os.path.join(self.runtime_dir, f"{name}.limit")
 
+    def restart_path(self, name: str) -> str:
+        """A file that says who speaks for registrar `name` if its process dies: `0` for
+        nobody, else `<pid> <start time>` of that process (rule 19)."""
+        return os.path.join(self.runtime_dir, f"{name}.restart")
+
     def attach(self) -> AttachedSystem:
         """Join this system from the calling process (see `attach`)."""
         return attach(self)
@@ -112,6 +134,13 @@ class AttachedSystem:
         self._lock = threading.Lock()
         self._peers: dict[str, RemotePeer] = {}
         self._listeners: dict[str, Listener] = {}
+        self._speaker: str | None = None  # who restarts what this process serves
+        # rule 19: registrars of other processes whose end is being judged
+        self._presence = threading.Condition()
+        self._judging: dict[str, float] = {}  # name -> end of its ENDING_GRACE
+        self._awaited: set[str] = set()  # gone, their speaker alive
+        self._lost: set[str] = set()  # reported lost (until served again)
+        self._judge_thread: threading.Thread | None = None
         DIRECTORY.add_resolver(self.resolve, self.names)
 
     def serve(self, endpoint: Endpoint) -> None:
@@ -179,6 +208,40 @@ class AttachedSystem:
         assert isinstance(peer, RemotePeer)
         return peer.run(fn, timeout=timeout)
 
+    def supervised_by(self, pid: int | None) -> None:
+        """Say that process `pid` speaks for the registrars this process serves from now
+        on when this process dies: it restarts them, or sends their death watch (a manager
+        process's supervisor, or the owner of a `RemoteRegistrar`); `None`: nobody.
+
+        Published in each one's `.restart` file: while that process lives, the others do
+        not count them lost (rule 19); once it is gone too, they do.
+        """
+        self._speaker = None if pid is None else _identity(pid)
+
+    def supervisor(self, name: str) -> str:
+        """What registrar `name`, served here, publishes in its `.restart` file: the
+        speaker set by `supervised_by`, else this process while
+        `DIRECTORY.restart_expected(name)` (a thread manager), else `0` (nobody)."""
+        if self._speaker is not None:
+            return self._speaker
+        if DIRECTORY.restart_expected(name):
+            return _identity(os.getpid())
+        return NOBODY
+
+    def peer_ended(self, name: str) -> None:
+        """The connection to registrar `name` ended, or a connect to it failed: judge, on
+        the system's presence thread, whether it is lost (rule 19)."""
+        with self._presence:
+            if self.closed:
+                return
+            self._judging.setdefault(name, time.monotonic() + ENDING_GRACE)
+            if self._judge_thread is None:
+                self._judge_thread = threading.Thread(
+                    target=self._judge_loop, name="rr-unix-presence", daemon=True
+                )
+                self._judge_thread.start()
+            self._presence.notify_all()
+
     def serving_trouble(self, name: str) -> tuple[float, str] | None:
         """For how long (seconds) and why registrar `name` has been unable to take new
         connections here; `None` if it can (or this process does not serve it).
@@ -204,6 +267,8 @@ class AttachedSystem:
             self._listeners.clear()
             self._peers.clear()
         DIRECTORY.remove_resolver(self.resolve)
+        with self._presence:
+            self._presence.notify_all()  # the presence thread ends
         for listener in listeners:
             listener.close(stopped=listener.endpoint.stopped_cleanly())
         for peer in peers:
@@ -245,6 +310,85 @@ class AttachedSystem:
             return []
         return [e.removesuffix(".sock") for e in entries if e.endswith(".sock")]
 
+    # -- rule 19: is a registrar of another process lost? --------------------------------
+
+    def _judge_loop(self) -> None:
+        """The presence thread: judges ended registrars and polls the awaited ones."""
+        while True:
+            with self._presence:
+                if self.closed:
+                    return
+                judging = dict(self._judging)
+                awaited = set(self._awaited)
+            for name, grace_until in judging.items():
+                verdict = self._verdict(name)
+                if verdict == "served" and time.monotonic() < grace_until:
+                    continue  # its process may still be exiting: look again soon
+                with self._presence:
+                    if self._judging.get(name) == grace_until:
+                        del self._judging[name]
+                self._act(name, verdict, awaited=False)
+            for name in awaited - set(judging):
+                verdict = self._verdict(name)
+                if verdict != "awaited":
+                    with self._presence:
+                        self._awaited.discard(name)
+                    self._act(name, verdict, awaited=True)
+            with self._presence:
+                if self.closed:
+                    return
+                if self._judging:
+                    self._presence.wait(0.01)
+                elif self._awaited:
+                    self._presence.wait(AWAIT_POLL)
+                else:
+                    self._presence.wait()
+
+    def _verdict(self, name: str) -> str:
+        """`served` (here, or by a process that holds its lock), `stopped`, `lost`,
+        `awaited` (its speaker lives), `ours` (this process speaks for it) or `unknown`
+        (it published no `.restart` file)."""
+        address = self.address
+        if name in self._listeners:
+            return "served"
+        if os.path.exists(address.tombstone_path(name)):
+            return "stopped"
+        if _lock_held(address.lock_path(name)):
+            return "served"
+        try:
+            with open(address.restart_path(name), encoding="ascii") as published:
+                speaker = published.read(64).strip()
+        except (OSError, ValueError):
+            return "unknown"
+        return _verdict_of(speaker)
+
+    def _act(self, name: str, verdict: str, *, awaited: bool) -> None:
+        if verdict == "served":
+            self._lost.discard(name)
+            peer = self._peers.get(name)
+            if awaited and peer is not None and any(n != name for n in self._listeners):
+                peer.connect()  # restarted: connect now, so that its next end is seen too
+        elif verdict == "awaited":
+            with self._presence:
+                self._awaited.add(name)
+        elif verdict == "lost" and name not in self._lost:
+            self._lost.add(name)
+            self._lose(name)
+
+    def _lose(self, name: str) -> None:
+        """Registrar `name` is gone for good: every endpoint served here hears it."""
+        logger.info(
+            "registrar %s of system %s is lost (nobody restarts it)",
+            name,
+            self.address.runtime_dir,
+        )
+        for listener in list(self._listeners.values()):
+            if listener.name != name:
+                try:
+                    listener.endpoint.peer_lost(name)
+                except Exception:
+                    logger.exception("registrar %s: peer_lost(%s) failed", listener.name, name)
+
     def _watch(self, endpoint: Endpoint, listener: Listener) -> None:
         endpoint.wait_ended()  # the carrier watches the registrar's end
         # Close before letting go: while it is still listed, the system's own close()
@@ -253,6 +397,76 @@ class AttachedSystem:
         with self._lock:
             if self._listeners.get(listener.name) is listener:
                 del self._listeners[listener.name]
+
+
+def _identity(pid: int) -> str:
+    """`<pid> <start time>` of process `pid` (just the pid where `/proc` does not say)."""
+    start = _start_time(pid)
+    return f"{pid} {start}" if start else f"{pid}"
+
+
+def _start_time(pid: int) -> str | None:
+    """Process `pid`'s start time (Linux `/proc/<pid>/stat`, field 22); `None` if unknown
+    (no `/proc`) or it is not running (gone, or a zombie: it speaks for nobody)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as stat:
+            fields = stat.read().rsplit(b")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    if fields[0] in (b"Z", b"X"):
+        return ""
+    return fields[19].decode("ascii")
+
+
+def _speaks(speaker: str) -> bool:
+    """Whether the process a `.restart` file names (`<pid> [<start time>]`) still runs."""
+    parts = speaker.split()
+    try:
+        pid = int(parts[0])
+    except (IndexError, ValueError):
+        return False  # a malformed file: nobody
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # it exists (another user's: a reused pid, most likely)
+    start = _start_time(pid)
+    if start == "":
+        return False  # a zombie
+    return start is None or len(parts) < 2 or start == parts[1]
+
+
+def _verdict_of(speaker: str) -> str:
+    """What a `.restart` file's `speaker` makes of a registrar gone from a free lock."""
+    if speaker.split()[:1] == [str(os.getpid())]:
+        return "ours"  # this process restarts it, or sends its death watch
+    if speaker == NOBODY or not _speaks(speaker):
+        return "lost"
+    return "awaited"
+
+
+def _lock_held(path: str) -> bool:
+    """Whether a process holds the name lock at `path` (a listener serves the name).
+
+    Probes with a shared `flock` held for microseconds; a listener taking the lock meanwhile
+    retries (`inbound.LOCK_RETRY`). When it cannot tell, it says held (never a false loss).
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return False
+    except OSError:
+        return True
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return True
+    finally:
+        os.close(fd)  # (closing releases the probe's lock)
+    return False
 
 
 _ATTACHED: dict[str, AttachedSystem] = {}
