@@ -5,8 +5,8 @@ Runs only in manager processes (never in the supervisor's process). In the child
 1. asks the platform to end it when the process that forked it dies
    (`Platform.die_with_parent`: with the forkserver context that is the forkserver, not
    the supervisor's process) and names the process for `ps` (`rr-actors: <name>`),
-2. attaches to the system (on the AF_UNIX carrier saying that the supervisor's process
-   speaks for its registrar if this process dies: rule 19, `AttachedSystem.supervised_by`)
+2. attaches to the system (saying that the supervisor's process speaks for its registrar
+   if this process dies: rule 19, `Transport.supervised_by`, any carrier)
    and starts the registrar, which restores its catalog,
 3. runs the (cloudpickled) `setup(registrar)`, then serves the registrar on the system,
 4. reports `ready` over its control pipe and answers control requests: `stop`, `ping`
@@ -82,7 +82,6 @@ from rr_actors._process.control import (
 )
 from rr_actors._store.schema import expected_objects
 from rr_actors._transport.base import Address, Transport
-from rr_actors._transport.unix import AttachedSystem
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import RrError
 
@@ -299,8 +298,7 @@ def _run_manager(
     try:
         if address is not None:
             attached = address.attach()
-            if isinstance(attached, AttachedSystem):  # it restarts this one (rule 19)
-                attached.supervised_by(_supervisor_pid(conn))
+            attached.supervised_by(_supervisor_pid(conn))  # it restarts this one (rule 19)
         registrar = start_registrar(config, upstream=line.hub)
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:

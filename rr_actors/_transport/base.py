@@ -44,8 +44,11 @@ The contract every carrier keeps (the transport tests check it for each one):
   Its consumers then report `FATAL` for the ids they held there and forget them. A
   carrier never calls `peer_lost` for a registrar whose supervisor is alive: that one
   restarts it, and its restored catalog keeps its consumers' ids (rule 15), or it
-  sends the death watch if it gives up. Each carrier says who that is: Zenoh in the
-  registrar's liveliness token, AF_UNIX in `<runtime_dir>/<name>.restart` (below);
+  sends the death watch if it gives up. Only a process that `Transport.supervised_by`
+  names (a manager process's supervisor) or, while `DIRECTORY.restart_expected(name)`,
+  its own process speaks for it; a process that merely joined the system has nobody.
+  Each carrier says who that is: Zenoh in the registrar's liveliness token, AF_UNIX in
+  `<runtime_dir>/<name>.restart` (below);
 - **presence**: `Endpoint.peer_reachable(name)` when a registrar that could not be
   reached answers again (a healed link, not a restart); the consumer side retries its
   `Reconcile` until it is answered; `names()` lists the registrars it can reach;
@@ -214,6 +217,14 @@ class Transport(Protocol):
     def serving_trouble(self, name: str) -> tuple[float, str] | None:
         """For how long (seconds) and why registrar `name`, served here, has been unable to
         take new connections; `None` if it can, or if it is not served here."""
+        ...
+
+    def supervised_by(self, pid: int | None) -> None:
+        """Say that process `pid` speaks for the registrars this process serves from now on
+        when this process dies (rule 19): it restarts them or sends their death watch (a
+        manager process's supervisor, or the owner of a `RemoteRegistrar`; the manager
+        process says so, `_process/child.py`); `None`: nobody. Until then nobody does,
+        except for a registrar with `DIRECTORY.restart_expected(name)` (its own process)."""
         ...
 
     def close(self) -> None:

@@ -45,8 +45,9 @@ Presence (liveliness tokens, one presence thread applies them in order):
   later calls fail at once the same way;
 - it is *lost for good* (the endpoints' `peer_lost`) when it did not stop cleanly and
   nobody restarts it: `<sup>` is `none`, or the process `<sup>` (its supervisor: the
-  router process a manager process attached through, or its own process when its
-  `DIRECTORY.restart_expected`) has no token now or loses it later;
+  router process of a manager process that router started, `supervised_by`, or its own
+  process when its `DIRECTORY.restart_expected`) has no token now or loses it later; a
+  process that merely attached through the router publishes `none`;
 - a registrar whose process token went (a cut link) and that comes back from the same
   process (same Zenoh id: a healed link, not a restart) is `peer_reachable`.
 
@@ -331,8 +332,8 @@ class ZenohMember:
     Args:
         system: the system's name (every key starts with `rr/<system>/`).
         session: the open session (router or client mode).
-        supervisor: the Zenoh id of the process that restarts the registrars served
-            here (a manager process attached through its supervisor's router), if any.
+        speakers: the Zenoh ids of the processes `supervised_by` can name, by pid (the
+            router of this host, for a process that attached through it).
         on_close: called once the member closed.
     """
 
@@ -341,14 +342,15 @@ class ZenohMember:
         system: str,
         session: zenoh.Session,
         *,
-        supervisor: str | None = None,
+        speakers: dict[int, str] | None = None,
         on_close: Callable[[], None] | None = None,
     ) -> None:
         self.system = system
         self.zid = str(session.zid())
         self.closed = False
         self._session = session
-        self._supervisor = supervisor
+        self._speakers = dict(speakers or {})
+        self._supervisor: str | None = None  # set by `supervised_by`: nobody until then
         self._on_close = on_close
         self._address: Address | None = None
         self._prefix = f"rr/{system}"
@@ -481,6 +483,14 @@ class ZenohMember:
         if not isinstance(peer, ZenohPeer):
             raise UnknownServerError(f"no registrar named {name!r} on system {self.system!r}")
         return peer.run(fn, timeout=timeout)
+
+    def supervised_by(self, pid: int | None) -> None:
+        """Say that process `pid` speaks for the registrars served here from now on (see
+        `Transport.supervised_by`): published as `<sup>` in their tokens. Only the router
+        this process attached through is known by its pid; any other `pid` (the owner of
+        a `RemoteRegistrar` that is not the router), and `None`, publish `none`: such a
+        registrar is lost when its process dies (its owner's death watch says so too)."""
+        self._supervisor = None if pid is None else self._speakers.get(pid)
 
     def serving_trouble(self, name: str) -> tuple[float, str] | None:
         """Always `None`: a Zenoh subscriber has no accept queue to run out of."""

@@ -171,13 +171,16 @@ class ZenohAddress:
         system: the system's name.
         socket_path: the router's Unix socket (in its 0700 runtime directory).
         lease: seconds after which a silent peer counts as gone.
-        router: the router process's Zenoh id (it supervises what is served through it).
+        router: the router process's Zenoh id.
+        router_pid: the router process's pid: a manager process it started (its
+            supervisor's, `supervised_by`) publishes `router` as its supervisor (rule 19).
     """
 
     system: str
     socket_path: str
     lease: float
     router: str
+    router_pid: int = 0
 
     def attach(self) -> ZenohMember:
         """Join the system from this process (idempotent): a CLIENT-mode session.
@@ -196,7 +199,7 @@ class ZenohAddress:
             raise RegistrarUnavailableError(
                 f"cannot join system {self.system!r} through {self.socket_path!r}: {exc}"
             ) from exc
-        member = ZenohMember(self.system, session, supervisor=self.router)
+        member = ZenohMember(self.system, session, speakers={self.router_pid: self.router})
         member._on_close = lambda: _left(member)
         member._address = self
         return member
@@ -304,7 +307,9 @@ class ZenohNetwork:
         self._warn_unreachable()
         member = ZenohMember(self.system, session)
         self._runtime_dir = runtime_dir
-        self._address = member._address = ZenohAddress(self.system, path, self.lease, member.zid)
+        self._address = member._address = ZenohAddress(
+            self.system, path, self.lease, member.zid, os.getpid()
+        )
 
         def closed() -> None:
             _left(member)
@@ -366,6 +371,10 @@ class ZenohNetwork:
         """See `Transport.serving_trouble` (always `None` over Zenoh)."""
         member = self._member
         return None if member is None else member.serving_trouble(name)
+
+    def supervised_by(self, pid: int | None) -> None:
+        """See `Transport.supervised_by` (`ZenohMember.supervised_by`)."""
+        self._open().supervised_by(pid)
 
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits, close the session (idempotent)."""

@@ -9,8 +9,8 @@ Each test also kills an unsupervised provider as a control, so that "not lost" i
 merely "the carrier never says lost". Real processes, real SIGKILLs; each test runs once
 per carrier (`CARRIERS`). An unsupervised provider is a process that joins the system
 by itself: on AF_UNIX it attaches the system's address; on Zenoh it is a router of its
-own that connects to the test's (one that attaches through the test's router counts as
-supervised by it).
+own that connects to the test's, or (`zenoh-attached`) a process that attaches through the
+test's router: only a manager process that router started counts as supervised by it.
 """
 
 from __future__ import annotations
@@ -189,7 +189,7 @@ class Lab:
         self.system.close()
 
 
-@pytest.fixture(params=sorted(CARRIERS))
+@pytest.fixture(params=[*sorted(CARRIERS), "zenoh-attached"])
 def lab(
     request: pytest.FixtureRequest, context: multiprocessing.context.ForkServerContext
 ) -> Iterator[Lab]:
@@ -202,6 +202,9 @@ def lab(
         name = f"lost-{uuid.uuid4().hex[:8]}"
         system = rr.ZenohNetwork(system=name, listen=[endpoint], tls=None)
         join = ("router", name, endpoint)
+    elif carrier == "zenoh-attached":  # joins through the test's router, unsupervised
+        system = CARRIERS["zenoh"]()
+        join = ("attach", system.address)
     else:
         raise AssertionError(f"no unsupervised provider for carrier {carrier!r} yet")
     made = Lab(carrier, system, join, context)

@@ -463,6 +463,15 @@ def test_of_two_processes_serving_one_name_at_once_exactly_one_does(
         assert name in net.names()
 
 
+def _supervised_manager(
+    address: Any, name: str, control: multiprocessing.connection.Connection
+) -> None:
+    """`manager_main` in a process that says its router speaks for it (rule 19), as a
+    manager process its router's supervisor started says (`_process/child.py`)."""
+    address.attach().supervised_by(address.router_pid)
+    manager_main(address, name, control)
+
+
 def _racer(
     address: Any, name: str, go: Any, control: multiprocessing.connection.Connection
 ) -> None:
@@ -519,7 +528,7 @@ def test_a_killed_supervised_manager_is_not_lost_until_its_supervisor_goes_too(
     assert parent_end.poll(30)
     address = parent_end.recv()
     manager = f"manager-{uuid.uuid4().hex[:6]}"
-    manager_process, _ = children.start(manager_main, address, manager)
+    manager_process, _ = children.start(_supervised_manager, address, manager)
     watcher = Recorder(f"w-{uuid.uuid4().hex[:6]}")
     net.serve(watcher)
     assert eventually(lambda: {router, manager} <= set(net.names()), timeout=10)
