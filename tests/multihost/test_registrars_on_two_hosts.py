@@ -456,18 +456,25 @@ def stop_tree() -> None:
         sup.stop()
 
 
-def until_filtered(registrar: rr.ResourceRegistrar, device: int, timeout: float) -> float:
+def in_manager(_registrar: rr.ResourceRegistrar, fn: Any, *args: Any) -> Any:
+    """`fn(*args)` in a manager's process (its own `hosts.KEPT`)."""
+    return fn(*args)
+
+
+def until_filtered(
+    registrar: rr.ResourceRegistrar, device: int, timeout: float
+) -> tuple[str, float]:
     """`call_filtered` until it succeeds (each failure is immediate: a retry, not a sleep);
-    when it did."""
+    its id, and when it succeeded."""
     deadline = time.monotonic() + timeout
     while True:
         try:
-            call_filtered(registrar, device)
+            query_id = call_filtered(registrar, device)
         except rr.RegistrarUnavailableError:
             if time.monotonic() > deadline:
                 raise
         else:
-            return time.monotonic()
+            return query_id, time.monotonic()
 
 
 @pytest.mark.timeout(120)
@@ -481,14 +488,17 @@ def test_a_supervised_manager_killed_on_one_host_comes_back_without_fatal_for_th
     a.call(start_tree, "erm", provider_setup, str(two_hosts.directory / "a"), timeout=60)
     b.call(start_tree, "cm", cm_setup, str(two_hosts.directory / "b"), "app-b", timeout=60)
     try:
-        b.call(hosts.rr_run, "app-b", until_filtered, 9, 15.0, timeout=30)
+        before, _ = b.call(hosts.rr_run, "app-b", until_filtered, 9, 15.0, timeout=30)
 
         os.kill(a.call(manager_pid, "erm", timeout=10), signal.SIGKILL)
         restarted = a.call(wait_restarted, "erm", 10.0, timeout=15)
-        answered = b.call(hosts.rr_run, "app-b", until_filtered, 10, 10.0, timeout=15)
+        _, answered = b.call(hosts.rr_run, "app-b", until_filtered, 10, 10.0, timeout=15)
 
         assert answered - restarted < 10.0
         assert 0 == b.call(more_statuses, timeout=5)  # no FATAL: erm was not lost
+        # its restored catalog kept cm's id (rule 15): released there when app-b lets go
+        b.call(hosts.rr_run, "app-b", unload, before, timeout=10)
+        a.call(run_in, "erm", in_manager, unloaded, {"device": 9}, 10.0, timeout=20)
     finally:
         b.call(stop_tree, timeout=60)
         a.call(stop_tree, timeout=60)
