@@ -1,4 +1,6 @@
-"""Rule 20: a call due as the consumer reconciles is decided by its own answer.
+"""Rule 20: what a consumer's `Reconcile` lists, and what it makes of the answer.
+
+A call due as the consumer reconciles is decided by its own answer.
 
 After a healed link the consumer's `Reconcile` lists the calls whose answer is due, but
 a caller's `Load` may leave after the `Reconcile` (over Zenoh its thread may still be
@@ -6,6 +8,11 @@ asking the network where the provider is). The provider then answers that id "un
 it has not seen the `Load` yet. Found across two hosts: the call succeeded, its answer
 was recorded before the `Reconcile`'s, and the consumer reported its fresh id `FATAL`
 and forgot it (`unload` raised `UnknownQueryError`).
+
+A call refused at once (its provider is known to be gone: nothing was sent) is not held
+for a retry: nothing there can hold its id. Found across two hosts: a consumer that retried
+its call during a cut link listed ~900 such ids in the `Reconcile` after the heal (a 40 KB
+message, every retry's id).
 """
 
 from __future__ import annotations
@@ -19,7 +26,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._registrar import Served
-from rr_actors.testing import intercept
+from rr_actors.testing import crash, expect_restart, intercept
 
 
 @pytest.fixture
@@ -91,3 +98,28 @@ def test_a_call_whose_load_leaves_after_the_reconcile_keeps_its_id(
     consumer.unload(qid)
     provider.server_queries("leaf")  # (its Unload was handled)
     assert ["fresh"] == unloads
+
+
+def test_a_call_refused_at_once_is_not_listed_when_the_consumer_reconciles(
+    started: Callable[[str], rr.ResourceRegistrar],
+) -> None:
+    provider, consumer = started("prov"), started("cons")
+    name = provider.name
+    with expect_restart(name):  # down for a moment, not lost: its consumers keep waiting
+        crash(provider)
+    for _ in range(3):
+        with pytest.raises(rr.RegistrarUnavailableError):
+            consumer.call(name, "leaf", "x", timeout=5)  # refused at once: nothing sent
+    back = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
+    try:
+        back.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
+        listed: list[tuple[str, ...]] = []
+        intercept(back, "reconcile", before=lambda message: listed.append(message.held))
+
+        Served(consumer).peer_reachable(name)  # a healed link: it reconciles if it holds ids
+        consumer.client_queries()  # (its PeerReachable was handled)
+        back.server_queries("leaf")  # (and a Reconcile it was sent)
+
+        assert [] == listed  # it holds nothing there
+    finally:
+        back.stop()
