@@ -1,4 +1,4 @@
-"""The multi-host tests' fixtures: two hosts (network namespaces joined by a veth), made per test.
+"""The multi-host tests' fixtures: two hosts (network namespaces joined by a veth), per test.
 
 `two_hosts` needs root (`ip netns`); without it the test is skipped with the reason. CI runs as
 root, so there they always run. Every test here also fails if it leaves a namespace of this
