@@ -56,7 +56,7 @@ import threading
 import traceback
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
-from concurrent.futures import TimeoutError as FutureTimeout
+from concurrent.futures import wait as futures_wait
 from multiprocessing.connection import Client, Connection, answer_challenge, deliver_challenge
 from pathlib import Path
 from typing import Any, TypeVar
@@ -361,13 +361,12 @@ class Worker:
             WorkerDiedError: the worker ended before it answered.
         """
         future = self.submit(fn, *args, **kwargs)
-        try:
-            return future.result(timeout)
-        except FutureTimeout:
-            if future.done():  # the worker's own TimeoutError (a CallTimeoutError): the
-                return future.result()  # builtin one, which `concurrent.futures` raises too
+        done, _ = futures_wait([future], timeout)
+        if not done:  # (not `except TimeoutError`: a TimeoutError the worker raised, such as
+            # rr.CallTimeoutError, is its answer, re-raised as it is)
             name = getattr(fn, "__qualname__", repr(fn))
-            raise TimeoutError(f"{name} on {self!r}: no answer within {timeout:g} s") from None
+            raise TimeoutError(f"{name} on {self!r}: no answer within {timeout:g} s")
+        return future.result()
 
     def kill(self) -> None:
         """SIGKILL the worker and reap it."""

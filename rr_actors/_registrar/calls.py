@@ -212,10 +212,11 @@ class ClientReply:
                 RegistrarStoppedError(f"registrar {query.origin_rr!r} stopped during the call")
             )
 
-    def set_error(self, error: BaseException) -> None:
+    def set_error(self, error: BaseException, *, sent: bool = True) -> None:
         # A provider that died (or was stopped) may have executed the call: its id is
         # held until reconciled with the provider's next start, for a retry (rule 17).
-        gone = isinstance(error, RegistrarUnavailableError | RegistrarStoppedError)
+        # Not one whose Load never left (`sent=False`): nothing there can hold its id.
+        gone = sent and isinstance(error, RegistrarUnavailableError | RegistrarStoppedError)
         failed = CallFailed(
             self.query_id, self.attempt, serving_rr=self.serving_rr if gone else None
         )
@@ -350,8 +351,8 @@ class Calls:
             probes.fire("send_load", load)
         try:
             DIRECTORY.lookup(reply.serving_rr).tell(load)
-        except RrError as exc:
-            reply.set_error(exc)
+        except RrError as exc:  # refused at once: nothing was sent
+            reply.set_error(exc, sent=False)
         return True
 
     def withdraw(self, reply: ClientReply, attempt: CallAttempt) -> None:

@@ -421,9 +421,11 @@ class Consumer:
         The provider releases the others it holds for this registrar, and names the ones
         it no longer knows: their status callbacks get `FATAL` and they are forgotten.
         The list and the message leave while no call can start (`DueAnswers.frozen`), so
-        a call sent later reaches the provider after it. `then(error)` runs (on this
-        actor) once the answer was handled: `None`, or why it failed (`presence.py`
-        retries).
+        a call sent later reaches the provider after it. A call due already may send its
+        `Load` after the `Reconcile` (its caller's thread may still be on its way to the
+        carrier), so the provider's "unknown" says nothing of it: its own answer decides.
+        `then(error)` runs (on this actor) once the answer was handled: `None`, or why it
+        failed (`presence.py` retries).
         """
         with self.due.frozen() as due:
             held = {
@@ -436,7 +438,7 @@ class Consumer:
             self.registrar.send(
                 serving_rr,
                 lambda reply: Reconcile(self.registrar.name, tuple(sorted(held)), reply),
-                lambda unknown, error: self.reconciled(serving_rr, unknown, error, then),
+                lambda unknown, error: self.reconciled(serving_rr, unknown, error, then, due),
             )
 
     def reconciled(
@@ -445,8 +447,10 @@ class Consumer:
         unknown: Any,
         error: BaseException | None,
         then: Callable[[BaseException | None], None] | None = None,
+        due: frozenset[str] = frozenset(),
     ) -> None:
-        """The provider's answer to a `Reconcile`: report and forget what it lost."""
+        """The provider's answer to a `Reconcile`: report and forget what it lost (of the
+        ids not `due` as it was sent)."""
         if error is not None:  # not reachable: it asks for a Reconcile when it is back
             logger.debug(
                 "reconciling %s with %s failed: %s", self.registrar.name, serving_rr, error
@@ -454,7 +458,7 @@ class Consumer:
             if then is not None:
                 then(error)
             return
-        self.settle_reconciled(serving_rr, unknown)
+        self.settle_reconciled(serving_rr, (q for q in unknown if q not in due))
         if then is not None:
             then(None)
 

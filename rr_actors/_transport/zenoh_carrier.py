@@ -49,7 +49,9 @@ Presence (liveliness tokens, one presence thread applies them in order):
   process when its `DIRECTORY.restart_expected`) has no token now or loses it later; a
   process that merely attached through the router publishes `none`;
 - a registrar whose process token went (a cut link) and that comes back from the same
-  process (same Zenoh id: a healed link, not a restart) is `peer_reachable`.
+  process (same Zenoh id: a healed link, not a restart) is `peer_reachable`; the first
+  message to that process waits (on its writer thread) until a ping of it is answered
+  (`rr/<s>/ping/<zid>`): its token may be back before what is put to it gets through.
 
 One name, one server: `serve` first declares a claim token, then asks the network for
 servers and claims of the name. A server of another process is a `DuplicateNameError`;
@@ -115,6 +117,9 @@ ASK_TIMEOUT = 1.0
 """Seconds a miss of `resolve` (or `serve`'s check for the name) asks the network."""
 CLAIM_TIMEOUT = 5.0
 """Seconds `serve` waits for a rival claim of the same name to serve or withdraw."""
+HEAL_TIMEOUT = 2.0
+"""Seconds the first message to a process back from a healed link waits for its answer
+to a ping (then it is sent anyway)."""
 
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
 
@@ -204,8 +209,11 @@ class _Queue:
 class _Outbox:
     """The writer of one destination key: its thread puts payloads in the order sent."""
 
-    def __init__(self, session: zenoh.Session, key: str) -> None:
+    def __init__(
+        self, session: zenoh.Session, key: str, ready: Callable[[], None] | None = None
+    ) -> None:
         self.key = key
+        self._ready = ready  # runs on the writer thread before the first put
         self._publisher = session.declare_publisher(
             key,
             congestion_control=zenoh.CongestionControl.BLOCK,
@@ -224,6 +232,9 @@ class _Outbox:
 
     def _put(self, item: tuple[bytes, Lost | None]) -> None:
         data, on_lost = item
+        ready, self._ready = self._ready, None
+        if ready is not None:
+            ready()
         try:
             self._publisher.put(data)
         except Exception as exc:  # noqa: BLE001 - the session closed: the frame is lost
@@ -382,6 +393,9 @@ class ZenohMember:
         )
         self._live = session.liveliness().declare_subscriber(
             f"{self._prefix}/live/**", self._on_live, history=True
+        )
+        self._pings = session.declare_queryable(
+            f"{self._prefix}/ping/{self.zid}", lambda query: query.reply(query.key_expr, b"")
         )
         self._proc_token = session.liveliness().declare_token(
             f"{self._prefix}/live/proc/{self.zid}"
@@ -633,7 +647,7 @@ class ZenohMember:
             )
         if reply is not None:
             self._waiting[token] = _Waiting(name, reply, message, server.limit)
-        outbox = self._outbox(f"{self._prefix}/reg/{name}")
+        outbox = self._outbox(f"{self._prefix}/reg/{name}", server.zid)
         sent = (  # (gone meanwhile: its presence may have missed this reply)
             self._server(name) is not None
             and outbox is not None
@@ -642,20 +656,41 @@ class ZenohMember:
         if not sent and (reply is None or self._waiting.pop(token, None) is not None):
             raise self._gone_error(name)
 
-    def _outbox(self, key: str) -> _Outbox | None:
+    def _outbox(self, key: str, zid: str | None = None) -> _Outbox | None:
+        """The outbox of `key`, whose subscriber is in process `zid` (if known)."""
         outbox = self._outboxes.get(key)
         if outbox is not None and not outbox.closed:
             return outbox
         if self.closed:
             return None
-        fresh = _Outbox(self._session, key)  # (no Zenoh call under our lock: its callbacks
-        with self._lock:  # take it)
+        healed = zid is not None and zid in self._vanished
+        ready = functools.partial(self._until_answered, zid) if healed else None
+        fresh = _Outbox(self._session, key, ready)  # (no Zenoh call under our lock: its
+        with self._lock:  # callbacks take it)
             outbox = self._outboxes.get(key)
             if outbox is None or outbox.closed:
                 self._outboxes[key] = outbox = fresh
         if outbox is not fresh:
             fresh.close()
         return outbox
+
+    def _until_answered(self, zid: str | None) -> None:
+        """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread).
+
+        After a healed link its tokens may be back here before what is sent to it gets
+        through: a message put in between was lost without a word (a call right after
+        the heal waited for its timeout). An answered ping went the way the next put goes.
+        """
+        deadline = time.monotonic() + HEAL_TIMEOUT
+        pause = threading.Event()
+        while not self.closed and time.monotonic() < deadline:
+            try:
+                replies = self._session.get(f"{self._prefix}/ping/{zid}", timeout=0.25)
+                if any(reply.ok is not None for reply in replies):
+                    return
+            except Exception:  # noqa: BLE001 - the session closed: the put fails too
+                return
+            pause.wait(0.01)  # (no queryable seen yet: a get returns at once)
 
     def _answer_to(
         self, sender: str, data: bytes, on_lost: Lost | None, *, plain: bool = False
@@ -667,7 +702,7 @@ class ZenohMember:
         """
         if sender in self._vanished and sender not in self._procs:
             return False
-        outbox = self._outbox(f"{self._prefix}/ans/{sender}")
+        outbox = self._outbox(f"{self._prefix}/ans/{sender}", sender)
         head = header(ANSWER, self.zid, plain=plain)
         return outbox is not None and outbox.send(head + data, on_lost)
 

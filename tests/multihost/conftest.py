@@ -1,8 +1,9 @@
-"""The multi-host tests' fixtures: two hosts (network namespaces joined by a veth), made per test.
+"""The multi-host tests' fixtures: two hosts (network namespaces joined by a veth), per test.
 
 `two_hosts` needs root (`ip netns`); without it the test is skipped with the reason. CI runs as
 root, so there they always run. Every test here also fails if it leaves a namespace of this
-process behind (the autouse `no_leftover_namespaces`); child processes (the workers) are
+process behind (the autouse `no_leftover_namespaces`; a module's shared hosts are deleted with
+the module, by `hosts.TwoHosts.close`); child processes (the workers) are
 already counted by the root conftest's `no_leftovers`. See `tests/hosts.py`.
 """
 
@@ -28,11 +29,14 @@ def two_hosts() -> Iterator[hosts.TwoHosts]:
 
 @pytest.fixture(autouse=True)
 def no_leftover_namespaces() -> Iterator[None]:
-    """Fail the test if a network namespace of this process outlives it (and delete it)."""
-    yield
+    """Fail the test if a network namespace it made outlives it (and delete it); those of
+    a module's shared hosts, made before it, are theirs to delete."""
     if hosts.require_root() is not None:
+        yield
         return
-    left = hosts.ours()
+    before = set(hosts.ours())
+    yield
+    left = [name for name in hosts.ours() if name not in before]
     for name in left:
         with contextlib.suppress(subprocess.CalledProcessError):
             subprocess.run(["ip", "netns", "del", name], check=True)  # noqa: S607

@@ -1,11 +1,17 @@
 """Registrars on two hosts over the Zenoh carrier (issue 22), in two real network namespaces.
 
-Written against issue 22's public API before its carrier landed: the whole module is skipped,
-saying so, until `rr.ZenohNetwork` exists, and then runs as is. Each host has one worker with
-one `ZenohNetwork` of the system "lab" (`hosts.rr_join`); host `a` serves `erm` (the provider)
-and `app-a`, host `b` serves `app-b`; `b` connects to `a`. The bounds are the issue's, with the
-default lease (1 s). What a worker's callbacks record stays in the worker (`hosts.KEPT`) and is
-read back with `call`.
+Each host has a worker with one `ZenohNetwork` of the system "lab" (`hosts.rr_join`); host
+`a` serves `erm` (the provider) and `app-a`, host `b` serves `app-b` and `cm` (whose
+`filtered` depends on `erm`'s camera); `b` connects to `a`. The tests that leave the hosts
+as they found them share one `shared` lab (a module fixture: each test uses devices of its
+own); those that kill a process or cut the link get a `lab` of their own. The bounds are the
+issue's, with the default lease (1 s), each asserted on a clock around the event waited for:
+what a worker's callbacks record (with `time.monotonic()`, one clock for every process of
+the machine, whatever its namespace) stays in the worker (`hosts.KEPT`) and is read back
+with `call`.
+
+Bad input (a malformed endpoint, a bad system name, `tls` omitted, a peer of another
+version) needs no second host: `tests/transport/test_transport_zenoh.py`.
 """
 
 from __future__ import annotations
@@ -25,12 +31,6 @@ import pytest
 
 import rr_actors as rr
 
-pytestmark = pytest.mark.skipif(
-    not hosts.has_carrier(),
-    reason="rr.ZenohNetwork (issue 22's carrier) or ResourceRegistrar.start(..., network=) "
-    "has not landed yet",
-)
-
 SYSTEM = "lab"
 PORT = 7447
 
@@ -44,6 +44,7 @@ def provider_setup(registrar: rr.ResourceRegistrar) -> None:
     kept.update(
         loads=[],
         unloads=queue.Queue(),
+        unloaded_all=[],
         gate=threading.Event(),
         hang_started=threading.Event(),
     )
@@ -52,21 +53,25 @@ def provider_setup(registrar: rr.ResourceRegistrar) -> None:
         kept["loads"].append(request)
         return {"stream": request}
 
+    def unload(request: Any, _response: Any) -> None:
+        kept["unloaded_all"].append(request)
+        kept["unloads"].put(request)
+
     def hang(request: Any) -> Any:
         kept["hang_started"].set()
         kept["gate"].wait(30)
         return request
 
-    registrar.register_server(
-        "camera", load=load, unload=lambda request, _response: kept["unloads"].put(request)
-    )
+    registrar.register_server("camera", load=load, unload=unload)
     registrar.register_server("hang", load=hang, unload=lambda _q, _r: None)
     registrar.register_server("probe", load=lambda request: request, unload=lambda _q, _r: None)
 
 
 def record_status(query: rr.Query, update: rr.StatusUpdate) -> None:
-    """A consumer's status callback: (its query id, status name, source) into `KEPT`."""
-    hosts.KEPT.setdefault("heard", queue.Queue()).put((query.id, update.status.name, update.source))
+    """A consumer's status callback: (query id, status name, source, when) into `KEPT`."""
+    hosts.KEPT.setdefault("heard", queue.Queue()).put(
+        (query.id, update.status.name, update.source, time.monotonic())
+    )
 
 
 def call_camera(registrar: rr.ResourceRegistrar, device: int, timeout: float = 10.0) -> str:
@@ -88,13 +93,22 @@ def held(registrar: rr.ResourceRegistrar) -> list[str]:
     return [query.id for query in registrar.client_queries()]
 
 
-def send_warning(registrar: rr.ResourceRegistrar) -> None:
-    query_id = registrar.server_queries("camera")[0].id
+def send_warning(registrar: rr.ResourceRegistrar, device: int) -> float:
+    """A WARNING on the camera resource of `device`; when it was sent."""
+    query_id = next(
+        q.id for q in registrar.server_queries("camera") if q.request == {"device": device}
+    )
+    sent = time.monotonic()
     registrar.send_status(query_id, rr.Status.WARNING, "hot", timeout=5)
+    return sent
 
 
-def loads() -> list[Any]:
-    return list(hosts.KEPT["loads"])
+def loads_of(device: int) -> int:
+    return hosts.KEPT["loads"].count({"device": device})
+
+
+def unloads_of(device: int) -> int:
+    return hosts.KEPT["unloaded_all"].count({"device": device})
 
 
 def wait_set(name: str, timeout: float) -> bool:
@@ -105,9 +119,9 @@ def open_gate() -> None:
     hosts.KEPT["gate"].set()
 
 
-def next_status(timeout: float) -> tuple[str, str, str]:
+def next_status(timeout: float) -> tuple[str, str, str, float]:
     """The next status a consumer's callback recorded (`TimeoutError` if none came)."""
-    heard: queue.Queue[tuple[str, str, str]] = hosts.KEPT.setdefault("heard", queue.Queue())
+    heard: queue.Queue[tuple[str, str, str, float]] = hosts.KEPT.setdefault("heard", queue.Queue())
     try:
         return heard.get(timeout=timeout)
     except queue.Empty:
@@ -119,16 +133,73 @@ def more_statuses() -> int:
     return heard.qsize()
 
 
-def unloaded(request: Any, timeout: float) -> list[Any]:
-    """Every request unloaded until `request` is (`TimeoutError` if it is not within `timeout`)."""
+def unloaded(request: Any, timeout: float) -> float:
+    """When `request` was unloaded (`TimeoutError` if it is not within `timeout`)."""
     deadline = time.monotonic() + timeout
-    seen = []
-    while request not in seen:
+    while True:
         try:
-            seen.append(hosts.KEPT["unloads"].get(timeout=max(0.0, deadline - time.monotonic())))
+            seen = hosts.KEPT["unloads"].get(timeout=max(0.0, deadline - time.monotonic()))
         except queue.Empty:
             raise TimeoutError(f"{request!r} was not unloaded within {timeout:g} s") from None
-    return seen
+        if seen == request:
+            return time.monotonic()
+
+
+def cm_setup(registrar: rr.ResourceRegistrar) -> None:
+    """`filtered` depends on the camera of `erm`, on the other host; its server's
+    `on_status` records what reaches it in `KEPT["server_heard"]`."""
+    heard: queue.Queue[Any] = queue.Queue()
+    hosts.KEPT["server_heard"] = heard
+
+    def load(request: Any) -> Any:
+        return registrar.call("erm", "camera", request, timeout=10).response
+
+    registrar.register_server(
+        "filtered",
+        load=load,
+        unload=lambda _q, _r: None,
+        on_status=lambda _query, update: heard.put(
+            (update.status.name, update.source, time.monotonic())
+        ),
+    )
+
+
+def call_filtered(registrar: rr.ResourceRegistrar, device: int) -> str:
+    return registrar.call(
+        "cm", "filtered", {"device": device}, on_status=record_status, timeout=10
+    ).id
+
+
+def server_heard(timeout: float) -> tuple[str, str, float]:
+    try:
+        got: tuple[str, str, float] = hosts.KEPT["server_heard"].get(timeout=timeout)
+    except queue.Empty:
+        raise TimeoutError(f"no status at the server within {timeout:g} s") from None
+    return got
+
+
+def more_server_heard() -> int:
+    return int(hosts.KEPT["server_heard"].qsize())
+
+
+def call_dup(registrar: rr.ResourceRegistrar) -> str:
+    return registrar.call("dup", "probe", 7, timeout=10).id
+
+
+def stop_registrar(name: str) -> None:
+    hosts.KEPT["registrars"].pop(name).stop()
+
+
+def until_stopped(registrar: rr.ResourceRegistrar, name: str, timeout: float) -> None:
+    """Call `name`/probe until it fails with `RegistrarStoppedError` (each failure or
+    answer is immediate: a retry, not a sleep): this process saw it stop."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            registrar.unload(registrar.call(name, "probe", 1, timeout=5).id)
+        except rr.RegistrarStoppedError:
+            return
+    raise TimeoutError(f"{name} was not seen stopped within {timeout:g} s")
 
 
 # -- the test's side ---------------------------------------------------------------------------
@@ -136,15 +207,15 @@ def unloaded(request: Any, timeout: float) -> list[Any]:
 
 @dataclasses.dataclass
 class Lab:
-    """The two hosts, the provider's worker on `a`, the consumer's worker on `b`."""
+    """The two hosts, the provider's worker on `a`, the consumers' worker on `b`."""
 
     net: hosts.TwoHosts
     a: hosts.Worker
     b: hosts.Worker
 
 
-@pytest.fixture
-def lab(two_hosts: hosts.TwoHosts) -> Iterator[Lab]:
+@contextlib.contextmanager
+def made_lab(two_hosts: hosts.TwoHosts) -> Iterator[Lab]:
     a, b = two_hosts.a.spawn(), two_hosts.b.spawn()
     here, there = two_hosts.a.endpoint(PORT), two_hosts.b.endpoint(PORT)
     a.call(hosts.rr_join, system=SYSTEM, listen=[here], connect=[], timeout=30)
@@ -153,45 +224,135 @@ def lab(two_hosts: hosts.TwoHosts) -> Iterator[Lab]:
     b.call(hosts.rr_join, system=SYSTEM, listen=[there], connect=[here], timeout=30)
     b.call(hosts.rr_start, "app-b", timeout=30)
     b.call(hosts.rr_until_answered, "app-b", "erm", "probe", 15.0, timeout=30)
-    yield Lab(two_hosts, a, b)
-    if a.alive:
-        with contextlib.suppress(Exception):
-            a.call(open_gate, timeout=5)  # (a load still held at the gate ends)
-    for worker in (b, a):
-        if worker.alive:
+    try:
+        yield Lab(two_hosts, a, b)
+    finally:
+        if a.alive:
             with contextlib.suppress(Exception):
-                worker.call(hosts.rr_stop, timeout=30)
+                a.call(open_gate, timeout=5)  # (a load still held at the gate ends)
+        for worker in (b, a):
+            if worker.alive:
+                with contextlib.suppress(Exception):
+                    worker.call(hosts.rr_stop, timeout=30)
 
 
-def test_equal_calls_from_both_hosts_load_once_and_unload_when_the_last_lets_go(lab: Lab) -> None:
-    from_a = lab.a.call(hosts.rr_run, "app-a", call_camera, 0, timeout=15)
-    from_b = lab.b.call(hosts.rr_run, "app-b", call_camera, 0, timeout=15)
-    assert [{"device": 0}] == lab.a.call(loads, timeout=5)
+@pytest.fixture
+def lab(two_hosts: hosts.TwoHosts) -> Iterator[Lab]:
+    """A lab of this test's own (it kills a process or cuts the link)."""
+    with made_lab(two_hosts) as made:
+        yield made
 
-    lab.b.call(hosts.rr_run, "app-b", unload, from_b, timeout=10)
-    lab.a.call(hosts.rr_run, "app-a", unload, from_a, timeout=10)
 
-    assert [{"device": 0}] == lab.a.call(unloaded, {"device": 0}, 5.0, timeout=10)
+@pytest.fixture(scope="module")
+def shared() -> Iterator[Lab]:
+    """One lab for the tests that leave it as they found it (`cm` on `b` too)."""
+    reason = hosts.require_root()
+    if reason is not None:
+        pytest.skip(reason)
+    with hosts.TwoHosts() as two_hosts, made_lab(two_hosts) as made:
+        made.b.call(hosts.rr_start, "cm", cm_setup, timeout=30)
+        yield made
+
+
+def test_equal_calls_from_both_hosts_load_once_and_unload_when_the_last_lets_go(
+    shared: Lab,
+) -> None:
+    from_a = shared.a.call(hosts.rr_run, "app-a", call_camera, 0, timeout=15)
+    from_b = shared.b.call(hosts.rr_run, "app-b", call_camera, 0, timeout=15)
+    assert 1 == shared.a.call(loads_of, 0, timeout=5)
+
+    shared.b.call(hosts.rr_run, "app-b", unload, from_b, timeout=10)
+    assert 0 == shared.a.call(unloads_of, 0, timeout=5)  # app-a still holds it
+    shared.a.call(hosts.rr_run, "app-a", unload, from_a, timeout=10)
+
+    shared.a.call(unloaded, {"device": 0}, 5.0, timeout=10)
     assert from_a != from_b
+    assert 1 == shared.a.call(unloads_of, 0, timeout=5)
+    with pytest.raises(rr.UnknownQueryError):  # released: its id is unknown
+        shared.b.call(hosts.rr_run, "app-b", unload, from_b, timeout=10)
 
 
-def test_concurrent_equal_calls_from_both_hosts_load_once(lab: Lab) -> None:
-    from_a = lab.a.submit(hosts.rr_run, "app-a", call_camera, 1)
-    from_b = lab.b.submit(hosts.rr_run, "app-b", call_camera, 1)
+def test_concurrent_equal_calls_from_both_hosts_load_once(shared: Lab) -> None:
+    from_a = shared.a.submit(hosts.rr_run, "app-a", call_camera, 1)
+    from_b = shared.b.submit(hosts.rr_run, "app-b", call_camera, 1)
 
-    ids = {from_a.result(15), from_b.result(15)}
+    ids = [from_a.result(15), from_b.result(15)]
 
-    assert 2 == len(ids)
-    assert [{"device": 1}] == lab.a.call(loads, timeout=5)
+    assert 2 == len(set(ids))
+    assert 1 == shared.a.call(loads_of, 1, timeout=5)
+    shared.a.call(hosts.rr_run, "app-a", unload, ids[0], timeout=10)
+    shared.b.call(hosts.rr_run, "app-b", unload, ids[1], timeout=10)
+    shared.a.call(unloaded, {"device": 1}, 5.0, timeout=10)
 
 
-def test_a_status_sent_on_host_a_reaches_the_consumer_on_host_b_once(lab: Lab) -> None:
-    held_id = lab.b.call(hosts.rr_run, "app-b", call_camera, 2, timeout=15)
+def test_a_status_sent_on_host_a_reaches_every_callback_on_both_hosts_once(shared: Lab) -> None:
+    # erm/camera (a) <- cm/filtered (b) <- app-a (a), and <- app-b (b) directly (a dedup hit
+    # of cm's own call): one status goes up every path, across the veth twice for app-a.
+    via_cm = shared.a.call(hosts.rr_run, "app-a", call_filtered, 2, timeout=15)
+    direct = shared.b.call(hosts.rr_run, "app-b", call_camera, 2, timeout=15)
+    assert 1 == shared.a.call(loads_of, 2, timeout=5)
 
-    lab.a.call(hosts.rr_run, "erm", send_warning, timeout=10)
+    sent = shared.a.call(hosts.rr_run, "erm", send_warning, 2, timeout=10)
 
-    assert (held_id, "WARNING", "erm/camera") == lab.b.call(next_status, 5.0, timeout=10)
-    assert 0 == lab.b.call(more_statuses, timeout=5)
+    query_b, status_b, source_b, at_b = shared.b.call(next_status, 5.0, timeout=10)
+    status_cm, source_cm, at_cm = shared.b.call(server_heard, 5.0, timeout=10)
+    query_a, status_a, source_a, at_a = shared.a.call(next_status, 5.0, timeout=10)
+    assert (direct, "WARNING", "erm/camera") == (query_b, status_b, source_b)
+    assert ("WARNING", "erm/camera") == (status_cm, source_cm)
+    assert (via_cm, "WARNING", "erm/camera") == (query_a, status_a, source_a)
+    assert max(at_a, at_b, at_cm) - sent < 5.0
+    assert [0, 0, 0] == [
+        shared.a.call(more_statuses, timeout=5),
+        shared.b.call(more_statuses, timeout=5),
+        shared.b.call(more_server_heard, timeout=5),
+    ]
+    shared.a.call(hosts.rr_run, "app-a", unload, via_cm, timeout=10)
+    shared.b.call(hosts.rr_run, "app-b", unload, direct, timeout=10)
+    shared.a.call(unloaded, {"device": 2}, 5.0, timeout=10)
+
+
+def test_a_name_served_on_the_other_host_cannot_be_started_again(shared: Lab) -> None:
+    shared.a.call(hosts.rr_start, "dup", provider_setup, timeout=30)
+
+    with pytest.raises(rr.DuplicateNameError):
+        shared.b.call(hosts.rr_start, "dup", None, timeout=15)
+
+    # calls from there still reach the remote one
+    reached = shared.b.call(hosts.rr_run, "app-b", call_dup, timeout=15)
+    shared.b.call(hosts.rr_run, "app-b", unload, reached, timeout=10)
+    # nothing left behind: once the remote one stopped, the name is free there
+    shared.a.call(stop_registrar, "dup", timeout=30)
+    shared.b.call(hosts.rr_run, "app-b", until_stopped, "dup", 10.0, timeout=15)
+    shared.b.call(hosts.rr_start, "dup", None, timeout=15)
+    shared.b.call(stop_registrar, "dup", timeout=30)
+
+
+def test_a_call_to_a_name_of_another_system_fails_at_once_naming_the_callers_system(
+    shared: Lab,
+) -> None:
+    other = shared.net.b.spawn()
+    try:
+        other.call(
+            hosts.rr_join,
+            system="other",
+            listen=[shared.net.b.endpoint(PORT + 1)],
+            connect=[shared.net.a.endpoint(PORT)],
+            timeout=30,
+        )
+        other.call(hosts.rr_start, "app-c", timeout=30)
+
+        started = time.monotonic()
+        with pytest.raises(rr.UnknownRegistrarError, match="system 'other'"):
+            other.call(hosts.rr_run, "app-c", call_camera, 8, timeout=15)
+
+        assert time.monotonic() - started < 2.0
+        assert 0 == shared.a.call(loads_of, 8, timeout=5)
+    finally:
+        other.call(hosts.rr_stop, timeout=30)
+        other.stop()
+
+
+# -- a process killed, a link cut --------------------------------------------------------------
 
 
 def test_a_sigkill_of_the_providers_process_fails_calls_at_once_and_its_ids_are_fatal(
@@ -207,7 +368,9 @@ def test_a_sigkill_of_the_providers_process_fails_calls_at_once_and_its_ids_are_
     with pytest.raises(rr.RegistrarUnavailableError):
         in_flight.result(5)
     assert time.monotonic() - killed < 1.0
-    assert (held_id, "FATAL", "erm/camera") == lab.b.call(next_status, 1.0, timeout=5)
+    query_id, status, source, fatal_at = lab.b.call(next_status, 5.0, timeout=10)
+    assert (held_id, "FATAL", "erm/camera") == (query_id, status, source)
+    assert fatal_at - killed < 1.0
     assert held_id not in lab.b.call(hosts.rr_run, "app-b", held, timeout=5)
     started = time.monotonic()
     with pytest.raises(rr.RegistrarUnavailableError):
@@ -227,67 +390,42 @@ def test_a_cut_link_fails_calls_and_a_healed_one_releases_what_the_consumer_forg
     with pytest.raises(rr.RegistrarUnavailableError):
         in_flight.result(5)
     assert time.monotonic() - cut < 2.0
-    assert (held_id, "FATAL", "erm/camera") == lab.b.call(next_status, 2.0, timeout=5)
-    started = time.monotonic()
-    with pytest.raises(rr.RegistrarUnavailableError):
-        lab.b.call(hosts.rr_run, "app-b", call_camera, 6, timeout=15)
-    assert time.monotonic() - started < 1.0
+    query_id, status, source, fatal_at = lab.b.call(next_status, 5.0, timeout=10)
+    assert (held_id, "FATAL", "erm/camera") == (query_id, status, source)
+    assert fatal_at - cut < 2.0  # erm is not supervised: lost (rule 4)
+    assert held_id not in lab.b.call(hosts.rr_run, "app-b", held, timeout=5)
+    for device in (6, 7):  # each call during the cut fails at once
+        started = time.monotonic()
+        with pytest.raises(rr.RegistrarUnavailableError):
+            lab.b.call(hosts.rr_run, "app-b", call_camera, device, timeout=15)
+        assert time.monotonic() - started < 1.0
 
     healed = time.monotonic()
     lab.net.link_up()
     lab.a.call(open_gate, timeout=5)
     lab.b.call(hosts.rr_until_answered, "app-b", "erm", "probe", 10.0, timeout=15)
     assert time.monotonic() - healed < 10.0
-    gone = lab.a.call(unloaded, {"device": 5}, 10.0, timeout=15)
-    assert 1 == gone.count({"device": 5})
-
-
-def test_a_name_served_on_the_other_host_cannot_be_started_again(lab: Lab) -> None:
-    with pytest.raises(rr.DuplicateNameError):
-        lab.b.call(hosts.rr_start, "erm", None, timeout=15)
-
-    lab.b.call(hosts.rr_run, "app-b", call_camera, 7, timeout=15)
-    assert [{"device": 7}] == lab.a.call(loads, timeout=5)
-
-
-def test_a_call_to_a_name_of_another_system_fails_at_once_naming_the_callers_system(
-    lab: Lab,
-) -> None:
-    other = lab.net.b.spawn()
-    other.call(
-        hosts.rr_join,
-        system="other",
-        listen=[lab.net.b.endpoint(PORT + 1)],
-        connect=[lab.net.a.endpoint(PORT)],
-        timeout=30,
-    )
-    other.call(hosts.rr_start, "app-c", timeout=30)
-
-    started = time.monotonic()
-    with pytest.raises(rr.UnknownRegistrarError, match="other"):
-        other.call(hosts.rr_run, "app-c", call_camera, 8, timeout=15)
-
-    assert time.monotonic() - started < 2.0
-    other.call(hosts.rr_stop, timeout=30)
+    lab.a.call(unloaded, {"device": 5}, 10.0, timeout=15)  # (at the cut or once healed)
+    again = lab.b.call(hosts.rr_run, "app-b", call_camera, 5, timeout=15)  # loads anew
+    lab.b.call(hosts.rr_run, "app-b", unload, again, timeout=10)
+    lab.a.call(unloaded, {"device": 5}, 10.0, timeout=15)
+    assert [2, 2] == [lab.a.call(loads_of, 5, timeout=5), lab.a.call(unloads_of, 5, timeout=5)]
+    assert 0 == lab.b.call(more_statuses, timeout=5)  # nothing FATAL after the heal
 
 
 # -- a supervisor on each host -----------------------------------------------------------------
 
 
-def cm_setup(registrar: rr.ResourceRegistrar) -> None:
-    """`filtered` depends on the camera of `erm`, on the other host."""
-
-    def load(request: Any) -> Any:
-        return registrar.call("erm", "camera", request, timeout=10).response
-
-    registrar.register_server("filtered", load=load, unload=lambda _q, _r: None)
-
-
-def start_tree(manager: str, setup: Any, state_dir: str, consumer: str | None = None) -> None:
+def start_tree(
+    manager: str,
+    setup: Any,
+    state_dir: str,
+    consumer: str | None = None,
+    restart: str = "permanent",
+) -> None:
     """A supervisor in this worker with one process manager, on the worker's network."""
-    make: Any = rr.Supervisor
-    sup = make(
-        [rr.ManagerSpec(manager, setup=setup, isolation="process")],
+    sup = rr.Supervisor(
+        [rr.ManagerSpec(manager, setup=setup, isolation="process", restart=restart)],  # type: ignore[arg-type]
         state_dir=state_dir,
         network=hosts.KEPT["network"],
     )
@@ -303,8 +441,13 @@ def manager_pid(name: str) -> int:
     return int(pid)
 
 
-def wait_restarted(name: str, timeout: float) -> None:
+def wait_restarted(name: str, timeout: float) -> float:
     hosts.KEPT["sup"].wait_restarted(name, timeout=timeout)
+    return time.monotonic()
+
+
+def run_in(name: str, fn: Any, *args: Any) -> Any:
+    return hosts.KEPT["sup"].run_in(name, lambda registrar: fn(registrar, *args), timeout=15)
 
 
 def stop_tree() -> None:
@@ -313,21 +456,25 @@ def stop_tree() -> None:
         sup.stop()
 
 
-def call_filtered(registrar: rr.ResourceRegistrar, device: int) -> str:
-    return registrar.call(
-        "cm", "filtered", {"device": device}, on_status=record_status, timeout=10
-    ).id
+def in_manager(_registrar: rr.ResourceRegistrar, fn: Any, *args: Any) -> Any:
+    """`fn(*args)` in a manager's process (its own `hosts.KEPT`)."""
+    return fn(*args)
 
 
-def until_filtered(registrar: rr.ResourceRegistrar, device: int, timeout: float) -> str:
-    """`call_filtered` until it succeeds (each failure is immediate: a retry, not a sleep)."""
+def until_filtered(
+    registrar: rr.ResourceRegistrar, device: int, timeout: float
+) -> tuple[str, float]:
+    """`call_filtered` until it succeeds (each failure is immediate: a retry, not a sleep);
+    its id, and when it succeeded."""
     deadline = time.monotonic() + timeout
     while True:
         try:
-            return call_filtered(registrar, device)
+            query_id = call_filtered(registrar, device)
         except rr.RegistrarUnavailableError:
             if time.monotonic() > deadline:
                 raise
+        else:
+            return query_id, time.monotonic()
 
 
 @pytest.mark.timeout(120)
@@ -341,13 +488,52 @@ def test_a_supervised_manager_killed_on_one_host_comes_back_without_fatal_for_th
     a.call(start_tree, "erm", provider_setup, str(two_hosts.directory / "a"), timeout=60)
     b.call(start_tree, "cm", cm_setup, str(two_hosts.directory / "b"), "app-b", timeout=60)
     try:
-        b.call(hosts.rr_run, "app-b", until_filtered, 9, 15.0, timeout=30)
+        before, _ = b.call(hosts.rr_run, "app-b", until_filtered, 9, 15.0, timeout=30)
 
         os.kill(a.call(manager_pid, "erm", timeout=10), signal.SIGKILL)
-        a.call(wait_restarted, "erm", 10.0, timeout=15)
-        b.call(hosts.rr_run, "app-b", until_filtered, 10, 10.0, timeout=15)
+        restarted = a.call(wait_restarted, "erm", 10.0, timeout=15)
+        _, answered = b.call(hosts.rr_run, "app-b", until_filtered, 10, 10.0, timeout=15)
 
+        assert answered - restarted < 10.0
         assert 0 == b.call(more_statuses, timeout=5)  # no FATAL: erm was not lost
+        # its restored catalog kept cm's id (rule 15): released there when app-b lets go
+        b.call(hosts.rr_run, "app-b", unload, before, timeout=10)
+        a.call(run_in, "erm", in_manager, unloaded, {"device": 9}, 10.0, timeout=20)
     finally:
         b.call(stop_tree, timeout=60)
         a.call(stop_tree, timeout=60)
+
+
+@pytest.mark.timeout(120)
+def test_a_consumer_on_host_b_that_dies_for_good_has_its_ids_released_on_host_a(
+    shared: Lab,
+) -> None:
+    # Rule 7: a temporary process manager on b is not restarted; its supervisor's death
+    # watch reaches erm on a (its token alone says "supervised": not lost by presence).
+    tree = shared.net.b.spawn()
+    try:
+        tree.call(
+            hosts.rr_join,
+            system=SYSTEM,
+            listen=[shared.net.b.endpoint(PORT + 2)],
+            connect=[shared.net.a.endpoint(PORT)],
+            timeout=30,
+        )
+        state_dir = str(shared.net.directory / "dies")
+        tree.call(start_tree, "app-t", None, state_dir, None, "temporary", timeout=60)
+        tree.call(run_in, "app-t", call_camera, 20, timeout=30)
+        assert 1 == shared.a.call(loads_of, 20, timeout=5)
+
+        killed = time.monotonic()
+        os.kill(tree.call(manager_pid, "app-t", timeout=10), signal.SIGKILL)
+        released = shared.a.call(unloaded, {"device": 20}, 10.0, timeout=15)
+
+        assert released - killed < 5.0
+        assert 1 == shared.a.call(unloads_of, 20, timeout=5)
+    finally:
+        with contextlib.suppress(Exception):
+            tree.call(stop_tree, timeout=60)
+        with contextlib.suppress(Exception):
+            tree.call(hosts.rr_stop, timeout=30)
+        tree.stop()
+    assert 1 == shared.a.call(unloads_of, 20, timeout=5)
