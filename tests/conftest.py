@@ -1,7 +1,7 @@
-"""Shared fixtures: leak checks, registrar creation in both placements, recording servers.
+"""Shared fixtures: leak checks, registrar creation in every placement, recording servers.
 
 Placement. Every registrar test starts its registrars through `make_registrar`, and every
-test that (directly or through another fixture) uses it runs twice, through the one
+test that (directly or through another fixture) uses it runs three times, through the one
 parametrised fixture `registrar_placement`:
 
 - "thread": `make_registrar` returns `ResourceRegistrar`s in this process (threads).
@@ -15,10 +15,18 @@ parametrised fixture `registrar_placement`:
   otherwise. `rr_actors.testing.crash` SIGKILLs the manager process, and its owner handle
   then tells the other registrars the consumer is gone (what a supervisor does for a
   child it will not restart).
+- "zenoh": as "process", but the system is a `ZenohNetwork` (tls=None, the default
+  1 s lease, a unique system name per test): this process is its router and each
+  manager process joins it as a Zenoh client over the router's Unix socket, so every
+  message between two registrars crosses the Zenoh wire (`zenoh_wire` frames, puts
+  routed through this process, liveliness tokens for presence). No TCP `listen`: on
+  one host the carrier's own process model never uses TCP (managers always join over
+  the Unix socket), and a listen port nobody connects to exercises nothing;
+  `tests/multihost` covers TCP between routers. Loopback only, no root.
 
-A test that cannot mean the same in both placements is marked
-`@pytest.mark.thread_only("reason")`; `pytest_generate_tests` then gives it the thread
-placement only.
+A test that cannot mean the same in every placement is marked
+`@pytest.mark.thread_only("reason")` (thread placement only) or
+`@pytest.mark.not_zenoh("reason")` (not the zenoh one); `pytest_generate_tests` reads them.
 
 Why these choices:
 
@@ -80,8 +88,9 @@ pytest_plugins = ["carriers"]  # the transport tests' fixtures (tests/carriers.p
 LEAK_GRACE = 5.0
 """Seconds a test's actors and child processes get to finish stopping after it ended."""
 
-PLACEMENTS = ("thread", "process")
-"""Where `make_registrar` starts registrars: in this process, or one manager process each."""
+PLACEMENTS = ("thread", "process", "zenoh")
+"""Where `make_registrar` starts registrars: in this process, or one manager process each
+(joined over the AF_UNIX carrier, or over Zenoh)."""
 
 _HELPER_PIDS: set[int] = set()
 """Session-long helper processes (the `SharedObjects` manager), not leaks of a test."""
@@ -91,6 +100,10 @@ def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers",
         "thread_only(reason): run this registrar test in the thread placement only",
+    )
+    config.addinivalue_line(
+        "markers",
+        "not_zenoh(reason): run this registrar test in every placement but the zenoh one",
     )
 
 
@@ -103,6 +116,10 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     if marker is not None:
         assert marker.args or marker.kwargs.get("reason"), "thread_only needs a reason"
         placements = ["thread"]
+    marker = metafunc.definition.get_closest_marker("not_zenoh")
+    if marker is not None:
+        assert marker.args or marker.kwargs.get("reason"), "not_zenoh needs a reason"
+        placements = [p for p in placements if p != "zenoh"]
     metafunc.parametrize("registrar_placement", placements, indirect=True, ids=placements)
 
 
@@ -166,10 +183,10 @@ def no_leftovers() -> Iterator[None]:
 
 @pytest.fixture
 def registrar_placement(request: pytest.FixtureRequest) -> str:
-    """Where registrars started by `make_registrar` run: "thread" or "process".
+    """Where registrars started by `make_registrar` run: "thread", "process" or "zenoh".
 
-    Parametrised by `pytest_generate_tests` (ids "thread" / "process"); a test marked
-    `thread_only` gets "thread" only.
+    Parametrised by `pytest_generate_tests` (ids "thread" / "process" / "zenoh"); a test
+    marked `thread_only` gets "thread" only, one marked `not_zenoh` not "zenoh".
     """
     placement: str = request.param
     return placement
@@ -254,6 +271,8 @@ def placement_network(placement: str) -> Transport:
     """A fresh system (any carrier's `Transport`) for a placement's manager processes."""
     if placement == "process":
         return System.create()
+    if placement == "zenoh":
+        return rr.ZenohNetwork(system=f"test-{uuid.uuid4().hex[:8]}", tls=None)
     raise AssertionError(f"no carrier for placement {placement!r}")
 
 
@@ -265,8 +284,8 @@ def make_registrar(
 
     Call as `make_registrar("provider", call_timeout=5.0)`: keyword arguments are
     `RegistrarConfig` fields. In the "process" placement each registrar gets its own
-    manager process and the result is a `RemoteRegistrar`. Registrars are stopped newest
-    first.
+    manager process (of an AF_UNIX `System`, or of a `ZenohNetwork` in "zenoh") and the
+    result is a `RemoteRegistrar`. Registrars are stopped newest first.
     """
     started: list[Registrar] = []
     system: Transport | None = None

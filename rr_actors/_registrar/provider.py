@@ -532,6 +532,17 @@ class Provider:
             return True
         return False
 
+    def under_way_of(self, origin_rr: str) -> list[str]:
+        """The query ids of registrar `origin_rr` whose loads are under way here."""
+        loads = [
+            *self.matching.waiting(),
+            *self.held_loads,
+            *(load for parked in self.after_unload.values() for load in parked),
+        ]
+        ids = [load.query_id for load in loads if load.origin_rr == origin_rr]
+        ids += [w.query_id for ws in self.loads.values() for w in ws if w.origin_rr == origin_rr]
+        return list(dict.fromkeys(ids))
+
     def under_way(self) -> set[str]:
         """The query ids whose loads are under way here (waiting, parked, held, matched)."""
         ids = {*self.loading_ids, *(load.query_id for load in self.matching.waiting())}

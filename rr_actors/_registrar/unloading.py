@@ -55,7 +55,11 @@ class Unloading:
     def release_all_of(self, origin_rr: str) -> None:
         """Consumer `origin_rr` is gone for good (`presence.py`: the death watch, or a
         carrier's `peer_lost`): release every id it held here (each `unload` runs once;
-        a second call finds none)."""
+        a second call finds none), and give up its loads under way here (each is
+        unloaded once it ends: an answer to a lost consumer may be dropped unseen, as
+        over Zenoh before its token goes, so that answer failing is not counted on)."""
+        for query_id in self.provider.under_way_of(origin_rr):
+            self.provider.give_up(query_id)
         for query_id in self.registrar.catalog.consumers_from(origin_rr):
             if self.registrar.catalog.has_consumer(query_id):  # (a release may have cascaded)
                 self.release(query_id, None)

@@ -429,9 +429,9 @@ class ZenohMember:
             self._ask(name)
             known = bool(self._servers.get(name))
         if not known:
-            raise UnknownRegistrarError(
+            raise UnknownRegistrarError(  # the known: this process's registrars too
                 f"no registrar named {name!r} on system {self.system!r}"
-                + _known_names(name, self.names())
+                + _known_names(name, DIRECTORY.names() - {name})
             )
         with self._lock:
             return self._peers.setdefault(name, ZenohPeer(self, name))

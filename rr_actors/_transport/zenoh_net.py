@@ -95,6 +95,7 @@ def _loopback(host: str) -> bool:
 def _config(mode: str, listen: list[str], connect: list[str], lease: float) -> zenoh.Config:
     """The session's Zenoh config: only the endpoints given, `lease` seconds, no scouting."""
     lease_ms = max(1, round(lease * 1000))
+    tcp = [endpoint for endpoint in listen if not endpoint.startswith("unixsock-stream/")]
     settings: dict[str, Any] = {
         "mode": mode,
         "listen": {"endpoints": listen},
@@ -103,7 +104,14 @@ def _config(mode: str, listen: list[str], connect: list[str], lease: float) -> z
             "exit_on_failure": mode == "client",
             "retry": {"period_init_ms": 250, "period_max_ms": 1000},
         },
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "scouting": {
+            "multicast": {"enabled": False},
+            "gossip": {"enabled": False},
+            # a router's open waits `delay` ms (500) for links to other routers, its own
+            # `connect` ones and those that connect to its TCP `listen`; with neither (one
+            # host, scouting off) there is nothing to wait for
+            **({"delay": 0} if mode == "router" and not connect and not tcp else {}),
+        },
         "transport": {
             "link": {
                 "tx": {
