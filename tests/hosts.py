@@ -194,20 +194,30 @@ def _exit_at_eof() -> None:  # pragma: no cover (runs in the worker)
 # -- the test's side ---------------------------------------------------------------------------
 
 
-_BY_VALUE: set[str] = set()
-"""The modules already registered with cloudpickle to be sent by value."""
+_BY_VALUE_LOCK = threading.Lock()
+"""Held while test modules are registered to be sent by value (one pickling at a time)."""
 
 
-def _by_value() -> None:
-    """Send test and benchmark modules by value (workers cannot import them by name)."""
-    for name, module in list(sys.modules.items()):
-        path = getattr(module, "__file__", None)
-        if name in _BY_VALUE or name in {__name__, "__main__"} or not path:
-            continue
-        where = Path(path)
-        if where.is_relative_to(TESTS) or where.is_relative_to(ROOT / "benchmarks"):
-            cloudpickle.register_pickle_by_value(module)
-            _BY_VALUE.add(name)
+def _dumps_by_value(obj: Any) -> bytes:
+    """`cloudpickle.dumps(obj)` with test and benchmark modules sent by value (workers
+    cannot import them by name), registered for this pickling only: other tests of the
+    session pickle the same modules by reference (by value, a module's globals such as
+    locks would travel too)."""
+    with _BY_VALUE_LOCK:
+        registered = []
+        for name, module in list(sys.modules.items()):
+            path = getattr(module, "__file__", None)
+            if name in {__name__, "__main__"} or not path:
+                continue
+            where = Path(path)
+            if where.is_relative_to(TESTS) or where.is_relative_to(ROOT / "benchmarks"):
+                cloudpickle.register_pickle_by_value(module)
+                registered.append(module)
+        try:
+            return cloudpickle.dumps(obj)
+        finally:
+            for module in registered:
+                cloudpickle.unregister_pickle_by_value(module)
 
 
 class Worker:
@@ -338,8 +348,7 @@ class Worker:
 
     def submit(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> Future[T]:
         """Run `fn(*args, **kwargs)` in the worker; the future holds its result or exception."""
-        _by_value()
-        payload = cloudpickle.dumps((fn, args, kwargs))
+        payload = _dumps_by_value((fn, args, kwargs))
         future: Future[T] = Future()
         with self._lock:
             if self._closed:
