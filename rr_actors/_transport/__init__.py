@@ -8,7 +8,10 @@
   (the system: runtime directory, authkey, `attach`);
 - the Zenoh carrier (extra `zenoh`, imported only when used): `zenoh_net`
   (`ZenohNetwork`: the router per host and its config), `zenoh_carrier` (a process's
-  membership: sending, receiving, presence), `zenoh_wire` (key expressions and header).
+  membership: the Transport surface, sending), `zenoh_outbox` (writer threads),
+  `zenoh_inbox` (decode threads, delivery, answers), `zenoh_presence` (liveliness
+  tokens), `zenoh_queue` (one thread per ordered stream), `zenoh_wire` (key expressions
+  and header).
 """
 
 from rr_actors._transport.base import Address, Endpoint, Transport

@@ -13,10 +13,11 @@ never over TCP on loopback, which any local user could reach and send pickles to
  manager processes (address.attach())              manager processes
 ```
 
-What crosses and how presence works: `zenoh_carrier`. A process belongs to one system
-(the registrar directory is per process): joining a second one is a `ConfigError`. A
-process that opened a Zenoh session must not fork (the child hangs): rr_actors starts
-manager processes with forkserver or spawn.
+What crosses: `zenoh_carrier` (and its collaborators); how presence works:
+`zenoh_presence`. A process belongs to one system (the registrar directory is per
+process): joining a second one is a `ConfigError`. A process that opened a Zenoh session
+must not fork (the child hangs): rr_actors starts manager processes with forkserver or
+spawn.
 """
 
 from __future__ import annotations

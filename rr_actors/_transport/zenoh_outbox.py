@@ -1,0 +1,146 @@
+"""The Zenoh carrier's sending side: one writer thread per destination key.
+
+```
+ ZenohMember._send / answer_to ─► Outboxes.get(key) ─► Outbox(key).send(header + frame)
+                                                          │ its writer thread (zenoh_queue)
+                                                          ▼
+                      (first put after a healed link: ping rr/<s>/ping/<zid> first)
+                                                 publisher.put ─► rr/<s>/reg/<name>
+                                                                  rr/<s>/ans/<zid>
+```
+
+A sender never blocks on a peer and no answer is sent on an actor thread: one writer per
+destination (a registrar's key for requests, a process's answer key for answers), so
+messages from one process to one registrar keep their order (one writer, one Zenoh route,
+one decode thread there). Puts are reliable and block on a full queue
+(`CongestionControl.BLOCK`) on the writer thread only; Zenoh closes a link that stays
+blocked longer than half the lease.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+import zenoh
+
+from rr_actors._transport.writer import Lost, run_lost
+from rr_actors._transport.zenoh_queue import Queue
+
+__all__ = ["HEAL_TIMEOUT", "Outbox", "Outboxes"]
+
+logger = logging.getLogger("rr_actors")
+
+HEAL_TIMEOUT = 2.0
+"""Seconds the first message to a process back from a healed link waits for its answer
+to a ping (then it is sent anyway)."""
+
+
+class Outbox:
+    """The writer of one destination key: its thread puts payloads in the order sent."""
+
+    def __init__(
+        self, session: zenoh.Session, key: str, ready: Callable[[], None] | None = None
+    ) -> None:
+        self.key = key
+        self._ready = ready  # runs on the writer thread before the first put
+        self._publisher = session.declare_publisher(
+            key,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            express=True,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        self._queue = Queue(f"rr-zput-{key.rsplit('/', 1)[-1]}", self._put)
+
+    @property
+    def closed(self) -> bool:
+        return self._queue.closed
+
+    def send(self, data: bytes, on_lost: Lost | None = None) -> bool:
+        """Queue `data`; False (nothing sent) if the outbox is closed."""
+        return self._queue.put((data, on_lost))
+
+    def _put(self, item: tuple[bytes, Lost | None]) -> None:
+        data, on_lost = item
+        ready, self._ready = self._ready, None
+        if ready is not None:
+            ready()
+        try:
+            self._publisher.put(data)
+        except Exception as exc:  # noqa: BLE001 - the session closed: the frame is lost
+            logger.debug("a put on %s failed: %s", self.key, exc)
+            if on_lost is not None:
+                run_lost([on_lost])
+
+    def close(self) -> None:
+        """Stop sending: what is still queued is lost (its `on_lost` runs)."""
+        lost = [on_lost for _, on_lost in self._queue.close() if on_lost is not None]
+        with contextlib.suppress(Exception):
+            self._publisher.undeclare()  # type: ignore[no-untyped-call]
+        run_lost(lost)
+
+
+class Outboxes:
+    """The outboxes of one process's session, by destination key.
+
+    Args:
+        session: the open session.
+        prefix: `rr/<system>`.
+    """
+
+    def __init__(self, session: zenoh.Session, prefix: str) -> None:
+        self._session = session
+        self._prefix = prefix
+        self._lock = threading.Lock()
+        self._outboxes: dict[str, Outbox] = {}
+        self._closed = False
+
+    def get(self, key: str, healed: str | None = None) -> Outbox:
+        """The outbox of `key`; the first put of a new one to process `healed` (back from
+        a healed link) waits until that process answers a ping."""
+        outbox = self._outboxes.get(key)
+        if outbox is not None and not outbox.closed:
+            return outbox
+        ready = functools.partial(self._until_answered, healed) if healed is not None else None
+        fresh = Outbox(self._session, key, ready)  # (no Zenoh call under our lock: its
+        with self._lock:  # callbacks take it)
+            outbox = self._outboxes.get(key)
+            if outbox is None or outbox.closed:
+                self._outboxes[key] = outbox = fresh
+        if outbox is not fresh:
+            fresh.close()
+        return outbox
+
+    def pop(self, key: str) -> Outbox | None:
+        """Forget the outbox of `key` (its destination went); the caller closes it."""
+        return self._outboxes.pop(key, None)
+
+    def close(self) -> None:
+        """Close every outbox: what is still queued is lost."""
+        with self._lock:
+            self._closed = True
+            outboxes = list(self._outboxes.values())
+        for outbox in outboxes:
+            outbox.close()
+
+    def _until_answered(self, zid: str | None) -> None:
+        """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread).
+
+        After a healed link its tokens may be back here before what is sent to it gets
+        through: a message put in between was lost without a word (a call right after
+        the heal waited for its timeout). An answered ping went the way the next put goes.
+        """
+        deadline = time.monotonic() + HEAL_TIMEOUT
+        pause = threading.Event()
+        while not self._closed and time.monotonic() < deadline:
+            try:
+                replies = self._session.get(f"{self._prefix}/ping/{zid}", timeout=0.25)
+                if any(reply.ok is not None for reply in replies):
+                    return
+            except Exception:  # noqa: BLE001 - the session closed: the put fails too
+                return
+            pause.wait(0.01)  # (no queryable seen yet: a get returns at once)

@@ -1,0 +1,299 @@
+"""The Zenoh carrier's presence: who serves what, as the liveliness tokens say.
+
+```
+ liveliness rr/<s>/live/**  ─► Presence._on_live (Zenoh's thread: queues, never blocks)
+ Presence.ask(name) ─ liveliness get ─┘      │
+                                             ▼
+                        presence thread (zenoh_queue): _apply, in order
+                          tables: process tokens, servers, claims, "stopped" marks,
+                                  supervisors awaited
+                                             │ then, outside the lock
+                                             ▼
+                  PresenceEvents (the member): process_gone, server_gone, lost, reachable
+                     ─► fail waiting replies, close outboxes, peer_lost, peer_reachable
+```
+
+- a registrar's token (`live/reg/<name>/<zid>/<sup>/<limit>`) goes: every reply waiting
+  on it fails with `RegistrarStoppedError` if its `stopped` mark came first (a clean stop
+  declares the mark before it drops the token), else with `RegistrarUnavailableError`;
+  later calls fail at once the same way;
+- it is *lost for good* (the endpoints' `peer_lost`) when it did not stop cleanly and
+  nobody restarts it: `<sup>` is `none`, or the process `<sup>` (its supervisor: the
+  router process of a manager process that router started, `supervised_by`, or its own
+  process when its `DIRECTORY.restart_expected`) has no token now or loses it later; a
+  process that merely attached through the router publishes `none`;
+- a registrar whose process token went (a cut link) and that comes back from the same
+  process (same Zenoh id: a healed link, not a restart) is `peer_reachable`; the first
+  message to that process waits (on its writer thread) until a ping of it is answered
+  (`rr/<s>/ping/<zid>`, `zenoh_outbox`): its token may be back before what is put to it
+  gets through.
+
+Claims (`live/claim/<name>/<zid>`) and `wait_turn` are `serve`'s half of "one name, one
+server" (see `zenoh_carrier`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import zenoh
+
+from rr_actors._transport.zenoh_queue import Queue
+from rr_actors.errors import DuplicateNameError
+
+__all__ = ["ASK_TIMEOUT", "CLAIM_TIMEOUT", "NO_WAITING", "Presence", "PresenceEvents", "Server"]
+
+ASK_TIMEOUT = 1.0
+"""Seconds a miss of `resolve` (or `serve`'s check for the name) asks the network."""
+CLAIM_TIMEOUT = 5.0
+"""Seconds `serve` waits for a rival claim of the same name to serve or withdraw."""
+
+NO_WAITING = threading.local()
+"""`active` on threads that must not wait on the network: Zenoh's callback threads (a
+frame decoded there, and what its reply's continuation sends) and the presence thread."""
+
+
+class Server:
+    """A registrar of another process as its liveliness token says."""
+
+    __slots__ = ("limit", "supervisor", "zid")
+
+    def __init__(self, zid: str, supervisor: str, limit: int) -> None:
+        self.zid = zid
+        self.supervisor = supervisor
+        self.limit = limit
+
+
+class PresenceEvents(Protocol):
+    """What `Presence` reports (on the presence thread, in order, outside its lock)."""
+
+    def process_gone(self, zid: str) -> None:
+        """Process `zid`'s token went: what was open to and from it ends."""
+
+    def server_gone(self, name: str) -> None:
+        """The last server of registrar `name` went: what waits on it fails."""
+
+    def lost(self, name: str) -> None:
+        """Registrar `name` is gone for good (nobody restarts it)."""
+
+    def reachable(self, name: str) -> None:
+        """Registrar `name` is back from the same process (a healed link)."""
+
+
+class Presence:
+    """The liveliness tables of one process's membership (written by its presence thread).
+
+    Args:
+        system: the system's name (for error messages).
+        session: the open session.
+        zid: this process's Zenoh id (its own tokens are left out).
+        events: told what follows from a change (see `PresenceEvents`).
+    """
+
+    def __init__(
+        self, system: str, session: zenoh.Session, zid: str, events: PresenceEvents
+    ) -> None:
+        self._system = system
+        self._session = session
+        self._zid = zid
+        self._events = events
+        self._prefix = f"rr/{system}"
+        self._changed = threading.Condition(threading.Lock())
+        self._seq = 0
+        self._deleted: dict[str, int] = {}  # token key -> seq of its last deletion
+        self._procs: set[str] = set()
+        self._vanished: set[str] = set()  # processes whose token went at least once
+        self._servers: dict[str, dict[str, Server]] = {}
+        self._claims: dict[str, set[str]] = {}
+        self._stopped: set[tuple[str, str]] = set()
+        self._gone: dict[str, str] = {}  # name -> "stopped" | "died"
+        self._last: dict[str, str] = {}  # name -> the Zenoh id of its last server
+        self._awaiting: dict[str, str] = {}  # name -> its supervisor: lost if that one goes
+        self._queue = Queue("rr-zpresence", self._apply)
+        self._live = session.liveliness().declare_subscriber(
+            f"{self._prefix}/live/**", self._on_live, history=True
+        )
+
+    # -- what the tables say -------------------------------------------------------------
+
+    def serves(self, name: str) -> bool:
+        """Whether another process serves `name` now."""
+        return bool(self._servers.get(name))
+
+    def server(self, name: str) -> Server | None:
+        """A server of `name` in another process, if any."""
+        servers = self._servers.get(name)
+        if not servers:
+            return None
+        for server in list(servers.values()):
+            return server
+        return None
+
+    def names(self) -> list[str]:
+        """The registrars of other processes that serve now."""
+        return sorted(name for name, servers in list(self._servers.items()) if servers)
+
+    def gone(self, name: str) -> str | None:
+        """How `name`'s last server went: "stopped", "died", or None (not gone)."""
+        return self._gone.get(name)
+
+    def vanished(self, zid: str) -> bool:
+        """Whether process `zid`'s token went at least once."""
+        return zid in self._vanished
+
+    def unreachable(self, zid: str) -> bool:
+        """Whether process `zid` went and is not back. (A process whose token was not seen
+        yet is not: its message may overtake its token here.)"""
+        return zid in self._vanished and zid not in self._procs
+
+    def wait_turn(self, name: str) -> None:
+        """With this process's claim on `name` declared: return once it may serve it.
+
+        Raises:
+            DuplicateNameError: another process serves it, or claims it and wins.
+        """
+        me = int(self._zid, 16)
+        self.ask(name)
+        deadline = time.monotonic() + CLAIM_TIMEOUT
+        with self._changed:
+            while True:
+                others = [z for z in self._servers.get(name, {}) if z != self._zid]
+                if others:
+                    raise DuplicateNameError(
+                        f"a registrar named {name!r} is already served on system "
+                        f"{self._system!r} (by process {others[0]})"
+                    )
+                rivals = [z for z in self._claims.get(name, ()) if z != self._zid]
+                if any(int(z, 16) < me for z in rivals):
+                    raise DuplicateNameError(
+                        f"another process of system {self._system!r} starts a registrar "
+                        f"named {name!r} at the same time, and wins the tie-break"
+                    )
+                if not rivals:
+                    return
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise DuplicateNameError(
+                        f"another process of system {self._system!r} is starting a "
+                        f"registrar named {name!r}"
+                    )
+                self._changed.wait(left)
+
+    # -- hearing of tokens ---------------------------------------------------------------
+
+    def _on_live(self, sample: zenoh.Sample) -> None:
+        self._queue.put((sample.kind == zenoh.SampleKind.PUT, str(sample.key_expr), None))
+
+    def ask(self, name: str) -> None:
+        """Ask the network for the tokens of `name` (bounded) and apply what it answers.
+
+        An answer for a token whose deletion was seen after the question was asked is
+        stale and left out.
+        """
+        if getattr(NO_WAITING, "active", False):
+            return  # (on Zenoh's or the presence thread: what the tables say must do)
+        with self._changed:
+            asked_at = self._seq
+        keys: list[str] = []
+        with contextlib.suppress(Exception):
+            replies = self._session.liveliness().get(
+                f"{self._prefix}/live/*/{name}/**", timeout=ASK_TIMEOUT
+            )
+            keys.extend(str(reply.ok.key_expr) for reply in replies if reply.ok is not None)
+        done = threading.Event()
+        for key in keys:
+            self._queue.put((True, key, asked_at))
+        self._queue.put((None, "", done))
+        done.wait(ASK_TIMEOUT)
+
+    def close(self) -> None:
+        """Stop applying events."""
+        self._queue.close()
+
+    # -- the presence thread -------------------------------------------------------------
+
+    def _apply(self, item: tuple[bool | None, str, Any]) -> None:
+        """Apply one liveliness event (the presence thread): tables, then what follows."""
+        NO_WAITING.active = True
+        put, key, extra = item
+        if put is None:  # a marker: everything queued before it was applied
+            extra.set()
+            return
+        parts = key.removeprefix(self._prefix + "/live/").split("/")
+        with self._changed:
+            self._seq += 1
+            if put and extra is not None and self._deleted.get(key, -1) > extra:
+                return  # a stale answer of `ask`
+            if not put:
+                self._deleted[key] = self._seq
+            actions = self._change(put, parts)
+            self._changed.notify_all()
+        for action in actions:
+            action()
+
+    def _change(self, put: bool, parts: list[str]) -> list[Callable[[], None]]:
+        """Apply one event to the tables (holding the lock); what to do after."""
+        kind = parts[0]
+        if kind == "proc" and len(parts) == 2 and parts[1] != self._zid:
+            return self._process_event(put, parts[1])
+        if kind == "reg" and len(parts) == 5 and parts[2] != self._zid:
+            return self._server_event(put, parts[1], Server(parts[2], parts[3], int(parts[4])))
+        if kind == "claim" and len(parts) == 3:
+            claims = self._claims.setdefault(parts[1], set())
+            if put:
+                claims.add(parts[2])
+            else:
+                claims.discard(parts[2])
+        elif kind == "stopped" and len(parts) == 3:
+            if put:
+                self._stopped.add((parts[1], parts[2]))
+            else:
+                self._stopped.discard((parts[1], parts[2]))
+        return []
+
+    def _process_event(self, put: bool, zid: str) -> list[Callable[[], None]]:
+        """Process `zid`'s token came or went: registrars it supervised are lost now."""
+        if put:
+            self._procs.add(zid)
+            return []
+        self._procs.discard(zid)
+        self._vanished.add(zid)
+        lost = [name for name, supervisor in self._awaiting.items() if supervisor == zid]
+        for name in lost:
+            del self._awaiting[name]
+        actions: list[Callable[[], None]] = [functools.partial(self._events.lost, n) for n in lost]
+        actions.append(functools.partial(self._events.process_gone, zid))
+        return actions
+
+    def _server_event(self, put: bool, name: str, server: Server) -> list[Callable[[], None]]:
+        """A server's token of registrar `name` came or went."""
+        servers = self._servers.setdefault(name, {})
+        zid = server.zid
+        if put:
+            if zid in servers:
+                return []
+            servers[zid] = server
+            self._gone.pop(name, None)
+            self._awaiting.pop(name, None)
+            if self._last.get(name) == zid and zid in self._vanished:
+                return [functools.partial(self._events.reachable, name)]  # a healed link
+            return []
+        if servers.pop(zid, None) is None or servers:
+            return []  # unknown, or a rival that yielded: another one serves
+        stopped = (name, zid) in self._stopped
+        self._gone[name] = "stopped" if stopped else "died"
+        self._last[name] = zid
+        actions: list[Callable[[], None]] = [functools.partial(self._events.server_gone, name)]
+        if stopped:
+            return actions
+        supervisor = server.supervisor
+        if supervisor == "none" or (supervisor != self._zid and supervisor not in self._procs):
+            actions.append(functools.partial(self._events.lost, name))
+        else:
+            self._awaiting[name] = supervisor  # lost if its supervisor goes too
+        return actions
