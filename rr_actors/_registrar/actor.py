@@ -4,6 +4,7 @@
               ┌──────────────────── RegistrarActor (one mailbox, one thread) ───────────────┐
  message ───► │ DISPATCH: type -> (step name, the role's handler)                            │
               │   Provider   Load                        (provider.py, matching.py)          │
+              │   Teardown   (runs unloads: called by the roles above)   (teardown.py)       │
               │   Unloading  Unload Abandon Reconcile                    (unloading.py)      │
               │   Servers    Fetch RegisterServer UnregisterServer UpdateResponse            │
               │              ListServerQueries                            (servers.py)       │
@@ -82,6 +83,7 @@ from rr_actors._registrar.provider import Provider
 from rr_actors._registrar.servers import Servers
 from rr_actors._registrar.state import OpenReply, Shared
 from rr_actors._registrar.status import StatusRelay
+from rr_actors._registrar.teardown import Teardown
 from rr_actors._registrar.unloading import Unloading
 from rr_actors._store import Saver
 from rr_actors.config import RegistrarConfig
@@ -216,11 +218,13 @@ class RegistrarActor(Actor):
 
     Attributes:
         shared: the state every role uses.
-        provider, unloading, servers, consumer, status, lifecycle, presence: the roles.
+        provider, teardown, unloading, servers, consumer, status, lifecycle, presence: the
+            roles.
     """
 
     shared: Shared
     provider: Provider
+    teardown: Teardown
     unloading: Unloading
     servers: Servers
     consumer: Consumer
@@ -245,15 +249,23 @@ class RegistrarActor(Actor):
         super().__init__()
         self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
         # Each role is built after the roles it calls, and calls only those (one way):
-        # lifecycle -> servers -> status | unloading -> provider -> consumer.
+        # lifecycle -> servers -> status | unloading -> provider -> teardown -> consumer.
         self.consumer = Consumer(self.shared, due, self.dispatch, clients)
-        self.provider = Provider(self.shared, self.consumer)
-        self.unloading = Unloading(self.shared, self.provider)
+        self.teardown = Teardown(self.shared, self.consumer)
+        self.provider = Provider(self.shared, self.consumer, self.teardown)
+        self.unloading = Unloading(self.shared, self.provider, self.teardown)
         self.status = StatusRelay(self.shared, self.consumer)
-        self.servers = Servers(self.shared, self.provider, self.status)
+        self.servers = Servers(self.shared, self.teardown, self.status)
         self.presence = Presence(self.shared, self.unloading, self.consumer)
         self.lifecycle = Lifecycle(
-            self.shared, self.provider, self.unloading, self.consumer, self, died, ended
+            self.shared,
+            self.provider,
+            self.teardown,
+            self.unloading,
+            self.consumer,
+            self,
+            died,
+            ended,
         )
         self.handlers: dict[type, tuple[str, Handler]] = {
             kind: (step, bind(self)) for kind, (step, bind) in DISPATCH.items()

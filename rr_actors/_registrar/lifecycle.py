@@ -47,6 +47,7 @@ if TYPE_CHECKING:
     from rr_actors._registrar.actor import RegistrarActor
     from rr_actors._registrar.consumer import Consumer
     from rr_actors._registrar.provider import Provider
+    from rr_actors._registrar.teardown import Teardown
     from rr_actors._registrar.unloading import Unloading
 
 __all__ = ["CatalogView", "Lifecycle"]
@@ -85,6 +86,7 @@ class Lifecycle:
         self,
         shared: Shared,
         provider: Provider,
+        teardown: Teardown,
         unloading: Unloading,
         consumer: Consumer,
         actor: RegistrarActor,
@@ -93,6 +95,7 @@ class Lifecycle:
     ) -> None:
         self.registrar = shared
         self.provider = provider
+        self.teardown = teardown
         self.unloading = unloading
         self.consumer = consumer
         self.actor = actor
@@ -138,7 +141,7 @@ class Lifecycle:
                     self.registrar.events.publish(events.InDoubt(self.registrar.name, resource.id))
                 catalog.begin_unload(resource.id)
                 self.consumer.release_dependencies(
-                    resource.id, functools.partial(self.provider.remove_resource, resource)
+                    resource.id, functools.partial(self.teardown.remove_resource, resource)
                 )
         for record in list(catalog.clients.values()):
             orphan = record.parent is not None and record.parent not in catalog.resources
