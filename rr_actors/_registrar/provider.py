@@ -309,7 +309,7 @@ class Provider:
         resource = catalog.resources[rid]
         started = self.load_started.pop(rid)
         if self.registrar.events.active:
-            self._published_load(resource, waiters[0].query_id, started, error)
+            published_load(self.registrar, resource, waiters[0].query_id, started, error)
         if error is not None:
             catalog.begin_unload(rid)
             self.registrar.commit()
@@ -366,27 +366,6 @@ class Provider:
                         )
                     )
         return live
-
-    def _published_load(
-        self, resource: Resource, query_id: str, started: float, error: BaseException | None
-    ) -> None:
-        """Publish how a load ended (`ResourceLoaded` or `LoadFailed`)."""
-        if error is None:
-            load_s = time.monotonic() - started
-            self.registrar.events.publish(
-                events.ResourceLoaded(
-                    self.registrar.name, resource.server, resource.id, query_id, load_s
-                )
-            )
-            return
-        error_type, message = type(error).__qualname__, str(error)
-        if isinstance(error, ResourceLoadError):  # this registrar's frame: what load raised
-            error_type, message = error.stack[-1].exc_type, error.stack[-1].message
-        self.registrar.events.publish(
-            events.LoadFailed(
-                self.registrar.name, resource.server, resource.id, query_id, error_type, message
-            )
-        )
 
     def serve_held(self) -> None:
         """Setup is done: serve the loads that waited for it (unknown servers now fail),
@@ -457,3 +436,27 @@ class Provider:
                 load.reply.set_error(error)
         self.matching.fail_waiting(error)
         self.teardown.fail_waiting(error)
+
+
+def published_load(
+    registrar: Shared,
+    resource: Resource,
+    query_id: str,
+    started: float,
+    error: BaseException | None,
+) -> None:
+    """Publish how a load ended (`ResourceLoaded` or `LoadFailed`)."""
+    if error is None:
+        load_s = time.monotonic() - started
+        registrar.events.publish(
+            events.ResourceLoaded(registrar.name, resource.server, resource.id, query_id, load_s)
+        )
+        return
+    error_type, message = type(error).__qualname__, str(error)
+    if isinstance(error, ResourceLoadError):  # this registrar's frame: what load raised
+        error_type, message = error.stack[-1].exc_type, error.stack[-1].message
+    registrar.events.publish(
+        events.LoadFailed(
+            registrar.name, resource.server, resource.id, query_id, error_type, message
+        )
+    )
