@@ -47,6 +47,7 @@ if TYPE_CHECKING:
     from rr_actors._registrar.actor import RegistrarActor
     from rr_actors._registrar.consumer import Consumer
     from rr_actors._registrar.provider import Provider
+    from rr_actors._registrar.reconciling import Reconciling
     from rr_actors._registrar.teardown import Teardown
     from rr_actors._registrar.unloading import Unloading
 
@@ -89,6 +90,7 @@ class Lifecycle:
         teardown: Teardown,
         unloading: Unloading,
         consumer: Consumer,
+        reconciling: Reconciling,
         actor: RegistrarActor,
         died: threading.Event,
         ended: threading.Event,
@@ -98,6 +100,7 @@ class Lifecycle:
         self.teardown = teardown
         self.unloading = unloading
         self.consumer = consumer
+        self.reconciling = reconciling
         self.actor = actor
         self.died = died
         self.ended = ended
@@ -109,7 +112,7 @@ class Lifecycle:
     def on_start(self) -> None:
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
-        self.consumer.expect_reconcile(providers)
+        self.reconciling.expect_reconcile(providers)
         self.settle_in_doubt()
         self.arm_flush_timer()
         if self.registrar.phase is Phase.SERVING:  # (else once setup is done: `op_ready`)
@@ -124,7 +127,7 @@ class Lifecycle:
         and ids one side lost in its restart are reported to the consumer as `FATAL`.
         """
         self.unloading.ask_to_reconcile()
-        self.consumer.reconcile_all()
+        self.reconciling.reconcile_all()
 
     def settle_in_doubt(self) -> None:
         """Drop restored resources whose load or unload a crash cut short (rule 16).
