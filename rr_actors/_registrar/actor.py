@@ -4,12 +4,14 @@
               ┌──────────────────── RegistrarActor (one mailbox, one thread) ───────────────┐
  message ───► │ DISPATCH: type -> (step name, the role's handler)                            │
               │   Provider   Load                        (provider.py, matching.py)          │
+              │   Teardown   (runs unloads: called by the roles above)   (teardown.py)       │
               │   Unloading  Unload Abandon Reconcile                    (unloading.py)      │
               │   Servers    Fetch RegisterServer UnregisterServer UpdateResponse            │
               │              ListServerQueries                            (servers.py)       │
               │   Consumer   Pending ClientLoaded CallFailed Revoke ResponseUpdated          │
-              │              ReconcileAsk Release SetStatusCallback ListClientQueries        │
-              │              OpenClient                                   (consumer.py)      │
+              │              Release SetStatusCallback ListClientQueries OpenClient          │
+              │                                                           (consumer.py)      │
+              │   Reconciling ReconcileAsk                               (reconciling.py)    │
               │   StatusRelay StatusNotice SendStatus                    (status.py)         │
               │   Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot; death           │
               │                                                           (lifecycle.py)     │
@@ -79,9 +81,11 @@ from rr_actors._registrar.messages import (
 from rr_actors._registrar.presence import Presence
 from rr_actors._registrar.probes import POINTS
 from rr_actors._registrar.provider import Provider
+from rr_actors._registrar.reconciling import Reconciling
 from rr_actors._registrar.servers import Servers
 from rr_actors._registrar.state import OpenReply, Shared
 from rr_actors._registrar.status import StatusRelay
+from rr_actors._registrar.teardown import Teardown
 from rr_actors._registrar.unloading import Unloading
 from rr_actors._store import Saver
 from rr_actors.config import RegistrarConfig
@@ -142,7 +146,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     Fetch: ("fetch", lambda a: a.servers.on_fetch),  # at the provider
     ConsumerDown: ("consumer_down", lambda a: a.presence.on_consumer_down),  # death watch
     Reconcile: ("reconcile", lambda a: a.unloading.on_reconcile),  # a consumer lists its ids
-    ReconcileAsk: ("reconcile_ask", lambda a: a.consumer.on_reconcile_ask),  # provider restarted
+    ReconcileAsk: ("reconcile_ask", lambda a: a.reconciling.on_reconcile_ask),  # provider restarted
     # -- from a carrier's presence callbacks (`Served`) --
     PeerLost: ("peer_lost", lambda a: a.presence.on_peer_lost),  # gone, nobody restarts it
     PeerReachable: ("peer_reachable", lambda a: a.presence.on_peer_reachable),  # link healed
@@ -216,11 +220,14 @@ class RegistrarActor(Actor):
 
     Attributes:
         shared: the state every role uses.
-        provider, unloading, servers, consumer, status, lifecycle, presence: the roles.
+        provider, teardown, reconciling, unloading, servers, consumer, status, lifecycle,
+            presence: the roles.
     """
 
     shared: Shared
     provider: Provider
+    teardown: Teardown
+    reconciling: Reconciling
     unloading: Unloading
     servers: Servers
     consumer: Consumer
@@ -245,15 +252,26 @@ class RegistrarActor(Actor):
         super().__init__()
         self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
         # Each role is built after the roles it calls, and calls only those (one way):
-        # lifecycle -> servers -> status | unloading -> provider -> consumer.
+        # lifecycle -> servers | presence -> status | unloading -> provider
+        # -> teardown | reconciling -> consumer.
         self.consumer = Consumer(self.shared, due, self.dispatch, clients)
-        self.provider = Provider(self.shared, self.consumer)
-        self.unloading = Unloading(self.shared, self.provider)
+        self.reconciling = Reconciling(self.shared, self.consumer, due, self.dispatch)
+        self.teardown = Teardown(self.shared, self.consumer)
+        self.provider = Provider(self.shared, self.consumer, self.teardown)
+        self.unloading = Unloading(self.shared, self.provider, self.teardown)
         self.status = StatusRelay(self.shared, self.consumer)
-        self.servers = Servers(self.shared, self.provider, self.status)
-        self.presence = Presence(self.shared, self.unloading, self.consumer)
+        self.servers = Servers(self.shared, self.teardown, self.status)
+        self.presence = Presence(self.shared, self.unloading, self.consumer, self.reconciling)
         self.lifecycle = Lifecycle(
-            self.shared, self.provider, self.unloading, self.consumer, self, died, ended
+            self.shared,
+            self.provider,
+            self.teardown,
+            self.unloading,
+            self.consumer,
+            self.reconciling,
+            self,
+            died,
+            ended,
         )
         self.handlers: dict[type, tuple[str, Handler]] = {
             kind: (step, bind(self)) for kind, (step, bind) in DISPATCH.items()

@@ -19,16 +19,14 @@ place a record is forgotten (`forget`); giving an id back to a provider is
 from __future__ import annotations
 
 import logging
-import time
-import uuid
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from typing import Any
 
 import pykka
 
 from rr_actors._catalog import ClientRecord, ResourceState
 from rr_actors._core.directory import Reply
-from rr_actors._core.replies import FutureReply, Join
+from rr_actors._core.replies import Join
 from rr_actors._registrar.calls import AttemptState, CallAttempt, DueAnswers
 from rr_actors._registrar.display import ClientTexts
 from rr_actors._registrar.endpoints import ClientActor, Clients
@@ -37,16 +35,14 @@ from rr_actors._registrar.messages import (
     CallFailed,
     ClientLoaded,
     Pending,
-    Reconcile,
-    ReconcileAsk,
     ResponseUpdated,
     Revoke,
     StatusNotice,
     Unload,
     give_back,
 )
-from rr_actors._registrar.state import Phase, Shared
-from rr_actors._types import Query, Status, StatusCallback
+from rr_actors._registrar.state import Shared
+from rr_actors._types import Query, StatusCallback
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
@@ -76,7 +72,6 @@ class Consumer:
         unsettled: query id -> provider, of calls that failed as their provider died or
             stopped (it may hold the id; a retry may come): held until reconciled.
         releasing: query ids whose `Unload` is on its way.
-        asked_to_reconcile: providers that asked for a `Reconcile` during setup.
         texts: makes its records' request display texts (`display.py`).
     """
 
@@ -96,7 +91,6 @@ class Consumer:
         self.parked_notices: dict[str, list[Notice]] = {}
         self.unsettled: dict[str, str] = {}
         self.releasing: set[str] = set()
-        self.asked_to_reconcile: set[str] = set()
         self.texts = ClientTexts(shared)
 
     # -- holding and forgetting queries -----------------------------------------------
@@ -124,10 +118,6 @@ class Consumer:
     def callback_of(self, query_id: str) -> StatusCallback | None:
         """The client status callback of query `query_id`, if it has one."""
         return self.status_callbacks.get(query_id)
-
-    def expect_reconcile(self, providers: Iterable[str]) -> None:
-        """Reconcile with `providers` too once this registrar serves (`reconcile_all`)."""
-        self.asked_to_reconcile.update(providers)
 
     def withdraw_pending(self, error: RrError) -> None:
         """This registrar stops: give up its durable calls in flight; their callers get `error`.
@@ -385,26 +375,7 @@ class Consumer:
     def stop_clients(self) -> None:
         self.clients.stop_all()
 
-    # -- reconciling with a provider after a restart ---------------------------------
-
-    def reconcile_all(self) -> None:
-        """This registrar serves (again): reconcile with every provider it holds ids at.
-
-        Also with those that asked while setup ran (`ReconcileAsk`).
-        """
-        providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
-        providers |= self.asked_to_reconcile
-        self.asked_to_reconcile.clear()
-        for serving_rr in sorted(providers):
-            self.reconcile(serving_rr)
-
-    def on_reconcile_ask(self, message: ReconcileAsk) -> None:
-        if not message.holds_yours and not self.holds_at(message.serving_rr):
-            return  # (told as every registrar of the system is: nothing to reconcile)
-        if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
-            self.asked_to_reconcile.add(message.serving_rr)
-            return
-        self.reconcile(message.serving_rr)
+    # -- what reconciling (`reconciling.py`) asks of it --------------------------------
 
     def holds_at(self, serving_rr: str) -> bool:
         """Whether this registrar holds ids at `serving_rr` (records, or failed calls)."""
@@ -413,136 +384,23 @@ class Consumer:
             for record in self.registrar.catalog.clients.values()
         )
 
-    def reconcile(
-        self, serving_rr: str, then: Callable[[BaseException | None], None] | None = None
-    ) -> None:
-        """Tell `serving_rr` which ids this registrar holds there (`Reconcile`).
+    def held_at(self, serving_rr: str) -> set[str]:
+        """The ids this registrar holds at `serving_rr` (records, and failed calls)."""
+        held = {
+            query_id
+            for query_id, record in self.registrar.catalog.clients.items()
+            if record.query.serving_rr == serving_rr
+        }
+        return held | {q for q, provider in self.unsettled.items() if provider == serving_rr}
 
-        The provider releases the others it holds for this registrar, and names the ones
-        it no longer knows: their status callbacks get `FATAL` and they are forgotten.
-        The list and the message leave while no call can start (`DueAnswers.frozen`), so
-        a call sent later reaches the provider after it. A call due already may send its
-        `Load` after the `Reconcile` (its caller's thread may still be on its way to the
-        carrier), so the provider's "unknown" says nothing of it: its own answer decides.
-        `then(error)` runs (on this actor) once the answer was handled: `None`, or why it
-        failed (`presence.py` retries).
-        """
-        with self.due.frozen() as due:
-            held = {
-                query_id
-                for query_id, record in self.registrar.catalog.clients.items()
-                if record.query.serving_rr == serving_rr
-            }
-            held |= {q for q, provider in self.unsettled.items() if provider == serving_rr}
-            held |= due  # (ids due at other providers too: harmless, reported unknown)
-            self.registrar.send(
-                serving_rr,
-                lambda reply: Reconcile(self.registrar.name, tuple(sorted(held)), reply),
-                lambda unknown, error: self.reconciled(serving_rr, unknown, error, then, due),
-            )
+    def is_releasing(self, query_id: str) -> bool:
+        """Whether the `Unload` of `query_id` is on its way."""
+        return query_id in self.releasing
 
-    def reconciled(
-        self,
-        serving_rr: str,
-        unknown: Any,
-        error: BaseException | None,
-        then: Callable[[BaseException | None], None] | None = None,
-        due: frozenset[str] = frozenset(),
-    ) -> None:
-        """The provider's answer to a `Reconcile`: report and forget what it lost (of the
-        ids not `due` as it was sent)."""
-        if error is not None:  # not reachable: it asks for a Reconcile when it is back
-            logger.debug(
-                "reconciling %s with %s failed: %s", self.registrar.name, serving_rr, error
-            )
-            if then is not None:
-                then(error)
-            return
-        self.settle_reconciled(serving_rr, (q for q in unknown if q not in due))
-        if then is not None:
-            then(None)
-
-    def settle_reconciled(self, serving_rr: str, unknown: Any) -> None:
-        """Report and forget the ids `serving_rr` answered it no longer knows."""
-        lost: dict[str, list[str]] = {}
-        for query_id in unknown:
-            if self.unsettled.get(query_id) == serving_rr:
-                del self.unsettled[query_id]  # it does not hold it: nothing to retry for
-            record = self.registrar.catalog.clients.get(query_id)
-            if (
-                record is None
-                or not record.loaded
-                or record.query.serving_rr != serving_rr
-                or query_id in self.due
-                or query_id in self.releasing
-            ):
-                continue
-            lost.setdefault(record.query.server, []).append(query_id)
-        # What was unsettled and survived the reconcile is held by the provider now: a
-        # retry finds it; a call never retried is released at its next restart.
+    def settle_unsettled(self, serving_rr: str) -> None:
+        """Forget the failed calls at `serving_rr`: reconciled, or it is gone for good."""
         for query_id in [q for q, p in self.unsettled.items() if p == serving_rr]:
             del self.unsettled[query_id]
-        for server, ids in lost.items():
-            logger.warning(
-                "registrar %s: %s/%s no longer knows %d of the queries held there "
-                "(its restart lost them): FATAL, and they are forgotten",
-                self.registrar.name,
-                serving_rr,
-                server,
-                len(ids),
-            )
-            self.report_lost(f"{serving_rr}/{server}", tuple(ids))
-
-    def lose_provider(self, serving_rr: str) -> None:
-        """Provider `serving_rr` is gone and nobody will restart it (rule 19): the ids
-        held there get `FATAL` (and up their dependents), then they are forgotten."""
-        lost: dict[str, list[str]] = {}
-        for query_id, record in list(self.registrar.catalog.clients.items()):
-            if record.query.serving_rr == serving_rr and record.loaded:
-                lost.setdefault(record.query.server, []).append(query_id)
-        for query_id in [q for q, p in self.unsettled.items() if p == serving_rr]:
-            del self.unsettled[query_id]  # nobody holds it there any more
-        for server, ids in sorted(lost.items()):
-            logger.warning(
-                "registrar %s: %s is gone and nobody will restart it: FATAL to the %d "
-                "queries held at %s/%s, and they are forgotten",
-                self.registrar.name,
-                serving_rr,
-                len(ids),
-                serving_rr,
-                server,
-            )
-            self.report_lost(
-                f"{serving_rr}/{server}",
-                tuple(ids),
-                "the provider is gone and nobody will restart it",
-            )
-
-    def report_lost(
-        self,
-        source: str,
-        ids: tuple[str, ...],
-        why: str = "the provider no longer knows this query (it lost it in a restart)",
-    ) -> None:
-        """`FATAL` to the status callbacks of `ids` (and up their dependents), then forget them.
-
-        Delivered as a provider's `StatusNotice` would be (rule 9), on this thread: the
-        callbacks and the dependents it reaches are taken from the records before they
-        are forgotten, right after.
-        """
-        notice = StatusNotice(
-            ids,
-            Status.FATAL,
-            why,
-            source,
-            str(uuid.uuid4()),
-            FutureReply(),  # (nobody waits for the acknowledgements)
-            sent_at=time.time(),
-        )
-        self.redeliver(notice)
-        for query_id in ids:
-            self.forget(query_id, commit=False)
-        self.registrar.commit()
 
     def give_back_unsettled(self) -> None:
         """This registrar stops: give back the ids of calls that failed as their provider

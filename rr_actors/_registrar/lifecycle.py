@@ -47,6 +47,8 @@ if TYPE_CHECKING:
     from rr_actors._registrar.actor import RegistrarActor
     from rr_actors._registrar.consumer import Consumer
     from rr_actors._registrar.provider import Provider
+    from rr_actors._registrar.reconciling import Reconciling
+    from rr_actors._registrar.teardown import Teardown
     from rr_actors._registrar.unloading import Unloading
 
 __all__ = ["CatalogView", "Lifecycle"]
@@ -85,16 +87,20 @@ class Lifecycle:
         self,
         shared: Shared,
         provider: Provider,
+        teardown: Teardown,
         unloading: Unloading,
         consumer: Consumer,
+        reconciling: Reconciling,
         actor: RegistrarActor,
         died: threading.Event,
         ended: threading.Event,
     ) -> None:
         self.registrar = shared
         self.provider = provider
+        self.teardown = teardown
         self.unloading = unloading
         self.consumer = consumer
+        self.reconciling = reconciling
         self.actor = actor
         self.died = died
         self.ended = ended
@@ -106,7 +112,7 @@ class Lifecycle:
     def on_start(self) -> None:
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
-        self.consumer.expect_reconcile(providers)
+        self.reconciling.expect_reconcile(providers)
         self.settle_in_doubt()
         self.arm_flush_timer()
         if self.registrar.phase is Phase.SERVING:  # (else once setup is done: `op_ready`)
@@ -121,7 +127,7 @@ class Lifecycle:
         and ids one side lost in its restart are reported to the consumer as `FATAL`.
         """
         self.unloading.ask_to_reconcile()
-        self.consumer.reconcile_all()
+        self.reconciling.reconcile_all()
 
     def settle_in_doubt(self) -> None:
         """Drop restored resources whose load or unload a crash cut short (rule 16).
@@ -138,7 +144,7 @@ class Lifecycle:
                     self.registrar.events.publish(events.InDoubt(self.registrar.name, resource.id))
                 catalog.begin_unload(resource.id)
                 self.consumer.release_dependencies(
-                    resource.id, functools.partial(self.provider.remove_resource, resource)
+                    resource.id, functools.partial(self.teardown.remove_resource, resource)
                 )
         for record in list(catalog.clients.values()):
             orphan = record.parent is not None and record.parent not in catalog.resources

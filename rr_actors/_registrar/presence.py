@@ -43,6 +43,7 @@ from rr_actors._registrar.messages import (
     ReconcileAsk,
     ReconcileRetry,
 )
+from rr_actors._registrar.reconciling import Reconciling
 from rr_actors._registrar.state import Phase, Shared
 from rr_actors._registrar.unloading import Unloading
 from rr_actors.errors import RegistrarStoppedError, RrError
@@ -69,7 +70,8 @@ class Presence:
     Args:
         registrar: the state every role shares.
         unloading: releases the ids a lost consumer held here.
-        consumer: reports and forgets the ids held at a lost provider; reconciles.
+        consumer: whether it holds ids at a peer.
+        reconciling: reports and forgets the ids held at a lost provider; reconciles.
         timer: `timer(delay, fn)` for the retries (injectable for tests).
 
     Attributes:
@@ -82,11 +84,13 @@ class Presence:
         registrar: Shared,
         unloading: Unloading,
         consumer: Consumer,
+        reconciling: Reconciling,
         timer: Timer = thread_timer,
     ) -> None:
         self.registrar = registrar
         self.unloading = unloading
         self.consumer = consumer
+        self.reconciling = reconciling
         self.timer = timer
         self.rounds: dict[str, tuple[int, int]] = {}
         self.timers: dict[str, Cancellable] = {}
@@ -107,7 +111,7 @@ class Presence:
             return
         self.stop_retrying(name)
         self.unloading.release_all_of(name)
-        self.consumer.lose_provider(name)
+        self.reconciling.lose_provider(name)
 
     # -- reachable again (rule 20) ------------------------------------------------------
 
@@ -143,7 +147,7 @@ class Presence:
         self.stop_retrying(name)
         self.rounds[name] = (round_, attempt)
         self.arm(name, round_, attempt + 1, self.registrar.config.call_timeout)
-        self.consumer.reconcile(
+        self.reconciling.reconcile(
             name, then=lambda error: self.answered(name, round_, attempt, error)
         )
 

@@ -6,15 +6,14 @@
                  ├── loading? ──► wait for it (one load per resource, rule 3)
                  ├── unloading? ──► parked until it is gone, then loaded afresh
                  └── new ──► start_load ──RunLoad──► server ──► load_done ──► answer waiters
- last consumer released (unloading.py) ──► unload_resource: the resource's dependencies
-      (consumer side), then RunUnload ──► server ──► remove_resource ──► parked loads
+ failed, or nobody waits any more ──► Teardown.unload_resource / remove_resource
+ parked behind an unload ──► Teardown.when_gone ──► serve_parked ──► on_load afresh
 ```
 
 A resource belongs to its server; its consumers are query ids (one per call, rule 2).
-Callers that wait for a load, loads parked behind an unload of the same resource, and
-callers that wait for an unload are this role's state; releasing consumer ids is
-`unloading.py`'s (it calls `give_up` and `unload_resource` here), the servers
-themselves `servers.py`'s.
+Callers that wait for a load and loads parked behind an unload of the same resource
+are this role's state; running an unload is `teardown.py`'s, releasing consumer ids
+`unloading.py`'s (it calls `give_up` here), the servers themselves `servers.py`'s.
 """
 
 from __future__ import annotations
@@ -23,21 +22,18 @@ import functools
 import logging
 import time
 import uuid
-from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from rr_actors import events
 from rr_actors._catalog import NO_DIGEST, Resource, ResourceState, describe, request_digest
 from rr_actors._catalog.digest import requests_equal
-from rr_actors._core.directory import Reply
 from rr_actors._registrar.display import show_request, show_response
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH, check_picklable
 from rr_actors._registrar.matching import Matching, first_equal, prepare
-from rr_actors._registrar.messages import Load, RunLoad, RunUnload
+from rr_actors._registrar.messages import Load, RunLoad
 from rr_actors._registrar.state import Phase, Server, Shared, Waiter
 from rr_actors.errors import (
     CallTimeoutError,
-    CatalogWriteError,
     ConfigError,
     DependencyCycleError,
     DuplicateQueryIdError,
@@ -50,6 +46,7 @@ from rr_actors.errors import (
 
 if TYPE_CHECKING:
     from rr_actors._registrar.consumer import Consumer
+    from rr_actors._registrar.teardown import Teardown
 
 __all__ = ["Provider"]
 
@@ -67,14 +64,12 @@ class Provider:
         after_unload: resource id -> loads of an equal request, parked until it unloaded.
         load_started: resource id -> when its load started (`time.monotonic()`).
         matching: loads whose match user code decides, off the actor thread.
-        unload_waiters: resource id -> replies waiting for its unload to finish.
-        parked_unloads: server name -> unloads of restored resources waiting for the
-            server to be registered again.
     """
 
-    def __init__(self, shared: Shared, consumer: Consumer) -> None:
+    def __init__(self, shared: Shared, consumer: Consumer, teardown: Teardown) -> None:
         self.registrar = shared
         self.consumer = consumer
+        self.teardown = teardown
         self.loads: dict[str, list[Waiter]] = {}
         self.loading_ids: dict[str, str] = {}
         self.abandoned: set[str] = set()
@@ -82,8 +77,6 @@ class Provider:
         self.after_unload: dict[str, list[Load]] = {}
         self.load_started: dict[str, float] = {}
         self.matching = Matching(shared, self.serve)
-        self.unload_waiters: dict[str, list[Reply]] = {}
-        self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
 
     # -- load -------------------------------------------------------------------------
 
@@ -249,6 +242,10 @@ class Provider:
         if resource is None:
             self.start_load(self.registrar.servers[message.server], message, waiter, key)
         elif resource.state is ResourceState.UNLOADING:  # load it afresh once it is gone
+            if resource.id not in self.after_unload:  # the first parked behind it
+                self.teardown.when_gone(
+                    resource.id, functools.partial(self.serve_parked, resource.id)
+                )
             self.after_unload.setdefault(resource.id, []).append(message)
         elif resource.id in message.chain:
             message.reply.set_error(
@@ -312,13 +309,13 @@ class Provider:
         resource = catalog.resources[rid]
         started = self.load_started.pop(rid)
         if self.registrar.events.active:
-            self._published_load(resource, waiters[0].query_id, started, error)
+            published_load(self.registrar, resource, waiters[0].query_id, started, error)
         if error is not None:
             catalog.begin_unload(rid)
             self.registrar.commit()
 
             def failed() -> None:
-                self.remove_resource(resource)
+                self.teardown.remove_resource(resource)
                 for waiter in waiters:
                     self.abandoned.discard(waiter.query_id)
                     waiter.reply.set_error(error)
@@ -344,7 +341,7 @@ class Provider:
         for waiter in live:
             waiter.reply.set_result(response)
         if not resource.consumers:  # every caller gave up (or the server closed)
-            self.unload_resource(resource, None)
+            self.teardown.unload_resource(resource, None)
 
     def _add_consumers(self, rid: str, waiters: list[Waiter]) -> list[Waiter]:
         """Make the waiters of a finished load its consumers; the ones still waiting.
@@ -370,34 +367,18 @@ class Provider:
                     )
         return live
 
-    def _published_load(
-        self, resource: Resource, query_id: str, started: float, error: BaseException | None
-    ) -> None:
-        """Publish how a load ended (`ResourceLoaded` or `LoadFailed`)."""
-        if error is None:
-            load_s = time.monotonic() - started
-            self.registrar.events.publish(
-                events.ResourceLoaded(
-                    self.registrar.name, resource.server, resource.id, query_id, load_s
-                )
-            )
-            return
-        error_type, message = type(error).__qualname__, str(error)
-        if isinstance(error, ResourceLoadError):  # this registrar's frame: what load raised
-            error_type, message = error.stack[-1].exc_type, error.stack[-1].message
-        self.registrar.events.publish(
-            events.LoadFailed(
-                self.registrar.name, resource.server, resource.id, query_id, error_type, message
-            )
-        )
-
     def serve_held(self) -> None:
         """Setup is done: serve the loads that waited for it (unknown servers now fail),
         and release restored resources of servers setup did not bring back."""
         held, self.held_loads = self.held_loads, []
         for load in held:
             self.on_load(load)
-        self.settle_parked()
+        self.teardown.settle_parked()
+
+    def serve_parked(self, rid: str) -> None:
+        """Resource `rid` is gone: serve the loads parked behind its unload, afresh."""
+        for load in self.after_unload.pop(rid, ()):
+            self.on_load(load)
 
     def unpark(self, query_id: str) -> Load | None:
         """Take the load of `query_id` out of the held, parked or queued loads, if there."""
@@ -407,111 +388,6 @@ class Provider:
                     loads.remove(load)
                     return load
         return self.matching.take(query_id)
-
-    def unload_resource(self, resource: Resource, reply: Reply | None) -> None:
-        """The last consumer left: release the dependencies, then run `unload` (rule 7)."""
-        self.registrar.probe("unload_resource", resource)
-        self.registrar.catalog.begin_unload(resource.id)
-        self.registrar.commit()
-        self.unload_waiters[resource.id] = [] if reply is None else [reply]
-
-        def run_unload() -> None:
-            server = self.registrar.servers.get(resource.server)
-            if server is None and self.registrar.servers_settled:  # setup did not bring it back
-                unloaded(None, None)
-                return
-            if server is None:  # restored, and no one has registered the server yet
-                self.parked_unloads.setdefault(resource.server, []).append(run_unload)
-                return
-            done = self.registrar.come_back(unloaded)
-            timeout = self.registrar.config.unload_timeout
-            server.ref.tell(RunUnload(resource.request, resource.response, done, timeout))
-
-        def unloaded(_: Any, error: BaseException | None) -> None:
-            overdue = isinstance(error, CallTimeoutError)
-            if overdue:  # it hangs: the resource is dropped as failed, its callers told
-                logger.error(
-                    "registrar %s: %s; resource %s (request %s) is dropped as failed, and "
-                    "whatever it still holds is the server's to clean up",
-                    self.registrar.name,
-                    error,
-                    resource.id,
-                    describe(resource.request),
-                )
-            elif error is not None:
-                logger.error(
-                    "unload callback of '%s/%s' raised; the resource is released anyway",
-                    self.registrar.name,
-                    resource.server,
-                    exc_info=error,
-                )
-            self.remove_resource(resource)
-            self.record_unloaded()
-            if self.registrar.events.active:
-                self.registrar.events.publish(
-                    events.ResourceUnloaded(self.registrar.name, resource.server, resource.id)
-                )
-            for waiting in self.unload_waiters.pop(resource.id):
-                if overdue:
-                    waiting.set_error(error)  # type: ignore[arg-type]
-                else:
-                    waiting.set_result(None)
-
-        self.consumer.release_dependencies(resource.id, run_unload)
-
-    def record_unloaded(self) -> None:
-        """An `unload` ran: write it before anyone hears of it, also without
-        `save_on_modify` (a crash before the next flush would restore the resource, and
-        reconciling with its consumers would run its `unload` a second time)."""
-        saver = self.registrar.saver
-        if saver.store is None or saver.durable or not saver.pending:
-            return
-        try:
-            saver.flush()
-        except CatalogWriteError as exc:  # pending: the next flush tries again
-            logger.warning("registrar %s: writing an unload failed: %s", self.registrar.name, exc)
-
-    def remove_resource(self, resource: Resource) -> None:
-        """Forget a resource that is gone (unloaded, or its load failed); serve the loads
-        parked behind its unload."""
-        self.registrar.catalog.remove_resource(resource.id)
-        self.registrar.commit()
-        for load in self.after_unload.pop(resource.id, ()):  # parked behind its unload
-            self.on_load(load)
-        server = self.registrar.servers.get(resource.server)
-        if (
-            server is not None
-            and server.closing
-            and not self.registrar.catalog.resources_of(server.name)
-        ):
-            del self.registrar.servers[server.name]
-            server.ref.stop(block=False)
-
-    def wait_for_unload(self, resource: Resource, reply: Reply) -> None:
-        """Answer `reply` once `resource`'s unload is done (at once if it is not unloading)."""
-        if resource.id in self.unload_waiters:
-            self.unload_waiters[resource.id].append(reply)
-        else:
-            reply.set_result(None)
-
-    def run_parked(self, server: str) -> None:
-        """Server `server` was registered: run the unloads of its restored resources."""
-        for run_unload in self.parked_unloads.pop(server, ()):
-            run_unload()
-
-    def settle_parked(self) -> None:
-        """Setup is done: release restored resources of servers it did not bring back."""
-        for server, unloads in list(self.parked_unloads.items()):
-            if server not in self.registrar.servers:  # setup did not bring it back: release anyway
-                logger.warning(
-                    "registrar %s: server %r was not registered by setup; its restored "
-                    "resources are released without their unload callback",
-                    self.registrar.name,
-                    server,
-                )
-                del self.parked_unloads[server]
-                for run_unload in unloads:
-                    run_unload()
 
     def give_up(self, query_id: str) -> bool:
         """The caller of `query_id` gave up: drop its load if it is under way here.
@@ -559,6 +435,28 @@ class Provider:
             for load in loads:
                 load.reply.set_error(error)
         self.matching.fail_waiting(error)
-        for replies in self.unload_waiters.values():
-            for reply in replies:
-                reply.set_error(error)
+        self.teardown.fail_waiting(error)
+
+
+def published_load(
+    registrar: Shared,
+    resource: Resource,
+    query_id: str,
+    started: float,
+    error: BaseException | None,
+) -> None:
+    """Publish how a load ended (`ResourceLoaded` or `LoadFailed`)."""
+    if error is None:
+        load_s = time.monotonic() - started
+        registrar.events.publish(
+            events.ResourceLoaded(registrar.name, resource.server, resource.id, query_id, load_s)
+        )
+        return
+    error_type, message = type(error).__qualname__, str(error)
+    if isinstance(error, ResourceLoadError):  # this registrar's frame: what load raised
+        error_type, message = error.stack[-1].exc_type, error.stack[-1].message
+    registrar.events.publish(
+        events.LoadFailed(
+            registrar.name, resource.server, resource.id, query_id, error_type, message
+        )
+    )

@@ -1,7 +1,7 @@
 """A registrar's resource servers: register, unregister (rule 12), fetch, update responses.
 
 `unregister_server` sends `FATAL` to every consumer of the server's resources, revokes
-their ids and unloads the resources (through `provider.py`); `fetch_queries` asked of
+their ids and unloads the resources (through `teardown.py`); `fetch_queries` asked of
 this registrar lists what a consumer holds at one of its servers (rule 10);
 `update_response` replaces a stored response and tells every consumer (rule 11).
 """
@@ -28,8 +28,8 @@ from rr_actors._types import Status, StatusCallback, StatusUpdate
 from rr_actors.errors import DuplicateNameError, RrError, UnknownServerError, _known_names
 
 if TYPE_CHECKING:
-    from rr_actors._registrar.provider import Provider
     from rr_actors._registrar.status import StatusRelay
+    from rr_actors._registrar.teardown import Teardown
 
 __all__ = ["Servers"]
 
@@ -46,9 +46,9 @@ def _log_failure(what: str, then: Callable[[], None], _: Any, error: BaseExcepti
 class Servers:
     """The resource servers of one registrar, and what is done to a whole server."""
 
-    def __init__(self, shared: Shared, provider: Provider, status: StatusRelay) -> None:
+    def __init__(self, shared: Shared, teardown: Teardown, status: StatusRelay) -> None:
         self.registrar = shared
-        self.provider = provider
+        self.teardown = teardown
         self.status = status
 
     def on_fetch(self, message: Fetch) -> None:
@@ -111,7 +111,7 @@ class Servers:
             persisted=self.registrar.saver.store is not None,
         )
         self.registrar.servers[name] = Server(name, ref, on_status, label=label)
-        self.provider.run_parked(name)
+        self.teardown.run_parked(name)
         reply.set_result(None)
 
     def op_unregister(self, name: str, reply: Reply) -> None:
@@ -146,7 +146,7 @@ class Servers:
         def revoke_and_unload() -> None:
             done = self.registrar.come_back(lambda *_: then())
             if resource.state is not ResourceState.LOADED:  # its consumers left meanwhile
-                self.provider.wait_for_unload(resource, done)
+                self.teardown.wait_for_unload(resource, done)
                 return
             for origin, ids in consumers_by_origin(resource).items():
                 with contextlib.suppress(RrError):
@@ -159,7 +159,7 @@ class Servers:
                     self.registrar.events.publish(
                         events.ConsumerReleased(self.registrar.name, resource.id, qid, origin)
                     )
-            self.provider.unload_resource(resource, done)
+            self.teardown.unload_resource(resource, done)
 
         if self.registrar.events.active:
             self.registrar.events.publish(

@@ -2,13 +2,13 @@
 
 ```
  Unload/Abandon ──► release ── load under way? ──► Provider.give_up
-                                     └── last consumer? ──► Provider.unload_resource
+                                     └── last consumer? ──► Teardown.unload_resource
  after a restart: ReconcileAsk ──► consumers ──► Reconcile ──► on_reconcile: the ids a
       consumer no longer holds are released; those it holds and this one lost, named
 ```
 
 Rules 7-8 (a consumer id is released once; the resource is unloaded when its last one
-is, by the provider role) and the reconcile after a restart
+is, by the teardown role) and the reconcile after a restart
 (`docs/explanation/failure-semantics.md`). This role holds no state of its own: what it
 changes is the catalog's consumers, and the provider's loads through its methods.
 """
@@ -33,6 +33,7 @@ from rr_actors.errors import RegistrarStoppedError, RrError, UnknownQueryError
 
 if TYPE_CHECKING:
     from rr_actors._registrar.provider import Provider
+    from rr_actors._registrar.teardown import Teardown
 
 __all__ = ["Unloading"]
 
@@ -40,11 +41,12 @@ logger = logging.getLogger("rr_actors")
 
 
 class Unloading:
-    """Releases consumer ids; a resource nobody holds any more is unloaded (`Provider`)."""
+    """Releases consumer ids; a resource nobody holds any more is unloaded (`Teardown`)."""
 
-    def __init__(self, shared: Shared, provider: Provider) -> None:
+    def __init__(self, shared: Shared, provider: Provider, teardown: Teardown) -> None:
         self.registrar = shared
         self.provider = provider
+        self.teardown = teardown
 
     def on_unload(self, message: Unload) -> None:
         self.release(message.query_id, message.reply)
@@ -102,7 +104,7 @@ class Unloading:
             if reply is not None:
                 reply.set_result(None)
             return
-        self.provider.unload_resource(resource, reply)
+        self.teardown.unload_resource(resource, reply)
 
     def ask_to_reconcile(self) -> None:
         """This registrar serves (again): ask every registrar holding ids here to

@@ -1,0 +1,200 @@
+"""The consumer side of a registrar actor, reconciling: what it holds at a provider, checked.
+
+```
+ this registrar serves (again), or a provider asks (ReconcileAsk) ──► reconcile(provider)
+      ──► Reconcile(the ids held there) ──► the provider releases the others, and names
+          those it no longer knows ──► settle_reconciled: FATAL to them, then forgotten
+ a provider gone for good (presence.py) ──► lose_provider: FATAL to its ids, forgotten
+```
+
+Rule 20 and rule 19 (`docs/explanation/failure-semantics.md`). The providers that asked
+while setup ran are this role's state; the records and the failed calls held until
+reconciled are the consumer role's (`consumer.py`), changed through its methods.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import uuid
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from rr_actors._core.replies import FutureReply
+from rr_actors._registrar.calls import DueAnswers
+from rr_actors._registrar.consumer import Consumer
+from rr_actors._registrar.messages import Reconcile, ReconcileAsk, StatusNotice
+from rr_actors._registrar.state import Phase, Shared
+from rr_actors._types import Status
+
+__all__ = ["Reconciling"]
+
+logger = logging.getLogger("rr_actors")
+
+
+class Reconciling:
+    """Reconciles what this registrar holds at providers with what they hold for it.
+
+    Attributes:
+        due: the query ids whose answers are on their way (`DueAnswers`, shared with
+            callers' threads and the consumer role).
+        asked_to_reconcile: providers that asked for a `Reconcile` during setup.
+    """
+
+    def __init__(
+        self,
+        shared: Shared,
+        consumer: Consumer,
+        due: DueAnswers,
+        redeliver: Callable[[Any], None],
+    ) -> None:
+        self.registrar = shared
+        self.consumer = consumer
+        self.due = due
+        self.redeliver = redeliver
+        self.asked_to_reconcile: set[str] = set()
+
+    def expect_reconcile(self, providers: Iterable[str]) -> None:
+        """Reconcile with `providers` too once this registrar serves (`reconcile_all`)."""
+        self.asked_to_reconcile.update(providers)
+
+    def reconcile_all(self) -> None:
+        """This registrar serves (again): reconcile with every provider it holds ids at.
+
+        Also with those that asked while setup ran (`ReconcileAsk`).
+        """
+        providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
+        providers |= self.asked_to_reconcile
+        self.asked_to_reconcile.clear()
+        for serving_rr in sorted(providers):
+            self.reconcile(serving_rr)
+
+    def on_reconcile_ask(self, message: ReconcileAsk) -> None:
+        if not message.holds_yours and not self.consumer.holds_at(message.serving_rr):
+            return  # (told as every registrar of the system is: nothing to reconcile)
+        if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
+            self.asked_to_reconcile.add(message.serving_rr)
+            return
+        self.reconcile(message.serving_rr)
+
+    def reconcile(
+        self, serving_rr: str, then: Callable[[BaseException | None], None] | None = None
+    ) -> None:
+        """Tell `serving_rr` which ids this registrar holds there (`Reconcile`).
+
+        The provider releases the others it holds for this registrar, and names the ones
+        it no longer knows: their status callbacks get `FATAL` and they are forgotten.
+        The list and the message leave while no call can start (`DueAnswers.frozen`), so
+        a call sent later reaches the provider after it. A call due already may send its
+        `Load` after the `Reconcile` (its caller's thread may still be on its way to the
+        carrier), so the provider's "unknown" says nothing of it: its own answer decides.
+        `then(error)` runs (on this actor) once the answer was handled: `None`, or why it
+        failed (`presence.py` retries).
+        """
+        with self.due.frozen() as due:
+            held = self.consumer.held_at(serving_rr)
+            held |= due  # (ids due at other providers too: harmless, reported unknown)
+            self.registrar.send(
+                serving_rr,
+                lambda reply: Reconcile(self.registrar.name, tuple(sorted(held)), reply),
+                lambda unknown, error: self.reconciled(serving_rr, unknown, error, then, due),
+            )
+
+    def reconciled(
+        self,
+        serving_rr: str,
+        unknown: Any,
+        error: BaseException | None,
+        then: Callable[[BaseException | None], None] | None = None,
+        due: frozenset[str] = frozenset(),
+    ) -> None:
+        """The provider's answer to a `Reconcile`: report and forget what it lost (of the
+        ids not `due` as it was sent)."""
+        if error is not None:  # not reachable: it asks for a Reconcile when it is back
+            logger.debug(
+                "reconciling %s with %s failed: %s", self.registrar.name, serving_rr, error
+            )
+            if then is not None:
+                then(error)
+            return
+        self.settle_reconciled(serving_rr, (q for q in unknown if q not in due))
+        if then is not None:
+            then(None)
+
+    def settle_reconciled(self, serving_rr: str, unknown: Any) -> None:
+        """Report and forget the ids `serving_rr` answered it no longer knows."""
+        lost: dict[str, list[str]] = {}
+        for query_id in unknown:
+            record = self.registrar.catalog.clients.get(query_id)
+            if (
+                record is None
+                or not record.loaded
+                or record.query.serving_rr != serving_rr
+                or query_id in self.due
+                or self.consumer.is_releasing(query_id)
+            ):
+                continue
+            lost.setdefault(record.query.server, []).append(query_id)
+        # What was unsettled and survived the reconcile is held by the provider now: a
+        # retry finds it; a call never retried is released at its next restart.
+        self.consumer.settle_unsettled(serving_rr)  # (those it does not hold: nothing to retry)
+        for server, ids in lost.items():
+            logger.warning(
+                "registrar %s: %s/%s no longer knows %d of the queries held there "
+                "(its restart lost them): FATAL, and they are forgotten",
+                self.registrar.name,
+                serving_rr,
+                server,
+                len(ids),
+            )
+            self.report_lost(f"{serving_rr}/{server}", tuple(ids))
+
+    def lose_provider(self, serving_rr: str) -> None:
+        """Provider `serving_rr` is gone and nobody will restart it (rule 19): the ids
+        held there get `FATAL` (and up their dependents), then they are forgotten."""
+        lost: dict[str, list[str]] = {}
+        for query_id, record in list(self.registrar.catalog.clients.items()):
+            if record.query.serving_rr == serving_rr and record.loaded:
+                lost.setdefault(record.query.server, []).append(query_id)
+        self.consumer.settle_unsettled(serving_rr)  # nobody holds them there any more
+        for server, ids in sorted(lost.items()):
+            logger.warning(
+                "registrar %s: %s is gone and nobody will restart it: FATAL to the %d "
+                "queries held at %s/%s, and they are forgotten",
+                self.registrar.name,
+                serving_rr,
+                len(ids),
+                serving_rr,
+                server,
+            )
+            self.report_lost(
+                f"{serving_rr}/{server}",
+                tuple(ids),
+                "the provider is gone and nobody will restart it",
+            )
+
+    def report_lost(
+        self,
+        source: str,
+        ids: tuple[str, ...],
+        why: str = "the provider no longer knows this query (it lost it in a restart)",
+    ) -> None:
+        """`FATAL` to the status callbacks of `ids` (and up their dependents), then forget them.
+
+        Delivered as a provider's `StatusNotice` would be (rule 9), on this thread: the
+        callbacks and the dependents it reaches are taken from the records before they
+        are forgotten, right after.
+        """
+        notice = StatusNotice(
+            ids,
+            Status.FATAL,
+            why,
+            source,
+            str(uuid.uuid4()),
+            FutureReply(),  # (nobody waits for the acknowledgements)
+            sent_at=time.time(),
+        )
+        self.redeliver(notice)
+        for query_id in ids:
+            self.consumer.forget(query_id, commit=False)
+        self.registrar.commit()
