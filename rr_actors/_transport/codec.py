@@ -16,6 +16,7 @@ import io
 import os
 import pickle
 import struct
+import threading
 from collections.abc import Callable, Iterator
 from multiprocessing.connection import Connection
 from typing import Any
@@ -65,6 +66,22 @@ class Run(WireMessage):
 
     fn: Callable[[Any], Any]
     reply: Reply | None
+
+    def start(self, run: Callable[[Callable[[Any], Any]], Any], thread_name: str) -> None:
+        """Run `run(self.fn)` on a fresh daemon thread (it may block; it is rare) and
+        answer its result or error through `self.reply`. Both carriers' receivers use it."""
+        reply = self.reply
+        assert reply is not None
+
+        def task() -> None:
+            try:
+                result = run(self.fn)
+            except BaseException as exc:  # noqa: BLE001 - the caller gets it
+                reply.set_error(exc)
+            else:
+                reply.set_result(result)
+
+        threading.Thread(target=task, name=thread_name, daemon=True).start()
 
 
 # Types pickled by reference with the C pickler's own machinery: cloudpickle's

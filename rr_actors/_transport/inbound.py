@@ -409,18 +409,7 @@ class Listener:
 
     def run(self, message: Run) -> None:
         """Run a control function on a fresh thread (it may block; it is rare)."""
-        reply = message.reply
-        assert reply is not None
-
-        def task() -> None:
-            try:
-                result = self.endpoint.run(message.fn)
-            except BaseException as exc:  # noqa: BLE001 - the caller gets it
-                reply.set_error(exc)
-            else:
-                reply.set_result(result)
-
-        threading.Thread(target=task, name=f"rr-run-{self.name}", daemon=True).start()
+        message.start(self.endpoint.run, f"rr-run-{self.name}")
 
     def close(self, *, stopped: bool) -> None:
         """Stop listening; with `stopped`, leave a tombstone so peers say "stopped".

@@ -276,18 +276,7 @@ class Inbox:
             self._owner.refuse_version(head.sender, token)
 
     def _run(self, local: Local, message: Run) -> None:
-        reply = message.reply
-        assert reply is not None
-
-        def task() -> None:
-            try:
-                result = local.endpoint.run(message.fn)
-            except BaseException as exc:  # noqa: BLE001 - the caller gets it
-                reply.set_error(exc)
-            else:
-                reply.set_result(result)
-
-        threading.Thread(target=task, name=f"rr-zrun-{local.name}", daemon=True).start()
+        message.start(local.endpoint.run, f"rr-zrun-{local.name}")
 
     def _answered(self, item: tuple[bytes, Header]) -> None:
         """Decode one answer and resolve the reply waiting for it (decode thread)."""
