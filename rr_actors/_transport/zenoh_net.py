@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from rr_actors._core.addresses import is_loopback
 from rr_actors._core.directory import Peer
 from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.zenoh_carrier import ZenohMember
@@ -82,15 +83,6 @@ def _endpoints(role: str, given: object) -> tuple[str, ...]:
     for endpoint in endpoints:
         _parse_endpoint(role, endpoint)
     return endpoints
-
-
-def _loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def _config(mode: str, listen: list[str], connect: list[str], lease: float) -> zenoh.Config:
@@ -273,7 +265,7 @@ class ZenohNetwork:
         self.lease = float(lease)
         for endpoint in self.listen:
             host, _ = _parse_endpoint("listen", endpoint)
-            if not _loopback(host):
+            if not is_loopback(host):
                 logger.warning(
                     "ZenohNetwork %r listens on %s in plain TCP (tls=None): anyone who "
                     "reaches it can send pickles to this system's registrars",

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import ipaddress
 import logging
 import os
 import secrets
@@ -23,6 +22,7 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
+from rr_actors._core.addresses import is_loopback
 from rr_actors.errors import ConfigError
 from rr_actors.observe._faults import Faults
 from rr_actors.observe._hub import Hub
@@ -58,16 +58,6 @@ def require_extra() -> None:
         from rr_actors.observe import _server  # noqa: F401, PLC0415 - the observe extra
     except ImportError as exc:
         raise ConfigError(f"{EXTRA_HINT} ({exc})") from exc
-
-
-def is_loopback(host: str) -> bool:
-    """Whether `host` names this machine only (`localhost`, 127.0.0.0/8, `::1`)."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
