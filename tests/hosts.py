@@ -758,7 +758,7 @@ def rr_join(*, system: str, listen: list[str], connect: list[str], lease: float 
     """Make this worker's `ZenohNetwork` (plain TCP: `tls=None`, issue 22's step 1)."""
     import rr_actors as rr  # noqa: PLC0415
 
-    make = getattr(rr, "ZenohNetwork")  # noqa: B009 (not in rr_actors until the carrier lands)
+    make = rr.ZenohNetwork
     KEPT["network"] = make(system=system, listen=listen, connect=connect, tls=None, lease=lease)
     KEPT["registrars"] = {}
 

@@ -416,11 +416,17 @@ class ZenohMember:
         logger.info("registrar %s of system %s is lost (nobody restarts it)", name, self.system)
         for local in list(self._locals.values()):
             if local.name != name:
-                local.endpoint.peer_lost(name)
+                try:  # (one endpoint's failure must not keep it from the others)
+                    local.endpoint.peer_lost(name)
+                except Exception:
+                    logger.exception("registrar %s: peer_lost(%s) failed", local.name, name)
 
     def reachable(self, name: str) -> None:
         """Registrar `name` is back from the same process (a healed link)."""
         logger.info("registrar %s of system %s is reachable again", name, self.system)
         for local in list(self._locals.values()):
             if local.name != name:
-                local.endpoint.peer_reachable(name)
+                try:
+                    local.endpoint.peer_reachable(name)
+                except Exception:
+                    logger.exception("registrar %s: peer_reachable(%s) failed", local.name, name)

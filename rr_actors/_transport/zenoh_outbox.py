@@ -1,7 +1,7 @@
 """The Zenoh carrier's sending side: one writer thread per destination key.
 
 ```
- ZenohMember._send / answer_to ─► Outboxes.get(key) ─► Outbox(key).send(header + frame)
+ ZenohMember.send / answer_to ─► Outboxes.get(key) ─► Outbox(key).send(header + frame)
                                                           │ its writer thread (zenoh_queue)
                                                           ▼
                       (first put after a healed link: ping rr/<s>/ping/<zid> first)
@@ -109,15 +109,20 @@ class Outboxes:
         fresh = Outbox(self._session, key, ready)  # (no Zenoh call under our lock: its
         with self._lock:  # callbacks take it)
             outbox = self._outboxes.get(key)
-            if outbox is None or outbox.closed:
+            if self._closed:
+                outbox = None  # (closed meanwhile: a writer made now would never end)
+            elif outbox is None or outbox.closed:
                 self._outboxes[key] = outbox = fresh
         if outbox is not fresh:
             fresh.close()
+        if outbox is None:
+            return fresh  # closed: it drops what it is given
         return outbox
 
     def pop(self, key: str) -> Outbox | None:
         """Forget the outbox of `key` (its destination went); the caller closes it."""
-        return self._outboxes.pop(key, None)
+        with self._lock:
+            return self._outboxes.pop(key, None)
 
     def close(self) -> None:
         """Close every outbox: what is still queued is lost."""
