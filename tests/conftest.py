@@ -72,6 +72,7 @@ import gating
 import pykka
 import pytest
 from gating import GatedLoad, same
+from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors._transport.base import Transport
@@ -431,17 +432,6 @@ def supervisors() -> Iterator[Callable[..., rr.Supervisor]]:
     yield make
     for sup in reversed(made):
         sup.stop()
-
-
-def wait_for(predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
-    """Poll `predicate` (each check is a round trip to an actor) until true or `timeout` s."""
-    deadline = time.monotonic() + timeout
-    pause = threading.Event()
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        pause.wait(0.005)
-    return True
 
 
 @pytest.fixture

@@ -11,8 +11,6 @@ from __future__ import annotations
 import os
 import signal
 import sys
-import threading
-import time
 import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -20,6 +18,7 @@ from typing import Any
 import cloudpickle
 import pytest
 from supervising import process, sigkill
+from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors._registrar import Served
@@ -95,16 +94,6 @@ class Heard:
         self.records.append((query.id, update.status, update.source))
 
 
-def wait_until(predicate: Callable[[], bool], timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    pause = threading.Event()
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        pause.wait(0.002)
-    return True
-
-
 def test_an_unsupervised_provider_killed_is_lost_its_consumers_hear_fatal_up_the_chain(
     system: System, started: list[rr.ResourceRegistrar], process_helpers: SharedObjects
 ) -> None:
@@ -123,7 +112,7 @@ def test_an_unsupervised_provider_killed_is_lost_its_consumers_hear_fatal_up_the
 
     assert provider.pid is not None
     os.kill(provider.pid, signal.SIGKILL)
-    assert wait_until(lambda: bool(direct_heard and top_heard and server_heard), BOUND)
+    assert wait_for(lambda: bool(direct_heard and top_heard and server_heard), BOUND)
     provider.kill()  # (returns once its death watch went out)
     middle.client_queries()  # (a round trip: what it was told is handled)
     app.client_queries()
@@ -149,7 +138,7 @@ def test_a_consumer_in_another_process_hears_fatal_when_an_unsupervised_provider
 
         assert provider.pid is not None
         os.kill(provider.pid, signal.SIGKILL)
-        assert wait_until(lambda: len(heard) > 0, BOUND)
+        assert wait_for(lambda: len(heard) > 0, BOUND)
         provider.kill()
 
         assert [(query.id, rr.Status.FATAL, f"{provider.name}/leaf")] == list(heard)
@@ -194,7 +183,7 @@ def test_providers_of_a_supervisor_that_gave_up_are_lost(
     at_sibling = app.call(sibling, "leaf", "lidar", on_status=Heard(heard), timeout=10)
 
     sigkill(sup, crashing)
-    assert wait_until(lambda: sup.gave_up is not None and len(heard) == 2, 15)
+    assert wait_for(lambda: sup.gave_up is not None and len(heard) == 2, 15)
     app.client_queries()
 
     assert sorted(
@@ -227,8 +216,8 @@ def test_a_provider_lost_twice_reports_each_callback_once_and_unloads_once(
     for _ in range(2):  # as a carrier and the death watch may both say it
         Served(middle).peer_lost(provider.name)  # middle: its provider is lost
         Served(provider).peer_lost(middle.name)  # provider: its consumer is lost
-    assert wait_until(lambda: bool(direct_heard and top_heard and server_heard), BOUND)
-    assert wait_until(lambda: len(unloads) == 2, BOUND)
+    assert wait_for(lambda: bool(direct_heard and top_heard and server_heard), BOUND)
+    assert wait_for(lambda: len(unloads) == 2, BOUND)
     for registrar in (middle, provider, app):
         registrar.client_queries()  # (round trips: both messages were handled)
 
@@ -250,7 +239,7 @@ def test_an_unsupervised_registrar_of_this_process_that_dies_is_lost_for_other_p
         query = consumer.call(provider.name, "leaf", "camera", on_status=Heard(heard))
 
         crash(provider)  # its actor dies; nobody restarts it
-        assert wait_until(lambda: len(heard) > 0, BOUND)
+        assert wait_for(lambda: len(heard) > 0, BOUND)
 
         assert [(query.id, rr.Status.FATAL, f"{provider.name}/leaf")] == list(heard)
         assert [] == consumer.client_queries()
@@ -291,7 +280,7 @@ def test_managers_of_a_nested_supervisor_that_gave_up_for_good_are_lost(
         held = app.call(name, "leaf", "camera", on_status=Heard(heard), timeout=10)
 
         sigkill(sup, name)  # it gives up; a temporary supervisor is not restarted
-        assert wait_until(lambda: len(heard) > 0, 15)
+        assert wait_for(lambda: len(heard) > 0, 15)
 
         assert [(held.id, rr.Status.FATAL, f"{name}/leaf")] == heard
         with pytest.raises(rr.UnknownQueryError):

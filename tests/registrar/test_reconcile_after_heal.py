@@ -12,7 +12,6 @@ from __future__ import annotations
 import itertools
 import sys
 import threading
-import time
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -20,6 +19,7 @@ from typing import Any
 
 import cloudpickle
 import pytest
+from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors._registrar import Served
@@ -64,16 +64,6 @@ def leaf_setup(unloads: Any) -> Callable[[rr.ResourceRegistrar], None]:
     return setup
 
 
-def wait_until(predicate: Callable[[], bool], timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    pause = threading.Event()
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        pause.wait(0.002)
-    return True
-
-
 def test_the_reconcile_backoff_doubles_up_to_its_bound() -> None:
     delays = [retry_delay(n) for n in range(1, 12)]
 
@@ -103,7 +93,7 @@ def test_ids_the_provider_lost_are_fatal_once_the_retried_reconcile_is_answered(
     assert [] == heard
     back = RemoteRegistrar.start(name, system, setup=leaf_setup(unloads))  # lost everything
     try:
-        assert wait_until(lambda: len(heard) > 0, 10)
+        assert wait_for(lambda: len(heard) > 0, 10)
         consumer.client_queries()
 
         assert [(query.id, rr.Status.FATAL)] == heard
@@ -144,10 +134,10 @@ def test_an_id_released_while_the_provider_could_not_answer_is_unloaded_once_it_
     Served(consumer).peer_reachable(config.name)
     back = RemoteRegistrar.start(config, system, setup=leaf_setup(unloads))
     try:
-        assert wait_until(lambda: len(unloads) > 0, 10)
+        assert wait_for(lambda: len(unloads) > 0, 10)
         Served(consumer).peer_reachable(config.name)  # told again: nothing more to do
         consumer.client_queries()
-        assert wait_until(lambda: [] == back.server_queries("leaf"), 10)
+        assert wait_for(lambda: [] == back.server_queries("leaf"), 10)
 
         assert ["camera"] == list(unloads)  # once, whoever reconciled first
     finally:

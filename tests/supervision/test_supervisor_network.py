@@ -8,8 +8,6 @@ plugs into the same keywords.
 from __future__ import annotations
 
 import sys
-import threading
-import time
 import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -17,6 +15,7 @@ from typing import Any
 import cloudpickle
 import pytest
 from supervising import echo_setup, kill_and_wait_restarted, process
+from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors.testing import RemoteRegistrar, SharedObjects, System, start_forkserver
@@ -167,7 +166,7 @@ def test_a_consumer_outside_the_tree_hears_fatal_for_ids_a_restart_without_backu
         query = other.call(name, "echo", "camera", on_status=Heard(heard), timeout=10)
 
         kill_and_wait_restarted(sup, name)
-        assert wait_until(lambda: len(heard) > 0, 10)
+        assert wait_for(lambda: len(heard) > 0, 10)
 
         assert [(query.id, rr.Status.FATAL)] == list(heard)
         assert [] == other.client_queries()
@@ -181,13 +180,3 @@ class Heard:
 
     def __call__(self, query: rr.Query, update: rr.StatusUpdate) -> None:
         self.records.append((query.id, update.status))
-
-
-def wait_until(predicate: Callable[[], bool], timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    pause = threading.Event()
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        pause.wait(0.005)
-    return True

@@ -32,6 +32,7 @@ from typing import Any
 
 import pytest
 from carriers import CARRIERS, setup_servers
+from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors._registrar import Served
@@ -85,16 +86,6 @@ class Recorder:
 
     def end(self) -> None:
         self._ended.set()
-
-
-def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout
-    pause = threading.Event()
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        pause.wait(0.005)
-    return True
 
 
 # -- the provider's process ----------------------------------------------------------------------
@@ -157,7 +148,7 @@ class Lab:
         self.started.append((process, parent_end))
         assert parent_end.poll(30), "the provider process did not get ready"
         assert "ready" == parent_end.recv()
-        assert wait_until(lambda: name in self.system.names()), f"{name} not seen"
+        assert wait_for(lambda: name in self.system.names(), 10.0), f"{name} not seen"
         self.connect(name)
         return name, process, parent_end
 
@@ -246,7 +237,7 @@ def test_a_killed_unsupervised_provider_is_lost_its_consumer_hears_fatal_once_an
 
         assert lost_at is not None, f"{name} was never reported lost"
         assert lost_at - killed_at < LOST_WITHIN
-        assert wait_until(lambda: bool(heard), 5.0)
+        assert wait_for(lambda: bool(heard), 5.0)
         assert [] == [q for q in consumer.client_queries() if q.serving_rr == name]
         assert [(query.id, rr.Status.FATAL, f"{name}/echo")] == heard  # once
         with pytest.raises(rr.UnknownQueryError):
@@ -264,7 +255,7 @@ def test_a_killed_manager_whose_supervisor_lives_is_not_lost(lab: Lab) -> None:
     try:
         control, control_process, _ = lab.provider()
         recorder = lab.recorder()
-        assert wait_until(lambda: manager in lab.system.names())
+        assert wait_for(lambda: manager in lab.system.names(), 10.0)
         lab.connect(manager)
         pid = sup.child(manager).pid
         assert pid
@@ -273,7 +264,7 @@ def test_a_killed_manager_whose_supervisor_lives_is_not_lost(lab: Lab) -> None:
         kill(control_process)
         sup.wait_restarted(manager, timeout=15)
         assert recorder.wait_lost(control) is not None  # the carrier does say "lost"
-        assert wait_until(lambda: manager in lab.system.names())
+        assert wait_for(lambda: manager in lab.system.names(), 10.0)
         os.kill(sup.child(manager).pid or 0, 0)  # (the restarted one runs)
 
         assert [control] == recorder.lost_names()
