@@ -34,8 +34,10 @@ server" (see `zenoh_carrier`).
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import functools
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -45,6 +47,11 @@ import zenoh
 
 from rr_actors._transport.zenoh_queue import Queue
 from rr_actors.errors import DuplicateNameError
+
+logger = logging.getLogger("rr_actors")
+
+_DELETED_KEPT = 1024
+"""Deletions remembered beyond which those older than every `ask` in flight are pruned."""
 
 __all__ = ["ASK_TIMEOUT", "CLAIM_TIMEOUT", "NO_WAITING", "Presence", "PresenceEvents", "Server"]
 
@@ -106,6 +113,7 @@ class Presence:
         self._changed = threading.Condition(threading.Lock())
         self._seq = 0
         self._deleted: dict[str, int] = {}  # token key -> seq of its last deletion
+        self._asking: collections.Counter[int] = collections.Counter()  # asked_at -> asks
         self._procs: set[str] = set()
         self._vanished: set[str] = set()  # processes whose token went at least once
         self._servers: dict[str, dict[str, Server]] = {}
@@ -199,17 +207,24 @@ class Presence:
             return  # (on Zenoh's or the presence thread: what the tables say must do)
         with self._changed:
             asked_at = self._seq
-        keys: list[str] = []
-        with contextlib.suppress(Exception):
-            replies = self._session.liveliness().get(
-                f"{self._prefix}/live/*/{name}/**", timeout=ASK_TIMEOUT
-            )
-            keys.extend(str(reply.ok.key_expr) for reply in replies if reply.ok is not None)
-        done = threading.Event()
-        for key in keys:
-            self._queue.put((True, key, asked_at))
-        self._queue.put((None, "", done))
-        done.wait(ASK_TIMEOUT)
+            self._asking[asked_at] += 1
+        try:
+            keys: list[str] = []
+            with contextlib.suppress(Exception):
+                replies = self._session.liveliness().get(
+                    f"{self._prefix}/live/*/{name}/**", timeout=ASK_TIMEOUT
+                )
+                keys.extend(str(reply.ok.key_expr) for reply in replies if reply.ok is not None)
+            done = threading.Event()
+            for key in keys:
+                self._queue.put((True, key, asked_at))
+            if self._queue.put((None, "", done)):  # (closed: nothing will be applied)
+                done.wait(ASK_TIMEOUT)
+        finally:
+            with self._changed:
+                self._asking[asked_at] -= 1
+                if self._asking[asked_at] <= 0:
+                    del self._asking[asked_at]
 
     def close(self) -> None:
         """Stop applying events."""
@@ -231,10 +246,16 @@ class Presence:
                 return  # a stale answer of `ask`
             if not put:
                 self._deleted[key] = self._seq
+                if len(self._deleted) > _DELETED_KEPT:  # (only an `ask` in flight needs them)
+                    oldest = min(self._asking, default=self._seq)
+                    self._deleted = {k: q for k, q in self._deleted.items() if q > oldest}
             actions = self._change(put, parts)
             self._changed.notify_all()
         for action in actions:
-            action()
+            try:  # (one failing action must not keep the others from running)
+                action()
+            except Exception:
+                logger.exception("presence: %s after %s failed", action, key)
 
     def _change(self, put: bool, parts: list[str]) -> list[Callable[[], None]]:
         """Apply one event to the tables (holding the lock); what to do after."""

@@ -22,7 +22,8 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from test_transport_lost import Recorder, wait_until
+from test_transport_lost import Recorder
+from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors._registrar import Served
@@ -180,7 +181,7 @@ def test_a_registrar_served_again_is_connected_at_once_so_its_next_death_is_hear
     kill(first)
     second = processes.start(provider_main, unix.address, name, None)  # "restarted"
     # awaited, then served again: this process connects to it by itself
-    assert wait_until(lambda: _connected(unix, name), 5.0)
+    assert wait_for(lambda: _connected(unix, name), 5.0)
 
     kill(second)  # nobody speaks for this one, and this process sent it nothing
 
@@ -267,7 +268,7 @@ def test_a_manager_whose_supervisors_process_is_killed_is_lost(
 ) -> None:
     manager = named("manager")
     supervisor = processes.start(supervisor_main, unix.address, manager, daemon=False)
-    assert wait_until(lambda: manager in unix.names())
+    assert wait_for(lambda: manager in unix.names(), 10.0)
     unix.run(manager, id, timeout=10)  # connected
     assert str(supervisor.pid) == _published(unix, manager).split()[0]
 
