@@ -16,7 +16,6 @@ import errno
 import logging
 import math
 import os
-import pickle
 import socket
 import threading
 import time
@@ -26,7 +25,6 @@ from typing import Any
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._transport.base import Endpoint, Member
 from rr_actors._transport.codec import (
-    NO_REPLY,
     Oversized,
     Run,
     frame,
@@ -35,6 +33,7 @@ from rr_actors._transport.codec import (
     unframe,
     what,
 )
+from rr_actors._transport.delivery import compensate, deliver, refuse_too_large
 from rr_actors._transport.sockets import (
     HANDSHAKE_TIMEOUT,
     handshake,
@@ -46,7 +45,6 @@ from rr_actors._transport.writer import Lost, Writer
 from rr_actors.errors import (
     ConfigError,
     DuplicateNameError,
-    InternalError,
     MessageTooLargeError,
     RrError,
     TransferError,
@@ -110,10 +108,8 @@ class _AnswerReply:
 
     def _compensate(self) -> None:
         """The answer did not reach its caller: undo what handling the message created."""
-        compensation = self._message.compensation()
-        if compensation is not None:
-            with contextlib.suppress(RrError):
-                DIRECTORY.lookup(self._link.listener.name).tell(compensation)
+        name = self._link.listener.name
+        compensate(self._message, lambda compensation: DIRECTORY.lookup(name).tell(compensation))
 
     def _unpicklable(self, value: Any, error: BaseException | None, exc: BaseException) -> RrError:
         if error is not None:
@@ -183,48 +179,21 @@ class _Link:
     def _refuse(self, oversized: Oversized) -> None:
         """Answer a message over the limit with an error; it was skipped, never unpickled."""
         listener = self.listener
-        error = MessageTooLargeError(
-            f"a message of {oversized.size} bytes for registrar {listener.name!r} is over "
-            f"its max_message_bytes ({listener.max_message_bytes}); it was not read",
-            oversized.size,
-            listener.max_message_bytes,
+        refuse_too_large(
+            listener.name, oversized.token, oversized.size, listener.max_message_bytes, self.send
         )
-        logger.warning("%s", error)
-        if oversized.token != NO_REPLY:
-            self.send(frame(oversized.token, (None, error)))
 
     def _deliver(self, data: bytes | bytearray) -> None:
-        """Unpickle one frame and hand the message to the local registrar."""
-        name = self.listener.name
+        """Unpickle one frame and hand the message to the local registrar (reader thread)."""
         token, payload = unframe(data)
-        try:
-            message = pickle.loads(payload)
-        except BaseException as exc:  # noqa: BLE001 - answered as an error, never raised here
-            if token != NO_REPLY:
-                unreadable = TransferError(
-                    f"a message for registrar {name!r} cannot be unpickled: {exc}"
-                )
-                self.send(frame(token, (None, unreadable)))
-            return
-        reply = None
-        if token != NO_REPLY:
-            if not hasattr(message, "reply"):
-                error = InternalError(
-                    f"a {type(message).__name__} message for registrar {name!r} cannot be answered"
-                )
-                self.send(frame(token, (None, error)))
-                return
-            reply = _AnswerReply(self, token, message)
-            object.__setattr__(message, "reply", reply)  # a fresh copy, ours to fill in
-        if type(message) is Run:
-            self.listener.run(message)
-            return
-        try:
-            DIRECTORY.lookup(name).tell(message)
-        except Exception as exc:
-            if reply is None:
-                raise
-            reply.set_error(exc if isinstance(exc, RrError) else RrError(f"{exc!r}"))
+        deliver(
+            self.listener.name,
+            token,
+            payload,
+            self.send,
+            lambda message: _AnswerReply(self, token, message),
+            self.listener.run,
+        )
 
 
 LOCK_RETRY = 0.2

@@ -15,7 +15,6 @@ import contextlib
 import itertools
 import logging
 import os
-import pickle
 import threading
 from collections.abc import Callable
 from multiprocessing import AuthenticationError
@@ -35,12 +34,12 @@ from rr_actors._transport.codec import (
     unframe,
     what,
 )
+from rr_actors._transport.delivery import answer, answer_too_large
 from rr_actors._transport.sockets import connect, read_limit
 from rr_actors._transport.writer import Writer
 from rr_actors.config import DEFAULT_MAX_MESSAGE_BYTES
 from rr_actors.errors import (
     ConfigError,
-    InternalError,
     MessageTooLargeError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
@@ -281,47 +280,18 @@ class RemotePeer:
         if entry is None:
             return
         reply, message = entry
-        compensation = message.compensation()
-        if compensation is not None:
-            with contextlib.suppress(RrError):
-                self.tell(compensation)
-        reply.set_error(
-            MessageTooLargeError(
-                f"the answer to the {what(message, self.name)} is {oversized.size} bytes "
-                f"pickled, over registrar {self.name!r}'s max_message_bytes ({channel.limit})",
-                oversized.size,
-                channel.limit,
-            )
-        )
+        answer_too_large(reply, message, self.name, oversized.size, channel.limit, self.tell)
 
     def _answer(self, channel: _Channel, data: bytes | bytearray) -> None:
+        """Resolve the reply waiting for one answer frame (reader thread).
+
+        An answer that cannot be unpickled here fails it; the message's `compensation()`
+        (a `Load`'s: an `Abandon` of its consumer id) goes back to the peer, since the
+        caller gets an error instead of what it asked for.
+        """
         token, payload = unframe(data)
         entry = channel.pending.pop(token, None)
         if entry is None:
             return
         reply, message = entry
-        try:
-            value, error = pickle.loads(payload)
-        except BaseException as exc:  # noqa: BLE001 - any unpickling failure fails this answer
-            reply.set_error(self._unreadable(message, exc))
-            return
-        if error is None:
-            reply.set_result(value)
-        elif isinstance(error, BaseException):
-            reply.set_error(error)
-        else:
-            reply.set_error(InternalError(f"a malformed answer from registrar {self.name!r}"))
-
-    def _unreadable(self, message: Any, exc: BaseException) -> RrError:
-        """The error for an answer that cannot be unpickled here; what it created is undone.
-
-        The message's `compensation()` (a `Load`'s: an `Abandon` of its consumer id) goes
-        back to the peer, since the caller gets an error instead of what it asked for.
-        """
-        compensation = message.compensation()
-        if compensation is not None:
-            with contextlib.suppress(RrError):
-                self.tell(compensation)
-        failure: RrError = message.unreadable_answer(self.name, exc)
-        failure.__cause__ = exc
-        return failure
+        answer(reply, message, self.name, payload, self.tell)

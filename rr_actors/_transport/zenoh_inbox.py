@@ -22,19 +22,24 @@ dedup-hit call measured 1.8-1.9x a raw Zenoh `get` on loopback).
 
 from __future__ import annotations
 
-import contextlib
+import functools
 import itertools
 import logging
-import pickle
 import threading
 from collections.abc import Callable
 from typing import Any, Protocol
 
 import zenoh
 
-from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.directory import Reply
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.codec import NO_REPLY, Run, frame, plain, what
+from rr_actors._transport.codec import NO_REPLY, Run, plain, what
+from rr_actors._transport.delivery import (
+    answer,
+    answer_too_large,
+    deliver,
+    refuse_too_large,
+)
 from rr_actors._transport.inbound import _AnswerReply
 from rr_actors._transport.writer import Lost
 from rr_actors._transport.zenoh_presence import NO_WAITING
@@ -48,7 +53,7 @@ from rr_actors._transport.zenoh_wire import (
     payload_of,
     versions_text,
 )
-from rr_actors.errors import InternalError, MessageTooLargeError, RrError, TransferError
+from rr_actors.errors import RrError, TransferError
 
 __all__ = ["Inbox", "InboxOwner", "Local"]
 
@@ -214,52 +219,30 @@ class Inbox:
             self._receive(head, ANSWER, (data, head))
 
     def _deliver(self, item: tuple[Local, bytes, Header]) -> None:
-        """Decode one message for a registrar of this process and tell it (decode thread)."""
+        """Decode one message for a registrar of this process and tell it (its decode
+        thread, or Zenoh's for a plain frame: `_receive`)."""
         local, data, head = item
         name = local.name
         token, payload = payload_of(data, head)
         if not head.ours:
             self._refuse_version(name, head, token)
             return
+        sender = head.sender
+
+        def send(answer: bytes) -> bool:
+            return self._owner.answer_to(sender, answer, None)
+
         if len(payload) > local.max_message_bytes:
-            too_large = MessageTooLargeError(
-                f"a message of {len(payload)} bytes for registrar {name!r} is over its "
-                f"max_message_bytes ({local.max_message_bytes}); it was not read",
-                len(payload),
-                local.max_message_bytes,
-            )
-            logger.warning("%s", too_large)
-            if token != NO_REPLY:
-                self._owner.answer_to(head.sender, frame(token, (None, too_large)), None)
+            refuse_too_large(name, token, len(payload), local.max_message_bytes, send)
             return
-        try:
-            message = pickle.loads(payload)
-        except BaseException as exc:  # noqa: BLE001 - answered as an error, never raised here
-            if token != NO_REPLY:
-                unreadable = TransferError(
-                    f"a message for registrar {name!r} cannot be unpickled: {exc}"
-                )
-                self._owner.answer_to(head.sender, frame(token, (None, unreadable)), None)
-            return
-        reply = None
-        if token != NO_REPLY:
-            if not hasattr(message, "reply"):
-                error: RrError = InternalError(
-                    f"a {type(message).__name__} message for registrar {name!r} cannot be answered"
-                )
-                self._owner.answer_to(head.sender, frame(token, (None, error)), None)
-                return
-            reply = _Answer(_AnswerLink(self._owner, head.sender, local), token, message)  # type: ignore[arg-type]
-            object.__setattr__(message, "reply", reply)
-        if type(message) is Run:
-            self._run(local, message)
-            return
-        try:
-            DIRECTORY.lookup(name).tell(message)
-        except Exception as exc:
-            if reply is None:
-                raise
-            reply.set_error(exc if isinstance(exc, RrError) else RrError(f"{exc!r}"))
+        deliver(
+            name,
+            token,
+            payload,
+            send,
+            lambda message: _Answer(_AnswerLink(self._owner, sender, local), token, message),  # type: ignore[arg-type]
+            lambda message: self._run(local, message),
+        )
 
     def _refuse_version(self, name: str, head: Header, token: int) -> None:
         """A message of another version: not unpickled; its sender is told why."""
@@ -279,7 +262,8 @@ class Inbox:
         message.start(local.endpoint.run, f"rr-zrun-{local.name}")
 
     def _answered(self, item: tuple[bytes, Header]) -> None:
-        """Decode one answer and resolve the reply waiting for it (decode thread)."""
+        """Decode one answer and resolve the reply waiting for it (its decode thread, or
+        Zenoh's for a plain frame: `_receive`)."""
         data, head = item
         token, payload = payload_of(data, head)
         waiting = self._waiting.pop(token, None)
@@ -294,38 +278,10 @@ class Inbox:
                 )
             )
             return
+        tell = functools.partial(self._owner.send, waiting.name)
         if len(payload) > waiting.limit:
-            self._compensate(waiting)
-            waiting.reply.set_error(
-                MessageTooLargeError(
-                    f"the answer to the {what(waiting.message, waiting.name)} is "
-                    f"{len(payload)} bytes pickled, over registrar {waiting.name!r}'s "
-                    f"max_message_bytes ({waiting.limit})",
-                    len(payload),
-                    waiting.limit,
-                )
+            answer_too_large(
+                waiting.reply, waiting.message, waiting.name, len(payload), waiting.limit, tell
             )
             return
-        try:
-            value, error = pickle.loads(payload)
-        except BaseException as exc:  # noqa: BLE001 - any unpickling failure fails this answer
-            self._compensate(waiting)
-            failure: RrError = waiting.message.unreadable_answer(waiting.name, exc)
-            failure.__cause__ = exc
-            waiting.reply.set_error(failure)
-            return
-        if error is None:
-            waiting.reply.set_result(value)
-        elif isinstance(error, BaseException):
-            waiting.reply.set_error(error)
-        else:
-            waiting.reply.set_error(
-                InternalError(f"a malformed answer from registrar {waiting.name!r}")
-            )
-
-    def _compensate(self, waiting: _Waiting) -> None:
-        """The caller gets an error instead of the answer: undo what handling it created."""
-        compensation = waiting.message.compensation()
-        if compensation is not None:
-            with contextlib.suppress(RrError):
-                self._owner.send(waiting.name, compensation)
+        answer(waiting.reply, waiting.message, waiting.name, payload, tell)
