@@ -56,15 +56,7 @@ class Queue:
             if self.closed or self._busy or self._items:
                 return False
             self._busy = True
-        try:
-            self._handle(item)
-        except Exception:
-            logger.exception("%s: handling an item failed", self._name)
-        finally:
-            with self._cond:
-                self._busy = False
-                if self._items:
-                    self._cond.notify()
+        self._handle_one(item)
         return True
 
     def finish(self) -> None:
@@ -91,11 +83,15 @@ class Queue:
                     return
                 item = self._items.popleft()
                 self._busy = True
-            try:
-                self._handle(item)
-            except Exception:
-                logger.exception("%s: handling an item failed", self._name)
-            finally:
-                with self._cond:
-                    self._busy = False
-                    self._cond.notify_all()
+            self._handle_one(item)
+
+    def _handle_one(self, item: Any) -> None:
+        """Handle `item` (its failure is logged), then let the next one go (`_busy` is set)."""
+        try:
+            self._handle(item)
+        except Exception:
+            logger.exception("%s: handling an item failed", self._name)
+        finally:
+            with self._cond:
+                self._busy = False
+                self._cond.notify_all()
