@@ -36,6 +36,7 @@ from rr_actors.errors import (
 
 if TYPE_CHECKING:  # at run time, `__getattr__` below imports it (and zenoh) at first use
     from rr_actors._transport.zenoh_net import ZenohNetwork
+    from rr_actors._transport.zenoh_tls import ZenohTLS
 
 __all__ = [
     "MAX_DEPENDENCY_DEPTH",
@@ -71,6 +72,7 @@ __all__ = [
     "UnknownRegistrarError",
     "UnknownServerError",
     "ZenohNetwork",
+    "ZenohTLS",
     "quarantine_backup",
 ]
 
@@ -78,7 +80,10 @@ __version__ = "0.1.0"
 
 
 def __getattr__(name: str) -> object:
-    """`rr.ZenohNetwork`, imported at first use: `import rr_actors` never imports zenoh."""
+    """`rr.ZenohNetwork`, `rr.ZenohTLS`, imported at first use.
+
+    So `import rr_actors` never imports zenoh or cryptography.
+    """
     if name == "ZenohNetwork":
         try:
             from rr_actors._transport.zenoh_net import ZenohNetwork  # noqa: PLC0415 - lazily
@@ -87,6 +92,14 @@ def __getattr__(name: str) -> object:
                 f"rr.ZenohNetwork needs eclipse-zenoh: pip install 'rr-actors[zenoh]' ({exc})"
             ) from exc
         return ZenohNetwork
+    if name == "ZenohTLS":
+        try:
+            from rr_actors._transport.zenoh_tls import ZenohTLS  # noqa: PLC0415 - lazily
+        except ImportError as exc:
+            raise ImportError(
+                f"rr.ZenohTLS needs cryptography: pip install 'rr-actors[zenoh]' ({exc})"
+            ) from exc
+        return ZenohTLS
     raise AttributeError(f"module 'rr_actors' has no attribute {name!r}")
 
 

@@ -9,6 +9,8 @@ arguments, and a function that runs it. Add a subcommand by appending to `COMMAN
     rr-actors observe --state state/        # the observer's page of the backups
     rr-actors graph --state state/          # the dependency graph as Mermaid (or --format dot)
     rr-actors experiment plan.toml --out results   # a supervision experiment
+    rr-actors certs init certs --system lab        # a system's CA: certs/ca.pem, ca.key
+    rr-actors certs issue certs robot --address 10.0.0.2   # certs/robot.pem, robot.key
     rr-actors --version
 """
 
@@ -224,6 +226,82 @@ def _experiment(args: argparse.Namespace, out: TextIO) -> int:
     return cli.main(args, out)
 
 
+# -- certs -----------------------------------------------------------------------------------
+
+_CERTS_HELP = "make a system's CA and its hosts' certificates for ZenohNetwork's mutual TLS"
+
+
+def _positive_days(text: str) -> int:
+    try:
+        days = int(text)
+    except ValueError:
+        days = 0
+    if days < 1:
+        raise argparse.ArgumentTypeError(f"a positive whole number of days, not {text!r}")
+    return days
+
+
+def _certs_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="certs_command", metavar="SUBCOMMAND", required=True)
+    init = sub.add_parser(
+        "init",
+        help="write DIR/ca.pem and DIR/ca.key (0600): the system's certificate authority",
+        description="Write DIR/ca.pem and DIR/ca.key (0600), the system's certificate "
+        "authority (10 years). DIR is made 0700 if missing. ca.key stays here.",
+    )
+    init.add_argument("dir", metavar="DIR", help="where the CA's files go")
+    init.add_argument("--system", required=True, help="the system's name (ZenohNetwork system=)")
+    init.add_argument("--force", action="store_true", help="replace an existing CA")
+    issue = sub.add_parser(
+        "issue",
+        help="write DIR/NAME.pem and DIR/NAME.key (0600): a host's certificate, signed by the CA",
+        description="Write DIR/NAME.pem and DIR/NAME.key (0600), signed by DIR/ca.pem and "
+        "DIR/ca.key: common name NAME (the member name), every --address peers dial.",
+    )
+    issue.add_argument("dir", metavar="DIR", help="holds ca.pem and ca.key; the files go here")
+    issue.add_argument("name", metavar="NAME", help="the host's member name (its common name)")
+    issue.add_argument(
+        "--address",
+        action="append",
+        default=[],
+        metavar="ADDR",
+        help="an IP address or DNS name peers dial this host at (repeat; default: NAME)",
+    )
+    issue.add_argument(
+        "--days", type=_positive_days, default=365, help="days it is valid (default 365)"
+    )
+    issue.add_argument("--force", action="store_true", help="replace an existing NAME")
+
+
+def _certs(args: argparse.Namespace, out: TextIO) -> int:
+    try:
+        from rr_actors._transport import zenoh_certs  # noqa: PLC0415 - needs cryptography
+    except ImportError as exc:
+        sys.stderr.write(
+            f"rr-actors certs: needs cryptography: pip install 'rr-actors[zenoh]' ({exc})\n"
+        )
+        return 2
+    if args.certs_command == "init":
+        pem, key = zenoh_certs.init_ca(args.dir, args.system, force=args.force)
+        out.write(
+            f"wrote {pem} and {key} (0600)\n"
+            f"ca.key stays here: whoever holds it can make members. "
+            f"Next: rr-actors certs issue {args.dir} NAME --address ADDR\n"
+        )
+        return 0
+    pem, key = zenoh_certs.issue_cert(
+        args.dir, args.name, args.address, days=args.days, force=args.force
+    )
+    ca = pem.parent / "ca.pem"
+    out.write(
+        f"wrote {pem} and {key} (0600)\n"
+        f"Next: copy {ca}, {pem} and {key} to the host {args.name} (keep {key} 0600; "
+        f"ca.key stays here), and name {args.name!r} in every host's "
+        f"rr.ZenohTLS(members=[...])\n"
+    )
+    return 0
+
+
 COMMANDS: list[Command] = [
     Command(
         "demo",
@@ -255,6 +333,7 @@ COMMANDS: list[Command] = [
         _experiment_arguments,
         _experiment,
     ),
+    Command("certs", _CERTS_HELP, _certs_arguments, _certs),
 ]
 """The subcommands, in the order `--help` lists them."""
 
@@ -291,9 +370,10 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
         out: where results go (default: standard output). Errors go to standard error.
 
     Returns:
-        The exit code: 0 on success, 1 when the backup cannot be read (the message names
-        the file and the cause), 2 for a usage error, and 2 without a command (after
-        printing the help on standard output: nothing was done).
+        The exit code: 0 on success, 1 when the backup cannot be read or a `certs` file
+        is refused (the message names the file and the cause), 2 for a usage error, and
+        2 without a command (after printing the help on standard output: nothing was
+        done).
     """
     parser = build_parser()
     args = parser.parse_args(argv)

@@ -1,0 +1,280 @@
+"""A system's certificates in two steps (`rr-actors certs init` / `rr-actors certs issue`).
+
+```
+ certs init DIR --system lab      ──> DIR/ca.pem, DIR/ca.key (0600)        stays here
+ certs issue DIR robot --address… ──> DIR/robot.pem, DIR/robot.key (0600)  to the host
+                                       signed with DIR/ca.key                 with ca.pem
+```
+
+The certificates are what `ZenohTLS` accepts: the CA is a CA (BasicConstraints CA=true,
+keyCertSign), a host's certificate names the member in its common name and every address
+peers dial in its subject alternative names, and has both TLS uses (a host listens and
+connects). Keys are ECDSA P-256, PKCS#8, unencrypted, written 0600 (certificates 0644).
+A file is written to a temporary file in the same directory, then renamed over its name:
+a crash leaves the old file or the new one, never half of one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import ipaddress
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec, ed25519
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from rr_actors._transport.zenoh_tls import MEMBER_NAME
+from rr_actors.errors import ConfigError
+
+__all__ = ["CA_DAYS", "CLOCK_SKEW", "init_ca", "issue_cert"]
+
+CA_DAYS = 3650
+"""Days a CA made by `init_ca` is valid."""
+
+CLOCK_SKEW = datetime.timedelta(minutes=5)
+"""A certificate is valid from this long before it is made: hosts' clocks differ a little."""
+
+
+def _key_usage(*, digital_signature: bool = False, cert_sign: bool = False) -> x509.KeyUsage:
+    return x509.KeyUsage(
+        digital_signature=digital_signature,
+        content_commitment=False,
+        key_encipherment=False,
+        data_encipherment=False,
+        key_agreement=False,
+        key_cert_sign=cert_sign,
+        crl_sign=cert_sign,
+        encipher_only=False,
+        decipher_only=False,
+    )
+
+
+def _pem(cert: x509.Certificate) -> bytes:
+    return cert.public_bytes(serialization.Encoding.PEM)
+
+
+def _pkcs8(key: ec.EllipticCurvePrivateKey) -> bytes:
+    return key.private_bytes(
+        serialization.Encoding.PEM,
+        serialization.PrivateFormat.PKCS8,
+        serialization.NoEncryption(),
+    )
+
+
+def _refuse_existing(paths: Iterable[Path], force: bool) -> None:
+    existing = [str(p) for p in paths if p.exists()]
+    if existing and not force:
+        raise ConfigError(
+            f"{' and '.join(existing)} already exist{'s' if len(existing) == 1 else ''}: "
+            f"left untouched (--force replaces)"
+        )
+
+
+def _write_all(files: dict[Path, tuple[bytes, int]]) -> None:
+    """Write each file (data, mode) to a temporary name in its directory, then rename them."""
+    temporary: dict[Path, Path] = {}
+    try:
+        for path, (data, mode) in files.items():
+            tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            temporary[path] = tmp
+            os.fchmod(fd, mode)  # exactly `mode`, whatever the umask
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+        for path, tmp in temporary.items():
+            os.replace(tmp, path)
+    except OSError as exc:
+        raise ConfigError(f"cannot write {', '.join(map(str, files))}: {exc}") from exc
+    finally:
+        for tmp in temporary.values():
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+
+
+def _directory(directory: str | os.PathLike[str], *, create: bool) -> Path:
+    path = Path(directory)
+    if create and not path.exists():
+        try:
+            path.mkdir(mode=0o700, parents=True)
+            path.chmod(0o700)  # the umask may have taken bits off
+        except OSError as exc:
+            raise ConfigError(f"cannot make the directory {path}: {exc}") from exc
+    if not path.is_dir():
+        raise ConfigError(f"{path} is not a directory")
+    return path
+
+
+def init_ca(
+    directory: str | os.PathLike[str], system: str, *, force: bool = False
+) -> tuple[Path, Path]:
+    """Make a system's certificate authority: `directory/ca.pem` and `directory/ca.key`.
+
+    The CA's common name is `rr_actors <system> CA`; it is valid for `CA_DAYS` days
+    (BasicConstraints CA=true, keyCertSign and cRLSign, both critical; ECDSA P-256).
+    The directory is made (0700) if missing; the key is written 0600.
+
+    Args:
+        directory: where the files go.
+        system: the system's name (as `ZenohNetwork(system=...)`), named in the CA.
+        force: replace existing files (certificates issued by the old CA stop being
+            accepted by hosts that get the new `ca.pem`).
+
+    Returns:
+        The paths of `ca.pem` and `ca.key`.
+
+    Raises:
+        ConfigError: `system` is not a system name; `ca.pem` or `ca.key` exists (without
+            `force`; nothing is written); the directory cannot be made or written.
+    """
+    if not isinstance(system, str) or MEMBER_NAME.fullmatch(system) is None:
+        raise ConfigError(f"system {system!r} is not a system name ({MEMBER_NAME.pattern})")
+    path = _directory(directory, create=True)
+    pem, key_path = path / "ca.pem", path / "ca.key"
+    _refuse_existing((pem, key_path), force)
+    key = ec.generate_private_key(ec.SECP256R1())
+    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"rr_actors {system} CA")])
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(subject)
+        .issuer_name(subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - CLOCK_SKEW)
+        .not_valid_after(now + datetime.timedelta(days=CA_DAYS))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+        .add_extension(_key_usage(cert_sign=True), critical=True)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    _write_all({pem: (_pem(cert), 0o644), key_path: (_pkcs8(key), 0o600)})
+    return pem, key_path
+
+
+CaKey = ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey
+
+
+def _load_ca(directory: Path) -> tuple[x509.Certificate, CaKey]:
+    pem, key_path = directory / "ca.pem", directory / "ca.key"
+    missing = [str(p) for p in (pem, key_path) if not p.is_file()]
+    if missing:
+        raise ConfigError(
+            f"no CA: {' and '.join(missing)} missing "
+            f"(make one with: rr-actors certs init {directory} --system NAME)"
+        )
+    try:
+        cert = x509.load_pem_x509_certificate(pem.read_bytes())
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{pem} is not a readable PEM certificate: {exc}") from None
+    try:
+        key = serialization.load_pem_private_key(key_path.read_bytes(), password=None)
+    except (OSError, ValueError, TypeError, UnsupportedAlgorithm) as exc:
+        raise ConfigError(f"{key_path} is not a readable unencrypted private key: {exc}") from None
+    if not isinstance(key, ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey):
+        raise ConfigError(f"{key_path}: only an EC or Ed25519 CA key signs here")
+    spki = serialization.Encoding.DER, serialization.PublicFormat.SubjectPublicKeyInfo
+    if key.public_key().public_bytes(*spki) != cert.public_key().public_bytes(*spki):
+        raise ConfigError(f"{key_path} is not the private key of {pem}")
+    return cert, key
+
+
+def _names(name: str, addresses: Iterable[str]) -> list[x509.GeneralName]:
+    sans: list[x509.GeneralName] = []
+    for address in dict.fromkeys(addresses or (name,)):
+        try:
+            sans.append(x509.IPAddress(ipaddress.ip_address(address)))
+        except ValueError:
+            try:
+                sans.append(x509.DNSName(address))
+            except ValueError as exc:
+                raise ConfigError(
+                    f"--address {address!r} is not an IP address or DNS name"
+                ) from exc
+    return sans
+
+
+def issue_cert(
+    directory: str | os.PathLike[str],
+    name: str,
+    addresses: Iterable[str] = (),
+    *,
+    days: int = 365,
+    force: bool = False,
+) -> tuple[Path, Path]:
+    """Issue a host's certificate with the CA in `directory`: `NAME.pem` and `NAME.key`.
+
+    Common name `name` (the member name); subject alternative names every address (an
+    IP address, else a DNS name; default `name` as a DNS name): peers check the address
+    they dial against these. Both TLS uses (serverAuth, clientAuth), digitalSignature,
+    not a CA, ECDSA P-256; valid from `CLOCK_SKEW` ago for `days` days. The key is
+    written 0600.
+
+    Args:
+        directory: holds `ca.pem` and `ca.key` (from `init_ca`); the files go there.
+        name: the member name, as in `ZenohTLS(members=...)`.
+        addresses: the IP addresses and DNS names peers dial this host at.
+        days: how long the certificate is valid, a positive int.
+        force: replace an existing certificate of that name.
+
+    Returns:
+        The paths of `NAME.pem` and `NAME.key`.
+
+    Raises:
+        ConfigError: `name` is not a member name or is `ca`; `days` is not a positive
+            int; an address is neither an IP address nor a DNS name; there is no readable
+            CA in `directory`; `NAME.pem` or `NAME.key` exists (without `force`; nothing is
+            written).
+    """
+    if not isinstance(name, str) or MEMBER_NAME.fullmatch(name) is None:
+        raise ConfigError(f"name {name!r} is not a member name ({MEMBER_NAME.pattern})")
+    if name == "ca":
+        raise ConfigError("name 'ca' is the CA's own files: name the host otherwise")
+    if isinstance(days, bool) or not isinstance(days, int) or days < 1:
+        raise ConfigError(f"days must be a positive whole number, not {days!r}")
+    path = _directory(directory, create=False)
+    ca_cert, ca_key = _load_ca(path)
+    pem, key_path = path / f"{name}.pem", path / f"{name}.key"
+    _refuse_existing((pem, key_path), force)
+    sans = _names(name, addresses)
+    key = ec.generate_private_key(ec.SECP256R1())
+    now = datetime.datetime.now(datetime.UTC)
+    try:
+        issuer_ski = ca_cert.extensions.get_extension_for_class(x509.SubjectKeyIdentifier).value
+        aki = x509.AuthorityKeyIdentifier.from_issuer_subject_key_identifier(issuer_ski)
+    except x509.ExtensionNotFound:
+        aki = x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key())
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)]))
+        .issuer_name(ca_cert.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - CLOCK_SKEW)
+        .not_valid_after(now + datetime.timedelta(days=days))
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(_key_usage(digital_signature=True), critical=True)
+        .add_extension(
+            x509.ExtendedKeyUsage(
+                [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]
+            ),
+            critical=False,
+        )
+        .add_extension(x509.SubjectAlternativeName(sans), critical=False)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .add_extension(aki, critical=False)
+        .sign(ca_key, None if isinstance(ca_key, ed25519.Ed25519PrivateKey) else hashes.SHA256())
+    )
+    try:
+        cert.verify_directly_issued_by(ca_cert)
+    except (ValueError, TypeError, InvalidSignature) as exc:  # pragma: no cover - a broken CA
+        raise ConfigError(f"{path / 'ca.pem'} cannot issue: {exc}") from exc
+    _write_all({pem: (_pem(cert), 0o644), key_path: (_pkcs8(key), 0o600)})
+    return pem, key_path

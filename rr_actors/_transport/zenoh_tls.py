@@ -1,0 +1,305 @@
+"""`ZenohTLS`: a host's certificates for mutual TLS between the hosts of a system.
+
+Read and checked once, when the object is made, with `cryptography` (never zenoh), so a
+wrong file is a `ConfigError` in the program that named it, not a refused handshake
+that Zenoh reports only on its standard output:
+
+```
+ ca.pem ───────────┐
+ robot.pem ─ leaf ─┼─ signed by a CA of ca.pem, in date, both TLS uses ─┐
+ robot.key ────────┘   matches the leaf, a type rustls signs with       ├─ ZenohTLS
+ members ─────────── names like registrars', the leaf's CN among them ──┘   (name, addresses,
+                                                                             not_after)
+```
+
+`ZenohNetwork` hands the paths to Zenoh (`transport/link/tls`) and `members` to its
+access control; the files themselves are read again by Zenoh when the session opens.
+"""
+
+from __future__ import annotations
+
+import datetime
+import logging
+import os
+import re
+import stat
+from collections.abc import Iterable
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric import ec, ed25519, rsa
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from rr_actors.errors import ConfigError
+
+__all__ = ["MEMBER_NAME", "ZenohTLS"]
+
+logger = logging.getLogger("rr_actors")
+
+MEMBER_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
+"""A member's name (a certificate's common name): as a system's or a registrar's name."""
+
+_CURVES = (ec.SECP256R1, ec.SECP384R1)  # the ECDSA curves rustls signs and verifies with
+_RSA_MIN_BITS = 2048
+_PRIVATE = 0o077  # group and others' permission bits: a private key has none
+
+
+def _path(argument: str, value: object) -> str:
+    if not isinstance(value, str | os.PathLike):
+        raise ConfigError(f"{argument} must be a path (str or os.PathLike), not {value!r}")
+    return os.path.abspath(os.fsdecode(value))
+
+
+def _read(argument: str, path: str) -> bytes:
+    """The bytes of `path`; ConfigError naming it if it is missing or cannot be read."""
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{argument} {path} does not exist") from None
+    except OSError as exc:
+        raise ConfigError(f"{argument} {path} cannot be read: {exc.strerror or exc}") from None
+    if b"-----BEGIN " not in data:
+        raise ConfigError(f"{argument} {path} is not PEM (no '-----BEGIN ...' line)")
+    return data
+
+
+def _certificates(argument: str, path: str) -> list[x509.Certificate]:
+    try:
+        found = x509.load_pem_x509_certificates(_read(argument, path))
+    except ValueError as exc:
+        raise ConfigError(f"{argument} {path} holds no readable certificate: {exc}") from None
+    if not found:
+        raise ConfigError(f"{argument} {path} holds no certificate")
+    return found
+
+
+def _utc(moment: datetime.datetime) -> str:
+    return moment.strftime("%Y-%m-%d %H:%M:%S UTC")
+
+
+def _check_dates(what: str, cert: x509.Certificate, now: datetime.datetime) -> None:
+    start, end = cert.not_valid_before_utc, cert.not_valid_after_utc
+    if now < start:
+        raise ConfigError(
+            f"{what} is not yet valid: valid from {_utc(start)} to {_utc(end)}, now {_utc(now)}"
+        )
+    if now > end:
+        raise ConfigError(
+            f"{what} expired on {_utc(end)} (valid from {_utc(start)}; now {_utc(now)})"
+        )
+
+
+def _common_name(cert: x509.Certificate) -> str | None:
+    names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    value = names[0].value if names else None
+    return value if isinstance(value, str) and value else None
+
+
+def _is_ca(cert: x509.Certificate) -> bool:
+    try:
+        return cert.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+    except x509.ExtensionNotFound:
+        return False
+
+
+def _signed_by(cert: x509.Certificate, issuer: x509.Certificate) -> bool:
+    try:
+        cert.verify_directly_issued_by(issuer)
+    except (ValueError, TypeError, InvalidSignature, UnsupportedAlgorithm):
+        return False
+    return True
+
+
+def _check_key_type(path: str, key: object) -> None:
+    """ConfigError unless rustls (Zenoh's TLS) can sign with `key`."""
+    if isinstance(key, ec.EllipticCurvePrivateKey) and isinstance(key.curve, _CURVES):
+        return
+    if isinstance(key, ed25519.Ed25519PrivateKey):
+        return
+    if isinstance(key, rsa.RSAPrivateKey) and key.key_size >= _RSA_MIN_BITS:
+        return
+    kind = (
+        f"EC {key.curve.name}"
+        if isinstance(key, ec.EllipticCurvePrivateKey)
+        else f"RSA {key.key_size} bits"
+        if isinstance(key, rsa.RSAPrivateKey)
+        else type(key).__name__
+    )
+    raise ConfigError(
+        f"key {path} is {kind}, which Zenoh's TLS (rustls) cannot use: use ECDSA P-256 or "
+        f"P-384, Ed25519, or RSA of {_RSA_MIN_BITS} bits or more"
+    )
+
+
+def _check_uses(path: str, cert: x509.Certificate) -> None:
+    """ConfigError if an extendedKeyUsage leaves out TLS client or server use."""
+    try:
+        uses = set(cert.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value)
+    except x509.ExtensionNotFound:
+        return  # no restriction: every use
+    missing = [
+        label
+        for oid, label in (
+            (ExtendedKeyUsageOID.SERVER_AUTH, "serverAuth (TLS server)"),
+            (ExtendedKeyUsageOID.CLIENT_AUTH, "clientAuth (TLS client)"),
+        )
+        if oid not in uses
+    ]
+    if missing:
+        raise ConfigError(
+            f"cert {path} lacks the extended key usage {' and '.join(missing)}: a host both "
+            f"listens and connects, so its certificate needs serverAuth and clientAuth"
+        )
+
+
+def _members(members: object) -> tuple[str, ...]:
+    if isinstance(members, str | bytes) or not isinstance(members, Iterable):
+        raise ConfigError(f"members must be a list of names such as ['robot'], not {members!r}")
+    names = tuple(dict.fromkeys(members))  # order kept, duplicates dropped
+    if not names:
+        raise ConfigError("members is empty: name at least this host's certificate's name")
+    for name in names:
+        if not isinstance(name, str) or MEMBER_NAME.fullmatch(name) is None:
+            raise ConfigError(
+                f"members: {name!r} is not a member name ({MEMBER_NAME.pattern}, as a "
+                f"registrar's name; a certificate's common name)"
+            )
+    return names
+
+
+class ZenohTLS:
+    """A host's CA, certificate, key and the system's members, checked when made.
+
+    The system has its own certificate authority (`ca`): every host holds `ca` and its
+    own certificate and key, and admits the hosts whose certificate's common name is in
+    `members`. As ROS 2's SROS2 keystore: one CA per system, one identity per participant.
+    Make the files with `rr-actors certs init` / `rr-actors certs issue` (or any PKI whose
+    certificates have both TLS uses and the addresses peers dial).
+
+    Args:
+        ca: path (str or `os.PathLike`) to a PEM file of the system's CA certificate(s)
+            (more than one is allowed: all are trusted, e.g. the old and the new CA while
+            it is replaced).
+        cert: path to this host's PEM certificate: the host's own first, then any
+            intermediate CA certificates, each signed by the next; the last is signed
+            by a CA of `ca`.
+        key: path to the certificate's private key, PEM, unencrypted (PKCS#8, PKCS#1 or
+            SEC1): ECDSA P-256 or P-384, Ed25519, or RSA of 2048 bits or more.
+        members: the common names admitted (an iterable of str, not one str), named like
+            registrars; non-empty, and this host's own name must be one. Order is kept,
+            duplicates dropped.
+
+    Attributes:
+        ca, cert, key: the absolute paths.
+        members: the names admitted, a tuple.
+        name: this host's certificate's subject common name (its member name).
+        addresses: the certificate's subject alternative names (IP addresses and DNS
+            names, as strings, in its order): the addresses peers may dial this host at.
+        not_after: when the certificate ends (a timezone-aware UTC datetime).
+
+    Raises:
+        ConfigError: naming the argument and file (or the name) and what is wrong: a
+            path that is not str/PathLike; a file missing, unreadable (e.g. a directory)
+            or not PEM; `ca` without a certificate, or one that is not a CA
+            (BasicConstraints CA=true), expired or not yet valid; `cert` without a
+            certificate, expired or not yet valid (with the dates, UTC), not signed by
+            `ca`, without a common name, with an extendedKeyUsage lacking TLS server or
+            client use; `key` not a private key, encrypted, of a type rustls cannot use,
+            or not the certificate's; `members` not an iterable of names, empty, a name
+            that is not a member name, or without this host's name.
+
+    A key file readable by group or others logs a WARNING on the `rr_actors` logger
+    naming it and its mode (fix: `chmod 600`).
+    """
+
+    ca: str
+    cert: str
+    key: str
+    members: tuple[str, ...]
+    name: str
+    addresses: tuple[str, ...]
+    not_after: datetime.datetime
+
+    def __init__(self, *, ca: object, cert: object, key: object, members: object) -> None:
+        self.ca = _path("ca", ca)
+        self.cert = _path("cert", cert)
+        self.key = _path("key", key)
+        self.members = _members(members)
+        now = datetime.datetime.now(datetime.UTC)
+
+        authorities = _certificates("ca", self.ca)
+        for authority in authorities:
+            what = f"ca {self.ca} ({authority.subject.rfc4514_string()})"
+            if not _is_ca(authority):
+                raise ConfigError(f"{what} is not a CA certificate (no BasicConstraints CA=true)")
+            _check_dates(what, authority, now)
+
+        chain = _certificates("cert", self.cert)
+        leaf = chain[0]
+        for index, link in enumerate(chain):
+            what = f"cert {self.cert}" + (f" (intermediate {index})" if index else "")
+            _check_dates(what, link, now)
+            issuers = chain[index + 1 : index + 2] or authorities
+            if not any(_signed_by(link, issuer) for issuer in issuers):
+                by = "the next certificate in it" if index + 1 < len(chain) else f"ca {self.ca}"
+                raise ConfigError(
+                    f"{what} ({link.subject.rfc4514_string()}, issued by "
+                    f"{link.issuer.rfc4514_string()}) is not signed by {by}"
+                )
+        _check_uses(self.cert, leaf)
+
+        name = _common_name(leaf)
+        if name is None:
+            raise ConfigError(
+                f"cert {self.cert} has no subject common name: a member is known by it"
+            )
+        if name not in self.members:
+            raise ConfigError(
+                f"cert {self.cert} is {name!r}, which is not in members {list(self.members)}: "
+                f"a host must be a member of its own system"
+            )
+        self.name = name
+        self.not_after = leaf.not_valid_after_utc
+        self.addresses = _addresses(leaf)
+
+        data = _read("key", self.key)
+        try:
+            private = serialization.load_pem_private_key(data, password=None)
+        except TypeError:
+            raise ConfigError(
+                f"key {self.key} is encrypted: Zenoh reads an unencrypted key "
+                f"(keep it 0600 instead)"
+            ) from None
+        except (ValueError, UnsupportedAlgorithm) as exc:
+            raise ConfigError(f"key {self.key} holds no readable private key: {exc}") from None
+        _check_key_type(self.key, private)
+        spki = serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+        if private.public_key().public_bytes(*spki) != leaf.public_key().public_bytes(*spki):
+            raise ConfigError(f"key {self.key} is not the private key of cert {self.cert}")
+        mode = stat.S_IMODE(os.stat(self.key).st_mode)
+        if mode & _PRIVATE:
+            logger.warning(
+                "private key %s is readable by group or others (mode %04o): chmod 600 %s",
+                self.key,
+                mode,
+                self.key,
+            )
+
+    def __repr__(self) -> str:
+        return (
+            f"ZenohTLS(name={self.name!r}, addresses={list(self.addresses)}, "
+            f"not_after={_utc(self.not_after)!r}, members={list(self.members)}, "
+            f"ca={self.ca!r}, cert={self.cert!r}, key={self.key!r})"
+        )
+
+
+def _addresses(cert: x509.Certificate) -> tuple[str, ...]:
+    try:
+        names = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    except x509.ExtensionNotFound:
+        return ()
+    return tuple(
+        str(entry.value) for entry in names if isinstance(entry, x509.IPAddress | x509.DNSName)
+    )
