@@ -157,7 +157,7 @@ class LinkWatch:
             logger.info("ZenohNetwork %r: link to %r at %s closed", self._system, name, where)
             return
         if name in self._tls.members:
-            logger.info("ZenohNetwork %r: member %r linked from %s", self._system, name, where)
+            logger.info("ZenohNetwork %r: member %r linked at %s", self._system, name, where)
             return
         now = self._clock()
         last = self._warned.get(where)
