@@ -17,19 +17,21 @@ import socket
 import threading
 import types
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pki
 import pytest
 import zenoh
+from supervising import process
 from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors._transport.zenoh_config import session_config
 from rr_actors._transport.zenoh_probe import handshake_trouble
 from rr_actors._transport.zenoh_watch import LinkWatch
+from rr_actors.testing import start_forkserver
 
 MEMBERS = ["robot", "operator"]
 DAY = datetime.timedelta(days=1)
@@ -55,6 +57,13 @@ class Lab:
         cert, key = pki.issue(where, name, addresses, ca=ca, **issue)
         members = [*MEMBERS, name] if name not in MEMBERS else MEMBERS
         return rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=members)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def forkserver() -> None:
+    """Manager processes start from the forkserver: a process with a Zenoh session must not
+    fork (started before any test, as the leftover check expects)."""
+    start_forkserver()
 
 
 @pytest.fixture
@@ -341,3 +350,32 @@ def test_a_tls_network_that_closes_stops_its_watch(lab: Lab) -> None:
     assert any(t.name == "rr-zenoh-watch" for t in threading.enumerate())
     net.close()
     assert not any(t.name == "rr-zenoh-watch" for t in threading.enumerate())
+
+
+# -- this host's manager processes -------------------------------------------------------------
+
+
+def test_a_tls_routers_manager_processes_join_over_its_unix_socket_and_are_admitted(
+    lab: Lab, supervisors: Callable[..., rr.Supervisor]
+) -> None:
+    """The ACL admits `unixsock-stream` links: a supervised manager process serves on a TLS
+    network and a registrar of the router's process calls it (no TCP on loopback at all)."""
+    net = rr.ZenohNetwork(
+        system=f"t-{uuid.uuid4().hex[:8]}",
+        listen=[f"tls/127.0.0.1:{_free_port()}"],
+        tls=lab.tls("robot"),
+    )
+    try:
+        with supervisors([process("erm")], network=net):
+            app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=net)
+            try:
+                query = app.call("erm", "echo", "over the unix socket", timeout=10)
+                assert query.response == "over the unix socket"
+                app.unload(query.id, timeout=10)
+            finally:
+                app.stop()
+        assert all(
+            link.dst.startswith("unixsock-stream/") for link in net._open()._session.info.links()
+        )
+    finally:
+        net.close()
