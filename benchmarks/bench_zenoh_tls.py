@@ -290,14 +290,16 @@ def burst_started(timeout: float) -> bool:
 
 def join_timed(
     name: str, connect: list[str], tls: dict[str, Any], provider: str, timeout: float
-) -> tuple[float, float]:
+) -> tuple[float, float, float]:
     """In a fresh worker: join the system (a `ZenohNetwork` over TLS, a registrar `name`)
-    and call `provider`'s `echo` until a call succeeds; `time.monotonic()` at both ends."""
+    and call `provider`'s `echo` until a call succeeds; `time.monotonic()` at the start,
+    once the registrar is served (its network's Zenoh session open), and at the end."""
     import rr_actors as rr  # noqa: PLC0415
 
     start = time.monotonic()
     hosts.rr_join(system=SYSTEM, listen=[], connect=connect, tls=tls)
-    hosts.rr_start(name)
+    hosts.rr_start(name)  # (the network opens its session here, at first use)
+    opened = time.monotonic()
     registrar = hosts.KEPT["registrars"][name]
     deadline = start + timeout
     pause = threading.Event()
@@ -311,7 +313,7 @@ def join_timed(
             pause.wait(0.01)  # (a retry's pace: a failure is immediate)
     end = time.monotonic()
     registrar.unload(query.id)
-    return start, end
+    return start, opened, end
 
 
 _joiners = itertools.count()
@@ -330,20 +332,20 @@ def join_once(two: hosts.TwoHosts, certs: Certs, near: str, ready: hosts.Worker)
 
 def burst(
     two: hosts.TwoHosts, certs: Certs, args: argparse.Namespace
-) -> tuple[dict[str, list[Any]], dict[str, Any], dict[str, list[float]]]:
+) -> tuple[dict[str, list[Any]], dict[str, Any], dict[str, list[tuple[float, float]]]]:
     """The burst of refused handshakes: the member's calls by phase, the burst's outcome,
     and the joins (quiet and during the burst)."""
     port = next(_ports)
     near = two.a.endpoint(port, "tls")
-    joins: dict[str, list[float]] = {"quiet": [], "during": [], "ended": []}
+    joins: dict[str, list[tuple[float, float]]] = {"quiet": [], "during": [], "ended": []}
     with (
         rr_worker(two.a, [near], [], certs.tls("robot"), ("erm", bench_zenoh.setup_echo)),
         rr_worker(two.b, [], [near], certs.tls("operator"), ("app", None)) as member,
     ):
         member.call(hosts.rr_until_answered, "app", "erm", "echo", 30.0, timeout=60)
         for _ in range(args.joins):
-            start, end = join_once(two, certs, near, two.b.spawn())
-            joins["quiet"].append(end - start)
+            start, opened, end = join_once(two, certs, near, two.b.spawn())
+            joins["quiet"].append((end - start, opened - start))
         intruder = two.b.spawn()
         ready = [two.b.spawn() for _ in range(args.joins)]  # (started before the burst)
         before = member.call(calls_paced, "app", "erm", args.quiet, args.interval, timeout=600)
@@ -365,8 +367,8 @@ def burst(
         member.call(calls_stop, timeout=10)
         calls = during.result(600)
         after = member.call(calls_paced, "app", "erm", args.quiet, args.interval, timeout=600)
-    for start, end in spans:
-        joins["during" if end <= result["ended"] else "ended"].append(end - start)
+    for start, opened, end in spans:
+        joins["during" if end <= result["ended"] else "ended"].append((end - start, opened - start))
     phases = {
         "before": before,
         "during": [c for c in calls if result["began"] <= c[0] <= result["ended"]],
@@ -406,7 +408,7 @@ def report_burst(
     args: argparse.Namespace,
     phases: dict[str, list[Any]],
     result: dict[str, Any],
-    joins: dict[str, list[float]],
+    joins: dict[str, list[tuple[float, float]]],
 ) -> None:
     took = result["ended"] - result["began"]
     print(
@@ -431,8 +433,11 @@ def report_burst(
             f"| {quantile(times, 99) * 1e3:6.2f} | {max(times) * 1e3:6.2f} | {target} |"
         )
     print()
-    print("| a member joins (to its first successful call) | runs | median s | max s | target |")
-    print("|---|---:|---:|---:|---|")
+    print(
+        "| a member joins (to its first successful call) | runs | median s | max s "
+        "| of which its session's open, median s | target |"
+    )
+    print("|---|---:|---:|---:|---:|---|")
     labels = {
         "quiet": "quiet (no burst)",
         "during": "during the burst",
@@ -442,9 +447,11 @@ def report_burst(
         if not spans:
             continue
         target = f"< {TARGET_JOIN:g} s" if when == "during" else ""
+        total = [span for span, _ in spans]
+        opening = statistics.median(opened for _, opened in spans)
         print(
-            f"| {labels[when]} | {len(spans)} | {statistics.median(spans):6.2f} "
-            f"| {max(spans):6.2f} | {target} |"
+            f"| {labels[when]} | {len(spans)} | {statistics.median(total):6.2f} "
+            f"| {max(total):6.2f} | {opening:6.2f} | {target} |"
         )
 
 
