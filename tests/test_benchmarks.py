@@ -35,6 +35,10 @@ SMALLEST = {
     "bench_transport.py": ["--rounds", "20"],
     "bench_xoscar.py": ["--rounds", "1", "--batch", "5", "--no-load"],
     "bench_zenoh.py": ["--rounds", "20", "--kills", "1", "--cuts", "1"],
+    "bench_zenoh_tls.py": [
+        *("--rounds", "20", "--handshakes", "20", "--clients", "4"),
+        *("--joins", "1", "--quiet", "1"),
+    ],
     "count_dedup.py": ["--calls", "5", "--profile"],
     "stress_crash.py": ["--kills", "4", "--round", "2"],
 }
