@@ -66,8 +66,9 @@ def _read(argument: str, path: str) -> bytes:
 
 
 def _certificates(argument: str, path: str) -> list[x509.Certificate]:
+    data = _read(argument, path)  # outside the try: a ConfigError is a ValueError too
     try:
-        found = x509.load_pem_x509_certificates(_read(argument, path))
+        found = x509.load_pem_x509_certificates(data)
     except ValueError as exc:
         raise ConfigError(f"{argument} {path} holds no readable certificate: {exc}") from None
     if not found:
