@@ -158,7 +158,7 @@ def _check_uses(path: str, cert: x509.Certificate) -> None:
 def _members(members: object) -> tuple[str, ...]:
     if isinstance(members, str | bytes) or not isinstance(members, Iterable):
         raise ConfigError(f"members must be a list of names such as ['robot'], not {members!r}")
-    names = tuple(dict.fromkeys(members))  # order kept, duplicates dropped
+    names = list(members)
     if not names:
         raise ConfigError("members is empty: name at least this host's certificate's name")
     for name in names:
@@ -167,7 +167,7 @@ def _members(members: object) -> tuple[str, ...]:
                 f"members: {name!r} is not a member name ({MEMBER_NAME.pattern}, as a "
                 f"registrar's name; a certificate's common name)"
             )
-    return names
+    return tuple(dict.fromkeys(names))  # order kept, duplicates dropped
 
 
 class ZenohTLS:
@@ -212,8 +212,11 @@ class ZenohTLS:
             that is not a member name, or without this host's name.
 
     A key file readable by group or others logs a WARNING on the `rr_actors` logger
-    naming it and its mode (fix: `chmod 600`).
+    naming it and its mode (fix: `chmod 600`). The object is read-only; Zenoh reads the
+    files again when a `ZenohNetwork` opens its session.
     """
+
+    __slots__ = ("addresses", "ca", "cert", "key", "members", "name", "not_after")
 
     ca: str
     cert: str
@@ -223,7 +226,14 @@ class ZenohTLS:
     addresses: tuple[str, ...]
     not_after: datetime.datetime
 
-    def __init__(self, *, ca: object, cert: object, key: object, members: object) -> None:
+    def __init__(
+        self,
+        *,
+        ca: str | os.PathLike[str],
+        cert: str | os.PathLike[str],
+        key: str | os.PathLike[str],
+        members: Iterable[str],
+    ) -> None:
         self.ca = _path("ca", ca)
         self.cert = _path("cert", cert)
         self.key = _path("key", key)
@@ -287,6 +297,12 @@ class ZenohTLS:
                 mode,
                 self.key,
             )
+
+    def __setattr__(self, name: str, value: object) -> None:
+        """Each attribute is set once, when the object is made: make a new one to change it."""
+        if hasattr(self, name):
+            raise AttributeError(f"ZenohTLS.{name} is read-only: make a new ZenohTLS")
+        object.__setattr__(self, name, value)
 
     def __repr__(self) -> str:
         return (

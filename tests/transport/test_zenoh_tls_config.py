@@ -62,6 +62,13 @@ def test_certificates_from_the_certs_commands_are_accepted(tmp_path: Path) -> No
     assert "10.0.0.2" in repr(got)
 
 
+def test_its_attributes_are_read_only(ca: tuple[Path, Path], robot: tuple[Path, Path]) -> None:
+    got = tls(ca[0], robot)
+
+    with pytest.raises(AttributeError, match=r"ZenohTLS\.members is read-only"):
+        got.members = ("intruder",)
+
+
 def test_paths_are_made_absolute(
     tmp_path: Path, ca: tuple[Path, Path], robot: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -347,7 +354,7 @@ def test_empty_members_is_a_config_error(
         tls(ca[0], robot, members)
 
 
-@pytest.mark.parametrize("bad", ["", ".hidden", "a/b", "robot station", 7, "ro*"])
+@pytest.mark.parametrize("bad", ["", ".hidden", "a/b", "robot station", 7, "ro*", ["robot"]])
 def test_a_member_name_that_is_not_a_name_is_a_config_error(
     ca: tuple[Path, Path], robot: tuple[Path, Path], bad: object
 ) -> None:
