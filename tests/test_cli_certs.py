@@ -302,3 +302,24 @@ def test_certs_help_lists_init_and_issue() -> None:
     assert 0 == result.returncode
     assert "init" in result.stdout
     assert "issue" in result.stdout
+
+
+def test_without_cryptography_certs_says_which_extra_to_install(tmp_path: Path) -> None:
+    code = (
+        "import sys\n"
+        "sys.modules['cryptography'] = None  # as if not installed: importing it fails\n"
+        "from rr_actors._cli import main\n"
+        "sys.exit(main(['certs', 'init', 'certs', '--system', 'lab']))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        cwd=tmp_path,
+    )
+
+    assert 2 == result.returncode
+    assert "pip install 'rr-actors[zenoh]'" in result.stderr
+    assert [] == list(tmp_path.iterdir())

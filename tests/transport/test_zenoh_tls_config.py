@@ -414,3 +414,23 @@ def test_importing_rr_actors_imports_neither_cryptography_nor_zenoh() -> None:
     )
 
     assert (0, "") == (result.returncode, result.stderr)
+
+
+def test_without_cryptography_rr_zenoh_tls_says_which_extra_to_install() -> None:
+    code = (
+        "import sys\n"
+        "sys.modules['cryptography'] = None  # as if not installed: importing it fails\n"
+        "import rr_actors\n"
+        "try:\n"
+        "    rr_actors.ZenohTLS\n"
+        "except ImportError as exc:\n"
+        "    print(exc)\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False
+    )
+
+    assert (0, "") == (result.returncode, result.stderr)
+    assert result.stdout.startswith(
+        "rr.ZenohTLS needs cryptography: pip install 'rr-actors[zenoh]'"
+    )
