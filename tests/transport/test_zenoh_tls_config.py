@@ -18,7 +18,7 @@ import pytest
 import rr_actors as rr
 from rr_actors._transport import zenoh_certs
 from rr_actors.errors import ConfigError
-from tests.pki import DAY, issue, make_ca
+from tests.pki import DAY, issue, make_ca, make_intermediate
 
 NOW = datetime.datetime.now(datetime.UTC)
 
@@ -104,38 +104,30 @@ def test_a_certificate_without_extended_key_usage_is_accepted(
 def test_a_chain_leaf_first_then_an_intermediate_is_accepted(
     tmp_path: Path, ca: tuple[Path, Path]
 ) -> None:
-    # an intermediate CA signed by the root, the host's certificate signed by it
-    middle = make_ca(tmp_path / "mid", "mid")
-    middle_pem = issue_intermediate(tmp_path, ca, middle)
-    pem, key = issue(tmp_path, "robot", ca=(middle_pem, middle[1]))
+    middle = make_intermediate(tmp_path, ca)
+    pem, key = issue(tmp_path, "robot", ca=middle)
     chain = tmp_path / "chain.pem"
-    chain.write_bytes(pem.read_bytes() + middle_pem.read_bytes())
+    chain.write_bytes(pem.read_bytes() + middle[0].read_bytes())
 
     assert "robot" == tls(ca[0], (chain, key)).name
 
 
-def issue_intermediate(tmp_path: Path, root: tuple[Path, Path], middle: tuple[Path, Path]) -> Path:
-    """The `middle` CA's key, certified by `root` (an intermediate CA certificate)."""
-    from cryptography import x509  # noqa: PLC0415
-    from cryptography.hazmat.primitives import hashes, serialization  # noqa: PLC0415
+def test_a_chain_without_its_intermediate_is_not_signed_by_ca(
+    tmp_path: Path, ca: tuple[Path, Path]
+) -> None:
+    pair = issue(tmp_path, "robot", ca=make_intermediate(tmp_path, ca))
 
-    root_cert = x509.load_pem_x509_certificate(root[0].read_bytes())
-    root_key = serialization.load_pem_private_key(root[1].read_bytes(), password=None)
-    own = x509.load_pem_x509_certificate(middle[0].read_bytes())
-    cert = (
-        x509.CertificateBuilder()
-        .subject_name(own.subject)
-        .issuer_name(root_cert.subject)
-        .public_key(own.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(NOW - DAY)
-        .not_valid_after(NOW + DAY)
-        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
-        .sign(root_key, hashes.SHA256())  # type: ignore[arg-type]
-    )
-    path = tmp_path / "intermediate.pem"
-    path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
-    return path
+    with pytest.raises(ConfigError, match=rf"^cert {pair[0]} .* is not signed by ca {ca[0]}$"):
+        tls(ca[0], pair)
+
+
+def test_a_ca_file_may_hold_several_cas(tmp_path: Path, ca: tuple[Path, Path]) -> None:
+    other = make_ca(tmp_path / "other", "lab")
+    bundle = tmp_path / "bundle.pem"
+    bundle.write_bytes(other[0].read_bytes() + ca[0].read_bytes())
+    pair = issue(tmp_path, "robot", ca=ca)
+
+    assert "robot" == tls(bundle, pair).name
 
 
 # -- files --------------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ import zenoh
 import rr_actors as rr
 from rr_actors._transport import zenoh_certs
 from rr_actors.errors import ConfigError
-from tests.pki import issue, make_ca
+from tests.pki import issue, make_ca, make_intermediate
 
 
 def config(directory: Path, me: str, listen: list[str], connect: list[str]) -> object:
@@ -104,3 +104,24 @@ def test_a_key_type_zenoh_tls_refuses_zenoh_cannot_listen_with(
 
     with pytest.raises(zenoh.ZError, match="failed to parse private key"):
         zenoh.open(config(tmp_path, "listener", [f"tls/127.0.0.1:{free_port()}"], []))
+
+
+def test_a_ca_bundle_and_a_chain_zenoh_tls_accepts_zenoh_uses(tmp_path: Path) -> None:
+    # the listener's certificate from one CA, the dialler's from an intermediate of another;
+    # both trust both CAs
+    first, second = make_ca(tmp_path / "first"), make_ca(tmp_path / "second")
+    (tmp_path / "ca.pem").write_bytes(first[0].read_bytes() + second[0].read_bytes())
+    issue(tmp_path, "listener", ("127.0.0.1",), ca=first)
+    middle = make_intermediate(tmp_path / "second", second)
+    pem, key = issue(tmp_path / "second", "dialler", ("127.0.0.1",), ca=middle)
+    (tmp_path / "dialler.pem").write_bytes(pem.read_bytes() + middle[0].read_bytes())
+    key.rename(tmp_path / "dialler.key")
+    for name in ("listener", "dialler"):
+        rr.ZenohTLS(
+            ca=tmp_path / "ca.pem",
+            cert=tmp_path / f"{name}.pem",
+            key=tmp_path / f"{name}.key",
+            members=[name],
+        )
+
+    assert a_put_crosses(tmp_path)
