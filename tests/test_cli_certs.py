@@ -134,14 +134,20 @@ def test_an_existing_ca_is_refused_untouched_unless_forced(
     assert before != (ca_dir / "ca.key").read_bytes()
 
 
+@pytest.mark.parametrize("directory", ["empty", "missing"])
 def test_issue_without_a_ca_says_how_to_make_one(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], directory: str
 ) -> None:
-    assert 1 == certs("issue", str(tmp_path), "robot")[0]
+    where = tmp_path / directory
+    if directory == "empty":
+        where.mkdir()
+
+    assert 1 == certs("issue", str(where), "robot")[0]
 
     err = capsys.readouterr().err
-    assert f"no CA: {tmp_path}/ca.pem and {tmp_path}/ca.key missing" in err
-    assert f"rr-actors certs init {tmp_path} --system NAME" in err
+    assert f"no CA: {where}/ca.pem and {where}/ca.key missing" in err
+    assert f"rr-actors certs init {where} --system NAME" in err
+    assert (directory == "empty") == where.exists()
 
 
 @pytest.mark.parametrize(
