@@ -448,9 +448,9 @@ class Host:
     def __repr__(self) -> str:
         return f"<Host {self.name} {self.address} in {self.namespace}>"
 
-    def endpoint(self, port: int) -> str:
-        """The Zenoh endpoint `tcp/<address>:<port>` on this host."""
-        return f"tcp/{self.address}:{port}"
+    def endpoint(self, port: int, protocol: str = "tcp") -> str:
+        """The Zenoh endpoint `<protocol>/<address>:<port>` on this host (`tcp` or `tls`)."""
+        return f"{protocol}/{self.address}:{port}"
 
     def spawn(self) -> Worker:
         """A new worker in this host's namespace (stopped with the host)."""
@@ -754,13 +754,40 @@ def has_carrier() -> bool:
     return hasattr(rr, "ZenohNetwork") and "network" in start.parameters
 
 
-def rr_join(*, system: str, listen: list[str], connect: list[str], lease: float = 1.0) -> None:
-    """Make this worker's `ZenohNetwork` (plain TCP: `tls=None`, issue 22's step 1)."""
+def rr_join(
+    *,
+    system: str,
+    listen: list[str],
+    connect: list[str],
+    lease: float = 1.0,
+    tls: dict[str, Any] | None = None,
+) -> None:
+    """Make this worker's `ZenohNetwork`: plain TCP (issue 22's step 1) or, with `tls` (the
+    keyword arguments of `rr.ZenohTLS`), mutual TLS (step 2). Records from then on of the
+    `rr_actors` logger, INFO and up, are kept in `KEPT["logs"]` (`rr_logs` reads them)."""
+    import logging  # noqa: PLC0415
+
     import rr_actors as rr  # noqa: PLC0415
 
+    records: list[tuple[str, str]] = []
+    KEPT["logs"] = records
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            records.append((record.levelname, record.getMessage()))
+
+    log = logging.getLogger("rr_actors")
+    log.addHandler(Keep(logging.INFO))
+    log.setLevel(min(log.getEffectiveLevel(), logging.INFO))
+    made = None if tls is None else rr.ZenohTLS(**tls)
     make = rr.ZenohNetwork
-    KEPT["network"] = make(system=system, listen=listen, connect=connect, tls=None, lease=lease)
+    KEPT["network"] = make(system=system, listen=listen, connect=connect, tls=made, lease=lease)
     KEPT["registrars"] = {}
+
+
+def rr_logs(level: str | None = None) -> list[str]:
+    """The messages `rr_join`'s handler kept (of `level` only, if given)."""
+    return [message for name, message in KEPT["logs"] if level is None or name == level]
 
 
 def rr_start(name: str, setup: Callable[[Any], object] | None = None) -> None:

@@ -23,8 +23,6 @@ spawn.
 from __future__ import annotations
 
 import dataclasses
-import ipaddress
-import json
 import logging
 import math
 import os
@@ -42,84 +40,27 @@ from rr_actors._core.addresses import is_loopback
 from rr_actors._core.directory import Peer
 from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.zenoh_carrier import ZenohMember
+from rr_actors._transport.zenoh_config import endpoints, parse_endpoint, session_config
+from rr_actors._transport.zenoh_watch import LinkWatch
 from rr_actors.errors import ConfigError, RegistrarUnavailableError
+
+if TYPE_CHECKING:
+    from rr_actors._transport.zenoh_tls import ZenohTLS
 
 __all__ = ["ZenohAddress", "ZenohNetwork"]
 
 logger = logging.getLogger("rr_actors")
 
 _SYSTEM = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
-_ENDPOINT = re.compile(
-    r"tcp/(\[(?P<v6>[0-9A-Fa-f:.]+)\]|(?P<host>[A-Za-z0-9_.\-]+)):(?P<port>\d{1,5})"
-)
 _PROBE_TIMEOUT = 0.5  # seconds a `connect` endpoint gets to accept the probe at open
 
 
-def _parse_endpoint(role: str, endpoint: object) -> tuple[str, int]:
-    """The host and port of a `tcp/<address>:<port>` endpoint; ConfigError naming it."""
-    match = _ENDPOINT.fullmatch(endpoint) if isinstance(endpoint, str) else None
-    port = int(match["port"]) if match else -1
-    if match is None or not 0 <= port <= 65535 or (role == "connect" and port == 0):
-        raise ConfigError(
-            f"{role} endpoint {endpoint!r} is malformed: expected 'tcp/<address>:<port>' "
-            f"(a host name, an IPv4 address or [an IPv6 address], and a port"
-            f"{' from 1' if role == 'connect' else ' from 0'} to 65535)"
-        )
-    host = match["v6"] or match["host"]
-    if match["v6"] is not None:
-        try:
-            ipaddress.IPv6Address(host)
-        except ValueError as exc:
-            raise ConfigError(f"{role} endpoint {endpoint!r} is malformed: {exc}") from None
-    return host, port
-
-
-def _endpoints(role: str, given: object) -> tuple[str, ...]:
-    if isinstance(given, str | bytes) or not isinstance(given, Iterable):
-        raise ConfigError(
-            f"{role} must be a list of endpoints such as ['tcp/10.0.0.1:7447'], not {given!r}"
-        )
-    endpoints = tuple(given)
-    for endpoint in endpoints:
-        _parse_endpoint(role, endpoint)
-    return endpoints
-
-
-def _config(mode: str, listen: list[str], connect: list[str], lease: float) -> zenoh.Config:
-    """The session's Zenoh config: only the endpoints given, `lease` seconds, no scouting."""
-    lease_ms = max(1, round(lease * 1000))
-    tcp = [endpoint for endpoint in listen if not endpoint.startswith("unixsock-stream/")]
-    settings: dict[str, Any] = {
-        "mode": mode,
-        "listen": {"endpoints": listen},
-        "connect": {
-            "endpoints": connect,
-            "exit_on_failure": mode == "client",
-            "retry": {"period_init_ms": 250, "period_max_ms": 1000},
-        },
-        "scouting": {
-            "multicast": {"enabled": False},
-            "gossip": {"enabled": False},
-            # a router's open waits `delay` ms (500) for links to other routers, its own
-            # `connect` ones and those that connect to its TCP `listen`; with neither (one
-            # host, scouting off) there is nothing to wait for
-            **({"delay": 0} if mode == "router" and not connect and not tcp else {}),
-        },
-        "transport": {
-            "link": {
-                "tx": {
-                    "lease": lease_ms,
-                    "keep_alive": 4,
-                    # a link blocked for half the lease is closed: a frozen reader does
-                    # not stall the router's other links until the lease of theirs runs out
-                    "queue": {
-                        "congestion_control": {"block": {"wait_before_close": lease_ms * 500}}
-                    },
-                }
-            }
-        },
-    }
-    return zenoh.Config.from_json5(json.dumps(settings))
+def _is_tls(tls: object) -> bool:
+    try:
+        from rr_actors._transport.zenoh_tls import ZenohTLS  # noqa: PLC0415 - cryptography
+    except ImportError:  # without cryptography nobody could have made a ZenohTLS
+        return False
+    return isinstance(tls, ZenohTLS)
 
 
 # -- one system per process ----------------------------------------------------------------------
@@ -193,7 +134,7 @@ class ZenohAddress:
         return _join(self.system, None, self._open)
 
     def _open(self) -> ZenohMember:
-        config = _config("client", [], [f"unixsock-stream/{self.socket_path}"], self.lease)
+        config = session_config("client", [], [f"unixsock-stream/{self.socket_path}"], self.lease)
         try:
             session = zenoh.open(config)
         except Exception as exc:
@@ -217,18 +158,23 @@ class ZenohNetwork:
         system: the system's name, as a registrar name (`[A-Za-z0-9_.-]+`); every key
             expression starts with `rr/<system>/`, so systems sharing a network never
             see each other.
-        listen: Zenoh endpoints to listen on, `tcp/<address>:<port>` (the firewall must
-            let that port in). A listen endpoint that is not loopback gets a WARNING
-            while `tls=None`.
-        connect: endpoints of other hosts' routers, `tcp/<address>:<port>`. One that
-            cannot be reached yet is no error (the other host may start later; Zenoh
-            keeps trying): a WARNING names it.
-        tls: required. `None` asks for plain TCP (step 1); TLS comes with step 2.
+        listen: Zenoh endpoints to listen on, `tls/<address>:<port>` with `tls`,
+            `tcp/<address>:<port>` without (the firewall must let that port in). A
+            listen endpoint that is not loopback gets a WARNING while `tls=None`.
+        connect: endpoints of other hosts' routers, in the same form. One that cannot be
+            reached yet is no error (the other host may start later; Zenoh keeps
+            trying): a WARNING names it, with TLS the reason from a handshake of our own
+            (`zenoh_watch`), at most once a minute while it lasts.
+        tls: required. A `ZenohTLS`: mutual TLS on every link and Zenoh's access control
+            (only `members` and this host's manager processes reach `rr/<system>/`; see
+            `zenoh_config`). `None`: plain TCP, for one trusted network only: anyone who
+            reaches a port can send pickles, which run as code.
         lease: seconds (default 1.0) after which a silent peer (a cut link, a frozen
             process) counts as gone. Zenoh's own default is 10 s.
 
     Raises:
-        ConfigError: a bad `system`, a malformed endpoint, a `tls` other than `None`, a
+        ConfigError: a bad `system`, a malformed endpoint, a `tcp/` endpoint with `tls`
+            or a `tls/` one without, a `tls` that is neither `None` nor a `ZenohTLS`, a
             `lease` that is not a positive number of seconds.
     """
 
@@ -238,7 +184,7 @@ class ZenohNetwork:
         system: str,
         listen: Iterable[str] = (),
         connect: Iterable[str] = (),
-        tls: None,
+        tls: ZenohTLS | None,
         lease: float = 1.0,
     ) -> None:
         if not isinstance(system, str) or not _SYSTEM.fullmatch(system):
@@ -247,14 +193,14 @@ class ZenohNetwork:
                 f"with '.' or '-'), not {system!r}"
             )
         self.system = system
-        self.listen = _endpoints("listen", listen)
-        self.connect = _endpoints("connect", connect)
-        if tls is not None:
+        if tls is not None and not _is_tls(tls):
             raise ConfigError(
-                f"tls={tls!r} is not supported yet (mutual TLS comes with step 2); "
-                f"pass tls=None for plain TCP"
+                f"tls must be rr.ZenohTLS(ca=..., cert=..., key=..., members=[...]) or None "
+                f"(plain TCP), not {tls!r}"
             )
         self.tls = tls
+        self.listen = endpoints("listen", listen, tls=tls is not None)
+        self.connect = endpoints("connect", connect, tls=tls is not None)
         if (
             isinstance(lease, bool)
             or not isinstance(lease, int | float)
@@ -264,8 +210,8 @@ class ZenohNetwork:
             raise ConfigError(f"lease must be seconds from 0.01 to 3600, not {lease!r}")
         self.lease = float(lease)
         for endpoint in self.listen:
-            host, _ = _parse_endpoint("listen", endpoint)
-            if not is_loopback(host):
+            _, host, _ = parse_endpoint("listen", endpoint)
+            if tls is None and not is_loopback(host):
                 logger.warning(
                     "ZenohNetwork %r listens on %s in plain TCP (tls=None): anyone who "
                     "reaches it can send pickles to this system's registrars",
@@ -276,11 +222,12 @@ class ZenohNetwork:
         self._member: ZenohMember | None = None
         self._runtime_dir: str | None = None
         self._address: ZenohAddress | None = None
+        self._watch: LinkWatch | None = None
 
     def __repr__(self) -> str:
         return (
             f"ZenohNetwork(system={self.system!r}, listen={list(self.listen)!r}, "
-            f"connect={list(self.connect)!r}, tls=None, lease={self.lease!r})"
+            f"connect={list(self.connect)!r}, tls={self.tls!r}, lease={self.lease!r})"
         )
 
     # -- opening ---------------------------------------------------------------------------
@@ -295,8 +242,13 @@ class ZenohNetwork:
     def _open_router(self) -> ZenohMember:
         runtime_dir = tempfile.mkdtemp(prefix="rr-zenoh-")  # mode 0700
         path = os.path.join(runtime_dir, "router.sock")
-        config = _config(
-            "router", [*self.listen, f"unixsock-stream/{path}"], list(self.connect), self.lease
+        config = session_config(
+            "router",
+            [*self.listen, f"unixsock-stream/{path}"],
+            list(self.connect),
+            self.lease,
+            system=self.system,
+            tls=self.tls,
         )
         try:
             session = zenoh.open(config)
@@ -305,7 +257,11 @@ class ZenohNetwork:
             raise ConfigError(
                 f"ZenohNetwork {self.system!r} cannot listen on {list(self.listen)!r}: {exc}"
             ) from exc
-        self._warn_unreachable()
+        if self.tls is None:
+            self._warn_unreachable()
+        else:  # names the reason of an unlinked connect endpoint, and who links
+            self._watch = LinkWatch(self.system, session, self.tls, self.connect)
+        watch = self._watch
         member = ZenohMember(self.system, session)
         self._runtime_dir = runtime_dir
         self._address = member._address = ZenohAddress(
@@ -313,6 +269,8 @@ class ZenohNetwork:
         )
 
         def closed() -> None:
+            if watch is not None:
+                watch.close()
             _left(member)
             shutil.rmtree(runtime_dir, ignore_errors=True)
 
@@ -321,7 +279,7 @@ class ZenohNetwork:
 
     def _warn_unreachable(self) -> None:
         for endpoint in self.connect:
-            host, port = _parse_endpoint("connect", endpoint)
+            _, host, port = parse_endpoint("connect", endpoint)
             try:
                 with socket.create_connection((host, port), timeout=_PROBE_TIMEOUT):
                     pass
@@ -379,6 +337,8 @@ class ZenohNetwork:
 
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits, close the session (idempotent)."""
+        if self._watch is not None:
+            self._watch.close()  # before the session goes
         member = self._member
         if member is not None:
             member.close()

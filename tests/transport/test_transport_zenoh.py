@@ -81,8 +81,8 @@ def test_tls_has_no_default() -> None:
 
 
 @pytest.mark.parametrize("tls", [True, "mtls", {"ca": "ca.pem"}])
-def test_tls_other_than_none_is_a_config_error_until_step_2(tls: Any) -> None:
-    with pytest.raises(rr.ConfigError, match="tls=None"):
+def test_tls_other_than_none_or_a_zenoh_tls_is_a_config_error(tls: Any) -> None:
+    with pytest.raises(rr.ConfigError, match=r"tls must be rr\.ZenohTLS"):
         rr.ZenohNetwork(system="lab", tls=tls)
 
 

@@ -18,7 +18,7 @@ import uuid
 import zenoh
 
 import rr_actors as rr
-from rr_actors._transport.zenoh_net import _config
+from rr_actors._transport.zenoh_config import session_config
 
 SCOUTING_DELAY = 0.5  # seconds: Zenoh's default `scouting/delay`
 
@@ -42,9 +42,9 @@ def _free_port() -> int:
 
 def test_a_router_with_a_connect_endpoint_is_linked_when_its_open_returns():
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    listening = zenoh.open(_config("router", [endpoint], [], 1.0))
+    listening = zenoh.open(session_config("router", [endpoint], [], 1.0))
     try:
-        connecting = zenoh.open(_config("router", [], [endpoint], 1.0))
+        connecting = zenoh.open(session_config("router", [], [endpoint], 1.0))
         try:
             assert [listening.zid()] == list(connecting.info.routers_zid())
         finally:

@@ -1,0 +1,210 @@
+"""Who a TLS router is linked to, and why a `connect` endpoint is not: said on the logger.
+
+Zenoh decides who gets in (mutual TLS, then the access control of `zenoh_config`); this
+module only tells the operator, on the `rr_actors` logger:
+
+- INFO when a member links: its certificate's common name and its address (both sides);
+- WARNING when a certificate signed by this system's CA but not in `members` links: Zenoh
+  drops every message of it both ways; at most once per address per minute;
+- WARNING when a `connect` endpoint has no link `GRACE` seconds after start or after its
+  link is lost, with the reason from our own handshake (`zenoh_probe`); at most once per
+  endpoint per minute while it lasts.
+
+```
+ Zenoh's thread: link event ──put──► queue ──► watch thread "rr-zenoh-watch"
+                                                 ├─ log INFO / WARNING per link
+                                                 └─ every TICK s: each connect endpoint
+                                                    linked? else after GRACE s:
+                                                    handshake_trouble() ─► WARNING
+```
+
+The Zenoh callback only puts the event in a queue (a callback must never block: logging
+handlers are user code); the watch thread does the rest. A link is "to" an endpoint when
+its remote address is one of the endpoint's host's addresses (any port: two routers
+that dial each other share one link).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import logging
+import queue
+import socket
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import zenoh
+
+from rr_actors._transport.zenoh_config import parse_endpoint
+from rr_actors._transport.zenoh_probe import handshake_trouble
+
+if TYPE_CHECKING:
+    from rr_actors._transport.zenoh_tls import ZenohTLS
+
+__all__ = ["LinkWatch"]
+
+logger = logging.getLogger("rr_actors")
+
+GRACE = 2.0  # seconds a connect endpoint may stay unlinked before we probe it
+TICK = 0.5  # seconds between two looks at the connect endpoints
+REPEAT = 60.0  # seconds between two WARNINGs about one address or endpoint
+
+
+def _remote_host(locator: str) -> str:
+    """The host of a locator such as `tls/10.0.0.2:7447` or `tls/[::1]:7447`."""
+    address = locator.split("/", 1)[-1].split("#", 1)[0]
+    host = address.rsplit(":", 1)[0]
+    return host.strip("[]")
+
+
+def _addresses(host: str) -> set[str]:
+    """`host` and, for a name, the addresses it resolves to now (none if it does not)."""
+    try:
+        return {str(ipaddress.ip_address(host))}
+    except ValueError:
+        pass
+    try:
+        return {str(info[4][0]) for info in socket.getaddrinfo(host, None)} | {host}
+    except OSError:
+        return {host}
+
+
+class _Endpoint:
+    def __init__(self, endpoint: str) -> None:
+        _, self.host, self.port = parse_endpoint("connect", endpoint)
+        self.endpoint = endpoint
+        self.unlinked_since: float | None = None
+        self.warned_at: float | None = None
+        self.looked = False  # the first look counts from start, a later one from then
+
+
+class LinkWatch:
+    """The watch of one router session (`ZenohNetwork` with `tls=`); see the module docstring.
+
+    Args:
+        system: the system's name, for the log lines.
+        session: the router's open Zenoh session.
+        tls: this host's files and the members.
+        connect: the router's `connect` endpoints.
+        clock: seconds, monotonic (tests may pass their own).
+    """
+
+    def __init__(
+        self,
+        system: str,
+        session: zenoh.Session,
+        tls: ZenohTLS,
+        connect: tuple[str, ...],
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._system = system
+        self._session = session
+        self._tls = tls
+        self._clock = clock
+        self._endpoints = [_Endpoint(endpoint) for endpoint in connect]
+        self._events: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._warned: dict[str, float] = {}  # non-member address -> when we said so
+        self._stop = threading.Event()
+        self._started = clock()
+        self._listener = session.info.declare_link_events_listener(self._events.put, history=True)
+        self._thread = threading.Thread(target=self._run, name="rr-zenoh-watch", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        """Stop watching (idempotent); call before the session closes."""
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        self._events.put(None)
+        try:
+            self._listener.undeclare()  # type: ignore[no-untyped-call]
+        except Exception:
+            logger.debug("undeclaring the link events listener failed", exc_info=True)
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout=5.0)
+
+    # -- the thread ------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        next_tick = self._clock()
+        while not self._stop.is_set():
+            try:
+                event = self._events.get(timeout=max(0.0, next_tick - self._clock()))
+            except queue.Empty:
+                event = None
+            if self._stop.is_set():
+                return
+            try:
+                if event is not None:
+                    self._on_link(event)
+                if self._clock() >= next_tick:
+                    next_tick = self._clock() + TICK
+                    self._look_at_endpoints()
+            except Exception:
+                if self._stop.is_set():
+                    return  # the session closed under us
+                logger.exception("ZenohNetwork %r: watching its links failed", self._system)
+
+    def _on_link(self, event: Any) -> None:
+        link = event.link
+        if not str(link.dst).startswith("tls/"):
+            return  # this host's own processes (unixsock-stream)
+        name, where = link.auth_identifier, _remote_host(str(link.dst))
+        if event.kind != zenoh.SampleKind.PUT:
+            logger.info("ZenohNetwork %r: link to %r at %s closed", self._system, name, where)
+            return
+        if name in self._tls.members:
+            logger.info("ZenohNetwork %r: member %r linked at %s", self._system, name, where)
+            return
+        now = self._clock()
+        last = self._warned.get(where)
+        if last is not None and now - last < REPEAT:
+            return
+        self._warned[where] = now
+        logger.warning(
+            "ZenohNetwork %r: %r at %s linked with a certificate signed by this system's CA "
+            "(%s) but is not in members %s: every message of it is dropped both ways",
+            self._system,
+            name,
+            where,
+            self._tls.ca,
+            list(self._tls.members),
+        )
+
+    def _linked_hosts(self) -> set[str]:
+        return {
+            _remote_host(str(link.dst))
+            for link in self._session.info.links()
+            if str(link.dst).startswith("tls/") and link.auth_identifier in self._tls.members
+        }
+
+    def _look_at_endpoints(self) -> None:
+        if not self._endpoints:
+            return
+        linked = self._linked_hosts()
+        now = self._clock()
+        for endpoint in self._endpoints:
+            first, endpoint.looked = not endpoint.looked, True
+            if _addresses(endpoint.host) & linked:
+                endpoint.unlinked_since = endpoint.warned_at = None
+                continue
+            if endpoint.unlinked_since is None:  # unlinked since start, or since its link went
+                endpoint.unlinked_since = self._started if first else now
+            if now - endpoint.unlinked_since < GRACE:
+                continue
+            if endpoint.warned_at is not None and now - endpoint.warned_at < REPEAT:
+                continue
+            endpoint.warned_at = now
+            reason = handshake_trouble(self._tls, endpoint.host, endpoint.port)
+            if reason is None:
+                reason = "the listener accepts this host's certificate; Zenoh has not linked yet"
+            logger.warning(
+                "ZenohNetwork %r has no link to connect endpoint %s: %s; calls to registrars "
+                "there fail (UnknownRegistrarError) until it links",
+                self._system,
+                endpoint.endpoint,
+                reason,
+            )
