@@ -22,9 +22,9 @@ from pathlib import Path
 import pytest
 from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+from pki import make_ca
 
 from rr_actors._cli import main
-from tests.pki import make_ca
 
 
 def certs(*argv: str) -> tuple[int, str]:
