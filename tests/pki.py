@@ -9,6 +9,7 @@ zenoh_certs.py) unless told otherwise:
     ca_pem, ca_key = make_ca(tmp_path)
     pem, key = issue(tmp_path, "robot", ("10.0.0.2",), ca=(ca_pem, ca_key))
     old = issue(tmp_path, "old", ca=(ca_pem, ca_key), not_after=datetime.now(UTC) - DAY)
+    mid = make_intermediate(tmp_path, (ca_pem, ca_key))  # a CA signed by the CA
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-__all__ = ["DAY", "issue", "make_ca"]
+__all__ = ["DAY", "issue", "make_ca", "make_intermediate"]
 
 DAY = datetime.timedelta(days=1)
 
@@ -100,6 +101,38 @@ def make_ca(
         )
         .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
         .sign(key, hashes.SHA256())
+    )
+    return _save(directory, stem, cert, key)
+
+
+def make_intermediate(
+    directory: str | os.PathLike[str],
+    ca: tuple[str | os.PathLike[str], str | os.PathLike[str]],
+    system: str = "mid",
+    *,
+    stem: str = "intermediate",
+) -> tuple[Path, Path]:
+    """An intermediate CA signed by `ca`: `directory/<stem>.pem` and `.key`; their paths.
+
+    A host's certificate issued by it (`issue(..., ca=intermediate)`) is accepted with
+    `ca` as the root when its file holds the host's certificate, then this one.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    root_cert, root_key = _load_ca(ca)
+    key = ec.generate_private_key(ec.SECP256R1())
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"rr_actors {system}")]))
+        .issuer_name(root_cert.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - datetime.timedelta(minutes=5))
+        .not_valid_after(now + 365 * DAY)
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .sign(root_key, _hash(root_key))
     )
     return _save(directory, stem, cert, key)
 

@@ -18,6 +18,9 @@ written):
       `COMMAND_TIMEOUT`. The same command twice on a page runs once. `rr-actors demo`
       without `--fast` runs with `--fast` (the same mission, shorter: the full one takes
       about 35 s).
+    - `openssl ...` runs the system's `openssl` (`.ci/run` installs it) the same way, in
+      the page's directory: a page's certificate recipes make real files, which its later
+      blocks (and `tests/transport/test_zenoh_tls_docs.py`) check.
     - `pip install -e .[EXTRAS]` is not run: every extra it names must exist in
       `pyproject.toml`.
     - `python -m pytest -q` is not run (it is this very run): it must be the test
@@ -50,6 +53,7 @@ import os
 import re
 import select
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -321,6 +325,10 @@ def run_command(block: Block, command: list[str], cwd: Path) -> None:
     """Run one command where the page's blocks run; fail the test unless it exits with 0."""
     if command[0] == "rr-actors":
         argv = [str(Path(sysconfig.get_path("scripts")) / "rr-actors"), *command[1:]]
+    elif command[0] == "openssl":
+        openssl = shutil.which("openssl")
+        assert openssl is not None, f"{block.where}: no openssl (.ci/run installs it)"
+        argv = [openssl, *command[1:]]
     else:
         argv = [sys.executable, *command[1:]]
     result = subprocess.run(
@@ -340,6 +348,8 @@ def run_command(block: Block, command: list[str], cwd: Path) -> None:
 
 def runnable(command: list[str]) -> list[str] | None:
     """The command as the test runs it, if it is one the test runs."""
+    if command[0] == "openssl":
+        return command
     if command[0] == "rr-actors":
         if command[1:2] == ["demo"] and "--fast" not in command:
             return [*command, "--fast"]
@@ -491,6 +501,14 @@ def test_an_unknown_command_in_an_unmarked_block_fails(tmp_path: Path) -> None:
 
     with pytest.raises(pytest.fail.Exception, match="not a command this test runs"):
         shell_block(block, tmp_path, set())
+
+
+def test_openssl_commands_run_in_the_pages_directory(tmp_path: Path) -> None:
+    block = Block(tmp_path / "p.md", 1, "bash", "openssl rand -hex -out r.txt 4\n", None)
+
+    shell_block(block, tmp_path, set())
+
+    assert 9 == len((tmp_path / "r.txt").read_text())  # 8 hex digits and a line break
 
 
 def test_a_system_package_that_ci_does_not_install_fails(tmp_path: Path) -> None:

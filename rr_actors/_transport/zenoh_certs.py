@@ -99,9 +99,10 @@ def _write_all(files: dict[Path, tuple[bytes, int]]) -> None:
                 tmp.unlink()
 
 
-def _directory(directory: str | os.PathLike[str], *, create: bool) -> Path:
+def _directory(directory: str | os.PathLike[str]) -> Path:
+    """`directory`, made 0700 if missing."""
     path = Path(directory)
-    if create and not path.exists():
+    if not path.exists():
         try:
             path.mkdir(mode=0o700, parents=True)
             path.chmod(0o700)  # the umask may have taken bits off
@@ -136,7 +137,7 @@ def init_ca(
     """
     if not isinstance(system, str) or MEMBER_NAME.fullmatch(system) is None:
         raise ConfigError(f"system {system!r} is not a system name ({MEMBER_NAME.pattern})")
-    path = _directory(directory, create=True)
+    path = _directory(directory)
     pem, key_path = path / "ca.pem", path / "ca.key"
     _refuse_existing((pem, key_path), force)
     key = ec.generate_private_key(ec.SECP256R1())
@@ -239,7 +240,7 @@ def issue_cert(
         raise ConfigError("name 'ca' is the CA's own files: name the host otherwise")
     if isinstance(days, bool) or not isinstance(days, int) or days < 1:
         raise ConfigError(f"days must be a positive whole number, not {days!r}")
-    path = _directory(directory, create=False)
+    path = Path(directory)  # its CA files are checked next: missing, they say how to make them
     ca_cert, ca_key = _load_ca(path)
     pem, key_path = path / f"{name}.pem", path / f"{name}.key"
     _refuse_existing((pem, key_path), force)

@@ -66,8 +66,9 @@ def _read(argument: str, path: str) -> bytes:
 
 
 def _certificates(argument: str, path: str) -> list[x509.Certificate]:
+    data = _read(argument, path)  # outside the try: a ConfigError is a ValueError too
     try:
-        found = x509.load_pem_x509_certificates(_read(argument, path))
+        found = x509.load_pem_x509_certificates(data)
     except ValueError as exc:
         raise ConfigError(f"{argument} {path} holds no readable certificate: {exc}") from None
     if not found:
@@ -157,7 +158,7 @@ def _check_uses(path: str, cert: x509.Certificate) -> None:
 def _members(members: object) -> tuple[str, ...]:
     if isinstance(members, str | bytes) or not isinstance(members, Iterable):
         raise ConfigError(f"members must be a list of names such as ['robot'], not {members!r}")
-    names = tuple(dict.fromkeys(members))  # order kept, duplicates dropped
+    names = list(members)
     if not names:
         raise ConfigError("members is empty: name at least this host's certificate's name")
     for name in names:
@@ -166,7 +167,7 @@ def _members(members: object) -> tuple[str, ...]:
                 f"members: {name!r} is not a member name ({MEMBER_NAME.pattern}, as a "
                 f"registrar's name; a certificate's common name)"
             )
-    return names
+    return tuple(dict.fromkeys(names))  # order kept, duplicates dropped
 
 
 class ZenohTLS:
@@ -211,8 +212,11 @@ class ZenohTLS:
             that is not a member name, or without this host's name.
 
     A key file readable by group or others logs a WARNING on the `rr_actors` logger
-    naming it and its mode (fix: `chmod 600`).
+    naming it and its mode (fix: `chmod 600`). The object is read-only; Zenoh reads the
+    files again when a `ZenohNetwork` opens its session.
     """
+
+    __slots__ = ("addresses", "ca", "cert", "key", "members", "name", "not_after")
 
     ca: str
     cert: str
@@ -222,34 +226,20 @@ class ZenohTLS:
     addresses: tuple[str, ...]
     not_after: datetime.datetime
 
-    def __init__(self, *, ca: object, cert: object, key: object, members: object) -> None:
+    def __init__(
+        self,
+        *,
+        ca: str | os.PathLike[str],
+        cert: str | os.PathLike[str],
+        key: str | os.PathLike[str],
+        members: Iterable[str],
+    ) -> None:
         self.ca = _path("ca", ca)
         self.cert = _path("cert", cert)
         self.key = _path("key", key)
         self.members = _members(members)
         now = datetime.datetime.now(datetime.UTC)
-
-        authorities = _certificates("ca", self.ca)
-        for authority in authorities:
-            what = f"ca {self.ca} ({authority.subject.rfc4514_string()})"
-            if not _is_ca(authority):
-                raise ConfigError(f"{what} is not a CA certificate (no BasicConstraints CA=true)")
-            _check_dates(what, authority, now)
-
-        chain = _certificates("cert", self.cert)
-        leaf = chain[0]
-        for index, link in enumerate(chain):
-            what = f"cert {self.cert}" + (f" (intermediate {index})" if index else "")
-            _check_dates(what, link, now)
-            issuers = chain[index + 1 : index + 2] or authorities
-            if not any(_signed_by(link, issuer) for issuer in issuers):
-                by = "the next certificate in it" if index + 1 < len(chain) else f"ca {self.ca}"
-                raise ConfigError(
-                    f"{what} ({link.subject.rfc4514_string()}, issued by "
-                    f"{link.issuer.rfc4514_string()}) is not signed by {by}"
-                )
-        _check_uses(self.cert, leaf)
-
+        leaf = _leaf(self.cert, self.ca, now)
         name = _common_name(leaf)
         if name is None:
             raise ConfigError(
@@ -260,32 +250,16 @@ class ZenohTLS:
                 f"cert {self.cert} is {name!r}, which is not in members {list(self.members)}: "
                 f"a host must be a member of its own system"
             )
+        _check_key(self.key, leaf, self.cert)
         self.name = name
         self.not_after = leaf.not_valid_after_utc
         self.addresses = _addresses(leaf)
 
-        data = _read("key", self.key)
-        try:
-            private = serialization.load_pem_private_key(data, password=None)
-        except TypeError:
-            raise ConfigError(
-                f"key {self.key} is encrypted: Zenoh reads an unencrypted key "
-                f"(keep it 0600 instead)"
-            ) from None
-        except (ValueError, UnsupportedAlgorithm) as exc:
-            raise ConfigError(f"key {self.key} holds no readable private key: {exc}") from None
-        _check_key_type(self.key, private)
-        spki = serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
-        if private.public_key().public_bytes(*spki) != leaf.public_key().public_bytes(*spki):
-            raise ConfigError(f"key {self.key} is not the private key of cert {self.cert}")
-        mode = stat.S_IMODE(os.stat(self.key).st_mode)
-        if mode & _PRIVATE:
-            logger.warning(
-                "private key %s is readable by group or others (mode %04o): chmod 600 %s",
-                self.key,
-                mode,
-                self.key,
-            )
+    def __setattr__(self, name: str, value: object) -> None:
+        """Each attribute is set once, when the object is made: make a new one to change it."""
+        if hasattr(self, name):
+            raise AttributeError(f"ZenohTLS.{name} is read-only: make a new ZenohTLS")
+        object.__setattr__(self, name, value)
 
     def __repr__(self) -> str:
         return (
@@ -303,3 +277,57 @@ def _addresses(cert: x509.Certificate) -> tuple[str, ...]:
     return tuple(
         str(entry.value) for entry in names if isinstance(entry, x509.IPAddress | x509.DNSName)
     )
+
+
+def _authorities(path: str, now: datetime.datetime) -> list[x509.Certificate]:
+    """The CA certificates of `path`: each a CA, in date."""
+    authorities = _certificates("ca", path)
+    for authority in authorities:
+        what = f"ca {path} ({authority.subject.rfc4514_string()})"
+        if not _is_ca(authority):
+            raise ConfigError(f"{what} is not a CA certificate (no BasicConstraints CA=true)")
+        _check_dates(what, authority, now)
+    return authorities
+
+
+def _leaf(path: str, ca: str, now: datetime.datetime) -> x509.Certificate:
+    """The host's certificate of `path` (first), its chain checked up to a CA of `ca`."""
+    authorities = _authorities(ca, now)
+    chain = _certificates("cert", path)
+    for index, link in enumerate(chain):
+        what = f"cert {path}" + (f" (intermediate {index})" if index else "")
+        _check_dates(what, link, now)
+        issuers = chain[index + 1 : index + 2] or authorities
+        if not any(_signed_by(link, issuer) for issuer in issuers):
+            by = "the next certificate in it" if index + 1 < len(chain) else f"ca {ca}"
+            raise ConfigError(
+                f"{what} ({link.subject.rfc4514_string()}, issued by "
+                f"{link.issuer.rfc4514_string()}) is not signed by {by}"
+            )
+    _check_uses(path, chain[0])
+    return chain[0]
+
+
+def _check_key(path: str, leaf: x509.Certificate, cert_path: str) -> None:
+    """The key of `path` is `leaf`'s, of a type rustls uses; a WARNING if others may read it."""
+    data = _read("key", path)
+    try:
+        private = serialization.load_pem_private_key(data, password=None)
+    except TypeError:
+        raise ConfigError(
+            f"key {path} is encrypted: Zenoh reads an unencrypted key (keep it 0600 instead)"
+        ) from None
+    except (ValueError, UnsupportedAlgorithm) as exc:
+        raise ConfigError(f"key {path} holds no readable private key: {exc}") from None
+    _check_key_type(path, private)
+    spki = serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+    if private.public_key().public_bytes(*spki) != leaf.public_key().public_bytes(*spki):
+        raise ConfigError(f"key {path} is not the private key of cert {cert_path}")
+    mode = stat.S_IMODE(os.stat(path).st_mode)
+    if mode & _PRIVATE:
+        logger.warning(
+            "private key %s is readable by group or others (mode %04o): chmod 600 %s",
+            path,
+            mode,
+            path,
+        )

@@ -1,0 +1,331 @@
+"""`rr-actors certs init` and `rr-actors certs issue`: a system's CA and its hosts' certificates.
+
+Run through `rr_actors._cli.main` and once through the installed console script; the
+certificates are proven usable by a real mutual-TLS handshake (Python's `ssl`, a real TCP
+socket) and by `openssl verify`.
+"""
+
+from __future__ import annotations
+
+import io
+import ipaddress
+import shutil
+import socket
+import ssl
+import stat
+import subprocess
+import sys
+import sysconfig
+import threading
+from pathlib import Path
+
+import pytest
+from cryptography import x509
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+from pki import make_ca
+
+from rr_actors._cli import main
+
+
+def certs(*argv: str) -> tuple[int, str]:
+    out = io.StringIO()
+    code = main(["certs", *argv], out)
+    return code, out.getvalue()
+
+
+def mode(path: Path) -> int:
+    return stat.S_IMODE(path.stat().st_mode)
+
+
+def load(path: Path) -> x509.Certificate:
+    return x509.load_pem_x509_certificate(path.read_bytes())
+
+
+@pytest.fixture
+def ca_dir(tmp_path: Path) -> Path:
+    directory = tmp_path / "certs"
+    assert 0 == certs("init", str(directory), "--system", "lab")[0]
+    return directory
+
+
+def test_init_writes_the_ca_with_its_key_0600_in_a_0700_directory(tmp_path: Path) -> None:
+    directory = tmp_path / "new" / "certs"
+
+    code, out = certs("init", str(directory), "--system", "lab")
+
+    assert 0 == code
+    assert (0o700, 0o600) == (mode(directory), mode(directory / "ca.key"))
+    assert f"wrote {directory}/ca.pem and {directory}/ca.key (0600)" in out
+    assert "ca.key stays here" in out
+    ca = load(directory / "ca.pem")
+    assert "rr_actors lab CA" == ca.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value
+    constraints = ca.extensions.get_extension_for_class(x509.BasicConstraints)
+    usage = ca.extensions.get_extension_for_class(x509.KeyUsage)
+    assert (True, True) == (constraints.critical, constraints.value.ca)
+    assert (True, True, True) == (usage.critical, usage.value.key_cert_sign, usage.value.crl_sign)
+    assert ca.extensions.get_extension_for_class(x509.SubjectKeyIdentifier)
+    assert 3649 < (ca.not_valid_after_utc - ca.not_valid_before_utc).days
+
+
+def test_issue_writes_a_certificate_naming_the_member_and_every_address(ca_dir: Path) -> None:
+    code, out = certs(
+        "issue", str(ca_dir), "robot", "--address", "10.0.0.2", "--address", "robot.local"
+    )
+
+    assert 0 == code
+    assert 0o600 == mode(ca_dir / "robot.key")
+    assert f"wrote {ca_dir}/robot.pem and {ca_dir}/robot.key (0600)" in out
+    assert "ca.key stays here" in out
+    cert = load(ca_dir / "robot.pem")
+    assert "robot" == cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value
+    sans = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert [ipaddress.ip_address("10.0.0.2")] == sans.get_values_for_type(x509.IPAddress)
+    assert ["robot.local"] == sans.get_values_for_type(x509.DNSName)
+    uses = cert.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value
+    assert {ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH} == set(uses)
+    usage = cert.extensions.get_extension_for_class(x509.KeyUsage)
+    assert (True, True) == (usage.critical, usage.value.digital_signature)
+    assert not cert.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+    assert x509.Version.v3 == cert.version
+    assert 365 == (cert.not_valid_after_utc - cert.not_valid_before_utc).days  # + 5 minutes
+    cert.verify_directly_issued_by(load(ca_dir / "ca.pem"))
+
+
+def test_issue_without_an_address_names_the_member_as_a_dns_name(ca_dir: Path) -> None:
+    assert 0 == certs("issue", str(ca_dir), "robot", "--days", "30")[0]
+
+    cert = load(ca_dir / "robot.pem")
+    sans = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert ["robot"] == sans.get_values_for_type(x509.DNSName)
+    assert 30 == (cert.not_valid_after_utc - cert.not_valid_before_utc).days
+
+
+def test_an_existing_name_is_refused_untouched_unless_forced(
+    ca_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert 0 == certs("issue", str(ca_dir), "robot")[0]
+    before = (ca_dir / "robot.pem").read_bytes(), (ca_dir / "robot.key").read_bytes()
+
+    refused, _ = certs("issue", str(ca_dir), "robot", "--address", "10.0.0.9")
+
+    assert 1 == refused
+    assert (
+        f"rr-actors certs: {ca_dir}/robot.pem and {ca_dir}/robot.key already exist: "
+        "left untouched (--force replaces)\n"
+    ) == capsys.readouterr().err
+    assert before == ((ca_dir / "robot.pem").read_bytes(), (ca_dir / "robot.key").read_bytes())
+
+    assert 0 == certs("issue", str(ca_dir), "robot", "--address", "10.0.0.9", "--force")[0]
+    assert before[1] != (ca_dir / "robot.key").read_bytes()
+    assert 0o600 == mode(ca_dir / "robot.key")
+    assert [] == [p.name for p in ca_dir.iterdir() if p.name.startswith(".")]  # no temp left
+
+
+def test_an_existing_ca_is_refused_untouched_unless_forced(
+    ca_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    before = (ca_dir / "ca.key").read_bytes()
+
+    assert 1 == certs("init", str(ca_dir), "--system", "lab")[0]
+    assert f"{ca_dir}/ca.pem and {ca_dir}/ca.key already exist" in capsys.readouterr().err
+    assert before == (ca_dir / "ca.key").read_bytes()
+
+    assert 0 == certs("init", str(ca_dir), "--system", "lab", "--force")[0]
+    assert before != (ca_dir / "ca.key").read_bytes()
+
+
+@pytest.mark.parametrize("directory", ["empty", "missing"])
+def test_issue_without_a_ca_says_how_to_make_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], directory: str
+) -> None:
+    where = tmp_path / directory
+    if directory == "empty":
+        where.mkdir()
+
+    assert 1 == certs("issue", str(where), "robot")[0]
+
+    err = capsys.readouterr().err
+    assert f"no CA: {where}/ca.pem and {where}/ca.key missing" in err
+    assert f"rr-actors certs init {where} --system NAME" in err
+    assert (directory == "empty") == where.exists()
+
+
+@pytest.mark.parametrize(
+    ("name", "says"),
+    [
+        ("../robot", "name '../robot' is not a member name"),
+        ("ca", "name 'ca' is the CA's own files"),
+    ],
+)
+def test_a_name_that_is_not_a_member_name_is_refused(
+    ca_dir: Path, capsys: pytest.CaptureFixture[str], name: str, says: str
+) -> None:
+    assert 1 == certs("issue", str(ca_dir), name)[0]
+
+    assert says in capsys.readouterr().err
+    assert ["ca.key", "ca.pem"] == sorted(p.name for p in ca_dir.iterdir())
+
+
+@pytest.mark.parametrize("days", ["0", "-3", "soon"])
+def test_days_that_are_not_a_positive_number_are_a_usage_error(
+    ca_dir: Path, capsys: pytest.CaptureFixture[str], days: str
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        certs("issue", str(ca_dir), "robot", "--days", days)
+
+    assert 2 == exit_info.value.code
+    assert f"a positive whole number of days, not {days!r}" in capsys.readouterr().err
+
+
+def test_the_console_script_makes_both(tmp_path: Path) -> None:
+    script = Path(sysconfig.get_path("scripts")) / "rr-actors"
+
+    def run(*argv: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [str(script), "certs", *argv],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+            cwd=tmp_path,
+        )
+
+    init = run("init", "certs", "--system", "lab")
+    issue = run("issue", "certs", "robot", "--address", "127.0.0.1")
+    again = run("issue", "certs", "robot")
+
+    assert (0, "") == (init.returncode, init.stderr)
+    assert (0, "") == (issue.returncode, issue.stderr)
+    assert "wrote certs/robot.pem and certs/robot.key (0600)" in issue.stdout
+    assert 1 == again.returncode
+    assert "certs/robot.pem and certs/robot.key already exist" in again.stderr
+
+
+# -- the certificates work ----------------------------------------------------------------------
+
+
+def test_openssl_verifies_an_issued_certificate_against_the_ca(ca_dir: Path) -> None:
+    openssl = shutil.which("openssl")
+    assert openssl is not None, "no openssl (apt-get install -y openssl; .ci/run does)"
+    assert 0 == certs("issue", str(ca_dir), "robot", "--address", "10.0.0.2")[0]
+
+    result = subprocess.run(
+        [openssl, "verify", "-CAfile", "ca.pem", "robot.pem"],
+        cwd=ca_dir,
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
+
+    assert (0, "robot.pem: OK\n") == (result.returncode, result.stdout)
+
+
+def context(side: ssl._SSLMethod, directory: Path, name: str, ca: Path) -> ssl.SSLContext:
+    ctx = ssl.SSLContext(side)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_3  # as Zenoh's
+    ctx.load_cert_chain(directory / f"{name}.pem", directory / f"{name}.key")
+    ctx.load_verify_locations(ca)
+    ctx.verify_mode = ssl.CERT_REQUIRED
+    return ctx
+
+
+def handshake(directory: Path, server: str, client: str, *, client_ca: Path) -> str:
+    """A TLS 1.3 handshake over TCP on 127.0.0.1: the client's common name the server saw.
+
+    Raises the client's `ssl.SSLError` if either side refuses.
+    """
+    server_ctx = context(ssl.PROTOCOL_TLS_SERVER, directory, server, directory / "ca.pem")
+    client_ctx = context(ssl.PROTOCOL_TLS_CLIENT, client_ca.parent, client, client_ca)
+    assert client_ctx.check_hostname  # the server must name the address dialled
+    seen: list[str] = []
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        port = listener.getsockname()[1]
+
+        def serve() -> None:
+            conn, _ = listener.accept()
+            with conn:
+                try:
+                    with server_ctx.wrap_socket(conn, server_side=True) as tls:
+                        subject = dict(x[0] for x in tls.getpeercert()["subject"])
+                        seen.append(subject["commonName"])
+                        tls.sendall(b"ok")
+                except (ssl.SSLError, OSError):
+                    pass
+
+        thread = threading.Thread(target=serve)
+        thread.start()
+        try:
+            with (
+                socket.create_connection(("127.0.0.1", port), timeout=10) as raw,
+                client_ctx.wrap_socket(raw, server_hostname="127.0.0.1") as tls,
+            ):
+                assert b"ok" == tls.recv(2)  # TLS 1.3: the server's verdict arrives here
+        finally:
+            thread.join(10)
+            assert not thread.is_alive()
+    return seen[0]
+
+
+def test_two_issued_certificates_complete_a_mutual_tls_handshake(ca_dir: Path) -> None:
+    assert 0 == certs("issue", str(ca_dir), "robot", "--address", "127.0.0.1")[0]
+    assert 0 == certs("issue", str(ca_dir), "station", "--address", "10.0.0.1")[0]
+
+    assert "station" == handshake(ca_dir, "robot", "station", client_ca=ca_dir / "ca.pem")
+
+
+def test_a_listener_not_naming_the_address_dialled_is_refused_by_the_client(
+    ca_dir: Path,
+) -> None:
+    assert 0 == certs("issue", str(ca_dir), "robot", "--address", "10.0.0.2")[0]
+    assert 0 == certs("issue", str(ca_dir), "station", "--address", "10.0.0.1")[0]
+
+    with pytest.raises(ssl.SSLCertVerificationError, match="IP address mismatch"):
+        handshake(ca_dir, "robot", "station", client_ca=ca_dir / "ca.pem")
+
+
+def test_a_client_of_another_ca_is_refused_by_the_listener(ca_dir: Path, tmp_path: Path) -> None:
+    assert 0 == certs("issue", str(ca_dir), "robot", "--address", "127.0.0.1")[0]
+    other = tmp_path / "other"
+    make_ca(other, "lab")
+    assert 0 == certs("issue", str(other), "intruder")[0]
+    # the intruder trusts the system's CA (it got ca.pem), but its own is another CA's
+    shutil.copy(ca_dir / "ca.pem", other / "trusted.pem")
+
+    with pytest.raises((ssl.SSLError, ConnectionError), match=r"unknown ca|reset|EOF"):
+        handshake(ca_dir, "robot", "intruder", client_ca=other / "trusted.pem")
+
+
+def test_certs_help_lists_init_and_issue() -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "rr_actors._cli", "certs", "--help"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
+
+    assert 0 == result.returncode
+    assert "init" in result.stdout
+    assert "issue" in result.stdout
+
+
+def test_without_cryptography_certs_says_which_extra_to_install(tmp_path: Path) -> None:
+    code = (
+        "import sys\n"
+        "sys.modules['cryptography'] = None  # as if not installed: importing it fails\n"
+        "from rr_actors._cli import main\n"
+        "sys.exit(main(['certs', 'init', 'certs', '--system', 'lab']))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        cwd=tmp_path,
+    )
+
+    assert 2 == result.returncode
+    assert "pip install 'rr-actors[zenoh]'" in result.stderr
+    assert [] == list(tmp_path.iterdir())
