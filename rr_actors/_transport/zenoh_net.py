@@ -55,6 +55,14 @@ _SYSTEM = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
 _PROBE_TIMEOUT = 0.5  # seconds a `connect` endpoint gets to accept the probe at open
 
 
+def _zenoh_log_from_env() -> None:
+    """Zenoh's own log on standard output when `RUST_LOG` asks for it (zenoh-python reads
+    the variable only when asked; e.g. `RUST_LOG=zenoh_link_tls=warn` shows each refused
+    handshake, which Zenoh tells nobody else)."""
+    if os.environ.get("RUST_LOG"):
+        zenoh.try_init_log_from_env()
+
+
 def _is_tls(tls: object) -> bool:
     try:
         from rr_actors._transport.zenoh_tls import ZenohTLS  # noqa: PLC0415 - cryptography
@@ -250,6 +258,7 @@ class ZenohNetwork:
             system=self.system,
             tls=self.tls,
         )
+        _zenoh_log_from_env()
         try:
             session = zenoh.open(config)
         except Exception as exc:

@@ -13,7 +13,11 @@ import contextlib
 import datetime
 import json
 import logging
+import os
+import queue
 import socket
+import subprocess
+import sys
 import threading
 import types
 import uuid
@@ -379,3 +383,54 @@ def test_a_tls_routers_manager_processes_join_over_its_unix_socket_and_are_admit
         )
     finally:
         net.close()
+
+
+# -- Zenoh's own log of refused handshakes -----------------------------------------------------
+
+_LISTENER = """
+import sys
+import rr_actors as rr
+ca, cert, key, port = sys.argv[1:]
+tls = rr.ZenohTLS(ca=ca, cert=cert, key=key, members=["robot"])
+net = rr.ZenohNetwork(system="lab", listen=[f"tls/127.0.0.1:{port}"], tls=tls)
+net.names()
+print("ready", flush=True)
+sys.stdin.read()
+net.close()
+"""
+
+
+def test_rust_log_shows_the_listeners_own_line_for_a_refused_handshake(
+    lab: Lab, tmp_path: Path
+) -> None:
+    """The how-to's `RUST_LOG=zenoh_link_tls=warn`: the router's `ZenohNetwork` starts
+    Zenoh's log, which names the reason of each handshake it refused."""
+    robot, port = lab.tls("robot"), _free_port()
+    other = pki.make_ca(tmp_path / "other", "other")
+    cert, key = pki.issue(tmp_path / "refused", "operator", ("127.0.0.1",), ca=other)
+    refused = types.SimpleNamespace(ca=robot.ca, cert=str(cert), key=str(key))
+    lines: queue.Queue[str] = queue.Queue()
+    env = {**os.environ, "RUST_LOG": "zenoh_link_tls=warn"}
+    with subprocess.Popen(
+        [sys.executable, "-c", _LISTENER, robot.ca, robot.cert, robot.key, str(port)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    ) as listening:
+        assert listening.stdout is not None
+        reader = threading.Thread(target=lambda: [lines.put(line) for line in listening.stdout])  # type: ignore[union-attr]
+        reader.start()
+        try:
+            assert lines.get(timeout=30).strip() == "ready"
+            reason = handshake_trouble(refused, "127.0.0.1", port)  # type: ignore[arg-type]
+            assert reason == "the listener refused this host's certificate (unknown ca)"
+            line = lines.get(timeout=10)
+            assert "zenoh_link_tls" in line
+            assert "invalid peer certificate: UnknownIssuer" in line
+        finally:
+            assert listening.stdin is not None
+            listening.stdin.close()
+            listening.wait(timeout=30)
+            reader.join(timeout=10)
