@@ -60,7 +60,7 @@ def _zenoh_log_from_env() -> None:
     the variable only when asked; e.g. `RUST_LOG=zenoh_link_tls=warn` shows each refused
     handshake, which Zenoh tells nobody else)."""
     if os.environ.get("RUST_LOG"):
-        zenoh.try_init_log_from_env()
+        zenoh.try_init_log_from_env()  # type: ignore[no-untyped-call]
 
 
 def _is_tls(tls: object) -> bool:
