@@ -1,28 +1,93 @@
 """Only members of the system get in (issue 23): mutual TLS and access control, on two hosts.
 
-Host `a` (10.77.<n>.1) listens on `tls/<a>:7447` and serves `erm`; host `b` connects. The
-certificates are made by the test (`tests/pki.py`): the system's CA "lab", members `robot`
-(host a) and `operator` (host b), each naming its host's address.
+Host `a` (10.77.<n>.1) listens on `tls/<a>:7447` and serves `erm` as the member `robot`;
+host `b` (10.77.<n>.2) runs the member `operator` (its registrar `app` calls `erm`) and, in
+workers of its own, whoever else connects. The certificates are made by the test
+(`tests/pki.py`): the system's CA "lab", each member's certificate naming its host's
+address. One test per row of the issue's table "What a peer without the system's
+certificate gets"; in each the member `operator` still calls `erm` during and after, and
+whatever the peer sends is a pickle that would create a file if it were unpickled
+(`CreatesAFile`, framed with the wire header and put on `rr/lab/reg/erm` as a process of
+the system would): the file never appears. The namespaces share the file system, so the
+test itself looks for the file.
+
+- row 1, `test_members_call_each_other_and_each_side_names_the_other`: calls, a status
+  (the provider's WARNING reaches the consumer's `on_status`), unload (the provider's
+  unload runs); INFO names the other member on both sides.
+- row 2, `test_plain_tcp_to_the_tls_port_is_closed_unread` (raw bytes, a raw pickle, a
+  framed pickle: a TLS alert or the connection closed) and
+  `test_a_plain_zenoh_peer_at_the_tls_port_gets_no_link` (its token and put never arrive).
+- row 3, `test_a_client_without_the_systems_certificate_is_refused_in_the_handshake`
+  (raw `ssl` clients: self-signed, another CA of the same name, another system's CA,
+  expired, not yet valid, no certificate: each gets the listener's alert) and
+  `test_an_rr_actors_host_so_refused_is_warned_with_the_reason_and_is_not_in` (its
+  WARNING names the endpoint and `unknown ca`; its calls fail with
+  `UnknownRegistrarError`; `a` never sees its registrar).
+- row 4, `test_a_ca_signed_non_member_links_but_every_message_is_dropped`: `stranger`'s
+  link is up, one WARNING on `a` naming it and `b`'s address (one only, though it links
+  again), it cannot call `erm`, its own raw session's framed pickle is never unpickled
+  (the same put with a member's certificate is: the check is not vacuous).
+- row 5, `test_a_member_refuses_a_listener_impostor` (another CA; a lab certificate not
+  naming the address dialled): no link, `b`'s WARNING says which, nothing of it unpickled.
+- row 6, `test_a_member_whose_key_was_replaced_gets_a_config_error_on_its_own_host`.
+- Bounds, `test_a_burst_of_refused_handshakes_fails_no_member_call_and_a_member_joins_in_10_s`:
+  200 refused handshakes from 20 clients at once; every member call succeeds and a member
+  that connects during the burst is in within 10 s (its p99 latency is measured in
+  `benchmarks/`, never asserted here).
 """
 
 from __future__ import annotations
 
+import queue
+import threading
+import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import hosts
 import pki
+import pytest
 
 import rr_actors as rr
 
 SYSTEM = "lab"
 PORT = 7447
 MEMBERS = ["robot", "operator"]
+BOUND = 10.0  # seconds any one thing awaited may take (a loaded machine)
+QUIET = 3.0  # seconds something that must not happen is given to happen anyway
+
+
+# -- what runs in the workers (sent by value with the functions that use them) -----------------
+
+
+class CreatesAFile:
+    """Unpickling it would create a file (it must never be unpickled)."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (open, (self.path, "w"))
+
+
+def framed_pickle(path: Path, sender: str = "intruder") -> bytes:
+    """A message for a registrar as a process of the system sends it: the wire header,
+    then a frame whose pickle creates `path` when unpickled."""
+    from rr_actors._transport.codec import frame  # noqa: PLC0415
+    from rr_actors._transport.zenoh_wire import MESSAGE, header  # noqa: PLC0415
+
+    return header(MESSAGE, sender) + frame(7, CreatesAFile(str(path)))
 
 
 def erm_setup(registrar: rr.ResourceRegistrar) -> None:
+    """`camera` records its unloads in `KEPT["unloads"]`."""
+    unloads: queue.Queue[Any] = queue.Queue()
+    hosts.KEPT["unloads"] = unloads
     registrar.register_server(
-        "camera", load=lambda request: {"stream": request}, unload=lambda _q, _r: None
+        "camera",
+        load=lambda request: {"stream": request},
+        unload=lambda request, _response: unloads.put(request),
     )
 
 
@@ -32,39 +97,293 @@ def call_camera(registrar: rr.ResourceRegistrar, device: int) -> Any:
     return query.response
 
 
-def tls_files(directory: Path, name: str, address: str, ca: tuple[Path, Path]) -> dict[str, Any]:
+def record_status(query: rr.Query, update: rr.StatusUpdate) -> None:
+    hosts.KEPT.setdefault("heard", queue.Queue()).put(
+        (query.id, update.status.name, update.source, update.message)
+    )
+
+
+def call_with_status(registrar: rr.ResourceRegistrar, device: int) -> str:
+    return registrar.call(
+        "erm", "camera", {"device": device}, on_status=record_status, timeout=10
+    ).id
+
+
+def send_warning(registrar: rr.ResourceRegistrar, device: int) -> None:
+    query_id = next(
+        q.id for q in registrar.server_queries("camera") if q.request == {"device": device}
+    )
+    registrar.send_status(query_id, rr.Status.WARNING, "hot", timeout=5)
+
+
+def unload(registrar: rr.ResourceRegistrar, query_id: str) -> None:
+    registrar.unload(query_id)
+
+
+def next_from(name: str, timeout: float) -> Any:
+    """The next item of `KEPT[name]` (a queue); `TimeoutError` if none within `timeout`."""
+    try:
+        return hosts.KEPT.setdefault(name, queue.Queue()).get(timeout=timeout)
+    except queue.Empty:
+        raise TimeoutError(f"nothing in {name} within {timeout:g} s") from None
+
+
+def logged(level: str, parts: list[str], timeout: float) -> str:
+    """The first message of `level` kept by `hosts.rr_join`'s handler that holds every one
+    of `parts`, waited for (`TimeoutError` naming what was logged if none comes)."""
+    from waiting import wait_for  # noqa: PLC0415
+
+    def found() -> list[str]:
+        return [m for m in hosts.rr_logs(level) if all(part in m for part in parts)]
+
+    if not wait_for(lambda: bool(found()), timeout):
+        raise TimeoutError(f"no {level} with {parts} within {timeout:g} s: {hosts.rr_logs()}")
+    return found()[0]
+
+
+def names_within(name: str, timeout: float) -> bool:
+    """Whether this worker's network sees registrar `name` within `timeout` seconds."""
+    from waiting import wait_for  # noqa: PLC0415
+
+    network = hosts.KEPT["network"]
+    return wait_for(lambda: name in network.names(), timeout)
+
+
+def call_fails(registrar: rr.ResourceRegistrar) -> str:
+    """The name of the error a call to `erm` fails with."""
+    try:
+        registrar.call("erm", "camera", {"device": 0}, timeout=5)
+    except rr.RrError as exc:
+        return type(exc).__name__
+    return "no error"
+
+
+def router_links() -> list[tuple[str, str]]:
+    """This worker's router's TLS links: (the peer's common name, its locator)."""
+    session = hosts.KEPT["network"]._watch._session
+    return [
+        (str(link.auth_identifier), str(link.dst))
+        for link in session.info.links()
+        if str(link.dst).startswith("tls/")
+    ]
+
+
+def put_through_router(key: str, payload: bytes) -> None:
+    """Put `payload` on `key` from a raw session of this host's own (joined to this
+    worker's router over its Unix socket, as a manager process joins it)."""
+    import json  # noqa: PLC0415
+
+    import zenoh  # noqa: PLC0415
+
+    socket_path = hosts.KEPT["network"].address.socket_path
+    settings = {
+        "mode": "client",
+        "connect": {"endpoints": [f"unixsock-stream/{socket_path}"]},
+        "scouting": {"multicast": {"enabled": False}},
+    }
+    session = zenoh.open(zenoh.Config.from_json5(json.dumps(settings)))
+    try:
+        session.put(key, payload)
+    finally:
+        session.close()
+
+
+def raw_open(connect: list[str], tls: dict[str, Any] | None) -> list[tuple[str, str]]:
+    """Open a raw Zenoh peer session (`KEPT["raw"]`): plain, or mutual TLS with the files
+    of `tls` as `zenoh_config` sets them. Its links once it has one, within 5 s (none if
+    it does not get one)."""
+    import json  # noqa: PLC0415
+
+    import zenoh  # noqa: PLC0415
+    from waiting import wait_for  # noqa: PLC0415
+
+    from rr_actors._transport.zenoh_config import _tls_settings  # noqa: PLC0415
+
+    link: dict[str, Any] = {}
+    if tls is not None:
+        link = {"protocols": ["tls"], "tls": _tls_settings(rr.ZenohTLS(**tls))}
+    settings = {
+        "mode": "peer",
+        "listen": {"endpoints": []},
+        "connect": {"endpoints": connect, "timeout_ms": 0, "exit_on_failure": False},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {"link": link},
+    }
+    session = zenoh.open(zenoh.Config.from_json5(json.dumps(settings)))
+    hosts.KEPT["raw"] = session
+
+    def links() -> list[tuple[str, str]]:
+        return [(str(k.auth_identifier), str(k.dst)) for k in session.info.links()]
+
+    wait_for(lambda: bool(links()), 5.0)
+    return links()
+
+
+def raw_intrude(name: str, payload: bytes) -> str:
+    """With the raw session: a registrar token for `name` (as a process serving it
+    declares) and `payload` put on `rr/lab/reg/erm`; the session's Zenoh id."""
+    session = hosts.KEPT["raw"]
+    zid = str(session.zid())
+    hosts.KEPT["token"] = session.liveliness().declare_token(
+        f"rr/{SYSTEM}/live/reg/{name}/{zid}/0/1048576"
+    )
+    session.put(f"rr/{SYSTEM}/reg/erm", payload)
+    return zid
+
+
+def raw_close() -> None:
+    hosts.KEPT.pop("token", None)
+    session = hosts.KEPT.pop("raw", None)
+    if session is not None:
+        session.close()
+
+
+def plain_attempt(host: str, port: int, payload: bytes, timeout: float) -> bytes:
+    """Plain TCP: send `payload`, read to the end; what came back (`b"RESET"` for a reset)."""
+    import socket  # noqa: PLC0415
+
+    received = b""
+    with socket.create_connection((host, port), timeout=timeout) as conn:
+        try:
+            conn.sendall(payload)
+            while chunk := conn.recv(4096):
+                received += chunk
+        except (ConnectionResetError, BrokenPipeError):
+            return received + b"RESET"
+    return received
+
+
+def tls_attempt(
+    host: str, port: int, ca: str, cert: str | None, key: str | None, payload: bytes
+) -> str:
+    """One TLS 1.3 client (Python's `ssl`, trusting `ca`, with `cert` if given): hand
+    shake, send `payload`, read. What happened: `alert: <OpenSSL reason>`, `closed`,
+    `reset`, or `read: <bytes>` (the listener took it)."""
+    import socket  # noqa: PLC0415
+    import ssl  # noqa: PLC0415
+
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    context.minimum_version = ssl.TLSVersion.TLSv1_3
+    context.load_verify_locations(cafile=ca)
+    if cert is not None:
+        context.load_cert_chain(cert, key)
+    try:
+        with (
+            socket.create_connection((host, port), timeout=BOUND) as raw,
+            context.wrap_socket(raw, server_hostname=host) as conn,
+        ):
+            conn.sendall(payload)
+            data = conn.recv(4096)
+            return "closed" if data == b"" else f"read: {data!r}"
+    except ssl.SSLError as exc:
+        return f"alert: {exc.reason}"
+    except (ConnectionResetError, BrokenPipeError):
+        return "reset"
+
+
+# -- the test's side ---------------------------------------------------------------------------
+
+
+def tls_files(
+    directory: Path,
+    name: str,
+    address: str,
+    ca: tuple[Path, Path],
+    members: list[str] = MEMBERS,
+    *,
+    trust: Path | None = None,
+) -> dict[str, Any]:
+    """`rr.ZenohTLS`'s arguments for a host `name` at `address`, signed by `ca` (trusting
+    `trust` instead of `ca`'s certificate, if given)."""
     cert, key = pki.issue(directory, name, (address,), ca=ca)
-    return {"ca": str(ca[0]), "cert": str(cert), "key": str(key), "members": MEMBERS}
+    return {"ca": str(trust or ca[0]), "cert": str(cert), "key": str(key), "members": members}
+
+
+def join(
+    worker: hosts.Worker,
+    tls: dict[str, Any],
+    *,
+    listen: list[str] | None = None,
+    connect: list[str] | None = None,
+    start: str | None = None,
+    setup: Any = None,
+) -> None:
+    worker.call(
+        hosts.rr_join,
+        system=SYSTEM,
+        listen=listen or [],
+        connect=connect or [],
+        tls=tls,
+        timeout=30,
+    )
+    if start is not None:
+        worker.call(hosts.rr_start, start, setup, timeout=30)
+
+
+@pytest.fixture
+def lab(two_hosts: hosts.TwoHosts, tmp_path: Path) -> Iterator[tuple[Path, Path]]:
+    """`robot` on `a` serving `erm`, `operator` on `b` whose `app` calls it; the CA."""
+    a, b = two_hosts.a, two_hosts.b
+    ca = pki.make_ca(tmp_path / "lab", SYSTEM)
+    join(
+        a.worker,
+        tls_files(tmp_path / "lab", "robot", a.address, ca),
+        listen=[a.endpoint(PORT, "tls")],
+        start="erm",
+        setup=erm_setup,
+    )
+    join(
+        b.worker,
+        tls_files(tmp_path / "lab", "operator", b.address, ca),
+        connect=[a.endpoint(PORT, "tls")],
+        start="app",
+    )
+    b.call(hosts.rr_until_answered, "app", "erm", "camera", BOUND, timeout=30)
+    assert {"probe": 1} == a.call(next_from, "unloads", BOUND, timeout=30)
+    yield ca
+    for host in (b, a):
+        for worker in list(host._workers):
+            if worker.alive:
+                try:
+                    worker.call(hosts.rr_stop, timeout=30)
+                except Exception:  # noqa: S110 (a worker without a network: nothing to stop)
+                    pass
+
+
+def member_calls(b: hosts.Host, device: int) -> None:
+    """The member `operator` calls `erm` across the veth, as before anyone else came."""
+    assert b.call(hosts.rr_run, "app", call_camera, device, timeout=30) == {
+        "stream": {"device": device}
+    }
+
+
+def never_appears(path: Path) -> None:
+    from waiting import wait_for  # noqa: PLC0415
+
+    assert not wait_for(path.exists, QUIET), f"{path} was created: a peer's pickle was unpickled"
+
+
+# -- row 1: a member ---------------------------------------------------------------------------
 
 
 def test_members_call_each_other_and_each_side_names_the_other(
-    two_hosts: hosts.TwoHosts, tmp_path: Path
+    two_hosts: hosts.TwoHosts, lab: tuple[Path, Path]
 ) -> None:
     a, b = two_hosts.a, two_hosts.b
-    ca = pki.make_ca(tmp_path, SYSTEM)
-    a.call(
-        hosts.rr_join,
-        system=SYSTEM,
-        listen=[a.endpoint(PORT, "tls")],
-        connect=[],
-        tls=tls_files(tmp_path, "robot", a.address, ca),
-        timeout=30,
+    member_calls(b, 3)
+    assert {"device": 3} == a.call(next_from, "unloads", BOUND, timeout=30)
+    query_id = b.call(hosts.rr_run, "app", call_with_status, 4, timeout=30)
+    a.call(hosts.rr_run, "erm", send_warning, 4, timeout=30)
+    assert (query_id, "WARNING", "erm/camera", "hot") == b.call(
+        next_from, "heard", BOUND, timeout=30
     )
-    a.call(hosts.rr_start, "erm", erm_setup, timeout=30)
-    b.call(
-        hosts.rr_join,
-        system=SYSTEM,
-        listen=[],
-        connect=[a.endpoint(PORT, "tls")],
-        tls=tls_files(tmp_path, "operator", b.address, ca),
-        timeout=30,
-    )
-    b.call(hosts.rr_start, "app", timeout=30)
-    b.call(hosts.rr_until_answered, "app", "erm", "camera", 10.0, timeout=30)
-    assert b.call(hosts.rr_run, "app", call_camera, 3, timeout=30) == {"stream": {"device": 3}}
+    b.call(hosts.rr_run, "app", unload, query_id, timeout=30)
+    assert {"device": 4} == a.call(next_from, "unloads", BOUND, timeout=30)
     assert f"ZenohNetwork 'lab': member 'operator' linked at {b.address}" in a.call(
         hosts.rr_logs, "INFO", timeout=10
     )
     assert f"ZenohNetwork 'lab': member 'robot' linked at {a.address}" in b.call(
         hosts.rr_logs, "INFO", timeout=10
     )
+    assert [] == a.call(hosts.rr_logs, "WARNING", timeout=10)
+    assert [] == b.call(hosts.rr_logs, "WARNING", timeout=10)
