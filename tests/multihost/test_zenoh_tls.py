@@ -38,6 +38,7 @@ test itself looks for the file.
 
 from __future__ import annotations
 
+import pickle
 import queue
 import threading
 import time
@@ -188,10 +189,11 @@ def put_through_router(key: str, payload: bytes) -> None:
         session.close()
 
 
-def raw_open(connect: list[str], tls: dict[str, Any] | None) -> list[tuple[str, str]]:
+def raw_open(
+    connect: list[str], tls: dict[str, Any] | None, wait: float = 5.0
+) -> list[tuple[str, str]]:
     """Open a raw Zenoh peer session (`KEPT["raw"]`): plain, or mutual TLS with the files
-    of `tls` as `zenoh_config` sets them. Its links once it has one, within 5 s (none if
-    it does not get one)."""
+    of `tls` as `zenoh_config` sets them. Its links once it has one, within `wait` s."""
     import json  # noqa: PLC0415
 
     import zenoh  # noqa: PLC0415
@@ -215,8 +217,12 @@ def raw_open(connect: list[str], tls: dict[str, Any] | None) -> list[tuple[str, 
     def links() -> list[tuple[str, str]]:
         return [(str(k.auth_identifier), str(k.dst)) for k in session.info.links()]
 
-    wait_for(lambda: bool(links()), 5.0)
+    wait_for(lambda: bool(links()), wait)
     return links()
+
+
+def raw_links() -> list[tuple[str, str]]:
+    return [(str(k.auth_identifier), str(k.dst)) for k in hosts.KEPT["raw"].info.links()]
 
 
 def raw_intrude(name: str, payload: bytes) -> str:
@@ -357,10 +363,13 @@ def member_calls(b: hosts.Host, device: int) -> None:
     }
 
 
-def never_appears(path: Path) -> None:
+def never_appear(*paths: Path) -> None:
+    """None of `paths` is created within `QUIET` seconds (one wait for them all)."""
     from waiting import wait_for  # noqa: PLC0415
 
-    assert not wait_for(path.exists, QUIET), f"{path} was created: a peer's pickle was unpickled"
+    assert not wait_for(lambda: any(path.exists() for path in paths), QUIET), (
+        f"{[str(path) for path in paths if path.exists()]} created: a peer's pickle was unpickled"
+    )
 
 
 # -- row 1: a member ---------------------------------------------------------------------------
@@ -387,3 +396,51 @@ def test_members_call_each_other_and_each_side_names_the_other(
     )
     assert [] == a.call(hosts.rr_logs, "WARNING", timeout=10)
     assert [] == b.call(hosts.rr_logs, "WARNING", timeout=10)
+
+
+# -- row 2: plain TCP to the tls/ port ---------------------------------------------------------
+
+
+def refused_plainly(answer: bytes) -> bool:
+    """The listener's answer to plain TCP: nothing but a TLS alert record (content type 21),
+    then the connection closed (or reset)."""
+    answer = answer.removesuffix(b"RESET")
+    return answer == b"" or answer.startswith(b"\x15\x03")
+
+
+def test_plain_tcp_to_the_tls_port_is_closed_unread(
+    two_hosts: hosts.TwoHosts, lab: tuple[Path, Path], tmp_path: Path
+) -> None:
+    a, b = two_hosts.a, two_hosts.b
+    created = [tmp_path / f"created-{n}" for n in range(2)]
+    payloads = [
+        b"GET / HTTP/1.0\r\n\r\n",
+        pickle.dumps(CreatesAFile(str(created[0]))),
+        framed_pickle(created[1]),
+    ]
+    intruder = b.spawn()
+    answers = [
+        intruder.call(plain_attempt, a.address, PORT, payload, BOUND, timeout=30)
+        for payload in payloads
+    ]
+    assert all(refused_plainly(answer) for answer in answers), answers
+    member_calls(b, 1)
+    never_appear(*created)
+    member_calls(b, 2)
+
+
+def test_a_plain_zenoh_peer_at_the_tls_port_gets_no_link(
+    two_hosts: hosts.TwoHosts, lab: tuple[Path, Path], tmp_path: Path
+) -> None:
+    a, b = two_hosts.a, two_hosts.b
+    created = tmp_path / "created"
+    intruder = b.spawn()
+    intruder.call(raw_open, [a.endpoint(PORT, "tcp")], None, 0.0, timeout=30)
+    intruder.call(raw_intrude, "intruder", framed_pickle(created), timeout=30)
+    seen = a.worker.submit(names_within, "intruder", QUIET)
+    member_calls(b, 1)
+    never_appear(created)
+    assert not seen.result(timeout=30)
+    assert [] == intruder.call(raw_links, timeout=30)
+    intruder.call(raw_close, timeout=30)
+    member_calls(b, 2)
