@@ -38,6 +38,7 @@ test itself looks for the file.
 
 from __future__ import annotations
 
+import datetime
 import pickle
 import queue
 import threading
@@ -443,4 +444,99 @@ def test_a_plain_zenoh_peer_at_the_tls_port_gets_no_link(
     assert not seen.result(timeout=30)
     assert [] == intruder.call(raw_links, timeout=30)
     intruder.call(raw_close, timeout=30)
+    member_calls(b, 2)
+
+
+# -- row 3: refused in the handshake -----------------------------------------------------------
+
+
+def odd_certificates(directory: Path, ca: tuple[Path, Path], address: str) -> dict[str, Any]:
+    """Client certificates the listener must refuse, named `operator` (a member's name)
+    and naming `address`: (cert, key) paths, or `None` for no certificate."""
+    now = datetime.datetime.now(datetime.UTC)
+    other = pki.make_ca(directory / "other", SYSTEM)  # another CA of the same name
+    depot = pki.make_ca(directory / "depot", "depot")  # another system's
+    made: dict[str, Any] = {
+        "self-signed": pki.issue(directory / "self", "operator", (address,)),
+        "another CA": pki.issue(directory / "other", "operator", (address,), ca=other),
+        "another system's CA": pki.issue(directory / "depot", "operator", (address,), ca=depot),
+        "expired": pki.issue(
+            directory / "expired",
+            "operator",
+            (address,),
+            ca=ca,
+            not_before=now - 30 * pki.DAY,
+            not_after=now - pki.DAY,
+        ),
+        "not yet valid": pki.issue(
+            directory / "early", "operator", (address,), ca=ca, not_before=now + pki.DAY
+        ),
+        "no certificate": None,
+    }
+    return made
+
+
+def test_a_client_without_the_systems_certificate_is_refused_in_the_handshake(
+    two_hosts: hosts.TwoHosts, lab: tuple[Path, Path], tmp_path: Path
+) -> None:
+    a, b = two_hosts.a, two_hosts.b
+    odd = odd_certificates(tmp_path / "odd", lab, b.address)
+    intruder = b.spawn()
+    created = {kind: tmp_path / f"created-{n}" for n, kind in enumerate(odd)}
+    outcomes = {
+        kind: intruder.call(
+            tls_attempt,
+            a.address,
+            PORT,
+            str(lab[0]),
+            None if pair is None else str(pair[0]),
+            None if pair is None else str(pair[1]),
+            framed_pickle(created[kind]),
+            timeout=30,
+        )
+        for kind, pair in odd.items()
+    }
+    assert outcomes == {
+        "self-signed": "alert: TLSV1_ALERT_UNKNOWN_CA",
+        "another CA": "alert: TLSV1_ALERT_DECRYPT_ERROR",  # its name, not its key
+        "another system's CA": "alert: TLSV1_ALERT_UNKNOWN_CA",
+        "expired": "alert: SSLV3_ALERT_CERTIFICATE_EXPIRED",
+        "not yet valid": "alert: SSLV3_ALERT_CERTIFICATE_EXPIRED",  # rustls says so too
+        "no certificate": "alert: TLSV13_ALERT_CERTIFICATE_REQUIRED",
+    }
+    member_calls(b, 1)
+    never_appear(*created.values())
+    member_calls(b, 2)
+
+
+def test_an_rr_actors_host_so_refused_is_warned_with_the_reason_and_is_not_in(
+    two_hosts: hosts.TwoHosts, lab: tuple[Path, Path], tmp_path: Path
+) -> None:
+    # b's files are valid for its own CA (depot's), and it trusts the lab's too, so its
+    # only trouble is the listener's: it refuses b's certificate (`unknown ca`)
+    a, b = two_hosts.a, two_hosts.b
+    depot = pki.make_ca(tmp_path / "depot", "depot")
+    trusted = tmp_path / "depot" / "trusted.pem"
+    trusted.write_bytes(depot[0].read_bytes() + lab[0].read_bytes())
+    refused = b.spawn()
+    endpoint = a.endpoint(PORT, "tls")
+    join(
+        refused,
+        tls_files(tmp_path / "depot", "operator", b.address, depot, trust=trusted),
+        connect=[endpoint],
+        start="mallory",
+    )
+    warning = refused.call(
+        logged, "WARNING", [f"no link to connect endpoint {endpoint}"], BOUND, timeout=30
+    )
+    assert "the listener refused this host's certificate (unknown ca)" in warning
+    assert "UnknownRegistrarError" in warning
+    assert "UnknownRegistrarError" == refused.call(hosts.rr_run, "mallory", call_fails, timeout=30)
+    created = tmp_path / "created"
+    refused.call(put_through_router, f"rr/{SYSTEM}/reg/erm", framed_pickle(created), timeout=30)
+    seen = a.worker.submit(names_within, "mallory", QUIET)
+    member_calls(b, 1)
+    never_appear(created)
+    assert not seen.result(timeout=30)
+    assert [] == refused.call(router_links, timeout=30)
     member_calls(b, 2)
