@@ -50,6 +50,7 @@ from typing import Any
 import hosts
 import pki
 import pytest
+from waiting import wait_for
 
 import rr_actors as rr
 
@@ -366,8 +367,6 @@ def member_calls(b: hosts.Host, device: int) -> None:
 
 def never_appear(*paths: Path) -> None:
     """None of `paths` is created within `QUIET` seconds (one wait for them all)."""
-    from waiting import wait_for  # noqa: PLC0415
-
     assert not wait_for(lambda: any(path.exists() for path in paths), QUIET), (
         f"{[str(path) for path in paths if path.exists()]} created: a peer's pickle was unpickled"
     )
@@ -540,3 +539,54 @@ def test_an_rr_actors_host_so_refused_is_warned_with_the_reason_and_is_not_in(
     assert not seen.result(timeout=30)
     assert [] == refused.call(router_links, timeout=30)
     member_calls(b, 2)
+
+
+# -- row 4: signed by the system's CA, not a member --------------------------------------------
+
+
+def test_a_ca_signed_non_member_links_but_every_message_is_dropped(
+    two_hosts: hosts.TwoHosts, lab: tuple[Path, Path], tmp_path: Path
+) -> None:
+    a, b = two_hosts.a, two_hosts.b
+    endpoint = a.endpoint(PORT, "tls")
+    stranger_tls = tls_files(
+        tmp_path / "lab", "stranger", b.address, lab, [*MEMBERS, "stranger"]
+    )
+    stranger = b.spawn()
+    join(stranger, stranger_tls, connect=[endpoint], start="mallory")
+    warning = a.call(logged, "WARNING", ["'stranger'"], BOUND, timeout=30)
+    assert f"'stranger' at {b.address} linked with a certificate signed by this system's CA" in (
+        warning
+    )
+    assert "every message of it is dropped both ways" in warning
+    # its link is up (robot is a member on its side), yet it sees nothing of a's
+    assert [("robot", endpoint)] == [
+        (name, where.split("#")[0]) for name, where in stranger.call(router_links, timeout=30)
+    ]
+    assert "UnknownRegistrarError" == stranger.call(hosts.rr_run, "mallory", call_fails, timeout=30)
+
+    # a raw session with the stranger's certificate: linked again from b's address
+    created = tmp_path / "created"
+    raw = b.spawn()
+    assert ["robot"] == [
+        name for name, _ in raw.call(raw_open, [endpoint], stranger_tls, timeout=30)
+    ]
+    raw.call(raw_intrude, "intruder", framed_pickle(created), timeout=30)
+    seen = a.worker.submit(names_within, "intruder", QUIET)
+    member_calls(b, 1)
+    never_appear(created)
+    assert not seen.result(timeout=30)
+    assert not a.call(names_within, "mallory", 0.0, timeout=30)
+    raw.call(raw_close, timeout=30)
+    a.call(logged, "INFO", [f"link to 'stranger' at {b.address} closed"], BOUND, timeout=30)
+    assert 1 == len([m for m in a.call(hosts.rr_logs, "WARNING", timeout=30) if "stranger" in m])
+    member_calls(b, 2)
+
+    # the same put with a member's certificate is unpickled: the check above is not vacuous
+    control = tmp_path / "control"
+    member_tls = tls_files(tmp_path / "insider", "operator", b.address, lab)
+    raw.call(raw_open, [endpoint], member_tls, timeout=30)
+    raw.call(raw_intrude, "insider", framed_pickle(control), timeout=30)
+    assert wait_for(control.exists, BOUND)
+    raw.call(raw_close, timeout=30)
+    member_calls(b, 3)
