@@ -589,4 +589,170 @@ def test_a_ca_signed_non_member_links_but_every_message_is_dropped(
     raw.call(raw_intrude, "insider", framed_pickle(control), timeout=30)
     assert wait_for(control.exists, BOUND)
     raw.call(raw_close, timeout=30)
+    through = tmp_path / "through-a-members-router"  # (rows 3 and 5 put so)
+    b.call(put_through_router, f"rr/{SYSTEM}/reg/erm", framed_pickle(through), timeout=30)
+    assert wait_for(through.exists, BOUND)
     member_calls(b, 3)
+
+
+# -- row 5: a listener impostor ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "impostor",
+    ["another CA", "a lab certificate for another address"],
+)
+def test_a_member_refuses_a_listener_impostor(
+    two_hosts: hosts.TwoHosts, lab: tuple[Path, Path], tmp_path: Path, impostor: str
+) -> None:
+    # The impostor listens on a (port 7448) as `robot`, and accepts the lab's certificates:
+    # only the member that dials it can refuse the link. It dials nothing else (a link to
+    # another endpoint on a's address would count as one to this).
+    a, b = two_hosts.a, two_hosts.b
+    fake = a.spawn()
+    endpoint = a.endpoint(PORT + 1, "tls")
+    if impostor == "another CA":
+        depot = pki.make_ca(tmp_path / "depot", "depot")
+        trusted = tmp_path / "depot" / "trusted.pem"
+        trusted.write_bytes(depot[0].read_bytes() + lab[0].read_bytes())
+        files = tls_files(tmp_path / "depot", "robot", a.address, depot, trust=trusted)
+        reason = f"the listener's certificate is not signed by this system's CA {lab[0]}"
+    else:
+        files = tls_files(tmp_path / "elsewhere", "robot", "10.0.0.99", lab)
+        reason = f"the listener's certificate does not name {a.address}"
+    join(fake, files, listen=[endpoint], start="fake")
+    dialer = b.spawn()
+    join(
+        dialer,
+        tls_files(tmp_path / "dialer", "operator", b.address, lab),
+        connect=[endpoint],
+        start="dialer",
+    )
+    warning = dialer.call(
+        logged, "WARNING", [f"no link to connect endpoint {endpoint}"], BOUND, timeout=30
+    )
+    assert reason in warning
+    created = tmp_path / "created"
+    fake.call(put_through_router, f"rr/{SYSTEM}/reg/dialer", framed_pickle(created), timeout=30)
+    seen = dialer.submit(names_within, "fake", QUIET)
+    member_calls(b, 1)
+    never_appear(created)
+    assert not seen.result(timeout=30)
+    assert [] == dialer.call(router_links, timeout=30)
+    member_calls(b, 2)
+
+
+# -- row 6: a member whose key was replaced ----------------------------------------------------
+
+
+def make_tls(files: dict[str, Any]) -> str:
+    return repr(rr.ZenohTLS(**files))
+
+
+def test_a_member_whose_key_was_replaced_gets_a_config_error_on_its_own_host(
+    two_hosts: hosts.TwoHosts, tmp_path: Path
+) -> None:
+    a = two_hosts.a
+    ca = pki.make_ca(tmp_path / "lab", SYSTEM)
+    files = tls_files(tmp_path / "lab", "robot", a.address, ca)
+    assert "name='robot'" in a.call(make_tls, files, timeout=30)
+    _, other_key = pki.issue(tmp_path / "other", "robot", (a.address,), ca=ca)
+    Path(files["key"]).write_bytes(other_key.read_bytes())
+    with pytest.raises(rr.ConfigError) as caught:
+        a.call(make_tls, files, timeout=30)
+    assert f"key {files['key']} is not the private key of cert {files['cert']}" in str(
+        caught.value
+    )
+
+
+# -- bounds: a burst of refused handshakes -----------------------------------------------------
+
+
+def refused_burst(
+    host: str, port: int, clients: int, each: int, ca: str, cert: str, key: str
+) -> dict[str, int]:
+    """`clients` threads started at once, each making `each` TLS handshakes with `cert`
+    one after the other; how many ended how (`KEPT["burst"]` counts those done)."""
+    done: list[str] = []
+    hosts.KEPT["burst"] = done
+    start = threading.Barrier(clients)
+
+    def client() -> None:
+        start.wait()
+        for _ in range(each):
+            try:
+                done.append(tls_attempt(host, port, ca, cert, key, b"x"))
+            except OSError as exc:
+                done.append(f"error: {exc!r}")
+
+    threads = [threading.Thread(target=client) for _ in range(clients)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    outcomes: dict[str, int] = {}
+    for outcome in done:
+        outcomes[outcome] = outcomes.get(outcome, 0) + 1
+    return outcomes
+
+
+def burst_done() -> int:
+    return len(hosts.KEPT.get("burst", []))
+
+
+def keep_calling(registrar: rr.ResourceRegistrar) -> tuple[int, list[str]]:
+    """Call `erm` until `KEPT["stop"]` is set, about 50 calls a second (a pace, so as not
+    to load the machine more than a member does): how many succeeded, how others failed."""
+    stop = hosts.KEPT.setdefault("stop", threading.Event())
+    succeeded, failed = 0, []
+    device = 100
+    while not stop.wait(0.02):
+        device += 1
+        try:
+            assert call_camera(registrar, device) == {"stream": {"device": device}}
+            succeeded += 1
+        except Exception as exc:
+            failed.append(repr(exc))
+    return succeeded, failed
+
+
+def stop_calling() -> None:
+    hosts.KEPT.setdefault("stop", threading.Event()).set()
+
+
+def join_and_first_call(tls: dict[str, Any], endpoint: str) -> float:
+    """Seconds from joining (`ZenohNetwork` made) to this host's first answered call."""
+    started = time.monotonic()
+    hosts.rr_join(system=SYSTEM, listen=[], connect=[endpoint], tls=tls)
+    hosts.rr_start("late")
+    hosts.rr_until_answered("late", "erm", "camera", 30.0)
+    return time.monotonic() - started
+
+
+def test_a_burst_of_refused_handshakes_fails_no_member_call_and_a_member_joins_in_10_s(
+    two_hosts: hosts.TwoHosts, lab: tuple[Path, Path], tmp_path: Path
+) -> None:
+    a, b = two_hosts.a, two_hosts.b
+    bad_cert, bad_key = pki.issue(tmp_path / "self", "operator", (b.address,))
+    burster, late = b.spawn(), b.spawn()  # (started before: a Python start is not the join)
+    calling = b.worker.submit(hosts.rr_run, "app", keep_calling)
+    burst = burster.submit(
+        refused_burst, a.address, PORT, 20, 10, str(lab[0]), str(bad_cert), str(bad_key)
+    )
+    assert wait_for(lambda: burster.call(burst_done, timeout=10) >= 20, 30.0)
+    joined_during = burster.call(burst_done, timeout=10)
+    took = late.call(
+        join_and_first_call,
+        tls_files(tmp_path / "late", "operator", b.address, lab),
+        a.endpoint(PORT, "tls"),
+        timeout=60,
+    )
+    outcomes = burst.result(timeout=120)
+    b.call(stop_calling, timeout=10)
+    succeeded, failed = calling.result(timeout=30)
+    assert {"alert: TLSV1_ALERT_UNKNOWN_CA": 200} == outcomes
+    assert joined_during < 200  # the member joined during the burst
+    assert took < 10.0, f"a member joining during the burst took {took:.1f} s"
+    assert [] == failed
+    assert succeeded > 0
+    member_calls(b, 1)
