@@ -14,6 +14,8 @@ test looks itself). What must not happen is given `QUIET` (3 s) to happen anyway
 - row 1, `test_members_call_each_other_and_each_side_names_the_other`: calls, a status
   (the provider's WARNING reaches the consumer's `on_status`), unload (the provider's
   unload runs); INFO names the other member on both sides; no WARNING on either.
+  `test_members_that_dial_each_other_are_linked_and_neither_warns`: both listen and dial
+  each other; calls both ways, no WARNING on either side past the 2 s grace.
 - row 2, `test_plain_tcp_to_the_tls_port_is_closed_unread`: raw bytes, a raw pickle, a
   framed pickle over plain TCP: the listener answers a TLS alert (`decode_error`) and
   closes. `test_a_plain_zenoh_peer_at_the_tls_port_gets_no_link`: a plain Zenoh peer
@@ -34,10 +36,11 @@ test looks itself). What must not happen is given `QUIET` (3 s) to happen anyway
   a raw Zenoh session with its certificate puts a framed pickle on `rr/lab/reg/erm` and
   declares a registrar token: neither arrives. The same puts with a member's certificate
   (raw, and through a member's router) are unpickled: the checks are not vacuous.
-- row 5, `test_a_member_refuses_a_listener_impostor`: a member dials a listener on `a`
-  (port 7448) whose certificate is of another CA, or of the lab CA but not naming the
-  address dialled; it has no link, its WARNING says which, what the impostor puts on the
-  member's registrar never arrives.
+- row 5, `test_a_member_refuses_a_listener_impostor`: a member dials the real `robot`
+  on `a` and a listener on `a`'s port 7448 whose certificate is of another CA, or of the
+  lab CA but not naming the address dialled: it calls `erm`, has no link to the
+  impostor, its WARNING says which (though it is linked to that address's other port),
+  and what the impostor puts on the member's registrar never arrives.
 - row 6, `test_a_member_whose_key_was_replaced_gets_a_config_error_on_its_own_host`:
   `ConfigError` from `rr.ZenohTLS(...)` in `a`'s worker naming the key and the cert.
 - bounds, `test_a_burst_of_refused_handshakes_fails_no_member_call_and_a_member_joins_in_10_s`:
@@ -408,6 +411,44 @@ def test_members_call_each_other_and_each_side_names_the_other(
     assert [] == b.call(hosts.rr_logs, "WARNING", timeout=10)
 
 
+def warnings_within(timeout: float) -> list[str]:
+    """The WARNINGs kept in this worker once there is one, or after `timeout` s (none)."""
+    wait_for(lambda: bool(hosts.rr_logs("WARNING")), timeout)
+    return hosts.rr_logs("WARNING")
+
+
+def test_members_that_dial_each_other_are_linked_and_neither_warns(
+    two_hosts: hosts.TwoHosts, tmp_path: Path
+) -> None:
+    # Each listens and dials the other: they may share one link, whose port on one side
+    # is not the one dialled; neither says it has no link to the other.
+    a, b = two_hosts.a, two_hosts.b
+    ca = pki.make_ca(tmp_path / "lab", SYSTEM)
+    here, there = a.endpoint(PORT, "tls"), b.endpoint(PORT, "tls")
+    files = {
+        a: tls_files(tmp_path / "lab", "robot", a.address, ca),
+        b: tls_files(tmp_path / "lab", "operator", b.address, ca),
+    }
+    try:
+        join(a.worker, files[a], listen=[here], connect=[there], start="erm", setup=erm_setup)
+        join(b.worker, files[b], listen=[there], connect=[here], start="app", setup=erm_setup)
+        b.call(hosts.rr_until_answered, "app", "erm", "camera", BOUND, timeout=30)
+        a.call(hosts.rr_until_answered, "erm", "app", "camera", BOUND, timeout=30)
+        quiet = [host.worker.submit(warnings_within, grace() + QUIET) for host in (a, b)]
+        assert [[], []] == [future.result(timeout=30) for future in quiet]
+    finally:
+        for host in (b, a):
+            with contextlib.suppress(Exception):
+                host.call(hosts.rr_stop, timeout=30)
+
+
+def grace() -> float:
+    """Seconds a connect endpoint may stay unlinked before its WARNING."""
+    from rr_actors._transport.zenoh_watch import GRACE  # noqa: PLC0415
+
+    return GRACE
+
+
 # -- row 2: plain TCP to the tls/ port ---------------------------------------------------------
 
 
@@ -614,8 +655,8 @@ def test_a_member_refuses_a_listener_impostor(
     two_hosts: hosts.TwoHosts, lab: tuple[Path, Path], tmp_path: Path, impostor: str
 ) -> None:
     # The impostor listens on a (port 7448) as `robot`, and accepts the lab's certificates:
-    # only the member that dials it can refuse the link. It dials nothing else (a link to
-    # another endpoint on a's address would count as one to this).
+    # only the member that dials it can refuse the link. The member dials the real `robot`
+    # on a (port 7447) too, and calls its `erm` meanwhile.
     a, b = two_hosts.a, two_hosts.b
     fake = a.spawn()
     endpoint = a.endpoint(PORT + 1, "tls")
@@ -633,9 +674,10 @@ def test_a_member_refuses_a_listener_impostor(
     join(
         dialer,
         tls_files(tmp_path / "dialer", "operator", b.address, lab),
-        connect=[endpoint],
+        connect=[a.endpoint(PORT, "tls"), endpoint],
         start="dialer",
     )
+    dialer.call(hosts.rr_until_answered, "dialer", "erm", "camera", BOUND, timeout=30)
     warning = dialer.call(
         logged, "WARNING", [f"no link to connect endpoint {endpoint}"], BOUND, timeout=30
     )
@@ -646,8 +688,13 @@ def test_a_member_refuses_a_listener_impostor(
     member_calls(b, 1)
     never_appear(created)
     assert not seen.result(timeout=30)
-    assert [] == dialer.call(router_links, timeout=30)
-    member_calls(b, 2)
+    assert [("robot", a.endpoint(PORT, "tls"))] == [
+        (name, where.split("#")[0]) for name, where in dialer.call(router_links, timeout=30)
+    ]
+    assert {"stream": {"device": 2}} == dialer.call(
+        hosts.rr_run, "dialer", call_camera, 2, timeout=30
+    )
+    member_calls(b, 3)
 
 
 # -- row 6: a member whose key was replaced ----------------------------------------------------
