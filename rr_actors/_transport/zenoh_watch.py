@@ -20,8 +20,10 @@ module only tells the operator, on the `rr_actors` logger:
 
 The Zenoh callback only puts the event in a queue (a callback must never block: logging
 handlers are user code); the watch thread does the rest. A link is "to" an endpoint when
-its remote address is one of the endpoint's host's addresses (any port: two routers
-that dial each other share one link).
+its remote address is one of the endpoint's host's addresses and its port is the
+endpoint's, or a port no `connect` endpoint has (that host dialled us: two routers that
+dial each other share one link). So a link to one port of a host does not hide that
+another port there (an impostor, say) refuses us.
 """
 
 from __future__ import annotations
@@ -52,11 +54,16 @@ TICK = 0.5  # seconds between two looks at the connect endpoints
 REPEAT = 60.0  # seconds between two WARNINGs about one address or endpoint
 
 
+def _remote(locator: str) -> tuple[str, int | None]:
+    """The host and port of a locator such as `tls/10.0.0.2:7447` or `tls/[::1]:7447`."""
+    address = locator.split("/", 1)[-1].split("#", 1)[0]
+    host, _, port = address.rpartition(":")
+    return host.strip("[]"), int(port) if port.isdigit() else None
+
+
 def _remote_host(locator: str) -> str:
     """The host of a locator such as `tls/10.0.0.2:7447` or `tls/[::1]:7447`."""
-    address = locator.split("/", 1)[-1].split("#", 1)[0]
-    host = address.rsplit(":", 1)[0]
-    return host.strip("[]")
+    return _remote(locator)[0]
 
 
 def _addresses(host: str) -> set[str]:
@@ -174,9 +181,10 @@ class LinkWatch:
             list(self._tls.members),
         )
 
-    def _linked_hosts(self) -> set[str]:
+    def _linked(self) -> set[tuple[str, int | None]]:
+        """The (host, port) of each TLS link to a member."""
         return {
-            _remote_host(str(link.dst))
+            _remote(str(link.dst))
             for link in self._session.info.links()
             if str(link.dst).startswith("tls/") and link.auth_identifier in self._tls.members
         }
@@ -184,11 +192,16 @@ class LinkWatch:
     def _look_at_endpoints(self) -> None:
         if not self._endpoints:
             return
-        linked = self._linked_hosts()
+        linked = self._linked()
+        dialled = {endpoint.port for endpoint in self._endpoints}
         now = self._clock()
         for endpoint in self._endpoints:
             first, endpoint.looked = not endpoint.looked, True
-            if _addresses(endpoint.host) & linked:
+            addresses = _addresses(endpoint.host)
+            if any(
+                host in addresses and (port == endpoint.port or port not in dialled)
+                for host, port in linked
+            ):
                 endpoint.unlinked_since = endpoint.warned_at = None
                 continue
             if endpoint.unlinked_since is None:  # unlinked since start, or since its link went
