@@ -369,11 +369,11 @@ class ZenohMember:
             raise self._gone_error(name)
 
     def _outbox(self, key: str, zid: str | None = None) -> Outbox | None:
-        """The outbox of `key`, whose subscriber is in process `zid` (if known)."""
+        """The outbox of `key`, whose subscriber is in process `zid` (if known: then the
+        first put of a new outbox waits for that process's answer to a ping)."""
         if self.closed:
             return None
-        healed = zid is not None and self._presence.vanished(zid)
-        return self._outboxes.get(key, zid if healed else None)
+        return self._outboxes.get(key, zid)
 
     def answer_to(
         self, sender: str, data: bytes, on_lost: Lost | None, *, plain: bool = False

@@ -4,7 +4,7 @@
  ZenohMember.send / answer_to ─► Outboxes.get(key) ─► Outbox(key).send(header + frame)
                                                           │ its writer thread (zenoh_queue)
                                                           ▼
-                      (first put after a healed link: ping rr/<s>/ping/<zid> first)
+          (a new outbox's first put: ping rr/<s>/ping/<zid> first)
                                                  publisher.put ─► rr/<s>/reg/<name>
                                                                   rr/<s>/ans/<zid>
 ```
@@ -36,8 +36,8 @@ __all__ = ["HEAL_TIMEOUT", "Outbox", "Outboxes"]
 logger = logging.getLogger("rr_actors")
 
 HEAL_TIMEOUT = 2.0
-"""Seconds the first message to a process back from a healed link waits for its answer
-to a ping (then it is sent anyway)."""
+"""Seconds the first message to a process (just seen, or back from a healed link) waits
+for its answer to a ping (then it is sent anyway)."""
 
 
 class Outbox:
@@ -99,13 +99,13 @@ class Outboxes:
         self._outboxes: dict[str, Outbox] = {}
         self._closed = False
 
-    def get(self, key: str, healed: str | None = None) -> Outbox:
-        """The outbox of `key`; the first put of a new one to process `healed` (back from
-        a healed link) waits until that process answers a ping."""
+    def get(self, key: str, first_to: str | None = None) -> Outbox:
+        """The outbox of `key`; the first put of a new one to process `first_to` waits
+        until that process answers a ping (`_until_answered`)."""
         outbox = self._outboxes.get(key)
         if outbox is not None and not outbox.closed:
             return outbox
-        ready = functools.partial(self._until_answered, healed) if healed is not None else None
+        ready = functools.partial(self._until_answered, first_to) if first_to else None
         fresh = Outbox(self._session, key, ready)  # (no Zenoh call under our lock: its
         with self._lock:  # callbacks take it)
             outbox = self._outboxes.get(key)
@@ -135,9 +135,12 @@ class Outboxes:
     def _until_answered(self, zid: str | None) -> None:
         """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread).
 
-        After a healed link its tokens may be back here before what is sent to it gets
-        through: a message put in between was lost without a word (a call right after
-        the heal waited for its timeout). An answered ping went the way the next put goes.
+        When a link comes up (a host that joins, a healed link) the process's tokens may
+        be here before what is sent to it gets through: a message put in between was lost
+        without a word (a call right after the heal, or a host's first call right after
+        it joined during a burst of refused handshakes, waited for its timeout). An
+        answered ping went the way the next put goes; it costs one round trip, once per
+        destination.
         """
         deadline = time.monotonic() + HEAL_TIMEOUT
         pause = threading.Event()

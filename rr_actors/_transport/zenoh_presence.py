@@ -150,10 +150,6 @@ class Presence:
         """How `name`'s last server went: "stopped", "died", or None (not gone)."""
         return self._gone.get(name)
 
-    def vanished(self, zid: str) -> bool:
-        """Whether process `zid`'s token went at least once."""
-        return zid in self._vanished
-
     def unreachable(self, zid: str) -> bool:
         """Whether process `zid` went and is not back. (A process whose token was not seen
         yet is not: its message may overtake its token here.)"""
