@@ -20,6 +20,7 @@ import contextlib
 import datetime
 import ipaddress
 import os
+import re
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -187,18 +188,35 @@ def _load_ca(directory: Path) -> tuple[x509.Certificate, CaKey]:
     return cert, key
 
 
+_LABEL = re.compile(r"(?!-)[A-Za-z0-9_\-]{1,63}(?<!-)")
+"""One label of a DNS name peers dial (as `ZenohNetwork`'s endpoints take them)."""
+
+
+def _is_dns_name(address: str) -> bool:
+    labels = address.removesuffix(".").split(".")
+    return len(address) <= 253 and all(_LABEL.fullmatch(label) for label in labels)
+
+
 def _names(name: str, addresses: Iterable[str]) -> list[x509.GeneralName]:
+    if isinstance(addresses, str | bytes):
+        raise ConfigError(f"addresses must be a list such as ['10.0.0.2'], not {addresses!r}")
+    given = list(dict.fromkeys(addresses))
+    if not given:  # a host that only connects: the name, which nobody dials
+        return [x509.DNSName(name)]
     sans: list[x509.GeneralName] = []
-    for address in dict.fromkeys(addresses or (name,)):
+    for address in given:
         try:
             sans.append(x509.IPAddress(ipaddress.ip_address(address)))
+            continue
         except ValueError:
-            try:
-                sans.append(x509.DNSName(address))
-            except ValueError as exc:
-                raise ConfigError(
-                    f"--address {address!r} is not an IP address or DNS name"
-                ) from exc
+            pass
+        if not isinstance(address, str) or not _is_dns_name(address):
+            raise ConfigError(
+                f"--address {address!r} is not an IP address or DNS name (give the host "
+                f"alone, as peers put it in their endpoints: 10.0.0.2, ::1 or robot.local; "
+                f"no port, no 'tls/', no brackets)"
+            )
+        sans.append(x509.DNSName(address))
     return sans
 
 
@@ -230,9 +248,10 @@ def issue_cert(
 
     Raises:
         ConfigError: `name` is not a member name or is `ca`; `days` is not a positive
-            int; an address is neither an IP address nor a DNS name; there is no readable
-            CA in `directory`; `NAME.pem` or `NAME.key` exists (without `force`; nothing is
-            written).
+            int or ends after the year 9999; `addresses` is a str, or an address is
+            neither an IP address nor a DNS name (a port, 'tls/' or brackets in it);
+            there is no readable CA in `directory`; `NAME.pem` or `NAME.key` exists
+            (without `force`; nothing is written).
     """
     if not isinstance(name, str) or MEMBER_NAME.fullmatch(name) is None:
         raise ConfigError(f"name {name!r} is not a member name ({MEMBER_NAME.pattern})")
@@ -248,6 +267,10 @@ def issue_cert(
     key = ec.generate_private_key(ec.SECP256R1())
     now = datetime.datetime.now(datetime.UTC)
     try:
+        not_after = now + datetime.timedelta(days=days)
+    except OverflowError:  # past the year 9999, datetime's last (and X.509's)
+        raise ConfigError(f"days {days} ends after the year 9999: give fewer days") from None
+    try:
         issuer_ski = ca_cert.extensions.get_extension_for_class(x509.SubjectKeyIdentifier).value
         aki = x509.AuthorityKeyIdentifier.from_issuer_subject_key_identifier(issuer_ski)
     except x509.ExtensionNotFound:
@@ -259,7 +282,7 @@ def issue_cert(
         .public_key(key.public_key())
         .serial_number(x509.random_serial_number())
         .not_valid_before(now - CLOCK_SKEW)
-        .not_valid_after(now + datetime.timedelta(days=days))
+        .not_valid_after(not_after)
         .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
         .add_extension(_key_usage(digital_signature=True), critical=True)
         .add_extension(
