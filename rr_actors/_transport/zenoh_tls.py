@@ -49,7 +49,10 @@ _PRIVATE = 0o077  # group and others' permission bits: a private key has none
 def _path(argument: str, value: object) -> str:
     if not isinstance(value, str | os.PathLike):
         raise ConfigError(f"{argument} must be a path (str or os.PathLike), not {value!r}")
-    return os.path.abspath(os.fsdecode(value))
+    path = os.fsdecode(value)
+    if "\0" in path:  # no file has one: open() would raise ValueError
+        raise ConfigError(f"{argument} {path!r} is not a path (it holds a NUL character)")
+    return os.path.abspath(path)
 
 
 def _read(argument: str, path: str) -> bytes:

@@ -1,0 +1,25 @@
+"""`rr.ZenohTLS` turns every bad argument into a `ConfigError` naming it (review of issue 23)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pki
+import pytest
+
+import rr_actors as rr
+
+
+@pytest.mark.parametrize("argument", ["ca", "cert", "key"])
+def test_a_path_with_a_nul_character_is_a_config_error_naming_it(
+    tmp_path: Path, argument: str
+) -> None:
+    ca = pki.make_ca(tmp_path / "lab", "lab")
+    cert, key = pki.issue(tmp_path / "robot", "robot", ("127.0.0.1",), ca=ca)
+    paths = {"ca": str(ca[0]), "cert": str(cert), "key": str(key)}
+    paths[argument] += "\0"
+
+    with pytest.raises(
+        rr.ConfigError, match=rf"{argument} '.*\\x00' is not a path \(it holds a NUL"
+    ):
+        rr.ZenohTLS(members=["robot"], **paths)
