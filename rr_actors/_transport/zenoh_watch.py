@@ -21,7 +21,8 @@ module only tells the operator, on the `rr_actors` logger:
 The Zenoh callback only puts the event in a queue (a callback must never block: logging
 handlers are user code); the watch thread does the rest. A link is "to" an endpoint when
 its remote address is one of the endpoint's host's addresses (any port: two routers
-that dial each other share one link).
+that dial each other share one link); a host name is resolved again only while its
+endpoint is unlinked, at most every `GRACE` s (a lookup may block for seconds).
 """
 
 from __future__ import annotations
@@ -78,6 +79,8 @@ class _Endpoint:
         self.unlinked_since: float | None = None
         self.warned_at: float | None = None
         self.looked = False  # the first look counts from start, a later one from then
+        self.addresses: set[str] = set()  # the host's, when last resolved
+        self.resolved_at: float | None = None
 
 
 class LinkWatch:
@@ -188,7 +191,11 @@ class LinkWatch:
         now = self._clock()
         for endpoint in self._endpoints:
             first, endpoint.looked = not endpoint.looked, True
-            if _addresses(endpoint.host) & linked:
+            if not endpoint.addresses & linked and (
+                endpoint.resolved_at is None or now - endpoint.resolved_at >= GRACE
+            ):  # a name is looked up again only while unlinked, and not at every tick
+                endpoint.addresses, endpoint.resolved_at = _addresses(endpoint.host), now
+            if endpoint.addresses & linked:
                 endpoint.unlinked_since = endpoint.warned_at = None
                 continue
             if endpoint.unlinked_since is None:  # unlinked since start, or since its link went
