@@ -11,13 +11,16 @@ keyCertSign), a host's certificate names the member in its common name and every
 peers dial in its subject alternative names, and has both TLS uses (a host listens and
 connects). Keys are ECDSA P-256, PKCS#8, unencrypted, written 0600 (certificates 0644).
 A file is written to a temporary file in the same directory, then renamed over its name:
-a crash leaves the old file or the new one, never half of one.
+a crash leaves the old file or the new one, never half of one. Without `force` it is
+hard-linked instead, which fails if the name appeared meanwhile (another writer, or a
+symlink): what is there is never replaced.
 """
 
 from __future__ import annotations
 
 import contextlib
 import datetime
+import errno
 import ipaddress
 import os
 import re
@@ -69,7 +72,7 @@ def _pkcs8(key: ec.EllipticCurvePrivateKey) -> bytes:
 
 
 def _refuse_existing(paths: Iterable[Path], force: bool) -> None:
-    existing = [str(p) for p in paths if p.exists()]
+    existing = [str(p) for p in paths if os.path.lexists(p)]  # a symlink too, even dangling
     if existing and not force:
         raise ConfigError(
             f"{' and '.join(existing)} already exist{'s' if len(existing) == 1 else ''}: "
@@ -77,9 +80,29 @@ def _refuse_existing(paths: Iterable[Path], force: bool) -> None:
         )
 
 
-def _write_all(files: dict[Path, tuple[bytes, int]]) -> None:
-    """Write each file (data, mode) to a temporary name in its directory, then rename them."""
+def _install(tmp: Path, path: Path, force: bool) -> None:
+    """Rename `tmp` to `path`; without `force`, FileExistsError if `path` exists by now."""
+    if force:
+        os.replace(tmp, path)
+        return
+    try:
+        os.link(tmp, path)  # atomic: fails if another writer made `path` since we looked
+    except FileExistsError:
+        raise
+    except OSError:  # a file system without hard links: the look before is all there is
+        if os.path.lexists(path):
+            raise FileExistsError(errno.EEXIST, "exists", str(path)) from None
+        os.replace(tmp, path)
+
+
+def _write_all(files: dict[Path, tuple[bytes, int]], *, force: bool) -> None:
+    """Write each file (data, mode) to a temporary name in its directory, then rename them.
+
+    Without `force`, a file that appeared since `_refuse_existing` is left alone, and so
+    are the others (those already renamed are removed again): ConfigError.
+    """
     temporary: dict[Path, Path] = {}
+    installed: list[Path] = []
     try:
         for path, (data, mode) in files.items():
             tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -91,7 +114,13 @@ def _write_all(files: dict[Path, tuple[bytes, int]]) -> None:
                 f.flush()
                 os.fsync(f.fileno())
         for path, tmp in temporary.items():
-            os.replace(tmp, path)
+            _install(tmp, path, force)
+            installed.append(path)
+    except FileExistsError as exc:
+        for path in installed:
+            path.unlink()
+        existing = exc.filename2 if exc.filename2 is not None else exc.filename  # os.link's
+        raise ConfigError(f"{existing} already exists: left untouched (--force replaces)") from None
     except OSError as exc:
         raise ConfigError(f"cannot write {', '.join(map(str, files))}: {exc}") from exc
     finally:
@@ -157,7 +186,7 @@ def init_ca(
         .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
         .sign(key, hashes.SHA256())
     )
-    _write_all({pem: (_pem(cert), 0o644), key_path: (_pkcs8(key), 0o600)})
+    _write_all({pem: (_pem(cert), 0o644), key_path: (_pkcs8(key), 0o600)}, force=force)
     return pem, key_path
 
 
@@ -300,5 +329,5 @@ def issue_cert(
         cert.verify_directly_issued_by(ca_cert)
     except (ValueError, TypeError, InvalidSignature) as exc:  # pragma: no cover - a broken CA
         raise ConfigError(f"{path / 'ca.pem'} cannot issue: {exc}") from exc
-    _write_all({pem: (_pem(cert), 0o644), key_path: (_pkcs8(key), 0o600)})
+    _write_all({pem: (_pem(cert), 0o644), key_path: (_pkcs8(key), 0o600)}, force=force)
     return pem, key_path
