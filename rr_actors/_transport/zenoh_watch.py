@@ -195,8 +195,8 @@ class LinkWatch:
                 endpoint.resolved_at is None or now - endpoint.resolved_at >= GRACE
             ):  # a name is looked up again only while unlinked, and not at every tick
                 endpoint.addresses, endpoint.resolved_at = _addresses(endpoint.host), now
-            if endpoint.addresses & linked:
-                endpoint.unlinked_since = endpoint.warned_at = None
+            if endpoint.addresses & linked:  # `warned_at` stays: a flapping link is no
+                endpoint.unlinked_since = None  # reason for more than a WARNING a minute
                 continue
             if endpoint.unlinked_since is None:  # unlinked since start, or since its link went
                 endpoint.unlinked_since = self._started if first else now
