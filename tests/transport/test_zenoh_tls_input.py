@@ -23,3 +23,22 @@ def test_a_path_with_a_nul_character_is_a_config_error_naming_it(
         rr.ConfigError, match=rf"{argument} '.*\\x00' is not a path \(it holds a NUL"
     ):
         rr.ZenohTLS(members=["robot"], **paths)
+
+
+@pytest.mark.parametrize("host", ["robot..local", ".robot", "a" * 64 + ".local"])
+@pytest.mark.parametrize("protocol", ["tls", "tcp"])
+@pytest.mark.parametrize("role", ["listen", "connect"])
+def test_an_endpoint_whose_host_name_no_resolver_takes_is_a_config_error_naming_it(
+    tmp_path: Path, host: str, protocol: str, role: str
+) -> None:
+    """Else the link watch logged an ERROR with a traceback every 0.5 s (a UnicodeError
+    from the lookup), and a plain TCP network's open raised the UnicodeError."""
+    tls = None
+    if protocol == "tls":
+        ca = pki.make_ca(tmp_path / "lab", "lab")
+        cert, key = pki.issue(tmp_path / "robot", "robot", ("127.0.0.1",), ca=ca)
+        tls = rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=["robot"])
+    endpoint = f"{protocol}/{host}:7447"
+
+    with pytest.raises(rr.ConfigError, match=rf"{role} endpoint '{endpoint}' is malformed"):
+        rr.ZenohNetwork(system="lab", tls=tls, **{role: [endpoint]})
