@@ -42,3 +42,18 @@ def test_an_endpoint_whose_host_name_no_resolver_takes_is_a_config_error_naming_
 
     with pytest.raises(rr.ConfigError, match=rf"{role} endpoint '{endpoint}' is malformed"):
         rr.ZenohNetwork(system="lab", tls=tls, **{role: [endpoint]})
+
+
+def test_a_chain_through_a_certificate_that_is_not_a_ca_is_a_config_error(tmp_path: Path) -> None:
+    """A member's certificate signing another (here a name of another member): Zenoh's TLS
+    refuses the chain in every handshake, so `ZenohTLS` refuses it when made."""
+    ca = pki.make_ca(tmp_path / "lab", "lab")
+    member = pki.issue(tmp_path / "stranger", "stranger", ("127.0.0.1",), ca=ca)
+    forged, key = pki.issue(tmp_path / "forged", "robot", ("127.0.0.1",), ca=member)
+    chain = tmp_path / "chain.pem"
+    chain.write_bytes(forged.read_bytes() + member[0].read_bytes())
+
+    with pytest.raises(
+        rr.ConfigError, match=r"\(intermediate 1\) \(CN=stranger\) is not a CA certificate"
+    ):
+        rr.ZenohTLS(ca=ca[0], cert=chain, key=key, members=["robot"])
