@@ -11,15 +11,19 @@ keyCertSign), a host's certificate names the member in its common name and every
 peers dial in its subject alternative names, and has both TLS uses (a host listens and
 connects). Keys are ECDSA P-256, PKCS#8, unencrypted, written 0600 (certificates 0644).
 A file is written to a temporary file in the same directory, then renamed over its name:
-a crash leaves the old file or the new one, never half of one.
+a crash leaves the old file or the new one, never half of one. Without `force` it is
+hard-linked instead, which fails if the name appeared meanwhile (another writer, or a
+symlink): what is there is never replaced.
 """
 
 from __future__ import annotations
 
 import contextlib
 import datetime
+import errno
 import ipaddress
 import os
+import re
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -68,7 +72,7 @@ def _pkcs8(key: ec.EllipticCurvePrivateKey) -> bytes:
 
 
 def _refuse_existing(paths: Iterable[Path], force: bool) -> None:
-    existing = [str(p) for p in paths if p.exists()]
+    existing = [str(p) for p in paths if os.path.lexists(p)]  # a symlink too, even dangling
     if existing and not force:
         raise ConfigError(
             f"{' and '.join(existing)} already exist{'s' if len(existing) == 1 else ''}: "
@@ -76,9 +80,29 @@ def _refuse_existing(paths: Iterable[Path], force: bool) -> None:
         )
 
 
-def _write_all(files: dict[Path, tuple[bytes, int]]) -> None:
-    """Write each file (data, mode) to a temporary name in its directory, then rename them."""
+def _install(tmp: Path, path: Path, force: bool) -> None:
+    """Rename `tmp` to `path`; without `force`, FileExistsError if `path` exists by now."""
+    if force:
+        os.replace(tmp, path)
+        return
+    try:
+        os.link(tmp, path)  # atomic: fails if another writer made `path` since we looked
+    except FileExistsError:
+        raise
+    except OSError:  # a file system without hard links: the look before is all there is
+        if os.path.lexists(path):
+            raise FileExistsError(errno.EEXIST, "exists", str(path)) from None
+        os.replace(tmp, path)
+
+
+def _write_all(files: dict[Path, tuple[bytes, int]], *, force: bool) -> None:
+    """Write each file (data, mode) to a temporary name in its directory, then rename them.
+
+    Without `force`, a file that appeared since `_refuse_existing` is left alone, and so
+    are the others (those already renamed are removed again): ConfigError.
+    """
     temporary: dict[Path, Path] = {}
+    installed: list[Path] = []
     try:
         for path, (data, mode) in files.items():
             tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -90,7 +114,13 @@ def _write_all(files: dict[Path, tuple[bytes, int]]) -> None:
                 f.flush()
                 os.fsync(f.fileno())
         for path, tmp in temporary.items():
-            os.replace(tmp, path)
+            _install(tmp, path, force)
+            installed.append(path)
+    except FileExistsError as exc:
+        for path in installed:
+            path.unlink()
+        existing = exc.filename2 if exc.filename2 is not None else exc.filename  # os.link's
+        raise ConfigError(f"{existing} already exists: left untouched (--force replaces)") from None
     except OSError as exc:
         raise ConfigError(f"cannot write {', '.join(map(str, files))}: {exc}") from exc
     finally:
@@ -156,7 +186,7 @@ def init_ca(
         .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
         .sign(key, hashes.SHA256())
     )
-    _write_all({pem: (_pem(cert), 0o644), key_path: (_pkcs8(key), 0o600)})
+    _write_all({pem: (_pem(cert), 0o644), key_path: (_pkcs8(key), 0o600)}, force=force)
     return pem, key_path
 
 
@@ -187,18 +217,35 @@ def _load_ca(directory: Path) -> tuple[x509.Certificate, CaKey]:
     return cert, key
 
 
+_LABEL = re.compile(r"(?!-)[A-Za-z0-9_\-]{1,63}(?<!-)")
+"""One label of a DNS name peers dial (as `ZenohNetwork`'s endpoints take them)."""
+
+
+def _is_dns_name(address: str) -> bool:
+    labels = address.removesuffix(".").split(".")
+    return len(address) <= 253 and all(_LABEL.fullmatch(label) for label in labels)
+
+
 def _names(name: str, addresses: Iterable[str]) -> list[x509.GeneralName]:
+    if isinstance(addresses, str | bytes):
+        raise ConfigError(f"addresses must be a list such as ['10.0.0.2'], not {addresses!r}")
+    given = list(dict.fromkeys(addresses))
+    if not given:  # a host that only connects: the name, which nobody dials
+        return [x509.DNSName(name)]
     sans: list[x509.GeneralName] = []
-    for address in dict.fromkeys(addresses or (name,)):
+    for address in given:
         try:
             sans.append(x509.IPAddress(ipaddress.ip_address(address)))
+            continue
         except ValueError:
-            try:
-                sans.append(x509.DNSName(address))
-            except ValueError as exc:
-                raise ConfigError(
-                    f"--address {address!r} is not an IP address or DNS name"
-                ) from exc
+            pass
+        if not isinstance(address, str) or not _is_dns_name(address):
+            raise ConfigError(
+                f"--address {address!r} is not an IP address or DNS name (give the host "
+                f"alone, as peers put it in their endpoints: 10.0.0.2, ::1 or robot.local; "
+                f"no port, no 'tls/', no brackets)"
+            )
+        sans.append(x509.DNSName(address))
     return sans
 
 
@@ -230,9 +277,10 @@ def issue_cert(
 
     Raises:
         ConfigError: `name` is not a member name or is `ca`; `days` is not a positive
-            int; an address is neither an IP address nor a DNS name; there is no readable
-            CA in `directory`; `NAME.pem` or `NAME.key` exists (without `force`; nothing is
-            written).
+            int or ends after the year 9999; `addresses` is a str, or an address is
+            neither an IP address nor a DNS name (a port, 'tls/' or brackets in it);
+            there is no readable CA in `directory`; `NAME.pem` or `NAME.key` exists
+            (without `force`; nothing is written).
     """
     if not isinstance(name, str) or MEMBER_NAME.fullmatch(name) is None:
         raise ConfigError(f"name {name!r} is not a member name ({MEMBER_NAME.pattern})")
@@ -248,6 +296,10 @@ def issue_cert(
     key = ec.generate_private_key(ec.SECP256R1())
     now = datetime.datetime.now(datetime.UTC)
     try:
+        not_after = now + datetime.timedelta(days=days)
+    except OverflowError:  # past the year 9999, datetime's last (and X.509's)
+        raise ConfigError(f"days {days} ends after the year 9999: give fewer days") from None
+    try:
         issuer_ski = ca_cert.extensions.get_extension_for_class(x509.SubjectKeyIdentifier).value
         aki = x509.AuthorityKeyIdentifier.from_issuer_subject_key_identifier(issuer_ski)
     except x509.ExtensionNotFound:
@@ -259,7 +311,7 @@ def issue_cert(
         .public_key(key.public_key())
         .serial_number(x509.random_serial_number())
         .not_valid_before(now - CLOCK_SKEW)
-        .not_valid_after(now + datetime.timedelta(days=days))
+        .not_valid_after(not_after)
         .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
         .add_extension(_key_usage(digital_signature=True), critical=True)
         .add_extension(
@@ -277,5 +329,5 @@ def issue_cert(
         cert.verify_directly_issued_by(ca_cert)
     except (ValueError, TypeError, InvalidSignature) as exc:  # pragma: no cover - a broken CA
         raise ConfigError(f"{path / 'ca.pem'} cannot issue: {exc}") from exc
-    _write_all({pem: (_pem(cert), 0o644), key_path: (_pkcs8(key), 0o600)})
+    _write_all({pem: (_pem(cert), 0o644), key_path: (_pkcs8(key), 0o600)}, force=force)
     return pem, key_path

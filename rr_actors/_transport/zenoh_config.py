@@ -69,6 +69,12 @@ def parse_endpoint(role: str, endpoint: object) -> tuple[str, str, int]:
             ipaddress.IPv6Address(host)
         except ValueError as exc:
             raise ConfigError(f"{role} endpoint {endpoint!r} is malformed: {exc}") from None
+    elif not all(0 < len(label) <= 63 for label in host.removesuffix(".").split(".")):
+        # a name no resolver takes (Python's raises UnicodeError for it, not OSError)
+        raise ConfigError(
+            f"{role} endpoint {endpoint!r} is malformed: the host name {host!r} has an "
+            f"empty label or one longer than 63 characters"
+        )
     return match["proto"], host, port
 
 

@@ -49,7 +49,10 @@ _PRIVATE = 0o077  # group and others' permission bits: a private key has none
 def _path(argument: str, value: object) -> str:
     if not isinstance(value, str | os.PathLike):
         raise ConfigError(f"{argument} must be a path (str or os.PathLike), not {value!r}")
-    return os.path.abspath(os.fsdecode(value))
+    path = os.fsdecode(value)
+    if "\0" in path:  # no file has one: open() would raise ValueError
+        raise ConfigError(f"{argument} {path!r} is not a path (it holds a NUL character)")
+    return os.path.abspath(path)
 
 
 def _read(argument: str, path: str) -> bytes:
@@ -206,10 +209,11 @@ class ZenohTLS:
             or not PEM; `ca` without a certificate, or one that is not a CA
             (BasicConstraints CA=true), expired or not yet valid; `cert` without a
             certificate, expired or not yet valid (with the dates, UTC), not signed by
-            `ca`, without a common name, with an extendedKeyUsage lacking TLS server or
-            client use; `key` not a private key, encrypted, of a type rustls cannot use,
-            or not the certificate's; `members` not an iterable of names, empty, a name
-            that is not a member name, or without this host's name.
+            `ca` (or through an intermediate that is not a CA), without a common name,
+            with an extendedKeyUsage lacking TLS server or client use; `key` not a
+            private key, encrypted, of a type rustls cannot use, or not the certificate's;
+            `members` not an iterable of names, empty, a name that is not a member name,
+            or without this host's name.
 
     A key file readable by group or others logs a WARNING on the `rr_actors` logger
     naming it and its mode (fix: `chmod 600`). The object is read-only; Zenoh reads the
@@ -296,6 +300,11 @@ def _leaf(path: str, ca: str, now: datetime.datetime) -> x509.Certificate:
     chain = _certificates("cert", path)
     for index, link in enumerate(chain):
         what = f"cert {path}" + (f" (intermediate {index})" if index else "")
+        if index and not _is_ca(link):  # Zenoh's TLS (webpki) refuses such a chain
+            raise ConfigError(
+                f"{what} ({link.subject.rfc4514_string()}) is not a CA certificate (no "
+                f"BasicConstraints CA=true), so it cannot sign the certificate before it"
+            )
         _check_dates(what, link, now)
         issuers = chain[index + 1 : index + 2] or authorities
         if not any(_signed_by(link, issuer) for issuer in issuers):

@@ -23,7 +23,8 @@ handlers are user code); the watch thread does the rest. A link is "to" an endpo
 its remote address is one of the endpoint's host's addresses and its port is the
 endpoint's, or a port no `connect` endpoint has (that host dialled us: two routers that
 dial each other share one link). So a link to one port of a host does not hide that
-another port there (an impostor, say) refuses us.
+another port there (an impostor, say) refuses us. A host name is resolved again only
+while its endpoint is unlinked, at most every `GRACE` s (a lookup may block for seconds).
 """
 
 from __future__ import annotations
@@ -85,6 +86,17 @@ class _Endpoint:
         self.unlinked_since: float | None = None
         self.warned_at: float | None = None
         self.looked = False  # the first look counts from start, a later one from then
+        self.addresses: set[str] = set()  # the host's, when last resolved
+        self.resolved_at: float | None = None
+
+    def linked(self, links: set[tuple[str, int | None]], dialled: set[int]) -> bool:
+        """Whether one of `links` (host, port) is to this endpoint: one of its host's
+        addresses, and its port or one no connect endpoint has (`dialled`: the other host
+        dialled us)."""
+        return any(
+            host in self.addresses and (port == self.port or port not in dialled)
+            for host, port in links
+        )
 
 
 class LinkWatch:
@@ -197,12 +209,12 @@ class LinkWatch:
         now = self._clock()
         for endpoint in self._endpoints:
             first, endpoint.looked = not endpoint.looked, True
-            addresses = _addresses(endpoint.host)
-            if any(
-                host in addresses and (port == endpoint.port or port not in dialled)
-                for host, port in linked
-            ):
-                endpoint.unlinked_since = endpoint.warned_at = None
+            if not endpoint.linked(linked, dialled) and (
+                endpoint.resolved_at is None or now - endpoint.resolved_at >= GRACE
+            ):  # a name is looked up again only while unlinked, and not at every tick
+                endpoint.addresses, endpoint.resolved_at = _addresses(endpoint.host), now
+            if endpoint.linked(linked, dialled):  # `warned_at` stays: a flapping link is
+                endpoint.unlinked_since = None  # no reason for more than a WARNING a minute
                 continue
             if endpoint.unlinked_since is None:  # unlinked since start, or since its link went
                 endpoint.unlinked_since = self._started if first else now
