@@ -1,4 +1,4 @@
-"""`ZenohNetwork`: a system of registrars across hosts, over Eclipse Zenoh (step 1: plain TCP).
+"""`ZenohNetwork`: a system of registrars across hosts, over Eclipse Zenoh.
 
 The process that makes a `ZenohNetwork` is its host's router (as rmw_zenoh's router per
 host): at first use it opens a ROUTER-mode Zenoh session that listens on `listen` and on
@@ -8,16 +8,17 @@ never over TCP on loopback, which any local user could reach and send pickles to
 
 ```
  host A                                            host B
- router process (ZenohNetwork) ── tcp/<A>:7447 ── router process (ZenohNetwork)
+ router process (ZenohNetwork) ── tls/<A>:7447 ── router process (ZenohNetwork)
    │ unixsock-stream/<runtime_dir>/router.sock       │
  manager processes (address.attach())              manager processes
 ```
 
-What crosses: `zenoh_carrier` (and its collaborators); how presence works:
-`zenoh_presence`. A process belongs to one system (the registrar directory is per
-process): joining a second one is a `ConfigError`. A process that opened a Zenoh session
-must not fork (the child hangs): rr_actors starts manager processes with forkserver or
-spawn.
+Between hosts, `tls/` (mutual TLS, only members admitted: `zenoh_config`, `zenoh_tls`,
+`zenoh_watch`) or, on one trusted network, `tcp/` (`tls=None`). What crosses:
+`zenoh_carrier` (and its collaborators); how presence works: `zenoh_presence`. A process
+belongs to one system (the registrar directory is per process): joining a second one is
+a `ConfigError`. A process that opened a Zenoh session must not fork (the child hangs):
+rr_actors starts manager processes with forkserver or spawn.
 """
 
 from __future__ import annotations
