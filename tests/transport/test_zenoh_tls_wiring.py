@@ -434,3 +434,46 @@ def test_rust_log_shows_the_listeners_own_line_for_a_refused_handshake(
             listening.stdin.close()
             listening.wait(timeout=30)
             reader.join(timeout=10)
+
+
+# -- rotation ----------------------------------------------------------------------------------
+
+
+def _put_until_heard(member: zenoh.Session, heard: queue.Queue[bytes], data: bytes) -> bool:
+    """Put `data` until it is heard (a link just up may not route a put yet), at most 10 s."""
+    for _ in range(50):
+        member.put("rr/lab/reg/erm", data)
+        with contextlib.suppress(queue.Empty):
+            if heard.get(timeout=0.2) == data:
+                return True
+    return False
+
+
+def test_a_member_restarted_with_a_new_certificate_of_the_same_ca_rejoins(
+    lab: Lab, logged: Logged
+) -> None:
+    """The how-to's rotation: re-issue (a new key, the same name and CA), restart, rejoin;
+    the listener changes nothing."""
+    port = _free_port()
+    robot = lab.tls("robot")
+    with listener(robot, port) as session:
+        watch = LinkWatch("lab", session, robot, ())
+        heard: queue.Queue[bytes] = queue.Queue()
+        subscriber = session.declare_subscriber(
+            "rr/lab/reg/erm", lambda sample: heard.put(sample.payload.to_bytes())
+        )
+        try:
+            for round_ in ("old", "new"):
+                operator = lab.tls("operator")  # a fresh key and certificate each time
+                member = _router(operator, [f"tls/127.0.0.1:{port}"])
+                try:
+                    wait_for(lambda: len(session.info.links()) == 1, timeout=10)
+                    assert _put_until_heard(member, heard, round_.encode()), round_
+                finally:
+                    member.close()  # type: ignore[no-untyped-call]
+                wait_for(lambda: session.info.links() == [], timeout=10)
+        finally:
+            subscriber.undeclare()  # type: ignore[no-untyped-call]
+            watch.close()
+    joined = [m for lv, m in logged.lines if lv == "INFO" and "member 'operator' linked" in m]
+    assert len(joined) == 2, logged.lines
