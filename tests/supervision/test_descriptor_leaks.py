@@ -127,7 +127,8 @@ def test_hangs_that_the_heartbeat_ends_leave_no_descriptor_after_the_observer_cl
         sup.wait_restarted(name, timeout=15.0, restarts=restarts + 1)
         during.append(open_descriptors().total())
     observer.close()
-    after = open_descriptors()
 
     assert max(during) - min(during) <= 1  # one hang's pidfd at most, not one per hang
-    assert before == after
+    # (the observer's server closes its connections' sockets on its own thread: a leak
+    # stays past the bound, a socket being closed does not)
+    assert eventually(lambda: open_descriptors() == before), (before, open_descriptors())
