@@ -41,7 +41,7 @@ RestartType = Literal["permanent", "transient", "temporary"]
 Strategy = Literal["one_for_one", "one_for_all", "rest_for_one"]
 Isolation = Literal["thread", "process"]
 
-_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
+NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
 """A valid name, matched whole (`fullmatch`: `$` would accept a trailing newline). It
 names files (`<name>.db`, `<name>.sock`), so it never starts with `.` (`.`, `..`, hidden
 files) or `-` (read as an option by command-line tools)."""
@@ -137,7 +137,7 @@ class RegistrarConfig:
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
 
     def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
+        if not isinstance(self.name, str) or not NAME.fullmatch(self.name):
             raise ConfigError(
                 f"name must be a non-empty string of letters, digits, '_', '-' or '.', "
                 f"not starting with '.' or '-', got {self.name!r}"

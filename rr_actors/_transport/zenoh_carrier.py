@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import re
 import struct
 import threading
 from collections.abc import Callable
@@ -68,6 +67,7 @@ from rr_actors._transport.zenoh_inbox import Inbox, Local
 from rr_actors._transport.zenoh_outbox import Outbox, Outboxes
 from rr_actors._transport.zenoh_presence import ASK_TIMEOUT, Presence
 from rr_actors._transport.zenoh_wire import ANSWER, MESSAGE, VERSION, header
+from rr_actors.config import NAME
 from rr_actors.errors import (
     ConfigError,
     MessageTooLargeError,
@@ -82,8 +82,6 @@ from rr_actors.errors import (
 __all__ = ["ZenohMember"]
 
 logger = logging.getLogger("rr_actors")
-
-_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
 
 
 class ZenohPeer:
@@ -183,7 +181,7 @@ class ZenohMember:
         if not known and not isinstance(DIRECTORY.gone_error(name), UnknownRegistrarError):
             return None  # a registrar of this process that stopped or died
         known = known or self._presence.gone(name) is not None
-        if not known and _NAME.fullmatch(name):
+        if not known and NAME.fullmatch(name):
             self._presence.ask(name)
             known = self._presence.serves(name)
         if not known:

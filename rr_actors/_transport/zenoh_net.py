@@ -27,7 +27,6 @@ import dataclasses
 import logging
 import math
 import os
-import re
 import shutil
 import socket
 import tempfile
@@ -43,6 +42,7 @@ from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.zenoh_carrier import ZenohMember
 from rr_actors._transport.zenoh_config import endpoints, parse_endpoint, session_config
 from rr_actors._transport.zenoh_watch import LinkWatch
+from rr_actors.config import NAME
 from rr_actors.errors import ConfigError, RegistrarUnavailableError
 
 if TYPE_CHECKING:
@@ -52,7 +52,6 @@ __all__ = ["ZenohAddress", "ZenohNetwork"]
 
 logger = logging.getLogger("rr_actors")
 
-_SYSTEM = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
 _PROBE_TIMEOUT = 0.5  # seconds a `connect` endpoint gets to accept the probe at open
 
 
@@ -196,7 +195,7 @@ class ZenohNetwork:
         tls: ZenohTLS | None,
         lease: float = 1.0,
     ) -> None:
-        if not isinstance(system, str) or not _SYSTEM.fullmatch(system):
+        if not isinstance(system, str) or not NAME.fullmatch(system):
             raise ConfigError(
                 f"system must be a name of letters, digits, '_', '.' and '-' (not starting "
                 f"with '.' or '-'), not {system!r}"

@@ -21,7 +21,6 @@ from __future__ import annotations
 import datetime
 import logging
 import os
-import re
 import stat
 from collections.abc import Iterable
 from pathlib import Path
@@ -32,13 +31,14 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from rr_actors.config import NAME
 from rr_actors.errors import ConfigError
 
 __all__ = ["MEMBER_NAME", "ZenohTLS"]
 
 logger = logging.getLogger("rr_actors")
 
-MEMBER_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
+MEMBER_NAME = NAME
 """A member's name (a certificate's common name): as a system's or a registrar's name."""
 
 _CURVES = (ec.SECP256R1, ec.SECP384R1)  # the ECDSA curves rustls signs and verifies with

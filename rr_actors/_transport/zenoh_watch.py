@@ -62,11 +62,6 @@ def _remote(locator: str) -> tuple[str, int | None]:
     return host.strip("[]"), int(port) if port.isdigit() else None
 
 
-def _remote_host(locator: str) -> str:
-    """The host of a locator such as `tls/10.0.0.2:7447` or `tls/[::1]:7447`."""
-    return _remote(locator)[0]
-
-
 def _addresses(host: str) -> set[str]:
     """`host` and, for a name, the addresses it resolves to now (none if it does not)."""
     try:
@@ -171,7 +166,7 @@ class LinkWatch:
         link = event.link
         if not str(link.dst).startswith("tls/"):
             return  # this host's own processes (unixsock-stream)
-        name, where = link.auth_identifier, _remote_host(str(link.dst))
+        name, (where, _) = link.auth_identifier, _remote(str(link.dst))
         if event.kind != zenoh.SampleKind.PUT:
             logger.info("ZenohNetwork %r: link to %r at %s closed", self._system, name, where)
             return
