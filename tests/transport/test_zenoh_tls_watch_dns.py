@@ -4,53 +4,26 @@ block the watch for seconds when the name server cannot be reached (a robot offl
 
 from __future__ import annotations
 
-import contextlib
 import socket
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pki
 import pytest
-import zenoh
+from tls_lab import free_port, member_tls, router
 from waiting import wait_for
 
-import rr_actors as rr
-from rr_actors._transport.zenoh_config import session_config
 from rr_actors._transport.zenoh_watch import TICK, LinkWatch
-
-MEMBERS = ["robot", "operator"]
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
-
-
-def _tls(directory: Path, ca: tuple[Path, Path], name: str, addresses: tuple[str, ...]) -> Any:
-    cert, key = pki.issue(directory / name, name, addresses, ca=ca)
-    return rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=MEMBERS)
-
-
-@contextlib.contextmanager
-def _session(tls: Any, listen: list[str], connect: list[str]) -> Iterator[zenoh.Session]:
-    session = zenoh.open(session_config("router", listen, connect, 1.0, system="lab", tls=tls))
-    try:
-        yield session
-    finally:
-        session.close()  # type: ignore[no-untyped-call]
 
 
 def test_a_linked_endpoint_named_by_a_host_name_is_not_looked_up_at_every_tick(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     ca = pki.make_ca(tmp_path / "lab", "lab")
-    robot = _tls(tmp_path, ca, "robot", ("localhost", "127.0.0.1"))
-    operator = _tls(tmp_path, ca, "operator", ("127.0.0.1",))
-    port = _free_port()
+    robot = member_tls(tmp_path, ca, "robot", ("localhost", "127.0.0.1"))
+    operator = member_tls(tmp_path, ca, "operator", ("127.0.0.1",))
+    port = free_port()
     endpoint = f"tls/localhost:{port}"
     lookups: list[str] = []
     real = socket.getaddrinfo
@@ -62,8 +35,8 @@ def test_a_linked_endpoint_named_by_a_host_name_is_not_looked_up_at_every_tick(
 
     monkeypatch.setattr(socket, "getaddrinfo", counted)
     with (
-        _session(robot, [f"tls/127.0.0.1:{port}"], []),
-        _session(operator, [], [endpoint]) as session,
+        router(robot, [f"tls/127.0.0.1:{port}"], []),
+        router(operator, [], [endpoint]) as session,
     ):
         watch = LinkWatch("lab", session, operator, (endpoint,))
         try:

@@ -29,6 +29,7 @@ import pki
 import pytest
 import zenoh
 from supervising import process
+from tls_lab import free_port
 from waiting import wait_for
 
 import rr_actors as rr
@@ -39,13 +40,6 @@ from rr_actors.testing import start_forkserver
 
 MEMBERS = ["robot", "operator"]
 DAY = datetime.timedelta(days=1)
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
 
 
 class Lab:
@@ -142,7 +136,7 @@ def test_the_config_is_mutual_tls_on_tls_and_unix_links_with_default_deny(lab: L
 
 def test_a_plain_tcp_peer_cannot_even_open_a_link_to_a_tls_router(lab: Lab) -> None:
     """Protocols are limited to tls and unixsock-stream: a tcp/ connect gets nothing."""
-    port = _free_port()
+    port = free_port()
     with listener(lab.tls("robot"), port) as router:
         plain = zenoh.open(session_config("peer", [], [f"tcp/127.0.0.1:{port}"], 1.0))
         try:
@@ -155,7 +149,7 @@ def test_a_plain_tcp_peer_cannot_even_open_a_link_to_a_tls_router(lab: Lab) -> N
 
 
 def test_the_probe_passes_a_member_accepted_by_the_listener(lab: Lab) -> None:
-    port = _free_port()
+    port = free_port()
     with listener(lab.tls("robot"), port):
         assert handshake_trouble(lab.tls("operator"), "127.0.0.1", port) is None
 
@@ -180,7 +174,7 @@ def test_the_probe_names_the_listeners_alert_when_it_refuses_our_certificate(
         options.update(not_before=now - 2 * DAY, not_after=now - DAY)
     cert, key = pki.issue(tmp_path / "ours", "operator", ("127.0.0.1",), **options)
     files = types.SimpleNamespace(ca=str(lab.ca[0]), cert=str(cert), key=str(key))
-    port = _free_port()
+    port = free_port()
     with listener(lab.tls("robot"), port):
         reason = handshake_trouble(files, "127.0.0.1", port)  # type: ignore[arg-type]
     assert reason == f"the listener refused this host's certificate ({alert})"
@@ -188,7 +182,7 @@ def test_the_probe_names_the_listeners_alert_when_it_refuses_our_certificate(
 
 def test_the_probe_names_an_impostor_listener_of_another_ca(lab: Lab, tmp_path: Path) -> None:
     other = pki.make_ca(tmp_path / "other", "other")
-    port = _free_port()
+    port = free_port()
     with listener(lab.tls("robot", ca=other), port):
         reason = handshake_trouble(lab.tls("operator"), "127.0.0.1", port)
     assert reason is not None
@@ -198,7 +192,7 @@ def test_the_probe_names_an_impostor_listener_of_another_ca(lab: Lab, tmp_path: 
 def test_the_probe_names_a_listener_whose_certificate_does_not_name_the_address(
     lab: Lab,
 ) -> None:
-    port = _free_port()
+    port = free_port()
     with listener(lab.tls("robot", ("10.9.9.9",)), port):
         reason = handshake_trouble(lab.tls("operator"), "127.0.0.1", port)
     assert reason is not None
@@ -206,7 +200,7 @@ def test_the_probe_names_a_listener_whose_certificate_does_not_name_the_address(
 
 
 def test_the_probe_says_a_port_nobody_listens_on_cannot_be_reached(lab: Lab) -> None:
-    reason = handshake_trouble(lab.tls("operator"), "127.0.0.1", _free_port())
+    reason = handshake_trouble(lab.tls("operator"), "127.0.0.1", free_port())
     assert reason is not None
     assert reason.startswith("cannot reach it")
 
@@ -223,7 +217,7 @@ def test_the_probe_gives_up_on_a_listener_that_never_hands_shake(lab: Lab) -> No
 def test_the_probe_names_its_own_files_when_they_changed_since(lab: Lab) -> None:
     tls = lab.tls("operator")
     Path(tls.key).write_text("not a key any more")
-    reason = handshake_trouble(tls, "127.0.0.1", _free_port())
+    reason = handshake_trouble(tls, "127.0.0.1", free_port())
     assert reason is not None
     assert reason.startswith("this host's own TLS files cannot be loaded")
 
@@ -272,7 +266,7 @@ def _router(tls: Any, connect: list[str], system: str = "lab") -> zenoh.Session:
 
 
 def test_the_watch_names_a_member_that_links_on_both_sides(lab: Lab, logged: Logged) -> None:
-    port = _free_port()
+    port = free_port()
     robot, operator = lab.tls("robot"), lab.tls("operator")
     with listener(robot, port) as session:
         listening = LinkWatch("lab", session, robot, ())
@@ -291,7 +285,7 @@ def test_the_watch_names_a_member_that_links_on_both_sides(lab: Lab, logged: Log
 def test_the_watch_warns_once_of_a_ca_signed_non_member_whose_messages_are_dropped(
     lab: Lab, logged: Logged
 ) -> None:
-    port = _free_port()
+    port = free_port()
     robot = lab.tls("robot")
     with listener(robot, port) as session:
         watch = LinkWatch("lab", session, robot, ())
@@ -329,7 +323,7 @@ def test_the_watch_warns_with_the_reason_when_a_connect_endpoint_stays_unlinked(
     lab: Lab, logged: Logged, tmp_path: Path
 ) -> None:
     other = pki.make_ca(tmp_path / "other", "other")
-    port = _free_port()
+    port = free_port()
     endpoint = f"tls/127.0.0.1:{port}"
     refused = lab.tls("operator", ca=other)
     with listener(lab.tls("robot"), port):
@@ -349,7 +343,7 @@ def test_the_watch_warns_with_the_reason_when_a_connect_endpoint_stays_unlinked(
 def test_a_tls_network_that_closes_stops_its_watch(lab: Lab) -> None:
     net = rr.ZenohNetwork(
         system=f"t-{uuid.uuid4().hex[:8]}",
-        listen=[f"tls/127.0.0.1:{_free_port()}"],
+        listen=[f"tls/127.0.0.1:{free_port()}"],
         tls=lab.tls("robot"),
     )
     net.names()  # opens
@@ -368,7 +362,7 @@ def test_a_tls_routers_manager_processes_join_over_its_unix_socket_and_are_admit
     network and a registrar of the router's process calls it (no TCP on loopback at all)."""
     net = rr.ZenohNetwork(
         system=f"t-{uuid.uuid4().hex[:8]}",
-        listen=[f"tls/127.0.0.1:{_free_port()}"],
+        listen=[f"tls/127.0.0.1:{free_port()}"],
         tls=lab.tls("robot"),
     )
     try:
@@ -407,7 +401,7 @@ def test_rust_log_shows_the_listeners_own_line_for_a_refused_handshake(
 ) -> None:
     """The how-to's `RUST_LOG=zenoh_link_tls=warn`: the router's `ZenohNetwork` starts
     Zenoh's log, which names the reason of each handshake it refused."""
-    robot, port = lab.tls("robot"), _free_port()
+    robot, port = lab.tls("robot"), free_port()
     other = pki.make_ca(tmp_path / "other", "other")
     cert, key = pki.issue(tmp_path / "refused", "operator", ("127.0.0.1",), ca=other)
     refused = types.SimpleNamespace(ca=robot.ca, cert=str(cert), key=str(key))
@@ -456,7 +450,7 @@ def test_a_member_restarted_with_a_new_certificate_of_the_same_ca_rejoins(
 ) -> None:
     """The how-to's rotation: re-issue (a new key, the same name and CA), restart, rejoin;
     the listener changes nothing."""
-    port = _free_port()
+    port = free_port()
     robot = lab.tls("robot")
     with listener(robot, port) as session:
         watch = LinkWatch("lab", session, robot, ())
