@@ -212,10 +212,9 @@ class ZenohNetwork:
     opens its Zenoh session at first use. All arguments are keyword-only.
 
     Args:
-        system: the system's name, as a registrar name (`[A-Za-z0-9_.-]`, at most 64
-            characters: `rr_actors.config.NAME`); every key
-            expression starts with `rr/<system>/`, so systems sharing a network never
-            see each other.
+        system: the system's name, as a registrar name (`rr_actors.config.NAME`:
+            `[A-Za-z0-9_.-]`, at most 64 characters); every key expression starts with
+            `rr/<system>/`, so systems sharing a network never see each other.
         listen: Zenoh endpoints to listen on, `tls/<address>:<port>` with `tls`,
             `tcp/<address>:<port>` without (the firewall must let that port in). With
             `tls=None` every endpoint gets a WARNING saying who can reach it: on
@@ -235,9 +234,10 @@ class ZenohNetwork:
             process) counts as gone. Zenoh's own default is 10 s.
 
     Raises:
-        ConfigError: a bad `system`, a malformed endpoint, a `tcp/` endpoint with `tls`
-            or a `tls/` one without, a `tls` that is neither `None` nor a `ZenohTLS`, a
-            `lease` that is not a positive number of seconds.
+        ConfigError: a bad `system` (or one longer than 64 characters), a malformed
+            endpoint, a `tcp/` endpoint with `tls` or a `tls/` one without, a `tls` that
+            is neither `None` nor a `ZenohTLS`, a `lease` that is not a positive number
+            of seconds.
     """
 
     def __init__(
