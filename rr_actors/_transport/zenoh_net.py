@@ -14,7 +14,8 @@ never over TCP on loopback, which any local user could reach and send pickles to
 ```
 
 Between hosts, `tls/` (mutual TLS, only members admitted: `zenoh_config`, `zenoh_tls`,
-`zenoh_watch`) or, on one trusted network, `tcp/` (`tls=None`). What crosses:
+`zenoh_watch`) or, on one trusted network, `tcp/` (`tls=None`: a WARNING per endpoint
+naming who can reach it, on loopback every local user). What crosses:
 `zenoh_carrier` (and its collaborators); how presence works: `zenoh_presence`. A process
 belongs to one system (the registrar directory is per process): joining a second one is
 a `ConfigError`. A process that opened a Zenoh session must not fork (the child hangs):
@@ -38,11 +39,12 @@ import zenoh
 
 from rr_actors._core.addresses import is_loopback
 from rr_actors._core.directory import Peer
+from rr_actors._transport.access import user
 from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.zenoh_carrier import ZenohMember
 from rr_actors._transport.zenoh_config import endpoints, parse_endpoint, session_config
 from rr_actors._transport.zenoh_watch import LinkWatch
-from rr_actors.config import NAME
+from rr_actors.config import check_name
 from rr_actors.errors import ConfigError, RegistrarUnavailableError
 
 if TYPE_CHECKING:
@@ -69,6 +71,53 @@ def _is_tls(tls: object) -> bool:
     except ImportError:  # without cryptography nobody could have made a ZenohTLS
         return False
     return isinstance(tls, ZenohTLS)
+
+
+# -- plain TCP ------------------------------------------------------------------------------
+
+
+def _who_reaches(host: str) -> str:
+    if is_loopback(host):
+        return "every user and process on this machine"
+    if host in ("0.0.0.0", "::"):  # noqa: S104 - naming the wildcard, not binding it
+        return "anyone who can reach this machine (at any of its addresses)"
+    return f"anyone who can reach {host}"
+
+
+def _who_answers(host: str, port: int) -> str:
+    if is_loopback(host):
+        return f"every user and process on this machine (whoever listens on port {port} first)"
+    return f"whoever answers at {host} port {port} (anyone who can listen there or sits between)"
+
+
+def _warn_plain_tcp(system: str, listen: Iterable[str], connect: Iterable[str]) -> None:
+    """A WARNING per plain-TCP endpoint, naming who can send this process pickles through it.
+
+    Unpickling runs code, and plain TCP asks nobody who they are: loopback is no
+    exception (every local user can connect to it, where the Unix carrier's 0700 runtime
+    directory lets in only this user), and a `connect` endpoint trusts whoever answers.
+    """
+    me = user()
+    for endpoint in listen:
+        _, host, _ = parse_endpoint("listen", endpoint)
+        logger.warning(
+            "ZenohNetwork %r listens on %s in plain TCP (tls=None): %s can connect and run "
+            "code as this user, %s (what crosses is pickles); use tls= and tls/ endpoints",
+            system,
+            endpoint,
+            _who_reaches(host),
+            me,
+        )
+    for endpoint in connect:
+        _, host, port = parse_endpoint("connect", endpoint)
+        logger.warning(
+            "ZenohNetwork %r connects to %s in plain TCP (tls=None): %s can run code as "
+            "this user, %s (what crosses is pickles); use tls= and tls/ endpoints",
+            system,
+            endpoint,
+            _who_answers(host, port),
+            me,
+        )
 
 
 # -- one system per process ----------------------------------------------------------------------
@@ -163,27 +212,32 @@ class ZenohNetwork:
     opens its Zenoh session at first use. All arguments are keyword-only.
 
     Args:
-        system: the system's name, as a registrar name (`[A-Za-z0-9_.-]+`); every key
-            expression starts with `rr/<system>/`, so systems sharing a network never
-            see each other.
+        system: the system's name, as a registrar name (`rr_actors.config.NAME`:
+            `[A-Za-z0-9_.-]`, at most 64 characters); every key expression starts with
+            `rr/<system>/`, so systems sharing a network never see each other.
         listen: Zenoh endpoints to listen on, `tls/<address>:<port>` with `tls`,
-            `tcp/<address>:<port>` without (the firewall must let that port in). A
-            listen endpoint that is not loopback gets a WARNING while `tls=None`.
-        connect: endpoints of other hosts' routers, in the same form. One that cannot be
+            `tcp/<address>:<port>` without (the firewall must let that port in). With
+            `tls=None` every endpoint gets a WARNING saying who can reach it: on
+            loopback every user and process on this machine, elsewhere anyone who
+            reaches the address; each can run code as this process's user.
+        connect: endpoints of other hosts' routers, in the same form (with `tls=None` a
+            WARNING each: whoever answers there can run code here). One that cannot be
             reached yet is no error (the other host may start later; Zenoh keeps
             trying): a WARNING names it, with TLS the reason from a handshake of our own
             (`zenoh_watch`), at most once a minute while it lasts.
         tls: required. A `ZenohTLS`: mutual TLS on every link and Zenoh's access control
             (only `members` and this host's manager processes reach `rr/<system>/`; see
             `zenoh_config`). `None`: plain TCP, for one trusted network only: anyone who
-            reaches a port can send pickles, which run as code.
+            reaches a port (on loopback: every local user) can send pickles, which run
+            as code.
         lease: seconds (default 1.0) after which a silent peer (a cut link, a frozen
             process) counts as gone. Zenoh's own default is 10 s.
 
     Raises:
-        ConfigError: a bad `system`, a malformed endpoint, a `tcp/` endpoint with `tls`
-            or a `tls/` one without, a `tls` that is neither `None` nor a `ZenohTLS`, a
-            `lease` that is not a positive number of seconds.
+        ConfigError: a bad `system` (or one longer than 64 characters), a malformed
+            endpoint, a `tcp/` endpoint with `tls` or a `tls/` one without, a `tls` that
+            is neither `None` nor a `ZenohTLS`, a `lease` that is not a positive number
+            of seconds.
     """
 
     def __init__(
@@ -195,12 +249,7 @@ class ZenohNetwork:
         tls: ZenohTLS | None,
         lease: float = 1.0,
     ) -> None:
-        if not isinstance(system, str) or not NAME.fullmatch(system):
-            raise ConfigError(
-                f"system must be a name of letters, digits, '_', '.' and '-' (not starting "
-                f"with '.' or '-'), not {system!r}"
-            )
-        self.system = system
+        self.system = check_name("system", system, "a system name")
         if tls is not None and not _is_tls(tls):
             raise ConfigError(
                 f"tls must be rr.ZenohTLS(ca=..., cert=..., key=..., members=[...]) or None "
@@ -217,15 +266,8 @@ class ZenohNetwork:
         ):
             raise ConfigError(f"lease must be seconds from 0.01 to 3600, not {lease!r}")
         self.lease = float(lease)
-        for endpoint in self.listen:
-            _, host, _ = parse_endpoint("listen", endpoint)
-            if tls is None and not is_loopback(host):
-                logger.warning(
-                    "ZenohNetwork %r listens on %s in plain TCP (tls=None): anyone who "
-                    "reaches it can send pickles to this system's registrars",
-                    system,
-                    endpoint,
-                )
+        if tls is None:
+            _warn_plain_tcp(system, self.listen, self.connect)
         self._lock = threading.Lock()
         self._member: ZenohMember | None = None
         self._runtime_dir: str | None = None
