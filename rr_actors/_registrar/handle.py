@@ -357,8 +357,14 @@ class ResourceRegistrar:
         Raises:
             UnknownQueryError: the id is unknown here or already released (nothing changes).
             CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarUnavailableError: the provider died; the id is kept, retry later.
-            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: the provider died (or could not be reached) before
+                it answered: it may or may not have released the id. The release is
+                done all the same: this registrar no longer holds the id (a second
+                `unload` raises `UnknownQueryError`), the provider releases it when it
+                reconciles with this registrar after its restart (its `unload` callback
+                runs once in all), and nobody gets `FATAL` for it (rule 20).
+            RegistrarStoppedError: this registrar was stopped; or the provider was (the
+                id is released as for `RegistrarUnavailableError`, at its next start).
         """
         self._ask(Release(query_id, FutureReply()), timeout, f"unload({query_id!r})")
 

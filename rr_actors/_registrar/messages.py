@@ -207,9 +207,9 @@ class Reconcile(WireMessage):
     Sent after a restart of either side (a consumer's start, or a provider's
     `ReconcileAsk`). `held` lists the consumer's client records at this provider, its
     calls whose answer is due, and its calls that failed as this provider died (they may
-    be retried with the same id). The provider releases every consumer id of
-    `origin_rr` it holds that is not in `held`; it answers with the ids of `held` it
-    neither holds nor has a load under way for.
+    be retried with the same id); not the ids whose `Unload` failed so (released). The
+    provider releases every consumer id of `origin_rr` it holds that is not in `held`;
+    it answers with the ids of `held` it neither holds nor has a load under way for.
     """
 
     origin_rr: str
