@@ -23,12 +23,11 @@ from __future__ import annotations
 
 import itertools
 import logging
-import os
 import threading
 import time
 from collections.abc import Callable
 
-from rr_actors._platform import PLATFORM
+from rr_actors._platform import PLATFORM, fork
 
 __all__ = [
     "EXIT_TIMEOUT",
@@ -121,4 +120,4 @@ def _forget_all() -> None:
     _entries.clear()
 
 
-os.register_at_fork(after_in_child=_forget_all)
+fork.after_fork_in_child("the exit hook's list", _forget_all)

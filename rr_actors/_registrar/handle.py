@@ -170,8 +170,20 @@ class ResourceRegistrar:
                 stopped again.
             CatalogCorruptError: the backup exists but cannot be read (it is left as is).
             ConfigError: the configuration, or its backup path, is invalid; `network` is
-                not a carrier, or cannot serve it.
+                not a carrier, or cannot serve it; or this process was forked from one
+                whose state a forked child cannot use (it had opened a Zenoh session): the
+                message says to start the process with the `spawn` or `forkserver` method.
             RegistrarStoppedError: this process left `network`'s system (it was closed).
+
+        Fork: a process forked (`os.fork`, `multiprocessing`'s "fork" method) from one
+        that runs rr_actors may start registrars of its own and call, on the AF_UNIX
+        systems its parent joined (the same `System` object, or its address's
+        `attach()`): at the fork the child lets go of its parent's listeners,
+        connections and threads. Its parent's registrars are not the child's: a handle
+        of one used in the child raises `RegistrarUnavailableError` at once (reach that
+        registrar by name from a registrar of the child's instead). A child of a process
+        that had opened a Zenoh session is refused (`ConfigError`, above): use `spawn`
+        or `forkserver` there.
         """
         check_network(network)
         registrar = start_registrar(config, setup=setup)

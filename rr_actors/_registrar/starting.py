@@ -23,6 +23,7 @@ from rr_actors._catalog import ResourceState
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer
 from rr_actors._core.replies import FutureReply
+from rr_actors._platform import fork
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.endpoints import Clients
@@ -79,12 +80,14 @@ def launch(
     Raises:
         DuplicateNameError: a registrar with this name is already running here.
         CatalogCorruptError: the backup exists but cannot be read (it is left as is).
-        ConfigError: the configuration, or its backup path, is invalid.
+        ConfigError: the configuration, or its backup path, is invalid; or this process
+            was forked from one whose state a child cannot use (`rr_actors._platform.fork`).
     """
     if isinstance(config, str):
         config = RegistrarConfig(name=config)
     elif not isinstance(config, RegistrarConfig):
         raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
+    fork.check_usable(f"registrar {config.name!r}")
     peer = LocalPeer(config.name, None)
     DIRECTORY.register(peer)
     saver: Saver | None = None

@@ -18,8 +18,11 @@ Between hosts, `tls/` (mutual TLS, only members admitted: `zenoh_config`, `zenoh
 naming who can reach it, on loopback every local user). What crosses:
 `zenoh_carrier` (and its collaborators); how presence works: `zenoh_presence`. A process
 belongs to one system (the registrar directory is per process): joining a second one is
-a `ConfigError`. A process that opened a Zenoh session must not fork (the child hangs):
-rr_actors starts manager processes with forkserver or spawn.
+a `ConfigError`. A process that opened a Zenoh session must not fork: Zenoh's runtime
+threads are not in the child, whose session (and any new one) would hang. rr_actors
+starts manager processes with forkserver or spawn, and refuses such a child
+(`rr_actors._platform.fork`): its `ResourceRegistrar.start`, `Supervisor.start` and
+joining a system raise a `ConfigError` that names those start methods.
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ import zenoh
 
 from rr_actors._core.addresses import is_loopback
 from rr_actors._core.directory import Peer
+from rr_actors._platform import fork
 from rr_actors._transport.access import user
 from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.zenoh_carrier import ZenohMember
@@ -125,6 +129,19 @@ def _warn_plain_tcp(system: str, listen: Iterable[str], connect: Iterable[str]) 
 _MEMBER: ZenohMember | None = None
 _MEMBER_OWNER: object = None
 _MEMBER_LOCK = threading.Lock()
+_OPENED: list[str] = []  # the systems this process opened a Zenoh session for
+
+
+def _refuse_in_child() -> None:
+    """In a forked child: a process that opened a Zenoh session cannot be forked."""
+    if _OPENED:
+        fork.refuse(
+            f"had opened a Zenoh session (system {_OPENED[0]!r}), whose runtime threads "
+            f"do not exist in a forked child"
+        )
+
+
+fork.after_fork_in_child("the Zenoh carrier", _refuse_in_child)
 
 
 def _join(system: str, owner: object, open_member: Callable[[], ZenohMember]) -> ZenohMember:
@@ -132,9 +149,11 @@ def _join(system: str, owner: object, open_member: Callable[[], ZenohMember]) ->
 
     Raises:
         ConfigError: this process is a member of another system, or (for a second
-            `ZenohNetwork` of the same system) a router of it already.
+            `ZenohNetwork` of the same system) a router of it already; or it was forked
+            from a process that had opened a Zenoh session (`rr_actors._platform.fork`).
     """
     global _MEMBER, _MEMBER_OWNER
+    fork.check_usable(f"a member of system {system!r}")
     with _MEMBER_LOCK:
         member = _MEMBER
         if member is not None and not member.closed:
@@ -152,6 +171,7 @@ def _join(system: str, owner: object, open_member: Callable[[], ZenohMember]) ->
             )
         member = open_member()
         _MEMBER, _MEMBER_OWNER = member, owner
+        _OPENED.append(system)
         return member
 
 

@@ -12,6 +12,7 @@ import os
 import time
 from typing import Any, TypeAlias
 
+from rr_actors._platform import fork
 from rr_actors._types import Status
 
 __all__ = [
@@ -53,7 +54,7 @@ def _forked() -> None:
     _pid = os.getpid()
 
 
-os.register_at_fork(after_in_child=_forked)
+fork.after_fork_in_child("the events' pid", _forked)
 
 
 # -- supervision ----------------------------------------------------------------------------
