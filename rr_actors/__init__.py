@@ -100,4 +100,3 @@ def __getattr__(name: str) -> object:
             ) from exc
         return ZenohTLS
     raise AttributeError(f"module 'rr_actors' has no attribute {name!r}")
-

@@ -96,8 +96,7 @@ class _Endpoint:
         (`dialled`: the other host dialled us)."""
         addresses = self.addresses if addresses is None else addresses
         return any(
-            host in addresses and (port == self.port or port not in dialled)
-            for host, port in links
+            host in addresses and (port == self.port or port not in dialled) for host, port in links
         )
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import select
+import shutil
 import signal
 import subprocess
 import sys
@@ -63,6 +64,8 @@ STATION = textwrap.dedent(
     print("done", flush=True)  # neither app.stop() nor net.close()
     """
 )
+
+SETSID = shutil.which("setsid") or "/usr/bin/setsid"  # util-linux
 
 BOUND = 30.0
 """Seconds such a program may take to end (it takes well under one)."""
@@ -118,7 +121,7 @@ def test_the_first_ctrl_c_in_a_terminal_ends_a_supervisor_with_a_network_in_one_
     # ^C there sends SIGINT to its foreground group (the program and its manager), as a
     # terminal does.
     program = subprocess.Popen(
-        ["setsid", "-c", sys.executable, str(script), str(free_port())],
+        [SETSID, "-c", sys.executable, str(script), str(free_port())],
         stdin=slave,
         stdout=slave,
         stderr=slave,

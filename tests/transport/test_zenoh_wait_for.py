@@ -53,7 +53,7 @@ def test_wait_for_returns_once_a_provider_that_starts_later_serves_and_the_call_
     def wait() -> None:
         try:
             net.wait_for(name, timeout=60)
-        except BaseException as exc:  # noqa: BLE001 - the test reports it
+        except BaseException as exc:
             failed.append(exc)
         returned.set()
 
@@ -65,7 +65,8 @@ def test_wait_for_returns_once_a_provider_that_starts_later_serves_and_the_call_
         stdout=subprocess.PIPE,
         text=True,
     ) as provider:
-        assert provider.stdout is not None and provider.stdin is not None
+        assert provider.stdout is not None
+        assert provider.stdin is not None
         try:
             assert not returned.is_set()  # (the provider's interpreter is not even up yet)
             assert "serving\n" == provider.stdout.readline()
