@@ -45,6 +45,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
 import socket
 import struct
 import sys
@@ -198,8 +199,25 @@ def main(
         forward: forward the registrar's events from the start (until told otherwise).
     """
     PLATFORM.die_with_parent(parent)
+    _let_ctrl_c_pass()
     set_title(config.name)
     _run_manager(setup, config, address, conn, forward)
+
+
+def _let_ctrl_c_pass() -> None:
+    """Let a Ctrl-C in the terminal pass: its supervisor stops this manager, in order.
+
+    The terminal sends SIGINT to every process of its foreground group, manager processes
+    included; each would print a `KeyboardInterrupt` traceback and die before its
+    supervisor could stop it cleanly. A handler that does nothing, not `SIG_IGN`: the
+    processes a manager starts (`exec`) get the default back, so a Ctrl-C still reaches
+    them (`SIG_IGN` would be inherited).
+    """
+    signal.signal(signal.SIGINT, _ctrl_c_passes)
+
+
+def _ctrl_c_passes(signum: int, frame: object) -> None:
+    del signum, frame
 
 
 def _warm_up() -> None:
@@ -233,6 +251,7 @@ def standby(conn: Connection, parent: int | None = None) -> None:
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
     """
     PLATFORM.die_with_parent(parent)
+    _let_ctrl_c_pass()
     set_title("spare")
     try:
         if not conn.poll(0):  # taken already: the warm-up would only delay the manager

@@ -139,6 +139,7 @@ class ZenohMember:
         self._supervisor: str | None = None  # set by `supervised_by`: nobody until then
         self._on_close = on_close
         self._address: Address | None = None
+        self._link_trouble: Callable[[], str] | None = None  # ZenohNetwork's: no link, why
         self._prefix = f"rr/{system}"
         self._lock = threading.Lock()
         self._locals: dict[str, Local] = {}
@@ -188,9 +189,17 @@ class ZenohMember:
             raise UnknownRegistrarError(  # the known: this process's registrars too
                 f"no registrar named {name!r} on system {self.system!r}"
                 + _known_names(name, DIRECTORY.names() - {name})
+                + (self._link_trouble() if self._link_trouble is not None else "")
             )
         with self._lock:
             return self._peers.setdefault(name, ZenohPeer(self, name))
+
+    def wait_served(self, name: str, *, timeout: float) -> bool:
+        """Whether registrar `name` is served (here or by another process) within `timeout`
+        seconds: returns as soon as its token is seen (`Presence.wait_serving`)."""
+        if name in self._locals:
+            return True
+        return self._presence.wait_serving(name, timeout=timeout)
 
     def names(self) -> list[str]:
         """The registrars of other processes of the system that serve now."""

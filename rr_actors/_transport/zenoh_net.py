@@ -42,6 +42,7 @@ import zenoh
 
 from rr_actors._core.addresses import is_loopback
 from rr_actors._core.directory import Peer
+from rr_actors._core.exit import NETWORKS, stop_at_exit
 from rr_actors._platform import fork
 from rr_actors._transport.access import user
 from rr_actors._transport.base import Address, Endpoint, Transport
@@ -49,7 +50,7 @@ from rr_actors._transport.zenoh_carrier import ZenohMember
 from rr_actors._transport.zenoh_config import endpoints, parse_endpoint, session_config
 from rr_actors._transport.zenoh_watch import LinkWatch
 from rr_actors.config import check_name
-from rr_actors.errors import ConfigError, RegistrarUnavailableError
+from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavailableError
 
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh_tls import ZenohTLS
@@ -182,6 +183,25 @@ def _left(member: ZenohMember) -> None:
             _MEMBER, _MEMBER_OWNER = None, None
 
 
+def _close_at_exit(what: str, member: ZenohMember, close: Callable[[], None]) -> None:
+    """Close `member`'s session when the main thread ends, if the program did not: Zenoh's
+    callback threads are not daemons, so an open session keeps the interpreter waiting
+    for them forever (after an error, or a Ctrl-C, as much as after a forgotten
+    `close()`). `_core.exit` runs it after the supervisors and registrars stopped."""
+    stop_at_exit(NETWORKS, what, lambda: not member.closed, lambda _timeout: close())
+
+
+def _no_link(unlinked: list[tuple[str, str]]) -> str:
+    """What to add to an error about a name not seen: the connect endpoints with no link."""
+    if not unlinked:
+        return ""
+    links = "; ".join(f"{endpoint} ({reason})" for endpoint, reason in unlinked)
+    return (
+        f"; this process has no link to connect endpoint {links}, so a registrar served "
+        f"there is not seen"
+    )
+
+
 @dataclasses.dataclass(frozen=True)
 class ZenohAddress:
     """How a process of this host joins the system: through its router's Unix socket.
@@ -221,6 +241,7 @@ class ZenohAddress:
         member = ZenohMember(self.system, session, speakers={self.router_pid: self.router})
         member._on_close = lambda: _left(member)
         member._address = self
+        _close_at_exit(f"the membership of system {self.system!r}", member, member.close)
         return member
 
 
@@ -346,6 +367,9 @@ class ZenohNetwork:
             shutil.rmtree(runtime_dir, ignore_errors=True)
 
         member._on_close = closed
+        if watch is not None:
+            member._link_trouble = lambda: _no_link(watch.unlinked())
+        _close_at_exit(f"ZenohNetwork {self.system!r}", member, self.close)
         return member
 
     def _warn_unreachable(self) -> None:
@@ -405,6 +429,47 @@ class ZenohNetwork:
     def supervised_by(self, pid: int | None) -> None:
         """See `Transport.supervised_by` (`ZenohMember.supervised_by`)."""
         self._open().supervised_by(pid)
+
+    def wait_for(self, name: str, *, timeout: float) -> None:
+        """Wait until registrar `name` is served on this system (by any host); then return.
+
+        For a program whose other machine may start after it: its first call would
+        otherwise fail at once with `UnknownRegistrarError`. Returns as soon as the
+        registrar's presence (its Zenoh liveliness token) reaches this process, which
+        needs a link to its host; at once if it is served already (this process's own
+        registrars included). Opens the session if it is not open yet. Runs on the
+        caller's thread; nothing is polled (it waits on the presence thread's news).
+
+        Args:
+            name: the registrar's name.
+            timeout: seconds to wait at most.
+
+        Raises:
+            RegistrarUnavailableError: `name` is not served within `timeout`; the message
+                names each `connect` endpoint this process has no link to, with the
+                reason the link watch found (with `tls`: the TLS handshake's verdict).
+            RegistrarStoppedError: this process left the system (`close()`).
+            ConfigError: `timeout` is not a number of seconds >= 0.
+        """
+        if (
+            isinstance(timeout, bool)
+            or not isinstance(timeout, int | float)
+            or not math.isfinite(timeout)
+            or timeout < 0
+        ):
+            raise ConfigError(f"timeout must be seconds >= 0, not {timeout!r}")
+        member = self._open()
+        if member.closed:
+            raise RegistrarStoppedError(f"this process left system {self.system!r}")
+        if member.wait_served(name, timeout=timeout):
+            return
+        if member.closed:
+            raise RegistrarStoppedError(f"this process left system {self.system!r}")
+        watch = self._watch
+        raise RegistrarUnavailableError(
+            f"no registrar named {name!r} was served on system {self.system!r} within "
+            f"{timeout:g} s" + (_no_link(watch.unlinked()) if watch is not None else "")
+        )
 
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits, close the session (idempotent)."""

@@ -155,6 +155,18 @@ class Presence:
         yet is not: its message may overtake its token here.)"""
         return zid in self._vanished and zid not in self._procs
 
+    def wait_serving(self, name: str, *, timeout: float) -> bool:
+        """Whether another process serves `name` now or starts to within `timeout` seconds
+        (woken by each applied event; False at the timeout or once closed)."""
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            while not self._servers.get(name):
+                left = deadline - time.monotonic()
+                if left <= 0 or self._queue.closed:
+                    return False
+                self._changed.wait(left)
+            return True
+
     def wait_turn(self, name: str) -> None:
         """With this process's claim on `name` declared: return once it may serve it.
 
@@ -223,8 +235,10 @@ class Presence:
                     del self._asking[asked_at]
 
     def close(self) -> None:
-        """Stop applying events."""
+        """Stop applying events (and waking `wait_serving`)."""
         self._queue.close()
+        with self._changed:
+            self._changed.notify_all()
 
     # -- the presence thread -------------------------------------------------------------
 
