@@ -98,13 +98,14 @@ class LogThrottle:
 
 _SHORT = reprlib.Repr()  # (Python 3.11 takes no keyword arguments here)
 _SHORT.maxlevel = 2
-_SHORT.maxstring = _SHORT.maxother = 80
+_SHORT.maxstring = 240  # (a well-formed key expression of rr_actors' fits whole)
+_SHORT.maxother = 80
 _SHORT.maxdict = _SHORT.maxlist = _SHORT.maxtuple = _SHORT.maxset = 4
-_SHORT_WIDTH = 120
+_SHORT_WIDTH = 256
 
 
 def short(value: Any) -> str:
-    """A bounded `repr` of `value` (at most 120 characters) for a log line; never raises.
+    """A bounded `repr` of `value` (at most 256 characters) for a log line; never raises.
 
     Use it only for values whose `repr` runs no user code (builtin data, strings a peer
     sent): `reprlib` calls the `__repr__` of anything else.
