@@ -146,7 +146,9 @@ class ZenohMember:
         self._peers: dict[str, ZenohPeer] = {}
         self._outboxes = Outboxes(session, self._prefix)
         self._inbox = Inbox(self)
-        self._presence = Presence(system, session, self.zid, self, on_joined=self._inbox.joined)
+        self._presence = Presence(
+            system, session, self.zid, self, on_token=self._inbox.process_token
+        )
         self._answers = session.declare_subscriber(
             f"{self._prefix}/ans/{self.zid}", self._inbox.on_answer
         )

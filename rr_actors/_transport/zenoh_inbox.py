@@ -18,8 +18,8 @@ held answer never holds up a notice), and only for processes whose liveliness to
 here (`Presence.member`): the sender id in a header is whatever the sender wrote, so a
 thread per claimed id would let one buggy member start threads without bound. The frames
 of any other sender wait on one thread for strangers, for its token (`STRANGER_GRACE`:
-Zenoh may hand over a frame before the token declared before it), and are dropped if it
-does not come. Nothing is
+Zenoh sends declarations ahead of data, so a frame may come before its sender's token,
+or after the token's end), and are dropped if it does not come. Nothing is
 unpickled on Zenoh's thread: unpickling may run code of the sender's choosing (a frame's
 flags say nothing a buggy sender cannot get wrong), and a blocked Zenoh thread stalls
 every message of its link.
@@ -67,7 +67,8 @@ logger = logging.getLogger("rr_actors")
 STRANGER_GRACE = 2.0
 """Seconds a frame of a process whose liveliness token is not here waits for the token
 (Zenoh may hand this process a frame before the token its sender declared first); then
-it is dropped."""
+it is dropped. A frame of a process whose token went less than this long ago is
+delivered (Zenoh may hand it over after the token's end, sent later)."""
 
 STRANGERS_HELD = (10_000, 64 * 1024 * 1024)
 """Frames and bytes of such processes held at most; beyond, new ones are dropped."""
@@ -145,6 +146,8 @@ class Inbox:
         self._strangers = Queue("rr-zread-strangers", self._stranger)
         self._pending: dict[tuple[str, int], int] = {}  # frames on `_strangers`, by stream
         self._held = (0, 0)  # frames and bytes on `_strangers`
+        self._arrived: set[str] = set()  # tokens that came while `_strangers` held frames
+        self._left: dict[str, float] = {}  # tokens that went in the last STRANGER_GRACE s
         self._joined = threading.Condition(threading.Lock())
         self._dropped = LogThrottle(logger)
 
@@ -179,8 +182,17 @@ class Inbox:
             if inbox is not None:
                 inbox.finish()
 
-    def joined(self, zid: str) -> None:
-        """Process `zid`'s token came (Zenoh's thread): what of it waits may go on."""
+    def process_token(self, zid: str, present: bool) -> None:
+        """Process `zid`'s token came (`present`) or went (Zenoh's thread): what of it
+        waits on the strangers' thread may go on. (A frame may still come after its token
+        went: Zenoh sends a declaration before data sent earlier.)"""
+        now = time.monotonic()
+        with self._lock:
+            if not present:
+                self._left = {z: t for z, t in self._left.items() if now - t < STRANGER_GRACE}
+                self._left[zid] = now
+            elif self._held[0]:
+                self._arrived.add(zid)
         with self._joined:
             self._joined.notify_all()
 
@@ -220,6 +232,14 @@ class Inbox:
             if inbox.put(item):
                 return
 
+    def _heard(self, sender: str) -> bool:
+        """Whether process `sender`'s token is here, came since a frame of it waits, or
+        went less than `STRANGER_GRACE` seconds ago."""
+        if self._owner.member(sender) or sender in self._arrived:
+            return True
+        left = self._left.get(sender)
+        return left is not None and time.monotonic() - left < STRANGER_GRACE
+
     def _wait_for_token(self, key: tuple[str, int], item: Any, size: int) -> None:
         """Queue `item` of a sender whose token is not here on the strangers' thread (hold
         `_lock`); over `STRANGERS_HELD`, drop it."""
@@ -244,12 +264,12 @@ class Inbox:
         deadline, (sender, kind), item, size = entry
         try:
             with self._joined:
-                while not self._owner.member(sender) and not self._closed:
+                while not self._heard(sender) and not self._closed:
                     left = deadline - time.monotonic()
                     if left <= 0:
                         break
                     self._joined.wait(left)
-            if self._owner.member(sender):
+            if self._heard(sender):
                 (self._deliver if kind == MESSAGE else self._answered)(item)
             elif not self._closed:
                 self._dropped.warning(
@@ -263,6 +283,8 @@ class Inbox:
             with self._lock:
                 count, held = self._held
                 self._held = (count - 1, held - size)
+                if count == 1:
+                    self._arrived.clear()
                 left_of_it = self._pending.pop((sender, kind)) - 1
                 if left_of_it:
                     self._pending[(sender, kind)] = left_of_it

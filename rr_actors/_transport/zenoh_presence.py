@@ -108,8 +108,8 @@ class Presence:
         session: the open session.
         zid: this process's Zenoh id (its own tokens are left out).
         events: told what follows from a change (see `PresenceEvents`).
-        on_joined: called with a process's Zenoh id when its token comes, once `member`
-            says so (on Zenoh's thread: it must not block).
+        on_token: called with a process's Zenoh id and whether its token came (`True`)
+            or went, once `member` says so (on Zenoh's thread: it must not block).
     """
 
     def __init__(
@@ -119,7 +119,7 @@ class Presence:
         zid: str,
         events: PresenceEvents,
         *,
-        on_joined: Callable[[str], None] | None = None,
+        on_token: Callable[[str, bool], None] | None = None,
     ) -> None:
         self._system = system
         self._session = session
@@ -139,7 +139,7 @@ class Presence:
         self._last: dict[str, str] = {}  # name -> the Zenoh id of its last server
         self._awaiting: dict[str, str] = {}  # name -> its supervisor: lost if that one goes
         self._members: set[str] = set()  # processes whose token is here (Zenoh's threads)
-        self._on_joined = on_joined
+        self._on_token = on_token
         self._proc_prefix = f"{self._prefix}/live/proc/"
         self._malformed = LogThrottle(logger)
         self._tokens: dict[str, Callable[[bool, str], list[Callable[[], None]] | None]] = {
@@ -220,12 +220,13 @@ class Presence:
         put, key = sample.kind == zenoh.SampleKind.PUT, str(sample.key_expr)
         if key.startswith(self._proc_prefix):  # (here, not on the presence thread: see `member`)
             zid = proc_key(key, self._prefix)
-            if zid is not None and put:
-                self._members.add(zid)
-                if self._on_joined is not None:
-                    self._on_joined(zid)
-            elif zid is not None:
-                self._members.discard(zid)
+            if zid is not None:
+                if put:
+                    self._members.add(zid)
+                else:
+                    self._members.discard(zid)
+                if self._on_token is not None:
+                    self._on_token(zid, put)
         self._queue.put((put, key, None))
 
     def member(self, zid: str) -> bool:
@@ -233,8 +234,8 @@ class Presence:
 
         Updated on Zenoh's threads as the samples come (the presence thread applies them
         later: `unreachable` may lag). A process declares its token before it sends
-        anything, but Zenoh may still hand this process its first frame before the token
-        (`zenoh_inbox.STRANGER_GRACE`).
+        anything, but Zenoh sends declarations ahead of data: a frame may come before its
+        sender's token, or after the token's end (`zenoh_inbox.STRANGER_GRACE`).
         """
         return zid in self._members
 
