@@ -90,7 +90,7 @@ class LogThrottle:
             more, throttle.unlogged = throttle.unlogged - 1, 0
         if more:
             self._logger.warning(
-                message + " (%d more like it in the last %g s)", *args, more, throttle.every
+                message + " (%d more like it since the last such line)", *args, more
             )
         else:
             self._logger.warning(message, *args)
