@@ -33,10 +33,12 @@ from collections.abc import Callable
 from typing import Any
 
 from rr_actors._catalog import Catalog
+from rr_actors._catalog.texts import plain_text
 from rr_actors._core.actor import Actor
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Answer, Tokens
+from rr_actors._core.throttle import LogThrottle
 from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.consumer import Consumer
 from rr_actors._registrar.endpoints import Clients
@@ -273,6 +275,7 @@ class RegistrarActor(Actor):
             died,
             ended,
         )
+        self.unknown = LogThrottle(logger)  # messages of no known type (a buggy peer's)
         self.handlers: dict[type, tuple[str, Handler]] = {
             kind: (step, bind(self)) for kind, (step, bind) in DISPATCH.items()
         }
@@ -295,8 +298,9 @@ class RegistrarActor(Actor):
     def dispatch(self, message: Any) -> None:
         """Handle `message` with its role's handler (the outcomes waiting are not taken)."""
         entry = self.handlers.get(type(message))
-        if entry is None:
-            logger.warning("registrar %s ignored an unknown message %r", self.name, message)
+        if entry is None:  # (shown without running its __repr__: a peer's object)
+            text = plain_text(message) or f"<a {type(message).__qualname__[:80]} object>"
+            self.unknown.warning("registrar %s ignored an unknown message %s", self.name, text)
             return
         step, handle = entry
         probes = self.shared.probes
