@@ -8,7 +8,9 @@ Runs only in manager processes (never in the supervisor's process). In the child
 2. attaches to the system (saying that the supervisor's process speaks for its registrar
    if this process dies: rule 19, `Transport.supervised_by`, any carrier)
    and starts the registrar, which restores its catalog,
-3. runs the (cloudpickled) `setup(registrar)`, then serves the registrar on the system,
+3. runs the (cloudpickled) `setup(registrar)`, then settles the in-doubt entries it was
+   offered (kept in the backup until then: a death during `setup` offers them again),
+   then serves the registrar on the system,
 4. reports `ready` over its control pipe and answers control requests: `stop`, `ping`
    (the heartbeat, answered through the registrar actor's mailbox, with how long its
    listener has been unable to accept connections, if it has) and `events` (whether to
@@ -318,10 +320,11 @@ def _run_manager(
         if address is not None:
             attached = address.attach()
             attached.supervised_by(_supervisor_pid(conn))  # it restarts this one (rule 19)
-        registrar = start_registrar(config, upstream=line.hub)
+        registrar = start_registrar(config, upstream=line.hub, hold_in_doubt=True)
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
             setup_fn(registrar)
+        registrar.settle_in_doubt()  # setup returned: what it was offered is handled
         if attached is not None:
             attached.serve(Served(registrar))
     except BaseException as exc:  # noqa: BLE001 - reported to the supervisor, then exit

@@ -13,8 +13,8 @@
               │                                                           (consumer.py)      │
               │   Reconciling ReconcileAsk                               (reconciling.py)    │
               │   StatusRelay StatusNotice SendStatus                    (status.py)         │
-              │   Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot; death           │
-              │                                                           (lifecycle.py)     │
+              │   Lifecycle  Flush Crash Save Stop Ready SettleInDoubt Reachable             │
+              │              Snapshot; death                              (lifecycle.py)     │
               │   Presence   PeerLost ConsumerDown PeerReachable ReconcileRetry              │
               │                                                           (presence.py)      │
               │ Shared: config, catalog, saver, servers, phase, workers  (state.py)          │
@@ -72,6 +72,7 @@ from rr_actors._registrar.messages import (
     Save,
     SendStatus,
     SetStatusCallback,
+    SettleInDoubt,
     Snapshot,
     StatusNotice,
     Stop,
@@ -199,6 +200,10 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     Save: ("save", asked(lambda a, _m, r: a.lifecycle.op_save(r))),
     Stop: ("stop", asked(lambda a, _m, r: a.lifecycle.op_stop(r))),
     Ready: ("ready", asked(lambda a, _m, r: a.lifecycle.op_ready(r))),  # setup is done
+    SettleInDoubt: (
+        "settle_in_doubt",
+        asked(lambda a, m, r: a.lifecycle.op_settle_in_doubt(m.query_id, r)),
+    ),
     Reachable: ("reachable", asked(lambda a, _m, r: a.lifecycle.op_reachable(r))),  # a carrier
     Snapshot: ("snapshot", asked(lambda a, m, r: a.lifecycle.op_snapshot(r, m.check))),
     Ping: ("ping", asked(_answer_now)),  # a manager process's heartbeat
@@ -250,6 +255,7 @@ class RegistrarActor(Actor):
         clients: Clients,
         *,
         setting_up: bool = False,
+        hold_in_doubt: bool = False,
     ) -> None:
         super().__init__()
         self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
@@ -274,6 +280,7 @@ class RegistrarActor(Actor):
             self,
             died,
             ended,
+            hold_in_doubt=hold_in_doubt,
         )
         self.unknown = LogThrottle(logger)  # messages of no known type (a buggy peer's)
         self.handlers: dict[type, tuple[str, Handler]] = {
