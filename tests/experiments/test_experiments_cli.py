@@ -4,6 +4,7 @@ prints its summary, and Ctrl-C (a real SIGINT) stops every process and keeps fin
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import os
 import signal
@@ -253,12 +254,39 @@ def test_progress_draws_a_bar_on_a_terminal_and_one_line_per_run_everywhere(
             display(Progress(1, 2, "tree.strategy", "one_for_all", 7, elapsed, 1.0))
         display(Progress(1, 2, "tree.strategy", "one_for_all", 7, 1.0, 1.0, finished_run()))
 
-    line = (
-        "run 1/2 tree.strategy=one_for_all seed 7: 9 calls ok, 1 failed, 3 restarts, "
-        "recovery median 125 ms"
-    )
-    assert line in " ".join(stream.getvalue().split())  # a terminal wraps it at its width
+    line = "run 1/2 one_for_all seed 7: 9 calls ok, 1 failed, 3 restarts, rec. p50 125 ms"
+    assert line in " ".join(stream.getvalue().split())  # (a terminal's has control codes)
     assert (display.bar is not None) == isinstance(stream, FakeTerminal)
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"value": "rest_for_one"},  # the tutorial's first experiment
+        {"run": 12, "value": "rest_for_one", "calls_ok": 1234, "calls_failed": 123},
+        {
+            "run": 100,
+            "seed": 100,
+            "value": "x" * 60,
+            "calls_ok": 12345,
+            "calls_failed": 1234,
+            "restarts": 100,
+            "recovery_median_s": 12.345,
+            "gave_up": True,
+        },
+    ],
+    ids=["tutorial", "long-run", "everything-long"],
+)
+def test_a_piped_run_line_is_at_most_80_columns(changes: dict[str, object]) -> None:
+    stream = io.StringIO()
+    result = dataclasses.replace(finished_run(), **changes)  # type: ignore[arg-type]
+
+    with _Display(stream, quiet=False) as display:
+        display(Progress(1, 100, "tree.strategy", result.value, 7, 1.0, 1.0, result))
+    lines = stream.getvalue().splitlines()
+
+    assert [] == [line for line in lines if len(line) > 80]
+    assert lines[0].startswith(f"run {result.run}/100 ")
 
 
 def test_a_run_that_fails_exits_1_quoting_its_error(
