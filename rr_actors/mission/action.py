@@ -59,6 +59,9 @@ __all__ = ["TICK", "Mission"]
 TICK = 0.02
 """Seconds between two looks at the odometry (and at the progress line)."""
 
+PAUSE_SETTLE = 2.0
+"""Seconds a `--step` pause waits at most for the robot to stand, and to drive again."""
+
 
 @dataclass(frozen=True)
 class _Event:
@@ -386,18 +389,33 @@ class Mission:
         """Stop the robot, hand the fault to `before_fault`, drive on; the seconds it took.
 
         The pause is left out of the mission clock: no stamp, timeline row or plot
-        counts the time the class took to press Enter.
+        counts the time the class took to press Enter. It lasts from the stop order
+        until the robot drives again: its coming to a halt and its start after the
+        Enter belong to the pause, not to the fault that follows (which would otherwise
+        count them as the robot standing still).
         """
         assert self._before_fault is not None
         paused = time.monotonic()
         self._goal(paused=True)
         try:
             self._before_fault(fault, faults.pids(fault))
-        finally:
+            self._wait_until_moving(False)  # (long done, unless Enter came at once)
             self._goal(paused=False)
+            self._wait_until_moving(True)
+        finally:  # (after a Ctrl-C at the prompt the robot waits for the unloading)
             resumed = time.monotonic()
             self.clock.add_pause(paused, resumed)
         return resumed - paused
+
+    def _wait_until_moving(self, moving: bool) -> None:
+        """Wait until the odometry says the robot moves (or stands), `PAUSE_SETTLE` s at most."""
+        deadline = time.monotonic() + PAUSE_SETTLE
+        while True:
+            self._odom.read()
+            now = time.monotonic()
+            if self._odom.moving(now) == moving or now >= deadline:
+                return
+            time.sleep(TICK)  # the odometry is a file the driver appends to: look again
 
     def _handle(
         self,

@@ -144,8 +144,8 @@ def _totals(report: MissionReport) -> list[str]:
         else []
     )
     return [
-        f"mission time {report.mission_time_s:.2f} s (no stop: {report.nominal_time_s:.2f} s), "
-        f"distance {report.distance_m:.2f} m",
+        f"mission time {report.mission_time_s:.2f} s (the drive; without stops "
+        f"{report.nominal_time_s:.2f} s), distance {report.distance_m:.2f} m",
         *paused,
         f"leaked processes: {report.leaked_processes}; catalog entries left: "
         f"{report.catalog_entries_left}",

@@ -58,6 +58,14 @@ if TYPE_CHECKING:
 CLOCK_SLACK = 0.05
 """Seconds the page's mission clock may be off before it is set again (`--observe`)."""
 
+CLOCK_LABEL = "mission clock"
+"""What the page calls its clock: the story's stamps, not the mission time (`--observe`).
+
+The *mission time* the terminal prints at the end (`MissionReport.mission_time_s`) is a
+duration, the drive's (as the thesis counts it); the mission clock tells when, since the
+mission started. Calling both "mission time" showed two figures under one name.
+"""
+
 __all__ = [
     "DEFAULT_OUT",
     "OUT_LOCK",
@@ -446,7 +454,7 @@ def _mission_clock(
         origin = time.time() - where.elapsed_s
         if observers and abs(origin - shown[0]) > CLOCK_SLACK:
             shown[0] = origin
-            observers[0].set_clock(origin, "mission time")
+            observers[0].set_clock(origin, CLOCK_LABEL)
 
     return tick
 
@@ -478,7 +486,7 @@ def _hooks(
         observer = sup.observe(  # serving after the mission while it lingers; then closed
             port=args.port, allow_faults=args.allow_faults, keep_serving=True
         )
-        observer.set_clock(time.time(), "mission time")  # (made exact by the first progress)
+        observer.set_clock(time.time(), CLOCK_LABEL)  # (made exact by the first progress)
         observers.append(observer)
         buttons = "; teaching mode: its buttons kill, hang and FATAL" if args.allow_faults else ""
         tell(f"observer: {observer.url} (open it in a browser{buttons})")
