@@ -135,6 +135,42 @@ def test_observe_without_the_observe_extra_exits_2(
     assert not (tmp_path / "out").exists()
 
 
+WITHOUT_MSGSPEC = (
+    "import sys; sys.modules['msgspec'] = None; "  # as with only the demo extra installed
+    "from rr_actors._cli import main; sys.exit(main(sys.argv[1:]))"
+)
+
+
+@pytest.mark.parametrize("argv", [["--list"], ["first", "--out", "x"], ["--bogus"]])
+def test_without_the_experiments_extra_every_use_names_it_with_exit_code_2(
+    argv: list[str], tmp_path: Path
+) -> None:
+    result = subprocess.run(
+        [sys.executable, "-c", WITHOUT_MSGSPEC, "experiment", *argv],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+
+    assert (2, "") == (result.returncode, result.stdout)
+    assert result.stderr.startswith("rr-actors experiment: needs the experiments extra: ")
+    assert "pip install 'rr-actors[experiments]'" in result.stderr
+    assert "unrecognized arguments" not in result.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def test_an_unknown_option_of_another_command_is_still_a_usage_error(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    with pytest.raises(SystemExit) as exited:
+        main(["demo", "--bogus"])
+
+    assert 2 == exited.value.code
+    assert "unrecognized arguments: --bogus" in capsys.readouterr().err
+
+
 def test_with_force_it_runs_into_a_used_directory_and_prints_a_summary(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
