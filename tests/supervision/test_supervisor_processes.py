@@ -42,6 +42,7 @@ import rr_actors as rr
 from rr_actors import testing
 from rr_actors._process.context import forker_pid, mp_context, start_forkserver
 from rr_actors._process.manager import ManagerExit, ManagerProcess
+from rr_actors._process.spare import Spare
 from rr_actors.testing import RemoteRegistrar, SharedObjects
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
@@ -397,6 +398,33 @@ def test_stopping_the_supervisor_leaves_no_manager_process(
     sup.stop()
 
     assert (2, []) == (len(pids), [p for p in pids if alive(p)])
+
+
+def ignores_sigint(pid: int) -> bool:
+    """Whether process `pid` ignores SIGINT (its `SigIgn` mask in `/proc`, Linux)."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    mask = next(line.split()[1] for line in status.splitlines() if line.startswith("SigIgn:"))
+    return bool(int(mask, 16) >> (signal.SIGINT - 1) & 1)
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc (Linux)")
+def test_manager_and_spare_processes_leave_a_terminals_ctrl_c_to_their_supervisor(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    sup = supervisors([process(f"a-{uid}")]).start()
+    spare = Spare.start()
+    try:
+        assert spare.conn.poll(30)  # its Warm(): it runs standby
+        assert spare.check_warm()
+        spare_ignores = ignores_sigint(spare.process.pid)
+    finally:
+        spare.close()
+    manager = pid_of(sup, f"a-{uid}")
+
+    assert (True, True) == (ignores_sigint(manager), spare_ignores)
+    os.kill(manager, signal.SIGINT)  # as a Ctrl-C to the whole foreground group
+    assert "hi" == sup.registrar(f"app-{uid}").call(f"a-{uid}", "echo", "hi", timeout=10).response
+    assert (0, manager) == (sup.child(f"a-{uid}").restarts, pid_of(sup, f"a-{uid}"))
 
 
 def test_a_manager_that_does_not_stop_in_time_is_killed(
