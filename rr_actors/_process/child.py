@@ -2,9 +2,10 @@
 
 Runs only in manager processes (never in the supervisor's process). In the child, `main`:
 
-0. ignores SIGINT: a Ctrl-C in a terminal goes to its whole foreground process group,
-   manager processes included, and is the supervisor's process's to handle (it stops
-   the tree in order, as OTP leaves shutdown to the supervisor); `standby` does the same,
+0. lets SIGINT pass (a handler that does nothing): a Ctrl-C in a terminal goes to its
+   whole foreground process group, manager processes included, and is the supervisor's
+   process's to handle (it stops the tree in order, as OTP leaves shutdown to the
+   supervisor); `standby` does the same,
 1. asks the platform to end it when the process that forked it dies
    (`Platform.die_with_parent`: with the forkserver context that is the forkserver, not
    the supervisor's process) and names the process for `ps` (`rr-actors: <name>`),
@@ -173,17 +174,6 @@ def _supervisor_pid(conn: Connection) -> int:
     return os.getppid()
 
 
-def _leave_sigint_to_supervisor() -> None:
-    """Ignore SIGINT in this manager process: its supervisor's process shuts it down.
-
-    A terminal's Ctrl-C reaches every process of its foreground group; without this each
-    manager and spare process would die of its own `KeyboardInterrupt` (a traceback
-    each) while its supervisor tries to stop it in order. SIGTERM and SIGKILL still end
-    it at once, and it still exits when the supervisor's process is gone.
-    """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
 def _exit(code: int, attached: Transport | None) -> None:
     """Leave the system (peers then see "stopped" or "died" at once), flush, exit."""
     if attached is not None:
@@ -214,9 +204,8 @@ def main(
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
         forward: forward the registrar's events from the start (until told otherwise).
     """
-    _leave_sigint_to_supervisor()  # first: a Ctrl-C from here on is the supervisor's
+    _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
-    _let_ctrl_c_pass()
     set_title(config.name)
     _run_manager(setup, config, address, conn, forward)
 
@@ -267,9 +256,8 @@ def standby(conn: Connection, parent: int | None = None) -> None:
             `main`'s arguments.
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
     """
-    _leave_sigint_to_supervisor()  # first: a Ctrl-C from here on is the supervisor's
+    _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
-    _let_ctrl_c_pass()
     set_title("spare")
     try:
         if not conn.poll(0):  # taken already: the warm-up would only delay the manager
