@@ -13,9 +13,9 @@ import os
 import sys
 
 from rr_actors._platform import linux, portable
-from rr_actors._platform.base import ExitWatch, Platform
+from rr_actors._platform.base import ExitWatch, ListenerGate, Platform
 
-__all__ = ["PLATFORM", "ExitWatch", "Platform"]
+__all__ = ["PLATFORM", "ExitWatch", "ListenerGate", "Platform"]
 
 
 def _choose() -> Platform:

@@ -23,6 +23,7 @@ rr_actors starts manager processes with forkserver or spawn.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import math
@@ -41,7 +42,8 @@ from rr_actors._core.directory import Peer
 from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.zenoh_carrier import ZenohMember
 from rr_actors._transport.zenoh_config import endpoints, parse_endpoint, session_config
-from rr_actors._transport.zenoh_watch import LinkWatch
+from rr_actors._transport.zenoh_gate import HandshakeGate, open_gates
+from rr_actors._transport.zenoh_watch import LinkWatch, remote
 from rr_actors.config import NAME
 from rr_actors.errors import ConfigError, RegistrarUnavailableError
 
@@ -61,6 +63,15 @@ def _zenoh_log_from_env() -> None:
     handshake, which Zenoh tells nobody else)."""
     if os.environ.get("RUST_LOG"):
         zenoh.try_init_log_from_env()  # type: ignore[no-untyped-call]
+
+
+def _tls_links(session: zenoh.Session) -> collections.Counter[str]:
+    """How many TLS links the router has to each remote address."""
+    return collections.Counter(
+        remote(str(link.dst))[0]
+        for link in session.info.links()
+        if str(link.dst).startswith("tls/")
+    )
 
 
 def _is_tls(tls: object) -> bool:
@@ -231,6 +242,7 @@ class ZenohNetwork:
         self._runtime_dir: str | None = None
         self._address: ZenohAddress | None = None
         self._watch: LinkWatch | None = None
+        self._gate: HandshakeGate | None = None
 
     def __repr__(self) -> str:
         return (
@@ -270,7 +282,10 @@ class ZenohNetwork:
             self._warn_unreachable()
         else:  # names the reason of an unlinked connect endpoint, and who links
             self._watch = LinkWatch(self.system, session, self.tls, self.connect)
-        watch = self._watch
+            self._gate = HandshakeGate(
+                self.system, open_gates(self.listen), lambda: _tls_links(session)
+            )
+        watch, gate = self._watch, self._gate
         member = ZenohMember(self.system, session)
         self._runtime_dir = runtime_dir
         self._address = member._address = ZenohAddress(
@@ -280,6 +295,8 @@ class ZenohNetwork:
         def closed() -> None:
             if watch is not None:
                 watch.close()
+            if gate is not None:
+                gate.close()
             _left(member)
             shutil.rmtree(runtime_dir, ignore_errors=True)
 
@@ -348,6 +365,8 @@ class ZenohNetwork:
         """Leave the system: stop serving, fail what waits, close the session (idempotent)."""
         if self._watch is not None:
             self._watch.close()  # before the session goes
+        if self._gate is not None:
+            self._gate.close()  # (its duplicate of a listening socket, too)
         member = self._member
         if member is not None:
             member.close()
