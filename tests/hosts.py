@@ -859,6 +859,14 @@ def rr_until_answered(consumer: str, provider: str, server: str, timeout: float)
         return
 
 
+def rr_unlinked_within(name: str, timeout: float) -> bool:
+    """Whether this worker's network stops seeing registrar `name` within `timeout` s."""
+    from waiting import wait_for  # noqa: PLC0415
+
+    network = KEPT["network"]
+    return bool(wait_for(lambda: name not in network.names(), timeout))
+
+
 def rr_stop() -> None:
     """Stop this worker's registrars (newest first), then its network (if it has `close`)."""
     for registrar in reversed(list(KEPT.get("registrars", {}).values())):
@@ -867,3 +875,49 @@ def rr_stop() -> None:
     close = getattr(KEPT.get("network"), "close", None)
     if close is not None:
         close()
+
+
+# -- a flood of connections (an outsider's: `TwoHosts(outsider=True).c`) ------------------------
+
+
+def flood(host: str, port: int, threads: int) -> None:
+    """Start `threads` threads that connect to `host`:`port`, send a few bytes that are no
+    TLS handshake, and close, as fast as they can (a connect gets 0.5 s), until
+    `flood_stop`; `KEPT["flood"]` counts the attempts and the connections made. What a
+    peer without a certificate does to a `tls/` port at its full rate (issue 29)."""
+    counts = {"attempts": 0, "connected": 0}
+    stop = threading.Event()
+    lock = threading.Lock()
+
+    def attack() -> None:
+        while not stop.is_set():
+            with socket.socket() as conn:
+                conn.settimeout(0.5)
+                try:
+                    conn.connect((host, port))
+                    conn.sendall(b"\x16\x03\x01\x00\x05hello")
+                    made = 1
+                except OSError:
+                    made = 0
+            with lock:
+                counts["attempts"] += 1
+                counts["connected"] += made
+
+    workers = [threading.Thread(target=attack, daemon=True) for _ in range(threads)]
+    KEPT["flood"] = (counts, stop, workers)
+    for worker in workers:
+        worker.start()
+
+
+def flood_counts() -> dict[str, int]:
+    """The flood's counts so far: {"attempts": n, "connected": n}."""
+    return dict(KEPT["flood"][0])
+
+
+def flood_stop() -> dict[str, int]:
+    """Stop the flood (its threads end within a connect's 0.5 s); its counts."""
+    counts, stop, workers = KEPT["flood"]
+    stop.set()
+    for worker in workers:
+        worker.join(5.0)
+    return dict(counts)

@@ -820,60 +820,12 @@ def test_a_burst_of_refused_handshakes_fails_no_member_call_and_a_member_joins_i
 # -- bounds: a flood of failed handshakes from a third host ------------------------------------
 
 
-def flood(host: str, port: int, threads: int) -> None:
-    """Start `threads` threads that connect to `host`:`port`, send a few bytes that are no
-    TLS handshake, and close, as fast as they can (a connect gets 0.5 s), until
-    `flood_stop`; `KEPT["flood"]` counts the attempts and the connections made."""
-    import socket  # noqa: PLC0415
-
-    counts = {"attempts": 0, "connected": 0}
-    stop = threading.Event()
-    lock = threading.Lock()
-
-    def attack() -> None:
-        while not stop.is_set():
-            with socket.socket() as conn:
-                conn.settimeout(0.5)
-                try:
-                    conn.connect((host, port))
-                    conn.sendall(b"\x16\x03\x01\x00\x05hello")
-                    made = 1
-                except OSError:
-                    made = 0
-            with lock:
-                counts["attempts"] += 1
-                counts["connected"] += made
-
-    workers = [threading.Thread(target=attack, daemon=True) for _ in range(threads)]
-    hosts.KEPT["flood"] = (counts, stop, workers)
-    for worker in workers:
-        worker.start()
-
-
-def flood_counts() -> dict[str, int]:
-    return dict(hosts.KEPT["flood"][0])
-
-
-def flood_stop() -> dict[str, int]:
-    counts, stop, workers = hosts.KEPT["flood"]
-    stop.set()
-    for worker in workers:
-        worker.join(5.0)
-    return dict(counts)
-
-
-def unlinked_within(name: str, timeout: float) -> bool:
-    """Whether this worker's network stops seeing registrar `name` within `timeout` s."""
-    network = hosts.KEPT["network"]
-    return bool(wait_for(lambda: name not in network.names(), timeout))
-
-
 def rejoin_seconds(two_hosts: hosts.TwoHosts) -> float:
     """Cut the veth between `a` and `b` until `b` has lost `erm`, bring it back: the
     seconds from then to `b`'s first answered call to `erm` (`TimeoutError` past 30 s)."""
     two_hosts.link_down()
     try:
-        assert two_hosts.b.call(unlinked_within, "erm", BOUND, timeout=30)
+        assert two_hosts.b.call(hosts.rr_unlinked_within, "erm", BOUND, timeout=30)
     finally:
         two_hosts.link_up()
     started = time.monotonic()
@@ -900,26 +852,30 @@ def test_a_member_rejoins_in_10_s_while_a_third_host_floods_the_port_with_failed
     assert c is not None
     attacker = c.spawn()
     calling = b.worker.submit(hosts.rr_run, "app", keep_calling)
-    attacker.call(flood, a.address, PORT, 4, timeout=10)
+    attacker.call(hosts.flood, a.address, PORT, 4, timeout=10)
 
     # until `a` says it drops the flood, or (without that) the flood has made 2,000
     # connections, each 0.1 s of the listener's time: a member re-joining after them
     # would wait minutes
     def seen() -> bool:
         said = [m for m in a.call(hosts.rr_logs, "WARNING", timeout=10) if c.address in m]
-        return bool(said) or attacker.call(flood_counts, timeout=10)["connected"] >= 2000
+        return bool(said) or attacker.call(hosts.flood_counts, timeout=10)["connected"] >= 2000
 
     assert wait_for(seen, 30.0)
+    seen_at = attacker.call(hosts.flood_counts, timeout=10)["attempts"]
+    assert wait_for(  # (20 more: 2.5 s of a dropped flood, a moment of the other)
+        lambda: attacker.call(hosts.flood_counts, timeout=10)["attempts"] >= seen_at + 20, 30.0
+    )
     b.call(stop_calling, timeout=10)
     succeeded, failed = calling.result(timeout=30)
     assert [] == failed  # the link already up was not slowed down
     assert succeeded > 0
-    before = attacker.call(flood_counts, timeout=10)["attempts"]
+    before = attacker.call(hosts.flood_counts, timeout=10)["attempts"]
     during = rejoin_seconds(two_hosts)
-    assert attacker.call(flood_counts, timeout=10)["attempts"] > before  # (still flooding)
+    assert attacker.call(hosts.flood_counts, timeout=10)["attempts"] > before  # (still flooding)
     warning = a.call(logged, "WARNING", [f"{c.address} holds"], BOUND, timeout=30)
     assert f"connections to {a.address}:{PORT} that are not links" in warning
-    attacker.call(flood_stop, timeout=30)
+    attacker.call(hosts.flood_stop, timeout=30)
     after = rejoin_seconds(two_hosts)
     assert during < 10.0, f"a member re-joining during the flood took {during:.1f} s"
     assert after < 10.0, f"a member re-joining after the flood took {after:.1f} s"
