@@ -11,21 +11,23 @@ platforms, where only a firewall helps):
 - the accept queue is shortened to `BACKLOG`: whatever is queued when a flood is seen
   costs the listener at most (`BACKLOG` + 64) x 0.1 s;
 - every `TICK` s the socket table is read: a source address that holds more than `HOLD`
-  connections to the port beyond its links (queued, or in a handshake: a member holds
-  one link, and one connection while it re-joins) is a flood. Every packet from it to the
-  port is dropped from then on by the socket's filter, before the kernel answers its SYN:
-  it costs the listener nothing more. A WARNING names it;
+  connections to the port (queued, in a handshake, or linked: a member holds one link,
+  and one connection while it re-joins) and has no link of a member's up is a flood.
+  Every packet from it to the port is dropped from then on by the socket's filter, before
+  the kernel answers its SYN: it costs the listener nothing more. A WARNING names it;
 - the drops are lifted (INFO) once the socket has dropped nothing for `QUIET` s: the
   source stopped trying.
 
 Links already up are not touched (each keeps the filter it was accepted with; a few
-instructions per packet). Peers that share one address with a flooding source (behind one
-NAT) are dropped with it; many flooding addresses at once, each under `HOLD`, are beyond
-this: that is the firewall's job (`docs/how-to/securing-registrars.md`).
+instructions per packet). A member's address is never dropped while its link is up
+(members are trusted: a flood from a member's host is paid as Zenoh pays it); peers that
+share one address with a flooding source (behind one NAT) and have no member's link up
+are dropped with it; many flooding addresses at once, each under `HOLD`, are beyond this:
+that is the firewall's job (`docs/how-to/securing-registrars.md`).
 
 ```
  thread "rr-zenoh-gate", every TICK s, per tls/ listen endpoint:
-   gate.peers() (source -> connections) - links per source > HOLD?
+   gate.peers() (source -> connections) > HOLD, and no member's link from it?
      └─ gate.drop_from(dropped | {source}), WARNING
    gate.dropped() unchanged for QUIET s? └─ gate.drop_from({}), INFO
 ```
@@ -33,7 +35,6 @@ this: that is the firewall's job (`docs/how-to/securing-registrars.md`).
 
 from __future__ import annotations
 
-import collections
 import ipaddress
 import logging
 import socket
@@ -49,7 +50,7 @@ __all__ = ["BACKLOG", "HOLD", "QUIET", "TICK", "HandshakeGate", "open_gates"]
 logger = logging.getLogger("rr_actors")
 
 BACKLOG = 16  # connections the kernel queues for Zenoh's accept at most
-HOLD = 8  # connections a source may hold to the port beyond its links
+HOLD = 8  # connections a source without a member's link may hold to the port
 TICK = 0.2  # seconds between two looks at the socket table
 QUIET = 60.0  # seconds without a dropped packet before the drops are lifted
 MOST = 256  # sources dropped at once at most (then: a firewall's job)
@@ -89,8 +90,8 @@ class HandshakeGate:
     Args:
         system: the system's name, for the log lines.
         gates: the gates on the listening sockets (`open_gates`); closed by `close`.
-        links: the router's TLS links: how many each remote address has (called on the
-            gate's thread).
+        members_at: the remote addresses of the router's links to members now (called
+            on the gate's thread).
         clock: seconds, monotonic (tests may pass their own).
         start: start the thread (tests call `look` themselves).
     """
@@ -99,14 +100,14 @@ class HandshakeGate:
         self,
         system: str,
         gates: list[ListenerGate],
-        links: Callable[[], collections.Counter[str]],
+        members_at: Callable[[], set[str]],
         *,
         clock: Callable[[], float] = time.monotonic,
         start: bool = True,
     ) -> None:
         self._system = system
         self._gates = gates
-        self._links = links
+        self._members_at = members_at
         self._clock = clock
         self._dropped: dict[int, set[str]] = {id(gate): set() for gate in gates}
         self._drops: dict[int, tuple[int, float]] = {}  # drop counter, when it last grew
@@ -150,22 +151,21 @@ class HandshakeGate:
         over = [source for source, n in held.items() if n > HOLD and source not in dropped]
         if not over:
             return
-        links = self._links()
+        members = self._members_at()
         for source in over:
-            extra = held[source] - links[source]
-            if extra <= HOLD or len(dropped) >= MOST:
+            if source in members or len(dropped) >= MOST:
                 continue
             dropped.add(source)
             gate.drop_from(dropped)
             self._drops[id(gate)] = (gate.dropped(), self._clock())
             logger.warning(
-                "ZenohNetwork %r: %s holds %d connections to %s:%d that are not links "
-                "(failed or unfinished TLS handshakes; Zenoh's listener pauses 0.1 s after "
+                "ZenohNetwork %r: %s holds %d connections to %s:%d and no member's link "
+                "(failed or unfinished TLS handshakes: Zenoh's listener pauses 0.1 s after "
                 "each failed one): its packets to that port are dropped until none has come "
                 "for %g s",
                 self._system,
                 source,
-                extra,
+                held[source],
                 gate.address,
                 gate.port,
                 QUIET,

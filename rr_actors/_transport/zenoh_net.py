@@ -23,7 +23,6 @@ rr_actors starts manager processes with forkserver or spawn.
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import logging
 import math
@@ -65,13 +64,13 @@ def _zenoh_log_from_env() -> None:
         zenoh.try_init_log_from_env()  # type: ignore[no-untyped-call]
 
 
-def _tls_links(session: zenoh.Session) -> collections.Counter[str]:
-    """How many TLS links the router has to each remote address."""
-    return collections.Counter(
+def _members_at(session: zenoh.Session, members: Iterable[str]) -> set[str]:
+    """The remote addresses of the router's TLS links to `members`."""
+    return {
         remote(str(link.dst))[0]
         for link in session.info.links()
-        if str(link.dst).startswith("tls/")
-    )
+        if str(link.dst).startswith("tls/") and link.auth_identifier in members
+    }
 
 
 def _is_tls(tls: object) -> bool:
@@ -282,8 +281,9 @@ class ZenohNetwork:
             self._warn_unreachable()
         else:  # names the reason of an unlinked connect endpoint, and who links
             self._watch = LinkWatch(self.system, session, self.tls, self.connect)
+            members = frozenset(self.tls.members)
             self._gate = HandshakeGate(
-                self.system, open_gates(self.listen), lambda: _tls_links(session)
+                self.system, open_gates(self.listen), lambda: _members_at(session, members)
             )
         watch, gate = self._watch, self._gate
         member = ZenohMember(self.system, session)

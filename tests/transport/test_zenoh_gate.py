@@ -62,13 +62,9 @@ def said(caplog: pytest.LogCaptureFixture) -> pytest.LogCaptureFixture:
     return caplog
 
 
-def made(
-    links: collections.Counter[str] | None = None,
-) -> tuple[FakeGate, HandshakeGate, Clock]:
+def made(members_at: set[str] | None = None) -> tuple[FakeGate, HandshakeGate, Clock]:
     gate, clock = FakeGate(), Clock()
-    guard = HandshakeGate(
-        "lab", [gate], lambda: links or collections.Counter(), clock=clock, start=False
-    )
+    guard = HandshakeGate("lab", [gate], lambda: members_at or set(), clock=clock, start=False)
     return gate, guard, clock
 
 
@@ -83,14 +79,12 @@ def test_a_source_holding_more_than_hold_connections_is_dropped_and_named_once(
     assert {"10.0.0.3"} == gate.sources == guard.dropping()
     warnings = [r.getMessage() for r in said.records if r.levelno == logging.WARNING]
     assert 1 == len(warnings)
-    assert (
-        "'lab': 10.0.0.3 holds 9 connections to 10.0.0.1:7447 that are not links" in (warnings[0])
-    )
+    assert "'lab': 10.0.0.3 holds 9 connections to 10.0.0.1:7447" in (warnings[0])
 
 
-def test_a_sources_links_do_not_count_against_it() -> None:
-    gate, guard, _ = made(links=collections.Counter({"10.0.0.2": 5}))
-    gate.held.update({"10.0.0.2": HOLD + 5})
+def test_a_source_with_a_members_link_up_is_never_dropped() -> None:
+    gate, guard, _ = made(members_at={"10.0.0.2"})
+    gate.held.update({"10.0.0.2": HOLD + 20})
     guard.look()
 
     assert set() == gate.sources
