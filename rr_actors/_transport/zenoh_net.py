@@ -64,7 +64,7 @@ def _zenoh_log_from_env() -> None:
         zenoh.try_init_log_from_env()  # type: ignore[no-untyped-call]
 
 
-def _members_at(session: zenoh.Session, members: Iterable[str]) -> set[str]:
+def _members_at(session: zenoh.Session, members: frozenset[str]) -> set[str]:
     """The remote addresses of the router's TLS links to `members`."""
     return {
         remote(str(link.dst))[0]
