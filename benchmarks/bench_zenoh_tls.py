@@ -1,10 +1,12 @@
 """Zenoh TLS benchmark: mutual TLS against plain TCP across hosts; refused handshakes.
 
 Run, as root: `taskset -c 0 python benchmarks/bench_zenoh_tls.py [--rounds N] [--handshakes N]
-[--clients N] [--joins N] [--quiet S] [--interval S]`. The two hosts are two Linux network
-namespaces joined by a veth pair (`tests/hosts.py`); without root nothing is measured (it says
-so). The certificates are made for the run (`tests/pki.py`): a CA, members `robot` (host a,
-the listener), `operator` and `joiner` (host b). Everything is measured in one run:
+[--clients N] [--joins N] [--quiet S] [--interval S] [--cuts N] [--threads N] [--flood S]
+[--give-up S] [--without-gate]`. The two hosts are two Linux network namespaces joined by a
+veth pair, and a third one, the outsider, on a veth of its own to host a (`tests/hosts.py`);
+without root nothing is measured (it says so). The certificates are made for the run
+(`tests/pki.py`): a CA, members `robot` (host a, the listener), `operator` and `joiner`
+(host b). Everything is measured in one run:
 
 * round trips across the veth, each protocol on its own pair of fresh processes: a raw Zenoh
   `get` (a queryable that echoes 200 bytes; peers, no access control) over plain TCP and over
@@ -19,6 +21,15 @@ the listener), `operator` and `joiner` (host b). Everything is measured in one r
   s), during and after (`--quiet` s) the burst (target: every call succeeds, p99 under
   100 ms during it); and a member's time to join, from making its `ZenohNetwork` to its
   first successful call, when quiet and during the burst (target: within 10 s).
+
+* a flood of failed handshakes (issue 29): the outsider's `--threads` threads (4) connect to
+  host a's `tls/` port, send a few bytes and close, as fast as they can, no certificate;
+  after `--flood` s (2) member b's link to a is cut (`ip link set down` until b has lost
+  a) and brought back, `--cuts` times (3) during the flood and as many after it stopped:
+  the seconds from the link's return to b's first answered call (the re-join), and b's
+  calls on its link in the flood's first seconds. With `--without-gate`, once each also
+  with host a's listener kept by Zenoh alone and with only its queue shortened (the
+  benchmark's own switch, `gate_mode`: rr_actors has none); those take minutes.
 
 Zenoh pauses its TLS accept loop 100 ms after every failed handshake: the burst lasts about
 `--handshakes` x 0.1 s, and a member that connects during it waits behind the handshakes
@@ -442,7 +453,8 @@ def flood_run(
     try:
         two.b.call(hosts.rr_until_answered, "app", "erm", "echo", 30.0, timeout=60)
         calls: Future[Any] = two.b.worker.submit(calls_paced, "app", "erm", None, args.interval)
-        attacker.call(hosts.flood, two.a.address, int(near.rsplit(":", 1)[1]), args.threads)
+        port = int(near.rsplit(":", 1)[1])
+        attacker.call(hosts.flood, two.a.address, port, args.threads, timeout=30)
         threading.Event().wait(args.flood)  # the flood's head start (a pace, not a sync)
         two.b.call(calls_stop, timeout=10)
         during_calls = calls.result(600)
