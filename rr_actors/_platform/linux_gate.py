@@ -175,9 +175,12 @@ class LinuxListenerGate:
     def peers(self) -> collections.Counter[str]:
         """How many connections to this socket's port each remote address holds (queued,
         in a handshake or linked; not `TIME_WAIT`)."""
+        anywhere = ipaddress.ip_address(self.address).is_unspecified  # (0.0.0.0, ::)
         counts: collections.Counter[str] = collections.Counter()
         for local, port, remote, state, _ in _sockets():
-            if port == self.port and state not in (_LISTEN, _TIME_WAIT) and local == self.address:
+            if port != self.port or state in (_LISTEN, _TIME_WAIT):
+                continue
+            if anywhere or local == self.address:
                 counts[_proc_address(remote)] += 1
         return counts
 

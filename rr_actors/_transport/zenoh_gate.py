@@ -137,7 +137,11 @@ class HandshakeGate:
             except Exception:
                 if self._stop.is_set():
                     return  # the session closed under us
-                logger.exception("ZenohNetwork %r: watching its listeners failed", self._system)
+                logger.exception(  # once: the gate is a second line, the firewall the first
+                    "ZenohNetwork %r: the gate on its tls/ listeners failed and is off",
+                    self._system,
+                )
+                return
 
     def look(self) -> None:
         """One look at each gate: drop the sources that flood it, lift quiet drops."""

@@ -123,10 +123,10 @@ def test_close_lets_go_of_the_gates() -> None:
 # -- the Linux gate, on a listening socket of this process --------------------------------------
 
 
-@pytest.fixture
-def listening() -> Iterator[socket.socket]:
+@pytest.fixture(params=["127.0.0.1", "0.0.0.0"])  # noqa: S104 (a wildcard listener too)
+def listening(request: pytest.FixtureRequest) -> Iterator[socket.socket]:
     with socket.socket() as server:
-        server.bind(("127.0.0.1", 0))
+        server.bind((request.param, 0))
         server.listen(64)
         yield server
 
@@ -135,8 +135,8 @@ def listening() -> Iterator[socket.socket]:
 def test_the_gate_drops_only_the_sources_given_and_links_up_keep_working(
     listening: socket.socket,
 ) -> None:
-    port = listening.getsockname()[1]
-    gate = PLATFORM.listener_gate("127.0.0.1", port)
+    address, port = listening.getsockname()
+    gate = PLATFORM.listener_gate(address, port)
     assert gate is not None
     try:
         gate.shorten_backlog(4)
