@@ -48,6 +48,12 @@ test looks itself). What must not happen is given `QUIET` (3 s) to happen anyway
   after each); every call of `operator` meanwhile succeeds, and a member that joins
   during the burst has its first call answered within 10 s. Latency (p99) is measured in
   `benchmarks/`, never asserted in a test.
+- flood (issue 29), `test_a_member_rejoins_in_10_s_while_a_third_host_floods_the_port_
+  with_failed_handshakes`: a third host `c` (`TwoHosts(outsider=True)`) connects, sends
+  a few bytes and closes, from 4 threads at full rate, against `a`'s `tls/` port; every
+  call of `operator` on its link meanwhile succeeds; `a` names `c` in a WARNING; the
+  veth a-b is cut until `b` has lost `erm` and brought back: `b` calls `erm` within 10 s
+  while the flood goes on, and again within 10 s after it stopped (0.4 s measured).
 """
 
 from __future__ import annotations
