@@ -222,6 +222,11 @@ def _update_response(p: Pair, hook: Hook) -> None:
     p.provider.update_response(query.id, "new")
 
 
+def _settle_in_doubt(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "settle_in_doubt", before=hook)
+    p.provider.settle_in_doubt()  # nothing in doubt: settling all of it does nothing
+
+
 def _save(p: Pair, hook: Hook) -> None:
     intercept(p.provider, "save", before=hook)
     p.provider.save_catalog()
@@ -310,6 +315,7 @@ DRIVERS: dict[str, Callable[[Pair, Hook], None]] = {
     "client_queries": _client_queries,
     "set_status_callback": _set_status_callback,
     "update_response": _update_response,
+    "settle_in_doubt": _settle_in_doubt,
     "save": _save,
     "stop": _stop,
     "ready": _ready,
