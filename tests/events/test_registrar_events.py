@@ -201,9 +201,13 @@ def test_a_blocked_subscriber_does_not_slow_calls_and_its_drops_are_counted(star
     assert subscription.wait_delivered(timeout=10)
     subscription.close()
 
-    # 200 events (100 added, 100 released); 1 was taken by the blocked callback, 10 queued
+    # 200 events (100 added, 100 released); 1 was taken by the blocked callback, 10 queued.
+    # Each gap is reported where it is: one, or two when the subscriber's thread took its
+    # first event only after the queue had overflowed once (a loaded machine).
     assert 200 - 11 == subscription.dropped
-    assert 1 == len(heard.of(events.EventsDropped))
+    gaps = heard.of(events.EventsDropped)
+    assert 1 <= len(gaps) <= 2
+    assert subscription.dropped == sum(gap.count for gap in gaps)
     consumer.unload(first.id)
 
 
