@@ -29,6 +29,7 @@ import argparse
 import contextlib
 import dataclasses
 import json
+import logging
 import math
 import os
 import signal
@@ -353,7 +354,12 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
     report: MissionReport | None = None
     output: MissionOutput = make_output(stream, quiet=args.quiet)
     observers: list[Observer] = []
-    with output, _one_interrupt(output) as on_interrupt, _closing(observers):
+    with (
+        output,
+        _logging_to(out / LOG),
+        _one_interrupt(output) as on_interrupt,
+        _closing(observers),
+    ):
         hooks = _hooks(args, output, stream, observers)
         try:
             report = run_mission(
@@ -385,6 +391,35 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
         _error(failure or "the mission did not report")
         return 1
     return 0 if report.ok else 1
+
+
+LOG = "rr-actors.log"
+"""The file in the output directory that rr_actors' WARNINGs and ERRORs go to during a run."""
+
+
+@contextlib.contextmanager
+def _logging_to(path: Path) -> Iterator[None]:
+    """Send rr_actors' WARNING and ERROR lines to `path`, not the terminal, while it runs.
+
+    The mission kills managers and programs on purpose, and the story tells each: the
+    supervisor's WARNING for every one of them (`child erm exited: killed by SIGKILL`) would
+    only interleave with it. This stands in for Python's last-resort handler (which prints
+    them when nothing is configured); a program that configured logging itself (a handler
+    on the root or the `rr_actors` logger) keeps its own configuration.
+    """
+    logger = logging.getLogger("rr_actors")
+    if logging.getLogger().handlers or logger.handlers:
+        yield
+        return
+    handler = logging.FileHandler(path, mode="w", encoding="utf-8", delay=True)
+    handler.setLevel(logging.WARNING)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s"))
+    logger.addHandler(handler)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        handler.close()
 
 
 INTERRUPTED = 128 + signal.SIGINT
