@@ -43,7 +43,10 @@ def test_the_process_tests_pass_on_the_portable_platform() -> None:
     result = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *PORTABLE_MODULES],
         cwd=ROOT,
-        env={**os.environ, "RR_ACTORS_PLATFORM": "portable"},
+        env={  # (not a pytest-xdist worker's: this run is a session of its own)
+            **{k: v for k, v in os.environ.items() if not k.startswith("PYTEST_XDIST")},
+            "RR_ACTORS_PLATFORM": "portable",
+        },
         capture_output=True,
         text=True,
         timeout=850,
