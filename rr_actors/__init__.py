@@ -4,7 +4,6 @@ Registrars, resource servers and clients are pykka actors; the docs hold a tutor
 the semantics (`docs/explanation/semantics.md`) and the architecture.
 """
 
-import logging
 from typing import TYPE_CHECKING
 
 from rr_actors import events as events  # `rr.events.to_dict(...)`, as `rr.errors` is
@@ -101,6 +100,3 @@ def __getattr__(name: str) -> object:
             ) from exc
         return ZenohTLS
     raise AttributeError(f"module 'rr_actors' has no attribute {name!r}")
-
-
-logging.getLogger("rr_actors").addHandler(logging.NullHandler())

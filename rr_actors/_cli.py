@@ -247,19 +247,29 @@ def _certs_arguments(parser: argparse.ArgumentParser) -> None:
         "init",
         help="write DIR/ca.pem and DIR/ca.key (0600): the system's certificate authority",
         description="Write DIR/ca.pem and DIR/ca.key (0600), the system's certificate "
-        "authority (10 years). DIR is made 0700 if missing. ca.key stays here.",
+        "authority (10 years). DIR is made 0700 if missing; an existing DIR must be yours "
+        "and writable by nobody else. ca.key stays here.",
     )
     init.add_argument("dir", metavar="DIR", help="where the CA's files go")
-    init.add_argument("--system", required=True, help="the system's name (ZenohNetwork system=)")
-    init.add_argument("--force", action="store_true", help="replace an existing CA")
+    init.add_argument(
+        "--system", required=True, help="the system's name (ZenohNetwork system=; at most 64)"
+    )
+    init.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing CA; write into a DIR others may write to",
+    )
     issue = sub.add_parser(
         "issue",
         help="write DIR/NAME.pem and DIR/NAME.key (0600): a host's certificate, signed by the CA",
         description="Write DIR/NAME.pem and DIR/NAME.key (0600), signed by DIR/ca.pem and "
-        "DIR/ca.key: common name NAME (the member name), every --address peers dial.",
+        "DIR/ca.key: common name NAME (the member name), every --address peers dial. "
+        "ca.key and DIR must be yours and private to you.",
     )
     issue.add_argument("dir", metavar="DIR", help="holds ca.pem and ca.key; the files go here")
-    issue.add_argument("name", metavar="NAME", help="the host's member name (its common name)")
+    issue.add_argument(
+        "name", metavar="NAME", help="the host's member name (its common name; at most 64)"
+    )
     issue.add_argument(
         "--address",
         action="append",
@@ -270,7 +280,11 @@ def _certs_arguments(parser: argparse.ArgumentParser) -> None:
     issue.add_argument(
         "--days", type=_positive_days, default=365, help="days it is valid (default 365)"
     )
-    issue.add_argument("--force", action="store_true", help="replace an existing NAME")
+    issue.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing NAME; sign with a ca.key or in a DIR others may reach",
+    )
 
 
 def _certs(args: argparse.Namespace, out: TextIO) -> int:

@@ -22,6 +22,8 @@ from rr_actors.errors import ConfigError
 __all__ = [
     "DEFAULT_MAX_MESSAGE_BYTES",
     "DEFAULT_MAX_WORKERS",
+    "NAME",
+    "NAME_MAX",
     "Backoff",
     "Isolation",
     "ManagerSpec",
@@ -31,6 +33,7 @@ __all__ = [
     "Strategy",
     "SupervisorSpec",
     "check_choice",
+    "check_name",
     "check_seconds",
     "managers",
     "tree_names",
@@ -41,10 +44,39 @@ RestartType = Literal["permanent", "transient", "temporary"]
 Strategy = Literal["one_for_one", "one_for_all", "rest_for_one"]
 Isolation = Literal["thread", "process"]
 
-NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
-"""A valid name, matched whole (`fullmatch`: `$` would accept a trailing newline). It
-names files (`<name>.db`, `<name>.sock`), so it never starts with `.` (`.`, `..`, hidden
-files) or `-` (read as an option by command-line tools)."""
+NAME_MAX = 64
+"""The most characters in a registrar's, a system's or a member's name: the longest
+common name a certificate holds (X.509's `ub-common-name`), as a member's name is one."""
+
+NAME = re.compile(rf"[A-Za-z0-9_][A-Za-z0-9_.\-]{{0,{NAME_MAX - 1}}}")
+"""A valid name, matched whole (`fullmatch`: `$` would accept a trailing newline): at most
+`NAME_MAX` characters. It names files (`<name>.db`, `<name>.sock`), so it never starts
+with `.` (`.`, `..`, hidden files) or `-` (read as an option by command-line tools)."""
+
+
+def check_name(field: str, value: object, what: str = "a name") -> str:
+    """`value` if it is a name (`NAME`), else `ConfigError` naming `field` and the rule broken.
+
+    The one check of registrar, system and member names; a name too long (more than
+    `NAME_MAX` characters) is told apart from one with a wrong character.
+
+    Args:
+        field: how the message names the argument or field (`"name"`, `"system"`).
+        value: what was given.
+        what: what a name is here, for the message (`"a member name"`).
+    """
+    if isinstance(value, str) and len(value) > NAME_MAX:
+        raise ConfigError(
+            f"{field} {value!r} is {len(value)} characters long: {what} has at most "
+            f"{NAME_MAX} (NAME_MAX, the longest common name a certificate holds)"
+        )
+    if not isinstance(value, str) or NAME.fullmatch(value) is None:
+        raise ConfigError(
+            f"{field} {value!r} is not {what}: letters, digits, '_', '-' or '.', not "
+            f"starting with '.' or '-', at most {NAME_MAX} characters"
+        )
+    return value
+
 
 Durability = Literal["process", "power"]
 
@@ -91,7 +123,7 @@ class RegistrarConfig:
 
     Attributes:
         name: registrar name, unique within its system; letters, digits, `_`, `-`, `.`,
-            not starting with `.` or `-`.
+            not starting with `.` or `-`, at most `NAME_MAX` (64) characters.
         backup_path: SQLite file that keeps the catalog, or `None` for an in-memory catalog.
         save_interval: with a backup, flush changes every this many seconds (`None`: never
             on a timer). A crash loses at most one interval of changes.
@@ -137,11 +169,7 @@ class RegistrarConfig:
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
 
     def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not NAME.fullmatch(self.name):
-            raise ConfigError(
-                f"name must be a non-empty string of letters, digits, '_', '-' or '.', "
-                f"not starting with '.' or '-', got {self.name!r}"
-            )
+        check_name("name", self.name, "a registrar name")
         if self.backup_path is not None and not isinstance(self.backup_path, str | os.PathLike):
             raise ConfigError(f"backup_path must be a path or None, got {self.backup_path!r}")
         check_seconds("save_interval", self.save_interval, allow_none=True)
@@ -303,7 +331,7 @@ class ManagerSpec:
     start_timeout: float = 30.0
 
     def __post_init__(self) -> None:
-        RegistrarConfig(name=self.name)  # validates the name (ConfigError names the field)
+        check_name("name", self.name, "a manager name")
         if self.setup is not None and not callable(self.setup):
             raise ConfigError(
                 f"setup of manager {self.name!r} must be callable, got {self.setup!r}"
@@ -364,7 +392,7 @@ class SupervisorSpec:
     state_dir: str | os.PathLike[str] | None = None
 
     def __post_init__(self) -> None:
-        RegistrarConfig(name=self.name)
+        check_name("name", self.name, "a supervisor name")
         object.__setattr__(self, "children", tuple(self.children))
         check_choice("strategy", self.strategy, ("one_for_one", "one_for_all", "rest_for_one"))
         check_choice("restart", self.restart, ("permanent", "transient", "temporary"))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import ipaddress
+import os
 import shutil
 import socket
 import ssl
@@ -23,7 +24,9 @@ import pytest
 from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from pki import make_ca
+from tls_lab import free_port, router
 
+import rr_actors as rr
 from rr_actors._cli import main
 
 
@@ -58,7 +61,7 @@ def test_init_writes_the_ca_with_its_key_0600_in_a_0700_directory(tmp_path: Path
     assert f"wrote {directory}/ca.pem and {directory}/ca.key (0600)" in out
     assert "ca.key stays here" in out
     ca = load(directory / "ca.pem")
-    assert "rr_actors lab CA" == ca.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value
+    assert "CN=lab,O=rr_actors CA" == ca.subject.rfc4514_string()
     constraints = ca.extensions.get_extension_for_class(x509.BasicConstraints)
     usage = ca.extensions.get_extension_for_class(x509.KeyUsage)
     assert (True, True) == (constraints.critical, constraints.value.ca)
@@ -164,6 +167,173 @@ def test_a_name_that_is_not_a_member_name_is_refused(
 
     assert says in capsys.readouterr().err
     assert ["ca.key", "ca.pem"] == sorted(p.name for p in ca_dir.iterdir())
+
+
+# -- name lengths: one bound, NAME_MAX (64), a certificate's common name ---------------------
+
+
+def test_names_of_64_characters_make_certificates_that_link_over_zenoh(tmp_path: Path) -> None:
+    # the longest system, and the longest member names: one listens, one only connects
+    # (its certificate names itself as a DNS name); the access control admits both
+    system, listener, dialler = "s" * 64, "l" * 64, "d" * 64
+    ca = tmp_path / "certs"
+    assert 0 == certs("init", str(ca), "--system", system)[0]
+    assert 0 == certs("issue", str(ca), listener, "--address", "127.0.0.1")[0]
+    assert 0 == certs("issue", str(ca), dialler)[0]
+    tls = {
+        name: rr.ZenohTLS(
+            ca=ca / "ca.pem",
+            cert=ca / f"{name}.pem",
+            key=ca / f"{name}.key",
+            members=[listener, dialler],
+        )
+        for name in (listener, dialler)
+    }
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    arrived = threading.Event()
+
+    with router(tls[listener], [endpoint], [], system=system) as listening:
+        listening.declare_subscriber(f"rr/{system}/**", lambda _sample: arrived.set())
+        with router(tls[dialler], [], [endpoint], system=system) as dialling:
+            for _ in range(50):  # until the link is up: at most 50 x 0.2 s
+                dialling.put(f"rr/{system}/x", b"hi")
+                if arrived.wait(0.2):
+                    break
+
+    assert arrived.is_set()
+    assert f"CN={system},O=rr_actors CA" == load(ca / "ca.pem").subject.rfc4514_string()
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ("init", "{dir}/new", "--system", "s" * 65),
+        ("issue", "{dir}", "m" * 65),
+    ],
+    ids=["init --system", "issue NAME"],
+)
+def test_a_name_of_65_characters_is_one_line_naming_the_bound(
+    ca_dir: Path, capsys: pytest.CaptureFixture[str], argv: tuple[str, ...]
+) -> None:
+    before = sorted(p.name for p in ca_dir.iterdir())
+
+    code, _ = certs(*(arg.format(dir=ca_dir) for arg in argv))
+
+    field = "system" if argv[0] == "init" else "name"
+    assert 1 == code
+    assert (
+        f"rr-actors certs: {field} {argv[-1]!r} is 65 characters long: a "
+        f"{'system' if field == 'system' else 'member'} name has at most 64 (NAME_MAX, the "
+        f"longest common name a certificate holds)\n"
+    ) == capsys.readouterr().err
+    assert before == sorted(p.name for p in ca_dir.iterdir())
+    assert not (ca_dir / "new").exists()
+
+
+# -- the CA's directory and key are private ---------------------------------------------------
+
+
+NOBODY = 65534
+
+
+@pytest.mark.parametrize("dir_mode", [0o777, 0o1777, 0o770, 0o720])
+def test_init_refuses_an_existing_directory_others_may_write_to(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], dir_mode: int
+) -> None:
+    directory = tmp_path / "shared"
+    directory.mkdir()
+    directory.chmod(dir_mode)
+
+    assert 1 == certs("init", str(directory), "--system", "lab")[0]
+
+    assert (
+        f"rr-actors certs: the CA's directory {directory} is writable by group or others "
+        f"(mode {dir_mode:04o}): they can put, rename or replace files in it (chmod 700 "
+        f"{directory}, or use a directory of your own); nothing written (--force writes "
+        f"anyway)\n"
+    ) == capsys.readouterr().err
+    assert ([], dir_mode) == (list(directory.iterdir()), mode(directory))
+
+
+def test_init_refuses_a_directory_of_another_user(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    if os.geteuid() != 0:
+        pytest.skip("chown to another user needs root")
+    directory = tmp_path / "theirs"
+    directory.mkdir(mode=0o700)
+    os.chown(directory, NOBODY, NOBODY)
+
+    assert 1 == certs("init", str(directory), "--system", "lab")[0]
+
+    err = capsys.readouterr().err
+    assert f"the CA's directory {directory} is owned by nobody (uid {NOBODY}), not by " in err
+    assert [] == list(directory.iterdir())
+
+
+def test_init_with_force_writes_into_a_directory_others_may_write_to(tmp_path: Path) -> None:
+    directory = tmp_path / "shared"
+    directory.mkdir()
+    directory.chmod(0o777)
+
+    assert 0 == certs("init", str(directory), "--system", "lab", "--force")[0]
+
+    assert 0o600 == mode(directory / "ca.key")
+
+
+@pytest.mark.parametrize(
+    ("key_mode", "says"),
+    [(0o640, "readable"), (0o604, "readable"), (0o620, "writable"), (0o606, "readable")],
+)
+def test_issue_refuses_a_ca_key_open_to_group_or_others(
+    ca_dir: Path, capsys: pytest.CaptureFixture[str], key_mode: int, says: str
+) -> None:
+    key = ca_dir / "ca.key"
+    key.chmod(key_mode)
+
+    assert 1 == certs("issue", str(ca_dir), "robot")[0]
+
+    assert (
+        f"rr-actors certs: the CA's key {key} is {says} by group or others (mode "
+        f"{key_mode:04o}): chmod 600 {key}; nothing written (--force writes anyway)\n"
+    ) == capsys.readouterr().err
+    assert ["ca.key", "ca.pem"] == sorted(p.name for p in ca_dir.iterdir())
+
+
+def test_issue_refuses_a_ca_key_of_another_user(
+    ca_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    if os.geteuid() != 0:
+        pytest.skip("chown to another user needs root")
+    key = ca_dir / "ca.key"
+    os.chown(key, NOBODY, NOBODY)  # still 0600: root reads it, but it is not root's
+
+    assert 1 == certs("issue", str(ca_dir), "robot")[0]
+
+    err = capsys.readouterr().err
+    assert f"the CA's key {key} is owned by nobody (uid {NOBODY}), not by this user" in err
+    assert ["ca.key", "ca.pem"] == sorted(p.name for p in ca_dir.iterdir())
+
+
+def test_issue_refuses_a_ca_directory_others_may_write_to(
+    ca_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    ca_dir.chmod(0o777)
+
+    assert 1 == certs("issue", str(ca_dir), "robot")[0]
+
+    err = capsys.readouterr().err
+    assert f"the CA's directory {ca_dir} is writable by group or others (mode 0777)" in err
+    assert ["ca.key", "ca.pem"] == sorted(p.name for p in ca_dir.iterdir())
+
+
+def test_issue_with_force_signs_with_a_key_that_is_not_private(ca_dir: Path) -> None:
+    (ca_dir / "ca.key").chmod(0o644)
+    ca_dir.chmod(0o777)
+
+    assert 0 == certs("issue", str(ca_dir), "robot", "--force")[0]
+
+    assert 0o600 == mode(ca_dir / "robot.key")
 
 
 @pytest.mark.parametrize("days", ["0", "-3", "soon"])

@@ -28,6 +28,11 @@ envelope left in the mailbox when the loop ends, and every one put later, goes t
 actor's `on_late` (by default `refuse`: an ask gets `ActorDeadError`, as pykka's drain
 gives it), so an actor whose tells carry obligations (the registrar's carry replies and
 consumer ids) can honour them.
+
+In a child forked from this process the actors' threads are gone: `_forget_actors` (run
+at the fork, `rr_actors._platform.fork`) makes each inherited ref say it is dead and
+takes it out of pykka's registry, so a message to one fails at once (`ActorDeadError`)
+instead of waiting in a mailbox nobody reads.
 """
 
 from __future__ import annotations
@@ -40,6 +45,8 @@ from types import TracebackType
 from typing import Any, TypeAlias, TypeVar
 
 import pykka
+
+from rr_actors._platform import fork
 
 __all__ = ["Actor", "ContainedError", "Late", "Mailbox", "OneShotFuture", "refuse"]
 
@@ -257,3 +264,22 @@ class Actor(pykka.ThreadingActor):
         obligations.
         """
         refuse(envelope)
+
+
+def _forget_actors() -> None:
+    """In a forked child: every actor of the parent is dead here (it has no thread).
+
+    Each ref gets an `actor_stopped` event that is set (a new one: a thread of the parent
+    may have held the old one's lock at the fork), so `tell` and `ask` raise
+    `ActorDeadError` and waits on it return at once; each leaves pykka's registry, whose
+    lock (pykka's private `_actor_refs_lock`) is made new first for the same reason.
+    """
+    pykka.ActorRegistry._actor_refs_lock = threading.RLock()
+    for ref in pykka.ActorRegistry.get_all():
+        stopped = threading.Event()
+        stopped.set()
+        ref.actor_stopped = stopped
+        pykka.ActorRegistry.unregister(ref)
+
+
+fork.after_fork_in_child("the parent's actors", _forget_actors)

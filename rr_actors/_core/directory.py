@@ -6,6 +6,11 @@ to peers, remembers why a name went away (stopped or died, so callers get the ri
 error: and a registrar that its supervisor is bringing back is neither, it is
 unavailable for now), and tells the living registrars when a consumer died for good
 (death watch).
+
+In a child forked from this process, the parent's registrars are not the child's: the
+directory forgets them at the fork (`rr_actors._platform.fork`), and a handle of one used
+in the child gets a `RegistrarUnavailableError` that says so. The resolvers stay: a
+carrier the parent joined is the child's too (the carrier resets its own state).
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from typing import Any, Protocol
 
 import pykka
 
+from rr_actors._platform import fork
 from rr_actors.errors import (
     DuplicateNameError,
     RegistrarStoppedError,
@@ -77,6 +83,7 @@ class Directory:
         """Names of registrars that are down while their supervisor brings them back:
         stopped (a group restart stops the crashed child's siblings) or crashed, a
         caller gets `RegistrarUnavailableError` (retry), not `RegistrarStoppedError`."""
+        self._inherited: dict[str, int] = {}  # in a forked child: the parent's -> its pid
 
     def register(self, peer: Peer) -> None:
         """Publish a registrar under its name.
@@ -89,6 +96,7 @@ class Directory:
                 raise DuplicateNameError(f"a registrar named {peer.name!r} is already running")
             self._peers[peer.name] = peer
             self._gone.pop(peer.name, None)
+            self._inherited.pop(peer.name, None)
 
     def unregister(self, peer: Peer, reason: str) -> None:
         """Withdraw a registrar; `reason` is `"stopped"` or `"died"`."""
@@ -152,10 +160,20 @@ class Directory:
     def gone_error(self, name: str) -> Exception:
         """The error for a registrar that is not (or no longer) reachable.
 
-        `RegistrarUnavailableError` while its supervisor restarts it (`restarting`), even
-        if it was stopped for the restart; else `RegistrarStoppedError` if it was stopped,
-        `RegistrarUnavailableError` if it died, `UnknownRegistrarError` if never seen.
+        In a forked child, `RegistrarUnavailableError` naming the parent for a registrar
+        of the parent's. `RegistrarUnavailableError` while its supervisor restarts it
+        (`restarting`), even if it was stopped for the restart; else
+        `RegistrarStoppedError` if it was stopped, `RegistrarUnavailableError` if it died,
+        `UnknownRegistrarError` if never seen.
         """
+        parent = self._inherited.get(name)
+        if parent is not None:
+            return RegistrarUnavailableError(
+                f"registrar {name!r} runs in process {parent}, which this process was forked "
+                f"from: a forked process has none of its parent's threads, so it cannot use "
+                f"its parent's registrars; start a registrar in this process (it reaches "
+                f"{name!r} by name if both processes joined one system)"
+            )
         if name in self._restarting:
             return RegistrarUnavailableError(f"registrar {name!r} is being restarted")
         reason = self._gone.get(name)
@@ -217,5 +235,22 @@ class Directory:
             except RrError:
                 logger.debug("%s: registrar %s unreachable", type(message).__name__, target)
 
+    def forget_in_child(self, parent: int) -> None:
+        """In a child forked from process `parent`: the registrars of this process are
+        the parent's (their actors have no thread here); nothing restarts here either."""
+        self._lock = threading.Lock()  # a thread of the parent may have held it at the fork
+        for name in self._peers:
+            self._inherited[name] = parent
+        self._peers.clear()
+        self._restart_expected.clear()
+        self._restarting.clear()
+
 
 DIRECTORY = Directory()
+
+
+def _forget_in_child() -> None:
+    DIRECTORY.forget_in_child(fork.forked_from() or 0)
+
+
+fork.after_fork_in_child("the registrar directory", _forget_in_child)

@@ -1,17 +1,26 @@
 """Stop what a program left running when its main thread ends.
 
 A registrar's actors and a supervisor's threads are daemon threads: they never keep a
-program alive by themselves. So that a script that forgets `stop()`, or raises before it,
-still ends cleanly (durable catalogs written, manager processes stopped), every running
-supervisor and registrar is listed here and stopped when the main thread ends:
+program alive by themselves. A Zenoh session's callback threads are not (zenoh-python
+makes them): a session left open keeps the interpreter waiting for them forever. So that
+a script that forgets `stop()` or `close()`, or raises before it, still ends cleanly
+(durable catalogs written, manager processes stopped, sessions closed), every running
+supervisor, registrar and network is listed here and stopped when the main thread ends:
 
 ```
  main thread ends (returns, or an exception's traceback was printed)
    └─ threading._shutdown ─► stop_everything(): supervisors, newest first (each stops its
                               managers and the registrars it made), then the registrars
-                              still running, newest first; all within EXIT_TIMEOUT s
-      ─► the interpreter then joins non-daemon threads (none of ours) and runs atexit
+                              still running, newest first, then the networks still open;
+                              all within EXIT_TIMEOUT s
+      ─► the interpreter then joins non-daemon threads (Zenoh's end with their session)
+         and runs atexit
 ```
+
+A Ctrl-C that reaches the top of the main thread prints one line, `KeyboardInterrupt`,
+not its traceback (`sys.excepthook`, chained: any other exception goes to the hook that
+was there; `python -X dev` keeps the traceback); the interpreter then ends as Python
+does after a Ctrl-C (killed by SIGINT: a shell says 130) once the above ran.
 
 The hook is the platform's (`PLATFORM.at_main_thread_end`: CPython's private
 `threading._register_atexit` on the `linux` platform, `atexit` on the portable one): it
@@ -23,15 +32,17 @@ from __future__ import annotations
 
 import itertools
 import logging
-import os
+import sys
 import threading
 import time
 from collections.abc import Callable
+from types import TracebackType
 
-from rr_actors._platform import PLATFORM
+from rr_actors._platform import PLATFORM, fork
 
 __all__ = [
     "EXIT_TIMEOUT",
+    "NETWORKS",
     "REGISTRARS",
     "SUPERVISORS",
     "left_running",
@@ -46,7 +57,9 @@ EXIT_TIMEOUT = 10.0
 
 SUPERVISORS = 0
 REGISTRARS = 1
-"""Tiers: supervisors stop first (they stop what they started), then registrars."""
+NETWORKS = 2
+"""Tiers: supervisors stop first (they stop what they started), then registrars, then the
+networks they used."""
 
 _MIN_STOP = 0.1  # seconds each stop still gets once EXIT_TIMEOUT ran out
 
@@ -67,7 +80,7 @@ def stop_at_exit(
     twice the running ones listed at most.
 
     Args:
-        tier: `SUPERVISORS` or `REGISTRARS` (lower tiers stop first).
+        tier: `SUPERVISORS`, `REGISTRARS` or `NETWORKS` (lower tiers stop first).
         what: what it is, for people (`"registrar 'erm'"`).
         alive: whether it still needs stopping (called on any thread, must be cheap).
         stop: stops it within `timeout` seconds; what it raises is logged.
@@ -85,27 +98,50 @@ def stop_at_exit(
             except RuntimeError:  # the interpreter is shutting down already
                 return
             _hooked = True
+            _one_line_interrupts()
 
 
 def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
     """Stop every listed supervisor and registrar that still runs; newest first per tier.
 
-    Runs on the main thread when it ends. A Ctrl-C while it runs skips the rest (the
-    threads are daemon threads: the program still ends).
+    Runs on the main thread when it ends. A Ctrl-C while it runs skips the supervisors and
+    registrars left (their threads are daemon threads: the program still ends), not the
+    networks (the interpreter would wait for their sessions' threads).
     """
     deadline = time.monotonic() + timeout
     with _lock:
         entries = sorted(_entries.items(), key=lambda item: (item[1][0], -item[0]))
         _entries.clear()
-    for _number, (_tier, what, alive, stop) in entries:
+    interrupted = False
+    for _number, (tier, what, alive, stop) in entries:
+        if interrupted and tier < NETWORKS:
+            continue
         try:
             if alive():
                 logger.info("stopping %s: it was still running when the program ended", what)
                 stop(max(_MIN_STOP, deadline - time.monotonic()))
         except KeyboardInterrupt:
-            return
+            if interrupted:
+                return
+            interrupted = True
         except Exception:
             logger.exception("stopping what was left running at exit failed")
+
+
+def _one_line_interrupts() -> None:
+    """Have `sys.excepthook` print one line for a Ctrl-C, chained to the hook there now."""
+    previous = sys.excepthook
+
+    def hook(
+        kind: type[BaseException], exc: BaseException, traceback: TracebackType | None
+    ) -> None:
+        if kind is KeyboardInterrupt and not sys.flags.dev_mode:  # (not a subclass: its
+            # message may say more, as `ExperimentInterruptedError`'s does)
+            print("KeyboardInterrupt", file=sys.stderr, flush=True)  # noqa: T201 - as Python
+            return
+        previous(kind, exc, traceback)
+
+    sys.excepthook = hook
 
 
 def left_running() -> list[str]:
@@ -121,4 +157,4 @@ def _forget_all() -> None:
     _entries.clear()
 
 
-os.register_at_fork(after_in_child=_forget_all)
+fork.after_fork_in_child("the exit hook's list", _forget_all)

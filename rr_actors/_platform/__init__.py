@@ -5,6 +5,8 @@ CPython's private machinery lives in `linux`; `portable` does the same jobs plai
 not at all, where the job is only an optimisation). `PLATFORM` is chosen once, at import:
 `linux` on Linux, `portable` elsewhere or when the environment variable
 `RR_ACTORS_PLATFORM=portable` is set (the test suite runs under both).
+
+`fork` is where every layer says what a child forked from this process must let go of.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from __future__ import annotations
 import os
 import sys
 
-from rr_actors._platform import linux, portable
+from rr_actors._platform import fork, linux, portable
 from rr_actors._platform.base import ExitWatch, Platform
 
 __all__ = ["PLATFORM", "ExitWatch", "Platform"]
@@ -27,3 +29,5 @@ def _choose() -> Platform:
 
 PLATFORM: Platform = _choose()
 """The platform's tricks, chosen once for this process (its children choose again)."""
+
+fork.after_fork_in_child("the forkserver", PLATFORM.forget_in_child)

@@ -88,6 +88,14 @@ class Platform(Protocol):
     def set_process_name(self, title: str) -> None:
         """Name this process for `ps` and `top` (in the child; only a convenience)."""
 
+    def forget_in_child(self) -> None:
+        """In a child forked from this process (`rr_actors._platform.fork`): let go of what
+        only the parent can use, so that manager processes can be started from the child.
+
+        The forkserver the parent started is not the child's child: the child must start
+        its own (or spawn).
+        """
+
     def at_main_thread_end(self, fn: Callable[[], None]) -> None:
         """Have `fn()` called on the main thread when it ends (in any process).
 

@@ -1,7 +1,8 @@
 """Linux (and glibc, and CPython-internal) tricks; `portable` is the plain fallback.
 
 Each trick says what it buys. The CPython-private names used here (the forkserver's
-`_forkserver_pid` and `_forkserver_alive_fd`, `multiprocessing.spawn.get_preparation_data`)
+`_forkserver_pid`, `_forkserver_alive_fd`, `_forkserver_address`, `_inherited_fds` and
+`_lock`, `multiprocessing.spawn.get_preparation_data`)
 are used in this file only, and each use degrades to the plain behaviour when the name is
 missing (another CPython).
 """
@@ -104,6 +105,35 @@ def _let_go_of_the_forkserver() -> None:
     with contextlib.suppress(OSError):
         os.close(fd)
     server._forkserver_alive_fd = None
+
+
+def _forget_the_forkserver() -> None:
+    """In a child forked (plain `os.fork`) from a process that started a forkserver.
+
+    What it buys: the child starts manager processes with a forkserver of its own, as
+    the parent does. CPython keeps the parent's forkserver in a module singleton, which
+    the child cannot use: `ensure_running` waits for it with `waitpid`, and it is not the
+    child's child (`ChildProcessError`). The singleton is made as new (its pid, address,
+    lock and its copy of the "alive" pipe, closed); the next `ensure_running` starts one.
+    Where the attributes are missing (another CPython) nothing is touched: the portable
+    platform's spawn fallback is then what the child should use.
+    """
+    from multiprocessing import forkserver  # noqa: PLC0415
+
+    server = getattr(forkserver, "_forkserver", None)
+    if server is None or not hasattr(server, "_forkserver_pid"):
+        return
+    server._lock = threading.Lock()  # a thread of the parent may have held it at the fork
+    if server._forkserver_pid is None:
+        return  # none was started (or this is a forkserver's child: it let go already)
+    fd = getattr(server, "_forkserver_alive_fd", None)
+    if isinstance(fd, int):
+        with contextlib.suppress(OSError):
+            os.close(fd)  # the parent's forkserver ends with the parent, not with the child
+    server._forkserver_alive_fd = None
+    server._forkserver_pid = None
+    server._forkserver_address = None
+    server._inherited_fds = None
 
 
 class PidfdExitWatch:
@@ -259,6 +289,13 @@ class LinuxPlatform:
         with contextlib.suppress(AttributeError):
             kept = title.encode()[:15].decode(errors="ignore").encode()
             libc.prctl(_PR_SET_NAME, ctypes.c_char_p(kept), 0, 0, 0)
+
+    def forget_in_child(self) -> None:
+        """In a forked child: a forkserver of its own at the next manager (see
+        `_forget_the_forkserver`); the lock of the lean preparation made new."""
+        global _LEAN_LOCK  # a thread of the parent may have held it at the fork
+        _LEAN_LOCK = threading.Lock()
+        _forget_the_forkserver()
 
     def at_main_thread_end(self, fn: Callable[[], None]) -> None:
         """CPython's private `threading._register_atexit` (as `concurrent.futures` uses it).

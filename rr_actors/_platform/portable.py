@@ -13,6 +13,7 @@ import multiprocessing
 import multiprocessing.context
 from collections.abc import Callable, Sequence
 
+from rr_actors._platform import fork
 from rr_actors._platform.base import ExitWatch
 
 __all__ = ["PARENT_GONE_EXIT", "PortablePlatform"]
@@ -34,12 +35,15 @@ class PortablePlatform:
     ) -> multiprocessing.context.BaseContext:
         """The forkserver context (spawn where there is none), with no preload.
 
+        Spawn in a child forked from a process that ran rr_actors: the forkserver
+        CPython keeps is its parent's, which it cannot use (`forget_in_child`).
+
         Each manager process imports what it needs after its fork, and re-imports the
         parent's main module as `__mp_main__` (multiprocessing's own behaviour), so
         `preload` and `lean_prefix` are ignored.
         """
         del preload, lean_prefix
-        if "forkserver" in multiprocessing.get_all_start_methods():
+        if fork.forked_from() is None and "forkserver" in multiprocessing.get_all_start_methods():
             ctx = multiprocessing.get_context("forkserver")
             ctx.set_forkserver_preload([])
             return ctx
@@ -62,6 +66,10 @@ class PortablePlatform:
     def set_process_name(self, title: str) -> None:
         """Nothing (install `setproctitle` to name manager processes everywhere)."""
         del title
+
+    def forget_in_child(self) -> None:
+        """Nothing: in a forked child, `manager_context` gives spawn (CPython's forkserver
+        singleton is the parent's, and only its private attributes could reset it)."""
 
     def at_main_thread_end(self, fn: Callable[[], None]) -> None:
         """`atexit`: after the interpreter joined its non-daemon threads (ours are daemons,

@@ -8,7 +8,9 @@ Runs only in manager processes (never in the supervisor's process). In the child
 2. attaches to the system (saying that the supervisor's process speaks for its registrar
    if this process dies: rule 19, `Transport.supervised_by`, any carrier)
    and starts the registrar, which restores its catalog,
-3. runs the (cloudpickled) `setup(registrar)`, then serves the registrar on the system,
+3. runs the (cloudpickled) `setup(registrar)`, then settles the in-doubt entries it was
+   offered (kept in the backup until then: a death during `setup` offers them again),
+   then serves the registrar on the system,
 4. reports `ready` over its control pipe and answers control requests: `stop`, `ping`
    (the heartbeat, answered through the registrar actor's mailbox, with how long its
    listener has been unable to accept connections, if it has) and `events` (whether to
@@ -45,6 +47,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
 import socket
 import struct
 import sys
@@ -198,8 +201,25 @@ def main(
         forward: forward the registrar's events from the start (until told otherwise).
     """
     PLATFORM.die_with_parent(parent)
+    _let_ctrl_c_pass()
     set_title(config.name)
     _run_manager(setup, config, address, conn, forward)
+
+
+def _let_ctrl_c_pass() -> None:
+    """Let a Ctrl-C in the terminal pass: its supervisor stops this manager, in order.
+
+    The terminal sends SIGINT to every process of its foreground group, manager processes
+    included; each would print a `KeyboardInterrupt` traceback and die before its
+    supervisor could stop it cleanly. A handler that does nothing, not `SIG_IGN`: the
+    processes a manager starts (`exec`) get the default back, so a Ctrl-C still reaches
+    them (`SIG_IGN` would be inherited).
+    """
+    signal.signal(signal.SIGINT, _ctrl_c_passes)
+
+
+def _ctrl_c_passes(signum: int, frame: object) -> None:
+    del signum, frame
 
 
 def _warm_up() -> None:
@@ -233,6 +253,7 @@ def standby(conn: Connection, parent: int | None = None) -> None:
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
     """
     PLATFORM.die_with_parent(parent)
+    _let_ctrl_c_pass()
     set_title("spare")
     try:
         if not conn.poll(0):  # taken already: the warm-up would only delay the manager
@@ -299,10 +320,11 @@ def _run_manager(
         if address is not None:
             attached = address.attach()
             attached.supervised_by(_supervisor_pid(conn))  # it restarts this one (rule 19)
-        registrar = start_registrar(config, upstream=line.hub)
+        registrar = start_registrar(config, upstream=line.hub, hold_in_doubt=True)
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
             setup_fn(registrar)
+        registrar.settle_in_doubt()  # setup returned: what it was offered is handled
         if attached is not None:
             attached.serve(Served(registrar))
     except BaseException as exc:  # noqa: BLE001 - reported to the supervisor, then exit

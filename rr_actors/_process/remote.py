@@ -303,7 +303,9 @@ class RemoteRegistrar:
         Raises:
             UnknownQueryError: the id is unknown there or already released.
             CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarUnavailableError: the provider or the registrar's process died.
+            RegistrarUnavailableError: the registrar's process died; or the provider
+                did, and it releases the id when it reconciles after its restart (the
+                registrar no longer holds it, see `ResourceRegistrar.unload`).
         """
         self._forward(lambda reg: reg.unload(query_id, timeout=timeout), timeout)
 

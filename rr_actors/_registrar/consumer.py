@@ -13,11 +13,14 @@
 A client record is one query this registrar holds (`ClientRecord`); a dependency's record
 names the resource of this registrar that owns it (rule 5). Releasing one is the one
 place a record is forgotten (`forget`); giving an id back to a provider is
-`messages.give_back`.
+`messages.give_back`. A release its provider died during (it may or may not have run it)
+is forgotten here and completed by the reconcile after the provider's restart, which no
+longer lists the id (`unreleased`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -47,16 +50,43 @@ from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
     RegistrarStoppedError,
+    RegistrarUnavailableError,
     RrError,
     UnknownQueryError,
 )
 
-__all__ = ["Consumer", "Notice"]
+__all__ = ["Consumer", "Listing", "Notice"]
 
 logger = logging.getLogger("rr_actors")
 
 Notice = StatusNotice | Revoke | ResponseUpdated
 """What a provider tells a consumer about queries it holds."""
+
+GONE = (RegistrarUnavailableError, RegistrarStoppedError)
+"""Errors of a provider that died or was stopped: what was sent may or may not have run."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Listing:
+    """What one `Reconcile` told a provider, as it was when the list left.
+
+    Its answer ("the ids of the list I do not know") is about the catalog as it was
+    then: only records that were answered before it left are settled by it.
+
+    Attributes:
+        held: the ids listed (client records, calls due, calls that failed as the
+            provider died), sorted.
+        due: of those, the calls whose answer was on its way.
+        left_out: ids whose release failed as the provider died, not listed: the
+            provider releases them (`Consumer.unreleased`).
+        epoch: the list's number (`Consumer.epoch`); an answer recorded with this
+            number or a later one came after the list left.
+    """
+
+    held: tuple[str, ...]
+    due: frozenset[str]
+    left_out: frozenset[str]
+    epoch: int
 
 
 class Consumer:
@@ -72,6 +102,14 @@ class Consumer:
         unsettled: query id -> provider, of calls that failed as their provider died or
             stopped (it may hold the id; a retry may come): held until reconciled.
         releasing: query ids whose `Unload` is on its way.
+        unreleased: query id -> provider, of ids this registrar released whose `Unload`
+            failed as the provider died or stopped (it may or may not have run it). Their
+            records are forgotten; a `Reconcile` does not list them, so the provider
+            releases any it still holds (its `unload` runs once) and none is reported
+            `FATAL`. Held until such a `Reconcile` was answered.
+        epoch: how many `Reconcile` lists this registrar has built (`listing`).
+        answered_in: query id -> the `epoch` in which its answer was recorded (ids
+            answered before the first list, or restored, have none: 0).
         texts: makes its records' request display texts (`display.py`).
     """
 
@@ -91,6 +129,9 @@ class Consumer:
         self.parked_notices: dict[str, list[Notice]] = {}
         self.unsettled: dict[str, str] = {}
         self.releasing: set[str] = set()
+        self.unreleased: dict[str, str] = {}
+        self.epoch = 0
+        self.answered_in: dict[str, int] = {}
         self.texts = ClientTexts(shared)
 
     # -- holding and forgetting queries -----------------------------------------------
@@ -103,6 +144,7 @@ class Consumer:
         if query_id in self.registrar.catalog.clients:
             self.registrar.catalog.remove_client(query_id)
             self.status_callbacks.pop(query_id, None)
+            self.answered_in.pop(query_id, None)
             if commit:
                 self.registrar.commit()
 
@@ -143,7 +185,7 @@ class Consumer:
         """Unload one query this registrar holds; the record goes whatever the answer.
 
         A provider that cannot be reached keeps the id until it reconciles with this
-        registrar after its restart (`reconcile`).
+        registrar after its restart (`reconcile`), which releases it (`unreleased`).
         """
         query = record.query
 
@@ -151,6 +193,8 @@ class Consumer:
             self.releasing.discard(query.id)
             if error is not None and not isinstance(error, UnknownQueryError):
                 logger.warning("releasing %s at %s failed: %s", query.id, query.serving_rr, error)
+            if isinstance(error, GONE):
+                self.unreleased[query.id] = query.serving_rr
             self.forget(query.id)
             then()
 
@@ -223,6 +267,7 @@ class Consumer:
                 self.forget(query.id)
                 message.attempt.settle(error=failed)
                 return
+            self.answered_in[query.id] = self.epoch  # (a reconcile's list left before?)
             if message.on_status is not None:
                 self.status_callbacks[query.id] = message.on_status
             if message.answer_after_commit:
@@ -378,36 +423,60 @@ class Consumer:
     # -- what reconciling (`reconciling.py`) asks of it --------------------------------
 
     def holds_at(self, serving_rr: str) -> bool:
-        """Whether this registrar holds ids at `serving_rr` (records, or failed calls)."""
-        return serving_rr in self.unsettled.values() or any(
-            record.query.serving_rr == serving_rr
-            for record in self.registrar.catalog.clients.values()
+        """Whether this registrar holds ids at `serving_rr` (records, failed calls, or
+        releases to complete there)."""
+        return (
+            serving_rr in self.unsettled.values()
+            or serving_rr in self.unreleased.values()
+            or any(
+                record.query.serving_rr == serving_rr
+                for record in self.registrar.catalog.clients.values()
+            )
         )
 
-    def held_at(self, serving_rr: str) -> set[str]:
-        """The ids this registrar holds at `serving_rr` (records, and failed calls)."""
+    def listing(self, serving_rr: str, due: frozenset[str]) -> Listing:
+        """The list of a `Reconcile` to `serving_rr` that leaves now, a new `epoch`.
+
+        Args:
+            serving_rr: the provider.
+            due: the ids whose answer is due now, at any provider (listed too: harmless,
+                reported unknown).
+        """
         held = {
             query_id
             for query_id, record in self.registrar.catalog.clients.items()
             if record.query.serving_rr == serving_rr
         }
-        return held | {q for q, provider in self.unsettled.items() if provider == serving_rr}
+        held |= {q for q, provider in self.unsettled.items() if provider == serving_rr}
+        held |= due
+        left_out = frozenset(q for q, p in self.unreleased.items() if p == serving_rr)
+        self.epoch += 1
+        return Listing(tuple(sorted(held - left_out)), due, left_out, self.epoch)
+
+    def answered_before(self, query_id: str, listing: Listing) -> bool:
+        """Whether `query_id`'s answer was recorded before `listing` left."""
+        return self.answered_in.get(query_id, 0) < listing.epoch
 
     def is_releasing(self, query_id: str) -> bool:
         """Whether the `Unload` of `query_id` is on its way."""
         return query_id in self.releasing
 
-    def settle_unsettled(self, serving_rr: str) -> None:
-        """Forget the failed calls at `serving_rr`: reconciled, or it is gone for good."""
-        for query_id in [q for q, p in self.unsettled.items() if p == serving_rr]:
-            del self.unsettled[query_id]
+    def settle_listed(self, serving_rr: str, listing: Listing | None = None) -> None:
+        """`serving_rr` answered `listing`'s `Reconcile`: forget the failed calls it listed
+        (it holds those it knew: a retry finds them) and the releases it left out (it
+        released them). Without a listing (`serving_rr` is gone for good): all of them."""
+        for pending in (self.unsettled, self.unreleased):
+            for query_id in [q for q, p in pending.items() if p == serving_rr]:
+                if listing is None or query_id in listing.held or query_id in listing.left_out:
+                    del pending[query_id]
 
     def give_back_unsettled(self) -> None:
         """This registrar stops: give back the ids of calls that failed as their provider
-        died, which it would no longer retry."""
-        for query_id, serving_rr in self.unsettled.items():
-            give_back(serving_rr, query_id, self.registrar.name)
-        self.unsettled.clear()
+        died, which it would no longer retry, and of releases that failed so."""
+        for pending in (self.unsettled, self.unreleased):
+            for query_id, serving_rr in pending.items():
+                give_back(serving_rr, query_id, self.registrar.name)
+            pending.clear()
 
     # -- operations the handle asks for ----------------------------------------------
 
@@ -419,12 +488,15 @@ class Consumer:
 
         def answered(_: Any, error: BaseException | None) -> None:
             self.releasing.discard(query_id)
+            if isinstance(error, GONE):  # it may or may not have run it: reconciling
+                reply.set_error(self.release_later(query, error))  # completes it
+                return
             # The provider released the id unless it failed otherwise: it was unknown
             # there, or its unload callback overran `unload_timeout` (a CallTimeoutError
             # only the provider's answer carries here; the caller's own is its handle's).
             released = error is None or isinstance(error, UnknownQueryError | CallTimeoutError)
             if not released:
-                reply.set_error(error)  # type: ignore[arg-type]  # e.g. provider unavailable
+                reply.set_error(error)  # type: ignore[arg-type]  # e.g. its backup is full
                 return
             if isinstance(error, UnknownQueryError):
                 logger.warning("provider %s no longer knew %s", query.serving_rr, query.id)
@@ -438,6 +510,29 @@ class Consumer:
         self.registrar.send(
             query.serving_rr, lambda r: Unload(query_id, self.registrar.name, r), answered
         )
+
+    def release_later(self, query: Query, error: BaseException) -> RrError:
+        """The `Unload` of `query` failed as its provider died or stopped (`error`).
+
+        This registrar gave the id up: it forgets it now (a second `unload` raises
+        `UnknownQueryError`) and keeps it as `unreleased` until the provider's next
+        `Reconcile` was answered, which does not list it: the provider releases it if it
+        still holds it (its `unload` runs once), and nobody hears `FATAL` for it (its
+        consumer asked to release it). Returns the error for the caller, which says so.
+        """
+        self.unreleased[query.id] = query.serving_rr
+        self.forget(query.id)
+        kind = (
+            RegistrarStoppedError
+            if isinstance(error, RegistrarStoppedError)
+            else RegistrarUnavailableError
+        )
+        told = kind(
+            f"{error}; query {query.id} is released: '{query.serving_rr}' releases it when "
+            "it reconciles with this registrar after its restart (its unload runs once)"
+        )
+        told.__cause__ = error
+        return told
 
     def op_set_status_callback(self, query_id: str, callback: StatusCallback, reply: Reply) -> None:
         if query_id not in self.registrar.catalog.clients:

@@ -71,6 +71,7 @@ __all__ = [
     "Save",
     "SendStatus",
     "SetStatusCallback",
+    "SettleInDoubt",
     "Snapshot",
     "StatusNotice",
     "Stop",
@@ -207,9 +208,9 @@ class Reconcile(WireMessage):
     Sent after a restart of either side (a consumer's start, or a provider's
     `ReconcileAsk`). `held` lists the consumer's client records at this provider, its
     calls whose answer is due, and its calls that failed as this provider died (they may
-    be retried with the same id). The provider releases every consumer id of
-    `origin_rr` it holds that is not in `held`; it answers with the ids of `held` it
-    neither holds nor has a load under way for.
+    be retried with the same id); not the ids whose `Unload` failed so (released). The
+    provider releases every consumer id of `origin_rr` it holds that is not in `held`;
+    it answers with the ids of `held` it neither holds nor has a load under way for.
     """
 
     origin_rr: str
@@ -438,6 +439,15 @@ class Stop:
 class Ready:
     """The manager's setup is done: serve. Answer: `None`."""
 
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class SettleInDoubt:
+    """The manager handled in-doubt entry `query_id` (`None`: all of them): the backup
+    forgets it. Answer: `None`."""
+
+    query_id: str | None
     reply: FutureReply
 
 

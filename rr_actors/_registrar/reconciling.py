@@ -2,8 +2,9 @@
 
 ```
  this registrar serves (again), or a provider asks (ReconcileAsk) ──► reconcile(provider)
-      ──► Reconcile(the ids held there) ──► the provider releases the others, and names
-          those it no longer knows ──► settle_reconciled: FATAL to them, then forgotten
+      ──► Reconcile(the ids held there, as a `Listing`) ──► the provider releases the
+          others, and names those it no longer knows ──► settle_reconciled: FATAL to
+          those that were answered before the list left, then forgotten
  a provider gone for good (presence.py) ──► lose_provider: FATAL to its ids, forgotten
 ```
 
@@ -22,7 +23,7 @@ from typing import Any
 
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.calls import DueAnswers
-from rr_actors._registrar.consumer import Consumer
+from rr_actors._registrar.consumer import Consumer, Listing
 from rr_actors._registrar.messages import Reconcile, ReconcileAsk, StatusNotice
 from rr_actors._registrar.state import Phase, Shared
 from rr_actors._types import Status
@@ -85,19 +86,22 @@ class Reconciling:
         The provider releases the others it holds for this registrar, and names the ones
         it no longer knows: their status callbacks get `FATAL` and they are forgotten.
         The list and the message leave while no call can start (`DueAnswers.frozen`), so
-        a call sent later reaches the provider after it. A call due already may send its
-        `Load` after the `Reconcile` (its caller's thread may still be on its way to the
-        carrier), so the provider's "unknown" says nothing of it: its own answer decides.
+        a call sent later reaches the provider after it. The provider's "unknown" is
+        about its catalog as the list found it, so it settles only the records answered
+        before the list left (`Listing.epoch`): a call due then may send its `Load` after
+        the `Reconcile` (its caller's thread may still be on its way to the carrier), and
+        a retry of a call that failed as the provider died may be sent and answered
+        after it; their own answers decide. Releases that failed as the provider died
+        are left out of the list, so the provider releases them (`Consumer.unreleased`).
         `then(error)` runs (on this actor) once the answer was handled: `None`, or why it
         failed (`presence.py` retries).
         """
         with self.due.frozen() as due:
-            held = self.consumer.held_at(serving_rr)
-            held |= due  # (ids due at other providers too: harmless, reported unknown)
+            listing = self.consumer.listing(serving_rr, due)
             self.registrar.send(
                 serving_rr,
-                lambda reply: Reconcile(self.registrar.name, tuple(sorted(held)), reply),
-                lambda unknown, error: self.reconciled(serving_rr, unknown, error, then, due),
+                lambda reply: Reconcile(self.registrar.name, listing.held, reply),
+                lambda unknown, error: self.reconciled(serving_rr, unknown, error, listing, then),
             )
 
     def reconciled(
@@ -105,11 +109,11 @@ class Reconciling:
         serving_rr: str,
         unknown: Any,
         error: BaseException | None,
+        listing: Listing,
         then: Callable[[BaseException | None], None] | None = None,
-        due: frozenset[str] = frozenset(),
     ) -> None:
-        """The provider's answer to a `Reconcile`: report and forget what it lost (of the
-        ids not `due` as it was sent)."""
+        """The provider's answer to the `Reconcile` of `listing`: report and forget what
+        it lost."""
         if error is not None:  # not reachable: it asks for a Reconcile when it is back
             logger.debug(
                 "reconciling %s with %s failed: %s", self.registrar.name, serving_rr, error
@@ -117,12 +121,17 @@ class Reconciling:
             if then is not None:
                 then(error)
             return
-        self.settle_reconciled(serving_rr, (q for q in unknown if q not in due))
+        self.settle_reconciled(serving_rr, unknown, listing)
         if then is not None:
             then(None)
 
-    def settle_reconciled(self, serving_rr: str, unknown: Any) -> None:
-        """Report and forget the ids `serving_rr` answered it no longer knows."""
+    def settle_reconciled(self, serving_rr: str, unknown: Any, listing: Listing) -> None:
+        """Report and forget the ids `serving_rr` answered it no longer knows.
+
+        Only records that were as `listing` found them: answered before it left, not due
+        then or now, not being released. One answered after it (a retry, a call due) is
+        held there by its own answer.
+        """
         lost: dict[str, list[str]] = {}
         for query_id in unknown:
             record = self.registrar.catalog.clients.get(query_id)
@@ -130,14 +139,17 @@ class Reconciling:
                 record is None
                 or not record.loaded
                 or record.query.serving_rr != serving_rr
+                or query_id in listing.due
                 or query_id in self.due
+                or not self.consumer.answered_before(query_id, listing)
                 or self.consumer.is_releasing(query_id)
             ):
                 continue
             lost.setdefault(record.query.server, []).append(query_id)
-        # What was unsettled and survived the reconcile is held by the provider now: a
-        # retry finds it; a call never retried is released at its next restart.
-        self.consumer.settle_unsettled(serving_rr)  # (those it does not hold: nothing to retry)
+        # What was unsettled, was listed and survived the reconcile is held by the provider
+        # now: a retry finds it; a call never retried is released at its next restart.
+        # What was left out of the list, it released.
+        self.consumer.settle_listed(serving_rr, listing)
         for server, ids in lost.items():
             logger.warning(
                 "registrar %s: %s/%s no longer knows %d of the queries held there "
@@ -156,7 +168,7 @@ class Reconciling:
         for query_id, record in list(self.registrar.catalog.clients.items()):
             if record.query.serving_rr == serving_rr and record.loaded:
                 lost.setdefault(record.query.server, []).append(query_id)
-        self.consumer.settle_unsettled(serving_rr)  # nobody holds them there any more
+        self.consumer.settle_listed(serving_rr)  # nobody holds them there any more
         for server, ids in sorted(lost.items()):
             logger.warning(
                 "registrar %s: %s is gone and nobody will restart it: FATAL to the %d "

@@ -23,6 +23,7 @@ from rr_actors._catalog import ResourceState
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer
 from rr_actors._core.replies import FutureReply
+from rr_actors._platform import fork
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.endpoints import Clients
@@ -68,6 +69,7 @@ def launch(
     *,
     setting_up: bool,
     upstream: Publisher[events.Event] | None,
+    hold_in_doubt: bool = False,
 ) -> Launched:
     """Restore the catalog and start the actor (on the calling thread).
 
@@ -75,16 +77,20 @@ def launch(
         config: a `RegistrarConfig`, or just a name.
         setting_up: whether a `setup` runs before it serves others (loads wait for it).
         upstream: a publisher its events are relayed to as well (a supervisor's tree).
+        hold_in_doubt: keep the in-doubt entries in the backup until the manager settles
+            them (`ResourceRegistrar.settle_in_doubt`; a `setup` runs first).
 
     Raises:
         DuplicateNameError: a registrar with this name is already running here.
         CatalogCorruptError: the backup exists but cannot be read (it is left as is).
-        ConfigError: the configuration, or its backup path, is invalid.
+        ConfigError: the configuration, or its backup path, is invalid; or this process
+            was forked from one whose state a child cannot use (`rr_actors._platform.fork`).
     """
     if isinstance(config, str):
         config = RegistrarConfig(name=config)
     elif not isinstance(config, RegistrarConfig):
         raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
+    fork.check_usable(f"registrar {config.name!r}")
     peer = LocalPeer(config.name, None)
     DIRECTORY.register(peer)
     saver: Saver | None = None
@@ -109,6 +115,7 @@ def launch(
             published,
             clients,
             setting_up=setting_up,
+            hold_in_doubt=hold_in_doubt,
         )
     except BaseException:
         if saver is not None:

@@ -46,6 +46,7 @@ from rr_actors import events
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.exit import SUPERVISORS, stop_at_exit
 from rr_actors._core.timers import Timer, thread_timer
+from rr_actors._platform import fork
 from rr_actors._registrar import Registrar, ResourceRegistrar, Served, start_registrar
 from rr_actors._supervision import retry
 from rr_actors._supervision.children import (
@@ -212,8 +213,11 @@ class Supervisor:
                 in reverse order. The cause is chained.
             ConfigError: a process manager's `setup` cannot be pickled, the supervisor was
                 already started, or a `state_dir` of the tree is in use by another
-                supervisor (the message names the holder's pid; see `state_dir`).
+                supervisor (the message names the holder's pid; see `state_dir`); or this
+                process was forked from one whose state a child cannot use (a Zenoh
+                session): the message says to use the `spawn` or `forkserver` method.
         """
+        fork.check_usable(f"supervisor {self.name!r}")
         if self._started:
             raise ConfigError(f"supervisor {self.name!r} was already started")
         self._started = True

@@ -145,6 +145,12 @@ class _Link:
         """End the connection (any thread); the reader thread then cleans up."""
         self.writer.close()
 
+    def forget_in_child(self) -> None:
+        """In a forked child: close this process's copies of the descriptors (not shut
+        down: the connection is the parent's)."""
+        self.writer.forget_in_child()
+        self.conn.close()
+
     def _failed(self, exc: BaseException) -> None:
         logger.debug("connection to a caller of %s lost: %s", self.listener.name, exc)
 
@@ -379,6 +385,26 @@ class Listener:
     def run(self, message: Run) -> None:
         """Run a control function on a fresh thread (it may block; it is rare)."""
         message.start(self.endpoint.run, f"rr-run-{self.name}")
+
+    def forget_in_child(self) -> None:
+        """In a forked child: let go of the parent's listener without touching it.
+
+        Closes this process's copies of the listening socket, of the name lock's
+        descriptor (a lock shared with a child would outlive the parent: its peers would
+        think the name still served) and of every connection. Unlike `close`, nothing is
+        shut down, unlinked or written: the socket, the lock and the files are the
+        parent's, which still serves the name. Takes no lock.
+        """
+        self._closed = True
+        links = list(self._links)
+        self._links.clear()
+        self._lock = threading.Lock()
+        self._closing = threading.Lock()
+        self._sock.close()
+        with contextlib.suppress(OSError):
+            os.close(self._lock_fd)
+        for link in links:
+            link.forget_in_child()
 
     def close(self, *, stopped: bool) -> None:
         """Stop listening; with `stopped`, leave a tombstone so peers say "stopped".

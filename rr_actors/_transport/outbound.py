@@ -60,12 +60,13 @@ class _Channel:
     is the target's `max_message_bytes`, both ways.
     """
 
-    __slots__ = ("limit", "pending", "writer")
+    __slots__ = ("limit", "pending", "reading", "writer")
 
     def __init__(self, writer: Writer, limit: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
         self.writer = writer
         self.limit = limit
         self.pending: dict[int, tuple[Reply, Any]] = {}
+        self.reading: Connection | None = None  # the reader thread's (a duplicate descriptor)
 
 
 class RemotePeer:
@@ -176,6 +177,22 @@ class RemotePeer:
         with contextlib.suppress(RrError):
             self._open()
 
+    def forget_in_child(self) -> None:
+        """In a forked child: drop the parent's connection (its threads are not here).
+
+        This process's copies of its descriptors are closed, never shut down (that would
+        end the parent's connection); its replies are the parent's callers' and are
+        dropped. The next `tell` connects anew, from the child. Takes no lock.
+        """
+        self._lock = threading.Lock()
+        channel, self._channel = self._channel, None
+        if channel is None:
+            return
+        channel.pending.clear()
+        channel.writer.forget_in_child()
+        if channel.reading is not None:
+            channel.reading.close()
+
     # -- plumbing --------------------------------------------------------------------------
 
     def _open(self) -> _Channel:
@@ -217,6 +234,7 @@ class RemotePeer:
             conn.close()
             sock.close()
             return
+        channel.reading = conn
         threading.Thread(
             target=self._read, args=(channel, conn), name=f"rr-read-{self.name}", daemon=True
         ).start()

@@ -36,6 +36,15 @@ answer still outstanding on it fails at once with `RegistrarUnavailableError` (o
 again, so a restarted registrar that binds the same path is reached. Low-level errors
 (`EOFError`, `BrokenPipeError`, `ConnectionResetError`, `OSError`, pickling errors) are
 translated into rr_actors errors with `raise ... from exc` and never reach a caller.
+
+Fork: a child forked from a process that joined a system is a member of it too (same
+runtime directory, same authkey), but none of the parent's listeners, connections or
+threads are its own. At the fork (`rr_actors._platform.fork`) each attached system drops
+them in the child: the child's copies of their descriptors are closed (never shut down,
+which would end them for the parent; the name locks' descriptors too, which would
+otherwise keep the parent's names locked after the parent died). The child then serves
+its own registrars and connects anew; and only the process that created a `System`
+removes its files at `close()`.
 """
 
 from __future__ import annotations
@@ -52,6 +61,7 @@ from collections.abc import Callable
 from typing import Any
 
 from rr_actors._core.directory import DIRECTORY, Peer
+from rr_actors._platform import fork
 from rr_actors._transport.base import Endpoint
 from rr_actors._transport.inbound import Listener
 from rr_actors._transport.outbound import RemotePeer
@@ -277,6 +287,24 @@ class AttachedSystem:
             if _ATTACHED.get(self.address.runtime_dir) is self:
                 del _ATTACHED[self.address.runtime_dir]
 
+    def forget_in_child(self) -> None:
+        """In a forked child: drop the parent's listeners, connections and presence
+        thread; stay attached (see the module's "Fork"). Takes no lock: makes them new."""
+        self._lock = threading.Lock()
+        self._presence = threading.Condition()
+        listeners, peers = list(self._listeners.values()), list(self._peers.values())
+        self._listeners.clear()
+        self._peers.clear()
+        self._judging.clear()
+        self._awaited.clear()
+        self._lost.clear()
+        self._judge_thread = None
+        self._speaker = None  # whoever restarts the parent's registrars knows not the child's
+        for listener in listeners:
+            listener.forget_in_child()
+        for peer in peers:
+            peer.forget_in_child()
+
     def __enter__(self) -> AttachedSystem:
         return self
 
@@ -473,6 +501,16 @@ _ATTACHED: dict[str, AttachedSystem] = {}
 _ATTACHED_LOCK = threading.Lock()
 
 
+def _forget_in_child() -> None:
+    global _ATTACHED_LOCK  # a thread of the parent may have held it at the fork
+    _ATTACHED_LOCK = threading.Lock()
+    for attached in list(_ATTACHED.values()):
+        attached.forget_in_child()
+
+
+fork.after_fork_in_child("the AF_UNIX carrier", _forget_in_child)
+
+
 def attach(address: SystemAddress) -> AttachedSystem:
     """Join the system at `address` from this process (idempotent per process).
 
@@ -494,11 +532,13 @@ class System(AttachedSystem):
     """A system of registrars across processes, as its owner (the main process) holds it.
 
     It is an `AttachedSystem` of the creating process; `close()` also removes the files the
-    system put in the runtime directory, and the directory itself if `create` made it.
+    system put in the runtime directory, and the directory itself if `create` made it (in
+    the creating process only: in a child forked from it, `close()` just leaves).
     Hand `address` to the processes that should join.
     """
 
     _made_dir = False
+    _owner = 0  # the pid of the process that created it
 
     @classmethod
     def create(cls, runtime_dir: str | None = None) -> System:
@@ -528,6 +568,7 @@ class System(AttachedSystem):
         with _ATTACHED_LOCK:
             system = cls(address)
             system._made_dir = made
+            system._owner = os.getpid()
             _ATTACHED[address.runtime_dir] = system
         return system
 
@@ -535,9 +576,12 @@ class System(AttachedSystem):
         """Leave the system and remove its files (idempotent).
 
         Removes the sockets, tombstones and lock files of the runtime directory, then the
-        directory itself if `create` made it and nothing else is left in it.
+        directory itself if `create` made it and nothing else is left in it. In a child
+        forked from the creating process it only leaves the system (as `AttachedSystem`).
         """
         super().close()
+        if self._owner != os.getpid():
+            return  # a forked child's copy: the files are its parent's system's
         directory = self.address.runtime_dir
         with contextlib.suppress(OSError):
             for entry in os.listdir(directory):

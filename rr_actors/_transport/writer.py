@@ -130,6 +130,18 @@ class Writer:
         run_lost(lost)
         return True
 
+    def forget_in_child(self) -> None:
+        """In a forked child: close this process's copy of the socket, send nothing more.
+
+        Never `shutdown`: the socket is the parent's too, and a shutdown would end it for
+        the parent. Takes no lock (a thread of the parent may have held it at the fork).
+        """
+        self.closed = True
+        self._cond = threading.Condition(threading.Lock())
+        self._queue.clear()
+        if self._sock is not None:
+            self._sock.close()
+
     def fail(self, exc: BaseException) -> None:
         """Close because of `exc` (a failed connect or write) and report it once."""
         if self.close():

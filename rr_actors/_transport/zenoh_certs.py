@@ -14,6 +14,12 @@ A file is written to a temporary file in the same directory, then renamed over i
 a crash leaves the old file or the new one, never half of one. Without `force` it is
 hard-linked instead, which fails if the name appeared meanwhile (another writer, or a
 symlink): what is there is never replaced.
+
+The CA stays private: `init` makes DIR 0700, and refuses an existing DIR that another
+user owns or that group or others may write to (they may have planted files in it, or
+swap the CA later); `issue` refuses such a DIR too, and a `ca.key` that is another
+user's or open to group or others (the check `ZenohTLS` makes of a host's key, in
+`access`). `force` goes ahead anyway.
 """
 
 from __future__ import annotations
@@ -33,7 +39,8 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from rr_actors._transport.zenoh_tls import MEMBER_NAME
+from rr_actors._transport.access import private_dir_trouble, private_file_trouble
+from rr_actors.config import check_name
 from rr_actors.errors import ConfigError
 
 __all__ = ["CA_DAYS", "CLOCK_SKEW", "init_ca", "issue_cert"]
@@ -129,8 +136,13 @@ def _write_all(files: dict[Path, tuple[bytes, int]], *, force: bool) -> None:
                 tmp.unlink()
 
 
-def _directory(directory: str | os.PathLike[str]) -> Path:
-    """`directory`, made 0700 if missing."""
+def _refuse_unsafe(what: str, path: Path, trouble: str | None, force: bool) -> None:
+    if trouble is not None and not force:
+        raise ConfigError(f"{what} {path} {trouble}; nothing written (--force writes anyway)")
+
+
+def _directory(directory: str | os.PathLike[str], *, force: bool) -> Path:
+    """`directory`, made 0700 if missing; an existing one must be private (or `force`)."""
     path = Path(directory)
     if not path.exists():
         try:
@@ -140,6 +152,7 @@ def _directory(directory: str | os.PathLike[str]) -> Path:
             raise ConfigError(f"cannot make the directory {path}: {exc}") from exc
     if not path.is_dir():
         raise ConfigError(f"{path} is not a directory")
+    _refuse_unsafe("the CA's directory", path, private_dir_trouble(path), force)
     return path
 
 
@@ -148,30 +161,40 @@ def init_ca(
 ) -> tuple[Path, Path]:
     """Make a system's certificate authority: `directory/ca.pem` and `directory/ca.key`.
 
-    The CA's common name is `rr_actors <system> CA`; it is valid for `CA_DAYS` days
-    (BasicConstraints CA=true, keyCertSign and cRLSign, both critical; ECDSA P-256).
-    The directory is made (0700) if missing; the key is written 0600.
+    The CA's subject is `CN=<system>, O=rr_actors CA` (a name of `NAME_MAX`, 64
+    characters, fills a common name); it is valid for `CA_DAYS` days (BasicConstraints
+    CA=true, keyCertSign and cRLSign, both critical; ECDSA P-256). The directory is made
+    (0700) if missing; an existing one must be this user's and writable by nobody else
+    (another user could have planted files there, or swap the CA later). The key is
+    written 0600.
 
     Args:
         directory: where the files go.
         system: the system's name (as `ZenohNetwork(system=...)`), named in the CA.
         force: replace existing files (certificates issued by the old CA stop being
-            accepted by hosts that get the new `ca.pem`).
+            accepted by hosts that get the new `ca.pem`), and write into a directory
+            that is not private.
 
     Returns:
         The paths of `ca.pem` and `ca.key`.
 
     Raises:
-        ConfigError: `system` is not a system name; `ca.pem` or `ca.key` exists (without
-            `force`; nothing is written); the directory cannot be made or written.
+        ConfigError: `system` is not a system name (or longer than 64 characters);
+            without `force`, `ca.pem` or `ca.key` exists, or the directory belongs to
+            another user or is writable by group or others (nothing is written); the
+            directory cannot be made or written.
     """
-    if not isinstance(system, str) or MEMBER_NAME.fullmatch(system) is None:
-        raise ConfigError(f"system {system!r} is not a system name ({MEMBER_NAME.pattern})")
-    path = _directory(directory)
+    check_name("system", system, "a system name")
+    path = _directory(directory, force=force)
     pem, key_path = path / "ca.pem", path / "ca.key"
     _refuse_existing((pem, key_path), force)
     key = ec.generate_private_key(ec.SECP256R1())
-    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"rr_actors {system} CA")])
+    subject = x509.Name(  # the CN is the system alone: a name fills it (NAME_MAX, 64)
+        [
+            x509.NameAttribute(NameOID.ORGANIZATION_NAME, "rr_actors CA"),
+            x509.NameAttribute(NameOID.COMMON_NAME, system),
+        ]
+    )
     now = datetime.datetime.now(datetime.UTC)
     cert = (
         x509.CertificateBuilder()
@@ -193,7 +216,8 @@ def init_ca(
 CaKey = ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey
 
 
-def _load_ca(directory: Path) -> tuple[x509.Certificate, CaKey]:
+def _load_ca(directory: Path, *, force: bool) -> tuple[x509.Certificate, CaKey]:
+    """The CA of `directory`; its key and the directory must be private (or `force`)."""
     pem, key_path = directory / "ca.pem", directory / "ca.key"
     missing = [str(p) for p in (pem, key_path) if not p.is_file()]
     if missing:
@@ -201,6 +225,10 @@ def _load_ca(directory: Path) -> tuple[x509.Certificate, CaKey]:
             f"no CA: {' and '.join(missing)} missing "
             f"(make one with: rr-actors certs init {directory} --system NAME)"
         )
+    # Whoever can read ca.key can make members; whoever can write it, or the directory,
+    # can swap in a CA of their own: sign with neither.
+    _refuse_unsafe("the CA's key", key_path, private_file_trouble(key_path), force)
+    _refuse_unsafe("the CA's directory", directory, private_dir_trouble(directory), force)
     try:
         cert = x509.load_pem_x509_certificate(pem.read_bytes())
     except (OSError, ValueError) as exc:
@@ -270,26 +298,28 @@ def issue_cert(
         name: the member name, as in `ZenohTLS(members=...)`.
         addresses: the IP addresses and DNS names peers dial this host at.
         days: how long the certificate is valid, a positive int.
-        force: replace an existing certificate of that name.
+        force: replace an existing certificate of that name, and sign with a CA key or
+            in a directory that is not private.
 
     Returns:
         The paths of `NAME.pem` and `NAME.key`.
 
     Raises:
-        ConfigError: `name` is not a member name or is `ca`; `days` is not a positive
-            int or ends after the year 9999; `addresses` is a str, or an address is
-            neither an IP address nor a DNS name (a port, 'tls/' or brackets in it);
-            there is no readable CA in `directory`; `NAME.pem` or `NAME.key` exists
-            (without `force`; nothing is written).
+        ConfigError: `name` is not a member name (or longer than 64 characters) or is
+            `ca`; `days` is not a positive int or ends after the year 9999; `addresses`
+            is a str, or an address is neither an IP address nor a DNS name (a port,
+            'tls/' or brackets in it); there is no readable CA in `directory`; without
+            `force` (nothing is written): `NAME.pem` or `NAME.key` exists, `ca.key` is
+            open to group or others or owned by another user, or `directory` is
+            writable by group or others or owned by another user.
     """
-    if not isinstance(name, str) or MEMBER_NAME.fullmatch(name) is None:
-        raise ConfigError(f"name {name!r} is not a member name ({MEMBER_NAME.pattern})")
+    check_name("name", name, "a member name")
     if name == "ca":
         raise ConfigError("name 'ca' is the CA's own files: name the host otherwise")
     if isinstance(days, bool) or not isinstance(days, int) or days < 1:
         raise ConfigError(f"days must be a positive whole number, not {days!r}")
     path = Path(directory)  # its CA files are checked next: missing, they say how to make them
-    ca_cert, ca_key = _load_ca(path)
+    ca_cert, ca_key = _load_ca(path, force=force)
     pem, key_path = path / f"{name}.pem", path / f"{name}.key"
     _refuse_existing((pem, key_path), force)
     sans = _names(name, addresses)

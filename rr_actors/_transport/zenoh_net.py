@@ -14,11 +14,15 @@ never over TCP on loopback, which any local user could reach and send pickles to
 ```
 
 Between hosts, `tls/` (mutual TLS, only members admitted: `zenoh_config`, `zenoh_tls`,
-`zenoh_watch`) or, on one trusted network, `tcp/` (`tls=None`). What crosses:
+`zenoh_watch`) or, on one trusted network, `tcp/` (`tls=None`: a WARNING per endpoint
+naming who can reach it, on loopback every local user). What crosses:
 `zenoh_carrier` (and its collaborators); how presence works: `zenoh_presence`. A process
 belongs to one system (the registrar directory is per process): joining a second one is
-a `ConfigError`. A process that opened a Zenoh session must not fork (the child hangs):
-rr_actors starts manager processes with forkserver or spawn.
+a `ConfigError`. A process that opened a Zenoh session must not fork: Zenoh's runtime
+threads are not in the child, whose session (and any new one) would hang. rr_actors
+starts manager processes with forkserver or spawn, and refuses such a child
+(`rr_actors._platform.fork`): its `ResourceRegistrar.start`, `Supervisor.start` and
+joining a system raise a `ConfigError` that names those start methods.
 """
 
 from __future__ import annotations
@@ -38,12 +42,15 @@ import zenoh
 
 from rr_actors._core.addresses import is_loopback
 from rr_actors._core.directory import Peer
+from rr_actors._core.exit import NETWORKS, stop_at_exit
+from rr_actors._platform import fork
+from rr_actors._transport.access import user
 from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.zenoh_carrier import ZenohMember
 from rr_actors._transport.zenoh_config import endpoints, parse_endpoint, session_config
 from rr_actors._transport.zenoh_watch import LinkWatch
-from rr_actors.config import NAME
-from rr_actors.errors import ConfigError, RegistrarUnavailableError
+from rr_actors.config import check_name
+from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavailableError
 
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh_tls import ZenohTLS
@@ -71,11 +78,71 @@ def _is_tls(tls: object) -> bool:
     return isinstance(tls, ZenohTLS)
 
 
+# -- plain TCP ------------------------------------------------------------------------------
+
+
+def _who_reaches(host: str) -> str:
+    if is_loopback(host):
+        return "every user and process on this machine"
+    if host in ("0.0.0.0", "::"):  # noqa: S104 - naming the wildcard, not binding it
+        return "anyone who can reach this machine (at any of its addresses)"
+    return f"anyone who can reach {host}"
+
+
+def _who_answers(host: str, port: int) -> str:
+    if is_loopback(host):
+        return f"every user and process on this machine (whoever listens on port {port} first)"
+    return f"whoever answers at {host} port {port} (anyone who can listen there or sits between)"
+
+
+def _warn_plain_tcp(system: str, listen: Iterable[str], connect: Iterable[str]) -> None:
+    """A WARNING per plain-TCP endpoint, naming who can send this process pickles through it.
+
+    Unpickling runs code, and plain TCP asks nobody who they are: loopback is no
+    exception (every local user can connect to it, where the Unix carrier's 0700 runtime
+    directory lets in only this user), and a `connect` endpoint trusts whoever answers.
+    """
+    me = user()
+    for endpoint in listen:
+        _, host, _ = parse_endpoint("listen", endpoint)
+        logger.warning(
+            "ZenohNetwork %r listens on %s in plain TCP (tls=None): %s can connect and run "
+            "code as this user, %s (what crosses is pickles); use tls= and tls/ endpoints",
+            system,
+            endpoint,
+            _who_reaches(host),
+            me,
+        )
+    for endpoint in connect:
+        _, host, port = parse_endpoint("connect", endpoint)
+        logger.warning(
+            "ZenohNetwork %r connects to %s in plain TCP (tls=None): %s can run code as "
+            "this user, %s (what crosses is pickles); use tls= and tls/ endpoints",
+            system,
+            endpoint,
+            _who_answers(host, port),
+            me,
+        )
+
+
 # -- one system per process ----------------------------------------------------------------------
 
 _MEMBER: ZenohMember | None = None
 _MEMBER_OWNER: object = None
 _MEMBER_LOCK = threading.Lock()
+_OPENED: list[str] = []  # the systems this process opened a Zenoh session for
+
+
+def _refuse_in_child() -> None:
+    """In a forked child: a process that opened a Zenoh session cannot be forked."""
+    if _OPENED:
+        fork.refuse(
+            f"had opened a Zenoh session (system {_OPENED[0]!r}), whose runtime threads "
+            f"do not exist in a forked child"
+        )
+
+
+fork.after_fork_in_child("the Zenoh carrier", _refuse_in_child)
 
 
 def _join(system: str, owner: object, open_member: Callable[[], ZenohMember]) -> ZenohMember:
@@ -83,9 +150,11 @@ def _join(system: str, owner: object, open_member: Callable[[], ZenohMember]) ->
 
     Raises:
         ConfigError: this process is a member of another system, or (for a second
-            `ZenohNetwork` of the same system) a router of it already.
+            `ZenohNetwork` of the same system) a router of it already; or it was forked
+            from a process that had opened a Zenoh session (`rr_actors._platform.fork`).
     """
     global _MEMBER, _MEMBER_OWNER
+    fork.check_usable(f"a member of system {system!r}")
     with _MEMBER_LOCK:
         member = _MEMBER
         if member is not None and not member.closed:
@@ -103,6 +172,7 @@ def _join(system: str, owner: object, open_member: Callable[[], ZenohMember]) ->
             )
         member = open_member()
         _MEMBER, _MEMBER_OWNER = member, owner
+        _OPENED.append(system)
         return member
 
 
@@ -111,6 +181,25 @@ def _left(member: ZenohMember) -> None:
     with _MEMBER_LOCK:
         if _MEMBER is member:
             _MEMBER, _MEMBER_OWNER = None, None
+
+
+def _close_at_exit(what: str, member: ZenohMember, close: Callable[[], None]) -> None:
+    """Close `member`'s session when the main thread ends, if the program did not: Zenoh's
+    callback threads are not daemons, so an open session keeps the interpreter waiting
+    for them forever (after an error, or a Ctrl-C, as much as after a forgotten
+    `close()`). `_core.exit` runs it after the supervisors and registrars stopped."""
+    stop_at_exit(NETWORKS, what, lambda: not member.closed, lambda _timeout: close())
+
+
+def _no_link(unlinked: list[tuple[str, str]]) -> str:
+    """What to add to an error about a name not seen: the connect endpoints with no link."""
+    if not unlinked:
+        return ""
+    links = "; ".join(f"{endpoint} ({reason})" for endpoint, reason in unlinked)
+    return (
+        f"; this process has no link to connect endpoint {links}, so a registrar served "
+        f"there is not seen"
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,6 +241,7 @@ class ZenohAddress:
         member = ZenohMember(self.system, session, speakers={self.router_pid: self.router})
         member._on_close = lambda: _left(member)
         member._address = self
+        _close_at_exit(f"the membership of system {self.system!r}", member, member.close)
         return member
 
 
@@ -163,27 +253,32 @@ class ZenohNetwork:
     opens its Zenoh session at first use. All arguments are keyword-only.
 
     Args:
-        system: the system's name, as a registrar name (`[A-Za-z0-9_.-]+`); every key
-            expression starts with `rr/<system>/`, so systems sharing a network never
-            see each other.
+        system: the system's name, as a registrar name (`rr_actors.config.NAME`:
+            `[A-Za-z0-9_.-]`, at most 64 characters); every key expression starts with
+            `rr/<system>/`, so systems sharing a network never see each other.
         listen: Zenoh endpoints to listen on, `tls/<address>:<port>` with `tls`,
-            `tcp/<address>:<port>` without (the firewall must let that port in). A
-            listen endpoint that is not loopback gets a WARNING while `tls=None`.
-        connect: endpoints of other hosts' routers, in the same form. One that cannot be
+            `tcp/<address>:<port>` without (the firewall must let that port in). With
+            `tls=None` every endpoint gets a WARNING saying who can reach it: on
+            loopback every user and process on this machine, elsewhere anyone who
+            reaches the address; each can run code as this process's user.
+        connect: endpoints of other hosts' routers, in the same form (with `tls=None` a
+            WARNING each: whoever answers there can run code here). One that cannot be
             reached yet is no error (the other host may start later; Zenoh keeps
             trying): a WARNING names it, with TLS the reason from a handshake of our own
             (`zenoh_watch`), at most once a minute while it lasts.
         tls: required. A `ZenohTLS`: mutual TLS on every link and Zenoh's access control
             (only `members` and this host's manager processes reach `rr/<system>/`; see
             `zenoh_config`). `None`: plain TCP, for one trusted network only: anyone who
-            reaches a port can send pickles, which run as code.
+            reaches a port (on loopback: every local user) can send pickles, which run
+            as code.
         lease: seconds (default 1.0) after which a silent peer (a cut link, a frozen
             process) counts as gone. Zenoh's own default is 10 s.
 
     Raises:
-        ConfigError: a bad `system`, a malformed endpoint, a `tcp/` endpoint with `tls`
-            or a `tls/` one without, a `tls` that is neither `None` nor a `ZenohTLS`, a
-            `lease` that is not a positive number of seconds.
+        ConfigError: a bad `system` (or one longer than 64 characters), a malformed
+            endpoint, a `tcp/` endpoint with `tls` or a `tls/` one without, a `tls` that
+            is neither `None` nor a `ZenohTLS`, a `lease` that is not a positive number
+            of seconds.
     """
 
     def __init__(
@@ -195,12 +290,7 @@ class ZenohNetwork:
         tls: ZenohTLS | None,
         lease: float = 1.0,
     ) -> None:
-        if not isinstance(system, str) or not NAME.fullmatch(system):
-            raise ConfigError(
-                f"system must be a name of letters, digits, '_', '.' and '-' (not starting "
-                f"with '.' or '-'), not {system!r}"
-            )
-        self.system = system
+        self.system = check_name("system", system, "a system name")
         if tls is not None and not _is_tls(tls):
             raise ConfigError(
                 f"tls must be rr.ZenohTLS(ca=..., cert=..., key=..., members=[...]) or None "
@@ -217,15 +307,8 @@ class ZenohNetwork:
         ):
             raise ConfigError(f"lease must be seconds from 0.01 to 3600, not {lease!r}")
         self.lease = float(lease)
-        for endpoint in self.listen:
-            _, host, _ = parse_endpoint("listen", endpoint)
-            if tls is None and not is_loopback(host):
-                logger.warning(
-                    "ZenohNetwork %r listens on %s in plain TCP (tls=None): anyone who "
-                    "reaches it can send pickles to this system's registrars",
-                    system,
-                    endpoint,
-                )
+        if tls is None:
+            _warn_plain_tcp(system, self.listen, self.connect)
         self._lock = threading.Lock()
         self._member: ZenohMember | None = None
         self._runtime_dir: str | None = None
@@ -284,6 +367,9 @@ class ZenohNetwork:
             shutil.rmtree(runtime_dir, ignore_errors=True)
 
         member._on_close = closed
+        if watch is not None:
+            member._link_trouble = lambda: _no_link(watch.unlinked())
+        _close_at_exit(f"ZenohNetwork {self.system!r}", member, self.close)
         return member
 
     def _warn_unreachable(self) -> None:
@@ -343,6 +429,47 @@ class ZenohNetwork:
     def supervised_by(self, pid: int | None) -> None:
         """See `Transport.supervised_by` (`ZenohMember.supervised_by`)."""
         self._open().supervised_by(pid)
+
+    def wait_for(self, name: str, *, timeout: float) -> None:
+        """Wait until registrar `name` is served on this system (by any host); then return.
+
+        For a program whose other machine may start after it: its first call would
+        otherwise fail at once with `UnknownRegistrarError`. Returns as soon as the
+        registrar's presence (its Zenoh liveliness token) reaches this process, which
+        needs a link to its host; at once if it is served already (this process's own
+        registrars included). Opens the session if it is not open yet. Runs on the
+        caller's thread; nothing is polled (it waits on the presence thread's news).
+
+        Args:
+            name: the registrar's name.
+            timeout: seconds to wait at most.
+
+        Raises:
+            RegistrarUnavailableError: `name` is not served within `timeout`; the message
+                names each `connect` endpoint this process has no link to, with the
+                reason the link watch found (with `tls`: the TLS handshake's verdict).
+            RegistrarStoppedError: this process left the system (`close()`).
+            ConfigError: `timeout` is not a number of seconds >= 0.
+        """
+        if (
+            isinstance(timeout, bool)
+            or not isinstance(timeout, int | float)
+            or not math.isfinite(timeout)
+            or timeout < 0
+        ):
+            raise ConfigError(f"timeout must be seconds >= 0, not {timeout!r}")
+        member = self._open()
+        if member.closed:
+            raise RegistrarStoppedError(f"this process left system {self.system!r}")
+        if member.wait_served(name, timeout=timeout):
+            return
+        if member.closed:
+            raise RegistrarStoppedError(f"this process left system {self.system!r}")
+        watch = self._watch
+        raise RegistrarUnavailableError(
+            f"no registrar named {name!r} was served on system {self.system!r} within "
+            f"{timeout:g} s" + (_no_link(watch.unlinked()) if watch is not None else "")
+        )
 
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits, close the session (idempotent)."""

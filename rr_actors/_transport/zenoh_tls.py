@@ -21,7 +21,6 @@ from __future__ import annotations
 import datetime
 import logging
 import os
-import stat
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -31,19 +30,16 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from rr_actors.config import NAME
+from rr_actors._transport.access import private_file_trouble
+from rr_actors.config import check_name
 from rr_actors.errors import ConfigError
 
-__all__ = ["MEMBER_NAME", "ZenohTLS"]
+__all__ = ["ZenohTLS"]
 
 logger = logging.getLogger("rr_actors")
 
-MEMBER_NAME = NAME
-"""A member's name (a certificate's common name): as a system's or a registrar's name."""
-
 _CURVES = (ec.SECP256R1, ec.SECP384R1)  # the ECDSA curves rustls signs and verifies with
 _RSA_MIN_BITS = 2048
-_PRIVATE = 0o077  # group and others' permission bits: a private key has none
 
 
 def _path(argument: str, value: object) -> str:
@@ -165,11 +161,7 @@ def _members(members: object) -> tuple[str, ...]:
     if not names:
         raise ConfigError("members is empty: name at least this host's certificate's name")
     for name in names:
-        if not isinstance(name, str) or MEMBER_NAME.fullmatch(name) is None:
-            raise ConfigError(
-                f"members: {name!r} is not a member name ({MEMBER_NAME.pattern}, as a "
-                f"registrar's name; a certificate's common name)"
-            )
+        check_name("members:", name, "a member name")
     return tuple(dict.fromkeys(names))  # order kept, duplicates dropped
 
 
@@ -215,8 +207,9 @@ class ZenohTLS:
             `members` not an iterable of names, empty, a name that is not a member name,
             or without this host's name.
 
-    A key file readable by group or others logs a WARNING on the `rr_actors` logger
-    naming it and its mode (fix: `chmod 600`). The object is read-only; Zenoh reads the
+    A key file open to group or others, or owned by another user, logs a WARNING on
+    the `rr_actors` logger naming it, its mode or owner, and the fix (`chmod 600`,
+    `chown`). The object is read-only; Zenoh reads the
     files again when a `ZenohNetwork` opens its session.
     """
 
@@ -318,7 +311,7 @@ def _leaf(path: str, ca: str, now: datetime.datetime) -> x509.Certificate:
 
 
 def _check_key(path: str, leaf: x509.Certificate, cert_path: str) -> None:
-    """The key of `path` is `leaf`'s, of a type rustls uses; a WARNING if others may read it."""
+    """The key of `path` is `leaf`'s, of a type rustls uses; a WARNING if it is not private."""
     data = _read("key", path)
     try:
         private = serialization.load_pem_private_key(data, password=None)
@@ -332,11 +325,6 @@ def _check_key(path: str, leaf: x509.Certificate, cert_path: str) -> None:
     spki = serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
     if private.public_key().public_bytes(*spki) != leaf.public_key().public_bytes(*spki):
         raise ConfigError(f"key {path} is not the private key of cert {cert_path}")
-    mode = stat.S_IMODE(os.stat(path).st_mode)
-    if mode & _PRIVATE:
-        logger.warning(
-            "private key %s is readable by group or others (mode %04o): chmod 600 %s",
-            path,
-            mode,
-            path,
-        )
+    trouble = private_file_trouble(path)
+    if trouble is not None:
+        logger.warning("private key %s %s", path, trouble)

@@ -81,16 +81,22 @@ class _Endpoint:
         self.unlinked_since: float | None = None
         self.warned_at: float | None = None
         self.looked = False  # the first look counts from start, a later one from then
+        self.reason: str | None = None  # why it had no link when last probed (None: linked)
         self.addresses: set[str] = set()  # the host's, when last resolved
         self.resolved_at: float | None = None
 
-    def linked(self, links: set[tuple[str, int | None]], dialled: set[int]) -> bool:
+    def linked(
+        self,
+        links: set[tuple[str, int | None]],
+        dialled: set[int],
+        addresses: set[str] | None = None,
+    ) -> bool:
         """Whether one of `links` (host, port) is to this endpoint: one of its host's
-        addresses, and its port or one no connect endpoint has (`dialled`: the other host
-        dialled us)."""
+        `addresses` (those last resolved), and its port or one no connect endpoint has
+        (`dialled`: the other host dialled us)."""
+        addresses = self.addresses if addresses is None else addresses
         return any(
-            host in self.addresses and (port == self.port or port not in dialled)
-            for host, port in links
+            host in addresses and (port == self.port or port not in dialled) for host, port in links
         )
 
 
@@ -210,6 +216,7 @@ class LinkWatch:
                 endpoint.addresses, endpoint.resolved_at = _addresses(endpoint.host), now
             if endpoint.linked(linked, dialled):  # `warned_at` stays: a flapping link is
                 endpoint.unlinked_since = None  # no reason for more than a WARNING a minute
+                endpoint.reason = None
                 continue
             if endpoint.unlinked_since is None:  # unlinked since start, or since its link went
                 endpoint.unlinked_since = self._started if first else now
@@ -218,9 +225,7 @@ class LinkWatch:
             if endpoint.warned_at is not None and now - endpoint.warned_at < REPEAT:
                 continue
             endpoint.warned_at = now
-            reason = handshake_trouble(self._tls, endpoint.host, endpoint.port)
-            if reason is None:
-                reason = "the listener accepts this host's certificate; Zenoh has not linked yet"
+            reason = endpoint.reason = self._probe(endpoint)
             logger.warning(
                 "ZenohNetwork %r has no link to connect endpoint %s: %s; calls to registrars "
                 "there fail (UnknownRegistrarError) until it links",
@@ -228,3 +233,34 @@ class LinkWatch:
                 endpoint.endpoint,
                 reason,
             )
+
+    def _probe(self, endpoint: _Endpoint) -> str:
+        reason = handshake_trouble(self._tls, endpoint.host, endpoint.port)
+        if reason is None:
+            return "the listener accepts this host's certificate; Zenoh has not linked yet"
+        return reason
+
+    # -- asked by callers ------------------------------------------------------------------
+
+    def unlinked(self) -> list[tuple[str, str]]:
+        """The `connect` endpoints with no link to a member now, each with why, in words.
+
+        Runs on the caller's thread (an `UnknownRegistrarError` being made, a
+        `ZenohNetwork.wait_for` that timed out). The reason is the watch's last probe
+        (`zenoh_probe`); an endpoint not probed yet is probed now, which takes up to
+        a few seconds (a TLS handshake's timeout) when its host does not answer.
+        """
+        if self._stop.is_set() or not self._endpoints:
+            return []
+        linked = self._linked()
+        dialled = {endpoint.port for endpoint in self._endpoints}
+        unlinked = []
+        for endpoint in self._endpoints:
+            addresses = endpoint.addresses or _addresses(endpoint.host)  # (not looked at yet)
+            if endpoint.linked(linked, dialled, addresses):
+                continue
+            reason = endpoint.reason
+            if reason is None:
+                reason = endpoint.reason = self._probe(endpoint)
+            unlinked.append((endpoint.endpoint, reason))
+        return unlinked

@@ -12,6 +12,7 @@ import os
 import time
 from typing import Any, TypeAlias
 
+from rr_actors._platform import fork
 from rr_actors._types import Status
 
 __all__ = [
@@ -53,7 +54,7 @@ def _forked() -> None:
     _pid = os.getpid()
 
 
-os.register_at_fork(after_in_child=_forked)
+fork.after_fork_in_child("the events' pid", _forked)
 
 
 # -- supervision ----------------------------------------------------------------------------
@@ -351,6 +352,10 @@ class InDoubt:
 
     Published by the registrar while it restores its catalog (semantics rule 16): the
     load may have started something before the crash that nobody will release.
+    Published at every restore that finds it: an entry stays in the backup until a
+    `setup` that was offered it returned (`ResourceRegistrar.settle_in_doubt`), so a
+    manager that died during `setup` publishes it again, with the same `query_id`:
+    the same load found again, not a second one.
 
     Attributes:
         registrar: name of the restored registrar.

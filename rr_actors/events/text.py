@@ -85,7 +85,8 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
         case InDoubt():
             return (
                 f"{event.registrar}: query {_id(event.query_id)} is in doubt "
-                f"(its load started before a crash and was never committed)"
+                f"(its load started before a crash and was never committed; found at each "
+                f"restart until a setup offered it returns)"
             )
         case EventsDropped():
             return f"{event.count} events dropped (a subscriber or forwarder fell behind)"

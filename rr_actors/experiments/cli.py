@@ -8,9 +8,10 @@ On a terminal with `rich` installed (`pip install 'rr-actors[experiments]'`) a p
 bar shows the runs; elsewhere one line per finished run. At the end: a summary per
 compared value and the files written. Exit codes: 0 done; 1 a run failed; 2 bad input
 (the plan, an option, the output directory, the platform), found before anything
-started; 130 interrupted (Ctrl-C), 143 stopped (SIGTERM), with the finished runs kept and
-nothing else left behind. A full disk under `--out` is exit 1, one line; the files then
-hold the runs written before it, and agree with each other.
+started; 130 interrupted (Ctrl-C), 143 stopped (SIGTERM), 129 its terminal hung up
+(SIGHUP), with the finished runs kept and nothing else left behind. A full disk under
+`--out` is exit 1, one line; the files then hold the runs written before it, and agree
+with each other.
 """
 
 from __future__ import annotations
@@ -272,7 +273,7 @@ def main(args: argparse.Namespace, stream: TextIO) -> int:
 
     Returns:
         0 done; 1 a run failed (or `--out` could not be written); 2 bad input (nothing was
-        started); 130 interrupted (Ctrl-C); 143 stopped (SIGTERM).
+        started); 130 interrupted (Ctrl-C); 143 stopped (SIGTERM); 129 hung up (SIGHUP).
     """
     if args.list:
         return _list(stream)
@@ -331,7 +332,7 @@ def _run(args: argparse.Namespace, stream: TextIO) -> int:
         return 1
     except ExperimentInterruptedError as exc:
         results = exc.results
-        interrupted = 128 + exc.signum  # 130 after Ctrl-C, 143 after SIGTERM
+        interrupted = 128 + exc.signum  # 130 after Ctrl-C, 143 after SIGTERM, 129 SIGHUP
     _summary(display, results, interrupted=bool(interrupted))
     return interrupted or 0
 

@@ -186,9 +186,10 @@ def router_links() -> list[tuple[str, str]]:
     ]
 
 
-def put_through_router(key: str, payload: bytes) -> None:
-    """Put `payload` on `key` from a raw session of this host's own (joined to this
-    worker's router over its Unix socket, as a manager process joins it)."""
+def put_through_router(key: str, path: Path) -> None:
+    """Put `framed_pickle(path)` on `key` from a raw session of this host's own (joined to
+    this worker's router over its Unix socket, as a manager process joins it, with its
+    process token)."""
     import json  # noqa: PLC0415
 
     import zenoh  # noqa: PLC0415
@@ -201,7 +202,9 @@ def put_through_router(key: str, payload: bytes) -> None:
     }
     session = zenoh.open(zenoh.Config.from_json5(json.dumps(settings)))
     try:
-        session.put(key, payload)
+        zid = str(session.zid())  # a member process's token, and its id in the header
+        session.liveliness().declare_token(f"rr/{SYSTEM}/live/proc/{zid}")
+        session.put(key, framed_pickle(path, zid))
     finally:
         session.close()
 
@@ -242,20 +245,22 @@ def raw_links() -> list[tuple[str, str]]:
     return [(str(k.auth_identifier), str(k.dst)) for k in hosts.KEPT["raw"].info.links()]
 
 
-def raw_intrude(name: str, payload: bytes) -> str:
-    """With the raw session: a registrar token for `name` (as a process serving it
-    declares) and `payload` put on `rr/lab/reg/erm`; the session's Zenoh id."""
+def raw_intrude(name: str, path: Path) -> str:
+    """With the raw session: a process token and a registrar token for `name` (as a
+    process serving it declares), and `framed_pickle(path)` put on `rr/lab/reg/erm`; the
+    session's Zenoh id."""
     session = hosts.KEPT["raw"]
     zid = str(session.zid())
-    hosts.KEPT["token"] = session.liveliness().declare_token(
-        f"rr/{SYSTEM}/live/reg/{name}/{zid}/0/1048576"
-    )
-    session.put(f"rr/{SYSTEM}/reg/erm", payload)
+    hosts.KEPT["tokens"] = [
+        session.liveliness().declare_token(f"rr/{SYSTEM}/live/proc/{zid}"),
+        session.liveliness().declare_token(f"rr/{SYSTEM}/live/reg/{name}/{zid}/0/1048576"),
+    ]
+    session.put(f"rr/{SYSTEM}/reg/erm", framed_pickle(path, zid))
     return zid
 
 
 def raw_close() -> None:
-    hosts.KEPT.pop("token", None)
+    hosts.KEPT.pop("tokens", None)
     session = hosts.KEPT.pop("raw", None)
     if session is not None:
         session.close()
@@ -484,7 +489,7 @@ def test_a_plain_zenoh_peer_at_the_tls_port_gets_no_link(
     created = tmp_path / "created"
     intruder = b.spawn()
     intruder.call(raw_open, [a.endpoint(PORT, "tcp")], None, 0.0, timeout=30)
-    intruder.call(raw_intrude, "intruder", framed_pickle(created), timeout=30)
+    intruder.call(raw_intrude, "intruder", created, timeout=30)
     seen = a.worker.submit(names_within, "intruder", QUIET)
     member_calls(b, 1)
     never_appear(created)
@@ -580,7 +585,7 @@ def test_an_rr_actors_host_so_refused_is_warned_with_the_reason_and_is_not_in(
     assert "UnknownRegistrarError" in warning
     assert "UnknownRegistrarError" == refused.call(hosts.rr_run, "mallory", call_fails, timeout=30)
     created = tmp_path / "created"
-    refused.call(put_through_router, f"rr/{SYSTEM}/reg/erm", framed_pickle(created), timeout=30)
+    refused.call(put_through_router, f"rr/{SYSTEM}/reg/erm", created, timeout=30)
     seen = a.worker.submit(names_within, "mallory", QUIET)
     member_calls(b, 1)
     never_appear(created)
@@ -619,7 +624,7 @@ def test_a_ca_signed_non_member_links_but_every_message_is_dropped(
     assert ["robot"] == [
         name for name, _ in raw.call(raw_open, [endpoint], stranger_tls, timeout=30)
     ]
-    raw.call(raw_intrude, "intruder", framed_pickle(created), timeout=30)
+    raw.call(raw_intrude, "intruder", created, timeout=30)
     seen = a.worker.submit(names_within, "intruder", QUIET)
     member_calls(b, 1)
     never_appear(created)
@@ -634,11 +639,11 @@ def test_a_ca_signed_non_member_links_but_every_message_is_dropped(
     control = tmp_path / "control"
     member_tls = tls_files(tmp_path / "insider", "operator", b.address, lab)
     raw.call(raw_open, [endpoint], member_tls, timeout=30)
-    raw.call(raw_intrude, "insider", framed_pickle(control), timeout=30)
+    raw.call(raw_intrude, "insider", control, timeout=30)
     assert wait_for(control.exists, BOUND)
     raw.call(raw_close, timeout=30)
     through = tmp_path / "through-a-members-router"  # (rows 3 and 5 put so)
-    b.call(put_through_router, f"rr/{SYSTEM}/reg/erm", framed_pickle(through), timeout=30)
+    b.call(put_through_router, f"rr/{SYSTEM}/reg/erm", through, timeout=30)
     assert wait_for(through.exists, BOUND)
     member_calls(b, 3)
 
@@ -682,7 +687,7 @@ def test_a_member_refuses_a_listener_impostor(
     )
     assert reason in warning
     created = tmp_path / "created"
-    fake.call(put_through_router, f"rr/{SYSTEM}/reg/dialer", framed_pickle(created), timeout=30)
+    fake.call(put_through_router, f"rr/{SYSTEM}/reg/dialer", created, timeout=30)
     seen = dialer.submit(names_within, "fake", QUIET)
     member_calls(b, 1)
     never_appear(created)

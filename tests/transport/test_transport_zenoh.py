@@ -16,6 +16,7 @@ import multiprocessing.connection
 import multiprocessing.context
 import os
 import pickle
+import pwd
 import signal
 import socket
 import struct
@@ -70,6 +71,17 @@ def test_a_malformed_endpoint_is_a_config_error_naming_it(role: str, endpoint: A
     assert repr(endpoint) in str(caught.value)
 
 
+def test_a_system_name_of_64_characters_is_accepted_and_of_65_a_config_error_naming_it() -> None:
+    assert "s" * 64 == rr.ZenohNetwork(system="s" * 64, tls=None).system
+
+    with pytest.raises(rr.ConfigError) as caught:
+        rr.ZenohNetwork(system="s" * 65, tls=None)
+
+    assert str(caught.value).startswith(
+        f"system {'s' * 65!r} is 65 characters long: a system name has at most 64 (NAME_MAX"
+    )
+
+
 def test_endpoints_given_as_one_string_are_a_config_error() -> None:
     with pytest.raises(rr.ConfigError, match="listen must be a list"):
         rr.ZenohNetwork(system="lab", listen="tcp/127.0.0.1:7447", tls=None)  # type: ignore[arg-type]
@@ -92,19 +104,59 @@ def test_a_bad_lease_is_a_config_error_naming_lease(lease: Any) -> None:
         rr.ZenohNetwork(system="lab", tls=None, lease=lease)
 
 
-def test_plain_tcp_on_a_non_loopback_endpoint_is_a_warning_naming_it(
+@pytest.mark.parametrize("endpoint", ["tcp/127.0.0.1:7447", "tcp/[::1]:7447", "tcp/localhost:0"])
+def test_plain_tcp_on_loopback_is_a_warning_that_every_local_user_can_run_code_here(
+    caplog: pytest.LogCaptureFixture, endpoint: str
+) -> None:
+    with caplog.at_level(logging.WARNING, logger="rr_actors"):
+        rr.ZenohNetwork(system="lab", listen=[endpoint], tls=None)
+
+    assert [
+        (
+            "rr_actors",
+            logging.WARNING,
+            f"ZenohNetwork 'lab' listens on {endpoint} in plain TCP (tls=None): every user "
+            f"and process on this machine can connect and run code as this user, "
+            f"{_me()} (what crosses is pickles); use tls= and tls/ endpoints",
+        )
+    ] == caplog.record_tuples
+
+
+def test_plain_tcp_elsewhere_is_a_warning_that_anyone_who_reaches_it_can_run_code_here(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     with caplog.at_level(logging.WARNING, logger="rr_actors"):
-        rr.ZenohNetwork(
-            system="lab",
-            listen=["tcp/127.0.0.1:7447", "tcp/0.0.0.0:7448", "tcp/[::1]:7449"],
-            tls=None,
-        )
+        rr.ZenohNetwork(system="lab", listen=["tcp/10.0.0.2:7447", "tcp/0.0.0.0:7448"], tls=None)
 
-    warned = [r.getMessage() for r in caplog.records if "plain TCP" in r.getMessage()]
-    assert 1 == len(warned)
-    assert "tcp/0.0.0.0:7448" in warned[0]
+    assert [
+        "anyone who can reach 10.0.0.2 can connect",
+        "anyone who can reach this machine (at any of its addresses) can connect",
+    ] == [r.getMessage().split(": ", 1)[1].split(" and run")[0] for r in caplog.records]
+
+
+def test_a_plain_tcp_connect_endpoint_is_a_warning_that_whoever_answers_can_run_code_here(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    with caplog.at_level(logging.WARNING, logger="rr_actors"):
+        rr.ZenohNetwork(system="lab", connect=["tcp/127.0.0.1:7447", "tcp/10.0.0.1:7447"], tls=None)
+
+    assert [
+        "ZenohNetwork 'lab' connects to tcp/127.0.0.1:7447 in plain TCP (tls=None): every "
+        "user and process on this machine (whoever listens on port 7447 first) can run code "
+        f"as this user, {_me()}",
+        "ZenohNetwork 'lab' connects to tcp/10.0.0.1:7447 in plain TCP (tls=None): whoever "
+        "answers at 10.0.0.1 port 7447 (anyone who can listen there or sits between) can run "
+        f"code as this user, {_me()}",
+    ] == [r.getMessage().split(" (what crosses")[0] for r in caplog.records]
+
+
+def test_a_network_only_on_its_unix_socket_logs_no_warning(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    with caplog.at_level(logging.WARNING, logger="rr_actors"):
+        rr.ZenohNetwork(system="lab", tls=None)
+
+    assert [] == caplog.record_tuples
 
 
 def test_an_unreachable_connect_endpoint_is_a_warning_not_an_error(
@@ -152,6 +204,10 @@ def test_a_process_belongs_to_one_system() -> None:
 
 
 # -- helpers -------------------------------------------------------------------------------------
+
+
+def _me() -> str:
+    return f"{pwd.getpwuid(os.geteuid()).pw_name} (uid {os.geteuid()})"
 
 
 def _system() -> str:
@@ -660,6 +716,7 @@ def test_a_message_over_the_registrars_limit_is_answered_unread(
 
     try:
         subscriber = raw.declare_subscriber(f"rr/{net.system}/ans/{sender}", heard)
+        liveliness = raw.liveliness().declare_token(f"rr/{net.system}/live/proc/{sender}")
         raw.put(
             f"rr/{net.system}/reg/{target.name}",
             _header(MESSAGE, sender, WIRE_VERSION)
@@ -667,6 +724,7 @@ def test_a_message_over_the_registrars_limit_is_answered_unread(
         )
         assert answered.wait(10)
         subscriber.undeclare()
+        liveliness.undeclare()
     finally:
         raw.close()
         target.end()

@@ -356,6 +356,19 @@ def test_a_member_name_that_is_not_a_name_is_a_config_error(
         tls(ca[0], robot, ["robot", bad])
 
 
+def test_a_member_name_of_65_characters_is_a_config_error_naming_the_bound(
+    ca: tuple[Path, Path], robot: tuple[Path, Path]
+) -> None:
+    assert ("robot", "m" * 64) == tls(ca[0], robot, ["robot", "m" * 64]).members
+
+    with pytest.raises(ConfigError) as caught:
+        tls(ca[0], robot, ["robot", "m" * 65])
+
+    assert str(caught.value).startswith(
+        f"members: {'m' * 65!r} is 65 characters long: a member name has at most 64 (NAME_MAX"
+    )
+
+
 def test_members_given_as_one_string_is_a_config_error(
     ca: tuple[Path, Path], robot: tuple[Path, Path]
 ) -> None:

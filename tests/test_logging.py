@@ -1,0 +1,76 @@
+"""With no logging configured, rr_actors' WARNING and ERROR reach stderr; an application's
+own configuration overrides that (DESIGN: "Conventions for all of it").
+
+Each test runs a real program in its own interpreter, as a user's script runs: a status
+callback of the wrong signature and an `unload` that raises are logged (ERROR, with
+their tracebacks), nothing else tells anybody.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+MISTAKES = textwrap.dedent(
+    """
+    import rr_actors as rr
+
+    provider = rr.ResourceRegistrar.start("provider")
+    provider.register_server("res", load=lambda r: r, unload=lambda r, s: 1 / 0)
+    consumer = rr.ResourceRegistrar.start("consumer")
+    query = consumer.call("provider", "res", "camera", on_status=lambda update: None)
+    provider.send_status(query.id, rr.Status.WARNING, "hot")  # the callback takes one argument
+    consumer.unload(query.id)
+    consumer.stop()
+    provider.stop()
+    """
+)
+
+
+def run(source: str, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(  # noqa: PLW1510 - the exit code is what is checked
+        [sys.executable, "-c", source, *args], capture_output=True, text=True, timeout=60
+    )
+
+
+def test_with_no_logging_configured_a_bad_callback_and_a_raising_unload_reach_stderr() -> None:
+    result = run(MISTAKES)
+
+    assert 0 == result.returncode, result.stderr
+    assert "status callback for " in result.stderr
+    assert "TypeError: <lambda>() takes 1 positional argument but 2 were given" in result.stderr
+    assert "unload callback of 'provider/res' raised" in result.stderr
+    assert "ZeroDivisionError: division by zero" in result.stderr
+
+
+def test_an_application_that_logs_to_a_file_at_error_gets_them_there_and_nothing_on_stderr(
+    tmp_path: Path,
+) -> None:
+    log = tmp_path / "app.log"
+    configured = (
+        "import logging, sys\n"
+        "logging.basicConfig(filename=sys.argv[1], level=logging.ERROR)\n" + MISTAKES
+    )
+
+    result = run(configured, str(log))
+
+    assert (0, "") == (result.returncode, result.stderr)
+    text = log.read_text()
+    assert "ERROR:rr_actors:status callback for " in text
+    assert "ERROR:rr_actors:unload callback of 'provider/res' raised" in text
+
+
+def test_a_handler_on_the_rr_actors_logger_takes_its_records_off_stderr() -> None:
+    configured = (
+        "import logging\n"
+        "records = []\n"
+        "class Keep(logging.Handler):\n"
+        "    def emit(self, record): records.append(record.getMessage())\n"
+        "logging.getLogger('rr_actors').addHandler(Keep())\n" + MISTAKES + "print(len(records))\n"
+    )
+
+    result = run(configured)
+
+    assert (0, "2\n", "") == (result.returncode, result.stdout, result.stderr)
