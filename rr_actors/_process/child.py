@@ -2,6 +2,10 @@
 
 Runs only in manager processes (never in the supervisor's process). In the child, `main`:
 
+0. lets SIGINT pass (a handler that does nothing): a Ctrl-C in a terminal goes to its
+   whole foreground process group, manager processes included, and is the supervisor's
+   process's to handle (it stops the tree in order, as OTP leaves shutdown to the
+   supervisor); `standby` does the same,
 1. asks the platform to end it when the process that forked it dies
    (`Platform.die_with_parent`: with the forkserver context that is the forkserver, not
    the supervisor's process) and names the process for `ps` (`rr-actors: <name>`),
@@ -200,8 +204,8 @@ def main(
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
         forward: forward the registrar's events from the start (until told otherwise).
     """
+    _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
-    _let_ctrl_c_pass()
     set_title(config.name)
     _run_manager(setup, config, address, conn, forward)
 
@@ -252,8 +256,8 @@ def standby(conn: Connection, parent: int | None = None) -> None:
             `main`'s arguments.
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
     """
+    _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
-    _let_ctrl_c_pass()
     set_title("spare")
     try:
         if not conn.poll(0):  # taken already: the warm-up would only delay the manager

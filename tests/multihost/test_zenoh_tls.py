@@ -48,6 +48,12 @@ test looks itself). What must not happen is given `QUIET` (3 s) to happen anyway
   after each); every call of `operator` meanwhile succeeds, and a member that joins
   during the burst has its first call answered within 10 s. Latency (p99) is measured in
   `benchmarks/`, never asserted in a test.
+- flood (issue 29), `test_a_member_rejoins_in_10_s_while_a_third_host_floods_the_port_
+  with_failed_handshakes`: a third host `c` (`TwoHosts(outsider=True)`) connects, sends
+  a few bytes and closes, from 4 threads at full rate, against `a`'s `tls/` port; every
+  call of `operator` on its link meanwhile succeeds; `a` names `c` in a WARNING; the
+  veth a-b is cut until `b` has lost `erm` and brought back: `b` calls `erm` within 10 s
+  while the flood goes on, and again within 10 s after it stopped (0.4 s measured).
 """
 
 from __future__ import annotations
@@ -351,6 +357,13 @@ def join(
 @pytest.fixture
 def lab(two_hosts: hosts.TwoHosts, tmp_path: Path) -> Iterator[tuple[Path, Path]]:
     """`robot` on `a` serving `erm`, `operator` on `b` whose `app` calls it; the CA."""
+    with started_lab(two_hosts, tmp_path) as ca:
+        yield ca
+
+
+@contextlib.contextmanager
+def started_lab(two_hosts: hosts.TwoHosts, tmp_path: Path) -> Iterator[tuple[Path, Path]]:
+    """The `lab` fixture's hosts, on `two_hosts`."""
     a, b = two_hosts.a, two_hosts.b
     ca = pki.make_ca(tmp_path / "lab", SYSTEM)
     join(
@@ -812,4 +825,69 @@ def test_a_burst_of_refused_handshakes_fails_no_member_call_and_a_member_joins_i
     assert took < 10.0, f"a member joining during the burst took {took:.1f} s"
     assert [] == failed
     assert succeeded > 0
+    member_calls(b, 1)
+
+
+# -- bounds: a flood of failed handshakes from a third host ------------------------------------
+
+
+def rejoin_seconds(two_hosts: hosts.TwoHosts) -> float:
+    """Cut the veth between `a` and `b` until `b` has lost `erm`, bring it back: the
+    seconds from then to `b`'s first answered call to `erm` (`TimeoutError` past 30 s)."""
+    two_hosts.link_down()
+    try:
+        assert two_hosts.b.call(hosts.rr_unlinked_within, "erm", BOUND, timeout=30)
+    finally:
+        two_hosts.link_up()
+    started = time.monotonic()
+    two_hosts.b.call(hosts.rr_until_answered, "app", "erm", "camera", 30.0, timeout=60)
+    return time.monotonic() - started
+
+
+@pytest.fixture
+def outsider_lab(tmp_path: Path) -> Iterator[tuple[hosts.TwoHosts, tuple[Path, Path]]]:
+    """The `lab` on two hosts with an outsider `c` (a veth of its own to `a`)."""
+    reason = hosts.require_root()
+    if reason is not None:
+        pytest.skip(reason)
+    with hosts.TwoHosts(outsider=True) as made, started_lab(made, tmp_path) as ca:
+        yield made, ca
+
+
+@pytest.mark.timeout(150)
+def test_a_member_rejoins_in_10_s_while_a_third_host_floods_the_port_with_failed_handshakes(
+    outsider_lab: tuple[hosts.TwoHosts, tuple[Path, Path]],
+) -> None:
+    two_hosts, _ = outsider_lab
+    a, b, c = two_hosts.a, two_hosts.b, two_hosts.c
+    assert c is not None
+    attacker = c.spawn()
+    calling = b.worker.submit(hosts.rr_run, "app", keep_calling)
+    attacker.call(hosts.flood, a.address, PORT, 4, timeout=10)
+
+    # until `a` says it drops the flood, or (without that) the flood has made 2,000
+    # connections, each 0.1 s of the listener's time: a member re-joining after them
+    # would wait minutes
+    def seen() -> bool:
+        said = [m for m in a.call(hosts.rr_logs, "WARNING", timeout=10) if c.address in m]
+        return bool(said) or attacker.call(hosts.flood_counts, timeout=10)["connected"] >= 2000
+
+    assert wait_for(seen, 30.0)
+    seen_at = attacker.call(hosts.flood_counts, timeout=10)["attempts"]
+    assert wait_for(  # (20 more: 2.5 s of a dropped flood, a moment of the other)
+        lambda: attacker.call(hosts.flood_counts, timeout=10)["attempts"] >= seen_at + 20, 30.0
+    )
+    b.call(stop_calling, timeout=10)
+    succeeded, failed = calling.result(timeout=30)
+    assert [] == failed  # the link already up was not slowed down
+    assert succeeded > 0
+    before = attacker.call(hosts.flood_counts, timeout=10)["attempts"]
+    during = rejoin_seconds(two_hosts)
+    assert attacker.call(hosts.flood_counts, timeout=10)["attempts"] > before  # (still flooding)
+    warning = a.call(logged, "WARNING", [f"{c.address} holds"], BOUND, timeout=30)
+    assert f"connections to {a.address}:{PORT} and no member's link" in warning
+    attacker.call(hosts.flood_stop, timeout=30)
+    after = rejoin_seconds(two_hosts)
+    assert during < 10.0, f"a member re-joining during the flood took {during:.1f} s"
+    assert after < 10.0, f"a member re-joining after the flood took {after:.1f} s"
     member_calls(b, 1)
