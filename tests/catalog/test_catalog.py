@@ -513,6 +513,9 @@ def test_a_container_subclass_that_keeps_its_base_eq_keeps_its_base_digest(value
 
 
 class RaisingItems(collections.abc.Mapping):  # type: ignore[type-arg]
+    def __repr__(self) -> str:  # the test's id: the same in every pytest-xdist worker
+        return "RaisingItems()"
+
     def __getitem__(self, key: Any) -> Any:
         raise KeyError(key)
 

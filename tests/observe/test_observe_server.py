@@ -6,6 +6,7 @@ import os
 import pickle
 import signal
 import socket
+import time
 from typing import Any
 
 import pytest
@@ -148,12 +149,17 @@ def test_a_backoff_shows_when_the_restart_is_due(supervisors: Any, process_helpe
 
     with stream(observer.url) as events:
         events.until(lambda s: "tree" in s.sections, timeout=10)
+        killed_at = time.time()
         os.kill(pid, signal.SIGKILL)
         events.until(lambda s: child(s.sections["tree"], "cm")["restart_due"] is not None, 10)
         due = child(events.sections["tree"], "cm")["restart_due"]
+        shown_at = events.sections["tree"]["server_time"]
         events.until(lambda s: child(s.sections["tree"], "cm")["state"] == "running", 10)
 
-    assert 0.5 < due - events.sections["tree"]["server_time"] + 1.0 < 3.0  # (about 1 s ahead)
+    # The 1 s backoff runs from when the exit was seen (after the kill) and was scheduled
+    # before the page showed it: order, whatever the machine's load makes the gaps.
+    assert killed_at + 1.0 <= due <= shown_at + 1.0
+    assert due <= events.sections["tree"]["server_time"]  # restarted when due, not before
     assert child(events.sections["tree"], "cm")["restart_due"] is None
 
 
