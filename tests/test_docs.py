@@ -23,7 +23,7 @@ written):
       blocks (and `tests/transport/test_zenoh_tls_docs.py`) check.
     - `pip install -e .[EXTRAS]` is not run: every extra it names must exist in
       `pyproject.toml`.
-    - `python -m pytest -q` is not run (it is this very run): it must be the test
+    - `python -m pytest -q ...` is not run (it is this very run): it must be the test
       command of `.ci/run`.
     - `apt-get update` and `apt-get install -y PKG...` are not run (they need root and the
       network): `.ci/run` must install every package named the same way.
