@@ -131,4 +131,7 @@ def test_hangs_that_the_heartbeat_ends_leave_no_descriptor_after_the_observer_cl
     assert max(during) - min(during) <= 1  # one hang's pidfd at most, not one per hang
     # (the observer's server closes its connections' sockets on its own thread: a leak
     # stays past the bound, a socket being closed does not)
-    assert eventually(lambda: open_descriptors() == before), (before, open_descriptors())
+    assert eventually(lambda: open_descriptors() == before, timeout=15.0), (
+        before,
+        open_descriptors(),
+    )
