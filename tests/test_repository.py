@@ -32,3 +32,19 @@ def test_what_the_readme_and_tutorials_write_is_ignored_by_git(written: str) -> 
     )
 
     assert 0 == result.returncode, f"{written} is not in .gitignore"
+
+
+def test_no_module_of_the_package_imports_itself_back() -> None:
+    """No import circle between modules, even through an import for a type only (issue 31)."""
+    grimp = pytest.importorskip("grimp")  # (installed with import-linter: the dev extra)
+    graph = grimp.build_graph("rr_actors", exclude_type_checking_imports=False)
+    circles = set()
+    for importer in graph.modules:
+        for imported in graph.find_modules_directly_imported_by(importer):
+            back = graph.find_shortest_chain(importer=imported, imported=importer)
+            if back is not None:  # the circle, from its first module in order
+                circle = (importer, *back[:-1])
+                start = circle.index(min(circle))
+                circles.add(" -> ".join(circle[start:] + circle[: start + 1]))
+
+    assert [] == sorted(circles)

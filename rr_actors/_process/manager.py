@@ -33,6 +33,7 @@ import threading
 import time
 from collections.abc import Callable
 from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 from typing import TYPE_CHECKING, Any
 
 from rr_actors._platform import PLATFORM
@@ -137,7 +138,7 @@ class ManagerProcess:
     def __init__(
         self,
         name: str,
-        process: Any,
+        process: BaseProcess,
         conn: Connection,
         *,
         heartbeat: float | None,
@@ -147,6 +148,7 @@ class ManagerProcess:
     ) -> None:
         self.name = name
         self.process = process
+        assert process.pid is not None  # (started)
         self.pid: int = process.pid
         self.conn = conn
         self._send_lock = threading.Lock()
@@ -421,7 +423,7 @@ _HANDLERS: dict[type[Any], Callable[[ManagerProcess, Any, int], tuple[float, str
 `Failed` and `Warm` come before it runs: `_await_ready`)."""
 
 
-def release(process: Any) -> None:
+def release(process: BaseProcess) -> None:
     """Close the descriptors a reaped process object holds (its sentinel pipe, ...).
 
     Not left to the garbage collector: whoever keeps a reference (an error's traceback
@@ -456,7 +458,9 @@ def _launch(
     return process, parent_conn
 
 
-def _await_ready(name: str, process: Any, conn: Connection, start_timeout: float) -> list[Any]:
+def _await_ready(
+    name: str, process: BaseProcess, conn: Connection, start_timeout: float
+) -> list[Any]:
     """Wait for the manager's `ready` (skipping a spare's `warm`); raise if it never comes.
 
     Returns:

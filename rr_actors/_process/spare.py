@@ -21,7 +21,7 @@ import logging
 import threading
 import time
 from multiprocessing.connection import Connection
-from typing import Any
+from multiprocessing.process import BaseProcess
 
 from rr_actors._process.child import standby
 from rr_actors._process.context import PROCESS_PREFIX, forker_pid, mp_context
@@ -41,7 +41,7 @@ class Spare:
     (or when its parent dies, like any manager process).
     """
 
-    def __init__(self, process: Any, conn: Connection) -> None:
+    def __init__(self, process: BaseProcess, conn: Connection) -> None:
         self.process = process
         self.conn = conn
         self.warm = False

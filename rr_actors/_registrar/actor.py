@@ -277,6 +277,7 @@ class RegistrarActor(Actor):
             self.unloading,
             self.consumer,
             self.reconciling,
+            self.presence,
             self,
             died,
             ended,

@@ -27,7 +27,7 @@ import pykka
 
 from rr_actors import events
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
-from rr_actors._core.actor import refuse
+from rr_actors._core.actor import Actor, refuse
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.timers import Cancellable
 from rr_actors._registrar.messages import (
@@ -47,8 +47,8 @@ from rr_actors.errors import (
 )
 
 if TYPE_CHECKING:
-    from rr_actors._registrar.actor import RegistrarActor
     from rr_actors._registrar.consumer import Consumer
+    from rr_actors._registrar.presence import Presence
     from rr_actors._registrar.provider import Provider
     from rr_actors._registrar.reconciling import Reconciling
     from rr_actors._registrar.teardown import Teardown
@@ -94,7 +94,8 @@ class Lifecycle:
         unloading: Unloading,
         consumer: Consumer,
         reconciling: Reconciling,
-        actor: RegistrarActor,
+        presence: Presence,
+        actor: Actor,
         died: threading.Event,
         ended: threading.Event,
         *,
@@ -106,7 +107,8 @@ class Lifecycle:
         self.unloading = unloading
         self.consumer = consumer
         self.reconciling = reconciling
-        self.actor = actor
+        self.presence = presence
+        self.actor = actor  # (the actor machinery only: its mailbox, `end_now`)
         self.died = died
         self.ended = ended
         self.open_requests: set[OpenReply] = set()
@@ -257,7 +259,7 @@ class Lifecycle:
     def op_stop(self, reply: Reply) -> None:
         """Unload what this registrar holds as a consumer (newest first), then stop (rule 12)."""
         self.registrar.phase = Phase.STOPPING
-        self.actor.presence.close()  # no more reconcile retries
+        self.presence.close()  # no more reconcile retries
         stopped = RegistrarStoppedError(
             f"registrar {self.registrar.name!r} stopped during the call"
         )
@@ -314,7 +316,7 @@ class Lifecycle:
     def die(self) -> None:
         """A crash: fail every waiting caller, release this consumer's ids elsewhere."""
         self.registrar.phase = Phase.ENDED
-        self.actor.presence.close()
+        self.presence.close()
         DIRECTORY.unregister(self.registrar.peer, "died")
         self.fail_waiting(RegistrarUnavailableError(f"registrar {self.registrar.name!r} died"))
         self.stop_children()

@@ -14,7 +14,7 @@ import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import pykka
 
@@ -33,10 +33,16 @@ from rr_actors._types import Query
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import ConfigError, RegistrarStoppedError
 
-if TYPE_CHECKING:
-    from rr_actors._registrar.handle import ResourceRegistrar
-
-__all__ = ["EVENT_LOG", "Launched", "Network", "Served", "check_network", "launch", "serve_on"]
+__all__ = [
+    "EVENT_LOG",
+    "Launched",
+    "Network",
+    "Servable",
+    "Served",
+    "check_network",
+    "launch",
+    "serve_on",
+]
 
 EVENT_LOG = logging.getLogger("rr_actors.events")
 """Where registrars log their events at INFO (one line per event; off by default)."""
@@ -147,6 +153,37 @@ class Network(Protocol):
         ...
 
 
+class Servable(Protocol):
+    """What a carrier's `Served` uses of a started registrar (`handle.ResourceRegistrar`
+    is one; this module comes before the handle, so it names it by this only)."""
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        ...
+
+    @property
+    def config(self) -> RegistrarConfig:
+        """The configuration it was started with."""
+        ...
+
+    def is_alive(self) -> bool:
+        """Whether the registrar actor is running."""
+        ...
+
+    def stop(self, *, timeout: float | None = None) -> None:
+        """Stop the registrar (rule 12)."""
+        ...
+
+    def _tell(self, message: Any) -> bool:
+        """Send the actor `message` without waiting; whether the actor was running."""
+        ...
+
+    def _wait_stopped(self, timeout: float | None = None) -> bool:
+        """Block until the actor's thread ended (stopped or died); whether it did."""
+        ...
+
+
 def check_network(network: object) -> None:
     """Raise `ConfigError` naming `network` unless it is `None` or has a `serve` method."""
     if network is not None and not callable(getattr(network, "serve", None)):
@@ -156,7 +193,7 @@ def check_network(network: object) -> None:
         )
 
 
-def serve_on(network: Network, registrar: ResourceRegistrar) -> None:
+def serve_on(network: Network, registrar: Servable) -> None:
     """Serve `registrar` on `network`; if that fails, stop it and raise what failed."""
     try:
         network.serve(Served(registrar))
@@ -174,7 +211,7 @@ class Served:
 
     __slots__ = ("registrar",)
 
-    def __init__(self, registrar: ResourceRegistrar) -> None:
+    def __init__(self, registrar: Servable) -> None:
         self.registrar = registrar
 
     @property

@@ -12,8 +12,8 @@ counted beside it: a WAL cut short is reported), `sqlite` (`SqliteStore`: writes
 """
 
 from rr_actors._store.codec import Unreadable
-from rr_actors._store.files import Backup, quarantine_backup, read_backup
-from rr_actors._store.restore import Restored, gc_paused
+from rr_actors._store.files import Backup, gc_paused, quarantine_backup, read_backup
+from rr_actors._store.restore import Restored
 from rr_actors._store.saver import CatalogStore, Saver, open_catalog, open_store
 from rr_actors._store.schema import APPLICATION_ID, SCHEMA_VERSION
 from rr_actors._store.sqlite import SqliteStore

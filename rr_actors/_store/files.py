@@ -6,7 +6,8 @@
    a writable connection (`SqliteStore`)
  file deleted or replaced under the store (`moved`) --copy_aside, then put_in_place-->
    a new file at the path, the whole catalog in it
- read_backup: validate, then read every row through a read-only connection (inspection)
+ read_backup: validate, then read every row through a read-only connection (inspection):
+   read_rows, one snapshot (also `SqliteStore.load`), with the collector paused (gc_paused)
  quarantine_backup: rename the file and its companions aside (the one way to give one up)
 ```
 
@@ -24,29 +25,41 @@ import contextlib
 import dataclasses
 import datetime
 import errno as errno_names
+import gc
 import os
 import sqlite3
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
-from rr_actors._catalog import ClientRecord, Resource
+from rr_actors._catalog import NO_DIGEST, ClientRecord, Resource
 from rr_actors._store import schema
-from rr_actors._store.codec import as_corrupt, lenient_decode, not_unpickled
-from rr_actors._store.restore import gc_paused, read_rows
+from rr_actors._store.codec import (
+    STATES_BY_CODE,
+    as_corrupt,
+    check_keys,
+    check_values,
+    lenient_decode,
+    not_unpickled,
+)
+from rr_actors._store.restore import CLIENTS, RESOURCES, Mirror, client_records
 from rr_actors.errors import CatalogCorruptError, CatalogWriteError, ConfigError
 
 __all__ = [
     "SIDE_FILES",
     "SYNCHRONOUS",
     "Backup",
+    "Rows",
     "check_location",
     "connect",
     "create",
     "foreign_owner",
+    "gc_paused",
     "prepare",
     "quarantine_backup",
     "read_backup",
+    "read_rows",
     "validate",
 ]
 
@@ -408,6 +421,100 @@ def read_backup(path: str | os.PathLike[str], *, unpickle: bool = True) -> Backu
         with _migrated_copy(db, version) as current, gc_paused():
             rows = read_rows(current, lenient_decode if unpickle else not_unpickled, lenient=True)
     return Backup(name, version, rows.resources, rows.clients)
+
+
+# -- reading every row at once (`read_backup`, `SqliteStore.load`) ----------------------------
+
+
+@contextlib.contextmanager
+def gc_paused() -> Iterator[None]:
+    """Pause the cyclic garbage collector while a catalog is built (restores twice as fast).
+
+    Building 100k rows allocates many containers and no cycles; each allocation burst
+    would otherwise trigger collections that rescan every object built so far.
+    """
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
+
+
+@dataclasses.dataclass
+class Rows:
+    """Rows read from a backup, with the row keys the store needs to update them."""
+
+    resources: list[Resource]
+    clients: list[ClientRecord]
+    mirror: dict[str, Mirror]
+    client_seqs: dict[str, int]
+    max_seq: int
+
+
+def read_rows(
+    db: sqlite3.Connection, decode: Callable[[str, str, bytes | None], Any], *, lenient: bool
+) -> Rows:
+    """Read every row in one read transaction (a consistent snapshot, also of a live file).
+
+    Restored resources keep their request and response encoded: `decode` runs on first
+    access. Requests without a stored digest are decoded at once (the catalog indexes
+    them by `hash()`, which only the value can give). With `lenient` (inspection) every
+    value is decoded at once and the cheap pickle check is skipped (`decode` is lenient).
+    """
+    db.execute("BEGIN")
+    try:
+        rows = db.execute(RESOURCES).fetchall()
+        consumer_rows = db.execute(
+            "SELECT seq, query_id, resource, origin_rr FROM consumers ORDER BY seq"
+        ).fetchall()
+        client_rows = db.execute(CLIENTS).fetchall()
+    finally:
+        db.execute("COMMIT")
+    if not lenient:
+        for row in rows:
+            check_values(row)
+    check_keys(rows, consumer_rows, client_rows)
+    encoded = Resource.encoded
+    states = STATES_BY_CODE
+    resources = [
+        encoded(
+            rid,
+            server,
+            states[state],
+            NO_DIGEST if digest is None else digest,
+            (request, response),
+            decode,
+            0,
+            texts,
+        )
+        for _, rid, server, state, digest, request, response, *texts in rows
+    ]
+    for resource in resources:
+        if lenient:
+            _ = resource.request, resource.response
+        if resource.digest == NO_DIGEST:
+            resource.digest = None  # the catalog indexes it from its (decoded) request
+            _ = resource.request
+    mirrors = [
+        Mirror(row[0], r.state, r.response_version, {}, (row[7], row[8], row[9]))
+        for row, r in zip(rows, resources, strict=True)
+    ]
+    by_seq = {row[0]: (r, m) for row, r, m in zip(rows, resources, mirrors, strict=True)}
+    max_seq = rows[-1][0] if rows else 0
+    for seq, query_id, resource_seq, origin in consumer_rows:
+        owner = by_seq.get(resource_seq)
+        if owner is None:
+            raise ValueError(f"consumer {query_id} belongs to a missing resource")
+        owner[0].consumers[query_id] = origin
+        owner[1].consumers[query_id] = seq
+    if consumer_rows:
+        max_seq = max(max_seq, consumer_rows[-1][0])
+    clients, client_seqs = client_records(client_rows, decode)
+    max_seq = max([max_seq, *client_seqs.values()])
+    mirror = {r.id: m for r, m in zip(resources, mirrors, strict=True)}
+    return Rows(resources, clients, mirror, client_seqs, max_seq)
 
 
 @contextlib.contextmanager

@@ -1,4 +1,4 @@
-"""Reading a backup back: every row at once (`read_rows`), or lazily (`Unread`).
+"""Reading a backup back lazily (`Unread`); every row at once is `files.read_rows`.
 
 ```
  SqliteStore.restore --one read transaction--> Consumers   (every consumer id -> its resource row)
@@ -16,35 +16,27 @@ when the catalog first looks it up, through the indexes. So a restart costs a fr
 a full read, and an index is written only when a resource is added or removed, never
 when a consumer id is.
 
-`read_rows` reads everything in one snapshot instead (`SqliteStore.load`, `read_backup`).
+`files.read_rows` reads everything in one snapshot instead (`SqliteStore.load`, `read_backup`).
 Either way a restored resource keeps its request and response encoded until first used
 (`Resource.encoded`).
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import gc
 import sqlite3
-from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+from typing import Any, Protocol
 
-from rr_actors._catalog import NO_DIGEST, ClientRecord, Resource, ResourceState
+from rr_actors._catalog import ClientRecord, Resource, ResourceState
 from rr_actors._platform import PLATFORM
 from rr_actors._store.codec import (
-    STATES_BY_CODE,
     as_corrupt,
-    check_keys,
     check_row,
-    check_values,
     first_duplicate,
 )
 from rr_actors._types import Query
 from rr_actors.errors import CatalogCorruptError, RegistrarStoppedError
-
-if TYPE_CHECKING:
-    from rr_actors._store.sqlite import SqliteStore
 
 __all__ = [
     "CLIENTS",
@@ -55,29 +47,11 @@ __all__ = [
     "Consumers",
     "Mirror",
     "Restored",
-    "Rows",
+    "RowStore",
     "Texts",
     "Unread",
     "client_records",
-    "gc_paused",
-    "read_rows",
 ]
-
-
-@contextlib.contextmanager
-def gc_paused() -> Iterator[None]:
-    """Pause the cyclic garbage collector while a catalog is built (restores twice as fast).
-
-    Building 100k rows allocates many containers and no cycles; each allocation burst
-    would otherwise trigger collections that rescan every object built so far.
-    """
-    was_enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if was_enabled:
-            gc.enable()
 
 
 class Mirror:
@@ -117,81 +91,6 @@ CLIENT_COLUMNS = (
 
 
 _Op = tuple[str, tuple[Any, ...]]
-
-
-@dataclasses.dataclass
-class Rows:
-    """Rows read from a backup, with the row keys the store needs to update them."""
-
-    resources: list[Resource]
-    clients: list[ClientRecord]
-    mirror: dict[str, Mirror]
-    client_seqs: dict[str, int]
-    max_seq: int
-
-
-def read_rows(
-    db: sqlite3.Connection, decode: Callable[[str, str, bytes | None], Any], *, lenient: bool
-) -> Rows:
-    """Read every row in one read transaction (a consistent snapshot, also of a live file).
-
-    Restored resources keep their request and response encoded: `decode` runs on first
-    access. Requests without a stored digest are decoded at once (the catalog indexes
-    them by `hash()`, which only the value can give). With `lenient` (inspection) every
-    value is decoded at once and the cheap pickle check is skipped (`decode` is lenient).
-    """
-    db.execute("BEGIN")
-    try:
-        rows = db.execute(RESOURCES).fetchall()
-        consumer_rows = db.execute(
-            "SELECT seq, query_id, resource, origin_rr FROM consumers ORDER BY seq"
-        ).fetchall()
-        client_rows = db.execute(CLIENTS).fetchall()
-    finally:
-        db.execute("COMMIT")
-    if not lenient:
-        for row in rows:
-            check_values(row)
-    check_keys(rows, consumer_rows, client_rows)
-    encoded = Resource.encoded
-    states = STATES_BY_CODE
-    resources = [
-        encoded(
-            rid,
-            server,
-            states[state],
-            NO_DIGEST if digest is None else digest,
-            (request, response),
-            decode,
-            0,
-            texts,
-        )
-        for _, rid, server, state, digest, request, response, *texts in rows
-    ]
-    for resource in resources:
-        if lenient:
-            _ = resource.request, resource.response
-        if resource.digest == NO_DIGEST:
-            resource.digest = None  # the catalog indexes it from its (decoded) request
-            _ = resource.request
-    mirrors = [
-        Mirror(row[0], r.state, r.response_version, {}, (row[7], row[8], row[9]))
-        for row, r in zip(rows, resources, strict=True)
-    ]
-    by_seq = {row[0]: (r, m) for row, r, m in zip(rows, resources, mirrors, strict=True)}
-    max_seq = rows[-1][0] if rows else 0
-    for seq, query_id, resource_seq, origin in consumer_rows:
-        owner = by_seq.get(resource_seq)
-        if owner is None:
-            raise ValueError(f"consumer {query_id} belongs to a missing resource")
-        owner[0].consumers[query_id] = origin
-        owner[1].consumers[query_id] = seq
-    if consumer_rows:
-        max_seq = max(max_seq, consumer_rows[-1][0])
-    clients, client_seqs = client_records(client_rows, decode)
-    max_seq = max([max_seq, *client_seqs.values()])
-    mirror = {r.id: m for r, m in zip(resources, mirrors, strict=True)}
-    return Rows(resources, clients, mirror, client_seqs, max_seq)
 
 
 def client_records(
@@ -275,6 +174,22 @@ _TRIM_AFTER = 10_000
 """Consumer ids from which building `Consumers` frees enough (MBs) to hand it back."""
 
 
+class RowStore(Protocol):
+    """What `Unread` reads the rows it was left through (`SqliteStore` is one)."""
+
+    path: str
+    closed: bool
+
+    @property
+    def connection(self) -> sqlite3.Connection:
+        """The store's connection to its file."""
+        ...
+
+    def adopt(self, row: Any, consumer_rows: list[Any]) -> Resource:
+        """Build a stored resource with its consumers; from now on the store mirrors it."""
+        ...
+
+
 class Unread:
     """The served resources of a restored backup that are not in memory yet (`UnreadRows`).
 
@@ -286,7 +201,7 @@ class Unread:
     """
 
     def __init__(
-        self, store: SqliteStore, consumers: Consumers, count: int, last: int, read: set[int]
+        self, store: RowStore, consumers: Consumers, count: int, last: int, read: set[int]
     ) -> None:
         self._store = store
         self._consumers = consumers

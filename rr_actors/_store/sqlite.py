@@ -45,9 +45,11 @@ from rr_actors._store.files import (
     create,
     file_ids,
     foreign_owner,
+    gc_paused,
     moved,
     prepare,
     put_in_place,
+    read_rows,
     remove_files,
     validate,
     write_error,
@@ -62,8 +64,6 @@ from rr_actors._store.restore import (
     Restored,
     Unread,
     client_records,
-    gc_paused,
-    read_rows,
 )
 from rr_actors._store.schema import rollback
 from rr_actors.errors import CatalogCorruptError, CatalogWriteError, ConfigError

@@ -7,7 +7,7 @@ Every running child, whatever it is, offers `pid` and `stop(timeout) -> ManagerE
 * `ProcessManager`: a manager process (`rr_actors._process.manager.ManagerProcess`),
   started in a spare process when the tree has one; its death is seen by the process's
   watcher thread;
-* `NestedSupervisor`: a supervisor below this one (`rr_actors._supervision.node.Node`).
+* `NestedSupervisor`: a supervisor below this one (a `Level`: `rr_actors._supervision.node.Node`).
 
 Each tells its end to the supervisor through an `on_exit(ManagerExit)` callback (run on
 the watcher thread), which posts it to the supervisor's mailbox.
@@ -36,7 +36,6 @@ from rr_actors.errors import RrError, SupervisorGaveUpError
 
 if TYPE_CHECKING:
     from rr_actors._process.spare import SparePool
-    from rr_actors._supervision.node import Node
     from rr_actors._supervision.relay import EventRelay
     from rr_actors._transport.base import Address, Transport
 
@@ -45,6 +44,7 @@ __all__ = [
     "ChildCounts",
     "ChildInfo",
     "ChildState",
+    "Level",
     "NestedSupervisor",
     "ProcessManager",
     "Running",
@@ -254,12 +254,25 @@ class ProcessManager:
         return self.handle.stop(limit, restarting=restarting)
 
 
+class Level(Protocol):
+    """One supervisor of the tree, as its parent and lookups see it (a `node.Node`)."""
+
+    spec: SupervisorSpec
+    children: list[Child]
+    gave_up: SupervisorGaveUpError | None
+    giving_up: bool
+
+    def stop(self, timeout: float | None = None, *, restarting: bool = False) -> None:
+        """Stop every child in reverse start order, then the supervisor (idempotent)."""
+        ...
+
+
 class NestedSupervisor:
     """A supervisor running as the child of another."""
 
     pid: int | None = None
 
-    def __init__(self, node: Node) -> None:
+    def __init__(self, node: Level) -> None:
         self.node = node
 
     def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:

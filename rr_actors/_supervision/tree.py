@@ -23,7 +23,7 @@ import logging
 import random as _random
 import threading
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
 import cloudpickle
 
@@ -35,6 +35,7 @@ from rr_actors._supervision.children import (
     Child,
     ChildInfo,
     ChildState,
+    Level,
     NestedSupervisor,
     ProcessManager,
     snapshot,
@@ -68,15 +69,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger("rr_actors")
-
-
-class Level(Protocol):
-    """One supervisor of the tree, as lookups see it (a `Node`)."""
-
-    spec: SupervisorSpec
-    children: list[Child]
-    gave_up: SupervisorGaveUpError | None
-    giving_up: bool
 
 
 class Processes:

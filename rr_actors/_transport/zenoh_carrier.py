@@ -66,7 +66,15 @@ from rr_actors._transport.writer import Lost
 from rr_actors._transport.zenoh_inbox import Inbox, Local
 from rr_actors._transport.zenoh_outbox import Outbox, Outboxes
 from rr_actors._transport.zenoh_presence import ASK_TIMEOUT, Presence
-from rr_actors._transport.zenoh_wire import ANSWER, MESSAGE, VERSION, header
+from rr_actors._transport.zenoh_wire import (
+    ANSWER,
+    MESSAGE,
+    VERSION,
+    Keys,
+    NameAt,
+    ServerKey,
+    header,
+)
 from rr_actors.config import NAME
 from rr_actors.errors import (
     ConfigError,
@@ -118,18 +126,24 @@ class ZenohMember:
     Args:
         system: the system's name (every key starts with `rr/<system>/`).
         session: the open session (router or client mode).
+        address: what other processes of this host join through (the router's address).
         speakers: the Zenoh ids of the processes `supervised_by` can name, by pid (the
             router of this host, for a process that attached through it).
-        on_close: called once the member closed.
+        on_close: called once the member closed (with the member).
+        link_trouble: says why a registrar may not be seen (`ZenohNetwork`'s connect
+            endpoints it has no link to), as the end of an `UnknownRegistrarError`'s
+            message; `""` when nothing is wrong.
     """
 
     def __init__(
         self,
         system: str,
         session: zenoh.Session,
+        address: Address,
         *,
         speakers: dict[int, str] | None = None,
-        on_close: Callable[[], None] | None = None,
+        on_close: Callable[[ZenohMember], None] | None = None,
+        link_trouble: Callable[[], str] | None = None,
     ) -> None:
         self.system = system
         self.zid = str(session.zid())
@@ -138,27 +152,25 @@ class ZenohMember:
         self._speakers = dict(speakers or {})
         self._supervisor: str | None = None  # set by `supervised_by`: nobody until then
         self._on_close = on_close
-        self._address: Address | None = None
-        self._link_trouble: Callable[[], str] | None = None  # ZenohNetwork's: no link, why
-        self._prefix = f"rr/{system}"
+        self._address = address
+        self._link_trouble = link_trouble
+        self._keys = Keys(system)
         self._lock = threading.Lock()
         self._locals: dict[str, Local] = {}
         self._stop_marks: dict[str, Any] = {}
         self._peers: dict[str, ZenohPeer] = {}
-        self._outboxes = Outboxes(session, self._prefix)
+        self._outboxes = Outboxes(session, self._keys)
         self._inbox = Inbox(self)
         self._presence = Presence(
             system, session, self.zid, self, on_token=self._inbox.process_token
         )
         self._answers = session.declare_subscriber(
-            f"{self._prefix}/ans/{self.zid}", self._inbox.on_answer
+            self._keys.answers(self.zid), self._inbox.on_answer
         )
         self._pings = session.declare_queryable(
-            f"{self._prefix}/ping/{self.zid}", lambda query: query.reply(query.key_expr, b"")
+            self._keys.ping(self.zid), lambda query: query.reply(query.key_expr, b"")
         )
-        self._proc_token = session.liveliness().declare_token(
-            f"{self._prefix}/live/proc/{self.zid}"
-        )
+        self._proc_token = session.liveliness().declare_token(self._keys.proc(self.zid))
         DIRECTORY.add_resolver(self.resolve, self.names)
 
     # -- the Transport interface ---------------------------------------------------------
@@ -166,7 +178,6 @@ class ZenohMember:
     @property
     def address(self) -> Address:
         """What other processes of this host join through (the router's address)."""
-        assert self._address is not None
         return self._address
 
     def resolve(self, name: str) -> Peer | None:
@@ -225,9 +236,7 @@ class ZenohMember:
         mark = self._stop_marks.pop(name, None)
         if mark is not None:
             mark.undeclare()
-        claim = self._session.liveliness().declare_token(
-            f"{self._prefix}/live/claim/{name}/{self.zid}"
-        )
+        claim = self._session.liveliness().declare_token(self._keys.claim(NameAt(name, self.zid)))
         try:
             self._presence.wait_turn(name)
             local = Local(endpoint)
@@ -235,11 +244,11 @@ class ZenohMember:
                 self.zid if DIRECTORY.restart_expected(name) else "none"
             )
             local.subscriber = self._session.declare_subscriber(
-                f"{self._prefix}/reg/{name}",
+                self._keys.registrar(name),
                 lambda sample: self._inbox.on_message(local, sample),
             )
-            token_key = (
-                f"{self._prefix}/live/reg/{name}/{self.zid}/{supervisor}/{local.max_message_bytes}"
+            token_key = self._keys.server(
+                ServerKey(name, self.zid, supervisor, local.max_message_bytes)
             )
             local.token = self._session.liveliness().declare_token(token_key)
         finally:  # after the token: a rival sees this one serve before the claim goes
@@ -294,7 +303,7 @@ class ZenohMember:
         with contextlib.suppress(Exception):
             self._session.close()  # type: ignore[no-untyped-call]
         if self._on_close is not None:
-            self._on_close()
+            self._on_close(self)
 
     # -- serving ---------------------------------------------------------------------------
 
@@ -321,7 +330,7 @@ class ZenohMember:
             if stopped:  # the mark goes out before the token: peers say "stopped"
                 with contextlib.suppress(Exception):
                     self._stop_marks[local.name] = self._session.liveliness().declare_token(
-                        f"{self._prefix}/live/stopped/{local.name}/{self.zid}"
+                        self._keys.stopped(NameAt(local.name, self.zid))
                     )
             with contextlib.suppress(Exception):
                 local.token.undeclare()
@@ -368,7 +377,7 @@ class ZenohMember:
             )
         if reply is not None:
             self._inbox.expect(token, name, reply, message, server.limit)
-        outbox = self._outbox(f"{self._prefix}/reg/{name}", server.zid)
+        outbox = self._outbox(self._keys.registrar(name), server.zid)
         sent = (  # (gone meanwhile: its presence may have missed this reply)
             self._presence.server(name) is not None
             and outbox is not None
@@ -392,7 +401,7 @@ class ZenohMember:
         """
         if self._presence.unreachable(sender):
             return False
-        outbox = self._outbox(f"{self._prefix}/ans/{sender}", sender)
+        outbox = self._outbox(self._keys.answers(sender), sender)
         return outbox is not None and outbox.send(header(ANSWER, self.zid) + data, on_lost)
 
     def member(self, zid: str) -> bool:
@@ -401,7 +410,7 @@ class ZenohMember:
 
     def refuse_version(self, sender: str, token: int) -> None:
         """Tell process `sender` that its message `token` was of another version."""
-        outbox = self._outbox(f"{self._prefix}/ans/{sender}")
+        outbox = self._outbox(self._keys.answers(sender))
         if outbox is not None:
             outbox.send(header(VERSION, self.zid) + struct.pack("!i", 8) + struct.pack("<Q", token))
 
@@ -409,7 +418,7 @@ class ZenohMember:
 
     def process_gone(self, zid: str) -> None:
         """Process `zid`'s token went: its answer outbox closes, its inboxes finish."""
-        answers = self._outboxes.pop(f"{self._prefix}/ans/{zid}")
+        answers = self._outboxes.pop(self._keys.answers(zid))
         if answers is not None:
             answers.close()
         self._inbox.finish(zid)  # what it sent before it went is still delivered
@@ -417,7 +426,7 @@ class ZenohMember:
     def server_gone(self, name: str) -> None:
         """The last server of `name` went: what waits on it fails, its outbox closes."""
         self._inbox.fail_waiting(name, self._gone_error(name))
-        outbox = self._outboxes.pop(f"{self._prefix}/reg/{name}")
+        outbox = self._outboxes.pop(self._keys.registrar(name))
         if outbox is not None:
             outbox.close()
 

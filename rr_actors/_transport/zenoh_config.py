@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from rr_actors._transport.zenoh_wire import Keys
 from rr_actors.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -130,7 +131,7 @@ def _access_control(system: str, members: Iterable[str]) -> dict[str, Any]:
                 "messages": _MESSAGES,
                 "flows": ["egress", "ingress"],
                 "permission": "allow",
-                "key_exprs": [f"rr/{system}/**"],
+                "key_exprs": [Keys(system).everything()],
             }
         ],
         "subjects": [

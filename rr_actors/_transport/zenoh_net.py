@@ -248,9 +248,9 @@ class ZenohAddress:
             raise RegistrarUnavailableError(
                 f"cannot join system {self.system!r} through {self.socket_path!r}: {exc}"
             ) from exc
-        member = ZenohMember(self.system, session, speakers={self.router_pid: self.router})
-        member._on_close = lambda: _left(member)
-        member._address = self
+        member = ZenohMember(
+            self.system, session, self, speakers={self.router_pid: self.router}, on_close=_left
+        )
         _close_at_exit(f"the membership of system {self.system!r}", member, member.close)
         return member
 
@@ -369,13 +369,10 @@ class ZenohNetwork:
                 self.system, open_gates(self.listen), lambda: _members_at(session, members)
             )
         watch, gate = self._watch, self._gate
-        member = ZenohMember(self.system, session)
         self._runtime_dir = runtime_dir
-        self._address = member._address = ZenohAddress(
-            self.system, path, self.lease, member.zid, os.getpid()
-        )
+        self._address = ZenohAddress(self.system, path, self.lease, str(session.zid()), os.getpid())
 
-        def closed() -> None:
+        def closed(member: ZenohMember) -> None:
             if watch is not None:
                 watch.close()
             if gate is not None:
@@ -383,9 +380,13 @@ class ZenohNetwork:
             _left(member)
             shutil.rmtree(runtime_dir, ignore_errors=True)
 
-        member._on_close = closed
-        if watch is not None:
-            member._link_trouble = lambda: _no_link(watch.unlinked())
+        member = ZenohMember(
+            self.system,
+            session,
+            self._address,
+            on_close=closed,
+            link_trouble=None if watch is None else lambda: _no_link(watch.unlinked()),
+        )
         _close_at_exit(f"ZenohNetwork {self.system!r}", member, self.close)
         return member
 

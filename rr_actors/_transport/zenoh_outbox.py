@@ -30,6 +30,7 @@ import zenoh
 
 from rr_actors._transport.writer import Lost, run_lost
 from rr_actors._transport.zenoh_queue import Queue
+from rr_actors._transport.zenoh_wire import Keys
 
 __all__ = ["HEAL_TIMEOUT", "Outbox", "Outboxes"]
 
@@ -89,12 +90,12 @@ class Outboxes:
 
     Args:
         session: the open session.
-        prefix: `rr/<system>`.
+        keys: the system's key expressions (a ping's).
     """
 
-    def __init__(self, session: zenoh.Session, prefix: str) -> None:
+    def __init__(self, session: zenoh.Session, keys: Keys) -> None:
         self._session = session
-        self._prefix = prefix
+        self._keys = keys
         self._lock = threading.Lock()
         self._outboxes: dict[str, Outbox] = {}
         self._closed = False
@@ -132,7 +133,7 @@ class Outboxes:
         for outbox in outboxes:
             outbox.close()
 
-    def _until_answered(self, zid: str | None) -> None:
+    def _until_answered(self, zid: str) -> None:
         """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread).
 
         When a link comes up (a host that joins, a healed link) the process's tokens may
@@ -146,7 +147,7 @@ class Outboxes:
         pause = threading.Event()
         while not self._closed and time.monotonic() < deadline:
             try:
-                replies = self._session.get(f"{self._prefix}/ping/{zid}", timeout=0.25)
+                replies = self._session.get(self._keys.ping(zid), timeout=0.25)
                 if any(reply.ok is not None for reply in replies):
                     return
             except Exception:  # noqa: BLE001 - the session closed: the put fails too

@@ -47,13 +47,7 @@ import zenoh
 
 from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.zenoh_queue import Queue
-from rr_actors._transport.zenoh_wire import (
-    NameAt,
-    claim_key,
-    proc_key,
-    server_key,
-    stopped_key,
-)
+from rr_actors._transport.zenoh_wire import Keys, NameAt
 from rr_actors.errors import DuplicateNameError
 
 logger = logging.getLogger("rr_actors")
@@ -125,7 +119,7 @@ class Presence:
         self._session = session
         self._zid = zid
         self._events = events
-        self._prefix = f"rr/{system}"
+        self._keys = Keys(system)
         self._changed = threading.Condition(threading.Lock())
         self._seq = 0
         self._deleted: dict[str, int] = {}  # token key -> seq of its last deletion
@@ -140,7 +134,6 @@ class Presence:
         self._awaiting: dict[str, str] = {}  # name -> its supervisor: lost if that one goes
         self._members: set[str] = set()  # processes whose token is here (Zenoh's threads)
         self._on_token = on_token
-        self._proc_prefix = f"{self._prefix}/live/proc/"
         self._malformed = LogThrottle(logger)
         self._tokens: dict[str, Callable[[bool, str], list[Callable[[], None]] | None]] = {
             "proc": self._proc_token,  # each: the actions, or None for a malformed key
@@ -150,7 +143,7 @@ class Presence:
         }
         self._queue = Queue("rr-zpresence", self._apply)
         self._live = session.liveliness().declare_subscriber(
-            f"{self._prefix}/live/**", self._on_live, history=True
+            self._keys.live(), self._on_live, history=True
         )
 
     # -- what the tables say -------------------------------------------------------------
@@ -230,15 +223,14 @@ class Presence:
 
     def _on_live(self, sample: zenoh.Sample) -> None:
         put, key = sample.kind == zenoh.SampleKind.PUT, str(sample.key_expr)
-        if key.startswith(self._proc_prefix):  # (here, not on the presence thread: see `member`)
-            zid = proc_key(key, self._prefix)
-            if zid is not None:
-                if put:
-                    self._members.add(zid)
-                else:
-                    self._members.discard(zid)
-                if self._on_token is not None:
-                    self._on_token(zid, put)
+        zid = self._keys.parse_proc(key)  # (here, not on the presence thread: see `member`)
+        if zid is not None:
+            if put:
+                self._members.add(zid)
+            else:
+                self._members.discard(zid)
+            if self._on_token is not None:
+                self._on_token(zid, put)
         self._queue.put((put, key, None))
 
     def member(self, zid: str) -> bool:
@@ -266,7 +258,7 @@ class Presence:
             keys: list[str] = []
             with contextlib.suppress(Exception):
                 replies = self._session.liveliness().get(
-                    f"{self._prefix}/live/*/{name}/**", timeout=ASK_TIMEOUT
+                    self._keys.live_of(name), timeout=ASK_TIMEOUT
                 )
                 keys.extend(str(reply.ok.key_expr) for reply in replies if reply.ok is not None)
             done = threading.Event()
@@ -317,8 +309,7 @@ class Presence:
 
         A malformed key (a buggy member's token) is ignored with a rate-limited WARNING.
         """
-        kind = key.removeprefix(self._prefix + "/live/").split("/", 1)[0]
-        token = self._tokens.get(kind)
+        token = self._tokens.get(self._keys.kind(key))
         if token is None:
             return []  # (a kind of token a later version may add)
         actions = token(put, key)
@@ -333,13 +324,13 @@ class Presence:
         return actions
 
     def _proc_token(self, put: bool, key: str) -> list[Callable[[], None]] | None:
-        zid = proc_key(key, self._prefix)
+        zid = self._keys.parse_proc(key)
         if zid is None:
             return None
         return [] if zid == self._zid else self._process_event(put, zid)
 
     def _reg_token(self, put: bool, key: str) -> list[Callable[[], None]] | None:
-        server = server_key(key, self._prefix)
+        server = self._keys.parse_server(key)
         if server is None:
             return None
         if server.zid == self._zid:
@@ -349,7 +340,7 @@ class Presence:
         )
 
     def _claim_token(self, put: bool, key: str) -> list[Callable[[], None]] | None:
-        claim = claim_key(key, self._prefix)
+        claim = self._keys.parse_claim(key)
         if claim is None:
             return None
         claims = self._claims.setdefault(claim.name, set())
@@ -360,7 +351,7 @@ class Presence:
         return []
 
     def _stopped_token(self, put: bool, key: str) -> list[Callable[[], None]] | None:
-        mark = stopped_key(key, self._prefix)
+        mark = self._keys.parse_stopped(key)
         if mark is None:
             return None
         if put:

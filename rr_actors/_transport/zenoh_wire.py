@@ -6,6 +6,7 @@ see each other:
 ```
  rr/<system>/reg/<name>                       messages for registrar <name> (its subscriber)
  rr/<system>/ans/<zid>                        answers for the process whose Zenoh id is <zid>
+ rr/<system>/ping/<zid>                       its queryable: answers a ping (`zenoh_outbox`)
  rr/<system>/live/proc/<zid>                  liveliness: process <zid> is a member
  rr/<system>/live/reg/<name>/<zid>/<sup>/<limit>
                                               liveliness: <zid> serves <name>; <sup> is the
@@ -14,6 +15,9 @@ see each other:
  rr/<system>/live/claim/<name>/<zid>          liveliness: <zid> is about to serve <name>
  rr/<system>/live/stopped/<name>/<zid>        liveliness: <name> at <zid> was stopped cleanly
 ```
+
+`Keys` builds each of them and parses each liveliness token (a malformed one is `None`);
+no other module writes a key.
 
 A payload is `header + frame`, where the frame is the AF_UNIX carrier's
 (`codec.frame`: length, 8-byte token, pickle) and the header says who speaks:
@@ -47,6 +51,7 @@ __all__ = [
     "PYTHON",
     "VERSION",
     "Header",
+    "Keys",
     "NameAt",
     "ServerKey",
     "claim_key",
@@ -141,10 +146,11 @@ def versions_text(theirs: Header) -> str:
     )
 
 
-# -- liveliness key expressions ---------------------------------------------------------------
+# -- key expressions ---------------------------------------------------------------------------
 #
-# One parser per kind of token (`rr/<system>/live/<kind>/...`): each returns `None` for a
-# malformed key (a value, never an exception), so that a token a buggy member declared
+# `Keys` builds every key of a system and parses the liveliness ones: nothing else writes a
+# key. One parser per kind of token (`rr/<system>/live/<kind>/...`): each returns `None` for
+# a malformed key (a value, never an exception), so that a token a buggy member declared
 # costs a log line, not the presence thread's work or a `serve`.
 
 _ZID = re.compile(r"[0-9a-f]{1,32}")  # a Zenoh id as `str(session.zid())` writes it
@@ -165,6 +171,89 @@ class NameAt(NamedTuple):
 
     name: str
     zid: str
+
+
+class Keys:
+    """Every key expression of one system (see the module docstring): built and parsed here.
+
+    A builder takes what the key says and writes it (`keys.server(ServerKey(...))`); its
+    parser (`keys.parse_server(key)`) gives it back, or `None` for a malformed key.
+
+    Args:
+        system: the system's name (a registrar name: `rr_actors.config.NAME`).
+    """
+
+    __slots__ = ("prefix",)
+
+    def __init__(self, system: str) -> None:
+        self.prefix = f"rr/{system}"
+
+    # -- built -----------------------------------------------------------------------------
+
+    def everything(self) -> str:
+        """Every key of the system: what its access-control rule allows."""
+        return f"{self.prefix}/**"
+
+    def registrar(self, name: str) -> str:
+        """Messages for registrar `name` (its subscriber)."""
+        return f"{self.prefix}/reg/{name}"
+
+    def answers(self, zid: str) -> str:
+        """Answers for process `zid` (its subscriber)."""
+        return f"{self.prefix}/ans/{zid}"
+
+    def ping(self, zid: str) -> str:
+        """Process `zid`'s queryable that answers a ping (`zenoh_outbox`)."""
+        return f"{self.prefix}/ping/{zid}"
+
+    def live(self) -> str:
+        """Every liveliness token of the system (what presence subscribes to)."""
+        return f"{self.prefix}/live/**"
+
+    def live_of(self, name: str) -> str:
+        """Every liveliness token that names registrar `name` (what presence asks)."""
+        return f"{self.prefix}/live/*/{name}/**"
+
+    def proc(self, zid: str) -> str:
+        """Process `zid`'s token: it is a member."""
+        return f"{self.prefix}/live/proc/{zid}"
+
+    def server(self, server: ServerKey) -> str:
+        """A registrar's token: `server.zid` serves `server.name`."""
+        name, zid, supervisor, limit = server
+        return f"{self.prefix}/live/reg/{name}/{zid}/{supervisor}/{limit}"
+
+    def claim(self, at: NameAt) -> str:
+        """A claim: `at.zid` is about to serve `at.name`."""
+        return f"{self.prefix}/live/claim/{at.name}/{at.zid}"
+
+    def stopped(self, at: NameAt) -> str:
+        """A "stopped" mark: `at.name` at `at.zid` was stopped cleanly."""
+        return f"{self.prefix}/live/stopped/{at.name}/{at.zid}"
+
+    # -- parsed ----------------------------------------------------------------------------
+
+    def kind(self, key: str) -> str:
+        """The kind of the liveliness token `key` (`proc`, `reg`, `claim`, `stopped`, or
+        what a later version may add); `""` if `key` is not a token of this system."""
+        head = f"{self.prefix}/live/"
+        return key[len(head) :].split("/", 1)[0] if key.startswith(head) else ""
+
+    def parse_proc(self, key: str) -> str | None:
+        """The Zenoh id in a process token, or `None` (see `proc_key`)."""
+        return proc_key(key, self.prefix)
+
+    def parse_server(self, key: str) -> ServerKey | None:
+        """What a registrar's token says, or `None` (see `server_key`)."""
+        return server_key(key, self.prefix)
+
+    def parse_claim(self, key: str) -> NameAt | None:
+        """What a claim says, or `None` (see `claim_key`)."""
+        return claim_key(key, self.prefix)
+
+    def parse_stopped(self, key: str) -> NameAt | None:
+        """What a "stopped" mark says, or `None` (see `stopped_key`)."""
+        return stopped_key(key, self.prefix)
 
 
 def _live_parts(key: str, prefix: str, kind: str, count: int) -> list[str] | None:

@@ -1,10 +1,15 @@
-"""The liveliness key expressions (`zenoh_wire`): one parser per kind, `None` when malformed."""
+"""The key expressions (`zenoh_wire`): one parser per kind, `None` when malformed; `Keys`
+builds each kind and parses back what it built."""
 
 from __future__ import annotations
 
+import hypothesis.strategies as st
 import pytest
+import zenoh
+from hypothesis import given
 
 from rr_actors._transport.zenoh_wire import (
+    Keys,
     NameAt,
     ServerKey,
     claim_key,
@@ -12,6 +17,7 @@ from rr_actors._transport.zenoh_wire import (
     server_key,
     stopped_key,
 )
+from rr_actors.config import NAME
 
 P = "rr/lab"
 ZID = "a0f481d091d919019faefa4c91471a5"
@@ -68,3 +74,71 @@ def test_a_malformed_claim_or_stopped_mark_is_none(parse: object, rest: str) -> 
 
 def test_a_key_of_another_system_is_none() -> None:
     assert proc_key(f"rr/other/live/proc/{ZID}", P) is None
+
+
+# -- Keys: built, then parsed back ---------------------------------------------------------------
+
+names = st.from_regex(NAME, fullmatch=True)
+zids = st.from_regex(r"[0-9a-f]{1,32}", fullmatch=True)
+servers = st.builds(
+    ServerKey, names, zids, st.one_of(st.just("none"), zids), st.integers(1, 2**63 - 1)
+)
+
+
+@given(system=names, zid=zids)
+def test_a_process_token_built_parses_back(system: str, zid: str) -> None:
+    keys = Keys(system)
+    assert "proc" == keys.kind(keys.proc(zid))
+    assert zid == keys.parse_proc(keys.proc(zid))
+
+
+@given(system=names, server=servers)
+def test_a_registrar_token_built_parses_back(system: str, server: ServerKey) -> None:
+    keys = Keys(system)
+    assert "reg" == keys.kind(keys.server(server))
+    assert server == keys.parse_server(keys.server(server))
+    assert keys.parse_proc(keys.server(server)) is None  # (each parser takes its kind only)
+
+
+@given(system=names, at=st.builds(NameAt, names, zids))
+def test_a_claim_and_a_stopped_mark_built_parse_back(system: str, at: NameAt) -> None:
+    keys = Keys(system)
+    assert ("claim", at) == (keys.kind(keys.claim(at)), keys.parse_claim(keys.claim(at)))
+    assert ("stopped", at) == (keys.kind(keys.stopped(at)), keys.parse_stopped(keys.stopped(at)))
+    assert keys.parse_stopped(keys.claim(at)) is None
+    assert keys.parse_claim(Keys(f"{system}x").claim(at)) is None  # another system's
+
+
+@given(key=st.one_of(st.text(), st.lists(st.text(), max_size=8).map("/".join)))
+def test_parsing_any_string_is_a_value_never_an_exception(key: str) -> None:
+    keys = Keys("lab")
+    for head in ("", "rr/lab/live/proc/", "rr/lab/live/reg/", "rr/lab/live/claim/", "rr/lab/"):
+        text = head + key
+        assert isinstance(keys.kind(text), str)
+        zid = keys.parse_proc(text)
+        assert zid is None or keys.proc(zid) == text
+        server = keys.parse_server(text)
+        assert server is None or keys.server(server) == text
+        claim, stopped = keys.parse_claim(text), keys.parse_stopped(text)
+        assert claim is None or keys.claim(claim) == text
+        assert stopped is None or keys.stopped(stopped) == text
+
+
+def test_every_key_of_a_system_is_under_what_its_access_control_allows() -> None:
+    keys, at = Keys("lab"), NameAt("erm", ZID)
+    assert "rr/lab/**" == keys.everything()
+    built = [
+        keys.registrar("erm"),
+        keys.answers(ZID),
+        keys.ping(ZID),
+        keys.proc(ZID),
+        keys.server(ServerKey("erm", ZID, "none", 1024)),
+        keys.claim(at),
+        keys.stopped(at),
+    ]
+    assert all(zenoh.KeyExpr(keys.everything()).includes(zenoh.KeyExpr(k)) for k in built)
+    tokens = built[3:]  # what presence subscribes to, and asks of a name (not the process's)
+    assert [k for k in built if zenoh.KeyExpr(keys.live()).includes(zenoh.KeyExpr(k))] == tokens
+    of_erm = zenoh.KeyExpr(keys.live_of("erm"))
+    assert [k for k in built if of_erm.includes(zenoh.KeyExpr(k))] == tokens[1:]
+    assert not of_erm.includes(zenoh.KeyExpr(Keys("lab").claim(NameAt("erm2", ZID))))
