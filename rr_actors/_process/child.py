@@ -59,6 +59,7 @@ import cloudpickle
 
 from rr_actors import events
 from rr_actors._core.bus import Forwarder, Publisher
+from rr_actors.events.kinds import number_events
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._platform import PLATFORM
 from rr_actors._process.context import (
@@ -275,6 +276,7 @@ class _EventLine:
     """
 
     def __init__(self, control: _Control, name: str, *, on: bool) -> None:
+        number_events()  # a SIGKILL may lose what is not sent yet: the gaps show it
         self.hub: Publisher[events.Event] = events.publisher()
         self.forwarder: Forwarder[events.Event] = Forwarder(
             lambda batch: control.send(Events(batch)),

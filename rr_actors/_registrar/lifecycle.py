@@ -28,6 +28,7 @@ from rr_actors._catalog import ClientRecord, Resource, ResourceState
 from rr_actors._core.actor import refuse
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.timers import Cancellable
+from rr_actors._registrar import chronicle
 from rr_actors._registrar.messages import (
     ClientLoaded,
     ConsumerDown,
@@ -110,6 +111,7 @@ class Lifecycle:
     # -- start ------------------------------------------------------------------------
 
     def on_start(self) -> None:
+        chronicle.publish_restored(self.registrar)  # before anything is served
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
         self.reconciling.expect_reconcile(providers)
@@ -141,7 +143,14 @@ class Lifecycle:
         for resource in list(catalog.resources.values()):
             if resource.state is not ResourceState.LOADED:
                 if self.registrar.events.active:
-                    self.registrar.events.publish(events.InDoubt(self.registrar.name, resource.id))
+                    self.registrar.events.publish(
+                        events.InDoubt(
+                            self.registrar.name,
+                            resource.id,
+                            resource.server,
+                            "load" if resource.state is ResourceState.LOADING else "unload",
+                        )
+                    )
                 catalog.begin_unload(resource.id)
                 self.consumer.release_dependencies(
                     resource.id, functools.partial(self.teardown.remove_resource, resource)
@@ -242,6 +251,7 @@ class Lifecycle:
                 consumer.release_client(tops.pop(0), next_one)
                 return
             self.registrar.commit()
+            chronicle.publish_stopped(self.registrar)
             if self.flush_timer is not None:
                 self.flush_timer.cancel()
             unsaved: CatalogWriteError | None = None

@@ -336,6 +336,16 @@ class Provider:
             for waiter in live:
                 if catalog.has_consumer(waiter.query_id):  # a retry may be listed twice
                     catalog.release(waiter.query_id)
+                    if self.registrar.events.active:
+                        self.registrar.events.publish(
+                            events.ConsumerReleased(
+                                self.registrar.name,
+                                rid,
+                                waiter.query_id,
+                                waiter.origin_rr,
+                                "refused",
+                            )
+                        )
                 waiter.reply.set_error(refusal)
             live = []
         for waiter in live:
@@ -448,8 +458,17 @@ def published_load(
     """Publish how a load ended (`ResourceLoaded` or `LoadFailed`)."""
     if error is None:
         load_s = time.monotonic() - started
+        digest = resource.digest
         registrar.events.publish(
-            events.ResourceLoaded(registrar.name, resource.server, resource.id, query_id, load_s)
+            events.ResourceLoaded(
+                registrar.name,
+                resource.server,
+                resource.id,
+                query_id,
+                load_s,
+                digest if digest is not None and digest != NO_DIGEST else None,
+                resource.label if resource.label is not None else resource.request_text,
+            )
         )
         return
     error_type, message = type(error).__qualname__, str(error)

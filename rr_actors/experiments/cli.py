@@ -125,6 +125,8 @@ def run_line(result: RunResult, runs: int) -> str:
         f"{result.calls_ok} calls ok, {result.calls_failed} failed, "
         f"{result.restarts} restarts, recovery median {_ms(result.recovery_median_s)}"
         + (", the supervisor gave up" if result.gave_up else "")
+        + (f", verdict {result.verdict}" if result.verdict else "")
+        + "".join(f"\n{line}" for line in result.findings)
     )
 
 
@@ -158,6 +160,18 @@ def summary_rows(results: Results) -> list[list[str]]:
             ]
         )
     return rows
+
+
+def verdict_line(results: Results) -> str:
+    """The runs' verdicts (`rr_actors.experiments.check`), counted, under the summary."""
+    runs = results.runs
+    counts = {v: sum(1 for r in runs if r.verdict == v) for v in ("held", "violated", "unverifiable")}
+    findings = sum(r.violations for r in runs), sum(r.unverifiable for r in runs)
+    return (
+        f"verdicts: {counts['held']} held, {counts['violated']} violated, "
+        f"{counts['unverifiable']} unverifiable ({findings[0]} violations, {findings[1]} "
+        f"unverifiable findings; rr-actors check OUT shows each)"
+    )
 
 
 def summary_lines(results: Results) -> list[str]:
@@ -366,6 +380,8 @@ def _summary(display: _Display, results: Results, *, interrupted: bool) -> None:
     elif results.runs:
         for line in summary_lines(results):
             display.say(line)
+    if results.runs:
+        display.say(verdict_line(results))
     if results.out is not None:
         written = [name for name in experiment.OUTPUT_FILES if (results.out / name).exists()]
         display.say(f"written to {results.out}/: {', '.join(written)}")
