@@ -335,21 +335,17 @@ class Provider:
         if refusal is not None:
             for waiter in live:
                 if catalog.has_consumer(waiter.query_id):  # a retry may be listed twice
-                    catalog.release(waiter.query_id)
-                    if self.registrar.events.active:
-                        self.registrar.events.publish(
-                            events.ConsumerReleased(
-                                self.registrar.name,
-                                rid,
-                                waiter.query_id,
-                                waiter.origin_rr,
-                                "refused",
-                            )
-                        )
+                    catalog.release(waiter.query_id)  # (its ConsumerAdded was not published)
                 waiter.reply.set_error(refusal)
             live = []
+        published: set[str] = set()
         for waiter in live:
             waiter.reply.set_result(response)
+            if self.registrar.events.active and waiter.query_id not in published:
+                published.add(waiter.query_id)  # (after the commit: acknowledged now)
+                self.registrar.events.publish(
+                    events.ConsumerAdded(self.registrar.name, rid, waiter.query_id, waiter.origin_rr)
+                )
         if not resource.consumers:  # every caller gave up (or the server closed)
             self.teardown.unload_resource(resource, None)
 
@@ -369,12 +365,6 @@ class Provider:
             live.append(waiter)
             if not catalog.has_consumer(waiter.query_id):
                 catalog.add_consumer(rid, waiter.query_id, waiter.origin_rr)
-                if self.registrar.events.active:
-                    self.registrar.events.publish(
-                        events.ConsumerAdded(
-                            self.registrar.name, rid, waiter.query_id, waiter.origin_rr
-                        )
-                    )
         return live
 
     def serve_held(self) -> None:

@@ -359,8 +359,11 @@ def _end_rule(history: Sequence[Line]) -> list[Finding]:
     """`end`: at the end, no provider holds an id of a consumer that stopped."""
     stopped: dict[str, int] = {}  # consumer -> line of its (last) RegistrarStopped
     last_pid: dict[str, int] = {}
+    exited: dict[tuple[str, int], int] = {}  # (child, pid) -> line of its ChildExited
     held: dict[str, dict[str, tuple[str, int]]] = defaultdict(dict)  # provider -> qid -> ...
     for line, event in history:
+        if isinstance(event, events.ChildExited):
+            exited.setdefault((event.child, event.pid), line)
         name = _registrar_of(event)
         if name is None:
             continue
@@ -383,8 +386,11 @@ def _end_rule(history: Sequence[Line]) -> list[Finding]:
             pass
     findings = []
     for provider, ids in held.items():
+        down = stopped.get(provider, exited.get((provider, last_pid.get(provider, -1))))
         for qid, (consumer, line) in ids.items():
-            if consumer in stopped and consumer != provider:
+            # a provider down when its consumer stopped is told at its next start (rule 12)
+            up = consumer in stopped and (down is None or down > stopped[consumer])
+            if up and consumer != provider:
                 findings.append(
                     Finding(
                         "end",
