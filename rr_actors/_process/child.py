@@ -59,7 +59,6 @@ import cloudpickle
 
 from rr_actors import events
 from rr_actors._core.bus import Forwarder, Publisher
-from rr_actors.events.kinds import number_events
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._platform import PLATFORM
 from rr_actors._process.context import (
@@ -86,6 +85,7 @@ from rr_actors._store.schema import expected_objects
 from rr_actors._transport.base import Address, Transport
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import RrError
+from rr_actors.events.kinds import number_events
 
 if TYPE_CHECKING:
     from rr_actors._registrar import ResourceRegistrar

@@ -340,12 +340,14 @@ class Provider:
             live = []
         published: set[str] = set()
         for waiter in live:
-            waiter.reply.set_result(response)
             if self.registrar.events.active and waiter.query_id not in published:
-                published.add(waiter.query_id)  # (after the commit: acknowledged now)
+                published.add(waiter.query_id)  # (after the commit, before the answer)
                 self.registrar.events.publish(
-                    events.ConsumerAdded(self.registrar.name, rid, waiter.query_id, waiter.origin_rr)
+                    events.ConsumerAdded(
+                        self.registrar.name, rid, waiter.query_id, waiter.origin_rr
+                    )
                 )
+            waiter.reply.set_result(response)
         if not resource.consumers:  # every caller gave up (or the server closed)
             self.teardown.unload_resource(resource, None)
 

@@ -172,9 +172,7 @@ class Servers:
             )
         # the FATAL's acknowledgements may complete on any thread: come back to this one
         back = self.registrar.come_back(lambda *_: revoke_and_unload())
-        self.status.notify(
-            resource, update, event, query_id, lambda: back.set_result(None)
-        )
+        self.status.notify(resource, update, event, query_id, lambda: back.set_result(None))
 
     def op_update_response(self, query_id: str, response: Any, reply: Reply) -> None:
         resource = self.registrar.catalog.resource_of(query_id)

@@ -28,11 +28,11 @@ __all__ = [
     "Event",
     "EventsDropped",
     "InDoubt",
-    "Rows",
     "LoadFailed",
     "RegistrarStopped",
     "ResourceLoaded",
     "ResourceUnloaded",
+    "Rows",
     "StatusDelivered",
     "StatusSent",
     "SupervisorGaveUp",
@@ -83,8 +83,6 @@ def number_events(mark: Callable[[int], object] | None = None) -> None:
     global _numbering, _mark
     _mark = mark
     _numbering = True
-
-
 
 
 _pid = os.getpid()

@@ -102,7 +102,7 @@ def _field_types(cls: type[Event]) -> dict[str, type]:
     return {field.name: hints[field.name] for field in dataclasses.fields(cls)}
 
 
-def _convert(event: str, field: str, kind: Any, value: object) -> Any:  # noqa: PLR0911
+def _convert(event: str, field: str, kind: Any, value: object) -> Any:
     """Check one field's value from a dict (and turn a status name into a `Status`)."""
     args = typing.get_args(kind)
     if type(None) in args:  # `X | None`

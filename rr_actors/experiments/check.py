@@ -1,4 +1,4 @@
-"""A verdict per run: check the semantic rules a run's events can show (pure: events in, findings out).
+"""A verdict per run: check the semantic rules a run's events can show (events in, findings out).
 
 ```
  events.jsonl ──► read_runs ──► {run: [(line, event), ...]}
@@ -31,6 +31,7 @@ The checker re-synchronises a registrar's state at each `CatalogRestored`.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -181,7 +182,7 @@ def _fatal_deliveries(history: Sequence[Line]) -> dict[str, int]:
 # -- the rules ---------------------------------------------------------------------------------
 
 
-def _provider_rules(history: Sequence[Line]) -> list[Finding]:  # noqa: C901, PLR0912, PLR0915
+def _provider_rules(history: Sequence[Line]) -> list[Finding]:  # noqa: PLR0912, PLR0915
     """`held`, `unload-once`, `dedup` and `restore-first`: one pass over each provider."""
     findings: list[Finding] = []
     fatal = _fatal_deliveries(history)
@@ -355,7 +356,7 @@ def _status_rule(history: Sequence[Line]) -> list[Finding]:
     return findings
 
 
-def _end_rule(history: Sequence[Line]) -> list[Finding]:
+def _end_rule(history: Sequence[Line]) -> list[Finding]:  # noqa: PLR0912 - one branch per event kind
     """`end`: at the end, no provider holds an id of a consumer that stopped."""
     stopped: dict[str, int] = {}  # consumer -> line of its (last) RegistrarStopped
     last_pid: dict[str, int] = {}
@@ -425,7 +426,7 @@ def _loss_rule(history: Sequence[Line]) -> tuple[list[Finding], set[int]]:
     for pid, seen in numbers.items():
         seen.sort()
         dropped = {line for line, e in history if isinstance(e, events.EventsDropped)}
-        for (a, la), (b, lb) in zip(seen, seen[1:], strict=False):
+        for (a, la), (b, lb) in itertools.pairwise(seen):
             if b - a > 1 and not dropped.intersection(range(min(la, lb), max(la, lb) + 1)):
                 lossy.add(pid)
                 findings.append(

@@ -165,7 +165,9 @@ def summary_rows(results: Results) -> list[list[str]]:
 def verdict_line(results: Results) -> str:
     """The runs' verdicts (`rr_actors.experiments.check`), counted, under the summary."""
     runs = results.runs
-    counts = {v: sum(1 for r in runs if r.verdict == v) for v in ("held", "violated", "unverifiable")}
+    counts = {
+        v: sum(1 for r in runs if r.verdict == v) for v in ("held", "violated", "unverifiable")
+    }
     findings = sum(r.violations for r in runs), sum(r.unverifiable for r in runs)
     return (
         f"verdicts: {counts['held']} held, {counts['violated']} violated, "

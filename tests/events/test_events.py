@@ -39,7 +39,9 @@ EXAMPLES: list[events.Event] = [
     events.StatusSent("erm", QID, rr.Status.FATAL, "process died"),
     events.StatusDelivered("cm", QID, rr.Status.FATAL, 2, 0.0012),
     events.InDoubt("erm", QID, "start_process", "unload"),
-    events.CatalogRestored("erm", ((RID, "start_process", "loaded"),), ((QID, RID, "cm"),), (), (1, 1, 0)),
+    events.CatalogRestored(
+        "erm", ((RID, "start_process", "loaded"),), ((QID, RID, "cm"),), (), (1, 1, 0)
+    ),
     events.RegistrarStopped("cm", (), (), ((QID, "erm", "start_process", ""),), (0, 0, 1)),
     events.EventsDropped(17),
 ]
@@ -147,6 +149,7 @@ def test_to_dict_names_the_type_and_writes_the_status_by_name() -> None:
         "query_id": QID,
         "status": "WARNING",
         "message": "hot",
+        "status_id": "",
         "at": 1.5,
         "pid": 9,
         "seq": 0,

@@ -87,7 +87,9 @@ def _seeded() -> dict[str, tuple[list[events.Event], set[int]]]:
     }
 
 
-@pytest.mark.parametrize("rule", ["held", "unload-once", "dedup", "restore-first", "status-once", "end"])
+@pytest.mark.parametrize(
+    "rule", ["held", "unload-once", "dedup", "restore-first", "status-once", "end"]
+)
 def test_one_seeded_violation_of_each_rule_is_found_with_its_window(rule: str) -> None:
     history, window = _seeded()[rule]
     verdict = check.check(numbered(history))
