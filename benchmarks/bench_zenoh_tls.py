@@ -1,10 +1,12 @@
 """Zenoh TLS benchmark: mutual TLS against plain TCP across hosts; refused handshakes.
 
 Run, as root: `taskset -c 0 python benchmarks/bench_zenoh_tls.py [--rounds N] [--handshakes N]
-[--clients N] [--joins N] [--quiet S] [--interval S]`. The two hosts are two Linux network
-namespaces joined by a veth pair (`tests/hosts.py`); without root nothing is measured (it says
-so). The certificates are made for the run (`tests/pki.py`): a CA, members `robot` (host a,
-the listener), `operator` and `joiner` (host b). Everything is measured in one run:
+[--clients N] [--joins N] [--quiet S] [--interval S] [--cuts N] [--threads N] [--flood S]
+[--give-up S] [--without-gate]`. The two hosts are two Linux network namespaces joined by a
+veth pair, and a third one, the outsider, on a veth of its own to host a (`tests/hosts.py`);
+without root nothing is measured (it says so). The certificates are made for the run
+(`tests/pki.py`): a CA, members `robot` (host a, the listener), `operator` and `joiner`
+(host b). Everything is measured in one run:
 
 * round trips across the veth, each protocol on its own pair of fresh processes: a raw Zenoh
   `get` (a queryable that echoes 200 bytes; peers, no access control) over plain TCP and over
@@ -19,6 +21,15 @@ the listener), `operator` and `joiner` (host b). Everything is measured in one r
   s), during and after (`--quiet` s) the burst (target: every call succeeds, p99 under
   100 ms during it); and a member's time to join, from making its `ZenohNetwork` to its
   first successful call, when quiet and during the burst (target: within 10 s).
+
+* a flood of failed handshakes (issue 29): the outsider's `--threads` threads (4) connect to
+  host a's `tls/` port, send a few bytes and close, as fast as they can, no certificate;
+  after `--flood` s (2) member b's link to a is cut (`ip link set down` until b has lost
+  a) and brought back, `--cuts` times (3) during the flood and as many after it stopped:
+  the seconds from the link's return to b's first answered call (the re-join), and b's
+  calls on its link in the flood's first seconds. With `--without-gate`, once each also
+  with host a's listener kept by Zenoh alone and with only its queue shortened (the
+  benchmark's own switch, `gate_mode`: rr_actors has none); those take minutes.
 
 Zenoh pauses its TLS accept loop 100 ms after every failed handshake: the burst lasts about
 `--handshakes` x 0.1 s, and a member that connects during it waits behind the handshakes
@@ -377,6 +388,89 @@ def burst(
     return phases, result, joins
 
 
+# -- a flood of failed handshakes from a third host (issue 29) -----------------------------------
+
+MODES = {
+    "gate": "rr_actors (queue of 16, a flooding source dropped)",
+    "backlog": "queue of 16 only, no source dropped",
+    "none": "Zenoh's listener alone (queue of 1024)",
+}
+"""How host a's listener is kept, by `gate_mode`."""
+
+
+def gate_mode(mode: str) -> None:
+    """In host a's worker, before it joins: keep its `tls/` listener as `MODES[mode]` says
+    (the benchmark's own switch: rr_actors has none, its gate is always on)."""
+    from rr_actors._transport import zenoh_gate, zenoh_net  # noqa: PLC0415
+
+    if mode == "none":
+        zenoh_net.open_gates = lambda listen: []  # type: ignore[assignment]
+    elif mode == "backlog":
+        zenoh_gate.HOLD = 10**9
+
+
+def rejoin(two: hosts.TwoHosts, give_up: float) -> float | None:
+    """Cut the veth a-b until b has lost `erm`, bring it back: seconds to b's first
+    answered call (`None`: none within `give_up` s)."""
+    two.link_down()
+    try:
+        if not two.b.call(hosts.rr_unlinked_within, "erm", 30.0, timeout=40):
+            raise RuntimeError("b still sees erm with the link cut")
+    finally:
+        two.link_up()
+    start = time.monotonic()
+    try:
+        two.b.call(hosts.rr_until_answered, "app", "erm", "echo", give_up, timeout=give_up + 30)
+    except Exception:  # (the member's call failed past the bound: it has not re-joined)
+        return None
+    return time.monotonic() - start
+
+
+def flood_run(
+    two: hosts.TwoHosts, certs: Certs, mode: str, cuts: int, args: argparse.Namespace
+) -> dict[str, Any]:
+    """Host c floods host a's `tls/` port (`args.threads` threads of connect-send-close,
+    no certificate) while member b's link to a is cut `cuts` times, then `cuts` times
+    more after the flood stopped; b's calls on its link meanwhile (before the cuts)."""
+    assert two.c is not None
+    near = two.a.endpoint(next(_ports), "tls")
+    robot = two.a.spawn()
+    robot.call(gate_mode, mode, timeout=30)
+    robot.call(
+        hosts.rr_join, system=SYSTEM, listen=[near], connect=[], tls=certs.tls("robot"), timeout=30
+    )
+    robot.call(hosts.rr_start, "erm", bench_zenoh.setup_echo, timeout=30)
+    two.b.call(
+        hosts.rr_join,
+        system=SYSTEM,
+        listen=[],
+        connect=[near],
+        tls=certs.tls("operator"),
+        timeout=30,
+    )
+    two.b.call(hosts.rr_start, "app", None, timeout=30)
+    attacker = two.c.spawn()
+    try:
+        two.b.call(hosts.rr_until_answered, "app", "erm", "echo", 30.0, timeout=60)
+        calls: Future[Any] = two.b.worker.submit(calls_paced, "app", "erm", None, args.interval)
+        port = int(near.rsplit(":", 1)[1])
+        attacker.call(hosts.flood, two.a.address, port, args.threads, timeout=30)
+        threading.Event().wait(args.flood)  # the flood's head start (a pace, not a sync)
+        two.b.call(calls_stop, timeout=10)
+        during_calls = calls.result(600)
+        during = [rejoin(two, args.give_up) for _ in range(cuts)]
+        counts = attacker.call(hosts.flood_stop, timeout=30)
+        after = [rejoin(two, args.give_up) for _ in range(cuts)]
+    finally:
+        attacker.stop()
+        for worker in (two.b.worker, robot):
+            with contextlib.suppress(Exception):
+                worker.call(hosts.rr_stop, timeout=30)
+        two.b.kill()
+        robot.stop()
+    return {"calls": during_calls, "during": during, "after": after, "counts": counts}
+
+
 # -- report -----------------------------------------------------------------------------------
 
 
@@ -455,6 +549,40 @@ def report_burst(
         )
 
 
+def report_flood(args: argparse.Namespace, runs: dict[str, dict[str, Any]]) -> None:
+    print(
+        f"host c floods host a's tls/ port ({args.threads} threads of connect-send-close, no "
+        f"certificate) for {args.flood:g} s, then member b's link to a is cut (ip link down "
+        f"until b has lost a) and brought back, during the flood and after it stopped; "
+        f"re-join: seconds from the link's return to b's first answered call "
+        f"(> {args.give_up:g}: none by then)"
+    )
+    print()
+    print(
+        "| a's listener | re-joins during the flood, median / max s | after it stopped, "
+        "median / max s | b's calls on its link in the flood's first "
+        f"{args.flood:g} s: calls, failed, p99 ms | c's connections made / attempts |"
+    )
+    print("|---|---:|---:|---:|---:|")
+
+    def spans(seconds: list[float | None]) -> str:
+        shown = [args.give_up * 10 if s is None else s for s in seconds]
+        text = [f"> {args.give_up:g}" if s is None else f"{s:.2f}" for s in seconds]
+        order = sorted(range(len(shown)), key=shown.__getitem__)
+        return f"{text[order[len(order) // 2]]} / {text[order[-1]]} ({len(seconds)} runs)"
+
+    for mode, run in runs.items():
+        times = [seconds for _, seconds, error in run["calls"] if error is None]
+        failed = sum(1 for *_, error in run["calls"] if error is not None)
+        p99 = f"{quantile(times, 99) * 1e3:.1f}" if times else "-"
+        counts = run["counts"]
+        print(
+            f"| {MODES[mode]} | {spans(run['during'])} | {spans(run['after'])} "
+            f"| {len(run['calls'])}, {failed}, {p99} "
+            f"| {counts['connected']} / {counts['attempts']} |"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=2000, help="timed round trips per row")
@@ -465,6 +593,15 @@ def main() -> None:
         "--quiet", type=float, default=5.0, help="seconds of calls before and after the burst"
     )
     parser.add_argument("--interval", type=float, default=0.01, help="seconds between calls")
+    parser.add_argument("--cuts", type=int, default=3, help="link cuts during/after the flood")
+    parser.add_argument("--threads", type=int, default=4, help="the flood's threads")
+    parser.add_argument("--flood", type=float, default=2.0, help="seconds of flood before a cut")
+    parser.add_argument("--give-up", type=float, default=60.0, help="a re-join's bound, s")
+    parser.add_argument(
+        "--without-gate",
+        action="store_true",
+        help="also flood a listener without rr_actors' gate (one cut each; minutes)",
+    )
     args = parser.parse_args()
     why_not = hosts.require_root() or (
         None if hosts.has_carrier() else "rr_actors has no ZenohNetwork"
@@ -472,8 +609,15 @@ def main() -> None:
     if why_not is not None:
         print(f"not measured: {why_not}")
         return
-    with tempfile.TemporaryDirectory(prefix="rr-bench-tls-") as directory, hosts.TwoHosts() as two:
+    with (
+        tempfile.TemporaryDirectory(prefix="rr-bench-tls-") as directory,
+        hosts.TwoHosts(outsider=True) as two,
+    ):
         certs = Certs(Path(directory), two)
+        floods = {"gate": flood_run(two, certs, "gate", args.cuts, args)}
+        if args.without_gate:
+            floods["backlog"] = flood_run(two, certs, "backlog", 1, args)
+            floods["none"] = flood_run(two, certs, "none", 1, args)
         rows = {
             "raw Zenoh get, plain TCP": raw_gets(two, args.rounds, None),
             "raw Zenoh get, mutual TLS": raw_gets(two, args.rounds, certs),
@@ -484,6 +628,8 @@ def main() -> None:
     report_trips(args.rounds, rows)
     print()
     report_burst(args, phases, result, joins)
+    print()
+    report_flood(args, floods)
     print()
     print(
         "ratios move by a quarter between runs on a loaded machine; they are stable with "

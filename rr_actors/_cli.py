@@ -209,7 +209,8 @@ def _experiment_arguments(parser: argparse.ArgumentParser) -> None:
     try:
         from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
     except ImportError:  # the experiments extra is missing: say so when it is used
-        parser.add_argument("rest", nargs=argparse.REMAINDER)
+        parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+        parser.set_defaults(any_arguments=True)  # (--list too: `main` lets them through)
         return
     cli.add_arguments(parser)
 
@@ -430,7 +431,9 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
         done).
     """
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown and not getattr(args, "any_arguments", False):
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")  # (as parse_args says)
     if args.command is None:
         parser.print_help(out)
         return 2

@@ -6,6 +6,8 @@ Used by the multi-host tests (`tests/multihost/`) and `benchmarks/bench_zenoh.py
     test process                                namespace rrh-<pid>-<n>-a   namespace ...-b
     ------------                                -------------------------   ---------------
     TwoHosts() --ip netns add, ip link add-->   rr0 10.77.<n>.1/24 <-veth-> rr0 10.77.<n>.2/24
+    TwoHosts(outsider=True) also -->           rr1 10.78.<n>.1/24 <-veth-> rr1 10.78.<n>.3/24
+                                                                     in namespace ...-c
     host.spawn() --ip netns exec NS python-->   Worker (python -c "import hosts; ...")
       a socket path in a 0700 directory   <--AF_UNIX, authkey--  Client(path)
       host.call(fn, *args) --cloudpickle(fn, args)-->  runs fn(*args) on a thread of its own
@@ -27,6 +29,8 @@ Why these choices:
   run killed before its cleanup leaves namespaces whose pid is dead, and the next run deletes
   them (`sweep_stale()`). The veth pair is created directly inside the two namespaces, so
   nothing ever appears in the machine's own namespace and its names cannot clash.
+- The outsider `c` (an attacker, say) reaches `a` on a veth of its own, routed to all
+  of `a`'s addresses: cutting the link between `a` and `b` (`link_down`) leaves it.
 - No sleeps: `call` waits on the worker's reply with a bound; a worker's readiness is its
   connection (accepted with a bound, watching the worker's pidfd so a worker that died at
   start fails at once with its output).
@@ -71,6 +75,9 @@ PREFIX = "rrh"
 
 INTERFACE = "rr0"
 """The veth end's name inside each namespace."""
+
+OUTSIDE = "rr1"
+"""The name of the outsider's veth ends (in `c` and `a`)."""
 
 START_TIMEOUT = 30.0
 """Seconds a worker gets to start and connect (a loaded CI machine starts Python slowly)."""
@@ -515,12 +522,18 @@ class TwoHosts:
     Use as a context manager (or call `close`): leaving it stops every worker and deletes both
     namespaces, also after a failure.
 
+    Args:
+        outsider: also make host `c` (`10.78.<n>.3`), on a veth of its own to `a`
+            (`10.78.<n>.1`), with its default route through `a`: it reaches every address
+            of `a`'s, also while the link between `a` and `b` is down.
+
     Attributes:
         a, b: the two hosts (`10.77.<n>.1` and `10.77.<n>.2`, a /24 on the veth).
+        c: the outsider (`None` unless asked for).
         directory: the 0700 directory of the workers' sockets and logs (deleted with them).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, *, outsider: bool = False) -> None:
         reason = require_root()
         if reason is not None:
             raise PermissionError(reason)
@@ -536,6 +549,7 @@ class TwoHosts:
         subnet = f"10.77.{number % 256}"
         self.a = Host("a", f"{stem}-a", f"{subnet}.1", directory)
         self.b = Host("b", f"{stem}-b", f"{subnet}.2", directory)
+        self.c = Host("c", f"{stem}-c", f"10.78.{number % 256}.3", directory) if outsider else None
         try:
             for host in (self.a, self.b):
                 _ip("netns", "add", host.namespace)
@@ -548,9 +562,27 @@ class TwoHosts:
             for host in (self.a, self.b):
                 _ip("-n", host.namespace, "addr", "add", f"{host.address}/24", "dev", INTERFACE)
             self.link_up()
+            if self.c is not None:
+                self._add_outsider(self.c, f"10.78.{number % 256}.1")
         except BaseException:
             self.close()
             raise
+
+    def _add_outsider(self, c: Host, gateway: str) -> None:
+        assert c.namespace is not None
+        assert self.a.namespace is not None
+        _ip("netns", "add", c.namespace)
+        self._made.append(c.namespace)
+        _ip("-n", c.namespace, "link", "set", "lo", "up")
+        _ip(
+            *("-n", self.a.namespace, "link", "add", OUTSIDE, "type", "veth"),
+            *("peer", "name", OUTSIDE, "netns", c.namespace),
+        )
+        _ip("-n", self.a.namespace, "addr", "add", f"{gateway}/24", "dev", OUTSIDE)
+        _ip("-n", c.namespace, "addr", "add", f"{c.address}/24", "dev", OUTSIDE)
+        for namespace in (self.a.namespace, c.namespace):
+            _ip("-n", namespace, "link", "set", OUTSIDE, "up")
+        _ip("-n", c.namespace, "route", "add", "default", "via", gateway)
 
     def __enter__(self) -> TwoHosts:
         return self
@@ -569,9 +601,11 @@ class TwoHosts:
             _ip("-n", host.namespace, "link", "set", INTERFACE, "up")
 
     def close(self) -> None:
-        """Stop every worker, then delete both namespaces (each step even if one fails)."""
+        """Stop every worker, then delete the namespaces (each step even if one fails)."""
         errors: list[BaseException] = []
-        for host in (self.a, self.b):
+        for host in (self.a, self.b, self.c):
+            if host is None:
+                continue
             try:
                 host.close()
             except BaseException as exc:
@@ -825,6 +859,14 @@ def rr_until_answered(consumer: str, provider: str, server: str, timeout: float)
         return
 
 
+def rr_unlinked_within(name: str, timeout: float) -> bool:
+    """Whether this worker's network stops seeing registrar `name` within `timeout` s."""
+    from waiting import wait_for  # noqa: PLC0415
+
+    network = KEPT["network"]
+    return bool(wait_for(lambda: name not in network.names(), timeout))
+
+
 def rr_stop() -> None:
     """Stop this worker's registrars (newest first), then its network (if it has `close`)."""
     for registrar in reversed(list(KEPT.get("registrars", {}).values())):
@@ -833,3 +875,49 @@ def rr_stop() -> None:
     close = getattr(KEPT.get("network"), "close", None)
     if close is not None:
         close()
+
+
+# -- a flood of connections (an outsider's: `TwoHosts(outsider=True).c`) ------------------------
+
+
+def flood(host: str, port: int, threads: int) -> None:
+    """Start `threads` threads that connect to `host`:`port`, send a few bytes that are no
+    TLS handshake, and close, as fast as they can (a connect gets 0.5 s), until
+    `flood_stop`; `KEPT["flood"]` counts the attempts and the connections made. What a
+    peer without a certificate does to a `tls/` port at its full rate (issue 29)."""
+    counts = {"attempts": 0, "connected": 0}
+    stop = threading.Event()
+    lock = threading.Lock()
+
+    def attack() -> None:
+        while not stop.is_set():
+            with socket.socket() as conn:
+                conn.settimeout(0.5)
+                try:
+                    conn.connect((host, port))
+                    conn.sendall(b"\x16\x03\x01\x00\x05hello")
+                    made = 1
+                except OSError:
+                    made = 0
+            with lock:
+                counts["attempts"] += 1
+                counts["connected"] += made
+
+    workers = [threading.Thread(target=attack, daemon=True) for _ in range(threads)]
+    KEPT["flood"] = (counts, stop, workers)
+    for worker in workers:
+        worker.start()
+
+
+def flood_counts() -> dict[str, int]:
+    """The flood's counts so far: {"attempts": n, "connected": n}."""
+    return dict(KEPT["flood"][0])
+
+
+def flood_stop() -> dict[str, int]:
+    """Stop the flood (its threads end within a connect's 0.5 s); its counts."""
+    counts, stop, workers = KEPT["flood"]
+    stop.set()
+    for worker in workers:
+        worker.join(5.0)
+    return dict(counts)

@@ -37,7 +37,7 @@ SMALLEST = {
     "bench_zenoh.py": ["--rounds", "20", "--kills", "1", "--cuts", "1"],
     "bench_zenoh_tls.py": [
         *("--rounds", "20", "--handshakes", "20", "--clients", "4"),
-        *("--joins", "1", "--quiet", "1"),
+        *("--joins", "1", "--quiet", "1", "--cuts", "1", "--flood", "0.5"),
     ],
     "count_dedup.py": ["--calls", "5", "--profile"],
     "stress_crash.py": ["--kills", "4", "--round", "2"],

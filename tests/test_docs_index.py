@@ -1,5 +1,5 @@
 """A newcomer who reads only the README or the docs' index starts the same way and finds
-every tutorial."""
+every tutorial; the index lists every how-to."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 TUTORIALS = sorted(p.name for p in (ROOT / "docs" / "tutorial").glob("*.md"))
+HOW_TOS = sorted(p.name for p in (ROOT / "docs" / "how-to").glob("*.md"))
 
 
 def first_block(page: Path) -> str:
@@ -33,3 +34,11 @@ def test_every_tutorial_is_linked_from_the_index_and_the_readme(tutorial: str) -
 
     assert f"(tutorial/{tutorial})" in where_next
     assert f"(docs/tutorial/{tutorial})" in readme
+
+
+@pytest.mark.parametrize("how_to", HOW_TOS)
+def test_every_how_to_is_linked_from_the_index(how_to: str) -> None:
+    index = (ROOT / "docs" / "index.md").read_text()
+    where_next = index[index.index("## Where to go next") :]
+
+    assert f"(how-to/{how_to})" in where_next

@@ -402,6 +402,14 @@ class Catalog:
 
     # -- persistence ------------------------------------------------------------------
 
+    def mark_changed(self, rid: str) -> None:
+        """Have the next drain report resource `rid` as it is now (its row, or its removal).
+
+        For a change whose write was held back (an in-doubt resource settled while its
+        manager's `setup` runs): the write of what it is by then is owed.
+        """
+        self._dirty_resources.add(rid)
+
     def drain_changes(self) -> Changes:
         """Return and forget the rows changed since the last drain.
 

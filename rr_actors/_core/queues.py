@@ -12,11 +12,11 @@ import enum
 import logging
 import queue
 import threading
-import time
 from collections.abc import Callable
 from types import TracebackType
 from typing import Generic, TypeVar
 
+from rr_actors._core.throttle import Throttle
 from rr_actors.errors import ConfigError
 
 __all__ = [
@@ -65,27 +65,6 @@ callback that raises on every event must not write a traceback per event.
 """
 
 
-class _Throttle:
-    """Says when a repeated trouble may be logged again: the first time, then every
-    `LOG_EVERY` seconds. Counts what happened in between."""
-
-    __slots__ = ("logged", "next_at", "unlogged")
-
-    def __init__(self) -> None:
-        self.next_at = float("-inf")
-        self.logged = False  # whether the first one was logged (in full)
-        self.unlogged = 0  # how many happened since the last log line
-
-    def due(self) -> bool:
-        """Count one more; whether a line may be logged now (then the count restarts)."""
-        self.unlogged += 1
-        now = time.monotonic()
-        if now < self.next_at:
-            return False
-        self.next_at = now + LOG_EVERY
-        return True
-
-
 class _Empty(enum.Enum):
     EMPTY = enum.auto()
 
@@ -119,7 +98,7 @@ class _Outbox(Generic[E]):
         self._lock = threading.Lock()  # gap and drop counts; the queue is thread-safe itself
         self._gap = 0
         self.dropped = 0
-        self._warned = _Throttle()  # (gaps opened; `_reported`: drops already logged)
+        self._warned = Throttle(LOG_EVERY)  # (gaps opened; `_reported`: drops already logged)
         self._reported = 0
 
     def put(self, item: E) -> None:
@@ -297,7 +276,7 @@ class Subscription(_Consumer[E]):
         self.name = name
         self._callback = callback
         self._unsubscribe = unsubscribe
-        self._raising = _Throttle()  # the callback's exceptions: logged first, then counted
+        self._raising = Throttle(LOG_EVERY)  # the callback's exceptions: logged first, then counted
         what = f"event subscriber {name!r}"
         super().__init__(_Outbox(what, maxsize, notice), thread_name=f"rr-events-{name}", what=what)
         self._offer = self._outbox.put  # the publisher's sink: never blocks

@@ -15,9 +15,9 @@ import os
 import sys
 
 from rr_actors._platform import fork, linux, portable
-from rr_actors._platform.base import ExitWatch, Platform
+from rr_actors._platform.base import ExitWatch, ListenerGate, Platform
 
-__all__ = ["PLATFORM", "ExitWatch", "Platform"]
+__all__ = ["PLATFORM", "ExitWatch", "ListenerGate", "Platform"]
 
 
 def _choose() -> Platform:

@@ -7,11 +7,12 @@ first line alone). Nothing rr_actors promises depends on a trick.
 
 from __future__ import annotations
 
+import collections
 import multiprocessing.context
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from typing import Protocol
 
-__all__ = ["ExitWatch", "Platform"]
+__all__ = ["ExitWatch", "ListenerGate", "Platform"]
 
 
 class ExitWatch(Protocol):
@@ -37,6 +38,38 @@ class ExitWatch(Protocol):
     def close(self) -> None:
         """Release the descriptors."""
         ...
+
+
+class ListenerGate(Protocol):
+    """A gate on one TCP listening socket of this process (a library's, such as Zenoh's).
+
+    Made by [`Platform.listener_gate`][rr_actors._platform.base.Platform.listener_gate];
+    used by one thread (`zenoh_gate`'s).
+    """
+
+    address: str
+    """The address the socket is bound to."""
+
+    port: int
+    """Its port."""
+
+    def shorten_backlog(self, backlog: int) -> None:
+        """Let at most about `backlog` connections wait in the kernel for an accept."""
+
+    def drop_from(self, sources: Collection[str]) -> None:
+        """Drop every packet from `sources` (IP addresses) at the socket from now on,
+        replacing the previous set (empty: drop nothing)."""
+
+    def dropped(self) -> int:
+        """Packets the socket has dropped so far (it grows while a dropped source tries)."""
+        ...
+
+    def peers(self) -> collections.Counter[str]:
+        """How many connections to the socket's port each remote address holds."""
+        ...
+
+    def close(self) -> None:
+        """Let go of the socket (the library's socket stays open, its filter attached)."""
 
 
 class Platform(Protocol):
@@ -103,3 +136,9 @@ class Platform(Protocol):
         exit handler terminates daemonic child processes. Raises `RuntimeError` when the
         interpreter is shutting down already.
         """
+
+    def listener_gate(self, host: str, port: int) -> ListenerGate | None:
+        """A gate on this process's TCP listening socket bound to `host`:`port` (an IP
+        address), or `None` where there is none (the socket is not found, or no platform
+        support: then only a firewall keeps a flood of failed handshakes off)."""
+        ...

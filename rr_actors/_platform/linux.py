@@ -21,7 +21,7 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from rr_actors._platform import portable
+from rr_actors._platform import linux_gate, portable
 
 __all__ = ["PARENT_GONE_EXIT", "LinuxPlatform", "PidfdExitWatch"]
 
@@ -309,3 +309,8 @@ class LinuxPlatform:
             portable.PortablePlatform().at_main_thread_end(fn)
         else:
             hook(fn)
+
+    def listener_gate(self, host: str, port: int) -> linux_gate.LinuxListenerGate | None:
+        """A gate on the listening socket found in `/proc/self/fd` (`linux_gate`)."""
+        sock = linux_gate.find_listener(host, port)
+        return None if sock is None else linux_gate.LinuxListenerGate(sock)

@@ -14,7 +14,7 @@ import multiprocessing.context
 from collections.abc import Callable, Sequence
 
 from rr_actors._platform import fork
-from rr_actors._platform.base import ExitWatch
+from rr_actors._platform.base import ExitWatch, ListenerGate
 
 __all__ = ["PARENT_GONE_EXIT", "PortablePlatform"]
 
@@ -75,3 +75,8 @@ class PortablePlatform:
         """`atexit`: after the interpreter joined its non-daemon threads (ours are daemons,
         so they still run), and before `multiprocessing`'s handler, registered earlier."""
         atexit.register(fn)
+
+    def listener_gate(self, host: str, port: int) -> ListenerGate | None:
+        """`None`: no gate (a firewall is the defence against a handshake flood)."""
+        del host, port
+        return None

@@ -2,13 +2,19 @@
 
 Runs only in manager processes (never in the supervisor's process). In the child, `main`:
 
+0. lets SIGINT pass (a handler that does nothing): a Ctrl-C in a terminal goes to its
+   whole foreground process group, manager processes included, and is the supervisor's
+   process's to handle (it stops the tree in order, as OTP leaves shutdown to the
+   supervisor); `standby` does the same,
 1. asks the platform to end it when the process that forked it dies
    (`Platform.die_with_parent`: with the forkserver context that is the forkserver, not
    the supervisor's process) and names the process for `ps` (`rr-actors: <name>`),
 2. attaches to the system (saying that the supervisor's process speaks for its registrar
    if this process dies: rule 19, `Transport.supervised_by`, any carrier)
    and starts the registrar, which restores its catalog,
-3. runs the (cloudpickled) `setup(registrar)`, then serves the registrar on the system,
+3. runs the (cloudpickled) `setup(registrar)`, then settles the in-doubt entries it was
+   offered (kept in the backup until then: a death during `setup` offers them again),
+   then serves the registrar on the system,
 4. reports `ready` over its control pipe and answers control requests: `stop`, `ping`
    (the heartbeat, answered through the registrar actor's mailbox, with how long its
    listener has been unable to accept connections, if it has) and `events` (whether to
@@ -199,8 +205,8 @@ def main(
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
         forward: forward the registrar's events from the start (until told otherwise).
     """
+    _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
-    _let_ctrl_c_pass()
     set_title(config.name)
     _run_manager(setup, config, address, conn, forward)
 
@@ -251,8 +257,8 @@ def standby(conn: Connection, parent: int | None = None) -> None:
             `main`'s arguments.
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
     """
+    _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
-    _let_ctrl_c_pass()
     set_title("spare")
     try:
         if not conn.poll(0):  # taken already: the warm-up would only delay the manager
@@ -320,10 +326,11 @@ def _run_manager(
         if address is not None:
             attached = address.attach()
             attached.supervised_by(_supervisor_pid(conn))  # it restarts this one (rule 19)
-        registrar = start_registrar(config, upstream=line.hub)
+        registrar = start_registrar(config, upstream=line.hub, hold_in_doubt=True)
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
             setup_fn(registrar)
+        registrar.settle_in_doubt()  # setup returned: what it was offered is handled
         if attached is not None:
             attached.serve(Served(registrar))
     except BaseException as exc:  # noqa: BLE001 - reported to the supervisor, then exit

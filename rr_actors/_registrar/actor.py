@@ -13,8 +13,8 @@
               │                                                           (consumer.py)      │
               │   Reconciling ReconcileAsk                               (reconciling.py)    │
               │   StatusRelay StatusNotice SendStatus                    (status.py)         │
-              │   Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot; death           │
-              │                                                           (lifecycle.py)     │
+              │   Lifecycle  Flush Crash Save Stop Ready SettleInDoubt Reachable             │
+              │              Snapshot; death                              (lifecycle.py)     │
               │   Presence   PeerLost ConsumerDown PeerReachable ReconcileRetry              │
               │                                                           (presence.py)      │
               │ Shared: config, catalog, saver, servers, phase, workers  (state.py)          │
@@ -33,10 +33,12 @@ from collections.abc import Callable
 from typing import Any
 
 from rr_actors._catalog import Catalog
+from rr_actors._catalog.texts import plain_text
 from rr_actors._core.actor import Actor
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Answer, Tokens
+from rr_actors._core.throttle import LogThrottle
 from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.consumer import Consumer
 from rr_actors._registrar.endpoints import Clients
@@ -70,6 +72,7 @@ from rr_actors._registrar.messages import (
     Save,
     SendStatus,
     SetStatusCallback,
+    SettleInDoubt,
     Snapshot,
     StatusNotice,
     Stop,
@@ -197,6 +200,10 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     Save: ("save", asked(lambda a, _m, r: a.lifecycle.op_save(r))),
     Stop: ("stop", asked(lambda a, _m, r: a.lifecycle.op_stop(r))),
     Ready: ("ready", asked(lambda a, _m, r: a.lifecycle.op_ready(r))),  # setup is done
+    SettleInDoubt: (
+        "settle_in_doubt",
+        asked(lambda a, m, r: a.lifecycle.op_settle_in_doubt(m.query_id, r)),
+    ),
     Reachable: ("reachable", asked(lambda a, _m, r: a.lifecycle.op_reachable(r))),  # a carrier
     Snapshot: ("snapshot", asked(lambda a, m, r: a.lifecycle.op_snapshot(r, m.check))),
     Ping: ("ping", asked(_answer_now)),  # a manager process's heartbeat
@@ -248,6 +255,7 @@ class RegistrarActor(Actor):
         clients: Clients,
         *,
         setting_up: bool = False,
+        hold_in_doubt: bool = False,
     ) -> None:
         super().__init__()
         self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
@@ -272,7 +280,9 @@ class RegistrarActor(Actor):
             self,
             died,
             ended,
+            hold_in_doubt=hold_in_doubt,
         )
+        self.unknown = LogThrottle(logger)  # messages of no known type (a buggy peer's)
         self.handlers: dict[type, tuple[str, Handler]] = {
             kind: (step, bind(self)) for kind, (step, bind) in DISPATCH.items()
         }
@@ -295,8 +305,9 @@ class RegistrarActor(Actor):
     def dispatch(self, message: Any) -> None:
         """Handle `message` with its role's handler (the outcomes waiting are not taken)."""
         entry = self.handlers.get(type(message))
-        if entry is None:
-            logger.warning("registrar %s ignored an unknown message %r", self.name, message)
+        if entry is None:  # (shown without running its __repr__: a peer's object)
+            text = plain_text(message) or f"<a {type(message).__qualname__[:80]} object>"
+            self.unknown.warning("registrar %s ignored an unknown message %s", self.name, text)
             return
         step, handle = entry
         probes = self.shared.probes

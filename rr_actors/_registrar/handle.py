@@ -45,6 +45,7 @@ from rr_actors._registrar.messages import (
     Save,
     SendStatus,
     SetStatusCallback,
+    SettleInDoubt,
     Snapshot,
     Stop,
     UnregisterServer,
@@ -134,8 +135,34 @@ class ResourceRegistrar:
         was for and whose `response` is `None` for a load that never finished. They are
         no longer in the catalog and their dependencies were released; the manager
         decides whether something its callback started must be cleaned up.
+
+        The backup keeps them until the manager's `setup` has returned (or the manager
+        called `settle_in_doubt`): if the manager dies during `setup`, the next restore
+        reports the same entries again. A registrar started without `setup` forgets
+        them at once.
         """
         return self._facts.in_doubt
+
+    def settle_in_doubt(self, query_id: str | None = None, *, timeout: float | None = None) -> None:
+        """Say that in-doubt entry `query_id` (default: every one) is handled (rule 16).
+
+        Its row leaves the backup, so a restart no longer reports it in `in_doubt`.
+        The registrar does this itself once `setup` returns; call it from `setup` to
+        settle each entry as soon as what its load started was cleaned up (a long
+        `setup` that dies later then offers only the others again). Settling an entry
+        again is a no-op.
+
+        Args:
+            query_id: the `id` of one of `in_doubt`'s queries, or `None` for all.
+            timeout: seconds to wait for the registrar.
+
+        Raises:
+            UnknownQueryError: `query_id` is not the id of an entry of `in_doubt`.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        self._ask(SettleInDoubt(query_id, FutureReply()), timeout, f"settle_in_doubt({query_id!r})")
 
     @classmethod
     def start(
@@ -153,7 +180,8 @@ class ResourceRegistrar:
                 restored and before the registrar serves other registrars: loads that
                 arrive meanwhile for servers it has not registered yet wait for it (a
                 manager's start-up). If it raises, the registrar is stopped and the error
-                propagates.
+                propagates. The `in_doubt` entries stay in the backup until it returned
+                (`settle_in_doubt`).
             network: a carrier (any `Transport`: an AF_UNIX `System`, a `ZenohNetwork`)
                 to serve it on, after `setup`, from the calling thread: the registrars
                 of the system's other processes (and hosts) reach it by name from then
@@ -609,13 +637,22 @@ def start_registrar(
     *,
     setup: Callable[[ResourceRegistrar], object] | None = None,
     upstream: Publisher[events.Event] | None = None,
+    hold_in_doubt: bool = False,
 ) -> ResourceRegistrar:
     """`ResourceRegistrar.start`, with its events also relayed to `upstream` from the first.
 
     A supervisor passes its tree's publisher, so the events of a restore (`InDoubt`)
-    reach the tree's subscribers too.
+    reach the tree's subscribers too. With `hold_in_doubt` the in-doubt entries stay in
+    the backup until the caller settles them (`settle_in_doubt`: a manager process runs
+    its `setup` itself); with `setup`, they do until `setup` returned.
     """
-    handle = ResourceRegistrar(launch(config, setting_up=setup is not None, upstream=upstream))
+    launched = launch(
+        config,
+        setting_up=setup is not None,
+        upstream=upstream,
+        hold_in_doubt=hold_in_doubt or setup is not None,
+    )
+    handle = ResourceRegistrar(launched)
     stop_at_exit(
         REGISTRARS,
         f"registrar {handle.name!r}",
@@ -626,8 +663,9 @@ def start_registrar(
         try:
             setup(handle)
         except BaseException:
-            handle.stop()
+            handle.stop()  # (what was in doubt stays in doubt: no setup saw it through)
             raise
+        handle.settle_in_doubt()
         handle._ask(Ready(FutureReply()), None, "ready")
     return handle
 

@@ -5,7 +5,9 @@
       └──────────────────┴── crash (a bug, testing.crash) ─────► ENDED (death)
 ```
 
-Starting settles what the last run left in doubt (rule 16). A clean stop releases what
+Starting settles what the last run left in doubt (rule 16); while the manager's `setup`
+runs, that settling is kept out of the backup, so a crash during `setup` offers the same
+entries to the next one (`settle_held`, once `setup` returned). A clean stop releases what
 this registrar holds as a consumer, newest first (rule 12), keeps what its servers serve
 (a restart needs it), flushes and closes the backup. A death fails every waiting caller
 at once (`RegistrarUnavailableError`), writes nothing more, and tells the providers this
@@ -42,6 +44,7 @@ from rr_actors.errors import (
     RegistrarStoppedError,
     RegistrarUnavailableError,
     RrError,
+    UnknownQueryError,
 )
 
 if TYPE_CHECKING:
@@ -95,6 +98,8 @@ class Lifecycle:
         actor: RegistrarActor,
         died: threading.Event,
         ended: threading.Event,
+        *,
+        hold_in_doubt: bool = False,
     ) -> None:
         self.registrar = shared
         self.provider = provider
@@ -107,6 +112,8 @@ class Lifecycle:
         self.ended = ended
         self.open_requests: set[OpenReply] = set()
         self.flush_timer: Cancellable | None = None
+        self.hold_in_doubt = hold_in_doubt
+        self.in_doubt_ids: frozenset[str] = frozenset()
 
     # -- start ------------------------------------------------------------------------
 
@@ -138,23 +145,28 @@ class Lifecycle:
         is released, so nothing they started at other servers leaks. A top-level call that
         was in flight is given up at its provider (its caller died with the last run), and
         so is a dependency whose resource is gone (a sub-call that outlived its load).
+        With `hold_in_doubt` (a `setup` runs), their rows stay in the backup as they were
+        until the manager settles them (`op_settle_in_doubt`).
         """
         catalog = self.registrar.catalog
-        for resource in list(catalog.resources.values()):
-            if resource.state is not ResourceState.LOADED:
-                if self.registrar.events.active:
-                    self.registrar.events.publish(
-                        events.InDoubt(
-                            self.registrar.name,
-                            resource.id,
-                            resource.server,
-                            "load" if resource.state is ResourceState.LOADING else "unload",
-                        )
+        doubtful = [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]
+        self.in_doubt_ids = frozenset(r.id for r in doubtful)
+        if self.hold_in_doubt:
+            self.registrar.held_in_doubt.update(self.in_doubt_ids)
+        for resource in doubtful:
+            if self.registrar.events.active:
+                self.registrar.events.publish(
+                    events.InDoubt(
+                        self.registrar.name,
+                        resource.id,
+                        resource.server,
+                        "load" if resource.state is ResourceState.LOADING else "unload",
                     )
-                catalog.begin_unload(resource.id)
-                self.consumer.release_dependencies(
-                    resource.id, functools.partial(self.teardown.remove_resource, resource)
                 )
+            catalog.begin_unload(resource.id)
+            self.consumer.release_dependencies(
+                resource.id, functools.partial(self.teardown.remove_resource, resource)
+            )
         for record in list(catalog.clients.values()):
             orphan = record.parent is not None and record.parent not in catalog.resources
             if orphan or (record.parent is None and not record.loaded):
@@ -162,6 +174,27 @@ class Lifecycle:
                 give_back(query.serving_rr, query.id, self.registrar.name)
                 catalog.remove_client(query.id)
         self.registrar.commit()
+
+    def op_settle_in_doubt(self, query_id: str | None, reply: Reply) -> None:
+        """The manager handled in-doubt entry `query_id` (`None`: every one): write it off.
+
+        Its row leaves the backup now (or as it was left: its dependencies may still be
+        being released); a later restore no longer offers it. Settling one twice is a
+        no-op.
+        """
+        if query_id is None:
+            rids = set(self.in_doubt_ids)
+        elif query_id in self.in_doubt_ids:
+            rids = {query_id}
+        else:
+            reply.set_error(
+                UnknownQueryError(
+                    f"{query_id!r} is not in doubt at registrar {self.registrar.name!r}"
+                )
+            )
+            return
+        self.registrar.settle_held(rids)  # (a failed write stays pending: offered again)
+        reply.set_result(None)
 
     def op_reachable(self, reply: Reply) -> None:
         """A carrier serves it: the other processes can reach it (and answer it) now."""

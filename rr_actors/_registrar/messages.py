@@ -71,6 +71,7 @@ __all__ = [
     "Save",
     "SendStatus",
     "SetStatusCallback",
+    "SettleInDoubt",
     "Snapshot",
     "StatusNotice",
     "Stop",
@@ -438,6 +439,15 @@ class Stop:
 class Ready:
     """The manager's setup is done: serve. Answer: `None`."""
 
+    reply: FutureReply
+
+
+@dataclasses.dataclass(frozen=True)
+class SettleInDoubt:
+    """The manager handled in-doubt entry `query_id` (`None`: all of them): the backup
+    forgets it. Answer: `None`."""
+
+    query_id: str | None
     reply: FutureReply
 
 

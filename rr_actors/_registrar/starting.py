@@ -69,6 +69,7 @@ def launch(
     *,
     setting_up: bool,
     upstream: Publisher[events.Event] | None,
+    hold_in_doubt: bool = False,
 ) -> Launched:
     """Restore the catalog and start the actor (on the calling thread).
 
@@ -76,6 +77,8 @@ def launch(
         config: a `RegistrarConfig`, or just a name.
         setting_up: whether a `setup` runs before it serves others (loads wait for it).
         upstream: a publisher its events are relayed to as well (a supervisor's tree).
+        hold_in_doubt: keep the in-doubt entries in the backup until the manager settles
+            them (`ResourceRegistrar.settle_in_doubt`; a `setup` runs first).
 
     Raises:
         DuplicateNameError: a registrar with this name is already running here.
@@ -112,6 +115,7 @@ def launch(
             published,
             clients,
             setting_up=setting_up,
+            hold_in_doubt=hold_in_doubt,
         )
     except BaseException:
         if saver is not None:

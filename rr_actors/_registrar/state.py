@@ -125,6 +125,9 @@ class Shared:
         ref: the actor's own ref (set when it starts).
         events: where its events are published (`ResourceRegistrar.subscribe`); build an
             event only when it is `active`.
+        held_in_doubt: ids of restored in-doubt resources whose settling is kept out of
+            the backup until the manager's `setup` returned (or the manager settled them:
+            `settle_in_doubt`), so a crash during `setup` offers them again (rule 16).
     """
 
     def __init__(
@@ -150,6 +153,7 @@ class Shared:
         self.probes: Probes | None = None
         self.ref: pykka.ActorRef[Any] | None = None
         self.events = published
+        self.held_in_doubt: set[str] = set()
 
     @property
     def stopping(self) -> bool:
@@ -167,6 +171,8 @@ class Shared:
         if self.saver.store is None:  # nothing persists this catalog
             return None
         changes = self.catalog.drain_changes()
+        for rid in self.held_in_doubt.intersection(changes.resources):
+            del changes.resources[rid]  # written once settled (`settle_held`)
         if not changes:
             return None
         healthy = self.saver.failure is None
@@ -182,6 +188,17 @@ class Shared:
                 )
             return exc
         return None
+
+    def settle_held(self, rids: set[str]) -> CatalogWriteError | None:
+        """Write what became of held in-doubt resources `rids`: they are settled now.
+
+        Returns:
+            What `commit` returns.
+        """
+        for rid in rids & self.held_in_doubt:
+            self.held_in_doubt.discard(rid)
+            self.catalog.mark_changed(rid)
+        return self.commit()
 
     def unwritable(self) -> CatalogWriteError | None:
         """Why a durable registrar must refuse new loads now: its backup cannot be written.

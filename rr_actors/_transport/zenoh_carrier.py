@@ -61,7 +61,7 @@ import zenoh
 from rr_actors._core.directory import DIRECTORY, Peer, Reply
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._transport.base import Address, Endpoint
-from rr_actors._transport.codec import NO_REPLY, Run, frame, payload_size, plain, what
+from rr_actors._transport.codec import NO_REPLY, Run, frame, payload_size, what
 from rr_actors._transport.writer import Lost
 from rr_actors._transport.zenoh_inbox import Inbox, Local
 from rr_actors._transport.zenoh_outbox import Outbox, Outboxes
@@ -147,7 +147,9 @@ class ZenohMember:
         self._peers: dict[str, ZenohPeer] = {}
         self._outboxes = Outboxes(session, self._prefix)
         self._inbox = Inbox(self)
-        self._presence = Presence(system, session, self.zid, self)
+        self._presence = Presence(
+            system, session, self.zid, self, on_token=self._inbox.process_token
+        )
         self._answers = session.declare_subscriber(
             f"{self._prefix}/ans/{self.zid}", self._inbox.on_answer
         )
@@ -370,7 +372,7 @@ class ZenohMember:
         sent = (  # (gone meanwhile: its presence may have missed this reply)
             self._presence.server(name) is not None
             and outbox is not None
-            and outbox.send(header(MESSAGE, self.zid, plain=plain(message)) + data)
+            and outbox.send(header(MESSAGE, self.zid) + data)
         )
         if not sent and (reply is None or self._inbox.forget(token)):
             raise self._gone_error(name)
@@ -382,9 +384,7 @@ class ZenohMember:
             return None
         return self._outboxes.get(key, zid)
 
-    def answer_to(
-        self, sender: str, data: bytes, on_lost: Lost | None, *, plain: bool = False
-    ) -> bool:
+    def answer_to(self, sender: str, data: bytes, on_lost: Lost | None) -> bool:
         """Send an answer frame to process `sender`; False if it is gone (not sent).
 
         (A sender whose token has not been seen yet is not gone: its message may overtake
@@ -393,8 +393,11 @@ class ZenohMember:
         if self._presence.unreachable(sender):
             return False
         outbox = self._outbox(f"{self._prefix}/ans/{sender}", sender)
-        head = header(ANSWER, self.zid, plain=plain)
-        return outbox is not None and outbox.send(head + data, on_lost)
+        return outbox is not None and outbox.send(header(ANSWER, self.zid) + data, on_lost)
+
+    def member(self, zid: str) -> bool:
+        """Whether process `zid`'s liveliness token is here now (see `Presence.member`)."""
+        return self._presence.member(zid)
 
     def refuse_version(self, sender: str, token: int) -> None:
         """Tell process `sender` that its message `token` was of another version."""

@@ -2,11 +2,11 @@
 for the replies waiting here.
 
 ```
- put rr/<s>/reg/<name> ─► subscriber callback (Zenoh's thread: never blocks)
-                            │ plain frame, nothing of its sender before it: decoded here
-                            ▼ else queued
+ put rr/<s>/reg/<name> ─► subscriber callback (Zenoh's thread: never blocks, never decodes)
+                            │ sender's token not here: the strangers' thread waits for it
+                            ▼ else queued                (bounded; then dropped, a WARNING)
                  inbox (sender, message): decode thread (zenoh_queue)
-                   version refused? too large? unpickle; stand-in reply (_Answer);
+                   version refused? too large? unpickle; stand-in reply;
                    tell the registrar ─► reply.set_result ─► owner.answer_to(sender)
 
  put rr/<s>/ans/<zid> ─► answers callback ─► inbox (sender, answer): decode thread
@@ -14,10 +14,15 @@ for the replies waiting here.
 ```
 
 Each process decodes on one thread per sending process and kind (messages, answers: a
-held answer never holds up a notice); a frame flagged plain (`zenoh_wire.PLAIN`: builtin
-data and wire records, whose unpickling runs no user code) is decoded on Zenoh's thread
-itself when nothing of its sender waits before it (one thread hop less per message; a
-dedup-hit call measured 1.8-1.9x a raw Zenoh `get` on loopback).
+held answer never holds up a notice), and only for processes whose liveliness token is
+here (`Presence.member`): the sender id in a header is whatever the sender wrote, so a
+thread per claimed id would let one buggy member start threads without bound. The frames
+of any other sender wait on one thread for strangers, for its token (`STRANGER_GRACE`:
+Zenoh sends declarations ahead of data, so a frame may come before its sender's token,
+or after the token's end), and are dropped if it does not come. Nothing is
+unpickled on Zenoh's thread: unpickling may run code of the sender's choosing (a frame's
+flags say nothing a buggy sender cannot get wrong), and a blocked Zenoh thread stalls
+every message of its link.
 """
 
 from __future__ import annotations
@@ -26,14 +31,15 @@ import functools
 import itertools
 import logging
 import threading
-from collections.abc import Callable
+import time
 from typing import Any, Protocol
 
 import zenoh
 
 from rr_actors._core.directory import Reply
+from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.codec import NO_REPLY, Run, plain, what
+from rr_actors._transport.codec import NO_REPLY, Run, what
 from rr_actors._transport.delivery import (
     answer,
     answer_too_large,
@@ -42,7 +48,6 @@ from rr_actors._transport.delivery import (
 )
 from rr_actors._transport.inbound import _AnswerReply
 from rr_actors._transport.writer import Lost
-from rr_actors._transport.zenoh_presence import NO_WAITING
 from rr_actors._transport.zenoh_queue import Queue
 from rr_actors._transport.zenoh_wire import (
     ANSWER,
@@ -55,9 +60,18 @@ from rr_actors._transport.zenoh_wire import (
 )
 from rr_actors.errors import RrError, TransferError
 
-__all__ = ["Inbox", "InboxOwner", "Local"]
+__all__ = ["STRANGERS_HELD", "STRANGER_GRACE", "Inbox", "InboxOwner", "Local"]
 
 logger = logging.getLogger("rr_actors")
+
+STRANGER_GRACE = 2.0
+"""Seconds a frame of a process whose liveliness token is not here waits for the token
+(Zenoh may hand this process a frame before the token its sender declared first); then
+it is dropped. A frame of a process whose token went less than this long ago is
+delivered (Zenoh may hand it over after the token's end, sent later)."""
+
+STRANGERS_HELD = (10_000, 64 * 1024 * 1024)
+"""Frames and bytes of such processes held at most; beyond, new ones are dropped."""
 
 
 class Local:
@@ -76,10 +90,11 @@ class Local:
 class InboxOwner(Protocol):
     """What the inbox asks of its member: sending."""
 
-    def answer_to(
-        self, sender: str, data: bytes, on_lost: Lost | None, *, plain: bool = False
-    ) -> bool:
+    def answer_to(self, sender: str, data: bytes, on_lost: Lost | None) -> bool:
         """Send an answer frame to process `sender`; False if it is gone (not sent)."""
+
+    def member(self, zid: str) -> bool:
+        """Whether process `zid`'s liveliness token is here now (Zenoh's threads)."""
 
     def refuse_version(self, sender: str, token: int) -> None:
         """Tell process `sender` that its message `token` was of another version."""
@@ -101,26 +116,15 @@ class _Waiting:
 class _AnswerLink:
     """Where the stand-in reply (`inbound._AnswerReply`) of one message sends its answer."""
 
-    __slots__ = ("listener", "owner", "plain", "sender")
+    __slots__ = ("listener", "owner", "sender")
 
     def __init__(self, owner: InboxOwner, sender: str, listener: Local) -> None:
         self.owner = owner
         self.sender = sender
         self.listener = listener
-        self.plain = False
 
     def send(self, data: bytes, on_lost: Lost | None = None) -> bool:
-        return self.owner.answer_to(self.sender, data, on_lost, plain=self.plain)
-
-
-class _Answer(_AnswerReply):
-    """The stand-in reply of a message that came over Zenoh: marks plain answers."""
-
-    __slots__ = ()
-
-    def set_result(self, value: Any) -> None:
-        self._link.plain = plain(value)  # type: ignore[attr-defined]
-        super().set_result(value)
+        return self.owner.answer_to(self.sender, data, on_lost)
 
 
 class Inbox:
@@ -139,6 +143,13 @@ class Inbox:
         self._waiting: dict[int, _Waiting] = {}
         self._tokens = itertools.count(1)
         self._warned: set[str] = set()
+        self._strangers = Queue("rr-zread-strangers", self._stranger)
+        self._pending: dict[tuple[str, int], int] = {}  # frames on `_strangers`, by stream
+        self._held = (0, 0)  # frames and bytes on `_strangers`
+        self._arrived: set[str] = set()  # tokens that came while `_strangers` held frames
+        self._left: dict[str, float] = {}  # tokens that went in the last STRANGER_GRACE s
+        self._joined = threading.Condition(threading.Lock())
+        self._dropped = LogThrottle(logger)
 
     # -- the replies waiting for an answer -------------------------------------------------
 
@@ -171,36 +182,112 @@ class Inbox:
             if inbox is not None:
                 inbox.finish()
 
+    def process_token(self, zid: str, present: bool) -> None:
+        """Process `zid`'s token came (`present`) or went (Zenoh's thread): what of it
+        waits on the strangers' thread may go on. (A frame may still come after its token
+        went: Zenoh sends a declaration before data sent earlier.)"""
+        now = time.monotonic()
+        with self._lock:
+            if not present:
+                self._left = {z: t for z, t in self._left.items() if now - t < STRANGER_GRACE}
+                self._left[zid] = now
+            elif self._held[0]:
+                self._arrived.add(zid)
+        with self._joined:
+            self._joined.notify_all()
+
     def close(self) -> None:
         """Stop decoding: what is queued is dropped."""
         with self._lock:
             self._closed = True
-            inboxes = list(self._inboxes.values())
+            inboxes = [*self._inboxes.values(), self._strangers]
+        with self._joined:
+            self._joined.notify_all()
         for inbox in inboxes:
             inbox.close()
 
-    def _receive(self, head: Header, kind: int, item: Any) -> None:
-        """Hand `item` to the decode thread of (sender, `kind`) (Zenoh's callbacks).
+    def _receive(self, head: Header, kind: int, item: Any, size: int) -> None:
+        """Hand `item` (`size` bytes) to the decode thread of (sender, `kind`) (Zenoh's
+        callbacks).
 
-        A plain frame (`zenoh_wire.PLAIN`: unpickling it runs no user code) of our version
-        is decoded here at once when nothing of that sender waits before it.
+        A sender whose process token is not here (yet) gets no thread of its own: its
+        frames wait on the one thread for strangers (`_stranger`), as do its later frames
+        until those before them are done (then they keep their order).
         """
-        sender = head.sender
+        key = (head.sender, kind)
         for _attempt in (1, 2):  # (its inbox may have just finished: the sender went)
-            inbox = self._inboxes.get((sender, kind))
+            inbox = self._inboxes.get(key)
             if inbox is None or inbox.closed:
-                handle: Callable[[Any], None] = self._deliver if kind == MESSAGE else self._answered
                 with self._lock:
                     if self._closed:
                         return
-                    inbox = self._inboxes.get((sender, kind))
+                    inbox = self._inboxes.get(key)
                     if inbox is None or inbox.closed:
-                        inbox = Queue(f"rr-zread-{sender[:8]}-{kind}", handle)
-                        self._inboxes[(sender, kind)] = inbox
-            if head.plain and head.ours and inbox.handle_now(item):
-                return
+                        if key in self._pending or not self._owner.member(head.sender):
+                            self._wait_for_token(key, item, size)
+                            return
+                        handle = self._deliver if kind == MESSAGE else self._answered
+                        inbox = Queue(f"rr-zread-{head.sender[:8]}-{kind}", handle)
+                        self._inboxes[key] = inbox
             if inbox.put(item):
                 return
+
+    def _heard(self, sender: str) -> bool:
+        """Whether process `sender`'s token is here, came since a frame of it waits, or
+        went less than `STRANGER_GRACE` seconds ago."""
+        if self._owner.member(sender) or sender in self._arrived:
+            return True
+        left = self._left.get(sender)
+        return left is not None and time.monotonic() - left < STRANGER_GRACE
+
+    def _wait_for_token(self, key: tuple[str, int], item: Any, size: int) -> None:
+        """Queue `item` of a sender whose token is not here on the strangers' thread (hold
+        `_lock`); over `STRANGERS_HELD`, drop it."""
+        count, held = self._held
+        if count >= STRANGERS_HELD[0] or held + size > STRANGERS_HELD[1]:
+            self._dropped.warning(
+                "dropped a message from process %s: %d messages (%d bytes) of processes "
+                "whose liveliness token is not here already wait for it",
+                short(key[0]),
+                count,
+                held,
+            )
+            return
+        self._held = (count + 1, held + size)
+        self._pending[key] = self._pending.get(key, 0) + 1
+        self._strangers.put((time.monotonic() + STRANGER_GRACE, key, item, size))
+
+    def _stranger(self, entry: tuple[float, tuple[str, int], Any, int]) -> None:
+        """Handle one frame of a sender whose token was not here (the strangers' thread):
+        once its token comes, as its own thread would; dropped if it does not come within
+        `STRANGER_GRACE` seconds of the frame."""
+        deadline, (sender, kind), item, size = entry
+        try:
+            with self._joined:
+                while not self._heard(sender) and not self._closed:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        break
+                    self._joined.wait(left)
+            if self._heard(sender):
+                (self._deliver if kind == MESSAGE else self._answered)(item)
+            elif not self._closed:
+                self._dropped.warning(
+                    "dropped a message from process %s: no liveliness token of it came "
+                    "within %g s (it is not a member of this system, its link went, or a "
+                    "buggy member wrote another sender id in its header)",
+                    short(sender),
+                    STRANGER_GRACE,
+                )
+        finally:
+            with self._lock:
+                count, held = self._held
+                self._held = (count - 1, held - size)
+                if count == 1:
+                    self._arrived.clear()
+                left_of_it = self._pending.pop((sender, kind)) - 1
+                if left_of_it:
+                    self._pending[(sender, kind)] = left_of_it
 
     # -- decoding ----------------------------------------------------------------------------
 
@@ -208,19 +295,17 @@ class Inbox:
         data = sample.payload.to_bytes()
         head = parse(data)
         if head is not None:
-            NO_WAITING.active = True
-            self._receive(head, MESSAGE, (local, data, head))
+            self._receive(head, MESSAGE, (local, data, head), len(data))
 
     def on_answer(self, sample: zenoh.Sample) -> None:
         data = sample.payload.to_bytes()
         head = parse(data)
         if head is not None:
-            NO_WAITING.active = True
-            self._receive(head, ANSWER, (data, head))
+            self._receive(head, ANSWER, (data, head), len(data))
 
     def _deliver(self, item: tuple[Local, bytes, Header]) -> None:
-        """Decode one message for a registrar of this process and tell it (its decode
-        thread, or Zenoh's for a plain frame: `_receive`)."""
+        """Decode one message for a registrar of this process and tell it (its sender's
+        decode thread)."""
         local, data, head = item
         name = local.name
         token, payload = payload_of(data, head)
@@ -240,7 +325,7 @@ class Inbox:
             token,
             payload,
             send,
-            lambda message: _Answer(_AnswerLink(self._owner, sender, local), token, message),  # type: ignore[arg-type]
+            lambda message: _AnswerReply(_AnswerLink(self._owner, sender, local), token, message),  # type: ignore[arg-type]
             lambda message: self._run(local, message),
         )
 
@@ -262,8 +347,8 @@ class Inbox:
         message.start(local.endpoint.run, f"rr-zrun-{local.name}")
 
     def _answered(self, item: tuple[bytes, Header]) -> None:
-        """Decode one answer and resolve the reply waiting for it (its decode thread, or
-        Zenoh's for a plain frame: `_receive`)."""
+        """Decode one answer and resolve the reply waiting for it (its sender's decode
+        thread)."""
         data, head = item
         token, payload = payload_of(data, head)
         waiting = self._waiting.pop(token, None)

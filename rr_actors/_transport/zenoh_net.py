@@ -48,7 +48,8 @@ from rr_actors._transport.access import user
 from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.zenoh_carrier import ZenohMember
 from rr_actors._transport.zenoh_config import endpoints, parse_endpoint, session_config
-from rr_actors._transport.zenoh_watch import LinkWatch
+from rr_actors._transport.zenoh_gate import HandshakeGate, open_gates
+from rr_actors._transport.zenoh_watch import LinkWatch, remote
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavailableError
 
@@ -68,6 +69,15 @@ def _zenoh_log_from_env() -> None:
     handshake, which Zenoh tells nobody else)."""
     if os.environ.get("RUST_LOG"):
         zenoh.try_init_log_from_env()  # type: ignore[no-untyped-call]
+
+
+def _members_at(session: zenoh.Session, members: frozenset[str]) -> set[str]:
+    """The remote addresses of the router's TLS links to `members`."""
+    return {
+        remote(str(link.dst))[0]
+        for link in session.info.links()
+        if str(link.dst).startswith("tls/") and link.auth_identifier in members
+    }
 
 
 def _is_tls(tls: object) -> bool:
@@ -314,6 +324,7 @@ class ZenohNetwork:
         self._runtime_dir: str | None = None
         self._address: ZenohAddress | None = None
         self._watch: LinkWatch | None = None
+        self._gate: HandshakeGate | None = None
 
     def __repr__(self) -> str:
         return (
@@ -353,7 +364,11 @@ class ZenohNetwork:
             self._warn_unreachable()
         else:  # names the reason of an unlinked connect endpoint, and who links
             self._watch = LinkWatch(self.system, session, self.tls, self.connect)
-        watch = self._watch
+            members = frozenset(self.tls.members)
+            self._gate = HandshakeGate(
+                self.system, open_gates(self.listen), lambda: _members_at(session, members)
+            )
+        watch, gate = self._watch, self._gate
         member = ZenohMember(self.system, session)
         self._runtime_dir = runtime_dir
         self._address = member._address = ZenohAddress(
@@ -363,6 +378,8 @@ class ZenohNetwork:
         def closed() -> None:
             if watch is not None:
                 watch.close()
+            if gate is not None:
+                gate.close()
             _left(member)
             shutil.rmtree(runtime_dir, ignore_errors=True)
 
@@ -475,6 +492,8 @@ class ZenohNetwork:
         """Leave the system: stop serving, fail what waits, close the session (idempotent)."""
         if self._watch is not None:
             self._watch.close()  # before the session goes
+        if self._gate is not None:
+            self._gate.close()  # (its duplicate of a listening socket, too)
         member = self._member
         if member is not None:
             member.close()

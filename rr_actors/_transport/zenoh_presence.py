@@ -45,7 +45,15 @@ from typing import Any, Protocol
 
 import zenoh
 
+from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.zenoh_queue import Queue
+from rr_actors._transport.zenoh_wire import (
+    NameAt,
+    claim_key,
+    proc_key,
+    server_key,
+    stopped_key,
+)
 from rr_actors.errors import DuplicateNameError
 
 logger = logging.getLogger("rr_actors")
@@ -61,8 +69,8 @@ CLAIM_TIMEOUT = 5.0
 """Seconds `serve` waits for a rival claim of the same name to serve or withdraw."""
 
 NO_WAITING = threading.local()
-"""`active` on threads that must not wait on the network: Zenoh's callback threads (a
-frame decoded there, and what its reply's continuation sends) and the presence thread."""
+"""`active` on threads that must not wait on the network: the presence thread (what its
+reports to the member run, `PresenceEvents`)."""
 
 
 class Server:
@@ -100,10 +108,18 @@ class Presence:
         session: the open session.
         zid: this process's Zenoh id (its own tokens are left out).
         events: told what follows from a change (see `PresenceEvents`).
+        on_token: called with a process's Zenoh id and whether its token came (`True`)
+            or went, once `member` says so (on Zenoh's thread: it must not block).
     """
 
     def __init__(
-        self, system: str, session: zenoh.Session, zid: str, events: PresenceEvents
+        self,
+        system: str,
+        session: zenoh.Session,
+        zid: str,
+        events: PresenceEvents,
+        *,
+        on_token: Callable[[str, bool], None] | None = None,
     ) -> None:
         self._system = system
         self._session = session
@@ -118,10 +134,20 @@ class Presence:
         self._vanished: set[str] = set()  # processes whose token went at least once
         self._servers: dict[str, dict[str, Server]] = {}
         self._claims: dict[str, set[str]] = {}
-        self._stopped: set[tuple[str, str]] = set()
+        self._stopped: set[NameAt] = set()
         self._gone: dict[str, str] = {}  # name -> "stopped" | "died"
         self._last: dict[str, str] = {}  # name -> the Zenoh id of its last server
         self._awaiting: dict[str, str] = {}  # name -> its supervisor: lost if that one goes
+        self._members: set[str] = set()  # processes whose token is here (Zenoh's threads)
+        self._on_token = on_token
+        self._proc_prefix = f"{self._prefix}/live/proc/"
+        self._malformed = LogThrottle(logger)
+        self._tokens: dict[str, Callable[[bool, str], list[Callable[[], None]] | None]] = {
+            "proc": self._proc_token,  # each: the actions, or None for a malformed key
+            "reg": self._reg_token,
+            "claim": self._claim_token,
+            "stopped": self._stopped_token,
+        }
         self._queue = Queue("rr-zpresence", self._apply)
         self._live = session.liveliness().declare_subscriber(
             f"{self._prefix}/live/**", self._on_live, history=True
@@ -203,7 +229,27 @@ class Presence:
     # -- hearing of tokens ---------------------------------------------------------------
 
     def _on_live(self, sample: zenoh.Sample) -> None:
-        self._queue.put((sample.kind == zenoh.SampleKind.PUT, str(sample.key_expr), None))
+        put, key = sample.kind == zenoh.SampleKind.PUT, str(sample.key_expr)
+        if key.startswith(self._proc_prefix):  # (here, not on the presence thread: see `member`)
+            zid = proc_key(key, self._prefix)
+            if zid is not None:
+                if put:
+                    self._members.add(zid)
+                else:
+                    self._members.discard(zid)
+                if self._on_token is not None:
+                    self._on_token(zid, put)
+        self._queue.put((put, key, None))
+
+    def member(self, zid: str) -> bool:
+        """Whether process `zid`'s token is here now, as Zenoh's callbacks heard it.
+
+        Updated on Zenoh's threads as the samples come (the presence thread applies them
+        later: `unreachable` may lag). A process declares its token before it sends
+        anything, but Zenoh sends declarations ahead of data: a frame may come before its
+        sender's token, or after the token's end (`zenoh_inbox.STRANGER_GRACE`).
+        """
+        return zid in self._members
 
     def ask(self, name: str) -> None:
         """Ask the network for the tokens of `name` (bounded) and apply what it answers.
@@ -249,7 +295,6 @@ class Presence:
         if put is None:  # a marker: everything queued before it was applied
             extra.set()
             return
-        parts = key.removeprefix(self._prefix + "/live/").split("/")
         with self._changed:
             self._seq += 1
             if put and extra is not None and self._deleted.get(key, -1) > extra:
@@ -259,7 +304,7 @@ class Presence:
                 if len(self._deleted) > _DELETED_KEPT:  # (only an `ask` in flight needs them)
                     oldest = min(self._asking, default=self._seq)
                     self._deleted = {k: q for k, q in self._deleted.items() if q > oldest}
-            actions = self._change(put, parts)
+            actions = self._change(put, key)
             self._changed.notify_all()
         for action in actions:
             try:  # (one failing action must not keep the others from running)
@@ -267,24 +312,61 @@ class Presence:
             except Exception:
                 logger.exception("presence: %s after %s failed", action, key)
 
-    def _change(self, put: bool, parts: list[str]) -> list[Callable[[], None]]:
-        """Apply one event to the tables (holding the lock); what to do after."""
-        kind = parts[0]
-        if kind == "proc" and len(parts) == 2 and parts[1] != self._zid:
-            return self._process_event(put, parts[1])
-        if kind == "reg" and len(parts) == 5 and parts[2] != self._zid:
-            return self._server_event(put, parts[1], Server(parts[2], parts[3], int(parts[4])))
-        if kind == "claim" and len(parts) == 3:
-            claims = self._claims.setdefault(parts[1], set())
-            if put:
-                claims.add(parts[2])
-            else:
-                claims.discard(parts[2])
-        elif kind == "stopped" and len(parts) == 3:
-            if put:
-                self._stopped.add((parts[1], parts[2]))
-            else:
-                self._stopped.discard((parts[1], parts[2]))
+    def _change(self, put: bool, key: str) -> list[Callable[[], None]]:
+        """Apply one event to the tables (holding the lock); what to do after.
+
+        A malformed key (a buggy member's token) is ignored with a rate-limited WARNING.
+        """
+        kind = key.removeprefix(self._prefix + "/live/").split("/", 1)[0]
+        token = self._tokens.get(kind)
+        if token is None:
+            return []  # (a kind of token a later version may add)
+        actions = token(put, key)
+        if actions is None:
+            self._malformed.warning(
+                "system %s: ignored a malformed liveliness token %s (declared by a buggy "
+                "member? see zenoh_wire for the key expressions)",
+                self._system,
+                short(key),
+            )
+            return []
+        return actions
+
+    def _proc_token(self, put: bool, key: str) -> list[Callable[[], None]] | None:
+        zid = proc_key(key, self._prefix)
+        if zid is None:
+            return None
+        return [] if zid == self._zid else self._process_event(put, zid)
+
+    def _reg_token(self, put: bool, key: str) -> list[Callable[[], None]] | None:
+        server = server_key(key, self._prefix)
+        if server is None:
+            return None
+        if server.zid == self._zid:
+            return []
+        return self._server_event(
+            put, server.name, Server(server.zid, server.supervisor, server.limit)
+        )
+
+    def _claim_token(self, put: bool, key: str) -> list[Callable[[], None]] | None:
+        claim = claim_key(key, self._prefix)
+        if claim is None:
+            return None
+        claims = self._claims.setdefault(claim.name, set())
+        if put:
+            claims.add(claim.zid)
+        else:
+            claims.discard(claim.zid)
+        return []
+
+    def _stopped_token(self, put: bool, key: str) -> list[Callable[[], None]] | None:
+        mark = stopped_key(key, self._prefix)
+        if mark is None:
+            return None
+        if put:
+            self._stopped.add(mark)
+        else:
+            self._stopped.discard(mark)
         return []
 
     def _process_event(self, put: bool, zid: str) -> list[Callable[[], None]]:
@@ -316,7 +398,7 @@ class Presence:
             return []
         if servers.pop(zid, None) is None or servers:
             return []  # unknown, or a rival that yielded: another one serves
-        stopped = (name, zid) in self._stopped
+        stopped = NameAt(name, zid) in self._stopped
         self._gone[name] = "stopped" if stopped else "died"
         self._last[name] = zid
         actions: list[Callable[[], None]] = [functools.partial(self._events.server_gone, name)]

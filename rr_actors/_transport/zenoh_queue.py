@@ -2,12 +2,9 @@
 
 ```
  put(item) ─► deque ─► its thread (started at the first item) ─► handle(item)
- handle_now(item) ─► handle(item) on the caller's thread, if nothing waits before it
 ```
 
-Zenoh's callbacks never block: they queue (`put`), or handle at once a frame that may be
-handled there (`handle_now`: nothing of its stream is queued or being handled, so order
-is kept).
+Zenoh's callbacks never block and never handle an item themselves: they queue (`put`).
 """
 
 from __future__ import annotations
@@ -24,8 +21,7 @@ logger = logging.getLogger("rr_actors")
 
 
 class Queue:
-    """Items handled one at a time in order: by its thread (started at the first item), or
-    at once by the caller of `handle_now` when nothing waits before it."""
+    """Items handled one at a time in order, by its thread (started at the first item)."""
 
     def __init__(self, name: str, handle: Callable[[Any], None]) -> None:
         self._name = name
@@ -33,7 +29,6 @@ class Queue:
         self._cond = threading.Condition(threading.Lock())
         self._items: collections.deque[Any] = collections.deque()
         self._started = False
-        self._busy = False  # an item is being handled (by the thread or a caller)
         self.closed = False
 
     def put(self, item: Any) -> bool:
@@ -48,16 +43,6 @@ class Queue:
             else:
                 self._cond.notify()
             return True
-
-    def handle_now(self, item: Any) -> bool:
-        """Handle `item` on the calling thread if nothing is queued or being handled (then
-        it keeps its order); False (nothing done) otherwise."""
-        with self._cond:
-            if self.closed or self._busy or self._items:
-                return False
-            self._busy = True
-        self._handle_one(item)
-        return True
 
     def finish(self) -> None:
         """Take no more items; the thread handles those queued, then ends."""
@@ -77,21 +62,12 @@ class Queue:
     def _run(self) -> None:
         while True:
             with self._cond:
-                while (self._busy or not self._items) and not (self.closed and not self._items):
+                while not self._items and not self.closed:
                     self._cond.wait()
                 if not self._items:
                     return
                 item = self._items.popleft()
-                self._busy = True
-            self._handle_one(item)
-
-    def _handle_one(self, item: Any) -> None:
-        """Handle `item` (its failure is logged), then let the next one go (`_busy` is set)."""
-        try:
-            self._handle(item)
-        except Exception:
-            logger.exception("%s: handling an item failed", self._name)
-        finally:
-            with self._cond:
-                self._busy = False
-                self._cond.notify_all()
+            try:
+                self._handle(item)
+            except Exception:
+                logger.exception("%s: handling an item failed", self._name)

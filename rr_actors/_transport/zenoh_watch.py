@@ -46,7 +46,7 @@ from rr_actors._transport.zenoh_probe import handshake_trouble
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh_tls import ZenohTLS
 
-__all__ = ["LinkWatch"]
+__all__ = ["LinkWatch", "remote"]
 
 logger = logging.getLogger("rr_actors")
 
@@ -55,7 +55,7 @@ TICK = 0.5  # seconds between two looks at the connect endpoints
 REPEAT = 60.0  # seconds between two WARNINGs about one address or endpoint
 
 
-def _remote(locator: str) -> tuple[str, int | None]:
+def remote(locator: str) -> tuple[str, int | None]:
     """The host and port of a locator such as `tls/10.0.0.2:7447` or `tls/[::1]:7447`."""
     address = locator.split("/", 1)[-1].split("#", 1)[0]
     host, _, port = address.rpartition(":")
@@ -172,7 +172,7 @@ class LinkWatch:
         link = event.link
         if not str(link.dst).startswith("tls/"):
             return  # this host's own processes (unixsock-stream)
-        name, (where, _) = link.auth_identifier, _remote(str(link.dst))
+        name, (where, _) = link.auth_identifier, remote(str(link.dst))
         if event.kind != zenoh.SampleKind.PUT:
             logger.info("ZenohNetwork %r: link to %r at %s closed", self._system, name, where)
             return
@@ -197,7 +197,7 @@ class LinkWatch:
     def _linked(self) -> set[tuple[str, int | None]]:
         """The (host, port) of each TLS link to a member."""
         return {
-            _remote(str(link.dst))
+            remote(str(link.dst))
             for link in self._session.info.links()
             if str(link.dst).startswith("tls/") and link.auth_identifier in self._tls.members
         }

@@ -31,11 +31,14 @@ answered with a `VERSION` frame that carries no pickle, only the header.
 
 from __future__ import annotations
 
+import re
 import struct
 import sys
+from typing import NamedTuple
 
 from rr_actors._core.wire import WIRE_VERSION
 from rr_actors._transport.codec import NO_REPLY
+from rr_actors.config import NAME
 
 __all__ = [
     "ANSWER",
@@ -44,9 +47,15 @@ __all__ = [
     "PYTHON",
     "VERSION",
     "Header",
+    "NameAt",
+    "ServerKey",
+    "claim_key",
     "header",
     "parse",
     "payload_of",
+    "proc_key",
+    "server_key",
+    "stopped_key",
     "versions_text",
 ]
 
@@ -57,9 +66,10 @@ ANSWER = 1
 VERSION = 2
 """An answer saying the message was of another version and was not read."""
 PLAIN = 0x80
-"""Set in the kind byte when the pickle holds only small builtin data and wire records
-(`codec.plain`): unpickling it runs no user code, so the receiver may decode it on
-Zenoh's own thread (when nothing of that sender waits before it)."""
+"""A flag of the kind byte that older senders of this wire version set when the pickle held
+only builtin data (their receivers decoded such a frame on Zenoh's own thread). It is no
+longer set, and ignored when read: a buggy sender can flag anything, so no frame is
+unpickled on Zenoh's thread."""
 
 PYTHON = (sys.version_info.major, sys.version_info.minor)
 
@@ -70,13 +80,12 @@ _FIXED = struct.Struct("!2sBBBBB")  # magic, wire version, Python major, minor, 
 class Header:
     """What a payload's header says: who sent it, in which versions, what kind it is."""
 
-    __slots__ = ("kind", "plain", "python", "sender", "size", "wire")
+    __slots__ = ("kind", "python", "sender", "size", "wire")
 
     def __init__(self, wire: int, python: tuple[int, int], kind: int, sender: str, size: int):
         self.wire = wire
         self.python = python
-        self.kind = kind & ~PLAIN
-        self.plain = bool(kind & PLAIN)
+        self.kind = kind & ~PLAIN  # (the flag is ignored: see `PLAIN`)
         self.sender = sender
         self.size = size  # bytes of the header: the frame starts there
 
@@ -86,12 +95,10 @@ class Header:
         return self.wire == WIRE_VERSION and self.python == PYTHON
 
 
-def header(kind: int, sender: str, *, plain: bool = False) -> bytes:
+def header(kind: int, sender: str) -> bytes:
     """The header of a payload of `kind` sent by the process whose Zenoh id is `sender`."""
     zid = sender.encode("ascii")
-    return (
-        _FIXED.pack(_MAGIC, WIRE_VERSION, *PYTHON, kind | (PLAIN if plain else 0), len(zid)) + zid
-    )
+    return _FIXED.pack(_MAGIC, WIRE_VERSION, *PYTHON, kind, len(zid)) + zid
 
 
 def parse(data: bytes) -> Header | None:
@@ -132,3 +139,87 @@ def versions_text(theirs: Header) -> str:
         f"rr_actors wire version {theirs.wire} on Python {theirs.python[0]}.{theirs.python[1]}"
         f" there, wire version {WIRE_VERSION} on Python {PYTHON[0]}.{PYTHON[1]} here"
     )
+
+
+# -- liveliness key expressions ---------------------------------------------------------------
+#
+# One parser per kind of token (`rr/<system>/live/<kind>/...`): each returns `None` for a
+# malformed key (a value, never an exception), so that a token a buggy member declared
+# costs a log line, not the presence thread's work or a `serve`.
+
+_ZID = re.compile(r"[0-9a-f]{1,32}")  # a Zenoh id as `str(session.zid())` writes it
+_LIMIT_DIGITS = 19  # max_message_bytes: an int64 at most (and int() stays cheap)
+
+
+class ServerKey(NamedTuple):
+    """What a registrar's token says: `live/reg/<name>/<zid>/<sup>/<limit>`."""
+
+    name: str
+    zid: str
+    supervisor: str  # a Zenoh id, or "none"
+    limit: int
+
+
+class NameAt(NamedTuple):
+    """What a claim or a "stopped" mark says: registrar `name` at process `zid`."""
+
+    name: str
+    zid: str
+
+
+def _live_parts(key: str, prefix: str, kind: str, count: int) -> list[str] | None:
+    """The `count` segments after `<prefix>/live/<kind>/` of `key`, or `None`."""
+    head = f"{prefix}/live/{kind}/"
+    if not key.startswith(head):
+        return None
+    parts = key[len(head) :].split("/")
+    return parts if len(parts) == count else None
+
+
+def _zid(text: str) -> bool:
+    return _ZID.fullmatch(text) is not None
+
+
+def proc_key(key: str, prefix: str) -> str | None:
+    """The Zenoh id in a process token `<prefix>/live/proc/<zid>`, or `None` if malformed."""
+    parts = _live_parts(key, prefix, "proc", 1)
+    return parts[0] if parts is not None and _zid(parts[0]) else None
+
+
+def server_key(key: str, prefix: str) -> ServerKey | None:
+    """What a registrar's token `<prefix>/live/reg/<name>/<zid>/<sup>/<limit>` says, or
+    `None` if it is malformed (a name that is not one, an id that is not hex, a limit that
+    is not a positive integer)."""
+    parts = _live_parts(key, prefix, "reg", 4)
+    if parts is None:
+        return None
+    name, zid, supervisor, limit = parts
+    if not (
+        NAME.fullmatch(name)
+        and _zid(zid)
+        and (supervisor == "none" or _zid(supervisor))
+        and limit.isascii()
+        and limit.isdigit()
+        and len(limit) <= _LIMIT_DIGITS
+        and int(limit) > 0
+    ):
+        return None
+    return ServerKey(name, zid, supervisor, int(limit))
+
+
+def _name_at(key: str, prefix: str, kind: str) -> NameAt | None:
+    parts = _live_parts(key, prefix, kind, 2)
+    if parts is None or not NAME.fullmatch(parts[0]) or not _zid(parts[1]):
+        return None
+    return NameAt(parts[0], parts[1])
+
+
+def claim_key(key: str, prefix: str) -> NameAt | None:
+    """What a claim `<prefix>/live/claim/<name>/<zid>` says, or `None` if malformed."""
+    return _name_at(key, prefix, "claim")
+
+
+def stopped_key(key: str, prefix: str) -> NameAt | None:
+    """What a "stopped" mark `<prefix>/live/stopped/<name>/<zid>` says, or `None` if
+    malformed."""
+    return _name_at(key, prefix, "stopped")

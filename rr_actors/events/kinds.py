@@ -436,6 +436,10 @@ class InDoubt:
 
     Published by the registrar while it restores its catalog (semantics rule 16): the
     load may have started something before the crash that nobody will release.
+    Published at every restore that finds it: an entry stays in the backup until a
+    `setup` that was offered it returned (`ResourceRegistrar.settle_in_doubt`), so a
+    manager that died during `setup` publishes it again, with the same `query_id`:
+    the same load found again, not a second one.
 
     Attributes:
         registrar: name of the restored registrar.

@@ -89,7 +89,8 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
             cut = event.cut or "load"
             return (
                 f"{event.registrar}: query {_id(event.query_id)} is in doubt "
-                f"(its {cut} started before a crash and was never committed)"
+                f"(its {cut} started before a crash and was never committed; found at each "
+                f"restart until a setup offered it returns)"
             )
         case CatalogRestored():
             return f"{event.registrar} restored its catalog: {_counts(event.counts)}"

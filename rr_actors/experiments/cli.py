@@ -8,9 +8,10 @@ On a terminal with `rich` installed (`pip install 'rr-actors[experiments]'`) a p
 bar shows the runs; elsewhere one line per finished run. At the end: a summary per
 compared value and the files written. Exit codes: 0 done; 1 a run failed; 2 bad input
 (the plan, an option, the output directory, the platform), found before anything
-started; 130 interrupted (Ctrl-C), 143 stopped (SIGTERM), with the finished runs kept and
-nothing else left behind. A full disk under `--out` is exit 1, one line; the files then
-hold the runs written before it, and agree with each other.
+started; 130 interrupted (Ctrl-C), 143 stopped (SIGTERM), 129 its terminal hung up
+(SIGHUP), with the finished runs kept and nothing else left behind. A full disk under
+`--out` is exit 1, one line; the files then hold the runs written before it, and agree
+with each other.
 """
 
 from __future__ import annotations
@@ -118,15 +119,36 @@ def _ms(value: float | None) -> str:
     return "-" if value is None else f"{value * 1e3:.0f} ms"
 
 
+RUN_LINE_WIDTH = 80
+"""The widest a run's line is (a plain pipe, as the summary): the value is cut first."""
+
+
 def run_line(result: RunResult, runs: int) -> str:
-    """One line about a finished run."""
-    return (
-        f"run {result.run}/{runs} {_value(result)}seed {result.seed}: "
-        f"{result.calls_ok} calls ok, {result.calls_failed} failed, "
-        f"{result.restarts} restarts, recovery median {_ms(result.recovery_median_s)}"
-        + (", the supervisor gave up" if result.gave_up else "")
-        + (f", verdict {result.verdict}" if result.verdict else "")
-        + "".join(f"\n{line}" for line in result.findings)
+    """One line about a finished run, of at most `RUN_LINE_WIDTH` columns.
+
+    `run 2/4 rest_for_one seed 1: 46 calls ok, 0 failed, 4 restarts, rec. p50 172 ms`:
+    the compared value without its setting (the summary's header names it), and the
+    run's median recovery as the summary's `rec. p50` column. A value too long for the
+    line is cut (`~`, as in the summary); a line still too long wraps, indented. The
+    run's verdict (`rr_actors.experiments.check`) ends it, and each of its findings
+    follows on lines of their own, wrapped the same way.
+    """
+    value = "" if result.value is None else show_value(result.value)
+    rest = (
+        f"seed {result.seed}: {result.calls_ok} calls ok, {result.calls_failed} failed, "
+        f"{result.restarts} restarts, rec. p50 {_ms(result.recovery_median_s)}"
+        + (", gave up" if result.gave_up else "")
+        + (f", {result.verdict}" if result.verdict else "")
+    )
+    head = f"run {result.run}/{runs}"
+    room = max(RUN_LINE_WIDTH - len(head) - len(rest) - 2, 8)  # (2: the spaces around it)
+    if len(value) > room:
+        value = value[: room - 1] + "~"
+    line = " ".join(part for part in (head, value, rest) if part)
+    return "\n".join(
+        wrapped
+        for text in (line, *result.findings)
+        for wrapped in textwrap.wrap(text, RUN_LINE_WIDTH, subsequent_indent="    ")
     )
 
 
@@ -288,7 +310,7 @@ def main(args: argparse.Namespace, stream: TextIO) -> int:
 
     Returns:
         0 done; 1 a run failed (or `--out` could not be written); 2 bad input (nothing was
-        started); 130 interrupted (Ctrl-C); 143 stopped (SIGTERM).
+        started); 130 interrupted (Ctrl-C); 143 stopped (SIGTERM); 129 hung up (SIGHUP).
     """
     if args.list:
         return _list(stream)
@@ -347,7 +369,7 @@ def _run(args: argparse.Namespace, stream: TextIO) -> int:
         return 1
     except ExperimentInterruptedError as exc:
         results = exc.results
-        interrupted = 128 + exc.signum  # 130 after Ctrl-C, 143 after SIGTERM
+        interrupted = 128 + exc.signum  # 130 after Ctrl-C, 143 after SIGTERM, 129 SIGHUP
     _summary(display, results, interrupted=bool(interrupted))
     return interrupted or 0
 

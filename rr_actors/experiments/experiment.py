@@ -9,8 +9,9 @@ run(plan) ── validate everything (plan, out, platform, --observe) ── not
       out/: events.jsonl += the run's events; faults.csv += its faults;
             runs.csv rewritten: every finished run, under the union of their columns
    plots (matplotlib): recovery.png, timeline.png
-Ctrl-C: the run process is told to stop (SIGTERM), every process of the run is
-        killed, the runs finished so far stay written and plotted.
+Ctrl-C (or SIGTERM, SIGHUP): the run process is told to stop (SIGTERM), every process
+        of the run is killed, the runs finished so far stay written and plotted, the
+        work directory (rr-experiment-* in the temporary directory) is removed.
 """
 
 from __future__ import annotations
@@ -85,7 +86,8 @@ class ExperimentInterruptedError(KeyboardInterrupt):
 
     Attributes:
         results: the runs that finished before the interruption (also written to `out`).
-        signum: the signal that interrupted it: `SIGINT` (Ctrl-C) or `SIGTERM`.
+        signum: the signal that interrupted it: `SIGINT` (Ctrl-C), `SIGTERM` or `SIGHUP`
+            (its terminal hung up).
     """
 
     def __init__(self, results: Results, signum: int = signal.SIGINT) -> None:
@@ -95,7 +97,16 @@ class ExperimentInterruptedError(KeyboardInterrupt):
 
 
 class _Terminated(KeyboardInterrupt):
-    """SIGTERM, raised in the main thread: stopped as a Ctrl-C is (nothing left behind)."""
+    """SIGTERM or SIGHUP, raised in the main thread: stopped as a Ctrl-C is (nothing left
+    behind). `signum` is the signal."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+_STOPPING = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
+"""The signals that stop an experiment as a Ctrl-C does (no SIGHUP on Windows)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -269,14 +280,15 @@ class _Experiment:
                 self._interrupted()
                 results = self._results(interrupted=True)
                 self._plot(results)
-            signum = signal.SIGTERM if isinstance(exc, _Terminated) else signal.SIGINT
+            signum = exc.signum if isinstance(exc, _Terminated) else signal.SIGINT
             raise ExperimentInterruptedError(results, signum) from None
         except ExperimentError:
             self._plot(self._results(interrupted=False))  # what finished before it
             raise
         finally:
             if work is not None:
-                shutil.rmtree(work, ignore_errors=True)
+                with _ignoring_signals():  # (no longer `_Terminated`: it would cut this short)
+                    shutil.rmtree(work, ignore_errors=True)
         results = self._results(interrupted=False)
         self._plot(results)
         return results
@@ -558,11 +570,12 @@ def _stop(process: subprocess.Popen[bytes]) -> None:
 
 @contextlib.contextmanager
 def _ignoring_signals() -> Iterator[None]:
-    """A second Ctrl-C (or a SIGTERM) must not cut the cleanup short (main thread only)."""
+    """A second Ctrl-C (or a SIGTERM, a SIGHUP) must not cut the cleanup short (main
+    thread only)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = {n: signal.signal(n, signal.SIG_IGN) for n in (signal.SIGINT, signal.SIGTERM)}
+    previous = {n: signal.signal(n, signal.SIG_IGN) for n in (signal.SIGINT, *_STOPPING)}
     try:
         yield
     finally:
@@ -572,20 +585,22 @@ def _ignoring_signals() -> Iterator[None]:
 
 @contextlib.contextmanager
 def _terminating_as_interrupt() -> Iterator[None]:
-    """SIGTERM raises `_Terminated` (a `KeyboardInterrupt`) while the runs go on.
+    """SIGTERM or SIGHUP raises `_Terminated` (a `KeyboardInterrupt`) while the runs go on.
 
-    Without it a SIGTERM ends the process at once: the run's processes and the work
-    directory in the temporary directory would be left behind (main thread only).
+    Without it either ends the process at once (a SIGHUP: the terminal it ran in was
+    closed): the run's processes and the work directory in the temporary directory would
+    be left behind (main thread only).
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
-    def terminated(_signum: int, _frame: object) -> None:
-        raise _Terminated
+    def terminated(signum: int, _frame: object) -> None:
+        raise _Terminated(signum)
 
-    previous = signal.signal(signal.SIGTERM, terminated)
+    previous = {number: signal.signal(number, terminated) for number in _STOPPING}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for number, handler in previous.items():
+            signal.signal(number, handler)

@@ -17,7 +17,7 @@ subpackage holds:
 - `plot`: the distance-over-time figure (needs matplotlib: `pip install 'rr-actors[demo]'`).
 """
 
-from rr_actors.mission.config import FAULTS, MissionConfig, MissionError
+from rr_actors.mission.config import FAULTS, MissionConfig, MissionError, MissionInterruptedError
 from rr_actors.mission.report import FaultResult, MissionReport, UnplannedRestart
 from rr_actors.mission.run import main, run_mission
 
@@ -26,6 +26,7 @@ __all__ = [
     "FaultResult",
     "MissionConfig",
     "MissionError",
+    "MissionInterruptedError",
     "MissionReport",
     "UnplannedRestart",
     "main",

@@ -11,6 +11,9 @@
                ─► _unload_all: release what the mission holds, count the catalogs' rows
                ─► leaked programs killed ─► build_report (report.py)
 
+A Ctrl-C (`KeyboardInterrupt` in the mission's thread) anywhere on the way is told to
+`on_interrupt` at once; the same cleanup runs, then `MissionInterruptedError` is raised.
+
 Every call to a manager goes through `Supervisor.call_with_retry` or
 `retry_through_restarts`, so a manager that was restarted for any reason (a fault, or a
 kill by hand) is waited for, not taken as a failure of the mission.
@@ -33,7 +36,13 @@ from typing import Any, Literal
 
 import rr_actors as rr
 from rr_actors.mission import managers, programs
-from rr_actors.mission.config import FAULT_WHAT, MANAGERS, MissionConfig, MissionError
+from rr_actors.mission.config import (
+    FAULT_WHAT,
+    MANAGERS,
+    MissionConfig,
+    MissionError,
+    MissionInterruptedError,
+)
 from rr_actors.mission.faults import Faults, alive, retry_through_restarts, sigkill
 from rr_actors.mission.output import Progress
 from rr_actors.mission.report import (
@@ -49,6 +58,9 @@ __all__ = ["TICK", "Mission"]
 
 TICK = 0.02
 """Seconds between two looks at the odometry (and at the progress line)."""
+
+PAUSE_SETTLE = 2.0
+"""Seconds a `--step` pause waits at most for the robot to stand, and to drive again."""
 
 
 @dataclass(frozen=True)
@@ -79,6 +91,9 @@ class Mission:
         before_fault: called on the mission's thread before each fault, with the fault
             and the processes it involves (one line each), while the robot waits
             (`rr-actors demo --step`); the fault is injected when it returns.
+        on_interrupt: called on the mission's thread with the mission time (seconds)
+            of a Ctrl-C, before the mission unloads everything (`rr-actors demo` then
+            says so); once, however many Ctrl-Cs follow.
 
     Attributes:
         supervisor: the managers' supervisor while the mission runs, else `None`.
@@ -95,10 +110,15 @@ class Mission:
         progress: Callable[[Progress], None] = lambda _: None,
         on_supervisor: Callable[[rr.Supervisor], object] | None = None,
         before_fault: Callable[[str, list[str]], object] | None = None,
+        on_interrupt: Callable[[float], object] | None = None,
     ) -> None:
         self.config = config
         self._on_supervisor = on_supervisor
         self._before_fault = before_fault
+        self._on_interrupt = on_interrupt
+        self._interrupted_at: float | None = None  # mission time of the Ctrl-C
+        self._failed_unloads = 0
+        self._leaked_pids: list[int] = []
         self.out = out
         self.bus = out / "bus"
         self.state = out / "state"
@@ -128,7 +148,26 @@ class Mission:
         Raises:
             MissionError: the mission could not be completed; everything was unloaded
                 and stopped all the same.
+            MissionInterruptedError: a Ctrl-C (`KeyboardInterrupt`) ended it; everything was
+                unloaded and stopped all the same.
         """
+        try:
+            return self._run()
+        except KeyboardInterrupt:
+            self._interrupt()  # (if it came while the managers started, or at the end)
+            assert self._interrupted_at is not None
+            raise MissionInterruptedError(
+                self._interrupted_at, self._failed_unloads, self._leaked_pids
+            ) from None
+
+    def _interrupt(self) -> None:
+        """A Ctrl-C: tell `on_interrupt` (once) when it came."""
+        if self._interrupted_at is None:
+            self._interrupted_at = self.clock.now()
+            if self._on_interrupt is not None:
+                self._on_interrupt(self._interrupted_at)
+
+    def _run(self) -> MissionReport:
         for sub in (self.bus, self.state):
             shutil.rmtree(sub, ignore_errors=True)
             sub.mkdir(parents=True)
@@ -158,6 +197,9 @@ class Mission:
                 self._faults = Faults(sup, app, recovery_timeout=cfg.recovery_timeout, say=self.say)
                 try:
                     start, arrived = self._mission(sup, app)
+                except KeyboardInterrupt:
+                    self._interrupt()  # said before the unloading, which takes a while
+                    raise
                 finally:
                     entries = self._unload_all(sup, app)
                     sup.flush_events()  # the last exits and restarts of the drive are heard
@@ -168,7 +210,7 @@ class Mission:
             raise MissionError(f"the mission failed: {exc}") from exc
         finally:
             self.supervisor = None
-            leaked = self._leaked()
+            leaked = self._leaked_pids = self._leaked()
             if leaked:
                 self.say(f"{len(leaked)} process(es) were left behind: {leaked}; killed them")
         faults = self._faults
@@ -232,6 +274,7 @@ class Mission:
                         sup, provider, functools.partial(app.unload, query_id), timeout=timeout
                     )
             except rr.RrError as exc:
+                self._failed_unloads += 1
                 self.say(f"unloading {query_id[:8]} failed: {exc}")
         self._held.clear()
         self.say("everything unloaded")
@@ -346,18 +389,33 @@ class Mission:
         """Stop the robot, hand the fault to `before_fault`, drive on; the seconds it took.
 
         The pause is left out of the mission clock: no stamp, timeline row or plot
-        counts the time the class took to press Enter.
+        counts the time the class took to press Enter. It lasts from the stop order
+        until the robot drives again: its coming to a halt and its start after the
+        Enter belong to the pause, not to the fault that follows (which would otherwise
+        count them as the robot standing still).
         """
         assert self._before_fault is not None
         paused = time.monotonic()
         self._goal(paused=True)
         try:
             self._before_fault(fault, faults.pids(fault))
-        finally:
+            self._wait_until_moving(False)  # (long done, unless Enter came at once)
             self._goal(paused=False)
+            self._wait_until_moving(True)
+        finally:  # (after a Ctrl-C at the prompt the robot waits for the unloading)
             resumed = time.monotonic()
             self.clock.add_pause(paused, resumed)
         return resumed - paused
+
+    def _wait_until_moving(self, moving: bool) -> None:
+        """Wait until the odometry says the robot moves (or stands), `PAUSE_SETTLE` s at most."""
+        deadline = time.monotonic() + PAUSE_SETTLE
+        while True:
+            self._odom.read()
+            now = time.monotonic()
+            if self._odom.moving(now) == moving or now >= deadline:
+                return
+            time.sleep(TICK)  # the odometry is a file the driver appends to: look again
 
     def _handle(
         self,

@@ -18,6 +18,7 @@ __all__ = [
     "MANAGER_OF",
     "MissionConfig",
     "MissionError",
+    "MissionInterruptedError",
     "unsupported_platform",
 ]
 
@@ -45,6 +46,27 @@ DEFAULT_FAULT_AT = {"F1": 0.15, "F2": 0.35, "F3": 0.5, "F4": 0.65, "F5": 0.8}
 
 class MissionError(rr.RrError):
     """The mission could not be completed (a fault was not recovered, or it timed out)."""
+
+
+class MissionInterruptedError(KeyboardInterrupt):
+    """Ctrl-C (SIGINT) ended the mission; everything was unloaded and stopped all the same.
+
+    It is a `KeyboardInterrupt`, not an `RrError` (as `ExperimentInterruptedError`): the
+    user stopped it, nothing failed, and an `except RrError` (or `except Exception`)
+    around `run_mission` must not swallow a Ctrl-C. No report was written.
+
+    Attributes:
+        at_s: the mission time (seconds, `--step`'s pauses left out) of the Ctrl-C.
+        failed_unloads: how many of the mission's unloads failed while it cleaned up.
+        leaked: pids of the mission's programs that were still alive after the
+            managers stopped (they were killed).
+    """
+
+    def __init__(self, at_s: float, failed_unloads: int, leaked: list[int]) -> None:
+        super().__init__(f"interrupted at {at_s:.1f} s")
+        self.at_s = at_s
+        self.failed_unloads = failed_unloads
+        self.leaked = leaked
 
 
 def unsupported_platform() -> str | None:

@@ -11,7 +11,9 @@ Two renderers with one interface (`MissionOutput`), chosen once by `make_output`
 
 `--quiet` keeps the timeline and the report's paths and drops the story and the
 progress line, in both. `--step` uses the same renderers: while it waits for Enter
-(`hold`), the progress line is taken down so the prompt and the typing show.
+(`hold`), the progress line is taken down so the prompt and the typing show. After a
+Ctrl-C (`interrupt`) both show one line, `interrupted at 8.0 s: unloading...`, which
+`end_interrupt` ends once the mission has cleaned up; the story is dropped meanwhile.
 """
 
 from __future__ import annotations
@@ -88,6 +90,25 @@ class MissionOutput(Protocol):
     def hold(self) -> contextlib.AbstractContextManager[None]:
         """Show nothing live meanwhile (while the terminal waits for the user's input)."""
 
+    def interrupt(self, at_s: float | None) -> None:
+        """A Ctrl-C: take down what is live, drop the story from now on, start one line.
+
+        Args:
+            at_s: the mission time of the Ctrl-C (seconds); `None` when no mission ran
+                (the line is then `interrupted`).
+        """
+
+    def end_interrupt(self, outcome: str) -> None:
+        """End the line `interrupt` started with `outcome` (what the cleanup did)."""
+
+
+def _interrupted(at_s: float | None) -> str:
+    return "interrupted" if at_s is None else f"interrupted at {at_s:.1f} s: unloading..."
+
+
+def _ended(outcome: str) -> str:
+    return f" {outcome}" if outcome else ""
+
 
 def _seconds(value: float | None) -> str:
     return "-" if value is None else f"{value:.3f} s"
@@ -123,8 +144,8 @@ def _totals(report: MissionReport) -> list[str]:
         else []
     )
     return [
-        f"mission time {report.mission_time_s:.2f} s (no stop: {report.nominal_time_s:.2f} s), "
-        f"distance {report.distance_m:.2f} m",
+        f"mission time {report.mission_time_s:.2f} s (the drive; without stops "
+        f"{report.nominal_time_s:.2f} s), distance {report.distance_m:.2f} m",
         *paused,
         f"leaked processes: {report.leaked_processes}; catalog entries left: "
         f"{report.catalog_entries_left}",
@@ -165,6 +186,7 @@ class PlainOutput:
         self.stream = stream
         self.quiet = quiet
         self._lock = threading.Lock()  # lines from several threads must not run together
+        self._interrupted = False
 
     def __enter__(self) -> PlainOutput:
         return self
@@ -178,8 +200,8 @@ class PlainOutput:
             self.stream.flush()
 
     def story(self, line: str) -> None:
-        """Write one line of the story (unless quiet)."""
-        if not self.quiet:
+        """Write one line of the story (unless quiet, or after a Ctrl-C)."""
+        if not (self.quiet or self._interrupted):
             self._write(line + "\n")
 
     def progress(self, progress: Progress) -> None:
@@ -189,6 +211,15 @@ class PlainOutput:
     def hold(self) -> Iterator[None]:
         """Nothing to hold: plain output has nothing live."""
         yield
+
+    def interrupt(self, at_s: float | None) -> None:
+        """Drop the story from now on; write the start of the line (even when quiet)."""
+        self._interrupted = True
+        self._write(_interrupted(at_s))
+
+    def end_interrupt(self, outcome: str) -> None:
+        """End the line with `outcome`."""
+        self._write(_ended(outcome) + "\n")
 
     def summary(self, report: MissionReport, files: Sequence[str]) -> None:
         """Write the timeline, the totals and `files`."""
@@ -252,6 +283,7 @@ class RichOutput:
         self.quiet = quiet
         self._live: Live | None = None
         self._held = False
+        self._interrupted = False
 
     def __enter__(self) -> RichOutput:
         from rich.live import Live  # noqa: PLC0415 - rich is optional
@@ -285,7 +317,7 @@ class RichOutput:
         A line stamped `[  1.23 s] ...` that is too long for the terminal wraps under its
         text, not under its stamp.
         """
-        if self.quiet:
+        if self.quiet or self._interrupted:
             return
         stamp, bracket, text = line.partition("] ")
         if not (line.startswith("[") and bracket):
@@ -316,9 +348,27 @@ class RichOutput:
         live.stop()
         try:
             yield
-        finally:
-            live.start()
-            self._held = False
+        except BaseException:  # a Ctrl-C at the prompt: the mission ends, no line comes back
+            self._live = None
+            raise
+        live.start()
+        self._held = False
+
+    def interrupt(self, at_s: float | None) -> None:
+        """Remove the progress line, drop the story, print the start of the line.
+
+        It starts at the beginning of the terminal's line, over the `^C` the terminal
+        may have echoed there.
+        """
+        self._interrupted = True
+        self._stop_live()
+        self.console.file.write("\r")
+        self.console.print(_interrupted(at_s), end="", markup=False, highlight=False)
+        self.console.file.flush()
+
+    def end_interrupt(self, outcome: str) -> None:
+        """End the line with `outcome`."""
+        self._print(_ended(outcome))
 
     def summary(self, report: MissionReport, files: Sequence[str]) -> None:
         """Remove the progress line; print the timeline, the totals and `files`."""

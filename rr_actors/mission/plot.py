@@ -1,6 +1,6 @@
 """The mission's figure: this run beside the thesis's (figure 6.5), and a zoom on one stop.
 
-    ┌ distance over mission time ────────────────────┐ ┌ zoom on the longest stop ─┐
+    ┌ distance over the mission clock ───────────────┐ ┌ zoom on the longest stop ─┐
     │ this run (blue), its faults F1-F5 (dashed)     │ │ odometry samples, the     │
     │ the thesis's run (orange), its 3 s and 5 s     │ │ stop shaded, when FATAL   │
     │ stops shaded; a box where the zoom looks       │ │ was heard and recovered   │
@@ -154,7 +154,7 @@ def _main_panel(ax: Axes, report: MissionReport) -> None:
         )
     ax.plot([], [], color=STOPPED, alpha=0.4, linewidth=8, label="this run's robot stopped")
     ax.plot([], [], color=THEIRS, alpha=0.3, linewidth=8, label="the thesis's robot stopped")
-    ax.set_xlabel("mission time (s): the story's and the timeline's clock")
+    ax.set_xlabel("mission clock (s): the story's and the timeline's")
     ax.set_ylabel("distance (m)")
     ax.set_xlim(left=0, right=end * 1.02)
     ax.set_ylim(bottom=0, top=top * 1.12)
@@ -200,7 +200,7 @@ def _zoom_panel(ax: Axes, main: Axes, report: MissionReport) -> None:
     )
     ax.set_xlim(left, right)
     ax.set_ylim(low - span * 0.1, high + span * 0.6)
-    ax.set_xlabel("mission time (s)")
+    ax.set_xlabel("mission clock (s)")
     ax.set_ylabel("distance (m)")
     ax.grid(visible=True, alpha=0.3)
     y0, y1 = ax.get_ylim()

@@ -6,9 +6,11 @@
                                                                          └─► timeline_rows()
 
 Every time is `time.monotonic()` (system-wide on Linux, so the programs' timestamps in
-`odom.jsonl` compare with the mission's) until the report, which counts *mission time*
-(`MissionClock`): seconds since the mission started, without the pauses for Enter of
-`rr-actors demo --step`. The story's stamps, the timeline and the plot share that clock.
+`odom.jsonl` compare with the mission's) until the report, which counts on the *mission
+clock* (`MissionClock`): seconds since the mission started, without the pauses for Enter
+of `rr-actors demo --step`. The story's stamps, the timeline, the plot and the observer's
+page share that clock. The *mission time* (`MissionReport.mission_time_s`) is a duration
+on it: the drive's, from its start to the goal, as the thesis counts it.
 """
 
 from __future__ import annotations
@@ -153,8 +155,9 @@ class MissionReport:
     the mission started (as the story's stamps), without `--step`'s pauses for Enter.
 
     Attributes:
-        mission_time_s: from the start of the drive until the goal was reached, seconds
-            (without pauses).
+        mission_time_s: the mission time, as the thesis counts it: from the start of the
+            drive until the goal was reached, seconds (without pauses). The terminal
+            prints it at the end; the story says it at the goal.
         distance_m: distance the odometry measured.
         nominal_time_s: distance over speed: the drive without any stop.
         faults: one result per injected fault.

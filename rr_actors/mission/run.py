@@ -31,6 +31,7 @@ import dataclasses
 import json
 import math
 import os
+import signal
 import sys
 import tempfile
 import threading
@@ -45,6 +46,7 @@ from rr_actors.mission.config import (
     FAULT_WHAT,
     MissionConfig,
     MissionError,
+    MissionInterruptedError,
     unsupported_platform,
 )
 from rr_actors.mission.output import MissionOutput, Progress, make_output
@@ -55,6 +57,14 @@ if TYPE_CHECKING:
 
 CLOCK_SLACK = 0.05
 """Seconds the page's mission clock may be off before it is set again (`--observe`)."""
+
+CLOCK_LABEL = "mission clock"
+"""What the page calls its clock: the story's stamps, not the mission time (`--observe`).
+
+The *mission time* the terminal prints at the end (`MissionReport.mission_time_s`) is a
+duration, the drive's (as the thesis counts it); the mission clock tells when, since the
+mission started. Calling both "mission time" showed two figures under one name.
+"""
 
 __all__ = [
     "DEFAULT_OUT",
@@ -107,6 +117,7 @@ def run_mission(
     progress: Callable[[Progress], None] = lambda _: None,
     on_supervisor: Callable[[rr.Supervisor], object] | None = None,
     before_fault: Callable[[str, list[str]], object] | None = None,
+    on_interrupt: Callable[[float], object] | None = None,
 ) -> MissionReport:
     """Run the mission and write `report.json` (and `mission.png` if matplotlib is there).
 
@@ -120,6 +131,8 @@ def run_mission(
         before_fault: called on the mission's thread before each fault with the fault
             and the processes it involves (one line each), while the robot waits; the
             fault is injected when it returns (`rr-actors demo --step`).
+        on_interrupt: called on the mission's thread with the mission time (seconds) of
+            a Ctrl-C, before the mission unloads everything and stops its managers.
 
     Returns:
         The report.
@@ -127,6 +140,8 @@ def run_mission(
     Raises:
         MissionError: the mission could not be completed (it still cleaned up), or this
             platform cannot run it (it needs Linux).
+        MissionInterruptedError: a Ctrl-C (`KeyboardInterrupt` in the thread that runs the
+            mission) ended it; it still cleaned up. No report is written.
         ConfigError: `out` is a file, or cannot be created or written to, or another
             mission is running there (`lock_out`).
     """
@@ -142,6 +157,7 @@ def run_mission(
             progress=progress,
             on_supervisor=on_supervisor,
             before_fault=before_fault,
+            on_interrupt=on_interrupt,
         ).run()
         (path / "report.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
         with contextlib.suppress(ImportError):
@@ -299,7 +315,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns:
         0 when the mission completed, every fault was recovered and nothing was left
         behind; 1 otherwise; 2 for a bad command line, an output directory that cannot
-        be written, or a platform other than Linux.
+        be written, or a platform other than Linux; 130 after a Ctrl-C (the mission
+        unloaded everything first, and said so in one line).
     """
     return run(parser().parse_args(argv))
 
@@ -336,7 +353,7 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
     report: MissionReport | None = None
     output: MissionOutput = make_output(stream, quiet=args.quiet)
     observers: list[Observer] = []
-    with output, _closing(observers):
+    with output, _one_interrupt(output) as on_interrupt, _closing(observers):
         hooks = _hooks(args, output, stream, observers)
         try:
             report = run_mission(
@@ -346,7 +363,13 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
                 progress=_mission_clock(output.progress, observers),
                 on_supervisor=hooks[0],
                 before_fault=hooks[1],
+                on_interrupt=on_interrupt,
             )
+        except KeyboardInterrupt as exc:  # a Ctrl-C: the mission cleaned up (and said so)
+            if not isinstance(exc, MissionInterruptedError):  # not while a mission ran
+                output.interrupt(None)
+            output.end_interrupt(_cleanup_outcome(exc))
+            return INTERRUPTED
         except rr.ConfigError as exc:  # the observer could not open (port in use, no extra)
             _error(str(exc))
             return 2
@@ -362,6 +385,44 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
         _error(failure or "the mission did not report")
         return 1
     return 0 if report.ok else 1
+
+
+INTERRUPTED = 128 + signal.SIGINT
+"""The exit code after a Ctrl-C (130, as a shell reports a command that SIGINT ended)."""
+
+
+@contextlib.contextmanager
+def _one_interrupt(output: MissionOutput) -> Iterator[Callable[[float], None]]:
+    """The mission's `on_interrupt`: say so on `output`, and ignore further Ctrl-Cs.
+
+    The first Ctrl-C starts the line `interrupted at 8.0 s: unloading...`; a second one
+    would cut the unloading short (and leave processes for the mission to kill), so
+    SIGINT is ignored until the mission has cleaned up and this context ends.
+    """
+    previous: list[Any] = []
+
+    def on_interrupt(at_s: float) -> None:
+        if threading.current_thread() is threading.main_thread():  # (only it may)
+            previous.append(signal.signal(signal.SIGINT, signal.SIG_IGN))
+        output.interrupt(at_s)
+
+    try:
+        yield on_interrupt
+    finally:
+        if previous:
+            signal.signal(signal.SIGINT, previous[0])
+
+
+def _cleanup_outcome(exc: KeyboardInterrupt) -> str:
+    """How the line after a Ctrl-C ends: what the mission's cleanup did."""
+    if not isinstance(exc, MissionInterruptedError):
+        return ""
+    trouble = []
+    if exc.failed_unloads:
+        trouble.append(f"{exc.failed_unloads} unload(s) failed")
+    if exc.leaked:
+        trouble.append(f"{len(exc.leaked)} process(es) were left behind (killed)")
+    return "; ".join(trouble) if trouble else "everything unloaded"
 
 
 def _check_observe_args(args: argparse.Namespace) -> None:
@@ -393,7 +454,7 @@ def _mission_clock(
         origin = time.time() - where.elapsed_s
         if observers and abs(origin - shown[0]) > CLOCK_SLACK:
             shown[0] = origin
-            observers[0].set_clock(origin, "mission time")
+            observers[0].set_clock(origin, CLOCK_LABEL)
 
     return tick
 
@@ -425,7 +486,7 @@ def _hooks(
         observer = sup.observe(  # serving after the mission while it lingers; then closed
             port=args.port, allow_faults=args.allow_faults, keep_serving=True
         )
-        observer.set_clock(time.time(), "mission time")  # (made exact by the first progress)
+        observer.set_clock(time.time(), CLOCK_LABEL)  # (made exact by the first progress)
         observers.append(observer)
         buttons = "; teaching mode: its buttons kill, hang and FATAL" if args.allow_faults else ""
         tell(f"observer: {observer.url} (open it in a browser{buttons})")

@@ -35,7 +35,7 @@ from rr_actors.config import SupervisorSpec, managers
 from rr_actors.errors import ConfigError
 from rr_actors.observe._hub import Hub
 from rr_actors.observe._probe import catalog_of
-from rr_actors.observe._view import dependency_graph, summarise_catalog
+from rr_actors.observe._view import dependency_graph, resource_name, summarise_catalog
 
 if TYPE_CHECKING:
     from rr_actors._core.bus import Subscription
@@ -313,8 +313,17 @@ class LiveSource:
     # -- events ---------------------------------------------------------------------------
 
     def _on_event(self, event: events.Event) -> None:
-        """Runs on the subscription's thread, one event at a time (kept as it is: cheap)."""
-        self.hub.add_event(event)
+        """Runs on the subscription's thread, one event at a time (kept as it is: cheap).
+
+        A status sent is named after its resource now, from the catalog last read: the
+        provider may unload that resource right after (a FATAL), before a page shows it.
+        """
+        if isinstance(event, events.StatusSent):
+            section = self._catalogs.get(event.registrar)  # (replaced whole, never changed)
+            name = resource_name(section and section["catalog"], event.query_id)
+            self.hub.add_event(event if name is None else {**event_dict(event), "resource": name})
+        else:
+            self.hub.add_event(event)
         touched = _touched(event)
         if touched != ():
             self._mark(touched)

@@ -11,7 +11,7 @@ text renderers (`_text.py`) all read these shapes.
 A catalog summary is::
 
     {"registrar": "cm", "servers": ["lidar"],
-     "resources": [{"id", "server", "state", "in_doubt", "request", "response",
+     "resources": [{"id", "server", "state", "in_doubt", "request", "response", "label",
                     "consumers": [{"query_id", "origin"}]}],
      "clients": [{"query_id", "serving_rr", "server", "request", "parent", "loaded"}],
      "in_doubt": [{"id", "request"}]}
@@ -21,7 +21,8 @@ it stored them (`rr_actors._catalog.texts`): a summary never calls `repr` and ne
 decodes a stored value, so a `__repr__` that hangs cannot stop a refresh, and a backup is
 shown without unpickling anything (that would run code from the file). A resource's
 `label` is what its server's `label(request)` returned, else what tells its request
-apart from the server's other requests (`default_labels`).
+apart from the server's other requests (`default_labels`): the one short name the graph
+draws and the status timeline writes.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ __all__ = [
     "default_labels",
     "dependency_graph",
     "registrar_ranks",
+    "resource_name",
     "short",
     "shown",
     "summarise_catalog",
@@ -111,6 +113,8 @@ def summarise_catalog(
         The catalog summary (see the module docstring).
     """
     rows = [_resource(r) for r in resources]
+    for row, label in zip(rows, _labels(rows), strict=True):
+        row["label"] = label  # (the graph's and the timeline's name for it)
     known = list(servers) if servers is not None else []
     for row in rows:
         if row["server"] not in known:
@@ -224,6 +228,22 @@ def _labels(resources: list[dict[str, Any]]) -> list[str]:
         for i, default in zip(indexes, defaults, strict=True):
             labels[i] = resources[i].get("label") or default
     return labels
+
+
+def resource_name(catalog: Mapping[str, Any] | None, query_id: str) -> str | None:
+    """`"<registrar>/<server> <label>"` of the resource a consumer's `query_id` holds.
+
+    How the status timeline names the resource a status is about: by the short label
+    the graph draws, not by its request's text. `None` if `catalog` (a catalog summary)
+    has no such consumer.
+    """
+    if catalog is None:
+        return None
+    for resource in catalog["resources"]:
+        if any(c["query_id"] == query_id for c in resource["consumers"]):
+            label = resource.get("label") or resource["request"]
+            return f"{catalog['registrar']}/{resource['server']} {label}"
+    return None
 
 
 def default_labels(texts: Sequence[str]) -> list[str]:

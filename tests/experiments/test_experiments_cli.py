@@ -4,6 +4,7 @@ prints its summary, and Ctrl-C (a real SIGINT) stops every process and keeps fin
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import os
 import signal
@@ -134,6 +135,42 @@ def test_observe_without_the_observe_extra_exits_2(
     assert not (tmp_path / "out").exists()
 
 
+WITHOUT_MSGSPEC = (
+    "import sys; sys.modules['msgspec'] = None; "  # as with only the demo extra installed
+    "from rr_actors._cli import main; sys.exit(main(sys.argv[1:]))"
+)
+
+
+@pytest.mark.parametrize("argv", [["--list"], ["first", "--out", "x"], ["--bogus"]])
+def test_without_the_experiments_extra_every_use_names_it_with_exit_code_2(
+    argv: list[str], tmp_path: Path
+) -> None:
+    result = subprocess.run(
+        [sys.executable, "-c", WITHOUT_MSGSPEC, "experiment", *argv],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+
+    assert (2, "") == (result.returncode, result.stdout)
+    assert result.stderr.startswith("rr-actors experiment: needs the experiments extra: ")
+    assert "pip install 'rr-actors[experiments]'" in result.stderr
+    assert "unrecognized arguments" not in result.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def test_an_unknown_option_of_another_command_is_still_a_usage_error(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    with pytest.raises(SystemExit) as exited:
+        main(["demo", "--bogus"])
+
+    assert 2 == exited.value.code
+    assert "unrecognized arguments: --bogus" in capsys.readouterr().err
+
+
 def test_with_force_it_runs_into_a_used_directory_and_prints_a_summary(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -253,12 +290,39 @@ def test_progress_draws_a_bar_on_a_terminal_and_one_line_per_run_everywhere(
             display(Progress(1, 2, "tree.strategy", "one_for_all", 7, elapsed, 1.0))
         display(Progress(1, 2, "tree.strategy", "one_for_all", 7, 1.0, 1.0, finished_run()))
 
-    line = (
-        "run 1/2 tree.strategy=one_for_all seed 7: 9 calls ok, 1 failed, 3 restarts, "
-        "recovery median 125 ms"
-    )
-    assert line in " ".join(stream.getvalue().split())  # a terminal wraps it at its width
+    line = "run 1/2 one_for_all seed 7: 9 calls ok, 1 failed, 3 restarts, rec. p50 125 ms"
+    assert line in " ".join(stream.getvalue().split())  # (a terminal's has control codes)
     assert (display.bar is not None) == isinstance(stream, FakeTerminal)
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"value": "rest_for_one"},  # the tutorial's first experiment
+        {"run": 12, "value": "rest_for_one", "calls_ok": 1234, "calls_failed": 123},
+        {
+            "run": 100,
+            "seed": 100,
+            "value": "x" * 60,
+            "calls_ok": 12345,
+            "calls_failed": 1234,
+            "restarts": 100,
+            "recovery_median_s": 12.345,
+            "gave_up": True,
+        },
+    ],
+    ids=["tutorial", "long-run", "everything-long"],
+)
+def test_a_piped_run_line_is_at_most_80_columns(changes: dict[str, object]) -> None:
+    stream = io.StringIO()
+    result = dataclasses.replace(finished_run(), **changes)  # type: ignore[arg-type]
+
+    with _Display(stream, quiet=False) as display:
+        display(Progress(1, 100, "tree.strategy", result.value, 7, 1.0, 1.0, result))
+    lines = stream.getvalue().splitlines()
+
+    assert [] == [line for line in lines if len(line) > 80]
+    assert lines[0].startswith(f"run {result.run}/100 ")
 
 
 def test_a_run_that_fails_exits_1_quoting_its_error(

@@ -2,7 +2,8 @@
 
 A second Ctrl-C lands while the finished runs are plotted: no traceback. A SIGTERM stops
 the experiment as a Ctrl-C does (exit 143) and leaves no `rr-experiment-*` directory in
-the temporary directory. A full disk under `--out`: one line, exit 1, and files that agree.
+the temporary directory; so does a SIGHUP (exit 129; issue 29, item 11), and no process.
+A full disk under `--out`: one line, exit 1, and files that agree.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import psutil
 import pytest
 from small_disk import fill, mounted
 
@@ -140,6 +142,30 @@ def test_sigterm_stops_it_like_ctrl_c_and_leaves_no_work_directory(
     assert "Traceback" not in stderr
     assert [] == list(temp.glob("rr-experiment-*"))
     assert [] == alive(f"{cli.pid}-")
+    assert "interrupted: " in stdout
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.parametrize(
+    ("signum", "code"), [(signal.SIGHUP, 129), (signal.SIGTERM, 143)], ids=["SIGHUP", "SIGTERM"]
+)
+def test_a_hangup_or_sigterm_leaves_no_work_directory_and_no_process(
+    tmp_path: Path, eventually: Callable[..., bool], signum: int, code: int
+) -> None:
+    out = tmp_path / "out"
+    cli, temp = start(tmp_path, out, "--repeat", "5")
+    try:
+        assert eventually(lambda: len(list(temp.glob("rr-experiment-*"))) == 1, timeout=20)
+        assert eventually(lambda: len(alive(f"{cli.pid}-")) > 0, timeout=20)
+        started = psutil.Process(cli.pid).children(recursive=True)  # the run's processes
+        cli.send_signal(signum)
+    finally:
+        stdout, stderr = finish(cli)
+    _, left = psutil.wait_procs(started, timeout=10)
+
+    assert code == cli.returncode, stderr
+    assert [] == list(temp.glob("rr-experiment-*"))
+    assert ([], []) == (left, alive(f"{cli.pid}-"))
     assert "interrupted: " in stdout
 
 

@@ -29,7 +29,7 @@ from rr_actors.mission.output import (
     progress_table,
     timeline,
 )
-from rr_actors.mission.run import main, parser, run, run_mission
+from rr_actors.mission.run import _hooks, _mission_clock, main, parser, run, run_mission
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 
@@ -223,3 +223,43 @@ def test_without_pidfds_run_mission_raises_a_mission_error(
 
     with pytest.raises(MissionError, match="needs Linux"):
         run_mission(MissionConfig.fast(), tmp_path)
+
+
+# -- one name per figure -------------------------------------------------------------------
+
+
+class ClockedObserver:
+    """Stands in for the observer `--observe` opens: records what its clock is called."""
+
+    url = "http://127.0.0.1:1/"
+
+    def __init__(self) -> None:
+        self.labels: list[str] = []
+
+    def set_clock(self, origin: float, label: str = "") -> None:
+        del origin
+        self.labels.append(label)
+
+
+class ObservedSupervisor:
+    def __init__(self, observer: ClockedObserver) -> None:
+        self.observer = observer
+
+    def observe(self, **_: object) -> ClockedObserver:
+        return self.observer
+
+
+def test_the_page_calls_its_clock_the_mission_clock_and_only_the_total_is_mission_time() -> None:
+    observer = ClockedObserver()
+    observers: list[object] = []
+    args = parser().parse_args(["--observe"])
+    on_supervisor, _ = _hooks(args, PlainOutput(io.StringIO()), io.StringIO(), observers)  # type: ignore[arg-type]
+    assert on_supervisor is not None
+    on_supervisor(ObservedSupervisor(observer))  # type: ignore[arg-type]
+    _mission_clock(lambda _: None, observers)(Progress(12.34, 1.0, 6.0, True, ""))  # type: ignore[arg-type]
+    totals = timeline(report_with_everything()).splitlines()
+    named = [line for line in totals if "mission time" in line]  # one figure under that name
+
+    assert ["mission clock", "mission clock"] == observer.labels
+    assert 1 == len(named)
+    assert named[0].startswith("mission time 1234.50 s (the drive")

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from rr_actors.mission.action import PAUSE_SETTLE
 from rr_actors.mission.run import parser, run
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
@@ -65,13 +66,18 @@ def test_step_on_an_80_column_terminal_fits_and_leaves_the_pauses_out_of_every_t
     assert 0 == code
     assert 5 == stdin.enters
     assert max(len(line) for line in text.splitlines()) <= 80  # rich wrapped the long lines
-    assert 5 * PAUSE <= report["paused_for_enter_s"] < 5 * PAUSE + 2.0
+    # A pause also holds the robot's halt and its start again (PAUSE_SETTLE s at most each).
+    assert 5 * PAUSE <= report["paused_for_enter_s"] < 5 * (PAUSE + 2 * PAUSE_SETTLE)
     assert 5 == len(report["pauses_at_s"])
     assert "paused for Enter 5 time(s)" in text
     # No time shown counts a pause: not the drive, not a stop, not a stamp.
     assert report["mission_time_s"] < report["nominal_time_s"] + PAUSE
     assert all(b - a < PAUSE / 2 for a, b in report["stops"])
     assert all(f["robot_stopped_s"] < PAUSE / 2 for f in report["faults"])
+    # The robot's halt before a prompt and its start after it belong to the pause: the
+    # manager faults, which do not stop the robot, show no stop (as without --step).
+    stopped = {f["id"]: f["robot_stopped_s"] for f in report["faults"]}
+    assert {"F3": 0.0, "F4": 0.0, "F5": 0.0} == {f: stopped[f] for f in ("F3", "F4", "F5")}
     assert stamps[-1] < report["drive_started_at_s"] + report["mission_time_s"] + PAUSE
     # One clock: the story's "goal reached" stamp is where the report's drive ends.
     assert arrived is not None

@@ -48,6 +48,12 @@ test looks itself). What must not happen is given `QUIET` (3 s) to happen anyway
   after each); every call of `operator` meanwhile succeeds, and a member that joins
   during the burst has its first call answered within 10 s. Latency (p99) is measured in
   `benchmarks/`, never asserted in a test.
+- flood (issue 29), `test_a_member_rejoins_in_10_s_while_a_third_host_floods_the_port_
+  with_failed_handshakes`: a third host `c` (`TwoHosts(outsider=True)`) connects, sends
+  a few bytes and closes, from 4 threads at full rate, against `a`'s `tls/` port; every
+  call of `operator` on its link meanwhile succeeds; `a` names `c` in a WARNING; the
+  veth a-b is cut until `b` has lost `erm` and brought back: `b` calls `erm` within 10 s
+  while the flood goes on, and again within 10 s after it stopped (0.4 s measured).
 """
 
 from __future__ import annotations
@@ -186,9 +192,10 @@ def router_links() -> list[tuple[str, str]]:
     ]
 
 
-def put_through_router(key: str, payload: bytes) -> None:
-    """Put `payload` on `key` from a raw session of this host's own (joined to this
-    worker's router over its Unix socket, as a manager process joins it)."""
+def put_through_router(key: str, path: Path) -> None:
+    """Put `framed_pickle(path)` on `key` from a raw session of this host's own (joined to
+    this worker's router over its Unix socket, as a manager process joins it, with its
+    process token)."""
     import json  # noqa: PLC0415
 
     import zenoh  # noqa: PLC0415
@@ -201,7 +208,9 @@ def put_through_router(key: str, payload: bytes) -> None:
     }
     session = zenoh.open(zenoh.Config.from_json5(json.dumps(settings)))
     try:
-        session.put(key, payload)
+        zid = str(session.zid())  # a member process's token, and its id in the header
+        session.liveliness().declare_token(f"rr/{SYSTEM}/live/proc/{zid}")
+        session.put(key, framed_pickle(path, zid))
     finally:
         session.close()
 
@@ -242,20 +251,22 @@ def raw_links() -> list[tuple[str, str]]:
     return [(str(k.auth_identifier), str(k.dst)) for k in hosts.KEPT["raw"].info.links()]
 
 
-def raw_intrude(name: str, payload: bytes) -> str:
-    """With the raw session: a registrar token for `name` (as a process serving it
-    declares) and `payload` put on `rr/lab/reg/erm`; the session's Zenoh id."""
+def raw_intrude(name: str, path: Path) -> str:
+    """With the raw session: a process token and a registrar token for `name` (as a
+    process serving it declares), and `framed_pickle(path)` put on `rr/lab/reg/erm`; the
+    session's Zenoh id."""
     session = hosts.KEPT["raw"]
     zid = str(session.zid())
-    hosts.KEPT["token"] = session.liveliness().declare_token(
-        f"rr/{SYSTEM}/live/reg/{name}/{zid}/0/1048576"
-    )
-    session.put(f"rr/{SYSTEM}/reg/erm", payload)
+    hosts.KEPT["tokens"] = [
+        session.liveliness().declare_token(f"rr/{SYSTEM}/live/proc/{zid}"),
+        session.liveliness().declare_token(f"rr/{SYSTEM}/live/reg/{name}/{zid}/0/1048576"),
+    ]
+    session.put(f"rr/{SYSTEM}/reg/erm", framed_pickle(path, zid))
     return zid
 
 
 def raw_close() -> None:
-    hosts.KEPT.pop("token", None)
+    hosts.KEPT.pop("tokens", None)
     session = hosts.KEPT.pop("raw", None)
     if session is not None:
         session.close()
@@ -346,6 +357,13 @@ def join(
 @pytest.fixture
 def lab(two_hosts: hosts.TwoHosts, tmp_path: Path) -> Iterator[tuple[Path, Path]]:
     """`robot` on `a` serving `erm`, `operator` on `b` whose `app` calls it; the CA."""
+    with started_lab(two_hosts, tmp_path) as ca:
+        yield ca
+
+
+@contextlib.contextmanager
+def started_lab(two_hosts: hosts.TwoHosts, tmp_path: Path) -> Iterator[tuple[Path, Path]]:
+    """The `lab` fixture's hosts, on `two_hosts`."""
     a, b = two_hosts.a, two_hosts.b
     ca = pki.make_ca(tmp_path / "lab", SYSTEM)
     join(
@@ -484,7 +502,7 @@ def test_a_plain_zenoh_peer_at_the_tls_port_gets_no_link(
     created = tmp_path / "created"
     intruder = b.spawn()
     intruder.call(raw_open, [a.endpoint(PORT, "tcp")], None, 0.0, timeout=30)
-    intruder.call(raw_intrude, "intruder", framed_pickle(created), timeout=30)
+    intruder.call(raw_intrude, "intruder", created, timeout=30)
     seen = a.worker.submit(names_within, "intruder", QUIET)
     member_calls(b, 1)
     never_appear(created)
@@ -580,7 +598,7 @@ def test_an_rr_actors_host_so_refused_is_warned_with_the_reason_and_is_not_in(
     assert "UnknownRegistrarError" in warning
     assert "UnknownRegistrarError" == refused.call(hosts.rr_run, "mallory", call_fails, timeout=30)
     created = tmp_path / "created"
-    refused.call(put_through_router, f"rr/{SYSTEM}/reg/erm", framed_pickle(created), timeout=30)
+    refused.call(put_through_router, f"rr/{SYSTEM}/reg/erm", created, timeout=30)
     seen = a.worker.submit(names_within, "mallory", QUIET)
     member_calls(b, 1)
     never_appear(created)
@@ -619,7 +637,7 @@ def test_a_ca_signed_non_member_links_but_every_message_is_dropped(
     assert ["robot"] == [
         name for name, _ in raw.call(raw_open, [endpoint], stranger_tls, timeout=30)
     ]
-    raw.call(raw_intrude, "intruder", framed_pickle(created), timeout=30)
+    raw.call(raw_intrude, "intruder", created, timeout=30)
     seen = a.worker.submit(names_within, "intruder", QUIET)
     member_calls(b, 1)
     never_appear(created)
@@ -634,11 +652,11 @@ def test_a_ca_signed_non_member_links_but_every_message_is_dropped(
     control = tmp_path / "control"
     member_tls = tls_files(tmp_path / "insider", "operator", b.address, lab)
     raw.call(raw_open, [endpoint], member_tls, timeout=30)
-    raw.call(raw_intrude, "insider", framed_pickle(control), timeout=30)
+    raw.call(raw_intrude, "insider", control, timeout=30)
     assert wait_for(control.exists, BOUND)
     raw.call(raw_close, timeout=30)
     through = tmp_path / "through-a-members-router"  # (rows 3 and 5 put so)
-    b.call(put_through_router, f"rr/{SYSTEM}/reg/erm", framed_pickle(through), timeout=30)
+    b.call(put_through_router, f"rr/{SYSTEM}/reg/erm", through, timeout=30)
     assert wait_for(through.exists, BOUND)
     member_calls(b, 3)
 
@@ -682,7 +700,7 @@ def test_a_member_refuses_a_listener_impostor(
     )
     assert reason in warning
     created = tmp_path / "created"
-    fake.call(put_through_router, f"rr/{SYSTEM}/reg/dialer", framed_pickle(created), timeout=30)
+    fake.call(put_through_router, f"rr/{SYSTEM}/reg/dialer", created, timeout=30)
     seen = dialer.submit(names_within, "fake", QUIET)
     member_calls(b, 1)
     never_appear(created)
@@ -807,4 +825,69 @@ def test_a_burst_of_refused_handshakes_fails_no_member_call_and_a_member_joins_i
     assert took < 10.0, f"a member joining during the burst took {took:.1f} s"
     assert [] == failed
     assert succeeded > 0
+    member_calls(b, 1)
+
+
+# -- bounds: a flood of failed handshakes from a third host ------------------------------------
+
+
+def rejoin_seconds(two_hosts: hosts.TwoHosts) -> float:
+    """Cut the veth between `a` and `b` until `b` has lost `erm`, bring it back: the
+    seconds from then to `b`'s first answered call to `erm` (`TimeoutError` past 30 s)."""
+    two_hosts.link_down()
+    try:
+        assert two_hosts.b.call(hosts.rr_unlinked_within, "erm", BOUND, timeout=30)
+    finally:
+        two_hosts.link_up()
+    started = time.monotonic()
+    two_hosts.b.call(hosts.rr_until_answered, "app", "erm", "camera", 30.0, timeout=60)
+    return time.monotonic() - started
+
+
+@pytest.fixture
+def outsider_lab(tmp_path: Path) -> Iterator[tuple[hosts.TwoHosts, tuple[Path, Path]]]:
+    """The `lab` on two hosts with an outsider `c` (a veth of its own to `a`)."""
+    reason = hosts.require_root()
+    if reason is not None:
+        pytest.skip(reason)
+    with hosts.TwoHosts(outsider=True) as made, started_lab(made, tmp_path) as ca:
+        yield made, ca
+
+
+@pytest.mark.timeout(150)
+def test_a_member_rejoins_in_10_s_while_a_third_host_floods_the_port_with_failed_handshakes(
+    outsider_lab: tuple[hosts.TwoHosts, tuple[Path, Path]],
+) -> None:
+    two_hosts, _ = outsider_lab
+    a, b, c = two_hosts.a, two_hosts.b, two_hosts.c
+    assert c is not None
+    attacker = c.spawn()
+    calling = b.worker.submit(hosts.rr_run, "app", keep_calling)
+    attacker.call(hosts.flood, a.address, PORT, 4, timeout=10)
+
+    # until `a` says it drops the flood, or (without that) the flood has made 2,000
+    # connections, each 0.1 s of the listener's time: a member re-joining after them
+    # would wait minutes
+    def seen() -> bool:
+        said = [m for m in a.call(hosts.rr_logs, "WARNING", timeout=10) if c.address in m]
+        return bool(said) or attacker.call(hosts.flood_counts, timeout=10)["connected"] >= 2000
+
+    assert wait_for(seen, 30.0)
+    seen_at = attacker.call(hosts.flood_counts, timeout=10)["attempts"]
+    assert wait_for(  # (20 more: 2.5 s of a dropped flood, a moment of the other)
+        lambda: attacker.call(hosts.flood_counts, timeout=10)["attempts"] >= seen_at + 20, 30.0
+    )
+    b.call(stop_calling, timeout=10)
+    succeeded, failed = calling.result(timeout=30)
+    assert [] == failed  # the link already up was not slowed down
+    assert succeeded > 0
+    before = attacker.call(hosts.flood_counts, timeout=10)["attempts"]
+    during = rejoin_seconds(two_hosts)
+    assert attacker.call(hosts.flood_counts, timeout=10)["attempts"] > before  # (still flooding)
+    warning = a.call(logged, "WARNING", [f"{c.address} holds"], BOUND, timeout=30)
+    assert f"connections to {a.address}:{PORT} and no member's link" in warning
+    attacker.call(hosts.flood_stop, timeout=30)
+    after = rejoin_seconds(two_hosts)
+    assert during < 10.0, f"a member re-joining during the flood took {during:.1f} s"
+    assert after < 10.0, f"a member re-joining after the flood took {after:.1f} s"
     member_calls(b, 1)

@@ -4,6 +4,7 @@ allow-list, the cap on streams, silent clients, patches; against a real uvicorn 
 from __future__ import annotations
 
 import contextlib
+import gc
 import json
 import select
 import socket
@@ -270,6 +271,63 @@ def test_silent_clients_keep_the_memory_bounded_and_are_closed(
     assert "hello" == name
     for query in queries:
         app.unload(query.id)
+
+
+def test_the_memory_of_silent_clients_that_left_is_given_back(tree: rr.Supervisor) -> None:
+    """Issue 29, item 11: 150 silent pages, then none: the process shrinks back (within
+    20 MiB) rather than keeping what their streams held (about 100 MiB before).
+
+    The collector's own runs are switched off meanwhile: in an idle supervisor process
+    nothing allocates enough to start one, so what only a collection frees stays; the
+    observer must not rely on one happening.
+    """
+    observer = tree.observe()
+    app = tree.registrar("action")
+    queries = [app.call("erm", "camera", item) for item in _items(5000)]
+    wait_state(observer.url, lambda s: _resources(s, "erm") == 5000, timeout=60)
+    me = psutil.Process()
+    gc.collect()
+    before = me.memory_info().rss
+    gc.disable()
+    try:
+        clients = [_silent_client(observer.url) for _ in range(150)]
+        try:
+            assert _all_answered(clients, timeout=30)  # 32 streams said hello, the rest 503
+            for n in range(100):  # the catalog changes under the streams that do not read
+                app.unload(app.call("erm", "camera", f"churn-{n}").id)
+            grown = me.memory_info().rss
+        finally:
+            for client in clients:
+                client.close()
+        after = _shrunk(me, before + 20 * 2**20, timeout=30)
+    finally:
+        gc.enable()
+
+    assert (grown - before) / 2**20 > 20  # (what there was to give back)
+    assert (after - before) / 2**20 < 20
+    for query in queries:
+        app.unload(query.id)
+
+
+def _all_answered(clients: list[socket.socket], timeout: float) -> bool:
+    """Wait (bounded) until the server sent each client something, reading nothing."""
+    deadline = time.monotonic() + timeout
+    waiting = list(clients)
+    while waiting and time.monotonic() < deadline:
+        readable, _, _ = select.select(waiting, [], [], 0.2)
+        waiting = [c for c in waiting if c not in readable]
+    return not waiting
+
+
+def _shrunk(me: psutil.Process, limit: int, timeout: float) -> int:
+    """This process's RSS once it is below `limit` bytes, or after `timeout` seconds."""
+    deadline = time.monotonic() + timeout
+    pause = threading.Event()
+    rss = me.memory_info().rss
+    while rss >= limit and time.monotonic() < deadline:
+        pause.wait(0.2)
+        rss = me.memory_info().rss
+    return rss
 
 
 # -- after the tree stopped ---------------------------------------------------------------------

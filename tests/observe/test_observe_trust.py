@@ -27,7 +27,12 @@ from rr_actors._store import SqliteStore, read_backup, schema
 from rr_actors._store.codec import dumps
 from rr_actors.observe._sources import read_catalogs
 from rr_actors.observe._text import render
-from rr_actors.observe._view import default_labels, dependency_graph, summarise_catalog
+from rr_actors.observe._view import (
+    default_labels,
+    dependency_graph,
+    resource_name,
+    summarise_catalog,
+)
 
 
 def run(*argv: str) -> tuple[int, str]:
@@ -410,3 +415,24 @@ def test_a_label_given_by_the_server_wins_over_the_default() -> None:
 
     assert ["the driver", "b"] == [n["label"] for n in graph["nodes"] if n["kind"] == "resource"]
     assert '["the driver"]' in render(graph, None, "mermaid")
+
+
+def test_a_catalogs_resources_carry_the_short_label_the_graph_draws() -> None:
+    from rr_actors._catalog import Resource, ResourceState  # noqa: PLC0415
+
+    bus = "/home/class/rr-actors-demo/bus"  # (every request starts with it, as in the demo)
+    resources = []
+    for name in ("jackal-driver", "jackal-navigation"):
+        request = {"bus": bus, "name": name}
+        r = Resource(name, "program", request, "ok", ResourceState.LOADED, {f"{name}-q": "cm"})
+        r.request_text = repr(request)
+        resources.append(r)
+    catalog = summarise_catalog("erm", resources, [])
+    graph = dependency_graph({"erm": catalog})
+
+    drawn = [n["label"] for n in graph["nodes"] if n["kind"] == "resource"]
+    assert ["jackal-driver", "jackal-navigation"] == drawn
+    assert drawn == [r["label"] for r in catalog["resources"]]
+    # A status row of the timeline names the resource as the graph draws it.
+    assert "erm/program jackal-navigation" == resource_name(catalog, "jackal-navigation-q")
+    assert resource_name(catalog, "unknown") is None

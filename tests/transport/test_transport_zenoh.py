@@ -716,6 +716,7 @@ def test_a_message_over_the_registrars_limit_is_answered_unread(
 
     try:
         subscriber = raw.declare_subscriber(f"rr/{net.system}/ans/{sender}", heard)
+        liveliness = raw.liveliness().declare_token(f"rr/{net.system}/live/proc/{sender}")
         raw.put(
             f"rr/{net.system}/reg/{target.name}",
             _header(MESSAGE, sender, WIRE_VERSION)
@@ -723,6 +724,7 @@ def test_a_message_over_the_registrars_limit_is_answered_unread(
         )
         assert answered.wait(10)
         subscriber.undeclare()
+        liveliness.undeclare()
     finally:
         raw.close()
         target.end()

@@ -26,7 +26,6 @@ from tls_lab import free_port
 
 ROBOT = textwrap.dedent(
     """
-    import sys
     import threading
 
     import rr_actors as rr
@@ -36,9 +35,9 @@ ROBOT = textwrap.dedent(
         registrar.register_server("camera", load=lambda r: r, unload=lambda r, s: None)
 
 
-    net = rr.ZenohNetwork(
-        system="exit", listen=[f"tcp/127.0.0.1:{sys.argv[1]}"], connect=[], tls=None
-    )
+    # Only the router's Unix socket (its manager joins there): no TCP endpoint, so no
+    # plain-TCP WARNING comes before "serving".
+    net = rr.ZenohNetwork(system="exit", listen=[], connect=[], tls=None)
     sup = rr.Supervisor(
         [rr.ManagerSpec("erm", setup=erm_setup, isolation="process")], network=net
     )
@@ -121,7 +120,7 @@ def test_the_first_ctrl_c_in_a_terminal_ends_a_supervisor_with_a_network_in_one_
     # ^C there sends SIGINT to its foreground group (the program and its manager), as a
     # terminal does.
     program = subprocess.Popen(
-        [SETSID, "-c", sys.executable, str(script), str(free_port())],
+        [SETSID, "-c", sys.executable, str(script)],
         stdin=slave,
         stdout=slave,
         stderr=slave,

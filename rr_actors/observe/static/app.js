@@ -741,11 +741,14 @@
     if (state.log.length > MAX_LOG) state.log.splice(0, state.log.length - MAX_LOG);
   }
 
-  function resourceName(registrar, queryId) {
-    const section = state.sections[`catalog/${registrar}`];
+  // A status row names its resource as the graph does (its label, not its request): as the
+  // server named it when it was sent (it may be unloaded since: LiDAR 1 after F1), else now.
+  function resourceName(sent) {
+    if (sent.resource) return sent.resource;
+    const section = state.sections[`catalog/${sent.registrar}`];
     const catalog = section && section.catalog;
-    const resource = catalog && catalog.resources.find((r) => r.consumers.some((c) => c.query_id === queryId));
-    return resource ? `${registrar}/${resource.server} ${resource.request}` : `${registrar} (query ${queryId.slice(0, 8)})`;
+    const resource = catalog && catalog.resources.find((r) => r.consumers.some((c) => c.query_id === sent.query_id));
+    return resource ? `${sent.registrar}/${resource.server} ${resource.label || resource.request}` : `${sent.registrar} (query ${sent.query_id.slice(0, 8)})`;
   }
 
   function renderTimeline() {
@@ -770,7 +773,7 @@
         timeEl(sent ? sent.at : first.at - first.latency_s),
         el("span", { class: `badge status-${first.status}`, text: first.status }),
         " ",
-        sent ? `${resourceName(sent.registrar, sent.query_id)}: ${sent.message}` : "(its send was not seen)",
+        sent ? `${resourceName(sent)}: ${sent.message}` : "(its send was not seen)",
         el("ol", { class: "hops" },
           ...hops.map((d) => el("li", { "data-hop": d.hop }, `hop ${d.hop} → ${d.registrar} (query ${d.query_id.slice(0, 8)}) after ${ms(d.latency_s)}`)),
           hops.length ? null : el("li", { text: "no consumer heard it yet" })),

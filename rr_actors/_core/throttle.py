@@ -1,0 +1,117 @@
+"""Rate-limited log lines: a trouble that repeats is logged the first time, then counted.
+
+```
+ trouble ─► Throttle.due() ─ the first: log it in full
+                           ─ again within `every` s: counted only
+                           ─ again after `every` s: log it with the count since the last line
+```
+
+A trouble that a peer can cause once per message (a flood of what is not a message, a
+member that claims a thousand sender ids) must cost a bounded number of log lines, and
+each line a bounded length (`short`): a log that grows by a line per message is itself a
+way to fill a disk.
+"""
+
+from __future__ import annotations
+
+import logging
+import reprlib
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+__all__ = ["EVERY", "LogThrottle", "Throttle", "short"]
+
+EVERY = 60.0
+"""Seconds between two log lines about the same trouble caused by a peer (the first one is
+logged at once)."""
+
+
+class Throttle:
+    """Says when a repeated trouble may be logged again: the first time, then at most every
+    `every` seconds. Counts what happened in between.
+
+    Not locked: its owner holds a lock around `due` and the fields (or uses `LogThrottle`).
+
+    Args:
+        every: seconds between two log lines.
+        clock: seconds, monotonic (tests may pass their own).
+    """
+
+    __slots__ = ("clock", "every", "logged", "next_at", "unlogged")
+
+    def __init__(self, every: float = EVERY, *, clock: Callable[[], float] = time.monotonic):
+        self.every = every
+        self.clock = clock
+        self.next_at = float("-inf")
+        self.logged = False  # whether the first one was logged (in full)
+        self.unlogged = 0  # how many happened since the last log line
+
+    def due(self) -> bool:
+        """Count one more; whether a line may be logged now (then the count restarts)."""
+        self.unlogged += 1
+        now = self.clock()
+        if now < self.next_at:
+            return False
+        self.next_at = now + self.every
+        return True
+
+
+class LogThrottle:
+    """One kind of repeated WARNING: the first is logged in full, later ones are counted and
+    logged at most once every `every` seconds, with the count since the previous line.
+
+    Thread-safe: any thread may call `warning`.
+
+    Args:
+        logger: where the lines go.
+        every: seconds between two lines.
+        clock: seconds, monotonic (tests may pass their own).
+    """
+
+    def __init__(
+        self,
+        logger: logging.Logger,
+        every: float = EVERY,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._logger = logger
+        self._lock = threading.Lock()
+        self._throttle = Throttle(every, clock=clock)
+
+    def warning(self, message: str, *args: Any) -> None:
+        """Log `message % args` at WARNING if due (`Throttle`), else only count it."""
+        throttle = self._throttle
+        with self._lock:
+            if not throttle.due():
+                return
+            more, throttle.unlogged = throttle.unlogged - 1, 0
+        if more:
+            self._logger.warning(
+                message + " (%d more like it since the last such line)", *args, more
+            )
+        else:
+            self._logger.warning(message, *args)
+
+
+_SHORT = reprlib.Repr()  # (Python 3.11 takes no keyword arguments here)
+_SHORT.maxlevel = 2
+_SHORT.maxstring = 240  # (a well-formed key expression of rr_actors' fits whole)
+_SHORT.maxother = 80
+_SHORT.maxdict = _SHORT.maxlist = _SHORT.maxtuple = _SHORT.maxset = 4
+_SHORT_WIDTH = 256
+
+
+def short(value: Any) -> str:
+    """A bounded `repr` of `value` (at most 256 characters) for a log line; never raises.
+
+    Use it only for values whose `repr` runs no user code (builtin data, strings a peer
+    sent): `reprlib` calls the `__repr__` of anything else.
+    """
+    try:
+        text = _SHORT.repr(value)
+    except Exception as exc:  # noqa: BLE001 - a log line must not fail
+        return f"<repr failed: {type(exc).__name__}>"
+    return text if len(text) <= _SHORT_WIDTH else text[: _SHORT_WIDTH - 3] + "..."

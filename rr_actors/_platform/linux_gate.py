@@ -1,0 +1,189 @@
+"""A gate on a TCP listening socket of this process (Linux): what `zenoh_gate` works with.
+
+Zenoh's listening socket lives in our process, so we may act on it through a duplicate of
+its descriptor, without touching Zenoh's own code:
+
+- `shorten_backlog(n)`: `listen(fd, n)` again on a listening socket changes only the
+  length of its accept queue (Linux `inet_listen`), so connections queued by the kernel
+  before the application accepts them are at most `n + 1`;
+- `drop_from(addresses)`: a classic BPF program (`SO_ATTACH_FILTER`) that drops every
+  packet from those source addresses. The kernel runs a socket's filter for a listening
+  socket too (`tcp_filter` in `tcp_v4_rcv`, before the SYN is answered or a cookie is
+  checked), so a dropped source never completes a connection: it costs the listener
+  nothing. A connection accepted later takes a copy of the filter attached then
+  (`sk_clone_lock`): links already up keep theirs (a few instructions per packet);
+- `dropped()`: the socket's drop counter (`SO_MEMINFO`, `SK_MEMINFO_DROPS`): it grows
+  while a dropped source keeps trying;
+- `peers()`: the remote addresses of this port's connections other than listening and
+  `TIME_WAIT` ones (queued, in a handshake, or linked), from `/proc/net/tcp` and
+  `tcp6` (those of this process's network namespace).
+
+The descriptor is found by matching the socket's inode from `/proc/net/tcp` against the
+links of `/proc/self/fd`. The duplicate shares Zenoh's open file description (and its
+O_NONBLOCK): nothing here changes its blocking mode, accepts, reads or closes it for
+Zenoh (closing the duplicate closes only the duplicate).
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import ctypes
+import ipaddress
+import os
+import socket
+import struct
+from collections.abc import Collection
+from pathlib import Path
+
+__all__ = ["LinuxListenerGate", "find_listener"]
+
+_SO_ATTACH_FILTER = 26
+_SO_DETACH_FILTER = 27
+_SO_MEMINFO = 55
+_SK_MEMINFO_DROPS = 8
+_LISTEN, _TIME_WAIT = "0A", "06"
+
+# classic BPF (linux/filter.h, linux/bpf_common.h)
+_LD_B_ABS, _LD_W_ABS = 0x30, 0x20
+_ALU_AND_K, _JEQ_K, _RET_K = 0x54, 0x15, 0x06
+_NET = -0x100000  # SKF_NET_OFF: offsets from the network (IP) header
+_ACCEPT, _DROP = 0xFFFFFFFF, 0
+MAX_SOURCES = 256
+"""Sources one filter drops at most (4 instructions each for IPv6, under BPF_MAXINSNS)."""
+
+
+def _insn(code: int, k: int, jt: int = 0, jf: int = 0) -> bytes:
+    return struct.pack("HBBI", code, jt, jf, k & 0xFFFFFFFF)
+
+
+def _program(sources: Collection[str]) -> bytes:
+    """A socket filter that drops the packets whose IP source is one of `sources`."""
+    v4 = [ipaddress.ip_address(s) for s in sources if ipaddress.ip_address(s).version == 4]
+    v6 = [ipaddress.ip_address(s) for s in sources if ipaddress.ip_address(s).version == 6]
+    tail4, tail6 = [], []
+    for address in v4:  # A holds the source; equal: the next instruction drops
+        tail4 += [_insn(_JEQ_K, int(address), 0, 1), _insn(_RET_K, _DROP)]
+    for address in v6:  # four words, each equal or on to the next address
+        words = struct.unpack("!4I", address.packed)
+        for n, word in enumerate(words):
+            skip = 2 * (3 - n) + 1  # past the rest of this address and its drop
+            tail6 += [_insn(_LD_W_ABS, _NET + 8 + 4 * n), _insn(_JEQ_K, word, 0, skip)]
+        tail6.append(_insn(_RET_K, _DROP))
+    v6_part = [*tail6, _insn(_RET_K, _ACCEPT)]
+    v4_part = [_insn(_LD_W_ABS, _NET + 12), *tail4, _insn(_RET_K, _ACCEPT)]
+    head = [
+        _insn(_LD_B_ABS, _NET),  # the IP header's first byte: its version in the high nibble
+        _insn(_ALU_AND_K, 0xF0),
+        # IPv4: on to the v4 part (after the next instruction); else the v6 part
+        _insn(_JEQ_K, 0x40, 1, 0),
+        _insn(0x05, len(v4_part)),  # BPF_JMP|BPF_JA: over the v4 part
+    ]
+    return b"".join([*head, *v4_part, *v6_part])
+
+
+def _proc_address(hexa: str) -> str:
+    """An address of `/proc/net/tcp{,6}` (host-order 32-bit words in hex), as text."""
+    raw = bytes.fromhex(hexa)
+    words = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4))
+    address = ipaddress.ip_address(words)
+    if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
+        return str(address.ipv4_mapped)
+    return str(address)
+
+
+def _sockets() -> list[tuple[str, int, str, str, int]]:
+    """(local address, local port, remote address, state, inode) of each TCP socket of
+    this network namespace."""
+    found = []
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with contextlib.suppress(OSError), Path(table).open() as lines:
+            next(lines, None)
+            for line in lines:
+                fields = line.split()
+                local, remote, state, inode = fields[1], fields[2], fields[3], int(fields[9])
+                here, port = local.split(":")
+                found.append(
+                    (_proc_address(here), int(port, 16), remote.split(":")[0], state, inode)
+                )
+    return found
+
+
+def find_listener(host: str, port: int) -> socket.socket | None:
+    """A duplicate of this process's listening socket bound to `host`:`port`, or `None`."""
+    try:
+        wanted = str(ipaddress.ip_address(host))
+    except ValueError:
+        return None
+    inodes = {
+        inode
+        for local, local_port, _, state, inode in _sockets()
+        if state == _LISTEN and local_port == port and local == wanted
+    }
+    if not inodes:
+        return None
+    with contextlib.suppress(OSError):
+        for name in os.listdir("/proc/self/fd"):
+            try:
+                target = os.readlink(f"/proc/self/fd/{name}")
+            except OSError:
+                continue  # closed meanwhile
+            if target.startswith("socket:[") and int(target[8:-1]) in inodes:
+                return socket.socket(fileno=os.dup(int(name)))
+    return None
+
+
+class LinuxListenerGate:
+    """A gate on one listening socket of this process (see the module docstring).
+
+    Args:
+        sock: a duplicate of the listening socket's descriptor (`find_listener`); closed
+            by `close`.
+    """
+
+    def __init__(self, sock: socket.socket) -> None:
+        self._sock = sock
+        self.address: str = str(sock.getsockname()[0])
+        self.port: int = int(sock.getsockname()[1])
+        self._filter: ctypes.Array[ctypes.c_char] | None = None
+
+    def shorten_backlog(self, backlog: int) -> None:
+        """Let at most `backlog` (+1) connections wait in the kernel for an accept."""
+        self._sock.listen(backlog)
+
+    def drop_from(self, sources: Collection[str]) -> None:
+        """Drop every packet from `sources` (IP addresses; at most `MAX_SOURCES`) at this
+        socket from now on; none: drop nothing. Replaces the previous set."""
+        if not sources:
+            with contextlib.suppress(OSError):
+                self._sock.setsockopt(socket.SOL_SOCKET, _SO_DETACH_FILTER, 0)
+            return
+        if len(sources) > MAX_SOURCES:
+            raise ValueError(f"at most {MAX_SOURCES} sources, not {len(sources)}")
+        program = _program(sources)
+        buffer = ctypes.create_string_buffer(program, len(program))
+        fprog = struct.pack("HL", len(program) // 8, ctypes.addressof(buffer))
+        self._sock.setsockopt(socket.SOL_SOCKET, _SO_ATTACH_FILTER, fprog)
+        self._filter = buffer  # (the kernel copied it; kept only for a look in a debugger)
+
+    def dropped(self) -> int:
+        """Packets this socket has dropped since it was made (its filter's among them)."""
+        info = self._sock.getsockopt(socket.SOL_SOCKET, _SO_MEMINFO, 4 * 9)
+        drops: int = struct.unpack("9I", info[: 4 * 9])[_SK_MEMINFO_DROPS]
+        return drops
+
+    def peers(self) -> collections.Counter[str]:
+        """How many connections to this socket's port each remote address holds (queued,
+        in a handshake or linked; not `TIME_WAIT`)."""
+        anywhere = ipaddress.ip_address(self.address).is_unspecified  # (0.0.0.0, ::)
+        counts: collections.Counter[str] = collections.Counter()
+        for local, port, remote, state, _ in _sockets():
+            if port != self.port or state in (_LISTEN, _TIME_WAIT):
+                continue
+            if anywhere or local == self.address:
+                counts[_proc_address(remote)] += 1
+        return counts
+
+    def close(self) -> None:
+        """Close the duplicate (Zenoh's socket stays open; its filter stays attached)."""
+        self._sock.close()
