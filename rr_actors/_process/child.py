@@ -87,6 +87,7 @@ from rr_actors._process.control import (
     SyncEvents,
     Warm,
 )
+from rr_actors._process.tally import Tally
 from rr_actors._store.schema import expected_objects
 from rr_actors._transport.base import Address, Transport
 from rr_actors.config import RegistrarConfig
@@ -192,6 +193,7 @@ def main(
     conn: Connection,
     parent: int | None = None,
     forward: bool = False,
+    tally: str | None = None,
 ) -> None:
     """Run one manager: restore, set up, serve, then answer control requests until stopped.
 
@@ -204,11 +206,13 @@ def main(
         conn: the child's end of the control pipe.
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
         forward: forward the registrar's events from the start (until told otherwise).
+        tally: the file where it counts the events it builds (`rr_actors._process.tally`:
+            its supervisor's process reads it after a SIGKILL), or `None`.
     """
     _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
     set_title(config.name)
-    _run_manager(setup, config, address, conn, forward)
+    _run_manager(setup, config, address, conn, forward, tally)
 
 
 def _let_ctrl_c_pass() -> None:
@@ -270,7 +274,7 @@ def standby(conn: Connection, parent: int | None = None) -> None:
     if not isinstance(start, Start):
         os._exit(0)
     set_title(start.config.name)
-    _run_manager(start.setup, start.config, start.address, conn, start.forward)
+    _run_manager(start.setup, start.config, start.address, conn, start.forward, start.tally)
 
 
 class _EventLine:
@@ -281,8 +285,9 @@ class _EventLine:
     registrar is `active` (builds events) only then.
     """
 
-    def __init__(self, control: _Control, name: str, *, on: bool) -> None:
-        number_events()  # a SIGKILL may lose what is not sent yet: the gaps show it
+    def __init__(self, control: _Control, name: str, *, on: bool, tally: str | None) -> None:
+        # a SIGKILL loses what is not sent yet: the tally counts what was built
+        number_events(mark=None if tally is None else Tally.open(tally))
         self.hub: Publisher[events.Event] = events.publisher()
         self.forwarder: Forwarder[events.Event] = Forwarder(
             lambda batch: control.send(Events(batch)),
@@ -316,11 +321,12 @@ def _run_manager(
     address: Address | None,
     conn: Connection,
     forward: bool,
+    tally: str | None = None,
 ) -> None:
     from rr_actors._registrar import Served, start_registrar  # noqa: PLC0415 - preloaded
 
     control = _Control(conn)
-    line = _EventLine(control, config.name, on=forward)
+    line = _EventLine(control, config.name, on=forward, tally=tally)
     attached: Transport | None = None
     try:
         if address is not None:

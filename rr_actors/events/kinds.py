@@ -463,19 +463,29 @@ class InDoubt:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class EventsDropped:
-    """Events were lost here: a subscriber's bounded queue (or a forwarder's buffer) was full.
+    """Events were lost here: a queue was full, or a manager process was killed.
 
-    Delivered in the stream where the gap is: the events before it arrived, `count`
-    events after them did not, the events after this notice arrive again.
+    With `cause="full"`: a subscriber's bounded queue (or a forwarder's buffer) was
+    full. Delivered in the stream where the gap is: the events before it arrived,
+    `count` events after them did not, the events after this notice arrive again.
+
+    With `cause="killed"`: a manager process ended (a SIGKILL, the heartbeat's kill of
+    a hung one) with `count` events built but not yet forwarded; its supervisor's
+    process counted them after the exit (the events it built are numbered in a small
+    shared file) and publishes this notice, with the dead process's pid, after the last
+    events that did arrive from it.
 
     Attributes:
         count: how many events were lost in this gap.
+        cause: `"full"` (a queue or buffer) or `"killed"` (the tail of a dead manager
+            process's events).
         at: when the gap was closed (the notice made), wall clock (`time.time()` seconds).
         pid: the process that lost them.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
     """
 
     count: int
+    cause: str = "full"
     _: dataclasses.KW_ONLY
     at: float = _now()
     pid: int = _this_process()

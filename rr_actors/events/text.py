@@ -96,6 +96,8 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
             return f"{event.registrar} restored its catalog: {_counts(event.counts)}"
         case RegistrarStopped():
             return f"{event.registrar} stopped, its catalog holding {_counts(event.counts)}"
+        case EventsDropped(cause="killed"):
+            return f"{event.count} events of process {event.pid} lost: it died before it sent them"
         case EventsDropped():
             return f"{event.count} events dropped (a subscriber or forwarder fell behind)"
     typing.assert_never(event)
