@@ -49,6 +49,7 @@ transport (`AttachedSystem.run`), not over the control pipe.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import signal
@@ -87,7 +88,7 @@ from rr_actors._process.control import (
     SyncEvents,
     Warm,
 )
-from rr_actors._process.tally import Tally
+from rr_actors._process.tally import Journal
 from rr_actors._store.schema import expected_objects
 from rr_actors._transport.base import Address, Transport
 from rr_actors.config import RegistrarConfig
@@ -286,23 +287,39 @@ class _EventLine:
     """
 
     def __init__(self, control: _Control, name: str, *, on: bool, tally: str | None) -> None:
-        # a SIGKILL loses what is not sent yet: the tally counts what was built
-        number_events(mark=None if tally is None else Tally.open(tally))
+        # a SIGKILL loses what is not sent yet: the journal keeps it, the tally counts it
+        self.journal = None if tally is None else Journal.open(tally)
+        number_events(mark=None if self.journal is None else self.journal.mark)
         self.hub: Publisher[events.Event] = events.publisher()
         self.forwarder: Forwarder[events.Event] = Forwarder(
-            lambda batch: control.send(Events(batch)),
+            functools.partial(self._send, control),
             notice=events.EventsDropped,
             name=f"{name}-events",
         )
+        self.sink: Callable[[events.Event], None] = self.forwarder
+        if self.journal is not None:
+            self.sink = functools.partial(self._keep_and_forward, self.journal, self.forwarder)
         self.on = False
         self.switch(on=on)
+
+    @staticmethod
+    def _keep_and_forward(
+        journal: Journal, forwarder: Forwarder[events.Event], event: events.Event
+    ) -> None:
+        journal(event)
+        forwarder(event)
+
+    def _send(self, control: _Control, batch: list[events.Event]) -> None:
+        control.send(Events(batch))
+        if self.journal is not None:
+            self.journal.sent()
 
     def switch(self, *, on: bool) -> None:
         """Forward from now on, or stop forwarding (control loop thread)."""
         if on and not self.on:
-            self.hub.add_sink(self.forwarder)
+            self.hub.add_sink(self.sink)
         elif self.on and not on:
-            self.hub.remove_sink(self.forwarder)
+            self.hub.remove_sink(self.sink)
         self.on = on
 
     def flush(self, timeout: float) -> None:

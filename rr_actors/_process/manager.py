@@ -549,13 +549,18 @@ class _Received:
                 self.deliver(name, message.batch)
 
     def count_lost(self, name: str, pid: int) -> None:
-        """After the exit: publish the events it built but never sent; remove the tally."""
+        """After the exit: deliver what its journal kept but it never sent; publish what
+        is still missing (`EventsDropped(cause="killed")`); remove the tally."""
         tally = self.tally
         if tally is None:
             return
         self.tally = None
         try:
-            lost = tally.built() - self.last_seq
+            arrived = self.last_seq
+            kept = tally.after(arrived) if self.on_events is not None else []
+            if kept:
+                self.deliver(name, kept)
+            lost = tally.built() - arrived - len(kept)
         finally:
             tally.close()
         if lost > 0 and self.on_events is not None:

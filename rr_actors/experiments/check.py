@@ -412,20 +412,21 @@ def _loss_rule(history: Sequence[Line]) -> tuple[list[Finding], set[int]]:
     for line, event in history:
         if isinstance(event, events.EventsDropped):
             lossy.add(event.pid)
+            why = " (it was killed before it sent them)" if event.cause == "killed" else ""
             findings.append(
                 Finding(
                     "events",
                     "unverifiable",
-                    f"{event.count} events lost in process {event.pid}",
+                    f"{event.count} events lost in process {event.pid}{why}",
                     (line,),
                 )
             )
         seq = getattr(event, "seq", 0)
         if seq:
             numbers[event.pid].append((seq, line))
+    dropped = {line for line, e in history if isinstance(e, events.EventsDropped)}
     for pid, seen in numbers.items():
         seen.sort()
-        dropped = {line for line, e in history if isinstance(e, events.EventsDropped)}
         for (a, la), (b, lb) in itertools.pairwise(seen):
             if b - a > 1 and not dropped.intersection(range(min(la, lb), max(la, lb) + 1)):
                 lossy.add(pid)
