@@ -123,6 +123,7 @@ class Lifecycle:
         providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
         self.reconciling.expect_reconcile(providers)
         self.settle_in_doubt()
+        self.unload_unheld()
         self.arm_flush_timer()
         if self.registrar.phase is Phase.SERVING:  # (else once setup is done: `op_ready`)
             self.reconcile()
@@ -174,6 +175,18 @@ class Lifecycle:
                 give_back(query.serving_rr, query.id, self.registrar.name)
                 catalog.remove_client(query.id)
         self.registrar.commit()
+
+    def unload_unheld(self) -> None:
+        """Unload restored resources that no consumer holds (rule 7).
+
+        Their last consumer left (or every caller of their load gave up) and that was
+        written, but a crash came before their unload began (it is written apart): no
+        one holds an id to release them, so without this they would stay loaded, and
+        hold their dependencies at other registrars, for good. Their unload runs once
+        setup registered their server (or they are dropped if it does not).
+        """
+        for resource in self.registrar.catalog.unheld():
+            self.teardown.unload_resource(resource, None)
 
     def op_settle_in_doubt(self, query_id: str | None, reply: Reply) -> None:
         """The manager handled in-doubt entry `query_id` (`None`: every one): write it off.
