@@ -14,7 +14,7 @@ from rr_actors.experiments import Results, RunResult, load_plan, plans, run
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "experiments"
 
-SHIPPED = {"strategies", "crashloop", "hang", "resource", "first"}
+SHIPPED = {"strategies", "crashloop", "hang", "resource", "first", "killheavy"}
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 
 
@@ -68,6 +68,16 @@ def test_the_crash_loop_escalates_and_only_a_tolerant_top_survives_it() -> None:
     assert runs[0].gave_up
     assert not runs[5].gave_up
     assert 0 == runs[5].calls_failed
+
+
+def test_the_kill_heavy_plan_breaks_no_rule_and_leaves_nothing() -> None:
+    (result,) = shortened("killheavy", 3.0).runs
+
+    assert result.restarts >= 3  # (a kill every 0.15-0.4 s, of edge, api or db)
+    assert "violated" != result.verdict, result.findings
+    assert 0 == result.violations
+    assert 0 == result.catalog_entries_left  # (a restored resource nobody held stayed)
+    assert 0 == result.leaked_processes
 
 
 def test_the_heartbeat_finds_a_hang_and_without_it_the_hang_lasts() -> None:
