@@ -20,6 +20,14 @@ Rows:
     forwarder + send            the same until `wait_sent()` returned
     INFO log line               no subscriber, INFO on (a handler that discards the record):
                                 `describe` plus a `LogRecord`
+    build, numbered             `build one event` as a manager process does it: with its
+                                `seq` (`number_events`), no tally
+    build, numbered + tally     ... and the number stored in the tally file a supervisor
+                                reads after a SIGKILL (what a manager process does now)
+    build, numbered + tally + journal
+                                ... and the event appended to the journal (pickled,
+                                `os.write`): what a manager process does now, so that a
+                                SIGKILL loses no event it published
     dedup-hit call              `consumer.call(provider, "res", "shared")`, per call (for scale)
 
 Pin it to one CPU for stable ratios (the subscriber thread then shares that CPU, as it
@@ -43,6 +51,8 @@ from typing import Any
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._core.bus import Forwarder, Publisher
+from rr_actors._process.tally import Journal, Tally
+from rr_actors.events import kinds
 
 Row = Callable[[int], None]
 """Runs one operation `n` times in a loop."""
@@ -78,8 +88,16 @@ class Bench:
         self.provider.register_server("res", load=lambda request: request, unload=unload_noop)
         self.consumer.call(self.provider.name, "res", "shared")
         self.held: list[str] = []
+        self.tally = Tally.create()
+        assert self.tally is not None
+        journal = Journal.open(self.tally.path)
+        assert journal is not None
+        self.journal = journal
 
     def stop(self) -> None:
+        assert self.tally is not None
+        self.tally.close()
+
         self.subscription.close()
         self.forwarded.remove_sink(self.forwarder)
         self.forwarder.close()
@@ -100,6 +118,30 @@ class Bench:
     def build(self, n: int) -> None:
         for _ in range(n):
             events.ResourceLoaded("erm", "res", RID, QID, 0.001)
+
+    def numbered(self, n: int) -> None:
+        kinds.number_events()
+        try:
+            self.build(n)
+        finally:
+            kinds._numbering, kinds._mark = False, None
+
+    def tallied(self, n: int) -> None:
+        kinds.number_events(mark=self.journal.mark)
+        try:
+            self.build(n)
+        finally:
+            kinds._numbering, kinds._mark = False, None
+
+    def journaled(self, n: int) -> None:
+        kinds.number_events(mark=self.journal.mark)
+        journal = self.journal
+        try:
+            for _ in range(n):
+                journal(events.ResourceLoaded("erm", "res", RID, QID, 0.001))
+        finally:
+            kinds._numbering, kinds._mark = False, None
+        journal.sent()
 
     def nobody(self, n: int) -> None:
         publisher = self.idle
@@ -167,6 +209,9 @@ def run(rounds: int, batch: int, dedup_batch: int) -> tuple[list[tuple[str, floa
             "forwarder": (bench.forwarder_only, batch),
             "forwarder + send": (bench.forwarder_sent, batch),
             "INFO log line": (bench.info_line, batch),
+            "build, numbered": (bench.numbered, batch),
+            "build, numbered + tally": (bench.tallied, batch),
+            "build, numbered + tally + journal": (bench.journaled, batch),
             "dedup-hit call": (bench.dedup_hit, dedup_batch),
         }
         samples: dict[str, list[float]] = {name: [] for name in rows}

@@ -227,6 +227,45 @@ def _experiment(args: argparse.Namespace, out: TextIO) -> int:
     return cli.main(args, out)
 
 
+_CHECK_HELP = "check a run's events against the semantic rules: a verdict per run"
+
+
+def _check_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "run_dir",
+        metavar="RUN_DIR",
+        help="an experiment's output directory (or a run's), or an events.jsonl file",
+    )
+    parser.add_argument(
+        "--quiet", "-q", action="store_true", help="print the verdicts only, not the windows"
+    )
+
+
+def _check(args: argparse.Namespace, out: TextIO) -> int:
+    """Print each run's verdict and findings; exit 1 if any run violated a rule."""
+    from pathlib import Path  # noqa: PLC0415
+
+    from rr_actors.experiments import check  # noqa: PLC0415 - only this command needs it
+
+    path = Path(args.run_dir)
+    try:
+        verdicts = check.check_file(path)
+    except rr_actors.ConfigError as exc:
+        sys.stderr.write(f"rr-actors check: {exc}\n")
+        return 2
+    file = path / "events.jsonl" if path.is_dir() else path
+    texts = file.read_text(encoding="utf-8").splitlines()
+
+    def show(number: int) -> str:
+        text = texts[number - 1] if 0 < number <= len(texts) else ""
+        return text if len(text) <= 200 else text[:197] + "..."
+
+    for run, verdict in verdicts.items():
+        lines = check.format_verdict(run, verdict, None if args.quiet else show)
+        out.write("\n".join(lines[:1] if args.quiet else lines) + "\n")
+    return 1 if any(v.verdict == "violated" for v in verdicts.values()) else 0
+
+
 # -- certs -----------------------------------------------------------------------------------
 
 _CERTS_HELP = "make a system's CA and its hosts' certificates for ZenohNetwork's mutual TLS"
@@ -348,6 +387,7 @@ COMMANDS: list[Command] = [
         _experiment_arguments,
         _experiment,
     ),
+    Command("check", _CHECK_HELP, _check_arguments, _check),
     Command("certs", _CERTS_HELP, _certs_arguments, _certs),
 ]
 """The subcommands, in the order `--help` lists them."""

@@ -334,6 +334,20 @@ class Catalog:
             ids.update(self._unread.consumer_ids_from(origin_rr))
         return ids
 
+    def unheld(self) -> list[Resource]:
+        """Resources loaded that no consumer holds (reading those still in the backup).
+
+        A restored catalog may have some: their last consumer left, and a crash came
+        before their unload began.
+        """
+        if self._unread is not None:
+            self._read(self._unread.unheld())
+        return [
+            resource
+            for resource in self._in_order().values()
+            if resource.state is ResourceState.LOADED and not resource.consumers
+        ]
+
     def read_all(self) -> dict[str, Resource]:
         """Every resource (reading those still in the backup), by id, oldest first."""
         if self._unread is not None:

@@ -190,5 +190,8 @@ class UnreadRows(Protocol):
     def consumer_ids_from(self, origin_rr: str) -> list[str]:
         """Their consumer ids that registrar `origin_rr` holds (reading no resource)."""
 
+    def unheld(self) -> list[Resource]:
+        """Those loaded that no consumer holds (a crash came before their unload), oldest first."""
+
     def every(self) -> list[Resource]:
         """All of them, oldest first."""

@@ -49,6 +49,7 @@ transport (`AttachedSystem.run`), not over the control pipe.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import signal
@@ -87,10 +88,12 @@ from rr_actors._process.control import (
     SyncEvents,
     Warm,
 )
+from rr_actors._process.tally import Journal
 from rr_actors._store.schema import expected_objects
 from rr_actors._transport.base import Address, Transport
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import RrError
+from rr_actors.events.kinds import number_events
 
 if TYPE_CHECKING:
     from rr_actors._registrar import ResourceRegistrar
@@ -191,6 +194,7 @@ def main(
     conn: Connection,
     parent: int | None = None,
     forward: bool = False,
+    tally: str | None = None,
 ) -> None:
     """Run one manager: restore, set up, serve, then answer control requests until stopped.
 
@@ -203,11 +207,13 @@ def main(
         conn: the child's end of the control pipe.
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
         forward: forward the registrar's events from the start (until told otherwise).
+        tally: the file where it counts the events it builds (`rr_actors._process.tally`:
+            its supervisor's process reads it after a SIGKILL), or `None`.
     """
     _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
     set_title(config.name)
-    _run_manager(setup, config, address, conn, forward)
+    _run_manager(setup, config, address, conn, forward, tally)
 
 
 def _let_ctrl_c_pass() -> None:
@@ -269,7 +275,7 @@ def standby(conn: Connection, parent: int | None = None) -> None:
     if not isinstance(start, Start):
         os._exit(0)
     set_title(start.config.name)
-    _run_manager(start.setup, start.config, start.address, conn, start.forward)
+    _run_manager(start.setup, start.config, start.address, conn, start.forward, start.tally)
 
 
 class _EventLine:
@@ -280,22 +286,40 @@ class _EventLine:
     registrar is `active` (builds events) only then.
     """
 
-    def __init__(self, control: _Control, name: str, *, on: bool) -> None:
+    def __init__(self, control: _Control, name: str, *, on: bool, tally: str | None) -> None:
+        # a SIGKILL loses what is not sent yet: the journal keeps it, the tally counts it
+        self.journal = None if tally is None else Journal.open(tally)
+        number_events(mark=None if self.journal is None else self.journal.mark)
         self.hub: Publisher[events.Event] = events.publisher()
         self.forwarder: Forwarder[events.Event] = Forwarder(
-            lambda batch: control.send(Events(batch)),
+            functools.partial(self._send, control),
             notice=events.EventsDropped,
             name=f"{name}-events",
         )
+        self.sink: Callable[[events.Event], None] = self.forwarder
+        if self.journal is not None:
+            self.sink = functools.partial(self._keep_and_forward, self.journal, self.forwarder)
         self.on = False
         self.switch(on=on)
+
+    @staticmethod
+    def _keep_and_forward(
+        journal: Journal, forwarder: Forwarder[events.Event], event: events.Event
+    ) -> None:
+        journal(event)
+        forwarder(event)
+
+    def _send(self, control: _Control, batch: list[events.Event]) -> None:
+        control.send(Events(batch))
+        if self.journal is not None:
+            self.journal.sent()
 
     def switch(self, *, on: bool) -> None:
         """Forward from now on, or stop forwarding (control loop thread)."""
         if on and not self.on:
-            self.hub.add_sink(self.forwarder)
+            self.hub.add_sink(self.sink)
         elif self.on and not on:
-            self.hub.remove_sink(self.forwarder)
+            self.hub.remove_sink(self.sink)
         self.on = on
 
     def flush(self, timeout: float) -> None:
@@ -314,11 +338,12 @@ def _run_manager(
     address: Address | None,
     conn: Connection,
     forward: bool,
+    tally: str | None = None,
 ) -> None:
     from rr_actors._registrar import Served, start_registrar  # noqa: PLC0415 - preloaded
 
     control = _Control(conn)
-    line = _EventLine(control, config.name, on=forward)
+    line = _EventLine(control, config.name, on=forward, tally=tally)
     attached: Transport | None = None
     try:
         if address is not None:

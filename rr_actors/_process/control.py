@@ -56,12 +56,15 @@ class Start:
         config: the registrar's configuration.
         address: the system to attach to, or `None` to run unattached.
         forward: forward the registrar's events from the start.
+        tally: the file where it counts the events it builds (`rr_actors._process.tally`),
+            or `None`.
     """
 
     setup: bytes
     config: RegistrarConfig
     address: Address | None
     forward: bool = False
+    tally: str | None = None
 
 
 @dataclasses.dataclass(frozen=True, slots=True)

@@ -58,9 +58,11 @@ from rr_actors._process.control import (
     Stop,
     SyncEvents,
 )
+from rr_actors._process.tally import Tally
 from rr_actors._transport.base import Address
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CallTimeoutError, RegistrarUnavailableError
+from rr_actors.events import EventsDropped
 
 if TYPE_CHECKING:
     from rr_actors._process.spare import Spare
@@ -145,11 +147,13 @@ class ManagerProcess:
         heartbeat_timeout: float | None,
         on_exit: Callable[[ManagerExit], None],
         on_events: Callable[[list[Any]], None] | None = None,
+        received: _Received | None = None,
     ) -> None:
         self.name = name
         self.process = process
         assert process.pid is not None  # (started)
         self.pid: int = process.pid
+        self._received = received if received is not None else _Received(on_events, None)
         self.conn = conn
         self._send_lock = threading.Lock()
         self._heartbeat = heartbeat
@@ -201,10 +205,10 @@ class ManagerProcess:
                 read, ...) or died before it was ready; the message holds its traceback.
             CallTimeoutError: it was not ready within `start_timeout` seconds (it is killed).
         """
-        process, parent_conn = _launch(name, setup, config, address, spare, forward_events)
-        early = _await_ready(name, process, parent_conn, start_timeout)
-        if early and on_events is not None:  # (its restore's in-doubt events, say)
-            on_events(early)
+        tally = Tally.create() if on_events is not None else None
+        received = _Received(on_events, tally)
+        process, parent_conn = _launch(name, setup, config, address, spare, forward_events, tally)
+        _await_ready(name, process, parent_conn, start_timeout, received)
         handle = cls(
             name,
             process,
@@ -213,6 +217,7 @@ class ManagerProcess:
             heartbeat_timeout=heartbeat_timeout,
             on_exit=on_exit,
             on_events=on_events,
+            received=received,
         )
         threading.Thread(target=handle._watch, name=f"rr-watch-{name}", daemon=True).start()
         return handle
@@ -351,12 +356,7 @@ class ManagerProcess:
 
     def _events(self, message: Events, _sent: int) -> None:
         """A batch of forwarded events: to `on_events` (the watcher thread)."""
-        if self._on_events is None:
-            return
-        try:
-            self._on_events(message.batch)
-        except Exception:
-            logger.exception("events of manager %s could not be delivered", self.name)
+        self._received.deliver(self.name, message.batch)
 
     def _synced(self, message: EventsSynced, _sent: int) -> None:
         waiting = self._syncs.get(message.token)
@@ -389,6 +389,8 @@ class ManagerProcess:
         if exitcode is None:
             self.process.join(5.0)
             exitcode = self.process.exitcode
+        self._received.drain(self.name, self.conn)  # what it sent before it died, then
+        self._received.count_lost(self.name, self.pid)  # what it built but never sent
         with contextlib.suppress(OSError):
             self.conn.close()
         if self._hung_for is not None:
@@ -441,15 +443,17 @@ def _launch(
     address: Address | None,
     spare: Spare | None,
     forward: bool,
+    tally: Tally | None,
 ) -> tuple[Any, Connection]:
     """Hand the manager to `spare`, or start a new process for it; the process and pipe."""
-    if spare is not None and spare.take(name, setup, config, address, forward=forward):
+    path = None if tally is None else tally.path
+    if spare is not None and spare.take(name, setup, config, address, forward=forward, tally=path):
         return spare.process, spare.conn
     ctx = mp_context()
     parent_conn, child_conn = ctx.Pipe(duplex=True)
     process = ctx.Process(  # type: ignore[attr-defined]
         target=main,
-        args=(setup, config, address, child_conn, forker_pid(ctx), forward),
+        args=(setup, config, address, child_conn, forker_pid(ctx), forward, path),
         name=f"{PROCESS_PREFIX}{name}",
         daemon=True,
     )
@@ -459,16 +463,18 @@ def _launch(
 
 
 def _await_ready(
-    name: str, process: BaseProcess, conn: Connection, start_timeout: float
-) -> list[Any]:
+    name: str, process: BaseProcess, conn: Connection, start_timeout: float, received: _Received
+) -> None:
     """Wait for the manager's `ready` (skipping a spare's `warm`); raise if it never comes.
 
-    Returns:
-        The events it forwarded before it was ready (its restore's, its setup's).
+    The events it forwards before it is ready (its restore's, its setup's) go to
+    `received` as they come, and so do those of a start that fails (with the count of
+    those it built and never sent).
     """
     deadline = time.monotonic() + start_timeout
+    pid = process.pid
+    assert pid is not None  # (started)
     ready: Ready | Failed | None = None
-    early: list[Any] = []
     while ready is None:
         left = deadline - time.monotonic()
         woke = multiprocessing.connection.wait([conn, process.sentinel], max(left, 0))
@@ -479,7 +485,7 @@ def _await_ready(
                 woke = [process.sentinel]
             else:
                 if isinstance(message, Events):  # (its restore's in-doubt events, say)
-                    early.extend(message.batch)
+                    received.deliver(name, message.batch)
                 elif isinstance(message, Ready | Failed):
                     ready = message
                 # else: Warm, from a spare that warmed up after it was taken
@@ -487,6 +493,8 @@ def _await_ready(
             if left <= 0:
                 process.kill()
             process.join(5.0)
+            received.drain(name, conn)
+            received.count_lost(name, pid)
             conn.close()
             reason = describe(process.exitcode).reason
             release(process)
@@ -495,7 +503,70 @@ def _await_ready(
             raise RegistrarUnavailableError(f"manager {name!r} died while starting ({reason})")
     if isinstance(ready, Failed):
         process.join(5.0)
+        received.drain(name, conn)
+        received.count_lost(name, pid)
         conn.close()
         release(process)
         raise RegistrarUnavailableError(f"manager {name!r} failed to start:\n{ready.traceback}")
-    return early
+
+
+class _Received:
+    """The events one manager process forwarded, to `on_events`; and those it lost.
+
+    Keeps the number (`seq`) of the last event that arrived; after the exit, the
+    process's `Tally` says how many it built, and the difference (the events a SIGKILL
+    caught in its buffer) is published as one `EventsDropped(cause="killed")`.
+    """
+
+    def __init__(self, on_events: Callable[[list[Any]], None] | None, tally: Tally | None) -> None:
+        self.on_events = on_events
+        self.tally = tally
+        self.last_seq = 0
+
+    def deliver(self, name: str, batch: list[Any]) -> None:
+        """Hand a batch to `on_events` (the watcher thread, or the starting thread)."""
+        if self.on_events is None:
+            return
+        for event in reversed(batch):
+            seq = getattr(event, "seq", 0)
+            if seq:
+                self.last_seq = max(self.last_seq, seq)
+                break
+        try:
+            self.on_events(batch)
+        except Exception:
+            logger.exception("events of manager %s could not be delivered", name)
+
+    def drain(self, name: str, conn: Connection) -> None:
+        """Read what the process sent before it ended (still in the pipe): its last events.
+
+        The exit can wake the watcher before the pipe's last messages are read.
+        """
+        for _ in range(10_000):  # bounded: the pipe holds what a dead process wrote
+            try:
+                if not conn.poll(0):
+                    return
+                message = conn.recv()
+            except (EOFError, OSError, ValueError):
+                return
+            if isinstance(message, Events):
+                self.deliver(name, message.batch)
+
+    def count_lost(self, name: str, pid: int) -> None:
+        """After the exit: deliver what its journal kept but it never sent; publish what
+        is still missing (`EventsDropped(cause="killed")`); remove the tally."""
+        tally = self.tally
+        if tally is None:
+            return
+        self.tally = None
+        try:
+            arrived = self.last_seq
+            kept = tally.after(arrived) if self.on_events is not None else []
+            if kept:
+                self.deliver(name, kept)
+            lost = tally.built() - arrived - len(kept)
+        finally:
+            tally.close()
+        if lost > 0 and self.on_events is not None:
+            logger.warning("manager %s (pid %d) died with %d events unsent", name, pid, lost)
+            self.deliver(name, [EventsDropped(lost, pid=pid, cause="killed")])

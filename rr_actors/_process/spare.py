@@ -77,13 +77,14 @@ class Spare:
         address: Address | None,
         *,
         forward: bool = False,
+        tally: str | None = None,
     ) -> bool:
         """Hand manager `name`'s arguments to the spare; `False` if it is not usable."""
         if not self.process.is_alive():
             self.close()
             return False
         try:
-            self.conn.send(Start(setup, config, address, forward))
+            self.conn.send(Start(setup, config, address, forward, tally))
         except (OSError, ValueError):
             self.close()
             return False

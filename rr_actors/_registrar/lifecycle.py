@@ -30,6 +30,7 @@ from rr_actors._catalog import ClientRecord, Resource, ResourceState
 from rr_actors._core.actor import Actor, refuse
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.timers import Cancellable
+from rr_actors._registrar import chronicle
 from rr_actors._registrar.messages import (
     ClientLoaded,
     ConsumerDown,
@@ -119,10 +120,12 @@ class Lifecycle:
     # -- start ------------------------------------------------------------------------
 
     def on_start(self) -> None:
+        chronicle.publish_restored(self.registrar)  # before anything is served
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
         self.reconciling.expect_reconcile(providers)
         self.settle_in_doubt()
+        self.unload_unheld()
         self.arm_flush_timer()
         if self.registrar.phase is Phase.SERVING:  # (else once setup is done: `op_ready`)
             self.reconcile()
@@ -155,7 +158,14 @@ class Lifecycle:
             self.registrar.held_in_doubt.update(self.in_doubt_ids)
         for resource in doubtful:
             if self.registrar.events.active:
-                self.registrar.events.publish(events.InDoubt(self.registrar.name, resource.id))
+                self.registrar.events.publish(
+                    events.InDoubt(
+                        self.registrar.name,
+                        resource.id,
+                        resource.server,
+                        "load" if resource.state is ResourceState.LOADING else "unload",
+                    )
+                )
             catalog.begin_unload(resource.id)
             self.consumer.release_dependencies(
                 resource.id, functools.partial(self.teardown.remove_resource, resource)
@@ -167,6 +177,18 @@ class Lifecycle:
                 give_back(query.serving_rr, query.id, self.registrar.name)
                 catalog.remove_client(query.id)
         self.registrar.commit()
+
+    def unload_unheld(self) -> None:
+        """Unload restored resources that no consumer holds (rule 7).
+
+        Their last consumer left (or every caller of their load gave up) and that was
+        written, but a crash came before their unload began (it is written apart): no
+        one holds an id to release them, so without this they would stay loaded, and
+        hold their dependencies at other registrars, for good. Their unload runs once
+        setup registered their server (or they are dropped if it does not).
+        """
+        for resource in self.registrar.catalog.unheld():
+            self.teardown.unload_resource(resource, None)
 
     def op_settle_in_doubt(self, query_id: str | None, reply: Reply) -> None:
         """The manager handled in-doubt entry `query_id` (`None`: every one): write it off.
@@ -277,6 +299,7 @@ class Lifecycle:
                 consumer.release_client(tops.pop(0), next_one)
                 return
             self.registrar.commit()
+            chronicle.publish_stopped(self.registrar)
             if self.flush_timer is not None:
                 self.flush_timer.cancel()
             unsaved: CatalogWriteError | None = None

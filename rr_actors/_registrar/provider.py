@@ -335,10 +335,18 @@ class Provider:
         if refusal is not None:
             for waiter in live:
                 if catalog.has_consumer(waiter.query_id):  # a retry may be listed twice
-                    catalog.release(waiter.query_id)
+                    catalog.release(waiter.query_id)  # (its ConsumerAdded was not published)
                 waiter.reply.set_error(refusal)
             live = []
+        published: set[str] = set()
         for waiter in live:
+            if self.registrar.events.active and waiter.query_id not in published:
+                published.add(waiter.query_id)  # (after the commit, before the answer)
+                self.registrar.events.publish(
+                    events.ConsumerAdded(
+                        self.registrar.name, rid, waiter.query_id, waiter.origin_rr
+                    )
+                )
             waiter.reply.set_result(response)
         if not resource.consumers:  # every caller gave up (or the server closed)
             self.teardown.unload_resource(resource, None)
@@ -359,12 +367,6 @@ class Provider:
             live.append(waiter)
             if not catalog.has_consumer(waiter.query_id):
                 catalog.add_consumer(rid, waiter.query_id, waiter.origin_rr)
-                if self.registrar.events.active:
-                    self.registrar.events.publish(
-                        events.ConsumerAdded(
-                            self.registrar.name, rid, waiter.query_id, waiter.origin_rr
-                        )
-                    )
         return live
 
     def serve_held(self) -> None:
@@ -448,8 +450,17 @@ def published_load(
     """Publish how a load ended (`ResourceLoaded` or `LoadFailed`)."""
     if error is None:
         load_s = time.monotonic() - started
+        digest = resource.digest
         registrar.events.publish(
-            events.ResourceLoaded(registrar.name, resource.server, resource.id, query_id, load_s)
+            events.ResourceLoaded(
+                registrar.name,
+                resource.server,
+                resource.id,
+                query_id,
+                load_s,
+                digest if digest is not None and digest != NO_DIGEST else None,
+                resource.label if resource.label is not None else resource.request_text,
+            )
         )
         return
     error_type, message = type(error).__qualname__, str(error)

@@ -157,19 +157,22 @@ class Servers:
             if self.registrar.events.active:
                 for qid, origin in revoked:
                     self.registrar.events.publish(
-                        events.ConsumerReleased(self.registrar.name, resource.id, qid, origin)
+                        events.ConsumerReleased(
+                            self.registrar.name, resource.id, qid, origin, "server unregistered"
+                        )
                     )
             self.teardown.unload_resource(resource, done)
 
+        event = str(uuid.uuid4())
         if self.registrar.events.active:
             self.registrar.events.publish(
-                events.StatusSent(self.registrar.name, query_id, update.status, update.message)
+                events.StatusSent(
+                    self.registrar.name, query_id, update.status, update.message, event
+                )
             )
         # the FATAL's acknowledgements may complete on any thread: come back to this one
         back = self.registrar.come_back(lambda *_: revoke_and_unload())
-        self.status.notify(
-            resource, update, str(uuid.uuid4()), query_id, lambda: back.set_result(None)
-        )
+        self.status.notify(resource, update, event, query_id, lambda: back.set_result(None))
 
     def op_update_response(self, query_id: str, response: Any, reply: Reply) -> None:
         resource = self.registrar.catalog.resource_of(query_id)

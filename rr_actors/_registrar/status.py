@@ -52,11 +52,12 @@ class StatusRelay:
     def op_send_status(self, query_id: str, status: Status, message: str, reply: Reply) -> None:
         resource = self.registrar.catalog.resource_of(query_id)
         update = StatusUpdate(query_id, status, message, f"{self.registrar.name}/{resource.server}")
+        event = str(uuid.uuid4())
         if self.registrar.events.active:
             self.registrar.events.publish(
-                events.StatusSent(self.registrar.name, query_id, status, message)
+                events.StatusSent(self.registrar.name, query_id, status, message, event)
             )
-        self.notify(resource, update, str(uuid.uuid4()), query_id, lambda: reply.set_result(None))
+        self.notify(resource, update, event, query_id, lambda: reply.set_result(None))
 
     def notify(
         self,
@@ -149,7 +150,12 @@ class StatusRelay:
                 latency = max(0.0, time.time() - message.sent_at)
                 self.registrar.events.publish(
                     events.StatusDelivered(
-                        self.registrar.name, query_id, message.status, message.hop, latency
+                        self.registrar.name,
+                        query_id,
+                        message.status,
+                        message.hop,
+                        latency,
+                        message.event,
                     )
                 )
             callback = self.consumer.callback_of(query_id)

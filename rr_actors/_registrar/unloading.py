@@ -49,10 +49,10 @@ class Unloading:
         self.teardown = teardown
 
     def on_unload(self, message: Unload) -> None:
-        self.release(message.query_id, message.reply)
+        self.release(message.query_id, message.reply, "unload")
 
     def on_abandon(self, message: Abandon) -> None:
-        self.release(message.query_id, None)
+        self.release(message.query_id, None, "abandoned")
 
     def release_all_of(self, origin_rr: str) -> None:
         """Consumer `origin_rr` is gone for good (`presence.py`: the death watch, or a
@@ -64,10 +64,12 @@ class Unloading:
             self.provider.give_up(query_id)
         for query_id in self.registrar.catalog.consumers_from(origin_rr):
             if self.registrar.catalog.has_consumer(query_id):  # (a release may have cascaded)
-                self.release(query_id, None)
+                self.release(query_id, None, "death watch")
 
-    def release(self, query_id: str, reply: Reply | None) -> None:
+    def release(self, query_id: str, reply: Reply | None, reason: str) -> None:
         """Release consumer id `query_id` (rules 7-8); answer `reply` when it is done.
+
+        `reason` is what the `ConsumerReleased` event says (see its `reason`).
 
         While a durable registrar's backup cannot be written an `Unload` is refused
         (nothing changes; the consumer keeps the id and may try again); a give-up
@@ -98,7 +100,7 @@ class Unloading:
             return
         if self.registrar.events.active:
             self.registrar.events.publish(
-                events.ConsumerReleased(self.registrar.name, resource.id, query_id, origin)
+                events.ConsumerReleased(self.registrar.name, resource.id, query_id, origin, reason)
             )
         if resource.consumers or resource.state is not ResourceState.LOADED:
             if reply is not None:
@@ -144,7 +146,7 @@ class Unloading:
             )
         for query_id in ids:
             if self.registrar.catalog.has_consumer(query_id):  # (a release may have cascaded)
-                self.release(query_id, None)
+                self.release(query_id, None, "consumer stopped")
 
     def on_reconcile(self, message: Reconcile) -> None:
         """Release the ids of `origin_rr` it no longer holds; name those held here unknown.
@@ -165,7 +167,7 @@ class Unloading:
             )
         for query_id in stale:
             if catalog.has_consumer(query_id):  # (still: a release above may have cascaded)
-                self.release(query_id, None)
+                self.release(query_id, None, "reconcile")
         under_way = self.provider.under_way()
         unknown = tuple(q for q in message.held if q not in mine and q not in under_way)
         message.reply.set_result(unknown)

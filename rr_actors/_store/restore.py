@@ -270,6 +270,17 @@ class Unread:
             ).fetchall()
         return [query_id for query_id, resource in rows if resource not in self._read]
 
+    def unheld(self) -> list[Resource]:
+        """Every unread resource loaded and held by no consumer, oldest first.
+
+        One pass over the resources' keys, each looked up in the consumers' key.
+        """
+        return self._fetch(
+            "SELECT seq FROM resources r WHERE seq <= ? AND state = 1 AND NOT EXISTS "
+            "(SELECT 1 FROM consumers c WHERE c.resource = r.seq) ORDER BY seq",
+            (self._last,),
+        )
+
     def every(self) -> list[Resource]:
         """Every unread resource, oldest first."""
         return self._fetch("SELECT seq FROM resources WHERE seq <= ? ORDER BY seq", (self._last,))

@@ -28,6 +28,7 @@ import logging
 
 from rr_actors._core.bus import Publisher
 from rr_actors.events.kinds import (
+    CatalogRestored,
     ChildExited,
     ChildRestarted,
     ChildStarted,
@@ -37,6 +38,7 @@ from rr_actors.events.kinds import (
     EventsDropped,
     InDoubt,
     LoadFailed,
+    RegistrarStopped,
     ResourceLoaded,
     ResourceUnloaded,
     StatusDelivered,
@@ -47,6 +49,7 @@ from rr_actors.events.lines import from_dict, to_dict
 from rr_actors.events.text import describe
 
 __all__ = [
+    "CatalogRestored",
     "ChildExited",
     "ChildRestarted",
     "ChildStarted",
@@ -56,6 +59,7 @@ __all__ = [
     "EventsDropped",
     "InDoubt",
     "LoadFailed",
+    "RegistrarStopped",
     "ResourceLoaded",
     "ResourceUnloaded",
     "StatusDelivered",

@@ -8,14 +8,18 @@ seconds) and `pid` (the process it happened in). Adding a kind: its class here, 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 import time
+from collections.abc import Callable
 from typing import Any, TypeAlias
 
 from rr_actors._platform import fork
 from rr_actors._types import Status
 
 __all__ = [
+    "LISTED_ROWS",
+    "CatalogRestored",
     "ChildExited",
     "ChildRestarted",
     "ChildStarted",
@@ -25,8 +29,10 @@ __all__ = [
     "EventsDropped",
     "InDoubt",
     "LoadFailed",
+    "RegistrarStopped",
     "ResourceLoaded",
     "ResourceUnloaded",
+    "Rows",
     "StatusDelivered",
     "StatusSent",
     "SupervisorGaveUp",
@@ -41,6 +47,44 @@ def _this_process() -> Any:
     return dataclasses.field(default_factory=_current_pid)
 
 
+def _numbered() -> Any:
+    return dataclasses.field(default_factory=_next_seq)
+
+
+_counter = itertools.count(1)
+_numbering = False
+
+
+_mark: Callable[[int], object] | None = None
+
+
+def _next_seq() -> int:
+    """The next number of this process's events, or 0 where events are not numbered."""
+    if not _numbering:
+        return 0
+    seq = next(_counter)
+    mark = _mark
+    if mark is not None:
+        mark(seq)
+    return seq
+
+
+def number_events(mark: Callable[[int], object] | None = None) -> None:
+    """Number the events this process builds from now on (a manager process does).
+
+    Each event then carries `seq`: 1, 2, 3, ... in the order they were built, so that a
+    reader of the forwarded stream sees every event the process lost (a gap).
+
+    Args:
+        mark: called with each number as it is given (on the thread that builds the
+            event; it must be quick and not raise): a manager process records the last
+            one where its supervisor reads it after a SIGKILL.
+    """
+    global _numbering, _mark
+    _mark = mark
+    _numbering = True
+
+
 _pid = os.getpid()
 
 
@@ -50,8 +94,10 @@ def _current_pid() -> int:
 
 
 def _forked() -> None:
-    global _pid
+    global _pid, _counter, _numbering, _mark
     _pid = os.getpid()
+    _counter = itertools.count(1)
+    _numbering, _mark = False, None
 
 
 fork.after_fork_in_child("the events' pid", _forked)
@@ -142,6 +188,7 @@ class SupervisorGaveUp:
         period: ... within this many seconds.
         at: when it gave up, wall clock (`time.time()` seconds).
         pid: the supervisor's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
     """
 
     supervisor: str
@@ -151,6 +198,7 @@ class SupervisorGaveUp:
     _: dataclasses.KW_ONLY
     at: float = _now()
     pid: int = _this_process()
+    seq: int = _numbered()
 
 
 # -- provider side --------------------------------------------------------------------------
@@ -170,8 +218,15 @@ class ResourceLoaded:
         resource_id: the new resource's id.
         query_id: the id of the query that caused the load (its first consumer).
         load_s: seconds the `load` callback took (its dependencies' loads included).
+        digest: the catalog's digest of the request, for a request of plain values (`None`
+            for other classes): two loads with the same `digest` at the same
+            registrar and server are of equal requests (rule 1).
+        label: the request's bounded display label (the server's `label(request)`, or
+            the catalog's bounded `repr`), `None` if it has none.
         at: when it finished, wall clock (`time.time()` seconds).
         pid: the registrar's process.
+        seq: the number of this event in its process (1, 2, ... in a manager process,
+            where a gap shows a lost event; 0 where events are not numbered).
     """
 
     registrar: str
@@ -179,9 +234,12 @@ class ResourceLoaded:
     resource_id: str
     query_id: str
     load_s: float
+    digest: int | None = None
+    label: str | None = None
     _: dataclasses.KW_ONLY
     at: float = _now()
     pid: int = _this_process()
+    seq: int = _numbered()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -200,6 +258,7 @@ class LoadFailed:
         message: the exception's message (`str(exc)`).
         at: when it failed, wall clock (`time.time()` seconds).
         pid: the registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
     """
 
     registrar: str
@@ -211,6 +270,7 @@ class LoadFailed:
     _: dataclasses.KW_ONLY
     at: float = _now()
     pid: int = _this_process()
+    seq: int = _numbered()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -226,6 +286,7 @@ class ResourceUnloaded:
         resource_id: the resource's id.
         at: when it finished, wall clock (`time.time()` seconds).
         pid: the registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
     """
 
     registrar: str
@@ -234,6 +295,7 @@ class ResourceUnloaded:
     _: dataclasses.KW_ONLY
     at: float = _now()
     pid: int = _this_process()
+    seq: int = _numbered()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -249,6 +311,7 @@ class ConsumerAdded:
         consumer: name of the consumer registrar (the query's `origin_rr`).
         at: when it happened, wall clock (`time.time()` seconds).
         pid: the provider registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
     """
 
     registrar: str
@@ -258,6 +321,7 @@ class ConsumerAdded:
     _: dataclasses.KW_ONLY
     at: float = _now()
     pid: int = _this_process()
+    seq: int = _numbered()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -272,17 +336,27 @@ class ConsumerReleased:
         resource_id: the resource's id.
         query_id: the released query id.
         consumer: name of the consumer registrar that held it.
+        reason: why it was released: `"unload"` (its consumer called `unload`),
+            `"abandoned"` (its caller gave the call up), `"death watch"` (its consumer
+            died for good), `"reconcile"` (its consumer no longer held it after a
+            restart), `"consumer stopped"` (its consumer was stopped while this
+            registrar was down), `"server unregistered"` (`unregister_server`) or
+            `"refused"` (the load's commit failed or its server closed: the caller was
+            answered with an error).
         at: when it happened, wall clock (`time.time()` seconds).
         pid: the provider registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
     """
 
     registrar: str
     resource_id: str
     query_id: str
     consumer: str
+    reason: str = "unload"
     _: dataclasses.KW_ONLY
     at: float = _now()
     pid: int = _this_process()
+    seq: int = _numbered()
 
 
 # -- status ---------------------------------------------------------------------------------
@@ -301,17 +375,22 @@ class StatusSent:
         query_id: the query id `send_status` was given.
         status: the status code.
         message: the provider's free text.
+        status_id: this send's id (a UUID4), carried by every hop: each
+            `StatusDelivered` of it names it.
         at: when it was sent, wall clock (`time.time()` seconds).
         pid: the provider registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
     """
 
     registrar: str
     query_id: str
     status: Status
     message: str
+    status_id: str = ""
     _: dataclasses.KW_ONLY
     at: float = _now()
     pid: int = _this_process()
+    seq: int = _numbered()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -329,8 +408,11 @@ class StatusDelivered:
             of the provider that sent it; 2: a consumer of that consumer; ...).
         latency_s: seconds from the provider's `send_status` to this delivery, on the
             wall clock (the hops may be in different processes).
+        status_id: the id of the send it belongs to (its `StatusSent.status_id`); a
+            query id gets each send once.
         at: when it was delivered, wall clock (`time.time()` seconds).
         pid: the receiving registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
     """
 
     registrar: str
@@ -338,9 +420,11 @@ class StatusDelivered:
     status: Status
     hop: int
     latency_s: float
+    status_id: str = ""
     _: dataclasses.KW_ONLY
     at: float = _now()
     pid: int = _this_process()
+    seq: int = _numbered()
 
 
 # -- recovery and the stream itself ---------------------------------------------------------
@@ -359,35 +443,135 @@ class InDoubt:
 
     Attributes:
         registrar: name of the restored registrar.
-        query_id: the in-doubt query's id.
+        query_id: the in-doubt resource's id.
+        server: the server it belongs to (`""` in events written before it was known).
+        cut: what the crash cut short: `"load"` or `"unload"` (`""`: not known).
         at: when it was found, wall clock (`time.time()` seconds).
         pid: the restored registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
     """
 
     registrar: str
     query_id: str
+    server: str = ""
+    cut: str = ""
     _: dataclasses.KW_ONLY
     at: float = _now()
     pid: int = _this_process()
+    seq: int = _numbered()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class EventsDropped:
-    """Events were lost here: a subscriber's bounded queue (or a forwarder's buffer) was full.
+    """Events were lost here: a queue was full, or a manager process was killed.
 
-    Delivered in the stream where the gap is: the events before it arrived, `count`
-    events after them did not, the events after this notice arrive again.
+    With `cause="full"`: a subscriber's bounded queue (or a forwarder's buffer) was
+    full. Delivered in the stream where the gap is: the events before it arrived,
+    `count` events after them did not, the events after this notice arrive again.
+
+    With `cause="killed"`: a manager process ended (a SIGKILL, the heartbeat's kill of
+    a hung one) with `count` events built but not yet forwarded; its supervisor's
+    process counted them after the exit (the events it built are numbered in a small
+    shared file) and publishes this notice, with the dead process's pid, after the last
+    events that did arrive from it.
 
     Attributes:
         count: how many events were lost in this gap.
+        cause: `"full"` (a queue or buffer) or `"killed"` (the tail of a dead manager
+            process's events).
         at: when the gap was closed (the notice made), wall clock (`time.time()` seconds).
         pid: the process that lost them.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
     """
 
     count: int
+    cause: str = "full"
     _: dataclasses.KW_ONLY
     at: float = _now()
     pid: int = _this_process()
+    seq: int = _numbered()
+
+
+# -- what a catalog holds -------------------------------------------------------------------
+
+Rows: TypeAlias = tuple[tuple[str, ...], ...]
+"""Rows of plain strings (what `CatalogRestored` and `RegistrarStopped` list)."""
+
+LISTED_ROWS = 10_000
+"""Rows a catalog event lists per kind; above it lists none (`complete` is `False`)."""
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class CatalogRestored:
+    """A registrar with a backup started: what its catalog holds, before it serves.
+
+    Published once per start of a registrar that has a backup (an empty or a new one
+    too), before its setup runs and before any call is served; a checker of the stream
+    re-synchronises here (what the registrar held before is replaced by this). In-doubt
+    resources (`loading`, `unloading`) are listed, then reported by `InDoubt`.
+
+    Attributes:
+        registrar: name of the restored registrar.
+        resources: `(resource id, server, state, digest)` per served resource, `state`
+            being `"loaded"`, `"loading"` or `"unloading"`, `digest` the request's digest
+            in decimal (as `ResourceLoaded.digest`; `""` for a request of another class).
+        consumers: `(query id, resource id, consumer registrar)` per consumer id.
+        clients: `(query id, serving registrar, server, parent resource id or "")` per
+            query this registrar holds (its client records).
+        counts: `(resources, consumers, clients)`: how many rows there are.
+        complete: whether the rows are listed (`False`: a kind had more than
+            `LISTED_ROWS` rows, and none are listed; `counts` and `digest` say what it held).
+        digest: a SHA-256 (hex, first 16 digits) of the sorted rows of the three kinds.
+        at: when it was published, wall clock (`time.time()` seconds).
+        pid: the registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
+    """
+
+    registrar: str
+    resources: Rows
+    consumers: Rows
+    clients: Rows
+    counts: tuple[int, ...] = (0, 0, 0)
+    complete: bool = True
+    digest: str = ""
+    _: dataclasses.KW_ONLY
+    at: float = _now()
+    pid: int = _this_process()
+    seq: int = _numbered()
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class RegistrarStopped:
+    """A registrar stopped cleanly: what its catalog still holds at the end (rule 12).
+
+    Published when `stop()` finished unloading what it held as a consumer, with the
+    rows left: what its own servers serve (kept for a restart) and what it could not
+    give back. A registrar killed (SIGKILL, a crash) publishes none.
+
+    Attributes:
+        registrar: name of the stopped registrar.
+        resources: `(resource id, server, state, digest)` per served resource.
+        consumers: `(query id, resource id, consumer registrar)` per consumer id.
+        clients: `(query id, serving registrar, server, parent resource id or "")`.
+        counts: `(resources, consumers, clients)`.
+        complete: whether the rows are listed (see `CatalogRestored`).
+        digest: as in `CatalogRestored`.
+        at: when it was published, wall clock (`time.time()` seconds).
+        pid: the registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
+    """
+
+    registrar: str
+    resources: Rows
+    consumers: Rows
+    clients: Rows
+    counts: tuple[int, ...] = (0, 0, 0)
+    complete: bool = True
+    digest: str = ""
+    _: dataclasses.KW_ONLY
+    at: float = _now()
+    pid: int = _this_process()
+    seq: int = _numbered()
 
 
 Event: TypeAlias = (
@@ -403,6 +587,8 @@ Event: TypeAlias = (
     | StatusSent
     | StatusDelivered
     | InDoubt
+    | CatalogRestored
+    | RegistrarStopped
     | EventsDropped
 )
 """Any event of this module (a subscriber's callback receives these)."""

@@ -12,8 +12,14 @@ from rr_actors.events.kinds import Event
 
 __all__ = ["SCHEMA", "from_dict", "to_dict"]
 
-SCHEMA = 1
-"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads this one."""
+SCHEMA = 2
+"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it and 1.
+
+Schema 2 added `seq`, request digests and labels, release reasons, in-doubt details and
+the catalog events; a schema 1 line may lack the fields that have defaults (`seq`: 0).
+"""
+
+_READS = (1, SCHEMA)
 
 
 _TYPES: dict[str, type[Event]] = {cls.__name__: cls for cls in typing.get_args(Event)}
@@ -34,7 +40,11 @@ def to_dict(event: Event) -> dict[str, Any]:
     data: dict[str, Any] = {"type": type(event).__name__}
     for field in dataclasses.fields(event):
         value = getattr(event, field.name)
-        data[field.name] = value.name if isinstance(value, Status) else value
+        if isinstance(value, Status):
+            value = value.name
+        elif isinstance(value, tuple):
+            value = [list(row) if isinstance(row, tuple) else row for row in value]
+        data[field.name] = value
     data["schema"] = SCHEMA
     return data
 
@@ -58,7 +68,7 @@ def from_dict(data: dict[str, Any]) -> Event:
     """
     if not isinstance(data, dict):
         raise ConfigError(f"an event must be a dict, got {type(data).__name__}")
-    if data.get("schema") != SCHEMA:
+    if data.get("schema") not in _READS:
         raise ConfigError(f"unsupported event schema {data.get('schema')!r} (expected {SCHEMA})")
     name = data.get("type")
     cls = _TYPES.get(name) if isinstance(name, str) else None
@@ -67,13 +77,24 @@ def from_dict(data: dict[str, Any]) -> Event:
     types = _field_types(cls)
     given = set(data) - {"type", "schema"}
     unknown = sorted(given - set(types))
-    missing = [field for field in types if field not in given]
+    optional = _optional(cls) if data["schema"] < SCHEMA else set()
+    missing = [field for field in types if field not in given and field not in optional]
     if unknown or missing:
         problems = [f"unknown fields {unknown}"] * bool(unknown)
         problems += [f"missing fields {missing}"] * bool(missing)
         raise ConfigError(f"{name}: {', '.join(problems)}")
-    values = {f: _convert(cls.__name__, f, kind, data[f]) for f, kind in types.items()}
+    values = {f: _convert(cls.__name__, f, kind, data[f]) for f, kind in types.items() if f in data}
     return cls(**values)
+
+
+def _optional(cls: type[Event]) -> set[str]:
+    """Fields a line of an older schema may lack (those added since, with defaults)."""
+    return {
+        f.name
+        for f in dataclasses.fields(cls)
+        if f.name not in ("at", "pid")
+        and (f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING)
+    }
 
 
 def _field_types(cls: type[Event]) -> dict[str, type]:
@@ -81,13 +102,30 @@ def _field_types(cls: type[Event]) -> dict[str, type]:
     return {field.name: hints[field.name] for field in dataclasses.fields(cls)}
 
 
-def _convert(event: str, field: str, kind: type, value: object) -> Any:
+def _convert(event: str, field: str, kind: Any, value: object) -> Any:
     """Check one field's value from a dict (and turn a status name into a `Status`)."""
+    args = typing.get_args(kind)
+    if type(None) in args:  # `X | None`
+        if value is None:
+            return None
+        (kind,) = [a for a in args if a is not type(None)]
+    if typing.get_origin(kind) is tuple:
+        if not isinstance(value, list | tuple):
+            raise ConfigError(f"{event}.{field} must be a list, got {value!r}")
+        item = args_of(kind)
+        return tuple(_convert(event, field, item, v) for v in value)
+    if kind is bool and isinstance(value, bool):
+        return value
     if kind is Status and isinstance(value, str) and value in Status.__members__:
         return Status[value]
     if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
         return float(value)
     if kind in (int, str) and isinstance(value, kind) and not isinstance(value, bool):
         return value
-    expected = "a Status name" if kind is Status else kind.__name__
+    expected = "a Status name" if kind is Status else getattr(kind, "__name__", str(kind))
     raise ConfigError(f"{event}.{field} must be {expected}, got {value!r}")
+
+
+def args_of(kind: Any) -> Any:
+    """The item type of `tuple[X, ...]`."""
+    return typing.get_args(kind)[0]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import typing
 
 from rr_actors.events.kinds import (
+    CatalogRestored,
     ChildExited,
     ChildRestarted,
     ChildStarted,
@@ -14,6 +15,7 @@ from rr_actors.events.kinds import (
     EventsDropped,
     InDoubt,
     LoadFailed,
+    RegistrarStopped,
     ResourceLoaded,
     ResourceUnloaded,
     StatusDelivered,
@@ -67,9 +69,10 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
                 f"(query {_id(event.query_id)})"
             )
         case ConsumerReleased():
+            why = "" if event.reason == "unload" else f", {event.reason}"
             return (
                 f"{event.registrar}: {event.consumer} released {_id(event.resource_id)} "
-                f"(query {_id(event.query_id)})"
+                f"(query {_id(event.query_id)}{why})"
             )
         case StatusSent():
             return (
@@ -83,14 +86,26 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
                 f"it was sent)"
             )
         case InDoubt():
+            cut = event.cut or "load"
             return (
                 f"{event.registrar}: query {_id(event.query_id)} is in doubt "
-                f"(its load started before a crash and was never committed; found at each "
+                f"(its {cut} started before a crash and was never committed; found at each "
                 f"restart until a setup offered it returns)"
             )
+        case CatalogRestored():
+            return f"{event.registrar} restored its catalog: {_counts(event.counts)}"
+        case RegistrarStopped():
+            return f"{event.registrar} stopped, its catalog holding {_counts(event.counts)}"
+        case EventsDropped(cause="killed"):
+            return f"{event.count} events of process {event.pid} lost: it died before it sent them"
         case EventsDropped():
             return f"{event.count} events dropped (a subscriber or forwarder fell behind)"
     typing.assert_never(event)
+
+
+def _counts(counts: tuple[int, ...]) -> str:
+    resources, consumers, clients = (*counts, 0, 0, 0)[:3]
+    return f"{resources} resources, {consumers} consumer ids, {clients} client queries"
 
 
 def _id(value: str) -> str:

@@ -129,22 +129,27 @@ def run_line(result: RunResult, runs: int) -> str:
     `run 2/4 rest_for_one seed 1: 46 calls ok, 0 failed, 4 restarts, rec. p50 172 ms`:
     the compared value without its setting (the summary's header names it), and the
     run's median recovery as the summary's `rec. p50` column. A value too long for the
-    line is cut (`~`, as in the summary); a line still too long wraps, indented.
+    line is cut (`~`, as in the summary); a line still too long wraps, indented. The
+    run's verdict (`rr_actors.experiments.check`) ends it, and each of its findings
+    follows on lines of their own, wrapped the same way.
     """
     value = "" if result.value is None else show_value(result.value)
     rest = (
         f"seed {result.seed}: {result.calls_ok} calls ok, {result.calls_failed} failed, "
         f"{result.restarts} restarts, rec. p50 {_ms(result.recovery_median_s)}"
         + (", gave up" if result.gave_up else "")
+        + (f", {result.verdict}" if result.verdict else "")
     )
     head = f"run {result.run}/{runs}"
     room = max(RUN_LINE_WIDTH - len(head) - len(rest) - 2, 8)  # (2: the spaces around it)
     if len(value) > room:
         value = value[: room - 1] + "~"
     line = " ".join(part for part in (head, value, rest) if part)
-    if len(line) <= RUN_LINE_WIDTH:
-        return line
-    return "\n".join(textwrap.wrap(line, RUN_LINE_WIDTH, subsequent_indent="    "))
+    return "\n".join(
+        wrapped
+        for text in (line, *result.findings)
+        for wrapped in textwrap.wrap(text, RUN_LINE_WIDTH, subsequent_indent="    ")
+    )
 
 
 SUMMARY_HEADERS = ("runs", "faults", "rec. p50", "p90", "failed", "retried", "down s", "left")
@@ -177,6 +182,20 @@ def summary_rows(results: Results) -> list[list[str]]:
             ]
         )
     return rows
+
+
+def verdict_line(results: Results) -> str:
+    """The runs' verdicts (`rr_actors.experiments.check`), counted, under the summary."""
+    runs = results.runs
+    counts = {
+        v: sum(1 for r in runs if r.verdict == v) for v in ("held", "violated", "unverifiable")
+    }
+    findings = sum(r.violations for r in runs), sum(r.unverifiable for r in runs)
+    return (
+        f"verdicts: {counts['held']} held, {counts['violated']} violated, "
+        f"{counts['unverifiable']} unverifiable ({findings[0]} violations, {findings[1]} "
+        f"unverifiable findings; rr-actors check OUT shows each)"
+    )
 
 
 def summary_lines(results: Results) -> list[str]:
@@ -385,6 +404,8 @@ def _summary(display: _Display, results: Results, *, interrupted: bool) -> None:
     elif results.runs:
         for line in summary_lines(results):
             display.say(line)
+    if results.runs:
+        display.say(verdict_line(results))
     if results.out is not None:
         written = [name for name in experiment.OUTPUT_FILES if (results.out / name).exists()]
         display.say(f"written to {results.out}/: {', '.join(written)}")

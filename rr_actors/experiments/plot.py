@@ -98,13 +98,20 @@ def plot_recovery(results: Results, path: Path) -> None:
             )
         fig.suptitle(
             f"{results.plan.name}: {len(results.runs)} runs "
-            f"({results.plan.repeat} per value, {results.plan.duration:g} s each)",
+            f"({results.plan.repeat} per value, {results.plan.duration:g} s each); "
+            f"verdicts: {_verdicts(results)}",
             fontweight="bold",
         )
         fig.tight_layout()
         fig.savefig(path)
     finally:
         plt.close(fig)
+
+
+def _verdicts(results: Results) -> str:
+    kinds = ("held", "violated", "unverifiable")
+    counts = {k: sum(1 for r in results.runs if r.verdict == k) for k in kinds}
+    return ", ".join(f"{counts[k]} {k}" for k in kinds)
 
 
 def _first_runs(results: Results) -> list[tuple[Any, RunResult]]:
@@ -185,7 +192,7 @@ def _timeline(ax: Any, results: Results, value: Any, run: RunResult, managers: l
     ax.set_ylim(-0.7, len(managers) + 1.2)
     ax.set_xlim(0, end * 1.02 if end > 0 else 1)
     ax.grid(visible=True, axis="x", alpha=0.3)
-    title = f"run {run.run} (seed {run.seed})"
+    title = f"run {run.run} (seed {run.seed}, {run.verdict_counts()})"
     if value is not None:
         title = f"{results.plan.setting_label()} = {_label(results, value)}: {title}"
     summary = f"{run.calls_ok} calls ok, {run.calls_failed} failed, {run.restarts} restarts"

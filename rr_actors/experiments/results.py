@@ -122,6 +122,13 @@ class RunResult:
         catalogs_unread: managers whose catalog could not be read at the end (not
             running: a temporary one that exited, a subtree that gave up); their rows are
             not in `catalog_entries_left`.
+        verdict: the run's verdict from its events (`rr_actors.experiments.check`):
+            `"held"`, `"violated"` or `"unverifiable"` (`""`: not checked, no events).
+        violations: findings that are violations.
+        unverifiable: findings that could not be checked (events were lost).
+        findings: each finding with its window of events, as `rr-actors check` prints
+            them (line numbers of the run's own `events.jsonl`).
+        check_s: seconds the check took.
     """
 
     plan: str
@@ -157,6 +164,11 @@ class RunResult:
     give_ups: tuple[tuple[str, float], ...] = ()
     supervisor_restarts: int = 0
     catalogs_unread: int = 0
+    verdict: str = ""
+    violations: int = 0
+    unverifiable: int = 0
+    findings: tuple[str, ...] = dataclasses.field(default=(), repr=False)
+    check_s: float = 0.0
 
     def row(self) -> dict[str, Any]:
         """This run as one row of `runs.csv` (`unavailable_s_<manager>` per manager)."""
@@ -190,9 +202,19 @@ class RunResult:
                 "catalogs_unread": self.catalogs_unread,
                 "events": self.events,
                 "events_dropped": self.events_dropped,
+                "verdict": self.verdict,
+                "violations": self.violations,
+                "unverifiable": self.unverifiable,
+                "check_s": round(self.check_s, 4),
             }
         )
         return row
+
+    def verdict_counts(self) -> str:
+        """The verdict with its counts, as the summary and the plots' titles show it."""
+        if not self.verdict:
+            return "not checked"
+        return f"{self.verdict} ({self.violations} violations, {self.unverifiable} unverifiable)"
 
     def recoveries(self) -> list[float]:
         """The recovery times of the run's faults that recovered, in seconds."""

@@ -31,7 +31,7 @@ from typing import Any
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors.experiments import _procs, metrics
+from rr_actors.experiments import _procs, check, metrics
 from rr_actors.experiments._instrument import instrumented_setup
 from rr_actors.experiments.inject import Injector
 from rr_actors.experiments.plan import ManagerPlan, Plan, SupervisorPlan
@@ -292,7 +292,23 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
     log.write(run_dir / "events.jsonl", spec.run, spec.seed)
     leaked = _leaked(spec.token)
     assert drive.injector is not None
-    return _result(spec, log, drive, leaked=leaked, run_dir=run_dir)
+    result = _result(spec, log, drive, leaked=leaked, run_dir=run_dir)
+    return _checked(result, run_dir / "events.jsonl") if spec.record_events else result
+
+
+def _checked(result: RunResult, path: Path) -> RunResult:
+    """The run's result with its verdict (`check.py`, over the run's `events.jsonl`)."""
+    started = time.perf_counter()
+    verdicts = check.check_file(path)
+    verdict = verdicts.get(result.run, check.check([]))
+    return dataclasses.replace(
+        result,
+        verdict=verdict.verdict,
+        violations=verdict.violations,
+        unverifiable=verdict.unverifiable,
+        findings=tuple(check.format_verdict(result.run, verdict)[1:]),
+        check_s=time.perf_counter() - started,
+    )
 
 
 def _drive(

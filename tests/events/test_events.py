@@ -31,14 +31,18 @@ EXAMPLES: list[events.Event] = [
     events.ChildExited("root", "erm", 4242, "killed by SIGKILL"),
     events.ChildRestarted("root", "erm", 4243, 0.0231),
     events.SupervisorGaveUp("root", "erm crashed 4 times within 5 s", 3, 5.0),
-    events.ResourceLoaded("erm", "start_process", RID, QID, 0.0123),
+    events.ResourceLoaded("erm", "start_process", RID, QID, 0.0123, 77, "camera 0"),
     events.LoadFailed("erm", "start_process", RID, QID, "SensorError", "no camera"),
     events.ResourceUnloaded("erm", "start_process", RID),
     events.ConsumerAdded("erm", RID, QID, "cm"),
-    events.ConsumerReleased("erm", RID, QID, "cm"),
+    events.ConsumerReleased("erm", RID, QID, "cm", "death watch"),
     events.StatusSent("erm", QID, rr.Status.FATAL, "process died"),
     events.StatusDelivered("cm", QID, rr.Status.FATAL, 2, 0.0012),
-    events.InDoubt("erm", QID),
+    events.InDoubt("erm", QID, "start_process", "unload"),
+    events.CatalogRestored(
+        "erm", ((RID, "start_process", "loaded"),), ((QID, RID, "cm"),), (), (1, 1, 0)
+    ),
+    events.RegistrarStopped("cm", (), (), ((QID, "erm", "start_process", ""),), (0, 0, 1)),
     events.EventsDropped(17),
 ]
 
@@ -90,7 +94,7 @@ def test_every_event_kind_has_its_own_fields_first_then_keyword_only_at_and_pid(
         assert ["at"] == keyword_only
         assert "pid" == names[2]
     else:
-        assert ["at", "pid"] == keyword_only
+        assert ["at", "pid", "seq"] == keyword_only
     assert keyword_only == names[-len(keyword_only) :]
 
 
@@ -145,11 +149,23 @@ def test_to_dict_names_the_type_and_writes_the_status_by_name() -> None:
         "query_id": QID,
         "status": "WARNING",
         "message": "hot",
+        "status_id": "",
         "at": 1.5,
         "pid": 9,
-        "schema": 1,
+        "seq": 0,
+        "schema": 2,
     }
     assert expected == events.to_dict(event)
+
+
+def test_from_dict_reads_a_schema_1_line_without_the_fields_added_since() -> None:
+    data = line(events.ConsumerReleased("erm", RID, QID, "cm", "reconcile", at=2.0, pid=9))
+    del data["reason"], data["seq"]
+    data["schema"] = 1
+    assert events.ConsumerReleased("erm", RID, QID, "cm", at=2.0, pid=9) == events.from_dict(data)
+    del data["pid"]  # at and pid were always there
+    with pytest.raises(rr.ConfigError, match="pid"):
+        events.from_dict(data)
 
 
 def test_from_dict_accepts_an_int_for_a_float() -> None:
@@ -180,7 +196,7 @@ def _with(**changes: Any) -> dict[str, Any]:
     ("data", "named"),
     [
         ([1, 2], "list"),
-        (_with(schema=2), "schema 2"),
+        (_with(schema=3), "schema 3"),
         (_with(schema=_DROP), "schema None"),
         (_with(type="Exploded"), "'Exploded'"),
         (_with(type=_DROP), "None"),
@@ -233,7 +249,7 @@ def test_from_dict_names_what_is_wrong(data: Any, named: str) -> None:
             "supervisor root gave up (more than 3 restarts within 5 s): erm crashed",
         ),
         (
-            events.ResourceLoaded("erm", "start_process", RID, QID, 0.0123),
+            events.ResourceLoaded("erm", "start_process", RID, QID, 0.0123, 77, "camera 0"),
             "erm/start_process loaded 1a2b3c4d in 12.3 ms (query 5e6f7a8b)",
         ),
         (
@@ -243,8 +259,8 @@ def test_from_dict_names_what_is_wrong(data: Any, named: str) -> None:
         (events.ResourceUnloaded("erm", "cam", RID), "erm/cam unloaded 1a2b3c4d"),
         (events.ConsumerAdded("erm", RID, QID, "cm"), "erm: cm consumes 1a2b3c4d (query 5e6f7a8b)"),
         (
-            events.ConsumerReleased("erm", RID, QID, "cm"),
-            "erm: cm released 1a2b3c4d (query 5e6f7a8b)",
+            events.ConsumerReleased("erm", RID, QID, "cm", "death watch"),
+            "erm: cm released 1a2b3c4d (query 5e6f7a8b, death watch)",
         ),
         (
             events.StatusSent("erm", QID, rr.Status.FATAL, "process died"),

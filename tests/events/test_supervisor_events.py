@@ -195,6 +195,69 @@ def test_a_restored_managers_in_doubt_loads_reach_a_subscriber_of_the_restart(
     assert in_doubt.pid == restarted.pid
 
 
+@pytest.mark.usefixtures("process_helpers")
+def test_the_events_a_killed_manager_built_but_never_sent_are_counted(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    erm = f"erm-{uid}"
+    sup = supervisors([rr.ManagerSpec(erm, _serve, isolation="process")]).start()
+    first_pid = pid_of(sup, erm)
+
+    def build_five_then_die(_registrar: rr.ResourceRegistrar) -> None:
+        import signal  # noqa: PLC0415 - runs in the manager process
+
+        made = [events.LoadFailed(erm, "cam", f"r{i}", f"q{i}", "E", "-") for i in range(5)]
+        assert all(e.seq for e in made)  # numbered: the tally has counted them
+        os.kill(os.getpid(), signal.SIGKILL)  # before the forwarder could send any
+
+    heard = Heard()
+    with sup.subscribe(heard) as subscription:
+        with pytest.raises(rr.RrError):
+            sup.run_in(erm, build_five_then_die)
+        sup.wait_restarted(erm, timeout=10)
+        assert sup.flush_events(timeout=5)
+        assert subscription.wait_delivered(timeout=5)
+
+    [lost] = heard.of(events.EventsDropped, cause="killed")
+    assert (5, first_pid) == (lost.count, lost.pid)
+    assert not heard.of(events.LoadFailed, registrar=erm)
+    [exited] = heard.of(events.ChildExited, child=erm)
+    assert heard.events.index(lost) < heard.events.index(exited)  # before its exit
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_the_events_a_killed_manager_published_but_never_sent_arrive_after_its_exit(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    erm = f"erm-{uid}"
+    sup = supervisors([rr.ManagerSpec(erm, _serve, isolation="process")]).start()
+    first_pid = pid_of(sup, erm)
+
+    def publish_twenty_then_die(_registrar: rr.ResourceRegistrar) -> None:
+        import gc  # noqa: PLC0415 - runs in the manager process
+        import signal  # noqa: PLC0415
+
+        [line] = [o for o in gc.get_objects() if type(o).__name__ == "_EventLine"]
+        for i in range(20):  # (the forwarder's thread gets no GIL meanwhile)
+            line.hub.publish(events.LoadFailed(erm, "cam", f"r{i}", f"q{i}", "E", "-"))
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    heard = Heard()
+    with sup.subscribe(heard) as subscription:
+        with pytest.raises(rr.RrError):
+            sup.run_in(erm, publish_twenty_then_die)
+        sup.wait_restarted(erm, timeout=10)
+        assert sup.flush_events(timeout=5)
+        assert subscription.wait_delivered(timeout=5)
+
+    kept = heard.of(events.LoadFailed, registrar=erm)
+    assert [f"q{i}" for i in range(20)] == [e.query_id for e in kept]
+    assert {first_pid} == {e.pid for e in kept}
+    assert not heard.of(events.EventsDropped)
+    [exited] = heard.of(events.ChildExited, child=erm)
+    assert heard.events.index(kept[-1]) < heard.events.index(exited)
+
+
 def test_every_child_event_is_also_an_info_log_line(
     supervisors: Callable[..., rr.Supervisor], uid: str, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -63,6 +63,24 @@ def child_stuck_in_load(names: tuple[str, str], paths: tuple[str, str], conn: An
     consumer.call(p_name, "stuck", {"job": 7}, timeout=60)
 
 
+def child_released_not_unloaded(names: tuple[str, str], paths: tuple[str, str], conn: Any) -> None:
+    """C releases its only id of a P leaf; P is held after the release was written and
+    before the leaf's unload began (the `unload_resource` point), then killed there."""
+    from rr_actors.testing import intercept  # noqa: PLC0415
+
+    p_name, _ = names
+    provider, consumer = start_pair(names, paths)
+    query = consumer.call(p_name, "leaf", {"released": 1})
+
+    def held_there(_resource: Any) -> None:
+        conn.send(query.id)  # (the actor is held here: no snapshot)
+        threading.Event().wait(60)  # the parent kills this process here
+
+    intercept(provider, "unload_resource", before=held_there)
+    threading.Thread(target=consumer.unload, args=(query.id,), daemon=True).start()
+    conn.recv()  # never answered
+
+
 RunAndKill = Callable[..., list[Any]]
 
 

@@ -11,7 +11,15 @@ from collections.abc import Callable
 from pathlib import Path
 
 from durable_pair import leaf_load, noop_unload, pair_backups, start
-from persisting import Recorder, RunAndKill, child_hold, child_stuck_in_load, ordered
+from persisting import (
+    Recorder,
+    RunAndKill,
+    child_hold,
+    child_released_not_unloaded,
+    child_stuck_in_load,
+    ordered,
+)
+from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors.testing import catalog_snapshot
@@ -134,3 +142,22 @@ def test_a_registrar_without_in_doubt_loads_reports_none(
     provider = start(started, names[0], paths[0], save_on_modify=True)
 
     assert () == provider.in_doubt
+
+
+def test_a_resource_whose_last_consumer_left_before_a_kill_is_unloaded_after_the_restart(
+    tmp_path: Path, run_and_kill: RunAndKill, started: list[rr.ResourceRegistrar]
+) -> None:
+    # Found by `rr-actors check` on the killheavy plan: the release was written, the
+    # unload had not begun; the restored resource (loaded, no consumer) stayed forever,
+    # holding its dependencies at other registrars.
+    names, paths = pair_backups(tmp_path)
+    [query_id] = run_and_kill(child_released_not_unloaded, names, tuple(map(str, paths)))
+    provider = start(started, names[0], paths[0], save_on_modify=True)
+    leaf = Recorder()
+    provider.register_server("leaf", load=leaf.load, unload=leaf.unload)
+    provider.register_server("nested", load=leaf.load, unload=noop_unload)
+
+    assert leaf.unloaded.wait(10)
+    assert [{"released": 1}] == leaf.unloads
+    assert wait_for(lambda: not catalog_snapshot(provider).resources, timeout=10)
+    assert query_id not in {q.id for q in provider.server_queries("leaf")}

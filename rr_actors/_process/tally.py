@@ -1,0 +1,176 @@
+"""A manager process's events that outlive a SIGKILL: a journal, and a count of them.
+
+```
+ supervisor's process                         manager process
+   Tally.create() ── a file ──────────────►   Journal(path): each event's seq stored as it
+                                              is built (`number_events`), each event
+                                              published appended (pickled) to the file
+   ... the process exits (or is killed) ...
+   tally.after(last seq received) ─────────►  the events it never sent, delivered
+   tally.built() - what arrived ───────────►  EventsDropped(lost, cause="killed")
+```
+
+A manager process numbers its events (`seq`) and forwards them in batches from a thread
+of its own; a SIGKILL (a fault, or the heartbeat killing a hung manager) would lose the
+events still in its buffer, and nothing comes after them to show a gap. So the child
+appends each event it publishes to a file of its incarnation (one `write` per event, on
+the publishing thread), and stores the number of each event it builds in the file's
+first 8 bytes (one store into a memory map). After the exit the supervisor's side
+delivers the journal's events that never arrived, then counts what is still missing
+(built but never published, or cut from the journal: below) and publishes it as one
+`EventsDropped` with the dead process's pid. The file is removed once it was read.
+
+The journal is cut back to nothing after a batch was sent once it holds more than
+`JOURNAL_BYTES`: an event published between the batch's start and the cut is then not
+in the journal; if the process dies before it sends it, it is counted as lost, not
+kept. The file layout: the counter (8 bytes), then pickled events, one after another.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import io
+import logging
+import mmap
+import os
+import pickle
+import tempfile
+from collections.abc import Callable
+from typing import Any
+
+__all__ = ["JOURNAL_BYTES", "Journal", "Tally"]
+
+logger = logging.getLogger("rr_actors")
+
+_SIZE = 8  # one unsigned 64-bit counter, in the machine's byte order
+
+JOURNAL_BYTES = 1 << 20
+"""Past this size (bytes) the journal is cut back after a sent batch (about 5 000 events)."""
+
+
+class Tally:
+    """The shared counter of one manager process's events (one incarnation each).
+
+    Attributes:
+        path: the file, to hand to the child (`open`).
+    """
+
+    def __init__(self, path: str, fd: int, mapped: mmap.mmap) -> None:
+        self.path = path
+        self._fd = fd
+        self._map: mmap.mmap | None = mapped
+        self._view = memoryview(mapped).cast("Q")
+
+    @classmethod
+    def create(cls) -> Tally | None:
+        """A new counter at 0 (supervisor's side); `None` if no file could be made.
+
+        Without one the manager runs as before: a loss at a kill is then not counted.
+        """
+        try:
+            fd, path = tempfile.mkstemp(prefix="rr-events-")
+        except OSError:
+            return None
+        try:
+            os.ftruncate(fd, _SIZE)
+            mapped = mmap.mmap(fd, _SIZE)
+        except (OSError, ValueError):
+            os.close(fd)
+            with contextlib.suppress(OSError):
+                os.unlink(path)
+            return None
+        return cls(path, fd, mapped)
+
+    def built(self) -> int:
+        """The number of the last event the child built (0: none, or not read)."""
+        if self._map is None:
+            return 0
+        return int(self._view[0])
+
+    def after(self, seq: int) -> list[Any]:
+        """The journal's events numbered above `seq`, in their order (after the exit).
+
+        A record cut short (the process died within its `write`) ends the reading.
+        """
+        if self._map is None:
+            return []
+        found: list[Any] = []
+        try:
+            with open(self.path, "rb") as file:
+                file.seek(_SIZE)
+                data = io.BytesIO(file.read())
+        except OSError:
+            return []
+        while True:
+            try:
+                event = pickle.load(data)
+            except EOFError:
+                break
+            except Exception:  # noqa: BLE001 - a record cut short by the kill
+                break
+            if getattr(event, "seq", 0) > seq:
+                found.append(event)
+        found.sort(key=lambda e: e.seq)
+        return found
+
+    def close(self) -> None:
+        """Remove the file and unmap it. Idempotent."""
+        if self._map is None:
+            return
+        self._view.release()
+        self._map.close()
+        self._map = None
+        with contextlib.suppress(OSError):
+            os.close(self._fd)
+        with contextlib.suppress(OSError):
+            os.unlink(self.path)
+
+
+class Journal:
+    """The child's side: numbers stored as events are built, events kept as published.
+
+    Attributes:
+        mark: for `number_events`: stores the number of the last event built.
+    """
+
+    def __init__(self, path: str, mark: Callable[[int], object], fd: int) -> None:
+        self.path = path
+        self.mark = mark
+        self._fd = fd
+        self._dumps = functools.partial(pickle.dumps, protocol=pickle.HIGHEST_PROTOCOL)
+        self._write = os.write
+
+    @classmethod
+    def open(cls, path: str) -> Journal | None:
+        """Open the file the supervisor's process made; `None` if it cannot be used.
+
+        Without one the events are numbered all the same: a loss then shows only as a
+        gap, and not at all at the end of an incarnation.
+        """
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_APPEND)
+        except OSError:
+            return None
+        try:
+            mapped = mmap.mmap(fd, _SIZE)
+        except (OSError, ValueError):
+            os.close(fd)
+            return None
+        view = memoryview(mapped).cast("Q")
+        return cls(path, functools.partial(view.__setitem__, 0), fd)  # one C call per event
+
+    def __call__(self, event: Any) -> None:
+        """Append `event` (a sink of the manager's event hub: the publishing thread)."""
+        try:  # noqa: SIM105 - per event: a try costs nothing, `suppress` a context manager
+            self._write(self._fd, self._dumps(event))
+        except (OSError, pickle.PicklingError, TypeError, AttributeError):
+            pass  # not kept: if the process dies before it sends it, it is counted lost
+
+    def sent(self) -> None:
+        """A batch was sent (the forwarder's thread): cut the journal back if it is big."""
+        try:
+            if os.fstat(self._fd).st_size > JOURNAL_BYTES:
+                os.ftruncate(self._fd, _SIZE)
+        except OSError:
+            pass
