@@ -96,6 +96,12 @@ class Platform(Protocol):
         """
         ...
 
+    def runtime_parent(self) -> str | None:
+        """The directory a system's private runtime directory is made in (`None`: the
+        temporary directory, `tempfile`'s choice). An optimisation: a memory-backed one
+        makes the files each served registrar creates cheap."""
+        ...
+
     def forker_pid(self, ctx: multiprocessing.context.BaseContext) -> int | None:
         """The pid of the process that forks manager processes (in the parent).
 

@@ -49,6 +49,10 @@ class PortablePlatform:
             return ctx
         return multiprocessing.get_context("spawn")
 
+    def runtime_parent(self) -> str | None:
+        """`None`: the temporary directory (`TMPDIR`, `tempfile`'s choice)."""
+        return None
+
     def forker_pid(self, ctx: multiprocessing.context.BaseContext) -> int | None:
         """`None`: the forkserver's pid is not public, and nothing here needs it."""
         del ctx

@@ -87,6 +87,7 @@ from rr_actors._process.control import (
     Stop,
     SyncEvents,
     Warm,
+    WarmUp,
 )
 from rr_actors._process.tally import Journal
 from rr_actors._store.schema import expected_objects
@@ -249,7 +250,7 @@ def _warm_up() -> None:
     expected_objects()
 
 
-def standby(conn: Connection, parent: int | None = None) -> None:
+def standby(conn: Connection, parent: int | None = None, warm: bool = True) -> None:
     """Wait, started but idle, until the parent hands over a manager's arguments; run it.
 
     Runs as the target of a spare manager process (see `rr_actors._process.spare`): the
@@ -259,17 +260,21 @@ def standby(conn: Connection, parent: int | None = None) -> None:
 
     Args:
         conn: the child's end of the control pipe; the first message is a `Start` with
-            `main`'s arguments.
+            `main`'s arguments, or (`warm=False`) a `WarmUp` before it.
         parent: the pid of the process that forked this one (`Platform.die_with_parent`).
+        warm: warm up at once; `False` (a spare forked ahead of a start in order): only
+            when told (`WarmUp`), so that it does not compete with the starts.
     """
     _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
     set_title("spare")
     try:
-        if not conn.poll(0):  # taken already: the warm-up would only delay the manager
-            _warm_up()
-            conn.send(Warm())
-        start = conn.recv()
+        start = None if warm else conn.recv()
+        if start is None or isinstance(start, WarmUp):
+            if not conn.poll(0):  # taken already: the warm-up would only delay the manager
+                _warm_up()
+                conn.send(Warm())
+            start = conn.recv()
     except (EOFError, OSError):
         os._exit(0)  # released unused, or the parent is gone
     if not isinstance(start, Start):
@@ -283,22 +288,20 @@ class _EventLine:
 
     The registrar relays its events to `hub`; while forwarding is on, `hub`'s one sink is a
     `Forwarder` that sends batches over the control pipe (its own thread), so the
-    registrar is `active` (builds events) only then.
+    registrar is `active` (builds events) only then. The forwarder (and its thread) is
+    made at the first switch on, not at the start: most managers never forward (their
+    tree has no listener), and a thread less is a shorter start.
     """
 
     def __init__(self, control: _Control, name: str, *, on: bool, tally: str | None) -> None:
+        self.control = control
+        self.name = name
         # a SIGKILL loses what is not sent yet: the journal keeps it, the tally counts it
         self.journal = None if tally is None else Journal.open(tally)
         number_events(mark=None if self.journal is None else self.journal.mark)
         self.hub: Publisher[events.Event] = events.publisher()
-        self.forwarder: Forwarder[events.Event] = Forwarder(
-            functools.partial(self._send, control),
-            notice=events.EventsDropped,
-            name=f"{name}-events",
-        )
-        self.sink: Callable[[events.Event], None] = self.forwarder
-        if self.journal is not None:
-            self.sink = functools.partial(self._keep_and_forward, self.journal, self.forwarder)
+        self.forwarder: Forwarder[events.Event] | None = None
+        self.sink: Callable[[events.Event], None] | None = None
         self.on = False
         self.switch(on=on)
 
@@ -317,18 +320,31 @@ class _EventLine:
     def switch(self, *, on: bool) -> None:
         """Forward from now on, or stop forwarding (control loop thread)."""
         if on and not self.on:
+            if self.forwarder is None or self.sink is None:
+                self.forwarder = Forwarder(
+                    functools.partial(self._send, self.control),
+                    notice=events.EventsDropped,
+                    name=f"{self.name}-events",
+                )
+                self.sink = self.forwarder
+                if self.journal is not None:
+                    self.sink = functools.partial(
+                        self._keep_and_forward, self.journal, self.forwarder
+                    )
             self.hub.add_sink(self.sink)
-        elif self.on and not on:
+        elif self.on and not on and self.sink is not None:
             self.hub.remove_sink(self.sink)
         self.on = on
 
     def flush(self, timeout: float) -> None:
         """Send what is buffered (before a clean exit)."""
-        self.forwarder.close(timeout=timeout)
+        if self.forwarder is not None:
+            self.forwarder.close(timeout=timeout)
 
     def sync(self, control: _Control, token: int, timeout: float) -> None:
         """Send what is buffered, then `EventsSynced(token)` after it (own thread)."""
-        self.forwarder.wait_sent(timeout=timeout)
+        if self.forwarder is not None:
+            self.forwarder.wait_sent(timeout=timeout)
         control.send(EventsSynced(token))
 
 
@@ -369,8 +385,9 @@ def _run_manager(
             _exit(0, attached)
         _exit(ACTOR_DIED_EXIT, attached)
 
-    threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
     control.send(Ready(os.getpid()))
+    # after `Ready`: a death before it started is seen at once (`_wait_stopped` returns)
+    threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
     _ControlLoop(conn, control, registrar, attached, stopping, line).run()
 
 

@@ -1,7 +1,8 @@
 """How manager processes are started, and what both sides of one agree on.
 
 The multiprocessing context comes from the platform (`rr_actors._platform`): with the
-tricks, a forkserver that has preloaded rr_actors; plainly, a forkserver (or spawn)
+tricks, a forkserver of rr_actors' own that has preloaded rr_actors (whoever started
+CPython's); plainly, a forkserver (or spawn)
 without preload. Both sides agree on the exit codes below and on what a clean stop is.
 """
 
@@ -56,10 +57,11 @@ def start_forkserver() -> None:
     The forkserver (and multiprocessing's resource tracker) are long-lived helper children
     of this process; tests that count child processes start them before counting.
     """
-    if mp_context().get_start_method() == "forkserver":
+    ctx = mp_context()
+    if ctx.get_start_method() == "forkserver" and forker_pid(ctx) is None:
         from multiprocessing import forkserver  # noqa: PLC0415
 
-        forkserver.ensure_running()
+        forkserver.ensure_running()  # CPython's: the platform keeps none of its own
 
 
 def forker_pid(ctx: multiprocessing.context.BaseContext) -> int | None:

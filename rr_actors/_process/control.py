@@ -2,6 +2,8 @@
 
 ```
  parent (ManagerProcess, SparePool)          control pipe          child (child.py)
+   WarmUp() ────────────────────────────────────────────────────►  standby (a spare
+                                                                     started unwarmed)
    Start(setup, config, address, forward) ──────────────────────►  standby (a spare only)
                                           ◄──────── Warm()           (a spare, once warm)
                                           ◄──────── Ready(pid) | Failed(traceback)
@@ -41,6 +43,7 @@ __all__ = [
     "Stop",
     "SyncEvents",
     "Warm",
+    "WarmUp",
 ]
 
 
@@ -65,6 +68,11 @@ class Start:
     address: Address | None
     forward: bool = False
     tally: str | None = None
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class WarmUp:
+    """Warm up now: to a spare started without its warm-up (ahead of a start in order)."""
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -153,7 +161,7 @@ class EventsSynced:
     token: int
 
 
-FromParent = Start | Ping | Forward | SyncEvents | Stop
+FromParent = WarmUp | Start | Ping | Forward | SyncEvents | Stop
 """What the parent sends down a control pipe."""
 
 FromChild = Warm | Ready | Failed | Pong | Events | EventsSynced

@@ -25,7 +25,7 @@ from multiprocessing.process import BaseProcess
 
 from rr_actors._process.child import standby
 from rr_actors._process.context import PROCESS_PREFIX, forker_pid, mp_context
-from rr_actors._process.control import Start, Warm
+from rr_actors._process.control import Start, Warm, WarmUp
 from rr_actors._transport.base import Address
 from rr_actors.config import RegistrarConfig
 
@@ -41,25 +41,37 @@ class Spare:
     (or when its parent dies, like any manager process).
     """
 
-    def __init__(self, process: BaseProcess, conn: Connection) -> None:
+    def __init__(self, process: BaseProcess, conn: Connection, *, lean: bool = False) -> None:
         self.process = process
         self.conn = conn
         self.warm = False
+        self.lean = lean  # not warming up until told (`warm_up`)
 
     @classmethod
-    def start(cls) -> Spare:
-        """Start a spare process (returns once it was forked; it idles on its pipe)."""
+    def start(cls, *, lean: bool = False) -> Spare:
+        """Start a spare process (returns once it was forked; it idles on its pipe).
+
+        Args:
+            lean: it warms up only when told (`warm_up`), not at once.
+        """
         ctx = mp_context()
         parent_conn, child_conn = ctx.Pipe(duplex=True)
         process = ctx.Process(  # type: ignore[attr-defined]
             target=standby,
-            args=(child_conn, forker_pid(ctx)),
+            args=(child_conn, forker_pid(ctx), not lean),
             name=f"{PROCESS_PREFIX}spare",
             daemon=True,
         )
         process.start()
         child_conn.close()
-        return cls(process, parent_conn)
+        return cls(process, parent_conn, lean=lean)
+
+    def warm_up(self) -> None:
+        """Have a lean spare warm up now (nothing for one that warmed up at its start)."""
+        if self.lean:
+            self.lean = False
+            with contextlib.suppress(OSError, ValueError):
+                self.conn.send(WarmUp())
 
     def check_warm(self) -> bool:
         """Whether it has finished warming up (reads its `Warm()` without blocking)."""
@@ -127,17 +139,43 @@ class SparePool:
         self._cond = threading.Condition()
         self._idle: list[Spare] = []  # oldest first
         self._due: float | None = None  # when the filler starts spares (monotonic)
+        self._ahead: int | None = None  # manager starts in order to come (`ahead`), or None
+        self._taken = 0  # spares asked for (by `take`) since `ahead`
         self._closed = False
         self._thread: threading.Thread | None = None
 
     def take(self) -> Spare | None:
         """The warmest idle spare (the oldest that has warmed up), if there is one."""
         with self._cond:
+            self._taken += 1  # (while ahead: one more start under way)
+            if self._ahead is not None:
+                self._due = time.monotonic()  # fork the next one's process now
+                self._cond.notify_all()
             if not self._idle:
                 return None
             spare = next((s for s in self._idle if s.check_warm()), self._idle[0])
             self._idle.remove(spare)
             return spare
+
+    def ahead(self, starts: int) -> None:
+        """Fork the processes of `starts` manager starts in order ahead of their turn.
+
+        For the start of a tree (`Supervisor.start`): while a manager starts, the filler
+        forks spares for the ones after it (up to `size`, no delay, and without their
+        warm-up, which would compete with the starts): the next start then only waits
+        for the manager's own start (restore, setup, serve), not also for a process.
+        Each `take` counts one start. `ahead(0)` ends it: the spares left warm up
+        now, and refills wait `delay` seconds as before.
+        """
+        with self._cond:
+            self._ahead = starts or None
+            self._taken = 0
+            idle = list(self._idle)
+        if starts:
+            self._refill_at(time.monotonic())
+        else:
+            for spare in idle:  # forked ahead: warm up now, for a restart
+                spare.warm_up()
 
     def refill(self) -> None:
         """Have the filler thread start spares until there are `size`, `delay` s from now.
@@ -146,10 +184,13 @@ class SparePool:
         (re)starts follow each other closely (a crash loop), no spare's warm-up competes
         with them; the pool is topped up once they have been quiet for `delay` seconds.
         """
+        self._refill_at(time.monotonic() + self.delay)
+
+    def _refill_at(self, due: float) -> None:
         with self._cond:
             if self._closed or self.size == 0:
                 return
-            self._due = time.monotonic() + self.delay
+            self._due = due
             if self._thread is None:
                 self._thread = threading.Thread(
                     target=self._fill, name=f"rr-spares-{self.name}", daemon=True
@@ -170,6 +211,12 @@ class SparePool:
         for spare in idle:
             spare.close()
 
+    def _wanted(self) -> int:
+        """Spares to keep: `size`; while ahead, no more than the starts after the current."""
+        if self._ahead is None:
+            return self.size
+        return min(self.size, max(0, self._ahead - max(self._taken, 1)))
+
     def _fill(self) -> None:
         """The filler thread: when a refill is due, start spares until there are `size`."""
         while True:
@@ -178,11 +225,11 @@ class SparePool:
                     self._cond.wait(None if self._due is None else self._due - time.monotonic())
                 if self._closed:
                     return
-                if len(self._idle) >= self.size:
+                if len(self._idle) >= self._wanted():
                     self._due = None
                     continue
             try:
-                spare = Spare.start()
+                spare = Spare.start(lean=self._ahead is not None)
             except Exception:
                 logger.exception("%s: could not start a spare manager process", self.name)
                 with self._cond:
@@ -194,6 +241,8 @@ class SparePool:
                 else:
                     self._idle.append(spare)
                     closing = None
+                    if self._ahead is None:
+                        spare.warm_up()  # (its start ran across the end of the ahead)
             if closing is not None:  # closed meanwhile
                 closing.close()
                 return

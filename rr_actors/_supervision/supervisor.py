@@ -224,7 +224,11 @@ class Supervisor:
         try:
             self._lock = StateDirLock.acquire(_state_dirs(self._spec))
             self._tree.processes.open(SPARE_PROCESSES, SPARE_DELAY)
-            self._node.start()
+            self._tree.processes.start_ahead(True)
+            try:
+                self._node.start()
+            finally:
+                self._tree.processes.start_ahead(False)
         except BaseException:
             self._stopped = True
             self._release()

@@ -121,6 +121,13 @@ class Processes:
         if self.spec.has_processes():
             self.spares = SparePool(spares, self.spec.name, delay=spare_delay)
 
+    def start_ahead(self, on: bool) -> None:
+        """While `on` (the supervisor's start), fork each process manager's process ahead
+        of its start in order (`SparePool.ahead`)."""
+        if self.spares is not None:
+            starts = sum(1 for m in managers(self.spec) if m.isolation == "process")
+            self.spares.ahead(starts if on else 0)
+
     def close_spares(self) -> None:
         """Release the idle spares and start no more (before the children stop)."""
         if self.spares is not None:

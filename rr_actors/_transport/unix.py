@@ -61,7 +61,7 @@ from collections.abc import Callable
 from typing import Any
 
 from rr_actors._core.directory import DIRECTORY, Peer
-from rr_actors._platform import fork
+from rr_actors._platform import PLATFORM, fork
 from rr_actors._transport.base import Endpoint
 from rr_actors._transport.inbound import Listener
 from rr_actors._transport.outbound import RemotePeer
@@ -547,13 +547,15 @@ class System(AttachedSystem):
         Args:
             runtime_dir: directory to use (created with mode 0700 if missing; an existing
                 one must belong to this user and is made 0700, and `close()` leaves it and
-                whatever else it holds in place); default: a fresh temporary directory.
+                whatever else it holds in place); default: a fresh directory in a memory-backed
+                one where the platform has it (`$XDG_RUNTIME_DIR`, `/dev/shm`, unless
+                `TMPDIR` is set), else in the temporary directory.
 
         Raises:
             ConfigError: `runtime_dir` cannot be used.
         """
         if runtime_dir is None:
-            runtime_dir = tempfile.mkdtemp(prefix="rr-")  # mode 0700
+            runtime_dir = tempfile.mkdtemp(prefix="rr-", dir=PLATFORM.runtime_parent())  # 0700
             made = True
         else:
             try:

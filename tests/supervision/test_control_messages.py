@@ -11,6 +11,7 @@ from rr_actors._process import child, control, manager
 from rr_actors.config import RegistrarConfig
 
 EXAMPLES = [
+    control.WarmUp(),
     control.Start(b"setup", RegistrarConfig(name="erm"), None, forward=True),
     control.Ping(3),
     control.Forward(on=True),
@@ -30,10 +31,10 @@ def test_a_control_message_crosses_the_pipe_unchanged(message: object) -> None:
     assert message == pickle.loads(pickle.dumps(message))
 
 
-def test_the_child_handles_every_message_of_the_parent_but_the_one_standby_reads() -> None:
+def test_the_child_handles_every_message_of_the_parent_but_the_ones_standby_reads() -> None:
     sent_by_parent = set(typing.get_args(control.FromParent))
 
-    assert sent_by_parent - {control.Start} == set(child._HANDLERS)
+    assert sent_by_parent - {control.WarmUp, control.Start} == set(child._HANDLERS)
 
 
 def test_the_parent_handles_every_message_a_running_manager_sends() -> None:

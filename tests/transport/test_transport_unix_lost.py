@@ -236,6 +236,7 @@ def _published(system: System, name: str) -> str:
         return restart.read()
 
 
+@pytest.mark.usefixtures("process_helpers")  # the forkserver, before the leak check counts
 def test_a_manager_process_is_spoken_for_by_its_supervisors_process(unix: System) -> None:
     manager = named("manager")
     sup = rr.Supervisor(
