@@ -60,12 +60,22 @@ def test_strategies_restart_one_all_or_the_rest_after_a_kill() -> None:
         assert 0 == result.leaked_processes
 
 
-def test_the_crash_loop_escalates_and_only_a_tolerant_top_survives_it() -> None:
-    runs = by_value(shortened("crashloop", 2.5))
+def tripped(result: RunResult) -> bool:
+    """Whether the pool's intensity was exceeded: 3 kills of its worker within its 2 s
+    period (its `max_restarts` is 2). A kill is skipped while the worker is down, so how
+    many land depends on how fast it restarts, which a loaded machine slows."""
+    kills = sorted(
+        f.injected_s for f in result.faults if f.injected_s is not None and not f.skipped
+    )
+    return any(last - first <= 2.0 for first, last in zip(kills, kills[2:], strict=False))
 
-    for result in runs.values():
-        assert "pool" in {supervisor for supervisor, _ in result.give_ups}
-    assert runs[0].gave_up
+
+def test_the_crash_loop_escalates_and_only_a_tolerant_top_survives_it() -> None:
+    runs = by_value(shortened("crashloop", 3.0))
+
+    for result in runs.values():  # the pool gives up exactly when its intensity is exceeded
+        assert tripped(result) == ("pool" in {sup for sup, _ in result.give_ups}), result.faults
+    assert runs[0].gave_up or not tripped(runs[0])
     assert not runs[5].gave_up
     # The tolerant top keeps serving: it fails no more calls than the top that gave up (a
     # call may still time out on a loaded machine while its worker is being restarted).
