@@ -218,7 +218,12 @@ class ClientReply:
         # Not one whose Load never left (`sent=False`): nothing there can hold its id.
         gone = sent and isinstance(error, RegistrarUnavailableError | RegistrarStoppedError)
         failed = CallFailed(
-            self.query_id, self.attempt, serving_rr=self.serving_rr if gone else None
+            self.query_id,
+            self.attempt,
+            serving_rr=self.serving_rr if gone else None,
+            provider=self.serving_rr,
+            server=self.server,
+            error=error,
         )
         with contextlib.suppress(pykka.ActorDeadError):
             self.calls.hand_over(failed, wake=True)
@@ -236,6 +241,8 @@ class Calls:
         stored: its client records are stored (a backup), so requests and responses
             must pickle.
         probes: the registrar's test probes, read when a call is withdrawn.
+        listened: whether anyone listens to the registrar's events: a plain call's
+            answer then wakes the actor, which publishes its `CallAnswered` at once.
     """
 
     def __init__(
@@ -247,6 +254,7 @@ class Calls:
         commit_first: bool,
         stored: bool,
         probes: Callable[[], Probes | None],
+        listened: Callable[[], bool] = lambda: False,
     ) -> None:
         self.ref = ref
         self.name = name
@@ -254,6 +262,7 @@ class Calls:
         self.commit_first = commit_first
         self.stored = stored
         self.probes = probes
+        self.listened = listened
         self.attempt_type: type[CallAttempt] = CallAttempt
 
     def call(
@@ -311,13 +320,13 @@ class Calls:
                     loaded = ClientRecord(answered, parent, loaded=True)
                     # (a dependency's owner may be gone: it is given back at once)
                     outcome = ClientLoaded(loaded, on_status, attempt)
-                    self.hand_over(outcome, wake=parent is not None)
+                    self.hand_over(outcome, wake=parent is not None or self.listened())
         except pykka.ActorDeadError:  # this registrar stopped meanwhile: give the id back
             give_back(serving_rr, query_id, self.name)
             raise DIRECTORY.gone_error(self.name) from None
         except BaseException:  # the caller stops waiting (KeyboardInterrupt, ...)
             attempt.withdraw()
-            self.withdraw(reply, attempt)
+            self.withdraw(reply, attempt, "interrupted")
             raise
         if withdrawn:
             self.withdraw(reply, attempt)
@@ -355,7 +364,7 @@ class Calls:
             reply.set_error(exc, sent=False)
         return True
 
-    def withdraw(self, reply: ClientReply, attempt: CallAttempt) -> None:
+    def withdraw(self, reply: ClientReply, attempt: CallAttempt, why: str = "timeout") -> None:
         """Take back a call whose caller stopped waiting: leave nothing behind (rule 17).
 
         The caller withdrew `attempt`, so an answer that comes later is dropped (or, for a
@@ -369,9 +378,15 @@ class Calls:
             probes.fire("withdraw", reply.query())
         give_back(reply.serving_rr, reply.query_id, self.name)
         with contextlib.suppress(pykka.ActorDeadError):  # after: a crash in between keeps
-            self.hand_over(
-                CallFailed(reply.query_id, attempt, withdrawn=True), wake=True
-            )  # the record
+            withdrawn = CallFailed(
+                reply.query_id,
+                attempt,
+                withdrawn=True,
+                provider=reply.serving_rr,
+                server=reply.server,
+                why=why,
+            )
+            self.hand_over(withdrawn, wake=True)  # the record
 
     def hand_over(self, outcome: Outcome, *, wake: bool) -> None:
         """Give the registrar actor a call's `outcome` to record (any thread).

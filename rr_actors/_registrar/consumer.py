@@ -30,6 +30,7 @@ import pykka
 from rr_actors._catalog import ClientRecord, ResourceState
 from rr_actors._core.directory import Reply
 from rr_actors._core.replies import Join
+from rr_actors._registrar import outcomes
 from rr_actors._registrar.calls import AttemptState, CallAttempt, DueAnswers
 from rr_actors._registrar.display import ClientTexts
 from rr_actors._registrar.endpoints import ClientActor, Clients
@@ -136,12 +137,16 @@ class Consumer:
 
     # -- holding and forgetting queries -----------------------------------------------
 
-    def forget(self, query_id: str, *, commit: bool = True) -> None:
+    def forget(self, query_id: str, *, commit: bool = True, reason: str = "unload") -> None:
         """Forget a query this registrar held: its record and its status callback.
 
         With `commit=False` the caller commits (once, after forgetting several).
+        `reason` is what its `QueryForgotten` says (an answered one's only).
         """
-        if query_id in self.registrar.catalog.clients:
+        record = self.registrar.catalog.clients.get(query_id)
+        if record is not None:
+            if record.loaded:
+                outcomes.forgotten(self.registrar, record.query, reason)
             self.registrar.catalog.remove_client(query_id)
             self.status_callbacks.pop(query_id, None)
             self.answered_in.pop(query_id, None)
@@ -171,7 +176,16 @@ class Consumer:
             attempt = self.pending_attempts.pop(record.query.id, None)
             if record.parent is None and not record.loaded and attempt is not None:
                 give_back(record.query.serving_rr, record.query.id, self.registrar.name)
-                self.on_call_failed(CallFailed(record.query.id, attempt, withdrawn=True))
+                self.on_call_failed(
+                    CallFailed(
+                        record.query.id,
+                        attempt,
+                        withdrawn=True,
+                        provider=record.query.serving_rr,
+                        server=record.query.server,
+                        why="registrar stopped",
+                    )
+                )
                 attempt.fail(error)
 
     def release_dependencies(self, rid: str, then: Callable[[], None]) -> None:
@@ -195,7 +209,7 @@ class Consumer:
                 logger.warning("releasing %s at %s failed: %s", query.id, query.serving_rr, error)
             if isinstance(error, GONE):
                 self.unreleased[query.id] = query.serving_rr
-            self.forget(query.id)
+            self.forget(query.id, reason="stop" if record.parent is None else "dependency")
             then()
 
         self.releasing.add(query.id)
@@ -236,6 +250,8 @@ class Consumer:
     def record_answer(self, message: ClientLoaded) -> None:
         catalog = self.registrar.catalog
         query = message.record.query
+        held = catalog.clients.get(query.id)
+        retry = query.id in self.unsettled or (held is not None and held.loaded)
         self.unsettled.pop(query.id, None)  # (a retry of a call that failed as it died)
         ours = self.pending_attempts.get(query.id) is message.attempt  # (not a same-id retry's)
         if ours:
@@ -252,6 +268,8 @@ class Consumer:
                 self.drop_answer(message, withdrawn=withdrawn, ours=ours)
                 return
             if self.owner_gone(message.record):
+                outcomes.answered(self.registrar, message.record, retry=retry)
+                outcomes.forgotten(self.registrar, query, "late dependency")
                 self.give_back_late_dependency(message)
                 return
             if message.answer_after_commit and self.unstorable(message):
@@ -265,8 +283,10 @@ class Consumer:
             if failed is not None and message.answer_after_commit:  # durable: not kept
                 give_back(query.serving_rr, query.id, self.registrar.name)
                 self.forget(query.id)
+                outcomes.refused(self.registrar, query, failed)
                 message.attempt.settle(error=failed)
                 return
+            outcomes.answered(self.registrar, message.record, retry=retry)
             self.answered_in[query.id] = self.epoch  # (a reconcile's list left before?)
             if message.on_status is not None:
                 self.status_callbacks[query.id] = message.on_status
@@ -291,7 +311,11 @@ class Consumer:
             error = RegistrarStoppedError(
                 f"registrar {self.registrar.name!r} stopped during the call"
             )
+            outcomes.refused(self.registrar, query, error)
             message.attempt.settle(error=error)
+        elif not withdrawn:  # a plain call: its caller has the answer, given back here
+            outcomes.answered(self.registrar, message.record, retry=False)
+            outcomes.forgotten(self.registrar, query, "registrar stopped")
 
     def unstorable(self, message: ClientLoaded) -> bool:
         """A durable call's response this catalog cannot store: give it back, fail the call.
@@ -303,6 +327,7 @@ class Consumer:
             check_picklable(query.response, f"the response of '{query.serving_rr}/{query.server}'")
         except ConfigError as exc:
             self.drop_pending(query)
+            outcomes.refused(self.registrar, query, exc)
             message.attempt.settle(error=exc)
             return True
         return False
@@ -338,6 +363,12 @@ class Consumer:
             message.attempt.settle(query.response)
 
     def on_call_failed(self, message: CallFailed) -> None:
+        known = self.registrar.catalog.clients.get(message.query_id)
+        outcomes.failed(
+            self.registrar,
+            message,
+            retry=message.query_id in self.unsettled or (known is not None and known.loaded),
+        )
         current = self.pending_attempts.get(message.query_id)
         if current is message.attempt:
             del self.pending_attempts[message.query_id]
@@ -352,7 +383,7 @@ class Consumer:
             elif record is not None and record.loaded and not message.withdrawn:
                 pass  # a failed retry of an id this registrar holds: it still holds it
             elif record is not None:
-                self.forget(message.query_id)
+                self.forget(message.query_id, reason="withdrawn")
         finally:
             self.answered(message.query_id, message.attempt)
 
@@ -396,7 +427,7 @@ class Consumer:
         if self.parked(message):
             return
         for query_id in message.query_ids:
-            self.forget(query_id, commit=False)
+            self.forget(query_id, commit=False, reason="revoked")
         self.registrar.commit()
 
     def on_response_updated(self, message: ResponseUpdated) -> None:
@@ -521,7 +552,7 @@ class Consumer:
         consumer asked to release it). Returns the error for the caller, which says so.
         """
         self.unreleased[query.id] = query.serving_rr
-        self.forget(query.id)
+        self.forget(query.id, reason="unload unanswered")
         kind = (
             RegistrarStoppedError
             if isinstance(error, RegistrarStoppedError)

@@ -110,6 +110,7 @@ class ResourceRegistrar:
             commit_first=config.save_on_modify and config.backup_path is not None,
             stored=config.backup_path is not None,
             probes=lambda: self._probes,
+            listened=lambda: launched.published.active,
         )
 
     @property

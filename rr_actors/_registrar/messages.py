@@ -315,6 +315,10 @@ class CallFailed:
     withdrawn: bool = False  # given up by its caller, who told the provider an Abandon first
     serving_rr: str | None = None  # set if it failed as its provider died or stopped: it
     # may have executed, and a retry with the same id may come (held until reconciled)
+    provider: str = ""  # the call's provider and server, and what it failed with (events)
+    server: str = ""
+    error: BaseException | None = None
+    why: str = "timeout"  # of a withdrawal: "timeout", "interrupted", "registrar stopped"
 
 
 @dataclasses.dataclass(frozen=True)

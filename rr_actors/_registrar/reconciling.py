@@ -159,7 +159,7 @@ class Reconciling:
                 server,
                 len(ids),
             )
-            self.report_lost(f"{serving_rr}/{server}", tuple(ids))
+            self.report_lost(f"{serving_rr}/{server}", tuple(ids), forgotten="unknown at reconcile")
 
     def lose_provider(self, serving_rr: str) -> None:
         """Provider `serving_rr` is gone and nobody will restart it (rule 19): the ids
@@ -183,6 +183,7 @@ class Reconciling:
                 f"{serving_rr}/{server}",
                 tuple(ids),
                 "the provider is gone and nobody will restart it",
+                forgotten="provider lost",
             )
 
     def report_lost(
@@ -190,12 +191,14 @@ class Reconciling:
         source: str,
         ids: tuple[str, ...],
         why: str = "the provider no longer knows this query (it lost it in a restart)",
+        *,
+        forgotten: str,
     ) -> None:
         """`FATAL` to the status callbacks of `ids` (and up their dependents), then forget them.
 
         Delivered as a provider's `StatusNotice` would be (rule 9), on this thread: the
         callbacks and the dependents it reaches are taken from the records before they
-        are forgotten, right after.
+        are forgotten, right after. `forgotten` is the reason their `QueryForgotten` says.
         """
         notice = StatusNotice(
             ids,
@@ -208,5 +211,5 @@ class Reconciling:
         )
         self.redeliver(notice)
         for query_id in ids:
-            self.consumer.forget(query_id, commit=False)
+            self.consumer.forget(query_id, commit=False, reason=forgotten)
         self.registrar.commit()

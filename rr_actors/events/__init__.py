@@ -28,6 +28,9 @@ import logging
 
 from rr_actors._core.bus import Publisher
 from rr_actors.events.kinds import (
+    CallAnswered,
+    CallFailed,
+    CallWithdrawn,
     CatalogRestored,
     ChildExited,
     ChildRestarted,
@@ -38,6 +41,7 @@ from rr_actors.events.kinds import (
     EventsDropped,
     InDoubt,
     LoadFailed,
+    QueryForgotten,
     RegistrarStopped,
     ResourceLoaded,
     ResourceUnloaded,
@@ -49,6 +53,9 @@ from rr_actors.events.lines import from_dict, to_dict
 from rr_actors.events.text import describe
 
 __all__ = [
+    "CallAnswered",
+    "CallFailed",
+    "CallWithdrawn",
     "CatalogRestored",
     "ChildExited",
     "ChildRestarted",
@@ -59,6 +66,7 @@ __all__ = [
     "EventsDropped",
     "InDoubt",
     "LoadFailed",
+    "QueryForgotten",
     "RegistrarStopped",
     "ResourceLoaded",
     "ResourceUnloaded",

@@ -19,6 +19,9 @@ from rr_actors._types import Status
 
 __all__ = [
     "LISTED_ROWS",
+    "CallAnswered",
+    "CallFailed",
+    "CallWithdrawn",
     "CatalogRestored",
     "ChildExited",
     "ChildRestarted",
@@ -29,6 +32,7 @@ __all__ = [
     "EventsDropped",
     "InDoubt",
     "LoadFailed",
+    "QueryForgotten",
     "RegistrarStopped",
     "ResourceLoaded",
     "ResourceUnloaded",
@@ -359,6 +363,152 @@ class ConsumerReleased:
     seq: int = _numbered()
 
 
+# -- consumer side --------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class CallAnswered:
+    """A consumer's call was answered and the consumer holds its query id now.
+
+    Published by the consumer registrar when it recorded the answer (a durable one
+    committed, before its caller is answered; a plain one when the caller handed it
+    over). The provider published its [`ConsumerAdded`][rr_actors.events.ConsumerAdded]
+    before it answered. The id is held until a
+    [`QueryForgotten`][rr_actors.events.QueryForgotten] of it.
+
+    Attributes:
+        registrar: name of the consumer registrar.
+        query_id: the call's query id.
+        serving_rr: name of the provider registrar.
+        server: name of the resource server there.
+        parent: the resource of this registrar the query is a dependency of (the
+            `resource_id` of its `ResourceLoaded`: the call was made inside that
+            resource's `load`, rule 5), `None` for a call of its own.
+        retry: the consumer already knew this id: it held it, or an earlier call with it
+            failed as its provider died (rule 17); the answer adds no second consumer.
+        at: when the answer was recorded, wall clock (`time.time()` seconds).
+        pid: the consumer registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
+    """
+
+    registrar: str
+    query_id: str
+    serving_rr: str
+    server: str
+    parent: str | None = None
+    retry: bool = False
+    _: dataclasses.KW_ONLY
+    at: float = _now()
+    pid: int = _this_process()
+    seq: int = _numbered()
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class CallFailed:
+    """A consumer's call failed: its caller got an error, and holds no query id.
+
+    Published by the consumer registrar when it handled the failure (a withdrawn call
+    is a [`CallWithdrawn`][rr_actors.events.CallWithdrawn] instead).
+
+    Attributes:
+        registrar: name of the consumer registrar.
+        query_id: the call's query id.
+        serving_rr: name of the provider registrar.
+        server: name of the resource server there.
+        error_type: the error's type name (`RegistrarUnavailableError`, ...).
+        message: the error's message.
+        may_have_executed: the provider died or stopped with the call in flight: it may
+            have run the load and kept the id (rule 17). The consumer keeps the id until
+            it reconciled with the provider's next start (whose unknown ids it releases)
+            and a retry with the same id finds what it holds. `False`: the provider holds
+            nothing for it (an error answer, or an answer given back).
+        retry: the consumer already knew this id (see `CallAnswered.retry`).
+        at: when the failure was handled, wall clock (`time.time()` seconds).
+        pid: the consumer registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
+    """
+
+    registrar: str
+    query_id: str
+    serving_rr: str
+    server: str
+    error_type: str
+    message: str
+    may_have_executed: bool = False
+    retry: bool = False
+    _: dataclasses.KW_ONLY
+    at: float = _now()
+    pid: int = _this_process()
+    seq: int = _numbered()
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class CallWithdrawn:
+    """A consumer's call was given up before its answer: nothing is left of it (rule 17).
+
+    Published by the consumer registrar after the caller told the provider to give the
+    id back (an answer that comes later is released there).
+
+    Attributes:
+        registrar: name of the consumer registrar.
+        query_id: the call's query id.
+        serving_rr: name of the provider registrar.
+        server: name of the resource server there.
+        reason: `"timeout"` (its `timeout` ran out: `CallTimeoutError`),
+            `"interrupted"` (its caller stopped waiting with an exception) or
+            `"registrar stopped"` (the consumer was stopped with the call in flight).
+        at: when the withdrawal was handled, wall clock (`time.time()` seconds).
+        pid: the consumer registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
+    """
+
+    registrar: str
+    query_id: str
+    serving_rr: str
+    server: str
+    reason: str = "timeout"
+    _: dataclasses.KW_ONLY
+    at: float = _now()
+    pid: int = _this_process()
+    seq: int = _numbered()
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class QueryForgotten:
+    """A consumer forgot a query id it held (one a `CallAnswered` or a restore gave it).
+
+    Published by the consumer registrar when it removed the id's client record.
+
+    Attributes:
+        registrar: name of the consumer registrar.
+        query_id: the forgotten query id.
+        serving_rr: name of the provider registrar that served it.
+        reason: why: `"unload"` (its `unload`, answered by the provider),
+            `"unload unanswered"` (its `unload`, while the provider died or stopped: the
+            provider releases it when it reconciles), `"dependency"` (released with the
+            resource of this registrar it belonged to), `"stop"` (released by `stop()`),
+            `"revoked"` (the provider's server was unregistered: `FATAL`, then revoked),
+            `"provider lost"` (the provider is gone for good, rule 19: `FATAL`),
+            `"unknown at reconcile"` (the provider's restart lost it, rule 20:
+            `FATAL`), `"late dependency"` (answered after the load that made it had
+            failed or was unloading: given back at once), `"registrar stopped"`
+            (answered while this registrar stopped: given back) or `"withdrawn"` (a
+            retry of it was given up by its caller).
+        at: when it was forgotten, wall clock (`time.time()` seconds).
+        pid: the consumer registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
+    """
+
+    registrar: str
+    query_id: str
+    serving_rr: str
+    reason: str
+    _: dataclasses.KW_ONLY
+    at: float = _now()
+    pid: int = _this_process()
+    seq: int = _numbered()
+
+
 # -- status ---------------------------------------------------------------------------------
 
 
@@ -584,6 +734,10 @@ Event: TypeAlias = (
     | ResourceUnloaded
     | ConsumerAdded
     | ConsumerReleased
+    | CallAnswered
+    | CallFailed
+    | CallWithdrawn
+    | QueryForgotten
     | StatusSent
     | StatusDelivered
     | InDoubt

@@ -5,6 +5,9 @@ from __future__ import annotations
 import typing
 
 from rr_actors.events.kinds import (
+    CallAnswered,
+    CallFailed,
+    CallWithdrawn,
     CatalogRestored,
     ChildExited,
     ChildRestarted,
@@ -15,6 +18,7 @@ from rr_actors.events.kinds import (
     EventsDropped,
     InDoubt,
     LoadFailed,
+    QueryForgotten,
     RegistrarStopped,
     ResourceLoaded,
     ResourceUnloaded,
@@ -73,6 +77,30 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
             return (
                 f"{event.registrar}: {event.consumer} released {_id(event.resource_id)} "
                 f"(query {_id(event.query_id)}{why})"
+            )
+        case CallAnswered():
+            of = "" if event.parent is None else f" for {_id(event.parent)}"
+            again = ", a retry" if event.retry else ""
+            return (
+                f"{event.registrar}: call {_id(event.query_id)} to "
+                f"{event.serving_rr}/{event.server} answered{of}{again}"
+            )
+        case CallFailed():
+            maybe = " (it may have executed: held until reconciled)" * event.may_have_executed
+            return (
+                f"{event.registrar}: call {_id(event.query_id)} to "
+                f"{event.serving_rr}/{event.server} failed{maybe}: {event.error_type}: "
+                f"{_text(event.message)}"
+            )
+        case CallWithdrawn():
+            return (
+                f"{event.registrar}: call {_id(event.query_id)} to "
+                f"{event.serving_rr}/{event.server} withdrawn ({event.reason})"
+            )
+        case QueryForgotten():
+            return (
+                f"{event.registrar} forgot query {_id(event.query_id)} held at "
+                f"{event.serving_rr} ({event.reason})"
             )
         case StatusSent():
             return (

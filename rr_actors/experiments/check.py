@@ -21,6 +21,13 @@ checked):
 - `restore-first`: a registrar with a backup publishes `CatalogRestored` before any
   other event of each of its incarnations.
 - `status-once`: a status send (its `status_id`) reaches each holder once per path.
+- `status-path`: each delivery of a status is on a dependency path from its send: a
+  direct consumer of the resource it was sent about (hop 1), or a consumer of a resource
+  one of whose dependencies got it one hop before (the dependency's `CallAnswered.parent`).
+- `answered`: from the consumer's side, an answered call (`CallAnswered`) is held until
+  it is forgotten (`QueryForgotten`, with why) or listed when its registrar stops; it is
+  not answered twice but as a retry; its provider added it (`ConsumerAdded`); nothing
+  is forgotten that was not held.
 - `end`: nothing is held at the end by a consumer that stopped (`RegistrarStopped`).
 - `events`: no event was lost (an `EventsDropped`, a gap in a process's `seq`); a loss
   makes the findings about the registrars of that process unverifiable.
@@ -57,7 +64,17 @@ Line = tuple[int, events.Event]
 
 Kind = Literal["violation", "unverifiable"]
 
-RULES = ("held", "unload-once", "dedup", "restore-first", "status-once", "end", "events")
+RULES = (
+    "held",
+    "unload-once",
+    "dedup",
+    "restore-first",
+    "status-once",
+    "status-path",
+    "answered",
+    "end",
+    "events",
+)
 """The rules `check` checks, by name (see the module docstring)."""
 
 
@@ -356,6 +373,168 @@ def _status_rule(history: Sequence[Line]) -> list[Finding]:
     return findings
 
 
+@dataclasses.dataclass
+class _Paths:
+    """Who holds what, from the whole run (ids are UUIDs: unique across registrars)."""
+
+    held_at: dict[str, tuple[str, str, int]] = dataclasses.field(default_factory=dict)
+    # query id -> (provider, resource id, line of the ConsumerAdded or restored row)
+    parent: dict[tuple[str, str], str] = dataclasses.field(default_factory=dict)
+    # (consumer, query id) -> the consumer's resource it is a dependency of
+    sent: dict[str, str] = dataclasses.field(default_factory=dict)  # status id -> query id
+    reported: set[tuple[str, str]] = dataclasses.field(default_factory=set)
+    # (consumer, query id) told FATAL by its consumer itself (its provider lost it)
+
+
+_REPORTED = ("provider lost", "unknown at reconcile")
+"""`QueryForgotten` reasons whose `FATAL` the consumer delivers itself (no `StatusSent`)."""
+
+
+def _paths(history: Sequence[Line]) -> _Paths:
+    paths = _Paths()
+    for line, event in history:
+        match event:
+            case events.ConsumerAdded():
+                paths.held_at.setdefault(event.query_id, (event.registrar, event.resource_id, line))
+            case events.CatalogRestored() | events.RegistrarStopped():
+                for qid, rid, *_ in event.consumers:
+                    paths.held_at.setdefault(qid, (event.registrar, rid, line))
+                for qid, _serving, _server, parent, *_ in event.clients:
+                    if parent:
+                        paths.parent[event.registrar, qid] = parent
+            case events.CallAnswered() if event.parent is not None:
+                paths.parent[event.registrar, event.query_id] = event.parent
+            case events.StatusSent() if event.status_id:
+                paths.sent[event.status_id] = event.query_id
+            case events.QueryForgotten() if event.reason in _REPORTED:
+                paths.reported.add((event.registrar, event.query_id))
+            case _:
+                pass
+    return paths
+
+
+def _status_path_rule(history: Sequence[Line]) -> list[Finding]:
+    """`status-path`: each delivery of a status is on a dependency path from its send."""
+    paths = _paths(history)
+    # (status id, registrar, hop) -> the resources of that registrar it climbed to
+    climbed: dict[tuple[str, str, int], set[str]] = defaultdict(set)
+    for _, event in history:
+        if isinstance(event, events.StatusDelivered) and event.status_id:
+            parent = paths.parent.get((event.registrar, event.query_id))
+            if parent is not None:
+                climbed[event.status_id, event.registrar, event.hop].add(parent)
+    findings: list[Finding] = []
+    for line, event in history:
+        if not isinstance(event, events.StatusDelivered) or not event.status_id:
+            continue
+        holder = paths.held_at.get(event.query_id)
+        if holder is None:
+            continue  # (whose it is, the run does not say)
+        provider, rid, added = holder
+        message = _off_path(event, provider, rid, paths, climbed)
+        if message is None:
+            continue
+        findings.append(
+            Finding(
+                "status-path",
+                "violation",
+                f"{event.registrar}: status {event.status_id[:8]} ({event.status.name}) "
+                f"reached query "
+                f"{event.query_id[:8]} at hop {event.hop} off any path: {message}",
+                (added, line),
+                (event.registrar, provider),
+            )
+        )
+    return findings
+
+
+def _off_path(
+    event: events.StatusDelivered,
+    provider: str,
+    rid: str,
+    paths: _Paths,
+    climbed: dict[tuple[str, str, int], set[str]],
+) -> str | None:
+    """Why delivery `event` (of an id held at `provider`'s `rid`) is on no path, or `None`."""
+    if event.hop > 1:
+        if rid in climbed.get((event.status_id, provider, event.hop - 1), ()):
+            return None
+        return f"no dependency of {rid[:8]} got it at {provider} one hop before"
+    if (event.registrar, event.query_id) in paths.reported:
+        return None  # its consumer told it FATAL itself (rules 19, 20)
+    about = paths.sent.get(event.status_id)
+    if about is None:
+        return f"no StatusSent at {provider}"
+    if about in paths.held_at and paths.held_at[about][:2] != (provider, rid):
+        return f"it was sent about {paths.held_at[about][1][:8]}, not {rid[:8]}"
+    return None
+
+
+def _answered_rule(history: Sequence[Line]) -> list[Finding]:
+    """`answered`: the consumer's side of each call, against what it and its provider say."""
+    findings: list[Finding] = []
+    added = {
+        qid
+        for _, e in history
+        if isinstance(e, events.CatalogRestored | events.RegistrarStopped)
+        for qid, *_ in e.consumers
+    }
+    added |= {e.query_id for _, e in history if isinstance(e, events.ConsumerAdded)}
+    held: dict[str, dict[str, int]] = defaultdict(dict)  # consumer -> answered id -> line
+    restored: dict[str, set[str]] = defaultdict(set)  # consumer -> ids its restore listed
+
+    def found(message: str, lines: tuple[int, ...], *registrars: str) -> None:
+        findings.append(Finding("answered", "violation", message, lines, registrars))
+
+    for name, line, event, new in _incarnations(history):
+        if new:
+            held[name].clear()
+            restored[name].clear()
+        match event:
+            case events.CatalogRestored():
+                restored[name] = {row[0] for row in event.clients}
+            case events.CallAnswered():
+                qid = event.query_id
+                if qid in held[name] and not event.retry:
+                    found(
+                        f"{name}: call {qid[:8]} answered twice, not as a retry",
+                        (held[name][qid], line),
+                        name,
+                    )
+                if qid not in added:
+                    found(
+                        f"{name}: call {qid[:8]} answered, but {event.serving_rr} never "
+                        f"added it (no ConsumerAdded)",
+                        (line,),
+                        name,
+                        event.serving_rr,
+                    )
+                held[name].setdefault(qid, line)
+            case events.QueryForgotten():
+                qid = event.query_id
+                if held[name].pop(qid, None) is None and qid not in restored[name]:
+                    found(
+                        f"{name}: query {qid[:8]} forgotten ({event.reason}) but not held",
+                        (line,),
+                        name,
+                    )
+                restored[name].discard(qid)
+            case events.RegistrarStopped() if event.complete:
+                listed = {row[0] for row in event.clients}
+                for qid, at in held[name].items():
+                    if qid not in listed:
+                        found(
+                            f"{name}: call {qid[:8]} answered, but at its stop neither "
+                            f"forgotten nor listed",
+                            (at, line),
+                            name,
+                        )
+                held[name].clear()
+            case _:
+                pass
+    return findings
+
+
 def _end_rule(history: Sequence[Line]) -> list[Finding]:  # noqa: PLR0912 - one branch per event kind
     """`end`: at the end, no provider holds an id of a consumer that stopped."""
     stopped: dict[str, int] = {}  # consumer -> line of its (last) RegistrarStopped
@@ -456,7 +635,13 @@ def check(history: Sequence[Line]) -> Verdict:
     lossy_registrars = {
         _registrar_of(e) for _, e in history if e.pid in lossy and _registrar_of(e) is not None
     }
-    found = _provider_rules(history) + _status_rule(history) + _end_rule(history)
+    found = [
+        *_provider_rules(history),
+        *_status_rule(history),
+        *_status_path_rule(history),
+        *_answered_rule(history),
+        *_end_rule(history),
+    ]
     findings = [
         dataclasses.replace(f, kind="unverifiable", message=f"{f.message} (events were lost)")
         if f.kind == "violation" and lossy_registrars.intersection(f.registrars)

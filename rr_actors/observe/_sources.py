@@ -166,6 +166,10 @@ def _touched(event: events.Event) -> tuple[str, ...] | None:
             | events.LoadFailed()
             | events.ResourceUnloaded()
             | events.InDoubt()
+            | events.CallAnswered()
+            | events.CallFailed()
+            | events.CallWithdrawn()
+            | events.QueryForgotten()
         ):
             return (event.registrar,)
         case events.ChildStarted() | events.ChildRestarted() | events.ChildExited():

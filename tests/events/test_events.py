@@ -36,6 +36,12 @@ EXAMPLES: list[events.Event] = [
     events.ResourceUnloaded("erm", "start_process", RID),
     events.ConsumerAdded("erm", RID, QID, "cm"),
     events.ConsumerReleased("erm", RID, QID, "cm", "death watch"),
+    events.CallAnswered("cm", QID, "erm", "start_process", RID, retry=True),
+    events.CallFailed(
+        "cm", QID, "erm", "start_process", "RegistrarUnavailableError", "it died", True
+    ),
+    events.CallWithdrawn("cm", QID, "erm", "start_process", "timeout"),
+    events.QueryForgotten("cm", QID, "erm", "provider lost"),
     events.StatusSent("erm", QID, rr.Status.FATAL, "process died"),
     events.StatusDelivered("cm", QID, rr.Status.FATAL, 2, 0.0012),
     events.InDoubt("erm", QID, "start_process", "unload"),

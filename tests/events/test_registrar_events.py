@@ -3,18 +3,30 @@
 from __future__ import annotations
 
 import logging
+import os
+import signal
+import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import cloudpickle
 import pytest
+from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._registrar import start_registrar
-from rr_actors.testing import crash, expect_restart
+from rr_actors.testing import (
+    RemoteRegistrar,
+    SharedObjects,
+    System,
+    crash,
+    expect_restart,
+    start_forkserver,
+)
 
 
 class Heard:
@@ -242,3 +254,238 @@ def test_with_nobody_listening_no_event_is_built(
     consumer.unload(query.id)
 
     assert [] == built
+
+
+# -- the consumer's side of a call ----------------------------------------------------------
+
+
+def _answered_then_forgotten(heard: Heard, query_id: str) -> list[str]:
+    """The consumer events about `query_id`, by kind, in the order they were published."""
+    consumer_kinds = (
+        events.CallAnswered,
+        events.CallFailed,
+        events.CallWithdrawn,
+        events.QueryForgotten,
+    )
+    with heard.lock:
+        return [
+            type(e).__name__
+            for e in heard.events
+            if isinstance(e, consumer_kinds) and e.query_id == query_id
+        ]
+
+
+@pytest.mark.parametrize("durable", [False, True], ids=["plain", "durable"])
+def test_a_call_answered_and_its_unload_are_published_by_the_consumer_in_order(
+    started: Any, tmp_path: Path, durable: bool
+) -> None:
+    provider = started("erm")
+    backup = {"backup_path": tmp_path / "app.db", "save_on_modify": True} if durable else {}
+    consumer = started("app", **backup)
+    provider.register_server("cam", load=lambda r: r, unload=lambda _q, _r: None)
+    heard = Heard()
+    with consumer.subscribe(heard) as subscription:
+        query = consumer.call(provider.name, "cam", 1)
+        again = consumer.call(provider.name, "cam", 1, query_id=query.id)  # a retry
+        consumer.unload(query.id)
+        assert subscription.wait_delivered(timeout=5)
+
+    assert ["CallAnswered", "CallAnswered", "QueryForgotten"] == _answered_then_forgotten(
+        heard, query.id
+    )
+    first, retried = heard.of(events.CallAnswered)
+    assert (consumer.name, query.id, provider.name, "cam", None, False) == (
+        first.registrar,
+        first.query_id,
+        first.serving_rr,
+        first.server,
+        first.parent,
+        first.retry,
+    )
+    assert (again.id, True) == (retried.query_id, retried.retry)
+    [forgotten] = heard.of(events.QueryForgotten)
+    assert (provider.name, "unload") == (forgotten.serving_rr, forgotten.reason)
+
+
+def test_a_dependency_answered_names_the_resource_it_belongs_to(started: Any) -> None:
+    erm, cm, app = started("erm"), started("cm"), started("app")
+    erm.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
+    cm.register_server(
+        "comp", load=lambda r: cm.call(erm.name, "leaf", r).id, unload=lambda _q, _r: None
+    )
+    heard = Heard()
+    with cm.subscribe(heard) as subscription:
+        top = app.call(cm.name, "comp", "x")
+        app.unload(top.id)
+        assert subscription.wait_delivered(timeout=5)
+
+    [loaded] = heard.of(events.ResourceLoaded)
+    [dependency] = heard.of(events.CallAnswered)
+    assert (cm.name, erm.name, "leaf", loaded.resource_id) == (
+        dependency.registrar,
+        dependency.serving_rr,
+        dependency.server,
+        dependency.parent,
+    )
+    [forgotten] = heard.of(events.QueryForgotten)  # released with its resource
+    assert (dependency.query_id, "dependency") == (forgotten.query_id, forgotten.reason)
+
+
+def test_a_call_that_times_out_is_published_as_withdrawn(started: Any) -> None:
+    provider, consumer = started("erm"), started("app")
+    gate = threading.Event()
+    provider.register_server("slow", load=lambda r: gate.wait(10) and r, unload=lambda _q, _r: None)
+    heard = Heard()
+    with consumer.subscribe(heard) as subscription:
+        with pytest.raises(rr.CallTimeoutError):
+            consumer.call(provider.name, "slow", 1, timeout=0.2)
+        gate.set()
+        consumer.client_queries()  # (a round trip: the withdrawal was handled)
+        assert subscription.wait_delivered(timeout=5)
+
+    [withdrawn] = heard.of(events.CallWithdrawn)
+    assert (consumer.name, provider.name, "slow", "timeout") == (
+        withdrawn.registrar,
+        withdrawn.serving_rr,
+        withdrawn.server,
+        withdrawn.reason,
+    )
+    assert [] == heard.of(events.CallAnswered) + heard.of(events.CallFailed)
+
+
+def test_a_failed_load_is_a_call_failed_that_did_not_execute_at_the_consumer(
+    started: Any,
+) -> None:
+    provider, consumer = started("erm"), started("app")
+
+    def load(request: Any) -> Any:
+        raise ValueError(f"no device {request}")
+
+    provider.register_server("cam", load=load, unload=lambda _q, _r: None)
+    heard = Heard()
+    with consumer.subscribe(heard) as subscription:
+        with pytest.raises(rr.ResourceLoadError):
+            consumer.call(provider.name, "cam", 7)
+        consumer.client_queries()
+        assert subscription.wait_delivered(timeout=5)
+
+    [failed] = heard.of(events.CallFailed)
+    assert ("cam", "ResourceLoadError", False) == (
+        failed.server,
+        failed.error_type,
+        failed.may_have_executed,
+    )
+
+
+def test_a_revoked_id_is_published_as_forgotten_after_its_answer(started: Any) -> None:
+    provider, consumer = started("erm"), started("app")
+    provider.register_server("cam", load=lambda r: r, unload=lambda _q, _r: None)
+    heard = Heard()
+    with consumer.subscribe(heard) as subscription:
+        query = consumer.call(provider.name, "cam", 1)
+        provider.unregister_server("cam")  # FATAL, then the id is revoked
+        assert wait_for(lambda: bool(heard.of(events.QueryForgotten)), 5)
+        assert subscription.wait_delivered(timeout=5)
+
+    assert ["CallAnswered", "QueryForgotten"] == _answered_then_forgotten(heard, query.id)
+    [forgotten] = heard.of(events.QueryForgotten)
+    assert "revoked" == forgotten.reason
+    assert [rr.Status.FATAL] == [e.status for e in heard.of(events.StatusDelivered)]
+
+
+# -- the consumer's side, with a provider in a process of its own ---------------------------
+
+
+@pytest.fixture
+def system() -> Iterator[System]:
+    start_forkserver()
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    made = System.create()
+    yield made
+    made.close()
+    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+
+
+def _slow_setup(entered: Any) -> Callable[[rr.ResourceRegistrar], None]:
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        def load(request: Any) -> Any:
+            if request == "slow":
+                entered.set()
+                threading.Event().wait(60)  # until the SIGKILL
+            return request
+
+        registrar.register_server("cam", load=load, unload=lambda _q, _r: None)
+
+    return setup
+
+
+def test_a_call_whose_provider_is_killed_mid_load_failed_and_may_have_executed(
+    system: System, process_helpers: SharedObjects
+) -> None:
+    entered = process_helpers.event()
+    provider = RemoteRegistrar.start(
+        f"erm-{uuid.uuid4().hex[:8]}", system, setup=_slow_setup(entered)
+    )
+    consumer = rr.ResourceRegistrar.start(f"app-{uuid.uuid4().hex[:8]}", network=system)
+    heard = Heard()
+    subscription = consumer.subscribe(heard)
+    outcome: list[BaseException] = []
+
+    def call() -> None:
+        try:
+            consumer.call(provider.name, "cam", "slow", timeout=30)
+        except rr.RrError as exc:
+            outcome.append(exc)
+
+    caller = threading.Thread(target=call)
+    try:
+        caller.start()
+        assert entered.wait(10)
+        assert provider.pid is not None
+        os.kill(provider.pid, signal.SIGKILL)
+        caller.join(15)
+        provider.kill()
+        consumer.client_queries()  # (a round trip: the failure was handled)
+        assert subscription.wait_delivered(timeout=5)
+    finally:
+        subscription.close()
+        consumer.stop()
+
+    assert [rr.RegistrarUnavailableError] == [type(e) for e in outcome]
+    [failed] = heard.of(events.CallFailed)
+    assert (consumer.name, provider.name, "cam", "RegistrarUnavailableError", True) == (
+        failed.registrar,
+        failed.serving_rr,
+        failed.server,
+        failed.error_type,
+        failed.may_have_executed,
+    )
+
+
+def test_ids_held_at_a_provider_lost_for_good_are_published_as_forgotten(
+    system: System, process_helpers: SharedObjects
+) -> None:
+    entered = process_helpers.event()
+    provider = RemoteRegistrar.start(
+        f"erm-{uuid.uuid4().hex[:8]}", system, setup=_slow_setup(entered)
+    )
+    consumer = rr.ResourceRegistrar.start(f"app-{uuid.uuid4().hex[:8]}", network=system)
+    heard = Heard()
+    subscription = consumer.subscribe(heard)
+    try:
+        query = consumer.call(provider.name, "cam", "camera", timeout=10)
+        assert provider.pid is not None
+        os.kill(provider.pid, signal.SIGKILL)
+        assert wait_for(lambda: bool(heard.of(events.QueryForgotten)), 5)
+        provider.kill()
+        assert subscription.wait_delivered(timeout=5)
+    finally:
+        subscription.close()
+        consumer.stop()
+
+    assert ["CallAnswered", "QueryForgotten"] == _answered_then_forgotten(heard, query.id)
+    [forgotten] = heard.of(events.QueryForgotten)
+    assert (provider.name, "provider lost") == (forgotten.serving_rr, forgotten.reason)
+    assert [(query.id, rr.Status.FATAL)] == [
+        (e.query_id, e.status) for e in heard.of(events.StatusDelivered)
+    ]

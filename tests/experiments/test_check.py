@@ -83,12 +83,17 @@ def _seeded() -> dict[str, tuple[list[events.Event], set[int]]]:
             {len(h) + 1},
         ),
         "status-once": ([*h[:7], h[6], *h[7:]], {7, 8}),
+        "status-path": (  # a second hop of Q2 that no dependency of its resource explains
+            [*h[:7], events.StatusDelivered("cm", Q2, rr.Status.WARNING, 2, 0.0, "s1", pid=C)],
+            {4, 8},
+        ),
         "end": ([*h[:8], h[14]], {4, 9}),  # Q2 never released; its consumer stopped
     }
 
 
 @pytest.mark.parametrize(
-    "rule", ["held", "unload-once", "dedup", "restore-first", "status-once", "end"]
+    "rule",
+    ["held", "unload-once", "dedup", "restore-first", "status-once", "status-path", "end"],
 )
 def test_one_seeded_violation_of_each_rule_is_found_with_its_window(rule: str) -> None:
     history, window = _seeded()[rule]
@@ -120,8 +125,90 @@ def test_lost_events_make_the_run_unverifiable_not_violated() -> None:
 
 def test_a_lost_id_reported_fatal_holds() -> None:
     history, _ = _seeded()["held"]
+    answered = events.CallAnswered("cm", Q2, "erm", "cam", pid=C)
     fatal = events.StatusDelivered("cm", Q2, rr.Status.FATAL, 1, 0.0, "s9", pid=C)
-    assert "held" == check.check(numbered([*history, fatal])).verdict
+    forgotten = events.QueryForgotten("cm", Q2, "erm", "unknown at reconcile", pid=C)
+    assert "held" == check.check(numbered([*history, answered, fatal, forgotten])).verdict
+
+
+# -- the consumer's side and dependency paths ------------------------------------------------
+
+A = 300  # the top consumer's process
+
+
+def with_paths() -> list[events.Event]:
+    """erm serves leaf RID to cm's Q1, a dependency of cm's RID2, which app holds (Q2); a
+    status about the leaf climbs to app; app unloads, cm releases its dependency."""
+    return [
+        events.ConsumerAdded("erm", RID, Q1, "cm", pid=P),
+        events.CallAnswered("cm", Q1, "erm", "leaf", RID2, pid=C),
+        events.ConsumerAdded("cm", RID2, Q2, "app", pid=C),
+        events.CallAnswered("app", Q2, "cm", "comp", pid=A),
+        events.StatusSent("erm", Q1, rr.Status.ERROR, "hot", "s1", pid=P),
+        events.StatusDelivered("cm", Q1, rr.Status.ERROR, 1, 0.0, "s1", pid=C),
+        events.StatusDelivered("app", Q2, rr.Status.ERROR, 2, 0.0, "s1", pid=A),
+        events.QueryForgotten("app", Q2, "cm", "unload", pid=A),
+        events.ConsumerReleased("cm", RID2, Q2, "app", pid=C),
+        events.QueryForgotten("cm", Q1, "erm", "dependency", pid=C),
+        events.ConsumerReleased("erm", RID, Q1, "cm", pid=P),
+        events.RegistrarStopped("app", (), (), (), pid=A),
+    ]
+
+
+def test_a_history_with_the_consumer_side_and_a_dependency_path_holds() -> None:
+    verdict = check.check(numbered(with_paths()))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def _found(history: list[events.Event], rule: str) -> set[int]:
+    verdict = check.check(numbered(history))
+    assert "violated" == verdict.verdict
+    found = [f for f in verdict.findings if f.rule == rule and f.kind == "violation"]
+    assert found, verdict.findings
+    return set(found[0].lines)
+
+
+def test_a_status_that_skips_a_hop_of_its_path_is_found() -> None:
+    h = with_paths()
+    assert {3, 6} == _found(_without(h, 5), "status-path")  # cm never got it
+
+
+def test_a_status_reaching_a_consumer_of_a_resource_nothing_depends_on_is_found() -> None:
+    h = with_paths()
+    h[1] = events.CallAnswered("cm", Q1, "erm", "leaf", None, pid=C)  # not a dependency
+    assert {3, 7} == _found(h, "status-path")
+
+
+def test_a_status_reaching_a_holder_of_another_resource_is_found() -> None:
+    h = with_paths()
+    other = events.ConsumerAdded("erm", RID2, "q3", "cm", pid=P)
+    stray = events.StatusDelivered("cm", "q3", rr.Status.ERROR, 1, 0.0, "s1", pid=C)
+    assert {13, 14} == _found([*h, other, stray], "status-path")
+
+
+def test_a_call_answered_twice_is_found_unless_it_was_a_retry() -> None:
+    h = with_paths()
+    assert {2, 3} == _found([*h[:2], h[1], *h[2:]], "answered")
+    retry = events.CallAnswered("cm", Q1, "erm", "leaf", RID2, retry=True, pid=C)
+    assert "held" == check.check(numbered([*h[:2], retry, *h[2:]])).verdict
+
+
+def test_a_call_answered_that_its_provider_never_added_is_found() -> None:
+    h = with_paths()
+    assert {1} == _found(_without(h, 0), "answered")
+
+
+def test_an_answered_call_neither_forgotten_nor_listed_at_its_stop_is_found() -> None:
+    h = with_paths()
+    assert {4, 11} == _found(_without(h, 7), "answered")
+    listed = events.RegistrarStopped("app", (), (), ((Q2, "cm", "comp", ""),), pid=A)
+    assert "held" == check.check(numbered([*_without(h, 7, 11), listed])).verdict
+
+
+def test_an_id_forgotten_that_was_not_held_is_found() -> None:
+    h = with_paths()
+    again = events.QueryForgotten("app", Q2, "cm", "unload", pid=A)
+    assert {9} == _found([*h[:8], again, *h[8:]], "answered")
 
 
 # -- a real history, and rr-actors check -------------------------------------------------------
@@ -161,6 +248,7 @@ def test_a_real_history_holds_and_is_numbered(real: list[str]) -> None:
     kinds = _kinds(real)
     assert "CatalogRestored" in kinds
     assert kinds.count("RegistrarStopped") == 2
+    assert {"CallAnswered", "QueryForgotten"} <= set(kinds)  # the consumer's side
     verdict = check.check(check.read_runs(real)[0])
     assert ("held", 0) == (verdict.verdict, len(verdict.findings))
     numbers = [json.loads(x)["seq"] for x in real if json.loads(x).get("seq")]
