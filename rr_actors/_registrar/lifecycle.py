@@ -124,6 +124,9 @@ class Lifecycle:
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
         self.reconciling.expect_reconcile(providers)
+        # what it released or gave up while a provider was down is in no row: with a
+        # backup, it reconciles with every registrar of the system (rule 20)
+        self.reconciling.everyone = self.registrar.saver.store is not None
         self.settle_in_doubt()
         self.unload_unheld()
         self.arm_flush_timer()
