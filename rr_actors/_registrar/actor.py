@@ -198,7 +198,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
         asked(lambda a, m, r: a.servers.op_update_response(m.query_id, m.response, r)),
     ),
     Save: ("save", asked(lambda a, _m, r: a.lifecycle.op_save(r))),
-    Stop: ("stop", asked(lambda a, _m, r: a.lifecycle.op_stop(r))),
+    Stop: ("stop", asked(lambda a, m, r: a.lifecycle.op_stop(r, m.unloads_until))),
     Ready: ("ready", asked(lambda a, _m, r: a.lifecycle.op_ready(r))),  # setup is done
     SettleInDoubt: (
         "settle_in_doubt",

@@ -62,7 +62,17 @@ from rr_actors.errors import (
     RegistrarStoppedError,
 )
 
-__all__ = ["RegistrarFacts", "ResourceRegistrar", "snapshot", "start_registrar"]
+__all__ = [
+    "STOP_WAITS_FOR_UNLOADS",
+    "RegistrarFacts",
+    "ResourceRegistrar",
+    "snapshot",
+    "start_registrar",
+]
+
+STOP_WAITS_FOR_UNLOADS = 0.5
+"""The share of `stop()`'s timeout it waits for the unloads under way (the rest is left
+to write the backup and stop the servers): 5 s with the default `call_timeout`."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -545,9 +555,18 @@ class ResourceRegistrar:
     def stop(self, *, timeout: float | None = None) -> None:
         """Stop the registrar (rule 12).
 
-        Unloads everything it holds as a consumer (newest first), then stops its servers
-        and clients. What its servers serve stays in the catalog for a restart. With
-        `erase_on_destruct` the backup is removed. Stopping a stopped registrar is a no-op.
+        Unloads everything it holds as a consumer (newest first), waits for the unloads of
+        its own resources that are under way (their `unload` callbacks running, on worker
+        threads) until `STOP_WAITS_FOR_UNLOADS` of `timeout` has passed, then stops its servers
+        and clients. An unload still under way then is cut short: it stops anyway and
+        publishes `events.UnloadCutShort`; that resource stays in the backup as unloading
+        (in doubt at the next start, rule 16). What its servers serve stays in the
+        catalog for a restart. With `erase_on_destruct` the backup is removed. Stopping a
+        stopped registrar is a no-op.
+
+        Args:
+            timeout: seconds the whole stop may take (`None`: the registrar's
+                `call_timeout`).
 
         Raises:
             CallTimeoutError: not finished within `timeout` seconds.
@@ -558,7 +577,8 @@ class ResourceRegistrar:
         limit = self._timeout(timeout)
         deadline = time.monotonic() + limit
         try:
-            self._ask(Stop(FutureReply()), limit, "stop()")
+            until = deadline - limit * (1.0 - STOP_WAITS_FOR_UNLOADS)
+            self._ask(Stop(FutureReply(), until), limit, "stop()")
         except RegistrarStoppedError:
             return
         # Stop ended the actor; what reached its mailbox meanwhile (an answer to give

@@ -21,6 +21,8 @@ import dataclasses
 import functools
 import logging
 import threading
+import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import pykka
@@ -29,7 +31,7 @@ from rr_actors import events
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
 from rr_actors._core.actor import Actor, refuse
 from rr_actors._core.directory import DIRECTORY, Reply
-from rr_actors._core.timers import Cancellable
+from rr_actors._core.timers import Cancellable, thread_timer
 from rr_actors._registrar import chronicle
 from rr_actors._registrar.messages import (
     ClientLoaded,
@@ -124,6 +126,9 @@ class Lifecycle:
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
         self.reconciling.expect_reconcile(providers)
+        # what it released or gave up while a provider was down is in no row: with a
+        # backup, it reconciles with every registrar of the system (rule 20)
+        self.reconciling.everyone = self.registrar.saver.store is not None
         self.settle_in_doubt()
         self.unload_unheld()
         self.arm_flush_timer()
@@ -278,8 +283,10 @@ class Lifecycle:
 
     # -- stop -------------------------------------------------------------------------
 
-    def op_stop(self, reply: Reply) -> None:
-        """Unload what this registrar holds as a consumer (newest first), then stop (rule 12)."""
+    def op_stop(self, reply: Reply, unloads_until: float | None = None) -> None:
+        """Unload what this registrar holds as a consumer (newest first), wait for the
+        unloads under way here until `unloads_until` (`time.monotonic()` seconds;
+        `None`: no wait), then stop (rule 12)."""
         self.registrar.phase = Phase.STOPPING
         self.presence.close()  # no more reconcile retries
         stopped = RegistrarStoppedError(
@@ -298,6 +305,9 @@ class Lifecycle:
             if tops:
                 consumer.release_client(tops.pop(0), next_one)
                 return
+            self.wait_for_unloads(unloads_until, finish)
+
+        def finish() -> None:
             self.registrar.commit()
             chronicle.publish_stopped(self.registrar)
             if self.flush_timer is not None:
@@ -323,6 +333,42 @@ class Lifecycle:
             self.actor.end_now()  # at once: what arrives from now on goes to `on_late`
 
         next_one()
+
+    def wait_for_unloads(self, until: float | None, then: Callable[[], None]) -> None:
+        """Run `then()` once no unload is under way here, or at `until` (monotonic
+        seconds) at the latest: each unload still under way then is cut short
+        (`UnloadCutShort`; the resource stays unloading in the backup, in doubt at the
+        next start). Its callback runs on, on its worker thread; its answer goes nowhere."""
+        done = False
+        timer: Cancellable | None = None
+
+        def go(*, cut_short: bool) -> None:
+            nonlocal done
+            if done:
+                return
+            done = True
+            if timer is not None:
+                timer.cancel()
+            for resource in self.teardown.under_way.values() if cut_short else ():
+                logger.warning(
+                    "registrar %s: stopped while the unload of %s (%s) was under way; "
+                    "it is in doubt at the next start",
+                    self.registrar.name,
+                    resource.id,
+                    resource.server,
+                )
+                if self.registrar.events.active:
+                    self.registrar.events.publish(
+                        events.UnloadCutShort(self.registrar.name, resource.server, resource.id)
+                    )
+            then()
+
+        if until is not None and self.teardown.under_way:
+            late = self.registrar.come_back(lambda _value, _error: go(cut_short=True))
+            timer = thread_timer(max(0.0, until - time.monotonic()), lambda: late.set_result(None))
+        self.teardown.when_idle(lambda: go(cut_short=False))
+        if not done and until is None:
+            go(cut_short=True)
 
     def stop_children(self) -> None:
         for server in self.registrar.servers.values():

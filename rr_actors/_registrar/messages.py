@@ -434,9 +434,14 @@ class Save:
 
 @dataclasses.dataclass(frozen=True)
 class Stop:
-    """Stop the registrar (rule 12). Answer: `None` once stopped."""
+    """Stop the registrar (rule 12). Answer: `None` once stopped.
+
+    `unloads_until`: until when (`time.monotonic()` seconds, in this process) the stop
+    waits for the unloads under way here (`None`: it does not wait).
+    """
 
     reply: FutureReply
+    unloads_until: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)

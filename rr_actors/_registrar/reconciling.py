@@ -21,6 +21,7 @@ import uuid
 from collections.abc import Callable, Iterable
 from typing import Any
 
+from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.consumer import Consumer, Listing
@@ -40,6 +41,8 @@ class Reconciling:
         due: the query ids whose answers are on their way (`DueAnswers`, shared with
             callers' threads and the consumer role).
         asked_to_reconcile: providers that asked for a `Reconcile` during setup.
+        everyone: reconcile with every registrar of the system, not only the providers
+            its catalog names (`reconcile_all`): set when it restores a backup.
     """
 
     def __init__(
@@ -54,6 +57,7 @@ class Reconciling:
         self.due = due
         self.redeliver = redeliver
         self.asked_to_reconcile: set[str] = set()
+        self.everyone = False
 
     def expect_reconcile(self, providers: Iterable[str]) -> None:
         """Reconcile with `providers` too once this registrar serves (`reconcile_all`)."""
@@ -62,10 +66,19 @@ class Reconciling:
     def reconcile_all(self) -> None:
         """This registrar serves (again): reconcile with every provider it holds ids at.
 
-        Also with those that asked while setup ran (`ReconcileAsk`).
+        Also with those that asked while setup ran (`ReconcileAsk`), and, restored from a
+        backup (`everyone`), with every registrar of the system it can reach now: its
+        backup does not name every provider that may hold ids of it. An id it released
+        while its provider was down (`Consumer.unreleased`, kept in memory only), a call
+        that failed as its provider died (`Consumer.unsettled`), or a record lost with a
+        save interval has no row left; killed before that provider's restart asked it to
+        reconcile, it would hold such an id there for good. A provider it holds nothing
+        at answers an empty list at once (and releases what it held for this one).
         """
         providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
         providers |= self.asked_to_reconcile
+        if self.everyone:
+            providers |= DIRECTORY.names() - {self.registrar.name}
         self.asked_to_reconcile.clear()
         for serving_rr in sorted(providers):
             self.reconcile(serving_rr)

@@ -42,6 +42,9 @@ class Teardown:
         parked_unloads: server name -> unloads of restored resources waiting for the
             server to be registered again.
         gone: resource id -> what runs once it is gone (`when_gone`).
+        under_way: resource id -> resource, of the unloads under way: their dependencies
+            being released or their `unload` callback running (not those parked).
+        idle: what runs once no unload is under way (`when_idle`).
     """
 
     def __init__(self, shared: Shared, consumer: Consumer) -> None:
@@ -50,6 +53,8 @@ class Teardown:
         self.unload_waiters: dict[str, list[Reply]] = {}
         self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
         self.gone: dict[str, list[Callable[[], None]]] = {}
+        self.under_way: dict[str, Resource] = {}
+        self.idle: list[Callable[[], None]] = []
 
     def unload_resource(self, resource: Resource, reply: Reply | None) -> None:
         """The last consumer left: release the dependencies, then run `unload` (rule 7)."""
@@ -57,14 +62,18 @@ class Teardown:
         self.registrar.catalog.begin_unload(resource.id)
         self.registrar.commit()
         self.unload_waiters[resource.id] = [] if reply is None else [reply]
+        self.under_way[resource.id] = resource
 
         def run_unload() -> None:
+            self.under_way[resource.id] = resource
             server = self.registrar.servers.get(resource.server)
             if server is None and self.registrar.servers_settled:  # setup did not bring it back
                 unloaded(None, None)
                 return
             if server is None:  # restored, and no one has registered the server yet
+                del self.under_way[resource.id]
                 self.parked_unloads.setdefault(resource.server, []).append(run_unload)
+                self.check_idle()
                 return
             done = self.registrar.come_back(unloaded)
             timeout = self.registrar.config.unload_timeout
@@ -99,8 +108,20 @@ class Teardown:
                     waiting.set_error(error)  # type: ignore[arg-type]
                 else:
                     waiting.set_result(None)
+            self.under_way.pop(resource.id, None)
+            self.check_idle()
 
         self.consumer.release_dependencies(resource.id, run_unload)
+
+    def when_idle(self, then: Callable[[], None]) -> None:
+        """Run `then()` once no unload is under way here (now if none is)."""
+        self.idle.append(then)
+        self.check_idle()
+
+    def check_idle(self) -> None:
+        """Run what waits for no unload to be under way, if none is."""
+        while not self.under_way and self.idle:
+            self.idle.pop(0)()
 
     def record_unloaded(self) -> None:
         """An `unload` ran: write it before anyone hears of it, also without

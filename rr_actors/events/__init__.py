@@ -48,6 +48,7 @@ from rr_actors.events.kinds import (
     StatusDelivered,
     StatusSent,
     SupervisorGaveUp,
+    UnloadCutShort,
 )
 from rr_actors.events.lines import from_dict, to_dict
 from rr_actors.events.text import describe
@@ -73,6 +74,7 @@ __all__ = [
     "StatusDelivered",
     "StatusSent",
     "SupervisorGaveUp",
+    "UnloadCutShort",
     "describe",
     "from_dict",
     "to_dict",

@@ -40,6 +40,7 @@ __all__ = [
     "StatusDelivered",
     "StatusSent",
     "SupervisorGaveUp",
+    "UnloadCutShort",
 ]
 
 
@@ -577,6 +578,35 @@ class StatusDelivered:
     seq: int = _numbered()
 
 
+@dataclasses.dataclass(frozen=True, slots=True)
+class UnloadCutShort:
+    """A clean `stop()` ended while a resource's unload was still under way.
+
+    `stop()` waits for the unloads of its registrar's resources that are under way (their
+    dependencies being released, or their `unload` callback running) for at most half
+    its timeout; one still under way then is cut short: the registrar stops anyway and
+    publishes this. The callback runs on to its end on its worker thread (what it returns
+    goes nowhere), and the resource stays in the backup as unloading: the next start
+    reports it `InDoubt` (`cut="unload"`, rule 16).
+
+    Attributes:
+        registrar: name of the provider registrar that stopped.
+        server: name of the resource server whose unload was cut short.
+        resource_id: the resource's id.
+        at: when the stop gave up waiting, wall clock (`time.time()` seconds).
+        pid: the registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
+    """
+
+    registrar: str
+    server: str
+    resource_id: str
+    _: dataclasses.KW_ONLY
+    at: float = _now()
+    pid: int = _this_process()
+    seq: int = _numbered()
+
+
 # -- recovery and the stream itself ---------------------------------------------------------
 
 
@@ -743,6 +773,7 @@ Event: TypeAlias = (
     | InDoubt
     | CatalogRestored
     | RegistrarStopped
+    | UnloadCutShort
     | EventsDropped
 )
 """Any event of this module (a subscriber's callback receives these)."""

@@ -25,6 +25,7 @@ from rr_actors.events.kinds import (
     StatusDelivered,
     StatusSent,
     SupervisorGaveUp,
+    UnloadCutShort,
 )
 
 __all__ = ["describe"]
@@ -124,6 +125,11 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
             return f"{event.registrar} restored its catalog: {_counts(event.counts)}"
         case RegistrarStopped():
             return f"{event.registrar} stopped, its catalog holding {_counts(event.counts)}"
+        case UnloadCutShort():
+            return (
+                f"{event.registrar}/{event.server}: the unload of {_id(event.resource_id)} was "
+                f"cut short by a stop (in doubt at the next start)"
+            )
         case EventsDropped(cause="killed"):
             return f"{event.count} events of process {event.pid} lost: it died before it sent them"
         case EventsDropped():

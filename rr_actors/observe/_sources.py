@@ -174,7 +174,7 @@ def _touched(event: events.Event) -> tuple[str, ...] | None:
             return (event.registrar,)
         case events.ChildStarted() | events.ChildRestarted() | events.ChildExited():
             return (event.child,)
-        case events.StatusSent() | events.StatusDelivered():
+        case events.StatusSent() | events.StatusDelivered() | events.UnloadCutShort():
             return ()
         case events.SupervisorGaveUp() | events.EventsDropped():
             return None

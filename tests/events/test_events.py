@@ -49,6 +49,7 @@ EXAMPLES: list[events.Event] = [
         "erm", ((RID, "start_process", "loaded"),), ((QID, RID, "cm"),), (), (1, 1, 0)
     ),
     events.RegistrarStopped("cm", (), (), ((QID, "erm", "start_process", ""),), (0, 0, 1)),
+    events.UnloadCutShort("erm", "start_process", RID),
     events.EventsDropped(17),
 ]
 
@@ -263,6 +264,10 @@ def test_from_dict_names_what_is_wrong(data: Any, named: str) -> None:
             "erm/cam failed to load 1a2b3c4d (query 5e6f7a8b): SensorError: no\\ncamera",
         ),
         (events.ResourceUnloaded("erm", "cam", RID), "erm/cam unloaded 1a2b3c4d"),
+        (
+            events.UnloadCutShort("erm", "cam", RID),
+            "erm/cam: the unload of 1a2b3c4d was cut short by a stop (in doubt at the next start)",
+        ),
         (events.ConsumerAdded("erm", RID, QID, "cm"), "erm: cm consumes 1a2b3c4d (query 5e6f7a8b)"),
         (
             events.ConsumerReleased("erm", RID, QID, "cm", "death watch"),
