@@ -108,6 +108,16 @@ def pytest_configure(config: pytest.Config) -> None:
     )
 
 
+FIRST = ("test_portable_platform.py",)
+"""Test files that run first: each takes a minute or two (the portable platform's runs the
+process tests again), so under pytest-xdist they run beside the rest, not after it."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Move the `FIRST` files' tests to the front (pytest-xdist hands out files in order)."""
+    items.sort(key=lambda item: item.path.name not in FIRST)  # (stable: order kept otherwise)
+
+
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     """Run every test that uses `registrar_placement` once per placement."""
     if "registrar_placement" not in metafunc.fixturenames:

@@ -207,8 +207,19 @@ class ManagerProcess:
         """
         tally = Tally.create() if on_events is not None else None
         received = _Received(on_events, tally)
-        process, parent_conn = _launch(name, setup, config, address, spare, forward_events, tally)
-        _await_ready(name, process, parent_conn, start_timeout, received)
+        try:
+            process, parent_conn = _launch(
+                name, setup, config, address, spare, forward_events, tally
+            )
+        except BaseException:
+            if tally is not None:
+                tally.close()  # (its file and map; nothing was forked to use it)
+            raise
+        try:
+            _await_ready(name, process, parent_conn, start_timeout, received)
+        except BaseException:
+            received.close()  # (a Ctrl-C while waiting; after a failure it is closed)
+            raise
         handle = cls(
             name,
             process,
@@ -551,6 +562,12 @@ class _Received:
                 return
             if isinstance(message, Events):
                 self.deliver(name, message.batch)
+
+    def close(self) -> None:
+        """Remove the tally unread (a start given up): its events are not counted."""
+        tally, self.tally = self.tally, None
+        if tally is not None:
+            tally.close()
 
     def count_lost(self, name: str, pid: int) -> None:
         """After the exit: deliver what its journal kept but it never sent; publish what

@@ -170,12 +170,14 @@ class SparePool:
         with self._cond:
             self._ahead = starts or None
             self._taken = 0
-            idle = list(self._idle)
+            if not starts:
+                # Forked ahead: warm up now, for a restart. Under the lock, so that a spare
+                # `take` hands out gets its `Start` after its `WarmUp`, never at the same
+                # time from another thread (a pipe's `send` is not thread-safe).
+                for spare in self._idle:
+                    spare.warm_up()
         if starts:
             self._refill_at(time.monotonic())
-        else:
-            for spare in idle:  # forked ahead: warm up now, for a restart
-                spare.warm_up()
 
     def refill(self) -> None:
         """Have the filler thread start spares until there are `size`, `delay` s from now.

@@ -169,6 +169,9 @@ class ResourceRegistrar:
 
         Raises:
             UnknownQueryError: `query_id` is not the id of an entry of `in_doubt`.
+            CatalogWriteError: the backup could not be written (a full disk): the entry
+                is settled here, but a restart before the next write that succeeds
+                offers it again.
             CallTimeoutError: no answer within `timeout` seconds.
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
@@ -686,8 +689,12 @@ def start_registrar(
         except BaseException:
             handle.stop()  # (what was in doubt stays in doubt: no setup saw it through)
             raise
-        handle.settle_in_doubt()
-        handle._ask(Ready(FutureReply()), None, "ready")
+        try:
+            handle.settle_in_doubt()
+            handle._ask(Ready(FutureReply()), None, "ready")
+        except BaseException:
+            handle.stop()  # (not left running when its start failed)
+            raise
     return handle
 
 

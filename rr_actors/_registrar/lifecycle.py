@@ -200,7 +200,8 @@ class Lifecycle:
 
         Its row leaves the backup now (or as it was left: its dependencies may still be
         being released); a later restore no longer offers it. Settling one twice is a
-        no-op.
+        no-op. A write that fails is the caller's error (`CatalogWriteError`): the entry
+        stays settled in memory, and the next write that succeeds takes it out.
         """
         if query_id is None:
             rids = set(self.in_doubt_ids)
@@ -213,7 +214,10 @@ class Lifecycle:
                 )
             )
             return
-        self.registrar.settle_held(rids)  # (a failed write stays pending: offered again)
+        failed = self.registrar.settle_held(rids)  # (a failed write stays pending: the
+        if failed is not None:  # next commit writes it; until then a restart offers it again)
+            reply.set_error(failed)
+            return
         reply.set_result(None)
 
     def op_reachable(self, reply: Reply) -> None:

@@ -27,6 +27,7 @@ joining a system raise a `ConfigError` that names those start methods.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
@@ -360,35 +361,53 @@ class ZenohNetwork:
             raise ConfigError(
                 f"ZenohNetwork {self.system!r} cannot listen on {list(self.listen)!r}: {exc}"
             ) from exc
-        if self.tls is None:
-            self._warn_unreachable()
-        else:  # names the reason of an unlinked connect endpoint, and who links
-            self._watch = LinkWatch(self.system, session, self.tls, self.connect)
-            members = frozenset(self.tls.members)
-            self._gate = HandshakeGate(
-                self.system, open_gates(self.listen), lambda: _members_at(session, members)
+        try:
+            if self.tls is None:
+                self._warn_unreachable()
+            else:  # names the reason of an unlinked connect endpoint, and who links
+                self._watch = LinkWatch(self.system, session, self.tls, self.connect)
+                members = frozenset(self.tls.members)
+                self._gate = HandshakeGate(
+                    self.system, open_gates(self.listen), lambda: _members_at(session, members)
+                )
+            watch, gate = self._watch, self._gate
+            self._runtime_dir = runtime_dir
+            self._address = ZenohAddress(
+                self.system, path, self.lease, str(session.zid()), os.getpid()
             )
-        watch, gate = self._watch, self._gate
-        self._runtime_dir = runtime_dir
-        self._address = ZenohAddress(self.system, path, self.lease, str(session.zid()), os.getpid())
 
-        def closed(member: ZenohMember) -> None:
-            if watch is not None:
-                watch.close()
-            if gate is not None:
-                gate.close()
-            _left(member)
-            shutil.rmtree(runtime_dir, ignore_errors=True)
+            def closed(member: ZenohMember) -> None:
+                if watch is not None:
+                    watch.close()
+                if gate is not None:
+                    gate.close()
+                _left(member)
+                shutil.rmtree(runtime_dir, ignore_errors=True)
 
-        member = ZenohMember(
-            self.system,
-            session,
-            self._address,
-            on_close=closed,
-            link_trouble=None if watch is None else lambda: _no_link(watch.unlinked()),
-        )
-        _close_at_exit(f"ZenohNetwork {self.system!r}", member, self.close)
+            member = ZenohMember(
+                self.system,
+                session,
+                self._address,
+                on_close=closed,
+                link_trouble=None if watch is None else lambda: _no_link(watch.unlinked()),
+            )
+            _close_at_exit(f"ZenohNetwork {self.system!r}", member, self.close)
+        except BaseException:  # nothing of a network that did not open is left behind:
+            self._unopened(session, runtime_dir)  # (Zenoh's threads would hold the exit)
+            raise
         return member
+
+    def _unopened(self, session: zenoh.Session, runtime_dir: str) -> None:
+        """Close what `_open_router` made before it failed: the watch, the gate, the
+        session (whose threads are not daemons) and the runtime directory."""
+        for part in (self._watch, self._gate):
+            if part is not None:
+                with contextlib.suppress(Exception):
+                    part.close()
+        self._watch = self._gate = None
+        with contextlib.suppress(Exception):
+            session.close()  # type: ignore[no-untyped-call]
+        shutil.rmtree(runtime_dir, ignore_errors=True)
 
     def _warn_unreachable(self) -> None:
         for endpoint in self.connect:
