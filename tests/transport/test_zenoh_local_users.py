@@ -112,23 +112,35 @@ def _hidden_ancestor(path: Path) -> Path | None:
 
 
 def _as_nobody(*argv: str) -> subprocess.Popen[str]:
-    """`python -c ATTACKER *argv` as user `nobody`, able to run this interpreter."""
-    prefix = Path(sys.base_prefix).resolve()
-    if Path(sys.prefix).resolve() != prefix:
-        pytest.skip("a virtual environment: only a base interpreter is opened to nobody")
+    """`python -c ATTACKER *argv` as user `nobody`, able to run this interpreter.
+
+    The interpreter's trees (its base installation and, in a virtual environment such as
+    CI's, the environment) may lie under directories others cannot enter (/root, a 0700
+    temporary directory): then the attacker runs in a mount namespace where a tmpfs lies
+    over each such directory with only those trees put back.
+    """
     python = [sys.executable, "-c", ATTACKER, *argv]
     setpriv = ["setpriv", f"--reuid={NOBODY}", f"--regid={NOBODY}", "--clear-groups"]
-    hidden = _hidden_ancestor(prefix)
-    if hidden is None:
+    trees: dict[Path, set[Path]] = {}  # a hidden directory -> the trees under it to show
+    for prefix in {Path(sys.base_prefix).resolve(), Path(sys.prefix).resolve()}:
+        hidden = _hidden_ancestor(prefix)
+        if hidden is not None:
+            trees.setdefault(hidden, set()).add(hidden / prefix.relative_to(hidden).parts[0])
+    if not trees:
         command = [*setpriv, *python]
-    else:  # e.g. /root: a tmpfs over it in a mount namespace, with only the tree put back
-        tree = hidden / prefix.relative_to(hidden).parts[0]
-        stash = tempfile.mkdtemp()
-        script = (
-            f'mount --bind "{tree}" "{stash}" && mount -t tmpfs -o mode=0755 none "{hidden}" '
-            f'&& mkdir "{tree}" && mount --move "{stash}" "{tree}" && rmdir "{stash}" '
-            f'; exec "$@"'
-        )
+    else:
+        steps = []
+        for hidden, shown in sorted(trees.items()):
+            stashes = {tree: tempfile.mkdtemp() for tree in sorted(shown)}
+            steps += [f'mount --bind "{tree}" "{stash}"' for tree, stash in stashes.items()]
+            steps.append(f'mount -t tmpfs -o mode=0755 none "{hidden}"')
+            for tree, stash in stashes.items():
+                steps += [
+                    f'mkdir -p "{tree}"',
+                    f'mount --move "{stash}" "{tree}"',
+                    f'rmdir "{stash}"',
+                ]
+        script = " && ".join(steps) + ' ; exec "$@"'
         command = ["unshare", "--mount", "--propagation", "private", "sh", "-c", script, "sh"]
         command += [*setpriv, *python]
     return subprocess.Popen(
