@@ -8,9 +8,10 @@ tests of `test_supervisor.py` and `test_supervisor_contract.py` hold).
 
 from __future__ import annotations
 
-import time
+from collections.abc import Callable
 
 import pytest
+from waiting import wait_for
 
 from rr_actors._process.spare import SparePool
 
@@ -20,11 +21,9 @@ BOUND = 30.0
 """Seconds a spare may take to be forked or to warm up on a loaded machine."""
 
 
-def wait_until(condition: object, what: str) -> None:
-    deadline = time.monotonic() + BOUND
-    while not condition():  # type: ignore[operator]
-        assert time.monotonic() < deadline, what
-        time.sleep(0.01)  # polls a state no event announces (a spare's pipe)
+def wait_until(condition: Callable[[], bool], what: str) -> None:
+    """A bounded wait for a state no event announces (a spare's pipe): `waiting.wait_for`."""
+    assert wait_for(condition, timeout=BOUND), what
 
 
 def idle(pool: SparePool) -> int:
