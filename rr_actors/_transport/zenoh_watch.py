@@ -224,8 +224,12 @@ class LinkWatch:
                 continue
             if endpoint.warned_at is not None and now - endpoint.warned_at < REPEAT:
                 continue
+            reason = self._probe(endpoint)
+            if endpoint.linked(self._linked(), dialled):  # it linked while the probe ran (a
+                endpoint.unlinked_since = None  # probe takes up to seconds): no warning
+                continue
             endpoint.warned_at = now
-            reason = endpoint.reason = self._probe(endpoint)
+            endpoint.reason = reason
             logger.warning(
                 "ZenohNetwork %r has no link to connect endpoint %s: %s; calls to registrars "
                 "there fail (UnknownRegistrarError) until it links",

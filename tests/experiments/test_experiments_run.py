@@ -418,7 +418,19 @@ def test_a_cut_fails_the_call_in_flight_at_once_and_the_next_call_gets_through(
 
         assert not caller.is_alive()
         assert isinstance(outcome[0], rr.RegistrarUnavailableError)
-        assert "slow" == app.call("slow", "resource", "after the cut").response["server"][:4]
+        # The next call gets through: once the cut is over (a call that races it, on a
+        # loaded machine, may still find its connection cut, and fail at once as well)
+        after: list[Any] = []
+
+        def next_call() -> bool:
+            try:
+                after.append(app.call("slow", "resource", "after the cut"))
+            except rr.RegistrarUnavailableError:
+                return False
+            return True
+
+        assert eventually(next_call, timeout=10)
+        assert "slow" == after[0].response["server"][:4]
         assert 0 == sup.child("slow").restarts  # it kept running: only its connections went
 
 
