@@ -12,7 +12,11 @@ import multiprocessing.context
 from collections.abc import Callable, Collection, Sequence
 from typing import Protocol
 
-__all__ = ["ExitWatch", "ListenerGate", "Platform"]
+__all__ = ["GATE_SOURCES", "ExitWatch", "ListenerGate", "Platform"]
+
+GATE_SOURCES = 256
+"""Source addresses a `ListenerGate` drops at once at most (more is a firewall's job; on
+Linux, one socket filter's instructions stay under `BPF_MAXINSNS`)."""
 
 
 class ExitWatch(Protocol):

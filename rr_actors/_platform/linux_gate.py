@@ -36,6 +36,8 @@ import struct
 from collections.abc import Collection
 from pathlib import Path
 
+from rr_actors._platform.base import GATE_SOURCES
+
 __all__ = ["LinuxListenerGate", "find_listener"]
 
 _SO_ATTACH_FILTER = 26
@@ -49,8 +51,7 @@ _LD_B_ABS, _LD_W_ABS = 0x30, 0x20
 _ALU_AND_K, _JEQ_K, _RET_K = 0x54, 0x15, 0x06
 _NET = -0x100000  # SKF_NET_OFF: offsets from the network (IP) header
 _ACCEPT, _DROP = 0xFFFFFFFF, 0
-MAX_SOURCES = 256
-"""Sources one filter drops at most (4 instructions each for IPv6, under BPF_MAXINSNS)."""
+MAX_SOURCES = GATE_SOURCES  # (4 instructions each for IPv6: under BPF_MAXINSNS)
 
 
 def _insn(code: int, k: int, jt: int = 0, jf: int = 0) -> bytes:

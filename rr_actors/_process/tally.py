@@ -105,9 +105,7 @@ class Tally:
         while True:
             try:
                 event = pickle.load(data)
-            except EOFError:
-                break
-            except Exception:  # noqa: BLE001 - a record cut short by the kill
+            except Exception:  # noqa: BLE001 - the end, or a record cut short by the kill
                 break
             if getattr(event, "seq", 0) > seq:
                 found.append(event)

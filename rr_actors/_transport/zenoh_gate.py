@@ -42,7 +42,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 
-from rr_actors._platform import PLATFORM, ListenerGate
+from rr_actors._platform import GATE_SOURCES, PLATFORM, ListenerGate
 from rr_actors._transport.zenoh_config import parse_endpoint
 
 __all__ = ["BACKLOG", "HOLD", "QUIET", "TICK", "HandshakeGate", "open_gates"]
@@ -53,7 +53,6 @@ BACKLOG = 16  # connections the kernel queues for Zenoh's accept at most
 HOLD = 8  # connections a source without a member's link may hold to the port
 TICK = 0.2  # seconds between two looks at the socket table
 QUIET = 60.0  # seconds without a dropped packet before the drops are lifted
-MOST = 256  # sources dropped at once at most (then: a firewall's job)
 
 
 def open_gates(listen: Iterable[str]) -> list[ListenerGate]:
@@ -157,7 +156,7 @@ class HandshakeGate:
             return
         members = self._members_at()
         for source in over:
-            if source in members or len(dropped) >= MOST:
+            if source in members or len(dropped) >= GATE_SOURCES:
                 continue
             dropped.add(source)
             gate.drop_from(dropped)
