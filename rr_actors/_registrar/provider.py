@@ -268,13 +268,13 @@ class Provider:
             self.registrar.commit()
             message.reply.set_error(failed)
             return
-        message.reply.set_result(resource.response)
-        if self.registrar.events.active:
+        if self.registrar.events.active:  # (after the commit, before the answer)
             self.registrar.events.publish(
                 events.ConsumerAdded(
                     self.registrar.name, resource.id, message.query_id, message.origin_rr
                 )
             )
+        message.reply.set_result(resource.response)
 
     def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
         """Load a request not loaded here (`key`: its `runtime_key` if it has no digest)."""

@@ -11,7 +11,6 @@ import dataclasses
 import itertools
 import os
 import time
-from collections.abc import Callable
 from typing import Any, TypeAlias
 
 from rr_actors._platform import fork
@@ -60,33 +59,20 @@ _counter = itertools.count(1)
 _numbering = False
 
 
-_mark: Callable[[int], object] | None = None
-
-
 def _next_seq() -> int:
     """The next number of this process's events, or 0 where events are not numbered."""
     if not _numbering:
         return 0
-    seq = next(_counter)
-    mark = _mark
-    if mark is not None:
-        mark(seq)
-    return seq
+    return next(_counter)
 
 
-def number_events(mark: Callable[[int], object] | None = None) -> None:
+def number_events() -> None:
     """Number the events this process builds from now on (a manager process does).
 
     Each event then carries `seq`: 1, 2, 3, ... in the order they were built, so that a
     reader of the forwarded stream sees every event the process lost (a gap).
-
-    Args:
-        mark: called with each number as it is given (on the thread that builds the
-            event; it must be quick and not raise): a manager process records the last
-            one where its supervisor reads it after a SIGKILL.
     """
-    global _numbering, _mark
-    _mark = mark
+    global _numbering
     _numbering = True
 
 
@@ -99,10 +85,10 @@ def _current_pid() -> int:
 
 
 def _forked() -> None:
-    global _pid, _counter, _numbering, _mark
+    global _pid, _counter, _numbering
     _pid = os.getpid()
     _counter = itertools.count(1)
-    _numbering, _mark = False, None
+    _numbering = False
 
 
 fork.after_fork_in_child("the events' pid", _forked)

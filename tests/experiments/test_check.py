@@ -131,6 +131,17 @@ def test_a_lost_id_reported_fatal_holds() -> None:
     assert "held" == check.check(numbered([*history, answered, fatal, forgotten])).verdict
 
 
+def test_an_id_its_consumer_forgot_before_a_restore_lost_it_holds() -> None:
+    # the provider committed the release and was killed before it published it
+    history, _ = _seeded()["held"]
+    answered = events.CallAnswered("cm", Q2, "erm", "cam", pid=C)
+    forgotten = events.QueryForgotten("cm", Q2, "erm", "unload", pid=C)
+    let_go = [*history[:4], answered, forgotten, *history[4:]]
+    assert "held" == check.check(numbered(let_go)).verdict
+    late = [*history[:4], answered, *history[4:], forgotten]  # forgotten after: lost
+    assert ["held"] == [f.rule for f in check.check(numbered(late)).findings]
+
+
 # -- the consumer's side and dependency paths ------------------------------------------------
 
 A = 300  # the top consumer's process
