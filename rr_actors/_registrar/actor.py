@@ -305,7 +305,7 @@ class RegistrarActor(Actor):
 
     def dispatch(self, message: Any) -> None:
         """Handle `message` with its role's handler (the outcomes waiting are not taken)."""
-        entry = self.handlers.get(type(message))
+        entry = self.handlers.get(type(message)) or self.inherited(type(message))
         if entry is None:  # (shown without running its __repr__: a peer's object)
             text = plain_text(message) or f"<a {type(message).__qualname__[:80]} object>"
             self.unknown.warning("registrar %s ignored an unknown message %s", self.name, text)
@@ -332,6 +332,16 @@ class RegistrarActor(Actor):
                     )
                 )
             raise
+
+    def inherited(self, kind: type) -> tuple[str, Handler] | None:
+        """The clause of a subclass of a message in `DISPATCH` (`DurableLoaded` is a
+        `ClientLoaded`), kept for its next one; `None` for an unknown message."""
+        for base in kind.__mro__[1:-1]:  # (not the class itself, nor `object`)
+            entry = self.handlers.get(base)
+            if entry is not None:
+                self.handlers[kind] = entry
+                return entry
+        return None
 
     def on_failure(self, *_: object) -> None:
         self.lifecycle.die()

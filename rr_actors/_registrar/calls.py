@@ -49,6 +49,7 @@ from rr_actors._registrar.loading import check_picklable
 from rr_actors._registrar.messages import (
     CallFailed,
     ClientLoaded,
+    DurableLoaded,
     Load,
     Pending,
     TakeOutcomes,
@@ -130,7 +131,7 @@ class DueAnswers:
         attempt = self._attempts.get(query_id)
         if attempt is None:
             return False
-        attempt.awaited = True
+        attempt.mark_awaited()
         return True
 
     def settle(self, query_id: str, attempt: CallAttempt) -> bool:
@@ -205,7 +206,7 @@ class ClientReply:
         query = self.query(value)
         record = ClientRecord(query, self.parent, loaded=True)
         try:
-            self.calls.ref.tell(ClientLoaded(record, self.on_status, self.attempt, True))
+            self.calls.ref.tell(DurableLoaded(record, self.on_status, self.attempt))
         except pykka.ActorDeadError:  # the consumer stopped meanwhile: give the id back
             give_back(query.serving_rr, query.id, query.origin_rr)
             self.attempt.fail(
