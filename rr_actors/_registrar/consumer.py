@@ -43,14 +43,18 @@ from rr_actors._registrar.messages import (
     CallFailed,
     ClientLoaded,
     DurableLoaded,
+    ListClientQueries,
+    OpenClient,
     Pending,
+    Release,
     ResponseUpdated,
     Revoke,
+    SetStatusCallback,
     StatusNotice,
     Unload,
     give_back,
 )
-from rr_actors._registrar.state import Shared
+from rr_actors._registrar.state import NO_REPLY, Shared
 from rr_actors._types import Query, StatusCallback
 from rr_actors.errors import (
     CallTimeoutError,
@@ -231,7 +235,8 @@ class Consumer:
                         provider=record.query.serving_rr,
                         server=record.query.server,
                         why="registrar stopped",
-                    )
+                    ),
+                    NO_REPLY,
                 )
                 attempt.fail(error)
 
@@ -271,7 +276,7 @@ class Consumer:
 
     # -- answers ----------------------------------------------------------------------
 
-    def on_pending(self, message: Pending) -> None:
+    def on_pending(self, message: Pending, reply: Reply) -> None:
         query_id = message.record.query.id
         if query_id not in self.registrar.catalog.clients:  # (else a retry of one held)
             record = message.record
@@ -283,12 +288,13 @@ class Consumer:
             if failed is not None:  # not durable: the Load must not leave (rule 16)
                 self.registrar.catalog.remove_client(query_id)
                 self.registrar.commit()
-                message.reply.set_error(failed)
+                reply.set_error(failed)
                 return
         self.flight(query_id).attempt = message.attempt
-        message.reply.set_result(None)  # durable: the Load may leave now (rule 16)
+        reply.set_result(None)  # durable: the Load may leave now (rule 16)
 
-    def on_client_loaded(self, message: ClientLoaded) -> None:
+    def on_client_loaded(self, message: ClientLoaded, _reply: Reply) -> None:
+        """Record a call's answer (a `DurableLoaded` one too: it is a `ClientLoaded`)."""
         try:
             self.record_answer(message)
         finally:  # (also when recording failed: what waits for it must not wait for good)
@@ -425,7 +431,7 @@ class Consumer:
         if isinstance(message, DurableLoaded):  # (taken by `record_answer`)
             message.attempt.settle(query.response)
 
-    def on_call_failed(self, message: CallFailed) -> None:
+    def on_call_failed(self, message: CallFailed, _reply: Reply) -> None:
         known = self.registrar.catalog.clients.get(message.query_id)
         outcomes.failed(
             self.registrar,
@@ -488,20 +494,20 @@ class Consumer:
                 self.flight(query_id).parked[:0] = waiting
                 raise
 
-    def on_revoke(self, message: Revoke) -> None:
+    def on_revoke(self, message: Revoke, _reply: Reply) -> None:
         if self.parked(message):
             return
         for query_id in message.query_ids:
             self.forget(query_id, commit=False, reason="revoked")
         self.registrar.commit()
 
-    def on_response_updated(self, message: ResponseUpdated) -> None:
+    def on_response_updated(self, message: ResponseUpdated, reply: Reply) -> None:
         if self.parked(message):
             return
         for query_id in message.query_ids:
             self.registrar.catalog.client_loaded(query_id, message.response)
         self.registrar.commit()
-        message.reply.set_result(None)
+        reply.set_result(None)
 
     def fail_waiting(self, error: RrError) -> None:
         """Answer the durable callers and the held notices still waiting here."""
@@ -587,7 +593,8 @@ class Consumer:
 
     # -- operations the handle asks for ----------------------------------------------
 
-    def op_unload(self, query_id: str, reply: Reply) -> None:
+    def on_release(self, message: Release, reply: Reply) -> None:
+        query_id = message.query_id
         record = self.registrar.catalog.clients.get(query_id)
         if record is None or not record.loaded:
             raise UnknownQueryError(f"unknown or released query id {query_id!r}")
@@ -641,14 +648,14 @@ class Consumer:
         told.__cause__ = error
         return told
 
-    def op_set_status_callback(self, query_id: str, callback: StatusCallback, reply: Reply) -> None:
-        if query_id not in self.registrar.catalog.clients:
-            raise UnknownQueryError(f"unknown or released query id {query_id!r}")
-        self.status_callbacks[query_id] = callback
+    def on_set_status_callback(self, message: SetStatusCallback, reply: Reply) -> None:
+        if message.query_id not in self.registrar.catalog.clients:
+            raise UnknownQueryError(f"unknown or released query id {message.query_id!r}")
+        self.status_callbacks[message.query_id] = message.callback
         reply.set_result(None)
 
-    def op_client_queries(self, reply: Reply) -> None:
+    def on_list_client_queries(self, _message: ListClientQueries, reply: Reply) -> None:
         reply.set_result([r.query for r in self.registrar.catalog.clients.values() if r.loaded])
 
-    def op_client(self, target_rr: str, server: str, reply: Reply) -> None:
-        reply.set_result(self.client(target_rr, server))
+    def on_open_client(self, message: OpenClient, reply: Reply) -> None:
+        reply.set_result(self.client(message.target_rr, message.server))
