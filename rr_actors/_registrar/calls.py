@@ -153,8 +153,9 @@ class ClientReply:
     the record waits for it (`DueAnswers`).
 
     With `commit_first` (a durable consumer) the record was written as pending before
-    the load was sent; the registrar takes the attempt, commits the answer and then
-    settles it (or, finding it withdrawn, drops the record).
+    the load was sent; the answer goes to the registrar as a `DurableLoaded`: it takes
+    the attempt, commits the answer and then settles it (or, finding it withdrawn, drops
+    the record).
 
     It also describes the call (its id, provider, server, request and parent), so that
     the caller's thread builds one `Query`, the answered one.
