@@ -315,14 +315,14 @@ class Consumer:
         ours = self.take_attempt(query.id, message.attempt)  # (not a same-id retry's)
         durable = isinstance(message, DurableLoaded)
         withdrawn = durable and message.attempt.take() is not AttemptState.RECORDING
-        action = decide(
-            durable=durable,
-            withdrawn=withdrawn,
-            dependency=message.record.parent is not None,
-            stopping=self.registrar.stopping,
-            owner_gone=self.owner_gone(message.record),
-        )
         try:
+            action = decide(
+                durable=durable,
+                withdrawn=withdrawn,
+                dependency=message.record.parent is not None,
+                stopping=self.registrar.stopping,
+                owner_gone=self.owner_gone(message.record),
+            )
             self.act(action, message, ours=ours, retry=retry)
         except BaseException as exc:  # an attempt taken must be settled on every path
             if durable and not withdrawn:
