@@ -38,6 +38,12 @@ from rr_actors._registrar.messages import (
     ConsumerDown,
     Crash,
     Flush,
+    Reachable,
+    Ready,
+    Save,
+    SettleInDoubt,
+    Snapshot,
+    Stop,
     give_back,
 )
 from rr_actors._registrar.state import OpenReply, Phase, Shared
@@ -132,7 +138,7 @@ class Lifecycle:
         self.settle_in_doubt()
         self.unload_unheld()
         self.arm_flush_timer()
-        if self.registrar.phase is Phase.SERVING:  # (else once setup is done: `op_ready`)
+        if self.registrar.phase is Phase.SERVING:  # (else once setup is done: `on_ready`)
             self.reconcile()
 
     def reconcile(self) -> None:
@@ -154,7 +160,7 @@ class Lifecycle:
         was in flight is given up at its provider (its caller died with the last run), and
         so is a dependency whose resource is gone (a sub-call that outlived its load).
         With `hold_in_doubt` (a `setup` runs), their rows stay in the backup as they were
-        until the manager settles them (`op_settle_in_doubt`).
+        until the manager settles them (`on_settle_in_doubt`).
         """
         catalog = self.registrar.catalog
         doubtful = [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]
@@ -195,7 +201,7 @@ class Lifecycle:
         for resource in self.registrar.catalog.unheld():
             self.teardown.unload_resource(resource, None)
 
-    def op_settle_in_doubt(self, query_id: str | None, reply: Reply) -> None:
+    def on_settle_in_doubt(self, message: SettleInDoubt, reply: Reply) -> None:
         """The manager handled in-doubt entry `query_id` (`None`: every one): write it off.
 
         Its row leaves the backup now (or as it was left: its dependencies may still be
@@ -203,6 +209,7 @@ class Lifecycle:
         no-op. A write that fails is the caller's error (`CatalogWriteError`): the entry
         stays settled in memory, and the next write that succeeds takes it out.
         """
+        query_id = message.query_id
         if query_id is None:
             rids = set(self.in_doubt_ids)
         elif query_id in self.in_doubt_ids:
@@ -220,13 +227,13 @@ class Lifecycle:
             return
         reply.set_result(None)
 
-    def op_reachable(self, reply: Reply) -> None:
+    def on_reachable(self, _message: Reachable, reply: Reply) -> None:
         """A carrier serves it: the other processes can reach it (and answer it) now."""
-        if self.registrar.phase is Phase.SERVING:  # (during setup, `op_ready` reconciles)
+        if self.registrar.phase is Phase.SERVING:  # (during setup, `on_ready` reconciles)
             self.reconcile()
         reply.set_result(None)
 
-    def op_ready(self, reply: Reply) -> None:
+    def on_ready(self, _message: Ready, reply: Reply) -> None:
         """Setup is done: serve what waited for it (unknown servers now fail)."""
         self.registrar.phase = Phase.SERVING
         self.registrar.servers_settled = True
@@ -246,7 +253,7 @@ class Lifecycle:
 
         self.flush_timer = self.registrar.saver.schedule(tick)
 
-    def on_flush(self, _: Flush) -> None:
+    def on_flush(self, _message: Flush, _reply: Reply) -> None:
         if self.registrar.stopping:
             return
         try:
@@ -256,19 +263,19 @@ class Lifecycle:
         finally:
             self.arm_flush_timer()
 
-    def op_save(self, reply: Reply) -> None:
+    def on_save(self, _message: Save, reply: Reply) -> None:
         self.registrar.commit()
         self.registrar.saver.flush()
         reply.set_result(None)
 
     # -- requests from the handle -----------------------------------------------------
 
-    def op_snapshot(self, reply: Reply, check: bool) -> None:
+    def on_snapshot(self, message: Snapshot, reply: Reply) -> None:
         """Copy the catalog's rows (a restored row decodes its values here, once); with
         `check`, after checking the catalog's invariants (a failure is the caller's
         `AssertionError`, not this registrar's death)."""
         try:
-            if check:
+            if message.check:
                 self.registrar.catalog.check_invariants()
             view = CatalogView(
                 resources=tuple(
@@ -287,10 +294,11 @@ class Lifecycle:
 
     # -- stop -------------------------------------------------------------------------
 
-    def op_stop(self, reply: Reply, unloads_until: float | None = None) -> None:
+    def on_stop(self, message: Stop, reply: Reply) -> None:
         """Unload what this registrar holds as a consumer (newest first), wait for the
-        unloads under way here until `unloads_until` (`time.monotonic()` seconds;
-        `None`: no wait), then stop (rule 12)."""
+        unloads under way here until `message.unloads_until` (`time.monotonic()`
+        seconds; `None`: no wait), then stop (rule 12)."""
+        unloads_until = message.unloads_until
         self.registrar.phase = Phase.STOPPING
         self.presence.close()  # no more reconcile retries
         stopped = RegistrarStoppedError(
@@ -381,7 +389,7 @@ class Lifecycle:
 
     # -- death --------------------------------------------------------------------------
 
-    def on_crash(self, _: Crash) -> None:
+    def on_crash(self, _message: Crash, _reply: Reply) -> None:
         raise RuntimeError(
             f"registrar {self.registrar.name!r} was made to crash (rr_actors.testing)"
         )

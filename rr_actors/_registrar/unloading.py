@@ -48,10 +48,10 @@ class Unloading:
         self.provider = provider
         self.teardown = teardown
 
-    def on_unload(self, message: Unload) -> None:
-        self.release(message.query_id, message.reply, "unload")
+    def on_unload(self, message: Unload, reply: Reply) -> None:
+        self.release(message.query_id, reply, "unload")
 
-    def on_abandon(self, message: Abandon) -> None:
+    def on_abandon(self, message: Abandon, _reply: Reply) -> None:
         self.release(message.query_id, None, "abandoned")
 
     def release_all_of(self, origin_rr: str) -> None:
@@ -148,7 +148,7 @@ class Unloading:
             if self.registrar.catalog.has_consumer(query_id):  # (a release may have cascaded)
                 self.release(query_id, None, "consumer stopped")
 
-    def on_reconcile(self, message: Reconcile) -> None:
+    def on_reconcile(self, message: Reconcile, reply: Reply) -> None:
         """Release the ids of `origin_rr` it no longer holds; name those held here unknown.
 
         An id whose load is still under way here (waiting, parked, matched) is neither.
@@ -170,4 +170,4 @@ class Unloading:
                 self.release(query_id, None, "reconcile")
         under_way = self.provider.under_way()
         unknown = tuple(q for q in message.held if q not in mine and q not in under_way)
-        message.reply.set_result(unknown)
+        reply.set_result(unknown)
