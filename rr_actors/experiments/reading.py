@@ -276,9 +276,9 @@ class _Reader:
         self.managers = managers = {m.name: m for m in plan.managers()}
         self.hosts = plan.hosts
         if plan.hosts is not None:
-            for index, name in enumerate(plan.hosts.names):
-                twice = f"the host {name!r} is named twice"
-                self.refuse(name in plan.hosts.names[:index], ("hosts", "names", index), twice)
+            for index, host in enumerate(plan.hosts.names):
+                twice = f"the host {host!r} is named twice"
+                self.refuse(host in plan.hosts.names[:index], ("hosts", "names", index), twice)
         self.tree(plan.tree, ("tree",), set())
         self.calls(plan.workload)
         names = {  # what the fields of an `after` trigger may name
