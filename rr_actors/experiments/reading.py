@@ -69,7 +69,9 @@ NOT_COMPARED = {  # top-level keys `[compare]` refuses, and why
 KEYS = [f.name for f in dataclasses.fields(Plan) if f.init and f.name not in NOT_KEYS]
 # -- a fault's keys that only go with another key, or with some kinds ---------------------------
 NEEDS_KEY = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
-NEEDS_KIND = {"for": ("hang_manager", "load_error", "cut", "partition", "freeze")}
+NEEDS_KIND: dict[str, tuple[str, ...]] = {
+    "for": ("hang_manager", "load_error", "cut", "partition", "freeze")
+}
 NEEDS_KIND |= {"loads": ("load_error",), "link": ("cut",), "hosts": ("partition",)}
 NEEDS_KIND |= {"server": ("load_error",), "message": ("load_error",)}
 
