@@ -30,6 +30,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 import rr_actors as rr
 from rr_actors import events
 from rr_actors.experiments import _hosts, _procs, check, metrics
@@ -113,7 +115,7 @@ def build_tree(
     """
     top = plan.tree
     if plan.hosts is not None:
-        top = _on_host(plan, top, host or plan.hosts.home) or dataclasses.replace(top, children=())
+        top = _on_host(plan, top, host or plan.hosts.home) or msgspec.structs.replace(top, children=())
     jitter = random.Random(f"rr-actors/{seed}/backoff")  # noqa: S311 - not for secrets
     return rr.Supervisor(
         [_child_spec(child, plan.base_dir) for child in top.children],
@@ -138,7 +140,7 @@ def _on_host(plan: Plan, node: SupervisorPlan, host: str) -> SupervisorPlan | No
                 children.append(part)
         elif plan.host_of(child.name) == host:
             children.append(child)
-    return dataclasses.replace(node, children=tuple(children)) if children else None
+    return msgspec.structs.replace(node, children=tuple(children)) if children else None
 
 
 def _child_spec(
