@@ -512,6 +512,11 @@ def fault_rows(result: RunResult) -> list[dict[str, Any]]:
                 "late_ms": "" if late is None else round(late * 1e3, 3),
                 "skipped": fault.skipped,
                 "recovery_s": _blank(fault.recovery_s),
+                **(
+                    {"fail_s": _blank(fault.fail_s), "heal_s": _blank(fault.heal_s)}
+                    if result.hosts
+                    else {}
+                ),
                 "detail": fault.detail,
             }
         )

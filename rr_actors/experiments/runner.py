@@ -38,7 +38,7 @@ from rr_actors.experiments import _hosts, _procs, check, metrics
 from rr_actors.experiments._instrument import instrumented_setup
 from rr_actors.experiments._netns import PORT, HostNetwork
 from rr_actors.experiments.inject import Injector
-from rr_actors.experiments.plan import ManagerPlan, Plan, SupervisorPlan
+from rr_actors.experiments.plan import HOST_KINDS, ManagerPlan, Plan, SupervisorPlan
 from rr_actors.experiments.results import FaultRecord, RunResult
 from rr_actors.experiments.schedule import fault_schedule
 from rr_actors.experiments.workload import Client
@@ -115,7 +115,9 @@ def build_tree(
     """
     top = plan.tree
     if plan.hosts is not None:
-        top = _on_host(plan, top, host or plan.hosts.home) or msgspec.structs.replace(top, children=())
+        top = _on_host(plan, top, host or plan.hosts.home) or msgspec.structs.replace(
+            top, children=()
+        )
     jitter = random.Random(f"rr-actors/{seed}/backoff")  # noqa: S311 - not for secrets
     return rr.Supervisor(
         [_child_spec(child, plan.base_dir) for child in top.children],
@@ -533,6 +535,8 @@ def _result(
         )
         for record in records
     ]
+    if plan.hosts is not None:
+        finished = [_between_hosts(record, plan, seen, wall_t0) for record in finished]
     heard = sorted(t for client in clients for t in client.heard)
     finished = [_unheld(record, heard, plan.workload.timeout) for record in finished]
     with (run_dir / "events.jsonl").open("a", encoding="utf-8") as out:
@@ -585,7 +589,24 @@ def _result(
         ),
         supervisor_restarts=supervisor_restarts,
         catalogs_unread=drive.unread,
+        hosts=plan.hosts.names if plan.hosts is not None else (),
     )
+
+
+def _between_hosts(
+    record: FaultRecord, plan: Plan, seen: list[events.Event], wall_t0: float
+) -> FaultRecord:
+    """A fault between hosts with its time to fail, time to heal and recovery."""
+    if record.kind not in HOST_KINDS:
+        return record
+    assert plan.hosts is not None
+    fault = plan.faults[record.fault]
+    hit = metrics.affected_hosts(record.kind, record.target, plan.hosts.names, fault.hosts)
+    providers = {m.name for m in plan.managers() if plan.host_of(m.name) in hit}
+    fail_s, heal_s, recovery_s = metrics.host_fault_times(
+        record, providers, fault.for_s or 0.0, seen, wall_t0
+    )
+    return dataclasses.replace(record, fail_s=fail_s, heal_s=heal_s, recovery_s=recovery_s)
 
 
 UNHELD = "no client held it"
