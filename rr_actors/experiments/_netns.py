@@ -65,7 +65,7 @@ def sweep_stale() -> list[str]:
     swept = []
     for entry in json.loads(done.stdout or "[]"):
         parts = entry["name"].split("-")
-        ours = len(parts) == 3 and parts[0] == PREFIX and parts[1].isdigit()  # noqa: PLR2004
+        ours = len(parts) == 3 and parts[0] == PREFIX and parts[1].isdigit()
         if ours and not Path(f"/proc/{parts[1]}").exists():
             with contextlib.suppress(RuntimeError):
                 _ip("netns", "del", entry["name"])
