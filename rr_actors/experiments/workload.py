@@ -30,6 +30,7 @@ import itertools
 import os
 import queue
 import random
+import sys
 import threading
 import time
 import uuid
@@ -129,21 +130,42 @@ def retrying(
         RrError: what `action` raised otherwise, or its last failure.
     """
     pause = _RETRY_PAUSE
+    remote = _elsewhere(sup, provider)
     while True:
-        before = sup.child(provider)
+        before = None if remote else sup.child(provider)
         try:
             return action()
-        except (rr.RegistrarUnavailableError, rr.RegistrarStoppedError):
+        except (rr.RegistrarUnavailableError, rr.RegistrarStoppedError, rr.UnknownServerError):
+            # (a provider on another host: lost while its link was down, so unknown here
+            # until it is seen again; its own host's supervisor restarts it, not this one)
             left = deadline - time.monotonic()
-            if left <= 0:
+            if left <= 0 or (before is not None and not _unavailable(sys.exc_info()[1])):
                 raise
             retried()
-            now = sup.child(provider)
+            now = None if before is None else sup.child(provider)
+            if now is None or before is None:
+                threading.Event().wait(min(pause, left))  # a short pause, not a sync point
+                pause = min(2 * pause, _RETRY_PAUSE_MAX)
+                continue
             if now.state == "running" and now.restarts == before.restarts:
                 threading.Event().wait(min(pause, left))  # a short pause, not a sync point
                 pause = min(2 * pause, _RETRY_PAUSE_MAX)
                 continue
             sup.wait_restarted(provider, timeout=left, restarts=before.restarts + 1)
+
+
+def _elsewhere(sup: rr.Supervisor, provider: str) -> bool:
+    """Whether `provider` is a manager of another host (not in `sup`'s tree)."""
+    try:
+        sup.child(provider)
+    except rr.UnknownServerError:
+        return True
+    return False
+
+
+def _unavailable(exc: BaseException | None) -> bool:
+    """Whether a local provider's error is one to wait out (not an unknown name)."""
+    return isinstance(exc, rr.RegistrarUnavailableError | rr.RegistrarStoppedError)
 
 
 @dataclasses.dataclass
