@@ -123,6 +123,12 @@ class SerialExecutor:
 
     # -- giving it work ----------------------------------------------------------------
 
+    def start(self) -> None:
+        """Start the thread now (otherwise the first task that has to wait starts it)."""
+        with self._cond:
+            if self._thread is None and not self._closing:
+                self._start()
+
     def submit(self, task: Task, *, inline: Callable[[], Task | None] | None = None) -> bool:
         """Run `task` after every task submitted before; returns at once.
 
@@ -240,8 +246,16 @@ class SerialExecutor:
 
     def join(self, timeout: float | None) -> bool:
         """Wait (at most `timeout` s) until the executor ended; whether it did."""
+        if self.on_own_thread():
+            return False  # (it cannot end while it runs this)
+        deadline = None if timeout is None else time.monotonic() + timeout
         with self._cond:
-            return self._cond.wait_for(lambda: self._ended and not self._busy, timeout)
+            if not self._cond.wait_for(lambda: self._ended and not self._busy, timeout):
+                return False
+        if self._thread is not None:  # (its last steps: gone once this returns)
+            self._thread.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
+            return not self._thread.is_alive()
+        return True
 
     # -- plumbing ------------------------------------------------------------------------
 
