@@ -41,8 +41,8 @@ from typing import Any
 import pykka
 
 from rr_actors._catalog import ClientRecord
-from rr_actors._core.actor import Mailbox
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.queues import LateQueue
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.attempt import AttemptState, CallAttempt
 from rr_actors._registrar.loading import check_picklable
@@ -88,7 +88,7 @@ class DueAnswers:
     `outcomes` holds the outcomes of plain calls (`ClientLoaded`, `CallFailed`) in the
     order their threads handed them over; the actor takes them before each message
     (module docstring). Once the actor ended, an outcome handed over goes to its
-    `late` handler at once (a `Mailbox`), which gives the id back.
+    `late` handler at once (a `LateQueue`), which gives the id back.
     """
 
     __slots__ = ("_attempts", "_lock", "outcomes")
@@ -96,7 +96,7 @@ class DueAnswers:
     def __init__(self) -> None:
         self._attempts: dict[str, CallAttempt] = {}
         self._lock = threading.Lock()
-        self.outcomes = Mailbox()
+        self.outcomes = LateQueue()
 
     def __contains__(self, query_id: str) -> bool:
         return query_id in self._attempts

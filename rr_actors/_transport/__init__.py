@@ -10,7 +10,7 @@
   (`ZenohNetwork`: the router per host and its config), `zenoh_carrier` (a process's
   membership: the Transport surface, sending), `zenoh_outbox` (writer threads),
   `zenoh_inbox` (decode threads, delivery, answers), `zenoh_presence` (liveliness
-  tokens), `zenoh_queue` (one thread per ordered stream), `zenoh_wire` (key expressions
+  tokens; each thread a `_core.serial.SerialExecutor`), `zenoh_wire` (key expressions
   and header); `zenoh_tls` (`ZenohTLS`: a host's certificates and the system's members,
   checked with `cryptography`) and `zenoh_certs` (`rr-actors certs`: a CA, a host's
   certificate).

@@ -35,7 +35,6 @@ Who does what (each collaborator owns its state; they meet only through method c
 - `zenoh_presence`: `Presence`, the liveliness tables and the presence thread; it reports
   what follows to the member (`PresenceEvents`: process_gone, server_gone, lost,
   reachable);
-- `zenoh_queue`: `Queue`, one thread per ordered stream (writers, decoders, presence);
 - `zenoh_wire`: key expressions and the frame header.
 
 One name, one server: `serve` first declares a claim token, then asks the network for

@@ -5,7 +5,7 @@ for the replies waiting here.
  put rr/<s>/reg/<name> ─► subscriber callback (Zenoh's thread: never blocks, never decodes)
                             │ sender's token not here: the strangers' thread waits for it
                             ▼ else queued                (bounded; then dropped, a WARNING)
-                 inbox (sender, message): decode thread (zenoh_queue)
+                 inbox (sender, message): decode thread (SerialExecutor)
                    version refused? too large? unpickle; stand-in reply;
                    tell the registrar ─► reply.set_result ─► owner.answer_to(sender)
 
@@ -37,6 +37,7 @@ from typing import Any, Protocol
 import zenoh
 
 from rr_actors._core.directory import Reply
+from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import NO_REPLY, Run, what
@@ -48,7 +49,6 @@ from rr_actors._transport.delivery import (
 )
 from rr_actors._transport.inbound import _AnswerReply
 from rr_actors._transport.writer import Lost
-from rr_actors._transport.zenoh_queue import Queue
 from rr_actors._transport.zenoh_wire import (
     ANSWER,
     MESSAGE,
@@ -139,11 +139,11 @@ class Inbox:
         self._owner = owner
         self._lock = threading.Lock()
         self._closed = False
-        self._inboxes: dict[tuple[str, int], Queue] = {}
+        self._inboxes: dict[tuple[str, int], SerialExecutor] = {}
         self._waiting: dict[int, _Waiting] = {}
         self._tokens = itertools.count(1)
         self._warned: set[str] = set()
-        self._strangers = Queue("rr-zread-strangers", self._stranger)
+        self._strangers = SerialExecutor("rr-zread-strangers")
         self._pending: dict[tuple[str, int], int] = {}  # frames on `_strangers`, by stream
         self._held = (0, 0)  # frames and bytes on `_strangers`
         self._arrived: set[str] = set()  # tokens that came while `_strangers` held frames
@@ -204,7 +204,7 @@ class Inbox:
         with self._joined:
             self._joined.notify_all()
         for inbox in inboxes:
-            inbox.close()
+            inbox.close(timeout=0)
 
     def _receive(self, head: Header, kind: int, item: Any, size: int) -> None:
         """Hand `item` (`size` bytes) to the decode thread of (sender, `kind`) (Zenoh's
@@ -215,6 +215,7 @@ class Inbox:
         until those before them are done (then they keep their order).
         """
         key = (head.sender, kind)
+        task = functools.partial(self._deliver if kind == MESSAGE else self._answered, item)
         for _attempt in (1, 2):  # (its inbox may have just finished: the sender went)
             inbox = self._inboxes.get(key)
             if inbox is None or inbox.closed:
@@ -226,10 +227,9 @@ class Inbox:
                         if key in self._pending or not self._owner.member(head.sender):
                             self._wait_for_token(key, item, size)
                             return
-                        handle = self._deliver if kind == MESSAGE else self._answered
-                        inbox = Queue(f"rr-zread-{head.sender[:8]}-{kind}", handle)
+                        inbox = SerialExecutor(f"rr-zread-{head.sender[:8]}-{kind}")
                         self._inboxes[key] = inbox
-            if inbox.put(item):
+            if inbox.submit(task):
                 return
 
     def _heard(self, sender: str) -> bool:
@@ -255,7 +255,8 @@ class Inbox:
             return
         self._held = (count + 1, held + size)
         self._pending[key] = self._pending.get(key, 0) + 1
-        self._strangers.put((time.monotonic() + STRANGER_GRACE, key, item, size))
+        entry = (time.monotonic() + STRANGER_GRACE, key, item, size)
+        self._strangers.submit(functools.partial(self._stranger, entry))
 
     def _stranger(self, entry: tuple[float, tuple[str, int], Any, int]) -> None:
         """Handle one frame of a sender whose token was not here (the strangers' thread):

@@ -11,15 +11,17 @@ module only tells the operator, on the `rr_actors` logger:
   endpoint per minute while it lasts.
 
 ```
- Zenoh's thread: link event ──put──► queue ──► watch thread "rr-zenoh-watch"
+ Zenoh's thread: link event ─submit─► watch thread "rr-zenoh-watch" (SerialExecutor)
                                                  ├─ log INFO / WARNING per link
                                                  └─ every TICK s: each connect endpoint
                                                     linked? else after GRACE s:
                                                     handshake_trouble() ─► WARNING
 ```
 
-The Zenoh callback only puts the event in a queue (a callback must never block: logging
-handlers are user code); the watch thread does the rest. A link is "to" an endpoint when
+The Zenoh callback only queues the event for the watch thread (a callback must never
+block: logging handlers are user code); the watch thread does the rest. (Not Zenoh's
+`FifoChannel`: it has no receive with a timeout for the ticks, and a full one blocks
+Zenoh's thread.) A link is "to" an endpoint when
 its remote address is one of the endpoint's host's addresses and its port is the
 endpoint's, or a port no `connect` endpoint has (that host dialled us: two routers that
 dial each other share one link). So a link to one port of a host does not hide that
@@ -29,17 +31,17 @@ while its endpoint is unlinked, at most every `GRACE` s (a lookup may block for 
 
 from __future__ import annotations
 
+import functools
 import ipaddress
 import logging
-import queue
 import socket
-import threading
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from rr_actors._core.serial import SerialExecutor
 from rr_actors._transport.zenoh_config import parse_endpoint
 from rr_actors._transport.zenoh_probe import handshake_trouble
 
@@ -125,48 +127,38 @@ class LinkWatch:
         self._tls = tls
         self._clock = clock
         self._endpoints = [_Endpoint(endpoint) for endpoint in connect]
-        self._events: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._warned: dict[str, float] = {}  # non-member address -> when we said so
-        self._stop = threading.Event()
         self._started = clock()
-        self._listener = session.info.declare_link_events_listener(self._events.put, history=True)
-        self._thread = threading.Thread(target=self._run, name="rr-zenoh-watch", daemon=True)
-        self._thread.start()
+        self._thread = SerialExecutor("rr-zenoh-watch", every=(TICK, self._guarded))
+        self._listener = session.info.declare_link_events_listener(self._on_event, history=True)
 
     def close(self) -> None:
         """Stop watching (idempotent); call before the session closes."""
-        if self._stop.is_set():
+        if self._thread.closed:
             return
-        self._stop.set()
-        self._events.put(None)
+        self._thread.close(timeout=0)
         try:
             self._listener.undeclare()  # type: ignore[no-untyped-call]
         except Exception:
             logger.debug("undeclaring the link events listener failed", exc_info=True)
-        if threading.current_thread() is not self._thread:
-            self._thread.join(timeout=5.0)
+        self._thread.join(5.0)
 
     # -- the thread ------------------------------------------------------------------------
 
-    def _run(self) -> None:
-        next_tick = self._clock()
-        while not self._stop.is_set():
-            try:
-                event = self._events.get(timeout=max(0.0, next_tick - self._clock()))
-            except queue.Empty:
-                event = None
-            if self._stop.is_set():
-                return
-            try:
-                if event is not None:
-                    self._on_link(event)
-                if self._clock() >= next_tick:
-                    next_tick = self._clock() + TICK
-                    self._look_at_endpoints()
-            except Exception:
-                if self._stop.is_set():
-                    return  # the session closed under us
-                logger.exception("ZenohNetwork %r: watching its links failed", self._system)
+    def _on_event(self, event: Any) -> None:  # (Zenoh's thread: never blocks)
+        self._thread.submit(functools.partial(self._guarded, event))
+
+    def _guarded(self, event: Any = None) -> None:
+        """Log a link `event`, or (`None`: every `TICK` s) look at the connect endpoints."""
+        try:
+            if event is not None:
+                self._on_link(event)
+            else:
+                self._look_at_endpoints()
+        except Exception:
+            if self._thread.closed:
+                return  # the session closed under us
+            logger.exception("ZenohNetwork %r: watching its links failed", self._system)
 
     def _on_link(self, event: Any) -> None:
         link = event.link
@@ -254,7 +246,7 @@ class LinkWatch:
         (`zenoh_probe`); an endpoint not probed yet is probed now, which takes up to
         a few seconds (a TLS handshake's timeout) when its host does not answer.
         """
-        if self._stop.is_set() or not self._endpoints:
+        if self._thread.closed or not self._endpoints:
             return []
         linked = self._linked()
         dialled = {endpoint.port for endpoint in self._endpoints}
