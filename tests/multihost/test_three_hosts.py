@@ -14,6 +14,10 @@ on both of its links. `c` serves `erm` (the provider), `b` serves `hub`, `a` ser
   connection to `c` at all, and its router's only link is to `bravo`; yet `app` waits
   for `erm`, calls it, hears its WARNING and unloads it (`c`'s unload runs); no host logs
   a WARNING (no link watch takes `c` for unreachable).
+- `test_a_non_member_linked_to_b_reaches_nothing_on_c`: `stranger` (a certificate of
+  the lab's CA, not in `bravo`'s members) links to `b` (which warns naming it); its call
+  to `erm` fails with `UnknownRegistrarError` and `c` never sees its registrar: `b`'s
+  access control drops it before anything is routed on.
 - `test_a_cut_between_b_and_c_fails_as_calls_to_c_fast_and_heals`: with an id held at
   `erm` and a call in flight, the veth b-c goes down (no FIN): the call in flight fails
   with `RegistrarUnavailableError`, the held id is `FATAL` and forgotten, a new call
@@ -61,6 +65,7 @@ MEMBERS = ["alpha", "bravo", "charlie"]
 BOUND = 10.0  # seconds any one thing awaited may take (a loaded machine)
 CUT_BOUND = 2.0  # seconds after a cut by which calls in flight fail (the two-host table's)
 AT_ONCE = 1.0  # seconds a call to a registrar seen gone may take to fail
+QUIET = 3.0  # seconds something that must not happen is given to happen anyway
 
 
 # -- what runs in the workers ------------------------------------------------------------------
@@ -215,6 +220,7 @@ class Lab:
     """The three hosts, and the worker of each (`a`: `app`; `b`: `hub`; `c`: `erm`)."""
 
     net: hosts.ThreeHosts
+    ca: tuple[Any, Any]
     a: hosts.Worker
     b: hosts.Worker
     c: hosts.Worker
@@ -265,7 +271,7 @@ def made_lab() -> Iterator[Lab]:
         a.call(hosts.rr_start, "app", timeout=30)
         try:
             a.call(hosts.rr_until_answered, "app", "erm", "probe", 2 * BOUND, timeout=60)
-            yield Lab(net, a, b, c)
+            yield Lab(net, ca, a, b, c)
         finally:
             with contextlib.suppress(Exception):
                 c.call(open_gate, timeout=5)  # (a load still held at the gate ends)
@@ -306,6 +312,53 @@ def test_a_calls_a_registrar_on_c_through_b_with_mutual_tls(lab: Lab) -> None:
     assert (query_id, "WARNING", "erm/camera") == (heard_id, status, source)
     assert (1, 1) == c.call(counts, 1, timeout=10)
     assert {"a": [], "b": [], "c": []} == warnings(lab)
+
+
+def names_within(name: str, timeout: float) -> bool:
+    """Whether this worker's network sees registrar `name` within `timeout` seconds."""
+    from waiting import wait_for  # noqa: PLC0415
+
+    network = hosts.KEPT["network"]
+    return bool(wait_for(lambda: name in network.names(), timeout))
+
+
+def warned_of(name: str, timeout: float) -> str:
+    """The first WARNING of this worker naming `name` (`TimeoutError` if none comes)."""
+    from waiting import wait_for  # noqa: PLC0415
+
+    def found() -> list[str]:
+        return [m for m in hosts.rr_logs("WARNING") if repr(name) in m]
+
+    if not wait_for(lambda: bool(found()), timeout):
+        raise TimeoutError(f"no WARNING naming {name!r} within {timeout:g} s")
+    return found()[0]
+
+
+def test_a_non_member_linked_to_b_reaches_nothing_on_c(lab: Lab) -> None:
+    # b's access control drops what a non-member sends before it is routed on
+    stranger = lab.net.a.spawn()
+    stranger_tls = tls_of(lab.net, lab.ca, "stranger", lab.net.a.address)
+    stranger_tls["members"] = [*MEMBERS, "stranger"]  # (on its own side, it is one)
+    stranger.call(
+        hosts.rr_join,
+        system=SYSTEM,
+        listen=[],
+        connect=[f"tls/{lab.net.b.address}:{PORT}"],
+        tls=stranger_tls,
+        timeout=30,
+    )
+    stranger.call(hosts.rr_start, "mallory", timeout=30)
+
+    assert "not in members" in lab.b.call(warned_of, "stranger", BOUND, timeout=30)
+    seen_at_c = lab.c.submit(names_within, "mallory", QUIET)
+    kind, message, _ = stranger.call(hosts.rr_run, "mallory", failing_call, "erm", 1, timeout=30)
+    assert "UnknownRegistrarError" == kind, message
+    assert not seen_at_c.result(timeout=30)
+    assert (0, 0) == lab.c.call(counts, 1, timeout=10)
+    lab.a.call(hosts.rr_run, "app", call_hub, 2, timeout=30)  # the members go on
+    query_id = lab.a.call(hosts.rr_run, "app", call_camera, 2, timeout=30)
+    lab.a.call(hosts.rr_run, "app", unload, query_id, timeout=30)
+    stranger.call(hosts.rr_stop, timeout=30)
 
 
 def _cut_and_heal(lab: Lab, cut: list[tuple[str, str]]) -> None:
