@@ -18,6 +18,10 @@ on both of its links. `c` serves `erm` (the provider), `b` serves `hub`, `a` ser
   the lab's CA, not in `bravo`'s members) links to `b` (which warns naming it); its call
   to `erm` fails with `UnknownRegistrarError` and `c` never sees its registrar: `b`'s
   access control drops it before anything is routed on.
+- `test_each_link_admits_by_its_peers_name_so_the_router_vouches_for_what_it_forwards`:
+  `a` and `c` admit only `bravo` (and themselves), yet call each other: Zenoh's access
+  control judges a message by the certificate of the link it comes over, so a router
+  member vouches for what it forwards (`docs/how-to/securing-registrars.md` says so).
 - `test_a_cut_between_b_and_c_fails_as_calls_to_c_fast_and_heals`: with an id held at
   `erm` and a call in flight, the veth b-c goes down (no FIN): the call in flight fails
   with `RegistrarUnavailableError`, the held id is `FATAL` and forgotten, a new call
@@ -227,14 +231,19 @@ class Lab:
 
 
 def tls_of(
-    net: hosts.ThreeHosts, ca: tuple[Any, Any], name: str, *addresses: str
+    net: hosts.ThreeHosts,
+    ca: tuple[Any, Any],
+    name: str,
+    *addresses: str,
+    members: list[str] = MEMBERS,
 ) -> dict[str, Any]:
     cert, key = pki.issue(net.directory, name, addresses, ca=ca)
-    return {"ca": str(ca[0]), "cert": str(cert), "key": str(key), "members": MEMBERS}
+    return {"ca": str(ca[0]), "cert": str(cert), "key": str(key), "members": members}
 
 
 @contextlib.contextmanager
-def made_lab() -> Iterator[Lab]:
+def made_lab(ends_admit: list[str] = MEMBERS) -> Iterator[Lab]:
+    """The lab; `a` and `c` admit `ends_admit` (`b` admits all three)."""
     reason = hosts.require_root()
     if reason is not None:
         pytest.skip(reason)
@@ -256,7 +265,7 @@ def made_lab() -> Iterator[Lab]:
             system=SYSTEM,
             listen=[],
             connect=[b_for_c],
-            tls=tls_of(net, ca, "charlie", net.c.address),
+            tls=tls_of(net, ca, "charlie", net.c.address, members=["charlie", *ends_admit]),
             timeout=30,
         )
         c.call(hosts.rr_start, "erm", provider_setup, timeout=30)
@@ -265,7 +274,7 @@ def made_lab() -> Iterator[Lab]:
             system=SYSTEM,
             listen=[],
             connect=[b_for_a],
-            tls=tls_of(net, ca, "alpha", net.a.address),
+            tls=tls_of(net, ca, "alpha", net.a.address, members=["alpha", *ends_admit]),
             timeout=30,
         )
         a.call(hosts.rr_start, "app", timeout=30)
@@ -359,6 +368,15 @@ def test_a_non_member_linked_to_b_reaches_nothing_on_c(lab: Lab) -> None:
     query_id = lab.a.call(hosts.rr_run, "app", call_camera, 2, timeout=30)
     lab.a.call(hosts.rr_run, "app", unload, query_id, timeout=30)
     stranger.call(hosts.rr_stop, timeout=30)
+
+
+def test_each_link_admits_by_its_peers_name_so_the_router_vouches_for_what_it_forwards() -> None:
+    # a admits only bravo (and itself), c likewise: what c sends reaches a over b's link,
+    # whose certificate is bravo's; b's members (all three) decide who gets through b
+    with made_lab(ends_admit=["bravo"]) as lab:
+        query_id = lab.a.call(hosts.rr_run, "app", call_camera, 3, timeout=30)
+        lab.a.call(hosts.rr_run, "app", unload, query_id, timeout=30)
+        lab.c.call(unloaded, {"device": 3}, BOUND, timeout=30)
 
 
 def _cut_and_heal(lab: Lab, cut: list[tuple[str, str]]) -> None:
