@@ -63,7 +63,7 @@ from concurrent.futures import Future
 from concurrent.futures import wait as futures_wait
 from multiprocessing.connection import Client, Connection, answer_challenge, deliver_challenge
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import cloudpickle
 
@@ -606,6 +606,106 @@ class TwoHosts:
         for host in (self.a, self.b, self.c):
             if host is None:
                 continue
+            try:
+                host.close()
+            except BaseException as exc:
+                errors.append(exc)
+        while self._made:
+            with contextlib.suppress(RuntimeError):
+                _ip("netns", "del", self._made.pop())
+        self._tmp.cleanup()
+        if errors:
+            raise errors[0]
+
+
+class ThreeHosts:
+    """Three network namespaces in a line, `a` - `b` - `c`: two veth pairs, no link a-c.
+
+    `a` and `c` have no route to each other (no veth, no forwarding): whatever passes
+    between them goes through a process on `b` (a Zenoh router). Use as a context manager
+    (or call `close`): leaving it stops every worker and deletes the namespaces.
+
+        namespace ...-a              namespace ...-b                 namespace ...-c
+        rr0 10.77.<n>.1 <--veth--> rr0 10.77.<n>.2
+                                    rr2 10.79.<n>.2 <--veth--> rr2 10.79.<n>.3
+
+    Attributes:
+        a, b, c: the hosts (`b.address` is its address toward `a`; `b_toward_c` the one
+            toward `c`).
+        b_toward_c: `b`'s address on the b-c veth (`10.79.<n>.2`).
+        directory: the 0700 directory of the workers' sockets and logs.
+    """
+
+    LINKS: ClassVar[dict[tuple[str, str], str]] = {("a", "b"): INTERFACE, ("b", "c"): "rr2"}
+    """The veth of each pair of hosts, by its name in both namespaces."""
+
+    def __init__(self) -> None:
+        reason = require_root()
+        if reason is not None:
+            raise PermissionError(reason)
+        if shutil.which("ip") is None:
+            raise RuntimeError("three hosts need iproute2's `ip` (apt-get install -y iproute2)")
+        sweep_stale()
+        number = next(_numbers)
+        self._made: list[str] = []
+        self._tmp = tempfile.TemporaryDirectory(prefix="rr-hosts-")
+        directory = self.directory = Path(self._tmp.name)
+        directory.chmod(0o700)
+        stem = f"{PREFIX}-{os.getpid()}-{number}"
+        ab, bc = f"10.77.{number % 256}", f"10.79.{number % 256}"
+        self.a = Host("a", f"{stem}-a", f"{ab}.1", directory)
+        self.b = Host("b", f"{stem}-b", f"{ab}.2", directory)
+        self.c = Host("c", f"{stem}-c", f"{bc}.3", directory)
+        self.b_toward_c = f"{bc}.2"
+        try:
+            for host in (self.a, self.b, self.c):
+                _ip("netns", "add", str(host.namespace))
+                self._made.append(str(host.namespace))
+                _ip("-n", str(host.namespace), "link", "set", "lo", "up")
+            for (left, right), address_left, address_right in (
+                (("a", "b"), self.a.address, self.b.address),
+                (("b", "c"), self.b_toward_c, self.c.address),
+            ):
+                name = self.LINKS[left, right]
+                one, other = self._host(left), self._host(right)
+                _ip(
+                    *("-n", str(one.namespace), "link", "add", name, "type", "veth"),
+                    *("peer", "name", name, "netns", str(other.namespace)),
+                )
+                for host, address in ((one, address_left), (other, address_right)):
+                    _ip("-n", str(host.namespace), "addr", "add", f"{address}/24", "dev", name)
+                self.link_up(left, right)
+        except BaseException:
+            self.close()
+            raise
+
+    def _host(self, name: str) -> Host:
+        return {"a": self.a, "b": self.b, "c": self.c}[name]
+
+    def __enter__(self) -> ThreeHosts:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def _set(self, left: str, right: str, state: str) -> None:
+        name = self.LINKS[left, right]
+        for host in (self._host(left), self._host(right)):
+            _ip("-n", str(host.namespace), "link", "set", name, state)
+
+    def link_down(self, left: str, right: str) -> None:
+        """Take the veth between `left` and `right` ("a", "b" or "b", "c") down on both
+        ends: packets vanish, no FIN."""
+        self._set(left, right, "down")
+
+    def link_up(self, left: str, right: str) -> None:
+        """Bring the veth between `left` and `right` up again on both ends."""
+        self._set(left, right, "up")
+
+    def close(self) -> None:
+        """Stop every worker, then delete the namespaces (each step even if one fails)."""
+        errors: list[BaseException] = []
+        for host in (self.a, self.b, self.c):
             try:
                 host.close()
             except BaseException as exc:

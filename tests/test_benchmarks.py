@@ -33,6 +33,7 @@ SMALLEST = {
     "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
     "bench_scale.py": ["--counts", "2", "--rounds", "1"],
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1"],
+    "bench_three_hosts.py": ["--rounds", "20", "--cuts", "1"],
     "bench_transport.py": ["--rounds", "20"],
     "bench_xoscar.py": ["--rounds", "1", "--batch", "5", "--no-load"],
     "bench_zenoh.py": ["--rounds", "20", "--kills", "1", "--cuts", "1"],

@@ -348,7 +348,8 @@ class ZenohMember:
             return RegistrarStoppedError(f"registrar {name!r} was stopped")
         return RegistrarUnavailableError(
             f"registrar {name!r} of system {self.system!r} cannot be reached (its process "
-            f"died or its link is down)"
+            f"died, or a link on the way to it is down: this host's own, or one beyond the "
+            f"router it is reached through)"
         )
 
     def send(self, name: str, message: Any) -> None:
