@@ -41,9 +41,9 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT))  # the repository: tests.support
 
-import hosts  # noqa: E402 (tests/hosts.py: the two-host harness)
+from tests.support import hosts  # noqa: E402 (tests/support/hosts.py: the two-host harness)
 
 PORT = 7447
 """The Zenoh port inside each namespace (a namespace has its own ports: no clash)."""

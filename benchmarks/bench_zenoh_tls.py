@@ -54,12 +54,12 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT))  # the repository: tests.support
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_zenoh  # noqa: E402 (this directory: the plain-TCP benchmark's helpers)
-import hosts  # noqa: E402 (tests/hosts.py: the two-host harness)
-import pki  # noqa: E402 (tests/pki.py: certificates for the run)
+
+from tests.support import hosts, pki  # noqa: E402 (tests/support: harness, certificates)
 
 PORT = 7447
 """The first Zenoh port inside each namespace; each pair of processes gets its own."""

@@ -23,11 +23,11 @@ from pathlib import Path
 import pytest
 from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
-from pki import make_ca
-from tls_lab import free_port, router
 
 import rr_actors as rr
 from rr_actors._cli import main
+from tests.support.pki import make_ca
+from tests.support.tls_lab import free_port, router
 
 
 def certs(*argv: str) -> tuple[int, str]:

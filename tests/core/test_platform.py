@@ -16,11 +16,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from supervising import linux_trick, process
 
 import rr_actors as rr
 from rr_actors._platform import PLATFORM
 from rr_actors._process.context import start_forkserver
+from tests.support.supervising import linux_trick, process
 
 _FORCED = os.environ.get("RR_ACTORS_PLATFORM") == "portable"
 

@@ -14,7 +14,6 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors import events
@@ -27,6 +26,7 @@ from rr_actors.testing import (
     expect_restart,
     start_forkserver,
 )
+from tests.support.waiting import wait_for
 
 
 class Heard:

@@ -22,7 +22,8 @@ from pathlib import Path
 
 import psutil
 import pytest
-from small_disk import fill, mounted
+
+from tests.support.small_disk import fill, mounted
 
 SERVICE = "rr_actors.experiments.services:service"
 

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import pytest
 from rich.console import Console
-from small_disk import mounted, remount_read_only
 
 from rr_actors.mission import FAULTS, FaultResult, MissionError, MissionReport, UnplannedRestart
 from rr_actors.mission.config import MissionConfig
@@ -30,6 +29,7 @@ from rr_actors.mission.output import (
     timeline,
 )
 from rr_actors.mission.run import _hooks, _mission_clock, main, parser, run, run_mission
+from tests.support.small_disk import mounted, remount_read_only
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 

@@ -13,8 +13,9 @@ import contextlib
 import subprocess
 from collections.abc import Iterator
 
-import hosts
 import pytest
+
+from tests.support import hosts
 
 
 @pytest.fixture

@@ -17,8 +17,9 @@ import sys
 import textwrap
 import time
 
-import hosts
 import pytest
+
+from tests.support import hosts
 
 PORT = 7447
 LEASE = 1.0
@@ -150,7 +151,7 @@ ORPHANED = textwrap.dedent(
     """
     import os, sys, select
     sys.path.insert(0, {tests!r})
-    import hosts
+    from tests.support import hosts
     made = hosts.TwoHosts()
     print(made.a.worker.pid, made.directory, flush=True)
     select.select([], [], [], 60)
@@ -163,7 +164,7 @@ def test_a_worker_dies_with_the_test_process_and_the_next_run_deletes_its_namesp
     if reason is not None:
         pytest.skip(reason)
     run = subprocess.Popen(
-        [sys.executable, "-c", ORPHANED.format(tests=str(hosts.TESTS))],
+        [sys.executable, "-c", ORPHANED.format(root=str(hosts.ROOT))],
         stdout=subprocess.PIPE,
         text=True,
     )

@@ -8,10 +8,10 @@ timed-out `registrar.call` after a healed link).
 
 from __future__ import annotations
 
-import hosts
 import pytest
 
 from rr_actors.errors import CallTimeoutError
+from tests.support import hosts
 
 
 def time_out() -> None:

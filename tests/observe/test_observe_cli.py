@@ -11,12 +11,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from observed_tree import REQUEST, figure_27
-from observing import get_json, request, wait_state
 
 import rr_actors as rr
 from rr_actors._cli import main
 from rr_actors.observe import observe_backups
+from tests.support.observed_tree import REQUEST, figure_27
+from tests.support.observing import get_json, request, wait_state
 
 
 @pytest.fixture

@@ -17,7 +17,6 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from observed_tree import figure_27
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog
@@ -33,6 +32,7 @@ from rr_actors.observe._view import (
     resource_name,
     summarise_catalog,
 )
+from tests.support.observed_tree import figure_27
 
 
 def run(*argv: str) -> tuple[int, str]:

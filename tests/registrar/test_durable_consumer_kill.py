@@ -17,10 +17,10 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from supervising import kill_and_wait_restarted
 
 import rr_actors as rr
 from rr_actors.testing import SharedObjects, start_forkserver
+from tests.support.supervising import kill_and_wait_restarted
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

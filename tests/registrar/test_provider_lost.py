@@ -17,8 +17,6 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from supervising import process, sigkill
-from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors._registrar import Served
@@ -30,6 +28,8 @@ from rr_actors.testing import (
     crash,
     start_forkserver,
 )
+from tests.support.supervising import process, sigkill
+from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

@@ -24,8 +24,6 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from durable_pair import durable_config
-from gating import GatedLoad
 
 import rr_actors as rr
 from rr_actors.testing import (
@@ -36,6 +34,8 @@ from rr_actors.testing import (
     intercept,
     start_forkserver,
 )
+from tests.support.durable_pair import durable_config
+from tests.support.gating import GatedLoad
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

@@ -19,7 +19,6 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors._registrar import Served
@@ -32,6 +31,7 @@ from rr_actors.testing import (
     intercept,
     start_forkserver,
 )
+from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

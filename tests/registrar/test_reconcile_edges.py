@@ -20,11 +20,11 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from supervising import ManualTimer, crash
 
 import rr_actors as rr
 from rr_actors._process.manager import start_forkserver
 from rr_actors.testing import RemoteRegistrar, SharedObjects, expect_restart, intercept
+from tests.support.supervising import ManualTimer, crash
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

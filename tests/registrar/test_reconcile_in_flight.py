@@ -27,11 +27,11 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from supervising import sigkill
 
 import rr_actors as rr
 from rr_actors._process.manager import start_forkserver
 from rr_actors.testing import SharedObjects, intercept
+from tests.support.supervising import sigkill
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

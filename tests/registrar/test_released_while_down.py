@@ -24,11 +24,11 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from supervising import ManualTimer
 
 import rr_actors as rr
 from rr_actors._process.manager import start_forkserver
 from rr_actors.testing import SharedObjects
+from tests.support.supervising import ManualTimer
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

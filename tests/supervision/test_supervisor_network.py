@@ -14,11 +14,11 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from supervising import echo_setup, kill_and_wait_restarted, process
-from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors.testing import RemoteRegistrar, SharedObjects, System, start_forkserver
+from tests.support.supervising import echo_setup, kill_and_wait_restarted, process
+from tests.support.waiting import wait_for
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -28,13 +28,6 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from carriers import (
-    ProviderFactory,
-    load_count,
-    record_warnings,
-    setup_servers,
-    warnings_logged,
-)
 
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
@@ -45,6 +38,13 @@ from rr_actors._transport.codec import frame, frames, plain, unframe
 from rr_actors._transport.outbound import _Channel
 from rr_actors._transport.sockets import HANDSHAKE_TIMEOUT, connect
 from rr_actors._transport.writer import Writer
+from tests.support.carriers import (
+    ProviderFactory,
+    load_count,
+    record_warnings,
+    setup_servers,
+    warnings_logged,
+)
 
 
 @pytest.fixture

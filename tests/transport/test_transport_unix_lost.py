@@ -22,13 +22,13 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from test_transport_lost import Recorder
-from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors._registrar import Served
 from rr_actors._transport import System, SystemAddress
 from rr_actors.testing import expect_restart
+from tests.support.waiting import wait_for
+from tests.transport.test_transport_lost import Recorder
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

@@ -30,7 +30,6 @@ from typing import Any
 
 import pytest
 import zenoh
-from carriers import in_thread, setup_servers, wait_load_started
 
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
@@ -39,6 +38,7 @@ from rr_actors._registrar import Served
 from rr_actors._transport.codec import frame
 from rr_actors._transport.zenoh_net import ZenohNetwork
 from rr_actors._transport.zenoh_wire import MESSAGE, PYTHON, VERSION, parse, payload_of
+from tests.support.carriers import in_thread, setup_servers, wait_load_started
 
 # -- configuration ---------------------------------------------------------------------------
 

@@ -14,11 +14,11 @@ import sys
 from pathlib import Path
 
 import pytest
-from pki import DAY, issue, make_ca, make_intermediate
 
 import rr_actors as rr
 from rr_actors._transport import zenoh_certs
 from rr_actors.errors import ConfigError
+from tests.support.pki import DAY, issue, make_ca, make_intermediate
 
 NOW = datetime.datetime.now(datetime.UTC)
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import pki
 import pytest
 
 import rr_actors as rr
+from tests.support import pki
 
 
 @pytest.mark.parametrize("argument", ["ca", "cert", "key"])

@@ -9,12 +9,12 @@ import threading
 from pathlib import Path
 from typing import Any
 
-import pki
 import pytest
-from tls_lab import free_port, member_tls, router
-from waiting import wait_for
 
 from rr_actors._transport.zenoh_watch import TICK, LinkWatch
+from tests.support import pki
+from tests.support.tls_lab import free_port, member_tls, router
+from tests.support.waiting import wait_for
 
 
 def test_a_linked_endpoint_named_by_a_host_name_is_not_looked_up_at_every_tick(

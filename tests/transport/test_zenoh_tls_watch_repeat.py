@@ -9,12 +9,12 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-import pki
 import pytest
-from tls_lab import free_port, member_tls, router
-from waiting import wait_for
 
 from rr_actors._transport.zenoh_watch import GRACE, TICK, LinkWatch
+from tests.support import pki
+from tests.support.tls_lab import free_port, member_tls, router
+from tests.support.waiting import wait_for
 
 
 class _Warnings(logging.Handler):

@@ -13,11 +13,11 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-import pki
 import zenoh
 
 import rr_actors as rr
 from rr_actors._transport.zenoh_config import session_config
+from tests.support import pki
 
 MEMBERS = ("robot", "operator")
 
