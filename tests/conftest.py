@@ -189,6 +189,20 @@ def no_leftovers() -> Iterator[None]:
         pytest.fail("; ".join(problems))
 
 
+@pytest.fixture(scope="module")
+def by_value(request: pytest.FixtureRequest) -> Iterator[None]:
+    """The test module is pickled by value (cloudpickle) for its module; the forkserver runs.
+
+    For modules whose callbacks run in manager processes they start by hand (`setup=` of a
+    `RemoteRegistrar` or a `ManagerSpec`): those processes cannot import the test modules.
+    Use it as `pytestmark = pytest.mark.usefixtures("by_value")`.
+    """
+    start_forkserver()
+    cloudpickle.register_pickle_by_value(request.module)
+    yield
+    cloudpickle.unregister_pickle_by_value(request.module)
+
+
 # -- placement ------------------------------------------------------------------------------
 
 

@@ -150,7 +150,7 @@ def test_leaving_the_hosts_kills_what_a_worker_left_running_in_its_namespace() -
 ORPHANED = textwrap.dedent(
     """
     import os, sys, select
-    sys.path.insert(0, {tests!r})
+    sys.path.insert(0, {root!r})
     from tests.support import hosts
     made = hosts.TwoHosts()
     print(made.a.worker.pid, made.directory, flush=True)
