@@ -1,7 +1,7 @@
 """Zenoh benchmark: rr_actors across two hosts next to a raw Zenoh `get` between the same two.
 
 Run: `python benchmarks/bench_zenoh.py [--rounds N] [--kills N] [--cuts N] [--only raw]`. The two
-hosts are two Linux network namespaces joined by a veth pair (`tests/hosts.py`), which needs
+hosts are two Linux network namespaces joined by a veth pair (`tests/support/hosts.py`), which needs
 root; without root only the loopback rows run. Everything is measured in one run, so the
 ratios are comparable:
 

@@ -3,9 +3,9 @@
 Run, as root: `taskset -c 0 python benchmarks/bench_zenoh_tls.py [--rounds N] [--handshakes N]
 [--clients N] [--joins N] [--quiet S] [--interval S] [--cuts N] [--threads N] [--flood S]
 [--give-up S] [--without-gate]`. The two hosts are two Linux network namespaces joined by a
-veth pair, and a third one, the outsider, on a veth of its own to host a (`tests/hosts.py`);
+veth pair, and a third one, the outsider, on a veth of its own to host a (`tests/support/hosts.py`);
 without root nothing is measured (it says so). The certificates are made for the run
-(`tests/pki.py`): a CA, members `robot` (host a, the listener), `operator` and `joiner`
+(`tests/support/pki.py`): a CA, members `robot` (host a, the listener), `operator` and `joiner`
 (host b). Everything is measured in one run:
 
 * round trips across the veth, each protocol on its own pair of fresh processes: a raw Zenoh

@@ -1,4 +1,4 @@
-"""The two-host harness itself (tests/hosts.py), proved with raw Zenoh before any carrier uses it.
+"""The two-host harness (tests/support/hosts.py), proved with raw Zenoh before any carrier uses it.
 
 Host `a` listens on `tcp/<a>:7447`; host `b` connects to it; multicast scouting is off, so only
 the endpoints given are used. Readiness is a liveliness token seen from the other host (an

@@ -3,7 +3,7 @@
 Host `a` (10.77.<n>.1) listens on `tls/<a>:7447` and serves `erm` as the member `robot`;
 host `b` (10.77.<n>.2) runs the member `operator` (its registrar `app` calls `erm`) and, in
 workers of its own, whoever else connects (the `lab` fixture). The certificates are made
-by the test (`tests/pki.py`): the system's CA "lab", each member's certificate naming its
+by the test (`tests/support/pki.py`): the system's CA "lab", each member's certificate naming its
 host's address. One test per row of the issue's table "What a peer without the system's
 certificate gets"; in each, `operator` still calls `erm` across the veth after the peer
 tried, and what the peer sends is a pickle that would create a file if it were unpickled

@@ -2,7 +2,7 @@
 
 `tests/transport/test_zenoh_tls_*.py` make raw Zenoh routers with the very config
 `ZenohNetwork` makes (`session_config`), in the test process; the certificates come from
-`tests/pki.py`.
+`tests/support/pki.py`.
 """
 
 from __future__ import annotations
