@@ -1,6 +1,6 @@
 """`rr-actors certs init` and `rr-actors certs issue`: a system's CA and its hosts' certificates.
 
-Run through `rr_actors._cli.main` and once through the installed console script; the
+Run through `rr_actors.__main__.main` and once through the installed console script; the
 certificates are proven usable by a real mutual-TLS handshake (Python's `ssl`, a real TCP
 socket) and by `openssl verify`.
 """
@@ -27,7 +27,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 import rr_actors as rr
-from rr_actors._cli import main
+from rr_actors.__main__ import main
 from rr_actors._transport.zenoh_certs import issue_cert
 from rr_actors.errors import ConfigError
 from tests.support.pki import make_ca
@@ -472,7 +472,7 @@ def test_a_client_of_another_ca_is_refused_by_the_listener(ca_dir: Path, tmp_pat
 
 def test_certs_help_lists_init_and_issue() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "rr_actors._cli", "certs", "--help"],
+        [sys.executable, "-m", "rr_actors", "certs", "--help"],
         capture_output=True,
         text=True,
         timeout=30,
@@ -488,7 +488,7 @@ def test_without_cryptography_certs_says_which_extra_to_install(tmp_path: Path) 
     code = (
         "import sys\n"
         "sys.modules['cryptography'] = None  # as if not installed: importing it fails\n"
-        "from rr_actors._cli import main\n"
+        "from rr_actors.__main__ import main\n"
         "sys.exit(main(['certs', 'init', 'certs', '--system', 'lab']))\n"
     )
     result = subprocess.run(

@@ -19,7 +19,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._platform import PLATFORM
-from rr_actors._process.context import start_forkserver
+from rr_actors.testing import start_forkserver
 from tests.support.supervising import linux_trick, process
 
 _FORCED = os.environ.get("RR_ACTORS_PLATFORM") == "portable"

@@ -52,7 +52,7 @@ target = "db"
 at = 0.5
 """
 
-CODE = "import sys; from rr_actors._cli import main; sys.exit(main(sys.argv[1:]))"
+CODE = "import sys; from rr_actors.__main__ import main; sys.exit(main(sys.argv[1:]))"
 
 
 @pytest.fixture

@@ -156,7 +156,7 @@ def test_quiet_help_says_it_prints_only_the_timeline() -> None:
 def demo(*argv: str) -> subprocess.CompletedProcess[str]:
     """`rr-actors demo ARGV` as a separate program (60 s at most)."""
     return subprocess.run(
-        [sys.executable, "-m", "rr_actors._cli", "demo", *argv],
+        [sys.executable, "-m", "rr_actors", "demo", *argv],
         capture_output=True,
         text=True,
         timeout=60,

@@ -212,7 +212,7 @@ def test_demo_observe_serves_the_final_state_until_ctrl_c_and_says_so(
 ) -> None:
     command = ["demo", "--fast", "--observe", "--quiet", "--out", str(tmp_path)]
     with subprocess.Popen(
-        [sys.executable, "-m", "rr_actors._cli", *command],
+        [sys.executable, "-m", "rr_actors", *command],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,

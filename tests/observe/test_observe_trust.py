@@ -19,9 +19,9 @@ import cloudpickle
 import pytest
 
 import rr_actors as rr
+from rr_actors.__main__ import main
 from rr_actors._catalog import Catalog
 from rr_actors._catalog.texts import NOT_SHOWN_OLD
-from rr_actors._cli import main
 from rr_actors._store import SqliteStore, read_backup, schema
 from rr_actors._store.codec import dumps
 from rr_actors.observe._sources import read_catalogs

@@ -20,7 +20,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors._process.context import start_forkserver
+from rr_actors.testing import start_forkserver
 from tests.support.supervising import process
 
 pytestmark = pytest.mark.skipif(

@@ -22,8 +22,8 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors.__main__ import main
 from rr_actors._catalog import Catalog, request_digest
-from rr_actors._cli import main
 from rr_actors._store import checkpoints, codec, files, schema
 from rr_actors._store import saver as _persistence
 from rr_actors._store.files import quarantine_backup, read_backup

@@ -217,7 +217,9 @@ def _dumps_by_value(obj: Any) -> bytes:
         registered = []
         for name, module in list(sys.modules.items()):
             path = getattr(module, "__file__", None)
-            if name in {__name__, "__main__"} or not path:
+            # (not a package: cloudpickle sends every module under a registered package by
+            # value, this one too, whose state a worker must share with its main loop)
+            if name in {__name__, "__main__"} or not path or hasattr(module, "__path__"):
                 continue
             where = Path(path)
             if where.is_relative_to(TESTS) or where.is_relative_to(ROOT / "benchmarks"):

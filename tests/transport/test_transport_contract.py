@@ -22,9 +22,9 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._registrar.messages import Revoke
 from rr_actors._transport import System
 from rr_actors.testing import intercept
+from rr_actors.testing.carrier import Revoke
 from tests.support.carriers import (
     BIG,
     GATE,

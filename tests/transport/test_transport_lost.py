@@ -33,8 +33,8 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors._registrar import Served
 from rr_actors._transport import Transport
+from rr_actors.testing.carrier import Served
 from tests.support.carriers import CARRIERS, setup_servers
 from tests.support.waiting import wait_for
 

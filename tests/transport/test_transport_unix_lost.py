@@ -23,9 +23,9 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors._registrar import Served
 from rr_actors._transport import System, SystemAddress
 from rr_actors.testing import expect_restart
+from rr_actors.testing.carrier import Served
 from tests.support.names import named
 from tests.support.waiting import wait_for
 from tests.transport.test_transport_lost import Recorder
