@@ -1,7 +1,7 @@
 """Three hosts in a line: a call routed through a third host's router, and its cuts.
 
 Run (as root): `python benchmarks/bench_three_hosts.py [--rounds N] [--cuts N]`. Three Linux
-network namespaces `a` - `b` - `c` (`tests/hosts.py`'s `ThreeHosts`: two veth pairs, no
+network namespaces `a` - `b` - `c` (`tests/support/hosts.py`'s `ThreeHosts`: two veth pairs, no
 link a-c), each with one `rr.ZenohNetwork` of mutual TLS: `b` listens on both of its
 addresses, `a` and `c` dial only `b`. Measured, with the default lease (1 s):
 
@@ -28,10 +28,9 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT))  # the repository: tests.support
 
-import hosts  # noqa: E402 (tests/hosts.py: the namespaces)
-import pki  # noqa: E402 (tests/pki.py: the certificates)
+from tests.support import hosts, pki  # noqa: E402 (the namespaces, the certificates)
 
 PORT = 7447
 SYSTEM = "bench"

@@ -11,11 +11,11 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
-from supervising import kill_and_wait_restarted, pid_of, sigkill
 
 import rr_actors as rr
 from rr_actors import events
 from rr_actors.testing import SharedObjects
+from tests.support.supervising import kill_and_wait_restarted, pid_of, sigkill
 
 
 class Heard:

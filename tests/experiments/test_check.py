@@ -10,7 +10,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors._cli import main
+from rr_actors.__main__ import main
 from rr_actors.experiments import check
 
 P = 100  # the provider's process

@@ -39,7 +39,7 @@ def ours() -> list[str]:
 def demo(*options: str, cwd: Path, timeout: float = 150) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.run(
-        [sys.executable, "-m", "rr_actors._cli", "demo", *options],
+        [sys.executable, "-m", "rr_actors", "demo", *options],
         cwd=cwd,
         capture_output=True,
         text=True,

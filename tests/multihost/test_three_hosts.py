@@ -3,7 +3,7 @@
 `hosts.ThreeHosts`: namespace `a` (`alpha`) has a veth to `b` (`bravo`), `b` one to `c`
 (`charlie`), and `a` and `c` have no link and no route to each other. Each host runs one
 `ZenohNetwork` of the system "lab" with mutual TLS and members `alpha`, `bravo`,
-`charlie` (certificates made by the test, `tests/pki.py`; `bravo`'s names both its
+`charlie` (certificates made by the test, `tests/support/pki.py`; `bravo`'s names both its
 addresses). `b` listens on both of its addresses and dials nobody; `a` and `c` listen on
 nothing and dial `b`. So every message between `a` and `c` is routed by `b`'s Zenoh
 router (an rr_actors router session already: `zenoh_net`), through its access control
@@ -57,11 +57,10 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
-import hosts
-import pki
 import pytest
 
 import rr_actors as rr
+from tests.support import hosts, pki
 
 SYSTEM = "lab"
 PORT = 7447
@@ -325,7 +324,7 @@ def test_a_calls_a_registrar_on_c_through_b_with_mutual_tls(lab: Lab) -> None:
 
 def names_within(name: str, timeout: float) -> bool:
     """Whether this worker's network sees registrar `name` within `timeout` seconds."""
-    from waiting import wait_for  # noqa: PLC0415
+    from tests.support.waiting import wait_for  # noqa: PLC0415
 
     network = hosts.KEPT["network"]
     return bool(wait_for(lambda: name in network.names(), timeout))
@@ -333,7 +332,7 @@ def names_within(name: str, timeout: float) -> bool:
 
 def warned_of(name: str, timeout: float) -> str:
     """The first WARNING of this worker naming `name` (`TimeoutError` if none comes)."""
-    from waiting import wait_for  # noqa: PLC0415
+    from tests.support.waiting import wait_for  # noqa: PLC0415
 
     def found() -> list[str]:
         return [m for m in hosts.rr_logs("WARNING") if repr(name) in m]

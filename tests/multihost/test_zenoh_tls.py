@@ -3,7 +3,7 @@
 Host `a` (10.77.<n>.1) listens on `tls/<a>:7447` and serves `erm` as the member `robot`;
 host `b` (10.77.<n>.2) runs the member `operator` (its registrar `app` calls `erm`) and, in
 workers of its own, whoever else connects (the `lab` fixture). The certificates are made
-by the test (`tests/pki.py`): the system's CA "lab", each member's certificate naming its
+by the test (`tests/support/pki.py`): the system's CA "lab", each member's certificate naming its
 host's address. One test per row of the issue's table "What a peer without the system's
 certificate gets"; in each, `operator` still calls `erm` across the veth after the peer
 tried, and what the peer sends is a pickle that would create a file if it were unpickled
@@ -68,12 +68,11 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import hosts
-import pki
 import pytest
-from waiting import wait_for
 
 import rr_actors as rr
+from tests.support import hosts, pki
+from tests.support.waiting import wait_for
 
 SYSTEM = "lab"
 PORT = 7447
@@ -155,7 +154,7 @@ def next_from(name: str, timeout: float) -> Any:
 def logged(level: str, parts: list[str], timeout: float) -> str:
     """The first message of `level` kept by `hosts.rr_join`'s handler that holds every one
     of `parts`, waited for (`TimeoutError` naming what was logged if none comes)."""
-    from waiting import wait_for  # noqa: PLC0415
+    from tests.support.waiting import wait_for  # noqa: PLC0415
 
     def found() -> list[str]:
         return [m for m in hosts.rr_logs(level) if all(part in m for part in parts)]
@@ -167,7 +166,7 @@ def logged(level: str, parts: list[str], timeout: float) -> str:
 
 def names_within(name: str, timeout: float) -> bool:
     """Whether this worker's network sees registrar `name` within `timeout` seconds."""
-    from waiting import wait_for  # noqa: PLC0415
+    from tests.support.waiting import wait_for  # noqa: PLC0415
 
     network = hosts.KEPT["network"]
     return bool(wait_for(lambda: name in network.names(), timeout))
@@ -223,9 +222,9 @@ def raw_open(
     import json  # noqa: PLC0415
 
     import zenoh  # noqa: PLC0415
-    from waiting import wait_for  # noqa: PLC0415
 
     from rr_actors._transport.zenoh_config import _tls_settings  # noqa: PLC0415
+    from tests.support.waiting import wait_for  # noqa: PLC0415
 
     link: dict[str, Any] = {}
     if tls is not None:

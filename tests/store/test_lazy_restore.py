@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from durable_pair import schema_2_database
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog, request_digest
@@ -22,6 +21,7 @@ from rr_actors._platform.linux import LinuxPlatform
 from rr_actors._store import codec, restore
 from rr_actors._store.files import read_backup
 from rr_actors._store.sqlite import SqliteStore
+from tests.support.durable_pair import schema_2_database
 
 
 def write_catalog(path: Path, rows: list[tuple[str, str, Any, str]]) -> None:

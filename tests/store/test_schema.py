@@ -10,13 +10,6 @@ import uuid
 from pathlib import Path
 
 import pytest
-from persisting import (
-    catalog_with_a_gone_class,
-    lazily_restored,
-    reopen,
-    stored_catalog,
-    write_v1_backup,
-)
 
 import rr_actors as rr
 from rr_actors._catalog import (
@@ -28,6 +21,13 @@ from rr_actors._catalog import (
 from rr_actors._store import schema
 from rr_actors._store.files import read_backup
 from rr_actors._store.sqlite import SqliteStore
+from tests.support.persisting import (
+    catalog_with_a_gone_class,
+    lazily_restored,
+    reopen,
+    stored_catalog,
+    write_v1_backup,
+)
 
 
 def test_a_restore_reads_a_served_resource_only_when_a_lookup_needs_it(tmp_path: Path) -> None:

@@ -7,26 +7,18 @@ plugs into the same keywords.
 
 from __future__ import annotations
 
-import sys
-import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
 
-import cloudpickle
 import pytest
-from supervising import echo_setup, kill_and_wait_restarted, process
-from waiting import wait_for
 
 import rr_actors as rr
-from rr_actors.testing import RemoteRegistrar, SharedObjects, System, start_forkserver
+from rr_actors.testing import RemoteRegistrar, SharedObjects, System
+from tests.support.names import named
+from tests.support.supervising import echo_setup, kill_and_wait_restarted, process
+from tests.support.waiting import wait_for
 
-
-@pytest.fixture(scope="module", autouse=True)
-def by_value() -> Iterator[None]:
-    start_forkserver()
-    cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    yield
-    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+pytestmark = pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
 
 
 @pytest.fixture
@@ -49,10 +41,6 @@ def outsider(network: System) -> Iterator[Callable[[], RemoteRegistrar]]:
     yield make
     for registrar in reversed(made):
         registrar.stop()
-
-
-def named(prefix: str) -> str:
-    return f"{prefix}-{uuid.uuid4().hex[:8]}"
 
 
 def thread(name: str, setup: Any = echo_setup) -> rr.ManagerSpec:

@@ -28,23 +28,22 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from carriers import (
+
+import rr_actors as rr
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._transport import RemotePeer, System, attach
+from rr_actors._transport.codec import frame, frames, plain, unframe
+from rr_actors._transport.outbound import _Channel
+from rr_actors._transport.sockets import HANDSHAKE_TIMEOUT, connect
+from rr_actors._transport.writer import Writer
+from rr_actors.testing.carrier import Fetch, Load, Revoke, Served
+from tests.support.carriers import (
     ProviderFactory,
     load_count,
     record_warnings,
     setup_servers,
     warnings_logged,
 )
-
-import rr_actors as rr
-from rr_actors._core.directory import DIRECTORY
-from rr_actors._registrar import Served
-from rr_actors._registrar.messages import Fetch, Load, Revoke
-from rr_actors._transport import RemotePeer, System, attach
-from rr_actors._transport.codec import frame, frames, plain, unframe
-from rr_actors._transport.outbound import _Channel
-from rr_actors._transport.sockets import HANDSHAKE_TIMEOUT, connect
-from rr_actors._transport.writer import Writer
 
 
 @pytest.fixture

@@ -31,13 +31,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import pki
 import pytest
-from tls_lab import free_port
 
 import rr_actors as rr
 from rr_actors._transport import zenoh_certs
 from rr_actors._transport.codec import frame
+from tests.support import pki
+from tests.support.tls_lab import free_port
 
 NOBODY = 65534
 ROOT = Path(__file__).resolve().parents[2]

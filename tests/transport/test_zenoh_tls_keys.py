@@ -15,11 +15,11 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from pki import issue, make_ca, make_intermediate
 
 import rr_actors as rr
 from rr_actors._transport import zenoh_certs
 from rr_actors.errors import ConfigError
+from tests.support.pki import issue, make_ca, make_intermediate
 
 
 def config(directory: Path, me: str, listen: list[str], connect: list[str]) -> object:

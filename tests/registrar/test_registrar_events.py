@@ -5,16 +5,13 @@ from __future__ import annotations
 import logging
 import os
 import signal
-import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import cloudpickle
 import pytest
-from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors import events
@@ -25,8 +22,8 @@ from rr_actors.testing import (
     System,
     crash,
     expect_restart,
-    start_forkserver,
 )
+from tests.support.waiting import wait_for
 
 
 class Heard:
@@ -396,16 +393,6 @@ def test_a_revoked_id_is_published_as_forgotten_after_its_answer(started: Any) -
 # -- the consumer's side, with a provider in a process of its own ---------------------------
 
 
-@pytest.fixture
-def system() -> Iterator[System]:
-    start_forkserver()
-    cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    made = System.create()
-    yield made
-    made.close()
-    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
-
-
 def _slow_setup(entered: Any) -> Callable[[rr.ResourceRegistrar], None]:
     def setup(registrar: rr.ResourceRegistrar) -> None:
         def load(request: Any) -> Any:
@@ -419,6 +406,7 @@ def _slow_setup(entered: Any) -> Callable[[rr.ResourceRegistrar], None]:
     return setup
 
 
+@pytest.mark.usefixtures("by_value")  # (its provider runs in a manager process)
 def test_a_call_whose_provider_is_killed_mid_load_failed_and_may_have_executed(
     system: System, process_helpers: SharedObjects
 ) -> None:
@@ -462,6 +450,7 @@ def test_a_call_whose_provider_is_killed_mid_load_failed_and_may_have_executed(
     )
 
 
+@pytest.mark.usefixtures("by_value")  # (its provider runs in a manager process)
 def test_ids_held_at_a_provider_lost_for_good_are_published_as_forgotten(
     system: System, process_helpers: SharedObjects
 ) -> None:

@@ -18,10 +18,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from supervising import process
 
 import rr_actors as rr
-from rr_actors._process.context import start_forkserver
+from rr_actors.testing import start_forkserver
+from tests.support.supervising import process
 
 pytestmark = pytest.mark.skipif(
     not Path("/proc/self/fd").is_dir() or sys.platform == "win32",
@@ -109,7 +109,7 @@ def test_hangs_that_the_heartbeat_ends_leave_no_descriptor_after_the_observer_cl
 ) -> None:
     pytest.importorskip("starlette")
     pytest.importorskip("uvicorn")
-    from observing import post_fault, process_state  # noqa: PLC0415 - needs the extra
+    from tests.support.observing import post_fault, process_state  # noqa: PLC0415 - needs the extra
 
     name = f"erm-{uid}"
     sup = supervisors([process(name, heartbeat=0.05, heartbeat_timeout=0.3)], max_restarts=100)

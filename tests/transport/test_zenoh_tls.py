@@ -1,6 +1,6 @@
 """`rr.ZenohTLS(ca=, cert=, key=, members=)`: every file and name checked when it is made.
 
-Real files, made by `tests/pki.py` (the odd ones) and by `rr-actors certs` (the good ones).
+Real files, made by `tests/support/pki.py` (the odd ones) and by `rr-actors certs` (the good ones).
 """
 
 from __future__ import annotations
@@ -14,11 +14,12 @@ import sys
 from pathlib import Path
 
 import pytest
-from pki import DAY, issue, make_ca, make_intermediate
 
 import rr_actors as rr
 from rr_actors._transport import zenoh_certs
 from rr_actors.errors import ConfigError
+from tests.support import pki
+from tests.support.pki import DAY, issue, make_ca, make_intermediate
 
 NOW = datetime.datetime.now(datetime.UTC)
 
@@ -439,3 +440,56 @@ def test_without_cryptography_rr_zenoh_tls_says_which_extra_to_install() -> None
     assert result.stdout.startswith(
         "rr.ZenohTLS needs cryptography: pip install 'rr-actors[zenoh]'"
     )
+
+
+# -- from test_zenoh_tls_input.py -----------------------------------------------------------------
+# `rr.ZenohTLS` turns every bad argument into a `ConfigError` naming it (review of issue 23).
+
+
+@pytest.mark.parametrize("argument", ["ca", "cert", "key"])
+def test_a_path_with_a_nul_character_is_a_config_error_naming_it(
+    tmp_path: Path, argument: str
+) -> None:
+    ca = pki.make_ca(tmp_path / "lab", "lab")
+    cert, key = pki.issue(tmp_path / "robot", "robot", ("127.0.0.1",), ca=ca)
+    paths = {"ca": str(ca[0]), "cert": str(cert), "key": str(key)}
+    paths[argument] += "\0"
+
+    with pytest.raises(
+        rr.ConfigError, match=rf"{argument} '.*\\x00' is not a path \(it holds a NUL"
+    ):
+        rr.ZenohTLS(members=["robot"], **paths)
+
+
+@pytest.mark.parametrize("host", ["robot..local", ".robot", "a" * 64 + ".local"])
+@pytest.mark.parametrize("protocol", ["tls", "tcp"])
+@pytest.mark.parametrize("role", ["listen", "connect"])
+def test_an_endpoint_whose_host_name_no_resolver_takes_is_a_config_error_naming_it(
+    tmp_path: Path, host: str, protocol: str, role: str
+) -> None:
+    """Else the link watch logged an ERROR with a traceback every 0.5 s (a UnicodeError
+    from the lookup), and a plain TCP network's open raised the UnicodeError."""
+    tls = None
+    if protocol == "tls":
+        ca = pki.make_ca(tmp_path / "lab", "lab")
+        cert, key = pki.issue(tmp_path / "robot", "robot", ("127.0.0.1",), ca=ca)
+        tls = rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=["robot"])
+    endpoint = f"{protocol}/{host}:7447"
+
+    with pytest.raises(rr.ConfigError, match=rf"{role} endpoint '{endpoint}' is malformed"):
+        rr.ZenohNetwork(system="lab", tls=tls, **{role: [endpoint]})
+
+
+def test_a_chain_through_a_certificate_that_is_not_a_ca_is_a_config_error(tmp_path: Path) -> None:
+    """A member's certificate signing another (here a name of another member): Zenoh's TLS
+    refuses the chain in every handshake, so `ZenohTLS` refuses it when made."""
+    ca = pki.make_ca(tmp_path / "lab", "lab")
+    member = pki.issue(tmp_path / "stranger", "stranger", ("127.0.0.1",), ca=ca)
+    forged, key = pki.issue(tmp_path / "forged", "robot", ("127.0.0.1",), ca=member)
+    chain = tmp_path / "chain.pem"
+    chain.write_bytes(forged.read_bytes() + member[0].read_bytes())
+
+    with pytest.raises(
+        rr.ConfigError, match=r"\(intermediate 1\) \(CN=stranger\) is not a CA certificate"
+    ):
+        rr.ZenohTLS(ca=ca[0], cert=chain, key=key, members=["robot"])

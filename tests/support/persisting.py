@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from durable_pair import noop_unload, start_consumer, start_pair, start_provider
 
 import rr_actors as rr
 from rr_actors._catalog import (
@@ -31,6 +30,7 @@ from rr_actors._store import codec, schema
 from rr_actors._store.files import read_backup
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot
+from tests.support.durable_pair import noop_unload, start_consumer, start_pair, start_provider
 
 
 def child_hold(names: tuple[str, str], paths: tuple[str, str], conn: Any) -> None:

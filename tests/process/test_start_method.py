@@ -14,7 +14,7 @@ import textwrap
 
 import pytest
 
-from tests.supervising import linux_trick
+from tests.support.supervising import linux_trick
 
 SCRIPT = textwrap.dedent(
     """

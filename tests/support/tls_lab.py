@@ -2,7 +2,7 @@
 
 `tests/transport/test_zenoh_tls_*.py` make raw Zenoh routers with the very config
 `ZenohNetwork` makes (`session_config`), in the test process; the certificates come from
-`tests/pki.py`.
+`tests/support/pki.py`.
 """
 
 from __future__ import annotations
@@ -13,11 +13,11 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-import pki
 import zenoh
 
 import rr_actors as rr
 from rr_actors._transport.zenoh_config import session_config
+from tests.support import pki
 
 MEMBERS = ("robot", "operator")
 

@@ -8,7 +8,7 @@ Used by the multi-host tests (`tests/multihost/`) and `benchmarks/bench_zenoh.py
     TwoHosts() --ip netns add, ip link add-->   rr0 10.77.<n>.1/24 <-veth-> rr0 10.77.<n>.2/24
     TwoHosts(outsider=True) also -->           rr1 10.78.<n>.1/24 <-veth-> rr1 10.78.<n>.3/24
                                                                      in namespace ...-c
-    host.spawn() --ip netns exec NS python-->   Worker (python -c "import hosts; ...")
+    host.spawn() --ip netns exec NS python-->   Worker (python -c "from tests.support import hosts")
       a socket path in a 0700 directory   <--AF_UNIX, authkey--  Client(path)
       host.call(fn, *args) --cloudpickle(fn, args)-->  runs fn(*args) on a thread of its own
                            <--(call id, ok, cloudpickle(result or exception))--
@@ -67,8 +67,11 @@ from typing import Any, ClassVar, TypeVar
 
 import cloudpickle
 
-ROOT = Path(__file__).resolve().parent.parent
-TESTS = Path(__file__).resolve().parent
+ROOT = Path(__file__).resolve().parents[2]
+TESTS = ROOT / "tests"
+
+WORKER_MAIN = "from tests.support import hosts; hosts._worker_main()"
+"""What a worker runs (the repository is on its PYTHONPATH, so `tests` is a package there)."""
 
 PREFIX = "rrh"
 """Namespace names are `rrh-<pid>-<n>-a` and `-b`."""
@@ -214,7 +217,9 @@ def _dumps_by_value(obj: Any) -> bytes:
         registered = []
         for name, module in list(sys.modules.items()):
             path = getattr(module, "__file__", None)
-            if name in {__name__, "__main__"} or not path:
+            # (not a package: cloudpickle sends every module under a registered package by
+            # value, this one too, whose state a worker must share with its main loop)
+            if name in {__name__, "__main__"} or not path or hasattr(module, "__path__"):
                 continue
             where = Path(path)
             if where.is_relative_to(TESTS) or where.is_relative_to(ROOT / "benchmarks"):
@@ -244,11 +249,16 @@ class Worker:
         listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         listener.bind(path)
         listener.listen(1)
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), str(ROOT), *_pythonpath()])}
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), *_pythonpath()])}
         inside = ["ip", "netns", "exec", host.namespace] if host.namespace else []
         with self.log.open("wb") as log:
             self.process = subprocess.Popen(
-                [*inside, sys.executable, "-c", "import hosts; hosts._worker_main()"],
+                [
+                    *inside,
+                    sys.executable,
+                    "-c",
+                    "from tests.support import hosts; hosts._worker_main()",
+                ],
                 stdin=subprocess.PIPE,
                 stdout=log,
                 stderr=subprocess.STDOUT,
@@ -964,7 +974,7 @@ def rr_until_answered(consumer: str, provider: str, server: str, timeout: float)
 
 def rr_unlinked_within(name: str, timeout: float) -> bool:
     """Whether this worker's network stops seeing registrar `name` within `timeout` s."""
-    from waiting import wait_for  # noqa: PLC0415
+    from tests.support.waiting import wait_for  # noqa: PLC0415
 
     network = KEPT["network"]
     return bool(wait_for(lambda: name not in network.names(), timeout))

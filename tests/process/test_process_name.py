@@ -11,7 +11,8 @@ import subprocess
 import sys
 
 import pytest
-from supervising import linux_trick
+
+from tests.support.supervising import linux_trick
 
 
 def comm_after_set_title(name: str, *, fake_setproctitle: bool) -> tuple[str, str]:

@@ -11,9 +11,9 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import pytest
-from waiting import wait_for
 
 from rr_actors._process.spare import SparePool
+from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.usefixtures("process_helpers")  # the forkserver, before leak checks
 

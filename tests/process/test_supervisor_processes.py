@@ -25,7 +25,14 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from supervising import (
+
+import rr_actors as rr
+from rr_actors import testing
+from rr_actors._process.context import forker_pid, mp_context, start_forkserver
+from rr_actors._process.manager import ManagerExit, ManagerProcess
+from rr_actors._process.spare import Spare
+from rr_actors.testing import RemoteRegistrar, SharedObjects
+from tests.support.supervising import (
     ManualTimer,
     alive,
     echo_setup,
@@ -37,13 +44,6 @@ from supervising import (
     sigkill,
     wait_gone,
 )
-
-import rr_actors as rr
-from rr_actors import testing
-from rr_actors._process.context import forker_pid, mp_context, start_forkserver
-from rr_actors._process.manager import ManagerExit, ManagerProcess
-from rr_actors._process.spare import Spare
-from rr_actors.testing import RemoteRegistrar, SharedObjects
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
