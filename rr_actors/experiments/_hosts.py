@@ -1,8 +1,8 @@
 """The other hosts of a run: one host process per host, each its host's router and tree.
 
     run process (in the first host's namespace: its router, clients, managers without `host`)
-      │  HostProcess.start ── ip netns exec rrx-<pid>-<i> python -m rr_actors.experiments._hosts
-      │                         SPEC PARENT_PID
+      │  HostProcess.start ── ip netns exec rrx-<pid>-<i>
+      │                         python -m rr_actors.experiments._host_child SPEC PARENT_PID
       ▼
     host process (one per other host)                       its stdout, one JSON line each:
       ZenohNetwork(listen: its addresses, connect: the      {"e": event}   ──► the run's events
@@ -27,15 +27,14 @@ import logging
 import os
 import pickle
 import queue
-import select
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import rr_actors as rr
 from rr_actors import events
@@ -135,7 +134,7 @@ class HostProcess:
         """
         command = [
             *("ip", "netns", "exec", self.spec.namespace),
-            *(sys.executable, "-m", "rr_actors.experiments._hosts"),
+            *(sys.executable, "-m", "rr_actors.experiments._host_child"),
             *(str(self._path), str(os.getpid())),
         ]
         with self._log.open("ab") as err:
@@ -235,71 +234,3 @@ class HostProcess:
                 self.process.kill()
             with contextlib.suppress(subprocess.TimeoutExpired):
                 self.process.wait(5.0)
-
-
-# -- the host process's side -------------------------------------------------------------------
-
-
-def _watch_parent(parent: int) -> None:
-    """Exit when the run process dies (its managers die with this process)."""
-    try:
-        pidfd = os.pidfd_open(parent)
-    except ProcessLookupError:
-        os._exit(3)
-    select.select([pidfd], [], [])
-    os._exit(3)
-
-
-def _serve(spec: HostSpec, out: IO[str]) -> None:
-    from rr_actors.experiments.runner import build_tree, count_entries, wait_all_serving  # noqa: PLC0415
-
-    lock = threading.Lock()
-
-    def send(message: dict[str, Any]) -> None:
-        line = json.dumps(message) + "\n"
-        with lock:
-            out.write(line)
-            out.flush()
-
-    net = network(spec)
-    state = Path(spec.state_dir) if spec.state_dir is not None else None
-    sup = build_tree(spec.plan, state, seed=spec.seed, host=spec.host, network=net)
-    subscription = sup.subscribe(lambda e: send({"e": events.to_dict(e)}), maxsize=200_000)
-    sup.start()
-    managers = [m.name for m in spec.plan.managers() if spec.plan.host_of(m.name) == spec.host]
-    send({"r": "ready"})
-    for line in sys.stdin:
-        command = json.loads(line)
-        op = command["op"]
-        if op == "wait_serving":
-            wait_all_serving(sup, managers, float(command["timeout"]))
-            send({"r": "serving"})
-        elif op == "count":
-            entries, unread = count_entries(sup, managers, [])
-            send({"r": [entries, unread]})
-        elif op == "flush":
-            sup.flush_events()
-            send({"r": "flushed"})
-    sup.stop()
-    subscription.wait_delivered()
-    subscription.close()
-    with contextlib.suppress(Exception):
-        net.close()
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """The host process: `python -m rr_actors.experiments._hosts SPEC PARENT_PID`."""
-    args = list(sys.argv[1:] if argv is None else argv)
-    spec: HostSpec = pickle.loads(Path(args[0]).read_bytes())
-    logging.basicConfig(level=logging.WARNING, format=f"{spec.host}: %(name)s: %(message)s")
-    threading.Thread(target=_watch_parent, args=(int(args[1]),), daemon=True).start()
-    out = sys.stdout
-    sys.stdout = sys.stderr  # nothing else may write to the line channel
-    _serve(spec, out)
-    out.flush()
-    sys.stderr.flush()
-    os._exit(0)  # no interpreter teardown: Zenoh's native threads may not let it finish
-
-
-if __name__ == "__main__":
-    sys.exit(main())
