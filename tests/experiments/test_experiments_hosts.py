@@ -210,3 +210,88 @@ def test_a_cut_and_a_freeze_between_two_hosts_fire_in_order_and_the_run_is_check
     assert 0 == result.leaked_processes
     left = [n for n in set(_ours()) - before if not Path(f"/proc/{n.split('-')[1]}").exists()]
     assert [] == left  # no namespace of the (ended) run process left behind
+
+
+THREE_HOSTS = f"""\
+name = "three"
+duration = 4.5
+seed = 5
+
+[hosts]
+names = ["a", "b", "c"]
+lease = 0.5
+
+[tree]
+max_restarts = 10
+
+[[tree.children]]
+name = "db"
+setup = "{SERVICE}"
+host = "b"
+
+[[tree.children]]
+name = "cache"
+setup = "{SERVICE}"
+host = "c"
+
+[workload]
+clients = 1
+rate = 10.0
+hold = 0.2
+timeout = 3.0
+
+[[workload.calls]]
+manager = "db"
+server = "resource"
+
+[[workload.calls]]
+manager = "cache"
+server = "resource"
+
+[[faults]]
+kind = "partition"
+hosts = ["c"]
+at = [1.0]
+for = 0.8
+
+[[faults]]
+kind = "kill_router"
+target = "b"
+at = [2.3]
+"""
+
+
+@pytest.mark.timeout(120)
+def test_a_partition_and_a_killed_router_among_three_hosts_fire_in_order_and_heal(
+    tmp_path: Path,
+) -> None:
+    if os.geteuid() != 0:
+        pytest.skip("needs root: network namespaces")
+    before = set(_ours())
+    results = run(parse_plan(THREE_HOSTS), out=tmp_path / "out")
+    (result,) = results.runs
+    partition, kill = result.faults
+
+    assert [("partition", "c"), ("kill_router", "b")] == [
+        (f.kind, f.target) for f in result.faults if not f.skipped
+    ]
+    assert partition.injected_s is not None
+    assert kill.injected_s is not None
+    assert partition.injected_s < kill.injected_s
+    assert kill.recovery_s is not None, kill  # b's router came back: db answered again
+    assert kill.heal_s is not None
+    lines = [
+        json.loads(line) for line in (tmp_path / "out" / "events.jsonl").read_text().splitlines()
+    ]
+    t0 = result.started_at
+    started = [
+        e["at"] - t0 for e in lines if e["type"] == "ChildStarted" and e.get("child") == "db"
+    ]
+    assert any(t > kill.injected_s for t in started), started  # b's tree started again
+    rows = list(csv.DictReader((tmp_path / "out" / "runs.csv").read_text().splitlines()))
+    assert {"recovery_s_b", "recovery_s_c", "verdict"} <= set(rows[0])
+    assert result.verdict in ("held", "violated", "unverifiable")
+    assert result.check_s > 0  # the verdict was computed over the run's events
+    assert 0 == result.leaked_processes
+    left = [n for n in set(_ours()) - before if not Path(f"/proc/{n.split('-')[1]}").exists()]
+    assert [] == left
