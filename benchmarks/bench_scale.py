@@ -15,8 +15,9 @@ holds N served resources (one consumer id each) is SIGKILLed; the time runs from
 until a call answered by its new incarnation returned (`bench_supervisor.measure`:
 respawned, restored, setup run, serving, one call), with the supervisor subscribed (as
 an experiment is: the restored registrar publishes `CatalogRestored`). Beside it, in
-the same run and alternated round by round, its floor: a plain forkserver child
-SIGKILLed, its sentinel waited on and a new one started until it says "ready".
+the same run and alternated round by round, its floor: a plain forkserver child (of a
+Python of its own, importing nothing) SIGKILLed, its exit waited on and a new one
+started until it says "ready".
 Target (issue 34 item 3): at 100k entries within 2x of the figure at 1k.
 
 Run: `python benchmarks/bench_scale.py [--sections start serve] [--counts 1 10 50]
@@ -27,9 +28,6 @@ Run: `python benchmarks/bench_scale.py [--sections start serve] [--counts 1 10 5
 from __future__ import annotations
 
 import argparse
-import multiprocessing
-import multiprocessing.connection
-import multiprocessing.process
 import os
 import signal
 import statistics
@@ -38,7 +36,6 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
 
 import rr_actors as rr
 from rr_actors.testing import start_forkserver
@@ -167,39 +164,62 @@ def section_start(counts: list[int], rounds: int) -> None:
     print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
-def _plain_child(ready: multiprocessing.connection.Connection) -> None:
-    """A floor child: say "ready", then idle until killed."""
-    ready.send(os.getpid())
-    ready.recv()  # never answered: the parent kills this process
-
-
-def respawn_floor(kills: int) -> list[float]:
-    """Milliseconds from SIGKILL of a plain child to a new one saying "ready"."""
-    context = multiprocessing.get_context("forkserver")
-
-    def spawn() -> tuple[multiprocessing.process.BaseProcess, Any, Any]:
-        ours, theirs = context.Pipe()
-        process = context.Process(target=_plain_child, args=(theirs,), daemon=True)
-        process.start()
-        ours.recv()
-        return process, ours, theirs
-
+RESPAWN = """
+import multiprocessing, os, signal, sys, time
+from multiprocessing import forkserver
+context = multiprocessing.get_context("forkserver")
+context.set_forkserver_preload([])
+forkserver.ensure_running()
+CHILD = "import os\\nready.send(os.getpid())\\n"
+CHILD += "try:\\n    ready.recv()\\nexcept EOFError:\\n    pass"
+def spawn():
+    ours, theirs = context.Pipe()
+    process = context.Process(target=exec, args=(CHILD, {"ready": theirs}), daemon=True)
+    process.start()
+    theirs.close()
+    ours.recv()
+    return process, ours
+process, ours = spawn()
+for line in sys.stdin:
     times = []
-    process, ours, theirs = spawn()
-    for _ in range(kills):
-        killed = time.perf_counter()
-        os.kill(process.pid or 0, signal.SIGKILL)
-        multiprocessing.connection.wait([process.sentinel])
+    for _ in range(int(line)):
+        began = time.perf_counter()
+        os.kill(process.pid, signal.SIGKILL)
         process.join()
         ours.close()
-        theirs.close()
-        process, ours, theirs = spawn()
-        times.append((time.perf_counter() - killed) * 1000)
-    os.kill(process.pid or 0, signal.SIGKILL)
-    process.join()
-    ours.close()
-    theirs.close()
-    return times
+        process, ours = spawn()
+        times.append((time.perf_counter() - began) * 1000)
+    print(*times, flush=True)
+os.kill(process.pid, signal.SIGKILL)
+process.join()
+"""
+"""The respawn floor, run by a Python of its own (as `FLOOR`): it keeps one plain child;
+each line it reads is a count k: k times it SIGKILLs the child, waits for its exit and
+starts a new one until it says "ready", and prints the k times in ms."""
+
+
+class Respawn:
+    """The respawn floor's process: `kill(k)` times k respawns of a plain child."""
+
+    def __init__(self) -> None:
+        self.process = subprocess.Popen(
+            [sys.executable, "-c", RESPAWN],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+
+    def kill(self, count: int) -> list[float]:
+        assert self.process.stdin is not None
+        assert self.process.stdout is not None
+        self.process.stdin.write(f"{count}\n")
+        self.process.stdin.flush()
+        return [float(ms) for ms in self.process.stdout.readline().split()]
+
+    def close(self) -> None:
+        assert self.process.stdin is not None
+        self.process.stdin.close()
+        self.process.wait(30)
 
 
 class Served:
@@ -242,7 +262,8 @@ class Served:
 
 def section_serve(sizes: list[int], rounds: int, kills: int, *, listen: bool) -> None:
     start_forkserver()
-    respawn_floor(1)  # warm the forkserver's first fork
+    floor = Respawn()
+    floor.kill(1)  # warm its forkserver's first fork
     served = [Served(size, listen=listen) for size in sizes]
     heard = "subscribed (events on)" if listen else "nobody subscribed"
     print(f"## serve: kill to serving with N catalog entries (ms; {heard})")
@@ -255,9 +276,10 @@ def section_serve(sizes: list[int], rounds: int, kills: int, *, listen: bool) ->
         for tree in served:
             size = int(tree.name.removeprefix("serve"))
             ours[size].extend(tree.kill() for _ in range(kills))
-            plain[size].extend(respawn_floor(kills))
+            plain[size].extend(floor.kill(kills))
     for tree in served:
         tree.close()
+    floor.close()
     base = statistics.median(ours[sizes[0]])
     for size in sizes:
         median = statistics.median(ours[size])
