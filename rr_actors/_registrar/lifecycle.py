@@ -124,6 +124,9 @@ class Lifecycle:
         self.flush_timer: Cancellable | None = None
         self.hold_in_doubt = hold_in_doubt
         self.in_doubt_ids: frozenset[str] = frozenset()
+        self.sweeping = False  # slices of the restored catalog are still to be swept
+        self.swept_origins: set[str] = set()  # registrars holding ids in what was swept
+        self.reconcile_owed = False  # `reconcile` came during the sweep
 
     # -- start ------------------------------------------------------------------------
 
@@ -148,8 +151,13 @@ class Lifecycle:
         (`ReconcileAsk`), as a consumer it tells every provider it holds ids at which
         ids it holds (`Reconcile`): ids released while one side was down are released,
         and ids one side lost in its restart are reported to the consumer as `FATAL`.
+        While the sweep of a restored catalog is under way, the provider's side waits
+        for it (it names the consumers to ask).
         """
-        self.unloading.ask_to_reconcile()
+        if self.sweeping:
+            self.reconcile_owed = True
+        else:
+            self.unloading.ask_to_reconcile(self.swept_origins)
         self.reconciling.reconcile_all()
 
     def settle_in_doubt(self) -> None:
@@ -200,6 +208,38 @@ class Lifecycle:
         """
         for resource in self.registrar.catalog.unheld():
             self.teardown.unload_resource(resource, None)
+        self.sweep(0)
+
+    def sweep(self, after: int) -> None:
+        """Sweep the restored resources still in the backup, one slice per turn.
+
+        Each slice (`Catalog.sweep`: `SWEEP_ROWS` resources, a few ms) unloads those no
+        consumer holds (as `unload_unheld`) and notes the registrars holding ids in it
+        (whom `reconcile` asks); the next slice is a message to itself, behind what
+        arrived meanwhile, so calls are served between slices. A restart reads these
+        rows after it serves, not before: a catalog of one slice is swept at once.
+        """
+        if self.registrar.phase in (Phase.STOPPING, Phase.ENDED):
+            return
+        try:
+            unheld, origins, next_slice = self.registrar.catalog.sweep(after)
+            self.swept_origins |= origins
+            for resource in unheld:
+                self.teardown.unload_resource(resource, None)
+            if next_slice is not None:
+                self.sweeping = True
+                self.registrar.come_back(lambda _v, _e: self.sweep(next_slice)).set_result(None)
+                return
+        except RrError as exc:  # a damaged row: a lookup that needs it fails then
+            logger.error(  # noqa: TRY400 - the cause says it all
+                "registrar %s: the sweep of its restored catalog stopped: %s",
+                self.registrar.name,
+                exc,
+            )
+        self.sweeping = False
+        if self.reconcile_owed:
+            self.reconcile_owed = False
+            self.unloading.ask_to_reconcile(self.swept_origins)
 
     def on_settle_in_doubt(self, message: SettleInDoubt, reply: Reply) -> None:
         """The manager handled in-doubt entry `query_id` (`None`: every one): write it off.

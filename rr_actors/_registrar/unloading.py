@@ -108,13 +108,14 @@ class Unloading:
             return
         self.teardown.unload_resource(resource, reply)
 
-    def ask_to_reconcile(self) -> None:
+    def ask_to_reconcile(self, swept: set[str]) -> None:
         """This registrar serves (again): ask every registrar holding ids here to
         `Reconcile` (one that cannot be reached reconciles at its own start); release
         the ids of one that was stopped for good meanwhile; and, with a backup (which
         may have lost ids: a save interval, a truncated WAL), tell every other
-        registrar of the system, which may hold ids this one lost (rule 20)."""
-        origins = self.registrar.catalog.consumer_origins()
+        registrar of the system, which may hold ids this one lost (rule 20). `swept`:
+        the registrars holding ids in the restored rows still in the backup."""
+        origins = self.registrar.catalog.consumer_origins() | swept
         for origin in sorted(origins):
             try:
                 DIRECTORY.lookup(origin).tell(ReconcileAsk(self.registrar.name))

@@ -686,8 +686,10 @@ class CatalogRestored:
             query this registrar holds (its client records).
         counts: `(resources, consumers, clients)`: how many rows there are.
         complete: whether the rows are listed (`False`: a kind had more than
-            `LISTED_ROWS` rows, and none are listed; `counts` and `digest` say what it held).
-        digest: a SHA-256 (hex, first 16 digits) of the sorted rows of the three kinds.
+            `LISTED_ROWS` rows, and none are listed; `counts` says what it held).
+        digest: a SHA-256 (hex, first 16 digits) of the sorted rows of the three kinds;
+            `""` when they are not listed (it would cost a read of every row, which a
+            restore does not do before it serves).
         at: when it was published, wall clock (`time.time()` seconds).
         pid: the registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).

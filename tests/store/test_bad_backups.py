@@ -189,7 +189,7 @@ def test_quarantine_without_a_file_raises_config_error(tmp_path: Path) -> None:
     ("damage", "cause"),
     [
         (duplicate_resource, "index resources_by_id is missing"),
-        (duplicate_consumer, "consumer query id q1 is stored twice"),
+        (duplicate_consumer, "index consumers_by_query is missing"),
         (duplicate_client, "client query id d1 is stored twice"),
         (state_minus_one, "unknown state -1"),
         (state_three, "unknown state 3"),

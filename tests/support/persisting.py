@@ -381,6 +381,7 @@ def duplicate_resource(db: sqlite3.Connection) -> None:
 
 
 def duplicate_consumer(db: sqlite3.Connection) -> None:
+    db.execute("DROP INDEX consumers_by_query")  # the unique index refuses a second row
     db.execute(
         "INSERT INTO consumers (seq, query_id, resource, origin_rr) "
         "SELECT 101, query_id, resource, origin_rr FROM consumers"
