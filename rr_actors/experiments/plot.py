@@ -203,7 +203,7 @@ def _recovery_by_host(
     for host in hit:
         ax.scatter([], [], s=12, color=_colour(colours, host), label=f"host {host}")
     if hit:
-        ax.legend(title="fault hit", fontsize=8, title_fontsize=8, loc="upper left")
+        ax.legend(title="fault hit", fontsize=8, title_fontsize=8, loc="best")
 
 
 def _between_hosts(
