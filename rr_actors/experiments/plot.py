@@ -14,6 +14,7 @@ it raises `ImportError`, which `run` takes as "no plots".
 from __future__ import annotations
 
 import random
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -84,6 +85,12 @@ def _host_colours(plan: Plan) -> dict[str, str]:
 
 def _colour(colours: dict[str, str], host: str) -> str:
     return colours.get(host.split("+", 1)[0], "black")
+
+
+def _in_order(hit: Iterable[str], colours: dict[str, str]) -> list[str]:
+    """The hosts a legend names, in the order of `[hosts]` (`b+c` after `b`)."""
+    names = list(colours)
+    return sorted(hit, key=lambda h: (names.index(h.split("+", 1)[0]), h))
 
 
 def plot_recovery(results: Results, path: Path) -> None:
@@ -200,7 +207,7 @@ def _recovery_by_host(
             xs = [centre + jitter.uniform(-0.05, 0.05) for _ in points[host]]
             ax.scatter(xs, points[host], s=12, color=_colour(colours, host), alpha=0.7, zorder=3)
             hit[host] = None
-    for host in hit:
+    for host in _in_order(hit, colours):
         ax.scatter([], [], s=12, color=_colour(colours, host), label=f"host {host}")
     if hit:
         ax.legend(title="fault hit", fontsize=8, title_fontsize=8, loc="best")
@@ -274,7 +281,7 @@ def _between_hosts(
     axes[0].plot([], [], color="0.4", linestyle=":", label="lease")
     for kind in kinds:
         axes[0].scatter([], [], marker=KIND_MARKERS.get(kind, "o"), color="0.3", label=kind)
-    for host in hit:
+    for host in _in_order(hit, colours):
         axes[0].scatter([], [], marker="o", color=_colour(colours, host), label=f"host {host}")
     if kinds:
         axes[0].legend(fontsize=8, loc="upper left", ncol=1 + len(kinds) + len(hit))
