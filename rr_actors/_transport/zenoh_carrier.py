@@ -59,6 +59,7 @@ import zenoh
 
 from rr_actors._core.bus import Subscription
 from rr_actors._core.directory import DIRECTORY, Peer, Reply
+from rr_actors._core.hlc import CLOCK
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._transport.base import Address, Endpoint
 from rr_actors._transport.codec import NO_REPLY, Run, frame, payload_size, what
@@ -74,6 +75,7 @@ from rr_actors._transport.zenoh_wire import (
     Keys,
     NameAt,
     ServerKey,
+    envelope,
     header,
 )
 from rr_actors.config import NAME
@@ -397,7 +399,7 @@ class ZenohMember:
         sent = (  # (gone meanwhile: its presence may have missed this reply)
             self._presence.server(name) is not None
             and outbox is not None
-            and outbox.send(header(MESSAGE, self.zid) + data)
+            and outbox.send(envelope(MESSAGE, self.zid, data, CLOCK.send()))
         )
         if not sent and (reply is None or self._inbox.forget(token)):
             raise self._gone_error(name)
@@ -418,7 +420,9 @@ class ZenohMember:
         if self._presence.unreachable(sender):
             return False
         outbox = self._outbox(self._keys.answers(sender), sender)
-        return outbox is not None and outbox.send(header(ANSWER, self.zid) + data, on_lost)
+        return outbox is not None and outbox.send(
+            envelope(ANSWER, self.zid, data, CLOCK.send()), on_lost
+        )
 
     def member(self, zid: str) -> bool:
         """Whether process `zid`'s liveliness token is here now (see `Presence.member`)."""

@@ -56,6 +56,7 @@ from rr_actors._transport.zenoh_gate import HandshakeGate, open_gates
 from rr_actors._transport.zenoh_watch import LinkWatch, remote
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavailableError
+from rr_actors.events.kinds import set_host
 
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh_tls import ZenohTLS
@@ -249,7 +250,7 @@ class ZenohAddress:
 
     def _open(self) -> ZenohMember:
         if self.member:
-            events.set_host(self.member)
+            set_host(self.member)
         config = session_config("client", [], [f"unixsock-stream/{self.socket_path}"], self.lease)
         try:
             session = zenoh.open(config)
@@ -352,7 +353,7 @@ class ZenohNetwork:
 
     def _open_router(self) -> ZenohMember:
         if self.tls is not None:
-            events.set_host(self.tls.name)  # (the member name on this process's events)
+            set_host(self.tls.name)  # (the member name on this process's events)
         runtime_dir = tempfile.mkdtemp(prefix="rr-zenoh-")  # mode 0700
         path = os.path.join(runtime_dir, "router.sock")
         config = session_config(

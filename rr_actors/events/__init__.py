@@ -87,11 +87,8 @@ __all__ = [
     "SupervisorGaveUp",
     "UnloadCutShort",
     "describe",
-    "everything",
     "from_dict",
     "order",
-    "set_host",
-    "this_host",
     "to_dict",
 ]
 
