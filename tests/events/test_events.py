@@ -174,7 +174,9 @@ def test_from_dict_reads_a_schema_1_line_without_the_fields_added_since() -> Non
     del data["reason"], data["seq"]
     del data["host"], data["hlc"]
     data["schema"] = 1
-    old = events.ConsumerReleased("erm", RID, QID, "cm", at=2.0, pid=9, host="", hlc=2_000_000 << 12)
+    old = events.ConsumerReleased(
+        "erm", RID, QID, "cm", at=2.0, pid=9, host="", hlc=2_000_000 << 12
+    )
     assert old == events.from_dict(data)  # (no host known; the stamp of its wall time)
     del data["pid"]  # at and pid were always there
     with pytest.raises(rr.ConfigError, match="pid"):
