@@ -29,11 +29,12 @@ the stamp (the AF_UNIX carrier does not). Across hosts the Zenoh carrier carries
 sender's stamp on every message and answer (`zenoh_wire`), and the receiver's clock
 takes it in (`receive`) before the message is handled.
 
-`CLOCK` is this process's clock. The physical clock is `time.time_ns`, unless the
+`CLOCK` is this process's clock. Its physical clock is `time.time_ns`, unless the
 environment variable `RR_ACTORS_CLOCK_SKEW` (seconds, a float) is set when this module
 is imported: then this process (and the manager processes it starts, which inherit the
-environment) reads a physical clock that many seconds off, for tests that skew one
-host's clock. Events' `at` (`wall()`) reads the same skewed clock.
+environment) reads a physical clock that many seconds off. That, and assigning
+`CLOCK.physical`, are seams for tests that skew one host's clock; events' `at`
+(`CLOCK.wall()`) reads the same physical clock as their stamps.
 """
 
 from __future__ import annotations
@@ -53,7 +54,6 @@ __all__ = [
     "pack",
     "seconds",
     "unpack",
-    "wall",
 ]
 
 logger = logging.getLogger("rr_actors")
@@ -105,20 +105,11 @@ def _skew() -> float:
         return 0.0
 
 
-_SKEW_S = _skew()
-_SKEW_NS = int(_SKEW_S * 1e9)
+_SKEW_NS = int(_skew() * 1e9)
 
 
 def _skewed_ns() -> int:
     return time.time_ns() + _SKEW_NS
-
-
-def _skewed_s() -> float:
-    return time.time() + _SKEW_S
-
-
-wall: Callable[[], float] = _skewed_s if _SKEW_NS else time.time
-"""This process's wall clock, `time.time()` seconds (skewed by `RR_ACTORS_CLOCK_SKEW`)."""
 
 
 class HybridClock:
@@ -144,6 +135,10 @@ class HybridClock:
         self._last = 0
         self._lock = threading.Lock()
         self._warned = -1e18
+
+    def wall(self) -> float:
+        """The physical clock in seconds since the epoch (as `time.time()`): events' `at`."""
+        return self.physical() / 1e9
 
     @property
     def last(self) -> int:

@@ -46,7 +46,7 @@ __all__ = [
 
 
 def _now() -> Any:
-    return dataclasses.field(default_factory=_hlc.wall)
+    return dataclasses.field(default_factory=_hlc.CLOCK.wall)
 
 
 def _stamped() -> Any:
