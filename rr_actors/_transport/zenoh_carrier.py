@@ -300,7 +300,9 @@ class ZenohMember:
         """
         if self.closed:
             raise RegistrarStoppedError("this process left the system")
-        return EventFeed(self._session, self._keys, window).subscribe(callback, maxsize)
+        subscription = EventFeed(self._session, self._keys, window).subscribe(callback, maxsize)
+        self._events.wait_sending(ASK_TIMEOUT)  # (this process's own, from now on)
+        return subscription
 
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits, close the session."""

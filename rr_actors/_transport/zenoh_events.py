@@ -105,6 +105,7 @@ class EventExport:
         self._lock = threading.Lock()
         self._closed = False
         self._forwarder: Forwarder[events.Event] | None = None
+        self._sending = threading.Condition(self._lock)
         self._publisher = session.declare_publisher(
             keys.events(zid),
             congestion_control=zenoh.CongestionControl.BLOCK,
@@ -124,10 +125,16 @@ class EventExport:
                     self._send, notice=events.EventsDropped, name="system-events"
                 )
                 events.everything().add_sink(self._forwarder)
+                self._sending.notify_all()
             elif not status.matching and self._forwarder is not None:
                 events.everything().remove_sink(self._forwarder)
                 forwarder, self._forwarder = self._forwarder, None
                 threading.Thread(target=forwarder.close, name="rr-events-off", daemon=True).start()
+
+    def wait_sending(self, timeout: float) -> bool:
+        """Whether this process sends its events (a subscriber matched) within `timeout` s."""
+        with self._lock:
+            return self._sending.wait_for(lambda: self._forwarder is not None, timeout)
 
     def _send(self, batch: list[events.Event]) -> None:
         self._publisher.put(encode(batch))

@@ -496,7 +496,8 @@ class ZenohNetwork:
         manager processes; this process's own too) crosses as JSON lines on
         `rr/<system>/ev/<zid>`, never as pickles, and only between members (the access
         control of `tls`). A process sends its events only while someone subscribes, so
-        events from about when the subscription reaches it (a link's latency) are seen.
+        another process's events are seen from about when the subscription reached it
+        (a link's latency later); this process's own from the return (at most 1 s).
         Each event carries `host` (its host's member name) and `hlc` (its hybrid logical
         clock stamp): events are held `window` seconds after they arrive and handed over
         in `hlc` order, so that a cause on one host comes before its effect on another

@@ -58,8 +58,6 @@ from rr_actors.events.kinds import (
     StatusSent,
     SupervisorGaveUp,
     UnloadCutShort,
-    set_host,
-    this_host,
 )
 from rr_actors.events.lines import from_dict, to_dict
 from rr_actors.events.text import describe

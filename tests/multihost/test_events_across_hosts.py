@@ -56,7 +56,9 @@ def skew_clock(seconds: float) -> None:
 
 
 def camera_setup(registrar: rr.ResourceRegistrar) -> None:
-    registrar.register_server("camera", load=lambda request: {"stream": request}, unload=None)
+    registrar.register_server(
+        "camera", load=lambda request: {"stream": request}, unload=lambda *_: None
+    )
 
 
 def subscribe_all() -> None:

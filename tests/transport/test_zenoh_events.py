@@ -65,7 +65,7 @@ def net() -> Iterator[rr.ZenohNetwork]:
 @pytest.fixture
 def erm(net: rr.ZenohNetwork) -> Iterator[rr.ResourceRegistrar]:
     registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="erm"), network=net)
-    registrar.register_server("camera", load=lambda request: request, unload=None)
+    registrar.register_server("camera", load=lambda request: request, unload=lambda *_: None)
     yield registrar
     registrar.stop()
 
