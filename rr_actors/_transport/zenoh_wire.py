@@ -154,17 +154,21 @@ def parse(data: bytes) -> Header | None:
 _TOKEN = struct.Struct("<Q")
 
 
+_LONG = b"\xff\xff\xff\xff"  # the length field of a frame over 2 GiB starts so
+
+
 def _skip(data: bytes | memoryview, at: int) -> int:
     """Bytes of the frame's length field at `at` (4, or 12 for a frame over 2 GiB)."""
-    return 12 if bytes(data[at : at + 4]) == b"\xff\xff\xff\xff" else 4
+    return 12 if data[at : at + 4] == _LONG else 4
 
 
 def envelope(kind: int, sender: str, frame: bytes, stamp: int) -> bytes:
     """The payload of `frame` (`codec.frame`) of `kind`, sent by process `sender` with the
     clock stamp `stamp` (see the module docstring)."""
-    cut = _skip(frame, 0) + _TOKEN.size
-    view = memoryview(frame)
-    return b"".join((header(kind | STAMPED, sender), view[:cut], _TOKEN.pack(stamp), view[cut:]))
+    cut = (12 if frame[:4] == _LONG else 4) + _TOKEN.size
+    return b"".join(
+        (header(kind | STAMPED, sender), frame[:cut], _TOKEN.pack(stamp), memoryview(frame)[cut:])
+    )
 
 
 def payload_of(data: bytes, head: Header) -> tuple[int, memoryview]:
