@@ -11,12 +11,15 @@ process of this host could) and puts what it likes on `rr/<system>/ev/<zid>`:
   watched while the stream is read, and the file never appears; a valid line after
   them is still delivered (the check is not vacuous);
 - a process sends its events only while someone subscribes (Zenoh's matching status);
+- with TLS (on loopback, `tests/pki.py`'s certificates) the events of a supervisor's
+  manager process, which it sends itself, carry the member name as the router's do;
 - `window` out of range is a `ConfigError` naming it.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import pickle
 import socket
 import threading
@@ -25,6 +28,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import pki
 import pytest
 from waiting import wait_for
 
@@ -148,6 +152,36 @@ def test_a_process_sends_its_events_only_while_someone_subscribes(
         assert wait_for(lambda: not tap.listened, BOUND)
     finally:
         raw.close()
+
+
+def camera_setup(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("camera", load=lambda request: request, unload=lambda *_: None)
+
+
+def test_with_tls_every_process_names_the_member_a_manager_process_too(
+    tmp_path: Path, process_helpers: Any
+) -> None:
+    ca = pki.make_ca(tmp_path, "lab")
+    cert, key = pki.issue(tmp_path, "robot", ["127.0.0.1"], ca=ca)
+    tls = rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=["robot"])
+    system = f"ev-{uuid.uuid4().hex[:8]}"
+    net = rr.ZenohNetwork(system=system, listen=["tls/127.0.0.1:0"], tls=tls)
+    seen: list[events.Event] = []
+    spec = rr.ManagerSpec("erm", setup=camera_setup, isolation="process")
+    with net, rr.Supervisor([spec], network=net) as sup:
+        app = sup.registrar("app")
+        with net.subscribe_events(seen.append, window=0.2):
+            query_ids = []
+            while not wait_for(
+                lambda: any(isinstance(e, events.ResourceLoaded) for e in seen), 0.2
+            ):
+                query_ids.append(app.call("erm", "camera", {"device": len(query_ids)}).id)
+                assert len(query_ids) < BOUND / 0.2, "no event of the manager process came"
+            pids = {e.pid for e in seen if isinstance(e, events.ResourceLoaded)}
+            assert wait_for(lambda: any(isinstance(e, events.CallAnswered) for e in seen), BOUND)
+    assert pids
+    assert os.getpid() not in pids  # (its own process's events, sent by it)
+    assert {"robot"} == {e.host for e in seen}
 
 
 @pytest.mark.parametrize("window", [-1, 61, "1", True, float("nan")])
