@@ -57,11 +57,14 @@ from typing import Any
 
 import zenoh
 
+from rr_actors._core.bus import Subscription
 from rr_actors._core.directory import DIRECTORY, Peer, Reply
+from rr_actors._core.hlc import CLOCK
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._transport.base import Address, Endpoint
 from rr_actors._transport.codec import NO_REPLY, Run, frame, payload_size, what
 from rr_actors._transport.writer import Lost
+from rr_actors._transport.zenoh_events import EventExport, EventFeed
 from rr_actors._transport.zenoh_inbox import Inbox, Local
 from rr_actors._transport.zenoh_outbox import Outbox, Outboxes
 from rr_actors._transport.zenoh_presence import ASK_TIMEOUT, Presence
@@ -72,6 +75,7 @@ from rr_actors._transport.zenoh_wire import (
     Keys,
     NameAt,
     ServerKey,
+    envelope,
     header,
 )
 from rr_actors.config import NAME
@@ -170,6 +174,7 @@ class ZenohMember:
             self._keys.ping(self.zid), lambda query: query.reply(query.key_expr, b"")
         )
         self._proc_token = session.liveliness().declare_token(self._keys.proc(self.zid))
+        self._events = EventExport(session, self._keys, self.zid)  # (the system's stream)
         DIRECTORY.add_resolver(self.resolve, self.names)
 
     # -- the Transport interface ---------------------------------------------------------
@@ -285,6 +290,20 @@ class ZenohMember:
         """Always `None`: a Zenoh subscriber has no accept queue to run out of."""
         return None
 
+    def subscribe_events(
+        self, callback: Callable[[Any], object], *, window: float, maxsize: int
+    ) -> Subscription[Any]:
+        """Every event of every process of the system (see `ZenohNetwork.subscribe_events`).
+
+        Raises:
+            RegistrarStoppedError: this process left the system.
+        """
+        if self.closed:
+            raise RegistrarStoppedError("this process left the system")
+        subscription = EventFeed(self._session, self._keys, window).subscribe(callback, maxsize)
+        self._events.wait_sending(ASK_TIMEOUT)  # (this process's own, from now on)
+        return subscription
+
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits, close the session."""
         with self._lock:
@@ -296,6 +315,7 @@ class ZenohMember:
         for local in locals_:
             self._unserve(local, stopped=local.endpoint.stopped_cleanly())
         self._inbox.fail_waiting(None, RegistrarStoppedError("this process left the system"))
+        self._events.close()
         self._outboxes.close()
         self._inbox.close()
         self._presence.close()
@@ -381,7 +401,7 @@ class ZenohMember:
         sent = (  # (gone meanwhile: its presence may have missed this reply)
             self._presence.server(name) is not None
             and outbox is not None
-            and outbox.send(header(MESSAGE, self.zid) + data)
+            and outbox.send(envelope(MESSAGE, self.zid, data, CLOCK.send()))
         )
         if not sent and (reply is None or self._inbox.forget(token)):
             raise self._gone_error(name)
@@ -402,7 +422,9 @@ class ZenohMember:
         if self._presence.unreachable(sender):
             return False
         outbox = self._outbox(self._keys.answers(sender), sender)
-        return outbox is not None and outbox.send(header(ANSWER, self.zid) + data, on_lost)
+        return outbox is not None and outbox.send(
+            envelope(ANSWER, self.zid, data, CLOCK.send()), on_lost
+        )
 
     def member(self, zid: str) -> bool:
         """Whether process `zid`'s liveliness token is here now (see `Presence.member`)."""

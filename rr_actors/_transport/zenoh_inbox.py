@@ -37,6 +37,7 @@ from typing import Any, Protocol
 import zenoh
 
 from rr_actors._core.directory import Reply
+from rr_actors._core.hlc import CLOCK
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.base import Endpoint
@@ -313,6 +314,8 @@ class Inbox:
         if not head.ours:
             self._refuse_version(name, head, token)
             return
+        if head.stamp is not None:
+            CLOCK.receive(head.stamp)  # (before the registrar hears of it)
         sender = head.sender
 
         def send(answer: bytes) -> bool:
@@ -364,6 +367,8 @@ class Inbox:
                 )
             )
             return
+        if head.stamp is not None:
+            CLOCK.receive(head.stamp)
         tell = functools.partial(self._owner.send, waiting.name)
         if len(payload) > waiting.limit:
             answer_too_large(

@@ -298,3 +298,20 @@ def test_rr_actors_check_prints_the_verdict_and_the_window(
     (tmp_path / "events.jsonl").write_text("\n".join(real) + "\n")
     assert 0 == main(["check", str(tmp_path), "-q"])
     assert "run 0: held" in capsys.readouterr().out
+
+
+def test_rr_actors_check_reads_a_schema_2_file_as_a_schema_3_one(
+    real: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A run written before events had `host` and `hlc` (schema 2) checks as it did."""
+    old = []
+    for text in real:
+        line = json.loads(text)
+        assert 3 == line.pop("schema")
+        del line["host"], line["hlc"]
+        old.append(json.dumps({**line, "schema": 2}))
+    for name, lines in (("new", real), ("old", old)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "events.jsonl").write_text("\n".join(lines) + "\n")
+        assert 0 == main(["check", str(tmp_path / name), "-q"])
+        assert "run 0: held" in capsys.readouterr().out
