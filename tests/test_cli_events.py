@@ -19,7 +19,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors._cli import main
+from rr_actors.__main__ import main
 
 BOUND = 30.0
 
