@@ -113,7 +113,13 @@ class Writer:
         threading.Thread(target=self.run, name=name, daemon=True).start()
 
     def close(self) -> bool:
-        """Stop sending; queued frames are lost (their `on_lost` runs). False if closed."""
+        """Stop sending and end the connection; queued frames are lost (their `on_lost`
+        runs). False if it was closed already.
+
+        The socket is shut down (here, and by the writer thread before it closes it,
+        whichever comes first), so a thread reading a duplicate of its descriptor wakes
+        and the peer reads the end at once.
+        """
         with self._cond:
             if self.closed:
                 return False
@@ -176,6 +182,11 @@ class Writer:
             with self._cond:
                 while self._busy:  # a sender still writes inline: let it finish first
                     self._cond.wait()
+            # Shut down before closing, here too: `close()` shuts down after it woke this
+            # thread, which may close the socket first; its shutdown then fails (EBADF) and
+            # the reader's duplicate descriptor keeps the connection open: the peer never
+            # sees its end, and what it sends meanwhile is read and dropped unanswered.
+            shutdown(sock)
             sock.close()
 
 
