@@ -9,6 +9,7 @@ its own schedule, so the count would move with it.
 from __future__ import annotations
 
 import collections
+import gc
 import os
 import signal
 import sys
@@ -115,6 +116,7 @@ def test_hangs_that_the_heartbeat_ends_leave_no_descriptor_after_the_observer_cl
     sup = supervisors([process(name, heartbeat=0.05, heartbeat_timeout=0.3)], max_restarts=100)
     sup.start()
     sup.run_in(name, lambda r: None)  # the tree's one connection to the manager is made
+    gc.collect()  # (pipes of earlier tests' processes that only the collector closes)
     before = open_descriptors()
     observer = sup.observe(allow_faults=True)
     during: list[int] = []
@@ -137,8 +139,9 @@ def test_hangs_that_the_heartbeat_ends_leave_no_descriptor_after_the_observer_cl
 
     assert max(during) - min(during) <= 1  # one hang's pidfd at most, not one per hang
     # (the observer's server closes its connections' sockets on its own thread: a leak
-    # stays past the bound, a socket being closed does not)
-    assert eventually(lambda: open_descriptors() == before, timeout=15.0), (
+    # stays past the bound, a socket being closed does not; none more than before, as
+    # what earlier tests left may still be closed meanwhile, seen on the portable one)
+    assert eventually(lambda: not open_descriptors() - before, timeout=15.0), (
         before,
         open_descriptors(),
     )
