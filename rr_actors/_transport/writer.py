@@ -89,7 +89,13 @@ class Writer:
             return True
 
     def close(self) -> bool:
-        """Stop sending; queued frames are lost (their `on_lost` runs). False if closed."""
+        """Stop sending and end the connection; queued frames are lost (their `on_lost`
+        runs). False if it was closed already.
+
+        The socket is shut down (here, and after the last write before it is closed,
+        whichever comes first), so a thread reading a duplicate of its descriptor wakes
+        and the peer reads the end at once.
+        """
         with self._lock:
             if self._closed:
                 return False
@@ -120,6 +126,10 @@ class Writer:
 
     def _close_socket(self) -> None:  # (after the last write: the executor's `on_end`)
         if self._sock is not None:
+            # shut down before closing, here too: were it closed first, a shutdown after
+            # would fail (EBADF) and the reader's duplicate descriptor would keep the
+            # connection open: the peer would never see its end
+            shutdown(self._sock)
             self._sock.close()
 
 

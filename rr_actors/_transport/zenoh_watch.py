@@ -8,7 +8,9 @@ module only tells the operator, on the `rr_actors` logger:
   drops every message of it both ways; at most once per address per minute;
 - WARNING when a `connect` endpoint has no link `GRACE` seconds after start or after its
   link is lost, with the reason from our own handshake (`zenoh_probe`); at most once per
-  endpoint per minute while it lasts.
+  endpoint per minute while it lasts. A handshake that finds nothing wrong (the listener
+  accepts this host) warns only if the next one, `GRACE` seconds later, finds the same and
+  there is still no link: Zenoh's own link is then most likely on its way.
 
 ```
  Zenoh's thread: link event ─submit─► watch thread "rr-zenoh-watch" (SerialExecutor)
@@ -76,6 +78,13 @@ def _addresses(host: str) -> set[str]:
         return {host}
 
 
+def _said(trouble: str | None) -> str:
+    """Why an endpoint has no link, in words, from what its probe found (`None`: nothing)."""
+    if trouble is None:
+        return "the listener accepts this host's certificate; Zenoh has not linked yet"
+    return trouble
+
+
 class _Endpoint:
     def __init__(self, endpoint: str) -> None:
         _, self.host, self.port = parse_endpoint("connect", endpoint)
@@ -84,6 +93,7 @@ class _Endpoint:
         self.warned_at: float | None = None
         self.looked = False  # the first look counts from start, a later one from then
         self.reason: str | None = None  # why it had no link when last probed (None: linked)
+        self.accepted = False  # its last probe found the listener accepting this host
         self.addresses: set[str] = set()  # the host's, when last resolved
         self.resolved_at: float | None = None
 
@@ -209,6 +219,7 @@ class LinkWatch:
             if endpoint.linked(linked, dialled):  # `warned_at` stays: a flapping link is
                 endpoint.unlinked_since = None  # no reason for more than a WARNING a minute
                 endpoint.reason = None
+                endpoint.accepted = False
                 continue
             if endpoint.unlinked_since is None:  # unlinked since start, or since its link went
                 endpoint.unlinked_since = self._started if first else now
@@ -216,12 +227,20 @@ class LinkWatch:
                 continue
             if endpoint.warned_at is not None and now - endpoint.warned_at < REPEAT:
                 continue
-            reason = self._probe(endpoint)
+            trouble = handshake_trouble(self._tls, endpoint.host, endpoint.port)
             if endpoint.linked(self._linked(), dialled):  # it linked while the probe ran (a
                 endpoint.unlinked_since = None  # probe takes up to seconds): no warning
                 continue
+            if trouble is None and not endpoint.accepted:
+                # The listener accepts this host: nothing to name yet. Zenoh's link is most
+                # likely on its way (Zenoh dials again every second at most, or the peer,
+                # which just started listening, is dialling us), and its link event comes
+                # after Zenoh's own handshake, later than ours. Look again a GRACE later.
+                endpoint.accepted, endpoint.unlinked_since = True, self._clock()
+                continue
+            endpoint.accepted = False
             endpoint.warned_at = now
-            endpoint.reason = reason
+            endpoint.reason = reason = _said(trouble)
             logger.warning(
                 "ZenohNetwork %r has no link to connect endpoint %s: %s; calls to registrars "
                 "there fail (UnknownRegistrarError) until it links",
@@ -231,10 +250,7 @@ class LinkWatch:
             )
 
     def _probe(self, endpoint: _Endpoint) -> str:
-        reason = handshake_trouble(self._tls, endpoint.host, endpoint.port)
-        if reason is None:
-            return "the listener accepts this host's certificate; Zenoh has not linked yet"
-        return reason
+        return _said(handshake_trouble(self._tls, endpoint.host, endpoint.port))
 
     # -- asked by callers ------------------------------------------------------------------
 

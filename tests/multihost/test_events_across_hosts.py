@@ -26,13 +26,12 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
-import hosts
-import pki
 import pytest
-from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors import events
+from tests.support import hosts, pki
+from tests.support.waiting import wait_for
 
 SYSTEM = "lab"
 PORT = 7447

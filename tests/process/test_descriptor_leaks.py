@@ -9,6 +9,7 @@ its own schedule, so the count would move with it.
 from __future__ import annotations
 
 import collections
+import gc
 import os
 import signal
 import sys
@@ -114,10 +115,12 @@ def test_hangs_that_the_heartbeat_ends_leave_no_descriptor_after_the_observer_cl
     name = f"erm-{uid}"
     sup = supervisors([process(name, heartbeat=0.05, heartbeat_timeout=0.3)], max_restarts=100)
     sup.start()
+    sup.run_in(name, lambda r: None)  # the tree's one connection to the manager is made
+    gc.collect()  # (pipes of earlier tests' processes that only the collector closes)
     before = open_descriptors()
     observer = sup.observe(allow_faults=True)
     during: list[int] = []
-    for _ in range(10):
+    for _ in range(5):  # (a descriptor kept per hang shows in `during` from the third one)
         pid = sup.child(name).pid
         assert pid
         restarts = sup.child(name).restarts
@@ -125,13 +128,20 @@ def test_hangs_that_the_heartbeat_ends_leave_no_descriptor_after_the_observer_cl
         assert (200, True) == (status, answer["ok"])
         assert eventually(lambda pid=pid: process_state(pid) in ("T", None))
         sup.wait_restarted(name, timeout=15.0, restarts=restarts + 1)
-        during.append(open_descriptors().total())
+        now = open_descriptors()  # (sockets: the tree's connection to the manager comes
+        during.append(now["pipe"] + now["pidfd"])  # and goes with each incarnation)
+    # The observer reads the last incarnation's catalog (on a loaded machine its own
+    # thread often did before close()) through the tree's connection to the manager:
+    # not the observer's, kept for the next `run_in`, and closed when the manager goes.
+    observer.refresh()
     observer.close()
+    sup.run_in(name, lambda r: None)  # connected to the last incarnation, as before
 
     assert max(during) - min(during) <= 1  # one hang's pidfd at most, not one per hang
     # (the observer's server closes its connections' sockets on its own thread: a leak
-    # stays past the bound, a socket being closed does not)
-    assert eventually(lambda: open_descriptors() == before, timeout=15.0), (
+    # stays past the bound, a socket being closed does not; none more than before, as
+    # what earlier tests left may still be closed meanwhile, seen on the portable one)
+    assert eventually(lambda: not open_descriptors() - before, timeout=15.0), (
         before,
         open_descriptors(),
     )

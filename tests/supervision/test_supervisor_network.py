@@ -114,6 +114,34 @@ def test_a_registrar_started_with_a_network_is_reached_from_another_process_unti
         other.call(registrar.name, "echo", "camera", timeout=10)
 
 
+STOP_ROUNDS = 30
+"""Registrars stopped in a row by the next test (the race it guards took one in ~30)."""
+
+
+@pytest.mark.timeout(300)
+def test_a_call_right_after_stop_raises_registrar_stopped_error_every_time(
+    network: System, outsider: Callable[[], RemoteRegistrar]
+) -> None:
+    # The caller's connection is made by its first call and ended by the stop; that end
+    # raced with the connection's writer thread (test_transport_writer.py): the
+    # connection stayed open, and the next call's load was read and never answered.
+    other = outsider()
+    outcomes = []
+    for _ in range(STOP_ROUNDS):
+        registrar = rr.ResourceRegistrar.start(named("erm"), setup=echo_setup, network=network)
+        try:
+            other.unload(other.call(registrar.name, "echo", "camera", timeout=10).id, timeout=10)
+        finally:
+            registrar.stop()
+        try:
+            other.call(registrar.name, "echo", "camera", timeout=5)
+            outcomes.append("answered")
+        except rr.RrError as exc:
+            outcomes.append(type(exc).__name__)
+
+    assert ["RegistrarStoppedError"] * STOP_ROUNDS == outcomes
+
+
 def test_a_registrar_whose_name_another_process_serves_is_refused_and_leaves_nothing(
     network: System, started: list[rr.ResourceRegistrar]
 ) -> None:

@@ -28,12 +28,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import pki
 import pytest
-from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors import events
+from tests.support import pki
+from tests.support.waiting import wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
