@@ -172,6 +172,11 @@ class ZenohMember:
         self._proc_token = session.liveliness().declare_token(self._keys.proc(self.zid))
         DIRECTORY.add_resolver(self.resolve, self.names)
 
+    @property
+    def session(self) -> zenoh.Session:
+        """The open Zenoh session (for `ZenohNetwork.services`)."""
+        return self._session
+
     # -- the Transport interface ---------------------------------------------------------
 
     @property
