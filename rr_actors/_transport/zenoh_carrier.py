@@ -57,11 +57,13 @@ from typing import Any
 
 import zenoh
 
+from rr_actors._core.bus import Subscription
 from rr_actors._core.directory import DIRECTORY, Peer, Reply
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._transport.base import Address, Endpoint
 from rr_actors._transport.codec import NO_REPLY, Run, frame, payload_size, what
 from rr_actors._transport.writer import Lost
+from rr_actors._transport.zenoh_events import EventExport, EventFeed
 from rr_actors._transport.zenoh_inbox import Inbox, Local
 from rr_actors._transport.zenoh_outbox import Outbox, Outboxes
 from rr_actors._transport.zenoh_presence import ASK_TIMEOUT, Presence
@@ -170,6 +172,7 @@ class ZenohMember:
             self._keys.ping(self.zid), lambda query: query.reply(query.key_expr, b"")
         )
         self._proc_token = session.liveliness().declare_token(self._keys.proc(self.zid))
+        self._events = EventExport(session, self._keys, self.zid)  # (the system's stream)
         DIRECTORY.add_resolver(self.resolve, self.names)
 
     @property
@@ -290,6 +293,18 @@ class ZenohMember:
         """Always `None`: a Zenoh subscriber has no accept queue to run out of."""
         return None
 
+    def subscribe_events(
+        self, callback: Callable[[Any], object], *, window: float, maxsize: int
+    ) -> Subscription[Any]:
+        """Every event of every process of the system (see `ZenohNetwork.subscribe_events`).
+
+        Raises:
+            RegistrarStoppedError: this process left the system.
+        """
+        if self.closed:
+            raise RegistrarStoppedError("this process left the system")
+        return EventFeed(self._session, self._keys, window).subscribe(callback, maxsize)
+
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits, close the session."""
         with self._lock:
@@ -301,6 +316,7 @@ class ZenohMember:
         for local in locals_:
             self._unserve(local, stopped=local.endpoint.stopped_cleanly())
         self._inbox.fail_waiting(None, RegistrarStoppedError("this process left the system"))
+        self._events.close()
         self._outboxes.close()
         self._inbox.close()
         self._presence.close()

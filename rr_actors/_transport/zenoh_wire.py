@@ -7,6 +7,8 @@ see each other:
  rr/<system>/reg/<name>                       messages for registrar <name> (its subscriber)
  rr/<system>/ans/<zid>                        answers for the process whose Zenoh id is <zid>
  rr/<system>/ping/<zid>                       its queryable: answers a ping (`zenoh_outbox`)
+ rr/<system>/ev/<zid>                         the events of process <zid>: JSON lines, never
+                                              a pickle (`zenoh_events`)
  rr/<system>/live/proc/<zid>                  liveliness: process <zid> is a member
  rr/<system>/live/reg/<name>/<zid>/<sup>/<limit>
                                               liveliness: <zid> serves <name>; <sup> is the
@@ -225,6 +227,15 @@ class Keys:
     def ping(self, zid: str) -> str:
         """Process `zid`'s queryable that answers a ping (`zenoh_outbox`)."""
         return f"{self.prefix}/ping/{zid}"
+
+    def events(self, zid: str) -> str:
+        """Process `zid`'s events (JSON lines: `zenoh_events`)."""
+        return f"{self.prefix}/ev/{zid}"
+
+    def all_events(self) -> str:
+        """The events of every process of the system (what a system-wide subscriber
+        declares)."""
+        return f"{self.prefix}/ev/*"
 
     def live(self) -> str:
         """Every liveliness token of the system (what presence subscribes to)."""
