@@ -54,11 +54,14 @@ from rr_actors.config import NAME
 from rr_actors.observe._delta import apply, diff
 from rr_actors.observe._faults import KINDS, FaultRefused, Faults, inject
 from rr_actors.observe._hub import BATCH, RING, Hub
+from rr_actors.observe._sources import event_dict
 from rr_actors.observe._view import dependency_graph
 
 if TYPE_CHECKING:
     import zenoh
 
+    from rr_actors import events as events_module
+    from rr_actors._core.bus import Subscription
     from rr_actors._transport.zenoh_net import Services
 
 __all__ = [
@@ -100,6 +103,10 @@ MAX_COMMAND = 4096
 MAX_FAULTS = 4
 """Fault commands from other hosts run at once; one more is refused."""
 
+EVENTS_WINDOW = 0.5
+"""Seconds the system's event stream holds an event for others to overtake it (its
+hybrid logical clock order; `ZenohNetwork.subscribe_events`)."""
+
 
 def _dumps(value: Any) -> bytes:
     return json.dumps(value, separators=(",", ":")).encode()
@@ -124,6 +131,9 @@ class Share:
         member: this host's member name.
         host: what the page says of this host (title, pid).
         faults: the teaching mode's faults (`None`: every fault command is refused).
+        all_events: share every event of the hub; `False`: only the observer's own
+            (a fault from a page), when the pages get the events of every host from the
+            system's event stream (`ZenohNetwork.subscribe_events`).
     """
 
     def __init__(
@@ -134,8 +144,10 @@ class Share:
         *,
         host: dict[str, Any],
         faults: Faults | None,
+        all_events: bool = True,
     ) -> None:
         self.member = member
+        self._all_events = all_events
         self.hub = hub
         self._services = services
         self._faults = faults
@@ -256,7 +268,11 @@ class Share:
                         continue
                     items.append([key, "p", patch])
                 self._values[key] = value
-            events = [{**e, "member": self.member} for e in changes.events]
+            events = [
+                {**e, "member": self.member}
+                for e in changes.events
+                if self._all_events or e.get("type") == "ObserverFault"
+            ]
             if not (items or events or changes.missed):
                 return last_seq
             self._events.extend(events)
@@ -505,17 +521,26 @@ class SystemView:
 
     Sections of the page's hub: `hosts`, `links`, `graph` (across every host), and per
     host `host/<member>/tree`, `host/<member>/catalog/<registrar>`,
-    `host/<member>/ended`; every host's events, each with its `member`.
+    `host/<member>/ended`; every host's events, each with its `member`: from the
+    system's event stream (`subscribe`, in hybrid logical clock order) when there is
+    one, else as each host shares them.
 
     Args:
         hub: the page's hub.
         services: the router's session and what goes with it.
         member: this host's member name (`None`: it shares nothing, only shows).
         share: this host's share (its own state comes from it directly, not over Zenoh).
+        subscribe: the system's event stream (`ZenohNetwork.subscribe_events`), or
+            `None`.
     """
 
     def __init__(
-        self, hub: Hub, services: Services, member: str | None, share: Share | None
+        self,
+        hub: Hub,
+        services: Services,
+        member: str | None,
+        share: Share | None,
+        subscribe: Callable[..., Subscription[events_module.Event]] | None = None,
     ) -> None:
         self.hub = hub
         self.member = member
@@ -534,12 +559,22 @@ class SystemView:
         self._tokens = session.liveliness().declare_subscriber(
             self._keys.observers("here"), self._on_token, history=True
         )
+        self._events_of_system = (
+            None if subscribe is None else subscribe(self._on_event, window=EVENTS_WINDOW)
+        )
+
+    def _on_event(self, event: events_module.Event) -> None:  # (its subscriber thread)
+        data = event_dict(event)
+        data["member"] = data.get("host") or "?"
+        self.hub.add_event(data)
 
     def close(self, timeout: float = 5.0) -> None:
         """Stop following the hosts (within `timeout` seconds)."""
         for declared in (self._deltas, self._tokens):
             with contextlib.suppress(Exception):
                 declared.undeclare()  # type: ignore[no-untyped-call]
+        if self._events_of_system is not None:
+            self._events_of_system.close(timeout=timeout)
         self._executor.close(timeout=0)
         self._executor.join(timeout)
 
@@ -704,6 +739,8 @@ class SystemView:
         for event in events[-BATCH:]:
             if not _valid_event(event) or event["seq"] <= mirror.last_event:
                 continue
+            if self._events_of_system is not None and event["type"] != "ObserverFault":
+                continue  # (the system's event stream brings it)
             mirror.last_event = event["seq"]
             self.hub.add_event({**event, "member": mirror.member, "host_seq": event["seq"]})
 

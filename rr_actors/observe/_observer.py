@@ -354,12 +354,18 @@ def observe_supervisor(
 
             member = member_name(services)
             title = f"supervisor {sup.name}"
+            subscribe = getattr(access.network, "subscribe_events", None)
             share = Share(
-                local, services, member, host={"title": title, "pid": os.getpid()}, faults=faults
+                local,
+                services,
+                member,
+                host={"title": title, "pid": os.getpid()},
+                faults=faults,
+                all_events=subscribe is None,
             )
             hub = Hub()
             hub.put("clock", clock)
-            view = SystemView(hub, services, member, share)
+            view = SystemView(hub, services, member, share, subscribe)
             system = services.keys.prefix.removeprefix("rr/")
             hello.update(
                 system=system, member=member, title=f"system {system}: {title} on {member}"
@@ -415,7 +421,8 @@ def observe_system(
 
     hub = Hub()
     hub.put("clock", {"origin": time.time(), "label": "since the observer opened"})
-    view = SystemView(hub, services, services.member, None)
+    subscribe = getattr(network, "subscribe_events", None)
+    view = SystemView(hub, services, services.member, None, subscribe)
     system = services.keys.prefix.removeprefix("rr/")
     hello = {
         "mode": "live",
