@@ -18,6 +18,10 @@ The browser (Debian's chromium, driven by Playwright from the test process) runs
   `cam`, and a kill sent anyway (the page's own request) is refused by `b` with that
   reason; `b` opens it again with `allow_faults=True`: the button on `a`'s page kills
   `cam` (its supervisor restarts it).
+- `test_rr_actors_observe_system_shows_every_host_from_a_process_without_a_tree`: a third
+  member, `viewer`, in another process on `a`, runs `rr-actors observe --system lab
+  --certs ... --connect ...` (`run_observe`): its page's state lists `alpha` and `bravo`
+  live with their trees, and itself shares nothing.
 - `test_a_cut_link_greys_bs_tree_then_it_is_live_after_the_heal`: `ip link set down`:
   within the lease (plus a bound for a loaded machine) the link shows cut (since when,
   why) and `b`'s tree greyed, its last known state kept; after `ip link set up` both are
@@ -139,7 +143,7 @@ def lab() -> Iterator[Lab]:
         pytest.skip(reason)
     with hosts.TwoHosts() as net:
         ca = pki.make_ca(net.directory, SYSTEM)
-        members = ["alpha", "bravo"]
+        members = ["alpha", "bravo", "viewer"]
 
         def tls(name: str, address: str) -> dict[str, Any]:
             cert, key = pki.issue(net.directory, name, [address], ca=ca)
@@ -171,6 +175,7 @@ def lab() -> Iterator[Lab]:
             b.call(open_observer, False, timeout=30)
             url = a.call(open_observer, True, timeout=30)
             a.call(hold_camera, timeout=60)
+            tls("viewer", net.a.address)  # (its files, for the viewer's test)
             yield Lab(net, a, b, url)
         finally:
             for worker in (a, b):
@@ -269,9 +274,7 @@ def test_the_page_on_a_shows_both_hosts_and_bs_restart_after_a_sigkill(
 
     killed = time.monotonic()
     os.kill(lab.b.call(manager_pid, "cam", timeout=10), signal.SIGKILL)
-    cam(page).and_(page.locator(f'[data-restarts="{before + 1}"]')).wait_for(
-        timeout=BOUND * 1000
-    )
+    cam(page).and_(page.locator(f'[data-restarts="{before + 1}"]')).wait_for(timeout=BOUND * 1000)
     took = time.monotonic() - killed
 
     assert "killed by SIGKILL" in cam(page).locator('[data-field="last-exit"]').inner_text()
@@ -308,6 +311,71 @@ def test_a_fault_button_on_a_for_bs_manager_works_only_when_b_allowed_faults(
         [e for e in state(page)["events"] if e["type"] == "ObserverFault"]
     )
     assert pid != lab.b.call(manager_pid, "cam", timeout=10)
+
+
+def view_system(argv: list[str], bound: float) -> dict[str, Any]:
+    """Run `rr-actors observe` with `argv` in this worker until its page's `/api/state` shows
+    `alpha` and `bravo` live with their trees (at most `bound` s); that state."""
+    import io  # noqa: PLC0415
+    import re  # noqa: PLC0415
+    import threading  # noqa: PLC0415
+    import urllib.request  # noqa: PLC0415
+
+    from rr_actors._cli import build_parser  # noqa: PLC0415
+    from rr_actors.observe._commands import run_observe  # noqa: PLC0415
+
+    printed = threading.Event()
+
+    class Out(io.StringIO):
+        def write(self, text: str) -> int:
+            written = super().write(text)
+            printed.set()
+            return written
+
+    out, stop = Out(), threading.Event()
+    args = build_parser().parse_args(["observe", *argv])
+    thread = threading.Thread(target=run_observe, args=(args, out), kwargs={"stop": stop})
+    thread.start()
+    try:
+        assert printed.wait(bound), "rr-actors observe printed no URL"
+        match = re.search(r"(http://\S+)\?token=(\S+)", out.getvalue())
+        assert match is not None, out.getvalue()
+        url = f"{match[1]}api/state"
+        request = urllib.request.Request(url, headers={"X-RR-Token": match[2]})  # noqa: S310
+        deadline = time.monotonic() + bound
+        while True:
+            with urllib.request.urlopen(request, timeout=bound) as answer:  # noqa: S310
+                shown: dict[str, Any] = json.loads(answer.read())
+            hosts_shown = shown["sections"].get("hosts", {}).get("hosts", [])
+            live = {h["member"] for h in hosts_shown if h["state"] == "live"}
+            trees = {k for k in shown["sections"] if k.endswith("/tree")}
+            if {"alpha", "bravo"} <= live and {"host/alpha/tree", "host/bravo/tree"} <= trees:
+                return shown
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"not every host live within {bound:g} s: {hosts_shown}")
+            stop.wait(0.1)  # (a poll of a real page, bounded)
+    finally:
+        stop.set()
+        thread.join(bound)
+
+
+def test_rr_actors_observe_system_shows_every_host_from_a_process_without_a_tree(
+    lab: Lab,
+) -> None:
+    viewer = lab.net.a.spawn()
+    argv = [
+        *("--system", SYSTEM, "--certs", str(lab.net.directory)),
+        *("--name", "viewer", "--members", "alpha,bravo,viewer"),
+        *("--connect", f"tls/{lab.net.a.address}:{PORT}", "--lease", str(LEASE)),
+    ]
+    try:
+        shown = viewer.call(view_system, argv, 30.0, timeout=60)
+    finally:
+        viewer.stop()
+
+    assert ["alpha", "bravo"] == [h["member"] for h in shown["sections"]["hosts"]["hosts"]]
+    assert "viewer" == shown["hello"]["member"]
+    assert "cam" == shown["sections"]["host/bravo/tree"]["children"][0]["name"]
 
 
 def test_a_cut_link_greys_bs_tree_then_it_is_live_after_the_heal(
