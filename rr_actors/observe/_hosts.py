@@ -511,6 +511,7 @@ class _Mirror:
     published: set[str] = dataclasses.field(default_factory=set)
     here: bool = False  # its token is there
     synced: bool = False  # its state arrived since it came (back)
+    behind: bool = False  # a delta was missed: its state is asked again (shown meanwhile)
     since: float = dataclasses.field(default_factory=time.time)
     why: str = ""
     asked: float = -ASK_EVERY  # monotonic
@@ -680,7 +681,7 @@ class SystemView:
             if isinstance(key, str) and _shared(key) and _valid_section(key, value)
         }
         mirror.instance, mirror.seq, mirror.sections = message["instance"], message["seq"], sections
-        mirror.synced = True
+        mirror.synced, mirror.behind = True, False
         if not self._local(mirror.member) and not mirror.here:
             mirror.synced = False  # (a late answer from a host that went meanwhile)
         self._events(mirror, message.get("events"))
@@ -704,6 +705,7 @@ class SystemView:
             if self._local(mirror.member):
                 self._own_state(self._share.state() if self._share else message)
             elif mirror.here:
+                mirror.behind = True  # (asked now, or at the next tick)
                 self._ask(mirror)
             return
         changed = set()
@@ -759,7 +761,8 @@ class SystemView:
     def _tick(self) -> None:
         try:
             for mirror in list(self._mirrors.values()):
-                if mirror.here and not mirror.synced and not self._local(mirror.member):
+                lagging = not mirror.synced or mirror.behind
+                if mirror.here and lagging and not self._local(mirror.member):
                     self._ask(mirror)
             self._refresh(graph=False)
         except Exception:
