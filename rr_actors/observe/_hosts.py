@@ -560,9 +560,15 @@ class SystemView:
         self._tokens = session.liveliness().declare_subscriber(
             self._keys.observers("here"), self._on_token, history=True
         )
+        self._links_listener = session.info.declare_link_events_listener(
+            self._on_link, history=False
+        )
         self._events_of_system = (
             None if subscribe is None else subscribe(self._on_event, window=EVENTS_WINDOW)
         )
+
+    def _on_link(self, _event: Any) -> None:  # (Zenoh's thread: a link came or went)
+        self._executor.submit(functools.partial(self._refresh, graph=False))
 
     def _on_event(self, event: events_module.Event) -> None:  # (its subscriber thread)
         data = event_dict(event)
@@ -571,7 +577,7 @@ class SystemView:
 
     def close(self, timeout: float = 5.0) -> None:
         """Stop following the hosts (within `timeout` seconds)."""
-        for declared in (self._deltas, self._tokens):
+        for declared in (self._deltas, self._tokens, self._links_listener):
             with contextlib.suppress(Exception):
                 declared.undeclare()  # type: ignore[no-untyped-call]
         if self._events_of_system is not None:
@@ -773,7 +779,7 @@ class SystemView:
 
     def _report(self, reporter: str, about: str) -> dict[str, Any] | None:
         """What `reporter` last said of its link to `about` (its own links are fresh)."""
-        if reporter == self.member and self._share is None:
+        if reporter == self.member:  # (this host's own: from its link watch, now)
             links = [self._link(m) for m in self._services.links()]
         else:
             mirror = self._mirrors.get(reporter)
