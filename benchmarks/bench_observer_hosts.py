@@ -70,6 +70,8 @@ def start_tree(name: str, manager: str, isolation: str, state_dir: str) -> int:
     sup = rr.Supervisor(
         [rr.ManagerSpec(manager, setup=setup, isolation=isolation)],  # type: ignore[arg-type]
         name=name,
+        max_restarts=1000,  # (kills 1 s apart: never give up)
+        period=1.0,
         state_dir=state_dir,
         network=hosts.KEPT["network"],
     )
@@ -100,6 +102,14 @@ def sent_bytes() -> int:
     observer = hosts.KEPT.get("observer")
     share = getattr(observer, "_share", None)
     return 0 if share is None else int(share.sent_bytes)
+
+
+def state_bytes() -> int:
+    """Bytes of this host's whole shared state as JSON (what a page's host asks for once)."""
+    import json  # noqa: PLC0415
+
+    share = hosts.KEPT["observer"]._share
+    return len(json.dumps(share.state(), separators=(",", ":")))
 
 
 def churn_start(period: float) -> None:
@@ -201,6 +211,8 @@ def cost(resources: int, window: float) -> None:
             a.call(observe, None if across is None else across, timeout=60)
             if across:
                 assert a.call(sees, "bravo", "slots", 60.0, timeout=90), "alpha never saw bravo"
+                size = b.call(state_bytes, timeout=30)
+                print(f"  bravo's whole state: {size / 1024:.0f} KiB of JSON (asked once)")
             for load in ("idle", "2 changes/s"):
                 if load != "idle":
                     b.call(churn_start, 0.5, timeout=10)
