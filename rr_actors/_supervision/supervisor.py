@@ -604,7 +604,8 @@ class Supervisor:
                 theirs (each host's tree grouped under its member name, their catalogs,
                 the dependency edges between them, every host's events and the link
                 between each pair of hosts). `None` (the default): when the supervisor's
-                `network` is a [`ZenohNetwork`][rr_actors._transport.zenoh_net.ZenohNetwork]. What crosses
+                `network` is a
+                [`ZenohNetwork`][rr_actors._transport.zenoh_net.ZenohNetwork]. What crosses
                 is JSON on the system's `rr/<system>/obs/<member>/` keys, seen by
                 members only; with `allow_faults`, the members' pages may also fault
                 this host's managers (docs: the observer's reference, "Across hosts").

@@ -512,6 +512,7 @@ class _Mirror:
     here: bool = False  # its token is there
     synced: bool = False  # its state arrived since it came (back)
     behind: bool = False  # a delta was missed: its state is asked again (shown meanwhile)
+    newest: tuple[str, int] = ("", 0)  # the newest delta seen: (instance, seq)
     since: float = dataclasses.field(default_factory=time.time)
     why: str = ""
     asked: float = -ASK_EVERY  # monotonic
@@ -687,7 +688,9 @@ class SystemView:
             if isinstance(key, str) and _shared(key) and _valid_section(key, value)
         }
         mirror.instance, mirror.seq, mirror.sections = message["instance"], message["seq"], sections
-        mirror.synced, mirror.behind = True, False
+        mirror.synced = True
+        newest_instance, newest_seq = mirror.newest  # (a delta newer than this state came)
+        mirror.behind = newest_instance == mirror.instance and newest_seq > mirror.seq
         if not self._local(mirror.member) and not mirror.here:
             mirror.synced = False  # (a late answer from a host that went meanwhile)
         self._events(mirror, message.get("events"))
@@ -704,6 +707,8 @@ class SystemView:
         self._apply_delta(self._mirror(message["member"]), message)
 
     def _apply_delta(self, mirror: _Mirror, message: dict[str, Any]) -> None:
+        if mirror.newest[0] != message["instance"] or mirror.newest[1] < message["seq"]:
+            mirror.newest = (message["instance"], message["seq"])
         same = mirror.instance == message["instance"]
         if same and message["seq"] <= mirror.seq:
             return  # (already in the state it has)
