@@ -16,6 +16,9 @@ ROOT = Path(__file__).resolve().parent.parent
 
 SMALLEST = {
     "bench_core.py": ["--rounds", "1", "--batch", "5"],
+    "bench_observer_hosts.py": [
+        *("--resources", "20", "--window", "0.5", "--kills", "1", "--cuts", "1"),
+    ],
     "bench_observer.py": [
         *("--kills", "1", "--settle", "0.1", "--calls", "5", "--rounds", "1"),
         *("--missions", "1", "--soak", "1", "--sample", "0.5"),

@@ -566,6 +566,7 @@ class Supervisor:
         allow_faults: bool = False,
         allow_remote: bool = False,
         keep_serving: bool = False,
+        across_hosts: bool | None = None,
     ) -> Observer:
         """Serve a live web page of this tree at the returned observer's `url`.
 
@@ -599,6 +600,15 @@ class Supervisor:
             keep_serving: after the supervisor stops, keep serving its final state
                 (the page says it ended) until the observer's `close()`, so that it
                 can be discussed (`rr-actors demo --observe --linger`).
+            across_hosts: share this host's tree with the system's other hosts and show
+                theirs (each host's tree grouped under its member name, their catalogs,
+                the dependency edges between them, every host's events and the link
+                between each pair of hosts). `None` (the default): when the supervisor's
+                `network` is a
+                [`ZenohNetwork`][rr_actors._transport.zenoh_net.ZenohNetwork]. What crosses
+                is JSON on the system's `rr/<system>/obs/<member>/` keys, seen by
+                members only; with `allow_faults`, the members' pages may also fault
+                this host's managers (docs: the observer's reference, "Across hosts").
 
         Returns:
             The open [`Observer`][rr_actors.observe.Observer] (`url`, `close()`).
@@ -606,7 +616,8 @@ class Supervisor:
         Raises:
             ConfigError: the `observe` extra is not installed (`pip install
                 'rr-actors[observe]'`), the port is in use, `host` is not a loopback
-                address and `allow_remote` is false, or the supervisor was stopped.
+                address and `allow_remote` is false, the supervisor was stopped, or
+                `across_hosts=True` without a `ZenohNetwork`.
         """
         if self._stopped:
             raise ConfigError(f"supervisor {self.name!r} was stopped: nothing to observe")
@@ -616,6 +627,7 @@ class Supervisor:
             allow_faults=allow_faults,
             allow_remote=allow_remote,
             keep_serving=keep_serving,
+            across_hosts=across_hosts,
         )
 
     def graph(self, format: str = "mermaid") -> str:

@@ -63,7 +63,14 @@ class TreeWatch:
         return self.tree.events.sync(timeout)
 
     def observe(
-        self, host: str, port: int, *, allow_faults: bool, allow_remote: bool, keep_serving: bool
+        self,
+        host: str,
+        port: int,
+        *,
+        allow_faults: bool,
+        allow_remote: bool,
+        keep_serving: bool,
+        across_hosts: bool | None,
     ) -> Observer:
         """`Supervisor.observe` (once the supervisor checked it is not stopped)."""
         from rr_actors.observe._observer import observe_supervisor  # noqa: PLC0415 - an extra
@@ -76,6 +83,7 @@ class TreeWatch:
             allow_faults=allow_faults,
             allow_remote=allow_remote,
             keep_serving=keep_serving,
+            across_hosts=across_hosts,
         )
         self.observers.append(observer)
         return observer
@@ -111,4 +119,5 @@ class TreeWatch:
             restart_due=self.tree.restart_due,
             running=self.running,
             registrars=self.registrars,
+            network=self.tree.processes.network,
         )

@@ -177,6 +177,11 @@ class ZenohMember:
         self._events = EventExport(session, self._keys, self.zid)  # (the system's stream)
         DIRECTORY.add_resolver(self.resolve, self.names)
 
+    @property
+    def session(self) -> zenoh.Session:
+        """The open Zenoh session (for `ZenohNetwork.services`)."""
+        return self._session
+
     # -- the Transport interface ---------------------------------------------------------
 
     @property

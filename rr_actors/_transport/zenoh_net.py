@@ -53,7 +53,8 @@ from rr_actors._transport.zenoh_carrier import ZenohMember
 from rr_actors._transport.zenoh_config import endpoints, parse_endpoint, session_config
 from rr_actors._transport.zenoh_events import check_window
 from rr_actors._transport.zenoh_gate import HandshakeGate, open_gates
-from rr_actors._transport.zenoh_watch import LinkWatch, remote
+from rr_actors._transport.zenoh_watch import LinkWatch, MemberLink, remote
+from rr_actors._transport.zenoh_wire import Keys
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavailableError
 from rr_actors.events.kinds import set_host
@@ -61,7 +62,7 @@ from rr_actors.events.kinds import set_host
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh_tls import ZenohTLS
 
-__all__ = ["ZenohAddress", "ZenohNetwork"]
+__all__ = ["Services", "ZenohAddress", "ZenohNetwork"]
 
 logger = logging.getLogger("rr_actors")
 
@@ -262,6 +263,29 @@ class ZenohAddress:
         )
         _close_at_exit(f"the membership of system {self.system!r}", member, member.close)
         return member
+
+
+@dataclasses.dataclass(frozen=True)
+class Services:
+    """What rr_actors' own services on a system (the observer across hosts) get of its
+    router (`ZenohNetwork.services`).
+
+    Attributes:
+        session: the router's open Zenoh session; declare on it only `keys`' observer
+            keys (the access control admits them for members only).
+        keys: the system's key expressions.
+        member: this host's member name (its certificate's common name), `None` without
+            TLS.
+        lease: seconds after which a silent peer counts as gone.
+        links: each member's link to this router as last seen (empty without TLS: a
+            plain TCP link names nobody).
+    """
+
+    session: zenoh.Session
+    keys: Keys
+    member: str | None
+    lease: float
+    links: Callable[[], list[MemberLink]]
 
 
 class ZenohNetwork:
@@ -481,6 +505,25 @@ class ZenohNetwork:
     def supervised_by(self, pid: int | None) -> None:
         """See `Transport.supervised_by` (`ZenohMember.supervised_by`)."""
         self._open().supervised_by(pid)
+
+    def services(self) -> Services:
+        """The router's session and what goes with it, for rr_actors' own services (the
+        observer across hosts); opens the session.
+
+        Raises:
+            RegistrarStoppedError: this process left the system (`close()`).
+        """
+        member = self._open()
+        if member.closed:
+            raise RegistrarStoppedError(f"this process left system {self.system!r}")
+        watch = self._watch
+        return Services(
+            session=member.session,
+            keys=Keys(self.system),
+            member=None if self.tls is None else self.tls.name,
+            lease=self.lease,
+            links=(list) if watch is None else watch.member_links,
+        )
 
     def subscribe_events(
         self,

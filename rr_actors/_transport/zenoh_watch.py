@@ -12,6 +12,9 @@ module only tells the operator, on the `rr_actors` logger:
   accepts this host) warns only if the next one, `GRACE` seconds later, finds the same and
   there is still no link: Zenoh's own link is then most likely on its way.
 
+It also keeps, for the observer across hosts, each member's link as last seen: up or
+cut, since when (wall clock) and why (`member_links`).
+
 ```
  Zenoh's thread: link event ─submit─► watch thread "rr-zenoh-watch" (SerialExecutor)
                                                  ├─ log INFO / WARNING per link
@@ -39,7 +42,7 @@ import logging
 import socket
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import zenoh
 
@@ -50,7 +53,7 @@ from rr_actors._transport.zenoh_probe import handshake_trouble
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh_tls import ZenohTLS
 
-__all__ = ["LinkWatch", "remote"]
+__all__ = ["LinkWatch", "MemberLink", "remote"]
 
 logger = logging.getLogger("rr_actors")
 
@@ -112,6 +115,25 @@ class _Endpoint:
         )
 
 
+class MemberLink(NamedTuple):
+    """A member's link to this router as last seen (`LinkWatch.member_links`).
+
+    Attributes:
+        member: its certificate's common name.
+        up: whether a link to it is open.
+        since: when that became so (wall clock, `time.time()` seconds).
+        where: its address, as last linked.
+        why: why there is no link (`""` while up): the probe's verdict for a `connect`
+            endpoint at its address, else that the link closed.
+    """
+
+    member: str
+    up: bool
+    since: float
+    where: str
+    why: str
+
+
 class LinkWatch:
     """The watch of one router session (`ZenohNetwork` with `tls=`); see the module docstring.
 
@@ -138,6 +160,7 @@ class LinkWatch:
         self._clock = clock
         self._endpoints = [_Endpoint(endpoint) for endpoint in connect]
         self._warned: dict[str, float] = {}  # non-member address -> when we said so
+        self._members: dict[str, MemberLink] = {}  # (written by the watch thread only)
         self._started = clock()
         self._thread = SerialExecutor("rr-zenoh-watch", every=(TICK, self._guarded))
         self._listener = session.info.declare_link_events_listener(self._on_event, history=True)
@@ -175,6 +198,7 @@ class LinkWatch:
         if not str(link.dst).startswith("tls/"):
             return  # this host's own processes (unixsock-stream)
         name, (where, _) = link.auth_identifier, remote(str(link.dst))
+        self._note_members()
         if event.kind != zenoh.SampleKind.PUT:
             logger.info("ZenohNetwork %r: link to %r at %s closed", self._system, name, where)
             return
@@ -195,6 +219,40 @@ class LinkWatch:
             self._tls.ca,
             list(self._tls.members),
         )
+
+    def _note_members(self) -> None:
+        """Note which members are linked now, and since when (on a link event)."""
+        now = time.time()
+        linked: dict[str, str] = {}
+        for link in self._session.info.links():
+            if str(link.dst).startswith("tls/") and link.auth_identifier in self._tls.members:
+                linked[link.auth_identifier] = remote(str(link.dst))[0]
+        for name, at in linked.items():
+            known = self._members.get(name)
+            if known is None or not known.up:
+                self._members[name] = MemberLink(name, True, now, at, "")
+        for name, known in list(self._members.items()):
+            if known.up and name not in linked:
+                why = f"the link to {known.where} closed (nothing heard within the lease)"
+                self._members[name] = MemberLink(name, False, now, known.where, why)
+
+    def member_links(self) -> list[MemberLink]:
+        """Each member this router has been linked to, as last seen (any thread).
+
+        A member whose link is cut and whose address is a `connect` endpoint's that the
+        watch probed since gets the probe's verdict as `why` (what a TLS handshake there
+        gets now: no answer, a refused certificate, ...).
+        """
+        links = []
+        for known in list(self._members.values()):
+            why = known.why
+            if not known.up:
+                for endpoint in self._endpoints:
+                    if endpoint.reason and known.where in (endpoint.addresses or {endpoint.host}):
+                        why = f"{why}; {endpoint.reason}"
+                        break
+            links.append(known._replace(why=why))
+        return links
 
     def _linked(self) -> set[tuple[str, int | None]]:
         """The (host, port) of each TLS link to a member."""

@@ -16,10 +16,17 @@ see each other:
                                               <limit> its max_message_bytes
  rr/<system>/live/claim/<name>/<zid>          liveliness: <zid> is about to serve <name>
  rr/<system>/live/stopped/<name>/<zid>        liveliness: <name> at <zid> was stopped cleanly
+ rr/<system>/obs/<member>/state               the observer of host <member>: its whole
+                                              state (a queryable; JSON, never a pickle)
+ rr/<system>/obs/<member>/delta               ... what changed since (puts; JSON, numbered)
+ rr/<system>/obs/<member>/fault               ... a fault command for its managers (a
+                                              queryable; JSON in, JSON out)
+ rr/<system>/obs/<member>/here                liveliness: <member> shares its observer state
 ```
 
-`Keys` builds each of them and parses each liveliness token (a malformed one is `None`);
-no other module writes a key.
+`Keys` builds each of them and parses each liveliness token and observer key (a malformed
+one is `None`); no other module writes a key. The observer's keys (`rr_actors.observe`,
+across hosts) carry JSON only, outside `live/`, so presence never looks at them.
 
 A payload is `header + frame`, where the frame is the AF_UNIX carrier's
 (`codec.frame`: length, 8-byte token, pickle) and the header says who speaks:
@@ -56,6 +63,7 @@ from rr_actors.config import NAME
 __all__ = [
     "ANSWER",
     "MESSAGE",
+    "OBSERVER_PARTS",
     "PLAIN",
     "PYTHON",
     "STAMPED",
@@ -63,6 +71,7 @@ __all__ = [
     "Header",
     "Keys",
     "NameAt",
+    "ObserverKey",
     "ServerKey",
     "claim_key",
     "envelope",
@@ -222,6 +231,17 @@ class NameAt(NamedTuple):
     zid: str
 
 
+OBSERVER_PARTS = ("state", "delta", "fault", "here")
+"""What a host's observer declares under `rr/<system>/obs/<member>/` (see the module docstring)."""
+
+
+class ObserverKey(NamedTuple):
+    """What an observer key says: `obs/<member>/<part>`."""
+
+    member: str
+    part: str  # one of `OBSERVER_PARTS`
+
+
 class Keys:
     """Every key expression of one system (see the module docstring): built and parsed here.
 
@@ -289,7 +309,26 @@ class Keys:
         """A "stopped" mark: `at.name` at `at.zid` was stopped cleanly."""
         return f"{self.prefix}/live/stopped/{at.name}/{at.zid}"
 
+    def observer(self, at: ObserverKey) -> str:
+        """Host `at.member`'s observer key `at.part` (one of `OBSERVER_PARTS`)."""
+        return f"{self.prefix}/obs/{at.member}/{at.part}"
+
+    def observers(self, part: str) -> str:
+        """Key `part` of every host's observer (what a page's host subscribes to)."""
+        return f"{self.prefix}/obs/*/{part}"
+
     # -- parsed ----------------------------------------------------------------------------
+
+    def parse_observer(self, key: str) -> ObserverKey | None:
+        """What an observer key `<prefix>/obs/<member>/<part>` says, or `None` if it is
+        malformed (a member that is not a name, a part not in `OBSERVER_PARTS`)."""
+        head = f"{self.prefix}/obs/"
+        if not key.startswith(head):
+            return None
+        parts = key[len(head) :].split("/")
+        if len(parts) != 2 or not NAME.fullmatch(parts[0]) or parts[1] not in OBSERVER_PARTS:
+            return None
+        return ObserverKey(parts[0], parts[1])
 
     def kind(self, key: str) -> str:
         """The kind of the liveliness token `key` (`proc`, `reg`, `claim`, `stopped`, or

@@ -12,6 +12,10 @@ tree and the dependency graph as Mermaid or DOT text.
  state directory ── read_backup (read-only) ─► BackupSource┘     (SSE: sections, events)
 ```
 
+Across hosts (a supervisor on a `ZenohNetwork`), `_hosts` shares each host's state as
+JSON and keeps a page of every host (`observe_system`: a page from a member without a
+tree).
+
 Modules: `_view` (what is shown, as data), `_probe` (a registrar's catalog, read in its
 own process), `_hub` (the sections and recent events, for every page), `_sources` (live
 tree, backups), `_faults` (teaching mode), `_server` (Starlette app, uvicorn thread),
@@ -20,7 +24,12 @@ command line). The web server's dependencies are the `observe` extra and are imp
 only when an observer opens; the drawings need nothing more than rr_actors.
 """
 
-from rr_actors.observe._observer import Observer, observe_backups, require_extra
+from rr_actors.observe._observer import (
+    Observer,
+    observe_backups,
+    observe_system,
+    require_extra,
+)
 from rr_actors.observe._text import FORMATS
 
-__all__ = ["FORMATS", "Observer", "observe_backups", "require_extra"]
+__all__ = ["FORMATS", "Observer", "observe_backups", "observe_system", "require_extra"]

@@ -3,6 +3,9 @@
 `rr_actors._cli` lists them in its `COMMANDS`; their code lives here.
 
     rr-actors observe --state state/            # the page of a state directory's backups
+    rr-actors observe --system lab --certs certs/ --name viewer \
+        --members robot,operator,viewer --connect tls/10.0.0.1:7447
+                                                # the page of every host of a system
     rr-actors graph --state state/ --format dot  # the dependency graph as text
 """
 
@@ -11,12 +14,16 @@ from __future__ import annotations
 import argparse
 import contextlib
 import threading
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
-from rr_actors.observe._observer import observe_backups
+from rr_actors.errors import ConfigError
+from rr_actors.observe._observer import observe_backups, observe_system
 from rr_actors.observe._sources import backup_files, read_catalogs
 from rr_actors.observe._text import FORMATS, render
 from rr_actors.observe._view import dependency_graph
+
+if TYPE_CHECKING:
+    from rr_actors._transport.zenoh_net import ZenohNetwork
 
 __all__ = [
     "GRAPH_HELP",
@@ -28,16 +35,42 @@ __all__ = [
 ]
 
 OBSERVE_HELP = (
-    "serve the observer's page for a state directory's backups (read-only, no live system; "
-    "needs the observe extra)"
+    "serve the observer's page for a state directory's backups (--state: read-only, no live "
+    "system), or of every host of a system across hosts (--system: as a member; needs the "
+    "zenoh extra); needs the observe extra"
 )
 GRAPH_HELP = "print the dependency graph of a state directory's backups as Mermaid or DOT text"
 
 
 def observe_arguments(parser: argparse.ArgumentParser) -> None:
     """The arguments of `rr-actors observe`."""
-    parser.add_argument(
-        "--state", required=True, metavar="DIR", help="a supervisor's state_dir (its *.db files)"
+    parser.add_argument("--state", metavar="DIR", help="a supervisor's state_dir (its *.db files)")
+    hosts = parser.add_argument_group(
+        "across hosts (instead of --state): this process joins the system as a member and "
+        "shows every host that shares its observer (sup.observe() on a ZenohNetwork)"
+    )
+    hosts.add_argument("--system", metavar="NAME", help="the system's name (ZenohNetwork system=)")
+    hosts.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="a member host's router to dial, tls/ADDR:PORT (repeat)",
+    )
+    hosts.add_argument(
+        "--certs",
+        metavar="DIR",
+        help="holds ca.pem, NAME.pem and NAME.key (rr-actors certs); without it, plain TCP",
+    )
+    hosts.add_argument("--name", metavar="NAME", help="this process's member name (with --certs)")
+    hosts.add_argument(
+        "--members",
+        metavar="A,B,...",
+        help="the system's member names, this one's included (with --certs); every host "
+        "must name this one among its members too",
+    )
+    hosts.add_argument(
+        "--lease", type=float, default=1.0, help="ZenohNetwork lease, seconds (default 1)"
     )
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (127.0.0.1)")
     parser.add_argument("--port", type=int, default=0, help="port (default: a free one)")
@@ -62,21 +95,57 @@ def run_observe(
     """Serve the page until Ctrl-C, `--for` seconds, or `stop` is set; returns 0.
 
     Raises:
-        ConfigError: see `observe_backups` (a missing directory, a port in use, ...).
+        ConfigError: see `observe_backups` (a missing directory, a port in use, ...) and
+            `observe_system`; neither or both of `--state` and `--system`; `--certs`
+            without `--name` and `--members`.
         CatalogCorruptError: a backup cannot be read.
     """
     stop = stop or threading.Event()
-    observer = observe_backups(
-        args.state, host=args.host, port=args.port, allow_remote=args.allow_remote
-    )
-    try:
-        out.write(f"observer: {observer.url} (backups in {args.state}; Ctrl-C stops)\n")
+    if (args.state is None) == (args.system is None):
+        raise ConfigError("give either --state DIR (backups) or --system NAME (across hosts)")
+    with contextlib.ExitStack() as stack:
+        if args.state is not None:
+            observer = observe_backups(
+                args.state, host=args.host, port=args.port, allow_remote=args.allow_remote
+            )
+            what = f"backups in {args.state}"
+        else:
+            network = _network(args)
+            stack.callback(network.close)
+            observer = observe_system(
+                network, host=args.host, port=args.port, allow_remote=args.allow_remote
+            )
+            what = f"every host of system {args.system}"
+        stack.callback(observer.close)
+        out.write(f"observer: {observer.url} ({what}; Ctrl-C stops)\n")
         out.flush()
         with contextlib.suppress(KeyboardInterrupt):
             stop.wait(args.duration)
-    finally:
-        observer.close()
     return 0
+
+
+def _network(args: argparse.Namespace) -> ZenohNetwork:
+    """The `ZenohNetwork` of `rr-actors observe --system` (ConfigError naming the flag)."""
+    try:
+        from rr_actors._transport.zenoh_net import ZenohNetwork  # noqa: PLC0415 - an extra
+    except ImportError as exc:
+        raise ConfigError(
+            f"--system needs the zenoh extra: pip install 'rr-actors[zenoh]' ({exc})"
+        ) from exc
+    tls = None
+    if args.certs is not None:
+        if not args.name or not args.members:
+            raise ConfigError("--certs needs --name (this member) and --members (all of them)")
+        from rr_actors._transport.zenoh_tls import ZenohTLS  # noqa: PLC0415 - an extra
+
+        directory = args.certs.rstrip("/")
+        tls = ZenohTLS(
+            ca=f"{directory}/ca.pem",
+            cert=f"{directory}/{args.name}.pem",
+            key=f"{directory}/{args.name}.key",
+            members=[m.strip() for m in args.members.split(",") if m.strip()],
+        )
+    return ZenohNetwork(system=args.system, connect=args.connect, tls=tls, lease=args.lease)
 
 
 def graph_arguments(parser: argparse.ArgumentParser) -> None:

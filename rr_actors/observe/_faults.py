@@ -20,6 +20,7 @@ import os
 import select
 import signal
 import threading
+from collections.abc import Callable
 from typing import Any
 
 from rr_actors._registrar import ResourceRegistrar
@@ -27,7 +28,7 @@ from rr_actors._types import Status
 from rr_actors.config import ManagerSpec, SupervisorSpec, managers
 from rr_actors.observe._sources import Observable
 
-__all__ = ["FATAL_MESSAGE", "FaultRefused", "Faults"]
+__all__ = ["FATAL_MESSAGE", "KINDS", "FaultRefused", "Faults", "inject"]
 
 FATAL_MESSAGE = "FATAL sent from the observer (teaching mode)"
 """The status message of a FATAL the page sends."""
@@ -213,3 +214,34 @@ def _exited(pidfd: int) -> bool:
 def _send_fatal(query_id: str, registrar: ResourceRegistrar) -> None:
     """Runs in the provider's process: the FATAL of the page, on one of its consumer ids."""
     registrar.send_status(query_id, Status.FATAL, FATAL_MESSAGE, timeout=FATAL_TIMEOUT)
+
+
+KINDS = ("kill", "hang", "resume", "fatal")
+"""The faults a page may ask for."""
+
+
+def inject(faults: Faults, kind: str, data: dict[str, Any]) -> str:
+    """Run one fault request, checked field by field (a FATAL waits for its delivery: run
+    it on a worker thread). What the page's POST body, or another host's fault command,
+    holds: `{"child": NAME, "pid": PID}` for kill, hang and resume; `{"registrar": NAME,
+    "resource_id": ID}` for fatal.
+
+    Returns:
+        What was done, in words.
+
+    Raises:
+        FaultRefused: a malformed request, an unknown kind, or a fault that cannot be
+            injected now (the message says why).
+    """
+    if kind in ("kill", "hang", "resume"):
+        child, pid = data.get("child"), data.get("pid")
+        if not isinstance(child, str) or isinstance(pid, bool) or not isinstance(pid, int):
+            raise FaultRefused('expected {"child": NAME, "pid": PID}', 400)
+        action: Callable[[str, int], str] = getattr(faults, kind)
+        return action(child, pid)
+    if kind == "fatal":
+        registrar, resource_id = data.get("registrar"), data.get("resource_id")
+        if not isinstance(registrar, str) or not isinstance(resource_id, str):
+            raise FaultRefused('expected {"registrar": NAME, "resource_id": ID}', 400)
+        return faults.fatal(registrar, resource_id)
+    raise FaultRefused(f"no fault {kind!r} ({', '.join(KINDS)})", 404)

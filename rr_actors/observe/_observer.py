@@ -2,9 +2,12 @@
 
 ```
  Supervisor.observe(...) ─► observe_supervisor ─┐                ┌─► LiveSource (threads)
- rr-actors observe --state DIR ─► observe_backups ┴─► Observer ──┼─► Hub
-                                                                 └─► Server (uvicorn thread)
+ rr-actors observe --state DIR ─► observe_backups ┤─► Observer ──┼─► Hub
+ rr-actors observe --system ... ─► observe_system ┘              └─► Server (uvicorn thread)
 ```
+
+Across hosts (`_hosts.py`), the source keeps this host's own hub, a `Share` publishes it
+to the system and a `SystemView` keeps the page's hub with every host's state.
 
 The server's dependencies (Starlette, sse-starlette, uvicorn) are the `observe` extra;
 they are imported only here, when an observer opens.
@@ -20,9 +23,10 @@ import secrets
 import socket
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from rr_actors._core.addresses import is_loopback
+from rr_actors.config import NAME
 from rr_actors.errors import ConfigError
 from rr_actors.observe._faults import Faults
 from rr_actors.observe._hub import Hub
@@ -35,9 +39,17 @@ from rr_actors.observe._sources import (
 )
 
 if TYPE_CHECKING:
+    from rr_actors._transport.zenoh_net import Services
+    from rr_actors.observe._hosts import Share, SystemView
     from rr_actors.observe._server import Server
 
-__all__ = ["START_TIMEOUT", "Observer", "observe_backups", "observe_supervisor"]
+__all__ = [
+    "START_TIMEOUT",
+    "Observer",
+    "observe_backups",
+    "observe_supervisor",
+    "observe_system",
+]
 
 logger = logging.getLogger("rr_actors")
 
@@ -107,6 +119,26 @@ def _bind(host: str, port: int, *, allow_remote: bool) -> socket.socket:
     return sock
 
 
+class _Source(Protocol):
+    hub: Hub
+
+    def start(self) -> None: ...
+    def close(self, timeout: float = ...) -> None: ...
+
+
+class _Nothing:
+    """The source of a page that shows only other hosts (`observe_system`)."""
+
+    def __init__(self, hub: Hub) -> None:
+        self.hub = hub
+
+    def start(self) -> None:
+        """Nothing to start."""
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Nothing to close."""
+
+
 class Observer:
     """An open observer page: its `url`, and `close()`.
 
@@ -120,14 +152,17 @@ class Observer:
             teaching mode may use the buttons; give it only to them.
         host: the address it listens on.
         port: the port it listens on.
-        allow_faults: whether the teaching mode's buttons work.
+        allow_faults: whether the teaching mode's buttons work (for this host's own
+            managers; across hosts, each host's own `allow_faults` decides for its).
+        member: this host's member name when the page shows every host of a system
+            (`None`: this host only).
         keep_serving: whether the page outlives the supervisor (it then shows the
             final state until `close()`).
     """
 
     def __init__(
         self,
-        source: LiveSource | BackupSource,
+        source: LiveSource | BackupSource | _Source,
         hub: Hub,
         *,
         host: str,
@@ -136,6 +171,8 @@ class Observer:
         hello: dict[str, Any],
         faults: Faults | None,
         keep_serving: bool = False,
+        view: SystemView | None = None,
+        share: Share | None = None,
     ) -> None:
         require_extra()
         from rr_actors.observe import _server  # noqa: PLC0415 - the observe extra
@@ -143,6 +180,9 @@ class Observer:
         self._source = source
         self._hub = hub
         self._faults = faults
+        self._view = view
+        self._share = share
+        self.member = view.member if view is not None else None
         self._lock = threading.Lock()
         self._closed = False
         sock = _bind(host, port, allow_remote=allow_remote)
@@ -158,6 +198,9 @@ class Observer:
                 hub,
                 hello={**hello, "faults": faults is not None},
                 faults=faults,
+                remote=None if view is None else view.fault,
+                member=self.member,
+                fault_events=source.hub,
                 token=self._token,
                 hosts=allowed_hosts(host),
                 cookie=f"rr-observer-{self.port}",
@@ -184,6 +227,8 @@ class Observer:
             label: what that clock is called on the page.
         """
         self._hub.put("clock", {"origin": origin, "label": label})
+        if self._hub is not self._source.hub:
+            self._source.hub.put("clock", {"origin": origin, "label": label})
 
     def refresh(self) -> None:
         """Read every catalog now, on the calling thread (a live tree only; errors logged)."""
@@ -210,10 +255,10 @@ class Observer:
         if isinstance(self._source, LiveSource):  # its final state: the tree stopped
             try:
                 tree, _ = self._source.snapshot()
-                self._hub.put("tree", tree)
+                self._source.hub.put("tree", tree)
             except Exception:
                 logger.exception("observer: reading the final state failed")
-        self._hub.put("ended", {"at": time.time()})
+        self._source.hub.put("ended", {"at": time.time()})
 
     def close(self, *, timeout: float = 5.0) -> None:
         """Stop serving: open pages show that they are disconnected. Idempotent.
@@ -227,6 +272,10 @@ class Observer:
                 return
             self._closed = True
         self._source.close(timeout)
+        if self._view is not None:
+            self._view.close(timeout)
+        if self._share is not None:
+            self._share.close(timeout)
         self._hub.close()
         self._server.close(timeout)
         if self._faults is not None:
@@ -243,6 +292,34 @@ class Observer:
         return f"<Observer {self.host}:{self.port} {state}>"
 
 
+def services_of(network: object, *, required: bool) -> Services | None:
+    """The Zenoh services of a supervisor's `network`, or `None` if it has none.
+
+    Raises:
+        ConfigError: `required` and `network` is not a `ZenohNetwork`.
+    """
+    services = getattr(network, "services", None)
+    if not callable(services):
+        if required:
+            raise ConfigError(
+                "across_hosts=True needs a supervisor whose network is an rr.ZenohNetwork "
+                f"(Supervisor(..., network=net)), not {network!r}"
+            )
+        return None
+    made: Services = services()
+    return made
+
+
+def member_name(services: Services) -> str:
+    """This host's member name: its certificate's common name; without TLS, the machine's
+    host name and this process's pid (two hosts of one machine, such as network
+    namespaces, share a host name)."""
+    if services.member is not None:
+        return services.member
+    name = f"{socket.gethostname()}-{os.getpid()}"[-64:].lstrip(".-")
+    return name if NAME.fullmatch(name) else f"host-{os.getpid()}"
+
+
 def observe_supervisor(
     sup: Observable,
     access: TreeAccess,
@@ -252,16 +329,47 @@ def observe_supervisor(
     allow_faults: bool,
     allow_remote: bool,
     keep_serving: bool = False,
+    across_hosts: bool | None = None,
 ) -> Observer:
     """Open the live page of a supervision tree (what `Supervisor.observe` does)."""
-    hub = Hub(convert=event_dict)
-    source = LiveSource(sup, access, hub)
+    services = None
+    if across_hosts is not False:
+        services = services_of(access.network, required=across_hosts is True)
+    require_extra()  # (before anything is shared)
+    local = Hub(convert=event_dict)
+    source = LiveSource(sup, access, local)
     faults = (
-        Faults(sup, access.spec, lambda name: hub.get(f"catalog/{name}")) if allow_faults else None
+        Faults(sup, access.spec, lambda name: local.get(f"catalog/{name}"))
+        if allow_faults
+        else None
     )
-    hello = {"mode": "live", "title": f"supervisor {sup.name}", "pid": os.getpid()}
-    hub.put("clock", {"origin": time.time(), "label": "since the observer opened"})
+    hello: dict[str, Any] = {"mode": "live", "title": f"supervisor {sup.name}", "pid": os.getpid()}
+    clock = {"origin": time.time(), "label": "since the observer opened"}
+    local.put("clock", clock)
+    view = share = None
+    hub = local
     try:
+        if services is not None:
+            from rr_actors.observe._hosts import Share, SystemView  # noqa: PLC0415
+
+            member = member_name(services)
+            title = f"supervisor {sup.name}"
+            subscribe = getattr(access.network, "subscribe_events", None)
+            share = Share(
+                local,
+                services,
+                member,
+                host={"title": title, "pid": os.getpid()},
+                faults=faults,
+                all_events=subscribe is None,
+            )
+            hub = Hub()
+            hub.put("clock", clock)
+            view = SystemView(hub, services, member, share, subscribe)
+            system = services.keys.prefix.removeprefix("rr/")
+            hello.update(
+                system=system, member=member, title=f"system {system}: {title} on {member}"
+            )
         return Observer(
             source,
             hub,
@@ -271,10 +379,71 @@ def observe_supervisor(
             hello=hello,
             faults=faults,
             keep_serving=keep_serving,
+            view=view,
+            share=share,
         )
     except BaseException:
-        with contextlib.suppress(Exception):
-            source.close()
+        for part in (source, view, share):
+            if part is not None:
+                with contextlib.suppress(Exception):
+                    part.close()
+        raise
+
+
+def observe_system(
+    network: object,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    allow_remote: bool = False,
+) -> Observer:
+    """Open the page of every host of a system, from a process that has no tree of its own
+    (what `rr-actors observe --system` does): it shares nothing, only shows.
+
+    Args:
+        network: an `rr.ZenohNetwork` this process joins the system with (a member).
+        host: the address to listen on (a loopback address unless `allow_remote`).
+        port: the port (0: a free one).
+        allow_remote: allow a `host` that other machines can reach.
+
+    Returns:
+        The open observer; `close()` it (the network is the caller's to close).
+
+    Raises:
+        ConfigError: `network` is not a `ZenohNetwork`, the port is in use, the host is
+            not a loopback address and `allow_remote` is false, or the `observe` extra
+            is not installed.
+    """
+    services = services_of(network, required=True)
+    assert services is not None
+    require_extra()
+    from rr_actors.observe._hosts import SystemView  # noqa: PLC0415
+
+    hub = Hub()
+    hub.put("clock", {"origin": time.time(), "label": "since the observer opened"})
+    subscribe = getattr(network, "subscribe_events", None)
+    view = SystemView(hub, services, services.member, None, subscribe)
+    system = services.keys.prefix.removeprefix("rr/")
+    hello = {
+        "mode": "live",
+        "title": f"system {system}",
+        "pid": os.getpid(),
+        "system": system,
+        "member": services.member,
+    }
+    try:
+        return Observer(
+            _Nothing(hub),
+            hub,
+            host=host,
+            port=port,
+            allow_remote=allow_remote,
+            hello=hello,
+            faults=None,
+            view=view,
+        )
+    except BaseException:
+        view.close()
         raise
 
 

@@ -5,7 +5,9 @@
          ── GET /api/state        ── every section and the recent events, as one JSON document
          ── GET /api/stream       ── server-sent events: "hello", then "section", "patch",
                                      "events" (encoded once in the hub, shared by every page)
-         ── POST /api/faults/KIND ── teaching mode only: JSON in, JSON out
+         ── POST /api/faults/KIND ── teaching mode only: JSON in, JSON out; across
+                                     hosts, {"host": MEMBER, ...} goes to that host
+                                     as a command (`_hosts.SystemView.fault`)
  uvicorn thread (asyncio loop) ◄── Hub listeners (call_soon_threadsafe) ◄── source threads
 ```
 
@@ -60,7 +62,7 @@ from starlette.staticfiles import StaticFiles
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from rr_actors._platform import PLATFORM
-from rr_actors.observe._faults import FaultRefused, Faults
+from rr_actors.observe._faults import FaultRefused, Faults, inject
 from rr_actors.observe._hub import MAX_STREAMS, Hub, sse
 
 __all__ = ["ABORT_AFTER", "COALESCE", "SEND_TIMEOUT", "Server", "build_app", "host_name"]
@@ -214,6 +216,9 @@ def build_app(
     token: str,
     hosts: frozenset[str],
     cookie: str = "rr-observer",
+    remote: Callable[[str, str, dict[str, Any]], str] | None = None,
+    member: str | None = None,
+    fault_events: Hub | None = None,
 ) -> ASGIApp:
     """The observer's ASGI app.
 
@@ -224,6 +229,12 @@ def build_app(
         token: what every request must carry (query, header or cookie).
         hosts: the accepted names in the `Host` header (without a port).
         cookie: the name of the cookie that keeps the token for the page's requests.
+        remote: across hosts, sends a fault to another host: `remote(member, kind,
+            data)` (that host decides; `FaultRefused` says why not).
+        member: this host's member name across hosts (a request naming it, or no
+            host, is this host's own).
+        fault_events: the hub whose events record this host's own faults (default
+            `hub`; across hosts, this host's own hub, which is shared).
     """
     index = _index(hello)
     static = StaticFiles(directory=str(resources.files("rr_actors.observe").joinpath("static")))
@@ -250,7 +261,7 @@ def build_app(
         )
 
     async def fault(request: Request) -> Response:  # noqa: PLR0911 - one answer per check
-        if faults is None:
+        if faults is None and remote is None:
             return _refuse(
                 "teaching mode is off: the observer was opened without allow_faults", 403
             )
@@ -269,11 +280,25 @@ def build_app(
         if not isinstance(data, dict):
             return _refuse("the body must be a JSON object", 400)
         kind = request.path_params["kind"]
+        target = data.get("host", member)
+        if target is not None and target != member:
+            if remote is None or not isinstance(target, str):
+                return _refuse(f"this page shows no host {target!r}", 404)
+            try:
+                message = await anyio.to_thread.run_sync(remote, target, kind, data)
+            except FaultRefused as exc:
+                return _refuse(str(exc), exc.status)
+            return JSONResponse({"ok": True, "message": message})
+        if faults is None:
+            return _refuse(
+                "teaching mode is off: the observer was opened without allow_faults", 403
+            )
         try:
-            message = await anyio.to_thread.run_sync(_inject, faults, kind, data)
+            message = await anyio.to_thread.run_sync(inject, faults, kind, data)
         except FaultRefused as exc:
             return _refuse(str(exc), exc.status)
-        hub.add_event({"type": "ObserverFault", "kind": kind, "text": message, "at": time.time()})
+        event = {"type": "ObserverFault", "kind": kind, "text": message, "at": time.time()}
+        (fault_events or hub).add_event(event)
         return JSONResponse({"ok": True, "message": message})
 
     app = Starlette(
@@ -290,22 +315,6 @@ def build_app(
 
 def _refuse(message: str, status: int) -> Response:
     return JSONResponse({"ok": False, "message": message}, status_code=status)
-
-
-def _inject(faults: Faults, kind: str, data: dict[str, Any]) -> str:
-    """Run one fault request (on a worker thread: a FATAL waits for its delivery)."""
-    if kind in ("kill", "hang", "resume"):
-        child, pid = data.get("child"), data.get("pid")
-        if not isinstance(child, str) or isinstance(pid, bool) or not isinstance(pid, int):
-            raise FaultRefused('expected {"child": NAME, "pid": PID}', 400)
-        action: Callable[[str, int], str] = getattr(faults, kind)
-        return action(child, pid)
-    if kind == "fatal":
-        registrar, resource_id = data.get("registrar"), data.get("resource_id")
-        if not isinstance(registrar, str) or not isinstance(resource_id, str):
-            raise FaultRefused('expected {"registrar": NAME, "resource_id": ID}', 400)
-        return faults.fatal(registrar, resource_id)
-    raise FaultRefused(f"no fault {kind!r} (kill, hang, resume, fatal)", 404)
 
 
 class _CountedStream(EventSourceResponse):

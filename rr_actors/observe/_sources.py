@@ -140,6 +140,7 @@ class TreeAccess:
         restart_due: child name -> when its scheduled restart is due (wall clock, s).
         running: whether the supervisor has started and not stopped.
         registrars: the consumer registrars `Supervisor.registrar` started (this process).
+        network: the carrier given to the supervisor (`Supervisor(network=)`), or `None`.
     """
 
     spec: SupervisorSpec
@@ -147,6 +148,7 @@ class TreeAccess:
     restart_due: Mapping[str, float]
     running: Callable[[], bool]
     registrars: Callable[[], list[ResourceRegistrar]]
+    network: object = None
 
 
 def event_dict(event: events.Event) -> dict[str, Any]:

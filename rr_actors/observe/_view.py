@@ -321,6 +321,8 @@ def _fit(text: str) -> str:
 def dependency_graph(
     catalogs: Mapping[str, dict[str, Any] | None],
     states: Mapping[str, str] | None = None,
+    *,
+    hosts: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
     """The dependency graph across registrars: who holds which resource, through which query.
 
@@ -335,6 +337,9 @@ def dependency_graph(
     Args:
         catalogs: registrar name -> its catalog summary (`None`: not known now).
         states: registrar name -> what to show of it (`"running"`, `"restarting"`, ...).
+        hosts: registrar name -> the member name of its host (the observer across
+            hosts): each node gets its `"host"` (`None`: not known), each edge `"crosses"`
+            (whether its two ends are on known, different hosts).
 
     Returns:
         `{"nodes": [{"id", "kind", "label", "parent", "state", ...}], "edges": [{"id",
@@ -350,6 +355,15 @@ def dependency_graph(
     graph.add_resources()
     graph.add_queries()
     graph.add_unexplained()
+    if hosts is not None:
+        owner = {}
+        for node in graph.nodes.values():
+            registrar = node["registrar"] if node["kind"] == "resource" else node["id"][4:]
+            node["host"] = hosts.get(registrar)
+            owner[node["id"]] = node["host"]
+        for edge in graph.edges.values():
+            ends = owner.get(edge["source"]), owner.get(edge["target"])
+            edge["crosses"] = None not in ends and ends[0] != ends[1]
     return {
         "nodes": list(graph.nodes.values()),
         "edges": sorted(graph.edges.values(), key=lambda e: (e["source"], e["target"], e["id"])),

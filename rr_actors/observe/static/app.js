@@ -6,6 +6,9 @@
 //                           ── "patch" {key, version, patch} ── what changed in a section
 //                                         (applyPatch; the server's observe/_delta.py)
 //                           ── "events" {events, missed} ── the tree's events (to_dict + text)
+//   across hosts (hello.system): "hosts", "links", "graph", and host/<member>/tree |
+//   host/<member>/catalog/<name> | host/<member>/ended; each event has its "member"; a
+//   fault request names its "host" (observe/_hosts.py)
 //   state ──(render, once per burst of messages)──► tree, catalogs, graph (cytoscape), timeline, log
 //
 // Every request carries the page's token (the URL's ?token=; the server also sets a cookie).
@@ -91,16 +94,16 @@
       const { key, value } = JSON.parse(e.data);
       if (value === null) delete state.sections[key];
       else state.sections[key] = value;
-      if (key === "tree" && value) state.offset = value.server_time - Date.now() / 1000;
-      schedule(key.startsWith("catalog/") ? "catalogs" : key);
+      if (key === ownTreeKey() && value) state.offset = value.server_time - Date.now() / 1000;
+      schedule(...kindsOf(key));
     });
     source.addEventListener("patch", (e) => {
       const { key, patch } = JSON.parse(e.data);
       const value = applyPatch(state.sections[key], patch);
       if (value === null) delete state.sections[key];
       else state.sections[key] = value;
-      if (key === "tree" && value) state.offset = state.sections.tree.server_time - Date.now() / 1000;
-      schedule(key.startsWith("catalog/") ? "catalogs" : key);
+      if (key === ownTreeKey() && value) state.offset = value.server_time - Date.now() / 1000;
+      schedule(...kindsOf(key));
     });
     source.addEventListener("events", (e) => {
       const { events, missed } = JSON.parse(e.data);
@@ -119,6 +122,35 @@
     };
     source.onopen = () => setConnection(true);
   }
+
+  // Across hosts, a section's key says which host it is of: host/<member>/<key>.
+  const system = () => Boolean(state.hello && state.hello.system);
+  const ownTreeKey = () => (system() ? `host/${state.hello.member}/tree` : "tree");
+  function kindsOf(key) {
+    if (key === "hosts") return ["tree", "catalogs", "graph"];
+    if (key === "links") return ["tree"];
+    const local = key.startsWith("host/") ? key.split("/").slice(2).join("/") : key;
+    if (local.startsWith("catalog/")) return ["catalogs"];
+    if (key.startsWith("host/") && local === "ended") return ["tree", "catalogs"];
+    return [local];
+  }
+  function hostsList() {
+    return (state.sections.hosts && state.sections.hosts.hosts) || [];
+  }
+  function hostOf(member) {
+    return hostsList().find((h) => h.member === member) || null;
+  }
+  // Whether the page offers buttons for a host's managers: this host's teaching mode, or,
+  // across hosts, that host's own allow_faults (it is asked, and decides, every time).
+  function canFault(member) {
+    if (!system()) return Boolean(state.hello.faults) && !state.sections.ended;
+    const host = hostOf(member);
+    return Boolean(host && host.allow_faults && host.state === "live" && !state.sections[`host/${member}/ended`]);
+  }
+  function catalogSection(registrar, member) {
+    return system() ? state.sections[`host/${member}/catalog/${registrar}`] : state.sections[`catalog/${registrar}`];
+  }
+  const rowKey = (member, name) => `${member || ""}\u0000${name}`;
 
   // A patch (observe/_delta.py): {v} replaces; {d, x} changes and removes keys of a dict;
   // {l, k, x, i | o} changes, removes, inserts (or reorders) the rows of a list by their field k.
@@ -273,18 +305,85 @@
 
   function renderTree() {
     if (state.hello.mode === "backups") return renderFiles();
+    if (system()) return renderHosts();
     const tree = state.sections.tree;
     if (!tree) return;
     const shape = `${shapeOf(tree)}${state.sections.ended ? ":ended" : ""}`;
     if (shape !== treeShape) {
       treeShape = shape;
       treeRows.clear();
-      $("tree").replaceChildren(el("ul", { class: "tree" }, buildNode(tree, true)));
+      $("tree").replaceChildren(el("ul", { class: "tree" }, buildNode(tree, true, null)));
     }
-    updateNode(tree, true);
+    updateNode(tree, true, null);
   }
 
-  function buildNode(node, root) {
+  // -- across hosts: one group per host (its member name), and the links between them ----
+  const hostGroups = new Map(); // member -> {group, badge, faults, note}
+
+  function renderHosts() {
+    const hosts = hostsList();
+    const shape = hosts
+      .map((h) => {
+        const tree = state.sections[`host/${h.member}/tree`];
+        return `${h.member}:${canFault(h.member)}:${tree ? shapeOf(tree) : "-"}`;
+      })
+      .join("|");
+    if (shape !== treeShape) {
+      treeShape = shape;
+      treeRows.clear();
+      hostGroups.clear();
+      const groups = hosts.map((h) => buildHost(h));
+      $("tree").replaceChildren(
+        el("div", { class: "links-box" }, el("h3", { text: "Links between hosts" }), el("ul", { id: "links" })),
+        ...(groups.length ? groups : [el("p", { class: "muted", text: "Waiting for the hosts…" })]),
+      );
+    }
+    for (const h of hosts) {
+      const entry = hostGroups.get(h.member);
+      if (!entry) continue;
+      entry.group.dataset.state = h.state;
+      entry.group.dataset.faults = h.allow_faults ? "yes" : "no";
+      entry.badge.textContent = h.state;
+      entry.badge.className = `badge host-state host-${h.state}`;
+      entry.faults.textContent = h.allow_faults ? "faults allowed" : "no faults";
+      entry.note.textContent = h.state === "live" ? "" : h.state === "joining" ? "joining: asking for its state…" : `stale since ${clock(h.since)} (${((Date.now() / 1000 + state.offset) - h.since).toFixed(1)} s ago): ${h.why}; last known state shown`;
+      const tree = state.sections[`host/${h.member}/tree`];
+      if (tree) updateNode(tree, true, h.member);
+    }
+    renderLinks();
+  }
+
+  function buildHost(h) {
+    const badge = el("span", { class: "badge host-state" });
+    const faults = el("span", { class: "badge host-faults" });
+    const note = el("div", { class: "stale-note" });
+    const tree = state.sections[`host/${h.member}/tree`];
+    const group = el(
+      "div",
+      { class: "host", "data-member": h.member },
+      el("h3", {}, el("span", { class: "member", text: h.member }), " ", badge, " ", faults, " ",
+        el("small", { text: `${h.title || ""}${h.pid ? ` · pid ${h.pid}` : ""}${h.here ? " · this page's host" : ""}` })),
+      note,
+      tree ? el("ul", { class: "tree" }, buildNode(tree, true, h.member)) : el("p", { class: "muted", text: "no tree known yet" }),
+    );
+    hostGroups.set(h.member, { group, badge, faults, note });
+    return group;
+  }
+
+  function renderLinks() {
+    const list = $("links");
+    if (!list) return;
+    const links = state.sections.links || [];
+    const items = links.map((l) =>
+      el("li", { "data-link": l.id, "data-up": l.up ? "yes" : "no", class: l.up ? "link-up" : "link-cut" },
+        el("span", { class: "member", text: l.a }), " ⇄ ", el("span", { class: "member", text: l.b }), ": ",
+        el("span", { class: `badge ${l.up ? "state-running" : "state-gave-up"}`, text: l.up ? "up" : "cut" }),
+        l.up ? "" : ` since ${l.since ? clock(l.since) : "?"}${l.since ? ` (${((Date.now() / 1000 + state.offset) - l.since).toFixed(1)} s ago)` : ""}: ${l.why}`),
+    );
+    list.replaceChildren(...(items.length ? items : [el("li", { class: "muted", text: "one host only so far" })]));
+  }
+
+  function buildNode(node, root, member) {
     const fields = {
       state: el("span", { class: "badge state", "data-field": "state" }),
       pid: el("span", { class: "mono", "data-field": "pid" }),
@@ -305,18 +404,18 @@
       fields.pid,
       root ? null : fields.restarts,
       fields.countdown,
-      isManager && node.isolation === "process" && state.hello.faults && !state.sections.ended ? faultButtons(node.name) : null,
+      isManager && node.isolation === "process" && canFault(member) ? faultButtons(node.name, member) : null,
       fields.exit,
     );
-    treeRows.set(root ? "\u0000root" : node.name, { row, fields });
+    treeRows.set(rowKey(member, root ? "\u0000root" : node.name), { row, fields });
     const item = el("li", {}, row);
-    if (!isManager) item.append(el("ul", {}, ...node.children.map((c) => buildNode(c, false))));
+    if (!isManager) item.append(el("ul", {}, ...node.children.map((c) => buildNode(c, false, member))));
     return item;
   }
 
-  function faultButtons(name) {
+  function faultButtons(name, member) {
     const pidOf = () => {
-      const entry = treeRows.get(name);
+      const entry = treeRows.get(rowKey(member, name));
       return entry ? Number(entry.row.dataset.pid) : NaN;
     };
     const button = (label, title, kind, question, detail) =>
@@ -328,7 +427,8 @@
         onclick: () => {
           const pid = pidOf();
           if (!pid) return notice(`${name} has no process right now`, true);
-          confirmThen(question(pid), detail, label, () => fault(kind, { child: name, pid }));
+          const on = member ? ` on ${member}` : "";
+          confirmThen(question(pid) + on, detail, label, () => fault(kind, member ? { child: name, pid, host: member } : { child: name, pid }));
         },
       });
     return el(
@@ -343,8 +443,8 @@
     );
   }
 
-  function updateNode(node, root) {
-    const entry = treeRows.get(root ? "\u0000root" : node.name);
+  function updateNode(node, root, member) {
+    const entry = treeRows.get(rowKey(member, root ? "\u0000root" : node.name));
     if (entry) {
       const { row, fields } = entry;
       const stateClass = `state-${slug(node.state)}`;
@@ -358,11 +458,11 @@
       fields.pid.textContent = node.pid ? `pid ${node.pid}` : "";
       fields.restarts.textContent = root ? "" : plural(node.restarts || 0, "restart");
       fields.exit.textContent = node.last_exit ? `last exit: ${node.last_exit}` : node.gave_up ? `gave up: ${node.gave_up}` : "";
-      const before = state.restarts[node.name];
+      const before = state.restarts[rowKey(member, node.name)];
       if (!root && before !== undefined && (node.restarts || 0) > before) flash(row);
-      if (!root) state.restarts[node.name] = node.restarts || 0;
+      if (!root) state.restarts[rowKey(member, node.name)] = node.restarts || 0;
     }
-    for (const child of node.children || []) updateNode(child, false);
+    for (const child of node.children || []) updateNode(child, false, member);
   }
 
   function flash(row) {
@@ -421,9 +521,38 @@
   }
 
   function renderCatalogs() {
-    const cards = catalogOrder().map((name) => catalogCard(state.sections[`catalog/${name}`]));
+    if (system()) return renderHostCatalogs();
+    const cards = catalogOrder().map((name) => catalogCard(state.sections[`catalog/${name}`], null));
     if (cards.length) $("catalogs").replaceChildren(...cards);
     else renderPlaceholders();
+  }
+
+  function renderHostCatalogs() {
+    const parts = [];
+    for (const h of hostsList()) {
+      const prefix = `host/${h.member}/catalog/`;
+      const tree = state.sections[`host/${h.member}/tree`];
+      const order = [];
+      const walk = (node) => {
+        for (const child of node.children || []) {
+          if (child.kind === "manager") order.push(child.name);
+          else walk(child);
+        }
+      };
+      if (tree) walk(tree);
+      const names = Object.keys(state.sections).filter((k) => k.startsWith(prefix)).map((k) => k.slice(prefix.length));
+      names.sort((a, b) => {
+        const ia = order.indexOf(a);
+        const ib = order.indexOf(b);
+        return (ia < 0 ? 1e9 : ia) - (ib < 0 ? 1e9 : ib) || a.localeCompare(b);
+      });
+      const cards = names.map((name) => catalogCard(state.sections[prefix + name], h.member));
+      parts.push(el("div", { class: "host-catalogs", "data-member": h.member, "data-state": h.state },
+        el("h3", { class: "host-heading" }, el("span", { class: "member", text: h.member }), " ",
+          el("small", { text: h.state === "live" ? plural(cards.length, "registrar") : `${h.state}: last known` })),
+        ...cards));
+    }
+    $("catalogs").replaceChildren(...(parts.length ? parts : [el("p", { class: "muted", text: "No registrar yet." })]));
   }
 
   function renderPlaceholders() {
@@ -431,12 +560,13 @@
       $("catalogs").replaceChildren(el("p", { class: "muted", text: "No registrar yet." }));
   }
 
-  function catalogCard(section) {
+  function catalogCard(section, member) {
     const catalog = section.catalog;
-    const stale = !section.available;
+    const host = member ? hostOf(member) : null;
+    const stale = !section.available || Boolean(host && host.state !== "live");
     const card = el(
       "article",
-      { class: `catalog${stale ? " stale" : ""}`, "data-registrar": section.registrar },
+      { class: `catalog${stale ? " stale" : ""}`, "data-registrar": section.registrar, "data-member": member || undefined },
       el("h3", {}, `${section.registrar} `, el("small", { text: `${section.kind} · ${section.state}${stale && catalog ? " · last seen" : ""}` })),
     );
     if (section.error) card.append(el("div", { class: "error", text: section.error }));
@@ -456,7 +586,7 @@
       const resources = catalog.resources.filter((r) => r.server === server);
       const pageKey = `${section.registrar}/${server}`;
       const shown = Math.min(resources.length, state.shown[pageKey] || PAGE);
-      const list = el("ul", {}, ...resources.slice(0, shown).map((r) => resourceItem(section, r, deps.get(r.id) || [])));
+      const list = el("ul", {}, ...resources.slice(0, shown).map((r) => resourceItem(section, r, deps.get(r.id) || [], member)));
       const more =
         shown < resources.length
           ? el("button", {
@@ -492,9 +622,9 @@
     return card;
   }
 
-  function resourceItem(section, resource, deps) {
+  function resourceItem(section, resource, deps, member) {
     const fatal =
-      state.hello.faults && !state.sections.ended && section.available && section.kind.endsWith("manager") && resource.consumers.length
+      canFault(member) && section.available && section.kind.endsWith("manager") && resource.consumers.length
         ? el("button", {
             class: "danger",
             "data-fault": "fatal",
@@ -505,7 +635,7 @@
                 `Send FATAL on ${section.registrar}/${resource.server} ${resource.request}?`,
                 `Every one of its ${resource.consumers.length} consumer(s) hears it, and so does every resource that depends on it, up to the top.`,
                 "Send FATAL",
-                () => fault("fatal", { registrar: section.registrar, resource_id: resource.id }),
+                () => fault("fatal", member ? { registrar: section.registrar, resource_id: resource.id, host: member } : { registrar: section.registrar, resource_id: resource.id }),
               ),
           })
         : null;
@@ -600,7 +730,7 @@
   function renderGraph() {
     let graph = state.sections.graph;
     if (!graph || typeof cytoscape !== "function") return;
-    const key = JSON.stringify(graph);
+    const key = JSON.stringify(graph) + JSON.stringify(hostsList().map((h) => h.state));
     if (key === graphKey) return;
     graphKey = key;
     const many = graph.nodes.length - graph.nodes.filter((n) => n.kind === "registrar").length;
@@ -611,9 +741,11 @@
         data: {
           id: n.id,
           parent: n.parent,
-          label: n.kind === "registrar" ? n.label : `${cut(n.label, 72)}${n.consumers > 1 ? ` ×${n.consumers}` : ""}`,
+          label: n.kind === "registrar" ? (n.host ? `${n.label} · ${n.host}` : n.label) : `${cut(n.label, 72)}${n.consumers > 1 ? ` ×${n.consumers}` : ""}`,
           kind: n.kind,
           state: n.state || "",
+          host: n.host || "",
+          stale: n.host && hostOf(n.host) && hostOf(n.host).state !== "live" ? "yes" : "no",
           doubt: n.in_doubt ? "yes" : "no",
         },
       })),
@@ -625,6 +757,7 @@
           label: e.label, // (no query ids: crossing edges' ids overlapped; "no client record" for an orphan)
           loaded: e.loaded ? "yes" : "no",
           orphan: e.orphan ? "yes" : "no",
+          crosses: e.crosses ? "yes" : "no",
         },
       })),
     ];
@@ -646,6 +779,8 @@
           { selector: "node.fatal", style: { "background-color": "#c53030", color: "#fff" } },
           { selector: "edge", style: { width: 1.5, "curve-style": "bezier", "target-arrow-shape": "triangle", "line-color": "#7c8aa5", "target-arrow-color": "#7c8aa5", label: "data(label)", "font-size": 9, "text-background-color": "#fbfcfd", "text-background-opacity": 1 } },
           { selector: 'edge[loaded = "no"]', style: { "line-style": "dashed" } },
+          { selector: 'edge[crosses = "yes"]', style: { width: 2.5, "line-color": "#6b46c1", "target-arrow-color": "#6b46c1" } },
+          { selector: 'node[stale = "yes"]', style: { opacity: 0.35, "border-style": "dashed" } },
           { selector: 'edge[orphan = "yes"]', style: { "line-style": "dashed", "line-color": "#c53030", "target-arrow-color": "#c53030", color: "#c53030" } },
         ],
       });
@@ -659,8 +794,8 @@
     cy.layout({ name: "preset", positions: (node) => positions[node.id()] || { x: 0, y: 0 }, fit: true, padding: 24 }).run();
   }
 
-  function flashResourceOf(registrar, queryId) {
-    const section = state.sections[`catalog/${registrar}`];
+  function flashResourceOf(registrar, queryId, member) {
+    const section = catalogSection(registrar, member);
     const catalog = section && section.catalog;
     if (!cy || !catalog) return;
     const resource = catalog.resources.find((r) => r.consumers.some((c) => c.query_id === queryId));
@@ -680,7 +815,7 @@
         const row = { kind: "status", event, hops: [] };
         state.orphans = state.orphans.filter((o) => !(matches(event, o.event) && row.hops.push(o.event)));
         pushRow(row);
-        if (event.status === "FATAL" || event.status === "ERROR") flashResourceOf(event.registrar, event.query_id);
+        if (event.status === "FATAL" || event.status === "ERROR") flashResourceOf(event.registrar, event.query_id, event.member);
         break;
       }
       case "StatusDelivered": {
@@ -745,7 +880,7 @@
   // server named it when it was sent (it may be unloaded since: LiDAR 1 after F1), else now.
   function resourceName(sent) {
     if (sent.resource) return sent.resource;
-    const section = state.sections[`catalog/${sent.registrar}`];
+    const section = catalogSection(sent.registrar, sent.member);
     const catalog = section && section.catalog;
     const resource = catalog && catalog.resources.find((r) => r.consumers.some((c) => c.query_id === sent.query_id));
     return resource ? `${sent.registrar}/${resource.server} ${resource.label || resource.request}` : `${sent.registrar} (query ${sent.query_id.slice(0, 8)})`;
@@ -798,7 +933,8 @@
     const items = [];
     for (let i = state.log.length - 1; i >= 0; i--) {
       const event = state.log[i];
-      items.push(el("li", { "data-type": event.type || "" }, timeEl(event.at), event.text));
+      items.push(el("li", { "data-type": event.type || "", "data-member": event.member || undefined }, timeEl(event.at),
+        event.member ? el("span", { class: "badge member-badge", text: event.member }) : null, event.member ? " " : null, event.text));
     }
     $("log").replaceChildren(...items);
     $("log-note").textContent = `the last ${Math.min(state.log.length, MAX_LOG)}, newest first`;

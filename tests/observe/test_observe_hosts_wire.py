@@ -1,0 +1,226 @@
+"""What crosses hosts for the observer (`observe/_hosts.py`): keys, JSON, and what is refused.
+
+Two plain Zenoh sessions of this process stand for two hosts on loopback (no rr_actors
+system, so no access control: these tests are about what a page's host accepts from a
+member, not who gets in, which `tests/multihost/test_observe_hosts.py` covers with TLS):
+
+- the observer's keys are built and parsed in `Keys` only, and a malformed one is `None`;
+- a `Share` publishes its hub's sections as JSON a `SystemView` on the other session
+  turns into the page's `host/<member>/...` sections (a patch, not the whole catalog,
+  when one resource changes);
+- what a host sends that is not what a `LiveSource` makes (garbage, a section of an
+  unknown name, a tree of the wrong shape) never reaches the page, and a delta out of
+  sequence makes the page's host ask for the whole state again;
+- a fault command to a host that did not allow faults is refused by that host, with why.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+import hosts
+import pytest
+import zenoh
+from waiting import wait_for
+
+from rr_actors._transport.zenoh_net import Services
+from rr_actors._transport.zenoh_wire import Keys, ObserverKey
+from rr_actors.observe._faults import FaultRefused
+from rr_actors.observe._hosts import Share, SystemView, valid_catalog, valid_tree
+from rr_actors.observe._hub import Hub
+
+BOUND = 10.0
+KEYS = Keys("lab")
+
+
+def catalog(registrar: str, requests: list[str]) -> dict[str, Any]:
+    resources = [
+        {
+            "id": f"r{i}",
+            "server": "camera",
+            "state": "loaded",
+            "in_doubt": False,
+            "request": request,
+            "response": "ok",
+            "label": None,
+            "consumers": [{"query_id": f"q{i}", "origin": "app"}],
+        }
+        for i, request in enumerate(requests)
+    ]
+    return {
+        "registrar": registrar,
+        "kind": "process manager",
+        "state": "running",
+        "available": True,
+        "error": None,
+        "catalog": {
+            "registrar": registrar,
+            "servers": ["camera"],
+            "resources": resources,
+            "clients": [],
+            "in_doubt": [],
+        },
+    }
+
+
+TREE = {
+    "name": "robot",
+    "kind": "supervisor",
+    "state": "running",
+    "children": [{"name": "cam", "kind": "manager", "state": "running", "pid": 7, "children": []}],
+}
+
+
+@pytest.fixture
+def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
+    port = hosts.free_port()
+    one = zenoh.open(hosts.zenoh_config(listen=[f"tcp/127.0.0.1:{port}"]))
+    other = zenoh.open(hosts.zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]))
+    yield one, other
+    other.close()  # type: ignore[no-untyped-call]
+    one.close()  # type: ignore[no-untyped-call]
+
+
+def services(session: zenoh.Session, member: str) -> Services:
+    return Services(session=session, keys=KEYS, member=member, lease=1.0, links=list)
+
+
+def wait_section(hub: Hub, key: str, predicate: Any = lambda v: v is not None) -> Any:
+    """The page hub's section `key` once `predicate(value)` holds (bounded)."""
+    changed = threading.Event()
+    unlisten = hub.listen(changed.set)
+    try:
+        while not predicate(hub.get(key)):
+            assert changed.wait(BOUND), f"{key}: {hub.get(key)!r}"
+            changed.clear()
+        return hub.get(key)
+    finally:
+        unlisten()
+
+
+def test_observer_keys_are_built_and_parsed_in_one_place() -> None:
+    for part in ("state", "delta", "fault", "here"):
+        key = KEYS.observer(ObserverKey("bravo", part))
+        assert f"rr/lab/obs/bravo/{part}" == key
+        assert ObserverKey("bravo", part) == KEYS.parse_observer(key)
+    assert "rr/lab/obs/*/delta" == KEYS.observers("delta")
+    for bad in ("rr/lab/obs/bravo/pickle", "rr/lab/obs/../state", "rr/x/obs/bravo/state", ""):
+        assert KEYS.parse_observer(bad) is None
+    assert KEYS.parse_observer("rr/lab/obs/a/b/state") is None
+    assert KEYS.observer(ObserverKey("bravo", "state")).startswith(KEYS.everything()[:-2])
+
+
+def test_a_share_reaches_another_hosts_page_as_json_sections_and_patches(
+    sessions: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    mine, theirs = sessions
+    local, page = Hub(), Hub()
+    local.put("tree", TREE)
+    local.put("catalog/cam", catalog("cam", ["a"]))
+    share = Share(
+        local, services(theirs, "bravo"), "bravo", host={"title": "t", "pid": 1}, faults=None
+    )
+    view = SystemView(page, services(mine, "alpha"), "alpha", None)
+    try:
+        wait_section(page, "host/bravo/tree")
+        assert "cam" == wait_section(page, "host/bravo/catalog/cam")["registrar"]
+        sent = share.sent_bytes
+        local.put("catalog/cam", catalog("cam", ["a", "b"]))
+        wait_section(page, "host/bravo/catalog/cam", lambda v: len(v["catalog"]["resources"]) == 2)
+        assert share.sent_bytes - sent < 1000  # a patch of one resource, not the catalog
+        hosts_shown = wait_section(page, "hosts", lambda v: v and v["hosts"][0]["state"] == "live")
+        assert [("bravo", False)] == [
+            (h["member"], h["allow_faults"]) for h in hosts_shown["hosts"]
+        ]
+    finally:
+        view.close()
+        share.close()
+
+
+def test_what_a_host_sends_that_a_live_source_does_not_make_never_reaches_the_page(
+    sessions: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    mine, theirs = sessions
+    page = Hub()
+    asked = []
+    state = {
+        "v": 1,
+        "member": "evil",
+        "instance": "i1",
+        "seq": 5,
+        "sections": {
+            "tree": {"name": "x", "kind": "supervisor", "state": "running", "children": "no"},
+            "catalog/cam": catalog("cam", ["a"]),
+            "catalog/../../x": catalog("cam", ["a"]),
+            "script": "<img src=x onerror=alert(1)>",
+            "host": {"member": "evil", "title": "t", "pid": 1, "allow_faults": False},
+        },
+        "events": [{"type": "Nope", "at": 1.0, "text": "hi", "seq": 1}, {"type": 3}],
+    }
+
+    def answer(query: zenoh.Query) -> None:
+        asked.append(1)
+        query.reply(query.key_expr, json.dumps(state).encode())
+
+    queryable = theirs.declare_queryable(KEYS.observer(ObserverKey("evil", "state")), answer)
+    view = SystemView(page, services(mine, "alpha"), "alpha", None)
+    token = theirs.liveliness().declare_token(KEYS.observer(ObserverKey("evil", "here")))
+    delta = KEYS.observer(ObserverKey("evil", "delta"))
+    try:
+        wait_section(page, "host/evil/catalog/cam")
+        assert page.get("host/evil/tree") is None
+        assert ["host/evil/catalog/cam"] == page.keys("host/")
+        assert 1 == len(page.changes({}, 0).events)  # the well-formed one
+        for garbage in (b"\x80\x04pickle", b"[]", b'{"v": 1}', b"{" * 100_000):
+            theirs.put(delta, garbage)
+        before = len(asked)
+        bad = {"v": 1, "member": "evil", "instance": "i1", "seq": 6, "events": []}
+        bad["sections"] = [["tree", "v", {"name": 1}]]
+        theirs.put(delta, json.dumps(bad).encode())  # in sequence, but not a tree: asked again
+        assert wait_for(lambda: len(asked) > before, BOUND)
+        skipped = {**bad, "seq": 9, "sections": [["catalog/cam", "v", None]]}
+        theirs.put(delta, json.dumps(skipped).encode())  # out of sequence: not applied
+        assert wait_for(lambda: len(asked) > before + 1, BOUND)
+        assert page.get("host/evil/catalog/cam") is not None
+        assert page.get("host/evil/tree") is None
+    finally:
+        token.undeclare()  # type: ignore[no-untyped-call]
+        view.close()
+        queryable.undeclare()  # type: ignore[no-untyped-call]
+
+
+def test_a_fault_command_to_a_host_that_did_not_allow_faults_is_refused_there(
+    sessions: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    mine, theirs = sessions
+    local, page = Hub(), Hub()
+    local.put("tree", TREE)
+    share = Share(
+        local, services(theirs, "bravo"), "bravo", host={"title": "t", "pid": 1}, faults=None
+    )
+    view = SystemView(page, services(mine, "alpha"), "alpha", None)
+    try:
+        wait_section(page, "host/bravo/tree")
+        with pytest.raises(FaultRefused) as refused:
+            view.fault("bravo", "kill", {"child": "cam", "pid": 7, "host": "bravo"})
+        assert 403 == refused.value.status
+        assert "bravo does not allow faults" in str(refused.value)
+        with pytest.raises(FaultRefused, match="no host 'nobody'"):
+            view.fault("nobody", "kill", {"child": "cam", "pid": 7})
+    finally:
+        view.close()
+        share.close()
+
+
+def test_the_shapes_a_page_accepts_are_those_a_live_source_makes() -> None:
+    assert valid_tree(TREE)
+    assert valid_catalog(catalog("cam", ["a"]))
+    assert not valid_tree({**TREE, "children": [{"name": "x"}]})
+    assert not valid_tree({**TREE, "pid": "7"})
+    broken = catalog("cam", ["a"])
+    broken["catalog"]["resources"][0]["consumers"] = [{"query_id": 1}]
+    assert not valid_catalog(broken)
+    assert not valid_catalog({**catalog("cam", []), "registrar": None})
