@@ -2,7 +2,7 @@
 
 Run (as root): `python benchmarks/bench_observer_hosts.py [--only cost|latency]
 [--resources N] [--window S] [--kills N] [--cuts N]`. Two Linux network namespaces
-(`tests/hosts.py`'s `TwoHosts`), `alpha` and `bravo`, each with one `rr.ZenohNetwork` of
+(`tests/support/hosts.py`'s `TwoHosts`), `alpha` and `bravo`, each with one `rr.ZenohNetwork` of
 mutual TLS (lease 1 s; `bravo` dials `alpha`) and a supervisor in a worker process.
 
 * cost: `bravo` runs a thread manager `slots` serving `--resources` resources (loaded by
@@ -41,10 +41,9 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT))  # the repository: tests.support
 
-import hosts  # noqa: E402 (tests/hosts.py: the namespaces)
-import pki  # noqa: E402 (tests/pki.py: the certificates)
+from tests.support import hosts, pki  # noqa: E402 (the namespaces, the certificates)
 
 PORT = 7447
 SYSTEM = "bench"
@@ -282,7 +281,8 @@ def mark(page: Any, name: str) -> float:
 
 def latency(kills: int, cuts: int) -> None:
     import playwright.sync_api as playwright_api  # noqa: PLC0415 - the dev extra
-    from observing import CHROMIUM_ARGS, chromium  # noqa: PLC0415
+
+    from tests.support.observing import CHROMIUM_ARGS, chromium  # noqa: PLC0415
 
     with lab("cam", "process") as (net, a, b), tempfile.TemporaryDirectory() as scratch:
         b.call(start_tree, "robot", "cam", "process", str(net.directory / "b"), timeout=60)

@@ -5,13 +5,16 @@
 
     from rr_actors.__main__ import main
     code = main(["inspect", "state/erm.db", "--json"])
+
+`build_parser()` gives the command line's `argparse` parser (to read a command's
+arguments the way `rr-actors` does, e.g. before running it with a seam of your own).
 """
 
 from __future__ import annotations
 
-from rr_actors._cli import main
+from rr_actors._cli import build_parser, main
 
-__all__ = ["main"]
+__all__ = ["build_parser", "main"]
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -1,6 +1,6 @@
 """`rr-actors events`: every host's events as JSON lines (`--network`), or files merged (`--merge`).
 
-The live stream runs in a child process (`python -m rr_actors._cli events ...`) against a
+The live stream runs in a child process (`python -m rr_actors events ...`) against a
 `ZenohNetwork` of this process on loopback (plain TCP, `--plain`): it prints what this
 process's registrar does, one `events.to_dict` line per event, and ends after `--count`.
 """
@@ -90,7 +90,7 @@ def test_the_live_stream_prints_what_a_registrar_of_the_system_does() -> None:
     net = rr.ZenohNetwork(system=system, listen=[f"tcp/127.0.0.1:{port}"], tls=None)
     erm = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="erm"), network=net)
     erm.register_server("camera", load=lambda request: request, unload=lambda *_: None)
-    command = [sys.executable, "-m", "rr_actors._cli", "events", "--network"]
+    command = [sys.executable, "-m", "rr_actors", "events", "--network"]
     command += [f"tcp/127.0.0.1:{port}", "--system", system, "--plain", "--count", "3"]
     child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

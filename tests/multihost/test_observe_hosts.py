@@ -43,12 +43,11 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import hosts
-import pki
 import pytest
-from observing import CHROMIUM_ARGS, chromium
 
 import rr_actors as rr
+from tests.support import hosts, pki
+from tests.support.observing import CHROMIUM_ARGS, chromium
 
 SYSTEM = "lab"
 PORT = 7447
@@ -321,7 +320,7 @@ def view_system(argv: list[str], bound: float) -> dict[str, Any]:
     import threading  # noqa: PLC0415
     import urllib.request  # noqa: PLC0415
 
-    from rr_actors._cli import build_parser  # noqa: PLC0415
+    from rr_actors.__main__ import build_parser  # noqa: PLC0415
     from rr_actors.observe._commands import run_observe  # noqa: PLC0415
 
     printed = threading.Event()

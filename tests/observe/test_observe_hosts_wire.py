@@ -21,16 +21,16 @@ import threading
 from collections.abc import Iterator
 from typing import Any
 
-import hosts
 import pytest
 import zenoh
-from waiting import wait_for
 
 from rr_actors._transport.zenoh_net import Services
 from rr_actors._transport.zenoh_wire import Keys, ObserverKey
 from rr_actors.observe._faults import FaultRefused
 from rr_actors.observe._hosts import Share, SystemView, valid_catalog, valid_tree
 from rr_actors.observe._hub import Hub
+from tests.support import hosts
+from tests.support.waiting import wait_for
 
 BOUND = 10.0
 KEYS = Keys("lab")
