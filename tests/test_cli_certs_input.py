@@ -14,7 +14,7 @@ import pytest
 from cryptography import x509
 
 from rr_actors._cli import main
-from rr_actors._transport.zenoh_certs import issue_cert
+from rr_actors._tools.certs import issue_cert
 from rr_actors.errors import ConfigError
 
 

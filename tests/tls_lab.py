@@ -17,7 +17,7 @@ import pki
 import zenoh
 
 import rr_actors as rr
-from rr_actors._transport.zenoh_config import session_config
+from rr_actors._transport.zenoh.config import session_config
 
 MEMBERS = ("robot", "operator")
 

@@ -1,6 +1,6 @@
 """The protocol steps both carriers take on what they receive, each written once.
 
-A carrier (AF_UNIX: `inbound` and `outbound`; Zenoh: `zenoh_inbox`) keeps its own
+A carrier (AF_UNIX: `inbound` and `outbound`; Zenoh: `zenoh/inbox`) keeps its own
 framing, threads and tokens, and calls these for what is the same on both:
 
 - a message for a registrar of this process: `refuse_too_large` (over its

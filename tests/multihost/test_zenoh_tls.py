@@ -99,7 +99,7 @@ def framed_pickle(path: Path, sender: str = "intruder") -> bytes:
     """A message for a registrar as a process of the system sends it: the wire header,
     then a frame whose pickle creates `path` when unpickled."""
     from rr_actors._transport.codec import frame  # noqa: PLC0415
-    from rr_actors._transport.zenoh_wire import MESSAGE, header  # noqa: PLC0415
+    from rr_actors._transport.zenoh.wire import MESSAGE, header  # noqa: PLC0415
 
     return header(MESSAGE, sender) + frame(7, CreatesAFile(str(path)))
 
@@ -225,7 +225,7 @@ def raw_open(
     import zenoh  # noqa: PLC0415
     from waiting import wait_for  # noqa: PLC0415
 
-    from rr_actors._transport.zenoh_config import _tls_settings  # noqa: PLC0415
+    from rr_actors._transport.zenoh.config import _tls_settings  # noqa: PLC0415
 
     link: dict[str, Any] = {}
     if tls is not None:
@@ -459,7 +459,7 @@ def test_members_that_dial_each_other_are_linked_and_neither_warns(
 
 def grace() -> float:
     """Seconds a connect endpoint may stay unlinked before its WARNING."""
-    from rr_actors._transport.zenoh_watch import GRACE  # noqa: PLC0415
+    from rr_actors._transport.zenoh.watch import GRACE  # noqa: PLC0415
 
     return GRACE
 

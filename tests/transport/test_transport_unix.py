@@ -42,9 +42,9 @@ from rr_actors._registrar import Served
 from rr_actors._registrar.messages import Fetch, Load, Revoke
 from rr_actors._transport import RemotePeer, System, attach
 from rr_actors._transport.codec import frame, frames, plain, unframe
-from rr_actors._transport.outbound import _Channel
-from rr_actors._transport.sockets import HANDSHAKE_TIMEOUT, connect
-from rr_actors._transport.writer import Writer
+from rr_actors._transport.unix.outbound import _Channel
+from rr_actors._transport.unix.sockets import HANDSHAKE_TIMEOUT, connect
+from rr_actors._transport.unix.writer import Writer
 
 
 @pytest.fixture

@@ -37,8 +37,8 @@ from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.wire import WIRE_VERSION
 from rr_actors._registrar import Served
 from rr_actors._transport.codec import frame
-from rr_actors._transport.zenoh_net import ZenohNetwork
-from rr_actors._transport.zenoh_wire import MESSAGE, PYTHON, VERSION, parse, payload_of
+from rr_actors._transport.zenoh.net import ZenohNetwork
+from rr_actors._transport.zenoh.wire import MESSAGE, PYTHON, VERSION, parse, payload_of
 
 # -- configuration ---------------------------------------------------------------------------
 

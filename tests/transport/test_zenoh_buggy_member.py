@@ -25,8 +25,8 @@ import rr_actors as rr
 from rr_actors._core.wire import WIRE_VERSION
 from rr_actors._registrar import Served
 from rr_actors._transport.codec import NO_REPLY, frame
-from rr_actors._transport.zenoh_net import ZenohNetwork
-from rr_actors._transport.zenoh_wire import MESSAGE, PLAIN, PYTHON
+from rr_actors._transport.zenoh.net import ZenohNetwork
+from rr_actors._transport.zenoh.wire import MESSAGE, PLAIN, PYTHON
 
 WAIT = 10.0
 """Seconds any one step may take on a loaded machine."""

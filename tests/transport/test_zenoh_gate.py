@@ -17,7 +17,7 @@ import pytest
 from supervising import linux_trick
 
 from rr_actors._platform import PLATFORM
-from rr_actors._transport.zenoh_gate import HOLD, QUIET, HandshakeGate
+from rr_actors._transport.zenoh.gate import HOLD, QUIET, HandshakeGate
 
 
 class FakeGate:

@@ -8,7 +8,7 @@ import pytest
 import zenoh
 from hypothesis import given
 
-from rr_actors._transport.zenoh_wire import (
+from rr_actors._transport.zenoh.wire import (
     Keys,
     NameAt,
     ServerKey,

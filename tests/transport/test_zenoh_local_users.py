@@ -36,7 +36,7 @@ import pytest
 from tls_lab import free_port
 
 import rr_actors as rr
-from rr_actors._transport import zenoh_certs
+from rr_actors._tools import certs as zenoh_certs
 from rr_actors._transport.codec import frame
 
 NOBODY = 65534
@@ -64,7 +64,7 @@ class _Payload:
 
 ATTACKER = r"""
 import json, os, select, sys, zenoh
-from rr_actors._transport.zenoh_wire import MESSAGE, header
+from rr_actors._transport.zenoh.wire import MESSAGE, header
 
 system, target, body, key = sys.argv[1], sys.argv[2], bytes.fromhex(sys.argv[3]), sys.argv[4]
 outcome = {"uid": os.geteuid()}

@@ -17,7 +17,7 @@ import pytest
 from pki import DAY, issue, make_ca, make_intermediate
 
 import rr_actors as rr
-from rr_actors._transport import zenoh_certs
+from rr_actors._tools import certs as zenoh_certs
 from rr_actors.errors import ConfigError
 
 NOW = datetime.datetime.now(datetime.UTC)

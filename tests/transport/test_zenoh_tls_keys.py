@@ -18,7 +18,7 @@ import zenoh
 from pki import issue, make_ca, make_intermediate
 
 import rr_actors as rr
-from rr_actors._transport import zenoh_certs
+from rr_actors._tools import certs as zenoh_certs
 from rr_actors.errors import ConfigError
 
 

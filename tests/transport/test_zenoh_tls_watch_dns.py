@@ -14,7 +14,7 @@ import pytest
 from tls_lab import free_port, member_tls, router
 from waiting import wait_for
 
-from rr_actors._transport.zenoh_watch import TICK, LinkWatch
+from rr_actors._transport.zenoh.watch import TICK, LinkWatch
 
 
 def test_a_linked_endpoint_named_by_a_host_name_is_not_looked_up_at_every_tick(

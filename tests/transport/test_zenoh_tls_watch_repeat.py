@@ -14,7 +14,7 @@ import pytest
 from tls_lab import free_port, member_tls, router
 from waiting import wait_for
 
-from rr_actors._transport.zenoh_watch import GRACE, TICK, LinkWatch
+from rr_actors._transport.zenoh.watch import GRACE, TICK, LinkWatch
 
 
 class _Warnings(logging.Handler):

@@ -33,9 +33,9 @@ from tls_lab import free_port
 from waiting import wait_for
 
 import rr_actors as rr
-from rr_actors._transport.zenoh_config import session_config
-from rr_actors._transport.zenoh_probe import handshake_trouble
-from rr_actors._transport.zenoh_watch import LinkWatch
+from rr_actors._transport.zenoh.config import session_config
+from rr_actors._transport.zenoh.probe import handshake_trouble
+from rr_actors._transport.zenoh.watch import LinkWatch
 from rr_actors.testing import start_forkserver
 
 MEMBERS = ["robot", "operator"]

@@ -6,7 +6,7 @@ see each other:
 ```
  rr/<system>/reg/<name>                       messages for registrar <name> (its subscriber)
  rr/<system>/ans/<zid>                        answers for the process whose Zenoh id is <zid>
- rr/<system>/ping/<zid>                       its queryable: answers a ping (`zenoh_outbox`)
+ rr/<system>/ping/<zid>                       its queryable: answers a ping (`outbox`)
  rr/<system>/live/proc/<zid>                  liveliness: process <zid> is a member
  rr/<system>/live/reg/<name>/<zid>/<sup>/<limit>
                                               liveliness: <zid> serves <name>; <sup> is the
@@ -203,7 +203,7 @@ class Keys:
         return f"{self.prefix}/ans/{zid}"
 
     def ping(self, zid: str) -> str:
-        """Process `zid`'s queryable that answers a ping (`zenoh_outbox`)."""
+        """Process `zid`'s queryable that answers a ping (`outbox`)."""
         return f"{self.prefix}/ping/{zid}"
 
     def live(self) -> str:

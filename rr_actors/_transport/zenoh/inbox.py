@@ -5,7 +5,7 @@ for the replies waiting here.
  put rr/<s>/reg/<name> ─► subscriber callback (Zenoh's thread: never blocks, never decodes)
                             │ sender's token not here: the strangers' thread waits for it
                             ▼ else queued                (bounded; then dropped, a WARNING)
-                 inbox (sender, message): decode thread (zenoh_queue)
+                 inbox (sender, message): decode thread (queue)
                    version refused? too large? unpickle; stand-in reply;
                    tell the registrar ─► reply.set_result ─► owner.answer_to(sender)
 
@@ -46,10 +46,10 @@ from rr_actors._transport.delivery import (
     deliver,
     refuse_too_large,
 )
-from rr_actors._transport.inbound import _AnswerReply
-from rr_actors._transport.writer import Lost
-from rr_actors._transport.zenoh_queue import Queue
-from rr_actors._transport.zenoh_wire import (
+from rr_actors._transport.unix.inbound import _AnswerReply
+from rr_actors._transport.unix.writer import Lost
+from rr_actors._transport.zenoh.queue import Queue
+from rr_actors._transport.zenoh.wire import (
     ANSWER,
     MESSAGE,
     VERSION,

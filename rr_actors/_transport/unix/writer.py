@@ -14,7 +14,7 @@ import socket
 import threading
 from collections.abc import Callable
 
-from rr_actors._transport.sockets import shutdown
+from rr_actors._transport.unix.sockets import shutdown
 
 __all__ = ["Lost", "Writer", "run_lost"]
 

@@ -2,7 +2,7 @@
 
 ```
  ZenohMember.send / answer_to ─► Outboxes.get(key) ─► Outbox(key).send(header + frame)
-                                                          │ its writer thread (zenoh_queue)
+                                                          │ its writer thread (queue)
                                                           ▼
           (a new outbox's first put: ping rr/<s>/ping/<zid> first)
                                                  publisher.put ─► rr/<s>/reg/<name>
@@ -28,9 +28,9 @@ from collections.abc import Callable
 
 import zenoh
 
-from rr_actors._transport.writer import Lost, run_lost
-from rr_actors._transport.zenoh_queue import Queue
-from rr_actors._transport.zenoh_wire import Keys
+from rr_actors._transport.unix.writer import Lost, run_lost
+from rr_actors._transport.zenoh.queue import Queue
+from rr_actors._transport.zenoh.wire import Keys
 
 __all__ = ["HEAL_TIMEOUT", "Outbox", "Outboxes"]
 

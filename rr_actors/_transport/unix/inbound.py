@@ -23,7 +23,7 @@ from multiprocessing import AuthenticationError
 from typing import Any
 
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._transport.base import Endpoint, Member
+from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import (
     Oversized,
     Run,
@@ -34,14 +34,15 @@ from rr_actors._transport.codec import (
     what,
 )
 from rr_actors._transport.delivery import compensate, deliver, refuse_too_large
-from rr_actors._transport.sockets import (
+from rr_actors._transport.unix.rendezvous import Member
+from rr_actors._transport.unix.sockets import (
     HANDSHAKE_TIMEOUT,
     handshake,
     publish_limit,
     split,
     take_name_lock,
 )
-from rr_actors._transport.writer import Lost, Writer
+from rr_actors._transport.unix.writer import Lost, Writer
 from rr_actors.errors import (
     ConfigError,
     DuplicateNameError,
@@ -253,7 +254,7 @@ class Listener:
     Its accept thread outlives failures: when `accept` fails for lack of resources (the
     process is out of file descriptors: `EMFILE`), it logs once, waits (exponential
     backoff, cut short when one of its connections ends) and tries again, while peers
-    wait in the backlog. [`trouble`][rr_actors._transport.inbound.Listener.trouble] says
+    wait in the backlog. [`trouble`][rr_actors._transport.unix.inbound.Listener.trouble] says
     for how long it has been unable to accept, so a manager process can report it with
     its heartbeat answer and its supervisor restart a manager that stays unable to.
     """

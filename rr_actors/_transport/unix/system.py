@@ -63,8 +63,8 @@ from typing import Any
 from rr_actors._core.directory import DIRECTORY, Peer
 from rr_actors._platform import PLATFORM, fork
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.inbound import Listener
-from rr_actors._transport.outbound import RemotePeer
+from rr_actors._transport.unix.inbound import Listener
+from rr_actors._transport.unix.outbound import RemotePeer
 from rr_actors.errors import (
     ConfigError,
     RegistrarStoppedError,

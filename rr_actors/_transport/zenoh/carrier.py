@@ -6,7 +6,7 @@ load is done, possibly minutes later), and an answer is just another one-way mes
 back. A `get` would hold a Zenoh query open (and bounded by its own timeout) for as long
 as a load runs, and its answers would come on Zenoh's threads. With puts, every message
 is a frame of the AF_UNIX carrier (`codec.frame`: token + pickle; the reply stays with
-the sender under the token) behind a small header (`zenoh_wire`), and the failure of a
+the sender under the token) behind a small header (`wire`), and the failure of a
 peer is seen through liveliness tokens, not through a query's end:
 
 ```
@@ -27,16 +27,16 @@ peer is seen through liveliness tokens, not through a query's end:
 
 Who does what (each collaborator owns its state; they meet only through method calls):
 
-- `zenoh_carrier` (here): `ZenohMember`, the Transport surface (resolve, serve, run,
+- `carrier` (here): `ZenohMember`, the Transport surface (resolve, serve, run,
   names, close), one name one server, sending; `ZenohPeer`;
-- `zenoh_outbox`: `Outboxes`, one writer thread per destination key, the heal ping;
-- `zenoh_inbox`: `Inbox`, the decode threads, delivery, version refusal, and the replies
+- `outbox`: `Outboxes`, one writer thread per destination key, the heal ping;
+- `inbox`: `Inbox`, the decode threads, delivery, version refusal, and the replies
   waiting for answers;
-- `zenoh_presence`: `Presence`, the liveliness tables and the presence thread; it reports
+- `presence`: `Presence`, the liveliness tables and the presence thread; it reports
   what follows to the member (`PresenceEvents`: process_gone, server_gone, lost,
   reachable);
-- `zenoh_queue`: `Queue`, one thread per ordered stream (writers, decoders, presence);
-- `zenoh_wire`: key expressions and the frame header.
+- `queue`: `Queue`, one thread per ordered stream (writers, decoders, presence);
+- `wire`: key expressions and the frame header.
 
 One name, one server: `serve` first declares a claim token, then asks the network for
 servers and claims of the name. A server of another process is a `DuplicateNameError`;
@@ -62,11 +62,11 @@ from rr_actors._core.directory import DIRECTORY, Peer, Reply
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._transport.base import Address, Endpoint
 from rr_actors._transport.codec import NO_REPLY, Run, frame, payload_size, what
-from rr_actors._transport.writer import Lost
-from rr_actors._transport.zenoh_inbox import Inbox, Local
-from rr_actors._transport.zenoh_outbox import Outbox, Outboxes
-from rr_actors._transport.zenoh_presence import ASK_TIMEOUT, Presence
-from rr_actors._transport.zenoh_wire import (
+from rr_actors._transport.unix.writer import Lost
+from rr_actors._transport.zenoh.inbox import Inbox, Local
+from rr_actors._transport.zenoh.outbox import Outbox, Outboxes
+from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence
+from rr_actors._transport.zenoh.wire import (
     ANSWER,
     MESSAGE,
     VERSION,

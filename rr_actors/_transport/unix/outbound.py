@@ -23,7 +23,6 @@ from typing import Any
 
 from rr_actors._core.directory import Reply
 from rr_actors._core.replies import FutureReply, wait
-from rr_actors._transport.base import Member
 from rr_actors._transport.codec import (
     NO_REPLY,
     Oversized,
@@ -35,8 +34,9 @@ from rr_actors._transport.codec import (
     what,
 )
 from rr_actors._transport.delivery import answer, answer_too_large
-from rr_actors._transport.sockets import connect, read_limit
-from rr_actors._transport.writer import Writer
+from rr_actors._transport.unix.rendezvous import Member
+from rr_actors._transport.unix.sockets import connect, read_limit
+from rr_actors._transport.unix.writer import Writer
 from rr_actors.config import DEFAULT_MAX_MESSAGE_BYTES
 from rr_actors.errors import (
     ConfigError,
