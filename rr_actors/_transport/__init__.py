@@ -2,8 +2,8 @@
 
 - `base`: the interface (`Transport`, `Address`, `Endpoint`) and the contract every
   carrier keeps;
-- `codec`: frames and pickling; `delivery`: what every carrier does with a message or an
-  answer it received;
+- `codec`: frames and pickling; `messenger`: what every carrier does with a message, an
+  answer, a reply waiting and a registrar lost, written once over a thin link (`Link`);
 - `unix/`, the AF_UNIX carrier: `system` (the system: runtime directory, authkey,
   `attach`), `sockets` (connect and the authkey handshake), `outbound` (a channel to
   another process's registrar), `inbound` (a registrar's listener), `writer` (sending

@@ -14,15 +14,12 @@ import socket
 import threading
 from collections.abc import Callable
 
+from rr_actors._transport.messenger import Lost, run_lost
 from rr_actors._transport.unix.sockets import shutdown
 
 __all__ = ["Lost", "Writer", "run_lost"]
 
 logger = logging.getLogger("rr_actors")
-
-
-Lost = Callable[[], None]
-"""Called (on any thread) when a queued frame could not be sent: the connection ended."""
 
 
 class Writer:
@@ -177,11 +174,3 @@ class Writer:
                 while self._busy:  # a sender still writes inline: let it finish first
                     self._cond.wait()
             sock.close()
-
-
-def run_lost(callbacks: list[Lost]) -> None:
-    for on_lost in callbacks:
-        try:
-            on_lost()
-        except Exception:
-            logger.exception("cleaning up after a lost frame failed")

@@ -28,7 +28,7 @@ from collections.abc import Callable
 
 import zenoh
 
-from rr_actors._transport.unix.writer import Lost, run_lost
+from rr_actors._transport.messenger import Lost, run_lost
 from rr_actors._transport.zenoh.queue import Queue
 from rr_actors._transport.zenoh.wire import Keys
 
