@@ -39,7 +39,7 @@ The contract every carrier keeps (the transport tests check it for each one):
   nobody will restart it, every registrar of the system hears so, at least once: from
   the death watch (`ConsumerDown`, which whoever started it, a supervisor that gave up
   or the owner of an unsupervised manager process, tells every name `names()` lists),
-  or from the carrier, which calls `Endpoint.peer_lost(name)` on every registrar it
+  or from the carrier, which calls `Endpoint.peer_lost` with the name on every registrar it
   serves when the one who would say so is gone too (a host lost with its supervisor).
   Its consumers then report `FATAL` for the ids they held there and forget them. A
   carrier never calls `peer_lost` for a registrar whose supervisor is alive: that one
