@@ -219,7 +219,7 @@ def raw_open(
     connect: list[str], tls: dict[str, Any] | None, wait: float = 5.0
 ) -> list[tuple[str, str]]:
     """Open a raw Zenoh peer session (`KEPT["raw"]`): plain, or mutual TLS with the files
-    of `tls` as `zenoh_config` sets them. Its links once it has one, within `wait` s."""
+    of `tls` as `zenoh/config.py` sets them. Its links once it has one, within `wait` s."""
     import json  # noqa: PLC0415
 
     import zenoh  # noqa: PLC0415
