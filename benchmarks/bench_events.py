@@ -22,12 +22,18 @@ Rows:
                                 `describe` plus a `LogRecord`
     build, numbered             `build one event` as a manager process does it: with its
                                 `seq` (`number_events`), no tally
-    build, numbered + tally     ... and the number stored in the tally file a supervisor
-                                reads after a SIGKILL (what a manager process does now)
-    build, numbered + tally + journal
-                                ... and the event appended to the journal (pickled,
+    build, numbered + journal   ... and the event appended to the journal (pickled,
                                 `os.write`): what a manager process does now, so that a
                                 SIGKILL loses no event it published
+    hlc stamp                   `CLOCK.now()`: the hybrid logical clock stamp every event
+                                takes (its part of `build one event`)
+    at, CLOCK.wall()            the events' `at` now (the clock the stamp reads) ...
+    at, time.time()             ... and what it was before
+    message: header + frame     what the Zenoh carrier put in front of a frame before
+                                (a 200-byte frame, as a small `Load`'s)
+    message: stamp + envelope   what it does now: `CLOCK.send()` and the stamped envelope
+    message: parse              the receiver's `parse` of an unstamped payload ...
+    message: parse + receive    ... of a stamped one, and `CLOCK.receive(stamp)`
     dedup-hit call              `consumer.call(provider, "res", "shared")`, per call (for scale)
 
 Pin it to one CPU for stable ratios (the subscriber thread then shares that CPU, as it
@@ -51,7 +57,9 @@ from typing import Any
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._core.bus import Forwarder, Publisher
+from rr_actors._core.hlc import CLOCK
 from rr_actors._process.tally import Journal, Tally
+from rr_actors._transport.zenoh import wire as zenoh_wire
 from rr_actors.events import kinds
 
 Row = Callable[[int], None]
@@ -59,6 +67,10 @@ Row = Callable[[int], None]
 
 RID = str(uuid.uuid4())
 QID = str(uuid.uuid4())
+ZID = uuid.uuid4().hex
+FRAME = (196).to_bytes(4, "big") + bytes(8) + bytes(188)  # length, token, a 188-byte pickle
+PLAIN_PAYLOAD = zenoh_wire.header(zenoh_wire.MESSAGE, ZID) + FRAME
+STAMPED_PAYLOAD = zenoh_wire.envelope(zenoh_wire.MESSAGE, ZID, FRAME, CLOCK.now())
 
 
 def noop(_: object) -> None:
@@ -126,22 +138,52 @@ class Bench:
         finally:
             kinds._numbering, kinds._mark = False, None
 
-    def tallied(self, n: int) -> None:
-        kinds.number_events(mark=self.journal.mark)
-        try:
-            self.build(n)
-        finally:
-            kinds._numbering, kinds._mark = False, None
-
     def journaled(self, n: int) -> None:
-        kinds.number_events(mark=self.journal.mark)
+        kinds.number_events()
         journal = self.journal
         try:
             for _ in range(n):
                 journal(events.ResourceLoaded("erm", "res", RID, QID, 0.001))
         finally:
-            kinds._numbering, kinds._mark = False, None
+            kinds._numbering = False
         journal.sent()
+
+    def stamp(self, n: int) -> None:
+        now = CLOCK.now
+        for _ in range(n):
+            now()
+
+    def wall(self, n: int) -> None:
+        wall = CLOCK.wall
+        for _ in range(n):
+            wall()
+
+    def time_time(self, n: int) -> None:
+        clock = time.time
+        for _ in range(n):
+            clock()
+
+    def framed(self, n: int) -> None:
+        header, frame = zenoh_wire.header, FRAME
+        for _ in range(n):
+            header(zenoh_wire.MESSAGE, ZID) + frame
+
+    def enveloped(self, n: int) -> None:
+        envelope, send, frame = zenoh_wire.envelope, CLOCK.send, FRAME
+        for _ in range(n):
+            envelope(zenoh_wire.MESSAGE, ZID, frame, send())
+
+    def parsed(self, n: int) -> None:
+        parse, data = zenoh_wire.parse, PLAIN_PAYLOAD
+        for _ in range(n):
+            parse(data)
+
+    def received(self, n: int) -> None:
+        parse, receive, data = zenoh_wire.parse, CLOCK.receive, STAMPED_PAYLOAD
+        for _ in range(n):
+            head = parse(data)
+            if head is not None and head.stamp is not None:
+                receive(head.stamp)
 
     def nobody(self, n: int) -> None:
         publisher = self.idle
@@ -210,8 +252,14 @@ def run(rounds: int, batch: int, dedup_batch: int) -> tuple[list[tuple[str, floa
             "forwarder + send": (bench.forwarder_sent, batch),
             "INFO log line": (bench.info_line, batch),
             "build, numbered": (bench.numbered, batch),
-            "build, numbered + tally": (bench.tallied, batch),
-            "build, numbered + tally + journal": (bench.journaled, batch),
+            "build, numbered + journal": (bench.journaled, batch),
+            "hlc stamp (`CLOCK.now()`)": (bench.stamp, batch),
+            "at, `CLOCK.wall()` (now)": (bench.wall, batch),
+            "at, `time.time()` (before)": (bench.time_time, batch),
+            "message: header + frame (before)": (bench.framed, batch),
+            "message: stamp + envelope (now)": (bench.enveloped, batch),
+            "message: parse, unstamped": (bench.parsed, batch),
+            "message: parse + receive, stamped": (bench.received, batch),
             "dedup-hit call": (bench.dedup_hit, dedup_batch),
         }
         samples: dict[str, list[float]] = {name: [] for name in rows}

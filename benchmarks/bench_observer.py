@@ -48,8 +48,8 @@ import rr_actors as rr
 from rr_actors.mission.config import MissionConfig
 from rr_actors.mission.run import run_mission
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from observing import CHROMIUM_ARGS, chromium, stream
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the repository: tests.support
+from tests.support.observing import CHROMIUM_ARGS, chromium, stream
 
 
 def erm_setup(registrar: rr.ResourceRegistrar) -> None:
@@ -444,7 +444,7 @@ def bench_page(sizes: list[int], changes: int) -> None:
 
 
 def wait_until(url: str, predicate: Any, timeout: float = 60.0) -> None:
-    from observing import get_json  # noqa: PLC0415
+    from tests.support.observing import get_json  # noqa: PLC0415
 
     deadline = time.monotonic() + timeout
     while not predicate(get_json(url, "/api/state")):

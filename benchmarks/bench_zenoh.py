@@ -1,7 +1,7 @@
 """Zenoh benchmark: rr_actors across two hosts next to a raw Zenoh `get` between the same two.
 
 Run: `python benchmarks/bench_zenoh.py [--rounds N] [--kills N] [--cuts N] [--only raw]`. The two
-hosts are two Linux network namespaces joined by a veth pair (`tests/hosts.py`), which needs
+hosts are two Linux network namespaces joined by a veth pair (`tests/support/hosts.py`), which needs
 root; without root only the loopback rows run. Everything is measured in one run, so the
 ratios are comparable:
 
@@ -41,9 +41,9 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT))  # the repository: tests.support
 
-import hosts  # noqa: E402 (tests/hosts.py: the two-host harness)
+from tests.support import hosts  # noqa: E402 (tests/support/hosts.py: the two-host harness)
 
 PORT = 7447
 """The Zenoh port inside each namespace (a namespace has its own ports: no clash)."""

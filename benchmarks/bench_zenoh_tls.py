@@ -3,9 +3,9 @@
 Run, as root: `taskset -c 0 python benchmarks/bench_zenoh_tls.py [--rounds N] [--handshakes N]
 [--clients N] [--joins N] [--quiet S] [--interval S] [--cuts N] [--threads N] [--flood S]
 [--give-up S] [--without-gate]`. The two hosts are two Linux network namespaces joined by a
-veth pair, and a third one, the outsider, on a veth of its own to host a (`tests/hosts.py`);
+veth pair, and a third one, the outsider, on a veth of its own to host a (`tests/support/hosts.py`);
 without root nothing is measured (it says so). The certificates are made for the run
-(`tests/pki.py`): a CA, members `robot` (host a, the listener), `operator` and `joiner`
+(`tests/support/pki.py`): a CA, members `robot` (host a, the listener), `operator` and `joiner`
 (host b). Everything is measured in one run:
 
 * round trips across the veth, each protocol on its own pair of fresh processes: a raw Zenoh
@@ -54,12 +54,12 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT))  # the repository: tests.support
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_zenoh  # noqa: E402 (this directory: the plain-TCP benchmark's helpers)
-import hosts  # noqa: E402 (tests/hosts.py: the two-host harness)
-import pki  # noqa: E402 (tests/pki.py: certificates for the run)
+
+from tests.support import hosts, pki  # noqa: E402 (tests/support: harness, certificates)
 
 PORT = 7447
 """The first Zenoh port inside each namespace; each pair of processes gets its own."""

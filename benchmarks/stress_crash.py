@@ -16,10 +16,9 @@ import tempfile
 import time
 from pathlib import Path
 
-TESTS = Path(__file__).resolve().parent.parent / "tests"
-sys.path[:0] = [str(TESTS / "store"), str(TESTS)]  # the test module and its helpers
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the repository: the tests package
 
-from test_crash_consistency import run_kills  # noqa: E402 (after the path above)
+from tests.store.test_crash_consistency import run_kills
 
 
 def main() -> None:

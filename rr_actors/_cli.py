@@ -9,6 +9,9 @@ arguments, and a function that runs it. Add a subcommand by appending to `COMMAN
     rr-actors observe --state state/        # the observer's page of the backups
     rr-actors graph --state state/          # the dependency graph as Mermaid (or --format dot)
     rr-actors experiment plan.toml --out results   # a supervision experiment
+    rr-actors events --network tls/10.0.0.1:7447 --system lab --certs certs --member watcher
+                                            # every host's events as JSON lines, by hlc
+    rr-actors events --merge a.jsonl b.jsonl       # events files merged, ordered by hlc
     rr-actors certs init certs --system lab        # a system's CA: certs/ca.pem, ca.key
     rr-actors certs issue certs robot --address 10.0.0.2   # certs/robot.pem, robot.key
     rr-actors --version
@@ -17,6 +20,7 @@ arguments, and a function that runs it. Add a subcommand by appending to `COMMAN
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import importlib.metadata
 import json
@@ -266,6 +270,76 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
     return 1 if any(v.verdict == "violated" for v in verdicts.values()) else 0
 
 
+# -- events ----------------------------------------------------------------------------------
+
+_EVENTS_HELP = "print every host's events as JSON lines, ordered by their clock stamps (hlc)"
+
+
+def _events_arguments(parser: argparse.ArgumentParser) -> None:
+    from rr_actors._transport.zenoh.options import add_network_arguments  # noqa: PLC0415
+
+    parser.add_argument(
+        "--merge",
+        metavar="FILE",
+        nargs="+",
+        help="print these events.jsonl files merged, ordered by hlc (instead of --network)",
+    )
+    parser.add_argument(
+        "--window",
+        metavar="SECONDS",
+        type=float,
+        default=0.5,
+        help="seconds an event is held for those of other hosts to overtake it (0.5)",
+    )
+    parser.add_argument("--count", metavar="N", type=int, help="stop after N events")
+    parser.add_argument("--seconds", metavar="S", type=float, help="stop after S seconds")
+    add_network_arguments(parser)
+
+
+def _events(args: argparse.Namespace, out: TextIO) -> int:
+    """Print the system's events (`--network`) or merge files (`--merge`), one JSON line each."""
+    import threading  # noqa: PLC0415
+
+    from rr_actors import events  # noqa: PLC0415
+    from rr_actors._transport.zenoh.options import network_from  # noqa: PLC0415
+
+    if args.merge:
+        read: list[events.Event] = []
+        for name in args.merge:
+            with open(name, encoding="utf-8") as file:
+                for number, text in enumerate(file, 1):
+                    if not text.strip():
+                        continue
+                    try:
+                        read.append(events.from_dict(json.loads(text)))
+                    except (ValueError, ConfigError) as exc:
+                        raise ConfigError(f"{name} line {number}: {exc}") from None
+        for event in events.order(read)[: args.count]:
+            out.write(json.dumps(events.to_dict(event)) + "\n")
+        return 0
+    network = network_from(args)
+    done = threading.Event()
+    shown = 0
+
+    def show(event: events.Event) -> None:  # (the subscription's thread)
+        nonlocal shown
+        if done.is_set():
+            return
+        out.write(json.dumps(events.to_dict(event)) + "\n")
+        out.flush()
+        shown += 1
+        if args.count is not None and shown >= args.count:
+            done.set()
+
+    with (
+        network,
+        network.subscribe_events(show, window=args.window),
+        contextlib.suppress(KeyboardInterrupt),  # (Ctrl-C ends it: exit 0)
+    ):
+        done.wait(args.seconds)
+    return 0
+
+
 # -- certs -----------------------------------------------------------------------------------
 
 _CERTS_HELP = "make a system's CA and its hosts' certificates for ZenohNetwork's mutual TLS"
@@ -379,6 +453,7 @@ COMMANDS: list[Command] = [
         observe_commands.graph_arguments,
         observe_commands.run_graph,
     ),
+    Command("events", _EVENTS_HELP, _events_arguments, _events),
     Command(
         "experiment",
         "run a supervision experiment from a TOML plan: faults, workload, repeats, plots",

@@ -18,7 +18,7 @@ parametrised fixture `registrar_placement`:
 - "zenoh": as "process", but the system is a `ZenohNetwork` (tls=None, the default
   1 s lease, a unique system name per test): this process is its router and each
   manager process joins it as a Zenoh client over the router's Unix socket, so every
-  message between two registrars crosses the Zenoh wire (`zenoh_wire` frames, puts
+  message between two registrars crosses the Zenoh wire (`zenoh.wire` frames, puts
   routed through this process, liveliness tokens for presence). No TCP `listen`: on
   one host the carrier's own process model never uses TCP (managers always join over
   the Unix socket), and a listen port nobody connects to exercises nothing;
@@ -68,11 +68,8 @@ from pathlib import Path
 from typing import Any
 
 import cloudpickle
-import gating
 import pykka
 import pytest
-from gating import GatedLoad, same
-from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors._transport.base import Transport
@@ -83,8 +80,11 @@ from rr_actors.testing import (
     pending_work,
     start_forkserver,
 )
+from tests.support import gating
+from tests.support.gating import GatedLoad, same
+from tests.support.waiting import wait_for
 
-pytest_plugins = ["carriers"]  # the transport tests' fixtures (tests/carriers.py)
+pytest_plugins = ["tests.support.carriers"]  # the transport tests' fixtures
 
 LEAK_GRACE = 5.0
 """Seconds a test's actors and child processes get to finish stopping after it ended."""
@@ -187,6 +187,20 @@ def no_leftovers() -> Iterator[None]:
         problems.append(f"child processes (by pid) left running: {sorted(strays)}")
     if problems:
         pytest.fail("; ".join(problems))
+
+
+@pytest.fixture(scope="module")
+def by_value(request: pytest.FixtureRequest) -> Iterator[None]:
+    """The test module is pickled by value (cloudpickle) for its module; the forkserver runs.
+
+    For modules whose callbacks run in manager processes they start by hand (`setup=` of a
+    `RemoteRegistrar` or a `ManagerSpec`): those processes cannot import the test modules.
+    Use it as `pytestmark = pytest.mark.usefixtures("by_value")`.
+    """
+    start_forkserver()
+    cloudpickle.register_pickle_by_value(request.module)
+    yield
+    cloudpickle.unregister_pickle_by_value(request.module)
 
 
 # -- placement ------------------------------------------------------------------------------

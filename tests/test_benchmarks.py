@@ -31,8 +31,12 @@ SMALLEST = {
         "1.5",
     ],  # > 1 s: a hang comes every 1-2 s
     "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
-    "bench_scale.py": ["--counts", "2", "--rounds", "1"],
+    "bench_scale.py": [
+        *("--sections", "start", "serve", "--counts", "2", "--rounds", "1"),
+        *("--sizes", "10", "20", "--kills", "1", "--listen"),
+    ],
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1"],
+    "bench_three_hosts.py": ["--rounds", "20", "--cuts", "1"],
     "bench_transport.py": ["--rounds", "20"],
     "bench_xoscar.py": ["--rounds", "1", "--batch", "5", "--no-load"],
     "bench_zenoh.py": ["--rounds", "20", "--kills", "1", "--cuts", "1"],

@@ -32,7 +32,7 @@ def test_the_package_version_is_the_distribution_version() -> None:
 
 def test_help_lists_every_subcommand_and_the_version_option() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "rr_actors._cli", "--help"],
+        [sys.executable, "-m", "rr_actors", "--help"],
         capture_output=True,
         text=True,
         timeout=30,

@@ -1,6 +1,6 @@
 """`rr-actors certs init` and `rr-actors certs issue`: a system's CA and its hosts' certificates.
 
-Run through `rr_actors._cli.main` and once through the installed console script; the
+Run through `rr_actors.__main__.main` and once through the installed console script; the
 certificates are proven usable by a real mutual-TLS handshake (Python's `ssl`, a real TCP
 socket) and by `openssl verify`.
 """
@@ -19,15 +19,19 @@ import sys
 import sysconfig
 import threading
 from pathlib import Path
+from typing import Any
 
 import pytest
 from cryptography import x509
+from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
-from pki import make_ca
-from tls_lab import free_port, router
 
 import rr_actors as rr
-from rr_actors._cli import main
+from rr_actors.__main__ import main
+from rr_actors._tools.certs import issue_cert
+from rr_actors.errors import ConfigError
+from tests.support.pki import make_ca
+from tests.support.tls_lab import free_port, router
 
 
 def certs(*argv: str) -> tuple[int, str]:
@@ -468,7 +472,7 @@ def test_a_client_of_another_ca_is_refused_by_the_listener(ca_dir: Path, tmp_pat
 
 def test_certs_help_lists_init_and_issue() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "rr_actors._cli", "certs", "--help"],
+        [sys.executable, "-m", "rr_actors", "certs", "--help"],
         capture_output=True,
         text=True,
         timeout=30,
@@ -484,7 +488,7 @@ def test_without_cryptography_certs_says_which_extra_to_install(tmp_path: Path) 
     code = (
         "import sys\n"
         "sys.modules['cryptography'] = None  # as if not installed: importing it fails\n"
-        "from rr_actors._cli import main\n"
+        "from rr_actors.__main__ import main\n"
         "sys.exit(main(['certs', 'init', 'certs', '--system', 'lab']))\n"
     )
     result = subprocess.run(
@@ -499,3 +503,101 @@ def test_without_cryptography_certs_says_which_extra_to_install(tmp_path: Path) 
     assert 2 == result.returncode
     assert "pip install 'rr-actors[zenoh]'" in result.stderr
     assert [] == list(tmp_path.iterdir())
+
+
+# -- from test_cli_certs_input.py -----------------------------------------------------------------
+# `rr-actors certs issue` refuses input that would make a useless certificate or crash.
+#
+# A careless `--address` (with a port, a scheme, brackets, blanks) would be written as a
+# DNS name that no peer ever dials, and the mistake would only show as a refused
+# handshake on another machine; a huge `--days` is a clear error, not a traceback.
+
+
+@pytest.mark.parametrize(
+    "address",
+    ["10.0.0.2:7447", "tls/10.0.0.2:7447", "[::1]", "robot local", "", "-robot", "a..b"],
+)
+def test_issue_refuses_an_address_that_is_neither_an_ip_nor_a_dns_name(
+    ca_dir: Path, address: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, _ = certs("issue", str(ca_dir), "robot", f"--address={address}")
+
+    assert 1 == code
+    assert f"--address {address!r} is not an IP address or DNS name" in capsys.readouterr().err
+    assert not (ca_dir / "robot.pem").exists()
+    assert not (ca_dir / "robot.key").exists()
+
+
+@pytest.mark.parametrize("address", ["10.0.0.2", "::1", "robot.local", "robot_1", "Robot-2.lan."])
+def test_issue_takes_ip_addresses_and_dns_names(ca_dir: Path, address: str) -> None:
+    assert 0 == certs("issue", str(ca_dir), "robot", f"--address={address}")[0]
+
+    cert = x509.load_pem_x509_certificate((ca_dir / "robot.pem").read_bytes())
+    names = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert [address] == [str(name.value) for name in names]
+
+
+def test_issue_cert_refuses_one_string_for_its_addresses(ca_dir: Path) -> None:
+    with pytest.raises(ConfigError, match=r"addresses must be a list such as \['10\.0\.0\.2'\]"):
+        issue_cert(ca_dir, "robot", "10.0.0.2")
+
+
+@pytest.mark.parametrize("days", ["3000000", "10000000000"])
+def test_issue_refuses_days_past_the_year_9999_with_an_error_not_a_traceback(
+    ca_dir: Path, days: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, _ = certs("issue", str(ca_dir), "robot", "--days", days)
+
+    assert 1 == code
+    assert f"days {days} ends after the year 9999" in capsys.readouterr().err
+    assert not (ca_dir / "robot.pem").exists()
+
+
+# -- from test_cli_certs_no_clobber.py ------------------------------------------------------------
+# `rr-actors certs` never replaces a name it was not told to (review of issue 23): not a
+# dangling symlink, and not a file another writer made after the check for existing ones
+# (two `certs issue` at once would otherwise leave one's certificate with the other's key).
+
+
+def test_issue_refuses_a_name_that_is_a_dangling_symlink_and_leaves_it(
+    ca_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (ca_dir / "robot.key").symlink_to(ca_dir / "elsewhere.key")
+
+    assert 1 == certs("issue", str(ca_dir), "robot")[0]
+
+    assert "robot.key already exists: left untouched" in capsys.readouterr().err
+    assert str(ca_dir / "elsewhere.key") == os.readlink(ca_dir / "robot.key")
+    assert not (ca_dir / "robot.pem").exists()
+
+
+def test_issue_leaves_a_file_another_writer_made_after_its_check(
+    ca_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The other writer's `robot.key` appears while the new key is made (after the check
+    for existing names, before the files are renamed into place)."""
+    real = ec.generate_private_key
+
+    def racing(*args: Any, **kwargs: Any) -> Any:
+        (ca_dir / "robot.key").write_bytes(b"the other writer's key")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ec, "generate_private_key", racing)
+
+    with pytest.raises(ConfigError, match=r"robot\.key already exists: left untouched"):
+        issue_cert(ca_dir, "robot", ["10.0.0.2"])
+
+    assert b"the other writer's key" == (ca_dir / "robot.key").read_bytes()
+    assert not (ca_dir / "robot.pem").exists()  # no certificate without its key
+    assert [] == [p.name for p in ca_dir.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_issue_with_force_replaces_both_files(ca_dir: Path) -> None:
+    pem, key = issue_cert(ca_dir, "robot", ["10.0.0.2"])
+    old = pem.read_bytes(), key.read_bytes()
+
+    issue_cert(ca_dir, "robot", ["10.0.0.2"], force=True)
+
+    assert old[0] != pem.read_bytes()
+    assert old[1] != key.read_bytes()
+    assert [] == [p.name for p in ca_dir.iterdir() if p.name.endswith(".tmp")]

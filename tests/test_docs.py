@@ -4,7 +4,7 @@ One test per page. The page's fenced blocks are taken in page order, in a fresh 
 working directory for the page (with `examples/` linked into it, so the commands read as
 written):
 
-- `python` blocks run one after the other in one interpreter (`tests/docs_kernel.py`), as
+- `python` blocks run one after the other in one interpreter (`tests/support/docs_kernel.py`), as
   if pasted into one session: a later block sees what earlier ones defined, and
   `__name__` is `"__main__"`. After the last block nothing may be left running: a page
   that leaves a registrar or a supervisor running fails, and the interpreter must exit.
@@ -68,7 +68,7 @@ from rr_actors.experiments import parse_plan
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
-KERNEL = Path(__file__).resolve().parent / "docs_kernel.py"
+KERNEL = Path(__file__).resolve().parent / "support" / "docs_kernel.py"
 
 BLOCK_TIMEOUT = 60.0
 """Seconds one Python block may take."""
@@ -177,7 +177,7 @@ def blocks(page: Path) -> list[Block]:
 
 
 class Kernel:
-    """`tests/docs_kernel.py` running in `cwd`: one namespace for the page's Python blocks."""
+    """`tests/support/docs_kernel.py` in `cwd`: one namespace for the page's Python blocks."""
 
     def __init__(self, cwd: Path) -> None:
         self.cwd = cwd

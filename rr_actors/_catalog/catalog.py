@@ -316,11 +316,9 @@ class Catalog:
         ]
 
     def consumer_origins(self) -> set[str]:
-        """The registrars that hold consumer ids here (reading no resource from the backup)."""
-        origins = {o for resource in self.resources.values() for o in resource.consumers.values()}
-        if self._unread is not None:
-            origins |= self._unread.origins()
-        return origins
+        """The registrars that hold consumer ids of the resources in memory (`sweep`
+        gives those of the resources still in the backup)."""
+        return {o for resource in self.resources.values() for o in resource.consumers.values()}
 
     def consumer_ids_from(self, origin_rr: str) -> set[str]:
         """The consumer ids here that `origin_rr` holds (reading no resource from the backup)."""
@@ -335,24 +333,83 @@ class Catalog:
         return ids
 
     def unheld(self) -> list[Resource]:
-        """Resources loaded that no consumer holds (reading those still in the backup).
+        """Resources in memory loaded that no consumer holds, oldest first (`sweep`
+        finds those still in the backup).
 
         A restored catalog may have some: their last consumer left, and a crash came
         before their unload began.
         """
-        if self._unread is not None:
-            self._read(self._unread.unheld())
         return [
             resource
             for resource in self._in_order().values()
             if resource.state is ResourceState.LOADED and not resource.consumers
         ]
 
+    def sweep(self, after: int) -> tuple[list[Resource], set[str], int | None]:
+        """Look at the next slice of the resources still in the backup (row keys above
+        `after`, a bounded number of them).
+
+        Returns:
+            `(unheld, origins, last)`: those in it loaded and held by no consumer (read
+            into memory now), the registrars holding consumer ids in it, and the row
+            key to sweep on from (`None`: nothing is left to sweep).
+        """
+        if self._unread is None:
+            return [], set(), None
+        unheld, origins, last = self._unread.sweep(after)
+        self._read(unheld)
+        return unheld, origins, last
+
     def read_all(self) -> dict[str, Resource]:
         """Every resource (reading those still in the backup), by id, oldest first."""
         if self._unread is not None:
             self._read(self._unread.every())
         return self._in_order()
+
+    def rows(self, limit: int) -> tuple[list[tuple[str, ...]], list[tuple[str, ...]]] | None:
+        """Every resource and consumer id as a row of strings, reading none from the backup.
+
+        Args:
+            limit: the most rows of either kind to return.
+
+        Returns:
+            `(resources, consumers)`: `(id, server, state, digest)` per resource, oldest
+            first (`digest` in decimal, `""` for a request without one), and `(query id,
+            resource id, consumer registrar)` per consumer id, by resource, in arrival
+            order; `None` if either kind has more than `limit` rows.
+        """
+        memory = self._in_order()
+        resources: list[tuple[float, tuple[str, ...]]] = []
+        consumers: list[tuple[float, tuple[str, ...]]] = []
+        for resource in memory.values():
+            order = _stored_order((resource.id, resource))
+            digest = resource.digest
+            plain = digest is not None and digest != NO_DIGEST
+            row = (resource.id, resource.server, resource.state.value, str(digest) * plain)
+            resources.append((order, row))
+            consumers.extend(
+                (order, (qid, resource.id, o)) for qid, o in resource.consumers.items()
+            )
+            if len(resources) > limit or len(consumers) > limit:
+                return None
+        if self._unread is not None:
+            unread = self._unread.listing(limit)
+            if unread is None:
+                return None
+            resources = sorted([*resources, *unread[0]], key=_first)  # stable: arrival order kept
+            consumers = sorted([*consumers, *unread[1]], key=_first)
+            if len(resources) > limit or len(consumers) > limit:
+                return None
+        return [row for _, row in resources], [row for _, row in consumers]
+
+    def counts(self) -> tuple[int, int]:
+        """How many resources there are, and how many consumer ids (reading no row)."""
+        resources = len(self.resources)
+        consumers = sum(len(resource.consumers) for resource in self.resources.values())
+        if self._unread is not None:
+            unread = self._unread.counts()
+            resources, consumers = resources + unread[0], consumers + unread[1]
+        return resources, consumers
 
     def _in_order(self) -> dict[str, Resource]:
         """`resources`, oldest first: restored ones in their stored order, then newer ones.
@@ -528,6 +585,10 @@ class Catalog:
         else:
             key = self._other_keys[resource.id] = UNHASHABLE if key is None else key
             self._others.setdefault(resource.server, {}).setdefault(key, []).append(resource.id)
+
+
+def _first(item: tuple[float, Any]) -> float:
+    return item[0]
 
 
 def _stored_order(item: tuple[str, Resource]) -> float:

@@ -13,6 +13,7 @@ __all__ = [
     "Changes",
     "ClientRecord",
     "Decoder",
+    "Listing",
     "Resource",
     "ResourceState",
     "UnreadRows",
@@ -162,6 +163,11 @@ class Changes:
         return bool(self.resources or self.clients)
 
 
+Listing = tuple[list[tuple[float, tuple[str, ...]]], list[tuple[float, tuple[str, ...]]]]
+"""Resource rows and consumer rows as strings, each after its sort key (its resource's
+row key in the backup): what `UnreadRows.listing` returns."""
+
+
 class UnreadRows(Protocol):
     """Served resources of a restored catalog still in its backup (see `Catalog.restore`).
 
@@ -169,8 +175,8 @@ class UnreadRows(Protocol):
     returned, a resource lives in the catalog's memory and is never returned again.
     """
 
-    remaining: int
-    """How many resources have not been returned yet."""
+    remaining: bool
+    """Whether some may not have been returned yet (`False` once `every` returned)."""
 
     def by_request(self, server: str, digest: int) -> list[Resource]:
         """Those of `server` whose request digest is `digest`."""
@@ -184,14 +190,20 @@ class UnreadRows(Protocol):
     def with_origin(self, origin_rr: str) -> list[Resource]:
         """Every one with a consumer from registrar `origin_rr`."""
 
-    def origins(self) -> set[str]:
-        """The registrars their consumers belong to (reading no resource)."""
-
     def consumer_ids_from(self, origin_rr: str) -> list[str]:
         """Their consumer ids that registrar `origin_rr` holds (reading no resource)."""
 
-    def unheld(self) -> list[Resource]:
-        """Those loaded that no consumer holds (a crash came before their unload), oldest first."""
+    def sweep(self, after: int) -> tuple[list[Resource], set[str], int | None]:
+        """The next slice after row key `after`: those loaded that no consumer holds
+        (returned), the registrars of every consumer in it, its last row key (`None`:
+        no slice is left)."""
+
+    def listing(self, limit: int) -> Listing | None:
+        """`(row key, row)` of each one and of each of their consumers, without
+        returning them; `None` if either kind has more than `limit`."""
+
+    def counts(self) -> tuple[int, int]:
+        """How many there are, and how many consumer ids they have."""
 
     def every(self) -> list[Resource]:
         """All of them, oldest first."""

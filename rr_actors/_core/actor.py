@@ -24,7 +24,7 @@ check `is_alive()` and then put their envelope, while a stopping actor drains it
 once: a message that passes the check just before the actor stops can land after the
 drain, and an ask is then never answered (its asker, say a blocking `ActorRef.stop`,
 waits forever). And pykka's drain drops tells, whatever they carried. Here every
-envelope left in the mailbox when the loop ends, and every one put later, goes to the
+envelope left in the inbox when the loop ends, and every one put later, goes to the
 actor's `on_late` (by default `refuse`: an ask gets `ActorDeadError`, as pykka's drain
 gives it), so an actor whose tells carry obligations (the registrar's carry replies and
 consumer ids) can honour them.
@@ -32,7 +32,7 @@ consumer ids) can honour them.
 In a child forked from this process the actors' threads are gone: `_forget_actors` (run
 at the fork, `rr_actors._platform.fork`) makes each inherited ref say it is dead and
 takes it out of pykka's registry, so a message to one fails at once (`ActorDeadError`)
-instead of waiting in a mailbox nobody reads.
+instead of waiting in an inbox nobody reads.
 """
 
 from __future__ import annotations
@@ -46,9 +46,10 @@ from typing import Any, TypeAlias, TypeVar
 
 import pykka
 
+from rr_actors._core.queues import Late, LateQueue
 from rr_actors._platform import fork
 
-__all__ = ["Actor", "ContainedError", "Late", "Mailbox", "OneShotFuture", "refuse"]
+__all__ = ["Actor", "ContainedError", "Inbox", "Late", "OneShotFuture", "refuse"]
 
 T = TypeVar("T")
 
@@ -149,38 +150,13 @@ class OneShotFuture(pykka.Future[T]):
         self._ready.release()
 
 
-Late = Callable[[Any], None]
-"""Handles an envelope its actor will not handle any more (on any thread)."""
-
-
-class Mailbox(queue.SimpleQueue[Any]):
+class Inbox(LateQueue):
     """An actor's inbox that hands on what is left, and what still arrives, once it closes.
 
     `close(late)` runs when the actor's loop ended; from then on whatever is put (by a
-    `tell` or `ask` that saw the actor alive a moment earlier) goes to `late` at once. The
-    put and the close each drain after their own write, so an envelope is handed on by
-    whichever comes second, and once (`get_nowait` is atomic).
+    `tell` or `ask` that saw the actor alive a moment earlier) goes to `late` at once
+    (`Late`: it handles an envelope its actor will not handle any more, on any thread).
     """
-
-    _late: Late | None = None
-
-    def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
-        super().put(item, block, timeout)
-        if self._late is not None:
-            self._drain(self._late)
-
-    def close(self, late: Late) -> None:
-        """The actor's loop ended: hand what is here, and what comes later, to `late`."""
-        self._late = late
-        self._drain(late)
-
-    def _drain(self, late: Late) -> None:
-        while True:
-            try:
-                envelope = self.get_nowait()
-            except queue.Empty:
-                return
-            late(envelope)
 
 
 def refuse(envelope: Any) -> None:
@@ -210,7 +186,7 @@ class ContainedError(RuntimeError):
 
 
 class Actor(pykka.ThreadingActor):
-    """`pykka.ThreadingActor` with a `Mailbox` (a `queue.SimpleQueue`) and `OneShotFuture`s.
+    """`pykka.ThreadingActor` with an `Inbox` (a `queue.SimpleQueue`) and `OneShotFuture`s.
 
     A handler that raises a `BaseException` other than an `Exception` fails this actor
     only (see `ContainedError`). Its thread is a daemon thread: a program whose main
@@ -219,7 +195,7 @@ class Actor(pykka.ThreadingActor):
     """
 
     use_daemon_thread = True
-    actor_inbox: Mailbox
+    actor_inbox: Inbox
 
     def _handle_receive(self, message: Any) -> Any:
         try:
@@ -232,8 +208,8 @@ class Actor(pykka.ThreadingActor):
             ) from exc
 
     @staticmethod
-    def _create_actor_inbox() -> Mailbox:
-        return Mailbox()
+    def _create_actor_inbox() -> Inbox:
+        return Inbox()
 
     @staticmethod
     def _create_future() -> pykka.Future[Any]:
@@ -245,20 +221,20 @@ class Actor(pykka.ThreadingActor):
         self.on_ended()
 
     def end_now(self) -> None:
-        """End this actor from its own thread at once, skipping the rest of its mailbox.
+        """End this actor from its own thread at once, skipping the rest of its inbox.
 
-        What is left in the mailbox, and what arrives later, goes to `on_late` (pykka's
+        What is left in the inbox, and what arrives later, goes to `on_late` (pykka's
         own `_stop`, wrapped here so that no other module uses pykka's private names).
         """
         self._stop()
 
     def on_ended(self) -> None:
-        """Run on the actor's thread once its loop ended and its mailbox went to `on_late`."""
+        """Run on the actor's thread once its loop ended and its inbox went to `on_late`."""
 
     def on_late(self, envelope: Any) -> None:
         """Handle an envelope that arrived after this actor's loop ended.
 
-        Runs on the actor's thread for what was left in its mailbox, and on the sender's
+        Runs on the actor's thread for what was left in its inbox, and on the sender's
         thread for what comes later. By default an ask gets `ActorDeadError` and a tell
         is dropped, as in pykka; override it (thread-safely) for tells that carry
         obligations.

@@ -61,6 +61,9 @@ class Publisher(Generic[E]):
         describe: the log line of an event (called on the publishing thread).
         notice: `notice(count)` makes the item a subscriber gets after it lost `count`
             events to a full queue (`None`: they are counted and logged only).
+        tap: a publisher that is also handed every event published here (not those
+            relayed or delivered here: each event once, where it happened); this one is
+            `active` whenever `tap` has a listener.
     """
 
     def __init__(
@@ -69,6 +72,7 @@ class Publisher(Generic[E]):
         logger: logging.Logger | None = None,
         describe: Callable[[E], str] = str,
         notice: Callable[[int], E] | None = None,
+        tap: Publisher[E] | None = None,
     ) -> None:
         self._logger = logger
         self._describe = describe
@@ -76,6 +80,7 @@ class Publisher(Generic[E]):
         self._lock = threading.Lock()  # for writers of `_sinks`; `publish` reads without it
         self._sinks: tuple[Sink[E], ...] = ()
         self._upstream: Publisher[E] | None = None
+        self._tap = tap
         self._watchers: tuple[Callable[[bool], object], ...] = ()
         self._notifying = threading.Lock()
 
@@ -89,7 +94,10 @@ class Publisher(Generic[E]):
         if log is not None and log.isEnabledFor(logging.INFO):
             return True
         upstream = self._upstream
-        return upstream is not None and upstream.listened
+        if upstream is not None and upstream.listened:
+            return True
+        tap = self._tap
+        return tap is not None and bool(tap._sinks)
 
     def publish(self, event: E) -> None:
         """Log `event` at INFO (if enabled) and hand it to every sink, in the order added.
@@ -101,6 +109,9 @@ class Publisher(Generic[E]):
         if log is not None and log.isEnabledFor(logging.INFO):
             self._log(log, event)
         self.deliver(event)
+        tap = self._tap
+        if tap is not None and tap._sinks:
+            tap.deliver(event)
 
     def deliver(self, event: E) -> None:
         """Hand `event` to every sink (and to the publisher this one relays to), no log line.

@@ -1,21 +1,23 @@
 """What stands between a publisher and a slow consumer: bounded queues and their threads.
 
 A `Subscription` runs its callback on a thread of its own; a `Forwarder` ships batches to
-another process from a thread of its own. Both take events from an `_Outbox`, a bounded
-queue that drops instead of blocking and remembers the gap it made, and both linger a
-moment after each batch so that a stream of events does not wake them once per event.
+another process from a thread of its own (each a `SerialExecutor`). Both put events
+through an `_Outbox`, a bound that drops instead of blocking and remembers the gap it
+made, and both linger a moment after each batch so that a stream of events does not wake
+them once per event. `LateQueue`: a queue whose items go to a handler once it closed.
 """
 
 from __future__ import annotations
 
-import enum
+import functools
 import logging
 import queue
 import threading
 from collections.abc import Callable
 from types import TracebackType
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
+from rr_actors._core.serial import SerialExecutor, Task
 from rr_actors._core.throttle import Throttle
 from rr_actors.errors import ConfigError
 
@@ -25,6 +27,8 @@ __all__ = [
     "LINGER",
     "LOG_EVERY",
     "Forwarder",
+    "Late",
+    "LateQueue",
     "Subscription",
 ]
 
@@ -65,52 +69,91 @@ callback that raises on every event must not write a traceback per event.
 """
 
 
-class _Empty(enum.Enum):
-    EMPTY = enum.auto()
+Late = Callable[[Any], None]
+"""Handles an item its consumer will not take any more (on any thread)."""
 
 
-class _Mark:
-    """A place in a queue: set when the consumer got there (`stop`: and then end)."""
+class LateQueue(queue.SimpleQueue[Any]):
+    """A queue that, once closed, hands what is left in it and what is put later to `late`.
 
-    __slots__ = ("reached", "stop")
+    The put and the close each drain after their own write, so an item is handed on by
+    whichever comes second, and once (`get_nowait` is atomic). An actor's inbox
+    (`_core.actor.Inbox`) and the call outcomes a registrar takes (`DueAnswers`) are one.
+    """
 
-    def __init__(self, *, stop: bool = False) -> None:
-        self.reached = threading.Event()
-        self.stop = stop
+    _late: Late | None = None
+
+    def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
+        super().put(item, block, timeout)
+        if self._late is not None:
+            self._drain(self._late)
+
+    def close(self, late: Late) -> None:
+        """Its consumer ended: hand what is here, and what comes later, to `late`."""
+        self._late = late
+        self._drain(late)
+
+    def _drain(self, late: Late) -> None:
+        while True:
+            try:
+                item = self.get_nowait()
+            except queue.Empty:
+                return
+            late(item)
 
 
 class _Outbox(Generic[E]):
-    """A bounded queue that drops instead of blocking, and remembers the gap it made.
+    """A consumer's thread (a `SerialExecutor`) behind a bound that drops instead of
+    blocking and remembers the gap it made; the waits and the close a subscription and a
+    forwarder share.
 
-    `put` runs on any publishing thread and never blocks; one consumer thread `get`s.
-    With several publishing threads at once the bound may be passed by as many events as
-    there are threads (the size check and the put are not one step; a lock would cost
-    every publish).
+    `put` runs on any publishing thread and never blocks; `handle(item)` runs on the
+    thread. With several publishing threads at once the bound may be passed by as many
+    events as there are threads (the size check and the put are not one step; a lock
+    would cost every publish). A gap's notice goes where the lost events would have been:
+    before the next event there is room for, or when the thread ran dry.
     """
 
-    def __init__(self, owner: str, maxsize: int, notice: Callable[[int], E] | None) -> None:
+    def __init__(
+        self,
+        what: str,
+        maxsize: int,
+        notice: Callable[[int], E] | None,
+        handle: Callable[[E], object],
+        *,
+        thread_name: str,
+        linger: float,
+        idle: Callable[[], object] | None = None,
+        end: Callable[[], object] | None = None,
+    ) -> None:
         if isinstance(maxsize, bool) or not isinstance(maxsize, int) or maxsize < 1:
             raise ConfigError(f"maxsize must be a positive int, got {maxsize!r}")
-        self._owner = owner
+        self._what = what
         self._maxsize = maxsize
         self._notice = notice
-        self._items: queue.SimpleQueue[E | _Mark] = queue.SimpleQueue()
-        self._lock = threading.Lock()  # gap and drop counts; the queue is thread-safe itself
+        self._handle = handle
+        self._idle = idle
+        self._lock = threading.Lock()  # gap and drop counts
         self._gap = 0
         self.dropped = 0
         self._warned = Throttle(LOG_EVERY)  # (gaps opened; `_reported`: drops already logged)
         self._reported = 0
+        self._abandoned = False  # a close timed out
+        self.executor = SerialExecutor(
+            thread_name, linger=linger, on_idle=self._ran_dry, on_drop=self._dropped, on_end=end
+        )
+        self.executor.start()
 
     def put(self, item: E) -> None:
-        if not self._gap and self._items.qsize() < self._maxsize:
-            self._items.put(item)
+        if not self._gap and self.executor.pending < self._maxsize:
+            self.executor.submit(functools.partial(self._handle, item))
         else:
             self._put_slowly(item)
 
     def _put_slowly(self, item: E) -> None:
         warn = first = False
         with self._lock:
-            full = self._items.qsize() >= self._maxsize
+            full = self.executor.pending >= self._maxsize
             if full:
                 self.dropped += 1
                 self._gap += 1
@@ -124,125 +167,74 @@ class _Outbox(Generic[E]):
                     since, self._reported = self.dropped - 1 - self._reported, self.dropped - 1
             else:
                 self._close_gap()
-                self._items.put(item)
+                self.executor.submit(functools.partial(self._handle, item))
         if warn and first:
             logger.warning(
                 "%s falls behind: its queue of %d events is full; dropping events until it "
                 "has room (they are counted and reported to it as one notice)",
-                self._owner,
+                self._what,
                 self._maxsize,
             )
         elif warn:
             logger.warning(
                 "%s falls behind again: %d events dropped in %d gaps since the last warning",
-                self._owner,
+                self._what,
                 since,
                 gaps - 1,
             )
 
-    def drain(self) -> int:
-        """Drop what is queued (its consumer gave up): count the events, pass the marks."""
-        events = 0
-        while True:
-            try:
-                item = self._items.get_nowait()
-            except queue.Empty:
-                break
-            if isinstance(item, _Mark):
-                item.reached.set()
-            else:
-                events += 1
-        with self._lock:
-            self.dropped += events
-        return events
-
     def _close_gap(self) -> None:
-        """Put the notice for the events dropped since the last put (hold `_lock`)."""
+        """Queue the notice for the events dropped since the last put (hold `_lock`)."""
         if self._gap:
             if self._notice is not None:
-                self._items.put(self._notice(self._gap))
+                self.executor.submit(functools.partial(self._handle, self._notice(self._gap)))
             self._gap = 0
 
-    def put_mark(self, mark: _Mark) -> None:
-        """Put `mark` after everything put so far (and after the notice of an open gap)."""
-        with self._lock:
-            self._close_gap()
-            self._items.put(mark)
-
-    def get(self) -> E | _Mark:
-        """The next item, waiting for one; an open gap is closed first if the queue ran empty."""
-        if self._items.empty() and self._gap:
+    def close_gap(self) -> None:
+        """Queue the notice of an open gap now (before a wait, a close)."""
+        if self._gap:
             with self._lock:
                 self._close_gap()
-        return self._items.get()
 
-    def get_nowait(self) -> E | _Mark | _Empty:
-        """The next item, or `_Empty.EMPTY` (after closing an open gap) if there is none."""
-        if self._items.empty():
-            if self._gap:
-                with self._lock:
-                    self._close_gap()
-            if self._items.empty():
-                return _Empty.EMPTY
-        return self._items.get()
+    def _ran_dry(self) -> None:
+        if self._idle is not None:
+            self._idle()
+        self.close_gap()
 
+    def _dropped(self, task: Task) -> None:
+        if isinstance(task, functools.partial):  # (an event's, not a forwarder's ship)
+            with self._lock:
+                self.dropped += 1
 
-class _Consumer(Generic[E]):
-    """The outbox, the thread, the waits and the close a subscription and a forwarder share."""
-
-    def __init__(self, outbox: _Outbox[E], *, thread_name: str, what: str) -> None:
-        self._outbox = outbox
-        self._what = what
-        self._thread = threading.Thread(target=self._run, name=thread_name, daemon=True)
-        self._closing = threading.Lock()
-        self._closed = False
-        self._abandoned = False  # close() timed out: stop after the current item
-        self._hurry = threading.Event()  # a wait or a close is due: linger no longer
-
-    def _run(self) -> None:  # each consumer's loop (a subclass's)
-        raise NotImplementedError
-
-    def _linger(self, seconds: float) -> None:
-        """Let a burst pile up for `seconds`, unless a wait or a close came meanwhile."""
-        if self._hurry.wait(seconds):
-            self._hurry.clear()
-
-    def _reach_mark(self, *, timeout: float | None, caller: str) -> bool:
-        """Wait until the thread handled everything put before this call."""
-        if threading.current_thread() is self._thread:
+    def wait(self, *, timeout: float | None, caller: str, first: Task | None = None) -> bool:
+        """Wait until the thread handled everything put before this call (`first` last)."""
+        if self.executor.on_own_thread():
             raise RuntimeError(f"{caller} on the {self._what}'s own thread would wait for itself")
-        mark = _Mark()
-        with self._closing:  # a mark put after the stop mark would never be reached
-            closed = self._closed
-            if not closed:
-                self._outbox.put_mark(mark)
-                self._hurry.set()
-        if closed:
-            self._thread.join(timeout)
-            return not self._thread.is_alive() and not self._abandoned
-        return mark.reached.wait(timeout)
+        self.close_gap()
+        if first is not None:
+            self.executor.submit(first)
+        return self.executor.flush(timeout=timeout)
 
-    def _stop(self, *, timeout: float | None) -> None:
-        with self._closing:
-            if not self._closed:
-                self._closed = True
-                self._outbox.put_mark(_Mark(stop=True))
-                self._hurry.set()
-        if threading.current_thread() is self._thread:
-            return  # closed from its own callback: it ends once that returns
-        self._thread.join(timeout)
-        if self._thread.is_alive() and not self._abandoned:
+    def stop(self, *, timeout: float | None, last: Task | None = None) -> None:
+        """Handle what is queued (`last` last) within `timeout` s, then drop the rest."""
+        if not self.executor.closed:
+            self.close_gap()
+            if last is not None:
+                self.executor.submit(last)
+        before = self.dropped
+        if self.executor.close(timeout=timeout) or self.executor.on_own_thread():
+            return  # (closed from its own callback: it ends once that returns)
+        if not self._abandoned:
             self._abandoned = True
-            dropped = self._outbox.drain()  # (counted in `dropped`)
             logger.warning(
                 "%s did not finish within %s s; the %d events it had not handled yet are dropped",
                 self._what,
                 timeout,
-                dropped,
+                self.dropped - before,
             )
 
 
-class Subscription(_Consumer[E]):
+class Subscription(Generic[E]):
     """One subscriber's events: a bounded queue and a thread of its own that runs the callback.
 
     Made by `subscribe` (`Supervisor.subscribe`, `ResourceRegistrar.subscribe`). The
@@ -277,10 +269,16 @@ class Subscription(_Consumer[E]):
         self._callback = callback
         self._unsubscribe = unsubscribe
         self._raising = Throttle(LOG_EVERY)  # the callback's exceptions: logged first, then counted
-        what = f"event subscriber {name!r}"
-        super().__init__(_Outbox(what, maxsize, notice), thread_name=f"rr-events-{name}", what=what)
+        self._outbox = _Outbox(
+            f"event subscriber {name!r}",
+            maxsize,
+            notice,
+            self._deliver,
+            thread_name=f"rr-events-{name}",
+            linger=LINGER,  # a burst piles up meanwhile, without a wake-up per event
+            end=lambda: self._report_raised(None),
+        )
         self._offer = self._outbox.put  # the publisher's sink: never blocks
-        self._thread.start()
 
     @property
     def dropped(self) -> int:
@@ -291,7 +289,7 @@ class Subscription(_Consumer[E]):
     @property
     def closed(self) -> bool:
         """Whether `close()` was called (its thread may still be finishing)."""
-        return self._closed
+        return self._outbox.executor.closed
 
     def wait_delivered(self, *, timeout: float | None = 5.0) -> bool:
         """Block until every event published before this call went through the callback.
@@ -310,7 +308,7 @@ class Subscription(_Consumer[E]):
             RuntimeError: called from this subscription's own callback (it would wait
                 for itself).
         """
-        return self._reach_mark(timeout=timeout, caller="wait_delivered()")
+        return self._outbox.wait(timeout=timeout, caller="wait_delivered()")
 
     def close(self, *, timeout: float | None = 5.0) -> None:
         """Unsubscribe, deliver what was already queued, and end the thread.
@@ -323,9 +321,9 @@ class Subscription(_Consumer[E]):
         Args:
             timeout: how long to wait for the queued events, in seconds (`None`: no bound).
         """
-        if not self._closed:
+        if not self.closed:
             self._unsubscribe(self)
-        self._stop(timeout=timeout)
+        self._outbox.stop(timeout=timeout)
 
     def __enter__(self) -> Subscription[E]:
         return self
@@ -339,29 +337,14 @@ class Subscription(_Consumer[E]):
         self.close()
 
     def __repr__(self) -> str:
-        return f"<Subscription {self.name!r} dropped={self.dropped} closed={self._closed}>"
+        return f"<Subscription {self.name!r} dropped={self.dropped} closed={self.closed}>"
 
-    def _run(self) -> None:
-        outbox, callback = self._outbox, self._callback
-        while True:
-            item: E | _Mark | _Empty = outbox.get()  # idle: the next publish wakes it
-            while not isinstance(item, _Empty):  # a batch: all that piled up
-                if isinstance(item, _Mark):
-                    item.reached.set()
-                    if item.stop:
-                        self._report_raised(None)
-                        return
-                else:
-                    try:
-                        callback(item)
-                    except BaseException as exc:  # noqa: BLE001 - the thread must outlive any callback
-                        if self._raising.due():
-                            self._report_raised((item, exc))
-                if self._abandoned:
-                    self._report_raised(None)
-                    return
-                item = outbox.get_nowait()
-            self._linger(LINGER)  # a burst piles up meanwhile, without a wake-up per event
+    def _deliver(self, item: E) -> None:
+        try:
+            self._callback(item)
+        except BaseException as exc:  # noqa: BLE001 - the thread must outlive any callback
+            if self._raising.due():
+                self._report_raised((item, exc))
 
     def _report_raised(self, latest: tuple[E, BaseException] | None) -> None:
         """Log the callback's exceptions: the first in full, later ones as a count
@@ -389,7 +372,7 @@ class Subscription(_Consumer[E]):
             )
 
 
-class Forwarder(_Consumer[E]):
+class Forwarder(Generic[E]):
     """A sink that ships events in batches from its own thread (to another process, say).
 
     Add it to a publisher (`publisher.add_sink(forwarder)`). It puts each event in a
@@ -429,11 +412,16 @@ class Forwarder(_Consumer[E]):
         self._max_batch = max_batch
         self._failed = 0  # events in batches whose send raised
         self._failing = False
-        what = f"event forwarder {name!r}"
-        super().__init__(
-            _Outbox(what, maxsize, notice), thread_name=f"rr-forward-{name}", what=what
+        self._batch: list[E] = []  # taken from the queue, not shipped yet (its thread's)
+        self._outbox = _Outbox(
+            f"event forwarder {name!r}",
+            maxsize,
+            notice,
+            self._take,
+            thread_name=f"rr-forward-{name}",
+            linger=FORWARD_LINGER,  # a burst piles up meanwhile, without a wake-up each
+            idle=self._ship,
         )
-        self._thread.start()
 
     def __call__(self, event: E) -> None:
         """Buffer `event` for the next batch (on the publishing thread; never blocks)."""
@@ -457,7 +445,7 @@ class Forwarder(_Consumer[E]):
         Raises:
             RuntimeError: called from `send` itself (it would wait for itself).
         """
-        return self._reach_mark(timeout=timeout, caller="wait_sent()")
+        return self._outbox.wait(timeout=timeout, caller="wait_sent()", first=self._ship)
 
     def close(self, *, timeout: float | None = 5.0) -> None:
         """Send what is buffered (within `timeout` seconds) and end the thread. Idempotent.
@@ -467,35 +455,19 @@ class Forwarder(_Consumer[E]):
         Args:
             timeout: how long to wait for the last batches, in seconds (`None`: no bound).
         """
-        self._stop(timeout=timeout)
+        self._outbox.stop(timeout=timeout, last=self._ship)
 
     def __repr__(self) -> str:
-        return f"<Forwarder {self.name!r} dropped={self.dropped} closed={self._closed}>"
+        closed = self._outbox.executor.closed
+        return f"<Forwarder {self.name!r} dropped={self.dropped} closed={closed}>"
 
-    def _run(self) -> None:
-        outbox = self._outbox
-        while True:
-            item: E | _Mark | _Empty = outbox.get()
-            batch: list[E] = []
-            while not isinstance(item, _Empty):
-                if isinstance(item, _Mark):
-                    self._ship(batch)
-                    batch = []
-                    item.reached.set()
-                    if item.stop:
-                        return
-                else:
-                    batch.append(item)
-                    if len(batch) >= self._max_batch:
-                        self._ship(batch)
-                        batch = []
-                if self._abandoned:
-                    return
-                item = outbox.get_nowait()
-            self._ship(batch)
-            self._linger(FORWARD_LINGER)  # a burst piles up meanwhile, without a wake-up each
+    def _take(self, event: E) -> None:
+        self._batch.append(event)
+        if len(self._batch) >= self._max_batch:
+            self._ship()
 
-    def _ship(self, batch: list[E]) -> None:
+    def _ship(self) -> None:
+        batch, self._batch = self._batch, []
         if not batch:
             return
         try:

@@ -298,7 +298,7 @@ class _EventLine:
         self.name = name
         # a SIGKILL loses what is not sent yet: the journal keeps it, the tally counts it
         self.journal = None if tally is None else Journal.open(tally)
-        number_events(mark=None if self.journal is None else self.journal.mark)
+        number_events()
         self.hub: Publisher[events.Event] = events.publisher()
         self.forwarder: Forwarder[events.Event] | None = None
         self.sink: Callable[[events.Event], None] | None = None

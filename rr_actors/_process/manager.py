@@ -581,7 +581,9 @@ class _Received:
             kept = tally.after(arrived) if self.on_events is not None else []
             if kept:
                 self.deliver(name, kept)
-            lost = tally.built() - arrived - len(kept)
+            # (a record written just before the kill may be newer than the number stored)
+            last = max([tally.built(), *(getattr(e, "seq", 0) for e in kept)])
+            lost = last - arrived - len(kept)
         finally:
             tally.close()
         if lost > 0 and self.on_events is not None:

@@ -2,9 +2,9 @@
 
 ```
  supervisor's process                         manager process
-   Tally.create() ── a file ──────────────►   Journal(path): each event's seq stored as it
-                                              is built (`number_events`), each event
-                                              published appended (pickled) to the file
+   Tally.create() ── a file ──────────────►   Journal(path): each event published
+                                              appended (pickled) to the file, then its
+                                              seq stored as the last one kept
    ... the process exits (or is killed) ...
    tally.after(last seq received) ─────────►  the events it never sent, delivered
    tally.built() - what arrived ───────────►  EventsDropped(lost, cause="killed")
@@ -14,11 +14,17 @@ A manager process numbers its events (`seq`) and forwards them in batches from a
 of its own; a SIGKILL (a fault, or the heartbeat killing a hung manager) would lose the
 events still in its buffer, and nothing comes after them to show a gap. So the child
 appends each event it publishes to a file of its incarnation (one `write` per event, on
-the publishing thread), and stores the number of each event it builds in the file's
-first 8 bytes (one store into a memory map). After the exit the supervisor's side
-delivers the journal's events that never arrived, then counts what is still missing
-(built but never published, or cut from the journal: below) and publishes it as one
+the publishing thread), then stores that event's number in the file's first 8 bytes
+(one store into a memory map). After the exit the supervisor's side delivers the
+journal's events that never arrived, then counts what is still missing (numbered but
+not in the journal: cut from it, below, or not picklable) and publishes it as one
 `EventsDropped` with the dead process's pid. The file is removed once it was read.
+
+The number is stored after the write, not when the event is built: a kill between the
+two (the few microseconds of pickling) would otherwise count as lost an event that the
+registrar had not yet published, and so had not yet answered on (a registrar publishes
+an event before it answers the call it records). A kill there is a kill just before the
+event: the restored catalog (`CatalogRestored`) has what it would have said.
 
 The journal is cut back to nothing after a batch was sent once it holds more than
 `JOURNAL_BYTES`: an event published between the batch's start and the cut is then not
@@ -83,7 +89,7 @@ class Tally:
         return cls(path, fd, mapped)
 
     def built(self) -> int:
-        """The number of the last event the child built (0: none, or not read)."""
+        """The number of the last event the child kept (0: none, or not read)."""
         if self._map is None:
             return 0
         return int(self._view[0])
@@ -126,15 +132,17 @@ class Tally:
 
 
 class Journal:
-    """The child's side: numbers stored as events are built, events kept as published.
+    """The child's side: events kept as published, the number of the last one kept.
 
-    Attributes:
-        mark: for `number_events`: stores the number of the last event built.
+    The number is stored after the event's record was written (a `write` to a file is
+    not cut short by a signal), so a SIGKILL between the two leaves a record the count
+    does not name yet: `Tally.after` finds it all the same.
     """
 
     def __init__(self, path: str, mark: Callable[[int], object], fd: int) -> None:
         self.path = path
-        self.mark = mark
+        self._mark = mark
+        self._last = 0
         self._fd = fd
         self._dumps = functools.partial(pickle.dumps, protocol=pickle.HIGHEST_PROTOCOL)
         self._write = os.write
@@ -164,6 +172,10 @@ class Journal:
             self._write(self._fd, self._dumps(event))
         except (OSError, pickle.PicklingError, TypeError, AttributeError):
             pass  # not kept: if the process dies before it sends it, it is counted lost
+        seq = getattr(event, "seq", 0)
+        if seq > self._last:  # (events built on two threads may come out of order)
+            self._last = seq
+            self._mark(seq)
 
     def sent(self) -> None:
         """A batch was sent (the forwarder's thread): cut the journal back if it is big."""

@@ -86,7 +86,7 @@ from rr_actors._registrar.probes import POINTS
 from rr_actors._registrar.provider import Provider
 from rr_actors._registrar.reconciling import Reconciling
 from rr_actors._registrar.servers import Servers
-from rr_actors._registrar.state import OpenReply, Shared
+from rr_actors._registrar.state import NO_REPLY, OpenReply, Shared
 from rr_actors._registrar.status import StatusRelay
 from rr_actors._registrar.teardown import Teardown
 from rr_actors._registrar.unloading import Unloading
@@ -99,49 +99,58 @@ __all__ = ["DISPATCH", "MESSAGE_STEPS", "STEPS", "RegistrarActor", "asked"]
 
 logger = logging.getLogger("rr_actors")
 
-Handler = Callable[[Any], None]
-"""`handle(message)`, run on the actor's thread."""
+Handler = Callable[[Any, Reply], None]
+"""`handle(message, reply)`, run on the actor's thread: every clause of `DISPATCH` has this
+shape. `reply` is where the message's answer goes: its `reply` field (held open for a
+message from the handle, `asked`), or `NO_REPLY` for a message that wants no answer."""
 
 Binder = Callable[["RegistrarActor"], Handler]
-"""What makes a `Handler` of one actor (run once, when the actor is built)."""
+"""What makes a `Handler` of one actor (run once, when the actor is built): a role's
+`on_<step>` method."""
 
 
-def asked(op: Callable[[RegistrarActor, Any, Reply], None]) -> Binder:
-    """The handler of a message from the handle: `op(actor, message, reply)`.
+def asked(bind: Binder) -> Binder:
+    """A clause for a message from the handle: `handle(message, reply)` with an open reply.
 
     The reply is open while unanswered (a death fails it, `Lifecycle.fail_waiting`), and
-    an `RrError` the op raises is its caller's answer: the registrar keeps serving.
+    an `RrError` the handler raises is its caller's answer: the registrar keeps serving.
     """
 
-    def bind(actor: RegistrarActor) -> Handler:
+    def bound(actor: RegistrarActor) -> Handler:
+        handle = bind(actor)
         open_requests = actor.lifecycle.open_requests
 
-        def handle(message: Any) -> None:
-            reply = OpenReply(message.reply, open_requests)
+        def handle_asked(message: Any, reply: Reply) -> None:
+            opened = OpenReply(reply, open_requests)
             try:
-                op(actor, message, reply)
+                handle(message, opened)
             except RrError as exc:
-                reply.set_error(exc)
+                opened.set_error(exc)
 
-        return handle
+        return handle_asked
 
-    return bind
+    return bound
 
 
 def _answering(tokens: Tokens) -> Handler:
-    return lambda m: tokens.answer(m.token, m.value, m.error)
+    return lambda m, _reply: tokens.answer(m.token, m.value, m.error)
 
 
-def _taken(_message: TakeOutcomes) -> None:
+def _taken(_message: TakeOutcomes, _reply: Reply) -> None:
     """The outcomes waiting were taken before this message (`RegistrarActor.on_receive`)."""
 
 
-def _answer_now(_actor: RegistrarActor, _message: Ping, reply: Reply) -> None:
+def _answer_now(_message: Ping, reply: Reply) -> None:
     reply.set_result(None)
+
+
+def _run_on_actor(actor: RegistrarActor) -> Handler:
+    return lambda message, reply: message.op(actor, reply)
 
 
 DISPATCH: dict[type, tuple[str, Binder]] = {
     # message: (step name, its handler). The step names are `rr_actors.testing.STEPS`.
+    # A subclass of a message here is handled by its clause (`DurableLoaded`).
     # -- between registrars (the wire protocol) --
     Load: ("load", lambda a: a.provider.on_load),  # at the provider
     Unload: ("unload", lambda a: a.unloading.on_unload),  # at the provider
@@ -166,52 +175,26 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     Flush: ("flush", lambda a: a.lifecycle.on_flush),  # the save-interval timer fired
     Crash: ("crash", lambda a: a.lifecycle.on_crash),  # `rr_actors.testing.crash`
     # -- from the handle (`handle.py`), each answered through its reply --
-    RegisterServer: (
-        "register_server",
-        asked(
-            lambda a, m, r: a.servers.op_register(m.name, m.load, m.unload, m.on_status, r, m.label)
-        ),
-    ),
-    UnregisterServer: (
-        "unregister_server",
-        asked(lambda a, m, r: a.servers.op_unregister(m.name, r)),
-    ),
-    Release: ("release", asked(lambda a, m, r: a.consumer.op_unload(m.query_id, r))),
-    SendStatus: (
-        "send_status",
-        asked(lambda a, m, r: a.status.op_send_status(m.query_id, m.status, m.message, r)),
-    ),
-    ListServerQueries: (
-        "server_queries",
-        asked(lambda a, m, r: a.servers.op_server_queries(m.server, r)),
-    ),
-    ListClientQueries: (
-        "client_queries",
-        asked(lambda a, _m, r: a.consumer.op_client_queries(r)),
-    ),
+    RegisterServer: ("register_server", asked(lambda a: a.servers.on_register_server)),
+    UnregisterServer: ("unregister_server", asked(lambda a: a.servers.on_unregister_server)),
+    Release: ("release", asked(lambda a: a.consumer.on_release)),
+    SendStatus: ("send_status", asked(lambda a: a.status.on_send_status)),
+    ListServerQueries: ("server_queries", asked(lambda a: a.servers.on_list_server_queries)),
+    ListClientQueries: ("client_queries", asked(lambda a: a.consumer.on_list_client_queries)),
     SetStatusCallback: (
         "set_status_callback",
-        asked(lambda a, m, r: a.consumer.op_set_status_callback(m.query_id, m.callback, r)),
+        asked(lambda a: a.consumer.on_set_status_callback),
     ),
-    UpdateResponse: (
-        "update_response",
-        asked(lambda a, m, r: a.servers.op_update_response(m.query_id, m.response, r)),
-    ),
-    Save: ("save", asked(lambda a, _m, r: a.lifecycle.op_save(r))),
-    Stop: ("stop", asked(lambda a, m, r: a.lifecycle.op_stop(r, m.unloads_until))),
-    Ready: ("ready", asked(lambda a, _m, r: a.lifecycle.op_ready(r))),  # setup is done
-    SettleInDoubt: (
-        "settle_in_doubt",
-        asked(lambda a, m, r: a.lifecycle.op_settle_in_doubt(m.query_id, r)),
-    ),
-    Reachable: ("reachable", asked(lambda a, _m, r: a.lifecycle.op_reachable(r))),  # a carrier
-    Snapshot: ("snapshot", asked(lambda a, m, r: a.lifecycle.op_snapshot(r, m.check))),
-    Ping: ("ping", asked(_answer_now)),  # a manager process's heartbeat
-    OpenClient: (
-        "open_client",
-        asked(lambda a, m, r: a.consumer.op_client(m.target_rr, m.server, r)),
-    ),
-    RunOnActor: ("run_on_actor", asked(lambda a, m, r: m.op(a, r))),  # test only
+    UpdateResponse: ("update_response", asked(lambda a: a.servers.on_update_response)),
+    Save: ("save", asked(lambda a: a.lifecycle.on_save)),
+    Stop: ("stop", asked(lambda a: a.lifecycle.on_stop)),
+    Ready: ("ready", asked(lambda a: a.lifecycle.on_ready)),  # setup is done
+    SettleInDoubt: ("settle_in_doubt", asked(lambda a: a.lifecycle.on_settle_in_doubt)),
+    Reachable: ("reachable", asked(lambda a: a.lifecycle.on_reachable)),  # a carrier
+    Snapshot: ("snapshot", asked(lambda a: a.lifecycle.on_snapshot)),
+    Ping: ("ping", asked(lambda _a: _answer_now)),  # a manager process's heartbeat
+    OpenClient: ("open_client", asked(lambda a: a.consumer.on_open_client)),
+    RunOnActor: ("run_on_actor", asked(_run_on_actor)),  # test only
 }
 """The one dispatch table: which role handles each message, under which step name."""
 
@@ -305,18 +288,21 @@ class RegistrarActor(Actor):
 
     def dispatch(self, message: Any) -> None:
         """Handle `message` with its role's handler (the outcomes waiting are not taken)."""
-        entry = self.handlers.get(type(message))
+        entry = self.handlers.get(type(message)) or self.inherited(type(message))
         if entry is None:  # (shown without running its __repr__: a peer's object)
             text = plain_text(message) or f"<a {type(message).__qualname__[:80]} object>"
             self.unknown.warning("registrar %s ignored an unknown message %s", self.name, text)
             return
         step, handle = entry
+        to = getattr(message, "reply", None)  # where its answer goes
+        if to is None:
+            to = NO_REPLY
         probes = self.shared.probes
         try:
             if probes is None:
-                handle(message)
+                handle(message, to)
             else:
-                probes.around(step, message, handle)
+                probes.around(step, message, lambda m: handle(m, to))
         except RrError as exc:  # e.g. a restored value that cannot be decoded any more
             reply = getattr(message, "reply", None)
             if reply is not None:
@@ -332,6 +318,16 @@ class RegistrarActor(Actor):
                     )
                 )
             raise
+
+    def inherited(self, kind: type) -> tuple[str, Handler] | None:
+        """The clause of a subclass of a message in `DISPATCH` (`DurableLoaded` is a
+        `ClientLoaded`), kept for its next one; `None` for an unknown message."""
+        for base in kind.__mro__[1:-1]:  # (not the class itself, nor `object`)
+            entry = self.handlers.get(base)
+            if entry is not None:
+                self.handlers[kind] = entry
+                return entry
+        return None
 
     def on_failure(self, *_: object) -> None:
         self.lifecycle.die()

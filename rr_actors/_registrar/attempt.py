@@ -86,12 +86,27 @@ class CallAttempt(OneShotFuture[Any]):
         super().__init__()
         self._state_lock = threading.Lock()
         self.state = AttemptState.SENDING
-        self.awaited = False
-        """Set by the registrar actor when a notice waits for this call's answer: its
-        caller then wakes the actor for the outcome it hands over (`DueAnswers`)."""
+        self._awaited = False
 
     def __repr__(self) -> str:
         return f"<rr_actors.CallAttempt {self.state.value}>"
+
+    @property
+    def awaited(self) -> bool:
+        """Whether a notice waits for this call's answer (`mark_awaited`): its caller then
+        wakes the registrar actor for the outcome it hands over (`DueAnswers`)."""
+        with self._state_lock:
+            return self._awaited
+
+    def mark_awaited(self) -> None:
+        """The registrar actor: a notice waits for this call's answer (`awaited`).
+
+        Under the state lock, like every transition: the caller that reads the mark after
+        it handed its outcome over, and the actor that takes the outcomes after it marked,
+        are ordered by it, so one of the two sees the other's write.
+        """
+        with self._state_lock:
+            self._awaited = True
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait (the caller) until it is answered or failed, at most `timeout` seconds."""

@@ -41,14 +41,15 @@ from typing import Any
 import pykka
 
 from rr_actors._catalog import ClientRecord
-from rr_actors._core.actor import Mailbox
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.queues import LateQueue
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.attempt import AttemptState, CallAttempt
 from rr_actors._registrar.loading import check_picklable
 from rr_actors._registrar.messages import (
     CallFailed,
     ClientLoaded,
+    DurableLoaded,
     Load,
     Pending,
     TakeOutcomes,
@@ -87,7 +88,7 @@ class DueAnswers:
     `outcomes` holds the outcomes of plain calls (`ClientLoaded`, `CallFailed`) in the
     order their threads handed them over; the actor takes them before each message
     (module docstring). Once the actor ended, an outcome handed over goes to its
-    `late` handler at once (a `Mailbox`), which gives the id back.
+    `late` handler at once (a `LateQueue`), which gives the id back.
     """
 
     __slots__ = ("_attempts", "_lock", "outcomes")
@@ -95,7 +96,7 @@ class DueAnswers:
     def __init__(self) -> None:
         self._attempts: dict[str, CallAttempt] = {}
         self._lock = threading.Lock()
-        self.outcomes = Mailbox()
+        self.outcomes = LateQueue()
 
     def __contains__(self, query_id: str) -> bool:
         return query_id in self._attempts
@@ -130,7 +131,7 @@ class DueAnswers:
         attempt = self._attempts.get(query_id)
         if attempt is None:
             return False
-        attempt.awaited = True
+        attempt.mark_awaited()
         return True
 
     def settle(self, query_id: str, attempt: CallAttempt) -> bool:
@@ -152,8 +153,9 @@ class ClientReply:
     the record waits for it (`DueAnswers`).
 
     With `commit_first` (a durable consumer) the record was written as pending before
-    the load was sent; the registrar takes the attempt, commits the answer and then
-    settles it (or, finding it withdrawn, drops the record).
+    the load was sent; the answer goes to the registrar as a `DurableLoaded`: it takes
+    the attempt, commits the answer and then settles it (or, finding it withdrawn, drops
+    the record).
 
     It also describes the call (its id, provider, server, request and parent), so that
     the caller's thread builds one `Query`, the answered one.
@@ -205,7 +207,7 @@ class ClientReply:
         query = self.query(value)
         record = ClientRecord(query, self.parent, loaded=True)
         try:
-            self.calls.ref.tell(ClientLoaded(record, self.on_status, self.attempt, True))
+            self.calls.ref.tell(DurableLoaded(record, self.on_status, self.attempt))
         except pykka.ActorDeadError:  # the consumer stopped meanwhile: give the id back
             give_back(query.serving_rr, query.id, query.origin_rr)
             self.attempt.fail(

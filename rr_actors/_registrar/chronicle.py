@@ -1,7 +1,8 @@
 """What a catalog holds, as the rows of a `CatalogRestored` or `RegistrarStopped` event.
 
 Built only when someone listens (`events.active`); listing a restored catalog reads the
-rows still in its backup (their ids, servers and consumers, not their values).
+rows still in its backup as strings (their ids, servers and consumers, not their values),
+up to `LISTED_ROWS` of each kind; above that it counts them.
 """
 
 from __future__ import annotations
@@ -10,7 +11,6 @@ import hashlib
 from typing import TYPE_CHECKING
 
 from rr_actors import events
-from rr_actors._catalog import NO_DIGEST
 from rr_actors.events.kinds import LISTED_ROWS, Rows
 
 if TYPE_CHECKING:
@@ -19,38 +19,42 @@ if TYPE_CHECKING:
 __all__ = ["publish_restored", "publish_stopped"]
 
 
-def _rows(shared: Shared) -> tuple[Rows, Rows, Rows]:
+def _fields(shared: Shared) -> dict[str, object]:
+    """The rows, counts and digest of a catalog event (see `CatalogRestored`).
+
+    Up to `LISTED_ROWS` rows of each kind are listed, read from the backup as plain
+    strings (no resource is read into memory for it); above that only the counts are
+    given, and no digest: it would cost a read of every row, which is what a restore
+    no longer does before it serves (issue 34).
+    """
     catalog = shared.catalog
-    resources: list[tuple[str, ...]] = []
-    consumers: list[tuple[str, ...]] = []
-    for resource in catalog.read_all().values():
-        digest = resource.digest
-        plain = digest is not None and digest != NO_DIGEST
-        resources.append((resource.id, resource.server, resource.state.value, str(digest) * plain))
-        consumers.extend((qid, resource.id, origin) for qid, origin in resource.consumers.items())
-    clients = [
+    clients = tuple(
         (qid, record.query.serving_rr, record.query.server, record.parent or "")
         for qid, record in catalog.clients.items()
-    ]
-    return tuple(resources), tuple(consumers), tuple(clients)
-
-
-def _fields(shared: Shared) -> dict[str, object]:
-    resources, consumers, clients = _rows(shared)
-    kinds = (resources, consumers, clients)
+    )
+    rows = catalog.rows(LISTED_ROWS)
+    if rows is None or len(clients) > LISTED_ROWS:
+        return {
+            "resources": (),
+            "consumers": (),
+            "clients": (),
+            "counts": (*catalog.counts(), len(clients)),
+            "complete": False,
+            "digest": "",
+        }
+    kinds: tuple[Rows, Rows, Rows] = (tuple(rows[0]), tuple(rows[1]), clients)
     digest = hashlib.sha256()
-    for rows in kinds:
-        for row in sorted(rows):
+    for listed in kinds:
+        for row in sorted(listed):
             digest.update("\x1f".join(row).encode())
             digest.update(b"\x1e")
         digest.update(b"\x1d")
-    complete = all(len(rows) <= LISTED_ROWS for rows in kinds)
     return {
-        "resources": resources if complete else (),
-        "consumers": consumers if complete else (),
-        "clients": clients if complete else (),
-        "counts": tuple(len(rows) for rows in kinds),
-        "complete": complete,
+        "resources": kinds[0],
+        "consumers": kinds[1],
+        "clients": kinds[2],
+        "counts": tuple(len(listed) for listed in kinds),
+        "complete": True,
         "digest": digest.hexdigest()[:16],
     }
 

@@ -4,10 +4,13 @@
  caller thread ──Load──► provider          (calls.py: the call protocol)
       │  durable: Pending ──► on_pending: record written as pending, then the Load leaves
       ▼
- answer ──► ClientLoaded ─┐ due.outcomes, taken before each message (take_outcomes):
- failure/withdrawal ──► CallFailed ─┘   on_client_loaded: record (or give back), answer
-                                        waiting notices; on_call_failed: forget the record
+ answer ──► ClientLoaded (plain) ─┐ due.outcomes, taken before each message (take_outcomes)
+        └─► DurableLoaded ────────┤ (the mailbox): on_client_loaded: decide() ─► Action,
+ failure/withdrawal ──► CallFailed ─┘ its step; answer waiting notices;
+                                    on_call_failed: forget the record
  Revoke / ResponseUpdated ──► held back while the answer they are about is on its way
+
+ in_flight: query id ──► InFlight(attempt, unsettled_at, parked)   (flight.py)
 ```
 
 A client record is one query this registrar holds (`ClientRecord`); a dependency's record
@@ -34,18 +37,24 @@ from rr_actors._registrar import outcomes
 from rr_actors._registrar.calls import AttemptState, CallAttempt, DueAnswers
 from rr_actors._registrar.display import ClientTexts
 from rr_actors._registrar.endpoints import ClientActor, Clients
+from rr_actors._registrar.flight import Action, InFlight, decide
 from rr_actors._registrar.loading import check_picklable
 from rr_actors._registrar.messages import (
     CallFailed,
     ClientLoaded,
+    DurableLoaded,
+    ListClientQueries,
+    OpenClient,
     Pending,
+    Release,
     ResponseUpdated,
     Revoke,
+    SetStatusCallback,
     StatusNotice,
     Unload,
     give_back,
 )
-from rr_actors._registrar.state import Shared
+from rr_actors._registrar.state import NO_REPLY, Shared
 from rr_actors._types import Query, StatusCallback
 from rr_actors.errors import (
     CallTimeoutError,
@@ -97,11 +106,9 @@ class Consumer:
         due: the query ids whose answers are on their way (shared with callers' threads).
         clients: its client actors (shared with its handle, which looks them up).
         status_callbacks: query id -> the client status callback of that query.
-        pending_attempts: query id -> the attempt of a durable call in flight (this actor
-            answers it after its commit).
-        parked_notices: query id -> notices that overtook the answer they are about.
-        unsettled: query id -> provider, of calls that failed as their provider died or
-            stopped (it may hold the id; a retry may come): held until reconciled.
+        in_flight: query id -> what is known of its call in flight (`InFlight`: a
+            durable attempt this actor answers after its commit, the provider of a call
+            that failed as it died or stopped, the notices that overtook its answer).
         releasing: query ids whose `Unload` is on its way.
         unreleased: query id -> provider, of ids this registrar released whose `Unload`
             failed as the provider died or stopped (it may or may not have run it). Their
@@ -126,14 +133,55 @@ class Consumer:
         self.redeliver = redeliver
         self.clients = clients
         self.status_callbacks: dict[str, StatusCallback] = {}
-        self.pending_attempts: dict[str, CallAttempt] = {}
-        self.parked_notices: dict[str, list[Notice]] = {}
-        self.unsettled: dict[str, str] = {}
+        self.in_flight: dict[str, InFlight] = {}
         self.releasing: set[str] = set()
         self.unreleased: dict[str, str] = {}
         self.epoch = 0
         self.answered_in: dict[str, int] = {}
         self.texts = ClientTexts(shared)
+
+    # -- the calls in flight (`flight.py`) -------------------------------------------
+
+    def flight(self, query_id: str) -> InFlight:
+        """The in-flight record of `query_id`, made if it has none."""
+        flight = self.in_flight.get(query_id)
+        if flight is None:
+            flight = self.in_flight[query_id] = InFlight()
+        return flight
+
+    def landed(self, query_id: str) -> None:
+        """Forget the in-flight record of `query_id` if nothing is left of it."""
+        flight = self.in_flight.get(query_id)
+        if flight is not None and flight.idle():
+            del self.in_flight[query_id]
+
+    def take_attempt(self, query_id: str, attempt: CallAttempt) -> bool:
+        """`attempt`'s outcome came: whether it was the durable attempt in flight (its
+        `Pending` wrote the record; not a same-id retry's), which is then taken off."""
+        flight = self.in_flight.get(query_id)
+        if flight is None or flight.attempt is not attempt:
+            return False
+        flight.attempt = None
+        self.landed(query_id)
+        return True
+
+    def unsettled(self) -> dict[str, str]:
+        """Query id -> provider, of the calls that failed as their provider died or
+        stopped (it may hold the id; a retry may come): held until reconciled."""
+        return {q: f.unsettled_at for q, f in self.in_flight.items() if f.unsettled_at}
+
+    def settle(self, query_id: str, provider: str | None) -> None:
+        """Set (or, with `None`, clear) where `query_id`'s failed call may be held."""
+        if provider is not None:
+            self.flight(query_id).unsettled_at = provider
+        elif query_id in self.in_flight:
+            self.in_flight[query_id].unsettled_at = None
+            self.landed(query_id)
+
+    def was_unsettled(self, query_id: str) -> bool:
+        """Whether a call with `query_id` failed as its provider died (a retry follows)."""
+        flight = self.in_flight.get(query_id)
+        return flight is not None and flight.unsettled_at is not None
 
     # -- holding and forgetting queries -----------------------------------------------
 
@@ -173,7 +221,10 @@ class Consumer:
         provider.
         """
         for record in list(self.registrar.catalog.clients.values()):
-            attempt = self.pending_attempts.pop(record.query.id, None)
+            flight = self.in_flight.get(record.query.id)
+            attempt = None if flight is None else flight.attempt
+            if attempt is not None:
+                self.take_attempt(record.query.id, attempt)
             if record.parent is None and not record.loaded and attempt is not None:
                 give_back(record.query.serving_rr, record.query.id, self.registrar.name)
                 self.on_call_failed(
@@ -184,7 +235,8 @@ class Consumer:
                         provider=record.query.serving_rr,
                         server=record.query.server,
                         why="registrar stopped",
-                    )
+                    ),
+                    NO_REPLY,
                 )
                 attempt.fail(error)
 
@@ -224,7 +276,7 @@ class Consumer:
 
     # -- answers ----------------------------------------------------------------------
 
-    def on_pending(self, message: Pending) -> None:
+    def on_pending(self, message: Pending, reply: Reply) -> None:
         query_id = message.record.query.id
         if query_id not in self.registrar.catalog.clients:  # (else a retry of one held)
             record = message.record
@@ -236,86 +288,103 @@ class Consumer:
             if failed is not None:  # not durable: the Load must not leave (rule 16)
                 self.registrar.catalog.remove_client(query_id)
                 self.registrar.commit()
-                message.reply.set_error(failed)
+                reply.set_error(failed)
                 return
-        self.pending_attempts[query_id] = message.attempt
-        message.reply.set_result(None)  # durable: the Load may leave now (rule 16)
+        self.flight(query_id).attempt = message.attempt
+        reply.set_result(None)  # durable: the Load may leave now (rule 16)
 
-    def on_client_loaded(self, message: ClientLoaded) -> None:
+    def on_client_loaded(self, message: ClientLoaded, _reply: Reply) -> None:
+        """Record a call's answer (a `DurableLoaded` one too: it is a `ClientLoaded`)."""
         try:
             self.record_answer(message)
         finally:  # (also when recording failed: what waits for it must not wait for good)
             self.answered(message.record.query.id, message.attempt)
 
     def record_answer(self, message: ClientLoaded) -> None:
-        catalog = self.registrar.catalog
+        """Decide what `message`'s answer does (`flight.decide`), and do it.
+
+        A durable call's answer (`DurableLoaded`) is kept only while its caller still
+        waits: the actor takes the attempt before it commits, so a caller whose time runs
+        out meanwhile reads the answer instead. A caller that withdrew first told the
+        provider an Abandon after its Load; a stop failed it: its answer is not kept.
+        """
         query = message.record.query
-        held = catalog.clients.get(query.id)
-        retry = query.id in self.unsettled or (held is not None and held.loaded)
-        self.unsettled.pop(query.id, None)  # (a retry of a call that failed as it died)
-        ours = self.pending_attempts.get(query.id) is message.attempt  # (not a same-id retry's)
-        if ours:
-            del self.pending_attempts[query.id]
-        # A durable call's answer is kept only while its caller still waits: the actor takes
-        # the attempt before it commits, so a caller whose time runs out meanwhile reads
-        # the answer instead. A caller that withdrew first told the provider an Abandon
-        # after its Load; a stop failed it: its answer is not kept.
-        withdrawn = (
-            message.answer_after_commit and message.attempt.take() is not AttemptState.RECORDING
-        )
+        held = self.registrar.catalog.clients.get(query.id)
+        retry = self.was_unsettled(query.id) or (held is not None and held.loaded)
+        self.settle(query.id, None)  # (a retry of a call that failed as it died)
+        ours = self.take_attempt(query.id, message.attempt)  # (not a same-id retry's)
+        durable = isinstance(message, DurableLoaded)
+        withdrawn = durable and message.attempt.take() is not AttemptState.RECORDING
         try:
-            if withdrawn or (self.registrar.stopping and message.record.parent is None):
-                self.drop_answer(message, withdrawn=withdrawn, ours=ours)
-                return
-            if self.owner_gone(message.record):
-                outcomes.answered(self.registrar, message.record, retry=retry)
-                outcomes.forgotten(self.registrar, query, "late dependency")
-                self.give_back_late_dependency(message)
-                return
-            if message.answer_after_commit and self.unstorable(message):
-                return
-            if query.id in catalog.clients:  # written as pending before the load was sent
-                catalog.client_loaded(query.id, query.response)
-            else:
-                catalog.add_client(message.record)
-                self.texts.show(query.id)
-            failed = self.registrar.commit()
-            if failed is not None and message.answer_after_commit:  # durable: not kept
-                give_back(query.serving_rr, query.id, self.registrar.name)
-                self.forget(query.id)
-                outcomes.refused(self.registrar, query, failed)
-                message.attempt.settle(error=failed)
-                return
-            outcomes.answered(self.registrar, message.record, retry=retry)
-            self.answered_in[query.id] = self.epoch  # (a reconcile's list left before?)
-            if message.on_status is not None:
-                self.status_callbacks[query.id] = message.on_status
-            if message.answer_after_commit:
-                message.attempt.settle(query.response)
+            action = decide(
+                durable=durable,
+                withdrawn=withdrawn,
+                dependency=message.record.parent is not None,
+                stopping=self.registrar.stopping,
+                owner_gone=self.owner_gone(message.record),
+            )
+            self.act(action, message, ours=ours, retry=retry)
         except BaseException as exc:  # an attempt taken must be settled on every path
-            if message.answer_after_commit and not withdrawn:
+            if durable and not withdrawn:
                 message.attempt.settle(error=exc)  # (no-op if it was)
             raise
 
-    def drop_answer(self, message: ClientLoaded, *, withdrawn: bool, ours: bool) -> None:
-        """An answer not kept: its caller withdrew the call, or this registrar stops.
+    def act(self, action: Action, message: ClientLoaded, *, ours: bool, retry: bool) -> None:
+        """Run `action` on `message`'s answer (`flight.Action` says what each does).
 
-        `ours`: `message` is the attempt that wrote the pending record (not a same-id retry).
+        `ours`: `message` is the attempt that wrote the pending record (not a same-id
+        retry's). `retry`: the id was held or failed as its provider died before.
         """
         query = message.record.query
-        # A withdrawn call's caller gave the id back and its CallFailed removes the record.
-        # When stopping, give it back here too: the Abandon stop sent may have gone first.
-        if not withdrawn or self.registrar.stopping:
-            self.drop_pending(query, forget_record=ours)
-        if message.answer_after_commit and not withdrawn:
-            error = RegistrarStoppedError(
-                f"registrar {self.registrar.name!r} stopped during the call"
-            )
-            outcomes.refused(self.registrar, query, error)
-            message.attempt.settle(error=error)
-        elif not withdrawn:  # a plain call: its caller has the answer, given back here
-            outcomes.answered(self.registrar, message.record, retry=False)
-            outcomes.forgotten(self.registrar, query, "registrar stopped")
+        match action:
+            case Action.KEEP | Action.COMMIT:
+                self.keep(message, retry=retry)
+            case Action.LEAVE:
+                pass  # its caller gave the id back; its CallFailed removes the record
+            case Action.GIVE_BACK:
+                self.drop_pending(query, forget_record=ours)
+            case Action.REFUSE:
+                self.drop_pending(query, forget_record=ours)
+                error = RegistrarStoppedError(
+                    f"registrar {self.registrar.name!r} stopped during the call"
+                )
+                outcomes.refused(self.registrar, query, error)
+                message.attempt.settle(error=error)
+            case Action.FORGET:  # its caller has the answer, given back here
+                self.drop_pending(query, forget_record=ours)
+                outcomes.answered(self.registrar, message.record, retry=False)
+                outcomes.forgotten(self.registrar, query, "registrar stopped")
+            case Action.RELEASE_LATE:
+                outcomes.answered(self.registrar, message.record, retry=retry)
+                outcomes.forgotten(self.registrar, query, "late dependency")
+                self.give_back_late_dependency(message)
+
+    def keep(self, message: ClientLoaded, *, retry: bool) -> None:
+        """Record an answer (`Action.KEEP`), or commit a durable one and answer its
+        caller (`Action.COMMIT`)."""
+        catalog = self.registrar.catalog
+        query = message.record.query
+        durable = isinstance(message, DurableLoaded)
+        if durable and self.unstorable(message):
+            return
+        if query.id in catalog.clients:  # written as pending before the load was sent
+            catalog.client_loaded(query.id, query.response)
+        else:
+            catalog.add_client(message.record)
+            self.texts.show(query.id)
+        failed = self.registrar.commit()
+        if failed is not None and durable:  # not kept
+            give_back(query.serving_rr, query.id, self.registrar.name)
+            self.forget(query.id)
+            outcomes.refused(self.registrar, query, failed)
+            message.attempt.settle(error=failed)
+            return
+        outcomes.answered(self.registrar, message.record, retry=retry)
+        self.answered_in[query.id] = self.epoch  # (a reconcile's list left before?)
+        if message.on_status is not None:
+            self.status_callbacks[query.id] = message.on_status
+        if durable:
+            message.attempt.settle(query.response)
 
     def unstorable(self, message: ClientLoaded) -> bool:
         """A durable call's response this catalog cannot store: give it back, fail the call.
@@ -359,23 +428,22 @@ class Consumer:
             query.server,
         )
         self.drop_pending(query)  # (a durable consumer wrote its record as pending)
-        if message.answer_after_commit:  # (taken by `record_answer`)
+        if isinstance(message, DurableLoaded):  # (taken by `record_answer`)
             message.attempt.settle(query.response)
 
-    def on_call_failed(self, message: CallFailed) -> None:
+    def on_call_failed(self, message: CallFailed, _reply: Reply) -> None:
         known = self.registrar.catalog.clients.get(message.query_id)
         outcomes.failed(
             self.registrar,
             message,
-            retry=message.query_id in self.unsettled or (known is not None and known.loaded),
+            retry=self.was_unsettled(message.query_id) or (known is not None and known.loaded),
         )
-        current = self.pending_attempts.get(message.query_id)
-        if current is message.attempt:
-            del self.pending_attempts[message.query_id]
+        flight = self.in_flight.get(message.query_id)
+        current = None if flight is None else flight.attempt
+        self.take_attempt(message.query_id, message.attempt)
         if current is None or current is message.attempt:
-            self.unsettled.pop(message.query_id, None)
-            if message.serving_rr is not None:  # it may hold the id: a retry may follow
-                self.unsettled[message.query_id] = message.serving_rr
+            # (set if it may hold the id: a retry may follow)
+            self.settle(message.query_id, message.serving_rr)
         record = self.registrar.catalog.clients.get(message.query_id)
         try:
             if current is not None and current is not message.attempt:
@@ -405,7 +473,7 @@ class Consumer:
             if self.due.awaited(query_id):
                 self.take_outcomes()  # (handed over before the mark was read?)
             if query_id in self.due:
-                self.parked_notices.setdefault(query_id, []).append(notice)
+                self.flight(query_id).parked.append(notice)
                 return True
         return False
 
@@ -413,40 +481,46 @@ class Consumer:
         """`attempt`'s answer or failure was handled: handle what waited for it."""
         if not self.due.settle(query_id, attempt):
             return
-        waiting = self.parked_notices.pop(query_id, None)
+        flight = self.in_flight.get(query_id)
+        if flight is None or not flight.parked:
+            return
+        waiting, flight.parked = flight.parked, []
+        self.landed(query_id)
         while waiting:
             notice = waiting.pop(0)
             try:
                 self.redeliver(notice)
             except BaseException:  # the actor dies: `fail_waiting` answers the rest
-                if waiting:
-                    self.parked_notices[query_id] = waiting
+                self.flight(query_id).parked[:0] = waiting
                 raise
 
-    def on_revoke(self, message: Revoke) -> None:
+    def on_revoke(self, message: Revoke, _reply: Reply) -> None:
         if self.parked(message):
             return
         for query_id in message.query_ids:
             self.forget(query_id, commit=False, reason="revoked")
         self.registrar.commit()
 
-    def on_response_updated(self, message: ResponseUpdated) -> None:
+    def on_response_updated(self, message: ResponseUpdated, reply: Reply) -> None:
         if self.parked(message):
             return
         for query_id in message.query_ids:
             self.registrar.catalog.client_loaded(query_id, message.response)
         self.registrar.commit()
-        message.reply.set_result(None)
+        reply.set_result(None)
 
     def fail_waiting(self, error: RrError) -> None:
         """Answer the durable callers and the held notices still waiting here."""
-        for attempt in self.pending_attempts.values():
-            attempt.fail(error)
-        for notices in self.parked_notices.values():
-            for notice in notices:
+        for flight in self.in_flight.values():
+            if flight.attempt is not None:
+                flight.attempt.fail(error)
+        for flight in self.in_flight.values():
+            for notice in flight.parked:
                 if not isinstance(notice, Revoke):  # (a revoke wants no answer)
                     notice.reply.set_error(error)
-        self.parked_notices.clear()
+            flight.parked.clear()
+        for query_id in list(self.in_flight):
+            self.landed(query_id)
 
     def stop_clients(self) -> None:
         self.clients.stop_all()
@@ -457,7 +531,7 @@ class Consumer:
         """Whether this registrar holds ids at `serving_rr` (records, failed calls, or
         releases to complete there)."""
         return (
-            serving_rr in self.unsettled.values()
+            serving_rr in self.unsettled().values()
             or serving_rr in self.unreleased.values()
             or any(
                 record.query.serving_rr == serving_rr
@@ -478,7 +552,7 @@ class Consumer:
             for query_id, record in self.registrar.catalog.clients.items()
             if record.query.serving_rr == serving_rr
         }
-        held |= {q for q, provider in self.unsettled.items() if provider == serving_rr}
+        held |= {q for q, provider in self.unsettled().items() if provider == serving_rr}
         held |= due
         left_out = frozenset(q for q, p in self.unreleased.items() if p == serving_rr)
         self.epoch += 1
@@ -496,22 +570,31 @@ class Consumer:
         """`serving_rr` answered `listing`'s `Reconcile`: forget the failed calls it listed
         (it holds those it knew: a retry finds them) and the releases it left out (it
         released them). Without a listing (`serving_rr` is gone for good): all of them."""
-        for pending in (self.unsettled, self.unreleased):
-            for query_id in [q for q, p in pending.items() if p == serving_rr]:
-                if listing is None or query_id in listing.held or query_id in listing.left_out:
-                    del pending[query_id]
+
+        def settled(query_id: str) -> bool:
+            return listing is None or query_id in listing.held or query_id in listing.left_out
+
+        for query_id, provider in self.unsettled().items():
+            if provider == serving_rr and settled(query_id):
+                self.settle(query_id, None)
+        for query_id in [q for q, p in self.unreleased.items() if p == serving_rr]:
+            if settled(query_id):
+                del self.unreleased[query_id]
 
     def give_back_unsettled(self) -> None:
         """This registrar stops: give back the ids of calls that failed as their provider
         died, which it would no longer retry, and of releases that failed so."""
-        for pending in (self.unsettled, self.unreleased):
-            for query_id, serving_rr in pending.items():
-                give_back(serving_rr, query_id, self.registrar.name)
-            pending.clear()
+        for query_id, serving_rr in self.unsettled().items():
+            give_back(serving_rr, query_id, self.registrar.name)
+            self.settle(query_id, None)
+        for query_id, serving_rr in self.unreleased.items():
+            give_back(serving_rr, query_id, self.registrar.name)
+        self.unreleased.clear()
 
     # -- operations the handle asks for ----------------------------------------------
 
-    def op_unload(self, query_id: str, reply: Reply) -> None:
+    def on_release(self, message: Release, reply: Reply) -> None:
+        query_id = message.query_id
         record = self.registrar.catalog.clients.get(query_id)
         if record is None or not record.loaded:
             raise UnknownQueryError(f"unknown or released query id {query_id!r}")
@@ -565,14 +648,14 @@ class Consumer:
         told.__cause__ = error
         return told
 
-    def op_set_status_callback(self, query_id: str, callback: StatusCallback, reply: Reply) -> None:
-        if query_id not in self.registrar.catalog.clients:
-            raise UnknownQueryError(f"unknown or released query id {query_id!r}")
-        self.status_callbacks[query_id] = callback
+    def on_set_status_callback(self, message: SetStatusCallback, reply: Reply) -> None:
+        if message.query_id not in self.registrar.catalog.clients:
+            raise UnknownQueryError(f"unknown or released query id {message.query_id!r}")
+        self.status_callbacks[message.query_id] = message.callback
         reply.set_result(None)
 
-    def op_client_queries(self, reply: Reply) -> None:
+    def on_list_client_queries(self, _message: ListClientQueries, reply: Reply) -> None:
         reply.set_result([r.query for r in self.registrar.catalog.clients.values() if r.loaded])
 
-    def op_client(self, target_rr: str, server: str, reply: Reply) -> None:
-        reply.set_result(self.client(target_rr, server))
+    def on_open_client(self, message: OpenClient, reply: Reply) -> None:
+        reply.set_result(self.client(message.target_rr, message.server))

@@ -38,6 +38,12 @@ from rr_actors._registrar.messages import (
     ClientLoaded,
     Crash,
     Flush,
+    Reachable,
+    Ready,
+    Save,
+    SettleInDoubt,
+    Snapshot,
+    Stop,
     give_back,
 )
 from rr_actors._registrar.state import OpenReply, Phase, Shared
@@ -118,6 +124,9 @@ class Lifecycle:
         self.flush_timer: Cancellable | None = None
         self.hold_in_doubt = hold_in_doubt
         self.in_doubt_ids: frozenset[str] = frozenset()
+        self.sweeping = False  # slices of the restored catalog are still to be swept
+        self.swept_origins: set[str] = set()  # registrars holding ids in what was swept
+        self.reconcile_owed = False  # `reconcile` came during the sweep
 
     # -- start ------------------------------------------------------------------------
 
@@ -132,7 +141,7 @@ class Lifecycle:
         self.settle_in_doubt()
         self.unload_unheld()
         self.arm_flush_timer()
-        if self.registrar.phase is Phase.SERVING:  # (else once setup is done: `op_ready`)
+        if self.registrar.phase is Phase.SERVING:  # (else once setup is done: `on_ready`)
             self.reconcile()
 
     def reconcile(self) -> None:
@@ -142,8 +151,13 @@ class Lifecycle:
         (`ReconcileAsk`), as a consumer it tells every provider it holds ids at which
         ids it holds (`Reconcile`): ids released while one side was down are released,
         and ids one side lost in its restart are reported to the consumer as `FATAL`.
+        While the sweep of a restored catalog is under way, the provider's side waits
+        for it (it names the consumers to ask).
         """
-        self.unloading.ask_to_reconcile()
+        if self.sweeping:
+            self.reconcile_owed = True
+        else:
+            self.unloading.ask_to_reconcile(self.swept_origins)
         self.reconciling.reconcile_all()
 
     def settle_in_doubt(self) -> None:
@@ -154,7 +168,7 @@ class Lifecycle:
         was in flight is given up at its provider (its caller died with the last run), and
         so is a dependency whose resource is gone (a sub-call that outlived its load).
         With `hold_in_doubt` (a `setup` runs), their rows stay in the backup as they were
-        until the manager settles them (`op_settle_in_doubt`).
+        until the manager settles them (`on_settle_in_doubt`).
         """
         catalog = self.registrar.catalog
         doubtful = [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]
@@ -194,8 +208,40 @@ class Lifecycle:
         """
         for resource in self.registrar.catalog.unheld():
             self.teardown.unload_resource(resource, None)
+        self.sweep(0)
 
-    def op_settle_in_doubt(self, query_id: str | None, reply: Reply) -> None:
+    def sweep(self, after: int) -> None:
+        """Sweep the restored resources still in the backup, one slice per turn.
+
+        Each slice (`Catalog.sweep`: `SWEEP_ROWS` resources, a few ms) unloads those no
+        consumer holds (as `unload_unheld`) and notes the registrars holding ids in it
+        (whom `reconcile` asks); the next slice is a message to itself, behind what
+        arrived meanwhile, so calls are served between slices. A restart reads these
+        rows after it serves, not before: a catalog of one slice is swept at once.
+        """
+        if self.registrar.phase in (Phase.STOPPING, Phase.ENDED):
+            return
+        try:
+            unheld, origins, next_slice = self.registrar.catalog.sweep(after)
+            self.swept_origins |= origins
+            for resource in unheld:
+                self.teardown.unload_resource(resource, None)
+            if next_slice is not None:
+                self.sweeping = True
+                self.registrar.come_back(lambda _v, _e: self.sweep(next_slice)).set_result(None)
+                return
+        except RrError as exc:  # a damaged row: a lookup that needs it fails then
+            logger.error(  # noqa: TRY400 - the cause says it all
+                "registrar %s: the sweep of its restored catalog stopped: %s",
+                self.registrar.name,
+                exc,
+            )
+        self.sweeping = False
+        if self.reconcile_owed:
+            self.reconcile_owed = False
+            self.unloading.ask_to_reconcile(self.swept_origins)
+
+    def on_settle_in_doubt(self, message: SettleInDoubt, reply: Reply) -> None:
         """The manager handled in-doubt entry `query_id` (`None`: every one): write it off.
 
         Its row leaves the backup now (or as it was left: its dependencies may still be
@@ -203,6 +249,7 @@ class Lifecycle:
         no-op. A write that fails is the caller's error (`CatalogWriteError`): the entry
         stays settled in memory, and the next write that succeeds takes it out.
         """
+        query_id = message.query_id
         if query_id is None:
             rids = set(self.in_doubt_ids)
         elif query_id in self.in_doubt_ids:
@@ -220,13 +267,13 @@ class Lifecycle:
             return
         reply.set_result(None)
 
-    def op_reachable(self, reply: Reply) -> None:
+    def on_reachable(self, _message: Reachable, reply: Reply) -> None:
         """A carrier serves it: the other processes can reach it (and answer it) now."""
-        if self.registrar.phase is Phase.SERVING:  # (during setup, `op_ready` reconciles)
+        if self.registrar.phase is Phase.SERVING:  # (during setup, `on_ready` reconciles)
             self.reconcile()
         reply.set_result(None)
 
-    def op_ready(self, reply: Reply) -> None:
+    def on_ready(self, _message: Ready, reply: Reply) -> None:
         """Setup is done: serve what waited for it (unknown servers now fail)."""
         self.registrar.phase = Phase.SERVING
         self.registrar.servers_settled = True
@@ -246,7 +293,7 @@ class Lifecycle:
 
         self.flush_timer = self.registrar.saver.schedule(tick)
 
-    def on_flush(self, _: Flush) -> None:
+    def on_flush(self, _message: Flush, _reply: Reply) -> None:
         if self.registrar.stopping:
             return
         try:
@@ -256,19 +303,19 @@ class Lifecycle:
         finally:
             self.arm_flush_timer()
 
-    def op_save(self, reply: Reply) -> None:
+    def on_save(self, _message: Save, reply: Reply) -> None:
         self.registrar.commit()
         self.registrar.saver.flush()
         reply.set_result(None)
 
     # -- requests from the handle -----------------------------------------------------
 
-    def op_snapshot(self, reply: Reply, check: bool) -> None:
+    def on_snapshot(self, message: Snapshot, reply: Reply) -> None:
         """Copy the catalog's rows (a restored row decodes its values here, once); with
         `check`, after checking the catalog's invariants (a failure is the caller's
         `AssertionError`, not this registrar's death)."""
         try:
-            if check:
+            if message.check:
                 self.registrar.catalog.check_invariants()
             view = CatalogView(
                 resources=tuple(
@@ -287,10 +334,11 @@ class Lifecycle:
 
     # -- stop -------------------------------------------------------------------------
 
-    def op_stop(self, reply: Reply, unloads_until: float | None = None) -> None:
+    def on_stop(self, message: Stop, reply: Reply) -> None:
         """Unload what this registrar holds as a consumer (newest first), wait for the
-        unloads under way here until `unloads_until` (`time.monotonic()` seconds;
-        `None`: no wait), then stop (rule 12)."""
+        unloads under way here until `message.unloads_until` (`time.monotonic()`
+        seconds; `None`: no wait), then stop (rule 12)."""
+        unloads_until = message.unloads_until
         self.registrar.phase = Phase.STOPPING
         self.presence.close()  # no more reconcile retries
         stopped = RegistrarStoppedError(
@@ -381,7 +429,7 @@ class Lifecycle:
 
     # -- death --------------------------------------------------------------------------
 
-    def on_crash(self, _: Crash) -> None:
+    def on_crash(self, _message: Crash, _reply: Reply) -> None:
         raise RuntimeError(
             f"registrar {self.registrar.name!r} was made to crash (rr_actors.testing)"
         )

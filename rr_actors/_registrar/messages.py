@@ -45,6 +45,7 @@ __all__ = [
     "ClientLoaded",
     "ConsumerDown",
     "Crash",
+    "DurableLoaded",
     "Fetch",
     "FetchVia",
     "Flush",
@@ -298,12 +299,24 @@ class Pending:
 
 @dataclasses.dataclass(frozen=True, slots=True)  # (one per call: slots build faster)
 class ClientLoaded:
-    """A call's answer to record: the client record (its query holds the response)."""
+    """A plain call's answer to record: the client record (its query holds the response).
+
+    Its caller has the answer already (it hands this over, `calls.py`).
+    """
 
     record: ClientRecord
     on_status: StatusCallback | None
     attempt: CallAttempt  # the caller's
-    answer_after_commit: bool = False  # the registrar answers the caller, after the commit
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class DurableLoaded(ClientLoaded):
+    """A durable call's answer: the registrar commits its record, then answers the caller.
+
+    Its caller still waits (`CallAttempt.take`); told by the answering thread. Handled
+    as a `ClientLoaded` (the same step, `client_loaded`); its type is what says the
+    registrar answers the caller.
+    """
 
 
 @dataclasses.dataclass(frozen=True, slots=True)  # (one per call: slots build faster)

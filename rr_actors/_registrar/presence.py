@@ -34,7 +34,7 @@ import logging
 
 import pykka
 
-from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.timers import Cancellable, Timer, thread_timer
 from rr_actors._registrar.consumer import Consumer
 from rr_actors._registrar.messages import (
@@ -99,10 +99,10 @@ class Presence:
 
     # -- lost for good (rule 19) --------------------------------------------------------
 
-    def on_peer_lost(self, message: PeerLost) -> None:
+    def on_peer_lost(self, message: PeerLost, _reply: Reply) -> None:
         self.lose(message.name)
 
-    def on_consumer_down(self, message: ConsumerDown) -> None:
+    def on_consumer_down(self, message: ConsumerDown, _reply: Reply) -> None:
         self.lose(message.origin_rr)
 
     def lose(self, name: str) -> None:
@@ -116,10 +116,10 @@ class Presence:
 
     # -- reachable again (rule 20) ------------------------------------------------------
 
-    def on_peer_reachable(self, message: PeerReachable) -> None:
+    def on_peer_reachable(self, message: PeerReachable, _reply: Reply) -> None:
         name = message.name
         if name == self.registrar.name or self.registrar.phase is not Phase.SERVING:
-            return  # (during setup `op_ready` reconciles with everyone; stopping: nothing)
+            return  # (during setup `on_ready` reconciles with everyone; stopping: nothing)
         if self.consumer.holds_at(name):
             self.round_count += 1
             self.attempt(name, self.round_count, 0)
@@ -131,7 +131,7 @@ class Presence:
                     "registrar %s: %s not reachable yet: %s", self.registrar.name, name, exc
                 )
 
-    def on_reconcile_retry(self, message: ReconcileRetry) -> None:
+    def on_reconcile_retry(self, message: ReconcileRetry, _reply: Reply) -> None:
         if self.rounds.get(message.name) != (message.round, message.attempt - 1):
             return  # answered meanwhile, lost, or a newer round started
         if self.registrar.phase is not Phase.SERVING:

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 from rr_actors import events
 from rr_actors._catalog import NO_DIGEST, Resource, ResourceState, describe, request_digest
 from rr_actors._catalog.digest import requests_equal
+from rr_actors._core.directory import Reply
 from rr_actors._registrar.display import show_request, show_response
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH, check_picklable
 from rr_actors._registrar.matching import Matching, first_equal, prepare
@@ -99,7 +100,8 @@ class Provider:
             )
         return None
 
-    def on_load(self, message: Load) -> None:
+    def on_load(self, message: Load, _reply: Reply) -> None:
+        """Serve `message` (its answer goes to `message.reply`, which its waiters keep)."""
         if (
             self.registrar.phase is Phase.SETTING_UP
             and message.server not in self.registrar.servers
@@ -268,13 +270,13 @@ class Provider:
             self.registrar.commit()
             message.reply.set_error(failed)
             return
-        message.reply.set_result(resource.response)
-        if self.registrar.events.active:
+        if self.registrar.events.active:  # (after the commit, before the answer)
             self.registrar.events.publish(
                 events.ConsumerAdded(
                     self.registrar.name, resource.id, message.query_id, message.origin_rr
                 )
             )
+        message.reply.set_result(resource.response)
 
     def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
         """Load a request not loaded here (`key`: its `runtime_key` if it has no digest)."""
@@ -374,13 +376,13 @@ class Provider:
         and release restored resources of servers setup did not bring back."""
         held, self.held_loads = self.held_loads, []
         for load in held:
-            self.on_load(load)
+            self.on_load(load, load.reply)
         self.teardown.settle_parked()
 
     def serve_parked(self, rid: str) -> None:
         """Resource `rid` is gone: serve the loads parked behind its unload, afresh."""
         for load in self.after_unload.pop(rid, ()):
-            self.on_load(load)
+            self.on_load(load, load.reply)
 
     def unpark(self, query_id: str) -> Load | None:
         """Take the load of `query_id` out of the held, parked or queued loads, if there."""

@@ -21,7 +21,7 @@ import uuid
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.consumer import Consumer, Listing
@@ -83,7 +83,7 @@ class Reconciling:
         for serving_rr in sorted(providers):
             self.reconcile(serving_rr)
 
-    def on_reconcile_ask(self, message: ReconcileAsk) -> None:
+    def on_reconcile_ask(self, message: ReconcileAsk, _reply: Reply) -> None:
         if not message.holds_yours and not self.consumer.holds_at(message.serving_rr):
             return  # (told as every registrar of the system is: nothing to reconcile)
         if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet

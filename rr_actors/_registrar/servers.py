@@ -21,10 +21,17 @@ from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import Join
 from rr_actors._registrar.display import show_response
 from rr_actors._registrar.endpoints import ServerActor
-from rr_actors._registrar.messages import Fetch, ResponseUpdated, Revoke
-from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
+from rr_actors._registrar.messages import (
+    Fetch,
+    ListServerQueries,
+    RegisterServer,
+    ResponseUpdated,
+    Revoke,
+    UnregisterServer,
+    UpdateResponse,
+)
 from rr_actors._registrar.state import Server, Shared, consumers_by_origin
-from rr_actors._types import Status, StatusCallback, StatusUpdate
+from rr_actors._types import Status, StatusUpdate
 from rr_actors.errors import DuplicateNameError, RrError, UnknownServerError, _known_names
 
 if TYPE_CHECKING:
@@ -51,9 +58,9 @@ class Servers:
         self.teardown = teardown
         self.status = status
 
-    def on_fetch(self, message: Fetch) -> None:
+    def on_fetch(self, message: Fetch, reply: Reply) -> None:
         if message.server not in self.registrar.servers:
-            message.reply.set_error(
+            reply.set_error(
                 UnknownServerError(
                     f"no resource server '{self.registrar.name}/{message.server}'"
                     + _known_names(
@@ -63,7 +70,7 @@ class Servers:
                 )
             )
             return
-        message.reply.set_result(
+        reply.set_result(
             [
                 query
                 for query in self.registrar.catalog.server_queries(
@@ -89,15 +96,8 @@ class Servers:
             )
         return server
 
-    def op_register(
-        self,
-        name: str,
-        load: LoadCallback,
-        unload: UnloadCallback,
-        on_status: StatusCallback | None,
-        reply: Reply,
-        label: Callable[[Any], Any] | None = None,
-    ) -> None:
+    def on_register_server(self, message: RegisterServer, reply: Reply) -> None:
+        name = message.name
         if name in self.registrar.servers:
             raise DuplicateNameError(
                 f"resource server '{self.registrar.name}/{name}' already exists"
@@ -105,16 +105,17 @@ class Servers:
         ref = ServerActor.start(
             self.registrar.name,
             name,
-            load,
-            unload,
+            message.load,
+            message.unload,
             self.registrar.workers,
             persisted=self.registrar.saver.store is not None,
         )
-        self.registrar.servers[name] = Server(name, ref, on_status, label=label)
+        self.registrar.servers[name] = Server(name, ref, message.on_status, label=message.label)
         self.teardown.run_parked(name)
         reply.set_result(None)
 
-    def op_unregister(self, name: str, reply: Reply) -> None:
+    def on_unregister_server(self, message: UnregisterServer, reply: Reply) -> None:
+        name = message.name
         server = self.server(name)
         server.closing = True
         resources = [
@@ -174,7 +175,8 @@ class Servers:
         back = self.registrar.come_back(lambda *_: revoke_and_unload())
         self.status.notify(resource, update, event, query_id, lambda: back.set_result(None))
 
-    def op_update_response(self, query_id: str, response: Any, reply: Reply) -> None:
+    def on_update_response(self, message: UpdateResponse, reply: Reply) -> None:
+        query_id, response = message.query_id, message.response
         resource = self.registrar.catalog.resource_of(query_id)
         self.registrar.catalog.set_response(resource.id, response)
         show_response(self.registrar, resource)
@@ -190,6 +192,6 @@ class Servers:
             )
         join.seal()
 
-    def op_server_queries(self, server: str, reply: Reply) -> None:
-        self.server(server)
-        reply.set_result(self.registrar.catalog.server_queries(server, self.registrar.name))
+    def on_list_server_queries(self, message: ListServerQueries, reply: Reply) -> None:
+        self.server(message.server)
+        reply.set_result(self.registrar.catalog.server_queries(message.server, self.registrar.name))

@@ -33,7 +33,7 @@ from rr_actors._types import StatusCallback
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CatalogWriteError, RrError
 
-__all__ = ["OpenReply", "Phase", "Server", "Shared", "Waiter", "consumers_by_origin"]
+__all__ = ["NO_REPLY", "OpenReply", "Phase", "Server", "Shared", "Waiter", "consumers_by_origin"]
 
 logger = logging.getLogger("rr_actors")
 
@@ -102,6 +102,22 @@ class OpenReply:
     def set_error(self, error: BaseException) -> None:
         self.open.discard(self)
         self.reply.set_error(error)
+
+
+class _NoReply:
+    """The reply of a message that wants no answer (a tell): what it is given goes nowhere."""
+
+    __slots__ = ()
+
+    def set_result(self, value: Any) -> None:
+        pass
+
+    def set_error(self, error: BaseException) -> None:
+        pass
+
+
+NO_REPLY: Reply = _NoReply()
+"""What a role's handler gets as `reply` for a message without one (`actor.DISPATCH`)."""
 
 
 class Shared:

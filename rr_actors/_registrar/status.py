@@ -26,9 +26,9 @@ from rr_actors import events
 from rr_actors._catalog import Resource
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import CallbackReply, SharedJoin
-from rr_actors._registrar.messages import StatusNotice
+from rr_actors._registrar.messages import SendStatus, StatusNotice
 from rr_actors._registrar.state import Shared, consumers_by_origin
-from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
+from rr_actors._types import Query, StatusCallback, StatusUpdate
 from rr_actors.errors import RrError
 
 if TYPE_CHECKING:
@@ -49,7 +49,8 @@ class StatusRelay:
         self.consumer = consumer
         self.seen_events: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
 
-    def op_send_status(self, query_id: str, status: Status, message: str, reply: Reply) -> None:
+    def on_send_status(self, asked: SendStatus, reply: Reply) -> None:
+        query_id, status, message = asked.query_id, asked.status, asked.message
         resource = self.registrar.catalog.resource_of(query_id)
         update = StatusUpdate(query_id, status, message, f"{self.registrar.name}/{resource.server}")
         event = str(uuid.uuid4())
@@ -135,12 +136,12 @@ class StatusRelay:
             logger.exception("no worker thread for the status callback of %s", query.id)
             done()
 
-    def on_status_notice(self, message: StatusNotice) -> None:
+    def on_status_notice(self, message: StatusNotice, reply: Reply) -> None:
         """Consumer side: run the client callbacks, climb to the dependent resources."""
         if self.consumer.parked(message):
             return
         catalog = self.registrar.catalog
-        join = SharedJoin(lambda: message.reply.set_result(None))
+        join = SharedJoin(lambda: reply.set_result(None))
         for query_id in message.query_ids:
             record = catalog.clients.get(query_id)
             if record is None:

@@ -48,10 +48,10 @@ class Unloading:
         self.provider = provider
         self.teardown = teardown
 
-    def on_unload(self, message: Unload) -> None:
-        self.release(message.query_id, message.reply, "unload")
+    def on_unload(self, message: Unload, reply: Reply) -> None:
+        self.release(message.query_id, reply, "unload")
 
-    def on_abandon(self, message: Abandon) -> None:
+    def on_abandon(self, message: Abandon, _reply: Reply) -> None:
         self.release(message.query_id, None, "abandoned")
 
     def release_all_of(self, origin_rr: str) -> None:
@@ -108,13 +108,14 @@ class Unloading:
             return
         self.teardown.unload_resource(resource, reply)
 
-    def ask_to_reconcile(self) -> None:
+    def ask_to_reconcile(self, swept: set[str]) -> None:
         """This registrar serves (again): ask every registrar holding ids here to
         `Reconcile` (one that cannot be reached reconciles at its own start); release
         the ids of one that was stopped for good meanwhile; and, with a backup (which
         may have lost ids: a save interval, a truncated WAL), tell every other
-        registrar of the system, which may hold ids this one lost (rule 20)."""
-        origins = self.registrar.catalog.consumer_origins()
+        registrar of the system, which may hold ids this one lost (rule 20). `swept`:
+        the registrars holding ids in the restored rows still in the backup."""
+        origins = self.registrar.catalog.consumer_origins() | swept
         for origin in sorted(origins):
             try:
                 DIRECTORY.lookup(origin).tell(ReconcileAsk(self.registrar.name))
@@ -148,7 +149,7 @@ class Unloading:
             if self.registrar.catalog.has_consumer(query_id):  # (a release may have cascaded)
                 self.release(query_id, None, "consumer stopped")
 
-    def on_reconcile(self, message: Reconcile) -> None:
+    def on_reconcile(self, message: Reconcile, reply: Reply) -> None:
         """Release the ids of `origin_rr` it no longer holds; name those held here unknown.
 
         An id whose load is still under way here (waiting, parked, matched) is neither.
@@ -170,4 +171,4 @@ class Unloading:
                 self.release(query_id, None, "reconcile")
         under_way = self.provider.under_way()
         unknown = tuple(q for q in message.held if q not in mine and q not in under_way)
-        message.reply.set_result(unknown)
+        reply.set_result(unknown)

@@ -1,20 +1,21 @@
 """Reading a backup back lazily (`Unread`); every row at once is `files.read_rows`.
 
 ```
- SqliteStore.restore --one read transaction--> Consumers   (every consumer id -> its resource row)
-                                               resources in doubt, without a digest or with a
-                                               dependency, and every client record (as rows)
+ SqliteStore.restore --one read transaction--> resources in doubt, without a digest or
+                   with a dependency, and every client record (as rows): nothing more
                    --> Restored(resources, clients, unread)
  Catalog lookup (digest, consumer id, server, origin) --Unread--> rows read, checked, adopted:
                    the store mirrors them (`SqliteStore.adopt`), memory is the truth from then on
+ after it serves: the registrar sweeps the rest in slices (`Unread.sweep`): unheld
+                   resources and consumers' registrars, between calls
 ```
 
-Restoring does not read every row (`SqliteStore.restore`): the consumer ids are read as
-column strings by one aggregate query, the resources in doubt (or without a digest,
-or owning a dependency) and the client records as rows; every other resource is read
-when the catalog first looks it up, through the indexes. So a restart costs a fraction of
-a full read, and an index is written only when a resource is added or removed, never
-when a consumer id is.
+Restoring reads no consumer id and no other served resource (`SqliteStore.restore`):
+each is read when the catalog first looks it up, through the indexes (a consumer id
+through `consumers_by_query`, a request through `resources_by_request`). So what a
+restart reads before it serves does not grow with the catalog; what grows (finding
+the unheld resources, the registrars to reconcile with) is read after it serves, a
+slice at a time (`sweep`).
 
 `files.read_rows` reads everything in one snapshot instead (`SqliteStore.load`, `read_backup`).
 Either way a restored resource keeps its request and response encoded until first used
@@ -28,13 +29,8 @@ import sqlite3
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from rr_actors._catalog import ClientRecord, Resource, ResourceState
-from rr_actors._platform import PLATFORM
-from rr_actors._store.codec import (
-    as_corrupt,
-    check_row,
-    first_duplicate,
-)
+from rr_actors._catalog import ClientRecord, Listing, Resource, ResourceState
+from rr_actors._store.codec import STATES_BY_CODE, as_corrupt, check_row
 from rr_actors._types import Query
 from rr_actors.errors import CatalogCorruptError, RegistrarStoppedError
 
@@ -44,7 +40,7 @@ __all__ = [
     "CONSUMERS_OF",
     "RESOURCES_AT_ONCE",
     "RESOURCE_COLUMNS",
-    "Consumers",
+    "SWEEP_ROWS",
     "Mirror",
     "Restored",
     "RowStore",
@@ -127,51 +123,7 @@ CONSUMERS_OF = (  # one key range of the (resource, seq) key: in arrival order
     "SELECT seq, query_id, origin_rr FROM consumers WHERE resource = ?"
 )
 CLIENTS = f"SELECT {CLIENT_COLUMNS} FROM clients ORDER BY seq"  # noqa: S608
-_SEP = "\x1f"  # joins the consumer ids in one string (checked: a collision reads rows)
-
-
-class Consumers:
-    """Which resource row holds each stored consumer id, read as two column strings.
-
-    One aggregate query returns every query id and resource key joined in a string each
-    (no row tuples: a fraction of the cost of reading 100k rows); `index` maps a query
-    id straight to its resource key as read (parsed when that consumer is looked up), so
-    no list of places or place numbers is kept. The joined strings and the index's
-    outgrown tables are freed once it is built, and the pages they leave are handed back
-    to the system (`PLATFORM.release_free_memory`): 100k ids then cost the process 19 MB, not 27.
-    Every page a manager process still maps when it is killed is freed by the kernel
-    before its supervisor can see it exit (about 0.12 ms a MB).
-    """
-
-    def __init__(self, db: sqlite3.Connection) -> None:
-        count, max_seq, resources, query_ids = db.execute(
-            "SELECT count(*), ifnull(max(seq), 0), group_concat(resource), "
-            "group_concat(query_id, char(31)) FROM consumers"
-        ).fetchone()
-        self.max_seq: int = max_seq
-        keys: list[str] = query_ids.split(_SEP) if count else []
-        values: list[str | int] = resources.split(",") if count else []
-        del resources, query_ids
-        if len(keys) != count:  # a query id holds the separator: read the rows instead
-            rows = db.execute("SELECT resource, query_id FROM consumers").fetchall()
-            values = [resource for resource, _ in rows]
-            keys = [query_id for _, query_id in rows]
-            del rows
-        self.index: dict[str, str | int] = dict(zip(keys, values, strict=True))
-        if len(self.index) != count:
-            raise ValueError(f"consumer query id {first_duplicate(keys)} is stored twice")
-        del keys, values
-        if count >= _TRIM_AFTER:
-            PLATFORM.release_free_memory()
-
-    def resource_of(self, query_id: str) -> int | None:
-        """The resource row key of consumer `query_id`, if it is stored."""
-        resource = self.index.get(query_id)
-        return None if resource is None else int(resource)
-
-
-_TRIM_AFTER = 10_000
-"""Consumer ids from which building `Consumers` frees enough (MBs) to hand it back."""
+_RESOURCE_OF = "SELECT resource FROM consumers WHERE query_id = ?"  # index consumers_by_query
 
 
 class RowStore(Protocol):
@@ -189,25 +141,31 @@ class RowStore(Protocol):
         """Build a stored resource with its consumers; from now on the store mirrors it."""
         ...
 
+    def mirrored(self, last: int) -> tuple[int, int]:
+        """Resource rows (and their consumer rows) up to key `last` it mirrors: those in
+        memory that are still in the file."""
+        ...
+
+
+SWEEP_ROWS = 2_000
+"""Restored resources one slice of `Unread.sweep` looks at (a few ms of SQLite)."""
+
 
 class Unread:
     """The served resources of a restored backup that are not in memory yet (`UnreadRows`).
 
-    A restore reads the consumer ids, the resources in doubt and the clients; the other
-    resources stay in the file until the catalog asks for one (by request digest, by
-    consumer id, by server, ...). Reading one builds it with its consumers, records its
-    mirror in the store and never returns it again: from then on memory is the truth.
-    Rows written after the restore (`seq > last`) are the catalog's own and never read.
+    A restore reads the resources in doubt and the clients; the other resources stay in
+    the file until the catalog asks for one (by request digest, by consumer id, by
+    server, ...). Reading one builds it with its consumers, records its mirror in the
+    store and never returns it again: from then on memory is the truth. Rows written
+    after the restore (`seq > last`) are the catalog's own and never read.
     """
 
-    def __init__(
-        self, store: RowStore, consumers: Consumers, count: int, last: int, read: set[int]
-    ) -> None:
+    def __init__(self, store: RowStore, last: int, read: set[int], *, remaining: bool) -> None:
         self._store = store
-        self._consumers = consumers
         self._last = last
         self._read = read  # row keys of restored resources already in memory
-        self.remaining = count - len(read)
+        self.remaining = remaining
 
     def by_request(self, server: str, digest: int) -> list[Resource]:
         """Unread resources of `server` whose request digest is `digest`."""
@@ -217,14 +175,15 @@ class Unread:
         )
 
     def by_consumer(self, query_id: str) -> Resource | None:
-        """The unread resource that has consumer `query_id`, if any."""
-        with as_corrupt(self._store.path):
-            seq = self._consumers.resource_of(query_id)
-        if seq is None:
+        """The unread resource that has consumer `query_id`, if any (one index lookup)."""
+        if not self.remaining:
             return None
-        if seq in self._read:
-            return None  # in memory: released since (memory is the truth)
         self._check_open()
+        with as_corrupt(self._store.path):
+            row = self._store.connection.execute(_RESOURCE_OF, (query_id,)).fetchone()
+            seq = None if row is None else int(row[0])
+        if seq is None or seq > self._last or seq in self._read:
+            return None  # unknown, the catalog's own, or in memory (memory is the truth)
         resources = self._take([seq])
         if not resources:
             raise CatalogCorruptError(
@@ -247,17 +206,6 @@ class Unread:
             (origin_rr, self._last),
         )
 
-    def origins(self) -> set[str]:
-        """The registrars that consumers of unread resources belong to (none is read)."""
-        if not self.remaining:
-            return set()
-        self._check_open()
-        with as_corrupt(self._store.path):
-            rows = self._store.connection.execute(
-                "SELECT DISTINCT origin_rr FROM consumers WHERE resource <= ?", (self._last,)
-            ).fetchall()
-        return {origin for (origin,) in rows}
-
     def consumer_ids_from(self, origin_rr: str) -> list[str]:
         """The consumer ids of unread resources that `origin_rr` holds (none is read)."""
         if not self.remaining:
@@ -270,20 +218,112 @@ class Unread:
             ).fetchall()
         return [query_id for query_id, resource in rows if resource not in self._read]
 
-    def unheld(self) -> list[Resource]:
-        """Every unread resource loaded and held by no consumer, oldest first.
+    def sweep(self, after: int) -> tuple[list[Resource], set[str], int | None]:
+        """Look at the next `SWEEP_ROWS` restored resources (row keys above `after`).
 
-        One pass over the resources' keys, each looked up in the consumers' key.
+        Returns:
+            `(unheld, origins, last)`: the unread ones among them that are loaded and
+            held by no consumer (read now), the registrars their consumers (read or
+            not) belong to, and the last row key looked at (`None`: it was the last
+            slice).
         """
-        return self._fetch(
-            "SELECT seq FROM resources r WHERE seq <= ? AND state = 1 AND NOT EXISTS "
-            "(SELECT 1 FROM consumers c WHERE c.resource = r.seq) ORDER BY seq",
-            (self._last,),
+        if not self.remaining:
+            return [], set(), None
+        self._check_open()
+        with as_corrupt(self._store.path):
+            db = self._store.connection
+            looked_at, upto = db.execute(
+                "SELECT count(*), max(seq) FROM (SELECT seq FROM resources "
+                "WHERE seq > ? AND seq <= ? ORDER BY seq LIMIT ?)",
+                (after, self._last, SWEEP_ROWS),
+            ).fetchone()
+            if upto is None:
+                return [], set(), None
+            origins = {
+                origin
+                for (origin,) in db.execute(
+                    "SELECT DISTINCT origin_rr FROM consumers WHERE resource > ? AND resource <= ?",
+                    (after, upto),
+                )
+            }
+        unheld = self._fetch(
+            "SELECT seq FROM resources r WHERE seq > ? AND seq <= ? AND state = 1 AND NOT "
+            "EXISTS (SELECT 1 FROM consumers c WHERE c.resource = r.seq) ORDER BY seq",
+            (after, upto),
         )
+        return unheld, origins, upto if looked_at == SWEEP_ROWS else None
 
     def every(self) -> list[Resource]:
         """Every unread resource, oldest first."""
-        return self._fetch("SELECT seq FROM resources WHERE seq <= ? ORDER BY seq", (self._last,))
+        resources = self._fetch(
+            "SELECT seq FROM resources WHERE seq <= ? ORDER BY seq", (self._last,)
+        )
+        self.remaining = False
+        return resources
+
+    def listing(self, limit: int) -> Listing | None:
+        """The unread resources and consumers as rows, without reading them; `None` if
+        either kind has more than `limit` rows.
+
+        Returns:
+            `(resources, consumers)`: `(row key, (id, server, state, digest))` per
+            resource, oldest first; `(row key, (query id, resource id, consumer
+            registrar))` per consumer, by resource, in arrival order.
+        """
+        if not self.remaining:
+            return [], []
+        self._check_open()
+        mirrored = self._store.mirrored(self._last)
+        with as_corrupt(self._store.path):
+            db = self._store.connection
+            rows = db.execute(
+                "SELECT seq, id, server, state, digest FROM resources WHERE seq <= ? "
+                "ORDER BY seq LIMIT ?",
+                (self._last, limit + mirrored[0] + 1),
+            ).fetchall()
+            consumers = db.execute(
+                "SELECT c.resource, c.query_id, r.id, c.origin_rr FROM consumers c "
+                "JOIN resources r ON r.seq = c.resource WHERE c.resource <= ? "
+                "ORDER BY c.resource, c.seq LIMIT ?",
+                (self._last, limit + mirrored[1] + 1),
+            ).fetchall()
+            resources: list[tuple[float, tuple[str, ...]]] = [
+                (
+                    seq,
+                    (
+                        rid,
+                        server,
+                        STATES_BY_CODE[state].value,
+                        "" if digest is None else str(digest),
+                    ),
+                )
+                for seq, rid, server, state, digest in rows
+                if seq not in self._read
+            ]
+        held: list[tuple[float, tuple[str, ...]]] = [
+            (seq, (qid, rid, origin))
+            for seq, qid, rid, origin in consumers
+            if seq not in self._read
+        ]
+        if len(resources) > limit or len(held) > limit:
+            return None
+        return resources, held
+
+    def counts(self) -> tuple[int, int]:
+        """How many resources and consumer ids are unread (two counts of the file)."""
+        if not self.remaining:
+            return 0, 0
+        self._check_open()
+        mirrored = self._store.mirrored(self._last)
+        with as_corrupt(self._store.path):
+            db = self._store.connection
+            (resources,) = db.execute(
+                "SELECT count(*) FROM resources WHERE seq <= ?", (self._last,)
+            ).fetchone()
+            (consumers,) = db.execute(
+                "SELECT count(*) FROM consumers WHERE resource <= ?", (self._last,)
+            ).fetchone()
+        return resources - mirrored[0], consumers - mirrored[1]
 
     def _fetch(self, sql: str, args: tuple[Any, ...]) -> list[Resource]:
         if not self.remaining:
@@ -313,7 +353,6 @@ class Unread:
                 read.append((row, db.execute(CONSUMERS_OF, (seq,)).fetchall()))
         resources = [store.adopt(row, consumers) for row, consumers in read]
         self._read.update(row[0] for row, _ in read)
-        self.remaining -= len(read)
         return resources
 
     def _check_open(self) -> None:

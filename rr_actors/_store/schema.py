@@ -1,6 +1,6 @@
 """The backup's schema: its version, how a file is created and migrated, how it is checked.
 
-Layout (schema version 4):
+Layout (schema version 5):
 
 * `rr_actors_schema(version, digest_scheme)`: one row, the schema version and the
   `DIGEST_SCHEME` of the stored digests; `PRAGMA application_id` marks the file as an
@@ -14,8 +14,9 @@ Layout (schema version 4):
   not loaded or without a digest.
 * `consumers(resource, seq, query_id, origin_rr)`: consumer ids, `resource` being the `seq`
   of their resource; clustered by `(resource, seq)` (`WITHOUT ROWID`), so a scan yields
-  each resource's consumers together, in arrival order, and adding or removing one
-  writes one page.
+  each resource's consumers together, in arrival order; a unique index on `query_id`
+  finds a consumer id's resource without reading the others (a restore reads no
+  consumer id until a call needs it).
 * `clients(seq, query_id, server, serving_rr, origin_rr, request, response, parent,
   loaded, request_text)`: outbound queries (`parent` set for dependencies).
 
@@ -24,7 +25,7 @@ runs code from the file: `rr-actors observe --state` and `graph --state` never d
 
 ```
  empty file --MIGRATIONS[0]--> v1 --MIGRATIONS[1]--> v2 --MIGRATIONS[2]--> v3 --MIGRATIONS[3]--> v4
-                                                                               (SCHEMA_VERSION)
+   --MIGRATIONS[4]--> v5 (SCHEMA_VERSION)
 ```
 
 Each step is one transaction (`migrate`). The stored digest is deterministic (BLAKE2b of
@@ -72,7 +73,7 @@ __all__ = [
 APPLICATION_ID = 0x72724163  # "rrAc"
 """`PRAGMA application_id` of every rr_actors catalog file."""
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 """The schema version this code writes; older files are migrated, newer ones refused."""
 
 
@@ -169,7 +170,17 @@ def _upgrade_v4(db: sqlite3.Connection) -> None:
     db.execute("UPDATE clients SET request_text = ?", (NOT_SHOWN_OLD,))
 
 
-INDEXES = ("resources_by_id", "resources_by_request", "resources_unsettled")
+def _upgrade_v5(db: sqlite3.Connection) -> None:
+    """v4 -> v5: consumer ids indexed, so a restore need not read them (issue 34).
+
+    A restart used to read every consumer id into memory before it served (the only
+    part of a restore that grew with the catalog); a call now finds its id through this
+    index. A file with a consumer id stored twice fails here (`UNIQUE constraint failed`).
+    """
+    db.execute("CREATE UNIQUE INDEX consumers_by_query ON consumers (query_id)")
+
+
+INDEXES = ("resources_by_id", "resources_by_request", "resources_unsettled", "consumers_by_query")
 """The indexes of a current file: a restore relies on them (unique ids, dedup, doubt)."""
 
 _UNSETTLED = "state != 1 OR digest IS NULL"
@@ -180,6 +191,7 @@ MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (
     _upgrade_v2,
     _upgrade_v3,
     _upgrade_v4,
+    _upgrade_v5,
 )
 """`MIGRATIONS[v]` brings a version-`v` file to version `v + 1` (0 is an empty file).
 

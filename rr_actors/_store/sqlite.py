@@ -59,7 +59,6 @@ from rr_actors._store.restore import (
     CLIENTS,
     CONSUMERS_OF,
     RESOURCES_AT_ONCE,
-    Consumers,
     Mirror,
     Restored,
     Unread,
@@ -223,11 +222,11 @@ class SqliteStore:
     def restore(self) -> Restored | None:
         """Read what a registrar needs to serve again; `None` if `open` created the file.
 
-        Unlike `load`, it does not read every served resource: the consumer ids (as two
-        column strings), the resources in doubt or without a stored digest, those owning a
-        dependency and the client records are read in one read transaction; the other
-        resources are read from the file when the catalog first needs them (`unread`).
-        So its cost grows with the number of consumer ids only, at a fraction of a row read.
+        Unlike `load`, it does not read every served resource: the resources in doubt or
+        without a stored digest, those owning a dependency and the client records are
+        read in one read transaction; every other resource, and every consumer id, is
+        read from the file when the catalog first needs it (`unread`, through the
+        indexes). So what it reads grows with those rows only, not with the catalog.
 
         Raises:
             CatalogCorruptError: the backup cannot be read (duplicate ids, unknown
@@ -237,18 +236,22 @@ class SqliteStore:
             with as_corrupt(self.path), gc_paused():
                 self._db.execute("BEGIN")
                 try:
-                    count, last = self._db.execute(
-                        "SELECT count(*), ifnull(max(seq), 0) FROM resources"
+                    (last,) = self._db.execute(
+                        "SELECT ifnull(max(seq), 0) FROM resources"
                     ).fetchone()
-                    consumers = Consumers(self._db)
                     rows = self._db.execute(RESOURCES_AT_ONCE).fetchall()
                     client_rows = self._db.execute(CLIENTS).fetchall()
+                    at_once = {row[0] for row in rows}
+                    more = self._db.execute(  # (at most len(rows) + 1 keys)
+                        "SELECT seq FROM resources ORDER BY seq LIMIT ?", (len(rows) + 1,)
+                    ).fetchall()
                 finally:
                     self._db.execute("COMMIT")
                 for row in rows:
                     check_row(row)
                 check_keys([], [], client_rows)
                 self._resources = {}
+                self._seq = last
                 resources = [
                     self.adopt(row, self._db.execute(CONSUMERS_OF, (row[0],)).fetchall())
                     for row in rows
@@ -263,11 +266,15 @@ class SqliteStore:
         except CatalogCorruptError:
             self.close(erase=False)
             raise
-        self._seq = max(last, consumers.max_seq, *client_seqs.values())
+        # A consumer row's key must only be above those of its resource's other
+        # consumers: `adopt` raises `_seq` past them as it reads a resource, so the
+        # largest consumer key of the file is never needed (a scan of every row).
+        self._seq = max([self._seq, *client_seqs.values()])
         self._loaded = True
-        if self._created and not count and not clients:
+        if self._created and not last and not clients:
             return None
-        unread = Unread(self, consumers, count, last, {row[0] for row in rows})
+        remaining = any(seq not in at_once for (seq,) in more)
+        unread = Unread(self, last, at_once, remaining=remaining)
         return Restored(resources, clients, unread)
 
     def adopt(self, row: Any, consumer_rows: list[Any]) -> Resource:
@@ -290,8 +297,19 @@ class SqliteStore:
         for key, query_id, origin in consumer_rows:
             resource.consumers[query_id] = origin
             keys[query_id] = key
+            self._seq = max(self._seq, key)  # its next consumer's key comes after these
         self._resources[rid] = Mirror(seq, resource.state, 0, keys, (texts[0], texts[1], texts[2]))
         return resource
+
+    def mirrored(self, last: int) -> tuple[int, int]:
+        """Resource rows with a key up to `last` that the store mirrors (in memory, still in
+        the file), and their consumer rows."""
+        resources = consumers = 0
+        for mirror in self._resources.values():
+            if mirror.seq <= last:
+                resources += 1
+                consumers += len(mirror.consumers)
+        return resources, consumers
 
     def write(self, changes: Changes) -> None:
         """Apply `changes` (current rows, `None` for deleted ones) as one transaction.

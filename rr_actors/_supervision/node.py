@@ -1,7 +1,7 @@
 """One supervisor of a tree: a small state record plus named steps on its mailbox thread.
 
 After OTP's `supervisor.erl` (a state record, `restart/3` with one clause per strategy,
-`do_*` helpers): the steps below run on the node's `Mailbox` thread, one event at a time,
+`do_*` helpers): the steps below run on the node's thread (a `SerialExecutor`), one event at a time,
 and decide with the pure policy in `rr_actors._supervision.policy`.
 
 ```
@@ -19,13 +19,16 @@ exited child (OTP: a supervisor that gives up exits with `shutdown`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import os
 import time
 from collections.abc import Callable
+from typing import TypeVar
 
 from rr_actors import events
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.timers import Cancellable
 from rr_actors._process.manager import ManagerExit
 from rr_actors._supervision.children import (
@@ -34,7 +37,6 @@ from rr_actors._supervision.children import (
     ProcessManager,
     ThreadManager,
 )
-from rr_actors._supervision.mailbox import Mailbox
 from rr_actors._supervision.policy import (
     RestartIntensity,
     affected,
@@ -49,6 +51,8 @@ from rr_actors.errors import RrError, SupervisorGaveUpError
 __all__ = ["Node"]
 
 logger = logging.getLogger("rr_actors")
+
+T = TypeVar("T")
 
 _MIN_STOP = 1e-3  # seconds a child still gets to stop when an overall stop bound ran out
 
@@ -109,7 +113,7 @@ class Node:
         self.gave_up: SupervisorGaveUpError | None = None
         self.giving_up = False
         self.on_gave_up: Callable[[SupervisorGaveUpError], None] | None = None
-        self._mailbox = Mailbox(f"rr-supervisor-{spec.name}", self._handle, self.publish)
+        self._mailbox = SerialExecutor(f"rr-supervisor-{spec.name}")
         self._generation = 0
         self._timers: list[Cancellable] = []
         self._running = False
@@ -136,12 +140,12 @@ class Node:
             SupervisorGaveUpError: a child failed to start (the others were stopped).
         """
         self._running = True
-        self._mailbox.start()
         try:
-            self._mailbox.call(self._start_all)
+            self._mailbox.call(functools.partial(self._then_publish, self._start_all))
         except BaseException:
             self._running = False
-            self._mailbox.quit(30.0)
+            self._mailbox.finish()
+            self._mailbox.join(30.0)
             raise
 
     def stop(
@@ -161,18 +165,32 @@ class Node:
         if not self._running:
             return
         self._running = False
-        if self._mailbox.is_alive():
+        if not self._mailbox.closed:
+            stop_all = functools.partial(self._stop_all, deadline, restarting=restarting)
             try:
-                self._mailbox.call(lambda: self._stop_all(deadline, restarting=restarting))
+                self._mailbox.call(functools.partial(self._then_publish, stop_all))
             except RrError:
                 logger.exception("supervisor %s: stopping its children failed", self.name)
-            self._mailbox.quit(60.0)
+            self._mailbox.finish()
+            self._mailbox.join(60.0)
 
     def cast(self, fn: Callable[[], object]) -> None:
         """Run `fn` on this supervisor's thread after what is queued now."""
-        self._mailbox.cast(fn)
+        self._mailbox.submit(functools.partial(self._then_publish, fn))
 
     # -- the mailbox -------------------------------------------------------------------
+
+    def _post(self, event: object) -> None:
+        """Queue `event` for this supervisor's thread (any thread; returns at once)."""
+        self._mailbox.submit(functools.partial(self._then_publish, self._handle, event))
+
+    def _then_publish(self, fn: Callable[..., T], *args: object) -> T:
+        """Run `fn(*args)`, then `publish` (this supervisor's thread, one step at a time;
+        what `fn` raises is logged by the thread, or raised to `call`'s caller)."""
+        try:
+            return fn(*args)
+        finally:
+            self.publish()
 
     def _handle(self, event: object) -> None:
         if isinstance(event, Exited):
@@ -193,7 +211,7 @@ class Node:
         name, incarnation = child.name, child.incarnation
 
         def post(result: ManagerExit) -> None:
-            self._mailbox.post(Exited(name, incarnation, result))
+            self._post(Exited(name, incarnation, result))
 
         return post
 
@@ -282,7 +300,7 @@ class Node:
         def escalate(error: SupervisorGaveUpError) -> None:
             # OTP: a supervisor that gives up exits with `shutdown`: normal for `transient`
             gave_up = ManagerExit(f"gave up: {error}", normal=True)
-            self._mailbox.post(Exited(spec.name, incarnation, gave_up))
+            self._post(Exited(spec.name, incarnation, gave_up))
 
         nested.on_gave_up = escalate
         nested.start()
@@ -441,12 +459,12 @@ class Node:
         delay = self.spec.backoff.delay(self.intensity.recent, tree.random)
         event = Restart(names, self._generation)
         if delay <= 0:
-            self._mailbox.post(event)
+            self._post(event)
             return
         logger.info("supervisor %s: restarting %s in %.3f s", self.name, ", ".join(names), delay)
         tree.restart_due.update(dict.fromkeys(names, time.time() + delay))  # (the observer's)
         self.publish()
-        self._timers.append(tree.timer(delay, lambda: self._mailbox.post(event)))
+        self._timers.append(tree.timer(delay, lambda: self._post(event)))
 
     def _on_restart(self, event: Restart) -> None:
         if event.generation != self._generation or self.gave_up is not None:
@@ -460,7 +478,7 @@ class Node:
                 logger.exception("supervisor %s: restart of %s failed", self.name, child.name)
                 child.running = None
                 failed = ManagerExit(f"failed to start: {exc}", normal=False)
-                self._mailbox.post(Exited(child.name, child.incarnation, failed))
+                self._post(Exited(child.name, child.incarnation, failed))
                 return
             self.publish()
 

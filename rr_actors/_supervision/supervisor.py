@@ -18,7 +18,7 @@ Who does what (each in its own module of `rr_actors._supervision`):
 ```
  Supervisor (this module: the public handle; owns the transport, spares, state-dir lock)
    ├─ TreeWatch (watching.py: subscribe, flush_events, observe, graph)
-   └─ Node (node.py: one supervisor's state record + steps, on its Mailbox thread)
+   └─ Node (node.py: one supervisor's state record + steps, on its own thread)
         ├─ policy.py: restart or not, which siblings, intensity (pure)
         ├─ children.py: Child records; ThreadManager / ProcessManager / NestedSupervisor
         └─ tree.py: what the tree shares; lookups and wait_restarted; death watch

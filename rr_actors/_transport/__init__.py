@@ -7,17 +7,18 @@
 - `unix/`, the AF_UNIX carrier: `system` (the system: runtime directory, authkey,
   `attach`), `sockets` (connect and the authkey handshake), `outbound` (a channel to
   another process's registrar), `inbound` (a registrar's listener), `writer` (sending
-  without blocking on the peer), `rendezvous` (what its channels need of the system, and
-  how it finds a registrar lost for good);
+  without blocking on the peer, on a `_core.serial.SerialExecutor`), `rendezvous` (what
+  its channels need of the system, and how it finds a registrar lost for good);
 - `zenoh/`, the Zenoh carrier (extra `zenoh`, imported only when used): `net`
   (`ZenohNetwork`: the router per host and its config), `carrier` (a process's
   membership: the Transport surface, sending), `outbox` (writer threads), `inbox`
-  (decode threads, delivery, answers), `presence` (liveliness tokens), `queue` (one
-  thread per ordered stream), `wire` (key expressions and header), `tls` (`ZenohTLS`: a
-  host's certificates and the system's members, checked with `cryptography`), `config`,
-  `watch`, `probe`, `gate` (the session's config, who links, why not, a flood's gate),
-  `access` (who else may read a key). The operator's tooling (`rr-actors certs`) is
-  `rr_actors._tools.certs`, not a carrier's.
+  (decode threads, delivery, answers), `presence` (liveliness tokens; each thread a
+  `_core.serial.SerialExecutor`), `wire` (key expressions and header), `tls` (`ZenohTLS`:
+  a host's certificates and the system's members, checked with `cryptography`),
+  `config`, `watch`, `probe`, `gate` (the session's config, who links, why not, a
+  flood's gate), `access` (who else may read a key), `options` (the Zenoh options a
+  command line shares), `events` (every host's events on the network). The operator's
+  tooling (`rr-actors certs`) is `rr_actors._tools.certs`, not a carrier's.
 """
 
 from rr_actors._transport.base import Address, Endpoint, Transport

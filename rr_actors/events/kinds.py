@@ -1,8 +1,9 @@
 """The event kinds: one frozen dataclass per thing a tree or a registrar does.
 
 Each has its own fields first, then the keyword-only `at` (wall clock, `time.time()`
-seconds) and `pid` (the process it happened in). Adding a kind: its class here, in the
-`Event` union, and its line in `text.describe`.
+seconds), `pid` (the process it happened in), `seq`, `host` (the member name of the host
+it happened on) and `hlc` (its hybrid logical clock stamp: `rr_actors._core.hlc`).
+Adding a kind: its class here, in the `Event` union, and its line in `text.describe`.
 """
 
 from __future__ import annotations
@@ -10,10 +11,10 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import os
-import time
-from collections.abc import Callable
+import socket
 from typing import Any, TypeAlias
 
+from rr_actors._core import hlc as _hlc
 from rr_actors._platform import fork
 from rr_actors._types import Status
 
@@ -45,7 +46,39 @@ __all__ = [
 
 
 def _now() -> Any:
-    return dataclasses.field(default_factory=time.time)
+    return dataclasses.field(default_factory=_hlc.CLOCK.wall)
+
+
+def _stamped() -> Any:
+    return dataclasses.field(default_factory=_hlc.CLOCK.now)
+
+
+def _this_host() -> Any:
+    return dataclasses.field(default_factory=_current_host)
+
+
+_host = socket.gethostname()
+
+
+def _current_host() -> str:
+    return _host
+
+
+def this_host() -> str:
+    """The member name events of this process carry (`host`): see `set_host`."""
+    return _host
+
+
+def set_host(name: str) -> None:
+    """Name this process's host in the events it builds from now on (`host`).
+
+    A process that joins a system served on a `ZenohNetwork` with `tls` (its router, and
+    the manager processes that attach through it) names it by the certificate's common
+    name: the member name. Until then, and on a system without TLS, it is the
+    machine's host name (`socket.gethostname()`).
+    """
+    global _host
+    _host = name
 
 
 def _this_process() -> Any:
@@ -60,33 +93,20 @@ _counter = itertools.count(1)
 _numbering = False
 
 
-_mark: Callable[[int], object] | None = None
-
-
 def _next_seq() -> int:
     """The next number of this process's events, or 0 where events are not numbered."""
     if not _numbering:
         return 0
-    seq = next(_counter)
-    mark = _mark
-    if mark is not None:
-        mark(seq)
-    return seq
+    return next(_counter)
 
 
-def number_events(mark: Callable[[int], object] | None = None) -> None:
+def number_events() -> None:
     """Number the events this process builds from now on (a manager process does).
 
     Each event then carries `seq`: 1, 2, 3, ... in the order they were built, so that a
     reader of the forwarded stream sees every event the process lost (a gap).
-
-    Args:
-        mark: called with each number as it is given (on the thread that builds the
-            event; it must be quick and not raise): a manager process records the last
-            one where its supervisor reads it after a SIGKILL.
     """
-    global _numbering, _mark
-    _mark = mark
+    global _numbering
     _numbering = True
 
 
@@ -99,10 +119,10 @@ def _current_pid() -> int:
 
 
 def _forked() -> None:
-    global _pid, _counter, _numbering, _mark
+    global _pid, _counter, _numbering
     _pid = os.getpid()
     _counter = itertools.count(1)
-    _numbering, _mark = False, None
+    _numbering = False
 
 
 fork.after_fork_in_child("the events' pid", _forked)
@@ -124,6 +144,9 @@ class ChildStarted:
         pid: the child's process (the supervisor's own process for a thread manager or
             a nested supervisor).
         at: when it happened, wall clock (`time.time()` seconds).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     supervisor: str
@@ -131,6 +154,8 @@ class ChildStarted:
     pid: int
     _: dataclasses.KW_ONLY
     at: float = _now()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -147,6 +172,9 @@ class ChildExited:
             a thread manager or a nested supervisor).
         reason: why it ended, for people (the same text as `ChildInfo.last_exit`).
         at: when the supervisor saw it, wall clock (`time.time()` seconds).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     supervisor: str
@@ -155,6 +183,8 @@ class ChildExited:
     reason: str
     _: dataclasses.KW_ONLY
     at: float = _now()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -169,6 +199,9 @@ class ChildRestarted:
         restart_s: seconds from the supervisor seeing the exit to the new incarnation
             serving (its catalog restored), backoff delay included.
         at: when it serves again, wall clock (`time.time()` seconds).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     supervisor: str
@@ -177,6 +210,8 @@ class ChildRestarted:
     restart_s: float
     _: dataclasses.KW_ONLY
     at: float = _now()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -194,6 +229,9 @@ class SupervisorGaveUp:
         at: when it gave up, wall clock (`time.time()` seconds).
         pid: the supervisor's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     supervisor: str
@@ -204,6 +242,8 @@ class SupervisorGaveUp:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 # -- provider side --------------------------------------------------------------------------
@@ -232,6 +272,9 @@ class ResourceLoaded:
         pid: the registrar's process.
         seq: the number of this event in its process (1, 2, ... in a manager process,
             where a gap shows a lost event; 0 where events are not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -245,6 +288,8 @@ class ResourceLoaded:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -264,6 +309,9 @@ class LoadFailed:
         at: when it failed, wall clock (`time.time()` seconds).
         pid: the registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -276,6 +324,8 @@ class LoadFailed:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -292,6 +342,9 @@ class ResourceUnloaded:
         at: when it finished, wall clock (`time.time()` seconds).
         pid: the registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -301,6 +354,8 @@ class ResourceUnloaded:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -317,6 +372,9 @@ class ConsumerAdded:
         at: when it happened, wall clock (`time.time()` seconds).
         pid: the provider registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -327,6 +385,8 @@ class ConsumerAdded:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -351,6 +411,9 @@ class ConsumerReleased:
         at: when it happened, wall clock (`time.time()` seconds).
         pid: the provider registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -362,6 +425,8 @@ class ConsumerReleased:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 # -- consumer side --------------------------------------------------------------------------
@@ -390,6 +455,9 @@ class CallAnswered:
         at: when the answer was recorded, wall clock (`time.time()` seconds).
         pid: the consumer registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -402,6 +470,8 @@ class CallAnswered:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -427,6 +497,9 @@ class CallFailed:
         at: when the failure was handled, wall clock (`time.time()` seconds).
         pid: the consumer registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -441,6 +514,8 @@ class CallFailed:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -461,6 +536,9 @@ class CallWithdrawn:
         at: when the withdrawal was handled, wall clock (`time.time()` seconds).
         pid: the consumer registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -472,6 +550,8 @@ class CallWithdrawn:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -498,6 +578,9 @@ class QueryForgotten:
         at: when it was forgotten, wall clock (`time.time()` seconds).
         pid: the consumer registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -508,6 +591,8 @@ class QueryForgotten:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 # -- status ---------------------------------------------------------------------------------
@@ -531,6 +616,9 @@ class StatusSent:
         at: when it was sent, wall clock (`time.time()` seconds).
         pid: the provider registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -542,6 +630,8 @@ class StatusSent:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -564,6 +654,9 @@ class StatusDelivered:
         at: when it was delivered, wall clock (`time.time()` seconds).
         pid: the receiving registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -576,6 +669,8 @@ class StatusDelivered:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -596,6 +691,9 @@ class UnloadCutShort:
         at: when the stop gave up waiting, wall clock (`time.time()` seconds).
         pid: the registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -605,6 +703,8 @@ class UnloadCutShort:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 # -- recovery and the stream itself ---------------------------------------------------------
@@ -629,6 +729,9 @@ class InDoubt:
         at: when it was found, wall clock (`time.time()` seconds).
         pid: the restored registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -639,6 +742,8 @@ class InDoubt:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -662,6 +767,9 @@ class EventsDropped:
         at: when the gap was closed (the notice made), wall clock (`time.time()` seconds).
         pid: the process that lost them.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     count: int
@@ -670,6 +778,8 @@ class EventsDropped:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 # -- what a catalog holds -------------------------------------------------------------------
@@ -700,11 +810,16 @@ class CatalogRestored:
             query this registrar holds (its client records).
         counts: `(resources, consumers, clients)`: how many rows there are.
         complete: whether the rows are listed (`False`: a kind had more than
-            `LISTED_ROWS` rows, and none are listed; `counts` and `digest` say what it held).
-        digest: a SHA-256 (hex, first 16 digits) of the sorted rows of the three kinds.
+            `LISTED_ROWS` rows, and none are listed; `counts` says what it held).
+        digest: a SHA-256 (hex, first 16 digits) of the sorted rows of the three kinds;
+            `""` when they are not listed (it would cost a read of every row, which a
+            restore does not do before it serves).
         at: when it was published, wall clock (`time.time()` seconds).
         pid: the registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -718,6 +833,8 @@ class CatalogRestored:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -739,6 +856,9 @@ class RegistrarStopped:
         at: when it was published, wall clock (`time.time()` seconds).
         pid: the registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -752,6 +872,8 @@ class RegistrarStopped:
     at: float = _now()
     pid: int = _this_process()
     seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
 
 
 Event: TypeAlias = (

@@ -6,20 +6,24 @@ import dataclasses
 import typing
 from typing import Any
 
+from rr_actors._core import hlc
 from rr_actors._types import Status
 from rr_actors.errors import ConfigError
 from rr_actors.events.kinds import Event
 
 __all__ = ["SCHEMA", "from_dict", "to_dict"]
 
-SCHEMA = 2
-"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it and 1.
+SCHEMA = 3
+"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it, 2 and 1.
 
 Schema 2 added `seq`, request digests and labels, release reasons, in-doubt details and
 the catalog events; a schema 1 line may lack the fields that have defaults (`seq`: 0).
+Schema 3 added `host` (the member name of the host) and `hlc` (the hybrid logical clock
+stamp) to every event; a line of an older schema gets `host` `""` (not known) and the
+stamp of its `at` (`hlc.from_seconds`), so that old lines still sort by wall time.
 """
 
-_READS = (1, SCHEMA)
+_READS = (1, 2, SCHEMA)
 
 
 _TYPES: dict[str, type[Event]] = {cls.__name__: cls for cls in typing.get_args(Event)}
@@ -84,6 +88,9 @@ def from_dict(data: dict[str, Any]) -> Event:
         problems += [f"missing fields {missing}"] * bool(missing)
         raise ConfigError(f"{name}: {', '.join(problems)}")
     values = {f: _convert(cls.__name__, f, kind, data[f]) for f, kind in types.items() if f in data}
+    if data["schema"] < 3:  # (not this process's host, nor a stamp of reading time)
+        values.setdefault("host", "")
+        values.setdefault("hlc", hlc.from_seconds(values["at"]))
     return cls(**values)
 
 
@@ -121,6 +128,8 @@ def _convert(event: str, field: str, kind: Any, value: object) -> Any:
     if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
         return float(value)
     if kind in (int, str) and isinstance(value, kind) and not isinstance(value, bool):
+        if field == "hlc" and not 0 <= value < 2**64:
+            raise ConfigError(f"{event}.hlc must be a stamp (0 to 2**64 - 1), got {value!r}")
         return value
     expected = "a Status name" if kind is Status else getattr(kind, "__name__", str(kind))
     raise ConfigError(f"{event}.{field} must be {expected}, got {value!r}")

@@ -13,7 +13,9 @@ checked):
 
 - `held`: an acknowledged load (a `ConsumerAdded`) is held until it is released (a
   `ConsumerReleased`) or its consumer is told `FATAL`; a restart that loses it otherwise
-  (a `CatalogRestored` without it, or a restart without a backup) is a violation.
+  (a `CatalogRestored` without it, or a restart without a backup) is a violation, unless
+  its consumer had forgotten it before (`QueryForgotten`): a release committed just
+  before a kill has no `ConsumerReleased`, and the restore shows it.
 - `unload-once`: a resource is unloaded at most once, and only once its last consumer
   id was released; no consumer is added to a resource after its unload.
 - `dedup`: no two resources of equal requests (the same request digest) are live at once
@@ -187,6 +189,15 @@ def _incarnations(history: Sequence[Line]) -> Iterator[tuple[str, int, events.Ev
         yield name, line, event, new
 
 
+def _forgotten(history: Sequence[Line]) -> dict[tuple[str, str], int]:
+    """(provider, query id) -> line of the first `QueryForgotten` of it by its consumer."""
+    forgot: dict[tuple[str, str], int] = {}
+    for line, event in history:
+        if isinstance(event, events.QueryForgotten):
+            forgot.setdefault((event.serving_rr, event.query_id), line)
+    return forgot
+
+
 def _fatal_deliveries(history: Sequence[Line]) -> dict[str, int]:
     """Query id -> line of the first `FATAL` its holder was told (`StatusDelivered`)."""
     told: dict[str, int] = {}
@@ -203,12 +214,17 @@ def _provider_rules(history: Sequence[Line]) -> list[Finding]:  # noqa: PLR0912,
     """`held`, `unload-once`, `dedup` and `restore-first`: one pass over each provider."""
     findings: list[Finding] = []
     fatal = _fatal_deliveries(history)
+    forgot = _forgotten(history)
     with_backup = {e.registrar for _, e in history if isinstance(e, events.CatalogRestored)}
     providers: dict[str, _Provider] = defaultdict(_Provider)
 
     def lose(name: str, state: _Provider, kept: set[str], line: int, why: str) -> None:
         for qid, held in state.held.items():
             if qid in kept:
+                continue
+            # its consumer had let it go: the release was committed, and the kill came
+            # before its `ConsumerReleased` was published (the restore shows the commit)
+            if forgot.get((name, qid), line) < line:
                 continue
             told = fatal.get(qid)
             if told is None or told < held.line:

@@ -37,6 +37,7 @@ from typing import Any
 import rr_actors as rr
 from rr_actors.errors import ConfigError, RrError
 from rr_actors.experiments import _procs
+from rr_actors.experiments._netns import cannot_make_hosts
 from rr_actors.experiments.plan import Plan
 from rr_actors.experiments.reading import load_plan
 from rr_actors.experiments.results import Results, RunResult, show_value
@@ -223,7 +224,8 @@ def run(
     Raises:
         PlanError: the plan is invalid (names the file, line and key).
         ConfigError: an override is out of range, `out` is not usable (or not empty
-            without `force`), this platform cannot run experiments, or `observe` was asked
+            without `force`), this platform cannot run experiments (or the plan has
+            `[hosts]` and this process is not root), or `observe` was asked
             for and the `observe` extra is not installed.
         ExperimentError: a run process failed; the runs finished before it are kept.
         ExperimentInterruptedError: Ctrl-C (a `KeyboardInterrupt`); every process of the
@@ -233,6 +235,8 @@ def run(
         plan = load_plan(plan)
     plan = plan.with_changes(repeat=repeat, seed=seed, duration=duration)
     reason = unsupported_platform()
+    if reason is None and any(p.hosts is not None for _, p in plan.variants):
+        reason = cannot_make_hosts()
     if reason is not None:
         raise ConfigError(reason)
     if observe:
@@ -508,6 +512,11 @@ def fault_rows(result: RunResult) -> list[dict[str, Any]]:
                 "late_ms": "" if late is None else round(late * 1e3, 3),
                 "skipped": fault.skipped,
                 "recovery_s": _blank(fault.recovery_s),
+                **(
+                    {"fail_s": _blank(fault.fail_s), "heal_s": _blank(fault.heal_s)}
+                    if result.hosts
+                    else {}
+                ),
                 "detail": fault.detail,
             }
         )

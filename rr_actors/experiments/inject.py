@@ -38,10 +38,12 @@ from typing import Any
 
 import rr_actors as rr
 from rr_actors import events
+from rr_actors.experiments._hosts import HostProcess
 from rr_actors.experiments._instrument import CUT_SIGNAL, arm_load_error, catches_cut_signal
+from rr_actors.experiments._netns import HostNetwork
 from rr_actors.experiments._procs import resource_processes, start_time
 from rr_actors.experiments._sender import Trigger
-from rr_actors.experiments.plan import Plan
+from rr_actors.experiments.plan import HOST_KINDS, Plan
 from rr_actors.experiments.results import FaultRecord
 from rr_actors.experiments.schedule import ScheduledFault
 
@@ -83,6 +85,8 @@ class Injector:
         schedule: the run's fault schedule.
         t0: the monotonic start of the run's workload (the schedule's time 0).
         wall_t0: the same instant on the wall clock (`time.time()`).
+        hosts: with `[hosts]`, the namespaces and the other hosts' processes (what
+            `cut`, `partition`, `freeze` and `kill_router` act on).
     """
 
     def __init__(
@@ -93,8 +97,12 @@ class Injector:
         *,
         t0: float,
         wall_t0: float,
+        hosts: tuple[HostNetwork | None, dict[str, HostProcess]] = (None, {}),
     ) -> None:
         self.sup = sup
+        self._network, self._host_processes = hosts
+        self._home = plan.hosts.home if plan.hosts is not None else None
+        self._healing: dict[int, Callable[[], None]] = {}  # id -> undo a cut, thaw a freeze
         self.plan = plan
         self.t0 = t0
         self.wall_t0 = wall_t0
@@ -147,8 +155,14 @@ class Injector:
         self._trigger.close(timeout=timeout)
         with self._lock:
             hung = list(self._hung)
+            healing, self._healing = list(self._healing.values()), {}
         for pidfd in hung:
             self._resume(pidfd)
+        for undo in healing:  # links up again, frozen hosts thawed
+            try:
+                undo()
+            except Exception:
+                logger.exception("could not undo a fault between hosts")
         with self._lock:
             waiting, self._waiting = self._waiting, []
         for fault, _ in waiting:
@@ -282,7 +296,10 @@ class Injector:
             self.records.append(record)
         logger.info("fault %s: %s", fault.kind, detail)
 
-    def _fire(self, fault: ScheduledFault, scheduled: float) -> None:
+    def _fire(self, fault: ScheduledFault, scheduled: float) -> None:  # noqa: PLR0911 - a case per kind
+        if fault.kind in HOST_KINDS:
+            self._between_hosts(fault, scheduled)
+            return
         if fault.kind == "kill_resource":
             self._kill_resource(fault, scheduled)
             return
@@ -390,11 +407,85 @@ class Injector:
         finally:
             os.close(pidfd)
 
+    def _between_hosts(self, fault: ScheduledFault, scheduled: float) -> None:
+        """A fault between hosts, fired from this thread at its due time: a link or links
+        down (`ip link set ... down`), a host process stopped or killed; its undo (links
+        up, SIGCONT) `for` seconds later, or at `stop`."""
+        plan, network = self.plan.faults[fault.fault], self._network
+        assert network is not None
+        for_s = plan.for_s or 0.0
+        undo: Callable[[], None] | None = None
+        if fault.kind == "cut":
+            assert plan.link is not None
+            one, other = plan.link
+            target, what = f"{one}-{other}", f"link {one}-{other} down for {for_s:g} s"
+            self._until(scheduled)
+            network.set_link(one, other, up=False)
+            undo = functools.partial(network.set_link, one, other, up=True)
+        elif fault.kind == "partition":
+            side = plan.hosts
+            target = "+".join(side)
+            what = f"{target} cut from the other hosts for {for_s:g} s"
+            self._until(scheduled)
+            network.set_links(side, up=False)
+            undo = functools.partial(network.set_links, side, up=True)
+        else:
+            assert fault.target is not None
+            target, host = fault.target, self._host_processes[fault.target]
+            pid = host.pid
+            try:
+                pidfd = os.pidfd_open(pid) if pid is not None else None
+            except ProcessLookupError:
+                pidfd = None
+            if pidfd is None:
+                self._record(fault, scheduled, None, f"host {target} was not running", skipped=True)
+                return
+            self._until(scheduled)
+            try:
+                if fault.kind == "freeze":
+                    signal.pidfd_send_signal(pidfd, signal.SIGSTOP)
+                    what = f"SIGSTOP host {target}'s router process (pid {pid}) for {for_s:g} s"
+                    undo = functools.partial(self._thaw, pidfd)
+                else:
+                    signal.pidfd_send_signal(pidfd, signal.SIGKILL)
+                    what = f"SIGKILL host {target}'s router process (pid {pid})"
+            except ProcessLookupError:
+                os.close(pidfd)
+                self._record(fault, scheduled, None, f"host {target} had just exited", skipped=True)
+                return
+            if undo is None:
+                os.close(pidfd)
+        injected = self._now()
+        self._record(fault, scheduled, injected, what, target=target)
+        if undo is not None:
+            key = next(self._seq)
+            with self._lock:
+                self._healing[key] = undo
+            self._push(self.t0 + injected + for_s, functools.partial(self._heal, key))
+
+    def _heal(self, key: int) -> None:
+        with self._lock:
+            undo = self._healing.pop(key, None)
+        if undo is not None:
+            undo()
+
+    @staticmethod
+    def _thaw(pidfd: int) -> None:
+        try:
+            with contextlib.suppress(ProcessLookupError):
+                signal.pidfd_send_signal(pidfd, signal.SIGCONT)
+        finally:
+            os.close(pidfd)
+
     def _kill_resource(self, fault: ScheduledFault, scheduled: float) -> None:
         managers = (
             [fault.target]
             if fault.target is not None
-            else [m.name for m in self.plan.managers() if m.isolation == "process"]
+            else [
+                m.name
+                for m in self.plan.managers()
+                if m.isolation == "process" and m.host in (None, self._home)
+            ]
         )
         candidates = resource_processes(self.sup, managers)
         if not candidates:

@@ -271,3 +271,66 @@ def percentile(values: Sequence[float], q: float) -> float | None:
     low = math.floor(rank)
     high = math.ceil(rank)
     return ordered[low] + (ordered[high] - ordered[low]) * (rank - low)
+
+
+def affected_hosts(
+    kind: str, target: str | None, hosts: Sequence[str], side: Sequence[str] = ()
+) -> set[str]:
+    """The hosts whose managers a fault between hosts takes from the clients (who run on
+    the first host): the far end of a cut link, the side of a partition without the
+    clients' host, a frozen or killed router's host."""
+    home = hosts[0]
+    if kind == "cut" and target is not None:
+        ends = set(target.split("-", 1)) if "-" in target else {target}
+        return ends - {home} if home in ends else ends
+    if kind == "partition":
+        return set(hosts) - set(side) if home in side else set(side)
+    return {target} if target is not None else set()
+
+
+def host_fault_times(
+    fault: FaultRecord,
+    providers: set[str],
+    for_s: float,
+    seen: Sequence[events.Event],
+    t0: float,
+) -> tuple[float | None, float | None, float | None]:
+    """`(time to fail, time to heal, recovery)` of a fault between hosts, in seconds.
+
+    Time to fail: from the injection to the first call of a client to one of
+    `providers` (the affected hosts' managers) that failed (`CallFailed`; a retry may
+    still succeed). Time to heal: from the fault's end (`for` after the injection; for
+    `kill_router`, the first such failure: the router is gone at once) to the first call
+    answered by one of them (`CallAnswered`) after it. Recovery: from the injection to
+    that answer. `None` where it did not happen in the run (no call failed: the fault
+    was shorter than the lease, say).
+    """
+    if fault.injected_s is None or fault.skipped:
+        return None, None, None
+    start = fault.injected_s
+    failed = [
+        e.at - t0
+        for e in seen
+        if isinstance(e, events.CallFailed)
+        and e.serving_rr in providers
+        and e.registrar.startswith("client-")
+        and e.at - t0 >= start
+    ]
+    first_failure = min(failed) if failed else None
+    end = start + for_s
+    if fault.kind == "kill_router":
+        end = first_failure if first_failure is not None else start
+    answered = [
+        e.at - t0
+        for e in seen
+        if isinstance(e, events.CallAnswered)
+        and e.serving_rr in providers
+        and e.registrar.startswith("client-")
+        and e.at - t0 >= end
+    ]
+    healed = min(answered) if answered else None
+    return (
+        None if first_failure is None else first_failure - start,
+        None if healed is None else healed - end,
+        None if healed is None else healed - start,
+    )

@@ -19,6 +19,7 @@ from rr_actors.errors import ConfigError
 
 __all__ = [
     "FAULT_KINDS",
+    "HOST_KINDS",
     "MAX_INJECTIONS",
     "MAX_SECONDS",
     "MIN_EVERY",
@@ -26,6 +27,7 @@ __all__ = [
     "CallMix",
     "Compare",
     "FaultPlan",
+    "HostsPlan",
     "ManagerPlan",
     "Plan",
     "PlanError",
@@ -35,11 +37,21 @@ __all__ = [
 ]
 
 FaultKind = Literal[
-    "kill_manager", "kill_resource", "hang_manager", "load_error", "cut_connections"
+    "kill_manager",
+    "kill_resource",
+    "hang_manager",
+    "load_error",
+    "cut_connections",
+    "cut",
+    "partition",
+    "freeze",
+    "kill_router",
 ]
 
 FAULT_KINDS: tuple[FaultKind, ...] = typing.get_args(FaultKind)  # every kind a plan may name
 NEEDS_PROCESS = frozenset({"kill_resource", "hang_manager", "cut_connections"})  # OS process
+HOST_KINDS = frozenset({"cut", "partition", "freeze", "kill_router"})  # act between hosts
+MAX_HOSTS = 8  # the most hosts of a plan (a veth between every two: 28 links)
 # The limits (docs/reference/plan.md). Longer than MAX_SECONDS (11.6 days) overflows the waits
 # of `threading` once added to the clock: a bound here is a clear error, not a dead thread.
 MAX_SECONDS = 1e6  # the longest duration, time or wait, in seconds
@@ -103,6 +115,7 @@ class ManagerPlan(_Table, frozen=True, tag_field="_node", tag="manager"):
     heartbeat_timeout: Seconds | None = None  # silence until hung (`None`: 3 heartbeats)
     shutdown: Seconds = 5.0  # a clean stop may take this long before it is killed
     start_timeout: Seconds = 30.0  # to restore, set up and serve
+    host: Name | None = None  # a host of `[hosts]` (None: the run's own host, the first)
 
 
 class SupervisorPlan(_Table, frozen=True, tag_field="_node", tag="supervisor"):
@@ -187,7 +200,9 @@ class FaultPlan(_Table, frozen=True):
     `(low, high)` for seeded random ones in between) and `after` (times in seconds)."""
 
     kind: FaultKind
-    targets: Names = msgspec.field(default=(), name="target")
+    targets: Names = msgspec.field(default=(), name="target")  # managers (hosts: freeze, ...)
+    link: tuple[Name, Name] | None = None  # cut: the two hosts whose link goes down
+    hosts: Annotated[tuple[Name, ...], Meta(min_length=1)] = ()  # partition: cut from the rest
     at: Annotated[tuple[SecondsOrZero, ...], Meta(min_length=1)] = ()  # from the workload's start
     every: float | tuple[float, float] | None = None  # `reading` checks it: Interval or Every
     start: SecondsOrZero = 0.0  # with `every`: the first interval starts here
@@ -225,6 +240,21 @@ class Every(_Table, frozen=True):
             raise ValueError(f"max ({self.max:g} s) must not be less than min ({self.min:g} s)")
 
 
+class HostsPlan(_Table, frozen=True):
+    """`[hosts]`: the run's hosts, network namespaces joined by a veth between every two
+    (needs root), on one Zenoh system with mutual TLS. The first is the run's own host:
+    its clients and every manager without `host` (times in seconds)."""
+
+    names: Annotated[tuple[Name, ...], Meta(min_length=2, max_length=MAX_HOSTS)]
+    lease: Annotated[float, Meta(ge=0.01, le=3600)] = 1.0  # `ZenohNetwork(lease=)` of every host
+    start_timeout: Seconds = 30.0  # a host's router and tree start within this long
+
+    @property
+    def home(self) -> str:
+        """The run's own host (the first name)."""
+        return self.names[0]
+
+
 class Compare(_Table, frozen=True):
     """`[compare]`: run the plan once per value of one setting, a dotted key: `"tree.strategy"`,
     a child by its name `"tree.children.erm.heartbeat"`, a fault by its index `"faults.0.every"`."""
@@ -248,6 +278,7 @@ class Plan:
     state: bool = True  # whether managers keep durable catalogs (a state directory per run)
     workload: Workload = Workload(clients=0)  # noqa: RUF009 - frozen, so shared safely
     faults: tuple[FaultPlan, ...] = ()
+    hosts: HostsPlan | None = None
     compare: Compare | None = None
     variants: tuple[tuple[Any, Plan], ...] = dataclasses.field(
         default=(), repr=False, compare=False
@@ -262,6 +293,13 @@ class Plan:
     def manager(self, name: str) -> ManagerPlan:
         """The manager called `name` (`KeyError` if none)."""
         return {manager.name: manager for manager in self.managers()}[name]
+
+    def host_of(self, manager: str) -> str | None:
+        """The host a manager runs on (`None` without `[hosts]`)."""
+        if self.hosts is None:
+            return None
+        placed = self.manager(manager).host
+        return placed if placed is not None else self.hosts.home
 
     def setting_label(self) -> str:
         """The compared setting's key, or `""` without `compare`."""

@@ -1,5 +1,12 @@
 """The experiment's figures: recovery times per compared value, and timelines of runs.
 
+A plan with `[hosts]` gets per-host figures: in `recovery.png` each fault's point has
+the colour of the host it hit (a manager's host; for a fault between hosts, the hosts it
+took from the clients), grouped side by side, and a second row shows the faults between
+hosts: time to fail and time to heal. In `timeline.png` each manager's lane names its
+host, each fault's line has its host's colour, and a fault between hosts is hatched for
+as long as it lasted.
+
 Needs matplotlib (`pip install 'rr-actors[experiments]'`); importing this module without
 it raises `ImportError`, which `run` takes as "no plots".
 """
@@ -7,6 +14,7 @@ it raises `ImportError`, which `run` takes as "no plots".
 from __future__ import annotations
 
 import random
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +23,9 @@ import matplotlib as mpl
 mpl.use("Agg")  # no display needed
 import matplotlib.pyplot as plt
 
-from rr_actors.experiments.results import Results, RunResult, show_value
+from rr_actors.experiments.metrics import affected_hosts
+from rr_actors.experiments.plan import HOST_KINDS, Plan
+from rr_actors.experiments.results import FaultRecord, Results, RunResult, show_value
 
 __all__ = ["plot_recovery", "plot_timeline"]
 
@@ -28,8 +38,59 @@ _SHORT = {
 }
 
 
+HOST_COLOURS = (
+    "tab:blue",
+    "tab:orange",
+    "tab:olive",
+    "tab:cyan",
+    "tab:brown",
+    "tab:pink",
+    "tab:purple",
+    "tab:gray",
+)
+"""A colour per host, in the order of `[hosts]` (at most `MAX_HOSTS`, 8); a fault that hit
+several hosts (a partition of two) takes the colour of its first."""
+
+KIND_MARKERS = {"cut": "o", "partition": "D", "freeze": "s", "kill_router": "X"}
+
+
 def _label(results: Results, value: Any) -> str:
     return results.plan.tree.strategy if value is None else show_value(value)
+
+
+def _fault_host(plan: Plan, fault: FaultRecord) -> str:
+    """The host a fault hit, as its points are labelled (`"b"`, `"b+c"`).
+
+    A fault on a manager (or its process) hit the manager's host; one without a target
+    (a `kill_resource` that picked any process) the run's own host. A fault between hosts
+    hit the hosts whose managers it took from the clients (the far end of a cut link, the
+    side of a partition without the clients, a frozen or killed router's host).
+    """
+    assert plan.hosts is not None
+    names = plan.hosts.names
+    if fault.kind in HOST_KINDS:
+        side = plan.faults[fault.fault].hosts if fault.fault < len(plan.faults) else ()
+        hit = affected_hosts(fault.kind, fault.target, names, side)
+        return "+".join(h for h in names if h in hit) or plan.hosts.home
+    try:
+        return plan.host_of(fault.target) or plan.hosts.home if fault.target else plan.hosts.home
+    except KeyError:  # a target that is not a manager of this variant
+        return plan.hosts.home
+
+
+def _host_colours(plan: Plan) -> dict[str, str]:
+    assert plan.hosts is not None
+    return dict(zip(plan.hosts.names, HOST_COLOURS, strict=False))
+
+
+def _colour(colours: dict[str, str], host: str) -> str:
+    return colours.get(host.split("+", 1)[0], "black")
+
+
+def _in_order(hit: Iterable[str], colours: dict[str, str]) -> list[str]:
+    """The hosts a legend names, in the order of `[hosts]` (`b+c` after `b`)."""
+    names = list(colours)
+    return sorted(hit, key=lambda h: (names.index(h.split("+", 1)[0]), h))
 
 
 def plot_recovery(results: Results, path: Path) -> None:
@@ -39,7 +100,9 @@ def plot_recovery(results: Results, path: Path) -> None:
         results: the experiment's results.
         path: the PNG file to write.
     """
+    variants = dict(enumerate(p for _, p in results.plan.variants))
     groups = [(value, runs) for value, runs in results.by_value() if runs]
+    plans = [variants[i] for i, (_, runs) in enumerate(results.by_value()) if runs]
     labels = [_label(results, value) for value, _ in groups]
     panels = [
         (
@@ -61,21 +124,34 @@ def plot_recovery(results: Results, path: Path) -> None:
             "failed calls, per run",
         ),
     ]
-    fig, axes = plt.subplots(
-        1, 3, figsize=(12, 4.2), dpi=110, gridspec_kw={"width_ratios": [3, 2, 2]}
-    )
+    hosts = results.plan.hosts is not None
+    if hosts:
+        fig = plt.figure(figsize=(12, 8.4), dpi=110)
+        grid = fig.add_gridspec(2, 14)
+        axes = [fig.add_subplot(grid[0, :6]), fig.add_subplot(grid[0, 6:10])]
+        axes.append(fig.add_subplot(grid[0, 10:]))
+        between = (fig.add_subplot(grid[1, :7]), fig.add_subplot(grid[1, 7:]))
+    else:
+        fig, axes = plt.subplots(
+            1, 3, figsize=(12, 4.2), dpi=110, gridspec_kw={"width_ratios": [3, 2, 2]}
+        )
     try:
         jitter = random.Random(0)  # noqa: S311 - where dots go, not a secret
-        for ax, (data, colour, ylabel, title) in zip(axes, panels, strict=True):
+        for number, (ax, (data, colour, ylabel, title)) in enumerate(
+            zip(axes, panels, strict=True)
+        ):
             ax.boxplot(
                 [d if d else [float("nan")] for d in data],
                 showfliers=False,
                 medianprops={"color": colour, "linewidth": 2},
             )
             ax.set_xticks(range(1, len(labels) + 1), labels)
-            for index, values in enumerate(data, start=1):
-                xs = [index + jitter.uniform(-0.12, 0.12) for _ in values]
-                ax.scatter(xs, values, s=10, color=colour, alpha=0.5, zorder=3)
+            if hosts and number == 0:  # each fault's point in its host's colour
+                _recovery_by_host(ax, plans, groups, jitter)
+            else:
+                for index, values in enumerate(data, start=1):
+                    xs = [index + jitter.uniform(-0.12, 0.12) for _ in values]
+                    ax.scatter(xs, values, s=10, color=colour, alpha=0.5, zorder=3)
             ax.grid(visible=True, axis="y", alpha=0.3)
             ax.set_ylim(bottom=0)
             ax.set_ylabel(ylabel)
@@ -96,6 +172,8 @@ def plot_recovery(results: Results, path: Path) -> None:
                 fontsize=8,
                 annotation_clip=False,
             )
+        if hosts:
+            _between_hosts(between, plans, groups, labels)
         fig.suptitle(
             f"{results.plan.name}: {len(results.runs)} runs "
             f"({results.plan.repeat} per value, {results.plan.duration:g} s each); "
@@ -108,15 +186,120 @@ def plot_recovery(results: Results, path: Path) -> None:
         plt.close(fig)
 
 
+def _recovery_by_host(
+    ax: Any,
+    plans: list[Plan],
+    groups: list[tuple[Any, list[RunResult]]],
+    jitter: random.Random,
+) -> None:
+    """Recovery per fault, its points grouped and coloured by the host the fault hit."""
+    colours = _host_colours(plans[0])
+    hit: dict[str, None] = {}  # the hosts that have points, in order
+    for index, (plan, (_, runs)) in enumerate(zip(plans, groups, strict=True), start=1):
+        points: dict[str, list[float]] = {}
+        for run in runs:
+            for fault in run.faults:
+                if fault.recovery_s is not None:
+                    points.setdefault(_fault_host(plan, fault), []).append(fault.recovery_s * 1e3)
+        order = dict.fromkeys(h for h in (*colours, *sorted(points)) if h in points)
+        for place, host in enumerate(order):
+            centre = index + (place - (len(points) - 1) / 2) * 0.5 / max(len(points), 1)
+            xs = [centre + jitter.uniform(-0.05, 0.05) for _ in points[host]]
+            ax.scatter(xs, points[host], s=12, color=_colour(colours, host), alpha=0.7, zorder=3)
+            hit[host] = None
+    for host in _in_order(hit, colours):
+        ax.scatter([], [], s=12, color=_colour(colours, host), label=f"host {host}")
+    if hit:
+        ax.legend(title="fault hit", fontsize=8, title_fontsize=8, loc="best")
+
+
+def _between_hosts(
+    axes: tuple[Any, Any],
+    plans: list[Plan],
+    groups: list[tuple[Any, list[RunResult]]],
+    labels: list[str],
+) -> None:
+    """The faults between hosts: time to fail and time to heal, per compared value."""
+    colours = _host_colours(plans[0])
+    kinds: dict[str, None] = {}
+    hit: dict[str, None] = {}
+    highest = 0.0
+    for ax, field, title in (
+        (axes[0], "fail_s", "time to fail: from the fault to the first call that failed"),
+        (axes[1], "heal_s", "time to heal: from the fault's end to the first call answered"),
+    ):
+        for index, (plan, (_, runs)) in enumerate(zip(plans, groups, strict=True), start=1):
+            faults = [
+                (plan, f)
+                for run in runs
+                for f in run.faults
+                if f.kind in HOST_KINDS and f.injected_s is not None and not f.skipped
+            ]
+            present = sorted({f.kind for _, f in faults}, key=list(KIND_MARKERS).index)
+            missing = 0
+            for _, fault in faults:
+                seconds = getattr(fault, field)
+                if seconds is None:
+                    missing += 1
+                    continue
+                place = present.index(fault.kind)
+                x = index + (place - (len(present) - 1) / 2) * 0.22
+                host = _fault_host(plan, fault)
+                ax.scatter(
+                    [x],
+                    [seconds],
+                    marker=KIND_MARKERS.get(fault.kind, "o"),
+                    s=30,
+                    color=_colour(colours, host),
+                    alpha=0.75,
+                    zorder=3,
+                )
+                kinds[fault.kind] = None
+                hit[host] = None
+                highest = max(highest, seconds)
+            if field == "fail_s" and plan.hosts is not None:  # a silent link shows after it
+                ax.hlines(plan.hosts.lease, index - 0.4, index + 0.4, color="0.4", linestyle=":")
+                highest = max(highest, plan.hosts.lease)
+            what = "no call failed" if field == "fail_s" else "not healed in the run"
+            ax.annotate(
+                f"{len(faults)} faults" + (f"\n{missing}: {what}" if missing else ""),
+                (index, 0),
+                xytext=(0, -30),
+                textcoords="offset points",
+                ha="center",
+                va="top",
+                fontsize=8,
+                annotation_clip=False,
+            )
+        ax.set_xticks(range(1, len(labels) + 1), labels)
+        ax.set_xlim(0.5, len(labels) + 0.5)
+        ax.grid(visible=True, axis="y", alpha=0.3)
+        ax.set_ylabel("seconds")
+        ax.set_title(title, fontsize=10)
+    for ax in axes:  # the same scale for both, with room for the legend above the points
+        ax.set_ylim(0, highest * 1.4 if highest > 0 else 1.0)
+    axes[0].plot([], [], color="0.4", linestyle=":", label="lease")
+    for kind in kinds:
+        axes[0].scatter([], [], marker=KIND_MARKERS.get(kind, "o"), color="0.3", label=kind)
+    for host in _in_order(hit, colours):
+        axes[0].scatter([], [], marker="o", color=_colour(colours, host), label=f"host {host}")
+    if kinds:
+        axes[0].legend(fontsize=8, loc="upper left", ncol=1 + len(kinds) + len(hit))
+
+
 def _verdicts(results: Results) -> str:
     kinds = ("held", "violated", "unverifiable")
     counts = {k: sum(1 for r in results.runs if r.verdict == k) for k in kinds}
     return ", ".join(f"{counts[k]} {k}" for k in kinds)
 
 
-def _first_runs(results: Results) -> list[tuple[Any, RunResult]]:
-    """The first run of each compared value (at most four)."""
-    return [(value, runs[0]) for value, runs in results.by_value() if runs][:4]
+def _first_runs(results: Results) -> list[tuple[Any, RunResult, Plan]]:
+    """The first run of each compared value (at most four), with its value's plan."""
+    return [
+        (value, runs[0], plan)
+        for (value, runs), (_, plan) in zip(results.by_value(), results.plan.variants, strict=True)
+        if runs
+    ][:4]
 
 
 def plot_timeline(results: Results, path: Path) -> None:
@@ -127,14 +310,13 @@ def plot_timeline(results: Results, path: Path) -> None:
         path: the PNG file to write.
     """
     shown = _first_runs(results)
-    managers = [m.name for m in results.plan.managers()]
-    rows = len(managers) + 1
+    rows = len(results.plan.managers()) + 1
     fig, axes = plt.subplots(
         len(shown), 1, figsize=(10, 1.5 + 0.42 * rows * len(shown)), dpi=110, squeeze=False
     )
     try:
-        for (value, run), ax in zip(shown, axes[:, 0], strict=True):
-            _timeline(ax, results, value, run, managers)
+        for (value, run, plan), ax in zip(shown, axes[:, 0], strict=True):
+            _timeline(ax, results, value, run, plan)
         axes[-1, 0].set_xlabel("seconds since the workload started")
         handles, labels = axes[0, 0].get_legend_handles_labels()
         fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8)
@@ -144,7 +326,9 @@ def plot_timeline(results: Results, path: Path) -> None:
         plt.close(fig)
 
 
-def _timeline(ax: Any, results: Results, value: Any, run: RunResult, managers: list[str]) -> None:
+def _timeline(ax: Any, results: Results, value: Any, run: RunResult, plan: Plan) -> None:
+    managers = [m.name for m in plan.managers()]
+    colours = _host_colours(plan) if plan.hosts is not None else {}
     end = max(
         [run.duration_s]
         + [c.end_s for c in run.calls]
@@ -165,17 +349,34 @@ def _timeline(ax: Any, results: Results, value: Any, run: RunResult, managers: l
     for fault in run.faults:
         if fault.injected_s is None:
             continue
-        ax.axvline(fault.injected_s, color="black", linestyle="--", linewidth=0.8, alpha=0.7)
+        host = _fault_host(plan, fault) if colours else ""
+        colour = _colour(colours, host) if colours else "black"
+        ax.axvline(fault.injected_s, color=colour, linestyle="--", linewidth=0.8, alpha=0.7)
+        lasted = plan.faults[fault.fault].for_s if fault.fault < len(plan.faults) else None
+        if fault.kind in HOST_KINDS and lasted:  # the link down, the router stopped
+            ax.axvspan(
+                fault.injected_s,
+                fault.injected_s + lasted,
+                facecolor="none",
+                edgecolor=colour,
+                hatch="//",
+                alpha=0.35,
+                linewidth=0,
+            )
         if fault.injected_s - labelled < end / 14:
             continue  # no room for another label here
         labelled = fault.injected_s
+        text = f"{_SHORT.get(fault.kind, fault.kind)} {fault.target or ''}".strip()
+        if host and fault.kind not in HOST_KINDS:  # a cut's or a freeze's names its hosts
+            text += f" @{host}"
         ax.annotate(
-            f"{_SHORT.get(fault.kind, fault.kind)} {fault.target or ''}".strip(),
+            text,
             (fault.injected_s, len(managers) + 0.55),
             xytext=(2, 0),
             textcoords="offset points",
             fontsize=7,
             va="bottom",
+            color=colour,
         )
     for supervisor, at in run.give_ups:
         ax.annotate(
@@ -188,7 +389,8 @@ def _timeline(ax: Any, results: Results, value: Any, run: RunResult, managers: l
             fontweight="bold",
         )
         ax.axvline(at, color="tab:red", linewidth=1.2, alpha=0.8)
-    ax.set_yticks([0, *[lane[n] for n in managers]], ["calls", *managers])
+    names = [f"{n} @{plan.host_of(n)}" for n in managers] if colours else managers
+    ax.set_yticks([0, *[lane[n] for n in managers]], ["calls", *names])
     ax.set_ylim(-0.7, len(managers) + 1.2)
     ax.set_xlim(0, end * 1.02 if end > 0 else 1)
     ax.grid(visible=True, axis="x", alpha=0.3)
@@ -201,6 +403,9 @@ def _timeline(ax: Any, results: Results, value: Any, run: RunResult, managers: l
     ax.set_title(f"{title}; {summary}", fontsize=9, loc="left")
     ax.plot([], [], color="tab:red", alpha=0.6, linewidth=6, label="not serving")
     ax.scatter([], [], marker="^", color="tab:green", label="serves again")
-    ax.plot([], [], color="black", linestyle="--", linewidth=0.8, label="fault")
+    if not colours:
+        ax.plot([], [], color="black", linestyle="--", linewidth=0.8, label="fault")
+    for host, colour in colours.items():
+        ax.plot([], [], color=colour, linestyle="--", linewidth=0.8, label=f"fault on host {host}")
     ax.scatter([], [], marker="|", color="tab:gray", label="call answered")
     ax.scatter([], [], marker="x", color="tab:red", label="call failed")

@@ -51,6 +51,10 @@ PURPOSE = {  # what a missing key is for
     "kind": f": one of {', '.join(schema.FAULT_KINDS)}",
     "target": ": which manager (or a list of them)",
     "for": ": how many seconds the manager stays stopped",
+    "for_hosts": ": how many seconds it lasts",
+    "target_hosts": ": which host (or a list of them)",
+    "link": ': the two hosts whose link goes down, link = ["a", "b"]',
+    "hosts": ': the hosts cut from the rest, hosts = ["b"]',
 }
 TYPES = {"float": "a number", "int": "an integer", "str": "a string", "bool": "true or false"}
 TYPES |= {"array": "an array", "object": "a table"}
@@ -65,7 +69,10 @@ NOT_COMPARED = {  # top-level keys `[compare]` refuses, and why
 KEYS = [f.name for f in dataclasses.fields(Plan) if f.init and f.name not in NOT_KEYS]
 # -- a fault's keys that only go with another key, or with some kinds ---------------------------
 NEEDS_KEY = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
-NEEDS_KIND = {"for": ("hang_manager", "load_error"), "loads": ("load_error",)}
+NEEDS_KIND: dict[str, tuple[str, ...]] = {
+    "for": ("hang_manager", "load_error", "cut", "partition", "freeze")
+}
+NEEDS_KIND |= {"loads": ("load_error",), "link": ("cut",), "hosts": ("partition",)}
 NEEDS_KIND |= {"server": ("load_error",), "message": ("load_error",)}
 
 
@@ -181,6 +188,7 @@ class _Reader:
         self.source, self.text, self.base_dir = source, text, base_dir
         self.data: dict[str, Any] = {}
         self.managers = dict[str, schema.ManagerPlan]()  # of the last plan
+        self.hosts: schema.HostsPlan | None = None  # of the last plan
 
     def error(self, path: KeyPath, problem: str) -> PlanError:
         """A `PlanError` at the part of `path` written (`at = 1` is checked as `[1]`)."""
@@ -268,6 +276,11 @@ class _Reader:
         source = None if self.source == "<plan>" else self.source
         plan = dataclasses.replace(plan, source=source, base_dir=self.base_dir)
         self.managers = managers = {m.name: m for m in plan.managers()}
+        self.hosts = plan.hosts
+        if plan.hosts is not None:
+            for index, host in enumerate(plan.hosts.names):
+                twice = f"the host {host!r} is named twice"
+                self.refuse(host in plan.hosts.names[:index], ("hosts", "names", index), twice)
         self.tree(plan.tree, ("tree",), set())
         self.calls(plan.workload)
         names = {  # what the fields of an `after` trigger may name
@@ -288,6 +301,8 @@ class _Reader:
         seen.add(node.name)
         if isinstance(node, schema.ManagerPlan):
             self.importable((*path, "setup"), node.setup, (*path, "options"), None, **node.options)
+            if node.host is not None:
+                self.host(node.host, (*path, "host"))
         for index, child in enumerate(getattr(node, "children", ())):
             self.tree(child, (*path, "children", index), seen)
 
@@ -317,6 +332,14 @@ class _Reader:
         problem = "'calls' is missing: what do the clients call?"
         self.refuse(workload.clients and not workload.calls, ("workload",), problem)
 
+    def host(self, name: str, path: KeyPath) -> None:
+        """`name` must be a host of `[hosts]`."""
+        hosts = self.hosts
+        self.refuse(hosts is None, path, "names a host, but the plan has no [hosts] table")
+        assert hosts is not None
+        known = f"no host {name!r} in [hosts] (hosts: {', '.join(hosts.names)})"
+        self.refuse(name not in hosts.names, path, known)
+
     def named(self, name: str, path: KeyPath) -> None:
         problem = f"no manager {name!r} in the tree (managers: {', '.join(self.managers)})"
         self.refuse(name not in self.managers, path, problem)
@@ -344,7 +367,7 @@ class _Reader:
 
     def fault(self, fault: schema.FaultPlan, path: KeyPath, names: Any, duration: float) -> None:
         """The rules of one `[[faults]]` entry; `names` are the values an `after` may name."""
-        table, kind, managers, refuse = self.raw(path), fault.kind, self.managers, self.refuse
+        table, kind, refuse = self.raw(path), fault.kind, self.refuse
         when = [key for key in ("at", "every", "after") if key in table]
         say = f"give only one of 'at', 'every' or 'after', not {' and '.join(when)}"
         say = say if when else "say when: give one of 'at', 'every' or 'after'"
@@ -360,7 +383,51 @@ class _Reader:
             known = ", ".join(sorted(names.get(key, ())))
             problem = f"{item!r} names nothing in this run (it may be: {known})"
             refuse(key in names and item not in names[key], (*path, "after", key), problem)
-        # -- whom: the targets
+        if kind in schema.HOST_KINDS:
+            self.host_fault(fault, path, table)
+        else:
+            self.whom(fault, path, table)
+        # -- when: within the run, not too often
+        hang = kind == "hang_manager" and fault.for_s is None
+        refuse(hang, path, f"'for' is missing{PURPOSE['for']}")
+        lasting = kind in ("cut", "partition", "freeze") and fault.for_s is None
+        refuse(lasting, path, f"'for' is missing{PURPOSE['for_hosts']}")
+        self.when(fault, path, duration)
+
+    def host_fault(self, fault: schema.FaultPlan, path: KeyPath, table: dict[str, Any]) -> None:
+        """Whom a fault between hosts hits: hosts of `[hosts]`, never the run's own router."""
+        kind, refuse = fault.kind, self.refuse
+        refuse(self.hosts is None, path, f"{kind} acts between hosts: the plan has no [hosts]")
+        assert self.hosts is not None
+        names, home = self.hosts.names, self.hosts.home
+        wrong = {"cut": "link", "partition": "hosts"}.get(kind, "target")
+        for key in ("target", "link", "hosts"):
+            refuse(key in table and key != wrong, (*path, key), f"does not go with kind {kind!r}")
+        purpose = PURPOSE["target_hosts" if wrong == "target" else wrong]
+        refuse(wrong not in table, path, f"'{wrong}' is missing{purpose}")
+        if kind == "cut":
+            assert fault.link is not None
+            for index, name in enumerate(fault.link):
+                self.host(name, (*path, "link", index))
+            same = f"a link joins two hosts, not {fault.link[0]!r} and itself"
+            refuse(fault.link[0] == fault.link[1], (*path, "link", 1), same)
+        elif kind == "partition":
+            for index, name in enumerate(fault.hosts):
+                self.host(name, (*path, "hosts", index))
+            whole = "names every host: a partition cuts some hosts from the rest"
+            refuse(set(fault.hosts) >= set(names), (*path, "hosts"), whole)
+        else:
+            for index, name in enumerate(fault.targets):
+                self.host(name, (*path, "target", index))
+                own = (
+                    f"{name!r} is the run's own host (its router is the run process, with "
+                    f"the clients): {kind} only another host's"
+                )
+                refuse(name == home, (*path, "target", index), own)
+
+    def whom(self, fault: schema.FaultPlan, path: KeyPath, table: dict[str, Any]) -> None:
+        """Whom a fault of a manager hits: managers of the tree."""
+        kind, managers, refuse = fault.kind, self.managers, self.refuse
         given = "target" in table
         missing = f"'target' is missing{PURPOSE['target']}"
         refuse(not given and kind != "kill_resource", path, missing)
@@ -371,9 +438,14 @@ class _Reader:
             self.named(name, at)  # the element, or the key if it gives one name
             thread = kind in schema.NEEDS_PROCESS and managers[name].isolation != "process"
             refuse(thread, at, f"{kind} needs a process manager; {name!r} has isolation 'thread'")
-        # -- when: within the run, not too often
-        hang = kind == "hang_manager" and fault.for_s is None
-        refuse(hang, path, f"'for' is missing{PURPOSE['for']}")
+            home = self.hosts.home if self.hosts is not None else None
+            away = managers[name].host not in (None, home)
+            elsewhere = f"{kind} hits managers of the run's own host ({home}); {name!r} is on "
+            refuse(away, at, f"{elsewhere}{managers[name].host!r} (fault it with freeze, cut, ...)")
+
+    def when(self, fault: schema.FaultPlan, path: KeyPath, duration: float) -> None:
+        """When a fault comes: within the run, not too often."""
+        refuse = self.refuse
         end = f"the end of the run ({duration:g} s)"
         for index, time in enumerate(fault.at):
             refuse(time >= duration, (*path, "at", index), f"{time!r} s is not before {end}")

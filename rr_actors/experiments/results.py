@@ -33,6 +33,10 @@ class FaultRecord:
         detail: what it did, for people (`"SIGKILL pid 4242"`), or why it was skipped.
         skipped: whether it did nothing (its manager was not running, no process to kill,
             the run ended before its trigger, or before the trigger's `delay` ran out).
+        fail_s: a fault between hosts: seconds from the injection to the first call to
+            an affected host's manager that failed (`None`: none failed).
+        heal_s: a fault between hosts: seconds from its end to the first call that
+            such a manager answered again.
         recovery_s: seconds from the injection until the system served again (see
             `docs/reference/plan.md`, "Recovery"), or `None` if it did not within the run.
     """
@@ -46,6 +50,8 @@ class FaultRecord:
     detail: str
     skipped: bool = False
     recovery_s: float | None = None
+    fail_s: float | None = None
+    heal_s: float | None = None
 
     @property
     def late_s(self) -> float | None:
@@ -129,6 +135,8 @@ class RunResult:
         findings: each finding with its window of events, as `rr-actors check` prints
             them (line numbers of the run's own `events.jsonl`).
         check_s: seconds the check took.
+        hosts: the plan's hosts (empty without `[hosts]`): the row then has the medians
+            of `fail_s` and `heal_s` and a `recovery_s_<host>` per host.
     """
 
     plan: str
@@ -169,6 +177,7 @@ class RunResult:
     unverifiable: int = 0
     findings: tuple[str, ...] = dataclasses.field(default=(), repr=False)
     check_s: float = 0.0
+    hosts: tuple[str, ...] = ()
 
     def row(self) -> dict[str, Any]:
         """This run as one row of `runs.csv` (`unavailable_s_<manager>` per manager)."""
@@ -208,6 +217,19 @@ class RunResult:
                 "check_s": round(self.check_s, 4),
             }
         )
+        if self.hosts:
+            between = [f for f in self.faults if f.fail_s is not None or f.heal_s is not None]
+            fails = [f.fail_s for f in between if f.fail_s is not None]
+            heals = [f.heal_s for f in between if f.heal_s is not None]
+            row["fail_median_s"] = _rounded(_median(fails))
+            row["heal_median_s"] = _rounded(_median(heals))
+            for host in self.hosts[1:]:
+                times = [
+                    f.recovery_s
+                    for f in self.faults
+                    if f.recovery_s is not None and host in _hosts_of(f)
+                ]
+                row[f"recovery_s_{host}"] = _rounded(_median(times))
         return row
 
     def verdict_counts(self) -> str:
@@ -226,6 +248,19 @@ def show_value(value: Any) -> str:
     if isinstance(value, bool):
         return str(value).lower()
     return str(value)
+
+
+def _median(values: list[float]) -> float | None:
+    ordered = sorted(values)
+    if not ordered:
+        return None
+    middle = len(ordered) // 2
+    return ordered[middle] if len(ordered) % 2 else (ordered[middle - 1] + ordered[middle]) / 2
+
+
+def _hosts_of(fault: FaultRecord) -> set[str]:
+    """The hosts a fault between hosts names in its target (`a-b`, `b+c`, `b`)."""
+    return set((fault.target or "").replace("+", "-").split("-"))
 
 
 def _rounded(value: float | None) -> float | str:

@@ -17,6 +17,7 @@ rr_actors.experiments._child RUN_DIR`; `execute` is also callable in-process (te
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import json
@@ -29,12 +30,15 @@ import time
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 import rr_actors as rr
 from rr_actors import events
-from rr_actors.experiments import _procs, check, metrics
+from rr_actors.experiments import _hosts, _procs, check, metrics
 from rr_actors.experiments._instrument import instrumented_setup
+from rr_actors.experiments._netns import PORT, HostNetwork
 from rr_actors.experiments.inject import Injector
-from rr_actors.experiments.plan import ManagerPlan, Plan, SupervisorPlan
+from rr_actors.experiments.plan import HOST_KINDS, ManagerPlan, Plan, SupervisorPlan
 from rr_actors.experiments.results import FaultRecord, RunResult
 from rr_actors.experiments.schedule import fault_schedule
 from rr_actors.experiments.workload import Client
@@ -83,7 +87,14 @@ class RunSpec:
     token: str = ""
 
 
-def build_tree(plan: Plan, state_dir: Path | None, *, seed: int = 0) -> rr.Supervisor:
+def build_tree(
+    plan: Plan,
+    state_dir: Path | None,
+    *,
+    seed: int = 0,
+    host: str | None = None,
+    network: Any = None,
+) -> rr.Supervisor:
     """The plan's supervision tree as an (unstarted) `Supervisor`, every setup instrumented.
 
     Args:
@@ -91,6 +102,9 @@ def build_tree(plan: Plan, state_dir: Path | None, *, seed: int = 0) -> rr.Super
         state_dir: the directory of the managers' durable catalogs (`None`: in memory).
         seed: the run's seed: the backoff jitter of the whole tree draws from a generator
             seeded with it, so the same seed gives the same restart delays.
+        host: with `[hosts]`, the host whose part of the tree this is (its managers, and
+            the nested supervisors above them); `None`: the run's own host.
+        network: the carrier the tree is served on (`None`: this machine's AF_UNIX one).
 
     Returns:
         The supervisor, not started.
@@ -100,6 +114,10 @@ def build_tree(plan: Plan, state_dir: Path | None, *, seed: int = 0) -> rr.Super
             checked it already, so only for a plan built by hand).
     """
     top = plan.tree
+    if plan.hosts is not None:
+        top = _on_host(plan, top, host or plan.hosts.home) or msgspec.structs.replace(
+            top, children=()
+        )
     jitter = random.Random(f"rr-actors/{seed}/backoff")  # noqa: S311 - not for secrets
     return rr.Supervisor(
         [_child_spec(child, plan.base_dir) for child in top.children],
@@ -108,9 +126,23 @@ def build_tree(plan: Plan, state_dir: Path | None, *, seed: int = 0) -> rr.Super
         period=top.period,
         backoff=top.backoff,
         state_dir=state_dir,
-        name=top.name,
+        name=top.name if host is None or plan.hosts is None else f"{top.name}-{host}",
         random=jitter.random,
+        network=network,
     )
+
+
+def _on_host(plan: Plan, node: SupervisorPlan, host: str) -> SupervisorPlan | None:
+    """The part of `node` on `host`: its managers there, and the supervisors above them."""
+    children: list[ManagerPlan | SupervisorPlan] = []
+    for child in node.children:
+        if isinstance(child, SupervisorPlan):
+            part = _on_host(plan, child, host)
+            if part is not None:
+                children.append(part)
+        elif plan.host_of(child.name) == host:
+            children.append(child)
+    return msgspec.structs.replace(node, children=tuple(children)) if children else None
 
 
 def _child_spec(
@@ -200,7 +232,7 @@ def _catalog_size(registrar: rr.ResourceRegistrar) -> int:
     return len(view.resources) + len(view.clients)
 
 
-def _wait_all_serving(sup: rr.Supervisor, names: list[str], timeout: float) -> None:
+def wait_all_serving(sup: rr.Supervisor, names: list[str], timeout: float) -> None:
     """Wait (bounded) until every manager runs again; skip those that will not come back."""
     deadline = time.monotonic() + timeout
     for name in names:
@@ -245,6 +277,8 @@ class _Drive:
     until_s: float = 0.0  # the last instant measured, just before the tree's shutdown
     entries: int = 0
     unread: int = 0  # managers whose catalog could not be read at the end
+    hosts: list[_hosts.HostProcess] = dataclasses.field(default_factory=list)  # the others
+    network: HostNetwork | None = None  # with `[hosts]`: the namespaces
 
 
 def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None) -> RunResult:
@@ -272,28 +306,101 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
     if plan.base_dir is not None and plan.base_dir not in sys.path:
         sys.path.insert(0, plan.base_dir)  # the plan's modules, here and in its managers
     (run_dir / "work").mkdir(parents=True, exist_ok=True)
-    sup = build_tree(plan, run_dir / "state" if plan.state else None, seed=spec.seed)
     drive = _Drive()
     log = _EventLog()
-    subscription = sup.subscribe(log, maxsize=EVENT_QUEUE) if spec.record_events else None
-    try:
-        sup.start()
+    with contextlib.ExitStack() as stack:
+        network = _hosts_of(plan, run_dir, spec.seed, log, stack, drive)
+        state_dir = run_dir / "state" if plan.state else None
+        sup = build_tree(plan, state_dir, seed=spec.seed, network=network)
+        subscription = sup.subscribe(log, maxsize=EVENT_QUEUE) if spec.record_events else None
         try:
-            _drive(sup, spec, log, run_dir / "work", stop, drive)
+            sup.start()
+            try:
+                _start_hosts(drive, network, plan)
+                _drive(sup, spec, log, run_dir / "work", stop, drive)
+            finally:
+                if drive.injector is not None:
+                    drive.injector.stop()
+                sup.stop()
+                for host in drive.hosts:
+                    host.stop(timeout=LEAK_GRACE + 5.0)
+            if subscription is not None:
+                subscription.wait_delivered()
         finally:
-            if drive.injector is not None:
-                drive.injector.stop()
-            sup.stop()
-        if subscription is not None:
-            subscription.wait_delivered()
-    finally:
-        if subscription is not None:
-            subscription.close()
+            if subscription is not None:
+                subscription.close()
     log.write(run_dir / "events.jsonl", spec.run, spec.seed)
     leaked = _leaked(spec.token)
     assert drive.injector is not None
     result = _result(spec, log, drive, leaked=leaked, run_dir=run_dir)
     return _checked(result, run_dir / "events.jsonl") if spec.record_events else result
+
+
+def _hosts_of(
+    plan: Plan,
+    run_dir: Path,
+    seed: int,
+    log: _EventLog,
+    stack: contextlib.ExitStack,
+    drive: _Drive,
+) -> Any:
+    """With `[hosts]`: make the namespaces (deleted when `stack` closes), move this thread
+    into the first host's, and prepare the other hosts' processes (in `drive.hosts`);
+    return the run's own host's `ZenohNetwork` (its router). Without: `None`."""
+    if plan.hosts is None:
+        return None
+    from rr_actors._tools import certs as certs_tool  # noqa: PLC0415 - needs the zenoh extra
+
+    names = plan.hosts.names
+    net = drive.network = HostNetwork(names)
+    stack.callback(net.close)
+    certs = run_dir / "certs"
+    certs.mkdir(mode=0o700)
+    ca, _ = certs_tool.init_ca(certs, _hosts.SYSTEM)
+    specs = []
+    for index, name in enumerate(names):
+        pem, key = certs_tool.issue_cert(certs, name, net.addresses[name])
+        tls = {"ca": str(ca), "cert": str(pem), "key": str(key), "members": list(names)}
+        state = run_dir / f"state-{name}" if plan.state and index else None
+        specs.append(
+            _hosts.HostSpec(
+                plan=plan,
+                host=name,
+                listen=tuple(f"tls/{a}:{PORT}" for a in net.addresses[name]),
+                connect=tuple(f"tls/{net.peers[name][b]}:{PORT}" for b in names[:index]),
+                lease=plan.hosts.lease,
+                tls=tls,
+                state_dir=None if state is None else str(state),
+                seed=seed,
+                namespace=net.namespaces[name],
+            )
+        )
+    net.enter(names[0])
+    drive.hosts = [
+        _hosts.HostProcess(
+            spec,
+            run_dir / f"host-{spec.host}.pickle",
+            on_event=log,
+            log=run_dir / f"host-{spec.host}.log",
+        )
+        for spec in specs[1:]
+    ]
+    return _hosts.network(specs[0])
+
+
+def _start_hosts(drive: _Drive, network: Any, plan: Plan) -> None:
+    """Start the other hosts; wait (bounded) until the run's host sees every manager."""
+    if plan.hosts is None:
+        return
+    for host in drive.hosts:
+        host.start(timeout=plan.hosts.start_timeout)
+    names = {m.name for m in plan.managers()}
+    deadline = time.monotonic() + plan.hosts.start_timeout
+    while not names <= set(network.names()):
+        if time.monotonic() > deadline:
+            missing = ", ".join(sorted(names - set(network.names())))
+            raise rr.RrError(f"the run's host does not see {missing} over the network")
+        time.sleep(0.05)  # a poll of the network's directory (no event says "all joined")
 
 
 def _checked(result: RunResult, path: Path) -> RunResult:
@@ -321,7 +428,8 @@ def _drive(
 ) -> None:
     """The run itself, on a started tree: workload and faults, then unload and count."""
     plan = spec.plan
-    managers = [m.name for m in plan.managers()]
+    home = plan.hosts.home if plan.hosts is not None else None
+    managers = [m.name for m in plan.managers() if plan.host_of(m.name) == home]
     if spec.observe:
         observer = sup.observe(host="127.0.0.1", port=0)
         print(json.dumps({"observe": observer.url}), flush=True)  # noqa: T201 - to the experiment
@@ -331,7 +439,12 @@ def _drive(
     ]
     t0, drive.wall_t0 = time.monotonic(), time.time()
     injector = drive.injector = Injector(
-        sup, plan, fault_schedule(plan, spec.seed), t0=t0, wall_t0=drive.wall_t0
+        sup,
+        plan,
+        fault_schedule(plan, spec.seed),
+        t0=t0,
+        wall_t0=drive.wall_t0,
+        hosts=(drive.network, {h.name: h for h in drive.hosts}),
     )
     log.injector = injector
     for client in drive.clients:
@@ -341,19 +454,38 @@ def _drive(
     drive.end_s = time.monotonic() - t0
     injector.stop()
     if not stop.is_set():
-        _wait_all_serving(sup, managers, plan.recovery_timeout)
+        wait_all_serving(sup, managers, plan.recovery_timeout)
+        for host in drive.hosts:
+            with contextlib.suppress(rr.RrError):
+                host.ask(
+                    "wait_serving",
+                    within=plan.recovery_timeout + 5.0,
+                    timeout=plan.recovery_timeout,
+                )
     for client in drive.clients:
         client.stop(timeout=0.5 if stop.is_set() else plan.workload.timeout)
     failed = next((c.failure for c in drive.clients if c.failure is not None), None)
     if failed is not None:  # a request a client could not build: the run fails with it
         raise failed
-    drive.entries, drive.unread = _count_entries(sup, managers, drive.clients)
+    drive.entries, drive.unread = count_entries(sup, managers, drive.clients)
+    for host in drive.hosts:
+        try:
+            entries, unread = host.ask("count", within=10.0)
+        except rr.RrError:
+            entries, unread = (
+                0,
+                sum(1 for m in plan.managers() if plan.host_of(m.name) == host.name),
+            )
+        drive.entries, drive.unread = drive.entries + entries, drive.unread + unread
     if spec.record_events:
         sup.flush_events()
+        for host in drive.hosts:
+            with contextlib.suppress(rr.RrError):
+                host.ask("flush", within=10.0)
     drive.until_s = time.monotonic() - t0
 
 
-def _count_entries(
+def count_entries(
     sup: rr.Supervisor, managers: list[str], clients: list[Client]
 ) -> tuple[int, int]:
     """Rows left in the catalogs that can be read; how many managers' could not be."""
@@ -403,6 +535,8 @@ def _result(
         )
         for record in records
     ]
+    if plan.hosts is not None:
+        finished = [_between_hosts(record, plan, seen, wall_t0) for record in finished]
     heard = sorted(t for client in clients for t in client.heard)
     finished = [_unheld(record, heard, plan.workload.timeout) for record in finished]
     with (run_dir / "events.jsonl").open("a", encoding="utf-8") as out:
@@ -455,7 +589,24 @@ def _result(
         ),
         supervisor_restarts=supervisor_restarts,
         catalogs_unread=drive.unread,
+        hosts=plan.hosts.names if plan.hosts is not None else (),
     )
+
+
+def _between_hosts(
+    record: FaultRecord, plan: Plan, seen: list[events.Event], wall_t0: float
+) -> FaultRecord:
+    """A fault between hosts with its time to fail, time to heal and recovery."""
+    if record.kind not in HOST_KINDS:
+        return record
+    assert plan.hosts is not None
+    fault = plan.faults[record.fault]
+    hit = metrics.affected_hosts(record.kind, record.target, plan.hosts.names, fault.hosts)
+    providers = {m.name for m in plan.managers() if plan.host_of(m.name) in hit}
+    fail_s, heal_s, recovery_s = metrics.host_fault_times(
+        record, providers, fault.for_s or 0.0, seen, wall_t0
+    )
+    return dataclasses.replace(record, fail_s=fail_s, heal_s=heal_s, recovery_s=recovery_s)
 
 
 UNHELD = "no client held it"

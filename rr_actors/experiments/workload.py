@@ -8,6 +8,10 @@ Each client has a consumer registrar of its own (`Supervisor.registrar`) and one
     a status came (its callback queues it) ──► FATAL: unload, load again (a recovery)
                                                UPDATE: the manager replaced it (a recovery)
 
+What came due while a call blocked (statuses heard, holds run out) is handled, before the
+next call, in the order it happened: a `FATAL` heard while the resource was still held is
+acted on even if its hold ran out since.
+
 Calls come at `rate` per second per client (seeded Poisson or fixed gaps), on a schedule
 fixed in advance (an open-loop load): the calls that fell due while one call waited out a
 restart follow it back to back, as the requests of many independent users would. Every
@@ -22,6 +26,7 @@ the run fails with it (`runner` raises it once the clients have stopped).
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import functools
@@ -30,6 +35,7 @@ import itertools
 import os
 import queue
 import random
+import sys
 import threading
 import time
 import uuid
@@ -129,21 +135,42 @@ def retrying(
         RrError: what `action` raised otherwise, or its last failure.
     """
     pause = _RETRY_PAUSE
+    remote = _elsewhere(sup, provider)
     while True:
-        before = sup.child(provider)
+        before = None if remote else sup.child(provider)
         try:
             return action()
-        except (rr.RegistrarUnavailableError, rr.RegistrarStoppedError):
+        except (rr.RegistrarUnavailableError, rr.RegistrarStoppedError, rr.UnknownServerError):
+            # (a provider on another host: lost while its link was down, so unknown here
+            # until it is seen again; its own host's supervisor restarts it, not this one)
             left = deadline - time.monotonic()
-            if left <= 0:
+            if left <= 0 or (before is not None and not _unavailable(sys.exc_info()[1])):
                 raise
             retried()
-            now = sup.child(provider)
+            now = None if before is None else sup.child(provider)
+            if now is None or before is None:
+                threading.Event().wait(min(pause, left))  # a short pause, not a sync point
+                pause = min(2 * pause, _RETRY_PAUSE_MAX)
+                continue
             if now.state == "running" and now.restarts == before.restarts:
                 threading.Event().wait(min(pause, left))  # a short pause, not a sync point
                 pause = min(2 * pause, _RETRY_PAUSE_MAX)
                 continue
             sup.wait_restarted(provider, timeout=left, restarts=before.restarts + 1)
+
+
+def _elsewhere(sup: rr.Supervisor, provider: str) -> bool:
+    """Whether `provider` is a manager of another host (not in `sup`'s tree)."""
+    try:
+        sup.child(provider)
+    except rr.UnknownServerError:
+        return True
+    return False
+
+
+def _unavailable(exc: BaseException | None) -> bool:
+    """Whether a local provider's error is one to wait out (not an unknown name)."""
+    return isinstance(exc, rr.RegistrarUnavailableError | rr.RegistrarStoppedError)
 
 
 @dataclasses.dataclass
@@ -208,6 +235,7 @@ class Client:
         a request it could not build (naming the call and the cause), else the bug."""
         self._on_failure = on_failure
         self._notes: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._pending: collections.deque[tuple[str, rr.Status, float]] = collections.deque()
         self._held: list[_Held] = []
         self._given_up: list[tuple[CallMix, Any, str]] = []
         self._release_later: list[tuple[str, str]] = []  # (manager, query id)
@@ -295,9 +323,9 @@ class Client:
     def _calls(self) -> None:
         next_call = self.t0 + self._gap()
         while not self._stopping.is_set():
+            if not self._catch_up():
+                break
             now = time.monotonic()
-            while self._held and self._held[0].unload_at <= now:
-                self._unload(heapq.heappop(self._held), now + self.workload.timeout)
             if now >= next_call:
                 if now >= self.deadline:
                     break
@@ -315,8 +343,38 @@ class Client:
                 continue
             if note is _STOP:
                 break
-            self._handle(note)
+            self._pending.append(note)
         # Statuses that came after the end: nothing more to do than unload at stop().
+
+    def _catch_up(self) -> bool:
+        """Handle the statuses heard and the holds that ran out, in the order they happened.
+
+        While a call blocks (a retry through a restart, a slow load), a `FATAL` may come
+        for a resource whose hold runs out before the call returns: heard first, it is
+        acted on first (released and loaded again: a recovery), as a client that was not
+        busy would have; a hold that ran out before the status came is unloaded first
+        (the status then finds nothing held: nothing to recover).
+
+        Returns:
+            False once `stop` was asked for (the statuses still queued are left).
+        """
+        while True:
+            try:
+                note = self._notes.get_nowait()
+            except queue.Empty:
+                break
+            if note is _STOP:
+                return False
+            self._pending.append(note)
+        now = time.monotonic()
+        while True:
+            due = self._held[0].unload_at if self._held and self._held[0].unload_at <= now else None
+            if self._pending and (due is None or self.t0 + self._pending[0][2] <= due):
+                self._handle(self._pending.popleft())
+            elif due is not None:
+                self._unload(heapq.heappop(self._held), now + self.workload.timeout)
+            else:
+                return True
 
     def _now(self) -> float:
         return time.monotonic() - self.t0

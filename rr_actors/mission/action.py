@@ -38,12 +38,26 @@ import rr_actors as rr
 from rr_actors.mission import managers, programs
 from rr_actors.mission.config import (
     FAULT_WHAT,
+    HOST_OF,
     MANAGERS,
     MissionConfig,
     MissionError,
     MissionInterruptedError,
 )
 from rr_actors.mission.faults import Faults, alive, retry_through_restarts, sigkill
+from rr_actors.mission.hosts import (
+    CERTS,
+    MEMBERS,
+    PORT,
+    ROBOT_LOG,
+    ROBOT_MANAGERS,
+    SYSTEM,
+    RobotHost,
+    RobotSettings,
+    Tree,
+    Trees,
+)
+from rr_actors.mission.netns import TwoHosts
 from rr_actors.mission.output import Progress
 from rr_actors.mission.report import (
     FaultRecord,
@@ -94,6 +108,8 @@ class Mission:
         on_interrupt: called on the mission's thread with the mission time (seconds)
             of a Ctrl-C, before the mission unloads everything (`rr-actors demo` then
             says so); once, however many Ctrl-Cs follow.
+        link: with `config.hosts == 2`: the two hosts' namespaces (this process runs in
+            the station's); the robot's managers start in a process in the robot's.
 
     Attributes:
         supervisor: the managers' supervisor while the mission runs, else `None`.
@@ -111,8 +127,12 @@ class Mission:
         on_supervisor: Callable[[rr.Supervisor], object] | None = None,
         before_fault: Callable[[str, list[str]], object] | None = None,
         on_interrupt: Callable[[float], object] | None = None,
+        link: TwoHosts | None = None,
     ) -> None:
+        if (config.hosts == 2) != (link is not None):
+            raise MissionError("a mission on two hosts needs their namespaces (and only it)")
         self.config = config
+        self.link = link
         self._on_supervisor = on_supervisor
         self._before_fault = before_fault
         self._on_interrupt = on_interrupt
@@ -173,47 +193,51 @@ class Mission:
             sub.mkdir(parents=True)
         cfg = self.config
         setups = managers.setups()
+        two = self.link is not None
+        here = tuple(m for m in MANAGERS if not two or m not in ROBOT_MANAGERS)
         specs = [
             rr.ManagerSpec(name, setup=setups[name], isolation=cfg.isolation, restart="permanent")
-            for name in MANAGERS
+            for name in here
         ]
-        self.say(f"starting the managers erm, cm and rm ({cfg.isolation} isolation)")
-        sup = rr.Supervisor(
-            specs, strategy="one_for_one", max_restarts=10, period=10.0, state_dir=self.state
-        )
-        entries: dict[str, int] = {}
-        if self._on_supervisor is not None:
-            try:
-                self._on_supervisor(sup)  # before the start: an observer sees it start
-            except BaseException:
-                sup.stop()  # (closes what it opened on it)
-                raise
-        try:
-            with sup:
-                self.supervisor = sup
-                app = sup.registrar(
-                    rr.RegistrarConfig(name="mission", call_timeout=cfg.call_timeout)
-                )
-                self._faults = Faults(sup, app, recovery_timeout=cfg.recovery_timeout, say=self.say)
+        with contextlib.ExitStack() as hosts:
+            network: rr.ZenohNetwork | None = None
+            robot: RobotHost | None = None
+            if two:
+                network, robot = self._two_hosts(hosts)
+            else:
+                self.say(f"starting the managers erm, cm and rm ({cfg.isolation} isolation)")
+            sup = rr.Supervisor(
+                specs,
+                strategy="one_for_one",
+                max_restarts=10,
+                period=10.0,
+                state_dir=self.state / "station" if two else self.state,
+                network=network,
+            )
+            if self._on_supervisor is not None:
                 try:
-                    start, arrived = self._mission(sup, app)
-                except KeyboardInterrupt:
-                    self._interrupt()  # said before the unloading, which takes a while
+                    self._on_supervisor(sup)  # before the start: an observer sees it start
+                except BaseException:
+                    sup.stop()  # (closes what it opened on it)
                     raise
-                finally:
-                    entries = self._unload_all(sup, app)
-                    sup.flush_events()  # the last exits and restarts of the drive are heard
-                    self._faults.close()
-        except MissionError:
-            raise
-        except rr.RrError as exc:
-            raise MissionError(f"the mission failed: {exc}") from exc
-        finally:
-            self.supervisor = None
-            leaked = self._leaked_pids = self._leaked()
-            if leaked:
-                self.say(f"{len(leaked)} process(es) were left behind: {leaked}; killed them")
+            of: dict[str, Tree] = dict.fromkeys(MANAGERS, sup)
+            if robot is not None:
+                of.update(dict.fromkeys(ROBOT_MANAGERS, robot))
+            trees = Trees(of, {m: HOST_OF[m] for m in MANAGERS} if two else None)
+            try:
+                start, arrived, entries = self._supervised(sup, trees, network, robot)
+            except MissionError:
+                raise
+            except rr.RrError as exc:
+                raise MissionError(f"the mission failed: {exc}") from exc
+            finally:
+                self.supervisor = None
+                hosts.close()  # the robot's host, then the station's network
+                leaked = self._leaked_pids = self._leaked()
+                if leaked:
+                    self.say(f"{len(leaked)} process(es) were left behind: {leaked}; killed them")
         faults = self._faults
+        assert faults is not None
         return build_report(
             odometry=self._odom,
             clock=self.clock,
@@ -224,11 +248,108 @@ class Mission:
             nominal_time_s=cfg.nominal_time_s,
             leaked=leaked,
             entries=entries,
+            host_of=HOST_OF if two else None,
         )
+
+    def _supervised(
+        self,
+        sup: rr.Supervisor,
+        trees: Trees,
+        network: rr.ZenohNetwork | None,
+        robot: RobotHost | None,
+    ) -> tuple[float, float, dict[str, int]]:
+        """Start this host's managers, run the mission, unload; (start, arrival, catalogs)."""
+        cfg = self.config
+        entries: dict[str, int] = {}
+        with sup:
+            self.supervisor = sup
+            app = sup.registrar(rr.RegistrarConfig(name="mission", call_timeout=cfg.call_timeout))
+            if network is not None:
+                for name in ROBOT_MANAGERS:
+                    network.wait_for(name, timeout=cfg.call_timeout)
+            self._faults = Faults(
+                trees,
+                app,
+                recovery_timeout=cfg.recovery_timeout,
+                say=self.say,
+                link=self.link,
+                cut_s=cfg.cut_s,
+            )
+            if robot is not None:
+                robot.on_watch = self._robot_watch
+            try:
+                start, arrived = self._mission(trees, app)
+            except KeyboardInterrupt:
+                self._interrupt()  # said before the unloading, which takes a while
+                raise
+            finally:
+                entries = self._unload_all(trees, app)
+                trees.flush_events()  # the last exits and restarts of the drive are heard
+                self._faults.close()
+                if robot is not None:  # before the station leaves (the robot would see it go)
+                    robot.close()
+        return start, arrived, entries
+
+    def _two_hosts(self, stack: contextlib.ExitStack) -> tuple[rr.ZenohNetwork, RobotHost]:
+        """Start the robot's host (erm, rm) and open the station's network; both on `stack`."""
+        link = self.link
+        assert link is not None
+        cfg = self.config
+        certs = self.out / CERTS
+        self.say(
+            f"two hosts: the robot ({link.robot_address}: erm, rm and their programs) and the "
+            f"station ({link.station_address}: the mission and cm), mutual TLS ({certs})"
+        )
+        tls = rr.ZenohTLS(
+            ca=certs / "ca.pem",
+            cert=certs / "station.pem",
+            key=certs / "station.key",
+            members=list(MEMBERS),
+        )
+        network = rr.ZenohNetwork(
+            system=SYSTEM,
+            listen=[f"tls/{link.station_address}:{PORT}"],
+            connect=[f"tls/{link.robot_address}:{PORT}"],
+            tls=tls,
+            lease=cfg.lease,
+        )
+        stack.callback(network.close)
+        robot = RobotHost.start(
+            link.exec_in(link.robot),
+            RobotSettings(
+                system=SYSTEM,
+                certs=str(certs),
+                listen=f"tls/{link.robot_address}:{PORT}",
+                connect=f"tls/{link.station_address}:{PORT}",
+                lease=cfg.lease,
+                state=str(self.state / "robot"),
+                bus=str(self.bus),
+                isolation=cfg.isolation,
+                log=str(self.out / ROBOT_LOG),
+            ),
+            say=self.say,
+        )
+        stack.callback(robot.close)
+        self.say(f"robot's host up (pid {robot.pid}): erm and rm started there")
+        return network, robot
+
+    def _robot_watch(self, kind: str, at: float) -> None:
+        """The robot's host saw the station go (`"lost"`) or come back (`"back"`) at `at`."""
+        faults = self._faults
+        if faults is None:
+            return
+        with faults.lock:
+            cut = next((r for r in faults.records if r.id == "F6"), None)
+            if cut is None:
+                return
+            if kind == "lost" and cut.robot_saw_at is None:
+                cut.robot_saw_at = at
+            elif kind == "back" and cut.robot_saw_back_at is None:
+                cut.robot_saw_back_at = at
 
     def _load(
         self,
-        sup: rr.Supervisor,
+        sup: Trees,
         app: rr.ResourceRegistrar,
         provider: str,
         server: str,
@@ -242,7 +363,7 @@ class Mission:
         self._held.append((query.id, provider))
         return query
 
-    def _mission(self, sup: rr.Supervisor, app: rr.ResourceRegistrar) -> tuple[float, float]:
+    def _mission(self, sup: Trees, app: rr.ResourceRegistrar) -> tuple[float, float]:
         """Load the robot and LiDAR 1, drive; return when the drive started and ended."""
         cfg = self.config
         robot = self._load(sup, app, "rm", "robot", self._robot_request(), self._robot_cb)
@@ -259,7 +380,7 @@ class Mission:
         self.say(f"goal reached after {self.clock.at(arrived) - self.clock.at(start):.2f} s")
         return start, arrived
 
-    def _unload_all(self, sup: rr.Supervisor, app: rr.ResourceRegistrar) -> dict[str, int]:
+    def _unload_all(self, sup: Trees, app: rr.ResourceRegistrar) -> dict[str, int]:
         """Stop the robot, unload what the mission holds, count what the catalogs keep."""
         self._goal(paused=True)
         if self._faults is not None:
@@ -332,7 +453,7 @@ class Mission:
 
     # -- the drive ----------------------------------------------------------------------
 
-    def _drive(self, sup: rr.Supervisor, app: rr.ResourceRegistrar) -> float:
+    def _drive(self, sup: Trees, app: rr.ResourceRegistrar) -> float:
         """Drive to the goal, injecting the faults on the way; return the arrival time."""
         cfg = self.config
         faults = self._faults
@@ -350,6 +471,8 @@ class Mission:
             self._odom.read()
             if event is not None:
                 self._handle(event, active, sup, app)
+            if active is not None and active.id == "F6" and active.detected_at is not None:
+                self._ride_out_cut(sup, app, active)
             faults.notice_restarts()
             with faults.lock:
                 if active is not None and active.recovered_at is not None:
@@ -421,7 +544,7 @@ class Mission:
         self,
         event: _Event,
         active: FaultRecord | None,
-        sup: rr.Supervisor,
+        sup: Trees,
         app: rr.ResourceRegistrar,
     ) -> None:
         status = event.update.status
@@ -429,6 +552,12 @@ class Mission:
             f"{event.kind} query {event.query_id[:8]} hears {status.name} from "
             f"{event.update.source}: {event.update.message}"
         )
+        if all(event.query_id != held for held, _ in self._held):
+            return  # about a query the mission let go of already (F6 reloads both)
+        if active is not None and active.id == "F6" and status is rr.Status.FATAL:
+            if active.detected_at is None:  # the station saw the cut: its lease ran out
+                active.detected_at = event.at
+            return
         if event.kind == "lidar" and status is rr.Status.FATAL:
             record = active if active is not None and active.id == "F1" else None
             if record is not None:
@@ -454,7 +583,7 @@ class Mission:
 
     def _substitute_lidar(
         self,
-        sup: rr.Supervisor,
+        sup: Trees,
         app: rr.ResourceRegistrar,
         dead_id: str,
         record: FaultRecord | None,
@@ -473,6 +602,71 @@ class Mission:
             record.recovered_at = time.monotonic()
             record.note = f"LiDAR 2 (pid {lidar.response['pid']}) replaced LiDAR 1"
         self.say(f"LiDAR 2 loaded (pid {lidar.response['pid']}); driving on")
+
+    def _ride_out_cut(self, sup: Trees, app: rr.ResourceRegistrar, record: FaultRecord) -> None:
+        """F6 on the station: the link is cut; fail fast, wait for the heal, load again.
+
+        The station heard `FATAL` for the robot (its provider `rm` is on the far side:
+        lost, rule 19) and for the LiDAR (`cm` lost the ERM's program it depends on), and
+        forgot the robot's id. The robot's host stopped the robot itself. Each call made
+        during the cut fails at once (`RegistrarUnavailableError`), not at its timeout;
+        once the link is back the mission loads the robot and the LiDAR again, and the
+        reconciliation releases, at the robot, the ids the station forgot (rule 20).
+        """
+        cfg = self.config
+        self.say("station: lost the robot's managers (FATAL); waiting for the link")
+        self._held = [(q, p) for q, p in self._held if p != "rm"]  # forgotten (rule 19)
+        lidars = [q for q, p in self._held if p == "cm"]
+        for query_id in lidars:  # cm is here: its LiDAR lost the ERM's program
+            with contextlib.suppress(rr.UnknownQueryError):
+                app.unload(query_id)
+        self._held = [(q, p) for q, p in self._held if p != "cm"]
+        deadline = record.injected_at + cfg.recovery_timeout
+        robot: rr.Query | None = None
+        while robot is None:
+            began = time.monotonic()
+            try:
+                robot = app.call(
+                    "rm", "robot", self._robot_request(), on_status=self._robot_cb,
+                    timeout=max(deadline - began, 1e-3),
+                )  # fmt: skip
+            except (rr.RegistrarUnavailableError, rr.UnknownRegistrarError) as exc:
+                failed = time.monotonic() - began
+                if record.healed_at is None:
+                    record.failed_calls.append(failed)
+                if len(record.failed_calls) == 1 and record.healed_at is None:
+                    self.say(
+                        f"station: a call to rm during the cut failed after {failed * 1000:.0f} "
+                        f"ms ({exc.__class__.__name__}), not at its timeout"
+                    )
+                if time.monotonic() >= deadline:
+                    raise MissionError(
+                        f"F6: the robot was not back within {cfg.recovery_timeout:g} s"
+                    ) from exc
+                self._faults_healed(deadline)
+        self._held.append((robot.id, "rm"))
+        lidar = self._load(sup, app, "cm", "lidar", self._lidar_request("lidar1"), self._lidar_cb)
+        self._goal(paused=False)
+        record.recovered_at = time.monotonic()
+        record.note = (
+            f"robot reloaded (driver pid {robot.response['driver_pid']}), LiDAR 1 reloaded "
+            f"(pid {lidar.response['pid']}); {len(record.failed_calls)} call(s) failed fast "
+            "during the cut"
+        )
+        self.say(
+            f"F6 recovered: link back, robot (driver pid {robot.response['driver_pid']}) and "
+            f"LiDAR (pid {lidar.response['pid']}) loaded again; the robot's host released what "
+            "the station forgot; driving on"
+        )
+
+    def _faults_healed(self, deadline: float) -> None:
+        """Wait for F6's heal (or a short while once healed: Zenoh reconnects by itself)."""
+        faults = self._faults
+        assert faults is not None
+        if not faults.healed.is_set():
+            faults.healed.wait(max(0.0, deadline - time.monotonic()))
+        else:
+            time.sleep(TICK * 5)  # the link is up; Zenoh is dialling again: ask again soon
 
     # -- the end ------------------------------------------------------------------------
 

@@ -14,6 +14,8 @@ __all__ = [
     "DEFAULT_FAULT_AT",
     "FAULTS",
     "FAULT_WHAT",
+    "HOST_FAULTS",
+    "HOST_OF",
     "MANAGERS",
     "MANAGER_OF",
     "MissionConfig",
@@ -25,12 +27,16 @@ __all__ = [
 FAULTS = ("F1", "F2", "F3", "F4", "F5")
 """The thesis's five faults, in the order the mission meets them."""
 
+HOST_FAULTS = ("F6",)
+"""The faults of the mission across two hosts (`hosts=2`) only: F6, the WiFi cut."""
+
 FAULT_WHAT = {
     "F1": "LiDAR 1 disconnected",
     "F2": "motor driver failed",
     "F3": "external resource manager killed",
     "F4": "component manager killed",
     "F5": "robot manager killed",
+    "F6": "WiFi cut between the robot and the station",
 }
 """What each fault is, in words (the report's `what`)."""
 
@@ -40,7 +46,23 @@ MANAGERS = ("erm", "cm", "rm")
 MANAGER_OF = {"F3": "erm", "F4": "cm", "F5": "rm"}
 """Which manager each software fault kills."""
 
-DEFAULT_FAULT_AT = {"F1": 0.15, "F2": 0.35, "F3": 0.5, "F4": 0.65, "F5": 0.8}
+HOST_OF = {
+    "erm": "robot",
+    "rm": "robot",
+    "cm": "station",
+    "mission": "station",
+    "F1": "robot",
+    "F2": "robot",
+    "F3": "robot",
+    "F4": "station",
+    "F5": "robot",
+    "F6": "both",
+}
+"""Where each manager runs, and where each fault strikes, across two hosts (thesis 6.1: the
+robot's computer runs the external resource manager and the robot manager with their
+programs; the operator station runs the mission and the component manager it asks through)."""
+
+DEFAULT_FAULT_AT = {"F1": 0.15, "F2": 0.35, "F3": 0.5, "F4": 0.65, "F5": 0.8, "F6": 0.85}
 """Where each fault is injected, as a fraction of the path."""
 
 
@@ -91,7 +113,7 @@ class MissionConfig:
     Attributes:
         distance_m: length of the path, in metres.
         speed: driving speed, in metres per second.
-        faults: which faults to inject (`"F1"` ... `"F5"`).
+        faults: which faults to inject (`"F1"` ... `"F5"`; `"F6"` with `hosts=2`).
         fault_at: where to inject each, as a fraction of the path (0..1).
         seed: seeds the LiDAR noise and a small jitter of the injection points.
         isolation: `"process"` (each manager an OS process) or `"thread"`.
@@ -102,6 +124,12 @@ class MissionConfig:
         cmd_timeout: seconds after which the driver's watchdog treats a command as stale.
         recovery_timeout: seconds a fault may take to be recovered before the mission fails.
         call_timeout: timeout of the mission's calls, in seconds.
+        hosts: 1 (every manager under one supervisor) or 2 (the robot's and the
+            station's, in two network namespaces: `rr-actors demo --hosts 2`, as root).
+        cut_s: F6: seconds the link between the hosts stays down; longer than `lease`
+            (a shorter cut is not seen).
+        lease: with `hosts=2`: seconds after which a silent host counts as gone (3 s:
+            "a few seconds over Wi-Fi", and a loaded machine's hosts stay linked).
 
     Raises:
         ConfigError: a field is invalid; the message names it.
@@ -120,16 +148,32 @@ class MissionConfig:
     cmd_timeout: float = 0.5
     recovery_timeout: float = 20.0
     call_timeout: float = 15.0
+    hosts: int = 1
+    cut_s: float = 5.0
+    lease: float = 3.0
 
     def __post_init__(self) -> None:
         for field in ("distance_m", "speed", "lidar_rate", "driver_rate", "nav_rate"):
             value = getattr(self, field)
             if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
                 raise rr.ConfigError(f"{field} must be a positive number, got {value!r}")
-        unknown = [f for f in self.faults if f not in FAULTS]
+        if self.hosts not in (1, 2) or isinstance(self.hosts, bool):
+            raise rr.ConfigError(f"hosts must be 1 or 2, got {self.hosts!r}")
+        for field in ("cut_s", "lease"):
+            value = getattr(self, field)
+            if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
+                raise rr.ConfigError(f"{field} must be a positive number, got {value!r}")
+        if self.cut_s <= self.lease:
+            raise rr.ConfigError(
+                f"cut_s must be longer than lease ({self.lease:g} s), got {self.cut_s!r}"
+            )
+        known = FAULTS + HOST_FAULTS
+        unknown = [f for f in self.faults if f not in known]
         if unknown:
-            raise rr.ConfigError(f"faults: unknown fault(s) {unknown}; known: {list(FAULTS)}")
-        object.__setattr__(self, "faults", tuple(f for f in FAULTS if f in self.faults))
+            raise rr.ConfigError(f"faults: unknown fault(s) {unknown}; known: {list(known)}")
+        if self.hosts == 1 and any(f in HOST_FAULTS for f in self.faults):
+            raise rr.ConfigError("faults: F6 (the WiFi cut) needs hosts=2 (--hosts 2)")
+        object.__setattr__(self, "faults", tuple(f for f in known if f in self.faults))
         for fault in self.faults:
             point = self.fault_at.get(fault)
             if point is None or not 0.0 < point < 1.0:
@@ -151,10 +195,23 @@ class MissionConfig:
             "speed": 2.0,
             "lidar_rate": 50.0,
             "nav_rate": 50.0,
-            "fault_at": {"F1": 0.1, "F2": 0.25, "F3": 0.4, "F4": 0.55, "F5": 0.7},
+            "fault_at": {"F1": 0.1, "F2": 0.25, "F3": 0.4, "F4": 0.55, "F5": 0.7, "F6": 0.8},
         }
         base.update(changes)
         return cls(**base)
+
+    @classmethod
+    def fast_two_hosts(cls, **changes: Any) -> MissionConfig:
+        """`fast` across two hosts: a longer path, so that the robot still drives for
+        longer than the `lease` after F6 (and its stop shows)."""
+        base: dict[str, Any] = {
+            "hosts": 2,
+            "faults": FAULTS + HOST_FAULTS,
+            "distance_m": 16.0,
+            "fault_at": {"F1": 0.05, "F2": 0.12, "F3": 0.2, "F4": 0.27, "F5": 0.34, "F6": 0.45},
+        }
+        base.update(changes)
+        return cls.fast(**base)
 
     @property
     def nominal_time_s(self) -> float:

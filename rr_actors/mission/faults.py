@@ -27,7 +27,9 @@ from typing import Any, TypeVar
 
 import rr_actors as rr
 from rr_actors.mission import managers, programs
-from rr_actors.mission.config import FAULT_WHAT, MANAGER_OF, MANAGERS, MissionError
+from rr_actors.mission.config import FAULT_WHAT, HOST_OF, MANAGER_OF, MANAGERS, MissionError
+from rr_actors.mission.hosts import Trees
+from rr_actors.mission.netns import TwoHosts
 from rr_actors.mission.report import FaultRecord, UnplannedExit
 
 __all__ = ["SERVER_OF", "Faults", "alive", "retry_through_restarts", "sigkill"]
@@ -59,12 +61,12 @@ def sigkill(pid: int, created: int | None = None) -> int:
 
 
 def retry_through_restarts(
-    sup: rr.Supervisor, name: str, action: Callable[[], T], *, timeout: float
+    sup: rr.Supervisor | Trees, name: str, action: Callable[[], T], *, timeout: float
 ) -> T:
     """Run `action`; if manager `name` was down or died meanwhile, wait for its restart, retry.
 
     Args:
-        sup: the supervisor of `name`.
+        sup: the supervisor of `name` (or the mission's `Trees`).
         name: the manager `action` talks to.
         action: what to do (a call, an unload, a `run_in`).
         timeout: seconds for all attempts and waits together.
@@ -109,24 +111,32 @@ class Faults:
     """The faults injected into one run, and the managers' restarts seen meanwhile.
 
     Args:
-        sup: the running supervisor of the managers.
+        sup: the managers' running supervision trees (one per host).
         app: the mission's registrar.
         recovery_timeout: seconds a manager fault may take to be recovered.
         say: tells one line of the story (called from several threads).
+        link: the two hosts (F6 cuts the link between them), or `None` on one host.
+        cut_s: F6: seconds the link stays down.
     """
 
     def __init__(
         self,
-        sup: rr.Supervisor,
+        sup: Trees,
         app: rr.ResourceRegistrar,
         *,
         recovery_timeout: float,
         say: Callable[[str], None],
+        link: TwoHosts | None = None,
+        cut_s: float = 3.0,
     ) -> None:
         self.sup = sup
         self.app = app
         self.recovery_timeout = recovery_timeout
         self.say = say
+        self.link = link
+        self.cut_s = cut_s
+        self.healed = threading.Event()
+        """Set once F6's link is up again."""
         self.lock = threading.Lock()
         """Guards the records: recovery threads, the event thread and the mission's."""
         self.records: list[FaultRecord] = []
@@ -212,7 +222,42 @@ class Faults:
         """
         if fault in ("F1", "F2"):
             return self._inject_program(fault)
+        if fault == "F6":
+            return self._inject_cut()
         return self._inject_manager(fault)
+
+    def _host(self, fault: str) -> str:
+        return HOST_OF[fault] if self.link is not None else ""
+
+    def _inject_cut(self) -> FaultRecord:
+        """F6: take the link between the hosts down, and up again `cut_s` later."""
+        if self.link is None:
+            raise MissionError("F6 (the WiFi cut) needs two hosts")
+        link = self.link
+        record = FaultRecord("F6", time.monotonic(), host=self._host("F6"))
+        with self.lock:
+            self.records.append(record)
+        link.cut()
+        record.injected_at = time.monotonic()
+        self.say(
+            f"F6 injected: {FAULT_WHAT['F6']} (ip link set down at both ends, for {self.cut_s:g} s)"
+        )
+
+        def heal() -> None:
+            try:
+                link.heal()
+            except OSError as exc:
+                self.say(f"F6: the link could not be brought up again: {exc}")
+                return
+            record.healed_at = time.monotonic()
+            self.healed.set()
+            self.say("F6: the link is up again")
+
+        timer = threading.Timer(self.cut_s, heal)
+        timer.name = "mission-F6-heal"
+        timer.daemon = True
+        timer.start()
+        return record
 
     def _inject_program(self, fault: str) -> FaultRecord:
         queries = self.app.client_queries()
@@ -222,7 +267,7 @@ class Faults:
         else:
             robot = next(q for q in queries if q.server == "robot").response
             pid, created = robot["driver_pid"], robot["driver_start_time"]
-        record = FaultRecord(fault, time.monotonic())
+        record = FaultRecord(fault, time.monotonic(), host=self._host(fault))
         with self.lock:
             self.records.append(record)
         os.close(sigkill(pid, created))
@@ -241,7 +286,7 @@ class Faults:
                 pidfd = os.pidfd_open(info.pid)
             except ProcessLookupError:  # it died just now, by other means
                 return None
-        record = FaultRecord(fault, time.monotonic())
+        record = FaultRecord(fault, time.monotonic(), host=self._host(fault))
         with self.lock:
             self.records.append(record)
             self._injected[name] += 1  # its exit is ours, not an unplanned one

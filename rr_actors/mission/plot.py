@@ -1,10 +1,14 @@
 """The mission's figure: this run beside the thesis's (figure 6.5), and a zoom on one stop.
 
     ┌ distance over the mission clock ───────────────┐ ┌ zoom on the longest stop ─┐
-    │ this run (blue), its faults F1-F5 (dashed)     │ │ odometry samples, the     │
+    │ this run (blue), its faults F1-F6 (dotted)     │ │ odometry samples, the     │
     │ the thesis's run (orange), its 3 s and 5 s     │ │ stop shaded, when FATAL   │
     │ stops shaded; a box where the zoom looks       │ │ was heard and recovered   │
     └────────────────────────────────────────────────┘ └───────────────────────────┘
+
+Across two hosts (`demo --hosts 2`) each fault's marker names where it struck, as the
+timeline does (`F4 station`, `F6 both`), and F6's cut link is hatched from the cut until
+the link was up again.
 
 The thesis's run is redrawn from the figures its section 6.2 gives for figure 6.5 (32 s
 without faults, 43 s with them; stopped 3 s at F1 and 5 s at F2, not at F3-F5) over this
@@ -77,6 +81,11 @@ def thesis_trace(distance_m: float, start_s: float = 0.0) -> list[tuple[float, f
     return corners
 
 
+def _label(fault: FaultResult) -> str:
+    """A fault's marker: its id, and across two hosts where it struck (`F4 station`)."""
+    return f"{fault.id} {fault.host}" if fault.host else fault.id
+
+
 def _zoomed(report: MissionReport) -> tuple[FaultResult, float, float] | None:
     """The fault whose stop the zoom shows (the longest), and the zoom's time window."""
     if not report.faults:
@@ -130,10 +139,20 @@ def _main_panel(ax: Axes, report: MissionReport) -> None:
         ax.plot(ts, xs, color=OURS, linewidth=2, label="rr-actors demo (this run)")
     for start, stop in report.stops:
         ax.axvspan(start, stop, color=STOPPED, alpha=0.25, linewidth=0)
+    cuts = [f for f in report.faults if f.details.get("link_up_after_s") is not None]
+    for fault in cuts:  # F6: the link between the hosts was down
+        ax.axvspan(
+            fault.injected_at_s,
+            fault.injected_at_s + fault.details["link_up_after_s"],
+            facecolor="none",
+            edgecolor="0.6",
+            hatch="//",
+            linewidth=0,
+        )
     for i, fault in enumerate(report.faults):
         ax.axvline(fault.injected_at_s, color="tab:gray", linestyle=":", linewidth=1)
         ax.annotate(
-            fault.id,
+            _label(fault),
             (fault.injected_at_s, top * (1.1 if i % 2 == 0 else 1.04)),  # close ones: apart
             xytext=(2, -2),
             textcoords="offset points",
@@ -153,6 +172,16 @@ def _main_panel(ax: Axes, report: MissionReport) -> None:
             label="paused for Enter (not counted)",
         )
     ax.plot([], [], color=STOPPED, alpha=0.4, linewidth=8, label="this run's robot stopped")
+    if cuts:
+        ax.fill_between(
+            [],
+            [],
+            facecolor="none",
+            edgecolor="0.6",
+            hatch="//",
+            linewidth=0,
+            label="link between the hosts down",
+        )
     ax.plot([], [], color=THEIRS, alpha=0.3, linewidth=8, label="the thesis's robot stopped")
     ax.set_xlabel("mission clock (s): the story's and the timeline's")
     ax.set_ylabel("distance (m)")
@@ -194,7 +223,7 @@ def _zoom_panel(ax: Axes, main: Axes, report: MissionReport) -> None:
         )
     thesis_stop = THESIS["robot_stopped_s"].get(fault.id, 0.0)
     ax.set_title(
-        f"{fault.id} up close: stopped {fault.robot_stopped_s * 1000:.0f} ms "
+        f"{_label(fault)} up close: stopped {fault.robot_stopped_s * 1000:.0f} ms "
         f"(thesis: {thesis_stop:g} s)",
         fontsize=10,
     )
@@ -244,8 +273,9 @@ def plot(report: MissionReport, path: Path) -> None:
         if zoom:
             _zoom_panel(axes[0][1], main, report)
         thesis = THESIS["mission_time_s"]
+        across = f" on two hosts ({', '.join(report.hosts)})" if report.hosts else ""
         fig.suptitle(
-            f"rr-actors demo: {report.mission_time_s:.1f} s of driving with "
+            f"rr-actors demo{across}: {report.mission_time_s:.1f} s of driving with "
             f"{len(report.faults)} fault(s) (no stop: {report.nominal_time_s:.1f} s); "
             f"TeMoto thesis, figure 6.5: {thesis['with_faults']:g} s "
             f"(no stop: {thesis['without_faults']:g} s)",

@@ -99,6 +99,8 @@ class FaultResult:
             manager answered from its restored catalog).
         robot_stopped_s: how long the robot stood still because of it (from odometry).
         note: what the recovery found (e.g. what the restarted ERM re-adopted).
+        host: where it struck (`"robot"`, `"station"`, `"both"` for F6; one host: "").
+        details: F6's figures, seconds after the cut (see `MissionReport.to_dict`).
     """
 
     id: str
@@ -108,6 +110,8 @@ class FaultResult:
     recovered_after_s: float | None
     robot_stopped_s: float
     note: str = ""
+    host: str = ""
+    details: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,6 +176,9 @@ class MissionReport:
             `drive_started_s + mission_time_s`.
         pauses_s: when the mission paused for Enter (`--step`), mission time.
         paused_s: how long those pauses took together (left out of every time).
+        hosts: across two hosts (`hosts=2`), each host's figures: its managers, the
+            faults that struck it, its managers' restarts, and F6 as it saw it; empty
+            on one host.
     """
 
     mission_time_s: float
@@ -187,6 +194,7 @@ class MissionReport:
     drive_started_s: float = 0.0
     pauses_s: tuple[float, ...] = ()
     paused_s: float = 0.0
+    hosts: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -213,6 +221,8 @@ class MissionReport:
                     "recovered_after_s": _round(f.recovered_after_s),
                     "robot_stopped_s": _round(f.robot_stopped_s),
                     "note": f.note,
+                    **({"host": f.host} if f.host else {}),
+                    **({"details": f.details} if f.details else {}),
                 }
                 for f in self.faults
             ],
@@ -232,6 +242,7 @@ class MissionReport:
             "stops": [[_round(a), _round(b)] for a, b in self.stops],
             "paused_for_enter_s": round(self.paused_s, 3),
             "pauses_at_s": [round(t, 3) for t in self.pauses_s],
+            **({"hosts": self.hosts} if self.hosts else {}),
         }
 
 
@@ -247,7 +258,8 @@ class TimelineRow:
     """One row of the timeline table. Times are seconds; `None` shows as "-".
 
     Attributes:
-        label: the fault's id (`"F1"` ...), or `"-"` for something no fault caused.
+        label: the fault's id (`"F1"` ...), or `"-"` for something no fault caused; across
+            two hosts followed by the host (`"F4 station"`, `"F6 both"`).
         what: what happened, in a few words.
         at_s: when it was injected (or noticed), mission time.
         detected_after_s: from `at_s` until it was detected.
@@ -269,8 +281,19 @@ SHORT_WHAT = {
     "F3": "manager erm killed",
     "F4": "manager cm killed",
     "F5": "manager rm killed",
+    "F6": "WiFi cut",
 }
 """Each fault in at most 20 columns, for the timeline (the report keeps `FAULT_WHAT`)."""
+
+HOST_SHORT_WHAT = {
+    "F1": "LiDAR 1 lost",
+    "F2": "driver failed",
+    "F3": "erm killed",
+    "F4": "cm killed",
+    "F5": "rm killed",
+    "F6": "WiFi cut",
+}
+"""Shorter still across two hosts, where the fault's label names its host (`F4 station`)."""
 
 
 def timeline_rows(report: MissionReport) -> list[TimelineRow]:
@@ -280,10 +303,12 @@ def timeline_rows(report: MissionReport) -> list[TimelineRow]:
     and every manager exit that no fault caused, at the time the supervisor saw it, with
     how long its restart took (the supervisor's `ChildExited` and `ChildRestarted`).
     """
+    hosts = bool(report.hosts)  # two hosts: the label names where (and `what` is shorter)
+    where = {m: h for h, figures in report.hosts.items() for m in figures["managers"]}
     rows = [
         TimelineRow(
-            f.id,
-            SHORT_WHAT.get(f.id, f.what),
+            f"{f.id} {f.host}" if hosts else f.id,
+            (HOST_SHORT_WHAT if hosts else SHORT_WHAT).get(f.id, f.what),
             f.injected_at_s,
             f.detected_after_s,
             f.recovered_after_s,
@@ -293,7 +318,12 @@ def timeline_rows(report: MissionReport) -> list[TimelineRow]:
     ]
     rows.extend(
         TimelineRow(
-            "-", f"{r.manager} exited, no fault", r.seen_at_s, None, r.restarted_after_s, None
+            f"- {where.get(r.manager, '')}".rstrip(),
+            f"{r.manager} exited, no fault",
+            r.seen_at_s,
+            None,
+            r.restarted_after_s,
+            None,
         )
         for r in report.unplanned_restarts
     )
@@ -386,6 +416,11 @@ class FaultRecord:
         recovered_at: when it was recovered, once it was.
         early_update_at: F2 only: an `UPDATE` that overtook its `FATAL`.
         note: what the recovery found.
+        host: where it struck (two hosts), else "".
+        healed_at: F6: when the link was up again.
+        robot_saw_at: F6: when the robot's host saw the station gone.
+        robot_saw_back_at: F6: when it saw the station back.
+        failed_calls: F6: how long each call that failed during the cut took, seconds.
     """
 
     id: str
@@ -394,6 +429,11 @@ class FaultRecord:
     recovered_at: float | None = None
     early_update_at: float | None = None
     note: str = ""
+    host: str = ""
+    healed_at: float | None = None
+    robot_saw_at: float | None = None
+    robot_saw_back_at: float | None = None
+    failed_calls: list[float] = dataclasses.field(default_factory=list)
 
 
 def build_report(
@@ -407,6 +447,7 @@ def build_report(
     nominal_time_s: float,
     leaked: list[int],
     entries: dict[str, int],
+    host_of: dict[str, str] | None = None,
 ) -> MissionReport:
     """Turn the records of a run into its report, on the mission clock.
 
@@ -420,6 +461,7 @@ def build_report(
         nominal_time_s: the drive's length without any stop, seconds.
         leaked: pids of programs that were still alive at the end.
         entries: catalog rows left per registrar (-1: it could not be read).
+        host_of: across two hosts, the host of each manager and fault (`HOST_OF`).
     """
     odometry.read()
     at = clock.at
@@ -446,6 +488,8 @@ def build_report(
                 else at(fault.recovered_at) - injected,
                 robot_stopped_s=stopped,
                 note=fault.note,
+                host=fault.host,
+                details=_cut_details(fault) if fault.id == "F6" else {},
             )
         )
     trace = tuple((at(t), x) for t, x, _ in odometry.samples if start <= t <= arrived + 0.5)
@@ -466,4 +510,53 @@ def build_report(
         drive_started_s=at(start),
         pauses_s=tuple(at(begin) for begin, _ in clock.pauses),
         paused_s=clock.paused_s,
+        hosts=_per_host(results, unplanned, entries, host_of) if host_of else {},
     )
+
+
+def _after(fault: FaultRecord, t: float | None) -> float | None:
+    return None if t is None else round(t - fault.injected_at, 3)
+
+
+def _cut_details(fault: FaultRecord) -> dict[str, Any]:
+    """F6's figures: when each host saw the cut and the heal, and the calls that failed."""
+    return {
+        "station_saw_cut_after_s": _after(fault, fault.detected_at),
+        "robot_saw_cut_after_s": _after(fault, fault.robot_saw_at),
+        "link_up_after_s": _after(fault, fault.healed_at),
+        "robot_saw_station_back_after_s": _after(fault, fault.robot_saw_back_at),
+        "calls_failed_during_cut": len(fault.failed_calls),
+        "slowest_failed_call_s": round(max(fault.failed_calls), 3) if fault.failed_calls else None,
+    }
+
+
+def _per_host(
+    faults: list[FaultResult],
+    unplanned: list[UnplannedExit],
+    entries: dict[str, int],
+    host_of: dict[str, str],
+) -> dict[str, dict[str, Any]]:
+    """Each host's figures for `report.json` (`MissionReport.hosts`)."""
+    hosts: dict[str, dict[str, Any]] = {}
+    for host in ("robot", "station"):
+        mine = [f for f in faults if f.host in (host, "both")]
+        managers = [m for m in ("erm", "cm", "rm") if host_of.get(m) == host]
+        cut = next((f for f in faults if f.id == "F6"), None)
+        hosts[host] = {
+            "managers": managers,
+            "faults": [f.id for f in mine],
+            "manager_restarts": sum(1 for f in mine if f.id in ("F3", "F4", "F5"))
+            + sum(1 for u in unplanned if u.manager in managers),
+            "slowest_recovery_s": _round(
+                max((f.recovered_after_s or 0.0 for f in mine), default=None)
+            ),
+            "catalog_entries_left": sum(
+                max(0, n) for name, n in entries.items() if host_of.get(name) == host
+            ),
+        }
+        if cut is not None:
+            saw = "robot_saw_cut_after_s" if host == "robot" else "station_saw_cut_after_s"
+            hosts[host]["saw_cut_after_s"] = cut.details.get(saw)
+        if host == "robot" and cut is not None:
+            hosts[host]["robot_stopped_at_cut_s"] = _round(cut.robot_stopped_s)
+    return hosts

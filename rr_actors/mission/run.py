@@ -32,7 +32,9 @@ import json
 import logging
 import math
 import os
+import shutil
 import signal
+import subprocess
 import sys
 import tempfile
 import threading
@@ -42,14 +44,19 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 import rr_actors as rr
+from rr_actors.mission import netns
 from rr_actors.mission.action import Mission
 from rr_actors.mission.config import (
     FAULT_WHAT,
+    FAULTS,
+    HOST_FAULTS,
     MissionConfig,
     MissionError,
     MissionInterruptedError,
     unsupported_platform,
 )
+from rr_actors.mission.hosts import CERTS, MEMBERS, SYSTEM
+from rr_actors.mission.netns import TwoHosts
 from rr_actors.mission.output import MissionOutput, Progress, make_output
 from rr_actors.mission.report import MissionReport
 
@@ -119,6 +126,7 @@ def run_mission(
     on_supervisor: Callable[[rr.Supervisor], object] | None = None,
     before_fault: Callable[[str, list[str]], object] | None = None,
     on_interrupt: Callable[[float], object] | None = None,
+    link: TwoHosts | None = None,
 ) -> MissionReport:
     """Run the mission and write `report.json` (and `mission.png` if matplotlib is there).
 
@@ -134,6 +142,9 @@ def run_mission(
             fault is injected when it returns (`rr-actors demo --step`).
         on_interrupt: called on the mission's thread with the mission time (seconds) of
             a Ctrl-C, before the mission unloads everything and stops its managers.
+        link: with `config.hosts == 2`: the two hosts' namespaces, made by
+            `rr-actors demo --hosts 2` (which runs this in the station's namespace, with
+            the certificates in `out/certs`).
 
     Returns:
         The report.
@@ -159,6 +170,7 @@ def run_mission(
             on_supervisor=on_supervisor,
             before_fault=before_fault,
             on_interrupt=on_interrupt,
+            link=link,
         ).run()
         (path / "report.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
         with contextlib.suppress(ImportError):
@@ -227,6 +239,15 @@ def parser() -> argparse.ArgumentParser:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Add the demo's options to `p` (shared by `rr-actors demo` and this module's `main`)."""
     p.add_argument("--fast", action="store_true", help="a run of a few seconds (for CI)")
+    p.add_argument(
+        "--hosts",
+        type=int,
+        choices=(1, 2),
+        default=1,
+        help="2: the robot and the operator station on two hosts (two network namespaces "
+        "joined by a veth, mutual TLS), plus F6, the WiFi cut; needs root and `ip`",
+    )
+    p.add_argument("--inside", default=None, help=argparse.SUPPRESS)  # (--hosts 2's station)
     faults = p.add_mutually_exclusive_group()
     faults.add_argument("--no-faults", action="store_true", help="drive without any fault")
     faults.add_argument(
@@ -286,6 +307,9 @@ def config_from_args(args: argparse.Namespace) -> MissionConfig:
         ConfigError: an option is invalid.
     """
     changes: dict[str, Any] = {"seed": args.seed, "isolation": args.isolation}
+    changes["hosts"] = args.hosts
+    if args.hosts == 2:
+        changes["faults"] = FAULTS + HOST_FAULTS
     if args.no_faults:
         changes["faults"] = ()
     elif args.faults:
@@ -294,7 +318,10 @@ def config_from_args(args: argparse.Namespace) -> MissionConfig:
         changes["speed"] = args.speed
     if args.distance is not None:
         changes["distance_m"] = args.distance
-    base = MissionConfig.fast() if args.fast else MissionConfig()
+    if args.fast:
+        base = MissionConfig.fast_two_hosts() if args.hosts == 2 else MissionConfig.fast()
+    else:
+        base = MissionConfig()
     if args.fault_at:
         points = dict(base.fault_at)
         for item in args.fault_at.split(","):
@@ -327,7 +354,7 @@ def _error(message: str) -> None:
     sys.stderr.flush()
 
 
-def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
+def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:  # noqa: PLR0911 - an exit code per outcome
     """Run the mission the parsed command line `args` asks for; returns the exit code.
 
     Args:
@@ -346,10 +373,14 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
     try:
         config = config_from_args(args)
         _check_observe_args(args)
+        _check_hosts_args(args)
         out = prepare_out(Path(args.out), what="--out")
     except rr.ConfigError as exc:
         _error(str(exc))
         return 2
+    if args.hosts == 2 and args.inside is None:
+        return _two_hosts(args, out, stream)
+    link = TwoHosts.from_arg(args.inside) if args.inside is not None else None
     failure: str | None = None
     report: MissionReport | None = None
     output: MissionOutput = make_output(stream, quiet=args.quiet)
@@ -370,6 +401,7 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
                 on_supervisor=hooks[0],
                 before_fault=hooks[1],
                 on_interrupt=on_interrupt,
+                link=link,
             )
         except KeyboardInterrupt as exc:  # a Ctrl-C: the mission cleaned up (and said so)
             if not isinstance(exc, MissionInterruptedError):  # not while a mission ran
@@ -460,6 +492,17 @@ def _cleanup_outcome(exc: KeyboardInterrupt) -> str:
     return "; ".join(trouble) if trouble else "everything unloaded"
 
 
+def _check_hosts_args(args: argparse.Namespace) -> None:
+    """`--hosts 2`: not with `--observe` (yet); root and `ip` (in the first process)."""
+    if args.hosts != 2:
+        return
+    if args.observe:
+        raise rr.ConfigError("--observe shows one host; across hosts: not yet")
+    reason = netns.unavailable() if args.inside is None else None
+    if reason is not None:
+        raise rr.ConfigError(reason)
+
+
 def _check_observe_args(args: argparse.Namespace) -> None:
     """`--allow-faults` and `--linger` go with `--observe`; `--linger` is not negative."""
     if not args.observe and (args.allow_faults or args.linger is not None):
@@ -548,5 +591,88 @@ def _files(out: Path) -> list[str]:
     return [
         f"report: {out / 'report.json'}",
         plot,
-        f"state:  {out / 'state'} (rr-actors inspect {out / 'state' / 'erm.db'})",
+        f"state:  {out / 'state'} (rr-actors inspect {_erm_db(out)})",
     ]
+
+
+# -- two hosts -------------------------------------------------------------------------------
+
+
+def _station_argv(args: argparse.Namespace, out: Path, link: TwoHosts) -> list[str]:
+    """The command line of the station's process: this one's options, and where it runs."""
+    argv = ["--hosts", "2", "--out", str(out.resolve()), "--inside", link.to_arg()]
+    argv += ["--seed", str(args.seed), "--isolation", args.isolation]
+    for flag in ("fast", "no_faults", "quiet", "step"):
+        if getattr(args, flag):
+            argv.append("--" + flag.replace("_", "-"))
+    for option in ("faults", "fault_at", "speed", "distance"):
+        value = getattr(args, option)
+        if value is not None:
+            argv += ["--" + option.replace("_", "-"), str(value)]
+    return argv
+
+
+def make_certs(directory: Path, link: TwoHosts) -> None:
+    """A CA and the two hosts' certificates in `directory` (replaced), by `rr-actors certs`'s
+    engine: `robot` for the robot's address, `station` for the station's."""
+    from rr_actors._tools import certs as certs_tool  # noqa: PLC0415 - needs cryptography
+
+    shutil.rmtree(directory, ignore_errors=True)
+    certs_tool.init_ca(directory, SYSTEM)
+    robot, station = MEMBERS
+    certs_tool.issue_cert(directory, robot, [link.robot_address])
+    certs_tool.issue_cert(directory, station, [link.station_address])
+
+
+def _two_hosts(args: argparse.Namespace, out: Path, stream: TextIO) -> int:
+    """`--hosts 2`: make the namespaces and certificates, run the station's process in its
+    namespace (it starts the robot's), then delete everything, however it ended.
+
+    The station's process tells the story on this terminal and handles a Ctrl-C (the
+    terminal sends it to both); this one waits for it, ignoring SIGINT meanwhile.
+    """
+    try:
+        with lock_out(out):  # (the certificates of a demo running there stay)
+            link = TwoHosts.make()
+            try:
+                make_certs(out / CERTS, link)
+            except BaseException:
+                link.close()
+                raise
+    except rr.ConfigError as exc:
+        _error(str(exc))
+        return 2
+    except OSError as exc:
+        _error(f"could not make the two hosts: {exc}")
+        return 1
+    previous = signal.getsignal(signal.SIGINT)
+    child: subprocess.Popen[bytes] | None = None
+    piped = stream is not sys.stdout
+    try:
+        command = [
+            *link.exec_in(link.station),
+            sys.executable,
+            "-m",
+            "rr_actors.mission",
+            *_station_argv(args, out, link),
+        ]
+        child = subprocess.Popen(command, stdout=subprocess.PIPE if piped else None)  # noqa: S603
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the station's process answers it
+        if piped and child.stdout is not None:
+            for line in child.stdout:
+                stream.write(line.decode(errors="replace"))
+                stream.flush()
+        code = child.wait()
+    except KeyboardInterrupt:  # (before SIGINT was ignored): the station handles it too
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        code = child.wait() if child is not None else INTERRUPTED
+    finally:
+        link.close()  # kills what is left inside, deletes both namespaces and the veth
+        signal.signal(signal.SIGINT, previous)
+    return code if code >= 0 else 128 - code
+
+
+def _erm_db(out: Path) -> Path:
+    """The ERM's catalog: `state/erm.db`, or `state/robot/erm.db` across two hosts."""
+    robot = out / "state" / "robot" / "erm.db"
+    return robot if robot.exists() else out / "state" / "erm.db"

@@ -262,7 +262,7 @@ def _pending_work(actor: RegistrarActor, reply: Reply) -> None:
             waiting_loads=collections.Counter(ids),
             held_loads=tuple(load.query_id for load in provider.held_loads),
             answers_due=consumer.due.ids(),
-            parked_notices=frozenset(consumer.parked_notices),
+            parked_notices=frozenset(q for q, f in consumer.in_flight.items() if f.parked),
             open_requests=len(actor.lifecycle.open_requests) - 1,  # (not this one)
             queued_callbacks=actor.shared.workers.queued,
         )

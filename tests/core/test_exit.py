@@ -17,9 +17,9 @@ import uuid
 from pathlib import Path
 
 import pytest
-from supervising import wait_gone
 
 import rr_actors as rr
+from tests.support.supervising import wait_gone
 
 # The provider's backup is written on a clean stop only (`save_interval` is long and
 # there is no `save_on_modify`). Its consumer is stopped after it (it was started

@@ -24,26 +24,19 @@ import subprocess
 import sys
 import textwrap
 import uuid
-from collections.abc import Iterator
 
 import cloudpickle
 import pytest
 
 import rr_actors as rr
-from rr_actors.testing import start_forkserver
 
-pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="POSIX fork")
+pytestmark = [
+    pytest.mark.skipif(not hasattr(os, "fork"), reason="POSIX fork"),
+    pytest.mark.usefixtures("by_value"),  # (tests/conftest.py)
+]
 
 CHILD_CALL_TIMEOUT = 10.0
 """Seconds a child's call may take: the old code's calls all ran into it."""
-
-
-@pytest.fixture(scope="module", autouse=True)
-def by_value() -> Iterator[None]:
-    start_forkserver()
-    cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    yield
-    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
 
 
 def forked_calls(provider: str, uid: str, children: int) -> list[object]:

@@ -2,7 +2,7 @@
 
 `PLATFORM` is `linux` on Linux and `portable` elsewhere or with
 `RR_ACTORS_PLATFORM=portable`. Every test that uses manager processes must pass on both:
-`tests/test_portable_platform.py` runs those modules (this one too) again, in a
+`tests/core/test_portable_platform.py` runs those modules (this one too) again, in a
 subprocess on the portable platform, as part of the normal run. Tests of what only a
 trick does are marked `linux_trick` (see `supervising.py`) and skipped there.
 """
@@ -16,11 +16,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from supervising import linux_trick, process
 
 import rr_actors as rr
 from rr_actors._platform import PLATFORM
-from rr_actors._process.context import start_forkserver
+from rr_actors.testing import start_forkserver
+from tests.support.supervising import linux_trick, process
 
 _FORCED = os.environ.get("RR_ACTORS_PLATFORM") == "portable"
 

@@ -71,7 +71,7 @@ def line(event: events.Event) -> dict[str, Any]:
 def test_the_examples_cover_every_event_kind() -> None:
     assert sorted(k.__name__ for k in KINDS) == sorted(kind(e) for e in EXAMPLES)
     assert sorted(events.__all__) == sorted(
-        [*(k.__name__ for k in KINDS), "Event", "describe", "from_dict", "to_dict"]
+        [*(k.__name__ for k in KINDS), "Event", "describe", "from_dict", "order", "to_dict"]
     )
 
 
@@ -98,10 +98,10 @@ def test_every_event_kind_has_its_own_fields_first_then_keyword_only_at_and_pid(
     names = [f.name for f in dataclasses.fields(event)]
     keyword_only = [f.name for f in dataclasses.fields(event) if f.kw_only]
     if kind(event).startswith("Child"):  # a child's pid is one of its own fields
-        assert ["at"] == keyword_only
+        assert ["at", "host", "hlc"] == keyword_only
         assert "pid" == names[2]
     else:
-        assert ["at", "pid", "seq"] == keyword_only
+        assert ["at", "pid", "seq", "host", "hlc"] == keyword_only
     assert keyword_only == names[-len(keyword_only) :]
 
 
@@ -149,7 +149,9 @@ def test_an_event_made_in_a_forked_child_has_the_childs_pid() -> None:
 
 
 def test_to_dict_names_the_type_and_writes_the_status_by_name() -> None:
-    event = events.StatusSent("erm", QID, rr.Status.WARNING, "hot", at=1.5, pid=9)
+    event = events.StatusSent(
+        "erm", QID, rr.Status.WARNING, "hot", at=1.5, pid=9, host="robot", hlc=7 << 12
+    )
     expected = {
         "type": "StatusSent",
         "registrar": "erm",
@@ -160,7 +162,9 @@ def test_to_dict_names_the_type_and_writes_the_status_by_name() -> None:
         "at": 1.5,
         "pid": 9,
         "seq": 0,
-        "schema": 2,
+        "host": "robot",
+        "hlc": 7 << 12,
+        "schema": 3,
     }
     assert expected == events.to_dict(event)
 
@@ -168,8 +172,12 @@ def test_to_dict_names_the_type_and_writes_the_status_by_name() -> None:
 def test_from_dict_reads_a_schema_1_line_without_the_fields_added_since() -> None:
     data = line(events.ConsumerReleased("erm", RID, QID, "cm", "reconcile", at=2.0, pid=9))
     del data["reason"], data["seq"]
+    del data["host"], data["hlc"]
     data["schema"] = 1
-    assert events.ConsumerReleased("erm", RID, QID, "cm", at=2.0, pid=9) == events.from_dict(data)
+    old = events.ConsumerReleased(
+        "erm", RID, QID, "cm", at=2.0, pid=9, host="", hlc=2_000_000 << 12
+    )
+    assert old == events.from_dict(data)  # (no host known; the stamp of its wall time)
     del data["pid"]  # at and pid were always there
     with pytest.raises(rr.ConfigError, match="pid"):
         events.from_dict(data)
@@ -203,7 +211,7 @@ def _with(**changes: Any) -> dict[str, Any]:
     ("data", "named"),
     [
         ([1, 2], "list"),
-        (_with(schema=3), "schema 3"),
+        (_with(schema=4), "schema 4"),
         (_with(schema=_DROP), "schema None"),
         (_with(type="Exploded"), "'Exploded'"),
         (_with(type=_DROP), "None"),
@@ -215,6 +223,9 @@ def _with(**changes: Any) -> dict[str, Any]:
         (_with(status="BROKEN"), "StatusDelivered.status"),
         (_with(status=3), "StatusDelivered.status"),
         (_with(registrar=None), "StatusDelivered.registrar"),
+        (_with(hlc=-1), "StatusDelivered.hlc"),
+        (_with(hlc=2**64), "StatusDelivered.hlc"),
+        (_with(host=_DROP), "['host']"),
     ],
     ids=[
         "not-a-dict",
@@ -230,6 +241,9 @@ def _with(**changes: Any) -> dict[str, Any]:
         "unknown-status",
         "int-for-status",
         "none-for-str",
+        "negative-stamp",
+        "stamp-over-64-bits",
+        "schema-3-without-host",
     ],
 )
 def test_from_dict_names_what_is_wrong(data: Any, named: str) -> None:

@@ -11,11 +11,11 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
-from supervising import kill_and_wait_restarted, pid_of, sigkill
 
 import rr_actors as rr
 from rr_actors import events
 from rr_actors.testing import SharedObjects
+from tests.support.supervising import kill_and_wait_restarted, pid_of, sigkill
 
 
 class Heard:
@@ -196,24 +196,56 @@ def test_a_restored_managers_in_doubt_loads_reach_a_subscriber_of_the_restart(
 
 
 @pytest.mark.usefixtures("process_helpers")
-def test_the_events_a_killed_manager_built_but_never_sent_are_counted(
+def test_events_a_killed_manager_built_but_never_published_are_not_counted_as_lost(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # an event counts from its journal record: a kill between building and publishing
+    # (microseconds, before the registrar answered on it) is a kill before the event
+    erm = f"erm-{uid}"
+    sup = supervisors([rr.ManagerSpec(erm, _serve, isolation="process")]).start()
+
+    def build_five_then_die(_registrar: rr.ResourceRegistrar) -> None:
+        import signal  # noqa: PLC0415 - runs in the manager process
+
+        made = [events.LoadFailed(erm, "cam", f"r{i}", f"q{i}", "E", "-") for i in range(5)]
+        assert all(e.seq for e in made)  # numbered all the same
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    heard = Heard()
+    with sup.subscribe(heard) as subscription:
+        with pytest.raises(rr.RrError):
+            sup.run_in(erm, build_five_then_die)
+        sup.wait_restarted(erm, timeout=10)
+        assert sup.flush_events(timeout=5)
+        assert subscription.wait_delivered(timeout=5)
+
+    assert [] == heard.of(events.EventsDropped)
+    assert [] == heard.of(events.LoadFailed, registrar=erm)
+    assert heard.of(events.ChildExited, child=erm)
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_events_a_killed_manager_published_but_could_not_keep_are_counted(
     supervisors: Callable[..., rr.Supervisor], uid: str
 ) -> None:
     erm = f"erm-{uid}"
     sup = supervisors([rr.ManagerSpec(erm, _serve, isolation="process")]).start()
     first_pid = pid_of(sup, erm)
 
-    def build_five_then_die(_registrar: rr.ResourceRegistrar) -> None:
-        import signal  # noqa: PLC0415 - runs in the manager process
+    def publish_five_uncut_then_die(_registrar: rr.ResourceRegistrar) -> None:
+        import gc  # noqa: PLC0415 - runs in the manager process
+        import signal  # noqa: PLC0415
 
-        made = [events.LoadFailed(erm, "cam", f"r{i}", f"q{i}", "E", "-") for i in range(5)]
-        assert all(e.seq for e in made)  # numbered: the tally has counted them
-        os.kill(os.getpid(), signal.SIGKILL)  # before the forwarder could send any
+        [line] = [o for o in gc.get_objects() if type(o).__name__ == "_EventLine"]
+        line.journal._write = lambda _fd, data: len(data)  # as if cut: counted, not kept
+        for i in range(5):  # (the forwarder's thread gets no GIL meanwhile)
+            line.hub.publish(events.LoadFailed(erm, "cam", f"r{i}", f"q{i}", "E", "-"))
+        os.kill(os.getpid(), signal.SIGKILL)
 
     heard = Heard()
     with sup.subscribe(heard) as subscription:
         with pytest.raises(rr.RrError):
-            sup.run_in(erm, build_five_then_die)
+            sup.run_in(erm, publish_five_uncut_then_die)
         sup.wait_restarted(erm, timeout=10)
         assert sup.flush_events(timeout=5)
         assert subscription.wait_delivered(timeout=5)

@@ -10,7 +10,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors._cli import main
+from rr_actors.__main__ import main
 from rr_actors.experiments import check
 
 P = 100  # the provider's process
@@ -129,6 +129,17 @@ def test_a_lost_id_reported_fatal_holds() -> None:
     fatal = events.StatusDelivered("cm", Q2, rr.Status.FATAL, 1, 0.0, "s9", pid=C)
     forgotten = events.QueryForgotten("cm", Q2, "erm", "unknown at reconcile", pid=C)
     assert "held" == check.check(numbered([*history, answered, fatal, forgotten])).verdict
+
+
+def test_an_id_its_consumer_forgot_before_a_restore_lost_it_holds() -> None:
+    # the provider committed the release and was killed before it published it
+    history, _ = _seeded()["held"]
+    answered = events.CallAnswered("cm", Q2, "erm", "cam", pid=C)
+    forgotten = events.QueryForgotten("cm", Q2, "erm", "unload", pid=C)
+    let_go = [*history[:4], answered, forgotten, *history[4:]]
+    assert "held" == check.check(numbered(let_go)).verdict
+    late = [*history[:4], answered, *history[4:], forgotten]  # forgotten after: lost
+    assert ["held"] == [f.rule for f in check.check(numbered(late)).findings]
 
 
 # -- the consumer's side and dependency paths ------------------------------------------------
@@ -287,3 +298,20 @@ def test_rr_actors_check_prints_the_verdict_and_the_window(
     (tmp_path / "events.jsonl").write_text("\n".join(real) + "\n")
     assert 0 == main(["check", str(tmp_path), "-q"])
     assert "run 0: held" in capsys.readouterr().out
+
+
+def test_rr_actors_check_reads_a_schema_2_file_as_a_schema_3_one(
+    real: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A run written before events had `host` and `hlc` (schema 2) checks as it did."""
+    old = []
+    for text in real:
+        line = json.loads(text)
+        assert 3 == line.pop("schema")
+        del line["host"], line["hlc"]
+        old.append(json.dumps({**line, "schema": 2}))
+    for name, lines in (("new", real), ("old", old)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "events.jsonl").write_text("\n".join(lines) + "\n")
+        assert 0 == main(["check", str(tmp_path / name), "-q"])
+        assert "run 0: held" in capsys.readouterr().out

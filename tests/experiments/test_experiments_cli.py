@@ -18,7 +18,7 @@ import pytest
 
 import rr_actors as rr
 import rr_actors.observe
-from rr_actors._cli import main
+from rr_actors.__main__ import main
 from rr_actors.experiments import Progress, RunResult
 from rr_actors.experiments.cli import _Display
 
@@ -137,7 +137,7 @@ def test_observe_without_the_observe_extra_exits_2(
 
 WITHOUT_MSGSPEC = (
     "import sys; sys.modules['msgspec'] = None; "  # as with only the demo extra installed
-    "from rr_actors._cli import main; sys.exit(main(sys.argv[1:]))"
+    "from rr_actors.__main__ import main; sys.exit(main(sys.argv[1:]))"
 )
 
 

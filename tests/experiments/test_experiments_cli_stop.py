@@ -22,7 +22,8 @@ from pathlib import Path
 
 import psutil
 import pytest
-from small_disk import fill, mounted
+
+from tests.support.small_disk import fill, mounted
 
 SERVICE = "rr_actors.experiments.services:service"
 
@@ -51,7 +52,7 @@ target = "db"
 at = 0.5
 """
 
-CODE = "import sys; from rr_actors._cli import main; sys.exit(main(sys.argv[1:]))"
+CODE = "import sys; from rr_actors.__main__ import main; sys.exit(main(sys.argv[1:]))"
 
 
 @pytest.fixture

@@ -88,7 +88,7 @@ def on_a_terminal(argv: list[str], *, columns: int, timeout: float) -> tuple[int
 def test_on_an_80_column_terminal_the_experiment_draws_nothing_wider(tmp_path: Path) -> None:
     plan = tmp_path / "plan.toml"
     plan.write_text(PLAN)
-    code = "import sys; from rr_actors._cli import main; sys.exit(main(sys.argv[1:]))"
+    code = "import sys; from rr_actors.__main__ import main; sys.exit(main(sys.argv[1:]))"
     out = tmp_path / "out"
 
     status, text = on_a_terminal(

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from rr_actors._cli import main
+from rr_actors.__main__ import main
 from rr_actors.experiments import PlanError, parse_plan
 
 SERVICE = "rr_actors.experiments.services:service"
@@ -97,7 +97,7 @@ def test_the_command_line_exits_2_within_a_second_on_a_hundred_million_clients(
 ) -> None:
     plan = tmp_path / "plan.toml"
     plan.write_text(BASE.replace("clients = 1", "clients = 100000000"))
-    code = "import sys; from rr_actors._cli import main; sys.exit(main(sys.argv[1:]))"
+    code = "import sys; from rr_actors.__main__ import main; sys.exit(main(sys.argv[1:]))"
     started = time.monotonic()
 
     done = subprocess.run(

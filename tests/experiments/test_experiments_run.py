@@ -284,6 +284,69 @@ def test_a_killed_resource_process_is_recovered_by_a_client_of_the_manager_holdi
         assert 0 < kill.recovery_s < 3.0
 
 
+BUSY_WHEN_KILLED = f"""\
+name = "busy"
+duration = 4.0
+seed = 10
+
+[tree]
+
+[[tree.children]]
+name = "erm"
+setup = "rr_actors.mission.managers:erm_setup"
+
+[[tree.children]]
+name = "cm"
+setup = "rr_actors.mission.managers:cm_setup"
+
+[[tree.children]]
+name = "slow"
+setup = "{SERVICE}"
+options = {{ load_s = 2.0 }}
+
+[workload]
+clients = 1
+rate = 20.0
+arrivals = "fixed"
+hold = 1.0
+timeout = 4.0
+
+[[workload.calls]]
+manager = "cm"
+server = "lidar"
+shared = 1.0
+keys = 1
+request = {LIDAR}
+
+[[workload.calls]]
+manager = "slow"
+server = "resource"
+shared = 0.0
+
+[[faults]]
+kind = "kill_resource"
+target = "erm"
+after = {{ event = "CallAnswered", registrar = "client-0", serving_rr = "cm" }}
+delay = 0.3
+"""
+"""Seed 10: the client calls cm (a LiDAR, held 1 s), then slow (each load 2 s); the LiDAR
+is killed 0.3 s after cm answered, while the client waits on slow."""
+
+
+def test_a_fatal_heard_during_a_long_call_is_recovered_though_the_hold_ran_out_meanwhile() -> None:
+    """The client hears FATAL while its LiDAR is still held, and only returns from the slow
+    call after the hold ran out: it handles them in the order they happened (reload first),
+    so the kill counts a recovery, not "nothing held"."""
+    (result,) = run(parse_plan(BUSY_WHEN_KILLED)).runs
+    (kill,) = result.faults
+    calls = [c.manager for c in sorted(result.calls, key=lambda c: c.start_s)]
+
+    assert ["cm", "slow"] == calls[:2], calls
+    assert kill.injected_s is not None, kill
+    assert kill.recovery_s is not None, kill
+    assert 0 == result.leaked_processes
+
+
 def test_the_every_fault_runs_count_what_they_did(every_fault: tuple[Results, Path]) -> None:
     results, out = every_fault
     for number, run_result in enumerate(results.runs, start=1):

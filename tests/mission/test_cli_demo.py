@@ -17,7 +17,6 @@ from pathlib import Path
 
 import pytest
 from rich.console import Console
-from small_disk import mounted, remount_read_only
 
 from rr_actors.mission import FAULTS, FaultResult, MissionError, MissionReport, UnplannedRestart
 from rr_actors.mission.config import MissionConfig
@@ -30,6 +29,7 @@ from rr_actors.mission.output import (
     timeline,
 )
 from rr_actors.mission.run import _hooks, _mission_clock, main, parser, run, run_mission
+from tests.support.small_disk import mounted, remount_read_only
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 
@@ -156,7 +156,7 @@ def test_quiet_help_says_it_prints_only_the_timeline() -> None:
 def demo(*argv: str) -> subprocess.CompletedProcess[str]:
     """`rr-actors demo ARGV` as a separate program (60 s at most)."""
     return subprocess.run(
-        [sys.executable, "-m", "rr_actors._cli", "demo", *argv],
+        [sys.executable, "-m", "rr_actors", "demo", *argv],
         capture_output=True,
         text=True,
         timeout=60,

@@ -14,7 +14,7 @@ from rr_actors.mission.run import lock_out
 def demo_process(out: Path) -> subprocess.Popen[str]:
     """`rr-actors demo --fast --out OUT` as a separate program, its output in pipes."""
     return subprocess.Popen(
-        [sys.executable, "-m", "rr_actors._cli", "demo", "--fast", "--out", str(out)],
+        [sys.executable, "-m", "rr_actors", "demo", "--fast", "--out", str(out)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -33,7 +33,7 @@ def test_a_second_demo_in_the_same_folder_refuses_and_the_first_completes(
         assert "starting the managers" in first.stdout.readline()
 
         second = subprocess.run(
-            [sys.executable, "-m", "rr_actors._cli", "demo", "--fast", "--out", str(out)],
+            [sys.executable, "-m", "rr_actors", "demo", "--fast", "--out", str(out)],
             capture_output=True,
             text=True,
             timeout=60,

@@ -7,10 +7,12 @@ screenshots).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import os
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -18,6 +20,8 @@ import pytest
 pytest.importorskip("matplotlib")
 
 
+import matplotlib.pyplot as plt
+from matplotlib.figure import Figure
 from matplotlib.image import imread
 
 from rr_actors.mission import FaultResult, MissionReport
@@ -45,6 +49,43 @@ def a_run() -> MissionReport:
         stops=((11.0, 11.2),),
         drive_started_s=1.0,
     )
+
+
+def on_two_hosts(report: MissionReport) -> MissionReport:
+    """The same run as `demo --hosts 2` reports it: F4 on the station, F6 the WiFi cut."""
+    faults = (
+        dataclasses.replace(report.faults[0], host="robot"),
+        FaultResult("F4", "component manager killed", 14.0, 0.01, 0.1, 0.0, host="station"),
+        FaultResult(
+            "F6", "WiFi cut", 20.0, 3.0, 6.5, 0.0, host="both", details={"link_up_after_s": 5.0}
+        ),
+    )
+    hosts = {
+        "robot": {"managers": ["erm", "rm"], "faults": ["F1", "F6"]},
+        "station": {"managers": ["cm"], "faults": ["F4", "F6"]},
+    }
+    return dataclasses.replace(report, faults=faults, hosts=hosts)
+
+
+@pytest.fixture
+def drawn(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[Figure]]:
+    """The figures `plot` draws, kept open (not closed after saving) to be read back."""
+    figures: list[Figure] = []
+    close = plt.close
+    monkeypatch.setattr(plt, "close", figures.append)
+    yield figures
+    for figure in figures:
+        close(figure)
+
+
+def texts(figure: Figure) -> list[str]:
+    """Every annotation, title and legend label of a figure."""
+    found = [t.get_text() for t in figure.texts]
+    for ax in figure.axes:
+        found += [t.get_text() for t in ax.texts] + [ax.get_title()]
+        legend = ax.get_legend()
+        found += [t.get_text() for t in legend.get_texts()] if legend is not None else []
+    return found
 
 
 def test_the_thesis_run_is_43_s_with_stops_of_3_and_5_s() -> None:
@@ -78,6 +119,30 @@ def test_without_faults_there_is_no_zoom_panel(tmp_path: Path) -> None:
     height, width, _ = imread(path).shape
 
     assert width < 2 * height
+
+
+def test_on_two_hosts_each_fault_marker_names_its_host_and_the_cut_is_shown(
+    tmp_path: Path, drawn: list[Figure]
+) -> None:
+    plot(on_two_hosts(a_run()), tmp_path / "mission.png")
+    (figure,) = drawn
+    shown = texts(figure)
+
+    assert {"F1 robot", "F4 station", "F6 both"} <= set(shown)
+    assert "link between the hosts down" in shown
+    assert any("two hosts (robot, station)" in text for text in shown)
+
+
+def test_on_one_host_the_markers_are_the_fault_ids_alone(
+    tmp_path: Path, drawn: list[Figure]
+) -> None:
+    plot(a_run(), tmp_path / "mission.png")
+    (figure,) = drawn
+    shown = texts(figure)
+
+    assert "F1" in shown
+    assert any(text.startswith("F1 up close:") for text in shown)
+    assert not any("F1 robot" in text or "two hosts" in text for text in shown)
 
 
 @pytest.mark.usefixtures("process_helpers")

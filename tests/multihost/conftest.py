@@ -4,7 +4,7 @@
 root, so there they always run. Every test here also fails if it leaves a namespace of this
 process behind (the autouse `no_leftover_namespaces`; a module's shared hosts are deleted with
 the module, by `hosts.TwoHosts.close`); child processes (the workers) are
-already counted by the root conftest's `no_leftovers`. See `tests/hosts.py`.
+already counted by the root conftest's `no_leftovers`. See `tests/support/hosts.py`.
 """
 
 from __future__ import annotations
@@ -13,8 +13,9 @@ import contextlib
 import subprocess
 from collections.abc import Iterator
 
-import hosts
 import pytest
+
+from tests.support import hosts
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""The two-host harness itself (tests/hosts.py), proved with raw Zenoh before any carrier uses it.
+"""The two-host harness (tests/support/hosts.py), proved with raw Zenoh before any carrier uses it.
 
 Host `a` listens on `tcp/<a>:7447`; host `b` connects to it; multicast scouting is off, so only
 the endpoints given are used. Readiness is a liveliness token seen from the other host (an
@@ -17,8 +17,9 @@ import sys
 import textwrap
 import time
 
-import hosts
 import pytest
+
+from tests.support import hosts
 
 PORT = 7447
 LEASE = 1.0
@@ -149,8 +150,8 @@ def test_leaving_the_hosts_kills_what_a_worker_left_running_in_its_namespace() -
 ORPHANED = textwrap.dedent(
     """
     import os, sys, select
-    sys.path.insert(0, {tests!r})
-    import hosts
+    sys.path.insert(0, {root!r})
+    from tests.support import hosts
     made = hosts.TwoHosts()
     print(made.a.worker.pid, made.directory, flush=True)
     select.select([], [], [], 60)
@@ -163,7 +164,7 @@ def test_a_worker_dies_with_the_test_process_and_the_next_run_deletes_its_namesp
     if reason is not None:
         pytest.skip(reason)
     run = subprocess.Popen(
-        [sys.executable, "-c", ORPHANED.format(tests=str(hosts.TESTS))],
+        [sys.executable, "-c", ORPHANED.format(root=str(hosts.ROOT))],
         stdout=subprocess.PIPE,
         text=True,
     )

@@ -1,4 +1,4 @@
-"""A worker's own `TimeoutError` is not the harness's "no answer" (tests/hosts.py).
+"""A worker's own `TimeoutError` is not the harness's "no answer" (tests/support/hosts.py).
 
 Since Python 3.11 `concurrent.futures.TimeoutError` is the builtin `TimeoutError`, which
 rr_actors' `CallTimeoutError` subclasses: a call that timed out inside a worker must come
@@ -8,10 +8,10 @@ timed-out `registrar.call` after a healed link).
 
 from __future__ import annotations
 
-import hosts
 import pytest
 
 from rr_actors.errors import CallTimeoutError
+from tests.support import hosts
 
 
 def time_out() -> None:

@@ -26,10 +26,10 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
-import hosts
 import pytest
 
 import rr_actors as rr
+from tests.support import hosts
 
 SYSTEM = "lab"
 PORT = 7447

@@ -8,7 +8,8 @@ from typing import Any
 
 import playwright.sync_api as playwright_api  # (the dev extra; a missing one fails, never skips)
 import pytest
-from observing import CHROMIUM_ARGS, chromium
+
+from tests.support.observing import CHROMIUM_ARGS, chromium
 
 
 @pytest.fixture(scope="module")

@@ -16,11 +16,11 @@ from typing import Any
 
 import psutil
 import pytest
-from observed_tree import REQUEST, figure_27
-from observing import base, get_json, request, stream, token, wait_state
 
 import rr_actors as rr
 from rr_actors.observe import _hub, _server
+from tests.support.observed_tree import REQUEST, figure_27
+from tests.support.observing import base, get_json, request, stream, token, wait_state
 
 ROUTES = [
     ("GET", "/"),

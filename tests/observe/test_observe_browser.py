@@ -19,10 +19,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from observed_tree import REQUEST, figure_27
-from observing import mission_held_before
 
 import rr_actors as rr
+from tests.support.observed_tree import REQUEST, figure_27
+from tests.support.observing import mission_held_before
 
 DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
 

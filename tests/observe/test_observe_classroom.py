@@ -15,10 +15,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from observed_tree import REQUEST, figure_27
-from observing import get_json, request
 
 import rr_actors as rr
+from tests.support.observed_tree import REQUEST, figure_27
+from tests.support.observing import get_json, request
 
 DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
 
@@ -212,7 +212,7 @@ def test_demo_observe_serves_the_final_state_until_ctrl_c_and_says_so(
 ) -> None:
     command = ["demo", "--fast", "--observe", "--quiet", "--out", str(tmp_path)]
     with subprocess.Popen(
-        [sys.executable, "-m", "rr_actors._cli", *command],
+        [sys.executable, "-m", "rr_actors", *command],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,

@@ -11,12 +11,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from observed_tree import REQUEST, figure_27
-from observing import get_json, request, wait_state
 
 import rr_actors as rr
-from rr_actors._cli import main
+from rr_actors.__main__ import main
 from rr_actors.observe import observe_backups
+from tests.support.observed_tree import REQUEST, figure_27
+from tests.support.observing import get_json, request, wait_state
 
 
 @pytest.fixture
@@ -177,7 +177,7 @@ def test_observe_on_a_non_loopback_host_needs_allow_remote(
 
 def test_the_command_runs_as_a_console_script(state: Path) -> None:
     done = subprocess.run(
-        [sys.executable, "-m", "rr_actors._cli", "graph", "--state", str(state), "--format", "dot"],
+        [sys.executable, "-m", "rr_actors", "graph", "--state", str(state), "--format", "dot"],
         capture_output=True,
         text=True,
         timeout=60,
@@ -252,7 +252,7 @@ def test_demo_observe_on_a_port_in_use_fails_before_the_mission(
 
 def test_help_lists_observe_and_graph() -> None:
     done = subprocess.run(
-        [sys.executable, "-m", "rr_actors._cli", "--help"],
+        [sys.executable, "-m", "rr_actors", "--help"],
         capture_output=True,
         text=True,
         timeout=30,

@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from observing import mission_held_before
+
+from tests.support.observing import mission_held_before
 
 DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
 

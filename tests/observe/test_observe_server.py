@@ -10,8 +10,11 @@ import time
 from typing import Any
 
 import pytest
-from observed_tree import REQUEST, erm_setup, figure_27
-from observing import (
+
+import rr_actors as rr
+from rr_actors.observe import Observer
+from tests.support.observed_tree import REQUEST, erm_setup, figure_27
+from tests.support.observing import (
     child,
     get_json,
     post_fault,
@@ -21,9 +24,6 @@ from observing import (
     token,
     wait_state,
 )
-
-import rr_actors as rr
-from rr_actors.observe import Observer
 
 
 @pytest.fixture

@@ -17,12 +17,11 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from observed_tree import figure_27
 
 import rr_actors as rr
+from rr_actors.__main__ import main
 from rr_actors._catalog import Catalog
 from rr_actors._catalog.texts import NOT_SHOWN_OLD
-from rr_actors._cli import main
 from rr_actors._store import SqliteStore, read_backup, schema
 from rr_actors._store.codec import dumps
 from rr_actors.observe._sources import read_catalogs
@@ -33,6 +32,7 @@ from rr_actors.observe._view import (
     resource_name,
     summarise_catalog,
 )
+from tests.support.observed_tree import figure_27
 
 
 def run(*argv: str) -> tuple[int, str]:

@@ -11,26 +11,20 @@ from __future__ import annotations
 import sys
 import threading
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import cloudpickle
 import pytest
-from supervising import kill_and_wait_restarted
 
 import rr_actors as rr
-from rr_actors.testing import SharedObjects, start_forkserver
+from rr_actors.testing import SharedObjects
+from tests.support.supervising import kill_and_wait_restarted
 
-pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
-
-
-@pytest.fixture(scope="module", autouse=True)
-def by_value() -> Iterator[None]:
-    start_forkserver()
-    cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    yield
-    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+pytestmark = [
+    pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals"),
+    pytest.mark.usefixtures("by_value"),  # (tests/conftest.py)
+]
 
 
 def _provider_setup(registrar: rr.ResourceRegistrar) -> None:

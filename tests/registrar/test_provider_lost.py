@@ -11,14 +11,10 @@ from __future__ import annotations
 import os
 import signal
 import sys
-import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
-import cloudpickle
 import pytest
-from supervising import process, sigkill
-from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors._registrar import Served
@@ -28,32 +24,18 @@ from rr_actors.testing import (
     System,
     catalog_snapshot,
     crash,
-    start_forkserver,
 )
+from tests.support.names import named
+from tests.support.supervising import process, sigkill
+from tests.support.waiting import wait_for
 
-pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+pytestmark = [
+    pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals"),
+    pytest.mark.usefixtures("by_value"),  # (tests/conftest.py)
+]
 
 BOUND = 5.0
 """Seconds from a SIGKILL to the consumers' `FATAL` (measured: milliseconds)."""
-
-
-@pytest.fixture(scope="module", autouse=True)
-def by_value() -> Iterator[None]:
-    start_forkserver()
-    cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    yield
-    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
-
-
-@pytest.fixture
-def system() -> Iterator[System]:
-    made = System.create()
-    yield made
-    made.close()
-
-
-def named(prefix: str) -> str:
-    return f"{prefix}-{uuid.uuid4().hex[:8]}"
 
 
 def leaf_setup(unloads: Any = None) -> Callable[[rr.ResourceRegistrar], None]:

@@ -17,15 +17,13 @@ import sqlite3
 import sys
 import threading
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import cloudpickle
 import pytest
-from durable_pair import durable_config
-from gating import GatedLoad
 
 import rr_actors as rr
 from rr_actors.testing import (
@@ -34,18 +32,14 @@ from rr_actors.testing import (
     crash,
     expect_restart,
     intercept,
-    start_forkserver,
 )
+from tests.support.durable_pair import durable_config
+from tests.support.gating import GatedLoad
 
-pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
-
-
-@pytest.fixture(scope="module", autouse=True)
-def by_value() -> Iterator[None]:
-    start_forkserver()
-    cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    yield
-    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+pytestmark = [
+    pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals"),
+    pytest.mark.usefixtures("by_value"),  # (tests/conftest.py)
+]
 
 
 def provider_setup(unloads: Any, unloaded: Any = None) -> Callable[[rr.ResourceRegistrar], None]:

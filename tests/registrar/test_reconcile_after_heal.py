@@ -12,14 +12,11 @@ from __future__ import annotations
 import itertools
 import sys
 import threading
-import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import cloudpickle
 import pytest
-from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors._registrar import Served
@@ -30,29 +27,14 @@ from rr_actors.testing import (
     System,
     expect_restart,
     intercept,
-    start_forkserver,
 )
+from tests.support.names import named
+from tests.support.waiting import wait_for
 
-pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
-
-
-@pytest.fixture(scope="module", autouse=True)
-def by_value() -> Iterator[None]:
-    start_forkserver()
-    cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    yield
-    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
-
-
-@pytest.fixture
-def system() -> Iterator[System]:
-    made = System.create()
-    yield made
-    made.close()
-
-
-def named(prefix: str) -> str:
-    return f"{prefix}-{uuid.uuid4().hex[:8]}"
+pytestmark = [
+    pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals"),
+    pytest.mark.usefixtures("by_value"),  # (tests/conftest.py)
+]
 
 
 def leaf_setup(unloads: Any) -> Callable[[rr.ResourceRegistrar], None]:

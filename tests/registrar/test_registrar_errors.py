@@ -9,10 +9,10 @@ import uuid
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import pytest
-from gating import GatedLoad
 
 import rr_actors as rr
 from rr_actors.testing import catalog_snapshot
+from tests.support.gating import GatedLoad
 
 
 class SensorError(Exception):

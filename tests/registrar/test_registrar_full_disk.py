@@ -16,11 +16,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from gating import GatedLoad
-from small_disk import fill, mounted
 
 import rr_actors as rr
 from rr_actors.testing import catalog_snapshot
+from tests.support.gating import GatedLoad
+from tests.support.small_disk import fill, mounted
 
 
 class Provider:

@@ -12,7 +12,6 @@ from typing import Any
 
 import pykka
 import pytest
-from gating import GatedLoad
 
 import rr_actors as rr
 from rr_actors.testing import (
@@ -27,6 +26,7 @@ from rr_actors.testing import (
     pending_work,
     run_on_actor,
 )
+from tests.support.gating import GatedLoad
 
 
 @pytest.fixture

@@ -18,27 +18,20 @@ import os
 import signal
 import sys
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import cloudpickle
 import pytest
-from supervising import ManualTimer
 
 import rr_actors as rr
-from rr_actors._process.manager import start_forkserver
 from rr_actors.testing import SharedObjects
+from tests.support.supervising import ManualTimer
 
-pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
-
-
-@pytest.fixture(scope="module", autouse=True)
-def by_value() -> Iterator[None]:
-    start_forkserver()
-    cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    yield
-    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+pytestmark = [
+    pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals"),
+    pytest.mark.usefixtures("by_value"),  # (tests/conftest.py)
+]
 
 
 def provider_setup(unloads: Any) -> Callable[[rr.ResourceRegistrar], None]:

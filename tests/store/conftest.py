@@ -13,9 +13,9 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
-from persisting import ManualTimers, RunAndKill
 
 from rr_actors._store import saver as _persistence
+from tests.support.persisting import ManualTimers, RunAndKill
 
 
 @pytest.fixture(scope="session")

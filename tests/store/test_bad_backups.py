@@ -10,8 +10,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from durable_pair import noop_unload, start
-from persisting import (
+
+import rr_actors as rr
+from rr_actors._store.files import quarantine_backup, read_backup
+from rr_actors._store.sqlite import SqliteStore
+from tests.support.durable_pair import noop_unload, start
+from tests.support.persisting import (
     digest,
     duplicate_client,
     duplicate_consumer,
@@ -29,11 +33,7 @@ from persisting import (
     write_valid_backup,
     written_once,
 )
-from small_disk import mounted, remount_read_only
-
-import rr_actors as rr
-from rr_actors._store.files import quarantine_backup, read_backup
-from rr_actors._store.sqlite import SqliteStore
+from tests.support.small_disk import mounted, remount_read_only
 
 
 @pytest.mark.parametrize(
@@ -189,7 +189,7 @@ def test_quarantine_without_a_file_raises_config_error(tmp_path: Path) -> None:
     ("damage", "cause"),
     [
         (duplicate_resource, "index resources_by_id is missing"),
-        (duplicate_consumer, "consumer query id q1 is stored twice"),
+        (duplicate_consumer, "index consumers_by_query is missing"),
         (duplicate_client, "client query id d1 is stored twice"),
         (state_minus_one, "unknown state -1"),
         (state_three, "unknown state 3"),

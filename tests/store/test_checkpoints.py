@@ -18,13 +18,13 @@ import uuid
 from pathlib import Path
 
 import pytest
-from durable_pair import opened
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog
 from rr_actors._store import checkpoints
 from rr_actors._store.saver import open_store
 from rr_actors._store.sqlite import SqliteStore
+from tests.support.durable_pair import opened
 
 WAIT = 10.0  # seconds: the bound of every wait below
 

@@ -15,8 +15,8 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors.__main__ import main
 from rr_actors._catalog import Catalog
-from rr_actors._cli import main
 from rr_actors._store import codec, schema
 from rr_actors._store.schema import SCHEMA_VERSION
 from rr_actors._store.sqlite import SqliteStore
@@ -157,7 +157,7 @@ def test_the_command_line_runs_as_a_program(
     _, path, ids = live
 
     done = subprocess.run(
-        [sys.executable, "-m", "rr_actors._cli", "inspect", str(path), "--json"],
+        [sys.executable, "-m", "rr_actors", "inspect", str(path), "--json"],
         capture_output=True,
         text=True,
         timeout=30,

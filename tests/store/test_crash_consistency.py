@@ -30,13 +30,12 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from durable_pair import pair_backups, start_pair
-
 import rr_actors as rr
 from rr_actors._catalog import Catalog
 from rr_actors._store import checkpoints as checkpoint_module
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot
+from tests.support.durable_pair import pair_backups, start_pair
 
 LEAVES = 8
 NESTED = 4

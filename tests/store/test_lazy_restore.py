@@ -14,14 +14,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from durable_pair import schema_2_database
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog, request_digest
 from rr_actors._platform.linux import LinuxPlatform
-from rr_actors._store import codec, restore
+from rr_actors._store import codec
 from rr_actors._store.files import read_backup
 from rr_actors._store.sqlite import SqliteStore
+from tests.support.durable_pair import schema_2_database
 
 
 def write_catalog(path: Path, rows: list[tuple[str, str, Any, str]]) -> None:
@@ -253,32 +253,58 @@ def test_a_version_2_backup_is_migrated_and_restored_lazily(tmp_path: Path) -> N
     ]
 
 
-# -- 5. the consumer index hands its build memory back -------------------------------------------
+# -- 4b. a schema-4 file: its consumer ids get their index ----------------------------------------
 
 
-def test_a_restore_that_trims_the_heap_still_finds_every_consumer(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+def as_version_4(path: Path) -> None:
+    """Make a current backup what schema version 4 wrote: no index on the consumer ids."""
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute("DROP INDEX consumers_by_query")
+    db.execute("UPDATE rr_actors_schema SET version = 4")
+    db.close()
+
+
+def test_a_version_4_backup_gets_its_consumer_index_and_finds_every_consumer(
+    tmp_path: Path,
 ) -> None:
-    trims: list[int] = []
-
-    class CountingPlatform(LinuxPlatform):
-        def release_free_memory(self) -> None:
-            trims.append(1)
-            super().release_free_memory()
-
-    monkeypatch.setattr(restore, "_TRIM_AFTER", 2)
-    monkeypatch.setattr(restore, "PLATFORM", CountingPlatform())
-    path = tmp_path / "c.db"
-    rows = [(f"r{n}", "leaf", {"n": n}, f"q{n}") for n in range(5)]
-    write_catalog(path, rows)
+    path = tmp_path / "p.db"
+    write_catalog(path, [(f"r{n}", "leaf", {"n": n}, f"q{n}") for n in range(3)])
+    as_version_4(path)
     store, catalog = lazily_restored(path)
     try:
-        assert trims == [1]
-        for rid, _, _, query_id in rows:
-            assert catalog.resource_of(query_id).id == rid
-        assert catalog.find("leaf", {"n": 3}) is not None
+        found = [catalog.resource_of(f"q{n}").id for n in (2, 0)]
+        indexes = {
+            name
+            for (name,) in store.connection.execute(
+                "SELECT name FROM sqlite_master WHERE type = 'index'"
+            )
+        }
     finally:
         store.close(erase=False)
+
+    assert (["r2", "r0"], True) == (found, "consumers_by_query" in indexes)
+
+
+def test_a_version_4_backup_with_a_consumer_id_stored_twice_is_refused_and_left_as_it_was(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "p.db"
+    write_catalog(path, [("r0", "leaf", {"n": 0}, "q0"), ("r1", "leaf", {"n": 1}, "q1")])
+    as_version_4(path)
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute("UPDATE consumers SET query_id = 'q0' WHERE query_id = 'q1'")
+    db.close()
+
+    with pytest.raises(rr.CatalogCorruptError) as raised:
+        SqliteStore.open(path)
+
+    db = sqlite3.connect(path)
+    version = db.execute("SELECT version FROM rr_actors_schema").fetchone()[0]
+    db.close()
+    assert (str(path), True, 4) == (raised.value.path, "UNIQUE" in raised.value.cause, version)
+
+
+# -- 5. freed memory goes back to the system (the observer's server uses it) -------------------
 
 
 def _resident_bytes() -> int:

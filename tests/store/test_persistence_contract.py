@@ -20,17 +20,17 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from durable_pair import opened, schema_2_database, start
 
 import rr_actors as rr
+from rr_actors.__main__ import main
 from rr_actors._catalog import Catalog, request_digest
-from rr_actors._cli import main
 from rr_actors._store import checkpoints, codec, files, schema
 from rr_actors._store import saver as _persistence
 from rr_actors._store.files import quarantine_backup, read_backup
 from rr_actors._store.saver import open_store
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot, crash
+from tests.support.durable_pair import opened, schema_2_database, start
 
 WAIT = 10.0  # seconds: the bound of every wait that must succeed
 NOT_YET = 0.5  # seconds a caller must stay unanswered while the backup is locked

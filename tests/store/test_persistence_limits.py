@@ -21,12 +21,12 @@ from typing import Any
 
 import cloudpickle
 import pytest
-from small_disk import fill, mounted
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog, Changes
 from rr_actors._store import Saver, SqliteStore, quarantine_backup, read_backup
 from rr_actors.testing import RemoteRegistrar, System
+from tests.support.small_disk import fill, mounted
 
 
 def unique(prefix: str) -> str:

@@ -10,8 +10,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from durable_pair import leaf_load, noop_unload, pair_backups, start
-from persisting import (
+import rr_actors as rr
+from rr_actors.testing import catalog_snapshot
+from tests.support.durable_pair import leaf_load, noop_unload, pair_backups, start
+from tests.support.persisting import (
     Recorder,
     RunAndKill,
     child_hold,
@@ -19,10 +21,7 @@ from persisting import (
     child_stuck_in_load,
     ordered,
 )
-from waiting import wait_for
-
-import rr_actors as rr
-from rr_actors.testing import catalog_snapshot
+from tests.support.waiting import wait_for
 
 
 def test_a_registrar_restarted_after_a_kill_restores_every_served_query_and_client_record(

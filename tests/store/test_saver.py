@@ -10,14 +10,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from durable_pair import leaf_load, noop_unload, pair_backups, start
-from persisting import ManualTimers, RunAndKill, child_hold, consumer_ids, unique
 
 import rr_actors as rr
 from rr_actors._store import schema
 from rr_actors._store.files import read_backup
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot, crash
+from tests.support.durable_pair import leaf_load, noop_unload, pair_backups, start
+from tests.support.persisting import ManualTimers, RunAndKill, child_hold, consumer_ids, unique
 
 
 def test_restored_is_false_on_a_first_start(

@@ -12,20 +12,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from durable_pair import start_provider
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from persisting import (
-    CommitFails,
-    FlakyStore,
-    InsertFailsOnce,
-    make_query,
-    random_program,
-    reopen,
-    rows_of,
-    unique,
-    written_once,
-)
 
 import rr_actors as rr
 from rr_actors._catalog import (
@@ -38,6 +26,18 @@ from rr_actors._store import codec, schema
 from rr_actors._store import saver as _persistence
 from rr_actors._store.files import read_backup
 from rr_actors._store.sqlite import SqliteStore
+from tests.support.durable_pair import start_provider
+from tests.support.persisting import (
+    CommitFails,
+    FlakyStore,
+    InsertFailsOnce,
+    make_query,
+    random_program,
+    reopen,
+    rows_of,
+    unique,
+    written_once,
+)
 
 
 @settings(max_examples=40, deadline=None)

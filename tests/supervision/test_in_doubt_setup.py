@@ -17,11 +17,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from supervising import kill_and_wait_restarted, process
 
 import rr_actors as rr
-from rr_actors._process.context import start_forkserver
-from rr_actors.testing import SharedObjects
+from rr_actors.testing import SharedObjects, start_forkserver
+from tests.support.supervising import kill_and_wait_restarted, process
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

@@ -30,13 +30,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from gating import GatedLoad
 
 import rr_actors as rr
 from rr_actors._catalog import Changes, ClientRecord
 from rr_actors._store.files import read_backup
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot, crash, expect_restart
+from tests.support.gating import GatedLoad
 
 
 def _name(prefix: str) -> str:

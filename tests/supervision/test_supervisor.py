@@ -14,13 +14,13 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from supervising import FakeClock, ManualTimer, crash, echo_setup
 
 import rr_actors as rr
 from rr_actors import Supervisor, testing
 from rr_actors._supervision.policy import RestartIntensity
 from rr_actors._supervision.retry import abandon_after_restart
 from rr_actors.config import Backoff, ManagerSpec, SupervisorSpec
+from tests.support.supervising import FakeClock, ManualTimer, crash, echo_setup
 
 
 @pytest.fixture

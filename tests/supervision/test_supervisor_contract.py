@@ -24,7 +24,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from supervising import (
+
+import rr_actors as rr
+from rr_actors.testing import SharedObjects, actor_ref, start_forkserver
+from tests.support.supervising import (
     FakeClock,
     ManualTimer,
     alive,
@@ -36,9 +39,6 @@ from supervising import (
     sigkill,
     wait_gone,
 )
-
-import rr_actors as rr
-from rr_actors.testing import SharedObjects, actor_ref, start_forkserver
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import pytest
-from supervising import echo_setup
 
 import rr_actors as rr
+from tests.support.supervising import echo_setup
 
 
 def thread(name: str) -> rr.ManagerSpec:

@@ -7,26 +7,18 @@ plugs into the same keywords.
 
 from __future__ import annotations
 
-import sys
-import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
 
-import cloudpickle
 import pytest
-from supervising import echo_setup, kill_and_wait_restarted, process
-from waiting import wait_for
 
 import rr_actors as rr
-from rr_actors.testing import RemoteRegistrar, SharedObjects, System, start_forkserver
+from rr_actors.testing import RemoteRegistrar, SharedObjects, System
+from tests.support.names import named
+from tests.support.supervising import echo_setup, kill_and_wait_restarted, process
+from tests.support.waiting import wait_for
 
-
-@pytest.fixture(scope="module", autouse=True)
-def by_value() -> Iterator[None]:
-    start_forkserver()
-    cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    yield
-    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+pytestmark = pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
 
 
 @pytest.fixture
@@ -49,10 +41,6 @@ def outsider(network: System) -> Iterator[Callable[[], RemoteRegistrar]]:
     yield make
     for registrar in reversed(made):
         registrar.stop()
-
-
-def named(prefix: str) -> str:
-    return f"{prefix}-{uuid.uuid4().hex[:8]}"
 
 
 def thread(name: str, setup: Any = echo_setup) -> rr.ManagerSpec:
@@ -124,6 +112,34 @@ def test_a_registrar_started_with_a_network_is_reached_from_another_process_unti
 
     with pytest.raises(rr.RegistrarStoppedError):
         other.call(registrar.name, "echo", "camera", timeout=10)
+
+
+STOP_ROUNDS = 30
+"""Registrars stopped in a row by the next test (the race it guards took one in ~30)."""
+
+
+@pytest.mark.timeout(300)
+def test_a_call_right_after_stop_raises_registrar_stopped_error_every_time(
+    network: System, outsider: Callable[[], RemoteRegistrar]
+) -> None:
+    # The caller's connection is made by its first call and ended by the stop; that end
+    # raced with the connection's writer thread (test_transport_writer.py): the
+    # connection stayed open, and the next call's load was read and never answered.
+    other = outsider()
+    outcomes = []
+    for _ in range(STOP_ROUNDS):
+        registrar = rr.ResourceRegistrar.start(named("erm"), setup=echo_setup, network=network)
+        try:
+            other.unload(other.call(registrar.name, "echo", "camera", timeout=10).id, timeout=10)
+        finally:
+            registrar.stop()
+        try:
+            other.call(registrar.name, "echo", "camera", timeout=5)
+            outcomes.append("answered")
+        except rr.RrError as exc:
+            outcomes.append(type(exc).__name__)
+
+    assert ["RegistrarStoppedError"] * STOP_ROUNDS == outcomes
 
 
 def test_a_registrar_whose_name_another_process_serves_is_refused_and_leaves_nothing(

@@ -19,10 +19,10 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
-from supervising import FakeClock, crash, echo_setup, pid_of, process
 
 import rr_actors as rr
 from rr_actors.testing import SharedObjects, start_forkserver
+from tests.support.supervising import FakeClock, crash, echo_setup, pid_of, process
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

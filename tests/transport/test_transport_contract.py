@@ -19,7 +19,13 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from carriers import (
+
+import rr_actors as rr
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._transport import System
+from rr_actors.testing import intercept
+from rr_actors.testing.carrier import Revoke
+from tests.support.carriers import (
     BIG,
     GATE,
     Provider,
@@ -33,12 +39,6 @@ from carriers import (
     unloads,
     wait_load_started,
 )
-
-import rr_actors as rr
-from rr_actors._core.directory import DIRECTORY
-from rr_actors._registrar.messages import Revoke
-from rr_actors._transport import System
-from rr_actors.testing import intercept
 
 # -- calls across processes ----------------------------------------------------------------------
 

@@ -14,9 +14,9 @@ from collections.abc import Iterator
 import pytest
 
 import rr_actors as rr
-from rr_actors._registrar import Served
 from rr_actors._transport import System
 from rr_actors._transport.unix.sockets import connect
+from rr_actors.testing.carrier import Served
 
 
 @pytest.fixture

@@ -31,12 +31,12 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from carriers import CARRIERS, setup_servers
-from waiting import wait_for
 
 import rr_actors as rr
-from rr_actors._registrar import Served
 from rr_actors._transport import Transport
+from rr_actors.testing.carrier import Served
+from tests.support.carriers import CARRIERS, setup_servers
+from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 

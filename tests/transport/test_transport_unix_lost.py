@@ -17,18 +17,18 @@ import os
 import signal
 import sys
 import threading
-import uuid
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from test_transport_lost import Recorder
-from waiting import wait_for
 
 import rr_actors as rr
-from rr_actors._registrar import Served
 from rr_actors._transport import System, SystemAddress
 from rr_actors.testing import expect_restart
+from rr_actors.testing.carrier import Served
+from tests.support.names import named
+from tests.support.waiting import wait_for
+from tests.transport.test_transport_lost import Recorder
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -113,10 +113,6 @@ def recorder(unix: System) -> Iterator[Recorder]:
     unix.serve(made)
     yield made
     made.end()
-
-
-def named(prefix: str) -> str:
-    return f"{prefix}-{uuid.uuid4().hex[:8]}"
 
 
 def kill(process: multiprocessing.process.BaseProcess) -> None:

@@ -30,15 +30,15 @@ from typing import Any
 
 import pytest
 import zenoh
-from carriers import in_thread, setup_servers, wait_load_started
 
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.wire import WIRE_VERSION
-from rr_actors._registrar import Served
 from rr_actors._transport.codec import frame
 from rr_actors._transport.zenoh.net import ZenohNetwork
 from rr_actors._transport.zenoh.wire import MESSAGE, PYTHON, VERSION, parse, payload_of
+from rr_actors.testing.carrier import Served
+from tests.support.carriers import in_thread, setup_servers, wait_load_started
 
 # -- configuration ---------------------------------------------------------------------------
 

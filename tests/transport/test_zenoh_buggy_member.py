@@ -19,14 +19,14 @@ from typing import Any
 
 import pytest
 import zenoh
-from carriers import setup_servers
 
 import rr_actors as rr
 from rr_actors._core.wire import WIRE_VERSION
-from rr_actors._registrar import Served
 from rr_actors._transport.codec import NO_REPLY, frame
 from rr_actors._transport.zenoh.net import ZenohNetwork
 from rr_actors._transport.zenoh.wire import MESSAGE, PLAIN, PYTHON
+from rr_actors.testing.carrier import Served
+from tests.support.carriers import setup_servers
 
 WAIT = 10.0
 """Seconds any one step may take on a loaded machine."""

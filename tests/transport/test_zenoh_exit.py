@@ -21,8 +21,9 @@ import time
 from pathlib import Path
 
 import pytest
-from supervising import wait_gone
-from tls_lab import free_port
+
+from tests.support.supervising import wait_gone
+from tests.support.tls_lab import free_port
 
 ROBOT = textwrap.dedent(
     """

@@ -14,10 +14,10 @@ import socket
 from collections.abc import Collection, Iterator
 
 import pytest
-from supervising import linux_trick
 
 from rr_actors._platform import PLATFORM
 from rr_actors._transport.zenoh.gate import HOLD, QUIET, HandshakeGate
+from tests.support.supervising import linux_trick
 
 
 class FakeGate:

@@ -31,13 +31,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import pki
 import pytest
-from tls_lab import free_port
 
 import rr_actors as rr
-from rr_actors._tools import certs as zenoh_certs
+from rr_actors._tools import certs as certs_tool
 from rr_actors._transport.codec import frame
+from tests.support import pki
+from tests.support.tls_lab import free_port
 
 NOBODY = 65534
 ROOT = Path(__file__).resolve().parents[2]
@@ -201,8 +201,8 @@ def test_with_tls_another_local_user_gets_nothing_unpickled(
 ) -> None:
     # the how-to's one-machine example: its certificates, its endpoint
     certs = tmp_path / "certs"
-    zenoh_certs.init_ca(certs, "docs")
-    zenoh_certs.issue_cert(certs, "laptop", ["127.0.0.1"])
+    certs_tool.init_ca(certs, "docs")
+    certs_tool.issue_cert(certs, "laptop", ["127.0.0.1"])
     tls = rr.ZenohTLS(
         ca=certs / "ca.pem", cert=certs / "laptop.pem", key=certs / "laptop.key",
         members=["laptop"],

@@ -12,9 +12,9 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from test_docs import ROOT, blocks, commands
 
 import rr_actors as rr
+from tests.test_docs import ROOT, blocks, commands
 
 PAGE = ROOT / "docs" / "how-to" / "securing-registrars.md"
 

@@ -25,18 +25,18 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import pki
 import pytest
 import zenoh
-from supervising import process
-from tls_lab import free_port
-from waiting import wait_for
 
 import rr_actors as rr
 from rr_actors._transport.zenoh.config import session_config
 from rr_actors._transport.zenoh.probe import handshake_trouble
 from rr_actors._transport.zenoh.watch import LinkWatch
 from rr_actors.testing import start_forkserver
+from tests.support import pki
+from tests.support.supervising import process
+from tests.support.tls_lab import free_port
+from tests.support.waiting import wait_for
 
 MEMBERS = ["robot", "operator"]
 DAY = datetime.timedelta(days=1)

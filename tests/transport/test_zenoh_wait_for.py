@@ -18,11 +18,11 @@ import time
 import uuid
 from pathlib import Path
 
-import pki
 import pytest
-from tls_lab import free_port, member_tls, router
 
 import rr_actors as rr
+from tests.support import pki
+from tests.support.tls_lab import free_port, member_tls, router
 
 PROVIDER = textwrap.dedent(
     """

@@ -51,7 +51,7 @@ class _Link:
         self.listener = listener
         self.deadline = deadline  # for the whole handshake
         self.sock, self.conn = split(sock)
-        self.writer = Writer(self.sock, self._failed)
+        self.writer = Writer(self.sock, self._failed, f"rr-answer-{listener.name}")
 
     def send(self, frame: bytes, on_lost: Lost | None = None) -> bool:
         """Send or queue an answer; False (it is dropped) if the connection is gone."""
@@ -87,7 +87,6 @@ class _Link:
             except (AuthenticationError, EOFError, OSError) as exc:
                 logger.warning("registrar %s refused a connection: %s", listener.name, exc)
                 return
-            self.writer.start(f"rr-answer-{listener.name}")
             for data in frames(conn, listener.max_message_bytes):
                 try:
                     if isinstance(data, Oversized):

@@ -12,6 +12,7 @@ outstanding on it fails at once: that is how a dead peer is seen, not by a timeo
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import threading
@@ -153,15 +154,14 @@ class RemotePeer(Remote):
                 raise self._gone("cannot be reached (it does not listen)")
             limit = read_limit(self._system.address.limit_path(self.name))
             pending = Replies(lambda _name, message: self.tell(message))
-            fresh = _Channel(Writer(None, lambda exc: self._failed(fresh, exc)), limit, pending)
+            writer = Writer(None, lambda exc: self._failed(fresh, exc), f"rr-write-{self.name}")
+            fresh = _Channel(writer, limit, pending)
+            writer.connect_with(functools.partial(self._connect, fresh))  # (its first task)
             self._channel = channel = fresh
-        threading.Thread(
-            target=self._connect, args=(channel,), name=f"rr-write-{self.name}", daemon=True
-        ).start()
         return channel
 
     def _connect(self, channel: _Channel) -> None:
-        """The writer thread of `channel`: connect, start its reader, then write."""
+        """The writer thread of `channel`, first: connect, start its reader."""
         try:
             sock, conn = connect(self._path, self._system.address.authkey)
         except AuthenticationError as exc:
@@ -184,7 +184,6 @@ class RemotePeer(Remote):
         threading.Thread(
             target=self._read, args=(channel, conn), name=f"rr-read-{self.name}", daemon=True
         ).start()
-        channel.writer.run()
 
     def _failed(self, channel: _Channel, exc: BaseException) -> None:
         """`channel`'s writer failed (connect or write): fail what waits on it."""

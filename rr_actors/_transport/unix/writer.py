@@ -8,12 +8,12 @@ stalls only its own writer thread; callers still time out on their own timeouts.
 
 from __future__ import annotations
 
-import collections
 import logging
 import socket
 import threading
 from collections.abc import Callable
 
+from rr_actors._core.serial import SerialExecutor
 from rr_actors._transport.messenger import Lost, run_lost
 from rr_actors._transport.unix.sockets import shutdown
 
@@ -27,24 +27,32 @@ class Writer:
 
     A sender writes a frame itself when nothing is queued or being written and the
     socket takes all of it without blocking (`MSG_DONTWAIT`); otherwise the frame (or the
-    part the socket did not take) is queued for the connection's writer thread, the only
-    thread that may block on a peer that does not read. A failed connect or a failed
-    write of the writer thread closes the writer and calls `on_failure(exc)` once; a
-    sender whose own write fails gets False from `send` and cleans up itself.
+    part the socket did not take) is queued for the connection's writer thread (a
+    `SerialExecutor`, started when a frame first waits), the only thread that may block
+    on a peer that does not read. A failed connect or a failed write of the writer
+    thread closes the writer and calls `on_failure(exc)` once; a sender whose own write
+    fails gets False from `send` and cleans up itself. The socket is closed after the
+    last write (`shutdown` at `close` ends a blocked one).
     """
 
-    __slots__ = ("_busy", "_cond", "_on_failure", "_queue", "_sock", "_started", "closed")
+    __slots__ = ("_closed", "_executor", "_lock", "_on_failure", "_sock")
 
     def __init__(
-        self, sock: socket.socket | None, on_failure: Callable[[BaseException], None]
+        self,
+        sock: socket.socket | None,
+        on_failure: Callable[[BaseException], None],
+        name: str = "rr-write",
     ) -> None:
-        self._cond = threading.Condition(threading.Lock())
-        self._queue: collections.deque[tuple[bytes | memoryview, Lost | None]] = collections.deque()
+        self._lock = threading.Lock()  # `_sock` and `_closed`
         self._sock = sock
-        self._busy = sock is None  # nobody writes before the socket is there
-        self._started = False
+        self._closed = False
         self._on_failure = on_failure
-        self.closed = False
+        self._executor = SerialExecutor(name, on_drop=_lost, on_end=self._close_socket)
+
+    @property
+    def closed(self) -> bool:
+        """Whether the writer was closed (nothing more is sent)."""
+        return self._closed
 
     def send(self, frame: bytes, on_lost: Lost | None = None) -> bool:
         """Send `frame` or queue it (never blocks on the peer).
@@ -54,77 +62,45 @@ class Writer:
             sent, `on_lost` runs); False if the writer was closed or the connection broke
             just now (the writer is then closed): nothing of the frame was sent.
         """
-        with self._cond:
-            if self.closed:
-                return False
-            if self._busy or self._queue:
-                self._queue.append((frame, on_lost))
-                self._cond.notify()
-                return True
-            self._busy = True
-            sock = self._sock
-        assert sock is not None
+        if self._closed:
+            return False
+        task = _Frame(self, frame, on_lost)
         try:
-            sent = sock.send(frame, socket.MSG_DONTWAIT)
-        except BlockingIOError:
-            sent = 0
+            return self._executor.submit(task, inline=task.now if self._sock else None)
         except OSError as exc:
             logger.debug("a send failed, the connection is closed: %s", exc)
-            with self._cond:
-                self._busy = False
-                self._cond.notify_all()
             self.close()  # the caller cleans up: it knows what it was sending
             return False
-        lost = False
-        with self._cond:
-            if sent < len(frame):
-                if self.closed:
-                    lost = True
-                else:
-                    self._queue.appendleft((memoryview(frame)[sent:], on_lost))
-            self._busy = False
-            if self._queue or self.closed:  # else the writer thread would wake to nothing
-                self._cond.notify_all()  # (once closed, it waits for `_busy` to clear)
-        if lost and on_lost is not None:
-            run_lost([on_lost])
-        return True
+
+    def connect_with(self, connect: Callable[[], object]) -> None:
+        """Run `connect` first on the writer thread of a writer made without a socket; it
+        gives the socket with `attach` (or fails the writer)."""
+        self._executor.submit(connect)
 
     def attach(self, sock: socket.socket) -> bool:
-        """Give a writer made without a socket its connected socket; False if closed.
-
-        The calling thread then becomes the writer thread: it must call `run()`.
-        """
-        with self._cond:
-            if self.closed:
+        """Give a writer made without a socket its connected socket; False if closed."""
+        with self._lock:
+            if self._closed:
                 return False
             self._sock = sock
-            self._started = True
-            self._busy = False
-            self._cond.notify_all()
             return True
 
-    def start(self, name: str) -> None:
-        """Start the writer thread of a writer made with its socket."""
-        with self._cond:
-            self._started = True
-        threading.Thread(target=self.run, name=name, daemon=True).start()
-
     def close(self) -> bool:
-        """Stop sending; queued frames are lost (their `on_lost` runs). False if closed."""
-        with self._cond:
-            if self.closed:
+        """Stop sending and end the connection; queued frames are lost (their `on_lost`
+        runs). False if it was closed already.
+
+        The socket is shut down (here, and after the last write before it is closed,
+        whichever comes first), so a thread reading a duplicate of its descriptor wakes
+        and the peer reads the end at once.
+        """
+        with self._lock:
+            if self._closed:
                 return False
-            self.closed = True
-            lost = [on_lost for _, on_lost in self._queue if on_lost is not None]
-            self._queue.clear()
+            self._closed = True
             sock = self._sock
-            self._cond.notify_all()
-            close_here = not self._started
         if sock is not None:
             shutdown(sock)
-            if close_here:
-                sock.close()
-        run_lost(lost)
+        self._executor.close(timeout=0)
         return True
 
     def forget_in_child(self) -> None:
@@ -133,9 +109,10 @@ class Writer:
         Never `shutdown`: the socket is the parent's too, and a shutdown would end it for
         the parent. Takes no lock (a thread of the parent may have held it at the fork).
         """
-        self.closed = True
-        self._cond = threading.Condition(threading.Lock())
-        self._queue.clear()
+        self._closed = True
+        self._lock = threading.Lock()
+        self._executor = SerialExecutor(self._executor.name)
+        self._executor.finish()
         if self._sock is not None:
             self._sock.close()
 
@@ -144,33 +121,52 @@ class Writer:
         if self.close():
             self._on_failure(exc)
 
-    def run(self) -> None:
-        """The writer thread: send what was queued until the writer closes; owns the socket."""
-        sock = self._sock
+    def _close_socket(self) -> None:  # (after the last write: the executor's `on_end`)
+        if self._sock is not None:
+            # shut down before closing, here too: were it closed first, a shutdown after
+            # would fail (EBADF) and the reader's duplicate descriptor would keep the
+            # connection open: the peer would never see its end
+            shutdown(self._sock)
+            self._sock.close()
+
+
+class _Frame:
+    """One frame to send (or the part of it the socket did not take at once)."""
+
+    __slots__ = ("data", "on_lost", "writer")
+
+    def __init__(self, writer: Writer, data: bytes | memoryview, on_lost: Lost | None) -> None:
+        self.writer = writer
+        self.data = data
+        self.on_lost = on_lost
+
+    def now(self) -> _Frame | None:
+        """Send what the socket takes at once (the sender's thread); the rest, if any."""
+        sock = self.writer._sock
         assert sock is not None
         try:
-            while True:
-                with self._cond:
-                    while not self.closed and (self._busy or not self._queue):
-                        self._cond.wait()
-                    if self.closed:
-                        return
-                    batch = list(self._queue)
-                    self._queue.clear()
-                    self._busy = True
-                for index, (data, _) in enumerate(batch):
-                    try:
-                        sock.sendall(data)
-                    except OSError as exc:
-                        with self._cond:
-                            self._busy = False
-                        run_lost([on_lost for _, on_lost in batch[index:] if on_lost])
-                        self.fail(exc)
-                        return
-                with self._cond:
-                    self._busy = False
-        finally:
-            with self._cond:
-                while self._busy:  # a sender still writes inline: let it finish first
-                    self._cond.wait()
-            sock.close()
+            sent = sock.send(self.data, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            sent = 0
+        if sent >= len(self.data):
+            return None
+        self.data = memoryview(self.data)[sent:]
+        return self
+
+    def __call__(self) -> None:
+        """Send it all (the writer thread: may block on the peer)."""
+        sock = self.writer._sock
+        try:
+            if sock is not None:
+                sock.sendall(self.data)
+                return
+            error = OSError("not connected")  # (its connect task failed)
+        except OSError as exc:
+            error = exc
+        _lost(self)
+        self.writer.fail(error)
+
+
+def _lost(task: object) -> None:
+    if isinstance(task, _Frame) and task.on_lost is not None:
+        run_lost([task.on_lost])

@@ -35,7 +35,6 @@ Who does what (each collaborator owns its state; they meet only through method c
 - `presence`: `Presence`, the liveliness tables and the presence thread; it reports
   what follows to the member (`PresenceEvents`: process_gone, server_gone, lost,
   reachable);
-- `queue`: `Queue`, one thread per ordered stream (writers, decoders, presence);
 - `wire`: key expressions and the frame header.
 
 One name, one server: `serve` first declares a claim token, then asks the network for
@@ -58,7 +57,9 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from rr_actors._core.bus import Subscription
 from rr_actors._core.directory import DIRECTORY, Peer
+from rr_actors._core.hlc import CLOCK
 from rr_actors._transport.base import Address, Endpoint
 from rr_actors._transport.messenger import (
     Link,
@@ -69,6 +70,7 @@ from rr_actors._transport.messenger import (
     tell_lost,
     tell_reachable,
 )
+from rr_actors._transport.zenoh.events import EventExport, EventFeed
 from rr_actors._transport.zenoh.inbox import Inbox, Local
 from rr_actors._transport.zenoh.outbox import Outbox, Outboxes
 from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence
@@ -79,6 +81,7 @@ from rr_actors._transport.zenoh.wire import (
     Keys,
     NameAt,
     ServerKey,
+    envelope,
     header,
 )
 from rr_actors.config import NAME
@@ -166,6 +169,7 @@ class ZenohMember:
             self._keys.ping(self.zid), lambda query: query.reply(query.key_expr, b"")
         )
         self._proc_token = session.liveliness().declare_token(self._keys.proc(self.zid))
+        self._events = EventExport(session, self._keys, self.zid)  # (the system's stream)
         DIRECTORY.add_resolver(self.resolve, self.names)
 
     # -- the Transport interface ---------------------------------------------------------
@@ -281,6 +285,20 @@ class ZenohMember:
         """Always `None`: a Zenoh subscriber has no accept queue to run out of."""
         return None
 
+    def subscribe_events(
+        self, callback: Callable[[Any], object], *, window: float, maxsize: int
+    ) -> Subscription[Any]:
+        """Every event of every process of the system (see `ZenohNetwork.subscribe_events`).
+
+        Raises:
+            RegistrarStoppedError: this process left the system.
+        """
+        if self.closed:
+            raise RegistrarStoppedError("this process left the system")
+        subscription = EventFeed(self._session, self._keys, window).subscribe(callback, maxsize)
+        self._events.wait_sending(ASK_TIMEOUT)  # (this process's own, from now on)
+        return subscription
+
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits, close the session."""
         with self._lock:
@@ -292,6 +310,7 @@ class ZenohMember:
         for local in locals_:
             self._unserve(local, stopped=local.endpoint.stopped_cleanly())
         self._inbox.fail_waiting(None, RegistrarStoppedError("this process left the system"))
+        self._events.close()
         self._outboxes.close()
         self._inbox.close()
         self._presence.close()
@@ -344,7 +363,8 @@ class ZenohMember:
             return RegistrarStoppedError(f"registrar {name!r} was stopped")
         return RegistrarUnavailableError(
             f"registrar {name!r} of system {self.system!r} cannot be reached (its process "
-            f"died or its link is down)"
+            f"died, or a link on the way to it is down: this host's own, or one beyond the "
+            f"router it is reached through)"
         )
 
     def send(self, name: str, message: Any) -> None:
@@ -363,7 +383,7 @@ class ZenohMember:
         sent = (  # (gone meanwhile: its presence may have missed this reply)
             self._presence.server(name) is not None
             and outbox is not None
-            and outbox.send(header(MESSAGE, self.zid) + outgoing.data)
+            and outbox.send(envelope(MESSAGE, self.zid, outgoing.data, CLOCK.send()))
         )
         if not sent and (outgoing.reply is None or self._inbox.forget(outgoing.token)):
             raise self._gone_error(name)
@@ -384,7 +404,9 @@ class ZenohMember:
         if self._presence.unreachable(sender):
             return False
         outbox = self._outbox(self._keys.answers(sender), sender)
-        return outbox is not None and outbox.send(header(ANSWER, self.zid) + data, on_lost)
+        return outbox is not None and outbox.send(
+            envelope(ANSWER, self.zid, data, CLOCK.send()), on_lost
+        )
 
     def member(self, zid: str) -> bool:
         """Whether process `zid`'s liveliness token is here now (see `Presence.member`)."""

@@ -5,7 +5,7 @@ for the replies waiting here.
  put rr/<s>/reg/<name> ─► subscriber callback (Zenoh's thread: never blocks, never decodes)
                             │ sender's token not here: the strangers' thread waits for it
                             ▼ else queued                (bounded; then dropped, a WARNING)
-                 inbox (sender, message): decode thread (queue)
+                 inbox (sender, message): decode thread (SerialExecutor)
                    version refused? too large? unpickle; stand-in reply;
                    tell the registrar ─► reply.set_result ─► owner.answer_to(sender)
 
@@ -27,6 +27,7 @@ every message of its link.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -34,6 +35,8 @@ from typing import Any, Protocol
 
 import zenoh
 
+from rr_actors._core.hlc import CLOCK
+from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import NO_REPLY, Run
@@ -45,7 +48,6 @@ from rr_actors._transport.messenger import (
     deliver,
     refuse_too_large,
 )
-from rr_actors._transport.zenoh.queue import Queue
 from rr_actors._transport.zenoh.wire import (
     ANSWER,
     MESSAGE,
@@ -112,10 +114,10 @@ class Inbox:
         self._owner = owner
         self._lock = threading.Lock()
         self._closed = False
-        self._inboxes: dict[tuple[str, int], Queue] = {}
+        self._inboxes: dict[tuple[str, int], SerialExecutor] = {}
         self._replies = Replies(owner.send)
         self._warned: set[str] = set()
-        self._strangers = Queue("rr-zread-strangers", self._stranger)
+        self._strangers = SerialExecutor("rr-zread-strangers")
         self._pending: dict[tuple[str, int], int] = {}  # frames on `_strangers`, by stream
         self._held = (0, 0)  # frames and bytes on `_strangers`
         self._arrived: set[str] = set()  # tokens that came while `_strangers` held frames
@@ -168,7 +170,7 @@ class Inbox:
         with self._joined:
             self._joined.notify_all()
         for inbox in inboxes:
-            inbox.close()
+            inbox.close(timeout=0)
 
     def _receive(self, head: Header, kind: int, item: Any, size: int) -> None:
         """Hand `item` (`size` bytes) to the decode thread of (sender, `kind`) (Zenoh's
@@ -179,6 +181,7 @@ class Inbox:
         until those before them are done (then they keep their order).
         """
         key = (head.sender, kind)
+        task = functools.partial(self._deliver if kind == MESSAGE else self._answered, item)
         for _attempt in (1, 2):  # (its inbox may have just finished: the sender went)
             inbox = self._inboxes.get(key)
             if inbox is None or inbox.closed:
@@ -190,10 +193,9 @@ class Inbox:
                         if key in self._pending or not self._owner.member(head.sender):
                             self._wait_for_token(key, item, size)
                             return
-                        handle = self._deliver if kind == MESSAGE else self._answered
-                        inbox = Queue(f"rr-zread-{head.sender[:8]}-{kind}", handle)
+                        inbox = SerialExecutor(f"rr-zread-{head.sender[:8]}-{kind}")
                         self._inboxes[key] = inbox
-            if inbox.put(item):
+            if inbox.submit(task):
                 return
 
     def _heard(self, sender: str) -> bool:
@@ -219,7 +221,8 @@ class Inbox:
             return
         self._held = (count + 1, held + size)
         self._pending[key] = self._pending.get(key, 0) + 1
-        self._strangers.put((time.monotonic() + STRANGER_GRACE, key, item, size))
+        entry = (time.monotonic() + STRANGER_GRACE, key, item, size)
+        self._strangers.submit(functools.partial(self._stranger, entry))
 
     def _stranger(self, entry: tuple[float, tuple[str, int], Any, int]) -> None:
         """Handle one frame of a sender whose token was not here (the strangers' thread):
@@ -276,6 +279,8 @@ class Inbox:
         if not head.ours:
             self._refuse_version(name, head, token)
             return
+        if head.stamp is not None:
+            CLOCK.receive(head.stamp)  # (before the registrar hears of it)
         sender = head.sender
 
         def send(answer: bytes) -> bool:
@@ -321,5 +326,7 @@ class Inbox:
         token, payload = payload_of(data, head)
         if head.kind == VERSION or not head.ours:
             self._replies.refused(token, versions_text(head))
-        else:
-            self._replies.answered(token, payload)
+            return
+        if head.stamp is not None and token in self._replies:
+            CLOCK.receive(head.stamp)  # (an answer someone waits for)
+        self._replies.answered(token, payload)

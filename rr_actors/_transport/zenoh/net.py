@@ -41,7 +41,9 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from rr_actors import events
 from rr_actors._core.addresses import is_loopback
+from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.directory import Peer
 from rr_actors._core.exit import NETWORKS, stop_at_exit
 from rr_actors._platform import fork
@@ -49,10 +51,12 @@ from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.zenoh.access import user
 from rr_actors._transport.zenoh.carrier import ZenohMember
 from rr_actors._transport.zenoh.config import endpoints, parse_endpoint, session_config
+from rr_actors._transport.zenoh.events import check_window
 from rr_actors._transport.zenoh.gate import HandshakeGate, open_gates
 from rr_actors._transport.zenoh.watch import LinkWatch, remote
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavailableError
+from rr_actors.events.kinds import set_host
 
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh.tls import ZenohTLS
@@ -224,6 +228,8 @@ class ZenohAddress:
         router: the router process's Zenoh id.
         router_pid: the router process's pid: a manager process it started (its
             supervisor's, `supervised_by`) publishes `router` as its supervisor (rule 19).
+        member: this host's member name (its certificate's common name), which the
+            events of a process that attaches carry (`events.set_host`); `""` without TLS.
     """
 
     system: str
@@ -231,6 +237,7 @@ class ZenohAddress:
     lease: float
     router: str
     router_pid: int = 0
+    member: str = ""
 
     def attach(self) -> ZenohMember:
         """Join the system from this process (idempotent): a CLIENT-mode session.
@@ -242,6 +249,8 @@ class ZenohAddress:
         return _join(self.system, None, self._open)
 
     def _open(self) -> ZenohMember:
+        if self.member:
+            set_host(self.member)
         config = session_config("client", [], [f"unixsock-stream/{self.socket_path}"], self.lease)
         try:
             session = zenoh.open(config)
@@ -343,6 +352,8 @@ class ZenohNetwork:
             return self._member
 
     def _open_router(self) -> ZenohMember:
+        if self.tls is not None:
+            set_host(self.tls.name)  # (the member name on this process's events)
         runtime_dir = tempfile.mkdtemp(prefix="rr-zenoh-")  # mode 0700
         path = os.path.join(runtime_dir, "router.sock")
         config = session_config(
@@ -373,7 +384,12 @@ class ZenohNetwork:
             watch, gate = self._watch, self._gate
             self._runtime_dir = runtime_dir
             self._address = ZenohAddress(
-                self.system, path, self.lease, str(session.zid()), os.getpid()
+                self.system,
+                path,
+                self.lease,
+                str(session.zid()),
+                os.getpid(),
+                "" if self.tls is None else self.tls.name,
             )
 
             def closed(member: ZenohMember) -> None:
@@ -466,6 +482,49 @@ class ZenohNetwork:
     def supervised_by(self, pid: int | None) -> None:
         """See `Transport.supervised_by` (`ZenohMember.supervised_by`)."""
         self._open().supervised_by(pid)
+
+    def subscribe_events(
+        self,
+        callback: Callable[[events.Event], object],
+        *,
+        window: float = 0.5,
+        maxsize: int = DEFAULT_MAXSIZE,
+    ) -> Subscription[events.Event]:
+        """Call `callback(event)` for every event of every host of the system from now on.
+
+        What every member process publishes (each host's supervisors, registrars and
+        manager processes; this process's own too) crosses as JSON lines on
+        `rr/<system>/ev/<zid>`, never as pickles, and only between members (the access
+        control of `tls`). A process sends its events only while someone subscribes, so
+        another process's events are seen from about when the subscription reached it
+        (a link's latency later); this process's own from the return (at most 1 s).
+        Each event carries `host` (its host's member name) and `hlc` (its hybrid logical
+        clock stamp): events are held `window` seconds after they arrive and handed over
+        in `hlc` order, so that a cause on one host comes before its effect on another
+        (one process's events are always in order).
+
+        The callback runs on a subscriber thread of its own, one event at a time; a slow
+        one never slows any host: past `maxsize` queued events new ones are dropped,
+        counted and reported by one `EventsDropped`.
+
+        Args:
+            callback: `callback(event)`; what it raises is logged.
+            window: seconds an event is held for others to overtake it (0: in the order
+                they arrive). An event that arrives more than `window` after one with a
+                greater stamp was handed over comes late (out of `hlc` order).
+            maxsize: events queued for the callback before new ones are dropped.
+
+        Returns:
+            The subscription; `close()` it, or use it as a context manager.
+
+        Raises:
+            ConfigError: `window` is not seconds from 0 to 60, or `maxsize` not a
+                positive int.
+            RegistrarStoppedError: this process left the system (`close()`).
+        """
+        window = check_window(window)
+        member = self._open()
+        return member.subscribe_events(callback, window=window, maxsize=maxsize)
 
     def wait_for(self, name: str, *, timeout: float) -> None:
         """Wait until registrar `name` is served on this system (by any host); then return.

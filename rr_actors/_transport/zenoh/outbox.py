@@ -2,7 +2,7 @@
 
 ```
  ZenohMember.send / answer_to ─► Outboxes.get(key) ─► Outbox(key).send(header + frame)
-                                                          │ its writer thread (queue)
+                                                          │ its writer thread (SerialExecutor)
                                                           ▼
           (a new outbox's first put: ping rr/<s>/ping/<zid> first)
                                                  publisher.put ─► rr/<s>/reg/<name>
@@ -28,8 +28,8 @@ from collections.abc import Callable
 
 import zenoh
 
+from rr_actors._core.serial import SerialExecutor, Task
 from rr_actors._transport.messenger import Lost, run_lost
-from rr_actors._transport.zenoh.queue import Queue
 from rr_actors._transport.zenoh.wire import Keys
 
 __all__ = ["HEAL_TIMEOUT", "Outbox", "Outboxes"]
@@ -55,7 +55,8 @@ class Outbox:
             express=True,
             reliability=zenoh.Reliability.RELIABLE,
         )
-        self._queue = Queue(f"rr-zput-{key.rsplit('/', 1)[-1]}", self._put)
+        name = f"rr-zput-{key.rsplit('/', 1)[-1]}"
+        self._queue = SerialExecutor(name, on_drop=self._lost)
 
     @property
     def closed(self) -> bool:
@@ -63,10 +64,9 @@ class Outbox:
 
     def send(self, data: bytes, on_lost: Lost | None = None) -> bool:
         """Queue `data`; False (nothing sent) if the outbox is closed."""
-        return self._queue.put((data, on_lost))
+        return self._queue.submit(functools.partial(self._put, data, on_lost))
 
-    def _put(self, item: tuple[bytes, Lost | None]) -> None:
-        data, on_lost = item
+    def _put(self, data: bytes, on_lost: Lost | None) -> None:
         ready, self._ready = self._ready, None
         if ready is not None:
             ready()
@@ -79,10 +79,14 @@ class Outbox:
 
     def close(self) -> None:
         """Stop sending: what is still queued is lost (its `on_lost` runs)."""
-        lost = [on_lost for _, on_lost in self._queue.close() if on_lost is not None]
+        self._queue.close(timeout=0)  # (each dropped frame's `on_lost` runs: `_lost`)
         with contextlib.suppress(Exception):
             self._publisher.undeclare()  # type: ignore[no-untyped-call]
-        run_lost(lost)
+
+    @staticmethod
+    def _lost(task: Task) -> None:
+        if isinstance(task, functools.partial) and task.args[1] is not None:
+            run_lost([task.args[1]])
 
 
 class Outboxes:

@@ -4,7 +4,7 @@
  liveliness rr/<s>/live/**  ─► Presence._on_live (Zenoh's thread: queues, never blocks)
  Presence.ask(name) ─ liveliness get ─┘      │
                                              ▼
-                        presence thread (queue): _apply, in order
+                        presence thread (SerialExecutor): _apply, in order
                           tables: process tokens, servers, claims, "stopped" marks,
                                   supervisors awaited
                                              │ then, outside the lock
@@ -45,8 +45,8 @@ from typing import Any, Protocol
 
 import zenoh
 
+from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
-from rr_actors._transport.zenoh.queue import Queue
 from rr_actors._transport.zenoh.wire import Keys, NameAt
 from rr_actors.errors import DuplicateNameError
 
@@ -141,7 +141,7 @@ class Presence:
             "claim": self._claim_token,
             "stopped": self._stopped_token,
         }
-        self._queue = Queue("rr-zpresence", self._apply)
+        self._queue = SerialExecutor("rr-zpresence")
         self._live = session.liveliness().declare_subscriber(
             self._keys.live(), self._on_live, history=True
         )
@@ -231,7 +231,7 @@ class Presence:
                 self._members.discard(zid)
             if self._on_token is not None:
                 self._on_token(zid, put)
-        self._queue.put((put, key, None))
+        self._queue.submit(functools.partial(self._apply, (put, key, None)))
 
     def member(self, zid: str) -> bool:
         """Whether process `zid`'s token is here now, as Zenoh's callbacks heard it.
@@ -263,8 +263,8 @@ class Presence:
                 keys.extend(str(reply.ok.key_expr) for reply in replies if reply.ok is not None)
             done = threading.Event()
             for key in keys:
-                self._queue.put((True, key, asked_at))
-            if self._queue.put((None, "", done)):  # (closed: nothing will be applied)
+                self._queue.submit(functools.partial(self._apply, (True, key, asked_at)))
+            if self._queue.submit(done.set):  # (closed: nothing will be applied)
                 done.wait(ASK_TIMEOUT)
         finally:
             with self._changed:
@@ -274,19 +274,16 @@ class Presence:
 
     def close(self) -> None:
         """Stop applying events (and waking `wait_serving`)."""
-        self._queue.close()
+        self._queue.close(timeout=0)
         with self._changed:
             self._changed.notify_all()
 
     # -- the presence thread -------------------------------------------------------------
 
-    def _apply(self, item: tuple[bool | None, str, Any]) -> None:
+    def _apply(self, item: tuple[bool, str, Any]) -> None:
         """Apply one liveliness event (the presence thread): tables, then what follows."""
         NO_WAITING.active = True
         put, key, extra = item
-        if put is None:  # a marker: everything queued before it was applied
-            extra.set()
-            return
         with self._changed:
             self._seq += 1
             if put and extra is not None and self._deleted.get(key, -1) > extra:

@@ -8,18 +8,22 @@ module only tells the operator, on the `rr_actors` logger:
   drops every message of it both ways; at most once per address per minute;
 - WARNING when a `connect` endpoint has no link `GRACE` seconds after start or after its
   link is lost, with the reason from our own handshake (`probe`); at most once per
-  endpoint per minute while it lasts.
+  endpoint per minute while it lasts. A handshake that finds nothing wrong (the listener
+  accepts this host) warns only if the next one, `GRACE` seconds later, finds the same and
+  there is still no link: Zenoh's own link is then most likely on its way.
 
 ```
- Zenoh's thread: link event ──put──► queue ──► watch thread "rr-zenoh-watch"
+ Zenoh's thread: link event ─submit─► watch thread "rr-zenoh-watch" (SerialExecutor)
                                                  ├─ log INFO / WARNING per link
                                                  └─ every TICK s: each connect endpoint
                                                     linked? else after GRACE s:
                                                     handshake_trouble() ─► WARNING
 ```
 
-The Zenoh callback only puts the event in a queue (a callback must never block: logging
-handlers are user code); the watch thread does the rest. A link is "to" an endpoint when
+The Zenoh callback only queues the event for the watch thread (a callback must never
+block: logging handlers are user code); the watch thread does the rest. (Not Zenoh's
+`FifoChannel`: it has no receive with a timeout for the ticks, and a full one blocks
+Zenoh's thread.) A link is "to" an endpoint when
 its remote address is one of the endpoint's host's addresses and its port is the
 endpoint's, or a port no `connect` endpoint has (that host dialled us: two routers that
 dial each other share one link). So a link to one port of a host does not hide that
@@ -29,17 +33,17 @@ while its endpoint is unlinked, at most every `GRACE` s (a lookup may block for 
 
 from __future__ import annotations
 
+import functools
 import ipaddress
 import logging
-import queue
 import socket
-import threading
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from rr_actors._core.serial import SerialExecutor
 from rr_actors._transport.zenoh.config import parse_endpoint
 from rr_actors._transport.zenoh.probe import handshake_trouble
 
@@ -74,6 +78,13 @@ def _addresses(host: str) -> set[str]:
         return {host}
 
 
+def _said(trouble: str | None) -> str:
+    """Why an endpoint has no link, in words, from what its probe found (`None`: nothing)."""
+    if trouble is None:
+        return "the listener accepts this host's certificate; Zenoh has not linked yet"
+    return trouble
+
+
 class _Endpoint:
     def __init__(self, endpoint: str) -> None:
         _, self.host, self.port = parse_endpoint("connect", endpoint)
@@ -82,6 +93,7 @@ class _Endpoint:
         self.warned_at: float | None = None
         self.looked = False  # the first look counts from start, a later one from then
         self.reason: str | None = None  # why it had no link when last probed (None: linked)
+        self.accepted = False  # its last probe found the listener accepting this host
         self.addresses: set[str] = set()  # the host's, when last resolved
         self.resolved_at: float | None = None
 
@@ -125,48 +137,38 @@ class LinkWatch:
         self._tls = tls
         self._clock = clock
         self._endpoints = [_Endpoint(endpoint) for endpoint in connect]
-        self._events: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._warned: dict[str, float] = {}  # non-member address -> when we said so
-        self._stop = threading.Event()
         self._started = clock()
-        self._listener = session.info.declare_link_events_listener(self._events.put, history=True)
-        self._thread = threading.Thread(target=self._run, name="rr-zenoh-watch", daemon=True)
-        self._thread.start()
+        self._thread = SerialExecutor("rr-zenoh-watch", every=(TICK, self._guarded))
+        self._listener = session.info.declare_link_events_listener(self._on_event, history=True)
 
     def close(self) -> None:
         """Stop watching (idempotent); call before the session closes."""
-        if self._stop.is_set():
+        if self._thread.closed:
             return
-        self._stop.set()
-        self._events.put(None)
+        self._thread.close(timeout=0)
         try:
             self._listener.undeclare()  # type: ignore[no-untyped-call]
         except Exception:
             logger.debug("undeclaring the link events listener failed", exc_info=True)
-        if threading.current_thread() is not self._thread:
-            self._thread.join(timeout=5.0)
+        self._thread.join(5.0)
 
     # -- the thread ------------------------------------------------------------------------
 
-    def _run(self) -> None:
-        next_tick = self._clock()
-        while not self._stop.is_set():
-            try:
-                event = self._events.get(timeout=max(0.0, next_tick - self._clock()))
-            except queue.Empty:
-                event = None
-            if self._stop.is_set():
-                return
-            try:
-                if event is not None:
-                    self._on_link(event)
-                if self._clock() >= next_tick:
-                    next_tick = self._clock() + TICK
-                    self._look_at_endpoints()
-            except Exception:
-                if self._stop.is_set():
-                    return  # the session closed under us
-                logger.exception("ZenohNetwork %r: watching its links failed", self._system)
+    def _on_event(self, event: Any) -> None:  # (Zenoh's thread: never blocks)
+        self._thread.submit(functools.partial(self._guarded, event))
+
+    def _guarded(self, event: Any = None) -> None:
+        """Log a link `event`, or (`None`: every `TICK` s) look at the connect endpoints."""
+        try:
+            if event is not None:
+                self._on_link(event)
+            else:
+                self._look_at_endpoints()
+        except Exception:
+            if self._thread.closed:
+                return  # the session closed under us
+            logger.exception("ZenohNetwork %r: watching its links failed", self._system)
 
     def _on_link(self, event: Any) -> None:
         link = event.link
@@ -217,6 +219,7 @@ class LinkWatch:
             if endpoint.linked(linked, dialled):  # `warned_at` stays: a flapping link is
                 endpoint.unlinked_since = None  # no reason for more than a WARNING a minute
                 endpoint.reason = None
+                endpoint.accepted = False
                 continue
             if endpoint.unlinked_since is None:  # unlinked since start, or since its link went
                 endpoint.unlinked_since = self._started if first else now
@@ -224,12 +227,20 @@ class LinkWatch:
                 continue
             if endpoint.warned_at is not None and now - endpoint.warned_at < REPEAT:
                 continue
-            reason = self._probe(endpoint)
+            trouble = handshake_trouble(self._tls, endpoint.host, endpoint.port)
             if endpoint.linked(self._linked(), dialled):  # it linked while the probe ran (a
                 endpoint.unlinked_since = None  # probe takes up to seconds): no warning
                 continue
+            if trouble is None and not endpoint.accepted:
+                # The listener accepts this host: nothing to name yet. Zenoh's link is most
+                # likely on its way (Zenoh dials again every second at most, or the peer,
+                # which just started listening, is dialling us), and its link event comes
+                # after Zenoh's own handshake, later than ours. Look again a GRACE later.
+                endpoint.accepted, endpoint.unlinked_since = True, self._clock()
+                continue
+            endpoint.accepted = False
             endpoint.warned_at = now
-            endpoint.reason = reason
+            endpoint.reason = reason = _said(trouble)
             logger.warning(
                 "ZenohNetwork %r has no link to connect endpoint %s: %s; calls to registrars "
                 "there fail (UnknownRegistrarError) until it links",
@@ -239,10 +250,7 @@ class LinkWatch:
             )
 
     def _probe(self, endpoint: _Endpoint) -> str:
-        reason = handshake_trouble(self._tls, endpoint.host, endpoint.port)
-        if reason is None:
-            return "the listener accepts this host's certificate; Zenoh has not linked yet"
-        return reason
+        return _said(handshake_trouble(self._tls, endpoint.host, endpoint.port))
 
     # -- asked by callers ------------------------------------------------------------------
 
@@ -254,7 +262,7 @@ class LinkWatch:
         (`probe`); an endpoint not probed yet is probed now, which takes up to
         a few seconds (a TLS handshake's timeout) when its host does not answer.
         """
-        if self._stop.is_set() or not self._endpoints:
+        if self._thread.closed or not self._endpoints:
             return []
         linked = self._linked()
         dialled = {endpoint.port for endpoint in self._endpoints}

@@ -7,6 +7,8 @@ see each other:
  rr/<system>/reg/<name>                       messages for registrar <name> (its subscriber)
  rr/<system>/ans/<zid>                        answers for the process whose Zenoh id is <zid>
  rr/<system>/ping/<zid>                       its queryable: answers a ping (`outbox`)
+ rr/<system>/ev/<zid>                         the events of process <zid>: JSON lines, never
+                                              a pickle (`events`)
  rr/<system>/live/proc/<zid>                  liveliness: process <zid> is a member
  rr/<system>/live/reg/<name>/<zid>/<sup>/<limit>
                                               liveliness: <zid> serves <name>; <sup> is the
@@ -26,6 +28,13 @@ A payload is `header + frame`, where the frame is the AF_UNIX carrier's
  b"rz" | wire version (1 byte) | Python major, minor (1 byte each) | kind (1 byte)
        | length of the sender's Zenoh id (1 byte) | the id (ASCII hex)
 ```
+
+A message or an answer carries the sender's hybrid logical clock stamp (`_core.hlc`):
+its kind has the `STAMPED` flag, and the 8-byte stamp (little endian) follows the
+frame's token, before the pickle (`envelope`). There, a process of another wire version
+still reads the token, to answer `VERSION`; the frame's length field is not the
+frame's then (it is never read: the sample's length is). The receiver's clock takes the
+stamp in before the message is handled (`inbox`).
 
 The header's layout never changes, so a process of another rr_actors wire version or
 Python minor version can always read it: nothing after it is unpickled unless both
@@ -49,12 +58,14 @@ __all__ = [
     "MESSAGE",
     "PLAIN",
     "PYTHON",
+    "STAMPED",
     "VERSION",
     "Header",
     "Keys",
     "NameAt",
     "ServerKey",
     "claim_key",
+    "envelope",
     "header",
     "parse",
     "payload_of",
@@ -76,6 +87,9 @@ only builtin data (their receivers decoded such a frame on Zenoh's own thread). 
 longer set, and ignored when read: a buggy sender can flag anything, so no frame is
 unpickled on Zenoh's thread."""
 
+STAMPED = 0x40
+"""A flag of the kind byte: an 8-byte clock stamp follows the frame's token (`envelope`)."""
+
 PYTHON = (sys.version_info.major, sys.version_info.minor)
 
 _MAGIC = b"rz"
@@ -83,16 +97,26 @@ _FIXED = struct.Struct("!2sBBBBB")  # magic, wire version, Python major, minor, 
 
 
 class Header:
-    """What a payload's header says: who sent it, in which versions, what kind it is."""
+    """What a payload's header says: who sent it, in which versions, what kind it is, and
+    the sender's clock stamp (`None`: none came)."""
 
-    __slots__ = ("kind", "python", "sender", "size", "wire")
+    __slots__ = ("kind", "python", "sender", "size", "stamp", "wire")
 
-    def __init__(self, wire: int, python: tuple[int, int], kind: int, sender: str, size: int):
+    def __init__(
+        self,
+        wire: int,
+        python: tuple[int, int],
+        kind: int,
+        sender: str,
+        size: int,
+        stamp: int | None = None,
+    ):
         self.wire = wire
         self.python = python
-        self.kind = kind & ~PLAIN  # (the flag is ignored: see `PLAIN`)
+        self.kind = kind & ~(PLAIN | STAMPED)  # (PLAIN is ignored: see `PLAIN`)
         self.sender = sender
         self.size = size  # bytes of the header: the frame starts there
+        self.stamp = stamp
 
     @property
     def ours(self) -> bool:
@@ -118,24 +142,49 @@ def parse(data: bytes) -> Header | None:
         sender = data[_FIXED.size : end].decode("ascii")
     except UnicodeDecodeError:
         return None
-    return Header(wire, (major, minor), kind, sender, end)
+    stamp = None
+    if kind & STAMPED:
+        at = end + _skip(data, end) + _TOKEN.size
+        if len(data) < at + _TOKEN.size:
+            return None
+        (stamp,) = _TOKEN.unpack_from(data, at)
+    return Header(wire, (major, minor), kind, sender, end, stamp)
 
 
 _TOKEN = struct.Struct("<Q")
+
+
+_LONG = b"\xff\xff\xff\xff"  # the length field of a frame over 2 GiB starts so
+
+
+def _skip(data: bytes | memoryview, at: int) -> int:
+    """Bytes of the frame's length field at `at` (4, or 12 for a frame over 2 GiB)."""
+    return 12 if data[at : at + 4] == _LONG else 4
+
+
+def envelope(kind: int, sender: str, frame: bytes, stamp: int) -> bytes:
+    """The payload of `frame` (`codec.frame`) of `kind`, sent by process `sender` with the
+    clock stamp `stamp` (see the module docstring)."""
+    cut = (12 if frame[:4] == _LONG else 4) + _TOKEN.size
+    return b"".join(
+        (header(kind | STAMPED, sender), frame[:cut], _TOKEN.pack(stamp), memoryview(frame)[cut:])
+    )
 
 
 def payload_of(data: bytes, head: Header) -> tuple[int, memoryview]:
     """The token and the pickle of the frame after `head` (nothing is unpickled).
 
     The frame's own length field (`multiprocessing.connection`'s: 4 bytes, or 12 for a
-    frame over 2 GiB) is skipped: the Zenoh sample's length is the frame's.
+    frame over 2 GiB) is skipped: the Zenoh sample's length is the frame's. So is the
+    clock stamp after the token, if `head` says there is one.
     """
     body = memoryview(data)[head.size :]
-    skip = 12 if bytes(body[:4]) == b"\xff\xff\xff\xff" else 4
+    skip = _skip(body, 0)
     if len(body) < skip + _TOKEN.size:
         return NO_REPLY, body[len(body) :]
     (token,) = _TOKEN.unpack_from(body, skip)
-    return token, body[skip + _TOKEN.size :]
+    after = skip + _TOKEN.size + (_TOKEN.size if head.stamp is not None else 0)
+    return token, body[after:]
 
 
 def versions_text(theirs: Header) -> str:
@@ -205,6 +254,15 @@ class Keys:
     def ping(self, zid: str) -> str:
         """Process `zid`'s queryable that answers a ping (`outbox`)."""
         return f"{self.prefix}/ping/{zid}"
+
+    def events(self, zid: str) -> str:
+        """Process `zid`'s events (JSON lines: `events`)."""
+        return f"{self.prefix}/ev/{zid}"
+
+    def all_events(self) -> str:
+        """The events of every process of the system (what a system-wide subscriber
+        declares)."""
+        return f"{self.prefix}/ev/*"
 
     def live(self) -> str:
         """Every liveliness token of the system (what presence subscribes to)."""

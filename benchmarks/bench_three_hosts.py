@@ -1,0 +1,198 @@
+"""Three hosts in a line: a call routed through a third host's router, and its cuts.
+
+Run (as root): `python benchmarks/bench_three_hosts.py [--rounds N] [--cuts N]`. Three Linux
+network namespaces `a` - `b` - `c` (`tests/support/hosts.py`'s `ThreeHosts`: two veth pairs, no
+link a-c), each with one `rr.ZenohNetwork` of mutual TLS: `b` listens on both of its
+addresses, `a` and `c` dial only `b`. Measured, with the default lease (1 s):
+
+* a dedup-hit `call` from `a` to a registrar on `b` (one link) and to one on `c` (two
+  links, through `b`'s router): the cost of the hop;
+* per cut of the veth b-c (no FIN): from the cut to `a`'s call in flight to `c` failing
+  (`RegistrarUnavailableError`), and from the veth up again to `a`'s first call to `c`
+  answered; the same for a cut of the veth a-b (`a`'s own link), for comparison.
+
+Every time is taken with `time.monotonic` or `time.perf_counter`, one clock for every
+namespace of the machine. Without root nothing is measured (one line says why).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))  # the repository: tests.support
+
+from tests.support import hosts, pki  # noqa: E402 (the namespaces, the certificates)
+
+PORT = 7447
+SYSTEM = "bench"
+MEMBERS = ["alpha", "bravo", "charlie"]
+
+
+# -- what runs in the workers ------------------------------------------------------------------
+
+
+def setup_provider(registrar: Any) -> None:
+    """`echo` answers its request; `hang` blocks until released (a call in flight)."""
+    hosts.KEPT.setdefault("gate", threading.Event())
+    hosts.KEPT.setdefault("started", threading.Event())
+
+    def hang(request: Any) -> Any:
+        gate = hosts.KEPT["gate"]  # (the one of this cut: `release` arms a new one)
+        hosts.KEPT["started"].set()
+        gate.wait(30)
+        return request
+
+    registrar.register_server("echo", load=lambda request: request, unload=lambda _q, _r: None)
+    registrar.register_server("hang", load=hang, unload=lambda _q, _r: None)
+
+
+def release() -> None:
+    """Open the hang gate (and arm a new one for the next cut)."""
+    hosts.KEPT["gate"].set()
+    hosts.KEPT["gate"] = threading.Event()
+    hosts.KEPT["started"].clear()
+
+
+def hang_started(timeout: float) -> bool:
+    return bool(hosts.KEPT["started"].wait(timeout))
+
+
+def dedup_hits(consumer: str, provider: str, rounds: int, warmup: int = 100) -> list[float]:
+    """Seconds per dedup-hit call of `provider`/echo (one resource held the whole time)."""
+    registrar = hosts.KEPT["registrars"][consumer]
+    held = registrar.call(provider, "echo", "x", timeout=10)
+    samples = []
+    try:
+        for n in range(warmup + rounds):
+            start = time.perf_counter()
+            query = registrar.call(provider, "echo", "x", timeout=10)
+            took = time.perf_counter() - start
+            registrar.unload(query.id)
+            if n >= warmup:
+                samples.append(took)
+    finally:
+        registrar.unload(held.id)
+    return samples
+
+
+def call_in_flight(consumer: str, provider: str) -> float:
+    """A call of `provider`/hang that must fail: when it failed (`time.monotonic`)."""
+    import rr_actors as rr  # noqa: PLC0415
+
+    try:
+        hosts.KEPT["registrars"][consumer].call(provider, "hang", "r", timeout=30)
+    except rr.RegistrarUnavailableError:
+        return time.monotonic()
+    raise RuntimeError("the call in flight did not fail")
+
+
+# -- the test process's side -------------------------------------------------------------------
+
+
+def tls_of(net: hosts.ThreeHosts, ca: Any, name: str, *addresses: str) -> dict[str, Any]:
+    cert, key = pki.issue(net.directory, name, addresses, ca=ca)
+    return {"ca": str(ca[0]), "cert": str(cert), "key": str(key), "members": MEMBERS}
+
+
+@contextmanager
+def line() -> Iterator[tuple[hosts.ThreeHosts, hosts.Worker]]:
+    """The three hosts, `hub` served on `b`, `erm` on `c`, `app` on `a`; `a`'s worker."""
+    with hosts.ThreeHosts() as net:
+        ca = pki.make_ca(net.directory, SYSTEM)
+        b_for_a, b_for_c = f"tls/{net.b.address}:{PORT}", f"tls/{net.b_toward_c}:{PORT}"
+        joins = [
+            (net.b, [b_for_a, b_for_c], [], ("bravo", net.b.address, net.b_toward_c), "hub"),
+            (net.c, [], [b_for_c], ("charlie", net.c.address), "erm"),
+            (net.a, [], [b_for_a], ("alpha", net.a.address), "app"),
+        ]
+        for host, listen, connect, names, registrar in joins:
+            host.call(
+                hosts.rr_join,
+                system=SYSTEM,
+                listen=listen,
+                connect=connect,
+                tls=tls_of(net, ca, *names),
+                timeout=30,
+            )
+            setup = None if registrar == "app" else setup_provider
+            host.call(hosts.rr_start, registrar, setup, timeout=30)
+        net.a.call(hosts.rr_until_answered, "app", "erm", "echo", 20.0, timeout=60)
+        try:
+            yield net, net.a.worker
+        finally:
+            for host in (net.a, net.c, net.b):
+                with suppress(Exception):
+                    host.call(hosts.rr_stop, timeout=30)
+
+
+def cut_and_heal(
+    net: hosts.ThreeHosts, pair: tuple[str, str], cuts: int
+) -> tuple[list[float], list[float]]:
+    """Per cut of `pair`: seconds to `a`'s call in flight to `erm` failing; seconds from
+    the link up again to `a`'s next call of `erm` answered."""
+    failed, healed = [], []
+    for _ in range(cuts):
+        in_flight = net.a.worker.submit(call_in_flight, "app", "erm")
+        if not net.c.call(hang_started, 10.0, timeout=15):
+            raise RuntimeError("the call in flight never reached erm")
+        cut = time.monotonic()
+        net.link_down(*pair)
+        failed.append(in_flight.result(10) - cut)
+        up = time.monotonic()
+        net.link_up(*pair)
+        net.c.call(release, timeout=10)
+        net.a.call(hosts.rr_until_answered, "app", "erm", "echo", 20.0, timeout=30)
+        healed.append(time.monotonic() - up)
+    return failed, healed
+
+
+def stats(samples: list[float]) -> tuple[float, float, float]:
+    """Median, p90 (the largest sample when there are too few) and the largest."""
+    p90 = statistics.quantiles(samples, n=10)[-1] if len(samples) >= 10 else max(samples)
+    return statistics.median(samples), p90, max(samples)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=1000, help="timed calls per row")
+    parser.add_argument("--cuts", type=int, default=5, help="cuts per link")
+    args = parser.parse_args()
+    why_not = hosts.require_root()
+    if why_not is not None:
+        print(f"nothing measured: {why_not}")
+        return
+    with line() as (net, a):
+        direct = a.call(dedup_hits, "app", "hub", args.rounds, timeout=600)
+        routed = a.call(dedup_hits, "app", "erm", args.rounds, timeout=600)
+        ends = {pair: cut_and_heal(net, pair, args.cuts) for pair in (("b", "c"), ("a", "b"))}
+    print(f"rounds per row: {args.rounds}; lease 1 s; mutual TLS")
+    print()
+    print("| dedup-hit call from a | median us | p90 us | max us |")
+    print("|---|---:|---:|---:|")
+    for name, samples in (("to b (one link)", direct), ("to c, through b's router", routed)):
+        median, p90, worst = stats(samples)
+        print(f"| {name} | {median * 1e6:.1f} | {p90 * 1e6:.1f} | {worst * 1e6:.1f} |")
+    print()
+    print(f"cuts per link: {args.cuts}")
+    print()
+    print("| event -> seen at a | median ms | max ms |")
+    print("|---|---:|---:|")
+    for (left, right), (failed, healed) in ends.items():
+        for what, samples in (("cut", failed), ("up again", healed)):
+            median, _, worst = stats(samples)
+            seen = "call in flight to c fails" if what == "cut" else "a call to c answered"
+            row = f"veth {left}-{right} {what} -> {seen}"
+            print(f"| {row} | {median * 1e3:.1f} | {worst * 1e3:.1f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,373 @@
+"""Tasks run one at a time, in the order submitted, on one thread: `SerialExecutor`.
+
+```
+ submit(task) ─► deque ─► its thread (started at the first task) ─► task()
+   │  idle?  (nothing queued, nothing running)                        ├─ on_idle() when the
+   └─ inline(): on the submitting thread; its rest goes first ──►     │  deque runs empty
+                                                                      └─ on_end() once, last
+```
+
+The one "queue and a thread" of the package: the carriers' writers, decoders and presence
+thread, a supervisor's thread, event subscriptions and forwarders, the link watch. A
+submitter never blocks on a task (only on a short lock); a task that raises is logged and
+the next one runs. As `concurrent.futures.ThreadPoolExecutor` with one worker, plus what
+those callers need: running inline when idle, a drain with a bound, a flush, a tick.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+__all__ = ["SerialExecutor", "Task"]
+
+logger = logging.getLogger("rr_actors")
+
+T = TypeVar("T")
+
+Task = Callable[[], object]
+"""A task: called with no arguments on the executor's thread; what it returns is ignored."""
+
+
+class _Mark:
+    """A place in the queue (`flush`, `call`): set once the thread got there, or dropped."""
+
+    __slots__ = ("fn", "ran", "reached", "result")
+
+    def __init__(self, fn: Callable[[], Any] | None = None) -> None:
+        self.fn = fn
+        self.reached = threading.Event()
+        self.ran = False
+        self.result: tuple[bool, Any] = (True, None)
+
+    def __call__(self) -> None:
+        try:
+            if self.fn is not None:
+                self.result = (True, self.fn())
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller of `call`
+            self.result = (False, exc)
+        finally:
+            self.ran = True
+            self.reached.set()
+
+
+class SerialExecutor:
+    """One thread of its own that runs the tasks it is given one at a time, in order.
+
+    The thread (a daemon thread named `name`) starts at the first task that has to wait
+    for it and lives until the executor closes. A task that raises an `Exception` (or any
+    `BaseException`) is logged on the `rr_actors` logger with its traceback and the next
+    task runs; callers that want a quieter report catch in their task.
+
+    Args:
+        name: the thread's name (and the log lines').
+        linger: seconds the thread waits, once the queue ran empty, before it sleeps on
+            it: a burst of tasks submitted meanwhile is queued without waking it (a
+            `flush` or `close` cuts the wait short).
+        every: `(seconds, task)`: `task` also runs on the thread every `seconds`, between
+            two tasks (a long task delays it); it starts the thread at once.
+        on_idle: runs on the thread each time the queue ran empty after a task.
+        on_drop: called with each task that `close` drops (on the closing thread, or on
+            the submitting thread for the rest of an inline run that ended after the close).
+        on_end: runs once, after the last task: on the executor's thread if it has one,
+            otherwise on the thread that closed it or ran the last inline task.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        linger: float = 0.0,
+        every: tuple[float, Task] | None = None,
+        on_idle: Task | None = None,
+        on_drop: Callable[[Task], object] | None = None,
+        on_end: Task | None = None,
+    ) -> None:
+        self.name = name
+        self._linger = linger
+        self._every = every
+        self._on_idle = on_idle
+        self._on_drop = on_drop
+        self._on_end = on_end
+        self._cond = threading.Condition(threading.Lock())
+        self._tasks: collections.deque[Task] = collections.deque()
+        self._busy = False  # a task runs (on the thread, or inline on a submitter's)
+        self._sleeping = False  # the thread waits on `_cond`: a submit must wake it
+        self._closing = False  # no more tasks are taken
+        self._dropping = False  # `close` dropped what was queued: end after the running one
+        self._ended = False  # `on_end` ran (or is running)
+        self._hurry = threading.Event()  # a flush or close is due: linger no longer
+        self._thread: threading.Thread | None = None
+        self._due = time.monotonic()  # when `every`'s task runs next (at once, first)
+        if every is not None:
+            self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+            self._thread.start()
+
+    @property
+    def closed(self) -> bool:
+        """Whether `close` or `finish` was called (the thread may still be finishing)."""
+        return self._closing
+
+    @property
+    def pending(self) -> int:
+        """Tasks queued and not started yet."""
+        return len(self._tasks)
+
+    def on_own_thread(self) -> bool:
+        """Whether the calling thread is this executor's thread."""
+        return self._thread is threading.current_thread()
+
+    # -- giving it work ----------------------------------------------------------------
+
+    def start(self) -> None:
+        """Start the thread now (otherwise the first task that has to wait starts it)."""
+        with self._cond:
+            if self._thread is None and not self._closing:
+                self._start()
+
+    def submit(self, task: Task, *, inline: Callable[[], Task | None] | None = None) -> bool:
+        """Run `task` after every task submitted before; returns at once.
+
+        Args:
+            task: what to run on the executor's thread.
+            inline: if given and the executor is idle (nothing queued, nothing running),
+                `inline()` runs instead of `task`, at once, on the calling thread (tasks
+                submitted meanwhile wait for it). It returns `None` (done) or a task that
+                runs next on the executor's thread, ahead of those submitted meanwhile.
+                What it raises is raised here (nothing of it was queued).
+
+        Returns:
+            `True` if the task was queued or run; `False` if the executor is closed (it
+            was not).
+        """
+        with self._cond:
+            if self._closing:
+                return False
+            if inline is None or self._busy or self._tasks:
+                self._tasks.append(task)
+                if self._sleeping:
+                    self._cond.notify()
+                elif self._thread is None and not self._busy:
+                    self._start()
+                return True
+            self._busy = True
+        rest: Task | None = None
+        try:
+            rest = inline()
+        finally:
+            self._release(rest)
+        return True
+
+    def call(self, fn: Callable[[], T]) -> T:
+        """Run `fn()` on the executor's thread after what is queued, and return its result.
+
+        Raises:
+            RuntimeError: called on the executor's own thread (it would wait for itself),
+                or the executor is closed (or closed before `fn` ran).
+            BaseException: whatever `fn` raised, re-raised here.
+        """
+        if self.on_own_thread():
+            raise RuntimeError(f"call() on {self.name}'s own thread would wait for itself")
+        mark = _Mark(fn)
+        if not self.submit(mark):
+            raise RuntimeError(f"{self.name} is closed")
+        mark.reached.wait()
+        if not mark.ran:
+            raise RuntimeError(f"{self.name} closed before running the call")
+        ok, value = mark.result
+        if not ok:
+            raise value
+        result: T = value
+        return result
+
+    def flush(self, *, timeout: float | None) -> bool:
+        """Block until every task submitted before this call ran (at most `timeout` s).
+
+        Returns:
+            `True` when they all ran; `False` if `timeout` passed first, or the executor
+            was closed and dropped some of them (or has not ended by then).
+
+        Raises:
+            RuntimeError: called on the executor's own thread (it would wait for itself).
+        """
+        if self.on_own_thread():
+            raise RuntimeError(f"flush() on {self.name}'s own thread would wait for itself")
+        mark = _Mark()
+        if not self.submit(mark):
+            return self.join(timeout) and not self._dropping
+        self._hurry.set()
+        return mark.reached.wait(timeout) and mark.ran
+
+    # -- ending it -----------------------------------------------------------------------
+
+    def finish(self) -> None:
+        """Take no more tasks; those queued still run, then the thread ends. Returns at once."""
+        with self._cond:
+            self._closing = True
+            self._hurry.set()
+            end_here = self._ends_now()
+        if end_here:
+            self._end()
+
+    def close(self, *, timeout: float | None = 0.0) -> bool:
+        """Take no more tasks; let those queued run for `timeout` s, then drop the rest.
+
+        Each dropped task goes to `on_drop`; the thread ends after the task it runs. On
+        the executor's own thread a `timeout` other than 0 only finishes (`finish`): it
+        cannot wait for itself. Calling it again is fine.
+
+        Args:
+            timeout: seconds the queued tasks get (0: drop them now; `None`: no bound).
+
+        Returns:
+            Whether the executor ended (its last task returned) within `timeout`.
+        """
+        self.finish()
+        if timeout != 0:
+            if self.on_own_thread():
+                return False
+            if self.join(timeout):
+                return True
+        with self._cond:
+            self._dropping = True
+            dropped = list(self._tasks)
+            self._tasks.clear()
+            end_here = self._ends_now()
+            self._cond.notify_all()
+        for task in dropped:
+            self._drop(task)
+        if end_here:
+            self._end()
+        return self._ended and not self._busy
+
+    def join(self, timeout: float | None) -> bool:
+        """Wait (at most `timeout` s) until the executor ended; whether it did."""
+        if self.on_own_thread():
+            return False  # (it cannot end while it runs this)
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._ended and not self._busy, timeout):
+                return False
+        if self._thread is not None:  # (its last steps: gone once this returns)
+            self._thread.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
+            return not self._thread.is_alive()
+        return True
+
+    # -- plumbing ------------------------------------------------------------------------
+
+    def _start(self) -> None:  # (hold `_cond`)
+        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+        self._thread.start()
+
+    def _ends_now(self) -> bool:
+        """Whether the caller must run `on_end` now (hold `_cond`): closed, nothing queued
+        or running, and no thread to do it; with a thread, wake it to end."""
+        if not self._closing or self._busy or self._ended or self._tasks:
+            return False
+        if self._thread is not None:
+            self._cond.notify_all()
+            return False
+        self._ended = self._busy = True
+        return True
+
+    def _release(self, rest: Task | None) -> None:
+        """An inline run returned (`rest`: what it left for the thread)."""
+        dropped = None
+        with self._cond:
+            self._busy = False
+            if rest is not None:
+                if self._dropping:
+                    dropped = rest
+                else:
+                    self._tasks.appendleft(rest)
+            if self._tasks:
+                if self._thread is None:
+                    self._start()
+                elif self._sleeping:
+                    self._cond.notify()
+            end_here = self._ends_now()
+        if dropped is not None:
+            self._drop(dropped)
+        if end_here:
+            self._end()
+
+    def _drop(self, task: Task) -> None:
+        if isinstance(task, _Mark):
+            task.reached.set()  # (not `ran`)
+        elif self._on_drop is not None:
+            try:
+                self._on_drop(task)
+            except Exception:
+                logger.exception("%s: handling a dropped task failed", self.name)
+
+    def _end(self) -> None:
+        """Run `on_end` (the caller set `_ended` and `_busy`), then wake `join`."""
+        try:
+            if self._on_end is not None:
+                self._on_end()
+        except Exception:
+            logger.exception("%s: its last step failed", self.name)
+        finally:
+            with self._cond:
+                self._busy = False
+                self._cond.notify_all()
+
+    def _next(self) -> Task | None:
+        """The next task (hold `_cond`), waiting for one; `None`: the executor ended."""
+        while True:
+            if self._every is not None and not self._busy and not self._closing:
+                period, tick = self._every
+                now = time.monotonic()
+                if now >= self._due:
+                    self._due = now + period
+                    self._busy = True
+                    return tick
+            if self._tasks and not self._busy:
+                self._busy = True
+                return self._tasks.popleft()
+            if self._closing and not self._tasks and not self._busy:
+                self._ended = self._busy = True
+                return None
+            self._sleeping = True
+            try:
+                if self._every is None:
+                    self._cond.wait()
+                else:
+                    self._cond.wait(max(0.0, self._due - time.monotonic()))
+            finally:
+                self._sleeping = False
+
+    def _run(self) -> None:
+        """The executor's thread: each task in turn; `on_idle` and linger when it ran dry."""
+        with self._cond:
+            task = self._next()
+        while task is not None:
+            self._run_one(task)
+            with self._cond:
+                self._busy = False
+                idle = not self._tasks and not self._closing
+                if idle and self._on_idle is not None:
+                    task = self._on_idle
+                    self._busy = True
+                elif not (idle and self._linger):
+                    task = self._next()
+                    continue
+            if idle and self._on_idle is not None:
+                self._run_one(task)
+                with self._cond:
+                    self._busy = False
+            if self._linger and self._hurry.wait(self._linger):
+                self._hurry.clear()
+            with self._cond:
+                task = self._next()
+        self._end()
+
+    def _run_one(self, task: Task) -> None:
+        try:
+            task()
+        except BaseException:  # (the thread must outlive any task)
+            logger.exception("%s: a task failed", self.name)

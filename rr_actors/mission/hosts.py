@@ -1,0 +1,551 @@
+"""The mission's hosts: the managers' trees by name, and the robot's host process.
+
+    the station (the mission's process)                   the robot's host process
+    ───────────────────────────────────                   (python -m rr_actors.mission.hosts,
+    Trees: erm, rm ─► RobotHost ─┐                          inside the robot's namespace)
+           cm      ─► Supervisor │ pickles over a socket-   main(): ZenohNetwork (mutual TLS)
+                                 │ pair (not the network    + Supervisor(erm, rm) + watch
+                                 └ under test: F6 does ───► child, wait_restarted, run_in,
+                                   not cut it)              flush_events on its Supervisor
+           say() ◄── "robot: ..." story lines, ChildExited / ChildRestarted events ──┘
+
+`Trees` answers the few questions the mission asks of the managers' supervisors
+(`child`, `wait_restarted`, `run_in`, `subscribe`, `flush_events`, `call_with_retry`)
+whichever host a manager is on: on one host it is one `Supervisor`; across two the
+robot's managers answer through `RobotHost`, the station's handle on the robot's host.
+That socket pair is the teacher's hand on the robot, not the robot's network: the
+registrars' traffic crosses the veth, over Zenoh with mutual TLS, and only it is cut.
+
+The robot's host watches the station: when the station's `mission` registrar is gone
+from its view (a cut link is seen when the `lease` runs out), it stops the robot
+itself (the goal paused) and says so; the mission drives on once it loaded the robot
+again after the heal.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import itertools
+import logging
+import os
+import pickle
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from concurrent.futures import Future
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any, Protocol
+
+import rr_actors as rr
+from rr_actors.mission import programs
+from rr_actors.mission.config import MissionError
+
+__all__ = [
+    "CERTS",
+    "MEMBERS",
+    "PORT",
+    "ROBOT_LOG",
+    "ROBOT_MANAGERS",
+    "SYSTEM",
+    "RobotHost",
+    "RobotSettings",
+    "Tree",
+    "Trees",
+    "main",
+]
+
+ROBOT_MANAGERS = ("erm", "rm")
+"""The managers on the robot's host (the rest, `cm`, runs on the station)."""
+
+SYSTEM = "mission"
+"""The system's name (`ZenohNetwork(system=)`, the CA's)."""
+
+MEMBERS = ("robot", "station")
+"""The member names: each host's certificate's common name."""
+
+PORT = 7447
+"""The Zenoh port each host listens on (its own address in its own namespace)."""
+
+ROBOT_LOG = "rr-actors-robot.log"
+"""The file in the output directory that the robot's host's WARNINGs and ERRORs go to."""
+
+CERTS = "certs"
+"""The folder in the output directory for the CA and the hosts' certificates."""
+
+START_TIMEOUT = 60.0
+"""Seconds the robot's host gets to start its managers (a loaded machine is slow)."""
+
+STOP_TIMEOUT = 30.0
+"""Seconds the robot's host gets to stop its managers before it is SIGKILLed."""
+
+WATCH_TICK = 0.02
+"""Seconds between two looks of the robot's host at whether it still sees the station."""
+
+STATION_REGISTRAR = "mission"
+"""The registrar whose presence tells the robot's host that the station is there."""
+
+
+class Tree(Protocol):
+    """What the mission asks of the supervisor of a manager (a `Supervisor`, a `RobotHost`)."""
+
+    def child(self, name: str) -> rr.ChildInfo:
+        """See `Supervisor.child`."""
+        ...
+
+    def wait_restarted(
+        self, name: str, *, timeout: float, restarts: int | None = None
+    ) -> rr.ChildInfo:
+        """See `Supervisor.wait_restarted`."""
+        ...
+
+    def run_in(self, name: str, fn: Callable[[rr.ResourceRegistrar], Any]) -> Any:
+        """See `Supervisor.run_in`."""
+        ...
+
+    def subscribe(self, callback: Callable[[rr.events.Event], object]) -> Any:
+        """See `Supervisor.subscribe` (returns something with `close()`)."""
+        ...
+
+    def flush_events(self, *, timeout: float = 5.0) -> bool:
+        """See `Supervisor.flush_events`."""
+        ...
+
+
+class Trees:
+    """The managers' supervision trees by manager name, and the host each runs on.
+
+    Args:
+        of: the tree of each manager.
+        host_of: the host of each manager (`"robot"`, `"station"`; one host: empty).
+    """
+
+    def __init__(self, of: dict[str, Tree], host_of: dict[str, str] | None = None) -> None:
+        self.of = of
+        self.host_of = host_of or {}
+
+    def _distinct(self) -> list[Tree]:
+        distinct: list[Tree] = []
+        for tree in self.of.values():
+            if all(tree is not seen for seen in distinct):
+                distinct.append(tree)
+        return distinct
+
+    def child(self, name: str) -> rr.ChildInfo:
+        """The snapshot of manager `name` (see `Supervisor.child`)."""
+        return self.of[name].child(name)
+
+    def wait_restarted(
+        self, name: str, *, timeout: float, restarts: int | None = None
+    ) -> rr.ChildInfo:
+        """See `Supervisor.wait_restarted`."""
+        return self.of[name].wait_restarted(name, timeout=timeout, restarts=restarts)
+
+    def run_in(self, name: str, fn: Callable[[rr.ResourceRegistrar], Any]) -> Any:
+        """Run `fn(registrar)` in manager `name` (see `Supervisor.run_in`)."""
+        return self.of[name].run_in(name, fn)
+
+    def subscribe(self, callback: Callable[[rr.events.Event], object]) -> contextlib.ExitStack:
+        """Follow the events of every tree; close the returned stack to stop."""
+        stack = contextlib.ExitStack()
+        for tree in self._distinct():
+            stack.callback(tree.subscribe(callback).close)
+        return stack
+
+    def flush_events(self) -> None:
+        """Bring every tree's recent events here (see `Supervisor.flush_events`)."""
+        for tree in self._distinct():
+            tree.flush_events()
+
+    def call_with_retry(
+        self,
+        app: rr.ResourceRegistrar,
+        provider: str,
+        server: str,
+        request: Any,
+        *,
+        on_status: rr.StatusCallback,
+        timeout: float,
+    ) -> rr.Query:
+        """`app.call(...)`, waiting out a restart of `provider` (as `Supervisor.call_with_retry`).
+
+        Every attempt uses one query id, so a provider that answered before it died
+        recognises the retry from its restored catalog.
+
+        Raises:
+            RegistrarUnavailableError, CallTimeoutError: as `Supervisor.call_with_retry`.
+        """
+        tree = self.of[provider]
+        if isinstance(tree, rr.Supervisor):
+            return tree.call_with_retry(
+                app, provider, server, request, on_status=on_status, timeout=timeout
+            )
+        qid = str(uuid.uuid4())
+        deadline = time.monotonic() + timeout
+        while True:
+            before = tree.child(provider).restarts
+            try:
+                return app.call(
+                    provider,
+                    server,
+                    request,
+                    on_status=on_status,
+                    timeout=max(deadline - time.monotonic(), 1e-3),
+                    query_id=qid,
+                )
+            except rr.RegistrarUnavailableError:
+                if time.monotonic() >= deadline:
+                    raise
+            tree.wait_restarted(
+                provider, timeout=max(deadline - time.monotonic(), 1e-3), restarts=before + 1
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotSettings:
+    """What the robot's host needs to start (sent to its process on the socket pair).
+
+    Attributes:
+        system: the system's name.
+        certs: the directory of `ca.pem`, `robot.pem` and `robot.key`.
+        listen: the robot's Zenoh endpoint.
+        connect: the station's.
+        lease: seconds after which a silent peer counts as gone.
+        state: the robot's managers' state directory.
+        bus: the programs' topics (the robot's host pauses the goal when it loses the
+            station).
+        isolation: the managers' isolation.
+        log: the file the robot's host's WARNINGs and ERRORs go to.
+    """
+
+    system: str
+    certs: str
+    listen: str
+    connect: str
+    lease: float
+    state: str
+    bus: str
+    isolation: str
+    log: str
+
+
+class _Subscription:
+    def __init__(self, host: RobotHost, callback: Callable[[rr.events.Event], object]) -> None:
+        self._host = host
+        self._callback = callback
+
+    def close(self) -> None:
+        with contextlib.suppress(ValueError):
+            self._host.subscribers.remove(self._callback)
+
+
+class RobotHost:
+    """The station's handle on the robot's host process (see the module docstring).
+
+    Make it with `RobotHost.start`; `close()` stops the robot's managers and the process.
+    Its methods may be called from any thread.
+
+    Attributes:
+        pid: the robot's host process.
+        subscribers: callbacks of `subscribe` (called on this handle's reader thread).
+    """
+
+    def __init__(
+        self, process: subprocess.Popen[bytes], conn: Connection, say: Callable[[str], None]
+    ) -> None:
+        self._process = process
+        self._conn = conn
+        self._say = say
+        self.pid = process.pid
+        self.subscribers: list[Callable[[rr.events.Event], object]] = []
+        self.on_watch: Callable[[str, float], object] = lambda _kind, _at: None
+        """Called with `"lost"` or `"back"` and when (monotonic seconds) the robot's host
+        saw the station go or come back (on this handle's reader thread)."""
+        self._lock = threading.Lock()
+        self._ids = itertools.count()
+        self._waiting: dict[int, Future[Any]] = {}
+        self._ready: Future[int] = Future()
+        self._closed = False
+        self._reader = threading.Thread(target=self._read, name="mission-robot-host", daemon=True)
+        self._reader.start()
+
+    @classmethod
+    def start(
+        cls, prefix: list[str], settings: RobotSettings, *, say: Callable[[str], None]
+    ) -> RobotHost:
+        """Start the robot's host (`prefix` puts it in the robot's namespace) and its managers.
+
+        Args:
+            prefix: the command that runs a program on the robot's host
+                (`ip netns exec <namespace>`).
+            settings: what it starts.
+            say: receives its story lines (on this handle's reader thread).
+
+        Raises:
+            MissionError: it did not start (its error, or its output, is in the message).
+        """
+        ours, theirs = socket.socketpair()
+        program = f"from rr_actors.mission.hosts import main; main({theirs.fileno()})"
+        command = [*prefix, sys.executable, "-c", program]
+        try:
+            process = subprocess.Popen(  # noqa: S603 - ip and this interpreter, no shell
+                command, pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL
+            )
+        finally:
+            theirs.close()
+        conn = Connection(ours.detach())
+        host = cls(process, conn, say)
+        try:
+            host._send(("start", settings))
+            host._ready.result(timeout=START_TIMEOUT)
+        except BaseException as exc:
+            host.close()
+            if isinstance(exc, MissionError | KeyboardInterrupt):
+                raise
+            raise MissionError(f"the robot's host did not start: {exc}") from exc
+        return host
+
+    def _send(self, message: Any) -> None:
+        with self._lock:
+            self._conn.send(message)
+
+    def _read(self) -> None:
+        """The reader thread: replies to their callers, events to subscribers, story lines."""
+        try:
+            while True:
+                self._dispatch(self._conn.recv())
+        except (EOFError, OSError):
+            pass
+        gone = MissionError("the robot's host process ended")
+        if not self._ready.done():
+            self._ready.set_exception(gone)
+        for future in list(self._waiting.values()):
+            if not future.done():
+                future.set_exception(gone)
+        self._waiting.clear()
+
+    def _dispatch(self, message: tuple[Any, ...]) -> None:
+        kind = message[0]
+        if kind == "reply":
+            _, call_id, ok, value = message
+            future = self._waiting.pop(call_id, None)
+            if future is None:
+                return
+            if ok:
+                future.set_result(value)
+            else:
+                future.set_exception(value)
+        elif kind == "event":
+            for callback in list(self.subscribers):
+                callback(message[1])
+        elif kind == "say":
+            self._say(message[1])
+        elif kind == "watch":
+            self.on_watch(message[1], message[2])
+        elif kind == "ready":
+            self._ready.set_result(message[1])
+        elif kind == "failed":
+            self._ready.set_exception(MissionError(f"the robot's host: {message[1]}"))
+
+    def _call(self, method: str, *args: Any, timeout: float, **kwargs: Any) -> Any:
+        call_id = next(self._ids)
+        future: Future[Any] = Future()
+        self._waiting[call_id] = future
+        try:
+            self._send(("call", call_id, method, args, kwargs))
+        except OSError as exc:
+            self._waiting.pop(call_id, None)
+            raise MissionError("the robot's host process ended") from exc
+        try:
+            return future.result(timeout=timeout)
+        except TimeoutError:
+            self._waiting.pop(call_id, None)
+            raise rr.CallTimeoutError(f"the robot's host did not answer {method}") from None
+
+    def child(self, name: str) -> rr.ChildInfo:
+        """See `Supervisor.child` (of the robot's supervisor)."""
+        info: rr.ChildInfo = self._call("child", name, timeout=10.0)
+        return info
+
+    def wait_restarted(
+        self, name: str, *, timeout: float, restarts: int | None = None
+    ) -> rr.ChildInfo:
+        """See `Supervisor.wait_restarted` (of the robot's supervisor)."""
+        info: rr.ChildInfo = self._call(
+            "wait_restarted", name, timeout=timeout + 10.0, wait_s=timeout, restarts=restarts
+        )
+        return info
+
+    def run_in(self, name: str, fn: Callable[[rr.ResourceRegistrar], Any]) -> Any:
+        """See `Supervisor.run_in`; `fn` must pickle by reference (a module's function)."""
+        return self._call("run_in", name, fn, timeout=20.0)
+
+    def subscribe(self, callback: Callable[[rr.events.Event], object]) -> _Subscription:
+        """Call `callback` with the robot's supervisor's `ChildExited` and `ChildRestarted`."""
+        self.subscribers.append(callback)
+        return _Subscription(self, callback)
+
+    def flush_events(self, *, timeout: float = 5.0) -> bool:
+        """See `Supervisor.flush_events` (events then reach this side in order)."""
+        return bool(self._call("flush_events", timeout=timeout + 5.0, wait_s=timeout))
+
+    def close(self) -> None:
+        """Stop the robot's managers and its host process (SIGKILL after `STOP_TIMEOUT`)."""
+        if self._closed:
+            return
+        self._closed = True
+        with contextlib.suppress(OSError):
+            self._send(("stop",))
+        try:
+            self._process.wait(STOP_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait()
+        finally:
+            self._conn.close()
+            self._reader.join(5.0)
+
+
+# -- the robot's host process ----------------------------------------------------------------
+
+
+def _watch_station(
+    net: rr.ZenohNetwork, bus: Path, stop: threading.Event, send: Callable[[Any], None]
+) -> None:
+    """Stop the robot when the station is gone from view; say when it is back."""
+    seen = lost = False
+    while not stop.wait(WATCH_TICK):
+        present = STATION_REGISTRAR in net.names()
+        if present and lost:
+            lost = False
+            send(("watch", "back", time.monotonic()))
+            send(("say", "robot: the station is back (its registrars are served again)"))
+        elif not present and seen and not lost and not stop.is_set():
+            lost = True
+            goal = programs.read_topic(bus, "goal") or {}
+            programs.publish(bus, "goal", {**goal, "paused": True})
+            send(("watch", "lost", time.monotonic()))
+            send(("say", "robot: the station is gone (its lease ran out); the robot stops itself"))
+        seen = seen or present
+
+
+def _serve(sup: rr.Supervisor, conn: Connection, send: Callable[[Any], None]) -> None:
+    """Answer the station's calls (each on a thread of its own: some wait) until `stop`."""
+
+    def answer(call_id: int, method: str, args: tuple[Any, ...], kwargs: dict[str, Any]) -> None:
+        try:
+            if method == "wait_restarted":
+                value: Any = sup.wait_restarted(
+                    args[0], timeout=kwargs["wait_s"], restarts=kwargs["restarts"]
+                )
+            elif method == "flush_events":
+                value = sup.flush_events(timeout=kwargs["wait_s"])
+            else:
+                value = getattr(sup, method)(*args)
+            pickle.dumps(value)
+            send(("reply", call_id, True, value))
+        except Exception as exc:  # noqa: BLE001 - handed to the caller, whatever it is
+            try:
+                pickle.dumps(exc)
+            except Exception:  # noqa: BLE001 - an exception that does not pickle: its text
+                exc = MissionError(f"{exc.__class__.__name__}: {exc}")
+            send(("reply", call_id, False, exc))
+
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            return
+        if message[0] == "stop":
+            return
+        threading.Thread(target=answer, args=message[1:], daemon=True).start()
+
+
+def main(fd: int) -> None:
+    """The robot's host: start its managers, answer the station until it says stop."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the station stops it (a terminal's Ctrl-C)
+    from rr_actors.mission import managers  # noqa: PLC0415 - (a fresh interpreter)
+
+    conn = Connection(fd)
+    lock = threading.Lock()
+
+    def send(message: Any) -> None:
+        with lock, contextlib.suppress(OSError):
+            conn.send(message)
+
+    _, settings = conn.recv()
+    assert isinstance(settings, RobotSettings)
+    handler = logging.FileHandler(settings.log, mode="w", encoding="utf-8", delay=True)
+    handler.setLevel(logging.WARNING)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s"))
+    logging.getLogger("rr_actors").addHandler(handler)  # (the story says what matters)
+    certs = Path(settings.certs)
+    try:
+        tls = rr.ZenohTLS(
+            ca=certs / "ca.pem",
+            cert=certs / "robot.pem",
+            key=certs / "robot.key",
+            members=list(MEMBERS),
+        )
+        net = rr.ZenohNetwork(
+            system=settings.system,
+            listen=[settings.listen],
+            connect=[settings.connect],
+            tls=tls,
+            lease=settings.lease,
+        )
+        setups = managers.setups()
+        specs = [
+            rr.ManagerSpec(
+                name,
+                setup=setups[name],
+                isolation=settings.isolation,  # type: ignore[arg-type]
+                restart="permanent",
+            )
+            for name in ROBOT_MANAGERS
+        ]
+        sup = rr.Supervisor(
+            specs,
+            strategy="one_for_one",
+            max_restarts=10,
+            period=10.0,
+            state_dir=settings.state,
+            network=net,
+        )
+    except Exception as exc:  # noqa: BLE001 - told to the station, which fails the mission
+        send(("failed", f"{exc.__class__.__name__}: {exc}"))
+        return
+    stop = threading.Event()
+
+    def on_event(event: rr.events.Event) -> None:
+        if isinstance(event, rr.events.ChildExited | rr.events.ChildRestarted):
+            send(("event", event))
+
+    watch = threading.Thread(
+        target=_watch_station,
+        args=(net, Path(settings.bus), stop, send),
+        name="robot-watch",
+        daemon=True,
+    )
+    with net:
+        try:
+            sup.subscribe(on_event)
+            sup.start()
+        except Exception as exc:  # noqa: BLE001 - as above
+            send(("failed", f"{exc.__class__.__name__}: {exc}"))
+            return
+        try:
+            watch.start()
+            send(("ready", os.getpid()))
+            _serve(sup, conn, send)
+        finally:
+            stop.set()
+            watch.join(5.0)
+            sup.stop()
+    send(("stopped", None))

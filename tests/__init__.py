@@ -1,0 +1,1 @@
+"""The tests: one folder per layer of `rr_actors` (docs/explanation/architecture.md, "Tests")."""

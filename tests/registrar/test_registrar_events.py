@@ -1,0 +1,480 @@
+"""A registrar's event stream: each kind of event, in order, and never slowing the registrar."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors import events
+from rr_actors._registrar import start_registrar
+from rr_actors.testing import (
+    RemoteRegistrar,
+    SharedObjects,
+    System,
+    crash,
+    expect_restart,
+)
+from tests.support.waiting import wait_for
+
+
+class Heard:
+    """Collects the events a subscription delivers."""
+
+    def __init__(self) -> None:
+        self.events: list[events.Event] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, event: events.Event) -> None:
+        with self.lock:
+            self.events.append(event)
+
+    def kinds(self) -> list[str]:
+        with self.lock:
+            return [type(e).__name__ for e in self.events]
+
+    def of(self, kind: type[Any]) -> list[Any]:
+        with self.lock:
+            return [e for e in self.events if isinstance(e, kind)]
+
+
+@pytest.fixture
+def started() -> Iterator[Callable[..., rr.ResourceRegistrar]]:
+    made: list[rr.ResourceRegistrar] = []
+
+    def start(prefix: str, **config: Any) -> rr.ResourceRegistrar:
+        name = f"{prefix}-{uuid.uuid4().hex[:8]}"
+        registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, **config))
+        made.append(registrar)
+        return registrar
+
+    yield start
+    for registrar in reversed(made):
+        registrar.stop()
+
+
+def test_a_load_a_shared_load_and_the_unloads_are_published_in_order(started: Any) -> None:
+    provider, consumer = started("erm"), started("app")
+    provider.register_server("cam", load=lambda r: f"cam {r}", unload=lambda _q, _r: None)
+    heard = Heard()
+    with provider.subscribe(heard) as subscription:
+        first = consumer.call(provider.name, "cam", 1)
+        second = consumer.call(provider.name, "cam", 1)
+        consumer.unload(first.id)
+        consumer.unload(second.id)
+        assert subscription.wait_delivered(timeout=5)
+
+    assert [
+        "ResourceLoaded",
+        "ConsumerAdded",
+        "ConsumerAdded",
+        "ConsumerReleased",
+        "ConsumerReleased",
+        "ResourceUnloaded",
+    ] == heard.kinds()
+    [loaded] = heard.of(events.ResourceLoaded)
+    assert (provider.name, "cam", first.id) == (loaded.registrar, loaded.server, loaded.query_id)
+    assert loaded.load_s >= 0.0
+    assert [first.id, second.id] == [e.query_id for e in heard.of(events.ConsumerAdded)]
+    assert {consumer.name} == {e.consumer for e in heard.of(events.ConsumerAdded)}
+    assert [first.id, second.id] == [e.query_id for e in heard.of(events.ConsumerReleased)]
+    [unloaded] = heard.of(events.ResourceUnloaded)
+    assert loaded.resource_id == unloaded.resource_id
+
+
+def test_a_failed_load_is_published_with_its_error(started: Any) -> None:
+    provider, consumer = started("erm"), started("app")
+
+    def load(request: Any) -> Any:
+        raise ValueError(f"no device {request}")
+
+    provider.register_server("cam", load=load, unload=lambda _q, _r: None)
+    heard = Heard()
+    with provider.subscribe(heard) as subscription:
+        with pytest.raises(rr.ResourceLoadError):
+            consumer.call(provider.name, "cam", 7)
+        assert subscription.wait_delivered(timeout=5)
+
+    [failed] = heard.of(events.LoadFailed)
+    assert ("cam", "ValueError", "no device 7") == (
+        failed.server,
+        failed.error_type,
+        failed.message,
+    )
+    assert [] == heard.of(events.ConsumerAdded)
+
+
+def test_a_status_is_published_where_it_is_sent_and_at_each_hop_it_reaches(started: Any) -> None:
+    # leaf (erm) <- composite (cm) <- app: a status about the leaf climbs two hops
+    erm, cm, app = started("erm"), started("cm"), started("app")
+    erm.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
+
+    def composite(request: Any) -> Any:
+        return cm.call(erm.name, "leaf", request).id
+
+    cm.register_server("comp", load=composite, unload=lambda _q, _r: None)
+    top = app.call(cm.name, "comp", "x")
+    heard = Heard()
+    subscriptions = [r.subscribe(heard) for r in (erm, cm, app)]
+    leaf_id = erm.server_queries("leaf")[0].id
+
+    erm.send_status(leaf_id, rr.Status.ERROR, "overheated")
+
+    for subscription in subscriptions:
+        assert subscription.wait_delivered(timeout=5)
+        subscription.close()
+    [sent] = heard.of(events.StatusSent)
+    assert (erm.name, leaf_id, rr.Status.ERROR, "overheated") == (
+        sent.registrar,
+        sent.query_id,
+        sent.status,
+        sent.message,
+    )
+    delivered = {(e.registrar, e.query_id, e.hop) for e in heard.of(events.StatusDelivered)}
+    assert {(cm.name, leaf_id, 1), (app.name, top.id, 2)} == delivered
+    assert all(e.latency_s >= 0.0 for e in heard.of(events.StatusDelivered))
+
+
+def test_the_loads_a_crash_cut_short_are_published_as_in_doubt_at_restore(
+    tmp_path: Path,
+) -> None:
+    config = rr.RegistrarConfig(
+        name=f"erm-{uuid.uuid4().hex[:8]}", backup_path=tmp_path / "erm.db", save_on_modify=True
+    )
+    entered, gate = threading.Event(), threading.Event()
+
+    def load(request: Any) -> Any:
+        entered.set()
+        gate.wait(10)
+        return request
+
+    provider = rr.ResourceRegistrar.start(config)
+    consumer = rr.ResourceRegistrar.start(f"app-{uuid.uuid4().hex[:8]}")
+    provider.register_server("slow", load=load, unload=lambda _q, _r: None)
+    outcome: list[Any] = []
+
+    def call() -> None:
+        try:
+            consumer.call(config.name, "slow", 1)
+        except rr.RrError as exc:  # the provider dies under the call
+            outcome.append(exc)
+
+    caller = threading.Thread(target=call)
+    caller.start()
+    assert entered.wait(10)
+    with expect_restart(config.name):
+        crash(provider)
+    gate.set()
+    caller.join(10)
+    assert [rr.RegistrarUnavailableError] == [type(e) for e in outcome]
+    upstream = events.publisher()
+    heard = Heard()
+    subscription = upstream.subscribe(heard)
+    restarted = start_registrar(config, upstream=upstream)
+    try:
+        assert subscription.wait_delivered(timeout=5)
+        assert [q.id for q in restarted.in_doubt] == [e.query_id for e in heard.of(events.InDoubt)]
+        assert 1 == len(heard.of(events.InDoubt))
+    finally:
+        subscription.close()
+        restarted.stop()
+        consumer.stop()
+
+
+def test_a_blocked_subscriber_does_not_slow_calls_and_its_drops_are_counted(started: Any) -> None:
+    provider, consumer = started("erm"), started("app")
+    provider.register_server("cam", load=lambda r: r, unload=lambda _q, _r: None)
+    first = consumer.call(provider.name, "cam", 0)
+    release = threading.Event()
+    heard = Heard()
+
+    def blocked(event: events.Event) -> None:
+        release.wait(30)
+        heard(event)
+
+    subscription = provider.subscribe(blocked, maxsize=10)
+    try:
+        held = [consumer.call(provider.name, "cam", 0, timeout=5) for _ in range(100)]
+        for query in held:
+            consumer.unload(query.id, timeout=5)
+    finally:
+        release.set()
+    assert subscription.wait_delivered(timeout=10)
+    subscription.close()
+
+    # 200 events (100 added, 100 released); 1 was taken by the blocked callback, 10 queued.
+    # Each gap is reported where it is: one, or two when the subscriber's thread took its
+    # first event only after the queue had overflowed once (a loaded machine).
+    assert 200 - 11 == subscription.dropped
+    gaps = heard.of(events.EventsDropped)
+    assert 1 <= len(gaps) <= 2
+    assert subscription.dropped == sum(gap.count for gap in gaps)
+    consumer.unload(first.id)
+
+
+def test_every_event_is_also_an_info_log_line_when_info_is_on(
+    started: Any, caplog: pytest.LogCaptureFixture
+) -> None:
+    provider, consumer = started("erm"), started("app")
+    provider.register_server("cam", load=lambda r: r, unload=lambda _q, _r: None)
+    with caplog.at_level(logging.INFO, logger="rr_actors.events"):
+        query = consumer.call(provider.name, "cam", 1)
+
+    records = [r for r in caplog.records if r.name == "rr_actors.events"]
+    assert ["ResourceLoaded", "ConsumerAdded"] == [type(r.event).__name__ for r in records]
+    assert [events.describe(r.event) for r in records] == [r.getMessage() for r in records]
+    consumer.unload(query.id)
+
+
+def test_with_nobody_listening_no_event_is_built(
+    started: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    provider, consumer = started("erm"), started("app")
+    provider.register_server("cam", load=lambda r: r, unload=lambda _q, _r: None)
+    built: list[str] = []
+    real = events.ConsumerAdded.__init__
+
+    def counting(self: Any, *args: Any, **kwargs: Any) -> None:
+        built.append("ConsumerAdded")
+        real(self, *args, **kwargs)
+
+    monkeypatch.setattr(events.ConsumerAdded, "__init__", counting)
+    query = consumer.call(provider.name, "cam", 1)
+    consumer.unload(query.id)
+
+    assert [] == built
+
+
+# -- the consumer's side of a call ----------------------------------------------------------
+
+
+def _answered_then_forgotten(heard: Heard, query_id: str) -> list[str]:
+    """The consumer events about `query_id`, by kind, in the order they were published."""
+    consumer_kinds = (
+        events.CallAnswered,
+        events.CallFailed,
+        events.CallWithdrawn,
+        events.QueryForgotten,
+    )
+    with heard.lock:
+        return [
+            type(e).__name__
+            for e in heard.events
+            if isinstance(e, consumer_kinds) and e.query_id == query_id
+        ]
+
+
+@pytest.mark.parametrize("durable", [False, True], ids=["plain", "durable"])
+def test_a_call_answered_and_its_unload_are_published_by_the_consumer_in_order(
+    started: Any, tmp_path: Path, durable: bool
+) -> None:
+    provider = started("erm")
+    backup = {"backup_path": tmp_path / "app.db", "save_on_modify": True} if durable else {}
+    consumer = started("app", **backup)
+    provider.register_server("cam", load=lambda r: r, unload=lambda _q, _r: None)
+    heard = Heard()
+    with consumer.subscribe(heard) as subscription:
+        query = consumer.call(provider.name, "cam", 1)
+        again = consumer.call(provider.name, "cam", 1, query_id=query.id)  # a retry
+        consumer.unload(query.id)
+        assert subscription.wait_delivered(timeout=5)
+
+    assert ["CallAnswered", "CallAnswered", "QueryForgotten"] == _answered_then_forgotten(
+        heard, query.id
+    )
+    first, retried = heard.of(events.CallAnswered)
+    assert (consumer.name, query.id, provider.name, "cam", None, False) == (
+        first.registrar,
+        first.query_id,
+        first.serving_rr,
+        first.server,
+        first.parent,
+        first.retry,
+    )
+    assert (again.id, True) == (retried.query_id, retried.retry)
+    [forgotten] = heard.of(events.QueryForgotten)
+    assert (provider.name, "unload") == (forgotten.serving_rr, forgotten.reason)
+
+
+def test_a_dependency_answered_names_the_resource_it_belongs_to(started: Any) -> None:
+    erm, cm, app = started("erm"), started("cm"), started("app")
+    erm.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
+    cm.register_server(
+        "comp", load=lambda r: cm.call(erm.name, "leaf", r).id, unload=lambda _q, _r: None
+    )
+    heard = Heard()
+    with cm.subscribe(heard) as subscription:
+        top = app.call(cm.name, "comp", "x")
+        app.unload(top.id)
+        assert subscription.wait_delivered(timeout=5)
+
+    [loaded] = heard.of(events.ResourceLoaded)
+    [dependency] = heard.of(events.CallAnswered)
+    assert (cm.name, erm.name, "leaf", loaded.resource_id) == (
+        dependency.registrar,
+        dependency.serving_rr,
+        dependency.server,
+        dependency.parent,
+    )
+    [forgotten] = heard.of(events.QueryForgotten)  # released with its resource
+    assert (dependency.query_id, "dependency") == (forgotten.query_id, forgotten.reason)
+
+
+def test_a_call_that_times_out_is_published_as_withdrawn(started: Any) -> None:
+    provider, consumer = started("erm"), started("app")
+    gate = threading.Event()
+    provider.register_server("slow", load=lambda r: gate.wait(10) and r, unload=lambda _q, _r: None)
+    heard = Heard()
+    with consumer.subscribe(heard) as subscription:
+        with pytest.raises(rr.CallTimeoutError):
+            consumer.call(provider.name, "slow", 1, timeout=0.2)
+        gate.set()
+        consumer.client_queries()  # (a round trip: the withdrawal was handled)
+        assert subscription.wait_delivered(timeout=5)
+
+    [withdrawn] = heard.of(events.CallWithdrawn)
+    assert (consumer.name, provider.name, "slow", "timeout") == (
+        withdrawn.registrar,
+        withdrawn.serving_rr,
+        withdrawn.server,
+        withdrawn.reason,
+    )
+    assert [] == heard.of(events.CallAnswered) + heard.of(events.CallFailed)
+
+
+def test_a_failed_load_is_a_call_failed_that_did_not_execute_at_the_consumer(
+    started: Any,
+) -> None:
+    provider, consumer = started("erm"), started("app")
+
+    def load(request: Any) -> Any:
+        raise ValueError(f"no device {request}")
+
+    provider.register_server("cam", load=load, unload=lambda _q, _r: None)
+    heard = Heard()
+    with consumer.subscribe(heard) as subscription:
+        with pytest.raises(rr.ResourceLoadError):
+            consumer.call(provider.name, "cam", 7)
+        consumer.client_queries()
+        assert subscription.wait_delivered(timeout=5)
+
+    [failed] = heard.of(events.CallFailed)
+    assert ("cam", "ResourceLoadError", False) == (
+        failed.server,
+        failed.error_type,
+        failed.may_have_executed,
+    )
+
+
+def test_a_revoked_id_is_published_as_forgotten_after_its_answer(started: Any) -> None:
+    provider, consumer = started("erm"), started("app")
+    provider.register_server("cam", load=lambda r: r, unload=lambda _q, _r: None)
+    heard = Heard()
+    with consumer.subscribe(heard) as subscription:
+        query = consumer.call(provider.name, "cam", 1)
+        provider.unregister_server("cam")  # FATAL, then the id is revoked
+        assert wait_for(lambda: bool(heard.of(events.QueryForgotten)), 5)
+        assert subscription.wait_delivered(timeout=5)
+
+    assert ["CallAnswered", "QueryForgotten"] == _answered_then_forgotten(heard, query.id)
+    [forgotten] = heard.of(events.QueryForgotten)
+    assert "revoked" == forgotten.reason
+    assert [rr.Status.FATAL] == [e.status for e in heard.of(events.StatusDelivered)]
+
+
+# -- the consumer's side, with a provider in a process of its own ---------------------------
+
+
+def _slow_setup(entered: Any) -> Callable[[rr.ResourceRegistrar], None]:
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        def load(request: Any) -> Any:
+            if request == "slow":
+                entered.set()
+                threading.Event().wait(60)  # until the SIGKILL
+            return request
+
+        registrar.register_server("cam", load=load, unload=lambda _q, _r: None)
+
+    return setup
+
+
+@pytest.mark.usefixtures("by_value")  # (its provider runs in a manager process)
+def test_a_call_whose_provider_is_killed_mid_load_failed_and_may_have_executed(
+    system: System, process_helpers: SharedObjects
+) -> None:
+    entered = process_helpers.event()
+    provider = RemoteRegistrar.start(
+        f"erm-{uuid.uuid4().hex[:8]}", system, setup=_slow_setup(entered)
+    )
+    consumer = rr.ResourceRegistrar.start(f"app-{uuid.uuid4().hex[:8]}", network=system)
+    heard = Heard()
+    subscription = consumer.subscribe(heard)
+    outcome: list[BaseException] = []
+
+    def call() -> None:
+        try:
+            consumer.call(provider.name, "cam", "slow", timeout=30)
+        except rr.RrError as exc:
+            outcome.append(exc)
+
+    caller = threading.Thread(target=call)
+    try:
+        caller.start()
+        assert entered.wait(10)
+        assert provider.pid is not None
+        os.kill(provider.pid, signal.SIGKILL)
+        caller.join(15)
+        provider.kill()
+        consumer.client_queries()  # (a round trip: the failure was handled)
+        assert subscription.wait_delivered(timeout=5)
+    finally:
+        subscription.close()
+        consumer.stop()
+
+    assert [rr.RegistrarUnavailableError] == [type(e) for e in outcome]
+    [failed] = heard.of(events.CallFailed)
+    assert (consumer.name, provider.name, "cam", "RegistrarUnavailableError", True) == (
+        failed.registrar,
+        failed.serving_rr,
+        failed.server,
+        failed.error_type,
+        failed.may_have_executed,
+    )
+
+
+@pytest.mark.usefixtures("by_value")  # (its provider runs in a manager process)
+def test_ids_held_at_a_provider_lost_for_good_are_published_as_forgotten(
+    system: System, process_helpers: SharedObjects
+) -> None:
+    entered = process_helpers.event()
+    provider = RemoteRegistrar.start(
+        f"erm-{uuid.uuid4().hex[:8]}", system, setup=_slow_setup(entered)
+    )
+    consumer = rr.ResourceRegistrar.start(f"app-{uuid.uuid4().hex[:8]}", network=system)
+    heard = Heard()
+    subscription = consumer.subscribe(heard)
+    try:
+        query = consumer.call(provider.name, "cam", "camera", timeout=10)
+        assert provider.pid is not None
+        os.kill(provider.pid, signal.SIGKILL)
+        assert wait_for(lambda: bool(heard.of(events.QueryForgotten)), 5)
+        provider.kill()
+        assert subscription.wait_delivered(timeout=5)
+    finally:
+        subscription.close()
+        consumer.stop()
+
+    assert ["CallAnswered", "QueryForgotten"] == _answered_then_forgotten(heard, query.id)
+    [forgotten] = heard.of(events.QueryForgotten)
+    assert (provider.name, "provider lost") == (forgotten.serving_rr, forgotten.reason)
+    assert [(query.id, rr.Status.FATAL)] == [
+        (e.query_id, e.status) for e in heard.of(events.StatusDelivered)
+    ]

@@ -1,0 +1,190 @@
+"""The system's event stream over Zenoh on one host (`rr_actors._transport.zenoh.events`).
+
+A `ZenohNetwork` on loopback (plain TCP: nothing crosses a machine), its registrars, and
+a raw Zenoh session that attaches through the router's Unix socket (as a buggy member
+process of this host could) and puts what it likes on `rr/<system>/ev/<zid>`:
+
+- the subscription hands over this host's events, with the member name and stamps, in
+  `hlc` order;
+- a pickle (one that would create a file if unpickled) and lines that are no events are
+  dropped with a WARNING and never unpickled: `pickle` and `cloudpickle`'s loaders are
+  watched while the stream is read, and the file never appears; a valid line after
+  them is still delivered (the check is not vacuous);
+- a process sends its events only while someone subscribes (Zenoh's matching status);
+- with TLS (on loopback, `tests/pki.py`'s certificates) the events of a supervisor's
+  manager process, which it sends itself, carry the member name as the router's do;
+- `window` out of range is a `ConfigError` naming it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import socket
+import threading
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors import events
+from tests.support import pki
+from tests.support.waiting import wait_for
+
+zenoh = pytest.importorskip("zenoh")
+
+BOUND = 10.0
+
+
+class CreatesAFile:
+    """Unpickling it would create a file (it must never be unpickled)."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (open, (self.path, "w"))
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+@pytest.fixture
+def net() -> Iterator[rr.ZenohNetwork]:
+    network = rr.ZenohNetwork(
+        system=f"ev-{uuid.uuid4().hex[:8]}", listen=[f"tcp/127.0.0.1:{_free_port()}"], tls=None
+    )
+    yield network
+    network.close()
+
+
+@pytest.fixture
+def erm(net: rr.ZenohNetwork) -> Iterator[rr.ResourceRegistrar]:
+    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="erm"), network=net)
+    registrar.register_server("camera", load=lambda request: request, unload=lambda *_: None)
+    yield registrar
+    registrar.stop()
+
+
+def _raw_session(network: rr.ZenohNetwork) -> Any:
+    config = zenoh.Config.from_json5(
+        '{"mode": "client", "scouting": {"multicast": {"enabled": false}}, '
+        f'"connect": {{"endpoints": ["unixsock-stream/{network.address.socket_path}"]}}}}'
+    )
+    return zenoh.open(config)
+
+
+def test_the_subscription_gets_this_hosts_events_in_hlc_order(
+    net: rr.ZenohNetwork, erm: rr.ResourceRegistrar
+) -> None:
+    seen: list[events.Event] = []
+    with net.subscribe_events(seen.append, window=0.2) as subscription:
+        query = erm.call("erm", "camera", {"device": 1})
+        erm.unload(query.id)
+        assert wait_for(lambda: any(isinstance(e, events.QueryForgotten) for e in seen), BOUND)
+        assert subscription.wait_delivered(timeout=BOUND)
+    kinds = [type(e).__name__ for e in seen if getattr(e, "query_id", None) == query.id]
+    assert kinds[:3] == ["ResourceLoaded", "ConsumerAdded", "CallAnswered"]
+    assert [e.hlc for e in seen] == sorted(e.hlc for e in seen)
+    assert {e.host for e in seen} == {socket.gethostname()}  # (no TLS: the host name)
+
+
+def test_what_is_not_an_event_is_dropped_and_nothing_is_unpickled(
+    net: rr.ZenohNetwork, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: Any
+) -> None:
+    evil = tmp_path / "created-by-unpickling"
+    unpickled: list[str] = []
+    real_loads = pickle.loads
+
+    def watched(*args: Any, **kwargs: Any) -> Any:
+        if threading.current_thread().name == "rr-events-merge":
+            unpickled.append("pickle.loads")
+        return real_loads(*args, **kwargs)
+
+    monkeypatch.setattr(pickle, "loads", watched)
+    seen: list[events.Event] = []
+    good = events.InDoubt("erm", "q-good", at=1.0, pid=1, host="robot", hlc=5 << 12)
+    raw = _raw_session(net)
+    try:
+        with net.subscribe_events(seen.append, window=0) as _subscription:
+            key = f"rr/{net.system}/ev/{raw.zid()}"
+            publisher = raw.declare_publisher(key)
+            assert wait_for(lambda: publisher.matching_status.matching, BOUND)
+            publisher.put(pickle.dumps(CreatesAFile(str(evil))))
+            publisher.put(b'{"type": "InDoubt", "schema": 3}\nnot json\n[1, 2]')
+            publisher.put(json.dumps(events.to_dict(good)).encode())
+            assert wait_for(lambda: good in seen, BOUND)
+            publisher.undeclare()
+    finally:
+        raw.close()
+    assert [good] == seen
+    assert not evil.exists()
+    assert [] == unpickled
+    dropped = [r.getMessage() for r in caplog.records if "event stream" in r.getMessage()]
+    assert dropped
+    assert key in dropped[0]
+
+
+def test_a_process_sends_its_events_only_while_someone_subscribes(
+    net: rr.ZenohNetwork, erm: rr.ResourceRegistrar
+) -> None:
+    tap = events.everything()
+    assert not tap.listened  # nobody subscribed: the registrars build no event for it
+    raw = _raw_session(net)
+    heard: list[str] = []
+    try:
+        subscriber = raw.declare_subscriber(
+            f"rr/{net.system}/ev/*", lambda sample: heard.append(str(sample.key_expr))
+        )
+        assert wait_for(lambda: tap.listened, BOUND)  # (Zenoh's matching status)
+        query = erm.call("erm", "camera", {"device": 2})
+        assert wait_for(lambda: bool(heard), BOUND)
+        erm.unload(query.id)
+        subscriber.undeclare()
+        assert wait_for(lambda: not tap.listened, BOUND)
+    finally:
+        raw.close()
+
+
+def camera_setup(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("camera", load=lambda request: request, unload=lambda *_: None)
+
+
+def test_with_tls_every_process_names_the_member_a_manager_process_too(
+    tmp_path: Path, process_helpers: Any
+) -> None:
+    ca = pki.make_ca(tmp_path, "lab")
+    cert, key = pki.issue(tmp_path, "robot", ["127.0.0.1"], ca=ca)
+    tls = rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=["robot"])
+    system = f"ev-{uuid.uuid4().hex[:8]}"
+    net = rr.ZenohNetwork(system=system, listen=["tls/127.0.0.1:0"], tls=tls)
+    seen: list[events.Event] = []
+    spec = rr.ManagerSpec("erm", setup=camera_setup, isolation="process")
+    with net, rr.Supervisor([spec], network=net) as sup:
+        app = sup.registrar("app")
+        with net.subscribe_events(seen.append, window=0.2):
+            query_ids = []
+            while not wait_for(
+                lambda: any(isinstance(e, events.ResourceLoaded) for e in seen), 0.2
+            ):
+                query_ids.append(app.call("erm", "camera", {"device": len(query_ids)}).id)
+                assert len(query_ids) < BOUND / 0.2, "no event of the manager process came"
+            pids = {e.pid for e in seen if isinstance(e, events.ResourceLoaded)}
+            assert wait_for(lambda: any(isinstance(e, events.CallAnswered) for e in seen), BOUND)
+    assert pids
+    assert os.getpid() not in pids  # (its own process's events, sent by it)
+    assert {"robot"} == {e.host for e in seen}
+
+
+@pytest.mark.parametrize("window", [-1, 61, "1", True, float("nan")])
+def test_a_window_out_of_range_is_a_config_error(net: rr.ZenohNetwork, window: Any) -> None:
+    with pytest.raises(rr.ConfigError, match="window"):
+        net.subscribe_events(print, window=window)
