@@ -24,7 +24,14 @@ for 0.1 s, have warmed up. `--gap 0` kills the manager right after each restart 
 crash loop): the restart takes the second spare, and no spare's warm-up competes with it.
 Target (issue 16): serving with `--gap 0` within 2x of the spaced figure.
 
-Run: `python benchmarks/bench_supervisor.py [--sizes 1000 100000] [--crashes 10] [--gap 0.2]`
+`--forkserver-first` runs a `multiprocessing` forkserver Process of the program's own
+before anything of rr_actors, as a program that used a `forkserver` pool or Process
+before its `Supervisor` did (CPython's forkserver started without rr_actors' preload).
+Target (issue 34 item 6): the same serving times with and without it (the figures of
+either come from separate runs, alternated: which forkserver runs is per program).
+
+Run: `python benchmarks/bench_supervisor.py [--sizes 1000 100000] [--crashes 10] [--gap 0.2]
+[--forkserver-first]`
 """
 
 from __future__ import annotations
@@ -147,6 +154,17 @@ def teardown_floor(entries: int, kills: int) -> list[float]:
     return times
 
 
+def use_forkserver_first() -> None:
+    """Start and join one `forkserver` Process, as the program's own, before rr_actors.
+
+    This starts CPython's forkserver (its preload list empty): what a program that made a
+    `forkserver` pool or Process before its `Supervisor` had running.
+    """
+    process = multiprocessing.get_context("forkserver").Process(target=int, daemon=True)
+    process.start()
+    process.join(60)
+
+
 def p90(values: list[float]) -> float:
     ordered = sorted(values)
     return ordered[min(len(ordered) - 1, int(0.9 * len(ordered)))]
@@ -159,11 +177,20 @@ def main() -> None:
     parser.add_argument(
         "--gap", type=float, default=0.2, help="seconds between a restart and the next kill"
     )
+    parser.add_argument(
+        "--forkserver-first",
+        action="store_true",
+        help="run a multiprocessing forkserver Process before rr_actors starts its own",
+    )
     args = parser.parse_args()
+    if args.forkserver_first:
+        use_forkserver_first()
     start_forkserver()
     rows: list[tuple[Any, ...]] = []
+    served: dict[int, list[float]] = {}
     for entries in args.sizes:
         detect, restart, serve = measure(entries, args.crashes, args.gap)
+        served[entries] = serve
         floor = teardown_floor(entries, args.crashes)
         target = TARGET_SERVE_MS.get(entries)
         rows.append(
@@ -192,6 +219,11 @@ def main() -> None:
     print("floor: SIGKILL -> sentinel of a bare process holding as many dict entries")
     print("detect: from the kill to the ChildExited event; restart: ChildRestarted.restart_s")
     print(f"detect target: <= {TARGET_DETECT_MS:g} ms")
+    first = "the program's, then rr_actors'" if args.forkserver_first else "rr_actors' only"
+    for entries, serve in served.items():
+        each = ", ".join(f"{ms:.1f}" for ms in serve)
+        print(f"serving at {entries} (forkserver: {first}), each kill in ms: {each}")
+    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
 if __name__ == "__main__":

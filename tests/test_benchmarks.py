@@ -35,7 +35,7 @@ SMALLEST = {
         *("--sections", "start", "serve", "--counts", "2", "--rounds", "1"),
         *("--sizes", "10", "20", "--kills", "1", "--listen"),
     ],
-    "bench_supervisor.py": ["--sizes", "10", "--crashes", "1"],
+    "bench_supervisor.py": ["--sizes", "10", "--crashes", "1", "--forkserver-first"],
     "bench_three_hosts.py": ["--rounds", "20", "--cuts", "1"],
     "bench_transport.py": ["--rounds", "20"],
     "bench_xoscar.py": ["--rounds", "1", "--batch", "5", "--no-load"],

@@ -184,7 +184,7 @@ class Trigger(_Table, frozen=True):
 def _after(name: str, event: type[Any]) -> type[msgspec.Struct]:
     """The table `after = { event = name, ... }` takes: `nth` and any field of the event."""
     hints = typing.get_type_hints(event)
-    keys = [field.name for field in dataclasses.fields(event) if field.name != "at"]
+    keys = [f.name for f in dataclasses.fields(event) if f.name not in ("at", "hlc")]  # (times)
     fields = [(key, hints[key] | msgspec.UnsetType, msgspec.UNSET) for key in keys]
     return msgspec.defstruct(
         name, [("nth", Count, 1), *fields], bases=(_Table,), tag=name, tag_field="event"

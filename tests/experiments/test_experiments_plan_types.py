@@ -49,7 +49,7 @@ def test_a_trigger_field_the_event_does_not_have_names_the_fields_it_has() -> No
     error = plan_error(BASE + KILL_DB + 'after = { event = "ChildRestarted", nme = "db" }\n')
 
     assert (19, "faults[0].after.nme") == (error.line, error.key)
-    assert error.problem.startswith("unknown key; known here: child, nth, pid,")
+    assert error.problem.startswith("unknown key; known here: child, host, nth, pid,")
 
 
 def test_an_unknown_backoff_key_is_refused_with_the_keys_it_takes() -> None:

@@ -249,8 +249,7 @@ class ZenohAddress:
         return _join(self.system, None, self._open)
 
     def _open(self) -> ZenohMember:
-        if self.member:
-            set_host(self.member)
+        set_host(self.member or socket.gethostname())
         config = session_config("client", [], [f"unixsock-stream/{self.socket_path}"], self.lease)
         try:
             session = zenoh.open(config)
@@ -352,8 +351,8 @@ class ZenohNetwork:
             return self._member
 
     def _open_router(self) -> ZenohMember:
-        if self.tls is not None:
-            set_host(self.tls.name)  # (the member name on this process's events)
+        # the member name on this process's events (the host name without TLS)
+        set_host(self.tls.name if self.tls is not None else socket.gethostname())
         runtime_dir = tempfile.mkdtemp(prefix="rr-zenoh-")  # mode 0700
         path = os.path.join(runtime_dir, "router.sock")
         config = session_config(
