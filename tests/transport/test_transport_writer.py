@@ -19,7 +19,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from rr_actors._transport.unix import writer as writer_module
+import rr_actors._transport.unix.writer as writer_module
 from rr_actors._transport.unix.sockets import split
 from rr_actors._transport.unix.writer import Writer
 
