@@ -543,15 +543,18 @@ class Client:
         Equal requests mean the same resource: while another consumer still holds the dead
         one (it heard the same `FATAL` and has not released it yet), a reload gets the dead
         one back. Release it again and retry after a pause, until every holder let go and
-        the provider loads a new one (bounded by the workload's `timeout`).
+        the provider loads a new one (bounded by the workload's `timeout`). A reload that
+        failed (its provider busy loading the new one, on a loaded machine) is tried again
+        the same way.
         """
         deadline = time.monotonic() + self.workload.timeout
         pause = _RETRY_PAUSE
         while not self._stopping.is_set() and time.monotonic() < self.deadline:
             query = self._call(held.mix, held.request)
-            if query is None or query.response != held.query.response:
+            if query is not None and query.response != held.query.response:
                 return query
-            self._release(held.mix.manager, query.id)
+            if query is not None:
+                self._release(held.mix.manager, query.id)
             if time.monotonic() + pause > deadline:
                 return None
             self._stopping.wait(pause)

@@ -366,9 +366,15 @@ def test_a_hung_manager_is_found_by_its_heartbeat_killed_and_restarted(
     every_fault: tuple[Results, Path],
 ) -> None:
     results, out = every_fault
+    judged = 0
     for number, run_result in enumerate(results.runs, start=1):
         hang = next(f for f in run_result.faults if f.kind == "hang_manager")
+        kill = next(f for f in run_result.faults if f.kind == "kill_manager" and f.target == "api")
         assert hang.injected_s is not None
+        if kill.injected_s is None or kill.injected_s > hang.injected_s:
+            # on a loaded machine db's restart, and the kill of api it triggers, may come
+            # after the hang: that SIGKILL then ends the hung api before its heartbeat does
+            continue
         exits = [
             e
             for e in run_events(out, number)
@@ -380,6 +386,8 @@ def test_a_hung_manager_is_found_by_its_heartbeat_killed_and_restarted(
         assert exits[0].reason.startswith("hung: no heartbeat answer")
         assert hang.recovery_s is not None
         assert hang.recovery_s < 1.0  # found and restarted before the hang would have ended
+        judged += 1
+    assert judged >= 1  # (in at least one run the kill came first, as the plan means it)
 
 
 def test_a_load_error_makes_loads_raise_and_calls_fail(every_fault: tuple[Results, Path]) -> None:
