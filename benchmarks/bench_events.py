@@ -59,7 +59,7 @@ from rr_actors import events
 from rr_actors._core.bus import Forwarder, Publisher
 from rr_actors._core.hlc import CLOCK
 from rr_actors._process.tally import Journal, Tally
-from rr_actors._transport import zenoh_wire
+from rr_actors._transport.zenoh import wire as zenoh_wire
 from rr_actors.events import kinds
 
 Row = Callable[[int], None]

@@ -31,7 +31,7 @@ import cloudpickle
 
 import rr_actors as rr
 from rr_actors._registrar import Served
-from rr_actors._transport.unix import System, SystemAddress, attach
+from rr_actors._transport.unix.system import System, SystemAddress, attach
 
 Setup = Callable[[rr.ResourceRegistrar], None]
 

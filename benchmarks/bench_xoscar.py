@@ -36,7 +36,7 @@ from bench_transport import registrar_process, setup_echo
 
 import rr_actors as rr
 from rr_actors._registrar import Served
-from rr_actors._transport.unix import System
+from rr_actors._transport.unix.system import System
 
 
 class Echo(xo.Actor):  # type: ignore[misc]

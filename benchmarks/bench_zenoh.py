@@ -427,7 +427,7 @@ def unix_dedup(rounds: int) -> list[float]:
 
     import rr_actors as rr  # noqa: PLC0415
     from rr_actors._registrar import Served  # noqa: PLC0415
-    from rr_actors._transport.unix import System  # noqa: PLC0415
+    from rr_actors._transport.unix.system import System  # noqa: PLC0415
 
     ctx = multiprocessing.get_context("forkserver")
     suffix = uuid.uuid4().hex[:6]

@@ -34,8 +34,8 @@ from rr_actors.errors import (
 )
 
 if TYPE_CHECKING:  # at run time, `__getattr__` below imports it (and zenoh) at first use
-    from rr_actors._transport.zenoh_net import ZenohNetwork
-    from rr_actors._transport.zenoh_tls import ZenohTLS
+    from rr_actors._transport.zenoh.net import ZenohNetwork
+    from rr_actors._transport.zenoh.tls import ZenohTLS
 
 __all__ = [
     "MAX_DEPENDENCY_DEPTH",
@@ -85,7 +85,7 @@ def __getattr__(name: str) -> object:
     """
     if name == "ZenohNetwork":
         try:
-            from rr_actors._transport.zenoh_net import ZenohNetwork  # noqa: PLC0415 - lazily
+            from rr_actors._transport.zenoh.net import ZenohNetwork  # noqa: PLC0415 - lazily
         except ImportError as exc:
             raise ImportError(
                 f"rr.ZenohNetwork needs eclipse-zenoh: pip install 'rr-actors[zenoh]' ({exc})"
@@ -93,7 +93,7 @@ def __getattr__(name: str) -> object:
         return ZenohNetwork
     if name == "ZenohTLS":
         try:
-            from rr_actors._transport.zenoh_tls import ZenohTLS  # noqa: PLC0415 - lazily
+            from rr_actors._transport.zenoh.tls import ZenohTLS  # noqa: PLC0415 - lazily
         except ImportError as exc:
             raise ImportError(
                 f"rr.ZenohTLS needs cryptography: pip install 'rr-actors[zenoh]' ({exc})"

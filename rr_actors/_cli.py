@@ -276,7 +276,7 @@ _EVENTS_HELP = "print every host's events as JSON lines, ordered by their clock 
 
 
 def _events_arguments(parser: argparse.ArgumentParser) -> None:
-    from rr_actors._transport.zenoh_options import add_network_arguments  # noqa: PLC0415
+    from rr_actors._transport.zenoh.options import add_network_arguments  # noqa: PLC0415
 
     parser.add_argument(
         "--merge",
@@ -301,7 +301,7 @@ def _events(args: argparse.Namespace, out: TextIO) -> int:
     import threading  # noqa: PLC0415
 
     from rr_actors import events  # noqa: PLC0415
-    from rr_actors._transport.zenoh_options import network_from  # noqa: PLC0415
+    from rr_actors._transport.zenoh.options import network_from  # noqa: PLC0415
 
     if args.merge:
         read: list[events.Event] = []
@@ -403,23 +403,21 @@ def _certs_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _certs(args: argparse.Namespace, out: TextIO) -> int:
     try:
-        from rr_actors._transport import zenoh_certs  # noqa: PLC0415 - needs cryptography
+        from rr_actors._tools import certs  # noqa: PLC0415 - needs cryptography
     except ImportError as exc:
         sys.stderr.write(
             f"rr-actors certs: needs cryptography: pip install 'rr-actors[zenoh]' ({exc})\n"
         )
         return 2
     if args.certs_command == "init":
-        pem, key = zenoh_certs.init_ca(args.dir, args.system, force=args.force)
+        pem, key = certs.init_ca(args.dir, args.system, force=args.force)
         out.write(
             f"wrote {pem} and {key} (0600)\n"
             f"ca.key stays here: whoever holds it can make members. "
             f"Next: rr-actors certs issue {args.dir} NAME --address ADDR\n"
         )
         return 0
-    pem, key = zenoh_certs.issue_cert(
-        args.dir, args.name, args.address, days=args.days, force=args.force
-    )
+    pem, key = certs.issue_cert(args.dir, args.name, args.address, days=args.days, force=args.force)
     ca = pem.parent / "ca.pem"
     out.write(
         f"wrote {pem} and {key} (0600)\n"

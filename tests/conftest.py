@@ -18,7 +18,7 @@ parametrised fixture `registrar_placement`:
 - "zenoh": as "process", but the system is a `ZenohNetwork` (tls=None, the default
   1 s lease, a unique system name per test): this process is its router and each
   manager process joins it as a Zenoh client over the router's Unix socket, so every
-  message between two registrars crosses the Zenoh wire (`zenoh_wire` frames, puts
+  message between two registrars crosses the Zenoh wire (`zenoh.wire` frames, puts
   routed through this process, liveliness tokens for presence). No TCP `listen`: on
   one host the carrier's own process model never uses TCP (managers always join over
   the Unix socket), and a listen port nobody connects to exercises nothing;

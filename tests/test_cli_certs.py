@@ -28,7 +28,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 import rr_actors as rr
 from rr_actors.__main__ import main
-from rr_actors._transport.zenoh_certs import issue_cert
+from rr_actors._tools.certs import issue_cert
 from rr_actors.errors import ConfigError
 from tests.support.pki import make_ca
 from tests.support.tls_lab import free_port, router

@@ -26,7 +26,7 @@ of the process greater than the one before.
 Processes of one host read one physical clock; a message between two of them takes
 more than a microsecond, so their stamps order cause before effect without carrying
 the stamp (the AF_UNIX carrier does not). Across hosts the Zenoh carrier carries the
-sender's stamp on every message and answer (`zenoh_wire`), and the receiver's clock
+sender's stamp on every message and answer (`zenoh.wire`), and the receiver's clock
 takes it in (`receive`) before the message is handled.
 
 `CLOCK` is this process's clock. Its physical clock is `time.time_ns`, unless the

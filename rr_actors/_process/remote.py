@@ -21,9 +21,9 @@ import cloudpickle
 
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._process.manager import ManagerExit, ManagerProcess
+from rr_actors._registrar.deathwatch import gone_for_good
 from rr_actors._registrar.handle import RegistrarFacts, ResourceRegistrar
 from rr_actors._registrar.loading import LOADING, LoadContext
-from rr_actors._registrar.messages import ConsumerDown
 from rr_actors._transport.base import Address, Transport
 from rr_actors._types import Query, Status, StatusCallback
 from rr_actors.config import RegistrarConfig
@@ -501,7 +501,7 @@ def _consumer_down(address: Address, name: str) -> None:
     served: list[str] = []
     with contextlib.suppress(RrError):
         served = address.attach().names()
-    DIRECTORY.broadcast(ConsumerDown(name), also=served, skip=name)
+    gone_for_good(name, also=served)
 
 
 if TYPE_CHECKING:  # mypy checks that the handle implements the protocol

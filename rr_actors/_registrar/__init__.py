@@ -8,8 +8,9 @@
   `presence` (peers lost for good or reachable again) and `lifecycle`, which share
   `state`; `starting`: the start protocol, and `Served`/`Network`, how a carrier sees it;
 - `endpoints`: the resource server and client actors; `messages`: everything they tell
-  each other, as data; `loading`: what a load callback runs inside; `probes`: the
-  testing seam on named steps.
+  each other, as data; `deathwatch`: the one place that says a registrar will not come
+  back (the layers above call it, never build a message); `loading`: what a load
+  callback runs inside; `probes`: the testing seam on named steps.
 """
 
 from typing import TYPE_CHECKING
@@ -17,6 +18,7 @@ from typing import TYPE_CHECKING
 from rr_actors._registrar.handle import ResourceRegistrar, snapshot, start_registrar
 from rr_actors._registrar.lifecycle import CatalogView
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH
+from rr_actors._registrar.messages import give_back
 from rr_actors._registrar.protocol import LoadCallback, Registrar, UnloadCallback
 from rr_actors._registrar.starting import Served
 
@@ -28,6 +30,7 @@ __all__ = [
     "ResourceRegistrar",
     "Served",
     "UnloadCallback",
+    "give_back",
     "snapshot",
     "start_registrar",
 ]

@@ -33,9 +33,9 @@ from rr_actors._core.actor import Actor, refuse
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.timers import Cancellable, thread_timer
 from rr_actors._registrar import chronicle
+from rr_actors._registrar.deathwatch import gone_for_good
 from rr_actors._registrar.messages import (
     ClientLoaded,
-    ConsumerDown,
     Crash,
     Flush,
     Reachable,
@@ -445,9 +445,7 @@ class Lifecycle:
             self.flush_timer.cancel()
         self.registrar.saver.close(erase=False, flush=False)  # a crash writes nothing more
         if not DIRECTORY.restart_expected(self.registrar.name):  # gone for good (rule 19):
-            DIRECTORY.broadcast(  # every registrar of the system, other processes too
-                ConsumerDown(self.registrar.name), also=DIRECTORY.names(), skip=self.registrar.name
-            )
+            gone_for_good(self.registrar.name, also=DIRECTORY.names())  # other processes too
         self.died.set()
 
     # -- whoever still waits ----------------------------------------------------------

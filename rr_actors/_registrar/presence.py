@@ -3,11 +3,12 @@
 A carrier (the AF_UNIX one on one machine, Zenoh across hosts) watches the other
 processes of the system and calls its endpoints' presence callbacks
 (`rr_actors._transport.base.Endpoint`); the death watch says the same of a registrar
-that died and that no supervisor will restart (`ConsumerDown`). This role is the one
+that died and that no supervisor will restart (`ConsumerDown`, sent only by
+`deathwatch.py`; the carriers' calls come from `_transport/messenger.py`). This role is the one
 place that decides what they mean for the catalog:
 
 ```
- carrier ── Endpoint.peer_lost(name) ──► PeerLost ──────┐
+ carrier ── Endpoint.peer_lost: name ──► PeerLost ──────┐
  death watch (supervisor, owner handle, ─► ConsumerDown ┴─► lose(name)     (rule 19)
    a registrar that died unsupervised)
      as a provider: every id `name` held here is released (each `unload` runs once)

@@ -605,7 +605,7 @@ class Supervisor:
                 the dependency edges between them, every host's events and the link
                 between each pair of hosts). `None` (the default): when the supervisor's
                 `network` is a
-                [`ZenohNetwork`][rr_actors._transport.zenoh_net.ZenohNetwork]. What crosses
+                [`ZenohNetwork`][rr_actors._transport.zenoh.net.ZenohNetwork]. What crosses
                 is JSON on the system's `rr/<system>/obs/<member>/` keys, seen by
                 members only; with `allow_faults`, the members' pages may also fault
                 this host's managers (docs: the observer's reference, "Across hosts").

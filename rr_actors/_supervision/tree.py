@@ -27,10 +27,9 @@ from typing import TYPE_CHECKING
 
 import cloudpickle
 
-from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._process.spare import SparePool
-from rr_actors._registrar.messages import ConsumerDown, ReconcileAsk
+from rr_actors._registrar import deathwatch
 from rr_actors._supervision.children import (
     Child,
     ChildInfo,
@@ -316,7 +315,7 @@ def consumer_down(root: Level, name: str, network: Transport | None = None) -> N
     living = _process_managers(root)
     if network is not None and not network.closed:
         living.extend(network.names())
-    DIRECTORY.broadcast(ConsumerDown(name), also=living, skip=name)
+    deathwatch.gone_for_good(name, also=living)
 
 
 def lost_everything(root: Level, name: str, network: Transport | None = None) -> None:
@@ -330,7 +329,7 @@ def lost_everything(root: Level, name: str, network: Transport | None = None) ->
     living = _process_managers(root)
     if network is not None and not network.closed:
         living.extend(network.names())
-    DIRECTORY.broadcast(ReconcileAsk(name, holds_yours=False), also=living, skip=name)
+    deathwatch.lost_everything(name, also=living)
 
 
 def death_watch_missed(tree: Tree, name: str) -> None:
@@ -342,7 +341,7 @@ def death_watch_missed(tree: Tree, name: str) -> None:
     """
     for gone in sorted(tree.gone_for_good - {name}):
         try:
-            DIRECTORY.lookup(name).tell(ConsumerDown(gone))
+            deathwatch.tell_gone(name, gone)
         except RrError:
             logger.debug("death watch: %s unreachable", name)
             return

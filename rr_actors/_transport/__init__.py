@@ -2,23 +2,28 @@
 
 - `base`: the interface (`Transport`, `Address`, `Endpoint`) and the contract every
   carrier keeps;
-- `codec`: frames and pickling; `writer`: sending without blocking on the peer;
-- the AF_UNIX carrier: `sockets` (connect and the authkey handshake), `outbound` (a
-  channel to another process's registrar), `inbound` (a registrar's listener), `unix`
-  (the system: runtime directory, authkey, `attach`);
-- the Zenoh carrier (extra `zenoh`, imported only when used): `zenoh_net`
-  (`ZenohNetwork`: the router per host and its config), `zenoh_carrier` (a process's
-  membership: the Transport surface, sending), `zenoh_outbox` (writer threads),
-  `zenoh_inbox` (decode threads, delivery, answers), `zenoh_presence` (liveliness
-  tokens; each thread a `_core.serial.SerialExecutor`), `zenoh_wire` (key expressions
-  and header); `zenoh_tls` (`ZenohTLS`: a host's certificates and the system's members,
-  checked with `cryptography`) and `zenoh_certs` (`rr-actors certs`: a CA, a host's
-  certificate).
+- `codec`: frames and pickling; `messenger`: what every carrier does with a message, an
+  answer, a reply waiting and a registrar lost, written once over a thin link (`Link`);
+- `unix/`, the AF_UNIX carrier: `system` (the system: runtime directory, authkey,
+  `attach`), `sockets` (connect and the authkey handshake), `outbound` (a channel to
+  another process's registrar), `inbound` (a registrar's listener), `writer` (sending
+  without blocking on the peer, on a `_core.serial.SerialExecutor`), `rendezvous` (what
+  its channels need of the system, and how it finds a registrar lost for good);
+- `zenoh/`, the Zenoh carrier (extra `zenoh`, imported only when used): `net`
+  (`ZenohNetwork`: the router per host and its config), `carrier` (a process's
+  membership: the Transport surface, sending), `outbox` (writer threads), `inbox`
+  (decode threads, delivery, answers), `presence` (liveliness tokens; each thread a
+  `_core.serial.SerialExecutor`), `wire` (key expressions and header), `tls` (`ZenohTLS`:
+  a host's certificates and the system's members, checked with `cryptography`),
+  `config`, `watch`, `probe`, `gate` (the session's config, who links, why not, a
+  flood's gate), `access` (who else may read a key), `options` (the Zenoh options a
+  command line shares), `events` (every host's events on the network). The operator's
+  tooling (`rr-actors certs`) is `rr_actors._tools.certs`, not a carrier's.
 """
 
 from rr_actors._transport.base import Address, Endpoint, Transport
-from rr_actors._transport.outbound import RemotePeer
-from rr_actors._transport.unix import AttachedSystem, System, SystemAddress, attach
+from rr_actors._transport.unix.outbound import RemotePeer
+from rr_actors._transport.unix.system import AttachedSystem, System, SystemAddress, attach
 
 __all__ = [
     "Address",

@@ -349,17 +349,17 @@ def _hosts_of(
     return the run's own host's `ZenohNetwork` (its router). Without: `None`."""
     if plan.hosts is None:
         return None
-    from rr_actors._transport import zenoh_certs  # noqa: PLC0415 - needs the zenoh extra
+    from rr_actors._tools import certs as certs_tool  # noqa: PLC0415 - needs the zenoh extra
 
     names = plan.hosts.names
     net = drive.network = HostNetwork(names)
     stack.callback(net.close)
     certs = run_dir / "certs"
     certs.mkdir(mode=0o700)
-    ca, _ = zenoh_certs.init_ca(certs, _hosts.SYSTEM)
+    ca, _ = certs_tool.init_ca(certs, _hosts.SYSTEM)
     specs = []
     for index, name in enumerate(names):
-        pem, key = zenoh_certs.issue_cert(certs, name, net.addresses[name])
+        pem, key = certs_tool.issue_cert(certs, name, net.addresses[name])
         tls = {"ca": str(ca), "cert": str(pem), "key": str(key), "members": list(names)}
         state = run_dir / f"state-{name}" if plan.state and index else None
         specs.append(

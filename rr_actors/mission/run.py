@@ -615,13 +615,13 @@ def _station_argv(args: argparse.Namespace, out: Path, link: TwoHosts) -> list[s
 def make_certs(directory: Path, link: TwoHosts) -> None:
     """A CA and the two hosts' certificates in `directory` (replaced), by `rr-actors certs`'s
     engine: `robot` for the robot's address, `station` for the station's."""
-    from rr_actors._transport import zenoh_certs  # noqa: PLC0415 - needs cryptography
+    from rr_actors._tools import certs as certs_tool  # noqa: PLC0415 - needs cryptography
 
     shutil.rmtree(directory, ignore_errors=True)
-    zenoh_certs.init_ca(directory, SYSTEM)
+    certs_tool.init_ca(directory, SYSTEM)
     robot, station = MEMBERS
-    zenoh_certs.issue_cert(directory, robot, [link.robot_address])
-    zenoh_certs.issue_cert(directory, station, [link.station_address])
+    certs_tool.issue_cert(directory, robot, [link.robot_address])
+    certs_tool.issue_cert(directory, station, [link.station_address])
 
 
 def _two_hosts(args: argparse.Namespace, out: Path, stream: TextIO) -> int:

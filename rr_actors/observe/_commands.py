@@ -23,7 +23,7 @@ from rr_actors.observe._text import FORMATS, render
 from rr_actors.observe._view import dependency_graph
 
 if TYPE_CHECKING:
-    from rr_actors._transport.zenoh_net import ZenohNetwork
+    from rr_actors._transport.zenoh.net import ZenohNetwork
 
 __all__ = [
     "GRAPH_HELP",
@@ -127,7 +127,7 @@ def run_observe(
 def _network(args: argparse.Namespace) -> ZenohNetwork:
     """The `ZenohNetwork` of `rr-actors observe --system` (ConfigError naming the flag)."""
     try:
-        from rr_actors._transport.zenoh_net import ZenohNetwork  # noqa: PLC0415 - an extra
+        from rr_actors._transport.zenoh.net import ZenohNetwork  # noqa: PLC0415 - an extra
     except ImportError as exc:
         raise ConfigError(
             f"--system needs the zenoh extra: pip install 'rr-actors[zenoh]' ({exc})"
@@ -136,7 +136,7 @@ def _network(args: argparse.Namespace) -> ZenohNetwork:
     if args.certs is not None:
         if not args.name or not args.members:
             raise ConfigError("--certs needs --name (this member) and --members (all of them)")
-        from rr_actors._transport.zenoh_tls import ZenohTLS  # noqa: PLC0415 - an extra
+        from rr_actors._transport.zenoh.tls import ZenohTLS  # noqa: PLC0415 - an extra
 
         directory = args.certs.rstrip("/")
         tls = ZenohTLS(

@@ -9,7 +9,7 @@
                   LinkWatch ─► "links" (each member's link: up, or cut since when, why)
 ```
 
-Keys (`rr_actors._transport.zenoh_wire.Keys`, all under `rr/<system>/obs/<member>/`):
+Keys (`rr_actors._transport.zenoh.wire.Keys`, all under `rr/<system>/obs/<member>/`):
 `delta`, `state`, `fault`, `here`. The system's access control admits them for members
 only (mutual TLS, then Zenoh's ACL on `rr/<system>/**`).
 
@@ -49,7 +49,7 @@ from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from rr_actors._core.serial import SerialExecutor
-from rr_actors._transport.zenoh_wire import ObserverKey
+from rr_actors._transport.zenoh.wire import ObserverKey
 from rr_actors.config import NAME
 from rr_actors.observe._delta import apply, diff
 from rr_actors.observe._faults import KINDS, FaultRefused, Faults, inject
@@ -62,7 +62,7 @@ if TYPE_CHECKING:
 
     from rr_actors import events as events_module
     from rr_actors._core.bus import Subscription
-    from rr_actors._transport.zenoh_net import Services
+    from rr_actors._transport.zenoh.net import Services
 
 __all__ = [
     "COALESCE",

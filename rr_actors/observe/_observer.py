@@ -39,7 +39,7 @@ from rr_actors.observe._sources import (
 )
 
 if TYPE_CHECKING:
-    from rr_actors._transport.zenoh_net import Services
+    from rr_actors._transport.zenoh.net import Services
     from rr_actors.observe._hosts import Share, SystemView
     from rr_actors.observe._server import Server
 

@@ -45,7 +45,7 @@ from rr_actors._process.remote import RemoteRegistrar
 from rr_actors._registrar.actor import STEPS
 from rr_actors._registrar.attempt import AttemptState, CallAttempt
 from rr_actors._registrar.lifecycle import CatalogView
-from rr_actors._transport.unix import System
+from rr_actors._transport.unix.system import System
 from rr_actors.testing.helpers import catalog_snapshot, crash, running_actors
 from rr_actors.testing.seams import (
     Installed,

@@ -6,7 +6,7 @@
 `charlie` (certificates made by the test, `tests/support/pki.py`; `bravo`'s names both its
 addresses). `b` listens on both of its addresses and dials nobody; `a` and `c` listen on
 nothing and dial `b`. So every message between `a` and `c` is routed by `b`'s Zenoh
-router (an rr_actors router session already: `zenoh_net`), through its access control
+router (an rr_actors router session already: `zenoh.net`), through its access control
 on both of its links. `c` serves `erm` (the provider), `b` serves `hub`, `a` serves
 `app` (the consumer).
 

@@ -100,7 +100,7 @@ def framed_pickle(path: Path, sender: str = "intruder") -> bytes:
     """A message for a registrar as a process of the system sends it: the wire header,
     then a frame whose pickle creates `path` when unpickled."""
     from rr_actors._transport.codec import frame  # noqa: PLC0415
-    from rr_actors._transport.zenoh_wire import MESSAGE, header  # noqa: PLC0415
+    from rr_actors._transport.zenoh.wire import MESSAGE, header  # noqa: PLC0415
 
     return header(MESSAGE, sender) + frame(7, CreatesAFile(str(path)))
 
@@ -220,12 +220,12 @@ def raw_open(
     connect: list[str], tls: dict[str, Any] | None, wait: float = 5.0
 ) -> list[tuple[str, str]]:
     """Open a raw Zenoh peer session (`KEPT["raw"]`): plain, or mutual TLS with the files
-    of `tls` as `zenoh_config` sets them. Its links once it has one, within `wait` s."""
+    of `tls` as `zenoh.config` sets them. Its links once it has one, within `wait` s."""
     import json  # noqa: PLC0415
 
     import zenoh  # noqa: PLC0415
 
-    from rr_actors._transport.zenoh_config import _tls_settings  # noqa: PLC0415
+    from rr_actors._transport.zenoh.config import _tls_settings  # noqa: PLC0415
     from tests.support.waiting import wait_for  # noqa: PLC0415
 
     link: dict[str, Any] = {}
@@ -430,7 +430,7 @@ def test_members_call_each_other_and_each_side_names_the_other(
 def unlinked_within(timeout: float) -> list[list[tuple[str, str]]]:
     """What this worker's link watch counts unlinked (`LinkWatch.unlinked`), looked at every
     `TICK` s for `timeout` s, as the watch looks: each non-empty answer."""
-    from rr_actors._transport.zenoh_watch import TICK  # noqa: PLC0415
+    from rr_actors._transport.zenoh.watch import TICK  # noqa: PLC0415
 
     watch = hosts.KEPT["network"]._watch
     seen = []
@@ -479,7 +479,7 @@ def test_members_that_dial_each_other_are_linked_and_neither_warns(
 
 def grace() -> float:
     """Seconds a connect endpoint may stay unlinked before its WARNING."""
-    from rr_actors._transport.zenoh_watch import GRACE  # noqa: PLC0415
+    from rr_actors._transport.zenoh.watch import GRACE  # noqa: PLC0415
 
     return GRACE
 

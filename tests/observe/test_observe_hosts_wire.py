@@ -24,8 +24,8 @@ from typing import Any
 import pytest
 import zenoh
 
-from rr_actors._transport.zenoh_net import Services
-from rr_actors._transport.zenoh_wire import Keys, ObserverKey
+from rr_actors._transport.zenoh.net import Services
+from rr_actors._transport.zenoh.wire import Keys, ObserverKey
 from rr_actors.observe._faults import FaultRefused
 from rr_actors.observe._hosts import Share, SystemView, valid_catalog, valid_tree
 from rr_actors.observe._hub import Hub

@@ -3,8 +3,8 @@
 `make_ca` writes a system's CA; `issue` writes a host's certificate and key, signed by a CA
 or self-signed, and can make the odd ones a test needs (expired, not yet valid, another
 CA, no clientAuth, a key type Zenoh's TLS cannot use). Files are PEM; keys are PKCS#8,
-unencrypted, mode 0600. The shape follows `rr-actors certs` (rr_actors/_transport/
-zenoh_certs.py) unless told otherwise:
+unencrypted, mode 0600. The shape follows `rr-actors certs` (rr_actors/_tools/certs.py)
+unless told otherwise:
 
     ca_pem, ca_key = make_ca(tmp_path)
     pem, key = issue(tmp_path, "robot", ("10.0.0.2",), ca=(ca_pem, ca_key))

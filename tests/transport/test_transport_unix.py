@@ -33,9 +33,9 @@ import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._transport import RemotePeer, System, attach
 from rr_actors._transport.codec import frame, frames, plain, unframe
-from rr_actors._transport.outbound import _Channel
-from rr_actors._transport.sockets import HANDSHAKE_TIMEOUT, connect
-from rr_actors._transport.writer import Writer
+from rr_actors._transport.unix.outbound import _Channel
+from rr_actors._transport.unix.sockets import HANDSHAKE_TIMEOUT, connect
+from rr_actors._transport.unix.writer import Writer
 from rr_actors.testing.carrier import Fetch, Load, Revoke, Served
 from tests.support.carriers import (
     ProviderFactory,

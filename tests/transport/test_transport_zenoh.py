@@ -35,8 +35,8 @@ import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.wire import WIRE_VERSION
 from rr_actors._transport.codec import frame
-from rr_actors._transport.zenoh_net import ZenohNetwork
-from rr_actors._transport.zenoh_wire import MESSAGE, PYTHON, VERSION, parse, payload_of
+from rr_actors._transport.zenoh.net import ZenohNetwork
+from rr_actors._transport.zenoh.wire import MESSAGE, PYTHON, VERSION, parse, payload_of
 from rr_actors.testing.carrier import Served
 from tests.support.carriers import in_thread, setup_servers, wait_load_started
 

@@ -23,8 +23,8 @@ import zenoh
 import rr_actors as rr
 from rr_actors._core.wire import WIRE_VERSION
 from rr_actors._transport.codec import NO_REPLY, frame
-from rr_actors._transport.zenoh_net import ZenohNetwork
-from rr_actors._transport.zenoh_wire import MESSAGE, PLAIN, PYTHON
+from rr_actors._transport.zenoh.net import ZenohNetwork
+from rr_actors._transport.zenoh.wire import MESSAGE, PLAIN, PYTHON
 from rr_actors.testing.carrier import Served
 from tests.support.carriers import setup_servers
 

@@ -1,4 +1,4 @@
-"""The system's event stream over Zenoh on one host (`rr_actors._transport.zenoh_events`).
+"""The system's event stream over Zenoh on one host (`rr_actors._transport.zenoh.events`).
 
 A `ZenohNetwork` on loopback (plain TCP: nothing crosses a machine), its registrars, and
 a raw Zenoh session that attaches through the router's Unix socket (as a buggy member

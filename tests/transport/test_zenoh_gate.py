@@ -16,7 +16,7 @@ from collections.abc import Collection, Iterator
 import pytest
 
 from rr_actors._platform import PLATFORM
-from rr_actors._transport.zenoh_gate import HOLD, QUIET, HandshakeGate
+from rr_actors._transport.zenoh.gate import HOLD, QUIET, HandshakeGate
 from tests.support.supervising import linux_trick
 
 

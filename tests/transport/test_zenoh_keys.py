@@ -1,4 +1,4 @@
-"""The key expressions (`zenoh_wire`): one parser per kind, `None` when malformed; `Keys`
+"""The key expressions (`zenoh.wire`): one parser per kind, `None` when malformed; `Keys`
 builds each kind and parses back what it built."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import pytest
 import zenoh
 from hypothesis import given
 
-from rr_actors._transport.zenoh_wire import (
+from rr_actors._transport.zenoh.wire import (
     Keys,
     NameAt,
     ServerKey,

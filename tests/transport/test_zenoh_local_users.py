@@ -34,7 +34,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors._transport import zenoh_certs
+from rr_actors._tools import certs as certs_tool
 from rr_actors._transport.codec import frame
 from tests.support import pki
 from tests.support.tls_lab import free_port
@@ -64,7 +64,7 @@ class _Payload:
 
 ATTACKER = r"""
 import json, os, select, sys, zenoh
-from rr_actors._transport.zenoh_wire import MESSAGE, header
+from rr_actors._transport.zenoh.wire import MESSAGE, header
 
 system, target, body, key = sys.argv[1], sys.argv[2], bytes.fromhex(sys.argv[3]), sys.argv[4]
 outcome = {"uid": os.geteuid()}
@@ -201,8 +201,8 @@ def test_with_tls_another_local_user_gets_nothing_unpickled(
 ) -> None:
     # the how-to's one-machine example: its certificates, its endpoint
     certs = tmp_path / "certs"
-    zenoh_certs.init_ca(certs, "docs")
-    zenoh_certs.issue_cert(certs, "laptop", ["127.0.0.1"])
+    certs_tool.init_ca(certs, "docs")
+    certs_tool.issue_cert(certs, "laptop", ["127.0.0.1"])
     tls = rr.ZenohTLS(
         ca=certs / "ca.pem", cert=certs / "laptop.pem", key=certs / "laptop.key",
         members=["laptop"],

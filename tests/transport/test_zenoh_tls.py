@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 import rr_actors as rr
-from rr_actors._transport import zenoh_certs
+from rr_actors._tools import certs as certs_tool
 from rr_actors.errors import ConfigError
 from tests.support import pki
 from tests.support.pki import DAY, issue, make_ca, make_intermediate
@@ -42,8 +42,8 @@ def tls(ca: Path, pair: tuple[Path, Path], members: object = ("robot", "station"
 
 
 def test_certificates_from_the_certs_commands_are_accepted(tmp_path: Path) -> None:
-    zenoh_certs.init_ca(tmp_path, "lab")
-    zenoh_certs.issue_cert(tmp_path, "robot", ["10.0.0.2", "robot.local"], days=30)
+    certs_tool.init_ca(tmp_path, "lab")
+    certs_tool.issue_cert(tmp_path, "robot", ["10.0.0.2", "robot.local"], days=30)
 
     got = rr.ZenohTLS(
         ca=str(tmp_path / "ca.pem"),

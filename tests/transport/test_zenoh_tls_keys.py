@@ -17,7 +17,7 @@ import pytest
 import zenoh
 
 import rr_actors as rr
-from rr_actors._transport import zenoh_certs
+from rr_actors._tools import certs as certs_tool
 from rr_actors.errors import ConfigError
 from tests.support.pki import issue, make_ca, make_intermediate
 
@@ -70,9 +70,9 @@ def a_put_crosses(directory: Path) -> bool:
 
 
 def test_certificates_from_rr_actors_certs_link_two_zenoh_sessions(tmp_path: Path) -> None:
-    zenoh_certs.init_ca(tmp_path, "lab")
+    certs_tool.init_ca(tmp_path, "lab")
     for name in ("listener", "dialler"):
-        zenoh_certs.issue_cert(tmp_path, name, ["127.0.0.1"])
+        certs_tool.issue_cert(tmp_path, name, ["127.0.0.1"])
         rr.ZenohTLS(
             ca=tmp_path / "ca.pem",
             cert=tmp_path / f"{name}.pem",

@@ -29,9 +29,9 @@ import pytest
 import zenoh
 
 import rr_actors as rr
-from rr_actors._transport.zenoh_config import session_config
-from rr_actors._transport.zenoh_probe import handshake_trouble
-from rr_actors._transport.zenoh_watch import LinkWatch
+from rr_actors._transport.zenoh.config import session_config
+from rr_actors._transport.zenoh.probe import handshake_trouble
+from rr_actors._transport.zenoh.watch import LinkWatch
 from rr_actors.testing import start_forkserver
 from tests.support import pki
 from tests.support.supervising import process

@@ -14,8 +14,8 @@ from typing import Any
 
 import pytest
 
-from rr_actors._transport import zenoh_watch
-from rr_actors._transport.zenoh_watch import GRACE, TICK, LinkWatch
+from rr_actors._transport.zenoh import watch as zenoh_watch
+from rr_actors._transport.zenoh.watch import GRACE, TICK, LinkWatch
 from tests.support import pki
 from tests.support.tls_lab import free_port, member_tls, router
 from tests.support.waiting import wait_for
@@ -109,7 +109,7 @@ def test_a_connect_endpoint_whose_link_flaps_is_warned_of_once_a_minute(
 
 # -- A `connect` endpoint whose listener accepts this host is no WARNING at the first look
 #
-# The link watch's probe (`zenoh_probe`) finds nothing wrong when the listener accepts this
+# The link watch's probe (`zenoh.probe`) finds nothing wrong when the listener accepts this
 # host's certificate: Zenoh's own link is then most likely on its way (it dials again every
 # second at most, or the peer, which just started listening, dials us; its link event comes
 # after Zenoh's own handshake, later than the probe's). Seen as a WARNING "the listener

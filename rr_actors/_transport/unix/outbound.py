@@ -13,39 +13,21 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import itertools
 import logging
 import os
 import threading
-from collections.abc import Callable
 from multiprocessing import AuthenticationError
 from multiprocessing.connection import Connection
 from typing import Any
 
 from rr_actors._core.directory import Reply
-from rr_actors._core.replies import FutureReply, wait
-from rr_actors._transport.base import Member
-from rr_actors._transport.codec import (
-    NO_REPLY,
-    Oversized,
-    Run,
-    frame,
-    frames,
-    payload_size,
-    unframe,
-    what,
-)
-from rr_actors._transport.delivery import answer, answer_too_large
-from rr_actors._transport.sockets import connect, read_limit
-from rr_actors._transport.writer import Writer
+from rr_actors._transport.codec import Oversized, frames, unframe
+from rr_actors._transport.messenger import Remote, Replies, check_size, encode
+from rr_actors._transport.unix.rendezvous import Member
+from rr_actors._transport.unix.sockets import connect, read_limit
+from rr_actors._transport.unix.writer import Writer
 from rr_actors.config import DEFAULT_MAX_MESSAGE_BYTES
-from rr_actors.errors import (
-    ConfigError,
-    MessageTooLargeError,
-    RegistrarStoppedError,
-    RegistrarUnavailableError,
-    RrError,
-)
+from rr_actors.errors import RegistrarStoppedError, RegistrarUnavailableError, RrError
 
 __all__ = ["RemotePeer"]
 
@@ -55,23 +37,28 @@ logger = logging.getLogger("rr_actors")
 class _Channel:
     """One connection from this process to a remote registrar and its outstanding answers.
 
-    `pending` maps a token to the reply (and the message, for error texts) waiting for its
-    answer. Entries leave it only through atomic dict operations (`pop` by the reader,
-    `popitem` when the channel is lost), so each reply is answered exactly once. `limit`
-    is the target's `max_message_bytes`, both ways.
+    `pending` holds the replies waiting for an answer on it (the messenger's `Replies`:
+    each is answered, or failed when the channel is lost, exactly once). `limit` is the
+    target's `max_message_bytes`, both ways.
     """
 
     __slots__ = ("limit", "pending", "reading", "writer")
 
-    def __init__(self, writer: Writer, limit: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
+    def __init__(
+        self,
+        writer: Writer,
+        limit: int = DEFAULT_MAX_MESSAGE_BYTES,
+        pending: Replies | None = None,
+    ) -> None:
         self.writer = writer
         self.limit = limit
-        self.pending: dict[int, tuple[Reply, Any]] = {}
+        self.pending = pending if pending is not None else Replies(lambda _name, _m: None)
         self.reading: Connection | None = None  # the reader thread's (a duplicate descriptor)
 
 
-class RemotePeer:
-    """A registrar in another process of the system, reached through its socket.
+class RemotePeer(Remote):
+    """A registrar in another process of the system, reached through its socket (`run`:
+    `Remote`).
 
     `tell` is what the registrar code calls for every message; it connects lazily (one
     connection per target per process, made on the connection's writer thread) and is
@@ -85,7 +72,6 @@ class RemotePeer:
         self._path = system.address.socket_path(name)
         self._lock = threading.Lock()
         self._channel: _Channel | None = None
-        self._tokens = itertools.count(1)
 
     def tell(self, message: Any) -> None:
         """Send `message` to the remote registrar; its reply (if any) is answered later.
@@ -107,65 +93,24 @@ class RemotePeer:
             RegistrarUnavailableError: the registrar's process is known to be unreachable.
             RegistrarStoppedError: it was stopped, or this process closed the system.
         """
-        reply: Reply | None = getattr(message, "reply", None)
-        if reply is not None:
-            message = message.detached()
-        token = next(self._tokens) if reply is not None else NO_REPLY  # atomic in CPython
-        try:
-            data = frame(token, message)
-        except BaseException as exc:  # (a SystemExit from a user __reduce__ is contained too)
-            raise ConfigError(f"{what(message, self.name)} is not picklable: {exc}") from exc
+        outgoing = encode(self.name, message)
+        reply = outgoing.reply
         for _attempt in (1, 2):
             channel = self._channel
             if channel is None or channel.writer.closed:
                 channel = self._open()
-            if payload_size(data) > channel.limit:
-                raise MessageTooLargeError(
-                    f"the {what(message, self.name)} is {payload_size(data)} bytes pickled, "
-                    f"over registrar {self.name!r}'s max_message_bytes ({channel.limit}); "
-                    f"nothing was sent",
-                    payload_size(data),
-                    channel.limit,
-                )
+            check_size(outgoing, self.name, channel.limit)
             if reply is not None:
-                channel.pending[token] = (reply, message)
-            if channel.writer.send(data):
+                channel.pending.expect(outgoing, self.name, channel.limit)
+            if channel.writer.send(outgoing.data):
                 return
             # The connection was lost before anything of the frame left: unless its loss
             # already failed the reply, send once more on a fresh connection.
-            ours = reply is None or channel.pending.pop(token, None) is not None
+            ours = reply is None or channel.pending.forget(outgoing.token)
             self._lose(channel, None)
             if not ours:
                 return
         raise self._gone("lost its connection")
-
-    def run(self, fn: Callable[[Any], Any], *, timeout: float) -> Any:
-        """Run `fn(registrar)` in the remote registrar's process and return its result.
-
-        `fn` is cloudpickled (closures work) and runs on a fresh thread there, so it may
-        block, e.g. on `registrar.send_status(...)`.
-
-        Args:
-            fn: called with the remote `ResourceRegistrar`; its result must pickle.
-            timeout: seconds to wait for the result.
-
-        Returns:
-            What `fn` returned.
-
-        Raises:
-            CallTimeoutError: no result within `timeout` seconds.
-            RegistrarUnavailableError: the registrar's process died or is unreachable.
-            RegistrarStoppedError: the registrar was stopped.
-            ConfigError: `fn` does not pickle.
-            RrError: its result does not pickle (the message says so).
-            Exception: whatever `fn` raised, re-raised here.
-        """
-        reply = FutureReply()
-        try:
-            self.tell(Run(fn, reply))
-        except RrError as exc:
-            reply.set_error(exc)
-        return wait(reply.future, timeout, f"run() on registrar {self.name!r}")
 
     def close(self, error: RrError) -> None:
         """Close the connection; outstanding answers fail with `error`."""
@@ -208,8 +153,9 @@ class RemotePeer:
                 self._system.peer_ended(self.name)  # (is it lost? rule 19)
                 raise self._gone("cannot be reached (it does not listen)")
             limit = read_limit(self._system.address.limit_path(self.name))
+            pending = Replies(lambda _name, message: self.tell(message))
             writer = Writer(None, lambda exc: self._failed(fresh, exc), f"rr-write-{self.name}")
-            fresh = _Channel(writer, limit)
+            fresh = _Channel(writer, limit, pending)
             writer.connect_with(functools.partial(self._connect, fresh))  # (its first task)
             self._channel = channel = fresh
         return channel
@@ -260,14 +206,7 @@ class RemotePeer:
         with self._lock:
             if self._channel is channel:
                 self._channel = None
-        pending = channel.pending
-        failed: list[Reply] = []
-        while True:
-            try:
-                _, (reply, _message) = pending.popitem()  # atomic: the reader pops too
-            except KeyError:
-                break
-            failed.append(reply)
+        failed: list[Reply] = channel.pending.take()
         if not failed:
             return
         error = error or self._gone("died while answers were outstanding")
@@ -293,11 +232,7 @@ class RemotePeer:
 
     def _too_large(self, channel: _Channel, oversized: Oversized) -> None:
         """An answer over the limit was skipped unread: fail its reply, undo what it made."""
-        entry = channel.pending.pop(oversized.token, None)
-        if entry is None:
-            return
-        reply, message = entry
-        answer_too_large(reply, message, self.name, oversized.size, channel.limit, self.tell)
+        channel.pending.too_large(oversized.token, oversized.size)
 
     def _answer(self, channel: _Channel, data: bytes | bytearray) -> None:
         """Resolve the reply waiting for one answer frame (reader thread).
@@ -307,8 +242,4 @@ class RemotePeer:
         caller gets an error instead of what it asked for.
         """
         token, payload = unframe(data)
-        entry = channel.pending.pop(token, None)
-        if entry is None:
-            return
-        reply, message = entry
-        answer(reply, message, self.name, payload, self.tell)
+        channel.pending.answered(token, payload)

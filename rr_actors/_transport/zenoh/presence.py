@@ -25,11 +25,11 @@
 - a registrar whose process token went (a cut link) and that comes back from the same
   process (same Zenoh id: a healed link, not a restart) is `peer_reachable`; the first
   message to that process waits (on its writer thread) until a ping of it is answered
-  (`rr/<s>/ping/<zid>`, `zenoh_outbox`): its token may be back before what is put to it
+  (`rr/<s>/ping/<zid>`, `outbox`): its token may be back before what is put to it
   gets through.
 
 Claims (`live/claim/<name>/<zid>`) and `wait_turn` are `serve`'s half of "one name, one
-server" (see `zenoh_carrier`).
+server" (see `carrier`).
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ import zenoh
 
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
-from rr_actors._transport.zenoh_wire import Keys, NameAt
+from rr_actors._transport.zenoh.wire import Keys, NameAt
 from rr_actors.errors import DuplicateNameError
 
 logger = logging.getLogger("rr_actors")
@@ -239,7 +239,7 @@ class Presence:
         Updated on Zenoh's threads as the samples come (the presence thread applies them
         later: `unreachable` may lag). A process declares its token before it sends
         anything, but Zenoh sends declarations ahead of data: a frame may come before its
-        sender's token, or after the token's end (`zenoh_inbox.STRANGER_GRACE`).
+        sender's token, or after the token's end (`inbox.STRANGER_GRACE`).
         """
         return zid in self._members
 
@@ -313,7 +313,7 @@ class Presence:
         if actions is None:
             self._malformed.warning(
                 "system %s: ignored a malformed liveliness token %s (declared by a buggy "
-                "member? see zenoh_wire for the key expressions)",
+                "member? see _transport/zenoh/wire.py for the key expressions)",
                 self._system,
                 short(key),
             )

@@ -20,105 +20,24 @@ import socket
 import threading
 import time
 from multiprocessing import AuthenticationError
-from typing import Any
 
-from rr_actors._core.directory import DIRECTORY
-from rr_actors._transport.base import Endpoint, Member
-from rr_actors._transport.codec import (
-    Oversized,
-    Run,
-    frame,
-    frames,
-    payload_size,
-    unframe,
-    what,
-)
-from rr_actors._transport.delivery import compensate, deliver, refuse_too_large
-from rr_actors._transport.sockets import (
+from rr_actors._transport.base import Endpoint
+from rr_actors._transport.codec import Oversized, Run, frames, unframe
+from rr_actors._transport.messenger import Lost, StandIn, deliver, refuse_too_large
+from rr_actors._transport.unix.rendezvous import Member
+from rr_actors._transport.unix.sockets import (
     HANDSHAKE_TIMEOUT,
     handshake,
     publish_limit,
     split,
     take_name_lock,
 )
-from rr_actors._transport.writer import Lost, Writer
-from rr_actors.errors import (
-    ConfigError,
-    DuplicateNameError,
-    MessageTooLargeError,
-    RrError,
-    TransferError,
-)
+from rr_actors._transport.unix.writer import Writer
+from rr_actors.errors import ConfigError, DuplicateNameError
 
 __all__ = ["Listener"]
 
 logger = logging.getLogger("rr_actors")
-
-
-class _AnswerReply:
-    """The provider side's stand-in for a sender's reply: answers over the connection.
-
-    An answer that does not pickle, or is over the registrar's `max_message_bytes`,
-    becomes an error answer (the caller never hangs). When a successful answer does not
-    reach its caller (it does not pickle, is too large, or the caller's connection ends
-    first), the message's `compensation()` is told to the local registrar: for a `Load`,
-    the consumer id it created is released again.
-    """
-
-    __slots__ = ("_done", "_link", "_message", "_token")
-
-    def __init__(self, link: _Link, token: int, message: Any) -> None:
-        self._link = link
-        self._token = token
-        self._message = message
-        self._done = False
-
-    def set_result(self, value: Any) -> None:
-        self._answer(value, None)
-
-    def set_error(self, error: BaseException) -> None:
-        self._answer(None, error)
-
-    def _answer(self, value: Any, error: BaseException | None) -> None:
-        if self._done:
-            return
-        self._done = True
-        try:
-            data = frame(self._token, (value, error))
-        except BaseException as exc:  # noqa: BLE001 - any pickling failure (SystemExit from a
-            # user __reduce__ too) becomes an error answer
-            data = frame(self._token, (None, self._unpicklable(value, error, exc)))
-            error = exc
-        limit = self._link.listener.max_message_bytes
-        if payload_size(data) > limit:
-            too_large = MessageTooLargeError(
-                f"the answer to the {what(self._message, self._link.listener.name)} is "
-                f"{payload_size(data)} bytes pickled, over registrar "
-                f"{self._link.listener.name!r}'s max_message_bytes ({limit})",
-                payload_size(data),
-                limit,
-            )
-            if error is None:
-                self._compensate()  # its caller gets an error
-            data = frame(self._token, (None, too_large))
-            error = too_large
-        on_lost = self._compensate if error is None else None
-        if not self._link.send(data, on_lost) and on_lost is not None:
-            on_lost()
-
-    def _compensate(self) -> None:
-        """The answer did not reach its caller: undo what handling the message created."""
-        name = self._link.listener.name
-        compensate(self._message, lambda compensation: DIRECTORY.lookup(name).tell(compensation))
-
-    def _unpicklable(self, value: Any, error: BaseException | None, exc: BaseException) -> RrError:
-        if error is not None:
-            return TransferError(
-                f"{type(error).__qualname__}: {error} (the error itself did not pickle)"
-            )
-        self._compensate()  # its caller gets an error
-        failure: RrError = self._message.unsendable_answer(self._link.listener.name, value, exc)
-        return failure
 
 
 class _Link:
@@ -191,12 +110,13 @@ class _Link:
     def _deliver(self, data: bytes | bytearray) -> None:
         """Unpickle one frame and hand the message to the local registrar (reader thread)."""
         token, payload = unframe(data)
+        name, limit = self.listener.name, self.listener.max_message_bytes
         deliver(
-            self.listener.name,
+            name,
             token,
             payload,
             self.send,
-            lambda message: _AnswerReply(self, token, message),
+            lambda message: StandIn(self.send, name, limit, token, message),
             self.listener.run,
         )
 
@@ -252,7 +172,7 @@ class Listener:
     Its accept thread outlives failures: when `accept` fails for lack of resources (the
     process is out of file descriptors: `EMFILE`), it logs once, waits (exponential
     backoff, cut short when one of its connections ends) and tries again, while peers
-    wait in the backlog. [`trouble`][rr_actors._transport.inbound.Listener.trouble] says
+    wait in the backlog. [`trouble`][rr_actors._transport.unix.inbound.Listener.trouble] says
     for how long it has been unable to accept, so a manager process can report it with
     its heartbeat answer and its supervisor restart a manager that stays unable to.
     """

@@ -27,11 +27,11 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
-from rr_actors._transport.zenoh_wire import Keys
+from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.errors import ConfigError
 
 if TYPE_CHECKING:
-    from rr_actors._transport.zenoh_tls import ZenohTLS
+    from rr_actors._transport.zenoh.tls import ZenohTLS
 
 __all__ = ["endpoints", "parse_endpoint", "session_config"]
 

@@ -30,7 +30,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from rr_actors._transport.access import private_file_trouble
+from rr_actors._transport.zenoh.access import private_file_trouble
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError
 

@@ -13,10 +13,10 @@ never over TCP on loopback, which any local user could reach and send pickles to
  manager processes (address.attach())              manager processes
 ```
 
-Between hosts, `tls/` (mutual TLS, only members admitted: `zenoh_config`, `zenoh_tls`,
-`zenoh_watch`) or, on one trusted network, `tcp/` (`tls=None`: a WARNING per endpoint
+Between hosts, `tls/` (mutual TLS, only members admitted: `config`, `tls`,
+`watch`) or, on one trusted network, `tcp/` (`tls=None`: a WARNING per endpoint
 naming who can reach it, on loopback every local user). What crosses:
-`zenoh_carrier` (and its collaborators); how presence works: `zenoh_presence`. A process
+`carrier` (and its collaborators); how presence works: `presence`. A process
 belongs to one system (the registrar directory is per process): joining a second one is
 a `ConfigError`. A process that opened a Zenoh session must not fork: Zenoh's runtime
 threads are not in the child, whose session (and any new one) would hang. rr_actors
@@ -47,20 +47,20 @@ from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.directory import Peer
 from rr_actors._core.exit import NETWORKS, stop_at_exit
 from rr_actors._platform import fork
-from rr_actors._transport.access import user
 from rr_actors._transport.base import Address, Endpoint, Transport
-from rr_actors._transport.zenoh_carrier import ZenohMember
-from rr_actors._transport.zenoh_config import endpoints, parse_endpoint, session_config
-from rr_actors._transport.zenoh_events import check_window
-from rr_actors._transport.zenoh_gate import HandshakeGate, open_gates
-from rr_actors._transport.zenoh_watch import LinkWatch, MemberLink, remote
-from rr_actors._transport.zenoh_wire import Keys
+from rr_actors._transport.zenoh.access import user
+from rr_actors._transport.zenoh.carrier import ZenohMember
+from rr_actors._transport.zenoh.config import endpoints, parse_endpoint, session_config
+from rr_actors._transport.zenoh.events import check_window
+from rr_actors._transport.zenoh.gate import HandshakeGate, open_gates
+from rr_actors._transport.zenoh.watch import LinkWatch, MemberLink, remote
+from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavailableError
 from rr_actors.events.kinds import set_host
 
 if TYPE_CHECKING:
-    from rr_actors._transport.zenoh_tls import ZenohTLS
+    from rr_actors._transport.zenoh.tls import ZenohTLS
 
 __all__ = ["Services", "ZenohAddress", "ZenohNetwork"]
 
@@ -88,7 +88,7 @@ def _members_at(session: zenoh.Session, members: frozenset[str]) -> set[str]:
 
 def _is_tls(tls: object) -> bool:
     try:
-        from rr_actors._transport.zenoh_tls import ZenohTLS  # noqa: PLC0415 - cryptography
+        from rr_actors._transport.zenoh.tls import ZenohTLS  # noqa: PLC0415 - cryptography
     except ImportError:  # without cryptography nobody could have made a ZenohTLS
         return False
     return isinstance(tls, ZenohTLS)
@@ -308,10 +308,10 @@ class ZenohNetwork:
             WARNING each: whoever answers there can run code here). One that cannot be
             reached yet is no error (the other host may start later; Zenoh keeps
             trying): a WARNING names it, with TLS the reason from a handshake of our own
-            (`zenoh_watch`), at most once a minute while it lasts.
+            (`watch`), at most once a minute while it lasts.
         tls: required. A `ZenohTLS`: mutual TLS on every link and Zenoh's access control
             (only `members` and this host's manager processes reach `rr/<system>/`; see
-            `zenoh_config`). `None`: plain TCP, for one trusted network only: anyone who
+            `config`). `None`: plain TCP, for one trusted network only: anyone who
             reaches a port (on loopback: every local user) can send pickles, which run
             as code.
         lease: seconds (default 1.0) after which a silent peer (a cut link, a frozen

@@ -1,13 +1,13 @@
 """Who a TLS router is linked to, and why a `connect` endpoint is not: said on the logger.
 
-Zenoh decides who gets in (mutual TLS, then the access control of `zenoh_config`); this
+Zenoh decides who gets in (mutual TLS, then the access control of `config`); this
 module only tells the operator, on the `rr_actors` logger:
 
 - INFO when a member links: its certificate's common name and its address (both sides);
 - WARNING when a certificate signed by this system's CA but not in `members` links: Zenoh
   drops every message of it both ways; at most once per address per minute;
 - WARNING when a `connect` endpoint has no link `GRACE` seconds after start or after its
-  link is lost, with the reason from our own handshake (`zenoh_probe`); at most once per
+  link is lost, with the reason from our own handshake (`probe`); at most once per
   endpoint per minute while it lasts. A handshake that finds nothing wrong (the listener
   accepts this host) warns only if the next one, `GRACE` seconds later, finds the same and
   there is still no link: Zenoh's own link is then most likely on its way.
@@ -47,11 +47,11 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import zenoh
 
 from rr_actors._core.serial import SerialExecutor
-from rr_actors._transport.zenoh_config import parse_endpoint
-from rr_actors._transport.zenoh_probe import handshake_trouble
+from rr_actors._transport.zenoh.config import parse_endpoint
+from rr_actors._transport.zenoh.probe import handshake_trouble
 
 if TYPE_CHECKING:
-    from rr_actors._transport.zenoh_tls import ZenohTLS
+    from rr_actors._transport.zenoh.tls import ZenohTLS
 
 __all__ = ["LinkWatch", "MemberLink", "remote"]
 
@@ -317,7 +317,7 @@ class LinkWatch:
 
         Runs on the caller's thread (an `UnknownRegistrarError` being made, a
         `ZenohNetwork.wait_for` that timed out). The reason is the watch's last probe
-        (`zenoh_probe`); an endpoint not probed yet is probed now, which takes up to
+        (`probe`); an endpoint not probed yet is probed now, which takes up to
         a few seconds (a TLS handshake's timeout) when its host does not answer.
         """
         if self._thread.closed or not self._endpoints:

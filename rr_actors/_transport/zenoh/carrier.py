@@ -6,7 +6,7 @@ load is done, possibly minutes later), and an answer is just another one-way mes
 back. A `get` would hold a Zenoh query open (and bounded by its own timeout) for as long
 as a load runs, and its answers would come on Zenoh's threads. With puts, every message
 is a frame of the AF_UNIX carrier (`codec.frame`: token + pickle; the reply stays with
-the sender under the token) behind a small header (`zenoh_wire`), and the failure of a
+the sender under the token) behind a small header (`wire`), and the failure of a
 peer is seen through liveliness tokens, not through a query's end:
 
 ```
@@ -27,15 +27,15 @@ peer is seen through liveliness tokens, not through a query's end:
 
 Who does what (each collaborator owns its state; they meet only through method calls):
 
-- `zenoh_carrier` (here): `ZenohMember`, the Transport surface (resolve, serve, run,
+- `carrier` (here): `ZenohMember`, the Transport surface (resolve, serve, run,
   names, close), one name one server, sending; `ZenohPeer`;
-- `zenoh_outbox`: `Outboxes`, one writer thread per destination key, the heal ping;
-- `zenoh_inbox`: `Inbox`, the decode threads, delivery, version refusal, and the replies
+- `outbox`: `Outboxes`, one writer thread per destination key, the heal ping;
+- `inbox`: `Inbox`, the decode threads, delivery, version refusal, and the replies
   waiting for answers;
-- `zenoh_presence`: `Presence`, the liveliness tables and the presence thread; it reports
+- `presence`: `Presence`, the liveliness tables and the presence thread; it reports
   what follows to the member (`PresenceEvents`: process_gone, server_gone, lost,
   reachable);
-- `zenoh_wire`: key expressions and the frame header.
+- `wire`: key expressions and the frame header.
 
 One name, one server: `serve` first declares a claim token, then asks the network for
 servers and claims of the name. A server of another process is a `DuplicateNameError`;
@@ -53,22 +53,28 @@ import logging
 import struct
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
 from rr_actors._core.bus import Subscription
-from rr_actors._core.directory import DIRECTORY, Peer, Reply
+from rr_actors._core.directory import DIRECTORY, Peer
 from rr_actors._core.hlc import CLOCK
-from rr_actors._core.replies import FutureReply, wait
 from rr_actors._transport.base import Address, Endpoint
-from rr_actors._transport.codec import NO_REPLY, Run, frame, payload_size, what
-from rr_actors._transport.writer import Lost
-from rr_actors._transport.zenoh_events import EventExport, EventFeed
-from rr_actors._transport.zenoh_inbox import Inbox, Local
-from rr_actors._transport.zenoh_outbox import Outbox, Outboxes
-from rr_actors._transport.zenoh_presence import ASK_TIMEOUT, Presence
-from rr_actors._transport.zenoh_wire import (
+from rr_actors._transport.messenger import (
+    Link,
+    Lost,
+    Remote,
+    check_size,
+    encode,
+    tell_lost,
+    tell_reachable,
+)
+from rr_actors._transport.zenoh.events import EventExport, EventFeed
+from rr_actors._transport.zenoh.inbox import Inbox, Local
+from rr_actors._transport.zenoh.outbox import Outbox, Outboxes
+from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence
+from rr_actors._transport.zenoh.wire import (
     ANSWER,
     MESSAGE,
     VERSION,
@@ -80,8 +86,6 @@ from rr_actors._transport.zenoh_wire import (
 )
 from rr_actors.config import NAME
 from rr_actors.errors import (
-    ConfigError,
-    MessageTooLargeError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
     RrError,
@@ -95,8 +99,8 @@ __all__ = ["ZenohMember"]
 logger = logging.getLogger("rr_actors")
 
 
-class ZenohPeer:
-    """A registrar of another process of the system, reached over Zenoh."""
+class ZenohPeer(Remote):
+    """A registrar of another process of the system, reached over Zenoh (`run`: `Remote`)."""
 
     def __init__(self, member: ZenohMember, name: str) -> None:
         self.name = name
@@ -112,15 +116,6 @@ class ZenohPeer:
             RegistrarStoppedError: it was stopped, or this process left the system.
         """
         self._member.send(self.name, message)
-
-    def run(self, fn: Callable[[Any], Any], *, timeout: float) -> Any:
-        """Run `fn(registrar)` in the registrar's process; return its result."""
-        reply = FutureReply()
-        try:
-            self.tell(Run(fn, reply))
-        except RrError as exc:
-            reply.set_error(exc)
-        return wait(reply.future, timeout, f"run() on registrar {self.name!r}")
 
 
 class ZenohMember:
@@ -378,37 +373,24 @@ class ZenohMember:
         )
 
     def send(self, name: str, message: Any) -> None:
-        reply: Reply | None = getattr(message, "reply", None)
-        if reply is not None:
-            message = message.detached()
-        token = self._inbox.token() if reply is not None else NO_REPLY
-        try:
-            data = frame(token, message)
-        except BaseException as exc:  # (a SystemExit from a user __reduce__ is contained too)
-            raise ConfigError(f"{what(message, name)} is not picklable: {exc}") from exc
+        """Send `message` to registrar `name` of another process (see `ZenohPeer.tell`)."""
+        outgoing = encode(name, message)
         server = self._presence.server(name)
         if server is None and not self.closed:  # maybe served again, not yet heard here
             self._presence.ask(name)
             server = self._presence.server(name)
         if server is None:
             raise self._gone_error(name)
-        size = payload_size(data)
-        if size > server.limit:
-            raise MessageTooLargeError(
-                f"the {what(message, name)} is {size} bytes pickled, over registrar "
-                f"{name!r}'s max_message_bytes ({server.limit}); nothing was sent",
-                size,
-                server.limit,
-            )
-        if reply is not None:
-            self._inbox.expect(token, name, reply, message, server.limit)
+        check_size(outgoing, name, server.limit)
+        if outgoing.reply is not None:
+            self._inbox.expect(outgoing, name, server.limit)
         outbox = self._outbox(self._keys.registrar(name), server.zid)
         sent = (  # (gone meanwhile: its presence may have missed this reply)
             self._presence.server(name) is not None
             and outbox is not None
-            and outbox.send(envelope(MESSAGE, self.zid, data, CLOCK.send()))
+            and outbox.send(envelope(MESSAGE, self.zid, outgoing.data, CLOCK.send()))
         )
-        if not sent and (reply is None or self._inbox.forget(token)):
+        if not sent and (outgoing.reply is None or self._inbox.forget(outgoing.token)):
             raise self._gone_error(name)
 
     def _outbox(self, key: str, zid: str | None = None) -> Outbox | None:
@@ -459,20 +441,12 @@ class ZenohMember:
 
     def lost(self, name: str) -> None:
         """Registrar `name` is gone for good: every endpoint served here hears it."""
-        logger.info("registrar %s of system %s is lost (nobody restarts it)", name, self.system)
-        for local in list(self._locals.values()):
-            if local.name != name:
-                try:  # (one endpoint's failure must not keep it from the others)
-                    local.endpoint.peer_lost(name)
-                except Exception:
-                    logger.exception("registrar %s: peer_lost(%s) failed", local.name, name)
+        tell_lost([local.endpoint for local in list(self._locals.values())], name, self.system)
 
     def reachable(self, name: str) -> None:
         """Registrar `name` is back from the same process (a healed link)."""
-        logger.info("registrar %s of system %s is reachable again", name, self.system)
-        for local in list(self._locals.values()):
-            if local.name != name:
-                try:
-                    local.endpoint.peer_reachable(name)
-                except Exception:
-                    logger.exception("registrar %s: peer_reachable(%s) failed", local.name, name)
+        tell_reachable([local.endpoint for local in list(self._locals.values())], name, self.system)
+
+
+if TYPE_CHECKING:  # mypy checks that the member is the messenger's link
+    _link: type[Link] = ZenohMember

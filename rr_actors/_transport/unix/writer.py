@@ -14,15 +14,12 @@ import threading
 from collections.abc import Callable
 
 from rr_actors._core.serial import SerialExecutor
-from rr_actors._transport.sockets import shutdown
+from rr_actors._transport.messenger import Lost, run_lost
+from rr_actors._transport.unix.sockets import shutdown
 
 __all__ = ["Lost", "Writer", "run_lost"]
 
 logger = logging.getLogger("rr_actors")
-
-
-Lost = Callable[[], None]
-"""Called (on any thread) when a queued frame could not be sent: the connection ended."""
 
 
 class Writer:
@@ -173,11 +170,3 @@ class _Frame:
 def _lost(task: object) -> None:
     if isinstance(task, _Frame) and task.on_lost is not None:
         run_lost([task.on_lost])
-
-
-def run_lost(callbacks: list[Lost]) -> None:
-    for on_lost in callbacks:
-        try:
-            on_lost()
-        except Exception:
-            logger.exception("cleaning up after a lost frame failed")

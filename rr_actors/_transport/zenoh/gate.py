@@ -43,7 +43,7 @@ import time
 from collections.abc import Callable, Iterable
 
 from rr_actors._platform import GATE_SOURCES, PLATFORM, ListenerGate
-from rr_actors._transport.zenoh_config import parse_endpoint
+from rr_actors._transport.zenoh.config import parse_endpoint
 
 __all__ = ["BACKLOG", "HOLD", "QUIET", "TICK", "HandshakeGate", "open_gates"]
 

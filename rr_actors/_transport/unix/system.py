@@ -63,8 +63,9 @@ from typing import Any
 from rr_actors._core.directory import DIRECTORY, Peer
 from rr_actors._platform import PLATFORM, fork
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.inbound import Listener
-from rr_actors._transport.outbound import RemotePeer
+from rr_actors._transport.messenger import tell_lost
+from rr_actors._transport.unix.inbound import Listener
+from rr_actors._transport.unix.outbound import RemotePeer
 from rr_actors.errors import (
     ConfigError,
     RegistrarStoppedError,
@@ -405,17 +406,8 @@ class AttachedSystem:
 
     def _lose(self, name: str) -> None:
         """Registrar `name` is gone for good: every endpoint served here hears it."""
-        logger.info(
-            "registrar %s of system %s is lost (nobody restarts it)",
-            name,
-            self.address.runtime_dir,
-        )
-        for listener in list(self._listeners.values()):
-            if listener.name != name:
-                try:
-                    listener.endpoint.peer_lost(name)
-                except Exception:
-                    logger.exception("registrar %s: peer_lost(%s) failed", listener.name, name)
+        listeners = list(self._listeners.values())
+        tell_lost([listener.endpoint for listener in listeners], name, self.address.runtime_dir)
 
     def _watch(self, endpoint: Endpoint, listener: Listener) -> None:
         endpoint.wait_ended()  # the carrier watches the registrar's end

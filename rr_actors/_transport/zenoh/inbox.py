@@ -10,7 +10,7 @@ for the replies waiting here.
                    tell the registrar ─► reply.set_result ─► owner.answer_to(sender)
 
  put rr/<s>/ans/<zid> ─► answers callback ─► inbox (sender, answer): decode thread
-                           waiting.pop(token).reply.set_result(value)
+                           Replies.answered (the messenger): reply.set_result(value)
 ```
 
 Each process decodes on one thread per sending process and kind (messages, answers: a
@@ -28,7 +28,6 @@ every message of its link.
 from __future__ import annotations
 
 import functools
-import itertools
 import logging
 import threading
 import time
@@ -36,21 +35,20 @@ from typing import Any, Protocol
 
 import zenoh
 
-from rr_actors._core.directory import Reply
 from rr_actors._core.hlc import CLOCK
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.codec import NO_REPLY, Run, what
-from rr_actors._transport.delivery import (
-    answer,
-    answer_too_large,
+from rr_actors._transport.codec import NO_REPLY, Run
+from rr_actors._transport.messenger import (
+    Lost,
+    Outgoing,
+    Replies,
+    StandIn,
     deliver,
     refuse_too_large,
 )
-from rr_actors._transport.inbound import _AnswerReply
-from rr_actors._transport.writer import Lost
-from rr_actors._transport.zenoh_wire import (
+from rr_actors._transport.zenoh.wire import (
     ANSWER,
     MESSAGE,
     VERSION,
@@ -59,7 +57,7 @@ from rr_actors._transport.zenoh_wire import (
     payload_of,
     versions_text,
 )
-from rr_actors.errors import RrError, TransferError
+from rr_actors.errors import RrError
 
 __all__ = ["STRANGERS_HELD", "STRANGER_GRACE", "Inbox", "InboxOwner", "Local"]
 
@@ -104,30 +102,6 @@ class InboxOwner(Protocol):
         """Send `message` to registrar `name` of another process."""
 
 
-class _Waiting:
-    __slots__ = ("limit", "message", "name", "reply")
-
-    def __init__(self, name: str, reply: Reply, message: Any, limit: int) -> None:
-        self.name = name
-        self.reply = reply
-        self.message = message
-        self.limit = limit
-
-
-class _AnswerLink:
-    """Where the stand-in reply (`inbound._AnswerReply`) of one message sends its answer."""
-
-    __slots__ = ("listener", "owner", "sender")
-
-    def __init__(self, owner: InboxOwner, sender: str, listener: Local) -> None:
-        self.owner = owner
-        self.sender = sender
-        self.listener = listener
-
-    def send(self, data: bytes, on_lost: Lost | None = None) -> bool:
-        return self.owner.answer_to(self.sender, data, on_lost)
-
-
 class Inbox:
     """The decode queues of one process (one per sending process and kind) and the
     replies waiting here for an answer, by token.
@@ -141,8 +115,7 @@ class Inbox:
         self._lock = threading.Lock()
         self._closed = False
         self._inboxes: dict[tuple[str, int], SerialExecutor] = {}
-        self._waiting: dict[int, _Waiting] = {}
-        self._tokens = itertools.count(1)
+        self._replies = Replies(owner.send)
         self._warned: set[str] = set()
         self._strangers = SerialExecutor("rr-zread-strangers")
         self._pending: dict[tuple[str, int], int] = {}  # frames on `_strangers`, by stream
@@ -154,25 +127,17 @@ class Inbox:
 
     # -- the replies waiting for an answer -------------------------------------------------
 
-    def token(self) -> int:
-        """A fresh token for a message that wants an answer."""
-        return next(self._tokens)
-
-    def expect(self, token: int, name: str, reply: Reply, message: Any, limit: int) -> None:
-        """`reply` waits for the answer `token` of registrar `name` to `message`."""
-        self._waiting[token] = _Waiting(name, reply, message, limit)
+    def expect(self, outgoing: Outgoing, name: str, limit: int) -> None:
+        """`outgoing`'s reply waits for the answer of registrar `name` (`Replies.expect`)."""
+        self._replies.expect(outgoing, name, limit)
 
     def forget(self, token: int) -> bool:
         """Stop waiting for `token`; False if it was not waited for (answered or failed)."""
-        return self._waiting.pop(token, None) is not None
+        return self._replies.forget(token)
 
     def fail_waiting(self, name: str | None, error: RrError) -> None:
         """Fail every reply waiting on registrar `name` (`None`: every one) with `error`."""
-        which = list(self._waiting.items())
-        for token in [t for t, w in which if name is None or w.name == name]:
-            waiting = self._waiting.pop(token, None)  # atomic: the decode thread pops too
-            if waiting is not None:
-                waiting.reply.set_error(error)
+        self._replies.fail(name, error)
 
     # -- the queues --------------------------------------------------------------------------
 
@@ -324,12 +289,16 @@ class Inbox:
         if len(payload) > local.max_message_bytes:
             refuse_too_large(name, token, len(payload), local.max_message_bytes, send)
             return
+
+        def answer(data: bytes, on_lost: Lost | None) -> bool:
+            return self._owner.answer_to(sender, data, on_lost)
+
         deliver(
             name,
             token,
             payload,
             send,
-            lambda message: _AnswerReply(_AnswerLink(self._owner, sender, local), token, message),  # type: ignore[arg-type]
+            lambda message: StandIn(answer, name, local.max_message_bytes, token, message),
             lambda message: self._run(local, message),
         )
 
@@ -355,24 +324,9 @@ class Inbox:
         thread)."""
         data, head = item
         token, payload = payload_of(data, head)
-        waiting = self._waiting.pop(token, None)
-        if waiting is None:
-            return
         if head.kind == VERSION or not head.ours:
-            waiting.reply.set_error(
-                TransferError(
-                    f"registrar {waiting.name!r} runs another version ({versions_text(head)}): "
-                    f"pickles do not cross versions, so the {what(waiting.message, waiting.name)}"
-                    f" was not read there"
-                )
-            )
+            self._replies.refused(token, versions_text(head))
             return
-        if head.stamp is not None:
-            CLOCK.receive(head.stamp)
-        tell = functools.partial(self._owner.send, waiting.name)
-        if len(payload) > waiting.limit:
-            answer_too_large(
-                waiting.reply, waiting.message, waiting.name, len(payload), waiting.limit, tell
-            )
-            return
-        answer(waiting.reply, waiting.message, waiting.name, payload, tell)
+        if head.stamp is not None and token in self._replies:
+            CLOCK.receive(head.stamp)  # (an answer someone waits for)
+        self._replies.answered(token, payload)

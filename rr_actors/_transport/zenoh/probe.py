@@ -3,7 +3,7 @@
 zenoh-python 1.10 does not tell Python that a handshake was refused: a refused
 `zenoh.open` returns normally, retries every 1-4 s and logs the reason at DEBUG on stdout.
 So when a `connect` endpoint stays unlinked, rr_actors dials it once with Python's `ssl`
-and the same files (`zenoh_watch` decides when), and names what went wrong:
+and the same files (`watch` decides when), and names what went wrong:
 
 - the listener's alert, sent when it refuses this host's certificate (TLS 1.3 sends it
   after the client's side of the handshake, so the probe reads once to receive it):
@@ -13,7 +13,7 @@ and the same files (`zenoh_watch` decides when), and names what went wrong:
   (`verify_name_on_connect`), or out of its validity dates;
 - or that the address cannot be reached at all.
 
-Runs on `zenoh_watch`'s thread; never on a Zenoh callback (it blocks up to `timeout`).
+Runs on `watch`'s thread; never on a Zenoh callback (it blocks up to `timeout`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import ssl
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from rr_actors._transport.zenoh_tls import ZenohTLS
+    from rr_actors._transport.zenoh.tls import ZenohTLS
 
 __all__ = ["handshake_trouble"]
 

@@ -6,9 +6,9 @@ see each other:
 ```
  rr/<system>/reg/<name>                       messages for registrar <name> (its subscriber)
  rr/<system>/ans/<zid>                        answers for the process whose Zenoh id is <zid>
- rr/<system>/ping/<zid>                       its queryable: answers a ping (`zenoh_outbox`)
+ rr/<system>/ping/<zid>                       its queryable: answers a ping (`outbox`)
  rr/<system>/ev/<zid>                         the events of process <zid>: JSON lines, never
-                                              a pickle (`zenoh_events`)
+                                              a pickle (`events`)
  rr/<system>/live/proc/<zid>                  liveliness: process <zid> is a member
  rr/<system>/live/reg/<name>/<zid>/<sup>/<limit>
                                               liveliness: <zid> serves <name>; <sup> is the
@@ -41,7 +41,7 @@ its kind has the `STAMPED` flag, and the 8-byte stamp (little endian) follows th
 frame's token, before the pickle (`envelope`). There, a process of another wire version
 still reads the token, to answer `VERSION`; the frame's length field is not the
 frame's then (it is never read: the sample's length is). The receiver's clock takes the
-stamp in before the message is handled (`zenoh_inbox`).
+stamp in before the message is handled (`inbox`).
 
 The header's layout never changes, so a process of another rr_actors wire version or
 Python minor version can always read it: nothing after it is unpickled unless both
@@ -272,11 +272,11 @@ class Keys:
         return f"{self.prefix}/ans/{zid}"
 
     def ping(self, zid: str) -> str:
-        """Process `zid`'s queryable that answers a ping (`zenoh_outbox`)."""
+        """Process `zid`'s queryable that answers a ping (`outbox`)."""
         return f"{self.prefix}/ping/{zid}"
 
     def events(self, zid: str) -> str:
-        """Process `zid`'s events (JSON lines: `zenoh_events`)."""
+        """Process `zid`'s events (JSON lines: `events`)."""
         return f"{self.prefix}/ev/{zid}"
 
     def all_events(self) -> str:

@@ -29,8 +29,8 @@ from collections.abc import Callable
 import zenoh
 
 from rr_actors._core.serial import SerialExecutor, Task
-from rr_actors._transport.writer import Lost, run_lost
-from rr_actors._transport.zenoh_wire import Keys
+from rr_actors._transport.messenger import Lost, run_lost
+from rr_actors._transport.zenoh.wire import Keys
 
 __all__ = ["HEAL_TIMEOUT", "Outbox", "Outboxes"]
 

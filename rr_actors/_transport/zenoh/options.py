@@ -72,7 +72,7 @@ def network_from(args: argparse.Namespace) -> Any:
         raise ConfigError("--network ENDPOINT is required (a member host's router)")
     if not args.system:
         raise ConfigError("--system NAME is required (the system's name)")
-    from rr_actors._transport.zenoh_net import ZenohNetwork  # noqa: PLC0415 - the extra
+    from rr_actors._transport.zenoh.net import ZenohNetwork  # noqa: PLC0415 - the extra
 
     if args.plain:
         if args.certs or args.member or args.members:
@@ -80,7 +80,7 @@ def network_from(args: argparse.Namespace) -> Any:
         return ZenohNetwork(system=args.system, connect=args.network, tls=None, lease=args.lease)
     if not args.certs or not args.member:
         raise ConfigError("--certs DIR and --member NAME are required (or --plain)")
-    from rr_actors._transport.zenoh_tls import ZenohTLS  # noqa: PLC0415 - cryptography
+    from rr_actors._transport.zenoh.tls import ZenohTLS  # noqa: PLC0415 - cryptography
 
     directory = Path(args.certs)
     if args.members:

@@ -20,7 +20,7 @@
   a WARNING (at most one a minute) naming the sender's key.
 - Only members see the stream and only members put on it: the keys are under
   `rr/<system>/`, which the access control of a `ZenohNetwork` with `tls` admits for
-  members' certificates and this host's own processes only (`zenoh_config`).
+  members' certificates and this host's own processes only (`config`).
 - Merged by the hybrid logical clock: a process's own events arrive in order (one
   publisher, reliable puts); those of different processes are held `window` seconds
   after they arrived and released in `hlc` order, so an effect on one host never comes
@@ -46,7 +46,7 @@ import zenoh
 from rr_actors import events
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Forwarder, Publisher, Subscription
 from rr_actors._core.throttle import LogThrottle
-from rr_actors._transport.zenoh_wire import Keys
+from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.errors import ConfigError
 
 __all__ = [

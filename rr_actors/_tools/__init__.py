@@ -1,0 +1,4 @@
+"""Operator tooling behind the command line, apart from the carriers it serves.
+
+`certs`: `rr-actors certs init` / `issue` (a system's CA, a host's certificate).
+"""
