@@ -8,9 +8,10 @@ Each client has a consumer registrar of its own (`Supervisor.registrar`) and one
     a status came (its callback queues it) ──► FATAL: unload, load again (a recovery)
                                                UPDATE: the manager replaced it (a recovery)
 
-What came due while a call blocked (statuses heard, holds run out) is handled, before the
-next call, in the order it happened: a `FATAL` heard while the resource was still held is
-acted on even if its hold ran out since.
+What came due while a call blocked (statuses heard, holds run out) is handled before the
+next call, the statuses first: a `FATAL` about a resource the client still held (not yet
+released, though its hold may have run out while the call blocked) is acted on, as the
+provider still counted the client among its consumers.
 
 Calls come at `rate` per second per client (seeded Poisson or fixed gaps), on a schedule
 fixed in advance (an open-loop load): the calls that fell due while one call waited out a
@@ -347,13 +348,14 @@ class Client:
         # Statuses that came after the end: nothing more to do than unload at stop().
 
     def _catch_up(self) -> bool:
-        """Handle the statuses heard and the holds that ran out, in the order they happened.
+        """Handle the statuses heard, then unload the holds that ran out.
 
         While a call blocks (a retry through a restart, a slow load), a `FATAL` may come
-        for a resource whose hold runs out before the call returns: heard first, it is
-        acted on first (released and loaded again: a recovery), as a client that was not
-        busy would have; a hold that ran out before the status came is unloaded first
-        (the status then finds nothing held: nothing to recover).
+        for a resource whose hold runs out, or ran out already, before the call returns:
+        the client still holds it (it has not released it; the provider still counts it
+        among the consumers, and a shared resource stays loaded for it), so the status is
+        acted on first: released and loaded again, a recovery. Only a hold the client
+        released before the status came finds nothing held (nothing to recover).
 
         Returns:
             False once `stop` was asked for (the statuses still queued are left).
@@ -366,15 +368,12 @@ class Client:
             if note is _STOP:
                 return False
             self._pending.append(note)
+        while self._pending:
+            self._handle(self._pending.popleft())
         now = time.monotonic()
-        while True:
-            due = self._held[0].unload_at if self._held and self._held[0].unload_at <= now else None
-            if self._pending and (due is None or self.t0 + self._pending[0][2] <= due):
-                self._handle(self._pending.popleft())
-            elif due is not None:
-                self._unload(heapq.heappop(self._held), now + self.workload.timeout)
-            else:
-                return True
+        while self._held and self._held[0].unload_at <= now:
+            self._unload(heapq.heappop(self._held), now + self.workload.timeout)
+        return True
 
     def _now(self) -> float:
         return time.monotonic() - self.t0

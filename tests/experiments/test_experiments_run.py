@@ -347,6 +347,28 @@ def test_a_fatal_heard_during_a_long_call_is_recovered_though_the_hold_ran_out_m
     assert 0 == result.leaked_processes
 
 
+HELD_PAST_ITS_HOLD = BUSY_WHEN_KILLED.replace("hold = 1.0", "hold = 0.2").replace(
+    "delay = 0.3", "delay = 0.6"
+)
+"""As `BUSY_WHEN_KILLED`, but the LiDAR's hold (0.2 s) runs out while the client waits on
+slow, before the kill (0.6 s after cm answered): the client has not released it yet."""
+
+
+def test_a_fatal_about_a_resource_not_yet_released_is_recovered_though_its_hold_ran_out() -> None:
+    """A client blocked in a long call past its LiDAR's hold still holds the LiDAR when it
+    is killed (cm still counts it among the consumers): on return it acts on the `FATAL`
+    (releases and reloads, a recovery) rather than unloading it as if it had let go."""
+    (result,) = run(parse_plan(HELD_PAST_ITS_HOLD)).runs
+    (kill,) = result.faults
+    calls = [c.manager for c in sorted(result.calls, key=lambda c: c.start_s)]
+
+    assert ["cm", "slow"] == calls[:2], calls
+    assert kill.injected_s is not None, kill
+    assert kill.recovery_s is not None, kill
+    assert 0 == result.unrecovered
+    assert 0 == result.leaked_processes
+
+
 def test_the_every_fault_runs_count_what_they_did(every_fault: tuple[Results, Path]) -> None:
     results, out = every_fault
     for number, run_result in enumerate(results.runs, start=1):
