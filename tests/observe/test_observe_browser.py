@@ -195,6 +195,7 @@ def test_the_mission_right_after_f3(page: Any, process_helpers: Any, tmp_path: P
         page.wait_for_selector('#catalogs [data-registrar="erm"]:not(.stale) .resource')
         screenshot(page, "observer-mission-f3.png", tmp_path)
         timeline = page.locator("#timeline").inner_text()
+        page.close()  # before the page's server stops: no reconnect to log as an error
 
     assert "erm restarted after" in timeline
     assert "FATAL" in timeline  # F1 and F2 before it
