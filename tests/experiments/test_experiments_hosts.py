@@ -214,7 +214,7 @@ def test_a_cut_and_a_freeze_between_two_hosts_fire_in_order_and_the_run_is_check
 
 THREE_HOSTS = f"""\
 name = "three"
-duration = 4.5
+duration = 8.0  # b's host process starts cold after the kill: ~2 s quiet, more under load
 seed = 5
 
 [hosts]
