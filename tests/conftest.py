@@ -153,6 +153,21 @@ def _os_children() -> list[int]:
     return living
 
 
+def _command_line(pid: int) -> str:
+    """A process's command line, for a leak's message ("?" once it is gone)."""
+    try:
+        raw = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return "?"
+    return raw.replace(b"\0", b" ").decode(errors="replace").strip()[:200]
+
+
+def _is_forkserver(pid: int) -> bool:
+    """Whether `pid` is `multiprocessing`'s forkserver: the first test that starts a process
+    manager starts it, and it serves every later test (a session-long helper, not a leak)."""
+    return "from multiprocessing.forkserver import main" in _command_line(pid)
+
+
 def _test_children() -> list[multiprocessing.process.BaseProcess]:
     return [p for p in multiprocessing.active_children() if p.pid not in _HELPER_PIDS]
 
@@ -172,6 +187,7 @@ def no_leftovers() -> Iterator[None]:
             child.join(max(0.0, deadline - time.monotonic()))
     processes = _test_children()
     strays = set(_os_children()) - children_before - {p.pid for p in processes} - _HELPER_PIDS
+    strays = {pid for pid in strays if not _is_forkserver(pid)}  # started once, session-long
     if actors:
         pykka.ActorRegistry.stop_all(block=True, timeout=LEAK_GRACE)
     for child in processes:
@@ -184,7 +200,10 @@ def no_leftovers() -> Iterator[None]:
     if processes:
         problems.append(f"child processes left running: {processes}")
     if strays:
-        problems.append(f"child processes (by pid) left running: {sorted(strays)}")
+        problems.append(
+            "child processes (by pid) left running: "
+            + ", ".join(f"{pid} ({_command_line(pid)})" for pid in sorted(strays))
+        )
     if problems:
         pytest.fail("; ".join(problems))
 
