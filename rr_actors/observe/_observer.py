@@ -119,6 +119,36 @@ def _bind(host: str, port: int, *, allow_remote: bool) -> socket.socket:
     return sock
 
 
+def _adopt(sock: socket.socket, *, allow_remote: bool) -> str:
+    """Check a listening socket given to serve on; the address it listens on.
+
+    Raises:
+        ConfigError: it is not a listening TCP socket (IPv4 or IPv6), or it listens on
+            an address that is not a loopback one and `allow_remote` is false.
+    """
+    if not isinstance(sock, socket.socket):
+        raise ConfigError(f"sock must be a socket.socket, got {sock!r}")
+    accepting = getattr(socket, "SO_ACCEPTCONN", None)  # (not on every platform)
+    try:
+        listening = True if accepting is None else sock.getsockopt(socket.SOL_SOCKET, accepting)
+        address = sock.getsockname()
+    except OSError as exc:
+        raise ConfigError(f"sock cannot be served on: {exc.strerror or exc}") from exc
+    if (
+        sock.family not in (socket.AF_INET, socket.AF_INET6)
+        or sock.type != socket.SOCK_STREAM
+        or not listening
+    ):
+        raise ConfigError(f"sock must be a listening TCP socket (listen() called), got {sock!r}")
+    host = str(address[0])
+    if not is_loopback(host) and not allow_remote:
+        raise ConfigError(
+            f"sock listens on {host!r}, not a loopback address: the observer would be "
+            "reachable from other machines. Pass allow_remote=True to do that on purpose"
+        )
+    return host
+
+
 class _Source(Protocol):
     hub: Hub
 
@@ -173,6 +203,7 @@ class Observer:
         keep_serving: bool = False,
         view: SystemView | None = None,
         share: Share | None = None,
+        sock: socket.socket | None = None,
     ) -> None:
         require_extra()
         from rr_actors.observe import _server  # noqa: PLC0415 - the observe extra
@@ -185,7 +216,14 @@ class Observer:
         self.member = view.member if view is not None else None
         self._lock = threading.Lock()
         self._closed = False
-        sock = _bind(host, port, allow_remote=allow_remote)
+        if sock is None:
+            sock = _bind(host, port, allow_remote=allow_remote)
+        else:
+            try:
+                host = _adopt(sock, allow_remote=allow_remote)
+            except ConfigError:
+                sock.close()  # (it is the observer's once given)
+                raise
         self.host = host
         self.port: int = sock.getsockname()[1]
         self.allow_faults = faults is not None
@@ -330,6 +368,7 @@ def observe_supervisor(
     allow_remote: bool,
     keep_serving: bool = False,
     across_hosts: bool | None = None,
+    sock: socket.socket | None = None,
 ) -> Observer:
     """Open the live page of a supervision tree (what `Supervisor.observe` does)."""
     services = None
@@ -381,9 +420,10 @@ def observe_supervisor(
             keep_serving=keep_serving,
             view=view,
             share=share,
+            sock=sock,
         )
     except BaseException:
-        for part in (source, view, share):
+        for part in (source, view, share, sock):
             if part is not None:
                 with contextlib.suppress(Exception):
                     part.close()
