@@ -556,16 +556,21 @@ def main(fd: int) -> None:
         name="robot-watch",
         daemon=True,
     )
-    with net:
+    with net, contextlib.ExitStack() as stack:  # (the stack first: the observer, then net)
         try:
             sup.subscribe(on_event)
             if settings.observer is not None:  # (before the start: the page sees it start)
-                sup.observe(allow_faults=settings.observer.allow_faults, across_hosts=True)
+                observer = sup.observe(
+                    allow_faults=settings.observer.allow_faults,
+                    across_hosts=True,
+                    keep_serving=True,  # (its final state is shared as it stops)
+                )
+                stack.callback(observer.close)  # (after the stop, before the network goes)
             sup.start()
         except Exception as exc:  # noqa: BLE001 - as above
             send(("failed", f"{exc.__class__.__name__}: {exc}"))
             with contextlib.suppress(Exception):
-                sup.stop()  # (closes the observer it may have opened)
+                sup.stop()
             return
         try:
             watch.start()

@@ -281,7 +281,9 @@ class Observer:
 
         Without `keep_serving`, the observer closes. With it, the live source stops,
         the page says the tree ended and keeps showing its final state until
-        `close()`.
+        `close()`; across hosts, that final state is shared before this returns (at
+        most 2 s, `_hosts.FLUSH_TIMEOUT`), so that it reaches the other hosts' pages
+        before the network closes.
         """
         if not self.keep_serving:
             self.close()
@@ -297,6 +299,8 @@ class Observer:
             except Exception:
                 logger.exception("observer: reading the final state failed")
         self._source.hub.put("ended", {"at": time.time()})
+        if self._share is not None:  # (before the network closes: other hosts see it end)
+            self._share.flush()
 
     def close(self, *, timeout: float = 5.0) -> None:
         """Stop serving: open pages show that they are disconnected. Idempotent.

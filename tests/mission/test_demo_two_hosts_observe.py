@@ -9,10 +9,10 @@ user's would, and opens the URL the demo prints.
 - `test_the_page_shows_both_hosts_and_the_faults_and_the_demo_ends_clean`: with
   `--step`, the mission waits before F4 (F1-F3 done): the page shows the robot's
   managers (`erm` restarted once: F3) and the station's (`cm`) live, their catalogs,
-  the link up and the FATALs of F1 and F2; then the mission runs to its end, and with
-  `--linger 0` the demo exits 0, its namespaces deleted, its page gone, nothing left.
-- `test_ctrl_c_while_the_page_lingers_ends_the_demo_and_deletes_the_namespaces`: after
-  the mission the page keeps its final state until Ctrl-C; the Ctrl-C ends the demo.
+  the link up and the FATALs of F1 and F2; then the mission runs to its end, and the
+  page keeps both hosts' final state (each ended, its managers stopped) until a Ctrl-C
+  (SIGINT to the demo's process group, as a terminal sends it): the demo exits 0, its
+  namespaces deleted, its page gone, nothing left.
 - `test_ctrl_c_during_the_mission_with_the_page_prints_one_line_and_exits_130`.
 - `test_a_port_in_use_is_a_one_line_error_before_any_namespace_is_made`.
 
@@ -45,7 +45,7 @@ import pytest
 from rr_actors.mission.run import main
 from tests.mission.test_cli_interrupt import interrupt_demo, one_line_after_the_story
 from tests.mission.test_demo_two_hosts import ours
-from tests.support.observing import CHROMIUM_ARGS, chromium
+from tests.support.observing import CHROMIUM_ARGS, chromium, get_json
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS_IMG = ROOT / "docs" / "img"
@@ -194,7 +194,7 @@ def test_the_page_shows_both_hosts_and_the_faults_and_the_demo_ends_clean(
     tmp_path: Path, browser: Any
 ) -> None:
     before = set(ours())
-    demo = Demo(tmp_path, "--hosts", "2", "--fast", "--observe", "--step", "--linger", "0")
+    demo = Demo(tmp_path, "--hosts", "2", "--fast", "--observe", "--step")
     errors: list[str] = []
     try:
         url = demo.wait_for(URL).group(1)
@@ -233,6 +233,9 @@ def test_the_page_shows_both_hosts_and_the_faults_and_the_demo_ends_clean(
         page.close()  # (before the page's server stops: no reconnect to log as an error)
 
         demo.end_input()  # F4, F5, F6 at once
+        demo.wait_for(re.compile(r"shows its final state \(press Ctrl-C to stop\)$"))
+        final = get_json(url, "/api/state")["sections"]
+        os.killpg(demo.process.pid, signal.SIGINT)  # what Ctrl-C in its terminal does
         code = demo.finish(LINE_BOUND)
     finally:
         demo.close()
@@ -242,33 +245,16 @@ def test_the_page_shows_both_hosts_and_the_faults_and_the_demo_ends_clean(
     assert "erm restarted after" in timeline  # F3, on the robot
     assert "FATAL" in timeline  # F1 and F2 before it
     assert "F6 recovered" in "\n".join(demo.seen)
+    for member in ("robot", "station"):  # each shared its final state before its network went
+        assert f"host/{member}/ended" in final, sorted(final)
+        assert {"stopped"} == {c["state"] for c in final[f"host/{member}/tree"]["children"]}
+    robot = next(h for h in final["hosts"]["hosts"] if h["member"] == "robot")
+    assert "its supervisor stopped" == robot["why"]
     assert [] == errors
     assert refused(url)  # the page went with the demo
     assert before == set(ours())  # its namespaces (and the veth in them) are gone
     _, alive = psutil.wait_procs(tree, timeout=20)
     assert [] == alive
-
-
-@needs_root
-@pytest.mark.timeout(300)
-def test_ctrl_c_while_the_page_lingers_ends_the_demo_and_deletes_the_namespaces(
-    tmp_path: Path,
-) -> None:
-    before = set(ours())
-
-    code, shown, after, tree = interrupt_demo(
-        tmp_path, b"shows its final state", "--hosts", "2", "--observe"
-    )
-
-    assert "shows its final state (press Ctrl-C to stop)" in shown
-    url = URL.search(next(line for line in shown.splitlines() if URL.search(line)))
-    assert url is not None
-    assert 0 == code, after  # the mission had ended well
-    assert "Traceback" not in after
-    _, alive = psutil.wait_procs(tree, timeout=20)
-    assert [] == alive
-    assert refused(url.group(1))
-    assert before == set(ours())
 
 
 @needs_root
@@ -295,9 +281,7 @@ def test_a_port_in_use_is_a_one_line_error_before_any_namespace_is_made(
     monkeypatch.setattr(os, "geteuid", lambda: 0)  # (as root: the check of root passes)
     monkeypatch.setattr(shutil, "which", lambda name: f"/usr/sbin/{name}")
     made: list[object] = []
-    monkeypatch.setattr(
-        "rr_actors.mission.netns.TwoHosts.make", classmethod(made.append)
-    )
+    monkeypatch.setattr("rr_actors.mission.netns.TwoHosts.make", classmethod(made.append))
     with socket.create_server(("127.0.0.1", 0)) as taken:
         port = taken.getsockname()[1]
 
