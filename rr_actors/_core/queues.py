@@ -224,13 +224,14 @@ class _Outbox(Generic[E]):
         before = self.dropped
         if self.executor.close(timeout=timeout) or self.executor.on_own_thread():
             return  # (closed from its own callback: it ends once that returns)
-        if not self._abandoned:
+        lost = self.dropped - before
+        if lost and not self._abandoned:  # (none lost: nothing to warn of, as a close(0))
             self._abandoned = True
             logger.warning(
                 "%s did not finish within %s s; the %d events it had not handled yet are dropped",
                 self._what,
                 timeout,
-                self.dropped - before,
+                lost,
             )
 
 

@@ -80,6 +80,8 @@ from rr_actors.errors import (
 )
 
 if TYPE_CHECKING:
+    import socket
+
     from rr_actors._transport.base import Transport
     from rr_actors.observe import Observer
 
@@ -567,6 +569,7 @@ class Supervisor:
         allow_remote: bool = False,
         keep_serving: bool = False,
         across_hosts: bool | None = None,
+        sock: socket.socket | None = None,
     ) -> Observer:
         """Serve a live web page of this tree at the returned observer's `url`.
 
@@ -609,6 +612,11 @@ class Supervisor:
                 is JSON on the system's `rr/<system>/obs/<member>/` keys, seen by
                 members only; with `allow_faults`, the members' pages may also fault
                 this host's managers (docs: the observer's reference, "Across hosts").
+            sock: a listening TCP socket to serve on instead of binding `host:port`
+                (both then unused; the `url` gives its address): for example one
+                bound in another network namespace and inherited, as `rr-actors demo
+                --hosts 2 --observe` serves the station's page on the machine's own
+                loopback. The observer closes it when it closes, or fails to open.
 
         Returns:
             The open [`Observer`][rr_actors.observe.Observer] (`url`, `close()`).
@@ -616,8 +624,10 @@ class Supervisor:
         Raises:
             ConfigError: the `observe` extra is not installed (`pip install
                 'rr-actors[observe]'`), the port is in use, `host` is not a loopback
-                address and `allow_remote` is false, the supervisor was stopped, or
-                `across_hosts=True` without a `ZenohNetwork`.
+                address and `allow_remote` is false, the supervisor was stopped,
+                `across_hosts=True` without a `ZenohNetwork`, or `sock` is not a
+                listening TCP socket (or not on a loopback address, without
+                `allow_remote`).
         """
         if self._stopped:
             raise ConfigError(f"supervisor {self.name!r} was stopped: nothing to observe")
@@ -628,6 +638,7 @@ class Supervisor:
             allow_remote=allow_remote,
             keep_serving=keep_serving,
             across_hosts=across_hosts,
+            sock=sock,
         )
 
     def graph(self, format: str = "mermaid") -> str:

@@ -17,6 +17,8 @@ from rr_actors._core.bus import Subscription
 from rr_actors.config import check_seconds
 
 if TYPE_CHECKING:
+    import socket
+
     from rr_actors._registrar import ResourceRegistrar
     from rr_actors._supervision.tree import Tree
     from rr_actors.observe import Observer
@@ -71,6 +73,7 @@ class TreeWatch:
         allow_remote: bool,
         keep_serving: bool,
         across_hosts: bool | None,
+        sock: socket.socket | None = None,
     ) -> Observer:
         """`Supervisor.observe` (once the supervisor checked it is not stopped)."""
         from rr_actors.observe._observer import observe_supervisor  # noqa: PLC0415 - an extra
@@ -84,6 +87,7 @@ class TreeWatch:
             allow_remote=allow_remote,
             keep_serving=keep_serving,
             across_hosts=across_hosts,
+            sock=sock,
         )
         self.observers.append(observer)
         return observer

@@ -53,6 +53,7 @@ from rr_actors.mission.hosts import (
     ROBOT_MANAGERS,
     SYSTEM,
     RobotHost,
+    RobotObserver,
     RobotSettings,
     Tree,
     Trees,
@@ -110,6 +111,8 @@ class Mission:
             says so); once, however many Ctrl-Cs follow.
         link: with `config.hosts == 2`: the two hosts' namespaces (this process runs in
             the station's); the robot's managers start in a process in the robot's.
+        robot_observer: with `link`: the robot's host shares its tree with the
+            station's observer page (`on_supervisor` opens that page).
 
     Attributes:
         supervisor: the managers' supervisor while the mission runs, else `None`.
@@ -128,11 +131,13 @@ class Mission:
         before_fault: Callable[[str, list[str]], object] | None = None,
         on_interrupt: Callable[[float], object] | None = None,
         link: TwoHosts | None = None,
+        robot_observer: RobotObserver | None = None,
     ) -> None:
         if (config.hosts == 2) != (link is not None):
             raise MissionError("a mission on two hosts needs their namespaces (and only it)")
         self.config = config
         self.link = link
+        self._robot_observer = robot_observer
         self._on_supervisor = on_supervisor
         self._before_fault = before_fault
         self._on_interrupt = on_interrupt
@@ -213,6 +218,7 @@ class Mission:
                 period=10.0,
                 state_dir=self.state / "station" if two else self.state,
                 network=network,
+                name="station" if two else None,
             )
             if self._on_supervisor is not None:
                 try:
@@ -326,6 +332,7 @@ class Mission:
                 bus=str(self.bus),
                 isolation=cfg.isolation,
                 log=str(self.out / ROBOT_LOG),
+                observer=self._robot_observer,
             ),
             say=self.say,
         )

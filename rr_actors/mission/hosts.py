@@ -55,6 +55,7 @@ __all__ = [
     "ROBOT_MANAGERS",
     "SYSTEM",
     "RobotHost",
+    "RobotObserver",
     "RobotSettings",
     "Tree",
     "Trees",
@@ -208,6 +209,24 @@ class Trees:
 
 
 @dataclasses.dataclass(frozen=True)
+class RobotObserver:
+    """The robot's host shares its tree with the station's observer page
+    (`rr-actors demo --hosts 2 --observe`).
+
+    The robot's supervisor opens its observer across hosts (`sup.observe()`): its tree,
+    catalogs and links reach the station's page over Zenoh. The page that observer also
+    serves is on the robot's own loopback, which no browser reaches: the station's page
+    shows both hosts.
+
+    Attributes:
+        allow_faults: the station's page may kill, hang and FATAL the robot's managers
+            (`--allow-faults`).
+    """
+
+    allow_faults: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
 class RobotSettings:
     """What the robot's host needs to start (sent to its process on the socket pair).
 
@@ -222,6 +241,8 @@ class RobotSettings:
             station).
         isolation: the managers' isolation.
         log: the file the robot's host's WARNINGs and ERRORs go to.
+        observer: share the robot's tree with the station's observer page (`None`: no
+            observer on the robot).
     """
 
     system: str
@@ -233,6 +254,7 @@ class RobotSettings:
     bus: str
     isolation: str
     log: str
+    observer: RobotObserver | None = None
 
 
 class _Subscription:
@@ -517,6 +539,7 @@ def main(fd: int) -> None:
             period=10.0,
             state_dir=settings.state,
             network=net,
+            name="robot",
         )
     except Exception as exc:  # noqa: BLE001 - told to the station, which fails the mission
         send(("failed", f"{exc.__class__.__name__}: {exc}"))
@@ -533,12 +556,21 @@ def main(fd: int) -> None:
         name="robot-watch",
         daemon=True,
     )
-    with net:
+    with net, contextlib.ExitStack() as stack:  # (the stack first: the observer, then net)
         try:
             sup.subscribe(on_event)
+            if settings.observer is not None:  # (before the start: the page sees it start)
+                observer = sup.observe(
+                    allow_faults=settings.observer.allow_faults,
+                    across_hosts=True,
+                    keep_serving=True,  # (its final state is shared as it stops)
+                )
+                stack.callback(observer.close)  # (after the stop, before the network goes)
             sup.start()
         except Exception as exc:  # noqa: BLE001 - as above
             send(("failed", f"{exc.__class__.__name__}: {exc}"))
+            with contextlib.suppress(Exception):
+                sup.stop()
             return
         try:
             watch.start()

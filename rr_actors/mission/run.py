@@ -28,12 +28,14 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import errno
 import json
 import logging
 import math
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -55,7 +57,7 @@ from rr_actors.mission.config import (
     MissionInterruptedError,
     unsupported_platform,
 )
-from rr_actors.mission.hosts import CERTS, MEMBERS, SYSTEM
+from rr_actors.mission.hosts import CERTS, MEMBERS, SYSTEM, RobotObserver
 from rr_actors.mission.netns import TwoHosts
 from rr_actors.mission.output import MissionOutput, Progress, make_output
 from rr_actors.mission.report import MissionReport
@@ -127,6 +129,7 @@ def run_mission(
     before_fault: Callable[[str, list[str]], object] | None = None,
     on_interrupt: Callable[[float], object] | None = None,
     link: TwoHosts | None = None,
+    robot_observer: RobotObserver | None = None,
 ) -> MissionReport:
     """Run the mission and write `report.json` (and `mission.png` if matplotlib is there).
 
@@ -145,6 +148,9 @@ def run_mission(
         link: with `config.hosts == 2`: the two hosts' namespaces, made by
             `rr-actors demo --hosts 2` (which runs this in the station's namespace, with
             the certificates in `out/certs`).
+        robot_observer: with `link`: the robot's host shares its tree with the
+            station's observer page, which `on_supervisor` opens (`rr-actors demo
+            --hosts 2 --observe`).
 
     Returns:
         The report.
@@ -171,6 +177,7 @@ def run_mission(
             before_fault=before_fault,
             on_interrupt=on_interrupt,
             link=link,
+            robot_observer=robot_observer,
         ).run()
         (path / "report.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
         with contextlib.suppress(ImportError):
@@ -248,6 +255,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "joined by a veth, mutual TLS), plus F6, the WiFi cut; needs root and `ip`",
     )
     p.add_argument("--inside", default=None, help=argparse.SUPPRESS)  # (--hosts 2's station)
+    p.add_argument("--observe-fd", type=int, default=None, help=argparse.SUPPRESS)  # (and its page)
     faults = p.add_mutually_exclusive_group()
     faults.add_argument("--no-faults", action="store_true", help="drive without any fault")
     faults.add_argument(
@@ -275,7 +283,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--observe",
         action="store_true",
         help="serve the observer's live page (tree, catalogs, dependency graph, statuses) while "
-        "the mission runs, on 127.0.0.1; prints its URL (needs the observe extra)",
+        "the mission runs, on 127.0.0.1; prints its URL (needs the observe extra); with "
+        "--hosts 2 the page shows both hosts",
     )
     p.add_argument("--port", type=int, default=0, help="the observer's port (default: a free one)")
     p.add_argument(
@@ -381,6 +390,9 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:  # noqa:
     if args.hosts == 2 and args.inside is None:
         return _two_hosts(args, out, stream)
     link = TwoHosts.from_arg(args.inside) if args.inside is not None else None
+    robot_observer = (
+        RobotObserver(allow_faults=args.allow_faults) if link is not None and args.observe else None
+    )
     failure: str | None = None
     report: MissionReport | None = None
     output: MissionOutput = make_output(stream, quiet=args.quiet)
@@ -402,6 +414,7 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:  # noqa:
                 before_fault=hooks[1],
                 on_interrupt=on_interrupt,
                 link=link,
+                robot_observer=robot_observer,
             )
         except KeyboardInterrupt as exc:  # a Ctrl-C: the mission cleaned up (and said so)
             if not isinstance(exc, MissionInterruptedError):  # not while a mission ran
@@ -493,11 +506,9 @@ def _cleanup_outcome(exc: KeyboardInterrupt) -> str:
 
 
 def _check_hosts_args(args: argparse.Namespace) -> None:
-    """`--hosts 2`: not with `--observe` (yet); root and `ip` (in the first process)."""
+    """`--hosts 2`: root and `ip` (in the first process)."""
     if args.hosts != 2:
         return
-    if args.observe:
-        raise rr.ConfigError("--observe shows one host; across hosts: not yet")
     reason = netns.unavailable() if args.inside is None else None
     if reason is not None:
         raise rr.ConfigError(reason)
@@ -561,13 +572,17 @@ def _hooks(
             output.story(line)
 
     def observe(sup: rr.Supervisor) -> None:
+        inherited = None  # (--hosts 2: bound on the machine's loopback by the first process)
+        if args.observe_fd is not None:
+            inherited = socket.socket(fileno=args.observe_fd)
         observer = sup.observe(  # serving after the mission while it lingers; then closed
-            port=args.port, allow_faults=args.allow_faults, keep_serving=True
+            port=args.port, allow_faults=args.allow_faults, keep_serving=True, sock=inherited
         )
         observer.set_clock(time.time(), CLOCK_LABEL)  # (made exact by the first progress)
         observers.append(observer)
         buttons = "; teaching mode: its buttons kill, hang and FATAL" if args.allow_faults else ""
-        tell(f"observer: {observer.url} (open it in a browser{buttons})")
+        hosts = ": both hosts, on this machine's loopback" if args.hosts == 2 else ""
+        tell(f"observer: {observer.url} (open it in a browser{hosts}{buttons})")
 
     def step(fault: str, pids: list[str]) -> None:  # the clock stops meanwhile
         with output.hold():  # no progress line over the prompt
@@ -598,14 +613,19 @@ def _files(out: Path) -> list[str]:
 # -- two hosts -------------------------------------------------------------------------------
 
 
-def _station_argv(args: argparse.Namespace, out: Path, link: TwoHosts) -> list[str]:
-    """The command line of the station's process: this one's options, and where it runs."""
+def _station_argv(
+    args: argparse.Namespace, out: Path, link: TwoHosts, page: socket.socket | None = None
+) -> list[str]:
+    """The command line of the station's process: this one's options, where it runs and
+    the observer's listening socket it inherits (`page`)."""
     argv = ["--hosts", "2", "--out", str(out.resolve()), "--inside", link.to_arg()]
     argv += ["--seed", str(args.seed), "--isolation", args.isolation]
-    for flag in ("fast", "no_faults", "quiet", "step"):
+    for flag in ("fast", "no_faults", "quiet", "step", "observe", "allow_faults"):
         if getattr(args, flag):
             argv.append("--" + flag.replace("_", "-"))
-    for option in ("faults", "fault_at", "speed", "distance"):
+    if page is not None:
+        argv += ["--observe-fd", str(page.fileno())]
+    for option in ("faults", "fault_at", "speed", "distance", "linger"):
         value = getattr(args, option)
         if value is not None:
             argv += ["--" + option.replace("_", "-"), str(value)]
@@ -624,13 +644,53 @@ def make_certs(directory: Path, link: TwoHosts) -> None:
     certs_tool.issue_cert(directory, station, [link.station_address])
 
 
+def _page_socket(port: int) -> socket.socket:
+    """`--hosts 2 --observe`: the observer's listening socket, on this machine's loopback.
+
+    It is bound here, in the machine's own network namespace, and the station's process
+    (in its namespace) inherits it and serves the page on it: a socket stays in the
+    namespace it was made in, so the user's browser reaches the page at
+    `http://127.0.0.1:<port>/`, while the station's loopback is its own.
+
+    Raises:
+        ConfigError: the observe extra is missing, or the port cannot be listened on.
+    """
+    from rr_actors.observe import require_extra  # noqa: PLC0415 - only --observe needs it
+
+    require_extra()
+    try:
+        return socket.create_server(("127.0.0.1", port), backlog=64)
+    except OSError as exc:
+        if exc.errno == errno.EADDRINUSE:
+            raise rr.ConfigError(f"--port {port} on 127.0.0.1 is in use: choose another") from exc
+        raise rr.ConfigError(f"--port {port}: cannot listen on 127.0.0.1 ({exc})") from exc
+
+
 def _two_hosts(args: argparse.Namespace, out: Path, stream: TextIO) -> int:
     """`--hosts 2`: make the namespaces and certificates, run the station's process in its
     namespace (it starts the robot's), then delete everything, however it ended.
 
     The station's process tells the story on this terminal and handles a Ctrl-C (the
-    terminal sends it to both); this one waits for it, ignoring SIGINT meanwhile.
+    terminal sends it to both); this one waits for it, ignoring SIGINT meanwhile. With
+    `--observe`, the page's socket is bound here first (`_page_socket`) and handed to
+    the station's process.
     """
+    try:
+        page = _page_socket(args.port) if args.observe else None
+    except rr.ConfigError as exc:
+        _error(str(exc))
+        return 2
+    try:
+        return _two_hosts_with(args, out, stream, page)
+    finally:
+        if page is not None:
+            page.close()  # (the station's process has its own copy)
+
+
+def _two_hosts_with(
+    args: argparse.Namespace, out: Path, stream: TextIO, page: socket.socket | None
+) -> int:
+    """`_two_hosts`, once the page's socket (if any) is bound."""
     try:
         with lock_out(out):  # (the certificates of a demo running there stay)
             link = TwoHosts.make()
@@ -654,9 +714,15 @@ def _two_hosts(args: argparse.Namespace, out: Path, stream: TextIO) -> int:
             sys.executable,
             "-m",
             "rr_actors.mission",
-            *_station_argv(args, out, link),
+            *_station_argv(args, out, link, page),
         ]
-        child = subprocess.Popen(command, stdout=subprocess.PIPE if piped else None)  # noqa: S603
+        child = subprocess.Popen(  # noqa: S603 - ip and this interpreter, no shell
+            command,
+            stdout=subprocess.PIPE if piped else None,
+            pass_fds=() if page is None else (page.fileno(),),
+        )
+        if page is not None:
+            page.close()  # served by the station's process from now on
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # the station's process answers it
         if piped and child.stdout is not None:
             for line in child.stdout:

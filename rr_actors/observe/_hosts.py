@@ -85,6 +85,9 @@ COALESCE = 0.01
 LINKS_EVERY = 0.5
 """Seconds between two looks at this host's links (and at hosts that owe a state)."""
 
+FLUSH_TIMEOUT = 2.0
+"""Seconds a stopping supervisor's observer waits for its final state to be shared."""
+
 ASK_EVERY = 1.0
 """Seconds between two asks of one host's state (after a gap, a token back, a timeout)."""
 
@@ -162,6 +165,8 @@ class Share:
         self._wake = threading.Event()
         self._closing = threading.Event()
         self._running_faults = threading.BoundedSemaphore(MAX_FAULTS)
+        self._passes = threading.Condition()
+        self._started = self._done = 0  # the thread's passes: begun, and ended
         self.sent_bytes = 0
         self.sent_messages = 0
         hub.put("host", {**host, "member": member, "allow_faults": faults is not None})
@@ -199,12 +204,28 @@ class Share:
             "events": list(self._events),
         }
 
+    def flush(self, timeout: float = FLUSH_TIMEOUT) -> bool:
+        """Wait until what the hub holds now was shared (a pass of the share's thread that
+        began after this call ended); whether it was within `timeout` seconds.
+
+        A supervisor that stops shares its final state so before its network closes
+        (`Observer.source_ended`). Runs on the calling thread; not on the share's own.
+        """
+        with self._passes:
+            begun = self._started
+            self._wake.set()
+            return self._passes.wait_for(
+                lambda: self._done > begun or self._closing.is_set(), timeout
+            )
+
     def close(self, timeout: float = 5.0) -> None:
         """Stop sharing: the token goes first (pages show this host stale), then the rest."""
         if self._closing.is_set():
             return
         self._closing.set()
         self._wake.set()
+        with self._passes:
+            self._passes.notify_all()  # (a flush waits no more)
         self._unlisten()
         for declared in (self._token, self._state, self._fault, self._publisher):
             with contextlib.suppress(Exception):
@@ -225,6 +246,8 @@ class Share:
             self._wake.clear()
             if self._closing.wait(COALESCE):
                 return
+            with self._passes:
+                self._started += 1
             try:
                 if time.monotonic() - links_at >= LINKS_EVERY:
                     links_at = time.monotonic()
@@ -235,6 +258,10 @@ class Share:
                 if self._closing.is_set():
                     return
                 logger.exception("observer of %s: sharing its state failed", self.member)
+            finally:
+                with self._passes:
+                    self._done += 1
+                    self._passes.notify_all()
 
     def _links(self) -> list[dict[str, Any]]:
         return [
@@ -798,6 +825,9 @@ class SystemView:
         return {"member": m.member, "up": m.up, "since": m.since, "where": m.where, "why": m.why}
 
     def _why(self, member: str) -> str:
+        mirror = self._mirrors.get(member)
+        if mirror is not None and mirror.sections.get("ended"):
+            return "its supervisor stopped"  # (it shared its final state first)
         own = self._report(self.member, member) if self.member else None
         if own is not None and not own["up"]:
             return str(own["why"])

@@ -119,6 +119,36 @@ def _bind(host: str, port: int, *, allow_remote: bool) -> socket.socket:
     return sock
 
 
+def _adopt(sock: socket.socket, *, allow_remote: bool) -> str:
+    """Check a listening socket given to serve on; the address it listens on.
+
+    Raises:
+        ConfigError: it is not a listening TCP socket (IPv4 or IPv6), or it listens on
+            an address that is not a loopback one and `allow_remote` is false.
+    """
+    if not isinstance(sock, socket.socket):
+        raise ConfigError(f"sock must be a socket.socket, got {sock!r}")
+    accepting = getattr(socket, "SO_ACCEPTCONN", None)  # (not on every platform)
+    try:
+        listening = True if accepting is None else sock.getsockopt(socket.SOL_SOCKET, accepting)
+        address = sock.getsockname()
+    except OSError as exc:
+        raise ConfigError(f"sock cannot be served on: {exc.strerror or exc}") from exc
+    if (
+        sock.family not in (socket.AF_INET, socket.AF_INET6)
+        or sock.type != socket.SOCK_STREAM
+        or not listening
+    ):
+        raise ConfigError(f"sock must be a listening TCP socket (listen() called), got {sock!r}")
+    host = str(address[0])
+    if not is_loopback(host) and not allow_remote:
+        raise ConfigError(
+            f"sock listens on {host!r}, not a loopback address: the observer would be "
+            "reachable from other machines. Pass allow_remote=True to do that on purpose"
+        )
+    return host
+
+
 class _Source(Protocol):
     hub: Hub
 
@@ -173,6 +203,7 @@ class Observer:
         keep_serving: bool = False,
         view: SystemView | None = None,
         share: Share | None = None,
+        sock: socket.socket | None = None,
     ) -> None:
         require_extra()
         from rr_actors.observe import _server  # noqa: PLC0415 - the observe extra
@@ -185,7 +216,14 @@ class Observer:
         self.member = view.member if view is not None else None
         self._lock = threading.Lock()
         self._closed = False
-        sock = _bind(host, port, allow_remote=allow_remote)
+        if sock is None:
+            sock = _bind(host, port, allow_remote=allow_remote)
+        else:
+            try:
+                host = _adopt(sock, allow_remote=allow_remote)
+            except ConfigError:
+                sock.close()  # (it is the observer's once given)
+                raise
         self.host = host
         self.port: int = sock.getsockname()[1]
         self.allow_faults = faults is not None
@@ -243,7 +281,9 @@ class Observer:
 
         Without `keep_serving`, the observer closes. With it, the live source stops,
         the page says the tree ended and keeps showing its final state until
-        `close()`.
+        `close()`; across hosts, that final state is shared before this returns (at
+        most 2 s, `_hosts.FLUSH_TIMEOUT`), so that it reaches the other hosts' pages
+        before the network closes.
         """
         if not self.keep_serving:
             self.close()
@@ -259,6 +299,8 @@ class Observer:
             except Exception:
                 logger.exception("observer: reading the final state failed")
         self._source.hub.put("ended", {"at": time.time()})
+        if self._share is not None:  # (before the network closes: other hosts see it end)
+            self._share.flush()
 
     def close(self, *, timeout: float = 5.0) -> None:
         """Stop serving: open pages show that they are disconnected. Idempotent.
@@ -330,6 +372,7 @@ def observe_supervisor(
     allow_remote: bool,
     keep_serving: bool = False,
     across_hosts: bool | None = None,
+    sock: socket.socket | None = None,
 ) -> Observer:
     """Open the live page of a supervision tree (what `Supervisor.observe` does)."""
     services = None
@@ -381,9 +424,10 @@ def observe_supervisor(
             keep_serving=keep_serving,
             view=view,
             share=share,
+            sock=sock,
         )
     except BaseException:
-        for part in (source, view, share):
+        for part in (source, view, share, sock):
             if part is not None:
                 with contextlib.suppress(Exception):
                     part.close()

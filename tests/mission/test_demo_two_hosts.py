@@ -105,16 +105,6 @@ def test_without_root_the_two_host_demo_says_what_to_run_in_one_line(
     ] == err.splitlines()
 
 
-@pytest.mark.timeout(60)
-def test_observe_with_two_hosts_is_a_one_line_error(tmp_path: Path) -> None:
-    done = demo("--hosts", "2", "--observe", "--out", "o", cwd=tmp_path, timeout=50)
-
-    assert 2 == done.returncode
-    assert [
-        "rr-actors demo: --observe shows one host; across hosts: not yet"
-    ] == done.stderr.splitlines()
-
-
 @needs_root
 @pytest.mark.usefixtures("process_helpers")
 @pytest.mark.timeout(200)

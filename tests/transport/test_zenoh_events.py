@@ -154,6 +154,34 @@ def test_a_process_sends_its_events_only_while_someone_subscribes(
         raw.close()
 
 
+def test_events_given_right_before_a_close_are_still_sent(net: rr.ZenohNetwork) -> None:
+    # (a manager process's last events, as it stops: once dropped by a close that gave its
+    # forwarder no time at all, and warned of on the demo's terminal)
+    from rr_actors._transport.zenoh.events import EventExport, decode  # noqa: PLC0415
+
+    keys = net.services().keys
+    listening, exporting = _raw_session(net), _raw_session(net)
+    zid = str(exporting.info.zid())
+    heard: list[events.Event] = []
+    try:
+        listening.declare_subscriber(
+            keys.events(zid), lambda sample: heard.extend(decode(sample.payload.to_bytes())[0])
+        )
+        export = EventExport(exporting, keys, zid)
+        assert export.wait_sending(BOUND)  # (Zenoh's matching status)
+        events.everything().publish(events.EventsDropped(7, "full"))
+
+        export.close()
+
+        assert wait_for(
+            lambda: any(isinstance(e, events.EventsDropped) and e.count == 7 for e in heard),
+            BOUND,
+        )
+    finally:
+        exporting.close()
+        listening.close()
+
+
 def camera_setup(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("camera", load=lambda request: request, unload=lambda *_: None)
 

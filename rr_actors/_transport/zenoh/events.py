@@ -51,6 +51,7 @@ from rr_actors.errors import ConfigError
 
 __all__ = [
     "BATCHES_HELD",
+    "CLOSE_GRACE",
     "DEFAULT_MAXSIZE",
     "MAX_BATCH_BYTES",
     "EventExport",
@@ -64,6 +65,11 @@ logger = logging.getLogger("rr_actors")
 
 MAX_BATCH_BYTES = 16 * 1024 * 1024
 """A batch over this many bytes is dropped unread by a subscriber."""
+
+CLOSE_GRACE = 0.5
+"""Seconds a closing member gives its events' forwarder to send what it holds (its last
+events, as a manager process stops); what is left then is dropped, counted and warned
+of. Bounded: over a cut link a send may block."""
 
 BATCHES_HELD = 1_024
 """Batches a subscriber holds before it decodes them; beyond, new ones are dropped (and
@@ -140,13 +146,14 @@ class EventExport:
         self._publisher.put(encode(batch))
 
     def close(self) -> None:
-        """Stop sending (what is buffered is lost)."""
+        """Stop sending: what is buffered is sent within `CLOSE_GRACE` seconds, the rest
+        is lost (a WARNING says how much)."""
         with self._lock:
             self._closed = True
             forwarder, self._forwarder = self._forwarder, None
         if forwarder is not None:
             events.everything().remove_sink(forwarder)
-            forwarder.close(timeout=0)
+            forwarder.close(timeout=CLOSE_GRACE)
         with contextlib.suppress(Exception):
             self._listener.undeclare()  # type: ignore[no-untyped-call]
         with contextlib.suppress(Exception):
