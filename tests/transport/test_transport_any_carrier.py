@@ -8,10 +8,11 @@ first, so those cases do not cross it: here the test sends through the carrier i
 (`resolve(name).tell`, `run`), with the provider in a child process (AF_UNIX, Zenoh) or
 served on the double ("memory"), where a SIGKILL is `MemoryNetwork.cut`. Cases of the
 other file this covers: a call answered, the unload after it, `run` and what it
-raises, an unpicklable request, a request over `max_message_bytes`, a call in flight
-to a process killed, a call to a stopped one, an unknown name. Not here (they need processes of their own): a frozen process
-(SIGSTOP), notices that overtake an answer on another connection, raw low-level
-errors, an answer that cannot be unpickled in the caller's process.
+raises, an unpicklable request, a request over `max_message_bytes`, an unpicklable
+answer and its compensation, a call in flight to a process killed, a call to a
+stopped one, an unknown name. Not here (they need processes of their own): a frozen
+process (SIGSTOP), notices that overtake an answer on another connection, raw
+low-level errors, an answer that cannot be unpickled in the caller's process.
 """
 
 from __future__ import annotations
@@ -43,7 +44,6 @@ from tests.support.carriers import (
     wait_load_started,
 )
 
-
 __all__ = ["context", "start_provider"]  # (fixtures: the child processes of AF_UNIX, Zenoh)
 
 
@@ -59,7 +59,7 @@ def system(request: pytest.FixtureRequest) -> Iterator[Transport]:
 
 
 @dataclasses.dataclass
-class Served_:
+class Provided:
     """A provider registrar, wherever the carrier has it run."""
 
     name: str
@@ -70,13 +70,13 @@ class Served_:
 @pytest.fixture
 def provider(
     system: Transport, request: pytest.FixtureRequest, context: object
-) -> Iterator[Served_]:
+) -> Iterator[Provided]:
     """A provider registrar with the servers of `setup_servers`: in a child process, or
     (memory) in this one, served on the double, with fresh `CHILD` records."""
     if not isinstance(system, MemoryNetwork):
         start: ProviderFactory = request.getfixturevalue("start_provider")
         child = start()
-        yield Served_(child.name, child.kill, child.stop)
+        yield Provided(child.name, child.kill, child.stop)
         return
     carriers.CHILD.__init__()  # type: ignore[misc]  # (fresh records, this process's)
     assert isinstance(carriers.CHILD, ChildState)
@@ -88,7 +88,7 @@ def provider(
     )
     setup_servers(registrar)
     system.serve(Served(registrar))
-    yield Served_(name, lambda: system.cut(name), registrar.stop)
+    yield Provided(name, lambda: system.cut(name), registrar.stop)
     carriers.CHILD.release.set()
     registrar.stop()
 
@@ -118,7 +118,7 @@ def _answer(reply: FutureReply) -> Any:
 
 
 def test_a_load_told_through_the_carrier_is_answered_and_loads_once(
-    system: Transport, provider: Served_
+    system: Transport, provider: Provided
 ) -> None:
     load, reply = _load("echo", "r")
 
@@ -127,7 +127,7 @@ def test_a_load_told_through_the_carrier_is_answered_and_loads_once(
 
 
 def test_run_returns_what_the_function_returned_and_reraises_what_it_raised(
-    system: Transport, provider: Served_
+    system: Transport, provider: Provided
 ) -> None:
     def boom(_registrar: Any) -> None:
         raise KeyError("boom")
@@ -139,7 +139,7 @@ def test_run_returns_what_the_function_returned_and_reraises_what_it_raised(
 
 
 def test_an_unpicklable_request_is_a_config_error_at_the_sender_and_nothing_loads(
-    system: Transport, provider: Served_
+    system: Transport, provider: Provided
 ) -> None:
     load, reply = _load("echo", threading.Lock())
 
@@ -148,7 +148,7 @@ def test_an_unpicklable_request_is_a_config_error_at_the_sender_and_nothing_load
 
 
 def test_a_request_over_max_message_bytes_is_refused_before_anything_is_sent(
-    system: Transport, provider: Served_
+    system: Transport, provider: Provided
 ) -> None:
     load, reply = _load("echo", b"x" * (carriers.PROVIDER_MAX_MESSAGE_BYTES + 1))
 
@@ -156,8 +156,23 @@ def test_a_request_over_max_message_bytes_is_refused_before_anything_is_sent(
     assert 0 == system.run(provider.name, load_count, timeout=10)
 
 
+def test_an_unpicklable_answer_fails_the_load_and_its_compensation_releases_the_id(
+    system: Transport, provider: Provided, eventually: Callable[..., bool]
+) -> None:
+    load, reply = _load("lock", "r")
+
+    error = _outcome(system, provider.name, load, reply)
+
+    assert isinstance(error, rr.ResourceLoadError), error
+    assert "not picklable" in str(error)
+    assert eventually(lambda: ["r"] == system.run(provider.name, unloads, timeout=10))
+    assert [] == system.run(
+        provider.name, lambda registrar: registrar.server_queries("lock"), timeout=10
+    )
+
+
 def test_a_reply_waiting_on_a_killed_process_fails_at_once_as_unavailable(
-    system: Transport, provider: Served_
+    system: Transport, provider: Provided
 ) -> None:
     load, reply = _load("slow", "r")
     peer = system.resolve(provider.name)
@@ -176,7 +191,7 @@ def test_a_reply_waiting_on_a_killed_process_fails_at_once_as_unavailable(
 
 
 def test_a_load_to_a_cleanly_stopped_registrar_fails_as_stopped(
-    system: Transport, provider: Served_, eventually: Callable[..., bool]
+    system: Transport, provider: Provided, eventually: Callable[..., bool]
 ) -> None:
     provider.stop()
     load, reply = _load("echo", "r")
