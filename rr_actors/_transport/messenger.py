@@ -1,31 +1,38 @@
 """The messenger: what every carrier does with a message, written once over a thin link.
 
-A carrier moves bytes to a name's process and reports links and processes coming and
-going; everything a message needs besides is here, once for every carrier:
+A carrier moves frames to a name's process and back, and reports processes and servers
+coming and going; everything a message needs besides is here, once for every carrier,
+and the messenger drives the carrier through two small interfaces: a `Route` per
+registrar reached (send a frame; it broke) and a `Link` per process (send an answer back
+to the process a message came from):
 
 ```
- sending (any thread)                              the link (a carrier's own)
- peer.tell(message) ─► encode: reply kept here ─────► send the frame to the name's process
-   under a token (`Replies`), frame, too large? ─┐      (ordered per peer, never blocks)
-   (`check_size`: the receiver's limit)          └──── MessageTooLargeError / ConfigError
+ sending (any thread)
+ Remote.tell(message) ─► send(): encode (reply kept under a token), route = peer.route()
+   ├─ over route.limit? MessageTooLargeError; unpicklable? ConfigError (nothing sent)
+   ├─ route.pending.expect(reply)  (`Replies`: where it waits for its answer)
+   └─ route.send(frame) ──────────────────────► the carrier: to the name's process
+        False (the route went): forget the reply, route.broken(), once more or
+        peer.gone()
  Remote.run(fn) ─► tell(Run(fn, reply)), wait
 
- receiving (the carrier's receiving thread)
- a message for a registrar here ─► refuse_too_large (over its limit, never unpickled)
-                                 └► deliver: unpickle, `StandIn` reply, tell the registrar
- the stand-in answers ─► pickles? over the limit? ─► the link sends it back; lost on the
-                         way: the message's compensation() to the registrar (`compensate`)
- an answer for a reply here ─► `Replies.answered` (too large, unreadable: compensate)
- a process or a server gone ─► `Replies.fail` (every reply waiting on it, at once)
+ receiving (the carrier's receiving thread calls the messenger)
+ bytes for a registrar here ─► Messenger.message(endpoint, process, token, payload):
+   over its limit? refused unread; unpickle; `StandIn` reply; tell the registrar
+ the stand-in answers ─► pickles? over the limit? ─► link.answer_to(process, frame);
+   lost on the way: the message's compensation() to the registrar (`compensate`)
+ an answer ─► route.pending.answered / too_large / refused (`Replies`; too large or
+   unreadable: compensate)
+ a route or a server gone ─► route.pending.fail / Replies.fail(name): at once
  a registrar lost for good / reachable again ─► `tell_lost` / `tell_reachable`: every
-                         endpoint served here hears it (rule 19, rule 20)
+   endpoint served here hears it (rule 19, rule 20)
 ```
 
-The link a carrier implements is `Link` (below); the AF_UNIX carrier (`unix/`: one
-connection per peer) and the Zenoh carrier (`zenoh/`: puts and liveliness tokens) each
-keep only their framing, threads and presence. Each step runs on the thread the carrier
-calls it from and never blocks on a peer: what it sends is queued or dropped by the
-link.
+Carriers: `unix/` (a route is one connection: `_Channel`; answers go back on the
+connection a message came on), `zenoh/` (a route is a registrar's key and the server
+seen for it; answers go to the sender's answer key) and the in-memory double
+(`rr_actors.testing.MemoryNetwork`). Each keeps only its framing, threads and presence.
+Nothing here blocks on a peer: what it sends is queued or dropped by the carrier.
 """
 
 from __future__ import annotations
@@ -68,9 +75,6 @@ logger = logging.getLogger("rr_actors")
 
 Lost = Callable[[], None]
 """Called (on any thread) when a queued frame could not be sent: the link ended."""
-
-Send = Callable[[bytes], object]
-"""Sends an answer frame (made by `codec.frame`) back to a message's sender."""
 
 SendAnswer = Callable[[bytes, "Lost | None"], bool]
 """Sends an answer frame back to a message's sender; `on_lost` runs if it is queued and
@@ -368,71 +372,96 @@ class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
 # -- receiving ----------------------------------------------------------------------------
 
 
-def refuse_too_large(name: str, token: int, size: int, limit: int, send: Send) -> None:
-    """A message of `size` bytes for registrar `name` is over its `limit` (its
-    `max_message_bytes`): it is not read; logged, and answered with a
-    `MessageTooLargeError` through `send` if it wants an answer (`token`)."""
-    error = MessageTooLargeError(
-        f"a message of {size} bytes for registrar {name!r} is over its "
-        f"max_message_bytes ({limit}); it was not read",
-        size,
-        limit,
-    )
-    logger.warning("%s", error)
-    if token != NO_REPLY:
-        send(frame(token, (None, error)))
+class Messenger:
+    """What a carrier hands the messages for the registrars it serves here: each is
+    checked, unpickled and told to its registrar with a `StandIn` reply, whose answer
+    goes back through `link.answer_to`. Each step runs on the carrier's receiving thread
+    that calls it and never blocks on a peer.
 
-
-def deliver(
-    name: str,
-    token: int,
-    payload: bytes | memoryview,
-    send: Send,
-    stand_in: Callable[[Any], Reply],
-    run: Callable[[Run], None],
-    lookup: Callable[[str], Peer] = DIRECTORY.lookup,
-) -> None:
-    """Unpickle one message (`payload`) for registrar `name` of this process and tell it.
-
-    A message that wants an answer (`token`) gets `stand_in(message)` as its reply: the
-    carrier's stand-in, which answers its sender. A message that cannot be unpickled, or
-    wants an answer but has no `reply` field, is answered through `send` with a
-    `TransferError` or `InternalError` (dropped if it wants none). A `Run` goes to
-    `run`, not to the registrar (found by `lookup`). If the registrar cannot be told,
-    the stand-in reply answers the error.
-
-    Raises:
-        Exception: the registrar cannot be told and the message wants no answer (the
-            carrier logs it).
+    Args:
+        link: the carrier (`Link`).
+        lookup: finds a registrar of this process by name (the directory's).
     """
-    try:
-        message = pickle.loads(payload)
-    except BaseException as exc:  # noqa: BLE001 - answered as an error, never raised here
-        if token != NO_REPLY:
+
+    __slots__ = ("_link", "_lookup")
+
+    def __init__(self, link: Link, lookup: Callable[[str], Peer] = DIRECTORY.lookup) -> None:
+        self._link = link
+        self._lookup = lookup
+
+    def message(
+        self, endpoint: Endpoint, process: Any, token: int, payload: bytes | memoryview
+    ) -> None:
+        """Deliver one message (`payload`, pickled) from `process` (answers go back to
+        it) to `endpoint`, a registrar served here.
+
+        One over the registrar's `max_message_bytes` is refused unread (`oversized`). One
+        that wants an answer (`token`) gets a `StandIn` as its reply. One that cannot be
+        unpickled, or wants an answer but has no `reply` field, is answered with a
+        `TransferError` or `InternalError` (dropped if it wants none). A `Run` runs on a
+        fresh thread (`rr-run-<name>`), not on the registrar. If the registrar cannot be
+        told, the stand-in reply answers the error.
+
+        Raises:
+            Exception: the registrar cannot be told and the message wants no answer (the
+                carrier logs it).
+        """
+        name, limit = endpoint.name, endpoint.max_message_bytes
+        if len(payload) > limit:
+            self.oversized(endpoint, process, token, len(payload))
+            return
+        try:
+            message = pickle.loads(payload)
+        except BaseException as exc:  # noqa: BLE001 - answered as an error, never raised here
             unreadable = TransferError(
                 f"a message for registrar {name!r} cannot be unpickled: {exc}"
             )
-            send(frame(token, (None, unreadable)))
-        return
-    reply = None
-    if token != NO_REPLY:
-        if not hasattr(message, "reply"):
-            error = InternalError(
-                f"a {type(message).__name__} message for registrar {name!r} cannot be answered"
-            )
-            send(frame(token, (None, error)))
+            self._error(process, token, unreadable)
             return
-        reply = stand_in(message)
-        object.__setattr__(message, "reply", reply)  # a fresh copy, ours to fill in
-    if type(message) is Run:
-        run(message)
-        return
-    try:
-        lookup(name).tell(message)
-    except Exception as exc:
-        if reply is None:
-            raise
-        reply.set_error(exc if isinstance(exc, RrError) else RrError(f"{exc!r}"))
+        reply = None
+        if token != NO_REPLY:
+            if not hasattr(message, "reply"):
+                kind = type(message).__name__
+                error = InternalError(f"a {kind} message for registrar {name!r} cannot be answered")
+                self._error(process, token, error)
+                return
+            link = self._link
+            reply = StandIn(
+                lambda data, on_lost: link.answer_to(process, data, on_lost),
+                name,
+                limit,
+                token,
+                message,
+                self._lookup,
+            )
+            object.__setattr__(message, "reply", reply)  # a fresh copy, ours to fill in
+        if type(message) is Run:
+            message.start(endpoint.run, f"rr-run-{name}")
+            return
+        try:
+            self._lookup(name).tell(message)
+        except Exception as exc:
+            if reply is None:
+                raise
+            reply.set_error(exc if isinstance(exc, RrError) else RrError(f"{exc!r}"))
+
+    def oversized(self, endpoint: Endpoint, process: Any, token: int, size: int) -> None:
+        """A message of `size` bytes for `endpoint` is over its `max_message_bytes`: it is
+        not read; logged, and answered with a `MessageTooLargeError` to `process` if it
+        wants an answer (`token`)."""
+        limit = endpoint.max_message_bytes
+        error = MessageTooLargeError(
+            f"a message of {size} bytes for registrar {endpoint.name!r} is over its "
+            f"max_message_bytes ({limit}); it was not read",
+            size,
+            limit,
+        )
+        logger.warning("%s", error)
+        self._error(process, token, error)
+
+    def _error(self, process: Any, token: int, error: RrError) -> None:
+        if token != NO_REPLY:
+            self._link.answer_to(process, frame(token, (None, error)), None)
 
 
 class StandIn:
@@ -518,73 +547,6 @@ class StandIn:
         self._compensate()  # its caller gets an error
         failure: RrError = self._message.unsendable_answer(self._name, value, exc)
         return failure
-
-
-class Messenger:
-    """What a carrier hands the messages for the registrars it serves here: each is
-    checked, unpickled and told to its registrar with a `StandIn` reply, whose answer
-    goes back through `link.answer_to`.
-
-    Args:
-        link: the carrier (`Link`).
-        lookup: finds a registrar of this process by name (the directory's; the
-            in-memory double keeps the registrars it serves apart).
-    """
-
-    __slots__ = ("_link", "_lookup")
-
-    def __init__(self, link: Link, lookup: Callable[[str], Peer] = DIRECTORY.lookup) -> None:
-        self._link = link
-        self._lookup = lookup
-
-    def message(
-        self, endpoint: Endpoint, process: Any, token: int, payload: bytes | memoryview
-    ) -> None:
-        """Deliver one message (`payload`, pickled) from `process` (answers go back
-        to it) to `endpoint`, a registrar served here (the carrier's receiving thread).
-
-        One over the registrar's `max_message_bytes` is refused unread
-        (`refuse_too_large`); else `deliver` with a `StandIn` reply; a `Run` runs on a
-        fresh thread (`rr-run-<name>`).
-
-        Raises:
-            Exception: the registrar cannot be told and the message wants no answer (the
-                carrier logs it).
-        """
-        name, limit = endpoint.name, endpoint.max_message_bytes
-        link = self._link
-
-        def send(data: bytes) -> bool:
-            return link.answer_to(process, data, None)
-
-        if len(payload) > limit:
-            refuse_too_large(name, token, len(payload), limit, send)
-            return
-
-        def answer(data: bytes, on_lost: Lost | None) -> bool:
-            return link.answer_to(process, data, on_lost)
-
-        lookup = self._lookup
-        deliver(
-            name,
-            token,
-            payload,
-            send,
-            lambda message: StandIn(answer, name, limit, token, message, lookup),
-            lambda message: message.start(endpoint.run, f"rr-run-{name}"),
-            lookup,
-        )
-
-    def oversized(self, endpoint: Endpoint, process: Any, token: int, size: int) -> None:
-        """A message of `size` bytes for `endpoint` was over its limit and skipped unread
-        (the carrier's framing): refused, answered to `process` if it wants an answer."""
-        refuse_too_large(
-            endpoint.name,
-            token,
-            size,
-            endpoint.max_message_bytes,
-            lambda data: self._link.answer_to(process, data, None),
-        )
 
 
 def compensate(message: Any, tell: Tell) -> None:
