@@ -3,7 +3,9 @@
 - `base`: the interface (`Transport`, `Address`, `Endpoint`) and the contract every
   carrier keeps;
 - `codec`: frames and pickling; `messenger`: what every carrier does with a message, an
-  answer, a reply waiting and a registrar lost, written once over a thin link (`Link`);
+  answer, a reply waiting and a registrar lost, written once; it drives a carrier
+  through a `Route` per registrar reached and a `Link` per process (the in-memory
+  double, `rr_actors.testing.MemoryNetwork`, is the smallest carrier);
 - `unix/`, the AF_UNIX carrier: `system` (the system: runtime directory, authkey,
   `attach`), `sockets` (connect and the authkey handshake), `outbound` (a channel to
   another process's registrar), `inbound` (a registrar's listener), `writer` (sending

@@ -286,6 +286,12 @@ def unframe(data: bytes | bytearray) -> tuple[int, memoryview]:
     return token, memoryview(data)[_TOKEN.size :]
 
 
+def split_frame(data: bytes) -> tuple[int, memoryview]:
+    """Token and payload of a whole frame made by `frame` (its header included)."""
+    header = _LONG_LENGTH.size if data[:4] == b"\xff\xff\xff\xff" else _LENGTH.size
+    return unframe(memoryview(data)[header:])  # type: ignore[arg-type]
+
+
 def what(message: Any, target: str) -> str:
     """A few words naming a message, for error texts."""
     server = getattr(message, "server", None)

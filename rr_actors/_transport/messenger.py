@@ -1,31 +1,38 @@
 """The messenger: what every carrier does with a message, written once over a thin link.
 
-A carrier moves bytes to a name's process and reports links and processes coming and
-going; everything a message needs besides is here, once for every carrier:
+A carrier moves frames to a name's process and back, and reports processes and servers
+coming and going; everything a message needs besides is here, once for every carrier,
+and the messenger drives the carrier through two small interfaces: a `Route` per
+registrar reached (send a frame; it broke) and a `Link` per process (send an answer back
+to the process a message came from):
 
 ```
- sending (any thread)                              the link (a carrier's own)
- peer.tell(message) ─► encode: reply kept here ─────► send the frame to the name's process
-   under a token (`Replies`), frame, too large? ─┐      (ordered per peer, never blocks)
-   (`check_size`: the receiver's limit)          └──── MessageTooLargeError / ConfigError
+ sending (any thread)
+ Remote.tell(message) ─► send(): encode (reply kept under a token), route = peer.route()
+   ├─ over route.limit? MessageTooLargeError; unpicklable? ConfigError (nothing sent)
+   ├─ route.pending.expect(reply)  (`Replies`: where it waits for its answer)
+   └─ route.send(frame) ──────────────────────► the carrier: to the name's process
+        False (the route went): forget the reply, route.broken(), once more or
+        peer.gone()
  Remote.run(fn) ─► tell(Run(fn, reply)), wait
 
- receiving (the carrier's receiving thread)
- a message for a registrar here ─► refuse_too_large (over its limit, never unpickled)
-                                 └► deliver: unpickle, `StandIn` reply, tell the registrar
- the stand-in answers ─► pickles? over the limit? ─► the link sends it back; lost on the
-                         way: the message's compensation() to the registrar (`compensate`)
- an answer for a reply here ─► `Replies.answered` (too large, unreadable: compensate)
- a process or a server gone ─► `Replies.fail` (every reply waiting on it, at once)
+ receiving (the carrier's receiving thread calls the messenger)
+ bytes for a registrar here ─► Messenger.message(endpoint, process, token, payload):
+   over its limit? refused unread; unpickle; `StandIn` reply; tell the registrar
+ the stand-in answers ─► pickles? over the limit? ─► link.answer_to(process, frame);
+   lost on the way: the message's compensation() to the registrar (`compensate`)
+ an answer ─► route.pending.answered / too_large / refused (`Replies`; too large or
+   unreadable: compensate)
+ a route or a server gone ─► route.pending.fail / Replies.fail(name): at once
  a registrar lost for good / reachable again ─► `tell_lost` / `tell_reachable`: every
-                         endpoint served here hears it (rule 19, rule 20)
+   endpoint served here hears it (rule 19, rule 20)
 ```
 
-The link a carrier implements is `Link` (below); the AF_UNIX carrier (`unix/`: one
-connection per peer) and the Zenoh carrier (`zenoh/`: puts and liveliness tokens) each
-keep only their framing, threads and presence. Each step runs on the thread the carrier
-calls it from and never blocks on a peer: what it sends is queued or dropped by the
-link.
+Carriers: `unix/` (a route is one connection: `_Channel`; answers go back on the
+connection a message came on), `zenoh/` (a route is a registrar's key and the server
+seen for it; answers go to the sender's answer key) and the in-memory double
+(`rr_actors.testing.MemoryNetwork`). Each keeps only its framing, threads and presence.
+Nothing here blocks on a peer: what it sends is queued or dropped by the carrier.
 """
 
 from __future__ import annotations
@@ -37,7 +44,7 @@ import pickle
 from collections.abc import Callable, Iterable
 from typing import Any, NamedTuple, Protocol
 
-from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.directory import DIRECTORY, Peer, Reply
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import NO_REPLY, Run, frame, payload_size, what
@@ -52,16 +59,14 @@ from rr_actors.errors import (
 __all__ = [
     "Link",
     "Lost",
+    "Messenger",
     "Outgoing",
     "Remote",
     "Replies",
+    "Route",
     "StandIn",
-    "check_size",
-    "compensate",
-    "deliver",
-    "encode",
-    "refuse_too_large",
     "run_lost",
+    "send",
     "tell_lost",
     "tell_reachable",
 ]
@@ -70,9 +75,6 @@ logger = logging.getLogger("rr_actors")
 
 Lost = Callable[[], None]
 """Called (on any thread) when a queued frame could not be sent: the link ended."""
-
-Send = Callable[[bytes], object]
-"""Sends an answer frame (made by `codec.frame`) back to a message's sender."""
 
 SendAnswer = Callable[[bytes, "Lost | None"], bool]
 """Sends an answer frame back to a message's sender; `on_lost` runs if it is queued and
@@ -86,36 +88,49 @@ Raises:
 """
 
 
-class Link(Protocol):
-    """What a carrier reports to the messenger, and the one thing it sends for it.
+class Route(Protocol):
+    """The way to one registrar's process, now (a carrier's): what a send needs of it.
 
-    The AF_UNIX carrier's connections report a process and its server gone at once (a
-    connection's end), the Zenoh carrier's liveliness tokens each apart; each report is
-    answered by a step of this module (named in each docstring). `ZenohMember`
-    implements it whole; the AF_UNIX carrier's `RemotePeer` (a server gone: its
-    connection ended), `Listener` (answers) and `AttachedSystem` (lost) share it.
+    The AF_UNIX carrier's route is a connection (`unix/outbound.py`'s `_Channel`), the
+    Zenoh carrier's the registrar's key and the server seen for it
+    (`zenoh/carrier.py`'s `_Route`), the in-memory double's its delivery queue.
     """
 
-    def answer_to(self, process: str, data: bytes, on_lost: Lost | None) -> bool:
-        """Send an answer frame back to process `process` (never blocks on it; a
-        `StandIn`'s `send`); False if it is gone (nothing sent)."""
+    @property
+    def limit(self) -> int:
+        """The registrar's `max_message_bytes`: the largest message, and answer, both ways."""
         ...
 
-    def process_gone(self, process: str) -> None:
-        """Process `process` went: what it sent before is still delivered (`deliver`,
-        `Replies.answered`), then its receiving ends."""
+    @property
+    def pending(self) -> Replies:
+        """Where the replies of messages sent over it wait for their answers."""
         ...
 
-    def server_gone(self, name: str) -> None:
-        """The last server of registrar `name` went: `Replies.fail` on what waits on it."""
+    def send(self, data: bytes) -> bool:
+        """Send a frame (ordered per route; never blocks on the peer); False if nothing of
+        it left (the route is gone)."""
         ...
 
-    def lost(self, name: str) -> None:
-        """Registrar `name` is gone for good: `tell_lost` (rule 19)."""
+    def broken(self) -> bool:
+        """A frame could not leave: close the route (what still waits on it fails);
+        whether a fresh route may take the frame (True: `send` tries once more)."""
         ...
 
-    def reachable(self, name: str) -> None:
-        """Registrar `name` is back from the same process: `tell_reachable` (rule 20)."""
+
+class Link(Protocol):
+    """What the messenger asks of a carrier, besides each registrar's `Route`: sending
+    an answer back to the process a message came from.
+
+    What a carrier tells the messenger is the other half of the link: bytes for a
+    registrar served here (`Messenger.message`, `Messenger.oversized`), an answer
+    (`Replies.answered`, `Replies.too_large`, `Replies.refused` of the route's
+    `pending`), a route or a server gone (`Replies.fail`), a registrar lost for good or
+    reachable again (`tell_lost`, `tell_reachable`).
+    """
+
+    def answer_to(self, process: Any, data: bytes, on_lost: Lost | None) -> bool:
+        """Send an answer frame back to `process` (the sender the carrier named with the
+        message; never blocks on it); False if it is gone (nothing sent)."""
         ...
 
 
@@ -175,14 +190,73 @@ def check_size(outgoing: Outgoing, name: str, limit: int) -> None:
         )
 
 
+def send(peer: Remote, message: Any) -> None:
+    """Send `message` to registrar `peer.name` over `peer.route()`; its reply (if any)
+    waits on the route for the answer. Never blocks on the peer (see `Remote.tell`).
+
+    A frame that cannot leave (the route just went) goes once more over a fresh route if
+    the carrier says one may take it (`Route.broken`), unless the route's end already
+    failed the reply.
+
+    Raises:
+        ConfigError: the message cannot be pickled.
+        MessageTooLargeError: pickled, it is over the registrar's `max_message_bytes`.
+        RrError: `peer.route()`'s error, or `peer.gone()` if the frame could not leave.
+    """
+    outgoing = encode(peer.name, message)
+    reply = outgoing.reply
+    for _attempt in (1, 2):
+        route = peer.route()
+        check_size(outgoing, peer.name, route.limit)
+        if reply is not None:
+            route.pending.expect(outgoing, peer, route.limit)
+        if route.send(outgoing.data):
+            return
+        ours = reply is None or route.pending.forget(outgoing.token)
+        again = route.broken()
+        if not ours:  # the route's end failed the reply already
+            return
+        if not again:
+            break
+    raise peer.gone()
+
+
 class Remote:
-    """A registrar of another process as a `Peer`: `tell` is the carrier's; `run` is here."""
+    """A registrar of another process as a `Peer`: `tell` and `run` are here; a carrier
+    gives each name its `route()` and the error of a name that cannot be reached."""
 
     name: str
 
-    def tell(self, message: Any) -> None:
-        """Send `message`; its reply (if any) is answered later. Never blocks on the peer."""
+    def route(self) -> Route:
+        """The way to the registrar now (a carrier's).
+
+        Raises:
+            RegistrarUnavailableError: its process is gone or cannot be reached.
+            RegistrarStoppedError: it was stopped, or this process left the system.
+        """
         raise NotImplementedError
+
+    def gone(self) -> RrError:
+        """The error of a message whose frame could not leave (the route went)."""
+        raise NotImplementedError
+
+    def tell(self, message: Any) -> None:
+        """Send `message`; its reply (if any) is answered later. Never blocks on the peer.
+
+        Called from any thread of this process. Messages told to one peer from one
+        process arrive in the order they were told. A peer that is unreachable, frozen
+        or dies later fails the reply (`RegistrarUnavailableError`, or
+        `RegistrarStoppedError` if it was stopped); a caller waiting on it with a
+        timeout gets its `CallTimeoutError` in time.
+
+        Raises:
+            ConfigError: the message (say, the request of a call) cannot be pickled.
+            MessageTooLargeError: pickled, it is larger than the remote registrar's
+                `max_message_bytes`; nothing of it was sent.
+            RegistrarUnavailableError: the registrar's process is known to be unreachable.
+            RegistrarStoppedError: it was stopped, or this process left the system.
+        """
+        send(self, message)
 
     def run(self, fn: Callable[[Any], Any], *, timeout: float) -> Any:
         """Run `fn(registrar)` in the registrar's process and return its result.
@@ -213,31 +287,23 @@ class Remote:
         return wait(reply.future, timeout, f"run() on registrar {self.name!r}")
 
 
-class Replies(dict[int, tuple[Reply, Any, str, int]]):
-    """Replies waiting here for an answer, by token; each is answered exactly once.
+class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
+    """Replies waiting for an answer, by token; each is answered exactly once.
 
-    An entry is `(reply, message, name, limit)`: the reply, the message (for error texts
-    and its compensation), the registrar it went to and that registrar's
-    `max_message_bytes` (a larger answer is refused unread). Entries leave only through
-    atomic dict operations (`pop` by the receiving thread, `popitem` or `pop` when they
-    fail), so an answer and a failure never both reach one reply.
-
-    Args:
-        tell: `tell(name, message)` sends a compensation to registrar `name` (the
-            carrier's send; an `RrError` from it is ignored).
+    An entry is `(reply, message, peer, limit)`: the reply, the message (for error texts
+    and its compensation), the peer it went to (a compensation goes back to it) and that
+    registrar's `max_message_bytes` (a larger answer is refused unread). Entries leave
+    only through atomic dict operations (`pop` by the receiving thread, `popitem` or
+    `pop` when they fail), so an answer and a failure never both reach one reply.
     """
 
-    __slots__ = ("_tell",)
+    __slots__ = ()
 
-    def __init__(self, tell: Callable[[str, Any], object]) -> None:
-        super().__init__()
-        self._tell = tell
-
-    def expect(self, outgoing: Outgoing, name: str, limit: int) -> None:
-        """`outgoing`'s reply waits for the answer of registrar `name` (at most `limit`
-        bytes: a larger one is refused unread)."""
+    def expect(self, outgoing: Outgoing, peer: Remote, limit: int) -> None:
+        """`outgoing`'s reply waits for the answer of `peer` (at most `limit` bytes: a
+        larger one is refused unread)."""
         assert outgoing.reply is not None
-        self[outgoing.token] = (outgoing.reply, outgoing.message, name, limit)
+        self[outgoing.token] = (outgoing.reply, outgoing.message, peer, limit)
 
     def forget(self, token: int) -> bool:
         """Stop waiting for `token`; False if it was not waited for (answered or failed)."""
@@ -253,16 +319,20 @@ class Replies(dict[int, tuple[Reply, Any, str, int]]):
                 except KeyError:
                     return taken
                 taken.append(entry[0])
-        for token in [t for t, entry in list(self.items()) if entry[2] == name]:
+        for token in [t for t, entry in list(self.items()) if entry[2].name == name]:
             found = self.pop(token, None)
             if found is not None:
                 taken.append(found[0])
         return taken
 
-    def fail(self, name: str | None, error: RrError) -> None:
-        """Fail every reply waiting on registrar `name` (`None`: every one) with `error`."""
-        for reply in self.take(name):
-            reply.set_error(error)
+    def fail(self, name: str | None, error: RrError | Callable[[], RrError]) -> None:
+        """Fail every reply waiting on registrar `name` (`None`: every one) with `error`
+        (or what `error()` returns, made only if one waits)."""
+        taken = self.take(name)
+        if taken and not isinstance(error, RrError):
+            error = error()
+        for reply in taken:
+            reply.set_error(error)  # type: ignore[arg-type]
 
     def answered(self, token: int, payload: bytes | memoryview) -> None:
         """Resolve the reply waiting for answer `token` (`payload`, pickled); an answer
@@ -271,104 +341,127 @@ class Replies(dict[int, tuple[Reply, Any, str, int]]):
         entry = self.pop(token, None)
         if entry is None:
             return
-        reply, message, name, limit = entry
-        tell = self._teller(name)
+        reply, message, peer, limit = entry
         if len(payload) > limit:
-            answer_too_large(reply, message, name, len(payload), limit, tell)
+            answer_too_large(reply, message, peer.name, len(payload), limit, peer.tell)
             return
-        answer(reply, message, name, payload, tell)
+        answer(reply, message, peer.name, payload, peer.tell)
 
     def too_large(self, token: int, size: int) -> None:
         """Answer `token` was `size` bytes, over its limit, and was skipped unread."""
         entry = self.pop(token, None)
         if entry is not None:
-            reply, message, name, limit = entry
-            answer_too_large(reply, message, name, size, limit, self._teller(name))
+            reply, message, peer, limit = entry
+            answer_too_large(reply, message, peer.name, size, limit, peer.tell)
 
     def refused(self, token: int, versions: str) -> None:
         """Answer `token` says the message was of another version (`versions` says
         which): not read there; its reply fails with a `TransferError`."""
         entry = self.pop(token, None)
         if entry is not None:
-            reply, message, name, _limit = entry
+            reply, message, peer, _limit = entry
             reply.set_error(
                 TransferError(
-                    f"registrar {name!r} runs another version ({versions}): pickles do not "
-                    f"cross versions, so the {what(message, name)} was not read there"
+                    f"registrar {peer.name!r} runs another version ({versions}): pickles "
+                    f"do not cross versions, so the {what(message, peer.name)} was not "
+                    f"read there"
                 )
             )
-
-    def _teller(self, name: str) -> Tell:
-        return lambda message: self._tell(name, message)
 
 
 # -- receiving ----------------------------------------------------------------------------
 
 
-def refuse_too_large(name: str, token: int, size: int, limit: int, send: Send) -> None:
-    """A message of `size` bytes for registrar `name` is over its `limit` (its
-    `max_message_bytes`): it is not read; logged, and answered with a
-    `MessageTooLargeError` through `send` if it wants an answer (`token`)."""
-    error = MessageTooLargeError(
-        f"a message of {size} bytes for registrar {name!r} is over its "
-        f"max_message_bytes ({limit}); it was not read",
-        size,
-        limit,
-    )
-    logger.warning("%s", error)
-    if token != NO_REPLY:
-        send(frame(token, (None, error)))
+class Messenger:
+    """What a carrier hands the messages for the registrars it serves here: each is
+    checked, unpickled and told to its registrar with a `StandIn` reply, whose answer
+    goes back through `link.answer_to`. Each step runs on the carrier's receiving thread
+    that calls it and never blocks on a peer.
 
-
-def deliver(
-    name: str,
-    token: int,
-    payload: bytes | memoryview,
-    send: Send,
-    stand_in: Callable[[Any], Reply],
-    run: Callable[[Run], None],
-) -> None:
-    """Unpickle one message (`payload`) for registrar `name` of this process and tell it.
-
-    A message that wants an answer (`token`) gets `stand_in(message)` as its reply: the
-    carrier's stand-in, which answers its sender. A message that cannot be unpickled, or
-    wants an answer but has no `reply` field, is answered through `send` with a
-    `TransferError` or `InternalError` (dropped if it wants none). A `Run` goes to
-    `run`, not to the registrar. If the registrar cannot be told, the stand-in reply
-    answers the error.
-
-    Raises:
-        Exception: the registrar cannot be told and the message wants no answer (the
-            carrier logs it).
+    Args:
+        link: the carrier (`Link`).
+        lookup: finds a registrar of this process by name (the directory's).
     """
-    try:
-        message = pickle.loads(payload)
-    except BaseException as exc:  # noqa: BLE001 - answered as an error, never raised here
-        if token != NO_REPLY:
+
+    __slots__ = ("_link", "_lookup")
+
+    def __init__(self, link: Link, lookup: Callable[[str], Peer] = DIRECTORY.lookup) -> None:
+        self._link = link
+        self._lookup = lookup
+
+    def message(
+        self, endpoint: Endpoint, process: Any, token: int, payload: bytes | memoryview
+    ) -> None:
+        """Deliver one message (`payload`, pickled) from `process` (answers go back to
+        it) to `endpoint`, a registrar served here.
+
+        One over the registrar's `max_message_bytes` is refused unread (`oversized`). One
+        that wants an answer (`token`) gets a `StandIn` as its reply. One that cannot be
+        unpickled, or wants an answer but has no `reply` field, is answered with a
+        `TransferError` or `InternalError` (dropped if it wants none). A `Run` runs on a
+        fresh thread (`rr-run-<name>`), not on the registrar. If the registrar cannot be
+        told, the stand-in reply answers the error.
+
+        Raises:
+            Exception: the registrar cannot be told and the message wants no answer (the
+                carrier logs it).
+        """
+        name, limit = endpoint.name, endpoint.max_message_bytes
+        if len(payload) > limit:
+            self.oversized(endpoint, process, token, len(payload))
+            return
+        try:
+            message = pickle.loads(payload)
+        except BaseException as exc:  # noqa: BLE001 - answered as an error, never raised here
             unreadable = TransferError(
                 f"a message for registrar {name!r} cannot be unpickled: {exc}"
             )
-            send(frame(token, (None, unreadable)))
-        return
-    reply = None
-    if token != NO_REPLY:
-        if not hasattr(message, "reply"):
-            error = InternalError(
-                f"a {type(message).__name__} message for registrar {name!r} cannot be answered"
-            )
-            send(frame(token, (None, error)))
+            self._error(process, token, unreadable)
             return
-        reply = stand_in(message)
-        object.__setattr__(message, "reply", reply)  # a fresh copy, ours to fill in
-    if type(message) is Run:
-        run(message)
-        return
-    try:
-        DIRECTORY.lookup(name).tell(message)
-    except Exception as exc:
-        if reply is None:
-            raise
-        reply.set_error(exc if isinstance(exc, RrError) else RrError(f"{exc!r}"))
+        reply = None
+        if token != NO_REPLY:
+            if not hasattr(message, "reply"):
+                kind = type(message).__name__
+                error = InternalError(f"a {kind} message for registrar {name!r} cannot be answered")
+                self._error(process, token, error)
+                return
+            link = self._link
+            reply = StandIn(
+                lambda data, on_lost: link.answer_to(process, data, on_lost),
+                name,
+                limit,
+                token,
+                message,
+                self._lookup,
+            )
+            object.__setattr__(message, "reply", reply)  # a fresh copy, ours to fill in
+        if type(message) is Run:
+            message.start(endpoint.run, f"rr-run-{name}")
+            return
+        try:
+            self._lookup(name).tell(message)
+        except Exception as exc:
+            if reply is None:
+                raise
+            reply.set_error(exc if isinstance(exc, RrError) else RrError(f"{exc!r}"))
+
+    def oversized(self, endpoint: Endpoint, process: Any, token: int, size: int) -> None:
+        """A message of `size` bytes for `endpoint` is over its `max_message_bytes`: it is
+        not read; logged, and answered with a `MessageTooLargeError` to `process` if it
+        wants an answer (`token`)."""
+        limit = endpoint.max_message_bytes
+        error = MessageTooLargeError(
+            f"a message of {size} bytes for registrar {endpoint.name!r} is over its "
+            f"max_message_bytes ({limit}); it was not read",
+            size,
+            limit,
+        )
+        logger.warning("%s", error)
+        self._error(process, token, error)
+
+    def _error(self, process: Any, token: int, error: RrError) -> None:
+        if token != NO_REPLY:
+            self._link.answer_to(process, frame(token, (None, error)), None)
 
 
 class StandIn:
@@ -387,12 +480,22 @@ class StandIn:
         limit: its `max_message_bytes`.
         token: the sender's token for the answer.
         message: the message.
+        lookup: finds the registrar `name` (a compensation goes to it).
     """
 
-    __slots__ = ("_done", "_limit", "_message", "_name", "_send", "_token")
+    __slots__ = ("_done", "_limit", "_lookup", "_message", "_name", "_send", "_token")
 
-    def __init__(self, send: SendAnswer, name: str, limit: int, token: int, message: Any) -> None:
+    def __init__(
+        self,
+        send: SendAnswer,
+        name: str,
+        limit: int,
+        token: int,
+        message: Any,
+        lookup: Callable[[str], Peer] = DIRECTORY.lookup,
+    ) -> None:
         self._send = send
+        self._lookup = lookup
         self._name = name
         self._limit = limit
         self._token = token
@@ -433,8 +536,8 @@ class StandIn:
 
     def _compensate(self) -> None:
         """The answer did not reach its caller: undo what handling the message created."""
-        name = self._name
-        compensate(self._message, lambda compensation: DIRECTORY.lookup(name).tell(compensation))
+        name, lookup = self._name, self._lookup
+        compensate(self._message, lambda compensation: lookup(name).tell(compensation))
 
     def _unpicklable(self, value: Any, error: BaseException | None, exc: BaseException) -> RrError:
         if error is not None:

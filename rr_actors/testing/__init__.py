@@ -35,7 +35,15 @@ What those seams and `RemoteRegistrar` take, so a test needs no private module:
 - [`start_forkserver`][rr_actors.testing.start_forkserver]: start the forkserver that
   manager processes are forked from now, before a check that counts child processes.
 
-Where they live: `helpers.py`, `seams.py`, `shared.py` (re-exported here).
+A carrier to test against without processes:
+
+- [`MemoryNetwork`][rr_actors.testing.MemoryNetwork]: an in-memory carrier (a test
+  double of a system across processes: `ResourceRegistrar.start(config,
+  network=MemoryNetwork())`); what a test sends through its `resolve(name)` and `run`
+  crosses it as frames, as on the AF_UNIX and Zenoh carriers; `cut(name)` is a
+  `SIGKILL` of the process serving `name`.
+
+Where they live: `helpers.py`, `seams.py`, `shared.py`, `memory.py` (re-exported here).
 """
 
 from __future__ import annotations
@@ -47,6 +55,7 @@ from rr_actors._registrar.attempt import AttemptState, CallAttempt
 from rr_actors._registrar.lifecycle import CatalogView
 from rr_actors._transport.unix.system import System
 from rr_actors.testing.helpers import catalog_snapshot, crash, running_actors
+from rr_actors.testing.memory import MemoryAddress, MemoryNetwork
 from rr_actors.testing.seams import (
     Installed,
     PendingWork,
@@ -65,6 +74,8 @@ __all__ = [
     "CallAttempt",
     "CatalogView",
     "Installed",
+    "MemoryAddress",
+    "MemoryNetwork",
     "PendingWork",
     "Records",
     "RemoteRegistrar",

@@ -22,8 +22,8 @@ import time
 from multiprocessing import AuthenticationError
 
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.codec import Oversized, Run, frames, unframe
-from rr_actors._transport.messenger import Lost, StandIn, deliver, refuse_too_large
+from rr_actors._transport.codec import Oversized, frames, unframe
+from rr_actors._transport.messenger import Lost, Messenger
 from rr_actors._transport.unix.rendezvous import Member
 from rr_actors._transport.unix.sockets import (
     HANDSHAKE_TIMEOUT,
@@ -87,12 +87,13 @@ class _Link:
             except (AuthenticationError, EOFError, OSError) as exc:
                 logger.warning("registrar %s refused a connection: %s", listener.name, exc)
                 return
+            messenger, endpoint = listener.messenger, listener.endpoint
             for data in frames(conn, listener.max_message_bytes):
                 try:
                     if isinstance(data, Oversized):
-                        self._refuse(data)
+                        messenger.oversized(endpoint, self, data.token, data.size)
                     else:
-                        self._deliver(data)
+                        messenger.message(endpoint, self, *unframe(data))
                 except Exception:
                     logger.exception("registrar %s dropped a malformed message", listener.name)
         finally:
@@ -100,25 +101,16 @@ class _Link:
             conn.close()
             listener.forget(self)
 
-    def _refuse(self, oversized: Oversized) -> None:
-        """Answer a message over the limit with an error; it was skipped, never unpickled."""
-        listener = self.listener
-        refuse_too_large(
-            listener.name, oversized.token, oversized.size, listener.max_message_bytes, self.send
-        )
 
-    def _deliver(self, data: bytes | bytearray) -> None:
-        """Unpickle one frame and hand the message to the local registrar (reader thread)."""
-        token, payload = unframe(data)
-        name, limit = self.listener.name, self.listener.max_message_bytes
-        deliver(
-            name,
-            token,
-            payload,
-            self.send,
-            lambda message: StandIn(self.send, name, limit, token, message),
-            self.listener.run,
-        )
+class _OnTheConnection:
+    """The AF_UNIX carrier's `Link`: an answer goes back on the connection its message
+    came on (the `process` a listener names with each message is its `_Link`)."""
+
+    def answer_to(self, process: _Link, data: bytes, on_lost: Lost | None) -> bool:
+        return process.send(data, on_lost)
+
+
+_MESSENGER = Messenger(_OnTheConnection())
 
 
 LOCK_RETRY = 0.2
@@ -180,6 +172,7 @@ class Listener:
     def __init__(self, system: Member, endpoint: Endpoint) -> None:
         self.name = endpoint.name
         self.endpoint = endpoint
+        self.messenger = _MESSENGER
         self.max_message_bytes = endpoint.max_message_bytes
         self.authkey = system.address.authkey
         self.path = system.address.socket_path(self.name)
@@ -300,10 +293,6 @@ class Listener:
         with self._lock:
             self._links.discard(link)
         self._wake.set()  # its descriptors are free: a listener backing off tries again
-
-    def run(self, message: Run) -> None:
-        """Run a control function on a fresh thread (it may block; it is rare)."""
-        message.start(self.endpoint.run, f"rr-run-{self.name}")
 
     def forget_in_child(self) -> None:
         """In a forked child: let go of the parent's listener without touching it.

@@ -18,11 +18,9 @@ import os
 import threading
 from multiprocessing import AuthenticationError
 from multiprocessing.connection import Connection
-from typing import Any
 
-from rr_actors._core.directory import Reply
 from rr_actors._transport.codec import Oversized, frames, unframe
-from rr_actors._transport.messenger import Remote, Replies, check_size, encode
+from rr_actors._transport.messenger import Remote, Replies
 from rr_actors._transport.unix.rendezvous import Member
 from rr_actors._transport.unix.sockets import connect, read_limit
 from rr_actors._transport.unix.writer import Writer
@@ -35,35 +33,49 @@ logger = logging.getLogger("rr_actors")
 
 
 class _Channel:
-    """One connection from this process to a remote registrar and its outstanding answers.
+    """One connection from this process to a remote registrar: the peer's `Route`.
 
-    `pending` holds the replies waiting for an answer on it (the messenger's `Replies`:
+    `pending` holds the replies pending for an answer on it (the messenger's `Replies`:
     each is answered, or failed when the channel is lost, exactly once). `limit` is the
     target's `max_message_bytes`, both ways.
     """
 
-    __slots__ = ("limit", "pending", "reading", "writer")
+    __slots__ = ("limit", "peer", "pending", "reading", "writer")
 
     def __init__(
         self,
         writer: Writer,
         limit: int = DEFAULT_MAX_MESSAGE_BYTES,
-        pending: Replies | None = None,
+        peer: RemotePeer | None = None,
     ) -> None:
         self.writer = writer
         self.limit = limit
-        self.pending = pending if pending is not None else Replies(lambda _name, _m: None)
+        self.peer = peer
+        self.pending = Replies()
         self.reading: Connection | None = None  # the reader thread's (a duplicate descriptor)
+
+    def send(self, data: bytes) -> bool:
+        """Write or queue a frame (`Writer.send`); False if the connection is gone."""
+        return self.writer.send(data)
+
+    def broken(self) -> bool:
+        """Nothing of a frame left: close the channel (what waits fails); a fresh one may
+        take the frame."""
+        if self.peer is not None:
+            self.peer._lose(self, None)
+        return True
 
 
 class RemotePeer(Remote):
-    """A registrar in another process of the system, reached through its socket (`run`:
-    `Remote`).
+    """A registrar in another process of the system, reached through its socket (`tell`,
+    `run`: `Remote`; its route is one connection).
 
-    `tell` is what the registrar code calls for every message; it connects lazily (one
-    connection per target per process, made on the connection's writer thread) and is
-    safe from any thread. Answers are read by one daemon thread per connection, which
-    resolves the kept replies.
+    It connects lazily (one connection per target per process, made on the
+    connection's writer thread) and is safe from any thread: a frame is written only if
+    the socket takes it at once, otherwise it is queued for the connection's writer
+    thread, which also connects (the handshake is bounded by `HANDSHAKE_TIMEOUT`).
+    Answers are read by one daemon thread per connection, which resolves the kept
+    replies.
     """
 
     def __init__(self, system: Member, name: str) -> None:
@@ -73,44 +85,15 @@ class RemotePeer(Remote):
         self._lock = threading.Lock()
         self._channel: _Channel | None = None
 
-    def tell(self, message: Any) -> None:
-        """Send `message` to the remote registrar; its reply (if any) is answered later.
+    def route(self) -> _Channel:
+        """The connection, or a new one whose writer thread connects."""
+        channel = self._channel
+        if channel is None or channel.writer.closed:
+            channel = self._open()
+        return channel
 
-        Called from any thread of this process: a caller's thread (`call` sends its `Load`
-        from there), registrar and client actor threads, worker threads, and this
-        transport's reader threads. It never blocks on the peer: the frame is written
-        only if the socket takes it at once, otherwise it is queued for the connection's
-        writer thread, which also connects (the handshake is bounded by
-        `HANDSHAKE_TIMEOUT`). Messages told to one peer from one process arrive in the
-        order they were told. A peer that is unreachable, frozen or dies later fails the
-        reply (`RegistrarUnavailableError`, or `RegistrarStoppedError` if it was stopped);
-        a caller waiting on it with a timeout gets its `CallTimeoutError` in time.
-
-        Raises:
-            ConfigError: the message (say, the request of a call) cannot be pickled.
-            MessageTooLargeError: pickled, it is larger than the remote registrar's
-                `max_message_bytes`; nothing of it was sent.
-            RegistrarUnavailableError: the registrar's process is known to be unreachable.
-            RegistrarStoppedError: it was stopped, or this process closed the system.
-        """
-        outgoing = encode(self.name, message)
-        reply = outgoing.reply
-        for _attempt in (1, 2):
-            channel = self._channel
-            if channel is None or channel.writer.closed:
-                channel = self._open()
-            check_size(outgoing, self.name, channel.limit)
-            if reply is not None:
-                channel.pending.expect(outgoing, self.name, channel.limit)
-            if channel.writer.send(outgoing.data):
-                return
-            # The connection was lost before anything of the frame left: unless its loss
-            # already failed the reply, send once more on a fresh connection.
-            ours = reply is None or channel.pending.forget(outgoing.token)
-            self._lose(channel, None)
-            if not ours:
-                return
-        raise self._gone("lost its connection")
+    def gone(self) -> RrError:
+        return self._gone("lost its connection")
 
     def close(self, error: RrError) -> None:
         """Close the connection; outstanding answers fail with `error`."""
@@ -153,9 +136,8 @@ class RemotePeer(Remote):
                 self._system.peer_ended(self.name)  # (is it lost? rule 19)
                 raise self._gone("cannot be reached (it does not listen)")
             limit = read_limit(self._system.address.limit_path(self.name))
-            pending = Replies(lambda _name, message: self.tell(message))
             writer = Writer(None, lambda exc: self._failed(fresh, exc), f"rr-write-{self.name}")
-            fresh = _Channel(writer, limit, pending)
+            fresh = _Channel(writer, limit, self)
             writer.connect_with(functools.partial(self._connect, fresh))  # (its first task)
             self._channel = channel = fresh
         return channel
@@ -201,27 +183,30 @@ class RemotePeer(Remote):
         return RegistrarUnavailableError(f"registrar {self.name!r} {how}{detail}")
 
     def _lose(self, channel: _Channel, error: RrError | None) -> None:
-        """Close `channel` and fail every reply still waiting on it (any thread)."""
+        """Close `channel` and fail every reply still pending on it (any thread)."""
         channel.writer.close()
         with self._lock:
             if self._channel is channel:
                 self._channel = None
-        failed: list[Reply] = channel.pending.take()
-        if not failed:
-            return
-        error = error or self._gone("died while answers were outstanding")
-        for reply in failed:
-            reply.set_error(error)
+        channel.pending.fail(
+            None, error or (lambda: self._gone("died while answers were outstanding"))
+        )
 
     def _read(self, channel: _Channel, conn: Connection) -> None:
-        """The reader thread of one connection: resolve answers until it ends."""
+        """The reader thread of one connection: resolve answers until it ends.
+
+        An answer that cannot be unpickled here fails its reply; the message's
+        `compensation()` (a `Load`'s: an `Abandon` of its consumer id) goes back to the
+        peer, since the caller gets an error instead of what it asked for (`Replies`).
+        """
+        pending = channel.pending
         try:
             for data in frames(conn, channel.limit):
                 try:
                     if isinstance(data, Oversized):
-                        self._too_large(channel, data)
+                        pending.too_large(data.token, data.size)
                     else:
-                        self._answer(channel, data)
+                        pending.answered(*unframe(data))
                 except Exception:
                     logger.exception("dropped a malformed answer from registrar %s", self.name)
         finally:
@@ -229,17 +214,3 @@ class RemotePeer(Remote):
             conn.close()
             if not self._system.closed:
                 self._system.peer_ended(self.name)  # (is it lost? rule 19)
-
-    def _too_large(self, channel: _Channel, oversized: Oversized) -> None:
-        """An answer over the limit was skipped unread: fail its reply, undo what it made."""
-        channel.pending.too_large(oversized.token, oversized.size)
-
-    def _answer(self, channel: _Channel, data: bytes | bytearray) -> None:
-        """Resolve the reply waiting for one answer frame (reader thread).
-
-        An answer that cannot be unpickled here fails it; the message's `compensation()`
-        (a `Load`'s: an `Abandon` of its consumer id) goes back to the peer, since the
-        caller gets an error instead of what it asked for.
-        """
-        token, payload = unframe(data)
-        channel.pending.answered(token, payload)

@@ -61,15 +61,7 @@ from rr_actors._core.bus import Subscription
 from rr_actors._core.directory import DIRECTORY, Peer
 from rr_actors._core.hlc import CLOCK
 from rr_actors._transport.base import Address, Endpoint
-from rr_actors._transport.messenger import (
-    Link,
-    Lost,
-    Remote,
-    check_size,
-    encode,
-    tell_lost,
-    tell_reachable,
-)
+from rr_actors._transport.messenger import Link, Lost, Remote, tell_lost, tell_reachable
 from rr_actors._transport.zenoh.events import EventExport, EventFeed
 from rr_actors._transport.zenoh.inbox import Inbox, Local
 from rr_actors._transport.zenoh.outbox import Outbox, Outboxes
@@ -100,22 +92,43 @@ logger = logging.getLogger("rr_actors")
 
 
 class ZenohPeer(Remote):
-    """A registrar of another process of the system, reached over Zenoh (`run`: `Remote`)."""
+    """A registrar of another process of the system, reached over Zenoh (`tell`, `run`:
+    `Remote`; its route is its key and the server seen for it)."""
 
     def __init__(self, member: ZenohMember, name: str) -> None:
         self.name = name
         self._member = member
 
-    def tell(self, message: Any) -> None:
-        """Send `message`; its reply (if any) is answered later. Never blocks on the peer.
+    def route(self) -> _Route:
+        return self._member.route(self.name)
 
-        Raises:
-            ConfigError: the message cannot be pickled.
-            MessageTooLargeError: pickled, it is over the registrar's `max_message_bytes`.
-            RegistrarUnavailableError: its process is gone or cannot be reached.
-            RegistrarStoppedError: it was stopped, or this process left the system.
-        """
-        self._member.send(self.name, message)
+    def gone(self) -> RrError:
+        return self._member._gone_error(self.name)
+
+
+class _Route:
+    """The way to registrar `name` now: the server seen for it, its outbox (`Route`)."""
+
+    __slots__ = ("_member", "limit", "name", "pending", "zid")
+
+    def __init__(self, member: ZenohMember, name: str, zid: str, limit: int) -> None:
+        self._member = member
+        self.name = name
+        self.zid = zid
+        self.limit = limit
+        self.pending = member._inbox.replies  # (one table: answers come on one key)
+
+    def send(self, data: bytes) -> bool:
+        member = self._member
+        outbox = member._outbox(member._keys.registrar(self.name), self.zid)
+        return (  # (gone meanwhile: its presence may have missed this reply)
+            member._presence.server(self.name) is not None
+            and outbox is not None
+            and outbox.send(envelope(MESSAGE, member.zid, data, CLOCK.send()))
+        )
+
+    def broken(self) -> bool:
+        return False  # (the server went: its presence fails what waits on it)
 
 
 class ZenohMember:
@@ -314,7 +327,7 @@ class ZenohMember:
         DIRECTORY.remove_resolver(self.resolve)
         for local in locals_:
             self._unserve(local, stopped=local.endpoint.stopped_cleanly())
-        self._inbox.fail_waiting(None, RegistrarStoppedError("this process left the system"))
+        self._inbox.replies.fail(None, RegistrarStoppedError("this process left the system"))
         self._events.close()
         self._outboxes.close()
         self._inbox.close()
@@ -372,26 +385,20 @@ class ZenohMember:
             f"router it is reached through)"
         )
 
-    def send(self, name: str, message: Any) -> None:
-        """Send `message` to registrar `name` of another process (see `ZenohPeer.tell`)."""
-        outgoing = encode(name, message)
+    def route(self, name: str) -> _Route:
+        """The way to registrar `name` of another process now (`ZenohPeer.route`).
+
+        Raises:
+            RegistrarUnavailableError: no process serves it now (asked of the network).
+            RegistrarStoppedError: it was stopped, or this process left the system.
+        """
         server = self._presence.server(name)
         if server is None and not self.closed:  # maybe served again, not yet heard here
             self._presence.ask(name)
             server = self._presence.server(name)
         if server is None:
             raise self._gone_error(name)
-        check_size(outgoing, name, server.limit)
-        if outgoing.reply is not None:
-            self._inbox.expect(outgoing, name, server.limit)
-        outbox = self._outbox(self._keys.registrar(name), server.zid)
-        sent = (  # (gone meanwhile: its presence may have missed this reply)
-            self._presence.server(name) is not None
-            and outbox is not None
-            and outbox.send(envelope(MESSAGE, self.zid, outgoing.data, CLOCK.send()))
-        )
-        if not sent and (outgoing.reply is None or self._inbox.forget(outgoing.token)):
-            raise self._gone_error(name)
+        return _Route(self, name, server.zid, server.limit)
 
     def _outbox(self, key: str, zid: str | None = None) -> Outbox | None:
         """The outbox of `key`, whose subscriber is in process `zid` (if known: then the
@@ -434,7 +441,7 @@ class ZenohMember:
 
     def server_gone(self, name: str) -> None:
         """The last server of `name` went: what waits on it fails, its outbox closes."""
-        self._inbox.fail_waiting(name, self._gone_error(name))
+        self._inbox.replies.fail(name, lambda: self._gone_error(name))
         outbox = self._outboxes.pop(self._keys.registrar(name))
         if outbox is not None:
             outbox.close()

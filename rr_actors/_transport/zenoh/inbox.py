@@ -39,15 +39,8 @@ from rr_actors._core.hlc import CLOCK
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.codec import NO_REPLY, Run
-from rr_actors._transport.messenger import (
-    Lost,
-    Outgoing,
-    Replies,
-    StandIn,
-    deliver,
-    refuse_too_large,
-)
+from rr_actors._transport.codec import NO_REPLY
+from rr_actors._transport.messenger import Lost, Messenger, Replies
 from rr_actors._transport.zenoh.wire import (
     ANSWER,
     MESSAGE,
@@ -57,7 +50,6 @@ from rr_actors._transport.zenoh.wire import (
     payload_of,
     versions_text,
 )
-from rr_actors.errors import RrError
 
 __all__ = ["STRANGERS_HELD", "STRANGER_GRACE", "Inbox", "InboxOwner", "Local"]
 
@@ -87,7 +79,7 @@ class Local:
 
 
 class InboxOwner(Protocol):
-    """What the inbox asks of its member: sending."""
+    """What the inbox asks of its member: sending (the messenger's `Link`)."""
 
     def answer_to(self, sender: str, data: bytes, on_lost: Lost | None) -> bool:
         """Send an answer frame to process `sender`; False if it is gone (not sent)."""
@@ -98,24 +90,23 @@ class InboxOwner(Protocol):
     def refuse_version(self, sender: str, token: int) -> None:
         """Tell process `sender` that its message `token` was of another version."""
 
-    def send(self, name: str, message: Any) -> None:
-        """Send `message` to registrar `name` of another process."""
-
 
 class Inbox:
-    """The decode queues of one process (one per sending process and kind) and the
-    replies waiting here for an answer, by token.
+    """The decode queues of one process (one per sending process and kind); what they
+    decode goes to the messenger: messages for the registrars served here, answers for
+    the replies waiting here (`replies`, by token: every route's `pending`).
 
     Args:
-        owner: what sends answers and compensations (the member).
+        owner: what sends answers (the member).
     """
 
     def __init__(self, owner: InboxOwner) -> None:
         self._owner = owner
+        self._messenger = Messenger(owner)
+        self.replies = Replies()
         self._lock = threading.Lock()
         self._closed = False
         self._inboxes: dict[tuple[str, int], SerialExecutor] = {}
-        self._replies = Replies(owner.send)
         self._warned: set[str] = set()
         self._strangers = SerialExecutor("rr-zread-strangers")
         self._pending: dict[tuple[str, int], int] = {}  # frames on `_strangers`, by stream
@@ -124,20 +115,6 @@ class Inbox:
         self._left: dict[str, float] = {}  # tokens that went in the last STRANGER_GRACE s
         self._joined = threading.Condition(threading.Lock())
         self._dropped = LogThrottle(logger)
-
-    # -- the replies waiting for an answer -------------------------------------------------
-
-    def expect(self, outgoing: Outgoing, name: str, limit: int) -> None:
-        """`outgoing`'s reply waits for the answer of registrar `name` (`Replies.expect`)."""
-        self._replies.expect(outgoing, name, limit)
-
-    def forget(self, token: int) -> bool:
-        """Stop waiting for `token`; False if it was not waited for (answered or failed)."""
-        return self._replies.forget(token)
-
-    def fail_waiting(self, name: str | None, error: RrError) -> None:
-        """Fail every reply waiting on registrar `name` (`None`: every one) with `error`."""
-        self._replies.fail(name, error)
 
     # -- the queues --------------------------------------------------------------------------
 
@@ -274,33 +251,13 @@ class Inbox:
         """Decode one message for a registrar of this process and tell it (its sender's
         decode thread)."""
         local, data, head = item
-        name = local.name
         token, payload = payload_of(data, head)
         if not head.ours:
-            self._refuse_version(name, head, token)
+            self._refuse_version(local.name, head, token)
             return
         if head.stamp is not None:
             CLOCK.receive(head.stamp)  # (before the registrar hears of it)
-        sender = head.sender
-
-        def send(answer: bytes) -> bool:
-            return self._owner.answer_to(sender, answer, None)
-
-        if len(payload) > local.max_message_bytes:
-            refuse_too_large(name, token, len(payload), local.max_message_bytes, send)
-            return
-
-        def answer(data: bytes, on_lost: Lost | None) -> bool:
-            return self._owner.answer_to(sender, data, on_lost)
-
-        deliver(
-            name,
-            token,
-            payload,
-            send,
-            lambda message: StandIn(answer, name, local.max_message_bytes, token, message),
-            lambda message: self._run(local, message),
-        )
+        self._messenger.message(local.endpoint, head.sender, token, payload)
 
     def _refuse_version(self, name: str, head: Header, token: int) -> None:
         """A message of another version: not unpickled; its sender is told why."""
@@ -316,17 +273,14 @@ class Inbox:
         if token != NO_REPLY:
             self._owner.refuse_version(head.sender, token)
 
-    def _run(self, local: Local, message: Run) -> None:
-        message.start(local.endpoint.run, f"rr-zrun-{local.name}")
-
     def _answered(self, item: tuple[bytes, Header]) -> None:
         """Decode one answer and resolve the reply waiting for it (its sender's decode
         thread)."""
         data, head = item
         token, payload = payload_of(data, head)
         if head.kind == VERSION or not head.ours:
-            self._replies.refused(token, versions_text(head))
+            self.replies.refused(token, versions_text(head))
             return
-        if head.stamp is not None and token in self._replies:
+        if head.stamp is not None and token in self.replies:
             CLOCK.receive(head.stamp)  # (an answer someone waits for)
-        self._replies.answered(token, payload)
+        self.replies.answered(token, payload)
