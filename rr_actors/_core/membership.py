@@ -158,10 +158,13 @@ class Membership:
             return dict(self._gone)
 
     def forget_in_child(self) -> None:
-        """In a forked child: the parent's registrars do not hear here (the records, facts
-        about the system, stay)."""
+        """In a forked child: the parent's registrars do not hear here, and its records
+        are dropped too (a spare may serve long after the fork, when a name recorded
+        then may be back: the child hears what it needs from its supervisor,
+        `tell_gone`, and from its carrier)."""
         self._lock = threading.Lock()
         self._hearers.clear()
+        self._gone.clear()
 
 
 MEMBERSHIP = Membership()
