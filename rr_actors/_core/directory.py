@@ -21,6 +21,7 @@ from typing import Any, Protocol
 
 import pykka
 
+from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._platform import fork
 from rr_actors.errors import (
     DuplicateNameError,
@@ -96,6 +97,7 @@ class Directory:
             self._peers[peer.name] = peer
             self._gone.pop(peer.name, None)
             self._inherited.pop(peer.name, None)
+        MEMBERSHIP.back(peer.name)  # served here (again): no longer gone for good
 
     def unregister(self, peer: Peer, reason: str) -> None:
         """Withdraw a registrar; `reason` is `"stopped"` or `"died"`."""
