@@ -4,8 +4,7 @@ A *peer* is anything with `tell(message)`: a registrar actor in this process, or
 manager processes) a channel to a registrar in another process. The directory maps names
 to peers, remembers why a name went away (stopped or died, so callers get the right
 error: and a registrar that its supervisor is bringing back is neither, it is
-unavailable for now), and tells the living registrars when a consumer died for good
-(death watch).
+unavailable for now). Who is gone for good is the membership's (`membership.py`).
 
 In a child forked from this process, the parent's registrars are not the child's: the
 directory forgets them at the fork (`rr_actors._platform.fork`), and a handle of one used
@@ -22,6 +21,7 @@ from typing import Any, Protocol
 
 import pykka
 
+from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._platform import fork
 from rr_actors.errors import (
     DuplicateNameError,
@@ -97,6 +97,7 @@ class Directory:
             self._peers[peer.name] = peer
             self._gone.pop(peer.name, None)
             self._inherited.pop(peer.name, None)
+        MEMBERSHIP.back(peer.name)  # served here (again): no longer gone for good
 
     def unregister(self, peer: Peer, reason: str) -> None:
         """Withdraw a registrar; `reason` is `"stopped"` or `"died"`."""
@@ -223,8 +224,8 @@ class Directory:
     def broadcast(self, message: object, *, also: Iterable[str] = (), skip: str = "") -> None:
         """Tell `message` to every registrar of this process and to those named in `also`.
 
-        The death watch (`ConsumerDown`) reaches everyone who may hold a consumer's ids
-        this way. Registrar `skip` is left out; one that cannot be reached is skipped
+        A restart that lost ids (`ReconcileAsk`) reaches everyone who may hold them this
+        way. Registrar `skip` is left out; one that cannot be reached is skipped
         (logged at debug level).
         """
         targets = {peer.name for peer in self.local_peers()} | set(also)

@@ -30,7 +30,8 @@ import pykka
 from rr_actors import events
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
 from rr_actors._core.actor import Actor, refuse
-from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
+from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.timers import Cancellable, thread_timer
 from rr_actors._registrar import chronicle
 from rr_actors._registrar.deathwatch import gone_for_good
@@ -38,6 +39,8 @@ from rr_actors._registrar.messages import (
     ClientLoaded,
     Crash,
     Flush,
+    PeerLost,
+    PeerReachable,
     Reachable,
     Ready,
     Save,
@@ -86,6 +89,37 @@ class CatalogView:
     in_doubt: tuple[tuple[str, str | None], ...] = ()
 
 
+class Hearing:
+    """How this process's membership (`rr_actors._core.membership`) tells a registrar
+    actor who is lost or reachable again: a `PeerLost` / `PeerReachable` to its mailbox
+    (any thread; one for an actor that ended is dropped: it holds nothing any more)."""
+
+    __slots__ = ("peer",)
+
+    def __init__(self, peer: LocalPeer) -> None:
+        self.peer = peer
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        return self.peer.name
+
+    def peer_lost(self, name: str) -> None:
+        """Registrar `name` is gone for good (rule 19): `presence.py`."""
+        with contextlib.suppress(RrError):
+            self.peer.tell(PeerLost(name))
+
+    def peer_stopped(self, name: str) -> None:
+        """Registrar `name` was stopped for good (its supervisor says): `presence.py`."""
+        with contextlib.suppress(RrError):
+            self.peer.tell(PeerLost(name, stopped=True))
+
+    def peer_reachable(self, name: str) -> None:
+        """Registrar `name` answers again (a healed link, rule 20): `presence.py`."""
+        with contextlib.suppress(RrError):
+            self.peer.tell(PeerReachable(name))
+
+
 class Lifecycle:
     """Starts, stops and buries one registrar actor; answers the handle's requests.
 
@@ -127,11 +161,15 @@ class Lifecycle:
         self.sweeping = False  # slices of the restored catalog are still to be swept
         self.swept_origins: set[str] = set()  # registrars holding ids in what was swept
         self.reconcile_owed = False  # `reconcile` came during the sweep
+        self.hearer = Hearing(shared.peer)  # what this process's membership tells it
 
     # -- start ------------------------------------------------------------------------
 
     def on_start(self) -> None:
         chronicle.publish_restored(self.registrar)  # before anything is served
+        # from now on it hears who is lost (`PeerLost`); who was lost before it started
+        # (while it was down, or before its restore) it hears now: a mark is never missed
+        gone = MEMBERSHIP.join(self.hearer)
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
         self.reconciling.expect_reconcile(providers)
@@ -140,6 +178,11 @@ class Lifecycle:
         self.reconciling.everyone = self.registrar.saver.store is not None
         self.settle_in_doubt()
         self.unload_unheld()
+        for name, stopped in sorted(gone.items()):  # as if it had heard each mark
+            if stopped:  # (`presence.py`)
+                self.presence.stopped(name)
+            else:
+                self.presence.lose(name)
         self.arm_flush_timer()
         if self.registrar.phase is Phase.SERVING:  # (else once setup is done: `on_ready`)
             self.reconcile()
@@ -371,6 +414,7 @@ class Lifecycle:
                 name = self.registrar.name
                 logger.error("registrar %s stopped without its last changes: %s", name, exc)  # noqa: TRY400
                 unsaved = exc
+            MEMBERSHIP.leave(self.hearer)
             DIRECTORY.unregister(self.registrar.peer, "stopped")
             self.stop_children()
             if unsaved is None:
@@ -438,6 +482,7 @@ class Lifecycle:
         """A crash: fail every waiting caller, release this consumer's ids elsewhere."""
         self.registrar.phase = Phase.ENDED
         self.presence.close()
+        MEMBERSHIP.leave(self.hearer)
         DIRECTORY.unregister(self.registrar.peer, "died")
         self.fail_waiting(RegistrarUnavailableError(f"registrar {self.registrar.name!r} died"))
         self.stop_children()

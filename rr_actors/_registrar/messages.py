@@ -233,12 +233,15 @@ class ReconcileAsk(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class ConsumerDown(WireMessage):
-    """Death watch -> every registrar: registrar `origin_rr` died and will not come back.
+    """Death watch -> a registrar of another process: registrar `origin_rr` died (or, with
+    `stopped`, was stopped) and will not come back: the mark on the wire.
 
-    Handled by `presence.py` on both sides (rule 19): the ids it held here are
-    released, and the ids held there get `FATAL` and are forgotten."""
+    Its receiver feeds it into its process's membership (`presence.py`), which tells
+    every registrar there `PeerLost`: the ids `origin_rr` held there are released, and
+    (not `stopped`) the ids held at it get `FATAL` and are forgotten (rule 19)."""
 
     origin_rr: str
+    stopped: bool = False
 
 
 def give_back(serving_rr: str, query_id: str, origin_rr: str) -> None:
@@ -482,10 +485,12 @@ class Reachable:
 
 @dataclasses.dataclass(frozen=True)
 class PeerLost:
-    """A carrier: registrar `name` of another process is gone and nobody will restart it
-    (rule 19). Handled by `presence.py`."""
+    """This process's membership (`rr_actors._core.membership`): registrar `name` is gone
+    and nobody will restart it (rule 19), or, with `stopped`, it was stopped for good (it
+    holds nothing: rule 12). The one local message for "lost"; handled by `presence.py`."""
 
     name: str
+    stopped: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

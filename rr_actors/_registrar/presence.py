@@ -1,16 +1,17 @@
 """Presence: what a registrar does when a peer is lost for good, or reachable again.
 
-A carrier (the AF_UNIX one on one machine, Zenoh across hosts) watches the other
-processes of the system and calls its endpoints' presence callbacks
-(`rr_actors._transport.base.Endpoint`); the death watch says the same of a registrar
-that died and that no supervisor will restart (`ConsumerDown`, sent only by
-`deathwatch.py`; the carriers' calls come from `_transport/messenger.py`). This role is the one
-place that decides what they mean for the catalog:
+Who is gone for good is known per process, by its membership
+(`rr_actors._core.membership`): a carrier (the AF_UNIX one on one machine, Zenoh across
+hosts) feeds it from its liveness (`_transport/messenger.py`), the death watch
+(`deathwatch.py`) from what supervisors and owners know, and a mark of another process
+(`ConsumerDown` on the wire, handled here) is fed into it too. It tells each registrar of
+the process one event, `PeerLost` (through `Served.peer_lost`), and tells one that starts
+later the names gone for good then (`starting.py`). This role is the one place that
+decides what they mean for the catalog:
 
 ```
- carrier ── Endpoint.peer_lost: name ──► PeerLost ──────┐
- death watch (supervisor, owner handle, ─► ConsumerDown ┴─► lose(name)     (rule 19)
-   a registrar that died unsupervised)
+ another process's death watch ─► ConsumerDown(name) ─► MEMBERSHIP.lost(name)
+ the membership ── Served.peer_lost(name) ──► PeerLost ──► lose(name)     (rule 19)
      as a provider: every id `name` held here is released (each `unload` runs once)
      as a consumer: the ids held at `name` get `FATAL` (and up their dependents), then
                     they are forgotten (a later `unload` of one: `UnknownQueryError`)
@@ -35,6 +36,7 @@ import logging
 import pykka
 
 from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.timers import Cancellable, Timer, thread_timer
 from rr_actors._registrar.consumer import Consumer
 from rr_actors._registrar.messages import (
@@ -100,10 +102,28 @@ class Presence:
     # -- lost for good (rule 19) --------------------------------------------------------
 
     def on_peer_lost(self, message: PeerLost, _reply: Reply) -> None:
-        self.lose(message.name)
+        if message.stopped:
+            self.stopped(message.name)
+        else:
+            self.lose(message.name)
 
     def on_consumer_down(self, message: ConsumerDown, _reply: Reply) -> None:
-        self.lose(message.origin_rr)
+        """The wire mark of another process's death watch: into this process's
+        membership, which tells every registrar here (this one too: `PeerLost`)."""
+        by = f"a death-watch mark to {self.registrar.name}"
+        if message.stopped:
+            MEMBERSHIP.stopped(message.origin_rr, by=by)
+        else:
+            MEMBERSHIP.lost(message.origin_rr, by=by)
+
+    def stopped(self, name: str) -> None:
+        """Registrar `name` was stopped and nobody will start it again: it holds nothing
+        (rule 12), so every id of it still here is released (ids it forgot while this
+        one was down, which no reconcile will name now); what this one holds there is
+        left as a stop leaves it."""
+        if name == self.registrar.name:
+            return
+        self.unloading.release_stopped(name)
 
     def lose(self, name: str) -> None:
         """Registrar `name` is gone and nobody will restart it: release what it held here,

@@ -44,7 +44,13 @@ from rr_actors._supervision.policy import (
     restarts_with_group,
 )
 from rr_actors._supervision.retry import give_back_abandoned
-from rr_actors._supervision.tree import Tree, consumer_down, death_watch_missed, lost_everything
+from rr_actors._supervision.tree import (
+    Tree,
+    comes_back,
+    consumer_down,
+    death_watch_missed,
+    lost_everything,
+)
 from rr_actors.config import ManagerSpec, RegistrarConfig, SupervisorSpec, managers
 from rr_actors.errors import RrError, SupervisorGaveUpError
 
@@ -233,7 +239,8 @@ class Node:
         child.incarnation += 1
         child.state = "starting"
         self.tree.restart_due.pop(child.name, None)
-        self.tree.gone_for_good.discard(child.name)  # it comes back
+        if isinstance(child.spec, ManagerSpec):
+            comes_back(child.name)  # no longer gone for good
         self.publish()
         spec, tree = child.spec, self.tree
         post = self._post_exit(child)
@@ -270,7 +277,7 @@ class Node:
         self._published_start(child, restarted=restarted)
         give_back_abandoned(tree, child.name)
         if restarted and isinstance(spec, ManagerSpec):
-            death_watch_missed(tree, child.name)
+            death_watch_missed(child.name)
             if self._config(spec).backup_path is None:  # (one with a backup asks itself)
                 lost_everything(self.root(), child.name, tree.processes.system)
 
@@ -370,6 +377,8 @@ class Node:
             DIRECTORY.expect_restart(child.name, expected=False)
             if dead:
                 self._lose(child.name)
+            elif not self._stopping_to_restart:  # stopped, and nobody starts it again
+                consumer_down(self.root(), child.name, self.tree.processes.system, stopped=True)
         elif child.gave_up is not None:  # a nested supervisor gave up, and stays down:
             for name in _registrar_names(child.spec):  # nobody restarts its managers
                 self._lose(name)
@@ -378,8 +387,8 @@ class Node:
         """Manager `name` is gone and nobody will restart it (death watch, rule 19):
         its consumers' ids are released, and the ids held at it are `FATAL`."""
         DIRECTORY.expect_restart(name, expected=False)
-        consumer_down(self.root(), name, self.tree.processes.system)
-        self.tree.gone_for_good.add(name)  # (for those down meanwhile)
+        consumer_down(self.root(), name, self.tree.processes.system)  # (recorded first:
+        # a manager that starts meanwhile hears it then, `death_watch_missed`)
 
     @staticmethod
     def _mark(child: Child) -> None:

@@ -59,6 +59,7 @@ __all__ = [
     "Found",
     "Level",
     "Tree",
+    "comes_back",
     "consumer_down",
     "death_watch_missed",
     "find_child",
@@ -173,7 +174,6 @@ class Tree:
         self.started: set[str] = set()
         self.abandon_lock = threading.Lock()
         self.abandon_later: dict[str, list[tuple[str, str]]] = {}  # name -> (query id, origin)
-        self.gone_for_good: set[str] = set()  # managers that died and will not come back
         self.wait_cursor: dict[str, int] = {}
         self.processes = Processes(spec, network)  # what process managers share
         self.events = EventRelay()  # the tree's events (`Supervisor.subscribe`)
@@ -302,20 +302,30 @@ def _process_managers(level: Level) -> list[str]:
     return names
 
 
-def consumer_down(root: Level, name: str, network: Transport | None = None) -> None:
-    """Death watch: tell every living registrar that registrar `name` is gone for good.
+def consumer_down(
+    root: Level, name: str, network: Transport | None = None, *, stopped: bool = False
+) -> None:
+    """Death watch: this process's membership records that registrar `name` is gone for
+    good, and every living registrar is told.
 
     Its consumers' ids are released where it held them, and the ids held at it get
-    `FATAL` at their consumers (rule 19; `_registrar/presence.py`).
+    `FATAL` at their consumers (rule 19; `_registrar/presence.py`). With `stopped` (it
+    was stopped cleanly and will not be started again), only the first: what it still
+    holds anywhere is stale (rule 12).
 
     `root`: the tree's root supervisor (its living process managers are told too);
     `network`: the tree's carrier, whose registrars (other processes, other hosts) are
-    told too.
+    told too. A manager started later hears it at its start (`death_watch_missed`).
     """
     living = _process_managers(root)
     if network is not None and not network.closed:
         living.extend(network.names())
-    deathwatch.gone_for_good(name, also=living)
+    deathwatch.gone_for_good(name, also=living, stopped=stopped)
+
+
+def comes_back(name: str) -> None:
+    """Manager `name` is being started again: it is no longer gone for good."""
+    deathwatch.back(name)
 
 
 def lost_everything(root: Level, name: str, network: Transport | None = None) -> None:
@@ -332,16 +342,20 @@ def lost_everything(root: Level, name: str, network: Transport | None = None) ->
     deathwatch.lost_everything(name, also=living)
 
 
-def death_watch_missed(tree: Tree, name: str) -> None:
-    """Manager `name` (re)started: tell it which consumers died for good in the tree.
+def death_watch_missed(name: str) -> None:
+    """Manager `name` (re)started: tell it which registrars are gone for good, as this
+    process's membership knows them (the death watch records a mark before it sends it).
 
     It may have been down when their death watch went out (`consumer_down`), and have
-    restored their ids from its backup; those are released now. (One that holds none of
-    their ids releases nothing.)
+    restored their ids from its backup; those are released now, and what it held at
+    a lost one is `FATAL`. (One that holds none of their ids releases nothing.) A
+    manager of this process heard them already when it started (its membership).
     """
-    for gone in sorted(tree.gone_for_good - {name}):
+    for gone, stopped in sorted(deathwatch.gone().items()):
+        if gone == name:
+            continue
         try:
-            deathwatch.tell_gone(name, gone)
+            deathwatch.tell_gone(name, gone, stopped=stopped)
         except RrError:
             logger.debug("death watch: %s unreachable", name)
             return

@@ -24,8 +24,9 @@ to the process a message came from):
  an answer ─► route.pending.answered / too_large / refused (`Replies`; too large or
    unreadable: compensate)
  a route or a server gone ─► route.pending.fail / Replies.fail(name): at once
- a registrar lost for good / reachable again ─► `tell_lost` / `tell_reachable`: every
-   endpoint served here hears it (rule 19, rule 20)
+ a registrar lost for good / reachable again ─► `tell_lost` / `tell_reachable`: the
+   process's membership (`_core/membership.py`) records it and every registrar here
+   hears it (rule 19, rule 20)
 ```
 
 Carriers: `unix/` (a route is one connection: `_Channel`; answers go back on the
@@ -45,6 +46,7 @@ from collections.abc import Callable, Iterable
 from typing import Any, NamedTuple, Protocol
 
 from rr_actors._core.directory import DIRECTORY, Peer, Reply
+from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import NO_REPLY, Run, frame, payload_size, what
@@ -604,24 +606,14 @@ def answer(reply: Reply, message: Any, name: str, payload: bytes | memoryview, t
 
 
 def tell_lost(endpoints: Iterable[Endpoint], name: str, system: str) -> None:
-    """Registrar `name` is gone for good (rule 19): every endpoint served here but `name`
-    hears it (`Endpoint.peer_lost`); one that fails does not keep it from the others."""
+    """Registrar `name` is gone for good (rule 19): this process's membership records it
+    and every endpoint served here but `name` hears it (`rr_actors._core.membership`)."""
     logger.info("registrar %s of system %s is lost (nobody restarts it)", name, system)
-    for endpoint in list(endpoints):
-        if endpoint.name != name:
-            try:
-                endpoint.peer_lost(name)
-            except Exception:
-                logger.exception("registrar %s: peer_lost(%s) failed", endpoint.name, name)
+    MEMBERSHIP.lost(name, by=f"the carrier of {system}", hearers=tuple(endpoints))
 
 
 def tell_reachable(endpoints: Iterable[Endpoint], name: str, system: str) -> None:
     """Registrar `name` is back from the same process (a healed link; rule 20): every
-    endpoint served here but `name` hears it (`Endpoint.peer_reachable`)."""
+    endpoint served here but `name` hears it (`rr_actors._core.membership`)."""
     logger.info("registrar %s of system %s is reachable again", name, system)
-    for endpoint in list(endpoints):
-        if endpoint.name != name:
-            try:
-                endpoint.peer_reachable(name)
-            except Exception:
-                logger.exception("registrar %s: peer_reachable(%s) failed", endpoint.name, name)
+    MEMBERSHIP.reachable(name, hearers=tuple(endpoints))

@@ -20,7 +20,7 @@ from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar import Served
 from rr_actors._registrar.actor import DISPATCH, MESSAGE_STEPS
-from rr_actors._registrar.messages import Abandon
+from rr_actors._registrar.messages import Abandon, ConsumerDown
 from rr_actors._registrar.probes import POINTS
 from rr_actors.testing import (
     STEPS,
@@ -113,7 +113,8 @@ def _response_updated(p: Pair, hook: Hook) -> None:
 def _consumer_down(p: Pair, hook: Hook) -> None:
     p.held()
     intercept(p.provider, "consumer_down", before=hook)
-    crash(p.consumer)
+    # the wire mark of another process's death watch (one of this process is `peer_lost`)
+    DIRECTORY.lookup(p.provider.name).tell(ConsumerDown(p.consumer.name))
 
 
 def _reconcile(p: Pair, hook: Hook) -> None:

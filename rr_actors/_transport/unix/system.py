@@ -61,6 +61,7 @@ from collections.abc import Callable
 from typing import Any
 
 from rr_actors._core.directory import DIRECTORY, Peer
+from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._platform import PLATFORM, fork
 from rr_actors._transport.base import Endpoint
 from rr_actors._transport.messenger import tell_lost
@@ -394,6 +395,7 @@ class AttachedSystem:
     def _act(self, name: str, verdict: str, *, awaited: bool) -> None:
         if verdict == "served":
             self._lost.discard(name)
+            MEMBERSHIP.back(name)  # served (again): no longer gone for good
             peer = self._peers.get(name)
             if awaited and peer is not None and any(n != name for n in self._listeners):
                 peer.connect()  # restarted: connect now, so that its next end is seen too

@@ -45,6 +45,7 @@ from typing import Any, Protocol
 
 import zenoh
 
+from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.zenoh.wire import Keys, NameAt
@@ -380,6 +381,7 @@ class Presence:
                 return []
             servers[zid] = server
             self._gone.pop(name, None)
+            MEMBERSHIP.back(name)  # served (again): no longer gone for good
             self._awaiting.pop(name, None)
             if self._last.get(name) == zid and zid in self._vanished:
                 return [functools.partial(self._events.reachable, name)]  # a healed link
