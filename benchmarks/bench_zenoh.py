@@ -243,6 +243,21 @@ def timed(fn: Callable[[], Any], rounds: int, warmup: int = 100) -> list[float]:
     return samples
 
 
+def rr_events_unlogged() -> None:
+    """In a worker: rr_actors' events not logged, as by default.
+
+    `hosts.rr_join` keeps the `rr_actors` logger's records from INFO up for the tests
+    (`hosts.rr_logs`), which turns on the INFO line of every event: a dedup hit then builds
+    and logs two of them (`ConsumerAdded` in the provider, `CallAnswered` in the consumer) and
+    wakes the consumer's registrar actor to publish its own. A program that leaves logging
+    alone pays none of that, so the rows measure without it (the link watch's lines, on
+    the `rr_actors` logger itself, are still kept).
+    """
+    import logging  # noqa: PLC0415
+
+    logging.getLogger("rr_actors.events").setLevel(logging.WARNING)
+
+
 def rr_dedup_hits(consumer: str, provider: str, rounds: int) -> list[float]:
     registrar = hosts.KEPT["registrars"][consumer]
     ids: list[str] = []
@@ -330,6 +345,7 @@ def rr_worker(
     worker = host.spawn()
     try:
         worker.call(hosts.rr_join, system=SYSTEM, listen=listen, connect=connect, timeout=30)
+        worker.call(rr_events_unlogged, timeout=10)
         for name, setup in names:
             worker.call(hosts.rr_start, name, setup, timeout=30)
         yield worker
