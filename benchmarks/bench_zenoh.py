@@ -271,6 +271,48 @@ def rr_dedup_hits(consumer: str, provider: str, rounds: int) -> list[float]:
     return samples
 
 
+def rr_raw_echo(key: str) -> None:
+    """In a worker: a raw queryable that echoes on `key`, on its `ZenohNetwork`'s own session."""
+    hosts.KEPT["session"] = hosts.KEPT["network"].services().session
+    hosts.zenoh_echo(key)
+
+
+def rr_paired(
+    consumer: str, provider: str, key: str, rounds: int
+) -> tuple[list[float], list[float]]:
+    """In a worker: raw gets on `key` and dedup hits on `provider`, one of each per round
+    (their order alternating), on the same session and link: both see the same load.
+
+    Returns:
+        Seconds per get and seconds per call.
+    """
+    registrar = hosts.KEPT["registrars"][consumer]
+    session = hosts.KEPT["network"].services().session
+    payload = b"x" * 200
+    ids: list[str] = []
+
+    def get() -> None:
+        for reply in session.get(key, payload=payload, timeout=5.0):
+            if reply.ok is None:
+                raise LookupError(f"an error reply to a get on {key!r}")
+
+    def call() -> None:
+        ids.append(registrar.call(provider, "echo", {"cam": 1}).id)
+
+    for _ in range(100):  # warm-up
+        get()
+        call()
+    gets, calls = [], []
+    for number in range(rounds):
+        for fn, samples in ((get, gets), (call, calls))[:: 1 if number % 2 else -1]:
+            start = time.perf_counter()
+            fn()
+            samples.append(time.perf_counter() - start)
+    for query_id in ids:
+        registrar.unload(query_id)
+    return gets, calls
+
+
 def rr_hold_composite(consumer: str, agent: str) -> str:
     """Load the agent's `composite` and count the statuses it brings (`KEPT["heard"]`)."""
     registrar = hosts.KEPT["registrars"][consumer]
@@ -367,6 +409,29 @@ def rr_dedup(
     ):
         consumer.call(hosts.rr_until_answered, "app", "erm", "echo", 30.0, timeout=60)
         return consumer.call(rr_dedup_hits, "app", "erm", rounds, timeout=600)
+
+
+def rr_dedup_paired(
+    server: hosts.Host, client: hosts.Host, ports: tuple[int, int], rounds: int
+) -> tuple[list[float], list[float]]:
+    """ROWS "raw Zenoh get between the two rr_actors processes, paired" and "rr_actors
+    cross-host dedup hit, paired": a get to a raw queryable in the provider's process and a
+    dedup hit to its registrar, one of each per round, from the consumer's process."""
+    near, far = server.endpoint(ports[0]), client.endpoint(ports[1])
+    with (
+        rr_worker(server, [near], [], ("erm", setup_echo)) as provider,
+        rr_worker(client, [far], [near], ("app", None)) as consumer,
+    ):
+        provider.call(rr_raw_echo, PAIRED_KEY, timeout=10)
+        consumer.call(hosts.rr_until_answered, "app", "erm", "echo", 30.0, timeout=60)
+        gets: list[float]
+        calls: list[float]
+        gets, calls = consumer.call(rr_paired, "app", "erm", PAIRED_KEY, rounds, timeout=600)
+        return gets, calls
+
+
+PAIRED_KEY = "bench/paired/echo"
+"""The raw queryable's key in `rr_dedup_paired` (outside `rr/`: no registrar's key)."""
 
 
 def rr_status(two: hosts.TwoHosts, rounds: int) -> list[float]:
@@ -515,6 +580,11 @@ def measure_hosts(rounds: int, kills: int, cuts: int, *, with_rr: bool) -> tuple
         if with_rr:
             dedup = rr_dedup(two.a, two.b, (PORT, PORT), rounds)
             trips.append(("rr_actors cross-host dedup hit (target <= 2x)", dedup, floor))
+            gets, calls = rr_dedup_paired(two.a, two.b, (PORT, PORT), rounds)
+            trips.append(
+                ("raw Zenoh get between the rr_actors processes, paired (floor)", gets, gets)
+            )
+            trips.append(("rr_actors cross-host dedup hit, paired (target <= 1.5x)", calls, gets))
             trips.append(("send_status over 3 hops across hosts", rr_status(two, rounds), floor))
             killed, _ = rr_failures(two, kills, cut=False)
             ends.append(("SIGKILL of a remote manager -> call fails", killed, "< 50 ms"))
