@@ -15,7 +15,9 @@ ratios are comparable:
   it, and say so when it has not): a dedup-hit `call` to a registrar on the other host
   (target: <= 2x the raw get between the same two), `send_status` over 3 hops across hosts,
   from a SIGKILL of a remote manager to its calls failing (target: < 50 ms), and from a link
-  cut to the calls failing (target: the lease);
+  cut to the calls failing (target: the lease); and, paired round by round with a raw get
+  to a queryable in the provider's process over the same two sessions (the floor of the
+  same seconds, so the ratio holds under load), the dedup hit again (target: <= 1.5x);
 * a reference: the AF_UNIX carrier's dedup-hit `call` across two processes of one host (the
   carrier of `bench_transport.py`), against the loopback floor.
 
