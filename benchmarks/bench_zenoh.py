@@ -15,7 +15,9 @@ ratios are comparable:
   it, and say so when it has not): a dedup-hit `call` to a registrar on the other host
   (target: <= 2x the raw get between the same two), `send_status` over 3 hops across hosts,
   from a SIGKILL of a remote manager to its calls failing (target: < 50 ms), and from a link
-  cut to the calls failing (target: the lease);
+  cut to the calls failing (target: the lease); and, paired round by round with a raw get
+  to a queryable in the provider's process over the same two sessions (the floor of the
+  same seconds, so the ratio holds under load), the dedup hit again (target: <= 1.5x);
 * a reference: the AF_UNIX carrier's dedup-hit `call` across two processes of one host (the
   carrier of `bench_transport.py`), against the loopback floor.
 
@@ -243,6 +245,21 @@ def timed(fn: Callable[[], Any], rounds: int, warmup: int = 100) -> list[float]:
     return samples
 
 
+def rr_events_unlogged() -> None:
+    """In a worker: rr_actors' events not logged, as by default.
+
+    `hosts.rr_join` keeps the `rr_actors` logger's records from INFO up for the tests
+    (`hosts.rr_logs`), which turns on the INFO line of every event: a dedup hit then builds
+    and logs two of them (`ConsumerAdded` in the provider, `CallAnswered` in the consumer) and
+    wakes the consumer's registrar actor to publish its own. A program that leaves logging
+    alone pays none of that, so the rows measure without it (the link watch's lines, on
+    the `rr_actors` logger itself, are still kept).
+    """
+    import logging  # noqa: PLC0415
+
+    logging.getLogger("rr_actors.events").setLevel(logging.WARNING)
+
+
 def rr_dedup_hits(consumer: str, provider: str, rounds: int) -> list[float]:
     registrar = hosts.KEPT["registrars"][consumer]
     ids: list[str] = []
@@ -254,6 +271,48 @@ def rr_dedup_hits(consumer: str, provider: str, rounds: int) -> list[float]:
     for query_id in ids:
         registrar.unload(query_id)
     return samples
+
+
+def rr_raw_echo(key: str) -> None:
+    """In a worker: a raw queryable that echoes on `key`, on its `ZenohNetwork`'s own session."""
+    hosts.KEPT["session"] = hosts.KEPT["network"].services().session
+    hosts.zenoh_echo(key)
+
+
+def rr_paired(
+    consumer: str, provider: str, key: str, rounds: int
+) -> tuple[list[float], list[float]]:
+    """In a worker: raw gets on `key` and dedup hits on `provider`, one of each per round
+    (their order alternating), on the same session and link: both see the same load.
+
+    Returns:
+        Seconds per get and seconds per call.
+    """
+    registrar = hosts.KEPT["registrars"][consumer]
+    session = hosts.KEPT["network"].services().session
+    payload = b"x" * 200
+    ids: list[str] = []
+
+    def get() -> None:
+        for reply in session.get(key, payload=payload, timeout=5.0):
+            if reply.ok is None:
+                raise LookupError(f"an error reply to a get on {key!r}")
+
+    def call() -> None:
+        ids.append(registrar.call(provider, "echo", {"cam": 1}).id)
+
+    for _ in range(100):  # warm-up
+        get()
+        call()
+    gets, calls = [], []
+    for number in range(rounds):
+        for fn, samples in ((get, gets), (call, calls))[:: 1 if number % 2 else -1]:
+            start = time.perf_counter()
+            fn()
+            samples.append(time.perf_counter() - start)
+    for query_id in ids:
+        registrar.unload(query_id)
+    return gets, calls
 
 
 def rr_hold_composite(consumer: str, agent: str) -> str:
@@ -330,6 +389,7 @@ def rr_worker(
     worker = host.spawn()
     try:
         worker.call(hosts.rr_join, system=SYSTEM, listen=listen, connect=connect, timeout=30)
+        worker.call(rr_events_unlogged, timeout=10)
         for name, setup in names:
             worker.call(hosts.rr_start, name, setup, timeout=30)
         yield worker
@@ -351,6 +411,29 @@ def rr_dedup(
     ):
         consumer.call(hosts.rr_until_answered, "app", "erm", "echo", 30.0, timeout=60)
         return consumer.call(rr_dedup_hits, "app", "erm", rounds, timeout=600)
+
+
+def rr_dedup_paired(
+    server: hosts.Host, client: hosts.Host, ports: tuple[int, int], rounds: int
+) -> tuple[list[float], list[float]]:
+    """ROWS "raw Zenoh get between the two rr_actors processes, paired" and "rr_actors
+    cross-host dedup hit, paired": a get to a raw queryable in the provider's process and a
+    dedup hit to its registrar, one of each per round, from the consumer's process."""
+    near, far = server.endpoint(ports[0]), client.endpoint(ports[1])
+    with (
+        rr_worker(server, [near], [], ("erm", setup_echo)) as provider,
+        rr_worker(client, [far], [near], ("app", None)) as consumer,
+    ):
+        provider.call(rr_raw_echo, PAIRED_KEY, timeout=10)
+        consumer.call(hosts.rr_until_answered, "app", "erm", "echo", 30.0, timeout=60)
+        gets: list[float]
+        calls: list[float]
+        gets, calls = consumer.call(rr_paired, "app", "erm", PAIRED_KEY, rounds, timeout=600)
+        return gets, calls
+
+
+PAIRED_KEY = "bench/paired/echo"
+"""The raw queryable's key in `rr_dedup_paired` (outside `rr/`: no registrar's key)."""
 
 
 def rr_status(two: hosts.TwoHosts, rounds: int) -> list[float]:
@@ -499,6 +582,11 @@ def measure_hosts(rounds: int, kills: int, cuts: int, *, with_rr: bool) -> tuple
         if with_rr:
             dedup = rr_dedup(two.a, two.b, (PORT, PORT), rounds)
             trips.append(("rr_actors cross-host dedup hit (target <= 2x)", dedup, floor))
+            gets, calls = rr_dedup_paired(two.a, two.b, (PORT, PORT), rounds)
+            trips.append(
+                ("raw Zenoh get between the rr_actors processes, paired (floor)", gets, gets)
+            )
+            trips.append(("rr_actors cross-host dedup hit, paired (target <= 1.5x)", calls, gets))
             trips.append(("send_status over 3 hops across hosts", rr_status(two, rounds), floor))
             killed, _ = rr_failures(two, kills, cut=False)
             ends.append(("SIGKILL of a remote manager -> call fails", killed, "< 50 ms"))
