@@ -29,11 +29,29 @@ needs_root = pytest.mark.skipif(
 )
 
 
+def _running(pid: int) -> bool:
+    try:
+        return bool(psutil.Process(pid).status() != psutil.STATUS_ZOMBIE)
+    except psutil.NoSuchProcess:
+        return False
+
+
 def ours() -> list[str]:
-    """The demo namespaces on this machine (`rrdemo-<pid>-...`)."""
+    """The demo namespaces on this machine (`rrdemo-<pid>-...`) whose demo has ended.
+
+    A demo deletes its namespaces before it exits; those of a demo still running (another
+    test's, beside this one under pytest-xdist) are not counted: left ones are a leak.
+    """
     done = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True, check=True)  # noqa: S607
     names = [line.split()[0] for line in done.stdout.splitlines() if line.strip()]
-    return [name for name in names if name.startswith("rrdemo-")]
+    left = []
+    for name in names:
+        parts = name.split("-")
+        if parts[0] != "rrdemo" or len(parts) < 3 or not parts[1].isdigit():
+            continue
+        if not _running(int(parts[1])):
+            left.append(name)
+    return left
 
 
 def demo(*options: str, cwd: Path, timeout: float = 150) -> subprocess.CompletedProcess[str]:
