@@ -19,11 +19,12 @@
  acknowledgements: one `SharedJoin` per batch, answered once when every callback ran
 ```
 
-The runner runs the callbacks of the whole process in the order they arrived, on as few
-worker threads as keeps them going: one while each callback returns at once; another as
-soon as every one of them is inside a callback when more arrive (a callback that calls
-`send_status`), or once one has run a callback for `SLICE` seconds (a slow or hung
-callback holds its own thread, never the others' callbacks).
+The runner runs the callbacks of the whole process in the order they arrived, each
+consumer id's one at a time, on as few worker threads as keeps them going: one while
+each callback returns at once; another as soon as every one of them is inside a callback
+when more arrive (a callback that calls `send_status`), or once one has run a callback
+for `SLICE` seconds (a slow or hung callback holds its own thread, never the other
+consumers' callbacks, nor, after `SLICE`, its own next one).
 
 Each consumer registrar publishes what the desk reads of it (`StatusTargets`): its actor
 is the only writer (one dict assignment each), the desk reads single entries. A status is
@@ -46,7 +47,7 @@ from rr_actors import events
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer
 from rr_actors._core.replies import CallbackReply, SharedJoin
-from rr_actors._core.workers import Workers
+from rr_actors._core.workers import Job, Workers
 from rr_actors._platform import fork
 from rr_actors._registrar.messages import StatusBatch, StatusNotice
 from rr_actors._types import Query, StatusCallback, StatusUpdate
@@ -59,6 +60,9 @@ logger = logging.getLogger("rr_actors")
 SLICE = 0.05
 """Seconds a status callback may run before the callbacks queued behind it go on
 without it, on another worker thread."""
+
+_LINGER = 1.0
+"""Seconds the runner's watchdog stays after the last callback ended."""
 
 _SEEN = 16_384
 """(event, query id) pairs a desk remembers, to deliver each once."""
@@ -128,30 +132,44 @@ class _Call:
 class _Drainer:
     """One worker's turn at the runner's queue."""
 
-    __slots__ = ("abandoned", "inside")
+    __slots__ = ("abandoned", "job", "query_id", "started")
 
     def __init__(self) -> None:
-        self.abandoned = False  # it overran `SLICE`: it no longer takes calls
-        self.inside = False  # it runs a callback now
+        self.abandoned = False  # done, or it overran `SLICE`: it takes no more calls
+        self.job: Job | None = None
+        self.query_id = ""  # the id whose callback it runs now
+        self.started = 0.0  # when that callback began (monotonic)
 
 
 class Runner:
-    """Runs the status callbacks of this process in arrival order (see the module doc)."""
+    """Runs the status callbacks of this process (see the module doc).
+
+    Calls are taken in arrival order; a call waits while an earlier callback of the same
+    query id runs (so each consumer hears its statuses in order, one at a time), unless
+    that one has run for `SLICE` seconds: the watchdog then gives its drainer up (it
+    finishes that callback and ends), and another drainer takes the queue.
+    """
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._calls: collections.deque[_Call] = collections.deque()
-        self._drainers = 0  # drainers that take calls (not abandoned)
-        self._inside = 0  # of them, those inside a callback now
+        self._drainers = 0  # drainers that take calls (not given up)
+        self._running: dict[str, _Drainer] = {}  # query id -> the drainer in its callback
+        self._watching = False
+        self._quiet_since = 0.0  # when the last callback ended with none running
         self._workers = Workers("status")
 
     def run(self, calls: Iterable[_Call]) -> None:
         """Queue `calls`; start a drainer if none is free to take them."""
         with self._lock:
             self._calls.extend(calls)
-            start = self._drainers == self._inside and bool(self._calls)
+            start = self._drainers == len(self._running) and bool(self._calls)
             if start:
                 self._drainers += 1
+            watch = not self._watching
+            self._watching = True
+        if watch:
+            self._watch_start()
         if start:
             self._start()
 
@@ -159,12 +177,7 @@ class Runner:
         """Start one drainer (counted already): its calls are skipped if no thread can."""
         drainer = _Drainer()
         try:
-            self._workers.submit(
-                lambda: self._drain(drainer),
-                timeout=SLICE,
-                on_overdue=lambda: self._overdue(drainer),
-                quiet=True,
-            )
+            drainer.job = self._workers.submit(lambda: self._drain(drainer), quiet=True)
         except RuntimeError:
             logger.exception("no worker thread for status callbacks: they are skipped")
             with self._lock:
@@ -175,52 +188,71 @@ class Runner:
             for call in skipped:
                 call.done()
 
+    def _take(self) -> _Call | None:
+        """(Holding the lock.) The first queued call whose id has no callback running."""
+        for index, call in enumerate(self._calls):
+            if call.query.id not in self._running:
+                del self._calls[index]
+                return call
+        return None
+
     def _drain(self, drainer: _Drainer) -> None:
-        """A worker's turn: run queued calls until none is left, or hand over after
-        half a slice (the watchdog abandons a turn at `SLICE`)."""
-        began = time.monotonic()
+        """A worker's turn: run queued calls until none it may take is left."""
         while True:
             with self._lock:
                 if drainer.abandoned:
                     return
-                if not self._calls:
-                    drainer.abandoned = True  # (a late watchdog finds nothing to do)
+                call = self._take()
+                if call is None:
+                    drainer.abandoned = True
                     self._drainers -= 1
                     return
-                if time.monotonic() - began > SLICE / 2:
-                    drainer.abandoned = True  # the next drainer takes over its count
-                    hand_over = True
-                else:
-                    hand_over = False
-                    call = self._calls.popleft()
-                    drainer.inside = True
-                    self._inside += 1
-            if hand_over:
-                self._start()
-                return
+                drainer.query_id = call.query.id
+                drainer.started = time.monotonic()
+                self._running[drainer.query_id] = drainer
             try:
                 call()
             finally:
                 with self._lock:
-                    drainer.inside = False
-                    if not drainer.abandoned:
-                        self._inside -= 1
+                    if self._running.get(drainer.query_id) is drainer:
+                        del self._running[drainer.query_id]
+                    if not self._running:
+                        self._quiet_since = time.monotonic()
 
-    def _overdue(self, drainer: _Drainer) -> None:
-        """A drainer ran longer than `SLICE` (the watchdog's thread): it stops taking
-        calls once its callback returns, and another drainer takes the queue."""
-        with self._lock:
-            if drainer.abandoned:
-                return
-            drainer.abandoned = True
-            self._drainers -= 1
-            if drainer.inside:
-                self._inside -= 1
-            start = bool(self._calls) and self._drainers == self._inside
+    def _watch_start(self) -> None:
+        try:
+            threading.Thread(target=self._watch, name="rr-status-watchdog", daemon=True).start()
+        except RuntimeError:  # callbacks then run unbounded until a later start works
+            logger.exception("no thread to bound the time of status callbacks")
+            with self._lock:
+                self._watching = False
+
+    def _watch(self) -> None:
+        """The watchdog: every `SLICE`, give up drainers whose callback overran it; end
+        after a second with no callback running."""
+        while True:
+            time.sleep(SLICE)
+            now = time.monotonic()
+            overdue: list[_Drainer] = []
+            with self._lock:
+                for drainer in list(self._running.values()):
+                    if now - drainer.started >= SLICE:
+                        overdue.append(drainer)
+                        drainer.abandoned = True
+                        self._drainers -= 1
+                        del self._running[drainer.query_id]
+                start = bool(self._calls) and self._drainers == len(self._running)
+                if start:
+                    self._drainers += 1
+                idle = not overdue and not self._running and not self._calls
+                if idle and now - self._quiet_since > _LINGER:
+                    self._watching = False
+                    return
+            for drainer in overdue:  # (its thread no longer counts in the pool)
+                if drainer.job is not None:
+                    drainer.job.abandon()
             if start:
-                self._drainers += 1
-        if start:
-            self._start()
+                self._start()
 
 
 class Desk:
