@@ -271,10 +271,19 @@ class Desk:
         with self._lock:
             self.targets[peer] = targets
 
-    def deliver(self, batch: StatusBatch, join: SharedJoin, homes: dict[str, str] | None) -> None:
+    def deliver(
+        self,
+        batch: StatusBatch,
+        join: SharedJoin,
+        homes: dict[str, str] | None,
+        here: tuple[str, Callable[[Any], None]],
+    ) -> None:
         """Deliver `batch`'s parts (on an actor thread); each adds its parts to `join`.
 
         `homes`, if given, gets the process of each registrar reached (the answer).
+        `here` is the registrar whose actor runs this, and how it handles a message at
+        once (its `dispatch`): its own ids that need its actor need no trip through its
+        mailbox.
         """
         calls: list[_Call] = []
         for origin, ids in batch.parts:
@@ -294,19 +303,21 @@ class Desk:
             slow = self.direct(targets, batch, fresh, join, calls) if targets else fresh
             if slow:
                 reply = CallbackReply(join.add())
+                notice = StatusNotice(
+                    slow,
+                    batch.status,
+                    batch.message,
+                    batch.source,
+                    batch.event,
+                    reply,
+                    batch.hop,
+                    batch.sent_at,
+                )
                 try:
-                    peer.tell(
-                        StatusNotice(
-                            slow,
-                            batch.status,
-                            batch.message,
-                            batch.source,
-                            batch.event,
-                            reply,
-                            batch.hop,
-                            batch.sent_at,
-                        )
-                    )
+                    if origin == here[0]:
+                        here[1](notice)
+                    else:
+                        peer.tell(notice)
                 except RrError as exc:
                     reply.set_error(exc)
         if calls:

@@ -205,8 +205,21 @@ class StatusBatch(WireMessage):
     sent_at: float = 0.0
 
     def part(self, parts: tuple[tuple[str, tuple[str, ...]], ...], reply: Reply) -> StatusBatch:
-        """The same status for `parts`, answered to `reply`."""
-        return dataclasses.replace(self, parts=parts, reply=reply)
+        """The same status for `parts`, answered to `reply` (built directly, as `detached`)."""
+        return StatusBatch(
+            parts,
+            self.status,
+            self.message,
+            self.source,
+            self.event,
+            reply,
+            self.hop,
+            self.sent_at,
+        )
+
+    def detached(self) -> StatusBatch:
+        """This batch without its reply (built directly: `dataclasses.replace` is slower)."""
+        return self.part(self.parts, None)  # type: ignore[arg-type]
 
 
 @dataclasses.dataclass(frozen=True)

@@ -108,19 +108,26 @@ class StatusRelay:
             self.run_callback(
                 server.on_status, query, dataclasses.replace(update, query_id=query_id), join
             )
-        here: list[tuple[str, tuple[str, ...]]] = []
+        in_process: list[tuple[str, tuple[str, ...]]] = []
         elsewhere: list[tuple[str, tuple[str, ...]]] = []
         for part in consumers_by_origin(resource).items():
             try:
                 local = type(DIRECTORY.lookup(part[0])) is LocalPeer
             except RrError:  # gone: nothing to deliver
                 continue
-            (here if local else elsewhere).append(part)
+            (in_process if local else elsewhere).append(part)
         batch = StatusBatch(
-            tuple(here), update.status, update.message, update.source, event, NO_REPLY, hop, sent
+            tuple(in_process),
+            update.status,
+            update.message,
+            update.source,
+            event,
+            NO_REPLY,
+            hop,
+            sent,
         )  # (each part sent gets its own reply)
-        if here:
-            DESK.deliver(batch, join, None)
+        if in_process:
+            DESK.deliver(batch, join, None, (self.registrar.name, self.consumer.redeliver))
         for relay, parts in self.routes.plan(elsewhere):
             self.send_batch(relay, batch.part(parts, NO_REPLY), join)
         join.seal()
@@ -174,7 +181,7 @@ class StatusRelay:
         pass; answer (once) with the process each one reached is in."""
         homes: dict[str, str] = {self.registrar.name: process()}
         join = SharedJoin(lambda: reply.set_result(homes))
-        DESK.deliver(batch, join, homes)
+        DESK.deliver(batch, join, homes, (self.registrar.name, self.consumer.redeliver))
         join.seal()
 
     def on_status_notice(self, message: StatusNotice, reply: Reply) -> None:
