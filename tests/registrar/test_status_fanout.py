@@ -19,7 +19,6 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors._transport.base import Address
 from rr_actors.testing import STEPS, RemoteRegistrar, intercept
 from tests.conftest import placement_network
 from tests.support.waiting import wait_for
@@ -33,7 +32,7 @@ STATUS_STEPS = [step for step in ("status_batch", "status_notice") if step in ST
 
 
 def host_setup(
-    address: Address, provider: str, *, hang: bool = False, count: bool = False
+    address: Any, provider: str, *, hang: bool = False, count: bool = False
 ) -> Callable[[rr.ResourceRegistrar], None]:
     """A manager's setup: REGISTRARS consumer registrars in its process, and `probe`.
 
@@ -43,7 +42,7 @@ def host_setup(
     """
 
     def setup(host: rr.ResourceRegistrar) -> None:
-        network = address.attach()  # (this process joined it already: the same one)
+        network = address.attach()  # (a carrier's `Address`: this process joined it already)
         lock = threading.Lock()
         heard: dict[str, list[str]] = collections.defaultdict(list)
         steps: collections.Counter[str] = collections.Counter()
