@@ -64,6 +64,9 @@ without it, on another worker thread."""
 _LINGER = 1.0
 """Seconds the runner's watchdog stays after the last callback ended."""
 
+_HOMES = 4_096
+"""Consumer registrars whose process a provider remembers (more: it learns anew)."""
+
 _SEEN = 16_384
 """(event, query id) pairs a desk remembers, to deliver each once."""
 
@@ -440,6 +443,9 @@ class Routes:
     def learn(self, homes: dict[str, str]) -> None:
         """Registrars are in these processes (an answer said so)."""
         with self._lock:
+            if len(self.homes) > _HOMES:  # (registrars come and go: start over)
+                self.homes.clear()
+                self.relays.clear()
             for name, home in homes.items():
                 if self.homes.get(name, home) != home:  # it moved: not a relay there
                     self.drop(name)
