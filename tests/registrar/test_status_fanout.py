@@ -38,7 +38,9 @@ def host_setup(
 
     With `hang`, the callbacks of the first registrar's ids block at the first status
     until `probe` is asked to release them, and those of the second raise (after
-    recording). With `count`, the status messages each registrar handles are counted.
+    recording). With `count`, the status messages each registrar handles are counted,
+    and once `probe` is asked to (`fail-next`), the next batch a registrar handles is
+    answered with an error after it was delivered (a relay that fails after delivering).
     """
 
     def setup(host: rr.ResourceRegistrar) -> None:
@@ -47,7 +49,15 @@ def host_setup(
         heard: dict[str, list[str]] = collections.defaultdict(list)
         steps: collections.Counter[str] = collections.Counter()
         release = threading.Event()
+        fail_next = threading.Event()
         consumers: list[rr.ResourceRegistrar] = []
+
+        def fail_once(_message: object) -> None:
+            with lock:
+                failing = fail_next.is_set()
+                fail_next.clear()
+            if failing:
+                raise rr.RrError("the relay fails after it delivered")
 
         def recorder(number: int) -> Callable[[rr.Query, rr.StatusUpdate], None]:
             def record(query: rr.Query, update: rr.StatusUpdate) -> None:
@@ -73,6 +83,8 @@ def host_setup(
             consumers.append(consumer)
             for step in STATUS_STEPS if count else ():
                 intercept(consumer, step, before=counter(step))
+            if count and "status_batch" in STATUS_STEPS:
+                intercept(consumer, "status_batch", after=fail_once)
             for _ in range(IDS):
                 consumer.call(provider, "leaf", "r", on_status=recorder(number), timeout=20)
 
@@ -84,6 +96,8 @@ def host_setup(
                     return dict(steps)
             if request[0] == "release":
                 release.set()
+            elif request[0] == "fail-next":
+                fail_next.set()
             elif request[0] == "stop":
                 release.set()
                 for consumer in reversed(consumers):
@@ -221,4 +235,19 @@ def test_a_hung_or_raising_callback_keeps_no_other_consumer_of_its_process_from_
     tree.send("third")  # (every callback returns now: delivered everywhere)
     assert [[["first", "second", "third"]] * REGISTRARS * IDS] * PROCESSES == [
         list(p.values()) for p in tree.heard()
+    ]
+
+
+def test_a_relay_that_fails_after_delivering_runs_no_callback_twice(
+    fanout: Callable[..., Fanout],
+) -> None:
+    tree = fanout(count=True)
+    tree.send("warm-up")
+    for host in tree.hosts:
+        tree.ask(host, "fail-next")
+
+    tree.send("again")  # (each part is sent again to its own registrar: delivered there)
+
+    assert [[["warm-up", "again"]] * REGISTRARS * IDS] * PROCESSES == [
+        list(process.values()) for process in tree.heard()
     ]
