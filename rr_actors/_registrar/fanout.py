@@ -4,7 +4,8 @@
  provider: notify(resource) ──► its consumer registrars, by process (`Routes.plan`):
    this process ──────────────► DESK.deliver(parts), on the provider's actor thread
    another process, known ────► one StatusBatch to that process's relay (a registrar
-                                there, the same one each time: notices keep their order)
+                                there, the same one each time: notices keep their order);
+                                a registrar alone there: a StatusNotice, as before
    not known yet ─────────────► a StatusBatch to the consumer registrar itself; every
                                 answer says which process each registrar it reached is
                                 in (`Routes.learn`)
@@ -423,22 +424,29 @@ class Routes:
         self.homes: dict[str, str] = {}
         self.relays: dict[str, str] = {}
 
-    def plan(self, parts: Iterable[tuple[str, tuple[str, ...]]]) -> list[tuple[str, Parts]]:
-        """Group `parts` by process: (the relay, the parts it gets) for each."""
+    def plan(self, parts: Iterable[tuple[str, tuple[str, ...]]]) -> list[tuple[str, Parts, bool]]:
+        """Group `parts` by process: (the relay, the parts it gets, whether as a batch).
+
+        A registrar whose process is not known yet gets a batch of its own part (its
+        answer says where it is); one alone in its process among `parts`, a plain
+        `StatusNotice` (`False`: what a status to one registrar always was).
+        """
         groups: dict[str, list[tuple[str, tuple[str, ...]]]] = {}
-        alone: list[tuple[str, Parts]] = []
+        planned: list[tuple[str, Parts, bool]] = []
         with self._lock:
             for part in parts:
                 home = self.homes.get(part[0])
                 if home is None:
-                    alone.append((part[0], (part,)))
+                    planned.append((part[0], (part,), True))
                 else:
                     groups.setdefault(home, []).append(part)
-            planned = []
             for home, members in groups.items():
-                relay = self.relays.setdefault(home, members[0][0])
-                planned.append((relay, tuple(members)))
-        return planned + alone
+                if len(members) == 1:
+                    planned.append((members[0][0], (members[0],), False))
+                else:
+                    relay = self.relays.setdefault(home, members[0][0])
+                    planned.append((relay, tuple(members), True))
+        return planned
 
     def learn(self, homes: dict[str, str]) -> None:
         """Registrars are in these processes (an answer said so)."""

@@ -128,9 +128,41 @@ class StatusRelay:
         )  # (each part sent gets its own reply)
         if in_process:
             DESK.deliver(batch, join, None, (self.registrar.name, self.consumer.redeliver))
-        for relay, parts in self.routes.plan(elsewhere):
-            self.send_batch(relay, batch.part(parts, NO_REPLY), join)
+        for relay, parts, batched in self.routes.plan(elsewhere):
+            if batched:
+                self.send_batch(relay, batch.part(parts, NO_REPLY), join)
+            else:
+                self.send_notice(relay, parts[0][1], batch, join)
         join.seal()
+
+    def send_notice(
+        self, origin: str, query_ids: tuple[str, ...], batch: StatusBatch, join: SharedJoin
+    ) -> None:
+        """Send `batch`'s status to registrar `origin` alone, as a `StatusNotice`."""
+        done = join.add()
+        routes = self.routes
+
+        def answered(_value: Any, error: BaseException | None) -> None:
+            if error is not None:
+                routes.forget([origin])  # (ask it where it is again)
+            done()
+
+        reply = CallbackReply(answered)  # answered on the answering thread
+        try:
+            DIRECTORY.lookup(origin).tell(
+                StatusNotice(
+                    query_ids,
+                    batch.status,
+                    batch.message,
+                    batch.source,
+                    batch.event,
+                    reply,
+                    batch.hop,
+                    batch.sent_at,
+                )
+            )
+        except RrError as exc:
+            reply.set_error(exc)
 
     def send_batch(self, relay: str, batch: StatusBatch, join: SharedJoin) -> None:
         """Send `batch` to registrar `relay` (any thread); its answer completes a part of
