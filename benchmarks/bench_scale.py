@@ -20,14 +20,30 @@ Python of its own, importing nothing) SIGKILLed, its exit waited on and a new on
 started until it says "ready".
 Target (issue 34 item 3): at 100k entries within 2x of the figure at 1k.
 
-Run: `python benchmarks/bench_scale.py [--sections start serve] [--counts 1 10 50]
-[--sizes 1000 10000 100000] [--rounds 5] [--kills 5] [--pin]`
+Section "status": `send_status` to N consumers, each a registrar of its own holding one
+id of the resource with a status callback; `send_status` returns once every callback
+ran. "other processes": the provider is a registrar in a process of its own, the N
+consumers are registrars of this process (the call is timed in the provider's process);
+its floor, in the same run and alternated round by round, is a Pipe burst to N: N small
+objects (`(id, status, message)`) sent over one `multiprocessing.Pipe` to another
+process, each echoed back, until the N answers are read. "one process": the provider
+and the N consumers in this process; its floor a pykka fan-out to N: N `ask`s to N pykka
+actors (each answers at once), until the N answers are read.
+Targets (issue 34 item 2): to 100 consumers in other processes within 5x the Pipe
+burst; in one process within 1.5x the pykka fan-out.
+
+Run: `python benchmarks/bench_scale.py [--sections start serve status] [--counts 1 10 50]
+[--sizes 1000 10000 100000] [--consumers 1 10 100] [--rounds 5] [--kills 5]
+[--sends 50] [--pin]`
 (`--pin`: under `taskset -c 0`, one CPU, as `benchmarks/alternate.py --pin` runs).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import multiprocessing
+import multiprocessing.connection
 import os
 import signal
 import statistics
@@ -35,10 +51,15 @@ import subprocess
 import sys
 import tempfile
 import time
+import uuid
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
+
+import pykka
 
 import rr_actors as rr
-from rr_actors.testing import start_forkserver
+from rr_actors.testing import System, start_forkserver
 
 
 def setup(registrar: rr.ResourceRegistrar) -> None:
@@ -293,11 +314,180 @@ def section_serve(sizes: list[int], rounds: int, kills: int, *, listen: bool) ->
     print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
+NOTICE = ("0f3b7b2c-1111-2222-3333-444455556666", 2, "tick")
+"""What the Pipe burst sends per consumer: about what a status notice says."""
+
+
+def _echo(conn: multiprocessing.connection.Connection) -> None:
+    """The Pipe burst's other end: echo every object until the pipe closes."""
+    with contextlib.suppress(EOFError, OSError):
+        while True:
+            conn.send(conn.recv())
+
+
+class PipeBurst:
+    """The floor across processes: `burst(n)` sends n objects to a child, reads n echoes."""
+
+    def __init__(self) -> None:
+        context = multiprocessing.get_context("forkserver")
+        self.conn, theirs = context.Pipe()
+        self.process = context.Process(target=_echo, args=(theirs,), daemon=True)
+        self.process.start()
+        theirs.close()
+
+    def burst(self, count: int) -> float:
+        """Seconds to send `count` objects and read their `count` echoes."""
+        began = time.perf_counter()
+        for _ in range(count):
+            self.conn.send(NOTICE)
+        for _ in range(count):
+            self.conn.recv()
+        return time.perf_counter() - began
+
+    def close(self) -> None:
+        self.conn.close()
+        self.process.join(10)
+
+
+class _Answer(pykka.ThreadingActor):
+    def on_receive(self, message: Any) -> None:
+        return None
+
+
+class PykkaFanOut:
+    """The floor in one process: `fan_out()` asks each of `count` pykka actors, waits all."""
+
+    def __init__(self, count: int) -> None:
+        self.refs = [_Answer.start() for _ in range(count)]
+
+    def fan_out(self) -> float:
+        """Seconds to ask every actor and read every answer."""
+        began = time.perf_counter()
+        futures = [ref.ask(NOTICE, block=False) for ref in self.refs]
+        for future in futures:
+            future.get(timeout=60)
+        return time.perf_counter() - began
+
+    def close(self) -> None:
+        for ref in self.refs:
+            ref.stop()
+
+
+def setup_echo(registrar: rr.ResourceRegistrar) -> None:
+    """The provider's one server."""
+    registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
+
+
+def status_sends(request: Any, sends: int) -> Callable[[rr.ResourceRegistrar], list[float]]:
+    """A function to run in the provider: `sends` timed `send_status` to `request`'s
+    consumers (after 5 untimed), in seconds each."""
+
+    def measure(registrar: rr.ResourceRegistrar) -> list[float]:
+        (query_id,) = [q.id for q in registrar.server_queries("echo") if q.request == request][:1]
+        samples = []
+        for number in range(sends + 5):
+            began = time.perf_counter()
+            registrar.send_status(query_id, rr.Status.UPDATE, "tick", timeout=60)
+            if number >= 5:
+                samples.append(time.perf_counter() - began)
+        return samples
+
+    return measure
+
+
+class Consumers:
+    """`count` consumer registrars of this process, each holding one id of `request` at
+    `provider` with a callback that counts what it heard."""
+
+    def __init__(self, provider: str, request: Any, count: int, network: Any | None = None) -> None:
+        suffix = uuid.uuid4().hex[:6]
+        self.heard: list[int] = []
+        self.registrars = [
+            rr.ResourceRegistrar.start(f"c{count}-{n}-{suffix}", network=network)
+            for n in range(count)
+        ]
+        for registrar in self.registrars:
+            registrar.call(provider, "echo", request, on_status=lambda _q, _u: self.heard.append(1))
+
+    def close(self) -> None:
+        for registrar in self.registrars:
+            registrar.stop()
+
+
+def status_row(name: str, ours: list[float], floor: list[float]) -> str:
+    ms = [x * 1000 for x in ours]
+    plain = [x * 1000 for x in floor]
+    ratio = statistics.median(ms) / statistics.median(plain)
+    return (
+        f"| {name} | {statistics.median(ms):.2f} | {min(ms):.2f}-{max(ms):.2f} "
+        f"| {statistics.median(plain):.3f} | {min(plain):.3f}-{max(plain):.3f} | {ratio:.1f}x |"
+    )
+
+
+def section_status(counts: list[int], rounds: int, sends: int) -> None:
+    from bench_transport import registrar_process  # noqa: PLC0415 - a sibling script
+
+    context = multiprocessing.get_context("forkserver")
+    system = System.create()
+    provider = f"provider-{uuid.uuid4().hex[:6]}"
+    print("## status: send_status to N consumer registrars vs its floor (ms per send)")
+    print()
+    print("| N | rr_actors med | rr_actors min-max | floor med | floor min-max | ratio |")
+    print("|---|---|---|---|---|---|")
+    try:
+        with registrar_process(context, system.address, provider, setup_echo):
+            burst = PipeBurst()
+            for count in counts:
+                request = {"other": count}
+                consumers = Consumers(provider, request, count, network=system)
+                ours: list[float] = []
+                plain: list[float] = []
+                for _ in range(rounds):  # alternated: both meet the same noise
+                    ours.extend(system.run(provider, status_sends(request, sends), timeout=600))
+                    burst.burst(count)
+                    plain.extend(burst.burst(count) for _ in range(sends))
+                expected = count * rounds * (sends + 5)
+                if len(consumers.heard) != expected:
+                    raise RuntimeError(f"{len(consumers.heard)} callbacks ran, not {expected}")
+                consumers.close()
+                print(status_row(f"other processes, {count}", ours, plain))
+            burst.close()
+    finally:
+        system.close()
+    local = rr.ResourceRegistrar.start(f"local-{uuid.uuid4().hex[:6]}")
+    setup_echo(local)
+    try:
+        for count in counts:
+            request = {"local": count}
+            consumers = Consumers(local.name, request, count)
+            fan = PykkaFanOut(count)
+            ours, plain = [], []
+            for _ in range(rounds):
+                ours.extend(status_sends(request, sends)(local))
+                fan.fan_out()
+                plain.extend(fan.fan_out() for _ in range(sends))
+            fan.close()
+            consumers.close()
+            print(status_row(f"one process, {count}", ours, plain))
+    finally:
+        local.stop()
+    print()
+    print(
+        "(floor: a Pipe burst to N across processes, a pykka fan-out to N in one process; "
+        f"{rounds} rounds of {sends} sends, alternated)"
+    )
+    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--sections", nargs="+", choices=["start", "serve"], default=["start"])
+    parser.add_argument(
+        "--sections", nargs="+", choices=["start", "serve", "status"], default=["start"]
+    )
     parser.add_argument("--counts", type=int, nargs="+", default=[1, 10, 50])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1_000, 10_000, 100_000])
+    parser.add_argument("--consumers", type=int, nargs="+", default=[1, 10, 100])
+    parser.add_argument("--sends", type=int, default=50, help="timed sends per round (status)")
     parser.add_argument("--kills", type=int, default=5, help="kills per size and round (serve)")
     parser.add_argument("--listen", action="store_true", help="serve: subscribe to the tree")
     parser.add_argument("--rounds", type=int, default=5)
@@ -311,6 +501,8 @@ def main() -> None:
         section_start(args.counts, args.rounds)
     if "serve" in args.sections:
         section_serve(args.sizes, args.rounds, args.kills, listen=args.listen)
+    if "status" in args.sections:
+        section_status(args.consumers, args.rounds, args.sends)
 
 
 if __name__ == "__main__":

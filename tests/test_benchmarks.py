@@ -35,8 +35,12 @@ SMALLEST = {
     ],  # > 1 s: a hang comes every 1-2 s
     "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
     "bench_scale.py": [
-        *("--sections", "start", "serve", "--counts", "2", "--rounds", "1"),
-        *("--sizes", "10", "20", "--kills", "1", "--listen"),
+        *("--sections", "start", "serve", "status", "--counts", "2", "--rounds", "1"),
+        *("--sizes", "10", "20", "--kills", "1", "--listen", "--consumers", "1", "3"),
+        *(
+            "--sends",
+            "2",
+        ),
     ],
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1", "--forkserver-first"],
     "bench_three_hosts.py": ["--rounds", "20", "--cuts", "1"],

@@ -23,11 +23,12 @@ from rr_actors.errors import RrError, TransferError
 
 __all__ = ["WIRE_TYPES", "WIRE_VERSION", "WireMessage"]
 
-WIRE_VERSION = 2
+WIRE_VERSION = 3
 """The version of what crosses between processes (these messages, pickled): a carrier
 that can meet a process of another version (the Zenoh one, across hosts) refuses its
 messages unread. Raise it when a `WireMessage` changes incompatibly. (2: the Zenoh
-carrier's messages carry a clock stamp after the frame's token.)"""
+carrier's messages carry a clock stamp after the frame's token. 3: a status reaches
+the registrars of a process as one `StatusBatch`.)"""
 
 WIRE_TYPES: set[type] = set()
 """Every `WireMessage` subclass (filled in as they are defined)."""

@@ -51,7 +51,7 @@ class _State(enum.Enum):
 class Job:
     """One task submitted to a `Workers` pool (see `Workers.submit`)."""
 
-    __slots__ = ("_deadline", "_on_overdue", "_pool", "_state", "_timeout", "task")
+    __slots__ = ("_deadline", "_on_overdue", "_pool", "_quiet", "_state", "_timeout", "task")
 
     def __init__(
         self,
@@ -59,11 +59,13 @@ class Job:
         task: Callable[[], None],
         timeout: float | None,
         on_overdue: Callable[[], None] | None,
+        quiet: bool = False,
     ) -> None:
         self._pool = pool
         self.task = task
         self._timeout = timeout
         self._on_overdue = on_overdue
+        self._quiet = quiet
         self._state = _State.QUEUED
         self._deadline = 0.0
 
@@ -127,6 +129,7 @@ class Workers:
         *,
         timeout: float | None = None,
         on_overdue: Callable[[], None] | None = None,
+        quiet: bool = False,
     ) -> Job:
         """Run `task` on a worker thread once one is free; its exceptions are logged.
 
@@ -137,6 +140,8 @@ class Workers:
                 queue); past them the job is abandoned and `on_overdue()` runs on the
                 watchdog's thread (it must be quick, and thread-safe).
             on_overdue: see `timeout`.
+            quiet: its abandonment is logged at DEBUG, not WARNING (an overrun its
+                owner expects and handles, such as the status runner's slice).
 
         Returns:
             The job (`abandon()` it to give up on it).
@@ -145,7 +150,7 @@ class Workers:
             RuntimeError: no worker was free or could be added, and no thread could be
                 started (the OS refused it); the task will not run.
         """
-        job = Job(self, task, timeout, on_overdue)
+        job = Job(self, task, timeout, on_overdue, quiet)
         with self._lock:
             if self._idle > 0 or self._live >= self._max:
                 self._idle -= 1  # an idle worker takes it, or the next one that comes free
@@ -238,7 +243,8 @@ class Workers:
             backlog = self._idle < 0 and self._live < self._max
             if backlog:
                 self._live += 1
-        logger.warning(
+        log = logger.debug if job._quiet else logger.warning
+        log(
             "registrar %s: a callback overran its time and was abandoned; its thread "
             "runs on until it returns (%d abandoned so far)",
             self._name,

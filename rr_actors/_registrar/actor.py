@@ -12,7 +12,7 @@
               │              Release SetStatusCallback ListClientQueries OpenClient          │
               │                                                           (consumer.py)      │
               │   Reconciling ReconcileAsk                               (reconciling.py)    │
-              │   StatusRelay StatusNotice SendStatus                    (status.py)         │
+              │   StatusRelay StatusBatch StatusNotice SendStatus     (status.py, fanout.py) │
               │   Lifecycle  Flush Crash Save Stop Ready SettleInDoubt Reachable             │
               │              Snapshot; death                              (lifecycle.py)     │
               │   Presence   PeerLost ConsumerDown PeerReachable ReconcileRetry              │
@@ -74,6 +74,7 @@ from rr_actors._registrar.messages import (
     SetStatusCallback,
     SettleInDoubt,
     Snapshot,
+    StatusBatch,
     StatusNotice,
     Stop,
     TakeOutcomes,
@@ -163,6 +164,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     PeerLost: ("peer_lost", lambda a: a.presence.on_peer_lost),  # gone, nobody restarts it
     PeerReachable: ("peer_reachable", lambda a: a.presence.on_peer_reachable),  # link healed
     ReconcileRetry: ("reconcile_retry", lambda a: a.presence.on_reconcile_retry),  # its timer
+    StatusBatch: ("status_batch", lambda a: a.status.on_status_batch),  # at a relay
     StatusNotice: ("status_notice", lambda a: a.status.on_status_notice),  # at a consumer
     Revoke: ("revoke", lambda a: a.consumer.on_revoke),  # at a consumer
     ResponseUpdated: ("response_updated", lambda a: a.consumer.on_response_updated),

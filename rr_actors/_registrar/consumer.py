@@ -37,6 +37,7 @@ from rr_actors._registrar import outcomes
 from rr_actors._registrar.calls import AttemptState, CallAttempt, DueAnswers
 from rr_actors._registrar.display import ClientTexts
 from rr_actors._registrar.endpoints import ClientActor, Clients
+from rr_actors._registrar.fanout import DESK, StatusTargets
 from rr_actors._registrar.flight import Action, InFlight, decide
 from rr_actors._registrar.loading import check_picklable
 from rr_actors._registrar.messages import (
@@ -106,6 +107,8 @@ class Consumer:
         due: the query ids whose answers are on their way (shared with callers' threads).
         clients: its client actors (shared with its handle, which looks them up).
         status_callbacks: query id -> the client status callback of that query.
+        targets: what the status desk of this process reads of it (`fanout.py`): the
+            ids with a status callback that a status reaches without this mailbox.
         in_flight: query id -> what is known of its call in flight (`InFlight`: a
             durable attempt this actor answers after its commit, the provider of a call
             that failed as it died or stopped, the notices that overtook its answer).
@@ -133,6 +136,8 @@ class Consumer:
         self.redeliver = redeliver
         self.clients = clients
         self.status_callbacks: dict[str, StatusCallback] = {}
+        self.targets = StatusTargets(shared.name, shared.events, due)
+        DESK.serve(shared.peer, self.targets)
         self.in_flight: dict[str, InFlight] = {}
         self.releasing: set[str] = set()
         self.unreleased: dict[str, str] = {}
@@ -197,6 +202,7 @@ class Consumer:
                 outcomes.forgotten(self.registrar, record.query, reason)
             self.registrar.catalog.remove_client(query_id)
             self.status_callbacks.pop(query_id, None)
+            self.targets.entries.pop(query_id, None)
             self.answered_in.pop(query_id, None)
             if commit:
                 self.registrar.commit()
@@ -213,6 +219,17 @@ class Consumer:
     def callback_of(self, query_id: str) -> StatusCallback | None:
         """The client status callback of query `query_id`, if it has one."""
         return self.status_callbacks.get(query_id)
+
+    def publish_target(self, query_id: str) -> None:
+        """Let the status desk of this process run `query_id`'s callback without this
+        mailbox (`fanout.py`): a loaded query with a callback that is not a dependency
+        (a dependency's status climbs from here, on this actor)."""
+        record = self.registrar.catalog.clients.get(query_id)
+        callback = self.status_callbacks.get(query_id)
+        if record is None or callback is None or record.parent is not None or not record.loaded:
+            self.targets.entries.pop(query_id, None)
+        else:
+            self.targets.entries[query_id] = (record.query, callback)
 
     def withdraw_pending(self, error: RrError) -> None:
         """This registrar stops: give up its durable calls in flight; their callers get `error`.
@@ -383,6 +400,7 @@ class Consumer:
         self.answered_in[query.id] = self.epoch  # (a reconcile's list left before?)
         if message.on_status is not None:
             self.status_callbacks[query.id] = message.on_status
+            self.publish_target(query.id)
         if durable:
             message.attempt.settle(query.response)
 
@@ -506,6 +524,8 @@ class Consumer:
             return
         for query_id in message.query_ids:
             self.registrar.catalog.client_loaded(query_id, message.response)
+            if query_id in self.targets.entries:  # (its query says the new response)
+                self.publish_target(query_id)
         self.registrar.commit()
         reply.set_result(None)
 
@@ -652,6 +672,7 @@ class Consumer:
         if message.query_id not in self.registrar.catalog.clients:
             raise UnknownQueryError(f"unknown or released query id {message.query_id!r}")
         self.status_callbacks[message.query_id] = message.callback
+        self.publish_target(message.query_id)
         reply.set_result(None)
 
     def on_list_client_queries(self, _message: ListClientQueries, reply: Reply) -> None:

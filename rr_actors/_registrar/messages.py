@@ -4,7 +4,7 @@ Each is a frozen dataclass. A `reply` field holds where the answer goes: a local
 in-process; a transport replaces it by a token when the message crosses processes.
 
 The wire protocol (between registrars, possibly across processes): `Load`, `Unload`,
-`Abandon`, `Fetch`, `Reconcile` (consumer -> provider); `StatusNotice`, `Revoke`,
+`Abandon`, `Fetch`, `Reconcile` (consumer -> provider); `StatusBatch`, `StatusNotice`, `Revoke`,
 `ResponseUpdated`, `ReconcileAsk` (provider -> consumer); `ConsumerDown` (death watch ->
 every registrar: the consumer and provider `origin_rr` is gone for good). The internal messages
 below them never leave their process: a registrar's handle, its server and client actors
@@ -74,6 +74,7 @@ __all__ = [
     "SetStatusCallback",
     "SettleInDoubt",
     "Snapshot",
+    "StatusBatch",
     "StatusNotice",
     "Stop",
     "TakeOutcomes",
@@ -181,6 +182,44 @@ class StatusNotice(WireMessage):
     reply: Reply
     hop: int = 1
     sent_at: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class StatusBatch(WireMessage):
+    """Provider -> a registrar of another process: one status for consumer registrars there.
+
+    `parts` holds (consumer registrar, its query ids) for each registrar of that process
+    (as far as the provider knows) that holds the resource; the registrar it is sent to
+    delivers them all in one pass (`fanout.py`). The other fields are a `StatusNotice`'s.
+    Answer: `{registrar: its process's key}` for every registrar reached, once the status
+    was delivered along the whole path.
+    """
+
+    parts: tuple[tuple[str, tuple[str, ...]], ...]
+    status: Status
+    message: str
+    source: str
+    event: str
+    reply: Reply
+    hop: int = 1
+    sent_at: float = 0.0
+
+    def part(self, parts: tuple[tuple[str, tuple[str, ...]], ...], reply: Reply) -> StatusBatch:
+        """The same status for `parts`, answered to `reply` (built directly, as `detached`)."""
+        return StatusBatch(
+            parts,
+            self.status,
+            self.message,
+            self.source,
+            self.event,
+            reply,
+            self.hop,
+            self.sent_at,
+        )
+
+    def detached(self) -> StatusBatch:
+        """This batch without its reply (built directly: `dataclasses.replace` is slower)."""
+        return self.part(self.parts, None)  # type: ignore[arg-type]
 
 
 @dataclasses.dataclass(frozen=True)

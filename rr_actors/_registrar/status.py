@@ -1,9 +1,11 @@
 """Status notifications, climbing every dependency path to the top (rule 9, thesis 4.2.4).
 
 ```
- send_status(id) ──► notify(resource): server's on_status once ──► StatusNotice to each
-                       consumer registrar ──► on_status_notice: each client's callback,
-                       and for a dependency, notify(its parent resource) ──► ... top
+ send_status(id) ──► notify(resource): server's on_status once ──► the consumer
+                       registrars, in one pass per process (`fanout.py`: the desk runs
+                       the callbacks of plain ids there) ──► on_status_notice, for the
+                       others: each client's callback, and for a dependency,
+                       notify(its parent resource) ──► ... top
  acknowledgements: counted where they arrive (SharedJoin), the last one answers the sender
 ```
 
@@ -20,14 +22,15 @@ import logging
 import time
 import uuid
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rr_actors import events
 from rr_actors._catalog import Resource
-from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import CallbackReply, SharedJoin
-from rr_actors._registrar.messages import SendStatus, StatusNotice
-from rr_actors._registrar.state import Shared, consumers_by_origin
+from rr_actors._registrar.fanout import DESK, Routes, process
+from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice
+from rr_actors._registrar.state import NO_REPLY, Shared, consumers_by_origin
 from rr_actors._types import Query, StatusCallback, StatusUpdate
 from rr_actors.errors import RrError
 
@@ -48,6 +51,7 @@ class StatusRelay:
         self.registrar = shared
         self.consumer = consumer
         self.seen_events: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
+        self.routes = Routes()
 
     def on_send_status(self, asked: SendStatus, reply: Reply) -> None:
         query_id, status, message = asked.query_id, asked.status, asked.message
@@ -104,17 +108,85 @@ class StatusRelay:
             self.run_callback(
                 server.on_status, query, dataclasses.replace(update, query_id=query_id), join
             )
-        for origin, ids in consumers_by_origin(resource).items():
-            reply = CallbackReply(join.add())  # answered on the answering thread
+        in_process: list[tuple[str, tuple[str, ...]]] = []
+        elsewhere: list[tuple[str, tuple[str, ...]]] = []
+        for part in consumers_by_origin(resource).items():
             try:
-                DIRECTORY.lookup(origin).tell(
-                    StatusNotice(
-                        ids, update.status, update.message, update.source, event, reply, hop, sent
-                    )
-                )
-            except RrError as exc:
-                reply.set_error(exc)
+                local = type(DIRECTORY.lookup(part[0])) is LocalPeer
+            except RrError:  # gone: nothing to deliver
+                continue
+            (in_process if local else elsewhere).append(part)
+        batch = StatusBatch(
+            tuple(in_process),
+            update.status,
+            update.message,
+            update.source,
+            event,
+            NO_REPLY,
+            hop,
+            sent,
+        )  # (each part sent gets its own reply)
+        if in_process:
+            DESK.deliver(batch, join, None, (self.registrar.name, self.consumer.redeliver))
+        for relay, parts, batched in self.routes.plan(elsewhere):
+            if batched:
+                self.send_batch(relay, batch.part(parts, NO_REPLY), join)
+            else:
+                self.send_notice(relay, parts[0][1], batch, join)
         join.seal()
+
+    def send_notice(
+        self, origin: str, query_ids: tuple[str, ...], batch: StatusBatch, join: SharedJoin
+    ) -> None:
+        """Send `batch`'s status to registrar `origin` alone, as a `StatusNotice`."""
+        done = join.add()
+        routes = self.routes
+
+        def answered(_value: Any, error: BaseException | None) -> None:
+            if error is not None:
+                routes.forget([origin])  # (ask it where it is again)
+            done()
+
+        reply = CallbackReply(answered)  # answered on the answering thread
+        try:
+            DIRECTORY.lookup(origin).tell(
+                StatusNotice(
+                    query_ids,
+                    batch.status,
+                    batch.message,
+                    batch.source,
+                    batch.event,
+                    reply,
+                    batch.hop,
+                    batch.sent_at,
+                )
+            )
+        except RrError as exc:
+            reply.set_error(exc)
+
+    def send_batch(self, relay: str, batch: StatusBatch, join: SharedJoin) -> None:
+        """Send `batch` to registrar `relay` (any thread); its answer completes a part of
+        `join`. Sent to a relay that fails, each part goes again to its own registrar (the
+        desk there delivers what had reached it once)."""
+        done = join.add()
+        routes = self.routes
+
+        def answered(value: Any, error: BaseException | None) -> None:
+            if error is None:
+                if isinstance(value, dict):
+                    routes.learn(value)
+            else:
+                routes.forget([relay, *(origin for origin, _ in batch.parts)])
+                if batch.parts != ((relay, batch.parts[0][1]),):  # (not its own part alone)
+                    for part in batch.parts:
+                        self.send_batch(part[0], batch.part((part,), NO_REPLY), join)
+            done()
+
+        reply = CallbackReply(answered)  # answered on the answering thread
+        try:
+            DIRECTORY.lookup(relay).tell(batch.part(batch.parts, reply))
+        except RrError as exc:
+            reply.set_error(exc)
 
     def run_callback(
         self, callback: StatusCallback, query: Query, update: StatusUpdate, join: SharedJoin
@@ -135,6 +207,14 @@ class StatusRelay:
         except RuntimeError:  # no thread could start: skip the callback, keep serving
             logger.exception("no worker thread for the status callback of %s", query.id)
             done()
+
+    def on_status_batch(self, batch: StatusBatch, reply: Reply) -> None:
+        """A relay: deliver a status to the consumer registrars of this process in one
+        pass; answer (once) with the process each one reached is in."""
+        homes: dict[str, str] = {self.registrar.name: process()}
+        join = SharedJoin(lambda: reply.set_result(homes))
+        DESK.deliver(batch, join, homes, (self.registrar.name, self.consumer.redeliver))
+        join.seal()
 
     def on_status_notice(self, message: StatusNotice, reply: Reply) -> None:
         """Consumer side: run the client callbacks, climb to the dependent resources."""

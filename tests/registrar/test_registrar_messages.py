@@ -20,7 +20,7 @@ from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar import Served
 from rr_actors._registrar.actor import DISPATCH, MESSAGE_STEPS
-from rr_actors._registrar.messages import Abandon, ConsumerDown
+from rr_actors._registrar.messages import Abandon, ConsumerDown, StatusBatch
 from rr_actors._registrar.probes import POINTS
 from rr_actors.testing import (
     STEPS,
@@ -96,6 +96,18 @@ def _status_notice(p: Pair, hook: Hook) -> None:
     query = p.held()
     intercept(p.consumer, "status_notice", before=hook)
     p.provider.send_status(query.id, rr.Status.WARNING, "hot")
+
+
+def _status_batch(p: Pair, hook: Hook) -> None:
+    # (a provider sends one to a registrar of another process; here, told directly)
+    query = p.held()
+    intercept(p.consumer, "status_batch", before=hook)
+    answer = FutureReply()
+    batch = StatusBatch(
+        ((p.consumer.name, (query.id,)),), rr.Status.OK, "", f"{p.provider.name}/leaf", "e", answer
+    )
+    DIRECTORY.lookup(p.consumer.name).tell(batch)
+    answer.future.get(timeout=5)
 
 
 def _revoke(p: Pair, hook: Hook) -> None:
@@ -296,6 +308,7 @@ DRIVERS: dict[str, Callable[[Pair, Hook], None]] = {
     "abandon": _abandon,
     "fetch": _fetch,
     "status_notice": _status_notice,
+    "status_batch": _status_batch,
     "revoke": _revoke,
     "response_updated": _response_updated,
     "consumer_down": _consumer_down,
