@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import pykka
@@ -118,6 +118,11 @@ class Consumer:
             records are forgotten; a `Reconcile` does not list them, so the provider
             releases any it still holds (its `unload` runs once) and none is reported
             `FATAL`. Held until such a `Reconcile` was answered.
+        kept_for_retry: query id -> provider, of calls that failed as the provider died
+            or stopped and that it still held when a `Reconcile` with it was answered
+            since: a retry with the id finds it there. Never retried, the id is released
+            by the provider's next `Reconcile` (which does not list it) or given back
+            when this registrar stops (rule 12).
         epoch: how many `Reconcile` lists this registrar has built (`listing`).
         answered_in: query id -> the `epoch` in which its answer was recorded (ids
             answered before the first list, or restored, have none: 0).
@@ -141,6 +146,7 @@ class Consumer:
         self.in_flight: dict[str, InFlight] = {}
         self.releasing: set[str] = set()
         self.unreleased: dict[str, str] = {}
+        self.kept_for_retry: dict[str, str] = {}
         self.epoch = 0
         self.answered_in: dict[str, int] = {}
         self.texts = ClientTexts(shared)
@@ -329,6 +335,7 @@ class Consumer:
         held = self.registrar.catalog.clients.get(query.id)
         retry = self.was_unsettled(query.id) or (held is not None and held.loaded)
         self.settle(query.id, None)  # (a retry of a call that failed as it died)
+        self.kept_for_retry.pop(query.id, None)  # (... or that its provider kept)
         ours = self.take_attempt(query.id, message.attempt)  # (not a same-id retry's)
         durable = isinstance(message, DurableLoaded)
         withdrawn = durable and message.attempt.take() is not AttemptState.RECORDING
@@ -462,6 +469,7 @@ class Consumer:
         if current is None or current is message.attempt:
             # (set if it may hold the id: a retry may follow)
             self.settle(message.query_id, message.serving_rr)
+            self.kept_for_retry.pop(message.query_id, None)  # (settled, or unsettled again)
         record = self.registrar.catalog.clients.get(message.query_id)
         try:
             if current is not None and current is not message.attempt:
@@ -553,6 +561,7 @@ class Consumer:
         return (
             serving_rr in self.unsettled().values()
             or serving_rr in self.unreleased.values()
+            or serving_rr in self.kept_for_retry.values()
             or any(
                 record.query.serving_rr == serving_rr
                 for record in self.registrar.catalog.clients.values()
@@ -586,27 +595,41 @@ class Consumer:
         """Whether the `Unload` of `query_id` is on its way."""
         return query_id in self.releasing
 
-    def settle_listed(self, serving_rr: str, listing: Listing | None = None) -> None:
-        """`serving_rr` answered `listing`'s `Reconcile`: forget the failed calls it listed
-        (it holds those it knew: a retry finds them) and the releases it left out (it
-        released them). Without a listing (`serving_rr` is gone for good): all of them."""
+    def settle_listed(
+        self, serving_rr: str, listing: Listing | None = None, unknown: Iterable[str] = ()
+    ) -> None:
+        """`serving_rr` answered `listing`'s `Reconcile`: settle the failed calls it listed
+        (it holds those it knew, `kept_for_retry`: a retry finds them), forget those it
+        kept before that the list left out (it released them) and the releases it left
+        out (it released them). Without a listing (`serving_rr` is gone for good): all of
+        them. `unknown`: the listed ids it answered it does not know."""
 
         def settled(query_id: str) -> bool:
             return listing is None or query_id in listing.held or query_id in listing.left_out
 
+        for query_id, provider in list(self.kept_for_retry.items()):
+            if provider == serving_rr and (listing is None or query_id not in listing.held):
+                del self.kept_for_retry[query_id]
+        lost = set(unknown)
         for query_id, provider in self.unsettled().items():
             if provider == serving_rr and settled(query_id):
                 self.settle(query_id, None)
+                if listing is not None and query_id in listing.held and query_id not in lost:
+                    self.kept_for_retry[query_id] = serving_rr
         for query_id in [q for q, p in self.unreleased.items() if p == serving_rr]:
             if settled(query_id):
                 del self.unreleased[query_id]
 
     def give_back_unsettled(self) -> None:
         """This registrar stops: give back the ids of calls that failed as their provider
-        died, which it would no longer retry, and of releases that failed so."""
+        died, which it would no longer retry (also those the provider kept for a retry
+        when it reconciled), and of releases that failed so."""
         for query_id, serving_rr in self.unsettled().items():
             give_back(serving_rr, query_id, self.registrar.name)
             self.settle(query_id, None)
+        for query_id, serving_rr in self.kept_for_retry.items():
+            give_back(serving_rr, query_id, self.registrar.name)
+        self.kept_for_retry.clear()
         for query_id, serving_rr in self.unreleased.items():
             give_back(serving_rr, query_id, self.registrar.name)
         self.unreleased.clear()

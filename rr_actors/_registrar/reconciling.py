@@ -160,9 +160,10 @@ class Reconciling:
                 continue
             lost.setdefault(record.query.server, []).append(query_id)
         # What was unsettled, was listed and survived the reconcile is held by the provider
-        # now: a retry finds it; a call never retried is released at its next restart.
+        # now: a retry finds it; a call never retried is released at its next restart, or
+        # given back when this registrar stops (`Consumer.kept_for_retry`).
         # What was left out of the list, it released.
-        self.consumer.settle_listed(serving_rr, listing)
+        self.consumer.settle_listed(serving_rr, listing, unknown)
         for server, ids in lost.items():
             logger.warning(
                 "registrar %s: %s/%s no longer knows %d of the queries held there "

@@ -32,6 +32,7 @@ from rr_actors.testing import (
     crash,
     expect_restart,
     intercept,
+    run_on_actor,
 )
 from tests.support.durable_pair import durable_config
 from tests.support.gating import GatedLoad
@@ -195,6 +196,53 @@ def test_a_retry_after_the_provider_reconciled_finds_the_id_it_committed_before_
 
     assert ({"for": "camera"}, ["camera"]) == (retry.response, loads)
     assert [qid] == [q.id for q in restarted.server_queries("leaf")]
+
+
+def test_a_failed_call_the_provider_kept_at_reconciling_is_given_back_when_its_consumer_stops(
+    tmp_path: Path, started: list[rr.ResourceRegistrar]
+) -> None:
+    # Rule 17 case 3, then rule 12: the provider committed the consumer id and died before
+    # its answer left. The restarted provider reconciles; the consumer lists the failed
+    # call (a retry may come), so the provider keeps the id. No retry comes, and the
+    # consumer stops: its stop gives the id back. (A kill-heavy experiment's check found
+    # a stopped consumer's id held at its provider to the end: the `end` rule.)
+    load = GatedLoad(threading.Event(), threading.Event(), lambda request: {"for": request})
+    gate, entered = load.gate, load.started
+    unloaded = threading.Event()
+
+    def serve(registrar: rr.ResourceRegistrar) -> None:
+        registrar.register_server("leaf", load=load, unload=lambda _r, _s: unloaded.set())
+
+    config = durable_config("provider", tmp_path)
+    provider = rr.ResourceRegistrar.start(config, setup=serve)
+    consumer = rr.ResourceRegistrar.start(f"consumer-{uuid.uuid4().hex[:8]}")
+    started.append(consumer)
+    qid = str(uuid.uuid4())
+    with ThreadPoolExecutor(1) as pool:
+        call = pool.submit(consumer.call, config.name, "leaf", "camera", query_id=qid, timeout=10)
+        assert entered.wait(10)
+        with expect_restart(config.name):  # as its supervisor would: no death watch
+            crash(provider)
+        with pytest.raises(rr.RegistrarUnavailableError):
+            call.result(timeout=10)
+    gate.set()
+    commit_as_answered(Path(config.backup_path), qid, consumer.name)  # type: ignore[arg-type]
+    reconciled = threading.Event()
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        serve(registrar)
+        intercept(registrar, "reconcile", after=lambda _message: reconciled.set())
+
+    restarted = rr.ResourceRegistrar.start(config, setup=setup)
+    started.append(restarted)
+    assert reconciled.wait(10)
+    run_on_actor(consumer, lambda: None).get(timeout=10)  # it handled the answer (told first)
+    assert [qid] == [q.id for q in restarted.server_queries("leaf")]  # kept for a retry
+
+    consumer.stop()
+
+    assert unloaded.wait(10)
+    assert [] == restarted.server_queries("leaf")
 
 
 def commit_as_answered(backup: Path, query_id: str, origin: str) -> None:
