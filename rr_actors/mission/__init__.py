@@ -8,8 +8,13 @@ subpackage holds:
   standard-library Python programs that talk over topic files;
 - `managers`: the three managers (`erm_setup`, `cm_setup`, `rm_setup`);
 - `config`: the faults and `MissionConfig`;
-- `action`: the mission action (load, drive, recover, unload);
-- `faults`: injecting the faults, and following the managers through their restarts;
+- `action`: the mission action, a coordinator of the collaborators below: `loads` (what
+  the mission holds: load, release, unload), `robot` (the goal topic and the odometry),
+  `drive` (the loop to the goal, the faults injected on the way), `recovery` (F1, F2,
+  F6), `step` (`--step`'s pauses);
+- `hosts`: the managers' trees, each host's network, the robot's host process;
+- `faults`: where each fault strikes, injecting them (F1-F6), and following the managers
+  through their restarts;
 - `report`: the odometry, the report and the timeline's rows;
 - `output`: the story, the live progress line and the timeline on a terminal (with
   `rich`) or as plain lines;

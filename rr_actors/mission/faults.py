@@ -1,12 +1,18 @@
 """Injecting the faults for real, and following the managers through their restarts.
 
-    Mission._drive ──inject(F1/F2)──► SIGKILL a program (pidfd; pid and creation time checked)
-                   ──inject(F3-F5)──► SIGKILL a manager ──► a thread waits for the supervisor's
-                                                            `ChildExited` (detected), then for the
-                                                            restart that follows, then for an
-                                                            answer from its catalog (recovered)
-                   ──notice_restarts()──► exits that no injected fault caused (by hand, say), with
-                                          their `ChildRestarted.restart_s`
+    fault_points(config): where each fault strikes, a fraction of the path (jittered by the seed)
+
+    Drive.run ──inject(F1/F2)──► SIGKILL a program (pidfd; pid and creation time checked)
+              ──inject(F3-F5)──► SIGKILL a manager ──► a thread waits for the supervisor's
+                                                       `ChildExited` (detected), then for the
+                                                       restart that follows, then for an
+                                                       answer from its catalog (recovered)
+              ──inject(F6)─────► the link down at both ends; a timer brings it up `cut_s`
+                                 later (`healed`)
+              ──notice_restarts()──► exits that no injected fault caused (by hand, say), with
+                                     their `ChildRestarted.restart_s`
+    RobotHost ──robot_saw()──► F6: when the robot's host saw the station go, and come back
+    Mission (at the end) ──kill_left_behind(bus)──► programs still alive, SIGKILLed
 
 The times come from the supervisor's event stream (`Supervisor.subscribe`): when it saw a
 manager exit, and how long the restart took. Every wait for a restart names the restart
@@ -17,22 +23,41 @@ miss its restart.
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
 import queue
+import random
 import signal
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, TypeVar
 
 import rr_actors as rr
 from rr_actors.mission import managers, programs
-from rr_actors.mission.config import FAULT_WHAT, HOST_OF, MANAGER_OF, MANAGERS, MissionError
+from rr_actors.mission.config import (
+    FAULT_WHAT,
+    HOST_OF,
+    MANAGER_OF,
+    MANAGERS,
+    MissionConfig,
+    MissionError,
+)
 from rr_actors.mission.hosts import Trees
 from rr_actors.mission.netns import TwoHosts
 from rr_actors.mission.report import FaultRecord, UnplannedExit
 
-__all__ = ["SERVER_OF", "Faults", "alive", "retry_through_restarts", "sigkill"]
+__all__ = [
+    "SERVER_OF",
+    "Faults",
+    "alive",
+    "fault_points",
+    "kill_left_behind",
+    "retry_through_restarts",
+    "sigkill",
+]
 
 T = TypeVar("T")
 
@@ -58,6 +83,28 @@ def sigkill(pid: int, created: int | None = None) -> int:
         raise MissionError(f"process {pid} is not the one the mission started")
     signal.pidfd_send_signal(pidfd, signal.SIGKILL)
     return pidfd
+
+
+def fault_points(config: MissionConfig) -> dict[str, float]:
+    """Where each fault of `config` strikes, as a fraction of the path (jittered by the seed)."""
+    rng = random.Random(config.seed)  # noqa: S311 - jitter, not cryptography
+    return {
+        f: config.fault_at[f] + rng.uniform(-0.02, 0.02) * min(1.0, config.fault_at[f])
+        for f in config.faults
+    }
+
+
+def kill_left_behind(bus: Path) -> list[int]:
+    """Programs of this mission still alive (from their pid files); they get killed."""
+    leaked = []
+    for path in sorted((bus / "pids").glob("*.json")):
+        with contextlib.suppress(OSError, ValueError, KeyError):
+            record = json.loads(path.read_text())
+            if alive(record["pid"], record["start_time"]):
+                leaked.append(record["pid"])
+                with contextlib.suppress(OSError, MissionError):
+                    os.close(sigkill(record["pid"], record["start_time"]))
+    return leaked
 
 
 def retry_through_restarts(
@@ -152,6 +199,23 @@ class Faults:
     def close(self) -> None:
         """Stop following the supervisor's events."""
         self._subscription.close()
+
+    def recovered(self, record: FaultRecord) -> bool:
+        """Whether the fault of `record` was recovered (a recovery thread may have said so)."""
+        with self.lock:
+            return record.recovered_at is not None
+
+    def robot_saw(self, kind: str, at: float) -> None:
+        """F6: the robot's host saw the station go (`"lost"`) or come back (`"back"`) at `at`
+        (monotonic seconds; on the `RobotHost`'s reader thread)."""
+        with self.lock:
+            cut = next((r for r in self.records if r.id == "F6"), None)
+            if cut is None:
+                return
+            if kind == "lost" and cut.robot_saw_at is None:
+                cut.robot_saw_at = at
+            elif kind == "back" and cut.robot_saw_back_at is None:
+                cut.robot_saw_back_at = at
 
     def ready(self) -> bool:
         """Whether every manager is running (a fault is injected only then)."""

@@ -1,5 +1,9 @@
 """The mission's hosts: the managers' trees by name, and the robot's host process.
 
+Each host makes its network (`host_network`: Zenoh, mutual TLS with its certificate)
+and its supervisor of managers (`managers_tree`) the same way; `open_two_hosts` is the
+station's side of starting both hosts.
+
     the station (the mission's process)                   the robot's host process
     ───────────────────────────────────                   (python -m rr_actors.mission.hosts,
     Trees: erm, rm ─► RobotHost ─┐                          inside the robot's namespace)
@@ -41,11 +45,12 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import rr_actors as rr
-from rr_actors.mission import programs
-from rr_actors.mission.config import MissionError
+from rr_actors.mission import managers, programs
+from rr_actors.mission.config import MissionConfig, MissionError
+from rr_actors.mission.netns import TwoHosts
 
 __all__ = [
     "CERTS",
@@ -59,7 +64,10 @@ __all__ = [
     "RobotSettings",
     "Tree",
     "Trees",
+    "host_network",
     "main",
+    "managers_tree",
+    "open_two_hosts",
 ]
 
 ROBOT_MANAGERS = ("erm", "rm")
@@ -437,6 +445,108 @@ class RobotHost:
 # -- the robot's host process ----------------------------------------------------------------
 
 
+def host_network(
+    certs: Path, member: str, *, system: str, listen: str, connect: str, lease: float
+) -> rr.ZenohNetwork:
+    """The Zenoh network of host `member` (`"robot"`, `"station"`): mutual TLS with its
+    certificate in `certs` (`<member>.pem`, `<member>.key`, the CA's `ca.pem`)."""
+    tls = rr.ZenohTLS(
+        ca=certs / "ca.pem",
+        cert=certs / f"{member}.pem",
+        key=certs / f"{member}.key",
+        members=list(MEMBERS),
+    )
+    return rr.ZenohNetwork(system=system, listen=[listen], connect=[connect], tls=tls, lease=lease)
+
+
+def managers_tree(
+    names: tuple[str, ...],
+    *,
+    isolation: Literal["process", "thread"],
+    state_dir: str | Path,
+    network: rr.ZenohNetwork | None,
+    name: str | None,
+) -> rr.Supervisor:
+    """A host's supervisor of the managers `names` (not started): one for one, permanent."""
+    setups = managers.setups()
+    specs = [
+        rr.ManagerSpec(manager, setup=setups[manager], isolation=isolation, restart="permanent")
+        for manager in names
+    ]
+    return rr.Supervisor(
+        specs,
+        strategy="one_for_one",
+        max_restarts=10,
+        period=10.0,
+        state_dir=state_dir,
+        network=network,
+        name=name,
+    )
+
+
+def open_two_hosts(
+    link: TwoHosts,
+    config: MissionConfig,
+    out: Path,
+    *,
+    state: Path,
+    bus: Path,
+    robot_observer: RobotObserver | None,
+    say: Callable[[str], None],
+    stack: contextlib.ExitStack,
+) -> tuple[rr.ZenohNetwork, RobotHost]:
+    """The station's side: start the robot's host (erm, rm), open the station's network.
+
+    Both are closed by `stack` (the robot's host first, then the network).
+
+    Args:
+        link: the two hosts' namespaces (this process runs in the station's).
+        config: the mission (its `lease` and `isolation`).
+        out: the output directory (the certificates, the robot's log).
+        state: the managers' state directories (`robot/` for the robot's).
+        bus: the programs' topics.
+        robot_observer: share the robot's tree with the station's page, or `None`.
+        say: tells one line of the story (also from the robot host's reader thread).
+        stack: where the closing goes.
+
+    Raises:
+        MissionError: the robot's host did not start.
+    """
+    certs = out / CERTS
+    say(
+        f"two hosts: the robot ({link.robot_address}: erm, rm and their programs) and the "
+        f"station ({link.station_address}: the mission and cm), mutual TLS ({certs})"
+    )
+    network = host_network(
+        certs,
+        "station",
+        system=SYSTEM,
+        listen=f"tls/{link.station_address}:{PORT}",
+        connect=f"tls/{link.robot_address}:{PORT}",
+        lease=config.lease,
+    )
+    stack.callback(network.close)
+    robot = RobotHost.start(
+        link.exec_in(link.robot),
+        RobotSettings(
+            system=SYSTEM,
+            certs=str(certs),
+            listen=f"tls/{link.robot_address}:{PORT}",
+            connect=f"tls/{link.station_address}:{PORT}",
+            lease=config.lease,
+            state=str(state / "robot"),
+            bus=str(bus),
+            isolation=config.isolation,
+            log=str(out / ROBOT_LOG),
+            observer=robot_observer,
+        ),
+        say=say,
+    )
+    stack.callback(robot.close)
+    say(f"robot's host up (pid {robot.pid}): erm and rm started there")
+    return network, robot
+
+
 def _watch_station(
     net: rr.ZenohNetwork, bus: Path, stop: threading.Event, send: Callable[[Any], None]
 ) -> None:
@@ -492,7 +602,6 @@ def _serve(sup: rr.Supervisor, conn: Connection, send: Callable[[Any], None]) ->
 def main(fd: int) -> None:
     """The robot's host: start its managers, answer the station until it says stop."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the station stops it (a terminal's Ctrl-C)
-    from rr_actors.mission import managers  # noqa: PLC0415 - (a fresh interpreter)
 
     conn = Connection(fd)
     lock = threading.Lock()
@@ -507,36 +616,18 @@ def main(fd: int) -> None:
     handler.setLevel(logging.WARNING)
     handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s"))
     logging.getLogger("rr_actors").addHandler(handler)  # (the story says what matters)
-    certs = Path(settings.certs)
     try:
-        tls = rr.ZenohTLS(
-            ca=certs / "ca.pem",
-            cert=certs / "robot.pem",
-            key=certs / "robot.key",
-            members=list(MEMBERS),
-        )
-        net = rr.ZenohNetwork(
+        net = host_network(
+            Path(settings.certs),
+            "robot",
             system=settings.system,
-            listen=[settings.listen],
-            connect=[settings.connect],
-            tls=tls,
+            listen=settings.listen,
+            connect=settings.connect,
             lease=settings.lease,
         )
-        setups = managers.setups()
-        specs = [
-            rr.ManagerSpec(
-                name,
-                setup=setups[name],
-                isolation=settings.isolation,  # type: ignore[arg-type]
-                restart="permanent",
-            )
-            for name in ROBOT_MANAGERS
-        ]
-        sup = rr.Supervisor(
-            specs,
-            strategy="one_for_one",
-            max_restarts=10,
-            period=10.0,
+        sup = managers_tree(
+            ROBOT_MANAGERS,
+            isolation=settings.isolation,  # type: ignore[arg-type]
             state_dir=settings.state,
             network=net,
             name="robot",

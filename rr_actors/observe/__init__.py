@@ -12,9 +12,10 @@ tree and the dependency graph as Mermaid or DOT text.
  state directory ── read_backup (read-only) ─► BackupSource┘     (SSE: sections, events)
 ```
 
-Across hosts (a supervisor on a `ZenohNetwork`), `_hosts` shares each host's state as
-JSON and keeps a page of every host (`observe_system`: a page from a member without a
-tree).
+Across hosts (a supervisor on a `ZenohNetwork`), `_share` shares each host's state as
+JSON and `_system` keeps a page of every host (`observe_system`: a page from a member
+without a tree); `_crossing` (what crosses, and its checks), `_liveness` (the hosts'
+and links' sections), `_faults_across` (fault commands to another host).
 
 Modules: `_view` (what is shown, as data), `_probe` (a registrar's catalog, read in its
 own process), `_hub` (the sections and recent events, for every page), `_sources` (live

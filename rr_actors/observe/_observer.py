@@ -6,7 +6,7 @@
  rr-actors observe --system ... ─► observe_system ┘              └─► Server (uvicorn thread)
 ```
 
-Across hosts (`_hosts.py`), the source keeps this host's own hub, a `Share` publishes it
+Across hosts, the source keeps this host's own hub, a `Share` (`_share.py`) publishes it
 to the system and a `SystemView` keeps the page's hub with every host's state.
 
 The server's dependencies (Starlette, sse-starlette, uvicorn) are the `observe` extra;
@@ -40,8 +40,9 @@ from rr_actors.observe._sources import (
 
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh.net import Services
-    from rr_actors.observe._hosts import Share, SystemView
     from rr_actors.observe._server import Server
+    from rr_actors.observe._share import Share
+    from rr_actors.observe._system import SystemView
 
 __all__ = [
     "START_TIMEOUT",
@@ -282,7 +283,7 @@ class Observer:
         Without `keep_serving`, the observer closes. With it, the live source stops,
         the page says the tree ended and keeps showing its final state until
         `close()`; across hosts, that final state is shared before this returns (at
-        most 2 s, `_hosts.FLUSH_TIMEOUT`), so that it reaches the other hosts' pages
+        most 2 s, `_share.FLUSH_TIMEOUT`), so that it reaches the other hosts' pages
         before the network closes.
         """
         if not self.keep_serving:
@@ -393,7 +394,8 @@ def observe_supervisor(
     hub = local
     try:
         if services is not None:
-            from rr_actors.observe._hosts import Share, SystemView  # noqa: PLC0415
+            from rr_actors.observe._share import Share  # noqa: PLC0415
+            from rr_actors.observe._system import SystemView  # noqa: PLC0415
 
             member = member_name(services)
             title = f"supervisor {sup.name}"
@@ -461,7 +463,7 @@ def observe_system(
     services = services_of(network, required=True)
     assert services is not None
     require_extra()
-    from rr_actors.observe._hosts import SystemView  # noqa: PLC0415
+    from rr_actors.observe._system import SystemView  # noqa: PLC0415
 
     hub = Hub()
     hub.put("clock", {"origin": time.time(), "label": "since the observer opened"})

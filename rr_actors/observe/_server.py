@@ -7,7 +7,7 @@
                                      "events" (encoded once in the hub, shared by every page)
          ── POST /api/faults/KIND ── teaching mode only: JSON in, JSON out; across
                                      hosts, {"host": MEMBER, ...} goes to that host
-                                     as a command (`_hosts.SystemView.fault`)
+                                     as a command (`_system.SystemView.fault`)
  uvicorn thread (asyncio loop) ◄── Hub listeners (call_soon_threadsafe) ◄── source threads
 ```
 

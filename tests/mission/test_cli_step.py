@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from rr_actors.mission.action import PAUSE_SETTLE
 from rr_actors.mission.run import parser, run
+from rr_actors.mission.step import PAUSE_SETTLE
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 PAUSE = 1.5

@@ -1,4 +1,4 @@
-"""What crosses hosts for the observer (`observe/_hosts.py`): keys, JSON, and what is refused.
+"""What crosses hosts for the observer (`observe/_crossing.py`): keys, JSON, and what is refused.
 
 Two plain Zenoh sessions of this process stand for two hosts on loopback (no rr_actors
 system, so no access control: these tests are about what a page's host accepts from a
@@ -26,9 +26,11 @@ import zenoh
 
 from rr_actors._transport.zenoh.net import Services
 from rr_actors._transport.zenoh.wire import Keys, ObserverKey
+from rr_actors.observe._crossing import valid_catalog, valid_tree
 from rr_actors.observe._faults import FaultRefused
-from rr_actors.observe._hosts import Share, SystemView, valid_catalog, valid_tree
 from rr_actors.observe._hub import Hub
+from rr_actors.observe._share import Share
+from rr_actors.observe._system import SystemView
 from tests.support import hosts
 from tests.support.waiting import wait_for
 
