@@ -122,9 +122,11 @@ class Mission:
         self._faults: Faults | None = None
         self._loads: Loads | None = None
 
-    def say(self, text: str) -> None:
-        """One line of the story, stamped with the mission time (`clock`)."""
-        self._say(f"[{self.clock.now():6.2f} s] {text}")
+    def say(self, text: str, *, at: float | None = None) -> None:
+        """One line of the story, stamped with the mission time (`clock`): now, or of `at`
+        (a `time.monotonic()` value: when what the line tells happened)."""
+        stamp = self.clock.now() if at is None else self.clock.at(at)
+        self._say(f"[{stamp:6.2f} s] {text}")
 
     # -- the run ----------------------------------------------------------------------
 
@@ -284,7 +286,8 @@ class Mission:
             progress=self._progress,
         )
         arrived = drive.run()
-        self.say(f"goal reached after {self.clock.at(arrived) - self.clock.at(start):.2f} s")
+        took = self.clock.at(arrived) - self.clock.at(start)
+        self.say(f"goal reached after {took:.2f} s", at=arrived)  # (one clock with the report)
         return start, arrived
 
     def _unload_all(self, loads: Loads, faults: Faults) -> dict[str, int]:
