@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import itertools
 import logging
 import os
@@ -54,6 +55,7 @@ from rr_actors.mission.netns import TwoHosts
 
 __all__ = [
     "CERTS",
+    "LOG_FORMAT",
     "MEMBERS",
     "PORT",
     "ROBOT_LOG",
@@ -65,6 +67,7 @@ __all__ = [
     "Tree",
     "Trees",
     "host_network",
+    "log_file",
     "main",
     "managers_tree",
     "open_two_hosts",
@@ -459,6 +462,40 @@ def host_network(
     return rr.ZenohNetwork(system=system, listen=[listen], connect=[connect], tls=tls, lease=lease)
 
 
+LOG_FORMAT = "%(asctime)s %(name)s %(levelname)s %(message)s"
+"""The format of the lines in the run's log files (each host's, and its managers')."""
+
+
+def log_file(path: Path) -> logging.FileHandler:
+    """A handler that appends rr_actors' WARNINGs and ERRORs to `path` (opened at the
+    first line: no empty file). Appending, so that the host's process and its manager
+    processes share the file without cutting each other's lines off."""
+    handler = logging.FileHandler(path, mode="a", encoding="utf-8", delay=True)
+    handler.setLevel(logging.WARNING)
+    handler.setFormatter(logging.Formatter(LOG_FORMAT))
+    return handler
+
+
+def _logged_to(
+    log: str, setup: Callable[[rr.ResourceRegistrar], None], registrar: rr.ResourceRegistrar
+) -> None:
+    """Run `setup`, with this process's rr_actors WARNINGs and ERRORs going to `log`
+    (runs in the manager: in a manager process that configured no logging, the file
+    stands in for Python's last-resort handler, which prints them on the terminal)."""
+    logger = logging.getLogger("rr_actors")
+    if not logging.getLogger().handlers and not logger.handlers:
+        logger.addHandler(log_file(Path(log)))
+    setup(registrar)
+
+
+def _this_process_log() -> str | None:
+    """The file this process's rr_actors WARNINGs go to (the run's log), if any."""
+    for handler in logging.getLogger("rr_actors").handlers:
+        if isinstance(handler, logging.FileHandler) and handler.level <= logging.WARNING:
+            return handler.baseFilename
+    return None
+
+
 def managers_tree(
     names: tuple[str, ...],
     *,
@@ -467,10 +504,24 @@ def managers_tree(
     network: rr.ZenohNetwork | None,
     name: str | None,
 ) -> rr.Supervisor:
-    """A host's supervisor of the managers `names` (not started): one for one, permanent."""
+    """A host's supervisor of the managers `names` (not started): one for one, permanent.
+
+    Where this process's rr_actors WARNINGs go to a file (the run's log: `rr-actors
+    demo`'s, the robot host's), its manager processes' go too, not to the terminal:
+    a loss that a fault causes on purpose (F6: `registrar cm: erm is gone and nobody will
+    restart it`) is the story's to tell.
+    """
     setups = managers.setups()
+    log = _this_process_log()
     specs = [
-        rr.ManagerSpec(manager, setup=setups[manager], isolation=isolation, restart="permanent")
+        rr.ManagerSpec(
+            manager,
+            setup=setups[manager]
+            if log is None or isolation != "process"
+            else functools.partial(_logged_to, log, setups[manager]),
+            isolation=isolation,
+            restart="permanent",
+        )
         for manager in names
     ]
     return rr.Supervisor(
@@ -612,10 +663,9 @@ def main(fd: int) -> None:
 
     _, settings = conn.recv()
     assert isinstance(settings, RobotSettings)
-    handler = logging.FileHandler(settings.log, mode="w", encoding="utf-8", delay=True)
-    handler.setLevel(logging.WARNING)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s"))
-    logging.getLogger("rr_actors").addHandler(handler)  # (the story says what matters)
+    Path(settings.log).unlink(missing_ok=True)  # (this run's lines only)
+    logging.getLogger("rr_actors").addHandler(log_file(Path(settings.log)))  # (the story
+    # says what matters; its manager processes' lines go there too: `managers_tree`)
     try:
         net = host_network(
             Path(settings.certs),

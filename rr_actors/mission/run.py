@@ -57,7 +57,7 @@ from rr_actors.mission.config import (
     MissionInterruptedError,
     unsupported_platform,
 )
-from rr_actors.mission.hosts import CERTS, MEMBERS, SYSTEM, RobotObserver
+from rr_actors.mission.hosts import CERTS, MEMBERS, SYSTEM, RobotObserver, log_file
 from rr_actors.mission.netns import TwoHosts
 from rr_actors.mission.output import MissionOutput, Progress, make_output
 from rr_actors.mission.report import MissionReport
@@ -449,16 +449,16 @@ def _logging_to(path: Path) -> Iterator[None]:
     The mission kills managers and programs on purpose, and the story tells each: the
     supervisor's WARNING for every one of them (`child erm exited: killed by SIGKILL`) would
     only interleave with it. This stands in for Python's last-resort handler (which prints
-    them when nothing is configured); a program that configured logging itself (a handler
-    on the root or the `rr_actors` logger) keeps its own configuration.
+    them when nothing is configured), in the manager processes too (`hosts.managers_tree`:
+    they append to the same file); a program that configured logging itself (a handler on
+    the root or the `rr_actors` logger) keeps its own configuration.
     """
     logger = logging.getLogger("rr_actors")
     if logging.getLogger().handlers or logger.handlers:
         yield
         return
-    handler = logging.FileHandler(path, mode="w", encoding="utf-8", delay=True)
-    handler.setLevel(logging.WARNING)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s"))
+    path.unlink(missing_ok=True)  # (this run's lines only)
+    handler = log_file(path)
     logger.addHandler(handler)
     try:
         yield

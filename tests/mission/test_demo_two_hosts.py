@@ -99,6 +99,11 @@ def test_the_two_host_demo_cuts_the_link_recovers_every_fault_and_leaves_nothing
     assert "robot: the station is gone" in story
     assert "F6 recovered" in story
     assert "F6 both" in story  # the timeline names the hosts
+    # F6's loss is the story's to tell: cm's WARNING (a station manager process) goes to
+    # the run's log with the mission's own, not to the terminal
+    assert "" == done.stderr
+    log = (tmp_path / "out" / "rr-actors.log").read_text()
+    assert "registrar cm: erm is gone and nobody will restart it" in log
     assert before == set(ours())  # its namespaces (and the veth in them) are gone
     for record in (tmp_path / "out" / "bus" / "pids").glob("*.json"):
         pid = json.loads(record.read_text())["pid"]
