@@ -38,6 +38,7 @@ Nothing here blocks on a peer: what it sends is queued or dropped by the carrier
 
 from __future__ import annotations
 
+import abc
 import contextlib
 import itertools
 import logging
@@ -223,12 +224,13 @@ def send(peer: Remote, message: Any) -> None:
     raise peer.gone()
 
 
-class Remote:
+class Remote(abc.ABC):
     """A registrar of another process as a `Peer`: `tell` and `run` are here; a carrier
     gives each name its `route()` and the error of a name that cannot be reached."""
 
     name: str
 
+    @abc.abstractmethod
     def route(self) -> Route:
         """The way to the registrar now (a carrier's).
 
@@ -236,11 +238,10 @@ class Remote:
             RegistrarUnavailableError: its process is gone or cannot be reached.
             RegistrarStoppedError: it was stopped, or this process left the system.
         """
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def gone(self) -> RrError:
         """The error of a message whose frame could not leave (the route went)."""
-        raise NotImplementedError
 
     def tell(self, message: Any) -> None:
         """Send `message`; its reply (if any) is answered later. Never blocks on the peer.
