@@ -9,7 +9,10 @@ on the same machine, so the ratios are comparable:
   (target: <= 3x the raw round trip), next to the same call with both registrars in this
   process;
 * `send_status` over three hops across processes: provider process -> agent process ->
-  consumer in this process, and the acknowledgements back (target: <= 1 ms).
+  consumer in this process, and the acknowledgements back (target: <= 1 ms);
+* the CPU time per round trip of the floor and of the cross-process dedup hit, every
+  thread of both processes (`/proc/<pid>/task/*/schedstat`, Linux): on a loaded machine
+  the wall-clock medians swing with the load, the CPU a call costs much less.
 """
 
 from __future__ import annotations
@@ -93,15 +96,40 @@ def registrar_process(
 # -- measurements -------------------------------------------------------------------------------
 
 
-def timed(fn: Callable[[], Any], rounds: int, warmup: int = 200) -> list[float]:
-    """Seconds per call of `fn`, `rounds` times after `warmup` untimed calls."""
+def cpu_seconds(pids: list[int]) -> float | None:
+    """Seconds on a CPU so far of every thread of processes `pids` (`None` off Linux)."""
+    total = 0
+    try:
+        for pid in pids:
+            for task in os.listdir(f"/proc/{pid}/task"):
+                path = f"/proc/{pid}/task/{task}/schedstat"
+                with contextlib.suppress(FileNotFoundError), open(path) as stat:  # (one ended)
+                    total += int(stat.read().split()[0])
+    except OSError:
+        return None
+    return total / 1e9
+
+
+CPU: dict[str, float] = {}
+"""CPU seconds per timed round of a row (`timed(..., cpu=(row, pids))`), both processes."""
+
+
+def timed(
+    fn: Callable[[], Any], rounds: int, warmup: int = 200, cpu: tuple[str, list[int]] | None = None
+) -> list[float]:
+    """Seconds per call of `fn`, `rounds` times after `warmup` untimed calls; with `cpu`
+    (a row's name and the pids), the CPU per timed call of those processes into `CPU`."""
     for _ in range(warmup):
         fn()
     samples = []
+    before = None if cpu is None else cpu_seconds(cpu[1])
     for _ in range(rounds):
         start = time.perf_counter()
         fn()
         samples.append(time.perf_counter() - start)
+    after = None if cpu is None else cpu_seconds(cpu[1])
+    if cpu is not None and before is not None and after is not None:
+        CPU[cpu[0]] = (after - before) / rounds
     return samples
 
 
@@ -124,7 +152,8 @@ def raw_pipe(ctx: Any, rounds: int, *, objects: bool) -> list[float]:
                 parent.send_bytes(payload)
                 parent.recv_bytes()
 
-        return timed(once, rounds)
+        row = "CPU per raw Pipe round trip, send_bytes (floor)"
+        return timed(once, rounds, cpu=None if objects else (row, [os.getpid(), process.pid]))
     finally:
         parent.close()
         process.join(10)
@@ -136,13 +165,17 @@ def setup_echo(registrar: rr.ResourceRegistrar) -> None:
     )
 
 
-def dedup_hits(consumer: rr.ResourceRegistrar, provider: str, rounds: int) -> list[float]:
+def dedup_hits(
+    consumer: rr.ResourceRegistrar, provider: str, rounds: int, pid: int | None = None
+) -> list[float]:
+    """Seconds per dedup-hit call; with `pid` (the provider's process), its CPU too."""
     ids: list[str] = []
 
     def once() -> None:
         ids.append(consumer.call(provider, "echo", {"cam": 1}).id)
 
-    samples = timed(once, rounds)
+    row = "CPU per dedup hit across processes"
+    samples = timed(once, rounds, cpu=None if pid is None else (row, [os.getpid(), pid]))
     for query_id in ids:
         consumer.unload(query_id)
     return samples
@@ -253,8 +286,8 @@ def main() -> None:
         agent = f"agent-{suffix}"
         try:
             in_process = dedup_hits(consumer, local.name, rounds) if every else []
-            with registrar_process(ctx, system.address, provider, setup_echo):
-                cross = dedup_hits(consumer, provider, rounds) if every else []
+            with registrar_process(ctx, system.address, provider, setup_echo) as process:
+                cross = dedup_hits(consumer, provider, rounds, process.pid) if every else []
                 with registrar_process(ctx, system.address, agent, agent_setup(provider)):
                     heard: list[Any] = []
                     query = consumer.call(
@@ -292,6 +325,21 @@ def main() -> None:
             f"cross-process dedup hit vs raw object round trip: "
             f"{statistics.median(cross) / statistics.median(raw_objects):.2f}x"
         )
+    print_cpu()
+
+
+def print_cpu() -> None:
+    """The CPU rows (`CPU`), each as a multiple of the floor's."""
+    floor = CPU.get("CPU per raw Pipe round trip, send_bytes (floor)")
+    if not floor:
+        return
+    print()
+    print("CPU time per round trip, every thread of both processes (us; ratio to the floor's)")
+    print()
+    print("| measurement | CPU us | ratio |")
+    print("|---|---:|---:|")
+    for name, seconds in CPU.items():
+        print(f"| {name} | {seconds * 1e6:9.1f} | {seconds / floor:6.2f}x |")
 
 
 if __name__ == "__main__":
