@@ -155,10 +155,22 @@ class Loads:
         self._held = [(q, p) for q, p in self._held if p != provider]
 
     def unload_now(self, provider: str) -> None:
-        """Unload what `provider` served, each in one call (no retry); held no more."""
+        """Unload what `provider` served, each in one call (no retry); held no more.
+
+        A provider that died before it answered (`RegistrarUnavailableError`: F6's cut
+        may find cm killed by its heartbeat meanwhile) released the id all the same: it
+        does so when it reconciles with the mission after its restart (rule 20).
+        """
         for query_id in [q for q, p in self._held if p == provider]:
-            with contextlib.suppress(rr.UnknownQueryError):
+            try:
                 self._app.unload(query_id)
+            except rr.UnknownQueryError:
+                pass  # it forgot it already
+            except rr.RegistrarUnavailableError:
+                self._say(
+                    f"{provider} died before it answered the unload of {query_id[:8]}; it "
+                    "releases it when it reconciles after its restart"
+                )
         self.forget(provider)
 
     def unload_all(self) -> None:

@@ -379,13 +379,20 @@ class Presence:
         if put:
             if zid in servers:
                 return []
+            replaced: list[Callable[[], None]] = []
+            if servers:  # a restart seen before its predecessor's token went (one name,
+                # one server): that one died; what waits on it fails now, not at its
+                # timeout (its token's end, when it comes, finds it gone already)
+                self._last[name] = next(iter(servers))
+                servers.clear()
+                replaced.append(functools.partial(self._events.server_gone, name))
             servers[zid] = server
             self._gone.pop(name, None)
             MEMBERSHIP.back(name)  # served (again): no longer gone for good
             self._awaiting.pop(name, None)
             if self._last.get(name) == zid and zid in self._vanished:
                 return [functools.partial(self._events.reachable, name)]  # a healed link
-            return []
+            return replaced
         if servers.pop(zid, None) is None or servers:
             return []  # unknown, or a rival that yielded: another one serves
         stopped = NameAt(name, zid) in self._stopped
