@@ -11,7 +11,11 @@
 Each event is logged at INFO once, where it happened (a manager process logs its own);
 the tree's publisher only logs the supervisors' events. Manager processes forward their
 events only while the tree has a listener, so a tree nobody watches builds no event in
-its manager processes (`watch_listeners` switches them on and off).
+its manager processes (`watch_listeners` switches them on and off). The switch reaches
+each process asynchronously: what a process made before it heard "off" may still arrive
+after a new listener came, so a forwarded event older than the last switch on (by its
+`at`, the same machine's clock) is dropped; a new listener hears what happens from the
+moment it subscribed.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ class EventRelay:
         self.publisher: Publisher[events.Event] = events.publisher(EVENT_LOG)
         self._lock = threading.Lock()
         self._listened = False
+        self._since = 0.0  # `time.time()` of the last switch on: older events are dropped
         self._processes: list[ManagerProcess] = []
         self.publisher.watch_listeners(self._switch)
 
@@ -77,12 +82,17 @@ class EventRelay:
         return answered
 
     def deliver(self, batch: list[Any]) -> None:
-        """Hand events a manager process forwarded to the tree's subscribers (watcher thread)."""
+        """Hand events a manager process forwarded to the tree's subscribers (watcher
+        thread); one made before the last switch on was made while nobody listened."""
+        since = self._since
         for event in batch:
-            self.publisher.deliver(event)
+            if getattr(event, "at", since) >= since:
+                self.publisher.deliver(event)
 
     def _switch(self, listened: bool) -> None:
         with self._lock:
+            if listened and not self._listened:
+                self._since = time.time()
             self._listened = listened
             self._processes = [p for p in self._processes if not p.exited.is_set()]
             for process in self._processes:
