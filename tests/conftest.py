@@ -59,6 +59,7 @@ import collections
 import contextlib
 import multiprocessing
 import os
+import signal
 import sys
 import threading
 import time
@@ -98,6 +99,11 @@ _HELPER_PIDS: set[int] = set()
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    # A suite started in the background (`command &` in a script) inherits SIGINT ignored,
+    # and Python then keeps it ignored: the Ctrl-C tests need Python's own handler here,
+    # and the processes they start need SIGINT not ignored (an ignored signal is inherited).
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     config.addinivalue_line(
         "markers",
         "thread_only(reason): run this registrar test in the thread placement only",
