@@ -13,6 +13,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import psutil
@@ -36,7 +37,18 @@ def _running(pid: int) -> bool:
         return False
 
 
-def ours() -> list[str]:
+def ours(within: float = 10.0) -> list[str]:
+    """`_ended()`, waited on for at most `within` seconds until it is empty: a demo whose
+    pid ended may still be deleting its namespaces (another process of it does that)."""
+    deadline = time.monotonic() + within
+    left = _ended()
+    while left and time.monotonic() < deadline:
+        time.sleep(0.1)  # (polling `ip netns list`: no event says a namespace went)
+        left = _ended()
+    return left
+
+
+def _ended() -> list[str]:
     """The demo namespaces on this machine (`rrdemo-<pid>-...`) whose demo has ended.
 
     A demo deletes its namespaces before it exits; those of a demo still running (another
