@@ -64,7 +64,7 @@ from rr_actors._transport.base import Address, Endpoint
 from rr_actors._transport.messenger import Link, Lost, Remote, tell_lost, tell_reachable
 from rr_actors._transport.zenoh.events import EventExport, EventFeed
 from rr_actors._transport.zenoh.inbox import Inbox, Local
-from rr_actors._transport.zenoh.outbox import Outbox, Outboxes
+from rr_actors._transport.zenoh.outbox import DRAIN_TIMEOUT, Outbox, Outboxes
 from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence
 from rr_actors._transport.zenoh.wire import (
     ANSWER,
@@ -318,7 +318,8 @@ class ZenohMember:
         return subscription
 
     def close(self) -> None:
-        """Leave the system: stop serving, fail what waits, close the session."""
+        """Leave the system: stop serving, fail what waits, put what was sent (for
+        `DRAIN_TIMEOUT` seconds at most), close the session."""
         with self._lock:
             if self.closed:
                 return
@@ -329,7 +330,7 @@ class ZenohMember:
             self._unserve(local, stopped=local.endpoint.stopped_cleanly())
         self._inbox.replies.fail(None, RegistrarStoppedError("this process left the system"))
         self._events.close()
-        self._outboxes.close()
+        self._outboxes.close(drain=DRAIN_TIMEOUT)  # (what was sent before goes out first)
         self._inbox.close()
         self._presence.close()
         with contextlib.suppress(Exception):

@@ -15,6 +15,11 @@ messages from one process to one registrar keep their order (one writer, one Zen
 one decode thread there). Puts are reliable and block on a full queue
 (`CongestionControl.BLOCK`) on the writer thread only; Zenoh closes a link that stays
 blocked longer than half the lease.
+
+A process that leaves the system (`Outboxes.close`) first lets every writer put what it
+was given, for `DRAIN_TIMEOUT` seconds at most, as a socket's close sends what was
+written before it: the last messages of a registrar that stops (the `Abandon` of a call
+it withdraws) go out before the session closes. What is still queued then is lost.
 """
 
 from __future__ import annotations
@@ -32,13 +37,17 @@ from rr_actors._core.serial import SerialExecutor, Task
 from rr_actors._transport.messenger import Lost, run_lost
 from rr_actors._transport.zenoh.wire import Keys
 
-__all__ = ["HEAL_TIMEOUT", "Outbox", "Outboxes"]
+__all__ = ["DRAIN_TIMEOUT", "HEAL_TIMEOUT", "Outbox", "Outboxes"]
 
 logger = logging.getLogger("rr_actors")
 
 HEAL_TIMEOUT = 2.0
 """Seconds the first message to a process (just seen, or back from a healed link) waits
 for its answer to a ping (then it is sent anyway)."""
+
+DRAIN_TIMEOUT = 1.0
+"""Seconds a process that leaves the system gives its writers, all together, to put what
+they were given before it closes its session."""
 
 
 class Outbox:
@@ -77,9 +86,10 @@ class Outbox:
             if on_lost is not None:
                 run_lost([on_lost])
 
-    def close(self) -> None:
-        """Stop sending: what is still queued is lost (its `on_lost` runs)."""
-        self._queue.close(timeout=0)  # (each dropped frame's `on_lost` runs: `_lost`)
+    def close(self, timeout: float = 0.0) -> None:
+        """Stop sending: what is queued gets `timeout` seconds to be put (0: none), then
+        what is still queued is lost (its `on_lost` runs)."""
+        self._queue.close(timeout=timeout)  # (each dropped frame's `on_lost` runs: `_lost`)
         with contextlib.suppress(Exception):
             self._publisher.undeclare()  # type: ignore[no-untyped-call]
 
@@ -129,13 +139,15 @@ class Outboxes:
         with self._lock:
             return self._outboxes.pop(key, None)
 
-    def close(self) -> None:
-        """Close every outbox: what is still queued is lost."""
+    def close(self, drain: float = 0.0) -> None:
+        """Close every outbox: what is queued gets `drain` seconds, all outboxes together,
+        to be put (their writers put in parallel); what is still queued then is lost."""
         with self._lock:
             self._closed = True
             outboxes = list(self._outboxes.values())
+        deadline = time.monotonic() + drain
         for outbox in outboxes:
-            outbox.close()
+            outbox.close(max(0.0, deadline - time.monotonic()))
 
     def _until_answered(self, zid: str) -> None:
         """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread).
