@@ -59,10 +59,12 @@ from rr_actors.errors import (
 )
 
 if TYPE_CHECKING:
-    from rr_actors._registrar.consumer import Consumer
+    from rr_actors._registrar.flights import Flights
+    from rr_actors._registrar.holdings import Holdings
     from rr_actors._registrar.presence import Presence
     from rr_actors._registrar.provider import Provider
     from rr_actors._registrar.reconciling import Reconciling
+    from rr_actors._registrar.releases import Releases
     from rr_actors._registrar.teardown import Teardown
     from rr_actors._registrar.unloading import Unloading
 
@@ -135,7 +137,9 @@ class Lifecycle:
         provider: Provider,
         teardown: Teardown,
         unloading: Unloading,
-        consumer: Consumer,
+        flights: Flights,
+        holdings: Holdings,
+        releases: Releases,
         reconciling: Reconciling,
         presence: Presence,
         actor: Actor,
@@ -148,7 +152,9 @@ class Lifecycle:
         self.provider = provider
         self.teardown = teardown
         self.unloading = unloading
-        self.consumer = consumer
+        self.flights = flights
+        self.holdings = holdings
+        self.releases = releases
         self.reconciling = reconciling
         self.presence = presence
         self.actor = actor  # (the actor machinery only: its mailbox, `end_now`)
@@ -229,7 +235,7 @@ class Lifecycle:
                     )
                 )
             catalog.begin_unload(resource.id)
-            self.consumer.release_dependencies(
+            self.releases.release_dependencies(
                 resource.id, functools.partial(self.teardown.remove_resource, resource)
             )
         for record in list(catalog.clients.values()):
@@ -387,9 +393,9 @@ class Lifecycle:
         stopped = RegistrarStoppedError(
             f"registrar {self.registrar.name!r} stopped during the call"
         )
-        consumer = self.consumer
-        consumer.withdraw_pending(stopped)
-        consumer.give_back_unsettled()
+        releases = self.releases
+        releases.withdraw_pending(stopped)
+        releases.give_back_unsettled()
         tops = [
             r
             for r in reversed(self.registrar.catalog.clients.values())
@@ -398,7 +404,7 @@ class Lifecycle:
 
         def next_one() -> None:
             if tops:
-                consumer.release_client(tops.pop(0), next_one)
+                releases.release_client(tops.pop(0), next_one)
                 return
             self.wait_for_unloads(unloads_until, finish)
 
@@ -469,7 +475,7 @@ class Lifecycle:
     def stop_children(self) -> None:
         for server in self.registrar.servers.values():
             server.ref.stop(block=True, timeout=5.0)
-        self.consumer.stop_clients()
+        self.holdings.stop_clients()
 
     # -- death --------------------------------------------------------------------------
 
@@ -498,13 +504,13 @@ class Lifecycle:
     def fail_waiting(self, error: RrError) -> None:
         """Answer everyone still waiting on this actor with `error` (it stops or died)."""
         self.provider.fail_waiting(error)
-        self.consumer.fail_waiting(error)
+        self.flights.fail_waiting(error)
         for request in list(self.open_requests):
             request.set_error(error)
         inbox = self.actor.actor_inbox
         while not inbox.empty():
             self.refuse(inbox.get(), error)
-        outcomes = self.consumer.due.outcomes
+        outcomes = self.flights.due.outcomes
         while not outcomes.empty():
             self.refuse_message(outcomes.get(), error)
 
