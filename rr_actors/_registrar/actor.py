@@ -15,8 +15,10 @@
               │              OpenClient                                   (holdings.py)      │
               │   Flights    (the calls in flight: called by the roles above) (flights.py)   │
               │   StatusRelay StatusBatch StatusNotice SendStatus     (status.py, fanout.py) │
-              │   Lifecycle  Flush Crash Save Stop Ready SettleInDoubt Reachable             │
-              │              Snapshot; death                              (lifecycle.py)     │
+              │   Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot; death           │
+              │                                                           (lifecycle.py)     │
+              │   Restoring  SettleInDoubt (and the sweep of a restored catalog)             │
+              │                                                           (restoring.py)     │
               │   Presence   PeerLost ConsumerDown PeerReachable ReconcileRetry              │
               │                                                           (presence.py)      │
               │ Shared: config, catalog, saver, servers, phase, workers  (state.py)          │
@@ -91,6 +93,7 @@ from rr_actors._registrar.probes import POINTS
 from rr_actors._registrar.provider import Provider
 from rr_actors._registrar.reconciling import Reconciling
 from rr_actors._registrar.releases import Releases
+from rr_actors._registrar.restoring import Restoring
 from rr_actors._registrar.servers import Servers
 from rr_actors._registrar.state import NO_REPLY, OpenReply, Shared
 from rr_actors._registrar.status import StatusRelay
@@ -196,7 +199,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     Save: ("save", asked(lambda a: a.lifecycle.on_save)),
     Stop: ("stop", asked(lambda a: a.lifecycle.on_stop)),
     Ready: ("ready", asked(lambda a: a.lifecycle.on_ready)),  # setup is done
-    SettleInDoubt: ("settle_in_doubt", asked(lambda a: a.lifecycle.on_settle_in_doubt)),
+    SettleInDoubt: ("settle_in_doubt", asked(lambda a: a.restoring.on_settle_in_doubt)),
     Reachable: ("reachable", asked(lambda a: a.lifecycle.on_reachable)),  # a carrier
     Snapshot: ("snapshot", asked(lambda a: a.lifecycle.on_snapshot)),
     Ping: ("ping", asked(lambda _a: _answer_now)),  # a manager process's heartbeat
@@ -218,7 +221,7 @@ class RegistrarActor(Actor):
     Attributes:
         shared: the state every role uses.
         provider, teardown, reconciling, unloading, servers, releases, answers,
-            holdings, flights, status, lifecycle, presence: the roles.
+            holdings, flights, status, restoring, lifecycle, presence: the roles.
     """
 
     shared: Shared
@@ -232,6 +235,7 @@ class RegistrarActor(Actor):
     holdings: Holdings
     flights: Flights
     status: StatusRelay
+    restoring: Restoring
     lifecycle: Lifecycle
     presence: Presence
 
@@ -253,7 +257,7 @@ class RegistrarActor(Actor):
         super().__init__()
         self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
         # Each role is built after the roles it calls, and calls only those (one way):
-        # lifecycle -> servers | presence -> status | unloading -> provider
+        # lifecycle -> servers | presence | restoring -> status | unloading -> provider
         # -> teardown | reconciling -> releases -> answers -> holdings -> flights.
         self.flights = Flights(self.shared, due, self.dispatch)
         self.holdings = Holdings(self.shared, self.flights, due, clients)
@@ -268,11 +272,14 @@ class RegistrarActor(Actor):
         self.status = StatusRelay(self.shared, self.flights, self.holdings)
         self.servers = Servers(self.shared, self.teardown, self.status)
         self.presence = Presence(self.shared, self.unloading, self.reconciling)
+        self.restoring = Restoring(
+            self.shared, self.unloading, self.teardown, self.releases, hold_in_doubt=hold_in_doubt
+        )
         self.lifecycle = Lifecycle(
             self.shared,
             self.provider,
             self.teardown,
-            self.unloading,
+            self.restoring,
             self.flights,
             self.holdings,
             self.releases,
@@ -281,7 +288,6 @@ class RegistrarActor(Actor):
             self,
             died,
             ended,
-            hold_in_doubt=hold_in_doubt,
         )
         self.unknown = LogThrottle(logger)  # messages of no known type (a buggy peer's)
         self.handlers: dict[type, tuple[str, Handler]] = {
