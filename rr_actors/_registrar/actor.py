@@ -8,13 +8,17 @@
               │   Unloading  Unload Abandon Reconcile                    (unloading.py)      │
               │   Servers    Fetch RegisterServer UnregisterServer UpdateResponse            │
               │              ListServerQueries                            (servers.py)       │
-              │   Consumer   Pending ClientLoaded CallFailed Revoke ResponseUpdated          │
-              │              Release SetStatusCallback ListClientQueries OpenClient          │
-              │                                                           (consumer.py)      │
               │   Reconciling ReconcileAsk                               (reconciling.py)    │
+              │   Releases   Release                                      (releases.py)      │
+              │   Answers    Pending ClientLoaded CallFailed              (answers.py)       │
+              │   Holdings   Revoke ResponseUpdated SetStatusCallback ListClientQueries      │
+              │              OpenClient                                   (holdings.py)      │
+              │   Flights    (the calls in flight: called by the roles above) (flights.py)   │
               │   StatusRelay StatusBatch StatusNotice SendStatus     (status.py, fanout.py) │
-              │   Lifecycle  Flush Crash Save Stop Ready SettleInDoubt Reachable             │
-              │              Snapshot; death                              (lifecycle.py)     │
+              │   Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot; death           │
+              │                                                           (lifecycle.py)     │
+              │   Restoring  SettleInDoubt (and the sweep of a restored catalog)             │
+              │                                                           (restoring.py)     │
               │   Presence   PeerLost ConsumerDown PeerReachable ReconcileRetry              │
               │                                                           (presence.py)      │
               │ Shared: config, catalog, saver, servers, phase, workers  (state.py)          │
@@ -39,9 +43,11 @@ from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Answer, Tokens
 from rr_actors._core.throttle import LogThrottle
+from rr_actors._registrar.answers import Answers
 from rr_actors._registrar.calls import DueAnswers
-from rr_actors._registrar.consumer import Consumer
 from rr_actors._registrar.endpoints import Clients
+from rr_actors._registrar.flights import Flights
+from rr_actors._registrar.holdings import Holdings
 from rr_actors._registrar.lifecycle import Lifecycle
 from rr_actors._registrar.messages import (
     Abandon,
@@ -86,6 +92,8 @@ from rr_actors._registrar.presence import Presence
 from rr_actors._registrar.probes import POINTS
 from rr_actors._registrar.provider import Provider
 from rr_actors._registrar.reconciling import Reconciling
+from rr_actors._registrar.releases import Releases
+from rr_actors._registrar.restoring import Restoring
 from rr_actors._registrar.servers import Servers
 from rr_actors._registrar.state import NO_REPLY, OpenReply, Shared
 from rr_actors._registrar.status import StatusRelay
@@ -166,12 +174,12 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     ReconcileRetry: ("reconcile_retry", lambda a: a.presence.on_reconcile_retry),  # its timer
     StatusBatch: ("status_batch", lambda a: a.status.on_status_batch),  # at a relay
     StatusNotice: ("status_notice", lambda a: a.status.on_status_notice),  # at a consumer
-    Revoke: ("revoke", lambda a: a.consumer.on_revoke),  # at a consumer
-    ResponseUpdated: ("response_updated", lambda a: a.consumer.on_response_updated),
+    Revoke: ("revoke", lambda a: a.holdings.on_revoke),  # at a consumer
+    ResponseUpdated: ("response_updated", lambda a: a.holdings.on_response_updated),
     # -- from this registrar's callers' threads and its own helpers --
-    Pending: ("pending", lambda a: a.consumer.on_pending),  # a durable call's record to commit
-    ClientLoaded: ("client_loaded", lambda a: a.consumer.on_client_loaded),  # an answer to record
-    CallFailed: ("call_failed", lambda a: a.consumer.on_call_failed),  # failed or withdrawn
+    Pending: ("pending", lambda a: a.answers.on_pending),  # a durable call's record to commit
+    ClientLoaded: ("client_loaded", lambda a: a.answers.on_client_loaded),  # an answer to record
+    CallFailed: ("call_failed", lambda a: a.answers.on_call_failed),  # failed or withdrawn
     TakeOutcomes: ("take_outcomes", lambda _a: _taken),  # (taken before each message)
     Answer: ("answer", lambda a: _answering(a.shared.tokens)),  # to one of its own questions
     Flush: ("flush", lambda a: a.lifecycle.on_flush),  # the save-interval timer fired
@@ -179,23 +187,23 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     # -- from the handle (`handle.py`), each answered through its reply --
     RegisterServer: ("register_server", asked(lambda a: a.servers.on_register_server)),
     UnregisterServer: ("unregister_server", asked(lambda a: a.servers.on_unregister_server)),
-    Release: ("release", asked(lambda a: a.consumer.on_release)),
+    Release: ("release", asked(lambda a: a.releases.on_release)),
     SendStatus: ("send_status", asked(lambda a: a.status.on_send_status)),
     ListServerQueries: ("server_queries", asked(lambda a: a.servers.on_list_server_queries)),
-    ListClientQueries: ("client_queries", asked(lambda a: a.consumer.on_list_client_queries)),
+    ListClientQueries: ("client_queries", asked(lambda a: a.holdings.on_list_client_queries)),
     SetStatusCallback: (
         "set_status_callback",
-        asked(lambda a: a.consumer.on_set_status_callback),
+        asked(lambda a: a.holdings.on_set_status_callback),
     ),
     UpdateResponse: ("update_response", asked(lambda a: a.servers.on_update_response)),
     Save: ("save", asked(lambda a: a.lifecycle.on_save)),
     Stop: ("stop", asked(lambda a: a.lifecycle.on_stop)),
     Ready: ("ready", asked(lambda a: a.lifecycle.on_ready)),  # setup is done
-    SettleInDoubt: ("settle_in_doubt", asked(lambda a: a.lifecycle.on_settle_in_doubt)),
+    SettleInDoubt: ("settle_in_doubt", asked(lambda a: a.restoring.on_settle_in_doubt)),
     Reachable: ("reachable", asked(lambda a: a.lifecycle.on_reachable)),  # a carrier
     Snapshot: ("snapshot", asked(lambda a: a.lifecycle.on_snapshot)),
     Ping: ("ping", asked(lambda _a: _answer_now)),  # a manager process's heartbeat
-    OpenClient: ("open_client", asked(lambda a: a.consumer.on_open_client)),
+    OpenClient: ("open_client", asked(lambda a: a.holdings.on_open_client)),
     RunOnActor: ("run_on_actor", asked(_run_on_actor)),  # test only
 }
 """The one dispatch table: which role handles each message, under which step name."""
@@ -212,8 +220,8 @@ class RegistrarActor(Actor):
 
     Attributes:
         shared: the state every role uses.
-        provider, teardown, reconciling, unloading, servers, consumer, status, lifecycle,
-            presence: the roles.
+        provider, teardown, reconciling, unloading, servers, releases, answers,
+            holdings, flights, status, restoring, lifecycle, presence: the roles.
     """
 
     shared: Shared
@@ -222,8 +230,12 @@ class RegistrarActor(Actor):
     reconciling: Reconciling
     unloading: Unloading
     servers: Servers
-    consumer: Consumer
+    releases: Releases
+    answers: Answers
+    holdings: Holdings
+    flights: Flights
     status: StatusRelay
+    restoring: Restoring
     lifecycle: Lifecycle
     presence: Presence
 
@@ -245,28 +257,37 @@ class RegistrarActor(Actor):
         super().__init__()
         self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
         # Each role is built after the roles it calls, and calls only those (one way):
-        # lifecycle -> servers | presence -> status | unloading -> provider
-        # -> teardown | reconciling -> consumer.
-        self.consumer = Consumer(self.shared, due, self.dispatch, clients)
-        self.reconciling = Reconciling(self.shared, self.consumer, due, self.dispatch)
-        self.teardown = Teardown(self.shared, self.consumer)
-        self.provider = Provider(self.shared, self.consumer, self.teardown)
+        # lifecycle -> servers | presence | restoring -> status | unloading -> provider
+        # -> teardown | reconciling -> releases -> answers -> holdings -> flights.
+        self.flights = Flights(self.shared, due, self.dispatch)
+        self.holdings = Holdings(self.shared, self.flights, due, clients)
+        self.answers = Answers(self.shared, self.flights, self.holdings)
+        self.releases = Releases(self.shared, self.flights, self.holdings, self.answers)
+        self.reconciling = Reconciling(
+            self.shared, self.flights, self.holdings, self.releases, due, self.dispatch
+        )
+        self.teardown = Teardown(self.shared, self.releases)
+        self.provider = Provider(self.shared, self.releases, self.teardown)
         self.unloading = Unloading(self.shared, self.provider, self.teardown)
-        self.status = StatusRelay(self.shared, self.consumer)
+        self.status = StatusRelay(self.shared, self.flights, self.holdings)
         self.servers = Servers(self.shared, self.teardown, self.status)
-        self.presence = Presence(self.shared, self.unloading, self.consumer, self.reconciling)
+        self.presence = Presence(self.shared, self.unloading, self.reconciling)
+        self.restoring = Restoring(
+            self.shared, self.unloading, self.teardown, self.releases, hold_in_doubt=hold_in_doubt
+        )
         self.lifecycle = Lifecycle(
             self.shared,
             self.provider,
             self.teardown,
-            self.unloading,
-            self.consumer,
+            self.restoring,
+            self.flights,
+            self.holdings,
+            self.releases,
             self.reconciling,
             self.presence,
             self,
             died,
             ended,
-            hold_in_doubt=hold_in_doubt,
         )
         self.unknown = LogThrottle(logger)  # messages of no known type (a buggy peer's)
         self.handlers: dict[type, tuple[str, Handler]] = {
@@ -284,8 +305,8 @@ class RegistrarActor(Actor):
         self.lifecycle.on_start()
 
     def on_receive(self, message: Any) -> None:
-        if not self.consumer.due.outcomes.empty():  # call outcomes handed over before
-            self.consumer.take_outcomes()  # this message: recorded first (`calls.py`)
+        if not self.flights.due.outcomes.empty():  # call outcomes handed over before
+            self.flights.take_outcomes()  # this message: recorded first (`calls.py`)
         self.dispatch(message)
 
     def dispatch(self, message: Any) -> None:
@@ -336,7 +357,7 @@ class RegistrarActor(Actor):
 
     def on_ended(self) -> None:
         error = DIRECTORY.gone_error(self.name)  # outcomes left, or handed over later:
-        self.consumer.due.outcomes.close(lambda m: self.lifecycle.refuse_message(m, error))
+        self.flights.due.outcomes.close(lambda m: self.lifecycle.refuse_message(m, error))
         self.lifecycle.ended.set()
 
     def on_late(self, envelope: Any) -> None:

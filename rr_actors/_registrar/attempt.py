@@ -1,6 +1,6 @@
 """One call attempt as a state machine: what a reply racing a timeout, a stop or a death does.
 
-The call protocol (`calls.py`) and the consumer role (`consumer.py`) act on the state a
+The call protocol (`calls.py`) and the answers role (`answers.py`) act on the state a
 transition returns; this module holds only the states and the transitions (under one
 lock), so that messages can carry an attempt without importing the call protocol.
 """

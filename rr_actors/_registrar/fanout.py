@@ -93,7 +93,7 @@ class StatusTargets:
     """What the desk reads of one registrar: the ids a status reaches without its mailbox.
 
     `entries` maps each id it holds with a status callback (loaded, not a dependency) to
-    its query and callback. Only the registrar's actor writes it (the `Consumer` role),
+    its query and callback. Only the registrar's actor writes it (the `Holdings` role),
     one assignment or `pop` at a time; the desk of its process reads single entries on
     another registrar's actor thread.
     """

@@ -1,7 +1,7 @@
 """A consumer's calls in flight: one record per query id, and what an answer does.
 
 ```
- query id ──► InFlight (Consumer.in_flight; the registrar actor's thread only)
+ query id ──► InFlight (Flights.in_flight; the registrar actor's thread only)
                ├─ attempt       a durable call whose pending record was committed:
                │                this actor answers its caller after the commit
                ├─ unsettled_at  the provider of a call that failed as it died or
@@ -13,10 +13,10 @@
               (pure: every row in tests/registrar/test_answer_decision.py)
 ```
 
-Like a `gen_statem` state function: the consumer reads what it knows (the message's
+Like a `gen_statem` state function: the answers role reads what it knows (the message's
 type says whether the call is durable; the attempt's `take()` whether its caller still
-waits), `decide` names one `Action`, and the consumer runs that action's step
-(`Consumer.record_answer`).
+waits), `decide` names one `Action`, and it runs that action's step
+(`Answers.record_answer`, `answers.py`). The records are kept by `flights.py`.
 """
 
 from __future__ import annotations

@@ -7,7 +7,20 @@
 
 Starting settles what the last run left in doubt (rule 16); while the manager's `setup`
 runs, that settling is kept out of the backup, so a crash during `setup` offers the same
-entries to the next one (`settle_held`, once `setup` returned). A clean stop releases what
+entries to the next one (`settle_held`, once `setup` returned). That settling, and the
+sweep of the restored catalog after it serves, are `restoring.py`'s:
+
+```
+ on_start ──► restoring: settle_in_doubt, unload_unheld (the sweep starts)
+          ──► presence: the peers lost meanwhile ──► reconcile (now, or on Ready)
+ reconcile ──► restoring.ask_consumers (ReconcileAsk) + reconciling.reconcile_all
+ Stop ──► releases: withdraw_pending, give_back_unsettled, release_client (newest first)
+      ──► the unloads under way (teardown.py), at most until `unloads_until`
+      ──► the backup flushed and closed ──► children stopped ──► ENDED
+ death ──► every waiter failed (provider.py, flights.py, open requests, the mailbox)
+```
+
+A clean stop releases what
 this registrar holds as a consumer, newest first (rule 12), keeps what its servers serve
 (a restart needs it), flushes and closes the backup. A death fails every waiting caller
 at once (`RegistrarUnavailableError`), writes nothing more, and tells the providers this
@@ -18,7 +31,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import functools
 import logging
 import threading
 import time
@@ -28,7 +40,7 @@ from typing import TYPE_CHECKING, Any
 import pykka
 
 from rr_actors import events
-from rr_actors._catalog import ClientRecord, Resource, ResourceState
+from rr_actors._catalog import ClientRecord, Resource
 from rr_actors._core.actor import Actor, refuse
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.membership import MEMBERSHIP
@@ -44,7 +56,6 @@ from rr_actors._registrar.messages import (
     Reachable,
     Ready,
     Save,
-    SettleInDoubt,
     Snapshot,
     Stop,
     give_back,
@@ -55,16 +66,17 @@ from rr_actors.errors import (
     RegistrarStoppedError,
     RegistrarUnavailableError,
     RrError,
-    UnknownQueryError,
 )
 
 if TYPE_CHECKING:
-    from rr_actors._registrar.consumer import Consumer
+    from rr_actors._registrar.flights import Flights
+    from rr_actors._registrar.holdings import Holdings
     from rr_actors._registrar.presence import Presence
     from rr_actors._registrar.provider import Provider
     from rr_actors._registrar.reconciling import Reconciling
+    from rr_actors._registrar.releases import Releases
+    from rr_actors._registrar.restoring import Restoring
     from rr_actors._registrar.teardown import Teardown
-    from rr_actors._registrar.unloading import Unloading
 
 __all__ = ["CatalogView", "Lifecycle"]
 
@@ -134,21 +146,23 @@ class Lifecycle:
         shared: Shared,
         provider: Provider,
         teardown: Teardown,
-        unloading: Unloading,
-        consumer: Consumer,
+        restoring: Restoring,
+        flights: Flights,
+        holdings: Holdings,
+        releases: Releases,
         reconciling: Reconciling,
         presence: Presence,
         actor: Actor,
         died: threading.Event,
         ended: threading.Event,
-        *,
-        hold_in_doubt: bool = False,
     ) -> None:
         self.registrar = shared
         self.provider = provider
         self.teardown = teardown
-        self.unloading = unloading
-        self.consumer = consumer
+        self.restoring = restoring
+        self.flights = flights
+        self.holdings = holdings
+        self.releases = releases
         self.reconciling = reconciling
         self.presence = presence
         self.actor = actor  # (the actor machinery only: its mailbox, `end_now`)
@@ -156,11 +170,6 @@ class Lifecycle:
         self.ended = ended
         self.open_requests: set[OpenReply] = set()
         self.flush_timer: Cancellable | None = None
-        self.hold_in_doubt = hold_in_doubt
-        self.in_doubt_ids: frozenset[str] = frozenset()
-        self.sweeping = False  # slices of the restored catalog are still to be swept
-        self.swept_origins: set[str] = set()  # registrars holding ids in what was swept
-        self.reconcile_owed = False  # `reconcile` came during the sweep
         self.hearer = Hearing(shared.peer)  # what this process's membership tells it
 
     # -- start ------------------------------------------------------------------------
@@ -176,8 +185,8 @@ class Lifecycle:
         # what it released or gave up while a provider was down is in no row: with a
         # backup, it reconciles with every registrar of the system (rule 20)
         self.reconciling.everyone = self.registrar.saver.store is not None
-        self.settle_in_doubt()
-        self.unload_unheld()
+        self.restoring.settle_in_doubt()
+        self.restoring.unload_unheld()
         for name, stopped in sorted(gone.items()):  # as if it had heard each mark
             if stopped:  # (`presence.py`)
                 self.presence.stopped(name)
@@ -195,120 +204,10 @@ class Lifecycle:
         ids it holds (`Reconcile`): ids released while one side was down are released,
         and ids one side lost in its restart are reported to the consumer as `FATAL`.
         While the sweep of a restored catalog is under way, the provider's side waits
-        for it (it names the consumers to ask).
+        for it (it names the consumers to ask: `restoring.py`).
         """
-        if self.sweeping:
-            self.reconcile_owed = True
-        else:
-            self.unloading.ask_to_reconcile(self.swept_origins)
+        self.restoring.ask_consumers()
         self.reconciling.reconcile_all()
-
-    def settle_in_doubt(self) -> None:
-        """Drop restored resources whose load or unload a crash cut short (rule 16).
-
-        They were reported to the manager as `in_doubt`; what they held as dependencies
-        is released, so nothing they started at other servers leaks. A top-level call that
-        was in flight is given up at its provider (its caller died with the last run), and
-        so is a dependency whose resource is gone (a sub-call that outlived its load).
-        With `hold_in_doubt` (a `setup` runs), their rows stay in the backup as they were
-        until the manager settles them (`on_settle_in_doubt`).
-        """
-        catalog = self.registrar.catalog
-        doubtful = [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]
-        self.in_doubt_ids = frozenset(r.id for r in doubtful)
-        if self.hold_in_doubt:
-            self.registrar.held_in_doubt.update(self.in_doubt_ids)
-        for resource in doubtful:
-            if self.registrar.events.active:
-                self.registrar.events.publish(
-                    events.InDoubt(
-                        self.registrar.name,
-                        resource.id,
-                        resource.server,
-                        "load" if resource.state is ResourceState.LOADING else "unload",
-                    )
-                )
-            catalog.begin_unload(resource.id)
-            self.consumer.release_dependencies(
-                resource.id, functools.partial(self.teardown.remove_resource, resource)
-            )
-        for record in list(catalog.clients.values()):
-            orphan = record.parent is not None and record.parent not in catalog.resources
-            if orphan or (record.parent is None and not record.loaded):
-                query = record.query
-                give_back(query.serving_rr, query.id, self.registrar.name)
-                catalog.remove_client(query.id)
-        self.registrar.commit()
-
-    def unload_unheld(self) -> None:
-        """Unload restored resources that no consumer holds (rule 7).
-
-        Their last consumer left (or every caller of their load gave up) and that was
-        written, but a crash came before their unload began (it is written apart): no
-        one holds an id to release them, so without this they would stay loaded, and
-        hold their dependencies at other registrars, for good. Their unload runs once
-        setup registered their server (or they are dropped if it does not).
-        """
-        for resource in self.registrar.catalog.unheld():
-            self.teardown.unload_resource(resource, None)
-        self.sweep(0)
-
-    def sweep(self, after: int) -> None:
-        """Sweep the restored resources still in the backup, one slice per turn.
-
-        Each slice (`Catalog.sweep`: `SWEEP_ROWS` resources, a few ms) unloads those no
-        consumer holds (as `unload_unheld`) and notes the registrars holding ids in it
-        (whom `reconcile` asks); the next slice is a message to itself, behind what
-        arrived meanwhile, so calls are served between slices. A restart reads these
-        rows after it serves, not before: a catalog of one slice is swept at once.
-        """
-        if self.registrar.phase in (Phase.STOPPING, Phase.ENDED):
-            return
-        try:
-            unheld, origins, next_slice = self.registrar.catalog.sweep(after)
-            self.swept_origins |= origins
-            for resource in unheld:
-                self.teardown.unload_resource(resource, None)
-            if next_slice is not None:
-                self.sweeping = True
-                self.registrar.come_back(lambda _v, _e: self.sweep(next_slice)).set_result(None)
-                return
-        except RrError as exc:  # a damaged row: a lookup that needs it fails then
-            logger.error(  # noqa: TRY400 - the cause says it all
-                "registrar %s: the sweep of its restored catalog stopped: %s",
-                self.registrar.name,
-                exc,
-            )
-        self.sweeping = False
-        if self.reconcile_owed:
-            self.reconcile_owed = False
-            self.unloading.ask_to_reconcile(self.swept_origins)
-
-    def on_settle_in_doubt(self, message: SettleInDoubt, reply: Reply) -> None:
-        """The manager handled in-doubt entry `query_id` (`None`: every one): write it off.
-
-        Its row leaves the backup now (or as it was left: its dependencies may still be
-        being released); a later restore no longer offers it. Settling one twice is a
-        no-op. A write that fails is the caller's error (`CatalogWriteError`): the entry
-        stays settled in memory, and the next write that succeeds takes it out.
-        """
-        query_id = message.query_id
-        if query_id is None:
-            rids = set(self.in_doubt_ids)
-        elif query_id in self.in_doubt_ids:
-            rids = {query_id}
-        else:
-            reply.set_error(
-                UnknownQueryError(
-                    f"{query_id!r} is not in doubt at registrar {self.registrar.name!r}"
-                )
-            )
-            return
-        failed = self.registrar.settle_held(rids)  # (a failed write stays pending: the
-        if failed is not None:  # next commit writes it; until then a restart offers it again)
-            reply.set_error(failed)
-            return
-        reply.set_result(None)
 
     def on_reachable(self, _message: Reachable, reply: Reply) -> None:
         """A carrier serves it: the other processes can reach it (and answer it) now."""
@@ -387,9 +286,9 @@ class Lifecycle:
         stopped = RegistrarStoppedError(
             f"registrar {self.registrar.name!r} stopped during the call"
         )
-        consumer = self.consumer
-        consumer.withdraw_pending(stopped)
-        consumer.give_back_unsettled()
+        releases = self.releases
+        releases.withdraw_pending(stopped)
+        releases.give_back_unsettled()
         tops = [
             r
             for r in reversed(self.registrar.catalog.clients.values())
@@ -398,7 +297,7 @@ class Lifecycle:
 
         def next_one() -> None:
             if tops:
-                consumer.release_client(tops.pop(0), next_one)
+                releases.release_client(tops.pop(0), next_one)
                 return
             self.wait_for_unloads(unloads_until, finish)
 
@@ -469,7 +368,7 @@ class Lifecycle:
     def stop_children(self) -> None:
         for server in self.registrar.servers.values():
             server.ref.stop(block=True, timeout=5.0)
-        self.consumer.stop_clients()
+        self.holdings.stop_clients()
 
     # -- death --------------------------------------------------------------------------
 
@@ -498,13 +397,13 @@ class Lifecycle:
     def fail_waiting(self, error: RrError) -> None:
         """Answer everyone still waiting on this actor with `error` (it stops or died)."""
         self.provider.fail_waiting(error)
-        self.consumer.fail_waiting(error)
+        self.flights.fail_waiting(error)
         for request in list(self.open_requests):
             request.set_error(error)
         inbox = self.actor.actor_inbox
         while not inbox.empty():
             self.refuse(inbox.get(), error)
-        outcomes = self.consumer.due.outcomes
+        outcomes = self.flights.due.outcomes
         while not outcomes.empty():
             self.refuse_message(outcomes.get(), error)
 

@@ -1,10 +1,10 @@
 """The consumer's side of a call as events: answered, failed, withdrawn, forgotten.
 
 ```
- consumer.py record_answer ──► answered ──► CallAnswered (the id is held)
+ answers.py  record_answer ──► answered ──► CallAnswered (the id is held)
              on_call_failed ─► failed ────► CallFailed | CallWithdrawn (nothing held;
                                             or held until reconciled: may_have_executed)
-             forget ─────────► forgotten ─► QueryForgotten (why)
+ holdings.py forget ─────────► forgotten ─► QueryForgotten (why)
 ```
 
 Each builds its event only when someone listens (`Shared.events.active`) and runs on

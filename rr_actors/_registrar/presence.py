@@ -38,7 +38,6 @@ import pykka
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.timers import Cancellable, Timer, thread_timer
-from rr_actors._registrar.consumer import Consumer
 from rr_actors._registrar.messages import (
     ConsumerDown,
     PeerLost,
@@ -73,8 +72,8 @@ class Presence:
     Args:
         registrar: the state every role shares.
         unloading: releases the ids a lost consumer held here.
-        consumer: whether it holds ids at a peer.
-        reconciling: reports and forgets the ids held at a lost provider; reconciles.
+        reconciling: whether it holds ids at a peer; reports and forgets the ids held at
+            a lost provider; reconciles.
         timer: `timer(delay, fn)` for the retries (injectable for tests).
 
     Attributes:
@@ -86,13 +85,11 @@ class Presence:
         self,
         registrar: Shared,
         unloading: Unloading,
-        consumer: Consumer,
         reconciling: Reconciling,
         timer: Timer = thread_timer,
     ) -> None:
         self.registrar = registrar
         self.unloading = unloading
-        self.consumer = consumer
         self.reconciling = reconciling
         self.timer = timer
         self.rounds: dict[str, tuple[int, int]] = {}
@@ -140,7 +137,7 @@ class Presence:
         name = message.name
         if name == self.registrar.name or self.registrar.phase is not Phase.SERVING:
             return  # (during setup `on_ready` reconciles with everyone; stopping: nothing)
-        if self.consumer.holds_at(name):
+        if self.reconciling.holds_at(name):
             self.round_count += 1
             self.attempt(name, self.round_count, 0)
         if self.registrar.catalog.consumers_from(name):

@@ -46,7 +46,7 @@ from rr_actors.errors import (
 )
 
 if TYPE_CHECKING:
-    from rr_actors._registrar.consumer import Consumer
+    from rr_actors._registrar.releases import Releases
     from rr_actors._registrar.teardown import Teardown
 
 __all__ = ["Provider"]
@@ -67,9 +67,9 @@ class Provider:
         matching: loads whose match user code decides, off the actor thread.
     """
 
-    def __init__(self, shared: Shared, consumer: Consumer, teardown: Teardown) -> None:
+    def __init__(self, shared: Shared, releases: Releases, teardown: Teardown) -> None:
         self.registrar = shared
-        self.consumer = consumer
+        self.releases = releases
         self.teardown = teardown
         self.loads: dict[str, list[Waiter]] = {}
         self.loading_ids: dict[str, str] = {}
@@ -322,7 +322,7 @@ class Provider:
                     self.abandoned.discard(waiter.query_id)
                     waiter.reply.set_error(error)
 
-            self.consumer.release_dependencies(rid, failed)
+            self.releases.release_dependencies(rid, failed)
             return
         show_response(self.registrar, catalog.finish_load(rid, response))
         live = self._add_consumers(rid, waiters)

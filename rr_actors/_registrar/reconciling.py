@@ -9,8 +9,16 @@
 ```
 
 Rule 20 and rule 19 (`docs/explanation/failure-semantics.md`). The providers that asked
-while setup ran are this role's state; the records and the failed calls held until
-reconciled are the consumer role's (`consumer.py`), changed through its methods.
+while setup ran are this role's state. What a list names is the other roles' state, asked
+and settled through their methods: the records (`holdings.py`), the calls that failed as
+their provider died and those it kept for a retry (`flights.py`), the releases that failed
+so (`releases.py`):
+
+```
+ listing(provider): its client records, its unsettled calls, the calls due, and not
+                    its unreleased ids (left out: the provider releases them)
+ its answer ──► settle_listed ──► flights.settle_listed, releases.settle_listed
+```
 """
 
 from __future__ import annotations
@@ -24,8 +32,11 @@ from typing import Any
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.calls import DueAnswers
-from rr_actors._registrar.consumer import Consumer, Listing
+from rr_actors._registrar.flights import Flights
+from rr_actors._registrar.holdings import Holdings
+from rr_actors._registrar.listing import Listing
 from rr_actors._registrar.messages import Reconcile, ReconcileAsk, StatusNotice
+from rr_actors._registrar.releases import Releases
 from rr_actors._registrar.state import Phase, Shared
 from rr_actors._types import Status
 
@@ -39,7 +50,7 @@ class Reconciling:
 
     Attributes:
         due: the query ids whose answers are on their way (`DueAnswers`, shared with
-            callers' threads and the consumer role).
+            callers' threads and the other consumer roles).
         asked_to_reconcile: providers that asked for a `Reconcile` during setup.
         everyone: reconcile with every registrar of the system, not only the providers
             its catalog names (`reconcile_all`): set when it restores a backup.
@@ -48,12 +59,16 @@ class Reconciling:
     def __init__(
         self,
         shared: Shared,
-        consumer: Consumer,
+        flights: Flights,
+        holdings: Holdings,
+        releases: Releases,
         due: DueAnswers,
         redeliver: Callable[[Any], None],
     ) -> None:
         self.registrar = shared
-        self.consumer = consumer
+        self.flights = flights
+        self.holdings = holdings
+        self.releases = releases
         self.due = due
         self.redeliver = redeliver
         self.asked_to_reconcile: set[str] = set()
@@ -69,8 +84,8 @@ class Reconciling:
         Also with those that asked while setup ran (`ReconcileAsk`), and, restored from a
         backup (`everyone`), with every registrar of the system it can reach now: its
         backup does not name every provider that may hold ids of it. An id it released
-        while its provider was down (`Consumer.unreleased`, kept in memory only), a call
-        that failed as its provider died (`Consumer.unsettled`), or a record lost with a
+        while its provider was down (`Releases.unreleased`, kept in memory only), a call
+        that failed as its provider died (`Flights.unsettled`), or a record lost with a
         save interval has no row left; killed before that provider's restart asked it to
         reconcile, it would hold such an id there for good. A provider it holds nothing
         at answers an empty list at once (and releases what it held for this one).
@@ -83,8 +98,50 @@ class Reconciling:
         for serving_rr in sorted(providers):
             self.reconcile(serving_rr)
 
+    # -- what it holds at a provider --------------------------------------------------
+
+    def holds_at(self, serving_rr: str) -> bool:
+        """Whether this registrar holds ids at `serving_rr` (records, failed calls, or
+        releases to complete there)."""
+        return (
+            self.flights.held_at(serving_rr)
+            or bool(self.releases.unreleased_at(serving_rr))
+            or any(
+                record.query.serving_rr == serving_rr
+                for record in self.registrar.catalog.clients.values()
+            )
+        )
+
+    def listing(self, serving_rr: str, due: frozenset[str]) -> Listing:
+        """The list of a `Reconcile` to `serving_rr` that leaves now, a new epoch.
+
+        Args:
+            serving_rr: the provider.
+            due: the ids whose answer is due now, at any provider (listed too: harmless,
+                reported unknown).
+        """
+        held = {
+            query_id
+            for query_id, record in self.registrar.catalog.clients.items()
+            if record.query.serving_rr == serving_rr
+        }
+        held |= {q for q, provider in self.flights.unsettled().items() if provider == serving_rr}
+        held |= due
+        left_out = self.releases.unreleased_at(serving_rr)
+        epoch = self.holdings.new_epoch()
+        return Listing(tuple(sorted(held - left_out)), due, left_out, epoch)
+
+    def settle_listed(
+        self, serving_rr: str, listing: Listing | None = None, unknown: Iterable[str] = ()
+    ) -> None:
+        """`serving_rr` answered `listing`'s `Reconcile` (`unknown`: the listed ids it
+        does not know): settle the failed calls and the releases it listed or left out.
+        Without a listing (`serving_rr` is gone for good): all of them."""
+        self.flights.settle_listed(serving_rr, listing, unknown)
+        self.releases.settle_listed(serving_rr, listing)
+
     def on_reconcile_ask(self, message: ReconcileAsk, _reply: Reply) -> None:
-        if not message.holds_yours and not self.consumer.holds_at(message.serving_rr):
+        if not message.holds_yours and not self.holds_at(message.serving_rr):
             return  # (told as every registrar of the system is: nothing to reconcile)
         if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
             self.asked_to_reconcile.add(message.serving_rr)
@@ -105,12 +162,12 @@ class Reconciling:
         the `Reconcile` (its caller's thread may still be on its way to the carrier), and
         a retry of a call that failed as the provider died may be sent and answered
         after it; their own answers decide. Releases that failed as the provider died
-        are left out of the list, so the provider releases them (`Consumer.unreleased`).
+        are left out of the list, so the provider releases them (`Releases.unreleased`).
         `then(error)` runs (on this actor) once the answer was handled: `None`, or why it
         failed (`presence.py` retries).
         """
         with self.due.frozen() as due:
-            listing = self.consumer.listing(serving_rr, due)
+            listing = self.listing(serving_rr, due)
             self.registrar.send(
                 serving_rr,
                 lambda reply: Reconcile(self.registrar.name, listing.held, reply),
@@ -154,16 +211,16 @@ class Reconciling:
                 or record.query.serving_rr != serving_rr
                 or query_id in listing.due
                 or query_id in self.due
-                or not self.consumer.answered_before(query_id, listing)
-                or self.consumer.is_releasing(query_id)
+                or not self.holdings.answered_before(query_id, listing.epoch)
+                or self.releases.is_releasing(query_id)
             ):
                 continue
             lost.setdefault(record.query.server, []).append(query_id)
         # What was unsettled, was listed and survived the reconcile is held by the provider
         # now: a retry finds it; a call never retried is released at its next restart, or
-        # given back when this registrar stops (`Consumer.kept_for_retry`).
+        # given back when this registrar stops (`Flights.kept_for_retry`).
         # What was left out of the list, it released.
-        self.consumer.settle_listed(serving_rr, listing, unknown)
+        self.settle_listed(serving_rr, listing, unknown)
         for server, ids in lost.items():
             logger.warning(
                 "registrar %s: %s/%s no longer knows %d of the queries held there "
@@ -182,7 +239,7 @@ class Reconciling:
         for query_id, record in list(self.registrar.catalog.clients.items()):
             if record.query.serving_rr == serving_rr and record.loaded:
                 lost.setdefault(record.query.server, []).append(query_id)
-        self.consumer.settle_listed(serving_rr)  # nobody holds them there any more
+        self.settle_listed(serving_rr)  # nobody holds them there any more
         for server, ids in sorted(lost.items()):
             logger.warning(
                 "registrar %s: %s is gone and nobody will restart it: FATAL to the %d "
@@ -225,5 +282,5 @@ class Reconciling:
         )
         self.redeliver(notice)
         for query_id in ids:
-            self.consumer.forget(query_id, commit=False, reason=forgotten)
+            self.holdings.forget(query_id, commit=False, reason=forgotten)
         self.registrar.commit()

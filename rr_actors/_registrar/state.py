@@ -1,13 +1,14 @@
 """What every role of one registrar actor shares: a small state record and its helpers.
 
-The registrar actor is split by role (`lifecycle`, `servers`, `status`, `unloading`,
-`provider`, `consumer`), each owning the state of its side and calling only the roles
-below it. What they all use lives here, the registrar's record (`Shared`, which each role
-holds as `self.registrar`): the configuration, the
-catalog (the actor is its only writer), the save policy, the resource servers, the life-
-cycle `Phase`, the worker pool for user callbacks, and the way a role asks another
-registrar without waiting (`Shared.send`: the answer comes back through the mailbox as a
-continuation).
+The registrar actor is split by role (`lifecycle`, `servers`, `presence`, `restoring`,
+`status`, `unloading`, `provider`, `teardown`, `reconciling`, and on the consumer side
+`releases`, `answers`, `holdings`, `flights`), each owning the state of its side and
+calling only the roles below it (`actor.py` builds them). What they all use lives here,
+the registrar's record (`Shared`, which each role holds as `self.registrar`): the
+configuration, the catalog (the actor is its only writer), the save policy, the resource
+servers, the lifecycle `Phase`, the worker pool for user callbacks, and the way a role
+asks another registrar without waiting (`Shared.send`: the answer comes back through the
+mailbox as a continuation).
 """
 
 from __future__ import annotations

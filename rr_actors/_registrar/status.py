@@ -35,7 +35,8 @@ from rr_actors._types import Query, StatusCallback, StatusUpdate
 from rr_actors.errors import RrError
 
 if TYPE_CHECKING:
-    from rr_actors._registrar.consumer import Consumer
+    from rr_actors._registrar.flights import Flights
+    from rr_actors._registrar.holdings import Holdings
 
 __all__ = ["StatusRelay"]
 
@@ -47,9 +48,10 @@ _SEEN_EVENTS = 4096  # (event, resource) pairs remembered to run each callback o
 class StatusRelay:
     """Delivers statuses: this registrar's own, and those passing through it."""
 
-    def __init__(self, shared: Shared, consumer: Consumer) -> None:
+    def __init__(self, shared: Shared, flights: Flights, holdings: Holdings) -> None:
         self.registrar = shared
-        self.consumer = consumer
+        self.flights = flights
+        self.holdings = holdings
         self.seen_events: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
         self.routes = Routes()
 
@@ -127,7 +129,7 @@ class StatusRelay:
             sent,
         )  # (each part sent gets its own reply)
         if in_process:
-            DESK.deliver(batch, join, None, (self.registrar.name, self.consumer.redeliver))
+            DESK.deliver(batch, join, None, (self.registrar.name, self.flights.redeliver))
         for relay, parts, batched in self.routes.plan(elsewhere):
             if batched:
                 self.send_batch(relay, batch.part(parts, NO_REPLY), join)
@@ -213,12 +215,12 @@ class StatusRelay:
         pass; answer (once) with the process each one reached is in."""
         homes: dict[str, str] = {self.registrar.name: process()}
         join = SharedJoin(lambda: reply.set_result(homes))
-        DESK.deliver(batch, join, homes, (self.registrar.name, self.consumer.redeliver))
+        DESK.deliver(batch, join, homes, (self.registrar.name, self.flights.redeliver))
         join.seal()
 
     def on_status_notice(self, message: StatusNotice, reply: Reply) -> None:
         """Consumer side: run the client callbacks, climb to the dependent resources."""
-        if self.consumer.parked(message):
+        if self.flights.parked(message):
             return
         catalog = self.registrar.catalog
         join = SharedJoin(lambda: reply.set_result(None))
@@ -239,7 +241,7 @@ class StatusRelay:
                         message.event,
                     )
                 )
-            callback = self.consumer.callback_of(query_id)
+            callback = self.holdings.callback_of(query_id)
             if callback is not None:
                 self.run_callback(callback, record.query, update, join)
             if record.parent is not None and record.parent in catalog.resources:

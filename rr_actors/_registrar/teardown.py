@@ -3,7 +3,7 @@
 ```
  last consumer released (unloading.py), a server closed (servers.py), a load that failed
  or that nobody waits for any more (provider.py), a restored resource in doubt:
-   unload_resource ──► the resource's dependencies (consumer side) ──► RunUnload ──► server
+   unload_resource ──► the resource's dependencies (releases.py) ──► RunUnload ──► server
        ──► remove_resource ──► the callers waiting for it, then `when_gone` (loads parked
            behind the unload, `Provider`)
 ```
@@ -27,7 +27,7 @@ from rr_actors._registrar.state import Shared
 from rr_actors.errors import CallTimeoutError, CatalogWriteError, RrError
 
 if TYPE_CHECKING:
-    from rr_actors._registrar.consumer import Consumer
+    from rr_actors._registrar.releases import Releases
 
 __all__ = ["Teardown"]
 
@@ -47,9 +47,9 @@ class Teardown:
         idle: what runs once no unload is under way (`when_idle`).
     """
 
-    def __init__(self, shared: Shared, consumer: Consumer) -> None:
+    def __init__(self, shared: Shared, releases: Releases) -> None:
         self.registrar = shared
-        self.consumer = consumer
+        self.releases = releases
         self.unload_waiters: dict[str, list[Reply]] = {}
         self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
         self.gone: dict[str, list[Callable[[], None]]] = {}
@@ -111,7 +111,7 @@ class Teardown:
             self.under_way.pop(resource.id, None)
             self.check_idle()
 
-        self.consumer.release_dependencies(resource.id, run_unload)
+        self.releases.release_dependencies(resource.id, run_unload)
 
     def when_idle(self, then: Callable[[], None]) -> None:
         """Run `then()` once no unload is under way here (now if none is)."""

@@ -253,7 +253,7 @@ class PendingWork:
 
 
 def _pending_work(actor: RegistrarActor, reply: Reply) -> None:
-    provider, consumer = actor.provider, actor.consumer
+    provider, flights = actor.provider, actor.flights
     ids = [w.query_id for waiters in provider.loads.values() for w in waiters]
     ids += [load.query_id for loads in provider.after_unload.values() for load in loads]
     ids += [load.query_id for load in provider.matching.waiting()]
@@ -261,8 +261,8 @@ def _pending_work(actor: RegistrarActor, reply: Reply) -> None:
         PendingWork(
             waiting_loads=collections.Counter(ids),
             held_loads=tuple(load.query_id for load in provider.held_loads),
-            answers_due=consumer.due.ids(),
-            parked_notices=frozenset(q for q, f in consumer.in_flight.items() if f.parked),
+            answers_due=flights.due.ids(),
+            parked_notices=flights.parked_ids(),
             open_requests=len(actor.lifecycle.open_requests) - 1,  # (not this one)
             queued_callbacks=actor.shared.workers.queued,
         )
