@@ -259,8 +259,16 @@ class Level(Protocol):
 
     spec: SupervisorSpec
     children: list[Child]
-    gave_up: SupervisorGaveUpError | None
-    giving_up: bool
+
+    @property
+    def gave_up(self) -> SupervisorGaveUpError | None:
+        """Why it gave up (`None` while it has not)."""
+        ...
+
+    @property
+    def giving_up(self) -> bool:
+        """Whether it is stopping its children to give up (waiters conclude nothing)."""
+        ...
 
     def stop(self, timeout: float | None = None, *, restarting: bool = False) -> None:
         """Stop every child in reverse start order, then the supervisor (idempotent)."""

@@ -18,7 +18,9 @@ Who does what (each in its own module of `rr_actors._supervision`):
 ```
  Supervisor (this module: the public handle; owns the transport, spares, state-dir lock)
    ├─ TreeWatch (watching.py: subscribe, flush_events, observe, graph)
-   └─ Node (node.py: one supervisor's state record + steps, on its own thread)
+   └─ Node (node.py: one supervisor's record + mailbox, on its own thread; its roles:)
+        ├─ starting.py: children in start order; stopping.py: reverse order, death watch
+        ├─ exits.py: a watcher's Exited; restarting.py: restart or not, group, give up
         ├─ policy.py: restart or not, which siblings, intensity (pure)
         ├─ children.py: Child records; ThreadManager / ProcessManager / NestedSupervisor
         └─ tree.py: what the tree shares; lookups and wait_restarted; death watch
@@ -55,9 +57,10 @@ from rr_actors._supervision.children import (
     ProcessManager,
     ThreadManager,
 )
-from rr_actors._supervision.node import Node, left
+from rr_actors._supervision.node import Node
 from rr_actors._supervision.policy import Clock, RestartIntensity
 from rr_actors._supervision.statedir import StateDirLock
+from rr_actors._supervision.stopping import left
 from rr_actors._supervision.tree import Tree, find_child, locate, wait_restarted
 from rr_actors._supervision.watching import TreeWatch
 from rr_actors._types import Query, StatusCallback
