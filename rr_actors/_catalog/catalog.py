@@ -395,8 +395,9 @@ class Catalog:
             limit: the most rows of either kind to return.
 
         Returns:
-            `(resources, consumers)`: `(id, server, state, digest)` per resource, oldest
-            first (`digest` in decimal, `""` for a request without one), and `(query id,
+            `(resources, consumers)`: `(id, server, state, digest, failed)` per resource,
+            oldest first (`digest` in decimal, `""` for a request without one; `failed`
+            `"failed"` if its provider reported it `FATAL`, else `""`), and `(query id,
             resource id, consumer registrar)` per consumer id, by resource, in arrival
             order; `None` if either kind has more than `limit` rows.
         """
@@ -407,7 +408,13 @@ class Catalog:
             order = _stored_order((resource.id, resource))
             digest = resource.digest
             plain = digest is not None and digest != NO_DIGEST
-            row = (resource.id, resource.server, resource.state.value, str(digest) * plain)
+            row = (
+                resource.id,
+                resource.server,
+                resource.state.value,
+                str(digest) * plain,
+                "failed" * resource.failed,
+            )
             resources.append((order, row))
             consumers.extend(
                 (order, (qid, resource.id, o)) for qid, o in resource.consumers.items()

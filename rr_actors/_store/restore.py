@@ -268,8 +268,8 @@ class Unread:
         either kind has more than `limit` rows.
 
         Returns:
-            `(resources, consumers)`: `(row key, (id, server, state, digest))` per
-            resource, oldest first; `(row key, (query id, resource id, consumer
+            `(resources, consumers)`: `(row key, (id, server, state, digest, failed))`
+            per resource, oldest first; `(row key, (query id, resource id, consumer
             registrar))` per consumer, by resource, in arrival order.
         """
         if not self.remaining:
@@ -279,7 +279,7 @@ class Unread:
         with as_corrupt(self._store.path):
             db = self._store.connection
             rows = db.execute(
-                "SELECT seq, id, server, state, digest FROM resources WHERE seq <= ? "
+                "SELECT seq, id, server, state, digest, failed FROM resources WHERE seq <= ? "
                 "ORDER BY seq LIMIT ?",
                 (self._last, limit + mirrored[0] + 1),
             ).fetchall()
@@ -297,9 +297,10 @@ class Unread:
                         server,
                         STATES_BY_CODE[state].value,
                         "" if digest is None else str(digest),
+                        "failed" if failed else "",
                     ),
                 )
-                for seq, rid, server, state, digest in rows
+                for seq, rid, server, state, digest, failed in rows
                 if seq not in self._read
             ]
         held: list[tuple[float, tuple[str, ...]]] = [
