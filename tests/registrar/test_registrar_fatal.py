@@ -191,3 +191,38 @@ def test_a_schema_5_backup_opens_and_its_resources_are_matched_until_reported_fa
     assert (old.response, {"for": "lidar", "load": 1}) == (shared_old.response, old.response)
     assert (["lidar"], new.response) == (loads, after.response)
     assert 6 == version
+
+
+class SlowlyCompared:
+    """A request without a digest whose `==` says it runs, then waits on `gate`."""
+
+    def __init__(self, n: int, comparing: Any, gate: Any) -> None:
+        self.n, self.comparing, self.gate = n, comparing, gate
+
+    def __eq__(self, other: object) -> bool:
+        self.comparing.set()
+        assert self.gate.wait(10), "the gate of a slow comparison never opened"
+        return isinstance(other, SlowlyCompared) and other.n == self.n
+
+    def __hash__(self) -> int:
+        return hash(self.n)
+
+
+def test_a_resource_reported_fatal_while_a_request_is_compared_with_it_is_not_shared(
+    make_registrar, serve, gates, shared
+):
+    provider, holder, other = (make_registrar(p) for p in ("provider", "holder", "other"))
+    leaf = serve(provider, "leaf", fresh)
+    comparing, gate = shared.event(), gates()
+    dead = holder.call(provider.name, "leaf", SlowlyCompared(1, comparing, gate), timeout=10)
+
+    with ThreadPoolExecutor(1) as pool:
+        asked = pool.submit(
+            other.call, provider.name, "leaf", SlowlyCompared(1, comparing, gate), timeout=15
+        )
+        assert comparing.wait(5), "the request was never compared"
+        provider.send_status(dead.id, rr.Status.FATAL, "the LiDAR process died", timeout=10)
+        gate.set()
+        new = asked.result(timeout=15)
+
+    assert (2, True) == (len(leaf.loads), dead.response != new.response)
