@@ -91,8 +91,10 @@ def backup_to_dict(backup: Backup) -> dict[str, Any]:
 
     Returns:
         `{"path", "schema_version", "servers": {server: [resource, ...]}, "clients": [...]}`
-        where a resource has `id`, `state`, `in_doubt`, `request`, `response`,
-        `consumers` (`query_id`, `origin_rr`) and `dependencies` (client records), and
+        where a resource has `id`, `state`, `in_doubt`, `failed` (its provider
+        reported it `FATAL`: no equal request is matched with it), `request`,
+        `response`, `consumers` (`query_id`, `origin_rr`) and `dependencies` (client
+        records), and
         `clients` lists the top-level queries this registrar holds elsewhere.
     """
     dependencies: dict[str, list[ClientRecord]] = {}
@@ -106,6 +108,7 @@ def backup_to_dict(backup: Backup) -> dict[str, Any]:
                 "id": resource.id,
                 "state": resource.state.value,
                 "in_doubt": _in_doubt(resource),
+                "failed": resource.failed,
                 "request": repr(resource.request),
                 "response": repr(resource.response),
                 "consumers": [
@@ -162,6 +165,7 @@ def render_tree(backup: Backup) -> str:
         resource_items = []
         for resource in resources:
             mark = f"  [IN DOUBT: {resource.state.value}]" if _in_doubt(resource) else ""
+            mark += "  [FATAL: not shared]" if resource.failed else ""
             consumers: list[Node] = [
                 (f"consumer {q} (from {o})", []) for q, o in resource.consumers.items()
             ]

@@ -6,6 +6,12 @@ resources). Only the registrar actor writes it, so it has no locks. Every change
 the touched rows dirty; the persistence layer drains them as one transaction. Requests
 are matched by `==` through digests (`rr_actors._catalog.digest`).
 
+A resource its provider reported `FATAL` is marked `failed` (`mark_failed`) and is never
+matched again: an equal request loads a new resource, while the dead one stays, held by
+its consumers under their ids, until each released it (docs/explanation/semantics.md,
+rule 1). FATAL means dead: sharing a dead resource would let one holder that never
+releases it keep every later consumer from a working one.
+
 It opens no file itself, but it is not free of I/O: a restored catalog asks the
 `UnreadRows` it was given (the store's reader of the backup) for the resources a lookup
 needs and has not read yet, and a restored resource decodes its request and response
@@ -146,6 +152,8 @@ class Catalog:
         if digest is not None:
             for rid in digested.get(digest, ()) if digested else ():
                 resource = self.resources[rid]
+                if resource.failed:  # reported FATAL: never matched again
+                    continue
                 if requests_equal(resource.request, request):  # both plain: no user code
                     return resource, []
             # A stored request without a digest may still be equal (rare). A plain
@@ -156,7 +164,8 @@ class Catalog:
             if digested and not identity_equality(request):
                 # A custom `__eq__` may equal a plain value: compare with every one.
                 undecided += [rid for bucket in digested.values() for rid in bucket]
-        return None, [self.resources[rid] for rid in undecided]
+        resources = self.resources
+        return None, [resources[rid] for rid in undecided if not resources[rid].failed]
 
     def begin_load(self, rid: str, server: str, request: Any, *, key: Any = None) -> Resource:
         """Add a resource in the `LOADING` state.
@@ -207,6 +216,19 @@ class Catalog:
         if label is not None:
             resource.label = label
         self._dirty_resources.add(rid)
+
+    def mark_failed(self, rid: str) -> Resource:
+        """Mark a resource dead: its provider reported it `FATAL`.
+
+        From now on no request matches it (`find`, `lookup`): an equal request loads a
+        new resource. It keeps its consumers until each releases it, and it is unloaded
+        as any other when the last one does.
+        """
+        resource = self.resources[rid]
+        if not resource.failed:
+            resource.failed = True
+            self._dirty_resources.add(rid)
+        return resource
 
     def begin_unload(self, rid: str) -> Resource:
         """Mark a resource `UNLOADING` (its last consumer left)."""
@@ -373,8 +395,9 @@ class Catalog:
             limit: the most rows of either kind to return.
 
         Returns:
-            `(resources, consumers)`: `(id, server, state, digest)` per resource, oldest
-            first (`digest` in decimal, `""` for a request without one), and `(query id,
+            `(resources, consumers)`: `(id, server, state, digest, failed)` per resource,
+            oldest first (`digest` in decimal, `""` for a request without one; `failed`
+            `"failed"` if its provider reported it `FATAL`, else `""`), and `(query id,
             resource id, consumer registrar)` per consumer id, by resource, in arrival
             order; `None` if either kind has more than `limit` rows.
         """
@@ -385,7 +408,13 @@ class Catalog:
             order = _stored_order((resource.id, resource))
             digest = resource.digest
             plain = digest is not None and digest != NO_DIGEST
-            row = (resource.id, resource.server, resource.state.value, str(digest) * plain)
+            row = (
+                resource.id,
+                resource.server,
+                resource.state.value,
+                str(digest) * plain,
+                "failed" * resource.failed,
+            )
             resources.append((order, row))
             consumers.extend(
                 (order, (qid, resource.id, o)) for qid, o in resource.consumers.items()
@@ -542,11 +571,13 @@ class Catalog:
         by_consumer = {q: r.id for r in self.resources.values() for q in r.consumers}
         assert by_consumer == self._by_consumer, "consumer index out of sync"
         for resource in self.resources.values():
-            if resource.state is ResourceState.LOADED:
+            if resource.state is ResourceState.LOADED and not resource.failed:
                 equal = [
                     r
                     for r in self.resources_of(resource.server)
-                    if r.id != resource.id and requests_equal(r.request, resource.request)
+                    if r.id != resource.id
+                    and not r.failed
+                    and requests_equal(r.request, resource.request)
                 ]
                 assert not equal, f"resource {resource.id} is loaded twice"
         deps: dict[str, list[str]] = {}

@@ -51,6 +51,9 @@ class Resource:
         request_text, response_text: bounded `repr`s of the values, made once by the
             registrar that owns them (`None`: not made yet); what observers show.
         label: what its server's `label(request)` returned (`None`: none, or not yet).
+        failed: its provider reported it `FATAL` (`Catalog.mark_failed`): it is no longer
+            matched by an equal request (a new call loads a new resource), and it stays
+            until its consumers released it.
     """
 
     id: str
@@ -64,6 +67,7 @@ class Resource:
     request_text: str | None = dataclasses.field(default=None, compare=False, repr=False)
     response_text: str | None = dataclasses.field(default=None, compare=False, repr=False)
     label: str | None = dataclasses.field(default=None, compare=False, repr=False)
+    failed: bool = False
 
     def __getattr__(self, name: str) -> Any:
         # Only called when `name` is not in the instance: a restored, still encoded value.
@@ -90,6 +94,8 @@ class Resource:
         decode: Decoder,
         order: int = 0,
         texts: tuple[str | None, str | None, str | None] = (None, None, None),
+        *,
+        failed: bool = False,
     ) -> Resource:
         """A stored resource whose request and response are decoded on first access.
 
@@ -104,6 +110,7 @@ class Resource:
             order: its place in the backup (row key), to list restored resources in
                 their stored order.
             texts: the stored `(request_text, response_text, label)`.
+            failed: the stored `failed` mark.
         """
         resource = cls.__new__(cls)
         resource.__dict__ = {
@@ -116,6 +123,7 @@ class Resource:
             "request_text": texts[0],
             "response_text": texts[1],
             "label": texts[2],
+            "failed": failed,
             "_encoded": (decode, blobs),
             "_order": order,
         }

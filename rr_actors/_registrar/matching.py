@@ -29,7 +29,8 @@ code. Whatever else must be judged by user code runs on a worker of the registra
 Loads of one server are matched one at a time while user code decides: two equal
 requests without a digest can then not both miss each other and load twice (rule 3),
 and a match's candidates stay valid until its answer is back (resources of the server
-can only leave or change state meanwhile, never appear).
+can only leave, change state or be reported `FATAL` meanwhile, never appear; the
+provider checks the one matched again).
 """
 
 from __future__ import annotations

@@ -10,6 +10,10 @@
  parked behind an unload ──► Teardown.when_gone ──► serve_parked ──► on_load afresh
 ```
 
+A resource its provider reported `FATAL` (`Resource.failed`) is no equal request's
+match, also one reported so while user code compared: the request is loaded afresh
+beside it (rule 1; `status.py` marks it).
+
 A resource belongs to its server; its consumers are query ids (one per call, rule 2).
 Callers that wait for a load and loads parked behind an unload of the same resource
 are this role's state; running an unload is `teardown.py`'s, releasing consumer ids
@@ -237,6 +241,8 @@ class Provider:
             return
         if resource is not None and resource.id not in self.registrar.catalog.resources:
             resource = None  # it left while user code compared: load afresh
+        elif resource is not None and resource.failed:
+            resource = None  # reported FATAL while user code compared: load afresh
         if resource is not None and resource.state is ResourceState.LOADED:  # the hot path
             self.share(resource, message)
             return

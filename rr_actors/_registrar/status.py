@@ -9,6 +9,13 @@
  acknowledgements: counted where they arrive (SharedJoin), the last one answers the sender
 ```
 
+A `FATAL` its provider sends about a resource marks it `failed` in the catalog first
+(`Catalog.mark_failed`, stored): no equal request matches it any more, a new call loads
+a new resource, and the dead one stays with its consumers until they release it. A
+`FATAL` that climbs from a dependency does not mark the resources above it: their
+provider hears it (`on_status`) and decides, repairs it (the mission's robot manager
+restarts a motor driver) or sends `FATAL` about it itself.
+
 A `send_status` is one event (a UUID): a callback reached twice through a diamond of
 dependencies runs once. Callbacks run on worker threads, so a callback may call `call`,
 `unload` or `send_status` on any registrar without deadlock.
@@ -31,7 +38,7 @@ from rr_actors._core.replies import CallbackReply, SharedJoin
 from rr_actors._registrar.fanout import DESK, Routes, process
 from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice
 from rr_actors._registrar.state import NO_REPLY, Shared, consumers_by_origin
-from rr_actors._types import Query, StatusCallback, StatusUpdate
+from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors.errors import RrError
 
 if TYPE_CHECKING:
@@ -58,6 +65,11 @@ class StatusRelay:
     def on_send_status(self, asked: SendStatus, reply: Reply) -> None:
         query_id, status, message = asked.query_id, asked.status, asked.message
         resource = self.registrar.catalog.resource_of(query_id)
+        if status is Status.FATAL and not resource.failed:
+            # Dead: no equal request matches it any more (rule 1), before anyone hears
+            # of it; durable as a load is (a write that fails stays pending in memory).
+            self.registrar.catalog.mark_failed(resource.id)
+            self.registrar.commit()
         update = StatusUpdate(query_id, status, message, f"{self.registrar.name}/{resource.server}")
         event = str(uuid.uuid4())
         if self.registrar.events.active:

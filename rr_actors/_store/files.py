@@ -487,9 +487,22 @@ def read_rows(
             (request, response),
             decode,
             0,
-            texts,
+            (request_text, response_text, label),
+            failed=bool(failed),
         )
-        for _, rid, server, state, digest, request, response, *texts in rows
+        for (
+            _,
+            rid,
+            server,
+            state,
+            digest,
+            request,
+            response,
+            request_text,
+            response_text,
+            label,
+            failed,
+        ) in rows
     ]
     for resource in resources:
         if lenient:
@@ -498,7 +511,7 @@ def read_rows(
             resource.digest = None  # the catalog indexes it from its (decoded) request
             _ = resource.request
     mirrors = [
-        Mirror(row[0], r.state, r.response_version, {}, (row[7], row[8], row[9]))
+        Mirror(row[0], r.state, r.response_version, {}, (row[7], row[8], row[9]), r.failed)
         for row, r in zip(rows, resources, strict=True)
     ]
     by_seq = {row[0]: (r, m) for row, r, m in zip(rows, resources, mirrors, strict=True)}

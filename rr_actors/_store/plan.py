@@ -65,7 +65,8 @@ def plan_resource(
         ops.append(
             (
                 "INSERT INTO resources (seq, id, server, state, digest, request, response, "
-                "request_text, response_text, label) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "request_text, response_text, label, failed) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     seq,
                     rid,
@@ -75,6 +76,7 @@ def plan_resource(
                     codec.dumps(resource.request),
                     codec.dumps(resource.response),
                     *texts,
+                    int(resource.failed),
                 ),
             )
         )
@@ -109,7 +111,9 @@ def plan_resource(
             for query_id, key in old_consumers.items()
             if query_id not in consumers
         )
-    mirror = Mirror(row, resource.state, resource.response_version, consumers, texts)
+    mirror = Mirror(
+        row, resource.state, resource.response_version, consumers, texts, resource.failed
+    )
     mirrors.append((written, rid, mirror))
     return seq
 
@@ -127,6 +131,9 @@ def _resource_update(old: Mirror, resource: Resource, texts: Texts) -> Op | None
     if old.texts != texts:
         columns += ["request_text", "response_text", "label"]
         values += texts
+    if old.failed != resource.failed:
+        columns.append("failed")
+        values.append(int(resource.failed))
     if not columns:
         return None
     assignments = ", ".join(f"{column} = ?" for column in columns)

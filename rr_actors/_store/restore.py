@@ -53,7 +53,7 @@ __all__ = [
 class Mirror:
     """What the store last wrote for one resource (to write only the difference)."""
 
-    __slots__ = ("consumers", "response_version", "seq", "state", "texts")
+    __slots__ = ("consumers", "failed", "response_version", "seq", "state", "texts")
 
     def __init__(
         self,
@@ -62,6 +62,7 @@ class Mirror:
         response_version: int,
         consumers: dict[str, int],
         texts: Texts = (None, None, None),
+        failed: bool = False,
     ) -> None:
         self.seq = seq  # the row's key
         self.state = state
@@ -70,13 +71,14 @@ class Mirror:
         self.response_version = response_version
         self.consumers = consumers  # consumer query id -> its row's key
         self.texts = texts  # (request_text, response_text, label) as written
+        self.failed = failed  # the `failed` mark as written
 
 
 Texts = tuple[str | None, str | None, str | None]
 """A resource row's `(request_text, response_text, label)`."""
 
 RESOURCE_COLUMNS = (
-    "seq, id, server, state, digest, request, response, request_text, response_text, label"
+    "seq, id, server, state, digest, request, response, request_text, response_text, label, failed"
 )
 """The columns of a resource row, in the order every reader reads them."""
 
@@ -266,8 +268,8 @@ class Unread:
         either kind has more than `limit` rows.
 
         Returns:
-            `(resources, consumers)`: `(row key, (id, server, state, digest))` per
-            resource, oldest first; `(row key, (query id, resource id, consumer
+            `(resources, consumers)`: `(row key, (id, server, state, digest, failed))`
+            per resource, oldest first; `(row key, (query id, resource id, consumer
             registrar))` per consumer, by resource, in arrival order.
         """
         if not self.remaining:
@@ -277,7 +279,7 @@ class Unread:
         with as_corrupt(self._store.path):
             db = self._store.connection
             rows = db.execute(
-                "SELECT seq, id, server, state, digest FROM resources WHERE seq <= ? "
+                "SELECT seq, id, server, state, digest, failed FROM resources WHERE seq <= ? "
                 "ORDER BY seq LIMIT ?",
                 (self._last, limit + mirrored[0] + 1),
             ).fetchall()
@@ -295,9 +297,10 @@ class Unread:
                         server,
                         STATES_BY_CODE[state].value,
                         "" if digest is None else str(digest),
+                        "failed" if failed else "",
                     ),
                 )
-                for seq, rid, server, state, digest in rows
+                for seq, rid, server, state, digest, failed in rows
                 if seq not in self._read
             ]
         held: list[tuple[float, tuple[str, ...]]] = [

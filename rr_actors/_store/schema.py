@@ -1,16 +1,17 @@
 """The backup's schema: its version, how a file is created and migrated, how it is checked.
 
-Layout (schema version 5):
+Layout (schema version 6):
 
 * `rr_actors_schema(version, digest_scheme)`: one row, the schema version and the
   `DIGEST_SCHEME` of the stored digests; `PRAGMA application_id` marks the file as an
   rr_actors catalog.
 * `resources(seq, id, server, state, digest, request, response, request_text,
-  response_text, label)`: served resources, `seq` being the insertion order, `state`
-  0/1/2 (loading/loaded/unloading), `digest` the request's `request_digest` (`NULL` if it
-  has none), the `*_text` columns the bounded `repr`s the owning registrar made of the
-  values, `label` what its server's `label(request)` returned (`NULL`: not made yet, or
-  none). Indexed by `id` (unique), by `(server, digest)`, and (partial index) the rows
+  response_text, label, failed)`: served resources, `seq` being the insertion order,
+  `state` 0/1/2 (loading/loaded/unloading), `digest` the request's `request_digest`
+  (`NULL` if it has none), the `*_text` columns the bounded `repr`s the owning registrar
+  made of the values, `label` what its server's `label(request)` returned (`NULL`: not
+  made yet, or none), `failed` 1 once its provider reported it `FATAL` (never matched
+  again), else 0. Indexed by `id` (unique), by `(server, digest)`, and (partial index) the rows
   not loaded or without a digest.
 * `consumers(resource, seq, query_id, origin_rr)`: consumer ids, `resource` being the `seq`
   of their resource; clustered by `(resource, seq)` (`WITHOUT ROWID`), so a scan yields
@@ -25,7 +26,7 @@ runs code from the file: `rr-actors observe --state` and `graph --state` never d
 
 ```
  empty file --MIGRATIONS[0]--> v1 --MIGRATIONS[1]--> v2 --MIGRATIONS[2]--> v3 --MIGRATIONS[3]--> v4
-   --MIGRATIONS[4]--> v5 (SCHEMA_VERSION)
+   --MIGRATIONS[4]--> v5 --MIGRATIONS[5]--> v6 (SCHEMA_VERSION)
 ```
 
 Each step is one transaction (`migrate`). The stored digest is deterministic (BLAKE2b of
@@ -73,7 +74,7 @@ __all__ = [
 APPLICATION_ID = 0x72724163  # "rrAc"
 """`PRAGMA application_id` of every rr_actors catalog file."""
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 """The schema version this code writes; older files are migrated, newer ones refused."""
 
 
@@ -180,6 +181,16 @@ def _upgrade_v5(db: sqlite3.Connection) -> None:
     db.execute("CREATE UNIQUE INDEX consumers_by_query ON consumers (query_id)")
 
 
+def _upgrade_v6(db: sqlite3.Connection) -> None:
+    """v5 -> v6: a `failed` mark per resource (its provider reported it `FATAL`).
+
+    A resource marked so is never matched by an equal request again, also after a
+    restore. Rows written before have none (0): the version that wrote them matched a
+    dead resource like a live one, and kept no mark to restore.
+    """
+    db.execute("ALTER TABLE resources ADD COLUMN failed INTEGER NOT NULL DEFAULT 0")
+
+
 INDEXES = ("resources_by_id", "resources_by_request", "resources_unsettled", "consumers_by_query")
 """The indexes of a current file: a restore relies on them (unique ids, dedup, doubt)."""
 
@@ -192,6 +203,7 @@ MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (
     _upgrade_v3,
     _upgrade_v4,
     _upgrade_v5,
+    _upgrade_v6,
 )
 """`MIGRATIONS[v]` brings a version-`v` file to version `v + 1` (0 is an empty file).
 

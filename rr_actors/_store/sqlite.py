@@ -282,7 +282,7 @@ class SqliteStore:
 
         Called by `restore` and by `Unread` when it reads a resource left on disk.
         """
-        seq, rid, server, state, digest, request, response, *texts = row
+        seq, rid, server, state, digest, request, response, *texts, failed = row
         resource = Resource.encoded(
             rid,
             server,
@@ -292,13 +292,16 @@ class SqliteStore:
             self._decode,
             seq,
             (texts[0], texts[1], texts[2]),
+            failed=bool(failed),
         )
         keys = {}
         for key, query_id, origin in consumer_rows:
             resource.consumers[query_id] = origin
             keys[query_id] = key
             self._seq = max(self._seq, key)  # its next consumer's key comes after these
-        self._resources[rid] = Mirror(seq, resource.state, 0, keys, (texts[0], texts[1], texts[2]))
+        self._resources[rid] = Mirror(
+            seq, resource.state, 0, keys, (texts[0], texts[1], texts[2]), resource.failed
+        )
         return resource
 
     def mirrored(self, last: int) -> tuple[int, int]:

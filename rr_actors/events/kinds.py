@@ -802,9 +802,11 @@ class CatalogRestored:
 
     Attributes:
         registrar: name of the restored registrar.
-        resources: `(resource id, server, state, digest)` per served resource, `state`
-            being `"loaded"`, `"loading"` or `"unloading"`, `digest` the request's digest
-            in decimal (as `ResourceLoaded.digest`; `""` for a request of another class).
+        resources: `(resource id, server, state, digest, failed)` per served resource,
+            `state` being `"loaded"`, `"loading"` or `"unloading"`, `digest` the request's
+            digest in decimal (as `ResourceLoaded.digest`; `""` for a request of another
+            class), `failed` `"failed"` if its provider reported it `FATAL` (no equal
+            request is matched with it any more), else `""`.
         consumers: `(query id, resource id, consumer registrar)` per consumer id.
         clients: `(query id, serving registrar, server, parent resource id or "")` per
             query this registrar holds (its client records).
@@ -847,7 +849,8 @@ class RegistrarStopped:
 
     Attributes:
         registrar: name of the stopped registrar.
-        resources: `(resource id, server, state, digest)` per served resource.
+        resources: `(resource id, server, state, digest, failed)` per served resource
+            (see `CatalogRestored`).
         consumers: `(query id, resource id, consumer registrar)` per consumer id.
         clients: `(query id, serving registrar, server, parent resource id or "")`.
         counts: `(resources, consumers, clients)`.

@@ -19,7 +19,8 @@ checked):
 - `unload-once`: a resource is unloaded at most once, and only once its last consumer
   id was released; no consumer is added to a resource after its unload.
 - `dedup`: no two resources of equal requests (the same request digest) are live at once
-  at a provider's server (requests of plain values only: others carry no digest).
+  at a provider's server (requests of plain values only: others carry no digest); one
+  its provider reported `FATAL` is not live for this (a new equal one loads beside it).
 - `restore-first`: a registrar with a backup publishes `CatalogRestored` before any
   other event of each of its incarnations.
 - `status-once`: a status send (its `status_id`) reaches each holder once per path.
@@ -283,6 +284,7 @@ def _provider_rules(history: Sequence[Line]) -> list[Finding]:  # noqa: PLR0912,
                 state.live = {
                     row[0]: _Live(row[1], int(row[3]) if len(row) > 3 and row[3] else None, line)
                     for row in event.resources
+                    if not (len(row) > 4 and row[4])  # reported FATAL: matched no more
                 }
             case events.ResourceLoaded():
                 if event.digest is not None:
@@ -303,6 +305,11 @@ def _provider_rules(history: Sequence[Line]) -> list[Finding]:  # noqa: PLR0912,
                 state.live[event.resource_id] = _Live(event.server, event.digest, line)
             case events.LoadFailed():
                 state.live.pop(event.resource_id, None)
+            case events.StatusSent() if event.status is Status.FATAL:
+                # dead: an equal request loads a new resource beside it (rule 1)
+                dead = state.held.get(event.query_id)
+                if dead is not None:
+                    state.live.pop(dead.resource_id, None)
             case events.InDoubt():
                 state.live.pop(event.query_id, None)
                 for qid in [q for q, h in state.held.items() if h.resource_id == event.query_id]:

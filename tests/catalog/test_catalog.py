@@ -33,7 +33,7 @@ from rr_actors._catalog import (
     request_bucket,
     request_digest,
 )
-from rr_actors._catalog.digest import requests_equal
+from rr_actors._catalog.digest import UNHASHABLE, requests_equal
 
 scalars = st.one_of(
     st.none(),
@@ -224,6 +224,32 @@ def test_check_invariants_catches_a_resource_loaded_twice():
 
     with pytest.raises(AssertionError, match="loaded twice"):
         catalog.check_invariants()
+
+
+def test_a_resource_marked_failed_is_not_found_and_an_equal_one_may_load_beside_it():
+    class Box:  # no digest: its `==` is user code
+        def __init__(self, n):
+            self.n = n
+
+        def __eq__(self, other):
+            return isinstance(other, Box) and other.n == self.n
+
+        __hash__ = None
+
+    catalog = Catalog()
+    dead = [loaded(catalog, "s", request) for request in ({"a": [1]}, Box(1))]
+    before = (catalog.find("s", {"a": [1]}).id, catalog.find("s", Box(1)).id)
+    for rid in dead:
+        catalog.mark_failed(rid)
+    lookups = (catalog.find("s", {"a": [1]}), catalog.lookup("s", Box(1), UNHASHABLE))
+    new = loaded(catalog, "s", {"a": [1]})
+
+    assert (tuple(dead), None, (None, [])) == (before, *lookups)
+    assert new == catalog.find("s", {"a": [1]}).id
+    assert ["c" + dead[0], "c" + new] == [
+        q.id for q in catalog.server_queries("s", "me") if q.request == {"a": [1]}
+    ]
+    catalog.check_invariants()  # a dead resource and a live one: not "loaded twice"
 
 
 def test_restore_rebuilds_the_indexes():

@@ -3,9 +3,10 @@
 A provider has a `leaf` server and a `composite` server whose load calls `leaf` for its
 parts (nested loads, recorded as dependencies). A consumer loads, loads duplicates,
 retries with a query id it already holds, unloads, and asks for requests flagged to fail
-inside load: in the composite's callback itself or in one of its sub-loads. After each
-step the catalogs' invariants and consumer counts must hold; at the end everything is
-unloaded and every successful load callback must be matched by exactly one unload
+inside load: in the composite's callback itself or in one of its sub-loads. The provider
+reports held resources `FATAL`: an equal request then loads a new one beside the dead
+one. After each step the catalogs' invariants and consumer counts must hold; at the end
+everything is unloaded and every successful load callback must be matched by exactly one unload
 callback, per resource instance.
 """
 
@@ -120,6 +121,13 @@ class RegistrarMachine(RuleBasedStateMachine):
         )
         assert query == again
 
+    @rule(query=held)
+    def report_fatal(self, query):
+        """The provider reports a held resource dead: later equal calls load a new one."""
+        if query is None or query.id not in self.holding:
+            return
+        self.provider.send_status(query.id, rr.Status.FATAL, "it died")
+
     @rule(query=consumes(held))
     def unload(self, query):
         if query is None or query.id not in self.holding:
@@ -152,10 +160,15 @@ class RegistrarMachine(RuleBasedStateMachine):
             assert record.parent in by_id
             assert "composite" == by_id[record.parent].server
             expected[key_of("leaf", record.query.request)] += 1
-        actual = collections.Counter(
-            {key_of(r.server, r.request): len(r.consumers) for r in provider.resources}
-        )
+        actual: collections.Counter[str] = collections.Counter()
+        instances: collections.Counter[str] = collections.Counter()  # dead ones too
+        matched: collections.Counter[str] = collections.Counter()  # not reported FATAL
+        for r in provider.resources:
+            actual[key_of(r.server, r.request)] += len(r.consumers)
+            instances[key_of(r.server, r.request)] += 1
+            matched[key_of(r.server, r.request)] += not r.failed
         assert expected == actual
+        assert all(n <= 1 for n in matched.values())
 
         for resource in provider.resources:
             if resource.server == "composite":
@@ -165,7 +178,7 @@ class RegistrarMachine(RuleBasedStateMachine):
         with self.lock:
             live = collections.Counter(self.loaded)
             live.subtract(self.unloaded)
-        assert dict.fromkeys(actual, 1) == {k: n for k, n in live.items() if n}
+        assert dict(instances) == {k: n for k, n in live.items() if n}
 
     def teardown(self):
         try:

@@ -104,6 +104,27 @@ def test_one_seeded_violation_of_each_rule_is_found_with_its_window(rule: str) -
     assert window == set(found[0].lines)
 
 
+def test_an_equal_load_beside_a_resource_reported_fatal_is_no_dedup_violation() -> None:
+    h = clean()
+    fatal = events.StatusSent("erm", Q1, rr.Status.FATAL, "died", "s2", pid=P, seq=4)
+    new = events.ResourceLoaded("erm", "cam", RID2, Q2, 0.01, 42, pid=P, seq=5)
+    restored = events.CatalogRestored(  # after a restart, the mark is in the row
+        "erm",
+        ((RID, "cam", "loaded", "42", "failed"), (RID2, "cam", "loaded", "42", "")),
+        ((Q1, RID, "cm"),),
+        (),
+        (2, 1, 0),
+        pid=P + 1,
+    )
+    third = events.ResourceLoaded("erm", "cam", "r3333333-0000", "q3", 0.01, 42, pid=P + 1, seq=1)
+    live = [*h[:3], fatal, new]
+
+    assert "held" == check.check(numbered(live)).verdict
+    assert ["dedup"] == [f.rule for f in check.check(numbered([*live, restored, third])).findings]
+    unmarked = events.CatalogRestored("erm", ((RID, "cam", "loaded", "42", ""),), (), (), pid=P + 1)
+    assert "violated" == check.check(numbered([*live, unmarked, third])).verdict
+
+
 def test_a_released_but_unheld_id_and_an_add_after_the_unload_are_violations() -> None:
     h = clean()
     late = events.ConsumerAdded("erm", RID, "q3", "cm", pid=P, seq=9)

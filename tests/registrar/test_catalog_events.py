@@ -75,7 +75,7 @@ def test_a_restored_catalog_is_listed_as_a_full_read_of_its_backup_gives_it(
     restored = heard.events[0]
     assert isinstance(restored, events.CatalogRestored)
     assert (True, (4, 5, 0)) == (restored.complete, restored.counts)
-    assert tuple((r.id, r.server, "loaded", str(r.digest)) for r in stored.resources) == (
+    assert tuple((r.id, r.server, "loaded", str(r.digest), "") for r in stored.resources) == (
         restored.resources
     )
     assert (

@@ -116,6 +116,29 @@ def test_inspect_marks_in_doubt_resources(tmp_path: Path) -> None:
     assert (0, True, True) == (code, "[IN DOUBT: loading]" in line, "1 in doubt" in out)
 
 
+def test_inspect_marks_a_resource_its_provider_reported_fatal(tmp_path: Path) -> None:
+    store = SqliteStore.open(tmp_path / "p.db")
+    store.load()
+    catalog = Catalog()
+    for rid in ("r-dead", "r-new"):
+        catalog.begin_load(rid, "leaf", "lidar")
+        catalog.finish_load(rid, {"pid": rid})
+        catalog.add_consumer(rid, "q" + rid, "C")
+        if rid == "r-dead":
+            catalog.mark_failed(rid)
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    code, out = run("inspect", str(tmp_path / "p.db"))
+    data = json.loads(run("inspect", str(tmp_path / "p.db"), "--json")[1])
+
+    marked = [line for line in out.splitlines() if "[FATAL" in line]
+    assert (0, 1, True) == (code, len(marked), "r-dead" in marked[0])
+    assert [("r-dead", True), ("r-new", False)] == [
+        (r["id"], r["failed"]) for r in data["servers"]["leaf"]
+    ]
+
+
 def test_inspect_shows_a_value_it_cannot_unpickle_instead_of_failing(tmp_path: Path) -> None:
     store = SqliteStore.open(tmp_path / "p.db")
     store.load()

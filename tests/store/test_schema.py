@@ -281,3 +281,69 @@ def test_a_call_that_meets_an_unreadable_restored_value_fails_and_the_registrar_
     finally:
         consumer.stop()
         provider.stop()
+
+
+# -- the `failed` mark (schema version 6) ------------------------------------------------------
+
+SCHEMA_5_BACKUP = Path(__file__).parent / "data" / "schema-5-fatal.db"
+"""A backup written by rr_actors c29caab (schema version 5), with this script run with
+that tree first on `PYTHONPATH` (then `PRAGMA wal_checkpoint(TRUNCATE)` folded its log
+in; its `-commits` file was left out)::
+
+    import os, sys
+    import rr_actors as rr
+    reg = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name="old-erm", backup_path=sys.argv[1], save_on_modify=True)
+    )
+    reg.register_server("leaf", load=lambda r: {"for": r, "load": 1}, unload=lambda r, s: None)
+    q = reg.call("old-erm", "leaf", "lidar", query_id="00000000-0000-4000-8000-000000000001")
+    reg.send_status(q.id, rr.Status.FATAL, "the LiDAR process died")  # no mark kept then
+    os._exit(0)  # as a SIGKILL: no stop, the held id stays in the backup
+"""
+
+
+def test_a_failed_mark_is_written_and_read_back_at_once_and_lazily(tmp_path: Path) -> None:
+    path = tmp_path / "p.db"
+    stored_catalog(path, [{"n": 0}, {"n": 1}])
+    store = SqliteStore.open(path)
+    rows = store.load()
+    assert rows is not None
+    catalog = Catalog.restore(*rows)
+    catalog.mark_failed("r1")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    at_once = reopen(path)  # (checks that the lazy restore reads the same)
+    store, lazily, _ = lazily_restored(path)
+    try:
+        found = [lazily.find("leaf", {"n": n}) for n in (0, 1)]
+        marks = {rid: r.failed for rid, r in lazily.read_all().items()}
+    finally:
+        store.close(erase=False)
+
+    assert {"r0": False, "r1": True} == {rid: r.failed for rid, r in at_once.resources.items()}
+    assert (["r0", None], {"r0": False, "r1": True}) == (
+        [r.id if r else None for r in found],
+        marks,
+    )
+
+
+def test_a_schema_5_backup_is_migrated_with_no_resource_marked_failed(tmp_path: Path) -> None:
+    path = tmp_path / "old.db"
+    path.write_bytes(SCHEMA_5_BACKUP.read_bytes())
+
+    catalog = reopen(path)
+
+    db = sqlite3.connect(path)
+    try:
+        version = db.execute("SELECT version FROM rr_actors_schema").fetchone()[0]
+        failed = db.execute("SELECT failed FROM resources").fetchall()
+    finally:
+        db.close()
+    [resource] = catalog.resources.values()
+    assert (6, [(0,)]) == (version, failed)
+    assert (resource, ["00000000-0000-4000-8000-000000000001"]) == (
+        catalog.find("leaf", "lidar"),
+        list(resource.consumers),
+    )
+    assert (False, {"for": "lidar", "load": 1}) == (resource.failed, resource.response)
