@@ -13,7 +13,8 @@ A catalog nobody persists keeps none (nobody would drain them).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 from rr_actors._catalog.records import Changes, ClientRecord, Resource
 
@@ -23,8 +24,9 @@ __all__ = ["ChangeLog"]
 class _DirtySet(dict[str, None]):
     """An insertion-ordered set of row ids (so the store can keep the rows' order)."""
 
-    def add(self, key: str) -> None:
-        self[key] = None
+    # `add(key)`: `self[key] = None`, in C (it is on every change's path); a key already
+    # in keeps its place either way
+    add: Any = dict.setdefault
 
 
 class _NoDirt(_DirtySet):
@@ -40,19 +42,17 @@ class ChangeLog:
     Attributes:
         resources: the ids of the resources changed (read by tests only).
         clients: the query ids of the client records changed (read by tests only).
+        resource_changed: `resource_changed(rid)`: have the next drain report resource
+            `rid` as it is then (its row, or its removal).
+        client_changed: `client_changed(query_id)`: the same for a client record.
     """
 
     def __init__(self, *, track_changes: bool) -> None:
         self.resources = _DirtySet() if track_changes else _NoDirt()
         self.clients = _DirtySet() if track_changes else _NoDirt()
-
-    def resource_changed(self, rid: str) -> None:
-        """Have the next drain report resource `rid` as it is then (its row, or its removal)."""
-        self.resources.add(rid)
-
-    def client_changed(self, query_id: str) -> None:
-        """Have the next drain report client record `query_id` as it is then."""
-        self.clients.add(query_id)
+        # the sets' own `add`, bound once: every change of the catalog calls one
+        self.resource_changed: Callable[[str], object] = self.resources.add
+        self.client_changed: Callable[[str], object] = self.clients.add
 
     def drain(
         self, resources: Mapping[str, Resource], clients: Mapping[str, ClientRecord]
