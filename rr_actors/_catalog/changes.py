@@ -1,8 +1,8 @@
 """The catalog's change log: which rows changed since the store last drained them.
 
 ```
- Served, ConsumerIds, ClientRecords ──► resource_changed(rid) / client_changed(qid)
- Catalog.mark_changed(rid) ───────────► resource_changed(rid)   (a write held back)
+ Served, ClientRecords ──► resource_changed(rid) / client_changed(qid)
+ Catalog.mark_changed(rid) ──► resource_changed(rid)     (a write held back)
  the store (_store/saver.py) ──► Catalog.drain_changes ──► drain(resources, clients)
                                   ──► Changes: each changed row as it is now, or None
 ```
