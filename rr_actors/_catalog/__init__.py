@@ -2,8 +2,17 @@
 
 - `records`: the rows (`Resource`, `ClientRecord`) and the `Changes` to store;
 - `digest`: request digests, so that equal (`==`) requests meet without comparing all;
-- `catalog`: the `Catalog` with its indexes, written only by its registrar actor; a
-  restored one reads rows it has not read yet through the store (`UnreadRows`).
+- `catalog`: the `Catalog`, written only by its registrar actor: the one name the
+  registrar and the store use, over its roles, each owning its own state:
+  - `served`: the resources in memory, their life's steps and listings, matched
+    through `index` (`RequestIndex`: by request digest);
+  - `consumers`: query id -> resource id (`ConsumerIds`);
+  - `clients`: the client records and each resource's dependencies (`ClientRecords`);
+  - `backlog`: a restored catalog's rows still in the backup, read in when a lookup
+    needs them, through the store (`UnreadRows`);
+  - `changes`: the rows changed since the store last drained them (`ChangeLog`);
+  - `invariants`: the check that every index agrees with the rows (for tests);
+- `texts`: display texts of requests and responses.
 """
 
 from rr_actors._catalog.catalog import Catalog

@@ -2,44 +2,63 @@
 
 The catalog records what a registrar serves (resources, each with its consumers' query
 ids) and what it holds elsewhere (client records, some of them dependencies of its own
-resources). Only the registrar actor writes it, so it has no locks. Every change marks
-the touched rows dirty; the persistence layer drains them as one transaction. Requests
-are matched by `==` through digests (`rr_actors._catalog.digest`).
+resources). Only the registrar actor writes it, so it has no locks. `Catalog` is the one
+name the registrar and the store use; it wires its roles, each in its own module and
+owning its own state, and sequences the steps that concern more than one:
+
+```
+ Catalog     wires the roles (bottom first); runs the steps     (the roles only)
+     │       that span them: a consumer added is its row's
+     │       (Served) and its index's (ConsumerIds)
+ backlog     rows still in the backup, read in when a lookup    the backup's reader
+     │       needs them: ConsumerIds.take, Served.take          (`UnreadRows`), or None
+ invariants  every index against the rows (for tests)           (none)
+     │
+ served      the resources in memory: their life's steps,       resources by id
+     │       matching, listings
+ consumers   query id -> resource id                            that index
+ clients     the client records, each resource's dependencies   records, dependencies
+     │
+ index       request digest (or in-process key) -> ids          buckets per server
+ changes     the rows changed since the last drain              changed row ids
+     │
+ records, digest, texts: the rows (`Resource`, `ClientRecord`, `Changes`), request
+                         digests, display texts
+
+ a change ──► ChangeLog ──► Catalog.drain_changes ──► the store (_store/saver.py) writes
+              the rows as they are then, one transaction
+```
+Each role changes another's state only by calling it, and calls only the roles below it
+(a layers contract in pyproject.toml checks it). Requests are matched by `==` through
+digests (`rr_actors._catalog.digest`).
 
 A resource its provider reported `FATAL` is marked `failed` (`mark_failed`) and is never
-matched again: an equal request loads a new resource, while the dead one stays, held by
-its consumers under their ids, until each released it (docs/explanation/semantics.md,
-rule 1). FATAL means dead: sharing a dead resource would let one holder that never
-releases it keep every later consumer from a working one.
+matched again (rule 1; why: `served`).
 
 It opens no file itself, but it is not free of I/O: a restored catalog asks the
 `UnreadRows` it was given (the store's reader of the backup) for the resources a lookup
-needs and has not read yet, and a restored resource decodes its request and response
-from their stored bytes on first use (`records.Resource`).
+needs and has not read yet (`backlog.Backlog`), and a restored resource decodes its
+request and response from their stored bytes on first use (`records.Resource`).
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable, Iterator
 from typing import Any
 
+from rr_actors._catalog import invariants
+from rr_actors._catalog.backlog import Backlog
+from rr_actors._catalog.changes import ChangeLog
+from rr_actors._catalog.clients import ClientRecords
+from rr_actors._catalog.consumers import ConsumerIds
 from rr_actors._catalog.digest import (
-    NO_DIGEST,
-    UNHASHABLE,
-    candidates_without_digest,
     identity_equality,
     request_digest,
     requests_equal,
     runtime_key,
 )
-from rr_actors._catalog.records import (
-    Changes,
-    ClientRecord,
-    Resource,
-    ResourceState,
-    UnreadRows,
-)
+from rr_actors._catalog.records import Changes, ClientRecord, Resource, UnreadRows
+from rr_actors._catalog.served import Served
 from rr_actors._types import Query
 from rr_actors.errors import UnknownQueryError
 
@@ -50,20 +69,6 @@ _UNKNOWN: Any = object()
 """A `digest` argument not given (`None` means "the request has none")."""
 
 
-class _DirtySet(dict[str, None]):
-    """An insertion-ordered set of row ids (so the store can keep the rows' order)."""
-
-    def add(self, key: str) -> None:
-        self[key] = None
-
-
-class _NoDirt(_DirtySet):
-    """The changed rows of a catalog nobody persists: none are kept (nobody drains them)."""
-
-    def add(self, key: str) -> None:
-        pass
-
-
 class Catalog:
     """The bookkeeping of one registrar (thesis 4.3.2), without the locks.
 
@@ -71,24 +76,37 @@ class Catalog:
     others are read from the backup (`UnreadRows`) when a lookup first needs them, so a
     restore does not cost a read of every row. Methods that look resources up (`find`,
     `resource_of`, `has_consumer`, `resources_of`, ...) see both.
+
+    Attributes:
+        track_changes: whether changed rows are kept for the store (`drain_changes`).
     """
 
     def __init__(self, *, track_changes: bool = True) -> None:
         self.track_changes = track_changes
-        self.resources: dict[str, Resource] = {}
-        self.clients: dict[str, ClientRecord] = {}
-        self._by_consumer: dict[str, str] = {}
-        # Dedup index, per server: request digest -> resource ids (most requests), and
-        # in-process key (`runtime_key`) -> resource ids for requests without a digest.
-        self._index: dict[str, dict[int, list[str]]] = {}
-        self._others: dict[str, dict[Any, list[str]]] = {}
-        self._other_keys: dict[str, Any] = {}  # resource id -> its key in `_others`
-        self._deps: dict[str, list[str]] = {}
-        # ordered: new rows drain in creation order
-        self._dirty_resources = _DirtySet() if track_changes else _NoDirt()
-        self._dirty_clients = _DirtySet() if track_changes else _NoDirt()
-        self._unread: UnreadRows | None = None  # a restored catalog's resources still on disk
-        self._unsorted = False  # resources read from disk since `resources` was last ordered
+        self._changes = ChangeLog(track_changes=track_changes)
+        self._served = Served(self._changes)
+        self._consumers = ConsumerIds()
+        self._clients = ClientRecords(self._changes)
+        self._backlog = Backlog(self._served, self._consumers)
+
+    @property
+    def resources(self) -> dict[str, Resource]:
+        """The resources in memory, by id (a restored catalog's others are in the backup)."""
+        return self._served.resources
+
+    @property
+    def clients(self) -> dict[str, ClientRecord]:
+        """The client records, by query id, oldest first."""
+        return self._clients.records
+
+    # The ids of the rows changed since the last drain (a test checks none are kept).
+    @property
+    def _dirty_resources(self) -> dict[str, None]:
+        return self._changes.resources
+
+    @property
+    def _dirty_clients(self) -> dict[str, None]:
+        return self._changes.clients
 
     # -- served resources -------------------------------------------------------------
 
@@ -116,7 +134,8 @@ class Catalog:
         plain values (those with a digest, `request_digest`) are compared here; the
         resources only a `==` that runs such code can judge are returned, for the
         caller to compare (the registrar does it off its actor thread, with a bound).
-        Restored requests it needs are read from the backup first.
+        Restored requests it needs are read from the backup first. A resource marked
+        `failed` is never returned.
 
         Args:
             server: the server's name.
@@ -132,72 +151,28 @@ class Catalog:
         """
         if digest is _UNKNOWN:
             digest = request_digest(request)
-        found, undecided = self._lookup(server, request, digest, key)
-        if found is None and self._unread is not None:
+        found, undecided = self._served.match(server, request, digest, key)
+        if found is None and self._backlog.remaining():
             if digest is not None:
-                self._read(self._unread.by_request(server, digest))
+                self._backlog.read_request(server, digest)
             elif not identity_equality(request):  # may equal any value: read them all
-                self._read(self._unread.of_server(server))
+                self._backlog.read_server(server)
             else:
                 return None, undecided  # equal only to itself: never to a value read back
-            found, undecided = self._lookup(server, request, digest, key)
+            found, undecided = self._served.match(server, request, digest, key)
         return found, undecided
 
-    def _lookup(
-        self, server: str, request: Any, digest: int | None, key: Any
-    ) -> tuple[Resource | None, list[Resource]]:
-        digested = self._index.get(server)
-        others = self._others.get(server)
-        undecided: list[str]
-        if digest is not None:
-            for rid in digested.get(digest, ()) if digested else ():
-                resource = self.resources[rid]
-                if resource.failed:  # reported FATAL: never matched again
-                    continue
-                if requests_equal(resource.request, request):  # both plain: no user code
-                    return resource, []
-            # A stored request without a digest may still be equal (rare). A plain
-            # request's `runtime_key` is a built-in `hash()` (or none): no user code.
-            undecided = candidates_without_digest(others, runtime_key(request)) if others else []
-        else:
-            undecided = candidates_without_digest(others, key) if others else []
-            if digested and not identity_equality(request):
-                # A custom `__eq__` may equal a plain value: compare with every one.
-                undecided += [rid for bucket in digested.values() for rid in bucket]
-        resources = self.resources
-        return None, [resources[rid] for rid in undecided if not resources[rid].failed]
-
     def begin_load(self, rid: str, server: str, request: Any, *, key: Any = None) -> Resource:
-        """Add a resource in the `LOADING` state.
-
-        Args:
-            rid: its id.
-            server: its server's name.
-            request: its request.
-            key: for a request without a digest, its `runtime_key` if the caller computed
-                it already (off the actor thread: it runs the request's `__hash__`).
-        """
-        resource = Resource(rid, server, request)
-        self.resources[rid] = resource
-        self._index_request(resource, key)
-        self._dirty_resources.add(rid)
-        return resource
+        """Add a resource in the `LOADING` state (`Served.begin_load`)."""
+        return self._served.begin_load(rid, server, request, key)
 
     def finish_load(self, rid: str, response: Any) -> Resource:
         """Mark a loading resource `LOADED` with its response."""
-        resource = self.resources[rid]
-        resource.response = response
-        resource.response_version += 1
-        resource.state = ResourceState.LOADED
-        self._dirty_resources.add(rid)
-        return resource
+        return self._served.finish_load(rid, response)
 
     def set_response(self, rid: str, response: Any) -> None:
         """Replace a resource's stored response."""
-        resource = self.resources[rid]
-        resource.response = response
-        resource.response_version += 1
-        self._dirty_resources.add(rid)
+        self._served.set_response(rid, response)
 
     def set_texts(
         self,
@@ -208,59 +183,26 @@ class Catalog:
         label: str | None = None,
     ) -> None:
         """Set a resource's display texts or label (those given; `None`: keep it)."""
-        resource = self.resources[rid]
-        if request_text is not None:
-            resource.request_text = request_text
-        if response_text is not None:
-            resource.response_text = response_text
-        if label is not None:
-            resource.label = label
-        self._dirty_resources.add(rid)
+        self._served.set_texts(rid, request_text, response_text, label)
 
     def mark_failed(self, rid: str) -> Resource:
-        """Mark a resource dead: its provider reported it `FATAL`.
-
-        From now on no request matches it (`find`, `lookup`): an equal request loads a
-        new resource. It keeps its consumers until each releases it, and it is unloaded
-        as any other when the last one does.
-        """
-        resource = self.resources[rid]
-        if not resource.failed:
-            resource.failed = True
-            self._dirty_resources.add(rid)
-        return resource
+        """Mark a resource dead: its provider reported it `FATAL` (`Served.mark_failed`)."""
+        return self._served.mark_failed(rid)
 
     def begin_unload(self, rid: str) -> Resource:
         """Mark a resource `UNLOADING` (its last consumer left)."""
-        resource = self.resources[rid]
-        resource.state = ResourceState.UNLOADING
-        self._dirty_resources.add(rid)
-        return resource
+        return self._served.begin_unload(rid)
 
     def remove_resource(self, rid: str) -> Resource:
         """Delete a resource that has no consumers any more."""
-        resource = self.resources.pop(rid)
-        assert not resource.consumers, "a resource with consumers cannot be removed"
-        key = self._other_keys.pop(rid, None)
-        buckets: dict[Any, list[str]]
-        if key is None:
-            key, buckets = resource.digest, self._index[resource.server]
-        else:
-            buckets = self._others[resource.server]
-        bucket = buckets[key]
-        bucket.remove(rid)
-        if not bucket:
-            del buckets[key]
-        self._dirty_resources.add(rid)
-        return resource
+        return self._served.remove(rid)
 
     def add_consumer(self, rid: str, query_id: str, origin_rr: str) -> None:
-        """Record one more consumer id of a resource."""
+        """Record one more consumer id of a resource, held by registrar `origin_rr`."""
         if self.has_consumer(query_id):
             raise ValueError(f"query id {query_id} is already a consumer")
-        self.resources[rid].consumers[query_id] = origin_rr
-        self._by_consumer[query_id] = rid
-        self._dirty_resources.add(rid)
+        self._served.add_consumer(rid, query_id, origin_rr)
+        self._consumers.add(query_id, rid)
 
     def release(self, query_id: str) -> Resource:
         """Remove one consumer id and return its resource.
@@ -269,9 +211,8 @@ class Catalog:
             UnknownQueryError: the id is not a consumer of any resource here.
         """
         resource = self.resource_of(query_id)
-        del resource.consumers[query_id]
-        del self._by_consumer[query_id]
-        self._dirty_resources.add(resource.id)
+        self._served.drop_consumer(resource, query_id)
+        self._consumers.remove(query_id)
         return resource
 
     def resource_of(self, query_id: str) -> Resource:
@@ -280,26 +221,16 @@ class Catalog:
         Raises:
             UnknownQueryError: the id is not a consumer of any resource here.
         """
-        rid = self._by_consumer.get(query_id)
-        if rid is None and self._unread is not None:
-            resource = self._unread.by_consumer(query_id)
-            if resource is not None:
-                self._read([resource])
-                rid = resource.id
+        rid = self._consumers.rid_of(query_id)
+        if rid is None:
+            rid = self._backlog.read_consumer(query_id)
         if rid is None:
             raise UnknownQueryError(f"unknown or released query id {query_id!r}")
-        return self.resources[rid]
+        return self._served.resources[rid]
 
     def has_consumer(self, query_id: str) -> bool:
         """Whether `query_id` is a consumer id of one of the resources served here."""
-        if query_id in self._by_consumer:
-            return True
-        if self._unread is not None:
-            resource = self._unread.by_consumer(query_id)
-            if resource is not None:
-                self._read([resource])
-                return True
-        return False
+        return query_id in self._consumers or self._backlog.read_consumer(query_id) is not None
 
     def queries(self, resource: Resource, serving_rr: str) -> Iterator[Query]:
         """Yield one `Query` per consumer id of `resource`."""
@@ -310,83 +241,47 @@ class Catalog:
 
     def server_queries(self, server: str, serving_rr: str) -> list[Query]:
         """Every consumer query of every loaded resource of `server`."""
-        if self._unread is not None:
-            self._read(self._unread.of_server(server))
+        self._backlog.read_server(server)
         return [
             query
-            for index in (self._index, self._others)
-            for bucket in index.get(server, {}).values()
-            for rid in bucket
-            for query in self.queries(self.resources[rid], serving_rr)
+            for resource in self._served.indexed(server)
+            for query in self.queries(resource, serving_rr)
         ]
 
     def resources_of(self, server: str) -> list[Resource]:
         """Every resource of `server`, oldest first."""
-        if self._unread is not None:
-            self._read(self._unread.of_server(server))
-        return [r for r in self._in_order().values() if r.server == server]
+        self._backlog.read_server(server)
+        return self._served.of_server(server)
 
     def consumers_from(self, origin_rr: str) -> list[str]:
         """The consumer ids, of any resource here, that registrar `origin_rr` holds."""
-        if self._unread is not None:
-            self._read(self._unread.with_origin(origin_rr))
-        return [
-            query_id
-            for resource in self.resources.values()
-            for query_id, origin in resource.consumers.items()
-            if origin == origin_rr
-        ]
+        self._backlog.read_origin(origin_rr)
+        return self._served.consumers_from(origin_rr)
 
     def consumer_origins(self) -> set[str]:
         """The registrars that hold consumer ids of the resources in memory (`sweep`
         gives those of the resources still in the backup)."""
-        return {o for resource in self.resources.values() for o in resource.consumers.values()}
+        return self._served.consumer_origins()
 
     def consumer_ids_from(self, origin_rr: str) -> set[str]:
         """The consumer ids here that `origin_rr` holds (reading no resource from the backup)."""
-        ids = {
-            query_id
-            for resource in self.resources.values()
-            for query_id, origin in resource.consumers.items()
-            if origin == origin_rr
-        }
-        if self._unread is not None:
-            ids.update(self._unread.consumer_ids_from(origin_rr))
+        ids = set(self._served.consumers_from(origin_rr))
+        ids.update(self._backlog.consumer_ids_from(origin_rr))
         return ids
 
     def unheld(self) -> list[Resource]:
-        """Resources in memory loaded that no consumer holds, oldest first (`sweep`
-        finds those still in the backup).
-
-        A restored catalog may have some: their last consumer left, and a crash came
-        before their unload began.
-        """
-        return [
-            resource
-            for resource in self._in_order().values()
-            if resource.state is ResourceState.LOADED and not resource.consumers
-        ]
+        """Resources in memory loaded that no consumer holds, oldest first (`Served.unheld`;
+        `sweep` finds those still in the backup)."""
+        return self._served.unheld()
 
     def sweep(self, after: int) -> tuple[list[Resource], set[str], int | None]:
-        """Look at the next slice of the resources still in the backup (row keys above
-        `after`, a bounded number of them).
-
-        Returns:
-            `(unheld, origins, last)`: those in it loaded and held by no consumer (read
-            into memory now), the registrars holding consumer ids in it, and the row
-            key to sweep on from (`None`: nothing is left to sweep).
-        """
-        if self._unread is None:
-            return [], set(), None
-        unheld, origins, last = self._unread.sweep(after)
-        self._read(unheld)
-        return unheld, origins, last
+        """Look at the next slice of the resources still in the backup (`Backlog.sweep`)."""
+        return self._backlog.sweep(after)
 
     def read_all(self) -> dict[str, Resource]:
         """Every resource (reading those still in the backup), by id, oldest first."""
-        if self._unread is not None:
-            self._read(self._unread.every())
-        return self._in_order()
+        self._backlog.read_all()
+        return self._served.in_order()
 
     def rows(self, limit: int) -> tuple[list[tuple[str, ...]], list[tuple[str, ...]]] | None:
         """Every resource and consumer id as a row of strings, reading none from the backup.
@@ -395,89 +290,33 @@ class Catalog:
             limit: the most rows of either kind to return.
 
         Returns:
-            `(resources, consumers)`: `(id, server, state, digest, failed)` per resource,
-            oldest first (`digest` in decimal, `""` for a request without one; `failed`
-            `"failed"` if its provider reported it `FATAL`, else `""`), and `(query id,
-            resource id, consumer registrar)` per consumer id, by resource, in arrival
-            order; `None` if either kind has more than `limit` rows.
+            `(resources, consumers)`, oldest first (the rows: `Served.listing`); `None`
+            if either kind has more than `limit` rows.
         """
-        memory = self._in_order()
-        resources: list[tuple[float, tuple[str, ...]]] = []
-        consumers: list[tuple[float, tuple[str, ...]]] = []
-        for resource in memory.values():
-            order = _stored_order((resource.id, resource))
-            digest = resource.digest
-            plain = digest is not None and digest != NO_DIGEST
-            row = (
-                resource.id,
-                resource.server,
-                resource.state.value,
-                str(digest) * plain,
-                "failed" * resource.failed,
-            )
-            resources.append((order, row))
-            consumers.extend(
-                (order, (qid, resource.id, o)) for qid, o in resource.consumers.items()
-            )
-            if len(resources) > limit or len(consumers) > limit:
-                return None
-        if self._unread is not None:
-            unread = self._unread.listing(limit)
-            if unread is None:
-                return None
-            resources = sorted([*resources, *unread[0]], key=_first)  # stable: arrival order kept
-            consumers = sorted([*consumers, *unread[1]], key=_first)
-            if len(resources) > limit or len(consumers) > limit:
-                return None
-        return [row for _, row in resources], [row for _, row in consumers]
+        memory = self._served.listing(limit)
+        listing = None if memory is None else self._backlog.merged(memory, limit)
+        if listing is None:
+            return None
+        return [row for _, row in listing[0]], [row for _, row in listing[1]]
 
     def counts(self) -> tuple[int, int]:
         """How many resources there are, and how many consumer ids (reading no row)."""
-        resources = len(self.resources)
-        consumers = sum(len(resource.consumers) for resource in self.resources.values())
-        if self._unread is not None:
-            unread = self._unread.counts()
-            resources, consumers = resources + unread[0], consumers + unread[1]
-        return resources, consumers
-
-    def _in_order(self) -> dict[str, Resource]:
-        """`resources`, oldest first: restored ones in their stored order, then newer ones.
-
-        Lookups read restored resources in whatever order traffic asks for them; they are
-        put back in order (a stable sort) only when an ordered listing is asked for.
-        """
-        if self._unsorted:
-            self.resources = dict(sorted(self.resources.items(), key=_stored_order))
-            self._unsorted = False
-        return self.resources
+        memory, unread = self._served.counts(), self._backlog.counts()
+        return memory[0] + unread[0], memory[1] + unread[1]
 
     # -- client records ---------------------------------------------------------------
 
     def add_client(self, record: ClientRecord) -> None:
         """Record an outbound query (in flight until `client_loaded`)."""
-        qid = record.query.id
-        if qid in self.clients:
-            raise ValueError(f"query id {qid} is already a client record")
-        self.clients[qid] = record
-        if record.parent is not None:
-            self._deps.setdefault(record.parent, []).append(qid)
-        self._dirty_clients.add(qid)
+        self._clients.add(record)
 
     def client_loaded(self, query_id: str, response: Any) -> ClientRecord | None:
         """Mark an outbound query answered; `None` if the record is gone."""
-        record = self.clients.get(query_id)
-        if record is None:
-            return None
-        record.query = record.query.with_response(response)
-        record.loaded = True
-        record.response_version += 1
-        self._dirty_clients.add(query_id)
-        return record
+        return self._clients.loaded(query_id, response)
 
     def set_client_text(self, query_id: str, request_text: str) -> None:
         """Set a client record's request display text."""
-        self.clients[query_id].request_text = request_text
-        self._dirty_clients.add(query_id)
+        self._clients.set_text(query_id, request_text)
 
     def remove_client(self, query_id: str) -> ClientRecord:
         """Delete an outbound query record.
@@ -485,20 +324,11 @@ class Catalog:
         Raises:
             UnknownQueryError: no such record.
         """
-        record = self.clients.pop(query_id, None)
-        if record is None:
-            raise UnknownQueryError(f"unknown or released query id {query_id!r}")
-        if record.parent is not None:
-            deps = self._deps[record.parent]
-            deps.remove(query_id)
-            if not deps:
-                del self._deps[record.parent]
-        self._dirty_clients.add(query_id)
-        return record
+        return self._clients.remove(query_id)
 
     def dependencies(self, rid: str) -> list[ClientRecord]:
         """The client records owned by resource `rid`, oldest first."""
-        return [self.clients[qid] for qid in self._deps.get(rid, ())]
+        return self._clients.dependencies(rid)
 
     # -- persistence ------------------------------------------------------------------
 
@@ -508,7 +338,7 @@ class Catalog:
         For a change whose write was held back (an in-doubt resource settled while its
         manager's `setup` runs): the write of what it is by then is owed.
         """
-        self._dirty_resources.add(rid)
+        self._changes.resource_changed(rid)
 
     def drain_changes(self) -> Changes:
         """Return and forget the rows changed since the last drain.
@@ -516,13 +346,7 @@ class Catalog:
         Without `track_changes` (a catalog nobody persists) this is always empty, and
         nothing is kept meanwhile (a registrar without a backup never drains).
         """
-        changes = Changes(
-            {rid: self.resources.get(rid) for rid in self._dirty_resources},
-            {qid: self.clients.get(qid) for qid in self._dirty_clients},
-        )
-        self._dirty_resources.clear()
-        self._dirty_clients.clear()
-        return changes
+        return self._changes.drain(self._served.resources, self._clients.records)
 
     @classmethod
     def restore(
@@ -531,7 +355,7 @@ class Catalog:
         clients: Iterable[ClientRecord],
         unread: UnreadRows | None = None,
     ) -> Catalog:
-        """Build a catalog from stored rows (nothing is marked dirty).
+        """Build a catalog from stored rows (nothing is marked changed).
 
         Resources whose `digest` is known are indexed without looking at their request
         (a restored request stays encoded until first used). `unread` holds the stored
@@ -539,90 +363,14 @@ class Catalog:
         """
         catalog = cls(track_changes=True)
         if unread is not None and unread.remaining:
-            catalog._unread = unread
-        catalog.resources = {resource.id: resource for resource in resources}
-        catalog._by_consumer = {
-            qid: rid for rid, resource in catalog.resources.items() for qid in resource.consumers
-        }
-        index = catalog._index
-        for rid, resource in catalog.resources.items():
-            digest = resource.digest
-            if digest is not None and digest != NO_DIGEST:
-                server = index.get(resource.server)
-                if server is None:
-                    server = index[resource.server] = {}
-                bucket = server.get(digest)
-                if bucket is None:
-                    server[digest] = [rid]
-                else:
-                    bucket.append(rid)
-            else:
-                catalog._index_request(resource)
-        deps = catalog._deps
-        catalog.clients = {record.query.id: record for record in clients}
-        for qid, record in catalog.clients.items():
-            if record.parent is not None:
-                deps.setdefault(record.parent, []).append(qid)
+            catalog._backlog.rows = unread
+        served = catalog._served
+        served.restore(resources)
+        catalog._consumers.restore(served.resources.values())
+        catalog._clients.restore(clients)
         return catalog
 
     def check_invariants(self) -> None:
         """Raise `AssertionError` if the indexes disagree with the rows (for tests)."""
         self.read_all()
-        by_consumer = {q: r.id for r in self.resources.values() for q in r.consumers}
-        assert by_consumer == self._by_consumer, "consumer index out of sync"
-        for resource in self.resources.values():
-            if resource.state is ResourceState.LOADED and not resource.failed:
-                equal = [
-                    r
-                    for r in self.resources_of(resource.server)
-                    if r.id != resource.id
-                    and not r.failed
-                    and requests_equal(r.request, resource.request)
-                ]
-                assert not equal, f"resource {resource.id} is loaded twice"
-        deps: dict[str, list[str]] = {}
-        for qid, record in self.clients.items():
-            if record.parent is not None:
-                assert record.parent in self.resources, f"dependency {qid} has no owner"
-                deps.setdefault(record.parent, []).append(qid)
-        assert deps == self._deps, "dependency index out of sync"
-
-    def _read(self, resources: list[Resource]) -> None:
-        """Take resources read from the backup into memory (and into the indexes)."""
-        for resource in resources:
-            self.resources[resource.id] = resource
-            self._unsorted = True
-            for query_id in resource.consumers:
-                self._by_consumer[query_id] = resource.id
-            self._index_request(resource)
-        if self._unread is not None and not self._unread.remaining:
-            self._unread = None  # everything is in memory: stop asking
-
-    def _index_request(self, resource: Resource, key: Any = None) -> None:
-        """Index a resource new here (`key`: see `begin_load`) or read back (no key).
-
-        A request read back from the backup without a digest is indexed with the
-        unhashable ones rather than by its `hash()`: no code of its class runs for that.
-        """
-        digest = resource.digest
-        if digest is None:
-            digest = request_digest(resource.request)
-            resource.digest = NO_DIGEST if digest is None else digest
-            if key is None and digest is None:
-                key = runtime_key(resource.request)
-        if digest is not None and digest != NO_DIGEST:
-            index = self._index.setdefault(resource.server, {})
-            index.setdefault(digest, []).append(resource.id)
-        else:
-            key = self._other_keys[resource.id] = UNHASHABLE if key is None else key
-            self._others.setdefault(resource.server, {}).setdefault(key, []).append(resource.id)
-
-
-def _first(item: tuple[float, Any]) -> float:
-    return item[0]
-
-
-def _stored_order(item: tuple[str, Resource]) -> float:
-    """Sort key: a restored resource's row key in its backup; one created since is newer."""
-    order: float = item[1].__dict__.get("_order", math.inf)
-    return order
+        invariants.check(self._served, self._consumers, self._clients)
