@@ -262,7 +262,7 @@ class ResourceRegistrar:
             The subscription; `close()` it (or use it in a `with` block).
 
         Raises:
-            ConfigError: `maxsize` is not a positive int.
+            ConfigError: `callback` is not callable, or `maxsize` not a positive int.
         """
         return self._events.subscribe(callback, maxsize=maxsize, name=f"{self.name}-events")
 

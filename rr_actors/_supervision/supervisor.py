@@ -494,6 +494,8 @@ class Supervisor:
             UnknownServerError: as for `ResourceRegistrar.call`.
             RegistrarStoppedError: as for `ResourceRegistrar.call` (not when the
                 supervisor stopped the provider to restart it).
+            ConfigError: `consumer` is not a registrar, `timeout` not a positive number
+                of seconds, or as for `ResourceRegistrar.call`; nothing was sent.
         """
         abandon = functools.partial(retry.abandon_after_restart, self._tree, self._node)
         return retry.call_with_retry(
@@ -540,7 +542,7 @@ class Supervisor:
             (`with sup.subscribe(cb): ...`).
 
         Raises:
-            ConfigError: `maxsize` is not a positive int.
+            ConfigError: `callback` is not callable, or `maxsize` not a positive int.
         """
         return self._watch.subscribe(callback, maxsize=maxsize)
 
