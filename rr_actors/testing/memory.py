@@ -49,7 +49,9 @@ from rr_actors.errors import (
     RegistrarStoppedError,
     RegistrarUnavailableError,
     RrError,
+    UnknownRegistrarError,
     UnknownServerError,
+    _known_names,
 )
 
 __all__ = ["MemoryAddress", "MemoryNetwork"]
@@ -238,10 +240,20 @@ class MemoryNetwork:
         """The process serving registrar `name` is gone (a `SIGKILL`, a cut link): every
         reply waiting on it fails at once with `RegistrarUnavailableError`, frames on
         the way to it are dropped, later sends to it raise that error. Its registrar
-        keeps running in this process (stop it yourself)."""
+        keeps running in this process (stop it yourself). Cutting it again does nothing.
+
+        Raises:
+            UnknownRegistrarError: no registrar of that name was ever served on the
+                network (a typo would otherwise cut nothing, and the test pass for it).
+        """
         served = self._served.get(name)
         if served is not None:
             self._end(served, "unavailable")
+        elif name not in self._gone:
+            raise UnknownRegistrarError(
+                f"no registrar named {name!r} was served on the in-memory network "
+                f"{self.system!r}" + _known_names(name, self._served)
+            )
 
     # -- the link (the messenger's) -----------------------------------------------------
 
