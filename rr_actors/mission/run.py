@@ -515,9 +515,14 @@ def _check_hosts_args(args: argparse.Namespace) -> None:
 
 
 def _check_observe_args(args: argparse.Namespace) -> None:
-    """`--allow-faults` and `--linger` go with `--observe`; `--linger` is not negative."""
+    """`--allow-faults`, `--linger` and `--port` go with `--observe`; `--linger` is not
+    negative, `--port` a port (checked before anything starts)."""
     if not args.observe and (args.allow_faults or args.linger is not None):
         raise rr.ConfigError("--allow-faults and --linger need --observe")
+    if not args.observe and args.port != 0:
+        raise rr.ConfigError("--port needs --observe (it is the observer's port)")
+    if not 0 <= args.port <= 65535:
+        raise rr.ConfigError(f"--port must be from 0 to 65535, got {args.port}")
     if args.linger is not None and not (args.linger >= 0 and math.isfinite(args.linger)):
         raise rr.ConfigError(f"--linger must be a number of seconds >= 0, got {args.linger}")
 

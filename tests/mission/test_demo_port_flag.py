@@ -1,0 +1,48 @@
+"""`rr-actors demo --port`: a usage error before anything starts, as `--linger` is.
+
+`--port` without `--observe` used to be ignored silently (the mission ran, no page), and
+a port out of range was refused only after the managers had started.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+
+def demo(*argv: str) -> subprocess.CompletedProcess[str]:
+    """`rr-actors demo ARGV` as a separate program (60 s at most)."""
+    return subprocess.run(
+        [sys.executable, "-m", "rr_actors", "demo", *argv],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["--port", "8080"], "--port needs --observe (it is the observer's port)"),
+        (["--observe", "--port", "-5"], "--port must be from 0 to 65535, got -5"),
+        (["--observe", "--port", "70000"], "--port must be from 0 to 65535, got 70000"),
+    ],
+    ids=["without-observe", "negative", "too-big"],
+)
+def test_a_port_the_demo_cannot_use_is_a_usage_error_before_anything_starts(
+    tmp_path: Path, argv: list[str], says: str
+) -> None:
+    out = tmp_path / "out"
+
+    result = demo("--fast", "--out", str(out), *argv)
+
+    assert (2, "", f"rr-actors demo: {says}\n") == (
+        result.returncode,
+        result.stdout,
+        result.stderr,
+    )
+    assert not out.exists()  # nothing started, nothing written
