@@ -445,6 +445,10 @@ class ResourceRegistrar:
 
         Raises:
             UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            ConfigError: `status` is not a `Status`, `query_id` or `message` not a str.
+            MessageTooLargeError: the status is over the `max_message_bytes` of a
+                consumer registrar in another process (named): that one did not hear it,
+                the others did (a `FATAL` still marks the resource, rule 1).
             CallTimeoutError: not delivered everywhere within `timeout` seconds.
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.

@@ -583,13 +583,14 @@ class RunOnActor:
     reply: Reply
 
 
-_TEXT_FIELDS: dict[type, tuple[str, ...]] = {}
-"""Message type -> the names of its fields declared `str` (found on first use)."""
+_TEXT_FIELDS: dict[type, tuple[tuple[str, bool], ...]] = {}
+"""Message type -> `(name, may be None)` of its fields declared `str` or `str | None`
+(found on first use)."""
 
 
 def misfit(message: object) -> ConfigError | None:
-    """A `ConfigError` naming the field of `message` declared `str` that holds something
-    else (`None` if none does).
+    """A `ConfigError` naming the field of `message` declared `str` (or `str | None`) that
+    holds something else (`None` if none does).
 
     A careless caller (`unload(["id"])`) or a buggy peer must not make a registrar die of
     a `TypeError` deep in a handler (an unhashable id, a name `difflib` cannot read): the
@@ -600,12 +601,14 @@ def misfit(message: object) -> ConfigError | None:
     names = _TEXT_FIELDS.get(kind)
     if names is None:
         fields = dataclasses.fields(kind) if dataclasses.is_dataclass(kind) else ()
-        names = _TEXT_FIELDS[kind] = tuple(f.name for f in fields if f.type in ("str", str))
-    for name in names:
+        names = _TEXT_FIELDS[kind] = tuple(
+            (f.name, f.type == "str | None") for f in fields if f.type in ("str", "str | None")
+        )
+    for name, optional in names:
         value = getattr(message, name)
-        if not isinstance(value, str):
+        if not isinstance(value, str) and not (optional and value is None):
             return ConfigError(
-                f"{name} must be a str, got a {type(value).__qualname__[:80]} "
-                f"({kind.__name__} refused)"
+                f"{name} must be a str{' or None' * optional}, not "
+                f"{type(value).__qualname__[:80]} ({kind.__name__} refused)"
             )
     return None

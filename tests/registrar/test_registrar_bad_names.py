@@ -117,3 +117,29 @@ def test_a_load_from_another_process_with_a_field_of_the_wrong_type_is_refused(
     with pytest.raises(rr.ConfigError, match=named):
         wait(reply.future, 10, "the hostile load")
     assert "x" == provider.call(provider.name, "leaf", "x", timeout=10).response  # serving
+
+
+def test_a_status_message_that_is_not_a_str_is_a_config_error_and_nobody_hears_it(
+    make_registrar, serve, inbox
+):
+    provider = make_registrar("provider")
+    serve(provider, "leaf")
+    heard = inbox()
+    held = provider.call(provider.name, "leaf", "x", on_status=heard, timeout=10)
+
+    with pytest.raises(rr.ConfigError, match="message"):
+        provider.send_status(held.id, rr.Status.ERROR, 12345, timeout=10)  # type: ignore[arg-type]
+
+    provider.send_status(held.id, rr.Status.ERROR, "a str", timeout=10)
+    assert ["a str"] == [u.message for _, u in heard.updates]  # (events.jsonl stays readable)
+
+
+def test_settle_in_doubt_with_an_unhashable_id_is_a_config_error_and_the_registrar_serves():
+    registrar = rr.ResourceRegistrar.start(f"settler-{uuid.uuid4().hex[:8]}")
+    try:
+        with pytest.raises(rr.ConfigError, match="query_id"):
+            registrar.settle_in_doubt(["not", "hashable"])  # type: ignore[arg-type]
+
+        assert [] == registrar.client_queries(timeout=10)
+    finally:
+        registrar.stop()
