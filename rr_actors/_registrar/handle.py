@@ -547,6 +547,9 @@ class ResourceRegistrar:
 
         Raises:
             UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            MessageTooLargeError: the response is over the `max_message_bytes` of a
+                consumer registrar in another process (named): its client record keeps
+                the old response; this registrar's catalog and the others have the new.
             CallTimeoutError: not delivered within `timeout` seconds.
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
