@@ -542,8 +542,11 @@ class Supervisor:
             (`with sup.subscribe(cb): ...`).
 
         Raises:
-            ConfigError: `callback` is not callable, or `maxsize` not a positive int.
+            ConfigError: `callback` is not callable, `maxsize` not a positive int, or the
+                supervisor was stopped (no event would come).
         """
+        if self._stopped:
+            raise ConfigError(f"supervisor {self.name!r} was stopped: no event will come")
         return self._watch.subscribe(callback, maxsize=maxsize)
 
     def flush_events(self, *, timeout: float = 5.0) -> bool:

@@ -69,3 +69,12 @@ def test_observe_with_a_sock_that_is_not_a_socket_is_a_config_error_naming_it(
     pytest.importorskip("uvicorn")
     with pytest.raises(rr.ConfigError, match="sock"):
         sup.observe(sock="127.0.0.1:8080")  # type: ignore[arg-type]
+
+
+def test_subscribe_after_stop_is_a_config_error_not_a_subscription_that_never_hears() -> None:
+    sup = rr.Supervisor([rr.ManagerSpec(f"erm-{uuid.uuid4().hex[:8]}", echo_setup)])
+    sup.start()
+    sup.stop()
+
+    with pytest.raises(rr.ConfigError, match="was stopped"):
+        sup.subscribe(print)
