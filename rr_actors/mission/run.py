@@ -104,11 +104,13 @@ def prepare_out(path: Path, *, what: str = "out") -> Path:
         `path`.
 
     Raises:
-        ConfigError: `path` is a file, or cannot be created or written to; the message
-            names it and the cause.
+        ConfigError: `path` is a file, or cannot be created or written to, or it holds a
+            `state/` or `bus/` that no mission wrote (the mission empties them); the
+            message names it and the cause.
     """
     if path.exists() and not path.is_dir():
         raise rr.ConfigError(f"{what} {str(path)!r} is a file, not a directory")
+    _check_not_others(path, what)
     try:
         path.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=path, prefix=".rr-actors-probe-"):
@@ -117,6 +119,29 @@ def prepare_out(path: Path, *, what: str = "out") -> Path:
         cause = exc.strerror or exc.__class__.__name__
         raise rr.ConfigError(f"{what} {str(path)!r}: cannot write there ({cause})") from exc
     return path
+
+
+def _check_not_others(path: Path, what: str) -> None:
+    """A mission empties `path/state` and `path/bus` (`Mission.run`): refuse a folder whose
+    `state/` or `bus/` holds files and that no mission used (no `OUT_LOCK` in it), such as
+    `--out ~` with the user's own `~/state`, before anything is removed."""
+    if (path / OUT_LOCK).exists():
+        return  # a mission's folder: its state/ and bus/ are a mission's
+    for sub in ("state", "bus"):
+        where = path / sub
+        if not os.path.lexists(where):
+            continue
+        try:
+            others = not where.is_dir() or any(where.iterdir())
+        except OSError as exc:
+            raise rr.ConfigError(
+                f"{what} {str(path)!r}: cannot read {sub}/ ({exc.strerror or exc})"
+            ) from exc
+        if others:
+            raise rr.ConfigError(
+                f"{what} {str(path)!r} holds a {sub}/ that no mission wrote (no {OUT_LOCK} "
+                f"there), and the mission empties {sub}/ first: give it another folder"
+            )
 
 
 def run_mission(

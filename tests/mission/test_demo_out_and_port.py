@@ -1,7 +1,8 @@
-"""`rr-actors demo --port`: a usage error before anything starts, as `--linger` is.
+"""`rr-actors demo --port` and `--out`: refused before anything starts or is removed.
 
 `--port` without `--observe` used to be ignored silently (the mission ran, no page), and
-a port out of range was refused only after the managers had started.
+a port out of range was refused only after the managers had started. `--out` a folder
+whose `state/` or `bus/` a demo never wrote (`--out ~`) used to have them emptied.
 """
 
 from __future__ import annotations
@@ -46,3 +47,18 @@ def test_a_port_the_demo_cannot_use_is_a_usage_error_before_anything_starts(
         result.stderr,
     )
     assert not out.exists()  # nothing started, nothing written
+
+
+@pytest.mark.parametrize("sub", ["state", "bus"])
+def test_a_folder_whose_state_or_bus_no_demo_wrote_is_refused_and_kept(
+    tmp_path: Path, sub: str
+) -> None:
+    mine = tmp_path / sub / "notes.txt"  # `--out ~` with the user's own ~/state
+    mine.parent.mkdir()
+    mine.write_text("mine\n")
+
+    result = demo("--fast", "--out", str(tmp_path))
+
+    assert (2, "") == (result.returncode, result.stdout)
+    assert f"holds a {sub}/ that no mission wrote" in result.stderr
+    assert ("mine\n", [sub]) == (mine.read_text(), sorted(p.name for p in tmp_path.iterdir()))
