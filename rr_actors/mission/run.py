@@ -105,8 +105,8 @@ def prepare_out(path: Path, *, what: str = "out") -> Path:
 
     Raises:
         ConfigError: `path` is a file, or cannot be created or written to, or it holds a
-            `state/` or `bus/` that no mission wrote (the mission empties them); the
-            message names it and the cause.
+            `state/`, `bus/` or `certs/` that no mission wrote (the mission empties
+            them); the message names it and the cause.
     """
     if path.exists() and not path.is_dir():
         raise rr.ConfigError(f"{what} {str(path)!r} is a file, not a directory")
@@ -122,12 +122,13 @@ def prepare_out(path: Path, *, what: str = "out") -> Path:
 
 
 def _check_not_others(path: Path, what: str) -> None:
-    """A mission empties `path/state` and `path/bus` (`Mission.run`): refuse a folder whose
-    `state/` or `bus/` holds files and that no mission used (no `OUT_LOCK` in it), such as
-    `--out ~` with the user's own `~/state`, before anything is removed."""
+    """A mission empties `path/state` and `path/bus` (`Mission.run`), and on two hosts
+    replaces `path/certs` (`make_certs`): refuse a folder that holds one of them with files
+    in it and that no mission used (no `OUT_LOCK` in it), such as `--out ~` with the
+    user's own `~/state`, before anything is removed."""
     if (path / OUT_LOCK).exists():
-        return  # a mission's folder: its state/ and bus/ are a mission's
-    for sub in ("state", "bus"):
+        return  # a mission's folder: its state/, bus/ and certs/ are a mission's
+    for sub in ("state", "bus", "certs"):
         where = path / sub
         if not os.path.lexists(where):
             continue

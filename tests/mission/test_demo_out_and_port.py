@@ -2,7 +2,8 @@
 
 `--port` without `--observe` used to be ignored silently (the mission ran, no page), and
 a port out of range was refused only after the managers had started. `--out` a folder
-whose `state/` or `bus/` a demo never wrote (`--out ~`) used to have them emptied.
+whose `state/`, `bus/` (or `certs/`, on two hosts) a demo never wrote (`--out ~`) used
+to have them emptied.
 """
 
 from __future__ import annotations
@@ -49,8 +50,8 @@ def test_a_port_the_demo_cannot_use_is_a_usage_error_before_anything_starts(
     assert not out.exists()  # nothing started, nothing written
 
 
-@pytest.mark.parametrize("sub", ["state", "bus"])
-def test_a_folder_whose_state_or_bus_no_demo_wrote_is_refused_and_kept(
+@pytest.mark.parametrize("sub", ["state", "bus", "certs"])
+def test_a_folder_whose_state_bus_or_certs_no_demo_wrote_is_refused_and_kept(
     tmp_path: Path, sub: str
 ) -> None:
     mine = tmp_path / sub / "notes.txt"  # `--out ~` with the user's own ~/state
