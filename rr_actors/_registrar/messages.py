@@ -606,7 +606,11 @@ def misfit(message: object) -> ConfigError | None:
         )
     for name, optional in names:
         value = getattr(message, name)
-        if not isinstance(value, str) and not (optional and value is None):
+        if (
+            type(value) is not str
+            and not isinstance(value, str)
+            and not (optional and value is None)
+        ):
             return ConfigError(
                 f"{name} must be a str{' or None' * optional}, not "
                 f"{type(value).__qualname__[:80]} ({kind.__name__} refused)"
