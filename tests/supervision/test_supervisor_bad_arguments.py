@@ -1,4 +1,5 @@
-"""`Supervisor.call_with_retry`, `subscribe` and `observe` given what they cannot use.
+"""`Supervisor.call_with_retry`, `subscribe`, `observe`, `run_in`, `child` and
+`wait_restarted` given what they cannot use.
 
 Each is a `ConfigError` naming the argument, raised before anything is sent: no id is
 abandoned at the provider for a call never made, no subscription logs a `TypeError` per
@@ -8,7 +9,7 @@ event for ever, no `AttributeError` from the observer's error path.
 from __future__ import annotations
 
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
@@ -78,3 +79,24 @@ def test_subscribe_after_stop_is_a_config_error_not_a_subscription_that_never_he
 
     with pytest.raises(rr.ConfigError, match="was stopped"):
         sup.subscribe(print)
+
+
+@pytest.mark.parametrize(
+    ("method", "named"),
+    [
+        (lambda sup, erm: sup.run_in(erm, lambda r: r.name, timeout=-1), "timeout"),
+        (lambda sup, erm: sup.run_in(erm, "not callable"), "fn"),
+        (lambda sup, erm: sup.run_in([erm], lambda r: r.name), "name"),
+        (lambda sup, erm: sup.child([erm]), "name"),
+        (lambda sup, erm: sup.wait_restarted([erm], timeout=1), "name"),
+        (lambda sup, erm: sup.wait_restarted(erm, timeout=-1), "timeout"),
+    ],
+    ids=["run_in-timeout", "run_in-fn", "run_in-name", "child", "wait_restarted", "wait-timeout"],
+)
+def test_run_in_child_and_wait_restarted_refuse_what_they_cannot_use_naming_it(
+    sup: rr.Supervisor, method: Callable[[rr.Supervisor, str], object], named: str
+) -> None:
+    with pytest.raises(rr.ConfigError, match=named):
+        method(sup, _erm(sup))
+
+    assert "running" == sup.child(_erm(sup)).state
