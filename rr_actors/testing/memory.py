@@ -44,6 +44,7 @@ from rr_actors._core.serial import SerialExecutor, Task
 from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.codec import split_frame
 from rr_actors._transport.messenger import Link, Lost, Messenger, Remote, Replies, run_lost
+from rr_actors.config import check_seconds
 from rr_actors.errors import (
     ConfigError,
     RegistrarStoppedError,
@@ -206,7 +207,9 @@ class MemoryNetwork:
             CallTimeoutError: no result within `timeout` seconds.
             RegistrarUnavailableError: it was cut off (`cut`), or it died.
             RegistrarStoppedError: it was stopped.
+            ConfigError: `timeout` is not a positive number of seconds.
         """
+        check_seconds("timeout", timeout)
         peer = self.resolve(name)
         if peer is None:
             raise UnknownServerError(f"no registrar named {name!r} on system {self.system!r}")

@@ -1,4 +1,5 @@
-"""`rr_actors.testing.MemoryNetwork` used carelessly: a cut of a name never served.
+"""`rr_actors.testing.MemoryNetwork` used carelessly: a cut of a name never served, a
+negative timeout.
 
 `cut(name)` stands for a SIGKILL in a test; a typo in `name` used to cut nothing, and the
 test went on as if the registrar's process were gone (and could pass for it).
@@ -50,3 +51,12 @@ def test_cutting_a_registrar_twice_is_no_error(
     network.cut(erm.name)
 
     assert [] == network.names()
+
+
+def test_run_with_a_timeout_that_is_not_positive_is_a_config_error(
+    served: tuple[MemoryNetwork, rr.ResourceRegistrar],
+) -> None:
+    network, erm = served
+
+    with pytest.raises(rr.ConfigError, match="timeout"):
+        network.run(erm.name, lambda r: r.name, timeout=-1)
