@@ -24,6 +24,7 @@ import contextlib
 import dataclasses
 import importlib.metadata
 import json
+import math
 import sys
 from collections.abc import Callable, Sequence
 from typing import Any, TextIO
@@ -262,7 +263,10 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
         sys.stderr.write(f"rr-actors check: {exc}\n")
         return 2
     file = path / "events.jsonl" if path.is_dir() else path
-    texts = file.read_text(encoding="utf-8").splitlines()
+    if not verdicts:
+        sys.stderr.write(f'rr-actors check: {file}: no events (no line with a "schema")\n')
+        return 2
+    texts = file.read_text(encoding="utf-8").split("\n")  # (the lines `check_file` numbered)
 
     def show(number: int) -> str:
         text = texts[number - 1] if 0 < number <= len(texts) else ""
@@ -277,6 +281,26 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
 # -- events ----------------------------------------------------------------------------------
 
 _EVENTS_HELP = "print every host's events as JSON lines, ordered by their clock stamps (hlc)"
+
+
+def _positive_count(text: str) -> int:
+    try:
+        count = int(text)
+    except ValueError:
+        count = 0
+    if count < 1:
+        raise argparse.ArgumentTypeError(f"a positive whole number of events, not {text!r}")
+    return count
+
+
+def _positive_seconds(text: str) -> float:
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = math.nan
+    if not (seconds > 0 and math.isfinite(seconds)):
+        raise argparse.ArgumentTypeError(f"a positive number of seconds, not {text!r}")
+    return seconds
 
 
 def _events_arguments(parser: argparse.ArgumentParser) -> None:
@@ -295,8 +319,10 @@ def _events_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.5,
         help="seconds an event is held for those of other hosts to overtake it (0.5)",
     )
-    parser.add_argument("--count", metavar="N", type=int, help="stop after N events")
-    parser.add_argument("--seconds", metavar="S", type=float, help="stop after S seconds")
+    parser.add_argument("--count", metavar="N", type=_positive_count, help="stop after N events")
+    parser.add_argument(
+        "--seconds", metavar="S", type=_positive_seconds, help="stop after S seconds"
+    )
     add_network_arguments(parser)
 
 
@@ -306,18 +332,16 @@ def _events(args: argparse.Namespace, out: TextIO) -> int:
 
     from rr_actors import events  # noqa: PLC0415
     from rr_actors._transport.zenoh.options import network_from  # noqa: PLC0415
+    from rr_actors.events.lines import json_lines  # noqa: PLC0415
 
     if args.merge:
         read: list[events.Event] = []
         for name in args.merge:
-            with open(name, encoding="utf-8") as file:
-                for number, text in enumerate(file, 1):
-                    if not text.strip():
-                        continue
-                    try:
-                        read.append(events.from_dict(json.loads(text)))
-                    except (ValueError, ConfigError) as exc:
-                        raise ConfigError(f"{name} line {number}: {exc}") from None
+            for number, data in json_lines(name):
+                try:
+                    read.append(events.from_dict(data))
+                except ConfigError as exc:
+                    raise ConfigError(f"{name} line {number}: {exc}") from None
         for event in events.order(read)[: args.count]:
             out.write(json.dumps(events.to_dict(event)) + "\n")
         return 0

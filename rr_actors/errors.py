@@ -42,7 +42,7 @@ class RrError(Exception):
     """Base class of every error rr_actors raises."""
 
 
-def _known_names(name: str, known: Iterable[str], *, shown: int = 12) -> str:
+def _known_names(name: object, known: Iterable[str], *, shown: int = 12) -> str:
     """What to add to an error about an unknown `name`: the closest known name, the known.
 
     For example `"; did you mean 'camera'? (known: 'camera', 'filter')"`, or
@@ -51,7 +51,7 @@ def _known_names(name: str, known: Iterable[str], *, shown: int = 12) -> str:
     names = sorted(set(known))
     if not names:
         return " (none known)"
-    close = difflib.get_close_matches(name, names, n=1)
+    close = difflib.get_close_matches(name, names, n=1) if isinstance(name, str) else []
     hint = f"; did you mean {close[0]!r}?" if close else ""
     listed = ", ".join(repr(n) for n in names[:shown])
     more = f", ... ({len(names) - shown} more)" if len(names) > shown else ""

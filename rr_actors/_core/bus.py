@@ -199,7 +199,7 @@ class Publisher(Generic[E]):
             The subscription; `close()` it (or use it in a `with` block).
 
         Raises:
-            ConfigError: `maxsize` is not a positive int.
+            ConfigError: `callback` is not callable, or `maxsize` not a positive int.
         """
         subscription = Subscription(
             callback,

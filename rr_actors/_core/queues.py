@@ -266,6 +266,8 @@ class Subscription(Generic[E]):
         notice: Callable[[int], E] | None,
         unsubscribe: Callable[[Subscription[E]], None],
     ) -> None:
+        if not callable(callback):  # (else each event would log the TypeError, for ever)
+            raise ConfigError(f"callback must be callable, got {callback!r}")
         self.name = name
         self._callback = callback
         self._unsubscribe = unsubscribe

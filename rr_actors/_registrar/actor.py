@@ -87,6 +87,7 @@ from rr_actors._registrar.messages import (
     Unload,
     UnregisterServer,
     UpdateResponse,
+    misfit,
 )
 from rr_actors._registrar.presence import Presence
 from rr_actors._registrar.probes import POINTS
@@ -320,6 +321,12 @@ class RegistrarActor(Actor):
         to = getattr(message, "reply", None)  # where its answer goes
         if to is None:
             to = NO_REPLY
+        if (wrong := misfit(message)) is not None:  # e.g. `unload(["id"])`: refused, not fatal
+            if to is NO_REPLY:
+                self.unknown.warning("registrar %s ignored a message: %s", self.name, wrong)
+            else:
+                to.set_error(wrong)
+            return
         probes = self.shared.probes
         try:
             if probes is None:

@@ -262,7 +262,7 @@ class ResourceRegistrar:
             The subscription; `close()` it (or use it in a `with` block).
 
         Raises:
-            ConfigError: `maxsize` is not a positive int.
+            ConfigError: `callback` is not callable, or `maxsize` not a positive int.
         """
         return self._events.subscribe(callback, maxsize=maxsize, name=f"{self.name}-events")
 
@@ -371,12 +371,18 @@ class ResourceRegistrar:
             CallTimeoutError: no answer in time; the query id is released if it loads later.
             RegistrarUnavailableError: the provider died (it may have executed the load).
             RegistrarStoppedError: this registrar or the provider was stopped.
-            ConfigError: `on_status` is not callable; or the request, or the response,
+            ConfigError: `target_rr` or `server` is not a str, `query_id` not a
+                non-empty str, `on_status` not callable; or the request, or the response,
                 cannot be pickled where it must be: across processes, or into this
                 registrar's backup (its client record); the provider then holds nothing.
         """
         if on_status is not None and not callable(on_status):
             raise ConfigError(f"on_status must be callable, got {on_status!r}")
+        _check_names(target_rr=target_rr, server=server)
+        if query_id is not None and not (isinstance(query_id, str) and query_id):
+            raise ConfigError(
+                f"query_id must be a non-empty str (or None: a fresh id), got {query_id!r}"
+            )
         limit = self._timeout(timeout)
         deadline = time.monotonic() + limit
         context = LOADING.get()
@@ -439,6 +445,10 @@ class ResourceRegistrar:
 
         Raises:
             UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            ConfigError: `status` is not a `Status`, `query_id` or `message` not a str.
+            MessageTooLargeError: the status is over the `max_message_bytes` of a
+                consumer registrar in another process (named): that one did not hear it,
+                the others did (a `FATAL` still marks the resource, rule 1).
             CallTimeoutError: not delivered everywhere within `timeout` seconds.
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
@@ -474,9 +484,11 @@ class ResourceRegistrar:
 
         Raises:
             UnknownServerError: no such registrar or server.
+            ConfigError: `target_rr` or `server` is not a str.
             CallTimeoutError: no answer within `timeout` seconds.
             RegistrarUnavailableError: the provider died.
         """
+        _check_names(target_rr=target_rr, server=server)
         limit = self._timeout(timeout)
         reply = FutureReply()
         self._client(target_rr, server, limit).tell(FetchVia(server, reply))
@@ -535,6 +547,9 @@ class ResourceRegistrar:
 
         Raises:
             UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            MessageTooLargeError: the response is over the `max_message_bytes` of a
+                consumer registrar in another process (named): its client record keeps
+                the old response; this registrar's catalog and the others have the new.
             CallTimeoutError: not delivered within `timeout` seconds.
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
@@ -716,3 +731,11 @@ def snapshot(registrar: ResourceRegistrar, *, timeout: float, check: bool) -> Ca
         "catalog_snapshot()" if check else "a snapshot of the catalog",
     )
     return dataclasses.replace(view, in_doubt=registrar._in_doubt_texts)
+
+
+def _check_names(**names: object) -> None:
+    """`ConfigError` naming the first argument that is not a str (a registrar's or a
+    server's name): refused here, before anything is sent or recorded."""
+    for field, value in names.items():
+        if not isinstance(value, str):
+            raise ConfigError(f"{field} must be a name (a str), got {value!r}")

@@ -33,7 +33,7 @@ from rr_actors._core.wire import WireMessage
 from rr_actors._registrar.loading import error_frame
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._types import Status, StatusCallback
-from rr_actors.errors import ResourceLoadError, RrError
+from rr_actors.errors import ConfigError, ResourceLoadError, RrError
 
 if TYPE_CHECKING:
     from rr_actors._registrar.attempt import CallAttempt
@@ -82,6 +82,7 @@ __all__ = [
     "UnregisterServer",
     "UpdateResponse",
     "give_back",
+    "misfit",
 ]
 
 
@@ -580,3 +581,38 @@ class RunOnActor:
 
     op: Callable[[Any, Reply], None]  # (the `RegistrarActor`: no role is imported here)
     reply: Reply
+
+
+_TEXT_FIELDS: dict[type, tuple[tuple[str, bool], ...]] = {}
+"""Message type -> `(name, may be None)` of its fields declared `str` or `str | None`
+(found on first use)."""
+
+
+def misfit(message: object) -> ConfigError | None:
+    """A `ConfigError` naming the field of `message` declared `str` (or `str | None`) that
+    holds something else (`None` if none does).
+
+    A careless caller (`unload(["id"])`) or a buggy peer must not make a registrar die of
+    a `TypeError` deep in a handler (an unhashable id, a name `difflib` cannot read): the
+    registrar refuses the message instead. Only the value's type is shown: its `repr` is
+    a peer's code.
+    """
+    kind = type(message)
+    names = _TEXT_FIELDS.get(kind)
+    if names is None:
+        fields = dataclasses.fields(kind) if dataclasses.is_dataclass(kind) else ()
+        names = _TEXT_FIELDS[kind] = tuple(
+            (f.name, f.type == "str | None") for f in fields if f.type in ("str", "str | None")
+        )
+    for name, optional in names:
+        value = getattr(message, name)
+        if (
+            type(value) is not str
+            and not isinstance(value, str)
+            and not (optional and value is None)
+        ):
+            return ConfigError(
+                f"{name} must be a str{' or None' * optional}, not "
+                f"{type(value).__qualname__[:80]} ({kind.__name__} refused)"
+            )
+    return None

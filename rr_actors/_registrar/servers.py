@@ -32,7 +32,13 @@ from rr_actors._registrar.messages import (
 )
 from rr_actors._registrar.state import Server, Shared, consumers_by_origin
 from rr_actors._types import Status, StatusUpdate
-from rr_actors.errors import DuplicateNameError, RrError, UnknownServerError, _known_names
+from rr_actors.errors import (
+    ConfigError,
+    DuplicateNameError,
+    RrError,
+    UnknownServerError,
+    _known_names,
+)
 
 if TYPE_CHECKING:
     from rr_actors._registrar.status import StatusRelay
@@ -43,10 +49,20 @@ __all__ = ["Servers"]
 logger = logging.getLogger("rr_actors")
 
 
-def _log_failure(what: str, then: Callable[[], None], _: Any, error: BaseException | None) -> None:
-    """A continuation that logs a failed answer, then runs `then()`."""
+def _log_failure(
+    what: str,
+    then: Callable[[], None],
+    refused: list[ConfigError],
+    _: Any,
+    error: BaseException | None,
+) -> None:
+    """A continuation that logs a failed answer, then runs `then()`; a message that could
+    not be sent at all (a `ConfigError`: too large for its receiver) is added to `refused`,
+    for its caller to hear of (a consumer gone is only logged)."""
     if error is not None:
         logger.warning("%s failed: %s", what, error)
+        if isinstance(error, ConfigError):
+            refused.append(error)
     then()
 
 
@@ -181,13 +197,21 @@ class Servers:
         self.registrar.catalog.set_response(resource.id, response)
         show_response(self.registrar, resource)
         self.registrar.commit()
-        join = Join(lambda: reply.set_result(None))
+        refused: list[ConfigError] = []  # (a consumer that cannot take it: too large)
+
+        def then() -> None:
+            if refused:
+                reply.set_error(refused[0])
+            else:
+                reply.set_result(None)
+
+        join = Join(then)
         for origin, ids in consumers_by_origin(resource).items():
             self.registrar.send(
                 origin,
                 functools.partial(ResponseUpdated, ids, response),
                 functools.partial(
-                    _log_failure, f"telling {origin} about a new response", join.add()
+                    _log_failure, f"telling {origin} about a new response", join.add(), refused
                 ),
             )
         join.seal()

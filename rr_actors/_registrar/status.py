@@ -39,7 +39,7 @@ from rr_actors._registrar.fanout import DESK, Routes, process
 from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice
 from rr_actors._registrar.state import NO_REPLY, Shared, consumers_by_origin
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
-from rr_actors.errors import RrError
+from rr_actors.errors import ConfigError, RrError
 
 if TYPE_CHECKING:
     from rr_actors._registrar.flights import Flights
@@ -76,7 +76,15 @@ class StatusRelay:
             self.registrar.events.publish(
                 events.StatusSent(self.registrar.name, query_id, status, message, event)
             )
-        self.notify(resource, update, event, query_id, lambda: reply.set_result(None))
+        refused: list[ConfigError] = []  # (parts that could not be sent: too large)
+
+        def then() -> None:  # (the thread of the last acknowledgement)
+            if refused:
+                reply.set_error(refused[0])
+            else:
+                reply.set_result(None)
+
+        self.notify(resource, update, event, query_id, then, refused=refused)
 
     def notify(
         self,
@@ -88,11 +96,15 @@ class StatusRelay:
         *,
         hop: int = 1,
         sent_at: float | None = None,
+        refused: list[ConfigError] | None = None,
     ) -> None:
         """Run this server's `on_status` once and pass the status on to every consumer.
 
         `hop` is the number of registrars the notices reach on the way from the sender
         (its own consumers are hop 1); `sent_at` is when the status was sent (wall clock).
+        A notice that cannot be sent at all (over its receiver's `max_message_bytes`) is
+        logged and added to `refused` (if given): it is not a consumer gone, it is a
+        status lost, and its sender must hear of it.
 
         `then()` runs once every callback and consumer on the way acknowledged, on the
         thread of the last acknowledgement (a reader thread, a worker, another registrar's
@@ -144,13 +156,18 @@ class StatusRelay:
             DESK.deliver(batch, join, None, (self.registrar.name, self.flights.redeliver))
         for relay, parts, batched in self.routes.plan(elsewhere):
             if batched:
-                self.send_batch(relay, batch.part(parts, NO_REPLY), join)
+                self.send_batch(relay, batch.part(parts, NO_REPLY), join, refused)
             else:
-                self.send_notice(relay, parts[0][1], batch, join)
+                self.send_notice(relay, parts[0][1], batch, join, refused)
         join.seal()
 
     def send_notice(
-        self, origin: str, query_ids: tuple[str, ...], batch: StatusBatch, join: SharedJoin
+        self,
+        origin: str,
+        query_ids: tuple[str, ...],
+        batch: StatusBatch,
+        join: SharedJoin,
+        refused: list[ConfigError] | None = None,
     ) -> None:
         """Send `batch`'s status to registrar `origin` alone, as a `StatusNotice`."""
         done = join.add()
@@ -159,6 +176,7 @@ class StatusRelay:
         def answered(_value: Any, error: BaseException | None) -> None:
             if error is not None:
                 routes.forget([origin])  # (ask it where it is again)
+                self.not_sent(origin, batch, error, refused)
             done()
 
         reply = CallbackReply(answered)  # answered on the answering thread
@@ -178,7 +196,13 @@ class StatusRelay:
         except RrError as exc:
             reply.set_error(exc)
 
-    def send_batch(self, relay: str, batch: StatusBatch, join: SharedJoin) -> None:
+    def send_batch(
+        self,
+        relay: str,
+        batch: StatusBatch,
+        join: SharedJoin,
+        refused: list[ConfigError] | None = None,
+    ) -> None:
         """Send `batch` to registrar `relay` (any thread); its answer completes a part of
         `join`. Sent to a relay that fails, each part goes again to its own registrar (the
         desk there delivers what had reached it once)."""
@@ -193,7 +217,9 @@ class StatusRelay:
                 routes.forget([relay, *(origin for origin, _ in batch.parts)])
                 if batch.parts != ((relay, batch.parts[0][1]),):  # (not its own part alone)
                     for part in batch.parts:
-                        self.send_batch(part[0], batch.part((part,), NO_REPLY), join)
+                        self.send_batch(part[0], batch.part((part,), NO_REPLY), join, refused)
+                else:
+                    self.not_sent(relay, batch, error, refused)
             done()
 
         reply = CallbackReply(answered)  # answered on the answering thread
@@ -201,6 +227,28 @@ class StatusRelay:
             DIRECTORY.lookup(relay).tell(batch.part(batch.parts, reply))
         except RrError as exc:
             reply.set_error(exc)
+
+    def not_sent(
+        self,
+        target: str,
+        batch: StatusBatch,
+        error: BaseException,
+        refused: list[ConfigError] | None,
+    ) -> None:
+        """A status part was not delivered to `target` (any thread). One gone is its death
+        watch's business; one that could not be sent (a `ConfigError`: over its receiver's
+        `max_message_bytes`) is a status lost: logged, and told its sender (`refused`)."""
+        if not isinstance(error, ConfigError):
+            return
+        logger.warning(
+            "registrar %s: the %s status could not reach registrar %s: %s",
+            self.registrar.name,
+            batch.status.name,
+            target,
+            error,
+        )
+        if refused is not None:
+            refused.append(error)
 
     def run_callback(
         self, callback: StatusCallback, query: Query, update: StatusUpdate, join: SharedJoin

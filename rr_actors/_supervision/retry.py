@@ -27,8 +27,10 @@ from rr_actors._registrar.protocol import Registrar
 from rr_actors._supervision.children import ChildInfo
 from rr_actors._supervision.tree import Level, Tree, find_child
 from rr_actors._types import Query, StatusCallback
+from rr_actors.config import check_seconds
 from rr_actors.errors import (
     CallTimeoutError,
+    ConfigError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
     UnknownServerError,
@@ -82,6 +84,19 @@ def call_with_retry(
         consumer, target_rr, server, request, on_status, timeout, query_id: as for
             `Supervisor.call_with_retry`.
     """
+    if not callable(getattr(consumer, "call", None)):
+        raise ConfigError(
+            f"consumer must be a registrar (sup.registrar(name), a ResourceRegistrar), "
+            f"got {consumer!r}"
+        )
+    for field, value in (("target_rr", target_rr), ("server", server)):
+        if not isinstance(value, str):
+            raise ConfigError(f"{field} must be a name (a str), got {value!r}")
+    check_seconds("timeout", timeout, allow_none=True)
+    if query_id is not None and not (isinstance(query_id, str) and query_id):
+        raise ConfigError(
+            f"query_id must be a non-empty str (or None: a fresh id), got {query_id!r}"
+        )
     limit = timeout if timeout is not None else consumer.config.call_timeout
     qid = query_id or str(uuid.uuid4())
     deadline = time.monotonic() + limit

@@ -323,7 +323,9 @@ class Supervisor:
 
         Raises:
             UnknownServerError: no child of that name in this tree.
+            ConfigError: `name` is not a str.
         """
+        _check_child_name(name)
         with self._tree.cond:
             found = locate(self._node, self._tree, name)
         if found is None:
@@ -364,7 +366,10 @@ class Supervisor:
                 a transient child waits for a group restart) or its supervisor was
                 stopped.
             UnknownServerError: no child of that name.
+            ConfigError: `name` is not a str, or `timeout` not a positive number of seconds.
         """
+        _check_child_name(name)
+        check_seconds("timeout", timeout)
         return wait_restarted(self._tree, self._node, self.name, name, timeout, restarts)
 
     # -- registrars, calls, manager access ----------------------------------------------
@@ -428,10 +433,15 @@ class Supervisor:
             RegistrarStoppedError: its registrar was stopped before answering (by `fn`,
                 for example).
             CallTimeoutError: no answer within `timeout` seconds.
-            ConfigError: `fn` cannot be pickled (process manager).
+            ConfigError: `name` is not a str, `fn` not callable, `timeout` not a positive
+                number of seconds, or `fn` cannot be pickled (process manager).
             RrError: the result cannot be pickled (process manager).
             Exception: whatever `fn` raised.
         """
+        _check_child_name(name)
+        if not callable(fn):
+            raise ConfigError(f"fn must be callable as fn(registrar), got {fn!r}")
+        check_seconds("timeout", timeout)
         spec = self._tree.specs.get(name)
         if not isinstance(spec, ManagerSpec):
             if spec is not None:
@@ -494,6 +504,8 @@ class Supervisor:
             UnknownServerError: as for `ResourceRegistrar.call`.
             RegistrarStoppedError: as for `ResourceRegistrar.call` (not when the
                 supervisor stopped the provider to restart it).
+            ConfigError: `consumer` is not a registrar, `timeout` not a positive number
+                of seconds, or as for `ResourceRegistrar.call`; nothing was sent.
         """
         abandon = functools.partial(retry.abandon_after_restart, self._tree, self._node)
         return retry.call_with_retry(
@@ -540,8 +552,11 @@ class Supervisor:
             (`with sup.subscribe(cb): ...`).
 
         Raises:
-            ConfigError: `maxsize` is not a positive int.
+            ConfigError: `callback` is not callable, `maxsize` not a positive int, or the
+                supervisor was stopped (no event would come).
         """
+        if self._stopped:
+            raise ConfigError(f"supervisor {self.name!r} was stopped: no event will come")
         return self._watch.subscribe(callback, maxsize=maxsize)
 
     def flush_events(self, *, timeout: float = 5.0) -> bool:
@@ -664,6 +679,12 @@ class Supervisor:
             ConfigError: `format` is neither.
         """
         return self._watch.graph(format)
+
+
+def _check_child_name(name: object) -> None:
+    """`ConfigError` unless `name` is a str (a child's name; an unknown one is looked up)."""
+    if not isinstance(name, str):
+        raise ConfigError(f"name must be a child's name (a str), got {name!r}")
 
 
 def _check_network(network: object) -> None:

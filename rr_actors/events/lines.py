@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
 import typing
+from collections.abc import Iterator
 from typing import Any
 
 from rr_actors._core import hlc
@@ -11,7 +14,7 @@ from rr_actors._types import Status
 from rr_actors.errors import ConfigError
 from rr_actors.events.kinds import Event
 
-__all__ = ["SCHEMA", "from_dict", "to_dict"]
+__all__ = ["MAX_LINE_BYTES", "SCHEMA", "from_dict", "json_lines", "to_dict"]
 
 SCHEMA = 3
 """Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it, 2 and 1.
@@ -138,3 +141,62 @@ def _convert(event: str, field: str, kind: Any, value: object) -> Any:
 def args_of(kind: Any) -> Any:
     """The item type of `tuple[X, ...]`."""
     return typing.get_args(kind)[0]
+
+
+MAX_LINE_BYTES = 64 * 1024 * 1024
+"""The longest line `json_lines` reads (64 MiB): an event listing `LISTED_ROWS` rows of
+each kind is far shorter; a longer line is an error, not a reason to run out of memory."""
+
+
+def json_lines(path: str | os.PathLike[str]) -> Iterator[tuple[int, Any]]:
+    """`(line number, parsed JSON)` of each non-blank line of a JSON lines file.
+
+    For files of unknown origin (`rr-actors check`, `rr-actors events --merge`): what is
+    wrong with one is a `ConfigError` naming the file and the line, never a traceback.
+
+    Args:
+        path: an `events.jsonl` file (or any JSON lines file).
+
+    Yields:
+        `(number, value)`: the line number (1 for the first line) and its JSON value.
+
+    Raises:
+        ConfigError: the file cannot be read (missing, a directory, no permission), or a
+            line is not UTF-8, longer than `MAX_LINE_BYTES`, or not JSON (nested too
+            deeply included).
+    """
+    try:
+        file = open(path, "rb")  # noqa: SIM115 - closed below; opened first to name the error
+    except OSError as exc:
+        raise ConfigError(f"{os.fspath(path)}: cannot be read ({exc.strerror})") from None
+    with file:
+        number = 0
+        while raw := _read_line(file, path, number + 1):
+            number += 1
+            if not raw.strip():
+                continue
+            where = f"{os.fspath(path)} line {number}"
+            try:
+                value = json.loads(raw.decode("utf-8"))
+            except UnicodeDecodeError as exc:
+                raise ConfigError(f"{where}: not UTF-8 text ({exc.reason})") from None
+            except json.JSONDecodeError as exc:
+                raise ConfigError(f"{where}: not JSON ({exc})") from None
+            except RecursionError:
+                raise ConfigError(
+                    f"{where}: not JSON that can be read (nested too deeply)"
+                ) from None
+            yield number, value
+
+
+def _read_line(file: Any, path: str | os.PathLike[str], number: int) -> bytes:
+    try:
+        raw: bytes = file.readline(MAX_LINE_BYTES + 1)
+    except OSError as exc:
+        raise ConfigError(f"{os.fspath(path)}: cannot be read ({exc.strerror})") from None
+    if len(raw) > MAX_LINE_BYTES:
+        raise ConfigError(
+            f"{os.fspath(path)} line {number}: longer than {MAX_LINE_BYTES} bytes "
+            f"(MAX_LINE_BYTES): not a line of events"
+        )
+    return raw

@@ -51,6 +51,7 @@ from typing import Any, Literal
 from rr_actors import events
 from rr_actors._types import Status
 from rr_actors.errors import ConfigError
+from rr_actors.events.lines import json_lines
 
 __all__ = [
     "RULES",
@@ -697,23 +698,36 @@ def read_runs(lines: Iterable[str]) -> dict[int, list[Line]]:
         ConfigError: a line is not JSON, or an event line that cannot be read; the
             message names the line.
     """
-    runs: dict[int, list[Line]] = defaultdict(list)
+    return _runs(_parsed(lines), "line")
+
+
+def _parsed(lines: Iterable[str]) -> Iterator[tuple[int, Any]]:
     for number, text in enumerate(lines, start=1):
         if not text.strip():
             continue
         try:
-            data: Any = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"line {number}: not JSON ({exc})") from None
+            yield number, json.loads(text)
+        except (json.JSONDecodeError, RecursionError) as exc:
+            why = exc if isinstance(exc, json.JSONDecodeError) else "nested too deeply"
+            raise ConfigError(f"line {number}: not JSON ({why})") from None
+
+
+def _runs(numbered: Iterable[tuple[int, Any]], where: str) -> dict[int, list[Line]]:
+    """The events of each run of `(line number, JSON value)` pairs; `where` names a line
+    in errors (`"line"`, or `"<file> line"`)."""
+    runs: dict[int, list[Line]] = defaultdict(list)
+    for number, data in numbered:
         if not isinstance(data, dict) or "schema" not in data:
             continue  # a fault line
         run = data.pop("run", 0)
         data.pop("seed", None)
+        if isinstance(run, bool) or not isinstance(run, int) or run < 0:
+            raise ConfigError(f"{where} {number}: run must be an int >= 0, got {run!r}")
         try:
             event = events.from_dict(data)
         except ConfigError as exc:
-            raise ConfigError(f"line {number}: {exc}") from None
-        runs[int(run)].append((number, event))
+            raise ConfigError(f"{where} {number}: {exc}") from None
+        runs[run].append((number, event))
     return dict(runs)
 
 
@@ -721,13 +735,13 @@ def check_file(path: Path) -> dict[int, Verdict]:
     """Check every run of an `events.jsonl` file (or of a directory holding one).
 
     Raises:
-        ConfigError: no such file, or a line that cannot be read (named).
+        ConfigError: no such file, or it cannot be read, or a line that cannot be read
+            (named with the file).
     """
     file = path / "events.jsonl" if path.is_dir() else path
     if not file.is_file():
         raise ConfigError(f"no events.jsonl at {path}")
-    with file.open(encoding="utf-8") as lines:
-        runs = read_runs(lines)
+    runs = _runs(json_lines(file), f"{file} line")
     return {run: check(history) for run, history in sorted(runs.items())}
 
 

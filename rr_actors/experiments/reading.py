@@ -105,6 +105,8 @@ def parse_plan(text: str, *, source: str = "<plan>", name: str = "plan") -> Plan
         line = re.search(r"\(at line (\d+)", str(exc))
         problem = f"is not valid TOML: {exc}"
         raise PlanError(source, int(line[1]) if line else 0, "", problem) from exc
+    except RecursionError:  # (tomllib recurses per nested array or table)
+        raise PlanError(source, 0, "", "is not a plan: nested too deeply to read") from None
     base_dir = None if source == "<plan>" else os.path.dirname(os.path.abspath(source))
     reader = _Reader(source, text, base_dir)
     base = reader.plan(data, name=name)

@@ -104,11 +104,13 @@ def prepare_out(path: Path, *, what: str = "out") -> Path:
         `path`.
 
     Raises:
-        ConfigError: `path` is a file, or cannot be created or written to; the message
-            names it and the cause.
+        ConfigError: `path` is a file, or cannot be created or written to, or it holds a
+            `state/`, `bus/` or `certs/` that no mission wrote (the mission empties
+            them); the message names it and the cause.
     """
     if path.exists() and not path.is_dir():
         raise rr.ConfigError(f"{what} {str(path)!r} is a file, not a directory")
+    _check_not_others(path, what)
     try:
         path.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=path, prefix=".rr-actors-probe-"):
@@ -117,6 +119,30 @@ def prepare_out(path: Path, *, what: str = "out") -> Path:
         cause = exc.strerror or exc.__class__.__name__
         raise rr.ConfigError(f"{what} {str(path)!r}: cannot write there ({cause})") from exc
     return path
+
+
+def _check_not_others(path: Path, what: str) -> None:
+    """A mission empties `path/state` and `path/bus` (`Mission.run`), and on two hosts
+    replaces `path/certs` (`make_certs`): refuse a folder that holds one of them with files
+    in it and that no mission used (no `OUT_LOCK` in it), such as `--out ~` with the
+    user's own `~/state`, before anything is removed."""
+    if (path / OUT_LOCK).exists():
+        return  # a mission's folder: its state/, bus/ and certs/ are a mission's
+    for sub in ("state", "bus", "certs"):
+        where = path / sub
+        if not os.path.lexists(where):
+            continue
+        try:
+            others = not where.is_dir() or any(where.iterdir())
+        except OSError as exc:
+            raise rr.ConfigError(
+                f"{what} {str(path)!r}: cannot read {sub}/ ({exc.strerror or exc})"
+            ) from exc
+        if others:
+            raise rr.ConfigError(
+                f"{what} {str(path)!r} holds a {sub}/ that no mission wrote (no {OUT_LOCK} "
+                f"there), and the mission empties {sub}/ first: give it another folder"
+            )
 
 
 def run_mission(
@@ -515,9 +541,14 @@ def _check_hosts_args(args: argparse.Namespace) -> None:
 
 
 def _check_observe_args(args: argparse.Namespace) -> None:
-    """`--allow-faults` and `--linger` go with `--observe`; `--linger` is not negative."""
+    """`--allow-faults`, `--linger` and `--port` go with `--observe`; `--linger` is not
+    negative, `--port` a port (checked before anything starts)."""
     if not args.observe and (args.allow_faults or args.linger is not None):
         raise rr.ConfigError("--allow-faults and --linger need --observe")
+    if not args.observe and args.port != 0:
+        raise rr.ConfigError("--port needs --observe (it is the observer's port)")
+    if not 0 <= args.port <= 65535:
+        raise rr.ConfigError(f"--port must be from 0 to 65535, got {args.port}")
     if args.linger is not None and not (args.linger >= 0 and math.isfinite(args.linger)):
         raise rr.ConfigError(f"--linger must be a number of seconds >= 0, got {args.linger}")
 

@@ -85,7 +85,7 @@ def decode(member: str, data: bytes) -> dict[str, Any] | None:
         return None
     try:
         message = json.loads(data)
-    except ValueError:
+    except (ValueError, RecursionError):  # (nested past the parser's stack: not a message)
         return None
     if (
         not isinstance(message, dict)

@@ -76,7 +76,7 @@ def send_fault(services: Services, by: str, member: str, kind: str, data: dict[s
             continue
         try:
             answer = json.loads(reply.ok.payload.to_bytes())
-        except ValueError:
+        except (ValueError, RecursionError):
             break
         if not isinstance(answer, dict) or not text(answer.get("message")):
             break
@@ -143,7 +143,7 @@ class FaultDesk:
             raise FaultRefused("the command is too large", 413)
         try:
             command = json.loads(data)
-        except ValueError:
+        except (ValueError, RecursionError):
             raise FaultRefused("the command is not JSON", 400) from None
         if not isinstance(command, dict):
             raise FaultRefused("the command must be a JSON object", 400)

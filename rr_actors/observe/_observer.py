@@ -223,7 +223,8 @@ class Observer:
             try:
                 host = _adopt(sock, allow_remote=allow_remote)
             except ConfigError:
-                sock.close()  # (it is the observer's once given)
+                if isinstance(sock, socket.socket):
+                    sock.close()  # (it is the observer's once given)
                 raise
         self.host = host
         self.port: int = sock.getsockname()[1]

@@ -275,7 +275,7 @@ def build_app(
             return _refuse("request too large", 413)
         try:
             data = json.loads(body)
-        except ValueError:
+        except (ValueError, RecursionError):  # (nested past the parser: not a request)
             return _refuse("the body is not JSON", 400)
         if not isinstance(data, dict):
             return _refuse("the body must be a JSON object", 400)

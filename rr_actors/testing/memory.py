@@ -44,12 +44,15 @@ from rr_actors._core.serial import SerialExecutor, Task
 from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.codec import split_frame
 from rr_actors._transport.messenger import Link, Lost, Messenger, Remote, Replies, run_lost
+from rr_actors.config import check_seconds
 from rr_actors.errors import (
     ConfigError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
     RrError,
+    UnknownRegistrarError,
     UnknownServerError,
+    _known_names,
 )
 
 __all__ = ["MemoryAddress", "MemoryNetwork"]
@@ -204,7 +207,9 @@ class MemoryNetwork:
             CallTimeoutError: no result within `timeout` seconds.
             RegistrarUnavailableError: it was cut off (`cut`), or it died.
             RegistrarStoppedError: it was stopped.
+            ConfigError: `timeout` is not a positive number of seconds.
         """
+        check_seconds("timeout", timeout)
         peer = self.resolve(name)
         if peer is None:
             raise UnknownServerError(f"no registrar named {name!r} on system {self.system!r}")
@@ -238,10 +243,20 @@ class MemoryNetwork:
         """The process serving registrar `name` is gone (a `SIGKILL`, a cut link): every
         reply waiting on it fails at once with `RegistrarUnavailableError`, frames on
         the way to it are dropped, later sends to it raise that error. Its registrar
-        keeps running in this process (stop it yourself)."""
+        keeps running in this process (stop it yourself). Cutting it again does nothing.
+
+        Raises:
+            UnknownRegistrarError: no registrar of that name was ever served on the
+                network (a typo would otherwise cut nothing, and the test pass for it).
+        """
         served = self._served.get(name)
         if served is not None:
             self._end(served, "unavailable")
+        elif name not in self._gone:
+            raise UnknownRegistrarError(
+                f"no registrar named {name!r} was served on the in-memory network "
+                f"{self.system!r}" + _known_names(name, self._served)
+            )
 
     # -- the link (the messenger's) -----------------------------------------------------
 

@@ -560,10 +560,12 @@ class ZenohNetwork:
             The subscription; `close()` it, or use it as a context manager.
 
         Raises:
-            ConfigError: `window` is not seconds from 0 to 60, or `maxsize` not a
-                positive int.
+            ConfigError: `callback` is not callable, `window` not seconds from 0 to 60,
+                or `maxsize` not a positive int.
             RegistrarStoppedError: this process left the system (`close()`).
         """
+        if not callable(callback):  # (before the session opens)
+            raise ConfigError(f"callback must be callable, got {callback!r}")
         window = check_window(window)
         member = self._open()
         return member.subscribe_events(callback, window=window, maxsize=maxsize)
@@ -587,8 +589,10 @@ class ZenohNetwork:
                 names each `connect` endpoint this process has no link to, with the
                 reason the link watch found (with `tls`: the TLS handshake's verdict).
             RegistrarStoppedError: this process left the system (`close()`).
-            ConfigError: `timeout` is not a number of seconds >= 0.
+            ConfigError: `name` is not a registrar name (`rr.config.NAME`: it could never
+                be served), or `timeout` not a number of seconds >= 0.
         """
+        check_name("name", name, "a registrar name")
         if (
             isinstance(timeout, bool)
             or not isinstance(timeout, int | float)
