@@ -628,6 +628,53 @@ def test_a_manager_that_cannot_start_fails_the_experiment_with_its_error(
     assert [] == ours()
 
 
+WHERE_IMPORTED = """\
+import os
+
+IMPORTED_IN = os.getpid()
+
+
+def where_setup(registrar, *, out):
+    with open(out, "a", encoding="utf-8") as file:
+        file.write("forkserver\\n" if IMPORTED_IN != os.getpid() else "manager\\n")
+    registrar.register_server("hello", load=lambda r: r, unload=lambda q, r: None)
+"""
+
+
+def test_a_managers_setup_module_is_imported_by_its_forkserver_not_at_each_start(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "where_managers.py").write_text(WHERE_IMPORTED)
+    starts = tmp_path / "starts.txt"
+    plan = tmp_path / "plan.toml"
+    plan.write_text(f"""\
+duration = 1.0
+
+[tree]
+[[tree.children]]
+name = "mine"
+setup = "where_managers:where_setup"
+options = {{ out = "{starts}" }}
+
+[workload]
+clients = 1
+rate = 5.0
+[[workload.calls]]
+manager = "mine"
+server = "hello"
+
+[[faults]]
+kind = "kill_manager"
+target = "mine"
+at = 0.3
+""")
+
+    (result,) = run(plan).runs
+
+    assert 1 == result.restarts
+    assert ["forkserver", "forkserver"] == starts.read_text().split()
+
+
 def _plan(text: str) -> Any:
     return parse_plan(text.replace("\n        ", "\n"))
 
