@@ -183,6 +183,13 @@ def _parent(args: argparse.Namespace) -> None:
     _timed(experiment._Experiment, "_keep", "experiment: append the run's files")
     _timed(experiment._Experiment, "_plot", "experiment: plots")
     _timed(experiment._Experiment, "_collect", "experiment: read the result")
+    try:
+        from rr_actors.experiments import plot  # noqa: PLC0415
+    except ImportError:
+        pass
+    else:
+        _timed(plot, "plot_recovery", "experiment: draw recovery.png")
+        _timed(plot, "plot_timeline", "experiment: draw timeline.png")
     from rr_actors.experiments import plans  # noqa: PLC0415
 
     plan = plans.find(args.plan) or args.plan
