@@ -26,6 +26,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "TOKEN_VARIABLE",
+    "children",
     "cmdline",
     "kill",
     "parent",
@@ -123,7 +124,8 @@ def start_time(pid: int) -> int | None:
     return None if fields[0] == "Z" else int(fields[19])
 
 
-def _children(pid: int) -> list[int]:
+def children(pid: int) -> list[int]:
+    """The pids of the children of `pid` (of every thread of it; `[]` if it is gone)."""
     pids: list[int] = []
     for task in Path(f"/proc/{pid}/task").glob("*"):
         with contextlib.suppress(OSError, ValueError):
@@ -147,7 +149,7 @@ def resource_processes(sup: rr.Supervisor, managers: list[str]) -> list[tuple[st
         info = sup.child(name)
         if info.pid is None or info.state != "running":
             continue
-        for child in _children(info.pid):
+        for child in children(info.pid):
             created = start_time(child)
             if created is not None:
                 found.append((order, created, child, name))
