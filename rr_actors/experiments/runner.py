@@ -253,7 +253,12 @@ def _catalog_size(registrar: rr.ResourceRegistrar) -> int:
 
 
 def wait_all_serving(sup: rr.Supervisor, names: list[str], timeout: float) -> None:
-    """Wait (bounded) until every manager runs again; skip those that will not come back."""
+    """Wait (bounded) until every manager runs again; skip those that will not come back.
+
+    A manager is waited for until it runs with at least the restarts it has counted,
+    not one more: one whose nested supervisor is being restarted by its parent shows
+    that supervisor's state, though it has already started again (and counted it).
+    """
     deadline = time.monotonic() + timeout
     for name in names:
         info = sup.child(name)
@@ -264,7 +269,7 @@ def wait_all_serving(sup: rr.Supervisor, names: list[str], timeout: float) -> No
             if info.state in ("exited", "stopped"):
                 break  # this one stays down (temporary, or its nested supervisor gave up)
             try:
-                info = sup.wait_restarted(name, timeout=left, restarts=info.restarts + 1)
+                info = sup.wait_restarted(name, timeout=left, restarts=info.restarts)
             except rr.RrError:
                 break  # it will not come back; the next may
 
