@@ -1,6 +1,6 @@
 """Where an experiment's wall time goes: every phase of every run, and of every restart.
 
-    python benchmarks/experiment_phases.py PLAN --out DIR [--repeat 2]
+    python benchmarks/experiment_phases.py PLAN [--repeat 2] [--duration S] [--out DIR]
 
 Runs `rr_actors.experiments.run(PLAN)` in this process with timestamps around its phases:
 here (the run process's start and wait, the sweep for leaked processes, the files, the
@@ -25,6 +25,7 @@ import json
 import os
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -194,7 +195,9 @@ def _parent(args: argparse.Namespace) -> None:
 
     plan = plans.find(args.plan) or args.plan
     started = time.time()
-    experiment.run(plan, out=Path(args.out) / "out", repeat=args.repeat, force=True)
+    experiment.run(
+        plan, out=Path(args.out) / "out", repeat=args.repeat, duration=args.duration, force=True
+    )
     _note("experiment: all", started, time.time())
     report(trace, Path(args.out) / "out" / "events.jsonl")
 
@@ -298,8 +301,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("plan")
     parser.add_argument("--repeat", type=int, default=2)
-    parser.add_argument("--out", required=True, help="a directory for the trace and the output")
+    parser.add_argument("--duration", type=float, default=None, help="seconds per run")
+    parser.add_argument("--out", help="directory for the trace and the experiment's files")
     args = parser.parse_args()
+    if args.out is None:
+        args.out = tempfile.mkdtemp(prefix="experiment-phases-")
+        print(f"(files in {args.out})")
     Path(args.out).mkdir(parents=True, exist_ok=True)
     _parent(args)
 

@@ -715,7 +715,9 @@ def test_waiting_for_every_manager_ends_once_a_supervisor_its_parent_restarted_s
     waiter = threading.Thread(target=wait_all_serving, args=(sup, ["a", "b"], 60.0))
     try:
         with sup:
-            os.kill(sup.child("a").pid or 0, signal.SIGKILL)
+            pid = sup.child("a").pid
+            assert pid is not None
+            os.kill(pid, signal.SIGKILL)
             assert a_back.wait(10)  # "a" serves again; "b", and so "pool", wait at the gate
             waiter.start()
             assert waiting.wait(10)
