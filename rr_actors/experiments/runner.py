@@ -12,8 +12,8 @@
       │  are leaks (then killed)
       └─ metrics.py ─► RunResult
 
-The run process is started by `rr_actors.experiments.experiment` with `python -m
-rr_actors.experiments._child RUN_DIR`; `execute` is also callable in-process (tests).
+The run process is started by `rr_actors.experiments.experiment` (`_child.py` says how);
+`execute` is also callable in-process (tests).
 """
 
 from __future__ import annotations
@@ -46,7 +46,14 @@ from rr_actors.experiments.schedule import fault_schedule
 from rr_actors.experiments.workload import Client
 from rr_actors.testing import catalog_snapshot
 
-__all__ = ["RunSpec", "build_tree", "execute", "fault_line", "preload_setups"]
+__all__ = [
+    "RunSpec",
+    "build_tree",
+    "execute",
+    "fault_line",
+    "preload_setups",
+    "preload_variable",
+]
 
 logger = logging.getLogger("rr_actors.experiments")
 
@@ -143,13 +150,18 @@ def preload_setups(plan: Plan) -> None:
     it before the run's first manager starts (a run process is fresh); once this
     process's forkserver runs it changes nothing.
     """
-    modules = [m.setup.partition(":")[0] for m in plan.managers()]
-    os.environ[_preload.VARIABLE] = json.dumps({"base_dir": plan.base_dir, "modules": modules})
+    os.environ[_preload.VARIABLE] = preload_variable(plan)
     try:
         process_context.preload([_preload.__name__])
         process_context.start_forkserver()
     finally:
         del os.environ[_preload.VARIABLE]
+
+
+def preload_variable(plan: Plan) -> str:
+    """The value of `_preload.VARIABLE` for `plan`: its setups' modules and `base_dir`."""
+    modules = [m.setup.partition(":")[0] for m in plan.managers()]
+    return json.dumps({"base_dir": plan.base_dir, "modules": modules})
 
 
 def _on_host(plan: Plan, node: SupervisorPlan, host: str) -> SupervisorPlan | None:
