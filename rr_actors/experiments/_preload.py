@@ -21,15 +21,19 @@ import json
 import os
 import sys
 
-__all__ = ["VARIABLE", "preload"]
+from rr_actors.experiments._procs import PRELOAD_VARIABLE
 
-VARIABLE = "RR_ACTORS_PRELOAD"
-"""The environment variable the run process names the modules and `base_dir` in (JSON)."""
+__all__ = ["preload"]
 
 
 def preload() -> None:
-    """Import the modules `VARIABLE` names (if it is set), then remove it."""
-    named = os.environ.pop(VARIABLE, None)
+    """Import the modules `PRELOAD_VARIABLE` names (if it is set), then remove it.
+
+    Only the forkserver imports this module (by name), after `rr_actors.experiments`
+    is whole: no module of the package imports it, so a setup module that imports
+    from the package finds every name.
+    """
+    named = os.environ.pop(PRELOAD_VARIABLE, None)
     if named is None:
         return
     wanted = json.loads(named)

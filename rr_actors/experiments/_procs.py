@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     import rr_actors as rr
 
 __all__ = [
+    "PRELOAD_VARIABLE",
     "TOKEN_VARIABLE",
     "children",
     "cmdline",
@@ -38,6 +39,9 @@ __all__ = [
 
 TOKEN_VARIABLE = "RR_ACTORS_EXPERIMENT"  # noqa: S105 - a variable's name, not a secret
 """The environment variable that marks the processes of one run."""
+
+PRELOAD_VARIABLE = "RR_ACTORS_PRELOAD"
+"""The environment variable that names what a run's forkserver imports (`_preload.py`)."""
 
 
 def processes_with(token: str, *, exclude: frozenset[int] = frozenset()) -> list[int]:

@@ -38,7 +38,7 @@ from typing import Any
 
 import rr_actors as rr
 from rr_actors.errors import ConfigError, RrError
-from rr_actors.experiments import _preload, _procs
+from rr_actors.experiments import _procs
 from rr_actors.experiments._netns import cannot_make_hosts
 from rr_actors.experiments.plan import Plan
 from rr_actors.experiments.reading import load_plan
@@ -390,7 +390,7 @@ class _Experiment:
         env = {
             **os.environ,
             _procs.TOKEN_VARIABLE: spec.token,
-            _preload.VARIABLE: preload_variable(spec.plan),
+            _procs.PRELOAD_VARIABLE: preload_variable(spec.plan),
         }
         # The run process imports this very rr_actors, installed or not.
         package_root = str(Path(rr.__file__).resolve().parent.parent)

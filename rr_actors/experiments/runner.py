@@ -36,7 +36,7 @@ import msgspec
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._process import context as process_context
-from rr_actors.experiments import _hosts, _preload, _procs, check, metrics
+from rr_actors.experiments import _hosts, _procs, check, metrics
 from rr_actors.experiments._instrument import instrumented_setup
 from rr_actors.experiments._netns import PORT, HostNetwork
 from rr_actors.experiments.inject import Injector
@@ -150,16 +150,20 @@ def preload_setups(plan: Plan) -> None:
     it before the run's first manager starts (a run process is fresh); once this
     process's forkserver runs it changes nothing.
     """
-    os.environ[_preload.VARIABLE] = preload_variable(plan)
+    os.environ[_procs.PRELOAD_VARIABLE] = preload_variable(plan)
     try:
-        process_context.preload([_preload.__name__])
+        process_context.preload([PRELOAD_MODULE])
         process_context.start_forkserver()
     finally:
-        del os.environ[_preload.VARIABLE]
+        del os.environ[_procs.PRELOAD_VARIABLE]
+
+
+PRELOAD_MODULE = "rr_actors.experiments._preload"
+"""What a run's forkserver preloads: it imports the setups' modules (by name: see there)."""
 
 
 def preload_variable(plan: Plan) -> str:
-    """The value of `_preload.VARIABLE` for `plan`: its setups' modules and `base_dir`."""
+    """The value of `_procs.PRELOAD_VARIABLE` for `plan`: its setups' modules, `base_dir`."""
     modules = [m.setup.partition(":")[0] for m in plan.managers()]
     return json.dumps({"base_dir": plan.base_dir, "modules": modules})
 
