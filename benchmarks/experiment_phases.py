@@ -93,14 +93,6 @@ def _child(argv: list[str]) -> int:
     # registered first, so it runs last: threads joined and every other atexit done
     atexit.register(lambda: _note("run: exit (threads, atexit)", ended[0], time.time()))
     start = time.time()
-    if "RR_ACTORS_PRELOAD" in os.environ:  # as the run process's program does (`-c`)
-        from rr_actors._process import context  # noqa: PLC0415
-
-        context.preload(["rr_actors.experiments._preload"])
-        context.start_forkserver()
-        os.environ.pop("RR_ACTORS_PRELOAD", None)
-        _note("run: imports before its forkserver starts", start, time.time())
-        start = time.time()
     import cloudpickle  # noqa: PLC0415
 
     from rr_actors.experiments import _child as child  # noqa: PLC0415
@@ -175,7 +167,7 @@ def _parent(args: argparse.Namespace) -> None:
 
     class Popen(real_popen):  # type: ignore[misc,valid-type]
         def __init__(self, argv: list[str], *a: Any, **kw: Any) -> None:
-            if "rr_actors.experiments._child" in argv[2]:  # `-m` or `-c` (the run process)
+            if argv[1:3] == ["-m", "rr_actors.experiments._child"]:  # the run process
                 argv = [argv[0], __file__, "--child", *argv[3:]]
                 kw["env"] = {**kw.get("env", os.environ), "RR_PHASES_SPAWNED": repr(time.time())}
             super().__init__(argv, *a, **kw)

@@ -1,8 +1,5 @@
 """The run process: `python -m rr_actors.experiments._child RUN_DIR PARENT_PID` runs one run.
 
-(The experiment starts it as `experiment._RUN_PROCESS`, which starts the managers'
-forkserver before it imports this module.)
-
 It reads `RUN_DIR/spec.pickle` (a `RunSpec` the experiment wrote), runs it with
 `runner.execute`, and writes `RUN_DIR/result.pickle` (a `RunResult`). SIGTERM or SIGINT,
 or the death of the experiment that started it (`PARENT_PID`; if it died before this

@@ -2,9 +2,8 @@
 
 run(plan) ── validate everything (plan, out, platform, --observe) ── nothing started yet
    for repeat r, for each compared value v:            (values interleaved, so slow
-      run process (_RUN_PROCESS: its managers'          periods of the machine spread
-        forkserver first, then _child.main)             over all of them)
-        RR_ACTORS_EXPERIMENT=<token> in its env
+      run process (python -m ..._child)                 periods of the machine spread
+        RR_ACTORS_EXPERIMENT=<token> in its env         over all of them)
         ── runner.execute ──► result.pickle, events.jsonl
       the run's processes still alive: leaks (killed)
       out/: events.jsonl += the run's events; faults.csv += its faults;
@@ -43,7 +42,7 @@ from rr_actors.experiments._netns import cannot_make_hosts
 from rr_actors.experiments.plan import Plan
 from rr_actors.experiments.reading import load_plan
 from rr_actors.experiments.results import Results, RunResult, show_value
-from rr_actors.experiments.runner import RunSpec, preload_variable
+from rr_actors.experiments.runner import RunSpec
 from rr_actors.observe import require_extra
 
 __all__ = [
@@ -67,22 +66,6 @@ OUTPUT_FILES = (
     "plan.toml",
 )
 """The files an experiment writes in its output directory (`--force` replaces these)."""
-
-_RUN_PROCESS = """\
-import os, sys
-from rr_actors._process import context
-context.preload(["rr_actors.experiments._preload"])
-context.start_forkserver()
-os.environ.pop("RR_ACTORS_PRELOAD", None)
-from rr_actors.experiments._child import main
-sys.exit(main())
-"""
-"""The run process's program (`python -c`, its arguments `RUN_DIR PARENT_PID`).
-
-It starts the forkserver of its managers (`runner.preload_setups`, whose preload
-imports the plan's setups: `_preload.py`) before it imports the experiment's own code,
-so that the forkserver's imports run beside the run process's, not after them.
-"""
 
 STOP_TIMEOUT = 20.0
 """Seconds an interrupted run process gets to stop its tree before it is killed."""
@@ -387,16 +370,18 @@ class _Experiment:
         current = self.current = _Current(spec, run_dir)
         run_dir.mkdir(parents=True)
         (run_dir / "spec.pickle").write_bytes(pickle.dumps(spec))
-        env = {
-            **os.environ,
-            _procs.TOKEN_VARIABLE: spec.token,
-            _procs.PRELOAD_VARIABLE: preload_variable(spec.plan),
-        }
+        env = {**os.environ, _procs.TOKEN_VARIABLE: spec.token}
         # The run process imports this very rr_actors, installed or not.
         package_root = str(Path(rr.__file__).resolve().parent.parent)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [package_root, env.get("PYTHONPATH")]))
         started = time.monotonic()
-        argv = [sys.executable, "-c", _RUN_PROCESS, str(run_dir), str(os.getpid())]
+        argv = [
+            sys.executable,
+            "-m",
+            "rr_actors.experiments._child",
+            str(run_dir),
+            str(os.getpid()),
+        ]
         with (run_dir / "stderr.txt").open("wb") as stderr:
             process = current.process = subprocess.Popen(  # noqa: S603 - our own module
                 argv,

@@ -12,8 +12,8 @@
       │  are leaks (then killed)
       └─ metrics.py ─► RunResult
 
-The run process is started by `rr_actors.experiments.experiment` (`_child.py` says how);
-`execute` is also callable in-process (tests).
+The run process is started by `rr_actors.experiments.experiment` with `python -m
+rr_actors.experiments._child RUN_DIR`; `execute` is also callable in-process (tests).
 """
 
 from __future__ import annotations
@@ -52,7 +52,6 @@ __all__ = [
     "execute",
     "fault_line",
     "preload_setups",
-    "preload_variable",
 ]
 
 logger = logging.getLogger("rr_actors.experiments")
@@ -141,6 +140,10 @@ def build_tree(
     )
 
 
+PRELOAD_MODULE = "rr_actors.experiments._preload"
+"""What a run's forkserver preloads: it imports the setups' modules (by name: see there)."""
+
+
 def preload_setups(plan: Plan) -> None:
     """Start the managers' forkserver now, importing the modules of the plan's setups once.
 
@@ -150,22 +153,14 @@ def preload_setups(plan: Plan) -> None:
     it before the run's first manager starts (a run process is fresh); once this
     process's forkserver runs it changes nothing.
     """
-    os.environ[_procs.PRELOAD_VARIABLE] = preload_variable(plan)
+    modules = [m.setup.partition(":")[0] for m in plan.managers()]
+    named = {"base_dir": plan.base_dir, "modules": modules}
+    os.environ[_procs.PRELOAD_VARIABLE] = json.dumps(named)
     try:
         process_context.preload([PRELOAD_MODULE])
         process_context.start_forkserver()
     finally:
         del os.environ[_procs.PRELOAD_VARIABLE]
-
-
-PRELOAD_MODULE = "rr_actors.experiments._preload"
-"""What a run's forkserver preloads: it imports the setups' modules (by name: see there)."""
-
-
-def preload_variable(plan: Plan) -> str:
-    """The value of `_procs.PRELOAD_VARIABLE` for `plan`: its setups' modules, `base_dir`."""
-    modules = [m.setup.partition(":")[0] for m in plan.managers()]
-    return json.dumps({"base_dir": plan.base_dir, "modules": modules})
 
 
 def _on_host(plan: Plan, node: SupervisorPlan, host: str) -> SupervisorPlan | None:
