@@ -34,6 +34,7 @@ SMALLEST = {
         "1.5",
     ],  # > 1 s: a hang comes every 1-2 s
     "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
+    "experiment_phases.py": ["first", "--repeat", "1", "--duration", "1.2"],
     "bench_scale.py": [
         *("--sections", "start", "serve", "status", "--counts", "2", "--rounds", "1"),
         *("--sizes", "10", "20", "--kills", "1", "--listen", "--consumers", "1", "3"),

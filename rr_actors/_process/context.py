@@ -9,6 +9,7 @@ without preload. Both sides agree on the exit codes below and on what a clean st
 from __future__ import annotations
 
 import multiprocessing.context
+from collections.abc import Sequence
 
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._platform import PLATFORM
@@ -22,6 +23,7 @@ __all__ = [
     "TITLE_PREFIX",
     "forker_pid",
     "mp_context",
+    "preload",
     "start_forkserver",
     "stopped_cleanly",
 ]
@@ -45,10 +47,30 @@ _PRELOAD = (
 )
 """What a forkserver imports once for every manager process it forks (a platform trick)."""
 
+_preload_more: tuple[str, ...] = ()  # `preload`'s modules, after `_PRELOAD`
+
 
 def mp_context() -> multiprocessing.context.BaseContext:
     """The multiprocessing context for manager processes: forkserver, else spawn."""
-    return PLATFORM.manager_context(preload=_PRELOAD, lean_prefix=PROCESS_PREFIX)
+    preload = (*_PRELOAD, *_preload_more)
+    return PLATFORM.manager_context(preload=preload, lean_prefix=PROCESS_PREFIX)
+
+
+def preload(modules: Sequence[str]) -> None:
+    """Have the forkserver import `modules` too, once, for every manager process it forks.
+
+    What it buys: a manager whose setup lives in one of `modules` does not import it
+    after each fork. It takes effect only if the forkserver of this process has not
+    started yet (the preload is read when it starts), and only where there is one
+    (`Platform.manager_context`). A module that raises `ImportError` there is skipped;
+    one that raises anything else ends the forkserver, and every manager start fails
+    with it. Keep to modules that import without side effects (no threads started).
+
+    Args:
+        modules: module names (`"package.module"`), added to those already asked for.
+    """
+    global _preload_more
+    _preload_more = tuple(dict.fromkeys((*_preload_more, *modules)))
 
 
 def start_forkserver() -> None:

@@ -4,7 +4,8 @@ It reads `RUN_DIR/spec.pickle` (a `RunSpec` the experiment wrote), runs it with
 `runner.execute`, and writes `RUN_DIR/result.pickle` (a `RunResult`). SIGTERM or SIGINT,
 or the death of the experiment that started it (`PARENT_PID`; if it died before this
 process looked, this one was re-parented and ends at once), ends the run early: the tree
-is stopped and no result is written (exit code 3).
+is stopped and no result is written (exit code 3). Either way its managers' forkserver
+is killed before it exits (`_end_forkserver`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 
+from rr_actors.experiments import _procs
 from rr_actors.experiments.runner import RunSpec, execute
 
 STOPPED_EXIT = 3
@@ -64,13 +66,35 @@ def main(argv: Sequence[str] | None = None) -> int:
         target=_watch_parent, args=(stop, parent), name="rr-parent", daemon=True
     )
     watch.start()
-    result = execute(spec, run_dir, stop=stop)
+    try:
+        result = execute(spec, run_dir, stop=stop)
+    finally:
+        _end_forkserver()
     if stop.is_set():
         return STOPPED_EXIT
     partial = run_dir / "result.pickle.tmp"
     partial.write_bytes(pickle.dumps(result))
     partial.replace(run_dir / "result.pickle")
     return 0
+
+
+def _end_forkserver() -> None:
+    """SIGKILL the forkserver this process started for its managers (the tree has stopped).
+
+    What it buys: 0.3-0.5 s of every run. Left alone it exits only after this process
+    has (at the end of a pipe only this process holds open), and then tears down the
+    interpreter with every module it preloaded, while the experiment waits for it (the
+    run's leak sweep; its standard output). It holds nothing that needs a clean exit:
+    every manager it forked is gone (stopped, or killed as leaked by `execute`).
+    """
+    me = os.getpid()
+    _procs.kill(
+        [
+            pid
+            for pid in _procs.children(me)
+            if "multiprocessing.forkserver import main" in _procs.cmdline(pid)
+        ]
+    )
 
 
 if __name__ == "__main__":

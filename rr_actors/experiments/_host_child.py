@@ -18,7 +18,12 @@ from typing import IO, Any
 
 from rr_actors import events
 from rr_actors.experiments._hosts import HostSpec, network
-from rr_actors.experiments.runner import build_tree, count_entries, wait_all_serving
+from rr_actors.experiments.runner import (
+    build_tree,
+    count_entries,
+    preload_setups,
+    wait_all_serving,
+)
 
 
 def _watch_parent(parent: int) -> None:
@@ -40,6 +45,7 @@ def _serve(spec: HostSpec, out: IO[str]) -> None:
             out.write(line)
             out.flush()
 
+    preload_setups(spec.plan)
     net = network(spec)
     state = Path(spec.state_dir) if spec.state_dir is not None else None
     sup = build_tree(spec.plan, state, seed=spec.seed, host=spec.host, network=net)

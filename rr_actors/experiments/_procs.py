@@ -25,7 +25,9 @@ if TYPE_CHECKING:
     import rr_actors as rr
 
 __all__ = [
+    "PRELOAD_VARIABLE",
     "TOKEN_VARIABLE",
+    "children",
     "cmdline",
     "kill",
     "parent",
@@ -37,6 +39,9 @@ __all__ = [
 
 TOKEN_VARIABLE = "RR_ACTORS_EXPERIMENT"  # noqa: S105 - a variable's name, not a secret
 """The environment variable that marks the processes of one run."""
+
+PRELOAD_VARIABLE = "RR_ACTORS_PRELOAD"
+"""The environment variable that names what a run's forkserver imports (`_preload.py`)."""
 
 
 def processes_with(token: str, *, exclude: frozenset[int] = frozenset()) -> list[int]:
@@ -123,7 +128,8 @@ def start_time(pid: int) -> int | None:
     return None if fields[0] == "Z" else int(fields[19])
 
 
-def _children(pid: int) -> list[int]:
+def children(pid: int) -> list[int]:
+    """The pids of the children of `pid` (of every thread of it; `[]` if it is gone)."""
     pids: list[int] = []
     for task in Path(f"/proc/{pid}/task").glob("*"):
         with contextlib.suppress(OSError, ValueError):
@@ -147,7 +153,7 @@ def resource_processes(sup: rr.Supervisor, managers: list[str]) -> list[tuple[st
         info = sup.child(name)
         if info.pid is None or info.state != "running":
             continue
-        for child in _children(info.pid):
+        for child in children(info.pid):
             created = start_time(child)
             if created is not None:
                 found.append((order, created, child, name))

@@ -38,7 +38,7 @@ from rr_actors.experiments import (
 from rr_actors.experiments._child import STOPPED_EXIT
 from rr_actors.experiments._instrument import CUT_SIGNAL
 from rr_actors.experiments._procs import processes_with, wait_gone
-from rr_actors.experiments.runner import build_tree
+from rr_actors.experiments.runner import build_tree, wait_all_serving
 from rr_actors.testing import pending_work
 
 SERVICE = "rr_actors.experiments.services:service"
@@ -626,6 +626,110 @@ def test_a_manager_that_cannot_start_fails_the_experiment_with_its_error(
         run(plan, out=tmp_path / "out")
 
     assert [] == ours()
+
+
+WHERE_IMPORTED = """\
+import os
+
+IMPORTED_IN = os.getpid()
+
+
+def where_setup(registrar, *, out):
+    with open(out, "a", encoding="utf-8") as file:
+        file.write("forkserver\\n" if IMPORTED_IN != os.getpid() else "manager\\n")
+    registrar.register_server("hello", load=lambda r: r, unload=lambda q, r: None)
+"""
+
+
+def test_a_managers_setup_module_is_imported_by_its_forkserver_not_at_each_start(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "where_managers.py").write_text(WHERE_IMPORTED)
+    starts = tmp_path / "starts.txt"
+    plan = tmp_path / "plan.toml"
+    plan.write_text(f"""\
+duration = 1.0
+
+[tree]
+[[tree.children]]
+name = "mine"
+setup = "where_managers:where_setup"
+options = {{ out = "{starts}" }}
+
+[workload]
+clients = 1
+rate = 5.0
+[[workload.calls]]
+manager = "mine"
+server = "hello"
+
+[[faults]]
+kind = "kill_manager"
+target = "mine"
+at = 0.3
+""")
+
+    (result,) = run(plan).runs
+
+    assert 1 == result.restarts
+    assert ["forkserver", "forkserver"] == starts.read_text().split()
+
+
+@pytest.mark.usefixtures("process_helpers")  # the forkserver: not this test's leftover
+def test_waiting_for_every_manager_ends_once_a_supervisor_its_parent_restarted_serves(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    gate, marker = tmp_path / "gate", tmp_path / "started"
+    os.mkfifo(gate)
+
+    def second_start_waits_for_the_gate(registrar: object) -> None:
+        if marker.exists():
+            with gate.open("rb") as opened:  # until the test opens it for writing
+                opened.read(1)
+        marker.touch()
+
+    pool = rr.SupervisorSpec(
+        name="pool",
+        children=(
+            rr.ManagerSpec("a", isolation="process"),
+            rr.ManagerSpec("b", setup=second_start_waits_for_the_gate, isolation="process"),
+        ),
+        strategy="one_for_all",
+        max_restarts=0,  # a crash makes it give up: its parent restarts it
+    )
+    a_back = threading.Event()
+
+    def on_event(event: events.Event) -> None:
+        if isinstance(event, events.ChildRestarted) and event.child == "a":
+            a_back.set()
+
+    sup = rr.Supervisor([pool], max_restarts=5, period=60.0)
+    subscription = sup.subscribe(on_event)
+    waiting = threading.Event()
+
+    def wait_restarted(name: str, *, timeout: float, restarts: int | None = None) -> Any:
+        waiting.set()
+        return rr.Supervisor.wait_restarted(sup, name, timeout=timeout, restarts=restarts)
+
+    monkeypatch.setattr(sup, "wait_restarted", wait_restarted)
+    waiter = threading.Thread(target=wait_all_serving, args=(sup, ["a", "b"], 60.0))
+    try:
+        with sup:
+            pid = sup.child("a").pid
+            assert pid is not None
+            os.kill(pid, signal.SIGKILL)
+            assert a_back.wait(10)  # "a" serves again; "b", and so "pool", wait at the gate
+            waiter.start()
+            assert waiting.wait(10)
+            with gate.open("wb") as opened:
+                opened.write(b"x")
+            waiter.join(10)
+            assert not waiter.is_alive()  # it ended once the pool served, not at its 60 s bound
+            assert ["running", "running"] == [sup.child(n).state for n in ("a", "b")]
+    finally:
+        subscription.close()
+        if waiter.ident is not None:
+            waiter.join(60)
 
 
 def _plan(text: str) -> Any:
