@@ -57,11 +57,22 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from rr_actors._core.actor import on_actor_thread
 from rr_actors._core.bus import Subscription
 from rr_actors._core.directory import DIRECTORY, Peer
 from rr_actors._core.hlc import CLOCK
 from rr_actors._transport.base import Address, Endpoint
-from rr_actors._transport.messenger import Link, Lost, Remote, tell_lost, tell_reachable
+from rr_actors._transport.messenger import (
+    Link,
+    Lost,
+    Outgoing,
+    Remote,
+    check_size,
+    encode,
+    send,
+    tell_lost,
+    tell_reachable,
+)
 from rr_actors._transport.zenoh.events import EventExport, EventFeed
 from rr_actors._transport.zenoh.inbox import Inbox, Local
 from rr_actors._transport.zenoh.outbox import DRAIN_TIMEOUT, Outbox, Outboxes
@@ -104,6 +115,37 @@ class ZenohPeer(Remote):
 
     def gone(self) -> RrError:
         return self._member._gone_error(self.name)
+
+    def tell(self, message: Any) -> None:
+        """Send `message` (`Remote.tell`); on an actor's thread, to a registrar this
+        process has not heard of yet, without waiting: `ZenohMember.send_unheard`."""
+        member = self._member
+        if on_actor_thread() and member.unheard(self.name):
+            member.send_unheard(self, message)
+        else:
+            send(self, message)
+
+
+class _Unheard:
+    """A message to a registrar this process had not heard of when an actor sent it:
+    on the name's writer thread, the network is asked, then it is put (or failed)."""
+
+    __slots__ = ("member", "outbox", "outgoing", "peer")
+
+    def __init__(
+        self, member: ZenohMember, peer: ZenohPeer, outgoing: Outgoing, outbox: Outbox
+    ) -> None:
+        self.member = member
+        self.peer = peer
+        self.outgoing = outgoing
+        self.outbox = outbox
+
+    def __call__(self) -> None:
+        self.member._put_unheard(self.peer, self.outgoing, self.outbox)
+
+    def dropped(self) -> None:
+        """The outbox closed before it ran: its reply fails (nothing was sent)."""
+        self.member._fail_unheard(self.outgoing, self.member._unsent_error(self.peer.name))
 
 
 class _Route:
@@ -200,7 +242,10 @@ class ZenohMember:
     def resolve(self, name: str) -> Peer | None:
         """A peer for registrar `name` of another process of this system.
 
-        A name not seen yet is asked of the network (at most `ASK_TIMEOUT` seconds).
+        A name not heard of yet is asked of the network (at most `ASK_TIMEOUT` seconds),
+        but not on an actor's thread: there its peer comes at once, and each message
+        sent to it is held on the name's writer thread until the network answered
+        (`send_unheard`).
 
         Raises:
             UnknownRegistrarError: nobody serves `name` on this system (the message names
@@ -213,16 +258,22 @@ class ZenohMember:
             return None  # a registrar of this process that stopped or died
         known = known or self._presence.gone(name) is not None
         if not known and NAME.fullmatch(name):
-            self._presence.ask(name)
-            known = self._presence.serves(name)
+            if on_actor_thread():
+                known = True  # (asked by its messages, off this thread)
+            else:
+                self._presence.ask(name)
+                known = self._presence.serves(name)
         if not known:
-            raise UnknownRegistrarError(  # the known: this process's registrars too
-                f"no registrar named {name!r} on system {self.system!r}"
-                + _known_names(name, DIRECTORY.names() - {name})
-                + (self._link_trouble() if self._link_trouble is not None else "")
-            )
+            raise self._unknown_error(name)
         with self._lock:
             return self._peers.setdefault(name, ZenohPeer(self, name))
+
+    def _unknown_error(self, name: str) -> UnknownRegistrarError:
+        return UnknownRegistrarError(  # the known: this process's registrars too
+            f"no registrar named {name!r} on system {self.system!r}"
+            + _known_names(name, DIRECTORY.names() - {name})
+            + (self._link_trouble() if self._link_trouble is not None else "")
+        )
 
     def wait_served(self, name: str, *, timeout: float) -> bool:
         """Whether registrar `name` is served (here or by another process) within `timeout`
@@ -390,16 +441,85 @@ class ZenohMember:
         """The way to registrar `name` of another process now (`ZenohPeer.route`).
 
         Raises:
-            RegistrarUnavailableError: no process serves it now (asked of the network).
+            RegistrarUnavailableError: no process serves it now (asked of the network,
+                but not on an actor's thread: there, what presence heard decides).
             RegistrarStoppedError: it was stopped, or this process left the system.
         """
         server = self._presence.server(name)
-        if server is None and not self.closed:  # maybe served again, not yet heard here
-            self._presence.ask(name)
+        if server is None and not self.closed and not on_actor_thread():
+            self._presence.ask(name)  # maybe served again, not yet heard here
             server = self._presence.server(name)
         if server is None:
             raise self._gone_error(name)
         return _Route(self, name, server.zid, server.limit)
+
+    def unheard(self, name: str) -> bool:
+        """Whether this process has not heard of registrar `name` (served or gone)."""
+        presence = self._presence
+        return not self.closed and presence.server(name) is None and presence.gone(name) is None
+
+    def send_unheard(self, peer: ZenohPeer, message: Any) -> None:
+        """Send `message` to registrar `peer.name`, which this process has not heard of,
+        without waiting (an actor's thread; see the module docstring).
+
+        It is framed here and queued on the name's outbox, in order with what is sent
+        to that name after it; there the network is asked (`Presence.ask`), then the
+        frame is put to the server found, or its reply fails: `UnknownRegistrarError` if
+        nobody serves the name, `MessageTooLargeError` if it is over that server's
+        `max_message_bytes`. A message without a reply is then dropped (logged at debug
+        level), as the registrar drops one that cannot be sent at once.
+
+        Raises:
+            ConfigError: the message cannot be pickled.
+            RegistrarStoppedError: this process left the system.
+        """
+        outgoing = encode(peer.name, message)
+        outbox = self._outbox(self._keys.registrar(peer.name))
+        if outbox is None or not outbox.run(_Unheard(self, peer, outgoing, outbox)):
+            raise self._gone_error(peer.name)
+
+    def _put_unheard(self, peer: ZenohPeer, outgoing: Outgoing, outbox: Outbox) -> None:
+        """`send_unheard`'s second half, on `outbox`'s writer thread (the name's)."""
+        name, presence = peer.name, self._presence
+        server = presence.server(name)
+        if server is None and not self.closed and presence.gone(name) is None:
+            presence.ask(name)
+            server = presence.server(name)
+        if server is None:  # nobody's: what waits behind it fails too, and its writer ends
+            self._fail_unheard(outgoing, self._unsent_error(name))
+            self._outboxes.retire(outbox)
+            return
+        self._outboxes.until_answered(server.zid)  # (just heard of: a put may be lost)
+        try:
+            check_size(outgoing, name, server.limit)
+        except RrError as exc:
+            self._fail_unheard(outgoing, exc)
+            return
+        replies = self._inbox.replies
+        if outgoing.reply is not None:
+            replies.expect(outgoing, peer, server.limit)
+
+        def lost() -> None:  # (gone meanwhile: its presence may have missed this reply)
+            if outgoing.reply is None or replies.forget(outgoing.token):
+                self._fail_unheard(outgoing, self._gone_error(name))
+
+        if outbox.closed or presence.server(name) is None:
+            lost()
+            return
+        outbox.put(envelope(MESSAGE, self.zid, outgoing.data, CLOCK.send()), lost)
+
+    def _unsent_error(self, name: str) -> RrError:
+        """The error of a message to `name` that found no server: gone, or unknown."""
+        if self.closed or self._presence.gone(name) is not None:
+            return self._gone_error(name)
+        return self._unknown_error(name)
+
+    @staticmethod
+    def _fail_unheard(outgoing: Outgoing, error: RrError) -> None:
+        if outgoing.reply is not None:
+            outgoing.reply.set_error(error)
+        else:
+            logger.debug("%s not sent: %s", type(outgoing.message).__name__, error)
 
     def _outbox(self, key: str, zid: str | None = None) -> Outbox | None:
         """The outbox of `key`, whose subscriber is in process `zid` (if known: then the

@@ -73,9 +73,17 @@ class Outbox:
 
     def send(self, data: bytes, on_lost: Lost | None = None) -> bool:
         """Queue `data`; False (nothing sent) if the outbox is closed."""
-        return self._queue.submit(functools.partial(self._put, data, on_lost))
+        return self._queue.submit(functools.partial(self.put, data, on_lost))
 
-    def _put(self, data: bytes, on_lost: Lost | None) -> None:
+    def run(self, task: Callable[[], None]) -> bool:
+        """Queue `task` to run on the writer thread, in order with what is sent (it may
+        wait there, and `put`); False if the outbox is closed. If the outbox closes
+        before it runs, its `dropped()` (if it has one) is called instead."""
+        return self._queue.submit(task)
+
+    def put(self, data: bytes, on_lost: Lost | None = None) -> None:
+        """Put `data` now (the writer thread only: `send`'s step, or a task of `run`);
+        if the session closed, `on_lost` runs."""
         ready, self._ready = self._ready, None
         if ready is not None:
             ready()
@@ -97,6 +105,9 @@ class Outbox:
     def _lost(task: Task) -> None:
         if isinstance(task, functools.partial) and task.args[1] is not None:
             run_lost([task.args[1]])
+        dropped = getattr(task, "dropped", None)
+        if dropped is not None:
+            run_lost([dropped])
 
 
 class Outboxes:
@@ -116,11 +127,11 @@ class Outboxes:
 
     def get(self, key: str, first_to: str | None = None) -> Outbox:
         """The outbox of `key`; the first put of a new one to process `first_to` waits
-        until that process answers a ping (`_until_answered`)."""
+        until that process answers a ping (`until_answered`)."""
         outbox = self._outboxes.get(key)
         if outbox is not None and not outbox.closed:
             return outbox
-        ready = functools.partial(self._until_answered, first_to) if first_to else None
+        ready = functools.partial(self.until_answered, first_to) if first_to else None
         fresh = Outbox(self._session, key, ready)  # (no Zenoh call under our lock: its
         with self._lock:  # callbacks take it)
             outbox = self._outboxes.get(key)
@@ -139,6 +150,14 @@ class Outboxes:
         with self._lock:
             return self._outboxes.pop(key, None)
 
+    def retire(self, outbox: Outbox) -> None:
+        """Forget `outbox` (if it is still its key's) and close it: what is queued on it
+        is dropped (its `on_lost`, or `dropped()`, runs). Its destination is nobody's."""
+        with self._lock:
+            if self._outboxes.get(outbox.key) is outbox:
+                del self._outboxes[outbox.key]
+        outbox.close()
+
     def close(self, drain: float = 0.0) -> None:
         """Close every outbox: what is queued gets `drain` seconds, all outboxes together,
         to be put (their writers put in parallel); what is still queued then is lost."""
@@ -149,7 +168,7 @@ class Outboxes:
         for outbox in outboxes:
             outbox.close(max(0.0, deadline - time.monotonic()))
 
-    def _until_answered(self, zid: str) -> None:
+    def until_answered(self, zid: str) -> None:
         """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread).
 
         When a link comes up (a host that joins, a healed link) the process's tokens may
