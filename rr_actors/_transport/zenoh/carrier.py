@@ -37,6 +37,29 @@ Who does what (each collaborator owns its state; they meet only through method c
   reachable);
 - `wire`: key expressions and the frame header.
 
+Never on an actor's thread: a registrar's actor (and any `Actor`: `on_actor_thread`) must
+answer its next message, a supervisor's heartbeat included (`hang` tolerance 0.75 s by
+default), however slow the network is. So there `resolve` and `route` never ask the
+network; what this process's presence heard decides:
+
+- a name served now: sent at once, as from any thread;
+- a name heard going (stopped, or died): its error at once (`RegistrarStoppedError`,
+  `RegistrarUnavailableError`); a restart is heard as its token comes, and the
+  restarted registrar asks its consumers to reconcile (rule 20);
+- a name never heard of: its peer comes at once and each message to it is framed and
+  queued on the name's outbox (`send_unheard`); the writer thread asks the network,
+  then puts it to the server found, or fails its reply (`UnknownRegistrarError`). One
+  queue per name keeps the order of what this process sends to it, before and after it
+  is heard of.
+
+Why not trust the tables alone for a name never heard of: they may lag the network (a
+consumer's first call can overtake its token here, and its status must still reach it;
+a process that just joined has not heard the history yet). Why not wait on the actor:
+a router slow under load answers in up to `ASK_TIMEOUT` (1 s), and a manager whose
+actor does not answer its heartbeat in time is killed as hung. A user's thread (a call,
+`run`) still asks the network inline: its caller waits anyway and gets
+`UnknownRegistrarError` at once.
+
 One name, one server: `serve` first declares a claim token, then asks the network for
 servers and claims of the name. A server of another process is a `DuplicateNameError`;
 of two claims that see each other the lower Zenoh id wins; a claim that sees a higher
