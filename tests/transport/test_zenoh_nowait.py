@@ -3,9 +3,15 @@
 The test process attaches, as a manager process does, to a router in a child process
 and serves a registrar. The router is then frozen (SIGSTOP; its lease is long, so the
 link stays up): whatever this process asks of the network waits until the router runs
-again. A message the registrar's actor sends to a registrar nobody here has heard of
-must not hold the actor: it answers other messages meanwhile, and the message's fate
-(here: nobody serves that name) is known once the network answers.
+again. A message the registrar's actor sends to a registrar this process does not see
+served (never heard of, or heard to die) must not hold the actor: it answers other
+messages meanwhile (a heartbeat comes that way), and the message's fate (nobody serves
+that name; or it is delivered, in order) is known once the network answers.
+
+A registrar whose token is "still on its way" here is one whose liveliness samples this
+process's presence ignores (`Presence._on_live` wrapped before the member starts): it
+is heard only when the network is asked, as after a restart, or a join, under load.
+Order, not speed: each test checks that the actor answered before the router ran again.
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ import os
 import signal
 import threading
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import pykka
@@ -166,7 +172,7 @@ def test_messages_an_actor_tells_a_registrar_not_heard_of_yet_arrive_in_order_on
 ) -> None:
     address, router_pid = frozen_router
     monkeypatch.setattr(presence, "ASK_TIMEOUT", 30.0)
-    on_live = presence.Presence._on_live
+    on_live = presence.Presence._on_live  # (bound when the member's presence starts)
 
     def late(self: presence.Presence, sample: Any) -> None:  # as if its token were on
         if SERVED not in str(sample.key_expr):  # the way still: heard only when asked
@@ -201,3 +207,83 @@ def test_messages_an_actor_tells_a_registrar_not_heard_of_yet_arrive_in_order_on
         member.close()
 
     assert [(1, []), (2, []), (3, [])] == answers
+
+
+def manager_main(address: Any, name: str, control: multiprocessing.connection.Connection) -> None:
+    """A process that attaches through the router and serves registrar `name` (with a
+    server `s`) until told on its control pipe."""
+    member = address.attach()
+    registrar = rr.ResourceRegistrar.start(name)
+    try:
+        registrar.register_server("s", load=lambda request: request, unload=lambda *_: None)
+        member.serve(Served(registrar))
+        control.send("ready")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        registrar.stop()
+        member.close()
+
+
+def test_a_message_an_actor_tells_a_registrar_heard_to_die_reaches_its_restart_not_heard_yet(
+    frozen_router: tuple[Any, int],
+    context: multiprocessing.context.ForkServerContext,
+    monkeypatch: pytest.MonkeyPatch,
+    eventually: Callable[..., bool],
+) -> None:
+    address, router_pid = frozen_router
+    monkeypatch.setattr(presence, "ASK_TIMEOUT", 30.0)
+    name = f"restarted-{uuid.uuid4().hex[:6]}"
+    hidden = threading.Event()  # from then on, its tokens are still on the way (heard
+    on_live = presence.Presence._on_live  # only when asked)
+
+    def late(self: presence.Presence, sample: Any) -> None:
+        if not (hidden.is_set() and name in str(sample.key_expr)):
+            on_live(self, sample)
+
+    monkeypatch.setattr(presence.Presence, "_on_live", late)
+    member = address.attach()
+    registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
+    managers: list[tuple[Any, Any]] = []
+
+    def manager() -> Any:
+        parent_end, child_end = context.Pipe()
+        process = context.Process(target=manager_main, args=(address, name, child_end))
+        process.start()
+        child_end.close()
+        managers.append((process, parent_end))
+        assert parent_end.poll(30), "the manager did not get ready"
+        assert "ready" == parent_end.recv()
+        return process
+
+    fetched = FutureReply()
+    try:
+        member.serve(Served(registrar))
+        first = manager()
+        assert eventually(lambda: name in member.names(), timeout=10)
+        os.kill(first.pid, signal.SIGKILL)
+        assert eventually(lambda: name not in member.names(), timeout=10)  # heard to die
+        hidden.set()
+        manager()  # the restart: this process has not heard of it
+        os.kill(router_pid, signal.SIGSTOP)
+        try:
+            run_on_actor(
+                registrar, lambda: DIRECTORY.lookup(name).tell(Fetch("s", registrar.name, fetched))
+            )
+
+            assert [] == registrar.client_queries(timeout=10)  # before the router runs
+        finally:
+            os.kill(router_pid, signal.SIGCONT)
+
+        assert [] == fetched.future.get(timeout=40)
+    finally:
+        registrar.stop()
+        member.close()
+        for process, control in managers:
+            with contextlib.suppress(OSError):
+                control.send("stop")
+            process.join(10)
+            if process.is_alive():
+                process.kill()
+                process.join(5)
+            control.close()

@@ -43,22 +43,22 @@ default), however slow the network is. So there `resolve` and `route` never ask 
 network; what this process's presence heard decides:
 
 - a name served now: sent at once, as from any thread;
-- a name heard going (stopped, or died): its error at once (`RegistrarStoppedError`,
-  `RegistrarUnavailableError`); a restart is heard as its token comes, and the
-  restarted registrar asks its consumers to reconcile (rule 20);
-- a name never heard of: its peer comes at once and each message to it is framed and
-  queued on the name's outbox (`send_unheard`); the writer thread asks the network,
-  then puts it to the server found, or fails its reply (`UnknownRegistrarError`). One
-  queue per name keeps the order of what this process sends to it, before and after it
-  is heard of.
+- a name heard to stop cleanly: `RegistrarStoppedError` at once (it holds nothing, rule
+  12; a registrar served again under its name is a new one, and reconciles itself);
+- a name never heard of, or heard to die (a restart may be served already, its token
+  still on its way here): its peer comes at once and each message to it is framed and
+  queued on the name's outbox (`send_when_served`); the writer thread asks the network,
+  then puts it to the server found, or fails its reply (`UnknownRegistrarError`, or
+  `RegistrarUnavailableError` for one that died). One queue per name keeps the order
+  of what this process sends to it, before and after it is seen served.
 
-Why not trust the tables alone for a name never heard of: they may lag the network (a
-consumer's first call can overtake its token here, and its status must still reach it;
-a process that just joined has not heard the history yet). Why not wait on the actor:
-a router slow under load answers in up to `ASK_TIMEOUT` (1 s), and a manager whose
-actor does not answer its heartbeat in time is killed as hung. A user's thread (a call,
-`run`) still asks the network inline: its caller waits anyway and gets
-`UnknownRegistrarError` at once.
+Why not trust the tables alone: they may lag the network (a consumer's first call, or
+a restarted provider's `ReconcileAsk`, can overtake its token here, and the answer, the
+status or the `Reconcile` must still reach it; a process that just joined has not heard
+the history yet). Why not wait on the actor: a router slow under load answers in up to
+`ASK_TIMEOUT` (1 s), and a manager whose actor does not answer its heartbeat in time is
+killed as hung. A user's thread (a call, `run`) still asks the network inline: its
+caller waits anyway, and gets `UnknownRegistrarError` at once.
 
 One name, one server: `serve` first declares a claim token, then asks the network for
 servers and claims of the name. A server of another process is a `DuplicateNameError`;
@@ -141,17 +141,17 @@ class ZenohPeer(Remote):
 
     def tell(self, message: Any) -> None:
         """Send `message` (`Remote.tell`); on an actor's thread, to a registrar this
-        process has not heard of yet, without waiting: `ZenohMember.send_unheard`."""
+        process does not see served, without waiting: `ZenohMember.send_when_served`."""
         member = self._member
-        if on_actor_thread() and member.unheard(self.name):
-            member.send_unheard(self, message)
+        if on_actor_thread() and member.unserved(self.name):
+            member.send_when_served(self, message)
         else:
             send(self, message)
 
 
-class _Unheard:
-    """A message to a registrar this process had not heard of when an actor sent it:
-    on the name's writer thread, the network is asked, then it is put (or failed)."""
+class _WhenServed:
+    """A message an actor sent to a registrar this process did not see served: on the
+    name's writer thread, the network is asked, then it is put (or failed)."""
 
     __slots__ = ("member", "outbox", "outgoing", "peer")
 
@@ -164,11 +164,11 @@ class _Unheard:
         self.outbox = outbox
 
     def __call__(self) -> None:
-        self.member._put_unheard(self.peer, self.outgoing, self.outbox)
+        self.member._put_when_served(self.peer, self.outgoing, self.outbox)
 
     def dropped(self) -> None:
         """The outbox closed before it ran: its reply fails (nothing was sent)."""
-        self.member._fail_unheard(self.outgoing, self.member._unsent_error(self.peer.name))
+        self.member._fail_unsent(self.outgoing, self.member._unsent_error(self.peer.name))
 
 
 class _Route:
@@ -268,7 +268,7 @@ class ZenohMember:
         A name not heard of yet is asked of the network (at most `ASK_TIMEOUT` seconds),
         but not on an actor's thread: there its peer comes at once, and each message
         sent to it is held on the name's writer thread until the network answered
-        (`send_unheard`).
+        (`send_when_served`).
 
         Raises:
             UnknownRegistrarError: nobody serves `name` on this system (the message names
@@ -476,19 +476,24 @@ class ZenohMember:
             raise self._gone_error(name)
         return _Route(self, name, server.zid, server.limit)
 
-    def unheard(self, name: str) -> bool:
-        """Whether this process has not heard of registrar `name` (served or gone)."""
+    def unserved(self, name: str) -> bool:
+        """Whether this process sees no server of registrar `name` and did not hear it
+        stop (never heard of, or died: maybe served again, not yet heard here)."""
         presence = self._presence
-        return not self.closed and presence.server(name) is None and presence.gone(name) is None
+        return (
+            not self.closed and presence.server(name) is None and presence.gone(name) != "stopped"
+        )
 
-    def send_unheard(self, peer: ZenohPeer, message: Any) -> None:
-        """Send `message` to registrar `peer.name`, which this process has not heard of,
-        without waiting (an actor's thread; see the module docstring).
+    def send_when_served(self, peer: ZenohPeer, message: Any) -> None:
+        """Send `message` to registrar `peer.name`, which this process does not see
+        served (`unserved`), without waiting (an actor's thread; see the module
+        docstring).
 
         It is framed here and queued on the name's outbox, in order with what is sent
         to that name after it; there the network is asked (`Presence.ask`), then the
         frame is put to the server found, or its reply fails: `UnknownRegistrarError` if
-        nobody serves the name, `MessageTooLargeError` if it is over that server's
+        nobody serves the name (`RegistrarUnavailableError` if it was heard to die),
+        `MessageTooLargeError` if it is over that server's
         `max_message_bytes`. A message without a reply is then dropped (logged at debug
         level), as the registrar drops one that cannot be sent at once.
 
@@ -498,25 +503,25 @@ class ZenohMember:
         """
         outgoing = encode(peer.name, message)
         outbox = self._outbox(self._keys.registrar(peer.name))
-        if outbox is None or not outbox.run(_Unheard(self, peer, outgoing, outbox)):
+        if outbox is None or not outbox.run(_WhenServed(self, peer, outgoing, outbox)):
             raise self._gone_error(peer.name)
 
-    def _put_unheard(self, peer: ZenohPeer, outgoing: Outgoing, outbox: Outbox) -> None:
-        """`send_unheard`'s second half, on `outbox`'s writer thread (the name's)."""
+    def _put_when_served(self, peer: ZenohPeer, outgoing: Outgoing, outbox: Outbox) -> None:
+        """`send_when_served`'s second half, on `outbox`'s writer thread (the name's)."""
         name, presence = peer.name, self._presence
         server = presence.server(name)
-        if server is None and not self.closed and presence.gone(name) is None:
+        if server is None and not self.closed and presence.gone(name) != "stopped":
             presence.ask(name)
             server = presence.server(name)
         if server is None:  # nobody's: what waits behind it fails too, and its writer ends
-            self._fail_unheard(outgoing, self._unsent_error(name))
+            self._fail_unsent(outgoing, self._unsent_error(name))
             self._outboxes.retire(outbox)
             return
         self._outboxes.until_answered(server.zid)  # (just heard of: a put may be lost)
         try:
             check_size(outgoing, name, server.limit)
         except RrError as exc:
-            self._fail_unheard(outgoing, exc)
+            self._fail_unsent(outgoing, exc)
             return
         replies = self._inbox.replies
         if outgoing.reply is not None:
@@ -524,7 +529,7 @@ class ZenohMember:
 
         def lost() -> None:  # (gone meanwhile: its presence may have missed this reply)
             if outgoing.reply is None or replies.forget(outgoing.token):
-                self._fail_unheard(outgoing, self._gone_error(name))
+                self._fail_unsent(outgoing, self._gone_error(name))
 
         if outbox.closed or presence.server(name) is None:
             lost()
@@ -538,7 +543,7 @@ class ZenohMember:
         return self._unknown_error(name)
 
     @staticmethod
-    def _fail_unheard(outgoing: Outgoing, error: RrError) -> None:
+    def _fail_unsent(outgoing: Outgoing, error: RrError) -> None:
         if outgoing.reply is not None:
             outgoing.reply.set_error(error)
         else:
