@@ -502,9 +502,13 @@ class ZenohMember:
             RegistrarStoppedError: this process left the system.
         """
         outgoing = encode(peer.name, message)
-        outbox = self._outbox(self._keys.registrar(peer.name))
-        if outbox is None or not outbox.run(_WhenServed(self, peer, outgoing, outbox)):
-            raise self._gone_error(peer.name)
+        for _attempt in (1, 2):  # (the second: its outbox was just retired, nobody's)
+            outbox = self._outbox(self._keys.registrar(peer.name))
+            if outbox is None:
+                break
+            if outbox.run(_WhenServed(self, peer, outgoing, outbox)):
+                return
+        raise self._gone_error(peer.name)
 
     def _put_when_served(self, peer: ZenohPeer, outgoing: Outgoing, outbox: Outbox) -> None:
         """`send_when_served`'s second half, on `outbox`'s writer thread (the name's)."""
@@ -517,7 +521,9 @@ class ZenohMember:
             self._fail_unsent(outgoing, self._unsent_error(name))
             self._outboxes.retire(outbox)
             return
-        self._outboxes.until_answered(server.zid)  # (just heard of: a put may be lost)
+        if outbox.pinged != server.zid:  # just seen: a put before its ping may be lost
+            self._outboxes.until_answered(server.zid)
+            outbox.pinged = server.zid
         try:
             check_size(outgoing, name, server.limit)
         except RrError as exc:

@@ -57,6 +57,7 @@ class Outbox:
         self, session: zenoh.Session, key: str, ready: Callable[[], None] | None = None
     ) -> None:
         self.key = key
+        self.pinged: str | None = None  # the process a task of `run` pinged (its thread's)
         self._ready = ready  # runs on the writer thread before the first put
         self._publisher = session.declare_publisher(
             key,
