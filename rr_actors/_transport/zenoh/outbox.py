@@ -2,9 +2,11 @@
 
 ```
  ZenohMember.send / answer_to ─► Outboxes.get(key) ─► Outbox(key).send(header + frame)
+ ZenohMember.send_when_served ─────────────────────► Outbox(key).run(task): in order
                                                           │ its writer thread (SerialExecutor)
                                                           ▼
-          (a new outbox's first put: ping rr/<s>/ping/<zid> first)
+          (a new outbox's first put: ping rr/<s>/ping/<zid> first; a task asks the
+           network for a registrar not seen served, then puts, or fails its reply)
                                                  publisher.put ─► rr/<s>/reg/<name>
                                                                   rr/<s>/ans/<zid>
 ```
