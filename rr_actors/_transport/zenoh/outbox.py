@@ -11,7 +11,8 @@
                                                                   rr/<s>/ans/<zid>
 ```
 
-A sender never blocks on a peer and no answer is sent on an actor thread: one writer per
+A sender never blocks on a peer and no answer is sent on an actor thread (nor is a
+publisher declared there: the first put declares it, on the writer thread): one writer per
 destination (a registrar's key for requests, a process's answer key for answers), so
 messages from one process to one registrar keep their order (one writer, one Zenoh route,
 one decode thread there). Puts are reliable and block on a full queue
@@ -61,14 +62,10 @@ class Outbox:
         self.key = key
         self.pinged: str | None = None  # the process a task of `run` pinged (its thread's)
         self._ready = ready  # runs on the writer thread before the first put
-        self._publisher = session.declare_publisher(
-            key,
-            congestion_control=zenoh.CongestionControl.BLOCK,
-            express=True,
-            reliability=zenoh.Reliability.RELIABLE,
-        )
+        self._session = session
+        self._publisher: zenoh.Publisher | None = None  # declared by the first put
         name = f"rr-zput-{key.rsplit('/', 1)[-1]}"
-        self._queue = SerialExecutor(name, on_drop=self._lost)
+        self._queue = SerialExecutor(name, on_drop=self._lost, on_end=self._undeclare)
 
     @property
     def closed(self) -> bool:
@@ -91,6 +88,13 @@ class Outbox:
         if ready is not None:
             ready()
         try:
+            if self._publisher is None:
+                self._publisher = self._session.declare_publisher(
+                    self.key,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    express=True,
+                    reliability=zenoh.Reliability.RELIABLE,
+                )
             self._publisher.put(data)
         except Exception as exc:  # noqa: BLE001 - the session closed: the frame is lost
             logger.debug("a put on %s failed: %s", self.key, exc)
@@ -101,8 +105,12 @@ class Outbox:
         """Stop sending: what is queued gets `timeout` seconds to be put (0: none), then
         what is still queued is lost (its `on_lost` runs)."""
         self._queue.close(timeout=timeout)  # (each dropped frame's `on_lost` runs: `_lost`)
-        with contextlib.suppress(Exception):
-            self._publisher.undeclare()  # type: ignore[no-untyped-call]
+
+    def _undeclare(self) -> None:  # (the queue's last step: after its last put)
+        publisher, self._publisher = self._publisher, None
+        if publisher is not None:
+            with contextlib.suppress(Exception):
+                publisher.undeclare()  # type: ignore[no-untyped-call]
 
     @staticmethod
     def _lost(task: Task) -> None:
