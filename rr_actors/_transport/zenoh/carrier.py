@@ -503,7 +503,9 @@ class ZenohMember:
         """
         outgoing = encode(peer.name, message)
         for _attempt in (1, 2):  # (the second: its outbox was just retired, nobody's)
-            outbox = self._outbox(self._keys.registrar(peer.name))
+            # (its publisher is declared after the network was asked: a liveliness query
+            # right after a publisher's declaration can come back empty at once)
+            outbox = self._outbox(self._keys.registrar(peer.name), declared=False)
             if outbox is None:
                 break
             if outbox.run(_WhenServed(self, peer, outgoing, outbox)):
@@ -521,6 +523,7 @@ class ZenohMember:
             self._fail_unsent(outgoing, self._unsent_error(name))
             self._outboxes.retire(outbox)
             return
+        outbox.declare()
         if outbox.pinged != server.zid:  # just seen: a put before its ping may be lost
             self._outboxes.until_answered(server.zid)
             outbox.pinged = server.zid
@@ -555,12 +558,13 @@ class ZenohMember:
         else:
             logger.debug("%s not sent: %s", type(outgoing.message).__name__, error)
 
-    def _outbox(self, key: str, zid: str | None = None) -> Outbox | None:
+    def _outbox(self, key: str, zid: str | None = None, *, declared: bool = True) -> Outbox | None:
         """The outbox of `key`, whose subscriber is in process `zid` (if known: then the
-        first put of a new outbox waits for that process's answer to a ping)."""
+        first put of a new outbox waits for that process's answer to a ping); see
+        `Outboxes.get` for `declared`."""
         if self.closed:
             return None
-        return self._outboxes.get(key, zid)
+        return self._outboxes.get(key, zid, declared=declared)
 
     def answer_to(self, sender: str, data: bytes, on_lost: Lost | None) -> bool:
         """Send an answer frame to process `sender`; False if it is gone (not sent).

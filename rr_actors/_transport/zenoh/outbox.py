@@ -11,8 +11,7 @@
                                                                   rr/<s>/ans/<zid>
 ```
 
-A sender never blocks on a peer and no answer is sent on an actor thread (nor is a
-publisher declared there: the first put declares it, on the writer thread): one writer per
+A sender never blocks on a peer and no answer is sent on an actor thread: one writer per
 destination (a registrar's key for requests, a process's answer key for answers), so
 messages from one process to one registrar keep their order (one writer, one Zenoh route,
 one decode thread there). Puts are reliable and block on a full queue
@@ -57,15 +56,22 @@ class Outbox:
     """The writer of one destination key: its thread puts payloads in the order sent."""
 
     def __init__(
-        self, session: zenoh.Session, key: str, ready: Callable[[], None] | None = None
+        self,
+        session: zenoh.Session,
+        key: str,
+        ready: Callable[[], None] | None = None,
+        *,
+        declared: bool = True,
     ) -> None:
         self.key = key
         self.pinged: str | None = None  # the process a task of `run` pinged (its thread's)
         self._ready = ready  # runs on the writer thread before the first put
         self._session = session
-        self._publisher: zenoh.Publisher | None = None  # declared by the first put
+        self._publisher: zenoh.Publisher | None = None
+        if declared:
+            self.declare()
         name = f"rr-zput-{key.rsplit('/', 1)[-1]}"
-        self._queue = SerialExecutor(name, on_drop=self._lost, on_end=self._undeclare)
+        self._queue = SerialExecutor(name, on_drop=self._lost)
 
     @property
     def closed(self) -> bool:
@@ -81,6 +87,16 @@ class Outbox:
         before it runs, its `dropped()` (if it has one) is called instead."""
         return self._queue.submit(task)
 
+    def declare(self) -> None:
+        """Declare the publisher, if not yet (at creation, or on the writer thread)."""
+        if self._publisher is None:
+            self._publisher = self._session.declare_publisher(
+                self.key,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                express=True,
+                reliability=zenoh.Reliability.RELIABLE,
+            )
+
     def put(self, data: bytes, on_lost: Lost | None = None) -> None:
         """Put `data` now (the writer thread only: `send`'s step, or a task of `run`);
         if the session closed, `on_lost` runs."""
@@ -88,13 +104,8 @@ class Outbox:
         if ready is not None:
             ready()
         try:
-            if self._publisher is None:
-                self._publisher = self._session.declare_publisher(
-                    self.key,
-                    congestion_control=zenoh.CongestionControl.BLOCK,
-                    express=True,
-                    reliability=zenoh.Reliability.RELIABLE,
-                )
+            self.declare()
+            assert self._publisher is not None
             self._publisher.put(data)
         except Exception as exc:  # noqa: BLE001 - the session closed: the frame is lost
             logger.debug("a put on %s failed: %s", self.key, exc)
@@ -105,12 +116,9 @@ class Outbox:
         """Stop sending: what is queued gets `timeout` seconds to be put (0: none), then
         what is still queued is lost (its `on_lost` runs)."""
         self._queue.close(timeout=timeout)  # (each dropped frame's `on_lost` runs: `_lost`)
-
-    def _undeclare(self) -> None:  # (the queue's last step: after its last put)
-        publisher, self._publisher = self._publisher, None
-        if publisher is not None:
-            with contextlib.suppress(Exception):
-                publisher.undeclare()  # type: ignore[no-untyped-call]
+        with contextlib.suppress(Exception):
+            if self._publisher is not None:
+                self._publisher.undeclare()  # type: ignore[no-untyped-call]
 
     @staticmethod
     def _lost(task: Task) -> None:
@@ -136,14 +144,18 @@ class Outboxes:
         self._outboxes: dict[str, Outbox] = {}
         self._closed = False
 
-    def get(self, key: str, first_to: str | None = None) -> Outbox:
+    def get(self, key: str, first_to: str | None = None, *, declared: bool = True) -> Outbox:
         """The outbox of `key`; the first put of a new one to process `first_to` waits
-        until that process answers a ping (`until_answered`)."""
+        until that process answers a ping (`until_answered`). A new one made with
+        `declared=False` declares its publisher on its writer thread (`declare`, or its
+        first put)."""
         outbox = self._outboxes.get(key)
         if outbox is not None and not outbox.closed:
             return outbox
         ready = functools.partial(self.until_answered, first_to) if first_to else None
-        fresh = Outbox(self._session, key, ready)  # (no Zenoh call under our lock: its
+        fresh = Outbox(
+            self._session, key, ready, declared=declared
+        )  # (no Zenoh call under our lock: its
         with self._lock:  # callbacks take it)
             outbox = self._outboxes.get(key)
             if self._closed:
