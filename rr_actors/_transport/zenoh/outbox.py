@@ -153,10 +153,9 @@ class Outboxes:
         if outbox is not None and not outbox.closed:
             return outbox
         ready = functools.partial(self.until_answered, first_to) if first_to else None
-        fresh = Outbox(
-            self._session, key, ready, declared=declared
-        )  # (no Zenoh call under our lock: its
-        with self._lock:  # callbacks take it)
+        # (made before our lock is taken: no Zenoh call under it, its callbacks take it)
+        fresh = Outbox(self._session, key, ready, declared=declared)
+        with self._lock:
             outbox = self._outboxes.get(key)
             if self._closed:
                 outbox = None  # (closed meanwhile: a writer made now would never end)
