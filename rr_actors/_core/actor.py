@@ -29,6 +29,12 @@ actor's `on_late` (by default `refuse`: an ask gets `ActorDeadError`, as pykka's
 gives it), so an actor whose tells carry obligations (the registrar's carry replies and
 consumer ids) can honour them.
 
+An actor's thread says so (`on_actor_thread`, set as pykka's `_actor_loop_setup`
+begins): a carrier never waits on the network there (a registrar's actor that looks up
+a registrar its process has not heard of yet goes on with its mailbox; the Zenoh
+carrier asks the network on the name's writer thread), so an actor answers its next
+message, a heartbeat's included, as soon as it is done with the one before.
+
 In a child forked from this process the actors' threads are gone: `_forget_actors` (run
 at the fork, `rr_actors._platform.fork`) makes each inherited ref say it is dead and
 takes it out of pykka's registry, so a message to one fails at once (`ActorDeadError`)
@@ -49,7 +55,21 @@ import pykka
 from rr_actors._core.queues import Late, LateQueue
 from rr_actors._platform import fork
 
-__all__ = ["Actor", "ContainedError", "Inbox", "Late", "OneShotFuture", "refuse"]
+__all__ = ["Actor", "ContainedError", "Inbox", "Late", "OneShotFuture", "on_actor_thread", "refuse"]
+
+_ACTOR_THREAD = threading.local()  # `active` on the thread of an `Actor`'s loop
+
+
+def on_actor_thread() -> bool:
+    """Whether the calling thread runs an actor's loop (an `Actor`'s thread).
+
+    Such a thread must never wait on the network: a carrier asked for a registrar there
+    answers from what it knows and leaves the asking to a thread of its own (the Zenoh
+    carrier's outbox writer), so the actor answers its next message at once (a
+    supervisor's heartbeat comes through the mailbox too).
+    """
+    return bool(getattr(_ACTOR_THREAD, "active", False))
+
 
 T = TypeVar("T")
 
@@ -214,6 +234,10 @@ class Actor(pykka.ThreadingActor):
     @staticmethod
     def _create_future() -> pykka.Future[Any]:
         return OneShotFuture()
+
+    def _actor_loop_setup(self) -> None:
+        _ACTOR_THREAD.active = True  # (on the actor's new thread: `on_actor_thread`)
+        super()._actor_loop_setup()
 
     def _actor_loop_teardown(self) -> None:
         # Instead of pykka's drain, which answers asks and drops tells.

@@ -37,6 +37,29 @@ Who does what (each collaborator owns its state; they meet only through method c
   reachable);
 - `wire`: key expressions and the frame header.
 
+Never on an actor's thread: a registrar's actor (and any `Actor`: `on_actor_thread`) must
+answer its next message, a supervisor's heartbeat included (`hang` tolerance 0.75 s by
+default), however slow the network is. So there `resolve` and `route` never ask the
+network; what this process's presence heard decides:
+
+- a name served now: sent at once, as from any thread;
+- a name heard to stop cleanly: `RegistrarStoppedError` at once (it holds nothing, rule
+  12; a registrar served again under its name is a new one, and reconciles itself);
+- a name never heard of, or heard to die (a restart may be served already, its token
+  still on its way here): its peer comes at once and each message to it is framed and
+  queued on the name's outbox (`send_when_served`); the writer thread asks the network,
+  then puts it to the server found, or fails its reply (`UnknownRegistrarError`, or
+  `RegistrarUnavailableError` for one that died). One queue per name keeps the order
+  of what this process sends to it, before and after it is seen served.
+
+Why not trust the tables alone: they may lag the network (a consumer's first call, or
+a restarted provider's `ReconcileAsk`, can overtake its token here, and the answer, the
+status or the `Reconcile` must still reach it; a process that just joined has not heard
+the history yet). Why not wait on the actor: a router slow under load answers in up to
+`ASK_TIMEOUT` (1 s), and a manager whose actor does not answer its heartbeat in time is
+killed as hung. A user's thread (a call, `run`) still asks the network inline: its
+caller waits anyway, and gets `UnknownRegistrarError` at once.
+
 One name, one server: `serve` first declares a claim token, then asks the network for
 servers and claims of the name. A server of another process is a `DuplicateNameError`;
 of two claims that see each other the lower Zenoh id wins; a claim that sees a higher
@@ -57,11 +80,22 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from rr_actors._core.actor import on_actor_thread
 from rr_actors._core.bus import Subscription
 from rr_actors._core.directory import DIRECTORY, Peer
 from rr_actors._core.hlc import CLOCK
 from rr_actors._transport.base import Address, Endpoint
-from rr_actors._transport.messenger import Link, Lost, Remote, tell_lost, tell_reachable
+from rr_actors._transport.messenger import (
+    Link,
+    Lost,
+    Outgoing,
+    Remote,
+    check_size,
+    encode,
+    send,
+    tell_lost,
+    tell_reachable,
+)
 from rr_actors._transport.zenoh.events import EventExport, EventFeed
 from rr_actors._transport.zenoh.inbox import Inbox, Local
 from rr_actors._transport.zenoh.outbox import DRAIN_TIMEOUT, Outbox, Outboxes
@@ -104,6 +138,37 @@ class ZenohPeer(Remote):
 
     def gone(self) -> RrError:
         return self._member._gone_error(self.name)
+
+    def tell(self, message: Any) -> None:
+        """Send `message` (`Remote.tell`); on an actor's thread, to a registrar this
+        process does not see served, without waiting: `ZenohMember.send_when_served`."""
+        member = self._member
+        if on_actor_thread() and member.unserved(self.name):
+            member.send_when_served(self, message)
+        else:
+            send(self, message)
+
+
+class _WhenServed:
+    """A message an actor sent to a registrar this process did not see served: on the
+    name's writer thread, the network is asked, then it is put (or failed)."""
+
+    __slots__ = ("member", "outbox", "outgoing", "peer")
+
+    def __init__(
+        self, member: ZenohMember, peer: ZenohPeer, outgoing: Outgoing, outbox: Outbox
+    ) -> None:
+        self.member = member
+        self.peer = peer
+        self.outgoing = outgoing
+        self.outbox = outbox
+
+    def __call__(self) -> None:
+        self.member._put_when_served(self.peer, self.outgoing, self.outbox)
+
+    def dropped(self) -> None:
+        """The outbox closed before it ran: its reply fails (nothing was sent)."""
+        self.member._fail_unsent(self.outgoing, self.member._unsent_error(self.peer.name))
 
 
 class _Route:
@@ -200,7 +265,10 @@ class ZenohMember:
     def resolve(self, name: str) -> Peer | None:
         """A peer for registrar `name` of another process of this system.
 
-        A name not seen yet is asked of the network (at most `ASK_TIMEOUT` seconds).
+        A name not heard of yet is asked of the network (at most `ASK_TIMEOUT` seconds),
+        but not on an actor's thread: there its peer comes at once, and each message
+        sent to it is held on the name's writer thread until the network answered
+        (`send_when_served`).
 
         Raises:
             UnknownRegistrarError: nobody serves `name` on this system (the message names
@@ -213,16 +281,22 @@ class ZenohMember:
             return None  # a registrar of this process that stopped or died
         known = known or self._presence.gone(name) is not None
         if not known and NAME.fullmatch(name):
-            self._presence.ask(name)
-            known = self._presence.serves(name)
+            if on_actor_thread():
+                known = True  # (asked by its messages, off this thread)
+            else:
+                self._presence.ask(name)
+                known = self._presence.serves(name)
         if not known:
-            raise UnknownRegistrarError(  # the known: this process's registrars too
-                f"no registrar named {name!r} on system {self.system!r}"
-                + _known_names(name, DIRECTORY.names() - {name})
-                + (self._link_trouble() if self._link_trouble is not None else "")
-            )
+            raise self._unknown_error(name)
         with self._lock:
             return self._peers.setdefault(name, ZenohPeer(self, name))
+
+    def _unknown_error(self, name: str) -> UnknownRegistrarError:
+        return UnknownRegistrarError(  # the known: this process's registrars too
+            f"no registrar named {name!r} on system {self.system!r}"
+            + _known_names(name, DIRECTORY.names() - {name})
+            + (self._link_trouble() if self._link_trouble is not None else "")
+        )
 
     def wait_served(self, name: str, *, timeout: float) -> bool:
         """Whether registrar `name` is served (here or by another process) within `timeout`
@@ -390,23 +464,107 @@ class ZenohMember:
         """The way to registrar `name` of another process now (`ZenohPeer.route`).
 
         Raises:
-            RegistrarUnavailableError: no process serves it now (asked of the network).
+            RegistrarUnavailableError: no process serves it now (asked of the network,
+                but not on an actor's thread: there, what presence heard decides).
             RegistrarStoppedError: it was stopped, or this process left the system.
         """
         server = self._presence.server(name)
-        if server is None and not self.closed:  # maybe served again, not yet heard here
-            self._presence.ask(name)
+        if server is None and not self.closed and not on_actor_thread():
+            self._presence.ask(name)  # maybe served again, not yet heard here
             server = self._presence.server(name)
         if server is None:
             raise self._gone_error(name)
         return _Route(self, name, server.zid, server.limit)
 
-    def _outbox(self, key: str, zid: str | None = None) -> Outbox | None:
+    def unserved(self, name: str) -> bool:
+        """Whether this process sees no server of registrar `name` and did not hear it
+        stop (never heard of, or died: maybe served again, not yet heard here)."""
+        presence = self._presence
+        return (
+            not self.closed and presence.server(name) is None and presence.gone(name) != "stopped"
+        )
+
+    def send_when_served(self, peer: ZenohPeer, message: Any) -> None:
+        """Send `message` to registrar `peer.name`, which this process does not see
+        served (`unserved`), without waiting (an actor's thread; see the module
+        docstring).
+
+        It is framed here and queued on the name's outbox, in order with what is sent
+        to that name after it; there the network is asked (`Presence.ask`), then the
+        frame is put to the server found, or its reply fails: `UnknownRegistrarError` if
+        nobody serves the name (`RegistrarUnavailableError` if it was heard to die),
+        `MessageTooLargeError` if it is over that server's
+        `max_message_bytes`. A message without a reply is then dropped (logged at debug
+        level), as the registrar drops one that cannot be sent at once.
+
+        Raises:
+            ConfigError: the message cannot be pickled.
+            RegistrarStoppedError: this process left the system.
+        """
+        outgoing = encode(peer.name, message)
+        for _attempt in (1, 2):  # (the second: its outbox was just retired, nobody's)
+            # (its publisher is declared after the network was asked: a liveliness query
+            # right after a publisher's declaration can come back empty at once)
+            outbox = self._outbox(self._keys.registrar(peer.name), declared=False)
+            if outbox is None:
+                break
+            if outbox.run(_WhenServed(self, peer, outgoing, outbox)):
+                return
+        raise self._gone_error(peer.name)
+
+    def _put_when_served(self, peer: ZenohPeer, outgoing: Outgoing, outbox: Outbox) -> None:
+        """`send_when_served`'s second half, on `outbox`'s writer thread (the name's)."""
+        name, presence = peer.name, self._presence
+        server = presence.server(name)
+        if server is None and not self.closed and presence.gone(name) != "stopped":
+            presence.ask(name)
+            server = presence.server(name)
+        if server is None:  # nobody's: what waits behind it fails too, and its writer ends
+            self._fail_unsent(outgoing, self._unsent_error(name))
+            self._outboxes.retire(outbox)
+            return
+        outbox.declare()
+        if outbox.pinged != server.zid:  # just seen: a put before its ping may be lost
+            self._outboxes.until_answered(server.zid)
+            outbox.pinged = server.zid
+        try:
+            check_size(outgoing, name, server.limit)
+        except RrError as exc:
+            self._fail_unsent(outgoing, exc)
+            return
+        replies = self._inbox.replies
+        if outgoing.reply is not None:
+            replies.expect(outgoing, peer, server.limit)
+
+        def lost() -> None:  # (gone meanwhile: its presence may have missed this reply)
+            if outgoing.reply is None or replies.forget(outgoing.token):
+                self._fail_unsent(outgoing, self._gone_error(name))
+
+        if outbox.closed or presence.server(name) is None:
+            lost()
+            return
+        outbox.put(envelope(MESSAGE, self.zid, outgoing.data, CLOCK.send()), lost)
+
+    def _unsent_error(self, name: str) -> RrError:
+        """The error of a message to `name` that found no server: gone, or unknown."""
+        if self.closed or self._presence.gone(name) is not None:
+            return self._gone_error(name)
+        return self._unknown_error(name)
+
+    @staticmethod
+    def _fail_unsent(outgoing: Outgoing, error: RrError) -> None:
+        if outgoing.reply is not None:
+            outgoing.reply.set_error(error)
+        else:
+            logger.debug("%s not sent: %s", type(outgoing.message).__name__, error)
+
+    def _outbox(self, key: str, zid: str | None = None, *, declared: bool = True) -> Outbox | None:
         """The outbox of `key`, whose subscriber is in process `zid` (if known: then the
-        first put of a new outbox waits for that process's answer to a ping)."""
+        first put of a new outbox waits for that process's answer to a ping); see
+        `Outboxes.get` for `declared`."""
         if self.closed:
             return None
-        return self._outboxes.get(key, zid)
+        return self._outboxes.get(key, zid, declared=declared)
 
     def answer_to(self, sender: str, data: bytes, on_lost: Lost | None) -> bool:
         """Send an answer frame to process `sender`; False if it is gone (not sent).

@@ -2,9 +2,11 @@
 
 ```
  ZenohMember.send / answer_to ─► Outboxes.get(key) ─► Outbox(key).send(header + frame)
+ ZenohMember.send_when_served ─────────────────────► Outbox(key).run(task): in order
                                                           │ its writer thread (SerialExecutor)
                                                           ▼
-          (a new outbox's first put: ping rr/<s>/ping/<zid> first)
+          (a new outbox's first put: ping rr/<s>/ping/<zid> first; a task asks the
+           network for a registrar not seen served, then puts, or fails its reply)
                                                  publisher.put ─► rr/<s>/reg/<name>
                                                                   rr/<s>/ans/<zid>
 ```
@@ -54,16 +56,20 @@ class Outbox:
     """The writer of one destination key: its thread puts payloads in the order sent."""
 
     def __init__(
-        self, session: zenoh.Session, key: str, ready: Callable[[], None] | None = None
+        self,
+        session: zenoh.Session,
+        key: str,
+        ready: Callable[[], None] | None = None,
+        *,
+        declared: bool = True,
     ) -> None:
         self.key = key
+        self.pinged: str | None = None  # the process a task of `run` pinged (its thread's)
         self._ready = ready  # runs on the writer thread before the first put
-        self._publisher = session.declare_publisher(
-            key,
-            congestion_control=zenoh.CongestionControl.BLOCK,
-            express=True,
-            reliability=zenoh.Reliability.RELIABLE,
-        )
+        self._session = session
+        self._publisher: zenoh.Publisher | None = None
+        if declared:
+            self.declare()
         name = f"rr-zput-{key.rsplit('/', 1)[-1]}"
         self._queue = SerialExecutor(name, on_drop=self._lost)
 
@@ -73,13 +79,33 @@ class Outbox:
 
     def send(self, data: bytes, on_lost: Lost | None = None) -> bool:
         """Queue `data`; False (nothing sent) if the outbox is closed."""
-        return self._queue.submit(functools.partial(self._put, data, on_lost))
+        return self._queue.submit(functools.partial(self.put, data, on_lost))
 
-    def _put(self, data: bytes, on_lost: Lost | None) -> None:
+    def run(self, task: Callable[[], None]) -> bool:
+        """Queue `task` to run on the writer thread, in order with what is sent (it may
+        wait there, and `put`); False if the outbox is closed. If the outbox closes
+        before it runs, its `dropped()` (if it has one) is called instead."""
+        return self._queue.submit(task)
+
+    def declare(self) -> None:
+        """Declare the publisher, if not yet (at creation, or on the writer thread)."""
+        if self._publisher is None:
+            self._publisher = self._session.declare_publisher(
+                self.key,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                express=True,
+                reliability=zenoh.Reliability.RELIABLE,
+            )
+
+    def put(self, data: bytes, on_lost: Lost | None = None) -> None:
+        """Put `data` now (the writer thread only: `send`'s step, or a task of `run`);
+        if the session closed, `on_lost` runs."""
         ready, self._ready = self._ready, None
         if ready is not None:
             ready()
         try:
+            self.declare()
+            assert self._publisher is not None
             self._publisher.put(data)
         except Exception as exc:  # noqa: BLE001 - the session closed: the frame is lost
             logger.debug("a put on %s failed: %s", self.key, exc)
@@ -91,12 +117,16 @@ class Outbox:
         what is still queued is lost (its `on_lost` runs)."""
         self._queue.close(timeout=timeout)  # (each dropped frame's `on_lost` runs: `_lost`)
         with contextlib.suppress(Exception):
-            self._publisher.undeclare()  # type: ignore[no-untyped-call]
+            if self._publisher is not None:
+                self._publisher.undeclare()  # type: ignore[no-untyped-call]
 
     @staticmethod
     def _lost(task: Task) -> None:
         if isinstance(task, functools.partial) and task.args[1] is not None:
             run_lost([task.args[1]])
+        dropped = getattr(task, "dropped", None)
+        if dropped is not None:
+            run_lost([dropped])
 
 
 class Outboxes:
@@ -114,15 +144,18 @@ class Outboxes:
         self._outboxes: dict[str, Outbox] = {}
         self._closed = False
 
-    def get(self, key: str, first_to: str | None = None) -> Outbox:
+    def get(self, key: str, first_to: str | None = None, *, declared: bool = True) -> Outbox:
         """The outbox of `key`; the first put of a new one to process `first_to` waits
-        until that process answers a ping (`_until_answered`)."""
+        until that process answers a ping (`until_answered`). A new one made with
+        `declared=False` declares its publisher on its writer thread (`declare`, or its
+        first put)."""
         outbox = self._outboxes.get(key)
         if outbox is not None and not outbox.closed:
             return outbox
-        ready = functools.partial(self._until_answered, first_to) if first_to else None
-        fresh = Outbox(self._session, key, ready)  # (no Zenoh call under our lock: its
-        with self._lock:  # callbacks take it)
+        ready = functools.partial(self.until_answered, first_to) if first_to else None
+        # (made before our lock is taken: no Zenoh call under it, its callbacks take it)
+        fresh = Outbox(self._session, key, ready, declared=declared)
+        with self._lock:
             outbox = self._outboxes.get(key)
             if self._closed:
                 outbox = None  # (closed meanwhile: a writer made now would never end)
@@ -139,6 +172,14 @@ class Outboxes:
         with self._lock:
             return self._outboxes.pop(key, None)
 
+    def retire(self, outbox: Outbox) -> None:
+        """Forget `outbox` (if it is still its key's) and close it: what is queued on it
+        is dropped (its `on_lost`, or `dropped()`, runs). Its destination is nobody's."""
+        with self._lock:
+            if self._outboxes.get(outbox.key) is outbox:
+                del self._outboxes[outbox.key]
+        outbox.close()
+
     def close(self, drain: float = 0.0) -> None:
         """Close every outbox: what is queued gets `drain` seconds, all outboxes together,
         to be put (their writers put in parallel); what is still queued then is lost."""
@@ -149,7 +190,7 @@ class Outboxes:
         for outbox in outboxes:
             outbox.close(max(0.0, deadline - time.monotonic()))
 
-    def _until_answered(self, zid: str) -> None:
+    def until_answered(self, zid: str) -> None:
         """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread).
 
         When a link comes up (a host that joins, a healed link) the process's tokens may

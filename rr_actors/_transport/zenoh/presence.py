@@ -59,7 +59,8 @@ _DELETED_KEPT = 1024
 __all__ = ["ASK_TIMEOUT", "CLAIM_TIMEOUT", "NO_WAITING", "Presence", "PresenceEvents", "Server"]
 
 ASK_TIMEOUT = 1.0
-"""Seconds a miss of `resolve` (or `serve`'s check for the name) asks the network."""
+"""Seconds a miss of `resolve` (or `serve`'s check for the name) asks the network (never
+on an actor's thread: there the name's writer thread asks, see `carrier`)."""
 CLAIM_TIMEOUT = 5.0
 """Seconds `serve` waits for a rival claim of the same name to serve or withdraw."""
 
