@@ -25,8 +25,10 @@ parametrised fixture `registrar_placement`:
   `tests/multihost` covers TCP between routers. Loopback only, no root.
 
 A test that cannot mean the same in every placement is marked
-`@pytest.mark.thread_only("reason")` (thread placement only) or
-`@pytest.mark.not_zenoh("reason")` (not the zenoh one); `pytest_generate_tests` reads them.
+`@pytest.mark.thread_only("reason")` (thread placement only),
+`@pytest.mark.not_zenoh("reason")` (not the zenoh one) or
+`@pytest.mark.across_processes("reason")` (not the thread one: what it tests needs a
+message to cross between processes); `pytest_generate_tests` reads them.
 
 Why these choices:
 
@@ -112,6 +114,10 @@ def pytest_configure(config: pytest.Config) -> None:
         "markers",
         "not_zenoh(reason): run this registrar test in every placement but the zenoh one",
     )
+    config.addinivalue_line(
+        "markers",
+        "across_processes(reason): run this registrar test in every placement but the thread one",
+    )
 
 
 FIRST = ("test_portable_platform.py",)
@@ -137,6 +143,10 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     if marker is not None:
         assert marker.args or marker.kwargs.get("reason"), "not_zenoh needs a reason"
         placements = [p for p in placements if p != "zenoh"]
+    marker = metafunc.definition.get_closest_marker("across_processes")
+    if marker is not None:
+        assert marker.args or marker.kwargs.get("reason"), "across_processes needs a reason"
+        placements = [p for p in placements if p != "thread"]
     metafunc.parametrize("registrar_placement", placements, indirect=True, ids=placements)
 
 

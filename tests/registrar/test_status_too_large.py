@@ -18,11 +18,10 @@ LIMIT = 100_000
 """The consumer's `max_message_bytes`."""
 
 
+@pytest.mark.across_processes("a message's size counts only where it is pickled")
 def test_a_fatal_whose_message_is_over_the_consumers_limit_fails_its_sender_naming_it(
-    make_registrar, serve, inbox, registrar_placement
+    make_registrar, serve, inbox
 ):
-    if registrar_placement == "thread":
-        pytest.skip("nothing crosses between processes: nothing is pickled")
     provider = make_registrar("provider")
     consumer = make_registrar("consumer", max_message_bytes=LIMIT)
     leaf = serve(provider, "leaf")
@@ -40,11 +39,10 @@ def test_a_fatal_whose_message_is_over_the_consumers_limit_fails_its_sender_nami
     assert ["lidar", "lidar"] == leaf.loads  # a new resource for an equal request
 
 
+@pytest.mark.across_processes("a message's size counts only where it is pickled")
 def test_a_new_response_over_a_consumers_limit_fails_update_response_naming_it(
-    make_registrar, serve, registrar_placement
+    make_registrar, serve
 ):
-    if registrar_placement == "thread":
-        pytest.skip("nothing crosses between processes: nothing is pickled")
     provider = make_registrar("provider")
     consumer = make_registrar("consumer", max_message_bytes=LIMIT)
     serve(provider, "leaf")

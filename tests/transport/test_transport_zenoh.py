@@ -693,7 +693,10 @@ def test_messages_from_one_process_to_one_registrar_arrive_in_the_order_told(
     try:
         net.serve(endpoint)
         children.start(teller_main, net.address, inbox.name, count)
-        assert inbox.all_told.wait(30)
+        heard = -1
+        while not inbox.all_told.wait(30):  # a bound on progress, not on the speed of all
+            assert heard < len(inbox.told), f"{len(inbox.told)} of {count} told, none for 30 s"
+            heard = len(inbox.told)
     finally:
         endpoint.end()
         DIRECTORY.unregister(inbox, "stopped")
