@@ -45,11 +45,12 @@ test looks itself). What must not happen is given `QUIET` (3 s) to happen anyway
   and what the impostor puts on the member's registrar never arrives.
 - row 6, `test_a_member_whose_key_was_replaced_gets_a_config_error_on_its_own_host`:
   `ConfigError` from `rr.ZenohTLS(...)` in `a`'s worker naming the key and the cert.
-- bounds, `test_a_burst_of_refused_handshakes_fails_no_member_call_and_a_member_joins_in_10_s`:
-  200 refused handshakes from 20 clients at once (Zenoh pauses its accept loop 100 ms
-  after each); every call of `operator` meanwhile succeeds, and a member that joins
-  during the burst has its first call answered within 10 s. Latency (p99) is measured in
-  `benchmarks/`, never asserted in a test.
+- bounds, `test_a_burst_of_refused_handshakes_fails_no_member_call_and_a_member_joins_
+  during_it`: 200 refused handshakes from 20 clients at once (Zenoh pauses its accept
+  loop 100 ms after each); every call of `operator` meanwhile succeeds, and a member that
+  joins during the burst has its first call answered before the burst ended (within 10 s:
+  `benchmarks/bench_zenoh_tls.py`). Latency (p99) is measured in `benchmarks/`, never
+  asserted in a test.
 - flood (issue 29), `test_a_member_rejoins_in_10_s_while_a_third_host_floods_the_port_
   with_failed_handshakes`: a third host `c` (`TwoHosts(outsider=True)`) connects, sends
   a few bytes and closes, from 4 threads at full rate, against `a`'s `tls/` port; every
