@@ -71,6 +71,7 @@ from pathlib import Path
 from typing import Any
 
 import cloudpickle
+import hypothesis
 import pykka
 import pytest
 
@@ -98,6 +99,14 @@ PLACEMENTS = ("thread", "process", "zenoh")
 
 _HELPER_PIDS: set[int] = set()
 """Session-long helper processes (the `SharedObjects` manager), not leaks of a test."""
+
+# Hypothesis's two clocks (a 200 ms deadline per example, "input generation is slow" after
+# about 1 s) assert speed, which a loaded machine does not have: the property tests assert
+# outcomes only (test_catalog.py failed its health check beside two busy loops).
+hypothesis.settings.register_profile(
+    "suite", deadline=None, suppress_health_check=[hypothesis.HealthCheck.too_slow]
+)
+hypothesis.settings.load_profile("suite")
 
 
 def pytest_configure(config: pytest.Config) -> None:

@@ -2,6 +2,11 @@
 
 Benchmarks are not timed tests (nothing here asserts a speed); this only keeps them from
 rotting when the code under them changes (a renamed import, a changed signature).
+
+`CEILING` only ends a script that hangs. A script's wall time is its CPU time shared with
+whatever else runs, plus its fixed waits: `bench_observer.py` at its smallest takes some
+15 s of CPU and 3.6 min of wall time on 2 cores at a load average of 21 (the suite beside
+two busy loops and other test runs); the former 110 s was exceeded there by two scripts.
 """
 
 from __future__ import annotations
@@ -57,6 +62,9 @@ SMALLEST = {
 }
 """The quickest arguments of each benchmark script (every script must be listed here)."""
 
+CEILING = 480.0
+"""Seconds a script may run before it counts as hung (twice the slowest seen, loaded)."""
+
 
 def test_every_benchmark_script_is_smoke_tested() -> None:
     scripts = {p.name for p in (ROOT / "benchmarks").glob("*.py")} - {"alternate.py"}
@@ -64,7 +72,7 @@ def test_every_benchmark_script_is_smoke_tested() -> None:
     assert sorted(scripts) == sorted(SMALLEST)
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(CEILING + 10)
 @pytest.mark.parametrize("script", sorted(SMALLEST))
 def test_the_benchmark_runs_and_prints_a_table(script: str) -> None:
     done = subprocess.run(
@@ -72,7 +80,7 @@ def test_the_benchmark_runs_and_prints_a_table(script: str) -> None:
         cwd=ROOT,
         capture_output=True,
         text=True,
-        timeout=110,
+        timeout=CEILING,
         check=False,
     )
 
@@ -80,7 +88,7 @@ def test_the_benchmark_runs_and_prints_a_table(script: str) -> None:
     assert done.stdout.strip(), f"{script} printed nothing"
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(CEILING + 10)
 def test_alternate_runs_a_benchmark_against_two_trees_and_sums_up_the_ratios() -> None:
     done = subprocess.run(
         [
@@ -98,7 +106,7 @@ def test_alternate_runs_a_benchmark_against_two_trees_and_sums_up_the_ratios() -
         cwd=ROOT,
         capture_output=True,
         text=True,
-        timeout=110,
+        timeout=CEILING,
         check=False,
     )
 

@@ -1,14 +1,17 @@
 """Huge numbers in a plan are a PlanError naming the key, at once (issue 21, bug 7).
 
 Before, 400 digits raised a raw `OverflowError` and `clients = 100000000` a `MemoryError`
-after 26 s; the command line now exits 2 within a second with `file:line: key: ...`.
+after 26 s; the command line now exits 2 with `file:line: key: ...` before it builds
+anything. "At once" is asserted as what it means here, not as a time (which a loaded machine
+stretches): reading the plan stays within a few megabytes (a list as long as the count would
+take hundreds), and the command line ends with exit 2 and no traceback, not a `MemoryError`.
 """
 
 from __future__ import annotations
 
 import subprocess
 import sys
-import time
+import tracemalloc
 from pathlib import Path
 
 import pytest
@@ -69,14 +72,18 @@ loads = 1
         ("every = 0.5", f"every = {HUGE}", 23, "faults[0].every", "number out of range"),
     ],
 )
-def test_a_huge_number_is_a_plan_error_naming_its_key_within_a_second(
+def test_a_huge_number_is_a_plan_error_naming_its_key_before_anything_is_built(
     old: str, new: str, line: int, key: str, problem: str
 ) -> None:
-    started = time.monotonic()
-    with pytest.raises(PlanError) as caught:
-        parse_plan(BASE.replace(old, new), source="plan.toml")
+    tracemalloc.start()
+    try:
+        with pytest.raises(PlanError) as caught:
+            parse_plan(BASE.replace(old, new), source="plan.toml")
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
 
-    assert time.monotonic() - started < 1.0
+    assert peak < 16 * 2**20  # bytes (0.1 MB is used); a list of 10**8 would take 800 MB
     assert (line, key) == (caught.value.line, caught.value.key)
     assert caught.value.problem.startswith(problem)
     assert len(str(caught.value)) < 200  # the value is shown cut short, not 400 digits
@@ -92,13 +99,10 @@ def test_a_huge_compared_value_is_a_plan_error_at_that_value() -> None:
     assert "duration: number out of range" in caught.value.problem
 
 
-def test_the_command_line_exits_2_within_a_second_on_a_hundred_million_clients(
-    tmp_path: Path,
-) -> None:
+def test_the_command_line_exits_2_at_once_on_a_hundred_million_clients(tmp_path: Path) -> None:
     plan = tmp_path / "plan.toml"
     plan.write_text(BASE.replace("clients = 1", "clients = 100000000"))
     code = "import sys; from rr_actors.__main__ import main; sys.exit(main(sys.argv[1:]))"
-    started = time.monotonic()
 
     done = subprocess.run(
         [sys.executable, "-c", code, "experiment", str(plan), "--out", str(tmp_path / "out")],
@@ -108,8 +112,7 @@ def test_the_command_line_exits_2_within_a_second_on_a_hundred_million_clients(
         check=False,
     )
 
-    assert 2 == done.returncode, done.stderr
-    assert time.monotonic() - started < 10.0  # the interpreter's start included
+    assert 2 == done.returncode, done.stderr  # not 1 with a MemoryError
     assert f"{plan}:13: workload.clients: must be an integer <= 1000" in done.stderr
     assert "Traceback" not in done.stderr
     assert not (tmp_path / "out").exists()

@@ -12,6 +12,7 @@ import json
 import re
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -57,7 +58,9 @@ def test_step_on_an_80_column_terminal_fits_and_leaves_the_pauses_out_of_every_t
     terminal = FakeTerminal()
     args = parser().parse_args(["--fast", "--step", "--out", str(tmp_path)])
 
+    started = time.monotonic()
     code = run(args, terminal)
+    took = time.monotonic() - started
     text = "\n".join(ANSI.sub("", terminal.getvalue()).splitlines())  # \r: live redraws
     report = json.loads((tmp_path / "report.json").read_text())
     stamps = [float(m) for m in re.findall(r"^\[\s*([0-9.]+) s\]", text, re.MULTILINE)]
@@ -71,14 +74,20 @@ def test_step_on_an_80_column_terminal_fits_and_leaves_the_pauses_out_of_every_t
     assert 5 == len(report["pauses_at_s"])
     assert "paused for Enter 5 time(s)" in text
     # No time shown counts a pause: not the drive, not a stop, not a stamp.
-    assert report["mission_time_s"] < report["nominal_time_s"] + PAUSE
-    assert all(b - a < PAUSE / 2 for a, b in report["stops"])
-    assert all(f["robot_stopped_s"] < PAUSE / 2 for f in report["faults"])
+    # (A time that counted a pause is PAUSE longer at least; what else it holds, the
+    # stops and a fault's handling, a loaded machine stretches: not bounded here.)
+    stopped_for = sum(b - a for a, b in report["stops"])
+    assert report["mission_time_s"] - stopped_for < report["nominal_time_s"] + PAUSE
+    assert all(b - a < PAUSE for a, b in report["stops"])
+    assert all(f["robot_stopped_s"] < PAUSE for f in report["faults"])
     # The robot's halt before a prompt and its start after it belong to the pause: the
     # manager faults, which do not stop the robot, show no stop (as without --step).
     stopped = {f["id"]: f["robot_stopped_s"] for f in report["faults"]}
     assert {"F3": 0.0, "F4": 0.0, "F5": 0.0} == {f: stopped[f] for f in ("F3", "F4", "F5")}
-    assert stamps[-1] < report["drive_started_at_s"] + report["mission_time_s"] + PAUSE
+    # The last stamp ("everything unloaded") and the time paused fit in the run's wall time
+    # (were the pauses counted, it would be over by their sum, 7.5 s at least). Not "within
+    # PAUSE of the goal": the manager faults' restarts come after it, 2 s each when loaded.
+    assert stamps[-1] + report["paused_for_enter_s"] <= took + 0.01  # (stamps: 2 decimals)
     # One clock: the story's "goal reached" stamp is where the report's drive ends.
     assert arrived is not None
     assert float(arrived[1]) == pytest.approx(

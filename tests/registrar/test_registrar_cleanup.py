@@ -10,6 +10,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors.testing import catalog_snapshot, crash, intercept
+from tests.support.waiting import wait_for
 
 
 def test_stop_unloads_everything_the_registrar_holds_as_a_consumer(make_registrar, serve):
@@ -108,7 +109,9 @@ def test_unregister_server_unloads_everything_it_serves_once(make_registrar, ser
     provider.unregister_server("leaf")
 
     assert ["a", "b"] == sorted(request for request, _ in leaf.unloads)
-    assert [] == consumer.client_queries()
+    # The consumer forgets its ids when the provider's `Revoke` reaches it: told, not
+    # asked, so in another process it may come after unregister_server returned.
+    assert wait_for(lambda: [] == consumer.client_queries(), 10.0), consumer.client_queries()
     with pytest.raises(rr.UnknownServerError):
         provider.server_queries("leaf")
 

@@ -275,6 +275,10 @@ def _send_status_to_first_query(system: System, provider: Provider) -> Any:
     )
 
 
+TIMEOUT = 5.0
+"""Seconds the call below waits for its answer: what it waits for is held by a gate."""
+
+
 def test_a_status_waiting_for_an_answer_is_settled_when_the_call_times_out_instead(
     system: System,
     consumer: rr.ResourceRegistrar,
@@ -286,16 +290,20 @@ def test_a_status_waiting_for_an_answer_is_settled_when_the_call_times_out_inste
     provider = start_provider()
     watched = _watch(consumer, "status_notice")
     heard: list[rr.StatusUpdate] = []
+    # The call must time out after its load started and the status was held: TIMEOUT
+    # bounds those steps (0.5 s did not on a loaded machine: the call timed out before the
+    # load started, or before the status was sent).
     called, caller = _in_thread(
         lambda: consumer.call(
-            provider.name, "gated", "r", on_status=lambda _q, u: heard.append(u), timeout=0.5
+            provider.name, "gated", "r", on_status=lambda _q, u: heard.append(u), timeout=TIMEOUT
         )
     )
-    assert gate.entered.wait(10)
+    assert gate.entered.wait(TIMEOUT)
     sent, sender = _in_thread(lambda: _send_status_to_first_query(system, provider))
-    assert watched.handled.wait(10)  # held: the answer is still being read
+    assert watched.handled.wait(TIMEOUT)  # held: the answer is still being read
+    assert not called  # (the call has not timed out yet)
 
-    caller.join(10)  # the call times out while its answer is held
+    caller.join(TIMEOUT + 10)  # the call times out while its answer is held
 
     assert isinstance(called[0], rr.CallTimeoutError)
     assert eventually(lambda: [("result", None)] == watched.answers, timeout=8)
