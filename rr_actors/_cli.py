@@ -283,14 +283,19 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
 _EVENTS_HELP = "print every host's events as JSON lines, ordered by their clock stamps (hlc)"
 
 
-def _positive_count(text: str) -> int:
-    try:
-        count = int(text)
-    except ValueError:
-        count = 0
-    if count < 1:
-        raise argparse.ArgumentTypeError(f"a positive whole number of events, not {text!r}")
-    return count
+def _positive_whole(of: str) -> Callable[[str], int]:
+    """An argparse `type` for a positive whole number of `of` (the message names it)."""
+
+    def parse(text: str) -> int:
+        try:
+            number = int(text)
+        except ValueError:
+            number = 0
+        if number < 1:
+            raise argparse.ArgumentTypeError(f"a positive whole number of {of}, not {text!r}")
+        return number
+
+    return parse
 
 
 def _positive_seconds(text: str) -> float:
@@ -319,7 +324,9 @@ def _events_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.5,
         help="seconds an event is held for those of other hosts to overtake it (0.5)",
     )
-    parser.add_argument("--count", metavar="N", type=_positive_count, help="stop after N events")
+    parser.add_argument(
+        "--count", metavar="N", type=_positive_whole("events"), help="stop after N events"
+    )
     parser.add_argument(
         "--seconds", metavar="S", type=_positive_seconds, help="stop after S seconds"
     )
@@ -373,16 +380,6 @@ def _events(args: argparse.Namespace, out: TextIO) -> int:
 _CERTS_HELP = "make a system's CA and its hosts' certificates for ZenohNetwork's mutual TLS"
 
 
-def _positive_days(text: str) -> int:
-    try:
-        days = int(text)
-    except ValueError:
-        days = 0
-    if days < 1:
-        raise argparse.ArgumentTypeError(f"a positive whole number of days, not {text!r}")
-    return days
-
-
 def _certs_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="certs_command", metavar="SUBCOMMAND", required=True)
     init = sub.add_parser(
@@ -420,7 +417,7 @@ def _certs_arguments(parser: argparse.ArgumentParser) -> None:
         help="an IP address or DNS name peers dial this host at (repeat; default: NAME)",
     )
     issue.add_argument(
-        "--days", type=_positive_days, default=365, help="days it is valid (default 365)"
+        "--days", type=_positive_whole("days"), default=365, help="days it is valid (default 365)"
     )
     issue.add_argument(
         "--force",
