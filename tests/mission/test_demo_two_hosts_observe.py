@@ -226,6 +226,8 @@ def test_the_page_shows_both_hosts_and_the_faults_and_the_demo_ends_clean(
         page.wait_for_function(
             "document.querySelector('#timeline').innerText.includes('FATAL')", timeout=PAGE_BOUND
         )
+        # the timeline may trail the tree's restart count
+        page.locator("#timeline", has_text="erm restarted after").wait_for(timeout=PAGE_BOUND)
         shown = page.evaluate("fetch('/api/state').then((r) => r.json())")
         where = DOCS_IMG if os.environ.get("RR_DOCS_SCREENSHOTS") == "1" else tmp_path
         page.screenshot(path=str(where / "observer-mission-hosts.png"), full_page=True)
