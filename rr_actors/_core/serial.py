@@ -3,7 +3,7 @@
 ```
  submit(task) ─► deque ─► its thread (started at the first task) ─► task()
    │  idle?  (nothing queued, nothing running)                        ├─ on_idle() when the
-   └─ inline(): on the submitting thread; its rest goes first ──►     │  deque runs empty
+   └─ inline(): on the submitting thread, under the lock; its rest ─► │  deque runs empty
                                                                       └─ on_end() once, last
 ```
 
@@ -71,10 +71,9 @@ class SerialExecutor:
         every: `(seconds, task)`: `task` also runs on the thread every `seconds`, between
             two tasks (a long task delays it); it starts the thread at once.
         on_idle: runs on the thread each time the queue ran empty after a task.
-        on_drop: called with each task that `close` drops (on the closing thread, or on
-            the submitting thread for the rest of an inline run that ended after the close).
+        on_drop: called with each task that `close` drops (on the closing thread).
         on_end: runs once, after the last task: on the executor's thread if it has one,
-            otherwise on the thread that closed it or ran the last inline task.
+            otherwise on the thread that closed it.
     """
 
     def __init__(
@@ -93,9 +92,10 @@ class SerialExecutor:
         self._on_idle = on_idle
         self._on_drop = on_drop
         self._on_end = on_end
-        self._cond = threading.Condition(threading.Lock())
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
         self._tasks: collections.deque[Task] = collections.deque()
-        self._busy = False  # a task runs (on the thread, or inline on a submitter's)
+        self._busy = False  # a task (or `on_end`) runs
         self._sleeping = False  # the thread waits on `_cond`: a submit must wake it
         self._closing = False  # no more tasks are taken
         self._dropping = False  # `close` dropped what was queued: end after the running one
@@ -135,32 +135,29 @@ class SerialExecutor:
         Args:
             task: what to run on the executor's thread.
             inline: if given and the executor is idle (nothing queued, nothing running),
-                `inline()` runs instead of `task`, at once, on the calling thread (tasks
-                submitted meanwhile wait for it). It returns `None` (done) or a task that
-                runs next on the executor's thread, ahead of those submitted meanwhile.
-                What it raises is raised here (nothing of it was queued).
+                `inline()` runs instead of `task`, at once, on the calling thread, under the
+                executor's lock: it must not block nor submit (a writer's non-blocking
+                send). It returns `None` (done) or a task that runs next on the executor's
+                thread. What it raises is raised here (nothing of it was queued).
 
         Returns:
             `True` if the task was queued or run; `False` if the executor is closed (it
             was not).
         """
-        with self._cond:
+        with self._lock:  # (the plain lock under `_cond`: no Python-level `__enter__`)
             if self._closing:
                 return False
-            if inline is None or self._busy or self._tasks:
-                self._tasks.append(task)
-                if self._sleeping:
-                    self._cond.notify()
-                elif self._thread is None and not self._busy:
-                    self._start()
-                return True
-            self._busy = True
-        rest: Task | None = None
-        try:
-            rest = inline()
-        finally:
-            self._release(rest)
-        return True
+            if inline is not None and not self._busy and not self._tasks:
+                rest = inline()
+                if rest is None:
+                    return True
+                task = rest
+            self._tasks.append(task)
+            if self._sleeping:
+                self._cond.notify()
+            elif self._thread is None and not self._busy:
+                self._start()
+            return True
 
     def call(self, fn: Callable[[], T]) -> T:
         """Run `fn()` on the executor's thread after what is queued, and return its result.
@@ -273,27 +270,6 @@ class SerialExecutor:
             return False
         self._ended = self._busy = True
         return True
-
-    def _release(self, rest: Task | None) -> None:
-        """An inline run returned (`rest`: what it left for the thread)."""
-        dropped = None
-        with self._cond:
-            self._busy = False
-            if rest is not None:
-                if self._dropping:
-                    dropped = rest
-                else:
-                    self._tasks.appendleft(rest)
-            if self._tasks:
-                if self._thread is None:
-                    self._start()
-                elif self._sleeping:
-                    self._cond.notify()
-            end_here = self._ends_now()
-        if dropped is not None:
-            self._drop(dropped)
-        if end_here:
-            self._end()
 
     def _drop(self, task: Task) -> None:
         if isinstance(task, _Mark):

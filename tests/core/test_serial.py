@@ -124,21 +124,18 @@ def test_inline_is_not_used_while_a_task_runs_and_order_is_kept(executors) -> No
 def test_the_rest_of_an_inline_run_goes_before_tasks_submitted_meanwhile(executors) -> None:
     executor = executors("rr-test-rest")
     seen: list[str] = []
-    inside = threading.Event()
-    go_on = threading.Event()
+    others: list[threading.Thread] = []
 
     def inline() -> Task:
-        inside.set()
-        assert go_on.wait(5)
+        # a submit from another thread now waits for the lock this step runs under
+        other = threading.Thread(target=lambda: executor.submit(lambda: seen.append("meanwhile")))
+        other.start()
+        others.append(other)
         seen.append("inline")
         return lambda: seen.append(f"rest on {threading.current_thread().name}")
 
-    runner = threading.Thread(target=lambda: executor.submit(lambda: None, inline=inline))
-    runner.start()
-    assert inside.wait(5)
-    executor.submit(lambda: seen.append("meanwhile"))  # waits for the inline run's rest
-    go_on.set()
-    runner.join(5)
+    executor.submit(lambda: None, inline=inline)
+    others[0].join(5)
     assert executor.flush(timeout=5)
     assert ["inline", "rest on rr-test-rest", "meanwhile"] == seen
 

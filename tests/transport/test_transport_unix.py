@@ -745,31 +745,36 @@ def test_anything_else_goes_through_cloudpickle(value: Any) -> None:
 
 
 def test_a_writer_closed_while_a_sender_writes_closes_its_socket_after_that_write() -> None:
-    # close() comes while a sender writes inline: the socket is closed once that write
-    # returned (by whichever thread ran the writer's last write), not under it, not never
-    entered, release, sock_closed = (threading.Event() for _ in range(3))
+    # close() comes while a sender writes inline (under the writer's lock): the socket is
+    # closed once that write returned, by the closing thread, not under it, not never
+    entered, release, shut = (threading.Event() for _ in range(3))
+    seen: list[str] = []
 
     class Socket:  # holds the sender inside its send() until told
         def send(self, data: bytes, flags: int) -> int:
             entered.set()
             release.wait(10)
+            seen.append("write returned")
             return len(data)
 
         def shutdown(self, how: int) -> None:
-            pass
+            shut.set()
 
         def close(self) -> None:
-            sock_closed.set()
+            seen.append("closed")
 
     writer = Writer(Socket(), lambda exc: None, "test-writer")  # type: ignore[arg-type]
     sender = threading.Thread(target=writer.send, args=(b"frame",))
     sender.start()
     assert entered.wait(10)
-    writer.close()
-    assert not sock_closed.is_set()  # the sender still writes on it
+    closer = threading.Thread(target=writer.close)
+    closer.start()
+    assert shut.wait(10)  # the closer is past its shutdown, at the write it waits for
+    assert [] == seen  # the sender still writes on it
     release.set()
     sender.join(10)
-    assert sock_closed.wait(10)
+    closer.join(10)
+    assert ["write returned", "closed"] == seen
     assert not any(t.name == "test-writer" for t in threading.enumerate())
 
 
