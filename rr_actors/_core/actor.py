@@ -1,7 +1,8 @@
 """pykka's threading actor with hand-offs that wake the other thread once, not twice.
 
 Every use of pykka's extension points for actor implementations, and of its private
-names (`_handle_receive` included, see `ContainedError`), is in this file (pykka is
+names (`_handle_receive`, `_actor_loop_running`, `_handle_failure`, `Envelope`; see
+`ContainedError` and "The turn" below), is in this file (pykka is
 pinned below its next major version in pyproject.toml).
 
 `pykka.ThreadingActor` keeps its mailbox in a `queue.Queue` and answers asks through a
@@ -16,8 +17,8 @@ against 16-18 us for a `threading.Lock` ping-pong between the same two threads
 actor implementations (`_create_actor_inbox`, `_create_future`, `_start_actor_loop`;
 pykka's own gevent and eventlet actors were built on them): a `queue.SimpleQueue` inbox
 (written in C, one lock per hand-off) and `OneShotFuture`, which hands its value over by
-releasing one lock. Everything else, the actor loop, `tell`, `ask`, `stop` and
-`on_failure`, is pykka's.
+releasing one lock. Its loop is pykka's with the turn added (below); `tell`, `ask`,
+`stop` and `on_failure` are pykka's.
 
 It also closes two gaps of pykka's around an actor's end. `ActorRef.tell` and `ask`
 check `is_alive()` and then put their envelope, while a stopping actor drains its inbox
@@ -28,6 +29,29 @@ envelope left in the inbox when the loop ends, and every one put later, goes to 
 actor's `on_late` (by default `refuse`: an ask gets `ActorDeadError`, as pykka's drain
 gives it), so an actor whose tells carry obligations (the registrar's carry replies and
 consumer ids) can honour them.
+
+**The turn.** An actor handles one message at a time: its loop takes the inbox's `turn`
+(a lock) around each one. A carrier's receiving thread that has a message for an idle
+actor may take the turn itself and handle the message there (`deliver`), instead of
+putting it in the inbox and waking the actor's thread, which is the costly step of a
+hand-off on a loaded CPU (Erlang's schedulers run a process that receives a message
+without a thread hand-off either):
+
+```
+ deliver(ref, message) (a carrier's receiving thread: it holds no lock)
+   ├─ a kind the actor lets in (`Actor.inline`), its turn free, and every message put
+   │  before this one handled (`Inbox.handled` == this one's ticket)?
+   │     handle it here, in the turn; the actor's thread sleeps on
+   └─ otherwise: put it in the inbox (the actor's thread handles it in order)
+ the actor's thread: get an envelope ─► take the turn ─► handle it ─► give the turn back
+```
+
+So one thread at a time handles the actor's messages, in the order they were put (a
+message handled in the turn never overtakes one put before it); only the thread differs.
+The carrier's thread counts as the actor's thread meanwhile (`on_actor_thread`). Only
+the kinds an actor lists run so (the registrar's `Load`, `Unload` and `Abandon`: short
+steps that hand user code to worker threads), and only from `deliver`, never from a
+`tell` (a user's thread, or another actor's, might hold a lock the handler takes).
 
 An actor's thread says so (`on_actor_thread`, set as pykka's `_actor_loop_setup`
 begins): a carrier never waits on the network there (a registrar's actor that looks up
@@ -43,6 +67,8 @@ instead of waiting in an inbox nobody reads.
 
 from __future__ import annotations
 
+import itertools
+import logging
 import queue
 import sys
 import threading
@@ -55,7 +81,18 @@ import pykka
 from rr_actors._core.queues import Late, LateQueue
 from rr_actors._platform import fork
 
-__all__ = ["Actor", "ContainedError", "Inbox", "Late", "OneShotFuture", "on_actor_thread", "refuse"]
+__all__ = [
+    "Actor",
+    "ContainedError",
+    "Inbox",
+    "Late",
+    "OneShotFuture",
+    "deliver",
+    "on_actor_thread",
+    "refuse",
+]
+
+_pykka_logger = logging.getLogger("pykka")  # (where pykka's own loop logs)
 
 _ACTOR_THREAD = threading.local()  # `active` on the thread of an `Actor`'s loop
 
@@ -171,12 +208,45 @@ class OneShotFuture(pykka.Future[T]):
 
 
 class Inbox(LateQueue):
-    """An actor's inbox that hands on what is left, and what still arrives, once it closes.
+    """An actor's inbox that hands on what is left, and what still arrives, once it closes,
+    with the actor's turn (module docstring).
 
     `close(late)` runs when the actor's loop ended; from then on whatever is put (by a
     `tell` or `ask` that saw the actor alive a moment earlier) goes to `late` at once
     (`Late`: it handles an envelope its actor will not handle any more, on any thread).
+
+    Every envelope put, or handled in the turn, takes a ticket (`itertools.count`: one
+    step, atomic in CPython); `handled` counts those handled and is written only in the
+    turn. An envelope may be handled in the turn only when `handled` equals its ticket:
+    every one put before it was handled.
     """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.turn = threading.Lock()
+        self.handled = 0
+        self._tickets = itertools.count()
+        self._run: Callable[[Any], None] | None = None  # set once the actor's loop runs
+
+    def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
+        next(self._tickets)
+        super().put(item, block, timeout)
+
+    def run_or_put(self, item: Any) -> None:
+        """Handle `item` on this thread in the turn if the actor is idle, else put it."""
+        ticket = next(self._tickets)
+        run = self._run
+        if run is not None and self.turn.acquire(blocking=False):
+            try:
+                if self.handled == ticket and self._late is None:
+                    try:
+                        run(item)
+                    finally:
+                        self.handled += 1
+                    return
+            finally:
+                self.turn.release()
+        LateQueue.put(self, item)  # (its ticket is taken)
 
 
 def refuse(envelope: Any) -> None:
@@ -192,6 +262,29 @@ def refuse(envelope: Any) -> None:
         return
     error = pykka.ActorDeadError("the actor stopped before handling the message")
     envelope.reply_to.set_exception((pykka.ActorDeadError, error, None))
+
+
+_WAKE = pykka._envelope.Envelope(None)
+"""Put when a handler run in the turn stopped the actor: its thread wakes and ends."""
+
+
+def deliver(ref: pykka.ActorRef[Any], message: Any) -> None:
+    """`ref.tell(message)`, from a carrier's receiving thread: an idle `Actor` that lets
+    `message`'s kind in (`Actor.inline`) handles it on this thread, in its turn.
+
+    The calling thread must hold no lock a handler might take (it runs the handler).
+
+    Raises:
+        pykka.ActorDeadError: the actor is not running.
+    """
+    if type(message) not in ref.actor_class.inline:
+        ref.tell(message)
+        return
+    if not ref.is_alive():
+        raise pykka.ActorDeadError(f"{ref} not found")
+    inbox = ref.actor_inbox
+    assert isinstance(inbox, Inbox)  # (an `Actor`'s: only it lets kinds in)
+    inbox.run_or_put(pykka._envelope.Envelope(message))
 
 
 class ContainedError(RuntimeError):
@@ -217,6 +310,10 @@ class Actor(pykka.ThreadingActor):
     use_daemon_thread = True
     actor_inbox: Inbox
 
+    inline: frozenset[type] = frozenset()
+    """The message kinds a carrier's receiving thread may handle in this actor's turn
+    (`deliver`); none by default."""
+
     def _handle_receive(self, message: Any) -> Any:
         try:
             return super()._handle_receive(message)
@@ -238,6 +335,57 @@ class Actor(pykka.ThreadingActor):
     def _actor_loop_setup(self) -> None:
         _ACTOR_THREAD.active = True  # (on the actor's new thread: `on_actor_thread`)
         super()._actor_loop_setup()
+
+    def _actor_loop_running(self) -> None:
+        # pykka's loop, each envelope handled in the turn (module docstring)
+        inbox = self.actor_inbox
+        if self.inline:
+            inbox._run = self._run_in_turn
+        while not self.actor_stopped.is_set():
+            envelope = inbox.get()
+            with inbox.turn:
+                try:
+                    if self.actor_stopped.is_set():  # stopped by a handler run in the turn
+                        if envelope is not _WAKE:
+                            self.on_late(envelope)
+                        return
+                    if envelope is not _WAKE:
+                        self._handle_envelope(envelope)
+                finally:
+                    inbox.handled += 1
+
+    def _run_in_turn(self, envelope: Any) -> None:
+        """Handle `envelope` on a carrier's thread that holds the turn (`Inbox.run_or_put`)."""
+        was = getattr(_ACTOR_THREAD, "active", False)
+        _ACTOR_THREAD.active = True
+        try:
+            self._handle_envelope(envelope)
+        finally:
+            _ACTOR_THREAD.active = was
+        if self.actor_stopped.is_set():  # it failed or stopped: the actor's thread ends
+            self.actor_inbox.put(_WAKE)
+
+    def _handle_envelope(self, envelope: Any) -> None:
+        """pykka's handling of one envelope (`Actor._actor_loop_running`'s body)."""
+        try:
+            response = self._handle_receive(envelope.message)
+            if envelope.reply_to is not None:
+                envelope.reply_to.set(response)
+        except Exception:
+            if envelope.reply_to is not None:
+                _pykka_logger.info(
+                    f"Exception returned from {self} to caller:", exc_info=sys.exc_info()
+                )
+                envelope.reply_to.set_exception()
+            else:
+                self._handle_failure(*sys.exc_info())
+                try:
+                    self.on_failure(*sys.exc_info())
+                except Exception:  # noqa: BLE001 - (as pykka: logged, the actor stops)
+                    self._handle_failure(*sys.exc_info())
+        except BaseException:  # noqa: BLE001 - (as pykka: the process is going down)
+            self._stop()
+            pykka.ActorRegistry.stop_all()
 
     def _actor_loop_teardown(self) -> None:
         # Instead of pykka's drain, which answers asks and drops tells.

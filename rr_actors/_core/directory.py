@@ -21,6 +21,7 @@ from typing import Any, Protocol
 
 import pykka
 
+from rr_actors._core.actor import deliver
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._platform import fork
 from rr_actors.errors import (
@@ -52,6 +53,10 @@ class Peer(Protocol):
     def tell(self, message: Any) -> None:
         """Send `message`; raise `RegistrarUnavailableError` if the registrar is dead."""
 
+    def deliver(self, message: Any) -> None:
+        """`tell`, from a carrier's receiving thread (which holds no lock): a registrar of
+        this process that is idle may handle it on that thread (`_core/actor.py`'s turn)."""
+
 
 class LocalPeer:
     """A registrar actor in this process."""
@@ -65,6 +70,14 @@ class LocalPeer:
             raise RegistrarUnavailableError(f"registrar {self.name!r} is still starting")
         try:
             self.ref.tell(message)
+        except pykka.ActorDeadError as exc:
+            raise DIRECTORY.gone_error(self.name) from exc
+
+    def deliver(self, message: Any) -> None:
+        if self.ref is None:
+            raise RegistrarUnavailableError(f"registrar {self.name!r} is still starting")
+        try:
+            deliver(self.ref, message)
         except pykka.ActorDeadError as exc:
             raise DIRECTORY.gone_error(self.name) from exc
 

@@ -225,6 +225,11 @@ class RegistrarActor(Actor):
             holdings, flights, status, restoring, lifecycle, presence: the roles.
     """
 
+    inline = frozenset({Load, Unload, Abandon})
+    """What a carrier's receiving thread handles in the registrar's turn when it is idle
+    (`rr_actors._core.actor.deliver`): a consumer's load, unload and abandon, whose steps
+    are short and run user code only on worker threads. (A `DurableLoaded` is no `Load`.)"""
+
     shared: Shared
     provider: Provider
     teardown: Teardown

@@ -261,6 +261,10 @@ class Remote(abc.ABC):
         """
         send(self, message)
 
+    def deliver(self, message: Any) -> None:
+        """`tell` (a registrar of another process is never run on this thread)."""
+        self.tell(message)
+
     def run(self, fn: Callable[[Any], Any], *, timeout: float) -> Any:
         """Run `fn(registrar)` in the registrar's process and return its result.
 
@@ -442,7 +446,7 @@ class Messenger:
             message.start(endpoint.run, f"rr-run-{name}")
             return
         try:
-            self._lookup(name).tell(message)
+            self._lookup(name).deliver(message)  # (this thread may handle it: `Peer.deliver`)
         except Exception as exc:
             if reply is None:
                 raise

@@ -16,7 +16,7 @@ from typing import Any
 import pykka
 import pytest
 
-from rr_actors._core.actor import Actor, ContainedError, OneShotFuture
+from rr_actors._core.actor import Actor, ContainedError, OneShotFuture, deliver, on_actor_thread
 
 
 @pytest.fixture(params=[pykka.ThreadingFuture, OneShotFuture], ids=["pykka", "one_shot"])
@@ -423,3 +423,120 @@ def test_a_stop_asked_while_the_actor_was_running_returns_true(
 
 
 # -- 4. the withdrawal Abandon is fire-and-forget: a durable provider that dies first keeps the id
+
+
+# -- the turn: a carrier's receiving thread handles a message for an idle actor ---------------
+
+
+class _Turn:
+    """A message an actor lets a carrier's thread handle in its turn (`Actor.inline`)."""
+
+    def __init__(self, n: int, hold: threading.Event | None = None) -> None:
+        self.n = n
+        self.hold = hold
+        self.entered = threading.Event()  # set once a held one is being handled
+
+
+class _Recorder(Actor):
+    """Records `(n, thread name, on_actor_thread())` of each message; `_Turn`s may run in
+    its turn; a `_Turn` with `hold` waits for it there; `"fail"` raises."""
+
+    inline = frozenset({_Turn})
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: list[tuple[Any, str, bool]] = []
+
+    def on_receive(self, message: Any) -> Any:
+        if message == "seen":
+            return list(self.seen)
+        if message == "fail" or (isinstance(message, _Turn) and message.n < 0):
+            raise ValueError("asked to fail")
+        n = message.n if isinstance(message, _Turn) else message
+        self.seen.append((n, threading.current_thread().name, on_actor_thread()))
+        if isinstance(message, _Turn) and message.hold is not None:
+            message.entered.set()
+            assert message.hold.wait(10)
+        return None
+
+
+@pytest.fixture
+def recorder() -> Iterator[pykka.ActorRef[_Recorder]]:
+    ref = _Recorder.start()
+    yield ref
+    ref.stop()
+
+
+def _on(name: str, fn: Any) -> None:
+    """Run `fn()` on a fresh thread named `name` (a carrier's receiving thread) and wait."""
+    thread = threading.Thread(target=fn, name=name)
+    thread.start()
+    thread.join(10)
+    assert not thread.is_alive()
+
+
+def test_a_message_delivered_to_an_idle_actor_is_handled_on_the_delivering_thread(
+    recorder: pykka.ActorRef[_Recorder],
+) -> None:
+    _on("rr-test-carrier", lambda: deliver(recorder, _Turn(1)))
+
+    assert [(1, "rr-test-carrier", True)] == recorder.ask("seen", timeout=5)
+    assert not on_actor_thread()  # (only while it held the turn)
+
+
+def test_a_kind_the_actor_does_not_let_in_goes_to_its_own_thread(
+    recorder: pykka.ActorRef[_Recorder],
+) -> None:
+    _on("rr-test-carrier", lambda: deliver(recorder, 2))
+
+    [(n, thread, on_actor)] = recorder.ask("seen", timeout=5)
+    assert (2, True) == (n, on_actor)
+    assert "rr-test-carrier" != thread
+
+
+def test_a_message_delivered_while_the_actor_is_busy_waits_and_keeps_the_order(
+    recorder: pykka.ActorRef[_Recorder],
+) -> None:
+    held = _Turn(0, threading.Event())
+    holder = threading.Thread(target=deliver, args=(recorder, held), name="rr-holder")
+    holder.start()
+    assert held.entered.wait(10)  # the holder handles it in the actor's turn, and waits
+    _on("rr-test-carrier", lambda: [deliver(recorder, _Turn(n)) for n in (1, 2, 3)])
+    recorder.tell(4)
+    assert held.hold is not None
+    held.hold.set()
+    holder.join(10)
+
+    seen = recorder.ask("seen", timeout=5)
+    assert [0, 1, 2, 3, 4] == [n for n, _, _ in seen]
+    assert "rr-holder" == seen[0][1]  # in its turn; the rest on the actor's own thread
+    assert all(thread != "rr-test-carrier" for _, thread, _ in seen)
+
+
+def test_tells_and_deliveries_from_one_thread_are_handled_in_the_order_sent(
+    recorder: pykka.ActorRef[_Recorder],
+) -> None:
+    def mixed() -> None:
+        for n in range(300):
+            if n % 3 == 0:
+                recorder.tell(n)
+            else:
+                deliver(recorder, _Turn(n))
+
+    _on("rr-test-carrier", mixed)
+
+    assert list(range(300)) == [n for n, _, _ in recorder.ask("seen", timeout=10)]
+
+
+def test_a_handler_that_fails_in_the_turn_stops_the_actor_and_its_thread_ends() -> None:
+    ref = _Recorder.start()
+    actor_threads = {t for t in threading.enumerate() if t.name.startswith("_Recorder")}
+
+    _on("rr-test-carrier", lambda: deliver(ref, _Turn(-1)))
+
+    assert ref.actor_stopped.wait(5)
+    for thread in actor_threads:
+        thread.join(10)
+        assert not thread.is_alive()
+    with pytest.raises(pykka.ActorDeadError):
+        deliver(ref, _Turn(1))
