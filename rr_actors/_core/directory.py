@@ -89,7 +89,7 @@ class Directory:
         self._lock = threading.Lock()
         self._peers: dict[str, Peer] = {}
         self._gone: dict[str, str] = {}  # name -> "stopped" | "died"
-        self._resolvers: list[Callable[[str], Peer | None]] = []
+        self._resolvers: tuple[Callable[[str], Peer | None], ...] = ()  # replaced, not changed
         self._namers: dict[Callable[[str], Peer | None], Callable[[], Iterable[str]]] = {}
         self._restart_expected: set[str] = set()  # a crash is not "gone for good"
         self._restarting: set[str] = set()
@@ -129,15 +129,14 @@ class Directory:
         `names()`, if given, lists the names it knows, for the message of an unknown name.
         """
         with self._lock:
-            self._resolvers.append(resolver)
+            self._resolvers = (*self._resolvers, resolver)
             if names is not None:
                 self._namers[resolver] = names
 
     def remove_resolver(self, resolver: Callable[[str], Peer | None]) -> None:
         """Stop consulting `resolver` (no-op if it was not added)."""
         with self._lock:
-            if resolver in self._resolvers:
-                self._resolvers.remove(resolver)
+            self._resolvers = tuple(r for r in self._resolvers if r != resolver)
             self._namers.pop(resolver, None)
 
     def names(self) -> set[str]:
@@ -163,9 +162,7 @@ class Directory:
         peer = self._peers.get(name)  # a dict read is atomic; writers hold the lock
         if peer is not None:
             return peer
-        with self._lock:
-            resolvers = list(self._resolvers)
-        for resolve in resolvers:
+        for resolve in self._resolvers:  # (a tuple, replaced whole: read without the lock)
             found = resolve(name)
             if found is not None:
                 return found
