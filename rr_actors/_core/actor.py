@@ -225,12 +225,15 @@ class Inbox(LateQueue):
         super().__init__()
         self.turn = threading.Lock()
         self.handled = 0
+        self.stopped = False  # a handler run in the turn stopped the actor
         self._tickets = itertools.count()
         self._run: Callable[[Any], None] | None = None  # set once the actor's loop runs
 
     def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
         next(self._tickets)
-        super().put(item, block, timeout)
+        queue.SimpleQueue.put(self, item, block, timeout)  # (`LateQueue.put`, one frame less)
+        if self._late is not None:
+            self._drain(self._late)
 
     def run_or_put(self, item: Any) -> None:
         """Handle `item` on this thread in the turn if the actor is idle, else put it."""
@@ -345,12 +348,11 @@ class Actor(pykka.ThreadingActor):
             envelope = inbox.get()
             with inbox.turn:
                 try:
-                    if self.actor_stopped.is_set():  # stopped by a handler run in the turn
+                    if inbox.stopped:  # by a handler run in the turn meanwhile
                         if envelope is not _WAKE:
                             self.on_late(envelope)
                         return
-                    if envelope is not _WAKE:
-                        self._handle_envelope(envelope)
+                    self._handle_envelope(envelope)
                 finally:
                     inbox.handled += 1
 
@@ -363,6 +365,7 @@ class Actor(pykka.ThreadingActor):
         finally:
             _ACTOR_THREAD.active = was
         if self.actor_stopped.is_set():  # it failed or stopped: the actor's thread ends
+            self.actor_inbox.stopped = True
             self.actor_inbox.put(_WAKE)
 
     def _handle_envelope(self, envelope: Any) -> None:
