@@ -8,6 +8,10 @@ on the same machine, so the ratios are comparable:
 * a dedup-hit `call` from this process to a provider registrar in another process
   (target: <= 3x the raw round trip), next to the same call with both registrars in this
   process;
+* the same cross-process call *paired* with both raw round trips: rounds of each in
+  turn (their order alternating), so that the three share the machine's moods; its
+  ratio is the median of the rounds' ratios (steadier on a shared machine than the
+  ratio of two medians taken minutes apart);
 * `send_status` over three hops across processes: provider process -> agent process ->
   consumer in this process, and the acknowledgements back (target: <= 1 ms);
 * the CPU time per round trip of the floor and of the cross-process dedup hit, every
@@ -181,6 +185,55 @@ def dedup_hits(
     return samples
 
 
+PAIRED_BATCH = 100
+"""Timed round trips of each kind in one round of the paired rows."""
+
+
+def paired(
+    ctx: Any, consumer: rr.ResourceRegistrar, provider: str, rounds: int
+) -> dict[str, list[float]]:
+    """The paired rows: `rounds` rounds, each a batch of raw bytes round trips, raw object
+    round trips and cross-process dedup hits (the order alternating between rounds); the
+    median seconds of each batch, per kind."""
+    pipes, echoes = [], []
+    for objects in (False, True):
+        parent, child = ctx.Pipe()
+        echo = ctx.Process(target=_echo, args=(child, objects), daemon=True)
+        echo.start()
+        child.close()
+        pipes.append(parent)
+        echoes.append(echo)
+    payload = b"x" * 200
+    message = ("0f3b7b2c-1111-2222-3333-444455556666", "echo", {"cam": 1})
+    ids: list[str] = []
+
+    def raw_bytes() -> None:
+        pipes[0].send_bytes(payload)
+        pipes[0].recv_bytes()
+
+    def raw_objects() -> None:
+        pipes[1].send(message)
+        pipes[1].recv()
+
+    def hit() -> None:
+        ids.append(consumer.call(provider, "echo", {"cam": 1}).id)
+
+    kinds = [("bytes", raw_bytes), ("objects", raw_objects), ("hit", hit)]
+    medians: dict[str, list[float]] = {name: [] for name, _ in kinds}
+    try:
+        for number in range(rounds):
+            for name, fn in kinds if number % 2 == 0 else kinds[::-1]:
+                medians[name].append(statistics.median(timed(fn, PAIRED_BATCH, warmup=10)))
+            for query_id in ids:
+                consumer.unload(query_id)
+            ids.clear()
+    finally:
+        for parent, echo in zip(pipes, echoes, strict=True):
+            parent.close()
+            echo.join(10)
+    return medians
+
+
 def status_timings(rounds: int) -> Callable[[rr.ResourceRegistrar], list[float]]:
     """A function to run in the provider: time `send_status` of its first query."""
 
@@ -258,22 +311,106 @@ def row(name: str, samples: list[float], floor: float) -> str:
     return f"| {name} | {median * 1e6:9.1f} | {p90 * 1e6:9.1f} | {median / floor:6.2f}x |"
 
 
+def three_hops(
+    ctx: Any,
+    system: System,
+    consumer: rr.ResourceRegistrar,
+    provider: str,
+    agent: str,
+    rounds: int,
+) -> list[float]:
+    """Seconds per `send_status` from the provider's process, over the agent's (whose
+    `composite` depends on the provider's `echo`) to `consumer`, acknowledged back."""
+    with registrar_process(ctx, system.address, agent, agent_setup(provider)):
+        heard: list[Any] = []
+        query = consumer.call(
+            agent, "composite", {"cam": 2}, on_status=lambda _q, u: heard.append(u)
+        )
+        status: list[float] = system.run(provider, status_timings(rounds), timeout=600)
+        consumer.unload(query.id)
+        if len(heard) < rounds:
+            raise RuntimeError(f"only {len(heard)} statuses reached the consumer")
+    return status
+
+
+def paired_rows(pairs: dict[str, list[float]]) -> None:
+    """The paired rows: each kind's median over the rounds (of the rounds' medians), and
+    the call's ratio to each floor as the median of the rounds' ratios."""
+    ratios = {
+        floor: statistics.median(h / f for h, f in zip(pairs["hit"], pairs[floor], strict=True))
+        for floor in ("bytes", "objects")
+    }
+    spread = {
+        floor: [h / f for h, f in zip(pairs["hit"], pairs[floor], strict=True)]
+        for floor in ("bytes", "objects")
+    }
+    print()
+    print(
+        f"Paired: {len(pairs['hit'])} rounds of {PAIRED_BATCH} round trips of each kind, in "
+        f"turn; ratio = the median of the rounds' ratios (lowest-highest round)"
+    )
+    print()
+    print("| measurement | median us | ratio to bytes | ratio to objects |")
+    print("|---|---:|---:|---:|")
+    names = {
+        "bytes": "raw Pipe round trip, send_bytes, paired (floor)",
+        "objects": "raw Pipe round trip, send/recv objects, paired",
+        "hit": "dedup-hit call across processes, paired (target <= 3x)",
+    }
+    for kind, name in names.items():
+        median = statistics.median(pairs[kind]) * 1e6
+        if kind == "hit":
+            cells = [
+                f"{ratios[f]:.2f}x ({min(spread[f]):.2f}-{max(spread[f]):.2f})"
+                for f in ("bytes", "objects")
+            ]
+        else:
+            cells = ["1.00x" if kind == "bytes" else "", "1.00x" if kind == "objects" else ""]
+        print(f"| {name} | {median:9.1f} | {cells[0]} | {cells[1]} |")
+
+
+def print_rows(rounds: int, rows: list[tuple[str, list[float]]]) -> None:
+    """The main table: each row's median and p90, as a multiple of the floor (row 1)."""
+    floor = statistics.median(rows[0][1])
+    print(f"rounds per row: {rounds}; times in microseconds; ratio = median / raw bytes median")
+    print()
+    print("| measurement | median us | p90 us | ratio |")
+    print("|---|---:|---:|---:|")
+    for name, samples in rows:
+        if samples:  # (`--only` skips some)
+            print(row(name, samples, floor))
+    cross, raw_objects = rows[3][1], rows[1][1]
+    if cross:
+        print()
+        print(
+            f"cross-process dedup hit vs raw object round trip: "
+            f"{statistics.median(cross) / statistics.median(raw_objects):.2f}x"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=2000, help="timed round trips per row")
     parser.add_argument(
         "--only",
-        choices=["status"],
+        choices=["status", "paired"],
         help="measure only the floor and this row (quick runs to alternate with other code)",
+    )
+    parser.add_argument(
+        "--paired-rounds",
+        type=int,
+        default=20,
+        help=f"rounds of the paired rows ({PAIRED_BATCH} round trips of each kind a round)",
     )
     args = parser.parse_args()
     rounds: int = args.rounds
     every = args.only is None
+    pairing = every or args.only == "paired"
+    status_row = every or args.only == "status"
     ctx = multiprocessing.get_context("forkserver")
 
     raw_bytes = raw_pipe(ctx, rounds, objects=False)
     raw_objects = raw_pipe(ctx, rounds, objects=True) if every else []
-    floor = statistics.median(raw_bytes)
 
     suffix = uuid.uuid4().hex[:6]
     system = System.create()
@@ -284,19 +421,14 @@ def main() -> None:
         setup_echo(local)
         provider = f"provider-{suffix}"
         agent = f"agent-{suffix}"
+        status: list[float] = []
         try:
             in_process = dedup_hits(consumer, local.name, rounds) if every else []
             with registrar_process(ctx, system.address, provider, setup_echo) as process:
                 cross = dedup_hits(consumer, provider, rounds, process.pid) if every else []
-                with registrar_process(ctx, system.address, agent, agent_setup(provider)):
-                    heard: list[Any] = []
-                    query = consumer.call(
-                        agent, "composite", {"cam": 2}, on_status=lambda _q, u: heard.append(u)
-                    )
-                    status = system.run(provider, status_timings(rounds), timeout=600)
-                    consumer.unload(query.id)
-                    if len(heard) < rounds:
-                        raise RuntimeError(f"only {len(heard)} statuses reached the consumer")
+                pairs = paired(ctx, consumer, provider, args.paired_rounds) if pairing else {}
+                if status_row:
+                    status = three_hops(ctx, system, consumer, provider, agent, rounds)
             killed = kill_detection(ctx, system, consumer, repeats=10) if every else []
         finally:
             local.stop()
@@ -304,27 +436,19 @@ def main() -> None:
     finally:
         system.close()
 
-    print(f"rounds per row: {rounds}; times in microseconds; ratio = median / raw bytes median")
-    print()
-    print("| measurement | median us | p90 us | ratio |")
-    print("|---|---:|---:|---:|")
-    rows = [
-        ("raw Pipe round trip, send_bytes (floor)", raw_bytes),
-        ("raw Pipe round trip, send/recv objects", raw_objects),
-        ("dedup-hit call, both registrars in one process", in_process),
-        ("dedup-hit call across processes (target <= 3x)", cross),
-        ("send_status over 3 process hops (target <= 1000 us)", status),
-        ("SIGKILL of provider -> call in flight fails (10 kills)", killed),
-    ]
-    for name, samples in rows:
-        if samples:  # (`--only` skips some)
-            print(row(name, samples, floor))
-    if cross:
-        print()
-        print(
-            f"cross-process dedup hit vs raw object round trip: "
-            f"{statistics.median(cross) / statistics.median(raw_objects):.2f}x"
-        )
+    print_rows(
+        rounds,
+        [
+            ("raw Pipe round trip, send_bytes (floor)", raw_bytes),
+            ("raw Pipe round trip, send/recv objects", raw_objects),
+            ("dedup-hit call, both registrars in one process", in_process),
+            ("dedup-hit call across processes (target <= 3x)", cross),
+            ("send_status over 3 process hops (target <= 1000 us)", status),
+            ("SIGKILL of provider -> call in flight fails (10 kills)", killed),
+        ],
+    )
+    if pairs:
+        paired_rows(pairs)
     print_cpu()
 
 

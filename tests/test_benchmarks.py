@@ -50,7 +50,7 @@ SMALLEST = {
     ],
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1", "--forkserver-first"],
     "bench_three_hosts.py": ["--rounds", "20", "--cuts", "1"],
-    "bench_transport.py": ["--rounds", "20"],
+    "bench_transport.py": ["--rounds", "20", "--paired-rounds", "2"],
     "bench_xoscar.py": ["--rounds", "1", "--batch", "5", "--no-load"],
     "bench_zenoh.py": ["--rounds", "20", "--kills", "1", "--cuts", "1"],
     "bench_zenoh_tls.py": [
