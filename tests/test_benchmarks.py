@@ -57,6 +57,7 @@ SMALLEST = {
         *("--rounds", "20", "--handshakes", "20", "--clients", "4"),
         *("--joins", "1", "--quiet", "1", "--cuts", "1", "--flood", "0.5"),
     ],
+    "count_cross.py": ["--calls", "5"],
     "count_dedup.py": ["--calls", "5", "--profile"],
     "stress_crash.py": ["--kills", "4", "--round", "2"],
 }
