@@ -170,6 +170,8 @@ class Transport(Protocol):
         Raises:
             DuplicateNameError: another process of the system serves that name.
             ConfigError: the carrier cannot serve it (a bad name or address).
+            RegistrarUnavailableError: the carrier cannot tell in time whether another
+                process serves it (a network that did not answer).
             RegistrarStoppedError: this process left the system.
         """
         ...

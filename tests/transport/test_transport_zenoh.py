@@ -522,6 +522,129 @@ def test_of_two_processes_serving_one_name_at_once_exactly_one_does(
         assert wait_for(lambda name=name: name in net.names(), 10.0), net.names()
 
 
+def test_two_processes_whose_network_does_not_answer_do_not_both_serve_a_name(
+    net: ZenohNetwork, children: Started
+) -> None:
+    # Their router (a process of its own, with a long lease: its links stay up) is frozen
+    # as they claim one name: each asks who serves it and the question times out. An
+    # answer that timed out is not "nobody": neither may serve it (they used to, both).
+    parent_end, child_end = children.context.Pipe()
+    router, _ = children.start(_quiet_router_main, net.system, _tcp(net), child_end)
+    assert parent_end.poll(30)
+    address = parent_end.recv()
+    name = f"race-{uuid.uuid4().hex[:6]}"
+    go = children.context.Event()
+    controls = [children.start(_reporting_racer, address, name, go, ready=False)[1] for _ in "ab"]
+    for control in controls:
+        assert control.poll(30)
+        assert "attached" == control.recv()
+    os.kill(router.pid, signal.SIGSTOP)
+    try:
+        go.set()
+        outcomes = []
+        for control in controls:
+            assert control.poll(30)
+            outcomes.append(control.recv())
+    finally:
+        os.kill(router.pid, signal.SIGCONT)
+
+    assert ["unavailable", "unavailable"] == outcomes
+
+
+def test_a_name_asked_of_a_network_that_does_not_answer_is_unavailable_not_unknown(
+    net: ZenohNetwork, children: Started
+) -> None:
+    parent_end, child_end = children.context.Pipe()
+    router, _ = children.start(_quiet_router_main, net.system, _tcp(net), child_end)
+    assert parent_end.poll(30)
+    address = parent_end.recv()
+    go = children.context.Event()
+    _, control = children.start(_reporting_caller, address, "never-served", go, ready=False)
+    assert control.poll(30)
+    assert "attached" == control.recv()
+    os.kill(router.pid, signal.SIGSTOP)
+    try:
+        go.set()
+        assert control.poll(30)
+        frozen = control.recv()
+    finally:
+        os.kill(router.pid, signal.SIGCONT)
+    control.send("again")
+    assert control.poll(30)
+    thawed = control.recv()
+
+    assert "RegistrarUnavailableError: cannot tell whether registrar 'never-served'" in frozen
+    assert thawed.startswith("UnknownRegistrarError: no registrar named 'never-served'")
+
+
+def _reporting_caller(
+    address: Any, name: str, go: Any, control: multiprocessing.connection.Connection
+) -> None:
+    """Attach, say "attached", wait for `go`, call `name` twice (the second time once the
+    test says so): send what each raised, as `"<class>: <message>"`."""
+    member = address.attach()
+    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
+    try:
+        member.serve(Served(registrar))
+        control.send("attached")
+        go.wait(30)
+        for _ in range(2):
+            try:
+                registrar.call(name, "echo", "r", timeout=10)
+            except rr.RrError as exc:
+                control.send(f"{type(exc).__name__}: {exc}")
+            else:
+                control.send("answered")
+            if not control.poll(30) or control.recv() != "again":
+                break
+    finally:
+        registrar.stop()
+        member.close()
+
+
+def _quiet_router_main(
+    system: str,
+    connect: str,
+    address_end: multiprocessing.connection.Connection,
+    control: multiprocessing.connection.Connection,
+) -> None:
+    """A router process of its own that serves nothing; its lease is long (30 s), so a
+    process attached through it keeps its link while it is frozen; sends its address."""
+    network = rr.ZenohNetwork(system=system, connect=[connect], tls=None, lease=30.0)
+    try:
+        address_end.send(network.address)
+        control.send("ready")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        network.close()
+
+
+def _reporting_racer(
+    address: Any, name: str, go: Any, control: multiprocessing.connection.Connection
+) -> None:
+    """Attach, say "attached", wait for `go`, serve `name`: say "served", "duplicate" or
+    "unavailable" (the network did not say whether another process serves it)."""
+    member = address.attach()
+    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, call_timeout=10.0))
+    try:
+        control.send("attached")
+        go.wait(30)
+        try:
+            member.serve(Served(registrar))
+        except rr.DuplicateNameError:
+            control.send("duplicate")
+        except rr.RegistrarUnavailableError:
+            control.send("unavailable")
+        else:
+            control.send("served")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        registrar.stop()
+        member.close()
+
+
 def _supervised_manager(
     address: Any, name: str, control: multiprocessing.connection.Connection
 ) -> None:

@@ -273,6 +273,8 @@ class ZenohMember:
         Raises:
             UnknownRegistrarError: nobody serves `name` on this system (the message names
                 the system).
+            RegistrarUnavailableError: the network did not answer in time, and nothing
+                heard here says that `name` is served.
         """
         if self.closed or name in self._locals:
             return None  # served here: the directory's own record says stopped or died
@@ -284,8 +286,14 @@ class ZenohMember:
             if on_actor_thread():
                 known = True  # (asked by its messages, off this thread)
             else:
-                self._presence.ask(name)
+                answered = self._presence.ask(name)
                 known = self._presence.serves(name)
+                if not known and not answered:
+                    raise RegistrarUnavailableError(
+                        f"cannot tell whether registrar {name!r} is served on system "
+                        f"{self.system!r}: the network did not answer within "
+                        f"{ASK_TIMEOUT:g} s"
+                    )
         if not known:
             raise self._unknown_error(name)
         with self._lock:
@@ -316,6 +324,8 @@ class ZenohMember:
 
         Raises:
             DuplicateNameError: another process of the system serves that name.
+            RegistrarUnavailableError: the network did not say in time whether another
+                process serves it (`Presence.wait_turn`): not served, try again.
             RegistrarStoppedError: this process left the system.
         """
         name = endpoint.name

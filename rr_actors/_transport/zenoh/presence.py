@@ -29,13 +29,14 @@
   gets through.
 
 Claims (`live/claim/<name>/<zid>`) and `wait_turn` are `serve`'s half of "one name, one
-server" (see `carrier`).
+server" (see `carrier`). `wait_turn` decides only from a full answer of the network (a
+liveliness query that timed out answers with an error reply: it is asked again, and
+`serve` fails with `RegistrarUnavailableError` if none comes within `CLAIM_TIMEOUT`).
 """
 
 from __future__ import annotations
 
 import collections
-import contextlib
 import functools
 import logging
 import threading
@@ -49,20 +50,32 @@ from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.zenoh.wire import Keys, NameAt
-from rr_actors.errors import DuplicateNameError
+from rr_actors.errors import DuplicateNameError, RegistrarStoppedError, RegistrarUnavailableError
 
 logger = logging.getLogger("rr_actors")
 
 _DELETED_KEPT = 1024
 """Deletions remembered beyond which those older than every `ask` in flight are pruned."""
 
-__all__ = ["ASK_TIMEOUT", "CLAIM_TIMEOUT", "NO_WAITING", "Presence", "PresenceEvents", "Server"]
+__all__ = [
+    "ASK_PAUSE",
+    "ASK_TIMEOUT",
+    "CLAIM_TIMEOUT",
+    "NO_WAITING",
+    "Presence",
+    "PresenceEvents",
+    "Server",
+]
 
 ASK_TIMEOUT = 1.0
 """Seconds a miss of `resolve` (or `serve`'s check for the name) asks the network (never
 on an actor's thread: there the name's writer thread asks, see `carrier`)."""
 CLAIM_TIMEOUT = 5.0
-"""Seconds `serve` waits for a rival claim of the same name to serve or withdraw."""
+"""Seconds `serve` waits for a rival claim of the same name to serve or withdraw, and for
+the network to answer in full who serves the name (`Presence.wait_turn`)."""
+ASK_PAUSE = 0.1
+"""Seconds `wait_turn` waits before it asks again after a question that failed at once
+(a timed-out one took `ASK_TIMEOUT` already); news of a token cuts it short."""
 
 NO_WAITING = threading.local()
 """`active` on threads that must not wait on the network: the presence thread (what its
@@ -191,12 +204,32 @@ class Presence:
     def wait_turn(self, name: str) -> None:
         """With this process's claim on `name` declared: return once it may serve it.
 
+        It decides from a full answer of the network only: a question about the name's
+        tokens that timed out (a router too busy to answer within `ASK_TIMEOUT`) is asked
+        again; an empty answer that is not known to be whole would let two processes
+        that claim the name at once each see no rival, and both serve it.
+
         Raises:
             DuplicateNameError: another process serves it, or claims it and wins.
+            RegistrarUnavailableError: the network did not answer in full within
+                `CLAIM_TIMEOUT` seconds (whether another process serves it is unknown).
+            RegistrarStoppedError: this process left the system meanwhile.
         """
         me = int(self._zid, 16)
-        self.ask(name)
         deadline = time.monotonic() + CLAIM_TIMEOUT
+        while not self.ask(name):
+            if self._queue.closed:
+                raise RegistrarStoppedError("this process left the system")
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise RegistrarUnavailableError(
+                    f"cannot tell whether another process of system {self._system!r} serves "
+                    f"a registrar named {name!r}: the network did not answer within "
+                    f"{CLAIM_TIMEOUT:g} s, so this process does not serve it"
+                )
+            logger.debug("system %s: asking again who serves %s", self._system, name)
+            with self._changed:  # (an answer that failed at once: a pause, cut short by news)
+                self._changed.wait(min(left, ASK_PAUSE))
         with self._changed:
             while True:
                 others = [z for z in self._servers.get(name, {}) if z != self._zid]
@@ -245,29 +278,44 @@ class Presence:
         """
         return zid in self._members
 
-    def ask(self, name: str) -> None:
+    def ask(self, name: str) -> bool:
         """Ask the network for the tokens of `name` (bounded) and apply what it answers.
 
         An answer for a token whose deletion was seen after the question was asked is
         stale and left out.
+
+        Returns:
+            Whether the network answered in full: False if the question timed out (Zenoh
+            then answers with an error reply, alongside what came in time) or failed, or
+            was not asked (on a thread that must not wait: `NO_WAITING`).
         """
         if getattr(NO_WAITING, "active", False):
-            return  # (on Zenoh's or the presence thread: what the tables say must do)
+            return False  # (on Zenoh's or the presence thread: what the tables say must do)
         with self._changed:
             asked_at = self._seq
             self._asking[asked_at] += 1
         try:
             keys: list[str] = []
-            with contextlib.suppress(Exception):
+            whole = False
+            try:
                 replies = self._session.liveliness().get(
                     self._keys.live_of(name), timeout=ASK_TIMEOUT
                 )
-                keys.extend(str(reply.ok.key_expr) for reply in replies if reply.ok is not None)
+                whole = True
+                for reply in replies:
+                    if reply.ok is not None:
+                        keys.append(str(reply.ok.key_expr))
+                    else:  # ("Timeout": some answers may be missing)
+                        whole = False
+            except Exception as exc:  # noqa: BLE001 - a closed session, ...: not answered
+                logger.debug("system %s: asking who serves %s failed: %s", self._system, name, exc)
+                whole = False
             done = threading.Event()
             for key in keys:
                 self._queue.submit(functools.partial(self._apply, (True, key, asked_at)))
-            if self._queue.submit(done.set):  # (closed: nothing will be applied)
-                done.wait(ASK_TIMEOUT)
+            if not self._queue.submit(done.set):  # (closed: nothing will be applied)
+                return False
+            return done.wait(ASK_TIMEOUT) and whole
         finally:
             with self._changed:
                 self._asking[asked_at] -= 1
