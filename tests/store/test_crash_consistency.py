@@ -30,6 +30,8 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 import rr_actors as rr
 from rr_actors._catalog import Catalog
 from rr_actors._store import checkpoints as checkpoint_module
@@ -178,6 +180,7 @@ def run_kills(
     return model
 
 
+@pytest.mark.timeout(300)  # (a hang ceiling: 4-5 s quiet; once over the suite's 60 s at load 20+)
 def test_fifty_random_kills_never_tear_a_catalog_nor_lose_an_acknowledged_operation(
     tmp_path: Path, context: multiprocessing.context.ForkServerContext
 ) -> None:
