@@ -486,6 +486,7 @@ def _await_ready(
     pid = process.pid
     assert pid is not None  # (started)
     ready: Ready | Failed | None = None
+    ended = False  # the pipe was read to its end
     while ready is None:
         left = deadline - time.monotonic()
         woke = multiprocessing.connection.wait([conn, process.sentinel], max(left, 0))
@@ -493,6 +494,7 @@ def _await_ready(
             try:
                 message = conn.recv()
             except (EOFError, OSError):
+                ended = True
                 woke = [process.sentinel]
             else:
                 if isinstance(message, Events):  # (its restore's in-doubt events, say)
@@ -500,6 +502,9 @@ def _await_ready(
                 elif isinstance(message, Ready | Failed):
                     ready = message
                 # else: Warm, from a spare that warmed up after it was taken
+        ended_first = ready is None and left > 0 and not ended and process.sentinel in woke
+        if ended_first and _readable(conn):  # what it sent before it ended comes first
+            continue  # (its Failed, behind events it forwarded)
         if ready is None and (process.sentinel in woke or left <= 0):
             if left <= 0:
                 process.kill()
@@ -519,6 +524,14 @@ def _await_ready(
         conn.close()
         release(process)
         raise RegistrarUnavailableError(f"manager {name!r} failed to start:\n{ready.traceback}")
+
+
+def _readable(conn: Connection) -> bool:
+    """Whether `conn` has a message (or its end) to read now."""
+    try:
+        return conn.poll(0)
+    except (OSError, EOFError):
+        return False
 
 
 class _Received:
