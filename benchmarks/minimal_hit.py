@@ -26,23 +26,13 @@ import pickle
 import socket
 import statistics
 import struct
-import time
-from collections.abc import Callable
 from typing import Any
+
+from bench_transport import _echo, timed
 
 _LENGTH = struct.Struct("!i")
 BATCH = 100
 """Timed round trips of each kind in one round."""
-
-
-def _echo(conn: multiprocessing.connection.Connection, objects: bool) -> None:
-    """Echo until the pipe closes (the floors)."""
-    with contextlib.suppress(EOFError, OSError):
-        while True:
-            if objects:
-                conn.send(conn.recv())
-            else:
-                conn.send_bytes(conn.recv_bytes())
 
 
 def _frame(fd: int) -> bytes:
@@ -68,17 +58,6 @@ def _provider(sock: socket.socket) -> None:
             entry[1].add(query_id)
             answer = pickle.dumps((query_id, entry[0]), pickle.HIGHEST_PROTOCOL)
             sock.sendall(_LENGTH.pack(len(answer)) + answer)
-
-
-def _median_of(fn: Callable[[], object]) -> float:
-    for _ in range(10):
-        fn()
-    samples = []
-    for _ in range(BATCH):
-        start = time.perf_counter()
-        fn()
-        samples.append(time.perf_counter() - start)
-    return statistics.median(samples)
 
 
 def main() -> None:
@@ -119,7 +98,7 @@ def main() -> None:
     try:
         for number in range(args.rounds):
             for name, fn in kinds if number % 2 == 0 else kinds[::-1]:
-                medians[name].append(_median_of(fn))
+                medians[name].append(statistics.median(timed(fn, BATCH, warmup=10)))
     finally:
         for pipe in pipes:
             pipe.close()

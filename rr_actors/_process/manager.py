@@ -58,11 +58,11 @@ from rr_actors._process.control import (
     Stop,
     SyncEvents,
 )
+from rr_actors._process.received import Received
 from rr_actors._process.tally import Tally
 from rr_actors._transport.base import Address
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CallTimeoutError, RegistrarUnavailableError
-from rr_actors.events import EventsDropped
 
 if TYPE_CHECKING:
     from rr_actors._process.spare import Spare
@@ -147,13 +147,13 @@ class ManagerProcess:
         heartbeat_timeout: float | None,
         on_exit: Callable[[ManagerExit], None],
         on_events: Callable[[list[Any]], None] | None = None,
-        received: _Received | None = None,
+        received: Received | None = None,
     ) -> None:
         self.name = name
         self.process = process
         assert process.pid is not None  # (started)
         self.pid: int = process.pid
-        self._received = received if received is not None else _Received(on_events, None)
+        self._received = received if received is not None else Received(on_events, None)
         self.conn = conn
         self._send_lock = threading.Lock()
         self._heartbeat = heartbeat
@@ -206,7 +206,7 @@ class ManagerProcess:
             CallTimeoutError: it was not ready within `start_timeout` seconds (it is killed).
         """
         tally = Tally.create() if on_events is not None else None
-        received = _Received(on_events, tally)
+        received = Received(on_events, tally)
         try:
             process, parent_conn = _launch(
                 name, setup, config, address, spare, forward_events, tally
@@ -474,7 +474,7 @@ def _launch(
 
 
 def _await_ready(
-    name: str, process: BaseProcess, conn: Connection, start_timeout: float, received: _Received
+    name: str, process: BaseProcess, conn: Connection, start_timeout: float, received: Received
 ) -> None:
     """Wait for the manager's `ready` (skipping a spare's `warm`); raise if it never comes.
 
@@ -532,73 +532,3 @@ def _readable(conn: Connection) -> bool:
         return conn.poll(0)
     except (OSError, EOFError):
         return False
-
-
-class _Received:
-    """The events one manager process forwarded, to `on_events`; and those it lost.
-
-    Keeps the number (`seq`) of the last event that arrived; after the exit, the
-    process's `Tally` says how many it built, and the difference (the events a SIGKILL
-    caught in its buffer) is published as one `EventsDropped(cause="killed")`.
-    """
-
-    def __init__(self, on_events: Callable[[list[Any]], None] | None, tally: Tally | None) -> None:
-        self.on_events = on_events
-        self.tally = tally
-        self.last_seq = 0
-
-    def deliver(self, name: str, batch: list[Any]) -> None:
-        """Hand a batch to `on_events` (the watcher thread, or the starting thread)."""
-        if self.on_events is None:
-            return
-        for event in reversed(batch):
-            seq = getattr(event, "seq", 0)
-            if seq:
-                self.last_seq = max(self.last_seq, seq)
-                break
-        try:
-            self.on_events(batch)
-        except Exception:
-            logger.exception("events of manager %s could not be delivered", name)
-
-    def drain(self, name: str, conn: Connection) -> None:
-        """Read what the process sent before it ended (still in the pipe): its last events.
-
-        The exit can wake the watcher before the pipe's last messages are read.
-        """
-        for _ in range(10_000):  # bounded: the pipe holds what a dead process wrote
-            try:
-                if not conn.poll(0):
-                    return
-                message = conn.recv()
-            except (EOFError, OSError, ValueError):
-                return
-            if isinstance(message, Events):
-                self.deliver(name, message.batch)
-
-    def close(self) -> None:
-        """Remove the tally unread (a start given up): its events are not counted."""
-        tally, self.tally = self.tally, None
-        if tally is not None:
-            tally.close()
-
-    def count_lost(self, name: str, pid: int) -> None:
-        """After the exit: deliver what its journal kept but it never sent; publish what
-        is still missing (`EventsDropped(cause="killed")`); remove the tally."""
-        tally = self.tally
-        if tally is None:
-            return
-        self.tally = None
-        try:
-            arrived = self.last_seq
-            kept = tally.after(arrived) if self.on_events is not None else []
-            if kept:
-                self.deliver(name, kept)
-            # (a record written just before the kill may be newer than the number stored)
-            last = max([tally.built(), *(getattr(e, "seq", 0) for e in kept)])
-            lost = last - arrived - len(kept)
-        finally:
-            tally.close()
-        if lost > 0 and self.on_events is not None:
-            logger.warning("manager %s (pid %d) died with %d events unsent", name, pid, lost)
-            self.deliver(name, [EventsDropped(lost, pid=pid, cause="killed")])

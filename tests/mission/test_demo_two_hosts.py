@@ -43,7 +43,7 @@ def ours(within: float = 10.0) -> list[str]:
     deadline = time.monotonic() + within
     left = _ended()
     while left and time.monotonic() < deadline:
-        time.sleep(0.1)  # (polling `ip netns list`: no event says a namespace went)
+        time.sleep(0.1)  # allowed: polling `ip netns list`, no event says a namespace went
         left = _ended()
     return left
 

@@ -15,7 +15,8 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._process.control import Events, Failed
-from rr_actors._process.manager import _await_ready, _Received
+from rr_actors._process.manager import _await_ready
+from rr_actors._process.received import Received
 
 pytestmark = pytest.mark.usefixtures("process_helpers")  # the forkserver, before the leak check
 
@@ -38,6 +39,6 @@ def test_a_failed_report_behind_events_is_read_when_the_exit_wakes_the_wait_too(
     delivered: list[Any] = []
 
     with pytest.raises(rr.RegistrarUnavailableError, match="no camera on this bench"):
-        _await_ready("mine", process, parent_end, 30.0, _Received(delivered.extend, None))
+        _await_ready("mine", process, parent_end, 30.0, Received(delivered.extend, None))
 
     assert ["an event forwarded before the setup raised"] == delivered

@@ -528,10 +528,7 @@ def test_two_processes_whose_network_does_not_answer_do_not_both_serve_a_name(
     # Their router (a process of its own, with a long lease: its links stay up) is frozen
     # as they claim one name: each asks who serves it and the question times out. An
     # answer that timed out is not "nobody": neither may serve it (they used to, both).
-    parent_end, child_end = children.context.Pipe()
-    router, _ = children.start(_quiet_router_main, net.system, _tcp(net), child_end)
-    assert parent_end.poll(30)
-    address = parent_end.recv()
+    router, address = _quiet_router(net, children)
     name = f"race-{uuid.uuid4().hex[:6]}"
     go = children.context.Event()
     controls = [children.start(_reporting_racer, address, name, go, ready=False)[1] for _ in "ab"]
@@ -554,10 +551,7 @@ def test_two_processes_whose_network_does_not_answer_do_not_both_serve_a_name(
 def test_a_name_asked_of_a_network_that_does_not_answer_is_unavailable_not_unknown(
     net: ZenohNetwork, children: Started
 ) -> None:
-    parent_end, child_end = children.context.Pipe()
-    router, _ = children.start(_quiet_router_main, net.system, _tcp(net), child_end)
-    assert parent_end.poll(30)
-    address = parent_end.recv()
+    router, address = _quiet_router(net, children)
     go = children.context.Event()
     _, control = children.start(_reporting_caller, address, "never-served", go, ready=False)
     assert control.poll(30)
@@ -600,6 +594,14 @@ def _reporting_caller(
     finally:
         registrar.stop()
         member.close()
+
+
+def _quiet_router(net: ZenohNetwork, children: Started) -> tuple[Any, Any]:
+    """A router process of `net`'s system (`_quiet_router_main`): it, and its address."""
+    parent_end, child_end = children.context.Pipe()
+    router, _ = children.start(_quiet_router_main, net.system, _tcp(net), child_end)
+    assert parent_end.poll(30)
+    return router, parent_end.recv()
 
 
 def _quiet_router_main(
