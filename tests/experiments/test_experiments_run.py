@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import threading
+import types
 import urllib.request
 from collections.abc import Callable
 from pathlib import Path
@@ -974,3 +975,24 @@ def test_a_ctrl_c_after_a_run_finished_keeps_it_and_leaves_no_process(
     assert [1] == [r.run for r in caught.value.results.runs]
     assert caught.value.results.interrupted
     assert [] == ours()
+
+
+def test_rows_released_soon_after_the_end_are_not_counted_as_left() -> None:
+    # A registrar restored just before a run ended reconciles after it serves again: the
+    # ids it releases then were counted as left when the count was one look (1 row in a
+    # CI run of `killheavy`). What goes within `SETTLE_TIMEOUT` is not; what stays is.
+    provider = rr.ResourceRegistrar.start("count-provider")
+    consumer = rr.ResourceRegistrar.start("count-consumer")
+    client = types.SimpleNamespace(registrar=consumer)
+    try:
+        provider.register_server("s", load=lambda r: r, unload=lambda _q, _r: None)
+        first = consumer.call("count-provider", "s", "a").id
+        consumer.call("count-provider", "s", "b")
+        release = threading.Timer(0.3, consumer.unload, [first])
+        release.start()
+        assert (1, 0) == runner.count_entries(None, [], [client])  # type: ignore[arg-type]
+        release.join()
+        assert (1, 0) == runner.count_entries(None, [], [client], settle=0.0)  # type: ignore[arg-type]
+    finally:
+        consumer.stop()
+        provider.stop()
