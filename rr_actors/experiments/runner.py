@@ -547,9 +547,7 @@ def count_entries(
         time.sleep(0.05)  # a poll of the catalogs (no event says "reconciled")
 
 
-def _count_once(
-    sup: rr.Supervisor, managers: list[str], clients: list[Client]
-) -> tuple[int, int]:
+def _count_once(sup: rr.Supervisor, managers: list[str], clients: list[Client]) -> tuple[int, int]:
     total = unread = 0
     for name in managers:
         try:
