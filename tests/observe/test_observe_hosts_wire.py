@@ -185,14 +185,12 @@ def test_what_a_host_sends_that_a_live_source_does_not_make_never_reaches_the_pa
         before = len(asked)
         bad = {"v": 1, "member": "evil", "instance": "i1", "seq": 6, "events": []}
         bad["sections"] = [["tree", "v", {"name": 1}]]
-        theirs.put(
-            delta, json.dumps(bad).encode(), congestion_control=BLOCK
-        )  # in sequence, but not a tree: asked again
+        # in sequence, but not a tree: asked again
+        theirs.put(delta, json.dumps(bad).encode(), congestion_control=BLOCK)
         assert wait_for(lambda: len(asked) > before, BOUND)
         skipped = {**bad, "seq": 9, "sections": [["catalog/cam", "v", None]]}
-        theirs.put(
-            delta, json.dumps(skipped).encode(), congestion_control=BLOCK
-        )  # out of sequence: not applied
+        # out of sequence: not applied
+        theirs.put(delta, json.dumps(skipped).encode(), congestion_control=BLOCK)
         assert wait_for(lambda: len(asked) > before + 1, BOUND)
         assert page.get("host/evil/catalog/cam") is not None
         assert page.get("host/evil/tree") is None
