@@ -189,12 +189,13 @@ PAIRED_BATCH = 100
 """Timed round trips of each kind in one round of the paired rows."""
 
 
-def paired(
-    ctx: Any, consumer: rr.ResourceRegistrar, provider: str, rounds: int
+def paired_with_floors(
+    ctx: Any, hit: Callable[[], object], rounds: int, after_round: Callable[[], object] = list
 ) -> dict[str, list[float]]:
-    """The paired rows: `rounds` rounds, each a batch of raw bytes round trips, raw object
-    round trips and cross-process dedup hits (the order alternating between rounds); the
-    median seconds of each batch, per kind."""
+    """`rounds` rounds, each a batch of raw Pipe bytes round trips, raw Pipe object round
+    trips and `hit()` calls (their order alternating between rounds; `after_round()` runs,
+    untimed, after each); the median seconds of each batch, per kind (`bytes`, `objects`,
+    `hit`). The floors' echoes are processes of `ctx`."""
     pipes, echoes = [], []
     for objects in (False, True):
         parent, child = ctx.Pipe()
@@ -205,7 +206,6 @@ def paired(
         echoes.append(echo)
     payload = b"x" * 200
     message = ("0f3b7b2c-1111-2222-3333-444455556666", "echo", {"cam": 1})
-    ids: list[str] = []
 
     def raw_bytes() -> None:
         pipes[0].send_bytes(payload)
@@ -215,23 +215,36 @@ def paired(
         pipes[1].send(message)
         pipes[1].recv()
 
-    def hit() -> None:
-        ids.append(consumer.call(provider, "echo", {"cam": 1}).id)
-
     kinds = [("bytes", raw_bytes), ("objects", raw_objects), ("hit", hit)]
     medians: dict[str, list[float]] = {name: [] for name, _ in kinds}
     try:
         for number in range(rounds):
             for name, fn in kinds if number % 2 == 0 else kinds[::-1]:
                 medians[name].append(statistics.median(timed(fn, PAIRED_BATCH, warmup=10)))
-            for query_id in ids:
-                consumer.unload(query_id)
-            ids.clear()
+            after_round()
     finally:
         for parent, echo in zip(pipes, echoes, strict=True):
             parent.close()
             echo.join(10)
     return medians
+
+
+def paired(
+    ctx: Any, consumer: rr.ResourceRegistrar, provider: str, rounds: int
+) -> dict[str, list[float]]:
+    """The paired rows (`paired_with_floors`) of cross-process dedup hits from `consumer`
+    to `provider`'s `echo` server; each round's ids are unloaded after it."""
+    ids: list[str] = []
+
+    def hit() -> None:
+        ids.append(consumer.call(provider, "echo", {"cam": 1}).id)
+
+    def unload() -> None:
+        for query_id in ids:
+            consumer.unload(query_id)
+        ids.clear()
+
+    return paired_with_floors(ctx, hit, rounds, unload)
 
 
 def status_timings(rounds: int) -> Callable[[rr.ResourceRegistrar], list[float]]:
@@ -333,7 +346,10 @@ def three_hops(
     return status
 
 
-def paired_rows(pairs: dict[str, list[float]]) -> None:
+def paired_rows(
+    pairs: dict[str, list[float]],
+    hit_name: str = "dedup-hit call across processes, paired (target <= 3x)",
+) -> None:
     """The paired rows: each kind's median over the rounds (of the rounds' medians), and
     the call's ratio to each floor as the median of the rounds' ratios."""
     ratios = {
@@ -355,7 +371,7 @@ def paired_rows(pairs: dict[str, list[float]]) -> None:
     names = {
         "bytes": "raw Pipe round trip, send_bytes, paired (floor)",
         "objects": "raw Pipe round trip, send/recv objects, paired",
-        "hit": "dedup-hit call across processes, paired (target <= 3x)",
+        "hit": hit_name,
     }
     for kind, name in names.items():
         median = statistics.median(pairs[kind]) * 1e6

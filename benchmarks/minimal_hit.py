@@ -24,15 +24,12 @@ import multiprocessing.connection
 import os
 import pickle
 import socket
-import statistics
 import struct
 from typing import Any
 
-from bench_transport import _echo, timed
+from bench_transport import paired_rows, paired_with_floors
 
 _LENGTH = struct.Struct("!i")
-BATCH = 100
-"""Timed round trips of each kind in one round."""
 
 
 def _frame(fd: int) -> bytes:
@@ -65,27 +62,11 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=20, help="rounds of each kind in turn")
     args = parser.parse_args()
     ctx = multiprocessing.get_context("forkserver")
-    children, pipes = [], []
-    for objects in (False, True):
-        parent, far = ctx.Pipe()
-        children.append(ctx.Process(target=_echo, args=(far, objects), daemon=True))
-        children[-1].start()
-        far.close()
-        pipes.append(parent)
     ours, theirs = socket.socketpair()
-    children.append(ctx.Process(target=_provider, args=(theirs,), daemon=True))
-    children[-1].start()
+    provider = ctx.Process(target=_provider, args=(theirs,), daemon=True)
+    provider.start()
     theirs.close()
     records: dict[str, Any] = {}
-    payload, message = b"x" * 200, ("0f3b7b2c-1111-2222-3333-444455556666", "echo", {"cam": 1})
-
-    def raw_bytes() -> None:
-        pipes[0].send_bytes(payload)
-        pipes[0].recv_bytes()
-
-    def raw_objects() -> None:
-        pipes[1].send(message)
-        pipes[1].recv()
 
     def hit() -> None:
         query = pickle.dumps((os.urandom(16).hex(), "echo", {"cam": 1}, "main"), 5)
@@ -93,34 +74,12 @@ def main() -> None:
         query_id, response = pickle.loads(_frame(ours.fileno()))
         records[query_id] = response
 
-    kinds = [("bytes", raw_bytes), ("objects", raw_objects), ("hit", hit)]
-    medians: dict[str, list[float]] = {name: [] for name, _ in kinds}
     try:
-        for number in range(args.rounds):
-            for name, fn in kinds if number % 2 == 0 else kinds[::-1]:
-                medians[name].append(statistics.median(timed(fn, BATCH, warmup=10)))
+        medians = paired_with_floors(ctx, hit, args.rounds)
     finally:
-        for pipe in pipes:
-            pipe.close()
         ours.close()
-        for child in children:
-            child.join(10)
-    ratios = {
-        floor: statistics.median(h / f for h, f in zip(medians["hit"], medians[floor], strict=True))
-        for floor in ("bytes", "objects")
-    }
-    print(f"{args.rounds} rounds of {BATCH} round trips of each kind, in turn")
-    print()
-    print("| measurement | median us | ratio to bytes | ratio to objects |")
-    print("|---|---:|---:|---:|")
-    floor_bytes, floor_objects = (statistics.median(medians[k]) * 1e6 for k in ("bytes", "objects"))
-    hit_us = statistics.median(medians["hit"]) * 1e6
-    print(f"| raw Pipe round trip, send_bytes | {floor_bytes:.1f} | 1.00x | |")
-    print(f"| raw Pipe round trip, send/recv objects | {floor_objects:.1f} | | 1.00x |")
-    print(
-        f"| minimal Python dedup hit across processes | {hit_us:.1f} | "
-        f"{ratios['bytes']:.2f}x | {ratios['objects']:.2f}x |"
-    )
+        provider.join(10)
+    paired_rows(medians, "minimal Python dedup hit across processes, paired")
 
 
 if __name__ == "__main__":
