@@ -6,6 +6,7 @@ the semantics (`docs/explanation/semantics.md`) and the architecture.
 
 from typing import TYPE_CHECKING
 
+from rr_actors import _log
 from rr_actors import events as events  # `rr.events.to_dict(...)`, as `rr.errors` is
 from rr_actors._core.bus import Subscription
 from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, Registrar, ResourceRegistrar
@@ -76,6 +77,8 @@ __all__ = [
 ]
 
 __version__ = "0.1.0"
+
+_log.install()  # WARNING and ERROR on stderr, level and logger named, until logging is configured
 
 
 def __getattr__(name: str) -> object:

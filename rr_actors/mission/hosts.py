@@ -49,6 +49,7 @@ from pathlib import Path
 from typing import Any, Literal, Protocol
 
 import rr_actors as rr
+from rr_actors import _log
 from rr_actors.mission import managers, programs
 from rr_actors.mission.config import MissionConfig, MissionError
 from rr_actors.mission.netns import TwoHosts
@@ -481,10 +482,9 @@ def _logged_to(
 ) -> None:
     """Run `setup`, with this process's rr_actors WARNINGs and ERRORs going to `log`
     (runs in the manager: in a manager process that configured no logging, the file
-    stands in for Python's last-resort handler, which prints them on the terminal)."""
-    logger = logging.getLogger("rr_actors")
-    if not logging.getLogger().handlers and not logger.handlers:
-        logger.addHandler(log_file(Path(log)))
+    stands in for rr_actors' own handler, which prints them on the terminal)."""
+    if not _log.configured():
+        logging.getLogger("rr_actors").addHandler(log_file(Path(log)))
     setup(registrar)
 
 

@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 import rr_actors as rr
+from rr_actors import _log
 from rr_actors.mission import netns
 from rr_actors.mission.action import Mission
 from rr_actors.mission.config import (
@@ -474,13 +475,14 @@ def _logging_to(path: Path) -> Iterator[None]:
 
     The mission kills managers and programs on purpose, and the story tells each: the
     supervisor's WARNING for every one of them (`child erm exited: killed by SIGKILL`) would
-    only interleave with it. This stands in for Python's last-resort handler (which prints
-    them when nothing is configured), in the manager processes too (`hosts.managers_tree`:
-    they append to the same file); a program that configured logging itself (a handler on
-    the root or the `rr_actors` logger) keeps its own configuration.
+    only interleave with it. This stands in for rr_actors' own handler (`rr_actors._log`,
+    which prints them when nothing is configured), in the manager processes too
+    (`hosts.managers_tree`: they append to the same file); a program that configured
+    logging itself (a handler on the root or the `rr_actors` logger) keeps its own
+    configuration.
     """
     logger = logging.getLogger("rr_actors")
-    if logging.getLogger().handlers or logger.handlers:
+    if _log.configured():
         yield
         return
     path.unlink(missing_ok=True)  # (this run's lines only)
