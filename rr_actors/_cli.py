@@ -31,8 +31,9 @@ from typing import Any, TextIO
 
 import rr_actors
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
+from rr_actors._extras import needs
 from rr_actors._store import Backup, Unreadable, read_backup
-from rr_actors.errors import CatalogCorruptError, ConfigError
+from rr_actors.errors import CatalogCorruptError, ConfigError, MissingExtraError
 from rr_actors.observe import _commands as observe_commands
 
 __all__ = ["COMMANDS", "Command", "backup_to_dict", "main", "render_tree", "version"]
@@ -53,6 +54,10 @@ class Command:
     help: str
     add_arguments: Callable[[argparse.ArgumentParser], None]
     run: Callable[[argparse.Namespace, TextIO], int]
+
+
+THIS_COMMAND = "this command"
+"""What needs an extra when a whole subcommand does (`MissingExtraError.what`)."""
 
 
 # -- inspect ------------------------------------------------------------------------------
@@ -225,14 +230,8 @@ def _experiment_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _experiment(args: argparse.Namespace, out: TextIO) -> int:
-    try:
+    with needs("experiments", THIS_COMMAND):
         from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
-    except ImportError as exc:
-        sys.stderr.write(
-            f"rr-actors experiment: needs the experiments extra: "
-            f"pip install 'rr-actors[experiments]' ({exc})\n"
-        )
-        return 2
     return cli.main(args, out)
 
 
@@ -254,7 +253,8 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
     """Print each run's verdict and findings; exit 1 if any run violated a rule."""
     from pathlib import Path  # noqa: PLC0415
 
-    from rr_actors.experiments import check  # noqa: PLC0415 - only this command needs it
+    with needs("experiments", THIS_COMMAND):
+        from rr_actors.experiments import check  # noqa: PLC0415 - only this command needs it
 
     path = Path(args.run_dir)
     try:
@@ -352,7 +352,8 @@ def _events(args: argparse.Namespace, out: TextIO) -> int:
         for event in events.order(read)[: args.count]:
             out.write(json.dumps(events.to_dict(event)) + "\n")
         return 0
-    network = network_from(args)
+    with needs("zenoh", "--network"):
+        network = network_from(args)
     done = threading.Event()
     shown = 0
 
@@ -427,13 +428,8 @@ def _certs_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _certs(args: argparse.Namespace, out: TextIO) -> int:
-    try:
+    with needs("zenoh", THIS_COMMAND):
         from rr_actors._tools import certs  # noqa: PLC0415 - needs cryptography
-    except ImportError as exc:
-        sys.stderr.write(
-            f"rr-actors certs: needs cryptography: pip install 'rr-actors[zenoh]' ({exc})\n"
-        )
-        return 2
     if args.certs_command == "init":
         pem, key = certs.init_ca(args.dir, args.system, force=args.force)
         out.write(
@@ -524,9 +520,10 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
 
     Returns:
         The exit code: 0 on success, 1 when the backup cannot be read or a `certs` file
-        is refused (the message names the file and the cause), 2 for a usage error, and
-        2 without a command (after printing the help on standard output: nothing was
-        done).
+        is refused (the message names the file and the cause), 2 for a usage error, 2
+        when the command needs an extra that is not installed (one line names it and the
+        command that installs it), and 2 without a command (after printing the help on
+        standard output: nothing was done).
     """
     parser = build_parser()
     args, unknown = parser.parse_known_args(argv)
@@ -537,6 +534,9 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
         return 2
     try:
         code: int = args.run(args, out if out is not None else sys.stdout)
+    except MissingExtraError as exc:  # one line, and what to install: nothing was done
+        print(f"rr-actors {args.command}: {exc}", file=sys.stderr)  # noqa: T201 - CLI output
+        return 2
     except (CatalogCorruptError, ConfigError) as exc:
         print(f"rr-actors {args.command}: {exc}", file=sys.stderr)  # noqa: T201 - CLI output
         return 1

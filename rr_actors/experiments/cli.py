@@ -27,6 +27,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+from rr_actors._extras import install_command
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import experiment, plans
 from rr_actors.experiments.experiment import (
@@ -411,6 +412,6 @@ def _summary(display: _Display, results: Results, *, interrupted: bool) -> None:
         display.say(f"written to {results.out}/: {', '.join(written)}")
         if "recovery.png" not in written and results.runs:
             display.say(
-                "plots not drawn: matplotlib is not installed "
-                "(pip install 'rr-actors[experiments]')"
+                "plots not drawn: they need matplotlib, of the experiments extra: "
+                + install_command("experiments")
             )

@@ -46,7 +46,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 import rr_actors as rr
-from rr_actors import _log
+from rr_actors import _extras, _log
 from rr_actors.mission import netns
 from rr_actors.mission.action import Mission
 from rr_actors.mission.config import (
@@ -534,19 +534,27 @@ def _cleanup_outcome(exc: KeyboardInterrupt) -> str:
 
 
 def _check_hosts_args(args: argparse.Namespace) -> None:
-    """`--hosts 2`: root and `ip` (in the first process)."""
+    """`--hosts 2`: the zenoh extra, root and `ip` (in the first process)."""
     if args.hosts != 2:
         return
+    with _extras.needs("zenoh", "--hosts 2"):  # (the certificates, then the carrier)
+        from rr_actors._tools import certs  # noqa: F401, PLC0415
+        from rr_actors._transport.zenoh import net  # noqa: F401, PLC0415
     reason = netns.unavailable() if args.inside is None else None
     if reason is not None:
         raise rr.ConfigError(reason)
 
 
 def _check_observe_args(args: argparse.Namespace) -> None:
-    """`--allow-faults`, `--linger` and `--port` go with `--observe`; `--linger` is not
-    negative, `--port` a port (checked before anything starts)."""
+    """`--observe` has its extra; `--allow-faults`, `--linger` and `--port` go with
+    `--observe`; `--linger` is not negative, `--port` a port (checked before anything
+    starts)."""
     if not args.observe and (args.allow_faults or args.linger is not None):
         raise rr.ConfigError("--allow-faults and --linger need --observe")
+    if args.observe:
+        from rr_actors.observe import require_extra  # noqa: PLC0415 - only --observe needs it
+
+        require_extra()  # (before the managers start)
     if not args.observe and args.port != 0:
         raise rr.ConfigError("--port needs --observe (it is the observer's port)")
     if not 0 <= args.port <= 65535:
@@ -629,18 +637,28 @@ def _hooks(
 
 
 def _files(out: Path) -> list[str]:
-    """What the mission wrote where, for the end of the output."""
+    """What the mission wrote where, for the end of the output (paths as `shown`)."""
+    where = shown(out)
     plot = (
-        f"plot:   {out / 'mission.png'}"
+        f"plot:   {where / 'mission.png'}"
         if (out / "mission.png").exists()
-        else "plot:   not drawn: matplotlib is not installed "
-        "(pip install 'rr-actors[demo]' for mission.png)"
+        else "plot:   not drawn: mission.png needs the demo extra: "
+        + _extras.install_command("demo")
     )
     return [
-        f"report: {out / 'report.json'}",
+        f"report: {where / 'report.json'}",
         plot,
-        f"state:  {out / 'state'} (rr-actors inspect {_erm_db(out)})",
+        f"state:  {where / 'state'} (rr-actors inspect {shown(_erm_db(out))})",
     ]
+
+
+def shown(path: Path) -> Path:
+    """`path` as the user would type it: relative to the working directory when it is
+    under it (`--hosts 2` hands the station's process an absolute `--out`)."""
+    try:
+        return path.resolve().relative_to(Path.cwd().resolve())
+    except (ValueError, OSError):  # elsewhere, or the working directory is gone
+        return path
 
 
 # -- two hosts -------------------------------------------------------------------------------

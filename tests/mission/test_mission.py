@@ -173,7 +173,7 @@ def test_without_faults_the_robot_drives_through_and_the_demo_explains_the_missi
 
     assert 0 == code
     assert [] == report["faults"]
-    assert "pip install 'rr-actors[demo]'" in capsys.readouterr().out
+    assert "mission.png needs the demo extra: pip install" in capsys.readouterr().out
     assert not (tmp_path / "mission.png").exists()
 
 
