@@ -6,6 +6,7 @@ arguments, and a function that runs it. Add a subcommand by appending to `COMMAN
     rr-actors demo                          # the thesis's robot mission (Linux)
     rr-actors inspect state/erm.db          # a catalog backup as a tree
     rr-actors inspect state/erm.db --json   # the same as JSON
+    rr-actors inspect state/                # every backup in a state_dir
     rr-actors observe --state state/        # the observer's page of the backups
     rr-actors graph --state state/          # the dependency graph as Mermaid (or --format dot)
     rr-actors experiment plan.toml --out results   # a supervision experiment
@@ -27,6 +28,7 @@ import json
 import math
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, TextIO
 
 import rr_actors
@@ -193,17 +195,37 @@ def render_tree(backup: Backup) -> str:
 
 
 def _inspect_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("path", help="the catalog backup (a registrar's backup_path)")
-    parser.add_argument("--json", action="store_true", help="print JSON instead of a tree")
+    parser.add_argument(
+        "path",
+        help="the catalog backup (a registrar's backup_path), or a folder of them (a "
+        "state_dir): each *.db in it and its subfolders",
+    )
+    parser.add_argument(
+        "--json", action="store_true", help="print JSON instead of a tree (a list, for a folder)"
+    )
+
+
+def _backups_in(folder: Path) -> list[Path]:
+    """The catalog backups in `folder` and its subfolders, by path (a `ConfigError` if none)."""
+    found = sorted(folder.rglob("*.db"))
+    if not found:
+        raise ConfigError(
+            f"{str(folder)!r} is a folder that holds no catalog backup (*.db): name a "
+            "registrar's backup file, or its state_dir"
+        )
+    return found
 
 
 def _inspect(args: argparse.Namespace, out: TextIO) -> int:
-    backup = read_backup(args.path)
+    path = Path(args.path)
+    paths = _backups_in(path) if path.is_dir() else [path]
+    backups = [read_backup(p) for p in paths]
     if args.json:
-        json.dump(backup_to_dict(backup), out, indent=2)
+        data = [backup_to_dict(b) for b in backups]
+        json.dump(data if path.is_dir() else data[0], out, indent=2)
         out.write("\n")
     else:
-        out.write(render_tree(backup))
+        out.write("\n".join(render_tree(b) for b in backups))
     return 0
 
 
@@ -251,8 +273,6 @@ def _check_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _check(args: argparse.Namespace, out: TextIO) -> int:
     """Print each run's verdict and findings; exit 1 if any run violated a rule."""
-    from pathlib import Path  # noqa: PLC0415
-
     with needs("experiments", THIS_COMMAND):
         from rr_actors.experiments import check  # noqa: PLC0415 - only this command needs it
 

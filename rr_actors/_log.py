@@ -41,11 +41,11 @@ class DefaultHandler(logging.Handler):
         super().__init__(logging.WARNING)
         self.setFormatter(logging.Formatter(FORMAT))
 
-    def handle(self, record: logging.LogRecord) -> logging.LogRecord | bool:
+    def handle(self, record: logging.LogRecord) -> bool:
         """Emit `record` only when no other handler is on its way up."""
         if configured(record.name):
             return False
-        return super().handle(record)
+        return bool(super().handle(record))
 
     def emit(self, record: logging.LogRecord) -> None:
         """Write the formatted record and a line break to `sys.stderr` (looked up now:
