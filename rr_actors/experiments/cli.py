@@ -72,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "plan",
         nargs="?",
         help="a plan file (TOML), or the name of a plan shipped with rr_actors (--list); "
-        f"the format: {plans.REFERENCE} (also docs/reference/plan.md in the documentation)",
+        "the format: docs/reference/plan.md (and plan-reference.md beside the shipped plans)",
     )
     parser.add_argument("--list", action="store_true", help="name the shipped plans and exit")
     parser.add_argument(
@@ -414,6 +414,15 @@ def _plan_file(plan: str) -> Path:
     return path
 
 
+def _shown(path: Path) -> Path:
+    """`path` relative to the working directory when it is under it (as the user typed
+    `--out`), else whole."""
+    try:
+        return path.resolve().relative_to(Path.cwd().resolve())
+    except (ValueError, OSError):
+        return path
+
+
 def _summary(display: _Display, results: Results, *, interrupted: bool) -> None:
     if interrupted:
         display.say(
@@ -429,7 +438,7 @@ def _summary(display: _Display, results: Results, *, interrupted: bool) -> None:
         display.say(verdict_line(results))
     if results.out is not None:
         written = [name for name in experiment.OUTPUT_FILES if (results.out / name).exists()]
-        display.say(f"written to {results.out}/: {', '.join(written)}")
+        display.say(f"written to {_shown(results.out)}/: {', '.join(written)}")
         if "recovery.png" not in written and results.runs:
             display.say(
                 "plots not drawn: they need matplotlib, of the experiments extra: "

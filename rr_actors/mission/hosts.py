@@ -53,6 +53,7 @@ from rr_actors import _log
 from rr_actors.mission import managers, programs
 from rr_actors.mission.config import MissionConfig, MissionError
 from rr_actors.mission.netns import TwoHosts
+from rr_actors.mission.output import shown
 
 __all__ = [
     "CERTS",
@@ -566,7 +567,7 @@ def open_two_hosts(
     certs = out / CERTS
     say(
         f"two hosts: the robot ({link.robot_address}: erm, rm and their programs) and the "
-        f"station ({link.station_address}: the mission and cm), mutual TLS ({certs})"
+        f"station ({link.station_address}: the mission and cm), mutual TLS ({shown(certs)})"
     )
     network = host_network(
         certs,

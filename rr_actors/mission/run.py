@@ -60,7 +60,7 @@ from rr_actors.mission.config import (
 )
 from rr_actors.mission.hosts import CERTS, MEMBERS, SYSTEM, RobotObserver, log_file
 from rr_actors.mission.netns import TwoHosts
-from rr_actors.mission.output import MissionOutput, Progress, make_output
+from rr_actors.mission.output import MissionOutput, Progress, make_output, shown, wrap_line
 from rr_actors.mission.report import MissionReport
 
 if TYPE_CHECKING:
@@ -595,7 +595,8 @@ def _linger(args: argparse.Namespace, observer: Observer, stream: TextIO) -> Non
         return
     how = "press Ctrl-C to stop" if args.linger is None else f"for {args.linger:g} s"
     with contextlib.suppress(KeyboardInterrupt):  # (a Ctrl-C right after the line is caught too)
-        stream.write(f"observer: the mission ended; {observer.url} shows its final state ({how})\n")
+        line = f"observer: the mission ended; {observer.url} shows its final state ({how})"
+        stream.write(wrap_line(line) + "\n")  # (at words: the URL and its token stay whole)
         stream.flush()
         threading.Event().wait(args.linger)
 
@@ -650,15 +651,6 @@ def _files(out: Path) -> list[str]:
         plot,
         f"state:  {where / 'state'} (rr-actors inspect {shown(_erm_db(out))})",
     ]
-
-
-def shown(path: Path) -> Path:
-    """`path` as the user would type it: relative to the working directory when it is
-    under it (`--hosts 2` hands the station's process an absolute `--out`)."""
-    try:
-        return path.resolve().relative_to(Path.cwd().resolve())
-    except (ValueError, OSError):  # elsewhere, or the working directory is gone
-        return path
 
 
 # -- two hosts -------------------------------------------------------------------------------

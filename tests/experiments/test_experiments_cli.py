@@ -190,7 +190,8 @@ def test_with_force_it_runs_into_a_used_directory_and_prints_a_summary(
         assert ["1"] == [row["run"] for row in csv.DictReader(rows)]
     assert "run 1/1 seed 0: " in printed
     assert "one_for_one" in printed
-    assert f"written to {out}/: events.jsonl, runs.csv, faults.csv" in printed
+    shown = " ".join(printed.split())  # (a long path wraps at words: lines of 80 at most)
+    assert f"written to {out}/: events.jsonl, runs.csv, faults.csv" in shown
 
 
 def _alive_with_prefix(prefix: str) -> list[int]:
