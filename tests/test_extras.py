@@ -172,3 +172,56 @@ def test_every_extra_a_user_installs_is_in_pyproject_and_said_what_it_brings() -
 
     assert set(EXTRAS) <= set(declared)
     assert {"demo", "experiments", "observe", "title", "zenoh"} == set(EXTRAS)
+
+
+def _closure(requirements: list[str]) -> set[str]:
+    """The distributions `requirements` install, with theirs (normalized names)."""
+    import importlib.metadata  # noqa: PLC0415
+    import re  # noqa: PLC0415
+
+    def name(requirement: str) -> str:
+        return re.split(r"[\s;<>=!~\[(]", requirement, maxsplit=1)[0].lower().replace("_", "-")
+
+    seen: set[str] = set()
+    todo = [name(r) for r in requirements if "extra ==" not in r]
+    while todo:
+        current = todo.pop()
+        if current in seen:
+            continue
+        seen.add(current)
+        try:
+            nested = importlib.metadata.requires(current) or []
+        except importlib.metadata.PackageNotFoundError:
+            continue
+        todo.extend(name(r) for r in nested if "extra ==" not in r)
+    return seen
+
+
+def test_the_dev_extra_holds_every_import_of_the_tests_and_no_benchmark_peer() -> None:
+    """`pip install -e ".[dev]"` is what the tests and linters need, no more (issue 44)."""
+    import ast  # noqa: PLC0415
+    import importlib.metadata  # noqa: PLC0415
+    import sys  # noqa: PLC0415
+    import tomllib  # noqa: PLC0415
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    dev = _closure(project["optional-dependencies"]["dev"] + project["dependencies"])
+    modules = {
+        (node.module if isinstance(node, ast.ImportFrom) else alias.name).split(".")[0]
+        for path in (ROOT / "tests").rglob("*.py")
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.Import | ast.ImportFrom) and not getattr(node, "level", 0)
+        for alias in node.names
+        if not isinstance(node, ast.ImportFrom) or node.module
+    }
+    third_party = modules - set(sys.stdlib_module_names) - {"rr_actors", "tests", "__future__"}
+    owners = importlib.metadata.packages_distributions()
+    missing = {
+        module: owners.get(module)
+        for module in third_party
+        if not any(d.lower().replace("_", "-") in dev for d in owners.get(module, [module]))
+    }
+
+    assert {} == missing
+    assert "xoscar" not in dev
+    assert ["xoscar>=0.12"] == project["optional-dependencies"]["bench"]
