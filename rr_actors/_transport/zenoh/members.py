@@ -157,8 +157,8 @@ class MemberAddresses:
             if name not in self._refused:
                 self._refused.add(name)
                 logger.warning(
-                    "ZenohNetwork %r: the certificate member %r answered with does not hold "
-                    "(%s): the handshake gate knows only its links' addresses",
+                    "ZenohNetwork %r: member %r answered for its certificate with one that "
+                    "does not hold: %s; the handshake gate knows only its links' addresses",
                     self._system,
                     name,
                     exc,

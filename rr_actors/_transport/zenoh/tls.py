@@ -334,7 +334,7 @@ def member_addresses(pem: bytes, tls: ZenohTLS, name: str) -> tuple[str, ...]:
     """
     if name not in tls.members:
         raise ConfigError(f"{name!r} is not in members {list(tls.members)}")
-    what = f"{name!r}'s certificate"
+    what = f"the certificate of member {name!r}"
     try:
         chain = x509.load_pem_x509_certificates(pem)
     except ValueError as exc:
@@ -345,7 +345,7 @@ def member_addresses(pem: bytes, tls: ZenohTLS, name: str) -> tuple[str, ...]:
     authorities = _authorities(tls.ca, now)
     leaf = _checked_chain(chain, authorities, what, f"ca {tls.ca}", now)
     if _common_name(leaf) != name:
-        raise ConfigError(f"{what} is of {_common_name(leaf)!r}")
+        raise ConfigError(f"{what} has the common name {_common_name(leaf)!r}")
     return tuple(address for address in _addresses(leaf) if _is_ip(address))
 
 
