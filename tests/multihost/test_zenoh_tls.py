@@ -57,6 +57,14 @@ test looks itself). What must not happen is given `QUIET` (3 s) to happen anyway
   call of `operator` on its link meanwhile succeeds; `a` names `c` in a WARNING; the
   veth a-b is cut until `b` has lost `erm` and brought back: `b` calls `erm` within 10 s
   while the flood goes on, and again within 10 s after it stopped (0.4 s measured).
+  `..._from_32_addresses` (issue 40): the same from 32 addresses of `c`, each under the
+  gate's `HOLD`: `a` names the members' addresses it still takes packets from.
+- forged SYNs (issue 40), `test_a_member_rejoins_in_10_s_though_a_third_host_forges_
+  syns_from_its_address`: while `b` is out of reach (its end of the veth down: `a` keeps
+  its route to `b`), `c` sends 13 SYNs a second whose source is `b`'s address
+  (`tests/support/spoof.py`); `a` holds as many half-open connections from `b`'s address
+  as main's gate dropped it for; `b` re-joins within 10 s with the forging going on, and
+  after a second run of it; `a` never names `b`'s address in a WARNING.
 """
 
 from __future__ import annotations

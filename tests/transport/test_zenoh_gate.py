@@ -158,6 +158,8 @@ def test_strangers_together_over_hold_make_the_port_take_members_addresses_only(
     gate.held.update({f"10.0.1.{n}": 1 for n in range(32)})  # one machine's 32 addresses
     gate.held.update({"10.0.0.2": 1})
     guard.look()
+    assert not guard.members_only()  # (at two looks in a row)
+    guard.look()
     guard.look()
 
     assert ({"10.0.0.2", "10.0.0.5"}, set()) == (gate.only, gate.sources)
@@ -184,6 +186,20 @@ def test_strangers_that_together_hold_at_most_hold_are_let_be() -> None:
     gate, guard, _ = made()
     gate.held.update({f"10.0.1.{n}": 2 for n in range(HOLD // 2)})
     guard.look()
+    guard.look()
+
+    assert (set(), None) == (gate.sources, gate.only)
+
+
+def test_strangers_over_hold_together_at_one_look_only_are_let_be() -> None:
+    # members dialling a router just started are strangers to it until linked: their
+    # handshakes, however many at once, are over by the next look
+    gate, guard, _ = made()
+    for _ in range(3):
+        gate.held.update({f"10.0.1.{n}": 1 for n in range(HOLD + 1)})
+        guard.look()
+        gate.held.clear()
+        guard.look()
 
     assert (set(), None) == (gate.sources, gate.only)
 
@@ -203,6 +219,7 @@ def test_a_members_address_learned_while_members_only_is_let_in() -> None:
     gate, clock = FakeGate(), Clock()
     guard = HandshakeGate("lab", [gate], lambda: set(members), clock=clock, start=False)
     gate.held.update({f"10.0.1.{n}": 1 for n in range(HOLD + 1)})
+    guard.look()
     guard.look()
     members.add("10.99.0.7")  # (a member's certificate came in)
     guard.look()

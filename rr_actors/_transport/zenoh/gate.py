@@ -23,8 +23,10 @@ platforms, where only a firewall helps):
     socket's filter, before the kernel answers its SYN (it costs the listener nothing
     more), for `DROP` s (WARNING; INFO when it ends);
   - strangers together over `HOLD`, each under it (one machine's many addresses, or
-    many machines), flood too: the port then takes packets from members' addresses
-    only, for `DROP` s (WARNING naming those; INFO when it ends).
+    many machines), at two looks in a row, flood too: the port then takes packets from
+    members' addresses only, for `DROP` s (WARNING naming those; INFO when it ends).
+    (Two looks: members that dial a router just started are strangers to it until
+    linked, and their handshakes, however many, end within a look; a flood's stay.)
 
   A drop ends on time, whatever the source sends meanwhile: one that waited for quiet
   would last as long as anyone keeps sending with that source address.
@@ -43,7 +45,7 @@ members' addresses only, more than `GATE_SOURCES` addresses, platforms without a
      drops and a members-only spell whose DROP s are over ─► lifted, INFO
      gate.peers(): connections past the TCP handshake, per source
        a stranger over HOLD ─► dropped for DROP s, WARNING
-       strangers not dropped, together over HOLD ─► members only for DROP s, WARNING
+       strangers not dropped, together over HOLD, twice ─► members only for DROP s, WARNING
      └─ gate.admit_only(members) while members only, else gate.drop_from(dropped)
 ```
 """
@@ -107,6 +109,7 @@ class _Port:
     dropped: dict[str, float] = dataclasses.field(default_factory=dict)  # source -> until
     members_only: float | None = None  # until when only members' addresses get in
     admitted: frozenset[str] = frozenset()  # the members' addresses let in meanwhile
+    crowded: bool = False  # strangers together held more than HOLD at the last look
 
 
 class HandshakeGate:
@@ -229,7 +232,8 @@ class HandshakeGate:
                 DROP,
             )
         together = sum(strangers.values())
-        if port.members_only is None and together > HOLD:
+        crowded, port.crowded = port.crowded, together > HOLD
+        if port.members_only is None and crowded and port.crowded:
             if len(members) > GATE_SOURCES:
                 return changed  # (no filter holds them all: the firewall's job)
             port.members_only, port.admitted, changed = now + DROP, members, True
