@@ -36,7 +36,8 @@ instructions per packet). What is left to the firewall
 (`docs/how-to/securing-registrars.md`): a flood from a member's address (members are
 trusted; so are hosts behind a member's NAT), a flood of packets that fills the link, a
 member's first link from an address its certificate does not name while the port takes
-members' addresses only, more than `GATE_SOURCES` addresses, platforms without a gate.
+members' addresses only, more than `GATE_SOURCES` members' addresses (no filter holds
+them: the port is then not turned to members only), platforms without a gate.
 
 ```
  thread "rr-zenoh-gate", every TICK s:

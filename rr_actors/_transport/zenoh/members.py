@@ -117,9 +117,12 @@ class MemberAddresses:
             asked = self._asked.get(name)
             if asked is None or (name not in self._named and now - asked >= ASK_AGAIN):
                 self._asked[name] = now
-                self._asking[name] = self._session.get(
-                    self._keys.certificate(name), timeout=_ASK_TIMEOUT
-                )
+                try:
+                    self._asking[name] = self._session.get(
+                        self._keys.certificate(name), timeout=_ASK_TIMEOUT
+                    )
+                except zenoh.ZError:  # (the session closing under us: asked again later)
+                    logger.debug("asking for %r's certificate failed", name, exc_info=True)
         known = {address for _, address in up}
         for addresses in (*self._named.values(), *self._learned.values()):
             known.update(addresses)
