@@ -87,10 +87,8 @@ class _NoDirt(_DirtySet):
 class Catalog:
     """The bookkeeping of one registrar (thesis 4.3.2), without the locks.
 
-    A restored catalog may hold only part of its resources in memory (`resources`); the
-    others are read from the backup (`UnreadRows`) when a lookup first needs them, so a
-    restore does not cost a read of every row. Methods that look resources up (`find`,
-    `resource_of`, `has_consumer`, `resources_of`, ...) see both.
+    Methods that look resources up (`find`, `resource_of`, `has_consumer`,
+    `resources_of`, ...) see those still in the backup too (they read them in).
 
     Attributes:
         resources: the resources in memory, by id: in creation order but for those read
@@ -292,7 +290,9 @@ class Catalog:
 
     def has_consumer(self, query_id: str) -> bool:
         """Whether `query_id` is a consumer id of one of the resources served here."""
-        return query_id in self._by_consumer or self._read_consumer(query_id) is not None
+        if query_id in self._by_consumer:
+            return True
+        return self._unread is not None and self._read_consumer(query_id) is not None
 
     def queries(self, resource: Resource, serving_rr: str) -> Iterator[Query]:
         """Yield one `Query` per consumer id of `resource`."""
@@ -450,9 +450,10 @@ class Catalog:
     def _read_consumer(self, query_id: str) -> str | None:
         """Read in the resource `query_id` is a consumer of; its id, or `None` if the
         backup has none (or there is no backlog)."""
-        if self._unread is None:
+        unread = self._unread
+        if unread is None:
             return None
-        resource = self._unread.by_consumer(query_id)
+        resource = unread.by_consumer(query_id)
         if resource is None:
             return None
         self._read_in([resource])
