@@ -80,8 +80,8 @@ class _DirtySet(dict[str, None]):
 class _NoDirt(_DirtySet):
     """The changed rows of a catalog nobody persists: none are kept (nobody drains them)."""
 
-    def add(self, key: str) -> None:
-        pass
+    # `add(key)`: `self.get(key)`, in C, which keeps nothing
+    add: Any = dict.get
 
 
 class Catalog:
