@@ -1,18 +1,15 @@
 """The catalog: what a registrar serves and holds, as data (no threads, no files opened).
 
-- `records`: the rows (`Resource`, `ClientRecord`) and the `Changes` to store;
-- `digest`: request digests, so that equal (`==`) requests meet without comparing all;
-- `catalog`: the `Catalog`, written only by its registrar actor: the one name the
-  registrar and the store use, over its roles, each owning its own state:
-  - `served`: the resources in memory, their life's steps and listings, matched
-    through `index` (`RequestIndex`: by request digest);
-  - `consumers`: query id -> resource id (`ConsumerIds`);
-  - `clients`: the client records and each resource's dependencies (`ClientRecords`);
-  - `backlog`: a restored catalog's rows still in the backup, read in when a lookup
-    needs them, through the store (`UnreadRows`);
-  - `changes`: the rows changed since the store last drained them (`ChangeLog`);
-  - `invariants`: the check that every index agrees with the rows (for tests);
-- `texts`: display texts of requests and responses.
+```
+ catalog   Catalog: the resources, their consumers, the client records and the changes
+    │      the store drains; written only by its registrar actor
+ index     RequestIndex: which resources of a server may serve a request, by digest
+    │
+ records   the rows (Resource, ClientRecord, Changes) and UnreadRows (the backlog of a
+           restored catalog: the store's reader of the backup)
+ digest    request digests, so that equal (`==`) requests meet without comparing all
+ texts     display texts of requests and responses
+```
 """
 
 from rr_actors._catalog.catalog import Catalog

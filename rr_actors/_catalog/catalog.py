@@ -1,64 +1,64 @@
-"""The resource catalog: data and its indexes, no threads; stored rows read when needed.
+"""The resource catalog: what a registrar serves and holds, as data; no threads, no locks.
 
 The catalog records what a registrar serves (resources, each with its consumers' query
 ids) and what it holds elsewhere (client records, some of them dependencies of its own
-resources). Only the registrar actor writes it, so it has no locks. `Catalog` is the one
-name the registrar and the store use; it wires its roles, each in its own module and
-owning its own state, and sequences the steps that concern more than one:
+resources). Only the registrar actor writes it, so it has no locks. `Catalog` owns its
+rows and their indexes; it works with two collaborators, and the store drains it:
 
 ```
- Catalog     wires the roles (bottom first); runs the steps     (the roles only)
-     │       that span them: a consumer added is its row's
-     │       (Served) and its index's (ConsumerIds)
- backlog     rows still in the backup, read in when a lookup    the backup's reader
-     │       needs them: ConsumerIds.take, Served.take          (`UnreadRows`), or None
- invariants  every index against the rows (for tests)           (none)
-     │
- served      the resources in memory: their life's steps,       resources by id
-     │       matching, listings
- consumers   query id -> resource id                            that index
- clients     the client records, each resource's dependencies   records, dependencies
-     │
- index       request digest (or in-process key) -> ids          buckets per server
- changes     the rows changed since the last drain              changed row ids
-     │
- records, digest, texts: the rows (`Resource`, `ClientRecord`, `Changes`), request
-                         digests, display texts
-
- a change ──► ChangeLog ──► Catalog.drain_changes ──► the store (_store/saver.py) writes
-              the rows as they are then, one transaction
+ the registrar actor
+   │ load: has_consumer ─► lookup ─► begin_load ─► finish_load     rows: resources,
+   │ hit:  has_consumer ─► lookup ─► add_consumer                  clients (records.py)
+   │ release ─► begin_unload ─► remove_resource; client records    indexes: query id ->
+   ▼                                                               resource, resource ->
+ Catalog ──► RequestIndex (index.py): which resources of a         its dependencies
+   │         server may serve a request, by digest
+   ├──► UnreadRows: a restored catalog's backlog, the rows still in the backup
+   │    (the store's reader, _store/restore.py), read in when a lookup needs them
+   │    (by digest, consumer id, server, origin) or by the registrar's sweep
+   └──► each change marks its row ──► drain_changes ──► the store (_store/saver.py)
+        writes the rows as they are then, one transaction
 ```
-Each role changes another's state only by calling it, and calls only the roles below it
-(a layers contract in pyproject.toml checks it). Requests are matched by `==` through
-digests (`rr_actors._catalog.digest`).
+
+Requests are matched by `==` through digests (`rr_actors._catalog.digest`): the index
+gives the candidates, and the catalog compares the plain ones itself.
 
 A resource its provider reported `FATAL` is marked `failed` (`mark_failed`) and is never
-matched again (rule 1; why: `served`).
+matched again: an equal request loads a new resource, while the dead one stays, held by
+its consumers under their ids, until each released it (docs/explanation/semantics.md,
+rule 1). FATAL means dead: sharing a dead resource would let one holder that never
+releases it keep every later consumer from a working one.
 
 It opens no file itself, but it is not free of I/O: a restored catalog asks the
 `UnreadRows` it was given (the store's reader of the backup) for the resources a lookup
-needs and has not read yet (`backlog.Backlog`), and a restored resource decodes its
-request and response from their stored bytes on first use (`records.Resource`).
+needs and has not read yet, and a restored resource decodes its request and response
+from their stored bytes on first use (`records.Resource`). A restore does not read every
+row: the resources traffic needs are read when a lookup first needs them, and the rest
+by the registrar's sweep (`sweep`), one slice at a time.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Iterator
 from typing import Any
 
-from rr_actors._catalog import invariants
-from rr_actors._catalog.backlog import Backlog
-from rr_actors._catalog.changes import ChangeLog
-from rr_actors._catalog.clients import ClientRecords
-from rr_actors._catalog.consumers import ConsumerIds
 from rr_actors._catalog.digest import (
+    NO_DIGEST,
     identity_equality,
     request_digest,
     requests_equal,
     runtime_key,
 )
-from rr_actors._catalog.records import Changes, ClientRecord, Resource, UnreadRows
-from rr_actors._catalog.served import Served
+from rr_actors._catalog.index import RequestIndex
+from rr_actors._catalog.records import (
+    Changes,
+    ClientRecord,
+    Listing,
+    Resource,
+    ResourceState,
+    UnreadRows,
+)
 from rr_actors._types import Query
 from rr_actors.errors import UnknownQueryError
 
@@ -69,46 +69,49 @@ _UNKNOWN: Any = object()
 """A `digest` argument not given (`None` means "the request has none")."""
 
 
+class _DirtySet(dict[str, None]):
+    """An insertion-ordered set of row ids (so the store can keep the rows' order)."""
+
+    # `add(key)`: `self[key] = None`, in C (it is on every change's path); a key already
+    # in keeps its place either way
+    add: Any = dict.setdefault
+
+
+class _NoDirt(_DirtySet):
+    """The changed rows of a catalog nobody persists: none are kept (nobody drains them)."""
+
+    # `add(key)`: `self.get(key)`, in C, which keeps nothing
+    add: Any = dict.get
+
+
 class Catalog:
     """The bookkeeping of one registrar (thesis 4.3.2), without the locks.
 
-    A restored catalog may hold only part of its resources in memory (`resources`); the
-    others are read from the backup (`UnreadRows`) when a lookup first needs them, so a
-    restore does not cost a read of every row. Methods that look resources up (`find`,
-    `resource_of`, `has_consumer`, `resources_of`, ...) see both.
+    Methods that look resources up (`find`, `resource_of`, `has_consumer`,
+    `resources_of`, ...) see those still in the backup too (they read them in).
 
     Attributes:
+        resources: the resources in memory, by id: in creation order but for those read
+            back from the backup, which an ordered listing puts back in their stored
+            order when asked (a restored catalog's others are still in the backup).
+        clients: the client records, by query id, oldest first.
         track_changes: whether changed rows are kept for the store (`drain_changes`).
     """
 
     def __init__(self, *, track_changes: bool = True) -> None:
         self.track_changes = track_changes
-        self._changes = ChangeLog(track_changes=track_changes)
-        self._served = Served(self._changes)
-        self._consumers = ConsumerIds()
-        self._clients = ClientRecords(self._changes)
-        self._backlog = Backlog(self._served, self._consumers)
+        self.resources: dict[str, Resource] = {}
+        self.clients: dict[str, ClientRecord] = {}
+        self._index = RequestIndex()
+        self._by_consumer: dict[str, str] = {}  # query id -> its resource's id (in memory)
+        self._deps: dict[str, list[str]] = {}  # resource id -> the query ids it owns
+        self._unread: UnreadRows | None = None  # the backlog; None once it is all read in
+        self._unsorted = False  # resources read back since `resources` was last ordered
+        # the ids of the rows changed since the last drain, in the order they first changed
+        self._dirty_resources = _DirtySet() if track_changes else _NoDirt()
+        self._dirty_clients = _DirtySet() if track_changes else _NoDirt()
 
-    @property
-    def resources(self) -> dict[str, Resource]:
-        """The resources in memory, by id (a restored catalog's others are in the backup)."""
-        return self._served.resources
-
-    @property
-    def clients(self) -> dict[str, ClientRecord]:
-        """The client records, by query id, oldest first."""
-        return self._clients.records
-
-    # The ids of the rows changed since the last drain (a test checks none are kept).
-    @property
-    def _dirty_resources(self) -> dict[str, None]:
-        return self._changes.resources
-
-    @property
-    def _dirty_clients(self) -> dict[str, None]:
-        return self._changes.clients
-
-    # -- served resources -------------------------------------------------------------
+    # -- matching ---------------------------------------------------------------------
 
     def find(self, server: str, request: Any) -> Resource | None:
         """Return the resource of `server` whose request `== request`, if any.
@@ -138,8 +141,6 @@ class Catalog:
         `failed` is never returned.
 
         Args:
-            server: the server's name.
-            request: the request to find.
             key: for a request without a digest, its `runtime_key` (the caller computes
                 it: it runs the request's `__hash__`); ignored for a plain request.
             digest: `request_digest(request)`, if the caller has it already.
@@ -151,28 +152,60 @@ class Catalog:
         """
         if digest is _UNKNOWN:
             digest = request_digest(request)
-        found, undecided = self._served.match(server, request, digest, key)
-        if found is None and self._backlog.remaining():
+        found, undecided = self._match(server, request, digest, key)
+        if found is None and self._unread is not None:
             if digest is not None:
-                self._backlog.read_request(server, digest)
+                self._read_in(self._unread.by_request(server, digest))
             elif not identity_equality(request):  # may equal any value: read them all
-                self._backlog.read_server(server)
+                self._read_in(self._unread.of_server(server))
             else:
                 return None, undecided  # equal only to itself: never to a value read back
-            found, undecided = self._served.match(server, request, digest, key)
+            found, undecided = self._match(server, request, digest, key)
         return found, undecided
 
+    def _match(
+        self, server: str, request: Any, digest: int | None, key: Any
+    ) -> tuple[Resource | None, list[Resource]]:
+        """`lookup` among the resources in memory."""
+        resources = self.resources
+        index = self._index
+        if digest is not None:
+            for rid in index.with_digest(server, digest):
+                resource = resources[rid]
+                if resource.failed:  # reported FATAL: never matched again
+                    continue
+                if requests_equal(resource.request, request):  # both plain: no user code
+                    return resource, []
+        undecided = index.undecided(server, request, digest, key)
+        return None, [resources[rid] for rid in undecided if not resources[rid].failed]
+
+    # -- a resource's life ------------------------------------------------------------
+
     def begin_load(self, rid: str, server: str, request: Any, *, key: Any = None) -> Resource:
-        """Add a resource in the `LOADING` state (`Served.begin_load`)."""
-        return self._served.begin_load(rid, server, request, key)
+        """Add a resource in the `LOADING` state; `key`: for a request without a digest,
+        its `runtime_key` if the caller computed it already (off the actor thread: it
+        runs the request's `__hash__`)."""
+        resource = Resource(rid, server, request)
+        self.resources[rid] = resource
+        self._index.add(resource, key)
+        self._dirty_resources.add(rid)
+        return resource
 
     def finish_load(self, rid: str, response: Any) -> Resource:
         """Mark a loading resource `LOADED` with its response."""
-        return self._served.finish_load(rid, response)
+        resource = self.resources[rid]
+        resource.response = response
+        resource.response_version += 1
+        resource.state = ResourceState.LOADED
+        self._dirty_resources.add(rid)
+        return resource
 
     def set_response(self, rid: str, response: Any) -> None:
         """Replace a resource's stored response."""
-        self._served.set_response(rid, response)
+        resource = self.resources[rid]
+        resource.response = response
+        resource.response_version += 1
+        self._dirty_resources.add(rid)
 
     def set_texts(
         self,
@@ -183,26 +216,52 @@ class Catalog:
         label: str | None = None,
     ) -> None:
         """Set a resource's display texts or label (those given; `None`: keep it)."""
-        self._served.set_texts(rid, request_text, response_text, label)
+        resource = self.resources[rid]
+        if request_text is not None:
+            resource.request_text = request_text
+        if response_text is not None:
+            resource.response_text = response_text
+        if label is not None:
+            resource.label = label
+        self._dirty_resources.add(rid)
 
     def mark_failed(self, rid: str) -> Resource:
-        """Mark a resource dead: its provider reported it `FATAL` (`Served.mark_failed`)."""
-        return self._served.mark_failed(rid)
+        """Mark a resource dead: its provider reported it `FATAL`.
+
+        From now on no request matches it (`find`, `lookup`): an equal request loads a
+        new resource. It keeps its consumers until each releases it, and it is unloaded
+        as any other when the last one does.
+        """
+        resource = self.resources[rid]
+        if not resource.failed:
+            resource.failed = True
+            self._dirty_resources.add(rid)
+        return resource
 
     def begin_unload(self, rid: str) -> Resource:
         """Mark a resource `UNLOADING` (its last consumer left)."""
-        return self._served.begin_unload(rid)
+        resource = self.resources[rid]
+        resource.state = ResourceState.UNLOADING
+        self._dirty_resources.add(rid)
+        return resource
 
     def remove_resource(self, rid: str) -> Resource:
         """Delete a resource that has no consumers any more."""
-        return self._served.remove(rid)
+        resource = self.resources.pop(rid)
+        assert not resource.consumers, "a resource with consumers cannot be removed"
+        self._index.remove(resource)
+        self._dirty_resources.add(rid)
+        return resource
+
+    # -- consumers --------------------------------------------------------------------
 
     def add_consumer(self, rid: str, query_id: str, origin_rr: str) -> None:
         """Record one more consumer id of a resource, held by registrar `origin_rr`."""
         if self.has_consumer(query_id):
             raise ValueError(f"query id {query_id} is already a consumer")
-        self._served.add_consumer(rid, query_id, origin_rr)
-        self._consumers.add(query_id, rid)
+        self.resources[rid].consumers[query_id] = origin_rr
+        self._by_consumer[query_id] = rid
+        self._dirty_resources.add(rid)
 
     def release(self, query_id: str) -> Resource:
         """Remove one consumer id and return its resource.
@@ -211,8 +270,9 @@ class Catalog:
             UnknownQueryError: the id is not a consumer of any resource here.
         """
         resource = self.resource_of(query_id)
-        self._served.drop_consumer(resource, query_id)
-        self._consumers.remove(query_id)
+        del resource.consumers[query_id]
+        del self._by_consumer[query_id]
+        self._dirty_resources.add(resource.id)
         return resource
 
     def resource_of(self, query_id: str) -> Resource:
@@ -221,16 +281,18 @@ class Catalog:
         Raises:
             UnknownQueryError: the id is not a consumer of any resource here.
         """
-        rid = self._consumers.rid_of(query_id)
+        rid = self._by_consumer.get(query_id)
         if rid is None:
-            rid = self._backlog.read_consumer(query_id)
-        if rid is None:
-            raise UnknownQueryError(f"unknown or released query id {query_id!r}")
-        return self._served.resources[rid]
+            rid = self._read_consumer(query_id)
+            if rid is None:
+                raise UnknownQueryError(f"unknown or released query id {query_id!r}")
+        return self.resources[rid]
 
     def has_consumer(self, query_id: str) -> bool:
         """Whether `query_id` is a consumer id of one of the resources served here."""
-        return query_id in self._consumers or self._backlog.read_consumer(query_id) is not None
+        if query_id in self._by_consumer:
+            return True
+        return self._unread is not None and self._read_consumer(query_id) is not None
 
     def queries(self, resource: Resource, serving_rr: str) -> Iterator[Query]:
         """Yield one `Query` per consumer id of `resource`."""
@@ -241,47 +303,82 @@ class Catalog:
 
     def server_queries(self, server: str, serving_rr: str) -> list[Query]:
         """Every consumer query of every loaded resource of `server`."""
-        self._backlog.read_server(server)
+        if self._unread is not None:
+            self._read_in(self._unread.of_server(server))
+        resources = self.resources
         return [
             query
-            for resource in self._served.indexed(server)
-            for query in self.queries(resource, serving_rr)
+            for rid in self._index.ids_of(server)  # (those with a digest first)
+            for query in self.queries(resources[rid], serving_rr)
         ]
-
-    def resources_of(self, server: str) -> list[Resource]:
-        """Every resource of `server`, oldest first."""
-        self._backlog.read_server(server)
-        return self._served.of_server(server)
 
     def consumers_from(self, origin_rr: str) -> list[str]:
         """The consumer ids, of any resource here, that registrar `origin_rr` holds."""
-        self._backlog.read_origin(origin_rr)
-        return self._served.consumers_from(origin_rr)
+        if self._unread is not None:
+            self._read_in(self._unread.with_origin(origin_rr))
+        return self._consumers_in_memory(origin_rr)
+
+    def consumer_ids_from(self, origin_rr: str) -> set[str]:
+        """The consumer ids here that `origin_rr` holds (reading no resource from the backup)."""
+        ids = set(self._consumers_in_memory(origin_rr))
+        if self._unread is not None:
+            ids.update(self._unread.consumer_ids_from(origin_rr))
+        return ids
+
+    def _consumers_in_memory(self, origin_rr: str) -> list[str]:
+        return [
+            query_id
+            for resource in self.resources.values()
+            for query_id, origin in resource.consumers.items()
+            if origin == origin_rr
+        ]
 
     def consumer_origins(self) -> set[str]:
         """The registrars that hold consumer ids of the resources in memory (`sweep`
         gives those of the resources still in the backup)."""
-        return self._served.consumer_origins()
+        return {o for resource in self.resources.values() for o in resource.consumers.values()}
 
-    def consumer_ids_from(self, origin_rr: str) -> set[str]:
-        """The consumer ids here that `origin_rr` holds (reading no resource from the backup)."""
-        ids = set(self._served.consumers_from(origin_rr))
-        ids.update(self._backlog.consumer_ids_from(origin_rr))
-        return ids
+    # -- listings ---------------------------------------------------------------------
+
+    def resources_of(self, server: str) -> list[Resource]:
+        """Every resource of `server`, oldest first."""
+        if self._unread is not None:
+            self._read_in(self._unread.of_server(server))
+        return [r for r in self._in_order().values() if r.server == server]
 
     def unheld(self) -> list[Resource]:
-        """Resources in memory loaded that no consumer holds, oldest first (`Served.unheld`;
-        `sweep` finds those still in the backup)."""
-        return self._served.unheld()
+        """Resources in memory loaded that no consumer holds, oldest first (`sweep` finds
+        those still in the backup).
+
+        A restored catalog may have some: their last consumer left, and a crash came
+        before their unload began.
+        """
+        return [
+            resource
+            for resource in self._in_order().values()
+            if resource.state is ResourceState.LOADED and not resource.consumers
+        ]
 
     def sweep(self, after: int) -> tuple[list[Resource], set[str], int | None]:
-        """Look at the next slice of the resources still in the backup (`Backlog.sweep`)."""
-        return self._backlog.sweep(after)
+        """Look at the next slice of the resources still in the backup (row keys above
+        `after`, a bounded number of them).
+
+        Returns:
+            `(unheld, origins, last)`: those in it loaded and held by no consumer (read
+            into memory now), the registrars holding consumer ids in it, and the row
+            key to sweep on from (`None`: nothing is left to sweep).
+        """
+        if self._unread is None:
+            return [], set(), None
+        unheld, origins, last = self._unread.sweep(after)
+        self._read_in(unheld)
+        return unheld, origins, last
 
     def read_all(self) -> dict[str, Resource]:
         """Every resource (reading those still in the backup), by id, oldest first."""
-        self._backlog.read_all()
-        return self._served.in_order()
+        if self._unread is not None:
+            self._read_in(self._unread.every())
+        return self._in_order()
 
     def rows(self, limit: int) -> tuple[list[tuple[str, ...]], list[tuple[str, ...]]] | None:
         """Every resource and consumer id as a row of strings, reading none from the backup.
@@ -290,33 +387,118 @@ class Catalog:
             limit: the most rows of either kind to return.
 
         Returns:
-            `(resources, consumers)`, oldest first (the rows: `Served.listing`); `None`
-            if either kind has more than `limit` rows.
+            `(resources, consumers)`, oldest first: `(id, server, state, digest, failed)`
+            per resource (`digest` in decimal, `""` for a request without one; `failed`
+            `"failed"` if its provider reported it `FATAL`, else `""`), and `(query id,
+            resource id, consumer registrar)` per consumer id, by resource, in arrival
+            order; `None` if either kind has more than `limit` rows.
         """
-        memory = self._served.listing(limit)
-        listing = None if memory is None else self._backlog.merged(memory, limit)
-        if listing is None:
-            return None
-        return [row for _, row in listing[0]], [row for _, row in listing[1]]
+        resources: list[tuple[float, tuple[str, ...]]] = []
+        consumers: list[tuple[float, tuple[str, ...]]] = []
+        for resource in self._in_order().values():
+            order = _stored_order(resource)
+            digest = resource.digest
+            plain = digest is not None and digest != NO_DIGEST
+            row = (
+                resource.id,
+                resource.server,
+                resource.state.value,
+                str(digest) * plain,
+                "failed" * resource.failed,
+            )
+            resources.append((order, row))
+            consumers.extend(
+                (order, (qid, resource.id, o)) for qid, o in resource.consumers.items()
+            )
+            if len(resources) > limit or len(consumers) > limit:
+                return None
+        if self._unread is not None:  # merged by row key, arrival order kept (stable)
+            unread: Listing | None = self._unread.listing(limit)
+            if unread is None:
+                return None
+            resources = sorted([*resources, *unread[0]], key=_first)
+            consumers = sorted([*consumers, *unread[1]], key=_first)
+            if len(resources) > limit or len(consumers) > limit:
+                return None
+        return [row for _, row in resources], [row for _, row in consumers]
 
     def counts(self) -> tuple[int, int]:
         """How many resources there are, and how many consumer ids (reading no row)."""
-        memory, unread = self._served.counts(), self._backlog.counts()
-        return memory[0] + unread[0], memory[1] + unread[1]
+        resources = self.resources.values()
+        held = sum(len(resource.consumers) for resource in resources)
+        if self._unread is None:
+            return len(resources), held
+        unread = self._unread.counts()
+        return len(resources) + unread[0], held + unread[1]
+
+    def _in_order(self) -> dict[str, Resource]:
+        """`resources`, oldest first: restored ones in their stored order, then newer ones.
+
+        Lookups read restored resources in whatever order traffic asks for them; they are
+        put back in order (a stable sort, in place) only when an ordered listing is asked for.
+        """
+        resources = self.resources
+        if self._unsorted:
+            ordered = sorted(resources.values(), key=_stored_order)
+            resources.clear()
+            resources.update((resource.id, resource) for resource in ordered)
+            self._unsorted = False
+        return resources
+
+    # -- the backlog: a restored catalog's rows still in the backup -------------------
+
+    def _read_consumer(self, query_id: str) -> str | None:
+        """Read in the resource `query_id` is a consumer of; its id, or `None` if the
+        backup has none (or there is no backlog)."""
+        unread = self._unread
+        if unread is None:
+            return None
+        resource = unread.by_consumer(query_id)
+        if resource is None:
+            return None
+        self._read_in([resource])
+        return resource.id
+
+    def _read_in(self, resources: list[Resource]) -> None:
+        """Take resources read back from the backup (nothing is marked changed)."""
+        by_consumer = self._by_consumer
+        for resource in resources:
+            rid = resource.id
+            for query_id in resource.consumers:
+                by_consumer[query_id] = rid
+            self.resources[rid] = resource
+            self._index.add(resource)
+            self._unsorted = True
+        if self._unread is not None and not self._unread.remaining:
+            self._unread = None  # everything is in memory: stop asking
 
     # -- client records ---------------------------------------------------------------
 
     def add_client(self, record: ClientRecord) -> None:
         """Record an outbound query (in flight until `client_loaded`)."""
-        self._clients.add(record)
+        qid = record.query.id
+        if qid in self.clients:
+            raise ValueError(f"query id {qid} is already a client record")
+        self.clients[qid] = record
+        if record.parent is not None:
+            self._deps.setdefault(record.parent, []).append(qid)
+        self._dirty_clients.add(qid)
 
     def client_loaded(self, query_id: str, response: Any) -> ClientRecord | None:
         """Mark an outbound query answered; `None` if the record is gone."""
-        return self._clients.loaded(query_id, response)
+        record = self.clients.get(query_id)
+        if record is None:
+            return None
+        record.query = record.query.with_response(response)
+        record.loaded = True
+        record.response_version += 1
+        self._dirty_clients.add(query_id)
+        return record
 
     def set_client_text(self, query_id: str, request_text: str) -> None:
         """Set a client record's request display text."""
-        self._clients.set_text(query_id, request_text)
+        self.clients[query_id].request_text = request_text
+        self._dirty_clients.add(query_id)
 
     def remove_client(self, query_id: str) -> ClientRecord:
         """Delete an outbound query record.
@@ -324,11 +506,21 @@ class Catalog:
         Raises:
             UnknownQueryError: no such record.
         """
-        return self._clients.remove(query_id)
+        record = self.clients.pop(query_id, None)
+        if record is None:
+            raise UnknownQueryError(f"unknown or released query id {query_id!r}")
+        if record.parent is not None:
+            deps = self._deps[record.parent]
+            deps.remove(query_id)
+            if not deps:
+                del self._deps[record.parent]
+        self._dirty_clients.add(query_id)
+        return record
 
     def dependencies(self, rid: str) -> list[ClientRecord]:
-        """The client records owned by resource `rid`, oldest first."""
-        return self._clients.dependencies(rid)
+        """The client records owned by resource `rid`, oldest first (rule 5: when it is
+        unloaded, they are released)."""
+        return [self.clients[qid] for qid in self._deps.get(rid, ())]
 
     # -- persistence ------------------------------------------------------------------
 
@@ -338,15 +530,23 @@ class Catalog:
         For a change whose write was held back (an in-doubt resource settled while its
         manager's `setup` runs): the write of what it is by then is owed.
         """
-        self._changes.resource_changed(rid)
+        self._dirty_resources.add(rid)
 
     def drain_changes(self) -> Changes:
-        """Return and forget the rows changed since the last drain.
+        """Return and forget the rows changed since the last drain: each as it is now,
+        or `None` if it was removed; in the order they first changed.
 
         Without `track_changes` (a catalog nobody persists) this is always empty, and
         nothing is kept meanwhile (a registrar without a backup never drains).
         """
-        return self._changes.drain(self._served.resources, self._clients.records)
+        resources, clients = self.resources, self.clients
+        changes = Changes(
+            {rid: resources.get(rid) for rid in self._dirty_resources},
+            {qid: clients.get(qid) for qid in self._dirty_clients},
+        )
+        self._dirty_resources.clear()
+        self._dirty_clients.clear()
+        return changes
 
     @classmethod
     def restore(
@@ -355,7 +555,7 @@ class Catalog:
         clients: Iterable[ClientRecord],
         unread: UnreadRows | None = None,
     ) -> Catalog:
-        """Build a catalog from stored rows (nothing is marked changed).
+        """Build a catalog from stored rows, in their stored order (nothing is marked changed).
 
         Resources whose `digest` is known are indexed without looking at their request
         (a restored request stays encoded until first used). `unread` holds the stored
@@ -363,14 +563,52 @@ class Catalog:
         """
         catalog = cls(track_changes=True)
         if unread is not None and unread.remaining:
-            catalog._backlog.rows = unread
-        served = catalog._served
-        served.restore(resources)
-        catalog._consumers.restore(served.resources.values())
-        catalog._clients.restore(clients)
+            catalog._unread = unread
+        catalog.resources = {resource.id: resource for resource in resources}
+        catalog._index.restore(catalog.resources.values())
+        catalog._by_consumer = {
+            query_id: resource.id
+            for resource in catalog.resources.values()
+            for query_id in resource.consumers
+        }
+        catalog.clients = {record.query.id: record for record in clients}
+        deps = catalog._deps
+        for qid, record in catalog.clients.items():
+            if record.parent is not None:
+                deps.setdefault(record.parent, []).append(qid)
         return catalog
 
     def check_invariants(self) -> None:
-        """Raise `AssertionError` if the indexes disagree with the rows (for tests)."""
-        self.read_all()
-        invariants.check(self._served, self._consumers, self._clients)
+        """Raise `AssertionError` if the indexes disagree with the rows (for tests):
+        the consumer ids' index, no request loaded twice (but a failed one's), the
+        dependencies' index, each dependency's owner served here."""
+        resources = self.read_all()
+        by_consumer = {q: r.id for r in resources.values() for q in r.consumers}
+        assert by_consumer == self._by_consumer, "consumer index out of sync"
+        for resource in resources.values():
+            if resource.state is ResourceState.LOADED and not resource.failed:
+                equal = [
+                    r
+                    for r in resources.values()
+                    if r.server == resource.server
+                    and r.id != resource.id
+                    and not r.failed
+                    and requests_equal(r.request, resource.request)
+                ]
+                assert not equal, f"resource {resource.id} is loaded twice"
+        deps: dict[str, list[str]] = {}
+        for qid, record in self.clients.items():
+            if record.parent is not None:
+                assert record.parent in resources, f"dependency {qid} has no owner"
+                deps.setdefault(record.parent, []).append(qid)
+        assert deps == self._deps, "dependency index out of sync"
+
+
+def _stored_order(resource: Resource) -> float:
+    """Sort key: a restored resource's row key in its backup; one created since is newer."""
+    order: float = resource.__dict__.get("_order", math.inf)
+    return order
+
+
+def _first(item: tuple[float, tuple[str, ...]]) -> float:
+    return item[0]

@@ -226,12 +226,8 @@ def identity_equality(value: Any) -> bool:
 
 
 def candidates_without_digest(others: dict[Any, list[str]], key: Any) -> list[str]:
-    """The resource ids among requests without a digest that may `==` a request.
-
-    Args:
-        others: `runtime_key` -> resource ids, of requests without a digest.
-        key: the request's `runtime_key`.
-    """
+    """The resource ids among requests without a digest (`others`: `runtime_key` -> ids)
+    that may `==` a request whose `runtime_key` is `key`."""
     if key == UNHASHABLE:
         return [rid for bucket in others.values() for rid in bucket]
     # Equal hashable values have equal hashes; unhashable stored ones are compared anyway.

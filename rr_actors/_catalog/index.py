@@ -1,12 +1,13 @@
 """The request index: which resources of a server may serve a request, by digest.
 
 ```
- Served.add / take / restore ──► add(resource, key) ─┬─► digested: server -> digest -> ids
-                                                     └─► others: server -> runtime key -> ids
- Served.match(server, request, digest, key)
+ Catalog.begin_load, a row read in, restore
+   ──► add(resource, key) ─┬─► digested: server -> digest -> ids
+                           └─► others: server -> runtime key -> ids
+ Catalog.lookup(server, request, digest, key)
    ──► with_digest(server, digest): ids whose plain request may be equal (compared there)
    ──► undecided(server, request, digest, key): ids only a `==` can judge
- Served.remove ──► remove(resource)
+ Catalog.remove_resource ──► remove(resource)
 ```
 
 Most requests have a digest (`digest.request_digest`): equal plain values have equal
@@ -37,8 +38,8 @@ __all__ = ["RequestIndex"]
 class RequestIndex:
     """The resource ids of each server, by request digest or by in-process key.
 
-    It holds ids only; the resources are `Served`'s. It writes one field of a resource:
-    its `digest`, computed once when a resource new here is indexed.
+    It holds ids only; the resources are the `Catalog`'s. It writes one field of a
+    resource: its `digest`, computed once when a resource new here is indexed.
     """
 
     def __init__(self) -> None:
@@ -49,7 +50,7 @@ class RequestIndex:
         self._other_keys: dict[str, Any] = {}  # resource id -> its key in `_others`
 
     def add(self, resource: Resource, key: Any = None) -> None:
-        """Index a resource new here (`key`: see `Served.begin_load`) or read back (no key).
+        """Index a resource new here (`key`: see `Catalog.begin_load`) or read back (no key).
 
         A request read back from the backup without a digest is indexed with the
         unhashable ones rather than by its `hash()`: no code of its class runs for that.
@@ -105,14 +106,8 @@ class RequestIndex:
 
     def undecided(self, server: str, request: Any, digest: int | None, key: Any) -> list[str]:
         """The ids of `server`'s resources whose requests only a `==` can compare with
-        `request` (one of user code, or a plain value against a custom `__eq__`).
-
-        Args:
-            server: the server's name.
-            request: the request looked up.
-            digest: its digest (`None`: it has none).
-            key: for a request without a digest, its `runtime_key`.
-        """
+        `request` (one of user code, or a plain value against a custom `__eq__`);
+        `digest`: the request's (`None`: it has none), `key`: else its `runtime_key`."""
         others = self._others.get(server)
         if digest is not None:
             # A stored request without a digest may still be equal (rare). A plain
