@@ -233,7 +233,11 @@ def test_demo_observe_serves_the_final_state_until_ctrl_c_and_says_so(
                 demo.kill()
                 demo.wait(10)
 
-    assert "the mission ended" in lines[-1]
+    # The last thing said, wrapped at words to 80 columns: the mission ended, until Ctrl-C.
+    last = next(i for i, line in enumerate(lines) if line.startswith("observer: the mission"))
+    said = " ".join(line.strip() for line in lines[last:])
+    assert said.startswith("observer: the mission ended;"), said
+    assert said.endswith("(press Ctrl-C to stop)"), said
     assert (200, 0) == (serving, code)
     with pytest.raises(ConnectionRefusedError):
         request(url, "/", timeout=2.0)
