@@ -93,6 +93,9 @@ __all__ = [
 ]
 
 _pykka_logger = logging.getLogger("pykka")  # (where pykka's own loop logs)
+_logger = logging.getLogger("rr_actors")
+
+_CALLBACKS_MADE = threading.Lock()  # (`OneShotFuture.add_done_callback`: the first list)
 
 _ACTOR_THREAD = threading.local()  # `active` on the thread of an `Actor`'s loop
 
@@ -127,6 +130,10 @@ class OneShotFuture(pykka.Future[T]):
     every later `get`; settling it a second time raises `queue.Full`. Any number of
     threads may wait on it at once; a get hook runs once. (Who settles a registrar
     call's future, when an answer races a timeout, is decided by its `CallAttempt`.)
+
+    Beyond pykka's interface, `add_done_callback(fn)` runs `fn(future)` once it is
+    settled, on the thread that settles it: an event loop awaits it through one
+    (`rr_actors._core.loops.settled`), with no thread blocked on it.
     """
 
     def __init__(self) -> None:
@@ -137,6 +144,7 @@ class OneShotFuture(pykka.Future[T]):
         self._settled = False
         self._value: Any = None
         self._exc_info: OptExcInfo | None = None
+        self._done_callbacks: list[Callable[[OneShotFuture[T]], object]] | None = None
 
     def __repr__(self) -> str:
         return "<rr_actors.OneShotFuture>"
@@ -202,9 +210,41 @@ class OneShotFuture(pykka.Future[T]):
         if not self._claim.acquire(blocking=False):
             raise queue.Full
 
+    def add_done_callback(self, fn: Callable[[OneShotFuture[T]], object]) -> None:
+        """Run `fn(self)` once it is settled: at once, on this thread, if it is already;
+        else on the thread that settles it. What `fn` raises is logged.
+
+        Several callbacks run in the order they were added, each once. Meant for
+        wake-ups that must be quick and never block (`loop.call_soon_threadsafe`).
+        """
+        callbacks = self._done_callbacks
+        if callbacks is None:
+            with _CALLBACKS_MADE:  # (two threads adding the first at once: one list)
+                if self._done_callbacks is None:
+                    self._done_callbacks = []
+                callbacks = self._done_callbacks
+        callbacks.append(fn)  # then read `_settled`: one of this and `_settle` sees the other
+        if self._settled:
+            self._run_done_callbacks(callbacks)
+
     def _settle(self) -> None:
         self._settled = True  # written before the release: a waiter that wakes sees it
         self._ready.release()
+        callbacks = self._done_callbacks  # (read after `_settled` was written)
+        if callbacks:
+            self._run_done_callbacks(callbacks)
+
+    def _run_done_callbacks(self, callbacks: list[Callable[[OneShotFuture[T]], object]]) -> None:
+        """Run each callback of `callbacks` once: `pop` takes each for one thread only."""
+        while True:
+            try:
+                fn = callbacks.pop(0)
+            except IndexError:
+                return
+            try:
+                fn(self)
+            except Exception:
+                _logger.exception("a done callback of a future raised")
 
 
 class Inbox(LateQueue):

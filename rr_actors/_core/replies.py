@@ -1,4 +1,19 @@
-"""Reply objects: where the answer to a message goes, and how a caller waits for it."""
+"""Reply objects: where the answer to a message goes, and how a caller waits for it.
+
+A protocol that waits (a call: its commit, its answer) is written once as *steps*, a
+generator that yields a `Wait` for each future it needs and is sent back whether the
+future was settled in time ("sans I/O", as h11 and wsproto are written). Two drivers run
+it: `run_steps` blocks the calling thread on each future; `loops.run_steps_async` awaits
+it on an event loop (the future's done callback wakes the loop). An exception the driver
+gets while it waits (a `KeyboardInterrupt`, a cancelled task) is thrown into the steps
+at the `yield`, so both drivers take the same way out:
+
+```
+ steps ──yield Wait(future, deadline)──► driver: block / await until settled or deadline
+       ◄──────── send(settled: bool) ───┘   (interrupted: throw(exc) at the yield)
+ ... return value ──► the driver returns it (StopIteration)
+```
+"""
 
 from __future__ import annotations
 
@@ -8,8 +23,9 @@ import itertools
 import logging
 import queue
 import threading
-from collections.abc import Callable
-from typing import Any
+import time
+from collections.abc import Callable, Generator
+from typing import Any, TypeAlias, TypeVar
 
 import pykka
 
@@ -22,10 +38,16 @@ __all__ = [
     "FutureReply",
     "Join",
     "SharedJoin",
+    "Steps",
     "TokenReply",
     "Tokens",
+    "Wait",
+    "asked",
+    "run_steps",
     "wait",
 ]
+
+T = TypeVar("T")
 
 logger = logging.getLogger("rr_actors")
 
@@ -58,6 +80,61 @@ def wait(future: pykka.Future[Any], timeout: float, what: str) -> Any:
         return future.get(timeout=timeout)
     except pykka.Timeout:
         raise CallTimeoutError(f"{what} timed out after {timeout:g} s") from None
+
+
+class Wait:
+    """What steps wait for: `future` settled, until `deadline` (`time.monotonic()`
+    seconds; `None`: without a bound)."""
+
+    __slots__ = ("deadline", "future")
+
+    def __init__(self, future: OneShotFuture[Any], deadline: float | None) -> None:
+        self.future = future
+        self.deadline = deadline
+
+    def left(self) -> float | None:
+        """Seconds left until the deadline (never negative), `None` without one."""
+        if self.deadline is None:
+            return None
+        return max(0.0, self.deadline - time.monotonic())
+
+
+Steps: TypeAlias = Generator[Wait, bool, T]
+"""A protocol's steps: yields `Wait`s, is sent whether each future settled in time,
+returns the result (module docstring)."""
+
+
+def run_steps(steps: Steps[T]) -> T:
+    """Run `steps` on the calling thread, blocking on each future it waits for.
+
+    Raises:
+        Exception: what the steps raise (an interruption of a wait is thrown into them).
+    """
+    try:
+        wait_for = next(steps)
+        while True:
+            try:
+                settled = wait_for.future._wait(wait_for.left())
+            except BaseException as exc:  # noqa: BLE001 - (KeyboardInterrupt & co: the steps decide)
+                wait_for = steps.throw(exc)
+                continue
+            wait_for = steps.send(settled)
+    except StopIteration as done:
+        result: T = done.value
+        return result
+
+
+def asked(future: OneShotFuture[Any], deadline: float, limit: float, what: str) -> Steps[Any]:
+    """Steps of one request: wait for `future` until `deadline`; its value, or its error.
+
+    Raises:
+        CallTimeoutError: it was not settled by `deadline` (`limit`: the seconds, and
+            `what`: the operation, for the message).
+        Exception: whatever error the future holds.
+    """
+    if not (yield Wait(future, deadline)):
+        raise CallTimeoutError(f"{what} timed out after {limit:g} s")
+    return future.get(timeout=0)
 
 
 @dataclasses.dataclass(frozen=True)

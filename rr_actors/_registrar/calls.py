@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import contextlib
 import threading
-import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -43,7 +42,7 @@ import pykka
 from rr_actors._catalog import ClientRecord
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.queues import LateQueue
-from rr_actors._core.replies import FutureReply
+from rr_actors._core.replies import FutureReply, Steps, Wait
 from rr_actors._registrar.attempt import AttemptState, CallAttempt
 from rr_actors._registrar.loading import check_picklable
 from rr_actors._registrar.messages import (
@@ -267,7 +266,7 @@ class Calls:
         self.listened = listened
         self.attempt_type: type[CallAttempt] = CallAttempt
 
-    def call(
+    def steps(
         self,
         query_id: str,
         serving_rr: str,
@@ -278,8 +277,12 @@ class Calls:
         on_status: StatusCallback | None,
         limit: float,
         deadline: float,
-    ) -> Query:
-        """Send a call's load and wait for its answer until `deadline` (rule 17).
+    ) -> Steps[Query]:
+        """A call's steps: send its load, wait for its answer until `deadline` (rule 17).
+
+        Each wait is a `yield` (`replies.Steps`): `run_steps` blocks the caller's thread
+        on it, `loops.run_steps_async` awaits it. An exception thrown in at a wait (a
+        `KeyboardInterrupt`, a cancelled task) withdraws the call as a timeout does.
 
         Args:
             query_id: the call's query id.
@@ -306,12 +309,11 @@ class Calls:
         try:
             self.due.expect(query_id, attempt)  # a notice that overtakes the answer waits
             load = Load(query_id, server, request, self.name, chain, reply)
-            sent = self.send(load, reply, deadline)
-            left = max(0.0, deadline - time.monotonic())
-            if not (sent and attempt.wait(left)):  # the time is up: withdraw, unless the
-                withdrawn = attempt.withdraw() is AttemptState.WITHDRAWN  # answer won
-                if not withdrawn:  # (being recorded: its outcome comes with the commit)
-                    attempt.wait()
+            sent = yield from self.send(load, reply, deadline)
+            if not (sent and (yield Wait(attempt, deadline))):  # the time is up: withdraw,
+                withdrawn = attempt.withdraw() is AttemptState.WITHDRAWN  # unless the
+                if not withdrawn:  # answer won (being recorded: its outcome comes with
+                    yield Wait(attempt, None)  # the commit)
             if attempt.state is AttemptState.ANSWERED:
                 answered = reply.query(attempt.get())
                 if self.stored and not self.commit_first:
@@ -326,7 +328,7 @@ class Calls:
         except pykka.ActorDeadError:  # this registrar stopped meanwhile: give the id back
             give_back(serving_rr, query_id, self.name)
             raise DIRECTORY.gone_error(self.name) from None
-        except BaseException:  # the caller stops waiting (KeyboardInterrupt, ...)
+        except BaseException:  # the caller stops waiting (KeyboardInterrupt, cancelled)
             attempt.withdraw()
             self.withdraw(reply, attempt, "interrupted")
             raise
@@ -338,7 +340,7 @@ class Calls:
         assert answered is not None  # (answered, as neither withdrawn nor failed)
         return answered
 
-    def send(self, load: Load, reply: ClientReply, deadline: float) -> bool:
+    def send(self, load: Load, reply: ClientReply, deadline: float) -> Steps[bool]:
         """Send a call's `load` from the caller's thread; whether it left before `deadline`.
 
         Along the client's route rather than through the client's mailbox: one thread
@@ -351,10 +353,9 @@ class Calls:
             committed = FutureReply()
             record = ClientRecord(reply.query(), reply.parent)
             self.ref.tell(Pending(record, reply.attempt, committed))
-            try:
-                committed.future.get(timeout=max(0.0, deadline - time.monotonic()))
-            except pykka.Timeout:
+            if not (yield Wait(committed.future, deadline)):
                 return False
+            committed.future.get(timeout=0)  # (raises: the record could not be written)
         if reply.attempt.sent() is not AttemptState.SENT:  # this registrar stopped
             return True  # meanwhile and failed it: nothing to send
         probes = self.probes()

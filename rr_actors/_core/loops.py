@@ -1,0 +1,305 @@
+"""asyncio at the edge of the actors: awaiting a future, running coroutines on a loop.
+
+Nothing here knows of registrars. Three bridges, each written once:
+
+```
+ an event loop awaits a one-shot future (`settled`):
+   loop thread: future.add_done_callback(wake) ──► await a loop future
+   the settling thread (an actor, a connection's reader): wake ──► call_soon_threadsafe
+   ──► the loop resolves its future ──► the awaiting task goes on (no thread blocked)
+ steps (`replies.Steps`) driven on a loop: `run_steps_async`, each `Wait` is `settled`
+ a coroutine function run on a loop, from any thread (`OnLoop`):
+   submit(*args, then) ──call_soon_threadsafe──► a task: fn(*args), after the task of
+   the submission before it ──► then(error) on the loop thread once it ended
+```
+
+Where a coroutine function runs: `OnLoop.bind(fn)` keeps the loop it is called from
+(the application's: a status callback registered from a coroutine runs on that loop), or,
+called from no loop, the process's own loop (`process_loop`): one thread, started at its
+first use, that runs every coroutine callback of the process's registrars that has no
+loop of its own (a server's coroutine `load` and `unload`). One loop per process, not per
+registrar: a coroutine that awaits costs no thread, so a second loop would buy nothing but
+a thread; a coroutine that blocks the loop (a `time.sleep`) would stall the others on it
+as it would on any asyncio loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextvars
+import functools
+import logging
+import threading
+from collections.abc import Callable, Coroutine
+from typing import Any, TypeVar
+
+from rr_actors._core.actor import OneShotFuture
+from rr_actors._core.replies import Steps
+from rr_actors._platform import fork
+
+__all__ = [
+    "OnLoop",
+    "is_coroutine_function",
+    "on_process_loop",
+    "process_loop",
+    "run_steps_async",
+    "settled",
+    "start_on",
+]
+
+logger = logging.getLogger("rr_actors")
+
+T = TypeVar("T")
+
+Then = Callable[[BaseException | None], object]
+"""Told once a coroutine submitted to a loop ended: its error, or `None`."""
+
+
+def is_coroutine_function(fn: object) -> bool:
+    """Whether calling `fn` gives a coroutine to await (an `async def` function, a
+    `functools.partial` of one, or an object whose `__call__` is one)."""
+    if asyncio.iscoroutinefunction(fn):
+        return True
+    call = getattr(fn, "__call__", None)  # noqa: B004 - (the method, not callable())
+    return call is not None and asyncio.iscoroutinefunction(call)
+
+
+def _wake(waiter: asyncio.Future[bool], value: bool) -> None:
+    """On the loop: resolve `waiter` unless it was resolved or cancelled already."""
+    if not waiter.done():
+        waiter.set_result(value)
+
+
+def _wake_from(loop: asyncio.AbstractEventLoop, waiter: asyncio.Future[bool], _: object) -> None:
+    """On the settling thread: wake the loop (a loop closed meanwhile: nobody waits)."""
+    try:
+        loop.call_soon_threadsafe(_wake, waiter, True)
+    except RuntimeError:  # the loop was closed: its task is gone with it
+        return
+
+
+async def settled(future: OneShotFuture[Any], timeout: float | None) -> bool:
+    """Await `future` (settled by any thread) at most `timeout` seconds; whether it is.
+
+    No thread waits: the future's done callback wakes the running loop. An already
+    settled future returns without suspending.
+
+    Raises:
+        asyncio.CancelledError: the awaiting task was cancelled.
+    """
+    if future._settled:
+        return True
+    loop = asyncio.get_running_loop()
+    waiter: asyncio.Future[bool] = loop.create_future()
+    expiry = None if timeout is None else loop.call_later(timeout, _wake, waiter, False)
+    future.add_done_callback(functools.partial(_wake_from, loop, waiter))
+    try:
+        return await waiter or future._settled
+    finally:
+        if expiry is not None:
+            expiry.cancel()
+
+
+async def run_steps_async(steps: Steps[T]) -> T:
+    """Run `steps` on the running loop, awaiting each future it waits for (`settled`).
+
+    A cancellation of the awaiting task is thrown into the steps at their `yield`, as
+    `replies.run_steps` throws a `KeyboardInterrupt`: they take the same way out.
+    """
+    try:
+        wait_for = next(steps)
+        while True:
+            try:
+                done = await settled(wait_for.future, wait_for.left())
+            except BaseException as exc:  # noqa: BLE001 - (the task cancelled: the steps decide)
+                wait_for = steps.throw(exc)
+                continue
+            wait_for = steps.send(done)
+    except StopIteration as ended:
+        result: T = ended.value
+        return result
+
+
+# -- coroutine functions run on a loop --------------------------------------------------
+
+
+class _ProcessLoop:
+    """The process's own event loop, on one daemon thread started at its first use."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.thread: threading.Thread | None = None
+
+    def get(self) -> asyncio.AbstractEventLoop:
+        loop = self._loop
+        if loop is not None:
+            return loop
+        with self._lock:
+            if self._loop is None:
+                started = threading.Event()
+                loop = asyncio.new_event_loop()
+                thread = threading.Thread(
+                    target=self._run, args=(loop, started), name="rr-loop", daemon=True
+                )
+                thread.start()
+                started.wait()
+                self.thread = thread
+                self._loop = loop
+            return self._loop
+
+    @staticmethod
+    def _run(loop: asyncio.AbstractEventLoop, started: threading.Event) -> None:
+        asyncio.set_event_loop(loop)
+        loop.call_soon(started.set)
+        loop.run_forever()
+
+    def forget(self) -> None:
+        """In a forked child: the parent's loop thread is not there; a new one starts."""
+        self._lock = threading.Lock()
+        self._loop = None
+        self.thread = None
+
+
+_PROCESS_LOOP = _ProcessLoop()
+fork.after_fork_in_child("the process's event loop", _PROCESS_LOOP.forget)
+
+
+def on_process_loop() -> bool:
+    """Whether the calling thread runs the process's own event loop."""
+    return _PROCESS_LOOP.thread is threading.current_thread()
+
+
+def process_loop() -> asyncio.AbstractEventLoop:
+    """The process's own event loop (module docstring), started on first use."""
+    return _PROCESS_LOOP.get()
+
+
+class OnLoop:
+    """A coroutine function and the event loop it runs on; submitted from any thread.
+
+    Each `submit` runs one call as a task of that loop, after the task of the submission
+    before it has ended (calls of one `OnLoop` run one at a time, in the order they were
+    submitted, as a status callback's calls must), in the context it was bound in (as
+    asyncio runs a callback in its registrant's context).
+
+    Args:
+        fn: the coroutine function.
+        loop: the loop its calls run on.
+    """
+
+    __slots__ = ("_context", "_tail", "fn", "loop")
+
+    def __init__(self, fn: Callable[..., Any], loop: asyncio.AbstractEventLoop) -> None:
+        self.fn = fn
+        self.loop = loop
+        self._context = contextvars.copy_context()
+        self._tail: asyncio.Task[None] | None = None  # (the loop thread only)
+
+    @classmethod
+    def bind(cls, fn: Callable[..., Any]) -> OnLoop:
+        """`fn` on the loop running on this thread, else on the process's own loop."""
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            loop = process_loop()
+        return cls(fn, loop)
+
+    def __repr__(self) -> str:
+        return f"<OnLoop {getattr(self.fn, '__qualname__', self.fn)!r}>"
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickle as the coroutine function alone: a loop does not cross processes (the
+        other process binds it to a loop of its own)."""
+        return (_unbound, (self.fn,))
+
+    def __call__(self, *args: Any) -> None:
+        """`submit(*args)`: run a call on the loop; returns at once."""
+        self.submit(*args)
+
+    def submit(self, *args: Any, then: Then | None = None) -> None:
+        """Run `fn(*args)` on the loop after the calls submitted before; `then(error)`
+        on the loop thread once it ended (`error`: what it raised, or `None`).
+
+        A loop that is closed runs nothing: `then` gets a `RuntimeError` at once, here.
+        """
+        try:
+            self.loop.call_soon_threadsafe(self._start, args, then)
+        except RuntimeError as exc:  # the loop was closed
+            if then is not None:
+                then(exc)
+
+    def _start(self, args: tuple[Any, ...], then: Then | None) -> None:
+        before = self._tail
+        task = self.loop.create_task(self._run(before, args, then), context=self._context)
+        self._tail = task
+
+    async def _run(
+        self, before: asyncio.Task[None] | None, args: tuple[Any, ...], then: Then | None
+    ) -> None:
+        if before is not None and not before.done():
+            await asyncio.wait((before,))
+        error: BaseException | None = None
+        try:
+            await self.fn(*args)
+        except Exception as exc:  # logged, as a callback run on a worker thread is
+            logger.exception("coroutine callback %r raised", self)
+            error = exc
+        except BaseException as exc:  # noqa: BLE001 - told to `then` (cancelled too)
+            error = exc
+        if then is not None:
+            then(error)
+        if self._tail is asyncio.current_task():
+            self._tail = None
+
+
+def _unbound(fn: Callable[..., Any]) -> Callable[..., Any]:
+    return fn
+
+
+def start_on(
+    loop: asyncio.AbstractEventLoop,
+    coroutine: Callable[[], Coroutine[Any, Any, T]],
+    then: Callable[[T | None, BaseException | None], object],
+    *,
+    context: contextvars.Context | None = None,
+) -> Callable[[], None]:
+    """Run `coroutine()` as a task of `loop` (from any thread); `then(value, error)` on
+    the loop thread once it ended. Returns `cancel()`: cancels the task (any thread).
+
+    A closed loop runs nothing: `then(None, RuntimeError)` at once, here.
+    """
+    task: list[asyncio.Task[T]] = []
+    cancelled = False
+
+    def begin() -> None:
+        if cancelled:
+            then(None, asyncio.CancelledError())
+            return
+        made = loop.create_task(coroutine(), context=context)
+        task.append(made)
+        made.add_done_callback(finished)
+
+    def finished(done: asyncio.Task[T]) -> None:
+        if done.cancelled():
+            then(None, asyncio.CancelledError())
+        elif done.exception() is not None:
+            then(None, done.exception())
+        else:
+            then(done.result(), None)
+
+    def cancel() -> None:
+        nonlocal cancelled
+        cancelled = True
+        with_task = task[0] if task else None
+        if with_task is not None:
+            try:
+                loop.call_soon_threadsafe(with_task.cancel)
+            except RuntimeError:  # closed: nothing runs there any more
+                return
+
+    try:
+        loop.call_soon_threadsafe(begin)
+    except RuntimeError as exc:
+        then(None, exc)
+    return cancel
