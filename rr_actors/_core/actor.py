@@ -67,6 +67,7 @@ instead of waiting in an inbox nobody reads.
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import logging
 import queue
@@ -101,14 +102,22 @@ _ACTOR_THREAD = threading.local()  # `active` on the thread of an `Actor`'s loop
 
 
 def on_actor_thread() -> bool:
-    """Whether the calling thread runs an actor's loop (an `Actor`'s thread).
+    """Whether the calling thread runs an actor's loop (an `Actor`'s thread), or an
+    asyncio event loop (a coroutine that awaits a registrar).
 
     Such a thread must never wait on the network: a carrier asked for a registrar there
     answers from what it knows and leaves the asking to a thread of its own (the Zenoh
     carrier's outbox writer), so the actor answers its next message at once (a
-    supervisor's heartbeat comes through the mailbox too).
+    supervisor's heartbeat comes through the mailbox too), and a loop runs its other
+    tasks meanwhile.
     """
-    return bool(getattr(_ACTOR_THREAD, "active", False))
+    if getattr(_ACTOR_THREAD, "active", False):
+        return True
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return False
+    return True
 
 
 T = TypeVar("T")

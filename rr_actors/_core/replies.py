@@ -43,6 +43,7 @@ __all__ = [
     "Tokens",
     "Wait",
     "asked",
+    "on_own_thread",
     "run_steps",
     "wait",
 ]
@@ -122,6 +123,32 @@ def run_steps(steps: Steps[T]) -> T:
     except StopIteration as done:
         result: T = done.value
         return result
+
+
+def on_own_thread(fn: Callable[[], T], name: str) -> Steps[T]:
+    """Steps that run `fn()` on a fresh daemon thread of its own and wait for its result.
+
+    For the few operations that block in code not written as steps (a process's start
+    or stop, a supervisor's): driven on a loop, they hold that one thread, never the
+    loop. Interrupted (a cancelled task), the steps stop waiting; `fn` runs on.
+
+    Raises:
+        BaseException: what `fn` raised.
+    """
+    done: FutureReply = FutureReply()
+
+    def run() -> None:
+        try:
+            result = fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to the steps
+            done.set_error(exc)
+        else:
+            done.set_result(result)
+
+    threading.Thread(target=run, name=name, daemon=True).start()
+    yield Wait(done.future, None)
+    result: T = done.future.get(timeout=0)
+    return result
 
 
 def asked(future: OneShotFuture[Any], deadline: float, limit: float, what: str) -> Steps[Any]:
