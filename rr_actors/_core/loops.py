@@ -175,26 +175,34 @@ def process_loop() -> asyncio.AbstractEventLoop:
     return _PROCESS_LOOP.get()
 
 
+OVERTAKE_AFTER = 0.05
+"""Seconds a call of an `OnLoop` waits for the one before it of the same key; past them
+it runs beside it (as the status runner gives a callback `SLICE` seconds): a callback
+that waits for its own next call (a `send_status` to the same id) does not deadlock."""
+
+
 class OnLoop:
     """A coroutine function and the event loop it runs on; submitted from any thread.
 
     Each `submit` runs one call as a task of that loop, after the task of the submission
-    before it has ended (calls of one `OnLoop` run one at a time, in the order they were
-    submitted, as a status callback's calls must), in the context it was bound in (as
-    asyncio runs a callback in its registrant's context).
+    before it of the same key (a status callback's: the query id) has ended, or has run
+    for `OVERTAKE_AFTER` seconds: the calls of one key run in the order they were
+    submitted, one at a time while each is quick, as a status callback's calls do on
+    worker threads. Each runs in the context it was bound in (as asyncio runs a callback
+    in its registrant's context).
 
     Args:
         fn: the coroutine function.
         loop: the loop its calls run on.
     """
 
-    __slots__ = ("_context", "_tail", "fn", "loop")
+    __slots__ = ("_context", "_tails", "fn", "loop")
 
     def __init__(self, fn: Callable[..., Any], loop: asyncio.AbstractEventLoop) -> None:
         self.fn = fn
         self.loop = loop
         self._context = contextvars.copy_context()
-        self._tail: asyncio.Task[None] | None = None  # (the loop thread only)
+        self._tails: dict[Any, asyncio.Task[None]] = {}  # key -> its last call (loop thread)
 
     @classmethod
     def bind(cls, fn: Callable[..., Any]) -> OnLoop:
@@ -217,28 +225,33 @@ class OnLoop:
         """`submit(*args)`: run a call on the loop; returns at once."""
         self.submit(*args)
 
-    def submit(self, *args: Any, then: Then | None = None) -> None:
-        """Run `fn(*args)` on the loop after the calls submitted before; `then(error)`
-        on the loop thread once it ended (`error`: what it raised, or `None`).
+    def submit(self, *args: Any, then: Then | None = None, key: Any = None) -> None:
+        """Run `fn(*args)` on the loop after the calls of `key` submitted before (class
+        docstring); `then(error)` on the loop thread once it ended (`error`: what it
+        raised, or `None`).
 
         A loop that is closed runs nothing: `then` gets a `RuntimeError` at once, here.
         """
         try:
-            self.loop.call_soon_threadsafe(self._start, args, then)
+            self.loop.call_soon_threadsafe(self._start, args, then, key)
         except RuntimeError as exc:  # the loop was closed
             if then is not None:
                 then(exc)
 
-    def _start(self, args: tuple[Any, ...], then: Then | None) -> None:
-        before = self._tail
-        task = self.loop.create_task(self._run(before, args, then), context=self._context)
-        self._tail = task
+    def _start(self, args: tuple[Any, ...], then: Then | None, key: Any) -> None:
+        before = self._tails.get(key)
+        task = self.loop.create_task(self._run(before, args, then, key), context=self._context)
+        self._tails[key] = task
 
     async def _run(
-        self, before: asyncio.Task[None] | None, args: tuple[Any, ...], then: Then | None
+        self,
+        before: asyncio.Task[None] | None,
+        args: tuple[Any, ...],
+        then: Then | None,
+        key: Any,
     ) -> None:
         if before is not None and not before.done():
-            await asyncio.wait((before,))
+            await asyncio.wait((before,), timeout=OVERTAKE_AFTER)
         error: BaseException | None = None
         try:
             await self.fn(*args)
@@ -249,8 +262,8 @@ class OnLoop:
             error = exc
         if then is not None:
             then(error)
-        if self._tail is asyncio.current_task():
-            self._tail = None
+        if self._tails.get(key) is asyncio.current_task():
+            del self._tails[key]
 
 
 def _unbound(fn: Callable[..., Any]) -> Callable[..., Any]:

@@ -350,7 +350,7 @@ class RemoteRegistrar(AsyncSurface):
 
     def _stop_steps(self, timeout: float | None) -> Steps[None]:
         if self._process is not None:  # the owner: the process, as `stop` does
-            stop = functools.partial(self.stop, timeout=timeout)
+            stop = functools.partial(RemoteRegistrar.stop, self, timeout=timeout)  # (its own)
             yield from on_own_thread(stop, f"rr-stop-{self.name}")
             return
         try:

@@ -366,7 +366,7 @@ class Desk:
                 )
             update = StatusUpdate(query_id, batch.status, batch.message, batch.source)
             if isinstance(callback, OnLoop):  # a coroutine: on its loop, no worker
-                callback.submit(query, update, then=_done_by(join.add()))
+                callback.submit(query, update, then=_done_by(join.add()), key=query_id)
             else:
                 calls.append(_Call(callback, query, update, join.add()))
         return tuple(slow)

@@ -258,7 +258,7 @@ class StatusRelay:
         part of `join` is done after it."""
         done = join.add()
         if isinstance(callback, OnLoop):
-            callback.submit(query, update, then=lambda _error: done())
+            callback.submit(query, update, then=lambda _error: done(), key=query.id)
             return
 
         def run() -> None:
