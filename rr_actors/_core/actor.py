@@ -35,7 +35,9 @@ consumer ids) can honour them.
 actor may take the turn itself and handle the message there (`deliver`), instead of
 putting it in the inbox and waking the actor's thread, which is the costly step of a
 hand-off on a loaded CPU (Erlang's schedulers run a process that receives a message
-without a thread hand-off either):
+without a thread hand-off either). So may an event loop's thread that sends an awaited
+call's load: it holds no lock across an await, and a dedup hit then costs the loop no
+wake-up from another thread:
 
 ```
  deliver(ref, message) (a carrier's receiving thread: it holds no lock)

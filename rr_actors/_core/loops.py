@@ -40,6 +40,7 @@ from rr_actors._platform import fork
 __all__ = [
     "OnLoop",
     "is_coroutine_function",
+    "on_event_loop",
     "on_process_loop",
     "process_loop",
     "run_steps_async",
@@ -53,6 +54,15 @@ T = TypeVar("T")
 
 Then = Callable[[BaseException | None], object]
 """Told once a coroutine submitted to a loop ended: its error, or `None`."""
+
+
+def on_event_loop() -> bool:
+    """Whether the calling thread is running an asyncio event loop now."""
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return False
+    return True
 
 
 def is_coroutine_function(fn: object) -> bool:
@@ -109,8 +119,12 @@ async def run_steps_async(steps: Steps[T]) -> T:
     try:
         wait_for = next(steps)
         while True:
+            future = wait_for.future
+            if future._settled:  # (settled already: a dedup hit answered in the turn)
+                wait_for = steps.send(True)
+                continue
             try:
-                done = await settled(wait_for.future, wait_for.left())
+                done = await settled(future, wait_for.left())
             except BaseException as exc:  # noqa: BLE001 - (the task cancelled: the steps decide)
                 wait_for = steps.throw(exc)
                 continue

@@ -41,6 +41,7 @@ import pykka
 
 from rr_actors._catalog import ClientRecord
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.loops import on_event_loop
 from rr_actors._core.queues import LateQueue
 from rr_actors._core.replies import FutureReply, Steps, Wait
 from rr_actors._registrar.attempt import AttemptState, CallAttempt
@@ -345,9 +346,13 @@ class Calls:
 
         Along the client's route rather than through the client's mailbox: one thread
         hand-off less; mailbox order still holds, a later withdrawal reaches its actors
-        after this. A durable call's record is committed as pending first (rule 16), so
-        a crash of this process after the load left still knows the call; a record that
-        cannot be written raises here.
+        after this. From an event loop's thread (an awaited call), an idle provider of
+        this process handles the load in its turn on that thread, as a carrier's
+        receiving thread may (`_core/actor.py`): a dedup hit is answered before the
+        call awaits anything, and the loop is not woken from another thread. A durable
+        call's record is committed as pending first (rule 16), so a crash of this
+        process after the load left still knows the call; a record that cannot be
+        written raises here.
         """
         if self.commit_first:
             committed = FutureReply()
@@ -362,7 +367,11 @@ class Calls:
         if probes is not None:
             probes.fire("send_load", load)
         try:
-            DIRECTORY.lookup(reply.serving_rr).tell(load)
+            provider = DIRECTORY.lookup(reply.serving_rr)
+            if on_event_loop():  # an idle provider of this process handles it right here
+                provider.deliver(load)  # (its turn, `_core/actor.py`): no thread hand-off
+            else:
+                provider.tell(load)
         except RrError as exc:  # refused at once: nothing was sent
             reply.set_error(exc, sent=False)
         return True

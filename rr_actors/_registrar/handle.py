@@ -434,7 +434,9 @@ class ResourceRegistrar(AsyncSurface):
                 parent = context.resource_id
         if self._config.backup_path is not None:  # its client record is stored
             check_picklable(request, f"the request of a call to '{target_rr}/{server}'")
-        yield from self._client_steps(target_rr, server, limit)  # (it exists from the first call)
+        client = self._clients.get(target_rr, server)
+        if client is None or not client.is_alive():  # (it exists from the first call)
+            yield from self._client_steps(target_rr, server, limit)
         return (
             yield from self._calls.steps(
                 query_id or new_id(),
