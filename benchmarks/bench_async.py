@@ -228,7 +228,7 @@ async def lag(awaited: bool, rate: float, seconds: float, slow: float) -> dict[s
         calls: set[asyncio.Task[None]] = set()
         while loop.time() - begun < seconds:
             due = int((loop.time() - begun) * rate) + 1
-            while sent < due:
+            while sent < due and loop.time() - begun < seconds:
                 sent += 1
                 if awaited:
                     task = asyncio.ensure_future(one_call())
@@ -263,9 +263,21 @@ async def lag(awaited: bool, rate: float, seconds: float, slow: float) -> dict[s
 async def main_async(args: argparse.Namespace) -> int:
     print(
         f"python {platform.python_version()}, pykka {importlib.metadata.version('pykka')}, "
-        f"{sys.platform}, CPUs allowed: {len(os.sched_getaffinity(0))}"
+        f"{sys.platform}, CPUs allowed: {len(os.sched_getaffinity(0))}, "
+        f"load average {os.getloadavg()[0]:.1f}"
     )
     print()
+    if "flight" in args.sections:
+        await print_in_flight(args)
+    if "dedup" in args.sections:
+        await print_dedup(args)
+    if "lag" in args.sections:
+        await print_lag(args)
+    return 0
+
+
+async def print_in_flight(args: argparse.Namespace) -> None:
+    """The in-flight table."""
     flight = await in_flight(args.calls)
     threads_ok = flight["threads"] <= THREADS_FLOOR
     rss_ok = flight["rss"] <= RSS_FLOOR_MIB
@@ -275,7 +287,9 @@ async def main_async(args: argparse.Namespace) -> int:
     print("| measure | value | floor | met? |")
     print("|---|---:|---:|---|")
     print(f"| all loads started after (s) | {flight['in flight after (s)']:.2f} | | |")
-    print(f"| threads in the process | {flight['threads']} | {THREADS_FLOOR} | {_yes(threads_ok)} |")
+    print(
+        f"| threads in the process | {flight['threads']} | {THREADS_FLOOR} | {_yes(threads_ok)} |"
+    )
     print(
         f"| RSS (MiB; {flight['rss_before']:.0f} before) | {flight['rss']:.0f} | "
         f"{RSS_FLOOR_MIB:.0f} | {_yes(rss_ok)} |"
@@ -290,6 +304,10 @@ async def main_async(args: argparse.Namespace) -> int:
     )
     print(f"| all answered and released after (s) | {flight['total (s)']:.2f} | | |")
     print()
+
+
+async def print_dedup(args: argparse.Namespace) -> None:
+    """The dedup-hit table."""
     rows = await dedup(args.rounds, args.batch)
     base = rows["pykka ask"][0]
     print(f"Dedup hit: {args.rounds} rounds x {args.batch} operations per row")
@@ -300,6 +318,10 @@ async def main_async(args: argparse.Namespace) -> int:
         floor = f"{DEDUP_FLOOR}x" if name == "awaited dedup hit" else ""
         print(f"| {name} | {median:.1f} | {p90:.1f} | {median / base:.2f}x | {floor} |")
     print()
+
+
+async def print_lag(args: argparse.Namespace) -> None:
+    """The loop-lag table."""
     print(
         f"Loop lag: a ticker every {TICK * 1000:g} ms while the loop drives {args.rate:g} "
         f"calls/s for {args.seconds:g} s (each load awaits {args.slow * 1000:g} ms)"
@@ -314,7 +336,7 @@ async def main_async(args: argparse.Namespace) -> int:
             f"| {name} | {row['calls/s']:.0f} | {row['p50']:.2f} | {row['p99']:.2f} | "
             f"{row['max']:.2f} | {floor} |"
         )
-    return 0
+    print()
 
 
 def _yes(ok: bool) -> str:
@@ -330,6 +352,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=1000.0, help="lag: calls a second")
     parser.add_argument("--seconds", type=float, default=3.0, help="lag: how long")
     parser.add_argument("--slow", type=float, default=0.02, help="lag: each load's await (s)")
+    parser.add_argument(
+        "--sections",
+        nargs="+",
+        choices=("flight", "dedup", "lag"),
+        default=("flight", "dedup", "lag"),
+        help="which measurements to run (default: all)",
+    )
     args = parser.parse_args(argv)
     return asyncio.run(main_async(args))
 

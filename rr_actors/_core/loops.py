@@ -30,7 +30,7 @@ import contextvars
 import functools
 import logging
 import threading
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable
 from typing import Any, TypeVar
 
 from rr_actors._core.actor import OneShotFuture
@@ -45,7 +45,6 @@ __all__ = [
     "process_loop",
     "run_steps_async",
     "settled",
-    "start_on",
 ]
 
 logger = logging.getLogger("rr_actors")
@@ -282,51 +281,3 @@ class OnLoop:
 
 def _unbound(fn: Callable[..., Any]) -> Callable[..., Any]:
     return fn
-
-
-def start_on(
-    loop: asyncio.AbstractEventLoop,
-    coroutine: Callable[[], Coroutine[Any, Any, T]],
-    then: Callable[[T | None, BaseException | None], object],
-    *,
-    context: contextvars.Context | None = None,
-) -> Callable[[], None]:
-    """Run `coroutine()` as a task of `loop` (from any thread); `then(value, error)` on
-    the loop thread once it ended. Returns `cancel()`: cancels the task (any thread).
-
-    A closed loop runs nothing: `then(None, RuntimeError)` at once, here.
-    """
-    task: list[asyncio.Task[T]] = []
-    cancelled = False
-
-    def begin() -> None:
-        if cancelled:
-            then(None, asyncio.CancelledError())
-            return
-        made = loop.create_task(coroutine(), context=context)
-        task.append(made)
-        made.add_done_callback(finished)
-
-    def finished(done: asyncio.Task[T]) -> None:
-        if done.cancelled():
-            then(None, asyncio.CancelledError())
-        elif done.exception() is not None:
-            then(None, done.exception())
-        else:
-            then(done.result(), None)
-
-    def cancel() -> None:
-        nonlocal cancelled
-        cancelled = True
-        with_task = task[0] if task else None
-        if with_task is not None:
-            try:
-                loop.call_soon_threadsafe(with_task.cancel)
-            except RuntimeError:  # closed: nothing runs there any more
-                return
-
-    try:
-        loop.call_soon_threadsafe(begin)
-    except RuntimeError as exc:
-        then(None, exc)
-    return cancel
