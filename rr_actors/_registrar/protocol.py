@@ -11,7 +11,7 @@ documentation of each method, with its errors, is on
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any, Protocol, runtime_checkable
 
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
@@ -20,10 +20,12 @@ from rr_actors.config import RegistrarConfig
 __all__ = ["LoadCallback", "Registrar", "UnloadCallback"]
 
 LoadCallback = Callable[[Any], Any]
-"""`load(request) -> response`: a resource server's load callback."""
+"""`load(request) -> response`: a resource server's load callback (or a coroutine
+function, `async def load(request)`)."""
 
-UnloadCallback = Callable[[Any, Any], None]
-"""`unload(request, response) -> None`: a resource server's unload callback."""
+UnloadCallback = Callable[[Any, Any], Awaitable[None] | None]
+"""`unload(request, response) -> None`: a resource server's unload callback (or a
+coroutine function)."""
 
 
 @runtime_checkable
