@@ -34,6 +34,7 @@ from rr_actors._registrar.aio import AsyncSurface, StatusWatch
 from rr_actors._registrar.deathwatch import gone_for_good
 from rr_actors._registrar.handle import RegistrarFacts, ResourceRegistrar
 from rr_actors._registrar.loading import LOADING, LoadContext
+from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._transport.base import Address, Transport
 from rr_actors._transport.messenger import Remote
 from rr_actors._types import Query, Status, StatusCallback
@@ -279,8 +280,8 @@ class RemoteRegistrar(AsyncSurface):
     def _register_server_steps(
         self,
         name: str,
-        load: Callable[[Any], Any],
-        unload: Callable[[Any, Any], None],
+        load: LoadCallback,
+        unload: UnloadCallback,
         on_status: StatusCallback | None,
         timeout: float | None,
         label: Callable[[Any], str] | None,
@@ -378,8 +379,8 @@ class RemoteRegistrar(AsyncSurface):
         self,
         name: str,
         *,
-        load: Callable[[Any], Any],
-        unload: Callable[[Any, Any], None],
+        load: LoadCallback,
+        unload: UnloadCallback,
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
         label: Callable[[Any], str] | None = None,
