@@ -183,6 +183,11 @@ class OneShotFuture(pykka.Future[T]):
                 self._ready.release()  # the next waiter, if any, gets through too
         return acquired or self._settled
 
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until it is settled, at most `timeout` seconds; whether it is (what
+        `replies.run_steps` blocks on)."""
+        return self._wait(timeout)
+
     def get(self, *, timeout: float | None = None) -> T:
         if not self._wait(timeout):
             raise pykka.Timeout(f"{timeout} seconds")

@@ -115,7 +115,7 @@ def run_steps(steps: Steps[T]) -> T:
         wait_for = next(steps)
         while True:
             try:
-                settled = wait_for.future._wait(wait_for.left())
+                settled = wait_for.future.wait(wait_for.left())
             except BaseException as exc:  # noqa: BLE001 - (KeyboardInterrupt & co: the steps decide)
                 wait_for = steps.throw(exc)
                 continue
