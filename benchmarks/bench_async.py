@@ -189,6 +189,17 @@ async def dedup(rounds: int, batch: int) -> dict[str, tuple[float, float]]:
 # -- the loop's lag -----------------------------------------------------------------------
 
 
+async def ticker(late: list[float], stop: asyncio.Event) -> None:
+    """Wake every `TICK` seconds until `stop`; append each wake-up's lateness to `late`."""
+    loop = asyncio.get_running_loop()
+    due = loop.time() + TICK
+    while not stop.is_set():
+        await asyncio.sleep(max(0.0, due - loop.time()))
+        now = loop.time()
+        late.append(now - due)
+        due = max(due + TICK, now)  # (a tick missed is not made up)
+
+
 async def lag(awaited: bool, rate: float, seconds: float, slow: float) -> dict[str, float]:
     """The ticker's lateness while the loop drives `rate` calls a second for `seconds`."""
     suffix = uuid.uuid4().hex[:6]
@@ -204,15 +215,6 @@ async def lag(awaited: bool, rate: float, seconds: float, slow: float) -> dict[s
     done = 0
     stop = asyncio.Event()
     requests = itertools.count()
-
-    async def ticker() -> None:
-        loop = asyncio.get_running_loop()
-        due = loop.time() + TICK
-        while not stop.is_set():
-            await asyncio.sleep(max(0.0, due - loop.time()))
-            now = loop.time()
-            late.append(now - due)
-            due = max(due + TICK, now)  # (a tick missed is not made up)
 
     async def one_call() -> None:
         nonlocal done
@@ -243,7 +245,7 @@ async def lag(awaited: bool, rate: float, seconds: float, slow: float) -> dict[s
             await asyncio.gather(*calls)
 
     try:
-        ticking = asyncio.ensure_future(ticker())
+        ticking = asyncio.ensure_future(ticker(late, stop))
         begun = time.perf_counter()
         await driver()
         elapsed = time.perf_counter() - begun

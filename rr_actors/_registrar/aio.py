@@ -367,8 +367,9 @@ class StatusWatch:
 
         Raises:
             UnknownQueryError: the registrar holds no such query.
-            CallTimeoutError, RegistrarStoppedError, RegistrarUnavailableError: as for
-                `aset_status_callback`.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: the registrar was stopped.
+            RegistrarUnavailableError: the registrar died.
         """
         if self._updates is None:
             self._updates = asyncio.Queue(self._maxsize)

@@ -113,8 +113,11 @@ class AsyncSupervision:
             The child's snapshot, running.
 
         Raises:
-            CallTimeoutError, SupervisorGaveUpError, RegistrarUnavailableError,
-            UnknownServerError, ConfigError: as `wait_restarted` raises them.
+            CallTimeoutError: not restarted within `timeout` seconds.
+            SupervisorGaveUpError: the tree gave up on it (see `wait_restarted`).
+            RegistrarUnavailableError: it exited for good, or its supervisor was stopped.
+            UnknownServerError: no child of that name.
+            ConfigError: `name` is not a str, or `timeout` not a positive number of seconds.
         """
         waiting = self._restart_wait(name, timeout, restarts)
         tree = waiting.tree
