@@ -307,13 +307,15 @@ class AsyncSurface:
             print(update.status, update.message)
         ```
 
-        While the iterator is open it is the query's status callback (it replaces the
-        one the call was made with, as `aset_status_callback` does); iteration ends after
-        a `FATAL` (the resource is gone for good, rule 19) or when the watch is closed
-        (`aclose()`, leaving an `async with` block, or the loop's end of an `async for`
-        that breaks: the callback then drops what comes). Updates are queued for it on
-        the loop it was opened on; past `maxsize` the oldest is dropped (and counted in
-        `dropped`), so a reader that falls behind never holds the registrar.
+        Once opened (its first step, or `async with`) it is the query's status callback
+        (it replaces the one the call was made with, as `aset_status_callback` does).
+        Iteration ends after a `FATAL` (the resource is gone for good, rule 19) or once
+        the watch is closed (`aclose()`, or leaving its `async with` block; a closed
+        watch drops what comes). An `async for` that breaks leaves it open: use `async
+        with` to close it. It does not end when the query is released: its reader
+        decides when to stop. Updates are queued for it on the loop it was opened on;
+        past `maxsize` the oldest is dropped (and counted in `dropped`), so a reader that
+        falls behind never holds the registrar.
 
         Args:
             query_id: a query this registrar holds (from `call` or `acall`).
