@@ -69,7 +69,6 @@ instead of waiting in an inbox nobody reads.
 
 from __future__ import annotations
 
-import asyncio
 import itertools
 import logging
 import queue
@@ -90,7 +89,9 @@ __all__ = [
     "Inbox",
     "Late",
     "OneShotFuture",
+    "awaiting",
     "deliver",
+    "mark_awaiting",
     "on_actor_thread",
     "refuse",
 ]
@@ -104,8 +105,8 @@ _ACTOR_THREAD = threading.local()  # `active` on the thread of an `Actor`'s loop
 
 
 def on_actor_thread() -> bool:
-    """Whether the calling thread runs an actor's loop (an `Actor`'s thread), or an
-    asyncio event loop (a coroutine that awaits a registrar).
+    """Whether the calling thread runs an actor's loop (an `Actor`'s thread), or steps an
+    awaited operation on an event loop (`awaiting`).
 
     Such a thread must never wait on the network: a carrier asked for a registrar there
     answers from what it knows and leaves the asking to a thread of its own (the Zenoh
@@ -113,13 +114,21 @@ def on_actor_thread() -> bool:
     supervisor's heartbeat comes through the mailbox too), and a loop runs its other
     tasks meanwhile.
     """
-    if getattr(_ACTOR_THREAD, "active", False):
-        return True
-    try:
-        asyncio.get_running_loop()
-    except RuntimeError:
-        return False
-    return True
+    return bool(
+        getattr(_ACTOR_THREAD, "active", False) or getattr(_ACTOR_THREAD, "awaiting", False)
+    )
+
+
+def awaiting() -> bool:
+    """Whether the calling thread steps an awaited operation on an event loop now
+    (`loops.run_steps_async` marks it, `mark_awaiting`): it may take an idle actor's
+    turn (`deliver`), and it must not wait on the network."""
+    return bool(getattr(_ACTOR_THREAD, "awaiting", False))
+
+
+def mark_awaiting(on: bool) -> None:
+    """Mark (or unmark) the calling thread as stepping an awaited operation (`awaiting`)."""
+    _ACTOR_THREAD.awaiting = on
 
 
 T = TypeVar("T")

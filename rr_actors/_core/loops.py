@@ -33,14 +33,13 @@ import threading
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from rr_actors._core.actor import OneShotFuture
-from rr_actors._core.replies import Steps
+from rr_actors._core.actor import OneShotFuture, mark_awaiting
+from rr_actors._core.replies import Steps, left
 from rr_actors._platform import fork
 
 __all__ = [
     "OnLoop",
     "is_coroutine_function",
-    "on_event_loop",
     "on_process_loop",
     "process_loop",
     "run_steps_async",
@@ -53,15 +52,6 @@ T = TypeVar("T")
 
 Then = Callable[[BaseException | None], object]
 """Told once a coroutine submitted to a loop ended: its error, or `None`."""
-
-
-def on_event_loop() -> bool:
-    """Whether the calling thread is running an asyncio event loop now."""
-    try:
-        asyncio.get_running_loop()
-    except RuntimeError:
-        return False
-    return True
 
 
 def is_coroutine_function(fn: object) -> bool:
@@ -115,22 +105,27 @@ async def run_steps_async(steps: Steps[T]) -> T:
     A cancellation of the awaiting task is thrown into the steps at their `yield`, as
     `replies.run_steps` throws a `KeyboardInterrupt`: they take the same way out.
     """
+    mark_awaiting(True)  # (each step: this thread may take an idle actor's turn)
     try:
-        wait_for = next(steps)
+        future, deadline = next(steps)
         while True:
-            future = wait_for.future
             if future._settled:  # (settled already: a dedup hit answered in the turn)
-                wait_for = steps.send(True)
+                future, deadline = steps.send(True)
                 continue
+            mark_awaiting(False)  # (the loop runs other tasks while this one waits)
             try:
-                done = await settled(future, wait_for.left())
+                done = await settled(future, left(deadline))
             except BaseException as exc:  # noqa: BLE001 - (the task cancelled: the steps decide)
-                wait_for = steps.throw(exc)
+                mark_awaiting(True)
+                future, deadline = steps.throw(exc)
                 continue
-            wait_for = steps.send(done)
+            mark_awaiting(True)
+            future, deadline = steps.send(done)
     except StopIteration as ended:
         result: T = ended.value
         return result
+    finally:
+        mark_awaiting(False)
 
 
 # -- coroutine functions run on a loop --------------------------------------------------
@@ -142,7 +137,7 @@ class _ProcessLoop:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None
-        self.thread: threading.Thread | None = None
+        self.ident: int | None = None  # its thread's
 
     def get(self) -> asyncio.AbstractEventLoop:
         loop = self._loop
@@ -157,7 +152,7 @@ class _ProcessLoop:
                 )
                 thread.start()
                 started.wait()
-                self.thread = thread
+                self.ident = thread.ident
                 self._loop = loop
             return self._loop
 
@@ -171,7 +166,7 @@ class _ProcessLoop:
         """In a forked child: the parent's loop thread is not there; a new one starts."""
         self._lock = threading.Lock()
         self._loop = None
-        self.thread = None
+        self.ident = None
 
 
 _PROCESS_LOOP = _ProcessLoop()
@@ -180,7 +175,7 @@ fork.after_fork_in_child("the process's event loop", _PROCESS_LOOP.forget)
 
 def on_process_loop() -> bool:
     """Whether the calling thread runs the process's own event loop."""
-    return _PROCESS_LOOP.thread is threading.current_thread()
+    return _PROCESS_LOOP.ident == threading.get_ident()
 
 
 def process_loop() -> asyncio.AbstractEventLoop:

@@ -9,7 +9,7 @@ gets while it waits (a `KeyboardInterrupt`, a cancelled task) is thrown into the
 at the `yield`, so both drivers take the same way out:
 
 ```
- steps ──yield Wait(future, deadline)──► driver: block / await until settled or deadline
+ steps ──yield (future, deadline)──► driver: block / await until settled or deadline
        ◄──────── send(settled: bool) ───┘   (interrupted: throw(exc) at the yield)
  ... return value ──► the driver returns it (StopIteration)
 ```
@@ -43,6 +43,7 @@ __all__ = [
     "Tokens",
     "Wait",
     "asked",
+    "left",
     "on_own_thread",
     "run_steps",
     "wait",
@@ -83,21 +84,15 @@ def wait(future: pykka.Future[Any], timeout: float, what: str) -> Any:
         raise CallTimeoutError(f"{what} timed out after {timeout:g} s") from None
 
 
-class Wait:
-    """What steps wait for: `future` settled, until `deadline` (`time.monotonic()`
-    seconds; `None`: without a bound)."""
+Wait: TypeAlias = tuple[OneShotFuture[Any], float | None]
+"""What steps wait for, `(future, deadline)`: `future` settled, until `deadline`
+(`time.monotonic()` seconds; `None`: without a bound). A plain tuple: the steps of every
+blocking call yield one, and a class's construction would cost them a call each."""
 
-    __slots__ = ("deadline", "future")
 
-    def __init__(self, future: OneShotFuture[Any], deadline: float | None) -> None:
-        self.future = future
-        self.deadline = deadline
-
-    def left(self) -> float | None:
-        """Seconds left until the deadline (never negative), `None` without one."""
-        if self.deadline is None:
-            return None
-        return max(0.0, self.deadline - time.monotonic())
+def left(deadline: float | None) -> float | None:
+    """Seconds left until `deadline` (never negative), `None` without one."""
+    return None if deadline is None else max(0.0, deadline - time.monotonic())
 
 
 Steps: TypeAlias = Generator[Wait, bool, T]
@@ -112,14 +107,15 @@ def run_steps(steps: Steps[T]) -> T:
         Exception: what the steps raise (an interruption of a wait is thrown into them).
     """
     try:
-        wait_for = next(steps)
+        future, deadline = next(steps)
         while True:
+            timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
             try:
-                settled = wait_for.future.wait(wait_for.left())
+                settled = future.wait(timeout)
             except BaseException as exc:  # noqa: BLE001 - (KeyboardInterrupt & co: the steps decide)
-                wait_for = steps.throw(exc)
+                future, deadline = steps.throw(exc)
                 continue
-            wait_for = steps.send(settled)
+            future, deadline = steps.send(settled)
     except StopIteration as done:
         result: T = done.value
         return result
@@ -146,7 +142,7 @@ def on_own_thread(fn: Callable[[], T], name: str) -> Steps[T]:
             done.set_result(result)
 
     threading.Thread(target=run, name=name, daemon=True).start()
-    yield Wait(done.future, None)
+    yield done.future, None
     result: T = done.future.get(timeout=0)
     return result
 
@@ -159,7 +155,7 @@ def asked(future: OneShotFuture[Any], deadline: float, limit: float, what: str) 
             `what`: the operation, for the message).
         Exception: whatever error the future holds.
     """
-    if not (yield Wait(future, deadline)):
+    if not (yield future, deadline):
         raise CallTimeoutError(f"{what} timed out after {limit:g} s")
     return future.get(timeout=0)
 

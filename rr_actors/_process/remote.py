@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any, cast
 import cloudpickle
 
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._core.replies import Steps, Wait, on_own_thread, run_steps
+from rr_actors._core.replies import Steps, on_own_thread, run_steps
 from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors._registrar.aio import AsyncSurface, StatusWatch
 from rr_actors._registrar.deathwatch import gone_for_good
@@ -264,7 +264,7 @@ class RemoteRegistrar(AsyncSurface):
         context = LOADING.get()
         reply = peer.submit(functools.partial(_drive_there, steps_of, context))
         try:
-            settled = yield Wait(reply.future, time.monotonic() + limit)
+            settled = yield reply.future, time.monotonic() + limit
         except BaseException:
             if give_back:
                 reply.future.add_done_callback(functools.partial(_give_back, peer))

@@ -1,13 +1,13 @@
 """The registrar handle's awaitable surface, written once for every handle.
 
 Each blocking method of a handle runs its operation's *steps* (`_core/replies.py`: a
-generator that yields a `Wait` for each future it needs) on the calling thread; its
+generator that yields `(future, deadline)` for each wait) on the calling thread; its
 async twin here runs the very same steps on the running event loop, where each wait is
 an await that the future's done callback wakes (`_core/loops.py`). One protocol, two
 drivers: same arguments, results, errors and timeouts, and no thread per waiting call.
 
 ```
- await reg.acall(...) ──► self._call_steps(...) ──► run_steps_async: yield Wait(attempt)
+ await reg.acall(...) ──► self._call_steps(...) ──► run_steps_async: yield attempt, deadline
                                                        └─► await: the answering thread's
                                                           call_soon_threadsafe wakes it
  reg.call(...)        ──► self._call_steps(...) ──► run_steps: the thread blocks on it

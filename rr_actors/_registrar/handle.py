@@ -26,7 +26,7 @@ from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.exit import REGISTRARS, stop_at_exit
 from rr_actors._core.ids import new_id
 from rr_actors._core.loops import OnLoop, is_coroutine_function, on_process_loop, process_loop
-from rr_actors._core.replies import FutureReply, Steps, Wait, asked, run_steps
+from rr_actors._core.replies import FutureReply, Steps, asked, run_steps
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.aio import AsyncSurface
 from rr_actors._registrar.calls import Calls
@@ -333,7 +333,7 @@ class ResourceRegistrar(AsyncSurface):
             )
         if on_status is not None and is_coroutine_function(on_status):
             on_status = OnLoop(on_status, process_loop())  # a server's: the process's loop
-        yield from self._asking(
+        return self._asking(
             RegisterServer(name, load, unload, on_status, label, FutureReply()),
             timeout,
             f"register_server({name!r})",
@@ -351,7 +351,7 @@ class ResourceRegistrar(AsyncSurface):
         _blocking(self._unregister_server_steps(name, timeout))
 
     def _unregister_server_steps(self, name: str, timeout: float | None) -> Steps[None]:
-        yield from self._asking(
+        return self._asking(
             UnregisterServer(name, FutureReply()), timeout, f"unregister_server({name!r})"
         )
 
@@ -434,22 +434,21 @@ class ResourceRegistrar(AsyncSurface):
                 parent = context.resource_id
         if self._config.backup_path is not None:  # its client record is stored
             check_picklable(request, f"the request of a call to '{target_rr}/{server}'")
+        steps = self._calls.steps(
+            query_id or new_id(),
+            target_rr,
+            server,
+            request,
+            parent,
+            chain,
+            on_status,
+            limit,
+            deadline,
+        )
         client = self._clients.get(target_rr, server)
         if client is None or not client.is_alive():  # (it exists from the first call)
-            yield from self._client_steps(target_rr, server, limit)
-        return (
-            yield from self._calls.steps(
-                query_id or new_id(),
-                target_rr,
-                server,
-                request,
-                parent,
-                chain,
-                on_status,
-                limit,
-                deadline,
-            )
-        )
+            return _after(self._client_steps(target_rr, server, limit), steps)
+        return steps
 
     def unload(self, query_id: str, *, timeout: float | None = None) -> None:
         """Release one consumer id obtained from `call` (rules 7-8).
@@ -473,7 +472,7 @@ class ResourceRegistrar(AsyncSurface):
         _blocking(self._unload_steps(query_id, timeout))
 
     def _unload_steps(self, query_id: str, timeout: float | None) -> Steps[None]:
-        yield from self._asking(Release(query_id, FutureReply()), timeout, f"unload({query_id!r})")
+        return self._asking(Release(query_id, FutureReply()), timeout, f"unload({query_id!r})")
 
     def send_status(
         self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
@@ -507,7 +506,7 @@ class ResourceRegistrar(AsyncSurface):
     ) -> Steps[None]:
         if not isinstance(status, Status):
             raise ConfigError(f"status must be an rr_actors.Status, got {status!r}")
-        yield from self._asking(
+        return self._asking(
             SendStatus(query_id, status, message, FutureReply()),
             timeout,
             f"send_status({query_id!r})",
@@ -525,10 +524,9 @@ class ResourceRegistrar(AsyncSurface):
         return _blocking(self._server_queries_steps(server, timeout))
 
     def _server_queries_steps(self, server: str, timeout: float | None) -> Steps[list[Query]]:
-        result: list[Query] = yield from self._asking(
+        return self._asking(
             ListServerQueries(server, FutureReply()), timeout, f"server_queries({server!r})"
         )
-        return result
 
     def fetch_queries(
         self, target_rr: str, server: str, *, timeout: float | None = None
@@ -570,10 +568,7 @@ class ResourceRegistrar(AsyncSurface):
         return _blocking(self._client_queries_steps(timeout))
 
     def _client_queries_steps(self, timeout: float | None) -> Steps[list[Query]]:
-        result: list[Query] = yield from self._asking(
-            ListClientQueries(FutureReply()), timeout, "client_queries()"
-        )
-        return result
+        return self._asking(ListClientQueries(FutureReply()), timeout, "client_queries()")
 
     def set_status_callback(
         self, query_id: str, callback: StatusCallback, *, timeout: float | None = None
@@ -599,7 +594,7 @@ class ResourceRegistrar(AsyncSurface):
             raise ConfigError(f"callback must be callable, got {callback!r}")
         if is_coroutine_function(callback):
             callback = OnLoop.bind(callback)  # the loop it was registered from
-        yield from self._asking(
+        return self._asking(
             SetStatusCallback(query_id, callback, FutureReply()),
             timeout,
             f"set_status_callback({query_id!r})",
@@ -633,7 +628,7 @@ class ResourceRegistrar(AsyncSurface):
     def _update_response_steps(
         self, query_id: str, response: Any, timeout: float | None
     ) -> Steps[None]:
-        yield from self._asking(
+        return self._asking(
             UpdateResponse(query_id, response, FutureReply()),
             timeout,
             f"update_response({query_id!r})",
@@ -650,7 +645,7 @@ class ResourceRegistrar(AsyncSurface):
         _blocking(self._save_catalog_steps(timeout))
 
     def _save_catalog_steps(self, timeout: float | None) -> Steps[None]:
-        yield from self._asking(Save(FutureReply()), timeout, "save_catalog()")
+        return self._asking(Save(FutureReply()), timeout, "save_catalog()")
 
     def stop(self, *, timeout: float | None = None) -> None:
         """Stop the registrar (rule 12).
@@ -686,7 +681,7 @@ class ResourceRegistrar(AsyncSurface):
             return
         # Stop ended the actor; what reached its mailbox meanwhile (an answer to give
         # back, a notice to acknowledge) is handled once its thread has handed it on.
-        if not (yield Wait(self._ended, deadline)):
+        if not (yield self._ended, deadline):
             raise CallTimeoutError(f"stop() of {self.name!r} timed out after {limit:g} s")
 
     def __enter__(self) -> ResourceRegistrar:
@@ -730,10 +725,12 @@ class ResourceRegistrar(AsyncSurface):
     def _asking(self, message: Asked, timeout: float | None, what: str) -> Steps[Any]:
         """`_ask`'s steps: send `message`, wait for its answer (`replies.Steps`)."""
         limit = self._timeout(timeout)
-        deadline = time.monotonic() + limit
         if not self._tell(message):
             raise DIRECTORY.gone_error(self.name) from None
-        return (yield from asked(message.reply.future, deadline, limit, what))
+        future = message.reply.future
+        if not (yield future, time.monotonic() + limit):
+            raise CallTimeoutError(f"{what} timed out after {limit:g} s")
+        return future.get()
 
     def _wait_stopped(self, timeout: float | None = None) -> bool:
         """Block until the actor's thread ended (stopped or died); whether it did."""
@@ -824,6 +821,12 @@ def snapshot(registrar: ResourceRegistrar, *, timeout: float, check: bool) -> Ca
         "catalog_snapshot()" if check else "a snapshot of the catalog",
     )
     return dataclasses.replace(view, in_doubt=registrar._in_doubt_texts)
+
+
+def _after(first: Steps[Any], then: Steps[T]) -> Steps[T]:
+    """The steps of `first`, then those of `then` (its result)."""
+    yield from first
+    return (yield from then)
 
 
 def _blocking(steps: Steps[T]) -> T:

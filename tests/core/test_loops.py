@@ -18,7 +18,7 @@ from rr_actors._core.loops import (
     run_steps_async,
     settled,
 )
-from rr_actors._core.replies import Steps, Wait
+from rr_actors._core.replies import Steps
 
 
 def test_a_future_settled_by_another_thread_wakes_the_awaiting_task_no_thread_waits() -> None:
@@ -43,7 +43,7 @@ def test_an_awaited_future_not_settled_in_time_reports_false() -> None:
 
 def _one_wait(future: OneShotFuture[Any], seen: list[str]) -> Steps[str]:
     try:
-        settled_in_time = yield Wait(future, None)
+        settled_in_time = yield future, None
     except BaseException as exc:
         seen.append(type(exc).__name__)
         raise
