@@ -46,15 +46,26 @@ class AsyncGated:
         return request
 
 
+class RecordedUnload:
+    """An unload that records its request (in a `shared` list)."""
+
+    def __init__(self, unloads: Any) -> None:
+        self.unloads = unloads
+
+    def __call__(self, request: Any, _response: Any) -> None:
+        self.unloads.append(request)
+
+
 def test_a_cancelled_acall_is_withdrawn_and_leaves_nothing_held(
     make_registrar: MakeRegistrar,
     gated_load: Callable[..., GatedLoad],
     eventually: Callable[..., bool],
+    shared: Shared,
 ) -> None:
     provider, consumer = make_registrar("provider"), make_registrar("consumer")
     slow = gated_load()
-    unloaded: list[Any] = []
-    provider.register_server("leaf", load=slow, unload=_drop)
+    unloads = shared.list()
+    provider.register_server("leaf", load=slow, unload=RecordedUnload(unloads))
 
     async def main() -> None:
         task = asyncio.ensure_future(consumer.acall(provider.name, "leaf", "r", timeout=20))
@@ -66,9 +77,9 @@ def test_a_cancelled_acall_is_withdrawn_and_leaves_nothing_held(
     asyncio.run(main())
     slow.gate.set()  # the load completes after its caller gave up: the id is released
 
-    assert eventually(lambda: provider.server_queries("leaf") == [])
+    assert eventually(lambda: unloads == ["r"])  # (loaded, then released: unloaded once)
+    assert [] == provider.server_queries("leaf")
     assert [] == consumer.client_queries()
-    assert [] == unloaded
     query = consumer.call(provider.name, "leaf", "r")  # loaded afresh: the first is gone
     assert ["r", "r"] == slow.requests
     consumer.unload(query.id)
