@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 from rr_actors import _extras, _log
 from rr_actors import events as events  # `rr.events.to_dict(...)`, as `rr.errors` is
 from rr_actors._core.bus import Subscription
-from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, Registrar, ResourceRegistrar
+from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, Registrar, ResourceRegistrar, StatusWatch
 from rr_actors._store import quarantine_backup
 from rr_actors._supervision import ChildCounts, ChildInfo, Supervisor
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
@@ -69,6 +69,7 @@ __all__ = [
     "Status",
     "StatusCallback",
     "StatusUpdate",
+    "StatusWatch",
     "Subscription",
     "Supervisor",
     "SupervisorGaveUpError",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any, Protocol
 
 __all__ = ["Query", "Setup", "Status", "StatusCallback", "StatusUpdate"]
@@ -74,5 +74,6 @@ class StatusUpdate:
     source: str
 
 
-StatusCallback = Callable[[Query, StatusUpdate], None]
-"""`on_status(query, update)`: a server's or a client's status callback."""
+StatusCallback = Callable[[Query, StatusUpdate], Awaitable[None] | None]
+"""`on_status(query, update)`: a server's or a client's status callback (a plain function,
+or a coroutine function: `async def on_status(query, update)`)."""

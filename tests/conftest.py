@@ -24,6 +24,13 @@ parametrised fixture `registrar_placement`:
   the Unix socket), and a listen port nobody connects to exercises nothing;
   `tests/multihost` covers TCP between routers. Loopback only, no root.
 
+API. In the test modules of the semantic rules (marked `pytestmark =
+pytest.mark.both_apis`), every test that starts its registrars through `make_registrar`
+also runs against the async API: ids "thread-async" and "process-async" (the thread
+placement and the AF_UNIX one; Zenoh adds nothing the async surface does differently).
+There `make_registrar` returns handles whose blocking methods go through their awaitable
+twins, with coroutine callbacks (`tests.support.awaited`): the same bodies, not copies.
+
 A test that cannot mean the same in every placement is marked
 `@pytest.mark.thread_only("reason")` (thread placement only),
 `@pytest.mark.not_zenoh("reason")` (not the zenoh one) or
@@ -84,6 +91,7 @@ from rr_actors.testing import (
     pending_work,
     start_forkserver,
 )
+from tests.support import awaited as awaited_handles
 from tests.support import gating
 from tests.support.gating import GatedLoad, same
 from tests.support.waiting import wait_for
@@ -96,6 +104,9 @@ LEAK_GRACE = 5.0
 PLACEMENTS = ("thread", "process", "zenoh")
 """Where `make_registrar` starts registrars: in this process, or one manager process each
 (joined over the AF_UNIX carrier, or over Zenoh)."""
+
+ASYNC_PLACEMENTS = ("thread", "process")
+"""The placements a `both_apis` module's tests also run in against the async API."""
 
 _HELPER_PIDS: set[int] = set()
 """Session-long helper processes (the `SharedObjects` manager), not leaks of a test."""
@@ -127,6 +138,14 @@ def pytest_configure(config: pytest.Config) -> None:
         "markers",
         "across_processes(reason): run this registrar test in every placement but the thread one",
     )
+    config.addinivalue_line(
+        "markers",
+        "both_apis: run this module's registrar tests against the async API too",
+    )
+    config.addinivalue_line(
+        "markers",
+        "blocking_api_only(reason): not against the async API (in a both_apis module)",
+    )
 
 
 FIRST = ("test_portable_platform.py",)
@@ -156,7 +175,18 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     if marker is not None:
         assert marker.args or marker.kwargs.get("reason"), "across_processes needs a reason"
         placements = [p for p in placements if p != "thread"]
-    metafunc.parametrize("registrar_placement", placements, indirect=True, ids=placements)
+    both = metafunc.definition.get_closest_marker("both_apis") is not None
+    marker = metafunc.definition.get_closest_marker("blocking_api_only")
+    if marker is not None:
+        assert marker.args or marker.kwargs.get("reason"), "blocking_api_only needs a reason"
+        both = False
+    if not both or "registrar_api" not in metafunc.fixturenames:
+        metafunc.parametrize("registrar_placement", placements, indirect=True, ids=placements)
+        return
+    cases = [(p, "blocking") for p in placements]
+    cases += [(p, "async") for p in ASYNC_PLACEMENTS if p in placements]
+    ids = [p if api == "blocking" else f"{p}-async" for p, api in cases]
+    metafunc.parametrize(("registrar_placement", "registrar_api"), cases, indirect=True, ids=ids)
 
 
 def _os_children() -> list[int]:
@@ -261,6 +291,17 @@ def registrar_placement(request: pytest.FixtureRequest) -> str:
     return placement
 
 
+@pytest.fixture
+def registrar_api(request: pytest.FixtureRequest) -> str:
+    """Which API `make_registrar`'s handles are driven through: "blocking" or "async".
+
+    "async" only in `both_apis` modules (`pytest_generate_tests`): the handles' blocking
+    methods then go through their awaitable twins (`tests.support.awaited`).
+    """
+    api: str = getattr(request, "param", "blocking")
+    return api
+
+
 class _LocalObjects:
     """The thread placement's shared state: ordinary objects of this process."""
 
@@ -347,7 +388,10 @@ def placement_network(placement: str) -> Transport:
 
 @pytest.fixture
 def make_registrar(
-    registrar_placement: str, request: pytest.FixtureRequest, process_helpers: SharedObjects
+    registrar_placement: str,
+    registrar_api: str,
+    request: pytest.FixtureRequest,
+    process_helpers: SharedObjects,
 ) -> Iterator[MakeRegistrar]:
     """Start registrars with unique names (`<prefix>-<8 hex>`); stop them all at teardown.
 
@@ -361,6 +405,7 @@ def make_registrar(
     if registrar_placement != "thread":
         cloudpickle.register_pickle_by_value(sys.modules[__name__])
         cloudpickle.register_pickle_by_value(gating)
+        # (not `awaited_handles`: by reference, its thread pool stays in each process)
         cloudpickle.register_pickle_by_value(request.module)
         system = placement_network(registrar_placement)
 
@@ -371,6 +416,8 @@ def make_registrar(
             registrar = rr.ResourceRegistrar.start(settings)
         else:
             registrar = RemoteRegistrar.start(settings, system)
+        if registrar_api == "async":
+            registrar = awaited_handles.awaited(registrar)
         started.append(registrar)
         return registrar
 

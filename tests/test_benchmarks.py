@@ -20,6 +20,10 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 
 SMALLEST = {
+    "bench_async.py": [
+        *("--calls", "50", "--rounds", "1", "--batch", "5"),
+        *("--rate", "100", "--seconds", "0.2", "--slow", "0.005"),
+    ],
     "bench_core.py": ["--rounds", "1", "--batch", "5"],
     "bench_observer_hosts.py": [
         *("--resources", "20", "--window", "0.5", "--kills", "1", "--cuts", "1"),

@@ -365,8 +365,10 @@ def runnable(command: list[str]) -> list[str] | None:
 def shell_block(block: Block, cwd: Path, done: set[tuple[str, ...]]) -> None:
     """Run or check every command of a shell block (see the module docstring)."""
     for written in commands(block.code):
-        # pinned to a CPU (`taskset -c 0 ...`): the command after it
-        command = written[3:] if written[:2] == ["taskset", "-c"] else written
+        # pinned to a CPU (`taskset -c 0 ...`) or at real-time priority (`chrt -f 10
+        # ...`): the command after it
+        prefixed = written[:2] in (["taskset", "-c"], ["chrt", "-f"])
+        command = written[3:] if prefixed else written
         if command[0] == "pip":
             check_pip(block, command)
             continue

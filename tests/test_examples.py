@@ -116,3 +116,18 @@ def test_filtered_camera_say_writes_whole_lines_from_many_threads(
 
     assert 8 * 300 == len(lines)
     assert [] == [line for line in lines if not re.fullmatch(r"\[ {6}t\d\] \d+", line)]
+
+
+def test_the_asyncio_service_shares_a_camera_streams_its_frames_and_unloads_it() -> None:
+    # A real Starlette app on uvicorn, a real socket, httpx as the client: the example
+    # plays the client against itself (POST twice, stream server-sent events, DELETE).
+    result = run_example("asyncio_service.py")
+
+    assert (0, "") == (result.returncode, result.stderr)
+    assert [
+        "opened rtsp://robot/front twice: ids differ: True",
+        "heard 2 frames: True",
+        "closing it again: 404",
+        "service stopped: the tree and its registrars with it",
+    ] == [line for line in result.stdout.splitlines() if not line.startswith("closed ")]
+    assert 2 == sum(line.endswith(": 204") for line in result.stdout.splitlines())

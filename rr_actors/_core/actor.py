@@ -35,7 +35,9 @@ consumer ids) can honour them.
 actor may take the turn itself and handle the message there (`deliver`), instead of
 putting it in the inbox and waking the actor's thread, which is the costly step of a
 hand-off on a loaded CPU (Erlang's schedulers run a process that receives a message
-without a thread hand-off either):
+without a thread hand-off either). So may an event loop's thread that sends an awaited
+call's load: it holds no lock across an await, and a dedup hit then costs the loop no
+wake-up from another thread:
 
 ```
  deliver(ref, message) (a carrier's receiving thread: it holds no lock)
@@ -87,25 +89,46 @@ __all__ = [
     "Inbox",
     "Late",
     "OneShotFuture",
+    "awaiting",
     "deliver",
+    "mark_awaiting",
     "on_actor_thread",
     "refuse",
 ]
 
 _pykka_logger = logging.getLogger("pykka")  # (where pykka's own loop logs)
+_logger = logging.getLogger("rr_actors")
+
+_CALLBACKS_MADE = threading.Lock()  # (`OneShotFuture.add_done_callback`: the first list)
 
 _ACTOR_THREAD = threading.local()  # `active` on the thread of an `Actor`'s loop
 
 
 def on_actor_thread() -> bool:
-    """Whether the calling thread runs an actor's loop (an `Actor`'s thread).
+    """Whether the calling thread runs an actor's loop (an `Actor`'s thread), or steps an
+    awaited operation on an event loop (`awaiting`).
 
     Such a thread must never wait on the network: a carrier asked for a registrar there
     answers from what it knows and leaves the asking to a thread of its own (the Zenoh
     carrier's outbox writer), so the actor answers its next message at once (a
-    supervisor's heartbeat comes through the mailbox too).
+    supervisor's heartbeat comes through the mailbox too), and a loop runs its other
+    tasks meanwhile.
     """
-    return bool(getattr(_ACTOR_THREAD, "active", False))
+    return bool(
+        getattr(_ACTOR_THREAD, "active", False) or getattr(_ACTOR_THREAD, "awaiting", False)
+    )
+
+
+def awaiting() -> bool:
+    """Whether the calling thread steps an awaited operation on an event loop now
+    (`loops.run_steps_async` marks it, `mark_awaiting`): it may take an idle actor's
+    turn (`deliver`), and it must not wait on the network."""
+    return bool(getattr(_ACTOR_THREAD, "awaiting", False))
+
+
+def mark_awaiting(on: bool) -> None:
+    """Mark (or unmark) the calling thread as stepping an awaited operation (`awaiting`)."""
+    _ACTOR_THREAD.awaiting = on
 
 
 T = TypeVar("T")
@@ -127,6 +150,10 @@ class OneShotFuture(pykka.Future[T]):
     every later `get`; settling it a second time raises `queue.Full`. Any number of
     threads may wait on it at once; a get hook runs once. (Who settles a registrar
     call's future, when an answer races a timeout, is decided by its `CallAttempt`.)
+
+    Beyond pykka's interface, `add_done_callback(fn)` runs `fn(future)` once it is
+    settled, on the thread that settles it: an event loop awaits it through one
+    (`rr_actors._core.loops.settled`), with no thread blocked on it.
     """
 
     def __init__(self) -> None:
@@ -137,6 +164,7 @@ class OneShotFuture(pykka.Future[T]):
         self._settled = False
         self._value: Any = None
         self._exc_info: OptExcInfo | None = None
+        self._done_callbacks: list[Callable[[OneShotFuture[T]], object]] | None = None
 
     def __repr__(self) -> str:
         return "<rr_actors.OneShotFuture>"
@@ -163,6 +191,11 @@ class OneShotFuture(pykka.Future[T]):
             if acquired:
                 self._ready.release()  # the next waiter, if any, gets through too
         return acquired or self._settled
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until it is settled, at most `timeout` seconds; whether it is (what
+        `replies.run_steps` blocks on)."""
+        return self._wait(timeout)
 
     def get(self, *, timeout: float | None = None) -> T:
         if not self._wait(timeout):
@@ -202,9 +235,41 @@ class OneShotFuture(pykka.Future[T]):
         if not self._claim.acquire(blocking=False):
             raise queue.Full
 
+    def add_done_callback(self, fn: Callable[[OneShotFuture[T]], object]) -> None:
+        """Run `fn(self)` once it is settled: at once, on this thread, if it is already;
+        else on the thread that settles it. What `fn` raises is logged.
+
+        Several callbacks run in the order they were added, each once. Meant for
+        wake-ups that must be quick and never block (`loop.call_soon_threadsafe`).
+        """
+        callbacks = self._done_callbacks
+        if callbacks is None:
+            with _CALLBACKS_MADE:  # (two threads adding the first at once: one list)
+                if self._done_callbacks is None:
+                    self._done_callbacks = []
+                callbacks = self._done_callbacks
+        callbacks.append(fn)  # then read `_settled`: one of this and `_settle` sees the other
+        if self._settled:
+            self._run_done_callbacks(callbacks)
+
     def _settle(self) -> None:
         self._settled = True  # written before the release: a waiter that wakes sees it
         self._ready.release()
+        callbacks = self._done_callbacks  # (read after `_settled` was written)
+        if callbacks:
+            self._run_done_callbacks(callbacks)
+
+    def _run_done_callbacks(self, callbacks: list[Callable[[OneShotFuture[T]], object]]) -> None:
+        """Run each callback of `callbacks` once: `pop` takes each for one thread only."""
+        while True:
+            try:
+                fn = callbacks.pop(0)
+            except IndexError:
+                return
+            try:
+                fn(self)
+            except Exception:
+                _logger.exception("a done callback of a future raised")
 
 
 class Inbox(LateQueue):

@@ -1,4 +1,19 @@
-"""Reply objects: where the answer to a message goes, and how a caller waits for it."""
+"""Reply objects: where the answer to a message goes, and how a caller waits for it.
+
+A protocol that waits (a call: its commit, its answer) is written once as *steps*, a
+generator that yields a `Wait` for each future it needs and is sent back whether the
+future was settled in time ("sans I/O", as h11 and wsproto are written). Two drivers run
+it: `run_steps` blocks the calling thread on each future; `loops.run_steps_async` awaits
+it on an event loop (the future's done callback wakes the loop). An exception the driver
+gets while it waits (a `KeyboardInterrupt`, a cancelled task) is thrown into the steps
+at the `yield`, so both drivers take the same way out:
+
+```
+ steps ──yield (future, deadline)──► driver: block / await until settled or deadline
+       ◄──────── send(settled: bool) ───┘   (interrupted: throw(exc) at the yield)
+ ... return value ──► the driver returns it (StopIteration)
+```
+"""
 
 from __future__ import annotations
 
@@ -8,8 +23,9 @@ import itertools
 import logging
 import queue
 import threading
-from collections.abc import Callable
-from typing import Any
+import time
+from collections.abc import Callable, Generator
+from typing import Any, TypeAlias, TypeVar
 
 import pykka
 
@@ -22,10 +38,18 @@ __all__ = [
     "FutureReply",
     "Join",
     "SharedJoin",
+    "Steps",
     "TokenReply",
     "Tokens",
+    "Wait",
+    "asked",
+    "left",
+    "on_own_thread",
+    "run_steps",
     "wait",
 ]
+
+T = TypeVar("T")
 
 logger = logging.getLogger("rr_actors")
 
@@ -58,6 +82,82 @@ def wait(future: pykka.Future[Any], timeout: float, what: str) -> Any:
         return future.get(timeout=timeout)
     except pykka.Timeout:
         raise CallTimeoutError(f"{what} timed out after {timeout:g} s") from None
+
+
+Wait: TypeAlias = tuple[OneShotFuture[Any], float | None]
+"""What steps wait for, `(future, deadline)`: `future` settled, until `deadline`
+(`time.monotonic()` seconds; `None`: without a bound). A plain tuple: the steps of every
+blocking call yield one, and a class's construction would cost them a call each."""
+
+
+def left(deadline: float | None) -> float | None:
+    """Seconds left until `deadline` (never negative), `None` without one."""
+    return None if deadline is None else max(0.0, deadline - time.monotonic())
+
+
+Steps: TypeAlias = Generator[Wait, bool, T]
+"""A protocol's steps: yields `Wait`s, is sent whether each future settled in time,
+returns the result (module docstring)."""
+
+
+def run_steps(steps: Steps[T]) -> T:
+    """Run `steps` on the calling thread, blocking on each future it waits for.
+
+    Raises:
+        Exception: what the steps raise (an interruption of a wait is thrown into them).
+    """
+    try:
+        future, deadline = next(steps)
+        while True:
+            timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                settled = future.wait(timeout)
+            except BaseException as exc:  # noqa: BLE001 - (KeyboardInterrupt & co: the steps decide)
+                future, deadline = steps.throw(exc)
+                continue
+            future, deadline = steps.send(settled)
+    except StopIteration as done:
+        result: T = done.value
+        return result
+
+
+def on_own_thread(fn: Callable[[], T], name: str) -> Steps[T]:
+    """Steps that run `fn()` on a fresh daemon thread of its own and wait for its result.
+
+    For the few operations that block in code not written as steps (a process's start
+    or stop, a supervisor's): driven on a loop, they hold that one thread, never the
+    loop. Interrupted (a cancelled task), the steps stop waiting; `fn` runs on.
+
+    Raises:
+        BaseException: what `fn` raised.
+    """
+    done: FutureReply = FutureReply()
+
+    def run() -> None:
+        try:
+            result = fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to the steps
+            done.set_error(exc)
+        else:
+            done.set_result(result)
+
+    threading.Thread(target=run, name=name, daemon=True).start()
+    yield done.future, None
+    result: T = done.future.get(timeout=0)
+    return result
+
+
+def asked(future: OneShotFuture[Any], deadline: float, limit: float, what: str) -> Steps[Any]:
+    """Steps of one request: wait for `future` until `deadline`; its value, or its error.
+
+    Raises:
+        CallTimeoutError: it was not settled by `deadline` (`limit`: the seconds, and
+            `what`: the operation, for the message).
+        Exception: whatever error the future holds.
+    """
+    if not (yield future, deadline):
+        raise CallTimeoutError(f"{what} timed out after {limit:g} s")
+    return future.get(timeout=0)
 
 
 @dataclasses.dataclass(frozen=True)

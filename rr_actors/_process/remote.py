@@ -4,6 +4,13 @@
 method runs the registrar's own method in the registrar's process over the system's
 carrier (`Transport.run`, any carrier) and returns its result or re-raises its error. Tests run
 one body over both placements with it (`rr_actors.testing` re-exports it).
+
+Its awaitable twins (`acall`, ...: `_registrar/aio.py`, the same for both handles) run
+the operation's steps (`_forwarding`): in the registrar's own process its handle's
+steps, awaited on the loop; from another process one `Run` of those steps there, whose
+answer wakes the loop (no thread here waits for it). An awaited `acall` that is
+cancelled, or times out here, gives back what the call there still gets (its id is
+released there), as a withdrawn call does.
 """
 
 from __future__ import annotations
@@ -14,17 +21,22 @@ import functools
 import os
 import signal
 import threading
+import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, cast
 
 import cloudpickle
 
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.replies import Steps, on_own_thread, run_steps
 from rr_actors._process.manager import ManagerExit, ManagerProcess
+from rr_actors._registrar.aio import AsyncSurface, StatusWatch
 from rr_actors._registrar.deathwatch import gone_for_good
 from rr_actors._registrar.handle import RegistrarFacts, ResourceRegistrar
 from rr_actors._registrar.loading import LOADING, LoadContext
+from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._transport.base import Address, Transport
+from rr_actors._transport.messenger import Remote
 from rr_actors._types import Query, Status, StatusCallback
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (
@@ -41,7 +53,7 @@ FORWARD_MARGIN = 10.0
 """Seconds a forwarded call may take beyond its own `timeout` (transport and scheduling)."""
 
 
-class RemoteRegistrar:
+class RemoteRegistrar(AsyncSurface):
     """A handle on a registrar that lives in a manager process of a system.
 
     It has the methods and properties of a `ResourceRegistrar`, with the same arguments,
@@ -228,14 +240,147 @@ class RemoteRegistrar:
         limit = float(timeout) if valid else self._config.call_timeout  # type: ignore[arg-type]
         return self.run(fn, timeout=limit + FORWARD_MARGIN)
 
+    def _forwarding(
+        self,
+        steps_of: Callable[[ResourceRegistrar], Steps[Any]],
+        timeout: object,
+        *,
+        give_back: bool = False,
+    ) -> Steps[Any]:
+        """The steps of one operation, `steps_of(registrar)`, run where the registrar is.
+
+        Served in this process: its handle's own steps, here. Elsewhere: one `Run` that
+        drives them there (on a thread of that process), waited for a margin beyond the
+        operation's own `timeout`. With `give_back` (a call), a wait that ends early
+        here (cancelled, timed out) gives back the query the call there still gets.
+        """
+        transport = self._address.attach()
+        valid = isinstance(timeout, int | float) and not isinstance(timeout, bool) and timeout > 0
+        limit = (float(timeout) if valid else self._config.call_timeout) + FORWARD_MARGIN  # type: ignore[arg-type]
+        peer = transport.resolve(self.name)
+        if not isinstance(peer, Remote):  # served here (or unknown: `run` says so)
+            local: ResourceRegistrar = transport.run(self.name, _itself, timeout=limit)
+            return (yield from steps_of(local))
+        context = LOADING.get()
+        reply = peer.submit(functools.partial(_drive_there, steps_of, context))
+        try:
+            settled = yield reply.future, time.monotonic() + limit
+        except BaseException:
+            if give_back:
+                reply.future.add_done_callback(functools.partial(_give_back, peer))
+            raise
+        if not settled:
+            if give_back:
+                reply.future.add_done_callback(functools.partial(_give_back, peer))
+            raise CallTimeoutError(f"run() on registrar {self.name!r} timed out after {limit:g} s")
+        return reply.future.get(timeout=0)
+
+    # -- the steps of the awaitable twins (`_registrar/aio.py`) -------------------------
+
+    def _register_server_steps(
+        self,
+        name: str,
+        load: LoadCallback,
+        unload: UnloadCallback,
+        on_status: StatusCallback | None,
+        timeout: float | None,
+        label: Callable[[Any], str] | None,
+    ) -> Steps[None]:
+        return self._forwarding(
+            lambda reg: reg._register_server_steps(name, load, unload, on_status, timeout, label),
+            timeout,
+        )
+
+    def _unregister_server_steps(self, name: str, timeout: float | None) -> Steps[None]:
+        return self._forwarding(lambda reg: reg._unregister_server_steps(name, timeout), timeout)
+
+    def _call_steps(
+        self,
+        target_rr: str,
+        server: str,
+        request: Any,
+        on_status: StatusCallback | None,
+        timeout: float | None,
+        query_id: str | None,
+    ) -> Steps[Query]:
+        return self._forwarding(
+            lambda reg: reg._call_steps(target_rr, server, request, on_status, timeout, query_id),
+            timeout,
+            give_back=True,
+        )
+
+    def _unload_steps(self, query_id: str, timeout: float | None) -> Steps[None]:
+        return self._forwarding(lambda reg: reg._unload_steps(query_id, timeout), timeout)
+
+    def _send_status_steps(
+        self, query_id: str, status: Status, message: str, timeout: float | None
+    ) -> Steps[None]:
+        return self._forwarding(
+            lambda reg: reg._send_status_steps(query_id, status, message, timeout), timeout
+        )
+
+    def _server_queries_steps(self, server: str, timeout: float | None) -> Steps[list[Query]]:
+        return self._forwarding(lambda reg: reg._server_queries_steps(server, timeout), timeout)
+
+    def _fetch_queries_steps(
+        self, target_rr: str, server: str, timeout: float | None
+    ) -> Steps[list[Query]]:
+        return self._forwarding(
+            lambda reg: reg._fetch_queries_steps(target_rr, server, timeout), timeout
+        )
+
+    def _client_queries_steps(self, timeout: float | None) -> Steps[list[Query]]:
+        return self._forwarding(lambda reg: reg._client_queries_steps(timeout), timeout)
+
+    def _set_status_callback_steps(
+        self, query_id: str, callback: StatusCallback, timeout: float | None
+    ) -> Steps[None]:
+        return self._forwarding(
+            lambda reg: reg._set_status_callback_steps(query_id, callback, timeout), timeout
+        )
+
+    def _update_response_steps(
+        self, query_id: str, response: Any, timeout: float | None
+    ) -> Steps[None]:
+        return self._forwarding(
+            lambda reg: reg._update_response_steps(query_id, response, timeout), timeout
+        )
+
+    def _save_catalog_steps(self, timeout: float | None) -> Steps[None]:
+        return self._forwarding(lambda reg: reg._save_catalog_steps(timeout), timeout)
+
+    def _stop_steps(self, timeout: float | None) -> Steps[None]:
+        if self._process is not None:  # the owner: the process, as `stop` does
+            stop = functools.partial(RemoteRegistrar.stop, self, timeout=timeout)  # (its own)
+            yield from on_own_thread(stop, f"rr-stop-{self.name}")
+            return
+        try:
+            yield from self._forwarding(lambda reg: reg._stop_steps(timeout), timeout)
+        except (RegistrarStoppedError, RegistrarUnavailableError):
+            return
+
+    def watch(self, query_id: str, *, maxsize: int = 256) -> StatusWatch:
+        """Not here: a query's statuses reach the registrar that holds it, in its process.
+
+        Raises:
+            ConfigError: always; watch it from a registrar of this process that holds
+                it (`ResourceRegistrar.watch`), or register a status callback there
+                (`aset_status_callback`: it runs in the registrar's process).
+        """
+        raise ConfigError(
+            f"watch() needs the registrar that holds the query in this process; "
+            f"{self.name!r} runs in another: watch from a registrar of this process, or "
+            "set a status callback (it runs in the registrar's process)"
+        )
+
     # -- the ResourceRegistrar API ----------------------------------------------------
 
     def register_server(
         self,
         name: str,
         *,
-        load: Callable[[Any], Any],
-        unload: Callable[[Any, Any], None],
+        load: LoadCallback,
+        unload: UnloadCallback,
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
         label: Callable[[Any], str] | None = None,
@@ -489,6 +634,40 @@ def _call_in_context(
     scope = contextvars.copy_context()
     scope.run(LOADING.set, context)
     return scope.run(registrar.call, *args, **kw)
+
+
+def _itself(registrar: ResourceRegistrar) -> ResourceRegistrar:
+    return registrar
+
+
+def _drive_there(
+    steps_of: Callable[[ResourceRegistrar], Steps[Any]],
+    context: LoadContext | None,
+    registrar: ResourceRegistrar,
+) -> Any:
+    """In the registrar's process, on a thread of its own: run the operation's steps,
+    in the load context of the caller (`_call_in_context`)."""
+    if context is None:
+        return run_steps(steps_of(registrar))
+    scope = contextvars.copy_context()
+    scope.run(LOADING.set, context)
+    return scope.run(lambda: run_steps(steps_of(registrar)))
+
+
+def _give_back(peer: Remote, future: Any) -> None:
+    """A call whose caller stopped waiting here got its answer there: release its id
+    there (on the answering thread; nobody waits for it)."""
+    try:
+        query = future.get(timeout=0)
+    except Exception:  # noqa: BLE001 - failed there: nothing is held
+        return
+    if isinstance(query, Query):
+        peer.submit(functools.partial(_release, query.id))
+
+
+def _release(query_id: str, registrar: ResourceRegistrar) -> None:
+    with contextlib.suppress(RrError):
+        registrar.unload(query_id)
 
 
 def _kill_own_process(_: ResourceRegistrar) -> None:

@@ -2,7 +2,7 @@
 
 - `protocol`: the `Registrar` API both placements implement;
 - `handle`: `ResourceRegistrar`, what user code holds; `calls`: the call protocol on the
-  caller's thread;
+  caller's thread; `aio`: the handles' awaitable twins and `StatusWatch`, written once;
 - `actor`: the registrar actor, dispatching to its roles `provider` (loads; `matching`
   runs user code off the actor), `unloading`, `servers`, `consumer`, `status`,
   `presence` (peers lost for good or reachable again) and `lifecycle`, which share
@@ -15,6 +15,7 @@
 
 from typing import TYPE_CHECKING
 
+from rr_actors._registrar.aio import StatusWatch
 from rr_actors._registrar.handle import ResourceRegistrar, snapshot, start_registrar
 from rr_actors._registrar.lifecycle import CatalogView
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH
@@ -29,6 +30,7 @@ __all__ = [
     "Registrar",
     "ResourceRegistrar",
     "Served",
+    "StatusWatch",
     "UnloadCallback",
     "give_back",
     "snapshot",

@@ -38,7 +38,7 @@ from typing import Any
 
 from rr_actors._catalog import Catalog
 from rr_actors._catalog.texts import plain_text
-from rr_actors._core.actor import Actor
+from rr_actors._core.actor import Actor, OneShotFuture
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Answer, Tokens
@@ -253,7 +253,7 @@ class RegistrarActor(Actor):
         peer: LocalPeer,
         died: threading.Event,
         due: DueAnswers,
-        ended: threading.Event,
+        ended: OneShotFuture[None],
         published: Publisher[Event],
         clients: Clients,
         *,
@@ -370,7 +370,7 @@ class RegistrarActor(Actor):
     def on_ended(self) -> None:
         error = DIRECTORY.gone_error(self.name)  # outcomes left, or handed over later:
         self.flights.due.outcomes.close(lambda m: self.lifecycle.refuse_message(m, error))
-        self.lifecycle.ended.set()
+        self.lifecycle.ended.set(None)
 
     def on_late(self, envelope: Any) -> None:
         """A message that arrived after this actor's loop ended (any thread)."""

@@ -108,10 +108,6 @@ class CallAttempt(OneShotFuture[Any]):
         with self._state_lock:
             self._awaited = True
 
-    def wait(self, timeout: float | None = None) -> bool:
-        """Wait (the caller) until it is answered or failed, at most `timeout` seconds."""
-        return self._wait(timeout)
-
     def sent(self) -> AttemptState:
         """The caller: its `Load` leaves now (`SENT`), unless it failed meanwhile."""
         with self._state_lock:

@@ -34,16 +34,16 @@ from __future__ import annotations
 
 import contextlib
 import threading
-import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import pykka
 
 from rr_actors._catalog import ClientRecord
+from rr_actors._core.actor import awaiting
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.queues import LateQueue
-from rr_actors._core.replies import FutureReply
+from rr_actors._core.replies import FutureReply, Steps
 from rr_actors._registrar.attempt import AttemptState, CallAttempt
 from rr_actors._registrar.loading import check_picklable
 from rr_actors._registrar.messages import (
@@ -267,7 +267,7 @@ class Calls:
         self.listened = listened
         self.attempt_type: type[CallAttempt] = CallAttempt
 
-    def call(
+    def steps(
         self,
         query_id: str,
         serving_rr: str,
@@ -278,8 +278,12 @@ class Calls:
         on_status: StatusCallback | None,
         limit: float,
         deadline: float,
-    ) -> Query:
-        """Send a call's load and wait for its answer until `deadline` (rule 17).
+    ) -> Steps[Query]:
+        """A call's steps: send its load, wait for its answer until `deadline` (rule 17).
+
+        Each wait is a `yield` (`replies.Steps`): `run_steps` blocks the caller's thread
+        on it, `loops.run_steps_async` awaits it. An exception thrown in at a wait (a
+        `KeyboardInterrupt`, a cancelled task) withdraws the call as a timeout does.
 
         Args:
             query_id: the call's query id.
@@ -306,12 +310,13 @@ class Calls:
         try:
             self.due.expect(query_id, attempt)  # a notice that overtakes the answer waits
             load = Load(query_id, server, request, self.name, chain, reply)
-            sent = self.send(load, reply, deadline)
-            left = max(0.0, deadline - time.monotonic())
-            if not (sent and attempt.wait(left)):  # the time is up: withdraw, unless the
-                withdrawn = attempt.withdraw() is AttemptState.WITHDRAWN  # answer won
-                if not withdrawn:  # (being recorded: its outcome comes with the commit)
-                    attempt.wait()
+            sent = (yield from self.commit_pending(reply, deadline)) if self.commit_first else True
+            if sent:
+                self.send(load, reply)
+            if not (sent and (yield attempt, deadline)):  # the time is up: withdraw,
+                withdrawn = attempt.withdraw() is AttemptState.WITHDRAWN  # unless the
+                if not withdrawn:  # answer won (being recorded: its outcome comes with
+                    yield attempt, None  # the commit)
             if attempt.state is AttemptState.ANSWERED:
                 answered = reply.query(attempt.get())
                 if self.stored and not self.commit_first:
@@ -326,7 +331,7 @@ class Calls:
         except pykka.ActorDeadError:  # this registrar stopped meanwhile: give the id back
             give_back(serving_rr, query_id, self.name)
             raise DIRECTORY.gone_error(self.name) from None
-        except BaseException:  # the caller stops waiting (KeyboardInterrupt, ...)
+        except BaseException:  # the caller stops waiting (KeyboardInterrupt, cancelled)
             attempt.withdraw()
             self.withdraw(reply, attempt, "interrupted")
             raise
@@ -338,33 +343,46 @@ class Calls:
         assert answered is not None  # (answered, as neither withdrawn nor failed)
         return answered
 
-    def send(self, load: Load, reply: ClientReply, deadline: float) -> bool:
-        """Send a call's `load` from the caller's thread; whether it left before `deadline`.
+    def commit_pending(self, reply: ClientReply, deadline: float) -> Steps[bool]:
+        """A durable call's record, committed as pending before its load leaves (rule 16):
+        a crash of this process after the load left still knows the call. Whether it was
+        committed before `deadline`.
+
+        Raises:
+            CatalogWriteError: the record could not be written.
+        """
+        committed = FutureReply()
+        record = ClientRecord(reply.query(), reply.parent)
+        self.ref.tell(Pending(record, reply.attempt, committed))
+        if not (yield committed.future, deadline):
+            return False
+        committed.future.get(timeout=0)  # (raises: the record could not be written)
+        return True
+
+    def send(self, load: Load, reply: ClientReply) -> None:
+        """Send a call's `load` from the caller's thread (a durable one's record is
+        committed as pending already, `commit_pending`).
 
         Along the client's route rather than through the client's mailbox: one thread
         hand-off less; mailbox order still holds, a later withdrawal reaches its actors
-        after this. A durable call's record is committed as pending first (rule 16), so
-        a crash of this process after the load left still knows the call; a record that
-        cannot be written raises here.
+        after this. From an event loop's thread (an awaited call), an idle provider of
+        this process handles the load in its turn on that thread, as a carrier's
+        receiving thread may (`_core/actor.py`): a dedup hit is answered before the
+        call awaits anything, and the loop is not woken from another thread.
         """
-        if self.commit_first:
-            committed = FutureReply()
-            record = ClientRecord(reply.query(), reply.parent)
-            self.ref.tell(Pending(record, reply.attempt, committed))
-            try:
-                committed.future.get(timeout=max(0.0, deadline - time.monotonic()))
-            except pykka.Timeout:
-                return False
         if reply.attempt.sent() is not AttemptState.SENT:  # this registrar stopped
-            return True  # meanwhile and failed it: nothing to send
+            return  # meanwhile and failed it: nothing to send
         probes = self.probes()
         if probes is not None:
             probes.fire("send_load", load)
         try:
-            DIRECTORY.lookup(reply.serving_rr).tell(load)
+            provider = DIRECTORY.lookup(reply.serving_rr)
+            if awaiting():  # (on a loop) an idle provider of this process handles it here
+                provider.deliver(load)  # (its turn, `_core/actor.py`): no thread hand-off
+            else:
+                provider.tell(load)
         except RrError as exc:  # refused at once: nothing was sent
             reply.set_error(exc, sent=False)
-        return True
 
     def withdraw(self, reply: ClientReply, attempt: CallAttempt, why: str = "timeout") -> None:
         """Take back a call whose caller stopped waiting: leave nothing behind (rule 17).

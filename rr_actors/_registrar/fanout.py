@@ -47,6 +47,7 @@ from typing import Any, Protocol
 from rr_actors import events
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer
+from rr_actors._core.loops import OnLoop
 from rr_actors._core.replies import CallbackReply, SharedJoin
 from rr_actors._core.workers import Job, Workers
 from rr_actors._platform import fork
@@ -131,6 +132,12 @@ class _Call:
             logger.exception("status callback for %s raised", self.query.id)
         finally:
             self.done()
+
+
+def _done_by(done: Callable[..., None]) -> Callable[[BaseException | None], None]:
+    """A coroutine status callback's end (`OnLoop.submit`'s `then`): its part of the
+    join is done (what it raised was logged on its loop)."""
+    return lambda _error: done()
 
 
 class _Drainer:
@@ -358,7 +365,10 @@ class Desk:
                     )
                 )
             update = StatusUpdate(query_id, batch.status, batch.message, batch.source)
-            calls.append(_Call(callback, query, update, join.add()))
+            if isinstance(callback, OnLoop):  # a coroutine: on its loop, no worker
+                callback.submit(query, update, then=_done_by(join.add()), key=query_id)
+            else:
+                calls.append(_Call(callback, query, update, join.add()))
         return tuple(slow)
 
     def forward(

@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 import pykka
 
@@ -25,8 +25,10 @@ from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.exit import REGISTRARS, stop_at_exit
 from rr_actors._core.ids import new_id
-from rr_actors._core.replies import FutureReply, wait
+from rr_actors._core.loops import OnLoop, is_coroutine_function, on_process_loop, process_loop
+from rr_actors._core.replies import FutureReply, Steps, asked, run_steps
 from rr_actors._registrar.actor import RegistrarActor
+from rr_actors._registrar.aio import AsyncSurface
 from rr_actors._registrar.calls import Calls
 from rr_actors._registrar.endpoints import ClientActor
 from rr_actors._registrar.lifecycle import CatalogView
@@ -70,6 +72,8 @@ __all__ = [
     "start_registrar",
 ]
 
+T = TypeVar("T")
+
 STOP_WAITS_FOR_UNLOADS = 0.5
 """The share of `stop()`'s timeout it waits for the unloads under way (the rest is left
 to write the backup and stop the servers): 5 s with the default `call_timeout`."""
@@ -90,13 +94,15 @@ class RegistrarFacts:
     in_doubt: tuple[Query, ...] = ()
 
 
-class ResourceRegistrar:
+class ResourceRegistrar(AsyncSurface):
     """A manager's resource registrar (thesis 4.3.1, `RrBase`).
 
     Start one with [`ResourceRegistrar.start`][rr_actors.ResourceRegistrar.start]. Its
     methods may be called from any thread, including from inside callbacks; each sends a
     message to the registrar actor and waits for the answer at most `timeout` seconds
-    (default: the config's `call_timeout`).
+    (default: the config's `call_timeout`). Each has an awaitable twin for event loops
+    (`acall`, `aunload`, ..., `watch`; the prefix as Django's async ORM has it): the
+    same operation, errors and timeout, with no thread held while it waits.
     """
 
     def __init__(self, launched: Launched) -> None:
@@ -304,13 +310,30 @@ class ResourceRegistrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
+        _blocking(self._register_server_steps(name, load, unload, on_status, timeout, label))
+
+    def _register_server_steps(
+        self,
+        name: str,
+        load: LoadCallback,
+        unload: UnloadCallback,
+        on_status: StatusCallback | None,
+        timeout: float | None,
+        label: Callable[[Any], str] | None,
+    ) -> Steps[None]:
         if not isinstance(name, str) or not name or "/" in name:
             raise ConfigError(f"server name must be a non-empty string without '/', got {name!r}")
         callbacks = (("load", load), ("unload", unload), ("on_status", on_status), ("label", label))
         for arg, fn in callbacks:
             if fn is not None and not callable(fn):
                 raise ConfigError(f"{arg} must be callable, got {fn!r}")
-        self._ask(
+        if label is not None and is_coroutine_function(label):
+            raise ConfigError(
+                f"label must be a plain function (it runs once, briefly), got {label!r}"
+            )
+        if on_status is not None and is_coroutine_function(on_status):
+            on_status = OnLoop(on_status, process_loop())  # a server's: the process's loop
+        return self._asking(
             RegisterServer(name, load, unload, on_status, label, FutureReply()),
             timeout,
             f"register_server({name!r})",
@@ -325,8 +348,12 @@ class ResourceRegistrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        limit = self._timeout(timeout)
-        self._ask(UnregisterServer(name, FutureReply()), limit, f"unregister_server({name!r})")
+        _blocking(self._unregister_server_steps(name, timeout))
+
+    def _unregister_server_steps(self, name: str, timeout: float | None) -> Steps[None]:
+        return self._asking(
+            UnregisterServer(name, FutureReply()), timeout, f"unregister_server({name!r})"
+        )
 
     # -- consumer API -----------------------------------------------------------------
 
@@ -376,6 +403,17 @@ class ResourceRegistrar:
                 cannot be pickled where it must be: across processes, or into this
                 registrar's backup (its client record); the provider then holds nothing.
         """
+        return _blocking(self._call_steps(target_rr, server, request, on_status, timeout, query_id))
+
+    def _call_steps(
+        self,
+        target_rr: str,
+        server: str,
+        request: Any,
+        on_status: StatusCallback | None,
+        timeout: float | None,
+        query_id: str | None,
+    ) -> Steps[Query]:
         if on_status is not None and not callable(on_status):
             raise ConfigError(f"on_status must be callable, got {on_status!r}")
         _check_names(target_rr=target_rr, server=server)
@@ -383,6 +421,8 @@ class ResourceRegistrar:
             raise ConfigError(
                 f"query_id must be a non-empty str (or None: a fresh id), got {query_id!r}"
             )
+        if on_status is not None and is_coroutine_function(on_status):
+            on_status = OnLoop.bind(on_status)  # the loop it was registered from
         limit = self._timeout(timeout)
         deadline = time.monotonic() + limit
         context = LOADING.get()
@@ -394,8 +434,7 @@ class ResourceRegistrar:
                 parent = context.resource_id
         if self._config.backup_path is not None:  # its client record is stored
             check_picklable(request, f"the request of a call to '{target_rr}/{server}'")
-        self._client(target_rr, server, limit)  # the client endpoint exists from the first call
-        return self._calls.call(
+        steps = self._calls.steps(
             query_id or new_id(),
             target_rr,
             server,
@@ -406,6 +445,10 @@ class ResourceRegistrar:
             limit,
             deadline,
         )
+        client = self._clients.get(target_rr, server)
+        if client is None or not client.is_alive():  # (it exists from the first call)
+            return _after(self._client_steps(target_rr, server, limit), steps)
+        return steps
 
     def unload(self, query_id: str, *, timeout: float | None = None) -> None:
         """Release one consumer id obtained from `call` (rules 7-8).
@@ -426,7 +469,10 @@ class ResourceRegistrar:
             RegistrarStoppedError: this registrar was stopped; or the provider was (the
                 id is released as for `RegistrarUnavailableError`, at its next start).
         """
-        self._ask(Release(query_id, FutureReply()), timeout, f"unload({query_id!r})")
+        _blocking(self._unload_steps(query_id, timeout))
+
+    def _unload_steps(self, query_id: str, timeout: float | None) -> Steps[None]:
+        return self._asking(Release(query_id, FutureReply()), timeout, f"unload({query_id!r})")
 
     def send_status(
         self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
@@ -453,9 +499,14 @@ class ResourceRegistrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
+        _blocking(self._send_status_steps(query_id, status, message, timeout))
+
+    def _send_status_steps(
+        self, query_id: str, status: Status, message: str, timeout: float | None
+    ) -> Steps[None]:
         if not isinstance(status, Status):
             raise ConfigError(f"status must be an rr_actors.Status, got {status!r}")
-        self._ask(
+        return self._asking(
             SendStatus(query_id, status, message, FutureReply()),
             timeout,
             f"send_status({query_id!r})",
@@ -470,10 +521,12 @@ class ResourceRegistrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        result: list[Query] = self._ask(
+        return _blocking(self._server_queries_steps(server, timeout))
+
+    def _server_queries_steps(self, server: str, timeout: float | None) -> Steps[list[Query]]:
+        return self._asking(
             ListServerQueries(server, FutureReply()), timeout, f"server_queries({server!r})"
         )
-        return result
 
     def fetch_queries(
         self, target_rr: str, server: str, *, timeout: float | None = None
@@ -488,11 +541,20 @@ class ResourceRegistrar:
             CallTimeoutError: no answer within `timeout` seconds.
             RegistrarUnavailableError: the provider died.
         """
+        return _blocking(self._fetch_queries_steps(target_rr, server, timeout))
+
+    def _fetch_queries_steps(
+        self, target_rr: str, server: str, timeout: float | None
+    ) -> Steps[list[Query]]:
         _check_names(target_rr=target_rr, server=server)
         limit = self._timeout(timeout)
+        deadline = time.monotonic() + limit
         reply = FutureReply()
-        self._client(target_rr, server, limit).tell(FetchVia(server, reply))
-        result: list[Query] = wait(reply.future, limit, f"fetch_queries({target_rr!r})")
+        client = yield from self._client_steps(target_rr, server, limit)
+        client.tell(FetchVia(server, reply))
+        result: list[Query] = yield from asked(
+            reply.future, deadline, limit, f"fetch_queries({target_rr!r})"
+        )
         return result
 
     def client_queries(self, *, timeout: float | None = None) -> list[Query]:
@@ -503,10 +565,10 @@ class ResourceRegistrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        result: list[Query] = self._ask(
-            ListClientQueries(FutureReply()), timeout, "client_queries()"
-        )
-        return result
+        return _blocking(self._client_queries_steps(timeout))
+
+    def _client_queries_steps(self, timeout: float | None) -> Steps[list[Query]]:
+        return self._asking(ListClientQueries(FutureReply()), timeout, "client_queries()")
 
     def set_status_callback(
         self, query_id: str, callback: StatusCallback, *, timeout: float | None = None
@@ -523,9 +585,16 @@ class ResourceRegistrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
+        _blocking(self._set_status_callback_steps(query_id, callback, timeout))
+
+    def _set_status_callback_steps(
+        self, query_id: str, callback: StatusCallback, timeout: float | None
+    ) -> Steps[None]:
         if not callable(callback):
             raise ConfigError(f"callback must be callable, got {callback!r}")
-        self._ask(
+        if is_coroutine_function(callback):
+            callback = OnLoop.bind(callback)  # the loop it was registered from
+        return self._asking(
             SetStatusCallback(query_id, callback, FutureReply()),
             timeout,
             f"set_status_callback({query_id!r})",
@@ -554,7 +623,12 @@ class ResourceRegistrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        self._ask(
+        _blocking(self._update_response_steps(query_id, response, timeout))
+
+    def _update_response_steps(
+        self, query_id: str, response: Any, timeout: float | None
+    ) -> Steps[None]:
+        return self._asking(
             UpdateResponse(query_id, response, FutureReply()),
             timeout,
             f"update_response({query_id!r})",
@@ -568,7 +642,10 @@ class ResourceRegistrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        self._ask(Save(FutureReply()), timeout, "save_catalog()")
+        _blocking(self._save_catalog_steps(timeout))
+
+    def _save_catalog_steps(self, timeout: float | None) -> Steps[None]:
+        return self._asking(Save(FutureReply()), timeout, "save_catalog()")
 
     def stop(self, *, timeout: float | None = None) -> None:
         """Stop the registrar (rule 12).
@@ -590,18 +667,21 @@ class ResourceRegistrar:
             CallTimeoutError: not finished within `timeout` seconds.
             RegistrarUnavailableError: the registrar died while it stopped.
         """
+        _blocking(self._stop_steps(timeout))
+
+    def _stop_steps(self, timeout: float | None) -> Steps[None]:
         if not self._ref.is_alive():
             return
         limit = self._timeout(timeout)
         deadline = time.monotonic() + limit
         try:
             until = deadline - limit * (1.0 - STOP_WAITS_FOR_UNLOADS)
-            self._ask(Stop(FutureReply(), until), limit, "stop()")
+            yield from self._asking(Stop(FutureReply(), until), limit, "stop()")
         except RegistrarStoppedError:
             return
         # Stop ended the actor; what reached its mailbox meanwhile (an answer to give
         # back, a notice to acknowledge) is handled once its thread has handed it on.
-        if not self._ended.wait(max(0.0, deadline - time.monotonic())):
+        if not (yield self._ended, deadline):
             raise CallTimeoutError(f"stop() of {self.name!r} timed out after {limit:g} s")
 
     def __enter__(self) -> ResourceRegistrar:
@@ -640,10 +720,17 @@ class ResourceRegistrar:
             RegistrarStoppedError, RegistrarUnavailableError: it was stopped, or it died.
             RrError: the error the actor answered with.
         """
+        return _blocking(self._asking(message, timeout, what))
+
+    def _asking(self, message: Asked, timeout: float | None, what: str) -> Steps[Any]:
+        """`_ask`'s steps: send `message`, wait for its answer (`replies.Steps`)."""
         limit = self._timeout(timeout)
         if not self._tell(message):
             raise DIRECTORY.gone_error(self.name) from None
-        return wait(message.reply.future, limit, what)
+        future = message.reply.future
+        if not (yield future, time.monotonic() + limit):
+            raise CallTimeoutError(f"{what} timed out after {limit:g} s")
+        return future.get()
 
     def _wait_stopped(self, timeout: float | None = None) -> bool:
         """Block until the actor's thread ended (stopped or died); whether it did."""
@@ -661,10 +748,13 @@ class ResourceRegistrar:
         """The actor's pykka ref (`rr_actors.testing.actor_ref` gives it to tests)."""
         return self._ref
 
-    def _client(self, target_rr: str, server: str, timeout: float) -> pykka.ActorRef[ClientActor]:
+    def _client_steps(
+        self, target_rr: str, server: str, timeout: float
+    ) -> Steps[pykka.ActorRef[ClientActor]]:
+        """The client actor for `target_rr/server`, asked of the actor on first use."""
         client = self._clients.get(target_rr, server)
         if client is None or not client.is_alive():
-            started: pykka.ActorRef[ClientActor] = self._ask(
+            started: pykka.ActorRef[ClientActor] = yield from self._asking(
                 OpenClient(target_rr, server, FutureReply()), timeout, "starting a client"
             )
             return started
@@ -731,6 +821,31 @@ def snapshot(registrar: ResourceRegistrar, *, timeout: float, check: bool) -> Ca
         "catalog_snapshot()" if check else "a snapshot of the catalog",
     )
     return dataclasses.replace(view, in_doubt=registrar._in_doubt_texts)
+
+
+def _after(first: Steps[Any], then: Steps[T]) -> Steps[T]:
+    """The steps of `first`, then those of `then` (its result)."""
+    yield from first
+    return (yield from then)
+
+
+def _blocking(steps: Steps[T]) -> T:
+    """Run an operation's `steps` on the calling thread (`replies.run_steps`).
+
+    Raises:
+        ConfigError: the calling thread is the process's own event loop (a coroutine
+            `load`, `unload` or status callback runs there): blocking it would stall
+            every coroutine callback of the process, and a call to a coroutine server
+            would wait for itself; await the operation's async twin instead.
+    """
+    if on_process_loop():
+        steps.close()
+        raise ConfigError(
+            "a blocking registrar method was called on rr_actors' event loop (from a "
+            "coroutine load, unload or status callback): await its async twin instead "
+            "(acall, aunload, asend_status, ...)"
+        )
+    return run_steps(steps)
 
 
 def _check_names(**names: object) -> None:

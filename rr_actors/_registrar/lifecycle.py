@@ -41,7 +41,7 @@ import pykka
 
 from rr_actors import events
 from rr_actors._catalog import ClientRecord, Resource
-from rr_actors._core.actor import Actor, refuse
+from rr_actors._core.actor import Actor, OneShotFuture, refuse
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.timers import Cancellable, thread_timer
@@ -154,7 +154,7 @@ class Lifecycle:
         presence: Presence,
         actor: Actor,
         died: threading.Event,
-        ended: threading.Event,
+        ended: OneShotFuture[None],
     ) -> None:
         self.registrar = shared
         self.provider = provider

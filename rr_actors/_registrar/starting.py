@@ -20,6 +20,7 @@ import pykka
 
 from rr_actors import events
 from rr_actors._catalog import ResourceState
+from rr_actors._core.actor import OneShotFuture
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer
 from rr_actors._core.replies import FutureReply
@@ -61,8 +62,8 @@ class Launched:
     due: DueAnswers
     died: threading.Event
     """Set when a crash of the actor was fully handled."""
-    ended: threading.Event
-    """Set when the actor handed on its last message."""
+    ended: OneShotFuture[None]
+    """Settled when the actor handed on its last message (an event loop awaits it)."""
     published: Publisher[events.Event]
     clients: Clients
     """Its client actors: the actor starts them, the handle looks them up."""
@@ -107,7 +108,8 @@ def launch(
             Query(r.id, r.server, config.name, config.name, r.request, r.response) for r in doubtful
         )
         in_doubt_texts = tuple((r.id, r.request_text) for r in doubtful)
-        died, ended, due, clients = threading.Event(), threading.Event(), DueAnswers(), Clients()
+        ended: OneShotFuture[None] = OneShotFuture()
+        died, due, clients = threading.Event(), DueAnswers(), Clients()
         published = events.publisher(EVENT_LOG)
         published.relay_to(upstream)
         ref = RegistrarActor.start(

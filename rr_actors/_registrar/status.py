@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 from rr_actors import events
 from rr_actors._catalog import Resource
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
+from rr_actors._core.loops import OnLoop
 from rr_actors._core.replies import CallbackReply, SharedJoin
 from rr_actors._registrar.fanout import DESK, Routes, process
 from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice
@@ -253,8 +254,12 @@ class StatusRelay:
     def run_callback(
         self, callback: StatusCallback, query: Query, update: StatusUpdate, join: SharedJoin
     ) -> None:
-        """Run a status callback on a worker thread; its part of `join` is done after it."""
+        """Run a status callback on a worker thread (a coroutine one: on its loop); its
+        part of `join` is done after it."""
         done = join.add()
+        if isinstance(callback, OnLoop):
+            callback.submit(query, update, then=lambda _error: done(), key=query.id)
+            return
 
         def run() -> None:
             try:

@@ -51,6 +51,7 @@ from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._platform import fork
 from rr_actors._registrar import Registrar, ResourceRegistrar, Served, start_registrar
 from rr_actors._supervision import retry
+from rr_actors._supervision.aio import AsyncSupervision
 from rr_actors._supervision.children import (
     ChildCounts,
     ChildInfo,
@@ -61,7 +62,7 @@ from rr_actors._supervision.node import Node
 from rr_actors._supervision.policy import Clock, RestartIntensity
 from rr_actors._supervision.statedir import StateDirLock
 from rr_actors._supervision.stopping import left
-from rr_actors._supervision.tree import Tree, find_child, locate, wait_restarted
+from rr_actors._supervision.tree import RestartWait, Tree, find_child, locate, wait_restarted
 from rr_actors._supervision.watching import TreeWatch
 from rr_actors._types import Query, StatusCallback
 from rr_actors.config import (
@@ -108,12 +109,14 @@ SPARE_DELAY = 0.1
 one it used: a crash within that time meets no warm-up competing for the CPU."""
 
 
-class Supervisor:
+class Supervisor(AsyncSupervision):
     """Starts managers in order, restarts them by policy, stops them in reverse order.
 
     Follows Erlang/OTP's supervisor (strategies, restart types, restart intensity with
     escalation), plus exponential backoff with jitter. Use it as a context manager, or call
-    [`start`][rr_actors.Supervisor.start] and [`stop`][rr_actors.Supervisor.stop].
+    [`start`][rr_actors.Supervisor.start] and [`stop`][rr_actors.Supervisor.stop]. From an
+    event loop: `async with sup:`, `await sup.astart()`, `await sup.astop()`, `await
+    sup.await_restarted(...)`, `await sup.aregistrar(...)` (the loop never blocks).
 
     ```python
     sup = rr.Supervisor([rr.ManagerSpec("erm", setup=erm_setup, isolation="process"),
@@ -403,6 +406,12 @@ class Supervisor:
         _check_child_name(name)
         check_seconds("timeout", timeout)
         return wait_restarted(self._tree, self._node, self.name, name, timeout, restarts)
+
+    def _restart_wait(self, name: str, timeout: float, restarts: int | None) -> RestartWait:
+        """A `wait_restarted` to await (`await_restarted`), its arguments checked."""
+        _check_child_name(name)
+        check_seconds("timeout", timeout)
+        return RestartWait(self._tree, self._node, self.name, name, restarts)
 
     # -- registrars, calls, manager access ----------------------------------------------
 

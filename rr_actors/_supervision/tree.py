@@ -58,6 +58,7 @@ if TYPE_CHECKING:
 __all__ = [
     "Found",
     "Level",
+    "RestartWait",
     "Tree",
     "comes_back",
     "consumer_down",
@@ -164,6 +165,7 @@ class Tree:
     ) -> None:
         self.spec = spec
         self.cond = threading.Condition()  # published snapshots of the whole tree; waiters
+        self.watchers: set[Callable[[], object]] = set()  # woken at each change (lock held)
         self._version = 0  # changes published so far (`wait_changed`)
         self.specs = {child.name: child for child, _ in walk(spec)}
         self.clock = clock
@@ -186,6 +188,8 @@ class Tree:
         """A supervisor published its children's snapshots: wake every waiter (lock held)."""
         self._version += 1
         self.cond.notify_all()
+        for wake in list(self.watchers):
+            wake()
 
     def version(self) -> int:
         """How many changes were published so far."""
@@ -361,46 +365,76 @@ def death_watch_missed(name: str) -> None:
             return
 
 
-def wait_restarted(
-    tree: Tree, root: Level, root_name: str, name: str, timeout: float, restarts: int | None
-) -> ChildInfo:
-    """`Supervisor.wait_restarted` (which documents it): wait on the tree's condition."""
-    target = restarts if restarts is not None else tree.wait_cursor.get(name, 0) + 1
-    outcome: list[ChildInfo | RrError] = []
+class RestartWait:
+    """One `wait_restarted`: its condition, checked with the tree's lock held at each
+    publish, and its outcome. The blocking wait waits on the tree's condition; the
+    awaited one (`Supervisor.await_restarted`) is woken by the tree's `watchers`."""
 
-    def settled() -> bool:  # runs with the tree lock held, at every publish
+    def __init__(
+        self, tree: Tree, root: Level, root_name: str, name: str, restarts: int | None
+    ) -> None:
+        self.tree = tree
+        self.root = root
+        self.root_name = root_name
+        self.name = name
+        self.target = restarts if restarts is not None else tree.wait_cursor.get(name, 0) + 1
+        self.outcome: list[ChildInfo | RrError] = []
+
+    def settled(self) -> bool:
+        """Whether it is decided (the tree's lock held)."""
+        tree, root, name = self.tree, self.root, self.name
         found = locate(root, tree, name)
         if found is None:
-            outcome.append(
+            self.outcome.append(
                 UnknownServerError(
-                    f"supervisor {root_name!r} has no child named {name!r}"
+                    f"supervisor {self.root_name!r} has no child named {name!r}"
                     + _known_names(name, tree.specs)
                 )
             )
             return True
         info = found.info
         error = root.gave_up or found.gave_up
-        if info.state == "running" and info.restarts >= target:
-            outcome.append(info)
+        if info.state == "running" and info.restarts >= self.target:
+            self.outcome.append(info)
         elif found.settling:
             return False  # a supervisor on its path is giving up: wait until it settled
         elif error is not None:
-            outcome.append(error)
-        elif info.state in ("exited", "stopped") and info.restarts < target and not found.revivable:
-            outcome.append(
+            self.outcome.append(error)
+        elif (
+            info.state in ("exited", "stopped")
+            and info.restarts < self.target
+            and not found.revivable
+        ):
+            self.outcome.append(
                 RegistrarUnavailableError(
                     f"child {name!r} is {info.state} ({info.last_exit}) and will not be restarted"
                 )
             )
-        return bool(outcome)
+        return bool(self.outcome)
 
+    def timed_out(self, timeout: float) -> CallTimeoutError:
+        """The error of a wait that ran out (the tree's lock held)."""
+        found = locate(self.root, self.tree, self.name)
+        state = f" (state {found.info.state}, {found.info.restarts} restarts)" if found else ""
+        return CallTimeoutError(
+            f"child {self.name!r} was not restarted within {timeout:g} s{state}"
+        )
+
+    def result(self) -> ChildInfo:
+        """The child's snapshot, running; or raise what it came to."""
+        result = self.outcome[-1]
+        if isinstance(result, RrError):
+            raise result
+        self.tree.wait_cursor[self.name] = result.restarts
+        return result
+
+
+def wait_restarted(
+    tree: Tree, root: Level, root_name: str, name: str, timeout: float, restarts: int | None
+) -> ChildInfo:
+    """`Supervisor.wait_restarted` (which documents it): wait on the tree's condition."""
+    waiting = RestartWait(tree, root, root_name, name, restarts)
     with tree.cond:
-        if not tree.cond.wait_for(settled, timeout):
-            found = locate(root, tree, name)
-            state = f" (state {found.info.state}, {found.info.restarts} restarts)" if found else ""
-            raise CallTimeoutError(f"child {name!r} was not restarted within {timeout:g} s{state}")
-    result = outcome[-1]
-    if isinstance(result, RrError):
-        raise result
-    tree.wait_cursor[name] = result.restarts
-    return result
+        if not tree.cond.wait_for(waiting.settled, timeout):
+            raise waiting.timed_out(timeout)
+    return waiting.result()

@@ -14,7 +14,7 @@ to the process a message came from):
    └─ route.send(frame) ──────────────────────► the carrier: to the name's process
         False (the route went): forget the reply, route.broken(), once more or
         peer.gone()
- Remote.run(fn) ─► tell(Run(fn, reply)), wait
+ Remote.run(fn) ─► submit(fn): tell(Run(fn, reply)) ─► wait (an event loop awaits it)
 
  receiving (the carrier's receiving thread calls the messenger)
  bytes for a registrar here ─► Messenger.message(endpoint, process, token, payload):
@@ -286,12 +286,17 @@ class Remote(abc.ABC):
             RrError: its result does not pickle (the message says so).
             Exception: whatever `fn` raised, re-raised here.
         """
+        return wait(self.submit(fn).future, timeout, f"run() on registrar {self.name!r}")
+
+    def submit(self, fn: Callable[[Any], Any]) -> FutureReply:
+        """`run` without the wait: send `fn`; its result (or error) settles the reply's
+        future (an error sending it too), whoever waits for it, a thread or a loop."""
         reply = FutureReply()
         try:
             self.tell(Run(fn, reply))
         except RrError as exc:
             reply.set_error(exc)
-        return wait(reply.future, timeout, f"run() on registrar {self.name!r}")
+        return reply
 
 
 class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):

@@ -7,6 +7,7 @@ pykka's behaviour, not one we made up.
 from __future__ import annotations
 
 import asyncio
+import logging
 import queue
 import sys
 import threading
@@ -75,6 +76,69 @@ def test_a_timeout_beyond_what_a_lock_can_wait_still_waits() -> None:
     waiting.join(10)
 
     assert [7] == got
+
+
+def test_a_done_callback_runs_once_on_the_thread_that_settles_the_future() -> None:
+    future: OneShotFuture[Any] = OneShotFuture()
+    ran: list[tuple[str, Any]] = []
+    future.add_done_callback(lambda f: ran.append((threading.current_thread().name, f.get())))
+    settler = threading.Thread(target=lambda: future.set(3), name="settler")
+
+    settler.start()
+    settler.join(5)
+
+    assert [("settler", 3)] == ran
+
+
+def test_a_done_callback_added_after_the_settle_runs_at_once_on_the_adding_thread() -> None:
+    future: OneShotFuture[Any] = OneShotFuture()
+    future.set_exception((ValueError, ValueError("no"), None))
+    ran: list[str] = []
+
+    future.add_done_callback(lambda _f: ran.append(threading.current_thread().name))
+
+    assert [threading.current_thread().name] == ran
+
+
+def test_a_done_callback_that_raises_is_logged_and_the_next_one_still_runs(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    future: OneShotFuture[Any] = OneShotFuture()
+    ran: list[str] = []
+    future.add_done_callback(lambda _f: 1 / 0)
+    future.add_done_callback(lambda _f: ran.append("second"))
+
+    with caplog.at_level(logging.ERROR, logger="rr_actors"):
+        future.set(None)
+
+    assert ["second"] == ran
+    assert "a done callback of a future raised" in caplog.text
+
+
+def test_a_done_callback_racing_the_settle_runs_exactly_once() -> None:
+    # Dekker-style: the adder appends then reads `_settled`; the settler writes
+    # `_settled` then reads the list. Whichever order the threads interleave in, each
+    # callback runs once: run many rounds with both sides released at once.
+    for _ in range(300):
+        future: OneShotFuture[Any] = OneShotFuture()
+        ran: list[int] = []
+        go = threading.Barrier(2, timeout=5)
+
+        def add(
+            future: OneShotFuture[Any] = future,
+            ran: list[int] = ran,
+            go: threading.Barrier = go,
+        ) -> None:
+            go.wait()
+            future.add_done_callback(lambda _f: ran.append(1))
+
+        adder = threading.Thread(target=add)
+        adder.start()
+        go.wait()
+        future.set(None)
+        adder.join(5)
+
+        assert [1] == ran
 
 
 class _StagedLock:

@@ -8,7 +8,16 @@ from typing import Any
 
 import pytest
 
-from rr_actors._core.replies import CallbackReply, SharedJoin
+from rr_actors._core.actor import OneShotFuture
+from rr_actors._core.replies import (
+    CallbackReply,
+    SharedJoin,
+    Steps,
+    asked,
+    on_own_thread,
+    run_steps,
+)
+from rr_actors.errors import CallTimeoutError
 
 
 def _race(parts: int) -> tuple[list[str], set[str]]:
@@ -78,3 +87,55 @@ def test_a_callback_reply_logs_what_its_continuation_raises_instead_of_raising_i
 
     assert "continuation raised" in caplog.text
     assert "boom" in caplog.text
+
+
+def _two_waits(
+    first: OneShotFuture[Any], second: OneShotFuture[Any], seen: list[Any]
+) -> Steps[str]:
+    """Steps that wait for two futures; what each wait was told goes to `seen`."""
+    try:
+        seen.append((yield first, None))
+        seen.append((yield second, 0.0))  # (a deadline long past)
+    except BaseException as exc:
+        seen.append(type(exc).__name__)
+        raise
+    return "done"
+
+
+def test_steps_run_on_a_thread_get_whether_each_future_settled_in_time() -> None:
+    first: OneShotFuture[Any] = OneShotFuture()
+    first.set(1)
+    seen: list[Any] = []
+
+    assert "done" == run_steps(_two_waits(first, OneShotFuture(), seen))
+    assert [True, False] == seen
+
+
+def test_an_interruption_of_a_wait_is_thrown_into_the_steps() -> None:
+    class Interrupted(BaseException):
+        pass
+
+    class Interrupting(OneShotFuture[Any]):
+        def _wait(self, timeout: float | None = None) -> bool:
+            raise Interrupted
+
+    seen: list[Any] = []
+
+    with pytest.raises(Interrupted):
+        run_steps(_two_waits(Interrupting(), OneShotFuture(), seen))
+    assert ["Interrupted"] == seen
+
+
+def test_asked_raises_a_call_timeout_naming_the_operation_when_the_deadline_passed() -> None:
+    with pytest.raises(CallTimeoutError, match=r"save_catalog\(\) timed out after 2 s"):
+        run_steps(asked(OneShotFuture(), 0.0, 2.0, "save_catalog()"))
+
+
+def test_on_own_thread_runs_the_function_on_a_thread_of_its_own_and_returns_its_result() -> None:
+    names: list[str] = []
+
+    result = run_steps(
+        on_own_thread(lambda: names.append(threading.current_thread().name) or 5, "own")
+    )
+
+    assert (5, ["own"]) == (result, names)

@@ -12,6 +12,8 @@ import rr_actors as rr
 from rr_actors.testing import catalog_snapshot, crash, intercept
 from tests.support.waiting import wait_for
 
+pytestmark = pytest.mark.both_apis  # the rules, against the async API too (conftest)
+
 
 def test_stop_unloads_everything_the_registrar_holds_as_a_consumer(make_registrar, serve):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")

@@ -10,6 +10,8 @@ import pytest
 import rr_actors as rr
 from rr_actors.testing import catalog_snapshot
 
+pytestmark = pytest.mark.both_apis  # the rules, against the async API too (conftest)
+
 
 def resource_id(registrar, server):
     (resource,) = [r for r in catalog_snapshot(registrar).resources if r.server == server]

@@ -14,6 +14,8 @@ import rr_actors as rr
 from rr_actors.testing import catalog_snapshot
 from tests.support.gating import GatedLoad
 
+pytestmark = pytest.mark.both_apis  # the rules, against the async API too (conftest)
+
 
 class SensorError(Exception):
     """An application exception that knows nothing of rr_actors."""

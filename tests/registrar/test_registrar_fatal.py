@@ -23,6 +23,8 @@ import rr_actors as rr
 from rr_actors.testing import RemoteRegistrar, SharedObjects, crash, expect_restart
 from tests.support.durable_pair import durable_config
 
+pytestmark = pytest.mark.both_apis  # the rules, against the async API too (conftest)
+
 OLD_BACKUP = Path(__file__).parent.parent / "store" / "data" / "schema-5-fatal.db"
 """A backup rr_actors c29caab wrote (schema version 5, no `failed` column): registrar
 `old-erm` served `leaf` `"lidar"` to itself (query id `...0001`), reported it `FATAL`,

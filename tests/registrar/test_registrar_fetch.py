@@ -8,6 +8,8 @@ import pytest
 
 import rr_actors as rr
 
+pytestmark = pytest.mark.both_apis  # the rules, against the async API too (conftest)
+
 
 def test_server_queries_lists_each_consumer_id_once_with_request_and_response(
     make_registrar, serve

@@ -10,6 +10,8 @@ import pytest
 import rr_actors as rr
 from rr_actors.testing import catalog_snapshot
 
+pytestmark = pytest.mark.both_apis  # the rules, against the async API too (conftest)
+
 
 def test_an_equal_request_is_served_from_the_catalog_without_loading_again(make_registrar, serve):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")

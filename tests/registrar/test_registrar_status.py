@@ -13,6 +13,8 @@ import rr_actors as rr
 from rr_actors._core.workers import Workers
 from rr_actors.testing import catalog_snapshot
 
+pytestmark = pytest.mark.both_apis  # the rules, against the async API too (conftest)
+
 
 def own_ids(inbox):
     """For each update an inbox got: (the query's id, the update's query_id)."""

@@ -10,6 +10,8 @@ import pytest
 import rr_actors as rr
 from rr_actors.testing import CallAttempt, call_futures, catalog_snapshot, crash
 
+pytestmark = pytest.mark.both_apis  # the rules, against the async API too (conftest)
+
 
 def test_a_call_whose_load_hangs_raises_call_timeout_error(make_registrar, serve, gated_load):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")

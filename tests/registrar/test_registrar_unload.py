@@ -10,6 +10,8 @@ import pytest
 import rr_actors as rr
 from rr_actors.testing import catalog_snapshot
 
+pytestmark = pytest.mark.both_apis  # the rules, against the async API too (conftest)
+
 
 def test_the_unload_callback_runs_only_when_the_last_consumer_id_is_released(make_registrar, serve):
     provider, consumer = make_registrar("provider"), make_registrar("consumer")

@@ -1,0 +1,278 @@
+"""asyncio at the edge of the actors: awaiting a future, running coroutines on a loop.
+
+Nothing here knows of registrars. Three bridges, each written once:
+
+```
+ an event loop awaits a one-shot future (`settled`):
+   loop thread: future.add_done_callback(wake) ──► await a loop future
+   the settling thread (an actor, a connection's reader): wake ──► call_soon_threadsafe
+   ──► the loop resolves its future ──► the awaiting task goes on (no thread blocked)
+ steps (`replies.Steps`) driven on a loop: `run_steps_async`, each `Wait` is `settled`
+ a coroutine function run on a loop, from any thread (`OnLoop`):
+   submit(*args, then) ──call_soon_threadsafe──► a task: fn(*args), after the task of
+   the submission before it ──► then(error) on the loop thread once it ended
+```
+
+Where a coroutine function runs: `OnLoop.bind(fn)` keeps the loop it is called from
+(the application's: a status callback registered from a coroutine runs on that loop), or,
+called from no loop, the process's own loop (`process_loop`): one thread, started at its
+first use, that runs every coroutine callback of the process's registrars that has no
+loop of its own (a server's coroutine `load` and `unload`). One loop per process, not per
+registrar: a coroutine that awaits costs no thread, so a second loop would buy nothing but
+a thread; a coroutine that blocks the loop (a `time.sleep`) would stall the others on it
+as it would on any asyncio loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextvars
+import functools
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+from rr_actors._core.actor import OneShotFuture, mark_awaiting
+from rr_actors._core.replies import Steps, left
+from rr_actors._platform import fork
+
+__all__ = [
+    "OnLoop",
+    "is_coroutine_function",
+    "on_process_loop",
+    "process_loop",
+    "run_steps_async",
+    "settled",
+]
+
+logger = logging.getLogger("rr_actors")
+
+T = TypeVar("T")
+
+Then = Callable[[BaseException | None], object]
+"""Told once a coroutine submitted to a loop ended: its error, or `None`."""
+
+
+def is_coroutine_function(fn: object) -> bool:
+    """Whether calling `fn` gives a coroutine to await (an `async def` function, a
+    `functools.partial` of one, or an object whose `__call__` is one)."""
+    if asyncio.iscoroutinefunction(fn):
+        return True
+    call = getattr(fn, "__call__", None)  # noqa: B004 - (the method, not callable())
+    return call is not None and asyncio.iscoroutinefunction(call)
+
+
+def _wake(waiter: asyncio.Future[bool], value: bool) -> None:
+    """On the loop: resolve `waiter` unless it was resolved or cancelled already."""
+    if not waiter.done():
+        waiter.set_result(value)
+
+
+def _wake_from(loop: asyncio.AbstractEventLoop, waiter: asyncio.Future[bool], _: object) -> None:
+    """On the settling thread: wake the loop (a loop closed meanwhile: nobody waits)."""
+    try:
+        loop.call_soon_threadsafe(_wake, waiter, True)
+    except RuntimeError:  # the loop was closed: its task is gone with it
+        return
+
+
+async def settled(future: OneShotFuture[Any], timeout: float | None) -> bool:
+    """Await `future` (settled by any thread) at most `timeout` seconds; whether it is.
+
+    No thread waits: the future's done callback wakes the running loop. An already
+    settled future returns without suspending.
+
+    Raises:
+        asyncio.CancelledError: the awaiting task was cancelled.
+    """
+    if future._settled:
+        return True
+    loop = asyncio.get_running_loop()
+    waiter: asyncio.Future[bool] = loop.create_future()
+    expiry = None if timeout is None else loop.call_later(timeout, _wake, waiter, False)
+    future.add_done_callback(functools.partial(_wake_from, loop, waiter))
+    try:
+        return await waiter or future._settled
+    finally:
+        if expiry is not None:
+            expiry.cancel()
+
+
+async def run_steps_async(steps: Steps[T]) -> T:
+    """Run `steps` on the running loop, awaiting each future it waits for (`settled`).
+
+    A cancellation of the awaiting task is thrown into the steps at their `yield`, as
+    `replies.run_steps` throws a `KeyboardInterrupt`: they take the same way out.
+    """
+    mark_awaiting(True)  # (each step: this thread may take an idle actor's turn)
+    try:
+        future, deadline = next(steps)
+        while True:
+            if future._settled:  # (settled already: a dedup hit answered in the turn)
+                future, deadline = steps.send(True)
+                continue
+            mark_awaiting(False)  # (the loop runs other tasks while this one waits)
+            try:
+                done = await settled(future, left(deadline))
+            except BaseException as exc:  # noqa: BLE001 - (the task cancelled: the steps decide)
+                mark_awaiting(True)
+                future, deadline = steps.throw(exc)
+                continue
+            mark_awaiting(True)
+            future, deadline = steps.send(done)
+    except StopIteration as ended:
+        result: T = ended.value
+        return result
+    finally:
+        mark_awaiting(False)
+
+
+# -- coroutine functions run on a loop --------------------------------------------------
+
+
+class _ProcessLoop:
+    """The process's own event loop, on one daemon thread started at its first use."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.ident: int | None = None  # its thread's
+
+    def get(self) -> asyncio.AbstractEventLoop:
+        loop = self._loop
+        if loop is not None:
+            return loop
+        with self._lock:
+            if self._loop is None:
+                started = threading.Event()
+                loop = asyncio.new_event_loop()
+                thread = threading.Thread(
+                    target=self._run, args=(loop, started), name="rr-loop", daemon=True
+                )
+                thread.start()
+                started.wait()
+                self.ident = thread.ident
+                self._loop = loop
+            return self._loop
+
+    @staticmethod
+    def _run(loop: asyncio.AbstractEventLoop, started: threading.Event) -> None:
+        asyncio.set_event_loop(loop)
+        loop.call_soon(started.set)
+        loop.run_forever()
+
+    def forget(self) -> None:
+        """In a forked child: the parent's loop thread is not there; a new one starts."""
+        self._lock = threading.Lock()
+        self._loop = None
+        self.ident = None
+
+
+_PROCESS_LOOP = _ProcessLoop()
+fork.after_fork_in_child("the process's event loop", _PROCESS_LOOP.forget)
+
+
+def on_process_loop() -> bool:
+    """Whether the calling thread runs the process's own event loop."""
+    return _PROCESS_LOOP.ident == threading.get_ident()
+
+
+def process_loop() -> asyncio.AbstractEventLoop:
+    """The process's own event loop (module docstring), started on first use."""
+    return _PROCESS_LOOP.get()
+
+
+OVERTAKE_AFTER = 0.05
+"""Seconds a call of an `OnLoop` waits for the one before it of the same key; past them
+it runs beside it (as the status runner gives a callback `SLICE` seconds): a callback
+that waits for its own next call (a `send_status` to the same id) does not deadlock."""
+
+
+class OnLoop:
+    """A coroutine function and the event loop it runs on; submitted from any thread.
+
+    Each `submit` runs one call as a task of that loop, after the task of the submission
+    before it of the same key (a status callback's: the query id) has ended, or has run
+    for `OVERTAKE_AFTER` seconds: the calls of one key run in the order they were
+    submitted, one at a time while each is quick, as a status callback's calls do on
+    worker threads. Each runs in the context it was bound in (as asyncio runs a callback
+    in its registrant's context).
+
+    Args:
+        fn: the coroutine function.
+        loop: the loop its calls run on.
+    """
+
+    __slots__ = ("_context", "_tails", "fn", "loop")
+
+    def __init__(self, fn: Callable[..., Any], loop: asyncio.AbstractEventLoop) -> None:
+        self.fn = fn
+        self.loop = loop
+        self._context = contextvars.copy_context()
+        self._tails: dict[Any, asyncio.Task[None]] = {}  # key -> its last call (loop thread)
+
+    @classmethod
+    def bind(cls, fn: Callable[..., Any]) -> OnLoop:
+        """`fn` on the loop running on this thread, else on the process's own loop."""
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            loop = process_loop()
+        return cls(fn, loop)
+
+    def __repr__(self) -> str:
+        return f"<OnLoop {getattr(self.fn, '__qualname__', self.fn)!r}>"
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickle as the coroutine function alone: a loop does not cross processes (the
+        other process binds it to a loop of its own)."""
+        return (_unbound, (self.fn,))
+
+    def __call__(self, *args: Any) -> None:
+        """`submit(*args)`: run a call on the loop; returns at once."""
+        self.submit(*args)
+
+    def submit(self, *args: Any, then: Then | None = None, key: Any = None) -> None:
+        """Run `fn(*args)` on the loop after the calls of `key` submitted before (class
+        docstring); `then(error)` on the loop thread once it ended (`error`: what it
+        raised, or `None`).
+
+        A loop that is closed runs nothing: `then` gets a `RuntimeError` at once, here.
+        """
+        try:
+            self.loop.call_soon_threadsafe(self._start, args, then, key)
+        except RuntimeError as exc:  # the loop was closed
+            if then is not None:
+                then(exc)
+
+    def _start(self, args: tuple[Any, ...], then: Then | None, key: Any) -> None:
+        before = self._tails.get(key)
+        task = self.loop.create_task(self._run(before, args, then, key), context=self._context)
+        self._tails[key] = task
+
+    async def _run(
+        self,
+        before: asyncio.Task[None] | None,
+        args: tuple[Any, ...],
+        then: Then | None,
+        key: Any,
+    ) -> None:
+        if before is not None and not before.done():
+            await asyncio.wait((before,), timeout=OVERTAKE_AFTER)
+        error: BaseException | None = None
+        try:
+            await self.fn(*args)
+        except Exception as exc:  # logged, as a callback run on a worker thread is
+            logger.exception("coroutine callback %r raised", self)
+            error = exc
+        except BaseException as exc:  # noqa: BLE001 - told to `then` (cancelled too)
+            error = exc
+        if then is not None:
+            then(error)
+        if self._tails.get(key) is asyncio.current_task():
+            del self._tails[key]
+
+
+def _unbound(fn: Callable[..., Any]) -> Callable[..., Any]:
+    return fn
