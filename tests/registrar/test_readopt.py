@@ -80,7 +80,8 @@ def test_the_restarted_erm_re_adopts_the_process_that_still_runs_and_unloads_it(
     # makes (rr_actors' WARNINGs reach stderr, with their level and logger, when no logging
     # is configured).
     assert re.fullmatch(
-        r"WARNING rr_actors: supervisor supervisor-\d+: child erm-\w+ exited: killed by SIGKILL\n", result.stderr
+        r"WARNING rr_actors: supervisor supervisor-\d+: child erm-\w+ exited: killed by SIGKILL\n",
+        result.stderr,
     ), result.stderr
     pid = result.stdout.split("ERM started process ")[1].split()[0]
     assert f"ERM re-adopted process {pid} (pid and start time match)" in result.stdout
