@@ -286,17 +286,27 @@ class Lifecycle:
 
     def on_yield_name(self, message: YieldName, _reply: Reply) -> None:
         """Another registrar of this name is kept (rule 22; the carrier no longer serves
-        this one): unload every resource it serves, then stop as `stop()` does, waiting
-        `call_timeout` seconds at most for the unloads of loads that were under way."""
+        this one): unload every resource it serves, then stop as `stop()` does.
+
+        It waits `call_timeout` seconds at most for what it serves to be gone (a load
+        under way finishes, then is unloaded; an `unload` runs): then it stops anyway,
+        and what is still under way is in doubt at its next start (rule 16)."""
         if self.registrar.phase not in (Phase.SETTING_UP, Phase.SERVING):
             return  # stopping or ended already
         logger.info("registrar %s yields its name: %s", self.registrar.name, message.reason)
         self.registrar.phase = Phase.STOPPING  # (new loads are refused from now on)
+        until = time.monotonic() + self.registrar.config.call_timeout
+        stopped = False
 
-        def stop() -> None:
-            until = time.monotonic() + self.registrar.config.call_timeout
-            self.on_stop(Stop(FutureReply(), until), NO_REPLY)
+        def stop(*_: object) -> None:
+            nonlocal stopped
+            if not stopped:
+                stopped = True
+                timer.cancel()
+                self.on_stop(Stop(FutureReply(), until), NO_REPLY)
 
+        late = self.registrar.come_back(stop)
+        timer = thread_timer(max(0.0, until - time.monotonic()), lambda: late.set_result(None))
         self.servers.give_up_all(stop)
 
     def on_stop(self, message: Stop, reply: Reply) -> None:

@@ -157,8 +157,8 @@ class Servers:
         consumer id of its resources without telling the consumer (each reconciles with
         the registrar that keeps the name, rule 20), unload each resource, then `then()`.
 
-        Unloads already under way are waited for; a load under way finishes on a closed
-        server, so its callers get an error and it is unloaded (`provider.py`).
+        Unloads under way are waited for, and so are loads under way: each finishes on a
+        closed server, so its callers get an error and it is unloaded (`provider.py`).
         """
         join = Join(then)
         for server in list(self.registrar.servers.values()):
@@ -168,6 +168,8 @@ class Servers:
                     self.give_up(resource, join.add())
                 elif resource.state is ResourceState.UNLOADING:
                     self.teardown.wait_for_unload(resource, self.registrar.come_back(join.add()))
+                else:  # loading: refused when it finishes, then unloaded
+                    self.teardown.when_gone(resource.id, join.add())
         join.seal()
 
     def give_up(self, resource: Resource, then: Callable[[], None]) -> None:

@@ -535,7 +535,7 @@ def test_two_processes_whose_network_does_not_answer_do_not_both_serve_a_name(
     for control in controls:
         assert control.poll(30)
         assert "attached" == control.recv()
-    os.kill(router.pid, signal.SIGSTOP)
+    _freeze(router.pid)
     try:
         go.set()
         outcomes = []
@@ -556,7 +556,7 @@ def test_a_name_asked_of_a_network_that_does_not_answer_is_unavailable_not_unkno
     _, control = children.start(_reporting_caller, address, "never-served", go, ready=False)
     assert control.poll(30)
     assert "attached" == control.recv()
-    os.kill(router.pid, signal.SIGSTOP)
+    _freeze(router.pid)
     try:
         go.set()
         assert control.poll(30)
@@ -569,6 +569,18 @@ def test_a_name_asked_of_a_network_that_does_not_answer_is_unavailable_not_unkno
 
     assert "RegistrarUnavailableError: cannot tell whether registrar 'never-served'" in frozen
     assert thawed.startswith("UnknownRegistrarError: no registrar named 'never-served'")
+
+
+def _freeze(pid: int) -> None:
+    """SIGSTOP process `pid` and return once it is stopped (a signal is delivered when the
+    process next runs: on a loaded machine it may answer one more question first)."""
+    os.kill(pid, signal.SIGSTOP)
+
+    def stopped() -> bool:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] == "T"
+
+    assert wait_for(stopped, 10.0)
 
 
 def _reporting_caller(

@@ -367,6 +367,9 @@ class ZenohMember:
             claim.undeclare()  # type: ignore[no-untyped-call]
         with self._lock:
             self._locals[name] = local
+        rival = self._presence.server(name)  # (one heard between the turn and here)
+        if rival is not None:
+            self.served_elsewhere(name, rival)
         self._barrier(token_key)
         threading.Thread(
             target=self._watch, args=(local,), name=f"rr-zwatch-{name}", daemon=True
