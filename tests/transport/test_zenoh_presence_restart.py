@@ -23,7 +23,7 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 
-from rr_actors._transport.zenoh.presence import Presence, Server
+from rr_actors._transport.zenoh.presence import NO_WAITING, Presence, Server
 from rr_actors._transport.zenoh.wire import Keys, ServerKey
 
 OLD, NEW, SUPERVISOR, OTHER = "a" * 32, "b" * 32, "c" * 32, "d" * 32
@@ -73,9 +73,13 @@ def presence(session: zenoh.Session) -> Iterator[Presence]:
 def token(
     presence: Presence, put: bool, zid: str, stamp: int, supervisor: str = SUPERVISOR
 ) -> None:
-    """A registrar token of cm, applied as the presence thread applies one."""
+    """A registrar token of cm, applied as the presence thread applies one (on this
+    thread, which must not stay marked as the presence thread: later tests here ask)."""
     key = Keys("t").server(ServerKey("cm", zid, supervisor, 1 << 20, stamp))
-    presence._apply((put, key, None))
+    try:
+        presence._apply((put, key, None))
+    finally:
+        NO_WAITING.active = False
 
 
 def said(presence: Presence) -> list[tuple[str, str]]:

@@ -107,7 +107,7 @@ from rr_actors._transport.messenger import (
 from rr_actors._transport.zenoh.events import EventExport, EventFeed
 from rr_actors._transport.zenoh.inbox import Inbox, Local
 from rr_actors._transport.zenoh.outbox import DRAIN_TIMEOUT, Outbox, Outboxes
-from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence, Server, when
+from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence, Server, rank, when
 from rr_actors._transport.zenoh.wire import (
     ANSWER,
     MESSAGE,
@@ -467,7 +467,7 @@ class ZenohMember:
         of the one kept does nothing: this one sees it too, and yields.
         """
         local = self._locals.get(name)
-        if local is None or server.rank > (local.stamp, self.zid):
+        if local is None or server.rank > rank(local.stamp, self.zid):
             return
         reason = (
             f"registrar {name!r} of system {self.system!r} is served by process "

@@ -85,6 +85,9 @@ __all__ = [
     "Presence",
     "PresenceEvents",
     "Server",
+    "kept",
+    "rank",
+    "when",
 ]
 
 ASK_TIMEOUT = 1.0
@@ -114,10 +117,15 @@ class Server:
         self.stamp = stamp  # when it began to serve (`_core.hlc`)
 
     @property
-    def rank(self) -> tuple[int, str]:
+    def rank(self) -> tuple[int, int]:
         """Its place in rule 22's order: of two servers of one name, the lower is kept
         (the earlier stamp; of equal stamps, the lower Zenoh id, as claims tie-break)."""
-        return (self.stamp, self.zid)
+        return rank(self.stamp, self.zid)
+
+
+def rank(stamp: int, zid: str) -> tuple[int, int]:
+    """The place in rule 22's order of a server of process `zid` since `stamp`."""
+    return (stamp, int(zid, 16))
 
 
 def kept(servers: list[Server]) -> Server | None:
