@@ -264,10 +264,11 @@ class Presence:
 
         It decides from a full answer of the network only (`question`): a question about
         the name's tokens that timed out (a router too busy to answer within
-        `ASK_TIMEOUT`) or that no router answered (this process's router is gone) is
-        asked again; an empty answer that is not known to be whole would let two
-        processes that claim the name at once each see no rival, and both serve it, or
-        a process that hears nothing of the system serve a name served there.
+        `ASK_TIMEOUT`) or that this process's router did not answer is asked again (not
+        once the router's token went: then it refuses at once); an empty answer that is
+        not known to be whole would let two processes that claim the name at once each
+        see no rival, and both serve it, or a process that hears nothing of the system
+        serve a name served there.
 
         Raises:
             DuplicateNameError: another process serves it, or claims it and wins.
@@ -284,11 +285,12 @@ class Presence:
             if self._queue.closed:
                 raise RegistrarStoppedError("this process left the system")
             left = deadline - time.monotonic()
-            if left <= 0:
+            orphan = self._router is not None and self.unreachable(self._router)
+            if left <= 0 or orphan:  # (its router's token went: no use asking again)
                 raise RegistrarUnavailableError(
                     f"cannot tell whether another process of system {self._system!r} serves "
-                    f"a registrar named {name!r}, so this process does not serve it: {why} "
-                    f"(asked for {CLAIM_TIMEOUT:g} s)"
+                    f"a registrar named {name!r}, so this process does not serve it: {why}"
+                    + ("" if orphan else f" (asked for {CLAIM_TIMEOUT:g} s)")
                 )
             logger.debug("system %s: asking again who serves %s (%s)", self._system, name, why)
             with self._changed:  # (an answer that failed at once: a pause, cut short by news)
