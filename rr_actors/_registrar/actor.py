@@ -15,7 +15,7 @@
               │              OpenClient                                   (holdings.py)      │
               │   Flights    (the calls in flight: called by the roles above) (flights.py)   │
               │   StatusRelay StatusBatch StatusNotice SendStatus     (status.py, fanout.py) │
-              │   Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot; death           │
+              │   Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot YieldName; death │
               │                                                           (lifecycle.py)     │
               │   Restoring  SettleInDoubt (and the sweep of a restored catalog)             │
               │                                                           (restoring.py)     │
@@ -87,6 +87,7 @@ from rr_actors._registrar.messages import (
     Unload,
     UnregisterServer,
     UpdateResponse,
+    YieldName,
     misfit,
 )
 from rr_actors._registrar.presence import Presence
@@ -173,6 +174,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     PeerLost: ("peer_lost", lambda a: a.presence.on_peer_lost),  # gone, nobody restarts it
     PeerReachable: ("peer_reachable", lambda a: a.presence.on_peer_reachable),  # link healed
     ReconcileRetry: ("reconcile_retry", lambda a: a.presence.on_reconcile_retry),  # its timer
+    YieldName: ("yield_name", lambda a: a.lifecycle.on_yield_name),  # rule 22: another kept
     StatusBatch: ("status_batch", lambda a: a.status.on_status_batch),  # at a relay
     StatusNotice: ("status_notice", lambda a: a.status.on_status_notice),  # at a consumer
     Revoke: ("revoke", lambda a: a.holdings.on_revoke),  # at a consumer
@@ -291,6 +293,7 @@ class RegistrarActor(Actor):
             self.releases,
             self.reconciling,
             self.presence,
+            self.servers,
             self,
             died,
             ended,

@@ -14,6 +14,8 @@ sweep of the restored catalog after it serves, are `restoring.py`'s:
  on_start ──► restoring: settle_in_doubt, unload_unheld (the sweep starts)
           ──► presence: the peers lost meanwhile ──► reconcile (now, or on Ready)
  reconcile ──► restoring.ask_consumers (ReconcileAsk) + reconciling.reconcile_all
+ YieldName (a carrier: another registrar of its name is kept, rule 22)
+      ──► servers.give_up_all: every served resource released and unloaded ──► Stop
  Stop ──► releases: withdraw_pending, give_back_unsettled, release_client (newest first)
       ──► the unloads under way (teardown.py), at most until `unloads_until`
       ──► the backup flushed and closed ──► children stopped ──► ENDED
@@ -44,6 +46,7 @@ from rr_actors._catalog import ClientRecord, Resource
 from rr_actors._core.actor import Actor, OneShotFuture, refuse
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.membership import MEMBERSHIP
+from rr_actors._core.replies import FutureReply
 from rr_actors._core.timers import Cancellable, thread_timer
 from rr_actors._registrar import chronicle
 from rr_actors._registrar.deathwatch import gone_for_good
@@ -58,9 +61,10 @@ from rr_actors._registrar.messages import (
     Save,
     Snapshot,
     Stop,
+    YieldName,
     give_back,
 )
-from rr_actors._registrar.state import OpenReply, Phase, Shared
+from rr_actors._registrar.state import NO_REPLY, OpenReply, Phase, Shared
 from rr_actors.errors import (
     CatalogWriteError,
     RegistrarStoppedError,
@@ -76,6 +80,7 @@ if TYPE_CHECKING:
     from rr_actors._registrar.reconciling import Reconciling
     from rr_actors._registrar.releases import Releases
     from rr_actors._registrar.restoring import Restoring
+    from rr_actors._registrar.servers import Servers
     from rr_actors._registrar.teardown import Teardown
 
 __all__ = ["CatalogView", "Lifecycle"]
@@ -152,11 +157,13 @@ class Lifecycle:
         releases: Releases,
         reconciling: Reconciling,
         presence: Presence,
+        servers: Servers,
         actor: Actor,
         died: threading.Event,
         ended: OneShotFuture[None],
     ) -> None:
         self.registrar = shared
+        self.servers = servers
         self.provider = provider
         self.teardown = teardown
         self.restoring = restoring
@@ -169,6 +176,7 @@ class Lifecycle:
         self.died = died
         self.ended = ended
         self.open_requests: set[OpenReply] = set()
+        self.stop_waiters: list[Reply] | None = None  # while a stop is under way
         self.flush_timer: Cancellable | None = None
         self.hearer = Hearing(shared.peer)  # what this process's membership tells it
 
@@ -276,10 +284,39 @@ class Lifecycle:
 
     # -- stop -------------------------------------------------------------------------
 
+    def on_yield_name(self, message: YieldName, _reply: Reply) -> None:
+        """Another registrar of this name is kept (rule 22; the carrier no longer serves
+        this one): unload every resource it serves, then stop as `stop()` does.
+
+        It waits `call_timeout` seconds at most for what it serves to be gone (a load
+        under way finishes, then is unloaded; an `unload` runs): then it stops anyway,
+        and what is still under way is in doubt at its next start (rule 16)."""
+        if self.registrar.phase not in (Phase.SETTING_UP, Phase.SERVING):
+            return  # stopping or ended already
+        logger.info("registrar %s yields its name: %s", self.registrar.name, message.reason)
+        self.registrar.phase = Phase.STOPPING  # (new loads are refused from now on)
+        until = time.monotonic() + self.registrar.config.call_timeout
+        stopped = False
+
+        def stop(*_: object) -> None:
+            nonlocal stopped
+            if not stopped:
+                stopped = True
+                timer.cancel()
+                self.on_stop(Stop(FutureReply(), until), NO_REPLY)
+
+        late = self.registrar.come_back(stop)
+        timer = thread_timer(max(0.0, until - time.monotonic()), lambda: late.set_result(None))
+        self.servers.give_up_all(stop)
+
     def on_stop(self, message: Stop, reply: Reply) -> None:
         """Unload what this registrar holds as a consumer (newest first), wait for the
         unloads under way here until `message.unloads_until` (`time.monotonic()`
         seconds; `None`: no wait), then stop (rule 12)."""
+        if self.stop_waiters is not None:  # one is under way (a yield's, another caller's)
+            self.stop_waiters.append(reply)
+            return
+        self.stop_waiters = []
         unloads_until = message.unloads_until
         self.registrar.phase = Phase.STOPPING
         self.presence.close()  # no more reconcile retries
@@ -316,10 +353,11 @@ class Lifecycle:
             MEMBERSHIP.leave(self.hearer)
             DIRECTORY.unregister(self.registrar.peer, "stopped")
             self.stop_children()
-            if unsaved is None:
-                reply.set_result(None)
-            else:
-                reply.set_error(unsaved)
+            for waiting in [reply, *(self.stop_waiters or ())]:
+                if unsaved is None:
+                    waiting.set_result(None)
+                else:
+                    waiting.set_error(unsaved)
             self.fail_waiting(
                 RegistrarStoppedError(f"registrar {self.registrar.name!r} was stopped")
             )

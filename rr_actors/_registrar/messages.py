@@ -81,6 +81,7 @@ __all__ = [
     "Unload",
     "UnregisterServer",
     "UpdateResponse",
+    "YieldName",
     "give_back",
     "misfit",
 ]
@@ -539,6 +540,15 @@ class PeerReachable:
     not be (a healed link, not a restart). Handled by `presence.py`."""
 
     name: str
+
+
+@dataclasses.dataclass(frozen=True)
+class YieldName:
+    """A carrier: another process serves this registrar's name too and is kept (rule 22);
+    the carrier stopped serving this one. It unloads what it serves, then stops (`reason`
+    says why). Handled by `lifecycle.py`."""
+
+    reason: str
 
 
 @dataclasses.dataclass(frozen=True)

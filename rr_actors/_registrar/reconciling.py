@@ -224,7 +224,8 @@ class Reconciling:
         for server, ids in lost.items():
             logger.warning(
                 "registrar %s: %s/%s no longer knows %d of the queries held there "
-                "(its restart lost them): FATAL, and they are forgotten",
+                "(its restart lost them, or they were held at a registrar of its name "
+                "that yielded it, rule 22): FATAL, and they are forgotten",
                 self.registrar.name,
                 serving_rr,
                 server,
@@ -261,7 +262,10 @@ class Reconciling:
         self,
         source: str,
         ids: tuple[str, ...],
-        why: str = "the provider no longer knows this query (it lost it in a restart)",
+        why: str = (
+            "the provider no longer knows this query (it lost it in a restart, or it was "
+            "held at a registrar of its name that yielded it: rule 22)"
+        ),
         *,
         forgotten: str,
     ) -> None:

@@ -4,6 +4,9 @@
 their ids and unloads the resources (through `teardown.py`); `fetch_queries` asked of
 this registrar lists what a consumer holds at one of its servers (rule 10);
 `update_response` replaces a stored response and tells every consumer (rule 11).
+`give_up_all` closes every server of a registrar that yields its name (rule 22): its
+consumers' ids are released without a word (they reconcile with the registrar kept,
+which reports `FATAL` the ids it does not hold), and every resource is unloaded.
 """
 
 from __future__ import annotations
@@ -148,6 +151,40 @@ class Servers:
         for resource in resources:
             self.close_resource(resource, join.add())
         join.seal()
+
+    def give_up_all(self, then: Callable[[], None]) -> None:
+        """This registrar yields its name (rule 22): close every server, release every
+        consumer id of its resources without telling the consumer (each reconciles with
+        the registrar that keeps the name, rule 20), unload each resource, then `then()`.
+
+        Unloads under way are waited for, and so are loads under way: each finishes on a
+        closed server, so its callers get an error and it is unloaded (`provider.py`).
+        """
+        join = Join(then)
+        for server in list(self.registrar.servers.values()):
+            server.closing = True
+            for resource in list(self.registrar.catalog.resources_of(server.name)):
+                if resource.state is ResourceState.LOADED:
+                    self.give_up(resource, join.add())
+                elif resource.state is ResourceState.UNLOADING:
+                    self.teardown.wait_for_unload(resource, self.registrar.come_back(join.add()))
+                else:  # loading: refused when it finishes, then unloaded
+                    self.teardown.when_gone(resource.id, join.add())
+        join.seal()
+
+    def give_up(self, resource: Resource, then: Callable[[], None]) -> None:
+        """Release every consumer id of `resource` (`"name yielded"`), then unload it."""
+        released = list(resource.consumers.items())
+        for query_id, _ in released:
+            self.registrar.catalog.release(query_id)
+        if self.registrar.events.active:
+            for query_id, origin in released:
+                self.registrar.events.publish(
+                    events.ConsumerReleased(
+                        self.registrar.name, resource.id, query_id, origin, "name yielded"
+                    )
+                )
+        self.teardown.unload_resource(resource, self.registrar.come_back(lambda *_: then()))
 
     def close_resource(self, resource: Resource, then: Callable[[], None]) -> None:
         """Send FATAL to a resource's consumers, revoke their ids, unload it (rule 12)."""

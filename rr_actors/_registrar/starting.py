@@ -28,7 +28,7 @@ from rr_actors._platform import fork
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.endpoints import Clients
-from rr_actors._registrar.messages import PeerLost, PeerReachable, Reachable
+from rr_actors._registrar.messages import PeerLost, PeerReachable, Reachable, YieldName
 from rr_actors._store import Saver, open_catalog
 from rr_actors._types import Query
 from rr_actors.config import RegistrarConfig
@@ -252,3 +252,8 @@ class Served:
     def peer_reachable(self, name: str) -> None:
         """Registrar `name` of another process answers again (a healed link): `presence.py`."""
         self.registrar._tell(PeerReachable(name))
+
+    def yield_name(self, reason: str) -> None:
+        """Another process's registrar of this name is kept (rule 22): this one unloads
+        what it serves and stops (`lifecycle.py`)."""
+        self.registrar._tell(YieldName(reason))

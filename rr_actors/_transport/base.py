@@ -52,6 +52,12 @@ The contract every carrier keeps (the transport tests check it for each one):
 - **presence**: `Endpoint.peer_reachable(name)` when a registrar that could not be
   reached answers again (a healed link, not a restart); the consumer side retries its
   `Reconcile` until it is answered; `names()` lists the registrars it can reach;
+- **one name, one registrar (rule 22)**: `serve` refuses a name another process serves
+  (`DuplicateNameError`), and, where the carrier cannot hear the rest of the system, one
+  it cannot tell is free (`RegistrarUnavailableError`). A carrier that can see two
+  servers of one name (Zenoh, after a healed link) keeps one by a rule every process
+  applies alike, calls `Endpoint.yield_name` on the other, and tells `peer_reachable`
+  to the consumers of the one that yielded;
 - **health**: `serving_trouble(name)` says for how long a registrar served here has been
   unable to take new connections (a listener out of file descriptors keeps trying);
 - **join**: `address` pickles; `address.attach()` in another process joins the system.
@@ -130,6 +136,17 @@ class Endpoint(Protocol):
         answered, `name` is lost or stopped, or the registrar stops.
 
         Called on a carrier thread; returns at once.
+        """
+        ...
+
+    def yield_name(self, reason: str) -> None:
+        """Another process serves this registrar's name too, and the carrier keeps that
+        one (rule 22: after a healed link, the one served first). The carrier has
+        stopped serving this one already; the registrar unloads every resource it serves
+        (its consumers' ids are released without a word: they reconcile with the one
+        kept, which reports `FATAL` the ids it does not hold) and then stops.
+
+        Called on a carrier thread; returns at once. `reason` says why (for its log).
         """
         ...
 

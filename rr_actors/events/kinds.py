@@ -405,9 +405,11 @@ class ConsumerReleased:
             `"abandoned"` (its caller gave the call up), `"death watch"` (its consumer
             died for good), `"reconcile"` (its consumer no longer held it after a
             restart), `"consumer stopped"` (its consumer was stopped while this
-            registrar was down), `"server unregistered"` (`unregister_server`) or
-            `"refused"` (the load's commit failed or its server closed: the caller was
-            answered with an error).
+            registrar was down), `"server unregistered"` (`unregister_server`),
+            `"name yielded"` (another registrar of its name was kept after a healed
+            link, rule 22: its consumer reconciles with that one) or `"refused"` (the
+            load's commit failed or its server closed: the caller was answered with an
+            error).
         at: when it happened, wall clock (`time.time()` seconds).
         pid: the provider registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).

@@ -413,6 +413,152 @@ def test_a_cut_link_fails_calls_and_a_healed_one_releases_what_the_consumer_forg
     assert 0 == lab.b.call(more_statuses, timeout=5)  # nothing FATAL after the heal
 
 
+# -- one name, one registrar, through cuts and heals (rule 22) ---------------------------------
+
+
+def yielded_within(name: str, timeout: float) -> float:
+    """When this worker's registrar `name` stopped (`TimeoutError` if it does not within
+    `timeout` seconds)."""
+    from tests.support.waiting import wait_for  # noqa: PLC0415
+
+    registrar = hosts.KEPT["registrars"][name]
+    if not wait_for(lambda: not registrar.is_alive(), timeout):
+        raise TimeoutError(f"registrar {name} still runs after {timeout:g} s")
+    return time.monotonic()
+
+
+def unloaded_each(devices: list[int], timeout: float) -> bool:
+    """Whether the camera of each of `devices` is unloaded within `timeout` seconds (in
+    whatever order: `unloaded` takes the first of its queue)."""
+    from tests.support.waiting import wait_for  # noqa: PLC0415
+
+    return bool(wait_for(lambda: all(unloads_of(d) for d in devices), timeout))
+
+
+def router_address() -> Any:
+    """This worker's `ZenohNetwork.address`: how a process of its host attaches."""
+    return hosts.KEPT["network"].address
+
+
+def rr_attach(address: Any) -> None:
+    """Join the system through the router at `address` (a client process, as a manager
+    process attaches), keeping the log as `hosts.rr_join` does."""
+    import logging  # noqa: PLC0415
+
+    records: list[tuple[str, str]] = []
+    hosts.KEPT["logs"] = records
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            records.append((record.levelname, record.getMessage()))
+
+    log = logging.getLogger("rr_actors")
+    log.addHandler(Keep(logging.INFO))
+    log.setLevel(min(log.getEffectiveLevel(), logging.INFO))
+    hosts.KEPT["network"] = address.attach()
+    hosts.KEPT["registrars"] = {}
+
+
+def names_seen() -> list[str]:
+    return list(hosts.KEPT["network"].names())
+
+
+def wait_served(name: str, timeout: float) -> None:
+    hosts.KEPT["network"].wait_for(name, timeout=timeout)
+
+
+def call_error(registrar: rr.ResourceRegistrar, device: int) -> str:
+    """`call_camera`'s error, as `"<class>: <message>"` (`"answered"` if none)."""
+    try:
+        call_camera(registrar, device, timeout=10)
+    except rr.RrError as exc:
+        return f"{type(exc).__name__}: {exc}"
+    return "answered"
+
+
+@pytest.mark.timeout(120)
+def test_a_name_served_on_both_sides_of_a_cut_is_kept_on_one_after_the_heal(lab: Lab) -> None:
+    kept = lab.a.call(hosts.rr_run, "app-a", call_camera, 100, timeout=15)
+    lab.net.link_down()
+    assert lab.b.call(hosts.rr_unlinked_within, "erm", 10.0, timeout=15)
+    assert lab.a.call(hosts.rr_unlinked_within, "app-b", 10.0, timeout=15)
+    # erm is lost on b's side (not supervised, rule 19): b may serve the name there
+    lab.b.call(hosts.rr_start, "erm", provider_setup, timeout=30)
+    during = [lab.b.call(hosts.rr_run, "app-b", call_camera, d, timeout=15) for d in (100, 102)]
+    assert [1, 1] == [lab.b.call(loads_of, d, timeout=5) for d in (100, 102)]
+
+    healed = time.monotonic()
+    lab.net.link_up()
+
+    # exactly one serves: a's, served first; b's yields (an ERROR), unloads what it served
+    assert lab.b.call(yielded_within, "erm", 30.0, timeout=35) - healed < 30.0
+    assert lab.b.call(unloaded_each, [100, 102], 10.0, timeout=15)
+    errors = lab.b.call(hosts.rr_logs, "ERROR", timeout=5)
+    assert 1 == len(errors), errors
+    assert errors[0].startswith("registrar 'erm' of system 'lab' is served by process ")
+    assert "this one stops serving" in errors[0]
+    # app-b's ids were held at the erm that yielded: the one kept does not hold them
+    fatal = [lab.b.call(next_status, 15.0, timeout=20) for _ in during]
+    assert sorted((query_id, "FATAL") for query_id in during) == sorted(
+        (query_id, status) for query_id, status, _source, _at in fatal
+    )
+    assert [] == lab.b.call(hosts.rr_run, "app-b", held, timeout=5)
+    # from both hosts, erm is a's now: device 100 is a dedup hit there, loaded once
+    again = lab.b.call(hosts.rr_run, "app-b", call_camera, 100, timeout=15)
+    assert [1, 0] == [lab.a.call(loads_of, 100, timeout=5), lab.a.call(unloads_of, 100, timeout=5)]
+    assert [1, 1] == [lab.b.call(loads_of, 100, timeout=5), lab.b.call(unloads_of, 100, timeout=5)]
+    assert [0, 1, 1] == [
+        lab.a.call(loads_of, 102, timeout=5),
+        lab.b.call(loads_of, 102, timeout=5),
+        lab.b.call(unloads_of, 102, timeout=5),
+    ]
+    assert "erm" in lab.b.call(names_seen, timeout=5)
+    lab.b.call(hosts.rr_run, "app-b", unload, again, timeout=10)
+    lab.a.call(hosts.rr_run, "app-a", unload, kept, timeout=10)
+    lab.a.call(unloaded, {"device": 100}, 10.0, timeout=15)
+    assert 0 == lab.b.call(more_statuses, timeout=5)
+
+
+@pytest.mark.timeout(120)
+def test_a_process_whose_router_was_killed_serves_no_name(lab: Lab) -> None:
+    client = lab.net.b.spawn()
+    try:
+        client.call(rr_attach, lab.b.call(router_address, timeout=10), timeout=30)
+        client.call(hosts.rr_start, "app-c", timeout=30)
+        client.call(hosts.rr_until_answered, "app-c", "erm", "probe", 15.0, timeout=30)
+        lab.b.kill()  # b's router: SIGKILL
+        fresh = lab.net.b.spawn()  # a new router on b serves the system's names again
+        fresh.call(
+            hosts.rr_join,
+            system=SYSTEM,
+            listen=[lab.net.b.endpoint(PORT + 1)],
+            connect=[lab.net.a.endpoint(PORT)],
+            timeout=30,
+        )
+        fresh.call(wait_served, "erm", 15.0, timeout=20)  # (its link to a is up)
+
+        called = client.call(hosts.rr_run, "app-c", call_error, 104, timeout=30)
+        started = time.monotonic()
+        with pytest.raises(rr.RegistrarUnavailableError) as refused:
+            client.call(hosts.rr_start, "erm", provider_setup, timeout=30)
+        took = time.monotonic() - started
+        warned = client.call(hosts.rr_logs, "WARNING", timeout=5)
+    finally:
+        with contextlib.suppress(Exception):
+            client.call(hosts.rr_stop, timeout=30)
+        client.stop()
+
+    assert str(refused.value).startswith(
+        "cannot tell whether another process of system 'lab' serves a registrar named 'erm', "
+        "so this process does not serve it: this process's router (process "
+    )
+    assert called.startswith("RegistrarUnavailableError: ")
+    assert took < 5.0  # (at once: it knows its router is gone; not after asking for 5 s)
+    assert any("this process lost its link to its router" in line for line in warned), warned
+    assert 0 == lab.a.call(loads_of, 104, timeout=5)
+    assert ["erm"] == [n for n in fresh.call(names_seen, timeout=5) if n == "erm"]
+
+
 # -- a supervisor on each host -----------------------------------------------------------------
 
 

@@ -269,7 +269,7 @@ def raw_intrude(name: str, path: Path) -> str:
     zid = str(session.zid())
     hosts.KEPT["tokens"] = [
         session.liveliness().declare_token(f"rr/{SYSTEM}/live/proc/{zid}"),
-        session.liveliness().declare_token(f"rr/{SYSTEM}/live/reg/{name}/{zid}/0/1048576"),
+        session.liveliness().declare_token(f"rr/{SYSTEM}/live/reg/{name}/{zid}/0/1048576/1"),
     ]
     session.put(f"rr/{SYSTEM}/reg/erm", framed_pickle(path, zid))
     return zid

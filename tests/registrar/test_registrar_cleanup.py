@@ -9,6 +9,7 @@ import uuid
 import pytest
 
 import rr_actors as rr
+from rr_actors._registrar import Served
 from rr_actors.testing import catalog_snapshot, crash, intercept
 from tests.support.waiting import wait_for
 
@@ -287,3 +288,87 @@ def test_a_consumer_that_crashes_while_its_call_loads_is_released_when_the_load_
 
     assert leaf.unloaded.wait(5)
     assert [] == provider.server_queries("slow")
+
+
+# -- yielding its name (rule 22: another registrar of its name is kept) -------------------------
+#
+# The carrier calls `Endpoint.yield_name` in the registrar's own process once it stopped
+# serving it (`tests/multihost/test_registrars_on_two_hosts.py` has the whole cut and heal).
+
+
+def _started(prefix: str) -> rr.ResourceRegistrar:
+    return rr.ResourceRegistrar.start(f"{prefix}-{uuid.uuid4().hex[:8]}")
+
+
+def test_a_registrar_that_yields_its_name_unloads_what_it_serves_tells_no_consumer_and_stops():
+    provider, consumer, below = _started("P"), _started("C"), _started("D")
+    unloads: list[str] = []
+    below_unloads: list[str] = []
+    heard: list[rr.StatusUpdate] = []
+    released: list[str] = []
+    try:
+        below.register_server(
+            "leaf", load=lambda r: r, unload=lambda r, _s: below_unloads.append(r)
+        )
+        provider.register_server(
+            "camera",
+            load=lambda r: provider.call(below.name, "leaf", r).response,
+            unload=lambda r, _s: unloads.append(r),
+        )
+        ids = [
+            consumer.call(provider.name, "camera", r, on_status=lambda _q, u: heard.append(u)).id
+            for r in ("a", "a", "b")
+        ]
+        provider.subscribe(
+            lambda e: (
+                released.append(e.reason) if isinstance(e, rr.events.ConsumerReleased) else None
+            )
+        )
+
+        Served(provider).yield_name("another registrar of its name is kept")
+
+        assert wait_for(lambda: not provider.is_alive(), 10.0)
+        assert ["a", "b"] == sorted(unloads)  # each resource's unload once
+        assert ["a", "b"] == sorted(below_unloads)  # and what it held for them, released
+        assert ["name yielded"] * 3 == released
+        assert [] == heard  # no FATAL from it: its consumers reconcile with the one kept
+        assert sorted(ids) == sorted(q.id for q in consumer.client_queries())
+    finally:
+        for registrar in (consumer, provider, below):
+            registrar.stop()
+
+
+def test_a_load_under_way_when_a_registrar_yields_its_name_fails_its_caller_and_is_unloaded():
+    provider, consumer = _started("P"), _started("C")
+    gate, started, unloaded = threading.Event(), threading.Event(), threading.Event()
+    outcome: list[BaseException] = []
+
+    def load(request: str) -> str:
+        started.set()
+        gate.wait(10)
+        return request
+
+    def call() -> None:
+        try:
+            consumer.call(provider.name, "slow", "x", timeout=10)
+        except rr.RrError as exc:
+            outcome.append(exc)
+
+    try:
+        provider.register_server("slow", load=load, unload=lambda _r, _s: unloaded.set())
+        caller = threading.Thread(target=call)
+        caller.start()
+        assert started.wait(5)
+
+        Served(provider).yield_name("another registrar of its name is kept")
+        gate.set()
+        caller.join(10)
+
+        assert unloaded.wait(5)  # before it stopped, not left in doubt
+        assert wait_for(lambda: not provider.is_alive(), 10.0)
+        assert [rr.UnknownServerError] == [type(exc) for exc in outcome]
+        assert [] == consumer.client_queries()
+    finally:
+        gate.set()
+        consumer.stop()
+        provider.stop()

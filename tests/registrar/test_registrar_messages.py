@@ -280,6 +280,11 @@ def _reconcile_retry(p: Pair, hook: Hook) -> None:
     Served(p.consumer).peer_reachable(p.provider.name)  # it cannot answer: retried
 
 
+def _yield_name(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "yield_name", before=hook)
+    Served(p.provider).yield_name("another registrar of its name is kept (a test)")
+
+
 def _snapshot(p: Pair, hook: Hook) -> None:
     intercept(p.provider, "snapshot", before=hook)
     catalog_snapshot(p.provider)
@@ -337,6 +342,7 @@ DRIVERS: dict[str, Callable[[Pair, Hook], None]] = {
     "peer_lost": _peer_lost,
     "peer_reachable": _peer_reachable,
     "reconcile_retry": _reconcile_retry,
+    "yield_name": _yield_name,
     "snapshot": _snapshot,
     "ping": _ping,
     "open_client": _open_client,

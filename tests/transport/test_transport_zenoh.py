@@ -460,7 +460,7 @@ def test_a_call_to_a_registrar_of_another_version_fails_naming_both_versions(
         inbox = raw.declare_subscriber(f"rr/{net.system}/reg/{old}", answer)
         tokens = [
             raw.liveliness().declare_token(f"rr/{net.system}/live/proc/{zid}"),
-            raw.liveliness().declare_token(f"rr/{net.system}/live/reg/{old}/{zid}/none/1000000"),
+            raw.liveliness().declare_token(f"rr/{net.system}/live/reg/{old}/{zid}/none/1000000/1"),
         ]
         assert eventually(lambda: old in net.names(), timeout=10)  # (declared, now seen)
         with pytest.raises(rr.RrError) as caught:
@@ -535,7 +535,7 @@ def test_two_processes_whose_network_does_not_answer_do_not_both_serve_a_name(
     for control in controls:
         assert control.poll(30)
         assert "attached" == control.recv()
-    os.kill(router.pid, signal.SIGSTOP)
+    _freeze(router.pid)
     try:
         go.set()
         outcomes = []
@@ -556,7 +556,7 @@ def test_a_name_asked_of_a_network_that_does_not_answer_is_unavailable_not_unkno
     _, control = children.start(_reporting_caller, address, "never-served", go, ready=False)
     assert control.poll(30)
     assert "attached" == control.recv()
-    os.kill(router.pid, signal.SIGSTOP)
+    _freeze(router.pid)
     try:
         go.set()
         assert control.poll(30)
@@ -569,6 +569,18 @@ def test_a_name_asked_of_a_network_that_does_not_answer_is_unavailable_not_unkno
 
     assert "RegistrarUnavailableError: cannot tell whether registrar 'never-served'" in frozen
     assert thawed.startswith("UnknownRegistrarError: no registrar named 'never-served'")
+
+
+def _freeze(pid: int) -> None:
+    """SIGSTOP process `pid` and return once it is stopped (a signal is delivered when the
+    process next runs: on a loaded machine it may answer one more question first)."""
+    os.kill(pid, signal.SIGSTOP)
+
+    def stopped() -> bool:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] == "T"
+
+    assert wait_for(stopped, 10.0)
 
 
 def _reporting_caller(
@@ -725,6 +737,46 @@ def test_a_killed_supervised_manager_is_not_lost_until_its_supervisor_goes_too(
     assert watcher.heard.wait(5)
     assert eventually(lambda: {manager, router} == {name for name, _ in watcher.lost})
     watcher.end()
+
+
+def test_a_name_whose_supervisor_may_restart_it_is_not_served_elsewhere_until_it_is_lost(
+    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+) -> None:
+    # Rule 22: its manager was killed, its supervisor lives (it may restart it): the name
+    # is not lost, so another process does not take it (it used to, at once); once its
+    # supervisor is gone too, it is lost (rule 19) and may be served elsewhere.
+    router = f"router-{uuid.uuid4().hex[:6]}"
+    parent_end, child_end = children.context.Pipe()
+    router_process, _ = children.start(remote_main, net.system, _tcp(net), router, child_end)
+    assert parent_end.poll(30)
+    address = parent_end.recv()
+    manager = f"manager-{uuid.uuid4().hex[:6]}"
+    manager_process, _ = children.start(_supervised_manager, address, manager)
+    assert eventually(lambda: {router, manager} <= set(net.names()), timeout=10)
+    os.kill(manager_process.pid, signal.SIGKILL)
+    assert eventually(lambda: manager not in net.names(), timeout=5)
+
+    here = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=manager))
+    try:
+        with pytest.raises(rr.RegistrarUnavailableError, match="may restart it") as refused:
+            net.serve(Served(here))
+        os.kill(router_process.pid, signal.SIGKILL)  # now nobody restarts it: lost
+
+        def served() -> bool:
+            try:
+                net.serve(Served(here))
+            except rr.RegistrarUnavailableError:
+                return False
+            return True
+
+        assert eventually(served, timeout=10)
+    finally:
+        here.stop()
+
+    assert f"registrar {manager!r} of system {net.system!r} was served by process" in str(
+        refused.value
+    )
+    assert "it is not lost (rule 19)" in str(refused.value)
 
 
 def test_a_call_in_flight_to_a_killed_remote_router_fails_at_once_as_unavailable(

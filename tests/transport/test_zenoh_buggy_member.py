@@ -239,12 +239,12 @@ def test_a_registrar_token_with_a_limit_that_is_not_an_integer_is_one_warning(
 ) -> None:
     with buggy_member(net) as raw, caplog.at_level(logging.WARNING, logger="rr_actors"):
         zid = str(raw.zid())
-        bad = f"rr/{net.system}/live/reg/bad-{uuid.uuid4().hex[:6]}/{zid}/none/lots"
+        bad = f"rr/{net.system}/live/reg/bad-{uuid.uuid4().hex[:6]}/{zid}/none/lots/1"
         for _ in range(3):  # an event each: declared, then undeclared
             raw.liveliness().declare_token(bad).undeclare()
         sentinel = f"s-{uuid.uuid4().hex[:6]}"  # heard after them (one link, in order)
         token = raw.liveliness().declare_token(
-            f"rr/{net.system}/live/reg/{sentinel}/{zid}/none/1000000"
+            f"rr/{net.system}/live/reg/{sentinel}/{zid}/none/1000000/1"
         )
         assert eventually(lambda: sentinel in net.names(), timeout=WAIT)
         token.undeclare()

@@ -25,8 +25,12 @@ ZID = "a0f481d091d919019faefa4c91471a5"
 
 def test_well_formed_keys_say_what_their_tokens_mean() -> None:
     assert ZID == proc_key(f"{P}/live/proc/{ZID}", P)
-    assert ServerKey("erm", ZID, "none", 1024) == server_key(f"{P}/live/reg/erm/{ZID}/none/1024", P)
-    assert ServerKey("erm", ZID, "ab12", 1) == server_key(f"{P}/live/reg/erm/{ZID}/ab12/1", P)
+    assert ServerKey("erm", ZID, "none", 1024, 7) == server_key(
+        f"{P}/live/reg/erm/{ZID}/none/1024/7", P
+    )
+    assert ServerKey("erm", ZID, "ab12", 1, 2**64 - 1) == server_key(
+        f"{P}/live/reg/erm/{ZID}/ab12/1/{2**64 - 1}", P
+    )
     assert NameAt("erm", ZID) == claim_key(f"{P}/live/claim/erm/{ZID}", P)
     assert NameAt("erm", ZID) == stopped_key(f"{P}/live/stopped/erm/{ZID}", P)
 
@@ -48,17 +52,23 @@ def test_a_malformed_process_token_is_none(rest: str) -> None:
 @pytest.mark.parametrize(
     "rest",
     [
-        f"erm/{ZID}/none/lots",
-        f"erm/{ZID}/none/-1",
-        f"erm/{ZID}/none/0",
-        f"erm/{ZID}/none/1.5",
-        f"erm/{ZID}/none/{'9' * 5000}",
-        f"erm/{ZID}/none/\u0663",  # an Arabic-Indic digit: int() would take it
-        f"erm/{ZID}/somebody/1024",
-        "erm/not-hex/none/1024",
-        f".hidden/{ZID}/none/1024",
-        f"erm/{ZID}/none",
-        f"erm/{ZID}/none/1024/more",
+        f"erm/{ZID}/none/lots/1",
+        f"erm/{ZID}/none/-1/1",
+        f"erm/{ZID}/none/0/1",
+        f"erm/{ZID}/none/01024/1",
+        f"erm/{ZID}/none/1.5/1",
+        f"erm/{ZID}/none/{'9' * 5000}/1",
+        f"erm/{ZID}/none/\u0663/1",  # an Arabic-Indic digit: int() would take it
+        f"erm/{ZID}/somebody/1024/1",
+        "erm/not-hex/none/1024/1",
+        f".hidden/{ZID}/none/1024/1",
+        f"erm/{ZID}/none/1024",  # (a token of wire version 3: no stamp)
+        f"erm/{ZID}/none/1024/soon",
+        f"erm/{ZID}/none/1024/-1",
+        f"erm/{ZID}/none/1024/007",
+        f"erm/{ZID}/none/1024/{2**64}",  # past a clock stamp's 64 bits
+        f"erm/{ZID}/none/1024/{'9' * 5000}",
+        f"erm/{ZID}/none/1024/1/more",
     ],
 )
 def test_a_malformed_registrar_token_is_none(rest: str) -> None:
@@ -81,7 +91,12 @@ def test_a_key_of_another_system_is_none() -> None:
 names = st.from_regex(NAME, fullmatch=True)
 zids = st.from_regex(r"[0-9a-f]{1,32}", fullmatch=True)
 servers = st.builds(
-    ServerKey, names, zids, st.one_of(st.just("none"), zids), st.integers(1, 2**63 - 1)
+    ServerKey,
+    names,
+    zids,
+    st.one_of(st.just("none"), zids),
+    st.integers(1, 2**63 - 1),
+    st.integers(0, 2**64 - 1),
 )
 
 
@@ -132,7 +147,7 @@ def test_every_key_of_a_system_is_under_what_its_access_control_allows() -> None
         keys.answers(ZID),
         keys.ping(ZID),
         keys.proc(ZID),
-        keys.server(ServerKey("erm", ZID, "none", 1024)),
+        keys.server(ServerKey("erm", ZID, "none", 1024, 1)),
         keys.claim(at),
         keys.stopped(at),
     ]

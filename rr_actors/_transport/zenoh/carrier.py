@@ -66,7 +66,15 @@ of two claims that see each other the lower Zenoh id wins; a claim that sees a h
 one waits until that one either serves (then it yields) or withdraws. A claim is held
 until the registrar's token is declared, so a rival never sees it go before the token
 comes. (The router orders declarations and queries, so of two claims at least one sees
-the other.)
+the other.) A process attached through a router that does not answer serves nothing: it
+cannot hear the rest of the system (`Presence.question`).
+
+Through cuts and heals (rule 22): a name whose server went beyond a cut is lost there
+(rule 19), and may be served on this side; once the link heals, both registrars' tokens
+are seen everywhere. Each carries the clock stamp of when it began to serve: the one
+served first is kept, and the process that serves the other makes it yield
+(`served_elsewhere`): ERROR, its subscriber and token go, it unloads what it serves and
+stops; its consumers, wherever they are, reconcile with the one kept (rule 20).
 """
 
 from __future__ import annotations
@@ -99,7 +107,7 @@ from rr_actors._transport.messenger import (
 from rr_actors._transport.zenoh.events import EventExport, EventFeed
 from rr_actors._transport.zenoh.inbox import Inbox, Local
 from rr_actors._transport.zenoh.outbox import DRAIN_TIMEOUT, Outbox, Outboxes
-from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence
+from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence, Server, rank, when
 from rr_actors._transport.zenoh.wire import (
     ANSWER,
     MESSAGE,
@@ -209,6 +217,8 @@ class ZenohMember:
         link_trouble: says why a registrar may not be seen (`ZenohNetwork`'s connect
             endpoints it has no link to), as the end of an `UnknownRegistrarError`'s
             message; `""` when nothing is wrong.
+        router: the Zenoh id of the router this process attached through (`None`: this
+            process is a router); what it hears counts only while that one answers.
     """
 
     def __init__(
@@ -220,6 +230,7 @@ class ZenohMember:
         speakers: dict[int, str] | None = None,
         on_close: Callable[[ZenohMember], None] | None = None,
         link_trouble: Callable[[], str] | None = None,
+        router: str | None = None,
     ) -> None:
         self.system = system
         self.zid = str(session.zid())
@@ -238,7 +249,7 @@ class ZenohMember:
         self._outboxes = Outboxes(session, self._keys)
         self._inbox = Inbox(self)
         self._presence = Presence(
-            system, session, self.zid, self, on_token=self._inbox.process_token
+            system, session, self.zid, self, on_token=self._inbox.process_token, router=router
         )
         self._answers = session.declare_subscriber(
             self._keys.answers(self.zid), self._inbox.on_answer
@@ -286,13 +297,12 @@ class ZenohMember:
             if on_actor_thread():
                 known = True  # (asked by its messages, off this thread)
             else:
-                answered = self._presence.ask(name)
+                why = self._presence.question(name)
                 known = self._presence.serves(name)
-                if not known and not answered:
+                if not known and why is not None:
                     raise RegistrarUnavailableError(
                         f"cannot tell whether registrar {name!r} is served on system "
-                        f"{self.system!r}: the network did not answer within "
-                        f"{ASK_TIMEOUT:g} s"
+                        f"{self.system!r}: {why}"
                     )
         if not known:
             raise self._unknown_error(name)
@@ -341,6 +351,7 @@ class ZenohMember:
         try:
             self._presence.wait_turn(name)
             local = Local(endpoint)
+            local.stamp = CLOCK.now()  # (after every registration heard of: rule 22)
             supervisor = self._supervisor or (
                 self.zid if DIRECTORY.restart_expected(name) else "none"
             )
@@ -349,13 +360,16 @@ class ZenohMember:
                 lambda sample: self._inbox.on_message(local, sample),
             )
             token_key = self._keys.server(
-                ServerKey(name, self.zid, supervisor, local.max_message_bytes)
+                ServerKey(name, self.zid, supervisor, local.max_message_bytes, local.stamp)
             )
             local.token = self._session.liveliness().declare_token(token_key)
         finally:  # after the token: a rival sees this one serve before the claim goes
             claim.undeclare()  # type: ignore[no-untyped-call]
         with self._lock:
             self._locals[name] = local
+        rival = self._presence.server(name)  # (one heard between the turn and here)
+        if rival is not None:
+            self.served_elsewhere(name, rival)
         self._barrier(token_key)
         threading.Thread(
             target=self._watch, args=(local,), name=f"rr-zwatch-{name}", daemon=True
@@ -437,6 +451,47 @@ class ZenohMember:
     def _watch(self, local: Local) -> None:
         local.endpoint.wait_ended()
         self._unserve(local, stopped=local.endpoint.stopped_cleanly())
+        if local.yielded:  # its name is the kept one's now: this process's consumers of
+            # it reconcile with that one (rule 20), as other processes' do (presence)
+            self.reachable(local.name)
+
+    def served_elsewhere(self, name: str, server: Server) -> None:
+        """Another process serves registrar `name` (the presence thread): if this process
+        serves it too and rule 22 keeps the other one (registered first, by its clock
+        stamp; of equal stamps, the lower Zenoh id), this one yields.
+
+        Yielding, as Erlang's `global` resolves a name registered on both sides of a
+        netsplit: an ERROR line, its subscriber and token go (nothing more reaches it;
+        its consumers elsewhere see it go and reconcile with the one kept), and the
+        registrar unloads what it serves and stops (`Endpoint.yield_name`). The process
+        of the one kept does nothing: this one sees it too, and yields.
+        """
+        local = self._locals.get(name)
+        if local is None or server.rank > rank(local.stamp, self.zid):
+            return
+        reason = (
+            f"registrar {name!r} of system {self.system!r} is served by process "
+            f"{server.zid} too, since {when(server.stamp)}, before this one "
+            f"(process {self.zid}, since {when(local.stamp)}): one name is one registrar "
+            f"(rule 22), and the one served first is kept"
+        )
+        with local.lock:
+            if local.ended:
+                return
+            local.ended = local.yielded = True
+            with contextlib.suppress(Exception):  # (first: nothing more reaches it)
+                local.subscriber.undeclare()
+            with contextlib.suppress(Exception):
+                local.token.undeclare()
+        with self._lock:
+            if self._locals.get(name) is local:
+                del self._locals[name]
+        logger.error(
+            "%s; this one stops serving: it unloads what it serves and stops, and its "
+            "consumers reconcile with the other one (an id it does not hold is FATAL)",
+            reason,
+        )
+        local.endpoint.yield_name(reason)
 
     def _unserve(self, local: Local, *, stopped: bool) -> None:
         """Stop serving `local`; a clean stop is marked before the token goes."""

@@ -66,7 +66,8 @@ STRANGERS_HELD = (10_000, 64 * 1024 * 1024)
 
 
 class Local:
-    """A registrar served by this process: its subscriber and token."""
+    """A registrar served by this process: its subscriber and token, the clock stamp of
+    when it began to serve, and whether it yielded its name (rule 22, `carrier`)."""
 
     def __init__(self, endpoint: Endpoint) -> None:
         self.endpoint = endpoint
@@ -74,8 +75,10 @@ class Local:
         self.max_message_bytes = endpoint.max_message_bytes
         self.subscriber: Any = None
         self.token: Any = None
+        self.stamp = 0
         self.lock = threading.Lock()
         self.ended = False
+        self.yielded = False
 
 
 class InboxOwner(Protocol):

@@ -251,7 +251,12 @@ class ZenohAddress:
                 f"cannot join system {self.system!r} through {self.socket_path!r}: {exc}"
             ) from exc
         member = ZenohMember(
-            self.system, session, self, speakers={self.router_pid: self.router}, on_close=_left
+            self.system,
+            session,
+            self,
+            speakers={self.router_pid: self.router},
+            on_close=_left,
+            router=self.router,
         )
         _close_at_exit(f"the membership of system {self.system!r}", member, member.close)
         return member

@@ -9,11 +9,13 @@
                                   supervisors awaited
                                              │ then, outside the lock
                                              ▼
-                  PresenceEvents (the member): process_gone, server_gone, lost, reachable
-                     ─► fail waiting replies, close outboxes, peer_lost, peer_reachable
+                  PresenceEvents (the member): process_gone, server_gone, lost, reachable,
+                                               served_elsewhere
+                     ─► fail waiting replies, close outboxes, peer_lost, peer_reachable,
+                        yield a name served here to the one kept (rule 22)
 ```
 
-- a registrar's token (`live/reg/<name>/<zid>/<sup>/<limit>`) goes: every reply waiting
+- a registrar's token (`live/reg/<name>/<zid>/<sup>/<limit>/<stamp>`) goes: every reply waiting
   on it fails with `RegistrarStoppedError` if its `stopped` mark came first (a clean stop
   declares the mark before it drops the token), else with `RegistrarUnavailableError`;
   later calls fail at once the same way;
@@ -31,7 +33,24 @@
 Claims (`live/claim/<name>/<zid>`) and `wait_turn` are `serve`'s half of "one name, one
 server" (see `carrier`). `wait_turn` decides only from a full answer of the network (a
 liveliness query that timed out answers with an error reply: it is asked again, and
-`serve` fails with `RegistrarUnavailableError` if none comes within `CLAIM_TIMEOUT`).
+`serve` fails with `RegistrarUnavailableError` if none comes within `CLAIM_TIMEOUT`). A
+process attached through a router counts an answer as full only if that router answers
+a ping after it: Zenoh ends a liveliness query of a session with no route at once, with
+no reply and no error, which is not "nobody serves it" (a process whose router died
+hears nothing of the system). Nor does `wait_turn` let this process serve a name whose
+last server went without a clean stop while its supervisor may restart it (`_awaiting`:
+not lost, rule 19).
+
+Two servers of one name (rule 22): a cut lets each side serve a name the other served
+(lost there, rule 19); after the heal both tokens are seen. Each token carries the clock
+stamp of when its registrar began to serve (`wire`), and each stamp heard is taken into
+this process's clock (`_core.hlc`), so a registrar served after this process saw another
+one serve has the later stamp. The server with the earlier (stamp, Zenoh id) is kept, as
+every process decides alike: `server()` is that one; the process that serves the other
+hears `served_elsewhere` and makes it yield (`carrier`). When the one that yields goes,
+the one kept still serves: its consumers are told `reachable`, and reconcile with it.
+A restart seen before its predecessor's token went (the same process, or the same
+supervisor, with a later stamp) is no second server: the predecessor died.
 """
 
 from __future__ import annotations
@@ -46,6 +65,7 @@ from typing import Any, Protocol
 
 import zenoh
 
+from rr_actors._core.hlc import CLOCK, seconds
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
@@ -65,6 +85,9 @@ __all__ = [
     "Presence",
     "PresenceEvents",
     "Server",
+    "kept",
+    "rank",
+    "when",
 ]
 
 ASK_TIMEOUT = 1.0
@@ -85,12 +108,35 @@ reports to the member run, `PresenceEvents`)."""
 class Server:
     """A registrar of another process as its liveliness token says."""
 
-    __slots__ = ("limit", "supervisor", "zid")
+    __slots__ = ("limit", "stamp", "supervisor", "zid")
 
-    def __init__(self, zid: str, supervisor: str, limit: int) -> None:
+    def __init__(self, zid: str, supervisor: str, limit: int, stamp: int = 0) -> None:
         self.zid = zid
         self.supervisor = supervisor
         self.limit = limit
+        self.stamp = stamp  # when it began to serve (`_core.hlc`)
+
+    @property
+    def rank(self) -> tuple[int, int]:
+        """Its place in rule 22's order: of two servers of one name, the lower is kept
+        (the earlier stamp; of equal stamps, the lower Zenoh id, as claims tie-break)."""
+        return rank(self.stamp, self.zid)
+
+
+def rank(stamp: int, zid: str) -> tuple[int, int]:
+    """The place in rule 22's order of a server of process `zid` since `stamp`."""
+    return (stamp, int(zid, 16))
+
+
+def kept(servers: list[Server]) -> Server | None:
+    """Which of the servers of one name is kept (rule 22: the lowest `rank`)."""
+    return min(servers, key=lambda server: server.rank, default=None)
+
+
+def when(stamp: int) -> str:
+    """A registration stamp as people read it: UTC, to the microsecond."""
+    at = seconds(stamp)
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(at)) + f".{int(at % 1 * 1e6):06d} UTC"
 
 
 class PresenceEvents(Protocol):
@@ -106,7 +152,13 @@ class PresenceEvents(Protocol):
         """Registrar `name` is gone for good (nobody restarts it)."""
 
     def reachable(self, name: str) -> None:
-        """Registrar `name` is back from the same process (a healed link)."""
+        """Registrar `name` is back from the same process (a healed link), or a second
+        server of it yielded and the one kept serves on (rule 22): its consumers
+        reconcile with it."""
+
+    def served_elsewhere(self, name: str, server: Server) -> None:
+        """Another process serves registrar `name` (if this process serves it too, the
+        one of the two that rule 22 does not keep yields: `carrier`)."""
 
 
 class Presence:
@@ -119,6 +171,9 @@ class Presence:
         events: told what follows from a change (see `PresenceEvents`).
         on_token: called with a process's Zenoh id and whether its token came (`True`)
             or went, once `member` says so (on Zenoh's thread: it must not block).
+        router: the Zenoh id of the router this process attached through (`None`: it
+            is a router): an answer counts as full only if that router answers a ping
+            after it (`question`).
     """
 
     def __init__(
@@ -129,8 +184,10 @@ class Presence:
         events: PresenceEvents,
         *,
         on_token: Callable[[str, bool], None] | None = None,
+        router: str | None = None,
     ) -> None:
         self._system = system
+        self._router = router
         self._session = session
         self._zid = zid
         self._events = events
@@ -147,6 +204,8 @@ class Presence:
         self._gone: dict[str, str] = {}  # name -> "stopped" | "died"
         self._last: dict[str, str] = {}  # name -> the Zenoh id of its last server
         self._awaiting: dict[str, str] = {}  # name -> its supervisor: lost if that one goes
+        self._conflicts: set[tuple[str, str, int]] = set()  # (name, zid, stamp) warned of
+        self._mine: dict[str, int] = {}  # name -> stamp: served by this process (its tokens)
         self._members: set[str] = set()  # processes whose token is here (Zenoh's threads)
         self._on_token = on_token
         self._malformed = LogThrottle(logger)
@@ -168,13 +227,12 @@ class Presence:
         return bool(self._servers.get(name))
 
     def server(self, name: str) -> Server | None:
-        """A server of `name` in another process, if any."""
+        """The server of `name` in another process that rule 22 keeps, if any (of two
+        seen after a healed link, the one served first; the other yields)."""
         servers = self._servers.get(name)
         if not servers:
             return None
-        for server in list(servers.values()):
-            return server
-        return None
+        return kept(list(servers.values()))
 
     def names(self) -> list[str]:
         """The registrars of other processes that serve now."""
@@ -204,30 +262,37 @@ class Presence:
     def wait_turn(self, name: str) -> None:
         """With this process's claim on `name` declared: return once it may serve it.
 
-        It decides from a full answer of the network only: a question about the name's
-        tokens that timed out (a router too busy to answer within `ASK_TIMEOUT`) is asked
-        again; an empty answer that is not known to be whole would let two processes
-        that claim the name at once each see no rival, and both serve it.
+        It decides from a full answer of the network only (`question`): a question about
+        the name's tokens that timed out (a router too busy to answer within
+        `ASK_TIMEOUT`) or that this process's router did not answer is asked again (not
+        once the router's token went: then it refuses at once); an empty answer that is
+        not known to be whole would let two processes that claim the name at once each
+        see no rival, and both serve it, or a process that hears nothing of the system
+        serve a name served there.
 
         Raises:
             DuplicateNameError: another process serves it, or claims it and wins.
             RegistrarUnavailableError: the network did not answer in full within
-                `CLAIM_TIMEOUT` seconds (whether another process serves it is unknown).
+                `CLAIM_TIMEOUT` seconds (whether another process serves it is unknown;
+                the message says why, e.g. no link to this process's router), or its
+                last server went without a clean stop and its supervisor may restart it
+                (not lost: rule 22).
             RegistrarStoppedError: this process left the system meanwhile.
         """
         me = int(self._zid, 16)
         deadline = time.monotonic() + CLAIM_TIMEOUT
-        while not self.ask(name):
+        while (why := self.question(name)) is not None:
             if self._queue.closed:
                 raise RegistrarStoppedError("this process left the system")
             left = deadline - time.monotonic()
-            if left <= 0:
+            orphan = self._router is not None and self.unreachable(self._router)
+            if left <= 0 or orphan:  # (its router's token went: no use asking again)
                 raise RegistrarUnavailableError(
                     f"cannot tell whether another process of system {self._system!r} serves "
-                    f"a registrar named {name!r}: the network did not answer within "
-                    f"{CLAIM_TIMEOUT:g} s, so this process does not serve it"
+                    f"a registrar named {name!r}, so this process does not serve it: {why}"
+                    + ("" if orphan else f" (asked for {CLAIM_TIMEOUT:g} s)")
                 )
-            logger.debug("system %s: asking again who serves %s", self._system, name)
+            logger.debug("system %s: asking again who serves %s (%s)", self._system, name, why)
             with self._changed:  # (an answer that failed at once: a pause, cut short by news)
                 self._changed.wait(min(left, ASK_PAUSE))
         with self._changed:
@@ -238,6 +303,7 @@ class Presence:
                         f"a registrar named {name!r} is already served on system "
                         f"{self._system!r} (by process {others[0]})"
                     )
+                self._refuse_awaited(name)
                 rivals = [z for z in self._claims.get(name, ()) if z != self._zid]
                 if any(int(z, 16) < me for z in rivals):
                     raise DuplicateNameError(
@@ -253,6 +319,21 @@ class Presence:
                         f"registrar named {name!r}"
                     )
                 self._changed.wait(left)
+
+    def _refuse_awaited(self, name: str) -> None:
+        """Raise if `name`'s last server went without a clean stop and is not lost: its
+        supervisor may restart it (hold the lock). A death-watch mark heard here
+        (`MEMBERSHIP`: a supervisor that gave up) says it is lost after all."""
+        supervisor = self._awaiting.get(name)
+        if supervisor is None or MEMBERSHIP.gone().get(name) is not None:
+            return
+        raise RegistrarUnavailableError(
+            f"registrar {name!r} of system {self._system!r} was served by process "
+            f"{self._last.get(name, '?')}, which went without a clean stop, and its "
+            f"supervisor (process {supervisor}) may restart it: it is not lost (rule 19), "
+            f"so this process does not serve that name until it is served again or lost "
+            f"(rule 22)"
+        )
 
     # -- hearing of tokens ---------------------------------------------------------------
 
@@ -279,48 +360,78 @@ class Presence:
         return zid in self._members
 
     def ask(self, name: str) -> bool:
+        """Ask the network for the tokens of `name` (bounded) and apply what it answers;
+        whether it answered in full (see `question`)."""
+        return self.question(name) is None
+
+    def question(self, name: str) -> str | None:
         """Ask the network for the tokens of `name` (bounded) and apply what it answers.
 
         An answer for a token whose deletion was seen after the question was asked is
         stale and left out.
 
         Returns:
-            Whether the network answered in full: False if the question timed out (Zenoh
-            then answers with an error reply, alongside what came in time) or failed, or
-            was not asked (on a thread that must not wait: `NO_WAITING`).
+            `None` if the network answered in full, else why not (words for an error
+            message): the question timed out (Zenoh then answers with an error reply,
+            alongside what came in time) or failed; this process's router did not
+            answer a ping after it (a session with no route gets no reply and no error:
+            that is no answer); or it was not asked (on a thread that must not wait:
+            `NO_WAITING`).
         """
         if getattr(NO_WAITING, "active", False):
-            return False  # (on Zenoh's or the presence thread: what the tables say must do)
+            return "not asked on this thread"  # (Zenoh's or the presence thread's)
         with self._changed:
             asked_at = self._seq
             self._asking[asked_at] += 1
         try:
             keys: list[str] = []
-            whole = False
+            why: str | None = None
             try:
                 replies = self._session.liveliness().get(
                     self._keys.live_of(name), timeout=ASK_TIMEOUT
                 )
-                whole = True
                 for reply in replies:
                     if reply.ok is not None:
                         keys.append(str(reply.ok.key_expr))
                     else:  # ("Timeout": some answers may be missing)
-                        whole = False
+                        why = f"the network did not answer within {ASK_TIMEOUT:g} s"
             except Exception as exc:  # noqa: BLE001 - a closed session, ...: not answered
                 logger.debug("system %s: asking who serves %s failed: %s", self._system, name, exc)
-                whole = False
+                why = f"the question failed ({exc})"
+            if why is None and not self._router_answers():
+                why = (
+                    f"this process's router (process {self._router}) does not answer: this "
+                    f"process has no link to the rest of the system and hears nothing of it"
+                )
             done = threading.Event()
             for key in keys:
                 self._queue.submit(functools.partial(self._apply, (True, key, asked_at)))
             if not self._queue.submit(done.set):  # (closed: nothing will be applied)
-                return False
-            return done.wait(ASK_TIMEOUT) and whole
+                return "this process left the system"
+            if not done.wait(ASK_TIMEOUT):
+                return "this process's presence thread is late"
+            return why
         finally:
             with self._changed:
                 self._asking[asked_at] -= 1
                 if self._asking[asked_at] <= 0:
                     del self._asking[asked_at]
+
+    def _router_answers(self) -> bool:
+        """Whether this process's router answers a ping (at once for a router process).
+
+        Asked after a question to the network: Zenoh ends a query of a session with no
+        route at once, with no reply and no error (issue 40), so an empty answer from a
+        process whose router is gone would read as "nobody".
+        """
+        if self._router is None:
+            return True
+        try:
+            replies = self._session.get(self._keys.ping(self._router), timeout=ASK_TIMEOUT)
+            return any(reply.ok is not None for reply in replies)
+        except Exception as exc:  # noqa: BLE001 - a closed session: no answer
+            logger.debug("system %s: pinging the router failed: %s", self._system, exc)
+            return False
 
     def close(self) -> None:
         """Stop applying events (and waking `wait_serving`)."""
@@ -380,10 +491,16 @@ class Presence:
         server = self._keys.parse_server(key)
         if server is None:
             return None
-        if server.zid == self._zid:
+        if put:  # (a registration heard of comes before any made here from now on)
+            CLOCK.receive(server.stamp)
+        if server.zid == self._zid:  # (this process's own: not a server "elsewhere")
+            if put:
+                self._mine[server.name] = server.stamp
+            elif self._mine.get(server.name) == server.stamp:
+                del self._mine[server.name]
             return []
         return self._server_event(
-            put, server.name, Server(server.zid, server.supervisor, server.limit)
+            put, server.name, Server(server.zid, server.supervisor, server.limit, server.stamp)
         )
 
     def _claim_token(self, put: bool, key: str) -> list[Callable[[], None]] | None:
@@ -414,6 +531,14 @@ class Presence:
             return []
         self._procs.discard(zid)
         self._vanished.add(zid)
+        if zid == self._router:
+            logger.warning(
+                "system %s: this process lost its link to its router (process %s): it "
+                "hears nothing of the rest of the system, and serves no registrar from now "
+                "on (rule 22)",
+                self._system,
+                zid,
+            )
         lost = [name for name, supervisor in self._awaiting.items() if supervisor == zid]
         for name in lost:
             del self._awaiting[name]
@@ -425,25 +550,79 @@ class Presence:
         """A server's token of registrar `name` came or went."""
         servers = self._servers.setdefault(name, {})
         zid = server.zid
-        if put:
-            if zid in servers:
-                return []
-            replaced: list[Callable[[], None]] = []
-            if servers:  # a restart seen before its predecessor's token went (one name,
-                # one server): that one died; what waits on it fails now, not at its
-                # timeout (its token's end, when it comes, finds it gone already)
-                self._last[name] = next(iter(servers))
-                servers.clear()
-                replaced.append(functools.partial(self._events.server_gone, name))
-            servers[zid] = server
-            self._gone.pop(name, None)
-            MEMBERSHIP.back(name)  # served (again): no longer gone for good
-            self._awaiting.pop(name, None)
-            if self._last.get(name) == zid and zid in self._vanished:
-                return [functools.partial(self._events.reachable, name)]  # a healed link
-            return replaced
-        if servers.pop(zid, None) is None or servers:
-            return []  # unknown, or a rival that yielded: another one serves
+        if not put:
+            return self._server_went(name, server)
+        known = servers.get(zid)
+        if known is not None and known.stamp == server.stamp:
+            return []
+        if any(self._follows(other, server) for other in servers.values()):
+            return []  # a predecessor's late news (an answer of `ask`): it died
+        dead = [z for z, other in servers.items() if self._follows(server, other)]
+        actions: list[Callable[[], None]] = []
+        if dead:  # a restart seen before its predecessor's token went (one name, one
+            # server per supervisor): that one died; what waits on it fails now, not at
+            # its timeout (its token's end, when it comes, finds it gone already)
+            self._last[name] = dead[-1]
+            for gone in dead:
+                del servers[gone]
+            actions.append(functools.partial(self._events.server_gone, name))
+        mine = self._mine.get(name)
+        if servers or mine is not None:
+            here = [] if mine is None else [Server(self._zid, "none", 0, mine)]
+            self._two_servers(name, [*here, *servers.values(), server])
+        servers[zid] = server
+        self._gone.pop(name, None)
+        MEMBERSHIP.back(name)  # served (again): no longer gone for good
+        self._awaiting.pop(name, None)
+        actions.append(functools.partial(self._events.served_elsewhere, name, server))
+        if self._last.get(name) == zid and zid in self._vanished:
+            actions.append(functools.partial(self._events.reachable, name))  # a healed link
+        return actions
+
+    @staticmethod
+    def _follows(server: Server, other: Server) -> bool:
+        """Whether `server` is a later incarnation of `other` (a restart): the same
+        process, or the same supervisor, and a later stamp. Two of those never serve at
+        once (a process serves a name once; a supervisor runs one child of a name)."""
+        same = server.zid == other.zid or (
+            server.supervisor != "none" and server.supervisor == other.supervisor
+        )
+        return same and server.stamp > other.stamp
+
+    def _two_servers(self, name: str, servers: list[Server]) -> None:
+        """Two processes serve `name` (rule 22): a WARNING once per pair, naming the one
+        kept (the one that yields says so at ERROR, `carrier`)."""
+        winner = kept(servers)
+        assert winner is not None
+        for other in servers:
+            mark = (name, other.zid, other.stamp)
+            if other is winner or other.zid == self._zid or mark in self._conflicts:
+                continue  # (this process's own yields: it says so at ERROR)
+            self._conflicts.add(mark)
+            logger.warning(
+                "system %s: two processes serve registrar %s (after a healed link): %s, "
+                "since %s, is kept; %s, since %s, yields (rule 22)",
+                self._system,
+                name,
+                winner.zid,
+                when(winner.stamp),
+                other.zid,
+                when(other.stamp),
+            )
+
+    def _server_went(self, name: str, server: Server) -> list[Callable[[], None]]:
+        """A server's token of registrar `name` went."""
+        servers = self._servers.setdefault(name, {})
+        zid = server.zid
+        known = servers.get(zid)
+        if known is None or known.stamp != server.stamp:
+            return []  # unknown, or a predecessor already counted dead
+        del servers[zid]
+        if name in self._mine:  # one that yielded to this process's own (rule 22): it
+            return []  # held nothing here (this process's consumers call its own)
+        if servers:  # one of two that yielded (rule 22): the one kept serves on, and
+            # the consumers of the one that went reconcile with it (rule 20)
+            return [functools.partial(self._events.reachable, name)]
         stopped = NameAt(name, zid) in self._stopped
         self._gone[name] = "stopped" if stopped else "died"
         self._last[name] = zid

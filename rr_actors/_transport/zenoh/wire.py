@@ -10,10 +10,13 @@ see each other:
  rr/<system>/ev/<zid>                         the events of process <zid>: JSON lines, never
                                               a pickle (`events`)
  rr/<system>/live/proc/<zid>                  liveliness: process <zid> is a member
- rr/<system>/live/reg/<name>/<zid>/<sup>/<limit>
+ rr/<system>/live/reg/<name>/<zid>/<sup>/<limit>/<stamp>
                                               liveliness: <zid> serves <name>; <sup> is the
                                               process that restarts it ("none": nobody),
-                                              <limit> its max_message_bytes
+                                              <limit> its max_message_bytes, <stamp> the
+                                              hybrid logical clock stamp of when it began
+                                              to serve (which of two servers of one name
+                                              is kept: `presence`, rule 22)
  rr/<system>/live/claim/<name>/<zid>          liveliness: <zid> is about to serve <name>
  rr/<system>/live/stopped/<name>/<zid>        liveliness: <name> at <zid> was stopped cleanly
  rr/<system>/obs/<member>/state               the observer of host <member>: its whole
@@ -215,15 +218,17 @@ def versions_text(theirs: Header) -> str:
 
 _ZID = re.compile(r"[0-9a-f]{1,32}")  # a Zenoh id as `str(session.zid())` writes it
 _LIMIT_DIGITS = 19  # max_message_bytes: an int64 at most (and int() stays cheap)
+_STAMP_DIGITS = 20  # a clock stamp: 64 bits at most (`_core.hlc`)
 
 
 class ServerKey(NamedTuple):
-    """What a registrar's token says: `live/reg/<name>/<zid>/<sup>/<limit>`."""
+    """What a registrar's token says: `live/reg/<name>/<zid>/<sup>/<limit>/<stamp>`."""
 
     name: str
     zid: str
     supervisor: str  # a Zenoh id, or "none"
     limit: int
+    stamp: int  # the clock stamp of when it began to serve (`_core.hlc`)
 
 
 class NameAt(NamedTuple):
@@ -300,8 +305,8 @@ class Keys:
 
     def server(self, server: ServerKey) -> str:
         """A registrar's token: `server.zid` serves `server.name`."""
-        name, zid, supervisor, limit = server
-        return f"{self.prefix}/live/reg/{name}/{zid}/{supervisor}/{limit}"
+        name, zid, supervisor, limit, stamp = server
+        return f"{self.prefix}/live/reg/{name}/{zid}/{supervisor}/{limit}/{stamp}"
 
     def claim(self, at: NameAt) -> str:
         """A claim: `at.zid` is about to serve `at.name`."""
@@ -378,25 +383,36 @@ def proc_key(key: str, prefix: str) -> str | None:
     return parts[0] if parts is not None and _zid(parts[0]) else None
 
 
+def _number(text: str, digits: int) -> bool:
+    """Whether `text` is a decimal number of at most `digits` ASCII digits, written as
+    `str(int)` writes it (no leading zero: a key parsed is the key built)."""
+    return (
+        text.isascii()
+        and text.isdigit()
+        and len(text) <= digits
+        and (text == "0" or not text.startswith("0"))
+    )
+
+
 def server_key(key: str, prefix: str) -> ServerKey | None:
-    """What a registrar's token `<prefix>/live/reg/<name>/<zid>/<sup>/<limit>` says, or
-    `None` if it is malformed (a name that is not one, an id that is not hex, a limit that
-    is not a positive integer)."""
-    parts = _live_parts(key, prefix, "reg", 4)
+    """What a registrar's token `<prefix>/live/reg/<name>/<zid>/<sup>/<limit>/<stamp>`
+    says, or `None` if it is malformed (a name that is not one, an id that is not hex, a
+    limit that is not a positive integer, a stamp that is not one of 64 bits)."""
+    parts = _live_parts(key, prefix, "reg", 5)
     if parts is None:
         return None
-    name, zid, supervisor, limit = parts
+    name, zid, supervisor, limit, stamp = parts
     if not (
         NAME.fullmatch(name)
         and _zid(zid)
         and (supervisor == "none" or _zid(supervisor))
-        and limit.isascii()
-        and limit.isdigit()
-        and len(limit) <= _LIMIT_DIGITS
+        and _number(limit, _LIMIT_DIGITS)
         and int(limit) > 0
+        and _number(stamp, _STAMP_DIGITS)
+        and int(stamp) < 1 << 64
     ):
         return None
-    return ServerKey(name, zid, supervisor, int(limit))
+    return ServerKey(name, zid, supervisor, int(limit), int(stamp))
 
 
 def _name_at(key: str, prefix: str, kind: str) -> NameAt | None:
