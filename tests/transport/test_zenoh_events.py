@@ -32,6 +32,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
+from rr_actors._transport.zenoh import events as zenoh_events
 from tests.support import pki
 from tests.support.waiting import wait_for
 
@@ -210,6 +211,91 @@ def test_with_tls_every_process_names_the_member_a_manager_process_too(
     assert pids
     assert os.getpid() not in pids  # (its own process's events, sent by it)
     assert {"robot"} == {e.host for e in seen}
+
+
+def _in_doubt(query_id: str, stamp: int) -> bytes:
+    line = events.InDoubt("erm", query_id, at=1.0, pid=1, host="robot", hlc=stamp << 12)
+    return json.dumps(events.to_dict(line)).encode()
+
+
+def test_a_member_that_floods_big_batches_is_dropped_past_its_bound_and_the_others_are_not(
+    net: rr.ZenohNetwork, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 40: one member's batches of 14 MiB (the per-batch limit allows 16) filled a
+    subscriber's memory, 1,024 of them in all. Now what a subscriber holds of one sender is
+    bounded (`HELD_BYTES`): a second big batch that comes while the first is held for its
+    `window` is dropped unread, counted in an `EventsDropped` before what comes after it,
+    and warned of naming the sender; another member's events still come. (The memory this
+    saves is measured in `benchmarks/bench_events_flood.py`.)"""
+    flood = [_in_doubt(f"big-{i}-" + "x" * (1024 * 1024), 10 + i) for i in range(14)]
+    batch = b"\n".join(flood)  # 14 MiB
+    seen: list[events.Event] = []
+    flooder, other = _raw_session(net), _raw_session(net)
+    try:
+        with net.subscribe_events(seen.append, window=5.0) as subscription:
+            key = f"rr/{net.system}/ev/{flooder.zid()}"
+            block = zenoh.CongestionControl.BLOCK  # (else Zenoh may drop a big put itself)
+            publisher = flooder.declare_publisher(key, congestion_control=block)
+            other_publisher = other.declare_publisher(
+                f"rr/{net.system}/ev/{other.zid()}", congestion_control=block
+            )
+            assert wait_for(lambda: publisher.matching_status.matching, BOUND)
+            assert wait_for(lambda: other_publisher.matching_status.matching, BOUND)
+            publisher.put(batch)
+            publisher.put(batch)  # (while the first is held: over the sender's bound)
+            publisher.put(_in_doubt("after", 30))
+            other_publisher.put(_in_doubt("other", 31))
+            ids = lambda: {getattr(e, "query_id", None) for e in seen}  # noqa: E731
+            assert wait_for(lambda: {"after", "other"} <= ids(), 3 * BOUND)
+            assert subscription.wait_delivered(timeout=BOUND)
+    finally:
+        flooder.close()
+        other.close()
+
+    kinds = [
+        "dropped" if isinstance(e, events.EventsDropped) else e.query_id.split("-")[0]
+        for e in seen
+        if isinstance(e, events.EventsDropped | events.InDoubt)
+    ]
+    # (the notice is told as the drop is seen; the events are held `window` s)
+    assert ["dropped", *["big"] * 14, "after", "other"] == kinds
+    assert 14 == next(e.count for e in seen if isinstance(e, events.EventsDropped))
+    warned = [r.getMessage() for r in caplog.records if "dropped 14 events" in r.getMessage()]
+    assert 1 == len(warned)
+    assert key in warned[0]
+    assert "HELD_BYTES" in warned[0]
+
+
+def test_a_batch_whose_events_weigh_more_than_the_bound_is_read_up_to_it_and_counted(
+    net: rr.ZenohNetwork, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A batch of small events weighs more read (`EVENT_BYTES` each) than its bytes: what
+    would pass the bound is dropped as it is read, and every event is either delivered or
+    counted in an `EventsDropped` (the bounds are made small here to keep it quick)."""
+    monkeypatch.setattr(zenoh_events, "HELD_BYTES", (64 * 1024, 256 * 1024))
+    sent = 400
+    batch = b"\n".join(_in_doubt(f"q-{i}", 10 + i) for i in range(sent))  # ~60 KiB
+    seen: list[events.Event] = []
+    raw = _raw_session(net)
+    try:
+        with net.subscribe_events(seen.append, window=0) as subscription:
+            key = f"rr/{net.system}/ev/{raw.zid()}"
+            publisher = raw.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+            assert wait_for(lambda: publisher.matching_status.matching, BOUND)
+            publisher.put(batch)
+            assert wait_for(lambda: any(isinstance(e, events.EventsDropped) for e in seen), BOUND)
+            assert subscription.wait_delivered(timeout=BOUND)
+    finally:
+        raw.close()
+
+    delivered = [e for e in seen if isinstance(e, events.InDoubt)]
+    dropped = sum(e.count for e in seen if isinstance(e, events.EventsDropped))
+    assert 0 < len(delivered) < sent
+    assert sent == len(delivered) + dropped
+    assert [f"q-{i}" for i in range(len(delivered))] == [e.query_id for e in delivered]
+    warned = [r.getMessage() for r in caplog.records if "would pass HELD_BYTES" in r.getMessage()]
+    assert 1 == len(warned)
+    assert key in warned[0]
 
 
 @pytest.mark.parametrize("window", [-1, 61, "1", True, float("nan")])

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import heapq
 import itertools
 import json
@@ -38,7 +39,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import zenoh
@@ -53,18 +54,42 @@ __all__ = [
     "BATCHES_HELD",
     "CLOSE_GRACE",
     "DEFAULT_MAXSIZE",
+    "DROPPED_EVERY",
+    "EVENT_BYTES",
+    "HELD_BYTES",
     "MAX_BATCH_BYTES",
+    "QUEUED_BYTES",
     "EventExport",
     "EventFeed",
     "check_window",
     "decode",
     "encode",
+    "weight",
 ]
 
 logger = logging.getLogger("rr_actors")
 
 MAX_BATCH_BYTES = 16 * 1024 * 1024
 """A batch over this many bytes is dropped unread by a subscriber."""
+
+HELD_BYTES = (16 * 1024 * 1024, 64 * 1024 * 1024)
+"""Bytes a system-wide subscriber holds of one sending process's events, and of all
+processes' together, from a batch's arrival until its events go to the subscription's
+queue (batches waiting to be read, events held `window` seconds; an event counts as
+`weight`). A batch that would pass either bound is dropped whole, unread."""
+
+QUEUED_BYTES = 32 * 1024 * 1024
+"""Bytes of events (`weight`) a system-wide subscription queues for its callback, besides
+its `maxsize` events; past either, new events are dropped (then one `EventsDropped`)."""
+
+EVENT_BYTES = 384
+"""What an event counts for besides its text: about what a decoded event costs in memory
+beyond its strings' characters (the dataclass, its numbers, each string's header; 130 to
+410 bytes, measured with `tracemalloc` for `InDoubt`, `ResourceLoaded` and `StatusSent`)."""
+
+DROPPED_EVERY = 60.0
+"""Seconds between two WARNINGs about batches a subscriber dropped (what comes between is
+counted in the next one)."""
 
 CLOSE_GRACE = 0.5
 """Seconds a closing member gives its events' forwarder to send what it holds (its last
@@ -88,14 +113,61 @@ def decode(data: bytes) -> tuple[list[events.Event], int]:
     """
     found: list[events.Event] = []
     bad = 0
-    for line in data.split(b"\n"):
-        if not line.strip():
-            continue
-        try:
-            found.append(events.from_dict(json.loads(line)))
-        except (ValueError, ConfigError, TypeError, RecursionError):
+    for line, _ in _lines(data):
+        event = _event(line)
+        if event is None:
             bad += 1
+        else:
+            found.append(event)
     return found, bad
+
+
+def _lines(data: bytes) -> Iterator[tuple[bytes, int]]:
+    """The lines of `data` that are not blank, each with where the next one starts (one at
+    a time: a big batch is not copied whole)."""
+    start, size = 0, len(data)
+    while start < size:
+        end = data.find(b"\n", start)
+        end = size if end < 0 else end
+        line = data[start:end]
+        start = end + 1
+        if line.strip():
+            yield line, start
+
+
+def _event(line: bytes) -> events.Event | None:
+    """The event of one JSON line, or `None` if it is not one (nothing is unpickled)."""
+    try:
+        return events.from_dict(json.loads(line))
+    except (ValueError, ConfigError, TypeError, RecursionError):
+        return None
+
+
+_FIELDS: dict[type, tuple[str, ...]] = {}  # each kind's field names (`weight`)
+
+
+def _text(value: object) -> int:
+    """The characters of a field's value (and a row's cells), as `weight` counts them."""
+    if isinstance(value, str):
+        return len(value)
+    total = 0
+    if isinstance(value, tuple):  # (a catalog event's rows)
+        for cell in value:
+            total += _text(cell) + 8
+    return total
+
+
+def weight(event: events.Event) -> int:
+    """The bytes `event` counts for while a subscriber holds it: `EVENT_BYTES` and its
+    text."""
+    kind = type(event)
+    names = _FIELDS.get(kind)
+    if names is None:
+        names = _FIELDS[kind] = tuple(field.name for field in dataclasses.fields(event))
+    total = EVENT_BYTES
+    for name in names:
+        total += _text(getattr(event, name))
+    return total
 
 
 class EventExport:
@@ -163,6 +235,14 @@ class EventExport:
 class EventFeed:
     """One system-wide subscription's side: the Zenoh subscriber and the merge thread.
 
+    What it holds is bounded in bytes, so that no member can fill this process's memory
+    with events: of each sending process (its key `rr/<system>/ev/<zid>`) and of all
+    together, from a batch's arrival until its events go to the subscription
+    (`HELD_BYTES`), then in the subscription's queue (`QUEUED_BYTES`). A batch past a
+    bound is dropped whole, unread: its events are counted in the `EventsDropped` the
+    callback gets next, and a WARNING (at most one a minute) names its sender and the
+    bound.
+
     Args:
         session: the process's open Zenoh session.
         keys: the system's key expressions.
@@ -176,10 +256,13 @@ class EventFeed:
         self._window = window
         self.publisher: Publisher[events.Event] = Publisher(notice=events.EventsDropped)
         self._raw: queue.SimpleQueue[tuple[str, bytes] | None] = queue.SimpleQueue()
-        self._held = 0  # batches in `_raw` (Zenoh's threads add, the merge thread takes)
-        self._lost = 0  # batches dropped since the last notice
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the counts below (Zenoh's threads and the merge's)
+        self._batches = 0  # batches in `_raw`
+        self._held: dict[str, int] = {}  # bytes held of each sender (its key), not 0
+        self._held_all = 0  # ... of all senders
+        self._lost = 0  # events in batches dropped since the last notice
         self._bad = LogThrottle(logger, 60.0)
+        self._dropping = LogThrottle(logger, DROPPED_EVERY)
         self._subscriber: Any = None
         self._thread: threading.Thread | None = None
         self.publisher.watch_listeners(self._switch)
@@ -188,7 +271,9 @@ class EventFeed:
         self, callback: Callable[[events.Event], object], maxsize: int
     ) -> Subscription[events.Event]:
         """The subscription of `callback` (its close ends the feed)."""
-        return self.publisher.subscribe(callback, maxsize=maxsize, name="system-events")
+        return self.publisher.subscribe(
+            callback, maxsize=maxsize, name="system-events", maxbytes=QUEUED_BYTES, weigh=weight
+        )
 
     def _switch(self, listened: bool) -> None:
         if listened and self._subscriber is None:
@@ -204,19 +289,105 @@ class EventFeed:
             self._raw.put(None)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        """A batch came (Zenoh's thread): queue it, never decode here."""
+        """A batch came (Zenoh's thread): queue it within the bounds, never read it here."""
         data = sample.payload.to_bytes()
+        key = str(sample.key_expr)
         with self._lock:
-            if len(data) > MAX_BATCH_BYTES or self._held >= BATCHES_HELD:
-                self._lost += data.count(b"\n") + 1  # (its events: one a line)
-                return
-            self._held += 1
-        self._raw.put((str(sample.key_expr), data))
+            why = self._admit(key, len(data))
+        if why:
+            self._drop(key, data.count(b"\n") + 1, len(data), why)  # (its events: a line each)
+        else:
+            self._raw.put((key, data))
+
+    def _admit(self, key: str, size: int) -> str:
+        """Count a batch of `size` bytes from sender `key` as held; or why it cannot be
+        (hold `_lock`)."""
+        held = self._held.get(key, 0)
+        if size > MAX_BATCH_BYTES:
+            return f"it is over MAX_BATCH_BYTES ({MAX_BATCH_BYTES} bytes)"
+        if held + size > HELD_BYTES[0]:
+            return (
+                f"{held} bytes of that process's events are held already (HELD_BYTES: at "
+                f"most {HELD_BYTES[0]} of one process)"
+            )
+        if self._held_all + size > HELD_BYTES[1]:
+            return (
+                f"{self._held_all} bytes of events are held already (HELD_BYTES: at most "
+                f"{HELD_BYTES[1]} of all processes)"
+            )
+        if self._batches >= BATCHES_HELD:
+            return f"{self._batches} batches wait to be read already (BATCHES_HELD)"
+        self._batches += 1
+        self._held[key] = held + size
+        self._held_all += size
+        return ""
+
+    def _weigh_in(self, key: str, size: int) -> bool:
+        """Count `size` more bytes held of sender `key` if both bounds allow it (the merge
+        thread)."""
+        with self._lock:
+            held = self._held.get(key, 0) + size
+            if held > HELD_BYTES[0] or self._held_all + size > HELD_BYTES[1]:
+                return False
+            self._held[key] = held
+            self._held_all += size
+            return True
+
+    def _weigh_out(self, key: str, size: int) -> None:
+        """`size` bytes of sender `key` are held no more."""
+        with self._lock:
+            held = self._held.get(key, 0) - size
+            if held > 0:
+                self._held[key] = held
+            else:
+                self._held.pop(key, None)
+            self._held_all -= size
+
+    def _read(self, key: str, data: bytes) -> list[tuple[events.Event, int]]:
+        """The events of batch `data` of sender `key`, each with its `weight`, counted as
+        held in place of the batch's bytes; what would pass a bound is dropped (counted
+        for the next notice, warned of)."""
+        self._weigh_out(key, len(data))  # (its bytes: its events from now on)
+        found: list[tuple[events.Event, int]] = []
+        bad = 0
+        for line, after in _lines(data):
+            event = _event(line)
+            if event is None:
+                bad += 1
+                continue
+            size = weight(event)
+            if not self._weigh_in(key, size):
+                lost = 1 + data.count(b"\n", after) + (after < len(data))
+                self._drop(key, lost, len(data), "its events would pass HELD_BYTES once read")
+                break
+            found.append((event, size))
+        if bad:
+            self._bad.warning(
+                "dropped %d lines of the event stream from %s: not events of this "
+                "rr_actors version (plain JSON is all that is read)",
+                bad,
+                key,
+            )
+        return found
+
+    def _drop(self, key: str, lost: int, size: int, why: str) -> None:
+        """`lost` events of a batch of `size` bytes from sender `key` were dropped: counted
+        for the next notice, warned of (at most once a minute)."""
+        with self._lock:
+            self._lost += lost
+        self._dropping.warning(
+            "a system-wide event subscriber dropped %d events of a batch of %d bytes from %s: "
+            "%s; they are counted in an EventsDropped",
+            lost,
+            size,
+            key,
+            why,
+        )
 
     def _merge(self) -> None:
-        """Decode batches; release events in `hlc` order, each at most `window` s late."""
+        """Read batches; release events in `hlc` order, each at most `window` s late."""
         window = self._window
-        held: list[tuple[int, int, events.Event]] = []  # a heap by stamp, then arrival
+        held: list[tuple[int, int, events.Event, str, int]] = []  # a heap by stamp, arrival
         due: collections.deque[tuple[float, int]] = collections.deque()  # (deadline, stamp)
         arrivals = itertools.count()
         deliver = self.publisher.deliver
@@ -231,31 +402,28 @@ class EventFeed:
             key, data = item
             if key:
                 with self._lock:
-                    self._held -= 1
+                    self._batches -= 1
+                found = self._read(key, data)
+                with self._lock:
                     lost, self._lost = self._lost, 0
                 if lost:
                     deliver(events.EventsDropped(lost, cause="full"))
-                found, bad = decode(data)
-                if bad:
-                    self._bad.warning(
-                        "dropped %d lines of the event stream from %s: not events of this "
-                        "rr_actors version (plain JSON is all that is read)",
-                        bad,
-                        key,
-                    )
                 now = time.monotonic()
-                for event in found:
+                for event, size in found:
                     if window <= 0:
                         deliver(event)
+                        self._weigh_out(key, size)
                         continue
-                    heapq.heappush(held, (event.hlc, next(arrivals), event))
+                    heapq.heappush(held, (event.hlc, next(arrivals), event, key, size))
                     due.append((now + window, event.hlc))
             now = time.monotonic()
             top = -1
             while due and due[0][0] <= now:
                 top = max(top, due.popleft()[1])
             while held and held[0][0] <= top:
-                deliver(heapq.heappop(held)[2])
+                _, _, event, sender, size = heapq.heappop(held)
+                deliver(event)
+                self._weigh_out(sender, size)
 
 
 def check_window(window: object) -> float:
