@@ -36,6 +36,7 @@ import heapq
 import itertools
 import json
 import logging
+import math
 import queue
 import threading
 import time
@@ -136,11 +137,25 @@ def _lines(data: bytes) -> Iterator[tuple[bytes, int]]:
 
 
 def _event(line: bytes) -> events.Event | None:
-    """The event of one JSON line, or `None` if it is not one (nothing is unpickled)."""
+    """The event of one JSON line, or `None` if it is not one (nothing is unpickled; a
+    number that is not finite makes it none: a page's `JSON.parse` refuses `NaN`)."""
     try:
-        return events.from_dict(json.loads(line))
+        return events.from_dict(
+            json.loads(line, parse_constant=_not_finite, parse_float=_finite_float)
+        )
     except (ValueError, ConfigError, TypeError, RecursionError):
         return None
+
+
+def _not_finite(name: str) -> float:
+    raise ValueError(f"{name} is not a finite number")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):  # (1e999)
+        raise ValueError(f"{text} is not a finite number")
+    return value
 
 
 _FIELDS: dict[type, tuple[str, ...]] = {}  # each kind's field names (`weight`)
