@@ -298,6 +298,79 @@ def test_a_batch_whose_events_weigh_more_than_the_bound_is_read_up_to_it_and_cou
     assert key in warned[0]
 
 
+def _sealer(directory: Path, name: str, ca: Any, members: list[str]) -> Any:
+    """A `Seal` with the certificate of member `name` (issued by `ca` into `directory`)."""
+    from rr_actors._transport.zenoh.seal import Seal  # noqa: PLC0415 - cryptography
+
+    cert, key = pki.issue(directory, name, ["127.0.0.1"], ca=ca, key_type=KEY_TYPES[name])
+    return Seal(rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=members), SEALED_SYSTEM)
+
+
+SEALED_SYSTEM = "sealed"
+KEY_TYPES = {"robot": "p256", "operator": "ed25519", "stranger": "p384", "forger": "rsa2048"}
+
+
+@pytest.mark.parametrize("key_type", ["p256", "rsa2048"])
+def test_with_tls_the_host_of_an_event_is_the_member_whose_certificate_sealed_it(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, key_type: str
+) -> None:
+    """Issue 40: a member's events that said another host's name were delivered as that
+    host's. Now a batch is sealed by its host's certificate (`seal`), and an event's host
+    is its sealer's whatever the event says. What no member sealed is dropped: no seal,
+    a certificate of another CA or of a name not in `members`, a batch changed after
+    it was sealed, a seal of another system's batch. (A raw Zenoh session attached
+    through the router's Unix socket puts each, as a buggy member process could.)"""
+    members = ["robot", "operator"]
+    ca = pki.make_ca(tmp_path, "lab")
+    cert, key = pki.issue(tmp_path, "robot", ["127.0.0.1"], ca=ca, key_type=key_type)
+    tls = rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=members)
+    operator = _sealer(tmp_path, "operator", ca, members)
+    stranger = _sealer(tmp_path, "stranger", ca, ["stranger"])  # (its CA, not a member)
+    other_ca = pki.make_ca(tmp_path / "other", "lab")
+    forger = _sealer(tmp_path / "other", "forger", other_ca, ["forger"])
+    from rr_actors._transport.zenoh.seal import Seal  # noqa: PLC0415 - cryptography
+
+    elsewhere = Seal(rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=members), "elsewhere")
+    claims_robot = _in_doubt("claims-robot", 10)  # (`host` "robot": this host's name)
+    tampered = _in_doubt("tampered", 11)
+    batches = [
+        (claims_robot, operator.seal(claims_robot)),  # delivered, as operator's
+        (_in_doubt("unsealed", 12), None),
+        (_in_doubt("stranger", 13), stranger.seal(_in_doubt("stranger", 13))),
+        (_in_doubt("forger", 14), forger.seal(_in_doubt("forger", 14))),
+        (tampered.replace(b"tampered", b"tampere!"), operator.seal(tampered)),
+        (_in_doubt("elsewhere", 15), elsewhere.seal(_in_doubt("elsewhere", 15))),
+        (_in_doubt("last", 16), operator.seal(_in_doubt("last", 16))),
+    ]
+    net = rr.ZenohNetwork(system=SEALED_SYSTEM, listen=["tls/127.0.0.1:0"], tls=tls)
+    seen: list[events.Event] = []
+    with net, net.subscribe_events(seen.append, window=0) as subscription:
+        raw = _raw_session(net)
+        try:
+            publisher = raw.declare_publisher(
+                f"rr/{net.system}/ev/{raw.zid()}",
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            assert wait_for(lambda: publisher.matching_status.matching, BOUND)
+            for data, seal in batches:
+                publisher.put(data, attachment=seal)
+            ids = lambda: {getattr(e, "query_id", None) for e in seen}  # noqa: E731
+            assert wait_for(lambda: "last" in ids(), BOUND)
+            assert subscription.wait_delivered(timeout=BOUND)
+        finally:
+            raw.close()
+
+    theirs = [e for e in seen if isinstance(e, events.InDoubt)]
+    assert [("claims-robot", "operator"), ("last", "operator")] == [
+        (e.query_id, e.host) for e in theirs
+    ]
+    assert 5 == sum(e.count for e in seen if isinstance(e, events.EventsDropped))
+    said = [r.getMessage() for r in caplog.records if "sealed by member" in r.getMessage()]
+    assert 1 == len(said)
+    assert "sealed by member operator, say they happened on host 'robot'" in said[0]
+    assert any("no member's certificate sealed it" in r.getMessage() for r in caplog.records)
+
+
 @pytest.mark.parametrize("window", [-1, 61, "1", True, float("nan")])
 def test_a_window_out_of_range_is_a_config_error(net: rr.ZenohNetwork, window: Any) -> None:
     with pytest.raises(rr.ConfigError, match="window"):

@@ -120,6 +120,9 @@ from rr_actors.errors import (
     _known_names,
 )
 
+if TYPE_CHECKING:
+    from rr_actors._transport.zenoh.seal import Seal
+
 __all__ = ["ZenohMember"]
 
 logger = logging.getLogger("rr_actors")
@@ -209,6 +212,8 @@ class ZenohMember:
         link_trouble: says why a registrar may not be seen (`ZenohNetwork`'s connect
             endpoints it has no link to), as the end of an `UnknownRegistrarError`'s
             message; `""` when nothing is wrong.
+        seal: seals the event batches this process sends and opens those it gets
+            (`events`); `None` without TLS.
     """
 
     def __init__(
@@ -220,9 +225,11 @@ class ZenohMember:
         speakers: dict[int, str] | None = None,
         on_close: Callable[[ZenohMember], None] | None = None,
         link_trouble: Callable[[], str] | None = None,
+        seal: Seal | None = None,
     ) -> None:
         self.system = system
         self.zid = str(session.zid())
+        self._seal = seal
         self.closed = False
         self._session = session
         self._speakers = dict(speakers or {})
@@ -247,7 +254,7 @@ class ZenohMember:
             self._keys.ping(self.zid), lambda query: query.reply(query.key_expr, b"")
         )
         self._proc_token = session.liveliness().declare_token(self._keys.proc(self.zid))
-        self._events = EventExport(session, self._keys, self.zid)  # (the system's stream)
+        self._events = EventExport(session, self._keys, self.zid, seal)  # (the system's stream)
         DIRECTORY.add_resolver(self.resolve, self.names)
 
     @property
@@ -397,7 +404,8 @@ class ZenohMember:
         """
         if self.closed:
             raise RegistrarStoppedError("this process left the system")
-        subscription = EventFeed(self._session, self._keys, window).subscribe(callback, maxsize)
+        feed = EventFeed(self._session, self._keys, window, self._seal)
+        subscription = feed.subscribe(callback, maxsize)
         self._events.wait_sending(ASK_TIMEOUT)  # (this process's own, from now on)
         return subscription
 

@@ -21,6 +21,14 @@
 - Only members see the stream and only members put on it: the keys are under
   `rr/<system>/`, which the access control of a `ZenohNetwork` with `tls` admits for
   members' certificates and this host's own processes only (`config`).
+- With `tls`, each batch is sealed by its host (`seal`: the host's certificate and its
+  signature, as Zenoh's attachment), and an event's `host` is the member whose
+  certificate sealed its batch, never what the event says: one that says another is
+  delivered as its sealer's (a WARNING a minute names both); a batch no member sealed
+  is dropped. Without `tls` nobody is known: `host` is what the sender wrote.
+- Bounded: what a subscriber holds of each sender and of all is bounded in bytes
+  (`HELD_BYTES`, `QUEUED_BYTES`); a batch past a bound is dropped, counted in an
+  `EventsDropped` and warned of.
 - Merged by the hybrid logical clock: a process's own events arrive in order (one
   publisher, reliable puts); those of different processes are held `window` seconds
   after they arrived and released in `hlc` order, so an effect on one host never comes
@@ -41,15 +49,18 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import zenoh
 
 from rr_actors import events
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Forwarder, Publisher, Subscription
-from rr_actors._core.throttle import LogThrottle
+from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.errors import ConfigError
+
+if TYPE_CHECKING:
+    from rr_actors._transport.zenoh.seal import Seal
 
 __all__ = [
     "BATCHES_HELD",
@@ -192,9 +203,13 @@ class EventExport:
         session: the process's open Zenoh session.
         keys: the system's key expressions.
         zid: this process's Zenoh id.
+        seal: seals each batch with this host's certificate (`None`: without TLS).
     """
 
-    def __init__(self, session: zenoh.Session, keys: Keys, zid: str) -> None:
+    def __init__(
+        self, session: zenoh.Session, keys: Keys, zid: str, seal: Seal | None = None
+    ) -> None:
+        self._seal = seal
         self._lock = threading.Lock()
         self._closed = False
         self._forwarder: Forwarder[events.Event] | None = None
@@ -230,7 +245,11 @@ class EventExport:
             return self._sending.wait_for(lambda: self._forwarder is not None, timeout)
 
     def _send(self, batch: list[events.Event]) -> None:
-        self._publisher.put(encode(batch))
+        data = encode(batch)
+        if self._seal is None:
+            self._publisher.put(data)
+        else:
+            self._publisher.put(data, attachment=self._seal.seal(data))
 
     def close(self) -> None:
         """Stop sending: what is buffered is sent within `CLOSE_GRACE` seconds, the rest
@@ -247,6 +266,14 @@ class EventExport:
             self._publisher.undeclare()  # type: ignore[no-untyped-call]
 
 
+class _Batch(NamedTuple):
+    """A batch as it came: its sender's key, its bytes, its seal (Zenoh's attachment)."""
+
+    key: str
+    data: bytes
+    seal: bytes | None
+
+
 class EventFeed:
     """One system-wide subscription's side: the Zenoh subscriber and the merge thread.
 
@@ -258,19 +285,28 @@ class EventFeed:
     callback gets next, and a WARNING (at most one a minute) names its sender and the
     bound.
 
+    With a `seal`, each event's `host` is the member whose certificate sealed its batch:
+    an event that says another host is delivered as that member's (a WARNING a minute
+    names both), and a batch no member sealed is dropped (counted, warned of).
+
     Args:
         session: the process's open Zenoh session.
         keys: the system's key expressions.
         window: seconds an event is held for those of other processes to overtake it
             (see `ZenohNetwork.subscribe_events`).
+        seal: opens each batch's seal (`None`: without TLS, `host` is what the sender
+            wrote).
     """
 
-    def __init__(self, session: zenoh.Session, keys: Keys, window: float) -> None:
+    def __init__(
+        self, session: zenoh.Session, keys: Keys, window: float, seal: Seal | None = None
+    ) -> None:
         self._session = session
         self._keys = keys
         self._window = window
+        self._seal = seal
         self.publisher: Publisher[events.Event] = Publisher(notice=events.EventsDropped)
-        self._raw: queue.SimpleQueue[tuple[str, bytes] | None] = queue.SimpleQueue()
+        self._raw: queue.SimpleQueue[_Batch | None] = queue.SimpleQueue()
         self._lock = threading.Lock()  # the counts below (Zenoh's threads and the merge's)
         self._batches = 0  # batches in `_raw`
         self._held: dict[str, int] = {}  # bytes held of each sender (its key), not 0
@@ -278,6 +314,7 @@ class EventFeed:
         self._lost = 0  # events in batches dropped since the last notice
         self._bad = LogThrottle(logger, 60.0)
         self._dropping = LogThrottle(logger, DROPPED_EVERY)
+        self._claiming = LogThrottle(logger, 60.0)
         self._subscriber: Any = None
         self._thread: threading.Thread | None = None
         self.publisher.watch_listeners(self._switch)
@@ -307,12 +344,13 @@ class EventFeed:
         """A batch came (Zenoh's thread): queue it within the bounds, never read it here."""
         data = sample.payload.to_bytes()
         key = str(sample.key_expr)
+        seal = sample.attachment
         with self._lock:
-            why = self._admit(key, len(data))
+            why = self._admit(key, len(data) + (0 if seal is None else len(seal)))
         if why:
             self._drop(key, data.count(b"\n") + 1, len(data), why)  # (its events: a line each)
         else:
-            self._raw.put((key, data))
+            self._raw.put(_Batch(key, data, None if seal is None else seal.to_bytes()))
 
     def _admit(self, key: str, size: int) -> str:
         """Count a batch of `size` bytes from sender `key` as held; or why it cannot be
@@ -358,18 +396,38 @@ class EventFeed:
                 self._held.pop(key, None)
             self._held_all -= size
 
-    def _read(self, key: str, data: bytes) -> list[tuple[events.Event, int]]:
-        """The events of batch `data` of sender `key`, each with its `weight`, counted as
-        held in place of the batch's bytes; what would pass a bound is dropped (counted
-        for the next notice, warned of)."""
-        self._weigh_out(key, len(data))  # (its bytes: its events from now on)
+    def _read(self, batch: _Batch) -> list[tuple[events.Event, int]]:
+        """The events of `batch`, each with its `weight`, counted as held in place of the
+        batch's bytes; what would pass a bound is dropped (counted for the next notice,
+        warned of), as is a batch no member sealed (with a `seal`)."""
+        key, data = batch.key, batch.data
+        self._weigh_out(key, len(data) + len(batch.seal or b""))  # (its events from now on)
+        member = None
+        if self._seal is not None:
+            member = self._seal.open(data, batch.seal)
+            if member is None:
+                lost = data.count(b"\n") + 1
+                self._drop(key, lost, len(data), "no member's certificate sealed it")
+                return []
         found: list[tuple[events.Event, int]] = []
-        bad = 0
+        bad = claimed = 0
         for line, after in _lines(data):
             event = _event(line)
             if event is None:
                 bad += 1
                 continue
+            if member is not None and event.host != member:  # (its sealer's, whatever it says)
+                claimed += 1
+                if claimed == 1:
+                    self._claiming.warning(
+                        "events from %s, sealed by member %s, say they happened on host %s: "
+                        "they are delivered as %s's",
+                        key,
+                        member,
+                        short(event.host),
+                        member,
+                    )
+                event = dataclasses.replace(event, host=member)
             size = weight(event)
             if not self._weigh_in(key, size):
                 lost = 1 + data.count(b"\n", after) + (after < len(data))
@@ -411,14 +469,13 @@ class EventFeed:
             try:
                 item = self._raw.get(timeout=timeout)
             except queue.Empty:
-                item = ("", b"")
+                item = _Batch("", b"", None)
             if item is None:
                 return
-            key, data = item
-            if key:
+            if item.key:
                 with self._lock:
                     self._batches -= 1
-                found = self._read(key, data)
+                found = self._read(item)
                 with self._lock:
                     lost, self._lost = self._lost, 0
                 if lost:
@@ -427,9 +484,9 @@ class EventFeed:
                 for event, size in found:
                     if window <= 0:
                         deliver(event)
-                        self._weigh_out(key, size)
+                        self._weigh_out(item.key, size)
                         continue
-                    heapq.heappush(held, (event.hlc, next(arrivals), event, key, size))
+                    heapq.heappush(held, (event.hlc, next(arrivals), event, item.key, size))
                     due.append((now + window, event.hlc))
             now = time.monotonic()
             top = -1

@@ -61,6 +61,7 @@ from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavai
 from rr_actors.events.kinds import set_host
 
 if TYPE_CHECKING:
+    from rr_actors._transport.zenoh.seal import Seal
     from rr_actors._transport.zenoh.tls import ZenohTLS
 
 __all__ = ["Services", "ZenohAddress", "ZenohNetwork"]
@@ -85,6 +86,15 @@ def _members_at(session: zenoh.Session, members: frozenset[str]) -> set[str]:
         for link in session.info.links()
         if str(link.dst).startswith("tls/") and link.auth_identifier in members
     }
+
+
+def _seal(tls: ZenohTLS | None, system: str) -> Seal | None:
+    """What seals this process's event batches with `tls` (`None` without TLS)."""
+    if tls is None:
+        return None
+    from rr_actors._transport.zenoh.seal import Seal  # noqa: PLC0415 - cryptography
+
+    return Seal(tls, system)
 
 
 def _is_tls(tls: object) -> bool:
@@ -234,6 +244,9 @@ class ZenohAddress:
             events of a process that attaches carry (`events.set_host`); `""` without TLS.
         max_offset: the network's `max_offset`, which the clock of a process that
             attaches takes (`HybridClock.max_offset`).
+        tls: the network's `ZenohTLS` (`None`: plain TCP): a process that attaches seals
+            the event batches it sends with this host's certificate, and opens those it
+            gets (`seal`).
     """
 
     system: str
@@ -243,6 +256,7 @@ class ZenohAddress:
     router_pid: int = 0
     member: str = ""
     max_offset: float = MAX_OFFSET
+    tls: ZenohTLS | None = None
 
     def attach(self) -> ZenohMember:
         """Join the system from this process (idempotent): a CLIENT-mode session.
@@ -264,7 +278,12 @@ class ZenohAddress:
                 f"cannot join system {self.system!r} through {self.socket_path!r}: {exc}"
             ) from exc
         member = ZenohMember(
-            self.system, session, self, speakers={self.router_pid: self.router}, on_close=_left
+            self.system,
+            session,
+            self,
+            speakers={self.router_pid: self.router},
+            on_close=_left,
+            seal=_seal(self.tls, self.system),
         )
         _close_at_exit(f"the membership of system {self.system!r}", member, member.close)
         return member
@@ -431,6 +450,7 @@ class ZenohNetwork:
                 os.getpid(),
                 "" if self.tls is None else self.tls.name,
                 self.max_offset,
+                self.tls,
             )
 
             def closed(member: ZenohMember) -> None:
@@ -447,6 +467,7 @@ class ZenohNetwork:
                 self._address,
                 on_close=closed,
                 link_trouble=None if watch is None else lambda: _no_link(watch.unlinked()),
+                seal=_seal(self.tls, self.system),
             )
             _close_at_exit(f"ZenohNetwork {self.system!r}", member, self.close)
         except BaseException:  # nothing of a network that did not open is left behind:
