@@ -375,15 +375,15 @@ class EventFeed:
         self._held_all += size
         return ""
 
-    def _weigh_in(self, key: str, size: int) -> bool:
-        """Count `size` more bytes held of sender `key` if both bounds allow it (the merge
-        thread)."""
+    def _exchange(self, key: str, raw: int, size: int) -> bool:
+        """Count an event of `size` bytes held of sender `key` in place of the `raw` bytes
+        of its line, if both bounds allow it (the merge thread)."""
         with self._lock:
-            held = self._held.get(key, 0) + size
-            if held > HELD_BYTES[0] or self._held_all + size > HELD_BYTES[1]:
+            held = self._held.get(key, 0) - raw + size
+            if held > HELD_BYTES[0] or self._held_all - raw + size > HELD_BYTES[1]:
                 return False
             self._held[key] = held
-            self._held_all += size
+            self._held_all += size - raw
             return True
 
     def _weigh_out(self, key: str, size: int) -> None:
@@ -397,50 +397,55 @@ class EventFeed:
             self._held_all -= size
 
     def _read(self, batch: _Batch) -> list[tuple[events.Event, int]]:
-        """The events of `batch`, each with its `weight`, counted as held in place of the
-        batch's bytes; what would pass a bound is dropped (counted for the next notice,
-        warned of), as is a batch no member sealed (with a `seal`)."""
+        """The events of `batch`, each with its `weight`, counted as held in place of its
+        line as it is read; what would pass a bound is dropped (counted for the next
+        notice, warned of), as is a batch no member sealed (with a `seal`)."""
         key, data = batch.key, batch.data
-        self._weigh_out(key, len(data) + len(batch.seal or b""))  # (its events from now on)
-        member = None
-        if self._seal is not None:
-            member = self._seal.open(data, batch.seal)
-            if member is None:
-                lost = data.count(b"\n") + 1
-                self._drop(key, lost, len(data), "no member's certificate sealed it")
-                return []
+        left = len(data) + len(batch.seal or b"")  # (its bytes still counted as held)
         found: list[tuple[events.Event, int]] = []
-        bad = claimed = 0
-        for line, after in _lines(data):
-            event = _event(line)
-            if event is None:
-                bad += 1
-                continue
-            if member is not None and event.host != member:  # (its sealer's, whatever it says)
-                claimed += 1
-                if claimed == 1:
-                    self._claiming.warning(
-                        "events from %s, sealed by member %s, say they happened on host %s: "
-                        "they are delivered as %s's",
-                        key,
-                        member,
-                        short(event.host),
-                        member,
-                    )
-                event = dataclasses.replace(event, host=member)
-            size = weight(event)
-            if not self._weigh_in(key, size):
-                lost = 1 + data.count(b"\n", after) + (after < len(data))
-                self._drop(key, lost, len(data), "its events would pass HELD_BYTES once read")
-                break
-            found.append((event, size))
-        if bad:
-            self._bad.warning(
-                "dropped %d lines of the event stream from %s: not events of this "
-                "rr_actors version (plain JSON is all that is read)",
-                bad,
-                key,
-            )
+        try:
+            member = None
+            if self._seal is not None:
+                member = self._seal.open(data, batch.seal)
+                if member is None:
+                    lost = data.count(b"\n") + 1
+                    self._drop(key, lost, len(data), "no member's certificate sealed it")
+                    return found
+            bad = claimed = 0
+            for line, after in _lines(data):
+                event = _event(line)
+                if event is None:
+                    bad += 1
+                    continue
+                if member is not None and event.host != member:  # (its sealer's, whatever)
+                    claimed += 1
+                    if claimed == 1:
+                        self._claiming.warning(
+                            "events from %s, sealed by member %s, say they happened on host "
+                            "%s: they are delivered as %s's",
+                            key,
+                            member,
+                            short(event.host),
+                            member,
+                        )
+                    event = dataclasses.replace(event, host=member)
+                size, raw = weight(event), min(left, len(line) + 1)
+                if not self._exchange(key, raw, size):
+                    lost = 1 + data.count(b"\n", after) + (after < len(data))
+                    why = "its events would pass HELD_BYTES once read"
+                    self._drop(key, lost, len(data), why)
+                    break
+                left -= raw
+                found.append((event, size))
+            if bad:
+                self._bad.warning(
+                    "dropped %d lines of the event stream from %s: not events of this "
+                    "rr_actors version (plain JSON is all that is read)",
+                    bad,
+                    key,
+                )
+        finally:
+            self._weigh_out(key, left)
         return found
 
     def _drop(self, key: str, lost: int, size: int, why: str) -> None:
