@@ -156,13 +156,13 @@ def close_raw() -> None:
         raw.close()
 
 
-def in_doubt_and_dropped() -> tuple[list[tuple[str, str]], int]:
+def in_doubt_and_dropped() -> tuple[list[tuple[str, str]], list[tuple[int, str]]]:
     """The `InDoubt` events this worker's subscription delivered (query id, host), and
-    the events its `EventsDropped` count."""
+    its `EventsDropped` (count, cause)."""
     seen = list(hosts.KEPT["seen"])
     return (
         [(e.query_id, e.host) for e in seen if isinstance(e, events.InDoubt)],
-        sum(e.count for e in seen if isinstance(e, events.EventsDropped)),
+        [(e.count, e.cause) for e in seen if isinstance(e, events.EventsDropped)],
     )
 
 
@@ -289,7 +289,7 @@ def test_the_host_of_an_event_is_the_member_whose_certificate_sealed_it(lab: Lab
 
         def arrived() -> bool:
             got, dropped = lab.a.call(in_doubt_and_dropped, timeout=10)
-            return ("robots-own", "robot") in got and dropped > 0
+            return ("robots-own", "robot") in got and bool(dropped)
 
         assert wait_for(arrived, 2 * BOUND)
         got, dropped = lab.a.call(in_doubt_and_dropped, timeout=10)
@@ -298,7 +298,7 @@ def test_the_host_of_an_event_is_the_member_whose_certificate_sealed_it(lab: Lab
             lab.b.call(close_raw, timeout=10)
 
     assert [("claims-operator", "robot"), ("robots-own", "robot")] == got
-    assert 1 == dropped
+    assert [(1, "refused")] == dropped
 
 
 def test_a_non_member_that_subscribes_gets_nothing(lab: Lab) -> None:

@@ -364,7 +364,9 @@ def test_with_tls_the_host_of_an_event_is_the_member_whose_certificate_sealed_it
     assert [("claims-robot", "operator"), ("last", "operator")] == [
         (e.query_id, e.host) for e in theirs
     ]
-    assert 5 == sum(e.count for e in seen if isinstance(e, events.EventsDropped))
+    dropped = [(e.count, e.cause) for e in seen if isinstance(e, events.EventsDropped)]
+    assert 5 == sum(count for count, _ in dropped)
+    assert {"refused"} == {cause for _, cause in dropped}
     said = [r.getMessage() for r in caplog.records if "sealed by member" in r.getMessage()]
     assert 1 == len(said)
     assert "sealed by member operator, say they happened on host 'robot'" in said[0]

@@ -311,7 +311,8 @@ class EventFeed:
         self._batches = 0  # batches in `_raw`
         self._held: dict[str, int] = {}  # bytes held of each sender (its key), not 0
         self._held_all = 0  # ... of all senders
-        self._lost = 0  # events in batches dropped since the last notice
+        self._lost = 0  # events in batches dropped for a bound since the last notice
+        self._refused = 0  # ... in batches no member sealed
         self._bad = LogThrottle(logger, 60.0)
         self._dropping = LogThrottle(logger, DROPPED_EVERY)
         self._claiming = LogThrottle(logger, 60.0)
@@ -409,7 +410,8 @@ class EventFeed:
                 member = self._seal.open(data, batch.seal)
                 if member is None:
                     lost = data.count(b"\n") + 1
-                    self._drop(key, lost, len(data), "no member's certificate sealed it")
+                    why = "no member's certificate sealed it"
+                    self._drop(key, lost, len(data), why, refused=True)
                     return found
             bad = claimed = 0
             for line, after in _lines(data):
@@ -440,7 +442,8 @@ class EventFeed:
             if bad:
                 self._bad.warning(
                     "dropped %d lines of the event stream from %s: not events of this "
-                    "rr_actors version (plain JSON is all that is read)",
+                    "rr_actors version, or with a number that is not finite (plain JSON is "
+                    "all that is read)",
                     bad,
                     key,
                 )
@@ -448,11 +451,15 @@ class EventFeed:
             self._weigh_out(key, left)
         return found
 
-    def _drop(self, key: str, lost: int, size: int, why: str) -> None:
-        """`lost` events of a batch of `size` bytes from sender `key` were dropped: counted
-        for the next notice, warned of (at most once a minute)."""
+    def _drop(self, key: str, lost: int, size: int, why: str, *, refused: bool = False) -> None:
+        """`lost` events of a batch of `size` bytes from sender `key` were dropped (for a
+        bound, or `refused`: no member sealed them): counted for the next notice, warned
+        of (at most once a minute)."""
         with self._lock:
-            self._lost += lost
+            if refused:
+                self._refused += lost
+            else:
+                self._lost += lost
         self._dropping.warning(
             "a system-wide event subscriber dropped %d events of a batch of %d bytes from %s: "
             "%s; they are counted in an EventsDropped",
@@ -482,9 +489,11 @@ class EventFeed:
                     self._batches -= 1
                 found = self._read(item)
                 with self._lock:
-                    lost, self._lost = self._lost, 0
+                    (lost, refused), self._lost, self._refused = (self._lost, self._refused), 0, 0
                 if lost:
                     deliver(events.EventsDropped(lost, cause="full"))
+                if refused:
+                    deliver(events.EventsDropped(refused, cause="refused"))
                 now = time.monotonic()
                 for event, size in found:
                     if window <= 0:
