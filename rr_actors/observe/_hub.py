@@ -34,6 +34,7 @@ import uuid
 from collections.abc import Callable
 from typing import Any
 
+from rr_actors._core.throttle import LogThrottle, short
 from rr_actors.observe._delta import diff
 
 __all__ = ["BATCH", "MAX_STREAMS", "RING", "Changes", "Hub", "sse"]
@@ -55,13 +56,14 @@ def sse(event: str, data: str) -> bytes:
     return f"event: {event}\ndata: {data}\n\n".encode()
 
 
-def _refused(event: dict[str, Any], seq: int) -> dict[str, Any]:
-    """What a page gets in place of `event`, which holds a number that is not finite."""
+def _refused(event: dict[str, Any], seq: int, log: LogThrottle) -> dict[str, Any]:
+    """What a page gets in place of `event`, which holds a number that is not finite
+    (said on `log`)."""
     kind, at = event.get("type"), event.get("at")
-    logger.warning(
+    log.warning(
         "observer: a %s event holds a number that is not finite (NaN or infinity); the pages "
         "get a line that says so instead",
-        kind if isinstance(kind, str) else "malformed",
+        short(kind),
     )
     return {
         "type": "Refused",
@@ -121,6 +123,7 @@ class Hub:
         self._listeners: list[Callable[[], None]] = []
         self._streams = threading.Condition(self._lock)
         self._open_streams = 0
+        self._refusals = LogThrottle(logger)  # (events refused: a line a minute at most)
         self.closed = False
 
     def put(self, key: str, value: Any) -> bool:
@@ -210,7 +213,7 @@ class Hub:
             try:
                 encoded = json.dumps(event, allow_nan=False)
             except ValueError:
-                event = _refused(event, entry[0])
+                event = _refused(event, entry[0], self._refusals)
                 encoded = json.dumps(event)
             entry[1:] = [event, encoded]
         return entry[1], entry[2]
