@@ -2,7 +2,8 @@
 
 Run, as root: `taskset -c 0 python benchmarks/bench_zenoh_tls.py [--rounds N] [--handshakes N]
 [--clients N] [--joins N] [--quiet S] [--interval S] [--cuts N] [--threads N] [--flood S]
-[--give-up S] [--without-gate]`. The two hosts are two Linux network namespaces joined by a
+[--give-up S] [--without-gate] [--sources N] [--spoof-rate R] [--spoofed N]
+[--only trips burst flood spoof]`. The two hosts are two Linux network namespaces joined by a
 veth pair, and a third one, the outsider, on a veth of its own to host a (`tests/support/hosts.py`);
 without root nothing is measured (it says so). The certificates are made for the run
 (`tests/support/pki.py`): a CA, members `robot` (host a, the listener), `operator` and `joiner`
@@ -29,7 +30,13 @@ without root nothing is measured (it says so). The certificates are made for the
   the seconds from the link's return to b's first answered call (the re-join), and b's
   calls on its link in the flood's first seconds. With `--without-gate`, once each also
   with host a's listener kept by Zenoh alone and with only its queue shortened (the
-  benchmark's own switch, `gate_mode`: rr_actors has none); those take minutes.
+  benchmark's own switch, `gate_mode`: rr_actors has none); those take minutes. Then the
+  same flood from `--sources` (32) addresses of host c in turn (issue 40);
+* forged SYNs (issue 40): member b goes out of reach (its end of the veth down, so a
+  keeps its route to b) until it has lost a; host c sends `--spoof-rate` (13) SYNs a
+  second whose source is b's address to a's `tls/` port (`tests/support/spoof.py`),
+  `--spoofed` (40) more each time; b's end comes back: the seconds to its first answered
+  call, `--cuts` times with the forging going on, `--cuts` times with it stopped before.
 
 Zenoh pauses its TLS accept loop 100 ms after every failed handshake: the burst lasts about
 `--handshakes` x 0.1 s, and a member that connects during it waits behind the handshakes
@@ -59,7 +66,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_zenoh  # noqa: E402 (this directory: the plain-TCP benchmark's helpers)
 
-from tests.support import hosts, pki  # noqa: E402 (tests/support: harness, certificates)
+from tests.support import hosts, pki, spoof  # noqa: E402 (tests/support: harness, certificates)
+from tests.support.waiting import wait_for  # noqa: E402
 
 PORT = 7447
 """The first Zenoh port inside each namespace; each pair of processes gets its own."""
@@ -390,8 +398,11 @@ def burst(
 
 # -- a flood of failed handshakes from a third host (issue 29) -----------------------------------
 
+PARTS = ("trips", "burst", "flood", "spoof")
+"""What a run measures (`--only`): round trips, the burst, the floods, the forged SYNs."""
+
 MODES = {
-    "gate": "rr_actors (queue of 16, a flooding source dropped)",
+    "gate": "rr_actors (queue of 16, floods dropped)",
     "backlog": "queue of 16 only, no source dropped",
     "none": "Zenoh's listener alone (queue of 1024)",
 }
@@ -410,6 +421,17 @@ def gate_mode(mode: str) -> None:
         zenoh_gate.HOLD = 10**9
 
 
+def answered_within(two: hosts.TwoHosts, give_up: float) -> float | None:
+    """Seconds from now to b's first answered call to `erm` (`None`: none within
+    `give_up` s)."""
+    start = time.monotonic()
+    try:
+        two.b.call(hosts.rr_until_answered, "app", "erm", "echo", give_up, timeout=give_up + 30)
+    except Exception:  # (the member's call failed past the bound: it has not re-joined)
+        return None
+    return time.monotonic() - start
+
+
 def rejoin(two: hosts.TwoHosts, give_up: float) -> float | None:
     """Cut the veth a-b until b has lost `erm`, bring it back: seconds to b's first
     answered call (`None`: none within `give_up` s)."""
@@ -419,20 +441,14 @@ def rejoin(two: hosts.TwoHosts, give_up: float) -> float | None:
             raise RuntimeError("b still sees erm with the link cut")
     finally:
         two.link_up()
-    start = time.monotonic()
-    try:
-        two.b.call(hosts.rr_until_answered, "app", "erm", "echo", give_up, timeout=give_up + 30)
-    except Exception:  # (the member's call failed past the bound: it has not re-joined)
-        return None
-    return time.monotonic() - start
+    return answered_within(two, give_up)
 
 
-def flood_run(
-    two: hosts.TwoHosts, certs: Certs, mode: str, cuts: int, args: argparse.Namespace
-) -> dict[str, Any]:
-    """Host c floods host a's `tls/` port (`args.threads` threads of connect-send-close,
-    no certificate) while member b's link to a is cut `cuts` times, then `cuts` times
-    more after the flood stopped; b's calls on its link meanwhile (before the cuts)."""
+@contextlib.contextmanager
+def lab(two: hosts.TwoHosts, certs: Certs, mode: str) -> Iterator[tuple[int, hosts.Worker]]:
+    """`robot` on host a serving `erm` (its `tls/` listener kept as `MODES[mode]` says),
+    `operator` on host b calling it (`app`), linked; the listener's port and a worker on
+    host c, the outsider."""
     assert two.c is not None
     near = two.a.endpoint(next(_ports), "tls")
     robot = two.a.spawn()
@@ -453,15 +469,7 @@ def flood_run(
     attacker = two.c.spawn()
     try:
         two.b.call(hosts.rr_until_answered, "app", "erm", "echo", 30.0, timeout=60)
-        calls: Future[Any] = two.b.worker.submit(calls_paced, "app", "erm", None, args.interval)
-        port = int(near.rsplit(":", 1)[1])
-        attacker.call(hosts.flood, two.a.address, port, args.threads, timeout=30)
-        threading.Event().wait(args.flood)  # the flood's head start (a pace, not a sync)
-        two.b.call(calls_stop, timeout=10)
-        during_calls = calls.result(600)
-        during = [rejoin(two, args.give_up) for _ in range(cuts)]
-        counts = attacker.call(hosts.flood_stop, timeout=30)
-        after = [rejoin(two, args.give_up) for _ in range(cuts)]
+        yield int(near.rsplit(":", 1)[1]), attacker
     finally:
         attacker.stop()
         for worker in (two.b.worker, robot):
@@ -469,7 +477,90 @@ def flood_run(
                 worker.call(hosts.rr_stop, timeout=30)
         two.b.kill()
         robot.stop()
+
+
+def flood_run(
+    two: hosts.TwoHosts,
+    certs: Certs,
+    mode: str,
+    cuts: int,
+    args: argparse.Namespace,
+    sources: list[str] | None = None,
+) -> dict[str, Any]:
+    """Host c floods host a's `tls/` port (`args.threads` threads of connect-send-close,
+    no certificate; from each of `sources` in turn, if given) while member b's link to
+    a is cut `cuts` times, then `cuts` times more after the flood stopped; b's calls on
+    its link meanwhile (before the cuts)."""
+    with lab(two, certs, mode) as (port, attacker):
+        calls: Future[Any] = two.b.worker.submit(calls_paced, "app", "erm", None, args.interval)
+        attacker.call(hosts.flood, two.a.address, port, args.threads, sources, timeout=30)
+        threading.Event().wait(args.flood)  # the flood's head start (a pace, not a sync)
+        two.b.call(calls_stop, timeout=10)
+        during_calls = calls.result(600)
+        during = [rejoin(two, args.give_up) for _ in range(cuts)]
+        counts = attacker.call(hosts.flood_stop, timeout=30)
+        after = [rejoin(two, args.give_up) for _ in range(cuts)]
     return {"calls": during_calls, "during": during, "after": after, "counts": counts}
+
+
+def sources_of_c(two: hosts.TwoHosts, count: int) -> list[str]:
+    """`count` addresses of host c (its own and `count - 1` more, added to its veth)."""
+    assert two.c is not None
+    stem = two.c.address.rsplit(".", 1)[0]
+    more = [f"{stem}.{n}" for n in range(100, 99 + count)]
+    for address in more:
+        two.c.run("ip", "addr", "add", f"{address}/24", "dev", hosts.OUTSIDE)
+    return [two.c.address, *more]
+
+
+# -- forged SYNs carrying member b's address, from a third host (issue 40) -------------------
+
+
+def spoof_run(
+    two: hosts.TwoHosts, certs: Certs, cuts: int, args: argparse.Namespace
+) -> dict[str, Any]:
+    """Member b goes out of reach (its end of the veth down: a keeps its route to b, as
+    for a robot out of radio range) until it has lost a; host c's forged SYNs (source:
+    b's address, `args.spoof_rate` a second) reach a's `tls/` port, `args.spoofed` more
+    of them; b's end comes back: the seconds to its first answered call. `cuts` times with
+    the forging going on through the returns, then `cuts` times with it stopped before
+    each return (each cut a forging of its own)."""
+    with lab(two, certs, "gate") as (port, attacker):
+
+        def forging(start: bool) -> None:
+            if start:
+                attacker.call(
+                    spoof.spoof_start,
+                    *(two.b.address, two.a.address, port, args.spoof_rate),
+                    timeout=10,
+                )
+            else:
+                attacker.call(spoof.spoof_stop, timeout=10)
+
+        def out_of_reach(alone: bool) -> float | None:
+            two.b.run("ip", "link", "set", hosts.INTERFACE, "down")
+            try:
+                if not two.b.call(hosts.rr_unlinked_within, "erm", 30.0, timeout=40):
+                    raise RuntimeError("b still sees erm out of reach")
+                if alone:
+                    forging(start=True)
+                more = attacker.call(spoof.spoof_counts, timeout=10)["sent"] + args.spoofed
+                if not wait_for(
+                    lambda: attacker.call(spoof.spoof_counts, timeout=10)["sent"] >= more,
+                    30.0 + args.spoofed / args.spoof_rate,
+                ):
+                    raise RuntimeError("the forged SYNs were not sent")
+                if alone:
+                    forging(start=False)
+            finally:
+                two.b.run("ip", "link", "set", hosts.INTERFACE, "up")
+            return answered_within(two, args.give_up)
+
+        forging(start=True)
+        during = [out_of_reach(alone=False) for _ in range(cuts)]
+        forging(start=False)
+        after = [out_of_reach(alone=True) for _ in range(cuts)]
+        return {"during": during, "after": after}
 
 
 # -- report -----------------------------------------------------------------------------------
@@ -550,38 +641,54 @@ def report_burst(
         )
 
 
+def spans(seconds: list[float | None], give_up: float) -> str:
+    """`median / max (n runs)` of re-join times, `> give_up` for a run with none."""
+    shown = [give_up * 10 if s is None else s for s in seconds]
+    text = [f"> {give_up:g}" if s is None else f"{s:.2f}" for s in seconds]
+    order = sorted(range(len(shown)), key=shown.__getitem__)
+    return f"{text[order[len(order) // 2]]} / {text[order[-1]]} ({len(seconds)} runs)"
+
+
 def report_flood(args: argparse.Namespace, runs: dict[str, dict[str, Any]]) -> None:
     print(
         f"host c floods host a's tls/ port ({args.threads} threads of connect-send-close, no "
-        f"certificate) for {args.flood:g} s, then member b's link to a is cut (ip link down "
-        f"until b has lost a) and brought back, during the flood and after it stopped; "
-        f"re-join: seconds from the link's return to b's first answered call "
-        f"(> {args.give_up:g}: none by then)"
+        f"certificate; from one address, or from {args.sources} in turn) for {args.flood:g} "
+        f"s, then member b's link to a is cut (ip link down until b has lost a) and brought "
+        f"back, during the flood and after it stopped; re-join: seconds from the link's "
+        f"return to b's first answered call (> {args.give_up:g}: none by then)"
     )
     print()
     print(
-        "| a's listener | re-joins during the flood, median / max s | after it stopped, "
-        "median / max s | b's calls on its link in the flood's first "
+        "| a's listener | c's addresses | re-joins during the flood, median / max s | after "
+        "it stopped, median / max s | b's calls on its link in the flood's first "
         f"{args.flood:g} s: calls, failed, p99 ms | c's connections made / attempts |"
     )
-    print("|---|---:|---:|---:|---:|")
-
-    def spans(seconds: list[float | None]) -> str:
-        shown = [args.give_up * 10 if s is None else s for s in seconds]
-        text = [f"> {args.give_up:g}" if s is None else f"{s:.2f}" for s in seconds]
-        order = sorted(range(len(shown)), key=shown.__getitem__)
-        return f"{text[order[len(order) // 2]]} / {text[order[-1]]} ({len(seconds)} runs)"
-
-    for mode, run in runs.items():
+    print("|---|---:|---:|---:|---:|---:|")
+    for name, run in runs.items():
+        mode, _, addresses = name.partition("@")
         times = [seconds for _, seconds, error in run["calls"] if error is None]
         failed = sum(1 for *_, error in run["calls"] if error is not None)
         p99 = f"{quantile(times, 99) * 1e3:.1f}" if times else "-"
         counts = run["counts"]
         print(
-            f"| {MODES[mode]} | {spans(run['during'])} | {spans(run['after'])} "
+            f"| {MODES[mode]} | {addresses} | {spans(run['during'], args.give_up)} "
+            f"| {spans(run['after'], args.give_up)} "
             f"| {len(run['calls'])}, {failed}, {p99} "
             f"| {counts['connected']} / {counts['attempts']} |"
         )
+
+
+def report_spoof(args: argparse.Namespace, run: dict[str, Any]) -> None:
+    print(
+        f"member b out of reach (its end of the veth down until it has lost a); host c "
+        f"sends {args.spoof_rate:g} SYNs a second whose source is b's address to a's tls/ "
+        f"port ({args.spoofed} more each time b is out); b's end comes back: seconds to its "
+        f"first answered call (> {args.give_up:g}: none by then)"
+    )
+    print()
+    print("| re-join, the forging going on | re-join, the forging stopped before the return |")
+    print("|---:|---:|")
+    print(f"| {spans(run['during'], args.give_up)} | {spans(run['after'], args.give_up)} |")
 
 
 def main() -> None:
@@ -598,6 +705,16 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=4, help="the flood's threads")
     parser.add_argument("--flood", type=float, default=2.0, help="seconds of flood before a cut")
     parser.add_argument("--give-up", type=float, default=60.0, help="a re-join's bound, s")
+    parser.add_argument("--sources", type=int, default=32, help="c's addresses, many-address flood")
+    parser.add_argument("--spoof-rate", type=float, default=13.0, help="forged SYNs a second")
+    parser.add_argument("--spoofed", type=int, default=40, help="forged SYNs per time b is out")
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        choices=PARTS,
+        default=list(PARTS),
+        help="measure these parts only (default: all)",
+    )
     parser.add_argument(
         "--without-gate",
         action="store_true",
@@ -615,23 +732,37 @@ def main() -> None:
         hosts.TwoHosts(outsider=True) as two,
     ):
         certs = Certs(Path(directory), two)
-        floods = {"gate": flood_run(two, certs, "gate", args.cuts, args)}
-        if args.without_gate:
-            floods["backlog"] = flood_run(two, certs, "backlog", 1, args)
-            floods["none"] = flood_run(two, certs, "none", 1, args)
-        rows = {
-            "raw Zenoh get, plain TCP": raw_gets(two, args.rounds, None),
-            "raw Zenoh get, mutual TLS": raw_gets(two, args.rounds, certs),
-            "rr_actors dedup-hit call, plain TCP": rr_dedup(two, args.rounds, None),
-            "rr_actors dedup-hit call, mutual TLS": rr_dedup(two, args.rounds, certs),
-        }
-        phases, result, joins = burst(two, certs, args)
-    report_trips(args.rounds, rows)
-    print()
-    report_burst(args, phases, result, joins)
-    print()
-    report_flood(args, floods)
-    print()
+        floods, forged, rows, burst_run = {}, None, {}, None
+        if "flood" in args.only:
+            floods["gate@1"] = flood_run(two, certs, "gate", args.cuts, args)
+            if args.without_gate:
+                floods["backlog@1"] = flood_run(two, certs, "backlog", 1, args)
+                floods["none@1"] = flood_run(two, certs, "none", 1, args)
+            many = sources_of_c(two, args.sources)
+            floods[f"gate@{args.sources}"] = flood_run(two, certs, "gate", args.cuts, args, many)
+        if "spoof" in args.only:
+            forged = spoof_run(two, certs, args.cuts, args)
+        if "trips" in args.only:
+            rows = {
+                "raw Zenoh get, plain TCP": raw_gets(two, args.rounds, None),
+                "raw Zenoh get, mutual TLS": raw_gets(two, args.rounds, certs),
+                "rr_actors dedup-hit call, plain TCP": rr_dedup(two, args.rounds, None),
+                "rr_actors dedup-hit call, mutual TLS": rr_dedup(two, args.rounds, certs),
+            }
+        if "burst" in args.only:
+            burst_run = burst(two, certs, args)
+    if rows:
+        report_trips(args.rounds, rows)
+        print()
+    if burst_run is not None:
+        report_burst(args, *burst_run)
+        print()
+    if floods:
+        report_flood(args, floods)
+        print()
+    if forged is not None:
+        report_spoof(args, forged)
+        print()
     print(
         "ratios move by a quarter between runs on a loaded machine; they are stable with "
         "every process on one CPU: taskset -c 0 python benchmarks/bench_zenoh_tls.py"

@@ -6,6 +6,7 @@ the semantics (`docs/explanation/semantics.md`) and the architecture.
 
 from typing import TYPE_CHECKING
 
+from rr_actors import _extras, _log
 from rr_actors import events as events  # `rr.events.to_dict(...)`, as `rr.errors` is
 from rr_actors._core.bus import Subscription
 from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, Registrar, ResourceRegistrar
@@ -22,12 +23,15 @@ from rr_actors.errors import (
     DuplicateNameError,
     DuplicateQueryIdError,
     ErrorFrame,
+    InternalError,
     MessageTooLargeError,
+    MissingExtraError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
     ResourceLoadError,
     RrError,
     SupervisorGaveUpError,
+    TransferError,
     UnknownQueryError,
     UnknownRegistrarError,
     UnknownServerError,
@@ -50,8 +54,10 @@ __all__ = [
     "DuplicateNameError",
     "DuplicateQueryIdError",
     "ErrorFrame",
+    "InternalError",
     "ManagerSpec",
     "MessageTooLargeError",
+    "MissingExtraError",
     "Query",
     "Registrar",
     "RegistrarConfig",
@@ -67,6 +73,7 @@ __all__ = [
     "Supervisor",
     "SupervisorGaveUpError",
     "SupervisorSpec",
+    "TransferError",
     "UnknownQueryError",
     "UnknownRegistrarError",
     "UnknownServerError",
@@ -77,26 +84,21 @@ __all__ = [
 
 __version__ = "0.1.0"
 
+_log.install()  # WARNING and ERROR on stderr, level and logger named, until logging is configured
+
 
 def __getattr__(name: str) -> object:
     """`rr.ZenohNetwork`, `rr.ZenohTLS`, imported at first use.
 
-    So `import rr_actors` never imports zenoh or cryptography.
+    So `import rr_actors` never imports zenoh or cryptography. Without the zenoh extra,
+    a `MissingExtraError` (an `ImportError`) names it and the command that installs it.
     """
     if name == "ZenohNetwork":
-        try:
+        with _extras.needs("zenoh", "rr.ZenohNetwork"):
             from rr_actors._transport.zenoh.net import ZenohNetwork  # noqa: PLC0415 - lazily
-        except ImportError as exc:
-            raise ImportError(
-                f"rr.ZenohNetwork needs eclipse-zenoh: pip install 'rr-actors[zenoh]' ({exc})"
-            ) from exc
         return ZenohNetwork
     if name == "ZenohTLS":
-        try:
+        with _extras.needs("zenoh", "rr.ZenohTLS"):
             from rr_actors._transport.zenoh.tls import ZenohTLS  # noqa: PLC0415 - lazily
-        except ImportError as exc:
-            raise ImportError(
-                f"rr.ZenohTLS needs cryptography: pip install 'rr-actors[zenoh]' ({exc})"
-            ) from exc
         return ZenohTLS
     raise AttributeError(f"module 'rr_actors' has no attribute {name!r}")

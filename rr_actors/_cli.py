@@ -6,6 +6,7 @@ arguments, and a function that runs it. Add a subcommand by appending to `COMMAN
     rr-actors demo                          # the thesis's robot mission (Linux)
     rr-actors inspect state/erm.db          # a catalog backup as a tree
     rr-actors inspect state/erm.db --json   # the same as JSON
+    rr-actors inspect state/                # every backup in a state_dir
     rr-actors observe --state state/        # the observer's page of the backups
     rr-actors graph --state state/          # the dependency graph as Mermaid (or --format dot)
     rr-actors experiment plan.toml --out results   # a supervision experiment
@@ -27,12 +28,14 @@ import json
 import math
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, TextIO
 
 import rr_actors
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
+from rr_actors._extras import needs
 from rr_actors._store import Backup, Unreadable, read_backup
-from rr_actors.errors import CatalogCorruptError, ConfigError
+from rr_actors.errors import CatalogCorruptError, ConfigError, MissingExtraError
 from rr_actors.observe import _commands as observe_commands
 
 __all__ = ["COMMANDS", "Command", "backup_to_dict", "main", "render_tree", "version"]
@@ -53,6 +56,10 @@ class Command:
     help: str
     add_arguments: Callable[[argparse.ArgumentParser], None]
     run: Callable[[argparse.Namespace, TextIO], int]
+
+
+THIS_COMMAND = "this command"
+"""What needs an extra when a whole subcommand does (`MissingExtraError.what`)."""
 
 
 # -- inspect ------------------------------------------------------------------------------
@@ -188,17 +195,37 @@ def render_tree(backup: Backup) -> str:
 
 
 def _inspect_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("path", help="the catalog backup (a registrar's backup_path)")
-    parser.add_argument("--json", action="store_true", help="print JSON instead of a tree")
+    parser.add_argument(
+        "path",
+        help="the catalog backup (a registrar's backup_path), or a folder of them (a "
+        "state_dir): each *.db in it and its subfolders",
+    )
+    parser.add_argument(
+        "--json", action="store_true", help="print JSON instead of a tree (a list, for a folder)"
+    )
+
+
+def _backups_in(folder: Path) -> list[Path]:
+    """The catalog backups in `folder` and its subfolders, by path (a `ConfigError` if none)."""
+    found = sorted(folder.rglob("*.db"))
+    if not found:
+        raise ConfigError(
+            f"{str(folder)!r} is a folder that holds no catalog backup (*.db): name a "
+            "registrar's backup file, or its state_dir"
+        )
+    return found
 
 
 def _inspect(args: argparse.Namespace, out: TextIO) -> int:
-    backup = read_backup(args.path)
+    path = Path(args.path)
+    paths = _backups_in(path) if path.is_dir() else [path]
+    backups = [read_backup(p) for p in paths]
     if args.json:
-        json.dump(backup_to_dict(backup), out, indent=2)
+        data = [backup_to_dict(b) for b in backups]
+        json.dump(data if path.is_dir() else data[0], out, indent=2)
         out.write("\n")
     else:
-        out.write(render_tree(backup))
+        out.write("\n".join(render_tree(b) for b in backups))
     return 0
 
 
@@ -225,14 +252,8 @@ def _experiment_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _experiment(args: argparse.Namespace, out: TextIO) -> int:
-    try:
+    with needs("experiments", THIS_COMMAND):
         from rr_actors.experiments import cli  # noqa: PLC0415 - only experiments need it
-    except ImportError as exc:
-        sys.stderr.write(
-            f"rr-actors experiment: needs the experiments extra: "
-            f"pip install 'rr-actors[experiments]' ({exc})\n"
-        )
-        return 2
     return cli.main(args, out)
 
 
@@ -252,9 +273,8 @@ def _check_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _check(args: argparse.Namespace, out: TextIO) -> int:
     """Print each run's verdict and findings; exit 1 if any run violated a rule."""
-    from pathlib import Path  # noqa: PLC0415
-
-    from rr_actors.experiments import check  # noqa: PLC0415 - only this command needs it
+    with needs("experiments", THIS_COMMAND):
+        from rr_actors.experiments import check  # noqa: PLC0415 - only this command needs it
 
     path = Path(args.run_dir)
     try:
@@ -352,7 +372,8 @@ def _events(args: argparse.Namespace, out: TextIO) -> int:
         for event in events.order(read)[: args.count]:
             out.write(json.dumps(events.to_dict(event)) + "\n")
         return 0
-    network = network_from(args)
+    with needs("zenoh", "--network"):
+        network = network_from(args)
     done = threading.Event()
     shown = 0
 
@@ -427,13 +448,8 @@ def _certs_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _certs(args: argparse.Namespace, out: TextIO) -> int:
-    try:
+    with needs("zenoh", THIS_COMMAND):
         from rr_actors._tools import certs  # noqa: PLC0415 - needs cryptography
-    except ImportError as exc:
-        sys.stderr.write(
-            f"rr-actors certs: needs cryptography: pip install 'rr-actors[zenoh]' ({exc})\n"
-        )
-        return 2
     if args.certs_command == "init":
         pem, key = certs.init_ca(args.dir, args.system, force=args.force)
         out.write(
@@ -524,9 +540,10 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
 
     Returns:
         The exit code: 0 on success, 1 when the backup cannot be read or a `certs` file
-        is refused (the message names the file and the cause), 2 for a usage error, and
-        2 without a command (after printing the help on standard output: nothing was
-        done).
+        is refused (the message names the file and the cause), 2 for a usage error, 2
+        when the command needs an extra that is not installed (one line names it and the
+        command that installs it), and 2 without a command (after printing the help on
+        standard output: nothing was done).
     """
     parser = build_parser()
     args, unknown = parser.parse_known_args(argv)
@@ -537,6 +554,9 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
         return 2
     try:
         code: int = args.run(args, out if out is not None else sys.stdout)
+    except MissingExtraError as exc:  # one line, and what to install: nothing was done
+        print(f"rr-actors {args.command}: {exc}", file=sys.stderr)  # noqa: T201 - CLI output
+        return 2
     except (CatalogCorruptError, ConfigError) as exc:
         print(f"rr-actors {args.command}: {exc}", file=sys.stderr)  # noqa: T201 - CLI output
         return 1

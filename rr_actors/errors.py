@@ -26,6 +26,7 @@ __all__ = [
     "ErrorFrame",
     "InternalError",
     "MessageTooLargeError",
+    "MissingExtraError",
     "RegistrarStoppedError",
     "RegistrarUnavailableError",
     "ResourceLoadError",
@@ -96,6 +97,32 @@ class MessageTooLargeError(ConfigError):
 
     def __reduce__(self) -> tuple[Any, ...]:
         return (type(self), (str(self), self.size, self.limit))
+
+
+class MissingExtraError(ConfigError, ImportError):
+    """What was asked for needs an optional extra of rr-actors that is not installed.
+
+    The message is one line that names the extra and the command that installs it into
+    this installation, for example `rr.ZenohNetwork needs the zenoh extra: pip install -e
+    ".[zenoh]"` (`-e` and the checkout for an editable install, as the README's); the
+    import that failed is its `__cause__`. A `ConfigError` (the installation lacks
+    something, as a value can) and an `ImportError` (what code that tries an optional
+    import catches). The command line prints the line and exits with 2.
+
+    Attributes:
+        what: what needs the extra (`"rr.ZenohNetwork"`, `"the observer"`, `"--hosts 2"`).
+        extra: the extra's name in `pyproject.toml` (`"zenoh"`, `"observe"`, ...).
+        command: the command that installs it.
+    """
+
+    def __init__(self, what: str, extra: str, command: str) -> None:
+        super().__init__(f"{what} needs the {extra} extra: {command}")
+        self.what = what
+        self.extra = extra
+        self.command = command
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (type(self), (self.what, self.extra, self.command))
 
 
 class UnknownServerError(RrError, LookupError):

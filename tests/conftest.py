@@ -563,3 +563,14 @@ def arrived() -> Callable[..., bool]:
         return wait_for(lambda: wanted <= waiting_query_ids(provider), timeout)
 
     return check
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """With `-q` and xdist workers, name each failure as it happens (issue 44): the
+    progress line shows only `F`, and the names came when the last worker ended."""
+    failed = report.failed and (report.when == "call" or not report.passed)
+    if not failed or not hasattr(report, "node"):  # (in the controller: node is the worker)
+        return
+    sys.stderr.write(f"\nFAILED {report.nodeid} ({report.when})\n")
+    sys.stderr.flush()

@@ -57,6 +57,7 @@ SMALLEST = {
     "bench_zenoh_tls.py": [
         *("--rounds", "20", "--handshakes", "20", "--clients", "4"),
         *("--joins", "1", "--quiet", "1", "--cuts", "1", "--flood", "0.5"),
+        *("--sources", "4", "--spoofed", "5"),
     ],
     "count_cross.py": ["--calls", "5"],
     "count_dedup.py": ["--calls", "5", "--profile"],

@@ -533,7 +533,7 @@ def test_readme_starts_with_the_demo_and_the_test_command_that_ci_runs() -> None
 
     assert ["```bash", "```"] == [lines[0], lines[3]]
     assert 'pip install -e ".[demo]" && rr-actors demo' == lines[1]
-    assert install.endswith('pip install -e ".[dev]"')
+    assert install.endswith('pip install -e ".[dev,bench]"')
     assert ci_test_command() == test_command
 
 

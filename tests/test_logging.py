@@ -74,3 +74,56 @@ def test_a_handler_on_the_rr_actors_logger_takes_its_records_off_stderr() -> Non
     result = run(configured)
 
     assert (0, "2\n", "") == (result.returncode, result.stdout, result.stderr)
+
+
+def test_with_no_logging_configured_each_line_says_its_level_and_logger() -> None:
+    """A user tells a warning from an error, and both from the program's own output."""
+    result = run(MISTAKES + "print('the program says this')\n")
+
+    assert 0 == result.returncode, result.stderr
+    lines = result.stderr.splitlines()
+    assert any(line.startswith("ERROR rr_actors: status callback for ") for line in lines)
+    assert (
+        "ERROR rr_actors: unload callback of 'provider/res' raised; the resource is "
+        "released anyway" in lines
+    )
+    assert "the program says this\n" == result.stdout
+
+
+def test_a_warning_of_a_supervisor_says_warning_and_its_logger() -> None:
+    """The supervisor's WARNING for a child killed under it (the README's snippet)."""
+    source = textwrap.dedent(
+        """
+        import os, signal
+        import rr_actors as rr
+
+        def setup(erm):
+            erm.register_server("camera", load=lambda r: r, unload=lambda r, s: None)
+
+        with rr.Supervisor([rr.ManagerSpec("erm", setup, isolation="process")]) as sup:
+            os.kill(sup.child("erm").pid, signal.SIGKILL)
+            sup.wait_restarted("erm", timeout=10.0)
+        """
+    )
+
+    result = run(source)
+
+    assert 0 == result.returncode, result.stderr
+    assert [
+        "WARNING rr_actors: supervisor supervisor-1: child erm exited: killed by SIGKILL"
+    ] == result.stderr.splitlines()
+
+
+def test_basic_config_after_the_import_takes_the_lines_off_stderr(tmp_path: Path) -> None:
+    """Configured after `import rr_actors`: rr_actors' own handler steps aside."""
+    log = tmp_path / "app.log"
+    configured = (
+        "import logging, sys\n"
+        "import rr_actors\n"
+        "logging.basicConfig(filename=sys.argv[1], level=logging.WARNING)\n" + MISTAKES
+    )
+
+    result = run(configured, str(log))
+
+    assert (0, "") == (result.returncode, result.stderr)
+    assert "ERROR:rr_actors:unload callback of 'provider/res' raised" in log.read_text()

@@ -15,8 +15,8 @@ from typing import Protocol
 __all__ = ["GATE_SOURCES", "ExitWatch", "ListenerGate", "Platform"]
 
 GATE_SOURCES = 256
-"""Source addresses a `ListenerGate` drops at once at most (more is a firewall's job; on
-Linux, one socket filter's instructions stay under `BPF_MAXINSNS`)."""
+"""Source addresses a `ListenerGate` drops (or admits) at once at most (more is a
+firewall's job; on Linux, one socket filter's instructions stay under `BPF_MAXINSNS`)."""
 
 
 class ExitWatch(Protocol):
@@ -62,14 +62,15 @@ class ListenerGate(Protocol):
 
     def drop_from(self, sources: Collection[str]) -> None:
         """Drop every packet from `sources` (IP addresses) at the socket from now on,
-        replacing the previous set (empty: drop nothing)."""
+        replacing the filter set before (empty: drop nothing)."""
 
-    def dropped(self) -> int:
-        """Packets the socket has dropped so far (it grows while a dropped source tries)."""
-        ...
+    def admit_only(self, sources: Collection[str]) -> None:
+        """Drop every packet from any address but `sources` (IP addresses) at the socket
+        from now on, replacing the filter set before (empty: drop every packet)."""
 
     def peers(self) -> collections.Counter[str]:
-        """How many connections to the socket's port each remote address holds."""
+        """How many connections to the socket's port past the TCP handshake each remote
+        address holds (never the half-open ones: their source address may be forged)."""
         ...
 
     def close(self) -> None:

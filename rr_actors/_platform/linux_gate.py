@@ -7,16 +7,18 @@ its descriptor, without touching Zenoh's own code:
   length of its accept queue (Linux `inet_listen`), so connections queued by the kernel
   before the application accepts them are at most `n + 1`;
 - `drop_from(addresses)`: a classic BPF program (`SO_ATTACH_FILTER`) that drops every
-  packet from those source addresses. The kernel runs a socket's filter for a listening
-  socket too (`tcp_filter` in `tcp_v4_rcv`, before the SYN is answered or a cookie is
-  checked), so a dropped source never completes a connection: it costs the listener
-  nothing. A connection accepted later takes a copy of the filter attached then
-  (`sk_clone_lock`): links already up keep theirs (a few instructions per packet);
-- `dropped()`: the socket's drop counter (`SO_MEMINFO`, `SK_MEMINFO_DROPS`): it grows
-  while a dropped source keeps trying;
-- `peers()`: the remote addresses of this port's connections other than listening and
-  `TIME_WAIT` ones (queued, in a handshake, or linked), from `/proc/net/tcp` and
-  `tcp6` (those of this process's network namespace).
+  packet from those source addresses; `admit_only(addresses)`: one that drops every
+  packet from any other. The kernel runs a socket's filter for a listening socket too
+  (`tcp_filter` in `tcp_v4_rcv`, before the SYN is answered or a cookie is checked), so
+  a dropped source never completes a connection: it costs the listener nothing. A
+  connection accepted later takes a copy of the filter attached then (`sk_clone_lock`):
+  links already up keep theirs (a few instructions per packet);
+- `peers()`: the remote addresses of this port's connections past the TCP handshake
+  (queued for accept, in a TLS handshake, linked, or closing), from `/proc/net/tcp`
+  and `tcp6` (those of this process's network namespace). Not the half-open ones
+  (`SYN_RECV`): anyone can send a SYN with any source address, and the kernel holds
+  what it answered for about a minute while nobody is there to reset it; a completed
+  handshake needs the source to have received our SYN-ACK.
 
 The descriptor is found by matching the socket's inode from `/proc/net/tcp` against the
 links of `/proc/self/fd`. The duplicate shares Zenoh's open file description (and its
@@ -33,46 +35,48 @@ import ipaddress
 import os
 import socket
 import struct
-from collections.abc import Collection
+from collections.abc import Collection, Iterable
 from pathlib import Path
 
 from rr_actors._platform.base import GATE_SOURCES
 
-__all__ = ["LinuxListenerGate", "find_listener"]
+__all__ = ["LinuxListenerGate", "find_listener", "handshaken"]
 
 _SO_ATTACH_FILTER = 26
 _SO_DETACH_FILTER = 27
-_SO_MEMINFO = 55
-_SK_MEMINFO_DROPS = 8
-_LISTEN, _TIME_WAIT = "0A", "06"
+_LISTEN = "0A"
+# the states of a connection past the TCP handshake (include/net/tcp_states.h): ESTABLISHED,
+# FIN_WAIT1, FIN_WAIT2, CLOSE_WAIT, LAST_ACK, CLOSING; not SYN_RECV (03), TIME_WAIT (06)
+_HANDSHAKEN = frozenset({"01", "04", "05", "08", "09", "0B"})
 
 # classic BPF (linux/filter.h, linux/bpf_common.h)
 _LD_B_ABS, _LD_W_ABS = 0x30, 0x20
 _ALU_AND_K, _JEQ_K, _RET_K = 0x54, 0x15, 0x06
 _NET = -0x100000  # SKF_NET_OFF: offsets from the network (IP) header
 _ACCEPT, _DROP = 0xFFFFFFFF, 0
-MAX_SOURCES = GATE_SOURCES  # (4 instructions each for IPv6: under BPF_MAXINSNS)
+MAX_SOURCES = GATE_SOURCES  # (9 instructions each for IPv6: under BPF_MAXINSNS, 4096)
 
 
 def _insn(code: int, k: int, jt: int = 0, jf: int = 0) -> bytes:
     return struct.pack("HBBI", code, jt, jf, k & 0xFFFFFFFF)
 
 
-def _program(sources: Collection[str]) -> bytes:
-    """A socket filter that drops the packets whose IP source is one of `sources`."""
+def _program(sources: Collection[str], *, listed: int, other: int) -> bytes:
+    """A socket filter whose verdict is `listed` for the packets whose IP source is one of
+    `sources`, `other` for the rest (`_ACCEPT` or `_DROP`)."""
     v4 = [ipaddress.ip_address(s) for s in sources if ipaddress.ip_address(s).version == 4]
     v6 = [ipaddress.ip_address(s) for s in sources if ipaddress.ip_address(s).version == 6]
     tail4, tail6 = [], []
-    for address in v4:  # A holds the source; equal: the next instruction drops
-        tail4 += [_insn(_JEQ_K, int(address), 0, 1), _insn(_RET_K, _DROP)]
+    for address in v4:  # A holds the source; equal: the next instruction's verdict
+        tail4 += [_insn(_JEQ_K, int(address), 0, 1), _insn(_RET_K, listed)]
     for address in v6:  # four words, each equal or on to the next address
         words = struct.unpack("!4I", address.packed)
         for n, word in enumerate(words):
-            skip = 2 * (3 - n) + 1  # past the rest of this address and its drop
+            skip = 2 * (3 - n) + 1  # past the rest of this address and its verdict
             tail6 += [_insn(_LD_W_ABS, _NET + 8 + 4 * n), _insn(_JEQ_K, word, 0, skip)]
-        tail6.append(_insn(_RET_K, _DROP))
-    v6_part = [*tail6, _insn(_RET_K, _ACCEPT)]
-    v4_part = [_insn(_LD_W_ABS, _NET + 12), *tail4, _insn(_RET_K, _ACCEPT)]
+        tail6.append(_insn(_RET_K, listed))
+    v6_part = [*tail6, _insn(_RET_K, other)]
+    v4_part = [_insn(_LD_W_ABS, _NET + 12), *tail4, _insn(_RET_K, other)]
     head = [
         _insn(_LD_B_ABS, _NET),  # the IP header's first byte: its version in the high nibble
         _insn(_ALU_AND_K, 0xF0),
@@ -108,6 +112,20 @@ def _sockets() -> list[tuple[str, int, str, str, int]]:
                     (_proc_address(here), int(port, 16), remote.split(":")[0], state, inode)
                 )
     return found
+
+
+def handshaken(
+    sockets: Iterable[tuple[str, int, str, str, int]], address: str, port: int
+) -> collections.Counter[str]:
+    """Of `sockets` (as `_sockets()` gives them), how many connections to `address`:`port`
+    (or to `port` at any address, for a wildcard `address`) past the TCP handshake each
+    remote address holds."""
+    anywhere = ipaddress.ip_address(address).is_unspecified  # (0.0.0.0, ::)
+    counts: collections.Counter[str] = collections.Counter()
+    for local, local_port, remote, state, _ in sockets:
+        if local_port == port and state in _HANDSHAKEN and (anywhere or local == address):
+            counts[_proc_address(remote)] += 1
+    return counts
 
 
 def find_listener(host: str, port: int) -> socket.socket | None:
@@ -154,36 +172,36 @@ class LinuxListenerGate:
 
     def drop_from(self, sources: Collection[str]) -> None:
         """Drop every packet from `sources` (IP addresses; at most `MAX_SOURCES`) at this
-        socket from now on; none: drop nothing. Replaces the previous set."""
+        socket from now on; none: drop nothing. Replaces the filter set before."""
         if not sources:
             with contextlib.suppress(OSError):
                 self._sock.setsockopt(socket.SOL_SOCKET, _SO_DETACH_FILTER, 0)
             return
+        self._attach(_program(self._checked(sources), listed=_DROP, other=_ACCEPT))
+
+    def admit_only(self, sources: Collection[str]) -> None:
+        """Drop every packet from any address but `sources` (IP addresses; at most
+        `MAX_SOURCES`; none: drop every packet) at this socket from now on. Replaces the
+        filter set before."""
+        self._attach(_program(self._checked(sources), listed=_ACCEPT, other=_DROP))
+
+    @staticmethod
+    def _checked(sources: Collection[str]) -> Collection[str]:
         if len(sources) > MAX_SOURCES:
             raise ValueError(f"at most {MAX_SOURCES} sources, not {len(sources)}")
-        program = _program(sources)
+        return sources
+
+    def _attach(self, program: bytes) -> None:
         buffer = ctypes.create_string_buffer(program, len(program))
         fprog = struct.pack("HL", len(program) // 8, ctypes.addressof(buffer))
         self._sock.setsockopt(socket.SOL_SOCKET, _SO_ATTACH_FILTER, fprog)
         self._filter = buffer  # (the kernel copied it; kept only for a look in a debugger)
 
-    def dropped(self) -> int:
-        """Packets this socket has dropped since it was made (its filter's among them)."""
-        info = self._sock.getsockopt(socket.SOL_SOCKET, _SO_MEMINFO, 4 * 9)
-        drops: int = struct.unpack("9I", info[: 4 * 9])[_SK_MEMINFO_DROPS]
-        return drops
-
     def peers(self) -> collections.Counter[str]:
-        """How many connections to this socket's port each remote address holds (queued,
-        in a handshake or linked; not `TIME_WAIT`)."""
-        anywhere = ipaddress.ip_address(self.address).is_unspecified  # (0.0.0.0, ::)
-        counts: collections.Counter[str] = collections.Counter()
-        for local, port, remote, state, _ in _sockets():
-            if port != self.port or state in (_LISTEN, _TIME_WAIT):
-                continue
-            if anywhere or local == self.address:
-                counts[_proc_address(remote)] += 1
-        return counts
+        """How many connections to this socket's port past the TCP handshake each remote
+        address holds (queued for accept, in a TLS handshake, linked, or closing; not
+        half-open, not `TIME_WAIT`)."""
+        return handshaken(_sockets(), self.address, self.port)
 
     def close(self) -> None:
         """Close the duplicate (Zenoh's socket stays open; its filter stays attached)."""

@@ -36,7 +36,7 @@ from rr_actors.errors import (
     UnknownServerError,
 )
 
-__all__ = ["Restarts", "abandon_after_restart", "call_with_retry", "give_back_abandoned"]
+__all__ = ["MISSING", "Restarts", "abandon_after_restart", "call_with_retry", "give_back_abandoned"]
 
 _WAITING_STATES = ("stopping", "restarting", "starting")
 """States of a provider that its supervisor stopped to restart it."""
@@ -63,13 +63,17 @@ def _lookup(tree: Restarts, name: str) -> ChildInfo | None:
         return None
 
 
+MISSING: Any = object()
+"""`call_with_retry`'s `request` when none was given (told as a `ConfigError`)."""
+
+
 def call_with_retry(
     tree: Restarts,
     abandon: Callable[[str, str, str], None],
     consumer: Registrar,
     target_rr: str,
     server: str,
-    request: Any,
+    request: Any = MISSING,
     *,
     on_status: StatusCallback | None = None,
     timeout: float | None = None,
@@ -86,8 +90,12 @@ def call_with_retry(
     """
     if not callable(getattr(consumer, "call", None)):
         raise ConfigError(
-            f"consumer must be a registrar (sup.registrar(name), a ResourceRegistrar), "
-            f"got {consumer!r}"
+            "call_with_retry(consumer, target_rr, server, request): the consumer comes "
+            f"first, a registrar (sup.registrar(name), a ResourceRegistrar), got {consumer!r}"
+        )
+    if request is MISSING:
+        raise ConfigError(
+            "call_with_retry(consumer, target_rr, server, request): request is missing"
         )
     for field, value in (("target_rr", target_rr), ("server", server)):
         if not isinstance(value, str):

@@ -125,7 +125,9 @@ class Supervisor:
     ```
 
     Args:
-        children: `ManagerSpec` and `SupervisorSpec` values, started in this order.
+        children: `ManagerSpec` and `SupervisorSpec` values, started in this order; one
+            spec alone is a tree of that one child (`Supervisor(spec)` is
+            `Supervisor([spec])`).
         strategy: `"one_for_one"` (restart the crashed child), `"one_for_all"` (restart
             every child) or `"rest_for_one"` (restart it and the children started after it).
         max_restarts: at most this many restarts within `period` seconds; one more and the
@@ -153,7 +155,7 @@ class Supervisor:
 
     def __init__(
         self,
-        children: Sequence[ManagerSpec | SupervisorSpec],
+        children: Sequence[ManagerSpec | SupervisorSpec] | ManagerSpec | SupervisorSpec,
         *,
         strategy: Strategy = "one_for_one",
         max_restarts: int = 3,
@@ -167,6 +169,13 @@ class Supervisor:
         network: Transport | None = None,
     ) -> None:
         _check_network(network)
+        if isinstance(children, ManagerSpec | SupervisorSpec):
+            children = [children]  # one child: a list of one (it is not iterable)
+        elif not isinstance(children, Sequence | tuple | list) or isinstance(children, str):
+            raise ConfigError(
+                "children must be a list of ManagerSpec and SupervisorSpec values "
+                f"(or one of them), got {children!r}"
+            )
         self._spec = SupervisorSpec(
             name=name or f"supervisor-{next(_SUPERVISOR_NAMES)}",
             children=tuple(children),
@@ -216,15 +225,22 @@ class Supervisor:
             SupervisorGaveUpError: a child failed to start (its setup raised, its backup
                 could not be read, ...); the children already started were stopped again,
                 in reverse order. The cause is chained.
-            ConfigError: a process manager's `setup` cannot be pickled, the supervisor was
-                already started, or a `state_dir` of the tree is in use by another
-                supervisor (the message names the holder's pid; see `state_dir`); or this
+            ConfigError: a process manager's `setup` cannot be pickled, the supervisor is
+                running, or it was stopped (a supervisor starts once: make a new one with
+                the same specs; its managers' catalogs are restored), or a `state_dir` of
+                the tree is in use by another supervisor (the message names the holder's
+                pid; see `state_dir`); or this
                 process was forked from one whose state a child cannot use (a Zenoh
                 session): the message says to use the `spawn` or `forkserver` method.
         """
         fork.check_usable(f"supervisor {self.name!r}")
+        if self._stopped:
+            raise ConfigError(
+                f"supervisor {self.name!r} was stopped, and a supervisor cannot be restarted: "
+                "make a new one (rr.Supervisor(...)) with the same specs"
+            )
         if self._started:
-            raise ConfigError(f"supervisor {self.name!r} was already started")
+            raise ConfigError(f"supervisor {self.name!r} is already started (it is running)")
         self._started = True
         try:
             self._lock = StateDirLock.acquire(_state_dirs(self._spec))
@@ -316,10 +332,26 @@ class Supervisor:
         """The snapshot of the child `name`, searched through nested supervisors too.
 
         A child of a nested supervisor that is down (being restarted by its parent, say)
-        has that supervisor's state (`"restarting"`, ...) and no pid. Before `start` and
-        after `stop` every child is `"stopped"`, with no pid: a snapshot, as
-        `which_children` gives it (the observer shows a tree before it starts); start the
-        supervisor (`with sup:`) before acting on a child's pid.
+        has that supervisor's state (`"restarting"`, ...) and no pid. After `stop` every
+        child is `"stopped"`, with no pid.
+
+        Raises:
+            UnknownServerError: no child of that name in this tree.
+            ConfigError: `name` is not a str, or the supervisor is not started yet (no
+                child runs, none has a pid: start it first, `with sup:`; the specs are
+                what it was given, `which_children` lists them as `"stopped"`).
+        """
+        _check_child_name(name)
+        if not self._started:
+            raise ConfigError(
+                f"supervisor {self.name!r} is not started: its child {name!r} is not "
+                "running yet (start it first: `with sup:` or sup.start())"
+            )
+        return self.snapshot(name)
+
+    def snapshot(self, name: str) -> ChildInfo:
+        """`child(name)` at any time, before `start` too (every child `"stopped"` then, as
+        the observer shows a tree before it starts).
 
         Raises:
             UnknownServerError: no child of that name in this tree.
@@ -467,13 +499,16 @@ class Supervisor:
         consumer: Registrar,
         target_rr: str,
         server: str,
-        request: Any,
+        request: Any = retry.MISSING,
         *,
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
         query_id: str | None = None,
     ) -> Query:
         """`consumer.call(...)`, waiting out a restart of `target_rr` and retrying.
+
+        The consumer comes first: `sup.call_with_retry(app, "erm", "camera", request)`
+        (a name first is told so, not a missing argument).
 
         Every attempt uses the same caller-generated query id, so the provider's restored
         catalog recognises a retry of a call it already answered before it died: the
@@ -504,8 +539,9 @@ class Supervisor:
             UnknownServerError: as for `ResourceRegistrar.call`.
             RegistrarStoppedError: as for `ResourceRegistrar.call` (not when the
                 supervisor stopped the provider to restart it).
-            ConfigError: `consumer` is not a registrar, `timeout` not a positive number
-                of seconds, or as for `ResourceRegistrar.call`; nothing was sent.
+            ConfigError: `consumer` is not a registrar (the message shows the order of
+                the arguments), `request` is missing, `timeout` not a positive number of
+                seconds, or as for `ResourceRegistrar.call`; nothing was sent.
         """
         abandon = functools.partial(retry.abandon_after_restart, self._tree, self._node)
         return retry.call_with_retry(

@@ -25,17 +25,20 @@ events), `experiment` (`run`: the runs and the output files), `plot` (figures),
 It needs Linux (pidfds, `/proc`).
 """
 
-from rr_actors.experiments.experiment import (
-    ExperimentError,
-    ExperimentInterruptedError,
-    Progress,
-    run,
-)
-from rr_actors.experiments.plan import FAULT_KINDS, Plan, PlanError
-from rr_actors.experiments.reading import load_plan, parse_plan
-from rr_actors.experiments.results import CallRecord, FaultRecord, Results, RunResult
-from rr_actors.experiments.schedule import ScheduledFault, fault_schedule
-from rr_actors.experiments.workload import RequestContext
+from rr_actors._extras import needs
+
+with needs("experiments", "rr_actors.experiments"):  # msgspec: one line if it is missing
+    from rr_actors.experiments.experiment import (
+        ExperimentError,
+        ExperimentInterruptedError,
+        Progress,
+        run,
+    )
+    from rr_actors.experiments.plan import FAULT_KINDS, Plan, PlanError
+    from rr_actors.experiments.reading import load_plan, parse_plan
+    from rr_actors.experiments.results import CallRecord, FaultRecord, Results, RunResult
+    from rr_actors.experiments.schedule import ScheduledFault, fault_schedule
+    from rr_actors.experiments.workload import RequestContext
 
 __all__ = [
     "FAULT_KINDS",

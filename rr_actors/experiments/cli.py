@@ -27,6 +27,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+from rr_actors._extras import install_command
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import experiment, plans
 from rr_actors.experiments.experiment import (
@@ -71,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "plan",
         nargs="?",
         help="a plan file (TOML), or the name of a plan shipped with rr_actors (--list); "
-        f"the format: {plans.REFERENCE} (also docs/reference/plan.md in the documentation)",
+        "the format: docs/reference/plan.md (and plan-reference.md beside the shipped plans)",
     )
     parser.add_argument("--list", action="store_true", help="name the shipped plans and exit")
     parser.add_argument(
@@ -120,18 +121,26 @@ def _ms(value: float | None) -> str:
 
 
 RUN_LINE_WIDTH = 80
-"""The widest a run's line is (a plain pipe, as the summary): the value is cut first."""
+"""The widest a plain line is (a pipe, a file): longer ones wrap at words, indented."""
+
+
+def wrap(text: str, width: int = RUN_LINE_WIDTH, indent: str = "    ") -> list[str]:
+    """`text` in lines of at most `width` columns, broken between words (a word longer
+    than a line, a path or a URL, stays whole on a line of its own), never cut."""
+    return textwrap.wrap(
+        text, width, subsequent_indent=indent, break_long_words=False, break_on_hyphens=False
+    ) or [""]
 
 
 def run_line(result: RunResult, runs: int) -> str:
-    """One line about a finished run, of at most `RUN_LINE_WIDTH` columns.
+    """One finished run, in lines of at most `RUN_LINE_WIDTH` columns.
 
     `run 2/4 rest_for_one seed 1: 46 calls ok, 0 failed, 4 restarts, rec. p50 172 ms`:
     the compared value without its setting (the summary's header names it), and the
-    run's median recovery as the summary's `rec. p50` column. A value too long for the
-    line is cut (`~`, as in the summary); a line still too long wraps, indented. The
-    run's verdict (`rr_actors.experiments.check`) ends it, and each of its findings
-    follows on lines of their own, wrapped the same way.
+    run's median recovery as the summary's `rec. p50` column. A line too long wraps at
+    words, indented; nothing is cut (a value is shown whole). The run's verdict
+    (`rr_actors.experiments.check`) ends it, and each of its findings follows on lines
+    of their own, wrapped the same way.
     """
     value = "" if result.value is None else show_value(result.value)
     rest = (
@@ -140,16 +149,8 @@ def run_line(result: RunResult, runs: int) -> str:
         + (", gave up" if result.gave_up else "")
         + (f", {result.verdict}" if result.verdict else "")
     )
-    head = f"run {result.run}/{runs}"
-    room = max(RUN_LINE_WIDTH - len(head) - len(rest) - 2, 8)  # (2: the spaces around it)
-    if len(value) > room:
-        value = value[: room - 1] + "~"
-    line = " ".join(part for part in (head, value, rest) if part)
-    return "\n".join(
-        wrapped
-        for text in (line, *result.findings)
-        for wrapped in textwrap.wrap(text, RUN_LINE_WIDTH, subsequent_indent="    ")
-    )
+    line = " ".join(part for part in (f"run {result.run}/{runs}", value, rest) if part)
+    return "\n".join(wrapped for text in (line, *result.findings) for wrapped in wrap(text))
 
 
 SUMMARY_HEADERS = ("runs", "faults", "rec. p50", "p90", "failed", "retried", "down s", "left")
@@ -202,13 +203,17 @@ def summary_lines(results: Results) -> list[str]:
     """The summary per compared value as plain lines of at most 80 columns."""
     label = results.plan.setting_label() or "strategy"
 
-    def line(cells: list[str]) -> str:
-        first = cells[0] if len(cells[0]) <= SUMMARY_WIDTHS[0] else cells[0][:17] + "~"
+    def lines(cells: list[str]) -> list[str]:
+        """The row; a first cell too long for its column on a line of its own, whole."""
         rest = (f"{c:>{w}}" for c, w in zip(cells[1:], SUMMARY_WIDTHS[1:], strict=True))
-        return " ".join([f"{first:<{SUMMARY_WIDTHS[0]}}", *rest])
+        if len(cells[0]) <= SUMMARY_WIDTHS[0]:
+            return [" ".join([f"{cells[0]:<{SUMMARY_WIDTHS[0]}}", *rest])]
+        return [*wrap(cells[0], indent=""), " ".join([" " * SUMMARY_WIDTHS[0], *rest])]
 
-    rows = [line([label, *SUMMARY_HEADERS]), *(line(row) for row in summary_rows(results))]
-    return [*rows, *textwrap.wrap(SUMMARY_NOTE, 80)]
+    rows = [*lines([label, *SUMMARY_HEADERS])]
+    for row in summary_rows(results):
+        rows.extend(lines(row))
+    return [*rows, *wrap(SUMMARY_NOTE, indent="")]
 
 
 def summary_table(results: Results) -> RichTable:
@@ -274,11 +279,13 @@ class _Display:
             self.bar.stop()
 
     def say(self, line: Any) -> None:
-        """Print a line (or, on a terminal, a `rich` renderable) that fits the width."""
+        """Print a line (or, on a terminal, a `rich` renderable) that fits the width:
+        `rich` wraps at words to the terminal's; plain text wraps at words to 80."""
         if self.console is not None:
             self.console.print(line, highlight=False, markup=False, emoji=False)
         else:
-            self.stream.write(f"{line}\n")
+            text = "\n".join(w for part in str(line).split("\n") for w in wrap(part))
+            self.stream.write(f"{text}\n")
             self.stream.flush()
 
     def __call__(self, progress: Progress) -> None:
@@ -374,11 +381,25 @@ def _run(args: argparse.Namespace, stream: TextIO) -> int:
     return interrupted or 0
 
 
+LIST_FOOTER = (
+    "(shipped in rr_actors/experiments/plans/; run one with rr-actors experiment NAME "
+    "--out DIR; the plan format: docs/reference/plan.md, also plan-reference.md there)"
+)
+
+
 def _list(stream: TextIO) -> int:
+    """Each shipped plan and what it shows, wrapped at words to 80 columns."""
     for name, path in plans.shipped().items():
         description = load_plan(path).description
-        stream.write(f"{name:<12} {description}\n")
-    stream.write(f"(in {plans.HERE}; the format: {plans.REFERENCE})\n")
+        lines = textwrap.wrap(
+            f"{name:<12} {description}",
+            RUN_LINE_WIDTH,
+            subsequent_indent=" " * 13,
+            break_long_words=False,
+            break_on_hyphens=False,
+        )
+        stream.write("".join(f"{line}\n" for line in lines))
+    stream.write("".join(f"{line}\n" for line in wrap(LIST_FOOTER, indent="")))
     return 0
 
 
@@ -391,6 +412,15 @@ def _plan_file(plan: str) -> Path:
             f"(shipped: {', '.join(plans.shipped())})"
         )
     return path
+
+
+def _shown(path: Path) -> Path:
+    """`path` relative to the working directory when it is under it (as the user typed
+    `--out`), else whole."""
+    try:
+        return path.resolve().relative_to(Path.cwd().resolve())
+    except (ValueError, OSError):
+        return path
 
 
 def _summary(display: _Display, results: Results, *, interrupted: bool) -> None:
@@ -408,9 +438,9 @@ def _summary(display: _Display, results: Results, *, interrupted: bool) -> None:
         display.say(verdict_line(results))
     if results.out is not None:
         written = [name for name in experiment.OUTPUT_FILES if (results.out / name).exists()]
-        display.say(f"written to {results.out}/: {', '.join(written)}")
+        display.say(f"written to {_shown(results.out)}/: {', '.join(written)}")
         if "recovery.png" not in written and results.runs:
             display.say(
-                "plots not drawn: matplotlib is not installed "
-                "(pip install 'rr-actors[experiments]')"
+                "plots not drawn: they need matplotlib, of the experiments extra: "
+                + install_command("experiments")
             )

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import shutil
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -115,6 +116,8 @@ class Mission:
         self.state = out / "state"
         self.supervisor: rr.Supervisor | None = None
         self._say = say
+        self._story_lock = threading.Lock()  # one line at a time, in the order of the stamps
+        self._last_stamp = 0.0
         self._progress = progress
         self._robot = Robot(self.bus, config)
         self.clock = MissionClock(time.monotonic())
@@ -124,9 +127,17 @@ class Mission:
 
     def say(self, text: str, *, at: float | None = None) -> None:
         """One line of the story, stamped with the mission time (`clock`): now, or of `at`
-        (a `time.monotonic()` value: when what the line tells happened)."""
-        stamp = self.clock.now() if at is None else self.clock.at(at)
-        self._say(f"[{stamp:6.2f} s] {text}")
+        (a `time.monotonic()` value: when what the line tells happened).
+
+        Lines come from several threads; they are told in the order of their stamps: a
+        line whose `at` is earlier than a line already told is stamped with that line's
+        time (it is told then), so the story never goes back in time.
+        """
+        with self._story_lock:
+            stamp = self.clock.now() if at is None else self.clock.at(at)
+            stamp = max(stamp, self._last_stamp)
+            self._last_stamp = stamp
+            self._say(f"[{stamp:6.2f} s] {text}")
 
     # -- the run ----------------------------------------------------------------------
 
@@ -284,10 +295,11 @@ class Mission:
             step=self._step,
             clock=self.clock,
             progress=self._progress,
+            arrived=lambda at: self.say(  # (one clock with the report)
+                f"goal reached after {self.clock.at(at) - self.clock.at(start):.2f} s", at=at
+            ),
         )
         arrived = drive.run()
-        took = self.clock.at(arrived) - self.clock.at(start)
-        self.say(f"goal reached after {took:.2f} s", at=arrived)  # (one clock with the report)
         return start, arrived
 
     def _unload_all(self, loads: Loads, faults: Faults) -> dict[str, int]:

@@ -18,12 +18,12 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from rr_actors.mission.config import FAULT_WHAT, MissionConfig, MissionError
+from rr_actors.mission.config import MissionConfig, MissionError
 from rr_actors.mission.faults import Faults, fault_points
 from rr_actors.mission.loads import Loads
 from rr_actors.mission.output import Progress
 from rr_actors.mission.recovery import Recovery
-from rr_actors.mission.report import FaultRecord, MissionClock
+from rr_actors.mission.report import SHORT_WHAT, FaultRecord, MissionClock
 from rr_actors.mission.robot import TICK, Robot
 from rr_actors.mission.step import Step
 
@@ -42,6 +42,9 @@ class Drive:
         step: the pauses before the faults (`--step`), or `None`.
         clock: the mission clock (of the progress line).
         progress: called with where the mission is, about every `TICK` seconds.
+        arrived: called once on the mission's thread with the arrival time (a
+            `time.monotonic()` value) as soon as the robot is seen at the goal, before
+            `run` waits out a fault still recovering (its story comes after).
     """
 
     def __init__(
@@ -55,8 +58,10 @@ class Drive:
         step: Step | None,
         clock: MissionClock,
         progress: Callable[[Progress], None],
+        arrived: Callable[[float], None] = lambda _: None,
     ) -> None:
         self._config = config
+        self._arrived = arrived
         self._robot = robot
         self._loads = loads
         self._faults = faults
@@ -78,6 +83,7 @@ class Drive:
         odometry = self._robot.odometry
         pending = sorted(cfg.faults, key=lambda f: self._points[f])
         active: FaultRecord | None = None
+        arrival: float | None = None
         deadline = (
             time.monotonic() + 3 * cfg.nominal_time_s + 30 + cfg.recovery_timeout * len(pending)
         )
@@ -106,9 +112,11 @@ class Drive:
                 active = faults.inject(pending[0])
                 if active is not None:
                     pending.pop(0)
-            if odometry.x >= cfg.distance_m and not pending and active is None:
-                arrival = odometry.arrival(cfg.distance_m)
-                return arrival if arrival is not None else time.monotonic()
+            if arrival is None and odometry.x >= cfg.distance_m and not pending:
+                arrival = odometry.arrival(cfg.distance_m) or time.monotonic()
+                self._arrived(arrival)  # now, not after a fault still recovering: the story
+            if arrival is not None and active is None:
+                return arrival
             if time.monotonic() > deadline:
                 raise MissionError(f"the goal was not reached in time (at {odometry.x:.2f} m)")
             now = time.monotonic()
@@ -118,6 +126,6 @@ class Drive:
                     distance_m=odometry.x,
                     goal_m=cfg.distance_m,
                     moving=odometry.moving(now),
-                    status=f"{active.id}: {FAULT_WHAT[active.id]}" if active is not None else "",
+                    status=f"{active.id}: {SHORT_WHAT[active.id]}" if active is not None else "",
                 )
             )

@@ -49,9 +49,11 @@ from pathlib import Path
 from typing import Any, Literal, Protocol
 
 import rr_actors as rr
+from rr_actors import _log
 from rr_actors.mission import managers, programs
 from rr_actors.mission.config import MissionConfig, MissionError
 from rr_actors.mission.netns import TwoHosts
+from rr_actors.mission.output import shown
 
 __all__ = [
     "CERTS",
@@ -481,10 +483,9 @@ def _logged_to(
 ) -> None:
     """Run `setup`, with this process's rr_actors WARNINGs and ERRORs going to `log`
     (runs in the manager: in a manager process that configured no logging, the file
-    stands in for Python's last-resort handler, which prints them on the terminal)."""
-    logger = logging.getLogger("rr_actors")
-    if not logging.getLogger().handlers and not logger.handlers:
-        logger.addHandler(log_file(Path(log)))
+    stands in for rr_actors' own handler, which prints them on the terminal)."""
+    if not _log.configured():
+        logging.getLogger("rr_actors").addHandler(log_file(Path(log)))
     setup(registrar)
 
 
@@ -566,7 +567,7 @@ def open_two_hosts(
     certs = out / CERTS
     say(
         f"two hosts: the robot ({link.robot_address}: erm, rm and their programs) and the "
-        f"station ({link.station_address}: the mission and cm), mutual TLS ({certs})"
+        f"station ({link.station_address}: the mission and cm), mutual TLS ({shown(certs)})"
     )
     network = host_network(
         certs,

@@ -6,8 +6,9 @@ Two renderers with one interface (`MissionOutput`), chosen once by `make_output`
   the story scrolls above a live progress line that `rich` redraws in place (never wider
   than the terminal, so nothing wraps or stays behind), then the timeline as a table
   that fits the terminal's width;
-- `PlainOutput` everywhere else (a pipe, a file, no `rich`): plain lines only, no
-  progress line, and a timeline that fits 80 columns.
+- `PlainOutput` everywhere else (a pipe, a file, no `rich`): plain lines wrapped at
+  words to 80 columns (a story line under its text), no progress line, and a timeline
+  that fits 80 columns.
 
 `--quiet` keeps the timeline and the report's paths and drops the story and the
 progress line, in both. `--step` uses the same renderers: while it waits for Enter
@@ -20,8 +21,10 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import textwrap
 import threading
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
@@ -33,14 +36,17 @@ if TYPE_CHECKING:
     from rich.table import Table
 
 __all__ = [
+    "WIDTH",
     "MissionOutput",
     "PlainOutput",
     "Progress",
     "RichOutput",
     "make_output",
     "progress_table",
+    "shown",
     "timeline",
     "timeline_table",
+    "wrap_line",
 ]
 
 HEADERS = ("fault", "what", "injected at", "detected", "recovered", "robot stopped")
@@ -100,6 +106,30 @@ class MissionOutput(Protocol):
 
     def end_interrupt(self, outcome: str) -> None:
         """End the line `interrupt` started with `outcome` (what the cleanup did)."""
+
+
+WIDTH = 80
+"""The widest a plain line is (a pipe, a file): the story wraps at words under its text."""
+
+
+def wrap_line(line: str, width: int = WIDTH) -> str:
+    """`line` wrapped at words to `width` columns; a story line `[  1.23 s] ...` wraps
+    under its text, not its stamp. A word longer than a line (a path, a URL) stays whole."""
+    stamp, bracket, _ = line.partition("] ")
+    indent = " " * (len(stamp) + 2) if line.startswith("[") and bracket else "    "
+    lines = textwrap.wrap(
+        line, width, subsequent_indent=indent, break_long_words=False, break_on_hyphens=False
+    )
+    return "\n".join(lines) if lines else line
+
+
+def shown(path: Path) -> Path:
+    """`path` as the user would type it: relative to the working directory when it is
+    under it (`--hosts 2` hands the station's process an absolute `--out`)."""
+    try:
+        return path.resolve().relative_to(Path.cwd().resolve())
+    except (ValueError, OSError):  # elsewhere, or the working directory is gone
+        return path
 
 
 def _interrupted(at_s: float | None) -> str:
@@ -202,7 +232,7 @@ class PlainOutput:
     def story(self, line: str) -> None:
         """Write one line of the story (unless quiet, or after a Ctrl-C)."""
         if not (self.quiet or self._interrupted):
-            self._write(line + "\n")
+            self._write(wrap_line(line) + "\n")
 
     def progress(self, progress: Progress) -> None:
         """Nothing: a progress line needs a terminal to redraw it in place."""
@@ -223,7 +253,8 @@ class PlainOutput:
 
     def summary(self, report: MissionReport, files: Sequence[str]) -> None:
         """Write the timeline, the totals and `files`."""
-        self._write("\n" + timeline(report) + "\n\n" + "".join(f"{f}\n" for f in files))
+        shown = [wrap_line(line) for line in [*timeline(report).split("\n"), "", *files]]
+        self._write("\n" + "\n".join(shown) + "\n")
 
 
 # -- rich ----------------------------------------------------------------------------------

@@ -64,11 +64,13 @@ class Recovery:
             MissionError: the robot failed with no fault that explains it.
         """
         status = event.update.status
+        held = self._loads.holds(event.query_id)
+        late = "" if held else " (late: the mission let go of that query already; nothing to do)"
         self._say(
             f"{event.kind} query {event.query_id[:8]} hears {status.name} from "
-            f"{event.update.source}: {event.update.message}"
+            f"{event.update.source}: {event.update.message}{late}"
         )
-        if not self._loads.holds(event.query_id):
+        if not held:
             return  # about a query the mission let go of already (F6 reloads both)
         if active is not None and active.id == "F6" and status is rr.Status.FATAL:
             if active.detected_at is None:  # the station saw the cut: its lease ran out

@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 import rr_actors as rr
+from rr_actors import _extras, _log
 from rr_actors.mission import netns
 from rr_actors.mission.action import Mission
 from rr_actors.mission.config import (
@@ -59,7 +60,7 @@ from rr_actors.mission.config import (
 )
 from rr_actors.mission.hosts import CERTS, MEMBERS, SYSTEM, RobotObserver, log_file
 from rr_actors.mission.netns import TwoHosts
-from rr_actors.mission.output import MissionOutput, Progress, make_output
+from rr_actors.mission.output import MissionOutput, Progress, make_output, shown, wrap_line
 from rr_actors.mission.report import MissionReport
 
 if TYPE_CHECKING:
@@ -474,13 +475,14 @@ def _logging_to(path: Path) -> Iterator[None]:
 
     The mission kills managers and programs on purpose, and the story tells each: the
     supervisor's WARNING for every one of them (`child erm exited: killed by SIGKILL`) would
-    only interleave with it. This stands in for Python's last-resort handler (which prints
-    them when nothing is configured), in the manager processes too (`hosts.managers_tree`:
-    they append to the same file); a program that configured logging itself (a handler on
-    the root or the `rr_actors` logger) keeps its own configuration.
+    only interleave with it. This stands in for rr_actors' own handler (`rr_actors._log`,
+    which prints them when nothing is configured), in the manager processes too
+    (`hosts.managers_tree`: they append to the same file); a program that configured
+    logging itself (a handler on the root or the `rr_actors` logger) keeps its own
+    configuration.
     """
     logger = logging.getLogger("rr_actors")
-    if logging.getLogger().handlers or logger.handlers:
+    if _log.configured():
         yield
         return
     path.unlink(missing_ok=True)  # (this run's lines only)
@@ -532,19 +534,27 @@ def _cleanup_outcome(exc: KeyboardInterrupt) -> str:
 
 
 def _check_hosts_args(args: argparse.Namespace) -> None:
-    """`--hosts 2`: root and `ip` (in the first process)."""
+    """`--hosts 2`: the zenoh extra, root and `ip` (in the first process)."""
     if args.hosts != 2:
         return
+    with _extras.needs("zenoh", "--hosts 2"):  # (the certificates, then the carrier)
+        from rr_actors._tools import certs  # noqa: F401, PLC0415
+        from rr_actors._transport.zenoh import net  # noqa: F401, PLC0415
     reason = netns.unavailable() if args.inside is None else None
     if reason is not None:
         raise rr.ConfigError(reason)
 
 
 def _check_observe_args(args: argparse.Namespace) -> None:
-    """`--allow-faults`, `--linger` and `--port` go with `--observe`; `--linger` is not
-    negative, `--port` a port (checked before anything starts)."""
+    """`--observe` has its extra; `--allow-faults`, `--linger` and `--port` go with
+    `--observe`; `--linger` is not negative, `--port` a port (checked before anything
+    starts)."""
     if not args.observe and (args.allow_faults or args.linger is not None):
         raise rr.ConfigError("--allow-faults and --linger need --observe")
+    if args.observe:
+        from rr_actors.observe import require_extra  # noqa: PLC0415 - only --observe needs it
+
+        require_extra()  # (before the managers start)
     if not args.observe and args.port != 0:
         raise rr.ConfigError("--port needs --observe (it is the observer's port)")
     if not 0 <= args.port <= 65535:
@@ -585,7 +595,8 @@ def _linger(args: argparse.Namespace, observer: Observer, stream: TextIO) -> Non
         return
     how = "press Ctrl-C to stop" if args.linger is None else f"for {args.linger:g} s"
     with contextlib.suppress(KeyboardInterrupt):  # (a Ctrl-C right after the line is caught too)
-        stream.write(f"observer: the mission ended; {observer.url} shows its final state ({how})\n")
+        line = f"observer: the mission ended; {observer.url} shows its final state ({how})"
+        stream.write(wrap_line(line) + "\n")  # (at words: the URL and its token stay whole)
         stream.flush()
         threading.Event().wait(args.linger)
 
@@ -627,17 +638,18 @@ def _hooks(
 
 
 def _files(out: Path) -> list[str]:
-    """What the mission wrote where, for the end of the output."""
+    """What the mission wrote where, for the end of the output (paths as `shown`)."""
+    where = shown(out)
     plot = (
-        f"plot:   {out / 'mission.png'}"
+        f"plot:   {where / 'mission.png'}"
         if (out / "mission.png").exists()
-        else "plot:   not drawn: matplotlib is not installed "
-        "(pip install 'rr-actors[demo]' for mission.png)"
+        else "plot:   not drawn: mission.png needs the demo extra: "
+        + _extras.install_command("demo")
     )
     return [
-        f"report: {out / 'report.json'}",
+        f"report: {where / 'report.json'}",
         plot,
-        f"state:  {out / 'state'} (rr-actors inspect {_erm_db(out)})",
+        f"state:  {where / 'state'} (rr-actors inspect {shown(_erm_db(out))})",
     ]
 
 

@@ -16,6 +16,7 @@ import contextlib
 import threading
 from typing import TYPE_CHECKING, TextIO
 
+from rr_actors._extras import needs
 from rr_actors.errors import ConfigError
 from rr_actors.observe._observer import observe_backups, observe_system
 from rr_actors.observe._sources import backup_files, read_catalogs
@@ -126,17 +127,14 @@ def run_observe(
 
 def _network(args: argparse.Namespace) -> ZenohNetwork:
     """The `ZenohNetwork` of `rr-actors observe --system` (ConfigError naming the flag)."""
-    try:
+    with needs("zenoh", "--system"):
         from rr_actors._transport.zenoh.net import ZenohNetwork  # noqa: PLC0415 - an extra
-    except ImportError as exc:
-        raise ConfigError(
-            f"--system needs the zenoh extra: pip install 'rr-actors[zenoh]' ({exc})"
-        ) from exc
     tls = None
     if args.certs is not None:
         if not args.name or not args.members:
             raise ConfigError("--certs needs --name (this member) and --members (all of them)")
-        from rr_actors._transport.zenoh.tls import ZenohTLS  # noqa: PLC0415 - an extra
+        with needs("zenoh", "--certs"):
+            from rr_actors._transport.zenoh.tls import ZenohTLS  # noqa: PLC0415 - an extra
 
         directory = args.certs.rstrip("/")
         tls = ZenohTLS(

@@ -116,7 +116,7 @@ class Faults:
             )
         if isinstance(pid, bool) or not isinstance(pid, int) or pid <= 0:
             raise FaultRefused(f"pid must be a positive int, got {pid!r}", 400)
-        info = self.sup.child(child)
+        info = self.sup.snapshot(child)
         if info.state != "running" or info.pid != pid:
             raise FaultRefused(
                 f"{child} is {info.state} with pid {info.pid}, not pid {pid}: the page is "
@@ -126,7 +126,7 @@ class Faults:
         with contextlib.suppress(AttributeError, OSError):
             fd = os.pidfd_open(pid)
         try:
-            if self.sup.child(child).pid != pid:  # checked again now that the pid is pinned
+            if self.sup.snapshot(child).pid != pid:  # checked again now that the pid is pinned
                 raise FaultRefused(f"{child} was restarted meanwhile: nothing was sent")
             if fd is not None:
                 signal.pidfd_send_signal(fd, sig)

@@ -26,6 +26,7 @@ import time
 from typing import TYPE_CHECKING, Any, Protocol
 
 from rr_actors._core.addresses import is_loopback
+from rr_actors._extras import needs
 from rr_actors.config import NAME
 from rr_actors.errors import ConfigError
 from rr_actors.observe._faults import Faults
@@ -57,20 +58,17 @@ logger = logging.getLogger("rr_actors")
 START_TIMEOUT = 10.0
 """Seconds the web server may take to start serving."""
 
-EXTRA_HINT = "the observer needs the observe extra: pip install 'rr-actors[observe]'"
-
 
 def require_extra() -> None:
     """Check that the observer's web server can start, before anything else does.
 
     Raises:
-        ConfigError: the `observe` extra (Starlette, sse-starlette, uvicorn) is not
-            installed; the message says how to install it.
+        MissingExtraError: the `observe` extra (Starlette, sse-starlette, uvicorn) is not
+            installed; the one-line message names it and the command that installs it
+            (a `ConfigError`).
     """
-    try:
+    with needs("observe", "the observer"):
         from rr_actors.observe import _server  # noqa: F401, PLC0415 - the observe extra
-    except ImportError as exc:
-        raise ConfigError(f"{EXTRA_HINT} ({exc})") from exc
 
 
 LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})

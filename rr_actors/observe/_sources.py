@@ -99,8 +99,8 @@ class Observable(Protocol):
     def gave_up(self) -> Exception | None:
         """Its give-up error, if it gave up."""
 
-    def child(self, name: str) -> ChildView:
-        """The snapshot of child `name`."""
+    def snapshot(self, name: str) -> ChildView:
+        """The snapshot of child `name` (before the start too)."""
 
     def subscribe(
         self, callback: Callable[[events.Event], object], *, maxsize: int = ...
@@ -261,7 +261,7 @@ class LiveSource:
         due = self.access.restart_due
         children = []
         for child in spec.children:
-            info = self.sup.child(child.name)
+            info = self.sup.snapshot(child.name)
             entry: dict[str, Any] = {
                 "name": child.name,
                 "kind": info.kind,
@@ -391,7 +391,7 @@ class LiveSource:
         if local is not None:
             state, kind = "running", "consumer"
         else:
-            state = self._states.get(name) or self.sup.child(name).state
+            state = self._states.get(name) or self.sup.snapshot(name).state
             kind = f"{self.specs[name].isolation} manager"
         section = {"registrar": name, "kind": kind, "state": state, "available": False}
         if state != "running":

@@ -135,6 +135,7 @@ def test_the_plain_summary_fits_80_columns_and_shows_the_retried_calls() -> None
 
     lines = summary_lines(Results(plan=plan, runs=(run,), out=None))
 
-    assert "retried" in lines[0].split()
-    assert "4321.0" in lines[1].split()
+    assert "tree.children.a_manager_with_a_rather_long_name.heartbeat" == lines[0]  # whole
+    assert "retried" in lines[1].split()  # (the header's cells, under it)
+    assert "4321.0" in lines[2].split()
     assert all(len(line) <= 80 for line in lines), lines

@@ -111,6 +111,11 @@ def test_the_two_host_demo_cuts_the_link_recovers_every_fault_and_leaves_nothing
     assert "robot: the station is gone" in story
     assert "F6 recovered" in story
     assert "F6 both" in story  # the timeline names the hosts
+    after = story.split("F6 recovered", 1)[1].split("goal reached", 1)[0]
+    late = [line for line in " ".join(after.split()).split("[") if "hears FATAL" in line]
+    assert all("(late: the mission let go of that query" in line for line in late), after
+    assert "state:  out/state (rr-actors inspect out/state/robot/erm.db)" in story  # (relative)
+    assert all(len(line) <= 80 for line in story.splitlines()), story
     # F6's loss is the story's to tell: cm's WARNING (a station manager process) goes to
     # the run's log with the mission's own, not to the terminal
     assert "" == done.stderr

@@ -222,3 +222,39 @@ def test_inspect_reads_a_schema_1_backup_without_changing_it(tmp_path: Path) -> 
         sorted({p.name for p in tmp_path.iterdir()} - {"v1.db"}),
         path.read_bytes(),
     )
+
+
+def _backup(path: Path, name: str) -> None:
+    """A backup at `path` of a registrar `name` (started and stopped)."""
+    rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, backup_path=path)).stop()
+
+
+def test_inspect_of_a_state_dir_prints_every_backup_in_it_and_its_subfolders(
+    tmp_path: Path,
+) -> None:
+    """`rr-actors inspect DIR` on a supervisor's state_dir, as a user tries it (issue 44)."""
+    names = [f"erm-{uuid.uuid4().hex[:8]}", f"cm-{uuid.uuid4().hex[:8]}"]
+    (tmp_path / "robot").mkdir()
+    _backup(tmp_path / "robot" / "erm.db", names[0])
+    _backup(tmp_path / "cm.db", names[1])
+
+    code, out = run("inspect", str(tmp_path))
+    _, as_json = run("inspect", str(tmp_path), "--json")
+
+    assert 0 == code
+    headers = [line.split(" (schema")[0] for line in out.splitlines() if "(schema" in line]
+    assert [str(tmp_path / "cm.db"), str(tmp_path / "robot" / "erm.db")] == headers
+    assert [str(tmp_path / "cm.db"), str(tmp_path / "robot" / "erm.db")] == [
+        b["path"] for b in json.loads(as_json)
+    ]
+
+
+def test_inspect_of_a_folder_without_a_backup_says_what_to_name(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, _ = run("inspect", str(tmp_path))
+
+    assert 1 == code
+    assert "is a folder that holds no catalog backup (*.db): name a registrar's backup" in (
+        capsys.readouterr().err
+    )

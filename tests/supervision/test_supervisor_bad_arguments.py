@@ -100,3 +100,60 @@ def test_run_in_child_and_wait_restarted_refuse_what_they_cannot_use_naming_it(
         method(sup, _erm(sup))
 
     assert "running" == sup.child(_erm(sup)).state
+
+
+# -- the traps a new user fell into (issue 44, item 5) ---------------------------------------
+
+
+def test_child_before_the_start_says_the_supervisor_is_not_started() -> None:
+    sup = rr.Supervisor([rr.ManagerSpec("erm", echo_setup)])
+
+    with pytest.raises(rr.ConfigError, match="is not started: its child 'erm' is not running"):
+        sup.child("erm")
+    assert "stopped" == sup.snapshot("erm").state  # (what the observer shows before it)
+
+
+def test_one_spec_alone_is_a_tree_of_that_one_child() -> None:
+    name = f"erm-{uuid.uuid4().hex[:8]}"
+
+    with rr.Supervisor(rr.ManagerSpec(name, echo_setup)) as sup:
+        assert [name] == [c.name for c in sup.which_children()]
+        assert "running" == sup.child(name).state
+
+
+@pytest.mark.parametrize("children", ["erm", 5, None])
+def test_children_that_are_not_specs_are_a_config_error_saying_a_list(children: Any) -> None:
+    with pytest.raises(rr.ConfigError, match="children must be a list of ManagerSpec"):
+        rr.Supervisor(children)
+
+
+def test_call_with_retry_with_a_name_first_says_the_consumer_comes_first(
+    sup: rr.Supervisor,
+) -> None:
+    with pytest.raises(
+        rr.ConfigError,
+        match=r"call_with_retry\(consumer, target_rr, server, request\): the consumer comes "
+        "first",
+    ):
+        sup.call_with_retry(_erm(sup), "echo", 0)  # type: ignore[arg-type]
+
+
+def test_call_with_retry_without_a_request_says_it_is_missing(sup: rr.Supervisor) -> None:
+    app = sup.registrar(f"app-{uuid.uuid4().hex[:8]}")
+
+    with pytest.raises(rr.ConfigError, match="request is missing"):
+        sup.call_with_retry(app, _erm(sup), "echo")
+
+
+def test_a_second_with_on_a_stopped_supervisor_says_make_a_new_one() -> None:
+    sup = rr.Supervisor([rr.ManagerSpec(f"erm-{uuid.uuid4().hex[:8]}", echo_setup)])
+    with sup:
+        pass
+
+    with pytest.raises(rr.ConfigError, match="cannot be restarted: make a new one"), sup:
+        pass
+
+
+def test_starting_a_running_supervisor_says_it_is_running(sup: rr.Supervisor) -> None:
+    with pytest.raises(rr.ConfigError, match="is already started \\(it is running\\)"):
+        sup.start()

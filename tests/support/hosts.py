@@ -993,20 +993,27 @@ def rr_stop() -> None:
 # -- a flood of connections (an outsider's: `TwoHosts(outsider=True).c`) ------------------------
 
 
-def flood(host: str, port: int, threads: int) -> None:
+def flood(host: str, port: int, threads: int, sources: list[str] | None = None) -> None:
     """Start `threads` threads that connect to `host`:`port`, send a few bytes that are no
     TLS handshake, and close, as fast as they can (a connect gets 0.5 s), until
     `flood_stop`; `KEPT["flood"]` counts the attempts and the connections made. What a
-    peer without a certificate does to a `tls/` port at its full rate (issue 29)."""
+    peer without a certificate does to a `tls/` port at its full rate (issue 29). With
+    `sources` (addresses of this host), each connection comes from the next of them in
+    turn (one machine's many addresses, issue 40)."""
     counts = {"attempts": 0, "connected": 0}
     stop = threading.Event()
     lock = threading.Lock()
+    turns = itertools.cycle(sources or [None])
 
     def attack() -> None:
         while not stop.is_set():
+            with lock:
+                source = next(turns)
             with socket.socket() as conn:
                 conn.settimeout(0.5)
                 try:
+                    if source is not None:
+                        conn.bind((source, 0))
                     conn.connect((host, port))
                     conn.sendall(b"\x16\x03\x01\x00\x05hello")
                     made = 1

@@ -1,9 +1,13 @@
-"""The gate on a router's `tls/` listener (issue 29): who it drops, when it lets them in again,
-and the Linux socket tricks under it (a listening socket of this process, on loopback).
+"""The gate on a router's `tls/` listener (issues 29 and 40): who it drops, for how long,
+when the port takes members' addresses only, and the Linux socket tricks under it (a
+listening socket of this process, on loopback).
 
-The flood itself, from a third host, with a member re-joining during and after it, is
-`tests/multihost/test_zenoh_tls.py::test_a_member_rejoins_in_10_s_while_a_third_host_
-floods_the_port_with_failed_handshakes`.
+The floods themselves, from a third host, with a member re-joining during and after
+them, are in `tests/multihost/test_zenoh_tls.py`: from one address
+(`test_a_member_rejoins_in_10_s_while_a_third_host_floods_the_port_with_failed_
+handshakes`), from 32 (`..._from_32_addresses`), and forged SYNs carrying the member's
+own address (`test_a_member_rejoins_in_10_s_though_a_third_host_forges_syns_from_its_
+address`).
 """
 
 from __future__ import annotations
@@ -16,19 +20,21 @@ from collections.abc import Collection, Iterator
 import pytest
 
 from rr_actors._platform import PLATFORM
-from rr_actors._transport.zenoh.gate import HOLD, QUIET, HandshakeGate
+from rr_actors._platform.linux_gate import handshaken
+from rr_actors._transport.zenoh.gate import DROP, HOLD, HandshakeGate
 from tests.support.supervising import linux_trick
 
 
 class FakeGate:
-    """A `ListenerGate` whose peers and drop counter the test sets."""
+    """A `ListenerGate` whose peers the test sets; it records the filter it was given."""
 
     address, port = "10.0.0.1", 7447
 
     def __init__(self) -> None:
         self.held: collections.Counter[str] = collections.Counter()
-        self.drops = 0
-        self.sources: set[str] = set()
+        self.sources: set[str] = set()  # dropped (`drop_from`)
+        self.only: set[str] | None = None  # the only ones admitted (`admit_only`), or None
+        self.drops = 0  # packets its filter dropped (grows while a dropped source sends)
         self.backlog: int | None = None
         self.closed = False
 
@@ -36,13 +42,16 @@ class FakeGate:
         self.backlog = backlog
 
     def drop_from(self, sources: Collection[str]) -> None:
-        self.sources = set(sources)
+        self.sources, self.only = set(sources), None
 
-    def dropped(self) -> int:
-        return self.drops
+    def admit_only(self, sources: Collection[str]) -> None:
+        self.sources, self.only = set(), set(sources)
 
     def peers(self) -> collections.Counter[str]:
         return collections.Counter(self.held)
+
+    def dropped(self) -> int:  # (not the gate's business now: main's waited for it to stop)
+        return self.drops
 
     def close(self) -> None:
         self.closed = True
@@ -62,54 +71,160 @@ def said(caplog: pytest.LogCaptureFixture) -> pytest.LogCaptureFixture:
     return caplog
 
 
-def made(members_at: set[str] | None = None) -> tuple[FakeGate, HandshakeGate, Clock]:
+def made(members: set[str] | None = None) -> tuple[FakeGate, HandshakeGate, Clock]:
     gate, clock = FakeGate(), Clock()
-    guard = HandshakeGate("lab", [gate], lambda: members_at or set(), clock=clock, start=False)
+    known = members if members is not None else set()
+    guard = HandshakeGate("lab", [gate], lambda: set(known), clock=clock, start=False)
     return gate, guard, clock
 
 
-def test_a_source_holding_more_than_hold_connections_is_dropped_and_named_once(
+def warnings(said: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in said.records if r.levelno == logging.WARNING]
+
+
+def test_a_stranger_holding_more_than_hold_connections_is_dropped_and_named_once(
     said: pytest.LogCaptureFixture,
 ) -> None:
     gate, guard, _ = made()
-    gate.held.update({"10.0.0.9": HOLD, "10.0.0.3": HOLD + 1})
+    gate.held.update({"10.0.0.9": HOLD - 1, "10.0.0.3": HOLD + 1})
     guard.look()
     guard.look()
 
     assert {"10.0.0.3"} == gate.sources == guard.dropping()
-    warnings = [r.getMessage() for r in said.records if r.levelno == logging.WARNING]
-    assert 1 == len(warnings)
-    assert "'lab': 10.0.0.3 holds 9 connections to 10.0.0.1:7447" in (warnings[0])
+    assert 1 == len(warnings(said))
+    assert (
+        "'lab': 10.0.0.3 holds 9 connections to 10.0.0.1:7447 and is not a member's address"
+        in warnings(said)[0]
+    )
+    assert "its packets to that port are dropped for 60 s" in warnings(said)[0]
 
 
-def test_a_source_with_a_members_link_up_is_never_dropped() -> None:
-    gate, guard, _ = made(members_at={"10.0.0.2"})
-    gate.held.update({"10.0.0.2": HOLD + 20})
+@pytest.mark.parametrize("held", [HOLD + 20, 1])
+def test_a_members_address_is_never_dropped_nor_counted_with_strangers(held: int) -> None:
+    # (named in a member's certificate, or of a member's link: `members.MemberAddresses`)
+    gate, guard, _ = made(members={"10.0.0.2"})
+    gate.held.update({"10.0.0.2": held, "10.0.0.7": HOLD})
     guard.look()
 
-    assert set() == gate.sources
+    assert (set(), None) == (gate.sources, gate.only)
+    assert not guard.members_only()
 
 
-def test_the_drops_are_lifted_once_nothing_was_dropped_for_quiet_seconds(
+def test_a_drop_ends_after_drop_seconds_whatever_the_source_keeps_sending(
+    said: pytest.LogCaptureFixture,
+) -> None:
+    # main's gate waited for 60 s without a dropped packet: the member's own re-dials (or
+    # anyone forging its address) kept that from coming
+    gate, guard, clock = made()
+    gate.held.update({"10.0.0.3": HOLD + 1})
+    guard.look()
+    for _ in range(int(DROP) - 1):  # its queued connections linger, it keeps sending
+        clock.now += 1
+        gate.drops += 1
+        guard.look()
+    assert {"10.0.0.3"} == gate.sources
+    gate.held.clear()
+    clock.now += 1
+    gate.drops += 1
+    guard.look()
+
+    assert set() == gate.sources == guard.dropping()
+    assert "'lab': 10.0.0.1:7447 takes packets from 10.0.0.3 again (dropped for 60 s)" in (
+        said.text
+    )
+
+
+def test_a_source_that_floods_again_after_its_drop_is_dropped_again(
     said: pytest.LogCaptureFixture,
 ) -> None:
     gate, guard, clock = made()
     gate.held.update({"10.0.0.3": HOLD + 1})
     guard.look()
-    gate.held.clear()
-    for _ in range(3):  # the source keeps trying: its packets are dropped, the count grows
-        clock.now += QUIET
-        gate.drops += 1
-        guard.look()
-    assert {"10.0.0.3"} == gate.sources
-    clock.now += QUIET - 1
+    gate.held.clear()  # (the listener paid what it had queued)
+    clock.now += DROP
     guard.look()
-    assert {"10.0.0.3"} == gate.sources
-    clock.now += 1
+    assert set() == gate.sources
+    gate.held.update({"10.0.0.3": HOLD + 1})
     guard.look()
 
-    assert set() == gate.sources == guard.dropping()
-    assert "'lab': 10.0.0.1:7447 takes packets from 10.0.0.3 again" in said.text
+    assert {"10.0.0.3"} == gate.sources
+    assert 2 == len(warnings(said))
+
+
+def test_strangers_together_over_hold_make_the_port_take_members_addresses_only(
+    said: pytest.LogCaptureFixture,
+) -> None:
+    gate, guard, clock = made(members={"10.0.0.2", "10.0.0.5"})
+    gate.held.update({f"10.0.1.{n}": 1 for n in range(32)})  # one machine's 32 addresses
+    gate.held.update({"10.0.0.2": 1})
+    guard.look()
+    assert not guard.members_only()  # (at two looks in a row)
+    guard.look()
+    guard.look()
+
+    assert ({"10.0.0.2", "10.0.0.5"}, set()) == (gate.only, gate.sources)
+    assert guard.members_only()
+    assert 1 == len(warnings(said))
+    assert (
+        "'lab': 32 addresses, none a member's, hold 32 connections to 10.0.0.1:7447 (failed "
+        "or unfinished TLS handshakes): the port takes packets only from members' addresses "
+        "(10.0.0.2, 10.0.0.5) for 60 s"
+    ) in warnings(said)[0]
+    clock.now += DROP - 1
+    guard.look()
+    assert guard.members_only()
+    clock.now += 1
+    gate.held.clear()
+    guard.look()
+
+    assert (None, set()) == (gate.only, gate.sources)
+    assert not guard.members_only()
+    assert "10.0.0.1:7447 takes packets from every address again (dropped for 60 s)" in said.text
+
+
+def test_strangers_that_together_hold_at_most_hold_are_let_be() -> None:
+    gate, guard, _ = made()
+    gate.held.update({f"10.0.1.{n}": 2 for n in range(HOLD // 2)})
+    guard.look()
+    guard.look()
+
+    assert (set(), None) == (gate.sources, gate.only)
+
+
+def test_strangers_over_hold_together_at_one_look_only_are_let_be() -> None:
+    # members dialling a router just started are strangers to it until linked: their
+    # handshakes, however many at once, are over by the next look
+    gate, guard, _ = made()
+    for _ in range(3):
+        gate.held.update({f"10.0.1.{n}": 1 for n in range(HOLD + 1)})
+        guard.look()
+        gate.held.clear()
+        guard.look()
+
+    assert (set(), None) == (gate.sources, gate.only)
+
+
+def test_a_dropped_source_counts_no_more_with_the_other_strangers() -> None:
+    # (its queued connections linger until Zenoh has paid them)
+    gate, guard, _ = made()
+    gate.held.update({"10.0.0.3": HOLD + 1, "10.0.0.4": 1})
+    guard.look()
+    guard.look()
+
+    assert ({"10.0.0.3"}, None) == (gate.sources, gate.only)
+
+
+def test_a_members_address_learned_while_members_only_is_let_in() -> None:
+    members = {"10.0.0.2"}
+    gate, clock = FakeGate(), Clock()
+    guard = HandshakeGate("lab", [gate], lambda: set(members), clock=clock, start=False)
+    gate.held.update({f"10.0.1.{n}": 1 for n in range(HOLD + 1)})
+    guard.look()
+    guard.look()
+    members.add("10.99.0.7")  # (a member's certificate came in)
+    guard.look()
+
+    assert {"10.0.0.2", "10.99.0.7"} == gate.only
 
 
 def test_close_lets_go_of_the_gates() -> None:
@@ -147,7 +262,6 @@ def test_the_gate_drops_only_the_sources_given_and_links_up_keep_working(
                 gate.drop_from(["127.0.0.1"])
                 with pytest.raises(TimeoutError):
                     socket.create_connection(("127.0.0.1", port), timeout=1.5)
-                assert gate.dropped() > 0
                 up.sendall(b"still up")  # a connection accepted before is not touched
                 assert b"still up" == accepted.recv(16)
                 gate.drop_from(["10.0.0.3", "::1"])
@@ -157,6 +271,45 @@ def test_the_gate_drops_only_the_sources_given_and_links_up_keep_working(
     finally:
         gate.close()
     assert 0 == listening.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)  # still listening
+
+
+@linux_trick
+def test_the_gate_can_admit_only_the_sources_given(listening: socket.socket) -> None:
+    address, port = listening.getsockname()
+    gate = PLATFORM.listener_gate(address, port)
+    assert gate is not None
+    try:
+        gate.admit_only(["10.0.0.3", "::1"])
+        with pytest.raises(TimeoutError):
+            socket.create_connection(("127.0.0.1", port), timeout=1.5)
+        gate.admit_only(["10.0.0.3", "127.0.0.1"])
+        socket.create_connection(("127.0.0.1", port), timeout=5).close()
+        gate.drop_from([])
+        socket.create_connection(("127.0.0.1", port), timeout=5).close()
+    finally:
+        gate.close()
+
+
+def proc(address: str) -> str:
+    """An IPv4 address as `/proc/net/tcp` writes it (a host-order word in hex)."""
+    return socket.inet_aton(address)[::-1].hex().upper()
+
+
+def test_only_connections_past_the_tcp_handshake_count() -> None:
+    # a half-open one (SYN_RECV, 03) may carry a forged source address: never counted
+    states = {"01": 1, "03": 5, "04": 1, "05": 1, "06": 3, "08": 1, "09": 1, "0A": 1, "0B": 1}
+    rows = [
+        ("10.0.0.1", 7447, proc("10.0.0.2"), state, 0)
+        for state, n in states.items()
+        for _ in range(n)
+    ]
+    rows += [
+        ("10.0.0.1", 7448, proc("10.0.0.4"), "01", 0),  # another port
+        ("10.0.0.9", 7447, proc("10.0.0.5"), "01", 0),  # another address of the host
+    ]
+
+    assert {"10.0.0.2": 6} == handshaken(rows, "10.0.0.1", 7447)
+    assert {"10.0.0.2": 6, "10.0.0.5": 1} == handshaken(rows, "0.0.0.0", 7447)  # noqa: S104
 
 
 @linux_trick

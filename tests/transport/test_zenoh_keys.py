@@ -142,3 +142,6 @@ def test_every_key_of_a_system_is_under_what_its_access_control_allows() -> None
     of_erm = zenoh.KeyExpr(keys.live_of("erm"))
     assert [k for k in built if of_erm.includes(zenoh.KeyExpr(k))] == tokens[1:]
     assert not of_erm.includes(zenoh.KeyExpr(Keys("lab").claim(NameAt("erm2", ZID))))
+    certificate = zenoh.KeyExpr(keys.certificate("robot"))  # (the handshake gate's: `members`)
+    assert zenoh.KeyExpr(keys.everything()).includes(certificate)
+    assert not zenoh.KeyExpr(keys.live()).includes(certificate)

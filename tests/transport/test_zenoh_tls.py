@@ -17,6 +17,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._tools import certs as certs_tool
+from rr_actors._transport.zenoh.tls import member_addresses
 from rr_actors.errors import ConfigError
 from tests.support import pki
 from tests.support.pki import DAY, issue, make_ca, make_intermediate
@@ -437,9 +438,7 @@ def test_without_cryptography_rr_zenoh_tls_says_which_extra_to_install() -> None
     )
 
     assert (0, "") == (result.returncode, result.stderr)
-    assert result.stdout.startswith(
-        "rr.ZenohTLS needs cryptography: pip install 'rr-actors[zenoh]'"
-    )
+    assert result.stdout.startswith("rr.ZenohTLS needs the zenoh extra: pip install")
 
 
 # -- from test_zenoh_tls_input.py -----------------------------------------------------------------
@@ -493,3 +492,53 @@ def test_a_chain_through_a_certificate_that_is_not_a_ca_is_a_config_error(tmp_pa
         rr.ConfigError, match=r"\(intermediate 1\) \(CN=stranger\) is not a CA certificate"
     ):
         rr.ZenohTLS(ca=ca[0], cert=chain, key=key, members=["robot"])
+
+
+# -- a member's certificate, as another host gets it (the handshake gate's, issue 40) -----------
+
+
+def test_a_members_certificate_gives_the_ip_addresses_it_names(
+    tmp_path: Path, ca: tuple[Path, Path], robot: tuple[Path, Path]
+) -> None:
+    middle = make_intermediate(tmp_path, ca)
+    pem, _ = issue(tmp_path, "station", ("10.0.0.1", "station.local", "fd00::1"), ca=middle)
+
+    addresses = member_addresses(
+        pem.read_bytes() + middle[0].read_bytes(), tls(ca[0], robot), "station"
+    )
+
+    assert ("10.0.0.1", "fd00::1") == addresses
+
+
+@pytest.mark.parametrize(
+    ("case", "why"),
+    [
+        ("another member's", r"the certificate of member 'station' has the common name 'robot'"),
+        (
+            "another CA's",
+            r"the certificate of member 'station' \(CN=station, .* is not signed by ca ",
+        ),
+        ("expired", r"the certificate of member 'station' expired on "),
+        ("not a member's", r"'stranger' is not in members \['robot', 'station'\]"),
+        ("not PEM", r"the certificate of member 'station' is not PEM certificates"),
+    ],
+)
+def test_a_certificate_that_is_not_the_members_own_is_a_config_error(
+    tmp_path: Path, ca: tuple[Path, Path], robot: tuple[Path, Path], case: str, why: str
+) -> None:
+    end = NOW - DAY
+    name = "stranger" if case == "not a member's" else "station"
+    pem = {
+        "another member's": robot[0].read_bytes(),
+        "another CA's": issue(tmp_path, "station", ca=make_ca(tmp_path / "o", "lab"))[
+            0
+        ].read_bytes(),
+        "expired": issue(tmp_path, "station", ca=ca, not_before=end - DAY, not_after=end)[
+            0
+        ].read_bytes(),
+        "not a member's": issue(tmp_path, "stranger", ca=ca)[0].read_bytes(),
+        "not PEM": b"10.0.0.1",
+    }[case]
+
+    with pytest.raises(ConfigError, match=f"^{why}"):
+        member_addresses(pem, tls(ca[0], robot), name)

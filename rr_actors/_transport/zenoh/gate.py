@@ -10,31 +10,50 @@ platforms, where only a firewall helps):
 
 - the accept queue is shortened to `BACKLOG`: whatever is queued when a flood is seen
   costs the listener at most (`BACKLOG` + 64) x 0.1 s;
-- every `TICK` s the socket table is read: a source address that holds more than `HOLD`
-  connections to the port (queued, in a handshake, or linked: a member holds one link,
-  and one connection while it re-joins) and has no link of a member's up is a flood.
-  Every packet from it to the port is dropped from then on by the socket's filter, before
-  the kernel answers its SYN: it costs the listener nothing more. A WARNING names it;
-- the drops are lifted (INFO) once the socket has dropped nothing for `QUIET` s: the
-  source stopped trying.
+- every `TICK` s the socket table is read, counting per source address the connections
+  past the TCP handshake only (queued for accept, in a TLS handshake, linked, closing).
+  Half-open ones never count: a SYN with any source address (a member's) costs nothing
+  to forge, and the kernel holds what it answered for a minute while nobody is there to
+  reset it; completing the handshake takes receiving our SYN-ACK at that address;
+- a member's address (`member_addresses`: named in a member's certificate, or of a
+  member's link, up now or since this router started: `members`) is never dropped.
+  Every other address is a stranger, and strangers may hold `HOLD` connections, each
+  and together:
+  - a stranger over `HOLD` floods: every packet from it to the port is dropped by the
+    socket's filter, before the kernel answers its SYN (it costs the listener nothing
+    more), for `DROP` s (WARNING; INFO when it ends);
+  - strangers together over `HOLD`, each under it (one machine's many addresses, or
+    many machines), at two looks in a row, flood too: the port then takes packets from
+    members' addresses only, for `DROP` s (WARNING naming those; INFO when it ends).
+    (Two looks: members that dial a router just started are strangers to it until
+    linked, and their handshakes, however many, end within a look; a flood's stay.)
+
+  A drop ends on time, whatever the source sends meanwhile: one that waited for quiet
+  would last as long as anyone keeps sending with that source address.
 
 Links already up are not touched (each keeps the filter it was accepted with; a few
-instructions per packet). A member's address is never dropped while its link is up
-(members are trusted: a flood from a member's host is paid as Zenoh pays it); peers that
-share one address with a flooding source (behind one NAT) and have no member's link up
-are dropped with it; many flooding addresses at once, each under `HOLD`, are beyond this:
-that is the firewall's job (`docs/how-to/securing-registrars.md`).
+instructions per packet). What is left to the firewall
+(`docs/how-to/securing-registrars.md`): a flood from a member's address (members are
+trusted; so are hosts behind a member's NAT), a flood of packets that fills the link, a
+member's first link from an address its certificate does not name while the port takes
+members' addresses only, more than `GATE_SOURCES` members' addresses (no filter holds
+them: the port is then not turned to members only), platforms without a gate.
 
 ```
- thread "rr-zenoh-gate", every TICK s, per tls/ listen endpoint:
-   gate.peers() (source -> connections) > HOLD, and no member's link from it?
-     └─ gate.drop_from(dropped | {source}), WARNING
-   gate.dropped() unchanged for QUIET s? └─ gate.drop_from({}), INFO
+ thread "rr-zenoh-gate", every TICK s:
+   member_addresses() ─► members (once per look)
+   per tls/ listen endpoint:
+     drops and a members-only spell whose DROP s are over ─► lifted, INFO
+     gate.peers(): connections past the TCP handshake, per source
+       a stranger over HOLD ─► dropped for DROP s, WARNING
+       strangers not dropped, together over HOLD, twice ─► members only for DROP s, WARNING
+     └─ gate.admit_only(members) while members only, else gate.drop_from(dropped)
 ```
 """
 
 from __future__ import annotations
 
+import dataclasses
 import ipaddress
 import logging
 import socket
@@ -45,14 +64,14 @@ from collections.abc import Callable, Iterable
 from rr_actors._platform import GATE_SOURCES, PLATFORM, ListenerGate
 from rr_actors._transport.zenoh.config import parse_endpoint
 
-__all__ = ["BACKLOG", "HOLD", "QUIET", "TICK", "HandshakeGate", "open_gates"]
+__all__ = ["BACKLOG", "DROP", "HOLD", "TICK", "HandshakeGate", "open_gates"]
 
 logger = logging.getLogger("rr_actors")
 
 BACKLOG = 16  # connections the kernel queues for Zenoh's accept at most
-HOLD = 8  # connections a source without a member's link may hold to the port
+HOLD = 8  # connections strangers may hold to the port: each address, and all together
 TICK = 0.2  # seconds between two looks at the socket table
-QUIET = 60.0  # seconds without a dropped packet before the drops are lifted
+DROP = 60.0  # seconds a drop (or a members-only spell) lasts, whatever is sent meanwhile
 
 
 def open_gates(listen: Iterable[str]) -> list[ListenerGate]:
@@ -83,14 +102,25 @@ def open_gates(listen: Iterable[str]) -> list[ListenerGate]:
     return gates
 
 
+@dataclasses.dataclass
+class _Port:
+    """What the gate keeps of one listening socket."""
+
+    gate: ListenerGate
+    dropped: dict[str, float] = dataclasses.field(default_factory=dict)  # source -> until
+    members_only: float | None = None  # until when only members' addresses get in
+    admitted: frozenset[str] = frozenset()  # the members' addresses let in meanwhile
+    crowded: bool = False  # strangers together held more than HOLD at the last look
+
+
 class HandshakeGate:
     """Drops the sources that flood a router's `tls/` listeners (see the module docstring).
 
     Args:
         system: the system's name, for the log lines.
         gates: the gates on the listening sockets (`open_gates`); closed by `close`.
-        members_at: the remote addresses of the router's links to members now (called
-            on the gate's thread).
+        member_addresses: the members' addresses now (`members.MemberAddresses.now`),
+            called once per look, on the gate's thread.
         clock: seconds, monotonic (tests may pass their own).
         start: start the thread (tests call `look` themselves).
     """
@@ -99,25 +129,28 @@ class HandshakeGate:
         self,
         system: str,
         gates: list[ListenerGate],
-        members_at: Callable[[], set[str]],
+        member_addresses: Callable[[], set[str]],
         *,
         clock: Callable[[], float] = time.monotonic,
         start: bool = True,
     ) -> None:
         self._system = system
-        self._gates = gates
-        self._members_at = members_at
+        self._ports = [_Port(gate) for gate in gates]
+        self._member_addresses = member_addresses
         self._clock = clock
-        self._dropped: dict[int, set[str]] = {id(gate): set() for gate in gates}
-        self._drops: dict[int, tuple[int, float]] = {}  # drop counter, when it last grew
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rr-zenoh-gate", daemon=True)
         if start and gates:
             self._thread.start()
 
     def dropping(self) -> set[str]:
-        """The source addresses dropped now (at any gate)."""
-        return set().union(*self._dropped.values())
+        """The source addresses dropped now (at any gate; not counting a members-only
+        spell's)."""
+        return {source for port in self._ports for source in port.dropped}
+
+    def members_only(self) -> bool:
+        """Whether some gate takes packets from members' addresses only now."""
+        return any(port.members_only is not None for port in self._ports)
 
     def close(self) -> None:
         """Stop, and let go of the sockets (idempotent); call before the session closes
@@ -125,9 +158,9 @@ class HandshakeGate:
         self._stop.set()
         if self._thread.is_alive() and threading.current_thread() is not self._thread:
             self._thread.join(timeout=5.0)
-        for gate in self._gates:
-            gate.close()
-        self._gates = []
+        for port in self._ports:
+            port.gate.close()
+        self._ports = []
 
     def _run(self) -> None:
         while not self._stop.wait(TICK):
@@ -143,55 +176,85 @@ class HandshakeGate:
                 return
 
     def look(self) -> None:
-        """One look at each gate: drop the sources that flood it, lift quiet drops."""
-        for gate in self._gates:
-            self._drop_floods(gate)
-            self._lift_when_quiet(gate)
+        """One look at each gate: lift the drops whose time is over, drop the floods."""
+        members = frozenset(self._member_addresses())
+        now = self._clock()
+        for port in self._ports:
+            changed = self._lift_due(port, now)
+            changed |= self._drop_floods(port, members, now)
+            if port.members_only is not None and port.admitted != members:
+                port.admitted, changed = members, True  # (a member's certificate came in)
+            if changed:
+                self._filter(port)
 
-    def _drop_floods(self, gate: ListenerGate) -> None:
-        dropped = self._dropped[id(gate)]
-        held = gate.peers()
-        over = [source for source, n in held.items() if n > HOLD and source not in dropped]
-        if not over:
-            return
-        members = self._members_at()
-        for source in over:
-            if source in members or len(dropped) >= GATE_SOURCES:
+    def _lift_due(self, port: _Port, now: float) -> bool:
+        due = sorted(source for source, until in port.dropped.items() if until <= now)
+        ended = port.members_only is not None and port.members_only <= now
+        if not due and not ended:
+            return False
+        for source in due:
+            del port.dropped[source]
+        if ended:
+            port.members_only = None
+        lifted = [*due, *(["every address"] if ended else [])]
+        logger.info(
+            "ZenohNetwork %r: %s:%d takes packets from %s again (dropped for %g s)",
+            self._system,
+            port.gate.address,
+            port.gate.port,
+            ", ".join(lifted),
+            DROP,
+        )
+        return True
+
+    def _drop_floods(self, port: _Port, members: frozenset[str], now: float) -> bool:
+        held = port.gate.peers()
+        strangers = {
+            source: n
+            for source, n in held.items()
+            if source not in members and source not in port.dropped
+        }
+        changed = False
+        for source, n in sorted(strangers.items()):
+            if n <= HOLD or len(port.dropped) >= GATE_SOURCES:
                 continue
-            dropped.add(source)
-            gate.drop_from(dropped)
-            self._drops[id(gate)] = (gate.dropped(), self._clock())
+            del strangers[source]
+            port.dropped[source] = now + DROP
+            changed = True
             logger.warning(
-                "ZenohNetwork %r: %s holds %d connections to %s:%d and no member's link "
-                "(failed or unfinished TLS handshakes: Zenoh's listener pauses 0.1 s after "
-                "each failed one): its packets to that port are dropped until none has come "
-                "for %g s",
+                "ZenohNetwork %r: %s holds %d connections to %s:%d and is not a member's "
+                "address (failed or unfinished TLS handshakes: Zenoh's listener pauses 0.1 s "
+                "after each failed one): its packets to that port are dropped for %g s",
                 self._system,
                 source,
-                held[source],
-                gate.address,
-                gate.port,
-                QUIET,
+                n,
+                port.gate.address,
+                port.gate.port,
+                DROP,
             )
+        together = sum(strangers.values())
+        crowded, port.crowded = port.crowded, together > HOLD
+        if port.members_only is None and crowded and port.crowded:
+            if len(members) > GATE_SOURCES:
+                return changed  # (no filter holds them all: the firewall's job)
+            port.members_only, port.admitted, changed = now + DROP, members, True
+            logger.warning(
+                "ZenohNetwork %r: %d addresses, none a member's, hold %d connections to "
+                "%s:%d (failed or unfinished TLS handshakes): the port takes packets only "
+                "from members' addresses (%s) for %g s",
+                self._system,
+                len(strangers),
+                together,
+                port.gate.address,
+                port.gate.port,
+                ", ".join(sorted(members)) or "none known yet",
+                DROP,
+            )
+        return changed
 
-    def _lift_when_quiet(self, gate: ListenerGate) -> None:
-        dropped = self._dropped[id(gate)]
-        if not dropped:
-            return
-        count, since = self._drops[id(gate)]
-        now, latest = self._clock(), gate.dropped()
-        if latest != count:
-            self._drops[id(gate)] = (latest, now)
-            return
-        if now - since < QUIET:
-            return
-        gate.drop_from(())
-        logger.info(
-            "ZenohNetwork %r: %s:%d takes packets from %s again (none came for %g s)",
-            self._system,
-            gate.address,
-            gate.port,
-            ", ".join(sorted(dropped)),
-            QUIET,
-        )
-        dropped.clear()
+    @staticmethod
+    def _filter(port: _Port) -> None:
+        if port.members_only is not None:
+            port.gate.admit_only(port.admitted)
+        else:
+            port.gate.drop_from(port.dropped)  # (none: the filter is taken off)

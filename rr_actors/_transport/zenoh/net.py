@@ -54,7 +54,8 @@ from rr_actors._transport.zenoh.carrier import ZenohMember
 from rr_actors._transport.zenoh.config import endpoints, parse_endpoint, session_config
 from rr_actors._transport.zenoh.events import check_window
 from rr_actors._transport.zenoh.gate import HandshakeGate, open_gates
-from rr_actors._transport.zenoh.watch import LinkWatch, MemberLink, remote
+from rr_actors._transport.zenoh.members import MemberAddresses
+from rr_actors._transport.zenoh.watch import LinkWatch, MemberLink
 from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavailableError
@@ -77,15 +78,6 @@ def _zenoh_log_from_env() -> None:
     handshake, which Zenoh tells nobody else)."""
     if os.environ.get("RUST_LOG"):
         zenoh.try_init_log_from_env()  # type: ignore[no-untyped-call]
-
-
-def _members_at(session: zenoh.Session, members: frozenset[str]) -> set[str]:
-    """The remote addresses of the router's TLS links to `members`."""
-    return {
-        remote(str(link.dst))[0]
-        for link in session.info.links()
-        if str(link.dst).startswith("tls/") and link.auth_identifier in members
-    }
 
 
 def _seal(tls: ZenohTLS | None, system: str) -> Seal | None:
@@ -392,6 +384,7 @@ class ZenohNetwork:
         self._address: ZenohAddress | None = None
         self._watch: LinkWatch | None = None
         self._gate: HandshakeGate | None = None
+        self._members: MemberAddresses | None = None
 
     def __repr__(self) -> str:
         return (
@@ -436,11 +429,9 @@ class ZenohNetwork:
                 self._warn_unreachable()
             else:  # names the reason of an unlinked connect endpoint, and who links
                 self._watch = LinkWatch(self.system, session, self.tls, self.connect)
-                members = frozenset(self.tls.members)
-                self._gate = HandshakeGate(
-                    self.system, open_gates(self.listen), lambda: _members_at(session, members)
-                )
-            watch, gate = self._watch, self._gate
+                self._members = MemberAddresses(self.system, session, self.tls)
+                self._gate = HandshakeGate(self.system, open_gates(self.listen), self._members.now)
+            watch, members, gate = self._watch, self._members, self._gate
             self._runtime_dir = runtime_dir
             self._address = ZenohAddress(
                 self.system,
@@ -454,10 +445,9 @@ class ZenohNetwork:
             )
 
             def closed(member: ZenohMember) -> None:
-                if watch is not None:
-                    watch.close()
-                if gate is not None:
-                    gate.close()
+                for part in (watch, gate, members):
+                    if part is not None:
+                        part.close()
                 _left(member)
                 shutil.rmtree(runtime_dir, ignore_errors=True)
 
@@ -478,11 +468,11 @@ class ZenohNetwork:
     def _unopened(self, session: zenoh.Session, runtime_dir: str) -> None:
         """Close what `_open_router` made before it failed: the watch, the gate, the
         session (whose threads are not daemons) and the runtime directory."""
-        for part in (self._watch, self._gate):
+        for part in (self._watch, self._gate, self._members):
             if part is not None:
                 with contextlib.suppress(Exception):
                     part.close()
-        self._watch = self._gate = None
+        self._watch = self._gate = self._members = None
         with contextlib.suppress(Exception):
             session.close()  # type: ignore[no-untyped-call]
         shutil.rmtree(runtime_dir, ignore_errors=True)

@@ -19,6 +19,7 @@ access control; the files themselves are read again by Zenoh when the session op
 from __future__ import annotations
 
 import datetime
+import ipaddress
 import logging
 import os
 from collections.abc import Iterable
@@ -34,7 +35,7 @@ from rr_actors._transport.zenoh.access import private_file_trouble
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError
 
-__all__ = ["ZenohTLS", "authorities", "leaf_of", "member_of"]
+__all__ = ["ZenohTLS", "authorities", "leaf_of", "member_addresses", "member_of"]
 
 logger = logging.getLogger("rr_actors")
 
@@ -293,17 +294,11 @@ def leaf_of(
     the last by one of `trusted`; else `None`. Never raises."""
     try:
         certificates = x509.load_pem_x509_certificates(chain)
-    except ValueError:
+        if not certificates:
+            return None
+        return _checked_chain(certificates, trusted, "a certificate", "ca", now)
+    except ValueError:  # (a ConfigError is one too)
         return None
-    for index, link in enumerate(certificates):
-        if (index and not _is_ca(link)) or not (
-            link.not_valid_before_utc <= now <= link.not_valid_after_utc
-        ):
-            return None
-        issuers = certificates[index + 1 : index + 2] or trusted
-        if not any(_signed_by(link, issuer) for issuer in issuers):
-            return None
-    return certificates[0] if certificates else None
 
 
 def member_of(cert: x509.Certificate) -> str | None:
@@ -324,25 +319,71 @@ def _authorities(path: str, now: datetime.datetime) -> list[x509.Certificate]:
 
 def _leaf(path: str, ca: str, now: datetime.datetime) -> x509.Certificate:
     """The host's certificate of `path` (first), its chain checked up to a CA of `ca`."""
-    authorities = _authorities(ca, now)
     chain = _certificates("cert", path)
+    leaf = _checked_chain(chain, _authorities(ca, now), f"cert {path}", f"ca {ca}", now)
+    _check_uses(path, leaf)
+    return leaf
+
+
+def _checked_chain(
+    chain: list[x509.Certificate],
+    authorities: list[x509.Certificate],
+    what: str,
+    ca: str,
+    now: datetime.datetime,
+) -> x509.Certificate:
+    """The first certificate of `chain`, once each of it is in date and signed by the
+    next, the last by one of `authorities` (`what` and `ca` name them in the error)."""
     for index, link in enumerate(chain):
-        what = f"cert {path}" + (f" (intermediate {index})" if index else "")
+        this = what + (f" (intermediate {index})" if index else "")
         if index and not _is_ca(link):  # Zenoh's TLS (webpki) refuses such a chain
             raise ConfigError(
-                f"{what} ({link.subject.rfc4514_string()}) is not a CA certificate (no "
+                f"{this} ({link.subject.rfc4514_string()}) is not a CA certificate (no "
                 f"BasicConstraints CA=true), so it cannot sign the certificate before it"
             )
-        _check_dates(what, link, now)
+        _check_dates(this, link, now)
         issuers = chain[index + 1 : index + 2] or authorities
         if not any(_signed_by(link, issuer) for issuer in issuers):
-            by = "the next certificate in it" if index + 1 < len(chain) else f"ca {ca}"
+            by = "the next certificate in it" if index + 1 < len(chain) else ca
             raise ConfigError(
-                f"{what} ({link.subject.rfc4514_string()}, issued by "
+                f"{this} ({link.subject.rfc4514_string()}, issued by "
                 f"{link.issuer.rfc4514_string()}) is not signed by {by}"
             )
-    _check_uses(path, chain[0])
     return chain[0]
+
+
+def member_addresses(pem: bytes, tls: ZenohTLS, name: str) -> tuple[str, ...]:
+    """The IP addresses that member `name`'s certificate names (subjectAltName), from
+    `pem` (its cert file: its certificate, then any intermediates), checked as this
+    host's own: in date, signed up to a CA of `tls.ca`, its common name `name`, and
+    `name` one of `tls.members`. What the handshake gate never drops (`gate`).
+
+    Raises:
+        ConfigError: the certificate is not that, saying why (the caller logs it).
+    """
+    if name not in tls.members:
+        raise ConfigError(f"{name!r} is not in members {list(tls.members)}")
+    what = f"the certificate of member {name!r}"
+    try:
+        chain = x509.load_pem_x509_certificates(pem)
+    except ValueError as exc:
+        raise ConfigError(f"{what} is not PEM certificates: {exc}") from None
+    if not chain:
+        raise ConfigError(f"{what} holds no certificate")
+    now = datetime.datetime.now(datetime.UTC)
+    authorities = _authorities(tls.ca, now)
+    leaf = _checked_chain(chain, authorities, what, f"ca {tls.ca}", now)
+    if _common_name(leaf) != name:
+        raise ConfigError(f"{what} has the common name {_common_name(leaf)!r}")
+    return tuple(address for address in _addresses(leaf) if _is_ip(address))
+
+
+def _is_ip(text: str) -> bool:
+    try:
+        ipaddress.ip_address(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _check_key(path: str, leaf: x509.Certificate, cert_path: str) -> None:

@@ -22,6 +22,8 @@ see each other:
  rr/<system>/obs/<member>/fault               ... a fault command for its managers (a
                                               queryable; JSON in, JSON out)
  rr/<system>/obs/<member>/here                liveliness: <member> shares its observer state
+ rr/<system>/cert/<member>                    the router of host <member>: its certificate
+                                              (a queryable; PEM, public; `members`)
 ```
 
 `Keys` builds each of them and parses each liveliness token and observer key (a malformed
@@ -316,6 +318,10 @@ class Keys:
     def observers(self, part: str) -> str:
         """Key `part` of every host's observer (what a page's host subscribes to)."""
         return f"{self.prefix}/obs/*/{part}"
+
+    def certificate(self, member: str) -> str:
+        """The queryable of host `member`'s router that answers with its certificate."""
+        return f"{self.prefix}/cert/{member}"
 
     # -- parsed ----------------------------------------------------------------------------
 
