@@ -34,6 +34,7 @@ SMALLEST = {
         *("--resources", "10", "--changes", "2"),
     ],
     "bench_events.py": ["--rounds", "1", "--batch", "50", "--dedup-batch", "5"],
+    "bench_events_flood.py": ["--batches", "2", "--mib", "1", "--settle", "0"],
     "bench_experiments.py": [
         "--runs",
         "1",

@@ -186,6 +186,8 @@ class Publisher(Generic[E]):
         *,
         maxsize: int = DEFAULT_MAXSIZE,
         name: str | None = None,
+        maxbytes: int | None = None,
+        weigh: Callable[[E], int] | None = None,
     ) -> Subscription[E]:
         """Call `callback(event)` for every event published from now on until closed.
 
@@ -194,12 +196,16 @@ class Publisher(Generic[E]):
                 publisher's), one event at a time, in publish order.
             maxsize: events the subscription's queue holds before it drops new ones.
             name: for its thread's name and log lines (default `subscriber-<n>`).
+            maxbytes: with `weigh`, bytes the events queued may weigh before new ones
+                are dropped (`None`: no such bound).
+            weigh: `weigh(event)`, an event's weight in bytes (on the publishing thread).
 
         Returns:
             The subscription; `close()` it (or use it in a `with` block).
 
         Raises:
-            ConfigError: `callback` is not callable, or `maxsize` not a positive int.
+            ConfigError: `callback` is not callable, `maxsize` not a positive int, or
+                `maxbytes` not a positive int given with `weigh`.
         """
         subscription = Subscription(
             callback,
@@ -207,6 +213,8 @@ class Publisher(Generic[E]):
             maxsize=maxsize,
             notice=self._notice,
             unsubscribe=self._unsubscribe,
+            maxbytes=maxbytes,
+            weigh=weigh,
         )
         self.add_sink(subscription._offer)
         return subscription

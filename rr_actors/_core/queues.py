@@ -15,7 +15,7 @@ import queue
 import threading
 from collections.abc import Callable
 from types import TracebackType
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, TypeVar, cast
 
 from rr_actors._core.serial import SerialExecutor, Task
 from rr_actors._core.throttle import Throttle
@@ -112,6 +112,11 @@ class _Outbox(Generic[E]):
     events as there are threads (the size check and the put are not one step; a lock
     would cost every publish). A gap's notice goes where the lost events would have been:
     before the next event there is room for, or when the thread ran dry.
+
+    With `maxbytes`, items are also bounded by their weight (`weigh(item)`, bytes): what
+    is queued and not handled yet weighs at most `maxbytes` (an item heavier than that
+    alone is dropped); such puts take the lock (for items from another process, whose
+    size their sender chose).
     """
 
     def __init__(
@@ -125,11 +130,21 @@ class _Outbox(Generic[E]):
         linger: float,
         idle: Callable[[], object] | None = None,
         end: Callable[[], object] | None = None,
+        maxbytes: int | None = None,
+        weigh: Callable[[E], int] | None = None,
     ) -> None:
         if isinstance(maxsize, bool) or not isinstance(maxsize, int) or maxsize < 1:
             raise ConfigError(f"maxsize must be a positive int, got {maxsize!r}")
+        if (maxbytes is None) != (weigh is None) or (
+            maxbytes is not None
+            and (isinstance(maxbytes, bool) or not isinstance(maxbytes, int) or maxbytes < 1)
+        ):
+            raise ConfigError(f"maxbytes must be a positive int given with weigh, got {maxbytes!r}")
         self._what = what
         self._maxsize = maxsize
+        self._maxbytes = maxbytes
+        self._weigh = weigh
+        self._bytes = 0  # the weight queued and not handled yet (with `maxbytes`)
         self._notice = notice
         self._handle = handle
         self._idle = idle
@@ -145,15 +160,21 @@ class _Outbox(Generic[E]):
         self.executor.start()
 
     def put(self, item: E) -> None:
-        if not self._gap and self.executor.pending < self._maxsize:
+        if self._weigh is not None:
+            self._put_slowly(item, self._weigh(item))
+        elif not self._gap and self.executor.pending < self._maxsize:
             self.executor.submit(functools.partial(self._handle, item))
         else:
             self._put_slowly(item)
 
-    def _put_slowly(self, item: E) -> None:
+    def _put_slowly(self, item: E, weight: int | None = None) -> None:
+        """Queue `item` (of `weight` bytes, with `maxbytes`) or drop it, opening or
+        widening a gap."""
         warn = first = False
         with self._lock:
-            full = self.executor.pending >= self._maxsize
+            full = self.executor.pending >= self._maxsize or (
+                weight is not None and self._bytes + weight > cast(int, self._maxbytes)
+            )
             if full:
                 self.dropped += 1
                 self._gap += 1
@@ -167,13 +188,18 @@ class _Outbox(Generic[E]):
                     since, self._reported = self.dropped - 1 - self._reported, self.dropped - 1
             else:
                 self._close_gap()
-                self.executor.submit(functools.partial(self._handle, item))
+                if weight is None:
+                    self.executor.submit(functools.partial(self._handle, item))
+                else:
+                    self._bytes += weight
+                    self.executor.submit(functools.partial(self._handle_weighed, item, weight))
         if warn and first:
             logger.warning(
-                "%s falls behind: its queue of %d events is full; dropping events until it "
+                "%s falls behind: its queue of %d events%s is full; dropping events until it "
                 "has room (they are counted and reported to it as one notice)",
                 self._what,
                 self._maxsize,
+                "" if self._maxbytes is None else f" or {self._maxbytes} bytes",
             )
         elif warn:
             logger.warning(
@@ -182,6 +208,13 @@ class _Outbox(Generic[E]):
                 since,
                 gaps - 1,
             )
+
+    def _handle_weighed(self, item: E, weight: int) -> None:
+        try:
+            self._handle(item)
+        finally:
+            with self._lock:
+                self._bytes -= weight
 
     def _close_gap(self) -> None:
         """Queue the notice for the events dropped since the last put (hold `_lock`)."""
@@ -244,7 +277,9 @@ class Subscription(Generic[E]):
     time, in publish order. It may block or be slow: the publisher never waits for it.
     When its queue is full, new events are dropped and counted (`dropped`); once there
     is room again the callback gets one notice of the gap (`EventsDropped(count)` for
-    rr_actors' events) where the lost events would have been.
+    rr_actors' events) where the lost events would have been. With `maxbytes`, the same
+    holds when the events queued would weigh more than `maxbytes` bytes (`weigh(event)`):
+    for events from other processes, whose size their senders chose.
 
     An exception from the callback is logged (logger `rr_actors`) and delivery goes on:
     the first with its traceback, later ones as a count, at most once every `LOG_EVERY`
@@ -265,6 +300,8 @@ class Subscription(Generic[E]):
         maxsize: int,
         notice: Callable[[int], E] | None,
         unsubscribe: Callable[[Subscription[E]], None],
+        maxbytes: int | None = None,
+        weigh: Callable[[E], int] | None = None,
     ) -> None:
         if not callable(callback):  # (else each event would log the TypeError, for ever)
             raise ConfigError(f"callback must be callable, got {callback!r}")
@@ -280,6 +317,8 @@ class Subscription(Generic[E]):
             thread_name=f"rr-events-{name}",
             linger=LINGER,  # a burst piles up meanwhile, without a wake-up per event
             end=lambda: self._report_raised(None),
+            maxbytes=maxbytes,
+            weigh=weigh,
         )
         self._offer = self._outbox.put  # the publisher's sink: never blocks
 

@@ -762,10 +762,14 @@ class EventsDropped:
     shared file) and publishes this notice, with the dead process's pid, after the last
     events that did arrive from it.
 
+    With `cause="refused"`: a system-wide subscriber (`ZenohNetwork.subscribe_events`,
+    with TLS) dropped a batch of `count` events that no member's certificate sealed.
+
     Attributes:
         count: how many events were lost in this gap.
-        cause: `"full"` (a queue or buffer) or `"killed"` (the tail of a dead manager
-            process's events).
+        cause: `"full"` (a queue or buffer, or a subscriber's bound on bytes), `"killed"`
+            (the tail of a dead manager process's events) or `"refused"` (a batch no
+            member sealed).
         at: when the gap was closed (the notice made), wall clock (`time.time()` seconds).
         pid: the process that lost them.
         seq: its number among its process's events (see `number_events`; 0: not numbered).

@@ -132,6 +132,8 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
             )
         case EventsDropped(cause="killed"):
             return f"{event.count} events of process {event.pid} lost: it died before it sent them"
+        case EventsDropped(cause="refused"):
+            return f"{event.count} events refused: no member's certificate sealed them"
         case EventsDropped():
             return f"{event.count} events dropped (a subscriber or forwarder fell behind)"
     typing.assert_never(event)

@@ -15,7 +15,11 @@ only (mutual TLS, then Zenoh's ACL on `rr/<system>/**`).
 What crosses is JSON (`json`, never a pickle), and what a host receives is checked before
 it reaches the page (`valid_*`): a section it does not know, a value of the wrong shape,
 a message too big or out of sequence is dropped (out of sequence: the whole state is
-asked again). The page shows every text with `textContent`, never as HTML.
+asked again). So is a section or an event with a number that is not finite (`finite`):
+Python's `json` reads and writes `NaN` and `Infinity`, a browser's `JSON.parse` refuses
+the whole message that holds one, and a page's events of every host go in one message.
+Each event and each section is checked on its own, so one bad one costs only itself.
+The page shows every text with `textContent`, never as HTML.
 
 A delta is `{"v": 1, "member", "instance", "seq", "sections": [[key, "v"|"p", value or
 patch]], "events": [...], "missed"}`; a patch is `_delta.diff`'s. The state is `{"v": 1,
@@ -28,6 +32,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -38,6 +43,7 @@ __all__ = [
     "VERSION",
     "decode",
     "dumps",
+    "finite",
     "link_row",
     "shared",
     "text",
@@ -106,7 +112,25 @@ def text(value: Any, *, none: bool = False) -> bool:
 def _number(value: Any, *, none: bool = False) -> bool:
     if value is None:
         return none
-    return isinstance(value, int | float) and not isinstance(value, bool)
+    if isinstance(value, float):
+        return math.isfinite(value)
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def finite(value: Any) -> bool:
+    """Whether every number in `value` (parsed JSON, at any depth) is finite: no `NaN`,
+    `Infinity` or `-Infinity`, which a browser's `JSON.parse` refuses."""
+    stack = [value]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, float):
+            if not math.isfinite(item):
+                return False
+        elif isinstance(item, dict):
+            stack.extend(item.values())
+        elif isinstance(item, list):
+            stack.extend(item)
+    return True
 
 
 def valid_tree(node: Any, depth: int = 0) -> bool:
@@ -191,9 +215,12 @@ _LINK = {
 
 
 def valid_section(key: str, value: Any) -> bool:
-    """Whether `value` is a shared section `key` as a host makes it (`None`: removed)."""
-    if value is None:
-        return True
+    """Whether `value` is a shared section `key` as a host makes it (`None`: removed),
+    every number in it finite."""
+    return value is None or (finite(value) and _shaped(key, value))
+
+
+def _shaped(key: str, value: Any) -> bool:
     if key == "tree":
         return valid_tree(value)
     if key == "links":
@@ -212,11 +239,13 @@ def valid_section(key: str, value: Any) -> bool:
 
 
 def valid_event(event: Any) -> bool:
-    """Whether `event` is an event as a host shares it (a type, a time, its `seq`)."""
+    """Whether `event` is an event as a host shares it (a type, a time, its `seq`), every
+    number in it finite."""
     return (
         isinstance(event, dict)
         and text(event.get("type"))
         and _number(event.get("at"))
         and text(event.get("text"), none=True)
         and isinstance(event.get("seq"), int)
+        and finite(event)
     )

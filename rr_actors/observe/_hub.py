@@ -26,14 +26,20 @@ from __future__ import annotations
 import collections
 import dataclasses
 import json
+import logging
+import math
 import threading
+import time
 import uuid
 from collections.abc import Callable
 from typing import Any
 
+from rr_actors._core.throttle import LogThrottle, short
 from rr_actors.observe._delta import diff
 
 __all__ = ["BATCH", "MAX_STREAMS", "RING", "Changes", "Hub", "sse"]
+
+logger = logging.getLogger("rr_actors")
 
 RING = 500
 """Events the hub keeps for pages that connect or reconnect."""
@@ -48,6 +54,24 @@ MAX_STREAMS = 32
 def sse(event: str, data: str) -> bytes:
     """One server-sent event: its name and its data (one line of JSON)."""
     return f"event: {event}\ndata: {data}\n\n".encode()
+
+
+def _refused(event: dict[str, Any], seq: int, log: LogThrottle) -> dict[str, Any]:
+    """What a page gets in place of `event`, which holds a number that is not finite
+    (said on `log`)."""
+    kind, at = event.get("type"), event.get("at")
+    log.warning(
+        "observer: a %s event holds a number that is not finite (NaN or infinity); the pages "
+        "get a line that says so instead",
+        short(kind),
+    )
+    return {
+        "type": "Refused",
+        "seq": seq,
+        "at": at if isinstance(at, int | float) and math.isfinite(at) else time.time(),
+        "member": event.get("member") if isinstance(event.get("member"), str) else None,
+        "text": "an event with a number that is not finite (NaN or infinity) was dropped",
+    }
 
 
 @dataclasses.dataclass
@@ -99,6 +123,7 @@ class Hub:
         self._listeners: list[Callable[[], None]] = []
         self._streams = threading.Condition(self._lock)
         self._open_streams = 0
+        self._refusals = LogThrottle(logger)  # (events refused: a line a minute at most)
         self.closed = False
 
     def put(self, key: str, value: Any) -> bool:
@@ -173,13 +198,24 @@ class Hub:
         return entries, max(0, first - last_seq - 1) if last_seq < self._seq else 0
 
     def _event(self, entry: list[Any]) -> tuple[dict[str, Any], str]:
-        """A ring entry `[seq, event]` as a dict and as JSON (each made once, then kept)."""
+        """A ring entry `[seq, event]` as a dict and as JSON (each made once, then kept).
+
+        An event with a number that is not finite (`NaN`, `Infinity`: Python's `json`
+        writes them, a page's `JSON.parse` refuses the whole message of events that
+        holds one) goes to the pages as a `Refused` event that says so instead: the
+        others of its message are not lost with it.
+        """
         if len(entry) == 2:  # (converting twice at once, for two pages, does no harm)
             event = entry[1]
             if not isinstance(event, dict):
                 event = self._convert(event)
                 event["seq"] = entry[0]
-            entry[1:] = [event, json.dumps(event)]
+            try:
+                encoded = json.dumps(event, allow_nan=False)
+            except ValueError:
+                event = _refused(event, entry[0], self._refusals)
+                encoded = json.dumps(event)
+            entry[1:] = [event, encoded]
         return entry[1], entry[2]
 
     def messages(

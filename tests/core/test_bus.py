@@ -386,6 +386,34 @@ def test_wait_delivered_is_false_while_the_callback_is_blocked(
         assert subscription.wait_delivered(timeout=WAIT)
 
 
+def test_with_maxbytes_a_queue_heavier_than_it_drops_new_events_and_marks_the_gap(
+    publisher: Publisher[Any], gates: Callable[[], threading.Event]
+) -> None:
+    """Events from other processes are bounded by weight too (issue 40): a few big ones
+    must not hold what `maxsize` small ones would."""
+    gate = gates()
+    callback = Blocking(gate)
+    with publisher.subscribe(callback, maxsize=100, maxbytes=10, weigh=len) as subscription:
+        publisher.publish("0")
+        assert callback.entered.wait(WAIT)  # it weighs until the callback returns
+        for item in ("aaa", "bbb", "cc", "dd", "e" * 11, "f"):
+            publisher.publish(item)  # 1 + 3 + 3 + 2 = 9; dd and the 11 dropped; f fits
+        assert 2 == subscription.dropped
+        gate.set()
+        assert subscription.wait_delivered(timeout=WAIT)
+        publisher.publish("g" * 10)  # all handled: room for a whole 10 again
+        assert subscription.wait_delivered(timeout=WAIT)
+    assert ["0", "aaa", "bbb", "cc", ("dropped", 2), "f", "g" * 10] == callback.got
+
+
+def test_maxbytes_must_be_a_positive_int_given_with_weigh(publisher: Publisher[Any]) -> None:
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(rr.ConfigError, match="maxbytes"):
+            publisher.subscribe(lambda _: None, maxbytes=bad, weigh=len)  # type: ignore[arg-type]
+    with pytest.raises(rr.ConfigError, match="maxbytes"):
+        publisher.subscribe(lambda _: None, maxbytes=10)
+
+
 def test_maxsize_must_be_a_positive_int(publisher: Publisher[Any]) -> None:
     for bad in (0, -1, 1.5, True):
         with pytest.raises(rr.ConfigError, match="maxsize"):

@@ -1,22 +1,26 @@
 """The hybrid logical clock (`rr_actors._core.hlc`, Kulkarni et al. 2014): send, receive,
-monotonic, and the bounds on how far `l` runs ahead of the physical clocks.
+monotonic, the bounds on how far `l` runs ahead of the physical clocks, and `max_offset`
+(a stamp further ahead is refused; the clock never leaves its 64 bits: issue 40).
 
 Each clock's physical clock is injected (nanoseconds), so the tests set the time.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import random
 import subprocess
 import sys
 import threading
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from rr_actors._core import hlc
 from rr_actors._core.hlc import COUNTER_BITS, HybridClock
+from rr_actors.errors import ConfigError
 
 US = 1_000  # nanoseconds in a microsecond
 S = 1_000_000_000  # nanoseconds in a second
@@ -147,17 +151,84 @@ def test_the_clock_is_safe_to_use_from_many_threads() -> None:
     assert all(into == sorted(into) for into in stamps)
 
 
-def test_a_stamp_far_ahead_of_this_clock_is_warned_about_once(
+def test_a_stamp_within_max_offset_ahead_is_taken_in() -> None:
+    clock = HybridClock(Physical(1_000 * S), max_offset=60.0)
+    ahead = hlc.pack((1_000 + 59) * 1_000_000, 3)
+    assert hlc.unpack(clock.receive(ahead, "a1")) == (hlc.unpack(ahead)[0], 4)
+    assert 0 == clock.refused
+
+
+@pytest.mark.parametrize(
+    "stamp",
+    [
+        pytest.param(2**64 - 1, id="the-last-stamp"),
+        pytest.param(hlc.from_seconds(4_102_444_800.0), id="the-year-2100"),
+        pytest.param(hlc.pack((1_000 + 61) * 1_000_000, 0), id="61-s-ahead"),
+    ],
+)
+def test_a_stamp_more_than_max_offset_ahead_is_refused_counted_and_warned_naming_the_sender(
+    caplog: pytest.LogCaptureFixture, stamp: int
+) -> None:
+    clock = HybridClock(Physical(1_000 * S), max_offset=60.0)
+    before = clock.now()
+    with caplog.at_level(logging.WARNING, logger="rr_actors"):
+        received = clock.receive(stamp, "5eed")
+        again = clock.receive(stamp, "5eed")
+
+    assert before < received < again  # the receipt still ticks, as a local event
+    assert (1_000_000_000, 2) == hlc.unpack(again)  # the physical time: not taken in
+    assert 2 == clock.refused
+    warned = [r.getMessage() for r in caplog.records]
+    assert 1 == len(warned)  # at most one a minute
+    assert "a message from process 5eed came with a clock stamp" in warned[0]
+    assert "more than max_offset (60 s)" in warned[0]
+
+
+def test_a_stamp_from_the_year_2100_does_not_spread_from_the_process_that_got_it() -> None:
+    """The bug it guards against: one stamp carried every clock it reached, and every
+    stamp after, into 2100, one message a hop."""
+    physicals = [Physical(1_000 * S + skew) for skew in (0, 2 * S, 5 * S)]
+    clocks = [HybridClock(p) for p in physicals]
+    clocks[0].receive(hlc.from_seconds(4_102_444_800.0))
+    stamp = clocks[0].send()
+    for clock in clocks[1:]:
+        stamp = clock.receive(stamp)
+        stamp = clock.send()
+
+    fastest = max(p.ns for p in physicals) // US
+    assert all(hlc.unpack(clock.last)[0] <= fastest + 1 for clock in clocks)
+
+
+def test_the_clock_never_leaves_its_64_bits_and_says_so_once(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    clock = HybridClock(Physical(1_000 * S), ahead_warning=60.0)
-    far = hlc.pack((1_000 + 3_600) * 1_000_000, 0)
-    clock.receive(far)
-    clock.receive(far + 1)
-    warned = [r for r in caplog.records if "ahead of this host's clock" in r.getMessage()]
-    assert len(warned) == 1
-    assert "3600" in warned[0].getMessage()
-    assert clock.receive(hlc.pack(1_000 * 1_000_000, 0)) > far  # it was taken in anyway
+    physical = Physical(1_000 * S)
+    clock = HybridClock(physical, max_offset=60.0)
+    clock.receive(hlc.pack(1_000_000_000 + 59_000_000, 0))
+    physical.ns = ((2**64 - 1) >> COUNTER_BITS) * US - 30 * S  # 30 s before the end
+    with caplog.at_level(logging.ERROR, logger="rr_actors"):
+        taken = clock.receive(2**64 - 1)  # 30 s ahead: taken in, at the end of the range
+        stamps = [clock.now(), clock.send(), clock.receive(2**64 - 1)]
+        physical.ns += 3_600 * S  # the physical clock past the end itself
+        stamps += [clock.now(), clock.now()]
+
+    assert [2**64 - 1] * 6 == [taken, *stamps]
+    assert 1 == len(caplog.records)
+    assert "reached the end of its 64 bits" in caplog.records[0].getMessage()
+
+
+@pytest.mark.parametrize(
+    "bad", [0, -1.0, float("nan"), float("inf"), True, "60", None, 366 * 24 * 3600.0]
+)
+def test_a_max_offset_that_is_not_seconds_up_to_a_year_is_a_config_error_naming_it(
+    bad: Any,
+) -> None:
+    with pytest.raises(ConfigError, match="max_offset"):
+        HybridClock(max_offset=bad)
+    clock = HybridClock()
+    with pytest.raises(ConfigError, match="max_offset"):
+        clock.max_offset = bad
+    assert hlc.MAX_OFFSET == clock.max_offset  # unchanged
 
 
 def test_the_skew_variable_skews_the_process_clock_and_the_events_wall_time(

@@ -12,6 +12,10 @@ answer on `a` comes seconds *before* the load on `b` that it answers.
   load's `ResourceLoaded` and `ConsumerAdded` on `robot` come before the `CallAnswered`
   on `operator`; ordered by `at` none does (the test would pass vacuously otherwise).
   Each event names its host's member name.
+- `test_the_host_of_an_event_is_the_member_whose_certificate_sealed_it` (issue 40): on
+  `b`, the router process publishes an event that says it happened on `operator`, and
+  a raw Zenoh session attached to `b`'s router puts a batch no member sealed: `a` gets
+  the first as `robot`'s (whatever it says) and drops the second, counted.
 - `test_a_non_member_that_subscribes_gets_nothing`: a third worker on `b` with a
   certificate of the system's CA whose name `a` does not admit (`stranger`) subscribes
   while `app` loads: it gets no event within `QUIET` s, while the member `robot`'s own
@@ -119,6 +123,47 @@ def probe_once() -> None:
 def any_seen_within(timeout: float) -> bool:
     """Whether this worker's subscription delivers any event within `timeout` s."""
     return wait_for(lambda: bool(hosts.KEPT["seen"]), timeout)
+
+
+def put_unsealed_and_claim_operators_name() -> None:
+    """On `robot`'s host: a raw Zenoh session attached to its router (as a buggy process
+    of that host could) puts a batch no member sealed; then the router process publishes
+    an event that says it happened on host `operator`, and one of its own."""
+    import json  # noqa: PLC0415
+
+    import zenoh  # noqa: PLC0415
+
+    network = hosts.KEPT["network"]
+    raw = zenoh.open(
+        zenoh.Config.from_json5(
+            '{"mode": "client", "scouting": {"multicast": {"enabled": false}}, '
+            f'"connect": {{"endpoints": ["unixsock-stream/{network.address.socket_path}"]}}}}'
+        )
+    )
+    hosts.KEPT["raw"] = raw
+    unsealed = events.InDoubt("erm", "unsealed", host="operator")
+    raw.declare_publisher(
+        f"rr/{network.system}/ev/{raw.zid()}", congestion_control=zenoh.CongestionControl.BLOCK
+    ).put(json.dumps(events.to_dict(unsealed)).encode())
+    everything = events.everything()
+    everything.publish(events.InDoubt("erm", "claims-operator", host="operator"))
+    everything.publish(events.InDoubt("erm", "robots-own"))
+
+
+def close_raw() -> None:
+    raw = hosts.KEPT.pop("raw", None)
+    if raw is not None:
+        raw.close()
+
+
+def in_doubt_and_dropped() -> tuple[list[tuple[str, str]], list[tuple[int, str]]]:
+    """The `InDoubt` events this worker's subscription delivered (query id, host), and
+    its `EventsDropped` (count, cause)."""
+    seen = list(hosts.KEPT["seen"])
+    return (
+        [(e.query_id, e.host) for e in seen if isinstance(e, events.InDoubt)],
+        [(e.count, e.cause) for e in seen if isinstance(e, events.EventsDropped)],
+    )
 
 
 def unsubscribe() -> None:
@@ -234,6 +279,26 @@ def test_merged_by_hlc_every_load_on_the_provider_comes_before_its_consumers_ans
     for line in lines:
         if line["host"] == "robot":
             assert line["at"] >= started + SKEW_S
+
+
+def test_the_host_of_an_event_is_the_member_whose_certificate_sealed_it(lab: Lab) -> None:
+    lab.a.call(subscribe_all, timeout=10)
+    lab.a.call(until_seen_from, "robot", BOUND, timeout=2 * BOUND)
+    try:
+        lab.b.call(put_unsealed_and_claim_operators_name, timeout=BOUND)
+
+        def arrived() -> bool:
+            got, dropped = lab.a.call(in_doubt_and_dropped, timeout=10)
+            return ("robots-own", "robot") in got and bool(dropped)
+
+        assert wait_for(arrived, 2 * BOUND)
+        got, dropped = lab.a.call(in_doubt_and_dropped, timeout=10)
+    finally:
+        with contextlib.suppress(Exception):
+            lab.b.call(close_raw, timeout=10)
+
+    assert [("claims-operator", "robot"), ("robots-own", "robot")] == got
+    assert [(1, "refused")] == dropped
 
 
 def test_a_non_member_that_subscribes_gets_nothing(lab: Lab) -> None:

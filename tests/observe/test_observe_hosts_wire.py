@@ -26,7 +26,7 @@ import zenoh
 
 from rr_actors._transport.zenoh.net import Services
 from rr_actors._transport.zenoh.wire import Keys, ObserverKey
-from rr_actors.observe._crossing import valid_catalog, valid_tree
+from rr_actors.observe._crossing import valid_catalog, valid_event, valid_section, valid_tree
 from rr_actors.observe._faults import FaultRefused
 from rr_actors.observe._hub import Hub
 from rr_actors.observe._share import Share
@@ -232,3 +232,61 @@ def test_the_shapes_a_page_accepts_are_those_a_live_source_makes() -> None:
     broken["catalog"]["resources"][0]["consumers"] = [{"query_id": 1}]
     assert not valid_catalog(broken)
     assert not valid_catalog({**catalog("cam", []), "registrar": None})
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), float("-inf")])
+def test_a_number_that_is_not_finite_is_refused_anywhere_in_an_event_or_a_section(
+    bad: float,
+) -> None:
+    """Issue 40: `NaN` passed `_number` (it is a float), and a page's `JSON.parse` refuses
+    the whole message that holds one."""
+    event = {"type": "InDoubt", "at": 1.0, "text": "t", "seq": 1}
+    assert valid_event(event)
+    assert not valid_event({**event, "at": bad})
+    assert not valid_event({**event, "load_s": bad})
+    assert not valid_event({**event, "deep": [{"x": [bad]}]})
+    assert not valid_section("tree", {**TREE, "pid": bad})
+    assert not valid_section("ended", {"at": bad})
+    sick = catalog("cam", ["a"])
+    sick["catalog"]["resources"][0]["extra"] = {"load_s": bad}
+    assert not valid_section("catalog/cam", sick)
+    assert valid_section("catalog/cam", catalog("cam", ["a"]))
+
+
+def test_a_hosts_event_with_a_nan_is_dropped_and_its_other_events_reach_the_page(
+    sessions: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    """One bad event never costs the others: a buggy member's state carries three events
+    (`json.dumps` writes the `NaN`), the page gets the two good ones and its sections."""
+    mine, theirs = sessions
+    page = Hub()
+    good = {"type": "InDoubt", "at": 1.0, "text": "good one", "seq": 1}
+    state = {
+        "v": 1,
+        "member": "buggy",
+        "instance": "i1",
+        "seq": 5,
+        "sections": {"tree": TREE, "ended": {"at": float("inf")}},
+        "events": [
+            good,
+            {"type": "InDoubt", "at": float("nan"), "text": "bad", "seq": 2},
+            {"type": "InDoubt", "at": 2.0, "text": "good two", "seq": 3, "load_s": 0.5},
+        ],
+    }
+
+    def answer(query: zenoh.Query) -> None:
+        query.reply(query.key_expr, json.dumps(state).encode())
+
+    queryable = theirs.declare_queryable(KEYS.observer(ObserverKey("buggy", "state")), answer)
+    view = SystemView(page, services(mine, "alpha"), "alpha", None)
+    token = theirs.liveliness().declare_token(KEYS.observer(ObserverKey("buggy", "here")))
+    try:
+        wait_section(page, "host/buggy/tree")
+        shown = page.changes({}, 0).events
+    finally:
+        token.undeclare()  # type: ignore[no-untyped-call]
+        view.close()
+        queryable.undeclare()  # type: ignore[no-untyped-call]
+
+    assert ["good one", "good two"] == [e["text"] for e in shown]
+    assert page.get("host/buggy/ended") is None  # (its `at` is infinite)

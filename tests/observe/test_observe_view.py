@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import pytest
@@ -185,6 +186,33 @@ def test_a_page_gets_at_most_a_batch_of_events_at_a_time() -> None:
     changes = hub.changes({}, 0)
 
     assert (BATCH, BATCH) == (len(changes.events), changes.missed)
+
+
+def _strict(data: str) -> Any:
+    """`data` parsed as a browser's `JSON.parse` does: `NaN` and `Infinity` are refused."""
+    return json.loads(data, parse_constant=lambda name: pytest.fail(f"{name} in {data}"))
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), float("-inf")])
+def test_an_event_with_a_number_that_is_not_finite_never_costs_the_pages_the_others(
+    bad: float, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 40: one `NaN` in one host's event made every page's `JSON.parse` drop the
+    whole message of events, the other hosts' included."""
+    hub = Hub()
+    hub.add_event({"type": "InDoubt", "at": 1.0, "text": "before", "member": "alpha"})
+    hub.add_event({"type": "InDoubt", "at": 2.0, "text": "bad", "load_s": bad, "member": "evil"})
+    hub.add_event({"type": "InDoubt", "at": 3.0, "text": "after", "member": "bravo"})
+
+    messages, last = hub.messages({}, 0)
+
+    assert 3 == last
+    data = messages[-1].decode().split("data: ", 1)[1].strip()
+    shown = _strict(data)["events"]
+    assert ["InDoubt", "Refused", "InDoubt"] == [e["type"] for e in shown]
+    assert ["alpha", "evil", "bravo"] == [e["member"] for e in shown]
+    assert "not finite" in shown[1]["text"]
+    assert 1 == len([r for r in caplog.records if "not finite" in r.getMessage()])
 
 
 def test_listeners_hear_every_change_until_removed() -> None:

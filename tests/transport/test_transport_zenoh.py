@@ -33,6 +33,7 @@ import zenoh
 
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.hlc import CLOCK, MAX_OFFSET
 from rr_actors._core.wire import WIRE_VERSION
 from rr_actors._transport.codec import frame
 from rr_actors._transport.zenoh.net import ZenohNetwork
@@ -103,6 +104,38 @@ def test_tls_other_than_none_or_a_zenoh_tls_is_a_config_error(tls: Any) -> None:
 def test_a_bad_lease_is_a_config_error_naming_lease(lease: Any) -> None:
     with pytest.raises(rr.ConfigError, match="lease"):
         rr.ZenohNetwork(system="lab", tls=None, lease=lease)
+
+
+@pytest.mark.parametrize("max_offset", [0, -1.0, float("nan"), float("inf"), True, "60", 1e9])
+def test_a_bad_max_offset_is_a_config_error_naming_max_offset(max_offset: Any) -> None:
+    with pytest.raises(rr.ConfigError, match="max_offset"):
+        rr.ZenohNetwork(system="lab", tls=None, max_offset=max_offset)
+
+
+def test_the_max_offset_of_a_network_is_its_processes_clocks(
+    context: multiprocessing.context.ForkServerContext,
+) -> None:
+    """The router's clock and that of a process that attaches through it take the
+    network's `max_offset` (the clock is the process's: one system per process)."""
+    network = rr.ZenohNetwork(system=_system(), tls=None, max_offset=2.5)
+    try:
+        address = network.address  # (opens the router)
+        here = CLOCK.max_offset
+        with context.Pool(1) as pool:
+            there = pool.apply(_attached_max_offset, (address,))
+    finally:
+        network.close()
+        CLOCK.max_offset = MAX_OFFSET
+
+    assert (2.5, 2.5, 2.5) == (here, address.max_offset, there)
+
+
+def _attached_max_offset(address: Any) -> float:
+    member = address.attach()
+    try:
+        return CLOCK.max_offset
+    finally:
+        member.close()
 
 
 @pytest.mark.parametrize("endpoint", ["tcp/127.0.0.1:7447", "tcp/[::1]:7447", "tcp/localhost:0"])

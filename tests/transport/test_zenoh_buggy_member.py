@@ -21,12 +21,13 @@ import pytest
 import zenoh
 
 import rr_actors as rr
+from rr_actors._core import hlc
 from rr_actors._core.wire import WIRE_VERSION
 from rr_actors._transport.codec import NO_REPLY, frame
 from rr_actors._transport.zenoh.net import ZenohNetwork
-from rr_actors._transport.zenoh.wire import MESSAGE, PLAIN, PYTHON
+from rr_actors._transport.zenoh.wire import MESSAGE, PLAIN, PYTHON, envelope
 from rr_actors.testing.carrier import Served
-from tests.support.carriers import setup_servers
+from tests.support.carriers import record_warnings, setup_servers, warnings_logged
 
 WAIT = 10.0
 """Seconds any one step may take on a loaded machine."""
@@ -310,3 +311,52 @@ def test_a_flood_of_non_messages_is_a_few_bounded_warning_lines(
     warned = _warnings(caplog, "unknown message")
     assert 1 <= len(warned) <= 3
     assert all(len(line) < 500 for line in warned)
+
+
+# -- issue 40, section 3: a clock stamp far ahead -------------------------------------------------
+
+YEAR_2100 = 4_102_444_800.0
+"""2100-01-01 00:00:00 UTC, in seconds since the epoch."""
+
+
+def _clock_now(_registrar: Any) -> tuple[float, float]:
+    """This (child) process's clock: its last stamp's physical part and its physical time,
+    in seconds since the epoch."""
+    return hlc.seconds(hlc.CLOCK.now()), hlc.CLOCK.wall()
+
+
+@pytest.mark.parametrize(
+    "stamp",
+    [
+        pytest.param(2**64 - 1, id="the-last-stamp"),
+        pytest.param(hlc.from_seconds(YEAR_2100), id="2100"),
+    ],
+)
+def test_a_stamp_far_ahead_is_not_taken_in_and_the_receiver_goes_on_answering(
+    net: ZenohNetwork, manager: str, eventually: Callable[..., bool], stamp: int
+) -> None:
+    consumer = _registrar(net)
+    try:
+        net.run(manager, record_warnings, timeout=WAIT)
+        with buggy_member(net) as raw:
+            sender = str(raw.zid())
+            poisoned = envelope(MESSAGE, sender, frame(NO_REPLY, None), stamp)
+            _put(raw, f"rr/{net.system}/reg/{manager}", poisoned)
+
+            def refused() -> bool:
+                logged = net.run(manager, warnings_logged, timeout=WAIT)
+                return any(sender in line and "max_offset" in line for line in logged)
+
+            assert eventually(refused, timeout=WAIT)
+        query = consumer.call(manager, "echo", "after", timeout=WAIT)
+        stamped, wall = net.run(manager, _clock_now, timeout=WAIT)
+        warned = [
+            line for line in net.run(manager, warnings_logged, timeout=WAIT) if sender in line
+        ]
+    finally:
+        consumer.stop()
+
+    assert {"resource": "after"} == query.response
+    assert stamped - wall < 1.0  # not taken in: the clock is this host's
+    assert 1 == len(warned)
+    assert "ahead of this host's clock" in warned[0]

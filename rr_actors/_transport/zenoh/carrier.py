@@ -128,6 +128,9 @@ from rr_actors.errors import (
     _known_names,
 )
 
+if TYPE_CHECKING:
+    from rr_actors._transport.zenoh.seal import Seal
+
 __all__ = ["ZenohMember"]
 
 logger = logging.getLogger("rr_actors")
@@ -219,6 +222,8 @@ class ZenohMember:
             message; `""` when nothing is wrong.
         router: the Zenoh id of the router this process attached through (`None`: this
             process is a router); what it hears counts only while that one answers.
+        seal: seals the event batches this process sends and opens those it gets
+            (`events`); `None` without TLS.
     """
 
     def __init__(
@@ -231,9 +236,11 @@ class ZenohMember:
         on_close: Callable[[ZenohMember], None] | None = None,
         link_trouble: Callable[[], str] | None = None,
         router: str | None = None,
+        seal: Seal | None = None,
     ) -> None:
         self.system = system
         self.zid = str(session.zid())
+        self._seal = seal
         self.closed = False
         self._session = session
         self._speakers = dict(speakers or {})
@@ -258,7 +265,7 @@ class ZenohMember:
             self._keys.ping(self.zid), lambda query: query.reply(query.key_expr, b"")
         )
         self._proc_token = session.liveliness().declare_token(self._keys.proc(self.zid))
-        self._events = EventExport(session, self._keys, self.zid)  # (the system's stream)
+        self._events = EventExport(session, self._keys, self.zid, seal)  # (the system's stream)
         DIRECTORY.add_resolver(self.resolve, self.names)
 
     @property
@@ -411,7 +418,8 @@ class ZenohMember:
         """
         if self.closed:
             raise RegistrarStoppedError("this process left the system")
-        subscription = EventFeed(self._session, self._keys, window).subscribe(callback, maxsize)
+        feed = EventFeed(self._session, self._keys, window, self._seal)
+        subscription = feed.subscribe(callback, maxsize)
         self._events.wait_sending(ASK_TIMEOUT)  # (this process's own, from now on)
         return subscription
 

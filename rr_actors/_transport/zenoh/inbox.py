@@ -259,7 +259,7 @@ class Inbox:
             self._refuse_version(local.name, head, token)
             return
         if head.stamp is not None:
-            CLOCK.receive(head.stamp)  # (before the registrar hears of it)
+            CLOCK.receive(head.stamp, head.sender)  # (before the registrar hears of it)
         self._messenger.message(local.endpoint, head.sender, token, payload)
 
     def _refuse_version(self, name: str, head: Header, token: int) -> None:
@@ -285,5 +285,5 @@ class Inbox:
             self.replies.refused(token, versions_text(head))
             return
         if head.stamp is not None and token in self.replies:
-            CLOCK.receive(head.stamp)  # (an answer someone waits for)
+            CLOCK.receive(head.stamp, head.sender)  # (an answer someone waits for)
         self.replies.answered(token, payload)

@@ -46,6 +46,7 @@ from rr_actors._core.addresses import is_loopback
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.directory import Peer
 from rr_actors._core.exit import NETWORKS, stop_at_exit
+from rr_actors._core.hlc import CLOCK, MAX_OFFSET, check_max_offset
 from rr_actors._platform import fork
 from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.zenoh.access import user
@@ -61,6 +62,7 @@ from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavai
 from rr_actors.events.kinds import set_host
 
 if TYPE_CHECKING:
+    from rr_actors._transport.zenoh.seal import Seal
     from rr_actors._transport.zenoh.tls import ZenohTLS
 
 __all__ = ["Services", "ZenohAddress", "ZenohNetwork"]
@@ -76,6 +78,15 @@ def _zenoh_log_from_env() -> None:
     handshake, which Zenoh tells nobody else)."""
     if os.environ.get("RUST_LOG"):
         zenoh.try_init_log_from_env()  # type: ignore[no-untyped-call]
+
+
+def _seal(tls: ZenohTLS | None, system: str) -> Seal | None:
+    """What seals this process's event batches with `tls` (`None` without TLS)."""
+    if tls is None:
+        return None
+    from rr_actors._transport.zenoh.seal import Seal  # noqa: PLC0415 - cryptography
+
+    return Seal(tls, system)
 
 
 def _is_tls(tls: object) -> bool:
@@ -223,6 +234,11 @@ class ZenohAddress:
             supervisor's, `supervised_by`) publishes `router` as its supervisor (rule 19).
         member: this host's member name (its certificate's common name), which the
             events of a process that attaches carry (`events.set_host`); `""` without TLS.
+        max_offset: the network's `max_offset`, which the clock of a process that
+            attaches takes (`HybridClock.max_offset`).
+        tls: the network's `ZenohTLS` (`None`: plain TCP): a process that attaches seals
+            the event batches it sends with this host's certificate, and opens those it
+            gets (`seal`).
     """
 
     system: str
@@ -231,6 +247,8 @@ class ZenohAddress:
     router: str
     router_pid: int = 0
     member: str = ""
+    max_offset: float = MAX_OFFSET
+    tls: ZenohTLS | None = None
 
     def attach(self) -> ZenohMember:
         """Join the system from this process (idempotent): a CLIENT-mode session.
@@ -243,6 +261,7 @@ class ZenohAddress:
 
     def _open(self) -> ZenohMember:
         set_host(self.member or socket.gethostname())
+        CLOCK.max_offset = self.max_offset
         config = session_config("client", [], [f"unixsock-stream/{self.socket_path}"], self.lease)
         try:
             session = zenoh.open(config)
@@ -257,6 +276,7 @@ class ZenohAddress:
             speakers={self.router_pid: self.router},
             on_close=_left,
             router=self.router,
+            seal=_seal(self.tls, self.system),
         )
         _close_at_exit(f"the membership of system {self.system!r}", member, member.close)
         return member
@@ -313,12 +333,20 @@ class ZenohNetwork:
             as code.
         lease: seconds (default 1.0) after which a silent peer (a cut link, a frozen
             process) counts as gone. Zenoh's own default is 10 s.
+        max_offset: seconds (default 60.0, `rr_actors._core.hlc.MAX_OFFSET`) a clock stamp
+            that comes with a message may be ahead of this host's clock and still be
+            taken in by the hybrid logical clock of this process and of the processes that
+            join through it; one further ahead is refused (counted, and a WARNING a
+            minute names the process it came from), as the HLC paper (Kulkarni et al.
+            2014) and CockroachDB's `max-offset` bound it. Set it above the most the
+            hosts' clocks may differ by: their events are merged in cause-before-effect
+            order only within it (`docs/explanation/failure-semantics.md`).
 
     Raises:
         ConfigError: a bad `system` (or one longer than 64 characters), a malformed
             endpoint, a `tcp/` endpoint with `tls` or a `tls/` one without, a `tls` that
             is neither `None` nor a `ZenohTLS`, a `lease` that is not a positive number
-            of seconds.
+            of seconds, a `max_offset` that is not seconds above 0 and at most a year.
     """
 
     def __init__(
@@ -329,6 +357,7 @@ class ZenohNetwork:
         connect: Iterable[str] = (),
         tls: ZenohTLS | None,
         lease: float = 1.0,
+        max_offset: float = MAX_OFFSET,
     ) -> None:
         self.system = check_name("system", system, "a system name")
         if tls is not None and not _is_tls(tls):
@@ -347,6 +376,7 @@ class ZenohNetwork:
         ):
             raise ConfigError(f"lease must be seconds from 0.01 to 3600, not {lease!r}")
         self.lease = float(lease)
+        self.max_offset = check_max_offset(max_offset)
         if tls is None:
             _warn_plain_tcp(system, self.listen, self.connect)
         self._lock = threading.Lock()
@@ -360,7 +390,8 @@ class ZenohNetwork:
     def __repr__(self) -> str:
         return (
             f"ZenohNetwork(system={self.system!r}, listen={list(self.listen)!r}, "
-            f"connect={list(self.connect)!r}, tls={self.tls!r}, lease={self.lease!r})"
+            f"connect={list(self.connect)!r}, tls={self.tls!r}, lease={self.lease!r}, "
+            f"max_offset={self.max_offset!r})"
         )
 
     # -- opening ---------------------------------------------------------------------------
@@ -375,6 +406,7 @@ class ZenohNetwork:
     def _open_router(self) -> ZenohMember:
         # the member name on this process's events (the host name without TLS)
         set_host(self.tls.name if self.tls is not None else socket.gethostname())
+        CLOCK.max_offset = self.max_offset
         runtime_dir = tempfile.mkdtemp(prefix="rr-zenoh-")  # mode 0700
         path = os.path.join(runtime_dir, "router.sock")
         config = session_config(
@@ -409,6 +441,8 @@ class ZenohNetwork:
                 str(session.zid()),
                 os.getpid(),
                 "" if self.tls is None else self.tls.name,
+                self.max_offset,
+                self.tls,
             )
 
             def closed(member: ZenohMember) -> None:
@@ -424,6 +458,7 @@ class ZenohNetwork:
                 self._address,
                 on_close=closed,
                 link_trouble=None if watch is None else lambda: _no_link(watch.unlinked()),
+                seal=_seal(self.tls, self.system),
             )
             _close_at_exit(f"ZenohNetwork {self.system!r}", member, self.close)
         except BaseException:  # nothing of a network that did not open is left behind:

@@ -35,7 +35,7 @@ from rr_actors._transport.zenoh.access import private_file_trouble
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError
 
-__all__ = ["ZenohTLS", "member_addresses"]
+__all__ = ["ZenohTLS", "authorities", "leaf_of", "member_addresses", "member_of"]
 
 logger = logging.getLogger("rr_actors")
 
@@ -275,6 +275,35 @@ def _addresses(cert: x509.Certificate) -> tuple[str, ...]:
     return tuple(
         str(entry.value) for entry in names if isinstance(entry, x509.IPAddress | x509.DNSName)
     )
+
+
+def authorities(path: str) -> list[x509.Certificate]:
+    """The CA certificates of file `path`, each a CA and in date now.
+
+    Raises:
+        ConfigError: as `ZenohTLS` for its `ca`.
+    """
+    return _authorities(path, datetime.datetime.now(datetime.UTC))
+
+
+def leaf_of(
+    chain: bytes, trusted: list[x509.Certificate], now: datetime.datetime
+) -> x509.Certificate | None:
+    """The host certificate first in PEM `chain` (a host's `cert` file as it is), if every
+    certificate of it is in date at `now`, signed by the next (each intermediate a CA),
+    the last by one of `trusted`; else `None`. Never raises."""
+    try:
+        certificates = x509.load_pem_x509_certificates(chain)
+        if not certificates:
+            return None
+        return _checked_chain(certificates, trusted, "a certificate", "ca", now)
+    except ValueError:  # (a ConfigError is one too)
+        return None
+
+
+def member_of(cert: x509.Certificate) -> str | None:
+    """The member name of host certificate `cert`: its subject common name, if any."""
+    return _common_name(cert)
 
 
 def _authorities(path: str, now: datetime.datetime) -> list[x509.Certificate]:
