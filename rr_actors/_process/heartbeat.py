@@ -23,9 +23,10 @@ delays do not count either: a silence starts when its ping was written, and what
 pipe holds is read before a silence is judged (`ManagerProcess._watch`). Two bounds
 keep the excuse honest:
 
-- the first `step` seconds of a silence always count (the watch is read only once an
-  answer is late: reading it at every ping would cost a file per thread, four times a
-  second, per manager);
+- the first `step` seconds of a silence count whole, unless the previous answer was
+  late too (the watch is read only once an answer is late, or from the ping on after a
+  late one: reading it at every ping would cost two files per thread, four times a
+  second, per manager, on a quiet machine too);
 - a manager silent for `STARVED_LIMIT` times its bound is hung however long it waited:
   one whose registrar is stuck while other threads of it (busy callbacks) keep waiting
   for a CPU would otherwise never be judged, and one that could not answer for that long
@@ -135,6 +136,7 @@ class Heartbeat:
         self._next_ping = self.wake_at
         self._sent = 0
         self._silence: _Silence | None = None
+        self._late = False  # the last answer came after a look at its silence
         self._starved = LogThrottle(logger)  # one line at once, then one a minute at most
 
     def tick(self, now: float) -> int | Hang | None:
@@ -166,6 +168,8 @@ class Heartbeat:
             silence.sent = now
             self._next_ping = now + self.period
             self.wake_at = now + self.step
+            if self._late and self.cpu is not None:  # likely late again: watch it from now
+                silence.base, silence.base_at = self.cpu.sample(), now
 
     def answered(self, number: int, now: float) -> bool:
         """Ping `number` was answered (read at `now`); whether it is the one in flight."""
@@ -173,6 +177,7 @@ class Heartbeat:
         if silence is None or silence.number != number:
             return False  # (an answer to an earlier ping, or none in flight)
         self._silence = None
+        self._late = silence.base is not None and now - silence.sent > self.step
         self.wake_at = max(now, self._next_ping)
         return True
 

@@ -352,6 +352,23 @@ def test_only_the_silence_a_manager_could_run_in_counts_against_it() -> None:
     assert Hang(silent=1.75, waited=0.9375) == beat.tick(2.0)  # 0.25 + 0.125 + 0.4375
 
 
+def test_after_a_late_answer_the_next_silence_is_watched_from_its_ping() -> None:
+    cpu = _Samples()
+    beat = Heartbeat("m", period=0.25, bound=0.75, cpu=cpu, now=0.0)
+    assert 1 == beat.tick(0.25)
+    beat.sent(0.25)
+    assert beat.tick(0.5) is None  # a late answer: looked at
+    assert beat.answered(1, 0.625)
+    assert 2 == beat.tick(0.625)
+    beat.sent(0.625)  # read at once: waited 0.0 then
+
+    cpu.next = CpuSample(stopped=False, waited=0.875)  # waited 0.875 s of 1 s
+    assert beat.tick(1.625) is None  # 0.125 s counted (not 0.25 + 0.125 as above)
+    cpu.next = CpuSample(stopped=False, waited=1.125)  # then 0.25 s of 1 s
+
+    assert Hang(silent=2.0, waited=1.125) == beat.tick(2.625)  # 0.125 + 0.75 counted
+
+
 def test_a_stopped_manager_is_hung_once_past_the_bound_whatever_it_waited() -> None:
     cpu = _Samples()
     beat = Heartbeat("m", period=0.25, bound=0.75, cpu=cpu, now=0.0)
