@@ -311,9 +311,12 @@ class ManagerSpec:
             and a stuck registrar both count as hung. Thread managers have no heartbeat.
         heartbeat_timeout: seconds without an answer to a ping after which a process
             manager counts as hung: it is killed and handled like a crash. Default:
-            three heartbeat periods (0.75 s with the default `heartbeat`). A manager
-            whose answers say that it has been unable to accept connections for that
-            long (out of file descriptors, say) is killed the same way, as unhealthy.
+            three heartbeat periods (0.75 s with the default `heartbeat`). On Linux only
+            the time it could have run counts: time its threads waited for a CPU (an
+            overloaded machine) does not, up to ten times this bound; a stopped or
+            blocked manager is hung at the bound (docs: "What counts as a hang"). A
+            manager whose answers say that it has been unable to accept connections for
+            that long (out of file descriptors, say) is killed the same way, as unhealthy.
         start_timeout: seconds a manager may take to restore, set up and serve.
 
     Raises:
@@ -355,7 +358,8 @@ class ManagerSpec:
 
     @property
     def hang_after(self) -> float | None:
-        """Seconds without a heartbeat answer after which it counts as hung (`None`: off)."""
+        """Seconds without a heartbeat answer after which it counts as hung (`None`: off):
+        seconds it could have run, on Linux (see `heartbeat_timeout`)."""
         if self.heartbeat is None:
             return None
         if self.heartbeat_timeout is not None:

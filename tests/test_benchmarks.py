@@ -43,6 +43,9 @@ SMALLEST = {
         "--duration",
         "1.5",
     ],  # > 1 s: a hang comes every 1-2 s
+    "bench_hang.py": [
+        *("--runs", "1", "--managers", "3", "--hogs", "1", "--hold", "0.3", "--stops", "1"),
+    ],
     "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
     "experiment_phases.py": ["first", "--repeat", "1", "--duration", "1.2"],
     "bench_scale.py": [

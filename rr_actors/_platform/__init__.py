@@ -15,9 +15,24 @@ import os
 import sys
 
 from rr_actors._platform import fork, linux, portable
-from rr_actors._platform.base import GATE_SOURCES, ExitWatch, ListenerGate, Platform
+from rr_actors._platform.base import (
+    GATE_SOURCES,
+    CpuSample,
+    CpuWatch,
+    ExitWatch,
+    ListenerGate,
+    Platform,
+)
 
-__all__ = ["GATE_SOURCES", "PLATFORM", "ExitWatch", "ListenerGate", "Platform"]
+__all__ = [
+    "GATE_SOURCES",
+    "PLATFORM",
+    "CpuSample",
+    "CpuWatch",
+    "ExitWatch",
+    "ListenerGate",
+    "Platform",
+]
 
 
 def _choose() -> Platform:

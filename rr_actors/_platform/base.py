@@ -8,11 +8,12 @@ first line alone). Nothing rr_actors promises depends on a trick.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import multiprocessing.context
 from collections.abc import Callable, Collection, Sequence
 from typing import Protocol
 
-__all__ = ["GATE_SOURCES", "ExitWatch", "ListenerGate", "Platform"]
+__all__ = ["GATE_SOURCES", "CpuSample", "CpuWatch", "ExitWatch", "ListenerGate", "Platform"]
 
 GATE_SOURCES = 256
 """Source addresses a `ListenerGate` drops (or admits) at once at most (more is a
@@ -37,6 +38,39 @@ class ExitWatch(Protocol):
         `None` while the process runs, or when it can no longer be read here (then the
         process sentinel tells it).
         """
+        ...
+
+    def close(self) -> None:
+        """Release the descriptors."""
+        ...
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class CpuSample:
+    """What the kernel says of one process's use of the CPUs, at one moment.
+
+    Attributes:
+        stopped: it is stopped (`SIGSTOP`, a terminal's job control, a debugger): it
+            cannot run at all, however idle the CPUs.
+        waited: seconds its threads have spent runnable but waiting for a CPU (the
+            scheduler's run-queue delay), summed over its threads, since the watch began
+            (a thread that ended keeps its share). It grows only while the machine is
+            too busy to run the process when it could run.
+    """
+
+    stopped: bool
+    waited: float
+
+
+class CpuWatch(Protocol):
+    """Reads how one process gets the CPUs it asks for (for the heartbeat's judgement).
+
+    Made by [`Platform.watch_cpu`][rr_actors._platform.base.Platform.watch_cpu] while
+    the process runs; used by its parent's watcher thread only.
+    """
+
+    def sample(self) -> CpuSample | None:
+        """Read it now; `None` once the process has exited (or cannot be read)."""
         ...
 
     def close(self) -> None:
@@ -126,6 +160,15 @@ class Platform(Protocol):
 
         An optimisation: the process sentinel always tells the exit too, once the
         process's parent has reaped it.
+        """
+        ...
+
+    def watch_cpu(self, pid: int) -> CpuWatch | None:
+        """Something that tells whether process `pid` waits for a CPU (in the parent), or
+        `None` where the platform does not say.
+
+        A refinement of the heartbeat's judgement (`rr_actors._process.heartbeat`):
+        without it, a manager silent past its bound is hung whatever the reason.
         """
         ...
 

@@ -18,13 +18,15 @@ import multiprocessing.context
 import os
 import signal
 import threading
+import time
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 from rr_actors._platform import forkserver as own_forkserver
 from rr_actors._platform import linux_gate, portable
+from rr_actors._platform.base import CpuSample
 
-__all__ = ["PARENT_GONE_EXIT", "LinuxPlatform", "PidfdExitWatch"]
+__all__ = ["PARENT_GONE_EXIT", "LinuxPlatform", "PidfdExitWatch", "ProcCpuWatch"]
 
 logger = logging.getLogger("rr_actors")
 
@@ -200,6 +202,121 @@ class PidfdExitWatch:
                 os.close(fd)
 
 
+class _Thread(NamedTuple):
+    """One thread's figures at a sample of `ProcCpuWatch` (nanoseconds)."""
+
+    ran: int  # time on a CPU
+    delay: int  # run-queue delay of the waits that ended (it got a CPU after them)
+    arrivals: int  # how many times it got a CPU
+    runnable: bool  # its state was R (running or waiting for a CPU)
+    pending: float  # seconds of the wait under way, as far as seen (not in `delay` yet)
+
+
+class ProcCpuWatch:
+    """A process's run-queue delay and stopped state, read from `/proc/<pid>`.
+
+    What it buys: the heartbeat tells a manager starved of CPU (runnable, waiting its
+    turn on a loaded machine) from a hung one (stopped, blocked, or running without
+    answering). The kernel counts, per thread, its time on a CPU, its run-queue delay
+    and how many times it got a CPU (`/proc/<pid>/task/<tid>/schedstat`, in every
+    kernel built with `CONFIG_SCHED_INFO`, which that file needs); the process's state
+    (`/proc/<pid>/stat`, field 3) says `T` or `t` when it is stopped or traced. The
+    delay of a wait is added only when the wait ends, so a wait under way (a thread that
+    never gets a CPU) is estimated: a thread runnable (`R`) at two samples that did not
+    get a CPU in between, or ran for only part of that time, waited the rest. psutil does
+    not read the run-queue delay (its CPU times say what a process got, not what it
+    waited for), so this is read here, and only while a heartbeat answer is late: a
+    sample costs two reads per thread. Read through a directory descriptor opened while
+    the process ran, so that a recycled pid cannot be read instead.
+    """
+
+    __slots__ = ("at", "gone", "proc", "threads")
+
+    def __init__(self, proc: int) -> None:
+        self.proc = proc
+        self.threads: dict[str, _Thread] = {}  # by tid, at the last sample
+        self.gone = 0.0  # seconds waited by threads that have ended since
+        self.at = 0.0  # monotonic time of the last sample
+
+    @classmethod
+    def open(cls, pid: int) -> ProcCpuWatch | None:
+        """Watch process `pid` (call it while the process runs); `None` if the kernel
+        does not say (no `/proc`, or no schedstat files)."""
+        try:
+            proc = os.open(f"/proc/{pid}", os.O_RDONLY | os.O_DIRECTORY)
+        except OSError:
+            return None
+        watch = cls(proc)
+        try:
+            _read_at(proc, "schedstat")
+        except OSError:
+            watch.close()
+            return None
+        return watch
+
+    def sample(self) -> CpuSample | None:
+        """The process's state and total run-queue delay now; `None` once it has exited."""
+        try:
+            stat = _read_at(self.proc, "stat")
+            task = os.open("task", os.O_RDONLY | os.O_DIRECTORY, dir_fd=self.proc)
+            try:
+                tids = os.listdir(task)
+            finally:
+                os.close(task)
+        except OSError:
+            return None  # exited: the task and its /proc entry are gone
+        now = time.monotonic()
+        since = now - self.at if self.threads else 0.0
+        threads: dict[str, _Thread] = {}
+        for tid in tids:
+            seen = self._thread(tid, self.threads.get(tid), since)
+            if seen is not None:
+                threads[tid] = seen
+        for tid, before in self.threads.items():
+            after = threads.get(tid)
+            if after is None or after.arrivals < before.arrivals:  # ended (or tid reused)
+                self.gone += before.delay / 1e9 + before.pending
+        self.threads, self.at = threads, now
+        waited = self.gone + sum(t.delay / 1e9 + t.pending for t in threads.values())
+        return CpuSample(stopped=_state(stat) in ("T", "t"), waited=waited)
+
+    def _thread(self, tid: str, before: _Thread | None, since: float) -> _Thread | None:
+        """Thread `tid`'s figures now (`None`: it ended meanwhile)."""
+        try:
+            ran, delay, arrivals = map(int, _read_at(self.proc, f"task/{tid}/schedstat").split())
+            runnable = _state(_read_at(self.proc, f"task/{tid}/stat")) == "R"
+        except (OSError, ValueError):
+            return None
+        pending = 0.0
+        if (
+            before is not None
+            and runnable
+            and before.runnable
+            and arrivals == before.arrivals  # no CPU since: the same wait (or run) goes on
+        ):
+            pending = before.pending + max(0.0, since - (ran - before.ran) / 1e9)
+        return _Thread(ran, delay, arrivals, runnable, pending)
+
+    def close(self) -> None:
+        """Close the `/proc/<pid>` descriptor."""
+        with contextlib.suppress(OSError):
+            os.close(self.proc)
+
+
+def _state(stat: str) -> str:
+    """The state letter of a `/proc/.../stat` line (field 3, after the name)."""
+    return stat[stat.rindex(")") + 2 :][:1]
+
+
+def _read_at(directory: int, path: str) -> str:
+    """The text of the small file `path` under the directory descriptor `directory`."""
+    fd = os.open(path, os.O_RDONLY, dir_fd=directory)
+    try:
+        return os.read(fd, 4096).decode("ascii", "replace")
+    finally:
+        os.close(fd)
+
+
 class LinuxPlatform:
     """The tricks, for Linux with glibc and CPython 3.11-3.13."""
 
@@ -306,6 +423,10 @@ class LinuxPlatform:
     def watch_exit(self, pid: int) -> PidfdExitWatch | None:
         """A pidfd watch of process `pid` (see `PidfdExitWatch`); `None` before Linux 5.3."""
         return PidfdExitWatch.open(pid)
+
+    def watch_cpu(self, pid: int) -> ProcCpuWatch | None:
+        """A `/proc` watch of process `pid`'s run-queue delay (see `ProcCpuWatch`)."""
+        return ProcCpuWatch.open(pid)
 
     def set_process_name(self, title: str) -> None:
         """Set the kernel's name of this process (`prctl(PR_SET_NAME)`, 15 bytes kept).

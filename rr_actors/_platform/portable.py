@@ -14,7 +14,7 @@ import multiprocessing.context
 from collections.abc import Callable, Sequence
 
 from rr_actors._platform import fork
-from rr_actors._platform.base import ExitWatch, ListenerGate
+from rr_actors._platform.base import CpuWatch, ExitWatch, ListenerGate
 
 __all__ = ["PARENT_GONE_EXIT", "PortablePlatform"]
 
@@ -64,6 +64,12 @@ class PortablePlatform:
 
     def watch_exit(self, pid: int) -> ExitWatch | None:
         """`None`: the process sentinel alone tells the exit."""
+        del pid
+        return None
+
+    def watch_cpu(self, pid: int) -> CpuWatch | None:
+        """`None`: no portable way to read a process's run-queue delay (so a manager silent
+        past its heartbeat bound counts as hung, starved or not)."""
         del pid
         return None
 

@@ -8,6 +8,8 @@
                                the platform's exit watch (a pidfd on Linux)
                                ── Ping(n) every `heartbeat` s ─────────►  registrar mailbox
                                ◄── Pong(n, trouble) ────────────────────
+                               a late answer: Heartbeat judges the silence
+                               (hung: SIGKILL ─────────────────────────►)
                                exit seen ──► on_exit(ManagerExit) ──► the supervisor's mailbox
 ```
 
@@ -16,10 +18,13 @@ control pipe; one watcher thread per process blocks on the process sentinel, the
 where the platform has one, an early exit watch (`Platform.watch_exit`: on Linux a pidfd,
 which tells the exit before the forkserver has reaped the child), and sends the heartbeat
 pings. A manager is killed and reported like a crash when it is *hung* (no answer to a
-ping for `heartbeat_timeout` seconds) or *unhealthy*: its answers say that its listener
-has been unable to accept connections (out of file descriptors, say) for that long. The
-child's side is `rr_actors._process.child`; spares are in `rr_actors._process.spare`;
-the messages of the control pipe are `rr_actors._process.control`'s.
+ping for `heartbeat_timeout` seconds of time it could have run: `Heartbeat` judges that,
+`rr_actors._process.heartbeat`) or *unhealthy*: its answers say that its listener has
+been unable to accept connections (out of file descriptors, say) for that long. What
+the pipe holds is read before a silence is judged: an answer that came while the watcher
+thread itself waited (for the GIL, for a CPU) counts. The child's side is
+`rr_actors._process.child`; spares are in `rr_actors._process.spare`; the messages of
+the control pipe are `rr_actors._process.control`'s.
 """
 
 from __future__ import annotations
@@ -58,6 +63,7 @@ from rr_actors._process.control import (
     Stop,
     SyncEvents,
 )
+from rr_actors._process.heartbeat import Hang, Heartbeat
 from rr_actors._process.received import Received
 from rr_actors._process.tally import Tally
 from rr_actors._transport.base import Address
@@ -80,6 +86,10 @@ logger = logging.getLogger("rr_actors")
 
 _SHUTDOWN_SIGNALS = frozenset({signal.SIGTERM})
 """Signals that ask a process to stop: an exit by one is OTP's `shutdown`, not a crash."""
+
+_READ_AT_ONCE = 1000
+"""Messages of a manager's the watcher reads in one turn at most (then it judges anyway:
+a manager that floods its pipe cannot put off the judgement of its silence for ever)."""
 
 
 class ManagerExit:
@@ -156,13 +166,22 @@ class ManagerProcess:
         self._received = received if received is not None else Received(on_events, None)
         self.conn = conn
         self._send_lock = threading.Lock()
-        self._heartbeat = heartbeat
-        self._heartbeat_timeout = heartbeat_timeout
+        self._beat = (
+            None
+            if heartbeat is None
+            else Heartbeat(
+                name,
+                heartbeat,
+                heartbeat_timeout or 3.0 * heartbeat,
+                PLATFORM.watch_cpu(self.pid),
+                time.monotonic(),
+            )
+        )
         self._on_exit = on_exit
         self._on_events = on_events
         self._syncs: dict[int, threading.Event] = {}  # events-sync tokens waiting for answers
         self._sync_tokens = itertools.count(1)
-        self._hung_for: float | None = None
+        self._hung: Hang | None = None
         self._unhealthy: str | None = None  # why it was killed although it answered
         self._stopping = False
         self.exited = threading.Event()
@@ -299,38 +318,31 @@ class ManagerProcess:
         waitables: list[Any] = [self.process.sentinel, self.conn]
         if self._exit_watch is not None:
             waitables.append(self._exit_watch)
-        period = self._heartbeat
-        sent = 0
-        oldest_unanswered: float | None = None
-        next_ping = time.monotonic() + (period or 0.0)
+        beat = self._beat
         while True:
-            if period is None or self._stopping:
+            if beat is None or self._stopping:
                 timeout = None  # stopping: no pings; block until it exits (or the pipe says)
             else:
-                timeout = max(0.0, next_ping - time.monotonic())
+                timeout = max(0.0, beat.wake_at - time.monotonic())
             woke = multiprocessing.connection.wait(waitables, timeout)
             ended, exitcode = self._ended(woke, waitables)
             if ended:
                 break
-            answer = self._read_control(sent, waitables) if self.conn in woke else None
-            if answer is not None:
-                oldest_unanswered = None
-            if period is None or self._stopping:
+            now = time.monotonic()  # what came before now is read before a judgement
+            health = self._read_available(waitables, now)
+            if beat is None or self._stopping:
                 continue
-            now = time.monotonic()
-            hung_after = self._heartbeat_timeout or 3.0 * period
-            if answer is not None and answer[0] > hung_after:
-                self._kill_unhealthy(*answer)
-                period = None
-            elif oldest_unanswered is not None and now - oldest_unanswered > hung_after:
-                self._hang(now - oldest_unanswered)
-                period = None
-            elif now >= next_ping:
-                if oldest_unanswered is None:  # one ping in flight at a time
-                    sent += 1
-                    oldest_unanswered = now
-                    self._send(Ping(sent))
-                next_ping = now + period
+            if health is not None and health[0] > beat.bound:
+                self._kill_unhealthy(*health)
+                beat = None
+                continue
+            verdict = beat.tick(now)
+            if isinstance(verdict, Hang):
+                self._hang(verdict)
+                beat = None
+            elif verdict is not None:
+                self._send(Ping(verdict))
+                beat.sent(time.monotonic())
         self._finish(exitcode)
 
     def _ended(self, woke: list[Any], waitables: list[Any]) -> tuple[bool, int | None]:
@@ -345,14 +357,26 @@ class ManagerProcess:
             waitables.remove(watch)  # reaped meanwhile: the sentinel says it
         return False, None
 
-    def _read_control(self, sent: int, waitables: list[Any]) -> tuple[float, str] | None:
-        """Read one message of the manager's; if it answers heartbeat ping `sent`, its health.
+    def _read_available(self, waitables: list[Any], now: float) -> tuple[float, str] | None:
+        """Read what the manager has sent (`_READ_AT_ONCE` messages at most); the health
+        its answer to the ping in flight says, if that came (see `_read_control`)."""
+        health = None
+        for _ in range(_READ_AT_ONCE):
+            if self.conn not in waitables or not _readable(self.conn):
+                break
+            answer = self._read_control(waitables, now)
+            if answer is not None:
+                health = answer
+        return health
+
+    def _read_control(self, waitables: list[Any], now: float) -> tuple[float, str] | None:
+        """Read one message of the manager's; if it answers the ping in flight, its health.
 
         Returns:
-            `None` unless the message answers ping `sent`; then for how long (seconds)
-            and why the manager has been unable to accept connections (`0.0, ""` if it
-            can). A batch of forwarded events is handed to `on_events` here (the
-            watcher thread).
+            `None` unless the message answers the ping in flight; then for how long
+            (seconds) and why the manager has been unable to accept connections (`0.0,
+            ""` if it can). A batch of forwarded events is handed to `on_events` here
+            (the watcher thread).
         """
         try:
             message = self.conn.recv()
@@ -363,29 +387,27 @@ class ManagerProcess:
         if handler is None:
             logger.error("manager %s sent an unknown control message %r", self.name, message)
             return None
-        return handler(self, message, sent)
+        return handler(self, message, now)
 
-    def _events(self, message: Events, _sent: int) -> None:
+    def _events(self, message: Events, _now: float) -> None:
         """A batch of forwarded events: to `on_events` (the watcher thread)."""
         self._received.deliver(self.name, message.batch)
 
-    def _synced(self, message: EventsSynced, _sent: int) -> None:
+    def _synced(self, message: EventsSynced, _now: float) -> None:
         waiting = self._syncs.get(message.token)
         if waiting is not None:
             waiting.set()
 
-    def _pong(self, message: Pong, sent: int) -> tuple[float, str] | None:
-        """The health a pong of ping `sent` says; `None` for a late one (an older ping)."""
-        if message.number != sent:
+    def _pong(self, message: Pong, now: float) -> tuple[float, str] | None:
+        """The health a pong of the ping in flight says; `None` for another one."""
+        if self._beat is None or not self._beat.answered(message.number, now):
             return None
         trouble = message.trouble
         return (0.0, "") if trouble is None else (float(trouble[0]), str(trouble[1]))
 
-    def _hang(self, silent_for: float) -> None:
-        self._hung_for = silent_for
-        logger.error(
-            "manager %s hangs (no heartbeat answer for %.3f s): killing it", self.name, silent_for
-        )
+    def _hang(self, hang: Hang) -> None:
+        self._hung = hang
+        logger.error("manager %s hangs (%s): killing it", self.name, hang.reason())
         self.kill()
 
     def _kill_unhealthy(self, unable_for: float, why: str) -> None:
@@ -404,10 +426,8 @@ class ManagerProcess:
         self._received.count_lost(self.name, self.pid)  # what it built but never sent
         with contextlib.suppress(OSError):
             self.conn.close()
-        if self._hung_for is not None:
-            result = ManagerExit(
-                f"hung: no heartbeat answer for {self._hung_for:.3f} s (killed)", normal=False
-            )
+        if self._hung is not None:
+            result = ManagerExit(f"hung: {self._hung.reason()} (killed)", normal=False)
         elif self._unhealthy is not None:
             result = ManagerExit(self._unhealthy, normal=False)
         else:
@@ -425,9 +445,11 @@ class ManagerProcess:
             release(self.process)
             if self._exit_watch is not None:
                 self._exit_watch.close()
+            if self._beat is not None:
+                self._beat.close()
 
 
-_HANDLERS: dict[type[Any], Callable[[ManagerProcess, Any, int], tuple[float, str] | None]] = {
+_HANDLERS: dict[type[Any], Callable[[ManagerProcess, Any, float], tuple[float, str] | None]] = {
     Events: ManagerProcess._events,
     EventsSynced: ManagerProcess._synced,
     Pong: ManagerProcess._pong,

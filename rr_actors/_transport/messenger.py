@@ -55,8 +55,11 @@ from rr_actors.errors import (
     ConfigError,
     InternalError,
     MessageTooLargeError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
     RrError,
     TransferError,
+    UnknownRegistrarError,
 )
 
 __all__ = [
@@ -75,6 +78,9 @@ __all__ = [
 ]
 
 logger = logging.getLogger("rr_actors")
+
+_GONE = (RegistrarStoppedError, RegistrarUnavailableError, UnknownRegistrarError)
+"""What `DIRECTORY.lookup` raises for a registrar that is not (or no longer) here."""
 
 Lost = Callable[[], None]
 """Called (on any thread) when a queued frame could not be sent: the link ended."""
@@ -412,11 +418,13 @@ class Messenger:
         unpickled, or wants an answer but has no `reply` field, is answered with a
         `TransferError` or `InternalError` (dropped if it wants none). A `Run` runs on a
         fresh thread (`rr-run-<name>`), not on the registrar. If the registrar cannot be
-        told, the stand-in reply answers the error.
+        told, the stand-in reply answers the error; a message that wants no answer, for a
+        registrar that is gone (stopped, dead, being restarted: a peer's message racing
+        its end), is dropped with one INFO line that says so.
 
         Raises:
-            Exception: the registrar cannot be told and the message wants no answer (the
-                carrier logs it).
+            Exception: the registrar cannot be told for another reason and the message
+                wants no answer (the carrier logs it).
         """
         name, limit = endpoint.name, endpoint.max_message_bytes
         if len(payload) > limit:
@@ -453,9 +461,12 @@ class Messenger:
         try:
             self._lookup(name).deliver(message)  # (this thread may handle it: `Peer.deliver`)
         except Exception as exc:
-            if reply is None:
+            if reply is not None:
+                reply.set_error(exc if isinstance(exc, RrError) else RrError(f"{exc!r}"))
+            elif isinstance(exc, _GONE):  # no answer wanted: nobody to tell but the log
+                logger.info("dropped a %s: %s", what(message, name), exc)
+            else:
                 raise
-            reply.set_error(exc if isinstance(exc, RrError) else RrError(f"{exc!r}"))
 
     def oversized(self, endpoint: Endpoint, process: Any, token: int, size: int) -> None:
         """A message of `size` bytes for `endpoint` is over its `max_message_bytes`: it is

@@ -33,6 +33,7 @@ PORTABLE_MODULES = (
     "tests/registrar/test_reconcile_edges.py",
     "tests/process/test_descriptor_leaks.py",
     "tests/process/test_spare_warm_up.py",
+    "tests/process/test_heartbeat.py",
 )
 """The test modules that use manager processes, run again on the portable platform."""
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 import os
 import pickle
 import signal
@@ -24,7 +25,7 @@ import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._transport import System
 from rr_actors.testing import intercept
-from rr_actors.testing.carrier import Revoke
+from rr_actors.testing.carrier import Revoke, Served
 from tests.support.carriers import (
     BIG,
     GATE,
@@ -390,6 +391,72 @@ def test_a_call_to_a_cleanly_stopped_process_fails_as_stopped(
 
     with pytest.raises(rr.RegistrarStoppedError):
         consumer.call(provider.name, "echo", "r", timeout=10)
+
+
+class _EndHeld:
+    """A registrar as a carrier serves it, whose end the carrier hears only once `heard`
+    is set: it keeps delivering to a registrar that stopped (the window in which a
+    peer's message races the stop, held open)."""
+
+    def __init__(self, served: Served) -> None:
+        self.served = served
+        self.heard = threading.Event()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.served, name)
+
+    def wait_ended(self, timeout: float | None = None) -> bool:
+        return self.heard.wait(timeout) and self.served.wait_ended(timeout)
+
+
+class _Lines(logging.Handler):
+    """The `rr_actors` log lines about registrar `name`; `came` is set at the first."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(logging.DEBUG)
+        self.name = name
+        self.records: list[logging.LogRecord] = []
+        self.came = threading.Event()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.name in record.getMessage():
+            self.records.append(record)
+            self.came.set()
+
+
+def _tell_revoke(name: str, _registrar: rr.ResourceRegistrar) -> None:
+    """Tell registrar `name` a `Revoke`: a message that wants no answer."""
+    DIRECTORY.lookup(name).tell(Revoke(("q-1",)))
+
+
+def test_a_message_for_a_registrar_stopped_meanwhile_is_dropped_in_one_line_saying_so(
+    system: System, start_provider: ProviderFactory, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Issue 40: a peer's message that wants no answer, reaching a registrar just stopped,
+    # was logged at ERROR as "dropped a malformed message" with a RegistrarStoppedError
+    # traceback.
+    provider = start_provider()
+    name = f"stopped-{uuid.uuid4().hex[:8]}"
+    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
+    served = _EndHeld(Served(registrar))
+    system.serve(served)
+    lines = _Lines(name)
+    log = logging.getLogger("rr_actors")
+    caplog.set_level(logging.INFO, logger="rr_actors")
+    registrar.stop()
+    log.addHandler(lines)
+    try:
+        system.run(provider.name, functools.partial(_tell_revoke, name), timeout=10)
+        assert lines.came.wait(10), "the message was never heard of"
+    finally:
+        log.removeHandler(lines)
+        served.heard.set()
+
+    assert [("INFO", None)] == [(r.levelname, r.exc_info) for r in lines.records]
+    assert (
+        f"dropped a Revoke message to registrar {name!r}: registrar {name!r} was stopped"
+        == lines.records[0].getMessage()
+    )
 
 
 def test_a_call_to_a_name_nobody_serves_is_an_unknown_server(

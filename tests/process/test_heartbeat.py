@@ -1,0 +1,401 @@
+"""The heartbeat's judgement (`rr_actors._process.heartbeat`): hung, or only starved.
+
+Real manager processes, real signals, real starvation. A manager is *starved* here by the
+kernel's scheduler, not by a mock: every thread of it gets the `SCHED_IDLE` policy and is
+pinned to one CPU that a busy loop at nice -20 holds, so it stays runnable but runs only
+when that CPU has nothing else to do (never, while the loop runs). A *stopped* one gets
+`SIGSTOP`, a *stuck* one has its registrar actor blocked on an event. What waits for a
+judgement waits on the heartbeat's own log lines (a handler that sets an event), bounded.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from multiprocessing.connection import Connection
+from typing import Any
+
+import cloudpickle
+import pytest
+
+import rr_actors as rr
+from rr_actors._platform.base import CpuSample
+from rr_actors._process.context import mp_context, start_forkserver
+from rr_actors._process.control import Events, Ping, Pong, Ready, Stop
+from rr_actors._process.heartbeat import STARVED_LIMIT, Hang, Heartbeat
+from rr_actors._process.manager import ManagerExit, ManagerProcess
+from rr_actors.testing import SharedObjects, run_on_actor
+from tests.support.supervising import linux_trick, pid_of, process
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux scheduling")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def forkserver() -> None:
+    """Start the forkserver before the leak check counts this process's children."""
+    start_forkserver()
+
+
+# -- helpers ------------------------------------------------------------------------------------
+
+
+class _Heard(logging.Handler):
+    """Sets `event` at the first record of the `rr_actors` log that contains one of `texts`."""
+
+    def __init__(self, texts: tuple[str, ...]) -> None:
+        super().__init__(logging.DEBUG)
+        self.texts = texts
+        self.event = threading.Event()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if any(text in record.getMessage() for text in self.texts):
+            self.records.append(record)
+            self.event.set()
+
+
+@contextlib.contextmanager
+def heard(*texts: str) -> Iterator[_Heard]:
+    """The `rr_actors` log lines that contain one of `texts`, from now on."""
+    handler = _Heard(texts)
+    log = logging.getLogger("rr_actors")
+    log.addHandler(handler)
+    try:
+        yield handler
+    finally:
+        log.removeHandler(handler)
+
+
+def _threads(pid: int) -> set[int]:
+    return {int(tid) for tid in os.listdir(f"/proc/{pid}/task")}
+
+
+def _each_thread(pid: int, change: Callable[[int], None]) -> None:
+    """`change(tid)` for every thread of `pid`, again until no new thread appeared (a thread
+    started meanwhile inherits its creator's policy and CPUs once its creator has them)."""
+    done: set[int] = set()
+    while todo := _threads(pid) - done:
+        for tid in todo:
+            with contextlib.suppress(ProcessLookupError):  # it ended meanwhile
+                change(tid)
+        done |= todo
+
+
+@contextlib.contextmanager
+def busy_cpu(*, nice: int = 0) -> Iterator[int]:
+    """One CPU of this process's kept busy by a Python loop at `nice`; yields that CPU."""
+    cpu = min(os.sched_getaffinity(0))
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        os.sched_setaffinity(hog.pid, {cpu})
+        os.setpriority(os.PRIO_PROCESS, hog.pid, nice)  # (below 0: root only)
+        yield cpu
+    finally:
+        hog.kill()
+        hog.wait(10)
+
+
+@contextlib.contextmanager
+def pinned(pid: int, cpu: int, *, idle: bool = False) -> Iterator[None]:
+    """Every thread of process `pid` on `cpu` only (and, `idle`, at `SCHED_IDLE`: it runs
+    only when nothing else wants that CPU); all CPUs and the normal policy after."""
+    policy = os.SCHED_IDLE if idle else os.SCHED_OTHER
+
+    def pin(tid: int) -> None:
+        os.sched_setaffinity(tid, {cpu})
+        os.sched_setscheduler(tid, policy, os.sched_param(0))
+
+    everywhere = os.sched_getaffinity(0)
+
+    def free(tid: int) -> None:
+        os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+        os.sched_setaffinity(tid, everywhere)
+
+    _each_thread(pid, pin)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(FileNotFoundError):  # (it was killed: nothing to free)
+            _each_thread(pid, free)
+
+
+@contextlib.contextmanager
+def starved(pid: int) -> Iterator[None]:
+    """Process `pid` runnable but kept off the CPUs (see the module's docstring)."""
+    with busy_cpu(nice=-20) as cpu, pinned(pid, cpu, idle=True):
+        yield
+
+
+# -- hung: stopped, stuck -----------------------------------------------------------------------
+
+
+def test_a_stopped_manager_is_killed_as_hung_and_restarted(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    name = f"erm-{uid}"
+    sup = supervisors([process(name, heartbeat=0.1, heartbeat_timeout=0.5)]).start()
+    old = pid_of(sup, name)
+
+    os.kill(old, signal.SIGSTOP)
+    info = sup.wait_restarted(name, timeout=15.0)
+
+    assert info.last_exit is not None
+    assert (True, True) == (info.last_exit.startswith("hung"), info.pid != old)
+
+
+@linux_trick
+def test_a_stopped_manager_is_told_stopped_and_killed_even_while_its_cpu_is_busy(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # Its CPU is shared with a busy loop (it still gets half of it: SIGSTOP takes effect),
+    # so some of its threads may wait for it; a stopped process is hung all the same.
+    name = f"erm-{uid}"
+    sup = supervisors([process(name, heartbeat=0.1, heartbeat_timeout=0.5)]).start()
+    old = pid_of(sup, name)
+
+    with busy_cpu() as cpu, pinned(old, cpu):
+        os.kill(old, signal.SIGSTOP)
+        info = sup.wait_restarted(name, timeout=15.0)
+
+    assert info.last_exit is not None
+    assert info.last_exit.startswith("hung: no heartbeat answer for")
+    assert "(stopped: SIGSTOP or a debugger)" in info.last_exit
+
+
+def _block_actor(gate: Any) -> Callable[[rr.ResourceRegistrar], None]:
+    def block(registrar: rr.ResourceRegistrar) -> None:
+        run_on_actor(registrar, lambda: gate.wait(30))  # its mailbox waits behind this
+
+    return block
+
+
+def test_a_manager_whose_registrar_is_stuck_is_killed_as_hung_although_its_cpu_is_busy(
+    supervisors: Callable[..., rr.Supervisor], uid: str, process_helpers: SharedObjects
+) -> None:
+    # Its registrar sleeps on an event (a deadlock, say): no thread of it waits for a CPU,
+    # so the busy CPU it is pinned to excuses nothing.
+    name = f"erm-{uid}"
+    sup = supervisors([process(name, heartbeat=0.1, heartbeat_timeout=0.5)]).start()
+    old = pid_of(sup, name)
+    gate = process_helpers.event()
+
+    with busy_cpu() as cpu, pinned(old, cpu), heard("hangs") as hangs:
+        sup.run_in(name, _block_actor(gate))
+        assert hangs.event.wait(15.0)
+        info = sup.wait_restarted(name, timeout=15.0)
+    gate.set()
+
+    assert info.last_exit is not None
+    assert info.last_exit.startswith("hung: no heartbeat answer for")
+    assert "stopped" not in info.last_exit
+
+
+# -- starved: not hung --------------------------------------------------------------------------
+
+
+@linux_trick
+def test_a_starved_manager_is_not_killed_as_hung(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    name = f"erm-{uid}"
+    sup = supervisors([process(name, heartbeat=0.1, heartbeat_timeout=0.5)]).start()
+    app = sup.registrar(f"app-{uid}")
+    pid = pid_of(sup, name)
+
+    with heard("could run for only", "hangs") as judged, starved(pid):
+        # its silence passes the bound (0.5 s) while it waits for the CPU
+        assert judged.event.wait(30.0), "no judgement of its silence within 30 s"
+    answered = app.call(name, "echo", "after", timeout=15.0)
+
+    assert ["WARNING"] == [r.levelname for r in judged.records], judged.records[0].getMessage()
+    assert f"manager {name} has not answered its heartbeat" in judged.records[0].getMessage()
+    info = sup.child(name)
+    assert (pid, 0, "after") == (info.pid, info.restarts, answered.response)
+
+
+@linux_trick
+def test_a_manager_starved_for_the_limit_is_killed_as_hung_all_the_same(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # 10 times its bound of 0.2 s: 2 s of a silence spent waiting for a CPU
+    name = f"erm-{uid}"
+    sup = supervisors([process(name, heartbeat=0.05, heartbeat_timeout=0.2)]).start()
+    pid = pid_of(sup, name)
+
+    with heard("hangs") as hangs, starved(pid):
+        assert hangs.event.wait(30.0)  # (then the CPU is freed: a starved process dies slowly)
+    info = sup.wait_restarted(name, timeout=15.0)
+
+    assert info.last_exit is not None
+    assert info.last_exit.startswith("hung: no heartbeat answer for")
+    assert f"waiting for a CPU ({STARVED_LIMIT:g}x its bound)" in info.last_exit
+    silent = float(info.last_exit.split("for ")[1].split(" s")[0])
+    assert silent >= STARVED_LIMIT * 0.2
+
+
+# -- the watcher's own delays -------------------------------------------------------------------
+
+HELD_PING = 2
+"""The ping whose answer the manager double sends right behind a batch of events."""
+
+
+def answers_behind_events(conn: Connection) -> None:
+    """A manager process's double: ready, then it answers every ping at once; the answer
+    to ping `HELD_PING` comes right behind an `Events` batch, and ping `HELD_PING + 2`
+    is told by one more batch, `"later"`."""
+    conn.send(Ready(os.getpid()))
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            os._exit(0)
+        if isinstance(message, Stop):
+            os._exit(0)
+        if isinstance(message, Ping):
+            if message.number == HELD_PING:
+                conn.send(Events(["hold"]))
+            if message.number == HELD_PING + 2:
+                conn.send(Events(["later"]))
+            conn.send(Pong(message.number))
+
+
+class _Scripted:
+    """What `ManagerProcess.start` takes a spare for: a running process (here the double
+    `answers_behind_events`) and its control pipe."""
+
+    def __init__(self) -> None:
+        ctx = mp_context()
+        self.conn, child = ctx.Pipe(duplex=True)
+        self.process = ctx.Process(target=answers_behind_events, args=(child,), daemon=True)  # type: ignore[attr-defined]
+        self.process.start()
+        child.close()
+
+    def take(self, *_args: Any, **_kwargs: Any) -> bool:
+        return True
+
+
+def test_an_answer_that_came_while_the_watcher_was_held_up_is_read_before_any_judgement(
+    uid: str,
+) -> None:
+    # The watcher thread hands each batch of events to `on_events`; this one holds it up
+    # for twice the bound (as a starved supervisor's process would hold it: waiting for a
+    # CPU, for the GIL) while the answer to the ping in flight waits in the pipe. That
+    # answer counts: the manager answered at once.
+    bound = 0.5
+    exited: list[ManagerExit] = []
+    outcome = threading.Event()
+
+    def on_events(batch: list[Any]) -> None:
+        if "hold" in batch:
+            threading.Event().wait(2 * bound)  # a duration held, not a synchronisation
+        if "later" in batch:
+            outcome.set()  # two more pings were answered since
+
+    def on_exit(how: ManagerExit) -> None:
+        exited.append(how)
+        outcome.set()
+
+    handle = ManagerProcess.start(
+        f"held-{uid}",
+        cloudpickle.dumps(None),
+        rr.RegistrarConfig(name=f"held-{uid}"),
+        None,
+        start_timeout=30.0,
+        heartbeat=0.1,
+        heartbeat_timeout=bound,
+        on_exit=on_exit,
+        spare=_Scripted(),  # type: ignore[arg-type]
+        forward_events=True,
+        on_events=on_events,
+    )
+    try:
+        assert outcome.wait(20.0)
+        assert [] == exited
+    finally:
+        handle.stop(5.0)
+
+
+# -- the judgement's arithmetic -----------------------------------------------------------------
+
+
+class _Samples:
+    """A `CpuWatch` that reads what the test put in `next`."""
+
+    def __init__(self) -> None:
+        self.next = CpuSample(stopped=False, waited=0.0)
+
+    def sample(self) -> CpuSample | None:
+        return self.next
+
+    def close(self) -> None:
+        pass
+
+
+def test_only_the_silence_a_manager_could_run_in_counts_against_it() -> None:
+    cpu = _Samples()
+    beat = Heartbeat("m", period=0.25, bound=0.75, cpu=cpu, now=0.0)
+    assert 1 == beat.tick(0.25)  # ping 1
+    beat.sent(0.25)
+    assert beat.tick(0.5) is None  # late: the watch is read (0.25 s counted whole)
+
+    cpu.next = CpuSample(stopped=False, waited=0.875)  # waited 0.875 s of the next 1 s
+    starved = beat.tick(1.5)
+    cpu.next = CpuSample(stopped=False, waited=0.9375)  # then 0.0625 s of 0.5 s
+
+    assert starved is None  # 0.25 + 0.125 counted
+    assert Hang(silent=1.75, waited=0.9375) == beat.tick(2.0)  # 0.25 + 0.125 + 0.4375
+
+
+def test_after_a_late_answer_the_next_silence_is_watched_from_its_ping() -> None:
+    cpu = _Samples()
+    beat = Heartbeat("m", period=0.25, bound=0.75, cpu=cpu, now=0.0)
+    assert 1 == beat.tick(0.25)
+    beat.sent(0.25)
+    assert beat.tick(0.5) is None  # a late answer: looked at
+    assert beat.answered(1, 0.625)
+    assert 2 == beat.tick(0.625)
+    beat.sent(0.625)  # read at once: waited 0.0 then
+
+    cpu.next = CpuSample(stopped=False, waited=0.875)  # waited 0.875 s of 1 s
+    assert beat.tick(1.625) is None  # 0.125 s counted (not 0.25 + 0.125 as above)
+    cpu.next = CpuSample(stopped=False, waited=1.125)  # then 0.25 s of 1 s
+
+    assert Hang(silent=2.0, waited=1.125) == beat.tick(2.625)  # 0.125 + 0.75 counted
+
+
+def test_a_stopped_manager_is_hung_once_past_the_bound_whatever_it_waited() -> None:
+    cpu = _Samples()
+    beat = Heartbeat("m", period=0.25, bound=0.75, cpu=cpu, now=0.0)
+    assert 1 == beat.tick(0.25)
+    beat.sent(0.25)
+    assert beat.tick(0.5) is None
+    cpu.next = CpuSample(stopped=True, waited=0.5)
+
+    assert (None, Hang(silent=1.0, waited=0.5, stopped=True)) == (
+        beat.tick(0.75),
+        beat.tick(1.25),
+    )
+
+
+def test_without_a_cpu_watch_the_whole_silence_counts() -> None:
+    beat = Heartbeat("m", period=0.25, bound=0.75, cpu=None, now=0.0)
+    assert 1 == beat.tick(0.25)
+    beat.sent(0.25)
+
+    assert (None, Hang(silent=0.875)) == (beat.tick(0.75), beat.tick(1.125))
+
+
+def test_a_silence_starts_when_its_ping_was_written_and_ends_with_its_answer() -> None:
+    beat = Heartbeat("m", period=0.25, bound=0.75, cpu=None, now=0.0)
+    assert 1 == beat.tick(0.25)
+    beat.sent(0.625)  # the watcher took 0.375 s to write it
+
+    assert beat.tick(1.25) is None  # 0.625 s since it was written
+    assert (False, True) == (beat.answered(7, 1.25), beat.answered(1, 1.25))
+    assert 2 == beat.tick(1.25)  # the next ping: a period has passed since the last
