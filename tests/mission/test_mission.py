@@ -175,7 +175,7 @@ def test_without_faults_the_robot_drives_through_and_the_demo_explains_the_missi
 
     assert 0 == code
     assert [] == report["faults"]
-    assert "mission.png needs the demo extra: pip install" in capsys.readouterr().out
+    assert "mission.png needs an extra: pip install" in capsys.readouterr().out
     assert not (tmp_path / "mission.png").exists()
 
 
