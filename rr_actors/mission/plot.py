@@ -231,8 +231,8 @@ def _zoom_panel(ax: Axes, main: Axes, report: MissionReport) -> None:
             bbox={"facecolor": "white", "alpha": 0.85, "edgecolor": "none", "pad": 1},
         )
     ax.set_title(
-        f"{_label(fault)} up close: stopped {fault.robot_stopped_s * 1000:.0f} ms "
-        f"({_thesis_stop(fault)})",
+        f"{_label(fault)} up close: stopped {fault.robot_stopped_s * 1000:.0f} ms\n"
+        f"({_thesis_stop(fault)})",  # (two lines: the panel is narrow)
         fontsize=10,
     )
     ax.set_xlim(left, right)

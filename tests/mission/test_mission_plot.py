@@ -148,7 +148,7 @@ def test_the_zoom_on_the_wifi_cut_says_the_thesis_had_none(
     (figure,) = drawn
     [title] = [text for text in texts(figure) if "up close:" in text]
 
-    assert "F6 both up close: stopped 3750 ms (thesis: no WiFi cut)" == title
+    assert "F6 both up close: stopped 3750 ms\n(thesis: no WiFi cut)" == title
 
 
 def test_the_zoom_on_a_thesis_fault_gives_the_thesis_stop(
@@ -158,7 +158,7 @@ def test_the_zoom_on_a_thesis_fault_gives_the_thesis_stop(
     (figure,) = drawn
     [title] = [text for text in texts(figure) if "up close:" in text]
 
-    assert "F1 up close: stopped 200 ms (thesis: 3 s)" == title
+    assert "F1 up close: stopped 200 ms\n(thesis: 3 s)" == title
 
 
 def test_on_one_host_the_markers_are_the_fault_ids_alone(
