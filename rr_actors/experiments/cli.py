@@ -492,9 +492,9 @@ def _summary(display: _Display, results: Results, *, interrupted: bool) -> None:
     elif results.runs:
         for line in summary_lines(results):
             display.say(line)
-    line = fault_line(results)
-    if line is not None:
-        display.say(line)
+    faults = fault_line(results)
+    if faults is not None:
+        display.say(faults)
     if results.runs:
         display.say(verdict_line(results))
     if results.out is not None:
