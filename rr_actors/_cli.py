@@ -58,8 +58,9 @@ class Command:
     run: Callable[[argparse.Namespace, TextIO], int]
 
 
-THIS_COMMAND = "this command"
-"""What needs an extra when a whole subcommand does (`MissingExtraError.what`)."""
+THIS_COMMAND = ""
+"""What needs an extra when a whole subcommand does (`MissingExtraError.what`): the
+command is the line's subject, `rr-actors check needs an extra: pip install ...`."""
 
 
 # -- inspect ------------------------------------------------------------------------------
@@ -555,7 +556,8 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
     try:
         code: int = args.run(args, out if out is not None else sys.stdout)
     except MissingExtraError as exc:  # one line, and what to install: nothing was done
-        print(f"rr-actors {args.command}: {exc}", file=sys.stderr)  # noqa: T201 - CLI output
+        subject = f"rr-actors {args.command}" + (": " if exc.what else " ")
+        print(f"{subject}{exc}", file=sys.stderr)  # noqa: T201 - CLI output
         return 2
     except (CatalogCorruptError, ConfigError) as exc:
         print(f"rr-actors {args.command}: {exc}", file=sys.stderr)  # noqa: T201 - CLI output

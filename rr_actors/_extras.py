@@ -3,13 +3,17 @@
     with needs("zenoh", "rr.ZenohNetwork"):      # an ImportError inside ──►
         from rr_actors._transport.zenoh.net import ZenohNetwork
                                                   MissingExtraError: rr.ZenohNetwork needs
-                                                  the zenoh extra: pip install -e ".[zenoh]"
+                                                  an extra: pip install -e ".[zenoh]"
 
-The command in the message installs the extra into the installation that is running:
-`pip install -e "<checkout>[extra]"` when rr_actors runs from a source checkout (`.`
-when it is the working directory, as after the README's `pip install -e ".[demo]"`),
-else `pip install "rr-actors[extra]"`. The command line prints the error's one line and
-exits with 2 (`rr_actors._cli.main`).
+The command in the message installs the extra into the installation that is running,
+and names it as pip does: `pip install -e "<checkout>[extra]"` when rr_actors runs from
+a source checkout (`.` when it is the working directory, as after the README's `pip
+install -e ".[demo]"`), else `pip install "rr-actors[extra]"`. The command line prints
+the error's one line and exits with 2 (`rr_actors._cli.main`): `rr-actors experiment
+needs an extra: pip install -e ".[experiments]"` when a whole command needs it (an empty
+`what`), `rr-actors demo: --hosts 2 needs an extra: ...` when an option does; 80 columns
+at most either way (the extra named once, in the command: "needs the experiments extra"
+took the line to 81-95).
 """
 
 from __future__ import annotations

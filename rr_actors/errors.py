@@ -102,21 +102,25 @@ class MessageTooLargeError(ConfigError):
 class MissingExtraError(ConfigError, ImportError):
     """What was asked for needs an optional extra of rr-actors that is not installed.
 
-    The message is one line that names the extra and the command that installs it into
-    this installation, for example `rr.ZenohNetwork needs the zenoh extra: pip install -e
-    ".[zenoh]"` (`-e` and the checkout for an editable install, as the README's); the
-    import that failed is its `__cause__`. A `ConfigError` (the installation lacks
+    The message is one line that gives the command that installs the extra into this
+    installation, naming it in pip's notation: `rr.ZenohNetwork needs an extra: pip
+    install -e ".[zenoh]"` (`-e` and the checkout for an editable install, as the
+    README's; `pip install "rr-actors[zenoh]"` for a wheel). Short, so that a command's
+    line fits 80 columns (`rr-actors experiment needs an extra: pip install -e
+    ".[experiments]"`: `what` is empty when a whole command needs it). The import that
+    failed is its `__cause__`. A `ConfigError` (the installation lacks
     something, as a value can) and an `ImportError` (what code that tries an optional
     import catches). The command line prints the line and exits with 2.
 
     Attributes:
-        what: what needs the extra (`"rr.ZenohNetwork"`, `"the observer"`, `"--hosts 2"`).
+        what: what needs the extra (`"rr.ZenohNetwork"`, `"the observer"`, `"--hosts 2"`;
+            `""`: the whole command that caught it).
         extra: the extra's name in `pyproject.toml` (`"zenoh"`, `"observe"`, ...).
         command: the command that installs it.
     """
 
     def __init__(self, what: str, extra: str, command: str) -> None:
-        super().__init__(f"{what} needs the {extra} extra: {command}")
+        super().__init__(f"{what} needs an extra: {command}".lstrip())
         self.what = what
         self.extra = extra
         self.command = command

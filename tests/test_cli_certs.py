@@ -501,7 +501,7 @@ def test_without_cryptography_certs_says_which_extra_to_install(tmp_path: Path) 
     )
 
     assert 2 == result.returncode
-    assert result.stderr.startswith("rr-actors certs: this command needs the zenoh extra: pip")
+    assert result.stderr.startswith("rr-actors certs needs an extra: pip")
     assert '[zenoh]"' in result.stderr
     assert [] == list(tmp_path.iterdir())
 

@@ -6,7 +6,8 @@
 
 On a terminal with `rich` installed (`pip install 'rr-actors[experiments]'`) a progress
 bar shows the runs; elsewhere one line per finished run. At the end: a summary per
-compared value and the files written. Exit codes: 0 done; 1 a run failed; 2 bad input
+compared value, how late the faults were injected and why any was skipped, the runs'
+verdicts, and the files written. Exit codes: 0 done; 1 a run failed; 2 bad input
 (the plan, an option, the output directory, the platform), found before anything
 started; 130 interrupted (Ctrl-C), 143 stopped (SIGTERM), 129 its terminal hung up
 (SIGHUP), with the finished runs kept and nothing else left behind. A full disk under
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import re
 import signal
 import statistics
 import sys
@@ -27,7 +29,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from rr_actors._extras import install_command
+from rr_actors._extras import install_command, needs
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import experiment, plans
 from rr_actors.experiments.experiment import (
@@ -46,7 +48,7 @@ if TYPE_CHECKING:
     from rich.progress import TaskID
     from rich.table import Table as RichTable
 
-__all__ = ["INTERRUPTED_EXIT", "add_arguments", "main", "summary_lines"]
+__all__ = ["INTERRUPTED_EXIT", "add_arguments", "fault_line", "main", "summary_lines"]
 
 INTERRUPTED_EXIT = 130
 """Exit code after Ctrl-C (128 + SIGINT), as shells use."""
@@ -197,6 +199,61 @@ def verdict_line(results: Results) -> str:
         f"{counts['unverifiable']} unverifiable ({findings[0]} violations, {findings[1]} "
         f"unverifiable findings; rr-actors check OUT shows each)"
     )
+
+
+FAULT_REASONS_SHOWN = 3
+"""Distinct reasons for skipped faults the fault line names; faults.csv has every one."""
+
+
+def fault_line(results: Results) -> str | None:
+    """How the injector kept the runs' schedules, under the summary (`None`: no fault).
+
+    `faults: 12 injected, 0.6-1.0 s late; 1 skipped (run 3: db was not running
+    (restarting))`: how late the injections were against their due times (the
+    injector's own error: `late_ms` in faults.csv), and each reason a fault did not fire,
+    with the first run it happened in; the same reason with other pids is counted with
+    it (`+2 like it`).
+    """
+    faults = list(results.faults())
+    if not faults:
+        return None
+    late = [f.late_s for _, f in faults if f.late_s is not None]
+    injected = sum(1 for _, f in faults if not f.skipped)
+    line = f"faults: {injected} injected" + (
+        f", {_span(min(late), max(late))} late" if late else ""
+    )
+    reasons: dict[str, tuple[str, int]] = {}  # the reason, its pids masked -> (shown, count)
+    for run, fault in faults:
+        if fault.skipped:
+            key = re.sub(r"\d+", "N", fault.detail)
+            shown, count = reasons.get(key, (f"run {run.run}: {fault.detail}", 0))
+            reasons[key] = (shown, count + 1)
+    if not reasons:
+        return line + "; none skipped"
+    named = [
+        shown + (f" (+{count - 1} like it)" if count > 1 else "")
+        for shown, count in list(reasons.values())[:FAULT_REASONS_SHOWN]
+    ]
+    more = len(reasons) - FAULT_REASONS_SHOWN
+    if more > 0:
+        named.append(f"{more} other reason(s) in faults.csv")
+    skipped = sum(count for _, count in reasons.values())
+    return f"{line}; {skipped} skipped ({'; '.join(named)})"
+
+
+def _span(low: float, high: float) -> str:
+    """`low`-`high` seconds in one unit, with the digits that matter: `0.6-1.0 s`,
+    `20-310 ms`, `0.02-0.06 ms`; one value if both show the same."""
+    scale, unit = (1.0, "s") if abs(high) >= 1.0 else (1e3, "ms")
+
+    def shown(value: float) -> str:
+        size = abs(high * scale)
+        return f"{value * scale:.{0 if size >= 10 else 1 if size >= 1 else 2}f}"
+
+    low_text, high_text = shown(low), shown(high)
+    if low_text == high_text:
+        return f"{high_text} {unit}"
+    return f"{low_text}{'-' if low >= 0 else ' to '}{high_text} {unit}"
 
 
 def summary_lines(results: Results) -> list[str]:
@@ -354,7 +411,8 @@ def _run(args: argparse.Namespace, stream: TextIO) -> int:
     try:
         plan = load_plan(_plan_file(args.plan))
         if args.observe:
-            require_extra()  # before --out is made
+            with needs("observe", "--observe"):
+                require_extra()  # before --out is made
         experiment.prepare_out(Path(args.out), force=args.force, what="--out")
         with display:
             results = experiment.run(
@@ -434,6 +492,9 @@ def _summary(display: _Display, results: Results, *, interrupted: bool) -> None:
     elif results.runs:
         for line in summary_lines(results):
             display.say(line)
+    faults = fault_line(results)
+    if faults is not None:
+        display.say(faults)
     if results.runs:
         display.say(verdict_line(results))
     if results.out is not None:
@@ -441,6 +502,6 @@ def _summary(display: _Display, results: Results, *, interrupted: bool) -> None:
         display.say(f"written to {_shown(results.out)}/: {', '.join(written)}")
         if "recovery.png" not in written and results.runs:
             display.say(
-                "plots not drawn: they need matplotlib, of the experiments extra: "
+                "plots not drawn: matplotlib is missing, in an extra: "
                 + install_command("experiments")
             )

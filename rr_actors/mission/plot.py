@@ -36,7 +36,7 @@ import matplotlib.pyplot as plt
 from matplotlib.patches import ConnectionPatch, Rectangle
 
 from rr_actors.mission.config import DEFAULT_FAULT_AT
-from rr_actors.mission.report import THESIS
+from rr_actors.mission.report import SHORT_WHAT, THESIS
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -84,6 +84,15 @@ def thesis_trace(distance_m: float, start_s: float = 0.0) -> list[tuple[float, f
 def _label(fault: FaultResult) -> str:
     """A fault's marker: its id, and across two hosts where it struck (`F4 station`)."""
     return f"{fault.id} {fault.host}" if fault.host else fault.id
+
+
+def _thesis_stop(fault: FaultResult) -> str:
+    """How long the thesis's robot stopped at `fault` (`thesis: 3 s`), or that the thesis
+    had no such fault (`thesis: no WiFi cut`: F6 is ours, its section 6.2 has F1-F5)."""
+    stopped = THESIS["robot_stopped_s"].get(fault.id)
+    if stopped is None:
+        return f"thesis: no {SHORT_WHAT.get(fault.id, fault.what)}"
+    return f"thesis: {stopped:g} s"
 
 
 def _zoomed(report: MissionReport) -> tuple[FaultResult, float, float] | None:
@@ -221,10 +230,9 @@ def _zoom_panel(ax: Axes, main: Axes, report: MissionReport) -> None:
             va="bottom",
             bbox={"facecolor": "white", "alpha": 0.85, "edgecolor": "none", "pad": 1},
         )
-    thesis_stop = THESIS["robot_stopped_s"].get(fault.id, 0.0)
     ax.set_title(
-        f"{_label(fault)} up close: stopped {fault.robot_stopped_s * 1000:.0f} ms "
-        f"(thesis: {thesis_stop:g} s)",
+        f"{_label(fault)} up close: stopped {fault.robot_stopped_s * 1000:.0f} ms\n"
+        f"({_thesis_stop(fault)})",  # (two lines: the panel is narrow)
         fontsize=10,
     )
     ax.set_xlim(left, right)

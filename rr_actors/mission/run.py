@@ -554,7 +554,8 @@ def _check_observe_args(args: argparse.Namespace) -> None:
     if args.observe:
         from rr_actors.observe import require_extra  # noqa: PLC0415 - only --observe needs it
 
-        require_extra()  # (before the managers start)
+        with _extras.needs("observe", "--observe"):
+            require_extra()  # (before the managers start)
     if not args.observe and args.port != 0:
         raise rr.ConfigError("--port needs --observe (it is the observer's port)")
     if not 0 <= args.port <= 65535:
@@ -643,8 +644,7 @@ def _files(out: Path) -> list[str]:
     plot = (
         f"plot:   {where / 'mission.png'}"
         if (out / "mission.png").exists()
-        else "plot:   not drawn: mission.png needs the demo extra: "
-        + _extras.install_command("demo")
+        else "plot:   not drawn: mission.png needs an extra: " + _extras.install_command("demo")
     )
     return [
         f"report: {where / 'report.json'}",

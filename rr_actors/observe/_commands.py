@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, TextIO
 
 from rr_actors._extras import needs
 from rr_actors.errors import ConfigError
-from rr_actors.observe._observer import observe_backups, observe_system
+from rr_actors.observe._observer import observe_backups, observe_system, require_extra
 from rr_actors.observe._sources import backup_files, read_catalogs
 from rr_actors.observe._text import FORMATS, render
 from rr_actors.observe._view import dependency_graph
@@ -106,13 +106,15 @@ def run_observe(
         raise ConfigError("give either --state DIR (backups) or --system NAME (across hosts)")
     with contextlib.ExitStack() as stack:
         if args.state is not None:
+            _require_observe()
             observer = observe_backups(
                 args.state, host=args.host, port=args.port, allow_remote=args.allow_remote
             )
             what = f"backups in {args.state}"
         else:
-            network = _network(args)
+            network = _network(args)  # (zenoh first: --system says it needs it)
             stack.callback(network.close)
+            _require_observe()
             observer = observe_system(
                 network, host=args.host, port=args.port, allow_remote=args.allow_remote
             )
@@ -123,6 +125,13 @@ def run_observe(
         with contextlib.suppress(KeyboardInterrupt):
             stop.wait(args.duration)
     return 0
+
+
+def _require_observe() -> None:
+    """The observe extra, which the whole command needs: `rr-actors observe needs an extra:
+    pip install ...` (`MissingExtraError` with no `what`, the command as its subject)."""
+    with needs("observe", ""):
+        require_extra()
 
 
 def _network(args: argparse.Namespace) -> ZenohNetwork:

@@ -67,7 +67,7 @@ def require_extra() -> None:
             installed; the one-line message names it and the command that installs it
             (a `ConfigError`).
     """
-    with needs("observe", "the observer"):
+    with needs("observe", "the observer"):  # (commands name their option: --observe)
         from rr_actors.observe import _server  # noqa: F401, PLC0415 - the observe extra
 
 

@@ -235,7 +235,9 @@ def test_the_page_shows_both_hosts_and_the_faults_and_the_demo_ends_clean(
         page.close()  # (before the page's server stops: no reconnect to log as an error)
 
         demo.end_input()  # F4, F5, F6 at once
-        demo.wait_for(re.compile(r"shows its final state \(press Ctrl-C to stop\)$"))
+        # the line that says so wraps at words to 80 columns: its end is "(press Ctrl-C...)"
+        demo.wait_for(re.compile(r"\(press Ctrl-C to stop\)$"))
+        ended = " ".join(line.strip() for line in demo.seen[-3:])
         final = get_json(url, "/api/state")["sections"]
         os.killpg(demo.process.pid, signal.SIGINT)  # what Ctrl-C in its terminal does
         code = demo.finish(LINE_BOUND)
@@ -243,6 +245,9 @@ def test_the_page_shows_both_hosts_and_the_faults_and_the_demo_ends_clean(
         demo.close()
 
     assert 0 == code, "\n".join(demo.seen[-40:])
+    assert f"observer: the mission ended; {url} shows its final state (press Ctrl-C to stop)" in (
+        ended
+    )
     assert ["robot", "station"] == sorted(h["member"] for h in shown["sections"]["hosts"]["hosts"])
     assert "erm restarted after" in timeline  # F3, on the robot
     assert "FATAL" in timeline  # F1 and F2 before it

@@ -133,6 +133,34 @@ def test_on_two_hosts_each_fault_marker_names_its_host_and_the_cut_is_shown(
     assert any("two hosts (robot, station)" in text for text in shown)
 
 
+def test_the_zoom_on_the_wifi_cut_says_the_thesis_had_none(
+    tmp_path: Path, drawn: list[Figure]
+) -> None:
+    """F6 is ours: the thesis's run (section 6.2) had F1-F5 and no WiFi cut, so its stop
+    there is no "0 s" to compare with (issue 44 item 8)."""
+    report = on_two_hosts(a_run())
+    *others, cut = report.faults
+    longest = dataclasses.replace(
+        report, faults=(*others, dataclasses.replace(cut, robot_stopped_s=3.75))
+    )
+
+    plot(longest, tmp_path / "mission.png")
+    (figure,) = drawn
+    [title] = [text for text in texts(figure) if "up close:" in text]
+
+    assert "F6 both up close: stopped 3750 ms\n(thesis: no WiFi cut)" == title
+
+
+def test_the_zoom_on_a_thesis_fault_gives_the_thesis_stop(
+    tmp_path: Path, drawn: list[Figure]
+) -> None:
+    plot(a_run(), tmp_path / "mission.png")
+    (figure,) = drawn
+    [title] = [text for text in texts(figure) if "up close:" in text]
+
+    assert "F1 up close: stopped 200 ms\n(thesis: 3 s)" == title
+
+
 def test_on_one_host_the_markers_are_the_fault_ids_alone(
     tmp_path: Path, drawn: list[Figure]
 ) -> None:

@@ -469,7 +469,7 @@ def test_the_observer_needs_the_observe_extra_to_serve(
     monkeypatch.setitem(sys.modules, "rr_actors.observe._server", None)  # as if not installed
     monkeypatch.delattr(rr_actors.observe, "_server", raising=False)
 
-    with pytest.raises(rr.MissingExtraError, match=r"needs the observe extra: pip install"):
+    with pytest.raises(rr.MissingExtraError, match=r"needs an extra: pip install .*\[observe\]"):
         tree.observe()
 
 

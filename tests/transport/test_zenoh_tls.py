@@ -438,7 +438,7 @@ def test_without_cryptography_rr_zenoh_tls_says_which_extra_to_install() -> None
     )
 
     assert (0, "") == (result.returncode, result.stderr)
-    assert result.stdout.startswith("rr.ZenohTLS needs the zenoh extra: pip install")
+    assert result.stdout.startswith("rr.ZenohTLS needs an extra: pip install")
 
 
 # -- from test_zenoh_tls_input.py -----------------------------------------------------------------
