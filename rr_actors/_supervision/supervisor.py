@@ -344,13 +344,13 @@ class Supervisor(AsyncSupervision):
                 child runs, none has a pid: start it first, `with sup:`; the specs are
                 what it was given, `which_children` lists them as `"stopped"`).
         """
-        _check_child_name(name)
+        info = self.snapshot(name)  # an unknown name first: it is wrong started or not
         if not self._started:
             raise ConfigError(
                 f"supervisor {self.name!r} is not started: its child {name!r} is not "
                 "running yet (start it first: `with sup:` or sup.start())"
             )
-        return self.snapshot(name)
+        return info
 
     def snapshot(self, name: str) -> ChildInfo:
         """`child(name)` at any time, before `start` too (every child `"stopped"` then, as

@@ -556,7 +556,7 @@ def test_observe_without_the_observe_extra_is_refused_before_anything_starts(
     monkeypatch.setitem(sys.modules, "rr_actors.observe._server", None)  # as if not installed
     monkeypatch.delattr(rr.observe, "_server", raising=False)
 
-    with pytest.raises(rr.ConfigError, match=r"pip install 'rr-actors\[observe\]'"):
+    with pytest.raises(rr.ConfigError, match=r"needs an extra: pip install .*\[observe\]"):
         run(parse_plan(RANDOM_KILLS), observe=True)
 
 

@@ -39,12 +39,14 @@ def test_registrar_after_stop_says_it_was_stopped(
         sup.registrar("app")
 
 
-def test_child_before_start_is_a_stopped_snapshot_without_a_pid(
+def test_child_before_start_says_it_is_not_started_and_its_snapshot_is_stopped(
     supervisors: Callable[..., rr.Supervisor],
 ) -> None:
     sup = supervisors([thread("erm")])
 
-    info = sup.child("erm")
+    with pytest.raises(rr.ConfigError, match="is not started"):
+        sup.child("erm")
+    info = sup.snapshot("erm")
 
     assert ("stopped", None) == (info.state, info.pid)
 
