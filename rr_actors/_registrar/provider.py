@@ -26,6 +26,7 @@ import functools
 import logging
 import time
 import uuid
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from rr_actors import events
@@ -68,6 +69,8 @@ class Provider:
         held_loads: loads for servers `setup` has not registered yet.
         after_unload: resource id -> loads of an equal request, parked until it unloaded.
         load_started: resource id -> when its load started (`time.monotonic()`).
+        labelling: resource id -> its load's end, waiting for its label (`None`: the load
+            still runs), of the loads whose server's `label` a worker makes.
         matching: loads whose match user code decides, off the actor thread.
     """
 
@@ -81,6 +84,7 @@ class Provider:
         self.held_loads: list[Load] = []
         self.after_unload: dict[str, list[Load]] = {}
         self.load_started: dict[str, float] = {}
+        self.labelling: dict[str, Callable[[], None] | None] = {}
         self.matching = Matching(shared, self.serve)
 
     # -- load -------------------------------------------------------------------------
@@ -296,9 +300,12 @@ class Provider:
                 return
         rid = str(uuid.uuid4())
         resource = self.registrar.catalog.begin_load(rid, message.server, message.request, key=key)
-        show_request(self.registrar, resource, server.label)
+        if server.label is not None:  # its ResourceLoaded names the label: made meanwhile
+            self.labelling[rid] = None
+        show_request(self.registrar, resource, server.label, functools.partial(self.labelled, rid))
         failed = self.registrar.commit()
         if failed is not None:  # not durable: load nothing (rule 16 needs the record)
+            self.labelling.pop(rid, None)
             self.registrar.catalog.remove_resource(rid)
             self.registrar.commit()
             message.reply.set_error(failed)
@@ -310,14 +317,33 @@ class Provider:
         server.ref.tell(RunLoad(rid, message.request, (*message.chain, rid), reply))
 
     def load_done(self, rid: str, response: Any, error: BaseException | None) -> None:
+        """The load of `rid` returned `response` (or raised `error`): answer its waiters.
+
+        If its label is still being made on a worker (the load was faster), this waits
+        for it (`labelled`, bounded by `compare_timeout`), so that its `ResourceLoaded`
+        names the label, not the request's text.
+        """
+        load_s = time.monotonic() - self.load_started.pop(rid)
+        if rid in self.labelling and self.registrar.events.active:
+            self.labelling[rid] = functools.partial(self.loaded, rid, response, error, load_s)
+            return
+        self.labelling.pop(rid, None)
+        self.loaded(rid, response, error, load_s)
+
+    def labelled(self, rid: str) -> None:
+        """The label of `rid` is made (or failed): finish its load if it was waiting."""
+        then = self.labelling.pop(rid, None)
+        if then is not None:
+            then()
+
+    def loaded(self, rid: str, response: Any, error: BaseException | None, load_s: float) -> None:
         catalog = self.registrar.catalog
         waiters = self.loads.pop(rid)
         for waiter in waiters:
             self.loading_ids.pop(waiter.query_id, None)
         resource = catalog.resources[rid]
-        started = self.load_started.pop(rid)
         if self.registrar.events.active:
-            published_load(self.registrar, resource, waiters[0].query_id, started, error)
+            published_load(self.registrar, resource, waiters[0].query_id, load_s, error)
         if error is not None:
             catalog.begin_unload(rid)
             self.registrar.commit()
@@ -452,12 +478,11 @@ def published_load(
     registrar: Shared,
     resource: Resource,
     query_id: str,
-    started: float,
+    load_s: float,
     error: BaseException | None,
 ) -> None:
     """Publish how a load ended (`ResourceLoaded` or `LoadFailed`)."""
     if error is None:
-        load_s = time.monotonic() - started
         digest = resource.digest
         registrar.events.publish(
             events.ResourceLoaded(

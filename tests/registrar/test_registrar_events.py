@@ -22,6 +22,7 @@ from rr_actors.testing import (
     System,
     crash,
     expect_restart,
+    intercept,
 )
 from tests.support.waiting import wait_for
 
@@ -478,3 +479,24 @@ def test_ids_held_at_a_provider_lost_for_good_are_published_as_forgotten(
     assert [(query.id, rr.Status.FATAL)] == [
         (e.query_id, e.status) for e in heard.of(events.StatusDelivered)
     ]
+
+
+def test_a_load_done_before_its_label_is_published_with_the_label(started: Any) -> None:
+    # The label is made on a worker while the load runs; a load faster than it came
+    # back first, and its ResourceLoaded said the request's text (issue 40: 1 in 30).
+    provider, consumer = started("erm"), started("app")
+    load_answered = threading.Event()
+
+    def label(request: Any) -> str:
+        assert load_answered.wait(10)  # held until the load's answer was handled
+        return f"camera {request['n']}"
+
+    provider.register_server("cam", load=lambda r: "cam", unload=lambda _q, _r: None, label=label)
+    heard = Heard()
+    held = intercept(provider, "answer", after=lambda _answer: load_answered.set())
+    with held, provider.subscribe(heard) as subscription:
+        consumer.call(provider.name, "cam", {"n": 1})  # (a plain request: its text at once)
+        assert subscription.wait_delivered(timeout=5)
+
+    [loaded] = heard.of(events.ResourceLoaded)
+    assert ("camera 1", ["ResourceLoaded", "ConsumerAdded"]) == (loaded.label, heard.kinds())
