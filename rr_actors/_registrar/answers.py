@@ -157,14 +157,16 @@ class Answers:
         else:
             catalog.add_client(message.record)
             self.texts.show(query.id)
-        failed = self.registrar.commit()
+        told = outcomes.answer(self.registrar, message.record, retry=retry)
+        failed = self.registrar.commit(*told)  # (written with its record)
         if failed is not None and durable:  # not kept
             give_back(query.serving_rr, query.id, self.registrar.name)
             self.holdings.forget(query.id)
             outcomes.refused(self.registrar, query, failed)
             message.attempt.settle(error=failed)
             return
-        outcomes.answered(self.registrar, message.record, retry=retry)
+        if failed is not None:  # kept in memory: written with the next write
+            self.registrar.publish(*told)
         self.holdings.held(query.id, message.on_status)
         if durable:
             message.attempt.settle(query.response)

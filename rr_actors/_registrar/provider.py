@@ -272,20 +272,19 @@ class Provider:
 
     def share(self, resource: Resource, message: Load) -> None:
         """A dedup hit: one more consumer of a loaded resource (rules 1-2)."""
-        catalog = self.registrar.catalog
-        catalog.add_consumer(resource.id, message.query_id, message.origin_rr)
-        failed = self.registrar.commit()
+        shared = self.registrar
+        shared.catalog.add_consumer(resource.id, message.query_id, message.origin_rr)
+        told = (
+            (events.ConsumerAdded(shared.name, resource.id, message.query_id, message.origin_rr),)
+            if shared.events.active
+            else ()
+        )
+        failed = shared.commit(*told)  # (written with it, published before the answer)
         if failed is not None:  # not durable: the caller holds nothing
-            catalog.release(message.query_id)
-            self.registrar.commit()
+            shared.catalog.release(message.query_id)
+            shared.commit()
             message.reply.set_error(failed)
             return
-        if self.registrar.events.active:  # (after the commit, before the answer)
-            self.registrar.events.publish(
-                events.ConsumerAdded(
-                    self.registrar.name, resource.id, message.query_id, message.origin_rr
-                )
-            )
         message.reply.set_result(resource.response)
 
     def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
@@ -358,11 +357,20 @@ class Provider:
             return
         show_response(self.registrar, catalog.finish_load(rid, response))
         live = self._add_consumers(rid, waiters)
-        refusal: RrError | None = (
-            self.registrar.commit()
-        )  # not durable: unload it, fail the callers
         server = self.registrar.servers.get(resource.server)
-        if refusal is None and (server is None or server.closing):
+        closed = server is None or server.closing
+        told = (
+            tuple(  # (a retry listed twice is added once)
+                events.ConsumerAdded(self.registrar.name, rid, query_id, origin)
+                for query_id, origin in {w.query_id: w.origin_rr for w in live}.items()
+            )
+            if self.registrar.events.active and not closed
+            else ()
+        )
+        # written with the consumers they tell of, published before the answers; not
+        # durable: unload it, fail the callers
+        refusal: RrError | None = self.registrar.commit(*told)
+        if refusal is None and closed:
             refusal = UnknownServerError(
                 f"resource server '{self.registrar.name}/{resource.server}' closed"
             )
@@ -372,15 +380,7 @@ class Provider:
                     catalog.release(waiter.query_id)  # (its ConsumerAdded was not published)
                 waiter.reply.set_error(refusal)
             live = []
-        published: set[str] = set()
         for waiter in live:
-            if self.registrar.events.active and waiter.query_id not in published:
-                published.add(waiter.query_id)  # (after the commit, before the answer)
-                self.registrar.events.publish(
-                    events.ConsumerAdded(
-                        self.registrar.name, rid, waiter.query_id, waiter.origin_rr
-                    )
-                )
             waiter.reply.set_result(response)
         if not resource.consumers:  # every caller gave up (or the server closed)
             self.teardown.unload_resource(resource, None)
