@@ -21,8 +21,8 @@ Layout (schema version 7):
 * `clients(seq, query_id, server, serving_rr, origin_rr, request, response, parent,
   loaded, request_text)`: outbound queries (`parent` set for dependencies).
 * `outbox(slot, pid, seq, event)`: the events that tell of the last changes, written in
-  their transaction (`outbox.py`): a ring of `outbox.SLOTS` rows, `event` a JSON line
-  (`rr_actors.events.to_dict`), emptied at each open.
+  their transaction (`outbox.py`): a ring of `outbox.SLOTS` rows, `event` the JSON
+  text `[events schema, type, field values...]`, emptied at each open.
 
 The display texts let a reader show a backup without unpickling anything (unpickling
 runs code from the file: `rr-actors observe --state` and `graph --state` never do).

@@ -12,9 +12,10 @@ import pytest
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._catalog import Catalog
-from rr_actors._store import schema
+from rr_actors._store import outbox, schema
 from rr_actors._store.outbox import SLOTS, read_told
 from rr_actors._store.sqlite import SqliteStore
+from tests.events.test_events import EXAMPLES
 from tests.support.persisting import CommitFails, reopen
 
 SCHEMA_6_BACKUP = Path(__file__).parent / "data" / "schema-6-loaded.db"
@@ -74,6 +75,11 @@ def test_a_changes_events_are_committed_with_it_and_read_back_by_its_process(
     assert [(99, 3), (4242, 7)] == outbox_rows(path)  # (the one with no number: not written)
 
 
+@pytest.mark.parametrize("event", EXAMPLES, ids=lambda e: type(e).__name__)
+def test_every_event_kind_is_read_back_from_its_row_as_it_was(event: events.Event) -> None:
+    assert event == outbox._event(json.loads(outbox._row(event)))
+
+
 def test_a_write_that_fails_writes_neither_the_change_nor_its_events(tmp_path: Path) -> None:
     path = tmp_path / "p.db"
     store, catalog = opened(path)
@@ -122,7 +128,11 @@ def test_the_next_open_of_the_backup_empties_its_outbox(tmp_path: Path) -> None:
         json.dumps({"type": "ConsumerAdded", "schema": 3}),  # fields missing
         '{"type": "ConsumerAdded", "pid": ' + "9" * 5000 + "}",  # a 5,000-digit number
         json.dumps([1, 2, 3]),
-        json.dumps(events.to_dict(added(8))),  # an event, in the row of another number
+        json.dumps(events.to_dict(added(8))),  # an events.jsonl line, not a row
+        outbox._row(added(8)),  # an event, in the row of another number
+        outbox._row(added(5)).replace("[3,", "[2,", 1),  # another version's row
+        outbox._row(added(5)).replace('"robot"', "7"),  # a field of the wrong type
+        outbox._row(added(5))[:-1] + ',"extra"]',  # one value too many
     ],
 )
 def test_a_row_that_is_not_its_event_is_skipped_and_the_others_are_read(
