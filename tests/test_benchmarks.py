@@ -39,6 +39,7 @@ SMALLEST = {
         "1.5",
     ],  # > 1 s: a hang comes every 1-2 s
     "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
+    "bench_outbox.py": ["--rounds", "1", "--loads", "5"],
     "experiment_phases.py": ["first", "--repeat", "1", "--duration", "1.2"],
     "bench_scale.py": [
         *("--sections", "start", "serve", "status", "--counts", "2", "--rounds", "1"),
