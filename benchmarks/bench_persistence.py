@@ -3,7 +3,9 @@
 For each catalog size N (resources, one consumer each) a backup is built, then:
 
 * store change: one catalog change (add a consumer / release it) written by
-  `SqliteStore.write` (one transaction, as with `save_on_modify`), next to the same change
+  `SqliteStore.write` (one transaction, as with `save_on_modify`), also with the event
+  that tells of it in the same transaction (the outbox of a manager process whose events
+  someone hears: `ConsumerAdded`, `ConsumerReleased`), next to the same change
   with no store and a raw SQLite commit (one-row INSERT or DELETE in its own transaction,
   same pragmas); and batched: 50 changes per transaction, on a store that checkpoints in
   the background (as with a `save_interval`);
@@ -37,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import rr_actors as rr
+from rr_actors import events
 from rr_actors._catalog import Catalog
 from rr_actors._store import SqliteStore, gc_paused
 
@@ -119,6 +122,17 @@ def store_rows(path: Path, durability: Any) -> tuple[dict[str, Sample], Sample, 
         catalog.release(qid)
         store.write(catalog.drain_changes())
 
+    def persisted_told() -> None:  # the same, each change with its event (the outbox)
+        n = next(ids)
+        qid = f"q{n}"
+        rid = rids[n * 7919 % len(rids)]
+        catalog.add_consumer(rid, qid, "app")
+        store.write(catalog.drain_changes(), (events.ConsumerAdded("b", rid, qid, "app", seq=n),))
+        catalog.release(qid)
+        store.write(
+            catalog.drain_changes(), (events.ConsumerReleased("b", rid, qid, "app", seq=n),)
+        )
+
     def memory_only() -> None:
         n = next(ids)
         qid = f"q{n}"
@@ -159,6 +173,7 @@ def store_rows(path: Path, durability: Any) -> tuple[dict[str, Sample], Sample, 
     return (
         {
             "store write (2 changes)": persisted,
+            "store write + their events, outbox (2 changes)": persisted_told,
             "no store (2 changes)": memory_only,
             "raw SQLite (2 commits)": raw_commit,
             f"store write, batched ({BATCHED} changes, 2 commits)": persisted_batch,
@@ -306,6 +321,13 @@ def main() -> None:
         for s in sizes
     }
     print(f"{'=> store cost per change':<52}{''.join(f'{store_cost[s] / 2:12.1f}' for s in sizes)}")
+    outbox = {
+        s: change_table["store write + their events, outbox (2 changes)"][s]
+        - change_table["store write (2 changes)"][s]
+        for s in sizes
+    }
+    per_change = "".join(f"{outbox[s] / 2:12.1f}" for s in sizes)
+    print(f"{'=> its event in the outbox, per change':<52}{per_change}")
     batched = {
         s: change_table[f"store write, batched ({BATCHED} changes, 2 commits)"][s]
         - change_table[f"no store ({BATCHED} changes)"][s]

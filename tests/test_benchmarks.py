@@ -47,6 +47,7 @@ SMALLEST = {
         *("--runs", "1", "--managers", "3", "--hogs", "1", "--hold", "0.3", "--stops", "1"),
     ],
     "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
+    "bench_outbox.py": ["--rounds", "1", "--loads", "5"],
     "experiment_phases.py": ["first", "--repeat", "1", "--duration", "1.2"],
     "bench_scale.py": [
         *("--sections", "start", "serve", "status", "--counts", "2", "--rounds", "1"),

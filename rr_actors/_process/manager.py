@@ -33,6 +33,7 @@ import contextlib
 import itertools
 import logging
 import multiprocessing.connection
+import os
 import signal
 import threading
 import time
@@ -225,7 +226,8 @@ class ManagerProcess:
             CallTimeoutError: it was not ready within `start_timeout` seconds (it is killed).
         """
         tally = Tally.create() if on_events is not None else None
-        received = Received(on_events, tally)
+        backup = config.backup_path  # (its outbox: what a kill kept from the journal)
+        received = Received(on_events, tally, None if backup is None else os.path.abspath(backup))
         try:
             process, parent_conn = _launch(
                 name, setup, config, address, spare, forward_events, tally

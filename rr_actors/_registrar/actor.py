@@ -281,7 +281,12 @@ class RegistrarActor(Actor):
         self.servers = Servers(self.shared, self.teardown, self.status)
         self.presence = Presence(self.shared, self.unloading, self.reconciling)
         self.restoring = Restoring(
-            self.shared, self.unloading, self.teardown, self.releases, hold_in_doubt=hold_in_doubt
+            self.shared,
+            self.unloading,
+            self.teardown,
+            self.releases,
+            self.holdings,
+            hold_in_doubt=hold_in_doubt,
         )
         self.lifecycle = Lifecycle(
             self.shared,

@@ -129,16 +129,16 @@ class Answers:
             case Action.GIVE_BACK:
                 self.drop_pending(query, forget_record=ours)
             case Action.REFUSE:
-                self.drop_pending(query, forget_record=ours)
+                self.drop_pending(query, forget_record=ours, reason="registrar stopped")
                 error = RegistrarStoppedError(
                     f"registrar {self.registrar.name!r} stopped during the call"
                 )
                 outcomes.refused(self.registrar, query, error)
                 message.attempt.settle(error=error)
             case Action.FORGET:  # its caller has the answer, given back here
-                self.drop_pending(query, forget_record=ours)
-                outcomes.answered(self.registrar, message.record, retry=False)
-                outcomes.forgotten(self.registrar, query, "registrar stopped")
+                outcomes.answered(self.registrar, message.record, retry=False)  # (before the
+                outcomes.forgotten(self.registrar, query, "registrar stopped")  # commit)
+                self.drop_pending(query, forget_record=ours, reason=None)
             case Action.RELEASE_LATE:
                 outcomes.answered(self.registrar, message.record, retry=retry)
                 outcomes.forgotten(self.registrar, query, "late dependency")
@@ -157,14 +157,16 @@ class Answers:
         else:
             catalog.add_client(message.record)
             self.texts.show(query.id)
-        failed = self.registrar.commit()
+        told = outcomes.answer(self.registrar, message.record, retry=retry)
+        failed = self.registrar.commit(*told)  # (written with its record)
         if failed is not None and durable:  # not kept
             give_back(query.serving_rr, query.id, self.registrar.name)
             self.holdings.forget(query.id)
             outcomes.refused(self.registrar, query, failed)
             message.attempt.settle(error=failed)
             return
-        outcomes.answered(self.registrar, message.record, retry=retry)
+        if failed is not None:  # kept in memory: written with the next write
+            self.registrar.publish(*told)
         self.holdings.held(query.id, message.on_status)
         if durable:
             message.attempt.settle(query.response)
@@ -184,14 +186,19 @@ class Answers:
             return True
         return False
 
-    def drop_pending(self, query: Query, *, forget_record: bool = True) -> None:
+    def drop_pending(
+        self, query: Query, *, forget_record: bool = True, reason: str | None = "in doubt"
+    ) -> None:
         """An answer this registrar does not keep: give `query`'s id back to its provider
-        and forget its pending record, if it has one (with `forget_record`)."""
+        and forget its pending record, if it has one (with `forget_record`).
+
+        `reason`: what its `QueryForgotten` says if a restore had listed the record (a
+        call in flight when the last run died); `None`: the caller published it.
+        """
         give_back(query.serving_rr, query.id, self.registrar.name)
         record = self.registrar.catalog.clients.get(query.id)
         if forget_record and record is not None and not record.loaded:
-            self.registrar.catalog.remove_client(query.id)
-            self.registrar.commit()
+            self.holdings.forget(query.id, reason=reason)
 
     def owner_gone(self, record: ClientRecord) -> bool:
         """Whether `record` is a dependency of a resource that failed or is unloading.
@@ -219,7 +226,7 @@ class Answers:
             query.serving_rr,
             query.server,
         )
-        self.drop_pending(query)  # (a durable consumer wrote its record as pending)
+        self.drop_pending(query, reason=None)  # (a durable consumer wrote it as pending)
         if isinstance(message, DurableLoaded):  # (taken by `record_answer`)
             message.attempt.settle(query.response)
 

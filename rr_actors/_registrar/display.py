@@ -68,11 +68,18 @@ def _text_now_or_later(shared: Shared, value: Any, then: Callable[[str], None]) 
     return text
 
 
-def show_request(shared: Shared, resource: Resource, label: Callable[[Any], Any] | None) -> None:
+def show_request(
+    shared: Shared,
+    resource: Resource,
+    label: Callable[[Any], Any] | None,
+    labelled: Callable[[], None] | None = None,
+) -> None:
     """Give a resource just begun its request's text (and label); call before its write.
 
     Runs on the actor thread; a text that needs user code comes later, and is written
-    then (or with the next write).
+    then (or with the next write). `labelled()` runs on the actor thread once the
+    label's text is set (made, or failed: bounded by `compare_timeout`), if there is
+    a `label`.
     """
     catalog = shared.catalog
     rid = resource.id
@@ -87,9 +94,13 @@ def show_request(shared: Shared, resource: Resource, label: Callable[[Any], Any]
     )
     if label is not None:
         request = resource.request
-        _off_actor(
-            shared, lambda: label_text(label, request), "label", lambda text: later(label=text)
-        )
+
+        def label_made(text: str) -> None:
+            later(label=text)
+            if labelled is not None:
+                labelled()
+
+        _off_actor(shared, lambda: label_text(label, request), "label", label_made)
 
 
 def show_response(shared: Shared, resource: Resource) -> None:

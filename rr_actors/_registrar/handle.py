@@ -300,8 +300,11 @@ class ResourceRegistrar(AsyncSurface):
                 `RegistrarConfig.compare_timeout`; the text is kept in the catalog (and
                 its backup), cut to 40 characters. If it raises (anything, `SystemExit`
                 included), returns something else than a `str` or overruns the bound,
-                the label reads `<label failed: ...>`; the load is not affected. Without
-                it, the observer shows what tells the server's requests apart.
+                the label reads `<label failed: ...>`; the load is not affected, but a
+                load that ends first waits for its label (at most that bound) while
+                someone listens to events, so that its `ResourceLoaded.label` is this
+                one. Without it, the observer shows what tells the server's requests
+                apart.
 
         Raises:
             ConfigError: a callback is not callable or the name is invalid.

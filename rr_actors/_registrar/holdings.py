@@ -6,8 +6,10 @@
  SetStatusCallback ──► on_set_status_callback ──► publish_target
  Revoke ──► on_revoke ──┐ held back (flights.py `parked`) while the answer they are
  ResponseUpdated ───────┤ about is on its way; then: forget | the new response
- a release (releases.py), a withdrawn call (answers.py), a lost id (reconciling.py)
-   ──► forget(id): the record, its status callback, its desk entry   (the one place)
+ a release (releases.py), a withdrawn call or an answer not kept (answers.py), a lost id
+ (reconciling.py), a restored call given up (restoring.py)
+   ──► forget(id): the record, its status callback, its desk entry   (the one place);
+       its QueryForgotten if it was answered or restored (a CatalogRestored listed it)
  OpenClient ──► client(target, server): its client actor, started on first use
 ```
 
@@ -51,6 +53,8 @@ class Holdings:
         epoch: how many `Reconcile` lists this registrar has built (`new_epoch`).
         answered_in: query id -> the `epoch` in which its answer was recorded (ids
             answered before the first list, or restored, have none: 0).
+        restored: the ids of the records a restore gave it, answered or not (a call in
+            flight when the last run died): its `CatalogRestored` listed them.
     """
 
     def __init__(self, shared: Shared, flights: Flights, due: DueAnswers, clients: Clients) -> None:
@@ -62,6 +66,7 @@ class Holdings:
         DESK.serve(shared.peer, self.targets)
         self.epoch = 0
         self.answered_in: dict[str, int] = {}
+        self.restored = set(shared.catalog.clients)
 
     # -- holding and forgetting queries -------------------------------------------------
 
@@ -73,15 +78,20 @@ class Holdings:
             self.status_callbacks[query_id] = on_status
             self.publish_target(query_id)
 
-    def forget(self, query_id: str, *, commit: bool = True, reason: str = "unload") -> None:
+    def forget(self, query_id: str, *, commit: bool = True, reason: str | None = "unload") -> None:
         """Forget a query this registrar held: its record and its status callback.
 
         With `commit=False` the caller commits (once, after forgetting several).
-        `reason` is what its `QueryForgotten` says (an answered one's only).
+        `reason` is what its `QueryForgotten` says, published (before the commit) for a
+        record whose holding was told: one answered here (`held`: its `CallAnswered`),
+        or one a restore listed (`CatalogRestored`), answered or not (issue 40: a
+        restored call in flight was dropped unannounced). `None`: the caller published it.
         """
         record = self.registrar.catalog.clients.get(query_id)
         if record is not None:
-            if record.loaded:
+            told = query_id in self.answered_in or query_id in self.restored
+            self.restored.discard(query_id)
+            if told and reason is not None:
                 outcomes.forgotten(self.registrar, record.query, reason)
             self.registrar.catalog.remove_client(query_id)
             self.status_callbacks.pop(query_id, None)

@@ -1,7 +1,8 @@
 """The consumer's side of a call as events: answered, failed, withdrawn, forgotten.
 
 ```
- answers.py  record_answer ──► answered ──► CallAnswered (the id is held)
+ answers.py  record_answer ──► answer ────► CallAnswered (the id is held), committed
+                                            with its record, then published
              on_call_failed ─► failed ────► CallFailed | CallWithdrawn (nothing held;
                                             or held until reconciled: may_have_executed)
  holdings.py forget ─────────► forgotten ─► QueryForgotten (why)
@@ -25,18 +26,24 @@ if TYPE_CHECKING:
     from rr_actors._registrar.state import Shared
     from rr_actors._types import Query
 
-__all__ = ["answered", "failed", "forgotten", "refused"]
+__all__ = ["answer", "answered", "failed", "forgotten", "refused"]
+
+
+def answer(shared: Shared, record: ClientRecord, *, retry: bool) -> tuple[events.Event, ...]:
+    """`CallAnswered` of `record` (none while nobody listens), to commit with its record."""
+    if not shared.events.active:
+        return ()
+    query = record.query
+    return (
+        events.CallAnswered(
+            shared.name, query.id, query.serving_rr, query.server, record.parent, retry
+        ),
+    )
 
 
 def answered(shared: Shared, record: ClientRecord, *, retry: bool) -> None:
     """Publish `CallAnswered`: `record`'s answer is recorded (`retry`: its id was known)."""
-    if shared.events.active:
-        query = record.query
-        shared.events.publish(
-            events.CallAnswered(
-                shared.name, query.id, query.serving_rr, query.server, record.parent, retry
-            )
-        )
+    shared.publish(*answer(shared, record, retry=retry))
 
 
 def failed(shared: Shared, message: CallFailed, *, retry: bool) -> None:

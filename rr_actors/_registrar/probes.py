@@ -28,6 +28,7 @@ POINTS: frozenset[str] = frozenset(
         "stop_drained",  # stop(): waiting callers failed, mailbox drained; the actor ends next
         "send_load",  # a call's Load is about to leave the caller's thread (durable: committed)
         "withdraw",  # a caller that stopped waiting is about to send its Abandon
+        "events_written",  # a change and its events committed together; published next
     }
 )
 """Points inside a step (`before` runs there; `after` is the same as `before`)."""

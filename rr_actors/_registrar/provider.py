@@ -26,6 +26,7 @@ import functools
 import logging
 import time
 import uuid
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from rr_actors import events
@@ -68,6 +69,8 @@ class Provider:
         held_loads: loads for servers `setup` has not registered yet.
         after_unload: resource id -> loads of an equal request, parked until it unloaded.
         load_started: resource id -> when its load started (`time.monotonic()`).
+        labelling: resource id -> its load's end, waiting for its label (`None`: the load
+            still runs), of the loads whose server's `label` a worker makes.
         matching: loads whose match user code decides, off the actor thread.
     """
 
@@ -81,6 +84,7 @@ class Provider:
         self.held_loads: list[Load] = []
         self.after_unload: dict[str, list[Load]] = {}
         self.load_started: dict[str, float] = {}
+        self.labelling: dict[str, Callable[[], None] | None] = {}
         self.matching = Matching(shared, self.serve)
 
     # -- load -------------------------------------------------------------------------
@@ -268,20 +272,19 @@ class Provider:
 
     def share(self, resource: Resource, message: Load) -> None:
         """A dedup hit: one more consumer of a loaded resource (rules 1-2)."""
-        catalog = self.registrar.catalog
-        catalog.add_consumer(resource.id, message.query_id, message.origin_rr)
-        failed = self.registrar.commit()
+        shared = self.registrar
+        shared.catalog.add_consumer(resource.id, message.query_id, message.origin_rr)
+        told = (
+            (events.ConsumerAdded(shared.name, resource.id, message.query_id, message.origin_rr),)
+            if shared.events.active
+            else ()
+        )
+        failed = shared.commit(*told)  # (written with it, published before the answer)
         if failed is not None:  # not durable: the caller holds nothing
-            catalog.release(message.query_id)
-            self.registrar.commit()
+            shared.catalog.release(message.query_id)
+            shared.commit()
             message.reply.set_error(failed)
             return
-        if self.registrar.events.active:  # (after the commit, before the answer)
-            self.registrar.events.publish(
-                events.ConsumerAdded(
-                    self.registrar.name, resource.id, message.query_id, message.origin_rr
-                )
-            )
         message.reply.set_result(resource.response)
 
     def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
@@ -296,9 +299,12 @@ class Provider:
                 return
         rid = str(uuid.uuid4())
         resource = self.registrar.catalog.begin_load(rid, message.server, message.request, key=key)
-        show_request(self.registrar, resource, server.label)
+        if server.label is not None:  # its ResourceLoaded names the label: made meanwhile
+            self.labelling[rid] = None
+        show_request(self.registrar, resource, server.label, functools.partial(self.labelled, rid))
         failed = self.registrar.commit()
         if failed is not None:  # not durable: load nothing (rule 16 needs the record)
+            self.labelling.pop(rid, None)
             self.registrar.catalog.remove_resource(rid)
             self.registrar.commit()
             message.reply.set_error(failed)
@@ -310,14 +316,33 @@ class Provider:
         server.ref.tell(RunLoad(rid, message.request, (*message.chain, rid), reply))
 
     def load_done(self, rid: str, response: Any, error: BaseException | None) -> None:
+        """The load of `rid` returned `response` (or raised `error`): answer its waiters.
+
+        If its label is still being made on a worker (the load was faster), this waits
+        for it (`labelled`, bounded by `compare_timeout`), so that its `ResourceLoaded`
+        names the label, not the request's text.
+        """
+        load_s = time.monotonic() - self.load_started.pop(rid)
+        if rid in self.labelling and self.registrar.events.active:
+            self.labelling[rid] = functools.partial(self.loaded, rid, response, error, load_s)
+            return
+        self.labelling.pop(rid, None)
+        self.loaded(rid, response, error, load_s)
+
+    def labelled(self, rid: str) -> None:
+        """The label of `rid` is made (or failed): finish its load if it was waiting."""
+        then = self.labelling.pop(rid, None)
+        if then is not None:
+            then()
+
+    def loaded(self, rid: str, response: Any, error: BaseException | None, load_s: float) -> None:
         catalog = self.registrar.catalog
         waiters = self.loads.pop(rid)
         for waiter in waiters:
             self.loading_ids.pop(waiter.query_id, None)
         resource = catalog.resources[rid]
-        started = self.load_started.pop(rid)
         if self.registrar.events.active:
-            published_load(self.registrar, resource, waiters[0].query_id, started, error)
+            published_load(self.registrar, resource, waiters[0].query_id, load_s, error)
         if error is not None:
             catalog.begin_unload(rid)
             self.registrar.commit()
@@ -332,11 +357,20 @@ class Provider:
             return
         show_response(self.registrar, catalog.finish_load(rid, response))
         live = self._add_consumers(rid, waiters)
-        refusal: RrError | None = (
-            self.registrar.commit()
-        )  # not durable: unload it, fail the callers
         server = self.registrar.servers.get(resource.server)
-        if refusal is None and (server is None or server.closing):
+        closed = server is None or server.closing
+        told = (
+            tuple(  # (a retry listed twice is added once)
+                events.ConsumerAdded(self.registrar.name, rid, query_id, origin)
+                for query_id, origin in {w.query_id: w.origin_rr for w in live}.items()
+            )
+            if self.registrar.events.active and not closed
+            else ()
+        )
+        # written with the consumers they tell of, published before the answers; not
+        # durable: unload it, fail the callers
+        refusal: RrError | None = self.registrar.commit(*told)
+        if refusal is None and closed:
             refusal = UnknownServerError(
                 f"resource server '{self.registrar.name}/{resource.server}' closed"
             )
@@ -346,15 +380,7 @@ class Provider:
                     catalog.release(waiter.query_id)  # (its ConsumerAdded was not published)
                 waiter.reply.set_error(refusal)
             live = []
-        published: set[str] = set()
         for waiter in live:
-            if self.registrar.events.active and waiter.query_id not in published:
-                published.add(waiter.query_id)  # (after the commit, before the answer)
-                self.registrar.events.publish(
-                    events.ConsumerAdded(
-                        self.registrar.name, rid, waiter.query_id, waiter.origin_rr
-                    )
-                )
             waiter.reply.set_result(response)
         if not resource.consumers:  # every caller gave up (or the server closed)
             self.teardown.unload_resource(resource, None)
@@ -452,12 +478,11 @@ def published_load(
     registrar: Shared,
     resource: Resource,
     query_id: str,
-    started: float,
+    load_s: float,
     error: BaseException | None,
 ) -> None:
     """Publish how a load ended (`ResourceLoaded` or `LoadFailed`)."""
     if error is None:
-        load_s = time.monotonic() - started
         digest = resource.digest
         registrar.events.publish(
             events.ResourceLoaded(

@@ -4,6 +4,9 @@
  lifecycle.py on_start ──► settle_in_doubt: each resource a crash cut short (rule 16)
                             ──► its dependencies released (releases.py), then forgotten
                                (teardown.py); held out of the backup while setup runs
+                           ──► each call in flight (or dependency of a resource gone)
+                               given back, forgotten with its QueryForgotten("in doubt")
+                               (holdings.py)
                            ──► unload_unheld ──► sweep(0): one slice per turn of the
                                mailbox (`Catalog.sweep`): unheld resources unloaded
                                (teardown.py), the consumers holding ids noted
@@ -24,6 +27,7 @@ import logging
 from rr_actors import events
 from rr_actors._catalog import ResourceState
 from rr_actors._core.directory import Reply
+from rr_actors._registrar.holdings import Holdings
 from rr_actors._registrar.messages import SettleInDoubt, give_back
 from rr_actors._registrar.releases import Releases
 from rr_actors._registrar.state import Phase, Shared
@@ -54,6 +58,7 @@ class Restoring:
         unloading: Unloading,
         teardown: Teardown,
         releases: Releases,
+        holdings: Holdings,
         *,
         hold_in_doubt: bool = False,
     ) -> None:
@@ -61,6 +66,7 @@ class Restoring:
         self.unloading = unloading
         self.teardown = teardown
         self.releases = releases
+        self.holdings = holdings
         self.hold_in_doubt = hold_in_doubt
         self.in_doubt_ids: frozenset[str] = frozenset()
         self.sweeping = False
@@ -101,7 +107,7 @@ class Restoring:
             if orphan or (record.parent is None and not record.loaded):
                 query = record.query
                 give_back(query.serving_rr, query.id, self.registrar.name)
-                catalog.remove_client(query.id)
+                self.holdings.forget(query.id, commit=False, reason="in doubt")
         self.registrar.commit()
 
     def unload_unheld(self) -> None:

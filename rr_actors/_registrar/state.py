@@ -177,24 +177,40 @@ class Shared:
         """Whether it stops (or ended): it takes no new loads and keeps no new answers."""
         return self.phase is Phase.STOPPING or self.phase is Phase.ENDED
 
-    def commit(self) -> CatalogWriteError | None:
-        """Hand the catalog's changes to the save policy (durable now, or at the next flush).
+    def commit(self, *told: events.Event, now: bool = False) -> CatalogWriteError | None:
+        """Hand the catalog's changes to the save policy (durable now, or at the next flush),
+        and publish the events `told` that tell of them.
+
+        Written at once (`save_on_modify`, or `now`: "whatever the policy"), the changes
+        and their events are one transaction (the backup's outbox, `_store/outbox.py`),
+        and the events are published after it: a SIGKILL after the commit cannot lose
+        them (the supervisor's side reads them from the backup after the exit). Left for
+        the interval's flush, the events are published now (a crash loses the change
+        within the save window, not its event).
+
+        Args:
+            told: the events of the changes (built only when `events.active`).
+            now: write them now whatever the save policy (an unload: `teardown.py`).
 
         Returns:
             `None`, or the error of a write that failed (a full disk): the changes stay
-            pending in memory and go with the next write that succeeds. A step whose
-            caller waits for durability undoes its change and fails the caller with it.
+            pending in memory and go with the next write that succeeds, and `told` is
+            not published: a step whose caller waits for durability undoes its change
+            and fails the caller with it; one whose change stands publishes them itself
+            (`publish`).
         """
         if self.saver.store is None:  # nothing persists this catalog
+            self.publish(*told)
             return None
         changes = self.catalog.drain_changes()
         for rid in self.held_in_doubt.intersection(changes.resources):
             del changes.resources[rid]  # written once settled (`settle_held`)
-        if not changes:
+        if not changes and not (now and self.saver.pending):
+            self.publish(*told)
             return None
         healthy = self.saver.failure is None
         try:
-            self.saver.changed(changes)
+            written = self.saver.changed(changes, told, now=now)
         except CatalogWriteError as exc:
             if healthy:  # once per failing streak: the next success clears it
                 logger.warning(
@@ -204,7 +220,15 @@ class Shared:
                     exc,
                 )
             return exc
+        if written and told:
+            self.probe("events_written", told)  # (committed with them, not yet published)
+        self.publish(*told)
         return None
+
+    def publish(self, *told: events.Event) -> None:
+        """Publish events built while `events.active` (this actor's thread)."""
+        for event in told:
+            self.events.publish(event)
 
     def settle_held(self, rids: set[str]) -> CatalogWriteError | None:
         """Write what became of held in-doubt resources `rids`: they are settled now.

@@ -65,18 +65,24 @@ class StatusRelay:
 
     def on_send_status(self, asked: SendStatus, reply: Reply) -> None:
         query_id, status, message = asked.query_id, asked.status, asked.message
-        resource = self.registrar.catalog.resource_of(query_id)
+        shared = self.registrar
+        resource = shared.catalog.resource_of(query_id)
+        update = StatusUpdate(query_id, status, message, f"{shared.name}/{resource.server}")
+        event = str(uuid.uuid4())
+        told = (
+            (events.StatusSent(shared.name, query_id, status, message, event),)
+            if shared.events.active
+            else ()
+        )
         if status is Status.FATAL and not resource.failed:
             # Dead: no equal request matches it any more (rule 1), before anyone hears
-            # of it; durable as a load is (a write that fails stays pending in memory).
-            self.registrar.catalog.mark_failed(resource.id)
-            self.registrar.commit()
-        update = StatusUpdate(query_id, status, message, f"{self.registrar.name}/{resource.server}")
-        event = str(uuid.uuid4())
-        if self.registrar.events.active:
-            self.registrar.events.publish(
-                events.StatusSent(self.registrar.name, query_id, status, message, event)
-            )
+            # of it; durable as a load is (a write that fails stays pending in memory),
+            # with its StatusSent in the same write.
+            shared.catalog.mark_failed(resource.id)
+            if shared.commit(*told) is not None:
+                shared.publish(*told)
+        else:
+            shared.publish(*told)
         refused: list[ConfigError] = []  # (parts that could not be sent: too large)
 
         def then() -> None:  # (the thread of the last acknowledgement)

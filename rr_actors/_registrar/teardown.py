@@ -4,8 +4,9 @@
  last consumer released (unloading.py), a server closed (servers.py), a load that failed
  or that nobody waits for any more (provider.py), a restored resource in doubt:
    unload_resource ──► the resource's dependencies (releases.py) ──► RunUnload ──► server
-       ──► remove_resource ──► the callers waiting for it, then `when_gone` (loads parked
-           behind the unload, `Provider`)
+       ──► remove_resource: written at once with its ResourceUnloaded (one transaction),
+           then published ──► `when_gone` (loads parked behind the unload, `Provider`),
+           then the callers waiting for it
 ```
 
 Callers that wait for an unload, unloads parked until their server is registered again,
@@ -24,7 +25,7 @@ from rr_actors._catalog import Resource, describe
 from rr_actors._core.directory import Reply
 from rr_actors._registrar.messages import RunUnload
 from rr_actors._registrar.state import Shared
-from rr_actors.errors import CallTimeoutError, CatalogWriteError, RrError
+from rr_actors.errors import CallTimeoutError, RrError
 
 if TYPE_CHECKING:
     from rr_actors._registrar.releases import Releases
@@ -97,12 +98,7 @@ class Teardown:
                     resource.server,
                     exc_info=error,
                 )
-            self.remove_resource(resource)
-            self.record_unloaded()
-            if self.registrar.events.active:
-                self.registrar.events.publish(
-                    events.ResourceUnloaded(self.registrar.name, resource.server, resource.id)
-                )
+            self.remove_resource(resource, unloaded=True)
             for waiting in self.unload_waiters.pop(resource.id):
                 if overdue:
                     waiting.set_error(error)  # type: ignore[arg-type]
@@ -123,23 +119,24 @@ class Teardown:
         while not self.under_way and self.idle:
             self.idle.pop(0)()
 
-    def record_unloaded(self) -> None:
-        """An `unload` ran: write it before anyone hears of it, also without
-        `save_on_modify` (a crash before the next flush would restore the resource, and
-        reconciling with its consumers would run its `unload` a second time)."""
-        saver = self.registrar.saver
-        if saver.store is None or saver.durable or not saver.pending:
-            return
-        try:
-            saver.flush()
-        except CatalogWriteError as exc:  # pending: the next flush tries again
-            logger.warning("registrar %s: writing an unload failed: %s", self.registrar.name, exc)
-
-    def remove_resource(self, resource: Resource) -> None:
+    def remove_resource(self, resource: Resource, *, unloaded: bool = False) -> None:
         """Forget a resource that is gone (unloaded, or its load failed); serve the loads
-        parked behind its unload."""
-        self.registrar.catalog.remove_resource(resource.id)
-        self.registrar.commit()
+        parked behind its unload.
+
+        An unload (`unloaded`) is written at once, also without `save_on_modify` (a
+        crash before the next flush would restore the resource, and reconciling with
+        its consumers would run its `unload` a second time), with its
+        `ResourceUnloaded` in the same transaction, published before anyone hears of it.
+        """
+        shared = self.registrar
+        shared.catalog.remove_resource(resource.id)
+        told = (
+            (events.ResourceUnloaded(shared.name, resource.server, resource.id),)
+            if unloaded and shared.events.active
+            else ()
+        )
+        if shared.commit(*told, now=unloaded) is not None:  # pending: the next write tries
+            shared.publish(*told)  # (it was unloaded all the same)
         for then in self.gone.pop(resource.id, ()):  # e.g. loads parked behind its unload
             then()
         server = self.registrar.servers.get(resource.server)

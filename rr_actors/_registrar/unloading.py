@@ -92,16 +92,20 @@ class Unloading:
             return
         origin = resource.consumers[query_id]
         catalog.release(query_id)
-        failed = self.registrar.commit()
+        shared = self.registrar
+        told = (
+            (events.ConsumerReleased(shared.name, resource.id, query_id, origin, reason),)
+            if shared.events.active
+            else ()
+        )
+        failed = shared.commit(*told)  # (written with it)
         if failed is not None and reply is not None:  # not durable: nothing changes
             catalog.add_consumer(resource.id, query_id, origin)
-            self.registrar.commit()
+            shared.commit()
             reply.set_error(failed)
             return
-        if self.registrar.events.active:
-            self.registrar.events.publish(
-                events.ConsumerReleased(self.registrar.name, resource.id, query_id, origin, reason)
-            )
+        if failed is not None:  # a give-up: carried out, written with the next write
+            shared.publish(*told)
         if resource.consumers or resource.state is not ResourceState.LOADED:
             if reply is not None:
                 reply.set_result(None)

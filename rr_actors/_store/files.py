@@ -59,6 +59,7 @@ __all__ = [
     "prepare",
     "quarantine_backup",
     "read_backup",
+    "read_only",
     "read_rows",
     "validate",
 ]
@@ -288,7 +289,7 @@ def put_in_place(tmp: Path, path: Path) -> None:
 
 
 @contextlib.contextmanager
-def _read_only(path: Path, *, tidy: bool) -> Iterator[sqlite3.Connection]:
+def read_only(path: Path, *, tidy: bool) -> Iterator[sqlite3.Connection]:
     """A read-only connection; with `tidy`, remove the `-wal`/`-shm` files it created.
 
     A read-only connection to a WAL-mode file creates those files but cannot delete
@@ -314,7 +315,7 @@ def validate(path: Path, *, tidy: bool) -> int:
     problem = _file_problem(path)
     if problem is not None:
         raise CatalogCorruptError(name, problem)
-    with as_corrupt(name), _read_only(path, tidy=tidy) as db:
+    with as_corrupt(name), read_only(path, tidy=tidy) as db:
         return schema.schema_version(db, name)
 
 
@@ -414,7 +415,7 @@ def read_backup(path: str | os.PathLike[str], *, unpickle: bool = True) -> Backu
             )
     version = validate(file, tidy=True)
     name = str(file)
-    with as_corrupt(name), _read_only(file, tidy=True) as db:
+    with as_corrupt(name), read_only(file, tidy=True) as db:
         check = db.execute("PRAGMA quick_check").fetchall()
         if check != [("ok",)]:
             raise CatalogCorruptError(name, f"integrity check failed: {check[:5]!r}")

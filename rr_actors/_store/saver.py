@@ -6,11 +6,18 @@ are flushed every `save_interval` seconds (a crash loses at most that window), o
 `save_catalog()` and on a clean stop.
 
 ```
- registrar --changed(changes)--> pending --flush() / on_modify--> store.write(pending)
+ registrar --changed(changes, told)--> pending --flush() / on_modify--> store.write(pending)
                                     ^                                   |
                                     +-- kept on CatalogWriteError ------+--> failure
  registrar --retry()--> store.write(pending) --ok--> failure = None
 ```
+
+The events that tell of a change (`told`) go into the transaction that writes it when
+that write is made at once (`save_on_modify`, or `changed(..., now=True)`), so a kill
+after the commit leaves them in the backup's outbox (`outbox.py`). They are never kept
+pending: a write that fails drops them, and its caller publishes them or undoes the
+change. Changes left to the interval's flush carry none (their events are published
+before the flush: a crash loses the change, not the event).
 
 A write that fails (a full disk) raises `CatalogWriteError`; its changes stay pending
 and are written, merged with what changed since, by the next write that succeeds, and
@@ -19,9 +26,10 @@ and are written, merged with what changed since, by the next write that succeeds
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Protocol
 
+from rr_actors import events
 from rr_actors._catalog import Catalog, Changes, ClientRecord, Resource
 from rr_actors._core.timers import Cancellable, Timer, thread_timer
 from rr_actors.config import RegistrarConfig
@@ -48,8 +56,8 @@ class CatalogStore(Protocol):
     def restore(self) -> Restored | None:
         """What a registrar needs to serve again (the rest read on first use), or `None`."""
 
-    def write(self, changes: Changes) -> None:
-        """Apply `changes` as one transaction.
+    def write(self, changes: Changes, told: Sequence[events.Event] = ()) -> None:
+        """Apply `changes` as one transaction, with the events `told` that tell of them.
 
         Raises:
             CatalogWriteError: nothing of `changes` was written (a full disk, ...).
@@ -100,6 +108,7 @@ class Saver:
             config.save_interval if store is not None and not config.save_on_modify else None
         )
         self._pending = Changes({}, {})
+        self._told: Sequence[events.Event] = ()  # (only while `changed` writes them)
         self._failure: CatalogWriteError | None = None
 
     @property
@@ -131,19 +140,37 @@ class Saver:
             return None
         return timer_factory(self.flush_interval, tick)
 
-    def changed(self, changes: Changes) -> None:
-        """Take changes just made to the catalog; with `save_on_modify`, write them now.
+    def changed(
+        self, changes: Changes, told: Sequence[events.Event] = (), *, now: bool = False
+    ) -> bool:
+        """Take changes just made to the catalog; with `save_on_modify` (or `now`), write
+        them now, with the events `told` that tell of them in the same transaction.
+
+        Args:
+            changes: the changed rows (`Catalog.drain_changes`).
+            told: the events that tell of them, written with them if they are written
+                now (never kept pending: a write that fails drops them).
+            now: write them now whatever the policy (with what was pending).
+
+        Returns:
+            Whether they were written now (`False`: they wait for the next flush).
 
         Raises:
-            CatalogWriteError: with `save_on_modify`, the write failed: `changes` (and
-                whatever was pending) stay pending, and `failure` is this error.
+            CatalogWriteError: the write made now failed: `changes` (and whatever was
+                pending) stay pending, and `failure` is this error.
         """
         if self.store is None:
-            return
+            return False
         self._pending.resources.update(changes.resources)
         self._pending.clients.update(changes.clients)
-        if self.on_modify:
+        if not (self.on_modify or now):
+            return False
+        self._told = told
+        try:
             self.flush()
+        finally:
+            self._told = ()
+        return True
 
     def flush(self) -> None:
         """Write what accumulated since the last write.
@@ -158,7 +185,7 @@ class Saver:
         if self.store is None or not self._pending:
             return
         try:
-            self.store.write(self._pending)
+            self.store.write(self._pending, self._told)
         except CatalogWriteError as exc:
             self._failure = exc
             raise

@@ -1,6 +1,6 @@
 """The backup's schema: its version, how a file is created and migrated, how it is checked.
 
-Layout (schema version 6):
+Layout (schema version 7):
 
 * `rr_actors_schema(version, digest_scheme)`: one row, the schema version and the
   `DIGEST_SCHEME` of the stored digests; `PRAGMA application_id` marks the file as an
@@ -20,13 +20,16 @@ Layout (schema version 6):
   consumer id until a call needs it).
 * `clients(seq, query_id, server, serving_rr, origin_rr, request, response, parent,
   loaded, request_text)`: outbound queries (`parent` set for dependencies).
+* `outbox(slot, pid, seq, event)`: the events that tell of the last changes, written in
+  their transaction (`outbox.py`): a ring of `outbox.SLOTS` rows, `event` the JSON
+  text `[events schema, type, field values...]`, emptied at each open.
 
 The display texts let a reader show a backup without unpickling anything (unpickling
 runs code from the file: `rr-actors observe --state` and `graph --state` never do).
 
 ```
  empty file --MIGRATIONS[0]--> v1 --MIGRATIONS[1]--> v2 --MIGRATIONS[2]--> v3 --MIGRATIONS[3]--> v4
-   --MIGRATIONS[4]--> v5 --MIGRATIONS[5]--> v6 (SCHEMA_VERSION)
+   --MIGRATIONS[4]--> v5 --MIGRATIONS[5]--> v6 --MIGRATIONS[6]--> v7 (SCHEMA_VERSION)
 ```
 
 Each step is one transaction (`migrate`). The stored digest is deterministic (BLAKE2b of
@@ -74,7 +77,7 @@ __all__ = [
 APPLICATION_ID = 0x72724163  # "rrAc"
 """`PRAGMA application_id` of every rr_actors catalog file."""
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 """The schema version this code writes; older files are migrated, newer ones refused."""
 
 
@@ -191,6 +194,19 @@ def _upgrade_v6(db: sqlite3.Connection) -> None:
     db.execute("ALTER TABLE resources ADD COLUMN failed INTEGER NOT NULL DEFAULT 0")
 
 
+def _upgrade_v7(db: sqlite3.Connection) -> None:
+    """v6 -> v7: an outbox, the events of a change written in its transaction (issue 40).
+
+    A SIGKILL between a commit and the publishing of the events that tell of it lost
+    them, with no gap to show it; the supervisor's side reads them from here after the
+    exit (`outbox.py`). A file written before has none to read.
+    """
+    db.execute(
+        "CREATE TABLE outbox (slot INTEGER PRIMARY KEY, pid INTEGER NOT NULL, "
+        "seq INTEGER NOT NULL, event TEXT NOT NULL)"
+    )
+
+
 INDEXES = ("resources_by_id", "resources_by_request", "resources_unsettled", "consumers_by_query")
 """The indexes of a current file: a restore relies on them (unique ids, dedup, doubt)."""
 
@@ -204,6 +220,7 @@ MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (
     _upgrade_v4,
     _upgrade_v5,
     _upgrade_v6,
+    _upgrade_v7,
 )
 """`MIGRATIONS[v]` brings a version-`v` file to version `v + 1` (0 is an empty file).
 

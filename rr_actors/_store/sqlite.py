@@ -2,15 +2,17 @@
 docs/explanation/semantics.md).
 
 ```
- registrar --Changes--> Saver --write(changes)--> SqliteStore --`plan`: only what differs
-   from its mirror--> is the path still our file? (else copy it whole into place, `files`)
+ registrar --Changes, told events--> Saver --write(changes, told)--> SqliteStore --`plan`:
+   only what differs from its mirror, the told events in the outbox (`outbox`)--> is the
+   path still our file? (else copy it whole into place, `files`)
    --> one transaction (WAL) --> file          (schema: `schema`, values: `codec`)
  SqliteStore.open: `files` checks, creates, validates and prepares the file
  SqliteStore.restore / load: `restore` reads it back; `checkpoints` copies the WAL off-thread
 ```
 
 One file per registrar, in WAL mode. Every `write` is one transaction, so a crash at any
-instant leaves the old or the new catalog, never a torn one. A write touches only the
+instant leaves the old or the new catalog, never a torn one; the events that tell of a
+write's changes go in its transaction too (`outbox`). A write touches only the
 rows that changed (the store keeps a small mirror of what it wrote to compute the
 difference), so its cost does not grow with the catalog. A write that fails (a full
 disk) raises `CatalogWriteError` and changes neither the file nor the mirror, so the same
@@ -24,16 +26,18 @@ import functools
 import logging
 import os
 import sqlite3
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
 
+from rr_actors import events
 from rr_actors._catalog import (
     NO_DIGEST,
     Changes,
     ClientRecord,
     Resource,
 )
-from rr_actors._store import checkpoints, codec
+from rr_actors._store import checkpoints, codec, outbox
 from rr_actors._store.checkpoints import Checkpointer
 from rr_actors._store.codec import STATES_BY_CODE, as_corrupt, check_keys, check_row
 from rr_actors._store.commits import CommitCount, lost_commits
@@ -163,6 +167,8 @@ class SqliteStore:
             raise ConfigError(f"backup_path {name!r} cannot be opened: {exc}") from exc
         try:
             prepare(db, name, durability, version)
+            with as_corrupt(name):  # (read at the last run's exit, if anyone listened)
+                outbox.clear(db)
         except BaseException:
             db.close()
             raise
@@ -314,8 +320,12 @@ class SqliteStore:
                 consumers += len(mirror.consumers)
         return resources, consumers
 
-    def write(self, changes: Changes) -> None:
+    def write(self, changes: Changes, told: Sequence[events.Event] = ()) -> None:
         """Apply `changes` (current rows, `None` for deleted ones) as one transaction.
+
+        The numbered events of `told` (those that tell of `changes`) are written in the
+        same transaction, in the outbox (`outbox.py`): a kill after the commit leaves
+        them for the supervisor's side to read.
 
         Only what differs from the last write reaches the file; rows are addressed by
         their key, so the cost of a change does not depend on the catalog's size. The
@@ -345,6 +355,8 @@ class SqliteStore:
             seq = plan_resource(self._resources, ops, mirrors, rid, resource, seq)
         for qid, record in changes.clients.items():
             seq = plan_client(self._clients, ops, mirrors, qid, record, seq)
+        if told:
+            outbox.plan_told(told, ops)
         if ops:
             self._keep_in_place()
             try:

@@ -253,8 +253,9 @@ class SupervisorGaveUp:
 class ResourceLoaded:
     """A server's `load` callback returned: a new resource is served.
 
-    Published by the registrar when the load finished (and, with `save_on_modify`, is
-    durable), before its first consumer gets the answer. A duplicate request loads
+    Published by the registrar when the load finished, before its result is written
+    and before its first consumer is added and answered (a kill in between: the restart
+    reports it [`InDoubt`][rr_actors.events.InDoubt]). A duplicate request loads
     nothing: it is a [`ConsumerAdded`][rr_actors.events.ConsumerAdded] only.
 
     Attributes:
@@ -266,8 +267,10 @@ class ResourceLoaded:
         digest: the catalog's digest of the request, for a request of plain values (`None`
             for other classes): two loads with the same `digest` at the same
             registrar and server are of equal requests (rule 1).
-        label: the request's bounded display label (the server's `label(request)`, or
-            the catalog's bounded `repr`), `None` if it has none.
+        label: the request's bounded display label: the server's `label(request)` (the
+            registrar waits for it, made on a worker thread, at most `compare_timeout`;
+            `"<label failed: ...>"` if it failed), or without one the catalog's bounded
+            `repr`; `None` if it has none.
         at: when it finished, wall clock (`time.time()` seconds).
         pid: the registrar's process.
         seq: the number of this event in its process (1, 2, ... in a manager process,
@@ -333,7 +336,10 @@ class ResourceUnloaded:
     """A server's `unload` callback ran: its last consumer released the resource.
 
     Published by the registrar after the resource's own dependencies were released and
-    its `unload` callback returned (or raised: it is unloaded either way).
+    its `unload` callback returned (or raised: it is unloaded either way), once its
+    removal is written (also without `save_on_modify`), the event in the same
+    transaction: a SIGKILL right after the commit does not lose it (the supervisor's
+    process reads it from the backup's outbox after the exit).
 
     Attributes:
         registrar: name of the provider registrar.
@@ -362,7 +368,9 @@ class ResourceUnloaded:
 class ConsumerAdded:
     """A query became a consumer of a served resource (a new load or a duplicate request).
 
-    Published by the provider registrar when the consumer id is recorded in its catalog.
+    Published by the provider registrar when the consumer id is recorded in its catalog
+    (with `save_on_modify`, once written, the event in the same transaction), before
+    the caller is answered.
 
     Attributes:
         registrar: name of the provider registrar.
@@ -393,8 +401,9 @@ class ConsumerAdded:
 class ConsumerReleased:
     """A consumer id of a served resource was released (an `unload`, or its consumer died).
 
-    Published by the provider registrar when the id is removed from its catalog. If it
-    was the last one, a [`ResourceUnloaded`][rr_actors.events.ResourceUnloaded] follows.
+    Published by the provider registrar when the id is removed from its catalog (with
+    `save_on_modify`, once written, the event in the same transaction). If it was the
+    last one, a [`ResourceUnloaded`][rr_actors.events.ResourceUnloaded] follows.
 
     Attributes:
         registrar: name of the provider registrar.
@@ -560,7 +569,9 @@ class CallWithdrawn:
 class QueryForgotten:
     """A consumer forgot a query id it held (one a `CallAnswered` or a restore gave it).
 
-    Published by the consumer registrar when it removed the id's client record.
+    Published by the consumer registrar when it removed the id's client record, for
+    every id a `CallAnswered` or its `CatalogRestored` (answered or not) showed it
+    holding.
 
     Attributes:
         registrar: name of the consumer registrar.
@@ -575,8 +586,10 @@ class QueryForgotten:
             `"unknown at reconcile"` (the provider's restart lost it, rule 20:
             `FATAL`), `"late dependency"` (answered after the load that made it had
             failed or was unloading: given back at once), `"registrar stopped"`
-            (answered while this registrar stopped: given back) or `"withdrawn"` (a
-            retry of it was given up by its caller).
+            (answered while this registrar stopped: given back), `"withdrawn"` (a
+            retry of it was given up by its caller) or `"in doubt"` (restored, its call
+            in flight when the last run died, or a sub-call of a resource gone: given
+            back at the restart).
         at: when it was forgotten, wall clock (`time.time()` seconds).
         pid: the consumer registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).

@@ -146,8 +146,10 @@ def intercept(
     A message step (`"load"`, `"abandon"`, `"pending"`, `"client_loaded"`, ...) runs its
     hooks on the registrar's actor thread around the handling of that message; `subject`
     is the message (its fields, such as `query_id`, are stable). A point
-    (`"unload_resource"`, `"close_resource"`, `"stop_drained"`, and on the caller's
-    thread `"send_load"` and `"withdraw"`) runs them where it is reached. `STEPS` lists every name
+    (`"unload_resource"`, `"close_resource"`, `"stop_drained"`, `"events_written"`: a
+    change and the events that tell of it were committed together, and the events, its
+    subject, are published next; and on the caller's thread `"send_load"` and
+    `"withdraw"`) runs them where it is reached. `STEPS` lists every name
     with what it is. A hook that blocks holds the registrar there; one that raises fails
     that step as a bug would.
 

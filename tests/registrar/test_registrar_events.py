@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -22,6 +23,7 @@ from rr_actors.testing import (
     System,
     crash,
     expect_restart,
+    intercept,
 )
 from tests.support.waiting import wait_for
 
@@ -478,3 +480,96 @@ def test_ids_held_at_a_provider_lost_for_good_are_published_as_forgotten(
     assert [(query.id, rr.Status.FATAL)] == [
         (e.query_id, e.status) for e in heard.of(events.StatusDelivered)
     ]
+
+
+def test_a_load_done_before_its_label_is_published_with_the_label(started: Any) -> None:
+    # The label is made on a worker while the load runs; a load faster than it came
+    # back first, and its ResourceLoaded said the request's text (issue 40: 1 in 30).
+    provider, consumer = started("erm"), started("app")
+    load_answered = threading.Event()
+
+    def label(request: Any) -> str:
+        assert load_answered.wait(10)  # held until the load's answer was handled
+        return f"camera {request['n']}"
+
+    provider.register_server("cam", load=lambda r: "cam", unload=lambda _q, _r: None, label=label)
+    heard = Heard()
+    held = intercept(provider, "answer", after=lambda _answer: load_answered.set())
+    with held, provider.subscribe(heard) as subscription:
+        consumer.call(provider.name, "cam", {"n": 1})  # (a plain request: its text at once)
+        assert subscription.wait_delivered(timeout=5)
+
+    [loaded] = heard.of(events.ResourceLoaded)
+    assert ("camera 1", ["ResourceLoaded", "ConsumerAdded"]) == (loaded.label, heard.kinds())
+
+
+def _gated_provider(started: Any) -> tuple[rr.ResourceRegistrar, threading.Event, threading.Event]:
+    """A provider whose `slow` load runs until the gate opens."""
+    provider = started("erm")
+    entered, gate = threading.Event(), threading.Event()
+
+    def load(request: Any) -> Any:
+        entered.set()
+        gate.wait(10)
+        return request
+
+    provider.register_server("slow", load=load, unload=lambda _q, _r: None)
+    return provider, entered, gate
+
+
+def _on_a_thread(call: Callable[[], Any]) -> threading.Thread:
+    """Run `call` on a thread of its own (it fails as its registrar crashes: expected)."""
+
+    def run() -> None:
+        with contextlib.suppress(rr.RrError):
+            call()
+
+    caller = threading.Thread(target=run)
+    caller.start()
+    return caller
+
+
+@pytest.mark.parametrize("dependency", [False, True], ids=["top-level", "dependency"])
+def test_a_restored_call_in_flight_the_restart_gives_up_is_published_as_forgotten(
+    started: Any, tmp_path: Path, dependency: bool
+) -> None:
+    # A durable consumer killed while its call was in flight (its own, or a sub-call of
+    # a load of its own): the restart lists the record (CatalogRestored), then gives the
+    # call up. It used to drop the record with no event (issue 40), so a history checker
+    # held the id for good (a false violation once its provider lost the release).
+    provider, entered, gate = _gated_provider(started)
+    config = rr.RegistrarConfig(
+        name=f"app-{uuid.uuid4().hex[:8]}", backup_path=tmp_path / "app.db", save_on_modify=True
+    )
+    consumer = rr.ResourceRegistrar.start(config)
+    if dependency:
+        consumer.register_server(
+            "top",
+            load=lambda r: consumer.call(provider.name, "slow", r).id,
+            unload=lambda _q, _r: None,
+        )
+        caller = _on_a_thread(lambda: consumer.call(config.name, "top", 1))
+    else:
+        caller = _on_a_thread(lambda: consumer.call(provider.name, "slow", 1))
+    assert entered.wait(10)  # (the call's pending record is committed)
+    with expect_restart(config.name):
+        crash(consumer)
+    gate.set()
+    caller.join(10)
+    upstream = events.publisher()
+    heard = Heard()
+    subscription = upstream.subscribe(heard)
+    restarted = start_registrar(config, upstream=upstream)
+    calls = 2 if dependency else 1  # (its own call of "top" is one too)
+    try:
+        assert wait_for(lambda: len(heard.of(events.QueryForgotten)) == calls, 10)
+        assert subscription.wait_delivered(timeout=5)
+    finally:
+        subscription.close()
+        restarted.stop()
+
+    [restored] = heard.of(events.CatalogRestored)
+    why = {qid: "dependency" if parent else "in doubt" for qid, _, _, parent in restored.clients}
+    assert why == {e.query_id: e.reason for e in heard.of(events.QueryForgotten)}
+    sub_calls = [(serving, server) for _, serving, server, parent in restored.clients if parent]
+    assert ([(provider.name, "slow")] if dependency else []) == sub_calls

@@ -258,8 +258,9 @@ def test_a_version_2_backup_is_migrated_and_restored_lazily(tmp_path: Path) -> N
 
 def as_version_4(path: Path) -> None:
     """Make a current backup what schema version 4 wrote: no index on the consumer ids
-    (nor the `failed` column of version 6)."""
+    (nor the `failed` column of version 6, nor the outbox of version 7)."""
     db = sqlite3.connect(path, isolation_level=None)
+    db.execute("DROP TABLE outbox")
     db.execute("DROP INDEX consumers_by_query")
     db.execute("ALTER TABLE resources DROP COLUMN failed")
     db.execute("UPDATE rr_actors_schema SET version = 4")

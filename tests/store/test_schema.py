@@ -341,7 +341,7 @@ def test_a_schema_5_backup_is_migrated_with_no_resource_marked_failed(tmp_path: 
     finally:
         db.close()
     [resource] = catalog.resources.values()
-    assert (6, [(0,)]) == (version, failed)
+    assert (schema.SCHEMA_VERSION, [(0,)]) == (version, failed)
     assert (resource, ["00000000-0000-4000-8000-000000000001"]) == (
         catalog.find("leaf", "lidar"),
         list(resource.consumers),

@@ -13,7 +13,7 @@ import sqlite3
 import sys
 import threading
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -464,7 +464,7 @@ class FlakyStore:
     def load(self) -> None:
         return None
 
-    def write(self, changes: Changes) -> None:
+    def write(self, changes: Changes, told: Sequence[rr.events.Event] = ()) -> None:
         if self.fail:
             self.fail -= 1
             raise rr.CatalogWriteError(self.path, "ENOSPC (simulated)", errno.ENOSPC)
