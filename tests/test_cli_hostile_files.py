@@ -1,7 +1,8 @@
 """`rr-actors check` and `rr-actors events --merge` on files that are not events files.
 
-Whatever the file holds (binary, JSON nested past the parser's stack, a `run` that is not
-a number, a line of 64 MiB, nothing), or if it is missing or a directory, the command
+Whatever the file holds (binary, JSON nested past the parser's stack, an integer of 5,000
+digits, a time that is `NaN` or infinite, a `run` that is not a number, a line of 64 MiB,
+nothing), or if it is missing or a directory, the command
 prints one line naming the file (and the line) and exits with its error code: 2 for
 `check`, 1 for `events`. No traceback.
 """
@@ -38,6 +39,29 @@ FILES: dict[str, tuple[Callable[[Path], None], str, str]] = {
         "line 1: not JSON",
         "line 1: not JSON",
     ),
+    "long integer": (  # (Python converts at most 4300 digits: CVE-2020-10735)
+        lambda p: p.write_bytes(
+            _event_line() + _event_line().replace(b'"pid": 2', b'"pid": 1' + b"0" * 5000)
+        ),
+        "line 2: not JSON that can be read (a number of more than 4300 digits)",
+        "line 2: not JSON that can be read (a number of more than 4300 digits)",
+    ),
+    **{
+        f"{name} at": (
+            lambda p, text=text: p.write_bytes(
+                _event_line() + _event_line().replace(b'"at": 1.0', b'"at": ' + text)
+            ),
+            "line 2: ResourceLoaded.at must be a finite number",
+            "line 2: ResourceLoaded.at must be a finite number",
+        )
+        for name, text in (
+            ("NaN", b"NaN"),
+            ("infinite", b"Infinity"),
+            ("minus infinite", b"-Infinity"),
+            ("overflowing", b"1e999"),
+            ("whole overflowing", b"1" + b"0" * 400),
+        )
+    },
     "missing": (lambda p: None, "no events.jsonl at", "cannot be read"),
     "directory": (lambda p: p.mkdir(), "no events.jsonl at", "cannot be read"),
 }
