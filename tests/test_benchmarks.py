@@ -20,6 +20,7 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 
 SMALLEST = {
+    "bench_check.py": ["--sizes", "2000", "--live", "20", "--restart-every", "500"],
     "bench_core.py": ["--rounds", "1", "--batch", "5"],
     "bench_observer_hosts.py": [
         *("--resources", "20", "--window", "0.5", "--kills", "1", "--cuts", "1"),

@@ -178,9 +178,10 @@ class Facts:
 
     Attributes:
         with_backup: registrars that published a `CatalogRestored`.
-        forgot: (provider, query id) -> line of the first `QueryForgotten` of it by its
-            consumer.
-        fatal: query id -> line of the first `FATAL` its holder was told.
+        forgot: (provider, query id) -> the stamp of the first `QueryForgotten` of it by
+            its consumer.
+        fatal: query id -> the line of the first `FATAL` its holder was told.
+        fatal_at: query id -> the stamp of that `FATAL`.
         added: query ids some provider added (`ConsumerAdded`, or a catalog's rows).
         held_at: query id -> (provider, resource id, line of its `ConsumerAdded` or row).
         parent: (consumer, query id) -> the consumer's resource it is a dependency of.
@@ -188,6 +189,8 @@ class Facts:
         reported: (consumer, query id) told `FATAL` by its consumer itself (`REPORTED`).
         delivered: (status id, query id) of every `StatusDelivered`.
         last_delivery: status id -> the greatest stamp of its deliveries.
+        first_delivery: (status id, registrar, hop) -> the least stamp of its deliveries
+            to that registrar at that hop.
         lost: (provider, query id) its consumer reported lost itself (`REPORTED`).
         told_self: (line, consumer, query id) of each `QueryForgotten` of `REPORTED`.
     """
@@ -195,6 +198,7 @@ class Facts:
     with_backup: set[str] = dataclasses.field(default_factory=set)
     forgot: dict[tuple[str, str], int] = dataclasses.field(default_factory=dict)
     fatal: dict[str, int] = dataclasses.field(default_factory=dict)
+    fatal_at: dict[str, int] = dataclasses.field(default_factory=dict)
     added: set[str] = dataclasses.field(default_factory=set)
     held_at: dict[str, tuple[str, str, int]] = dataclasses.field(default_factory=dict)
     parent: dict[tuple[str, str], str] = dataclasses.field(default_factory=dict)
@@ -202,6 +206,7 @@ class Facts:
     reported: set[tuple[str, str]] = dataclasses.field(default_factory=set)
     delivered: set[tuple[str, str]] = dataclasses.field(default_factory=set)
     last_delivery: dict[str, int] = dataclasses.field(default_factory=dict)
+    first_delivery: dict[tuple[str, str, int], int] = dataclasses.field(default_factory=dict)
     lost: set[tuple[str, str]] = dataclasses.field(default_factory=set)
     told_self: list[tuple[int, str, str]] = dataclasses.field(default_factory=list)
 
@@ -216,15 +221,18 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
         elif isinstance(event, events.StatusDelivered):
             if event.status is Status.FATAL:
                 facts.fatal.setdefault(event.query_id, line)
+                facts.fatal_at.setdefault(event.query_id, event.hlc)
             if event.status_id:
                 facts.delivered.add((event.status_id, event.query_id))
                 last = facts.last_delivery.get(event.status_id, event.hlc)
                 facts.last_delivery[event.status_id] = max(last, event.hlc)
+                key = (event.status_id, event.registrar, event.hop)
+                facts.first_delivery[key] = min(facts.first_delivery.get(key, event.hlc), event.hlc)
         elif isinstance(event, events.CallAnswered):
             if event.parent is not None:
                 facts.parent[event.registrar, event.query_id] = event.parent
         elif isinstance(event, events.QueryForgotten):
-            facts.forgot.setdefault((event.serving_rr, event.query_id), line)
+            facts.forgot.setdefault((event.serving_rr, event.query_id), event.hlc)
             if event.reason in REPORTED:
                 facts.reported.add((event.registrar, event.query_id))
                 facts.lost.add((event.serving_rr, event.query_id))

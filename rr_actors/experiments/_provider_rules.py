@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import dataclasses
 from collections import defaultdict
-from collections.abc import Callable, Collection
+from collections.abc import Callable
 from typing import Any
 
 from rr_actors import events
 from rr_actors._types import Status
-from rr_actors.experiments._history import Finding, Step
+from rr_actors.experiments._history import Facts, Finding, Step
 
 __all__ = ["Expected", "Holding", "Providers"]
 
@@ -35,6 +35,7 @@ class _Held:
     resource_id: str
     consumer: str
     line: int
+    stamp: int  # (of its ConsumerAdded, or of the restore that listed it first)
 
 
 @dataclasses.dataclass(slots=True)
@@ -121,27 +122,17 @@ class Providers:
     """The provider pass: feed it every step (`run`), then read its findings.
 
     Args:
-        with_backup: registrars that restore a catalog (they publish `CatalogRestored`).
-        forgot: (provider, query id) -> the line of the first `QueryForgotten` of it by
-            its consumer.
-        fatal: query id -> the line of the first `FATAL` its holder was told.
-        parent: (consumer, query id) -> the consumer's resource it is a dependency of.
-        watch: (provider, query id) whose holdings `reported-lost` asks about.
+        facts: what the whole run says (who restores a catalog, who forgot or was told
+            `FATAL` what and when, dependency paths, which ids were reported lost:
+            their holdings are kept for `reported-lost`).
     """
 
-    def __init__(
-        self,
-        with_backup: Collection[str],
-        forgot: dict[tuple[str, str], int],
-        fatal: dict[str, int],
-        parent: dict[tuple[str, str], str],
-        watch: Collection[tuple[str, str]],
-    ) -> None:
-        self.with_backup = with_backup
-        self.forgot = forgot
-        self.fatal = fatal
-        self.parent = parent
-        self.watch = watch
+    def __init__(self, facts: Facts) -> None:
+        self.with_backup = facts.with_backup
+        self.forgot = facts.forgot
+        self.fatal_at = facts.fatal_at
+        self.parent = facts.parent
+        self.watch = facts.lost
         self.catalogs: dict[str, _Catalog] = defaultdict(_Catalog)
         self.findings: list[Finding] = []
         self.holdings: dict[tuple[str, str], list[Holding]] = defaultdict(list)
@@ -189,25 +180,28 @@ class Providers:
                 name,
             )
         if not restoring and catalog.pid is not None:
-            self.lose(name, catalog, set(), line, "in a restart without a backup")
+            self.lose(name, catalog, set(), line, event.hlc, "in a restart without a backup")
             self.let_go_all(name, catalog, event.hlc)
             catalog.forget_all()
             catalog.blind = False
         catalog.pid = event.pid
         catalog.life = life
 
-    def lose(self, name: str, catalog: _Catalog, kept: set[str], line: int, why: str) -> None:
-        """`kept`: the ids held before a restart that it lost are violations, unless
-        their consumer was told `FATAL` since, or had forgotten them before."""
+    def lose(
+        self, name: str, catalog: _Catalog, kept: set[str], line: int, stamp: int, why: str
+    ) -> None:
+        """`kept`: the ids held before a restart (at `line`, `stamp`) that it lost are
+        violations, unless their consumer was told `FATAL` since it was added, or had
+        forgotten them before."""
         for qid, held in catalog.held.items():
             if qid in kept:
                 continue
             # its consumer had let it go: the release was committed, and the kill came
             # before its `ConsumerReleased` was published (the restore shows the commit)
-            if self.forgot.get((name, qid), line) < line:
+            if self.forgot.get((name, qid), stamp) < stamp:
                 continue
-            told = self.fatal.get(qid)
-            if told is None or told < held.line:
+            told = self.fatal_at.get(qid)
+            if told is None or told < held.stamp:
                 self.found(
                     "kept",
                     f"{name}: query {qid[:8]} of {held.consumer} (resource "
@@ -220,16 +214,15 @@ class Providers:
 
     # -- who holds what ----------------------------------------------------------------------
 
-    def hold(self, name: str, catalog: _Catalog, qid: str, rid: str, consumer: str, line: int,
-             stamp: int) -> None:  # fmt: skip
-        old = catalog.held.get(qid)
-        if old is not None:
-            catalog.holders.get(old.resource_id, {}).pop(qid, None)
-        catalog.held[qid] = _Held(rid, consumer, line)
-        catalog.holders.setdefault(rid, {})[qid] = None
-        catalog.pending.pop(rid, None)
-        if (name, qid) in self.watch and (old is None or old.resource_id != rid):
-            self.holdings[name, qid].append(Holding(catalog.life, stamp, line))
+    def hold(self, name: str, catalog: _Catalog, held: _Held, qid: str) -> None:
+        """`qid` is held on `held.resource_id` (again, if it was held there: a retry; one
+        held on another resource was let go first)."""
+        again = qid in catalog.held
+        catalog.held[qid] = held
+        catalog.holders.setdefault(held.resource_id, {})[qid] = None
+        catalog.pending.pop(held.resource_id, None)
+        if not again and (name, qid) in self.watch:
+            self.holdings[name, qid].append(Holding(catalog.life, held.stamp, held.line))
 
     def let_go(self, name: str, catalog: _Catalog, qid: str, stamp: int) -> _Held | None:
         held = catalog.held.pop(qid, None)
@@ -268,14 +261,15 @@ class Providers:
             catalog.blind = True
             return
         kept = {row[0] for row in event.consumers}
-        self.lose(name, catalog, kept, line, "in a restore")
-        before = {qid: held.line for qid, held in catalog.held.items()}
+        self.lose(name, catalog, kept, line, event.hlc, "in a restore")
+        before = {qid: (held.line, held.stamp) for qid, held in catalog.held.items()}
         pending = dict(catalog.pending)
         self.let_go_all(name, catalog, event.hlc)
         catalog.forget_all()
         catalog.blind = False
         for qid, rid, consumer, *_ in event.consumers:
-            self.hold(name, catalog, qid, rid, consumer, before.get(qid, line), event.hlc)
+            was, at = before.get(qid, (line, event.hlc))
+            self.hold(name, catalog, _Held(rid, consumer, was, at), qid)
         for row in event.resources:
             rid = row[0]
             if len(row) > 4 and row[4]:  # reported FATAL: matched no more
@@ -371,7 +365,7 @@ class Providers:
                 event.consumer,
             )
             self.let_go(name, catalog, qid, event.hlc)
-        self.hold(name, catalog, qid, rid, event.consumer, line, event.hlc)
+        self.hold(name, catalog, _Held(rid, event.consumer, line, event.hlc), qid)
 
     def released(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
         qid = event.query_id

@@ -119,10 +119,14 @@ def status_reached(
     """`status-reached`: every holder that held its id throughout a status got it.
 
     Throughout: from before the status was sent on to it (`Expected.since`) until after
-    the status's last delivery in the run, in one life of the holder. The one that sends
-    it on must have gone on after it did (an event of the same life later: a kill right
-    after the send, before the notice left, reaches nobody). A consumer that tells
-    itself `FATAL` (`REPORTED`) delivers it before it forgets the id.
+    the status's last delivery in the run, in one life of the holder; or, for an id that
+    is not a dependency, until after the status reached another id of its registrar at
+    that hop (a process's status desk delivers those in one pass, `fanout.py`; a
+    dependency's status climbs through its registrar's mailbox, where a release queued
+    before it may come first). The one that sends it on must have gone on after it did
+    (an event of the same life later: a kill right after the send, before the notice
+    left, reaches nobody). A consumer that tells itself `FATAL` (`REPORTED`) delivers it
+    before it forgets the id.
     """
     findings: list[Finding] = []
     for line, holder, qid in facts.told_self:
@@ -143,7 +147,11 @@ def status_reached(
         sender = lives.get((want.sender, want.life))
         if sender is None or sender.last_line <= want.line:
             continue  # it may have died before it sent it on
-        end = max(want.since, facts.last_delivery.get(want.status_id, want.since))
+        end = facts.last_delivery.get(want.status_id, want.since)
+        if (want.holder, want.query_id) not in facts.parent:
+            beside = facts.first_delivery.get((want.status_id, want.holder, want.hop), end)
+            end = min(end, beside)
+        end = max(end, want.since)
         for life, began, until, forgot_at in spans.get((want.holder, want.query_id), ()):
             if began >= want.since:
                 continue  # (held from before the send only)

@@ -188,7 +188,7 @@ def check(history: Sequence[Line]) -> Verdict:
     }
     steps, lives = walk(history)
     facts = gather(history)
-    providers = Providers(facts.with_backup, facts.forgot, facts.fatal, facts.parent, facts.lost)
+    providers = Providers(facts)
     providers.run(steps)
     wanted = {(want.holder, want.query_id) for want in providers.expected}
     answered, spans = _consumer_rules.answered(steps, facts, wanted)

@@ -160,9 +160,9 @@ def test_an_id_its_consumer_forgot_before_a_restore_lost_it_holds() -> None:
     answered = events.CallAnswered("cm", Q2, "erm", "cam", pid=C)
     forgotten = events.QueryForgotten("cm", Q2, "erm", "unload", pid=C)
     let_go = [*history[:4], answered, forgotten, *history[4:]]
-    assert "held" == check.check(numbered(let_go)).verdict
+    assert "held" == check.check(numbered(_stamped(let_go))).verdict
     late = [*history[:4], answered, *history[4:], forgotten]  # forgotten after: lost
-    assert ["kept"] == [f.rule for f in check.check(numbered(late)).findings]
+    assert ["kept"] == [f.rule for f in check.check(numbered(_stamped(late))).findings]
 
 
 # -- the consumer's side and dependency paths ------------------------------------------------
@@ -666,7 +666,8 @@ def serve_before_restore(h: History) -> History | None:
 
 
 def restore_loses_id(h: History) -> History | None:
-    """A restore without an id held before the restart (its consumer still holds it)."""
+    """A restore without an id held before the restart (its consumer still holds it, and
+    was not told it was lost)."""
     held: dict[str, set[str]] = {}
     for i, e in enumerate(h):
         if type(e) is events.ConsumerAdded:
@@ -675,8 +676,15 @@ def restore_loses_id(h: History) -> History | None:
             held.get(e.registrar, set()).discard(e.query_id)
         elif type(e) is events.CatalogRestored and e.complete:
             rows = [row for row in e.consumers if row[0] in held.get(e.registrar, set())]
-            forgotten = {x.query_id for x in h[:i] if type(x) is events.QueryForgotten}
-            rows = [row for row in rows if row[0] not in forgotten]
+            forgotten = {  # (before the restore: a release a kill cut off from its event)
+                x.query_id for x in h if type(x) is events.QueryForgotten and x.hlc < e.hlc
+            }
+            told = {  # (its consumer told of its loss: no violation)
+                x.query_id
+                for x in h
+                if type(x) is events.StatusDelivered and x.status is rr.Status.FATAL
+            }
+            rows = [row for row in rows if row[0] not in forgotten | told]
             if rows:
                 lost = rows[0][0]
                 kept = tuple(row for row in e.consumers if row[0] != lost)
