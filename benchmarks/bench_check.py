@@ -13,8 +13,9 @@ end. The checker must find it `held` (the script fails otherwise). Rows, per siz
     rules                  `check.check` on the events read (every rule)
     rr-actors check -q     the whole command, in this process (read, rules, print)
 
-and the events per second of the whole command, and its multiple of the floor. Pin it to
-one CPU for the figure the docs state (a million events under a minute on one core):
+and the events per second of the whole command (of wall time, and of its CPU time: on a
+loaded machine the second is the steadier), and its multiple of the floor. Pin it to one
+CPU for the figure the docs state (a million events under a minute on one core):
 
     taskset -c 0 python benchmarks/bench_check.py --sizes 100000,1000000
     python benchmarks/bench_check.py --sizes 20000 --profile /tmp/check.prof
@@ -273,7 +274,9 @@ def main_bench() -> None:
     parser.add_argument("--status-every", type=int, default=200, help="events per status")
     parser.add_argument("--restart-every", type=int, default=100_000, help="events per restart")
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--floor", type=float, default=0.0, help="fail below this many events/s")
+    parser.add_argument(
+        "--min-rate", type=float, default=0.0, help="exit 1 below this many events/s of CPU"
+    )
     parser.add_argument("--profile", help="write a cProfile of the rules (largest size) here")
     parser.add_argument("--dir", help="where to write the histories (default: a temp dir)")
     args = parser.parse_args()
@@ -287,9 +290,9 @@ def main_bench() -> None:
     print()
     print(
         "| events | MB | json.loads (floor) s | read s | rules s | rr-actors check -q s "
-        "| its CPU s | events/s | / floor |"
+        "| its CPU s | events/s | events/s of CPU | / floor |"
     )
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     slow = []
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         for size in sizes:
@@ -301,15 +304,15 @@ def main_bench() -> None:
             print(
                 f"| {written:,} | {path.stat().st_size / 1e6:,.0f} | {t['floor']:.2f} "
                 f"| {t['read']:.2f} | {t['rules']:.2f} | {t['command']:.2f} | {t['cpu']:.2f} "
-                f"| {rate:,.0f} "
+                f"| {rate:,.0f} | {written / t['cpu']:,.0f} "
                 f"| {t['command'] / t['floor']:.1f}x |",
                 flush=True,
             )
-            if rate < args.floor:
-                slow.append(f"{written:,} events: {rate:,.0f} events/s < {args.floor:,.0f}")
+            if written / t["cpu"] < args.min_rate:
+                slow.append(f"{written:,} events: {written / t['cpu']:,.0f} events/s of CPU")
             path.unlink()
     if slow:
-        sys.exit("below the floor: " + "; ".join(slow))
+        sys.exit(f"below {args.min_rate:,.0f} events/s: " + "; ".join(slow))
 
 
 if __name__ == "__main__":

@@ -16,9 +16,10 @@ what cannot be checked):
 
 - `kept`: an acknowledged load (a `ConsumerAdded`) is held until it is released (a
   `ConsumerReleased`) or its consumer is told `FATAL`; a restart that loses it otherwise
-  (a `CatalogRestored` without it, or a restart without a backup) is a violation, unless
-  its consumer had forgotten it before (`QueryForgotten`): a release committed just
-  before a kill has no `ConsumerReleased`, and the restore shows it.
+  (a `CatalogRestored` without it, or a restart without a backup), or a clean stop that
+  does not list it, is a violation, unless, for a restart, its consumer had forgotten
+  it before (`QueryForgotten`): a release committed just before a kill has no
+  `ConsumerReleased`, and the restore shows it.
 - `unload-once`: a resource is unloaded at most once, and only once its last consumer
   id was released; no consumer is added to a resource after its unload; no id is
   released that was not held.
@@ -39,9 +40,9 @@ what cannot be checked):
   direct consumer of the resource it was sent about (hop 1), or a consumer of a resource
   one of whose dependencies got it one hop before (the dependency's `CallAnswered.parent`).
 - `answered`: from the consumer's side, an answered call (`CallAnswered`) is held until
-  it is forgotten (`QueryForgotten`, with why) or listed when its registrar stops; it is
-  not answered twice but as a retry; its provider added it (`ConsumerAdded`); nothing
-  is forgotten that was not held.
+  it is forgotten (`QueryForgotten`, with why) or listed when its registrar stops, and
+  so is a client record its `CatalogRestored` listed; it is not answered twice but as a
+  retry; its provider added it (`ConsumerAdded`); nothing is forgotten that was not held.
 - `reported-lost`: a consumer tells itself `FATAL` (`provider lost`, `unknown at
   reconcile`) only for an id its provider lost: not one the provider's life that
   answered (or ran on, on the same host) had added and not released.
