@@ -31,6 +31,7 @@ import json
 import os
 import platform
 import random
+import resource
 import sys
 import tempfile
 import time
@@ -311,6 +312,8 @@ def main_bench() -> None:
             if written / t["cpu"] < args.min_rate:
                 slow.append(f"{written:,} events: {written / t['cpu']:,.0f} events/s of CPU")
             path.unlink()
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # (KiB on Linux)
+    print(f"\npeak memory of this process (its largest history read): {peak:,.0f} MiB")
     if slow:
         sys.exit(f"below {args.min_rate:,.0f} events/s: " + "; ".join(slow))
 

@@ -132,3 +132,27 @@ def test_events_with_a_count_or_seconds_that_is_not_positive_is_a_usage_error(
         main(["events", "--merge", str(path), *option], io.StringIO())
 
     assert (2, True) == (exited.value.code, option[0] in capsys.readouterr().err)
+
+
+@pytest.mark.parametrize(
+    ("rows", "says"),
+    [
+        ({"consumers": [["q1"]]}, "CatalogRestored.consumers: a row of fewer than 3 fields"),
+        ({"clients": [["q1", "erm"]]}, "CatalogRestored.clients: a row of fewer than 4 fields"),
+        (
+            {"resources": [["r1", "cam", "loaded", "x" * 5000]]},
+            "CatalogRestored.resources: a digest that is not a whole number",
+        ),
+    ],
+)
+def test_check_of_a_catalog_row_it_cannot_read_names_the_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], rows: dict[str, object], says: str
+) -> None:
+    restored = events.to_dict(events.CatalogRestored("erm", (), (), (), at=1.0, pid=2))
+    path = tmp_path / "events.jsonl"
+    path.write_bytes(_event_line() + (json.dumps({**restored, **rows}) + "\n").encode())
+
+    assert 2 == main(["check", str(path)], io.StringIO())
+
+    err = capsys.readouterr().err
+    assert (1, True) == (len(err.splitlines()), f"{path} line 2: {says}" in err), err

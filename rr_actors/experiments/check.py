@@ -60,6 +60,7 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import itertools
+import reprlib
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
@@ -253,13 +254,42 @@ def _runs(numbered: Iterable[tuple[int, Any]], where: str) -> dict[int, list[Lin
         run = data.pop("run", 0)
         data.pop("seed", None)
         if isinstance(run, bool) or not isinstance(run, int) or run < 0:
-            raise ConfigError(f"{where} {number}: run must be an int >= 0, got {run!r}")
+            raise ConfigError(f"{where} {number}: run must be an int >= 0, got {reprlib.repr(run)}")
         try:
             event = events.from_dict(data)
+            _check_rows(event)
         except ConfigError as exc:
             raise ConfigError(f"{where} {number}: {exc}") from None
         runs[run].append((number, event))
     return dict(runs)
+
+
+_ROW_FIELDS = {"resources": 3, "consumers": 3, "clients": 4}
+"""The fields a row of a catalog event has at least (its kind's docstring names them)."""
+
+
+def _check_rows(event: events.Event) -> None:
+    """A catalog event's rows are as wide as the rules read them, and its digests numbers.
+
+    Raises:
+        ConfigError: a row with fewer fields, or a digest that is not a whole number of
+            at most 40 digits; the message names the field and shows the row.
+    """
+    if not isinstance(event, events.CatalogRestored | events.RegistrarStopped):
+        return
+    kind = type(event).__name__
+    for field, least in _ROW_FIELDS.items():
+        for row in getattr(event, field):
+            if len(row) < least:
+                raise ConfigError(
+                    f"{kind}.{field}: a row of fewer than {least} fields: {reprlib.repr(row)}"
+                )
+    for row in event.resources:
+        digest = row[3] if len(row) > 3 else ""
+        if digest and not (len(digest) <= 40 and digest.lstrip("-").isdecimal()):
+            raise ConfigError(
+                f"{kind}.resources: a digest that is not a whole number: {reprlib.repr(row)}"
+            )
 
 
 def check_file(path: Path) -> dict[int, Verdict]:
