@@ -659,9 +659,13 @@ def load_equal_twice(h: History) -> History | None:
 def serve_before_restore(h: History) -> History | None:
     for i, e in enumerate(h):
         if type(e) is events.CatalogRestored:
-            for j in range(i + 1, len(h)):
-                if getattr(h[j], "registrar", None) == e.registrar:
-                    return _moved(h, i, j + 1)  # (its next event first)
+            mine = (
+                j for j in range(i + 1, len(h)) if getattr(h[j], "registrar", "") == e.registrar
+            )
+            j = next(mine, None)
+            serves = (events.CatalogRestored, events.RegistrarStopped, events.StatusDelivered)
+            if j is not None and h[j].pid == e.pid and type(h[j]) not in serves:
+                return _moved(h, i, j + 1)  # (its next event of that life first)
     return None
 
 
