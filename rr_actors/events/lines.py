@@ -6,6 +6,7 @@ import dataclasses
 import json
 import math
 import os
+import reprlib
 import sys
 import typing
 from collections.abc import Callable, Iterator
@@ -129,9 +130,8 @@ def _optional(cls: type[Event]) -> set[str]:
 
 
 def _shown(value: object) -> str:
-    """`repr(value)`, cut to 60 characters (a field of a hostile file may be huge)."""
-    text = repr(value)
-    return text if len(text) <= 60 else f"{text[:57]}..."
+    """`repr(value)`, abbreviated (`reprlib`: a field of a hostile file may be huge)."""
+    return reprlib.repr(value)
 
 
 def _converter(event: str, field: str, kind: Any) -> Callable[[Any], Any]:  # noqa: PLR0911
