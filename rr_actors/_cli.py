@@ -287,10 +287,18 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
     if not verdicts:
         sys.stderr.write(f'rr-actors check: {file}: no events (no line with a "schema")\n')
         return 2
-    texts = file.read_text(encoding="utf-8").split("\n")  # (the lines `check_file` numbered)
+    wanted: set[int] = set()
+    if not args.quiet:
+        wanted = {n for v in verdicts.values() for f in v.findings for n in f.lines}
+    texts: dict[int, str] = {}
+    if wanted:  # (those lines only: the file may hold a million events)
+        with file.open("rb") as stream:
+            for number, raw in enumerate(stream, start=1):
+                if number in wanted:
+                    texts[number] = raw[:300].decode("utf-8", "replace").rstrip("\n")
 
     def show(number: int) -> str:
-        text = texts[number - 1] if 0 < number <= len(texts) else ""
+        text = texts.get(number, "")
         return text if len(text) <= 200 else text[:197] + "..."
 
     for run, verdict in verdicts.items():

@@ -24,6 +24,7 @@ SMALLEST = {
         *("--calls", "50", "--rounds", "1", "--batch", "5"),
         *("--rate", "100", "--seconds", "0.2", "--slow", "0.005"),
     ],
+    "bench_check.py": ["--sizes", "2000", "--live", "20", "--restart-every", "500"],
     "bench_core.py": ["--rounds", "1", "--batch", "5"],
     "bench_observer_hosts.py": [
         *("--resources", "20", "--window", "0.5", "--kills", "1", "--cuts", "1"),

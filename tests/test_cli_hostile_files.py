@@ -1,7 +1,8 @@
 """`rr-actors check` and `rr-actors events --merge` on files that are not events files.
 
-Whatever the file holds (binary, JSON nested past the parser's stack, a `run` that is not
-a number, a line of 64 MiB, nothing), or if it is missing or a directory, the command
+Whatever the file holds (binary, JSON nested past the parser's stack, an integer of 5,000
+digits, a time that is `NaN` or infinite, a `run` that is not a number, a line of 64 MiB,
+nothing), or if it is missing or a directory, the command
 prints one line naming the file (and the line) and exits with its error code: 2 for
 `check`, 1 for `events`. No traceback.
 """
@@ -38,6 +39,29 @@ FILES: dict[str, tuple[Callable[[Path], None], str, str]] = {
         "line 1: not JSON",
         "line 1: not JSON",
     ),
+    "long integer": (  # (Python converts at most 4300 digits: CVE-2020-10735)
+        lambda p: p.write_bytes(
+            _event_line() + _event_line().replace(b'"pid": 2', b'"pid": 1' + b"0" * 5000)
+        ),
+        "line 2: not JSON that can be read (a number of more than 4300 digits)",
+        "line 2: not JSON that can be read (a number of more than 4300 digits)",
+    ),
+    **{
+        f"{name} at": (
+            lambda p, text=text: p.write_bytes(
+                _event_line() + _event_line().replace(b'"at": 1.0', b'"at": ' + text)
+            ),
+            "line 2: ResourceLoaded.at must be a finite number",
+            "line 2: ResourceLoaded.at must be a finite number",
+        )
+        for name, text in (
+            ("NaN", b"NaN"),
+            ("infinite", b"Infinity"),
+            ("minus infinite", b"-Infinity"),
+            ("overflowing", b"1e999"),
+            ("whole overflowing", b"1" + b"0" * 400),
+        )
+    },
     "missing": (lambda p: None, "no events.jsonl at", "cannot be read"),
     "directory": (lambda p: p.mkdir(), "no events.jsonl at", "cannot be read"),
 }
@@ -108,3 +132,27 @@ def test_events_with_a_count_or_seconds_that_is_not_positive_is_a_usage_error(
         main(["events", "--merge", str(path), *option], io.StringIO())
 
     assert (2, True) == (exited.value.code, option[0] in capsys.readouterr().err)
+
+
+@pytest.mark.parametrize(
+    ("rows", "says"),
+    [
+        ({"consumers": [["q1"]]}, "CatalogRestored.consumers: a row of fewer than 3 fields"),
+        ({"clients": [["q1", "erm"]]}, "CatalogRestored.clients: a row of fewer than 4 fields"),
+        (
+            {"resources": [["r1", "cam", "loaded", "x" * 5000]]},
+            "CatalogRestored.resources: a digest that is not a whole number",
+        ),
+    ],
+)
+def test_check_of_a_catalog_row_it_cannot_read_names_the_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], rows: dict[str, object], says: str
+) -> None:
+    restored = events.to_dict(events.CatalogRestored("erm", (), (), (), at=1.0, pid=2))
+    path = tmp_path / "events.jsonl"
+    path.write_bytes(_event_line() + (json.dumps({**restored, **rows}) + "\n").encode())
+
+    assert 2 == main(["check", str(path)], io.StringIO())
+
+    err = capsys.readouterr().err
+    assert (1, True) == (len(err.splitlines()), f"{path} line 2: {says}" in err), err

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
+import reprlib
+import sys
 import typing
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from rr_actors._core import hlc
@@ -14,7 +17,7 @@ from rr_actors._types import Status
 from rr_actors.errors import ConfigError
 from rr_actors.events.kinds import Event
 
-__all__ = ["MAX_LINE_BYTES", "SCHEMA", "from_dict", "json_lines", "to_dict"]
+__all__ = ["MAX_LINE_BYTES", "SCHEMA", "from_dict", "json_lines", "parse_json", "to_dict"]
 
 SCHEMA = 3
 """Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it, 2 and 1.
@@ -60,7 +63,8 @@ def from_dict(data: dict[str, Any]) -> Event:
     """Rebuild an event from [`to_dict`][rr_actors.events.to_dict] output.
 
     Every field must be present (`at` and `pid` too: they say when and where it
-    happened, not when it was read) and of its type; an `int` is accepted for a `float`.
+    happened, not when it was read) and of its type; an `int` is accepted for a `float`,
+    and a `float` must be finite (not `NaN`, not infinite: JSON text may say `NaN`).
 
     Args:
         data: a dict as `to_dict` returns it (for example, one parsed JSON line).
@@ -70,31 +74,49 @@ def from_dict(data: dict[str, Any]) -> Event:
 
     Raises:
         ConfigError: `data` is not a dict, has another `"schema"`, an unknown `"type"`,
-            unknown or missing fields, or a value of the wrong type; the message names
-            what was wrong.
+            unknown or missing fields, or a value of the wrong type (or a number that is
+            not finite); the message names what was wrong.
     """
     if not isinstance(data, dict):
         raise ConfigError(f"an event must be a dict, got {type(data).__name__}")
-    if data.get("schema") not in _READS:
-        raise ConfigError(f"unsupported event schema {data.get('schema')!r} (expected {SCHEMA})")
+    schema = data.get("schema")
+    if schema not in _READS:
+        raise ConfigError(f"unsupported event schema {schema!r} (expected {SCHEMA})")
     name = data.get("type")
-    cls = _TYPES.get(name) if isinstance(name, str) else None
-    if cls is None:
-        raise ConfigError(f"unknown event type {name!r}")
-    types = _field_types(cls)
-    given = set(data) - {"type", "schema"}
-    unknown = sorted(given - set(types))
-    optional = _optional(cls) if data["schema"] < SCHEMA else set()
-    missing = [field for field in types if field not in given and field not in optional]
-    if unknown or missing:
-        problems = [f"unknown fields {unknown}"] * bool(unknown)
-        problems += [f"missing fields {missing}"] * bool(missing)
-        raise ConfigError(f"{name}: {', '.join(problems)}")
-    values = {f: _convert(cls.__name__, f, kind, data[f]) for f, kind in types.items() if f in data}
-    if data["schema"] < 3:  # (not this process's host, nor a stamp of reading time)
-        values.setdefault("host", "")
-        values.setdefault("hlc", hlc.from_seconds(values["at"]))
-    return cls(**values)
+    reader = _READERS.get(name) if isinstance(name, str) else None
+    if reader is None:
+        raise ConfigError(f"unknown event type {_shown(name)}")
+    return reader.read(data, schema)
+
+
+class _Reader:
+    """How one event kind is read: its fields, each with the function that checks it."""
+
+    def __init__(self, cls: type[Event]) -> None:
+        hints = typing.get_type_hints(cls)
+        self.cls = cls
+        self.fields = tuple(
+            (f.name, _converter(cls.__name__, f.name, hints[f.name]))
+            for f in dataclasses.fields(cls)
+        )
+        self.keys = frozenset(name for name, _ in self.fields) | {"type", "schema"}
+        self.optional = _optional(cls)
+
+    def read(self, data: dict[str, Any], schema: int) -> Event:
+        if data.keys() != self.keys:  # (what is wrong, unless an older schema's default)
+            given = set(data) - {"type", "schema"}
+            unknown = sorted(given - self.keys)
+            optional = self.optional if schema < SCHEMA else set()
+            missing = [f for f, _ in self.fields if f not in given and f not in optional]
+            if unknown or missing:
+                problems = [f"unknown fields {_shown(unknown)}"] * bool(unknown)
+                problems += [f"missing fields {missing}"] * bool(missing)
+                raise ConfigError(f"{self.cls.__name__}: {', '.join(problems)}")
+        values = {name: check(data[name]) for name, check in self.fields if name in data}
+        if schema < 3:  # (not this process's host, nor a stamp of reading time)
+            values.setdefault("host", "")
+            values.setdefault("hlc", hlc.from_seconds(values["at"]))
+        return self.cls(**values)
 
 
 def _optional(cls: type[Event]) -> set[str]:
@@ -107,47 +129,114 @@ def _optional(cls: type[Event]) -> set[str]:
     }
 
 
-_FIELD_TYPES: dict[type, dict[str, type]] = {}  # (`get_type_hints` costs 1 ms, a line 20 us)
+def _shown(value: object) -> str:
+    """`repr(value)`, abbreviated (`reprlib`: a field of a hostile file may be huge)."""
+    return reprlib.repr(value)
 
 
-def _field_types(cls: type[Event]) -> dict[str, type]:
-    types = _FIELD_TYPES.get(cls)
-    if types is None:
-        hints = typing.get_type_hints(cls)
-        types = {field.name: hints[field.name] for field in dataclasses.fields(cls)}
-        _FIELD_TYPES[cls] = types
-    return types
-
-
-def _convert(event: str, field: str, kind: Any, value: object) -> Any:
-    """Check one field's value from a dict (and turn a status name into a `Status`)."""
+def _converter(event: str, field: str, kind: Any) -> Callable[[Any], Any]:  # noqa: PLR0911
+    """The function that checks one field's value from a dict (and turns a status name
+    into a `Status`), raising a `ConfigError` naming `event.field`."""
     args = typing.get_args(kind)
+
+    def wrong(value: object) -> ConfigError:
+        expected = "a Status name" if kind is Status else getattr(kind, "__name__", str(kind))
+        return ConfigError(f"{event}.{field} must be {expected}, got {_shown(value)}")
+
     if type(None) in args:  # `X | None`
-        if value is None:
-            return None
-        (kind,) = [a for a in args if a is not type(None)]
+        (inner,) = [a for a in args if a is not type(None)]
+        check = _converter(event, field, inner)
+        return lambda value: None if value is None else check(value)
     if typing.get_origin(kind) is tuple:
-        if not isinstance(value, list | tuple):
-            raise ConfigError(f"{event}.{field} must be a list, got {value!r}")
-        item = args_of(kind)
-        return tuple(_convert(event, field, item, v) for v in value)
-    if kind is bool and isinstance(value, bool):
-        return value
-    if kind is Status and isinstance(value, str) and value in Status.__members__:
-        return Status[value]
-    if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
-        return float(value)
-    if kind in (int, str) and isinstance(value, kind) and not isinstance(value, bool):
-        if field == "hlc" and not 0 <= value < 2**64:
-            raise ConfigError(f"{event}.hlc must be a stamp (0 to 2**64 - 1), got {value!r}")
-        return value
-    expected = "a Status name" if kind is Status else getattr(kind, "__name__", str(kind))
-    raise ConfigError(f"{event}.{field} must be {expected}, got {value!r}")
+        item = _converter(event, field, args[0])
+
+        def items(value: Any) -> tuple[Any, ...]:
+            if not isinstance(value, list | tuple):
+                raise ConfigError(f"{event}.{field} must be a list, got {_shown(value)}")
+            return tuple(item(v) for v in value)
+
+        return items
+    if kind is str:
+
+        def text(value: Any) -> str:
+            if type(value) is not str:
+                raise wrong(value)
+            return value
+
+        return text
+    if kind is float:
+
+        def real(value: Any) -> float:
+            if type(value) is float:
+                number = value
+            elif type(value) is int:
+                try:
+                    number = float(value)
+                except OverflowError:  # (beyond a float's range)
+                    number = math.inf
+            else:
+                raise wrong(value)
+            if not math.isfinite(number):
+                raise ConfigError(f"{event}.{field} must be a finite number, got {_shown(value)}")
+            return number
+
+        return real
+    if kind is int:
+        low, high = (0, 2**64) if field == "hlc" else (None, None)
+
+        def whole(value: Any) -> int:
+            if type(value) is not int:
+                raise wrong(value)
+            if low is not None and not low <= value < high:  # type: ignore[operator]
+                raise ConfigError(
+                    f"{event}.hlc must be a stamp (0 to 2**64 - 1), got {_shown(value)}"
+                )
+            return value
+
+        return whole
+    if kind is bool:
+
+        def flag(value: Any) -> bool:
+            if type(value) is not bool:
+                raise wrong(value)
+            return value
+
+        return flag
+    if kind is Status:
+
+        def status(value: Any) -> Status:
+            if not isinstance(value, str) or value not in Status.__members__:
+                raise wrong(value)
+            return Status[value]
+
+        return status
+    raise TypeError(f"{event}.{field}: no reader for {kind!r}")  # (a new kind's field type)
 
 
-def args_of(kind: Any) -> Any:
-    """The item type of `tuple[X, ...]`."""
-    return typing.get_args(kind)[0]
+_READERS: dict[str, _Reader] = {name: _Reader(cls) for name, cls in _TYPES.items()}
+
+
+def parse_json(text: str | bytes, where: str) -> Any:
+    """One line of a JSON lines file, parsed; what is wrong with it named with `where`.
+
+    Raises:
+        ConfigError: not UTF-8, not JSON, nested too deeply, or a number too long to
+            read (more than `sys.get_int_max_str_digits()` digits); the message begins
+            with `where` (`"line 3"`, `"events.jsonl line 3"`).
+    """
+    try:
+        return json.loads(text.decode("utf-8") if isinstance(text, bytes) else text)
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{where}: not UTF-8 text ({exc.reason})") from None
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{where}: not JSON ({exc})") from None
+    except RecursionError:
+        raise ConfigError(f"{where}: not JSON that can be read (nested too deeply)") from None
+    except ValueError:  # (an integer of more digits than Python converts: CVE-2020-10735)
+        raise ConfigError(
+            f"{where}: not JSON that can be read (a number of more than "
+            f"{sys.get_int_max_str_digits()} digits)"
+        ) from None
 
 
 MAX_LINE_BYTES = 64 * 1024 * 1024
@@ -182,17 +271,7 @@ def json_lines(path: str | os.PathLike[str]) -> Iterator[tuple[int, Any]]:
             number += 1
             if not raw.strip():
                 continue
-            where = f"{os.fspath(path)} line {number}"
-            try:
-                value = json.loads(raw.decode("utf-8"))
-            except UnicodeDecodeError as exc:
-                raise ConfigError(f"{where}: not UTF-8 text ({exc.reason})") from None
-            except json.JSONDecodeError as exc:
-                raise ConfigError(f"{where}: not JSON ({exc})") from None
-            except RecursionError:
-                raise ConfigError(
-                    f"{where}: not JSON that can be read (nested too deeply)"
-                ) from None
+            value = parse_json(raw, f"{os.fspath(path)} line {number}")
             yield number, value
 
 

@@ -3,7 +3,9 @@ found, with the lines that show it; mutations of a real history are found too.""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -11,7 +13,7 @@ import pytest
 import rr_actors as rr
 from rr_actors import events
 from rr_actors.__main__ import main
-from rr_actors.experiments import check
+from rr_actors.experiments import check, load_plan, plans, run
 
 P = 100  # the provider's process
 C = 200  # the consumer's process
@@ -72,7 +74,7 @@ def _seeded() -> dict[str, tuple[list[events.Event], set[int]]]:
         events.ResourceUnloaded("erm", "cam", RID, pid=P + 1, seq=2),
     ]
     return {
-        "held": (restarted, {4, 5}),
+        "kept": (restarted, {4, 5}),
         "unload-once": ([*h[:10], h[9]], {10, 11}),  # unloaded twice
         "dedup": (  # the second load while the first is live
             [*h[:3], events.ResourceLoaded("erm", "cam", RID2, Q2, 0.01, 42, pid=P, seq=4)],
@@ -93,7 +95,7 @@ def _seeded() -> dict[str, tuple[list[events.Event], set[int]]]:
 
 @pytest.mark.parametrize(
     "rule",
-    ["held", "unload-once", "dedup", "restore-first", "status-once", "status-path", "end"],
+    ["kept", "unload-once", "dedup", "restore-first", "status-once", "status-path", "end"],
 )
 def test_one_seeded_violation_of_each_rule_is_found_with_its_window(rule: str) -> None:
     history, window = _seeded()[rule]
@@ -145,7 +147,7 @@ def test_lost_events_make_the_run_unverifiable_not_violated() -> None:
 
 
 def test_a_lost_id_reported_fatal_holds() -> None:
-    history, _ = _seeded()["held"]
+    history, _ = _seeded()["kept"]
     answered = events.CallAnswered("cm", Q2, "erm", "cam", pid=C)
     fatal = events.StatusDelivered("cm", Q2, rr.Status.FATAL, 1, 0.0, "s9", pid=C)
     forgotten = events.QueryForgotten("cm", Q2, "erm", "unknown at reconcile", pid=C)
@@ -154,13 +156,13 @@ def test_a_lost_id_reported_fatal_holds() -> None:
 
 def test_an_id_its_consumer_forgot_before_a_restore_lost_it_holds() -> None:
     # the provider committed the release and was killed before it published it
-    history, _ = _seeded()["held"]
+    history, _ = _seeded()["kept"]
     answered = events.CallAnswered("cm", Q2, "erm", "cam", pid=C)
     forgotten = events.QueryForgotten("cm", Q2, "erm", "unload", pid=C)
     let_go = [*history[:4], answered, forgotten, *history[4:]]
-    assert "held" == check.check(numbered(let_go)).verdict
+    assert "held" == check.check(numbered(_stamped(let_go))).verdict
     late = [*history[:4], answered, *history[4:], forgotten]  # forgotten after: lost
-    assert ["held"] == [f.rule for f in check.check(numbered(late)).findings]
+    assert ["kept"] == [f.rule for f in check.check(numbered(_stamped(late))).findings]
 
 
 # -- the consumer's side and dependency paths ------------------------------------------------
@@ -336,3 +338,528 @@ def test_rr_actors_check_reads_a_schema_2_file_as_a_schema_3_one(
         (tmp_path / name / "events.jsonl").write_text("\n".join(lines) + "\n")
         assert 0 == main(["check", str(tmp_path / name), "-q"])
         assert "run 0: held" in capsys.readouterr().out
+
+
+# -- the rules of issue 40: seeded violations, and the windows the docs admit --------------
+
+
+def _stamped(history: list[events.Event]) -> list[events.Event]:
+    """`history` with clock stamps in its order (as one host's events have)."""
+    return [dataclasses.replace(e, hlc=1_000 + i, host="h") for i, e in enumerate(history)]
+
+
+def test_a_release_that_names_another_resource_than_its_ids_is_found() -> None:
+    h = clean()
+    h[7] = dataclasses.replace(h[7], resource_id=RID2)  # Q1 was held on RID
+    assert {3, 8} == _found(h, "release-match")
+
+
+def test_a_held_id_added_again_on_a_second_resource_is_found() -> None:
+    h = clean()
+    again = events.ConsumerAdded("erm", "r3333333-0000", Q1, "cm", pid=P, seq=4)
+    assert {3, 5} == _found([*h[:4], again, *h[4:]], "one-resource")
+
+
+def test_an_in_doubt_report_of_a_resource_with_committed_holders_is_found() -> None:
+    h = clean()
+    restored = events.CatalogRestored(
+        "erm", ((RID, "cam", "loading", "42", ""),), ((Q1, RID, "cm"),), (), (1, 1, 0), pid=P + 1
+    )
+    doubt = events.InDoubt("erm", RID, "cam", "load", pid=P + 1)
+    assert {3, 6} == _found([*h[:4], restored, doubt], "in-doubt")
+    # without holders (what a real restore of a load in doubt lists) it holds
+    empty = dataclasses.replace(restored, consumers=(), counts=(1, 0, 0))
+    assert "held" == check.check(numbered([*h[:2], empty, doubt])).verdict
+
+
+def renumbered(history: list[events.Event]) -> list[events.Event]:
+    """`history` with each process's numbers (`seq`) in its order again: an event a
+    mutation removed or added is then one the registrar did not (or did) publish, not
+    one the stream lost."""
+    counts: dict[int, int] = {}
+    out = []
+    for event in history:
+        if getattr(event, "seq", 0):
+            counts[event.pid] = counts.get(event.pid, 0) + 1
+            out.append(dataclasses.replace(event, seq=counts[event.pid]))  # type: ignore[call-arg]
+        else:
+            out.append(event)
+    return out
+
+
+def test_a_resource_released_by_its_last_consumer_and_never_unloaded_is_a_leak() -> None:
+    h = clean()
+    assert {9, 15} == _found(renumbered(_without(h, 9)), "no-leak")  # RID's unload is gone
+    # in doubt, cut short by the stop, or kept as unloading at the stop: no leak
+    doubt = events.InDoubt("erm", RID, "cam", "unload", pid=P)
+    cut = events.UnloadCutShort("erm", "cam", RID, pid=P)
+    kept = dataclasses.replace(h[15], resources=((RID, "cam", "unloading", "42", ""),))
+    for ending in ([doubt, *h[10:]], [h[14], cut, h[15]], [h[14], kept]):
+        assert "held" == check.check(numbered(renumbered([*h[:9], *ending]))).verdict
+
+
+def test_an_unload_committed_just_before_a_kill_is_no_leak_and_the_restore_decides() -> None:
+    h = clean()
+    # killed after the unload's commit, before its event: the restore does not list RID
+    gone = events.CatalogRestored("erm", (), (), (), pid=P + 1)
+    assert "held" == check.check(numbered([*h[:9], gone])).verdict
+    # the restore lists it unheld: the new life must unload it (its sweep) before a stop
+    unheld = events.CatalogRestored("erm", ((RID, "cam", "loaded", "42", ""),), (), (), pid=P + 1)
+    stop = events.RegistrarStopped("erm", (), (), (), pid=P + 1)
+    assert {9, 11} == _found([*h[:9], unheld, stop], "no-leak")
+    swept = events.ResourceUnloaded("erm", "cam", RID, pid=P + 1)
+    assert "held" == check.check(numbered([*h[:9], unheld, swept, stop])).verdict
+    listed = dataclasses.replace(stop, resources=unheld.resources)  # kept for the next start
+    assert "held" == check.check(numbered([*h[:9], unheld, listed])).verdict
+
+
+def _reported(reason: str, host: str = "h") -> list[events.Event]:
+    """cm holds Q1 at erm (erm's life goes on: it releases Q1 later) and forgets it as lost."""
+    h = clean()
+    told = events.StatusDelivered("cm", Q1, rr.Status.FATAL, 1, 0.0, "s9", pid=C)
+    forgot = events.QueryForgotten("cm", Q1, "erm", reason, pid=C)
+    history = _stamped([*h[:4], told, forgot, *h[4:]])
+    history[5] = dataclasses.replace(history[5], host=host)
+    return history
+
+
+@pytest.mark.parametrize("reason", ["unknown at reconcile", "provider lost"])
+def test_a_consumer_telling_itself_fatal_for_an_id_its_provider_holds_is_found(
+    reason: str,
+) -> None:
+    assert {3, 6} == _found(_reported(reason), "reported-lost")
+
+
+def test_a_provider_lost_across_hosts_is_a_cut_not_a_finding() -> None:
+    # a cut link makes a provider on the far side lost while it runs on over there
+    verdict = check.check(numbered(_reported("provider lost", host="other")))
+    assert "reported-lost" not in {f.rule for f in verdict.findings}
+
+
+def test_an_id_told_lost_after_its_providers_life_ended_holds() -> None:
+    h = _stamped(clean())
+    exited = events.ChildExited("sup", "erm", P, "killed", hlc=2_000)
+    told = events.StatusDelivered("cm", Q1, rr.Status.FATAL, 1, 0.0, "s9", pid=C, hlc=2_001)
+    forgot = events.QueryForgotten("cm", Q1, "erm", "provider lost", pid=C, hlc=2_002)
+    verdict = check.check(numbered([*h[:4], exited, told, forgot]))
+    assert "reported-lost" not in {f.rule for f in verdict.findings}, verdict.findings
+
+
+def test_a_consumer_that_forgets_an_id_as_lost_without_telling_itself_fatal_is_found() -> None:
+    history = _without(_reported("provider lost", host="other"), 4)
+    assert {5} == _found(history, "status-reached")
+
+
+def test_a_status_that_never_reaches_a_holder_that_held_it_throughout_is_found() -> None:
+    h = with_paths()
+    assert {6, 7} == _found(_without(h, 6), "status-reached")  # app's hop 2 dropped
+    # a holder that let its id go before the status's last delivery: not expected
+    early = [*h[:4], h[7], *h[4:6], *h[8:]]  # app forgot Q2 before the status came
+    verdict = check.check(numbered(_stamped(early)))
+    assert "status-reached" not in {f.rule for f in verdict.findings}, verdict.findings
+
+
+def test_a_status_whose_sender_died_before_it_sent_it_on_reaches_nobody() -> None:
+    h = with_paths()
+    # erm sends and dies at once (its journal kept the StatusSent): nobody gets it, and
+    # nothing of erm's life follows
+    sent = events.StatusSent("erm", Q1, rr.Status.ERROR, "hot", "s1", pid=P)
+    verdict = check.check(numbered([*h[:4], sent, h[7]]))
+    assert "status-reached" not in {f.rule for f in verdict.findings}, verdict.findings
+
+
+# -- mutations of the shipped plans' real runs: each is caught, by its rule ----------------
+#
+# A mutation turns a clean history into one where a registrar broke a rule (the events
+# then renumbered: what it removes was never published, what it adds was, so that no
+# mutation looks like a loss). Each takes the first place it applies to, or returns None.
+
+History = list[events.Event]
+
+
+def _index(h: History, kind: type) -> int | None:
+    """The index of the first event of `kind`."""
+    return next((i for i, e in enumerate(h) if type(e) is kind), None)
+
+
+def _moved(h: History, i: int, to: int) -> History:
+    out = [*h[:i], *h[i + 1 :]]
+    out.insert(to if to < i else to - 1, h[i])
+    return out
+
+
+def _fresh(event: events.Event, **changes: object) -> events.Event:
+    """A new event like `event` (its clock stamp right after it)."""
+    return dataclasses.replace(event, hlc=event.hlc + 1, **changes)  # type: ignore[arg-type]
+
+
+def _after(before: events.Event, event: events.Event) -> events.Event:
+    """`event`, stamped right after `before` (on the host of `before`)."""
+    return dataclasses.replace(event, hlc=before.hlc + 1, host=before.host)  # type: ignore[arg-type]
+
+
+def _last_release(h: History) -> tuple[int, int] | None:
+    """(index of a resource's last ConsumerReleased, index of its ResourceUnloaded)."""
+    for u, unload in enumerate(h):
+        if type(unload) is events.ResourceUnloaded:
+            for c in range(u - 1, -1, -1):
+                e = h[c]
+                if getattr(e, "registrar", None) != unload.registrar:
+                    continue
+                if type(e) is events.ConsumerReleased and e.resource_id == unload.resource_id:
+                    return c, u
+                if type(e) in (events.ConsumerAdded, events.CatalogRestored):
+                    break  # (its last holder went before a restart: not this one)
+    return None
+
+
+def _stops_later(h: History, i: int) -> bool:
+    """Whether the registrar of `h[i]` stops cleanly in the same life (with its rows)."""
+    name, pid = h[i].registrar, h[i].pid  # type: ignore[union-attr]
+    for e in h[i + 1 :]:
+        if getattr(e, "registrar", None) == name:
+            if type(e) is events.CatalogRestored or e.pid != pid:
+                return False
+            if type(e) is events.RegistrarStopped:
+                return e.complete
+    return False
+
+
+def duplicate(kind: type) -> Callable[[History], History | None]:
+    def mutate(h: History) -> History | None:
+        i = _index(h, kind)
+        return None if i is None else [*h[: i + 1], h[i], *h[i + 1 :]]
+
+    return mutate
+
+
+def unload_before_release(h: History) -> History | None:
+    found = _last_release(h)
+    return None if found is None else _moved(h, found[1], found[0])
+
+
+def drop_unload(h: History) -> History | None:
+    for i, e in enumerate(h):
+        if type(e) is events.ResourceUnloaded and _stops_later(h, i):
+            return _without(h, i)
+    return None
+
+
+def drop_last_release(h: History) -> History | None:
+    found = _last_release(h)
+    return None if found is None else _without(h, found[0])
+
+
+def _release_before_stop(h: History) -> tuple[int, int] | None:
+    """A resource's last release and its unload, in a life that ends in a clean stop."""
+    done = 0
+    while (found := _last_release(h[done:])) is not None:
+        c, u = found[0] + done, found[1] + done
+        if _stops_later(h, c):
+            return c, u
+        done = u + 1
+    return None
+
+
+def release_unpublished(h: History) -> History | None:
+    """A release made without its event (and its unload not published either): the
+    stop's rows no longer list the id. (In a life that ends in a restart, that is what
+    a kill right after the commit shows: the restore decides.)"""
+    found = _release_before_stop(h)
+    return None if found is None else _without(h, *found)
+
+
+def provider_keeps_id(h: History) -> History | None:
+    """A provider that never releases an id (it lists it at its last stop) that its
+    consumer gave back before that consumer stopped."""
+    done = 0
+    while (found := _last_release(h[done:])) is not None:
+        c, u = found[0] + done, found[1] + done
+        done = u + 1
+        release, unload = h[c], h[u]
+        assert type(release) is events.ConsumerReleased
+        assert type(unload) is events.ResourceUnloaded
+        names = [getattr(e, "registrar", None) for e in h]
+        mine = [i for i in range(c, len(h)) if names[i] == release.registrar]
+        s = next((i for i in mine if type(h[i]) is events.RegistrarStopped), mine[-1])
+        stop = h[s]  # the stop of this life: its last event
+        gone = [i for i in range(s) if names[i] == release.consumer]
+        if not (
+            type(stop) is events.RegistrarStopped
+            and s == mine[-1]
+            and stop.complete
+            and _stops_later(h, c)
+            and gone
+            and type(h[gone[-1]]) is events.RegistrarStopped
+        ):
+            continue
+        kept = dataclasses.replace(
+            stop,
+            resources=(*stop.resources, (unload.resource_id, unload.server, "loaded", "", "")),
+            consumers=(*stop.consumers, (release.query_id, release.resource_id, release.consumer)),
+        )
+        return [*_without(h[:s], c, u), kept, *h[s + 1 :]]
+    return None
+
+
+def add_after_unload(h: History) -> History | None:
+    i = _index(h, events.ResourceUnloaded)
+    if i is None:
+        return None
+    unload = h[i]
+    late = events.ConsumerAdded(
+        unload.registrar, unload.resource_id, "q-late", "client-0", pid=unload.pid, seq=1
+    )
+    return [*h[: i + 1], _after(unload, late), *h[i + 1 :]]
+
+
+def _two_resources(h: History) -> tuple[int, str] | None:
+    """(index of a ConsumerAdded, another resource its provider served before it)."""
+    seen: dict[str, str] = {}  # provider -> a resource it served
+    for i, e in enumerate(h):
+        if type(e) is events.ConsumerAdded:
+            other = seen.get(e.registrar)
+            if other is not None and other != e.resource_id:
+                return i, other
+            seen[e.registrar] = e.resource_id
+    return None
+
+
+def release_names_other_resource(h: History) -> History | None:
+    for i, e in enumerate(h):
+        if type(e) is events.ConsumerReleased:
+            others = [
+                x.resource_id
+                for x in h[:i]
+                if type(x) is events.ConsumerAdded
+                and x.registrar == e.registrar
+                and x.resource_id != e.resource_id
+            ]
+            if others:
+                return [*h[:i], dataclasses.replace(e, resource_id=others[-1]), *h[i + 1 :]]
+    return None
+
+
+def add_held_id_elsewhere(h: History) -> History | None:
+    found = _two_resources(h)
+    if found is None:
+        return None
+    i, other = found
+    return [*h[: i + 1], _fresh(h[i], resource_id=other), *h[i + 1 :]]
+
+
+def load_equal_twice(h: History) -> History | None:
+    for i, e in enumerate(h):
+        if type(e) is events.ResourceLoaded and e.digest is not None:
+            twin = _fresh(e, resource_id="r-twin", query_id="q-twin")
+            return [*h[: i + 1], twin, *h[i + 1 :]]
+    return None
+
+
+def serve_before_restore(h: History) -> History | None:
+    for i, e in enumerate(h):
+        if type(e) is events.CatalogRestored:
+            mine = (
+                j for j in range(i + 1, len(h)) if getattr(h[j], "registrar", "") == e.registrar
+            )
+            j = next(mine, None)
+            serves = (events.CatalogRestored, events.RegistrarStopped, events.StatusDelivered)
+            if j is not None and h[j].pid == e.pid and type(h[j]) not in serves:
+                return _moved(h, i, j + 1)  # (its next event of that life first)
+    return None
+
+
+def restore_loses_id(h: History) -> History | None:
+    """A restore without an id held before the restart (its consumer still holds it, and
+    was not told it was lost)."""
+    held: dict[str, set[str]] = {}
+    for i, e in enumerate(h):
+        if type(e) is events.ConsumerAdded:
+            held.setdefault(e.registrar, set()).add(e.query_id)
+        elif type(e) is events.ConsumerReleased:
+            held.get(e.registrar, set()).discard(e.query_id)
+        elif type(e) is events.CatalogRestored and e.complete:
+            rows = [row for row in e.consumers if row[0] in held.get(e.registrar, set())]
+            forgotten = {  # (before the restore: a release a kill cut off from its event)
+                x.query_id for x in h if type(x) is events.QueryForgotten and x.hlc < e.hlc
+            }
+            told = {  # (its consumer told of its loss: no violation)
+                x.query_id
+                for x in h
+                if type(x) is events.StatusDelivered and x.status is rr.Status.FATAL
+            }
+            rows = [row for row in rows if row[0] not in forgotten | told]
+            if rows:
+                lost = rows[0][0]
+                kept = tuple(row for row in e.consumers if row[0] != lost)
+                return [*h[:i], dataclasses.replace(e, consumers=kept), *h[i + 1 :]]
+            held[e.registrar] = {row[0] for row in e.consumers}
+    return None
+
+
+def in_doubt_while_held(h: History) -> History | None:
+    i = _index(h, events.ConsumerAdded)
+    if i is None:
+        return None
+    added = h[i]
+    doubt = events.InDoubt(added.registrar, added.resource_id, "resource", "load", pid=added.pid)
+    return [*h[: i + 1], _after(added, doubt), *h[i + 1 :]]
+
+
+def _delivered(h: History) -> list[int]:
+    return [i for i, e in enumerate(h) if type(e) is events.StatusDelivered and e.status_id]
+
+
+def drop_delivery(h: History) -> History | None:
+    """The last hop of a status a provider sent (or a consumer told itself) is lost."""
+    found = _delivered(h)
+    if not found:
+        return None
+    last = max(found, key=lambda i: (h[i].hop, -i))  # type: ignore[union-attr]
+    return _without(h, last)
+
+
+def deliver_at_wrong_hop(h: History) -> History | None:
+    found = _delivered(h)
+    if not found:
+        return None
+    i = found[0]
+    return [*h[:i], dataclasses.replace(h[i], hop=h[i].hop + 1), *h[i + 1 :]]  # type: ignore[union-attr]
+
+
+def drop_status_sent(h: History) -> History | None:
+    for i, e in enumerate(h):
+        if (
+            type(e) is events.StatusSent
+            and e.status_id
+            and any(type(x) is events.StatusDelivered and x.status_id == e.status_id for x in h)
+        ):
+            return _without(h, i)
+    return None
+
+
+def answer_twice(h: History) -> History | None:
+    for i, e in enumerate(h):
+        if type(e) is events.CallAnswered and not e.retry:
+            return [*h[: i + 1], e, *h[i + 1 :]]
+    return None
+
+
+def drop_add(h: History) -> History | None:
+    answered = {e.query_id for e in h if type(e) is events.CallAnswered}
+    restored = {r[0] for e in h if type(e) is events.CatalogRestored for r in e.consumers}
+    for i, e in enumerate(h):
+        if type(e) is events.ConsumerAdded and e.query_id in answered - restored:
+            return _without(h, i)
+    return None
+
+
+def drop_forget(h: History) -> History | None:
+    for i, e in enumerate(h):
+        if type(e) is events.QueryForgotten and _stops_later(h, i):
+            return _without(h, i)
+    return None
+
+
+def told_lost_while_held(reason: str) -> Callable[[History], History | None]:
+    """A consumer forgets, as lost, an id its provider's life holds (and later releases)."""
+
+    def mutate(h: History) -> History | None:
+        released = {e.query_id for e in h if type(e) is events.ConsumerReleased}
+        for i, e in enumerate(h):
+            if type(e) is events.CallAnswered and e.query_id in released:
+                forgot = events.QueryForgotten(
+                    e.registrar, e.query_id, e.serving_rr, reason, pid=e.pid, host=e.host
+                )
+                return [*h[: i + 1], _after(e, forgot), *h[i + 1 :]]
+        return None
+
+    return mutate
+
+
+MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
+    # name: (the mutation, the rule that must catch it)
+    "duplicate-unload": (duplicate(events.ResourceUnloaded), "unload-once"),
+    "unload-before-release": (unload_before_release, "unload-once"),
+    "drop-last-release": (drop_last_release, "unload-once"),
+    "duplicate-release": (duplicate(events.ConsumerReleased), "unload-once"),
+    "add-after-unload": (add_after_unload, "unload-once"),
+    "drop-unload": (drop_unload, "no-leak"),
+    "release-names-other-resource": (release_names_other_resource, "release-match"),
+    "add-held-id-elsewhere": (add_held_id_elsewhere, "one-resource"),
+    "in-doubt-while-held": (in_doubt_while_held, "in-doubt"),
+    "load-equal-twice": (load_equal_twice, "dedup"),
+    "serve-before-restore": (serve_before_restore, "restore-first"),
+    "restore-loses-id": (restore_loses_id, "kept"),
+    "duplicate-delivery": (duplicate(events.StatusDelivered), "status-once"),
+    "drop-delivery": (drop_delivery, "status-reached"),
+    "deliver-at-wrong-hop": (deliver_at_wrong_hop, "status-path"),
+    "drop-status-sent": (drop_status_sent, "status-path"),
+    "answer-twice": (answer_twice, "answered"),
+    "drop-add": (drop_add, "answered"),
+    "drop-forget": (drop_forget, "answered"),
+    "unknown-at-reconcile-while-held": (
+        told_lost_while_held("unknown at reconcile"),
+        "reported-lost",
+    ),
+    "provider-lost-while-alive": (told_lost_while_held("provider lost"), "reported-lost"),
+    "release-unpublished": (release_unpublished, "kept"),
+    "provider-keeps-id": (provider_keeps_id, "end"),
+}
+
+
+SHORT = {"killheavy": 3.0}
+"""Seconds per run of each shipped plan here (2 s for the others): a few kills each."""
+
+ROOT_ONLY = {"leases"}
+"""Shipped plans these tests cannot run: `leases` needs root, network namespaces and
+minutes (tests/experiments/test_experiments_hosts.py runs a small plan of its shape)."""
+
+
+@pytest.fixture(scope="module")
+def shipped(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[int, list[check.Line]]]:
+    """Real runs of every shipped plan (one repeat, shortened): their histories."""
+    runs = {}
+    for name in sorted(set(plans.shipped()) - ROOT_ONLY):
+        out = tmp_path_factory.mktemp(name)
+        run(load_plan(plans.find(name)), out=out, repeat=1, duration=SHORT.get(name, 2.0))
+        runs[name] = check.read_runs((out / "events.jsonl").read_text().splitlines())
+    return runs
+
+
+@pytest.mark.timeout(900)
+def test_the_shipped_plans_real_runs_hold(
+    shipped: dict[str, dict[int, list[check.Line]]],
+) -> None:
+    verdicts = {
+        (name, number): check.check(history)
+        for name, runs in shipped.items()
+        for number, history in runs.items()
+    }
+    assert set(plans.shipped()) - ROOT_ONLY == {name for name, _ in verdicts}
+    broken = {key: v.findings for key, v in verdicts.items() if v.verdict != "held"}
+    assert {} == broken
+
+
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("mutation", sorted(MUTATIONS))
+def test_each_mutation_of_the_shipped_plans_real_runs_is_caught_by_its_rule(
+    shipped: dict[str, dict[int, list[check.Line]]], mutation: str
+) -> None:
+    mutate, rule = MUTATIONS[mutation]
+    caught, missed = [], []
+    for name, runs in shipped.items():
+        for number, history in runs.items():
+            mutated = mutate([event for _, event in history])
+            if mutated is None:
+                continue  # (nothing of its kind in this run: no status, no restore, ...)
+            verdict = check.check(numbered(renumbered(mutated)))
+            rules = {f.rule for f in verdict.findings if f.kind == "violation"}
+            (caught if rule in rules else missed).append((name, number, sorted(rules)))
+    assert caught, f"{mutation} applies to no run of the shipped plans"
+    assert [] == missed
+
+
+def test_every_rule_but_the_events_rule_has_a_mutation() -> None:
+    # (`events`, a loss, is not a broken rule: the mutations renumber to show none)
+    assert set(check.RULES) - {"events"} == {rule for _, rule in MUTATIONS.values()}

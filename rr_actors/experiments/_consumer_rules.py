@@ -1,0 +1,195 @@
+"""The consumer's side of a run (rules `answered`, `reported-lost`, `end`).
+
+```
+ steps ──► answered: each consumer's answered calls, life by life, against what its
+       │   providers added ──► findings, and the spans `status-reached` asks about
+ QueryForgotten (provider lost, unknown at reconcile) + the provider pass's holdings
+       ──► reported_lost: its provider's life that held the id had not lost it
+ history ──► end: what providers still hold for consumers that stopped
+```
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Collection, Sequence
+
+from rr_actors import events
+from rr_actors.experiments._history import REPORTED, Facts, Finding, Life, Line, Step
+from rr_actors.experiments._provider_rules import Holding
+from rr_actors.experiments._status_rules import Span
+
+__all__ = ["answered", "end", "reported_lost"]
+
+
+def answered(  # noqa: PLR0912 - one branch per event kind
+    steps: Sequence[Step], facts: Facts, wanted: Collection[tuple[str, str]]
+) -> tuple[list[Finding], dict[tuple[str, str], list[Span]]]:
+    """`answered`: the consumer's side of each call, against what it and its provider say.
+
+    Returns:
+        The findings, and for each (consumer, query id) of `wanted`, the spans it held
+        it in (`status-reached`).
+    """
+    findings: list[Finding] = []
+    held: dict[str, dict[str, int]] = defaultdict(dict)  # consumer -> answered id -> line
+    restored: dict[str, dict[str, int]] = defaultdict(dict)  # consumer -> restored id -> line
+    spans: dict[tuple[str, str], list[Span]] = defaultdict(list)
+
+    def found(message: str, lines: tuple[int, ...], *registrars: str) -> None:
+        findings.append(Finding("answered", "violation", message, lines, registrars))
+
+    def began(name: str, qid: str, life: int, stamp: int) -> None:
+        key = (name, qid)
+        if key in wanted:
+            kept = spans[key]
+            if not kept or kept[-1][0] != life or kept[-1][2] is not None:
+                kept.append((life, stamp, None, 0))
+
+    def ended(name: str, qid: str, stamp: int, line: int) -> None:
+        key = (name, qid)
+        if key in wanted and spans.get(key) and spans[key][-1][2] is None:
+            life, since, _, _ = spans[key][-1]
+            spans[key][-1] = (life, since, stamp, line)
+
+    for name, line, event, new, life in steps:
+        if new:
+            held[name].clear()
+            restored[name].clear()
+        if isinstance(event, events.CatalogRestored):
+            restored[name] = {row[0]: line for row in event.clients}
+            for qid in restored[name]:
+                began(name, qid, life, event.hlc)
+        elif isinstance(event, events.CallAnswered):
+            qid = event.query_id
+            if qid in held[name] and not event.retry:
+                found(
+                    f"{name}: call {qid[:8]} answered twice, not as a retry",
+                    (held[name][qid], line),
+                    name,
+                )
+            if qid not in facts.added:
+                found(
+                    f"{name}: call {qid[:8]} answered, but {event.serving_rr} never added "
+                    f"it (no ConsumerAdded)",
+                    (line,),
+                    name,
+                    event.serving_rr,
+                )
+            held[name].setdefault(qid, line)
+            began(name, qid, life, event.hlc)
+        elif isinstance(event, events.QueryForgotten):
+            qid = event.query_id
+            if held[name].pop(qid, None) is None and qid not in restored[name]:
+                found(
+                    f"{name}: query {qid[:8]} forgotten ({event.reason}) but not held",
+                    (line,),
+                    name,
+                )
+            restored[name].pop(qid, None)
+            ended(name, qid, event.hlc, line)
+        elif isinstance(event, events.RegistrarStopped) and event.complete:
+            listed = {row[0] for row in event.clients}
+            for how, ids in (("answered", held[name]), ("restored", restored[name])):
+                for qid, at in ids.items():
+                    if qid not in listed:
+                        found(
+                            f"{name}: call {qid[:8]} {how}, but at its stop neither "
+                            f"forgotten nor listed",
+                            (at, line),
+                            name,
+                        )
+            held[name].clear()
+            restored[name].clear()
+    return findings, spans
+
+
+def reported_lost(
+    history: Sequence[Line],
+    holdings: dict[tuple[str, str], list[Holding]],
+    lives: dict[tuple[str, int], Life],
+) -> list[Finding]:
+    """`reported-lost`: a consumer tells itself `FATAL` for an id only if its provider
+    lost it.
+
+    `unknown at reconcile` (rule 20): the provider's life that answered had not added
+    it, or had released it. `provider lost` (rule 19): the provider's life that held it
+    died; one that was seen alive after, on the same host, was not lost (across hosts a
+    cut link counts as lost: the provider may run on over there).
+    """
+    findings: list[Finding] = []
+    for line, event in history:
+        if not isinstance(event, events.QueryForgotten) or event.reason not in REPORTED:
+            continue
+        provider, qid, stamp = event.serving_rr, event.query_id, event.hlc
+        for holding in holdings.get((provider, qid), ()):
+            if holding.since >= stamp or (holding.until is not None and holding.until <= stamp):
+                continue
+            life = lives[provider, holding.life]
+            if life.ended_before(stamp):
+                continue
+            if event.reason == "provider lost" and not (
+                life.last > stamp and life.host and life.host == event.host
+            ):
+                continue
+            findings.append(
+                Finding(
+                    "reported-lost",
+                    "violation",
+                    f"{event.registrar}: query {qid[:8]} told FATAL ({event.reason}) and "
+                    f"forgotten, but {provider} held it (added in its life that "
+                    f"{'answered' if event.reason != 'provider lost' else 'ran on'}, not "
+                    f"released)",
+                    (holding.line, line),
+                    (event.registrar, provider),
+                )
+            )
+            break
+    return findings
+
+
+def end(history: Sequence[Line]) -> list[Finding]:
+    """`end`: at the end, no provider holds an id of a consumer that stopped."""
+    stopped: dict[str, int] = {}  # consumer -> line of its (last) RegistrarStopped
+    last_pid: dict[str, int] = {}
+    exited: dict[tuple[str, int], int] = {}  # (child, pid) -> line of its ChildExited
+    held: dict[str, dict[str, tuple[str, int]]] = defaultdict(dict)  # provider -> qid -> ...
+    for line, event in history:
+        if isinstance(event, events.ChildExited):
+            exited.setdefault((event.child, event.pid), line)
+            continue
+        name = getattr(event, "registrar", None)
+        if name is None:
+            continue
+        if isinstance(event, events.RegistrarStopped):
+            stopped[name] = line
+            for qid, _rid, consumer, *_ in event.consumers:
+                held[name].setdefault(qid, (consumer, line))
+            continue
+        if last_pid.get(name) not in (None, event.pid):
+            stopped.pop(name, None)  # it came back
+        last_pid[name] = event.pid
+        if isinstance(event, events.CatalogRestored):
+            stopped.pop(name, None)
+            held[name] = {qid: (c, line) for qid, _rid, c, *_ in event.consumers}
+        elif isinstance(event, events.ConsumerAdded):
+            held[name][event.query_id] = (event.consumer, line)
+        elif isinstance(event, events.ConsumerReleased):
+            held[name].pop(event.query_id, None)
+    findings = []
+    for provider, ids in held.items():
+        down = stopped.get(provider, exited.get((provider, last_pid.get(provider, -1))))
+        for qid, (consumer, line) in ids.items():
+            # a provider down when its consumer stopped is told at its next start (rule 12)
+            up = consumer in stopped and (down is None or down > stopped[consumer])
+            if up and consumer != provider:
+                findings.append(
+                    Finding(
+                        "end",
+                        "violation",
+                        f"{provider} still holds query {qid[:8]} of {consumer}, which stopped",
+                        (line, stopped[consumer]),
+                        (provider, consumer),
+                    )
+                )
+    return findings

@@ -1,0 +1,252 @@
+"""What every rule of `check.py` needs first: findings, and each registrar's lives.
+
+```
+ history [(line, event), ...] ──► walk ──► steps: (registrar, line, event, new, life)
+                              │        └─► lives: (registrar, life) -> Life: its first and
+                              │            last stamp, the stamp it ended at, its host
+                              └─► gather ──► Facts: what the whole run says, wherever
+                                            in it (who forgot what, who was told FATAL,
+                                            dependency paths, deliveries, ...)
+```
+
+A registrar's *life* (an incarnation) begins at a `CatalogRestored`, at its first event
+in another process (a restarted manager process), or at its first event after a
+`ChildExited` of its own process (a restarted thread manager) or after its
+`RegistrarStopped`. It ends at that `ChildExited` or `RegistrarStopped`, or where the
+next one begins.
+
+Two clocks are used. Within one registrar, the order of its lines (events of one process
+reach the run's subscription in the order they were published). Across registrars, the
+events' hybrid logical clock stamps (`hlc`): a stamp orders a cause before its effects,
+in one process, across the processes of a host, and across hosts (the carrier brings
+the sender's stamp); the order of lines does not (each process forwards its own
+events, in batches).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Literal
+
+from rr_actors import events
+from rr_actors._types import Status
+
+__all__ = [
+    "REPORTED",
+    "Facts",
+    "Finding",
+    "Kind",
+    "Life",
+    "Line",
+    "Step",
+    "gather",
+    "registrar_of",
+    "walk",
+]
+
+Line = tuple[int, events.Event]
+"""An event with its line number in `events.jsonl` (1 for the first line)."""
+
+Kind = Literal["violation", "unverifiable"]
+
+Step = tuple[str, int, events.Event, bool, int]
+"""`(registrar, line, event, new, life)`: a registrar's event, whether it begins a new
+life of it, and which life (0, 1, ...) it belongs to."""
+
+REPORTED = ("provider lost", "unknown at reconcile")
+"""`QueryForgotten` reasons whose `FATAL` the consumer delivers itself (no `StatusSent`):
+its provider is lost for good (rule 19), or its restart lost the id (rule 20)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Finding:
+    """One thing a run's events show against a rule, or keep from being checked.
+
+    Attributes:
+        rule: which rule (one of `check.RULES`).
+        kind: `"violation"`, or `"unverifiable"` (events were lost where it happened).
+        message: what happened, for people.
+        lines: the line numbers of the smallest window of events that shows it.
+        registrars: the registrars it is about (a loss in their process downgrades a
+            violation to unverifiable).
+    """
+
+    rule: str
+    kind: Kind
+    message: str
+    lines: tuple[int, ...]
+    registrars: tuple[str, ...] = ()
+
+
+@dataclasses.dataclass(slots=True)
+class Life:
+    """One life of a registrar, as its events show it.
+
+    Attributes:
+        start: the stamp (`hlc`) of its first event.
+        last: the stamp of its last event.
+        last_line: the line of its last event.
+        end: the stamp it ended at (its `ChildExited`, its `RegistrarStopped`, or the first
+            event of its next life), `None` if the run shows no end.
+        host: the host of its events (`""`: not known, as in files of schema 2).
+    """
+
+    start: int
+    last: int
+    last_line: int
+    end: int | None = None
+    host: str = ""
+
+    def ended_before(self, stamp: int) -> bool:
+        """Whether it had ended at `stamp` (by what the run shows)."""
+        return self.end is not None and self.end < stamp
+
+
+def registrar_of(event: events.Event) -> str | None:
+    """The registrar an event is of (`None` for a supervisor's or the stream's own)."""
+    return getattr(event, "registrar", None)
+
+
+def walk(history: Sequence[Line]) -> tuple[list[Step], dict[tuple[str, int], Life]]:
+    """Each registrar event with its life, and the lives (see the module docstring).
+
+    A `StatusDelivered` belongs to the life its registrar is in and begins none (a
+    process's status desk may publish it for a registrar, from another thread); a
+    `RegistrarStopped` ends its life.
+    """
+    pids: dict[str, int] = {}
+    current: dict[str, int] = {}  # registrar -> its life now
+    now: dict[str, Life] = {}  # registrar -> that life's record
+    over: set[str] = set()  # registrars whose life ended (their next event begins one)
+    lives: dict[tuple[str, int], Life] = {}
+    steps: list[Step] = []
+    for line, event in history:
+        if isinstance(event, events.ChildExited):
+            child = event.child
+            if pids.get(child) == event.pid and child not in over:
+                now[child].end = event.hlc
+                over.add(child)
+            continue
+        name = getattr(event, "registrar", None)
+        if name is None:
+            continue
+        stamp = event.hlc
+        if isinstance(event, events.StatusDelivered | events.RegistrarStopped):
+            record = now.get(name)
+            if record is None:
+                current[name] = 0
+                record = now[name] = lives[name, 0] = Life(stamp, stamp, line, host=event.host)
+            record.last = max(record.last, stamp)
+            record.last_line = line
+            if isinstance(event, events.RegistrarStopped):
+                if record.end is None:
+                    record.end = stamp
+                over.add(name)
+            steps.append((name, line, event, False, current[name]))
+            continue
+        pid = pids.get(name)
+        if (
+            pid is None
+            or pid != event.pid
+            or name in over
+            or isinstance(event, events.CatalogRestored)
+        ):
+            life = current.get(name, -1) + 1
+            record = now.get(name)
+            if record is not None and record.end is None:
+                record.end = stamp
+            current[name] = life
+            now[name] = lives[name, life] = Life(stamp, stamp, line, host=event.host)
+            over.discard(name)
+            new = True
+        else:
+            life = current[name]
+            record = now[name]
+            record.last = max(record.last, stamp)
+            record.last_line = line
+            new = False
+        pids[name] = event.pid
+        steps.append((name, line, event, new, life))
+    return steps, lives
+
+
+@dataclasses.dataclass
+class Facts:
+    """What the whole run says, wherever in it (query and status ids are UUIDs: unique
+    across registrars).
+
+    Attributes:
+        with_backup: registrars that published a `CatalogRestored`.
+        forgot: (provider, query id) -> the stamp of the first `QueryForgotten` of it by
+            its consumer.
+        fatal: query id -> the line of the first `FATAL` its holder was told.
+        fatal_at: query id -> the stamp of that `FATAL`.
+        added: query ids some provider added (`ConsumerAdded`, or a catalog's rows).
+        held_at: query id -> (provider, resource id, line of its `ConsumerAdded` or row).
+        parent: (consumer, query id) -> the consumer's resource it is a dependency of.
+        sent: status id -> the query id it was sent about (its `StatusSent`).
+        reported: (consumer, query id) told `FATAL` by its consumer itself (`REPORTED`).
+        delivered: (status id, query id) of every `StatusDelivered`.
+        last_delivery: status id -> the greatest stamp of its deliveries.
+        first_delivery: (status id, registrar, hop) -> the least stamp of its deliveries
+            to that registrar at that hop.
+        lost: (provider, query id) its consumer reported lost itself (`REPORTED`).
+        told_self: (line, consumer, query id) of each `QueryForgotten` of `REPORTED`.
+    """
+
+    with_backup: set[str] = dataclasses.field(default_factory=set)
+    forgot: dict[tuple[str, str], int] = dataclasses.field(default_factory=dict)
+    fatal: dict[str, int] = dataclasses.field(default_factory=dict)
+    fatal_at: dict[str, int] = dataclasses.field(default_factory=dict)
+    added: set[str] = dataclasses.field(default_factory=set)
+    held_at: dict[str, tuple[str, str, int]] = dataclasses.field(default_factory=dict)
+    parent: dict[tuple[str, str], str] = dataclasses.field(default_factory=dict)
+    sent: dict[str, str] = dataclasses.field(default_factory=dict)
+    reported: set[tuple[str, str]] = dataclasses.field(default_factory=set)
+    delivered: set[tuple[str, str]] = dataclasses.field(default_factory=set)
+    last_delivery: dict[str, int] = dataclasses.field(default_factory=dict)
+    first_delivery: dict[tuple[str, str, int], int] = dataclasses.field(default_factory=dict)
+    lost: set[tuple[str, str]] = dataclasses.field(default_factory=set)
+    told_self: list[tuple[int, str, str]] = dataclasses.field(default_factory=list)
+
+
+def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per event kind
+    """The `Facts` of a run, in one pass."""
+    facts = Facts()
+    for line, event in history:
+        if isinstance(event, events.ConsumerAdded):
+            facts.added.add(event.query_id)
+            facts.held_at.setdefault(event.query_id, (event.registrar, event.resource_id, line))
+        elif isinstance(event, events.StatusDelivered):
+            if event.status is Status.FATAL:
+                facts.fatal.setdefault(event.query_id, line)
+                facts.fatal_at.setdefault(event.query_id, event.hlc)
+            if event.status_id:
+                facts.delivered.add((event.status_id, event.query_id))
+                last = facts.last_delivery.get(event.status_id, event.hlc)
+                facts.last_delivery[event.status_id] = max(last, event.hlc)
+                key = (event.status_id, event.registrar, event.hop)
+                facts.first_delivery[key] = min(facts.first_delivery.get(key, event.hlc), event.hlc)
+        elif isinstance(event, events.CallAnswered):
+            if event.parent is not None:
+                facts.parent[event.registrar, event.query_id] = event.parent
+        elif isinstance(event, events.QueryForgotten):
+            facts.forgot.setdefault((event.serving_rr, event.query_id), event.hlc)
+            if event.reason in REPORTED:
+                facts.reported.add((event.registrar, event.query_id))
+                facts.lost.add((event.serving_rr, event.query_id))
+                facts.told_self.append((line, event.registrar, event.query_id))
+        elif isinstance(event, events.StatusSent):
+            if event.status_id:
+                facts.sent[event.status_id] = event.query_id
+        elif isinstance(event, events.CatalogRestored | events.RegistrarStopped):
+            if isinstance(event, events.CatalogRestored):
+                facts.with_backup.add(event.registrar)
+            for qid, rid, *_ in event.consumers:
+                facts.added.add(qid)
+                facts.held_at.setdefault(qid, (event.registrar, rid, line))
+            for qid, _serving, _server, parent, *_ in event.clients:
+                if parent:
+                    facts.parent[event.registrar, qid] = parent
+    return facts

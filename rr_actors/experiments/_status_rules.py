@@ -1,0 +1,175 @@
+"""A status's deliveries (rules `status-once`, `status-path`, `status-reached`).
+
+```
+ StatusDelivered ──► status_once: each (status, holder's id) once
+                 └─► status_path: on a dependency path from its send (hop 1: a holder
+                     of the resource it was sent about; hop n: a holder of a resource
+                     one of whose dependencies got it at hop n-1)
+ Expected (the provider pass: the holders at the send, and up each dependency that got
+ it) ──► status_reached: each got it, unless it let its id go before the status's last
+         delivery, or the one to send it on died first
+```
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Sequence
+
+from rr_actors import events
+from rr_actors.experiments._history import Facts, Finding, Life, Line
+from rr_actors.experiments._provider_rules import Expected
+
+__all__ = ["Span", "status_once", "status_path", "status_reached"]
+
+Span = tuple[int, int, int | None, int]
+"""A consumer holding a query id in one of its lives: `(life, stamp it began holding it,
+stamp it let it go or None, line of that QueryForgotten or 0)`."""
+
+
+def status_once(history: Sequence[Line]) -> list[Finding]:
+    """`status-once`: each status send reaches each holder once per path."""
+    findings: list[Finding] = []
+    seen: dict[tuple[str, str, str], int] = {}
+    for line, event in history:
+        if not isinstance(event, events.StatusDelivered) or not event.status_id:
+            continue
+        key = (event.status_id, event.registrar, event.query_id)
+        first = seen.get(key)
+        if first is None:
+            seen[key] = line
+            continue
+        findings.append(
+            Finding(
+                "status-once",
+                "violation",
+                f"{event.registrar}: status {event.status_id[:8]} ({event.status.name}) "
+                f"reached query {event.query_id[:8]} twice on one path",
+                (first, line),
+                (event.registrar,),
+            )
+        )
+    return findings
+
+
+def status_path(history: Sequence[Line], facts: Facts) -> list[Finding]:
+    """`status-path`: each delivery of a status is on a dependency path from its send."""
+    # (status id, registrar, hop) -> the resources of that registrar it climbed to
+    climbed: dict[tuple[str, str, int], set[str]] = defaultdict(set)
+    deliveries = [
+        (line, event)
+        for line, event in history
+        if isinstance(event, events.StatusDelivered) and event.status_id
+    ]
+    for _, event in deliveries:
+        parent = facts.parent.get((event.registrar, event.query_id))
+        if parent is not None:
+            climbed[event.status_id, event.registrar, event.hop].add(parent)
+    findings: list[Finding] = []
+    for line, event in deliveries:
+        holder = facts.held_at.get(event.query_id)
+        if holder is None:
+            continue  # (whose it is, the run does not say)
+        provider, rid, added = holder
+        message = _off_path(event, provider, rid, facts, climbed)
+        if message is None:
+            continue
+        findings.append(
+            Finding(
+                "status-path",
+                "violation",
+                f"{event.registrar}: status {event.status_id[:8]} ({event.status.name}) "
+                f"reached query {event.query_id[:8]} at hop {event.hop} off any path: "
+                f"{message}",
+                (added, line),
+                (event.registrar, provider),
+            )
+        )
+    return findings
+
+
+def _off_path(
+    event: events.StatusDelivered,
+    provider: str,
+    rid: str,
+    facts: Facts,
+    climbed: dict[tuple[str, str, int], set[str]],
+) -> str | None:
+    """Why delivery `event` (of an id held at `provider`'s `rid`) is on no path, or `None`."""
+    if event.hop > 1:
+        if rid in climbed.get((event.status_id, provider, event.hop - 1), ()):
+            return None
+        return f"no dependency of {rid[:8]} got it at {provider} one hop before"
+    if (event.registrar, event.query_id) in facts.reported:
+        return None  # its consumer told it FATAL itself (rules 19, 20)
+    about = facts.sent.get(event.status_id)
+    if about is None:
+        return f"no StatusSent at {provider}"
+    if about in facts.held_at and facts.held_at[about][:2] != (provider, rid):
+        return f"it was sent about {facts.held_at[about][1][:8]}, not {rid[:8]}"
+    return None
+
+
+def status_reached(
+    expected: Sequence[Expected],
+    facts: Facts,
+    spans: dict[tuple[str, str], list[Span]],
+    lives: dict[tuple[str, int], Life],
+) -> list[Finding]:
+    """`status-reached`: every holder that held its id throughout a status got it.
+
+    Throughout: from before the status was sent on to it (`Expected.since`) until after
+    the status's last delivery in the run, in one life of the holder; or, for an id that
+    is not a dependency, until after the status reached another id of its registrar at
+    that hop (a process's status desk delivers those in one pass, `fanout.py`; a
+    dependency's status climbs through its registrar's mailbox, where a release queued
+    before it may come first). The one that sends it on must have gone on after it did
+    (an event of the same life later: a kill right after the send, before the notice
+    left, reaches nobody). A consumer that tells itself `FATAL` (`REPORTED`) delivers it
+    before it forgets the id.
+    """
+    findings: list[Finding] = []
+    for line, holder, qid in facts.told_self:
+        if facts.fatal.get(qid, line) >= line:
+            findings.append(
+                Finding(
+                    "status-reached",
+                    "violation",
+                    f"{holder}: query {qid[:8]} forgotten as lost, but the FATAL it tells "
+                    f"itself never reached it",
+                    (line,),
+                    (holder,),
+                )
+            )
+    for want in expected:
+        if (want.status_id, want.query_id) in facts.delivered:
+            continue
+        sender = lives.get((want.sender, want.life))
+        if sender is None or sender.last_line <= want.line:
+            continue  # it may have died before it sent it on
+        end = facts.last_delivery.get(want.status_id, want.since)
+        if (want.holder, want.query_id) not in facts.parent:
+            beside = facts.first_delivery.get((want.status_id, want.holder, want.hop), end)
+            end = min(end, beside)
+        end = max(end, want.since)
+        for life, began, until, forgot_at in spans.get((want.holder, want.query_id), ()):
+            if began >= want.since:
+                continue  # (held from before the send only)
+            record = lives[want.holder, life]
+            let_go = until if until is not None else record.last
+            if let_go <= end or (until is None and record.ended_before(end)):
+                continue
+            lines = (want.line, forgot_at) if forgot_at else (want.line,)
+            findings.append(
+                Finding(
+                    "status-reached",
+                    "violation",
+                    f"{want.holder}: status {want.status_id[:8]} never reached query "
+                    f"{want.query_id[:8]} (hop {want.hop}, from {want.sender}), though it "
+                    f"held it throughout",
+                    lines,
+                    (want.holder, want.sender),
+                )
+            )
+            break
+    return findings
