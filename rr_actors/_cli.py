@@ -338,7 +338,7 @@ def _positive_seconds(text: str) -> float:
 
 
 def _events_arguments(parser: argparse.ArgumentParser) -> None:
-    from rr_actors._transport.zenoh.options import add_network_arguments  # noqa: PLC0415
+    from rr_actors._transport.zenoh.ops.options import add_network_arguments  # noqa: PLC0415
 
     parser.add_argument(
         "--merge",
@@ -367,7 +367,7 @@ def _events(args: argparse.Namespace, out: TextIO) -> int:
     import threading  # noqa: PLC0415
 
     from rr_actors import events  # noqa: PLC0415
-    from rr_actors._transport.zenoh.options import network_from  # noqa: PLC0415
+    from rr_actors._transport.zenoh.ops.options import network_from  # noqa: PLC0415
     from rr_actors.events.lines import json_lines  # noqa: PLC0415
 
     if args.merge:

@@ -24,7 +24,7 @@
 """
 
 from rr_actors._transport.base import Address, Endpoint, Transport
-from rr_actors._transport.unix.outbound import RemotePeer
+from rr_actors._transport.unix.link import RemotePeer
 from rr_actors._transport.unix.system import AttachedSystem, System, SystemAddress, attach
 
 __all__ = [

@@ -16,7 +16,7 @@ from typing import Any
 import zenoh
 
 import rr_actors as rr
-from rr_actors._transport.zenoh.config import session_config
+from rr_actors._transport.zenoh.ops.config import session_config
 from tests.support import pki
 
 MEMBERS = ("robot", "operator")

@@ -15,7 +15,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._transport import System
-from rr_actors._transport.unix.sockets import connect
+from rr_actors._transport.unix.link import connect
 from rr_actors.testing.carrier import Served
 
 

@@ -33,9 +33,7 @@ import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._transport import RemotePeer, System, attach
 from rr_actors._transport.codec import frame, frames, plain, unframe
-from rr_actors._transport.unix.outbound import _Channel
-from rr_actors._transport.unix.sockets import HANDSHAKE_TIMEOUT, connect
-from rr_actors._transport.unix.writer import Writer
+from rr_actors._transport.unix.link import HANDSHAKE_TIMEOUT, Listener, Writer, _Channel, connect
 from rr_actors.testing.carrier import Fetch, Load, Revoke, Served
 from tests.support.carriers import (
     ProviderFactory,
@@ -129,15 +127,18 @@ def test_a_second_close_of_a_listener_returns_only_once_the_first_finished(
     # The registrar's watcher and the system's close() may both close its listener; a
     # process that exits after its own close() must not leave the socket half closed
     # (the watcher is a daemon thread: the exit cuts it short).
-    listener = system._listeners[consumer.name]
+    listener = system.serving(consumer.name)
+    assert isinstance(listener, Listener)
     entered, release, second_done = threading.Event(), threading.Event(), threading.Event()
     listener._sock = _SlowShutdown(listener._sock, entered, release)  # type: ignore[assignment]
 
     def second() -> None:
-        listener.close(stopped=True)
+        system._unserve(listener, stopped=True)  # (the system's close)
         second_done.set()
 
-    first_thread = threading.Thread(target=listener.close, kwargs={"stopped": True})
+    first_thread = threading.Thread(  # (the registrar's watcher)
+        target=system._unserve, args=(listener,), kwargs={"stopped": True}
+    )
     second_thread = threading.Thread(target=second)
     try:
         first_thread.start()
@@ -160,7 +161,8 @@ def test_closing_the_system_waits_for_a_stopped_registrar_s_listener_to_close(
     # the process may already be in `close()` of its system, on its way out.
     registrar = rr.ResourceRegistrar.start(f"closing-{uuid.uuid4().hex[:8]}")
     system.serve(Served(registrar))
-    listener = system._listeners[registrar.name]
+    listener = system.serving(registrar.name)
+    assert isinstance(listener, Listener)
     entered, release, closed = threading.Event(), threading.Event(), threading.Event()
     listener._sock = _SlowShutdown(listener._sock, entered, release)  # type: ignore[assignment]
 
@@ -312,7 +314,7 @@ def test_a_listener_out_of_file_descriptors_accepts_again_once_some_are_free(
     finally:
         for sock in raw:
             sock.close()
-    newcomer = RemotePeer(system, provider.name)  # a peer with a connection of its own
+    newcomer = system.link().peer(provider.name)  # a peer with a connection of its own
     try:
         assert 0 == newcomer.run(load_count, timeout=10)
     finally:
@@ -391,7 +393,7 @@ def test_two_hundred_peers_connecting_at_once_to_a_busy_listener_all_get_through
 ) -> None:
     provider = start_provider()
     path = system.address.socket_path(provider.name)
-    peers = [RemotePeer(system, provider.name) for _ in range(200)]
+    peers = [system.link().peer(provider.name) for _ in range(200)]
     outcomes: list[Any] = []
 
     def run(peer: RemotePeer) -> None:
@@ -655,7 +657,8 @@ class _CountingReply:
 
 def _lose_while_reading(system: System, answers: int) -> list[int]:
     """Close a peer's channel while a thread pops its answers; tokens not answered once."""
-    peer = RemotePeer(system, f"nobody-{uuid.uuid4().hex[:8]}")
+    peer = system.link().peer(f"nobody-{uuid.uuid4().hex[:8]}")
+    assert isinstance(peer, RemotePeer)
     channel = _Channel(Writer(None, lambda _exc: None))
     peer._channel = channel
     replies = {token: _CountingReply() for token in range(1, answers + 1)}

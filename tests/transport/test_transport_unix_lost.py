@@ -222,7 +222,7 @@ def test_a_listener_waits_out_a_probe_of_its_lock_but_not_an_owner(unix: System)
         threading.Timer(0.02, os.close, (probe,)).start()
         unix.serve(Served(registrar))
 
-        assert name in unix._listeners
+        assert name in unix.served()
     finally:
         registrar.stop()
 

@@ -19,9 +19,9 @@ from collections.abc import Iterator
 
 import pytest
 
-import rr_actors._transport.unix.writer as writer_module
-from rr_actors._transport.unix.sockets import split
-from rr_actors._transport.unix.writer import Writer
+import rr_actors._transport.unix.link as writer_module
+from rr_actors._transport.unix.link import split
+from rr_actors._transport.unix.link import Writer
 
 BOUND = 5.0  # seconds the peer may take to read the end (a loaded machine)
 

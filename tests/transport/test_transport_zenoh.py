@@ -888,7 +888,7 @@ def teller_main(
     member = address.attach()
     try:
         # (its presence may not have reached this new session yet: an ask is bounded)
-        assert member.wait_served(name, timeout=30)
+        assert member.link().wait_served(name, timeout=30)
         peer = member.resolve(name)
         for n in range(count):
             peer.tell(Boxed(n) if n % 7 == 0 else ("n", n))

@@ -21,7 +21,7 @@ import pytest
 
 from rr_actors._platform import PLATFORM
 from rr_actors._platform.linux_gate import handshaken
-from rr_actors._transport.zenoh.gate import DROP, HOLD, HandshakeGate
+from rr_actors._transport.zenoh.ops.gate import DROP, HOLD, HandshakeGate
 from tests.support.supervising import linux_trick
 
 

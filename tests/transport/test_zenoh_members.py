@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from rr_actors._transport.zenoh.members import ASK_AGAIN, MemberAddresses
+from rr_actors._transport.zenoh.ops.gate import ASK_AGAIN, MemberAddresses
 from rr_actors._transport.zenoh.wire import Keys
 from tests.support import pki
 from tests.support.supervising import FakeClock

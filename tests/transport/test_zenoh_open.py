@@ -18,7 +18,7 @@ import uuid
 import zenoh
 
 import rr_actors as rr
-from rr_actors._transport.zenoh.config import session_config
+from rr_actors._transport.zenoh.ops.config import session_config
 
 SCOUTING_DELAY = 0.5  # seconds: Zenoh's default `scouting/delay`
 

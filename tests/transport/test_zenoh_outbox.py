@@ -16,7 +16,7 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 
-from rr_actors._transport.zenoh.outbox import Outboxes
+from rr_actors._transport.zenoh.link import Outboxes
 from rr_actors._transport.zenoh.wire import Keys
 
 BOUND = 10.0

@@ -65,7 +65,8 @@ def session() -> Iterator[zenoh.Session]:
 
 @pytest.fixture
 def presence(session: zenoh.Session) -> Iterator[Presence]:
-    made = Presence("t", session, str(session.zid()), Heard())
+    heard = Heard()
+    made = Presence("t", session, str(session.zid()), heard, hearer=heard)
     yield made
     made.close()
 

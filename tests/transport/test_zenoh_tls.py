@@ -17,7 +17,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._tools import certs as certs_tool
-from rr_actors._transport.zenoh.tls import member_addresses
+from rr_actors._transport.zenoh.ops.tls import member_addresses
 from rr_actors.errors import ConfigError
 from tests.support import pki
 from tests.support.pki import DAY, issue, make_ca, make_intermediate

@@ -29,9 +29,9 @@ import pytest
 import zenoh
 
 import rr_actors as rr
-from rr_actors._transport.zenoh.config import session_config
-from rr_actors._transport.zenoh.probe import handshake_trouble
-from rr_actors._transport.zenoh.watch import LinkWatch
+from rr_actors._transport.zenoh.ops.config import session_config
+from rr_actors._transport.zenoh.ops.watch import handshake_trouble
+from rr_actors._transport.zenoh.ops.watch import LinkWatch
 from rr_actors.testing import start_forkserver
 from tests.support import pki
 from tests.support.supervising import process
@@ -375,7 +375,7 @@ def test_a_tls_routers_manager_processes_join_over_its_unix_socket_and_are_admit
             finally:
                 app.stop()
         assert all(
-            link.dst.startswith("unixsock-stream/") for link in net._open()._session.info.links()
+            link.dst.startswith("unixsock-stream/") for link in net.link().session.info.links()
         )
     finally:
         net.close()

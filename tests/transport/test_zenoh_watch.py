@@ -14,8 +14,8 @@ from typing import Any
 
 import pytest
 
-from rr_actors._transport.zenoh import watch as zenoh_watch
-from rr_actors._transport.zenoh.watch import GRACE, TICK, LinkWatch
+from rr_actors._transport.zenoh.ops import watch as zenoh_watch
+from rr_actors._transport.zenoh.ops.watch import GRACE, TICK, LinkWatch
 from tests.support import pki
 from tests.support.tls_lab import free_port, member_tls, router
 from tests.support.waiting import wait_for

@@ -31,7 +31,7 @@ from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.errors import ConfigError
 
 if TYPE_CHECKING:
-    from rr_actors._transport.zenoh.tls import ZenohTLS
+    from rr_actors._transport.zenoh.ops.tls import ZenohTLS
 
 __all__ = ["endpoints", "parse_endpoint", "session_config"]
 

@@ -80,7 +80,7 @@ def network_from(args: argparse.Namespace) -> Any:
         return ZenohNetwork(system=args.system, connect=args.network, tls=None, lease=args.lease)
     if not args.certs or not args.member:
         raise ConfigError("--certs DIR and --member NAME are required (or --plain)")
-    from rr_actors._transport.zenoh.tls import ZenohTLS  # noqa: PLC0415 - cryptography
+    from rr_actors._transport.zenoh.ops.tls import ZenohTLS  # noqa: PLC0415 - cryptography
 
     directory = Path(args.certs)
     if args.members:

@@ -60,7 +60,7 @@ from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.errors import ConfigError
 
 if TYPE_CHECKING:
-    from rr_actors._transport.zenoh.seal import Seal
+    from rr_actors._transport.zenoh.ops.tls import Seal
 
 __all__ = [
     "BATCHES_HELD",
