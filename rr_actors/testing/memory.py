@@ -147,10 +147,13 @@ class _MemoryPeer(Remote):
 
 
 class _Hub:
-    """The network between the "processes": who serves what, the answers thread."""
+    """The network between the "processes" (every one's `Carrier`): who serves what,
+    the answers thread. What reaches a served registrar is handed to the network's
+    messenger (any of theirs would do: none keeps state of a message)."""
 
-    def __init__(self, system: str) -> None:
-        self.system = system
+    def __init__(self, messenger: Messenger) -> None:
+        self.messenger = messenger
+        self.system = messenger.system
         self.closed = False
         self._lock = threading.Lock()
         self._served: dict[str, _Served] = {}
@@ -163,10 +166,13 @@ class _Hub:
     def names(self) -> list[str]:
         return [name for name, served in list(self._served.items()) if not served.cut]
 
-    def listen(self, endpoint: Endpoint, messenger: Messenger) -> _Served:
+    def peer(self, name: str) -> _MemoryPeer:
+        return _MemoryPeer(self, name)
+
+    def listen(self, endpoint: Endpoint) -> _Served:
         """Serve `endpoint` in a "process" of its own; one served under its name before
         is cut off (a registrar restarted elsewhere)."""
-        served = _Served(self, endpoint, messenger)
+        served = _Served(self, endpoint, self.messenger)
         with self._lock:
             if self.closed:
                 raise RegistrarStoppedError("the in-memory network was closed")
@@ -190,12 +196,12 @@ class _Hub:
             return RegistrarStoppedError(f"registrar {name!r} was stopped")
         return RegistrarUnavailableError(f"registrar {name!r} cannot be reached (its process went)")
 
-    def answer(self, route: _Route, data: bytes, on_lost: Lost | None) -> bool:
-        """Send an answer back over the route its message came by: on the answers thread,
-        to the route's waiting replies; False if the route went."""
-        if route.served.cut or self.closed:
+    def answer_to(self, process: _Route, data: bytes, on_lost: Lost | None) -> bool:
+        """Send an answer back over the route its message came by (`process`): on the
+        answers thread, to the route's waiting replies; False if the route went."""
+        if process.served.cut or self.closed:
             return False
-        return self._answers.submit(_Answer(route, data, on_lost))
+        return self._answers.submit(_Answer(process, data, on_lost))
 
     def cut(self, name: str) -> None:
         served = self._served.get(name)
@@ -221,7 +227,8 @@ class _Hub:
         error = error or self.gone_error(served.name)
         served.route.pending.fail(None, error)
 
-    def close(self) -> None:
+    def leave(self) -> None:
+        """The network closes (only the network's own messenger leaves)."""
         with self._lock:
             if self.closed:
                 return
@@ -231,35 +238,6 @@ class _Hub:
         for one in served:
             self.end(one, "stopped", RegistrarStoppedError("the in-memory network was closed"))
         self._answers.close(timeout=0)
-
-
-class _MemoryCarrier:
-    """One "process"'s carrier on the hub (the messenger's `Carrier`); the network's own
-    (the test's process) closes the hub when it leaves."""
-
-    def __init__(self, hub: _Hub, messenger: Messenger, *, owner: bool = False) -> None:
-        self.hub = hub
-        self.messenger = messenger
-        self.owner = owner
-
-    def knows(self, name: str) -> bool:
-        return self.hub.knows(name)
-
-    def peer(self, name: str) -> _MemoryPeer:
-        return _MemoryPeer(self.hub, name)
-
-    def listen(self, endpoint: Endpoint) -> _Served:
-        return self.hub.listen(endpoint, self.messenger)
-
-    def answer_to(self, process: _Route, data: bytes, on_lost: Lost | None) -> bool:
-        return self.hub.answer(process, data, on_lost)
-
-    def names(self) -> list[str]:
-        return self.hub.names()
-
-    def leave(self) -> None:
-        if self.owner:
-            self.hub.close()
 
 
 class MemoryNetwork(Messenger):
@@ -278,8 +256,8 @@ class MemoryNetwork(Messenger):
         if system in _NETWORKS:
             raise ConfigError(f"system: an in-memory network named {system!r} is open already")
         super().__init__(system, resolver=False)
-        self._hub = _Hub(system)
-        self.joined(_MemoryCarrier(self._hub, self, owner=True))
+        self._hub = _Hub(self)
+        self.joined(self._hub)
         _NETWORKS[system] = self
 
     @property
@@ -295,7 +273,7 @@ class MemoryNetwork(Messenger):
             RegistrarStoppedError: the network was closed.
         """
         process = Messenger(self.system, resolver=False)
-        process.joined(_MemoryCarrier(self._hub, process))
+        process.joined(self._hub)
         process.serve(endpoint)
 
     def run(self, name: str, fn: Callable[[Any], Any], *, timeout: float) -> Any:
@@ -353,4 +331,4 @@ def _lost(task: Task) -> None:
 if TYPE_CHECKING:  # mypy checks that the double is a carrier
     _transport: type[Transport] = MemoryNetwork
     _address: type[Address] = MemoryAddress
-    _carrier: type[Carrier] = _MemoryCarrier
+    _carrier: type[Carrier] = _Hub
