@@ -23,9 +23,9 @@ served here, and a link back to the process a message came from (`Carrier`):
    ├─ route.pending.expect(reply)  (`Replies`: where it waits for its answer)
    └─ route.send(frame) ──────────────────────► the carrier: to the name's process
         False (the route went): forget the reply, route.broken(), once more or gone()
- on an actor's thread, to a name the carrier has to ask the network for (`Remote.asks`):
+ on an actor's thread, to a name the carrier has to ask the network for (`Lanes`):
    send_when_served(): encode here; on the name's lane (a carrier's thread, in order
-   with what follows): peer.found(lane)? check size, expect, send now : fail the reply
+   with what follows): lanes.found(name)? check size, expect, send now : fail the reply
  Remote.run(fn) ─► submit(fn): tell(Run(fn, reply)) ─► wait (an event loop awaits it)
 
  receiving (the carrier's receiving thread calls the messenger)
@@ -87,6 +87,7 @@ from rr_actors.errors import (
 __all__ = [
     "Carrier",
     "Lane",
+    "Lanes",
     "Listening",
     "Lost",
     "Messenger",
@@ -210,6 +211,29 @@ class Lane(Protocol):
         ...
 
 
+class Lanes(Protocol):
+    """What "send when served" asks of a carrier whose routes may have to ask the network
+    (Zenoh's): a peer of it names it in `Remote.lanes`."""
+
+    def unseen(self, name: str) -> bool:
+        """Whether it sees no server of `name` now, and did not hear it stop."""
+        ...
+
+    def lane(self, name: str) -> Lane | None:
+        """The lane of `name` (`None`: this process left the system)."""
+        ...
+
+    def found(self, name: str, lane: Lane) -> Route | None:
+        """On `lane`'s thread: ask the network for the server of `name` (bounded); its
+        route, whose `send` sends at once on this thread; `None` if nobody serves it
+        (the lane is then retired: what waits behind fails too)."""
+        ...
+
+    def unreached(self, name: str) -> RrError:
+        """The error of a message held for `name` when nobody serves it."""
+        ...
+
+
 class Listening(abc.ABC):
     """A registrar of this process as its carrier serves it: the server side of the link.
 
@@ -246,18 +270,15 @@ class Remote(abc.ABC):
     """A registrar of another process as a `Peer`: `tell` and `run` are here; a carrier
     gives each name its `route()` and the error of a name that cannot be reached.
 
-    A carrier whose routes may have to ask the network (`asks`: Zenoh) also gives a
-    `lane` per name, what it `found` there and the error of a name nobody serves
-    (`unreached`): on an actor's thread, which must never wait on the network, a message
-    to a name it does not see served (`unseen`) is sent from the lane
-    (`send_when_served`).
+    A peer whose route may have to ask the network names its carrier's `lanes`: on an
+    actor's thread, which must never wait on the network, a message to a name the
+    carrier does not see served is sent from the name's lane (`send_when_served`).
     """
 
     name: str
 
-    asks = False
-    """Whether `route()` may have to ask the network (then `unseen`, `lane`, `found`,
-    `unreached` are the carrier's)."""
+    lanes: Lanes | None = None
+    """The carrier's lanes, if its routes may have to ask the network (Zenoh's)."""
 
     @abc.abstractmethod
     def route(self) -> Route:
@@ -288,8 +309,9 @@ class Remote(abc.ABC):
             RegistrarUnavailableError: the registrar's process is known to be unreachable.
             RegistrarStoppedError: it was stopped, or this process left the system.
         """
-        if self.asks and on_actor_thread() and self.unseen():
-            send_when_served(self, message)
+        lanes = self.lanes
+        if lanes is not None and on_actor_thread() and lanes.unseen(self.name):
+            send_when_served(self, lanes, message)
         else:
             send(self, message)
 
@@ -335,26 +357,6 @@ class Remote(abc.ABC):
 
     def forget_in_child(self) -> None:  # noqa: B027 - a hook: most carriers need nothing
         """In a forked child: drop the parent's route without touching it."""
-
-    # send when served (`asks`)
-
-    def unseen(self) -> bool:
-        """Whether the carrier sees no server of the name now, and did not hear it stop."""
-        return False
-
-    def lane(self) -> Lane | None:
-        """The name's lane (`None`: this process left the system)."""
-        return None
-
-    def found(self, lane: Lane) -> Route | None:
-        """On `lane`'s thread: ask the network for the name's server (bounded); its route,
-        whose `send` sends at once on this thread; `None` if nobody serves it (the lane
-        is then retired: what waits behind fails too)."""
-        return None
-
-    def unreached(self) -> RrError:
-        """The error of a message held for the name when nobody serves it."""
-        return self.gone()
 
 
 def run_lost(callbacks: list[Lost]) -> None:
@@ -444,14 +446,14 @@ def send(peer: Remote, message: Any) -> None:
     raise peer.gone()
 
 
-def send_when_served(peer: Remote, message: Any) -> None:
+def send_when_served(peer: Remote, lanes: Lanes, message: Any) -> None:
     """Send `message` to registrar `peer.name`, which the carrier does not see served
-    (`Remote.unseen`), without waiting: an actor's thread must answer its next message
+    (`Lanes.unseen`), without waiting: an actor's thread must answer its next message
     (a supervisor's heartbeat too) however slow the network is.
 
     It is framed here and queued on the name's lane, in order with what is sent to that
-    name after it; there the network is asked (`Remote.found`), then the frame is sent
-    to the server found, or its reply fails: `peer.unreached()` if nobody serves the
+    name after it; there the network is asked (`Lanes.found`), then the frame is sent
+    to the server found, or its reply fails: `Lanes.unreached` if nobody serves the
     name, `MessageTooLargeError` if it is over that server's `max_message_bytes`. A
     message without a reply is then dropped (logged at debug level), as the registrar
     drops one that cannot be sent at once.
@@ -462,10 +464,10 @@ def send_when_served(peer: Remote, message: Any) -> None:
     """
     outgoing = encode(peer.name, message)
     for _attempt in (1, 2):  # (the second: its lane was just retired, nobody's)
-        lane = peer.lane()
+        lane = lanes.lane(peer.name)
         if lane is None:
             break
-        if lane.run(_WhenServed(peer, outgoing, lane)):
+        if lane.run(_WhenServed(peer, lanes, outgoing, lane)):
             return
     raise peer.gone()
 
@@ -473,19 +475,20 @@ def send_when_served(peer: Remote, message: Any) -> None:
 class _WhenServed:
     """A message held on its name's lane until the network says who serves the name."""
 
-    __slots__ = ("lane", "outgoing", "peer")
+    __slots__ = ("lane", "lanes", "outgoing", "peer")
 
-    def __init__(self, peer: Remote, outgoing: Outgoing, lane: Lane) -> None:
+    def __init__(self, peer: Remote, lanes: Lanes, outgoing: Outgoing, lane: Lane) -> None:
         self.peer = peer
+        self.lanes = lanes
         self.outgoing = outgoing
         self.lane = lane
 
     def __call__(self) -> None:
         """On the lane's thread: find the server, then send (or fail the reply)."""
         peer, outgoing = self.peer, self.outgoing
-        route = peer.found(self.lane)
+        route = self.lanes.found(peer.name, self.lane)
         if route is None:
-            _unsent(outgoing, peer.unreached())
+            _unsent(outgoing, self.lanes.unreached(peer.name))
             return
         try:
             check_size(outgoing, peer.name, route.limit)
@@ -501,7 +504,7 @@ class _WhenServed:
 
     def dropped(self) -> None:
         """The lane closed before it ran: its reply fails (nothing was sent)."""
-        _unsent(self.outgoing, self.peer.unreached())
+        _unsent(self.outgoing, self.lanes.unreached(self.peer.name))
 
 
 def _unsent(outgoing: Outgoing, error: RrError) -> None:

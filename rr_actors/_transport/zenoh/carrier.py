@@ -89,7 +89,15 @@ from rr_actors._core.actor import on_actor_thread
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.hlc import CLOCK
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.messenger import Carrier, Listening, Lost, Messenger, Remote
+from rr_actors._transport.messenger import (
+    Carrier,
+    Lane,
+    Lanes,
+    Listening,
+    Lost,
+    Messenger,
+    Remote,
+)
 from rr_actors._transport.zenoh.link import DRAIN_TIMEOUT, Inbox, Outbox, Outboxes
 from rr_actors._transport.zenoh.ops.events import EventExport
 from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence, Server, rank, when
@@ -123,34 +131,17 @@ logger = logging.getLogger("rr_actors")
 class ZenohPeer(Remote):
     """A registrar of another process of the system, reached over Zenoh (`tell`, `run`:
     `Remote`; its route is its key and the server seen for it; its lane, the key's
-    outbox)."""
-
-    asks = True
+    outbox: `lanes` is its carrier)."""
 
     def __init__(self, carrier: ZenohCarrier, name: str) -> None:
         self.name = name
-        self._carrier = carrier
+        self.lanes = self._carrier = carrier
 
     def route(self) -> _Route:
         return self._carrier.route(self.name)
 
     def gone(self) -> RrError:
         return self._carrier.gone_error(self.name)
-
-    def unseen(self) -> bool:
-        return self._carrier.unserved(self.name)
-
-    def lane(self) -> Outbox | None:
-        # (its publisher is declared after the network was asked: a liveliness query
-        # right after a publisher's declaration can come back empty at once)
-        carrier = self._carrier
-        return carrier.outbox(carrier.keys.registrar(self.name), declared=False)
-
-    def found(self, lane: Any) -> _Route | None:
-        return self._carrier.found(self.name, lane)
-
-    def unreached(self) -> RrError:
-        return self._carrier.unsent_error(self.name)
 
 
 class _Route:
@@ -464,7 +455,7 @@ class ZenohCarrier:
             + (self._link_trouble() if self._link_trouble is not None else "")
         )
 
-    def unsent_error(self, name: str) -> RrError:
+    def unreached(self, name: str) -> RrError:
         """The error of a message to `name` that found no server: gone, or unknown."""
         if self.closed or self.presence.gone(name) is not None:
             return self.gone_error(name)
@@ -486,7 +477,9 @@ class ZenohCarrier:
             raise self.gone_error(name)
         return _Route(self, name, server)
 
-    def unserved(self, name: str) -> bool:
+    # -- sending when served (the messenger's `Lanes`) ---------------------------------------
+
+    def unseen(self, name: str) -> bool:
         """Whether this process sees no server of registrar `name` and did not hear it
         stop (never heard of, or died: maybe served again, not yet heard here)."""
         presence = self.presence
@@ -494,8 +487,14 @@ class ZenohCarrier:
             not self.closed and presence.server(name) is None and presence.gone(name) != "stopped"
         )
 
-    def found(self, name: str, outbox: Outbox) -> _Route | None:
-        """On `outbox`'s writer thread (the name's lane): the server of `name`, asked of
+    def lane(self, name: str) -> Outbox | None:
+        """The outbox of registrar `name`'s key; its publisher is declared on its writer
+        thread, after the network was asked (a liveliness query right after a
+        publisher's declaration can come back empty at once)."""
+        return self.outbox(self.keys.registrar(name), declared=False)
+
+    def found(self, name: str, lane: Lane) -> _Route | None:
+        """On `lane`'s writer thread (the name's outbox): the server of `name`, asked of
         the network if none is seen; `None` if nobody serves it (the outbox is retired:
         what waits behind fails too, and its writer ends). A server just seen gets a
         ping first (a put before its answer may be lost)."""
@@ -504,6 +503,8 @@ class ZenohCarrier:
         if server is None and not self.closed and presence.gone(name) != "stopped":
             presence.ask(name)
             server = presence.server(name)
+        assert isinstance(lane, Outbox)
+        outbox = lane
         if server is None:
             self._outboxes.retire(outbox)
             return None
@@ -552,3 +553,4 @@ class ZenohCarrier:
 
 if TYPE_CHECKING:  # mypy checks that the carrier is the messenger's
     _carrier: type[Carrier] = ZenohCarrier
+    _lanes: type[Lanes] = ZenohCarrier
