@@ -6,7 +6,7 @@ registrar will not come back says so here; every registrar of this process hears
 from here, as one event (`peer_lost`), and one that starts later hears it when it joins:
 
 ```
- a carrier's liveness (messenger.tell_lost) ──────┐
+ a carrier's liveness (Messenger.lost) ─────────┐
  a death-watch mark of this process              ├─► lost(X) ─┐ record X gone for good,
    (_registrar/deathwatch.py)                    │            │ then every hearer:
  a death-watch mark from another process         │            ├─► peer_lost(X)
@@ -15,7 +15,7 @@ from here, as one event (`peer_lost`), and one that starts later hears it when i
  a registrar that starts ──► join(hearer) ──► the names gone for good now (it hears
                                               each as if it had heard the mark: Erlang's
                                               monitor of a dead process is 'DOWN' at once)
- a carrier: reachable again (tell_reachable) ─► reachable(X) ─► forget X, peer_reachable(X)
+ a carrier: reachable again (Messenger.reachable) ─► reachable(X) ─► forget X, peer_reachable(X)
  X served again (a registrar named X starts here, a supervisor restarts it, a carrier
    sees it served) ─► back(X)
  a supervisor stopped X for good ─► stopped(X) ─► record, peer_stopped(X) (what X still

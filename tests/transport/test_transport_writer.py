@@ -20,8 +20,7 @@ from collections.abc import Iterator
 import pytest
 
 import rr_actors._transport.unix.link as writer_module
-from rr_actors._transport.unix.link import split
-from rr_actors._transport.unix.link import Writer
+from rr_actors._transport.unix.link import Writer, split
 
 BOUND = 5.0  # seconds the peer may take to read the end (a loaded machine)
 

@@ -30,8 +30,7 @@ import zenoh
 
 import rr_actors as rr
 from rr_actors._transport.zenoh.ops.config import session_config
-from rr_actors._transport.zenoh.ops.watch import handshake_trouble
-from rr_actors._transport.zenoh.ops.watch import LinkWatch
+from rr_actors._transport.zenoh.ops.watch import LinkWatch, handshake_trouble
 from rr_actors.testing import start_forkserver
 from tests.support import pki
 from tests.support.supervising import process
