@@ -123,7 +123,7 @@ def test_a_call_right_after_stop_raises_registrar_stopped_error_every_time(
     network: System, outsider: Callable[[], RemoteRegistrar]
 ) -> None:
     # The caller's connection is made by its first call and ended by the stop; that end
-    # raced with the connection's writer thread (test_transport_writer.py): the
+    # raced with the connection's writer thread (test_unix_link.py's TestWriterClose): the
     # connection stayed open, and the next call's load was read and never answered.
     other = outsider()
     outcomes = []

@@ -30,9 +30,8 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from tests.support.carriers import setup_servers
+from tests.support.carriers import own_provider_main, setup_servers
 from tests.support.waiting import wait_for
-from tests.transport.test_transport_lost import own_provider_main
 
 LOST = "is gone and nobody will restart it"
 """What the consumer's WARNING says of a provider lost for good (rule 19)."""

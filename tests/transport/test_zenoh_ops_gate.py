@@ -1,13 +1,5 @@
-"""The gate on a router's `tls/` listener (issues 29 and 40): who it drops, for how long,
-when the port takes members' addresses only, and the Linux socket tricks under it (a
-listening socket of this process, on loopback).
-
-The floods themselves, from a third host, with a member re-joining during and after
-them, are in `tests/multihost/test_zenoh_tls.py`: from one address
-(`test_a_member_rejoins_in_10_s_while_a_third_host_floods_the_port_with_failed_
-handshakes`), from 32 (`..._from_32_addresses`), and forged SYNs carrying the member's
-own address (`test_a_member_rejoins_in_10_s_though_a_third_host_forges_syns_from_its_
-address`).
+"""The gate on a router's `tls/` listener (`rr_actors._transport.zenoh.ops.gate`);
+`TestMemberAddresses`: the addresses it never drops.
 """
 
 from __future__ import annotations
@@ -16,13 +8,24 @@ import collections
 import logging
 import socket
 from collections.abc import Collection, Iterator
+from pathlib import Path
 
 import pytest
 
 from rr_actors._platform import PLATFORM
 from rr_actors._platform.linux_gate import handshaken
-from rr_actors._transport.zenoh.ops.gate import DROP, HOLD, HandshakeGate
-from tests.support.supervising import linux_trick
+from rr_actors._transport.zenoh.ops.gate import (
+    ASK_AGAIN,
+    DROP,
+    HOLD,
+    HandshakeGate,
+    MemberAddresses,
+)
+from rr_actors._transport.zenoh.wire import Keys
+from tests.support import pki
+from tests.support.supervising import FakeClock, linux_trick
+from tests.support.tls_lab import free_port, member_tls, router
+from tests.support.waiting import wait_for
 
 
 class FakeGate:
@@ -80,6 +83,32 @@ def made(members: set[str] | None = None) -> tuple[FakeGate, HandshakeGate, Cloc
 
 def warnings(said: pytest.LogCaptureFixture) -> list[str]:
     return [r.getMessage() for r in said.records if r.levelno == logging.WARNING]
+
+
+# -- the Linux gate, on a listening socket of this process --------------------------------------
+
+
+@pytest.fixture(params=["127.0.0.1", "0.0.0.0"])  # noqa: S104 (a wildcard listener too)
+def listening(request: pytest.FixtureRequest) -> Iterator[socket.socket]:
+    with socket.socket() as server:
+        server.bind((request.param, 0))
+        server.listen(64)
+        yield server
+
+
+def proc(address: str) -> str:
+    """An IPv4 address as `/proc/net/tcp` writes it (a host-order word in hex)."""
+    return socket.inet_aton(address)[::-1].hex().upper()
+
+
+BOUND = 10.0  # seconds a link and a get may take on a loaded machine
+
+
+def answering(session: object, pem: bytes) -> object:
+    """A queryable of `session` that answers a get of operator's certificate with `pem`."""
+    return session.declare_queryable(  # type: ignore[attr-defined]
+        Keys("lab").certificate("operator"), lambda query: query.reply(query.key_expr, pem)
+    )
 
 
 def test_a_stranger_holding_more_than_hold_connections_is_dropped_and_named_once(
@@ -235,17 +264,6 @@ def test_close_lets_go_of_the_gates() -> None:
     assert gate.closed
 
 
-# -- the Linux gate, on a listening socket of this process --------------------------------------
-
-
-@pytest.fixture(params=["127.0.0.1", "0.0.0.0"])  # noqa: S104 (a wildcard listener too)
-def listening(request: pytest.FixtureRequest) -> Iterator[socket.socket]:
-    with socket.socket() as server:
-        server.bind((request.param, 0))
-        server.listen(64)
-        yield server
-
-
 @linux_trick
 def test_the_gate_drops_only_the_sources_given_and_links_up_keep_working(
     listening: socket.socket,
@@ -290,11 +308,6 @@ def test_the_gate_can_admit_only_the_sources_given(listening: socket.socket) -> 
         gate.close()
 
 
-def proc(address: str) -> str:
-    """An IPv4 address as `/proc/net/tcp` writes it (a host-order word in hex)."""
-    return socket.inet_aton(address)[::-1].hex().upper()
-
-
 def test_only_connections_past_the_tcp_handshake_count() -> None:
     # a half-open one (SYN_RECV, 03) may carry a forged source address: never counted
     states = {"01": 1, "03": 5, "04": 1, "05": 1, "06": 3, "08": 1, "09": 1, "0A": 1, "0B": 1}
@@ -318,3 +331,126 @@ def test_there_is_no_gate_on_a_socket_this_process_does_not_listen_on() -> None:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
         assert PLATFORM.listener_gate("127.0.0.1", port) is None  # bound, not listening
+
+
+class TestMemberAddresses:
+    """`MemberAddresses`: which addresses are members', the ones the handshake gate never drops
+    (issue 40). Two TLS routers on loopback with the config `ZenohNetwork` makes
+    (`tests/support/tls_lab.py`): `robot` listens, `operator` dials it; their certificates
+    come from `tests/support/pki.py`.
+    """
+
+    @pytest.fixture
+    def lab(self, tmp_path: Path) -> tuple[Path, Path]:
+        return pki.make_ca(tmp_path / "lab", "lab")
+
+    @pytest.fixture
+    def said(self, caplog: pytest.LogCaptureFixture) -> pytest.LogCaptureFixture:
+        caplog.set_level(logging.INFO, logger="rr_actors")
+        return caplog
+
+    @pytest.fixture
+    def endpoint(self) -> str:
+        return f"tls/127.0.0.1:{free_port()}"
+
+    def test_the_addresses_a_members_certificate_names_are_known_and_stay_known(
+        self, tmp_path: Path, lab: tuple[Path, Path], endpoint: str
+    ) -> None:
+        robot = member_tls(tmp_path, lab, "robot")
+        operator = member_tls(
+            tmp_path, lab, "operator", ("127.0.0.1", "10.99.0.7", "fd00::7", "operator.local")
+        )
+        with router(robot, [endpoint], []) as a:
+            here = MemberAddresses("lab", a, robot)
+            try:
+                assert set() == here.now()
+                with router(operator, [], [endpoint]) as b:
+                    there = MemberAddresses("lab", b, operator)  # (it answers for its certificate)
+                    try:
+                        named = {"127.0.0.1", "10.99.0.7", "fd00::7"}  # (IP addresses only)
+                        assert wait_for(lambda: named == here.now(), BOUND), here.now()
+                    finally:
+                        there.close()
+                assert wait_for(lambda: not a.info.links(), BOUND)
+                assert named == here.now()  # (out of reach, or gone: still the member's)
+            finally:
+                here.close()
+
+    def test_a_members_link_address_is_known_without_its_certificate(
+        self, tmp_path: Path, lab: tuple[Path, Path], endpoint: str
+    ) -> None:
+        # operator answers for no certificate (a member of an older rr_actors, say)
+        robot = member_tls(tmp_path, lab, "robot")
+        operator = member_tls(tmp_path, lab, "operator", ("10.99.0.7",))
+        with router(robot, [endpoint], []) as a, router(operator, [], [endpoint]):
+            here = MemberAddresses("lab", a, robot)
+            try:
+                assert wait_for(lambda: {"127.0.0.1"} == here.now(), BOUND)
+            finally:
+                here.close()
+
+    @pytest.mark.parametrize("answer", ["robot's certificate", "a self-signed one", "no PEM"])
+    def test_a_certificate_that_is_not_the_members_own_is_refused_once_and_not_used(
+        self,
+        tmp_path: Path,
+        lab: tuple[Path, Path],
+        endpoint: str,
+        said: pytest.LogCaptureFixture,
+        answer: str,
+    ) -> None:
+        robot = member_tls(tmp_path, lab, "robot", ("127.0.0.1", "10.99.0.8"))
+        operator = member_tls(tmp_path, lab, "operator")
+        pem = {
+            "robot's certificate": Path(robot.cert).read_bytes(),
+            "a self-signed one": pki.issue(tmp_path / "self", "operator", ("10.99.0.8",))[
+                0
+            ].read_bytes(),
+            "no PEM": b"10.99.0.8",
+        }[answer]
+        reason = {
+            "robot's certificate": "of member 'operator' has the common name 'robot'",
+            "a self-signed one": "is not signed by ca",
+            "no PEM": "is not PEM certificates",
+        }[answer]
+        clock = FakeClock()
+        with router(robot, [endpoint], []) as a, router(operator, [], [endpoint]) as b:
+            queryable = answering(b, pem)
+            # The first ask must reach the queryable: under load its declaration can reach `a`
+            # after the link does, and a missed ask is asked again only after ASK_AGAIN on the
+            # fake clock (a full-suite run under load failed so).
+            key = Keys("lab").certificate("operator")
+            assert wait_for(lambda: any(r.ok for r in a.get(key, timeout=1.0)), BOUND)
+            here = MemberAddresses("lab", a, robot, clock=clock)
+            try:
+
+                def refused() -> list[str]:
+                    here.now()
+                    return [r.getMessage() for r in said.records if r.levelno == logging.WARNING]
+
+                assert wait_for(lambda: bool(refused()), BOUND)
+                clock.now += ASK_AGAIN  # asked again: refused again, said no more
+                assert not wait_for(lambda: len(refused()) > 1, 1.0)
+            finally:
+                here.close()
+                queryable.undeclare()  # type: ignore[attr-defined]
+        assert 1 == len(refused())
+        assert (
+            "ZenohNetwork 'lab': member 'operator' answered for its certificate with one that does "
+            "not hold: the certificate of member 'operator' "
+        ) in refused()[0]
+        assert reason in refused()[0]
+        assert {"127.0.0.1"} == here.now()
+
+    def test_close_stops_answering_for_this_hosts_certificate(
+        self, tmp_path: Path, lab: tuple[Path, Path], endpoint: str
+    ) -> None:
+        robot = member_tls(tmp_path, lab, "robot")
+        with router(robot, [endpoint], []) as a:
+            here = MemberAddresses("lab", a, robot)
+            key = Keys("lab").certificate("robot")
+            assert [Path(robot.cert).read_bytes()] == [
+                reply.ok.payload.to_bytes() for reply in a.get(key, timeout=BOUND) if reply.ok
+            ]
+            here.close()
+            here.close()
+            assert [] == [reply for reply in a.get(key, timeout=1.0) if reply.ok]

@@ -1,19 +1,24 @@
-"""`rr.ZenohTLS(ca=, cert=, key=, members=)`: every file and name checked when it is made.
-
-Real files, made by `tests/support/pki.py` (the odd ones) and by `rr-actors certs` (the good ones).
+"""`rr.ZenohTLS(ca=, cert=, key=, members=)` (`rr_actors._transport.zenoh.ops.tls`):
+every file and name checked when it is made; `TestWhatZenohUses`: what it accepts, Zenoh
+uses; `TestTheHowTosRecipe`: the how-to's openssl recipe makes what it accepts.
 """
 
 from __future__ import annotations
 
 import datetime
+import json
 import logging
 import os
 import re
+import shutil
+import socket
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
+import zenoh
 
 import rr_actors as rr
 from rr_actors._tools import certs as certs_tool
@@ -21,6 +26,7 @@ from rr_actors._transport.zenoh.ops.tls import member_addresses
 from rr_actors.errors import ConfigError
 from tests.support import pki
 from tests.support.pki import DAY, issue, make_ca, make_intermediate
+from tests.test_docs import ROOT, blocks, commands
 
 NOW = datetime.datetime.now(datetime.UTC)
 
@@ -37,6 +43,66 @@ def robot(tmp_path: Path, ca: tuple[Path, Path]) -> tuple[Path, Path]:
 
 def tls(ca: Path, pair: tuple[Path, Path], members: object = ("robot", "station")) -> rr.ZenohTLS:
     return rr.ZenohTLS(ca=ca, cert=pair[0], key=pair[1], members=members)
+
+
+def config(directory: Path, me: str, listen: list[str], connect: list[str]) -> object:
+    pair = {
+        "private_key": str(directory / f"{me}.key"),
+        "certificate": str(directory / f"{me}.pem"),
+    }
+    tls = {
+        "root_ca_certificate": str(directory / "ca.pem"),
+        **{f"listen_{k}": v for k, v in pair.items()},
+        **{f"connect_{k}": v for k, v in pair.items()},
+        "enable_mtls": True,
+        "verify_name_on_connect": True,
+    }
+    return zenoh.Config.from_json5(
+        json.dumps(
+            {
+                "mode": "peer",
+                "listen": {"endpoints": listen},
+                "connect": {"endpoints": connect},
+                "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+                "transport": {"link": {"tls": tls}},
+            }
+        )
+    )
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port: int = probe.getsockname()[1]
+        return port
+
+
+def a_put_crosses(directory: Path) -> bool:
+    """`listener` listens on tls/127.0.0.1, `dialler` dials it: does a put arrive within 10 s?"""
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    arrived = threading.Event()
+    with zenoh.open(config(directory, "listener", [endpoint], [])) as listener:
+        subscriber = listener.declare_subscriber("rr/test/**", lambda _sample: arrived.set())
+        with zenoh.open(config(directory, "dialler", [], [endpoint])) as dialler:
+            for _ in range(50):  # until the link is up: at most 50 x 0.2 s
+                dialler.put("rr/test/x", b"hi")
+                if arrived.wait(0.2):
+                    break
+        subscriber.undeclare()
+    return arrived.is_set()
+
+
+PAGE = ROOT / "docs" / "how-to" / "securing-registrars.md"
+
+
+def openssl_commands() -> list[list[str]]:
+    return [
+        command
+        for block in blocks(PAGE)
+        if block.lang == "bash" and block.skip is None
+        for command in commands(block.code)
+        if command[0] == "openssl"
+    ]
 
 
 # -- a good one ---------------------------------------------------------------------------------
@@ -441,7 +507,7 @@ def test_without_cryptography_rr_zenoh_tls_says_which_extra_to_install() -> None
     assert result.stdout.startswith("rr.ZenohTLS needs an extra: pip install")
 
 
-# -- from test_zenoh_tls_input.py -----------------------------------------------------------------
+# -- bad arguments ---------------------------------------------------------------------------------
 # `rr.ZenohTLS` turns every bad argument into a `ConfigError` naming it (review of issue 23).
 
 
@@ -542,3 +608,106 @@ def test_a_certificate_that_is_not_the_members_own_is_a_config_error(
 
     with pytest.raises(ConfigError, match=f"^{why}"):
         member_addresses(pem, tls(ca[0], robot), name)
+
+
+class TestWhatZenohUses:
+    """What `rr.ZenohTLS` accepts is what Zenoh's TLS (rustls) uses, checked against Zenoh itself.
+
+    Two raw Zenoh sessions on loopback, mutual TLS with `verify_name_on_connect`, with the
+    files `rr-actors certs` makes and with each key type: those `ZenohTLS` accepts link and
+    carry a put; those it refuses Zenoh cannot even listen with. (How `ZenohNetwork` uses the
+    files is tested with it; this pins the rules of `ZenohTLS` to Zenoh's.)
+    """
+
+    def test_certificates_from_rr_actors_certs_link_two_zenoh_sessions(
+        self, tmp_path: Path
+    ) -> None:
+        certs_tool.init_ca(tmp_path, "lab")
+        for name in ("listener", "dialler"):
+            certs_tool.issue_cert(tmp_path, name, ["127.0.0.1"])
+            rr.ZenohTLS(
+                ca=tmp_path / "ca.pem",
+                cert=tmp_path / f"{name}.pem",
+                key=tmp_path / f"{name}.key",
+                members=[name],
+            )
+
+        assert a_put_crosses(tmp_path)
+
+    @pytest.mark.parametrize("key_type", ["p256", "p384", "ed25519", "rsa2048"])
+    def test_a_key_type_zenoh_tls_accepts_zenoh_uses(self, tmp_path: Path, key_type: str) -> None:
+        ca = make_ca(tmp_path)
+        for name in ("listener", "dialler"):
+            pem, key = issue(tmp_path, name, ("127.0.0.1",), ca=ca, key_type=key_type)
+            rr.ZenohTLS(ca=ca[0], cert=pem, key=key, members=[name])
+
+        assert a_put_crosses(tmp_path)
+
+    @pytest.mark.parametrize("key_type", ["p521", "rsa1024"])
+    def test_a_key_type_zenoh_tls_refuses_zenoh_cannot_listen_with(
+        self, tmp_path: Path, key_type: str
+    ) -> None:
+        ca = make_ca(tmp_path)
+        pem, key = issue(tmp_path, "listener", ("127.0.0.1",), ca=ca, key_type=key_type)
+        with pytest.raises(ConfigError, match="Zenoh's TLS"):
+            rr.ZenohTLS(ca=ca[0], cert=pem, key=key, members=["listener"])
+
+        with pytest.raises(zenoh.ZError, match="failed to parse private key"):
+            zenoh.open(config(tmp_path, "listener", [f"tls/127.0.0.1:{free_port()}"], []))
+
+    def test_a_ca_bundle_and_a_chain_zenoh_tls_accepts_zenoh_uses(self, tmp_path: Path) -> None:
+        # the listener's certificate from one CA, the dialler's from an intermediate of another;
+        # both trust both CAs
+        first, second = make_ca(tmp_path / "first"), make_ca(tmp_path / "second")
+        (tmp_path / "ca.pem").write_bytes(first[0].read_bytes() + second[0].read_bytes())
+        issue(tmp_path, "listener", ("127.0.0.1",), ca=first)
+        middle = make_intermediate(tmp_path / "second", second)
+        pem, key = issue(tmp_path / "second", "dialler", ("127.0.0.1",), ca=middle)
+        (tmp_path / "dialler.pem").write_bytes(pem.read_bytes() + middle[0].read_bytes())
+        key.rename(tmp_path / "dialler.key")
+        for name in ("listener", "dialler"):
+            rr.ZenohTLS(
+                ca=tmp_path / "ca.pem",
+                cert=tmp_path / f"{name}.pem",
+                key=tmp_path / f"{name}.key",
+                members=[name],
+            )
+
+        assert a_put_crosses(tmp_path)
+
+
+class TestTheHowTosRecipe:
+    """The how-to's openssl recipe makes certificates `rr.ZenohTLS` accepts (the page cannot lie).
+
+    `tests/test_docs.py` runs the page's commands too; here the openssl ones alone, in an empty
+    directory, and their result goes through `ZenohTLS` without a WARNING.
+    """
+
+    def test_the_pages_openssl_recipe_makes_certificates_zenoh_tls_accepts(
+        self, tmp_path: Path, caplog: pytest.LogCaptureFixture
+    ) -> None:
+        openssl = shutil.which("openssl")
+        assert openssl is not None, "no openssl (apt-get install -y openssl; .ci/run does)"
+        recipe = openssl_commands()
+        assert 5 <= len(recipe), recipe  # two keys, two certificates, a verify
+        for command in recipe:
+            result = subprocess.run(
+                [openssl, *command[1:]],
+                cwd=tmp_path,
+                capture_output=True,
+                text=True,
+                timeout=60,
+                check=False,
+            )
+            assert 0 == result.returncode, (command, result.stderr)
+
+        with caplog.at_level(logging.WARNING, logger="rr_actors"):
+            tls = rr.ZenohTLS(
+                ca=tmp_path / "ca.pem",
+                cert=tmp_path / "station.pem",
+                key=tmp_path / "station.key",
+                members=["station"],
+            )
+
+        assert ("station", ("10.0.0.1", "station.local")) == (tls.name, tls.addresses)
+        assert [] == caplog.record_tuples  # the keys are 0600 as written

@@ -1,10 +1,6 @@
-"""What only the Zenoh carrier has: its configuration, versions, names across processes,
-systems, and presence (`peer_lost`, `peer_reachable`).
-
-The carrier contract itself runs over Zenoh in `test_transport_contract.py` (`CARRIERS`).
-Here the test process is a system's router; a "remote" process is another router that
-connects to it over TCP on loopback (an unsupervised host of its own), a "manager"
-process attaches through the test process's Unix socket (supervised by it).
+"""The Zenoh carrier (`rr_actors._transport.zenoh.carrier`): versions, one name one
+server across processes, names of other systems, presence (`peer_lost`,
+`peer_reachable`), order and limits; `TestNeverWaitingOnAnActor`: "send when served".
 """
 
 from __future__ import annotations
@@ -16,232 +12,31 @@ import multiprocessing.connection
 import multiprocessing.context
 import os
 import pickle
-import pwd
 import signal
 import socket
 import struct
-import subprocess
-import sys
 import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import pykka
 import pytest
 import zenoh
 
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._core.hlc import CLOCK, MAX_OFFSET
+from rr_actors._core.replies import FutureReply
 from rr_actors._core.wire import WIRE_VERSION
 from rr_actors._transport.codec import frame
+from rr_actors._transport.zenoh import presence
 from rr_actors._transport.zenoh.net import ZenohNetwork
 from rr_actors._transport.zenoh.wire import MESSAGE, PYTHON, VERSION, parse, payload_of
-from rr_actors.testing.carrier import Served
+from rr_actors.testing import run_on_actor
+from rr_actors.testing.carrier import Fetch, Revoke, Served
 from tests.support.carriers import in_thread, setup_servers, wait_load_started
 from tests.support.waiting import wait_for
-
-# -- configuration ---------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("system", ["", "a/b", "*", ".hidden", "-x", "lab lab", "rr/**", 7, None])
-def test_a_bad_system_name_is_a_config_error_naming_system(system: Any) -> None:
-    with pytest.raises(rr.ConfigError, match="system"):
-        rr.ZenohNetwork(system=system, tls=None)
-
-
-@pytest.mark.parametrize(
-    "endpoint",
-    [
-        "10.0.0.1:7447",
-        "udp/10.0.0.1:7447",
-        "tcp/10.0.0.1",
-        "tcp/10.0.0.1:port",
-        "tcp/10.0.0.1:70000",
-        "tcp/:7447",
-        "tcp/[nonsense]:7447",
-        "tcp/10.0.0.1:7447/extra",
-        7447,
-    ],
-)
-@pytest.mark.parametrize("role", ["listen", "connect"])
-def test_a_malformed_endpoint_is_a_config_error_naming_it(role: str, endpoint: Any) -> None:
-    with pytest.raises(rr.ConfigError, match=role) as caught:
-        rr.ZenohNetwork(system="lab", tls=None, **{role: [endpoint]})
-
-    assert repr(endpoint) in str(caught.value)
-
-
-def test_a_system_name_of_64_characters_is_accepted_and_of_65_a_config_error_naming_it() -> None:
-    assert "s" * 64 == rr.ZenohNetwork(system="s" * 64, tls=None).system
-
-    with pytest.raises(rr.ConfigError) as caught:
-        rr.ZenohNetwork(system="s" * 65, tls=None)
-
-    assert str(caught.value).startswith(
-        f"system {'s' * 65!r} is 65 characters long: a system name has at most 64 (NAME_MAX"
-    )
-
-
-def test_endpoints_given_as_one_string_are_a_config_error() -> None:
-    with pytest.raises(rr.ConfigError, match="listen must be a list"):
-        rr.ZenohNetwork(system="lab", listen="tcp/127.0.0.1:7447", tls=None)  # type: ignore[arg-type]
-
-
-def test_tls_has_no_default() -> None:
-    with pytest.raises(TypeError, match="tls"):
-        rr.ZenohNetwork(system="lab")  # type: ignore[call-arg]
-
-
-@pytest.mark.parametrize("tls", [True, "mtls", {"ca": "ca.pem"}])
-def test_tls_other_than_none_or_a_zenoh_tls_is_a_config_error(tls: Any) -> None:
-    with pytest.raises(rr.ConfigError, match=r"tls must be rr\.ZenohTLS"):
-        rr.ZenohNetwork(system="lab", tls=tls)
-
-
-@pytest.mark.parametrize("lease", [0, -1.0, float("nan"), float("inf"), True, "1", 1e6])
-def test_a_bad_lease_is_a_config_error_naming_lease(lease: Any) -> None:
-    with pytest.raises(rr.ConfigError, match="lease"):
-        rr.ZenohNetwork(system="lab", tls=None, lease=lease)
-
-
-@pytest.mark.parametrize("max_offset", [0, -1.0, float("nan"), float("inf"), True, "60", 1e9])
-def test_a_bad_max_offset_is_a_config_error_naming_max_offset(max_offset: Any) -> None:
-    with pytest.raises(rr.ConfigError, match="max_offset"):
-        rr.ZenohNetwork(system="lab", tls=None, max_offset=max_offset)
-
-
-def test_the_max_offset_of_a_network_is_its_processes_clocks(
-    context: multiprocessing.context.ForkServerContext,
-) -> None:
-    """The router's clock and that of a process that attaches through it take the
-    network's `max_offset` (the clock is the process's: one system per process)."""
-    network = rr.ZenohNetwork(system=_system(), tls=None, max_offset=2.5)
-    try:
-        address = network.address  # (opens the router)
-        here = CLOCK.max_offset
-        with context.Pool(1) as pool:
-            there = pool.apply(_attached_max_offset, (address,))
-    finally:
-        network.close()
-        CLOCK.max_offset = MAX_OFFSET
-
-    assert (2.5, 2.5, 2.5) == (here, address.max_offset, there)
-
-
-def _attached_max_offset(address: Any) -> float:
-    member = address.attach()
-    try:
-        return CLOCK.max_offset
-    finally:
-        member.close()
-
-
-@pytest.mark.parametrize("endpoint", ["tcp/127.0.0.1:7447", "tcp/[::1]:7447", "tcp/localhost:0"])
-def test_plain_tcp_on_loopback_is_a_warning_that_every_local_user_can_run_code_here(
-    caplog: pytest.LogCaptureFixture, endpoint: str
-) -> None:
-    with caplog.at_level(logging.WARNING, logger="rr_actors"):
-        rr.ZenohNetwork(system="lab", listen=[endpoint], tls=None)
-
-    assert [
-        (
-            "rr_actors",
-            logging.WARNING,
-            f"ZenohNetwork 'lab' listens on {endpoint} in plain TCP (tls=None): every user "
-            f"and process on this machine can connect and run code as this user, "
-            f"{_me()} (what crosses is pickles); use tls= and tls/ endpoints",
-        )
-    ] == caplog.record_tuples
-
-
-def test_plain_tcp_elsewhere_is_a_warning_that_anyone_who_reaches_it_can_run_code_here(
-    caplog: pytest.LogCaptureFixture,
-) -> None:
-    with caplog.at_level(logging.WARNING, logger="rr_actors"):
-        rr.ZenohNetwork(system="lab", listen=["tcp/10.0.0.2:7447", "tcp/0.0.0.0:7448"], tls=None)
-
-    assert [
-        "anyone who can reach 10.0.0.2 can connect",
-        "anyone who can reach this machine (at any of its addresses) can connect",
-    ] == [r.getMessage().split(": ", 1)[1].split(" and run")[0] for r in caplog.records]
-
-
-def test_a_plain_tcp_connect_endpoint_is_a_warning_that_whoever_answers_can_run_code_here(
-    caplog: pytest.LogCaptureFixture,
-) -> None:
-    with caplog.at_level(logging.WARNING, logger="rr_actors"):
-        rr.ZenohNetwork(system="lab", connect=["tcp/127.0.0.1:7447", "tcp/10.0.0.1:7447"], tls=None)
-
-    assert [
-        "ZenohNetwork 'lab' connects to tcp/127.0.0.1:7447 in plain TCP (tls=None): every "
-        "user and process on this machine (whoever listens on port 7447 first) can run code "
-        f"as this user, {_me()}",
-        "ZenohNetwork 'lab' connects to tcp/10.0.0.1:7447 in plain TCP (tls=None): whoever "
-        "answers at 10.0.0.1 port 7447 (anyone who can listen there or sits between) can run "
-        f"code as this user, {_me()}",
-    ] == [r.getMessage().split(" (what crosses")[0] for r in caplog.records]
-
-
-def test_a_network_only_on_its_unix_socket_logs_no_warning(
-    caplog: pytest.LogCaptureFixture,
-) -> None:
-    with caplog.at_level(logging.WARNING, logger="rr_actors"):
-        rr.ZenohNetwork(system="lab", tls=None)
-
-    assert [] == caplog.record_tuples
-
-
-def test_an_unreachable_connect_endpoint_is_a_warning_not_an_error(
-    caplog: pytest.LogCaptureFixture,
-) -> None:
-    port = _free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    net = rr.ZenohNetwork(system=_system(), connect=[endpoint], tls=None)
-    try:
-        with caplog.at_level(logging.WARNING, logger="rr_actors"):
-            assert [] == net.names()  # opens it
-
-        assert any(endpoint in r.getMessage() for r in caplog.records)
-    finally:
-        net.close()
-
-
-def test_import_rr_actors_does_not_import_zenoh() -> None:
-    code = "import sys, rr_actors; assert 'zenoh' not in sys.modules; rr_actors.ZenohNetwork"
-    code += "; assert 'zenoh' in sys.modules"
-
-    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
-
-
-def test_the_runtime_directory_is_private_and_removed_at_close() -> None:
-    net = rr.ZenohNetwork(system=_system(), tls=None)
-    path = net.address.socket_path
-    directory = os.path.dirname(path)
-    mode = os.stat(directory).st_mode & 0o777
-    net.close()
-
-    assert (0o700, False) == (mode, os.path.exists(directory))
-
-
-def test_a_process_belongs_to_one_system() -> None:
-    first = rr.ZenohNetwork(system=_system(), tls=None)
-    second = rr.ZenohNetwork(system=_system(), tls=None)
-    try:
-        first.names()
-        with pytest.raises(rr.ConfigError, match=f"system {second.system!r}"):
-            second.names()
-    finally:
-        first.close()
-        second.close()
-
-
-# -- helpers -------------------------------------------------------------------------------------
-
-
-def _me() -> str:
-    return f"{pwd.getpwuid(os.geteuid()).pw_name} (uid {os.geteuid()})"
 
 
 def _system() -> str:
@@ -425,6 +220,220 @@ OTHER_VERSIONS = [
 ]
 
 
+def _freeze(pid: int) -> None:
+    """SIGSTOP process `pid` and return once it is stopped (a signal is delivered when the
+    process next runs: on a loaded machine it may answer one more question first)."""
+    os.kill(pid, signal.SIGSTOP)
+
+    def stopped() -> bool:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] == "T"
+
+    assert wait_for(stopped, 10.0)
+
+
+def _reporting_caller(
+    address: Any, name: str, go: Any, control: multiprocessing.connection.Connection
+) -> None:
+    """Attach, say "attached", wait for `go`, call `name` twice (the second time once the
+    test says so): send what each raised, as `"<class>: <message>"`."""
+    member = address.attach()
+    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
+    try:
+        member.serve(Served(registrar))
+        control.send("attached")
+        go.wait(30)
+        for _ in range(2):
+            try:
+                registrar.call(name, "echo", "r", timeout=10)
+            except rr.RrError as exc:
+                control.send(f"{type(exc).__name__}: {exc}")
+            else:
+                control.send("answered")
+            if not control.poll(30) or control.recv() != "again":
+                break
+    finally:
+        registrar.stop()
+        member.close()
+
+
+def _quiet_router(net: ZenohNetwork, children: Started) -> tuple[Any, Any]:
+    """A router process of `net`'s system (`_quiet_router_main`): it, and its address."""
+    parent_end, child_end = children.context.Pipe()
+    router, _ = children.start(_quiet_router_main, net.system, _tcp(net), child_end)
+    assert parent_end.poll(30)
+    return router, parent_end.recv()
+
+
+def _quiet_router_main(
+    system: str,
+    connect: str,
+    address_end: multiprocessing.connection.Connection,
+    control: multiprocessing.connection.Connection,
+) -> None:
+    """A router process of its own that serves nothing; its lease is long (30 s), so a
+    process attached through it keeps its link while it is frozen; sends its address."""
+    network = rr.ZenohNetwork(system=system, connect=[connect], tls=None, lease=30.0)
+    try:
+        address_end.send(network.address)
+        control.send("ready")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        network.close()
+
+
+def _reporting_racer(
+    address: Any, name: str, go: Any, control: multiprocessing.connection.Connection
+) -> None:
+    """Attach, say "attached", wait for `go`, serve `name`: say "served", "duplicate" or
+    "unavailable" (the network did not say whether another process serves it)."""
+    member = address.attach()
+    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, call_timeout=10.0))
+    try:
+        control.send("attached")
+        go.wait(30)
+        try:
+            member.serve(Served(registrar))
+        except rr.DuplicateNameError:
+            control.send("duplicate")
+        except rr.RegistrarUnavailableError:
+            control.send("unavailable")
+        else:
+            control.send("served")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        registrar.stop()
+        member.close()
+
+
+def _supervised_manager(
+    address: Any, name: str, control: multiprocessing.connection.Connection
+) -> None:
+    """`manager_main` in a process that says its router speaks for it (rule 19), as a
+    manager process its router's supervisor started says (`_process/child.py`)."""
+    address.attach().supervised_by(address.router_pid)
+    manager_main(address, name, control)
+
+
+def _racer(
+    address: Any, name: str, go: Any, control: multiprocessing.connection.Connection
+) -> None:
+    manager_main(address, name, control, go)
+
+
+# -- order ----------------------------------------------------------------------------------------
+
+
+class Boxed:
+    """A message that is not plain data: decoded on the sender's decode thread, not inline."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+
+class Inbox:
+    """A peer registered in the directory in place of a registrar: keeps what it is told."""
+
+    def __init__(self, name: str, expected: int) -> None:
+        self.name = name
+        self.told: list[int] = []
+        self.expected = expected
+        self.all_told = threading.Event()
+
+    def tell(self, message: Any) -> None:
+        self.told.append(message.n if isinstance(message, Boxed) else message[1])
+        if len(self.told) == self.expected:
+            self.all_told.set()
+
+    def deliver(self, message: Any) -> None:  # (what a carrier's receiving thread calls)
+        self.tell(message)
+
+
+def teller_main(
+    address: Any, name: str, count: int, control: multiprocessing.connection.Connection
+) -> None:
+    """Attach, tell `count` messages to `name` (plain ones and `Boxed` ones mixed), say done."""
+    member = address.attach()
+    try:
+        # (its presence may not have reached this new session yet: an ask is bounded)
+        assert member.link().wait_served(name, timeout=30)
+        peer = member.resolve(name)
+        for n in range(count):
+            peer.tell(Boxed(n) if n % 7 == 0 else ("n", n))
+        control.send("ready")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        member.close()
+
+
+LEASE = 60.0
+
+
+"""Seconds of the router's lease: longer than the test, so a frozen router's link stays."""
+
+
+def _nowait_router_main(
+    system: str, serves: str, control: multiprocessing.connection.Connection
+) -> None:
+    """A router of `system` (lease `LEASE`) that serves registrar `serves` (with a server
+    `s`), sends its address, then waits to stop."""
+    network = rr.ZenohNetwork(system=system, tls=None, lease=LEASE)
+    registrar = rr.ResourceRegistrar.start(serves)
+    try:
+        registrar.register_server("s", load=lambda request: request, unload=lambda *_: None)
+        network.serve(Served(registrar))
+        control.send(network.address)
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        registrar.stop()
+        network.close()
+
+
+SERVED = f"there-{uuid.uuid4().hex[:6]}"
+
+
+"""The registrar the router process serves."""
+
+
+class Ordered:
+    """A reply that notes, in `answers`, its number and its answer when answered."""
+
+    def __init__(self, number: int, answers: list[tuple[int, Any]], done: threading.Event) -> None:
+        self.number = number
+        self.answers = answers
+        self.done = done
+
+    def set_result(self, value: Any) -> None:
+        self.answers.append((self.number, value))
+        if len(self.answers) == 3:
+            self.done.set()
+
+    def set_error(self, error: BaseException) -> None:
+        self.set_result(error)
+
+
+def _nowait_manager_main(
+    address: Any, name: str, control: multiprocessing.connection.Connection
+) -> None:
+    """A process that attaches through the router and serves registrar `name` (with a
+    server `s`) until told on its control pipe."""
+    member = address.attach()
+    registrar = rr.ResourceRegistrar.start(name)
+    try:
+        registrar.register_server("s", load=lambda request: request, unload=lambda *_: None)
+        member.serve(Served(registrar))
+        control.send("ready")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        registrar.stop()
+        member.close()
+
+
 @pytest.mark.parametrize(("wire", "python"), OTHER_VERSIONS)
 def test_a_message_of_another_version_is_refused_unread_naming_both_versions(
     net: ZenohNetwork,
@@ -604,109 +613,6 @@ def test_a_name_asked_of_a_network_that_does_not_answer_is_unavailable_not_unkno
     assert thawed.startswith("UnknownRegistrarError: no registrar named 'never-served'")
 
 
-def _freeze(pid: int) -> None:
-    """SIGSTOP process `pid` and return once it is stopped (a signal is delivered when the
-    process next runs: on a loaded machine it may answer one more question first)."""
-    os.kill(pid, signal.SIGSTOP)
-
-    def stopped() -> bool:
-        with open(f"/proc/{pid}/stat") as stat:
-            return stat.read().rsplit(")", 1)[1].split()[0] == "T"
-
-    assert wait_for(stopped, 10.0)
-
-
-def _reporting_caller(
-    address: Any, name: str, go: Any, control: multiprocessing.connection.Connection
-) -> None:
-    """Attach, say "attached", wait for `go`, call `name` twice (the second time once the
-    test says so): send what each raised, as `"<class>: <message>"`."""
-    member = address.attach()
-    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
-    try:
-        member.serve(Served(registrar))
-        control.send("attached")
-        go.wait(30)
-        for _ in range(2):
-            try:
-                registrar.call(name, "echo", "r", timeout=10)
-            except rr.RrError as exc:
-                control.send(f"{type(exc).__name__}: {exc}")
-            else:
-                control.send("answered")
-            if not control.poll(30) or control.recv() != "again":
-                break
-    finally:
-        registrar.stop()
-        member.close()
-
-
-def _quiet_router(net: ZenohNetwork, children: Started) -> tuple[Any, Any]:
-    """A router process of `net`'s system (`_quiet_router_main`): it, and its address."""
-    parent_end, child_end = children.context.Pipe()
-    router, _ = children.start(_quiet_router_main, net.system, _tcp(net), child_end)
-    assert parent_end.poll(30)
-    return router, parent_end.recv()
-
-
-def _quiet_router_main(
-    system: str,
-    connect: str,
-    address_end: multiprocessing.connection.Connection,
-    control: multiprocessing.connection.Connection,
-) -> None:
-    """A router process of its own that serves nothing; its lease is long (30 s), so a
-    process attached through it keeps its link while it is frozen; sends its address."""
-    network = rr.ZenohNetwork(system=system, connect=[connect], tls=None, lease=30.0)
-    try:
-        address_end.send(network.address)
-        control.send("ready")
-        with contextlib.suppress(EOFError, OSError):
-            control.recv()
-    finally:
-        network.close()
-
-
-def _reporting_racer(
-    address: Any, name: str, go: Any, control: multiprocessing.connection.Connection
-) -> None:
-    """Attach, say "attached", wait for `go`, serve `name`: say "served", "duplicate" or
-    "unavailable" (the network did not say whether another process serves it)."""
-    member = address.attach()
-    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, call_timeout=10.0))
-    try:
-        control.send("attached")
-        go.wait(30)
-        try:
-            member.serve(Served(registrar))
-        except rr.DuplicateNameError:
-            control.send("duplicate")
-        except rr.RegistrarUnavailableError:
-            control.send("unavailable")
-        else:
-            control.send("served")
-        with contextlib.suppress(EOFError, OSError):
-            control.recv()
-    finally:
-        registrar.stop()
-        member.close()
-
-
-def _supervised_manager(
-    address: Any, name: str, control: multiprocessing.connection.Connection
-) -> None:
-    """`manager_main` in a process that says its router speaks for it (rule 19), as a
-    manager process its router's supervisor started says (`_process/child.py`)."""
-    address.attach().supervised_by(address.router_pid)
-    manager_main(address, name, control)
-
-
-def _racer(
-    address: Any, name: str, go: Any, control: multiprocessing.connection.Connection
-) -> None:
-    manager_main(address, name, control, go)
-
-
 def test_a_name_of_another_system_is_unknown_at_once_naming_this_system(
     net: ZenohNetwork, children: Started
 ) -> None:
@@ -853,52 +759,6 @@ def test_a_frozen_remote_router_is_lost_then_reachable_again_with_the_same_proce
     watcher.end()
 
 
-# -- order ----------------------------------------------------------------------------------------
-
-
-class Boxed:
-    """A message that is not plain data: decoded on the sender's decode thread, not inline."""
-
-    def __init__(self, n: int) -> None:
-        self.n = n
-
-
-class Inbox:
-    """A peer registered in the directory in place of a registrar: keeps what it is told."""
-
-    def __init__(self, name: str, expected: int) -> None:
-        self.name = name
-        self.told: list[int] = []
-        self.expected = expected
-        self.all_told = threading.Event()
-
-    def tell(self, message: Any) -> None:
-        self.told.append(message.n if isinstance(message, Boxed) else message[1])
-        if len(self.told) == self.expected:
-            self.all_told.set()
-
-    def deliver(self, message: Any) -> None:  # (what a carrier's receiving thread calls)
-        self.tell(message)
-
-
-def teller_main(
-    address: Any, name: str, count: int, control: multiprocessing.connection.Connection
-) -> None:
-    """Attach, tell `count` messages to `name` (plain ones and `Boxed` ones mixed), say done."""
-    member = address.attach()
-    try:
-        # (its presence may not have reached this new session yet: an ask is bounded)
-        assert member.link().wait_served(name, timeout=30)
-        peer = member.resolve(name)
-        for n in range(count):
-            peer.tell(Boxed(n) if n % 7 == 0 else ("n", n))
-        control.send("ready")
-        with contextlib.suppress(EOFError, OSError):
-            control.recv()
-    finally:
-        member.close()
-
-
 def test_messages_from_one_process_to_one_registrar_arrive_in_the_order_told(
     net: ZenohNetwork, children: Started
 ) -> None:
@@ -958,3 +818,223 @@ def test_a_message_over_the_registrars_limit_is_answered_unread(
     _value, error = pickle.loads(payload)
     assert (9, True) == (token, isinstance(error, rr.MessageTooLargeError))
     assert not evil.exists()
+
+
+class TestNeverWaitingOnAnActor:
+    """A registrar's actor never waits on the network (the Zenoh carrier).
+
+    The test process attaches, as a manager process does, to a router in a child process
+    and serves a registrar. The router is then frozen (SIGSTOP; its lease is long, so the
+    link stays up): whatever this process asks of the network waits until the router runs
+    again. A message the registrar's actor sends to a registrar this process does not see
+    served (never heard of, or heard to die) must not hold the actor: it answers other
+    messages meanwhile (a heartbeat comes that way), and the message's fate (nobody serves
+    that name; or it is delivered, in order) is known once the network answers.
+
+    A registrar whose token is "still on its way" here is one whose liveliness samples this
+    process's presence ignores (`Presence._on_live` wrapped before the member starts): it
+    is heard only when the network is asked, as after a restart, or a join, under load.
+    Order, not speed: each test checks that the actor answered before the router ran again.
+    """
+
+    @pytest.fixture
+    def frozen_router(
+        self,
+        context: multiprocessing.context.ForkServerContext,
+    ) -> Iterator[tuple[Any, int]]:
+        """A router process: `(its address, its pid)`; continued and stopped at the end."""
+        parent_end, child_end = context.Pipe()
+        process = context.Process(
+            target=_nowait_router_main,
+            args=(f"test-{uuid.uuid4().hex[:8]}", SERVED, child_end),
+            daemon=True,
+        )
+        process.start()
+        child_end.close()
+        try:
+            assert parent_end.poll(30), "the router did not start"
+            assert process.pid is not None
+            yield parent_end.recv(), process.pid
+        finally:
+            with contextlib.suppress(OSError):
+                os.kill(process.pid or 0, signal.SIGCONT)
+            with contextlib.suppress(OSError):
+                parent_end.send("stop")
+            process.join(10)
+            if process.is_alive():
+                process.kill()
+                process.join(5)
+            parent_end.close()
+
+    def test_an_actor_answers_while_a_registrar_it_never_heard_of_is_asked_of_the_network(
+        self, frozen_router: tuple[Any, int], monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        address, router_pid = frozen_router
+        monkeypatch.setattr(presence, "ASK_TIMEOUT", 30.0)  # an ask ends when the router answers
+        member = address.attach()
+        registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
+        unheard = f"nobody-{uuid.uuid4().hex[:6]}"
+        fetched = FutureReply()
+        try:
+            member.serve(Served(registrar))
+            os.kill(router_pid, signal.SIGSTOP)
+            try:
+                told = run_on_actor(
+                    registrar,
+                    lambda: DIRECTORY.lookup(unheard).tell(Fetch("s", registrar.name, fetched)),
+                )
+                answered = run_on_actor(registrar, lambda: "answered")
+
+                # before the router runs again: the actor did not wait for the network
+                assert "answered" == answered.get(timeout=10)
+                told.get(timeout=0)  # told without an error, nothing decided yet
+                with pytest.raises(pykka.Timeout):  # its fate waits for the network
+                    fetched.future.get(timeout=0)
+            finally:
+                os.kill(router_pid, signal.SIGCONT)
+
+            with pytest.raises(rr.UnknownRegistrarError, match=f"no registrar named '{unheard}'"):
+                fetched.future.get(timeout=40)
+        finally:
+            registrar.stop()
+            member.close()
+
+    def test_an_actor_answers_while_a_message_without_reply_to_an_unheard_registrar_waits(
+        self, frozen_router: tuple[Any, int], monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        """A message that wants no answer (a `Revoke`, as an `Abandon` of a given-up call
+        or the `ReconcileAsk` of a restart): dropped once nobody serves the name."""
+        address, router_pid = frozen_router
+        monkeypatch.setattr(presence, "ASK_TIMEOUT", 30.0)
+        member = address.attach()
+        registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
+        try:
+            member.serve(Served(registrar))
+            os.kill(router_pid, signal.SIGSTOP)
+            try:
+                told = run_on_actor(
+                    registrar,
+                    lambda: DIRECTORY.lookup(f"nobody-{uuid.uuid4().hex[:6]}").tell(Revoke(("q",))),
+                )
+
+                assert [] == registrar.client_queries(timeout=10)  # before the router runs
+                told.get(timeout=0)
+            finally:
+                os.kill(router_pid, signal.SIGCONT)
+        finally:
+            registrar.stop()
+            member.close()
+
+    def test_messages_an_actor_tells_a_registrar_not_heard_of_yet_arrive_in_order_once_it_is(
+        self, frozen_router: tuple[Any, int], monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        address, router_pid = frozen_router
+        monkeypatch.setattr(presence, "ASK_TIMEOUT", 30.0)
+        on_live = presence.Presence._on_live  # (bound when the member's presence starts)
+
+        def late(self: presence.Presence, sample: Any) -> None:  # as if its token were on
+            if SERVED not in str(sample.key_expr):  # the way still: heard only when asked
+                on_live(self, sample)
+
+        monkeypatch.setattr(presence.Presence, "_on_live", late)
+        member = address.attach()
+        registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
+        answers: list[tuple[int, Any]] = []
+        all_answered = threading.Event()
+
+        def fetch(number: int) -> None:
+            reply = Ordered(number, answers, all_answered)
+            DIRECTORY.lookup(SERVED).tell(Fetch("s", registrar.name, reply))
+
+        try:
+            member.serve(Served(registrar))
+            assert SERVED not in member.names()
+            os.kill(router_pid, signal.SIGSTOP)
+            try:
+                run_on_actor(registrar, lambda: fetch(1))
+                run_on_actor(registrar, lambda: fetch(2))
+
+                assert [] == registrar.client_queries(timeout=10)  # before the router runs
+            finally:
+                os.kill(router_pid, signal.SIGCONT)
+            run_on_actor(registrar, lambda: fetch(3)).get(timeout=10)
+
+            assert all_answered.wait(40)
+        finally:
+            registrar.stop()
+            member.close()
+
+        assert [(1, []), (2, []), (3, [])] == answers
+
+    def test_an_actor_answers_while_its_message_to_a_registrar_heard_to_die_waits_for_the_network(
+        self,
+        frozen_router: tuple[Any, int],
+        context: multiprocessing.context.ForkServerContext,
+        monkeypatch: pytest.MonkeyPatch,
+        eventually: Callable[..., bool],
+    ) -> None:
+        """Its restart serves already, its token not heard here yet: the message goes once
+        the network says so, or fails as unavailable (what the network answers a client's
+        liveliness query is not always all its router knows: the ask decides either way),
+        never as unknown, never held."""
+        address, router_pid = frozen_router
+        monkeypatch.setattr(presence, "ASK_TIMEOUT", 30.0)
+        name = f"restarted-{uuid.uuid4().hex[:6]}"
+        hidden = threading.Event()  # from then on, its tokens are still on the way (heard
+        on_live = presence.Presence._on_live  # only when asked)
+
+        def late(self: presence.Presence, sample: Any) -> None:
+            if not (hidden.is_set() and name in str(sample.key_expr)):
+                on_live(self, sample)
+
+        monkeypatch.setattr(presence.Presence, "_on_live", late)
+        member = address.attach()
+        registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
+        managers: list[tuple[Any, Any]] = []
+
+        def manager() -> Any:
+            parent_end, child_end = context.Pipe()
+            process = context.Process(target=_nowait_manager_main, args=(address, name, child_end))
+            process.start()
+            child_end.close()
+            managers.append((process, parent_end))
+            assert parent_end.poll(30), "the manager did not get ready"
+            assert "ready" == parent_end.recv()
+            return process
+
+        fetched = FutureReply()
+        try:
+            member.serve(Served(registrar))
+            first = manager()
+            assert eventually(lambda: name in member.names(), timeout=10)
+            os.kill(first.pid, signal.SIGKILL)
+            assert eventually(lambda: name not in member.names(), timeout=10)  # heard to die
+            hidden.set()
+            manager()  # the restart: this process's presence does not hear of it
+            os.kill(router_pid, signal.SIGSTOP)
+            try:
+                run_on_actor(
+                    registrar,
+                    lambda: DIRECTORY.lookup(name).tell(Fetch("s", registrar.name, fetched)),
+                )
+
+                assert [] == registrar.client_queries(timeout=10)  # before the router runs
+            finally:
+                os.kill(router_pid, signal.SIGCONT)
+
+            try:
+                outcome: Any = fetched.future.get(timeout=40)
+            except rr.RegistrarUnavailableError as exc:
+                outcome = exc
+            assert outcome == [] or isinstance(outcome, rr.RegistrarUnavailableError)
+        finally:
+            registrar.stop()
+            member.close()
+            for process, control in managers:
+                with contextlib.suppress(OSError):
+                    control.send("stop")
+                process.join(10)
+                if process.is_alive():
+                    process.kill()
+                    process.join(5)
+                control.close()
