@@ -932,21 +932,13 @@ class Messenger:
 
 class StandIn:
     """The stand-in for a sender's reply, given to a delivered message: answers over the
-    link (`send`).
+    link (`send`), for registrar `name` of this process (`limit`: its `max_message_bytes`).
 
-    An answer that does not pickle, or is over the registrar's `max_message_bytes`,
-    becomes an error answer (the caller never hangs). When a successful answer does not
-    reach its caller (it does not pickle, is too large, or the caller is gone first), the
-    message's `compensation()` is told to the local registrar: for a `Load`, the consumer
-    id it created is released again.
-
-    Args:
-        send: sends the answer frame to the sender (`SendAnswer`).
-        name: the registrar of this process that got the message.
-        limit: its `max_message_bytes`.
-        token: the sender's token for the answer.
-        message: the message.
-        lookup: finds the registrar `name` (a compensation goes to it).
+    An answer that does not pickle, or is over `limit`, becomes an error answer (the
+    caller never hangs). When a successful answer does not reach its caller (it does not
+    pickle, is too large, or the caller is gone first), the message's `compensation()` is
+    told to the local registrar: for a `Load`, the consumer id it created is released
+    again.
     """
 
     __slots__ = ("_done", "_limit", "_lookup", "_message", "_name", "_send", "_token")

@@ -183,16 +183,11 @@ class _Timed:
 
 
 def handshake(sock: socket.socket, authkey: bytes, deadline: float, *, server: bool) -> None:
-    """Pass the mutual authkey handshake on `sock`, all of it before `deadline`.
+    """Pass the mutual authkey handshake on `sock`, all of it before `deadline`
+    (`time.monotonic()` seconds).
 
-    The listening side delivers its challenge first, the connecting side answers it and
-    then delivers its own. `sock` is left blocking (no timeout) afterwards.
-
-    Args:
-        sock: a connected stream socket.
-        authkey: the system's secret.
-        deadline: `time.monotonic()` seconds by which the handshake must be done.
-        server: whether this is the listening side.
+    The listening side (`server`) delivers its challenge first, the connecting side
+    answers it and then delivers its own. `sock` is left blocking (no timeout) afterwards.
 
     Raises:
         AuthenticationError: the other side does not know `authkey`, or sent a malformed
@@ -269,14 +264,10 @@ def connect(path: str, authkey: bytes) -> tuple[socket.socket, Connection]:
 class Writer:
     """The send side of one connection: frames leave in the order they were sent.
 
-    A sender writes a frame itself when nothing is queued or being written and the
-    socket takes all of it without blocking (`MSG_DONTWAIT`); otherwise the frame (or the
-    part the socket did not take) is queued for the connection's writer thread (a
-    `SerialExecutor`, started when a frame first waits), the only thread that may block
-    on a peer that does not read. A failed connect or a failed write of the writer
-    thread closes the writer and calls `on_failure(exc)` once; a sender whose own write
-    fails gets False from `send` and cleans up itself. The socket is closed after the
-    last write (`shutdown` at `close` ends a blocked one).
+    A failed connect or a failed write of the writer thread closes the writer and calls
+    `on_failure(exc)` once; a sender whose own write fails gets False from `send` and
+    cleans up itself. The socket is closed after the last write (`shutdown` at `close`
+    ends a blocked one).
     """
 
     __slots__ = ("_closed", "_executor", "_lock", "_on_failure", "_sock")
@@ -523,14 +514,7 @@ class _Channel:
 
 class RemotePeer(Remote):
     """A registrar in another process of the system, reached through its socket (`tell`,
-    `run`: `Remote`; its route is one connection).
-
-    It connects lazily (one connection per target per process, made on the
-    connection's writer thread) and is safe from any thread. Answers are read by one
-    daemon thread per connection, which resolves the kept replies; when the connection
-    ends (the peer died or its registrar stopped), every answer still outstanding on it
-    fails at once: that is how a dead peer is seen, not by a timeout.
-    """
+    `run`: `Remote`; its route is one connection, made lazily on its writer thread)."""
 
     def __init__(self, system: Rendezvous, name: str) -> None:
         self.name = name
@@ -747,17 +731,10 @@ through once descriptors are free again."""
 class Listener(Listening):
     """Accepts connections for one registrar served by this process (its `Listening`).
 
-    It holds the name's lock file for as long as it listens, so the socket path is its own:
-    a socket left there by a process that died can be unlinked without asking anyone.
-    It publishes the registrar's `max_message_bytes` (`.limit`) and who speaks for it if
-    this process dies (`.restart`, rule 19) before anyone connects.
-
-    Its accept thread outlives failures: when `accept` fails for lack of resources (the
-    process is out of file descriptors: `EMFILE`), it logs once, waits (exponential
-    backoff, cut short when one of its connections ends) and tries again, while peers
-    wait in the backlog. [`trouble`][rr_actors._transport.unix.link.Listener.trouble] says
-    for how long it has been unable to accept, so a manager process can report it with
-    its heartbeat answer and its supervisor restart a manager that stays unable to.
+    Holding the name's lock, it may unlink a socket left at its path by a process that
+    died; it publishes `.limit` and `.restart` (rule 19) before anyone connects. When
+    `accept` fails for lack of resources (`EMFILE`), it logs once, backs off (cut short
+    when one of its connections ends) and tries again while peers wait in the backlog.
 
     Raises:
         DuplicateNameError: another process holds the name's lock.

@@ -176,12 +176,7 @@ class Outbox:
 
 
 class Outboxes:
-    """The outboxes of one process's session, by destination key.
-
-    Args:
-        session: the open session.
-        keys: the system's key expressions (a ping's).
-    """
+    """The outboxes of one process's session, by destination key."""
 
     def __init__(self, session: zenoh.Session, keys: Keys) -> None:
         self._session = session
@@ -290,11 +285,7 @@ class InboxOwner(Protocol):
 class Inbox:
     """The decode queues of one process (one per sending process and kind); what they
     decode goes to the messenger: messages for the registrars served here, answers for
-    the replies waiting here (`replies`, by token: every route's `pending`).
-
-    Args:
-        owner: the carrier (`InboxOwner`).
-    """
+    the replies waiting here (`replies`, by token: every route's `pending`)."""
 
     def __init__(self, owner: InboxOwner) -> None:
         self._owner = owner
