@@ -23,7 +23,7 @@ served here, and a link back to the process a message came from (`Carrier`):
    ├─ route.pending.expect(reply)  (`Replies`: where it waits for its answer)
    └─ route.send(frame) ──────────────────────► the carrier: to the name's process
         False (the route went): forget the reply, route.broken(), once more or gone()
- on an actor's thread, to a name the carrier has to ask the network for (`Lanes`):
+ on an actor's thread, to a name a carrier has to ask the network for (its `Lanes`):
    send_when_served(): encode here; on the name's lane (a carrier's thread, in order
    with what follows): lanes.found(name)? check size, expect, send now : fail the reply
  Remote.run(fn) ─► submit(fn): tell(Run(fn, reply)) ─► wait (an event loop awaits it)
@@ -65,7 +65,6 @@ import threading
 from collections.abc import Callable
 from typing import Any, NamedTuple, Protocol
 
-from rr_actors._core.actor import on_actor_thread
 from rr_actors._core.directory import DIRECTORY, Peer, Reply
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, wait
@@ -98,6 +97,7 @@ __all__ = [
     "StandIn",
     "run_lost",
     "send",
+    "send_when_served",
 ]
 
 logger = logging.getLogger("rr_actors")
@@ -213,7 +213,7 @@ class Lane(Protocol):
 
 class Lanes(Protocol):
     """What "send when served" asks of a carrier whose routes may have to ask the network
-    (Zenoh's): a peer of it names it in `Remote.lanes`."""
+    (Zenoh's; its peers' `tell` decides when: `unseen`, on an actor's thread)."""
 
     def unseen(self, name: str) -> bool:
         """Whether it sees no server of `name` now, and did not hear it stop."""
@@ -270,15 +270,12 @@ class Remote(abc.ABC):
     """A registrar of another process as a `Peer`: `tell` and `run` are here; a carrier
     gives each name its `route()` and the error of a name that cannot be reached.
 
-    A peer whose route may have to ask the network names its carrier's `lanes`: on an
-    actor's thread, which must never wait on the network, a message to a name the
-    carrier does not see served is sent from the name's lane (`send_when_served`).
+    A peer whose route may have to ask the network (Zenoh's) sends, on an actor's
+    thread, which must never wait on the network, a message to a name its carrier does
+    not see served from the name's lane (`send_when_served`, over the carrier's `Lanes`).
     """
 
     name: str
-
-    lanes: Lanes | None = None
-    """The carrier's lanes, if its routes may have to ask the network (Zenoh's)."""
 
     @abc.abstractmethod
     def route(self) -> Route:
@@ -309,11 +306,7 @@ class Remote(abc.ABC):
             RegistrarUnavailableError: the registrar's process is known to be unreachable.
             RegistrarStoppedError: it was stopped, or this process left the system.
         """
-        lanes = self.lanes
-        if lanes is not None and on_actor_thread() and lanes.unseen(self.name):
-            send_when_served(self, lanes, message)
-        else:
-            send(self, message)
+        send(self, message)
 
     def deliver(self, message: Any) -> None:
         """`tell` (a registrar of another process is never run on this thread)."""

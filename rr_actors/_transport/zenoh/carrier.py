@@ -97,6 +97,8 @@ from rr_actors._transport.messenger import (
     Lost,
     Messenger,
     Remote,
+    send,
+    send_when_served,
 )
 from rr_actors._transport.zenoh.link import DRAIN_TIMEOUT, Inbox, Outbox, Outboxes
 from rr_actors._transport.zenoh.ops.events import EventExport
@@ -129,13 +131,21 @@ logger = logging.getLogger("rr_actors")
 
 
 class ZenohPeer(Remote):
-    """A registrar of another process of the system, reached over Zenoh (`tell`, `run`:
-    `Remote`; its route is its key and the server seen for it; its lane, the key's
-    outbox: `lanes` is its carrier)."""
+    """A registrar of another process of the system, reached over Zenoh (`run`: `Remote`;
+    its route is its key and the server seen for it; its lane, the key's outbox)."""
 
     def __init__(self, carrier: ZenohCarrier, name: str) -> None:
         self.name = name
-        self.lanes = self._carrier = carrier
+        self._carrier = carrier
+
+    def tell(self, message: Any) -> None:
+        """Send `message` (`Remote.tell`); on an actor's thread, to a registrar this
+        process does not see served, without waiting: `send_when_served`."""
+        carrier = self._carrier
+        if on_actor_thread() and carrier.unseen(self.name):
+            send_when_served(self, carrier, message)
+        else:
+            send(self, message)
 
     def route(self) -> _Route:
         return self._carrier.route(self.name)
