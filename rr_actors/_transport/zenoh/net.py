@@ -45,7 +45,6 @@ from typing import TYPE_CHECKING
 import zenoh
 
 from rr_actors import events
-from rr_actors._core.addresses import is_loopback
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.exit import NETWORKS, stop_at_exit
 from rr_actors._core.hlc import CLOCK, MAX_OFFSET, check_max_offset
@@ -53,8 +52,12 @@ from rr_actors._platform import fork
 from rr_actors._transport.base import Address, Transport
 from rr_actors._transport.messenger import Messenger
 from rr_actors._transport.zenoh.carrier import ZenohCarrier
-from rr_actors._transport.zenoh.ops.access import user
-from rr_actors._transport.zenoh.ops.config import endpoints, parse_endpoint, session_config
+from rr_actors._transport.zenoh.ops.config import (
+    endpoints,
+    session_config,
+    warn_plain_tcp,
+    warn_unreachable,
+)
 from rr_actors._transport.zenoh.ops.events import EventFeed, check_window
 from rr_actors._transport.zenoh.ops.gate import HandshakeGate, MemberAddresses, open_gates
 from rr_actors._transport.zenoh.ops.watch import LinkWatch, MemberLink
@@ -70,8 +73,6 @@ if TYPE_CHECKING:
 __all__ = ["Services", "ZenohAddress", "ZenohMember", "ZenohNetwork"]
 
 logger = logging.getLogger("rr_actors")
-
-_PROBE_TIMEOUT = 0.5  # seconds a `connect` endpoint gets to accept the probe at open
 
 
 def _zenoh_log_from_env() -> None:
@@ -97,53 +98,6 @@ def _is_tls(tls: object) -> bool:
     except ImportError:  # without cryptography nobody could have made a ZenohTLS
         return False
     return isinstance(tls, ZenohTLS)
-
-
-# -- plain TCP ------------------------------------------------------------------------------
-
-
-def _who_reaches(host: str) -> str:
-    if is_loopback(host):
-        return "every user and process on this machine"
-    if host in ("0.0.0.0", "::"):  # noqa: S104 - naming the wildcard, not binding it
-        return "anyone who can reach this machine (at any of its addresses)"
-    return f"anyone who can reach {host}"
-
-
-def _who_answers(host: str, port: int) -> str:
-    if is_loopback(host):
-        return f"every user and process on this machine (whoever listens on port {port} first)"
-    return f"whoever answers at {host} port {port} (anyone who can listen there or sits between)"
-
-
-def _warn_plain_tcp(system: str, listen: Iterable[str], connect: Iterable[str]) -> None:
-    """A WARNING per plain-TCP endpoint, naming who can send this process pickles through it.
-
-    Unpickling runs code, and plain TCP asks nobody who they are: loopback is no
-    exception (every local user can connect to it, where the Unix carrier's 0700 runtime
-    directory lets in only this user), and a `connect` endpoint trusts whoever answers.
-    """
-    me = user()
-    for endpoint in listen:
-        _, host, _ = parse_endpoint("listen", endpoint)
-        logger.warning(
-            "ZenohNetwork %r listens on %s in plain TCP (tls=None): %s can connect and run "
-            "code as this user, %s (what crosses is pickles); use tls= and tls/ endpoints",
-            system,
-            endpoint,
-            _who_reaches(host),
-            me,
-        )
-    for endpoint in connect:
-        _, host, port = parse_endpoint("connect", endpoint)
-        logger.warning(
-            "ZenohNetwork %r connects to %s in plain TCP (tls=None): %s can run code as "
-            "this user, %s (what crosses is pickles); use tls= and tls/ endpoints",
-            system,
-            endpoint,
-            _who_answers(host, port),
-            me,
-        )
 
 
 # -- one system per process ----------------------------------------------------------------------
@@ -396,7 +350,7 @@ class ZenohNetwork(Messenger):
         self.lease = float(lease)
         self.max_offset = check_max_offset(max_offset)
         if tls is None:
-            _warn_plain_tcp(system, self.listen, self.connect)
+            warn_plain_tcp(system, self.listen, self.connect)
         self._open_lock = threading.Lock()
         self._opened: ZenohCarrier | None = None
         self._runtime_dir: str | None = None
@@ -449,7 +403,7 @@ class ZenohNetwork(Messenger):
             ) from exc
         try:
             if self.tls is None:
-                self._warn_unreachable()
+                warn_unreachable(self.system, self.connect)
             else:  # names the reason of an unlinked connect endpoint, and who links
                 self._watch = LinkWatch(self.system, session, self.tls, self.connect)
                 self._members = MemberAddresses(self.system, session, self.tls)
@@ -500,20 +454,6 @@ class ZenohNetwork(Messenger):
         with contextlib.suppress(Exception):
             session.close()  # type: ignore[no-untyped-call]
         shutil.rmtree(runtime_dir, ignore_errors=True)
-
-    def _warn_unreachable(self) -> None:
-        for endpoint in self.connect:
-            _, host, port = parse_endpoint("connect", endpoint)
-            try:
-                with socket.create_connection((host, port), timeout=_PROBE_TIMEOUT):
-                    pass
-            except OSError as exc:
-                logger.warning(
-                    "ZenohNetwork %r cannot reach connect endpoint %s now (%s); Zenoh keeps trying",
-                    self.system,
-                    endpoint,
-                    exc,
-                )
 
     # -- what a network has besides the Transport surface --------------------------------
 

@@ -1,7 +1,8 @@
 """A Zenoh session's config from `ZenohNetwork`'s arguments: endpoints, TLS and access control.
 
-Everything here is checked or built before a session opens; nothing here talks to the
-network. The rules it writes down (issue 23, checked against eclipse-zenoh 1.10.2):
+Everything here is checked or built before a session opens; only `warn_unreachable`
+talks to the network (one TCP connect per plain `connect` endpoint, at the open). The
+rules it writes down (issue 23, checked against eclipse-zenoh 1.10.2):
 
 - Endpoints are `tcp/<address>:<port>` with `tls=None` and `tls/<address>:<port>` with a
   `ZenohTLS`; the other one is a `ConfigError` naming the endpoint.
@@ -15,25 +16,40 @@ network. The rules it writes down (issue 23, checked against eclipse-zenoh 1.10.
   both directions, is allowed only for peers whose certificate's common name is in
   `members` and for links over the Unix socket. Anything else, and any other key, is
   dropped by Zenoh before it reaches a callback of ours.
+- Without TLS (`tls=None`, `tcp/` endpoints): a WARNING per endpoint naming who can send
+  this process pickles through it (`warn_plain_tcp`), and one per `connect` endpoint that
+  does not accept a connection at the open (`warn_unreachable`: Zenoh keeps trying).
 """
 
 from __future__ import annotations
 
 import ipaddress
 import json
+import logging
 import re
+import socket
 from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from rr_actors._core.addresses import is_loopback
+from rr_actors._transport.zenoh.ops.access import user
 from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.errors import ConfigError
 
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh.ops.tls import ZenohTLS
 
-__all__ = ["endpoints", "parse_endpoint", "session_config"]
+__all__ = [
+    "endpoints",
+    "parse_endpoint",
+    "session_config",
+    "warn_plain_tcp",
+    "warn_unreachable",
+]
+
+logger = logging.getLogger("rr_actors")
 
 _ENDPOINT = re.compile(
     r"(?P<proto>tcp|tls)/(\[(?P<v6>[0-9A-Fa-f:.]+)\]|(?P<host>[A-Za-z0-9_.\-]+)):(?P<port>\d{1,5})"
@@ -192,3 +208,70 @@ def session_config(
     if tls is not None:
         settings["access_control"] = _access_control(system, tls.members)
     return zenoh.Config.from_json5(json.dumps(settings))
+
+
+# -- plain TCP: who can reach an endpoint -------------------------------------------------
+
+
+def _who_reaches(host: str) -> str:
+    if is_loopback(host):
+        return "every user and process on this machine"
+    if host in ("0.0.0.0", "::"):  # noqa: S104 - naming the wildcard, not binding it
+        return "anyone who can reach this machine (at any of its addresses)"
+    return f"anyone who can reach {host}"
+
+
+def _who_answers(host: str, port: int) -> str:
+    if is_loopback(host):
+        return f"every user and process on this machine (whoever listens on port {port} first)"
+    return f"whoever answers at {host} port {port} (anyone who can listen there or sits between)"
+
+
+def warn_plain_tcp(system: str, listen: Iterable[str], connect: Iterable[str]) -> None:
+    """A WARNING per plain-TCP endpoint, naming who can send this process pickles through it.
+
+    Unpickling runs code, and plain TCP asks nobody who they are: loopback is no
+    exception (every local user can connect to it, where the Unix carrier's 0700 runtime
+    directory lets in only this user), and a `connect` endpoint trusts whoever answers.
+    """
+    me = user()
+    for endpoint in listen:
+        _, host, _ = parse_endpoint("listen", endpoint)
+        logger.warning(
+            "ZenohNetwork %r listens on %s in plain TCP (tls=None): %s can connect and run "
+            "code as this user, %s (what crosses is pickles); use tls= and tls/ endpoints",
+            system,
+            endpoint,
+            _who_reaches(host),
+            me,
+        )
+    for endpoint in connect:
+        _, host, port = parse_endpoint("connect", endpoint)
+        logger.warning(
+            "ZenohNetwork %r connects to %s in plain TCP (tls=None): %s can run code as "
+            "this user, %s (what crosses is pickles); use tls= and tls/ endpoints",
+            system,
+            endpoint,
+            _who_answers(host, port),
+            me,
+        )
+
+
+_PROBE_TIMEOUT = 0.5  # seconds a `connect` endpoint gets to accept the probe at open
+
+
+def warn_unreachable(system: str, connect: Iterable[str]) -> None:
+    """A WARNING per plain-TCP `connect` endpoint that does not accept a connection now
+    (no error: the other host may start later, and Zenoh keeps trying)."""
+    for endpoint in connect:
+        _, host, port = parse_endpoint("connect", endpoint)
+        try:
+            with socket.create_connection((host, port), timeout=_PROBE_TIMEOUT):
+                pass
+        except OSError as exc:
+            logger.warning(
+                "ZenohNetwork %r cannot reach connect endpoint %s now (%s); Zenoh keeps trying",
+                system,
+                endpoint,
+                exc,
+            )
