@@ -178,6 +178,35 @@ def test_watch_yields_a_querys_statuses_in_order_and_ends_after_fatal(
 
 
 @pytest.mark.thread_only("watch needs the registrar that holds the query in this process")
+def test_closing_a_watch_ends_the_iteration_of_a_reader_waiting_in_another_task(
+    make_registrar: MakeRegistrar,
+) -> None:
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    provider.register_server("leaf", load=lambda r: r, unload=_drop)
+    query = consumer.call(provider.name, "leaf", "r")
+
+    async def main() -> list[str]:
+        watch = await consumer.watch(query.id).open()
+        heard: list[str] = []
+        first = asyncio.Event()
+
+        async def read() -> list[str]:
+            async for update in watch:
+                heard.append(update.message)
+                first.set()
+            return heard
+
+        reader = asyncio.ensure_future(read())
+        await provider.asend_status(query.id, rr.Status.UPDATE, "one")
+        await asyncio.wait_for(first.wait(), 5)  # it read "one"; now it waits for more
+        await watch.aclose()
+        return await asyncio.wait_for(reader, 5)  # (it waited forever: no update comes)
+
+    assert ["one"] == asyncio.run(main())
+    consumer.unload(query.id)
+
+
+@pytest.mark.thread_only("watch needs the registrar that holds the query in this process")
 def test_watch_of_an_unknown_query_raises_unknown_query_error_at_its_first_step(
     make_registrar: MakeRegistrar,
 ) -> None:
