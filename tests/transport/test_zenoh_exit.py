@@ -73,10 +73,10 @@ BOUND = 30.0
 
 @pytest.mark.parametrize(("ending", "code"), [("raises", 1), ("returns", 0)])
 def test_a_program_that_leaves_its_network_open_ends(ending: str, code: int) -> None:
-    started = time.monotonic()
+    started, port = time.monotonic(), free_port()
     try:
         done = subprocess.run(  # noqa: PLW1510 - the exit code is what is checked
-            [sys.executable, "-c", STATION, str(free_port()), ending],
+            [sys.executable, "-c", STATION, str(port), ending],
             capture_output=True,
             text=True,
             timeout=BOUND,
@@ -87,7 +87,9 @@ def test_a_program_that_leaves_its_network_open_ends(ending: str, code: int) -> 
     assert (code, True) == (done.returncode, time.monotonic() - started < BOUND), done.stderr
     if ending == "raises":
         assert done.stderr.rstrip().endswith(
-            "no registrar named 'erm' on system 'exit' (known: 'station')"
+            "no registrar named 'erm' on system 'exit' (known: 'station'); this process has "
+            f"no link to connect endpoint tcp/127.0.0.1:{port} (cannot reach it (Connection "
+            "refused)), so a registrar served there is not seen"
         ), done.stderr
         assert "Traceback (most recent call last)" in done.stderr
 

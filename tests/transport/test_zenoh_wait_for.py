@@ -23,6 +23,7 @@ import pytest
 import rr_actors as rr
 from tests.support import pki
 from tests.support.tls_lab import free_port, member_tls, router
+from tests.support.waiting import wait_for
 
 PROVIDER = textwrap.dedent(
     """
@@ -173,3 +174,56 @@ def test_a_call_to_a_registrar_behind_a_refusing_host_names_the_endpoint_and_why
     assert message.startswith(f"no registrar named 'erm-{uid}' on system 'lab'")
     assert f"this process has no link to connect endpoint {endpoint} (" in message
     assert re.search(REASON, message), message
+
+
+# -- plain TCP: a connect endpoint nobody listens on (issue 44 item 7) ----------------------
+
+
+def test_wait_for_over_plain_tcp_names_the_connect_endpoint_nobody_listens_on() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"  # (closed: nothing listens there)
+    with (
+        rr.ZenohNetwork(system="lab", connect=[endpoint], tls=None) as net,
+        pytest.raises(rr.RegistrarUnavailableError) as raised,
+    ):
+        net.wait_for("erm", timeout=0.5)
+
+    assert (
+        "no registrar named 'erm' was served on system 'lab' within 0.5 s; this process has "
+        f"no link to connect endpoint {endpoint} (cannot reach it (Connection refused)), so "
+        "a registrar served there is not seen"
+    ) == str(raised.value)
+
+
+def test_a_call_over_plain_tcp_names_the_connect_endpoint_nobody_listens_on() -> None:
+    endpoint, uid = f"tcp/127.0.0.1:{free_port()}", uuid.uuid4().hex[:8]
+    with rr.ZenohNetwork(system="lab", connect=[endpoint], tls=None) as net:
+        station = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"station{uid}"), network=net)
+        try:
+            with pytest.raises(rr.UnknownRegistrarError) as raised:
+                station.call(f"erm-{uid}", "camera", 0, timeout=10)
+        finally:
+            station.stop()
+
+    message = str(raised.value)
+    assert message.startswith(f"no registrar named 'erm-{uid}' on system 'lab'"), message
+    assert (
+        f"; this process has no link to connect endpoint {endpoint} (cannot reach it "
+        "(Connection refused))"
+    ) in message
+
+
+def test_a_plain_tcp_connect_endpoint_that_is_linked_is_not_named() -> None:
+    port, uid = free_port(), uuid.uuid4().hex[:8]
+    with (
+        router(None, [f"tcp/127.0.0.1:{port}"], [], system="lab") as other,
+        rr.ZenohNetwork(system="lab", connect=[f"tcp/127.0.0.1:{port}"], tls=None) as net,
+    ):
+        station = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"station{uid}"), network=net)
+        try:
+            assert wait_for(lambda: bool(list(other.info.links())), 10)  # (linked)
+            with pytest.raises(rr.UnknownRegistrarError) as raised:
+                station.call(f"erm-{uid}", "camera", 0, timeout=10)
+        finally:
+            station.stop()
+
+    assert "no link" not in str(raised.value)

@@ -55,7 +55,7 @@ from rr_actors._transport.zenoh.config import endpoints, parse_endpoint, session
 from rr_actors._transport.zenoh.events import check_window
 from rr_actors._transport.zenoh.gate import HandshakeGate, open_gates
 from rr_actors._transport.zenoh.members import MemberAddresses
-from rr_actors._transport.zenoh.watch import LinkWatch, MemberLink
+from rr_actors._transport.zenoh.watch import LinkWatch, MemberLink, plain_unlinked
 from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavailableError
@@ -457,7 +457,7 @@ class ZenohNetwork:
                 session,
                 self._address,
                 on_close=closed,
-                link_trouble=None if watch is None else lambda: _no_link(watch.unlinked()),
+                link_trouble=lambda: _no_link(self._unlinked(session)),
                 seal=_seal(self.tls, self.system),
             )
             _close_at_exit(f"ZenohNetwork {self.system!r}", member, self.close)
@@ -637,11 +637,20 @@ class ZenohNetwork:
             return
         if member.closed:
             raise RegistrarStoppedError(f"this process left system {self.system!r}")
-        watch = self._watch
         raise RegistrarUnavailableError(
             f"no registrar named {name!r} was served on system {self.system!r} within "
-            f"{timeout:g} s" + (_no_link(watch.unlinked()) if watch is not None else "")
+            f"{timeout:g} s" + _no_link(self._unlinked(member.session))
         )
+
+    def _unlinked(self, session: zenoh.Session) -> list[tuple[str, str]]:
+        """The `connect` endpoints with no link now, each with why: the link watch's
+        (TLS: the handshake's verdict), or a TCP connect's for plain TCP."""
+        watch = self._watch
+        if watch is not None:
+            return watch.unlinked()
+        if self.tls is None:
+            return plain_unlinked(session, self.connect, timeout=_PROBE_TIMEOUT)
+        return []
 
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits, close the session (idempotent)."""
