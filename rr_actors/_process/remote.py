@@ -116,7 +116,7 @@ class There:
             return False
 
     def state(self) -> str:
-        """Nothing: it is not asked for a `repr`."""
+        """Nothing (whether it runs would be asked across processes, for a `repr`)."""
         return ""
 
     @property

@@ -159,7 +159,7 @@ class Placement(Protocol):
 
 
 class Registrar:
-    """A handle on a registrar, wherever its actor lives (the module docstring draws it).
+    """A handle on a registrar, wherever its actor lives: in this process or in another.
 
     Its methods may be called from any thread, including from inside callbacks; each
     waits for the registrar at most `timeout` seconds (default: the config's
@@ -860,7 +860,8 @@ class Here:
     ) -> Steps[Query]:
         if on_status is not None and not callable(on_status):
             raise ConfigError(f"on_status must be callable, got {on_status!r}")
-        _check_names(target_rr=target_rr, server=server)
+        if not (isinstance(target_rr, str) and isinstance(server, str)):
+            _check_names(target_rr=target_rr, server=server)
         if query_id is not None and not (isinstance(query_id, str) and query_id):
             raise ConfigError(
                 f"query_id must be a non-empty str (or None: a fresh id), got {query_id!r}"

@@ -11,8 +11,8 @@
                             down?    ── kept in the tree; sent by its next start
 ```
 
-Built on the `Registrar` protocol, so the consumer may be any registrar handle (in this
-process, or in a manager process).
+Built on the one handle class, `Registrar`, so the consumer may be any registrar handle
+(in this process, or in a manager process).
 """
 
 from __future__ import annotations
