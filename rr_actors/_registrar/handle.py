@@ -119,13 +119,7 @@ to write the backup and stop the servers): 5 s with the default `call_timeout`."
 
 @dataclasses.dataclass(frozen=True)
 class RegistrarFacts:
-    """What a registrar handle knows without asking its actor; every handle holds one.
-
-    Attributes:
-        config: the configuration it was started with.
-        restored: whether the catalog was restored from an existing backup at start.
-        in_doubt: loads (or unloads) a crash cut short in the last run, found at restore.
-    """
+    """What a handle knows without asking its actor (its properties of the same names)."""
 
     config: RegistrarConfig
     restored: bool = False
@@ -184,7 +178,8 @@ class Registrar:
     _actor: Placement
 
     def __init__(self, facts: RegistrarFacts, actor: Placement) -> None:
-        """A handle on the registrar `facts` describes, whose actor is `actor`."""
+        """Made by a kind of handle (`ResourceRegistrar`, `RemoteRegistrar`), with where
+        its actor lives; user code starts or reaches a registrar through those."""
         self._facts = facts
         self._actor = actor
 
