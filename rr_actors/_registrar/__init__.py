@@ -1,8 +1,9 @@
 """The resource registrar: its messages, its actor (split by role) and its handle.
 
-- `protocol`: the `Registrar` API both placements implement;
-- `handle`: `ResourceRegistrar`, what user code holds; `calls`: the call protocol on the
-  caller's thread; `aio`: the handles' awaitable twins and `StatusWatch`, written once;
+- `handle`: `Registrar`, the one handle user code holds wherever the actor lives, its
+  blocking methods and their awaitable twins written once; `Here`, the actor in this
+  process (`ResourceRegistrar`'s); `StatusWatch`; `calls`: the call protocol on the
+  caller's thread;
 - `actor`: the registrar actor, dispatching to its roles `provider` (loads; `matching`
   runs user code off the actor), `unloading`, `servers`, `consumer`, `status`,
   `presence` (peers lost for good or reachable again) and `lifecycle`, which share
@@ -13,29 +14,26 @@
   callback runs inside; `probes`: the testing seam on named steps.
 """
 
-from typing import TYPE_CHECKING
-
-from rr_actors._registrar.aio import StatusWatch
-from rr_actors._registrar.handle import ResourceRegistrar, snapshot, start_registrar
+from rr_actors._registrar.handle import (
+    Registrar,
+    ResourceRegistrar,
+    StatusWatch,
+    snapshot,
+    start_registrar,
+)
 from rr_actors._registrar.lifecycle import CatalogView
 from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH
 from rr_actors._registrar.messages import give_back
-from rr_actors._registrar.protocol import LoadCallback, Registrar, UnloadCallback
 from rr_actors._registrar.starting import Served
 
 __all__ = [
     "MAX_DEPENDENCY_DEPTH",
     "CatalogView",
-    "LoadCallback",
     "Registrar",
     "ResourceRegistrar",
     "Served",
     "StatusWatch",
-    "UnloadCallback",
     "give_back",
     "snapshot",
     "start_registrar",
 ]
-
-if TYPE_CHECKING:  # mypy checks that the handle implements the protocol
-    _implements: type[Registrar] = ResourceRegistrar

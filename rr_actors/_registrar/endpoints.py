@@ -33,7 +33,7 @@ from rr_actors._core.loops import is_coroutine_function, process_loop
 from rr_actors._core.workers import Workers
 from rr_actors._registrar.loading import LOADING, LoadContext, check_picklable, load_error
 from rr_actors._registrar.messages import Fetch, FetchVia, RunLoad, RunUnload
-from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
+from rr_actors._types import LoadCallback, UnloadCallback
 from rr_actors.errors import CallTimeoutError, RrError
 
 __all__ = ["ClientActor", "Clients", "ServerActor"]

@@ -31,8 +31,7 @@ from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import FutureReply
 from rr_actors._core.wire import WireMessage
 from rr_actors._registrar.loading import error_frame
-from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
-from rr_actors._types import Status, StatusCallback
+from rr_actors._types import LoadCallback, Status, StatusCallback, UnloadCallback
 from rr_actors.errors import ConfigError, ResourceLoadError, RrError
 
 if TYPE_CHECKING:

@@ -156,6 +156,18 @@ class Network(Protocol):
         ...
 
 
+class ActorHere(Protocol):
+    """How `Served` reaches a started registrar's actor (`handle.Here` is one)."""
+
+    def tell(self, message: Any) -> bool:
+        """Send the actor `message` without waiting; whether the actor was running."""
+        ...
+
+    def wait_stopped(self, timeout: float | None = None) -> bool:
+        """Block until the actor's thread ended (stopped or died); whether it did."""
+        ...
+
+
 class Servable(Protocol):
     """What a carrier's `Served` uses of a started registrar (`handle.ResourceRegistrar`
     is one; this module comes before the handle, so it names it by this only)."""
@@ -178,12 +190,9 @@ class Servable(Protocol):
         """Stop the registrar (rule 12)."""
         ...
 
-    def _tell(self, message: Any) -> bool:
-        """Send the actor `message` without waiting; whether the actor was running."""
-        ...
-
-    def _wait_stopped(self, timeout: float | None = None) -> bool:
-        """Block until the actor's thread ended (stopped or died); whether it did."""
+    @property
+    def _actor(self) -> ActorHere:
+        """Its actor, in this process."""
         ...
 
 
@@ -233,7 +242,7 @@ class Served:
 
     def wait_ended(self, timeout: float | None = None) -> bool:
         """Block until the registrar actor ended (stopped or died); whether it did."""
-        return self.registrar._wait_stopped(timeout)
+        return self.registrar._actor.wait_stopped(timeout)
 
     def stopped_cleanly(self) -> bool:
         """Whether it ended because its owner stopped it (not a crash, not still running)."""
@@ -244,17 +253,17 @@ class Served:
     def listening(self) -> None:
         """The other processes of the system can reach it now: it reconciles with its peers
         again (those in other processes could not answer it before)."""
-        self.registrar._tell(Reachable(FutureReply()))  # (nobody waits: `serve` must not)
+        self.registrar._actor.tell(Reachable(FutureReply()))  # (nobody waits: `serve` must not)
 
     def peer_lost(self, name: str) -> None:
         """Registrar `name` of another process is gone for good (rule 19): `presence.py`."""
-        self.registrar._tell(PeerLost(name))
+        self.registrar._actor.tell(PeerLost(name))
 
     def peer_reachable(self, name: str) -> None:
         """Registrar `name` of another process answers again (a healed link): `presence.py`."""
-        self.registrar._tell(PeerReachable(name))
+        self.registrar._actor.tell(PeerReachable(name))
 
     def yield_name(self, reason: str) -> None:
         """Another process's registrar of this name is kept (rule 22): this one unloads
         what it serves and stops (`lifecycle.py`)."""
-        self.registrar._tell(YieldName(reason))
+        self.registrar._actor.tell(YieldName(reason))

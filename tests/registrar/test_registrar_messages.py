@@ -293,7 +293,7 @@ def _snapshot(p: Pair, hook: Hook) -> None:
 def _ping(p: Pair, hook: Hook) -> None:
     intercept(p.provider, "ping", before=hook)
     pong = FutureReply()
-    p.provider._ping(pong)  # a manager process's heartbeat
+    p.provider._actor.ping(pong)  # a manager process's heartbeat
     assert pong.future.get(timeout=5) is None
 
 

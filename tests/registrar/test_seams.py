@@ -1,4 +1,5 @@
-"""The testing seams: named steps that fail loudly when a name is wrong, and snapshots."""
+"""The testing seams (`rr_actors.testing.seams`): named steps that fail loudly when a name is
+wrong, and snapshots."""
 
 from __future__ import annotations
 

@@ -1,9 +1,11 @@
-"""The awaitable surface (`rr_actors._registrar.aio`) and coroutine callbacks.
+"""The handle (`rr_actors._registrar.handle`): one surface wherever the actor lives, and
+its awaitable twins with coroutine callbacks.
 
-The rules themselves run against the async API in their own modules (`both_apis`,
-tests/conftest.py); here is what only the async surface has: cancellation, `watch`,
-coroutine status callbacks on their loop, coroutine servers on the registrar's loop,
-and no thread per waiting call.
+The rules themselves run against both handles (`make_registrar`'s placements) and the
+async API (`both_apis`, tests/conftest.py) in their own modules; here is what only the
+handle has: one class for both placements, cancellation, `watch`, coroutine status
+callbacks on their loop, coroutine servers on the registrar's loop, and no thread per
+waiting call.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors.testing import intercept
+from rr_actors.testing import RemoteRegistrar, intercept
 from tests.conftest import MakeRegistrar, Shared
 from tests.support.gating import GatedLoad
 
@@ -30,6 +32,16 @@ def _drop(_request: Any, _response: Any) -> None:
 
 async def _adrop(_request: Any, _response: Any) -> None:
     return None
+
+
+def test_both_kinds_of_handle_are_the_one_registrar_class_and_repeat_none_of_its_surface() -> None:
+    surface = {name for name in vars(rr.Registrar) if not name.startswith("_")}
+    twins = {"call", "acall", "unload", "aunload", "stop", "astop", "watch", "send_status"}
+
+    assert twins <= surface
+    for kind in (rr.ResourceRegistrar, RemoteRegistrar):
+        assert issubclass(kind, rr.Registrar)
+        assert set() == surface & set(vars(kind))  # its own: start, subscribe, kill, ...
 
 
 class AsyncGated:
