@@ -31,9 +31,9 @@ from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import Steps, on_own_thread, run_steps
 from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors._registrar.aio import AsyncSurface, StatusWatch
-from rr_actors._registrar.deathwatch import gone_for_good
 from rr_actors._registrar.handle import RegistrarFacts, ResourceRegistrar
-from rr_actors._registrar.loading import LOADING, LoadContext
+from rr_actors._registrar.life import gone_for_good
+from rr_actors._registrar.messages import LOADING, LoadContext
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._transport.base import Address, Transport
 from rr_actors._transport.messenger import Remote

@@ -17,11 +17,9 @@ from typing import TYPE_CHECKING
 
 from rr_actors._registrar.aio import StatusWatch
 from rr_actors._registrar.handle import ResourceRegistrar, snapshot, start_registrar
-from rr_actors._registrar.lifecycle import CatalogView
-from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH
-from rr_actors._registrar.messages import give_back
+from rr_actors._registrar.life import CatalogView, Served
+from rr_actors._registrar.messages import MAX_DEPENDENCY_DEPTH, give_back
 from rr_actors._registrar.protocol import LoadCallback, Registrar, UnloadCallback
-from rr_actors._registrar.starting import Served
 
 __all__ = [
     "MAX_DEPENDENCY_DEPTH",

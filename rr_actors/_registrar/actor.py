@@ -1,58 +1,29 @@
-"""The registrar actor: the only writer of its catalog, split into roles.
-
-```
-              ┌──────────────────── RegistrarActor (one mailbox, one thread) ───────────────┐
- message ───► │ DISPATCH: type -> (step name, the role's handler)                            │
-              │   Provider   Load                        (provider.py, matching.py)          │
-              │   Teardown   (runs unloads: called by the roles above)   (teardown.py)       │
-              │   Unloading  Unload Abandon Reconcile                    (unloading.py)      │
-              │   Servers    Fetch RegisterServer UnregisterServer UpdateResponse            │
-              │              ListServerQueries                            (servers.py)       │
-              │   Reconciling ReconcileAsk                               (reconciling.py)    │
-              │   Releases   Release                                      (releases.py)      │
-              │   Answers    Pending ClientLoaded CallFailed              (answers.py)       │
-              │   Holdings   Revoke ResponseUpdated SetStatusCallback ListClientQueries      │
-              │              OpenClient                                   (holdings.py)      │
-              │   Flights    (the calls in flight: called by the roles above) (flights.py)   │
-              │   StatusRelay StatusBatch StatusNotice SendStatus     (status.py, fanout.py) │
-              │   Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot YieldName; death │
-              │                                                           (lifecycle.py)     │
-              │   Restoring  SettleInDoubt (and the sweep of a restored catalog)             │
-              │                                                           (restoring.py)     │
-              │   Presence   PeerLost ConsumerDown PeerReachable ReconcileRetry              │
-              │                                                           (presence.py)      │
-              │ Shared: config, catalog, saver, servers, phase, workers  (state.py)          │
-              └──────────────────────────────────────────────────────────────────────────────┘
-```
-It never blocks: what it needs from another actor arrives later as a message that
-resumes the work (`Shared.send`, `Join`). User callbacks run on worker threads, so a
-slow or hung callback never blocks the mailbox.
-"""
+"""TODO"""
 
 from __future__ import annotations
 
 import logging
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
-from rr_actors._catalog import Catalog
+import pykka
+
+from rr_actors import events
+from rr_actors._catalog import Catalog, ResourceState
 from rr_actors._catalog.texts import plain_text
 from rr_actors._core.actor import Actor, OneShotFuture
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Answer, Tokens
 from rr_actors._core.throttle import LogThrottle
-from rr_actors._registrar.answers import Answers
-from rr_actors._registrar.calls import DueAnswers
-from rr_actors._registrar.endpoints import Clients
-from rr_actors._registrar.flights import Flights
-from rr_actors._registrar.holdings import Holdings
-from rr_actors._registrar.lifecycle import Lifecycle
+from rr_actors._platform import fork
+from rr_actors._registrar.calls import CallFailed, ClientLoaded, DueAnswers, Pending, TakeOutcomes
+from rr_actors._registrar.consumer import Answers, Clients, Flights, Holdings, Reconciling, Releases
+from rr_actors._registrar.life import Lifecycle, Presence, Restoring
 from rr_actors._registrar.messages import (
     Abandon,
-    CallFailed,
-    ClientLoaded,
     ConsumerDown,
     Crash,
     Fetch,
@@ -63,7 +34,6 @@ from rr_actors._registrar.messages import (
     OpenClient,
     PeerLost,
     PeerReachable,
-    Pending,
     Ping,
     Reachable,
     Ready,
@@ -83,32 +53,23 @@ from rr_actors._registrar.messages import (
     StatusBatch,
     StatusNotice,
     Stop,
-    TakeOutcomes,
     Unload,
     UnregisterServer,
     UpdateResponse,
     YieldName,
     misfit,
 )
-from rr_actors._registrar.presence import Presence
-from rr_actors._registrar.probes import POINTS
-from rr_actors._registrar.provider import Provider
-from rr_actors._registrar.reconciling import Reconciling
-from rr_actors._registrar.releases import Releases
-from rr_actors._registrar.restoring import Restoring
-from rr_actors._registrar.servers import Servers
-from rr_actors._registrar.state import NO_REPLY, OpenReply, Shared
-from rr_actors._registrar.status import StatusRelay
-from rr_actors._registrar.teardown import Teardown
-from rr_actors._registrar.unloading import Unloading
-from rr_actors._store import Saver
+from rr_actors._registrar.provider import Provider, Servers, Teardown, Unloading
+from rr_actors._registrar.state import NO_REPLY, POINTS, OpenReply, Shared
+from rr_actors._registrar.status import DESK, StatusRelay, StatusTargets
+from rr_actors._store import Saver, open_catalog
+from rr_actors._types import Query
 from rr_actors.config import RegistrarConfig
-from rr_actors.errors import RegistrarUnavailableError, RrError
+from rr_actors.errors import ConfigError, RegistrarUnavailableError, RrError
 from rr_actors.events import Event
 
-__all__ = ["DISPATCH", "MESSAGE_STEPS", "STEPS", "RegistrarActor", "asked"]
-
 logger = logging.getLogger("rr_actors")
+
 
 Handler = Callable[[Any, Reply], None]
 """`handle(message, reply)`, run on the actor's thread: every clause of `DISPATCH` has this
@@ -268,7 +229,9 @@ class RegistrarActor(Actor):
         # lifecycle -> servers | presence | restoring -> status | unloading -> provider
         # -> teardown | reconciling -> releases -> answers -> holdings -> flights.
         self.flights = Flights(self.shared, due, self.dispatch)
-        self.holdings = Holdings(self.shared, self.flights, due, clients)
+        targets = StatusTargets(config.name, published, due)  # what the status desk reads
+        DESK.serve(peer, targets)
+        self.holdings = Holdings(self.shared, self.flights, clients, targets.entries)
         self.answers = Answers(self.shared, self.flights, self.holdings)
         self.releases = Releases(self.shared, self.flights, self.holdings, self.answers)
         self.reconciling = Reconciling(
@@ -383,3 +346,96 @@ class RegistrarActor(Actor):
     def on_late(self, envelope: Any) -> None:
         """A message that arrived after this actor's loop ended (any thread)."""
         self.lifecycle.refuse(envelope, DIRECTORY.gone_error(self.name))
+
+
+# -- starting --------------------------------------------------------------------------
+
+
+EVENT_LOG = logging.getLogger("rr_actors.events")
+"""Where registrars log their events at INFO (one line per event; off by default)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Launched:
+    """A registrar actor just started, and what its handle shares with it."""
+
+    config: RegistrarConfig
+    ref: pykka.ActorRef[RegistrarActor]
+    restored: bool
+    """Whether its catalog was restored from a backup."""
+    in_doubt: tuple[Query, ...]
+    """Resources the restore found neither loaded nor unloaded (thesis 4.3.3)."""
+    due: DueAnswers
+    died: threading.Event
+    """Set when a crash of the actor was fully handled."""
+    ended: OneShotFuture[None]
+    """Settled when the actor handed on its last message (an event loop awaits it)."""
+    published: Publisher[events.Event]
+    clients: Clients
+    """Its client actors: the actor starts them, the handle looks them up."""
+    in_doubt_texts: tuple[tuple[str, str | None], ...] = ()
+    """Each in-doubt resource's id and its stored request display text (`display.py`)."""
+
+
+def launch(
+    config: RegistrarConfig | str,
+    *,
+    setting_up: bool,
+    upstream: Publisher[events.Event] | None,
+    hold_in_doubt: bool = False,
+) -> Launched:
+    """Restore the catalog and start the actor (on the calling thread).
+
+    Args:
+        config: a `RegistrarConfig`, or just a name.
+        setting_up: whether a `setup` runs before it serves others (loads wait for it).
+        upstream: a publisher its events are relayed to as well (a supervisor's tree).
+        hold_in_doubt: keep the in-doubt entries in the backup until the manager settles
+            them (`ResourceRegistrar.settle_in_doubt`; a `setup` runs first).
+
+    Raises:
+        DuplicateNameError: a registrar with this name is already running here.
+        CatalogCorruptError: the backup exists but cannot be read (it is left as is).
+        ConfigError: the configuration, or its backup path, is invalid; or this process
+            was forked from one whose state a child cannot use (`rr_actors._platform.fork`).
+    """
+    if isinstance(config, str):
+        config = RegistrarConfig(name=config)
+    elif not isinstance(config, RegistrarConfig):
+        raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
+    fork.check_usable(f"registrar {config.name!r}")
+    peer = LocalPeer(config.name, None)
+    DIRECTORY.register(peer)
+    saver: Saver | None = None
+    try:
+        saver, catalog, restored = open_catalog(config)
+        doubtful = [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]
+        in_doubt = tuple(
+            Query(r.id, r.server, config.name, config.name, r.request, r.response) for r in doubtful
+        )
+        in_doubt_texts = tuple((r.id, r.request_text) for r in doubtful)
+        ended: OneShotFuture[None] = OneShotFuture()
+        died, due, clients = threading.Event(), DueAnswers(), Clients()
+        published = events.publisher(EVENT_LOG)
+        published.relay_to(upstream)
+        ref = RegistrarActor.start(
+            config,
+            catalog,
+            saver,
+            peer,
+            died,
+            due,
+            ended,
+            published,
+            clients,
+            setting_up=setting_up,
+            hold_in_doubt=hold_in_doubt,
+        )
+    except BaseException:
+        if saver is not None:
+            saver.close(erase=False, flush=False)
+        DIRECTORY.unregister(peer, "stopped")
+        raise
+    return Launched(
+        config, ref, restored, in_doubt, due, died, ended, published, clients, in_doubt_texts
+    )

@@ -27,13 +27,13 @@ from rr_actors._core.exit import REGISTRARS, stop_at_exit
 from rr_actors._core.ids import new_id
 from rr_actors._core.loops import OnLoop, is_coroutine_function, on_process_loop, process_loop
 from rr_actors._core.replies import FutureReply, Steps, asked, run_steps
-from rr_actors._registrar.actor import RegistrarActor
+from rr_actors._registrar.actor import Launched, RegistrarActor, launch
 from rr_actors._registrar.aio import AsyncSurface
 from rr_actors._registrar.calls import Calls
-from rr_actors._registrar.endpoints import ClientActor
-from rr_actors._registrar.lifecycle import CatalogView
-from rr_actors._registrar.loading import LOADING, check_picklable
+from rr_actors._registrar.consumer import ClientActor
+from rr_actors._registrar.life import CatalogView, Network, check_network, serve_on
 from rr_actors._registrar.messages import (
+    LOADING,
     Asked,
     Crash,
     FetchVia,
@@ -52,10 +52,10 @@ from rr_actors._registrar.messages import (
     Stop,
     UnregisterServer,
     UpdateResponse,
+    check_picklable,
 )
-from rr_actors._registrar.probes import Probes
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
-from rr_actors._registrar.starting import Launched, Network, check_network, launch, serve_on
+from rr_actors._registrar.state import Probes
 from rr_actors._types import Query, Status, StatusCallback
 from rr_actors.config import RegistrarConfig, check_seconds
 from rr_actors.errors import (

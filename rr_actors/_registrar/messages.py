@@ -1,90 +1,32 @@
-"""Messages as data: what registrars tell each other, and what a registrar tells itself.
-
-Each is a frozen dataclass. A `reply` field holds where the answer goes: a local object
-in-process; a transport replaces it by a token when the message crosses processes.
-
-The wire protocol (between registrars, possibly across processes): `Load`, `Unload`,
-`Abandon`, `Fetch`, `Reconcile` (consumer -> provider); `StatusBatch`, `StatusNotice`, `Revoke`,
-`ResponseUpdated`, `ReconcileAsk` (provider -> consumer); `ConsumerDown` (death watch ->
-every registrar: the consumer and provider `origin_rr` is gone for good). The internal messages
-below them never leave their process: a registrar's handle, its server and client actors
-and its callers' threads tell them to the registrar actor.
-
-The handle's messages (`RegisterServer`, `Release`, `Stop`, ...) come last: each carries
-its reply, and the handle sends it with `_ask` (`handle.py`).
-
-To add a message: define it here, add it to the actor's one dispatch table (`DISPATCH`
-in `actor.py`: its step name and the role that handles it), and, for a wire message,
-make sure what it carries pickles (`docs/explanation/architecture.md`, "Adding a
-message").
-"""
+"""TODO"""
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import dataclasses
+import logging
+import traceback
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
-from rr_actors._catalog import ClientRecord, describe
+import cloudpickle
+
+from rr_actors._catalog import describe
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import FutureReply
 from rr_actors._core.wire import WireMessage
-from rr_actors._registrar.loading import error_frame
 from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
 from rr_actors._types import Status, StatusCallback
-from rr_actors.errors import ConfigError, ResourceLoadError, RrError
+from rr_actors.errors import (
+    ConfigError,
+    DependencyCycleError,
+    ErrorFrame,
+    ResourceLoadError,
+    RrError,
+)
 
-if TYPE_CHECKING:
-    from rr_actors._registrar.attempt import CallAttempt
-
-__all__ = [
-    "Abandon",
-    "Asked",
-    "CallFailed",
-    "ClientLoaded",
-    "ConsumerDown",
-    "Crash",
-    "DurableLoaded",
-    "Fetch",
-    "FetchVia",
-    "Flush",
-    "ListClientQueries",
-    "ListServerQueries",
-    "Load",
-    "OpenClient",
-    "PeerLost",
-    "PeerReachable",
-    "Pending",
-    "Ping",
-    "Reachable",
-    "Ready",
-    "Reconcile",
-    "ReconcileAsk",
-    "ReconcileRetry",
-    "RegisterServer",
-    "Release",
-    "ResponseUpdated",
-    "Revoke",
-    "RunLoad",
-    "RunOnActor",
-    "RunUnload",
-    "Save",
-    "SendStatus",
-    "SetStatusCallback",
-    "SettleInDoubt",
-    "Snapshot",
-    "StatusBatch",
-    "StatusNotice",
-    "Stop",
-    "TakeOutcomes",
-    "Unload",
-    "UnregisterServer",
-    "UpdateResponse",
-    "YieldName",
-    "give_back",
-    "misfit",
-]
+logger = logging.getLogger("rr_actors")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -333,61 +275,6 @@ class FetchVia:
 
 
 @dataclasses.dataclass(frozen=True)
-class Pending:
-    """A durable call about to go out: write its record as pending, then answer `reply`."""
-
-    record: ClientRecord
-    attempt: CallAttempt
-    reply: Reply
-
-
-@dataclasses.dataclass(frozen=True, slots=True)  # (one per call: slots build faster)
-class ClientLoaded:
-    """A plain call's answer to record: the client record (its query holds the response).
-
-    Its caller has the answer already (it hands this over, `calls.py`).
-    """
-
-    record: ClientRecord
-    on_status: StatusCallback | None
-    attempt: CallAttempt  # the caller's
-
-
-@dataclasses.dataclass(frozen=True, slots=True)
-class DurableLoaded(ClientLoaded):
-    """A durable call's answer: the registrar commits its record, then answers the caller.
-
-    Its caller still waits (`CallAttempt.take`); told by the answering thread. Handled
-    as a `ClientLoaded` (the same step, `client_loaded`); its type is what says the
-    registrar answers the caller.
-    """
-
-
-@dataclasses.dataclass(frozen=True, slots=True)  # (one per call: slots build faster)
-class CallFailed:
-    """A call ended without an answer to record: it failed, or its caller withdrew it."""
-
-    query_id: str
-    attempt: CallAttempt
-    withdrawn: bool = False  # given up by its caller, who told the provider an Abandon first
-    serving_rr: str | None = None  # set if it failed as its provider died or stopped: it
-    # may have executed, and a retry with the same id may come (held until reconciled)
-    provider: str = ""  # the call's provider and server, and what it failed with (events)
-    server: str = ""
-    error: BaseException | None = None
-    why: str = "timeout"  # of a withdrawal: "timeout", "interrupted", "registrar stopped"
-
-
-@dataclasses.dataclass(frozen=True)
-class TakeOutcomes:
-    """Record the call outcomes waiting in `DueAnswers.outcomes` now (see `calls.py`).
-
-    The actor takes them before every message it handles; this one only wakes it for
-    outcomes something waits for (a failure, a notice held back, a full backlog).
-    """
-
-
-@dataclasses.dataclass(frozen=True)
 class Flush:
     """The save-interval timer fired: write what accumulated."""
 
@@ -626,3 +513,86 @@ def misfit(message: object) -> ConfigError | None:
                 f"{type(value).__qualname__[:80]} ({kind.__name__} refused)"
             )
     return None
+
+
+# -- what a load callback runs inside --------------------------------------------------
+
+
+MAX_DEPENDENCY_DEPTH = 64
+"""A load chain deeper than this is reported as a `DependencyCycleError` (runaway recursion)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadContext:
+    """What is being loaded on the current thread (read by `call` to record dependencies).
+
+    Attributes:
+        registrar: name of the registrar whose server runs the load.
+        resource_id: id of the resource being loaded.
+        chain: ids of the resources being loaded on the way here, this one last.
+    """
+
+    registrar: str
+    resource_id: str
+    chain: tuple[str, ...]
+
+
+LOADING: contextvars.ContextVar[LoadContext | None] = contextvars.ContextVar(
+    "rr_actors_loading", default=None
+)
+"""The `LoadContext` of the load callback running on this thread, if any."""
+
+
+def check_picklable(value: Any, what: str) -> None:
+    """Raise `ConfigError` if `value` cannot be stored in a catalog backup.
+
+    Whatever pickling it raises (a user `__reduce__` raising `SystemExit` too) is that.
+    """
+    try:
+        cloudpickle.dumps(value)
+    except BaseException as exc:  # (user code: a SystemExit from __reduce__ is contained too)
+        raise ConfigError(
+            f"{what} cannot be pickled, so the catalog cannot store it: {exc}"
+        ) from exc
+
+
+def error_frame(
+    registrar: str,
+    server: str,
+    exc: BaseException,
+    message: str | None = None,
+    *,
+    with_traceback: bool = True,
+) -> ErrorFrame:
+    """The frame a failed load adds to a `ResourceLoadError`'s stack (the one builder).
+
+    Args:
+        registrar: the registrar whose server failed.
+        server: that server's name.
+        exc: what failed it.
+        message: what to say (default: `str(exc)`).
+        with_traceback: whether the frame carries `exc`'s formatted traceback.
+    """
+    return ErrorFrame(
+        registrar=registrar,
+        server=server,
+        exc_type=type(exc).__qualname__,
+        message=str(exc) if message is None else message,
+        traceback="".join(traceback.format_exception(exc)) if with_traceback else "",
+    )
+
+
+def load_error(registrar: str, server: str, exc: BaseException) -> RrError:
+    """Turn what a `load` callback raised into the error its callers get (rule 4).
+
+    A `DependencyCycleError` raised further down passes through unchanged; anything else
+    becomes a `ResourceLoadError` whose stack gains this registrar's frame.
+    """
+    inner: BaseException | None = exc
+    while inner is not None and not isinstance(inner, ResourceLoadError | DependencyCycleError):
+        inner = inner.__cause__
+    if isinstance(inner, DependencyCycleError):
+        return inner
+    frame = error_frame(registrar, server, exc)
+    stack = inner.stack if isinstance(inner, ResourceLoadError) else ()
+    return ResourceLoadError((*stack, frame))

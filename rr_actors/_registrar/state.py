@@ -1,21 +1,11 @@
-"""What every role of one registrar actor shares: a small state record and its helpers.
-
-The registrar actor is split by role (`lifecycle`, `servers`, `presence`, `restoring`,
-`status`, `unloading`, `provider`, `teardown`, `reconciling`, and on the consumer side
-`releases`, `answers`, `holdings`, `flights`), each owning the state of its side and
-calling only the roles below it (`actor.py` builds them). What they all use lives here,
-the registrar's record (`Shared`, which each role holds as `self.registrar`): the
-configuration, the catalog (the actor is its only writer), the save policy, the resource
-servers, the lifecycle `Phase`, the worker pool for user callbacks, and the way a role
-asks another registrar without waiting (`Shared.send`: the answer comes back through the
-mailbox as a continuation).
-"""
+"""TODO"""
 
 from __future__ import annotations
 
 import dataclasses
 import enum
 import logging
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -27,14 +17,10 @@ from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Continuation, TokenReply, Tokens
 from rr_actors._core.workers import Workers
-from rr_actors._registrar.endpoints import ServerActor
-from rr_actors._registrar.probes import Probes
 from rr_actors._store import Saver
 from rr_actors._types import StatusCallback
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CatalogWriteError, RrError
-
-__all__ = ["NO_REPLY", "OpenReply", "Phase", "Server", "Shared", "Waiter", "consumers_by_origin"]
 
 logger = logging.getLogger("rr_actors")
 
@@ -66,7 +52,7 @@ class Server:
     and its `label(request)` (`display.py`)."""
 
     name: str
-    ref: pykka.ActorRef[ServerActor]
+    ref: pykka.ActorRef[Any]  # (a `provider.ServerActor`)
     on_status: StatusCallback | None
     closing: bool = False
     label: Callable[[Any], Any] | None = None
@@ -274,3 +260,59 @@ class Shared:
         probes = self.probes
         if probes is not None:
             probes.fire(step, subject)
+
+
+# -- test probes on named steps --------------------------------------------------------
+
+
+Hook = Callable[[Any], None]
+"""`hook(subject)`: the message a step handles, or what a point is about."""
+
+POINTS: frozenset[str] = frozenset(
+    {
+        "close_resource",  # unregister_server: a resource gets FATAL, is revoked, unloads
+        "unload_resource",  # the last consumer left: dependencies, then `unload`
+        "stop_drained",  # stop(): waiting callers failed, mailbox drained; the actor ends next
+        "send_load",  # a call's Load is about to leave the caller's thread (durable: committed)
+        "withdraw",  # a caller that stopped waiting is about to send its Abandon
+        "events_written",  # a change and its events committed together; published next
+    }
+)
+"""Points inside a step (`before` runs there; `after` is the same as `before`)."""
+
+
+class Probes:
+    """The hooks installed on one registrar, by step name (any thread may fire them)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._before: dict[str, tuple[Hook, ...]] = {}
+        self._after: dict[str, tuple[Hook, ...]] = {}
+
+    def add(self, step: str, *, before: Hook | None, after: Hook | None) -> None:
+        """Install hooks on `step` (`intercept` checks that a step has that name)."""
+        with self._lock:
+            if before is not None:
+                self._before[step] = (*self._before.get(step, ()), before)
+            if after is not None:
+                self._after[step] = (*self._after.get(step, ()), after)
+
+    def remove(self, step: str, *, before: Hook | None, after: Hook | None) -> None:
+        """Remove hooks `add` installed (no-op for hooks that are not there)."""
+        with self._lock:
+            for table, hook in ((self._before, before), (self._after, after)):
+                if hook is not None and hook in table.get(step, ()):
+                    table[step] = tuple(h for h in table[step] if h is not hook)
+
+    def around(self, step: str, subject: Any, run: Callable[[Any], None]) -> None:
+        """Run `run(subject)` between the `before` and `after` hooks of `step`."""
+        for hook in self._before.get(step, ()):
+            hook(subject)
+        run(subject)
+        for hook in self._after.get(step, ()):
+            hook(subject)
+
+    def fire(self, step: str, subject: Any) -> None:
+        """Run the hooks of a point `step` (its `before` hooks, then its `after` hooks)."""
+        for hook in (*self._before.get(step, ()), *self._after.get(step, ())):
+            hook(subject)

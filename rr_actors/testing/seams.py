@@ -22,7 +22,7 @@ from rr_actors._registrar import ResourceRegistrar
 from rr_actors._registrar.actor import STEPS, RegistrarActor
 from rr_actors._registrar.calls import CallAttempt
 from rr_actors._registrar.messages import RunOnActor
-from rr_actors._registrar.probes import Hook, Probes
+from rr_actors._registrar.state import Hook, Probes
 from rr_actors.errors import ConfigError, RegistrarUnavailableError
 
 __all__ = [

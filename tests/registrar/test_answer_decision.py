@@ -15,7 +15,7 @@ import itertools
 
 import pytest
 
-from rr_actors._registrar.flight import Action, InFlight, decide
+from rr_actors._registrar.consumer import Action, InFlight, decide
 
 KEEP = Action.KEEP
 COMMIT = Action.COMMIT

@@ -15,7 +15,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors._registrar import chronicle, start_registrar
+from rr_actors._registrar import life, start_registrar
 from rr_actors._store.files import read_backup
 
 
@@ -88,7 +88,7 @@ def test_above_listed_rows_the_events_count_every_row_without_listing_or_digesti
     backup: tuple[rr.RegistrarConfig, rr.ResourceRegistrar], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     config, app = backup
-    monkeypatch.setattr(chronicle, "LISTED_ROWS", 3)
+    monkeypatch.setattr(life, "LISTED_ROWS", 3)
     heard = Heard()
     provider, subscription = restarted(config, heard)
     try:

@@ -20,7 +20,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._registrar import Served
-from rr_actors._registrar.presence import RETRY_FIRST, RETRY_MAX, retry_delay
+from rr_actors._registrar.life import RETRY_FIRST, RETRY_MAX, retry_delay
 from rr_actors.testing import (
     RemoteRegistrar,
     SharedObjects,

@@ -21,7 +21,7 @@ from rr_actors._core.replies import FutureReply
 from rr_actors._registrar import Served
 from rr_actors._registrar.actor import DISPATCH, MESSAGE_STEPS
 from rr_actors._registrar.messages import Abandon, ConsumerDown, StatusBatch
-from rr_actors._registrar.probes import POINTS
+from rr_actors._registrar.state import POINTS
 from rr_actors.testing import (
     STEPS,
     actor_ref,

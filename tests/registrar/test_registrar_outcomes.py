@@ -16,8 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 import rr_actors as rr
-from rr_actors._registrar.attempt import CallAttempt
-from rr_actors._registrar.calls import BACKLOG
+from rr_actors._registrar.calls import BACKLOG, CallAttempt
 from rr_actors.testing import call_futures, catalog_snapshot, intercept
 
 
