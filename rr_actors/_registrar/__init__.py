@@ -1,16 +1,23 @@
-"""The resource registrar: its messages, its actor (split by role) and its handle.
+"""The resource registrar: its handle, its actor (in a few modules, by side), its messages.
 
-- `protocol`: the `Registrar` API both placements implement;
-- `handle`: `ResourceRegistrar`, what user code holds; `calls`: the call protocol on the
-  caller's thread; `aio`: the handles' awaitable twins and `StatusWatch`, written once;
-- `actor`: the registrar actor, dispatching to its roles `provider` (loads; `matching`
-  runs user code off the actor), `unloading`, `servers`, `consumer`, `status`,
-  `presence` (peers lost for good or reachable again) and `lifecycle`, which share
-  `state`; `starting`: the start protocol, and `Served`/`Network`, how a carrier sees it;
-- `endpoints`: the resource server and client actors; `messages`: everything they tell
-  each other, as data; `deathwatch`: the one place that says a registrar will not come
-  back (the layers above call it, never build a message); `loading`: what a load
-  callback runs inside; `probes`: the testing seam on named steps.
+```
+ handle       ResourceRegistrar, what user code holds; aio: its awaitable twins;
+              protocol: the `Registrar` API both placements implement
+ actor        the registrar actor: started (`launch`), its dispatch table
+ life         its life: start, restore, presence (peers lost, reachable), stop, death,
+              the death watch; `Served`: how a carrier sees it
+ provider     a resource's life: load once, share, release, unload once; the servers
+              and their actors, which run user code
+ status       statuses sent, fanned out in one pass per process, climbing dependencies
+ consumer     a call's life after it was sent: answered, in flight, held, released,
+              reconciled; the client actors
+ calls        the call protocol on the caller's thread, and its attempt's states
+ display      display texts, made once, user code off the actor
+ state        the record every part shares, the probes on its steps
+ messages     everything they tell each other, as data; what a load callback runs in
+```
+
+Each module calls only those listed below it (`pyproject.toml`, "Inside the registrar").
 """
 
 from typing import TYPE_CHECKING

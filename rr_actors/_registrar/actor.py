@@ -1,4 +1,39 @@
-"""TODO"""
+"""The registrar actor: started (`launch`), its parts built, each message dispatched.
+
+```
+ launch(config): the name claimed here, the catalog opened (restored from its backup),
+   what the restore left in doubt listed, the actor started ─► Launched (for the handle)
+
+              ┌─────────────────── RegistrarActor (one mailbox, one thread) ───────────────┐
+ message ───► │ the call outcomes handed over before it are taken first (`calls.py`)      │
+              │ DISPATCH: type ─► (step name, the part's on_<step>)                        │
+              │  life.py      Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot    │
+              │                          YieldName; death (on_failure)                    │
+              │               Restoring  SettleInDoubt; the sweep of a restored catalog    │
+              │               Presence   PeerLost ConsumerDown PeerReachable ReconcileRetry│
+              │  provider.py  Provider   Load            Unloading  Unload Abandon Reconcile│
+              │               Servers    Fetch RegisterServer UnregisterServer             │
+              │                          UpdateResponse ListServerQueries                  │
+              │               Teardown   (runs unloads for the parts above)               │
+              │  status.py    StatusRelay  SendStatus StatusBatch StatusNotice             │
+              │  consumer.py  Answers    Pending ClientLoaded CallFailed                   │
+              │               Holdings   Revoke ResponseUpdated SetStatusCallback          │
+              │                          ListClientQueries OpenClient                      │
+              │               Releases   Release         Reconciling  ReconcileAsk         │
+              │               Flights    (the calls in flight, for the parts above)        │
+              │  state.py     Shared: config, catalog, saver, servers, phase, workers      │
+              └────────────────────────────────────────────────────────────────────────────┘
+```
+
+Each module's parts call only the modules below them (life, provider, status, consumer,
+in that order; a layers contract in `pyproject.toml` checks it), and the actor builds
+them bottom first. It never blocks: what it needs from another actor arrives later as a
+message that resumes the work (`Shared.send`, `Join`), and user callbacks run on worker
+threads, so a slow or hung callback never blocks the mailbox. Every clause of `DISPATCH`
+has one shape, `on_<step>(message, reply)`: `reply` is the message's own (held open for
+a message from the handle, `asked`), or `NO_REPLY`; the step names are what
+`rr_actors.testing.intercept` accepts.
+"""
 
 from __future__ import annotations
 
@@ -67,6 +102,19 @@ from rr_actors._types import Query
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import ConfigError, RegistrarUnavailableError, RrError
 from rr_actors.events import Event
+
+__all__ = [
+    "DISPATCH",
+    "EVENT_LOG",
+    "MESSAGE_STEPS",
+    "STEPS",
+    "Binder",
+    "Handler",
+    "Launched",
+    "RegistrarActor",
+    "asked",
+    "launch",
+]
 
 logger = logging.getLogger("rr_actors")
 
@@ -170,7 +218,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     OpenClient: ("open_client", asked(lambda a: a.holdings.on_open_client)),
     RunOnActor: ("run_on_actor", asked(_run_on_actor)),  # test only
 }
-"""The one dispatch table: which role handles each message, under which step name."""
+"""The one dispatch table: which part handles each message, under which step name."""
 
 MESSAGE_STEPS: frozenset[str] = frozenset(step for step, _ in DISPATCH.values())
 """Steps that handle one message on the actor's thread (`before`/`after` it)."""
@@ -180,13 +228,7 @@ STEPS: frozenset[str] = MESSAGE_STEPS | POINTS
 
 
 class RegistrarActor(Actor):
-    """The registrar actor: dispatches each message to the role that owns it.
-
-    Attributes:
-        shared: the state every role uses.
-        provider, teardown, reconciling, unloading, servers, releases, answers,
-            holdings, flights, status, restoring, lifecycle, presence: the roles.
-    """
+    """The registrar actor: dispatches each message to the part that owns it."""
 
     inline = frozenset({Load, Unload, Abandon})
     """What a carrier's receiving thread handles in the registrar's turn when it is idle
@@ -225,9 +267,8 @@ class RegistrarActor(Actor):
     ) -> None:
         super().__init__()
         self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
-        # Each role is built after the roles it calls, and calls only those (one way):
-        # lifecycle -> servers | presence | restoring -> status | unloading -> provider
-        # -> teardown | reconciling -> releases -> answers -> holdings -> flights.
+        # Each part is built after the parts it calls, and calls only those (one way):
+        # life.py -> provider.py -> status.py -> consumer.py, each bottom first.
         self.flights = Flights(self.shared, due, self.dispatch)
         targets = StatusTargets(config.name, published, due)  # what the status desk reads
         DESK.serve(peer, targets)
@@ -237,10 +278,10 @@ class RegistrarActor(Actor):
         self.reconciling = Reconciling(
             self.shared, self.flights, self.holdings, self.releases, due, self.dispatch
         )
+        self.status = StatusRelay(self.shared, self.flights, self.holdings)
         self.teardown = Teardown(self.shared, self.releases)
         self.provider = Provider(self.shared, self.releases, self.teardown)
         self.unloading = Unloading(self.shared, self.provider, self.teardown)
-        self.status = StatusRelay(self.shared, self.flights, self.holdings)
         self.servers = Servers(self.shared, self.teardown, self.status)
         self.presence = Presence(self.shared, self.unloading, self.reconciling)
         self.restoring = Restoring(

@@ -1,11 +1,54 @@
-"""TODO"""
+"""The call protocol, on the caller's thread: send, then the answer, a death, or the timeout.
+
+```
+ caller thread (Calls.steps)           consumer registrar actor          provider
+ ───────────────────────────           ────────────────────────          ────────
+ due.expect(id, attempt)
+ [durable: Pending ───────────────────► record written as pending ──┐
+  wait for the commit ◄─────────────────────────────────────────────┘]
+ attempt.sent(); Load ─────────────────────────────────────────────────► on_load
+ attempt.wait(answer | error | timeout) ◄──── ClientReply (the answering thread) ◄─┘
+   answered: ClientLoaded ──► due.outcomes ──► recorded before the actor's next message
+   timeout:  attempt.withdraw(), Abandon ───────────────────────────────► release the id
+             CallFailed ────► due.outcomes + TakeOutcomes ──► forget the attempt's record
+```
+
+Like OTP's `gen:do_call` (monitor, send, receive the reply, the 'DOWN' or the timeout):
+a provider that dies fails the reply at once (`RegistrarUnavailableError`), not after
+the timeout. What a reply that races the timeout, a stop or a death does is decided by
+one state under one lock, the call's `CallAttempt`; each transition returns the state
+it leaves, and the party that took it acts on that state:
+
+```
+          sent()            answer(value): a plain call (its caller records it)
+ SENDING ───────► SENT ─────────────────────────────────────────► ANSWERED
+    │              │ └─take(): a durable call's answer ──► RECORDING  ▲
+    │              │     settle(value): committed ───────────┴───────┘
+    │              │     settle(error): not kept ──────────────────┐
+    │              │  fail(error): an error answer, the provider    ▼
+    ├──────────────┴─ died, the registrar stopped or died ──────► FAILED
+    │              │  withdraw(): the caller's time ran out, or it
+    └──────────────┴─ was interrupted ──────────────────────────► WITHDRAWN
+```
+
+A plain call's outcome (its answer to record, or its failure) does not wake the
+registrar actor by itself: it waits in `DueAnswers.outcomes`, which the actor takes, in
+order, before it handles any message. So everything sent after a call returned (an
+`unload` of its id, a status notice, a stop, a snapshot) finds its record, and a dedup
+hit costs two thread hand-offs (the `Load` and its answer), not three. The actor is
+woken (`TakeOutcomes`) when something waits for an outcome: a failure (its parked
+notices are answered), a dependency's answer (the load that made it may have failed
+meanwhile: the id is then given back at once), a notice held back for that answer
+(`CallAttempt.awaited`), or `BACKLOG` outcomes waiting. A durable call's outcomes go
+through the mailbox: the actor commits its answer before its caller gets it. What the
+actor does with them is `consumer.py`'s.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
 import enum
-import logging
 import threading
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -27,7 +70,20 @@ from rr_actors.errors import (
     RrError,
 )
 
-logger = logging.getLogger("rr_actors")
+__all__ = [
+    "BACKLOG",
+    "AttemptState",
+    "CallAttempt",
+    "CallFailed",
+    "Calls",
+    "ClientLoaded",
+    "ClientReply",
+    "DueAnswers",
+    "DurableLoaded",
+    "Outcome",
+    "Pending",
+    "TakeOutcomes",
+]
 
 
 # -- one call attempt ------------------------------------------------------------------
@@ -56,23 +112,10 @@ _OPEN = (AttemptState.SENDING, AttemptState.SENT)
 class CallAttempt(OneShotFuture[Any]):
     """One attempt of a call: the future its caller waits on, settled through one `state`.
 
-    Three threads race over an attempt: its caller (whose time may run out), the thread
-    that brings the answer (a connection's reader, or the provider's actor), and its
-    registrar's actor (which commits a durable call's answer, and fails the calls in
-    flight when it stops or dies). Each transition is taken under one lock and returns
-    the state it leaves the attempt in; the party that called it acts on that state.
-
-    ```
-              sent()            answer(value): a plain call (its caller records it)
-     SENDING ───────► SENT ─────────────────────────────────────────► ANSWERED
-        │              │ └─take(): a durable call's answer ──► RECORDING  ▲
-        │              │     settle(value): committed ───────────┴───────┘
-        │              │     settle(error): not kept ──────────────────┐
-        │              │  fail(error): an error answer, the provider    ▼
-        ├──────────────┴─ died, the registrar stopped or died ──────► FAILED
-        │              │  withdraw(): the caller's time ran out, or it
-        └──────────────┴─ was interrupted ──────────────────────────► WITHDRAWN
-    ```
+    Three threads race over it (the module's second diagram): its caller (whose time may
+    run out), the thread that brings the answer (a connection's reader, or the
+    provider's actor), and its registrar's actor (which commits a durable call's answer,
+    and fails the calls in flight when it stops or dies).
 
     ```
      transition (who)                returns    what its caller does then
@@ -190,10 +233,7 @@ class Pending:
 
 @dataclasses.dataclass(frozen=True, slots=True)  # (one per call: slots build faster)
 class ClientLoaded:
-    """A plain call's answer to record: the client record (its query holds the response).
-
-    Its caller has the answer already (it hands this over, `calls.py`).
-    """
+    """A plain call's answer to record, handed over by its caller, who has it already."""
 
     record: ClientRecord
     on_status: StatusCallback | None
@@ -227,11 +267,8 @@ class CallFailed:
 
 @dataclasses.dataclass(frozen=True)
 class TakeOutcomes:
-    """Record the call outcomes waiting in `DueAnswers.outcomes` now (see `calls.py`).
-
-    The actor takes them before every message it handles; this one only wakes it for
-    outcomes something waits for (a failure, a notice held back, a full backlog).
-    """
+    """Wake the actor for the outcomes waiting in `DueAnswers.outcomes` (taken before
+    every message it handles: this one only wakes it for those something waits for)."""
 
 
 BACKLOG = 64
@@ -253,9 +290,8 @@ class DueAnswers:
     lock makes "remove it if it is still this attempt's" atomic against a retry that
     reuses the query id.
 
-    `outcomes` holds the outcomes of plain calls (`ClientLoaded`, `CallFailed`) in the
-    order their threads handed them over; the actor takes them before each message
-    (module docstring). Once the actor ended, an outcome handed over goes to its
+    `outcomes` holds the outcomes of plain calls in the order their threads handed them
+    over (the module's first diagram). Once the actor ended, an outcome handed over goes to its
     `late` handler at once (a `LateQueue`), which gives the id back.
     """
 

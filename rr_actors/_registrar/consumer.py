@@ -1,4 +1,51 @@
-"""TODO"""
+"""The consumer side of a registrar actor: a call's life here, from its answer to its release.
+
+```
+ calls.py (the caller's thread) ─► Pending, ClientLoaded | DurableLoaded, CallFailed
+ Answers   on_pending: a durable call's record written pending before its Load leaves
+   │       on_client_loaded ─► decide(durable, withdrawn, dependency, stopping,
+   │         owner_gone) ─► Action (pure: tests/registrar/test_consumer.py's table)
+   │           KEEP | COMMIT ─► keep: the record (committed with its CallAnswered)
+   │           LEAVE | GIVE_BACK | REFUSE | FORGET | RELEASE_LATE ─► drop_pending:
+   │           the id given back to its provider (`messages.give_back`)
+   │       on_call_failed ─► the record forgotten (kept: a failed retry of a held id)
+   ▼
+ Flights   in_flight: query id ─► InFlight, while a call is not settled:
+   │         attempt       a durable call's, committed pending: this actor answers it
+   │         unsettled_at  the provider of a call that failed as it died or stopped:
+   │                       it may hold the id (a retry may come) ─► listed in the next
+   │                       Reconcile; still held there ─► kept_for_retry (released by
+   │                       its next Reconcile, or given back when this one stops)
+   │         parked        notices (StatusNotice, Revoke, ResponseUpdated) that
+   │                       overtook their answer ─► handled again once it came
+   │       take_outcomes: the outcomes callers handed over, before each message
+   ▼
+ Holdings  the client records' companions: status callbacks (the plain ones published
+   │       to the status desk, `status.py`), the epoch each answer came in, the records
+   │       a restore listed, the client actors; Revoke, ResponseUpdated, set a callback;
+   │       forget(id): the one place a held id goes (its QueryForgotten, then committed)
+   ▼
+ Releases  Release (the handle's unload) ─Unload─► provider ─► forget; a resource's
+   │       dependencies (`provider.py`'s teardown) the same way; the provider died or
+   │       stopped meanwhile ─► unreleased: left out of its next Reconcile, so it
+   │       releases them (its unload runs once); this registrar stops ─► its durable
+   │       calls withdrawn, the ids of failed calls and releases given back
+   ▼
+ Reconciling  it serves (again), or a provider asks (ReconcileAsk) ─► Reconcile(the
+          ids held there: a Listing, its epoch) ─► the provider releases the others,
+          names those it no longer knows ─► FATAL to each answered before the list
+          left (and up its dependents), then forgotten (rule 20); a provider lost for
+          good (`life.py`'s presence) ─► lose_provider: the same, for all (rule 19)
+```
+
+Each part owns its state and changes another's only through its methods; all of them
+run on the registrar actor's thread, and each builds an event only when someone listens
+(`Shared.events.active`), so a consumer's events are in the order it recorded them.
+`redeliver` is the actor's dispatch (a callable it is given), not a part: a notice held
+back, or an outcome taken, is handled as if it had just arrived. The client actors
+(`ClientActor`, cached in `Clients`) relay a handle's fetch to a provider (thesis
+4.3.3); a call's `Load` goes from its caller's thread (`calls.py`).
+"""
 
 from __future__ import annotations
 
@@ -54,6 +101,27 @@ from rr_actors.errors import (
     UnknownQueryError,
 )
 
+__all__ = [
+    "GONE",
+    "Action",
+    "Answers",
+    "ClientActor",
+    "Clients",
+    "Flights",
+    "Holdings",
+    "InFlight",
+    "Listing",
+    "Notice",
+    "Reconciling",
+    "Releases",
+    "answer_event",
+    "decide",
+    "publish_answered",
+    "publish_failed",
+    "publish_forgotten",
+    "publish_refused",
+]
+
 logger = logging.getLogger("rr_actors")
 
 
@@ -62,18 +130,7 @@ logger = logging.getLogger("rr_actors")
 
 @dataclasses.dataclass(eq=False)
 class InFlight:
-    """What a consumer knows of one query id whose call is not settled yet.
-
-    Attributes:
-        attempt: a durable call's attempt whose pending record was committed (its
-            `Pending`): this actor answers it after it commits the answer (`None`: no
-            durable call with this id in flight). A same-id retry replaces it.
-        unsettled_at: the provider of a call with this id that failed as that provider
-            died or stopped: it may hold the id, and a retry may come; kept until a
-            `Reconcile` with it was answered (`None`: none).
-        parked: the notices (status, revoke, response update) that reached this
-            registrar before the answer they are about, in arrival order.
-    """
+    """What a consumer knows of one query id whose call is not settled yet."""
 
     attempt: CallAttempt | None = None
     unsettled_at: str | None = None
@@ -142,27 +199,14 @@ Notice = StatusNotice | Revoke | ResponseUpdated
 
 
 class Flights:
-    """What is known of this registrar's calls whose outcome is not settled yet.
-
-    Attributes:
-        due: the query ids whose answers are on their way (shared with callers' threads).
-        redeliver: handles a message as the actor does (its dispatch).
-        in_flight: query id -> what is known of its call in flight (`InFlight`: a
-            durable attempt this actor answers after its commit, the provider of a call
-            that failed as it died or stopped, the notices that overtook its answer).
-        kept_for_retry: query id -> provider, of calls that failed as the provider died
-            or stopped and that it still held when a `Reconcile` with it was answered
-            since: a retry with the id finds it there. Never retried, the id is released
-            by the provider's next `Reconcile` (which does not list it) or given back
-            when this registrar stops (rule 12).
-    """
+    """This registrar's calls whose outcome is not settled yet, by query id."""
 
     def __init__(self, shared: Shared, due: DueAnswers, redeliver: Callable[[Any], None]) -> None:
         self.registrar = shared
-        self.due = due
-        self.redeliver = redeliver
+        self.due = due  # the ids whose answers are on their way (callers' threads too)
+        self.redeliver = redeliver  # handles a message as the actor does (its dispatch)
         self.in_flight: dict[str, InFlight] = {}
-        self.kept_for_retry: dict[str, str] = {}
+        self.kept_for_retry: dict[str, str] = {}  # query id -> the provider that kept it
 
     # -- one call's record --------------------------------------------------------------
 
@@ -399,11 +443,7 @@ def publish_forgotten(shared: Shared, query: Query, reason: str) -> None:
 
 
 class Answers:
-    """Records the answers to this registrar's calls, and their failures.
-
-    Attributes:
-        texts: makes its records' request display texts (`display.py`).
-    """
+    """Records the answers to this registrar's calls, and their failures."""
 
     def __init__(self, shared: Shared, flights: Flights, holdings: Holdings) -> None:
         self.registrar = shared
@@ -610,19 +650,7 @@ class Answers:
 
 
 class Holdings:
-    """The queries this registrar holds at servers: what goes with their records.
-
-    Attributes:
-        clients: its client actors (shared with its handle, which looks them up).
-        status_callbacks: query id -> the client status callback of that query.
-        targets: what the status desk of this process reads of it (`fanout.py`): the
-            ids with a status callback that a status reaches without this mailbox.
-        epoch: how many `Reconcile` lists this registrar has built (`new_epoch`).
-        answered_in: query id -> the `epoch` in which its answer was recorded (ids
-            answered before the first list, or restored, have none: 0).
-        restored: the ids of the records a restore gave it, answered or not (a call in
-            flight when the last run died): its `CatalogRestored` listed them.
-    """
+    """What goes with the client records of the queries this registrar holds."""
 
     def __init__(
         self,
@@ -634,11 +662,11 @@ class Holdings:
         self.registrar = shared
         self.flights = flights
         self.clients = clients
-        self.status_callbacks: dict[str, StatusCallback] = {}
-        self.targets = targets
-        self.epoch = 0
-        self.answered_in: dict[str, int] = {}
-        self.restored = set(shared.catalog.clients)
+        self.status_callbacks: dict[str, StatusCallback] = {}  # query id -> its callback
+        self.targets = targets  # what the status desk of this process reads of it
+        self.epoch = 0  # how many `Reconcile` lists it built (`new_epoch`)
+        self.answered_in: dict[str, int] = {}  # query id -> its answer's epoch (none: 0)
+        self.restored = set(shared.catalog.clients)  # listed by its `CatalogRestored`
 
     # -- holding and forgetting queries -------------------------------------------------
 
@@ -678,7 +706,7 @@ class Holdings:
 
     def publish_target(self, query_id: str) -> None:
         """Let the status desk of this process run `query_id`'s callback without this
-        mailbox (`fanout.py`): a loaded query with a callback that is not a dependency
+        mailbox (`status.py`): a loaded query with a callback that is not a dependency
         (a dependency's status climbs from here, on this actor)."""
         record = self.registrar.catalog.clients.get(query_id)
         callback = self.status_callbacks.get(query_id)
@@ -687,7 +715,7 @@ class Holdings:
         else:
             self.targets[query_id] = (record.query, callback)
 
-    # -- the epochs of `Reconcile` lists (`reconciling.py`) -----------------------------
+    # -- the epochs of `Reconcile` lists (`Reconciling`) --------------------------------
 
     def new_epoch(self) -> int:
         """A `Reconcile` list leaves now: its number (answers recorded from now on
@@ -750,16 +778,7 @@ GONE = (RegistrarUnavailableError, RegistrarStoppedError)
 
 
 class Releases:
-    """Releases the queries this registrar holds, and gives back what it gives up.
-
-    Attributes:
-        releasing: query ids whose `Unload` is on its way.
-        unreleased: query id -> provider, of ids this registrar released whose `Unload`
-            failed as the provider died or stopped (it may or may not have run it). Their
-            records are forgotten; a `Reconcile` does not list them, so the provider
-            releases any it still holds (its `unload` runs once) and none is reported
-            `FATAL`. Held until such a `Reconcile` was answered.
-    """
+    """Releases the queries this registrar holds, and gives back what it gives up."""
 
     def __init__(
         self, shared: Shared, flights: Flights, holdings: Holdings, answers: Answers
@@ -768,7 +787,8 @@ class Releases:
         self.flights = flights
         self.holdings = holdings
         self.answers = answers
-        self.releasing: set[str] = set()
+        self.releasing: set[str] = set()  # ids whose `Unload` is on its way
+        # id -> provider, of releases that failed as it died or stopped (`release_later`)
         self.unreleased: dict[str, str] = {}
 
     # -- releasing one query ------------------------------------------------------------
@@ -857,7 +877,7 @@ class Releases:
         told.__cause__ = error
         return told
 
-    # -- what reconciling (`reconciling.py`) asks of it ---------------------------------
+    # -- what `Reconciling` asks of it --------------------------------------------------
 
     def is_releasing(self, query_id: str) -> bool:
         """Whether the `Unload` of `query_id` is on its way."""
@@ -904,7 +924,7 @@ class Releases:
     def give_back_unsettled(self) -> None:
         """This registrar stops: give back the ids of calls that failed as their provider
         died, which it would no longer retry (also those the provider kept for a retry
-        when it reconciled: `flights.py`), and of releases that failed so."""
+        when it reconciled: `Flights`), and of releases that failed so."""
         self.flights.give_back_unsettled()
         for query_id, serving_rr in self.unreleased.items():
             give_back(serving_rr, query_id, self.registrar.name)
@@ -919,16 +939,8 @@ class Listing:
     """What one `Reconcile` told a provider, as it was when the list left.
 
     Its answer ("the ids of the list I do not know") is about the catalog as it was
-    then: only records that were answered before it left are settled by it.
-
-    Attributes:
-        held: the ids listed (client records, calls due, calls that failed as the
-            provider died), sorted.
-        due: of those, the calls whose answer was on its way.
-        left_out: ids whose release failed as the provider died, not listed: the
-            provider releases them (`Releases.unreleased`).
-        epoch: the list's number (`Holdings.epoch`); an answer recorded with this
-            number or a later one came after the list left.
+    then: only records answered before it left (`epoch`) are settled by it. `left_out`:
+    the ids whose release failed as the provider died (it releases them).
     """
 
     held: tuple[str, ...]
@@ -940,12 +952,9 @@ class Listing:
 class Reconciling:
     """Reconciles what this registrar holds at providers with what they hold for it.
 
-    Attributes:
-        due: the query ids whose answers are on their way (`DueAnswers`, shared with
-            callers' threads and the other consumer roles).
-        asked_to_reconcile: providers that asked for a `Reconcile` during setup.
-        everyone: reconcile with every registrar of the system, not only the providers
-            its catalog names (`reconcile_all`): set when it restores a backup.
+    `everyone`: with every registrar of the system, not only the providers its catalog
+    names (set when it restores a backup); `asked_to_reconcile`: providers that asked
+    while setup ran.
     """
 
     def __init__(
@@ -1005,13 +1014,9 @@ class Reconciling:
         )
 
     def listing(self, serving_rr: str, due: frozenset[str]) -> Listing:
-        """The list of a `Reconcile` to `serving_rr` that leaves now, a new epoch.
-
-        Args:
-            serving_rr: the provider.
-            due: the ids whose answer is due now, at any provider (listed too: harmless,
-                reported unknown).
-        """
+        """The list of a `Reconcile` to `serving_rr` that leaves now, a new epoch (`due`:
+        the ids whose answer is due now, at any provider: listed too, harmless, reported
+        unknown)."""
         held = {
             query_id
             for query_id, record in self.registrar.catalog.clients.items()
@@ -1056,7 +1061,7 @@ class Reconciling:
         after it; their own answers decide. Releases that failed as the provider died
         are left out of the list, so the provider releases them (`Releases.unreleased`).
         `then(error)` runs (on this actor) once the answer was handled: `None`, or why it
-        failed (`presence.py` retries).
+        failed (`life.py`'s presence retries).
         """
         with self.due.frozen() as due:
             listing = self.listing(serving_rr, due)
@@ -1186,13 +1191,7 @@ class Reconciling:
 
 
 class ClientActor(Actor):
-    """A client: the consumer-side endpoint for one target server (thesis 4.3.3).
-
-    Created (and cached) by its registrar the first time it calls the server. It relays
-    fetches. A load (and the give-up of a timed-out one) is sent from the caller's thread
-    along the client's route (see `ResourceRegistrar.call`); status callbacks run on the
-    registrar's worker threads.
-    """
+    """The consumer-side endpoint for one target server: it relays fetches."""
 
     def __init__(
         self,
@@ -1228,8 +1227,7 @@ class Clients:
     """A registrar's client actors by `(target registrar, server)`: its one client cache.
 
     Its actor starts them (`start`, on the actor's thread) and stops them; its handle
-    looks them up from any thread (`get`, one dict read), so that a call to a server it
-    called before does not ask the actor first.
+    looks them up from any thread (`get`, one dict read).
     """
 
     __slots__ = ("_refs",)

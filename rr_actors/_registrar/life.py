@@ -1,4 +1,53 @@
-"""TODO"""
+"""A registrar actor's life: start (restore, settle what a crash cut short), serve, hear of
+its peers (lost for good, reachable again), stop or die, and say so.
+
+```
+ SETTING_UP ──ready──► SERVING ──stop()──► STOPPING ──► ENDED
+      └──────────────────┴── crash (a bug, testing.crash) ─────► ENDED (death)
+
+ start (Lifecycle.on_start): CatalogRestored; join the membership (the peers lost
+   meanwhile are heard now); Restoring.settle_in_doubt: each resource a crash cut short
+   (rule 16) ─► InDoubt, its dependencies released, forgotten (held out of the backup
+   while `setup` runs); each call in flight then given back; unload_unheld ─► the sweep
+   of the restored catalog, one slice per turn of the mailbox, after it serves
+ serve (now, or on Ready once `setup` returned; Reachable: a carrier serves it):
+   as a provider ReconcileAsk to its consumers (after the sweep, which names them), as
+   a consumer Reconcile with its providers (`consumer.py`), with everyone if restored
+ peers (Presence): the membership ─ PeerLost(X) ─► lose(X): what X held here released
+   (`provider.py`), what is held at X FATAL, then forgotten (rule 19);
+   PeerLost(X, stopped): only the release (rule 12); ConsumerDown (another process's
+   mark) ─► into this process's membership; PeerReachable(X) ─► Reconcile with X,
+   retried (ReconcileRetry: a bounded backoff, or `call_timeout` unanswered) until it
+   is answered (rule 20), and ReconcileAsk to X if X holds ids here
+ stop (Stop; YieldName, rule 22: what it serves released and unloaded first):
+   its durable calls withdrawn, failed calls and releases given back, what it holds
+   released, newest first (rule 12) ─► the unloads under way, until `unloads_until`
+   ─► RegistrarStopped; the backup flushed and closed ─► its children ─► ENDED
+ death (on_failure): every waiter failed at once (RegistrarUnavailableError), nothing
+   more written; no restart expected ─► gone_for_good: the death watch
+ the death watch (functions the supervisor and the process layer call):
+   gone_for_good(X, also) ─► this process's membership records X; ConsumerDown(X) to
+   each of `also` elsewhere │ back(X) │ tell_gone(Y, X) │ lost_everything(X):
+   ReconcileAsk to all
+ the outside's views of it: Served (a carrier: listening, peer_lost, peer_reachable,
+   yield_name), Hearing (this process's membership: peer_lost, peer_stopped,
+   peer_reachable), each a message to its mailbox
+```
+
+A clean stop keeps what its servers serve (a restart needs it). A provider that its
+supervisor restarts is not lost (rule 15): nobody sends a `ConsumerDown` for it, its
+restored catalog keeps its consumers' ids, and it reconciles by itself when it serves
+again. Who is gone for good is known per process, by its membership
+(`rr_actors._core.membership`), fed by the carriers' liveness
+(`_transport/messenger.py`), by the death watch here, and by another process's
+`ConsumerDown`; it tells every registrar of the process `PeerLost`, and one that starts
+later the names gone then. The layers above (`_process`, `_supervision`) call the death
+watch and never build a registrar message themselves.
+
+Each part owns its state: the open requests, the stop under way and the flush timer
+(`Lifecycle`), the in-doubt ids and the sweep's progress (`Restoring`), the reconcile
+rounds being retried (`Presence`); the phase is the record's (`state.py`).
+"""
 
 from __future__ import annotations
 
@@ -53,6 +102,29 @@ from rr_actors.errors import (
 )
 from rr_actors.events.kinds import LISTED_ROWS, Rows
 
+__all__ = [
+    "RETRY_FIRST",
+    "RETRY_MAX",
+    "CatalogView",
+    "Hearing",
+    "Lifecycle",
+    "Network",
+    "Presence",
+    "Restoring",
+    "Servable",
+    "Served",
+    "back",
+    "check_network",
+    "gone",
+    "gone_for_good",
+    "lost_everything",
+    "publish_restored",
+    "publish_stopped",
+    "retry_delay",
+    "serve_on",
+    "tell_gone",
+]
+
 logger = logging.getLogger("rr_actors")
 
 
@@ -74,45 +146,8 @@ class CatalogView:
     in_doubt: tuple[tuple[str, str | None], ...] = ()
 
 
-class Hearing:
-    """How this process's membership (`rr_actors._core.membership`) tells a registrar
-    actor who is lost or reachable again: a `PeerLost` / `PeerReachable` to its mailbox
-    (any thread; one for an actor that ended is dropped: it holds nothing any more)."""
-
-    __slots__ = ("peer",)
-
-    def __init__(self, peer: LocalPeer) -> None:
-        self.peer = peer
-
-    @property
-    def name(self) -> str:
-        """The registrar's name."""
-        return self.peer.name
-
-    def peer_lost(self, name: str) -> None:
-        """Registrar `name` is gone for good (rule 19): `presence.py`."""
-        with contextlib.suppress(RrError):
-            self.peer.tell(PeerLost(name))
-
-    def peer_stopped(self, name: str) -> None:
-        """Registrar `name` was stopped for good (its supervisor says): `presence.py`."""
-        with contextlib.suppress(RrError):
-            self.peer.tell(PeerLost(name, stopped=True))
-
-    def peer_reachable(self, name: str) -> None:
-        """Registrar `name` answers again (a healed link, rule 20): `presence.py`."""
-        with contextlib.suppress(RrError):
-            self.peer.tell(PeerReachable(name))
-
-
 class Lifecycle:
-    """Starts, stops and buries one registrar actor; answers the handle's requests.
-
-    Attributes:
-        open_requests: handle requests not answered yet (a death fails them).
-        died: set once a crash was fully handled (death watch included).
-        ended: set once the actor's thread handed on its last message.
-    """
+    """Starts, stops and buries one registrar actor; answers the handle's requests."""
 
     def __init__(
         self,
@@ -141,9 +176,9 @@ class Lifecycle:
         self.reconciling = reconciling
         self.presence = presence
         self.actor = actor  # (the actor machinery only: its mailbox, `end_now`)
-        self.died = died
-        self.ended = ended
-        self.open_requests: set[OpenReply] = set()
+        self.died = died  # set once a crash was fully handled (death watch included)
+        self.ended = ended  # set once the actor's thread handed on its last message
+        self.open_requests: set[OpenReply] = set()  # not answered yet: a death fails them
         self.stop_waiters: list[Reply] | None = None  # while a stop is under way
         self.flush_timer: Cancellable | None = None
         self.hearer = Hearing(shared.peer)  # what this process's membership tells it
@@ -164,7 +199,7 @@ class Lifecycle:
         self.restoring.settle_in_doubt()
         self.restoring.unload_unheld()
         for name, stopped in sorted(gone.items()):  # as if it had heard each mark
-            if stopped:  # (`presence.py`)
+            if stopped:  # (`Presence`)
                 self.presence.stopped(name)
             else:
                 self.presence.lose(name)
@@ -180,7 +215,7 @@ class Lifecycle:
         ids it holds (`Reconcile`): ids released while one side was down are released,
         and ids one side lost in its restart are reported to the consumer as `FATAL`.
         While the sweep of a restored catalog is under way, the provider's side waits
-        for it (it names the consumers to ask: `restoring.py`).
+        for it (it names the consumers to ask: `Restoring`).
         """
         self.restoring.ask_consumers()
         self.reconciling.reconcile_all()
@@ -433,16 +468,7 @@ class Lifecycle:
 
 
 class Restoring:
-    """Settles what the last run left in doubt, and sweeps the restored catalog.
-
-    Attributes:
-        hold_in_doubt: keep the settling of in-doubt entries out of the backup until
-            the manager settles them (a `setup` runs).
-        in_doubt_ids: the ids of the resources found in doubt at the restore.
-        sweeping: slices of the restored catalog are still to be swept.
-        swept_origins: registrars holding ids in what was swept.
-        reconcile_owed: `ask_consumers` came during the sweep.
-    """
+    """Settles what the last run left in doubt, and sweeps the restored catalog."""
 
     def __init__(
         self,
@@ -459,11 +485,11 @@ class Restoring:
         self.teardown = teardown
         self.releases = releases
         self.holdings = holdings
-        self.hold_in_doubt = hold_in_doubt
-        self.in_doubt_ids: frozenset[str] = frozenset()
-        self.sweeping = False
-        self.swept_origins: set[str] = set()
-        self.reconcile_owed = False
+        self.hold_in_doubt = hold_in_doubt  # their settling waits for the manager (`setup`)
+        self.in_doubt_ids: frozenset[str] = frozenset()  # found in doubt at the restore
+        self.sweeping = False  # slices of the restored catalog are still to be swept
+        self.swept_origins: set[str] = set()  # registrars holding ids in what was swept
+        self.reconcile_owed = False  # `ask_consumers` came during the sweep
 
     def settle_in_doubt(self) -> None:
         """Drop restored resources whose load or unload a crash cut short (rule 16).
@@ -598,19 +624,7 @@ def retry_delay(attempt: int) -> float:
 
 
 class Presence:
-    """The registrar's answers to a carrier's presence callbacks (runs on the actor thread).
-
-    Args:
-        registrar: the state every role shares.
-        unloading: releases the ids a lost consumer held here.
-        reconciling: whether it holds ids at a peer; reports and forgets the ids held at
-            a lost provider; reconciles.
-        timer: `timer(delay, fn)` for the retries (injectable for tests).
-
-    Attributes:
-        rounds: provider -> (its reconcile round, the attempt waited for) while a
-            reconcile after a healed link is not answered yet.
-    """
+    """What a peer lost for good, or reachable again, means for this registrar."""
 
     def __init__(
         self,
@@ -622,7 +636,8 @@ class Presence:
         self.registrar = registrar
         self.unloading = unloading
         self.reconciling = reconciling
-        self.timer = timer
+        self.timer = timer  # `timer(delay, fn)` for the retries (injectable for tests)
+        # provider -> (its reconcile round, the attempt waited for), until answered
         self.rounds: dict[str, tuple[int, int]] = {}
         self.timers: dict[str, Cancellable] = {}
         self.round_count = 0
@@ -741,7 +756,37 @@ class Presence:
             self.stop_retrying(name)
 
 
-# -- served by a carrier ---------------------------------------------------------------
+# -- the outside's views of it: a carrier's, the membership's -------------------------
+
+
+class Hearing:
+    """How this process's membership tells a registrar actor who is lost or reachable
+    again (any thread; told to an actor that ended, dropped: it holds nothing any more)."""
+
+    __slots__ = ("peer",)
+
+    def __init__(self, peer: LocalPeer) -> None:
+        self.peer = peer
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        return self.peer.name
+
+    def peer_lost(self, name: str) -> None:
+        """Registrar `name` is gone for good (rule 19): `Presence`."""
+        with contextlib.suppress(RrError):
+            self.peer.tell(PeerLost(name))
+
+    def peer_stopped(self, name: str) -> None:
+        """Registrar `name` was stopped for good (its supervisor says): `Presence`."""
+        with contextlib.suppress(RrError):
+            self.peer.tell(PeerLost(name, stopped=True))
+
+    def peer_reachable(self, name: str) -> None:
+        """Registrar `name` answers again (a healed link, rule 20): `Presence`."""
+        with contextlib.suppress(RrError):
+            self.peer.tell(PeerReachable(name))
 
 
 class Network(Protocol):
@@ -814,11 +859,7 @@ def serve_on(network: Network, registrar: Servable) -> None:
 
 
 class Served:
-    """A registrar of this process as a carrier serves it (`rr_actors._transport.base.Endpoint`).
-
-    Args:
-        registrar: the registrar to make reachable from the other processes of a system.
-    """
+    """A registrar of this process as a carrier serves it (`rr_actors._transport.base.Endpoint`)."""
 
     __slots__ = ("registrar",)
 
@@ -855,16 +896,16 @@ class Served:
         self.registrar._tell(Reachable(FutureReply()))  # (nobody waits: `serve` must not)
 
     def peer_lost(self, name: str) -> None:
-        """Registrar `name` of another process is gone for good (rule 19): `presence.py`."""
+        """Registrar `name` of another process is gone for good (rule 19): `Presence`."""
         self.registrar._tell(PeerLost(name))
 
     def peer_reachable(self, name: str) -> None:
-        """Registrar `name` of another process answers again (a healed link): `presence.py`."""
+        """Registrar `name` of another process answers again (a healed link): `Presence`."""
         self.registrar._tell(PeerReachable(name))
 
     def yield_name(self, reason: str) -> None:
         """Another process's registrar of this name is kept (rule 22): this one unloads
-        what it serves and stops (`lifecycle.py`)."""
+        what it serves and stops (`Lifecycle`)."""
         self.registrar._tell(YieldName(reason))
 
 
@@ -925,10 +966,10 @@ def lost_everything(name: str, *, also: Iterable[str] = ()) -> None:
     DIRECTORY.broadcast(ReconcileAsk(name, holds_yours=False), also=also, skip=name)
 
 
-# -- the catalog as events -------------------------------------------------------------
+# -- the catalog as events (CatalogRestored, RegistrarStopped) ------------------------
 
 
-def _fields(shared: Shared) -> dict[str, object]:
+def _catalog_rows(shared: Shared) -> dict[str, object]:
     """The rows, counts and digest of a catalog event (see `CatalogRestored`).
 
     Up to `LISTED_ROWS` rows of each kind are listed, read from the backup as plain
@@ -971,10 +1012,10 @@ def _fields(shared: Shared) -> dict[str, object]:
 def publish_restored(shared: Shared) -> None:
     """Publish `CatalogRestored` (a registrar with a backup starts; its actor thread)."""
     if shared.events.active and shared.saver.store is not None:
-        shared.events.publish(events.CatalogRestored(shared.name, **_fields(shared)))  # type: ignore[arg-type]
+        shared.events.publish(events.CatalogRestored(shared.name, **_catalog_rows(shared)))  # type: ignore[arg-type]
 
 
 def publish_stopped(shared: Shared) -> None:
     """Publish `RegistrarStopped` (a clean stop gave back what it held; its actor thread)."""
     if shared.events.active:
-        shared.events.publish(events.RegistrarStopped(shared.name, **_fields(shared)))  # type: ignore[arg-type]
+        shared.events.publish(events.RegistrarStopped(shared.name, **_catalog_rows(shared)))  # type: ignore[arg-type]

@@ -1,11 +1,37 @@
-"""TODO"""
+"""Messages as data: what registrars tell each other and tell themselves, and what a load runs in.
+
+```
+ consumer ── Load Unload Abandon Fetch Reconcile ─────────────────────────► provider
+ provider ── StatusBatch StatusNotice Revoke ResponseUpdated ReconcileAsk ─► consumer
+ death watch ── ConsumerDown ─► every registrar of the other processes
+                                              (the wire: `WireMessage`s, they pickle)
+ registrar ── RunLoad RunUnload ─► its server actor; handle ── FetchVia ─► a client actor
+ timers, carriers, the membership ── Flush Crash Reachable PeerLost PeerReachable
+                                     YieldName ReconcileRetry Ping ─► the registrar
+ the handle ── RegisterServer Release Stop ... (each with its reply) ─► the registrar
+ a caller's thread ── Pending ClientLoaded CallFailed TakeOutcomes ─► the registrar
+                                              (the call protocol's own: `calls.py`)
+
+ a load callback's thread: LOADING = LoadContext(registrar, resource, chain)
+   ─► a call made there records a dependency (rule 5) and extends the chain (rule 6)
+   ─► what it raised: load_error ─► ResourceLoadError, one error_frame per registrar
+```
+
+Each is a frozen dataclass. A `reply` field holds where the answer goes: a local object
+in-process; a carrier replaces it by a token when the message crosses processes. A
+message from the handle carries its reply, and the handle sends it with `_ask`.
+
+To add a message: define it here, add it to the actor's one dispatch table (`DISPATCH`
+in `actor.py`: its step name and the role that handles it), and, for a wire message,
+make sure what it carries pickles (`docs/explanation/architecture.md`, "Adding a
+message").
+"""
 
 from __future__ import annotations
 
 import contextlib
 import contextvars
 import dataclasses
-import logging
 import traceback
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -26,7 +52,54 @@ from rr_actors.errors import (
     RrError,
 )
 
-logger = logging.getLogger("rr_actors")
+__all__ = [
+    "LOADING",
+    "MAX_DEPENDENCY_DEPTH",
+    "Abandon",
+    "Asked",
+    "ConsumerDown",
+    "Crash",
+    "Fetch",
+    "FetchVia",
+    "Flush",
+    "ListClientQueries",
+    "ListServerQueries",
+    "Load",
+    "LoadContext",
+    "OpenClient",
+    "PeerLost",
+    "PeerReachable",
+    "Ping",
+    "Reachable",
+    "Ready",
+    "Reconcile",
+    "ReconcileAsk",
+    "ReconcileRetry",
+    "RegisterServer",
+    "Release",
+    "ResponseUpdated",
+    "Revoke",
+    "RunLoad",
+    "RunOnActor",
+    "RunUnload",
+    "Save",
+    "SendStatus",
+    "SetStatusCallback",
+    "SettleInDoubt",
+    "Snapshot",
+    "StatusBatch",
+    "StatusNotice",
+    "Stop",
+    "Unload",
+    "UnregisterServer",
+    "UpdateResponse",
+    "YieldName",
+    "check_picklable",
+    "error_frame",
+    "give_back",
+    "load_error",
+    "misfit",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,7 +207,7 @@ class StatusBatch(WireMessage):
 
     `parts` holds (consumer registrar, its query ids) for each registrar of that process
     (as far as the provider knows) that holds the resource; the registrar it is sent to
-    delivers them all in one pass (`fanout.py`). The other fields are a `StatusNotice`'s.
+    delivers them all in one pass (`status.py`). The other fields are a `StatusNotice`'s.
     Answer: `{registrar: its process's key}` for every registrar reached, once the status
     was delivered along the whole path.
     """
@@ -219,7 +292,7 @@ class ConsumerDown(WireMessage):
     """Death watch -> a registrar of another process: registrar `origin_rr` died (or, with
     `stopped`, was stopped) and will not come back: the mark on the wire.
 
-    Its receiver feeds it into its process's membership (`presence.py`), which tells
+    Its receiver feeds it into its process's membership (`life.py`'s presence), which tells
     every registrar there `PeerLost`: the ids `origin_rr` held there are released, and
     (not `stopped`) the ids held at it get `FATAL` and are forgotten (rule 19)."""
 
@@ -415,7 +488,7 @@ class Reachable:
 class PeerLost:
     """This process's membership (`rr_actors._core.membership`): registrar `name` is gone
     and nobody will restart it (rule 19), or, with `stopped`, it was stopped for good (it
-    holds nothing: rule 12). The one local message for "lost"; handled by `presence.py`."""
+    holds nothing: rule 12). The one local message for "lost"; handled by `life.py`'s `Presence`."""
 
     name: str
     stopped: bool = False
@@ -424,7 +497,7 @@ class PeerLost:
 @dataclasses.dataclass(frozen=True)
 class PeerReachable:
     """A carrier: registrar `name` of another process can be reached again after it could
-    not be (a healed link, not a restart). Handled by `presence.py`."""
+    not be (a healed link, not a restart). Handled by `life.py`'s `Presence`."""
 
     name: str
 
@@ -433,7 +506,7 @@ class PeerReachable:
 class YieldName:
     """A carrier: another process serves this registrar's name too and is kept (rule 22);
     the carrier stopped serving this one. It unloads what it serves, then stops (`reason`
-    says why). Handled by `lifecycle.py`."""
+    says why). Handled by `life.py`'s `Lifecycle`."""
 
     reason: str
 
@@ -441,7 +514,7 @@ class YieldName:
 @dataclasses.dataclass(frozen=True)
 class ReconcileRetry:
     """Presence's own timer: send `Reconcile` attempt `attempt` of round `round` to `name`
-    (the last one failed, or was not answered in time). Handled by `presence.py`."""
+    (the last one failed, or was not answered in time). Handled by `life.py`'s `Presence`."""
 
     name: str
     round: int

@@ -1,4 +1,57 @@
-"""TODO"""
+"""The provider side of a registrar actor: a resource's life, loaded once, shared, unloaded once.
+
+```
+ Load ─► Provider.on_load ── its query id known? a retry: the stored response, or it
+   │          waits again; an id reused for another call: DuplicateQueryIdError (rule 2)
+   │   ── an equal request loaded? ──yes──► share: one more consumer id (a dedup hit)
+   │   │      (user code, a request's __hash__ and __eq__, off the actor: Matching)
+   │   ├── loading? ──► wait for it (one load per resource, rule 3)
+   │   ├── unloading? ──► parked until it is gone (Teardown.when_gone), then afresh
+   │   └── new ──► start_load ─RunLoad─► ServerActor ─► a worker: load(request) in a
+   │               LoadContext (its calls are its dependencies, rule 5), or a task of
+   │               the process's loop (async def) ─► load_done ─► answer its waiters
+   │               (a failure: its dependencies released, then it is forgotten, rule 4)
+ Unload / Abandon ─► Unloading.release(id) ── its load under way? ─► give_up
+   │                                    └── the last consumer id? ─► unload_resource
+   ▼
+ Teardown.unload_resource ─► its dependencies released (`consumer.py`'s Releases)
+   ─RunUnload─► ServerActor ─► unload(request, response) ─► remove_resource: written
+   at once with its ResourceUnloaded ─► the loads parked behind it ─► its waiters
+ Servers: RegisterServer (its restored resources' parked unloads run), UnregisterServer
+   (FATAL to its consumers through `status.py`, their ids revoked, each resource
+   unloaded: rule 12), Fetch (rule 10), UpdateResponse (rule 11), give_up_all (the name
+   yielded, rule 22: every consumer id released unsaid, every resource unloaded)
+ Reconcile (a consumer's list) ─► Unloading.on_reconcile: the ids it no longer holds
+   released, those held here that this one lost named; it serves again ─►
+   ask_to_reconcile: ReconcileAsk to every consumer holding ids here (rule 20)
+```
+
+A resource belongs to its server; its consumers are query ids (one per call, rule 2). A
+resource its provider reported `FATAL` (`Resource.failed`) is no equal request's match,
+also one reported so while user code compared: the request is loaded afresh beside it
+(rule 1; `status.py` marks it).
+
+The registrar's actor never waits for user code: an `__eq__` that hangs would stall every
+server, status and unload of the registrar, and one that raises `SystemExit` would end
+pykka's actor loop. Plain values (with a digest: built-in strings, numbers, containers of
+them, `rr_actors._catalog.digest`) are compared on the actor; whatever else must be judged
+by user code runs on a worker (`Matching.run`), bounded by `compare_timeout`: an
+`Exception` from `__eq__` means "different", anything else fails that call with
+`ConfigError`, and one past the bound with `CallTimeoutError` (the worker is abandoned).
+Loads of one server are matched one at a time while user code decides, so two equal
+requests without a digest cannot both miss each other and load twice (rule 3).
+
+A server's callbacks that are coroutine functions run as tasks of the process's own event
+loop (`_core/loops.py`): a load that awaits holds no thread. The rules are the blocking
+ones': loads of one server run concurrently, a hung load fails its callers at their
+`timeout` (rule 17), an unload is bounded by `unload_timeout` (past it, it is cancelled
+rather than abandoned on its thread), and the tasks still running when the server stops
+are cancelled.
+
+Each part owns its state: the loads and their waiters (`Provider`), the loads whose match
+user code decides (`Matching`), the unloads under way, parked or waited for (`Teardown`);
+`Unloading` has none, it changes the catalog's consumers and asks the others.
+"""
 
 from __future__ import annotations
 
@@ -69,34 +122,37 @@ from rr_actors.errors import (
     _known_names,
 )
 
+__all__ = [
+    "Matching",
+    "Provider",
+    "ServerActor",
+    "Servers",
+    "Teardown",
+    "Then",
+    "Unloading",
+    "first_equal",
+    "prepare",
+    "published_load",
+]
+
 logger = logging.getLogger("rr_actors")
 
 
 class Provider:
-    """Serves this registrar's resources to consumers (its own calls included).
-
-    Attributes:
-        loads: resource id -> the callers waiting for its load.
-        loading_ids: a waiting caller's query id -> the resource it waits for.
-        abandoned: query ids whose callers gave up while their load ran.
-        held_loads: loads for servers `setup` has not registered yet.
-        after_unload: resource id -> loads of an equal request, parked until it unloaded.
-        load_started: resource id -> when its load started (`time.monotonic()`).
-        labelling: resource id -> its load's end, waiting for its label (`None`: the load
-            still runs), of the loads whose server's `label` a worker makes.
-        matching: loads whose match user code decides, off the actor thread.
-    """
+    """Serves this registrar's resources to consumers (its own calls included)."""
 
     def __init__(self, shared: Shared, releases: Releases, teardown: Teardown) -> None:
         self.registrar = shared
         self.releases = releases
         self.teardown = teardown
-        self.loads: dict[str, list[Waiter]] = {}
-        self.loading_ids: dict[str, str] = {}
-        self.abandoned: set[str] = set()
-        self.held_loads: list[Load] = []
-        self.after_unload: dict[str, list[Load]] = {}
-        self.load_started: dict[str, float] = {}
+        self.loads: dict[str, list[Waiter]] = {}  # resource id -> the callers waiting for it
+        self.loading_ids: dict[str, str] = {}  # a waiting caller's query id -> its resource
+        self.abandoned: set[str] = set()  # query ids whose callers gave up while it loaded
+        self.held_loads: list[Load] = []  # for servers `setup` has not registered yet
+        self.after_unload: dict[str, list[Load]] = {}  # resource id -> loads parked behind
+        self.load_started: dict[str, float] = {}  # resource id -> when (`time.monotonic()`)
+        # resource id -> its load's end, waiting for the label a worker makes (`None`: the
+        # load still runs)
         self.labelling: dict[str, Callable[[], None] | None] = {}
         self.matching = Matching(shared, self.serve)
 
@@ -556,25 +612,14 @@ def first_equal(request: Any, candidates: list[Any]) -> int | None:
 
 
 class Matching:
-    """The loads whose match user code decides, per server (the provider's helper).
-
-    Args:
-        shared: the registrar actor's shared state.
-        serve: serves a load (`Provider.serve`); called here for the loads that queued
-            behind a match, once it is done.
-
-    Attributes:
-        in_flight: server -> the load whose user code runs on a worker now.
-        queued: server -> loads of that server that arrived meanwhile, in order.
-        given_up: query ids of loads in flight whose caller gave up (an `Abandon`).
-    """
+    """The loads whose match user code decides, per server, one at a time."""
 
     def __init__(self, shared: Shared, serve: Callable[[Load], None]) -> None:
         self.registrar = shared
-        self.serve = serve
-        self.in_flight: dict[str, Load] = {}
-        self.queued: dict[str, collections.deque[Load]] = {}
-        self.given_up: set[str] = set()
+        self.serve = serve  # (`Provider.serve`: for the loads queued behind a match)
+        self.in_flight: dict[str, Load] = {}  # server -> the load user code decides now
+        self.queued: dict[str, collections.deque[Load]] = {}  # server -> loads meanwhile
+        self.given_up: set[str] = set()  # ids of loads in flight whose caller gave up
 
     def busy(self, server: str) -> bool:
         """Whether a match of `server` runs: its loads must `queue`."""
@@ -593,13 +638,8 @@ class Matching:
         raised anything else (`SystemExit`, ...); `CallTimeoutError` if it overran
         `compare_timeout`; `RuntimeError` if no thread could run it. Once `then`
         returned, the loads queued behind this one are served, in order, until one of
-        them needs a match of its own.
-
-        Args:
-            load: the load being matched.
-            what: what the work does, for error messages ("comparing the request").
-            work: runs on a worker thread.
-            then: the continuation, on the actor thread.
+        them needs a match of its own. `what` says what the work does, for error
+        messages ("comparing the request").
         """
         server = load.server
         self.in_flight[server] = load
@@ -887,7 +927,7 @@ class Unloading:
         self.release(message.query_id, None, "abandoned")
 
     def release_all_of(self, origin_rr: str) -> None:
-        """Consumer `origin_rr` is gone for good (`presence.py`: the death watch, or a
+        """Consumer `origin_rr` is gone for good (`life.py`'s presence: the death watch, or a
         carrier's `peer_lost`): release every id it held here (each `unload` runs once;
         a second call finds none), and give up its loads under way here (each is
         unloaded once it ends: an answer to a lost consumer may be dropped unseen, as
@@ -1014,26 +1054,18 @@ class Unloading:
 
 
 class Teardown:
-    """Unloads this registrar's resources and forgets them once they are gone.
-
-    Attributes:
-        unload_waiters: resource id -> replies waiting for its unload to finish.
-        parked_unloads: server name -> unloads of restored resources waiting for the
-            server to be registered again.
-        gone: resource id -> what runs once it is gone (`when_gone`).
-        under_way: resource id -> resource, of the unloads under way: their dependencies
-            being released or their `unload` callback running (not those parked).
-        idle: what runs once no unload is under way (`when_idle`).
-    """
+    """Unloads this registrar's resources and forgets them once they are gone."""
 
     def __init__(self, shared: Shared, releases: Releases) -> None:
         self.registrar = shared
         self.releases = releases
-        self.unload_waiters: dict[str, list[Reply]] = {}
+        self.unload_waiters: dict[str, list[Reply]] = {}  # resource id -> who waits for it
+        # server name -> unloads of restored resources waiting for it to be registered
         self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
-        self.gone: dict[str, list[Callable[[], None]]] = {}
+        self.gone: dict[str, list[Callable[[], None]]] = {}  # id -> what runs when it is gone
+        # resource id -> resource, of the unloads under way (not those parked)
         self.under_way: dict[str, Resource] = {}
-        self.idle: list[Callable[[], None]] = []
+        self.idle: list[Callable[[], None]] = []  # what runs once none is under way
 
     def unload_resource(self, resource: Resource, reply: Reply | None) -> None:
         """The last consumer left: release the dependencies, then run `unload` (rule 7)."""

@@ -1,4 +1,31 @@
-"""TODO"""
+"""What every part of one registrar actor shares: its record, and the probes on its steps.
+
+```
+ Shared: the registrar's record, held by each part as `self.registrar` (the actor's
+ thread only, but `probes`)
+   config, name       its configuration
+   catalog            what it serves and holds (`_catalog`): the actor its one writer
+   saver              the save policy over its backup (or over nothing)
+     commit(*told)    the catalog's changes to the saver with the events that tell of
+                      them (written now: one transaction), then published; a failed
+                      write (a full disk) is returned, the changes kept pending
+     unwritable()     why a durable registrar refuses new loads now
+   phase              SETTING_UP ─ready─► SERVING ─stop─► STOPPING ─► ENDED (death: ENDED)
+   servers            server name ─► Server(ref, on_status, closing, label);
+                      servers_settled: setup returned, a server it did not bring back
+                      is gone for good
+   workers            the threads that run user callbacks
+   tokens, ref        come_back(then), send(target, make, then): the answer to what it
+                      asks comes back through its mailbox (the actor never waits)
+   events             its publisher: an event is built only while it is `active`
+   held_in_doubt      restored in-doubt ids whose settling waits for `setup` (rule 16)
+   probes             Probes: hooks on named steps (`rr_actors.testing.intercept`);
+                      a message's step, or a POINT inside one (`probe(step, subject)`)
+```
+
+A name that no step has raises `ConfigError` in `intercept`, so renaming a step cannot
+turn a race test into one that passes without racing anything.
+"""
 
 from __future__ import annotations
 
@@ -21,6 +48,19 @@ from rr_actors._store import Saver
 from rr_actors._types import StatusCallback
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CatalogWriteError, RrError
+
+__all__ = [
+    "NO_REPLY",
+    "POINTS",
+    "Hook",
+    "OpenReply",
+    "Phase",
+    "Probes",
+    "Server",
+    "Shared",
+    "Waiter",
+    "consumers_by_origin",
+]
 
 logger = logging.getLogger("rr_actors")
 
@@ -48,8 +88,7 @@ class Phase(enum.Enum):
 
 @dataclasses.dataclass
 class Server:
-    """A registered resource server: its actor, its status callback, whether it closes,
-    and its `label(request)` (`display.py`)."""
+    """A registered resource server (its `label(request)`: `display.py`)."""
 
     name: str
     ref: pykka.ActorRef[Any]  # (a `provider.ServerActor`)
@@ -108,30 +147,7 @@ NO_REPLY: Reply = _NoReply()
 
 
 class Shared:
-    """The registrar's record: what every role of its actor reads (as `self.registrar`).
-
-    Only the actor's thread touches it (but `probes`, read by callers' threads too).
-
-    Attributes:
-        config: the registrar's configuration.
-        name: its name.
-        catalog: its catalog; the actor is the only writer.
-        saver: the save policy over its backup (or over nothing).
-        peer: its entry in the directory.
-        phase: where it is in its life.
-        servers_settled: `start(setup=)` finished, so a restored resource of a server
-            that setup did not register is released without its unload callback.
-        servers: resource server name -> `Server`.
-        workers: the threads that run user callbacks.
-        tokens: continuations waiting for answers to this actor's own questions.
-        probes: test probes on named steps (`rr_actors.testing.intercept`), or `None`.
-        ref: the actor's own ref (set when it starts).
-        events: where its events are published (`ResourceRegistrar.subscribe`); build an
-            event only when it is `active`.
-        held_in_doubt: ids of restored in-doubt resources whose settling is kept out of
-            the backup until the manager's `setup` returned (or the manager settled them:
-            `settle_in_doubt`), so a crash during `setup` offers them again (rule 16).
-    """
+    """The registrar's record: what every part of its actor reads and writes."""
 
     def __init__(
         self,
@@ -176,7 +192,7 @@ class Shared:
 
         Args:
             told: the events of the changes (built only when `events.active`).
-            now: write them now whatever the save policy (an unload: `teardown.py`).
+            now: write them now whatever the save policy (an unload: `Teardown`).
 
         Returns:
             `None`, or the error of a write that failed (a full disk): the changes stay
@@ -217,11 +233,7 @@ class Shared:
             self.events.publish(event)
 
     def settle_held(self, rids: set[str]) -> CatalogWriteError | None:
-        """Write what became of held in-doubt resources `rids`: they are settled now.
-
-        Returns:
-            What `commit` returns.
-        """
+        """Write what became of held in-doubt resources `rids` (settled now), as `commit`."""
         for rid in rids & self.held_in_doubt:
             self.held_in_doubt.discard(rid)
             self.catalog.mark_changed(rid)

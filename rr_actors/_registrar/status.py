@@ -1,4 +1,46 @@
-"""TODO"""
+"""Status notifications: sent, fanned out in one pass per process, climbing every dependency
+path to the top (rule 9, thesis 4.2.4).
+
+```
+ send_status(id) ─► StatusRelay.notify(resource): a FATAL marks it failed first; its
+   server's on_status once; then its consumer registrars, by process (Routes.plan):
+   this process ──────────► DESK.deliver(parts), on this actor's thread
+   another process, known ─► one StatusBatch to that process's relay (a registrar there,
+                             the same one each time: notices keep their order); a
+                             registrar alone there: a StatusNotice
+   not known yet ─────────► a StatusBatch to the consumer registrar itself; every
+                             answer says which process each one it reached is in
+ a StatusBatch at a relay ─► on_status_batch ─► DESK.deliver(parts), on its thread
+ DESK.deliver, per consumer registrar of its process (what it published: StatusTargets)
+   an id with a callback, loaded, not a dependency, its answer not due ─► the callback,
+     queued on the process's Runner (no trip through that registrar's mailbox)
+   any other id (a dependency to climb, an answer on its way) ─► a StatusNotice
+   a registrar that moved elsewhere ─► its part, forwarded to it
+ StatusNotice at a consumer ─► on_status_notice: each client's callback; a dependency ─►
+   notify(its parent resource) ─► ... to the top
+ acknowledgements: one SharedJoin per status, counted where they arrive; the last one
+   answers the sender
+```
+
+A `FATAL` its provider sends about a resource marks it `failed` in the catalog first
+(`Catalog.mark_failed`, stored): no equal request matches it any more, a new call loads
+a new resource, and the dead one stays with its consumers until they release it. A
+`FATAL` that climbs from a dependency does not mark the resources above it: their
+provider hears it (`on_status`) and decides, repairs it or sends `FATAL` about it itself.
+
+A `send_status` is one event (a UUID): a callback reached twice through a diamond of
+dependencies runs once, and the desk delivers each (event, id) pair once, so a batch sent
+again after its relay failed does not run a callback twice. Callbacks run on worker
+threads, so a callback may call `call`, `unload` or `send_status` on any registrar
+without deadlock. The runner runs the callbacks of the whole process in the order they
+arrived, each consumer id's one at a time, on as few worker threads as keeps them going:
+one while each callback returns at once; another as soon as every one of them is inside
+a callback when more arrive (a callback that calls `send_status`), or once one has run a
+callback for `SLICE` seconds (a slow or hung callback holds its own thread, never the
+other consumers' callbacks, nor, after `SLICE`, its own next one). Each consumer
+registrar's actor is the only writer of what the desk reads of it (one dict assignment
+each, `consumer.py`'s `Holdings`); the desk reads single entries.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +52,7 @@ import time
 import uuid
 import weakref
 from collections.abc import Callable, Iterable
-from typing import Any, Protocol
+from typing import Any
 
 from rr_actors import events
 from rr_actors._catalog import Resource
@@ -20,11 +62,24 @@ from rr_actors._core.loops import OnLoop
 from rr_actors._core.replies import CallbackReply, SharedJoin
 from rr_actors._core.workers import Job, Workers
 from rr_actors._platform import fork
+from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.consumer import Flights, Holdings
 from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice
 from rr_actors._registrar.state import NO_REPLY, Shared, consumers_by_origin
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors.errors import ConfigError, RrError
+
+__all__ = [
+    "DESK",
+    "SLICE",
+    "Desk",
+    "Parts",
+    "Routes",
+    "Runner",
+    "StatusRelay",
+    "StatusTargets",
+    "process",
+]
 
 logger = logging.getLogger("rr_actors")
 
@@ -336,24 +391,13 @@ Parts = tuple[tuple[str, tuple[str, ...]], ...]
 """(consumer registrar, its query ids) of one status, one entry per registrar."""
 
 
-class Due(Protocol):
-    """The ids whose call answers are on their way (`calls.DueAnswers`): read by any thread."""
-
-    def __contains__(self, query_id: str) -> bool: ...
-
-
 class StatusTargets:
-    """What the desk reads of one registrar: the ids a status reaches without its mailbox.
-
-    `entries` maps each id it holds with a status callback (loaded, not a dependency) to
-    its query and callback. Only the registrar's actor writes it (the `Holdings` role),
-    one assignment or `pop` at a time; the desk of its process reads single entries on
-    another registrar's actor thread.
-    """
+    """What the desk reads of one registrar: the ids a status reaches without its mailbox
+    (`entries`: id -> its query and callback, written by its `Holdings` only)."""
 
     __slots__ = ("__weakref__", "due", "entries", "events", "name")
 
-    def __init__(self, name: str, published: Publisher[events.Event], due: Due) -> None:
+    def __init__(self, name: str, published: Publisher[events.Event], due: DueAnswers) -> None:
         self.name = name
         self.events = published
         self.due = due
@@ -405,7 +449,7 @@ class _Drainer:
 
 
 class Runner:
-    """Runs the status callbacks of this process (see the module doc).
+    """Runs the status callbacks of this process (the module's last paragraph).
 
     Calls are taken in arrival order; a call waits while an earlier callback of the same
     query id runs (so each consumer hears its statuses in order, one at a time), unless

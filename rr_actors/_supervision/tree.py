@@ -313,7 +313,7 @@ def consumer_down(
     good, and every living registrar is told.
 
     Its consumers' ids are released where it held them, and the ids held at it get
-    `FATAL` at their consumers (rule 19; `_registrar/presence.py`). With `stopped` (it
+    `FATAL` at their consumers (rule 19; `_registrar/life.py`, its presence). With `stopped` (it
     was stopped cleanly and will not be started again), only the first: what it still
     holds anywhere is stale (rule 12).
 
