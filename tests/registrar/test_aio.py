@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from tests.conftest import MakeRegistrar, Shared
+from tests.registrar.conftest import MakeRegistrar, Shared
 from tests.support.gating import GatedLoad
 
 
