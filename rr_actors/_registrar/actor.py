@@ -46,7 +46,7 @@ from typing import Any
 import pykka
 
 from rr_actors import events
-from rr_actors._catalog import Catalog, ResourceState
+from rr_actors._catalog import Catalog
 from rr_actors._catalog.texts import plain_text
 from rr_actors._core.actor import Actor, OneShotFuture
 from rr_actors._core.bus import Publisher
@@ -56,7 +56,7 @@ from rr_actors._core.throttle import LogThrottle
 from rr_actors._platform import fork
 from rr_actors._registrar.calls import CallFailed, ClientLoaded, DueAnswers, Pending, TakeOutcomes
 from rr_actors._registrar.consumer import Answers, Clients, Flights, Holdings, Reconciling, Releases
-from rr_actors._registrar.life import Lifecycle, Presence, Restoring
+from rr_actors._registrar.life import Lifecycle, Presence, Restoring, cut_short
 from rr_actors._registrar.messages import (
     Abandon,
     ConsumerDown,
@@ -298,11 +298,11 @@ class RegistrarActor(Actor):
             self.teardown,
             self.restoring,
             self.flights,
-            self.holdings,
             self.releases,
             self.reconciling,
             self.presence,
             self.servers,
+            clients,
             self,
             died,
             ended,
@@ -450,7 +450,7 @@ def launch(
     saver: Saver | None = None
     try:
         saver, catalog, restored = open_catalog(config)
-        doubtful = [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]
+        doubtful = cut_short(catalog)
         in_doubt = tuple(
             Query(r.id, r.server, config.name, config.name, r.request, r.response) for r in doubtful
         )

@@ -759,15 +759,11 @@ class Holdings:
         reply.set_result([r.query for r in self.registrar.catalog.clients.values() if r.loaded])
 
     def on_open_client(self, message: OpenClient, reply: Reply) -> None:
-        reply.set_result(self.client(message.target_rr, message.server))
-
-    def client(self, target_rr: str, server: str) -> pykka.ActorRef[ClientActor]:
         """The client actor for `target_rr/server`, started on first use (thesis 4.3.3)."""
-        assert self.registrar.ref is not None
-        return self.clients.start(self.registrar.ref, self.registrar.name, target_rr, server)
-
-    def stop_clients(self) -> None:
-        self.clients.stop_all()
+        ref = self.registrar.ref
+        assert ref is not None
+        client = self.clients.start(ref, self.registrar.name, message.target_rr, message.server)
+        reply.set_result(client)
 
 
 # -- releases --------------------------------------------------------------------------

@@ -64,14 +64,14 @@ from typing import Any, Protocol
 import pykka
 
 from rr_actors import events
-from rr_actors._catalog import ClientRecord, Resource, ResourceState
+from rr_actors._catalog import Catalog, ClientRecord, Resource, ResourceState
 from rr_actors._core.actor import Actor, OneShotFuture, refuse
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply
 from rr_actors._core.timers import Cancellable, Timer, thread_timer
 from rr_actors._registrar.calls import ClientLoaded
-from rr_actors._registrar.consumer import Flights, Holdings, Reconciling, Releases
+from rr_actors._registrar.consumer import Clients, Flights, Holdings, Reconciling, Releases
 from rr_actors._registrar.messages import (
     ConsumerDown,
     Crash,
@@ -115,6 +115,7 @@ __all__ = [
     "Served",
     "back",
     "check_network",
+    "cut_short",
     "gone",
     "gone_for_good",
     "lost_everything",
@@ -156,11 +157,11 @@ class Lifecycle:
         teardown: Teardown,
         restoring: Restoring,
         flights: Flights,
-        holdings: Holdings,
         releases: Releases,
         reconciling: Reconciling,
         presence: Presence,
         servers: Servers,
+        clients: Clients,
         actor: Actor,
         died: threading.Event,
         ended: OneShotFuture[None],
@@ -171,10 +172,10 @@ class Lifecycle:
         self.teardown = teardown
         self.restoring = restoring
         self.flights = flights
-        self.holdings = holdings
         self.releases = releases
         self.reconciling = reconciling
         self.presence = presence
+        self.clients = clients  # its client actors, stopped with it
         self.actor = actor  # (the actor machinery only: its mailbox, `end_now`)
         self.died = died  # set once a crash was fully handled (death watch included)
         self.ended = ended  # set once the actor's thread handed on its last message
@@ -409,7 +410,7 @@ class Lifecycle:
     def stop_children(self) -> None:
         for server in self.registrar.servers.values():
             server.ref.stop(block=True, timeout=5.0)
-        self.holdings.stop_clients()
+        self.clients.stop_all()
 
     # -- death --------------------------------------------------------------------------
 
@@ -467,6 +468,11 @@ class Lifecycle:
 # -- restoring -------------------------------------------------------------------------
 
 
+def cut_short(catalog: Catalog) -> list[Resource]:
+    """The restored resources a crash cut short: neither loaded nor unloaded (rule 16)."""
+    return [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]
+
+
 class Restoring:
     """Settles what the last run left in doubt, and sweeps the restored catalog."""
 
@@ -502,7 +508,7 @@ class Restoring:
         until the manager settles them (`on_settle_in_doubt`).
         """
         catalog = self.registrar.catalog
-        doubtful = [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]
+        doubtful = cut_short(catalog)
         self.in_doubt_ids = frozenset(r.id for r in doubtful)
         if self.hold_in_doubt:
             self.registrar.held_in_doubt.update(self.in_doubt_ids)

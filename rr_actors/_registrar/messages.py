@@ -597,13 +597,8 @@ MAX_DEPENDENCY_DEPTH = 64
 
 @dataclasses.dataclass(frozen=True)
 class LoadContext:
-    """What is being loaded on the current thread (read by `call` to record dependencies).
-
-    Attributes:
-        registrar: name of the registrar whose server runs the load.
-        resource_id: id of the resource being loaded.
-        chain: ids of the resources being loaded on the way here, this one last.
-    """
+    """What is being loaded on the current thread (read by `call` to record dependencies):
+    `chain` holds the ids of the resources being loaded on the way here, this one last."""
 
     registrar: str
     resource_id: str
@@ -637,15 +632,9 @@ def error_frame(
     *,
     with_traceback: bool = True,
 ) -> ErrorFrame:
-    """The frame a failed load adds to a `ResourceLoadError`'s stack (the one builder).
-
-    Args:
-        registrar: the registrar whose server failed.
-        server: that server's name.
-        exc: what failed it.
-        message: what to say (default: `str(exc)`).
-        with_traceback: whether the frame carries `exc`'s formatted traceback.
-    """
+    """The frame a failed load adds to a `ResourceLoadError`'s stack (the one builder):
+    `message` says what failed (`str(exc)` by default), with `exc`'s formatted traceback
+    unless `with_traceback` is false."""
     return ErrorFrame(
         registrar=registrar,
         server=server,
