@@ -1,8 +1,7 @@
 """The resource registrar: its handle, its actor (in a few modules, by side), its messages.
 
 ```
- handle       ResourceRegistrar, what user code holds; aio: its awaitable twins;
-              protocol: the `Registrar` API both placements implement
+ handle       ResourceRegistrar, what user code holds; aio: its awaitable twins
  actor        the registrar actor: started (`launch`), its dispatch table
  life         its life: start, restore, presence (peers lost, reachable), stop, death,
               the death watch; `Served`: how a carrier sees it
@@ -15,6 +14,7 @@
  display      display texts, made once, user code off the actor
  state        the record every part shares, the probes on its steps
  messages     everything they tell each other, as data; what a load callback runs in
+ protocol     the `Registrar` API both placements implement (its callbacks' types)
 ```
 
 Each module calls only those listed below it (`pyproject.toml`, "Inside the registrar").
