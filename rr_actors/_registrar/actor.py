@@ -445,7 +445,8 @@ def launch(
     elif not isinstance(config, RegistrarConfig):
         raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
     fork.check_usable(f"registrar {config.name!r}")
-    peer = LocalPeer(config.name, None)
+    durable = config.save_on_modify and config.backup_path is not None
+    peer = LocalPeer(config.name, None, durable=durable)
     DIRECTORY.register(peer)
     saver: Saver | None = None
     try:

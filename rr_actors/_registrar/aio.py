@@ -346,7 +346,7 @@ class StatusWatch:
         self._registrar = registrar
         self.query_id = query_id
         self._maxsize = maxsize
-        self._updates: asyncio.Queue[StatusUpdate] | None = None
+        self._updates: asyncio.Queue[StatusUpdate | None] | None = None  # None: closed
         self._closed = False
         self._ended = False
         self.dropped = 0
@@ -389,13 +389,21 @@ class StatusWatch:
         await self.open()
         assert self._updates is not None
         update = await self._updates.get()
+        if update is None:  # closed while this waited (`aclose`)
+            raise StopAsyncIteration
         if update.status is Status.FATAL:
             self._ended = True
         return update
 
     async def aclose(self) -> None:
-        """Stop collecting: updates that come later are dropped; iteration ends."""
+        """Stop collecting: updates that come later are dropped; iteration ends, also
+        for a reader that waits for the next update (in another task of the loop)."""
         self._closed = True
+        updates = self._updates
+        if updates is not None:  # wake a reader waiting for the next update: it ends
+            if updates.full():
+                updates.get_nowait()  # (unread: a closed watch gives nothing more)
+            updates.put_nowait(None)
 
     async def __aenter__(self) -> StatusWatch:
         return await self.open()

@@ -572,7 +572,9 @@ class Calls:
         after this. From an event loop's thread (an awaited call), an idle provider of
         this process handles the load in its turn on that thread, as a carrier's
         receiving thread may (`_core/actor.py`): a dedup hit is answered before the
-        call awaits anything, and the loop is not woken from another thread.
+        call awaits anything, and the loop is not woken from another thread. A durable
+        provider's load (`save_on_modify`) goes to its own thread: its commit would
+        hold the loop (`LocalPeer.deliver`).
         """
         if reply.attempt.sent() is not AttemptState.SENT:  # this registrar stopped
             return  # meanwhile and failed it: nothing to send

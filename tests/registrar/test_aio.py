@@ -13,11 +13,13 @@ import concurrent.futures
 import itertools
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 import rr_actors as rr
+from rr_actors.testing import intercept
 from tests.registrar.conftest import MakeRegistrar, Shared
 from tests.support.gating import GatedLoad
 
@@ -121,6 +123,36 @@ def test_awaited_calls_in_flight_hold_no_thread_each(make_registrar: MakeRegistr
     assert [] == provider.server_queries("slow")
 
 
+@pytest.mark.thread_only("reads which thread handles the provider's load, in this process")
+@pytest.mark.parametrize(
+    ("durable", "on_the_loop"),
+    [(False, True), (True, False)],
+    ids=["in-memory provider: in the turn", "durable provider: its own thread"],
+)
+def test_an_awaited_dedup_hit_is_handled_on_the_loops_thread_unless_the_provider_commits_it(
+    make_registrar: MakeRegistrar, tmp_path: Path, durable: bool, on_the_loop: bool
+) -> None:
+    # A durable provider's load step commits to its backup (an fsync with
+    # durability="power"): run on the loop's thread, it would stall every task there.
+    stored: dict[str, Any] = (
+        {"backup_path": str(tmp_path / "p.db"), "save_on_modify": True} if durable else {}
+    )
+    provider, consumer = make_registrar("provider", **stored), make_registrar("consumer")
+    provider.register_server("leaf", load=lambda r: r, unload=_drop)
+    first = consumer.call(provider.name, "leaf", "r")
+    handled_on: list[int] = []
+
+    async def main() -> tuple[int, rr.Query]:
+        return threading.get_ident(), await consumer.acall(provider.name, "leaf", "r")
+
+    with intercept(provider, "load", before=lambda _load: handled_on.append(threading.get_ident())):
+        loop_thread, hit = asyncio.run(main())
+
+    assert [on_the_loop] == [ident == loop_thread for ident in handled_on]
+    for query in (hit, first):
+        consumer.unload(query.id)
+
+
 @pytest.mark.thread_only("watch needs the registrar that holds the query in this process")
 def test_watch_yields_a_querys_statuses_in_order_and_ends_after_fatal(
     make_registrar: MakeRegistrar,
@@ -142,6 +174,35 @@ def test_watch_yields_a_querys_statuses_in_order_and_ends_after_fatal(
         (rr.Status.WARNING, "warning"),
         (rr.Status.FATAL, "fatal"),
     ] == seen
+    consumer.unload(query.id)
+
+
+@pytest.mark.thread_only("watch needs the registrar that holds the query in this process")
+def test_closing_a_watch_ends_the_iteration_of_a_reader_waiting_in_another_task(
+    make_registrar: MakeRegistrar,
+) -> None:
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    provider.register_server("leaf", load=lambda r: r, unload=_drop)
+    query = consumer.call(provider.name, "leaf", "r")
+
+    async def main() -> list[str]:
+        watch = await consumer.watch(query.id).open()
+        heard: list[str] = []
+        first = asyncio.Event()
+
+        async def read() -> list[str]:
+            async for update in watch:
+                heard.append(update.message)
+                first.set()
+            return heard
+
+        reader = asyncio.ensure_future(read())
+        await provider.asend_status(query.id, rr.Status.UPDATE, "one")
+        await asyncio.wait_for(first.wait(), 5)  # it read "one"; now it waits for more
+        await watch.aclose()
+        return await asyncio.wait_for(reader, 5)  # (it waited forever: no update comes)
+
+    assert ["one"] == asyncio.run(main())
     consumer.unload(query.id)
 
 
