@@ -27,6 +27,7 @@ import importlib.metadata
 import json
 import math
 import sys
+import textwrap
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TextIO
@@ -463,19 +464,31 @@ def _certs(args: argparse.Namespace, out: TextIO) -> int:
         pem, key = certs.init_ca(args.dir, args.system, force=args.force)
         out.write(
             f"wrote {pem} and {key} (0600)\n"
-            f"ca.key stays here: whoever holds it can make members. "
-            f"Next: rr-actors certs issue {args.dir} NAME --address ADDR\n"
+            + _words(
+                "ca.key stays here: whoever holds it can make members. Next, each host's "
+                "certificate:"
+            )
+            + f"    rr-actors certs issue {args.dir} NAME --address ADDR\n"
         )
         return 0
     pem, key = certs.issue_cert(args.dir, args.name, args.address, days=args.days, force=args.force)
     ca = pem.parent / "ca.pem"
     out.write(
         f"wrote {pem} and {key} (0600)\n"
-        f"Next: copy {ca}, {pem} and {key} to the host {args.name} (keep {key} 0600; "
-        f"ca.key stays here), and name {args.name!r} in every host's "
-        f"rr.ZenohTLS(members=[...])\n"
+        + _words(
+            f"Next: copy {ca}, {pem} and {key} to the host {args.name} (keep {key} 0600; "
+            f"ca.key stays here), and name {args.name!r} in every host's "
+            f"rr.ZenohTLS(members=[...])"
+        )
     )
     return 0
+
+
+def _words(text: str, width: int = 80) -> str:
+    """`text` wrapped at words to `width` columns, each line ended; a path or a name is
+    never cut (it stands alone on a line when it is longer)."""
+    lines = textwrap.wrap(text, width, break_long_words=False, break_on_hyphens=False)
+    return "".join(f"{line}\n" for line in lines)
 
 
 COMMANDS: list[Command] = [

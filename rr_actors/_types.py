@@ -7,7 +7,15 @@ import enum
 from collections.abc import Awaitable, Callable
 from typing import Any, Protocol
 
-__all__ = ["Query", "Setup", "Status", "StatusCallback", "StatusUpdate"]
+__all__ = [
+    "LoadCallback",
+    "Query",
+    "Setup",
+    "Status",
+    "StatusCallback",
+    "StatusUpdate",
+    "UnloadCallback",
+]
 
 
 class Setup(Protocol):
@@ -77,3 +85,12 @@ class StatusUpdate:
 StatusCallback = Callable[[Query, StatusUpdate], Awaitable[None] | None]
 """`on_status(query, update)`: a server's or a client's status callback (a plain function,
 or a coroutine function: `async def on_status(query, update)`)."""
+
+
+LoadCallback = Callable[[Any], Any]
+"""`load(request) -> response`: a resource server's load callback (or a coroutine
+function, `async def load(request)`)."""
+
+UnloadCallback = Callable[[Any, Any], Awaitable[None] | None]
+"""`unload(request, response) -> None`: a resource server's unload callback (or a
+coroutine function)."""

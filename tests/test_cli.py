@@ -97,3 +97,26 @@ def test_on_an_80_column_terminal_every_line_fits_and_no_name_is_cut(
         urls = re.findall(r"http://127\.0\.0\.1:\d+/\S*", text)
         assert 2 <= len(urls), text
         assert {urls[0]} == set(urls), text  # whole at the start and at the end
+
+
+@pytest.mark.timeout(150)
+def test_on_an_80_column_terminal_the_certs_lines_fit_and_the_next_command_is_whole(
+    tmp_path: Path,
+) -> None:
+    """`certs init` then `certs issue`, as the securing how-to runs them: each says what
+    to do next within 80 columns (their lines were 107 and 186 columns)."""
+    said = []
+    for argv in (
+        ["certs", "init", "certs", "--system", "lab"],
+        ["certs", "issue", "certs", "robot", "--address", "10.0.0.2", "--address", "robot.local"],
+    ):
+        code, text = on_a_terminal(
+            [sys.executable, "-m", "rr_actors", *argv], columns=80, timeout=120, cwd=tmp_path
+        )
+        assert 0 == code, text
+        said.append(text)
+
+    pieces = drawn("".join(said))
+    assert [] == [p for p in pieces if len(p) > 80], said
+    assert "    rr-actors certs issue certs NAME --address ADDR" in pieces, said
+    assert any(p.endswith("rr.ZenohTLS(members=[...])") for p in pieces), said  # (whole)

@@ -63,7 +63,8 @@ def test_init_writes_the_ca_with_its_key_0600_in_a_0700_directory(tmp_path: Path
     assert 0 == code
     assert (0o700, 0o600) == (mode(directory), mode(directory / "ca.key"))
     assert f"wrote {directory}/ca.pem and {directory}/ca.key (0600)" in out
-    assert "ca.key stays here" in out
+    assert "ca.key stays here" in " ".join(out.split())  # (wrapped at words)
+    assert f"    rr-actors certs issue {directory} NAME --address ADDR\n" in out  # (whole)
     ca = load(directory / "ca.pem")
     assert "CN=lab,O=rr_actors CA" == ca.subject.rfc4514_string()
     constraints = ca.extensions.get_extension_for_class(x509.BasicConstraints)
@@ -82,7 +83,7 @@ def test_issue_writes_a_certificate_naming_the_member_and_every_address(ca_dir: 
     assert 0 == code
     assert 0o600 == mode(ca_dir / "robot.key")
     assert f"wrote {ca_dir}/robot.pem and {ca_dir}/robot.key (0600)" in out
-    assert "ca.key stays here" in out
+    assert "ca.key stays here" in " ".join(out.split())  # (wrapped at words)
     cert = load(ca_dir / "robot.pem")
     assert "robot" == cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value
     sans = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value

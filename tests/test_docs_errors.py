@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+import rr_actors
 from rr_actors import errors
 
 PAGE = Path(__file__).resolve().parent.parent / "docs" / "reference" / "errors.md"
@@ -32,6 +33,14 @@ def test_every_error_has_an_entry_with_its_bases_and_what_to_do(name: str) -> No
     expected = [b.__name__ for b in getattr(errors, name).__bases__]
     assert expected == re.findall(r"`(\w+)`", bases)
     assert "*What to do:*" in body
+
+
+@pytest.mark.parametrize("name", ERRORS)
+def test_every_error_is_importable_from_rr_actors_as_the_page_says(name: str) -> None:
+    """The page: "importable from `rr_actors` and from `rr_actors.errors`". `TransferError` and
+    `InternalError` were not (issue 44 item 8)."""
+    assert getattr(errors, name) is getattr(rr_actors, name, None)
+    assert name in rr_actors.__all__
 
 
 def test_the_page_draws_every_error_in_its_tree() -> None:

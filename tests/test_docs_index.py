@@ -42,3 +42,24 @@ def test_every_how_to_is_linked_from_the_index(how_to: str) -> None:
     where_next = index[index.index("## Where to go next") :]
 
     assert f"(how-to/{how_to})" in where_next
+
+
+def test_the_experiment_tutorial_runs_the_readmes_experiment_command() -> None:
+    """A reader who follows the tutorial after the README runs what the README runs
+    (`--force` was in the README's command only, issue 44 item 7)."""
+    command = re.compile(r"^rr-actors experiment \w.*$", re.MULTILINE)
+    readme = command.findall((ROOT / "README.md").read_text())
+    tutorial = command.findall((ROOT / "docs" / "tutorial" / "first-experiment.md").read_text())
+
+    assert ["rr-actors experiment first --out first-results --force"] == readme
+    assert set(readme) <= set(tutorial)
+
+
+def test_the_plan_for_the_docs_toolchain_is_a_page_of_the_site() -> None:
+    """mkdocs-material's end of life (May 2027): the plan, and why, is recorded in
+    `docs/` and listed in the site's navigation (issue 44 item 7)."""
+    page = (ROOT / "docs" / "explanation" / "docs-toolchain.md").read_text()
+
+    assert "explanation/docs-toolchain.md" in (ROOT / "mkdocs.yml").read_text()
+    assert "**The plan:" in page
+    assert "May 2027" in page

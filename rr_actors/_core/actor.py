@@ -37,7 +37,8 @@ putting it in the inbox and waking the actor's thread, which is the costly step 
 hand-off on a loaded CPU (Erlang's schedulers run a process that receives a message
 without a thread hand-off either). So may an event loop's thread that sends an awaited
 call's load: it holds no lock across an await, and a dedup hit then costs the loop no
-wake-up from another thread:
+wake-up from another thread (not a durable registrar's: its step commits to disk, which
+a loop's thread must not wait for; `directory.LocalPeer`):
 
 ```
  deliver(ref, message) (a carrier's receiving thread: it holds no lock)

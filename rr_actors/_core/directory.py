@@ -21,7 +21,7 @@ from typing import Any, Protocol
 
 import pykka
 
-from rr_actors._core.actor import deliver
+from rr_actors._core.actor import awaiting, deliver
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._platform import fork
 from rr_actors.errors import (
@@ -54,16 +54,28 @@ class Peer(Protocol):
         """Send `message`; raise `RegistrarUnavailableError` if the registrar is dead."""
 
     def deliver(self, message: Any) -> None:
-        """`tell`, from a carrier's receiving thread (which holds no lock): a registrar of
-        this process that is idle may handle it on that thread (`_core/actor.py`'s turn)."""
+        """`tell`, from a carrier's receiving thread (which holds no lock), or an event
+        loop's thread stepping an awaited call: a registrar of this process that is idle
+        may handle it on that thread (`_core/actor.py`'s turn); from a loop, not a
+        durable one (`LocalPeer`)."""
 
 
 class LocalPeer:
-    """A registrar actor in this process."""
+    """A registrar actor in this process.
 
-    def __init__(self, name: str, ref: pykka.ActorRef[Any] | None = None) -> None:
+    Args:
+        name: the registrar's name.
+        ref: its actor (`None`: set by the actor when it starts).
+        durable: its steps write to disk before they answer (a backup with
+            `save_on_modify`): an event loop's thread never takes its turn (`deliver`).
+    """
+
+    def __init__(
+        self, name: str, ref: pykka.ActorRef[Any] | None = None, *, durable: bool = False
+    ) -> None:
         self.name = name
         self.ref = ref  # set by the actor when it starts
+        self.durable = durable
 
     def tell(self, message: Any) -> None:
         if self.ref is None:
@@ -76,6 +88,9 @@ class LocalPeer:
     def deliver(self, message: Any) -> None:
         if self.ref is None:
             raise RegistrarUnavailableError(f"registrar {self.name!r} is still starting")
+        if self.durable and awaiting():  # (its commit, an fsync with durability="power",
+            self.tell(message)  # would hold the loop: its own thread handles it)
+            return
         try:
             deliver(self.ref, message)
         except pykka.ActorDeadError as exc:

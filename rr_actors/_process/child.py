@@ -378,7 +378,7 @@ def _run_manager(
     stopping = threading.Event()
 
     def watch_actor() -> None:
-        registrar._wait_stopped()
+        registrar._actor.wait_stopped()
         if stopping.is_set():
             return  # the supervisor's `stop`: the control loop exits
         if stopped_cleanly(registrar.name):  # code in the manager called registrar.stop()
@@ -435,7 +435,7 @@ class _ControlLoop:
 
     def ping(self, message: Ping) -> None:
         """Answer through the registrar actor's mailbox: a hung actor sends no pong."""
-        self.registrar._ping(_Pong(self.control, message.number, self.trouble))
+        self.registrar._actor.ping(_Pong(self.control, message.number, self.trouble))
 
     def forward(self, message: Forward) -> None:
         self.line.switch(on=message.on)

@@ -1,16 +1,27 @@
-"""A handle on a registrar that lives in a manager process of a system.
+"""A registrar's actor in another process of a system, and the handle on it.
 
-`RemoteRegistrar` implements the same `Registrar` protocol as `ResourceRegistrar`: each
-method runs the registrar's own method in the registrar's process over the system's
-carrier (`Transport.run`, any carrier) and returns its result or re-raises its error. Tests run
-one body over both placements with it (`rr_actors.testing` re-exports it).
+A `RemoteRegistrar` is the one handle (`_registrar/handle.py`'s `Registrar`) whose actor
+is `There`: each operation runs where the registrar is, over the system's carrier (any
+carrier: `Address.attach()`, `Transport.resolve`, `Remote.submit`):
 
-Its awaitable twins (`acall`, ...: `_registrar/aio.py`, the same for both handles) run
-the operation's steps (`_forwarding`): in the registrar's own process its handle's
-steps, awaited on the loop; from another process one `Run` of those steps there, whose
-answer wakes the loop (no thread here waits for it). An awaited `acall` that is
-cancelled, or times out here, gives back what the call there still gets (its id is
-released there), as a withdrawn call does.
+```
+ reg.call(...) / await reg.acall(...) ─► There.steps(Here.call, timeout, ...)
+   served by this process ──────────────► its ResourceRegistrar's Here.call, here (so a
+                                          call inside a load is still its dependency)
+   served by another ───────────────────► submit one Run(_drive_there): there, on a thread
+                                          of its own, run_steps(Here.call(...)) in the
+                                          caller's load context
+     ◄── its answer settles the Run's future: it wakes the thread or the loop here,
+         a `FORWARD_MARGIN` beyond the operation's own timeout
+   cancelled, or timed out here ────────► what the call there still gets is given back
+                                          (its id released there), as a withdrawn call's
+```
+
+The owner of a manager process (`RemoteRegistrar.start`) holds it as `Owner`, a `There`
+whose stop and liveness are the process's: it can `kill` it, and when the process dies
+without being stopped it tells every registrar of the system that this consumer is gone
+(death watch), as a supervisor does for a child it will not restart. Tests run one body
+over both placements with it (`rr_actors.testing` re-exports it).
 """
 
 from __future__ import annotations
@@ -23,21 +34,19 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, cast
+from typing import Any, Concatenate, ParamSpec, TypeVar, cast
 
 import cloudpickle
 
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import Steps, on_own_thread, run_steps
 from rr_actors._process.manager import ManagerExit, ManagerProcess
-from rr_actors._registrar.aio import AsyncSurface, StatusWatch
-from rr_actors._registrar.deathwatch import gone_for_good
-from rr_actors._registrar.handle import RegistrarFacts, ResourceRegistrar
-from rr_actors._registrar.loading import LOADING, LoadContext
-from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
+from rr_actors._registrar.handle import Here, Registrar, RegistrarFacts, ResourceRegistrar
+from rr_actors._registrar.life import gone_for_good
+from rr_actors._registrar.messages import LOADING, LoadContext
 from rr_actors._transport.base import Address, Transport
 from rr_actors._transport.messenger import Remote
-from rr_actors._types import Query, Status, StatusCallback
+from rr_actors._types import Query
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (
     CallTimeoutError,
@@ -47,24 +56,184 @@ from rr_actors.errors import (
     RrError,
 )
 
-__all__ = ["FORWARD_MARGIN", "RemoteRegistrar"]
+__all__ = ["FORWARD_MARGIN", "Owner", "RemoteRegistrar", "There"]
+
+T = TypeVar("T")
+P = ParamSpec("P")
 
 FORWARD_MARGIN = 10.0
-"""Seconds a forwarded call may take beyond its own `timeout` (transport and scheduling)."""
+"""Seconds an operation run in another process may take beyond its own `timeout`
+(the carrier, and scheduling)."""
 
 
-class RemoteRegistrar(AsyncSurface):
+class There:
+    """The actor in another process of the system (or in this one, found by its name):
+    an operation's steps run there, one `Run` each."""
+
+    def __init__(self, config: RegistrarConfig, address: Address) -> None:
+        self.config = config
+        self.address = address  # (any carrier's `Address`: it pickles)
+
+    def steps(
+        self,
+        op: Callable[Concatenate[Here, float | None, P], Steps[T]],
+        timeout: float | None,
+        *args: P.args,
+        **kwargs: P.kwargs,
+    ) -> Steps[T]:
+        """`op`'s steps where the registrar is (the module docstring draws it)."""
+        name = self.config.name
+        limit = _margin(timeout, self.config)
+        transport = self.address.attach()
+        peer = transport.resolve(name)
+        if not isinstance(peer, Remote):  # served here (or unknown: `run` says so)
+            local: ResourceRegistrar = transport.run(name, _itself, timeout=limit)
+            return (yield from op(local._actor, timeout, *args, **kwargs))
+        there = functools.partial(_drive_there, op, timeout, args, kwargs, LOADING.get())
+        reply = peer.submit(there)
+        try:
+            settled = yield reply.future, time.monotonic() + limit
+        except BaseException:
+            reply.future.add_done_callback(functools.partial(_give_back, peer))
+            raise
+        if not settled:
+            reply.future.add_done_callback(functools.partial(_give_back, peer))
+            raise CallTimeoutError(f"run() on registrar {name!r} timed out after {limit:g} s")
+        result: T = reply.future.get(timeout=0)
+        return result
+
+    def stop(self, timeout: float | None) -> Steps[None]:
+        """Its `Here.stop`, there; one stopped or dead already is no error."""
+        limit = self.config.call_timeout if timeout is None else timeout
+        with contextlib.suppress(RegistrarStoppedError, RegistrarUnavailableError):
+            yield from self.steps(Here.stop, limit)
+
+    def is_alive(self) -> bool:
+        """Whether it answers that it runs."""
+        try:
+            return bool(self.run(_is_alive, self.config.call_timeout + FORWARD_MARGIN))
+        except RrError:
+            return False
+
+    def state(self) -> str:
+        """Nothing (whether it runs would be asked across processes, for a `repr`)."""
+        return ""
+
+    @property
+    def pid(self) -> int | None:
+        """`None`: the process is not this one's."""
+        return None
+
+    def run(self, fn: Callable[[ResourceRegistrar], Any], timeout: float | None) -> Any:
+        """`RemoteRegistrar.run`: `fn(registrar)` where it is, over the carrier."""
+        limit = self.config.call_timeout if timeout is None else timeout
+        return self.address.attach().run(self.config.name, fn, timeout=limit)
+
+    def kill(self, timeout: float) -> None:
+        """`RemoteRegistrar.kill` from a handle that does not own the process: it
+        SIGKILLs itself, and its owner does the rest."""
+        with contextlib.suppress(RegistrarUnavailableError, RegistrarStoppedError):
+            self.run(_kill_own_process, timeout)
+
+
+class Owner(There):
+    """The actor in a manager process this process started and owns (`Owner.start`):
+    stopped and watched as that process."""
+
+    def __init__(self, config: RegistrarConfig, address: Address) -> None:
+        super().__init__(config, address)
+        self.process: ManagerProcess | None = None  # (set once it was started)
+        self.stopping = False
+        self.down = threading.Event()  # the process ended, its death watch told
+
+    @classmethod
+    def start(
+        cls, config: RegistrarConfig, address: Address, setup: bytes, start_timeout: float
+    ) -> Owner:
+        """Start the manager process (`RemoteRegistrar.start` documents it)."""
+        owner = cls(config, address)
+        owner.process = ManagerProcess.start(
+            config.name,
+            setup,
+            config,
+            address,
+            start_timeout=start_timeout,
+            heartbeat=None,
+            heartbeat_timeout=start_timeout,
+            on_exit=owner._exited,
+        )
+        return owner
+
+    def stop(self, timeout: float | None) -> Steps[None]:
+        """The process's stop, on a thread of its own (a loop awaits it, never runs it)."""
+        stop = functools.partial(self._stop_process, timeout)
+        return on_own_thread(stop, f"rr-stop-{self.config.name}")
+
+    def _stop_process(self, timeout: float | None) -> None:
+        limit = self.config.call_timeout if timeout is None else timeout
+        process = self._process()
+        if process.exited.is_set():
+            return
+        self.stopping = True
+        result = process.stop(limit)
+        self.down.wait(limit)
+        if result.normal:
+            return
+        name = self.config.name
+        if result.reason.startswith("killed: no clean stop"):
+            raise CallTimeoutError(f"stop() of registrar {name!r}: {result.reason}")
+        raise RegistrarUnavailableError(f"registrar {name!r} did not stop cleanly: {result.reason}")
+
+    def is_alive(self) -> bool:
+        """Whether the manager process runs."""
+        return not self._process().exited.is_set()
+
+    def state(self) -> str:
+        """The process's pid."""
+        return f"pid {self.pid}"
+
+    @property
+    def pid(self) -> int | None:
+        """The manager process's pid."""
+        return self._process().pid
+
+    def kill(self, timeout: float) -> None:
+        """SIGKILL the process; return once its death watch went out."""
+        self._process().kill()
+        if not self.down.wait(timeout):
+            raise CallTimeoutError(f"manager {self.config.name!r} not dead within {timeout:g} s")
+
+    def _process(self) -> ManagerProcess:
+        assert self.process is not None, "the manager process was not started"
+        return self.process
+
+    def _exited(self, how: ManagerExit) -> None:
+        """Runs on the manager's watcher thread when the process ended: unless it was
+        stopped or a restart is expected, its death watch (rule 19; `life.py's Presence`)."""
+        try:
+            name = self.config.name
+            if not how.clean and not self.stopping and not DIRECTORY.restart_expected(name):
+                served: list[str] = []
+                with contextlib.suppress(RrError):
+                    served = self.address.attach().names()
+                gone_for_good(name, also=served)
+        finally:
+            self.down.set()
+
+
+class RemoteRegistrar(Registrar):
     """A handle on a registrar that lives in a manager process of a system.
 
-    It has the methods and properties of a `ResourceRegistrar`, with the same arguments,
-    results and errors: each method runs the registrar's own method in the registrar's
-    process (over the system's authenticated channel) and returns its result or re-raises
-    its error (rr_actors errors pickle). Arguments, callbacks and results are cloudpickled,
-    so callbacks may be closures; they run in the registrar's process, on the threads a
-    local registrar would use. The handle itself pickles: a callback that captured it and
-    runs in the registrar's own process calls the registrar directly on its own thread (so
-    a call inside a `load` callback is still recorded as a dependency), and from any
-    other process of the system it forwards again.
+    It is the one handle, [`Registrar`][rr_actors.Registrar] (the methods of a
+    `ResourceRegistrar`, with the same arguments, results and errors), whose actor is in
+    that process: each method runs the registrar's own operation there, over the
+    system's carrier, and returns its result or re-raises its error (rr_actors errors
+    pickle). Arguments, callbacks and results are cloudpickled, so callbacks may be
+    closures; they run in the registrar's process, on the threads a local registrar
+    would use. The handle itself pickles: a callback that captured it and runs in the
+    registrar's own process calls the registrar directly on its own thread (so a call
+    inside a `load` callback is still recorded as a dependency), and from any other
+    process of the system it goes over the carrier again.
 
     Start one with [`start`][rr_actors.testing.RemoteRegistrar.start] (the *owner*
     handle, which owns the manager process and can [`kill`][rr_actors.testing.RemoteRegistrar.kill]
@@ -75,6 +244,8 @@ class RemoteRegistrar(AsyncSurface):
     `rr_actors.testing.expect_restart`): its consumers' ids are released and the ids
     held there get `FATAL` at their consumers (rule 19).
     """
+
+    _actor: There
 
     def __init__(
         self,
@@ -93,12 +264,8 @@ class RemoteRegistrar(AsyncSurface):
             restored: what `restored` reports (the owner handle learns it at start).
             in_doubt: what `in_doubt` reports (likewise).
         """
-        self._config = RegistrarConfig(name=config) if isinstance(config, str) else config
-        self._address = address
-        self._facts = RegistrarFacts(self._config, restored, in_doubt)
-        self._process: ManagerProcess | None = None
-        self._stopping = False
-        self._down = threading.Event()
+        config = RegistrarConfig(name=config) if isinstance(config, str) else config
+        super().__init__(RegistrarFacts(config, restored, in_doubt), There(config, address))
 
     @classmethod
     def start(
@@ -144,16 +311,7 @@ class RemoteRegistrar(AsyncSurface):
                 f"setup of registrar {config.name!r} is not picklable: {exc}"
             ) from exc
         handle = cls(config, address)
-        handle._process = ManagerProcess.start(
-            config.name,
-            payload,
-            config,
-            address,
-            start_timeout=start_timeout,
-            heartbeat=None,
-            heartbeat_timeout=start_timeout,
-            on_exit=handle._exited,
-        )
+        handle._actor = Owner.start(config, address, payload, start_timeout)
         try:
             restored, in_doubt = handle.run(_restored_and_in_doubt, timeout=start_timeout)
             handle._facts = RegistrarFacts(config, restored, in_doubt)
@@ -165,46 +323,12 @@ class RemoteRegistrar(AsyncSurface):
     def __reduce__(self) -> tuple[Any, ...]:
         """Pickle as a plain (non-owner) handle: the manager process stays with its owner."""
         facts = self._facts
-        return (_rebuild, (facts.config, self._address, facts.restored, facts.in_doubt))
-
-    # -- properties -------------------------------------------------------------------
-
-    @property
-    def name(self) -> str:
-        """The registrar's name."""
-        return self._facts.config.name
-
-    @property
-    def config(self) -> RegistrarConfig:
-        """The configuration it was started with."""
-        return self._facts.config
-
-    @property
-    def restored(self) -> bool:
-        """Whether the catalog was restored from an existing backup at start."""
-        return self._facts.restored
-
-    @property
-    def in_doubt(self) -> tuple[Query, ...]:
-        """Loads a crash cut short in the last run (see `ResourceRegistrar.in_doubt`)."""
-        return self._facts.in_doubt
+        return (_rebuild, (facts.config, self._actor.address, facts.restored, facts.in_doubt))
 
     @property
     def pid(self) -> int | None:
         """The manager process's pid (owner handle), else `None`."""
-        return None if self._process is None else self._process.pid
-
-    def is_alive(self) -> bool:
-        """Whether the registrar (for the owner: its manager process) is running."""
-        if self._process is not None:
-            return not self._process.exited.is_set()
-        try:
-            alive: bool = self._forward(lambda reg: reg.is_alive(), None)
-        except RrError:
-            return False
-        return alive
-
-    # -- running code in the registrar's process ---------------------------------------
+        return self._actor.pid
 
     def run(self, fn: Callable[[ResourceRegistrar], Any], *, timeout: float | None = None) -> Any:
         """Run `fn(registrar)` in the registrar's process and return its result.
@@ -227,350 +351,7 @@ class RemoteRegistrar(AsyncSurface):
             ConfigError: `fn` does not pickle.
             Exception: whatever `fn` raised, re-raised here.
         """
-        limit = self._config.call_timeout if timeout is None else timeout
-        return self._address.attach().run(self.name, fn, timeout=limit)
-
-    def _forward(self, fn: Callable[[ResourceRegistrar], Any], timeout: object) -> Any:
-        """Run a method remotely; wait for it a margin beyond its own `timeout`.
-
-        An invalid `timeout` is passed on untouched (the registrar rejects it with the same
-        `ConfigError` as a local one); the wait then uses the default.
-        """
-        valid = isinstance(timeout, int | float) and not isinstance(timeout, bool) and timeout > 0
-        limit = float(timeout) if valid else self._config.call_timeout  # type: ignore[arg-type]
-        return self.run(fn, timeout=limit + FORWARD_MARGIN)
-
-    def _forwarding(
-        self,
-        steps_of: Callable[[ResourceRegistrar], Steps[Any]],
-        timeout: object,
-        *,
-        give_back: bool = False,
-    ) -> Steps[Any]:
-        """The steps of one operation, `steps_of(registrar)`, run where the registrar is.
-
-        Served in this process: its handle's own steps, here. Elsewhere: one `Run` that
-        drives them there (on a thread of that process), waited for a margin beyond the
-        operation's own `timeout`. With `give_back` (a call), a wait that ends early
-        here (cancelled, timed out) gives back the query the call there still gets.
-        """
-        transport = self._address.attach()
-        valid = isinstance(timeout, int | float) and not isinstance(timeout, bool) and timeout > 0
-        limit = (float(timeout) if valid else self._config.call_timeout) + FORWARD_MARGIN  # type: ignore[arg-type]
-        peer = transport.resolve(self.name)
-        if not isinstance(peer, Remote):  # served here (or unknown: `run` says so)
-            local: ResourceRegistrar = transport.run(self.name, _itself, timeout=limit)
-            return (yield from steps_of(local))
-        context = LOADING.get()
-        reply = peer.submit(functools.partial(_drive_there, steps_of, context))
-        try:
-            settled = yield reply.future, time.monotonic() + limit
-        except BaseException:
-            if give_back:
-                reply.future.add_done_callback(functools.partial(_give_back, peer))
-            raise
-        if not settled:
-            if give_back:
-                reply.future.add_done_callback(functools.partial(_give_back, peer))
-            raise CallTimeoutError(f"run() on registrar {self.name!r} timed out after {limit:g} s")
-        return reply.future.get(timeout=0)
-
-    # -- the steps of the awaitable twins (`_registrar/aio.py`) -------------------------
-
-    def _register_server_steps(
-        self,
-        name: str,
-        load: LoadCallback,
-        unload: UnloadCallback,
-        on_status: StatusCallback | None,
-        timeout: float | None,
-        label: Callable[[Any], str] | None,
-    ) -> Steps[None]:
-        return self._forwarding(
-            lambda reg: reg._register_server_steps(name, load, unload, on_status, timeout, label),
-            timeout,
-        )
-
-    def _unregister_server_steps(self, name: str, timeout: float | None) -> Steps[None]:
-        return self._forwarding(lambda reg: reg._unregister_server_steps(name, timeout), timeout)
-
-    def _call_steps(
-        self,
-        target_rr: str,
-        server: str,
-        request: Any,
-        on_status: StatusCallback | None,
-        timeout: float | None,
-        query_id: str | None,
-    ) -> Steps[Query]:
-        return self._forwarding(
-            lambda reg: reg._call_steps(target_rr, server, request, on_status, timeout, query_id),
-            timeout,
-            give_back=True,
-        )
-
-    def _unload_steps(self, query_id: str, timeout: float | None) -> Steps[None]:
-        return self._forwarding(lambda reg: reg._unload_steps(query_id, timeout), timeout)
-
-    def _send_status_steps(
-        self, query_id: str, status: Status, message: str, timeout: float | None
-    ) -> Steps[None]:
-        return self._forwarding(
-            lambda reg: reg._send_status_steps(query_id, status, message, timeout), timeout
-        )
-
-    def _server_queries_steps(self, server: str, timeout: float | None) -> Steps[list[Query]]:
-        return self._forwarding(lambda reg: reg._server_queries_steps(server, timeout), timeout)
-
-    def _fetch_queries_steps(
-        self, target_rr: str, server: str, timeout: float | None
-    ) -> Steps[list[Query]]:
-        return self._forwarding(
-            lambda reg: reg._fetch_queries_steps(target_rr, server, timeout), timeout
-        )
-
-    def _client_queries_steps(self, timeout: float | None) -> Steps[list[Query]]:
-        return self._forwarding(lambda reg: reg._client_queries_steps(timeout), timeout)
-
-    def _set_status_callback_steps(
-        self, query_id: str, callback: StatusCallback, timeout: float | None
-    ) -> Steps[None]:
-        return self._forwarding(
-            lambda reg: reg._set_status_callback_steps(query_id, callback, timeout), timeout
-        )
-
-    def _update_response_steps(
-        self, query_id: str, response: Any, timeout: float | None
-    ) -> Steps[None]:
-        return self._forwarding(
-            lambda reg: reg._update_response_steps(query_id, response, timeout), timeout
-        )
-
-    def _save_catalog_steps(self, timeout: float | None) -> Steps[None]:
-        return self._forwarding(lambda reg: reg._save_catalog_steps(timeout), timeout)
-
-    def _stop_steps(self, timeout: float | None) -> Steps[None]:
-        if self._process is not None:  # the owner: the process, as `stop` does
-            stop = functools.partial(RemoteRegistrar.stop, self, timeout=timeout)  # (its own)
-            yield from on_own_thread(stop, f"rr-stop-{self.name}")
-            return
-        try:
-            yield from self._forwarding(lambda reg: reg._stop_steps(timeout), timeout)
-        except (RegistrarStoppedError, RegistrarUnavailableError):
-            return
-
-    def watch(self, query_id: str, *, maxsize: int = 256) -> StatusWatch:
-        """Not here: a query's statuses reach the registrar that holds it, in its process.
-
-        Raises:
-            ConfigError: always; watch it from a registrar of this process that holds
-                it (`ResourceRegistrar.watch`), or register a status callback there
-                (`aset_status_callback`: it runs in the registrar's process).
-        """
-        raise ConfigError(
-            f"watch() needs the registrar that holds the query in this process; "
-            f"{self.name!r} runs in another: watch from a registrar of this process, or "
-            "set a status callback (it runs in the registrar's process)"
-        )
-
-    # -- the ResourceRegistrar API ----------------------------------------------------
-
-    def register_server(
-        self,
-        name: str,
-        *,
-        load: LoadCallback,
-        unload: UnloadCallback,
-        on_status: StatusCallback | None = None,
-        timeout: float | None = None,
-        label: Callable[[Any], str] | None = None,
-    ) -> None:
-        """`ResourceRegistrar.register_server`; the callbacks run in the registrar's process.
-
-        Raises:
-            ConfigError: a callback is not callable or does not pickle, or the name is bad.
-            DuplicateNameError: a server with this name exists on the registrar.
-            RegistrarUnavailableError: the registrar's process died.
-        """
-        self._forward(
-            lambda reg: reg.register_server(
-                name, load=load, unload=unload, on_status=on_status, timeout=timeout, label=label
-            ),
-            timeout,
-        )
-
-    def unregister_server(self, name: str, *, timeout: float | None = None) -> None:
-        """`ResourceRegistrar.unregister_server`.
-
-        Raises:
-            UnknownServerError: no such server there.
-            CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarUnavailableError: the registrar's process died.
-        """
-        self._forward(lambda reg: reg.unregister_server(name, timeout=timeout), timeout)
-
-    def call(
-        self,
-        target_rr: str,
-        server: str,
-        request: Any,
-        *,
-        on_status: StatusCallback | None = None,
-        timeout: float | None = None,
-        query_id: str | None = None,
-    ) -> Query:
-        """`ResourceRegistrar.call`, made by the remote registrar.
-
-        Made from inside a `load` callback (of any process), the call carries that load's
-        context, exactly as a local handle's call would: a dependency when the load runs
-        on this registrar, and part of the chain for cycle detection.
-
-        Raises:
-            ResourceLoadError: `load` raised there or further down.
-            DependencyCycleError: the load would wait for itself further up its chain.
-            UnknownServerError: no such registrar or server.
-            CallTimeoutError: no answer in time.
-            RegistrarUnavailableError: the provider (or this registrar's process) died.
-            RegistrarStoppedError: this registrar or the provider was stopped.
-            ConfigError: `on_status` is not callable, or the request does not pickle.
-        """
-        context = LOADING.get()
-        args = (target_rr, server, request)
-        kw = {"on_status": on_status, "timeout": timeout, "query_id": query_id}
-        query: Query = self._forward(
-            functools.partial(_call_in_context, context, args, kw), timeout
-        )
-        return query
-
-    def unload(self, query_id: str, *, timeout: float | None = None) -> None:
-        """`ResourceRegistrar.unload`.
-
-        Raises:
-            UnknownQueryError: the id is unknown there or already released.
-            CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarUnavailableError: the registrar's process died; or the provider
-                did, and it releases the id when it reconciles after its restart (the
-                registrar no longer holds it, see `ResourceRegistrar.unload`).
-        """
-        self._forward(lambda reg: reg.unload(query_id, timeout=timeout), timeout)
-
-    def send_status(
-        self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
-    ) -> None:
-        """`ResourceRegistrar.send_status`.
-
-        Raises:
-            UnknownQueryError: `query_id` is not a consumer id of a resource served there.
-            CallTimeoutError: not delivered everywhere within `timeout` seconds.
-            ConfigError: `status` is not an `rr_actors.Status`.
-            RegistrarUnavailableError: the registrar's process died.
-        """
-        self._forward(
-            lambda reg: reg.send_status(query_id, status, message, timeout=timeout), timeout
-        )
-
-    def server_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
-        """`ResourceRegistrar.server_queries`.
-
-        Raises:
-            UnknownServerError: no such server there.
-            RegistrarUnavailableError: the registrar's process died.
-        """
-        result: list[Query] = self._forward(
-            lambda reg: reg.server_queries(server, timeout=timeout), timeout
-        )
-        return result
-
-    def fetch_queries(
-        self, target_rr: str, server: str, *, timeout: float | None = None
-    ) -> list[Query]:
-        """`ResourceRegistrar.fetch_queries`.
-
-        Raises:
-            UnknownServerError: no such registrar or server.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarUnavailableError: the provider or the registrar's process died.
-        """
-        result: list[Query] = self._forward(
-            lambda reg: reg.fetch_queries(target_rr, server, timeout=timeout), timeout
-        )
-        return result
-
-    def client_queries(self, *, timeout: float | None = None) -> list[Query]:
-        """`ResourceRegistrar.client_queries`.
-
-        Raises:
-            RegistrarUnavailableError: the registrar's process died.
-        """
-        result: list[Query] = self._forward(
-            lambda reg: reg.client_queries(timeout=timeout), timeout
-        )
-        return result
-
-    def set_status_callback(
-        self, query_id: str, callback: StatusCallback, *, timeout: float | None = None
-    ) -> None:
-        """`ResourceRegistrar.set_status_callback`; `callback` runs in the registrar's process.
-
-        Raises:
-            UnknownQueryError: the registrar holds no such query.
-            ConfigError: `callback` is not callable or does not pickle.
-            RegistrarUnavailableError: the registrar's process died.
-        """
-        self._forward(
-            lambda reg: reg.set_status_callback(query_id, callback, timeout=timeout), timeout
-        )
-
-    def update_response(
-        self, query_id: str, response: Any, *, timeout: float | None = None
-    ) -> None:
-        """`ResourceRegistrar.update_response`.
-
-        Raises:
-            UnknownQueryError: `query_id` is not a consumer id of a resource served there.
-            RegistrarUnavailableError: the registrar's process died.
-        """
-        self._forward(lambda reg: reg.update_response(query_id, response, timeout=timeout), timeout)
-
-    def save_catalog(self, *, timeout: float | None = None) -> None:
-        """`ResourceRegistrar.save_catalog`.
-
-        Raises:
-            RegistrarUnavailableError: the registrar's process died.
-        """
-        self._forward(lambda reg: reg.save_catalog(timeout=timeout), timeout)
-
-    def stop(self, *, timeout: float | None = None) -> None:
-        """Stop the registrar (rule 12) and, for the owner handle, its manager process.
-
-        Stopping a stopped (or dead) registrar is a no-op.
-
-        Args:
-            timeout: seconds the stop may take (default: the config's `call_timeout`);
-                the owner kills the process after that.
-
-        Raises:
-            CallTimeoutError: not finished within `timeout` seconds (the process was killed).
-            RegistrarUnavailableError: the registrar died (or its process exited) while it
-                stopped; the reason is in the message.
-        """
-        limit = self._config.call_timeout if timeout is None else timeout
-        if self._process is None:
-            with contextlib.suppress(RegistrarStoppedError, RegistrarUnavailableError):
-                self._forward(lambda reg: reg.stop(timeout=limit), limit)
-            return
-        if self._process.exited.is_set():
-            return
-        self._stopping = True
-        result = self._process.stop(limit)
-        self._down.wait(limit)
-        if result.normal:
-            return
-        if result.reason.startswith("killed: no clean stop"):
-            raise CallTimeoutError(f"stop() of registrar {self.name!r}: {result.reason}")
-        raise RegistrarUnavailableError(
-            f"registrar {self.name!r} did not stop cleanly: {result.reason}"
-        )
+        return self._actor.run(fn, timeout)
 
     def kill(self, *, timeout: float = 5.0) -> None:
         """SIGKILL the registrar's manager process; return once it is dead.
@@ -585,78 +366,41 @@ class RemoteRegistrar(AsyncSurface):
         Raises:
             CallTimeoutError: it was not seen dead within `timeout` seconds.
         """
-        if self._process is None:
-            with contextlib.suppress(RegistrarUnavailableError, RegistrarStoppedError):
-                self.run(_kill_own_process, timeout=timeout)
-            return
-        self._process.kill()
-        if not self._down.wait(timeout):
-            raise CallTimeoutError(f"manager {self.name!r} not dead within {timeout:g} s")
-
-    def __enter__(self) -> RemoteRegistrar:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.stop()
-
-    def __repr__(self) -> str:
-        where = "" if self._process is None else f" pid {self._process.pid}"
-        return f"<RemoteRegistrar {self.name!r}{where}>"
-
-    # -- the owner's watcher ------------------------------------------------------------
-
-    def _exited(self, how: ManagerExit) -> None:
-        """Runs on the manager's watcher thread when the process ended."""
-        try:
-            gone = not how.clean and not self._stopping
-            if gone and not DIRECTORY.restart_expected(self.name):
-                _consumer_down(self._address, self.name)
-        finally:
-            self._down.set()
+        self._actor.kill(timeout)
 
 
-def _rebuild(
-    config: RegistrarConfig, address: Address, restored: bool, in_doubt: tuple[Query, ...]
-) -> RemoteRegistrar:
-    return RemoteRegistrar(config, address, restored=restored, in_doubt=in_doubt)
+def _margin(timeout: object, config: RegistrarConfig) -> float:
+    """How long to wait for an operation there: its own `timeout`, and `FORWARD_MARGIN`.
 
-
-def _restored_and_in_doubt(registrar: ResourceRegistrar) -> tuple[bool, tuple[Query, ...]]:
-    return registrar.restored, registrar.in_doubt
-
-
-def _call_in_context(
-    context: LoadContext | None, args: tuple[Any, ...], kw: Any, registrar: ResourceRegistrar
-) -> Query:
-    """`registrar.call(*args, **kw)` as if made from a thread whose load context is `context`."""
-    if context is None:
-        return registrar.call(*args, **kw)
-    scope = contextvars.copy_context()
-    scope.run(LOADING.set, context)
-    return scope.run(registrar.call, *args, **kw)
-
-
-def _itself(registrar: ResourceRegistrar) -> ResourceRegistrar:
-    return registrar
+    An invalid `timeout` is passed on untouched (the registrar rejects it with the same
+    `ConfigError` as a local one); the wait then uses the default.
+    """
+    valid = isinstance(timeout, int | float) and not isinstance(timeout, bool) and timeout > 0
+    limit = float(cast("float", timeout)) if valid else config.call_timeout
+    return limit + FORWARD_MARGIN
 
 
 def _drive_there(
-    steps_of: Callable[[ResourceRegistrar], Steps[Any]],
+    op: Callable[..., Steps[T]],
+    timeout: float | None,
+    args: tuple[Any, ...],
+    kwargs: dict[str, Any],
     context: LoadContext | None,
     registrar: ResourceRegistrar,
-) -> Any:
-    """In the registrar's process, on a thread of its own: run the operation's steps,
-    in the load context of the caller (`_call_in_context`)."""
+) -> T:
+    """In the registrar's process, on a thread of its own: run the operation's steps, in
+    the load context of the caller (a call made inside a load elsewhere)."""
+    steps = functools.partial(op, registrar._actor, timeout, *args, **kwargs)
     if context is None:
-        return run_steps(steps_of(registrar))
+        return run_steps(steps())
     scope = contextvars.copy_context()
     scope.run(LOADING.set, context)
-    return scope.run(lambda: run_steps(steps_of(registrar)))
+    return scope.run(lambda: run_steps(steps()))
 
 
 def _give_back(peer: Remote, future: Any) -> None:
-    """A call whose caller stopped waiting here got its answer there: release its id
-    there (on the answering thread; nobody waits for it)."""
+    """An operation whose caller stopped waiting here got its answer there: a call's
+    query is released there (on the answering thread; nobody waits for it)."""
     try:
         query = future.get(timeout=0)
     except Exception:  # noqa: BLE001 - failed there: nothing is held
@@ -670,20 +414,23 @@ def _release(query_id: str, registrar: ResourceRegistrar) -> None:
         registrar.unload(query_id)
 
 
+def _rebuild(
+    config: RegistrarConfig, address: Address, restored: bool, in_doubt: tuple[Query, ...]
+) -> RemoteRegistrar:
+    return RemoteRegistrar(config, address, restored=restored, in_doubt=in_doubt)
+
+
+def _restored_and_in_doubt(registrar: ResourceRegistrar) -> tuple[bool, tuple[Query, ...]]:
+    return registrar.restored, registrar.in_doubt
+
+
+def _itself(registrar: ResourceRegistrar) -> ResourceRegistrar:
+    return registrar
+
+
+def _is_alive(registrar: ResourceRegistrar) -> bool:
+    return registrar.is_alive()
+
+
 def _kill_own_process(_: ResourceRegistrar) -> None:
     os.kill(os.getpid(), signal.SIGKILL)
-
-
-def _consumer_down(address: Address, name: str) -> None:
-    """Death watch: tell every registrar of the system (and of this process) `name` is
-    gone for good (rule 19; `presence.py` handles it)."""
-    served: list[str] = []
-    with contextlib.suppress(RrError):
-        served = address.attach().names()
-    gone_for_good(name, also=served)
-
-
-if TYPE_CHECKING:  # mypy checks that the handle implements the protocol
-    from rr_actors._registrar import Registrar
-
-    _implements: type[Registrar] = RemoteRegistrar

@@ -1,22 +1,48 @@
-"""The registrar's handle: what user code holds, callable from any thread.
+"""The registrar's handle: one class wherever its actor lives, callable from any thread.
 
-Each method sends the registrar actor one message of `messages.py` (`RegisterServer`,
-`Release`, ...: data that carries its reply) and waits for the answer at most `timeout`
-seconds; `call` runs the call protocol on the caller's own thread (`calls.py`). The
-handle never touches the catalog itself. Starting the actor, before there is a handle,
-is `starting.py`'s.
+A `Registrar` is what user code holds. Its surface is written here once: each blocking
+method, its awaitable twin and `watch`. Each runs one *operation* where the registrar's
+actor lives, the handle's `_actor` (as pykka's one `ActorRef` puts a message into
+whichever inbox its actor has):
 
-The rest of the package reaches the actor only through the handle's small internal
-surface (`_tell`, `_ask`, `_wait_stopped`, `_crash`, `_ping`, `_actor_ref`): nothing
-else holds the actor's ref or builds a message to it from a closure.
+```
+ reg.call(...)        ─► _blocking(      reg._actor.steps(Here.call, ...)) the thread blocks
+ await reg.acall(...) ─► run_steps_async(reg._actor.steps(Here.call, ...)) the loop awaits
+                                                  │
+   Here: the actor in this process ───────────────┼─► Here.call(here, ...), here: send the
+     (a ResourceRegistrar's)                      │   actor its message (`messages.py`;
+                                                  │   `calls.py` for a call), yield the
+                                                  │   future of its answer, return it
+   There: in another process of the system ───────┴─► one `Run` of Here.call there, over
+     (`_process/remote.py`, a RemoteRegistrar's)      the carrier; its answer wakes the
+                                                      thread or the loop here
+ task cancelled, KeyboardInterrupt ─► thrown in at the yield: the call is withdrawn as a
+                                      timeout withdraws it (its id given back), then raised
+```
+
+An operation is a method of `Here` that returns its *steps* (`_core/replies.py`: a
+generator that yields `(future, deadline)` for each wait): `run_steps` drives them on the
+calling thread, `loops.run_steps_async` on the running loop, so both twins have the same
+arguments, results, errors and timeouts, and no thread waits per awaited call. The names
+of the twins follow the prefix Django gave its async ORM (`aget`, `asave`) and the
+language its own (`anext`, `aclose`): `acall` is `call`, awaited.
+
+`ResourceRegistrar` is the handle on a registrar started in this process (its `start`,
+`subscribe`); `rr_actors.testing.RemoteRegistrar` (`_process/remote.py`) the handle on one
+in a manager process (its start, `kill`). The handle never touches the catalog itself,
+and the rest of the package reaches an actor of this process only through its `Here`
+(`tell`, `ask`, `wait_stopped`, `crash`, `ping`, `ref`): nothing else holds the actor's
+ref or builds a message to it from a closure. Starting the actor, before there is a
+handle, is `actor.py`'s (`launch`).
 """
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import time
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, Concatenate, ParamSpec, Protocol, Self, TypeVar
 
 import pykka
 
@@ -25,15 +51,20 @@ from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.exit import REGISTRARS, stop_at_exit
 from rr_actors._core.ids import new_id
-from rr_actors._core.loops import OnLoop, is_coroutine_function, on_process_loop, process_loop
+from rr_actors._core.loops import (
+    OnLoop,
+    is_coroutine_function,
+    on_process_loop,
+    process_loop,
+    run_steps_async,
+)
 from rr_actors._core.replies import FutureReply, Steps, asked, run_steps
-from rr_actors._registrar.actor import RegistrarActor
-from rr_actors._registrar.aio import AsyncSurface
+from rr_actors._registrar.actor import Launched, RegistrarActor, launch
 from rr_actors._registrar.calls import Calls
-from rr_actors._registrar.endpoints import ClientActor
-from rr_actors._registrar.lifecycle import CatalogView
-from rr_actors._registrar.loading import LOADING, check_picklable
+from rr_actors._registrar.consumer import ClientActor
+from rr_actors._registrar.life import CatalogView, Network, check_network, serve_on
 from rr_actors._registrar.messages import (
+    LOADING,
     Asked,
     Crash,
     FetchVia,
@@ -52,27 +83,34 @@ from rr_actors._registrar.messages import (
     Stop,
     UnregisterServer,
     UpdateResponse,
+    check_picklable,
 )
-from rr_actors._registrar.probes import Probes
-from rr_actors._registrar.protocol import LoadCallback, UnloadCallback
-from rr_actors._registrar.starting import Launched, Network, check_network, launch, serve_on
-from rr_actors._types import Query, Status, StatusCallback
+from rr_actors._registrar.state import Probes
+from rr_actors._types import (
+    LoadCallback,
+    Query,
+    Status,
+    StatusCallback,
+    StatusUpdate,
+    UnloadCallback,
+)
 from rr_actors.config import RegistrarConfig, check_seconds
-from rr_actors.errors import (
-    CallTimeoutError,
-    ConfigError,
-    RegistrarStoppedError,
-)
+from rr_actors.errors import CallTimeoutError, ConfigError, RegistrarStoppedError
 
 __all__ = [
     "STOP_WAITS_FOR_UNLOADS",
+    "Here",
+    "Placement",
+    "Registrar",
     "RegistrarFacts",
     "ResourceRegistrar",
+    "StatusWatch",
     "snapshot",
     "start_registrar",
 ]
 
 T = TypeVar("T")
+P = ParamSpec("P")
 
 STOP_WAITS_FOR_UNLOADS = 0.5
 """The share of `stop()`'s timeout it waits for the unloads under way (the rest is left
@@ -81,53 +119,69 @@ to write the backup and stop the servers): 5 s with the default `call_timeout`."
 
 @dataclasses.dataclass(frozen=True)
 class RegistrarFacts:
-    """What a registrar handle knows without asking its actor; every handle holds one.
-
-    Attributes:
-        config: the configuration it was started with.
-        restored: whether the catalog was restored from an existing backup at start.
-        in_doubt: loads (or unloads) a crash cut short in the last run, found at restore.
-    """
+    """What a handle knows without asking its actor (its properties of the same names)."""
 
     config: RegistrarConfig
     restored: bool = False
     in_doubt: tuple[Query, ...] = ()
 
 
-class ResourceRegistrar(AsyncSurface):
-    """A manager's resource registrar (thesis 4.3.1, `RrBase`).
+class Placement(Protocol):
+    """Where a handle's actor lives: `Here`, or `There` (`_process/remote.py`)."""
 
-    Start one with [`ResourceRegistrar.start`][rr_actors.ResourceRegistrar.start]. Its
-    methods may be called from any thread, including from inside callbacks; each sends a
-    message to the registrar actor and waits for the answer at most `timeout` seconds
-    (default: the config's `call_timeout`). Each has an awaitable twin for event loops
-    (`acall`, `aunload`, ..., `watch`; the prefix as Django's async ORM has it): the
-    same operation, errors and timeout, with no thread held while it waits.
+    def steps(
+        self,
+        op: Callable[Concatenate[Here, float | None, P], Steps[T]],
+        timeout: float | None,
+        *args: P.args,
+        **kwargs: P.kwargs,
+    ) -> Steps[T]:
+        """The steps of the operation `op(here, timeout, *args)`, run where the actor is."""
+        ...
+
+    def stop(self, timeout: float | None) -> Steps[None]:
+        """The steps of stopping the registrar (rule 12); a stopped one is a no-op."""
+        ...
+
+    def is_alive(self) -> bool:
+        """Whether the registrar is running."""
+        ...
+
+    def state(self) -> str:
+        """What the handle's `repr` says of it ("running", a pid; or nothing)."""
+        ...
+
+
+class Registrar:
+    """A handle on a registrar, wherever its actor lives: in this process or in another.
+
+    Its methods may be called from any thread, including from inside callbacks; each
+    waits for the registrar at most `timeout` seconds (default: the config's
+    `call_timeout`) and raises `CallTimeoutError` when they run out. Each has an
+    awaitable twin for event loops (`acall`, `aunload`, ..., `watch`): the same
+    operation, errors and timeout, awaited from any running event loop, any number at
+    once, with no thread held while it waits. Cancelling the awaiting task withdraws
+    what it waits for as its timeout would: a cancelled `acall` gives its query id back
+    (if its load completes later, the id is released; nothing is left held) and raises
+    `asyncio.CancelledError`; a cancelled `aunload`, `asend_status`, ... stops waiting
+    for what was already sent, exactly as one that timed out.
+
+    A registrar of this process is a [`ResourceRegistrar`][rr_actors.ResourceRegistrar],
+    one in a manager process a
+    [`RemoteRegistrar`][rr_actors.testing.RemoteRegistrar]: code written against
+    `Registrar` (an application's actions, `Supervisor.call_with_retry`) does not change
+    between them. For the latter, arguments, callbacks and results cross processes
+    cloudpickled (callbacks may be closures) and callbacks run in the registrar's
+    process, on the threads a registrar there would use.
     """
 
-    def __init__(self, launched: Launched) -> None:
-        """Wrap a registrar `launch` started (use `ResourceRegistrar.start`)."""
-        config = launched.config
-        ref = launched.ref
-        self._ref = ref
-        self._config = config
-        self._facts = RegistrarFacts(config, launched.restored, launched.in_doubt)
-        self._in_doubt_texts = launched.in_doubt_texts
-        self._clients = launched.clients  # one cache: the actor starts, the handle looks up
-        self._died = launched.died  # set when a crash of the actor was fully handled
-        self._ended = launched.ended  # set when the actor handed on its last message
-        self._due = launched.due  # shared with the actor
-        self._probes: Probes | None = None  # `rr_actors.testing.intercept`
-        self._events = launched.published
-        self._calls = Calls(
-            ref,
-            config.name,
-            self._due,
-            commit_first=config.save_on_modify and config.backup_path is not None,
-            stored=config.backup_path is not None,
-            probes=lambda: self._probes,
-            listened=lambda: launched.published.active,
-        )
+    _actor: Placement
+
+    def __init__(self, facts: RegistrarFacts, actor: Placement) -> None:
+        """Made by a kind of handle (`ResourceRegistrar`, `RemoteRegistrar`), with where
+        its actor lives; user code starts or reaches a registrar through those."""
+        self._facts = facts
+        self._actor = actor
 
     @property
     def name(self) -> str:
@@ -160,6 +214,10 @@ class ResourceRegistrar(AsyncSurface):
         """
         return self._facts.in_doubt
 
+    def is_alive(self) -> bool:
+        """Whether the registrar is running (for the owner of a manager process: it)."""
+        return self._actor.is_alive()
+
     def settle_in_doubt(self, query_id: str | None = None, *, timeout: float | None = None) -> None:
         """Say that in-doubt entry `query_id` (default: every one) is handled (rule 16).
 
@@ -182,7 +240,805 @@ class ResourceRegistrar(AsyncSurface):
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        self._ask(SettleInDoubt(query_id, FutureReply()), timeout, f"settle_in_doubt({query_id!r})")
+        _blocking(self._actor.steps(Here.settle_in_doubt, timeout, query_id))
+
+    # -- servers ----------------------------------------------------------------------
+
+    def register_server(
+        self,
+        name: str,
+        *,
+        load: LoadCallback,
+        unload: UnloadCallback,
+        on_status: StatusCallback | None = None,
+        timeout: float | None = None,
+        label: Callable[[Any], str] | None = None,
+    ) -> None:
+        """Register a resource server `"<registrar>/<name>"`.
+
+        Args:
+            name: server name, unique on this registrar.
+            load: `load(request) -> response`; runs on a worker thread of the registrar's
+                process.
+            unload: `unload(request, response) -> None`; runs on a worker thread, after the
+                resource's dependencies were released.
+            on_status: `on_status(query, update)`, run once on a worker thread when a status
+                about one of this server's resources is sent or passes through.
+            timeout: seconds to wait for the registrar.
+            label: `label(request) -> str`, a short name for a resource that the observer
+                shows (`lidar2` rather than the whole request). It runs once per resource,
+                when its load starts, on a worker thread of the registrar's process,
+                bounded by `RegistrarConfig.compare_timeout`; the text is kept in the
+                catalog (and its backup), cut to 40 characters. If it raises (anything,
+                `SystemExit` included), returns something else than a `str` or overruns
+                the bound, the label reads `<label failed: ...>`; the load is not
+                affected, but a load that ends first waits for its label (at most that
+                bound) while someone listens to events, so that its
+                `ResourceLoaded.label` is this one. Without it, the observer shows what
+                tells the server's requests apart.
+
+        Raises:
+            ConfigError: a callback is not callable (or, to a registrar in another
+                process, does not pickle), or the name is invalid.
+            DuplicateNameError: a server with this name exists on this registrar.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        op = Here.register_server
+        _blocking(self._actor.steps(op, timeout, name, load, unload, on_status, label))
+
+    async def aregister_server(
+        self,
+        name: str,
+        *,
+        load: LoadCallback,
+        unload: UnloadCallback,
+        on_status: StatusCallback | None = None,
+        timeout: float | None = None,
+        label: Callable[[Any], str] | None = None,
+    ) -> None:
+        """`register_server`, awaited.
+
+        `load`, `unload` and `on_status` may be coroutine functions (`async def`): they
+        then run on the event loop of the registrar's process (one thread for all of
+        them), a slow one awaiting without holding a thread; plain ones run on worker
+        threads. Either kind may be registered through either twin.
+
+        Raises:
+            ConfigError: a callback is not callable (or `label` is a coroutine function),
+                or the name is invalid.
+            DuplicateNameError: a server with this name exists on this registrar.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        steps = self._actor.steps(
+            Here.register_server, timeout, name, load, unload, on_status, label
+        )
+        await run_steps_async(steps)
+
+    def unregister_server(self, name: str, *, timeout: float | None = None) -> None:
+        """Remove a server: send `FATAL` to its consumers and unload all it serves (rule 12).
+
+        Raises:
+            UnknownServerError: no such server here.
+            CallTimeoutError: not finished within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        _blocking(self._actor.steps(Here.unregister_server, timeout, name))
+
+    async def aunregister_server(self, name: str, *, timeout: float | None = None) -> None:
+        """`unregister_server`, awaited (rule 12).
+
+        Raises:
+            UnknownServerError: no such server here.
+            CallTimeoutError: not finished within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        await run_steps_async(self._actor.steps(Here.unregister_server, timeout, name))
+
+    # -- consumer API -----------------------------------------------------------------
+
+    def call(
+        self,
+        target_rr: str,
+        server: str,
+        request: Any,
+        *,
+        on_status: StatusCallback | None = None,
+        timeout: float | None = None,
+        query_id: str | None = None,
+    ) -> Query:
+        """Ask `target_rr/server` for the resource `request` describes (rules 1-6, 17).
+
+        The provider runs `load(request)` unless an equal (`==`) request is loaded or
+        loading there; either way this call becomes one more consumer with its own id.
+        Made from inside a `load` callback (of any process), the call carries that load's
+        context: the query is recorded as a dependency of the resource being loaded when
+        that load runs on this registrar, and is part of its chain for cycle detection.
+
+        Args:
+            target_rr: name of the provider registrar (this one's own name works too).
+            server: server name on it.
+            request: any value; equal requests mean the same resource. Between
+                registrars of one process it is passed, not copied (as pykka passes
+                messages): do not change it after the call, or the provider's catalog
+                holds the changed value and may no longer match equal requests to it.
+            on_status: client status callback `on_status(query, update)`, run on a worker
+                thread of this registrar's process.
+            timeout: seconds to wait for the answer.
+            query_id: the id to use (default: a fresh UUID4). Retrying with the same id is
+                idempotent: it never loads twice nor adds a second consumer.
+
+        Returns:
+            The `Query`, with the provider's `response` (in one process, the very object
+            `load` returned, shared by every consumer: treat it as read-only).
+
+        Raises:
+            ResourceLoadError: `load` raised here or further down; `stack` says where.
+            DependencyCycleError: the load would wait for itself further up its chain.
+            UnknownServerError: no such registrar or server.
+            CallTimeoutError: no answer in time; the query id is released if it loads later.
+            RegistrarUnavailableError: the provider died (it may have executed the load).
+            RegistrarStoppedError: this registrar or the provider was stopped.
+            ConfigError: `target_rr` or `server` is not a str, `query_id` not a
+                non-empty str, `on_status` not callable; or the request, or the response,
+                cannot be pickled where it must be: across processes, or into this
+                registrar's backup (its client record); the provider then holds nothing.
+        """
+        actor = self._actor
+        return _blocking(
+            actor.steps(Here.call, timeout, target_rr, server, request, on_status, query_id)
+        )
+
+    async def acall(
+        self,
+        target_rr: str,
+        server: str,
+        request: Any,
+        *,
+        on_status: StatusCallback | None = None,
+        timeout: float | None = None,
+        query_id: str | None = None,
+    ) -> Query:
+        """`call`, awaited (rules 1-6, 17): the provider's answer wakes the loop.
+
+        Awaited inside a coroutine `load` of this registrar, the query is recorded as a
+        dependency of the resource being loaded, as `call` inside a plain `load` is.
+        `on_status` may be a coroutine function: it then runs on the loop this call was
+        awaited from, one update at a time (see `StatusWatch` for an iterator instead).
+
+        Raises:
+            ResourceLoadError: `load` raised there or further down; `stack` says where.
+            DependencyCycleError: the load would wait for itself further up its chain.
+            UnknownServerError: no such registrar or server.
+            CallTimeoutError: no answer in time; the query id is released if it loads
+                later.
+            RegistrarUnavailableError: the provider died (it may have executed the load).
+            RegistrarStoppedError: this registrar or the provider was stopped.
+            ConfigError: as for `call`.
+            asyncio.CancelledError: the awaiting task was cancelled: the call was
+                withdrawn as a timed-out one is (nothing is left held).
+        """
+        steps = self._actor.steps(
+            Here.call, timeout, target_rr, server, request, on_status, query_id
+        )
+        return await run_steps_async(steps)
+
+    def unload(self, query_id: str, *, timeout: float | None = None) -> None:
+        """Release one consumer id obtained from `call` (rules 7-8).
+
+        The provider's `unload` callback runs when the last consumer id of the resource is
+        released, after that resource's own dependencies were released; this returns
+        when that is done.
+
+        Raises:
+            UnknownQueryError: the id is unknown here or already released (nothing changes).
+            CallTimeoutError: not finished within `timeout` seconds.
+            RegistrarUnavailableError: the provider died (or could not be reached) before
+                it answered: it may or may not have released the id. The release is
+                done all the same: this registrar no longer holds the id (a second
+                `unload` raises `UnknownQueryError`), the provider releases it when it
+                reconciles with this registrar after its restart (its `unload` callback
+                runs once in all), and nobody gets `FATAL` for it (rule 20).
+            RegistrarStoppedError: this registrar was stopped; or the provider was (the
+                id is released as for `RegistrarUnavailableError`, at its next start).
+        """
+        _blocking(self._actor.steps(Here.unload, timeout, query_id))
+
+    async def aunload(self, query_id: str, *, timeout: float | None = None) -> None:
+        """`unload`, awaited (rules 7-8).
+
+        Raises:
+            UnknownQueryError: the id is unknown here or already released.
+            CallTimeoutError: not finished within `timeout` seconds.
+            RegistrarUnavailableError: the provider died before it answered (see
+                `unload`: the release is done all the same).
+            RegistrarStoppedError: this registrar, or the provider, was stopped.
+        """
+        await run_steps_async(self._actor.steps(Here.unload, timeout, query_id))
+
+    def send_status(
+        self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
+    ) -> None:
+        """Tell every consumer of the resource behind `query_id` about its status (rule 9).
+
+        This server's `on_status` runs once; each consumer's status callback runs with its
+        own query id; the status climbs every dependency path to the top consumers.
+        Returns once every callback on the way has run.
+
+        Args:
+            query_id: any consumer id of a resource this registrar serves.
+            status: the status code.
+            message: free text.
+            timeout: seconds to wait for delivery along the whole path.
+
+        Raises:
+            UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            ConfigError: `status` is not a `Status`, `query_id` or `message` not a str.
+            MessageTooLargeError: the status is over the `max_message_bytes` of a
+                consumer registrar in another process (named): that one did not hear it,
+                the others did (a `FATAL` still marks the resource, rule 1).
+            CallTimeoutError: not delivered everywhere within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        _blocking(self._actor.steps(Here.send_status, timeout, query_id, status, message))
+
+    async def asend_status(
+        self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
+    ) -> None:
+        """`send_status`, awaited (rule 9): done once every callback on the way has run
+        (a coroutine one: once it returned).
+
+        Raises:
+            UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            ConfigError: `status` is not a `Status`.
+            MessageTooLargeError: over a consumer's `max_message_bytes` (see `send_status`).
+            CallTimeoutError: not delivered everywhere within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        steps = self._actor.steps(Here.send_status, timeout, query_id, status, message)
+        await run_steps_async(steps)
+
+    def server_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
+        """Every consumer query of this registrar's `server`, each id once (rule 10).
+
+        Raises:
+            UnknownServerError: no such server here.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        return _blocking(self._actor.steps(Here.server_queries, timeout, server))
+
+    async def aserver_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
+        """`server_queries`, awaited (rule 10).
+
+        Raises:
+            UnknownServerError: no such server here.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        return await run_steps_async(self._actor.steps(Here.server_queries, timeout, server))
+
+    def fetch_queries(
+        self, target_rr: str, server: str, *, timeout: float | None = None
+    ) -> list[Query]:
+        """The queries this registrar holds at `target_rr/server`, as the provider has them.
+
+        Used after a restart to learn what this registrar had asked for (thesis 4.2.5).
+
+        Raises:
+            UnknownServerError: no such registrar or server.
+            ConfigError: `target_rr` or `server` is not a str.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarUnavailableError: the provider died.
+        """
+        return _blocking(self._actor.steps(Here.fetch_queries, timeout, target_rr, server))
+
+    async def afetch_queries(
+        self, target_rr: str, server: str, *, timeout: float | None = None
+    ) -> list[Query]:
+        """`fetch_queries`, awaited (rule 10).
+
+        Raises:
+            UnknownServerError: no such registrar or server.
+            ConfigError: `target_rr` or `server` is not a str.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarUnavailableError: the provider died.
+        """
+        steps = self._actor.steps(Here.fetch_queries, timeout, target_rr, server)
+        return await run_steps_async(steps)
+
+    def client_queries(self, *, timeout: float | None = None) -> list[Query]:
+        """Every query this registrar holds at servers (its own included), oldest first.
+
+        Raises:
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        return _blocking(self._actor.steps(Here.client_queries, timeout))
+
+    async def aclient_queries(self, *, timeout: float | None = None) -> list[Query]:
+        """`client_queries`, awaited.
+
+        Raises:
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        return await run_steps_async(self._actor.steps(Here.client_queries, timeout))
+
+    def set_status_callback(
+        self, query_id: str, callback: StatusCallback, *, timeout: float | None = None
+    ) -> None:
+        """Attach (or replace) the client status callback of a query this registrar holds.
+
+        Status callbacks are code, so they are not in the backup: re-attach them after a
+        restart (rule 11). The callback runs in the registrar's process.
+
+        Raises:
+            UnknownQueryError: this registrar holds no such query.
+            ConfigError: `callback` is not callable (or, to a registrar in another
+                process, does not pickle).
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        _blocking(self._actor.steps(Here.set_status_callback, timeout, query_id, callback))
+
+    async def aset_status_callback(
+        self, query_id: str, callback: StatusCallback, *, timeout: float | None = None
+    ) -> None:
+        """`set_status_callback`, awaited (rule 11); a coroutine `callback` runs on the
+        loop this was awaited from.
+
+        Raises:
+            UnknownQueryError: this registrar holds no such query.
+            ConfigError: `callback` is not callable.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        steps = self._actor.steps(Here.set_status_callback, timeout, query_id, callback)
+        await run_steps_async(steps)
+
+    def update_response(
+        self, query_id: str, response: Any, *, timeout: float | None = None
+    ) -> None:
+        """Replace the stored response of the resource behind `query_id` (asynchronous loads).
+
+        Like TeMoto's catalog response update (thesis 4.3.2). Returns once every
+        consumer's client record holds the new response too (a consumer that cannot be
+        reached is logged and skipped).
+
+        Args:
+            query_id: any consumer id of a resource this registrar serves.
+            response: the new response (it must pickle when the catalog has a backup).
+            timeout: seconds to wait for the update to reach every consumer.
+
+        Raises:
+            UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            MessageTooLargeError: the response is over the `max_message_bytes` of a
+                consumer registrar in another process (named): its client record keeps
+                the old response; this registrar's catalog and the others have the new.
+            CallTimeoutError: not delivered within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        _blocking(self._actor.steps(Here.update_response, timeout, query_id, response))
+
+    async def aupdate_response(
+        self, query_id: str, response: Any, *, timeout: float | None = None
+    ) -> None:
+        """`update_response`, awaited (rule 11).
+
+        Raises:
+            UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            MessageTooLargeError: over a consumer's `max_message_bytes`.
+            CallTimeoutError: not delivered within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        steps = self._actor.steps(Here.update_response, timeout, query_id, response)
+        await run_steps_async(steps)
+
+    def save_catalog(self, *, timeout: float | None = None) -> None:
+        """Write every pending change of the catalog to the backup now (no-op without one).
+
+        Raises:
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        _blocking(self._actor.steps(Here.save_catalog, timeout))
+
+    async def asave_catalog(self, *, timeout: float | None = None) -> None:
+        """`save_catalog`, awaited.
+
+        Raises:
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        await run_steps_async(self._actor.steps(Here.save_catalog, timeout))
+
+    def stop(self, *, timeout: float | None = None) -> None:
+        """Stop the registrar (rule 12); for the owner of a manager process, the process too.
+
+        Unloads everything it holds as a consumer (newest first), waits for the unloads of
+        its own resources that are under way (their `unload` callbacks running, on worker
+        threads) until `STOP_WAITS_FOR_UNLOADS` of `timeout` has passed, then stops its servers
+        and clients. An unload still under way then is cut short: it stops anyway and
+        publishes `events.UnloadCutShort`; that resource stays in the backup as unloading
+        (in doubt at the next start, rule 16). What its servers serve stays in the
+        catalog for a restart. With `erase_on_destruct` the backup is removed. Stopping a
+        stopped (or dead) registrar is a no-op.
+
+        Args:
+            timeout: seconds the whole stop may take (`None`: the registrar's
+                `call_timeout`); the owner of a manager process kills it after that.
+
+        Raises:
+            CallTimeoutError: not finished within `timeout` seconds (a manager process
+                was killed).
+            RegistrarUnavailableError: the registrar died (or its process exited) while it
+                stopped; the reason is in the message.
+        """
+        _blocking(self._actor.stop(timeout))
+
+    async def astop(self, *, timeout: float | None = None) -> None:
+        """`stop`, awaited (rule 12). Stopping a stopped registrar is a no-op.
+
+        Raises:
+            CallTimeoutError: not finished within `timeout` seconds.
+            RegistrarUnavailableError: the registrar died while it stopped.
+        """
+        await run_steps_async(self._actor.stop(timeout))
+
+    def watch(self, query_id: str, *, maxsize: int = 256) -> StatusWatch:
+        """The status updates of query `query_id`, as an async iterator.
+
+        ```python
+        async for update in reg.watch(query.id):   # rr.StatusUpdate, in order
+            print(update.status, update.message)
+        ```
+
+        Once opened (its first step, or `async with`) it is the query's status callback
+        (it replaces the one the call was made with, as `aset_status_callback` does).
+        Iteration ends after a `FATAL` (the resource is gone for good, rule 19) or once
+        the watch is closed (`aclose()`, or leaving its `async with` block; a closed
+        watch drops what comes). An `async for` that breaks leaves it open: use `async
+        with` to close it. It does not end when the query is released: its reader
+        decides when to stop. Updates are queued for it on the loop it was opened on;
+        past `maxsize` the oldest is dropped (and counted in `dropped`), so a reader that
+        falls behind never holds the registrar.
+
+        Args:
+            query_id: a query this registrar holds (from `call` or `acall`).
+            maxsize: updates kept for a reader that falls behind.
+
+        Returns:
+            The watch: iterate it with `async for` from a coroutine on one loop.
+
+        Raises:
+            ConfigError: the registrar runs in another process (watch from a registrar
+                of this process that holds the query, or register a status callback
+                there: `aset_status_callback`, it runs in the registrar's process); or
+                `maxsize` is not a positive int (at once). The first step of the
+                iteration raises what `aset_status_callback` raises (an unknown id:
+                `UnknownQueryError`).
+        """
+        if not isinstance(self._actor, Here):
+            raise ConfigError(
+                f"watch() needs the registrar that holds the query in this process; "
+                f"{self.name!r} runs in another: watch from a registrar of this process, "
+                "or set a status callback (it runs in the registrar's process)"
+            )
+        if isinstance(maxsize, bool) or not isinstance(maxsize, int) or maxsize < 1:
+            raise ConfigError(f"maxsize must be a positive int, got {maxsize!r}")
+        return StatusWatch(self, query_id, maxsize)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.stop()
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(self, *_: object) -> None:
+        await self.astop()
+
+    def __repr__(self) -> str:
+        state = self._actor.state()
+        return f"<{type(self).__name__} {self.name!r}{' ' if state else ''}{state}>"
+
+
+class Here:
+    """The actor in this process (a `ResourceRegistrar`'s): its ref, the call protocol on
+    the caller's thread (`calls.py`), its client actors; an operation's steps run here."""
+
+    def __init__(self, launched: Launched) -> None:
+        config = launched.config
+        self.config = config
+        self.ref: pykka.ActorRef[RegistrarActor] = launched.ref
+        self.clients = launched.clients  # one cache: the actor starts, the handle looks up
+        self.died = launched.died  # set when a crash of the actor was fully handled
+        self.ended = launched.ended  # set when the actor handed on its last message
+        self.published = launched.published
+        self.in_doubt_texts = launched.in_doubt_texts
+        self.probes: Probes | None = None  # `rr_actors.testing.intercept`
+        self.calls = Calls(
+            self.ref,
+            config.name,
+            launched.due,  # shared with the actor
+            commit_first=config.save_on_modify and config.backup_path is not None,
+            stored=config.backup_path is not None,
+            probes=lambda: self.probes,
+            listened=lambda: launched.published.active,
+        )
+
+    # -- where the actor lives (`Placement`) --------------------------------------------
+
+    def steps(
+        self,
+        op: Callable[Concatenate[Here, float | None, P], Steps[T]],
+        timeout: float | None,
+        *args: P.args,
+        **kwargs: P.kwargs,
+    ) -> Steps[T]:
+        """`op`'s steps, here (on the thread or loop that drives them)."""
+        return op(self, timeout, *args, **kwargs)
+
+    def is_alive(self) -> bool:
+        """Whether the registrar actor is running."""
+        return self.ref.is_alive()
+
+    def state(self) -> str:
+        """What the handle's `repr` says: "running" or "stopped"."""
+        return "running" if self.ref.is_alive() else "stopped"
+
+    # -- the operations: each returns the steps of one method of `Registrar` ------------
+
+    def settle_in_doubt(self, timeout: float | None, query_id: str | None) -> Steps[None]:
+        what = f"settle_in_doubt({query_id!r})"
+        return self.asking(SettleInDoubt(query_id, FutureReply()), timeout, what)
+
+    def register_server(
+        self,
+        timeout: float | None,
+        name: str,
+        load: LoadCallback,
+        unload: UnloadCallback,
+        on_status: StatusCallback | None,
+        label: Callable[[Any], str] | None,
+    ) -> Steps[None]:
+        if not isinstance(name, str) or not name or "/" in name:
+            raise ConfigError(f"server name must be a non-empty string without '/', got {name!r}")
+        callbacks = (("load", load), ("unload", unload), ("on_status", on_status), ("label", label))
+        for arg, fn in callbacks:
+            if fn is not None and not callable(fn):
+                raise ConfigError(f"{arg} must be callable, got {fn!r}")
+        if label is not None and is_coroutine_function(label):
+            raise ConfigError(
+                f"label must be a plain function (it runs once, briefly), got {label!r}"
+            )
+        if on_status is not None and is_coroutine_function(on_status):
+            on_status = OnLoop(on_status, process_loop())  # a server's: the process's loop
+        return self.asking(
+            RegisterServer(name, load, unload, on_status, label, FutureReply()),
+            timeout,
+            f"register_server({name!r})",
+        )
+
+    def unregister_server(self, timeout: float | None, name: str) -> Steps[None]:
+        what = f"unregister_server({name!r})"
+        return self.asking(UnregisterServer(name, FutureReply()), timeout, what)
+
+    def call(
+        self,
+        timeout: float | None,
+        target_rr: str,
+        server: str,
+        request: Any,
+        on_status: StatusCallback | None,
+        query_id: str | None,
+    ) -> Steps[Query]:
+        if on_status is not None and not callable(on_status):
+            raise ConfigError(f"on_status must be callable, got {on_status!r}")
+        if not (isinstance(target_rr, str) and isinstance(server, str)):
+            _check_names(target_rr=target_rr, server=server)
+        if query_id is not None and not (isinstance(query_id, str) and query_id):
+            raise ConfigError(
+                f"query_id must be a non-empty str (or None: a fresh id), got {query_id!r}"
+            )
+        if on_status is not None and is_coroutine_function(on_status):
+            on_status = OnLoop.bind(on_status)  # the loop it was registered from
+        limit = self.limit(timeout)
+        deadline = time.monotonic() + limit
+        context = LOADING.get()
+        parent: str | None = None
+        chain: tuple[str, ...] = ()
+        if context is not None:
+            chain = context.chain
+            if context.registrar == self.config.name:
+                parent = context.resource_id
+        if self.config.backup_path is not None:  # its client record is stored
+            check_picklable(request, f"the request of a call to '{target_rr}/{server}'")
+        steps = self.calls.steps(
+            query_id or new_id(),
+            target_rr,
+            server,
+            request,
+            parent,
+            chain,
+            on_status,
+            limit,
+            deadline,
+        )
+        client = self.clients.get(target_rr, server)
+        if client is None or not client.is_alive():  # (it exists from the first call)
+            return _after(self.client(target_rr, server, limit), steps)
+        return steps
+
+    def unload(self, timeout: float | None, query_id: str) -> Steps[None]:
+        return self.asking(Release(query_id, FutureReply()), timeout, f"unload({query_id!r})")
+
+    def send_status(
+        self, timeout: float | None, query_id: str, status: Status, message: str
+    ) -> Steps[None]:
+        if not isinstance(status, Status):
+            raise ConfigError(f"status must be an rr_actors.Status, got {status!r}")
+        return self.asking(
+            SendStatus(query_id, status, message, FutureReply()),
+            timeout,
+            f"send_status({query_id!r})",
+        )
+
+    def server_queries(self, timeout: float | None, server: str) -> Steps[list[Query]]:
+        what = f"server_queries({server!r})"
+        return self.asking(ListServerQueries(server, FutureReply()), timeout, what)
+
+    def fetch_queries(
+        self, timeout: float | None, target_rr: str, server: str
+    ) -> Steps[list[Query]]:
+        _check_names(target_rr=target_rr, server=server)
+        limit = self.limit(timeout)
+        deadline = time.monotonic() + limit
+        reply = FutureReply()
+        client = yield from self.client(target_rr, server, limit)
+        client.tell(FetchVia(server, reply))
+        result: list[Query] = yield from asked(
+            reply.future, deadline, limit, f"fetch_queries({target_rr!r})"
+        )
+        return result
+
+    def client_queries(self, timeout: float | None) -> Steps[list[Query]]:
+        return self.asking(ListClientQueries(FutureReply()), timeout, "client_queries()")
+
+    def set_status_callback(
+        self, timeout: float | None, query_id: str, callback: StatusCallback
+    ) -> Steps[None]:
+        if not callable(callback):
+            raise ConfigError(f"callback must be callable, got {callback!r}")
+        if is_coroutine_function(callback):
+            callback = OnLoop.bind(callback)  # the loop it was registered from
+        return self.asking(
+            SetStatusCallback(query_id, callback, FutureReply()),
+            timeout,
+            f"set_status_callback({query_id!r})",
+        )
+
+    def update_response(self, timeout: float | None, query_id: str, response: Any) -> Steps[None]:
+        return self.asking(
+            UpdateResponse(query_id, response, FutureReply()),
+            timeout,
+            f"update_response({query_id!r})",
+        )
+
+    def save_catalog(self, timeout: float | None) -> Steps[None]:
+        return self.asking(Save(FutureReply()), timeout, "save_catalog()")
+
+    def stop(self, timeout: float | None) -> Steps[None]:
+        if not self.ref.is_alive():
+            return
+        limit = self.limit(timeout)
+        deadline = time.monotonic() + limit
+        try:
+            until = deadline - limit * (1.0 - STOP_WAITS_FOR_UNLOADS)
+            yield from self.asking(Stop(FutureReply(), until), limit, "stop()")
+        except RegistrarStoppedError:
+            return
+        # Stop ended the actor; what reached its mailbox meanwhile (an answer to give
+        # back, a notice to acknowledge) is handled once its thread has handed it on.
+        if not (yield self.ended, deadline):
+            raise CallTimeoutError(f"stop() of {self.config.name!r} timed out after {limit:g} s")
+
+    # -- how the package reaches the actor ----------------------------------------------
+
+    def limit(self, timeout: float | None) -> float:
+        """`timeout`, checked, or the registrar's `call_timeout` for `None`."""
+        if timeout is None:
+            return self.config.call_timeout
+        check_seconds("timeout", timeout)
+        return float(timeout)
+
+    def tell(self, message: Any) -> bool:
+        """Send the actor `message` without waiting; whether the actor was running."""
+        try:
+            self.ref.tell(message)
+        except pykka.ActorDeadError:
+            return False
+        return True
+
+    def ask(self, message: Asked, timeout: float | None, what: str) -> Any:
+        """Send the actor `message` and wait at most `timeout` seconds for its answer.
+
+        Raises:
+            CallTimeoutError: no answer in time (`what` names the operation).
+            RegistrarStoppedError, RegistrarUnavailableError: it was stopped, or it died.
+            RrError: the error the actor answered with.
+        """
+        return _blocking(self.asking(message, timeout, what))
+
+    def asking(self, message: Asked, timeout: float | None, what: str) -> Steps[Any]:
+        """`ask`'s steps: send `message`, wait for its answer."""
+        limit = self.limit(timeout)
+        if not self.tell(message):
+            raise DIRECTORY.gone_error(self.config.name) from None
+        future = message.reply.future
+        if not (yield future, time.monotonic() + limit):
+            raise CallTimeoutError(f"{what} timed out after {limit:g} s")
+        return future.get()
+
+    def wait_stopped(self, timeout: float | None = None) -> bool:
+        """Block until the actor's thread ended (stopped or died); whether it did."""
+        return self.ref.actor_stopped.wait(timeout)
+
+    def crash(self) -> None:
+        """Make the actor die as if a bug hit it (`testing.crash`, a forced stop)."""
+        self.ref.tell(Crash())
+
+    def ping(self, reply: Reply) -> None:
+        """Ask the actor to answer `reply` (`None`) once it gets to it (a heartbeat)."""
+        self.tell(Ping(reply))
+
+    def client(
+        self, target_rr: str, server: str, timeout: float
+    ) -> Steps[pykka.ActorRef[ClientActor]]:
+        """The client actor for `target_rr/server`, asked of the actor on first use."""
+        client = self.clients.get(target_rr, server)
+        if client is None or not client.is_alive():
+            started: pykka.ActorRef[ClientActor] = yield from self.asking(
+                OpenClient(target_rr, server, FutureReply()), timeout, "starting a client"
+            )
+            return started
+        return client
+
+
+class ResourceRegistrar(Registrar):
+    """A manager's resource registrar in this process (thesis 4.3.1, `RrBase`).
+
+    Start one with [`ResourceRegistrar.start`][rr_actors.ResourceRegistrar.start]. It is
+    the one handle, [`Registrar`][rr_actors.Registrar], whose actor is here; its
+    callbacks run on worker threads of this process (coroutine ones on its event loop).
+    """
+
+    _actor: Here
+
+    def __init__(self, launched: Launched) -> None:
+        """Wrap a registrar `launch` started (use `ResourceRegistrar.start`)."""
+        facts = RegistrarFacts(launched.config, launched.restored, launched.in_doubt)
+        super().__init__(facts, Here(launched))
 
     @classmethod
     def start(
@@ -239,12 +1095,6 @@ class ResourceRegistrar(AsyncSurface):
             serve_on(network, registrar)
         return registrar
 
-    # -- properties -------------------------------------------------------------------
-
-    def is_alive(self) -> bool:
-        """Whether the registrar actor is running."""
-        return self._ref.is_alive()
-
     def subscribe(
         self,
         callback: Callable[[events.Event], object],
@@ -270,498 +1120,86 @@ class ResourceRegistrar(AsyncSurface):
         Raises:
             ConfigError: `callback` is not callable, or `maxsize` not a positive int.
         """
-        return self._events.subscribe(callback, maxsize=maxsize, name=f"{self.name}-events")
+        published = self._actor.published
+        return published.subscribe(callback, maxsize=maxsize, name=f"{self.name}-events")
 
-    # -- servers ----------------------------------------------------------------------
 
-    def register_server(
-        self,
-        name: str,
-        *,
-        load: LoadCallback,
-        unload: UnloadCallback,
-        on_status: StatusCallback | None = None,
-        timeout: float | None = None,
-        label: Callable[[Any], str] | None = None,
-    ) -> None:
-        """Register a resource server `"<registrar>/<name>"`.
+class StatusWatch:
+    """A query's status updates as an async iterator (`Registrar.watch` makes one).
 
-        Args:
-            name: server name, unique on this registrar.
-            load: `load(request) -> response`; runs on a worker thread of this process.
-            unload: `unload(request, response) -> None`; runs on a worker thread, after the
-                resource's dependencies were released.
-            on_status: `on_status(query, update)`, run once on a worker thread when a status
-                about one of this server's resources is sent or passes through.
-            timeout: seconds to wait for the registrar.
-            label: `label(request) -> str`, a short name for a resource that the observer
-                shows (`lidar2` rather than the whole request). It runs once per resource,
-                when its load starts, on a worker thread of this process, bounded by
-                `RegistrarConfig.compare_timeout`; the text is kept in the catalog (and
-                its backup), cut to 40 characters. If it raises (anything, `SystemExit`
-                included), returns something else than a `str` or overruns the bound,
-                the label reads `<label failed: ...>`; the load is not affected, but a
-                load that ends first waits for its label (at most that bound) while
-                someone listens to events, so that its `ResourceLoaded.label` is this
-                one. Without it, the observer shows what tells the server's requests
-                apart.
+    Attributes:
+        query_id: the query watched.
+        dropped: updates dropped because the reader fell more than `maxsize` behind.
+    """
 
-        Raises:
-            ConfigError: a callback is not callable or the name is invalid.
-            DuplicateNameError: a server with this name exists on this registrar.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
-        """
-        _blocking(self._register_server_steps(name, load, unload, on_status, timeout, label))
-
-    def _register_server_steps(
-        self,
-        name: str,
-        load: LoadCallback,
-        unload: UnloadCallback,
-        on_status: StatusCallback | None,
-        timeout: float | None,
-        label: Callable[[Any], str] | None,
-    ) -> Steps[None]:
-        if not isinstance(name, str) or not name or "/" in name:
-            raise ConfigError(f"server name must be a non-empty string without '/', got {name!r}")
-        callbacks = (("load", load), ("unload", unload), ("on_status", on_status), ("label", label))
-        for arg, fn in callbacks:
-            if fn is not None and not callable(fn):
-                raise ConfigError(f"{arg} must be callable, got {fn!r}")
-        if label is not None and is_coroutine_function(label):
-            raise ConfigError(
-                f"label must be a plain function (it runs once, briefly), got {label!r}"
-            )
-        if on_status is not None and is_coroutine_function(on_status):
-            on_status = OnLoop(on_status, process_loop())  # a server's: the process's loop
-        return self._asking(
-            RegisterServer(name, load, unload, on_status, label, FutureReply()),
-            timeout,
-            f"register_server({name!r})",
-        )
-
-    def unregister_server(self, name: str, *, timeout: float | None = None) -> None:
-        """Remove a server: send `FATAL` to its consumers and unload all it serves (rule 12).
-
-        Raises:
-            UnknownServerError: no such server here.
-            CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
-        """
-        _blocking(self._unregister_server_steps(name, timeout))
-
-    def _unregister_server_steps(self, name: str, timeout: float | None) -> Steps[None]:
-        return self._asking(
-            UnregisterServer(name, FutureReply()), timeout, f"unregister_server({name!r})"
-        )
-
-    # -- consumer API -----------------------------------------------------------------
-
-    def call(
-        self,
-        target_rr: str,
-        server: str,
-        request: Any,
-        *,
-        on_status: StatusCallback | None = None,
-        timeout: float | None = None,
-        query_id: str | None = None,
-    ) -> Query:
-        """Ask `target_rr/server` for the resource `request` describes (rules 1-6, 17).
-
-        The provider runs `load(request)` unless an equal (`==`) request is loaded or
-        loading there; either way this call becomes one more consumer with its own id.
-        Called from inside a `load` callback of this registrar, the query is recorded as
-        a dependency of the resource being loaded.
-
-        Args:
-            target_rr: name of the provider registrar (this one's own name works too).
-            server: server name on it.
-            request: any value; equal requests mean the same resource. Between
-                registrars of one process it is passed, not copied (as pykka passes
-                messages): do not change it after the call, or the provider's catalog
-                holds the changed value and may no longer match equal requests to it.
-            on_status: client status callback `on_status(query, update)`, run on a worker
-                thread of this registrar's process.
-            timeout: seconds to wait for the answer.
-            query_id: the id to use (default: a fresh UUID4). Retrying with the same id is
-                idempotent: it never loads twice nor adds a second consumer.
-
-        Returns:
-            The `Query`, with the provider's `response` (in one process, the very object
-            `load` returned, shared by every consumer: treat it as read-only).
-
-        Raises:
-            ResourceLoadError: `load` raised here or further down; `stack` says where.
-            DependencyCycleError: the load would wait for itself further up its chain.
-            UnknownServerError: no such registrar or server.
-            CallTimeoutError: no answer in time; the query id is released if it loads later.
-            RegistrarUnavailableError: the provider died (it may have executed the load).
-            RegistrarStoppedError: this registrar or the provider was stopped.
-            ConfigError: `target_rr` or `server` is not a str, `query_id` not a
-                non-empty str, `on_status` not callable; or the request, or the response,
-                cannot be pickled where it must be: across processes, or into this
-                registrar's backup (its client record); the provider then holds nothing.
-        """
-        return _blocking(self._call_steps(target_rr, server, request, on_status, timeout, query_id))
-
-    def _call_steps(
-        self,
-        target_rr: str,
-        server: str,
-        request: Any,
-        on_status: StatusCallback | None,
-        timeout: float | None,
-        query_id: str | None,
-    ) -> Steps[Query]:
-        if on_status is not None and not callable(on_status):
-            raise ConfigError(f"on_status must be callable, got {on_status!r}")
-        _check_names(target_rr=target_rr, server=server)
-        if query_id is not None and not (isinstance(query_id, str) and query_id):
-            raise ConfigError(
-                f"query_id must be a non-empty str (or None: a fresh id), got {query_id!r}"
-            )
-        if on_status is not None and is_coroutine_function(on_status):
-            on_status = OnLoop.bind(on_status)  # the loop it was registered from
-        limit = self._timeout(timeout)
-        deadline = time.monotonic() + limit
-        context = LOADING.get()
-        parent: str | None = None
-        chain: tuple[str, ...] = ()
-        if context is not None:
-            chain = context.chain
-            if context.registrar == self.name:
-                parent = context.resource_id
-        if self._config.backup_path is not None:  # its client record is stored
-            check_picklable(request, f"the request of a call to '{target_rr}/{server}'")
-        steps = self._calls.steps(
-            query_id or new_id(),
-            target_rr,
-            server,
-            request,
-            parent,
-            chain,
-            on_status,
-            limit,
-            deadline,
-        )
-        client = self._clients.get(target_rr, server)
-        if client is None or not client.is_alive():  # (it exists from the first call)
-            return _after(self._client_steps(target_rr, server, limit), steps)
-        return steps
-
-    def unload(self, query_id: str, *, timeout: float | None = None) -> None:
-        """Release one consumer id obtained from `call` (rules 7-8).
-
-        The provider's `unload` callback runs when the last consumer id of the resource is
-        released, after that resource's own dependencies were released; this returns
-        when that is done.
-
-        Raises:
-            UnknownQueryError: the id is unknown here or already released (nothing changes).
-            CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarUnavailableError: the provider died (or could not be reached) before
-                it answered: it may or may not have released the id. The release is
-                done all the same: this registrar no longer holds the id (a second
-                `unload` raises `UnknownQueryError`), the provider releases it when it
-                reconciles with this registrar after its restart (its `unload` callback
-                runs once in all), and nobody gets `FATAL` for it (rule 20).
-            RegistrarStoppedError: this registrar was stopped; or the provider was (the
-                id is released as for `RegistrarUnavailableError`, at its next start).
-        """
-        _blocking(self._unload_steps(query_id, timeout))
-
-    def _unload_steps(self, query_id: str, timeout: float | None) -> Steps[None]:
-        return self._asking(Release(query_id, FutureReply()), timeout, f"unload({query_id!r})")
-
-    def send_status(
-        self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
-    ) -> None:
-        """Tell every consumer of the resource behind `query_id` about its status (rule 9).
-
-        This server's `on_status` runs once; each consumer's status callback runs with its
-        own query id; the status climbs every dependency path to the top consumers.
-        Returns once every callback on the way has run.
-
-        Args:
-            query_id: any consumer id of a resource this registrar serves.
-            status: the status code.
-            message: free text.
-            timeout: seconds to wait for delivery along the whole path.
-
-        Raises:
-            UnknownQueryError: `query_id` is not a consumer id of a resource served here.
-            ConfigError: `status` is not a `Status`, `query_id` or `message` not a str.
-            MessageTooLargeError: the status is over the `max_message_bytes` of a
-                consumer registrar in another process (named): that one did not hear it,
-                the others did (a `FATAL` still marks the resource, rule 1).
-            CallTimeoutError: not delivered everywhere within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
-        """
-        _blocking(self._send_status_steps(query_id, status, message, timeout))
-
-    def _send_status_steps(
-        self, query_id: str, status: Status, message: str, timeout: float | None
-    ) -> Steps[None]:
-        if not isinstance(status, Status):
-            raise ConfigError(f"status must be an rr_actors.Status, got {status!r}")
-        return self._asking(
-            SendStatus(query_id, status, message, FutureReply()),
-            timeout,
-            f"send_status({query_id!r})",
-        )
-
-    def server_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
-        """Every consumer query of this registrar's `server`, each id once (rule 10).
-
-        Raises:
-            UnknownServerError: no such server here.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
-        """
-        return _blocking(self._server_queries_steps(server, timeout))
-
-    def _server_queries_steps(self, server: str, timeout: float | None) -> Steps[list[Query]]:
-        return self._asking(
-            ListServerQueries(server, FutureReply()), timeout, f"server_queries({server!r})"
-        )
-
-    def fetch_queries(
-        self, target_rr: str, server: str, *, timeout: float | None = None
-    ) -> list[Query]:
-        """The queries this registrar holds at `target_rr/server`, as the provider has them.
-
-        Used after a restart to learn what this registrar had asked for (thesis 4.2.5).
-
-        Raises:
-            UnknownServerError: no such registrar or server.
-            ConfigError: `target_rr` or `server` is not a str.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarUnavailableError: the provider died.
-        """
-        return _blocking(self._fetch_queries_steps(target_rr, server, timeout))
-
-    def _fetch_queries_steps(
-        self, target_rr: str, server: str, timeout: float | None
-    ) -> Steps[list[Query]]:
-        _check_names(target_rr=target_rr, server=server)
-        limit = self._timeout(timeout)
-        deadline = time.monotonic() + limit
-        reply = FutureReply()
-        client = yield from self._client_steps(target_rr, server, limit)
-        client.tell(FetchVia(server, reply))
-        result: list[Query] = yield from asked(
-            reply.future, deadline, limit, f"fetch_queries({target_rr!r})"
-        )
-        return result
-
-    def client_queries(self, *, timeout: float | None = None) -> list[Query]:
-        """Every query this registrar holds at servers (its own included), oldest first.
-
-        Raises:
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
-        """
-        return _blocking(self._client_queries_steps(timeout))
-
-    def _client_queries_steps(self, timeout: float | None) -> Steps[list[Query]]:
-        return self._asking(ListClientQueries(FutureReply()), timeout, "client_queries()")
-
-    def set_status_callback(
-        self, query_id: str, callback: StatusCallback, *, timeout: float | None = None
-    ) -> None:
-        """Attach (or replace) the client status callback of a query this registrar holds.
-
-        Status callbacks are code, so they are not in the backup: re-attach them after a
-        restart (rule 11).
-
-        Raises:
-            UnknownQueryError: this registrar holds no such query.
-            ConfigError: `callback` is not callable.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
-        """
-        _blocking(self._set_status_callback_steps(query_id, callback, timeout))
-
-    def _set_status_callback_steps(
-        self, query_id: str, callback: StatusCallback, timeout: float | None
-    ) -> Steps[None]:
-        if not callable(callback):
-            raise ConfigError(f"callback must be callable, got {callback!r}")
-        if is_coroutine_function(callback):
-            callback = OnLoop.bind(callback)  # the loop it was registered from
-        return self._asking(
-            SetStatusCallback(query_id, callback, FutureReply()),
-            timeout,
-            f"set_status_callback({query_id!r})",
-        )
-
-    def update_response(
-        self, query_id: str, response: Any, *, timeout: float | None = None
-    ) -> None:
-        """Replace the stored response of the resource behind `query_id` (asynchronous loads).
-
-        Like TeMoto's catalog response update (thesis 4.3.2). Returns once every
-        consumer's client record holds the new response too (a consumer that cannot be
-        reached is logged and skipped).
-
-        Args:
-            query_id: any consumer id of a resource this registrar serves.
-            response: the new response (it must pickle when the catalog has a backup).
-            timeout: seconds to wait for the update to reach every consumer.
-
-        Raises:
-            UnknownQueryError: `query_id` is not a consumer id of a resource served here.
-            MessageTooLargeError: the response is over the `max_message_bytes` of a
-                consumer registrar in another process (named): its client record keeps
-                the old response; this registrar's catalog and the others have the new.
-            CallTimeoutError: not delivered within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
-        """
-        _blocking(self._update_response_steps(query_id, response, timeout))
-
-    def _update_response_steps(
-        self, query_id: str, response: Any, timeout: float | None
-    ) -> Steps[None]:
-        return self._asking(
-            UpdateResponse(query_id, response, FutureReply()),
-            timeout,
-            f"update_response({query_id!r})",
-        )
-
-    def save_catalog(self, *, timeout: float | None = None) -> None:
-        """Write every pending change of the catalog to the backup now (no-op without one).
-
-        Raises:
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
-        """
-        _blocking(self._save_catalog_steps(timeout))
-
-    def _save_catalog_steps(self, timeout: float | None) -> Steps[None]:
-        return self._asking(Save(FutureReply()), timeout, "save_catalog()")
-
-    def stop(self, *, timeout: float | None = None) -> None:
-        """Stop the registrar (rule 12).
-
-        Unloads everything it holds as a consumer (newest first), waits for the unloads of
-        its own resources that are under way (their `unload` callbacks running, on worker
-        threads) until `STOP_WAITS_FOR_UNLOADS` of `timeout` has passed, then stops its servers
-        and clients. An unload still under way then is cut short: it stops anyway and
-        publishes `events.UnloadCutShort`; that resource stays in the backup as unloading
-        (in doubt at the next start, rule 16). What its servers serve stays in the
-        catalog for a restart. With `erase_on_destruct` the backup is removed. Stopping a
-        stopped registrar is a no-op.
-
-        Args:
-            timeout: seconds the whole stop may take (`None`: the registrar's
-                `call_timeout`).
-
-        Raises:
-            CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarUnavailableError: the registrar died while it stopped.
-        """
-        _blocking(self._stop_steps(timeout))
-
-    def _stop_steps(self, timeout: float | None) -> Steps[None]:
-        if not self._ref.is_alive():
-            return
-        limit = self._timeout(timeout)
-        deadline = time.monotonic() + limit
-        try:
-            until = deadline - limit * (1.0 - STOP_WAITS_FOR_UNLOADS)
-            yield from self._asking(Stop(FutureReply(), until), limit, "stop()")
-        except RegistrarStoppedError:
-            return
-        # Stop ended the actor; what reached its mailbox meanwhile (an answer to give
-        # back, a notice to acknowledge) is handled once its thread has handed it on.
-        if not (yield self._ended, deadline):
-            raise CallTimeoutError(f"stop() of {self.name!r} timed out after {limit:g} s")
-
-    def __enter__(self) -> ResourceRegistrar:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.stop()
+    def __init__(self, registrar: Registrar, query_id: str, maxsize: int) -> None:
+        self._registrar = registrar
+        self.query_id = query_id
+        self._maxsize = maxsize
+        self._updates: asyncio.Queue[StatusUpdate | None] | None = None  # None: closed
+        self._closed = False
+        self._ended = False
+        self.dropped = 0
 
     def __repr__(self) -> str:
-        state = "running" if self._ref.is_alive() else "stopped"
-        return f"<ResourceRegistrar {self.name!r} {state}>"
+        return f"<StatusWatch {self.query_id!r}{' closed' if self._closed else ''}>"
 
-    # -- plumbing ---------------------------------------------------------------------
+    async def _receive(self, _query: Query, update: StatusUpdate) -> None:
+        """The query's status callback, on the watch's loop."""
+        updates = self._updates
+        if updates is None or self._closed:
+            return
+        if updates.full():
+            updates.get_nowait()
+            self.dropped += 1
+        updates.put_nowait(update)
 
-    def _timeout(self, timeout: float | None) -> float:
-        if timeout is None:
-            return self._config.call_timeout
-        check_seconds("timeout", timeout)
-        return float(timeout)
-
-    # -- the internal surface: how the package reaches the actor ----------------------
-
-    def _tell(self, message: Any) -> bool:
-        """Send the actor `message` without waiting; whether the actor was running."""
-        try:
-            self._ref.tell(message)
-        except pykka.ActorDeadError:
-            return False
-        return True
-
-    def _ask(self, message: Asked, timeout: float | None, what: str) -> Any:
-        """Send the actor `message` and wait at most `timeout` seconds for its answer.
+    async def open(self, *, timeout: float | None = None) -> StatusWatch:
+        """Become the query's status callback now (the first `__anext__` does it too).
 
         Raises:
-            CallTimeoutError: no answer in time (`what` names the operation).
-            RegistrarStoppedError, RegistrarUnavailableError: it was stopped, or it died.
-            RrError: the error the actor answered with.
+            UnknownQueryError: the registrar holds no such query.
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: the registrar was stopped.
+            RegistrarUnavailableError: the registrar died.
         """
-        return _blocking(self._asking(message, timeout, what))
-
-    def _asking(self, message: Asked, timeout: float | None, what: str) -> Steps[Any]:
-        """`_ask`'s steps: send `message`, wait for its answer (`replies.Steps`)."""
-        limit = self._timeout(timeout)
-        if not self._tell(message):
-            raise DIRECTORY.gone_error(self.name) from None
-        future = message.reply.future
-        if not (yield future, time.monotonic() + limit):
-            raise CallTimeoutError(f"{what} timed out after {limit:g} s")
-        return future.get()
-
-    def _wait_stopped(self, timeout: float | None = None) -> bool:
-        """Block until the actor's thread ended (stopped or died); whether it did."""
-        return self._ref.actor_stopped.wait(timeout)
-
-    def _crash(self) -> None:
-        """Make the actor die as if a bug hit it (`testing.crash`, a forced stop)."""
-        self._ref.tell(Crash())
-
-    def _ping(self, reply: Reply) -> None:
-        """Ask the actor to answer `reply` (`None`) once it gets to it (a heartbeat)."""
-        self._tell(Ping(reply))
-
-    def _actor_ref(self) -> pykka.ActorRef[RegistrarActor]:
-        """The actor's pykka ref (`rr_actors.testing.actor_ref` gives it to tests)."""
-        return self._ref
-
-    def _client_steps(
-        self, target_rr: str, server: str, timeout: float
-    ) -> Steps[pykka.ActorRef[ClientActor]]:
-        """The client actor for `target_rr/server`, asked of the actor on first use."""
-        client = self._clients.get(target_rr, server)
-        if client is None or not client.is_alive():
-            started: pykka.ActorRef[ClientActor] = yield from self._asking(
-                OpenClient(target_rr, server, FutureReply()), timeout, "starting a client"
+        if self._updates is None:
+            self._updates = asyncio.Queue(self._maxsize)
+            await self._registrar.aset_status_callback(
+                self.query_id, self._receive, timeout=timeout
             )
-            return started
-        return client
+        return self
+
+    def __aiter__(self) -> StatusWatch:
+        return self
+
+    async def __anext__(self) -> StatusUpdate:
+        if self._closed or self._ended:
+            raise StopAsyncIteration
+        await self.open()
+        assert self._updates is not None
+        update = await self._updates.get()
+        if update is None:  # closed while this waited (`aclose`)
+            raise StopAsyncIteration
+        if update.status is Status.FATAL:
+            self._ended = True
+        return update
+
+    async def aclose(self) -> None:
+        """Stop collecting: updates that come later are dropped; iteration ends, also
+        for a reader that waits for the next update (in another task of the loop)."""
+        self._closed = True
+        updates = self._updates
+        if updates is not None:  # wake a reader waiting for the next update: it ends
+            if updates.full():
+                updates.get_nowait()  # (unread: a closed watch gives nothing more)
+            updates.put_nowait(None)
+
+    async def __aenter__(self) -> StatusWatch:
+        return await self.open()
+
+    async def __aexit__(self, *_: object) -> None:
+        await self.aclose()
 
 
 def start_registrar(
@@ -799,7 +1237,7 @@ def start_registrar(
             raise
         try:
             handle.settle_in_doubt()
-            handle._ask(Ready(FutureReply()), None, "ready")
+            handle._actor.ask(Ready(FutureReply()), None, "ready")
         except BaseException:
             handle.stop()  # (not left running when its start failed)
             raise
@@ -818,12 +1256,13 @@ def snapshot(registrar: ResourceRegistrar, *, timeout: float, check: bool) -> Ca
         CallTimeoutError: no answer within `timeout` seconds.
         RegistrarStoppedError, RegistrarUnavailableError: it was stopped, or it died.
     """
-    view: CatalogView = registrar._ask(
+    here = registrar._actor
+    view: CatalogView = here.ask(
         Snapshot(check, FutureReply()),
         timeout,
         "catalog_snapshot()" if check else "a snapshot of the catalog",
     )
-    return dataclasses.replace(view, in_doubt=registrar._in_doubt_texts)
+    return dataclasses.replace(view, in_doubt=here.in_doubt_texts)
 
 
 def _after(first: Steps[Any], then: Steps[T]) -> Steps[T]:

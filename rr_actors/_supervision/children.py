@@ -170,7 +170,7 @@ class ThreadManager:
         self.registrar = registrar
 
         def watch() -> None:
-            registrar._wait_stopped()
+            registrar._actor.wait_stopped()
             if self.stopping:
                 return
             if stopped_cleanly(spec.name):  # code in the manager called registrar.stop()
@@ -197,8 +197,8 @@ class ThreadManager:
                 "manager %s did not stop within %g s: %s", self.spec.name, timeout, exc
             )
             with contextlib.suppress(Exception):
-                registrar._crash()
-            registrar._wait_stopped(timeout)
+                registrar._actor.crash()
+            registrar._actor.wait_stopped(timeout)
             return ManagerExit(f"killed: no clean stop within {timeout:g} s", normal=False)
         return ManagerExit("shutdown", normal=True)
 

@@ -11,8 +11,8 @@
                             down?    ── kept in the tree; sent by its next start
 ```
 
-Built on the `Registrar` protocol, so the consumer may be any registrar handle (in this
-process, or in a manager process).
+Built on the one handle class, `Registrar`, so the consumer may be any registrar handle
+(in this process, or in a manager process).
 """
 
 from __future__ import annotations
@@ -22,8 +22,7 @@ import uuid
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from rr_actors._registrar import give_back
-from rr_actors._registrar.protocol import Registrar
+from rr_actors._registrar import Registrar, give_back
 from rr_actors._supervision.children import ChildInfo
 from rr_actors._supervision.tree import Level, Tree, find_child
 from rr_actors._types import Query, StatusCallback

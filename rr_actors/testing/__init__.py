@@ -3,8 +3,8 @@
 Placement-independent helpers: [`crash`][rr_actors.testing.crash] and
 [`catalog_snapshot`][rr_actors.testing.catalog_snapshot] accept a `ResourceRegistrar` (a
 registrar in this process) or a [`RemoteRegistrar`][rr_actors.testing.RemoteRegistrar] (a
-registrar in a manager process of a system). A `RemoteRegistrar` has the methods of a
-`ResourceRegistrar`, so one test body exercises both placements.
+registrar in a manager process of a system). Both are the one handle class,
+`rr.Registrar`, with the same methods, so one test body exercises both placements.
 
 State that a test shares with callbacks which may run in another process (journals,
 events, barriers) comes from [`SharedObjects`][rr_actors.testing.SharedObjects].
@@ -51,8 +51,8 @@ from __future__ import annotations
 from rr_actors._process.context import start_forkserver
 from rr_actors._process.remote import RemoteRegistrar
 from rr_actors._registrar.actor import STEPS
-from rr_actors._registrar.attempt import AttemptState, CallAttempt
-from rr_actors._registrar.lifecycle import CatalogView
+from rr_actors._registrar.calls import AttemptState, CallAttempt
+from rr_actors._registrar.life import CatalogView
 from rr_actors._transport.unix.system import System
 from rr_actors.testing.helpers import catalog_snapshot, crash, running_actors
 from rr_actors.testing.memory import MemoryAddress, MemoryNetwork

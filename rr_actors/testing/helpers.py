@@ -9,7 +9,7 @@ import pykka
 
 from rr_actors._process.remote import FORWARD_MARGIN, RemoteRegistrar
 from rr_actors._registrar import ResourceRegistrar, snapshot
-from rr_actors._registrar.lifecycle import CatalogView
+from rr_actors._registrar.life import CatalogView
 
 __all__ = ["catalog_snapshot", "crash", "running_actors"]
 
@@ -30,8 +30,8 @@ def crash(registrar: ResourceRegistrar | RemoteRegistrar, *, timeout: float = 5.
     if isinstance(registrar, RemoteRegistrar):
         registrar.kill(timeout=timeout)
         return
-    registrar._crash()
-    registrar._died.wait(timeout)  # the actor's death handling ran, death watch included
+    registrar._actor.crash()
+    registrar._actor.died.wait(timeout)  # the actor's death handling ran, death watch included
 
 
 def catalog_snapshot(

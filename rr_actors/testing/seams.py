@@ -22,7 +22,7 @@ from rr_actors._registrar import ResourceRegistrar
 from rr_actors._registrar.actor import STEPS, RegistrarActor
 from rr_actors._registrar.calls import CallAttempt
 from rr_actors._registrar.messages import RunOnActor
-from rr_actors._registrar.probes import Hook, Probes
+from rr_actors._registrar.state import Hook, Probes
 from rr_actors.errors import ConfigError, RegistrarUnavailableError
 
 __all__ = [
@@ -86,7 +86,7 @@ def run_on_actor(registrar: ResourceRegistrar, fn: Callable[[], T]) -> pykka.Fut
         else:
             reply.set_result(result)
 
-    future: pykka.Future[T] = _ask_actor(local._actor_ref(), op).future
+    future: pykka.Future[T] = _ask_actor(local._actor.ref, op).future
     return future
 
 
@@ -105,8 +105,8 @@ def actor_ref(
     """
     local = _local(registrar, "actor_ref")
     if client is None:
-        return local._actor_ref()
-    ref = local._clients.get(*client)
+        return local._actor.ref
+    ref = local._actor.clients.get(*client)
     if ref is None:
         raise ConfigError(f"registrar {local.name!r} has no client for {client!r}")
     return ref
@@ -168,7 +168,8 @@ def intercept(
     local = _local(registrar, "intercept")
     if step not in STEPS:
         raise ConfigError(f"no registrar step is named {step!r}; steps: {sorted(STEPS)}")
-    probes = local._probes
+    here = local._actor
+    probes = here.probes
     if probes is None:
         probes = Probes()
         installed = probes
@@ -177,8 +178,8 @@ def intercept(
             actor.shared.probes = installed
             reply.set_result(None)
 
-        wait(_ask_actor(local._actor_ref(), install).future, 10.0, "installing probes")
-        local._probes = probes
+        wait(_ask_actor(here.ref, install).future, 10.0, "installing probes")
+        here.probes = probes
     probes.add(step, before=before, after=after)
     return Installed(functools.partial(probes.remove, step, before=before, after=after))
 
@@ -187,7 +188,7 @@ def call_futures(registrar: ResourceRegistrar, future_type: type[CallAttempt]) -
     """Make the registrar's callers wait on `future_type` futures until `close()`.
 
     A caller waits for its answer on the future of its call attempt
-    (`rr_actors._registrar.attempt.CallAttempt`, a one-shot future with one state), which
+    (`rr_actors._registrar.calls.CallAttempt`, a one-shot future with one state), which
     the answering thread settles, or the caller withdraws when its time runs out (see
     `docs/explanation/failure-semantics.md`). A subclass that overrides `wait` or a
     transition (`answer`, `fail`, `take`, `settle`, `withdraw`) to wait on events makes
@@ -206,7 +207,7 @@ def call_futures(registrar: ResourceRegistrar, future_type: type[CallAttempt]) -
             f"future_type must subclass CallAttempt (the OneShotFuture of a call), "
             f"got {future_type!r}"
         )
-    calls = local._calls
+    calls = local._actor.calls
     before, calls.attempt_type = calls.attempt_type, future_type
     return Installed(lambda: setattr(calls, "attempt_type", before))
 
@@ -297,6 +298,6 @@ def pending_work(
             raise RegistrarUnavailableError(f"registrar {registrar!r} is not running here")
         ref = peer.ref
     else:
-        ref = registrar._actor_ref()
+        ref = registrar._actor.ref
     work: PendingWork = wait(_ask_actor(ref, _pending_work).future, timeout, "pending_work()")
     return work

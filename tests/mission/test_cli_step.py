@@ -88,11 +88,16 @@ def test_step_on_an_80_column_terminal_fits_and_leaves_the_pauses_out_of_every_t
     # (were the pauses counted, it would be over by their sum, 7.5 s at least). Not "within
     # PAUSE of the goal": the manager faults' restarts come after it, 2 s each when loaded.
     assert stamps[-1] + report["paused_for_enter_s"] <= took + 0.01  # (stamps: 2 decimals)
-    # One clock: the story's "goal reached" stamp is where the report's drive ends.
+    # One clock: the story's "goal reached" stamp is where the report's drive ends, unless
+    # a line stamped later was told first (a fault's recovery, told by another thread while
+    # a loaded machine kept the drive's thread from seeing the goal: 10.8 s for a drive
+    # ended at 9.626 s in a CI run): the story never steps back (`Mission.say`, issue 44
+    # item 3), so the goal's line then carries that line's stamp. Its "after" is the drive.
     assert arrived is not None
-    assert float(arrived[1]) == pytest.approx(
-        report["drive_started_at_s"] + report["mission_time_s"], abs=0.1
-    )
+    told = re.findall(r"^\[\s*([0-9.]+) s\] (.*)$", text, re.MULTILINE)
+    goal = next(i for i, (_, said) in enumerate(told) if said.startswith("goal reached after "))
+    drive_end = report["drive_started_at_s"] + report["mission_time_s"]
+    assert float(told[goal][0]) == pytest.approx(max(drive_end, float(told[goal - 1][0])), abs=0.1)
     assert float(arrived[2]) == pytest.approx(report["mission_time_s"], abs=0.01)
 
 

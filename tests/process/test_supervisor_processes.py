@@ -610,7 +610,7 @@ def test_a_killed_manager_is_seen_dead_without_waiting_for_the_forkserver_to_rea
 def test_call_with_retry_works_for_a_consumer_registrar_in_another_manager_process(
     supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path
 ) -> None:
-    # call_with_retry is written against the Registrar protocol: the consumer may be a
+    # call_with_retry is written against the one handle class, Registrar: the consumer may be a
     # handle on a registrar that lives in a manager process.
     p, c = f"p-{uid}", f"c-{uid}"
     journal = tmp_path / "journal.txt"

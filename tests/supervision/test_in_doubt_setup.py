@@ -159,7 +159,7 @@ def test_a_thread_manager_whose_setup_raised_is_offered_its_in_doubt_load_again(
         caller.start()
         assert loading.wait(10.0)
         rr.testing.crash(started)  # the load is cut short: in doubt
-        assert started._wait_stopped(10.0)
+        assert started._actor.wait_stopped(10.0)
         gate.set()
         caller.join(10.0)
         assert [rr.RegistrarUnavailableError] == [type(exc) for exc in failed]

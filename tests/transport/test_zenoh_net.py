@@ -35,6 +35,7 @@ from rr_actors._transport.zenoh.ops.config import session_config
 from tests.support import pki
 from tests.support.supervising import wait_gone
 from tests.support.tls_lab import free_port, member_tls, router
+from tests.support.waiting import wait_for
 
 
 def _attached_max_offset(address: Any) -> float:
@@ -570,6 +571,59 @@ class TestWaitFor:
         assert f"this process has no link to connect endpoint {endpoint} (" in message
         assert re.search(REASON, message), message
 
+    # -- plain TCP: a connect endpoint nobody listens on (issue 44 item 7) ------------------
+
+    def test_wait_for_over_plain_tcp_names_the_connect_endpoint_nobody_listens_on(self) -> None:
+        endpoint = f"tcp/127.0.0.1:{free_port()}"  # (closed: nothing listens there)
+        with (
+            rr.ZenohNetwork(system="lab", connect=[endpoint], tls=None) as net,
+            pytest.raises(rr.RegistrarUnavailableError) as raised,
+        ):
+            net.wait_for("erm", timeout=0.5)
+
+        assert (
+            "no registrar named 'erm' was served on system 'lab' within 0.5 s; this process has "
+            f"no link to connect endpoint {endpoint} (cannot reach it (Connection refused)), so "
+            "a registrar served there is not seen"
+        ) == str(raised.value)
+
+    def test_a_call_over_plain_tcp_names_the_connect_endpoint_nobody_listens_on(self) -> None:
+        endpoint, uid = f"tcp/127.0.0.1:{free_port()}", uuid.uuid4().hex[:8]
+        with rr.ZenohNetwork(system="lab", connect=[endpoint], tls=None) as net:
+            station = rr.ResourceRegistrar.start(
+                rr.RegistrarConfig(name=f"station{uid}"), network=net
+            )
+            try:
+                with pytest.raises(rr.UnknownRegistrarError) as raised:
+                    station.call(f"erm-{uid}", "camera", 0, timeout=10)
+            finally:
+                station.stop()
+
+        message = str(raised.value)
+        assert message.startswith(f"no registrar named 'erm-{uid}' on system 'lab'"), message
+        assert (
+            f"; this process has no link to connect endpoint {endpoint} (cannot reach it "
+            "(Connection refused))"
+        ) in message
+
+    def test_a_plain_tcp_connect_endpoint_that_is_linked_is_not_named(self) -> None:
+        port, uid = free_port(), uuid.uuid4().hex[:8]
+        with (
+            router(None, [f"tcp/127.0.0.1:{port}"], [], system="lab") as other,
+            rr.ZenohNetwork(system="lab", connect=[f"tcp/127.0.0.1:{port}"], tls=None) as net,
+        ):
+            station = rr.ResourceRegistrar.start(
+                rr.RegistrarConfig(name=f"station{uid}"), network=net
+            )
+            try:
+                assert wait_for(lambda: bool(list(other.info.links())), 10)  # (linked)
+                with pytest.raises(rr.UnknownRegistrarError) as raised:
+                    station.call(f"erm-{uid}", "camera", 0, timeout=10)
+            finally:
+                station.stop()
+
+        assert "no link" not in str(raised.value)
+
 
 class TestExit:
     """A program with a `ZenohNetwork` ends: after an error, when it forgets `close()`, and at
@@ -584,10 +638,10 @@ class TestExit:
 
     @pytest.mark.parametrize(("ending", "code"), [("raises", 1), ("returns", 0)])
     def test_a_program_that_leaves_its_network_open_ends(self, ending: str, code: int) -> None:
-        started = time.monotonic()
+        started, port = time.monotonic(), free_port()
         try:
             done = subprocess.run(  # noqa: PLW1510 - the exit code is what is checked
-                [sys.executable, "-c", STATION, str(free_port()), ending],
+                [sys.executable, "-c", STATION, str(port), ending],
                 capture_output=True,
                 text=True,
                 timeout=BOUND,
@@ -598,7 +652,9 @@ class TestExit:
         assert (code, True) == (done.returncode, time.monotonic() - started < BOUND), done.stderr
         if ending == "raises":
             assert done.stderr.rstrip().endswith(
-                "no registrar named 'erm' on system 'exit' (known: 'station')"
+                "no registrar named 'erm' on system 'exit' (known: 'station'); this process has "
+                f"no link to connect endpoint tcp/127.0.0.1:{port} (cannot reach it (Connection "
+                "refused)), so a registrar served there is not seen"
             ), done.stderr
             assert "Traceback (most recent call last)" in done.stderr
 

@@ -53,6 +53,7 @@ from rr_actors._transport.base import Address, Transport
 from rr_actors._transport.messenger import Messenger
 from rr_actors._transport.zenoh.carrier import ZenohCarrier
 from rr_actors._transport.zenoh.ops.config import (
+    PROBE_TIMEOUT,
     endpoints,
     session_config,
     warn_plain_tcp,
@@ -60,7 +61,7 @@ from rr_actors._transport.zenoh.ops.config import (
 )
 from rr_actors._transport.zenoh.ops.events import EventFeed, check_window
 from rr_actors._transport.zenoh.ops.gate import HandshakeGate, MemberAddresses, open_gates
-from rr_actors._transport.zenoh.ops.watch import LinkWatch, MemberLink
+from rr_actors._transport.zenoh.ops.watch import LinkWatch, MemberLink, plain_unlinked
 from rr_actors._transport.zenoh.presence import ASK_TIMEOUT
 from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.config import check_name
@@ -432,7 +433,7 @@ class ZenohNetwork(Messenger):
                 self,
                 session,
                 on_close=closed,
-                link_trouble=None if watch is None else lambda: _no_link(watch.unlinked()),
+                link_trouble=lambda: _no_link(self._unlinked(session)),
                 seal=_seal(self.tls, self.system),
             )
             self.joined(self._opened)
@@ -575,11 +576,20 @@ class ZenohNetwork(Messenger):
             return
         if self.closed:
             raise RegistrarStoppedError(f"this process left system {self.system!r}")
-        watch = self._watch
         raise RegistrarUnavailableError(
             f"no registrar named {name!r} was served on system {self.system!r} within "
-            f"{timeout:g} s" + (_no_link(watch.unlinked()) if watch is not None else "")
+            f"{timeout:g} s" + _no_link(self._unlinked(carrier.session))
         )
+
+    def _unlinked(self, session: zenoh.Session) -> list[tuple[str, str]]:
+        """The `connect` endpoints with no link now, each with why: the link watch's
+        (TLS: the handshake's verdict), or a TCP connect's for plain TCP."""
+        watch = self._watch
+        if watch is not None:
+            return watch.unlinked()
+        if self.tls is None:
+            return plain_unlinked(session, self.connect, timeout=PROBE_TIMEOUT)
+        return []
 
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits, close the session (idempotent;

@@ -42,6 +42,7 @@ if TYPE_CHECKING:
     from rr_actors._transport.zenoh.ops.tls import ZenohTLS
 
 __all__ = [
+    "PROBE_TIMEOUT",
     "endpoints",
     "parse_endpoint",
     "session_config",
@@ -257,7 +258,8 @@ def warn_plain_tcp(system: str, listen: Iterable[str], connect: Iterable[str]) -
         )
 
 
-_PROBE_TIMEOUT = 0.5  # seconds a `connect` endpoint gets to accept the probe at open
+PROBE_TIMEOUT = 0.5
+"""Seconds a plain `connect` endpoint gets to accept a TCP connect that probes it."""
 
 
 def warn_unreachable(system: str, connect: Iterable[str]) -> None:
@@ -266,7 +268,7 @@ def warn_unreachable(system: str, connect: Iterable[str]) -> None:
     for endpoint in connect:
         _, host, port = parse_endpoint("connect", endpoint)
         try:
-            with socket.create_connection((host, port), timeout=_PROBE_TIMEOUT):
+            with socket.create_connection((host, port), timeout=PROBE_TIMEOUT):
                 pass
         except OSError as exc:
             logger.warning(

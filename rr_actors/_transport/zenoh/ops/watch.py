@@ -13,7 +13,8 @@ module only tells the operator, on the `rr_actors` logger:
   there is still no link: Zenoh's own link is then most likely on its way.
 
 It also keeps, for the observer across hosts, each member's link as last seen: up or
-cut, since when (wall clock) and why (`member_links`).
+cut, since when (wall clock) and why (`member_links`). A plain-TCP network has no watch:
+`plain_unlinked` names its unlinked `connect` endpoints when an error is made.
 
 ```
  Zenoh's thread: link event ─submit─► watch thread "rr-zenoh-watch" (SerialExecutor)
@@ -71,7 +72,7 @@ from rr_actors._transport.zenoh.ops.config import parse_endpoint
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh.ops.tls import ZenohTLS
 
-__all__ = ["LinkWatch", "MemberLink", "handshake_trouble", "remote"]
+__all__ = ["LinkWatch", "MemberLink", "handshake_trouble", "plain_unlinked", "remote"]
 
 logger = logging.getLogger("rr_actors")
 
@@ -131,6 +132,41 @@ class _Endpoint:
         return any(
             host in addresses and (port == self.port or port not in dialled) for host, port in links
         )
+
+
+def plain_unlinked(
+    session: zenoh.Session, connect: tuple[str, ...], *, timeout: float
+) -> list[tuple[str, str]]:
+    """The plain-TCP `connect` endpoints with no link now, each with why, in words.
+
+    For a `ZenohNetwork` with `tls=None`, where no `LinkWatch` runs: asked on the caller's
+    thread (an `UnknownRegistrarError` being made, a `wait_for` that timed out). A link is
+    to an endpoint as in `LinkWatch` (its host's address, and its port or one no endpoint
+    has); the reason is what a TCP connect there gets now, within `timeout` seconds each.
+    """
+    endpoints = [_Endpoint(endpoint) for endpoint in connect]
+    if not endpoints:
+        return []
+    try:
+        links = {
+            remote(str(link.dst))
+            for link in session.info.links()
+            if str(link.dst).startswith("tcp/")
+        }
+    except Exception:  # noqa: BLE001 - the session closed under us: nothing to name
+        return []
+    dialled = {endpoint.port for endpoint in endpoints}
+    unlinked = []
+    for endpoint in endpoints:
+        if endpoint.linked(links, dialled, _addresses(endpoint.host)):
+            continue
+        try:
+            with socket.create_connection((endpoint.host, endpoint.port), timeout=timeout):
+                reason = "it accepts a TCP connection; Zenoh has not linked yet"
+        except OSError as exc:
+            reason = f"cannot reach it ({exc.strerror or exc})"
+        unlinked.append((endpoint.endpoint, reason))
+    return unlinked
 
 
 class MemberLink(NamedTuple):

@@ -1,0 +1,73 @@
+"""A handle on a registrar in a manager process (`rr_actors._process.remote`): its owner,
+which started the process, and plain handles, which reach the registrar over the carrier.
+
+The rules run through `RemoteRegistrar` in every registrar test of the process and zenoh
+placements (`make_registrar`); here is what only this handle has.
+"""
+
+from __future__ import annotations
+
+import pickle
+import uuid
+from collections.abc import Iterator
+from typing import Any
+
+import cloudpickle
+import pytest
+
+import rr_actors as rr
+from rr_actors.testing import RemoteRegistrar, System
+from tests.support.waiting import wait_for
+
+pytestmark = pytest.mark.usefixtures("by_value", "process_helpers")
+
+
+def _same(request: Any) -> Any:
+    return request
+
+
+def _drop(_request: Any, _response: Any) -> None:
+    return None
+
+
+def _serve_leaf(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("leaf", load=_same, unload=_drop)
+
+
+@pytest.fixture
+def owner() -> Iterator[RemoteRegistrar]:
+    """A registrar in a manager process of a fresh system, serving `leaf`; its owner."""
+    system = System.create()
+    registrar = RemoteRegistrar.start(f"remote-{uuid.uuid4().hex[:8]}", system, setup=_serve_leaf)
+    yield registrar
+    registrar.stop()
+    system.close()
+
+
+def test_a_pickled_handle_reaches_the_registrar_but_does_not_own_its_process(
+    owner: RemoteRegistrar,
+) -> None:
+    plain: RemoteRegistrar = pickle.loads(cloudpickle.dumps(owner))
+
+    query = plain.call(owner.name, "leaf", "r")
+
+    assert [query.id] == [q.id for q in owner.server_queries("leaf")]
+    assert (None, True) == (plain.pid, isinstance(owner.pid, int))
+    assert f"<RemoteRegistrar {owner.name!r}>" == repr(plain)
+    assert f"<RemoteRegistrar {owner.name!r} pid {owner.pid}>" == repr(owner)
+    plain.unload(query.id)
+    assert [] == owner.server_queries("leaf")
+
+
+def test_a_plain_handles_kill_makes_the_process_kill_itself_and_its_owner_sees_it_dead(
+    owner: RemoteRegistrar,
+) -> None:
+    plain: RemoteRegistrar = pickle.loads(cloudpickle.dumps(owner))
+    assert plain.is_alive()
+
+    plain.kill(timeout=5.0)
+
+    assert wait_for(lambda: not owner.is_alive(), 10.0)
+    assert not plain.is_alive()
+    with pytest.raises(rr.RegistrarUnavailableError):
+        plain.call(owner.name, "leaf", "r", timeout=5.0)

@@ -1,0 +1,406 @@
+"""The handle (`rr_actors._registrar.handle`): one surface wherever the actor lives, and
+its awaitable twins with coroutine callbacks.
+
+The rules themselves run against both handles (`make_registrar`'s placements) and the
+async API (`both_apis`, tests/conftest.py) in their own modules; here is what only the
+handle has: one class for both placements, cancellation, `watch`, coroutine status
+callbacks on their loop, coroutine servers on the registrar's loop, and no thread per
+waiting call.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import itertools
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors.testing import RemoteRegistrar, intercept
+from tests.registrar.conftest import MakeRegistrar, Shared
+from tests.support.gating import GatedLoad
+
+
+def _drop(_request: Any, _response: Any) -> None:
+    return None
+
+
+async def _adrop(_request: Any, _response: Any) -> None:
+    return None
+
+
+def test_both_kinds_of_handle_are_the_one_registrar_class_and_repeat_none_of_its_surface() -> None:
+    surface = {name for name in vars(rr.Registrar) if not name.startswith("_")}
+    twins = {"call", "acall", "unload", "aunload", "stop", "astop", "watch", "send_status"}
+
+    assert twins <= surface
+    for kind in (rr.ResourceRegistrar, RemoteRegistrar):
+        assert issubclass(kind, rr.Registrar)
+        assert set() == surface & set(vars(kind))  # its own: start, subscribe, kill, ...
+
+
+class AsyncGated:
+    """A coroutine load held at a gate: records its request, says it started, then
+    awaits the gate (on a thread of its own: the gate may be a `shared` proxy)."""
+
+    def __init__(self, gate: Any, started: Any, requests: Any) -> None:
+        self.gate = gate
+        self.started = started
+        self.requests = requests
+
+    async def __call__(self, request: Any) -> Any:
+        self.requests.append(request)
+        self.started.set()
+        assert await asyncio.to_thread(self.gate.wait, 20), "the gate never opened"
+        return request
+
+
+class RecordedUnload:
+    """An unload that records its request (in a `shared` list)."""
+
+    def __init__(self, unloads: Any) -> None:
+        self.unloads = unloads
+
+    def __call__(self, request: Any, _response: Any) -> None:
+        self.unloads.append(request)
+
+
+def test_a_cancelled_acall_is_withdrawn_and_leaves_nothing_held(
+    make_registrar: MakeRegistrar,
+    gated_load: Callable[..., GatedLoad],
+    eventually: Callable[..., bool],
+    shared: Shared,
+) -> None:
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    slow = gated_load()
+    unloads = shared.list()
+    provider.register_server("leaf", load=slow, unload=RecordedUnload(unloads))
+
+    async def main() -> None:
+        task = asyncio.ensure_future(consumer.acall(provider.name, "leaf", "r", timeout=20))
+        assert await asyncio.to_thread(slow.started.wait, 10)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+    asyncio.run(main())
+    slow.gate.set()  # the load completes after its caller gave up: the id is released
+
+    assert eventually(lambda: unloads == ["r"])  # (loaded, then released: unloaded once)
+    assert [] == provider.server_queries("leaf")
+    assert [] == consumer.client_queries()
+    query = consumer.call(provider.name, "leaf", "r")  # loaded afresh: the first is gone
+    assert ["r", "r"] == slow.requests
+    consumer.unload(query.id)
+
+
+@pytest.mark.thread_only("counts this process's threads while calls are in flight")
+def test_awaited_calls_in_flight_hold_no_thread_each(make_registrar: MakeRegistrar) -> None:
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    calls = 300
+    gate: concurrent.futures.Future[None] = concurrent.futures.Future()  # (any loop's)
+    all_started: concurrent.futures.Future[None] = concurrent.futures.Future()
+    started = itertools.count(1)
+
+    async def load(request: Any) -> Any:  # on the registrar's loop
+        if next(started) == calls:
+            all_started.set_result(None)
+        await asyncio.wrap_future(gate)
+        return request
+
+    async def main() -> tuple[int, int, list[rr.Query]]:
+        await provider.aregister_server("slow", load=load, unload=_adrop)
+        before = threading.active_count()
+        tasks = [
+            asyncio.ensure_future(consumer.acall(provider.name, "slow", n)) for n in range(calls)
+        ]
+        await asyncio.wait_for(asyncio.wrap_future(all_started), 20)
+        during = threading.active_count()
+        gate.set_result(None)
+        queries = await asyncio.gather(*tasks)
+        await asyncio.gather(*(consumer.aunload(query.id) for query in queries))
+        return before, during, queries
+
+    before, during, queries = asyncio.run(main())
+
+    # at most two, each started once at its first use, not one per call: the
+    # registrars' loop thread, and the consumer's client actor of that server
+    assert during - before <= 2
+    assert list(range(calls)) == [q.response for q in queries]
+    assert [] == provider.server_queries("slow")
+
+
+@pytest.mark.thread_only("reads which thread handles the provider's load, in this process")
+@pytest.mark.parametrize(
+    ("durable", "on_the_loop"),
+    [(False, True), (True, False)],
+    ids=["in-memory provider: in the turn", "durable provider: its own thread"],
+)
+def test_an_awaited_dedup_hit_is_handled_on_the_loops_thread_unless_the_provider_commits_it(
+    make_registrar: MakeRegistrar, tmp_path: Path, durable: bool, on_the_loop: bool
+) -> None:
+    # A durable provider's load step commits to its backup (an fsync with
+    # durability="power"): run on the loop's thread, it would stall every task there.
+    stored: dict[str, Any] = (
+        {"backup_path": str(tmp_path / "p.db"), "save_on_modify": True} if durable else {}
+    )
+    provider, consumer = make_registrar("provider", **stored), make_registrar("consumer")
+    provider.register_server("leaf", load=lambda r: r, unload=_drop)
+    first = consumer.call(provider.name, "leaf", "r")
+    handled_on: list[int] = []
+
+    async def main() -> tuple[int, rr.Query]:
+        return threading.get_ident(), await consumer.acall(provider.name, "leaf", "r")
+
+    with intercept(provider, "load", before=lambda _load: handled_on.append(threading.get_ident())):
+        loop_thread, hit = asyncio.run(main())
+
+    assert [on_the_loop] == [ident == loop_thread for ident in handled_on]
+    for query in (hit, first):
+        consumer.unload(query.id)
+
+
+@pytest.mark.thread_only("watch needs the registrar that holds the query in this process")
+def test_watch_yields_a_querys_statuses_in_order_and_ends_after_fatal(
+    make_registrar: MakeRegistrar,
+) -> None:
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    provider.register_server("leaf", load=lambda r: r, unload=_drop)
+    query = consumer.call(provider.name, "leaf", "r")
+
+    async def main() -> list[tuple[rr.Status, str]]:
+        async with consumer.watch(query.id) as updates:
+            for status in (rr.Status.UPDATE, rr.Status.WARNING, rr.Status.FATAL):
+                await provider.asend_status(query.id, status, status.name.lower())
+            return [(update.status, update.message) async for update in updates]
+
+    seen = asyncio.run(main())
+
+    assert [
+        (rr.Status.UPDATE, "update"),
+        (rr.Status.WARNING, "warning"),
+        (rr.Status.FATAL, "fatal"),
+    ] == seen
+    consumer.unload(query.id)
+
+
+@pytest.mark.thread_only("watch needs the registrar that holds the query in this process")
+def test_closing_a_watch_ends_the_iteration_of_a_reader_waiting_in_another_task(
+    make_registrar: MakeRegistrar,
+) -> None:
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    provider.register_server("leaf", load=lambda r: r, unload=_drop)
+    query = consumer.call(provider.name, "leaf", "r")
+
+    async def main() -> list[str]:
+        watch = await consumer.watch(query.id).open()
+        heard: list[str] = []
+        first = asyncio.Event()
+
+        async def read() -> list[str]:
+            async for update in watch:
+                heard.append(update.message)
+                first.set()
+            return heard
+
+        reader = asyncio.ensure_future(read())
+        await provider.asend_status(query.id, rr.Status.UPDATE, "one")
+        await asyncio.wait_for(first.wait(), 5)  # it read "one"; now it waits for more
+        await watch.aclose()
+        return await asyncio.wait_for(reader, 5)  # (it waited forever: no update comes)
+
+    assert ["one"] == asyncio.run(main())
+    consumer.unload(query.id)
+
+
+@pytest.mark.thread_only("watch needs the registrar that holds the query in this process")
+def test_watch_of_an_unknown_query_raises_unknown_query_error_at_its_first_step(
+    make_registrar: MakeRegistrar,
+) -> None:
+    consumer = make_registrar("consumer")
+
+    async def main() -> None:
+        async for _update in consumer.watch("no-such-id"):
+            pass
+
+    with pytest.raises(rr.UnknownQueryError):
+        asyncio.run(main())
+    with pytest.raises(rr.ConfigError, match="maxsize"):
+        consumer.watch("no-such-id", maxsize=0)
+
+
+@pytest.mark.across_processes("a query held in another process cannot be watched from here")
+def test_watch_of_a_registrar_in_another_process_is_refused_with_a_config_error(
+    make_registrar: MakeRegistrar,
+) -> None:
+    consumer = make_registrar("consumer")
+
+    with pytest.raises(rr.ConfigError, match="watch"):
+        consumer.watch("any-id")
+
+
+@pytest.mark.thread_only("the loop a callback was registered from is in this process")
+def test_a_coroutine_status_callback_runs_on_the_loop_it_was_registered_from(
+    make_registrar: MakeRegistrar,
+) -> None:
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    provider.register_server("leaf", load=lambda r: r, unload=_drop)
+
+    async def main() -> tuple[list[bool], rr.Query]:
+        loop = asyncio.get_running_loop()
+        on_this_loop: list[bool] = []
+
+        async def on_status(_query: rr.Query, _update: rr.StatusUpdate) -> None:
+            await asyncio.sleep(0)
+            on_this_loop.append(asyncio.get_running_loop() is loop)
+
+        query = await consumer.acall(provider.name, "leaf", "r", on_status=on_status)
+        # send_status returns once the coroutine callback returned (rule 9): from
+        # another thread, since this loop must run the callback meanwhile
+        await asyncio.to_thread(provider.send_status, query.id, rr.Status.UPDATE, "u")
+        return on_this_loop, query
+
+    on_this_loop, query = asyncio.run(main())
+
+    assert [True] == on_this_loop
+    consumer.unload(query.id)
+
+
+class SlowOrQuick:
+    """A coroutine load: "slow" waits at the gate, anything else answers at once."""
+
+    def __init__(self, gate: Any, started: Any) -> None:
+        self.gate = gate
+        self.started = started
+
+    async def __call__(self, request: Any) -> Any:
+        if request == "slow":
+            self.started.set()
+            await asyncio.to_thread(self.gate.wait, 20)
+        return request
+
+
+def test_a_slow_coroutine_load_never_blocks_another_server(
+    make_registrar: MakeRegistrar, gates: Callable[[], Any], shared: Shared
+) -> None:
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    gate, started = gates(), shared.event()
+    load = SlowOrQuick(gate, started)
+    provider.register_server("slow", load=load, unload=_adrop)
+    provider.register_server("quick", load=load, unload=_adrop)
+
+    async def main() -> rr.Query:
+        slow = asyncio.ensure_future(consumer.acall(provider.name, "slow", "slow", timeout=20))
+        assert await asyncio.to_thread(started.wait, 10)
+        quick = await consumer.acall(provider.name, "quick", "quick", timeout=5)
+        assert not slow.done()
+        gate.set()
+        await consumer.aunload((await slow).id)
+        return quick
+
+    quick = asyncio.run(main())
+
+    assert "quick" == quick.response
+    consumer.unload(quick.id)
+
+
+def test_a_hung_coroutine_load_fails_its_caller_at_its_timeout_and_its_id_is_released(
+    make_registrar: MakeRegistrar,
+    gates: Callable[[], Any],
+    shared: Shared,
+    eventually: Callable[..., bool],
+) -> None:
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    gate, started = gates(), shared.event()
+    provider.register_server("leaf", load=AsyncGated(gate, started, shared.list()), unload=_adrop)
+
+    async def main() -> None:
+        with pytest.raises(rr.CallTimeoutError):
+            await consumer.acall(provider.name, "leaf", "r", timeout=0.5)
+
+    asyncio.run(main())
+    gate.set()  # it loads after all: nobody holds it, it is unloaded
+
+    assert eventually(lambda: provider.server_queries("leaf") == [])
+    assert [] == consumer.client_queries()
+
+
+class HangingUnload:
+    """A coroutine unload that waits forever; records that it was cancelled."""
+
+    def __init__(self, cancelled: Any) -> None:
+        self.cancelled = cancelled
+
+    async def __call__(self, _request: Any, _response: Any) -> None:
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            self.cancelled.append("cancelled")
+            raise
+
+
+async def _same(request: Any) -> Any:
+    return request
+
+
+def test_a_coroutine_unload_past_unload_timeout_is_cancelled_and_its_caller_told(
+    make_registrar: MakeRegistrar, shared: Shared, eventually: Callable[..., bool]
+) -> None:
+    provider = make_registrar("provider", unload_timeout=0.3)
+    consumer = make_registrar("consumer")
+    cancelled = shared.list()
+    provider.register_server("leaf", load=_same, unload=HangingUnload(cancelled))
+    query = consumer.call(provider.name, "leaf", "r")
+
+    with pytest.raises(rr.CallTimeoutError, match=r"did not return within 0\.3 s"):
+        asyncio.run(consumer.aunload(query.id, timeout=10))
+
+    assert eventually(lambda: cancelled == ["cancelled"])
+    assert [] == provider.server_queries("leaf")
+
+
+@pytest.mark.thread_only("the test reads the dependency from the provider's own handle")
+def test_a_call_awaited_inside_a_coroutine_load_is_recorded_as_its_dependency(
+    make_registrar: MakeRegistrar,
+) -> None:
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    unloads: list[str] = []
+
+    async def leaf_unload(request: Any, _response: Any) -> None:
+        unloads.append(request)
+
+    async def top(request: Any) -> Any:
+        sub = await provider.acall(provider.name, "leaf", f"{request}-part")
+        return sub.response
+
+    provider.register_server("leaf", load=_same, unload=leaf_unload)
+    provider.register_server("top", load=top, unload=_adrop)
+    query = consumer.call(provider.name, "top", "t")
+
+    assert ["t-part"] == [q.request for q in provider.client_queries()]
+    consumer.unload(query.id)  # the dependency goes with its resource (rule 7)
+    assert ["t-part"] == unloads
+    assert [] == provider.client_queries()
+
+
+@pytest.mark.thread_only("the load's error is read in this process")
+def test_a_blocking_call_inside_a_coroutine_load_fails_it_with_a_config_error(
+    make_registrar: MakeRegistrar,
+) -> None:
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+
+    async def top(_request: Any) -> Any:
+        return provider.call(provider.name, "top", "again")  # blocks the loop: refused
+
+    provider.register_server("top", load=top, unload=_adrop)
+
+    with pytest.raises(rr.ResourceLoadError) as raised:
+        consumer.call(provider.name, "top", "t")
+
+    assert "ConfigError" == raised.value.stack[-1].exc_type
+    assert "acall" in raised.value.stack[-1].message
