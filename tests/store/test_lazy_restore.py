@@ -7,7 +7,6 @@ listings, and what happens once the backup is closed. (Found by a review of the 
 
 from __future__ import annotations
 
-import os
 import sqlite3
 import uuid
 from pathlib import Path
@@ -17,7 +16,6 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog, request_digest
-from rr_actors._platform.linux import LinuxPlatform
 from rr_actors._store import codec
 from rr_actors._store.files import read_backup
 from rr_actors._store.sqlite import SqliteStore
@@ -305,27 +303,3 @@ def test_a_version_4_backup_with_a_consumer_id_stored_twice_is_refused_and_left_
     version = db.execute("SELECT version FROM rr_actors_schema").fetchone()[0]
     db.close()
     assert (str(path), True, 4) == (raised.value.path, "UNIQUE" in raised.value.cause, version)
-
-
-# -- 5. freed memory goes back to the system (the observer's server uses it) -------------------
-
-
-def _resident_bytes() -> int:
-    with open("/proc/self/statm") as statm:
-        return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-
-
-def test_releasing_free_memory_hands_freed_heap_pages_back_to_the_system() -> None:
-    # 40 MB of C-heap blocks (bytes over 512 B bypass pymalloc); every 100th one and the
-    # last stay alive, so the freed space is in the middle of the heap, where glibc's
-    # free() keeps it resident
-    blocks = [bytes(1024) for _ in range(40_000)]
-    kept = blocks[::100] + blocks[-1:]
-    del blocks
-    freed = _resident_bytes()
-
-    LinuxPlatform().release_free_memory()  # glibc's malloc_trim (CI runs on glibc)
-
-    assert len(kept) == 401
-    returned = freed - _resident_bytes()
-    assert returned > 20 * 2**20, f"only {returned / 2**20:.1f} MB went back to the system"

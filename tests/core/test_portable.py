@@ -2,8 +2,7 @@
 
 Every test module that uses manager processes runs again in a subprocess with
 `RR_ACTORS_PLATFORM=portable`, as part of the normal run, so the fallback of each Linux
-trick cannot rot. It runs tests of several layers (minutes), so it lives here at the
-root, not in `tests/core`: `python -m pytest tests/core` stays quick.
+trick cannot rot. It runs tests of several layers (minutes).
 """
 
 from __future__ import annotations
@@ -21,6 +20,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 PORTABLE_MODULES = (
     "tests/core/test_platform.py",
+    "tests/process/test_child.py",  # (the tests of the kernel's name are Linux tricks only)
     "tests/process/test_supervisor_processes.py",
     "tests/supervision/test_supervisor_contract.py",
     "tests/supervision/test_supervisor_otp.py",

@@ -1,4 +1,5 @@
-"""A subscriber in trouble costs a few log lines, not one per event (issue 21).
+"""Bounded queues between a publisher and a subscriber (`rr_actors._core.queues`): a
+subscriber in trouble costs a few log lines, not one per event (issue 21).
 
 - A callback that raises on every event logs its first exception with its traceback,
   then a count (at most every `LOG_EVERY` seconds, and when it closes).
