@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[2]
 PORTABLE_MODULES = (
     "tests/core/test_platform.py",
     "tests/process/test_child.py",  # (the tests of the kernel's name are Linux tricks only)
-    "tests/process/test_supervisor_processes.py",
+    "tests/process/test_manager.py",
     "tests/supervision/test_supervisor_contract.py",
     "tests/supervision/test_supervisor_otp.py",
     "tests/supervision/test_supervisor_state_dir.py",
@@ -31,8 +31,7 @@ PORTABLE_MODULES = (
     "tests/transport/test_transport_unix.py",
     "tests/transport/test_transport_contract.py",
     "tests/registrar/test_reconcile_edges.py",
-    "tests/process/test_descriptor_leaks.py",
-    "tests/process/test_spare_warm_up.py",
+    "tests/process/test_spare.py::TestWarmUp",
     "tests/process/test_heartbeat.py",
 )
 """The test modules that use manager processes, run again on the portable platform."""

@@ -1,4 +1,5 @@
-"""rr_actors chooses how manager processes start; `set_start_method` does not change it.
+"""How manager processes start (`rr_actors._process.context`): rr_actors chooses;
+`set_start_method` does not change it.
 
 Documented in the supervision tutorial: managers start from the forkserver (spawn where
 there is none), never from a fork of the threaded parent, whatever the program set with
