@@ -1,9 +1,12 @@
-"""The backup at real limits: names too long, a file deleted under a running registrar, a
-full disk, who may read the files (issue 16: 6, 7, 8 and the file modes).
+"""Where a backup lives (`rr_actors._store.files`): its path, its file, and what is wrong.
 
-Full disks are real: a small tmpfs mounted for the test (`small_disk`; CI runs as root),
-filled with a file until `ENOSPC`. Crashes are real too: a manager process is SIGKILLed
-and its registrar restarted on the same backup.
+- Bad backups: files that are not ours, damaged, unreadable, read-only, or with rows that
+  cannot be right, each a clear error naming the file (rule 15; `files.py`, `restore.py`).
+- The backup at real limits: names too long, a file deleted under a running registrar, a
+  full disk, who may read the files (issue 16: 6, 7, 8 and the file modes). Full disks are
+  real: a small tmpfs mounted for the test (`small_disk`; CI runs as root), filled with a
+  file until `ENOSPC`. Crashes are real too: a manager process is SIGKILLed and its
+  registrar restarted on the same backup.
 """
 
 from __future__ import annotations
@@ -12,9 +15,9 @@ import errno
 import logging
 import os
 import pickle
+import sqlite3
 import stat
 import sys
-import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -24,13 +27,330 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog, Changes
-from rr_actors._store import Saver, SqliteStore, quarantine_backup, read_backup
+from rr_actors._store import Saver
+from rr_actors._store.files import quarantine_backup, read_backup
+from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import RemoteRegistrar, System
-from tests.support.small_disk import fill, mounted
+from tests.support.durable_pair import noop_unload, start
+from tests.support.persisting import (
+    consumer_ids,
+    digest,
+    duplicate_client,
+    duplicate_consumer,
+    duplicate_resource,
+    make_bad_row,
+    make_empty,
+    make_foreign,
+    make_garbage,
+    make_newer,
+    make_truncated,
+    state_minus_one,
+    state_text,
+    state_three,
+    unique,
+    write_valid_backup,
+    written_once,
+)
+from tests.support.small_disk import fill, mounted, remount_read_only
 
 
-def unique(prefix: str) -> str:
-    return f"{prefix}-{uuid.uuid4().hex[:8]}"
+@pytest.mark.parametrize(
+    ("make", "cause"),
+    [
+        (make_garbage, "not an SQLite database"),
+        (make_truncated, "truncated"),
+        (make_empty, "empty"),
+        (make_foreign, "not an rr_actors catalog"),
+        (make_newer, "schema version 99 is newer"),
+    ],
+)
+def test_a_bad_backup_raises_catalog_corrupt_error_naming_the_file_and_is_left_untouched(
+    tmp_path: Path, make: Callable[[Path], None], cause: str
+) -> None:
+    path = tmp_path / "p.db"
+    make(path)
+    before = digest(path)
+    name = unique("P")
+
+    with pytest.raises(rr.CatalogCorruptError) as raised:
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, backup_path=path))
+
+    assert (str(path), True, before, sorted(os.listdir(tmp_path))) == (
+        raised.value.path,
+        cause in raised.value.cause,
+        digest(path),
+        ["p.db"],
+    )
+
+
+def test_a_damaged_resource_row_raises_catalog_corrupt_error_when_first_used_and_only_then(
+    tmp_path: Path,
+) -> None:
+    """A restore reads served resources on first use: a damaged one fails that use alone."""
+    path = tmp_path / "p.db"
+    make_bad_row(path)  # r7's request is not a pickle; r0 .. r299 are fine
+    registrar = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=unique("P"), backup_path=path, save_interval=None)
+    )
+    try:
+        registrar.register_server("leaf", load=lambda r: r, unload=noop_unload)
+        seventh, eighth = ({"n": n, "pad": "x" * 200} for n in (7, 8))
+        with pytest.raises(rr.CatalogCorruptError) as damaged:
+            registrar.call(registrar.name, "leaf", seventh)
+        with pytest.raises(rr.CatalogCorruptError) as again:
+            registrar.call(registrar.name, "leaf", seventh)
+        neighbour = registrar.call(registrar.name, "leaf", eighth)  # r8, restored: a dedup hit
+        registrar.unload(neighbour.id)
+    finally:
+        registrar.stop()
+
+    assert (str(path), True, True, 8) == (
+        damaged.value.path,
+        "resource r7 is not a pickle" in damaged.value.cause,
+        "resource r7 is not a pickle" in again.value.cause,
+        neighbour.response,
+    )
+    with sqlite3.connect(path) as db:  # r7's row is kept as it was
+        assert db.execute("SELECT request FROM resources WHERE id = 'r7'").fetchone() == (
+            b"\x00\xff\x00",
+        )
+
+
+def test_a_backup_that_failed_to_open_leaves_the_registrar_name_free(tmp_path: Path) -> None:
+    make_garbage(tmp_path / "p.db")
+    name = unique("P")
+    with pytest.raises(rr.CatalogCorruptError):
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, backup_path=tmp_path / "p.db"))
+
+    registrar = rr.ResourceRegistrar.start(name)
+
+    registrar.stop()
+
+
+@pytest.mark.parametrize(
+    ("where", "cause"),
+    [
+        (lambda tmp: tmp / "missing" / "p.db", "does not exist"),
+        (lambda tmp: tmp, "is a directory"),
+        (lambda _tmp: Path("/sys/rr_actors_test.db"), "cannot be created"),
+    ],
+)
+def test_an_unusable_backup_path_raises_config_error_naming_it(
+    tmp_path: Path, where: Callable[[Path], Path], cause: str
+) -> None:
+    path = where(tmp_path)
+    if path.parent == Path("/sys"):
+        try:
+            path.touch()
+        except OSError:
+            pass
+        else:
+            path.unlink()
+            pytest.skip("/sys is writable here")
+
+    with pytest.raises(rr.ConfigError) as raised:
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("P"), backup_path=path))
+
+    assert (True, True) == (str(path) in str(raised.value), cause in str(raised.value))
+
+
+def test_a_read_only_backup_raises_config_error(tmp_path: Path) -> None:
+    if os.geteuid() == 0:
+        where = tmp_path / "ro"
+        with mounted(where, "1m"):
+            write_valid_backup(where / "p.db")
+            remount_read_only(where)
+            with pytest.raises(rr.ConfigError, match="not readable and writable") as raised:
+                SqliteStore.open(where / "p.db")
+    else:
+        where = tmp_path
+        write_valid_backup(where / "p.db")
+        (where / "p.db").chmod(0o444)
+        with pytest.raises(rr.ConfigError, match="not readable and writable") as raised:
+            SqliteStore.open(where / "p.db")
+
+    assert str(where / "p.db") in str(raised.value)
+
+
+def test_a_backup_in_a_read_only_location_raises_config_error(tmp_path: Path) -> None:
+    where = tmp_path / "ro"
+    with mounted(where, "1m"):  # (skipped unless root: root ignores directory modes too)
+        remount_read_only(where)
+        with pytest.raises(rr.ConfigError, match="is not writable") as raised:
+            SqliteStore.open(where / "p.db")
+
+    assert str(where / "p.db") in str(raised.value)
+
+
+def test_quarantine_moves_a_corrupt_backup_aside_so_a_registrar_starts_empty(
+    tmp_path: Path, started: list[rr.ResourceRegistrar]
+) -> None:
+    make_garbage(tmp_path / "p.db")
+    before = digest(tmp_path / "p.db")
+
+    moved = quarantine_backup(tmp_path / "p.db")
+    registrar = start(started, unique("P"), tmp_path / "p.db")
+
+    assert (before, True, False) == (
+        digest(moved),
+        moved.name.startswith("p.db.corrupt-"),
+        registrar.restored,
+    )
+
+
+def test_quarantine_without_a_file_raises_config_error(tmp_path: Path) -> None:
+    with pytest.raises(rr.ConfigError, match="no catalog backup"):
+        quarantine_backup(tmp_path / "p.db")
+
+
+@pytest.mark.parametrize(
+    ("damage", "cause"),
+    [
+        (duplicate_resource, "index resources_by_id is missing"),
+        (duplicate_consumer, "index consumers_by_query is missing"),
+        (duplicate_client, "client query id d1 is stored twice"),
+        (state_minus_one, "unknown state -1"),
+        (state_three, "unknown state 3"),
+        (state_text, "unknown state 'loaded'"),
+    ],
+)
+def test_a_duplicate_id_or_unknown_state_in_a_backup_raises_catalog_corrupt_error(
+    tmp_path: Path, damage: Callable[[sqlite3.Connection], None], cause: str
+) -> None:
+    path = tmp_path / "p.db"
+    written_once(path)
+    db = sqlite3.connect(path)
+    damage(db)
+    db.commit()
+    db.close()
+
+    with pytest.raises(rr.CatalogCorruptError) as restored:  # as a registrar restores
+        SqliteStore.open(path).restore()
+    with pytest.raises(rr.CatalogCorruptError) as loaded:
+        SqliteStore.open(path).load()
+    with pytest.raises(rr.CatalogCorruptError) as inspected:
+        read_backup(path)
+
+    assert [(str(path), True)] * 3 == [
+        (e.value.path, cause in e.value.cause) for e in (restored, loaded, inspected)
+    ]
+
+
+# -- store: a database of another program ------------------------------------------------------
+
+
+def test_a_database_of_another_program_with_a_schema_table_is_refused_by_application_id(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "p.db"
+    SqliteStore.open(path).close(erase=False)  # an rr_actors layout ...
+    db = sqlite3.connect(path)
+    db.execute("PRAGMA application_id = 1234")  # ... stamped by another program
+    db.commit()
+    db.close()
+    before = path.read_bytes()
+
+    with pytest.raises(rr.CatalogCorruptError) as raised:
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("P"), backup_path=path))
+
+    assert (str(path), True, before) == (
+        raised.value.path,
+        "not an rr_actors catalog" in raised.value.cause,
+        path.read_bytes(),
+    )
+
+
+# -- bad locations (the suite runs as root, where permissions do not refuse anything) -----------
+
+
+def test_a_read_only_directory_raises_config_error_naming_the_path(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    real_access = os.access
+    directory = str(tmp_path)
+
+    def access(path: Any, mode: int, **kwargs: Any) -> bool:
+        if os.fspath(path) == directory and mode & os.W_OK:
+            return False  # what a non-root user sees for a read-only directory
+        return real_access(path, mode, **kwargs)
+
+    monkeypatch.setattr(os, "access", access)
+    with pytest.raises(rr.ConfigError) as raised:
+        rr.ResourceRegistrar.start(
+            rr.RegistrarConfig(name=unique("P"), backup_path=tmp_path / "p.db")
+        )
+
+    assert (True, True, []) == (
+        str(tmp_path / "p.db") in str(raised.value),
+        "is not writable" in str(raised.value),
+        list(tmp_path.iterdir()),
+    )
+
+
+def test_a_read_only_backup_file_raises_config_error_and_is_left_as_it_was(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "p.db"
+    SqliteStore.open(path).close(erase=False)
+    before = path.read_bytes()
+    real_access = os.access
+
+    def access(where: Any, mode: int, **kwargs: Any) -> bool:
+        if os.fspath(where) == str(path) and mode & os.W_OK:
+            return False
+        return real_access(where, mode, **kwargs)
+
+    monkeypatch.setattr(os, "access", access)
+    with pytest.raises(rr.ConfigError) as raised:
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("P"), backup_path=path))
+
+    assert (True, True, before) == (
+        str(path) in str(raised.value),
+        "not readable and writable" in str(raised.value),
+        path.read_bytes(),
+    )
+
+
+# -- quarantine_backup -------------------------------------------------------------------------
+
+
+def test_quarantine_moves_the_wal_and_shm_files_with_the_backup(tmp_path: Path) -> None:
+    live, crashed = tmp_path / "live", tmp_path / "crashed"
+    live.mkdir()
+    crashed.mkdir()
+    store = SqliteStore.open(live / "p.db")
+    try:
+        store.load()
+        catalog = Catalog()
+        catalog.begin_load("r1", "leaf", 1)
+        catalog.finish_load("r1", 1)
+        catalog.add_consumer("r1", "q1", "C")
+        store.write(catalog.drain_changes())  # in the -wal only: no checkpoint yet
+        for suffix in ("", "-wal", "-shm"):  # the files a killed registrar leaves
+            (crashed / f"p.db{suffix}").write_bytes((live / f"p.db{suffix}").read_bytes())
+    finally:
+        store.close(erase=False)
+
+    moved = quarantine_backup(crashed / "p.db")
+
+    assert (["p.db", "p.db-shm", "p.db-wal"], {"q1"}) == (
+        sorted(p.name.replace(moved.name, "p.db") for p in crashed.iterdir()),
+        consumer_ids(moved),
+    )
+
+
+def test_quarantining_twice_keeps_both_files(tmp_path: Path) -> None:
+    path = tmp_path / "p.db"
+    path.write_bytes(b"first garbage" * 100)
+    first = quarantine_backup(path)
+    path.write_bytes(b"second garbage" * 100)
+    second = quarantine_backup(path)
+
+    assert (True, b"first garbage" * 100, b"second garbage" * 100) == (
+        first != second,
+        first.read_bytes(),
+        second.read_bytes(),
+    )
 
 
 def consumers_on_disk(path: Path) -> dict[str, list[str]]:
@@ -256,10 +576,6 @@ def test_a_lazily_restored_backup_deleted_mid_run_keeps_the_rows_not_read_yet(
 
 def leaf_load(request: Any) -> Any:
     return {"leaf": request}
-
-
-def noop_unload(_request: Any, _response: Any) -> None:
-    return None
 
 
 def serve_leaf(registrar: rr.ResourceRegistrar) -> None:

@@ -1,4 +1,5 @@
-"""A WAL cut short loses its newest commits; the restore says so (issue 21).
+"""Commits counted outside the WAL (`rr_actors._store.commits`): a WAL cut short loses its
+newest commits, and the restore says so (issue 21).
 
 Real manager processes killed with SIGKILL, their real `-wal` files cut at a frame
 boundary right after a commit (the cut SQLite cannot see: it replays what is left and
