@@ -83,43 +83,6 @@ def restarts(sup: Supervisor) -> dict[str, int]:
     return {info.name: info.restarts for info in sup.which_children()}
 
 
-# -- Backoff --------------------------------------------------------------------------------
-
-
-def test_backoff_without_an_initial_delay_restarts_at_once() -> None:
-    assert [0.0, 0.0, 0.0] == [Backoff().delay(n) for n in (1, 2, 5)]
-
-
-def test_backoff_grows_by_its_factor_per_restart_in_the_window() -> None:
-    backoff = Backoff(initial=0.1, factor=2.0, max=10.0, jitter=0.0)
-
-    assert [0.1, 0.2, 0.4, 0.8] == [round(backoff.delay(n), 9) for n in (1, 2, 3, 4)]
-
-
-def test_backoff_never_waits_longer_than_its_max() -> None:
-    backoff = Backoff(initial=1.0, factor=10.0, max=3.0, jitter=0.5)
-
-    assert 3.0 == backoff.delay(50, random=lambda: 0.999999)
-
-
-def test_backoff_jitter_spreads_the_delay_both_ways() -> None:
-    backoff = Backoff(initial=1.0, factor=2.0, max=10.0, jitter=0.2)
-
-    assert (0.8, 1.2) == (
-        backoff.delay(1, random=lambda: 0.0),
-        backoff.delay(1, random=lambda: 1.0),
-    )
-
-
-@pytest.mark.parametrize(
-    ("field", "value"),
-    [("initial", -1.0), ("factor", 0.5), ("max", -2.0), ("jitter", 1.5), ("jitter", True)],
-)
-def test_invalid_backoff_raises_config_error_naming_the_field(field: str, value: Any) -> None:
-    with pytest.raises(rr.ConfigError, match=f"Backoff.{field}"):
-        Backoff(**{field: value})
-
-
 # -- RestartIntensity -----------------------------------------------------------------------
 
 
@@ -145,20 +108,6 @@ def test_zero_max_restarts_gives_up_at_the_first_crash(clock: FakeClock) -> None
 
 
 # -- specs ----------------------------------------------------------------------------------
-
-
-def test_manager_spec_config_must_carry_the_managers_name() -> None:
-    with pytest.raises(rr.ConfigError, match=r"config\.name"):
-        ManagerSpec("erm", config=rr.RegistrarConfig(name="other"))
-
-
-@pytest.mark.parametrize(
-    ("field", "value"),
-    [("isolation", "fiber"), ("restart", "sometimes"), ("shutdown", 0), ("heartbeat", -1.0)],
-)
-def test_invalid_manager_spec_raises_config_error_naming_the_field(field: str, value: Any) -> None:
-    with pytest.raises(rr.ConfigError, match=field):
-        ManagerSpec("erm", **{field: value})
 
 
 def test_a_name_used_twice_in_the_tree_is_a_config_error() -> None:

@@ -1,4 +1,5 @@
-"""`rr-actors certs init` and `rr-actors certs issue`: a system's CA and its hosts' certificates.
+"""A system's certificates (`rr_actors._tools.certs`): `rr-actors certs init` and
+`rr-actors certs issue`, a system's CA and its hosts' certificates.
 
 Run through `rr_actors.__main__.main` and once through the installed console script; the
 certificates are proven usable by a real mutual-TLS handshake (Python's `ssl`, a real TCP

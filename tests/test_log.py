@@ -1,5 +1,6 @@
-"""With no logging configured, rr_actors' WARNING and ERROR reach stderr; an application's
-own configuration overrides that (DESIGN: "Conventions for all of it").
+"""rr_actors' log lines (`rr_actors._log`): with no logging configured, rr_actors' WARNING
+and ERROR reach stderr; an application's own configuration overrides that (DESIGN:
+"Conventions for all of it").
 
 Each test runs a real program in its own interpreter, as a user's script runs: a status
 callback of the wrong signature and an `unload` that raises are logged (ERROR, with
