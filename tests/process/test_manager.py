@@ -793,3 +793,22 @@ class TestStartReport:
             _await_ready("mine", process, parent_end, 30.0, Received(delivered.extend, None))
 
         assert ["an event forwarded before the setup raised"] == delivered
+
+
+# -- no orphans -----------------------------------------------------------------------------------
+
+
+@linux_trick
+def test_killing_the_main_process_also_ends_a_manager_too_stuck_to_read_its_pipe(
+    uid: str, tmp_path: Path
+) -> None:
+    pids: list[int] = []
+    try:
+        with killed_owner(uid, tmp_path, heartbeat=False) as pids:
+            os.kill(pids[0], signal.SIGSTOP)  # stuck: it will never see EOF on its pipe
+
+        assert [] == wait_gone(pids)
+    finally:
+        for pid in pids:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)

@@ -31,7 +31,7 @@ class TestStartAhead:
     While one manager starts, the spare pool forks the processes of the ones after it (no
     more than the starts to come, without their warm-up); once the tree's start is over,
     the spares left warm up for a restart. The managers still start in order (the order
-    tests of `test_supervisor.py` and `test_supervisor_contract.py` hold).
+    tests of `tests/supervision` hold).
     """
 
     pytestmark = pytest.mark.usefixtures("process_helpers")  # the forkserver, before leak checks

@@ -1,5 +1,8 @@
-"""A host's tree stopped for good is a clean stop at its consumers elsewhere, not a loss.
+"""Stopping a supervisor's children (`rr_actors._supervision.stopping`): the shutdown timeout
+and then the kill, the death watch at every provider, and what a child that will not come
+back leaves behind.
 
+A host's tree stopped for good is a clean stop at its consumers elsewhere, not a loss:
 `rr-actors demo --hosts 2`'s end, reduced to two processes over Zenoh: a "robot host"
 process (its own Zenoh router, a supervisor of one manager process) serves a provider;
 the test process (the "station") holds an id there from a consumer registrar. The host
@@ -23,16 +26,33 @@ import os
 import signal
 import socket
 import threading
+import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 import rr_actors as rr
+from rr_actors.testing import SharedObjects, actor_ref, start_forkserver
 from tests.support.carriers import setup_servers
+from tests.support.supervising import (
+    FakeClock,
+    alive,
+    crash,
+    process,
+    sigkill,
+)
 from tests.support.waiting import wait_for
 from tests.transport.test_transport_lost import own_provider_main
+
+
+@pytest.fixture(scope="module", autouse=True)
+def forkserver() -> None:
+    """Start the forkserver before the leak check counts this process's children."""
+    start_forkserver()
+
 
 LOST = "is gone and nobody will restart it"
 """What the consumer's WARNING says of a provider lost for good (rule 19)."""
@@ -134,11 +154,11 @@ class Station:
         for _, control in self.processes:
             with contextlib.suppress(OSError):
                 control.send("stop")
-        for process, control in self.processes:
-            process.join(30)
-            if process.is_alive():
-                process.kill()
-                process.join(10)
+        for child, control in self.processes:
+            child.join(30)
+            if child.is_alive():
+                child.kill()
+                child.join(10)
             control.close()
         self.network.close()
 
@@ -198,3 +218,155 @@ def test_a_host_killed_with_its_supervisor_is_a_loss_fatal_at_its_consumer_on_an
     assert [(query.id, rr.Status.FATAL, f"{provider}/echo")] == station.heard
     assert 1 == len(_lost_warnings(caplog, provider))
     assert [] == [q for q in station.consumer.client_queries() if q.serving_rr == provider]
+
+
+class TestStoppedForGood:
+    """A manager its supervisor stops for good is a mark: what a provider still holds of it goes.
+
+    Issue 32 (the kill-heavy plan's `end` findings): consumer `edge` stopped for good (the
+    tree's stop) while provider `api` still held ids `edge` had given up while `api` was
+    down; `api`'s reconcile came too late to name them, and `api` ended the run holding
+    them. A stopped registrar holds nothing (rule 12), so its supervisor's "it will not be
+    started again" is a mark as a death for good is (`_core/membership.py`): the provider
+    releases what it still holds of it. Here the stale id comes from the documented limit of
+    a consumer without a backup: restarted, it no longer knows the ids it held.
+    """
+
+    def test_a_consumer_stopped_for_good_by_its_supervisor_has_its_stale_ids_released(
+        self, tmp_path: Path, uid: str
+    ) -> None:
+        provider, consumer = f"api-{uid}", f"edge-{uid}"
+        unloads: list[Any] = []
+        unloaded = threading.Event()
+
+        def unload(request: Any, _response: Any) -> None:
+            unloads.append(request)
+            unloaded.set()
+
+        def setup(registrar: rr.ResourceRegistrar) -> None:
+            registrar.register_server("leaf", load=lambda r: r, unload=unload)
+
+        sup = rr.Supervisor(
+            [
+                rr.ManagerSpec(provider, setup, isolation="thread"),
+                rr.ManagerSpec(consumer, None, isolation="thread"),  # no backup: forgets on restart
+            ],
+            backoff=rr.Backoff(initial=0.0, jitter=0.0),
+        )
+        with sup:
+            sup.run_in(consumer, lambda r: r.call(provider, "leaf", "x", timeout=10))
+            crash(sup, consumer)
+            sup.wait_restarted(consumer, timeout=10)
+            assert [] == sup.run_in(consumer, lambda r: r.client_queries())  # it forgot the id
+            assert 1 == len(sup.run_in(provider, lambda r: r.server_queries("leaf")))  # held
+            # the tree stops: the consumer first, for good; then the provider
+
+        assert unloaded.wait(10)
+        assert ["x"] == unloads  # released when the consumer stopped for good, unloaded once
+
+
+class TestShutdownThenKill:
+    """A child's `shutdown`: the time its own stop gets, then it is killed (a process) or
+    told to crash (a thread)."""
+
+    def test_a_process_manager_is_killed_once_its_own_shutdown_ran_out(
+        self, supervisors: Callable[..., rr.Supervisor], uid: str
+    ) -> None:
+        name = f"erm-{uid}"
+        sup = supervisors([process(name, heartbeat=None, shutdown=0.5)]).start()
+        pid = sup.child(name).pid
+        assert pid is not None  # never os.kill(0, ...): that signals this test's process group
+        os.kill(pid, signal.SIGSTOP)  # it cannot stop cleanly
+        started = time.monotonic()
+        sup.stop()
+        took = time.monotonic() - started
+
+        assert ("killed", False) == ((sup.child(name).last_exit or "")[:6], alive(pid))
+        assert took < 4.0, f"stop took {took:.2f} s with shutdown=0.5"
+
+    def test_a_thread_manager_stuck_past_its_shutdown_is_told_to_crash(
+        self, supervisors: Callable[..., rr.Supervisor], uid: str
+    ) -> None:
+        name = f"a-{uid}"
+        release = threading.Event()
+
+        def setup(reg: rr.ResourceRegistrar) -> None:
+            reg.register_server("res", load=lambda r: r, unload=lambda r, _: release.wait(30.0))
+
+        sup = supervisors([rr.ManagerSpec(name, setup, shutdown=0.5)], clock=FakeClock()).start()
+        registrar = sup.run_in(name, lambda r: r)
+        sup.run_in(name, lambda reg: reg.call(name, "res", "x"))  # its clean stop must unload it
+        try:
+            sup.stop()
+        finally:
+            release.set()
+        assert actor_ref(registrar).actor_stopped.wait(10.0)
+
+        assert "killed" == (sup.child(name).last_exit or "")[:6]
+        with pytest.raises(rr.RegistrarUnavailableError):  # it died; a clean stop would say so
+            registrar.call(name, "res", "y", timeout=5.0)
+
+
+def unload_flag(unloaded: Any) -> Callable[[rr.ResourceRegistrar], None]:
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        registrar.register_server("res", load=lambda r: r, unload=lambda r, s: unloaded.set())
+
+    return setup
+
+
+def consumer_of(*providers: str) -> Callable[[rr.ResourceRegistrar], None]:
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        if not registrar.client_queries():
+            for provider in providers:
+                registrar.call(provider, "res", "camera", timeout=10.0)
+
+    return setup
+
+
+class TestDeathWatchAtEveryProvider:
+    """A consumer that dies for good has its ids released at every provider it held them at,
+    nested or not."""
+
+    def test_a_temporary_consumer_that_dies_has_its_ids_released_at_every_provider(
+        self, supervisors: Callable[..., rr.Supervisor], uid: str, process_helpers: SharedObjects
+    ) -> None:
+        p1, p2, c = f"p1-{uid}", f"p2-{uid}", f"c-{uid}"
+        unloaded1, unloaded2 = process_helpers.event(), process_helpers.event()
+        sup = supervisors(
+            [
+                process(p1, unload_flag(unloaded1)),
+                process(p2, unload_flag(unloaded2)),
+                process(c, consumer_of(p1, p2), restart="temporary"),
+            ]
+        ).start()
+        sigkill(sup, c)
+
+        assert [True, True] == [unloaded1.wait(10.0), unloaded2.wait(10.0)]
+        held = [sup.run_in(p, lambda r: r.server_queries("res"), timeout=10.0) for p in (p1, p2)]
+        assert [[], []] == held
+
+    def test_a_temporary_consumer_that_dies_is_released_at_a_provider_in_a_nested_supervisor(
+        self, supervisors: Callable[..., rr.Supervisor], uid: str, process_helpers: SharedObjects
+    ) -> None:
+        p, c = f"p-{uid}", f"c-{uid}"
+        unloaded = process_helpers.event()
+        inner = rr.SupervisorSpec(f"inner-{uid}", (process(p, unload_flag(unloaded)),))
+        sup = supervisors([inner, process(c, consumer_of(p), restart="temporary")]).start()
+        sigkill(sup, c)
+
+        assert unloaded.wait(10.0)
+        assert [] == sup.run_in(p, lambda r: r.server_queries("res"), timeout=10.0)
+
+    def test_a_consumer_process_whose_supervisor_gave_up_for_good_is_released_at_its_provider(
+        self, supervisors: Callable[..., rr.Supervisor], uid: str, process_helpers: SharedObjects
+    ) -> None:
+        p, c = f"p-{uid}", f"c-{uid}"
+        unloaded = process_helpers.event()
+        inner = rr.SupervisorSpec(
+            f"inner-{uid}", (process(c, consumer_of(p)),), max_restarts=0, restart="temporary"
+        )
+        sup = supervisors([process(p, unload_flag(unloaded)), inner]).start()
+        sigkill(sup, c)  # c is permanent, but its supervisor gives up for good
+
+        assert unloaded.wait(10.0)
+        assert [] == sup.run_in(p, lambda r: r.server_queries("res"), timeout=10.0)

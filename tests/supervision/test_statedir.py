@@ -1,4 +1,5 @@
-"""One supervisor tree per state directory (issue 16): a lock on `<state_dir>/.lock`.
+"""One supervisor tree per state directory (`rr_actors._supervision.statedir`, issue 16): a
+lock on `<state_dir>/.lock`.
 
 Two trees given the same `state_dir` would share their managers' backups. The second one
 gets `ConfigError` naming the holder's pid; the lock goes with the holder's stop or death
