@@ -1,7 +1,9 @@
-"""Experiment plans: what a valid plan becomes, and every bad input as a PlanError with its line."""
+"""Reading a plan (`rr_actors.experiments.reading`): what a valid plan becomes, and every bad
+input as a PlanError with its line."""
 
 from __future__ import annotations
 
+import io
 import pickle
 import textwrap
 from pathlib import Path
@@ -9,7 +11,8 @@ from pathlib import Path
 import pytest
 
 import rr_actors as rr
-from rr_actors.experiments import PlanError, load_plan, parse_plan
+from rr_actors.__main__ import main
+from rr_actors.experiments import PlanError, _lines, load_plan, parse_plan
 from rr_actors.experiments._lines import key_lines
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "rr_actors" / "experiments" / "plans"
@@ -262,39 +265,6 @@ def test_overrides_apply_to_every_compared_value() -> None:
     assert [(5, 9, 1.0)] * 2 == [(p.repeat, p.seed, p.duration) for _, p in changed.variants]
 
 
-def test_the_key_scanner_finds_tables_arrays_of_tables_and_inline_keys() -> None:
-    text = textwrap.dedent(
-        """\
-        name = "x"  # a comment
-        description = \"\"\"
-        [not a table]
-        \"\"\"
-        [tree]
-        backoff = { initial = 0.1, max = 1.0 }
-        [[tree.children]]
-        name = "a"
-        [[tree.children]]
-        name = "b"
-        [[tree.children.children]]
-        name = "c"
-        [[faults]]
-        at = [
-          1.0,
-          2.0,
-        ]
-        """
-    )
-
-    lines = key_lines(text)
-
-    assert 1 == lines[("name",)]
-    assert 6 == lines[("tree", "backoff", "max")]
-    assert 10 == lines[("tree", "children", 1, "name")]
-    assert 12 == lines[("tree", "children", 1, "children", 0, "name")]
-    assert 16 == lines[("faults", 0, "at", 1)]
-    assert ("not a table",) not in lines
-
-
 # -- limits: times and counts that would hang or crash a run (review items 1 and 2) ----------
 
 KILL_DB = '[[faults]]\nkind = "kill_manager"\ntarget = "db"\n'
@@ -531,3 +501,124 @@ def test_equal_values_of_other_types_are_different_compared_values() -> None:
     plan = parse_plan(BASE + text)
 
     assert 3 == len(plan.variants)
+
+
+NESTED = {
+    "arrays": "a = " + "[" * 5000 + "]" * 5000 + "\n",
+    "inline tables": "[tree]\nb = " + "{c = " * 5000 + "1" + "}" * 5000 + "\n",
+}
+
+
+class TestNestedTooDeep:
+    """A plan nested deeper than Python's TOML reader recurses is a `PlanError`, not a traceback.
+
+    `tomllib` recurses once per nested array or inline table; a plan file of a few kilobytes
+    (`a = [[[[...]]]]`) used to end `rr-actors experiment` in a `RecursionError`.
+    """
+
+    @pytest.mark.parametrize("text", NESTED.values(), ids=NESTED.keys())
+    def test_a_plan_nested_too_deeply_is_a_plan_error_naming_the_file(self, text: str) -> None:
+        with pytest.raises(PlanError, match="nested too deeply"):
+            parse_plan(text, source="deep.toml")
+
+    def test_rr_actors_experiment_on_it_is_one_line_and_exit_code_2(
+        self, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    ) -> None:
+        plan = tmp_path / "deep.toml"
+        plan.write_text(NESTED["arrays"])
+
+        assert 2 == main(["experiment", str(plan), "--out", str(tmp_path / "out")], io.StringIO())
+
+        err = capsys.readouterr().err
+        assert f"rr-actors experiment: {plan}: is not a plan: nested too deeply to read\n" == err
+        assert not (tmp_path / "out").exists()
+
+
+RULES_BASE = """\
+name = "t"
+description = '''
+a text of
+[several] lines
+'''
+duration = 2.0
+
+[tree]
+
+[[tree.children]]
+name = "db"
+setup = "rr_actors.experiments.services:service"
+
+[[faults]]
+kind = "kill_manager"
+target = "db"
+at = 1.0
+"""
+
+
+def rules_plan_error(text: str) -> PlanError:
+    with pytest.raises(PlanError) as caught:
+        parse_plan(text, source="plan.toml")
+    return caught.value
+
+
+class TestRules:
+    """The plan reader's generic decode and its rules: messages that name what is allowed."""
+
+    def test_a_fault_key_of_another_kind_names_the_kinds_it_goes_with(self) -> None:
+        error = rules_plan_error(RULES_BASE + "for = 1.0\n")
+
+        assert (18, "faults[0].for") == (error.line, error.key)
+        only = "'hang_manager' or 'load_error' or 'cut' or 'partition' or 'freeze'"
+        assert f"does not go with kind 'kill_manager' (only {only})" == error.problem
+
+    def test_a_trigger_status_of_the_wrong_type_names_the_statuses(self) -> None:
+        error = rules_plan_error(
+            RULES_BASE.replace("at = 1.0", 'after = { event = "StatusSent", status = 3 }')
+        )
+
+        assert (17, "faults[0].after.status") == (error.line, error.key)
+        assert error.problem.startswith(
+            "must be one of 'OK', 'UPDATE', 'WARNING', 'ERROR', 'FATAL'"
+        )
+
+    def test_a_key_after_a_multi_line_string_has_its_own_line(self) -> None:
+        error = rules_plan_error(RULES_BASE.replace("duration = 2.0", "duration = -2.0"))
+
+        assert (6, "duration") == (error.line, error.key)
+        assert 2 == key_lines(RULES_BASE)[("description",)]
+
+    def test_a_name_is_unique_in_the_whole_tree_the_top_supervisor_included(self) -> None:
+        text = RULES_BASE.replace(
+            '[[tree.children]]\nname = "db"',
+            '[[tree.children]]\nname = "mid"\n\n[[tree.children.children]]\nname = "top"',
+        )
+        error = rules_plan_error(text.replace("[tree]", '[tree]\nname = "top"'))
+
+        assert (15, "tree.children[0].children[0].name") == (error.line, error.key)
+        assert "the name 'top' is used twice in the tree" == error.problem
+
+    def test_an_error_deep_in_a_long_plan_names_its_line_in_a_few_parses(
+        self,
+        monkeypatch: pytest.MonkeyPatch,
+    ) -> None:
+        padding = "".join(f"# note {n}\n" for n in range(20_000))
+        text = RULES_BASE.replace("[tree]\n", f"[tree]\n{padding}").replace(
+            "at = 1.0", 'at = "soon"'
+        )
+        expected_line = text.splitlines().index('at = "soon"') + 1
+        tries: list[int] = []  # the number of lines of each text the reader parses to find the line
+        holds = _lines._holds
+
+        def counted(rows: list[str], path: _lines.KeyPath) -> bool:
+            tries.append(len(rows))
+            return holds(rows, path)
+
+        monkeypatch.setattr(_lines, "_holds", counted)
+
+        with pytest.raises(PlanError) as info:
+            parse_plan(text)
+
+        assert expected_line == info.value.line
+        # bisection: at most log2(20,030) < 15 tries for each of the 3 key paths
+        # ("faults", 0, "at") and its starts, not one try per line
+        assert 0 < len(tries) <= 3 * 15, len(tries)

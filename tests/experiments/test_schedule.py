@@ -1,4 +1,5 @@
-"""The fault schedule: a pure function of the plan and the seed."""
+"""The fault schedule (`rr_actors.experiments.schedule`): a pure function of the plan and the
+seed."""
 
 from __future__ import annotations
 

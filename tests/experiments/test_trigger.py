@@ -1,4 +1,5 @@
-"""The trigger process: signals leave at their due time, through the pidfd they were given."""
+"""The trigger process (`rr_actors.experiments._trigger`): signals leave at their due time,
+through the pidfd they were given."""
 
 from __future__ import annotations
 

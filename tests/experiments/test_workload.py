@@ -1,4 +1,5 @@
-"""The workload when a client cannot build a request: the run fails, naming the cause."""
+"""The workload (`rr_actors.experiments.workload`) when a client cannot build a request: the
+run fails, naming the cause."""
 
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
-"""Plans across hosts: host placement, faults between hosts (cut, partition, freeze,
-kill_router), their schedule, and one real run on two network namespaces (root)."""
+"""The other hosts of a run (`rr_actors.experiments._hosts`): plans across hosts: host
+placement, faults between hosts (cut, partition, freeze, kill_router), their schedule, and one
+real run on two network namespaces (root)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""A run's numbers from its events: down intervals, unavailability, recovery per fault kind."""
+"""A run's numbers from its events (`rr_actors.experiments.metrics`): down intervals,
+unavailability, recovery per fault kind."""
 
 from __future__ import annotations
 

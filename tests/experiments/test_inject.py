@@ -1,4 +1,5 @@
-"""The injector when its loop fails: the faults it could not fire are recorded, not lost."""
+"""The injector (`rr_actors.experiments.inject`) when its loop fails: the faults it could not
+fire are recorded, not lost."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Experiments for real: runs in fresh processes, every fault kind, the files, seeds, leaks.
+"""`run(plan)` (`rr_actors.experiments.experiment`): experiments for real: runs in fresh
+processes, every fault kind, the files, seeds, leaks.
 
 One experiment with every fault kind (two runs) is shared by the tests that read its
 results and files; the tests of the same seed and of a cut connection run their own.

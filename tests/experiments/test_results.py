@@ -1,4 +1,5 @@
-"""runs.csv when compared values give runs different columns: every column is kept."""
+"""What an experiment gives back (`rr_actors.experiments.results`): runs.csv when compared
+values give runs different columns: every column is kept."""
 
 from __future__ import annotations
 

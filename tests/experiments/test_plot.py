@@ -1,6 +1,7 @@
-"""recovery.png and timeline.png across hosts: per-host recovery, each fault's host, the
-time to fail and to heal of faults between hosts, the verdict in the titles. Drawn from
-results built by hand (no run, no namespaces) and read back from the figures."""
+"""The experiment's figures (`rr_actors.experiments.plot`): recovery.png and timeline.png across
+hosts: per-host recovery, each fault's host, the time to fail and to heal of faults between
+hosts, the verdict in the titles. Drawn from results built by hand (no run, no namespaces) and
+read back from the figures."""
 
 from __future__ import annotations
 
