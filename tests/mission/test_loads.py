@@ -1,4 +1,5 @@
-"""`Loads.unload_now` (F6: cm's LiDARs let go of at once) when the provider dies meanwhile.
+"""What the mission holds (`rr_actors.mission.loads`): `Loads.unload_now` (F6: cm's LiDARs let
+go of at once) when the provider dies meanwhile.
 
 Seen in a two-host demo run under load: during F6's cut, cm was killed by its heartbeat
 while the mission's `unload` of its LiDAR query was in flight there. `unload` then raises

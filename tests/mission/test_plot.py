@@ -1,4 +1,5 @@
-"""`mission.png`: this run beside the thesis's run (figure 6.5), and a zoom on a stop.
+"""The mission's figure (`rr_actors.mission.plot`): `mission.png`: this run beside the thesis's
+run (figure 6.5), and a zoom on a stop.
 
 With `RR_DOCS_SCREENSHOTS=1` the last test runs the full mission and redraws the
 tutorial's figure, `docs/img/mission.png` (as the observer's browser tests retake their

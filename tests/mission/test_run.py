@@ -1,4 +1,5 @@
-"""The thesis's fault-injected mission (`rr-actors demo`), in --fast mode, for real.
+"""Running the thesis's mission (`rr_actors.mission.run`): `run_mission` and `rr-actors demo`,
+in --fast mode, for real, and the command line's errors, Ctrl-C and `--out`.
 
 Every run starts three manager processes under a supervisor and the robot's programs as
 OS processes, and injects its faults with SIGKILL. The full mission runs once for the
@@ -8,7 +9,6 @@ module; each fault also runs alone.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import importlib.util
 import io
 import json
@@ -16,21 +16,39 @@ import os
 import signal
 import subprocess
 import sys
-import uuid
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-import rr_actors as rr
-from rr_actors.mission import FAULTS, MissionConfig, MissionReport, run_mission
+from rr_actors.mission import FAULTS, MissionError, MissionReport
 from rr_actors.mission.action import Mission
+from rr_actors.mission.config import MissionConfig
 from rr_actors.mission.faults import fault_points
-from rr_actors.mission.managers import ProcessTable
-from rr_actors.mission.output import timeline
+from rr_actors.mission.output import (
+    PlainOutput,
+    Progress,
+    timeline,
+)
 from rr_actors.mission.programs import start_time
-from rr_actors.mission.report import Odometry
-from rr_actors.mission.run import config_from_args, main, parser, prepare_out
+from rr_actors.mission.run import (
+    _hooks,
+    _mission_clock,
+    config_from_args,
+    lock_out,
+    main,
+    parser,
+    prepare_out,
+    run_mission,
+)
+from tests.support.demos import (
+    assert_nothing_left,
+    interrupt_demo,
+    one_line_after_the_story,
+    report_with_everything,
+)
+from tests.support.observing import request
+from tests.support.small_disk import mounted, remount_read_only
 
 ROOT = Path(__file__).resolve().parents[2]
 REPORT_KEYS = {"mission_time_s", "distance_m", "faults", "leaked_processes", "catalog_entries_left"}
@@ -210,40 +228,6 @@ def test_an_unknown_fault_is_a_command_line_error(capsys: pytest.CaptureFixture[
     assert "F9" in capsys.readouterr().err
 
 
-def test_the_odometry_counts_a_gap_without_a_driver_as_a_stop(tmp_path: Path) -> None:
-    log = tmp_path / "odom.jsonl"
-    samples = [(0.0, 0.0, 1.0), (0.1, 0.1, 1.0), (0.2, 0.2, 1.0), (0.7, 0.2, 0.0), (0.8, 0.3, 1.0)]
-    log.write_text("".join(json.dumps({"t": t, "x": x, "v": v}) + "\n" for t, x, v in samples))
-    odometry = Odometry(log)
-
-    odometry.read()
-
-    assert [(0.2, 0.7)] == odometry.stops(0.0, 1.0)
-
-
-def test_the_erm_does_not_adopt_a_process_whose_pid_was_reused(tmp_path: Path) -> None:
-    registrar = rr.ResourceRegistrar.start(f"erm-{uuid.uuid4().hex[:8]}")
-    try:
-        table = ProcessTable(registrar)
-        me = os.getpid()
-        created = start_time(me)
-        assert created is not None
-        impostor = rr.Query(
-            "q1",
-            "program",
-            registrar.name,
-            "cm",
-            {"name": "lidar1", "bus": str(tmp_path)},
-            {"name": "lidar1", "pid": me, "start_time": created + 1},
-        )
-
-        dead = table.adopt([impostor])
-    finally:
-        registrar.stop()
-
-    assert [impostor] == dead
-
-
 # -- a manager killed by hand while the mission runs ---------------------------------------
 
 
@@ -300,19 +284,348 @@ def test_the_story_is_told_in_the_order_of_its_stamps_when_the_goal_comes_mid_re
     assert told.index("goal reached") < told.index("F5 recovered"), "\n".join(story)
 
 
-def test_a_fault_jittered_past_the_goal_strikes_at_the_goal() -> None:
-    """`--fault-at F5=0.99 --seed 0`: the seed's jitter (+1.4 % of the point) put F5 at
-    1.0036 of the path, which the robot never reaches (it stops at the goal, or a tick
-    past it, 0-10 cm): the drive waited for the fault until "the goal was not reached in
-    time" (issue 44, seen once). A point jittered past the goal strikes at the goal."""
-    fast = MissionConfig.fast()
+# -- --quiet -------------------------------------------------------------------------------
 
-    def point(at: float, seed: int) -> float:
-        """Where F5 strikes, asked for at `at` of the path, with `seed`."""
-        fault_at = {**fast.fault_at, "F5": at}
-        config = dataclasses.replace(fast, faults=("F5",), fault_at=fault_at, seed=seed)
-        return fault_points(config)["F5"]
 
-    assert 1.0 == point(0.99, seed=0)
-    assert [] == [p for p in (point(0.99, seed) for seed in range(40)) if not 0.97 <= p <= 1.0]
-    assert 0.9935 == round(point(0.98, seed=0), 4)  # below the goal: the seed's point as before
+def test_quiet_help_says_it_prints_only_the_timeline() -> None:
+    help_text = " ".join(parser().format_help().split())
+
+    assert "--quiet no story and no progress line: print only the timeline" in help_text
+
+
+# -- errors --------------------------------------------------------------------------------
+
+
+def demo(*argv: str) -> subprocess.CompletedProcess[str]:
+    """`rr-actors demo ARGV` as a separate program (60 s at most)."""
+    return subprocess.run(
+        [sys.executable, "-m", "rr_actors", "demo", *argv],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+
+
+def test_out_pointing_at_a_file_is_a_clear_error_with_exit_code_2(tmp_path: Path) -> None:
+    target = tmp_path / "a-file"
+    target.write_text("not a directory\n")
+
+    result = demo("--fast", "--out", str(target))
+
+    assert (2, "") == (result.returncode, result.stdout)
+    assert f"rr-actors demo: --out '{target}' is a file, not a directory\n" == result.stderr
+
+
+def test_out_below_a_file_is_a_clear_error_with_exit_code_2(tmp_path: Path) -> None:
+    (tmp_path / "a-file").write_text("")
+    target = tmp_path / "a-file" / "sub"
+
+    result = demo("--fast", "--out", str(target))
+
+    assert 2 == result.returncode
+    assert result.stderr.startswith(f"rr-actors demo: --out '{target}': cannot write there (")
+    assert "Traceback" not in result.stderr
+
+
+def test_out_in_a_read_only_directory_is_a_clear_error_with_exit_code_2(tmp_path: Path) -> None:
+    # Root writes through file modes: as root (CI) the directory is a read-only tmpfs.
+    with contextlib.ExitStack() as stack:
+        if os.geteuid() == 0:
+            read_only = stack.enter_context(mounted(tmp_path / "ro", size="64k"))
+            remount_read_only(read_only)
+            why = "Read-only file system"
+        else:
+            read_only = tmp_path
+            read_only.chmod(0o500)
+            stack.callback(read_only.chmod, 0o700)
+            why = "Permission denied"
+        result = demo("--fast", "--out", str(read_only / "out"))
+
+    assert 2 == result.returncode
+    assert f"cannot write there ({why})" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_without_pidfds_the_demo_says_it_needs_linux_with_exit_code_2(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.delattr(os, "pidfd_open")
+
+    code = main(["--fast", "--out", str(tmp_path)])
+
+    assert 2 == code
+    assert "needs Linux" in capsys.readouterr().err
+    assert [] == list(tmp_path.iterdir())  # nothing was started or written
+
+
+def test_without_pidfds_run_mission_raises_a_mission_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delattr(os, "pidfd_open")
+
+    with pytest.raises(MissionError, match="needs Linux"):
+        run_mission(MissionConfig.fast(), tmp_path)
+
+
+# -- one name per figure -------------------------------------------------------------------
+
+
+class ClockedObserver:
+    """Stands in for the observer `--observe` opens: records what its clock is called."""
+
+    url = "http://127.0.0.1:1/"
+
+    def __init__(self) -> None:
+        self.labels: list[str] = []
+
+    def set_clock(self, origin: float, label: str = "") -> None:
+        del origin
+        self.labels.append(label)
+
+
+class ObservedSupervisor:
+    def __init__(self, observer: ClockedObserver) -> None:
+        self.observer = observer
+
+    def observe(self, **_: object) -> ClockedObserver:
+        return self.observer
+
+
+def test_the_page_calls_its_clock_the_mission_clock_and_only_the_total_is_mission_time() -> None:
+    observer = ClockedObserver()
+    observers: list[object] = []
+    args = parser().parse_args(["--observe"])
+    on_supervisor, _ = _hooks(args, PlainOutput(io.StringIO()), io.StringIO(), observers)  # type: ignore[arg-type]
+    assert on_supervisor is not None
+    on_supervisor(ObservedSupervisor(observer))  # type: ignore[arg-type]
+    _mission_clock(lambda _: None, observers)(Progress(12.34, 1.0, 6.0, True, ""))  # type: ignore[arg-type]
+    totals = timeline(report_with_everything()).splitlines()
+    named = [line for line in totals if "mission time" in line]  # one figure under that name
+
+    assert ["mission clock", "mission clock"] == observer.labels
+    assert 1 == len(named)
+    assert named[0].startswith("mission time 1234.50 s (the drive")
+
+
+class TestCtrlC:
+    """Ctrl-C in `rr-actors demo`, in a real terminal: one line, exit code 130, nothing left.
+
+    A terminal's Ctrl-C sends SIGINT to its whole foreground process group: the demo, the
+    forkserver, every manager and spare process. Here the demo runs in a session of its own
+    on a pseudo-terminal, and the test sends SIGINT to that group (`os.killpg`), as the
+    terminal would. Only the demo may act on it: it unloads everything, stops the managers
+    in order and says so in one line.
+    """
+
+    @pytest.mark.usefixtures("process_helpers")
+    @pytest.mark.timeout(150)
+    def test_ctrl_c_while_the_robot_drives_prints_one_line_and_exits_130(
+        self, tmp_path: Path
+    ) -> None:
+        code, before, after, tree = interrupt_demo(tmp_path, b"driving")
+
+        assert "driving" in before
+        assert 130 == code, after
+        assert one_line_after_the_story(after), after  # the one line, and nothing else
+        assert "Traceback" not in after
+        assert_nothing_left(tmp_path, tree)
+
+    @pytest.mark.usefixtures("process_helpers")
+    @pytest.mark.timeout(150)
+    def test_ctrl_c_at_the_step_prompt_prints_one_line_and_exits_130(self, tmp_path: Path) -> None:
+        code, before, after, tree = interrupt_demo(tmp_path, b"press Enter", "--step")
+
+        assert "press Enter" in before
+        assert 130 == code, after
+        assert one_line_after_the_story(after), after
+        assert "Traceback" not in after
+        assert_nothing_left(tmp_path, tree)
+
+
+class TestOutAndPort:
+    """`rr-actors demo --port` and `--out`: refused before anything starts or is removed.
+
+    `--port` without `--observe` used to be ignored silently (the mission ran, no page), and
+    a port out of range was refused only after the managers had started. `--out` a folder
+    whose `state/`, `bus/` (or `certs/`, on two hosts) a demo never wrote (`--out ~`) used
+    to have them emptied.
+    """
+
+    @pytest.mark.parametrize(
+        ("argv", "says"),
+        [
+            (["--port", "8080"], "--port needs --observe (it is the observer's port)"),
+            (["--observe", "--port", "-5"], "--port must be from 0 to 65535, got -5"),
+            (["--observe", "--port", "70000"], "--port must be from 0 to 65535, got 70000"),
+        ],
+        ids=["without-observe", "negative", "too-big"],
+    )
+    def test_a_port_the_demo_cannot_use_is_a_usage_error_before_anything_starts(
+        self, tmp_path: Path, argv: list[str], says: str
+    ) -> None:
+        out = tmp_path / "out"
+
+        result = demo("--fast", "--out", str(out), *argv)
+
+        assert (2, "", f"rr-actors demo: {says}\n") == (
+            result.returncode,
+            result.stdout,
+            result.stderr,
+        )
+        assert not out.exists()  # nothing started, nothing written
+
+    @pytest.mark.parametrize("sub", ["state", "bus", "certs"])
+    def test_a_folder_whose_state_bus_or_certs_no_demo_wrote_is_refused_and_kept(
+        self, tmp_path: Path, sub: str
+    ) -> None:
+        mine = tmp_path / sub / "notes.txt"  # `--out ~` with the user's own ~/state
+        mine.parent.mkdir()
+        mine.write_text("mine\n")
+
+        result = demo("--fast", "--out", str(tmp_path))
+
+        assert (2, "") == (result.returncode, result.stdout)
+        assert f"holds a {sub}/ that no mission wrote" in result.stderr
+        assert ("mine\n", [sub]) == (mine.read_text(), sorted(p.name for p in tmp_path.iterdir()))
+
+
+def demo_process(out: Path) -> subprocess.Popen[str]:
+    """`rr-actors demo --fast --out OUT` as a separate program, its output in pipes."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "rr_actors", "demo", "--fast", "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+class TestOneDemoPerOut:
+    """Two demos in one `--out` folder: the second refuses at once, the first is untouched."""
+
+    @pytest.mark.timeout(120)
+    def test_a_second_demo_in_the_same_folder_refuses_and_the_first_completes(
+        self,
+        tmp_path: Path,
+    ) -> None:
+        out = tmp_path / "demo"
+        first = demo_process(out)
+        try:
+            assert first.stdout is not None
+            # Its first line of story comes after it took the lock and emptied state/ and bus/.
+            assert "starting the managers" in first.stdout.readline()
+
+            second = subprocess.run(
+                [sys.executable, "-m", "rr_actors", "demo", "--fast", "--out", str(out)],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                check=False,
+            )
+            rest, errors = first.communicate(timeout=90)
+        finally:
+            if first.poll() is None:
+                first.kill()
+                first.wait(10)
+
+        assert (2, "") == (second.returncode, second.stdout)
+        assert (
+            f"rr-actors demo: {str(out)!r} is in use by another demo (pid {first.pid}); wait for "
+            "it to end, or give this one another folder with --out\n"
+        ) == second.stderr
+        assert (0, "") == (first.returncode, errors), rest
+        assert "leaked processes: 0; catalog entries left: 0" in rest
+
+    def test_the_lock_is_free_again_after_a_mission(self, tmp_path: Path) -> None:
+        with lock_out(tmp_path):
+            pass
+
+        with lock_out(tmp_path):  # would raise if the first were still held
+            pass
+
+
+def test_demo_observe_serves_the_final_state_until_ctrl_c_and_says_so(
+    process_helpers: Any, tmp_path: Path
+) -> None:
+    command = ["demo", "--fast", "--observe", "--quiet", "--out", str(tmp_path)]
+    with subprocess.Popen(
+        [sys.executable, "-m", "rr_actors", *command],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    ) as demo:
+        try:
+            assert demo.stdout is not None
+            lines = []
+            for line in demo.stdout:
+                lines.append(line)
+                if "press Ctrl-C" in line:
+                    break
+            url = next(x for x in lines if x.startswith("observer: http")).split()[1]
+            serving = request(url, "/api/state")[0]
+            demo.send_signal(signal.SIGINT)
+            code = demo.wait(30)
+        finally:
+            if demo.poll() is None:
+                demo.kill()
+                demo.wait(10)
+
+    # The last thing said, wrapped at words to 80 columns: the mission ended, until Ctrl-C.
+    last = next(i for i, line in enumerate(lines) if line.startswith("observer: the mission"))
+    said = " ".join(line.strip() for line in lines[last:])
+    assert said.startswith("observer: the mission ended;"), said
+    assert said.endswith("(press Ctrl-C to stop)"), said
+    assert (200, 0) == (serving, code)
+    with pytest.raises(ConnectionRefusedError):
+        request(url, "/", timeout=2.0)
+
+
+def test_allow_faults_without_observe_is_a_usage_error(tmp_path: Path) -> None:
+    from rr_actors.mission import run as demo  # noqa: PLC0415
+
+    args = demo.parser().parse_args(["--fast", "--allow-faults", "--out", str(tmp_path)])
+
+    assert 2 == demo.run(args, io.StringIO())
+
+
+# -- the demo ---------------------------------------------------------------------------------
+
+
+def test_demo_observe_prints_the_url_and_serves_for_the_whole_run(
+    tmp_path: Path, process_helpers: Any
+) -> None:
+    from rr_actors.mission import run as demo  # noqa: PLC0415
+
+    args = demo.parser().parse_args(
+        ["--fast", "--observe", "--linger", "0", "--out", str(tmp_path), "--quiet"]
+    )
+    out = io.StringIO()
+    code = demo.run(args, out)
+
+    assert 0 == code
+    url = next(line for line in out.getvalue().splitlines() if line.startswith("observer: "))
+    with pytest.raises(ConnectionRefusedError):  # --linger 0: closed with the mission
+        request(url.split()[1], "/", timeout=2.0)
+
+
+def test_demo_observe_on_a_port_in_use_fails_before_the_mission(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import socket  # noqa: PLC0415
+
+    from rr_actors.mission import run as demo  # noqa: PLC0415
+
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    try:
+        port = str(taken.getsockname()[1])
+        args = demo.parser().parse_args(
+            ["--fast", "--observe", "--port", port, "--out", str(tmp_path)]
+        )
+        code = demo.run(args, io.StringIO())
+    finally:
+        taken.close()
+
+    assert 2 == code
+    assert "in use" in capsys.readouterr().err

@@ -1,4 +1,5 @@
-"""`rr-actors demo --step` on an 80-column terminal: rich output, and pauses left out of time.
+"""Stepping (`rr_actors.mission.step`): `rr-actors demo --step` on an 80-column terminal: rich
+output, and pauses left out of time.
 
 A class takes its time before pressing Enter: here each Enter comes `PAUSE` seconds
 after the prompt. None of that may count as mission time (the story's stamps, the
@@ -14,6 +15,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -156,3 +158,22 @@ def test_step_in_a_real_80_column_terminal_waits_for_each_enter(tmp_path: Path) 
     assert max(len(line) for line in text.splitlines()) <= 80
     assert 5 * PAUSE <= report["paused_for_enter_s"]
     assert report["mission_time_s"] < report["nominal_time_s"] + PAUSE
+
+
+def test_demo_step_pauses_before_each_fault_and_prints_the_pids(
+    tmp_path: Path, process_helpers: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rr_actors.mission import run as demo  # noqa: PLC0415
+
+    monkeypatch.setattr(sys, "stdin", io.StringIO("\n" * 5))
+    args = demo.parser().parse_args(["--fast", "--step", "--out", str(tmp_path)])
+    out = io.StringIO()
+    code = demo.run(args, out)
+
+    text = out.getvalue()
+    assert 0 == code
+    assert 5 == text.count("press Enter to inject it")
+    assert "next: F3, external resource manager killed" in text
+    assert "erm: running, pid" in text
+    assert "<- SIGKILL" in text
+    assert "lidar program (erm runs it for cm): pid" in text

@@ -1,4 +1,5 @@
-"""`rr-actors observe --state DIR`, `rr-actors graph --state DIR`, `demo --observe/--step`."""
+"""The observer's commands (`rr_actors.observe._commands`): `rr-actors observe --state DIR` and
+`rr-actors graph --state DIR`."""
 
 from __future__ import annotations
 
@@ -186,68 +187,6 @@ def test_the_command_runs_as_a_console_script(state: Path) -> None:
 
     assert (0, "") == (done.returncode, done.stderr)
     assert "digraph" in done.stdout
-
-
-# -- the demo ---------------------------------------------------------------------------------
-
-
-def test_demo_observe_prints_the_url_and_serves_for_the_whole_run(
-    tmp_path: Path, process_helpers: Any
-) -> None:
-    from rr_actors.mission import run as demo  # noqa: PLC0415
-
-    args = demo.parser().parse_args(
-        ["--fast", "--observe", "--linger", "0", "--out", str(tmp_path), "--quiet"]
-    )
-    out = io.StringIO()
-    code = demo.run(args, out)
-
-    assert 0 == code
-    url = next(line for line in out.getvalue().splitlines() if line.startswith("observer: "))
-    with pytest.raises(ConnectionRefusedError):  # --linger 0: closed with the mission
-        request(url.split()[1], "/", timeout=2.0)
-
-
-def test_demo_step_pauses_before_each_fault_and_prints_the_pids(
-    tmp_path: Path, process_helpers: Any, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    from rr_actors.mission import run as demo  # noqa: PLC0415
-
-    monkeypatch.setattr(sys, "stdin", io.StringIO("\n" * 5))
-    args = demo.parser().parse_args(["--fast", "--step", "--out", str(tmp_path)])
-    out = io.StringIO()
-    code = demo.run(args, out)
-
-    text = out.getvalue()
-    assert 0 == code
-    assert 5 == text.count("press Enter to inject it")
-    assert "next: F3, external resource manager killed" in text
-    assert "erm: running, pid" in text
-    assert "<- SIGKILL" in text
-    assert "lidar program (erm runs it for cm): pid" in text
-
-
-def test_demo_observe_on_a_port_in_use_fails_before_the_mission(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    import socket  # noqa: PLC0415
-
-    from rr_actors.mission import run as demo  # noqa: PLC0415
-
-    taken = socket.socket()
-    taken.bind(("127.0.0.1", 0))
-    taken.listen()
-    try:
-        port = str(taken.getsockname()[1])
-        args = demo.parser().parse_args(
-            ["--fast", "--observe", "--port", port, "--out", str(tmp_path)]
-        )
-        code = demo.run(args, io.StringIO())
-    finally:
-        taken.close()
-
-    assert 2 == code
-    assert "in use" in capsys.readouterr().err
 
 
 def test_help_lists_observe_and_graph() -> None:

@@ -1,4 +1,5 @@
-"""The observer's patches: what changed in a section, small, and exact when applied."""
+"""The observer's patches (`rr_actors.observe._delta`): what changed in a section, small, and
+exact when applied."""
 
 from __future__ import annotations
 

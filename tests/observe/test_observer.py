@@ -1,4 +1,5 @@
-"""`Supervisor.observe(sock=...)`: the page served on a listening socket made by the caller.
+"""The `Observer` handle (`rr_actors.observe._observer`): a context manager that needs the extra,
+and `Supervisor.observe(sock=...)`: the page served on a listening socket made by the caller.
 
 (`rr-actors demo --hosts 2 --observe` binds one in the machine's network namespace and
 hands it to the station's process, in a namespace of its own: tests/mission.)
@@ -17,8 +18,12 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors.observe import Observer
 from tests.support.observed_tree import figure_27
-from tests.support.observing import base, get_json
+from tests.support.observing import (
+    base,
+    get_json,
+)
 
 
 @pytest.fixture
@@ -62,3 +67,25 @@ def test_a_socket_on_another_address_than_loopback_needs_allow_remote(
         tree.observe(sock=listening)
 
     assert -1 == listening.fileno()
+
+
+def test_the_observer_needs_the_observe_extra_to_serve(
+    tree: rr.Supervisor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import sys  # noqa: PLC0415
+
+    import rr_actors.observe  # noqa: PLC0415
+
+    monkeypatch.setitem(sys.modules, "rr_actors.observe._server", None)  # as if not installed
+    monkeypatch.delattr(rr_actors.observe, "_server", raising=False)
+
+    with pytest.raises(rr.MissingExtraError, match=r"needs an extra: pip install .*\[observe\]"):
+        tree.observe()
+
+
+def test_observer_is_a_context_manager(tree: rr.Supervisor) -> None:
+    with tree.observe() as observer:
+        assert isinstance(observer, Observer)
+        assert "live" == get_json(observer.url, "/api/state")["hello"]["mode"]
+
+    assert observer.closed

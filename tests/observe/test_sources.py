@@ -1,6 +1,6 @@
-"""The observer's trust boundary (issue 21, bugs 1, 5, 6) and its resource labels (issue 24,
-item 2): looking at a backup runs nothing from it, a crafted file fails fast, a hostile
-`__repr__` stops nothing, and a resource reads by what tells it apart."""
+"""Where the page's sections come from (`rr_actors.observe._sources`): the observer's trust
+boundary at a directory of backups (issue 21, bugs 1 and 5): looking at a backup runs nothing
+from it, and a crafted file fails fast."""
 
 from __future__ import annotations
 
@@ -8,15 +8,10 @@ import io
 import os
 import pickle
 import sqlite3
-import sys
-import threading
-import time
-import traceback
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import cloudpickle
 import pytest
 
 import rr_actors as rr
@@ -26,14 +21,6 @@ from rr_actors._catalog.texts import NOT_SHOWN_OLD
 from rr_actors._store import SqliteStore, read_backup, schema
 from rr_actors._store.codec import dumps
 from rr_actors.observe._sources import read_catalogs
-from rr_actors.observe._text import render
-from rr_actors.observe._view import (
-    default_labels,
-    dependency_graph,
-    resource_name,
-    summarise_catalog,
-)
-from tests.support.observed_tree import figure_27
 
 
 def run(*argv: str) -> tuple[int, str]:
@@ -236,218 +223,3 @@ def test_a_crafted_schema_is_catalog_corrupt_naming_the_file_before_any_read(
     assert 1 == code
     assert str(path) == caught.value.path
     assert os.path.getsize(path) < 100_000  # (nothing was written to it)
-
-
-# -- bug 6: a hostile __repr__ stops nothing -----------------------------------------------------
-
-
-class HangsWhenShown:
-    def __init__(self, gate: threading.Event) -> None:
-        self.gate = gate
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, HangsWhenShown)
-
-    def __hash__(self) -> int:
-        return 1
-
-    def __repr__(self) -> str:
-        self.gate.wait(30)
-        return "HangsWhenShown()"
-
-
-class ExitsWhenShown:
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, ExitsWhenShown)
-
-    def __hash__(self) -> int:
-        return 2
-
-    def __repr__(self) -> str:
-        raise SystemExit("shown")
-
-
-def hostile_setup(registrar: rr.ResourceRegistrar) -> None:
-    registrar.register_server("leaf", load=lambda r: "ok", unload=lambda r, s: None)
-
-
-@pytest.mark.timeout(60)
-def test_a_hanging_or_exiting_repr_shows_failed_and_the_graph_keeps_updating_without_new_threads(
-    supervisors: Any,
-) -> None:
-    gate = threading.Event()
-    sup = supervisors(
-        [
-            rr.ManagerSpec(
-                "erm",
-                setup=hostile_setup,
-                config=rr.RegistrarConfig("erm", compare_timeout=0.5),
-            )
-        ]
-    ).start()
-    observer = sup.observe()
-    try:
-        app = sup.registrar(rr.RegistrarConfig("action", compare_timeout=0.5))
-        app.call("erm", "leaf", HangsWhenShown(gate), timeout=5)
-        app.call("erm", "leaf", ExitsWhenShown(), timeout=5)
-        before = threading.active_count()
-        drawn = [sup.graph()]
-        deadline = time.monotonic() + 10
-        while "repr failed: TimeoutError" not in drawn[-1] and time.monotonic() < deadline:
-            drawn.append(sup.graph())  # (the text is made once compare_timeout is over)
-        drawn += [sup.graph() for _ in range(10)]
-        app.call("erm", "leaf", "after", timeout=5)
-        last = sup.graph()
-        after = threading.active_count()
-    finally:
-        gate.set()
-        observer.close()
-
-    assert "repr failed: TimeoutError" in drawn[-1]
-    assert "repr failed: SystemExit" in last
-    assert "after" in last  # the graph still follows the catalog
-    assert after <= before + 3  # (a worker or two may start; not one hung thread per look: 12+)
-
-
-class HangsForGood:
-    """A request whose `repr` never returns (in a manager process: no gate reaches it)."""
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, HangsForGood)
-
-    def __hash__(self) -> int:
-        return 3
-
-    def __repr__(self) -> str:
-        threading.Event().wait(60)
-        return "HangsForGood()"
-
-
-def hung_in_repr(sup: rr.Supervisor, name: str) -> int:
-    """Threads of manager `name`'s process that are in `HangsForGood.__repr__` now.
-
-    (Not its count of threads: a connection's writer thread starts when an answer first
-    has to wait for the socket, and `run_in`'s thread may still be ending after it
-    answered; a loaded machine showed one more, with no hung thread more.)
-    """
-
-    def count(_registrar: Any) -> int:
-        hung = 0
-        for frame in sys._current_frames().values():
-            stack = traceback.walk_stack(frame)
-            hung += any(f.f_code.co_qualname == "HangsForGood.__repr__" for f, _ in stack)
-        return hung
-
-    return int(sup.run_in(name, count, timeout=5))
-
-
-@pytest.mark.timeout(60)
-def test_a_hanging_repr_in_a_process_manager_costs_one_thread_once_not_one_per_refresh(
-    supervisors: Any, process_helpers: Any
-) -> None:
-    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # (for the manager process)
-    sup = supervisors(
-        [
-            rr.ManagerSpec(
-                "erm",
-                setup=hostile_setup,
-                isolation="process",
-                config=rr.RegistrarConfig("erm", compare_timeout=0.5),
-            )
-        ]
-    ).start()
-    app = sup.registrar(rr.RegistrarConfig("action", compare_timeout=0.5))
-    app.call("erm", "leaf", HangsForGood(), timeout=5)
-    drawn = [sup.graph()]
-    deadline = time.monotonic() + 10
-    while "repr failed: TimeoutError" not in drawn[-1] and time.monotonic() < deadline:
-        drawn.append(sup.graph())
-
-    hung = hung_in_repr(sup, "erm")
-    drawn += [sup.graph() for _ in range(20)]  # each reads erm's catalog in its process
-    hung_after = hung_in_repr(sup, "erm")
-
-    assert "repr failed: TimeoutError" in drawn[-1]
-    assert (1, 1) == (hung, hung_after)  # one thread hangs, once: not one more per refresh
-
-
-# -- issue 24, item 2: labels ------------------------------------------------------------------
-
-
-def test_a_servers_requests_are_labelled_by_what_tells_them_apart() -> None:
-    bus = "'bus': 'rr-actors-demo/bus'"
-
-    labels = default_labels(
-        [
-            f"{{{bus}, 'name': 'jackal-driver', 'rate': 50}}",
-            f"{{{bus}, 'name': 'jackal-navigation', 'rate': 20}}",
-            f"{{{bus}, 'name': 'lidar2', 'rate': 10}}",
-        ]
-    )
-
-    assert [
-        "'name': 'jackal-driver', 'rate': 50",
-        "'name': 'jackal-navigation', 'rate': 20",
-        "'name': 'lidar2', 'rate': 10",
-    ] == labels
-    assert ["jackal-driver", "lidar2"] == default_labels(
-        [f"{{{bus}, 'name': 'jackal-driver'}}", f"{{{bus}, 'name': 'lidar2'}}"]
-    )
-    assert ["'/dev/video0'"] == default_labels(["'/dev/video0'"])  # alone: the whole text
-    assert ["1", "<not shown yet>"] == default_labels(["1", "<not shown yet>"])
-
-
-def test_graph_text_reads_each_resource_by_its_label_and_draws_no_query_ids(
-    supervisors: Any,
-) -> None:
-    sup = figure_27(supervisors, isolation="thread").start()
-    app = sup.registrar("action")
-    held = [
-        app.call("erm", "camera", {"bus": "b", "name": name}, timeout=5)
-        for name in ("jackal-driver", "jackal-navigation")
-    ]
-
-    text = sup.graph()
-    dot = sup.graph(format="dot")
-
-    assert '["jackal-driver"]' in text
-    assert '["jackal-navigation"]' in text
-    assert 'label="jackal-driver"' in dot
-    for q in held:
-        assert q.id[:8] not in text
-        assert q.id[:8] not in dot
-        app.unload(q.id)
-
-
-def test_a_label_given_by_the_server_wins_over_the_default() -> None:
-    from rr_actors._catalog import Resource, ResourceState  # noqa: PLC0415
-
-    named = Resource("r1", "program", {"name": "a"}, "ok", ResourceState.LOADED, {})
-    named.request_text, named.label = "{'name': 'a'}", "the driver"
-    other = Resource("r2", "program", {"name": "b"}, "ok", ResourceState.LOADED, {})
-    other.request_text = "{'name': 'b'}"
-    graph = dependency_graph({"erm": summarise_catalog("erm", [named, other], [])})
-
-    assert ["the driver", "b"] == [n["label"] for n in graph["nodes"] if n["kind"] == "resource"]
-    assert '["the driver"]' in render(graph, None, "mermaid")
-
-
-def test_a_catalogs_resources_carry_the_short_label_the_graph_draws() -> None:
-    from rr_actors._catalog import Resource, ResourceState  # noqa: PLC0415
-
-    bus = "/home/class/rr-actors-demo/bus"  # (every request starts with it, as in the demo)
-    resources = []
-    for name in ("jackal-driver", "jackal-navigation"):
-        request = {"bus": bus, "name": name}
-        r = Resource(name, "program", request, "ok", ResourceState.LOADED, {f"{name}-q": "cm"})
-        r.request_text = repr(request)
-        resources.append(r)
-    catalog = summarise_catalog("erm", resources, [])
-    graph = dependency_graph({"erm": catalog})
-
-    drawn = [n["label"] for n in graph["nodes"] if n["kind"] == "resource"]
-    assert ["jackal-driver", "jackal-navigation"] == drawn
-    assert drawn == [r["label"] for r in catalog["resources"]]
-    # A status row of the timeline names the resource as the graph draws it.
-    assert "erm/program jackal-navigation" == resource_name(catalog, "jackal-navigation-q")
-    assert resource_name(catalog, "unknown") is None

@@ -1,17 +1,22 @@
-"""What the observer shows, as data: catalog summaries, the dependency graph, the hub, text."""
+"""What the observer shows, as data (`rr_actors.observe._view`): catalog summaries, the
+dependency graph, and a resource read by what tells it apart (issue 24, item 2)."""
 
 from __future__ import annotations
 
-import json
 from typing import Any
-
-import pytest
 
 import rr_actors as rr
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
-from rr_actors.observe._hub import BATCH, Hub
 from rr_actors.observe._text import render
-from rr_actors.observe._view import dependency_graph, registrar_ranks, short, summarise_catalog
+from rr_actors.observe._view import (
+    default_labels,
+    dependency_graph,
+    registrar_ranks,
+    resource_name,
+    short,
+    summarise_catalog,
+)
+from tests.support.observed_tree import figure_27 as figure_27_tree
 
 
 def resource(rid: str, server: str, request: Any, consumers: dict[str, str]) -> Resource:
@@ -127,134 +132,83 @@ def test_an_in_doubt_resource_is_marked() -> None:
     )
 
 
-# -- the hub ---------------------------------------------------------------------------------
+# -- issue 24, item 2: labels ------------------------------------------------------------------
 
 
-def test_a_page_gets_each_changed_section_once_and_only_the_latest_value() -> None:
-    hub = Hub()
-    seen: dict[str, int] = {}
-    hub.put("tree", 1)
-    hub.put("tree", 2)
-    hub.put("graph", "g")
+def test_a_servers_requests_are_labelled_by_what_tells_them_apart() -> None:
+    bus = "'bus': 'rr-actors-demo/bus'"
 
-    first = hub.changes(seen, 0)
-    unchanged = hub.put("graph", "g")
-    second = hub.changes(seen, 0)
-
-    assert [("tree", 2), ("graph", "g")] == [(k, v) for k, _, v in first.sections]
-    assert not unchanged
-    assert [] == second.sections
-
-
-def test_a_removed_section_reaches_a_page_that_had_it_as_none() -> None:
-    hub = Hub()
-    seen: dict[str, int] = {}
-    hub.put("catalog/cm", {"x": 1})
-    hub.changes(seen, 0)
-
-    hub.remove("catalog/cm")
-
-    assert [("catalog/cm", None)] == [(k, v) for k, _, v in hub.changes(seen, 0).sections]
-    assert [] == hub.changes({}, 0).sections  # a new page never hears of it
-
-
-def test_events_are_numbered_converted_once_and_a_page_that_fell_behind_is_told() -> None:
-    converted: list[int] = []
-
-    def convert(event: int) -> dict[str, Any]:
-        converted.append(event)
-        return {"value": event}
-
-    hub = Hub(ring=10, convert=convert)
-    for value in range(25):
-        hub.add_event(value)
-
-    behind = hub.changes({}, 3)
-    again = hub.changes({}, 20)
-
-    assert list(range(16, 26)) == [e["seq"] for e in behind.events]
-    assert 12 == behind.missed  # 4..15 fell out of the ring
-    assert list(range(15, 25)) == converted  # each once, only when asked for
-    assert [21, 22, 23, 24, 25] == [e["seq"] for e in again.events]
-
-
-def test_a_page_gets_at_most_a_batch_of_events_at_a_time() -> None:
-    hub = Hub(ring=BATCH * 3)
-    for value in range(BATCH * 2):
-        hub.add_event({"value": value})
-
-    changes = hub.changes({}, 0)
-
-    assert (BATCH, BATCH) == (len(changes.events), changes.missed)
-
-
-def _strict(data: str) -> Any:
-    """`data` parsed as a browser's `JSON.parse` does: `NaN` and `Infinity` are refused."""
-    return json.loads(data, parse_constant=lambda name: pytest.fail(f"{name} in {data}"))
-
-
-@pytest.mark.parametrize("bad", [float("nan"), float("inf"), float("-inf")])
-def test_an_event_with_a_number_that_is_not_finite_never_costs_the_pages_the_others(
-    bad: float, caplog: pytest.LogCaptureFixture
-) -> None:
-    """Issue 40: one `NaN` in one host's event made every page's `JSON.parse` drop the
-    whole message of events, the other hosts' included."""
-    hub = Hub()
-    hub.add_event({"type": "InDoubt", "at": 1.0, "text": "before", "member": "alpha"})
-    hub.add_event({"type": "InDoubt", "at": 2.0, "text": "bad", "load_s": bad, "member": "evil"})
-    hub.add_event({"type": "InDoubt", "at": 3.0, "text": "after", "member": "bravo"})
-
-    messages, last = hub.messages({}, 0)
-
-    assert 3 == last
-    data = messages[-1].decode().split("data: ", 1)[1].strip()
-    shown = _strict(data)["events"]
-    assert ["InDoubt", "Refused", "InDoubt"] == [e["type"] for e in shown]
-    assert ["alpha", "evil", "bravo"] == [e["member"] for e in shown]
-    assert "not finite" in shown[1]["text"]
-    assert 1 == len([r for r in caplog.records if "not finite" in r.getMessage()])
-
-
-def test_listeners_hear_every_change_until_removed() -> None:
-    hub = Hub()
-    heard: list[int] = []
-    unlisten = hub.listen(lambda: heard.append(1))
-
-    hub.put("tree", 1)
-    hub.add_event({"a": 1})
-    unlisten()
-    hub.put("tree", 2)
-
-    assert 2 == len(heard)
-
-
-# -- text --------------------------------------------------------------------------------------
-
-
-def test_mermaid_labels_cannot_break_out_of_their_quotes() -> None:
-    catalogs = {"erm": summarise_catalog("erm", [resource("r", "s", 'a"b<c>', {})], [])}
-
-    text = render(dependency_graph(catalogs), None, "mermaid")
-
-    assert "#quot;" in text
-    assert "#lt;" in text
-    assert '"b' not in text.replace('["', "").replace('"]', "")
-
-
-def test_dot_labels_are_escaped() -> None:
-    catalogs = {"erm": summarise_catalog("erm", [resource("r", "s", 'a"b\\c', {})], [])}
-
-    text = render(dependency_graph(catalogs), None, "dot")
-
-    assert 'n1 [label="\'a\\"b' in text  # the quote is escaped; the label goes on
-
-
-def test_the_same_catalogs_draw_the_same_text() -> None:
-    assert render(dependency_graph(figure_27()), None, "mermaid") == render(
-        dependency_graph(figure_27()), None, "mermaid"
+    labels = default_labels(
+        [
+            f"{{{bus}, 'name': 'jackal-driver', 'rate': 50}}",
+            f"{{{bus}, 'name': 'jackal-navigation', 'rate': 20}}",
+            f"{{{bus}, 'name': 'lidar2', 'rate': 10}}",
+        ]
     )
 
+    assert [
+        "'name': 'jackal-driver', 'rate': 50",
+        "'name': 'jackal-navigation', 'rate': 20",
+        "'name': 'lidar2', 'rate': 10",
+    ] == labels
+    assert ["jackal-driver", "lidar2"] == default_labels(
+        [f"{{{bus}, 'name': 'jackal-driver'}}", f"{{{bus}, 'name': 'lidar2'}}"]
+    )
+    assert ["'/dev/video0'"] == default_labels(["'/dev/video0'"])  # alone: the whole text
+    assert ["1", "<not shown yet>"] == default_labels(["1", "<not shown yet>"])
 
-def test_an_unknown_format_is_a_config_error() -> None:
-    with pytest.raises(rr.ConfigError, match="svg"):
-        render(dependency_graph({}), None, "svg")
+
+def test_graph_text_reads_each_resource_by_its_label_and_draws_no_query_ids(
+    supervisors: Any,
+) -> None:
+    sup = figure_27_tree(supervisors, isolation="thread").start()
+    app = sup.registrar("action")
+    held = [
+        app.call("erm", "camera", {"bus": "b", "name": name}, timeout=5)
+        for name in ("jackal-driver", "jackal-navigation")
+    ]
+
+    text = sup.graph()
+    dot = sup.graph(format="dot")
+
+    assert '["jackal-driver"]' in text
+    assert '["jackal-navigation"]' in text
+    assert 'label="jackal-driver"' in dot
+    for q in held:
+        assert q.id[:8] not in text
+        assert q.id[:8] not in dot
+        app.unload(q.id)
+
+
+def test_a_label_given_by_the_server_wins_over_the_default() -> None:
+    from rr_actors._catalog import Resource, ResourceState  # noqa: PLC0415
+
+    named = Resource("r1", "program", {"name": "a"}, "ok", ResourceState.LOADED, {})
+    named.request_text, named.label = "{'name': 'a'}", "the driver"
+    other = Resource("r2", "program", {"name": "b"}, "ok", ResourceState.LOADED, {})
+    other.request_text = "{'name': 'b'}"
+    graph = dependency_graph({"erm": summarise_catalog("erm", [named, other], [])})
+
+    assert ["the driver", "b"] == [n["label"] for n in graph["nodes"] if n["kind"] == "resource"]
+    assert '["the driver"]' in render(graph, None, "mermaid")
+
+
+def test_a_catalogs_resources_carry_the_short_label_the_graph_draws() -> None:
+    from rr_actors._catalog import Resource, ResourceState  # noqa: PLC0415
+
+    bus = "/home/class/rr-actors-demo/bus"  # (every request starts with it, as in the demo)
+    resources = []
+    for name in ("jackal-driver", "jackal-navigation"):
+        request = {"bus": bus, "name": name}
+        r = Resource(name, "program", request, "ok", ResourceState.LOADED, {f"{name}-q": "cm"})
+        r.request_text = repr(request)
+        resources.append(r)
+    catalog = summarise_catalog("erm", resources, [])
+    graph = dependency_graph({"erm": catalog})
+
+    drawn = [n["label"] for n in graph["nodes"] if n["kind"] == "resource"]
+    assert ["jackal-driver", "jackal-navigation"] == drawn
+    assert drawn == [r["label"] for r in catalog["resources"]]
+    # A status row of the timeline names the resource as the graph draws it.
+    assert "erm/program jackal-navigation" == resource_name(catalog, "jackal-navigation-q")
+    assert resource_name(catalog, "unknown") is None
