@@ -151,7 +151,7 @@ def _put_until_heard(member: zenoh.Session, heard: queue.Queue[bytes], data: byt
 NOBODY = 65534
 
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[4]
 
 
 _PWNED = threading.Event()
