@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from tests.supervision.conftest import CallWithRetry
 from tests.support.supervising import echo_setup
 
 
@@ -43,15 +44,15 @@ def _erm(sup: rr.Supervisor) -> str:
     ids=["consumer-str", "consumer-None", "target-int", "server-None", "timeout-neg", "nan", "qid"],
 )
 def test_call_with_retry_with_an_argument_it_cannot_use_is_a_config_error_naming_it(
-    sup: rr.Supervisor, arguments: dict[str, Any], named: str
+    sup: rr.Supervisor, call_with_retry: CallWithRetry, arguments: dict[str, Any], named: str
 ) -> None:
     app = sup.registrar(f"app-{uuid.uuid4().hex[:8]}")
     call: dict[str, Any] = {"consumer": app, "target_rr": _erm(sup), "server": "echo"}
     call.update(arguments)
 
     with pytest.raises(rr.ConfigError, match=named):
-        sup.call_with_retry(
-            call.pop("consumer"), call.pop("target_rr"), call.pop("server"), "x", **call
+        call_with_retry(
+            sup, call.pop("consumer"), call.pop("target_rr"), call.pop("server"), "x", **call
         )
 
     assert [] == sup.run_in(_erm(sup), lambda erm: erm.server_queries("echo"), timeout=10)
@@ -129,20 +130,23 @@ def test_children_that_are_not_specs_are_a_config_error_saying_a_list(children: 
 
 def test_call_with_retry_with_a_name_first_says_the_consumer_comes_first(
     sup: rr.Supervisor,
+    call_with_retry: CallWithRetry,
 ) -> None:
     with pytest.raises(
         rr.ConfigError,
         match=r"call_with_retry\(consumer, target_rr, server, request\): the consumer comes "
         "first",
     ):
-        sup.call_with_retry(_erm(sup), "echo", 0)  # type: ignore[arg-type]
+        call_with_retry(sup, _erm(sup), "echo", 0)  # type: ignore[arg-type]
 
 
-def test_call_with_retry_without_a_request_says_it_is_missing(sup: rr.Supervisor) -> None:
+def test_call_with_retry_without_a_request_says_it_is_missing(
+    sup: rr.Supervisor, call_with_retry: CallWithRetry
+) -> None:
     app = sup.registrar(f"app-{uuid.uuid4().hex[:8]}")
 
     with pytest.raises(rr.ConfigError, match="request is missing"):
-        sup.call_with_retry(app, _erm(sup), "echo")
+        call_with_retry(sup, app, _erm(sup), "echo")
 
 
 def test_a_second_with_on_a_stopped_supervisor_says_make_a_new_one() -> None:
