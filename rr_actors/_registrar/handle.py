@@ -246,6 +246,22 @@ class Registrar:
         """
         blocking(self._actor.steps(Here.settle_in_doubt, timeout, query_id))
 
+    async def asettle_in_doubt(
+        self, query_id: str | None = None, *, timeout: float | None = None
+    ) -> None:
+        """`settle_in_doubt`, awaited (rule 16): for a `setup` that cleans up what the
+        in-doubt loads started with coroutines of its own (`asyncio.run` inside it), and
+        settles each entry as its clean-up ends, without holding up the others.
+
+        Raises:
+            UnknownQueryError: `query_id` is not the id of an entry of `in_doubt`.
+            CatalogWriteError: the backup could not be written (see `settle_in_doubt`).
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        await run_steps_async(self._actor.steps(Here.settle_in_doubt, timeout, query_id))
+
     # -- servers ----------------------------------------------------------------------
 
     def register_server(

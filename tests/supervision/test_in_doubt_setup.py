@@ -8,6 +8,7 @@ offered to a journal file. The thread placement is checked with a `setup` that r
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import sys
@@ -88,11 +89,33 @@ def test_an_in_doubt_load_is_offered_again_after_a_death_during_setup(
     assert ["[]", str([DEVICE]), str([DEVICE]), "[]"] == offered(journal)
 
 
+def settle_each(registrar: rr.ResourceRegistrar) -> None:
+    """Clean up what each in-doubt load started, then settle it."""
+    for query in registrar.in_doubt:
+        registrar.settle_in_doubt(query.id)
+
+
+def settle_each_awaited(registrar: rr.ResourceRegistrar) -> None:
+    """The same with coroutines: every clean-up at once, on a loop of the setup's own,
+    each entry settled as its clean-up ends (`asettle_in_doubt`)."""
+
+    async def clean_up(query: rr.Query) -> None:
+        await asyncio.sleep(0)  # (what the load started, stopped)
+        await registrar.asettle_in_doubt(query.id)
+
+    async def all_of_them() -> None:
+        await asyncio.gather(*(clean_up(query) for query in registrar.in_doubt))
+
+    asyncio.run(all_of_them())
+
+
+@pytest.mark.parametrize("settle", [settle_each, settle_each_awaited], ids=["blocking", "awaited"])
 def test_an_entry_the_setup_settled_is_not_offered_again(
     supervisors: Callable[..., rr.Supervisor],
     uid: str,
     tmp_path: Path,
     process_helpers: SharedObjects,
+    settle: Callable[[rr.ResourceRegistrar], None],
 ) -> None:
     name = f"erm-{uid}"
     journal = tmp_path / "journal.txt"
@@ -100,8 +123,7 @@ def test_an_entry_the_setup_settled_is_not_offered_again(
     inner = gated_setup(str(journal), in_setup, gate)
 
     def setup(registrar: rr.ResourceRegistrar) -> None:
-        for query in registrar.in_doubt:  # cleaned up at once, before a slow re-adoption
-            registrar.settle_in_doubt(query.id)
+        settle(registrar)  # cleaned up at once, before a slow re-adoption
         inner(registrar)
 
     spec = process(name, setup)
