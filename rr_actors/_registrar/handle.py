@@ -748,11 +748,12 @@ class Registrar:
         (it replaces the one the call was made with, as `aset_status_callback` does).
         Iteration ends after a `FATAL` (the resource is gone for good, rule 19) or once
         the watch is closed (`aclose()`, or leaving its `async with` block; a closed
-        watch drops what comes). An `async for` that breaks leaves it open: use `async
-        with` to close it. It does not end when the query is released: its reader
-        decides when to stop. Updates are queued for it on the loop it was opened on;
-        past `maxsize` the oldest is dropped (and counted in `dropped`), so a reader that
-        falls behind never holds the registrar.
+        watch drops what comes; `closed` says whether it is). An `async for` that
+        breaks, or whose task is cancelled (a stream whose client left), leaves it
+        open: use `async with` to close it. It does not end when the query is
+        released: its reader decides when to stop. Updates are queued for it on the
+        loop it was opened on; past `maxsize` the oldest is dropped (and counted in
+        `dropped`), so a reader that falls behind never holds the registrar.
 
         Args:
             query_id: a query this registrar holds (from `call` or `acall`).
@@ -1176,6 +1177,13 @@ class StatusWatch:
 
     def __repr__(self) -> str:
         return f"<StatusWatch {self.query_id!r}{' closed' if self._closed else ''}>"
+
+    @property
+    def closed(self) -> bool:
+        """Whether it was closed (`aclose()`, or its `async with` block was left): it
+        then drops every update that comes. An iteration that ended after a `FATAL`
+        leaves it open until then."""
+        return self._closed
 
     async def _receive(self, _query: Query, update: StatusUpdate) -> None:
         """The query's status callback, on the watch's loop."""
