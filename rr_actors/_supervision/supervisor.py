@@ -23,8 +23,9 @@ Who does what (each in its own module of `rr_actors._supervision`):
         ├─ exits.py: a watcher's Exited; restarting.py: restart or not, group, give up
         ├─ policy.py: restart or not, which siblings, intensity (pure)
         ├─ children.py: Child records; ThreadManager / ProcessManager / NestedSupervisor
-        └─ tree.py: what the tree shares; lookups and wait_restarted; death watch
-   retry.py: call_with_retry and abandoned ids
+        └─ tree.py: what the tree shares; lookups and the restart wait; death watch
+   retry.py: call_with_retry's steps (run here, awaited by aio.py) and abandoned ids
+   aio.py: the awaitable twins (AsyncSupervision, this class's base)
 ```
 
 The supervisor is a thread with a mailbox: one event at a time, never polling. A manager
@@ -118,7 +119,8 @@ class Supervisor(AsyncSupervision):
     escalation), plus exponential backoff with jitter. Use it as a context manager, or call
     [`start`][rr_actors.Supervisor.start] and [`stop`][rr_actors.Supervisor.stop]. From an
     event loop: `async with sup:`, `await sup.astart()`, `await sup.astop()`, `await
-    sup.await_restarted(...)`, `await sup.aregistrar(...)` (the loop never blocks).
+    sup.await_restarted(...)`, `await sup.aregistrar(...)`, `await
+    sup.acall_with_retry(...)` (the loop never blocks).
 
     ```python
     sup = rr.Supervisor([rr.ManagerSpec("erm", setup=erm_setup, isolation="process"),
