@@ -1,8 +1,7 @@
 """A supervisor from an event loop (`rr_actors._supervision.aio`): `async with`, the
 awaited start, stop and wait for a restart, a consumer registrar made awaited, and a
 call that waits out a provider's restart (`acall_with_retry`; its rules run against both
-APIs in test_supervisor.py and test_supervisor_bad_arguments.py, `call_with_retry`
-fixture)."""
+APIs in test_supervisor.py, through the `call_with_retry` fixture)."""
 
 from __future__ import annotations
 

@@ -43,7 +43,7 @@ from typing import Any, TypeVar
 
 import rr_actors as rr
 from rr_actors._process.remote import FORWARD_MARGIN
-from rr_actors._registrar.loading import LOADING, LoadContext
+from rr_actors._registrar.messages import LOADING, LoadContext
 from rr_actors.testing import RemoteRegistrar
 
 __all__ = ["LOOP_THREAD", "awaited", "on_loop"]
