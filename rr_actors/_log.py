@@ -32,7 +32,7 @@ import sys
 import textwrap
 from typing import TextIO
 
-__all__ = ["FORMAT", "INDENT", "DefaultHandler", "configured", "install", "terminal_width"]
+__all__ = ["FORMAT", "INDENT", "DefaultHandler", "configured", "install", "terminal_width", "wrap"]
 
 FORMAT = "%(levelname)s %(name)s: %(message)s"
 """How a line reads: `WARNING rr_actors: ...`, `ERROR rr_actors: ...`."""
@@ -101,11 +101,13 @@ def _wrapped(text: str, message_lines: int, width: int) -> str:
     """`text` (a formatted record) with its first `message_lines` lines wrapped at words to
     `width` columns; what follows (a traceback) as it is."""
     lines = text.split("\n")
-    head = [_wrap(line, width) for line in lines[:message_lines]]
+    head = [wrap(line, width) for line in lines[:message_lines]]
     return "\n".join([*head, *lines[message_lines:]])
 
 
-def _wrap(line: str, width: int) -> str:
+def wrap(line: str, width: int) -> str:
+    """`line` as it is if it fits `width` columns, else wrapped at words, each further
+    line indented by `INDENT` (a word longer than a line stays whole)."""
     if len(line) <= width:
         return line
     wrapped = textwrap.wrap(

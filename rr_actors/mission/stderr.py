@@ -14,10 +14,11 @@
 that another writer puts on the same terminal meanwhile (a manager process's WARNING
 before its `setup` sent its log to the run's file, Python's own warnings, a thread's
 traceback) runs on from there: on an 80-column terminal, one line of 80 columns plus its
-own (a loaded CI run of `rr-actors demo --step` showed one of 121). `rich` takes care of this for its own process's
-`sys.stderr` only (`redirect_stderr`); the other processes of the demo write to the file
-descriptor. So while the demo's output is open, fd 2 is a pipe, and every line written
-to it is shown by the output, which knows where the live line is.
+own (a loaded CI run of `rr-actors demo --step` showed one of 121). `rich` takes care of
+this for its own process's `sys.stderr` only (`redirect_stderr`); the other processes of
+the demo write to the file descriptor. So while the demo's output is open, fd 2 is a
+pipe, and every line written to it is shown by the output, which knows where the live
+line is.
 
 Only when fd 2 is the very terminal the output draws on (`open` returns `None`
 otherwise: a redirected stderr stays where the user sent it). After `close`, fd 2 is the
