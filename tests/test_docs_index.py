@@ -3,6 +3,7 @@ every tutorial; the index lists every how-to."""
 
 from __future__ import annotations
 
+import itertools
 import re
 from pathlib import Path
 
@@ -63,3 +64,21 @@ def test_the_plan_for_the_docs_toolchain_is_a_page_of_the_site() -> None:
     assert "explanation/docs-toolchain.md" in (ROOT / "mkdocs.yml").read_text()
     assert "**The plan:" in page
     assert "May 2027" in page
+
+
+def test_each_time_of_the_second_command_says_when_and_at_which_commit_it_was_measured() -> None:
+    """The index's table of the README's second command: a time says the day and the
+    commit it was measured at, or that it was not measured; `benchmarks/bench_setup.py`
+    measures a row (issue 44 items 6 and 8: "(to measure)", and times of a suite a third
+    smaller than today's given as today's)."""
+    index = (ROOT / "docs" / "index.md").read_text().splitlines()
+    header = index.index(
+        "| the second command's step | quiet | two CPU-bound processes beside it |"
+    )
+    rows = list(itertools.takewhile(lambda line: line.startswith("|"), index[header + 2 :]))
+    cells = [cell.strip() for row in rows for cell in row.strip("|").split("|")[1:]]
+    measured = re.compile(r".*\(\d{4}-\d\d-\d\d, `[0-9a-f]{7,40}`(, [^)]*)?\)")
+
+    assert 2 == len(rows)
+    assert [] == [c for c in cells if c != "not measured yet" and not measured.fullmatch(c)]
+    assert "python benchmarks/bench_setup.py --busy 2" in "\n".join(index)
