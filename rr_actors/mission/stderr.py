@@ -85,9 +85,11 @@ class StderrLines:
         """Show what was written so far (`CLOSE_WAIT` s at most); fd 2 is the terminal again."""
         with contextlib.suppress(ValueError, OSError):
             sys.stderr.flush()
-        os.write(STDERR, _MARK + b"\n")
-        self._shown.wait(CLOSE_WAIT)
-        os.dup2(self._terminal, STDERR)
+        try:
+            os.write(STDERR, _MARK + b"\n")
+            self._shown.wait(CLOSE_WAIT)
+        finally:  # (a Ctrl-C meanwhile: the terminal is fd 2 again all the same)
+            os.dup2(self._terminal, STDERR)
 
     def _read(self) -> None:
         """The reader thread: lines to `show` until the mark, then bytes to the terminal;
