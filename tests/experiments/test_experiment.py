@@ -753,6 +753,7 @@ ONE_FOR_ALL = f"""\
         [[tree.children]]
         name = "c"
         setup = "{SERVICE}"
+        options = {{ load_s = 0.1 }}  # each client is always inside a call: one meets the kill
         [workload]
         clients = 2
         rate = 20.0
