@@ -111,6 +111,14 @@ WHOLE_FEATURES = {
 paths under `tests/`), each with why."""
 
 
+SCENARIO_FOLDERS = {
+    "multihost": "whole systems on two or three hosts in real network namespaces (root): "
+    "each module a scenario across hosts, or the harness that builds them",
+    "support": "helpers the test modules share (no tests)",
+}
+"""Test folders whose modules do not mirror runtime modules, each with why."""
+
+
 def _names(test_folder: str) -> set[str]:
     """The `<name>`s a test module of `test_folder` may be called `test_<name>.py` after."""
     names = set()
@@ -141,3 +149,15 @@ def test_each_test_module_names_the_runtime_module_it_tests() -> None:
 
 def test_every_whole_feature_listed_is_a_test_module() -> None:
     assert [] == [name for name in WHOLE_FEATURES if not (ROOT / "tests" / name).is_file()]
+
+
+def test_each_test_folder_mirrors_packages_or_says_why_not() -> None:
+    # A new test folder is placed by the rule above or named here with its reason.
+    folders = {
+        path.parent.relative_to(ROOT / "tests").as_posix().replace(".", "")
+        for path in (ROOT / "tests").rglob("*.py")
+        if "__pycache__" not in path.parts
+    }
+    assert len(folders) > 10  # the walk found the tree
+    assert set() == folders - set(MIRRORED) - set(SCENARIO_FOLDERS)
+    assert [] == [name for name in SCENARIO_FOLDERS if name in MIRRORED]
