@@ -17,10 +17,9 @@ what it started once the start is done: nothing is left running.
 from __future__ import annotations
 
 import asyncio
-import threading
-import time
 from typing import TYPE_CHECKING, Any
 
+from rr_actors._core import runtime
 from rr_actors._core.loops import run_steps_async
 from rr_actors._core.replies import on_own_thread
 from rr_actors._supervision.tree import RestartWait
@@ -58,7 +57,7 @@ class AsyncSupervision:
             SupervisorGaveUpError: a child failed to start (see `start`).
             ConfigError: as for `start`.
         """
-        lock = threading.Lock()
+        lock = runtime.Lock()
         state = {"cancelled": False, "started": False}
 
         def start() -> None:
@@ -76,7 +75,7 @@ class AsyncSupervision:
                 state["cancelled"] = True
                 stop = state["started"]
             if stop:  # (it started just before the cancel: stopped here, on a thread)
-                threading.Thread(target=self.stop, name=f"rr-stop-{self.name}").start()
+                runtime.Thread(target=self.stop, name=f"rr-stop-{self.name}").start()
             raise
         return self
 
@@ -122,7 +121,7 @@ class AsyncSupervision:
         waiting = self._restart_wait(name, timeout, restarts)
         tree = waiting.tree
         loop = asyncio.get_running_loop()
-        deadline = time.monotonic() + timeout
+        deadline = runtime.monotonic() + timeout
         while True:
             changed = asyncio.Event()
 
@@ -137,7 +136,7 @@ class AsyncSupervision:
                     break
                 tree.watchers.add(wake)
             try:
-                async with asyncio.timeout(max(0.0, deadline - time.monotonic())):
+                async with asyncio.timeout(max(0.0, deadline - runtime.monotonic())):
                     await changed.wait()
             except TimeoutError:
                 with tree.cond:

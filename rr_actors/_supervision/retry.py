@@ -17,11 +17,11 @@ Built on the one handle class, `Registrar`, so the consumer may be any registrar
 
 from __future__ import annotations
 
-import time
-import uuid
 from collections.abc import Callable
 from typing import Any, Protocol
 
+from rr_actors._core import runtime
+from rr_actors._core.ids import new_id
 from rr_actors._registrar import Registrar, give_back
 from rr_actors._supervision.children import ChildInfo
 from rr_actors._supervision.tree import Level, Tree, find_child
@@ -105,12 +105,12 @@ def call_with_retry(
             f"query_id must be a non-empty str (or None: a fresh id), got {query_id!r}"
         )
     limit = timeout if timeout is not None else consumer.config.call_timeout
-    qid = query_id or str(uuid.uuid4())
-    deadline = time.monotonic() + limit
+    qid = query_id or new_id()
+    deadline = runtime.monotonic() + limit
     while True:
         found = _lookup(tree, target_rr)
         before = found.restarts if found is not None else 0
-        left = deadline - time.monotonic()
+        left = deadline - runtime.monotonic()
         if left <= 0:
             abandon(target_rr, qid, consumer.name)
             raise CallTimeoutError(f"call to '{target_rr}/{server}' timed out after {limit:g} s")
@@ -127,7 +127,7 @@ def call_with_retry(
                 raise
         try:
             tree.wait_restarted(
-                target_rr, timeout=max(deadline - time.monotonic(), 1e-3), restarts=before + 1
+                target_rr, timeout=max(deadline - runtime.monotonic(), 1e-3), restarts=before + 1
             )
         except CallTimeoutError:
             abandon(target_rr, qid, consumer.name)
