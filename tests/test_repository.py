@@ -144,3 +144,27 @@ def test_the_protocol_uses_threads_clocks_ids_and_randomness_only_through_the_ru
         ]
 
     assert [] == stragglers
+
+
+OF_THE_HANDLE = {
+    "test_seams.py": "the seams of `rr_actors.testing` (`testing/seams.py`) on a registrar",
+    "test_registrar_bad_input.py": "the handle's checks of its arguments",
+    "test_registrar_names.py": "the names a handle starts a registrar with",
+}
+"""Registrar test modules named for the handle's surface, not for a module (issue 41 item 4
+regroups the handle)."""
+
+
+def test_each_registrar_test_module_is_named_for_the_module_it_tests() -> None:
+    # One test module per runtime module (issue 41 item 5): a finding is a test in the
+    # module of what it tests, a scenario a class there, never a new file.
+    modules = {path.stem for path in (ROOT / "rr_actors" / "_registrar").glob("*.py")}
+    tests = sorted(path.name for path in (ROOT / "tests" / "registrar").glob("test_*.py"))
+    unnamed = [
+        name
+        for name in tests
+        if name.removeprefix("test_").removesuffix(".py") not in modules
+        and name not in OF_THE_HANDLE
+    ]
+
+    assert [] == unnamed

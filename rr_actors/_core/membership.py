@@ -8,9 +8,9 @@ from here, as one event (`peer_lost`), and one that starts later hears it when i
 ```
  a carrier's liveness (messenger.tell_lost) ──────┐
  a death-watch mark of this process              ├─► lost(X) ─┐ record X gone for good,
-   (_registrar/deathwatch.py)                    │            │ then every hearer:
+   (_registrar/life.py: the death watch)         │            │ then every hearer:
  a death-watch mark from another process         │            ├─► peer_lost(X)
-   (`ConsumerDown` on the wire, _registrar/presence.py)       │   (the registrar's presence
+   (`ConsumerDown` on the wire, _registrar/life.py)           │   (the registrar's presence
                                                                │    role, rule 19)
  a registrar that starts ──► join(hearer) ──► the names gone for good now (it hears
                                               each as if it had heard the mark: Erlang's

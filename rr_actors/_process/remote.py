@@ -41,9 +41,9 @@ import cloudpickle
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import Steps, on_own_thread, run_steps
 from rr_actors._process.manager import ManagerExit, ManagerProcess
-from rr_actors._registrar.deathwatch import gone_for_good
 from rr_actors._registrar.handle import Here, Registrar, RegistrarFacts, ResourceRegistrar
-from rr_actors._registrar.loading import LOADING, LoadContext
+from rr_actors._registrar.life import gone_for_good
+from rr_actors._registrar.messages import LOADING, LoadContext
 from rr_actors._transport.base import Address, Transport
 from rr_actors._transport.messenger import Remote
 from rr_actors._types import Query
@@ -209,7 +209,7 @@ class Owner(There):
 
     def _exited(self, how: ManagerExit) -> None:
         """Runs on the manager's watcher thread when the process ended: unless it was
-        stopped or a restart is expected, its death watch (rule 19; `presence.py`)."""
+        stopped or a restart is expected, its death watch (rule 19; `life.py's Presence`)."""
         try:
             name = self.config.name
             if not how.clean and not self.stopping and not DIRECTORY.restart_expected(name):

@@ -1,17 +1,24 @@
-"""The resource registrar: its messages, its actor (split by role) and its handle.
+"""The resource registrar: its handle, its actor (in a few modules, by side), its messages.
 
-- `handle`: `Registrar`, the one handle user code holds wherever the actor lives, its
-  blocking methods and their awaitable twins written once; `Here`, the actor in this
-  process (`ResourceRegistrar`'s); `StatusWatch`; `calls`: the call protocol on the
-  caller's thread;
-- `actor`: the registrar actor, dispatching to its roles `provider` (loads; `matching`
-  runs user code off the actor), `unloading`, `servers`, `consumer`, `status`,
-  `presence` (peers lost for good or reachable again) and `lifecycle`, which share
-  `state`; `starting`: the start protocol, and `Served`/`Network`, how a carrier sees it;
-- `endpoints`: the resource server and client actors; `messages`: everything they tell
-  each other, as data; `deathwatch`: the one place that says a registrar will not come
-  back (the layers above call it, never build a message); `loading`: what a load
-  callback runs inside; `probes`: the testing seam on named steps.
+```
+ handle       Registrar, the one handle user code holds wherever the actor lives: its
+              blocking methods and their awaitable twins written once; `Here`, the
+              actor in this process (ResourceRegistrar's); StatusWatch
+ actor        the registrar actor: started (`launch`), its dispatch table
+ life         its life: start, restore, presence (peers lost, reachable), stop, death,
+              the death watch; `Served`: how a carrier sees it
+ provider     a resource's life: load once, share, release, unload once; the servers
+              and their actors, which run user code
+ status       statuses sent, fanned out in one pass per process, climbing dependencies
+ consumer     a call's life after it was sent: answered, in flight, held, released,
+              reconciled; the client actors
+ calls        the call protocol on the caller's thread, and its attempt's states
+ display      display texts, made once, user code off the actor
+ state        the record every part shares, the probes on its steps
+ messages     everything they tell each other, as data; what a load callback runs in
+```
+
+Each module calls only those listed below it (`pyproject.toml`, "Inside the registrar").
 """
 
 from rr_actors._registrar.handle import (
@@ -21,10 +28,8 @@ from rr_actors._registrar.handle import (
     snapshot,
     start_registrar,
 )
-from rr_actors._registrar.lifecycle import CatalogView
-from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH
-from rr_actors._registrar.messages import give_back
-from rr_actors._registrar.starting import Served
+from rr_actors._registrar.life import CatalogView, Served
+from rr_actors._registrar.messages import MAX_DEPENDENCY_DEPTH, give_back
 
 __all__ = [
     "MAX_DEPENDENCY_DEPTH",

@@ -1,32 +1,38 @@
-"""The registrar actor: the only writer of its catalog, split into roles.
+"""The registrar actor: started (`launch`), its parts built, each message dispatched.
 
 ```
-              ┌──────────────────── RegistrarActor (one mailbox, one thread) ───────────────┐
- message ───► │ DISPATCH: type -> (step name, the role's handler)                            │
-              │   Provider   Load                        (provider.py, matching.py)          │
-              │   Teardown   (runs unloads: called by the roles above)   (teardown.py)       │
-              │   Unloading  Unload Abandon Reconcile                    (unloading.py)      │
-              │   Servers    Fetch RegisterServer UnregisterServer UpdateResponse            │
-              │              ListServerQueries                            (servers.py)       │
-              │   Reconciling ReconcileAsk                               (reconciling.py)    │
-              │   Releases   Release                                      (releases.py)      │
-              │   Answers    Pending ClientLoaded CallFailed              (answers.py)       │
-              │   Holdings   Revoke ResponseUpdated SetStatusCallback ListClientQueries      │
-              │              OpenClient                                   (holdings.py)      │
-              │   Flights    (the calls in flight: called by the roles above) (flights.py)   │
-              │   StatusRelay StatusBatch StatusNotice SendStatus     (status.py, fanout.py) │
-              │   Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot YieldName; death │
-              │                                                           (lifecycle.py)     │
-              │   Restoring  SettleInDoubt (and the sweep of a restored catalog)             │
-              │                                                           (restoring.py)     │
-              │   Presence   PeerLost ConsumerDown PeerReachable ReconcileRetry              │
-              │                                                           (presence.py)      │
-              │ Shared: config, catalog, saver, servers, phase, workers  (state.py)          │
-              └──────────────────────────────────────────────────────────────────────────────┘
+ launch(config): the name claimed here, the catalog opened (restored from its backup),
+   what the restore left in doubt listed, the actor started ─► Launched (for the handle)
+
+              ┌─────────────────── RegistrarActor (one mailbox, one thread) ───────────────┐
+ message ───► │ the call outcomes handed over before it are taken first (`calls.py`)      │
+              │ DISPATCH: type ─► (step name, the part's on_<step>)                        │
+              │  life.py      Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot    │
+              │                          YieldName; death (on_failure)                    │
+              │               Restoring  SettleInDoubt; the sweep of a restored catalog    │
+              │               Presence   PeerLost ConsumerDown PeerReachable ReconcileRetry│
+              │  provider.py  Provider   Load            Unloading  Unload Abandon Reconcile│
+              │               Servers    Fetch RegisterServer UnregisterServer             │
+              │                          UpdateResponse ListServerQueries                  │
+              │               Teardown   (runs unloads for the parts above)               │
+              │  status.py    StatusRelay  SendStatus StatusBatch StatusNotice             │
+              │  consumer.py  Answers    Pending ClientLoaded CallFailed                   │
+              │               Holdings   Revoke ResponseUpdated SetStatusCallback          │
+              │                          ListClientQueries OpenClient                      │
+              │               Releases   Release         Reconciling  ReconcileAsk         │
+              │               Flights    (the calls in flight, for the parts above)        │
+              │  state.py     Shared: config, catalog, saver, servers, phase, workers      │
+              └────────────────────────────────────────────────────────────────────────────┘
 ```
-It never blocks: what it needs from another actor arrives later as a message that
-resumes the work (`Shared.send`, `Join`). User callbacks run on worker threads, so a
-slow or hung callback never blocks the mailbox.
+
+Each module's parts call only the modules below them (life, provider, status, consumer,
+in that order; a layers contract in `pyproject.toml` checks it), and the actor builds
+them bottom first. It never blocks: what it needs from another actor arrives later as a
+message that resumes the work (`Shared.send`, `Join`), and user callbacks run on worker
+threads, so a slow or hung callback never blocks the mailbox. Every clause of `DISPATCH`
+has one shape, `on_<step>(message, reply)`: `reply` is the message's own (held open for
+a message from the handle, `asked`), or `NO_REPLY`; the step names are what
+`rr_actors.testing.intercept` accepts.
 """
 
 from __future__ import annotations
@@ -34,8 +40,12 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
+import pykka
+
+from rr_actors import events
 from rr_actors._catalog import Catalog
 from rr_actors._catalog.texts import plain_text
 from rr_actors._core.actor import Actor, OneShotFuture
@@ -43,16 +53,12 @@ from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Answer, Tokens
 from rr_actors._core.throttle import LogThrottle
-from rr_actors._registrar.answers import Answers
-from rr_actors._registrar.calls import DueAnswers
-from rr_actors._registrar.endpoints import Clients
-from rr_actors._registrar.flights import Flights
-from rr_actors._registrar.holdings import Holdings
-from rr_actors._registrar.lifecycle import Lifecycle
+from rr_actors._platform import fork
+from rr_actors._registrar.calls import CallFailed, ClientLoaded, DueAnswers, Pending, TakeOutcomes
+from rr_actors._registrar.consumer import Answers, Clients, Flights, Holdings, Reconciling, Releases
+from rr_actors._registrar.life import Lifecycle, Presence, Restoring, cut_short
 from rr_actors._registrar.messages import (
     Abandon,
-    CallFailed,
-    ClientLoaded,
     ConsumerDown,
     Crash,
     Fetch,
@@ -63,7 +69,6 @@ from rr_actors._registrar.messages import (
     OpenClient,
     PeerLost,
     PeerReachable,
-    Pending,
     Ping,
     Reachable,
     Ready,
@@ -83,32 +88,36 @@ from rr_actors._registrar.messages import (
     StatusBatch,
     StatusNotice,
     Stop,
-    TakeOutcomes,
     Unload,
     UnregisterServer,
     UpdateResponse,
     YieldName,
     misfit,
 )
-from rr_actors._registrar.presence import Presence
-from rr_actors._registrar.probes import POINTS
-from rr_actors._registrar.provider import Provider
-from rr_actors._registrar.reconciling import Reconciling
-from rr_actors._registrar.releases import Releases
-from rr_actors._registrar.restoring import Restoring
-from rr_actors._registrar.servers import Servers
-from rr_actors._registrar.state import NO_REPLY, OpenReply, Shared
-from rr_actors._registrar.status import StatusRelay
-from rr_actors._registrar.teardown import Teardown
-from rr_actors._registrar.unloading import Unloading
-from rr_actors._store import Saver
+from rr_actors._registrar.provider import Provider, Servers, Teardown, Unloading
+from rr_actors._registrar.state import NO_REPLY, POINTS, OpenReply, Shared
+from rr_actors._registrar.status import DESK, StatusRelay, StatusTargets
+from rr_actors._store import Saver, open_catalog
+from rr_actors._types import Query
 from rr_actors.config import RegistrarConfig
-from rr_actors.errors import RegistrarUnavailableError, RrError
+from rr_actors.errors import ConfigError, RegistrarUnavailableError, RrError
 from rr_actors.events import Event
 
-__all__ = ["DISPATCH", "MESSAGE_STEPS", "STEPS", "RegistrarActor", "asked"]
+__all__ = [
+    "DISPATCH",
+    "EVENT_LOG",
+    "MESSAGE_STEPS",
+    "STEPS",
+    "Binder",
+    "Handler",
+    "Launched",
+    "RegistrarActor",
+    "asked",
+    "launch",
+]
 
 logger = logging.getLogger("rr_actors")
+
 
 Handler = Callable[[Any, Reply], None]
 """`handle(message, reply)`, run on the actor's thread: every clause of `DISPATCH` has this
@@ -209,7 +218,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     OpenClient: ("open_client", asked(lambda a: a.holdings.on_open_client)),
     RunOnActor: ("run_on_actor", asked(_run_on_actor)),  # test only
 }
-"""The one dispatch table: which role handles each message, under which step name."""
+"""The one dispatch table: which part handles each message, under which step name."""
 
 MESSAGE_STEPS: frozenset[str] = frozenset(step for step, _ in DISPATCH.values())
 """Steps that handle one message on the actor's thread (`before`/`after` it)."""
@@ -219,13 +228,7 @@ STEPS: frozenset[str] = MESSAGE_STEPS | POINTS
 
 
 class RegistrarActor(Actor):
-    """The registrar actor: dispatches each message to the role that owns it.
-
-    Attributes:
-        shared: the state every role uses.
-        provider, teardown, reconciling, unloading, servers, releases, answers,
-            holdings, flights, status, restoring, lifecycle, presence: the roles.
-    """
+    """The registrar actor: dispatches each message to the part that owns it."""
 
     inline = frozenset({Load, Unload, Abandon})
     """What a carrier's receiving thread handles in the registrar's turn when it is idle
@@ -264,20 +267,21 @@ class RegistrarActor(Actor):
     ) -> None:
         super().__init__()
         self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
-        # Each role is built after the roles it calls, and calls only those (one way):
-        # lifecycle -> servers | presence | restoring -> status | unloading -> provider
-        # -> teardown | reconciling -> releases -> answers -> holdings -> flights.
+        # Each part is built after the parts it calls, and calls only those (one way):
+        # life.py -> provider.py -> status.py -> consumer.py, each bottom first.
         self.flights = Flights(self.shared, due, self.dispatch)
-        self.holdings = Holdings(self.shared, self.flights, due, clients)
+        targets = StatusTargets(config.name, published, due)  # what the status desk reads
+        DESK.serve(peer, targets)
+        self.holdings = Holdings(self.shared, self.flights, clients, targets.entries)
         self.answers = Answers(self.shared, self.flights, self.holdings)
         self.releases = Releases(self.shared, self.flights, self.holdings, self.answers)
         self.reconciling = Reconciling(
             self.shared, self.flights, self.holdings, self.releases, due, self.dispatch
         )
+        self.status = StatusRelay(self.shared, self.flights, self.holdings)
         self.teardown = Teardown(self.shared, self.releases)
         self.provider = Provider(self.shared, self.releases, self.teardown)
         self.unloading = Unloading(self.shared, self.provider, self.teardown)
-        self.status = StatusRelay(self.shared, self.flights, self.holdings)
         self.servers = Servers(self.shared, self.teardown, self.status)
         self.presence = Presence(self.shared, self.unloading, self.reconciling)
         self.restoring = Restoring(
@@ -294,11 +298,11 @@ class RegistrarActor(Actor):
             self.teardown,
             self.restoring,
             self.flights,
-            self.holdings,
             self.releases,
             self.reconciling,
             self.presence,
             self.servers,
+            clients,
             self,
             died,
             ended,
@@ -383,3 +387,97 @@ class RegistrarActor(Actor):
     def on_late(self, envelope: Any) -> None:
         """A message that arrived after this actor's loop ended (any thread)."""
         self.lifecycle.refuse(envelope, DIRECTORY.gone_error(self.name))
+
+
+# -- starting --------------------------------------------------------------------------
+
+
+EVENT_LOG = logging.getLogger("rr_actors.events")
+"""Where registrars log their events at INFO (one line per event; off by default)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Launched:
+    """A registrar actor just started, and what its handle shares with it."""
+
+    config: RegistrarConfig
+    ref: pykka.ActorRef[RegistrarActor]
+    restored: bool
+    """Whether its catalog was restored from a backup."""
+    in_doubt: tuple[Query, ...]
+    """Resources the restore found neither loaded nor unloaded (thesis 4.3.3)."""
+    due: DueAnswers
+    died: threading.Event
+    """Set when a crash of the actor was fully handled."""
+    ended: OneShotFuture[None]
+    """Settled when the actor handed on its last message (an event loop awaits it)."""
+    published: Publisher[events.Event]
+    clients: Clients
+    """Its client actors: the actor starts them, the handle looks them up."""
+    in_doubt_texts: tuple[tuple[str, str | None], ...] = ()
+    """Each in-doubt resource's id and its stored request display text (`display.py`)."""
+
+
+def launch(
+    config: RegistrarConfig | str,
+    *,
+    setting_up: bool,
+    upstream: Publisher[events.Event] | None,
+    hold_in_doubt: bool = False,
+) -> Launched:
+    """Restore the catalog and start the actor (on the calling thread).
+
+    Args:
+        config: a `RegistrarConfig`, or just a name.
+        setting_up: whether a `setup` runs before it serves others (loads wait for it).
+        upstream: a publisher its events are relayed to as well (a supervisor's tree).
+        hold_in_doubt: keep the in-doubt entries in the backup until the manager settles
+            them (`ResourceRegistrar.settle_in_doubt`; a `setup` runs first).
+
+    Raises:
+        DuplicateNameError: a registrar with this name is already running here.
+        CatalogCorruptError: the backup exists but cannot be read (it is left as is).
+        ConfigError: the configuration, or its backup path, is invalid; or this process
+            was forked from one whose state a child cannot use (`rr_actors._platform.fork`).
+    """
+    if isinstance(config, str):
+        config = RegistrarConfig(name=config)
+    elif not isinstance(config, RegistrarConfig):
+        raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
+    fork.check_usable(f"registrar {config.name!r}")
+    durable = config.save_on_modify and config.backup_path is not None
+    peer = LocalPeer(config.name, None, durable=durable)
+    DIRECTORY.register(peer)
+    saver: Saver | None = None
+    try:
+        saver, catalog, restored = open_catalog(config)
+        doubtful = cut_short(catalog)
+        in_doubt = tuple(
+            Query(r.id, r.server, config.name, config.name, r.request, r.response) for r in doubtful
+        )
+        in_doubt_texts = tuple((r.id, r.request_text) for r in doubtful)
+        ended: OneShotFuture[None] = OneShotFuture()
+        died, due, clients = threading.Event(), DueAnswers(), Clients()
+        published = events.publisher(EVENT_LOG)
+        published.relay_to(upstream)
+        ref = RegistrarActor.start(
+            config,
+            catalog,
+            saver,
+            peer,
+            died,
+            due,
+            ended,
+            published,
+            clients,
+            setting_up=setting_up,
+            hold_in_doubt=hold_in_doubt,
+        )
+    except BaseException:
+        if saver is not None:
+            saver.close(erase=False, flush=False)
+        DIRECTORY.unregister(peer, "stopped")
+        raise
+    return Launched(
+        config, ref, restored, in_doubt, due, died, ended, published, clients, in_doubt_texts
+    )

@@ -1,8 +1,8 @@
 """The call protocol, on the caller's thread: send, then the answer, a death, or the timeout.
 
 ```
- caller thread                         consumer registrar actor          provider
- ─────────────                         ────────────────────────          ────────
+ caller thread (Calls.steps)           consumer registrar actor          provider
+ ───────────────────────────           ────────────────────────          ────────
  due.expect(id, attempt)
  [durable: Pending ───────────────────► record written as pending ──┐
   wait for the commit ◄─────────────────────────────────────────────┘]
@@ -15,8 +15,21 @@
 
 Like OTP's `gen:do_call` (monitor, send, receive the reply, the 'DOWN' or the timeout):
 a provider that dies fails the reply at once (`RegistrarUnavailableError`), not after
-the timeout. What a reply that races the timeout (or a stop) does is decided by one
-state, the call's `CallAttempt`.
+the timeout. What a reply that races the timeout, a stop or a death does is decided by
+one state under one lock, the call's `CallAttempt`; each transition returns the state
+it leaves, and the party that took it acts on that state:
+
+```
+          sent()            answer(value): a plain call (its caller records it)
+ SENDING ───────► SENT ─────────────────────────────────────────► ANSWERED
+    │              │ └─take(): a durable call's answer ──► RECORDING  ▲
+    │              │     settle(value): committed ───────────┴───────┘
+    │              │     settle(error): not kept ──────────────────┐
+    │              │  fail(error): an error answer, the provider    ▼
+    ├──────────────┴─ died, the registrar stopped or died ──────► FAILED
+    │              │  withdraw(): the caller's time ran out, or it
+    └──────────────┴─ was interrupted ──────────────────────────► WITHDRAWN
+```
 
 A plain call's outcome (its answer to record, or its failure) does not wake the
 registrar actor by itself: it waits in `DueAnswers.outcomes`, which the actor takes, in
@@ -27,12 +40,15 @@ woken (`TakeOutcomes`) when something waits for an outcome: a failure (its parke
 notices are answered), a dependency's answer (the load that made it may have failed
 meanwhile: the id is then given back at once), a notice held back for that answer
 (`CallAttempt.awaited`), or `BACKLOG` outcomes waiting. A durable call's outcomes go
-through the mailbox: the actor commits its answer before its caller gets it.
+through the mailbox: the actor commits its answer before its caller gets it. What the
+actor does with them is `consumer.py`'s.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import enum
 import threading
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -40,22 +56,12 @@ from typing import Any
 import pykka
 
 from rr_actors._catalog import ClientRecord
-from rr_actors._core.actor import awaiting
-from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.actor import OneShotFuture, awaiting
+from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.queues import LateQueue
 from rr_actors._core.replies import FutureReply, Steps
-from rr_actors._registrar.attempt import AttemptState, CallAttempt
-from rr_actors._registrar.loading import check_picklable
-from rr_actors._registrar.messages import (
-    CallFailed,
-    ClientLoaded,
-    DurableLoaded,
-    Load,
-    Pending,
-    TakeOutcomes,
-    give_back,
-)
-from rr_actors._registrar.probes import Probes
+from rr_actors._registrar.messages import Load, check_picklable, give_back
+from rr_actors._registrar.state import Probes
 from rr_actors._types import Query, StatusCallback
 from rr_actors.errors import (
     CallTimeoutError,
@@ -64,7 +70,206 @@ from rr_actors.errors import (
     RrError,
 )
 
-__all__ = ["BACKLOG", "AttemptState", "CallAttempt", "Calls", "ClientReply", "DueAnswers"]
+__all__ = [
+    "BACKLOG",
+    "AttemptState",
+    "CallAttempt",
+    "CallFailed",
+    "Calls",
+    "ClientLoaded",
+    "ClientReply",
+    "DueAnswers",
+    "DurableLoaded",
+    "Outcome",
+    "Pending",
+    "TakeOutcomes",
+]
+
+
+# -- one call attempt ------------------------------------------------------------------
+
+
+class AttemptState(enum.Enum):
+    """Where one call attempt is (see `CallAttempt`)."""
+
+    SENDING = "sending"
+    """Its `Load` has not left yet (a durable call: its record is written as pending)."""
+    SENT = "sent"
+    """Its `Load` left; its caller waits."""
+    RECORDING = "recording"
+    """A durable call's answer: the registrar actor commits its record, then settles it."""
+    ANSWERED = "answered"
+    """Its caller has the answer (and, for a plain call, records it)."""
+    FAILED = "failed"
+    """It failed (an error answer, the provider died, the registrar stopped or died)."""
+    WITHDRAWN = "withdrawn"
+    """Its caller stopped waiting first: an answer that comes later is not kept."""
+
+
+_OPEN = (AttemptState.SENDING, AttemptState.SENT)
+
+
+class CallAttempt(OneShotFuture[Any]):
+    """One attempt of a call: the future its caller waits on, settled through one `state`.
+
+    Three threads race over it (the module's second diagram): its caller (whose time may
+    run out), the thread that brings the answer (a connection's reader, or the
+    provider's actor), and its registrar's actor (which commits a durable call's answer,
+    and fails the calls in flight when it stops or dies).
+
+    ```
+     transition (who)                returns    what its caller does then
+     sent() (the caller)             SENT       sends the Load
+                                     FAILED     sends nothing: the registrar stopped
+     answer(v) (answering thread)    ANSWERED   nothing: the caller wakes, records it
+                                     WITHDRAWN  nothing: the caller gave the id back
+     take() (actor: durable answer)  RECORDING  commits the record, then settle() on
+                                                every path
+                                     WITHDRAWN  drops the answer (the caller gave the
+                                     or FAILED  id back; a stopping registrar does too)
+     settle(v | e) (the actor)       ANSWERED   nothing more: the caller wakes
+                                     or FAILED
+     fail(e) (any)                   FAILED     nothing more: the caller wakes
+     withdraw() (the caller)         WITHDRAWN  gives the id back (Abandon), tells its
+                                                registrar (CallFailed): nothing is left
+                                     RECORDING  waits for the commit, reads the outcome
+                                     ANSWERED   reads the outcome (the answer won)
+                                     or FAILED
+    ```
+
+    A transition that does not apply leaves the state as it is (the first settle wins;
+    only the actor that took a `RECORDING` attempt settles it). Entering `ANSWERED` or
+    `FAILED` wakes the caller (`get` returns the value or raises the error).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._state_lock = threading.Lock()
+        self.state = AttemptState.SENDING
+        self._awaited = False
+
+    def __repr__(self) -> str:
+        return f"<rr_actors.CallAttempt {self.state.value}>"
+
+    @property
+    def awaited(self) -> bool:
+        """Whether a notice waits for this call's answer (`mark_awaited`): its caller then
+        wakes the registrar actor for the outcome it hands over (`DueAnswers`)."""
+        with self._state_lock:
+            return self._awaited
+
+    def mark_awaited(self) -> None:
+        """The registrar actor: a notice waits for this call's answer (`awaited`).
+
+        Under the state lock, like every transition: the caller that reads the mark after
+        it handed its outcome over, and the actor that takes the outcomes after it marked,
+        are ordered by it, so one of the two sees the other's write.
+        """
+        with self._state_lock:
+            self._awaited = True
+
+    def sent(self) -> AttemptState:
+        """The caller: its `Load` leaves now (`SENT`), unless it failed meanwhile."""
+        with self._state_lock:
+            if self.state is AttemptState.SENDING:
+                self.state = AttemptState.SENT
+            return self.state
+
+    def answer(self, value: Any) -> AttemptState:
+        """The answering thread: a plain call's answer came; its caller records it."""
+        with self._state_lock:
+            if self.state in _OPEN:
+                self._settle_as(AttemptState.ANSWERED, value, None)
+            return self.state
+
+    def take(self) -> AttemptState:
+        """The registrar actor: a durable call's answer came; commit it (`RECORDING`)."""
+        with self._state_lock:
+            if self.state in _OPEN:
+                self.state = AttemptState.RECORDING
+            return self.state
+
+    def settle(self, value: Any = None, error: BaseException | None = None) -> AttemptState:
+        """The actor that took it: the answer is committed (`value`), or not kept (`error`)."""
+        with self._state_lock:
+            if self.state is AttemptState.RECORDING:
+                state = AttemptState.ANSWERED if error is None else AttemptState.FAILED
+                self._settle_as(state, value, error)
+            return self.state
+
+    def fail(self, error: BaseException) -> AttemptState:
+        """Any party: the call failed with `error` (unless it was settled or taken)."""
+        with self._state_lock:
+            if self.state in _OPEN:
+                self._settle_as(AttemptState.FAILED, None, error)
+            return self.state
+
+    def withdraw(self) -> AttemptState:
+        """The caller: it stops waiting (`WITHDRAWN`), unless the answer won the race."""
+        with self._state_lock:
+            if self.state in _OPEN:
+                self._settle_as(AttemptState.WITHDRAWN, None, None)
+            return self.state
+
+    def _settle_as(self, state: AttemptState, value: Any, error: BaseException | None) -> None:
+        self.state = state  # (under the state lock)
+        if error is None:
+            self.set(value)
+        else:
+            self.set_exception((type(error), error, error.__traceback__))
+
+
+# -- what a caller hands its registrar -------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Pending:
+    """A durable call about to go out: write its record as pending, then answer `reply`."""
+
+    record: ClientRecord
+    attempt: CallAttempt
+    reply: Reply
+
+
+@dataclasses.dataclass(frozen=True, slots=True)  # (one per call: slots build faster)
+class ClientLoaded:
+    """A plain call's answer to record, handed over by its caller, who has it already."""
+
+    record: ClientRecord
+    on_status: StatusCallback | None
+    attempt: CallAttempt  # the caller's
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class DurableLoaded(ClientLoaded):
+    """A durable call's answer: the registrar commits its record, then answers the caller.
+
+    Its caller still waits (`CallAttempt.take`); told by the answering thread. Handled
+    as a `ClientLoaded` (the same step, `client_loaded`); its type is what says the
+    registrar answers the caller.
+    """
+
+
+@dataclasses.dataclass(frozen=True, slots=True)  # (one per call: slots build faster)
+class CallFailed:
+    """A call ended without an answer to record: it failed, or its caller withdrew it."""
+
+    query_id: str
+    attempt: CallAttempt
+    withdrawn: bool = False  # given up by its caller, who told the provider an Abandon first
+    serving_rr: str | None = None  # set if it failed as its provider died or stopped: it
+    # may have executed, and a retry with the same id may come (held until reconciled)
+    provider: str = ""  # the call's provider and server, and what it failed with (events)
+    server: str = ""
+    error: BaseException | None = None
+    why: str = "timeout"  # of a withdrawal: "timeout", "interrupted", "registrar stopped"
+
+
+@dataclasses.dataclass(frozen=True)
+class TakeOutcomes:
+    """Wake the actor for the outcomes waiting in `DueAnswers.outcomes` (taken before
+    every message it handles: this one only wakes it for those something waits for)."""
+
 
 BACKLOG = 64
 """Plain outcomes that may wait for the registrar actor before a caller wakes it."""
@@ -85,9 +290,8 @@ class DueAnswers:
     lock makes "remove it if it is still this attempt's" atomic against a retry that
     reuses the query id.
 
-    `outcomes` holds the outcomes of plain calls (`ClientLoaded`, `CallFailed`) in the
-    order their threads handed them over; the actor takes them before each message
-    (module docstring). Once the actor ended, an outcome handed over goes to its
+    `outcomes` holds the outcomes of plain calls in the order their threads handed them
+    over (the module's first diagram). Once the actor ended, an outcome handed over goes to its
     `late` handler at once (a `LateQueue`), which gives the id back.
     """
 

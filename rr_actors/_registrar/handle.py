@@ -33,7 +33,7 @@ in a manager process (its start, `kill`). The handle never touches the catalog i
 and the rest of the package reaches an actor of this process only through its `Here`
 (`tell`, `ask`, `wait_stopped`, `crash`, `ping`, `ref`): nothing else holds the actor's
 ref or builds a message to it from a closure. Starting the actor, before there is a
-handle, is `starting.py`'s.
+handle, is `actor.py`'s (`launch`).
 """
 
 from __future__ import annotations
@@ -59,12 +59,12 @@ from rr_actors._core.loops import (
     run_steps_async,
 )
 from rr_actors._core.replies import FutureReply, Steps, asked, run_steps
-from rr_actors._registrar.actor import RegistrarActor
+from rr_actors._registrar.actor import Launched, RegistrarActor, launch
 from rr_actors._registrar.calls import Calls
-from rr_actors._registrar.endpoints import ClientActor
-from rr_actors._registrar.lifecycle import CatalogView
-from rr_actors._registrar.loading import LOADING, check_picklable
+from rr_actors._registrar.consumer import ClientActor
+from rr_actors._registrar.life import CatalogView, Network, check_network, serve_on
 from rr_actors._registrar.messages import (
+    LOADING,
     Asked,
     Crash,
     FetchVia,
@@ -83,9 +83,9 @@ from rr_actors._registrar.messages import (
     Stop,
     UnregisterServer,
     UpdateResponse,
+    check_picklable,
 )
-from rr_actors._registrar.probes import Probes
-from rr_actors._registrar.starting import Launched, Network, check_network, launch, serve_on
+from rr_actors._registrar.state import Probes
 from rr_actors._types import (
     LoadCallback,
     Query,

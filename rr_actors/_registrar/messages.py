@@ -1,17 +1,25 @@
-"""Messages as data: what registrars tell each other, and what a registrar tells itself.
+"""Messages as data: what registrars tell each other and tell themselves, and what a load runs in.
+
+```
+ consumer ── Load Unload Abandon Fetch Reconcile ─────────────────────────► provider
+ provider ── StatusBatch StatusNotice Revoke ResponseUpdated ReconcileAsk ─► consumer
+ death watch ── ConsumerDown ─► every registrar of the other processes
+                                              (the wire: `WireMessage`s, they pickle)
+ registrar ── RunLoad RunUnload ─► its server actor; handle ── FetchVia ─► a client actor
+ timers, carriers, the membership ── Flush Crash Reachable PeerLost PeerReachable
+                                     YieldName ReconcileRetry Ping ─► the registrar
+ the handle ── RegisterServer Release Stop ... (each with its reply) ─► the registrar
+ a caller's thread ── Pending ClientLoaded CallFailed TakeOutcomes ─► the registrar
+                                              (the call protocol's own: `calls.py`)
+
+ a load callback's thread: LOADING = LoadContext(registrar, resource, chain)
+   ─► a call made there records a dependency (rule 5) and extends the chain (rule 6)
+   ─► what it raised: load_error ─► ResourceLoadError, one error_frame per registrar
+```
 
 Each is a frozen dataclass. A `reply` field holds where the answer goes: a local object
-in-process; a transport replaces it by a token when the message crosses processes.
-
-The wire protocol (between registrars, possibly across processes): `Load`, `Unload`,
-`Abandon`, `Fetch`, `Reconcile` (consumer -> provider); `StatusBatch`, `StatusNotice`, `Revoke`,
-`ResponseUpdated`, `ReconcileAsk` (provider -> consumer); `ConsumerDown` (death watch ->
-every registrar: the consumer and provider `origin_rr` is gone for good). The internal messages
-below them never leave their process: a registrar's handle, its server and client actors
-and its callers' threads tell them to the registrar actor.
-
-The handle's messages (`RegisterServer`, `Release`, `Stop`, ...) come last: each carries
-its reply, and the handle sends it with `_ask` (`handle.py`).
+in-process; a carrier replaces it by a token when the message crosses processes. A
+message from the handle carries its reply, and the handle sends it with `_ask`.
 
 To add a message: define it here, add it to the actor's one dispatch table (`DISPATCH`
 in `actor.py`: its step name and the role that handles it), and, for a wire message,
@@ -22,39 +30,44 @@ message").
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import dataclasses
+import traceback
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
-from rr_actors._catalog import ClientRecord, describe
+import cloudpickle
+
+from rr_actors._catalog import describe
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import FutureReply
 from rr_actors._core.wire import WireMessage
-from rr_actors._registrar.loading import error_frame
 from rr_actors._types import LoadCallback, Status, StatusCallback, UnloadCallback
-from rr_actors.errors import ConfigError, ResourceLoadError, RrError
-
-if TYPE_CHECKING:
-    from rr_actors._registrar.attempt import CallAttempt
+from rr_actors.errors import (
+    ConfigError,
+    DependencyCycleError,
+    ErrorFrame,
+    ResourceLoadError,
+    RrError,
+)
 
 __all__ = [
+    "LOADING",
+    "MAX_DEPENDENCY_DEPTH",
     "Abandon",
     "Asked",
-    "CallFailed",
-    "ClientLoaded",
     "ConsumerDown",
     "Crash",
-    "DurableLoaded",
     "Fetch",
     "FetchVia",
     "Flush",
     "ListClientQueries",
     "ListServerQueries",
     "Load",
+    "LoadContext",
     "OpenClient",
     "PeerLost",
     "PeerReachable",
-    "Pending",
     "Ping",
     "Reachable",
     "Ready",
@@ -76,12 +89,14 @@ __all__ = [
     "StatusBatch",
     "StatusNotice",
     "Stop",
-    "TakeOutcomes",
     "Unload",
     "UnregisterServer",
     "UpdateResponse",
     "YieldName",
+    "check_picklable",
+    "error_frame",
     "give_back",
+    "load_error",
     "misfit",
 ]
 
@@ -191,7 +206,7 @@ class StatusBatch(WireMessage):
 
     `parts` holds (consumer registrar, its query ids) for each registrar of that process
     (as far as the provider knows) that holds the resource; the registrar it is sent to
-    delivers them all in one pass (`fanout.py`). The other fields are a `StatusNotice`'s.
+    delivers them all in one pass (`status.py`). The other fields are a `StatusNotice`'s.
     Answer: `{registrar: its process's key}` for every registrar reached, once the status
     was delivered along the whole path.
     """
@@ -276,7 +291,7 @@ class ConsumerDown(WireMessage):
     """Death watch -> a registrar of another process: registrar `origin_rr` died (or, with
     `stopped`, was stopped) and will not come back: the mark on the wire.
 
-    Its receiver feeds it into its process's membership (`presence.py`), which tells
+    Its receiver feeds it into its process's membership (`life.py`'s presence), which tells
     every registrar there `PeerLost`: the ids `origin_rr` held there are released, and
     (not `stopped`) the ids held at it get `FATAL` and are forgotten (rule 19)."""
 
@@ -329,61 +344,6 @@ class FetchVia:
 
     server: str
     reply: Reply
-
-
-@dataclasses.dataclass(frozen=True)
-class Pending:
-    """A durable call about to go out: write its record as pending, then answer `reply`."""
-
-    record: ClientRecord
-    attempt: CallAttempt
-    reply: Reply
-
-
-@dataclasses.dataclass(frozen=True, slots=True)  # (one per call: slots build faster)
-class ClientLoaded:
-    """A plain call's answer to record: the client record (its query holds the response).
-
-    Its caller has the answer already (it hands this over, `calls.py`).
-    """
-
-    record: ClientRecord
-    on_status: StatusCallback | None
-    attempt: CallAttempt  # the caller's
-
-
-@dataclasses.dataclass(frozen=True, slots=True)
-class DurableLoaded(ClientLoaded):
-    """A durable call's answer: the registrar commits its record, then answers the caller.
-
-    Its caller still waits (`CallAttempt.take`); told by the answering thread. Handled
-    as a `ClientLoaded` (the same step, `client_loaded`); its type is what says the
-    registrar answers the caller.
-    """
-
-
-@dataclasses.dataclass(frozen=True, slots=True)  # (one per call: slots build faster)
-class CallFailed:
-    """A call ended without an answer to record: it failed, or its caller withdrew it."""
-
-    query_id: str
-    attempt: CallAttempt
-    withdrawn: bool = False  # given up by its caller, who told the provider an Abandon first
-    serving_rr: str | None = None  # set if it failed as its provider died or stopped: it
-    # may have executed, and a retry with the same id may come (held until reconciled)
-    provider: str = ""  # the call's provider and server, and what it failed with (events)
-    server: str = ""
-    error: BaseException | None = None
-    why: str = "timeout"  # of a withdrawal: "timeout", "interrupted", "registrar stopped"
-
-
-@dataclasses.dataclass(frozen=True)
-class TakeOutcomes:
-    """Record the call outcomes waiting in `DueAnswers.outcomes` now (see `calls.py`).
-
-    The actor takes them before every message it handles; this one only wakes it for
-    outcomes something waits for (a failure, a notice held back, a full backlog).
-    """
 
 
 @dataclasses.dataclass(frozen=True)
@@ -527,7 +487,7 @@ class Reachable:
 class PeerLost:
     """This process's membership (`rr_actors._core.membership`): registrar `name` is gone
     and nobody will restart it (rule 19), or, with `stopped`, it was stopped for good (it
-    holds nothing: rule 12). The one local message for "lost"; handled by `presence.py`."""
+    holds nothing: rule 12). The one local message for "lost"; handled by `life.py`'s `Presence`."""
 
     name: str
     stopped: bool = False
@@ -536,7 +496,7 @@ class PeerLost:
 @dataclasses.dataclass(frozen=True)
 class PeerReachable:
     """A carrier: registrar `name` of another process can be reached again after it could
-    not be (a healed link, not a restart). Handled by `presence.py`."""
+    not be (a healed link, not a restart). Handled by `life.py`'s `Presence`."""
 
     name: str
 
@@ -545,7 +505,7 @@ class PeerReachable:
 class YieldName:
     """A carrier: another process serves this registrar's name too and is kept (rule 22);
     the carrier stopped serving this one. It unloads what it serves, then stops (`reason`
-    says why). Handled by `lifecycle.py`."""
+    says why). Handled by `life.py`'s `Lifecycle`."""
 
     reason: str
 
@@ -553,7 +513,7 @@ class YieldName:
 @dataclasses.dataclass(frozen=True)
 class ReconcileRetry:
     """Presence's own timer: send `Reconcile` attempt `attempt` of round `round` to `name`
-    (the last one failed, or was not answered in time). Handled by `presence.py`."""
+    (the last one failed, or was not answered in time). Handled by `life.py`'s `Presence`."""
 
     name: str
     round: int
@@ -625,3 +585,75 @@ def misfit(message: object) -> ConfigError | None:
                 f"{type(value).__qualname__[:80]} ({kind.__name__} refused)"
             )
     return None
+
+
+# -- what a load callback runs inside --------------------------------------------------
+
+
+MAX_DEPENDENCY_DEPTH = 64
+"""A load chain deeper than this is reported as a `DependencyCycleError` (runaway recursion)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadContext:
+    """What is being loaded on the current thread (read by `call` to record dependencies):
+    `chain` holds the ids of the resources being loaded on the way here, this one last."""
+
+    registrar: str
+    resource_id: str
+    chain: tuple[str, ...]
+
+
+LOADING: contextvars.ContextVar[LoadContext | None] = contextvars.ContextVar(
+    "rr_actors_loading", default=None
+)
+"""The `LoadContext` of the load callback running on this thread, if any."""
+
+
+def check_picklable(value: Any, what: str) -> None:
+    """Raise `ConfigError` if `value` cannot be stored in a catalog backup.
+
+    Whatever pickling it raises (a user `__reduce__` raising `SystemExit` too) is that.
+    """
+    try:
+        cloudpickle.dumps(value)
+    except BaseException as exc:  # (user code: a SystemExit from __reduce__ is contained too)
+        raise ConfigError(
+            f"{what} cannot be pickled, so the catalog cannot store it: {exc}"
+        ) from exc
+
+
+def error_frame(
+    registrar: str,
+    server: str,
+    exc: BaseException,
+    message: str | None = None,
+    *,
+    with_traceback: bool = True,
+) -> ErrorFrame:
+    """The frame a failed load adds to a `ResourceLoadError`'s stack (the one builder):
+    `message` says what failed (`str(exc)` by default), with `exc`'s formatted traceback
+    unless `with_traceback` is false."""
+    return ErrorFrame(
+        registrar=registrar,
+        server=server,
+        exc_type=type(exc).__qualname__,
+        message=str(exc) if message is None else message,
+        traceback="".join(traceback.format_exception(exc)) if with_traceback else "",
+    )
+
+
+def load_error(registrar: str, server: str, exc: BaseException) -> RrError:
+    """Turn what a `load` callback raised into the error its callers get (rule 4).
+
+    A `DependencyCycleError` raised further down passes through unchanged; anything else
+    becomes a `ResourceLoadError` whose stack gains this registrar's frame.
+    """
+    inner: BaseException | None = exc
+    while inner is not None and not isinstance(inner, ResourceLoadError | DependencyCycleError):
+        inner = inner.__cause__
+    if isinstance(inner, DependencyCycleError):
+        return inner
+    frame = error_frame(registrar, server, exc)
+    stack = inner.stack if isinstance(inner, ResourceLoadError) else ()
+    return ResourceLoadError((*stack, frame))

@@ -1,89 +1,157 @@
-"""The provider side of a registrar actor: a resource's life, loaded once (rules 1-7).
+"""The provider side of a registrar actor: a resource's life, loaded once, shared, unloaded once.
 
 ```
- Load ──► on_load ── equal request loaded? ──yes──► add consumer, answer (a dedup hit)
-                 │         (user code compares off the actor thread: matching.py)
-                 ├── loading? ──► wait for it (one load per resource, rule 3)
-                 ├── unloading? ──► parked until it is gone, then loaded afresh
-                 └── new ──► start_load ──RunLoad──► server ──► load_done ──► answer waiters
- failed, or nobody waits any more ──► Teardown.unload_resource / remove_resource
- parked behind an unload ──► Teardown.when_gone ──► serve_parked ──► on_load afresh
+ Load ─► Provider.on_load ── its query id known? a retry: the stored response, or it
+   │          waits again; an id reused for another call: DuplicateQueryIdError (rule 2)
+   │   ── an equal request loaded? ──yes──► share: one more consumer id (a dedup hit)
+   │   │      (user code, a request's __hash__ and __eq__, off the actor: Matching)
+   │   ├── loading? ──► wait for it (one load per resource, rule 3)
+   │   ├── unloading? ──► parked until it is gone (Teardown.when_gone), then afresh
+   │   └── new ──► start_load ─RunLoad─► ServerActor ─► a worker: load(request) in a
+   │               LoadContext (its calls are its dependencies, rule 5), or a task of
+   │               the process's loop (async def) ─► load_done ─► answer its waiters
+   │               (a failure: its dependencies released, then it is forgotten, rule 4)
+ Unload / Abandon ─► Unloading.release(id) ── its load under way? ─► give_up
+   │                                    └── the last consumer id? ─► unload_resource
+   ▼
+ Teardown.unload_resource ─► its dependencies released (`consumer.py`'s Releases)
+   ─RunUnload─► ServerActor ─► unload(request, response) ─► remove_resource: written
+   at once with its ResourceUnloaded ─► the loads parked behind it ─► its waiters
+ Servers: RegisterServer (its restored resources' parked unloads run), UnregisterServer
+   (FATAL to its consumers through `status.py`, their ids revoked, each resource
+   unloaded: rule 12), Fetch (rule 10), UpdateResponse (rule 11), give_up_all (the name
+   yielded, rule 22: every consumer id released unsaid, every resource unloaded)
+ Reconcile (a consumer's list) ─► Unloading.on_reconcile: the ids it no longer holds
+   released, those held here that this one lost named; it serves again ─►
+   ask_to_reconcile: ReconcileAsk to every consumer holding ids here (rule 20)
 ```
 
-A resource its provider reported `FATAL` (`Resource.failed`) is no equal request's
-match, also one reported so while user code compared: the request is loaded afresh
-beside it (rule 1; `status.py` marks it).
+A resource belongs to its server; its consumers are query ids (one per call, rule 2). A
+resource its provider reported `FATAL` (`Resource.failed`) is no equal request's match,
+also one reported so while user code compared: the request is loaded afresh beside it
+(rule 1; `status.py` marks it).
 
-A resource belongs to its server; its consumers are query ids (one per call, rule 2).
-Callers that wait for a load and loads parked behind an unload of the same resource
-are this role's state; running an unload is `teardown.py`'s, releasing consumer ids
-`unloading.py`'s (it calls `give_up` here), the servers themselves `servers.py`'s.
+The registrar's actor never waits for user code: an `__eq__` that hangs would stall every
+server, status and unload of the registrar, and one that raises `SystemExit` would end
+pykka's actor loop. Plain values (with a digest: built-in strings, numbers, containers of
+them, `rr_actors._catalog.digest`) are compared on the actor; whatever else must be judged
+by user code runs on a worker (`Matching.run`), bounded by `compare_timeout`: an
+`Exception` from `__eq__` means "different", anything else fails that call with
+`ConfigError`, and one past the bound with `CallTimeoutError` (the worker is abandoned).
+Loads of one server are matched one at a time while user code decides, so two equal
+requests without a digest cannot both miss each other and load twice (rule 3).
+
+A server's callbacks that are coroutine functions run as tasks of the process's own event
+loop (`_core/loops.py`): a load that awaits holds no thread. The rules are the blocking
+ones': loads of one server run concurrently, a hung load fails its callers at their
+`timeout` (rule 17), an unload is bounded by `unload_timeout` (past it, it is cancelled
+rather than abandoned on its thread), and the tasks still running when the server stops
+are cancelled.
+
+Each part owns its state: the loads and their waiters (`Provider`), the loads whose match
+user code decides (`Matching`), the unloads under way, parked or waited for (`Teardown`);
+`Unloading` has none, it changes the catalog's consumers and asks the others.
 """
 
 from __future__ import annotations
 
+import asyncio
+import collections
+import contextlib
 import functools
+import inspect
 import logging
 import time
 import uuid
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from collections.abc import Awaitable, Callable, Coroutine
+from typing import Any, cast
 
 from rr_actors import events
-from rr_actors._catalog import NO_DIGEST, Resource, ResourceState, describe, request_digest
+from rr_actors._catalog import (
+    NO_DIGEST,
+    Resource,
+    ResourceState,
+    describe,
+    request_digest,
+    runtime_key,
+)
 from rr_actors._catalog.digest import requests_equal
-from rr_actors._core.directory import Reply
+from rr_actors._core.actor import Actor
+from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.loops import is_coroutine_function, process_loop
+from rr_actors._core.replies import Join
+from rr_actors._core.workers import Workers
+from rr_actors._registrar.consumer import Releases
 from rr_actors._registrar.display import show_request, show_response
-from rr_actors._registrar.loading import MAX_DEPENDENCY_DEPTH, check_picklable
-from rr_actors._registrar.matching import Matching, first_equal, prepare
-from rr_actors._registrar.messages import Load, RunLoad
-from rr_actors._registrar.state import Phase, Server, Shared, Waiter
+from rr_actors._registrar.messages import (
+    LOADING,
+    MAX_DEPENDENCY_DEPTH,
+    Abandon,
+    Fetch,
+    ListServerQueries,
+    Load,
+    LoadContext,
+    Reconcile,
+    ReconcileAsk,
+    RegisterServer,
+    ResponseUpdated,
+    Revoke,
+    RunLoad,
+    RunUnload,
+    Unload,
+    UnregisterServer,
+    UpdateResponse,
+    check_picklable,
+    load_error,
+)
+from rr_actors._registrar.state import Phase, Server, Shared, Waiter, consumers_by_origin
+from rr_actors._registrar.status import StatusRelay
+from rr_actors._types import LoadCallback, Status, StatusUpdate, UnloadCallback
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
     DependencyCycleError,
+    DuplicateNameError,
     DuplicateQueryIdError,
     RegistrarStoppedError,
     ResourceLoadError,
     RrError,
+    UnknownQueryError,
     UnknownServerError,
     _known_names,
 )
 
-if TYPE_CHECKING:
-    from rr_actors._registrar.releases import Releases
-    from rr_actors._registrar.teardown import Teardown
-
-__all__ = ["Provider"]
+__all__ = [
+    "Matching",
+    "Provider",
+    "ServerActor",
+    "Servers",
+    "Teardown",
+    "Then",
+    "Unloading",
+    "first_equal",
+    "prepare",
+    "published_load",
+]
 
 logger = logging.getLogger("rr_actors")
 
 
 class Provider:
-    """Serves this registrar's resources to consumers (its own calls included).
-
-    Attributes:
-        loads: resource id -> the callers waiting for its load.
-        loading_ids: a waiting caller's query id -> the resource it waits for.
-        abandoned: query ids whose callers gave up while their load ran.
-        held_loads: loads for servers `setup` has not registered yet.
-        after_unload: resource id -> loads of an equal request, parked until it unloaded.
-        load_started: resource id -> when its load started (`time.monotonic()`).
-        labelling: resource id -> its load's end, waiting for its label (`None`: the load
-            still runs), of the loads whose server's `label` a worker makes.
-        matching: loads whose match user code decides, off the actor thread.
-    """
+    """Serves this registrar's resources to consumers (its own calls included)."""
 
     def __init__(self, shared: Shared, releases: Releases, teardown: Teardown) -> None:
         self.registrar = shared
         self.releases = releases
         self.teardown = teardown
-        self.loads: dict[str, list[Waiter]] = {}
-        self.loading_ids: dict[str, str] = {}
-        self.abandoned: set[str] = set()
-        self.held_loads: list[Load] = []
-        self.after_unload: dict[str, list[Load]] = {}
-        self.load_started: dict[str, float] = {}
+        self.loads: dict[str, list[Waiter]] = {}  # resource id -> the callers waiting for it
+        self.loading_ids: dict[str, str] = {}  # a waiting caller's query id -> its resource
+        self.abandoned: set[str] = set()  # query ids whose callers gave up while it loaded
+        self.held_loads: list[Load] = []  # for servers `setup` has not registered yet
+        self.after_unload: dict[str, list[Load]] = {}  # resource id -> loads parked behind
+        self.load_started: dict[str, float] = {}  # resource id -> when (`time.monotonic()`)
+        # resource id -> its load's end, waiting for the label a worker makes (`None`: the
+        # load still runs)
         self.labelling: dict[str, Callable[[], None] | None] = {}
         self.matching = Matching(shared, self.serve)
 
@@ -504,3 +572,832 @@ def published_load(
             registrar.name, resource.server, resource.id, query_id, error_type, message
         )
     )
+
+
+# -- matching --------------------------------------------------------------------------
+
+
+Then = Callable[[Any, BaseException | None], None]
+
+
+def prepare(request: Any, *, pickled: str | None) -> Any:
+    """On a worker: a request's `runtime_key` (its `__hash__`), and a check that it pickles.
+
+    Args:
+        request: a request without a digest.
+        pickled: what to call the request in the error if it must pickle (the registrar
+            keeps a backup), else `None`.
+
+    Raises:
+        ConfigError: it must pickle and does not.
+    """
+    key = runtime_key(request)
+    if pickled is not None:
+        check_picklable(request, pickled)
+    return key
+
+
+def first_equal(request: Any, candidates: list[Any]) -> int | None:
+    """On a worker: the index of the first candidate request `== request`, if any.
+
+    A comparison that raises an `Exception` (or whose result has no truth value) means
+    "different", as `rr_actors._catalog.digest.requests_equal` has it; any other
+    `BaseException` propagates (its call fails).
+    """
+    for index, stored in enumerate(candidates):
+        if requests_equal(stored, request):
+            return index
+    return None
+
+
+class Matching:
+    """The loads whose match user code decides, per server, one at a time."""
+
+    def __init__(self, shared: Shared, serve: Callable[[Load], None]) -> None:
+        self.registrar = shared
+        self.serve = serve  # (`Provider.serve`: for the loads queued behind a match)
+        self.in_flight: dict[str, Load] = {}  # server -> the load user code decides now
+        self.queued: dict[str, collections.deque[Load]] = {}  # server -> loads meanwhile
+        self.given_up: set[str] = set()  # ids of loads in flight whose caller gave up
+
+    def busy(self, server: str) -> bool:
+        """Whether a match of `server` runs: its loads must `queue`."""
+        return server in self.in_flight or server in self.queued
+
+    def queue(self, load: Load) -> None:
+        """Hold `load` until the matches before it for its server are done."""
+        self.queued.setdefault(load.server, collections.deque()).append(load)
+
+    def run(self, load: Load, what: str, work: Callable[[], Any], then: Then) -> None:
+        """Run `work()` (user code) on a worker for `load`; then `then(result, error)` here.
+
+        `then` runs on the actor thread, unless the load's caller gave up meanwhile (it
+        is then answered as given up) or the registrar failed it (`fail_waiting`).
+        `error` is what `work` raised if that was an `Exception`; a `ConfigError` if it
+        raised anything else (`SystemExit`, ...); `CallTimeoutError` if it overran
+        `compare_timeout`; `RuntimeError` if no thread could run it. Once `then`
+        returned, the loads queued behind this one are served, in order, until one of
+        them needs a match of its own. `what` says what the work does, for error
+        messages ("comparing the request").
+        """
+        server = load.server
+        self.in_flight[server] = load
+        where = f"'{self.registrar.name}/{server}'"
+        limit = self.registrar.config.compare_timeout
+
+        def back(value: Any, error: BaseException | None) -> None:
+            if self.in_flight.get(server) is not load:  # failed by `fail_waiting` already
+                return
+            del self.in_flight[server]
+            try:
+                if load.query_id in self.given_up:
+                    self.given_up.discard(load.query_id)
+                    load.reply.set_error(CallTimeoutError(f"call {load.query_id} was given up"))
+                else:
+                    then(value, error)
+            finally:
+                self.next_in_line(server)
+
+        done = self.registrar.come_back(back)
+
+        def task() -> None:
+            try:
+                value = work()
+            except Exception as exc:  # noqa: BLE001 - handed to the actor
+                done.set_error(exc)
+            except BaseException as exc:  # noqa: BLE001 - SystemExit & co: contained here
+                done.set_error(
+                    ConfigError(
+                        f"{what} for a call to {where} raised {type(exc).__qualname__}: "
+                        f"{_text(exc)}; the call fails, the registrar goes on"
+                    )
+                )
+            else:
+                done.set_result(value)
+
+        def overdue() -> None:
+            done.set_error(
+                CallTimeoutError(
+                    f"{what} for a call to {where} did not finish within {limit:g} s "
+                    "(compare_timeout); the call fails, the registrar goes on"
+                )
+            )
+
+        try:
+            self.registrar.workers.submit(task, timeout=limit, on_overdue=overdue)
+        except RuntimeError as exc:
+            done.set_error(RuntimeError(f"no worker thread could start for {what}: {exc}"))
+
+    def next_in_line(self, server: str) -> None:
+        """Serve the loads queued for `server`, until one starts a match of its own."""
+        while server not in self.in_flight:
+            waiting = self.queued.get(server)
+            if not waiting:
+                self.queued.pop(server, None)
+                return
+            load = waiting.popleft()
+            if not waiting:
+                del self.queued[server]
+            self.serve(load)
+
+    def take(self, query_id: str) -> Load | None:
+        """Take the queued load of `query_id` out (its caller gave up), if it is queued."""
+        for server, loads in self.queued.items():
+            for load in loads:
+                if load.query_id == query_id:
+                    loads.remove(load)
+                    if not loads:
+                        del self.queued[server]
+                    return load
+        return None
+
+    def give_up(self, query_id: str) -> bool:
+        """Whether `query_id`'s load is in flight here; it is answered as given up if so."""
+        if any(load.query_id == query_id for load in self.in_flight.values()):
+            self.given_up.add(query_id)
+            return True
+        return False
+
+    def named(self, query_id: str) -> Load | None:
+        """The load with `query_id` in flight or queued here, if any."""
+        if not self.in_flight and not self.queued:  # (the usual case: nothing here)
+            return None
+        return next((load for load in self.waiting() if load.query_id == query_id), None)
+
+    def waiting(self) -> list[Load]:
+        """Every load here: the ones in flight, then the queued ones."""
+        return [*self.in_flight.values(), *(load for q in self.queued.values() for load in q)]
+
+    def fail_waiting(self, error: RrError) -> None:
+        """Answer every load here with `error` (the registrar stops or died)."""
+        for load in self.waiting():
+            load.reply.set_error(error)
+        self.in_flight.clear()
+        self.queued.clear()
+        self.given_up.clear()
+
+
+def _text(exc: BaseException) -> str:
+    """`str(exc)`, or a placeholder if even that raises (it is user code too)."""
+    try:
+        return str(exc)
+    except Exception:  # noqa: BLE001 - the error message must not fail
+        return "<str() of the exception raised>"
+
+
+# -- server actors ---------------------------------------------------------------------
+
+
+def _no_thread(exc: RuntimeError) -> RuntimeError:
+    """What a callback that got no worker thread fails with (the OS refused a thread)."""
+    error = RuntimeError(f"no worker thread could be started for the callback: {exc}")
+    error.__cause__ = exc
+    return error
+
+
+class ServerActor(Actor):
+    """A resource server: owns its callbacks and runs them on the registrar's workers.
+
+    `load` and `unload` run on a worker thread of the registrar's process, never on an
+    actor thread, so different requests to one server load concurrently.
+    """
+
+    def __init__(
+        self,
+        registrar: str,
+        name: str,
+        load: LoadCallback,
+        unload: UnloadCallback,
+        workers: Workers,
+        *,
+        persisted: bool = False,
+    ) -> None:
+        super().__init__()
+        self.persisted = persisted  # responses must pickle: the catalog stores them
+        self.registrar = registrar
+        self.name = name
+        self.load = load
+        self.unload = unload
+        self.workers = workers
+        self.on_loop = is_coroutine_function(load), is_coroutine_function(unload)
+        self.tasks: set[asyncio.Task[None]] = set()  # its coroutines running (loop thread)
+
+    def on_receive(self, message: Any) -> None:
+        if isinstance(message, RunLoad) and self.on_loop[0]:
+            self._spawn(self._aload(message))
+        elif isinstance(message, RunUnload) and self.on_loop[1]:
+            self._spawn(self._aunload(message))
+        elif isinstance(message, RunLoad):
+            try:
+                self.workers.submit(lambda: self._load(message))
+            except RuntimeError as exc:  # no thread could start: this load fails, no other
+                message.reply.set_error(load_error(self.registrar, self.name, _no_thread(exc)))
+        elif isinstance(message, RunUnload):
+            timeout = message.timeout
+
+            def overdue() -> None:
+                message.reply.set_error(
+                    CallTimeoutError(
+                        f"the unload callback of '{self.registrar}/{self.name}' did not "
+                        f"return within {timeout:g} s"
+                    )
+                )
+
+            try:
+                self.workers.submit(
+                    lambda: self._unload(message),
+                    timeout=timeout,
+                    on_overdue=None if timeout is None else overdue,
+                )
+            except RuntimeError as exc:
+                message.reply.set_error(_no_thread(exc))
+
+    def on_stop(self) -> None:
+        """Cancel its coroutines still running (a load fails, an unload is cut short)."""
+        if self.on_loop[0] or self.on_loop[1]:
+            loop = process_loop()
+            tasks = self.tasks
+            try:
+                loop.call_soon_threadsafe(lambda: [task.cancel() for task in list(tasks)])
+            except RuntimeError:  # (the loop is closed: nothing runs there any more)
+                return
+
+    def _spawn(self, coroutine: Coroutine[Any, Any, None]) -> None:
+        """Run `coroutine` as a task of the process's loop, kept until it ends."""
+        tasks = self.tasks
+
+        def start() -> None:
+            task = asyncio.get_running_loop().create_task(coroutine)
+            tasks.add(task)
+            task.add_done_callback(tasks.discard)
+
+        process_loop().call_soon_threadsafe(start)
+
+    async def _aload(self, message: RunLoad) -> None:
+        """A coroutine `load`, on the process's loop (its task's own context)."""
+        LOADING.set(LoadContext(self.registrar, message.resource_id, message.chain))
+        try:
+            response = await self.load(message.request)
+            if self.persisted:
+                check_picklable(response, "the response")
+        except BaseException as exc:  # noqa: BLE001 - any exception fails the load (rule 4)
+            message.reply.set_error(load_error(self.registrar, self.name, exc))
+        else:
+            message.reply.set_result(response)
+
+    async def _aunload(self, message: RunUnload) -> None:
+        """A coroutine `unload`, on the process's loop, cancelled past `timeout`."""
+        timeout = message.timeout
+        bound = asyncio.timeout(timeout)
+        try:
+            async with bound:
+                await cast("Awaitable[None]", self.unload(message.request, message.response))
+        except TimeoutError as exc:
+            if not bound.expired():  # (the callback's own TimeoutError)
+                message.reply.set_error(exc)
+                return
+            message.reply.set_error(
+                CallTimeoutError(
+                    f"the unload callback of '{self.registrar}/{self.name}' did not "
+                    f"return within {timeout:g} s"
+                )
+            )
+        except BaseException as exc:  # noqa: BLE001 - logged by the registrar, never lost
+            message.reply.set_error(exc)
+        else:
+            message.reply.set_result(None)
+
+    def _load(self, message: RunLoad) -> None:
+        token = LOADING.set(LoadContext(self.registrar, message.resource_id, message.chain))
+        try:
+            response = self.load(message.request)
+            _refuse_awaitable(response)
+            if self.persisted:
+                check_picklable(response, "the response")
+        except BaseException as exc:  # noqa: BLE001 - any exception fails the load (rule 4)
+            message.reply.set_error(load_error(self.registrar, self.name, exc))
+        else:
+            message.reply.set_result(response)
+        finally:
+            LOADING.reset(token)
+
+    def _unload(self, message: RunUnload) -> None:
+        try:
+            self.unload(message.request, message.response)
+        except BaseException as exc:  # noqa: BLE001 - logged by the registrar, never lost
+            message.reply.set_error(exc)
+        else:
+            message.reply.set_result(None)
+
+
+def _refuse_awaitable(response: Any) -> None:
+    """A plain `load` that returned an awaitable (a callable object whose call makes a
+    coroutine) fails: nobody would await it. It is closed (no "never awaited" warning).
+
+    Raises:
+        TypeError: `response` is awaitable.
+    """
+    if not inspect.isawaitable(response):
+        return
+    close = getattr(response, "close", None)
+    if close is not None:
+        close()
+    raise TypeError(
+        "load returned an awaitable: make it a coroutine function (async def) for the "
+        "registrar to await it"
+    )
+
+
+# -- releasing -------------------------------------------------------------------------
+
+
+class Unloading:
+    """Releases consumer ids; a resource nobody holds any more is unloaded (`Teardown`)."""
+
+    def __init__(self, shared: Shared, provider: Provider, teardown: Teardown) -> None:
+        self.registrar = shared
+        self.provider = provider
+        self.teardown = teardown
+
+    def on_unload(self, message: Unload, reply: Reply) -> None:
+        self.release(message.query_id, reply, "unload")
+
+    def on_abandon(self, message: Abandon, _reply: Reply) -> None:
+        self.release(message.query_id, None, "abandoned")
+
+    def release_all_of(self, origin_rr: str) -> None:
+        """Consumer `origin_rr` is gone for good (`life.py`'s presence: the death watch, or a
+        carrier's `peer_lost`): release every id it held here (each `unload` runs once;
+        a second call finds none), and give up its loads under way here (each is
+        unloaded once it ends: an answer to a lost consumer may be dropped unseen, as
+        over Zenoh before its token goes, so that answer failing is not counted on)."""
+        for query_id in self.provider.under_way_of(origin_rr):
+            self.provider.give_up(query_id)
+        for query_id in self.registrar.catalog.consumers_from(origin_rr):
+            if self.registrar.catalog.has_consumer(query_id):  # (a release may have cascaded)
+                self.release(query_id, None, "death watch")
+
+    def release(self, query_id: str, reply: Reply | None, reason: str) -> None:
+        """Release consumer id `query_id` (rules 7-8); answer `reply` when it is done.
+
+        `reason` is what the `ConsumerReleased` event says (see its `reason`).
+
+        While a durable registrar's backup cannot be written an `Unload` is refused
+        (nothing changes; the consumer keeps the id and may try again); a give-up
+        (`reply` is `None`) is carried out and written with the next write that succeeds.
+        """
+        unwritable = self.registrar.unwritable() if reply is not None else None
+        if unwritable is not None:
+            reply.set_error(unwritable)  # type: ignore[union-attr]
+            return
+        if self.provider.give_up(query_id):  # its load had not finished: it never holds it
+            if reply is not None:
+                reply.set_result(None)
+            return
+        catalog = self.registrar.catalog
+        try:
+            resource = catalog.resource_of(query_id)
+        except UnknownQueryError as exc:
+            if reply is not None:
+                reply.set_error(exc)
+            return
+        origin = resource.consumers[query_id]
+        catalog.release(query_id)
+        shared = self.registrar
+        told = (
+            (events.ConsumerReleased(shared.name, resource.id, query_id, origin, reason),)
+            if shared.events.active
+            else ()
+        )
+        failed = shared.commit(*told)  # (written with it)
+        if failed is not None and reply is not None:  # not durable: nothing changes
+            catalog.add_consumer(resource.id, query_id, origin)
+            shared.commit()
+            reply.set_error(failed)
+            return
+        if failed is not None:  # a give-up: carried out, written with the next write
+            shared.publish(*told)
+        if resource.consumers or resource.state is not ResourceState.LOADED:
+            if reply is not None:
+                reply.set_result(None)
+            return
+        self.teardown.unload_resource(resource, reply)
+
+    def ask_to_reconcile(self, swept: set[str]) -> None:
+        """This registrar serves (again): ask every registrar holding ids here to
+        `Reconcile` (one that cannot be reached reconciles at its own start); release
+        the ids of one that was stopped for good meanwhile; and, with a backup (which
+        may have lost ids: a save interval, a truncated WAL), tell every other
+        registrar of the system, which may hold ids this one lost (rule 20). `swept`:
+        the registrars holding ids in the restored rows still in the backup."""
+        origins = self.registrar.catalog.consumer_origins() | swept
+        for origin in sorted(origins):
+            try:
+                DIRECTORY.lookup(origin).tell(ReconcileAsk(self.registrar.name))
+            except RegistrarStoppedError:
+                self.release_stopped(origin)
+            except RrError:
+                pass
+        if self.registrar.saver.store is not None:
+            self.ask_everyone(set(origins))
+
+    def ask_everyone(self, asked: set[str]) -> None:
+        """Tell every registrar of the system not in `asked` that this one (re)started:
+        those that hold ids here reconcile (the ids this one lost are reported `FATAL`)."""
+        for name in sorted(DIRECTORY.names() - asked - {self.registrar.name}):
+            with contextlib.suppress(RrError):
+                DIRECTORY.lookup(name).tell(ReconcileAsk(self.registrar.name, holds_yours=False))
+
+    def release_stopped(self, origin: str) -> None:
+        """Consumer `origin` was stopped for good while this registrar was down: it holds
+        nothing (rule 12), so every id of it here is released (each `unload` runs once)."""
+        ids = self.registrar.catalog.consumers_from(origin)
+        if ids:
+            logger.warning(
+                "registrar %s: consumer %s was stopped while this registrar was down; "
+                "releasing the %d ids it held here",
+                self.registrar.name,
+                origin,
+                len(ids),
+            )
+        for query_id in ids:
+            if self.registrar.catalog.has_consumer(query_id):  # (a release may have cascaded)
+                self.release(query_id, None, "consumer stopped")
+
+    def on_reconcile(self, message: Reconcile, reply: Reply) -> None:
+        """Release the ids of `origin_rr` it no longer holds; name those held here unknown.
+
+        An id whose load is still under way here (waiting, parked, matched) is neither.
+        """
+        catalog = self.registrar.catalog
+        held = set(message.held)
+        mine = catalog.consumer_ids_from(message.origin_rr)
+        stale = sorted(mine - held)
+        if stale:
+            logger.warning(
+                "registrar %s: %s no longer holds %d of its ids here (released while this "
+                "registrar was down, or lost in its own restart): releasing them",
+                self.registrar.name,
+                message.origin_rr,
+                len(stale),
+            )
+        for query_id in stale:
+            if catalog.has_consumer(query_id):  # (still: a release above may have cascaded)
+                self.release(query_id, None, "reconcile")
+        under_way = self.provider.under_way()
+        unknown = tuple(q for q in message.held if q not in mine and q not in under_way)
+        reply.set_result(unknown)
+
+
+# -- teardown --------------------------------------------------------------------------
+
+
+class Teardown:
+    """Unloads this registrar's resources and forgets them once they are gone."""
+
+    def __init__(self, shared: Shared, releases: Releases) -> None:
+        self.registrar = shared
+        self.releases = releases
+        self.unload_waiters: dict[str, list[Reply]] = {}  # resource id -> who waits for it
+        # server name -> unloads of restored resources waiting for it to be registered
+        self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
+        self.gone: dict[str, list[Callable[[], None]]] = {}  # id -> what runs when it is gone
+        # resource id -> resource, of the unloads under way (not those parked)
+        self.under_way: dict[str, Resource] = {}
+        self.idle: list[Callable[[], None]] = []  # what runs once none is under way
+
+    def unload_resource(self, resource: Resource, reply: Reply | None) -> None:
+        """The last consumer left: release the dependencies, then run `unload` (rule 7)."""
+        self.registrar.probe("unload_resource", resource)
+        self.registrar.catalog.begin_unload(resource.id)
+        self.registrar.commit()
+        self.unload_waiters[resource.id] = [] if reply is None else [reply]
+        self.under_way[resource.id] = resource
+
+        def run_unload() -> None:
+            self.under_way[resource.id] = resource
+            server = self.registrar.servers.get(resource.server)
+            if server is None and self.registrar.servers_settled:  # setup did not bring it back
+                unloaded(None, None)
+                return
+            if server is None:  # restored, and no one has registered the server yet
+                del self.under_way[resource.id]
+                self.parked_unloads.setdefault(resource.server, []).append(run_unload)
+                self.check_idle()
+                return
+            done = self.registrar.come_back(unloaded)
+            timeout = self.registrar.config.unload_timeout
+            server.ref.tell(RunUnload(resource.request, resource.response, done, timeout))
+
+        def unloaded(_: Any, error: BaseException | None) -> None:
+            overdue = isinstance(error, CallTimeoutError)
+            if overdue:  # it hangs: the resource is dropped as failed, its callers told
+                logger.error(
+                    "registrar %s: %s; resource %s (request %s) is dropped as failed, and "
+                    "whatever it still holds is the server's to clean up",
+                    self.registrar.name,
+                    error,
+                    resource.id,
+                    describe(resource.request),
+                )
+            elif error is not None:
+                logger.error(
+                    "unload callback of '%s/%s' raised; the resource is released anyway",
+                    self.registrar.name,
+                    resource.server,
+                    exc_info=error,
+                )
+            self.remove_resource(resource, unloaded=True)
+            for waiting in self.unload_waiters.pop(resource.id):
+                if overdue:
+                    waiting.set_error(error)  # type: ignore[arg-type]
+                else:
+                    waiting.set_result(None)
+            self.under_way.pop(resource.id, None)
+            self.check_idle()
+
+        self.releases.release_dependencies(resource.id, run_unload)
+
+    def when_idle(self, then: Callable[[], None]) -> None:
+        """Run `then()` once no unload is under way here (now if none is)."""
+        self.idle.append(then)
+        self.check_idle()
+
+    def check_idle(self) -> None:
+        """Run what waits for no unload to be under way, if none is."""
+        while not self.under_way and self.idle:
+            self.idle.pop(0)()
+
+    def remove_resource(self, resource: Resource, *, unloaded: bool = False) -> None:
+        """Forget a resource that is gone (unloaded, or its load failed); serve the loads
+        parked behind its unload.
+
+        An unload (`unloaded`) is written at once, also without `save_on_modify` (a
+        crash before the next flush would restore the resource, and reconciling with
+        its consumers would run its `unload` a second time), with its
+        `ResourceUnloaded` in the same transaction, published before anyone hears of it.
+        """
+        shared = self.registrar
+        shared.catalog.remove_resource(resource.id)
+        told = (
+            (events.ResourceUnloaded(shared.name, resource.server, resource.id),)
+            if unloaded and shared.events.active
+            else ()
+        )
+        if shared.commit(*told, now=unloaded) is not None:  # pending: the next write tries
+            shared.publish(*told)  # (it was unloaded all the same)
+        for then in self.gone.pop(resource.id, ()):  # e.g. loads parked behind its unload
+            then()
+        server = self.registrar.servers.get(resource.server)
+        if (
+            server is not None
+            and server.closing
+            and not self.registrar.catalog.resources_of(server.name)
+        ):
+            del self.registrar.servers[server.name]
+            server.ref.stop(block=False)
+
+    def wait_for_unload(self, resource: Resource, reply: Reply) -> None:
+        """Answer `reply` once `resource`'s unload is done (at once if it is not unloading)."""
+        if resource.id in self.unload_waiters:
+            self.unload_waiters[resource.id].append(reply)
+        else:
+            reply.set_result(None)
+
+    def run_parked(self, server: str) -> None:
+        """Server `server` was registered: run the unloads of its restored resources."""
+        for run_unload in self.parked_unloads.pop(server, ()):
+            run_unload()
+
+    def settle_parked(self) -> None:
+        """Setup is done: release restored resources of servers it did not bring back."""
+        for server, unloads in list(self.parked_unloads.items()):
+            if server not in self.registrar.servers:  # setup did not bring it back: release anyway
+                logger.warning(
+                    "registrar %s: server %r was not registered by setup; its restored "
+                    "resources are released without their unload callback",
+                    self.registrar.name,
+                    server,
+                )
+                del self.parked_unloads[server]
+                for run_unload in unloads:
+                    run_unload()
+
+    def when_gone(self, rid: str, then: Callable[[], None]) -> None:
+        """Run `then()` once resource `rid` (unloading) is gone (`remove_resource`)."""
+        self.gone.setdefault(rid, []).append(then)
+
+    def fail_waiting(self, error: RrError) -> None:
+        """Answer every caller waiting on an unload here with `error`."""
+        for replies in self.unload_waiters.values():
+            for reply in replies:
+                reply.set_error(error)
+
+
+# -- servers ---------------------------------------------------------------------------
+
+
+def _log_failure(
+    what: str,
+    then: Callable[[], None],
+    refused: list[ConfigError],
+    _: Any,
+    error: BaseException | None,
+) -> None:
+    """A continuation that logs a failed answer, then runs `then()`; a message that could
+    not be sent at all (a `ConfigError`: too large for its receiver) is added to `refused`,
+    for its caller to hear of (a consumer gone is only logged)."""
+    if error is not None:
+        logger.warning("%s failed: %s", what, error)
+        if isinstance(error, ConfigError):
+            refused.append(error)
+    then()
+
+
+class Servers:
+    """The resource servers of one registrar, and what is done to a whole server."""
+
+    def __init__(self, shared: Shared, teardown: Teardown, status: StatusRelay) -> None:
+        self.registrar = shared
+        self.teardown = teardown
+        self.status = status
+
+    def on_fetch(self, message: Fetch, reply: Reply) -> None:
+        if message.server not in self.registrar.servers:
+            reply.set_error(
+                UnknownServerError(
+                    f"no resource server '{self.registrar.name}/{message.server}'"
+                    + _known_names(
+                        message.server,
+                        (n for n, s in self.registrar.servers.items() if not s.closing),
+                    )
+                )
+            )
+            return
+        reply.set_result(
+            [
+                query
+                for query in self.registrar.catalog.server_queries(
+                    message.server, self.registrar.name
+                )
+                if query.origin_rr == message.origin_rr
+            ]
+        )
+
+    def server(self, name: str) -> Server:
+        """The open server `name`.
+
+        Raises:
+            UnknownServerError: there is none (or it is closing).
+        """
+        server = self.registrar.servers.get(name)
+        if server is None or server.closing:
+            raise UnknownServerError(
+                f"no resource server '{self.registrar.name}/{name}'"
+                + _known_names(
+                    name, (n for n, s in self.registrar.servers.items() if not s.closing)
+                )
+            )
+        return server
+
+    def on_register_server(self, message: RegisterServer, reply: Reply) -> None:
+        name = message.name
+        if name in self.registrar.servers:
+            raise DuplicateNameError(
+                f"resource server '{self.registrar.name}/{name}' already exists"
+            )
+        ref = ServerActor.start(
+            self.registrar.name,
+            name,
+            message.load,
+            message.unload,
+            self.registrar.workers,
+            persisted=self.registrar.saver.store is not None,
+        )
+        self.registrar.servers[name] = Server(name, ref, message.on_status, label=message.label)
+        self.teardown.run_parked(name)
+        reply.set_result(None)
+
+    def on_unregister_server(self, message: UnregisterServer, reply: Reply) -> None:
+        name = message.name
+        server = self.server(name)
+        server.closing = True
+        resources = [
+            r for r in self.registrar.catalog.resources_of(name) if r.state is ResourceState.LOADED
+        ]
+
+        def finish() -> None:
+            if not self.registrar.catalog.resources_of(name) and name in self.registrar.servers:
+                del self.registrar.servers[name]
+                server.ref.stop(block=False)
+            reply.set_result(None)
+
+        join = Join(finish)
+        for resource in resources:
+            self.close_resource(resource, join.add())
+        join.seal()
+
+    def give_up_all(self, then: Callable[[], None]) -> None:
+        """This registrar yields its name (rule 22): close every server, release every
+        consumer id of its resources without telling the consumer (each reconciles with
+        the registrar that keeps the name, rule 20), unload each resource, then `then()`.
+
+        Unloads under way are waited for, and so are loads under way: each finishes on a
+        closed server, so its callers get an error and it is unloaded (`provider.py`).
+        """
+        join = Join(then)
+        for server in list(self.registrar.servers.values()):
+            server.closing = True
+            for resource in list(self.registrar.catalog.resources_of(server.name)):
+                if resource.state is ResourceState.LOADED:
+                    self.give_up(resource, join.add())
+                elif resource.state is ResourceState.UNLOADING:
+                    self.teardown.wait_for_unload(resource, self.registrar.come_back(join.add()))
+                else:  # loading: refused when it finishes, then unloaded
+                    self.teardown.when_gone(resource.id, join.add())
+        join.seal()
+
+    def give_up(self, resource: Resource, then: Callable[[], None]) -> None:
+        """Release every consumer id of `resource` (`"name yielded"`), then unload it."""
+        released = list(resource.consumers.items())
+        for query_id, _ in released:
+            self.registrar.catalog.release(query_id)
+        if self.registrar.events.active:
+            for query_id, origin in released:
+                self.registrar.events.publish(
+                    events.ConsumerReleased(
+                        self.registrar.name, resource.id, query_id, origin, "name yielded"
+                    )
+                )
+        self.teardown.unload_resource(resource, self.registrar.come_back(lambda *_: then()))
+
+    def close_resource(self, resource: Resource, then: Callable[[], None]) -> None:
+        """Send FATAL to a resource's consumers, revoke their ids, unload it (rule 12)."""
+        self.registrar.probe("close_resource", resource)
+        query_id = next(iter(resource.consumers))
+        update = StatusUpdate(
+            query_id,
+            Status.FATAL,
+            "resource server was unregistered",
+            f"{self.registrar.name}/{resource.server}",
+        )
+
+        def revoke_and_unload() -> None:
+            done = self.registrar.come_back(lambda *_: then())
+            if resource.state is not ResourceState.LOADED:  # its consumers left meanwhile
+                self.teardown.wait_for_unload(resource, done)
+                return
+            for origin, ids in consumers_by_origin(resource).items():
+                with contextlib.suppress(RrError):
+                    DIRECTORY.lookup(origin).tell(Revoke(ids))
+            revoked = list(resource.consumers.items())
+            for qid, _ in revoked:
+                self.registrar.catalog.release(qid)
+            if self.registrar.events.active:
+                for qid, origin in revoked:
+                    self.registrar.events.publish(
+                        events.ConsumerReleased(
+                            self.registrar.name, resource.id, qid, origin, "server unregistered"
+                        )
+                    )
+            self.teardown.unload_resource(resource, done)
+
+        event = str(uuid.uuid4())
+        if self.registrar.events.active:
+            self.registrar.events.publish(
+                events.StatusSent(
+                    self.registrar.name, query_id, update.status, update.message, event
+                )
+            )
+        # the FATAL's acknowledgements may complete on any thread: come back to this one
+        back = self.registrar.come_back(lambda *_: revoke_and_unload())
+        self.status.notify(resource, update, event, query_id, lambda: back.set_result(None))
+
+    def on_update_response(self, message: UpdateResponse, reply: Reply) -> None:
+        query_id, response = message.query_id, message.response
+        resource = self.registrar.catalog.resource_of(query_id)
+        self.registrar.catalog.set_response(resource.id, response)
+        show_response(self.registrar, resource)
+        self.registrar.commit()
+        refused: list[ConfigError] = []  # (a consumer that cannot take it: too large)
+
+        def then() -> None:
+            if refused:
+                reply.set_error(refused[0])
+            else:
+                reply.set_result(None)
+
+        join = Join(then)
+        for origin, ids in consumers_by_origin(resource).items():
+            self.registrar.send(
+                origin,
+                functools.partial(ResponseUpdated, ids, response),
+                functools.partial(
+                    _log_failure, f"telling {origin} about a new response", join.add(), refused
+                ),
+            )
+        join.seal()
+
+    def on_list_server_queries(self, message: ListServerQueries, reply: Reply) -> None:
+        self.server(message.server)
+        reply.set_result(self.registrar.catalog.server_queries(message.server, self.registrar.name))

@@ -1,14 +1,30 @@
-"""What every role of one registrar actor shares: a small state record and its helpers.
+"""What every part of one registrar actor shares: its record, and the probes on its steps.
 
-The registrar actor is split by role (`lifecycle`, `servers`, `presence`, `restoring`,
-`status`, `unloading`, `provider`, `teardown`, `reconciling`, and on the consumer side
-`releases`, `answers`, `holdings`, `flights`), each owning the state of its side and
-calling only the roles below it (`actor.py` builds them). What they all use lives here,
-the registrar's record (`Shared`, which each role holds as `self.registrar`): the
-configuration, the catalog (the actor is its only writer), the save policy, the resource
-servers, the lifecycle `Phase`, the worker pool for user callbacks, and the way a role
-asks another registrar without waiting (`Shared.send`: the answer comes back through the
-mailbox as a continuation).
+```
+ Shared: the registrar's record, held by each part as `self.registrar` (the actor's
+ thread only, but `probes`)
+   config, name       its configuration
+   catalog            what it serves and holds (`_catalog`): the actor its one writer
+   saver              the save policy over its backup (or over nothing)
+     commit(*told)    the catalog's changes to the saver with the events that tell of
+                      them (written now: one transaction), then published; a failed
+                      write (a full disk) is returned, the changes kept pending
+     unwritable()     why a durable registrar refuses new loads now
+   phase              SETTING_UP ─ready─► SERVING ─stop─► STOPPING ─► ENDED (death: ENDED)
+   servers            server name ─► Server(ref, on_status, closing, label);
+                      servers_settled: setup returned, a server it did not bring back
+                      is gone for good
+   workers            the threads that run user callbacks
+   tokens, ref        come_back(then), send(target, make, then): the answer to what it
+                      asks comes back through its mailbox (the actor never waits)
+   events             its publisher: an event is built only while it is `active`
+   held_in_doubt      restored in-doubt ids whose settling waits for `setup` (rule 16)
+   probes             Probes: hooks on named steps (`rr_actors.testing.intercept`);
+                      a message's step, or a POINT inside one (`probe(step, subject)`)
+```
+
+A name that no step has raises `ConfigError` in `intercept`, so renaming a step cannot
+turn a race test into one that passes without racing anything.
 """
 
 from __future__ import annotations
@@ -16,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -27,14 +44,23 @@ from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Continuation, TokenReply, Tokens
 from rr_actors._core.workers import Workers
-from rr_actors._registrar.endpoints import ServerActor
-from rr_actors._registrar.probes import Probes
 from rr_actors._store import Saver
 from rr_actors._types import StatusCallback
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CatalogWriteError, RrError
 
-__all__ = ["NO_REPLY", "OpenReply", "Phase", "Server", "Shared", "Waiter", "consumers_by_origin"]
+__all__ = [
+    "NO_REPLY",
+    "POINTS",
+    "Hook",
+    "OpenReply",
+    "Phase",
+    "Probes",
+    "Server",
+    "Shared",
+    "Waiter",
+    "consumers_by_origin",
+]
 
 logger = logging.getLogger("rr_actors")
 
@@ -62,11 +88,10 @@ class Phase(enum.Enum):
 
 @dataclasses.dataclass
 class Server:
-    """A registered resource server: its actor, its status callback, whether it closes,
-    and its `label(request)` (`display.py`)."""
+    """A registered resource server (its `label(request)`: `display.py`)."""
 
     name: str
-    ref: pykka.ActorRef[ServerActor]
+    ref: pykka.ActorRef[Any]  # (a `provider.ServerActor`)
     on_status: StatusCallback | None
     closing: bool = False
     label: Callable[[Any], Any] | None = None
@@ -122,30 +147,7 @@ NO_REPLY: Reply = _NoReply()
 
 
 class Shared:
-    """The registrar's record: what every role of its actor reads (as `self.registrar`).
-
-    Only the actor's thread touches it (but `probes`, read by callers' threads too).
-
-    Attributes:
-        config: the registrar's configuration.
-        name: its name.
-        catalog: its catalog; the actor is the only writer.
-        saver: the save policy over its backup (or over nothing).
-        peer: its entry in the directory.
-        phase: where it is in its life.
-        servers_settled: `start(setup=)` finished, so a restored resource of a server
-            that setup did not register is released without its unload callback.
-        servers: resource server name -> `Server`.
-        workers: the threads that run user callbacks.
-        tokens: continuations waiting for answers to this actor's own questions.
-        probes: test probes on named steps (`rr_actors.testing.intercept`), or `None`.
-        ref: the actor's own ref (set when it starts).
-        events: where its events are published (`ResourceRegistrar.subscribe`); build an
-            event only when it is `active`.
-        held_in_doubt: ids of restored in-doubt resources whose settling is kept out of
-            the backup until the manager's `setup` returned (or the manager settled them:
-            `settle_in_doubt`), so a crash during `setup` offers them again (rule 16).
-    """
+    """The registrar's record: what every part of its actor reads and writes."""
 
     def __init__(
         self,
@@ -190,7 +192,7 @@ class Shared:
 
         Args:
             told: the events of the changes (built only when `events.active`).
-            now: write them now whatever the save policy (an unload: `teardown.py`).
+            now: write them now whatever the save policy (an unload: `Teardown`).
 
         Returns:
             `None`, or the error of a write that failed (a full disk): the changes stay
@@ -231,11 +233,7 @@ class Shared:
             self.events.publish(event)
 
     def settle_held(self, rids: set[str]) -> CatalogWriteError | None:
-        """Write what became of held in-doubt resources `rids`: they are settled now.
-
-        Returns:
-            What `commit` returns.
-        """
+        """Write what became of held in-doubt resources `rids` (settled now), as `commit`."""
         for rid in rids & self.held_in_doubt:
             self.held_in_doubt.discard(rid)
             self.catalog.mark_changed(rid)
@@ -274,3 +272,59 @@ class Shared:
         probes = self.probes
         if probes is not None:
             probes.fire(step, subject)
+
+
+# -- test probes on named steps --------------------------------------------------------
+
+
+Hook = Callable[[Any], None]
+"""`hook(subject)`: the message a step handles, or what a point is about."""
+
+POINTS: frozenset[str] = frozenset(
+    {
+        "close_resource",  # unregister_server: a resource gets FATAL, is revoked, unloads
+        "unload_resource",  # the last consumer left: dependencies, then `unload`
+        "stop_drained",  # stop(): waiting callers failed, mailbox drained; the actor ends next
+        "send_load",  # a call's Load is about to leave the caller's thread (durable: committed)
+        "withdraw",  # a caller that stopped waiting is about to send its Abandon
+        "events_written",  # a change and its events committed together; published next
+    }
+)
+"""Points inside a step (`before` runs there; `after` is the same as `before`)."""
+
+
+class Probes:
+    """The hooks installed on one registrar, by step name (any thread may fire them)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._before: dict[str, tuple[Hook, ...]] = {}
+        self._after: dict[str, tuple[Hook, ...]] = {}
+
+    def add(self, step: str, *, before: Hook | None, after: Hook | None) -> None:
+        """Install hooks on `step` (`intercept` checks that a step has that name)."""
+        with self._lock:
+            if before is not None:
+                self._before[step] = (*self._before.get(step, ()), before)
+            if after is not None:
+                self._after[step] = (*self._after.get(step, ()), after)
+
+    def remove(self, step: str, *, before: Hook | None, after: Hook | None) -> None:
+        """Remove hooks `add` installed (no-op for hooks that are not there)."""
+        with self._lock:
+            for table, hook in ((self._before, before), (self._after, after)):
+                if hook is not None and hook in table.get(step, ()):
+                    table[step] = tuple(h for h in table[step] if h is not hook)
+
+    def around(self, step: str, subject: Any, run: Callable[[Any], None]) -> None:
+        """Run `run(subject)` between the `before` and `after` hooks of `step`."""
+        for hook in self._before.get(step, ()):
+            hook(subject)
+        run(subject)
+        for hook in self._after.get(step, ()):
+            hook(subject)
+
+    def fire(self, step: str, subject: Any) -> None:
+        """Run the hooks of a point `step` (its `before` hooks, then its `after` hooks)."""
+        for hook in (*self._before.get(step, ()), *self._after.get(step, ())):
+            hook(subject)

@@ -1,24 +1,45 @@
-"""Status notifications, climbing every dependency path to the top (rule 9, thesis 4.2.4).
+"""Status notifications: sent, fanned out in one pass per process, climbing every dependency
+path to the top (rule 9, thesis 4.2.4).
 
 ```
- send_status(id) ──► notify(resource): server's on_status once ──► the consumer
-                       registrars, in one pass per process (`fanout.py`: the desk runs
-                       the callbacks of plain ids there) ──► on_status_notice, for the
-                       others: each client's callback, and for a dependency,
-                       notify(its parent resource) ──► ... top
- acknowledgements: counted where they arrive (SharedJoin), the last one answers the sender
+ send_status(id) ─► StatusRelay.notify(resource): a FATAL marks it failed first; its
+   server's on_status once; then its consumer registrars, by process (Routes.plan):
+   this process ──────────► DESK.deliver(parts), on this actor's thread
+   another process, known ─► one StatusBatch to that process's relay (a registrar there,
+                             the same one each time: notices keep their order); a
+                             registrar alone there: a StatusNotice
+   not known yet ─────────► a StatusBatch to the consumer registrar itself; every
+                             answer says which process each one it reached is in
+ a StatusBatch at a relay ─► on_status_batch ─► DESK.deliver(parts), on its thread
+ DESK.deliver, per consumer registrar of its process (what it published: StatusTargets)
+   an id with a callback, loaded, not a dependency, its answer not due ─► the callback,
+     queued on the process's Runner (no trip through that registrar's mailbox)
+   any other id (a dependency to climb, an answer on its way) ─► a StatusNotice
+   a registrar that moved elsewhere ─► its part, forwarded to it
+ StatusNotice at a consumer ─► on_status_notice: each client's callback; a dependency ─►
+   notify(its parent resource) ─► ... to the top
+ acknowledgements: one SharedJoin per status, counted where they arrive; the last one
+   answers the sender
 ```
 
 A `FATAL` its provider sends about a resource marks it `failed` in the catalog first
 (`Catalog.mark_failed`, stored): no equal request matches it any more, a new call loads
 a new resource, and the dead one stays with its consumers until they release it. A
 `FATAL` that climbs from a dependency does not mark the resources above it: their
-provider hears it (`on_status`) and decides, repairs it (the mission's robot manager
-restarts a motor driver) or sends `FATAL` about it itself.
+provider hears it (`on_status`) and decides, repairs it or sends `FATAL` about it itself.
 
 A `send_status` is one event (a UUID): a callback reached twice through a diamond of
-dependencies runs once. Callbacks run on worker threads, so a callback may call `call`,
-`unload` or `send_status` on any registrar without deadlock.
+dependencies runs once, and the desk delivers each (event, id) pair once, so a batch sent
+again after its relay failed does not run a callback twice. Callbacks run on worker
+threads, so a callback may call `call`, `unload` or `send_status` on any registrar
+without deadlock. The runner runs the callbacks of the whole process in the order they
+arrived, each consumer id's one at a time, on as few worker threads as keeps them going:
+one while each callback returns at once; another as soon as every one of them is inside
+a callback when more arrive (a callback that calls `send_status`), or once one has run a
+callback for `SLICE` seconds (a slow or hung callback holds its own thread, never the
+other consumers' callbacks, nor, after `SLICE`, its own next one). Each consumer
+registrar's actor is the only writer of what the desk reads of it (one dict assignment
+each, `consumer.py`'s `Holdings`); the desk reads single entries.
 """
 
 from __future__ import annotations
@@ -26,29 +47,42 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import threading
 import time
 import uuid
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+import weakref
+from collections.abc import Callable, Iterable
+from typing import Any
 
 from rr_actors import events
 from rr_actors._catalog import Resource
+from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.loops import OnLoop
 from rr_actors._core.replies import CallbackReply, SharedJoin
-from rr_actors._registrar.fanout import DESK, Routes, process
+from rr_actors._core.workers import Job, Workers
+from rr_actors._platform import fork
+from rr_actors._registrar.calls import DueAnswers
+from rr_actors._registrar.consumer import Flights, Holdings
 from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice
 from rr_actors._registrar.state import NO_REPLY, Shared, consumers_by_origin
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors.errors import ConfigError, RrError
 
-if TYPE_CHECKING:
-    from rr_actors._registrar.flights import Flights
-    from rr_actors._registrar.holdings import Holdings
-
-__all__ = ["StatusRelay"]
+__all__ = [
+    "DESK",
+    "SLICE",
+    "Desk",
+    "Parts",
+    "Routes",
+    "Runner",
+    "StatusRelay",
+    "StatusTargets",
+    "process",
+]
 
 logger = logging.getLogger("rr_actors")
+
 
 _SEEN_EVENTS = 4096  # (event, resource) pairs remembered to run each callback once
 
@@ -327,3 +361,427 @@ class StatusRelay:
                     sent_at=message.sent_at,
                 )
         join.seal()
+
+
+# -- the fan-out -----------------------------------------------------------------------
+
+
+SLICE = 0.05
+"""Seconds a status callback may run before the callbacks queued behind it go on
+without it, on another worker thread."""
+
+_LINGER = 1.0
+"""Seconds the runner's watchdog stays after the last callback ended."""
+
+_HOMES = 4_096
+"""Consumer registrars whose process a provider remembers (more: it learns anew)."""
+
+_SEEN = 16_384
+"""(event, query id) pairs a desk remembers, to deliver each once."""
+
+_PROCESS = uuid.uuid4().hex
+
+
+def process() -> str:
+    """This process's key in the answers to status batches (a new one after a fork)."""
+    return _PROCESS
+
+
+Parts = tuple[tuple[str, tuple[str, ...]], ...]
+"""(consumer registrar, its query ids) of one status, one entry per registrar."""
+
+
+class StatusTargets:
+    """What the desk reads of one registrar: the ids a status reaches without its mailbox
+    (`entries`: id -> its query and callback, written by its `Holdings` only)."""
+
+    __slots__ = ("__weakref__", "due", "entries", "events", "name")
+
+    def __init__(self, name: str, published: Publisher[events.Event], due: DueAnswers) -> None:
+        self.name = name
+        self.events = published
+        self.due = due
+        self.entries: dict[str, tuple[Query, StatusCallback]] = {}
+
+
+class _Call:
+    """One status callback to run, and the part of its batch's join it completes."""
+
+    __slots__ = ("callback", "done", "query", "update")
+
+    def __init__(
+        self,
+        callback: StatusCallback,
+        query: Query,
+        update: StatusUpdate,
+        done: Callable[..., None],
+    ) -> None:
+        self.callback = callback
+        self.query = query
+        self.update = update
+        self.done = done
+
+    def __call__(self) -> None:
+        try:
+            self.callback(self.query, self.update)
+        except Exception:
+            logger.exception("status callback for %s raised", self.query.id)
+        finally:
+            self.done()
+
+
+def _done_by(done: Callable[..., None]) -> Callable[[BaseException | None], None]:
+    """A coroutine status callback's end (`OnLoop.submit`'s `then`): its part of the
+    join is done (what it raised was logged on its loop)."""
+    return lambda _error: done()
+
+
+class _Drainer:
+    """One worker's turn at the runner's queue."""
+
+    __slots__ = ("abandoned", "job", "query_id", "started")
+
+    def __init__(self) -> None:
+        self.abandoned = False  # done, or it overran `SLICE`: it takes no more calls
+        self.job: Job | None = None
+        self.query_id = ""  # the id whose callback it runs now
+        self.started = 0.0  # when that callback began (monotonic)
+
+
+class Runner:
+    """Runs the status callbacks of this process (the module's last paragraph).
+
+    Calls are taken in arrival order; a call waits while an earlier callback of the same
+    query id runs (so each consumer hears its statuses in order, one at a time), unless
+    that one has run for `SLICE` seconds: the watchdog then gives its drainer up (it
+    finishes that callback and ends), and another drainer takes the queue.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._calls: collections.deque[_Call] = collections.deque()
+        self._drainers = 0  # drainers that take calls (not given up)
+        self._running: dict[str, _Drainer] = {}  # query id -> the drainer in its callback
+        self._watching = False
+        self._quiet_since = 0.0  # when the last callback ended with none running
+        self._workers = Workers("status")
+
+    def run(self, calls: Iterable[_Call]) -> None:
+        """Queue `calls`; start a drainer if none is free to take them."""
+        with self._lock:
+            self._calls.extend(calls)
+            start = self._drainers == len(self._running) and bool(self._calls)
+            if start:
+                self._drainers += 1
+            watch = not self._watching
+            self._watching = True
+        if watch:
+            self._watch_start()
+        if start:
+            self._start()
+
+    def _start(self) -> None:
+        """Start one drainer (counted already): its calls are skipped if no thread can."""
+        drainer = _Drainer()
+        try:
+            drainer.job = self._workers.submit(lambda: self._drain(drainer), quiet=True)
+        except RuntimeError:
+            logger.exception("no worker thread for status callbacks: they are skipped")
+            with self._lock:
+                self._drainers -= 1
+                skipped: list[_Call] = []
+                if self._drainers == 0:  # nobody else will take them
+                    skipped, self._calls = list(self._calls), collections.deque()
+            for call in skipped:
+                call.done()
+
+    def _take(self) -> _Call | None:
+        """(Holding the lock.) The first queued call whose id has no callback running."""
+        for index, call in enumerate(self._calls):
+            if call.query.id not in self._running:
+                del self._calls[index]
+                return call
+        return None
+
+    def _drain(self, drainer: _Drainer) -> None:
+        """A worker's turn: run queued calls until none it may take is left."""
+        while True:
+            with self._lock:
+                if drainer.abandoned:
+                    return
+                call = self._take()
+                if call is None:
+                    drainer.abandoned = True
+                    self._drainers -= 1
+                    return
+                drainer.query_id = call.query.id
+                drainer.started = time.monotonic()
+                self._running[drainer.query_id] = drainer
+            try:
+                call()
+            finally:
+                with self._lock:
+                    if self._running.get(drainer.query_id) is drainer:
+                        del self._running[drainer.query_id]
+                    if not self._running:
+                        self._quiet_since = time.monotonic()
+
+    def _watch_start(self) -> None:
+        try:
+            threading.Thread(target=self._watch, name="rr-status-watchdog", daemon=True).start()
+        except RuntimeError:  # callbacks then run unbounded until a later start works
+            logger.exception("no thread to bound the time of status callbacks")
+            with self._lock:
+                self._watching = False
+
+    def _watch(self) -> None:
+        """The watchdog: every `SLICE`, give up drainers whose callback overran it; end
+        after a second with no callback running."""
+        while True:
+            time.sleep(SLICE)
+            now = time.monotonic()
+            overdue: list[_Drainer] = []
+            with self._lock:
+                for drainer in list(self._running.values()):
+                    if now - drainer.started >= SLICE:
+                        overdue.append(drainer)
+                        drainer.abandoned = True
+                        self._drainers -= 1
+                        del self._running[drainer.query_id]
+                start = bool(self._calls) and self._drainers == len(self._running)
+                if start:
+                    self._drainers += 1
+                idle = not overdue and not self._running and not self._calls
+                if idle and now - self._quiet_since > _LINGER:
+                    self._watching = False
+                    return
+            for drainer in overdue:  # (its thread no longer counts in the pool)
+                if drainer.job is not None:
+                    drainer.job.abandon()
+            if start:
+                self._start()
+
+
+class Desk:
+    """This process's status desk: delivers a status to its registrars in one pass."""
+
+    def __init__(self) -> None:
+        self.targets: weakref.WeakKeyDictionary[LocalPeer, StatusTargets] = (
+            weakref.WeakKeyDictionary()
+        )
+        self._lock = threading.Lock()
+        self._seen: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
+        self.runner = Runner()
+
+    def serve(self, peer: LocalPeer, targets: StatusTargets) -> None:
+        """Read `targets` for the registrar behind `peer` (while the directory has it)."""
+        with self._lock:
+            self.targets[peer] = targets
+
+    def deliver(
+        self,
+        batch: StatusBatch,
+        join: SharedJoin,
+        homes: dict[str, str] | None,
+        here: tuple[str, Callable[[Any], None]],
+    ) -> None:
+        """Deliver `batch`'s parts (on an actor thread); each adds its parts to `join`.
+
+        `homes`, if given, gets the process of each registrar reached (the answer).
+        `here` is the registrar whose actor runs this, and how it handles a message at
+        once (its `dispatch`): its own ids that need its actor need no trip through its
+        mailbox.
+        """
+        calls: list[_Call] = []
+        for origin, ids in batch.parts:
+            try:
+                peer = DIRECTORY.lookup(origin)
+            except RrError:  # gone: nothing to deliver (as a notice to it would fail)
+                continue
+            if type(peer) is not LocalPeer:  # (it moved to another process)
+                self.forward(peer, batch, (origin, ids), join, homes)
+                continue
+            if homes is not None:
+                homes[origin] = _PROCESS
+            fresh = self.first_time(batch.event, ids)
+            if not fresh:
+                continue
+            targets = self.targets.get(peer)
+            slow = self.direct(targets, batch, fresh, join, calls) if targets else fresh
+            if slow:
+                reply = CallbackReply(join.add())
+                notice = StatusNotice(
+                    slow,
+                    batch.status,
+                    batch.message,
+                    batch.source,
+                    batch.event,
+                    reply,
+                    batch.hop,
+                    batch.sent_at,
+                )
+                try:
+                    if origin == here[0]:
+                        here[1](notice)
+                    else:
+                        peer.tell(notice)
+                except RrError as exc:
+                    reply.set_error(exc)
+        if calls:
+            self.runner.run(calls)
+
+    def direct(
+        self,
+        targets: StatusTargets,
+        batch: StatusBatch,
+        ids: tuple[str, ...],
+        join: SharedJoin,
+        calls: list[_Call],
+    ) -> tuple[str, ...]:
+        """Queue the callbacks of the ids `targets` has; the others, to go through its
+        registrar's mailbox."""
+        slow: list[str] = []
+        entries, due = targets.entries, targets.due
+        publish = targets.events.active
+        for query_id in ids:
+            entry = entries.get(query_id)
+            if entry is None or query_id in due:
+                slow.append(query_id)
+                continue
+            query, callback = entry
+            if publish:
+                targets.events.publish(
+                    events.StatusDelivered(
+                        targets.name,
+                        query_id,
+                        batch.status,
+                        batch.hop,
+                        max(0.0, time.time() - batch.sent_at),
+                        batch.event,
+                    )
+                )
+            update = StatusUpdate(query_id, batch.status, batch.message, batch.source)
+            if isinstance(callback, OnLoop):  # a coroutine: on its loop, no worker
+                callback.submit(query, update, then=_done_by(join.add()), key=query_id)
+            else:
+                calls.append(_Call(callback, query, update, join.add()))
+        return tuple(slow)
+
+    def forward(
+        self,
+        peer: Any,
+        batch: StatusBatch,
+        part: tuple[str, tuple[str, ...]],
+        join: SharedJoin,
+        homes: dict[str, str] | None,
+    ) -> None:
+        """Send `part` on to its registrar in another process; its answer joins ours."""
+        done = join.add()
+
+        def answered(value: Any, error: BaseException | None) -> None:
+            if error is None and homes is not None and isinstance(value, dict):
+                homes.update(value)
+            done()
+
+        reply = CallbackReply(answered)
+        try:
+            peer.tell(batch.part((part,), reply))
+        except RrError as exc:
+            reply.set_error(exc)
+
+    def first_time(self, event: str, ids: tuple[str, ...]) -> tuple[str, ...]:
+        """Those of `ids` that event `event` has not reached here yet (marked now)."""
+        seen = self._seen
+        fresh = []
+        with self._lock:
+            for query_id in ids:
+                key = (event, query_id)
+                if key not in seen:
+                    seen[key] = None
+                    fresh.append(query_id)
+            while len(seen) > _SEEN:
+                seen.popitem(last=False)
+        return tuple(fresh)
+
+    def forget_in_child(self) -> None:
+        """In a forked child: the parent's registrars and threads are not here."""
+        self._lock = threading.Lock()
+        self.targets = weakref.WeakKeyDictionary()
+        self._seen = collections.OrderedDict()
+        self.runner = Runner()
+
+
+DESK = Desk()
+"""This process's status desk."""
+
+
+class Routes:
+    """Where a provider sends its statuses for registrars of other processes.
+
+    `homes` maps a consumer registrar to its process (learned from the answers), and
+    `relays` each process to the registrar there that gets this provider's batches for
+    it (the first one learned, kept while it answers: one connection, one mailbox, so
+    the batches keep their order). Hints only: a wrong one costs a forward at the other
+    end. Written by the threads that answer, read by the provider's actor.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.homes: dict[str, str] = {}
+        self.relays: dict[str, str] = {}
+
+    def plan(self, parts: Iterable[tuple[str, tuple[str, ...]]]) -> list[tuple[str, Parts, bool]]:
+        """Group `parts` by process: (the relay, the parts it gets, whether as a batch).
+
+        A registrar whose process is not known yet gets a batch of its own part (its
+        answer says where it is); one alone in its process among `parts`, a plain
+        `StatusNotice` (`False`: what a status to one registrar always was).
+        """
+        groups: dict[str, list[tuple[str, tuple[str, ...]]]] = {}
+        planned: list[tuple[str, Parts, bool]] = []
+        with self._lock:
+            for part in parts:
+                home = self.homes.get(part[0])
+                if home is None:
+                    planned.append((part[0], (part,), True))
+                else:
+                    groups.setdefault(home, []).append(part)
+            for home, members in groups.items():
+                if len(members) == 1:
+                    planned.append((members[0][0], (members[0],), False))
+                else:
+                    relay = self.relays.setdefault(home, members[0][0])
+                    planned.append((relay, tuple(members), True))
+        return planned
+
+    def learn(self, homes: dict[str, str]) -> None:
+        """Registrars are in these processes (an answer said so)."""
+        with self._lock:
+            if len(self.homes) > _HOMES:  # (registrars come and go: start over)
+                self.homes.clear()
+                self.relays.clear()
+            for name, home in homes.items():
+                if self.homes.get(name, home) != home:  # it moved: not a relay there
+                    self.drop(name)
+                self.homes[name] = home
+
+    def forget(self, names: Iterable[str]) -> None:
+        """Registrars that did not answer: ask them again where they are."""
+        with self._lock:
+            for name in names:
+                self.drop(name)
+
+    def drop(self, name: str) -> None:
+        """(Holding the lock.) Forget `name`'s home and any relay role it had."""
+        self.homes.pop(name, None)
+        for home in [home for home, relay in self.relays.items() if relay == name]:
+            del self.relays[home]
+
+
+def _forget_in_child() -> None:
+    global _PROCESS  # one key per process
+    _PROCESS = uuid.uuid4().hex
+    DESK.forget_in_child()
+
+
+fork.after_fork_in_child("the status desk", _forget_in_child)

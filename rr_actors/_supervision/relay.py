@@ -26,7 +26,7 @@ from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._core.bus import Publisher
 from rr_actors._process.manager import ManagerProcess
-from rr_actors._registrar.starting import EVENT_LOG
+from rr_actors._registrar.actor import EVENT_LOG
 
 __all__ = ["SWITCH_TIMEOUT", "EventRelay"]
 

@@ -28,7 +28,7 @@ import cloudpickle
 from rr_actors._core import runtime
 from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._process.spare import SparePool
-from rr_actors._registrar import deathwatch
+from rr_actors._registrar import life
 from rr_actors._supervision.children import (
     Child,
     ChildInfo,
@@ -312,7 +312,7 @@ def consumer_down(
     good, and every living registrar is told.
 
     Its consumers' ids are released where it held them, and the ids held at it get
-    `FATAL` at their consumers (rule 19; `_registrar/presence.py`). With `stopped` (it
+    `FATAL` at their consumers (rule 19; `_registrar/life.py`, its presence). With `stopped` (it
     was stopped cleanly and will not be started again), only the first: what it still
     holds anywhere is stale (rule 12).
 
@@ -323,12 +323,12 @@ def consumer_down(
     living = _process_managers(root)
     if network is not None and not network.closed:
         living.extend(network.names())
-    deathwatch.gone_for_good(name, also=living, stopped=stopped)
+    life.gone_for_good(name, also=living, stopped=stopped)
 
 
 def comes_back(name: str) -> None:
     """Manager `name` is being started again: it is no longer gone for good."""
-    deathwatch.back(name)
+    life.back(name)
 
 
 def lost_everything(root: Level, name: str, network: Transport | None = None) -> None:
@@ -342,7 +342,7 @@ def lost_everything(root: Level, name: str, network: Transport | None = None) ->
     living = _process_managers(root)
     if network is not None and not network.closed:
         living.extend(network.names())
-    deathwatch.lost_everything(name, also=living)
+    life.lost_everything(name, also=living)
 
 
 def death_watch_missed(name: str) -> None:
@@ -354,11 +354,11 @@ def death_watch_missed(name: str) -> None:
     a lost one is `FATAL`. (One that holds none of their ids releases nothing.) A
     manager of this process heard them already when it started (its membership).
     """
-    for gone, stopped in sorted(deathwatch.gone().items()):
+    for gone, stopped in sorted(life.gone().items()):
         if gone == name:
             continue
         try:
-            deathwatch.tell_gone(name, gone, stopped=stopped)
+            life.tell_gone(name, gone, stopped=stopped)
         except RrError:
             logger.debug("death watch: %s unreachable", name)
             return

@@ -121,7 +121,7 @@ def status_reached(
     Throughout: from before the status was sent on to it (`Expected.since`) until after
     the status's last delivery in the run, in one life of the holder; or, for an id that
     is not a dependency, until after the status reached another id of its registrar at
-    that hop (a process's status desk delivers those in one pass, `fanout.py`; a
+    that hop (a process's status desk delivers those in one pass, `_registrar/status.py`; a
     dependency's status climbs through its registrar's mailbox, where a release queued
     before it may come first). The one that sends it on must have gone on after it did
     (an event of the same life later: a kill right after the send, before the notice

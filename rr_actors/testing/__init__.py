@@ -51,8 +51,8 @@ from __future__ import annotations
 from rr_actors._process.context import start_forkserver
 from rr_actors._process.remote import RemoteRegistrar
 from rr_actors._registrar.actor import STEPS
-from rr_actors._registrar.attempt import AttemptState, CallAttempt
-from rr_actors._registrar.lifecycle import CatalogView
+from rr_actors._registrar.calls import AttemptState, CallAttempt
+from rr_actors._registrar.life import CatalogView
 from rr_actors._transport.unix.system import System
 from rr_actors.testing.helpers import catalog_snapshot, crash, running_actors
 from rr_actors.testing.memory import MemoryAddress, MemoryNetwork

@@ -11,7 +11,7 @@ the registrar's private modules (docs/explanation/architecture.md, "Tests"):
 
 from __future__ import annotations
 
+from rr_actors._registrar.life import Served
 from rr_actors._registrar.messages import Fetch, Load, Revoke
-from rr_actors._registrar.starting import Served
 
 __all__ = ["Fetch", "Load", "Revoke", "Served"]

@@ -9,7 +9,7 @@ import pykka
 
 from rr_actors._process.remote import FORWARD_MARGIN, RemoteRegistrar
 from rr_actors._registrar import ResourceRegistrar, snapshot
-from rr_actors._registrar.lifecycle import CatalogView
+from rr_actors._registrar.life import CatalogView
 
 __all__ = ["catalog_snapshot", "crash", "running_actors"]
 

@@ -22,7 +22,7 @@ from rr_actors._registrar import ResourceRegistrar
 from rr_actors._registrar.actor import STEPS, RegistrarActor
 from rr_actors._registrar.calls import CallAttempt
 from rr_actors._registrar.messages import RunOnActor
-from rr_actors._registrar.probes import Hook, Probes
+from rr_actors._registrar.state import Hook, Probes
 from rr_actors.errors import ConfigError, RegistrarUnavailableError
 
 __all__ = [
@@ -188,7 +188,7 @@ def call_futures(registrar: ResourceRegistrar, future_type: type[CallAttempt]) -
     """Make the registrar's callers wait on `future_type` futures until `close()`.
 
     A caller waits for its answer on the future of its call attempt
-    (`rr_actors._registrar.attempt.CallAttempt`, a one-shot future with one state), which
+    (`rr_actors._registrar.calls.CallAttempt`, a one-shot future with one state), which
     the answering thread settles, or the caller withdraws when its time runs out (see
     `docs/explanation/failure-semantics.md`). A subclass that overrides `wait` or a
     transition (`answer`, `fail`, `take`, `settle`, `withdraw`) to wait on events makes

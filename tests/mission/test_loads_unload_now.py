@@ -22,7 +22,7 @@ import rr_actors as rr
 from rr_actors.mission.config import MissionConfig
 from rr_actors.mission.loads import Loads
 from rr_actors.testing import SharedObjects
-from tests.registrar.test_reconcile_in_flight import dying_provider
+from tests.registrar.test_consumer import dying_provider
 
 pytestmark = [
     pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals"),

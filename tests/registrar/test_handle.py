@@ -22,7 +22,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors.testing import RemoteRegistrar, intercept
-from tests.conftest import MakeRegistrar, Shared
+from tests.registrar.conftest import MakeRegistrar, Shared
 from tests.support.gating import GatedLoad
 
 

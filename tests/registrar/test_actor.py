@@ -1,10 +1,4 @@
-"""The registrar's vocabulary as data: one dispatch table, and every step name in it fires.
-
-`intercept` accepts the step names of the actor's dispatch table; each test below makes a
-registrar handle one message, through the public API where one reaches it, and checks
-that a hook on that message's step ran. A message added to the table without a way to
-reach it here fails `test_every_message_step_has_a_driver_here`.
-"""
+"""Tests of `rr_actors/_registrar/actor.py`: the one dispatch table, and every step in it fires."""
 
 from __future__ import annotations
 
@@ -21,7 +15,7 @@ from rr_actors._core.replies import FutureReply
 from rr_actors._registrar import Served
 from rr_actors._registrar.actor import DISPATCH, MESSAGE_STEPS
 from rr_actors._registrar.messages import Abandon, ConsumerDown, StatusBatch
-from rr_actors._registrar.probes import POINTS
+from rr_actors._registrar.state import POINTS
 from rr_actors.testing import (
     STEPS,
     actor_ref,
@@ -31,6 +25,8 @@ from rr_actors.testing import (
     intercept,
     run_on_actor,
 )
+
+# -- for TestMessages ----------------------------------------------------------------------
 
 Hook = Callable[[object], None]
 
@@ -66,9 +62,6 @@ def _no_unload(_request: object, _response: object) -> None:
 
 def _raise(request: object) -> object:
     raise ValueError(f"no {request}")
-
-
-# Each driver hooks `hook` on its step and makes the registrar handle that message.
 
 
 def _load(p: Pair, hook: Hook) -> None:
@@ -350,52 +343,58 @@ DRIVERS: dict[str, Callable[[Pair, Hook], None]] = {
 }
 
 
-@pytest.fixture
-def pair(tmp_path: Path) -> Iterator[Pair]:
-    made = Pair(tmp_path)
-    yield made
-    made.close()
+class TestMessages:
+    """The registrar's vocabulary as data: one dispatch table, and every step name in it fires.
 
+    `intercept` accepts the step names of the actor's dispatch table; each test below makes a
+    registrar handle one message, through the public API where one reaches it, and checks
+    that a hook on that message's step ran. A message added to the table without a way to
+    reach it here fails `test_every_message_step_has_a_driver_here`.
+    """
 
-def test_the_message_steps_are_the_step_names_of_the_dispatch_table() -> None:
-    names = [step for step, _ in DISPATCH.values()]
+    @pytest.fixture
+    def pair(self, tmp_path: Path) -> Iterator[Pair]:
+        made = Pair(tmp_path)
+        yield made
+        made.close()
 
-    assert len(set(names)) == len(names)  # one step per message, none shared
-    assert frozenset(names) == MESSAGE_STEPS
-    assert MESSAGE_STEPS | POINTS == STEPS
-    assert not MESSAGE_STEPS & POINTS
+    def test_the_message_steps_are_the_step_names_of_the_dispatch_table(self) -> None:
+        names = [step for step, _ in DISPATCH.values()]
 
+        assert len(set(names)) == len(names)  # one step per message, none shared
+        assert frozenset(names) == MESSAGE_STEPS
+        assert MESSAGE_STEPS | POINTS == STEPS
+        assert not MESSAGE_STEPS & POINTS
 
-def test_every_message_step_has_a_driver_here() -> None:
-    assert sorted(MESSAGE_STEPS) == sorted(DRIVERS)
+    def test_every_message_step_has_a_driver_here(self) -> None:
+        assert sorted(MESSAGE_STEPS) == sorted(DRIVERS)
 
+    @pytest.mark.parametrize("step", sorted(DRIVERS))
+    def test_intercept_on_a_message_step_runs_its_hook_when_that_message_is_handled(
+        self, pair: Pair, step: str
+    ) -> None:
+        fired = threading.Event()
+        seen: list[type] = []
 
-@pytest.mark.parametrize("step", sorted(DRIVERS))
-def test_intercept_on_a_message_step_runs_its_hook_when_that_message_is_handled(
-    pair: Pair, step: str
-) -> None:
-    fired = threading.Event()
-    seen: list[type] = []
+        def hook(message: object) -> None:
+            seen.append(type(message))
+            fired.set()
 
-    def hook(message: object) -> None:
-        seen.append(type(message))
-        fired.set()
+        DRIVERS[step](pair, hook)
 
-    DRIVERS[step](pair, hook)
+        assert fired.wait(5.0)
+        kinds = [kind for kind, (name, _) in DISPATCH.items() if name == step]
+        assert kinds == seen[:1]  # the hook saw the message of that table entry
 
-    assert fired.wait(5.0)
-    kinds = [kind for kind, (name, _) in DISPATCH.items() if name == step]
-    assert kinds == seen[:1]  # the hook saw the message of that table entry
+    def test_a_second_call_to_a_server_finds_its_client_without_asking_the_actor(
+        self,
+        pair: Pair,
+    ) -> None:
+        opened: list[object] = []
+        intercept(pair.consumer, "open_client", before=opened.append)
 
+        pair.held()
+        pair.held()
 
-def test_a_second_call_to_a_server_finds_its_client_without_asking_the_actor(
-    pair: Pair,
-) -> None:
-    opened: list[object] = []
-    intercept(pair.consumer, "open_client", before=opened.append)
-
-    pair.held()
-    pair.held()
-
-    assert 1 == len(opened)
-    assert actor_ref(pair.consumer, client=(pair.provider.name, "leaf")).is_alive()
+        assert 1 == len(opened)
+        assert actor_ref(pair.consumer, client=(pair.provider.name, "leaf")).is_alive()

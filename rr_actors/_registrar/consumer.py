@@ -1,0 +1,1252 @@
+"""The consumer side of a registrar actor: a call's life here, from its answer to its release.
+
+```
+ calls.py (the caller's thread) ─► Pending, ClientLoaded | DurableLoaded, CallFailed
+ Answers   on_pending: a durable call's record written pending before its Load leaves
+   │       on_client_loaded ─► decide(durable, withdrawn, dependency, stopping,
+   │         owner_gone) ─► Action (pure: tests/registrar/test_consumer.py's table)
+   │           KEEP | COMMIT ─► keep: the record (committed with its CallAnswered)
+   │           LEAVE | GIVE_BACK | REFUSE | FORGET | RELEASE_LATE ─► drop_pending:
+   │           the id given back to its provider (`messages.give_back`)
+   │       on_call_failed ─► the record forgotten (kept: a failed retry of a held id)
+   ▼
+ Flights   in_flight: query id ─► InFlight, while a call is not settled:
+   │         attempt       a durable call's, committed pending: this actor answers it
+   │         unsettled_at  the provider of a call that failed as it died or stopped:
+   │                       it may hold the id (a retry may come) ─► listed in the next
+   │                       Reconcile; still held there ─► kept_for_retry (released by
+   │                       its next Reconcile, or given back when this one stops)
+   │         parked        notices (StatusNotice, Revoke, ResponseUpdated) that
+   │                       overtook their answer ─► handled again once it came
+   │       take_outcomes: the outcomes callers handed over, before each message
+   ▼
+ Holdings  the client records' companions: status callbacks (the plain ones published
+   │       to the status desk, `status.py`), the epoch each answer came in, the records
+   │       a restore listed, the client actors; Revoke, ResponseUpdated, set a callback;
+   │       forget(id): the one place a held id goes (its QueryForgotten, then committed)
+   ▼
+ Releases  Release (the handle's unload) ─Unload─► provider ─► forget; a resource's
+   │       dependencies (`provider.py`'s teardown) the same way; the provider died or
+   │       stopped meanwhile ─► unreleased: left out of its next Reconcile, so it
+   │       releases them (its unload runs once); this registrar stops ─► its durable
+   │       calls withdrawn, the ids of failed calls and releases given back
+   ▼
+ Reconciling  it serves (again), or a provider asks (ReconcileAsk) ─► Reconcile(the
+          ids held there: a Listing, its epoch) ─► the provider releases the others,
+          names those it no longer knows ─► FATAL to each answered before the list
+          left (and up its dependents), then forgotten (rule 20); a provider lost for
+          good (`life.py`'s presence) ─► lose_provider: the same, for all (rule 19)
+```
+
+Each part owns its state and changes another's only through its methods; all of them
+run on the registrar actor's thread, and each builds an event only when someone listens
+(`Shared.events.active`), so a consumer's events are in the order it recorded them.
+`redeliver` is the actor's dispatch (a callable it is given), not a part: a notice held
+back, or an outcome taken, is handled as if it had just arrived. The client actors
+(`ClientActor`, cached in `Clients`) relay a handle's fetch to a provider (thesis
+4.3.3); a call's `Load` goes from its caller's thread (`calls.py`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import logging
+import time
+import uuid
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import pykka
+
+from rr_actors import events
+from rr_actors._catalog import ClientRecord, ResourceState
+from rr_actors._core.actor import Actor, refuse
+from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.replies import FutureReply, Join
+from rr_actors._registrar.calls import (
+    AttemptState,
+    CallAttempt,
+    CallFailed,
+    ClientLoaded,
+    DueAnswers,
+    DurableLoaded,
+    Pending,
+)
+from rr_actors._registrar.display import ClientTexts
+from rr_actors._registrar.messages import (
+    Fetch,
+    FetchVia,
+    ListClientQueries,
+    OpenClient,
+    Reconcile,
+    ReconcileAsk,
+    Release,
+    ResponseUpdated,
+    Revoke,
+    SetStatusCallback,
+    StatusNotice,
+    Unload,
+    check_picklable,
+    give_back,
+)
+from rr_actors._registrar.state import NO_REPLY, Phase, Shared
+from rr_actors._types import Query, Status, StatusCallback
+from rr_actors.errors import (
+    CallTimeoutError,
+    ConfigError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    RrError,
+    UnknownQueryError,
+)
+
+__all__ = [
+    "GONE",
+    "Action",
+    "Answers",
+    "ClientActor",
+    "Clients",
+    "Flights",
+    "Holdings",
+    "InFlight",
+    "Listing",
+    "Notice",
+    "Reconciling",
+    "Releases",
+    "answer_event",
+    "decide",
+    "publish_answered",
+    "publish_failed",
+    "publish_forgotten",
+    "publish_refused",
+]
+
+logger = logging.getLogger("rr_actors")
+
+
+# -- one call in flight ----------------------------------------------------------------
+
+
+@dataclasses.dataclass(eq=False)
+class InFlight:
+    """What a consumer knows of one query id whose call is not settled yet."""
+
+    attempt: CallAttempt | None = None
+    unsettled_at: str | None = None
+    parked: list[StatusNotice | Revoke | ResponseUpdated] = dataclasses.field(default_factory=list)
+
+    def idle(self) -> bool:
+        """Whether nothing is left of it (the consumer then forgets the record)."""
+        return self.attempt is None and self.unsettled_at is None and not self.parked
+
+
+class Action(enum.Enum):
+    """What the consumer does with one call's answer (`decide`)."""
+
+    KEEP = "keep"
+    """A plain call's answer: record it (its caller has it already)."""
+    COMMIT = "commit"
+    """A durable call's answer: commit its record, then answer its caller (or, if it
+    cannot be stored or written, give the id back and fail the call)."""
+    LEAVE = "leave"
+    """A durable answer its caller withdrew: nothing here (the caller gave the id back;
+    its `CallFailed` forgets the pending record)."""
+    GIVE_BACK = "give back"
+    """A durable answer withdrawn or failed by a stop, while this registrar stops: give
+    the id back (the stop's `Abandon` may have gone first) and forget the pending record."""
+    REFUSE = "refuse"
+    """A durable top-level answer while this registrar stops: give the id back; its
+    caller gets `RegistrarStoppedError`."""
+    FORGET = "forget"
+    """A plain top-level answer while this registrar stops: give the id back (its caller
+    has the answer; the stop would have released it)."""
+    RELEASE_LATE = "release late"
+    """A dependency whose resource failed or is unloading: give the id back at once
+    (nothing could release it later); the call itself succeeded (rule 4)."""
+
+
+def decide(
+    *, durable: bool, withdrawn: bool, dependency: bool, stopping: bool, owner_gone: bool
+) -> Action:
+    """What the consumer does with a call's answer (pure: no state read or written).
+
+    Args:
+        durable: the answer is a `DurableLoaded` (this actor answers the caller).
+        withdrawn: a durable answer whose attempt this actor could not take (its caller
+            withdrew it, or a stop failed it); never for a plain answer.
+        dependency: the call was made inside a load (its record has a parent).
+        stopping: this registrar is stopping.
+        owner_gone: the resource the dependency belongs to failed or is unloading.
+
+    Returns:
+        The `Action` to run.
+    """
+    if withdrawn:
+        return Action.GIVE_BACK if stopping else Action.LEAVE
+    if stopping and not dependency:
+        return Action.REFUSE if durable else Action.FORGET
+    if owner_gone:
+        return Action.RELEASE_LATE
+    return Action.COMMIT if durable else Action.KEEP
+
+
+# -- calls in flight -------------------------------------------------------------------
+
+
+Notice = StatusNotice | Revoke | ResponseUpdated
+"""What a provider tells a consumer about queries it holds."""
+
+
+class Flights:
+    """This registrar's calls whose outcome is not settled yet, by query id."""
+
+    def __init__(self, shared: Shared, due: DueAnswers, redeliver: Callable[[Any], None]) -> None:
+        self.registrar = shared
+        self.due = due  # the ids whose answers are on their way (callers' threads too)
+        self.redeliver = redeliver  # handles a message as the actor does (its dispatch)
+        self.in_flight: dict[str, InFlight] = {}
+        self.kept_for_retry: dict[str, str] = {}  # query id -> the provider that kept it
+
+    # -- one call's record --------------------------------------------------------------
+
+    def flight(self, query_id: str) -> InFlight:
+        """The in-flight record of `query_id`, made if it has none."""
+        flight = self.in_flight.get(query_id)
+        if flight is None:
+            flight = self.in_flight[query_id] = InFlight()
+        return flight
+
+    def landed(self, query_id: str) -> None:
+        """Forget the in-flight record of `query_id` if nothing is left of it."""
+        flight = self.in_flight.get(query_id)
+        if flight is not None and flight.idle():
+            del self.in_flight[query_id]
+
+    # -- durable attempts ---------------------------------------------------------------
+
+    def hold_attempt(self, query_id: str, attempt: CallAttempt) -> None:
+        """`attempt`'s `Pending` was committed: this actor answers it (a same-id retry's
+        replaces it)."""
+        self.flight(query_id).attempt = attempt
+
+    def attempt_of(self, query_id: str) -> CallAttempt | None:
+        """The durable attempt of `query_id` this actor answers, if any."""
+        flight = self.in_flight.get(query_id)
+        return None if flight is None else flight.attempt
+
+    def take_attempt(self, query_id: str, attempt: CallAttempt) -> bool:
+        """`attempt`'s outcome came: whether it was the durable attempt in flight (its
+        `Pending` wrote the record; not a same-id retry's), which is then taken off."""
+        flight = self.in_flight.get(query_id)
+        if flight is None or flight.attempt is not attempt:
+            return False
+        flight.attempt = None
+        self.landed(query_id)
+        return True
+
+    # -- calls that failed as their provider died (unsettled, then kept for a retry) ----
+
+    def unsettled(self) -> dict[str, str]:
+        """Query id -> provider, of the calls that failed as their provider died or
+        stopped (it may hold the id; a retry may come): held until reconciled."""
+        return {q: f.unsettled_at for q, f in self.in_flight.items() if f.unsettled_at}
+
+    def settle(self, query_id: str, provider: str | None) -> None:
+        """Set (or, with `None`, clear) where `query_id`'s failed call may be held."""
+        if provider is not None:
+            self.flight(query_id).unsettled_at = provider
+        elif query_id in self.in_flight:
+            self.in_flight[query_id].unsettled_at = None
+            self.landed(query_id)
+
+    def reset(self, query_id: str, provider: str | None) -> None:
+        """A new outcome of `query_id`'s call: where it may be held now (`settle`), and
+        it is no longer one its provider kept for a retry."""
+        self.settle(query_id, provider)
+        self.kept_for_retry.pop(query_id, None)
+
+    def was_unsettled(self, query_id: str) -> bool:
+        """Whether a call with `query_id` failed as its provider died (a retry follows)."""
+        flight = self.in_flight.get(query_id)
+        return flight is not None and flight.unsettled_at is not None
+
+    def held_at(self, serving_rr: str) -> bool:
+        """Whether `serving_rr` may hold the id of a call that failed as it died."""
+        return serving_rr in self.unsettled().values() or serving_rr in self.kept_for_retry.values()
+
+    def settle_listed(
+        self, serving_rr: str, listing: Listing | None, unknown: Iterable[str] = ()
+    ) -> None:
+        """`serving_rr` answered `listing`'s `Reconcile`: settle the failed calls it
+        listed (it holds those it knew, `kept_for_retry`: a retry finds them), forget
+        those it kept before that the list left out (it released them). Without a
+        listing (`serving_rr` is gone for good): all of them. `unknown`: the listed ids
+        it answered it does not know."""
+        for query_id, provider in list(self.kept_for_retry.items()):
+            if provider == serving_rr and (listing is None or query_id not in listing.held):
+                del self.kept_for_retry[query_id]
+        lost = set(unknown)
+        for query_id, provider in self.unsettled().items():
+            if provider == serving_rr and (
+                listing is None or query_id in listing.held or query_id in listing.left_out
+            ):
+                self.settle(query_id, None)
+                if listing is not None and query_id in listing.held and query_id not in lost:
+                    self.kept_for_retry[query_id] = serving_rr
+
+    def give_back_unsettled(self) -> None:
+        """This registrar stops: give back the ids of calls that failed as their provider
+        died, which it would no longer retry (also those the provider kept for a retry
+        when it reconciled)."""
+        for query_id, serving_rr in self.unsettled().items():
+            give_back(serving_rr, query_id, self.registrar.name)
+            self.settle(query_id, None)
+        for query_id, serving_rr in self.kept_for_retry.items():
+            give_back(serving_rr, query_id, self.registrar.name)
+        self.kept_for_retry.clear()
+
+    # -- notices that overtake the answer they are about --------------------------------
+
+    def take_outcomes(self) -> None:
+        """Record the call outcomes handed over so far, in order (`calls.py`)."""
+        outcomes = self.due.outcomes
+        while not outcomes.empty():
+            self.redeliver(outcomes.get())
+
+    def parked(self, notice: Notice) -> bool:
+        """Hold `notice` if the answer to one of its queries is still on its way.
+
+        It is handled again (`answered`) once that answer or the call's failure was. The
+        caller that hands that outcome over wakes this actor for it (`DueAnswers.awaited`).
+        """
+        for query_id in notice.query_ids:
+            if self.due.awaited(query_id):
+                self.take_outcomes()  # (handed over before the mark was read?)
+            if query_id in self.due:
+                self.flight(query_id).parked.append(notice)
+                return True
+        return False
+
+    def answered(self, query_id: str, attempt: CallAttempt) -> None:
+        """`attempt`'s answer or failure was handled: handle what waited for it."""
+        if not self.due.settle(query_id, attempt):
+            return
+        flight = self.in_flight.get(query_id)
+        if flight is None or not flight.parked:
+            return
+        waiting, flight.parked = flight.parked, []
+        self.landed(query_id)
+        while waiting:
+            notice = waiting.pop(0)
+            try:
+                self.redeliver(notice)
+            except BaseException:  # the actor dies: `fail_waiting` answers the rest
+                self.flight(query_id).parked[:0] = waiting
+                raise
+
+    def parked_ids(self) -> frozenset[str]:
+        """The query ids with notices held back (`rr_actors.testing.pending_work`)."""
+        return frozenset(q for q, f in self.in_flight.items() if f.parked)
+
+    def fail_waiting(self, error: RrError) -> None:
+        """Answer the durable callers and the held notices still waiting here."""
+        for flight in self.in_flight.values():
+            if flight.attempt is not None:
+                flight.attempt.fail(error)
+        for flight in self.in_flight.values():
+            for notice in flight.parked:
+                if not isinstance(notice, Revoke):  # (a revoke wants no answer)
+                    notice.reply.set_error(error)
+            flight.parked.clear()
+        for query_id in list(self.in_flight):
+            self.landed(query_id)
+
+
+# -- what a call's outcome tells -------------------------------------------------------
+
+
+def answer_event(shared: Shared, record: ClientRecord, *, retry: bool) -> tuple[events.Event, ...]:
+    """`CallAnswered` of `record` (none while nobody listens), to commit with its record."""
+    if not shared.events.active:
+        return ()
+    query = record.query
+    return (
+        events.CallAnswered(
+            shared.name, query.id, query.serving_rr, query.server, record.parent, retry
+        ),
+    )
+
+
+def publish_answered(shared: Shared, record: ClientRecord, *, retry: bool) -> None:
+    """Publish `CallAnswered`: `record`'s answer is recorded (`retry`: its id was known)."""
+    shared.publish(*answer_event(shared, record, retry=retry))
+
+
+def publish_failed(shared: Shared, message: CallFailed, *, retry: bool) -> None:
+    """Publish `CallWithdrawn` or `CallFailed` for a call's failure `message`.
+
+    An error answer to an attempt its caller withdrew first (the provider's answer to
+    the `Abandon` that followed its `Load`) publishes nothing: the withdrawal was the
+    call's outcome.
+    """
+    if not shared.events.active:
+        return
+    if not message.withdrawn and message.attempt.state is AttemptState.WITHDRAWN:
+        return
+    if message.withdrawn:
+        shared.events.publish(
+            events.CallWithdrawn(
+                shared.name, message.query_id, message.provider, message.server, message.why
+            )
+        )
+        return
+    error = message.error
+    shared.events.publish(
+        events.CallFailed(
+            shared.name,
+            message.query_id,
+            message.provider,
+            message.server,
+            type(error).__name__ if error is not None else "",
+            str(error) if error is not None else "",
+            message.serving_rr is not None,
+            retry,
+        )
+    )
+
+
+def publish_refused(shared: Shared, query: Query, error: BaseException) -> None:
+    """Publish `CallFailed`: a durable call's answer was not kept (given back), `error`."""
+    if shared.events.active:
+        shared.events.publish(
+            events.CallFailed(
+                shared.name,
+                query.id,
+                query.serving_rr,
+                query.server,
+                type(error).__name__,
+                str(error),
+            )
+        )
+
+
+def publish_forgotten(shared: Shared, query: Query, reason: str) -> None:
+    """Publish `QueryForgotten`: the consumer no longer holds `query` (`reason`)."""
+    if shared.events.active:
+        shared.events.publish(
+            events.QueryForgotten(shared.name, query.id, query.serving_rr, reason)
+        )
+
+
+# -- answers ---------------------------------------------------------------------------
+
+
+class Answers:
+    """Records the answers to this registrar's calls, and their failures."""
+
+    def __init__(self, shared: Shared, flights: Flights, holdings: Holdings) -> None:
+        self.registrar = shared
+        self.flights = flights
+        self.holdings = holdings
+        self.texts = ClientTexts(shared)
+
+    def on_pending(self, message: Pending, reply: Reply) -> None:
+        query_id = message.record.query.id
+        if query_id not in self.registrar.catalog.clients:  # (else a retry of one held)
+            record = message.record
+            if self.owner_gone(record):  # a late sub-call: kept as a call of its own, so a
+                record = ClientRecord(record.query, None)  # crash meanwhile gives it back
+            self.registrar.catalog.add_client(record)
+            self.texts.show(query_id)
+            failed = self.registrar.commit()
+            if failed is not None:  # not durable: the Load must not leave (rule 16)
+                self.registrar.catalog.remove_client(query_id)
+                self.registrar.commit()
+                reply.set_error(failed)
+                return
+        self.flights.hold_attempt(query_id, message.attempt)
+        reply.set_result(None)  # durable: the Load may leave now (rule 16)
+
+    def on_client_loaded(self, message: ClientLoaded, _reply: Reply) -> None:
+        """Record a call's answer (a `DurableLoaded` one too: it is a `ClientLoaded`)."""
+        try:
+            self.record_answer(message)
+        finally:  # (also when recording failed: what waits for it must not wait for good)
+            self.flights.answered(message.record.query.id, message.attempt)
+
+    def record_answer(self, message: ClientLoaded) -> None:
+        """Decide what `message`'s answer does (`flight.decide`), and do it.
+
+        A durable call's answer (`DurableLoaded`) is kept only while its caller still
+        waits: the actor takes the attempt before it commits, so a caller whose time runs
+        out meanwhile reads the answer instead. A caller that withdrew first told the
+        provider an Abandon after its Load; a stop failed it: its answer is not kept.
+        """
+        query = message.record.query
+        held = self.registrar.catalog.clients.get(query.id)
+        retry = self.flights.was_unsettled(query.id) or (held is not None and held.loaded)
+        # (a retry of a call that failed as it died, or that its provider kept)
+        self.flights.reset(query.id, None)
+        ours = self.flights.take_attempt(query.id, message.attempt)  # (not a same-id retry's)
+        durable = isinstance(message, DurableLoaded)
+        withdrawn = durable and message.attempt.take() is not AttemptState.RECORDING
+        try:
+            action = decide(
+                durable=durable,
+                withdrawn=withdrawn,
+                dependency=message.record.parent is not None,
+                stopping=self.registrar.stopping,
+                owner_gone=self.owner_gone(message.record),
+            )
+            self.act(action, message, ours=ours, retry=retry)
+        except BaseException as exc:  # an attempt taken must be settled on every path
+            if durable and not withdrawn:
+                message.attempt.settle(error=exc)  # (no-op if it was)
+            raise
+
+    def act(self, action: Action, message: ClientLoaded, *, ours: bool, retry: bool) -> None:
+        """Run `action` on `message`'s answer (`flight.Action` says what each does).
+
+        `ours`: `message` is the attempt that wrote the pending record (not a same-id
+        retry's). `retry`: the id was held or failed as its provider died before.
+        """
+        query = message.record.query
+        match action:
+            case Action.KEEP | Action.COMMIT:
+                self.keep(message, retry=retry)
+            case Action.LEAVE:
+                pass  # its caller gave the id back; its CallFailed removes the record
+            case Action.GIVE_BACK:
+                self.drop_pending(query, forget_record=ours)
+            case Action.REFUSE:
+                self.drop_pending(query, forget_record=ours, reason="registrar stopped")
+                error = RegistrarStoppedError(
+                    f"registrar {self.registrar.name!r} stopped during the call"
+                )
+                publish_refused(self.registrar, query, error)
+                message.attempt.settle(error=error)
+            case Action.FORGET:  # its caller has the answer, given back here
+                publish_answered(self.registrar, message.record, retry=False)  # (before the
+                publish_forgotten(self.registrar, query, "registrar stopped")  # commit)
+                self.drop_pending(query, forget_record=ours, reason=None)
+            case Action.RELEASE_LATE:
+                publish_answered(self.registrar, message.record, retry=retry)
+                publish_forgotten(self.registrar, query, "late dependency")
+                self.give_back_late_dependency(message)
+
+    def keep(self, message: ClientLoaded, *, retry: bool) -> None:
+        """Record an answer (`Action.KEEP`), or commit a durable one and answer its
+        caller (`Action.COMMIT`)."""
+        catalog = self.registrar.catalog
+        query = message.record.query
+        durable = isinstance(message, DurableLoaded)
+        if durable and self.unstorable(message):
+            return
+        if query.id in catalog.clients:  # written as pending before the load was sent
+            catalog.client_loaded(query.id, query.response)
+        else:
+            catalog.add_client(message.record)
+            self.texts.show(query.id)
+        told = answer_event(self.registrar, message.record, retry=retry)
+        failed = self.registrar.commit(*told)  # (written with its record)
+        if failed is not None and durable:  # not kept
+            give_back(query.serving_rr, query.id, self.registrar.name)
+            self.holdings.forget(query.id)
+            publish_refused(self.registrar, query, failed)
+            message.attempt.settle(error=failed)
+            return
+        if failed is not None:  # kept in memory: written with the next write
+            self.registrar.publish(*told)
+        self.holdings.held(query.id, message.on_status)
+        if durable:
+            message.attempt.settle(query.response)
+
+    def unstorable(self, message: ClientLoaded) -> bool:
+        """A durable call's response this catalog cannot store: give it back, fail the call.
+
+        (A caller that records its own answer checks the response itself, see `calls.py`.)
+        """
+        query = message.record.query
+        try:
+            check_picklable(query.response, f"the response of '{query.serving_rr}/{query.server}'")
+        except ConfigError as exc:
+            self.drop_pending(query)
+            publish_refused(self.registrar, query, exc)
+            message.attempt.settle(error=exc)
+            return True
+        return False
+
+    def drop_pending(
+        self, query: Query, *, forget_record: bool = True, reason: str | None = "in doubt"
+    ) -> None:
+        """An answer this registrar does not keep: give `query`'s id back to its provider
+        and forget its pending record, if it has one (with `forget_record`).
+
+        `reason`: what its `QueryForgotten` says if a restore had listed the record (a
+        call in flight when the last run died); `None`: the caller published it.
+        """
+        give_back(query.serving_rr, query.id, self.registrar.name)
+        record = self.registrar.catalog.clients.get(query.id)
+        if forget_record and record is not None and not record.loaded:
+            self.holdings.forget(query.id, reason=reason)
+
+    def owner_gone(self, record: ClientRecord) -> bool:
+        """Whether `record` is a dependency of a resource that failed or is unloading.
+
+        Its load returned (or raised) while a sub-call it started was still in flight:
+        the resource's dependencies were released already, so this one would never be.
+        """
+        if record.parent is None:
+            return False
+        owner = self.registrar.catalog.resources.get(record.parent)
+        return owner is None or owner.state is ResourceState.UNLOADING
+
+    def give_back_late_dependency(self, message: ClientLoaded) -> None:
+        """Release a dependency that arrived after its resource's own release (rule 4).
+
+        The call itself succeeded (its caller has the response, or gets it now), but the
+        id is given back at once: nothing could ever release it otherwise.
+        """
+        query = message.record.query
+        logger.warning(
+            "registrar %s: call %s to '%s/%s' returned after the load that made it had "
+            "failed or was unloading; releasing it",
+            self.registrar.name,
+            query.id,
+            query.serving_rr,
+            query.server,
+        )
+        self.drop_pending(query, reason=None)  # (a durable consumer wrote it as pending)
+        if isinstance(message, DurableLoaded):  # (taken by `record_answer`)
+            message.attempt.settle(query.response)
+
+    def on_call_failed(self, message: CallFailed, _reply: Reply) -> None:
+        known = self.registrar.catalog.clients.get(message.query_id)
+        publish_failed(
+            self.registrar,
+            message,
+            retry=self.flights.was_unsettled(message.query_id)
+            or (known is not None and known.loaded),
+        )
+        current = self.flights.attempt_of(message.query_id)
+        self.flights.take_attempt(message.query_id, message.attempt)
+        if current is None or current is message.attempt:
+            # (set if it may hold the id: a retry may follow; settled, or unsettled again)
+            self.flights.reset(message.query_id, message.serving_rr)
+        record = self.registrar.catalog.clients.get(message.query_id)
+        try:
+            if current is not None and current is not message.attempt:
+                pass  # a stale failure of an earlier attempt: the record is a retry's
+            elif record is not None and record.loaded and not message.withdrawn:
+                pass  # a failed retry of an id this registrar holds: it still holds it
+            elif record is not None:
+                self.holdings.forget(message.query_id, reason="withdrawn")
+        finally:
+            self.flights.answered(message.query_id, message.attempt)
+
+
+# -- holdings --------------------------------------------------------------------------
+
+
+class Holdings:
+    """What goes with the client records of the queries this registrar holds."""
+
+    def __init__(
+        self,
+        shared: Shared,
+        flights: Flights,
+        clients: Clients,
+        targets: dict[str, tuple[Query, StatusCallback]],
+    ) -> None:
+        self.registrar = shared
+        self.flights = flights
+        self.clients = clients
+        self.status_callbacks: dict[str, StatusCallback] = {}  # query id -> its callback
+        self.targets = targets  # what the status desk of this process reads of it
+        self.epoch = 0  # how many `Reconcile` lists it built (`new_epoch`)
+        self.answered_in: dict[str, int] = {}  # query id -> its answer's epoch (none: 0)
+        self.restored = set(shared.catalog.clients)  # listed by its `CatalogRestored`
+
+    # -- holding and forgetting queries -------------------------------------------------
+
+    def held(self, query_id: str, on_status: StatusCallback | None) -> None:
+        """`query_id`'s answer was recorded now (in this `epoch`), with its status
+        callback (if any)."""
+        self.answered_in[query_id] = self.epoch  # (a reconcile's list left before?)
+        if on_status is not None:
+            self.status_callbacks[query_id] = on_status
+            self.publish_target(query_id)
+
+    def forget(self, query_id: str, *, commit: bool = True, reason: str | None = "unload") -> None:
+        """Forget a query this registrar held: its record and its status callback.
+
+        With `commit=False` the caller commits (once, after forgetting several).
+        `reason` is what its `QueryForgotten` says, published (before the commit) for a
+        record whose holding was told: one answered here (`held`: its `CallAnswered`),
+        or one a restore listed (`CatalogRestored`), answered or not (issue 40: a
+        restored call in flight was dropped unannounced). `None`: the caller published it.
+        """
+        record = self.registrar.catalog.clients.get(query_id)
+        if record is not None:
+            told = query_id in self.answered_in or query_id in self.restored
+            self.restored.discard(query_id)
+            if told and reason is not None:
+                publish_forgotten(self.registrar, record.query, reason)
+            self.registrar.catalog.remove_client(query_id)
+            self.status_callbacks.pop(query_id, None)
+            self.targets.pop(query_id, None)
+            self.answered_in.pop(query_id, None)
+            if commit:
+                self.registrar.commit()
+
+    def callback_of(self, query_id: str) -> StatusCallback | None:
+        """The client status callback of query `query_id`, if it has one."""
+        return self.status_callbacks.get(query_id)
+
+    def publish_target(self, query_id: str) -> None:
+        """Let the status desk of this process run `query_id`'s callback without this
+        mailbox (`status.py`): a loaded query with a callback that is not a dependency
+        (a dependency's status climbs from here, on this actor)."""
+        record = self.registrar.catalog.clients.get(query_id)
+        callback = self.status_callbacks.get(query_id)
+        if record is None or callback is None or record.parent is not None or not record.loaded:
+            self.targets.pop(query_id, None)
+        else:
+            self.targets[query_id] = (record.query, callback)
+
+    # -- the epochs of `Reconcile` lists (`Reconciling`) --------------------------------
+
+    def new_epoch(self) -> int:
+        """A `Reconcile` list leaves now: its number (answers recorded from now on
+        came after it)."""
+        self.epoch += 1
+        return self.epoch
+
+    def answered_before(self, query_id: str, epoch: int) -> bool:
+        """Whether `query_id`'s answer was recorded before the list of `epoch` left."""
+        return self.answered_in.get(query_id, 0) < epoch
+
+    # -- notices from its providers -----------------------------------------------------
+
+    def on_revoke(self, message: Revoke, _reply: Reply) -> None:
+        if self.flights.parked(message):
+            return
+        for query_id in message.query_ids:
+            self.forget(query_id, commit=False, reason="revoked")
+        self.registrar.commit()
+
+    def on_response_updated(self, message: ResponseUpdated, reply: Reply) -> None:
+        if self.flights.parked(message):
+            return
+        for query_id in message.query_ids:
+            self.registrar.catalog.client_loaded(query_id, message.response)
+            if query_id in self.targets:  # (its query says the new response)
+                self.publish_target(query_id)
+        self.registrar.commit()
+        reply.set_result(None)
+
+    # -- operations the handle asks for -------------------------------------------------
+
+    def on_set_status_callback(self, message: SetStatusCallback, reply: Reply) -> None:
+        if message.query_id not in self.registrar.catalog.clients:
+            raise UnknownQueryError(f"unknown or released query id {message.query_id!r}")
+        self.status_callbacks[message.query_id] = message.callback
+        self.publish_target(message.query_id)
+        reply.set_result(None)
+
+    def on_list_client_queries(self, _message: ListClientQueries, reply: Reply) -> None:
+        reply.set_result([r.query for r in self.registrar.catalog.clients.values() if r.loaded])
+
+    def on_open_client(self, message: OpenClient, reply: Reply) -> None:
+        """The client actor for `target_rr/server`, started on first use (thesis 4.3.3)."""
+        ref = self.registrar.ref
+        assert ref is not None
+        client = self.clients.start(ref, self.registrar.name, message.target_rr, message.server)
+        reply.set_result(client)
+
+
+# -- releases --------------------------------------------------------------------------
+
+
+GONE = (RegistrarUnavailableError, RegistrarStoppedError)
+"""Errors of a provider that died or was stopped: what was sent may or may not have run."""
+
+
+class Releases:
+    """Releases the queries this registrar holds, and gives back what it gives up."""
+
+    def __init__(
+        self, shared: Shared, flights: Flights, holdings: Holdings, answers: Answers
+    ) -> None:
+        self.registrar = shared
+        self.flights = flights
+        self.holdings = holdings
+        self.answers = answers
+        self.releasing: set[str] = set()  # ids whose `Unload` is on its way
+        # id -> provider, of releases that failed as it died or stopped (`release_later`)
+        self.unreleased: dict[str, str] = {}
+
+    # -- releasing one query ------------------------------------------------------------
+
+    def release_dependencies(self, rid: str, then: Callable[[], None]) -> None:
+        """Release every query resource `rid` holds as a dependency; then `then()`."""
+        join = Join(then)
+        for record in self.registrar.catalog.dependencies(rid):
+            self.release_client(record, join.add())
+        join.seal()
+
+    def release_client(self, record: ClientRecord, then: Callable[[], None]) -> None:
+        """Unload one query this registrar holds; the record goes whatever the answer.
+
+        A provider that cannot be reached keeps the id until it reconciles with this
+        registrar after its restart (`reconcile`), which releases it (`unreleased`).
+        """
+        query = record.query
+
+        def answered(_: Any, error: BaseException | None) -> None:
+            self.releasing.discard(query.id)
+            if error is not None and not isinstance(error, UnknownQueryError):
+                logger.warning("releasing %s at %s failed: %s", query.id, query.serving_rr, error)
+            if isinstance(error, GONE):
+                self.unreleased[query.id] = query.serving_rr
+            self.holdings.forget(query.id, reason="stop" if record.parent is None else "dependency")
+            then()
+
+        self.releasing.add(query.id)
+        self.registrar.send(
+            query.serving_rr, lambda reply: Unload(query.id, self.registrar.name, reply), answered
+        )
+
+    def on_release(self, message: Release, reply: Reply) -> None:
+        query_id = message.query_id
+        record = self.registrar.catalog.clients.get(query_id)
+        if record is None or not record.loaded:
+            raise UnknownQueryError(f"unknown or released query id {query_id!r}")
+        query = record.query
+
+        def answered(_: Any, error: BaseException | None) -> None:
+            self.releasing.discard(query_id)
+            if isinstance(error, GONE):  # it may or may not have run it: reconciling
+                reply.set_error(self.release_later(query, error))  # completes it
+                return
+            # The provider released the id unless it failed otherwise: it was unknown
+            # there, or its unload callback overran `unload_timeout` (a CallTimeoutError
+            # only the provider's answer carries here; the caller's own is its handle's).
+            released = error is None or isinstance(error, UnknownQueryError | CallTimeoutError)
+            if not released:
+                reply.set_error(error)  # type: ignore[arg-type]  # e.g. its backup is full
+                return
+            if isinstance(error, UnknownQueryError):
+                logger.warning("provider %s no longer knew %s", query.serving_rr, query.id)
+            self.holdings.forget(query_id)
+            if isinstance(error, CallTimeoutError):
+                reply.set_error(error)
+            else:
+                reply.set_result(None)
+
+        self.releasing.add(query_id)
+        self.registrar.send(
+            query.serving_rr, lambda r: Unload(query_id, self.registrar.name, r), answered
+        )
+
+    def release_later(self, query: Query, error: BaseException) -> RrError:
+        """The `Unload` of `query` failed as its provider died or stopped (`error`).
+
+        This registrar gave the id up: it forgets it now (a second `unload` raises
+        `UnknownQueryError`) and keeps it as `unreleased` until the provider's next
+        `Reconcile` was answered, which does not list it: the provider releases it if it
+        still holds it (its `unload` runs once), and nobody hears `FATAL` for it (its
+        consumer asked to release it). Returns the error for the caller, which says so.
+        """
+        self.unreleased[query.id] = query.serving_rr
+        self.holdings.forget(query.id, reason="unload unanswered")
+        kind = (
+            RegistrarStoppedError
+            if isinstance(error, RegistrarStoppedError)
+            else RegistrarUnavailableError
+        )
+        told = kind(
+            f"{error}; query {query.id} is released: '{query.serving_rr}' releases it when "
+            "it reconciles with this registrar after its restart (its unload runs once)"
+        )
+        told.__cause__ = error
+        return told
+
+    # -- what `Reconciling` asks of it --------------------------------------------------
+
+    def is_releasing(self, query_id: str) -> bool:
+        """Whether the `Unload` of `query_id` is on its way."""
+        return query_id in self.releasing
+
+    def unreleased_at(self, serving_rr: str) -> frozenset[str]:
+        """The ids released while `serving_rr` died or stopped (`unreleased`)."""
+        return frozenset(q for q, p in self.unreleased.items() if p == serving_rr)
+
+    def settle_listed(self, serving_rr: str, listing: Listing | None) -> None:
+        """`serving_rr` answered `listing`'s `Reconcile`: forget the releases it left
+        out (it released them). Without a listing (`serving_rr` is gone for good): all."""
+        for query_id in [q for q, p in self.unreleased.items() if p == serving_rr]:
+            if listing is None or query_id in listing.held or query_id in listing.left_out:
+                del self.unreleased[query_id]
+
+    # -- this registrar stops -----------------------------------------------------------
+
+    def withdraw_pending(self, error: RrError) -> None:
+        """This registrar stops: give up its durable calls in flight; their callers get `error`.
+
+        The `Abandon` first, then the record, so a crash in between leaves nothing at the
+        provider.
+        """
+        for record in list(self.registrar.catalog.clients.values()):
+            attempt = self.flights.attempt_of(record.query.id)
+            if attempt is not None:
+                self.flights.take_attempt(record.query.id, attempt)
+            if record.parent is None and not record.loaded and attempt is not None:
+                give_back(record.query.serving_rr, record.query.id, self.registrar.name)
+                self.answers.on_call_failed(
+                    CallFailed(
+                        record.query.id,
+                        attempt,
+                        withdrawn=True,
+                        provider=record.query.serving_rr,
+                        server=record.query.server,
+                        why="registrar stopped",
+                    ),
+                    NO_REPLY,
+                )
+                attempt.fail(error)
+
+    def give_back_unsettled(self) -> None:
+        """This registrar stops: give back the ids of calls that failed as their provider
+        died, which it would no longer retry (also those the provider kept for a retry
+        when it reconciled: `Flights`), and of releases that failed so."""
+        self.flights.give_back_unsettled()
+        for query_id, serving_rr in self.unreleased.items():
+            give_back(serving_rr, query_id, self.registrar.name)
+        self.unreleased.clear()
+
+
+# -- reconciling -----------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Listing:
+    """What one `Reconcile` told a provider, as it was when the list left.
+
+    Its answer ("the ids of the list I do not know") is about the catalog as it was
+    then: only records answered before it left (`epoch`) are settled by it. `left_out`:
+    the ids whose release failed as the provider died (it releases them).
+    """
+
+    held: tuple[str, ...]
+    due: frozenset[str]
+    left_out: frozenset[str]
+    epoch: int
+
+
+class Reconciling:
+    """Reconciles what this registrar holds at providers with what they hold for it.
+
+    `everyone`: with every registrar of the system, not only the providers its catalog
+    names (set when it restores a backup); `asked_to_reconcile`: providers that asked
+    while setup ran.
+    """
+
+    def __init__(
+        self,
+        shared: Shared,
+        flights: Flights,
+        holdings: Holdings,
+        releases: Releases,
+        due: DueAnswers,
+        redeliver: Callable[[Any], None],
+    ) -> None:
+        self.registrar = shared
+        self.flights = flights
+        self.holdings = holdings
+        self.releases = releases
+        self.due = due
+        self.redeliver = redeliver
+        self.asked_to_reconcile: set[str] = set()
+        self.everyone = False
+
+    def expect_reconcile(self, providers: Iterable[str]) -> None:
+        """Reconcile with `providers` too once this registrar serves (`reconcile_all`)."""
+        self.asked_to_reconcile.update(providers)
+
+    def reconcile_all(self) -> None:
+        """This registrar serves (again): reconcile with every provider it holds ids at.
+
+        Also with those that asked while setup ran (`ReconcileAsk`), and, restored from a
+        backup (`everyone`), with every registrar of the system it can reach now: its
+        backup does not name every provider that may hold ids of it. An id it released
+        while its provider was down (`Releases.unreleased`, kept in memory only), a call
+        that failed as its provider died (`Flights.unsettled`), or a record lost with a
+        save interval has no row left; killed before that provider's restart asked it to
+        reconcile, it would hold such an id there for good. A provider it holds nothing
+        at answers an empty list at once (and releases what it held for this one).
+        """
+        providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
+        providers |= self.asked_to_reconcile
+        if self.everyone:
+            providers |= DIRECTORY.names() - {self.registrar.name}
+        self.asked_to_reconcile.clear()
+        for serving_rr in sorted(providers):
+            self.reconcile(serving_rr)
+
+    # -- what it holds at a provider --------------------------------------------------
+
+    def holds_at(self, serving_rr: str) -> bool:
+        """Whether this registrar holds ids at `serving_rr` (records, failed calls, or
+        releases to complete there)."""
+        return (
+            self.flights.held_at(serving_rr)
+            or bool(self.releases.unreleased_at(serving_rr))
+            or any(
+                record.query.serving_rr == serving_rr
+                for record in self.registrar.catalog.clients.values()
+            )
+        )
+
+    def listing(self, serving_rr: str, due: frozenset[str]) -> Listing:
+        """The list of a `Reconcile` to `serving_rr` that leaves now, a new epoch (`due`:
+        the ids whose answer is due now, at any provider: listed too, harmless, reported
+        unknown)."""
+        held = {
+            query_id
+            for query_id, record in self.registrar.catalog.clients.items()
+            if record.query.serving_rr == serving_rr
+        }
+        held |= {q for q, provider in self.flights.unsettled().items() if provider == serving_rr}
+        held |= due
+        left_out = self.releases.unreleased_at(serving_rr)
+        epoch = self.holdings.new_epoch()
+        return Listing(tuple(sorted(held - left_out)), due, left_out, epoch)
+
+    def settle_listed(
+        self, serving_rr: str, listing: Listing | None = None, unknown: Iterable[str] = ()
+    ) -> None:
+        """`serving_rr` answered `listing`'s `Reconcile` (`unknown`: the listed ids it
+        does not know): settle the failed calls and the releases it listed or left out.
+        Without a listing (`serving_rr` is gone for good): all of them."""
+        self.flights.settle_listed(serving_rr, listing, unknown)
+        self.releases.settle_listed(serving_rr, listing)
+
+    def on_reconcile_ask(self, message: ReconcileAsk, _reply: Reply) -> None:
+        if not message.holds_yours and not self.holds_at(message.serving_rr):
+            return  # (told as every registrar of the system is: nothing to reconcile)
+        if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
+            self.asked_to_reconcile.add(message.serving_rr)
+            return
+        self.reconcile(message.serving_rr)
+
+    def reconcile(
+        self, serving_rr: str, then: Callable[[BaseException | None], None] | None = None
+    ) -> None:
+        """Tell `serving_rr` which ids this registrar holds there (`Reconcile`).
+
+        The provider releases the others it holds for this registrar, and names the ones
+        it no longer knows: their status callbacks get `FATAL` and they are forgotten.
+        The list and the message leave while no call can start (`DueAnswers.frozen`), so
+        a call sent later reaches the provider after it. The provider's "unknown" is
+        about its catalog as the list found it, so it settles only the records answered
+        before the list left (`Listing.epoch`): a call due then may send its `Load` after
+        the `Reconcile` (its caller's thread may still be on its way to the carrier), and
+        a retry of a call that failed as the provider died may be sent and answered
+        after it; their own answers decide. Releases that failed as the provider died
+        are left out of the list, so the provider releases them (`Releases.unreleased`).
+        `then(error)` runs (on this actor) once the answer was handled: `None`, or why it
+        failed (`life.py`'s presence retries).
+        """
+        with self.due.frozen() as due:
+            listing = self.listing(serving_rr, due)
+            self.registrar.send(
+                serving_rr,
+                lambda reply: Reconcile(self.registrar.name, listing.held, reply),
+                lambda unknown, error: self.reconciled(serving_rr, unknown, error, listing, then),
+            )
+
+    def reconciled(
+        self,
+        serving_rr: str,
+        unknown: Any,
+        error: BaseException | None,
+        listing: Listing,
+        then: Callable[[BaseException | None], None] | None = None,
+    ) -> None:
+        """The provider's answer to the `Reconcile` of `listing`: report and forget what
+        it lost."""
+        if error is not None:  # not reachable: it asks for a Reconcile when it is back
+            logger.debug(
+                "reconciling %s with %s failed: %s", self.registrar.name, serving_rr, error
+            )
+            if then is not None:
+                then(error)
+            return
+        self.settle_reconciled(serving_rr, unknown, listing)
+        if then is not None:
+            then(None)
+
+    def settle_reconciled(self, serving_rr: str, unknown: Any, listing: Listing) -> None:
+        """Report and forget the ids `serving_rr` answered it no longer knows.
+
+        Only records that were as `listing` found them: answered before it left, not due
+        then or now, not being released. One answered after it (a retry, a call due) is
+        held there by its own answer.
+        """
+        lost: dict[str, list[str]] = {}
+        for query_id in unknown:
+            record = self.registrar.catalog.clients.get(query_id)
+            if (
+                record is None
+                or not record.loaded
+                or record.query.serving_rr != serving_rr
+                or query_id in listing.due
+                or query_id in self.due
+                or not self.holdings.answered_before(query_id, listing.epoch)
+                or self.releases.is_releasing(query_id)
+            ):
+                continue
+            lost.setdefault(record.query.server, []).append(query_id)
+        # What was unsettled, was listed and survived the reconcile is held by the provider
+        # now: a retry finds it; a call never retried is released at its next restart, or
+        # given back when this registrar stops (`Flights.kept_for_retry`).
+        # What was left out of the list, it released.
+        self.settle_listed(serving_rr, listing, unknown)
+        for server, ids in lost.items():
+            logger.warning(
+                "registrar %s: %s/%s no longer knows %d of the queries held there "
+                "(its restart lost them, or they were held at a registrar of its name "
+                "that yielded it, rule 22): FATAL, and they are forgotten",
+                self.registrar.name,
+                serving_rr,
+                server,
+                len(ids),
+            )
+            self.report_lost(f"{serving_rr}/{server}", tuple(ids), forgotten="unknown at reconcile")
+
+    def lose_provider(self, serving_rr: str) -> None:
+        """Provider `serving_rr` is gone and nobody will restart it (rule 19): the ids
+        held there get `FATAL` (and up their dependents), then they are forgotten."""
+        lost: dict[str, list[str]] = {}
+        for query_id, record in list(self.registrar.catalog.clients.items()):
+            if record.query.serving_rr == serving_rr and record.loaded:
+                lost.setdefault(record.query.server, []).append(query_id)
+        self.settle_listed(serving_rr)  # nobody holds them there any more
+        for server, ids in sorted(lost.items()):
+            logger.warning(
+                "registrar %s: %s is gone and nobody will restart it: FATAL to the %d "
+                "queries held at %s/%s, and they are forgotten",
+                self.registrar.name,
+                serving_rr,
+                len(ids),
+                serving_rr,
+                server,
+            )
+            self.report_lost(
+                f"{serving_rr}/{server}",
+                tuple(ids),
+                "the provider is gone and nobody will restart it",
+                forgotten="provider lost",
+            )
+
+    def report_lost(
+        self,
+        source: str,
+        ids: tuple[str, ...],
+        why: str = (
+            "the provider no longer knows this query (it lost it in a restart, or it was "
+            "held at a registrar of its name that yielded it: rule 22)"
+        ),
+        *,
+        forgotten: str,
+    ) -> None:
+        """`FATAL` to the status callbacks of `ids` (and up their dependents), then forget them.
+
+        Delivered as a provider's `StatusNotice` would be (rule 9), on this thread: the
+        callbacks and the dependents it reaches are taken from the records before they
+        are forgotten, right after. `forgotten` is the reason their `QueryForgotten` says.
+        """
+        notice = StatusNotice(
+            ids,
+            Status.FATAL,
+            why,
+            source,
+            str(uuid.uuid4()),
+            FutureReply(),  # (nobody waits for the acknowledgements)
+            sent_at=time.time(),
+        )
+        self.redeliver(notice)
+        for query_id in ids:
+            self.holdings.forget(query_id, commit=False, reason=forgotten)
+        self.registrar.commit()
+
+
+# -- client actors ---------------------------------------------------------------------
+
+
+class ClientActor(Actor):
+    """The consumer-side endpoint for one target server: it relays fetches."""
+
+    def __init__(
+        self,
+        registrar_ref: pykka.ActorRef[Any],
+        origin_rr: str,
+        target_rr: str,
+        server: str,
+    ) -> None:
+        super().__init__()
+        self.registrar_ref = registrar_ref
+        self.origin_rr = origin_rr
+        self.target_rr = target_rr
+        self.server = server
+
+    def on_late(self, envelope: Any) -> None:
+        """A fetch that reached this client after it ended is answered, not dropped."""
+        refuse(envelope)
+        reply = getattr(envelope.message, "reply", None)
+        if reply is not None:
+            reply.set_error(DIRECTORY.gone_error(self.origin_rr))
+
+    def on_receive(self, message: Any) -> None:
+        if isinstance(message, FetchVia):
+            try:
+                DIRECTORY.lookup(self.target_rr).tell(
+                    Fetch(message.server, self.origin_rr, message.reply)
+                )
+            except RrError as exc:
+                message.reply.set_error(exc)
+
+
+class Clients:
+    """A registrar's client actors by `(target registrar, server)`: its one client cache.
+
+    Its actor starts them (`start`, on the actor's thread) and stops them; its handle
+    looks them up from any thread (`get`, one dict read).
+    """
+
+    __slots__ = ("_refs",)
+
+    def __init__(self) -> None:
+        self._refs: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
+
+    def get(self, target_rr: str, server: str) -> pykka.ActorRef[ClientActor] | None:
+        """The client actor for `target_rr/server`, if one was started (any thread)."""
+        return self._refs.get((target_rr, server))
+
+    def start(
+        self, registrar_ref: pykka.ActorRef[Any], origin_rr: str, target_rr: str, server: str
+    ) -> pykka.ActorRef[ClientActor]:
+        """The client actor for `target_rr/server`, started on first use (actor thread)."""
+        key = (target_rr, server)
+        client = self._refs.get(key)
+        if client is None:
+            client = ClientActor.start(registrar_ref, origin_rr, target_rr, server)
+            self._refs[key] = client
+        return client
+
+    def stop_all(self) -> None:
+        """Stop every client actor (the registrar stops or died; actor thread)."""
+        for client in list(self._refs.values()):
+            client.stop(block=True, timeout=5.0)

@@ -1,0 +1,1037 @@
+"""A registrar actor's life: start (restore, settle what a crash cut short), serve, hear of
+its peers (lost for good, reachable again), stop or die, and say so.
+
+```
+ SETTING_UP ──ready──► SERVING ──stop()──► STOPPING ──► ENDED
+      └──────────────────┴── crash (a bug, testing.crash) ─────► ENDED (death)
+
+ start (Lifecycle.on_start): CatalogRestored; join the membership (the peers lost
+   meanwhile are heard now); Restoring.settle_in_doubt: each resource a crash cut short
+   (rule 16) ─► InDoubt, its dependencies released, forgotten (held out of the backup
+   while `setup` runs); each call in flight then given back; unload_unheld ─► the sweep
+   of the restored catalog, one slice per turn of the mailbox, after it serves
+ serve (now, or on Ready once `setup` returned; Reachable: a carrier serves it):
+   as a provider ReconcileAsk to its consumers (after the sweep, which names them), as
+   a consumer Reconcile with its providers (`consumer.py`), with everyone if restored
+ peers (Presence): the membership ─ PeerLost(X) ─► lose(X): what X held here released
+   (`provider.py`), what is held at X FATAL, then forgotten (rule 19);
+   PeerLost(X, stopped): only the release (rule 12); ConsumerDown (another process's
+   mark) ─► into this process's membership; PeerReachable(X) ─► Reconcile with X,
+   retried (ReconcileRetry: a bounded backoff, or `call_timeout` unanswered) until it
+   is answered (rule 20), and ReconcileAsk to X if X holds ids here
+ stop (Stop; YieldName, rule 22: what it serves released and unloaded first):
+   its durable calls withdrawn, failed calls and releases given back, what it holds
+   released, newest first (rule 12) ─► the unloads under way, until `unloads_until`
+   ─► RegistrarStopped; the backup flushed and closed ─► its children ─► ENDED
+ death (on_failure): every waiter failed at once (RegistrarUnavailableError), nothing
+   more written; no restart expected ─► gone_for_good: the death watch
+ the death watch (functions the supervisor and the process layer call):
+   gone_for_good(X, also) ─► this process's membership records X; ConsumerDown(X) to
+   each of `also` elsewhere │ back(X) │ tell_gone(Y, X) │ lost_everything(X):
+   ReconcileAsk to all
+ the outside's views of it: Served (a carrier: listening, peer_lost, peer_reachable,
+   yield_name), Hearing (this process's membership: peer_lost, peer_stopped,
+   peer_reachable), each a message to its mailbox
+```
+
+A clean stop keeps what its servers serve (a restart needs it). A provider that its
+supervisor restarts is not lost (rule 15): nobody sends a `ConsumerDown` for it, its
+restored catalog keeps its consumers' ids, and it reconciles by itself when it serves
+again. Who is gone for good is known per process, by its membership
+(`rr_actors._core.membership`), fed by the carriers' liveness
+(`_transport/messenger.py`), by the death watch here, and by another process's
+`ConsumerDown`; it tells every registrar of the process `PeerLost`, and one that starts
+later the names gone then. The layers above (`_process`, `_supervision`) call the death
+watch and never build a registrar message themselves.
+
+Each part owns its state: the open requests, the stop under way and the flush timer
+(`Lifecycle`), the in-doubt ids and the sweep's progress (`Restoring`), the reconcile
+rounds being retried (`Presence`); the phase is the record's (`state.py`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import hashlib
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterable
+from typing import Any, Protocol
+
+import pykka
+
+from rr_actors import events
+from rr_actors._catalog import Catalog, ClientRecord, Resource, ResourceState
+from rr_actors._core.actor import Actor, OneShotFuture, refuse
+from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
+from rr_actors._core.membership import MEMBERSHIP
+from rr_actors._core.replies import FutureReply
+from rr_actors._core.timers import Cancellable, Timer, thread_timer
+from rr_actors._registrar.calls import ClientLoaded
+from rr_actors._registrar.consumer import Clients, Flights, Holdings, Reconciling, Releases
+from rr_actors._registrar.messages import (
+    ConsumerDown,
+    Crash,
+    Flush,
+    PeerLost,
+    PeerReachable,
+    Reachable,
+    Ready,
+    ReconcileAsk,
+    ReconcileRetry,
+    Save,
+    SettleInDoubt,
+    Snapshot,
+    Stop,
+    YieldName,
+    give_back,
+)
+from rr_actors._registrar.provider import Provider, Servers, Teardown, Unloading
+from rr_actors._registrar.state import NO_REPLY, OpenReply, Phase, Shared
+from rr_actors.config import RegistrarConfig
+from rr_actors.errors import (
+    CatalogWriteError,
+    ConfigError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    RrError,
+    UnknownQueryError,
+)
+from rr_actors.events.kinds import LISTED_ROWS, Rows
+
+__all__ = [
+    "RETRY_FIRST",
+    "RETRY_MAX",
+    "ActorHere",
+    "CatalogView",
+    "Hearing",
+    "Lifecycle",
+    "Network",
+    "Presence",
+    "Restoring",
+    "Servable",
+    "Served",
+    "back",
+    "check_network",
+    "cut_short",
+    "gone",
+    "gone_for_good",
+    "lost_everything",
+    "publish_restored",
+    "publish_stopped",
+    "retry_delay",
+    "serve_on",
+    "tell_gone",
+]
+
+logger = logging.getLogger("rr_actors")
+
+
+@dataclasses.dataclass(frozen=True)
+class CatalogView:
+    """An immutable copy of a registrar's catalog rows (for inspection and tests).
+
+    Attributes:
+        resources: the served resources, each with a copy of its consumers.
+        clients: the client records (queries this registrar holds).
+        servers: the names of its registered resource servers.
+        in_doubt: the id and request display text of each resource found in doubt at
+            its restore (`ResourceRegistrar.in_doubt`).
+    """
+
+    resources: tuple[Resource, ...]
+    clients: tuple[ClientRecord, ...]
+    servers: tuple[str, ...] = ()
+    in_doubt: tuple[tuple[str, str | None], ...] = ()
+
+
+class Lifecycle:
+    """Starts, stops and buries one registrar actor; answers the handle's requests."""
+
+    def __init__(
+        self,
+        shared: Shared,
+        provider: Provider,
+        teardown: Teardown,
+        restoring: Restoring,
+        flights: Flights,
+        releases: Releases,
+        reconciling: Reconciling,
+        presence: Presence,
+        servers: Servers,
+        clients: Clients,
+        actor: Actor,
+        died: threading.Event,
+        ended: OneShotFuture[None],
+    ) -> None:
+        self.registrar = shared
+        self.servers = servers
+        self.provider = provider
+        self.teardown = teardown
+        self.restoring = restoring
+        self.flights = flights
+        self.releases = releases
+        self.reconciling = reconciling
+        self.presence = presence
+        self.clients = clients  # its client actors, stopped with it
+        self.actor = actor  # (the actor machinery only: its mailbox, `end_now`)
+        self.died = died  # set once a crash was fully handled (death watch included)
+        self.ended = ended  # set once the actor's thread handed on its last message
+        self.open_requests: set[OpenReply] = set()  # not answered yet: a death fails them
+        self.stop_waiters: list[Reply] | None = None  # while a stop is under way
+        self.flush_timer: Cancellable | None = None
+        self.hearer = Hearing(shared.peer)  # what this process's membership tells it
+
+    # -- start ------------------------------------------------------------------------
+
+    def on_start(self) -> None:
+        publish_restored(self.registrar)  # before anything is served
+        # from now on it hears who is lost (`PeerLost`); who was lost before it started
+        # (while it was down, or before its restore) it hears now: a mark is never missed
+        gone = MEMBERSHIP.join(self.hearer)
+        # every provider the restored catalog knows, also those settle_in_doubt forgets
+        providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
+        self.reconciling.expect_reconcile(providers)
+        # what it released or gave up while a provider was down is in no row: with a
+        # backup, it reconciles with every registrar of the system (rule 20)
+        self.reconciling.everyone = self.registrar.saver.store is not None
+        self.restoring.settle_in_doubt()
+        self.restoring.unload_unheld()
+        for name, stopped in sorted(gone.items()):  # as if it had heard each mark
+            if stopped:  # (`Presence`)
+                self.presence.stopped(name)
+            else:
+                self.presence.lose(name)
+        self.arm_flush_timer()
+        if self.registrar.phase is Phase.SERVING:  # (else once setup is done: `on_ready`)
+            self.reconcile()
+
+    def reconcile(self) -> None:
+        """It serves: reconcile what its restored catalog says with its peers' catalogs.
+
+        As a provider it asks every consumer holding ids here for the ids it holds
+        (`ReconcileAsk`), as a consumer it tells every provider it holds ids at which
+        ids it holds (`Reconcile`): ids released while one side was down are released,
+        and ids one side lost in its restart are reported to the consumer as `FATAL`.
+        While the sweep of a restored catalog is under way, the provider's side waits
+        for it (it names the consumers to ask: `Restoring`).
+        """
+        self.restoring.ask_consumers()
+        self.reconciling.reconcile_all()
+
+    def on_reachable(self, _message: Reachable, reply: Reply) -> None:
+        """A carrier serves it: the other processes can reach it (and answer it) now."""
+        if self.registrar.phase is Phase.SERVING:  # (during setup, `on_ready` reconciles)
+            self.reconcile()
+        reply.set_result(None)
+
+    def on_ready(self, _message: Ready, reply: Reply) -> None:
+        """Setup is done: serve what waited for it (unknown servers now fail)."""
+        self.registrar.phase = Phase.SERVING
+        self.registrar.servers_settled = True
+        self.provider.serve_held()
+        self.reconcile()
+        reply.set_result(None)
+
+    # -- the save interval ------------------------------------------------------------
+
+    def arm_flush_timer(self) -> None:
+        ref = self.registrar.ref
+
+        def tick() -> None:
+            with contextlib.suppress(pykka.ActorDeadError):
+                assert ref is not None
+                ref.tell(Flush())
+
+        self.flush_timer = self.registrar.saver.schedule(tick)
+
+    def on_flush(self, _message: Flush, _reply: Reply) -> None:
+        if self.registrar.stopping:
+            return
+        try:
+            self.registrar.saver.flush()
+        except CatalogWriteError as exc:  # the changes stay pending: the next flush tries
+            logger.warning("registrar %s: the interval save failed: %s", self.registrar.name, exc)
+        finally:
+            self.arm_flush_timer()
+
+    def on_save(self, _message: Save, reply: Reply) -> None:
+        self.registrar.commit()
+        self.registrar.saver.flush()
+        reply.set_result(None)
+
+    # -- requests from the handle -----------------------------------------------------
+
+    def on_snapshot(self, message: Snapshot, reply: Reply) -> None:
+        """Copy the catalog's rows (a restored row decodes its values here, once); with
+        `check`, after checking the catalog's invariants (a failure is the caller's
+        `AssertionError`, not this registrar's death)."""
+        try:
+            if message.check:
+                self.registrar.catalog.check_invariants()
+            view = CatalogView(
+                resources=tuple(
+                    dataclasses.replace(r, consumers=dict(r.consumers))
+                    for r in self.registrar.catalog.read_all().values()
+                ),
+                clients=tuple(
+                    dataclasses.replace(c) for c in self.registrar.catalog.clients.values()
+                ),
+                servers=tuple(self.registrar.servers),
+            )
+        except Exception as exc:  # noqa: BLE001 - an exception here would kill the registrar
+            reply.set_error(exc)
+            return
+        reply.set_result(view)
+
+    # -- stop -------------------------------------------------------------------------
+
+    def on_yield_name(self, message: YieldName, _reply: Reply) -> None:
+        """Another registrar of this name is kept (rule 22; the carrier no longer serves
+        this one): unload every resource it serves, then stop as `stop()` does.
+
+        It waits `call_timeout` seconds at most for what it serves to be gone (a load
+        under way finishes, then is unloaded; an `unload` runs): then it stops anyway,
+        and what is still under way is in doubt at its next start (rule 16)."""
+        if self.registrar.phase not in (Phase.SETTING_UP, Phase.SERVING):
+            return  # stopping or ended already
+        logger.info("registrar %s yields its name: %s", self.registrar.name, message.reason)
+        self.registrar.phase = Phase.STOPPING  # (new loads are refused from now on)
+        until = time.monotonic() + self.registrar.config.call_timeout
+        stopped = False
+
+        def stop(*_: object) -> None:
+            nonlocal stopped
+            if not stopped:
+                stopped = True
+                timer.cancel()
+                self.on_stop(Stop(FutureReply(), until), NO_REPLY)
+
+        late = self.registrar.come_back(stop)
+        timer = thread_timer(max(0.0, until - time.monotonic()), lambda: late.set_result(None))
+        self.servers.give_up_all(stop)
+
+    def on_stop(self, message: Stop, reply: Reply) -> None:
+        """Unload what this registrar holds as a consumer (newest first), wait for the
+        unloads under way here until `message.unloads_until` (`time.monotonic()`
+        seconds; `None`: no wait), then stop (rule 12)."""
+        if self.stop_waiters is not None:  # one is under way (a yield's, another caller's)
+            self.stop_waiters.append(reply)
+            return
+        self.stop_waiters = []
+        unloads_until = message.unloads_until
+        self.registrar.phase = Phase.STOPPING
+        self.presence.close()  # no more reconcile retries
+        stopped = RegistrarStoppedError(
+            f"registrar {self.registrar.name!r} stopped during the call"
+        )
+        releases = self.releases
+        releases.withdraw_pending(stopped)
+        releases.give_back_unsettled()
+        tops = [
+            r
+            for r in reversed(self.registrar.catalog.clients.values())
+            if r.parent is None and r.loaded
+        ]
+
+        def next_one() -> None:
+            if tops:
+                releases.release_client(tops.pop(0), next_one)
+                return
+            self.wait_for_unloads(unloads_until, finish)
+
+        def finish() -> None:
+            self.registrar.commit()
+            publish_stopped(self.registrar)
+            if self.flush_timer is not None:
+                self.flush_timer.cancel()
+            unsaved: CatalogWriteError | None = None
+            try:
+                self.registrar.saver.close(erase=self.registrar.config.erase_on_destruct)
+            except CatalogWriteError as exc:  # stopped anyway; its caller hears what was lost
+                name = self.registrar.name
+                logger.error("registrar %s stopped without its last changes: %s", name, exc)  # noqa: TRY400
+                unsaved = exc
+            MEMBERSHIP.leave(self.hearer)
+            DIRECTORY.unregister(self.registrar.peer, "stopped")
+            self.stop_children()
+            for waiting in [reply, *(self.stop_waiters or ())]:
+                if unsaved is None:
+                    waiting.set_result(None)
+                else:
+                    waiting.set_error(unsaved)
+            self.fail_waiting(
+                RegistrarStoppedError(f"registrar {self.registrar.name!r} was stopped")
+            )
+            self.registrar.probe("stop_drained", None)
+            self.registrar.phase = Phase.ENDED
+            self.actor.end_now()  # at once: what arrives from now on goes to `on_late`
+
+        next_one()
+
+    def wait_for_unloads(self, until: float | None, then: Callable[[], None]) -> None:
+        """Run `then()` once no unload is under way here, or at `until` (monotonic
+        seconds) at the latest: each unload still under way then is cut short
+        (`UnloadCutShort`; the resource stays unloading in the backup, in doubt at the
+        next start). Its callback runs on, on its worker thread; its answer goes nowhere."""
+        done = False
+        timer: Cancellable | None = None
+
+        def go(*, cut_short: bool) -> None:
+            nonlocal done
+            if done:
+                return
+            done = True
+            if timer is not None:
+                timer.cancel()
+            for resource in self.teardown.under_way.values() if cut_short else ():
+                logger.warning(
+                    "registrar %s: stopped while the unload of %s (%s) was under way; "
+                    "it is in doubt at the next start",
+                    self.registrar.name,
+                    resource.id,
+                    resource.server,
+                )
+                if self.registrar.events.active:
+                    self.registrar.events.publish(
+                        events.UnloadCutShort(self.registrar.name, resource.server, resource.id)
+                    )
+            then()
+
+        if until is not None and self.teardown.under_way:
+            late = self.registrar.come_back(lambda _value, _error: go(cut_short=True))
+            timer = thread_timer(max(0.0, until - time.monotonic()), lambda: late.set_result(None))
+        self.teardown.when_idle(lambda: go(cut_short=False))
+        if not done and until is None:
+            go(cut_short=True)
+
+    def stop_children(self) -> None:
+        for server in self.registrar.servers.values():
+            server.ref.stop(block=True, timeout=5.0)
+        self.clients.stop_all()
+
+    # -- death --------------------------------------------------------------------------
+
+    def on_crash(self, _message: Crash, _reply: Reply) -> None:
+        raise RuntimeError(
+            f"registrar {self.registrar.name!r} was made to crash (rr_actors.testing)"
+        )
+
+    def die(self) -> None:
+        """A crash: fail every waiting caller, release this consumer's ids elsewhere."""
+        self.registrar.phase = Phase.ENDED
+        self.presence.close()
+        MEMBERSHIP.leave(self.hearer)
+        DIRECTORY.unregister(self.registrar.peer, "died")
+        self.fail_waiting(RegistrarUnavailableError(f"registrar {self.registrar.name!r} died"))
+        self.stop_children()
+        if self.flush_timer is not None:
+            self.flush_timer.cancel()
+        self.registrar.saver.close(erase=False, flush=False)  # a crash writes nothing more
+        if not DIRECTORY.restart_expected(self.registrar.name):  # gone for good (rule 19):
+            gone_for_good(self.registrar.name, also=DIRECTORY.names())  # other processes too
+        self.died.set()
+
+    # -- whoever still waits ----------------------------------------------------------
+
+    def fail_waiting(self, error: RrError) -> None:
+        """Answer everyone still waiting on this actor with `error` (it stops or died)."""
+        self.provider.fail_waiting(error)
+        self.flights.fail_waiting(error)
+        for request in list(self.open_requests):
+            request.set_error(error)
+        inbox = self.actor.actor_inbox
+        while not inbox.empty():
+            self.refuse(inbox.get(), error)
+        outcomes = self.flights.due.outcomes
+        while not outcomes.empty():
+            self.refuse_message(outcomes.get(), error)
+
+    def refuse(self, envelope: Any, error: Exception) -> None:
+        """Answer a message this actor will not handle (it stops or died); any thread."""
+        refuse(envelope)  # a pykka ask, e.g. the handle's `ref.stop()`: it must hear
+        self.refuse_message(envelope.message, error)
+
+    def refuse_message(self, message: Any, error: Exception) -> None:
+        """Answer what `message` obliges this actor to, as it will not handle it; any thread."""
+        pending = getattr(message, "reply", None)
+        if pending is not None:
+            pending.set_error(error)
+        if isinstance(message, ClientLoaded):  # its id would leak at the provider
+            query = message.record.query
+            give_back(query.serving_rr, query.id, self.registrar.name)
+            message.attempt.fail(error)
+
+
+# -- restoring -------------------------------------------------------------------------
+
+
+def cut_short(catalog: Catalog) -> list[Resource]:
+    """The restored resources a crash cut short: neither loaded nor unloaded (rule 16)."""
+    return [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]
+
+
+class Restoring:
+    """Settles what the last run left in doubt, and sweeps the restored catalog."""
+
+    def __init__(
+        self,
+        shared: Shared,
+        unloading: Unloading,
+        teardown: Teardown,
+        releases: Releases,
+        holdings: Holdings,
+        *,
+        hold_in_doubt: bool = False,
+    ) -> None:
+        self.registrar = shared
+        self.unloading = unloading
+        self.teardown = teardown
+        self.releases = releases
+        self.holdings = holdings
+        self.hold_in_doubt = hold_in_doubt  # their settling waits for the manager (`setup`)
+        self.in_doubt_ids: frozenset[str] = frozenset()  # found in doubt at the restore
+        self.sweeping = False  # slices of the restored catalog are still to be swept
+        self.swept_origins: set[str] = set()  # registrars holding ids in what was swept
+        self.reconcile_owed = False  # `ask_consumers` came during the sweep
+
+    def settle_in_doubt(self) -> None:
+        """Drop restored resources whose load or unload a crash cut short (rule 16).
+
+        They were reported to the manager as `in_doubt`; what they held as dependencies
+        is released, so nothing they started at other servers leaks. A top-level call that
+        was in flight is given up at its provider (its caller died with the last run), and
+        so is a dependency whose resource is gone (a sub-call that outlived its load).
+        With `hold_in_doubt` (a `setup` runs), their rows stay in the backup as they were
+        until the manager settles them (`on_settle_in_doubt`).
+        """
+        catalog = self.registrar.catalog
+        doubtful = cut_short(catalog)
+        self.in_doubt_ids = frozenset(r.id for r in doubtful)
+        if self.hold_in_doubt:
+            self.registrar.held_in_doubt.update(self.in_doubt_ids)
+        for resource in doubtful:
+            if self.registrar.events.active:
+                self.registrar.events.publish(
+                    events.InDoubt(
+                        self.registrar.name,
+                        resource.id,
+                        resource.server,
+                        "load" if resource.state is ResourceState.LOADING else "unload",
+                    )
+                )
+            catalog.begin_unload(resource.id)
+            self.releases.release_dependencies(
+                resource.id, functools.partial(self.teardown.remove_resource, resource)
+            )
+        for record in list(catalog.clients.values()):
+            orphan = record.parent is not None and record.parent not in catalog.resources
+            if orphan or (record.parent is None and not record.loaded):
+                query = record.query
+                give_back(query.serving_rr, query.id, self.registrar.name)
+                self.holdings.forget(query.id, commit=False, reason="in doubt")
+        self.registrar.commit()
+
+    def unload_unheld(self) -> None:
+        """Unload restored resources that no consumer holds (rule 7).
+
+        Their last consumer left (or every caller of their load gave up) and that was
+        written, but a crash came before their unload began (it is written apart): no
+        one holds an id to release them, so without this they would stay loaded, and
+        hold their dependencies at other registrars, for good. Their unload runs once
+        setup registered their server (or they are dropped if it does not).
+        """
+        for resource in self.registrar.catalog.unheld():
+            self.teardown.unload_resource(resource, None)
+        self.sweep(0)
+
+    def sweep(self, after: int) -> None:
+        """Sweep the restored resources still in the backup, one slice per turn.
+
+        Each slice (`Catalog.sweep`: `SWEEP_ROWS` resources, a few ms) unloads those no
+        consumer holds (as `unload_unheld`) and notes the registrars holding ids in it
+        (whom `ask_consumers` asks); the next slice is a message to itself, behind what
+        arrived meanwhile, so calls are served between slices. A restart reads these
+        rows after it serves, not before: a catalog of one slice is swept at once.
+        """
+        if self.registrar.phase in (Phase.STOPPING, Phase.ENDED):
+            return
+        try:
+            unheld, origins, next_slice = self.registrar.catalog.sweep(after)
+            self.swept_origins |= origins
+            for resource in unheld:
+                self.teardown.unload_resource(resource, None)
+            if next_slice is not None:
+                self.sweeping = True
+                self.registrar.come_back(lambda _v, _e: self.sweep(next_slice)).set_result(None)
+                return
+        except RrError as exc:  # a damaged row: a lookup that needs it fails then
+            logger.error(  # noqa: TRY400 - the cause says it all
+                "registrar %s: the sweep of its restored catalog stopped: %s",
+                self.registrar.name,
+                exc,
+            )
+        self.sweeping = False
+        if self.reconcile_owed:
+            self.reconcile_owed = False
+            self.unloading.ask_to_reconcile(self.swept_origins)
+
+    def ask_consumers(self) -> None:
+        """It serves: ask every consumer holding ids here for the ids it holds
+        (`ReconcileAsk`); while the sweep is under way, once it is done (the sweep
+        names the consumers to ask)."""
+        if self.sweeping:
+            self.reconcile_owed = True
+        else:
+            self.unloading.ask_to_reconcile(self.swept_origins)
+
+    def on_settle_in_doubt(self, message: SettleInDoubt, reply: Reply) -> None:
+        """The manager handled in-doubt entry `query_id` (`None`: every one): write it off.
+
+        Its row leaves the backup now (or as it was left: its dependencies may still be
+        being released); a later restore no longer offers it. Settling one twice is a
+        no-op. A write that fails is the caller's error (`CatalogWriteError`): the entry
+        stays settled in memory, and the next write that succeeds takes it out.
+        """
+        query_id = message.query_id
+        if query_id is None:
+            rids = set(self.in_doubt_ids)
+        elif query_id in self.in_doubt_ids:
+            rids = {query_id}
+        else:
+            reply.set_error(
+                UnknownQueryError(
+                    f"{query_id!r} is not in doubt at registrar {self.registrar.name!r}"
+                )
+            )
+            return
+        failed = self.registrar.settle_held(rids)  # (a failed write stays pending: the
+        if failed is not None:  # next commit writes it; until then a restart offers it again)
+            reply.set_error(failed)
+            return
+        reply.set_result(None)
+
+
+# -- presence --------------------------------------------------------------------------
+
+
+RETRY_FIRST = 0.05
+"""Seconds before the first retry of a `Reconcile` that failed after a healed link."""
+
+RETRY_MAX = 2.0
+"""The longest wait between two retries (the backoff doubles up to it)."""
+
+
+def retry_delay(attempt: int) -> float:
+    """Seconds to wait before retry `attempt` (1, 2, ...): doubling, at most `RETRY_MAX`."""
+    return float(min(RETRY_MAX, RETRY_FIRST * 2 ** max(0, min(attempt - 1, 16))))
+
+
+class Presence:
+    """What a peer lost for good, or reachable again, means for this registrar."""
+
+    def __init__(
+        self,
+        registrar: Shared,
+        unloading: Unloading,
+        reconciling: Reconciling,
+        timer: Timer = thread_timer,
+    ) -> None:
+        self.registrar = registrar
+        self.unloading = unloading
+        self.reconciling = reconciling
+        self.timer = timer  # `timer(delay, fn)` for the retries (injectable for tests)
+        # provider -> (its reconcile round, the attempt waited for), until answered
+        self.rounds: dict[str, tuple[int, int]] = {}
+        self.timers: dict[str, Cancellable] = {}
+        self.round_count = 0
+
+    # -- lost for good (rule 19) --------------------------------------------------------
+
+    def on_peer_lost(self, message: PeerLost, _reply: Reply) -> None:
+        if message.stopped:
+            self.stopped(message.name)
+        else:
+            self.lose(message.name)
+
+    def on_consumer_down(self, message: ConsumerDown, _reply: Reply) -> None:
+        """The wire mark of another process's death watch: into this process's
+        membership, which tells every registrar here (this one too: `PeerLost`)."""
+        by = f"a death-watch mark to {self.registrar.name}"
+        if message.stopped:
+            MEMBERSHIP.stopped(message.origin_rr, by=by)
+        else:
+            MEMBERSHIP.lost(message.origin_rr, by=by)
+
+    def stopped(self, name: str) -> None:
+        """Registrar `name` was stopped and nobody will start it again: it holds nothing
+        (rule 12), so every id of it still here is released (ids it forgot while this
+        one was down, which no reconcile will name now); what this one holds there is
+        left as a stop leaves it."""
+        if name == self.registrar.name:
+            return
+        self.unloading.release_stopped(name)
+
+    def lose(self, name: str) -> None:
+        """Registrar `name` is gone and nobody will restart it: release what it held here,
+        report what this one held there `FATAL` and forget it (a second time: nothing)."""
+        if name == self.registrar.name:
+            return
+        self.stop_retrying(name)
+        self.unloading.release_all_of(name)
+        self.reconciling.lose_provider(name)
+
+    # -- reachable again (rule 20) ------------------------------------------------------
+
+    def on_peer_reachable(self, message: PeerReachable, _reply: Reply) -> None:
+        name = message.name
+        if name == self.registrar.name or self.registrar.phase is not Phase.SERVING:
+            return  # (during setup `on_ready` reconciles with everyone; stopping: nothing)
+        if self.reconciling.holds_at(name):
+            self.round_count += 1
+            self.attempt(name, self.round_count, 0)
+        if self.registrar.catalog.consumers_from(name):
+            try:
+                DIRECTORY.lookup(name).tell(ReconcileAsk(self.registrar.name))
+            except RrError as exc:
+                logger.debug(
+                    "registrar %s: %s not reachable yet: %s", self.registrar.name, name, exc
+                )
+
+    def on_reconcile_retry(self, message: ReconcileRetry, _reply: Reply) -> None:
+        if self.rounds.get(message.name) != (message.round, message.attempt - 1):
+            return  # answered meanwhile, lost, or a newer round started
+        if self.registrar.phase is not Phase.SERVING:
+            self.stop_retrying(message.name)
+            return
+        self.attempt(message.name, message.round, message.attempt)
+
+    def attempt(self, name: str, round_: int, attempt: int) -> None:
+        """Send `Reconcile` attempt `attempt` of round `round_` to provider `name`.
+
+        An attempt not answered within `call_timeout` is retried (a token that is back
+        is not yet a peer that answers: a carrier may lose what it is sent meanwhile).
+        """
+        self.stop_retrying(name)
+        self.rounds[name] = (round_, attempt)
+        self.arm(name, round_, attempt + 1, self.registrar.config.call_timeout)
+        self.reconciling.reconcile(
+            name, then=lambda error: self.answered(name, round_, attempt, error)
+        )
+
+    def answered(self, name: str, round_: int, attempt: int, error: BaseException | None) -> None:
+        if self.rounds.get(name) != (round_, attempt):
+            return  # a late answer of an attempt given up (the newer one decides)
+        if error is None or isinstance(error, RegistrarStoppedError):
+            self.stop_retrying(name)  # reconciled; or stopped: its restart reconciles
+            return
+        logger.debug(
+            "registrar %s: reconcile %d with %s failed (%s); retrying",
+            self.registrar.name,
+            attempt,
+            name,
+            error,
+        )
+        self.arm(name, round_, attempt + 1, retry_delay(attempt + 1))
+
+    def arm(self, name: str, round_: int, attempt: int, delay: float) -> None:
+        """Tell this actor `ReconcileRetry(name, round_, attempt)` after `delay` seconds."""
+        old = self.timers.pop(name, None)
+        if old is not None:
+            old.cancel()
+        ref = self.registrar.ref
+
+        def fire() -> None:
+            with contextlib.suppress(pykka.ActorDeadError):
+                assert ref is not None
+                ref.tell(ReconcileRetry(name, round_, attempt))
+
+        self.timers[name] = self.timer(delay, fire)
+
+    def stop_retrying(self, name: str) -> None:
+        self.rounds.pop(name, None)
+        timer = self.timers.pop(name, None)
+        if timer is not None:
+            timer.cancel()
+
+    def close(self) -> None:
+        """This registrar stops or died: no more retries."""
+        for name in list(self.rounds):
+            self.stop_retrying(name)
+
+
+# -- the outside's views of it: a carrier's, the membership's -------------------------
+
+
+class Hearing:
+    """How this process's membership tells a registrar actor who is lost or reachable
+    again (any thread; told to an actor that ended, dropped: it holds nothing any more)."""
+
+    __slots__ = ("peer",)
+
+    def __init__(self, peer: LocalPeer) -> None:
+        self.peer = peer
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        return self.peer.name
+
+    def peer_lost(self, name: str) -> None:
+        """Registrar `name` is gone for good (rule 19): `Presence`."""
+        with contextlib.suppress(RrError):
+            self.peer.tell(PeerLost(name))
+
+    def peer_stopped(self, name: str) -> None:
+        """Registrar `name` was stopped for good (its supervisor says): `Presence`."""
+        with contextlib.suppress(RrError):
+            self.peer.tell(PeerLost(name, stopped=True))
+
+    def peer_reachable(self, name: str) -> None:
+        """Registrar `name` answers again (a healed link, rule 20): `Presence`."""
+        with contextlib.suppress(RrError):
+            self.peer.tell(PeerReachable(name))
+
+
+class Network(Protocol):
+    """What `ResourceRegistrar.start(network=)` needs of a carrier: to serve a registrar.
+
+    Every carrier's `Transport` is one (`rr_actors._transport.base`; the registrar layer
+    does not import the carriers). `serve` returns once the other processes of the
+    system can reach the registrar, and the carrier stops serving it by itself when the
+    registrar stops or dies.
+    """
+
+    def serve(self, endpoint: Served) -> None:
+        """Make the registrar reachable from the other processes (and hosts) of the system.
+
+        Raises:
+            DuplicateNameError: another process of the system serves that name.
+            ConfigError: the carrier cannot serve it.
+            RegistrarStoppedError: this process left the system.
+        """
+        ...
+
+
+class ActorHere(Protocol):
+    """How `Served` reaches a started registrar's actor (`handle.Here` is one)."""
+
+    def tell(self, message: Any) -> bool:
+        """Send the actor `message` without waiting; whether the actor was running."""
+        ...
+
+    def wait_stopped(self, timeout: float | None = None) -> bool:
+        """Block until the actor's thread ended (stopped or died); whether it did."""
+        ...
+
+
+class Servable(Protocol):
+    """What a carrier's `Served` uses of a started registrar (`handle.ResourceRegistrar`
+    is one; this module comes before the handle, so it names it by this only)."""
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        ...
+
+    @property
+    def config(self) -> RegistrarConfig:
+        """The configuration it was started with."""
+        ...
+
+    def is_alive(self) -> bool:
+        """Whether the registrar actor is running."""
+        ...
+
+    def stop(self, *, timeout: float | None = None) -> None:
+        """Stop the registrar (rule 12)."""
+        ...
+
+    @property
+    def _actor(self) -> ActorHere:
+        """Its actor, in this process."""
+        ...
+
+
+def check_network(network: object) -> None:
+    """Raise `ConfigError` naming `network` unless it is `None` or has a `serve` method."""
+    if network is not None and not callable(getattr(network, "serve", None)):
+        raise ConfigError(
+            f"network must be a carrier's Transport (an AF_UNIX System, a ZenohNetwork) "
+            f"or None, got {network!r}"
+        )
+
+
+def serve_on(network: Network, registrar: Servable) -> None:
+    """Serve `registrar` on `network`; if that fails, stop it and raise what failed."""
+    try:
+        network.serve(Served(registrar))
+    except BaseException:
+        registrar.stop()
+        raise
+
+
+class Served:
+    """A registrar of this process as a carrier serves it (`rr_actors._transport.base.Endpoint`)."""
+
+    __slots__ = ("registrar",)
+
+    def __init__(self, registrar: Servable) -> None:
+        self.registrar = registrar
+
+    @property
+    def name(self) -> str:
+        """The registrar's name."""
+        return self.registrar.name
+
+    @property
+    def max_message_bytes(self) -> int:
+        """Its config's `max_message_bytes`: the carrier bounds its connections by it."""
+        return self.registrar.config.max_message_bytes
+
+    def run(self, fn: Callable[[Any], Any]) -> Any:
+        """Run `fn(registrar)` on the calling thread."""
+        return fn(self.registrar)
+
+    def wait_ended(self, timeout: float | None = None) -> bool:
+        """Block until the registrar actor ended (stopped or died); whether it did."""
+        return self.registrar._actor.wait_stopped(timeout)
+
+    def stopped_cleanly(self) -> bool:
+        """Whether it ended because its owner stopped it (not a crash, not still running)."""
+        if self.registrar.is_alive():
+            return False
+        return isinstance(DIRECTORY.gone_error(self.registrar.name), RegistrarStoppedError)
+
+    def listening(self) -> None:
+        """The other processes of the system can reach it now: it reconciles with its peers
+        again (those in other processes could not answer it before)."""
+        self.registrar._actor.tell(Reachable(FutureReply()))  # (nobody waits: `serve` must not)
+
+    def peer_lost(self, name: str) -> None:
+        """Registrar `name` of another process is gone for good (rule 19): `Presence`."""
+        self.registrar._actor.tell(PeerLost(name))
+
+    def peer_reachable(self, name: str) -> None:
+        """Registrar `name` of another process answers again (a healed link): `Presence`."""
+        self.registrar._actor.tell(PeerReachable(name))
+
+    def yield_name(self, reason: str) -> None:
+        """Another process's registrar of this name is kept (rule 22): this one unloads
+        what it serves and stops (`Lifecycle`)."""
+        self.registrar._actor.tell(YieldName(reason))
+
+
+# -- the death watch -------------------------------------------------------------------
+
+
+def _mark(name: str, *, stopped: bool = False) -> ConsumerDown:
+    """The mark "registrar `name` will not come back", as the wire carries it."""
+    return ConsumerDown(name, stopped)
+
+
+def gone_for_good(name: str, *, also: Iterable[str] = (), stopped: bool = False) -> None:
+    """Registrar `name` is gone and nobody will restart it: this process's membership
+    records it (every registrar here hears it, now or when it starts), and each of `also`
+    of another process gets the mark. One that cannot be reached is skipped: a registrar
+    that restarts hears it from its supervisor (`tell_gone`), one of another process
+    from its own carrier or membership.
+
+    With `stopped`, `name` was stopped cleanly (its supervisor stopped it for good): it
+    holds nothing (rule 12), so what it still holds anywhere is released; what is held
+    at it is left as a stop leaves it."""
+    if stopped:
+        MEMBERSHIP.stopped(name, by="its supervisor")
+    else:
+        MEMBERSHIP.lost(name, by="the death watch")
+    here = {peer.name for peer in DIRECTORY.local_peers()}
+    for target in sorted(set(also) - here - {name}):
+        try:
+            DIRECTORY.lookup(target).tell(_mark(name, stopped=stopped))
+        except RrError:
+            logger.debug("death watch: registrar %s unreachable", target)
+
+
+def back(name: str) -> None:
+    """Registrar `name` is started again (by its supervisor): it is no longer gone."""
+    MEMBERSHIP.back(name)
+
+
+def gone() -> dict[str, bool]:
+    """The registrars this process knows are gone for good (its membership), each with
+    whether it was stopped (not lost)."""
+    return MEMBERSHIP.gone()
+
+
+def tell_gone(target: str, name: str, *, stopped: bool = False) -> None:
+    """Tell registrar `target` only that registrar `name` is gone for good (`stopped`:
+    as `gone_for_good`).
+
+    Raises:
+        RrError: `target` cannot be reached.
+    """
+    DIRECTORY.lookup(target).tell(_mark(name, stopped=stopped))
+
+
+def lost_everything(name: str, *, also: Iterable[str] = ()) -> None:
+    """Registrar `name` restarted with an empty catalog: every registrar of this process,
+    and those named in `also`, that holds ids there reconciles with it (rule 20)."""
+    DIRECTORY.broadcast(ReconcileAsk(name, holds_yours=False), also=also, skip=name)
+
+
+# -- the catalog as events (CatalogRestored, RegistrarStopped) ------------------------
+
+
+def _catalog_rows(shared: Shared) -> dict[str, object]:
+    """The rows, counts and digest of a catalog event (see `CatalogRestored`).
+
+    Up to `LISTED_ROWS` rows of each kind are listed, read from the backup as plain
+    strings (no resource is read into memory for it); above that only the counts are
+    given, and no digest: it would cost a read of every row, which is what a restore
+    no longer does before it serves (issue 34).
+    """
+    catalog = shared.catalog
+    clients = tuple(
+        (qid, record.query.serving_rr, record.query.server, record.parent or "")
+        for qid, record in catalog.clients.items()
+    )
+    rows = catalog.rows(LISTED_ROWS)
+    if rows is None or len(clients) > LISTED_ROWS:
+        return {
+            "resources": (),
+            "consumers": (),
+            "clients": (),
+            "counts": (*catalog.counts(), len(clients)),
+            "complete": False,
+            "digest": "",
+        }
+    kinds: tuple[Rows, Rows, Rows] = (tuple(rows[0]), tuple(rows[1]), clients)
+    digest = hashlib.sha256()
+    for listed in kinds:
+        for row in sorted(listed):
+            digest.update("\x1f".join(row).encode())
+            digest.update(b"\x1e")
+        digest.update(b"\x1d")
+    return {
+        "resources": kinds[0],
+        "consumers": kinds[1],
+        "clients": kinds[2],
+        "counts": tuple(len(listed) for listed in kinds),
+        "complete": True,
+        "digest": digest.hexdigest()[:16],
+    }
+
+
+def publish_restored(shared: Shared) -> None:
+    """Publish `CatalogRestored` (a registrar with a backup starts; its actor thread)."""
+    if shared.events.active and shared.saver.store is not None:
+        shared.events.publish(events.CatalogRestored(shared.name, **_catalog_rows(shared)))  # type: ignore[arg-type]
+
+
+def publish_stopped(shared: Shared) -> None:
+    """Publish `RegistrarStopped` (a clean stop gave back what it held; its actor thread)."""
+    if shared.events.active:
+        shared.events.publish(events.RegistrarStopped(shared.name, **_catalog_rows(shared)))  # type: ignore[arg-type]

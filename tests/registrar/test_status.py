@@ -1,0 +1,713 @@
+"""Tests of `rr_actors/_registrar/status.py`: statuses sent, fanned out and climbing.
+
+Rule 9 in every placement (`TestStatus`), one pass per process to many consumer
+registrars (`TestFanout`), and a status its consumer cannot take (`TestTooLarge`).
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import threading
+import uuid
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors._core.workers import Workers
+from rr_actors.testing import STEPS, RemoteRegistrar, catalog_snapshot, intercept
+from tests.registrar.conftest import placement_network
+from tests.support.waiting import wait_for
+
+# -- for TestStatus ------------------------------------------------------------------------
+
+
+def own_ids(inbox):
+    """For each update an inbox got: (the query's id, the update's query_id)."""
+    return [(query.id, update.query_id) for query, update in inbox.updates]
+
+
+# -- for TestFanout ------------------------------------------------------------------------
+
+PROCESSES = 3
+
+
+REGISTRARS = 8  # per process
+
+
+IDS = 2  # per registrar
+
+
+STATUS_STEPS = [step for step in ("status_batch", "status_notice") if step in STEPS]
+
+
+def host_setup(
+    address: Any, provider: str, *, hang: bool = False, count: bool = False
+) -> Callable[[rr.ResourceRegistrar], None]:
+    """A manager's setup: REGISTRARS consumer registrars in its process, and `probe`.
+
+    With `hang`, the callbacks of the first registrar's ids block at the first status
+    until `probe` is asked to release them, and those of the second raise (after
+    recording). With `count`, the status messages each registrar handles are counted,
+    and once `probe` is asked to (`fail-next`), the next batch a registrar handles is
+    answered with an error after it was delivered (a relay that fails after delivering).
+    """
+
+    def setup(host: rr.ResourceRegistrar) -> None:
+        network = address.attach()  # (a carrier's `Address`: this process joined it already)
+        lock = threading.Lock()
+        heard: dict[str, list[str]] = collections.defaultdict(list)
+        steps: collections.Counter[str] = collections.Counter()
+        release = threading.Event()
+        fail_next = threading.Event()
+        consumers: list[rr.ResourceRegistrar] = []
+
+        def fail_once(_message: object) -> None:
+            with lock:
+                failing = fail_next.is_set()
+                fail_next.clear()
+            if failing:
+                raise rr.RrError("the relay fails after it delivered")
+
+        def recorder(number: int) -> Callable[[rr.Query, rr.StatusUpdate], None]:
+            def record(query: rr.Query, update: rr.StatusUpdate) -> None:
+                with lock:
+                    heard[query.id].append(update.message)
+                    first = len(heard[query.id]) == 1
+                if hang and number == 0 and first:
+                    release.wait(30)
+                if hang and number == 1:
+                    raise RuntimeError("a consumer's bug")
+
+            return record
+
+        def counter(step: str) -> Callable[[object], None]:
+            def counted(_message: object) -> None:
+                with lock:
+                    steps[step] += 1
+
+            return counted
+
+        for number in range(REGISTRARS):
+            consumer = rr.ResourceRegistrar.start(f"{host.name}-c{number}", network=network)
+            consumers.append(consumer)
+            for step in STATUS_STEPS if count else ():
+                intercept(consumer, step, before=counter(step))
+            if count and "status_batch" in STATUS_STEPS:
+                intercept(consumer, "status_batch", after=fail_once)
+            for _ in range(IDS):
+                consumer.call(provider, "leaf", "r", on_status=recorder(number), timeout=20)
+
+        def probe(request: tuple[str, str]) -> Any:
+            with lock:
+                if request[0] == "heard":
+                    return {query_id: list(said) for query_id, said in heard.items()}
+                if request[0] == "steps":
+                    return dict(steps)
+            if request[0] == "release":
+                release.set()
+            elif request[0] == "fail-next":
+                fail_next.set()
+            elif request[0] == "stop":
+                release.set()
+                for consumer in reversed(consumers):
+                    consumer.stop()
+            return None
+
+        host.register_server("probe", load=probe, unload=lambda _r, _s: None)
+
+    return setup
+
+
+class Fanout:
+    """The provider here, and PROCESSES manager processes of consumer registrars."""
+
+    def __init__(self, placement: str) -> None:
+        self.network = placement_network(placement)
+        self.uid = uuid.uuid4().hex[:8]
+        self.provider = rr.ResourceRegistrar.start(f"prov-{self.uid}", network=self.network)
+        self.provider.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
+        self.hosts: list[RemoteRegistrar] = []
+        self.query_id = ""
+
+    def start(self, **kwargs: Any) -> Fanout:
+        """Start the manager processes (`host_setup(**kwargs)` in each)."""
+        setup = host_setup(self.network.address, self.provider.name, **kwargs)
+        for number in range(PROCESSES):
+            config = rr.RegistrarConfig(name=f"host{number}-{self.uid}", call_timeout=20.0)
+            self.hosts.append(RemoteRegistrar.start(config, self.network, setup=setup))
+        self.query_id = self.provider.server_queries("leaf")[0].id
+        return self
+
+    def send(self, message: str, *, timeout: float = 20.0) -> None:
+        self.provider.send_status(self.query_id, rr.Status.UPDATE, message, timeout=timeout)
+
+    def ask(self, host: RemoteRegistrar, op: str) -> Any:
+        return host.call(host.name, "probe", (op, uuid.uuid4().hex), timeout=20).response
+
+    def heard(self) -> list[dict[str, list[str]]]:
+        """What each process's consumer ids heard, by process."""
+        return [self.ask(host, "heard") for host in self.hosts]
+
+    def close(self) -> None:
+        for host in self.hosts:
+            with contextlib.suppress(rr.RrError):
+                self.ask(host, "stop")
+            host.stop()
+        self.provider.stop()
+        self.network.close()
+
+
+def wait_heard(
+    fanout: Fanout, done: Callable[[list[dict[str, list[str]]]], bool]
+) -> list[dict[str, list[str]]]:
+    """What was heard, once `done(heard)` (or once 15 s passed: then what was heard)."""
+    heard: list[list[dict[str, list[str]]]] = [fanout.heard()]
+
+    def read() -> bool:
+        heard[0] = fanout.heard()
+        return done(heard[0])
+
+    wait_for(read, timeout=15.0)
+    return heard[0]
+
+
+# -- for TestTooLarge ----------------------------------------------------------------------
+
+LIMIT = 100_000
+
+
+"""The consumer's `max_message_bytes`."""
+
+
+class TestStatus:
+    """Status notifications (DESIGN rule 9)."""
+
+    pytestmark = pytest.mark.both_apis  # the rules, against the async API too (conftest)
+
+    def test_status_reaches_every_consumer_with_its_own_query_id(
+        self, make_registrar, serve, inbox
+    ):
+        provider, one, two = (make_registrar(n) for n in ("provider", "one", "two"))
+        serve(provider, "leaf")
+        boxes = [inbox() for _ in range(3)]
+        queries = [
+            one.call(provider.name, "leaf", "cam", on_status=boxes[0]),
+            one.call(provider.name, "leaf", "cam", on_status=boxes[1]),
+            two.call(provider.name, "leaf", "cam", on_status=boxes[2]),
+        ]
+
+        provider.send_status(queries[0].id, rr.Status.WARNING, "hot")
+
+        for box, query in zip(boxes, queries, strict=True):
+            assert [(query.id, query.id)] == own_ids(box)
+        (_, update) = boxes[2].updates[0]
+        assert (rr.Status.WARNING, "hot", f"{provider.name}/leaf") == (
+            update.status,
+            update.message,
+            update.source,
+        )
+
+    def test_send_status_works_with_any_consumer_id_of_the_resource(
+        self, make_registrar, serve, inbox
+    ):
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        serve(provider, "leaf")
+        first, second = inbox(), inbox()
+        consumer.call(provider.name, "leaf", "cam", on_status=first)
+        q2 = consumer.call(provider.name, "leaf", "cam", on_status=second)
+
+        provider.send_status(q2.id, rr.Status.OK, "")
+
+        assert (1, 1) == (len(first.updates), len(second.updates))
+
+    def test_the_provider_server_s_on_status_runs_once_per_status(self, make_registrar, serve):
+        provider, one, two = (make_registrar(n) for n in ("provider", "one", "two"))
+        leaf = serve(provider, "leaf")
+        query = one.call(provider.name, "leaf", "cam")
+        one.call(provider.name, "leaf", "cam")
+        two.call(provider.name, "leaf", "cam")
+
+        provider.send_status(query.id, rr.Status.ERROR, "broken")
+
+        ((seen_query, update),) = leaf.statuses
+        assert (query.id, query.id, rr.Status.ERROR) == (
+            seen_query.id,
+            update.query_id,
+            update.status,
+        )
+
+    def test_status_climbs_the_dependency_chain_to_the_top_consumer(
+        self, make_registrar, serve, inbox
+    ):
+        consumer, agent, producer = (make_registrar(n) for n in ("consumer", "agent", "producer"))
+        leaf = serve(producer, "leaf")
+        composite = serve(
+            agent, "composite", lambda r: agent.call(producer.name, "leaf", r).response
+        )
+        top = inbox()
+        query = consumer.call(agent.name, "composite", "x", on_status=top)
+        (leaf_query,) = producer.server_queries("leaf")
+
+        producer.send_status(leaf_query.id, rr.Status.FATAL, "unplugged")
+
+        assert 1 == len(leaf.statuses)
+        assert 1 == len(composite.statuses)
+        assert [(query.id, query.id)] == own_ids(top)
+        (_, update) = top.updates[0]
+        assert (rr.Status.FATAL, "unplugged", f"{producer.name}/leaf") == (
+            update.status,
+            update.message,
+            update.source,
+        )
+
+    def test_status_climbs_every_path_and_each_callback_runs_once(
+        self, make_registrar, serve, inbox
+    ):
+        """A diamond: top needs left and right, both need the same leaf."""
+        consumer, provider, producer = (make_registrar(n) for n in ("consumer", "mid", "producer"))
+        leaf = serve(producer, "leaf")
+        left = serve(provider, "left", lambda r: provider.call(producer.name, "leaf", "shared").id)
+        right = serve(
+            provider, "right", lambda r: provider.call(producer.name, "leaf", "shared").id
+        )
+
+        def both(request):
+            provider.call(provider.name, "left", request)
+            provider.call(provider.name, "right", request)
+            return "top"
+
+        top = serve(provider, "top", both)
+        box = inbox()
+        query = consumer.call(provider.name, "top", "x", on_status=box)
+        some_leaf_id = producer.server_queries("leaf")[0].id
+
+        producer.send_status(some_leaf_id, rr.Status.WARNING, "drifting")
+
+        assert [1, 1, 1, 1] == [len(s.statuses) for s in (leaf, left, right, top)]
+        assert [(query.id, query.id)] == own_ids(box)
+
+    def test_a_consumer_client_on_an_intermediate_dependency_hears_the_status(
+        self, make_registrar, serve, inbox
+    ):
+        consumer, agent, producer = (make_registrar(n) for n in ("consumer", "agent", "producer"))
+        serve(producer, "leaf")
+        middle = inbox()
+        serve(
+            agent,
+            "composite",
+            lambda r: agent.call(producer.name, "leaf", r, on_status=middle).response,
+        )
+        consumer.call(agent.name, "composite", "x")
+        (leaf_query,) = producer.server_queries("leaf")
+
+        producer.send_status(leaf_query.id, rr.Status.UPDATE, "new frame rate")
+
+        assert [(leaf_query.id, leaf_query.id)] == own_ids(middle)
+
+    def test_send_status_returns_after_every_callback_on_the_path_ran(
+        self, make_registrar, serve, shared
+    ):
+        consumer, agent, producer = (make_registrar(n) for n in ("consumer", "agent", "producer"))
+        serve(producer, "leaf")
+        serve(agent, "composite", lambda r: agent.call(producer.name, "leaf", r).response)
+        ran = shared.event()
+
+        def slow_callback(query, update):
+            threading.Event().wait(0.2)  # work that takes a while
+            ran.set()
+
+        consumer.call(agent.name, "composite", "x", on_status=slow_callback)
+        (leaf_query,) = producer.server_queries("leaf")
+
+        producer.send_status(leaf_query.id, rr.Status.OK, "")
+
+        assert ran.is_set()
+
+    def test_send_status_times_out_when_a_callback_hangs(self, make_registrar, serve, gates):
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        serve(provider, "leaf")
+        gate = gates()
+        query = consumer.call(provider.name, "leaf", "x", on_status=lambda q, u: gate.wait(10))
+
+        with pytest.raises(rr.CallTimeoutError):
+            provider.send_status(query.id, rr.Status.OK, "", timeout=0.3)
+
+    def test_a_status_callback_that_raises_does_not_stop_delivery(
+        self, make_registrar, serve, inbox
+    ):
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        serve(provider, "leaf")
+
+        def broken(query, update):
+            raise RuntimeError("callback bug")
+
+        box = inbox()
+        query = consumer.call(provider.name, "leaf", "x", on_status=broken)
+        consumer.call(provider.name, "leaf", "x", on_status=box)
+
+        provider.send_status(query.id, rr.Status.OK, "")
+
+        assert 1 == len(box.updates)
+
+    def test_a_released_consumer_no_longer_hears_status(self, make_registrar, serve, inbox):
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        serve(provider, "leaf")
+        gone, kept = inbox(), inbox()
+        released = consumer.call(provider.name, "leaf", "x", on_status=gone)
+        still = consumer.call(provider.name, "leaf", "x", on_status=kept)
+        consumer.unload(released.id)
+
+        provider.send_status(still.id, rr.Status.OK, "")
+
+        assert ([], 1) == (gone.updates, len(kept.updates))
+
+    def test_a_status_callback_may_call_unload_and_send_status_on_the_sender(
+        self, make_registrar, serve, shared
+    ):
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        serve(provider, "leaf")
+        serve(provider, "spare")
+        done = shared.list()
+
+        def reentrant(query, update):
+            if update.status is rr.Status.WARNING:
+                spare = consumer.call(provider.name, "spare", "backup", timeout=5)
+                provider.send_status(spare.id, rr.Status.OK, "from a callback", timeout=5)
+                consumer.unload(spare.id, timeout=5)
+                another = provider.call(provider.name, "spare", "own", timeout=5)
+                provider.unload(another.id, timeout=5)
+                done.append(update.status)
+
+        query = consumer.call(provider.name, "leaf", "x", on_status=reentrant)
+
+        provider.send_status(query.id, rr.Status.WARNING, "", timeout=10)
+
+        assert [rr.Status.WARNING] == done
+        assert [] == provider.server_queries("spare")
+
+    def test_a_server_on_status_may_call_its_own_registrar(self, make_registrar, shared):
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        provider.register_server("spare", load=lambda r: r, unload=lambda r, s: None)
+        done = shared.list()
+
+        def on_status(query, update):
+            spare = provider.call(provider.name, "spare", "replacement", timeout=5)
+            provider.unload(spare.id, timeout=5)
+            done.append(query.id)
+
+        provider.register_server(
+            "leaf", load=lambda r: r, unload=lambda r, s: None, on_status=on_status
+        )
+        query = consumer.call(provider.name, "leaf", "x")
+
+        provider.send_status(query.id, rr.Status.ERROR, "", timeout=10)
+
+        assert [query.id] == done
+
+    def test_a_status_callback_may_unload_the_resource_it_hears_about(self, make_registrar, serve):
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        leaf = serve(provider, "leaf")
+
+        def give_up(query, update):
+            consumer.unload(query.id, timeout=5)
+
+        query = consumer.call(provider.name, "leaf", "x", on_status=give_up)
+
+        provider.send_status(query.id, rr.Status.FATAL, "dead", timeout=10)
+
+        assert [("x", {"resource": "x"})] == leaf.unloads
+        assert ((), ()) == (
+            catalog_snapshot(provider).resources,
+            catalog_snapshot(consumer).clients,
+        )
+
+    def test_send_status_for_an_unknown_id_raises(self, make_registrar, serve):
+        provider = make_registrar("provider")
+        serve(provider, "leaf")
+
+        with pytest.raises(rr.UnknownQueryError):
+            provider.send_status(str(uuid.uuid4()), rr.Status.OK, "")
+
+    def test_only_the_provider_can_send_status_about_a_resource(self, make_registrar, serve):
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        serve(provider, "leaf")
+        query = consumer.call(provider.name, "leaf", "x")
+
+        with pytest.raises(rr.UnknownQueryError):
+            consumer.send_status(query.id, rr.Status.OK, "")
+
+    def test_send_status_s_timeout_bounds_the_wait(self, make_registrar, serve, gates):
+        """Rule 9: "`send_status` returns when the notification has been delivered ... (a
+        `timeout` bounds it)".
+
+        Mutation caught: `send_status` ignores its `timeout` and waits the registrar's default
+        `call_timeout`. The existing timeout test still gets its `CallTimeoutError` (after the
+        default 10 s); here the default is long and the error must come within a few seconds.
+        """
+        provider = make_registrar("provider", call_timeout=30.0)
+        consumer = make_registrar("consumer")
+        serve(provider, "leaf")
+        gate = gates()
+        query = consumer.call(provider.name, "leaf", "x", on_status=lambda q, u: gate.wait(30))
+
+        with ThreadPoolExecutor(1) as pool:
+            sending = pool.submit(provider.send_status, query.id, rr.Status.OK, "", timeout=0.3)
+            try:
+                error = sending.exception(timeout=10)
+            finally:
+                gate.set()  # let the hung callback (and a send_status that ignored its timeout) end
+
+        assert isinstance(error, rr.CallTimeoutError)
+
+    def test_a_status_callback_may_send_a_status_that_reaches_its_own_client(
+        self, make_registrar, serve, inbox, shared
+    ):
+        """Rule 9: a status callback may call `send_status` on the sender without deadlock.
+
+        Here the nested status is for another resource the same consumer holds at the same
+        server. Mutation caught: status callbacks run on the registrar's actor thread, or on
+        any one thread per client, instead of on workers: the nested delivery then waits
+        behind the running callback (a deadlock, cut by the nested call's timeout).
+        """
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        serve(provider, "leaf")
+        box = inbox()
+        outcome = shared.list()
+        other = consumer.call(provider.name, "leaf", "b", on_status=box)
+
+        def reentrant(query, update):
+            try:
+                provider.send_status(other.id, rr.Status.OK, "nested", timeout=5)
+            except rr.CallTimeoutError:
+                outcome.append("deadlocked")
+            else:
+                outcome.append("delivered")
+
+        first = consumer.call(provider.name, "leaf", "a", on_status=reentrant)
+
+        provider.send_status(first.id, rr.Status.WARNING, "outer", timeout=15)
+
+        assert ["delivered"] == outcome
+        assert [(other.id, "nested")] == [(u.query_id, u.message) for _, u in box.updates]
+
+    def test_a_server_on_status_may_call_and_send_status_on_its_own_server(
+        self, make_registrar, shared
+    ):
+        """Rule 9: the provider server's `on_status` may `call` its own server and `send_status`
+        about another of its resources without deadlock.
+
+        Mutation caught: `on_status` runs on an actor thread (the registrar's or the server's)
+        instead of on a worker: the nested load and the nested `on_status` then wait behind
+        the running callback.
+        """
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        seen, outcome, other_ids = shared.list(), shared.list(), shared.list()
+
+        def on_status(query, update):
+            seen.append(query.request)
+            if query.request != "a":
+                return
+            try:
+                spare = provider.call(provider.name, "leaf", "spare", timeout=5)
+                provider.unload(spare.id, timeout=5)
+                provider.send_status(other_ids[0], rr.Status.OK, "nested", timeout=5)
+            except rr.CallTimeoutError as exc:
+                outcome.append(f"deadlocked: {exc}")
+            else:
+                outcome.append("done")
+
+        provider.register_server(
+            "leaf", load=lambda r: r, unload=lambda r, s: None, on_status=on_status
+        )
+        other_ids.append(consumer.call(provider.name, "leaf", "b").id)
+        query = consumer.call(provider.name, "leaf", "a")
+
+        provider.send_status(query.id, rr.Status.ERROR, "outer", timeout=20)
+
+        assert ["done"] == outcome
+        assert ["a", "b"] == seen
+
+    def test_a_status_callback_that_gets_no_thread_is_skipped_and_its_registrar_keeps_serving(
+        self,
+        monkeypatch: pytest.MonkeyPatch,
+    ) -> None:
+        provider = rr.ResourceRegistrar.start(f"P-{uuid.uuid4().hex[:8]}")
+        consumer = rr.ResourceRegistrar.start(f"C-{uuid.uuid4().hex[:8]}")
+        heard: list[rr.StatusUpdate] = []
+        try:
+            provider.register_server("leaf", load=lambda r: r, unload=lambda r, s: None)
+            query = consumer.call(
+                provider.name, "leaf", "a", on_status=lambda _q, u: heard.append(u)
+            )
+
+            def no_thread(_self: Workers, _task: Any) -> None:
+                raise RuntimeError("can't start new thread")
+
+            monkeypatch.setattr(Workers, "submit", no_thread)  # say, too many hung callbacks
+            provider.send_status(query.id, rr.Status.WARNING, "hot", timeout=5)
+
+            assert [] == heard
+            assert consumer.is_alive()
+            assert [query.id] == [q.id for q in consumer.client_queries()]
+        finally:
+            monkeypatch.undo()
+            consumer.stop()
+            provider.stop()
+
+
+class TestFanout:
+    """A status to many consumer registrars of several processes, in one pass per process
+    (rule 9; issue 34 item 2).
+
+    The provider serves in this process; each of three manager processes runs eight consumer
+    registrars that hold two ids each of one resource, their callbacks recording what they
+    hear there. The manager's own registrar serves `probe`, through which the test reads
+    what was recorded in its process and releases a hung callback.
+    """
+
+    pytestmark = pytest.mark.usefixtures("by_value")
+
+    @pytest.fixture(params=["process", "zenoh"])
+    def fanout(self, request: pytest.FixtureRequest) -> Iterator[Callable[..., Fanout]]:
+        made: list[Fanout] = []
+
+        def make(**kwargs: Any) -> Fanout:
+            made.append(Fanout(request.param))
+            return made[-1].start(**kwargs)
+
+        yield make
+        for each in made:
+            each.close()
+
+    def test_each_consumer_id_of_every_process_hears_each_status_once_and_in_order(
+        self,
+        fanout: Callable[..., Fanout],
+    ) -> None:
+        tree = fanout()
+        tree.send("warm-up")  # (the provider learns which process each registrar is in)
+        burst = [f"s{n}" for n in range(8)]
+        for message in burst:  # sent back to back: each still on its way as the next leaves
+            with contextlib.suppress(rr.CallTimeoutError):
+                tree.send(message, timeout=0.01)
+        tree.send("last")
+
+        expected = ["warm-up", *burst, "last"]
+        heard = wait_heard(tree, lambda h: all(len(s) >= 10 for p in h for s in p.values()))
+
+        assert [REGISTRARS * IDS] * PROCESSES == [len(process) for process in heard]
+        assert [[expected] * REGISTRARS * IDS] * PROCESSES == [
+            list(process.values()) for process in heard
+        ]
+
+    def test_a_status_reaches_the_consumer_registrars_of_a_process_as_one_message(
+        self,
+        fanout: Callable[..., Fanout],
+    ) -> None:
+        tree = fanout(count=True)
+        tree.send("warm-up")  # (one message to each registrar: their answers say where they are)
+        before = [tree.ask(host, "steps") for host in tree.hosts]
+
+        tree.send("one")
+        tree.send("two")
+
+        after = [tree.ask(host, "steps") for host in tree.hosts]
+        handled = [
+            {
+                step: counts.get(step, 0) - was.get(step, 0)
+                for step in ("status_batch", "status_notice")
+            }
+            for was, counts in zip(before, after, strict=True)
+        ]
+        assert [{"status_batch": 2, "status_notice": 0}] * PROCESSES == handled
+        assert [[["warm-up", "one", "two"]] * REGISTRARS * IDS] * PROCESSES == [
+            list(process.values()) for process in tree.heard()
+        ]
+
+    def test_a_hung_or_raising_callback_keeps_no_other_consumer_of_its_process_from_hearing(
+        self,
+        fanout: Callable[..., Fanout],
+    ) -> None:
+        tree = fanout(hang=True)  # (in each process: registrar 0's callbacks hang, 1's raise)
+
+        with pytest.raises(rr.CallTimeoutError):  # (the hung callbacks are not done)
+            tree.send("first", timeout=1.0)
+        heard = wait_heard(tree, lambda h: all(len(p) == REGISTRARS * IDS for p in h))
+
+        assert [[["first"]] * REGISTRARS * IDS] * PROCESSES == [list(p.values()) for p in heard]
+        tree.send("second")  # (a hung callback holds its own id's next one back a moment only)
+        assert [[["first", "second"]] * REGISTRARS * IDS] * PROCESSES == [
+            list(p.values()) for p in tree.heard()
+        ]
+        for host in tree.hosts:
+            tree.ask(host, "release")
+        tree.send("third")  # (every callback returns now: delivered everywhere)
+        assert [[["first", "second", "third"]] * REGISTRARS * IDS] * PROCESSES == [
+            list(p.values()) for p in tree.heard()
+        ]
+
+    def test_a_relay_that_fails_after_delivering_runs_no_callback_twice(
+        self,
+        fanout: Callable[..., Fanout],
+    ) -> None:
+        tree = fanout(count=True)
+        tree.send("warm-up")
+        for host in tree.hosts:
+            tree.ask(host, "fail-next")
+
+        tree.send("again")  # (each part is sent again to its own registrar: delivered there)
+
+        assert [[["warm-up", "again"]] * REGISTRARS * IDS] * PROCESSES == [
+            list(process.values()) for process in tree.heard()
+        ]
+
+
+class TestTooLarge:
+    """A status or a new response its consumer cannot take is a `MessageTooLargeError` for its
+    sender.
+
+    A status message over the receiving registrar's `max_message_bytes` used to be dropped
+    without a word: `send_status(FATAL, ...)` returned as if every consumer had heard it, and
+    the consumer went on using a resource its provider had reported dead (rule 9). Now the
+    sender gets the error naming the registrar not reached (`MessageTooLargeError`
+    promises this), the provider's log says so, and the FATAL mark stands (rule 1). A new
+    response (`update_response`) was only logged: its caller now hears of it too.
+    """
+
+    @pytest.mark.across_processes("a message's size counts only where it is pickled")
+    def test_a_fatal_whose_message_is_over_the_consumers_limit_fails_its_sender_naming_it(
+        self, make_registrar, serve, inbox
+    ):
+        provider = make_registrar("provider")
+        consumer = make_registrar("consumer", max_message_bytes=LIMIT)
+        leaf = serve(provider, "leaf")
+        heard = inbox()
+        dead = consumer.call(provider.name, "leaf", "lidar", on_status=heard, timeout=10)
+
+        with pytest.raises(rr.MessageTooLargeError, match=consumer.name):
+            provider.send_status(dead.id, rr.Status.FATAL, "x" * (2 * LIMIT), timeout=10)
+
+        provider.send_status(dead.id, rr.Status.FATAL, "the LiDAR died", timeout=10)
+        assert [(dead.id, rr.Status.FATAL, "the LiDAR died")] == [
+            (u.query_id, u.status, u.message) for _, u in heard.updates
+        ]
+        consumer.call(provider.name, "leaf", "lidar", timeout=10)  # marked at the first FATAL:
+        assert ["lidar", "lidar"] == leaf.loads  # a new resource for an equal request
+
+    @pytest.mark.across_processes("a message's size counts only where it is pickled")
+    def test_a_new_response_over_a_consumers_limit_fails_update_response_naming_it(
+        self, make_registrar, serve
+    ):
+        provider = make_registrar("provider")
+        consumer = make_registrar("consumer", max_message_bytes=LIMIT)
+        serve(provider, "leaf")
+        held = consumer.call(provider.name, "leaf", "lidar", timeout=10)
+
+        with pytest.raises(rr.MessageTooLargeError, match=consumer.name):
+            provider.update_response(held.id, "x" * (2 * LIMIT), timeout=10)
+
+        provider.update_response(held.id, "repaired", timeout=10)
+        assert ["repaired"] == [q.response for q in consumer.client_queries(timeout=10)]
