@@ -71,7 +71,7 @@ def test_no_file_holds_a_merge_conflict_left_in_it() -> None:
     assert [] == left
 
 
-SEAMED = ("_core", "_catalog", "_store", "_supervision")
+SEAMED = ("_core", "_catalog", "_store", "_supervision", "_registrar")
 """The packages whose threads, locks, events, queues, clocks, ids and randomness go through
 `rr_actors._core.runtime`, which a simulation replaces (issue 42, `rr_actors.simulation`)."""
 
