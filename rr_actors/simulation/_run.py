@@ -11,10 +11,11 @@
  ◄── Run(seed, hash, steps, elapsed, value, errors, trace): the same for the same seed
 ```
 
-The thread ends with the run, and with it every greenlet left suspended (an actor still
-waiting for mail): a greenlet of a thread that ended is dropped without running its
-`finally` blocks, as a process's threads are at its end. Nothing of a run is left in the
-process but what it returned.
+The run's result is made as soon as the main task and the non-daemon threads ended;
+then every greenlet left (an actor still waiting for mail) is ended where it waits
+(`Scheduler.drop`: its `finally` blocks run then, unlogged, and change nothing of the
+run), since a greenlet left suspended when its thread ends is never freed. Nothing of a
+run is left in the process but what it returned.
 """
 
 from __future__ import annotations
@@ -131,32 +132,20 @@ def run(
             f"the simulation (seed {seed}) did not end within {timeout:g} real seconds: its "
             f"thread blocks for real (its runtime stays simulated; end the process):\n{stack}"
         )
-    sched, (ok, value) = outcome
+    ok, done = outcome
     if not ok:
-        if not isinstance(value, SimulationError):
-            value.add_note(
-                f"in the simulation of seed {seed}, at virtual time {sched.now:g} s "
-                f"after {sched.steps} steps"
-            )
-        raise value
-    return Run(
-        seed=seed,
-        hash=sched.hash,
-        steps=sched.steps,
-        elapsed=sched.now,
-        value=value,
-        errors=tuple(sched.errors),
-        trace=None if sched.trace is None else tuple(sched.trace),
-    )
+        raise done
+    finished: Run[T] = done
+    return finished
 
 
 def _simulate(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: list[Any]) -> None:
     """The run's OS thread: the seams and states in, the scheduler, then back out.
-    `outcome` gets the scheduler, then `(True, fn's value)` or `(False, what was raised)`."""
+    `outcome` gets `(True, the Run)` or `(False, what to raise)`, made before the tasks
+    left are dropped (`Scheduler.drop`: nothing they do then is part of the run)."""
     global _scheduler  # (the run in progress: `note`, `now`, `sleep`)
     result: list[Any] = []
     sched = make()
-    outcome.append(sched)
 
     def main() -> None:
         try:
@@ -172,14 +161,35 @@ def _simulate(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: lis
     try:
         sim.Thread(sched, target=main, name="MainThread", daemon=False).start()
         sched.run()
-        outcome.append(result[0])
+        outcome.extend(_finished(sched, *result[0]))
     except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
-        outcome.append((False, exc))
+        outcome.extend(_finished(sched, False, exc))
     finally:
+        _scheduler = None
+        sched.drop()
         for obj, state in zip(runtime.process_states(), saved, strict=True):
             _put_back(obj[0], state)
-        _scheduler = None
         runtime.use(None)
+
+
+def _finished(sched: Scheduler, ok: bool, value: Any) -> tuple[bool, Any]:
+    """`(True, the Run)`, or `(False, what to raise)` with the seed in a note."""
+    if not ok:
+        if not isinstance(value, SimulationError):
+            value.add_note(
+                f"in the simulation of seed {sched.seed}, at virtual time {sched.now:g} s "
+                f"after {sched.steps} steps"
+            )
+        return False, value
+    return True, Run(
+        seed=sched.seed,
+        hash=sched.hash,
+        steps=sched.steps,
+        elapsed=sched.now,
+        value=value,
+        errors=tuple(sched.errors),
+        trace=None if sched.trace is None else tuple(sched.trace),
+    )
 
 
 def _seams(sched: Scheduler) -> dict[str, Any]:

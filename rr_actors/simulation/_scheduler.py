@@ -27,6 +27,7 @@ interleavings a seed search finds differ.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import heapq
 import itertools
@@ -34,7 +35,8 @@ import logging
 import os
 import random
 import struct
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import FrameType
 from typing import Any
@@ -64,6 +66,33 @@ class DeadlockError(SimulationError):
 class LimitError(SimulationError):
     """The run went past its limit of steps or of virtual time (a livelock, or a wait
     that a timer keeps putting off)."""
+
+
+_LOGGERS = ("rr_actors", "rr_actors.events", "rr_actors.simulation", "pykka")
+"""The loggers of the code a simulation runs (`_quiet`)."""
+
+DROP_TRIES = 3
+"""Times a task left at the end of a run is thrown `GreenletExit` before it is given up."""
+
+_GRAVEYARD: list[greenlet.greenlet] = []  # tasks that would not end when dropped
+
+
+@contextlib.contextmanager
+def _quiet() -> Iterator[None]:
+    """Drop the log records of this OS thread meanwhile (the dropped tasks' last words)."""
+    ident = threading.get_ident()
+
+    def other_threads(record: logging.LogRecord) -> bool:
+        return record.thread != ident
+
+    loggers = [logging.getLogger(name) for name in _LOGGERS]
+    for log in loggers:
+        log.addFilter(other_threads)
+    try:
+        yield
+    finally:
+        for log in loggers:
+            log.removeFilter(other_threads)
 
 
 class _Greenlet(greenlet.greenlet):
@@ -167,6 +196,8 @@ class Scheduler:
         def run() -> None:
             try:
                 body()
+            except greenlet.GreenletExit:  # (dropped at the end of the run: `drop`)
+                pass
             except BaseException as exc:  # what ends a thread (logged, as threading does)
                 self.errors.append(f"{task.name}: {type(exc).__name__}: {exc}")
                 logger.exception("simulated thread %s (seed %s) ended", task.name, self.seed)
@@ -283,6 +314,37 @@ class Scheduler:
         task.glet.switch()
         if not task.ended:
             task.locals = [dict(namespace.__dict__) for namespace in namespaces]
+
+    def drop(self) -> int:
+        """End every task left (the run is over: its trace and hash are final); how many
+        would not end.
+
+        A greenlet left suspended when its OS thread ends is never freed, nor is what
+        its frames hold (greenlet's "a cycle of greenlets is a leak", before CPython
+        3.15): each run would keep its actors, catalogs and threads. So each task left is
+        thrown `GreenletExit` where it waits, and its `finally` blocks run now, in
+        simulated threads nobody schedules any more, with nothing of them logged
+        (`_quiet`): what they do can no longer change the run. One that waits again is
+        thrown it again, `DROP_TRIES` times at most.
+        """
+        self.preempt = 0.0  # (no choice points: a `finally` block runs through)
+        stuck = 0
+        with _quiet():
+            for task in self._tasks:
+                glet = task.glet
+                if task.ended or glet is None or not glet:  # (ended, or never started)
+                    continue
+                for _ in range(DROP_TRIES):
+                    task.waiting = None
+                    glet.throw(greenlet.GreenletExit)
+                    if glet.dead:
+                        break
+                else:
+                    stuck += 1
+                    _GRAVEYARD.append(glet)  # (never freed: at least not half run)
+        self._ready.clear()
+        self._timers.clear()
+        return stuck
 
     def _advance(self) -> bool:
         """Move the clock to the next deadline and ready its tasks; whether there was one."""

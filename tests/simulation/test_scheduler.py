@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextvars
+import gc
 import threading
 import time
+import weakref
 from collections.abc import Callable
 
 import pykka
@@ -265,7 +268,7 @@ def test_an_exception_that_ends_a_thread_is_in_the_run_s_errors(
     assert "simulated thread divider (seed 1) ended" in caplog.text
 
 
-def test_daemon_threads_left_waiting_are_dropped_without_their_finally_blocks() -> None:
+def test_threads_left_waiting_when_a_run_ends_are_ended_after_it_outside_its_trace() -> None:
     ran: list[str] = []
 
     def main() -> None:
@@ -274,13 +277,41 @@ def test_daemon_threads_left_waiting_are_dropped_without_their_finally_blocks() 
                 runtime.Event().wait()
             finally:
                 ran.append("finally")
+                simulation.note("too late")  # (the run is over: not in its trace)
+
+        runtime.Thread(target=wait_for_ever, name="forever", daemon=True).start()
+        runtime.sleep(1.0)
+
+    run = simulation.run(main, seed=1, trace=True)
+
+    assert ["finally"] == ran
+    assert run.trace is not None
+    assert [] == [step for step in run.trace if step[2] == "too late"]
+    assert () == run.errors
+
+
+class _Held:
+    """Something only a waiting thread's frame holds."""
+
+
+def test_what_a_thread_left_waiting_held_is_freed_after_the_run() -> None:
+    """A greenlet left suspended when its OS thread ends is never freed (greenlet's "a cycle
+    of greenlets is a leak"): each run would keep its actors and catalogs for good."""
+    held: list[weakref.ref[_Held]] = []
+
+    def main() -> None:
+        def wait_for_ever() -> None:
+            thing = _Held()
+            held.append(weakref.ref(thing))
+            runtime.Event().wait()
 
         runtime.Thread(target=wait_for_ever, name="forever", daemon=True).start()
         runtime.sleep(1.0)
 
     simulation.run(main, seed=1)
+    gc.collect()
 
-    assert [] == ran
+    assert [None] == [ref() for ref in held]
 
 
 # -- the simulated threads' own state ----------------------------------------------------
@@ -311,6 +342,35 @@ def test_each_simulated_thread_has_its_own_thread_local_contents() -> None:
 class _Doubler(Actor):
     def on_receive(self, message: int) -> int:
         return 2 * message
+
+
+_VARIABLE: contextvars.ContextVar[str] = contextvars.ContextVar("_VARIABLE", default="unset")
+
+
+def test_each_simulated_thread_starts_with_context_variables_of_its_own() -> None:
+    def main() -> list[tuple[str, str]]:
+        seen: list[tuple[str, str]] = []
+
+        def first() -> None:
+            _VARIABLE.set("first")
+            runtime.sleep(1.0)
+            seen.append(("first", _VARIABLE.get()))
+
+        def second() -> None:
+            runtime.sleep(0.5)  # (after `first` set its own)
+            seen.append(("second", _VARIABLE.get()))
+
+        _VARIABLE.set("main")
+        threads = [runtime.Thread(target=body) for body in (first, second)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        return [*seen, ("main", _VARIABLE.get())]
+
+    assert [("second", "unset"), ("first", "first"), ("main", "main")] == simulation.run(
+        main, seed=1
+    ).value
 
 
 def test_actors_run_as_simulated_threads_and_leave_the_real_registry_alone() -> None:
