@@ -1,7 +1,7 @@
 """Crash-consistency stress: 1,000 random SIGKILLs (the normal suite runs 50).
 
-Runs `run_kills` from `tests/store/test_crash_consistency.py` in rounds of 50 kills on fresh
-backups, and prints how many operations were acknowledged and checked.
+Runs `run_kills` from `tests/store/test_sqlite.py` (`TestCrashConsistency`) in rounds of 50
+kills on fresh backups, and prints how many operations were acknowledged and checked.
 
     python benchmarks/stress_crash.py [--kills 1000] [--seed 1]
 """
@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the repository: the tests package
 
-from tests.store.test_crash_consistency import run_kills
+from tests.store.test_sqlite import run_kills
 
 
 def main() -> None:

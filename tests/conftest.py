@@ -79,7 +79,7 @@ def pytest_configure(config: pytest.Config) -> None:
     )
 
 
-FIRST = ("test_portable_platform.py",)
+FIRST = ("test_portable.py",)
 """Test files that run first: each takes a minute or two (the portable platform's runs the
 process tests again), so under pytest-xdist they run beside the rest, not after it."""
 

@@ -64,6 +64,8 @@ from pathlib import Path
 
 import pytest
 
+import rr_actors
+from rr_actors import errors
 from rr_actors.experiments import parse_plan
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -587,3 +589,102 @@ def test_the_readme_says_on_which_platforms_it_runs() -> None:
 
     assert 1 == len(platform)
     assert "Linux" in platform[0]
+
+
+TUTORIALS = sorted(p.name for p in (ROOT / "docs" / "tutorial").glob("*.md"))
+HOW_TOS = sorted(p.name for p in (ROOT / "docs" / "how-to").glob("*.md"))
+
+
+def first_block(page: Path) -> str:
+    match = re.search(r"```bash\n(.*?)```", page.read_text(), re.DOTALL)
+    assert match is not None, f"{page} has no bash block"
+    return match.group(1)
+
+
+class TestTheIndex:
+    """A newcomer who reads only the README or the docs' index starts the same way and finds
+    every tutorial; the index lists every how-to.
+    """
+
+    def test_the_docs_index_starts_with_the_readmes_two_commands(self) -> None:
+        index = (ROOT / "docs" / "index.md").read_text().splitlines()
+
+        assert index[2] == "```bash"  # right under the title, as in the README
+        assert first_block(ROOT / "README.md") == first_block(ROOT / "docs" / "index.md")
+
+    @pytest.mark.parametrize("tutorial", TUTORIALS)
+    def test_every_tutorial_is_linked_from_the_index_and_the_readme(self, tutorial: str) -> None:
+        index = (ROOT / "docs" / "index.md").read_text()
+        where_next = index[index.index("## Where to go next") :]
+        readme = (ROOT / "README.md").read_text()
+
+        assert f"(tutorial/{tutorial})" in where_next
+        assert f"(docs/tutorial/{tutorial})" in readme
+
+    @pytest.mark.parametrize("how_to", HOW_TOS)
+    def test_every_how_to_is_linked_from_the_index(self, how_to: str) -> None:
+        index = (ROOT / "docs" / "index.md").read_text()
+        where_next = index[index.index("## Where to go next") :]
+
+        assert f"(how-to/{how_to})" in where_next
+
+    def test_the_experiment_tutorial_runs_the_readmes_experiment_command(self) -> None:
+        """A reader who follows the tutorial after the README runs what the README runs
+        (`--force` was in the README's command only, issue 44 item 7)."""
+        command = re.compile(r"^rr-actors experiment \w.*$", re.MULTILINE)
+        readme = command.findall((ROOT / "README.md").read_text())
+        tutorial = command.findall((ROOT / "docs" / "tutorial" / "first-experiment.md").read_text())
+
+        assert ["rr-actors experiment first --out first-results --force"] == readme
+        assert set(readme) <= set(tutorial)
+
+    def test_the_plan_for_the_docs_toolchain_is_a_page_of_the_site(self) -> None:
+        """mkdocs-material's end of life (May 2027): the plan, and why, is recorded in
+        `docs/` and listed in the site's navigation (issue 44 item 7)."""
+        page = (ROOT / "docs" / "explanation" / "docs-toolchain.md").read_text()
+
+        assert "explanation/docs-toolchain.md" in (ROOT / "mkdocs.yml").read_text()
+        assert "**The plan:" in page
+        assert "May 2027" in page
+
+
+PAGE = Path(__file__).resolve().parent.parent / "docs" / "reference" / "errors.md"
+ERRORS = sorted(
+    name
+    for name in errors.__all__
+    if isinstance(getattr(errors, name), type) and name != "ErrorFrame"
+)
+
+
+def entries() -> dict[str, tuple[str, str]]:
+    """Each `**`Name`** (`Base`, ...). Text` entry of the page: name -> (bases, text)."""
+    text = PAGE.read_text()
+    found = re.findall(r"\*\*`(\w+)`\*\* \(([^)]*)\)\.(.*?)(?=\n\n)", text, re.DOTALL)
+    return {name: (bases, body) for name, bases, body in found}
+
+
+class TestTheErrorsPage:
+    """The errors reference is readable in its source: each error with its bases, when it is
+    raised and what to do, and not only the directive that renders the docstrings (issue 30).
+    """
+
+    @pytest.mark.parametrize("name", ERRORS)
+    def test_every_error_has_an_entry_with_its_bases_and_what_to_do(self, name: str) -> None:
+        bases, body = entries()[name]
+
+        expected = [b.__name__ for b in getattr(errors, name).__bases__]
+        assert expected == re.findall(r"`(\w+)`", bases)
+        assert "*What to do:*" in body
+
+    @pytest.mark.parametrize("name", ERRORS)
+    def test_every_error_is_importable_from_rr_actors_as_the_page_says(self, name: str) -> None:
+        """The page: "importable from `rr_actors` and from `rr_actors.errors`". `TransferError` and
+        `InternalError` were not (issue 44 item 8)."""
+        assert getattr(errors, name) is getattr(rr_actors, name, None)
+        assert name in rr_actors.__all__
+
+    def test_the_page_draws_every_error_in_its_tree(self) -> None:
+        tree = re.search(r"```text\n(.*?)```", PAGE.read_text(), re.DOTALL)
+
+        assert tree is not None
+        assert set(ERRORS) <= set(re.findall(r"\b(\w+Error)\b", tree[1]))

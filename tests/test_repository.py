@@ -146,25 +146,72 @@ def test_the_protocol_uses_threads_clocks_ids_and_randomness_only_through_the_ru
     assert [] == stragglers
 
 
-OF_THE_HANDLE = {
-    "test_seams.py": "the seams of `rr_actors.testing` (`testing/seams.py`) on a registrar",
-    "test_registrar_bad_input.py": "the handle's checks of its arguments",
-    "test_registrar_names.py": "the names a handle starts a registrar with",
+MIRRORED = {
+    "": ("",),
+    "catalog": ("_catalog",),
+    "core": ("_core", "_platform"),
+    "events": ("events",),
+    "experiments": ("experiments",),
+    "mission": ("mission",),
+    "observe": ("observe",),
+    "process": ("_process",),
+    "registrar": ("_registrar",),
+    "simulation": ("simulation",),
+    "store": ("_store",),
+    "supervision": ("_supervision",),
+    "testing": ("testing",),
+    "tools": ("_tools",),
 }
-"""Registrar test modules named for the handle's surface, not for a module (issue 41 item 4
-regroups the handle)."""
+"""Each test folder (its path under `tests/`; `""` is `tests/` itself) and the packages of
+`rr_actors` (their paths under `rr_actors/`) whose modules its test modules mirror.
+
+A folder's `test_<name>.py` names a runtime module of one of its packages `P` when
+`rr_actors/P/<name>.py` or `rr_actors/P/_<name>.py` exists (the leading underscore of a
+private module dropped), or a package `rr_actors/P/<name>/` or `rr_actors/P/_<name>/`, or
+when `<name>` is `P`'s own name without its underscore (the package as a whole: its
+`__init__.py`). A nested test folder `tests/a/b/` mirrors its own packages, listed under
+`"a/b"`."""
+
+WHOLE_FEATURES = {
+    "test_docs.py": "every code block of README.md and docs/ runs; the index and errors page",
+    "test_examples.py": "every program of examples/ runs as its own program",
+    "test_benchmarks.py": "every script of benchmarks/ runs at its smallest",
+    "test_repository.py": "the repository itself: ignored outputs, import circles, this rule",
+    "test_conftest_progress.py": "the suite's own tests/conftest.py: failures named as they come",
+    "observe/test_page.py": "the observer's page: the HTML and JavaScript of observe/static/",
+    "simulation/test_registrar.py": "the registrar's semantic rules on the simulation, many seeds",
+}
+"""Test modules whose subject is a whole public feature rather than one runtime module (their
+paths under `tests/`), each with why."""
 
 
-def test_each_registrar_test_module_is_named_for_the_module_it_tests() -> None:
-    # One test module per runtime module (issue 41 item 5): a finding is a test in the
+def _names(test_folder: str) -> set[str]:
+    """The `<name>`s a test module of `test_folder` may be called `test_<name>.py` after."""
+    names = set()
+    for package in MIRRORED[test_folder]:
+        where = ROOT / "rr_actors" / package
+        if package:
+            names.add(where.name.removeprefix("_"))
+        for entry in where.iterdir():
+            is_package = entry.is_dir() and (entry / "__init__.py").exists()
+            if (entry.suffix == ".py" or is_package) and not entry.name.startswith("__"):
+                names.add(entry.stem.removeprefix("_"))
+    return names
+
+
+def test_each_test_module_names_the_runtime_module_it_tests() -> None:
+    # One test module per runtime module (issue 41, item 5): a finding is a test in the
     # module of what it tests, a scenario a class there, never a new file.
-    modules = {path.stem for path in (ROOT / "rr_actors" / "_registrar").glob("*.py")}
-    tests = sorted(path.name for path in (ROOT / "tests" / "registrar").glob("test_*.py"))
-    unnamed = [
-        name
-        for name in tests
-        if name.removeprefix("test_").removesuffix(".py") not in modules
-        and name not in OF_THE_HANDLE
-    ]
+    unnamed = []
+    for folder in MIRRORED:
+        names = _names(folder)
+        for path in sorted((ROOT / "tests" / folder).glob("test_*.py")):
+            listed = path.relative_to(ROOT / "tests").as_posix()
+            if path.stem.removeprefix("test_") not in names and listed not in WHOLE_FEATURES:
+                unnamed.append(listed)
 
     assert [] == unnamed
+
+
+def test_every_whole_feature_listed_is_a_test_module() -> None:
+    assert [] == [name for name in WHOLE_FEATURES if not (ROOT / "tests" / name).is_file()]

@@ -1,20 +1,20 @@
-"""The pure catalog: dedup buckets, indexes and invariants (unit and property tests)."""
+"""The catalog (`rr_actors._catalog.catalog`): dedup buckets, indexes and invariants (unit
+and property tests), and its rules kept by real registrars (DESIGN rules 1-8)."""
 
 from __future__ import annotations
 
 import collections
 import collections.abc
 import dataclasses
-import decimal
-import enum
-import fractions
+import json
 import pickle
+import threading
 import uuid
 from typing import Any
 
 import hypothesis.strategies as st
 import pytest
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis.stateful import (
     Bundle,
     RuleBasedStateMachine,
@@ -24,6 +24,7 @@ from hypothesis.stateful import (
     rule,
 )
 
+import rr_actors as rr
 from rr_actors import Query, UnknownQueryError
 from rr_actors._catalog import (
     Catalog,
@@ -34,6 +35,7 @@ from rr_actors._catalog import (
     request_digest,
 )
 from rr_actors._catalog.digest import UNHASHABLE, requests_equal
+from rr_actors.testing import catalog_snapshot
 
 scalars = st.one_of(
     st.none(),
@@ -372,50 +374,6 @@ TestCatalogMachine.pytestmark = [pytest.mark.timeout(300)]
 # -- digests and restore without decoding ----------------------------------------------------
 
 
-class Level(enum.IntEnum):
-    ONE = 1
-
-
-class Name(enum.StrEnum):
-    CAM = "cam"
-
-
-@pytest.mark.parametrize(
-    "values",
-    [
-        [1, 1.0, True, Level.ONE, decimal.Decimal(1), fractions.Fraction(1)],
-        ["cam", Name.CAM],
-        [b"ab", bytearray(b"ab")],
-        [{"a": 1, "b": [2]}, {"b": [2.0], "a": True}],
-        [{1, 2}, frozenset({2.0, 1})],
-        [float("nan"), float("nan")],
-    ],
-)
-def test_equal_values_of_different_types_have_one_digest(values):
-    assert 1 == len({request_digest(v) for v in values})
-
-
-def test_values_of_custom_classes_have_no_digest():
-    class Loose(enum.Enum):
-        A = 1
-
-        def __eq__(self, other):
-            return other == self.value
-
-        __hash__ = enum.Enum.__hash__
-
-    assert [None, None] == [request_digest(Loose.A), request_digest([object()])]
-
-
-def test_a_plain_enum_member_is_digested_by_its_class_and_name():
-    """Requests holding enum members (a robot's mode) are indexed, not scanned."""
-    mode = {"mode": ResourceState.LOADED, "rate": 10}
-    same = request_digest({"rate": 10.0, "mode": ResourceState.LOADED})
-    other = request_digest({"mode": ResourceState.LOADING, "rate": 10})
-
-    assert (same, True) == (request_digest(mode), other not in (None, same))
-
-
 def test_a_value_without_a_digest_that_equals_one_with_a_digest_is_found_both_ways():
     class Alias:
         """Equal to the string it wraps (and hashed like it, as Python requires)."""
@@ -526,50 +484,192 @@ def test_a_container_subclass_with_its_own_eq_finds_every_request_it_calls_equal
     assert ("r1", True) == (found.id if found else None, stored == probe)
 
 
-@pytest.mark.parametrize(
-    "value",
-    [
-        collections.namedtuple("Point", "x y")(1, 2),
-        collections.OrderedDict(a=1, b=2),
-        collections.defaultdict(list, a=[1]),
-    ],
-    ids=repr,
-)
-def test_a_container_subclass_that_keeps_its_base_eq_keeps_its_base_digest(value: Any) -> None:
-    base = {collections.OrderedDict: dict, collections.defaultdict: dict}.get(type(value), tuple)
-
-    assert request_digest(base(value)) == request_digest(value)
+KEYS = st.integers(0, 3)
 
 
-class RaisingItems(collections.abc.Mapping):  # type: ignore[type-arg]
-    def __repr__(self) -> str:  # the test's id: the same in every pytest-xdist worker
-        return "RaisingItems()"
-
-    def __getitem__(self, key: Any) -> Any:
-        raise KeyError(key)
-
-    def __iter__(self) -> Any:
-        raise RuntimeError("broken mapping")
-
-    def __len__(self) -> int:
-        return 1
+def key_of(server: str, request: Any) -> str:
+    return server + ":" + json.dumps(request, sort_keys=True)
 
 
-@pytest.mark.parametrize(
-    "request_value",
-    [decimal.Decimal("sNaN"), {"x": [decimal.Decimal("sNaN")]}, RaisingItems()],
-    ids=repr,
-)
-def test_a_request_that_raises_while_digested_or_compared_has_no_digest_and_never_raises(
-    request_value: Any,
-) -> None:
-    catalog = Catalog()
-    catalog.begin_load("r0", "s", {"plain": 1})
-    catalog.begin_load("r1", "s", request_value)
-    catalog.find("s", request_value)  # a comparison that raises means "different"
+# -- the rules kept by real registrars --------------------------------------------------------
 
-    assert (None, "r0", False) == (
-        request_digest(request_value),
-        catalog.find("s", {"plain": 1}).id,
-        requests_equal(request_value, decimal.Decimal("sNaN")),
+
+class RegistrarMachine(RuleBasedStateMachine):
+    """Property-based tests driving real registrars (DESIGN rules 1-8).
+
+    A provider has a `leaf` server and a `composite` server whose load calls `leaf` for its
+    parts (nested loads, recorded as dependencies). A consumer loads, loads duplicates,
+    retries with a query id it already holds, unloads, and asks for requests flagged to fail
+    inside load: in the composite's callback itself or in one of its sub-loads. The provider
+    reports held resources `FATAL`: an equal request then loads a new one beside the dead
+    one. After each step the catalogs' invariants and consumer counts must hold; at the end
+    everything is unloaded and every successful load callback must be matched by exactly one
+    unload callback, per resource instance.
+    """
+
+    held = Bundle("held")
+
+    def __init__(self) -> None:
+        super().__init__()
+        suffix = uuid.uuid4().hex[:8]
+        self.lock = threading.Lock()
+        self.loaded: collections.Counter[str] = collections.Counter()  # successful loads
+        self.unloaded: collections.Counter[str] = collections.Counter()
+        self.holding: dict[str, rr.Query] = {}  # the consumer's top-level queries
+        self.provider = rr.ResourceRegistrar.start(f"prop-provider-{suffix}")
+        try:
+            self.consumer = rr.ResourceRegistrar.start(f"prop-consumer-{suffix}")
+        except BaseException:
+            self.provider.stop()
+            raise
+        self.provider.register_server("leaf", load=self._leaf, unload=self._unload("leaf"))
+        self.provider.register_server(
+            "composite", load=self._composite, unload=self._unload("composite")
+        )
+
+    # -- the provider's callbacks (worker threads) ---------------------------------------
+
+    def _leaf(self, request: dict[str, Any]) -> Any:
+        if request["fail"]:
+            raise RuntimeError(f"leaf {request['k']} refuses")
+        with self.lock:
+            self.loaded[key_of("leaf", request)] += 1
+        return {"leaf": request["k"]}
+
+    def _composite(self, request: dict[str, Any]) -> Any:
+        parts = request["parts"]
+        responses = []
+        for i, k in enumerate(parts):
+            fail = request["fail"] == "sub" and i == len(parts) - 1
+            sub = {"k": k, "fail": fail}
+            responses.append(self.provider.call(self.provider.name, "leaf", sub).response)
+        if request["fail"] == "self":
+            raise RuntimeError("composite refuses after loading its parts")
+        with self.lock:
+            self.loaded[key_of("composite", request)] += 1
+        return responses
+
+    def _unload(self, server: str) -> Any:
+        def unload(request: Any, response: Any) -> None:
+            with self.lock:
+                self.unloaded[key_of(server, request)] += 1
+
+        return unload
+
+    # -- rules ----------------------------------------------------------------------------
+
+    def _call(self, server: str, request: Any, fails: bool, query_id: str | None = None) -> Any:
+        if fails:
+            with pytest.raises(rr.ResourceLoadError):
+                self.consumer.call(self.provider.name, server, request, query_id=query_id)
+            return None
+        query = self.consumer.call(self.provider.name, server, request, query_id=query_id)
+        self.holding[query.id] = query
+        return query
+
+    @rule(target=held, k=KEYS, fail=st.booleans())
+    def load_leaf(self, k, fail):
+        return self._call("leaf", {"k": k, "fail": fail}, fail)
+
+    @rule(
+        target=held,
+        parts=st.lists(KEYS, min_size=1, max_size=3),
+        fail=st.sampled_from([None, None, "self", "sub"]),
     )
+    def load_composite(self, parts, fail):
+        return self._call("composite", {"parts": parts, "fail": fail}, fail is not None)
+
+    @rule(target=held, query=held)
+    def load_duplicate(self, query):
+        if query is None:
+            return None
+        return self._call(query.server, json.loads(json.dumps(query.request)), False)
+
+    @rule(query=held)
+    def retry_with_the_same_query_id(self, query):
+        if query is None or query.id not in self.holding:
+            return
+        again = self.consumer.call(
+            self.provider.name, query.server, query.request, query_id=query.id
+        )
+        assert query == again
+
+    @rule(query=held)
+    def report_fatal(self, query):
+        """The provider reports a held resource dead: later equal calls load a new one."""
+        if query is None or query.id not in self.holding:
+            return
+        self.provider.send_status(query.id, rr.Status.FATAL, "it died")
+
+    @rule(query=consumes(held))
+    def unload(self, query):
+        if query is None or query.id not in self.holding:
+            return
+        self.consumer.unload(query.id)
+        del self.holding[query.id]
+
+    @rule(query=held)
+    def unload_twice_is_refused(self, query):
+        if query is None or query.id in self.holding:
+            return
+        with pytest.raises(rr.UnknownQueryError):
+            self.consumer.unload(query.id)
+
+    # -- invariants -----------------------------------------------------------------------
+
+    @invariant()
+    def catalogs_are_consistent(self):
+        provider = catalog_snapshot(self.provider)  # runs Catalog.check_invariants
+        consumer = catalog_snapshot(self.consumer)
+        assert set(self.holding) == {c.query.id for c in consumer.clients}
+        assert all(c.parent is None and c.loaded for c in consumer.clients)
+
+        by_id = {r.id: r for r in provider.resources}
+        assert all(r.state.value == "loaded" and r.consumers for r in provider.resources)
+        expected: collections.Counter[str] = collections.Counter(
+            key_of(q.server, q.request) for q in self.holding.values()
+        )
+        for record in provider.clients:  # the composites' dependencies on leaves
+            assert record.parent in by_id
+            assert "composite" == by_id[record.parent].server
+            expected[key_of("leaf", record.query.request)] += 1
+        actual: collections.Counter[str] = collections.Counter()
+        instances: collections.Counter[str] = collections.Counter()  # dead ones too
+        matched: collections.Counter[str] = collections.Counter()  # not reported FATAL
+        for r in provider.resources:
+            actual[key_of(r.server, r.request)] += len(r.consumers)
+            instances[key_of(r.server, r.request)] += 1
+            matched[key_of(r.server, r.request)] += not r.failed
+        assert expected == actual
+        assert all(n <= 1 for n in matched.values())
+
+        for resource in provider.resources:
+            if resource.server == "composite":
+                parts = [c.query.request["k"] for c in provider.clients if c.parent == resource.id]
+                assert sorted(resource.request["parts"]) == sorted(parts)
+
+        with self.lock:
+            live = collections.Counter(self.loaded)
+            live.subtract(self.unloaded)
+        assert dict(instances) == {k: n for k, n in live.items() if n}
+
+    def teardown(self):
+        try:
+            for query_id in reversed(list(self.holding)):
+                self.consumer.unload(query_id)
+            self.holding.clear()
+            snapshot = catalog_snapshot(self.provider)
+            assert ((), ()) == (snapshot.resources, snapshot.clients)
+            assert self.loaded == self.unloaded
+        finally:
+            self.consumer.stop()
+            self.provider.stop()
+
+
+TestRegistrarMachine = RegistrarMachine.TestCase
+TestRegistrarMachine.settings = settings(
+    max_examples=50,
+    stateful_step_count=20,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)

@@ -813,7 +813,7 @@ SHORT = {"killheavy": 3.0}
 
 ROOT_ONLY = {"leases"}
 """Shipped plans these tests cannot run: `leases` needs root, network namespaces and
-minutes (tests/experiments/test_experiments_hosts.py runs a small plan of its shape)."""
+minutes (tests/experiments/test_hosts.py runs a small plan of its shape)."""
 
 
 @pytest.fixture(scope="module")

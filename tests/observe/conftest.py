@@ -1,4 +1,5 @@
-"""Fixtures of the observer's browser tests: one headless chromium per module, a tab each."""
+"""Fixtures of the observer's tests: figure 2.7's tree, and for the browser tests one headless
+chromium per module, a tab each."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ from typing import Any
 import playwright.sync_api as playwright_api  # (the dev extra; a missing one fails, never skips)
 import pytest
 
+import rr_actors as rr
+from tests.support.observed_tree import figure_27
 from tests.support.observing import CHROMIUM_ARGS, chromium
 
 
@@ -41,3 +44,9 @@ def page(browser: Any) -> Iterator[Any]:
     if not tab.is_closed():
         tab.close()
     assert [] == errors
+
+
+@pytest.fixture
+def tree(supervisors: Any, process_helpers: Any) -> rr.Supervisor:
+    """Figure 2.7's managers in processes, started; stopped at teardown."""
+    return figure_27(supervisors).start()

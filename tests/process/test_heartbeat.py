@@ -31,7 +31,11 @@ from rr_actors._process.control import Events, Ping, Pong, Ready, Stop
 from rr_actors._process.heartbeat import STARVED_LIMIT, Hang, Heartbeat
 from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors.testing import SharedObjects, run_on_actor
-from tests.support.supervising import linux_trick, pid_of, process
+from tests.support.supervising import (
+    linux_trick,
+    pid_of,
+    process,
+)
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux scheduling")
 
@@ -399,3 +403,54 @@ def test_a_silence_starts_when_its_ping_was_written_and_ends_with_its_answer() -
     assert beat.tick(1.25) is None  # 0.625 s since it was written
     assert (False, True) == (beat.answered(7, 1.25), beat.answered(1, 1.25))
     assert 2 == beat.tick(1.25)  # the next ping: a period has passed since the last
+
+
+# -- the heartbeat --------------------------------------------------------------------------------
+
+
+def block_actor(gate: Any, survived: Any, seconds: float | None) -> Callable[[Any], None]:
+    """Run in a manager: make its registrar actor's thread block (a stuck registrar).
+
+    The actor waits on `gate` (at most `seconds`), then sets `survived`: a manager killed as
+    hung never gets there. The process itself keeps running; only the actor is stuck.
+    """
+
+    def fn(registrar: rr.ResourceRegistrar) -> None:
+        from rr_actors.testing import run_on_actor  # noqa: PLC0415 - runs in the manager
+
+        def op() -> None:
+            gate.wait(seconds)
+            survived.set()
+
+        run_on_actor(registrar, op)
+
+    return fn
+
+
+def test_a_manager_whose_registrar_actor_is_stuck_counts_as_hung_and_is_restarted(
+    supervisors: Callable[..., rr.Supervisor], uid: str, process_helpers: SharedObjects
+) -> None:
+    name = f"erm-{uid}"
+    gate, survived = process_helpers.event(), process_helpers.event()
+    sup = supervisors([process(name, heartbeat=0.1, heartbeat_timeout=1.0)]).start()
+    old = sup.child(name).pid
+    sup.run_in(name, block_actor(gate, survived, None), timeout=10.0)
+    try:
+        info = sup.wait_restarted(name, timeout=15.0)
+    finally:
+        gate.set()
+
+    assert (True, True) == ((info.last_exit or "").startswith("hung"), info.pid != old)
+
+
+def test_a_manager_slower_than_the_heartbeat_period_but_within_its_timeout_is_not_hung(
+    supervisors: Callable[..., rr.Supervisor], uid: str, process_helpers: SharedObjects
+) -> None:
+    name = f"erm-{uid}"
+    gate, survived = process_helpers.event(), process_helpers.event()
+    sup = supervisors([process(name, heartbeat=0.1, heartbeat_timeout=5.0)]).start()
+    old = sup.child(name).pid
+    sup.run_in(name, block_actor(gate, survived, 1.0), timeout=10.0)  # 10 periods, 1/5 timeout
+
+    assert survived.wait(10.0), "killed as hung before its heartbeat_timeout ran out"
+    assert (old, 0) == (sup.child(name).pid, sup.child(name).restarts)

@@ -6,8 +6,8 @@ registrar with a `save_interval` opens) switches it off and wakes a checkpointer
 instead (`rr_actors._store.checkpoints.Checkpointer`). These tests pin that it runs, that
 it keeps the WAL bounded when a reader holds it back, that it stops with the store, that a
 store that writes little never starts it, and which registrars use it. (Crashes in the middle of a
-checkpoint are covered by tests/store/test_crash_consistency.py, whose child checkpoints in the
-background every few statements.)
+checkpoint are covered by the crash consistency tests of tests/store/test_sqlite.py, whose child
+checkpoints in the background every few statements.)
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from rr_actors._store import checkpoints
 from rr_actors._store.saver import open_store
 from rr_actors._store.sqlite import SqliteStore
 from tests.support.durable_pair import opened
+from tests.support.persisting import consumer_ids
 
 WAIT = 10.0  # seconds: the bound of every wait below
 
@@ -234,3 +235,66 @@ def test_a_large_response_counts_for_the_pages_it_fills(tmp_path: Path) -> None:
         wait_checkpoints(store, 1)
     finally:
         store.close(erase=False)
+
+
+# -- background checkpoints: PASSIVE below the limit --------------------------------------------
+
+
+def test_below_the_limit_a_checkpoint_is_passive_and_does_not_wait_for_a_reader(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "c.db"
+    store, catalog = opened(path)
+    reader = sqlite3.connect(path, isolation_level=None)
+    reader.execute("BEGIN")
+    reader.execute("SELECT count(*) FROM consumers").fetchone()  # an old snapshot
+    checkpoint = sqlite3.connect(path, isolation_level=None, timeout=0.05)
+    try:
+        for _ in range(20):
+            catalog.add_consumer("r1", str(uuid.uuid4()), "C")
+            store.write(catalog.drain_changes())
+        assert store._checkpointer is not None
+        store._checkpointer._checkpoint(checkpoint)
+        last = store._checkpointer.last
+    finally:
+        checkpoint.close()
+        reader.close()
+        store.close(erase=False)
+
+    assert last is not None
+    busy, log, copied = last
+    # PASSIVE copies what it can and reports no wait; any other mode waits and says busy
+    assert (busy, log < checkpoints.WAL_LIMIT, copied < log) == (0, True, True)
+
+
+# -- a real bug: a kill in the middle of a growing checkpoint ---------------------------------
+
+
+def test_a_kill_in_the_middle_of_a_checkpoint_that_grows_the_file_is_not_truncation(
+    tmp_path: Path,
+) -> None:
+    live, crashed = tmp_path / "live.db", tmp_path / "crashed.db"
+    store = SqliteStore.open(live)
+    try:
+        store.load()
+        catalog = Catalog()
+        for n in range(200):  # the catalog grows by some 25 pages, all of them in the -wal
+            catalog.begin_load(f"r{n}", "leaf", {"n": n, "pad": "x" * 300})
+            catalog.finish_load(f"r{n}", n)
+            catalog.add_consumer(f"r{n}", f"q{n}", "C")
+        store.write(catalog.drain_changes())
+        before = {s: Path(f"{live}{s}").read_bytes() for s in ("", "-wal", "-shm")}
+        # A checkpoint copies the log's pages in page order: page 1 (the header, with the
+        # new page count) first. SIGKILL before the last new page is written leaves the
+        # old file with the new header, next to the whole -wal:
+        store._db.execute("PRAGMA wal_checkpoint(PASSIVE)")
+        header_page = live.read_bytes()[:4096]
+    finally:
+        store.close(erase=False)
+    crashed.write_bytes(header_page + before[""][4096:])
+    Path(f"{crashed}-wal").write_bytes(before["-wal"])
+    Path(f"{crashed}-shm").write_bytes(before["-shm"])
+
+    SqliteStore.open(crashed).close(erase=False)  # not "truncated": SQLite recovers it
+
+    assert {f"q{n}" for n in range(200)} == consumer_ids(crashed)

@@ -18,9 +18,10 @@ from rr_actors._catalog import (
     ResourceState,
     request_digest,
 )
-from rr_actors._store import schema
+from rr_actors._store import codec, schema
 from rr_actors._store.files import read_backup
 from rr_actors._store.sqlite import SqliteStore
+from tests.support.durable_pair import schema_2_database
 from tests.support.persisting import (
     catalog_with_a_gone_class,
     lazily_restored,
@@ -347,3 +348,66 @@ def test_a_schema_5_backup_is_migrated_with_no_resource_marked_failed(tmp_path: 
         list(resource.consumers),
     )
     assert (False, {"for": "lidar", "load": 1}) == (resource.failed, resource.response)
+
+
+# -- store: explicit migrations ---------------------------------------------------------------
+
+
+def write_v2_backup(path: Path) -> None:
+    """A schema-2 backup (rowid consumers, no indexes): r0 loaded with consumer q0."""
+    db = schema_2_database(path)
+    dumps = codec.dumps
+    db.execute(
+        "INSERT INTO resources VALUES (1, 'r0', 'leaf', 1, ?, ?, ?)",
+        (request_digest({"n": 0}), dumps({"n": 0}), dumps({"pid": 0})),
+    )
+    db.execute("INSERT INTO consumers VALUES (2, 'q0', 1, 'C')")
+    db.execute("PRAGMA journal_mode = WAL")
+    db.close()
+
+
+def test_a_version_2_backup_is_brought_to_the_current_schema_with_its_indexes(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "p.db"
+    write_v2_backup(path)
+
+    SqliteStore.open(path).close(erase=False)
+
+    db = sqlite3.connect(path)
+    try:
+        version = db.execute("SELECT version FROM rr_actors_schema").fetchone()[0]
+        indexes = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='index'")}
+        consumers_pk = [r[1] for r in db.execute("PRAGMA table_info(consumers)") if r[5]]
+    finally:
+        db.close()
+    assert (schema.SCHEMA_VERSION, True, ["resource", "seq"]) == (
+        version,
+        set(schema.INDEXES) <= indexes,
+        consumers_pk,
+    )
+
+
+def test_a_migration_step_that_fails_leaves_the_file_at_its_old_version(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "p.db"
+    SqliteStore.open(path).close(erase=False)
+
+    def half_done(db: sqlite3.Connection) -> None:
+        db.execute("ALTER TABLE resources ADD COLUMN note TEXT")
+        raise sqlite3.OperationalError("disk I/O error (simulated)")
+
+    monkeypatch.setattr(schema, "MIGRATIONS", (*schema.MIGRATIONS, half_done))
+    monkeypatch.setattr(schema, "SCHEMA_VERSION", schema.SCHEMA_VERSION + 1)
+    with pytest.raises((rr.CatalogCorruptError, sqlite3.Error)):
+        SqliteStore.open(path)
+    monkeypatch.undo()
+
+    db = sqlite3.connect(path)
+    try:
+        version = db.execute("SELECT version FROM rr_actors_schema").fetchone()[0]
+        columns = [row[1] for row in db.execute("PRAGMA table_info(resources)")]
+    finally:
+        db.close()
+    assert (schema.SCHEMA_VERSION, False) == (version, "note" in columns)

@@ -1,4 +1,5 @@
-"""Supervisor logic with thread managers: strategies, restart types, intensity, backoff.
+"""The supervisor (`rr_actors._supervision.supervisor`) with thread managers: strategies,
+restart types, intensity, backoff, and what its methods refuse.
 
 No processes here: managers run in this process (a crash is `rr_actors.testing.crash`),
 time is an injected clock and backoff delays go to a manual timer, so intensity and
@@ -10,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -17,15 +19,14 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import Supervisor, testing
-from rr_actors._supervision.policy import RestartIntensity
 from rr_actors._supervision.retry import abandon_after_restart
 from rr_actors.config import Backoff, ManagerSpec, SupervisorSpec
-from tests.support.supervising import FakeClock, ManualTimer, crash, echo_setup
-
-
-@pytest.fixture
-def clock() -> FakeClock:
-    return FakeClock()
+from tests.support.supervising import (
+    FakeClock,
+    ManualTimer,
+    crash,
+    echo_setup,
+)
 
 
 @pytest.fixture
@@ -83,82 +84,7 @@ def restarts(sup: Supervisor) -> dict[str, int]:
     return {info.name: info.restarts for info in sup.which_children()}
 
 
-# -- Backoff --------------------------------------------------------------------------------
-
-
-def test_backoff_without_an_initial_delay_restarts_at_once() -> None:
-    assert [0.0, 0.0, 0.0] == [Backoff().delay(n) for n in (1, 2, 5)]
-
-
-def test_backoff_grows_by_its_factor_per_restart_in_the_window() -> None:
-    backoff = Backoff(initial=0.1, factor=2.0, max=10.0, jitter=0.0)
-
-    assert [0.1, 0.2, 0.4, 0.8] == [round(backoff.delay(n), 9) for n in (1, 2, 3, 4)]
-
-
-def test_backoff_never_waits_longer_than_its_max() -> None:
-    backoff = Backoff(initial=1.0, factor=10.0, max=3.0, jitter=0.5)
-
-    assert 3.0 == backoff.delay(50, random=lambda: 0.999999)
-
-
-def test_backoff_jitter_spreads_the_delay_both_ways() -> None:
-    backoff = Backoff(initial=1.0, factor=2.0, max=10.0, jitter=0.2)
-
-    assert (0.8, 1.2) == (
-        backoff.delay(1, random=lambda: 0.0),
-        backoff.delay(1, random=lambda: 1.0),
-    )
-
-
-@pytest.mark.parametrize(
-    ("field", "value"),
-    [("initial", -1.0), ("factor", 0.5), ("max", -2.0), ("jitter", 1.5), ("jitter", True)],
-)
-def test_invalid_backoff_raises_config_error_naming_the_field(field: str, value: Any) -> None:
-    with pytest.raises(rr.ConfigError, match=f"Backoff.{field}"):
-        Backoff(**{field: value})
-
-
-# -- RestartIntensity -----------------------------------------------------------------------
-
-
-def test_intensity_allows_max_restarts_within_the_period_and_not_one_more(
-    clock: FakeClock,
-) -> None:
-    intensity = RestartIntensity(max_restarts=3, period=5.0, clock=clock)
-
-    assert [True, True, True, False] == [intensity.add() for _ in range(4)]
-
-
-def test_restarts_older_than_the_period_no_longer_count(clock: FakeClock) -> None:
-    intensity = RestartIntensity(max_restarts=2, period=5.0, clock=clock)
-    intensity.add()
-    intensity.add()
-    clock.now += 5.0
-
-    assert (True, 1) == (intensity.add(), intensity.recent)
-
-
-def test_zero_max_restarts_gives_up_at_the_first_crash(clock: FakeClock) -> None:
-    assert not RestartIntensity(max_restarts=0, period=5.0, clock=clock).add()
-
-
 # -- specs ----------------------------------------------------------------------------------
-
-
-def test_manager_spec_config_must_carry_the_managers_name() -> None:
-    with pytest.raises(rr.ConfigError, match=r"config\.name"):
-        ManagerSpec("erm", config=rr.RegistrarConfig(name="other"))
-
-
-@pytest.mark.parametrize(
-    ("field", "value"),
-    [("isolation", "fiber"), ("restart", "sometimes"), ("shutdown", 0), ("heartbeat", -1.0)],
-)
-def test_invalid_manager_spec_raises_config_error_naming_the_field(field: str, value: Any) -> None:
-    with pytest.raises(rr.ConfigError, match=field):
-        ManagerSpec("erm", **{field: value})
 
 
 def test_a_name_used_twice_in_the_tree_is_a_config_error() -> None:
@@ -780,3 +706,196 @@ def test_a_nested_give_up_is_raised_when_no_supervisor_above_restarts_it(
     with pytest.raises(rr.SupervisorGaveUpError, match=inner):
         sup.wait_restarted(x, timeout=5.0)
     assert None is sup.gave_up
+
+
+# -- introspection --------------------------------------------------------------------------------
+
+
+def test_count_children_counts_only_running_children_as_active_and_kinds_apart(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    t = f"t-{uid}"
+    inner = rr.SupervisorSpec(f"inner-{uid}", (rr.ManagerSpec(f"x-{uid}"),))
+    sup = supervisors(
+        [rr.ManagerSpec(f"a-{uid}"), rr.ManagerSpec(t, restart="temporary"), inner],
+        clock=FakeClock(),
+    ).start()
+    crash(sup, t)
+    with pytest.raises(rr.RegistrarUnavailableError):
+        sup.wait_restarted(t, timeout=5.0)  # returns once t settled as exited
+
+    assert rr.ChildCounts(specs=3, active=2, supervisors=1, managers=2) == sup.count_children()
+
+
+def test_wait_restarted_waits_for_the_restart_count_it_is_given(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    name = f"a-{uid}"
+    sup = supervisors([rr.ManagerSpec(name)], clock=FakeClock()).start()
+    for _ in range(2):
+        crash(sup, name)
+        sup.wait_restarted(name, timeout=5.0)
+
+    # restarts=1 was reached long ago: no wait for a third restart
+    assert 2 == sup.wait_restarted(name, timeout=2.0, restarts=1).restarts
+    with pytest.raises(rr.CallTimeoutError, match="2 restarts"):
+        sup.wait_restarted(name, timeout=0.2, restarts=3)  # there were only two
+
+
+def _erm(sup: rr.Supervisor) -> str:
+    return sup.which_children()[0].name
+
+
+class TestBadArguments:
+    """`Supervisor.call_with_retry`, `subscribe`, `observe`, `run_in`, `child` and
+    `wait_restarted` given what they cannot use.
+
+    Each is a `ConfigError` naming the argument, raised before anything is sent: no id is
+    abandoned at the provider for a call never made, no subscription logs a `TypeError` per
+    event for ever, no `AttributeError` from the observer's error path.
+    """
+
+    @pytest.fixture
+    def sup(self) -> Iterator[rr.Supervisor]:
+        """A started tree of one manager in a thread, `erm-<hex>`, serving `echo`."""
+        with rr.Supervisor([rr.ManagerSpec(f"erm-{uuid.uuid4().hex[:8]}", echo_setup)]) as started:
+            yield started  # (`with` started it)
+
+    @pytest.mark.parametrize(
+        ("arguments", "named"),
+        [
+            ({"consumer": "app"}, "consumer"),
+            ({"consumer": None}, "consumer"),
+            ({"target_rr": 5}, "target_rr"),
+            ({"server": None}, "server"),
+            ({"timeout": -1}, "timeout"),
+            ({"timeout": float("nan")}, "timeout"),
+            ({"query_id": ""}, "query_id"),
+        ],
+        ids=[
+            "consumer-str",
+            "consumer-None",
+            "target-int",
+            "server-None",
+            "timeout-neg",
+            "nan",
+            "qid",
+        ],
+    )
+    def test_call_with_retry_with_an_argument_it_cannot_use_is_a_config_error_naming_it(
+        self, sup: rr.Supervisor, arguments: dict[str, Any], named: str
+    ) -> None:
+        app = sup.registrar(f"app-{uuid.uuid4().hex[:8]}")
+        call: dict[str, Any] = {"consumer": app, "target_rr": _erm(sup), "server": "echo"}
+        call.update(arguments)
+
+        with pytest.raises(rr.ConfigError, match=named):
+            sup.call_with_retry(
+                call.pop("consumer"), call.pop("target_rr"), call.pop("server"), "x", **call
+            )
+
+        assert [] == sup.run_in(_erm(sup), lambda erm: erm.server_queries("echo"), timeout=10)
+
+    def test_subscribe_with_a_callback_that_is_not_callable_is_a_config_error(
+        self,
+        sup: rr.Supervisor,
+    ) -> None:
+        with pytest.raises(rr.ConfigError, match="callback"):
+            sup.subscribe(42)  # type: ignore[arg-type]
+
+    def test_observe_with_a_sock_that_is_not_a_socket_is_a_config_error_naming_it(
+        self,
+        sup: rr.Supervisor,
+    ) -> None:
+        pytest.importorskip("uvicorn")
+        with pytest.raises(rr.ConfigError, match="sock"):
+            sup.observe(sock="127.0.0.1:8080")  # type: ignore[arg-type]
+
+    def test_subscribe_after_stop_is_a_config_error_not_a_subscription_that_never_hears(
+        self,
+    ) -> None:
+        sup = rr.Supervisor([rr.ManagerSpec(f"erm-{uuid.uuid4().hex[:8]}", echo_setup)])
+        sup.start()
+        sup.stop()
+
+        with pytest.raises(rr.ConfigError, match="was stopped"):
+            sup.subscribe(print)
+
+    @pytest.mark.parametrize(
+        ("method", "named"),
+        [
+            (lambda sup, erm: sup.run_in(erm, lambda r: r.name, timeout=-1), "timeout"),
+            (lambda sup, erm: sup.run_in(erm, "not callable"), "fn"),
+            (lambda sup, erm: sup.run_in([erm], lambda r: r.name), "name"),
+            (lambda sup, erm: sup.child([erm]), "name"),
+            (lambda sup, erm: sup.wait_restarted([erm], timeout=1), "name"),
+            (lambda sup, erm: sup.wait_restarted(erm, timeout=-1), "timeout"),
+        ],
+        ids=[
+            "run_in-timeout",
+            "run_in-fn",
+            "run_in-name",
+            "child",
+            "wait_restarted",
+            "wait-timeout",
+        ],
+    )
+    def test_run_in_child_and_wait_restarted_refuse_what_they_cannot_use_naming_it(
+        self, sup: rr.Supervisor, method: Callable[[rr.Supervisor, str], object], named: str
+    ) -> None:
+        with pytest.raises(rr.ConfigError, match=named):
+            method(sup, _erm(sup))
+
+        assert "running" == sup.child(_erm(sup)).state
+
+    # -- the traps a new user fell into (issue 44, item 5) ---------------------------------------
+
+    def test_child_before_the_start_says_the_supervisor_is_not_started(self) -> None:
+        sup = rr.Supervisor([rr.ManagerSpec("erm", echo_setup)])
+
+        with pytest.raises(rr.ConfigError, match="is not started: its child 'erm' is not running"):
+            sup.child("erm")
+        assert "stopped" == sup.snapshot("erm").state  # (what the observer shows before it)
+
+    def test_one_spec_alone_is_a_tree_of_that_one_child(self) -> None:
+        name = f"erm-{uuid.uuid4().hex[:8]}"
+
+        with rr.Supervisor(rr.ManagerSpec(name, echo_setup)) as sup:
+            assert [name] == [c.name for c in sup.which_children()]
+            assert "running" == sup.child(name).state
+
+    @pytest.mark.parametrize("children", ["erm", 5, None])
+    def test_children_that_are_not_specs_are_a_config_error_saying_a_list(
+        self, children: Any
+    ) -> None:
+        with pytest.raises(rr.ConfigError, match="children must be a list of ManagerSpec"):
+            rr.Supervisor(children)
+
+    def test_call_with_retry_with_a_name_first_says_the_consumer_comes_first(
+        self,
+        sup: rr.Supervisor,
+    ) -> None:
+        with pytest.raises(
+            rr.ConfigError,
+            match=r"call_with_retry\(consumer, target_rr, server, request\): the consumer comes "
+            "first",
+        ):
+            sup.call_with_retry(_erm(sup), "echo", 0)  # type: ignore[arg-type]
+
+    def test_call_with_retry_without_a_request_says_it_is_missing(self, sup: rr.Supervisor) -> None:
+        app = sup.registrar(f"app-{uuid.uuid4().hex[:8]}")
+
+        with pytest.raises(rr.ConfigError, match="request is missing"):
+            sup.call_with_retry(app, _erm(sup), "echo")
+
+    def test_a_second_with_on_a_stopped_supervisor_says_make_a_new_one(self) -> None:
+        sup = rr.Supervisor([rr.ManagerSpec(f"erm-{uuid.uuid4().hex[:8]}", echo_setup)])
+        with sup:
+            pass
+
+        with pytest.raises(rr.ConfigError, match="cannot be restarted: make a new one"), sup:
+            pass
+
+    def test_starting_a_running_supervisor_says_it_is_running(self, sup: rr.Supervisor) -> None:
+        with pytest.raises(rr.ConfigError, match="is already started \\(it is running\\)"):
+            sup.start()

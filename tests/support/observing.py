@@ -274,3 +274,19 @@ def mission_held_before(fault: str, out: Path) -> Iterator[HeldMission]:
     finally:
         go_on.set()
         thread.join(120)
+
+
+def loaded(state: dict[str, Any]) -> bool:
+    """Whether the observer shows figure 2.7 loaded: erm's 2 resources, cm's, action's query."""
+    sections = state["sections"]
+
+    def count(name: str, rows: str) -> int:
+        section = sections.get(f"catalog/{name}")
+        return len(section["catalog"][rows]) if section and section["catalog"] else 0
+
+    graph = sections.get("graph") or {"edges": []}
+    return (count("erm", "resources"), count("cm", "resources"), count("action", "clients")) == (
+        2,
+        1,
+        1,
+    ) and len(graph["edges"]) == 3

@@ -472,3 +472,15 @@ class FlakyStore:
 
     def close(self, *, erase: bool) -> None:
         self.closed = True
+
+
+def write_unloading(path: Path) -> None:
+    """A backup whose resource r-stop was being unloaded when the process died."""
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    catalog.begin_load("r-stop", "start_process", {"cmd": "sleep"})
+    catalog.finish_load("r-stop", {"pid": 42})
+    catalog.begin_unload("r-stop")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)

@@ -198,3 +198,17 @@ def killed_owner(uid: str, tmp_path: Path, *, heartbeat: bool = True) -> Iterato
         if owner.stdout is not None:
             owner.stdout.close()
         shutil.rmtree(runtime_parent, ignore_errors=True)
+
+
+def logging_consumer(provider: str, events: list[str]) -> Callable[[rr.ResourceRegistrar], None]:
+    """A thread manager's setup: note `start <name>`, then load `<name>` from `provider`.
+
+    The manager's clean stop unloads what it holds, so the provider notes `unload <name>`
+    when (and in the order that) the supervisor stops it.
+    """
+
+    def setup(reg: rr.ResourceRegistrar) -> None:
+        events.append(f"start {reg.name}")
+        reg.call(provider, "log", reg.name)
+
+    return setup

@@ -1,0 +1,58 @@
+"""The process tests again, on the portable platform (`rr_actors._platform.portable`).
+
+Every test module that uses manager processes runs again in a subprocess with
+`RR_ACTORS_PLATFORM=portable`, as part of the normal run, so the fallback of each Linux
+trick cannot rot. It runs tests of several layers (minutes).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from rr_actors._platform import PLATFORM
+
+ROOT = Path(__file__).resolve().parents[2]
+
+PORTABLE_MODULES = (
+    "tests/core/test_platform.py",
+    "tests/process/test_child.py",  # (the tests of the kernel's name are Linux tricks only)
+    "tests/process/test_manager.py",
+    "tests/supervision/test_restarting.py",
+    "tests/supervision/test_starting.py",
+    "tests/supervision/test_stopping.py::TestShutdownThenKill",
+    "tests/supervision/test_stopping.py::TestDeathWatchAtEveryProvider",
+    "tests/supervision/test_statedir.py",
+    "tests/supervision/test_supervisor.py",
+    "tests/registrar/test_consumer.py::TestDurableConsumerKilled",
+    "tests/registrar/test_life.py::TestCrash",
+    "tests/transport/test_transport_unix.py",
+    "tests/transport/test_transport_contract.py",
+    "tests/registrar/test_consumer.py::TestReconcileEdges",
+    "tests/process/test_spare.py::TestWarmUp",
+    "tests/process/test_heartbeat.py",
+)
+"""The test modules that use manager processes, run again on the portable platform."""
+
+
+@pytest.mark.skipif(PLATFORM.name != "linux", reason="this run is on the portable platform")
+@pytest.mark.timeout(900)
+def test_the_process_tests_pass_on_the_portable_platform() -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *PORTABLE_MODULES],
+        cwd=ROOT,
+        env={  # (not a pytest-xdist worker's: this run is a session of its own)
+            **{k: v for k, v in os.environ.items() if not k.startswith("PYTEST_XDIST")},
+            "RR_ACTORS_PLATFORM": "portable",
+        },
+        capture_output=True,
+        text=True,
+        timeout=850,
+        check=False,
+    )
+
+    assert 0 == result.returncode, result.stdout[-6000:] + result.stderr[-2000:]

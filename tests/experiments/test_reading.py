@@ -1,0 +1,624 @@
+"""Reading a plan (`rr_actors.experiments.reading`): what a valid plan becomes, and every bad
+input as a PlanError with its line."""
+
+from __future__ import annotations
+
+import io
+import pickle
+import textwrap
+from pathlib import Path
+
+import pytest
+
+import rr_actors as rr
+from rr_actors.__main__ import main
+from rr_actors.experiments import PlanError, _lines, load_plan, parse_plan
+from rr_actors.experiments._lines import key_lines
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "rr_actors" / "experiments" / "plans"
+
+SERVICE = "rr_actors.experiments.services:service"
+
+BASE = f"""\
+name = "t"
+duration = 2.0
+
+[tree]
+strategy = "one_for_one"
+
+[[tree.children]]
+name = "db"
+setup = "{SERVICE}"
+
+[[tree.children]]
+name = "api"
+setup = "{SERVICE}"
+options = {{ uses = ["db"] }}
+
+[workload]
+clients = 1
+
+[[workload.calls]]
+manager = "api"
+server = "resource"
+"""
+
+
+def plan_error(text: str) -> PlanError:
+    with pytest.raises(PlanError) as caught:
+        parse_plan(textwrap.dedent(text), source="plan.toml")
+    return caught.value
+
+
+def test_a_valid_plan_becomes_its_tree_workload_and_faults() -> None:
+    plan = parse_plan(
+        BASE + '[[faults]]\nkind = "kill_manager"\ntarget = ["db", "api"]\nevery = 0.5\n'
+    )
+
+    assert ["db", "api"] == [m.name for m in plan.managers()]
+    assert {"uses": ["db"]} == plan.manager("api").options
+    assert "process" == plan.manager("db").isolation
+    assert ("db", "api") == plan.faults[0].targets
+    assert 0.5 == plan.faults[0].every
+    assert ((None, plan),) == plan.variants
+
+
+def test_every_shipped_plan_is_valid() -> None:
+    plans = sorted(EXAMPLES.glob("*.toml"))
+
+    assert 4 <= len(plans)
+    for path in plans:
+        assert path.stem == load_plan(path).name
+
+
+def test_a_plan_pickles_for_its_run_processes() -> None:
+    plan = load_plan(EXAMPLES / "strategies.toml")
+
+    assert plan == pickle.loads(pickle.dumps(plan))
+
+
+def test_an_unknown_key_names_the_key_and_its_line() -> None:
+    error = plan_error(BASE.replace('strategy = "one_for_one"', 'stratgey = "one_for_one"'))
+
+    assert (5, "tree.stratgey") == (error.line, error.key)
+    assert str(error).startswith("plan.toml:5: tree.stratgey: unknown key; known here:")
+
+
+def test_an_unknown_key_of_a_child_names_the_child_by_index() -> None:
+    error = plan_error(BASE.replace('name = "api"', 'name = "api"\nisolaton = "thread"'))
+
+    assert (13, "tree.children[1].isolaton") == (error.line, error.key)
+
+
+def test_a_setup_that_does_not_import_is_refused_with_the_module_named() -> None:
+    error = plan_error(BASE.replace(f'setup = "{SERVICE}"', 'setup = "no.such.module:setup"', 1))
+
+    assert (9, "tree.children[0].setup") == (error.line, error.key)
+    assert "'no.such.module:setup' does not import: No module named 'no'" in str(error)
+
+
+def test_a_setup_without_that_attribute_is_refused() -> None:
+    error = plan_error(BASE.replace(SERVICE, "rr_actors.experiments.services:nothing", 1))
+
+    assert "has no attribute 'nothing'" in error.problem
+
+
+def test_an_option_the_setup_does_not_take_is_refused_at_the_options_line() -> None:
+    error = plan_error(BASE.replace('uses = ["db"]', 'usse = ["db"]'))
+
+    assert (14, "tree.children[1].options") == (error.line, error.key)
+    assert "unexpected keyword argument 'usse'" in error.problem
+
+
+def test_a_fault_naming_a_manager_not_in_the_tree_is_refused() -> None:
+    error = plan_error(BASE + '\n[[faults]]\nkind = "kill_manager"\ntarget = "cache"\nat = 1.0\n')
+
+    assert (25, "faults[0].target") == (error.line, error.key)
+    assert "no manager 'cache' in the tree (managers: db, api)" in error.problem
+
+
+def test_a_fault_naming_an_unknown_manager_in_a_list_points_at_that_element() -> None:
+    error = plan_error(
+        BASE + '[[faults]]\nkind = "kill_manager"\ntarget = [\n  "db",\n  "x",\n]\nat = 1\n'
+    )
+
+    assert (26, "faults[0].target[1]") == (error.line, error.key)
+
+
+def test_a_negative_time_is_refused() -> None:
+    error = plan_error(BASE + '[[faults]]\nkind = "kill_manager"\ntarget = "db"\nat = -1.0\n')
+
+    assert (25, "faults[0].at") == (error.line, error.key)
+    assert "must be seconds >= 0, got -1.0" == error.problem
+
+
+def test_a_negative_duration_is_refused() -> None:
+    error = plan_error(BASE.replace("duration = 2.0", "duration = -2.0"))
+
+    assert (2, "duration") == (error.line, error.key)
+
+
+def test_a_fault_after_the_end_of_the_run_is_refused() -> None:
+    error = plan_error(BASE + '[[faults]]\nkind = "kill_manager"\ntarget = "db"\nat = [1.0, 2.0]\n')
+
+    assert "faults[0].at[1]" == error.key
+    assert "2.0 s is not before the end of the run (2 s)" == error.problem
+
+
+def test_a_hang_of_a_thread_manager_is_refused() -> None:
+    text = BASE.replace('name = "db"', 'name = "db"\nisolation = "thread"')
+    error = plan_error(text + '[[faults]]\nkind = "hang_manager"\ntarget = "db"\nat = 1\nfor = 1\n')
+
+    assert "faults[0].target" == error.key
+    assert "hang_manager needs a process manager; 'db' has isolation 'thread'" == error.problem
+
+
+def test_a_fault_without_a_time_says_how_to_give_one() -> None:
+    error = plan_error(BASE + '[[faults]]\nkind = "kill_manager"\ntarget = "db"\n')
+
+    assert (22, "faults[0]") == (error.line, error.key)
+    assert "say when: give one of 'at', 'every' or 'after'" == error.problem
+
+
+def test_a_trigger_on_an_unknown_event_is_refused() -> None:
+    text = '[[faults]]\nkind = "kill_manager"\ntarget = "db"\nafter = { event = "Restarted" }\n'
+    error = plan_error(BASE + text)
+
+    assert (25, "faults[0].after.event") == (error.line, error.key)
+    assert error.problem.startswith("must be one of 'ChildStarted', 'ChildExited',")
+    assert error.problem.endswith(", got 'Restarted'")
+
+
+def test_a_trigger_on_a_field_the_event_does_not_have_is_refused() -> None:
+    text = (
+        '[[faults]]\nkind = "kill_manager"\ntarget = "db"\n'
+        'after = { event = "ChildRestarted", name = "db" }\n'
+    )
+    error = plan_error(BASE + text)
+
+    assert "faults[0].after.name" == error.key
+
+
+def test_a_workload_call_to_an_unknown_manager_is_refused() -> None:
+    error = plan_error(BASE.replace('manager = "api"', 'manager = "apj"'))
+
+    assert (20, "workload.calls[0].manager") == (error.line, error.key)
+
+
+def test_a_request_template_with_an_unknown_placeholder_is_refused() -> None:
+    error = plan_error(BASE + 'request = { name = "x-{keys}" }\n')
+
+    assert "workload.calls[0].request.name" == error.key
+    assert error.problem.startswith("unknown placeholder {keys}")
+
+
+def test_a_name_used_twice_in_the_tree_is_refused() -> None:
+    error = plan_error(BASE.replace('name = "api"', 'name = "db"'))
+
+    assert (12, "tree.children[1].name") == (error.line, error.key)
+
+
+def test_text_that_is_not_toml_names_its_line() -> None:
+    error = plan_error(BASE.replace("clients = 1", "clients = = 1"))
+
+    assert 17 == error.line
+    assert "is not valid TOML" in error.problem
+
+
+def test_a_plan_file_that_does_not_exist_is_a_plan_error(tmp_path: Path) -> None:
+    with pytest.raises(PlanError, match="cannot be read"):
+        load_plan(tmp_path / "missing.toml")
+
+
+def test_a_plan_error_is_a_config_error_and_pickles() -> None:
+    error = plan_error(BASE.replace("duration = 2.0", "duration = 0"))
+
+    assert isinstance(error, rr.ConfigError)
+    assert str(error) == str(pickle.loads(pickle.dumps(error)))
+
+
+def test_compare_makes_one_plan_per_value() -> None:
+    plan = parse_plan(
+        BASE + '[compare]\nsetting = "tree.strategy"\nvalues = ["one_for_one", "one_for_all"]\n'
+    )
+
+    assert ["one_for_one", "one_for_all"] == [v for v, _ in plan.variants]
+    assert ["one_for_one", "one_for_all"] == [p.tree.strategy for _, p in plan.variants]
+    assert "tree.strategy" == plan.setting_label()
+
+
+def test_compare_reaches_a_child_by_its_name() -> None:
+    plan = parse_plan(
+        BASE + '[compare]\nsetting = "tree.children.api.heartbeat"\nvalues = [false, 0.1]\n'
+    )
+
+    assert [None, 0.1] == [p.manager("api").heartbeat for _, p in plan.variants]
+    assert [0.25, 0.25] == [p.manager("db").heartbeat for _, p in plan.variants]
+
+
+def test_a_compared_value_that_is_invalid_points_at_the_value() -> None:
+    error = plan_error(
+        BASE + '[compare]\nsetting = "tree.strategy"\nvalues = ["one_for_one", "all_for_one"]\n'
+    )
+
+    assert "compare.values[1]" == error.key
+    assert error.problem.startswith("with tree.strategy = 'all_for_one': tree.strategy: must be")
+
+
+def test_a_compared_setting_that_does_not_exist_is_refused() -> None:
+    error = plan_error(
+        BASE + '[compare]\nsetting = "tree.children.cache.heartbeat"\nvalues = [1]\n'
+    )
+
+    assert "compare.setting" == error.key
+    assert "no element named 'cache'" in error.problem
+
+
+def test_overrides_apply_to_every_compared_value() -> None:
+    plan = parse_plan(
+        BASE + '[compare]\nsetting = "tree.strategy"\nvalues = ["one_for_one", "one_for_all"]\n'
+    )
+
+    changed = plan.with_changes(repeat=5, seed=9, duration=1.0)
+
+    assert (5, 9, 1.0) == (changed.repeat, changed.seed, changed.duration)
+    assert [(5, 9, 1.0)] * 2 == [(p.repeat, p.seed, p.duration) for _, p in changed.variants]
+
+
+# -- limits: times and counts that would hang or crash a run (review items 1 and 2) ----------
+
+KILL_DB = '[[faults]]\nkind = "kill_manager"\ntarget = "db"\n'
+
+
+def test_an_interval_below_a_millisecond_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + "every = 1e-6\n")
+
+    assert (25, "faults[0].every") == (error.line, error.key)
+    assert "must be at least 0.001 s, got 1e-06" == error.problem
+
+
+def test_a_random_interval_below_a_millisecond_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + "every = { min = 1e-6, max = 1.0 }\n")
+
+    assert (25, "faults[0].every.min") == (error.line, error.key)
+
+
+def test_a_fault_that_would_inject_too_often_is_refused() -> None:
+    text = BASE.replace("duration = 2.0", "duration = 1000.0")
+    error = plan_error(text + KILL_DB + "every = 0.001\n")
+
+    assert (25, "faults[0].every") == (error.line, error.key)
+    assert error.problem.startswith("would inject up to 1000000 times in a run (at most 100000")
+
+
+def test_a_count_keeps_a_short_interval_within_the_limit() -> None:
+    text = BASE.replace("duration = 2.0", "duration = 1000.0")
+
+    plan = parse_plan(text + KILL_DB + "every = 0.001\ncount = 10\n")
+
+    assert 10 == plan.faults[0].count
+
+
+@pytest.mark.parametrize(
+    ("text", "line", "key"),
+    [
+        (BASE.replace("duration = 2.0", "duration = 1e300"), 2, "duration"),
+        (BASE.replace("clients = 1", "clients = 1\nhold = 1e300"), 18, "workload.hold"),
+        (BASE.replace("clients = 1", "clients = 1\ntimeout = 1e10"), 18, "workload.timeout"),
+        (
+            BASE.replace('name = "db"', 'name = "db"\nheartbeat = 1e10'),
+            9,
+            "tree.children[0].heartbeat",
+        ),
+        (
+            BASE + KILL_DB.replace("kill_manager", "hang_manager") + "at = 1\nfor = 1e10\n",
+            26,
+            "faults[0].for",
+        ),
+        (BASE.replace("[tree]", "[tree]\nbackoff = { max = 1e300 }"), 5, "tree.backoff.max"),
+    ],
+)
+def test_seconds_above_a_million_are_refused(text: str, line: int, key: str) -> None:
+    error = plan_error(text)
+
+    assert (line, key) == (error.line, error.key)
+    assert error.problem.startswith("must be at most 1e+06 s")
+
+
+def test_a_rate_so_low_that_its_gaps_overflow_is_refused() -> None:
+    error = plan_error(BASE.replace("clients = 1", "clients = 1\nrate = 1e-300"))
+
+    assert (18, "workload.rate") == (error.line, error.key)
+
+
+def test_a_trigger_delay_past_the_end_of_the_run_is_refused() -> None:
+    text = KILL_DB + 'after = { event = "ChildRestarted" }\ndelay = 2.0\n'
+    error = plan_error(BASE + text)
+
+    assert (26, "faults[0].delay") == (error.line, error.key)
+    assert "never fires" in error.problem
+
+
+def test_a_longer_duration_override_that_would_inject_too_often_is_refused() -> None:
+    plan = parse_plan(BASE + KILL_DB + "every = 0.001\n")
+
+    with pytest.raises(rr.ConfigError, match=r"faults\[0\] would inject more than 100000"):
+        plan.with_changes(duration=1000.0)
+
+
+def test_a_duration_override_above_a_million_seconds_is_refused() -> None:
+    plan = parse_plan(BASE)
+
+    with pytest.raises(rr.ConfigError, match="up to 1e"):
+        plan.with_changes(duration=1e300)
+
+
+# -- bad types give a PlanError, not a traceback (review item 8) -------------------------------
+
+
+def test_a_table_as_a_fault_target_is_refused() -> None:
+    error = plan_error(BASE + '[[faults]]\nkind = "kill_manager"\ntarget = {a=1}\nat = 1\n')
+
+    assert (24, "faults[0].target") == (error.line, error.key)
+    assert "must be a manager's name, got {'a': 1}" == error.problem
+
+
+def test_a_nested_list_as_a_fault_target_is_refused() -> None:
+    error = plan_error(BASE + '[[faults]]\nkind = "kill_manager"\ntarget = [["db"]]\nat = 1\n')
+
+    assert (24, "faults[0].target[0]") == (error.line, error.key)
+
+
+def test_a_list_as_the_manager_of_a_call_is_refused() -> None:
+    error = plan_error(BASE.replace('manager = "api"', 'manager = ["api"]'))
+
+    assert (20, "workload.calls[0].manager") == (error.line, error.key)
+    assert "must be a manager's name, got ['api']" == error.problem
+
+
+def test_a_setup_module_that_exits_on_import_is_a_plan_error(tmp_path: Path) -> None:
+    (tmp_path / "exits_on_import.py").write_text("import sys\nsys.exit(3)\n")
+    plan_file = tmp_path / "plan.toml"
+    plan_file.write_text(BASE.replace(SERVICE, "exits_on_import:setup", 1))
+
+    with pytest.raises(PlanError) as caught:
+        load_plan(plan_file)
+
+    assert (9, "tree.children[0].setup") == (caught.value.line, caught.value.key)
+    assert "raised SystemExit(3)" in caught.value.problem
+
+
+# -- templates that would fail in a client (review item 3) -------------------------------------
+
+
+@pytest.mark.parametrize("template", ["{client:zz}", "{key!x}", "{key!r}", "{key:{client}}"])
+def test_a_placeholder_with_a_conversion_or_format_is_refused(template: str) -> None:
+    error = plan_error(BASE + f'request = {{ name = "{template}" }}\n')
+
+    assert (22, "workload.calls[0].request.name") == (error.line, error.key)
+    assert "a placeholder is only a name" in error.problem
+
+
+# -- inputs that would do nothing (review item 9) ----------------------------------------------
+
+
+def test_an_empty_list_of_times_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + "at = []\n")
+
+    assert (25, "faults[0].at") == (error.line, error.key)
+    assert "must be a non-empty array, got []" == error.problem
+
+
+def test_an_every_that_starts_after_the_end_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + "every = 0.5\nstart = 2.0\n")
+
+    assert (26, "faults[0].start") == (error.line, error.key)
+
+
+def test_an_every_whose_first_interval_ends_after_the_run_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + "every = 0.5\nstart = 1.6\n")
+
+    assert (25, "faults[0].every") == (error.line, error.key)
+    assert "would not come before the end of the run (2 s)" in error.problem
+
+
+def test_a_stop_after_the_end_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + "every = 0.5\nstop = 3.0\n")
+
+    assert (26, "faults[0].stop") == (error.line, error.key)
+
+
+def test_a_trigger_on_a_child_not_in_the_tree_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + 'after = { event = "ChildRestarted", child = "nosuch" }\n')
+
+    assert (25, "faults[0].after.child") == (error.line, error.key)
+    assert error.problem.startswith("'nosuch' names nothing in this run (it may be: api, db)")
+
+
+def test_a_trigger_value_of_the_wrong_type_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + 'after = { event = "ChildRestarted", child = 3 }\n')
+
+    assert (25, "faults[0].after.child") == (error.line, error.key)
+    assert "must be a string, got 3" == error.problem
+
+
+def test_a_trigger_on_a_status_matches_the_status_itself() -> None:
+    text = KILL_DB + 'after = { event = "StatusSent", registrar = "api", status = "FATAL" }\n'
+
+    plan = parse_plan(BASE + text)
+
+    assert {"registrar": "api", "status": rr.Status.FATAL} == plan.faults[0].after.match
+
+
+def test_a_trigger_on_an_unknown_status_is_refused() -> None:
+    error = plan_error(BASE + KILL_DB + 'after = { event = "StatusSent", status = "fatal" }\n')
+
+    assert "faults[0].after.status" == error.key
+
+
+def test_a_load_error_with_for_and_loads_is_refused() -> None:
+    text = '[[faults]]\nkind = "load_error"\ntarget = "db"\nat = 1\nfor = 0.5\nloads = 3\n'
+    error = plan_error(BASE + text)
+
+    assert (27, "faults[0].loads") == (error.line, error.key)
+
+
+def test_kill_resource_in_a_tree_of_thread_managers_is_refused() -> None:
+    text = BASE.replace('setup = "', 'isolation = "thread"\nsetup = "')
+    error = plan_error(text + '[[faults]]\nkind = "kill_resource"\nat = 1\n')
+
+    assert (24, "faults[0]") == (error.line, error.key)
+    assert "every manager of this tree has isolation 'thread'" in error.problem
+
+
+# -- compare settings that would be ignored or mis-grouped (review item 7) ---------------------
+
+
+@pytest.mark.parametrize("setting", ["seed", "repeat", "name", "description", "compare.values"])
+def test_a_setting_the_experiment_reads_from_the_top_plan_cannot_be_compared(
+    setting: str,
+) -> None:
+    error = plan_error(BASE + f'[compare]\nsetting = "{setting}"\nvalues = [1, 2]\n')
+
+    assert (23, "compare.setting") == (error.line, error.key)
+    assert error.problem.startswith(f"{setting!r} cannot be compared")
+
+
+def test_a_compared_value_given_twice_is_refused() -> None:
+    text = (
+        '[compare]\nsetting = "tree.strategy"\n'
+        'values = ["one_for_one", "one_for_all", "one_for_one"]\n'
+    )
+    error = plan_error(BASE + text)
+
+    assert (24, "compare.values[2]") == (error.line, error.key)
+    assert "'one_for_one' is given twice: each value runs once" == error.problem
+
+
+def test_equal_values_of_other_types_are_different_compared_values() -> None:
+    text = '[compare]\nsetting = "tree.children.db.heartbeat"\nvalues = [1, 1.0, false]\n'
+
+    plan = parse_plan(BASE + text)
+
+    assert 3 == len(plan.variants)
+
+
+NESTED = {
+    "arrays": "a = " + "[" * 5000 + "]" * 5000 + "\n",
+    "inline tables": "[tree]\nb = " + "{c = " * 5000 + "1" + "}" * 5000 + "\n",
+}
+
+
+class TestNestedTooDeep:
+    """A plan nested deeper than Python's TOML reader recurses is a `PlanError`, not a traceback.
+
+    `tomllib` recurses once per nested array or inline table; a plan file of a few kilobytes
+    (`a = [[[[...]]]]`) used to end `rr-actors experiment` in a `RecursionError`.
+    """
+
+    @pytest.mark.parametrize("text", NESTED.values(), ids=NESTED.keys())
+    def test_a_plan_nested_too_deeply_is_a_plan_error_naming_the_file(self, text: str) -> None:
+        with pytest.raises(PlanError, match="nested too deeply"):
+            parse_plan(text, source="deep.toml")
+
+    def test_rr_actors_experiment_on_it_is_one_line_and_exit_code_2(
+        self, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    ) -> None:
+        plan = tmp_path / "deep.toml"
+        plan.write_text(NESTED["arrays"])
+
+        assert 2 == main(["experiment", str(plan), "--out", str(tmp_path / "out")], io.StringIO())
+
+        err = capsys.readouterr().err
+        assert f"rr-actors experiment: {plan}: is not a plan: nested too deeply to read\n" == err
+        assert not (tmp_path / "out").exists()
+
+
+RULES_BASE = """\
+name = "t"
+description = '''
+a text of
+[several] lines
+'''
+duration = 2.0
+
+[tree]
+
+[[tree.children]]
+name = "db"
+setup = "rr_actors.experiments.services:service"
+
+[[faults]]
+kind = "kill_manager"
+target = "db"
+at = 1.0
+"""
+
+
+def rules_plan_error(text: str) -> PlanError:
+    with pytest.raises(PlanError) as caught:
+        parse_plan(text, source="plan.toml")
+    return caught.value
+
+
+class TestRules:
+    """The plan reader's generic decode and its rules: messages that name what is allowed."""
+
+    def test_a_fault_key_of_another_kind_names_the_kinds_it_goes_with(self) -> None:
+        error = rules_plan_error(RULES_BASE + "for = 1.0\n")
+
+        assert (18, "faults[0].for") == (error.line, error.key)
+        only = "'hang_manager' or 'load_error' or 'cut' or 'partition' or 'freeze'"
+        assert f"does not go with kind 'kill_manager' (only {only})" == error.problem
+
+    def test_a_trigger_status_of_the_wrong_type_names_the_statuses(self) -> None:
+        error = rules_plan_error(
+            RULES_BASE.replace("at = 1.0", 'after = { event = "StatusSent", status = 3 }')
+        )
+
+        assert (17, "faults[0].after.status") == (error.line, error.key)
+        assert error.problem.startswith(
+            "must be one of 'OK', 'UPDATE', 'WARNING', 'ERROR', 'FATAL'"
+        )
+
+    def test_a_key_after_a_multi_line_string_has_its_own_line(self) -> None:
+        error = rules_plan_error(RULES_BASE.replace("duration = 2.0", "duration = -2.0"))
+
+        assert (6, "duration") == (error.line, error.key)
+        assert 2 == key_lines(RULES_BASE)[("description",)]
+
+    def test_a_name_is_unique_in_the_whole_tree_the_top_supervisor_included(self) -> None:
+        text = RULES_BASE.replace(
+            '[[tree.children]]\nname = "db"',
+            '[[tree.children]]\nname = "mid"\n\n[[tree.children.children]]\nname = "top"',
+        )
+        error = rules_plan_error(text.replace("[tree]", '[tree]\nname = "top"'))
+
+        assert (15, "tree.children[0].children[0].name") == (error.line, error.key)
+        assert "the name 'top' is used twice in the tree" == error.problem
+
+    def test_an_error_deep_in_a_long_plan_names_its_line_in_a_few_parses(
+        self,
+        monkeypatch: pytest.MonkeyPatch,
+    ) -> None:
+        padding = "".join(f"# note {n}\n" for n in range(20_000))
+        text = RULES_BASE.replace("[tree]\n", f"[tree]\n{padding}").replace(
+            "at = 1.0", 'at = "soon"'
+        )
+        expected_line = text.splitlines().index('at = "soon"') + 1
+        tries: list[int] = []  # the number of lines of each text the reader parses to find the line
+        holds = _lines._holds
+
+        def counted(rows: list[str], path: _lines.KeyPath) -> bool:
+            tries.append(len(rows))
+            return holds(rows, path)
+
+        monkeypatch.setattr(_lines, "_holds", counted)
+
+        with pytest.raises(PlanError) as info:
+            parse_plan(text)
+
+        assert expected_line == info.value.line
+        # bisection: at most log2(20,030) < 15 tries for each of the 3 key paths
+        # ("faults", 0, "at") and its starts, not one try per line
+        assert 0 < len(tries) <= 3 * 15, len(tries)

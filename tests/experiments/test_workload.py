@@ -1,0 +1,52 @@
+"""The workload (`rr_actors.experiments.workload`) when a client cannot build a request: the
+run fails, naming the cause."""
+
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from rr_actors.experiments import ExperimentError, load_plan, run
+
+PLAN = """\
+name = "bad-factory"
+duration = 120.0  # longer than pytest-timeout: the run must end when the client fails
+
+[tree]
+[[tree.children]]
+name = "api"
+setup = "rr_actors.experiments.services:service"
+isolation = "thread"
+
+[workload]
+clients = 2
+rate = 20.0
+
+[[workload.calls]]
+manager = "api"
+server = "resource"
+factory = "bad_factory:request"
+"""
+
+
+def test_a_factory_that_raises_fails_the_run_at_once_with_its_error(tmp_path: Path) -> None:
+    (tmp_path / "bad_factory.py").write_text(
+        textwrap.dedent(
+            """\
+            def request(key, context):
+                raise ValueError("boom")
+            """
+        )
+    )
+    (tmp_path / "plan.toml").write_text(PLAN)
+
+    with pytest.raises(ExperimentError) as caught:
+        run(load_plan(tmp_path / "plan.toml"))
+
+    assert "run 1 failed (exit code 1)" in str(caught.value)
+    assert (
+        "ConfigError: workload.calls[0]: factory 'bad_factory:request' raised "
+        "ValueError('boom') for key "
+    ) in str(caught.value)

@@ -1,0 +1,225 @@
+"""Where the page's sections come from (`rr_actors.observe._sources`): the observer's trust
+boundary at a directory of backups (issue 21, bugs 1 and 5): looking at a backup runs nothing
+from it, and a crafted file fails fast."""
+
+from __future__ import annotations
+
+import io
+import os
+import pickle
+import sqlite3
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors.__main__ import main
+from rr_actors._catalog import Catalog
+from rr_actors._catalog.texts import NOT_SHOWN_OLD
+from rr_actors._store import SqliteStore, read_backup, schema
+from rr_actors._store.codec import dumps
+from rr_actors.observe._sources import read_catalogs
+
+
+def run(*argv: str) -> tuple[int, str]:
+    out = io.StringIO()
+    code = main(list(argv), out)
+    return code, out.getvalue()
+
+
+class Planted:
+    """Unpickling it creates the file `path`: what a hostile backup would run."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __reduce__(self) -> Any:
+        return (open, (str(self.path), "w"))
+
+
+def stored_backup(path: Path) -> None:
+    """A backup as a registrar writes it: one resource with its display texts."""
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    resource = catalog.begin_load("r0", "lidar", {"name": "lidar2"})
+    resource.request_text = "{'name': 'lidar2'}"
+    catalog.finish_load("r0", "ok").response_text = "'ok'"
+    catalog.add_consumer("r0", "q0", "action")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+
+def plant(path: Path, marker: Path) -> None:
+    """Replace the stored request with a pickle that creates `marker` when unpickled."""
+    db = sqlite3.connect(path)
+    db.execute("UPDATE resources SET request = ?", (pickle.dumps(Planted(marker), protocol=5),))
+    db.commit()
+    db.close()
+
+
+# -- bug 1: looking at a backup runs no code from it -------------------------------------------
+
+
+@pytest.fixture
+def foreign_state(tmp_path: Path) -> tuple[Path, Path]:
+    """A state directory whose backup another user (uid 65534) owns, holding a planted pickle."""
+    if os.geteuid() != 0:
+        pytest.skip("giving a file to another uid needs root (chown)")
+    state = tmp_path / "state"
+    state.mkdir()
+    marker = tmp_path / "ran-code-from-the-backup"
+    stored_backup(state / "cm.db")
+    plant(state / "cm.db", marker)
+    for file in state.iterdir():
+        os.chown(file, 65534, 65534)
+    return state, marker
+
+
+def test_graph_of_another_users_backup_shows_its_texts_and_unpickles_nothing(
+    foreign_state: tuple[Path, Path],
+) -> None:
+    state, marker = foreign_state
+
+    code, text = run("graph", "--state", str(state))
+
+    assert (0, False) == (code, marker.exists())
+    assert "lidar2" in text
+
+
+def test_observe_of_another_users_backup_shows_its_texts_and_unpickles_nothing(
+    foreign_state: tuple[Path, Path],
+) -> None:
+    state, marker = foreign_state
+
+    catalogs = read_catalogs(sorted(state.glob("*.db")))
+
+    resource = catalogs["cm"]["resources"][0]
+    assert ("{'name': 'lidar2'}", "'ok'") == (resource["request"], resource["response"])
+    assert not marker.exists()
+
+
+def test_inspect_and_restore_refuse_another_users_backup(
+    foreign_state: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    state, marker = foreign_state
+
+    with pytest.raises(rr.ConfigError, match="belongs to uid 65534"):
+        read_backup(state / "cm.db")
+    with pytest.raises(rr.ConfigError, match="belongs to uid 65534"):
+        rr.ResourceRegistrar.start(rr.RegistrarConfig("cm", backup_path=str(state / "cm.db")))
+    code, _ = run("inspect", str(state / "cm.db"))
+
+    assert (1, False) == (code, marker.exists())
+    assert "belongs to uid 65534" in capsys.readouterr().err
+
+
+def write_v3_backup(path: Path) -> None:
+    """A backup as rr_actors wrote it with schema version 3 (no display texts)."""
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute(f"PRAGMA application_id = {schema.APPLICATION_ID}")
+    for step in schema.MIGRATIONS[:3]:
+        step(db)
+    db.execute("UPDATE rr_actors_schema SET version = 3")
+    db.execute(
+        "INSERT INTO resources (seq, id, server, state, digest, request, response) "
+        "VALUES (1, 'r0', 'lidar', 1, NULL, ?, ?)",
+        (dumps({"name": "lidar1"}), dumps("ok")),
+    )
+    db.execute("INSERT INTO consumers VALUES (1, 2, 'q0', 'action')")
+    db.close()
+
+
+def test_an_older_backup_reads_not_shown_and_still_restores(tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    state.mkdir()
+    write_v3_backup(state / "cm.db")
+
+    catalogs = read_catalogs([state / "cm.db"])
+    code, text = run("graph", "--state", str(state))
+    store = SqliteStore.open(state / "cm.db")
+    try:
+        restored = store.load()
+    finally:
+        store.close(erase=False)
+
+    resource = catalogs["cm"]["resources"][0]
+    assert (NOT_SHOWN_OLD, NOT_SHOWN_OLD) == (resource["request"], resource["response"])
+    assert 0 == code
+    assert "not shown" in text
+    assert restored is not None
+    assert {"name": "lidar1"} == restored[0][0].request
+
+
+# -- bug 5: a crafted backup fails fast -------------------------------------------------------
+
+
+ENDLESS = (
+    "WITH RECURSIVE n(i) AS (SELECT 1 UNION ALL SELECT i + 1 FROM n) "
+    "SELECT i AS seq, 'r' || i AS id, 'lidar' AS server, 1 AS state, NULL AS digest, "
+    "randomblob(100000) AS request, NULL AS response, NULL AS request_text, "
+    "NULL AS response_text, NULL AS label FROM n"
+)
+
+
+def resources_a_view(path: Path) -> None:
+    """`resources` a view over an endless query; its indexes' names kept on another table."""
+    db = sqlite3.connect(path)
+    db.execute("DROP TABLE resources")
+    db.execute(f"CREATE VIEW resources AS {ENDLESS}")
+    db.execute("CREATE TABLE decoy (seq INTEGER, server TEXT, digest INTEGER, id TEXT)")
+    db.execute("CREATE UNIQUE INDEX resources_by_id ON decoy (id)")
+    db.execute("CREATE INDEX resources_by_request ON decoy (server, digest)")
+    db.execute("CREATE INDEX resources_unsettled ON decoy (seq)")
+    db.commit()
+    db.close()
+
+
+def a_trigger_besides(path: Path) -> None:
+    db = sqlite3.connect(path)
+    db.execute(
+        "CREATE TRIGGER grow AFTER INSERT ON consumers BEGIN "
+        "INSERT INTO consumers SELECT resource, seq + 1, query_id, origin_rr "
+        "FROM consumers; END"
+    )
+    db.commit()
+    db.close()
+
+
+def a_table_of_another_shape(path: Path) -> None:
+    db = sqlite3.connect(path)
+    db.execute("ALTER TABLE clients ADD COLUMN extra BLOB DEFAULT (randomblob(10))")
+    db.commit()
+    db.close()
+
+
+@pytest.mark.timeout(30)
+@pytest.mark.parametrize(
+    ("craft", "why"),
+    [
+        (resources_a_view, "'resources' is a view, not a table"),
+        (a_trigger_besides, "an unknown trigger 'grow'"),
+        (a_table_of_another_shape, "the table 'clients' is not as rr_actors creates it"),
+    ],
+    ids=["view", "trigger", "other-table"],
+)
+def test_a_crafted_schema_is_catalog_corrupt_naming_the_file_before_any_read(
+    tmp_path: Path, craft: Callable[[Path], None], why: str
+) -> None:
+    state = tmp_path / "state"
+    state.mkdir()
+    path = state / "cm.db"
+    stored_backup(path)
+    craft(path)
+
+    code, _ = run("graph", "--state", str(state))
+    with pytest.raises(rr.CatalogCorruptError, match=why) as caught:
+        read_catalogs([path])
+    with pytest.raises(rr.CatalogCorruptError, match=why):
+        SqliteStore.open(path)
+
+    assert 1 == code
+    assert str(path) == caught.value.path
+    assert os.path.getsize(path) < 100_000  # (nothing was written to it)

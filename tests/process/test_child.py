@@ -1,0 +1,272 @@
+"""The child's side of a manager process (`rr_actors._process.child`): its name in `ps`, and
+what its `setup` is offered in doubt.
+
+The kernel's 15-byte name of a manager process is the manager's name, not a prefix:
+`ps -o comm` and `top` show that name; with a prefix of 11 bytes every manager read
+`rr-actors: <first 4 characters>`. The long title `rr-actors: <name>` is the command
+line's, where `setproctitle` is installed.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors.testing import SharedObjects, start_forkserver
+from tests.support.supervising import kill_and_wait_restarted, linux_trick, process
+
+
+@pytest.fixture(scope="module", autouse=True)
+def forkserver() -> None:
+    """Start the forkserver before the leak check counts this process's children."""
+    start_forkserver()
+
+
+def comm_after_set_title(name: str, *, fake_setproctitle: bool) -> tuple[str, str]:
+    """`/proc/self/comm` of a fresh interpreter after `set_title(name)`, and the title set."""
+    if fake_setproctitle:
+        prelude = (
+            "import sys, types; titles = []\n"
+            "m = types.ModuleType('setproctitle'); m.setproctitle = titles.append\n"
+            "sys.modules['setproctitle'] = m\n"
+        )
+    else:
+        prelude = "import sys; titles = []; sys.modules['setproctitle'] = None\n"
+    script = (
+        prelude + "from rr_actors._process.child import set_title\n"
+        f"set_title({name!r})\n"
+        "print(open('/proc/self/comm', encoding='utf-8').read().strip())\n"
+        "print(titles)\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=True
+    )
+    comm, titles = result.stdout.splitlines()
+    return comm, titles
+
+
+@linux_trick
+@pytest.mark.parametrize("fake_setproctitle", [False, True])
+def test_a_long_manager_name_keeps_its_first_15_bytes_as_the_process_name(
+    fake_setproctitle: bool,
+) -> None:
+    comm, _ = comm_after_set_title("navigation-manager-2", fake_setproctitle=fake_setproctitle)
+
+    assert "navigation-mana" == comm
+
+
+@linux_trick
+def test_with_setproctitle_the_command_line_keeps_the_long_title() -> None:
+    comm, titles = comm_after_set_title("erm", fake_setproctitle=True)
+
+    assert ("erm", "['rr-actors: erm']") == (comm, titles)
+
+
+@linux_trick
+def test_a_name_is_never_cut_inside_a_character() -> None:
+    comm, _ = comm_after_set_title("é" * 10, fake_setproctitle=False)  # 2 bytes each
+
+    assert "é" * 7 == comm
+
+
+def _cmdline(pid: int) -> str:
+    return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode().strip()
+
+
+@pytest.mark.skipif(not Path("/proc").exists(), reason="reads /proc")
+def test_a_manager_process_is_named_after_its_manager_in_ps(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    pytest.importorskip("setproctitle", reason="the whole command line needs setproctitle")
+    name = f"erm-{uid}"
+    sup = supervisors([process(name)]).start()
+    pid = sup.child(name).pid
+    assert pid is not None
+
+    assert f"rr-actors: {name}" == _cmdline(pid)
+
+
+@linux_trick
+def test_without_setproctitle_the_kernel_name_of_a_manager_process_is_set() -> None:
+    script = (
+        "import sys; sys.modules['setproctitle'] = None\n"  # as if it were not installed
+        "from rr_actors._process.child import set_title\n"
+        "set_title('erm')\n"
+        "print(open('/proc/self/comm').read().strip())\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=True
+    )
+
+    assert "erm" == result.stdout.strip()
+
+
+DEVICE = {"device": 1}
+
+
+def offered(journal: Path) -> list[str]:
+    """What each `setup` so far was offered in doubt, one entry per incarnation."""
+    if not journal.exists():
+        return []
+    return [line.split(" ", 2)[2] for line in journal.read_text().splitlines()]
+
+
+def gated_setup(journal: str, in_setup: Any, gate: Any) -> Callable[[rr.ResourceRegistrar], None]:
+    """A manager's setup: incarnation 1 dies inside its load, incarnation 2 waits on
+    `gate` inside setup (after `in_setup`), the others return at once."""
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        doubts = [q.request for q in registrar.in_doubt]
+        with open(journal, "a", encoding="utf-8") as out:
+            out.write(f"{os.getpid()} offered {doubts}\n")
+        with open(journal, encoding="utf-8") as done:
+            incarnation = len(done.read().splitlines())
+
+        def load(request: Any) -> Any:
+            if incarnation == 1:  # the load started a device, then the process died
+                os.kill(os.getpid(), signal.SIGKILL)
+            return request
+
+        registrar.register_server("dev", load=load, unload=lambda r, s: None)
+        if incarnation == 2:  # a slow re-adoption: the test kills it here
+            in_setup.set()
+            assert gate.wait(60.0), "the test did not kill this setup"
+
+    return setup
+
+
+class TestInDoubtUntilSetupReturned:
+    """An in-doubt entry is offered until a `setup` that saw it has returned (rule 16).
+
+    Real manager processes, real SIGKILLs: the first incarnation dies inside a `load` (so its
+    load is in doubt), the second is killed while its `setup` waits on a gate, the third's
+    `setup` returns, the fourth must find nothing in doubt. Each `setup` writes what it was
+    offered to a journal file. The thread placement is checked with a `setup` that raises.
+    """
+
+    pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+
+    def test_an_in_doubt_load_is_offered_again_after_a_death_during_setup(
+        self,
+        supervisors: Callable[..., rr.Supervisor],
+        uid: str,
+        tmp_path: Path,
+        process_helpers: SharedObjects,
+    ) -> None:
+        name = f"erm-{uid}"
+        journal = tmp_path / "journal.txt"
+        in_setup, gate = process_helpers.event(), process_helpers.event()
+        spec = process(name, gated_setup(str(journal), in_setup, gate))
+        sup = supervisors([spec], state_dir=tmp_path / "state", max_restarts=10, period=60.0)
+        sup.start()
+        app = sup.registrar(f"app-{uid}")
+        with pytest.raises(rr.RegistrarUnavailableError):
+            app.call(name, "dev", DEVICE, timeout=20.0)  # incarnation 1 dies in the load
+        assert in_setup.wait(20.0)  # incarnation 2 is in its setup
+        pid = int(journal.read_text().splitlines()[1].split()[0])
+        os.kill(pid, signal.SIGKILL)
+        sup.wait_restarted(name, timeout=20.0)  # incarnation 3: its setup returned
+        kill_and_wait_restarted(sup, name, timeout=20.0)  # incarnation 4
+
+        assert ["[]", str([DEVICE]), str([DEVICE]), "[]"] == offered(journal)
+
+    def test_an_entry_the_setup_settled_is_not_offered_again(
+        self,
+        supervisors: Callable[..., rr.Supervisor],
+        uid: str,
+        tmp_path: Path,
+        process_helpers: SharedObjects,
+    ) -> None:
+        name = f"erm-{uid}"
+        journal = tmp_path / "journal.txt"
+        in_setup, gate = process_helpers.event(), process_helpers.event()
+        inner = gated_setup(str(journal), in_setup, gate)
+
+        def setup(registrar: rr.ResourceRegistrar) -> None:
+            for query in registrar.in_doubt:  # cleaned up at once, before a slow re-adoption
+                registrar.settle_in_doubt(query.id)
+            inner(registrar)
+
+        spec = process(name, setup)
+        sup = supervisors([spec], state_dir=tmp_path / "state", max_restarts=10, period=60.0)
+        sup.start()
+        app = sup.registrar(f"app-{uid}")
+        with pytest.raises(rr.RegistrarUnavailableError):
+            app.call(name, "dev", DEVICE, timeout=20.0)
+        assert in_setup.wait(20.0)
+        pid = int(journal.read_text().splitlines()[1].split()[0])
+        os.kill(pid, signal.SIGKILL)
+        sup.wait_restarted(name, timeout=20.0)
+
+        assert ["[]", str([DEVICE]), "[]"] == offered(journal)
+
+    def test_settling_an_id_that_is_not_in_doubt_raises_unknown_query(self, tmp_path: Path) -> None:
+        with rr.ResourceRegistrar.start(
+            rr.RegistrarConfig(name="erm-settle", backup_path=str(tmp_path / "erm.db"))
+        ) as erm:
+            erm.settle_in_doubt()  # nothing in doubt: a no-op
+            with pytest.raises(rr.errors.UnknownQueryError):
+                erm.settle_in_doubt("no-such-id")
+
+    def test_a_thread_manager_whose_setup_raised_is_offered_its_in_doubt_load_again(
+        self,
+        tmp_path: Path,
+    ) -> None:
+        """The thread placement: a load cut short by the registrar's death, then a `setup`
+        that raises (it stops the registrar), then one that returns, then one more start."""
+        config = rr.RegistrarConfig(
+            name="erm-thread-doubt", backup_path=str(tmp_path / "erm.db"), save_on_modify=True
+        )
+        seen: list[list[Any]] = []
+        started = rr.ResourceRegistrar.start(config)
+        loading, gate = threading.Event(), threading.Event()
+
+        def load(request: Any) -> Any:
+            loading.set()
+            gate.wait(10.0)
+            return request
+
+        started.register_server("dev", load=load, unload=lambda r, s: None)
+        app = rr.ResourceRegistrar.start("app-thread-doubt")
+        failed: list[BaseException] = []
+
+        def call() -> None:
+            try:
+                app.call(config.name, "dev", DEVICE)
+            except rr.errors.RrError as exc:
+                failed.append(exc)
+
+        try:
+            caller = threading.Thread(target=call)
+            caller.start()
+            assert loading.wait(10.0)
+            rr.testing.crash(started)  # the load is cut short: in doubt
+            assert started._actor.wait_stopped(10.0)
+            gate.set()
+            caller.join(10.0)
+            assert [rr.RegistrarUnavailableError] == [type(exc) for exc in failed]
+
+            def failing(registrar: rr.ResourceRegistrar) -> None:
+                seen.append([q.request for q in registrar.in_doubt])
+                raise RuntimeError("setup failed")
+
+            def returning(registrar: rr.ResourceRegistrar) -> None:
+                seen.append([q.request for q in registrar.in_doubt])
+
+            with pytest.raises(RuntimeError):
+                rr.ResourceRegistrar.start(config, setup=failing)
+            rr.ResourceRegistrar.start(config, setup=returning).stop()
+            rr.ResourceRegistrar.start(config, setup=returning).stop()
+        finally:
+            app.stop()
+
+        assert [[DEVICE], [DEVICE], []] == seen

@@ -1,0 +1,198 @@
+"""Commits counted outside the WAL (`rr_actors._store.commits`): a WAL cut short loses its
+newest commits, and the restore says so (issue 21).
+
+Real manager processes killed with SIGKILL, their real `-wal` files cut at a frame
+boundary right after a commit (the cut SQLite cannot see: it replays what is left and
+drops the rest without a word).
+
+- The restarted registrar logs a WARNING naming the file and how many commits are lost.
+- A consumer whose ids were all in the lost commits is told `FATAL` for each (rule 20).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import sqlite3
+import struct
+import sys
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+import rr_actors as rr
+from rr_actors.testing import RemoteRegistrar, SharedObjects
+
+pytestmark = [
+    pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals"),
+    pytest.mark.usefixtures("by_value"),  # (tests/conftest.py)
+]
+
+
+def serve_leaf(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("leaf", load=lambda r: {"for": r}, unload=lambda _r, _s: None)
+
+
+def durable(prefix: str, tmp_path: Path) -> rr.RegistrarConfig:
+    name = f"{prefix}-{uuid.uuid4().hex[:8]}"
+    return rr.RegistrarConfig(name, backup_path=tmp_path / f"{name}.db", save_on_modify=True)
+
+
+def commit_ends(wal: Path) -> tuple[bytes, list[int]]:
+    """The salts of `wal`'s current generation and the end offset of each commit frame."""
+    data = wal.read_bytes()
+    page_size = struct.unpack(">I", data[8:12])[0]
+    salts = data[16:24]
+    ends, offset = [], 32
+    while offset + 24 + page_size <= len(data) and data[offset + 8 : offset + 16] == salts:
+        committed = struct.unpack(">I", data[offset + 4 : offset + 8])[0]  # db size, or 0
+        offset += 24 + page_size
+        if committed:
+            ends.append(offset)
+    return salts, ends
+
+
+def cut(wal: Path, at: int) -> None:
+    with open(wal, "r+b") as file:
+        file.truncate(at)
+        os.fsync(file.fileno())
+
+
+def test_a_wal_cut_short_is_reported_at_restore_naming_the_file_and_the_commits_lost(
+    managers: Callable[..., RemoteRegistrar],
+    tmp_path: Path,
+    started: list[rr.ResourceRegistrar],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    config = durable("provider", tmp_path)
+    provider = managers(config, serve_leaf)
+    for n in range(50):
+        provider.call(config.name, "leaf", n, timeout=10)
+    provider.kill()
+    wal = Path(f"{config.backup_path}-wal")
+    _, ends = commit_ends(wal)
+    assert len(ends) > 60
+    cut(wal, ends[-61])  # the last 60 commits are gone
+
+    caplog.set_level(logging.WARNING, logger="rr_actors")
+    restarted = rr.ResourceRegistrar.start(config, setup=serve_leaf)
+    started.append(restarted)
+
+    warnings = [r.getMessage() for r in caplog.records if "commits are lost" in r.getMessage()]
+    assert 1 == len(warnings)
+    assert str(config.backup_path) in warnings[0]
+    assert ": 60 acknowledged commits are lost" in warnings[0]
+
+
+def test_a_consumer_whose_every_id_was_in_the_lost_commits_is_told_fatal(
+    managers: Callable[..., RemoteRegistrar],
+    tmp_path: Path,
+    process_helpers: SharedObjects,
+    eventually: Callable[..., bool],
+) -> None:
+    heard = process_helpers.list()
+    config = durable("provider", tmp_path)
+    provider = managers(config, serve_leaf)
+    for n in range(5):
+        provider.call(config.name, "leaf", n, timeout=10)  # ids of the provider itself
+    wal = Path(f"{config.backup_path}-wal")
+    salts, before = commit_ends(wal)
+    consumer = managers(durable("consumer", tmp_path), None)
+
+    def note(query: rr.Query, update: rr.StatusUpdate) -> None:
+        heard.append((query.id, update.status))
+
+    held = [
+        consumer.call(config.name, "leaf", f"device-{n}", on_status=note, timeout=10).id
+        for n in range(3)
+    ]
+    provider.kill()
+    assert salts == commit_ends(wal)[0]  # (no checkpoint restarted the log meanwhile)
+    cut(wal, before[-1])  # every commit since the consumer's first call is gone
+    restarted = managers(config, serve_leaf)
+
+    assert eventually(lambda: len(heard) == 3, timeout=10)
+    assert sorted((q, rr.Status.FATAL) for q in held) == sorted(heard)
+    assert [] == consumer.client_queries()
+    assert 5 == len(restarted.server_queries("leaf"))
+
+
+def test_a_wal_left_whole_by_a_kill_or_a_clean_stop_reports_nothing(
+    managers: Callable[..., RemoteRegistrar],
+    tmp_path: Path,
+    started: list[rr.ResourceRegistrar],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level(logging.WARNING, logger="rr_actors")
+    config = durable("provider", tmp_path)
+    provider = managers(config, serve_leaf)
+    for n in range(20):
+        provider.call(config.name, "leaf", n, timeout=10)
+    provider.kill()
+    again = managers(config, serve_leaf)  # replays the log, appends to it
+    for n in range(20, 30):
+        again.call(config.name, "leaf", n, timeout=10)
+    again.kill()
+    restarted = rr.ResourceRegistrar.start(config, setup=serve_leaf)
+    assert 30 == len(restarted.server_queries("leaf"))
+    restarted.stop()  # (it releases what it held of itself)
+    started.append(rr.ResourceRegistrar.start(config, setup=serve_leaf))
+
+    assert [] == [r.getMessage() for r in caplog.records if "commits" in r.getMessage()]
+
+
+def test_a_cut_after_a_restart_that_replayed_the_log_is_still_seen(
+    managers: Callable[..., RemoteRegistrar],
+    tmp_path: Path,
+    started: list[rr.ResourceRegistrar],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    config = durable("provider", tmp_path)
+    provider = managers(config, serve_leaf)
+    for n in range(20):
+        provider.call(config.name, "leaf", n, timeout=10)
+    provider.kill()
+    wal = Path(f"{config.backup_path}-wal")
+    _, replayed = commit_ends(wal)
+    again = managers(config, serve_leaf)
+    for n in range(20, 25):
+        again.call(config.name, "leaf", n, timeout=10)
+    again.kill()
+    _, ends = commit_ends(wal)
+    cut(wal, replayed[-1])  # what the second run committed is gone
+
+    caplog.set_level(logging.WARNING, logger="rr_actors")
+    started.append(rr.ResourceRegistrar.start(config, setup=serve_leaf))
+
+    lost = len(ends) - len(replayed)
+    assert [f"{lost} acknowledged commits are lost"] == [
+        m[m.index(f"{lost} ack") :].split(" (")[0]
+        for m in (r.getMessage() for r in caplog.records)
+        if "commits are lost" in m
+    ]
+
+
+def test_a_log_another_program_checkpointed_and_removed_is_not_reported(
+    managers: Callable[..., RemoteRegistrar],
+    tmp_path: Path,
+    started: list[rr.ResourceRegistrar],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    config = durable("provider", tmp_path)
+    provider = managers(config, serve_leaf)
+    for n in range(20):
+        provider.call(config.name, "leaf", n, timeout=10)
+    provider.kill()
+    with contextlib.closing(sqlite3.connect(str(config.backup_path))) as db:
+        db.execute("SELECT count(*) FROM resources").fetchone()  # closing checkpoints
+    assert not Path(f"{config.backup_path}-wal").exists()
+
+    caplog.set_level(logging.WARNING, logger="rr_actors")
+    restarted = rr.ResourceRegistrar.start(config, setup=serve_leaf)
+    started.append(restarted)
+
+    assert [] == [r.getMessage() for r in caplog.records if "commits" in r.getMessage()]
+    assert 20 == len(restarted.server_queries("leaf"))

@@ -1,0 +1,756 @@
+"""Where a backup lives (`rr_actors._store.files`): its path, its file, and what is wrong.
+
+- Bad backups: files that are not ours, damaged, unreadable, read-only, or with rows that
+  cannot be right, each a clear error naming the file (rule 15; `files.py`, `restore.py`).
+- The backup at real limits: names too long, a file deleted under a running registrar, a
+  full disk, who may read the files (issue 16: 6, 7, 8 and the file modes). Full disks are
+  real: a small tmpfs mounted for the test (`small_disk`; CI runs as root), filled with a
+  file until `ENOSPC`. Crashes are real too: a manager process is SIGKILLed and its
+  registrar restarted on the same backup.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import pickle
+import sqlite3
+import stat
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import cloudpickle
+import pytest
+
+import rr_actors as rr
+from rr_actors._catalog import Catalog, Changes
+from rr_actors._store import Saver
+from rr_actors._store.files import quarantine_backup, read_backup
+from rr_actors._store.sqlite import SqliteStore
+from rr_actors.testing import RemoteRegistrar, System
+from tests.support.durable_pair import noop_unload, start
+from tests.support.persisting import (
+    consumer_ids,
+    digest,
+    duplicate_client,
+    duplicate_consumer,
+    duplicate_resource,
+    make_bad_row,
+    make_empty,
+    make_foreign,
+    make_garbage,
+    make_newer,
+    make_truncated,
+    state_minus_one,
+    state_text,
+    state_three,
+    unique,
+    write_valid_backup,
+    written_once,
+)
+from tests.support.small_disk import fill, mounted, remount_read_only
+
+
+@pytest.mark.parametrize(
+    ("make", "cause"),
+    [
+        (make_garbage, "not an SQLite database"),
+        (make_truncated, "truncated"),
+        (make_empty, "empty"),
+        (make_foreign, "not an rr_actors catalog"),
+        (make_newer, "schema version 99 is newer"),
+    ],
+)
+def test_a_bad_backup_raises_catalog_corrupt_error_naming_the_file_and_is_left_untouched(
+    tmp_path: Path, make: Callable[[Path], None], cause: str
+) -> None:
+    path = tmp_path / "p.db"
+    make(path)
+    before = digest(path)
+    name = unique("P")
+
+    with pytest.raises(rr.CatalogCorruptError) as raised:
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, backup_path=path))
+
+    assert (str(path), True, before, sorted(os.listdir(tmp_path))) == (
+        raised.value.path,
+        cause in raised.value.cause,
+        digest(path),
+        ["p.db"],
+    )
+
+
+def test_a_damaged_resource_row_raises_catalog_corrupt_error_when_first_used_and_only_then(
+    tmp_path: Path,
+) -> None:
+    """A restore reads served resources on first use: a damaged one fails that use alone."""
+    path = tmp_path / "p.db"
+    make_bad_row(path)  # r7's request is not a pickle; r0 .. r299 are fine
+    registrar = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=unique("P"), backup_path=path, save_interval=None)
+    )
+    try:
+        registrar.register_server("leaf", load=lambda r: r, unload=noop_unload)
+        seventh, eighth = ({"n": n, "pad": "x" * 200} for n in (7, 8))
+        with pytest.raises(rr.CatalogCorruptError) as damaged:
+            registrar.call(registrar.name, "leaf", seventh)
+        with pytest.raises(rr.CatalogCorruptError) as again:
+            registrar.call(registrar.name, "leaf", seventh)
+        neighbour = registrar.call(registrar.name, "leaf", eighth)  # r8, restored: a dedup hit
+        registrar.unload(neighbour.id)
+    finally:
+        registrar.stop()
+
+    assert (str(path), True, True, 8) == (
+        damaged.value.path,
+        "resource r7 is not a pickle" in damaged.value.cause,
+        "resource r7 is not a pickle" in again.value.cause,
+        neighbour.response,
+    )
+    with sqlite3.connect(path) as db:  # r7's row is kept as it was
+        assert db.execute("SELECT request FROM resources WHERE id = 'r7'").fetchone() == (
+            b"\x00\xff\x00",
+        )
+
+
+def test_a_backup_that_failed_to_open_leaves_the_registrar_name_free(tmp_path: Path) -> None:
+    make_garbage(tmp_path / "p.db")
+    name = unique("P")
+    with pytest.raises(rr.CatalogCorruptError):
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, backup_path=tmp_path / "p.db"))
+
+    registrar = rr.ResourceRegistrar.start(name)
+
+    registrar.stop()
+
+
+@pytest.mark.parametrize(
+    ("where", "cause"),
+    [
+        (lambda tmp: tmp / "missing" / "p.db", "does not exist"),
+        (lambda tmp: tmp, "is a directory"),
+        (lambda _tmp: Path("/sys/rr_actors_test.db"), "cannot be created"),
+    ],
+)
+def test_an_unusable_backup_path_raises_config_error_naming_it(
+    tmp_path: Path, where: Callable[[Path], Path], cause: str
+) -> None:
+    path = where(tmp_path)
+    if path.parent == Path("/sys"):
+        try:
+            path.touch()
+        except OSError:
+            pass
+        else:
+            path.unlink()
+            pytest.skip("/sys is writable here")
+
+    with pytest.raises(rr.ConfigError) as raised:
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("P"), backup_path=path))
+
+    assert (True, True) == (str(path) in str(raised.value), cause in str(raised.value))
+
+
+def test_a_read_only_backup_raises_config_error(tmp_path: Path) -> None:
+    if os.geteuid() == 0:
+        where = tmp_path / "ro"
+        with mounted(where, "1m"):
+            write_valid_backup(where / "p.db")
+            remount_read_only(where)
+            with pytest.raises(rr.ConfigError, match="not readable and writable") as raised:
+                SqliteStore.open(where / "p.db")
+    else:
+        where = tmp_path
+        write_valid_backup(where / "p.db")
+        (where / "p.db").chmod(0o444)
+        with pytest.raises(rr.ConfigError, match="not readable and writable") as raised:
+            SqliteStore.open(where / "p.db")
+
+    assert str(where / "p.db") in str(raised.value)
+
+
+def test_a_backup_in_a_read_only_location_raises_config_error(tmp_path: Path) -> None:
+    where = tmp_path / "ro"
+    with mounted(where, "1m"):  # (skipped unless root: root ignores directory modes too)
+        remount_read_only(where)
+        with pytest.raises(rr.ConfigError, match="is not writable") as raised:
+            SqliteStore.open(where / "p.db")
+
+    assert str(where / "p.db") in str(raised.value)
+
+
+def test_quarantine_moves_a_corrupt_backup_aside_so_a_registrar_starts_empty(
+    tmp_path: Path, started: list[rr.ResourceRegistrar]
+) -> None:
+    make_garbage(tmp_path / "p.db")
+    before = digest(tmp_path / "p.db")
+
+    moved = quarantine_backup(tmp_path / "p.db")
+    registrar = start(started, unique("P"), tmp_path / "p.db")
+
+    assert (before, True, False) == (
+        digest(moved),
+        moved.name.startswith("p.db.corrupt-"),
+        registrar.restored,
+    )
+
+
+def test_quarantine_without_a_file_raises_config_error(tmp_path: Path) -> None:
+    with pytest.raises(rr.ConfigError, match="no catalog backup"):
+        quarantine_backup(tmp_path / "p.db")
+
+
+@pytest.mark.parametrize(
+    ("damage", "cause"),
+    [
+        (duplicate_resource, "index resources_by_id is missing"),
+        (duplicate_consumer, "index consumers_by_query is missing"),
+        (duplicate_client, "client query id d1 is stored twice"),
+        (state_minus_one, "unknown state -1"),
+        (state_three, "unknown state 3"),
+        (state_text, "unknown state 'loaded'"),
+    ],
+)
+def test_a_duplicate_id_or_unknown_state_in_a_backup_raises_catalog_corrupt_error(
+    tmp_path: Path, damage: Callable[[sqlite3.Connection], None], cause: str
+) -> None:
+    path = tmp_path / "p.db"
+    written_once(path)
+    db = sqlite3.connect(path)
+    damage(db)
+    db.commit()
+    db.close()
+
+    with pytest.raises(rr.CatalogCorruptError) as restored:  # as a registrar restores
+        SqliteStore.open(path).restore()
+    with pytest.raises(rr.CatalogCorruptError) as loaded:
+        SqliteStore.open(path).load()
+    with pytest.raises(rr.CatalogCorruptError) as inspected:
+        read_backup(path)
+
+    assert [(str(path), True)] * 3 == [
+        (e.value.path, cause in e.value.cause) for e in (restored, loaded, inspected)
+    ]
+
+
+# -- store: a database of another program ------------------------------------------------------
+
+
+def test_a_database_of_another_program_with_a_schema_table_is_refused_by_application_id(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "p.db"
+    SqliteStore.open(path).close(erase=False)  # an rr_actors layout ...
+    db = sqlite3.connect(path)
+    db.execute("PRAGMA application_id = 1234")  # ... stamped by another program
+    db.commit()
+    db.close()
+    before = path.read_bytes()
+
+    with pytest.raises(rr.CatalogCorruptError) as raised:
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("P"), backup_path=path))
+
+    assert (str(path), True, before) == (
+        raised.value.path,
+        "not an rr_actors catalog" in raised.value.cause,
+        path.read_bytes(),
+    )
+
+
+# -- bad locations (the suite runs as root, where permissions do not refuse anything) -----------
+
+
+def test_a_read_only_directory_raises_config_error_naming_the_path(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    real_access = os.access
+    directory = str(tmp_path)
+
+    def access(path: Any, mode: int, **kwargs: Any) -> bool:
+        if os.fspath(path) == directory and mode & os.W_OK:
+            return False  # what a non-root user sees for a read-only directory
+        return real_access(path, mode, **kwargs)
+
+    monkeypatch.setattr(os, "access", access)
+    with pytest.raises(rr.ConfigError) as raised:
+        rr.ResourceRegistrar.start(
+            rr.RegistrarConfig(name=unique("P"), backup_path=tmp_path / "p.db")
+        )
+
+    assert (True, True, []) == (
+        str(tmp_path / "p.db") in str(raised.value),
+        "is not writable" in str(raised.value),
+        list(tmp_path.iterdir()),
+    )
+
+
+def test_a_read_only_backup_file_raises_config_error_and_is_left_as_it_was(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "p.db"
+    SqliteStore.open(path).close(erase=False)
+    before = path.read_bytes()
+    real_access = os.access
+
+    def access(where: Any, mode: int, **kwargs: Any) -> bool:
+        if os.fspath(where) == str(path) and mode & os.W_OK:
+            return False
+        return real_access(where, mode, **kwargs)
+
+    monkeypatch.setattr(os, "access", access)
+    with pytest.raises(rr.ConfigError) as raised:
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("P"), backup_path=path))
+
+    assert (True, True, before) == (
+        str(path) in str(raised.value),
+        "not readable and writable" in str(raised.value),
+        path.read_bytes(),
+    )
+
+
+# -- quarantine_backup -------------------------------------------------------------------------
+
+
+def test_quarantine_moves_the_wal_and_shm_files_with_the_backup(tmp_path: Path) -> None:
+    live, crashed = tmp_path / "live", tmp_path / "crashed"
+    live.mkdir()
+    crashed.mkdir()
+    store = SqliteStore.open(live / "p.db")
+    try:
+        store.load()
+        catalog = Catalog()
+        catalog.begin_load("r1", "leaf", 1)
+        catalog.finish_load("r1", 1)
+        catalog.add_consumer("r1", "q1", "C")
+        store.write(catalog.drain_changes())  # in the -wal only: no checkpoint yet
+        for suffix in ("", "-wal", "-shm"):  # the files a killed registrar leaves
+            (crashed / f"p.db{suffix}").write_bytes((live / f"p.db{suffix}").read_bytes())
+    finally:
+        store.close(erase=False)
+
+    moved = quarantine_backup(crashed / "p.db")
+
+    assert (["p.db", "p.db-shm", "p.db-wal"], {"q1"}) == (
+        sorted(p.name.replace(moved.name, "p.db") for p in crashed.iterdir()),
+        consumer_ids(moved),
+    )
+
+
+def test_quarantining_twice_keeps_both_files(tmp_path: Path) -> None:
+    path = tmp_path / "p.db"
+    path.write_bytes(b"first garbage" * 100)
+    first = quarantine_backup(path)
+    path.write_bytes(b"second garbage" * 100)
+    second = quarantine_backup(path)
+
+    assert (True, b"first garbage" * 100, b"second garbage" * 100) == (
+        first != second,
+        first.read_bytes(),
+        second.read_bytes(),
+    )
+
+
+def consumers_on_disk(path: Path) -> dict[str, list[str]]:
+    """What a process started now would restore: each resource's consumer ids."""
+    return {r.id: list(r.consumers) for r in read_backup(path).resources}
+
+
+def loaded(catalog: Catalog, rid: str, *query_ids: str, size: int = 16) -> Changes:
+    """Load resource `rid` (a request of about `size` bytes) for `query_ids`; its changes."""
+    catalog.begin_load(rid, "leaf", {"rid": rid, "pad": "x" * size})
+    catalog.finish_load(rid, {"pid": 1})
+    for query_id in query_ids:
+        catalog.add_consumer(rid, query_id, "C")
+    return catalog.drain_changes()
+
+
+@pytest.fixture
+def store_at() -> Iterator[Callable[..., SqliteStore]]:
+    """Open stores (`store_at(path, **options)`), loaded; closed at teardown."""
+    opened: list[SqliteStore] = []
+
+    def store_at(path: Path, **options: Any) -> SqliteStore:
+        store = SqliteStore.open(path, **options)
+        store.load()
+        opened.append(store)
+        return store
+
+    yield store_at
+    for store in opened:
+        store.close(erase=False)
+
+
+@pytest.fixture
+def disk(tmp_path: Path) -> Iterator[Path]:
+    """A 1 MiB tmpfs of its own (skipped unless this process may mount one)."""
+    with mounted(tmp_path / "disk", "1m") as where:
+        yield where
+
+
+# -- 6. a path that cannot hold a backup is a ConfigError naming it ---------------------------
+
+
+def deep_path(tmp_path: Path) -> Path:
+    """A path longer than SQLite opens (504 bytes and its suffixes) of short names."""
+    where = tmp_path
+    while len(os.fsencode(os.path.abspath(where))) < 520:
+        where = where / ("d" * 60)
+    where.mkdir(parents=True)
+    return where / "p.db"
+
+
+@pytest.mark.parametrize(
+    ("where", "cause"),
+    [
+        (lambda tmp: tmp / ("a" * 300 + ".db"), "the file name is 303 bytes long"),
+        (lambda tmp: tmp / ("a" * 250 + ".db"), "the file name is 253 bytes long"),
+        (deep_path, "SQLite opens at most 504"),
+        (lambda tmp: tmp / "a-file" / "p.db", "is a file, not a directory"),
+        (lambda tmp: tmp / "a-file" / "sub" / "p.db", "does not exist"),
+        (lambda tmp: tmp / "missing" / "p.db", "does not exist"),
+    ],
+    ids=[
+        "name-over-255",
+        "name-without-room-for-journal",
+        "path-over-504",
+        "dir-is-file",
+        "dir-under-file",
+        "dir-missing",
+    ],
+)
+def test_a_backup_path_that_cannot_hold_a_file_raises_config_error_naming_it(
+    tmp_path: Path, where: Callable[[Path], Path], cause: str
+) -> None:
+    (tmp_path / "a-file").write_text("not a directory")
+    path = where(tmp_path)
+
+    with pytest.raises(rr.ConfigError) as raised:
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("P"), backup_path=path))
+
+    assert (True, True) == (str(path) in str(raised.value), cause in str(raised.value))
+
+
+@pytest.mark.parametrize("act", [read_backup, quarantine_backup], ids=["read", "quarantine"])
+def test_reading_or_quarantining_a_backup_named_too_long_raises_config_error(
+    tmp_path: Path, act: Callable[[Path], Any]
+) -> None:
+    path = tmp_path / ("a" * 300 + ".db")
+
+    with pytest.raises(rr.ConfigError, match="no catalog backup"):
+        act(path)
+
+
+# -- file modes: 0600 whatever the umask -------------------------------------------------------
+
+
+@pytest.fixture(params=[0o000, 0o022, 0o277], ids=["umask-000", "umask-022", "umask-277"])
+def umask(request: pytest.FixtureRequest) -> Iterator[int]:
+    old = os.umask(request.param)
+    try:
+        yield request.param
+    finally:
+        os.umask(old)
+
+
+def modes(directory: Path) -> dict[str, int]:
+    return {p.name: stat.S_IMODE(p.stat().st_mode) for p in sorted(directory.iterdir())}
+
+
+def test_a_new_backup_and_its_wal_and_shm_are_readable_by_their_owner_only(
+    tmp_path: Path,
+    umask: int,
+    store_at: Callable[..., SqliteStore],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    linked: list[int] = []
+    real_link = os.link
+
+    def link(src: Any, dst: Any, **kwargs: Any) -> None:
+        linked.append(stat.S_IMODE(os.stat(src).st_mode))  # the temporary file, complete
+        real_link(src, dst, **kwargs)
+
+    monkeypatch.setattr(os, "link", link)
+    store = store_at(tmp_path / "p.db")
+    store.write(loaded(Catalog(), "r1", "q1"))
+
+    files = {"p.db": 0o600, "p.db-commits": 0o600, "p.db-shm": 0o600, "p.db-wal": 0o600}
+    assert ([0o600], files) == (
+        linked,
+        modes(tmp_path),
+    )
+
+
+# -- 7. a backup deleted while its registrar runs is written again, whole ----------------------
+
+
+def delete_all(path: Path) -> None:
+    for suffix in ("", "-wal", "-shm"):
+        Path(f"{path}{suffix}").unlink()
+
+
+def delete_file(path: Path) -> None:
+    path.unlink()
+
+
+def delete_wal(path: Path) -> None:
+    Path(f"{path}-wal").unlink()
+
+
+def replace_file(path: Path) -> None:
+    other = path.with_name("other.db")
+    other.write_bytes(b"another program's file")
+    other.replace(path)
+
+
+@pytest.mark.parametrize(
+    "lose", [delete_all, delete_file, delete_wal, replace_file], ids=lambda f: f.__name__
+)
+@pytest.mark.parametrize("background", [False, True], ids=["own-checkpoints", "checkpointer"])
+def test_a_backup_deleted_under_a_running_store_is_written_again_whole_at_the_next_commit(
+    tmp_path: Path,
+    store_at: Callable[..., SqliteStore],
+    caplog: pytest.LogCaptureFixture,
+    lose: Callable[[Path], None],
+    background: bool,
+) -> None:
+    caplog.set_level(logging.WARNING, logger="rr_actors")
+    path = tmp_path / "p.db"
+    store = store_at(path, background_checkpoints=background)
+    catalog = Catalog()
+    store.write(loaded(catalog, "r1", "q1"))
+    store.write(loaded(catalog, "r2", "q2"))
+    lose(path)
+
+    catalog.add_consumer("r1", "q3", "C")
+    store.write(catalog.drain_changes())
+    after_the_commit = consumers_on_disk(path)
+    catalog.add_consumer("r2", "q4", "C")
+    store.write(catalog.drain_changes())  # and it keeps writing there
+
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert {"r1": ["q1", "q3"], "r2": ["q2"]} == after_the_commit
+    assert {"r1": ["q1", "q3"], "r2": ["q2", "q4"]} == consumers_on_disk(path)
+    assert (1, True) == (len(warnings), str(path) in warnings[0].getMessage())
+    assert 0o600 == stat.S_IMODE(path.stat().st_mode)
+
+
+def test_a_backup_deleted_after_the_last_commit_is_written_again_when_the_store_closes(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "p.db"
+    store = SqliteStore.open(path)
+    store.load()
+    store.write(loaded(Catalog(), "r1", "q1"))
+    delete_all(path)
+
+    store.close(erase=False)
+
+    assert {"r1": ["q1"]} == consumers_on_disk(path)
+
+
+def test_a_lazily_restored_backup_deleted_mid_run_keeps_the_rows_not_read_yet(
+    tmp_path: Path, store_at: Callable[..., SqliteStore]
+) -> None:
+    path = tmp_path / "p.db"
+    writer = SqliteStore.open(path)
+    writer.load()
+    writer.write(loaded(Catalog(), "r1", "q1"))
+    writer.write(loaded(Catalog(), "r2", "q2"))
+    writer.close(erase=False)
+    store = SqliteStore.open(path)
+    restored = store.restore()
+    assert restored is not None
+    catalog = Catalog.restore(restored.resources, restored.clients, restored.unread)
+    delete_all(path)
+
+    catalog.add_consumer(catalog.resource_of("q1").id, "q3", "C")  # reads r1, not r2
+    store.write(catalog.drain_changes())
+    r2 = catalog.resource_of("q2")  # read now, from the new file
+    store.close(erase=False)
+
+    assert ("r2", {"r1": ["q1", "q3"], "r2": ["q2"]}) == (r2.id, consumers_on_disk(path))
+
+
+def leaf_load(request: Any) -> Any:
+    return {"leaf": request}
+
+
+def serve_leaf(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("leaf", load=leaf_load, unload=noop_unload)
+
+
+@pytest.mark.usefixtures("process_helpers")  # the forkserver, started before the leak check
+def test_a_manager_whose_backup_was_deleted_mid_run_restores_every_acknowledged_id_after_sigkill(
+    tmp_path: Path,
+) -> None:
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    path = tmp_path / "p.db"
+    config = rr.RegistrarConfig(name=unique("P"), backup_path=path, save_on_modify=True)
+    system = System.create()
+    consumer = rr.ResourceRegistrar.start(unique("C"))
+    provider = restarted = None
+    try:
+        provider = RemoteRegistrar.start(config, system, setup=serve_leaf)
+        before = [consumer.call(config.name, "leaf", n).id for n in range(3)]
+        delete_all(path)
+        after = [consumer.call(config.name, "leaf", n).id for n in range(3, 6)]
+        provider.kill()  # SIGKILL
+        restarted = RemoteRegistrar.start(config, system, setup=serve_leaf)
+
+        held = {q.id for q in restarted.server_queries("leaf")}
+    finally:
+        consumer.stop()
+        for registrar in (restarted, provider):
+            if registrar is not None:
+                registrar.stop()
+        system.close()
+        cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+
+    assert set(before + after) == held
+
+
+def test_a_copy_that_could_not_be_moved_into_place_is_moved_by_the_next_write(
+    tmp_path: Path, store_at: Callable[..., SqliteStore], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "p.db"
+    store = store_at(path)
+    catalog = Catalog()
+    store.write(loaded(catalog, "r1", "q1"))
+    delete_all(path)
+    real_replace = os.replace
+
+    def replace_fails_once(src: Any, dst: Any) -> None:
+        monkeypatch.setattr(os, "replace", real_replace)
+        raise OSError(errno.EIO, "Input/output error (injected)")
+
+    monkeypatch.setattr(os, "replace", replace_fails_once)
+    catalog.add_consumer("r1", "q2", "C")
+    changes = catalog.drain_changes()
+    with pytest.raises(rr.CatalogWriteError, match="EIO"):
+        store.write(changes)
+    copies = [p.name for p in tmp_path.iterdir() if p.name.endswith(".rewriting")]
+
+    store.write(changes)
+
+    assert (1, {"r1": ["q1", "q2"]}) == (len(copies), consumers_on_disk(path))
+    assert [] == [p.name for p in tmp_path.iterdir() if p.name.endswith(".rewriting")]
+
+
+# -- 8. a full disk: CatalogWriteError, and nothing is lost ------------------------------------
+
+
+def test_a_write_to_a_full_disk_raises_catalog_write_error_naming_the_file_and_enospc(
+    disk: Path, store_at: Callable[..., SqliteStore]
+) -> None:
+    path = disk / "p.db"
+    store = store_at(path)
+    catalog = Catalog()
+    store.write(loaded(catalog, "r1", "q1"))
+    fill(disk)
+
+    with pytest.raises(rr.CatalogWriteError) as raised:
+        store.write(loaded(catalog, "r2", "q2", size=200_000))
+
+    error = raised.value
+    assert (str(path), errno.ENOSPC, True, True) == (
+        error.path,
+        error.errno,
+        "ENOSPC" in str(error),
+        str(path) in str(error),
+    )
+    assert {"r1": ["q1"]} == consumers_on_disk(path)  # what was written stays readable
+
+
+def test_a_write_a_full_disk_refused_is_written_by_a_retry_once_there_is_room(
+    disk: Path, store_at: Callable[..., SqliteStore]
+) -> None:
+    path = disk / "p.db"
+    store = store_at(path)
+    saver = Saver(store, rr.RegistrarConfig(name="P", backup_path=path, save_on_modify=True))
+    catalog = Catalog()
+    saver.changed(loaded(catalog, "r1", "q1"))
+    filler = fill(disk)
+    with pytest.raises(rr.CatalogWriteError, match="ENOSPC"):
+        saver.changed(loaded(catalog, "r2", "q2", size=200_000))
+    failed = (saver.failure is not None, saver.pending, saver.retry())
+
+    filler.unlink()
+    retried = saver.retry()
+
+    assert ((True, True, False), True) == (failed, retried)
+    assert (None, False) == (saver.failure, saver.pending)
+    assert {"r1": ["q1"], "r2": ["q2"]} == consumers_on_disk(path)
+
+
+def test_changes_made_while_the_disk_is_full_are_written_with_the_next_change_that_fits(
+    disk: Path, store_at: Callable[..., SqliteStore]
+) -> None:
+    path = disk / "p.db"
+    store = store_at(path)
+    saver = Saver(store, rr.RegistrarConfig(name="P", backup_path=path, save_on_modify=True))
+    catalog = Catalog()
+    saver.changed(loaded(catalog, "r1", "q1"))
+    filler = fill(disk)
+    with pytest.raises(rr.CatalogWriteError):
+        saver.changed(loaded(catalog, "r2", "q2", size=200_000))
+    filler.unlink()
+
+    catalog.release("q1")
+    saver.changed(catalog.drain_changes())
+
+    assert (None, {"r1": [], "r2": ["q2"]}) == (saver.failure, consumers_on_disk(path))
+
+
+def test_an_interval_flush_on_a_full_disk_keeps_its_changes_for_the_next_flush(
+    disk: Path, store_at: Callable[..., SqliteStore]
+) -> None:
+    path = disk / "p.db"
+    store = store_at(path)
+    saver = Saver(store, rr.RegistrarConfig(name="P", backup_path=path, save_interval=60.0))
+    catalog = Catalog()
+    saver.changed(loaded(catalog, "r1", "q1", size=200_000))
+    filler = fill(disk)
+    with pytest.raises(rr.CatalogWriteError, match="ENOSPC"):
+        saver.flush()
+    filler.unlink()
+
+    saver.flush()
+
+    assert (None, {"r1": ["q1"]}) == (saver.failure, consumers_on_disk(path))
+
+
+def test_a_deleted_backup_that_a_full_disk_keeps_from_being_written_again_is_kept_for_later(
+    disk: Path, store_at: Callable[..., SqliteStore]
+) -> None:
+    path = disk / "p.db"
+    store = store_at(path)
+    catalog = Catalog()
+    store.write(loaded(catalog, "r1", "q1", size=200_000))
+    delete_all(path)  # (its pages stay allocated while the store has it open)
+    filler = fill(disk)
+    catalog.add_consumer("r1", "q2", "C")
+    changes = catalog.drain_changes()
+    with pytest.raises(rr.CatalogWriteError, match="ENOSPC"):
+        store.write(changes)
+    filler.unlink()
+
+    store.write(changes)
+
+    assert {"r1": ["q1", "q2"]} == consumers_on_disk(path)
+
+
+def test_catalog_write_error_pickles_with_its_attributes() -> None:
+    error = rr.CatalogWriteError("state/p.db", "ENOSPC (No space left on device)", errno.ENOSPC)
+
+    copy = pickle.loads(pickle.dumps(error))
+
+    assert (type(error), error.args, error.path, error.cause, error.errno) == (
+        type(copy),
+        copy.args,
+        copy.path,
+        copy.cause,
+        copy.errno,
+    )

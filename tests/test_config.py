@@ -1,0 +1,180 @@
+"""Configuration as frozen, validated data (`rr_actors.config`): backoff, manager specs, and
+the one walk over a spec tree (`config.walk`) and what is read through it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors.config import NAME_MAX, Backoff, ManagerSpec, managers, tree_names, walk
+
+# -- the walk over a spec tree ---------------------------------------------------------------
+
+
+def noop(_: rr.ResourceRegistrar) -> None:
+    """A setup that registers nothing."""
+
+
+def nested() -> rr.SupervisorSpec:
+    """root: a, inner (b, deep (c)), d."""
+    deep = rr.SupervisorSpec("deep", (rr.ManagerSpec("c", noop, isolation="process"),))
+    inner = rr.SupervisorSpec("inner", (rr.ManagerSpec("b", noop), deep))
+    return rr.SupervisorSpec("root", (rr.ManagerSpec("a", noop), inner, rr.ManagerSpec("d", noop)))
+
+
+def test_walk_yields_every_child_depth_first_with_the_supervisors_above_it() -> None:
+    walked = [(child.name, [s.name for s in path]) for child, path in walk(nested())]
+
+    assert [
+        ("a", ["root"]),
+        ("inner", ["root"]),
+        ("b", ["root", "inner"]),
+        ("deep", ["root", "inner"]),
+        ("c", ["root", "inner", "deep"]),
+        ("d", ["root"]),
+    ] == walked
+
+
+def test_names_managers_and_processes_are_read_through_the_walk() -> None:
+    spec = nested()
+
+    assert ["a", "inner", "b", "deep", "c", "d"] == tree_names(spec)
+    assert ["a", "b", "c", "d"] == [m.name for m in managers(spec)]
+    threads_only = rr.SupervisorSpec("t", (rr.ManagerSpec("a", noop),))
+    assert (True, False) == (spec.has_processes(), threads_only.has_processes())
+
+
+# -- Backoff --------------------------------------------------------------------------------
+
+
+def test_backoff_without_an_initial_delay_restarts_at_once() -> None:
+    assert [0.0, 0.0, 0.0] == [Backoff().delay(n) for n in (1, 2, 5)]
+
+
+def test_backoff_grows_by_its_factor_per_restart_in_the_window() -> None:
+    backoff = Backoff(initial=0.1, factor=2.0, max=10.0, jitter=0.0)
+
+    assert [0.1, 0.2, 0.4, 0.8] == [round(backoff.delay(n), 9) for n in (1, 2, 3, 4)]
+
+
+def test_backoff_never_waits_longer_than_its_max() -> None:
+    backoff = Backoff(initial=1.0, factor=10.0, max=3.0, jitter=0.5)
+
+    assert 3.0 == backoff.delay(50, random=lambda: 0.999999)
+
+
+def test_backoff_jitter_spreads_the_delay_both_ways() -> None:
+    backoff = Backoff(initial=1.0, factor=2.0, max=10.0, jitter=0.2)
+
+    assert (0.8, 1.2) == (
+        backoff.delay(1, random=lambda: 0.0),
+        backoff.delay(1, random=lambda: 1.0),
+    )
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("initial", -1.0), ("factor", 0.5), ("max", -2.0), ("jitter", 1.5), ("jitter", True)],
+)
+def test_invalid_backoff_raises_config_error_naming_the_field(field: str, value: Any) -> None:
+    with pytest.raises(rr.ConfigError, match=f"Backoff.{field}"):
+        Backoff(**{field: value})
+
+
+# -- specs ----------------------------------------------------------------------------------
+
+
+def test_manager_spec_config_must_carry_the_managers_name() -> None:
+    with pytest.raises(rr.ConfigError, match=r"config\.name"):
+        ManagerSpec("erm", config=rr.RegistrarConfig(name="other"))
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("isolation", "fiber"), ("restart", "sometimes"), ("shutdown", 0), ("heartbeat", -1.0)],
+)
+def test_invalid_manager_spec_raises_config_error_naming_the_field(field: str, value: Any) -> None:
+    with pytest.raises(rr.ConfigError, match=field):
+        ManagerSpec("erm", **{field: value})
+
+
+# -- names -------------------------------------------------------------------------------------
+
+LONGEST, TOO_LONG = "n" * 64, "n" * 65
+
+TAKERS = {
+    "RegistrarConfig": rr.RegistrarConfig,
+    "ManagerSpec": rr.ManagerSpec,
+    "SupervisorSpec": lambda name: rr.SupervisorSpec(name, ()),
+}
+
+
+def _camera(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("camera", load=lambda request: request, unload=lambda *_: None)
+
+
+class TestNames:
+    """Names (registrar, system, member): at most 64 characters, checked in one place; none
+    starting with a dot or a dash (they become file names)."""
+
+    @pytest.mark.parametrize("name", [".", "..", "-rf", ".hidden", "-", "--help"])
+    def test_a_name_starting_with_a_dot_or_a_dash_is_refused_naming_the_field(
+        self, name: str
+    ) -> None:
+        with pytest.raises(
+            rr.ConfigError,
+            match=r"^name .* is not a registrar name: .*not starting with '\.' or '-'",
+        ):
+            rr.RegistrarConfig(name)
+
+    @pytest.mark.parametrize("name", ["..", "-rf"])
+    def test_a_supervisor_with_such_a_name_writes_no_file(self, name: str, tmp_path: Path) -> None:
+        with pytest.raises(rr.ConfigError, match="name"):
+            rr.Supervisor([rr.ManagerSpec(name, lambda _r: None)], state_dir=tmp_path)
+        assert [] == list(tmp_path.iterdir())
+
+    @pytest.mark.parametrize("name", ["erm", "a.b", "cam-1", "_private", "0"])
+    def test_a_name_with_dots_and_dashes_inside_is_accepted(self, name: str) -> None:
+        assert name == rr.RegistrarConfig(name).name
+
+    def test_the_bound_is_64_characters(self) -> None:
+        assert 64 == NAME_MAX
+
+    @pytest.mark.parametrize("take", TAKERS.values(), ids=TAKERS.keys())
+    def test_a_name_of_64_characters_is_accepted(self, take) -> None:
+        assert LONGEST == take(LONGEST).name
+
+    @pytest.mark.parametrize(("what", "take"), TAKERS.items(), ids=TAKERS.keys())
+    def test_a_name_of_65_characters_is_a_config_error_naming_the_field_and_the_bound(
+        self, what: str, take
+    ) -> None:
+        kind = {"RegistrarConfig": "registrar", "ManagerSpec": "manager"}.get(what, "supervisor")
+        with pytest.raises(rr.ConfigError) as caught:
+            take(TOO_LONG)
+
+        assert (
+            f"name {TOO_LONG!r} is 65 characters long: a {kind} name has at most 64 (NAME_MAX, "
+            f"the longest common name a certificate holds)"
+        ) == str(caught.value)
+
+    def test_registrar_start_with_a_name_of_65_characters_is_a_config_error_and_starts_nothing(
+        self,
+    ) -> None:
+        with pytest.raises(rr.ConfigError, match=r"^name 'n{65}' is 65 characters long"):
+            rr.ResourceRegistrar.start(TOO_LONG)
+
+    def test_a_supervisor_serves_managers_and_registrars_of_64_character_names(
+        self, tmp_path: Path, process_helpers: object
+    ) -> None:
+        # the process manager's socket, lock and backup are named after it: all fit
+        # (`process_helpers` starts the forkserver before the leak check looks)
+        manager, registrar = "m" * 64, "r" * 64
+        spec = rr.ManagerSpec(manager, _camera, isolation="process")
+        with rr.Supervisor([spec], state_dir=tmp_path) as sup:
+            app = sup.registrar(registrar)
+            assert {"device": 0} == app.call(manager, "camera", {"device": 0}).response
+            with pytest.raises(rr.ConfigError, match=r"^name 'n{65}' is 65 characters long"):
+                sup.registrar(TOO_LONG)
