@@ -157,6 +157,61 @@ def test_different_requests_to_one_server_load_concurrently() -> None:
     assert [] == seeds_where(different_requests, broken)
 
 
+# -- rule 4: a load that raises leaks nothing -------------------------------------------
+
+
+def failing_composite() -> dict[str, Any]:
+    """Two clients ask at once for a composite whose load loads a leaf, then raises."""
+    consumer, agent, producer = start("consumer", "agent", "producer")
+    leaf_unloads: list[Any] = []
+    composite_loads: list[Any] = []
+
+    def composite_load(request: Any) -> Any:
+        composite_loads.append(request)
+        agent.call("producer", "leaf", request)
+        simulation.sleep(0.5)
+        raise ValueError("the filter broke")
+
+    producer.register_server(
+        "leaf", load=lambda r: r, unload=lambda request, _: leaf_unloads.append(request)
+    )
+    agent.register_server("composite", load=composite_load, unload=lambda *_: None)
+    errors: list[tuple[str, ...]] = []
+
+    def client() -> None:
+        try:
+            consumer.call("agent", "composite", "x")
+        except rr.ResourceLoadError as exc:
+            errors.append(tuple(f"{f.registrar}/{f.server} {f.exc_type}" for f in exc.stack))
+
+    in_threads(client, client)
+    return {
+        "errors": errors,
+        "loads": len(composite_loads),
+        "leaf unloads": len(leaf_unloads),
+        "left": (
+            producer.server_queries("leaf"),
+            agent.server_queries("composite"),
+            agent.client_queries(),
+            consumer.client_queries(),
+        ),
+        "clean": stop(consumer, agent, producer),
+    }
+
+
+def test_a_load_that_raises_fails_its_callers_and_unloads_what_it_had_loaded() -> None:
+    def broken(seen: dict[str, Any]) -> bool:
+        return (
+            [("agent/composite ValueError",)] * 2 != seen["errors"]
+            or 1 != seen["loads"]  # (rule 3: both came while it loaded)
+            or 1 != seen["leaf unloads"]  # (rule 4: what it loaded is unloaded)
+            or ([], [], [], []) != seen["left"]
+            or not seen["clean"]
+        )
+
+    assert [] == seeds_where(failing_composite, broken)
+
+
 # -- rules 5 and 7: dependencies, and the order of unloads -------------------------------
 
 
@@ -326,6 +381,7 @@ def test_a_call_that_timed_out_leaves_nothing_behind_and_takes_nothing_from_a_pa
 SCENARIOS = [
     concurrent_equal_calls,
     different_requests,
+    failing_composite,
     composite,
     climbing_status,
     impatient_and_patient,
