@@ -9,7 +9,11 @@ broke the rule (each one replays: `simulation.run(scenario, seed=S)`).
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pykka
@@ -20,6 +24,8 @@ from rr_actors import simulation
 from rr_actors._core import runtime
 
 pytest.importorskip("greenlet")  # (the simulation extra)
+
+ROOT = Path(__file__).resolve().parent.parent.parent
 
 SEEDS = range(300)
 """The seeds each scenario runs with."""
@@ -407,3 +413,29 @@ def test_seeds_choose_different_interleavings_of_one_scenario() -> None:
     }
 
     assert len(hashes) > 10
+
+
+def test_a_seed_gives_the_same_hashes_in_another_process() -> None:
+    """With string hashing fixed (`PYTHONHASHSEED`), as a replay in another process runs."""
+    source = (
+        "from tests.simulation.test_registrar import PREEMPT, SCENARIOS, simulation\n"
+        "for scenario in SCENARIOS:\n"
+        "    for seed in range(3):\n"
+        "        print(simulation.run(scenario, seed=seed, preempt=PREEMPT).hash)\n"
+    )
+    environment = {**os.environ, "PYTHONHASHSEED": "0"}
+    outputs = [
+        subprocess.run(
+            [sys.executable, "-c", source],
+            cwd=ROOT,
+            env=environment,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=True,
+        ).stdout
+        for _ in range(2)
+    ]
+
+    assert 3 * len(SCENARIOS) == len(outputs[0].split())
+    assert outputs[0] == outputs[1]
