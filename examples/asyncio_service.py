@@ -6,11 +6,13 @@ consumer registrar of its own and awaits it from its event loop (no thread per r
     POST   /cameras            {"camera": "front"}  ->  {"id": ..., "response": ...}
     GET    /cameras/{id}/events                     ->  the camera's statuses (SSE)
     DELETE /cameras/{id}                            ->  its consumer id released
+    GET    /streams                                 ->  {"open": event streams open}
 
 Equal requests share one camera (one `load`), each request gets its own id; the last
 `DELETE` unloads it. The camera's `load` and `unload` are coroutine functions, run on
 the manager's event loop; while a camera is open, a task of its own sends a status per
-frame, which the service streams to the client as server-sent events.
+frame, which the service streams to the client as server-sent events; a stream's watch
+is closed when its client leaves.
 
 Run it as a program and it serves on a free port, then plays a client against itself
 with httpx over a real socket and prints what it saw. Serve it for real with
@@ -67,6 +69,7 @@ def cameras_setup(registrar: rr.ResourceRegistrar) -> None:
 
 supervisor = rr.Supervisor([rr.ManagerSpec("cameras", setup=cameras_setup, isolation="process")])
 web: list[rr.ResourceRegistrar] = []  # the service's consumer registrar, once started
+streams: list[rr.StatusWatch] = []  # the watches of its event streams (GET /streams)
 ready = asyncio.Event()  # set once it is (on the loop that serves the app)
 
 
@@ -95,10 +98,20 @@ async def close_camera(request: Request) -> Response:
 
 async def camera_events(request: Request) -> Response:
     async def events() -> AsyncIterator[dict[str, str]]:
-        async for update in web[0].watch(request.path_params["query_id"]):
-            yield {"event": update.status.name, "data": update.message}
+        # `async with` closes the watch when the stream ends, also when the client
+        # leaves (the stream's task is cancelled): a bare `async for` would leave it
+        # open, the query's status callback, queueing frames for nobody.
+        async with web[0].watch(request.path_params["query_id"]) as updates:
+            streams.append(updates)
+            async for update in updates:
+                yield {"event": update.status.name, "data": update.message}
 
     return EventSourceResponse(events())
+
+
+async def open_streams(_request: Request) -> Response:
+    streams[:] = [watch for watch in streams if not watch.closed]
+    return JSONResponse({"open": len(streams)})
 
 
 app = Starlette(
@@ -106,6 +119,7 @@ app = Starlette(
         Route("/cameras", open_camera, methods=["POST"]),
         Route("/cameras/{query_id}", close_camera, methods=["DELETE"]),
         Route("/cameras/{query_id}/events", camera_events),
+        Route("/streams", open_streams),
     ],
     lifespan=lifespan,
 )
@@ -126,11 +140,23 @@ async def play_client(base: str) -> None:
                 if len(heard) == 2:
                     break
         print(f"heard {len(heard)} frames: {all(h.startswith('frame ') for h in heard)}")
+        print(f"event streams open once the client left: {await streams_left(client)}")
         for opened in (first, second):
             status = (await client.delete(f"/cameras/{opened['id']}")).status_code
             print(f"closed {opened['id'][:8]}: {status}")
         missing = await client.delete(f"/cameras/{first['id']}")
         print(f"closing it again: {missing.status_code}")
+
+
+async def streams_left(client: httpx.AsyncClient) -> int:
+    """The event streams the service holds open once it heard the client leave (a
+    moment after the connection closed; asked every 50 ms, for at most 5 s)."""
+    for _ in range(100):
+        left = (await client.get("/streams")).json()["open"]
+        if left == 0:
+            break
+        await asyncio.sleep(0.05)
+    return int(left)
 
 
 async def main() -> int:

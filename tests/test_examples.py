@@ -120,13 +120,16 @@ def test_filtered_camera_say_writes_whole_lines_from_many_threads(
 
 def test_the_asyncio_service_shares_a_camera_streams_its_frames_and_unloads_it() -> None:
     # A real Starlette app on uvicorn, a real socket, httpx as the client: the example
-    # plays the client against itself (POST twice, stream server-sent events, DELETE).
+    # plays the client against itself (POST twice, stream server-sent events and leave
+    # the stream, DELETE). The stream's watch is closed once the client left: a bare
+    # `async for` over `watch()` left it open (1), the query's status callback for good.
     result = run_example("asyncio_service.py")
 
     assert (0, "") == (result.returncode, result.stderr)
     assert [
         "opened rtsp://robot/front twice: ids differ: True",
         "heard 2 frames: True",
+        "event streams open once the client left: 0",
         "closing it again: 404",
         "service stopped: the tree and its registrars with it",
     ] == [line for line in result.stdout.splitlines() if not line.startswith("closed ")]

@@ -426,8 +426,8 @@ class ManagerProcess:
             exitcode = self.process.exitcode
         self._received.drain(self.name, self.conn)  # what it sent before it died, then
         self._received.count_lost(self.name, self.pid)  # what it built but never sent
-        with contextlib.suppress(OSError):
-            self.conn.close()
+        with self._send_lock, contextlib.suppress(OSError):  # (never under a request
+            self.conn.close()  # being written: that would write to no descriptor)
         if self._hung is not None:
             result = ManagerExit(f"hung: {self._hung.reason()} (killed)", normal=False)
         elif self._unhealthy is not None:

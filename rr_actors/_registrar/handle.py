@@ -6,7 +6,7 @@ actor lives, the handle's `_actor` (as pykka's one `ActorRef` puts a message int
 whichever inbox its actor has):
 
 ```
- reg.call(...)        ─► _blocking(      reg._actor.steps(Here.call, ...)) the thread blocks
+ reg.call(...)        ─► blocking(       reg._actor.steps(Here.call, ...)) the thread blocks
  await reg.acall(...) ─► run_steps_async(reg._actor.steps(Here.call, ...)) the loop awaits
                                                   │
    Here: the actor in this process ───────────────┼─► Here.call(here, ...), here: send the
@@ -25,7 +25,9 @@ generator that yields `(future, deadline)` for each wait): `run_steps` drives th
 calling thread, `loops.run_steps_async` on the running loop, so both twins have the same
 arguments, results, errors and timeouts, and no thread waits per awaited call. The names
 of the twins follow the prefix Django gave its async ORM (`aget`, `asave`) and the
-language its own (`anext`, `aclose`): `acall` is `call`, awaited.
+language its own (`anext`, `aclose`): `acall` is `call`, awaited. A protocol built on
+a call (`Supervisor.call_with_retry`, `_supervision/retry.py`) takes the call's steps
+(`call_steps`) among its own, and is driven the same two ways (`blocking`).
 
 `ResourceRegistrar` is the handle on a registrar started in this process (its `start`,
 `subscribe`); `rr_actors.testing.RemoteRegistrar` (`_process/remote.py`) the handle on one
@@ -105,6 +107,8 @@ __all__ = [
     "RegistrarFacts",
     "ResourceRegistrar",
     "StatusWatch",
+    "blocking",
+    "call_steps",
     "snapshot",
     "start_registrar",
 ]
@@ -240,7 +244,23 @@ class Registrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        _blocking(self._actor.steps(Here.settle_in_doubt, timeout, query_id))
+        blocking(self._actor.steps(Here.settle_in_doubt, timeout, query_id))
+
+    async def asettle_in_doubt(
+        self, query_id: str | None = None, *, timeout: float | None = None
+    ) -> None:
+        """`settle_in_doubt`, awaited (rule 16): for a `setup` that cleans up what the
+        in-doubt loads started with coroutines of its own (`asyncio.run` inside it), and
+        settles each entry as its clean-up ends, without holding up the others.
+
+        Raises:
+            UnknownQueryError: `query_id` is not the id of an entry of `in_doubt`.
+            CatalogWriteError: the backup could not be written (see `settle_in_doubt`).
+            CallTimeoutError: no answer within `timeout` seconds.
+            RegistrarStoppedError: this registrar was stopped.
+            RegistrarUnavailableError: this registrar died.
+        """
+        await run_steps_async(self._actor.steps(Here.settle_in_doubt, timeout, query_id))
 
     # -- servers ----------------------------------------------------------------------
 
@@ -286,7 +306,7 @@ class Registrar:
             RegistrarUnavailableError: this registrar died.
         """
         op = Here.register_server
-        _blocking(self._actor.steps(op, timeout, name, load, unload, on_status, label))
+        blocking(self._actor.steps(op, timeout, name, load, unload, on_status, label))
 
     async def aregister_server(
         self,
@@ -327,7 +347,7 @@ class Registrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        _blocking(self._actor.steps(Here.unregister_server, timeout, name))
+        blocking(self._actor.steps(Here.unregister_server, timeout, name))
 
     async def aunregister_server(self, name: str, *, timeout: float | None = None) -> None:
         """`unregister_server`, awaited (rule 12).
@@ -389,9 +409,16 @@ class Registrar:
                 cannot be pickled where it must be: across processes, or into this
                 registrar's backup (its client record); the provider then holds nothing.
         """
-        actor = self._actor
-        return _blocking(
-            actor.steps(Here.call, timeout, target_rr, server, request, on_status, query_id)
+        return blocking(
+            call_steps(
+                self,
+                target_rr,
+                server,
+                request,
+                on_status=on_status,
+                timeout=timeout,
+                query_id=query_id,
+            )
         )
 
     async def acall(
@@ -423,8 +450,14 @@ class Registrar:
             asyncio.CancelledError: the awaiting task was cancelled: the call was
                 withdrawn as a timed-out one is (nothing is left held).
         """
-        steps = self._actor.steps(
-            Here.call, timeout, target_rr, server, request, on_status, query_id
+        steps = call_steps(
+            self,
+            target_rr,
+            server,
+            request,
+            on_status=on_status,
+            timeout=timeout,
+            query_id=query_id,
         )
         return await run_steps_async(steps)
 
@@ -447,7 +480,7 @@ class Registrar:
             RegistrarStoppedError: this registrar was stopped; or the provider was (the
                 id is released as for `RegistrarUnavailableError`, at its next start).
         """
-        _blocking(self._actor.steps(Here.unload, timeout, query_id))
+        blocking(self._actor.steps(Here.unload, timeout, query_id))
 
     async def aunload(self, query_id: str, *, timeout: float | None = None) -> None:
         """`unload`, awaited (rules 7-8).
@@ -486,7 +519,7 @@ class Registrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        _blocking(self._actor.steps(Here.send_status, timeout, query_id, status, message))
+        blocking(self._actor.steps(Here.send_status, timeout, query_id, status, message))
 
     async def asend_status(
         self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
@@ -514,7 +547,7 @@ class Registrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        return _blocking(self._actor.steps(Here.server_queries, timeout, server))
+        return blocking(self._actor.steps(Here.server_queries, timeout, server))
 
     async def aserver_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
         """`server_queries`, awaited (rule 10).
@@ -540,7 +573,7 @@ class Registrar:
             CallTimeoutError: no answer within `timeout` seconds.
             RegistrarUnavailableError: the provider died.
         """
-        return _blocking(self._actor.steps(Here.fetch_queries, timeout, target_rr, server))
+        return blocking(self._actor.steps(Here.fetch_queries, timeout, target_rr, server))
 
     async def afetch_queries(
         self, target_rr: str, server: str, *, timeout: float | None = None
@@ -564,7 +597,7 @@ class Registrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        return _blocking(self._actor.steps(Here.client_queries, timeout))
+        return blocking(self._actor.steps(Here.client_queries, timeout))
 
     async def aclient_queries(self, *, timeout: float | None = None) -> list[Query]:
         """`client_queries`, awaited.
@@ -592,7 +625,7 @@ class Registrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        _blocking(self._actor.steps(Here.set_status_callback, timeout, query_id, callback))
+        blocking(self._actor.steps(Here.set_status_callback, timeout, query_id, callback))
 
     async def aset_status_callback(
         self, query_id: str, callback: StatusCallback, *, timeout: float | None = None
@@ -633,7 +666,7 @@ class Registrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        _blocking(self._actor.steps(Here.update_response, timeout, query_id, response))
+        blocking(self._actor.steps(Here.update_response, timeout, query_id, response))
 
     async def aupdate_response(
         self, query_id: str, response: Any, *, timeout: float | None = None
@@ -658,7 +691,7 @@ class Registrar:
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        _blocking(self._actor.steps(Here.save_catalog, timeout))
+        blocking(self._actor.steps(Here.save_catalog, timeout))
 
     async def asave_catalog(self, *, timeout: float | None = None) -> None:
         """`save_catalog`, awaited.
@@ -692,7 +725,7 @@ class Registrar:
             RegistrarUnavailableError: the registrar died (or its process exited) while it
                 stopped; the reason is in the message.
         """
-        _blocking(self._actor.stop(timeout))
+        blocking(self._actor.stop(timeout))
 
     async def astop(self, *, timeout: float | None = None) -> None:
         """`stop`, awaited (rule 12). Stopping a stopped registrar is a no-op.
@@ -715,11 +748,12 @@ class Registrar:
         (it replaces the one the call was made with, as `aset_status_callback` does).
         Iteration ends after a `FATAL` (the resource is gone for good, rule 19) or once
         the watch is closed (`aclose()`, or leaving its `async with` block; a closed
-        watch drops what comes). An `async for` that breaks leaves it open: use `async
-        with` to close it. It does not end when the query is released: its reader
-        decides when to stop. Updates are queued for it on the loop it was opened on;
-        past `maxsize` the oldest is dropped (and counted in `dropped`), so a reader that
-        falls behind never holds the registrar.
+        watch drops what comes; `closed` says whether it is). An `async for` that
+        breaks, or whose task is cancelled (a stream whose client left), leaves it
+        open: use `async with` to close it. It does not end when the query is
+        released: its reader decides when to stop. Updates are queued for it on the
+        loop it was opened on; past `maxsize` the oldest is dropped (and counted in
+        `dropped`), so a reader that falls behind never holds the registrar.
 
         Args:
             query_id: a query this registrar holds (from `call` or `acall`).
@@ -988,7 +1022,7 @@ class Here:
             RegistrarStoppedError, RegistrarUnavailableError: it was stopped, or it died.
             RrError: the error the actor answered with.
         """
-        return _blocking(self.asking(message, timeout, what))
+        return blocking(self.asking(message, timeout, what))
 
     def asking(self, message: Asked, timeout: float | None, what: str) -> Steps[Any]:
         """`ask`'s steps: send `message`, wait for its answer."""
@@ -1144,6 +1178,13 @@ class StatusWatch:
     def __repr__(self) -> str:
         return f"<StatusWatch {self.query_id!r}{' closed' if self._closed else ''}>"
 
+    @property
+    def closed(self) -> bool:
+        """Whether it was closed (`aclose()`, or its `async with` block was left): it
+        then drops every update that comes. An iteration that ended after a `FATAL`
+        leaves it open until then."""
+        return self._closed
+
     async def _receive(self, _query: Query, update: StatusUpdate) -> None:
         """The query's status callback, on the watch's loop."""
         updates = self._updates
@@ -1265,14 +1306,37 @@ def snapshot(registrar: ResourceRegistrar, *, timeout: float, check: bool) -> Ca
     return dataclasses.replace(view, in_doubt=here.in_doubt_texts)
 
 
+def call_steps(
+    consumer: Registrar,
+    target_rr: str,
+    server: str,
+    request: Any,
+    *,
+    on_status: StatusCallback | None,
+    timeout: float | None,
+    query_id: str | None,
+) -> Steps[Query]:
+    """The steps of `consumer.call(...)`, where its actor is: `call` runs them blocking,
+    `acall` awaits them, and a protocol built on a call drives them among its own
+    (`Supervisor.call_with_retry` and its twin, `_supervision/retry.py`).
+
+    Raises:
+        ConfigError: an argument is invalid (at once; see `Registrar.call`).
+    """
+    actor = consumer._actor
+    return actor.steps(Here.call, timeout, target_rr, server, request, on_status, query_id)
+
+
 def _after(first: Steps[Any], then: Steps[T]) -> Steps[T]:
     """The steps of `first`, then those of `then` (its result)."""
     yield from first
     return (yield from then)
 
 
-def _blocking(steps: Steps[T]) -> T:
-    """Run an operation's `steps` on the calling thread (`replies.run_steps`).
+def blocking(steps: Steps[T]) -> T:
+    """Run an operation's `steps` on the calling thread (`replies.run_steps`): each
+    blocking method of the handle, and `Supervisor.call_with_retry`, which is built on
+    `call_steps`.
 
     Raises:
         ConfigError: the calling thread is the process's own event loop (a coroutine
@@ -1285,7 +1349,7 @@ def _blocking(steps: Steps[T]) -> T:
         raise ConfigError(
             "a blocking registrar method was called on rr_actors' event loop (from a "
             "coroutine load, unload or status callback): await its async twin instead "
-            "(acall, aunload, asend_status, ...)"
+            "(acall, aunload, asend_status, ..., Supervisor.acall_with_retry)"
         )
     return run_steps(steps)
 

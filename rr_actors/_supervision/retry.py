@@ -1,18 +1,21 @@
 """Calls that wait out a provider's restart, and ids abandoned while it was down.
 
 ```
- call_with_retry ── consumer.call ──► provider ── answer ──────────────────────► Query
+ call_with_retry ── the consumer's call ──► provider ── answer ────────────────► Query
         │ RegistrarUnavailableError (it died), or stopped for a restart
         ▼
-   wait_restarted ── back ──► the same call again, with the same query id
-        │ timed out
+   the restart wait (a future the tree settles) ── back ──► the same call again, same id
+        │ timed out, or interrupted (a cancelled task)
         ▼
    abandon_after_restart ── running? ── Abandon(id) to the provider now
                             down?    ── kept in the tree; sent by its next start
 ```
 
-Built on the one handle class, `Registrar`, so the consumer may be any registrar handle
-(in this process, or in a manager process).
+The retry is written once, as steps (`replies.Steps`): the consumer's call
+(`call_steps`) and the restart wait (`tree.RestartWait`) are steps of their own, so
+`Supervisor.call_with_retry` runs it blocking and `acall_with_retry` awaits it, with no
+thread held while it waits. Built on the one handle class, `Registrar`, so the consumer
+may be any registrar handle (in this process, or in a manager process).
 """
 
 from __future__ import annotations
@@ -22,7 +25,9 @@ from typing import Any, Protocol
 
 from rr_actors._core import runtime
 from rr_actors._core.ids import new_id
+from rr_actors._core.replies import Steps
 from rr_actors._registrar import Registrar, give_back
+from rr_actors._registrar.handle import call_steps
 from rr_actors._supervision.children import ChildInfo
 from rr_actors._supervision.tree import Level, Tree, find_child
 from rr_actors._types import Query, StatusCallback
@@ -48,10 +53,8 @@ class Restarts(Protocol):
         """The snapshot of child `name` anywhere in the tree (`UnknownServerError`)."""
         ...
 
-    def wait_restarted(
-        self, name: str, *, timeout: float, restarts: int | None = None
-    ) -> ChildInfo:
-        """Wait until child `name` was restarted (see `Supervisor.wait_restarted`)."""
+    def _restart_wait(self, name: str, timeout: float, restarts: int | None) -> Steps[ChildInfo]:
+        """The steps of a wait for child `name`'s restart (see `Supervisor.wait_restarted`)."""
         ...
 
 
@@ -77,8 +80,8 @@ def call_with_retry(
     on_status: StatusCallback | None = None,
     timeout: float | None = None,
     query_id: str | None = None,
-) -> Query:
-    """`Supervisor.call_with_retry` (which documents it).
+) -> Steps[Query]:
+    """The steps of `Supervisor.call_with_retry` (which documents it) and its twin.
 
     Args:
         tree: the supervisor whose tree holds `target_rr`.
@@ -87,7 +90,61 @@ def call_with_retry(
         consumer, target_rr, server, request, on_status, timeout, query_id: as for
             `Supervisor.call_with_retry`.
     """
-    if not callable(getattr(consumer, "call", None)):
+    _check(consumer, target_rr, server, request, timeout, query_id)
+    limit = timeout if timeout is not None else consumer.config.call_timeout
+    qid = query_id or new_id()
+    deadline = runtime.monotonic() + limit
+    while True:
+        found = _lookup(tree, target_rr)
+        before = found.restarts if found is not None else 0
+        left = deadline - runtime.monotonic()
+        if left <= 0:
+            abandon(target_rr, qid, consumer.name)
+            raise CallTimeoutError(f"call to '{target_rr}/{server}' timed out after {limit:g} s")
+        try:
+            return (
+                yield from call_steps(
+                    consumer,
+                    target_rr,
+                    server,
+                    request,
+                    on_status=on_status,
+                    timeout=left,
+                    query_id=qid,
+                )
+            )
+        except RegistrarUnavailableError:
+            if found is None or found.restart == "temporary":
+                raise
+        except RegistrarStoppedError:
+            now = _lookup(tree, target_rr)  # stopped by its supervisor for a restart?
+            if now is None or now.state not in _WAITING_STATES:
+                raise
+        wait = max(deadline - runtime.monotonic(), 1e-3)
+        try:
+            yield from tree._restart_wait(target_rr, wait, before + 1)
+        except CallTimeoutError:
+            abandon(target_rr, qid, consumer.name)
+            raise CallTimeoutError(
+                f"call to '{target_rr}/{server}' timed out after {limit:g} s while "
+                f"{target_rr!r} was restarting"
+            ) from None
+        except BaseException as exc:
+            if not isinstance(exc, Exception):  # interrupted (a cancelled task, Ctrl-C):
+                abandon(target_rr, qid, consumer.name)  # withdrawn as a timeout withdraws it
+            raise
+
+
+def _check(
+    consumer: object,
+    target_rr: object,
+    server: object,
+    request: object,
+    timeout: float | None,
+    query_id: object,
+) -> None:
+    """`ConfigError` for an argument `call_with_retry` cannot use, before anything is sent."""
+    if not isinstance(consumer, Registrar):
         raise ConfigError(
             "call_with_retry(consumer, target_rr, server, request): the consumer comes "
             f"first, a registrar (sup.registrar(name), a ResourceRegistrar), got {consumer!r}"
@@ -104,37 +161,6 @@ def call_with_retry(
         raise ConfigError(
             f"query_id must be a non-empty str (or None: a fresh id), got {query_id!r}"
         )
-    limit = timeout if timeout is not None else consumer.config.call_timeout
-    qid = query_id or new_id()
-    deadline = runtime.monotonic() + limit
-    while True:
-        found = _lookup(tree, target_rr)
-        before = found.restarts if found is not None else 0
-        left = deadline - runtime.monotonic()
-        if left <= 0:
-            abandon(target_rr, qid, consumer.name)
-            raise CallTimeoutError(f"call to '{target_rr}/{server}' timed out after {limit:g} s")
-        try:
-            return consumer.call(
-                target_rr, server, request, on_status=on_status, timeout=left, query_id=qid
-            )
-        except RegistrarUnavailableError:
-            if found is None or found.restart == "temporary":
-                raise
-        except RegistrarStoppedError:
-            now = _lookup(tree, target_rr)  # stopped by its supervisor for a restart?
-            if now is None or now.state not in _WAITING_STATES:
-                raise
-        try:
-            tree.wait_restarted(
-                target_rr, timeout=max(deadline - runtime.monotonic(), 1e-3), restarts=before + 1
-            )
-        except CallTimeoutError:
-            abandon(target_rr, qid, consumer.name)
-            raise CallTimeoutError(
-                f"call to '{target_rr}/{server}' timed out after {limit:g} s while "
-                f"{target_rr!r} was restarting"
-            ) from None
 
 
 def abandon_after_restart(tree: Tree, root: Level, name: str, query_id: str, origin: str) -> None:

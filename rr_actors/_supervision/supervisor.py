@@ -23,8 +23,9 @@ Who does what (each in its own module of `rr_actors._supervision`):
         ├─ exits.py: a watcher's Exited; restarting.py: restart or not, group, give up
         ├─ policy.py: restart or not, which siblings, intensity (pure)
         ├─ children.py: Child records; ThreadManager / ProcessManager / NestedSupervisor
-        └─ tree.py: what the tree shares; lookups and wait_restarted; death watch
-   retry.py: call_with_retry and abandoned ids
+        └─ tree.py: what the tree shares; lookups and the restart wait; death watch
+   retry.py: call_with_retry's steps (run here, awaited by aio.py) and abandoned ids
+   aio.py: the awaitable twins (AsyncSupervision, this class's base)
 ```
 
 The supervisor is a thread with a mailbox: one event at a time, never polling. A manager
@@ -46,9 +47,11 @@ from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.exit import SUPERVISORS, stop_at_exit
+from rr_actors._core.replies import Steps, run_steps
 from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._platform import fork
 from rr_actors._registrar import Registrar, ResourceRegistrar, Served, start_registrar
+from rr_actors._registrar.handle import blocking
 from rr_actors._supervision import retry
 from rr_actors._supervision.aio import AsyncSupervision
 from rr_actors._supervision.children import (
@@ -61,7 +64,7 @@ from rr_actors._supervision.node import Node
 from rr_actors._supervision.policy import Clock, RestartIntensity
 from rr_actors._supervision.statedir import StateDirLock
 from rr_actors._supervision.stopping import left
-from rr_actors._supervision.tree import RestartWait, Tree, find_child, locate, wait_restarted
+from rr_actors._supervision.tree import RestartWait, Tree, find_child, locate
 from rr_actors._supervision.watching import TreeWatch
 from rr_actors._types import Query, StatusCallback
 from rr_actors.config import (
@@ -115,7 +118,8 @@ class Supervisor(AsyncSupervision):
     escalation), plus exponential backoff with jitter. Use it as a context manager, or call
     [`start`][rr_actors.Supervisor.start] and [`stop`][rr_actors.Supervisor.stop]. From an
     event loop: `async with sup:`, `await sup.astart()`, `await sup.astop()`, `await
-    sup.await_restarted(...)`, `await sup.aregistrar(...)` (the loop never blocks).
+    sup.await_restarted(...)`, `await sup.aregistrar(...)`, `await
+    sup.acall_with_retry(...)` (the loop never blocks).
 
     ```python
     sup = rr.Supervisor([rr.ManagerSpec("erm", setup=erm_setup, isolation="process"),
@@ -410,15 +414,15 @@ class Supervisor(AsyncSupervision):
             UnknownServerError: no child of that name.
             ConfigError: `name` is not a str, or `timeout` not a positive number of seconds.
         """
-        _check_child_name(name)
-        check_seconds("timeout", timeout)
-        return wait_restarted(self._tree, self._node, self.name, name, timeout, restarts)
+        return run_steps(self._restart_wait(name, timeout, restarts))
 
-    def _restart_wait(self, name: str, timeout: float, restarts: int | None) -> RestartWait:
-        """A `wait_restarted` to await (`await_restarted`), its arguments checked."""
+    def _restart_wait(self, name: str, timeout: float, restarts: int | None) -> Steps[ChildInfo]:
+        """The steps of a wait for child `name`'s restart (`tree.RestartWait`), its
+        arguments checked: `wait_restarted` runs them, `await_restarted` and the retry's
+        steps (`retry.py`) await them."""
         _check_child_name(name)
         check_seconds("timeout", timeout)
-        return RestartWait(self._tree, self._node, self.name, name, restarts)
+        return RestartWait(self._tree, self._node, self.name, name, restarts).steps(timeout)
 
     # -- registrars, calls, manager access ----------------------------------------------
 
@@ -530,8 +534,11 @@ class Supervisor(AsyncSupervision):
         catalog recognises a retry of a call it already answered before it died: the
         resource is never loaded twice and no second consumer id is created. If the wait
         for the restart runs out, the id is abandoned at the provider (at once if it runs
-        again by then, else when it comes back), so nothing leaks. A restart of the
-        provider's nested supervisor by its parent (escalation) is waited out too.
+        again by then, else when it comes back), so nothing leaks; so it is when the wait
+        is interrupted (a `KeyboardInterrupt`; for `acall_with_retry`, its task
+        cancelled). A restart of the provider's nested supervisor by its parent
+        (escalation) is waited out too. From an event loop, await its twin,
+        `acall_with_retry`: the same, with no thread held while it waits.
 
         Args:
             consumer: the calling registrar.
@@ -557,8 +564,26 @@ class Supervisor(AsyncSupervision):
                 supervisor stopped the provider to restart it).
             ConfigError: `consumer` is not a registrar (the message shows the order of
                 the arguments), `request` is missing, `timeout` not a positive number of
-                seconds, or as for `ResourceRegistrar.call`; nothing was sent.
+                seconds, or as for `ResourceRegistrar.call`; nothing was sent. Also when
+                called on rr_actors' own event loop (a coroutine `load`, say): await
+                `acall_with_retry` there.
         """
+        return blocking(
+            self._retry(consumer, target_rr, server, request, on_status, timeout, query_id)
+        )
+
+    def _retry(
+        self,
+        consumer: Registrar,
+        target_rr: str,
+        server: str,
+        request: Any,
+        on_status: StatusCallback | None,
+        timeout: float | None,
+        query_id: str | None,
+    ) -> Steps[Query]:
+        """The steps of `call_with_retry` (`retry.py`): run blocking there, awaited by
+        `acall_with_retry`."""
         abandon = functools.partial(retry.abandon_after_restart, self._tree, self._node)
         return retry.call_with_retry(
             self,

@@ -5,12 +5,13 @@
                                          │                      each: children (Child records),
    which_children / child / wait ──► published snapshots        gave_up, giving_up
    (any thread, under tree.cond)         restart counts by name
+   a wait (RestartWait) ◄── watchers: each publish looks, a decided wait's future settles
 ```
 
 Nested supervisors are replaced when their parent restarts them; what must outlive an
 incarnation lives in the `Tree`, keyed by child name (names are unique in a tree). Every
 supervisor of the tree publishes its children's snapshots under the tree's one condition,
-so one waiter (`wait_restarted`) can watch a child anywhere in the tree. A waiter learns
+so one waiter (`RestartWait`) can watch a child anywhere in the tree. A waiter learns
 an outcome only from a settled tree: while a supervisor on the child's path is giving up
 (stopping its children), nothing is concluded.
 """
@@ -26,6 +27,7 @@ from typing import TYPE_CHECKING
 import cloudpickle
 
 from rr_actors._core import runtime
+from rr_actors._core.replies import FutureReply, Steps
 from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._process.spare import SparePool
 from rr_actors._registrar import life
@@ -65,7 +67,6 @@ __all__ = [
     "find_child",
     "locate",
     "lost_everything",
-    "wait_restarted",
 ]
 
 logger = logging.getLogger("rr_actors")
@@ -365,9 +366,9 @@ def death_watch_missed(name: str) -> None:
 
 
 class RestartWait:
-    """One `wait_restarted`: its condition, checked with the tree's lock held at each
-    publish, and its outcome. The blocking wait waits on the tree's condition; the
-    awaited one (`Supervisor.await_restarted`) is woken by the tree's `watchers`."""
+    """One wait for a child's restart (`Supervisor.wait_restarted`, `await_restarted`,
+    `call_with_retry`'s): its condition, checked with the tree's lock held at each
+    publish, and its outcome; `steps` waits for it, on a thread or awaited on a loop."""
 
     def __init__(
         self, tree: Tree, root: Level, root_name: str, name: str, restarts: int | None
@@ -411,6 +412,43 @@ class RestartWait:
             )
         return bool(self.outcome)
 
+    def steps(self, timeout: float) -> Steps[ChildInfo]:
+        """Wait until it is decided, at most `timeout` seconds (`replies.Steps`: blocking
+        with `run_steps`, awaited with `run_steps_async`).
+
+        A watcher of the tree looks at each publish and settles a future once the wait
+        is decided: nothing polls, and an awaited wait holds no thread.
+
+        Raises:
+            CallTimeoutError: not decided within `timeout` seconds.
+            RrError: what it came to (`result`).
+        """
+        tree = self.tree
+        deadline = runtime.monotonic() + timeout
+        decided = FutureReply()
+
+        def look() -> None:  # now, and at each publish of the tree (its lock held)
+            try:
+                if not self.outcome and self.settled():
+                    decided.set_result(None)
+            except Exception as exc:  # noqa: BLE001 - raised to the waiter, not the publisher
+                decided.set_error(exc)
+
+        with tree.cond:
+            look()
+            tree.watchers.add(look)
+        try:
+            if not (yield decided.future, deadline):
+                with tree.cond:
+                    look()  # (decided at the last moment: as `Condition.wait_for` looks)
+                    if not self.outcome:
+                        raise self.timed_out(timeout)
+        finally:
+            with tree.cond:
+                tree.watchers.discard(look)
+        decided.future.get(timeout=0)  # (an error `look` met)
+        return self.result()
+
     def timed_out(self, timeout: float) -> CallTimeoutError:
         """The error of a wait that ran out (the tree's lock held)."""
         found = locate(self.root, self.tree, self.name)
@@ -426,14 +464,3 @@ class RestartWait:
             raise result
         self.tree.wait_cursor[self.name] = result.restarts
         return result
-
-
-def wait_restarted(
-    tree: Tree, root: Level, root_name: str, name: str, timeout: float, restarts: int | None
-) -> ChildInfo:
-    """`Supervisor.wait_restarted` (which documents it): wait on the tree's condition."""
-    waiting = RestartWait(tree, root, root_name, name, restarts)
-    with tree.cond:
-        if not tree.cond.wait_for(waiting.settled, timeout):
-            raise waiting.timed_out(timeout)
-    return waiting.result()

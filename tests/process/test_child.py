@@ -9,6 +9,7 @@ line's, where `setproctitle` is installed.
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import subprocess
@@ -144,6 +145,26 @@ def gated_setup(journal: str, in_setup: Any, gate: Any) -> Callable[[rr.Resource
     return setup
 
 
+def settle_each(registrar: rr.ResourceRegistrar) -> None:
+    """Clean up what each in-doubt load started, then settle it."""
+    for query in registrar.in_doubt:
+        registrar.settle_in_doubt(query.id)
+
+
+def settle_each_awaited(registrar: rr.ResourceRegistrar) -> None:
+    """The same with coroutines: every clean-up at once, on a loop of the setup's own,
+    each entry settled as its clean-up ends (`asettle_in_doubt`)."""
+
+    async def clean_up(query: rr.Query) -> None:
+        await asyncio.sleep(0)  # (what the load started, stopped)
+        await registrar.asettle_in_doubt(query.id)
+
+    async def all_of_them() -> None:
+        await asyncio.gather(*(clean_up(query) for query in registrar.in_doubt))
+
+    asyncio.run(all_of_them())
+
+
 class TestInDoubtUntilSetupReturned:
     """An in-doubt entry is offered until a `setup` that saw it has returned (rule 16).
 
@@ -179,12 +200,16 @@ class TestInDoubtUntilSetupReturned:
 
         assert ["[]", str([DEVICE]), str([DEVICE]), "[]"] == offered(journal)
 
+    @pytest.mark.parametrize(
+        "settle", [settle_each, settle_each_awaited], ids=["blocking", "awaited"]
+    )
     def test_an_entry_the_setup_settled_is_not_offered_again(
         self,
         supervisors: Callable[..., rr.Supervisor],
         uid: str,
         tmp_path: Path,
         process_helpers: SharedObjects,
+        settle: Callable[[rr.ResourceRegistrar], None],
     ) -> None:
         name = f"erm-{uid}"
         journal = tmp_path / "journal.txt"
@@ -192,8 +217,7 @@ class TestInDoubtUntilSetupReturned:
         inner = gated_setup(str(journal), in_setup, gate)
 
         def setup(registrar: rr.ResourceRegistrar) -> None:
-            for query in registrar.in_doubt:  # cleaned up at once, before a slow re-adoption
-                registrar.settle_in_doubt(query.id)
+            settle(registrar)  # cleaned up at once, before a slow re-adoption
             inner(registrar)
 
         spec = process(name, setup)

@@ -579,6 +579,55 @@ def test_a_manager_whose_forking_process_died_before_prctl_exits_at_once(tmp_pat
             os.kill(pid, signal.SIGKILL)
 
 
+class _PickledSlowly:
+    """A request whose pickling (under the send) waits, at most 2 s, until its process
+    was seen to end: the watcher thread would close the pipe meanwhile."""
+
+    def __init__(self, pickling: threading.Event, ended: threading.Event) -> None:
+        self.pickling = pickling
+        self.ended = ended
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        self.pickling.set()
+        self.ended.wait(2.0)  # (runs out when the watcher waits for the send, as it must)
+        return (str, ("",))
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_a_request_sent_while_its_manager_ends_fails_as_a_send_to_a_dead_pipe(uid: str) -> None:
+    # A manager process that ends by itself (its registrar stopped by code in it) while
+    # its owner sends it `Stop`: the watcher thread closed the pipe in the middle of the
+    # write, which then wrote to no descriptor (a TypeError, not the OSError `_send`
+    # turns into False: `RemoteRegistrar.stop` raised it).
+    pickling, ended = threading.Event(), threading.Event()
+    handle = ManagerProcess.start(
+        f"ends-{uid}",
+        cloudpickle.dumps(None),
+        rr.RegistrarConfig(name=f"ends-{uid}"),
+        None,
+        start_timeout=30.0,
+        heartbeat=None,
+        heartbeat_timeout=None,
+        on_exit=lambda _how: ended.set(),
+    )
+    sent: list[object] = []
+
+    def send() -> None:
+        try:
+            sent.append(handle._send(_PickledSlowly(pickling, ended)))  # type: ignore[arg-type]
+        except Exception as exc:
+            sent.append(exc)
+
+    sender = threading.Thread(target=send)
+    sender.start()
+    assert pickling.wait(10)
+    os.kill(handle.pid, signal.SIGKILL)
+    sender.join(10)
+
+    assert ended.wait(10)
+    assert [False] == sent
+
+
 @linux_trick
 @pytest.mark.skipif(not hasattr(os, "pidfd_open"), reason="needs pidfd_open (Linux 5.3+)")
 @pytest.mark.usefixtures("process_helpers")

@@ -30,6 +30,9 @@ also runs against the async API: ids "thread-async" and "process-async" (the thr
 placement and the AF_UNIX one; Zenoh adds nothing the async surface does differently).
 There `make_registrar` returns handles whose blocking methods go through their awaitable
 twins, with coroutine callbacks (`tests.support.awaited`): the same bodies, not copies.
+Each twin is awaited in the registrar's own process, on a loop there: in
+"process-async", a registrar of a manager process awaits its providers in the other
+manager processes, as an application's consumer registrar awaits a supervised manager.
 
 A test that cannot mean the same in every placement is marked
 `@pytest.mark.thread_only("reason")` (thread placement only),

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import itertools
+import os
 import threading
 import uuid
 from collections.abc import Callable
@@ -22,8 +23,9 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors.testing import RemoteRegistrar, catalog_snapshot, intercept
+from rr_actors.testing import RemoteRegistrar, SharedObjects, catalog_snapshot, intercept
 from tests.registrar.conftest import MakeRegistrar, Shared
+from tests.support.awaited import LOOP_THREAD, awaited
 from tests.support.gating import GatedLoad
 
 
@@ -405,6 +407,30 @@ def test_a_blocking_call_inside_a_coroutine_load_fails_it_with_a_config_error(
 
     assert "ConfigError" == raised.value.stack[-1].exc_type
     assert "acall" in raised.value.stack[-1].message
+
+
+def test_process_async_awaits_each_registrar_on_a_loop_of_its_own_process(
+    managers: Callable[..., RemoteRegistrar], process_helpers: SharedObjects, uid: str
+) -> None:
+    # What the rule tests' "process-async" handles drive (tests/support/awaited.py): a
+    # consumer registrar awaited on a loop of its own process, its provider in another
+    # process, as an application awaits its registrar. A coroutine status callback runs
+    # on the loop its call was awaited from: there, that loop's thread (a call awaited
+    # in the test's process and run on a thread of the consumer's ran it on rr-loop).
+    provider = awaited(managers(rr.RegistrarConfig(name=f"provider-{uid}"), None))
+    consumer = awaited(managers(rr.RegistrarConfig(name=f"consumer-{uid}"), None))
+    provider.register_server("leaf", load=lambda r: r, unload=_drop)
+    seen = process_helpers.list()
+
+    async def where(_query: rr.Query, _update: rr.StatusUpdate) -> None:
+        seen.append((os.getpid(), threading.current_thread().name))
+
+    query = consumer.call(provider.name, "leaf", "x", on_status=where)
+    provider.send_status(query.id, rr.Status.UPDATE, "heard where?")
+    consumer.unload(query.id)
+
+    assert [(consumer.pid, LOOP_THREAD)] == seen
+    assert provider.pid not in (None, consumer.pid)
 
 
 class TestBadInput:

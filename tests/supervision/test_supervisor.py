@@ -21,6 +21,7 @@ import rr_actors as rr
 from rr_actors import Supervisor, testing
 from rr_actors._supervision.retry import abandon_after_restart
 from rr_actors.config import Backoff, ManagerSpec, SupervisorSpec
+from tests.supervision.conftest import CallWithRetry
 from tests.support.supervising import (
     FakeClock,
     ManualTimer,
@@ -54,13 +55,13 @@ def handle(sup: Supervisor, name: str) -> rr.ResourceRegistrar:
 def once_waiting(sup: Supervisor, monkeypatch: pytest.MonkeyPatch) -> threading.Event:
     """An event set when something (`call_with_retry`) starts to wait for a restart."""
     waiting = threading.Event()
-    wait_restarted = sup.wait_restarted
+    restart_wait = sup._restart_wait  # (the steps of every wait for a restart)
 
-    def wait_restarted_and_tell(name: str, **kwargs: Any) -> rr.ChildInfo:
+    def restart_wait_and_tell(*args: Any) -> Any:
         waiting.set()
-        return wait_restarted(name, **kwargs)
+        return restart_wait(*args)
 
-    monkeypatch.setattr(sup, "wait_restarted", wait_restarted_and_tell)
+    monkeypatch.setattr(sup, "_restart_wait", restart_wait_and_tell)
     return waiting
 
 
@@ -491,7 +492,10 @@ def test_a_consumer_whose_supervisor_gave_up_has_its_consumer_ids_released(
 
 
 def test_call_with_retry_waits_for_the_restart_and_loads_once(
-    supervisors: Callable[..., Supervisor], uid: str, monkeypatch: pytest.MonkeyPatch
+    supervisors: Callable[..., Supervisor],
+    uid: str,
+    call_with_retry: CallWithRetry,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     loads: list[Any] = []
     name = f"p-{uid}"
@@ -509,7 +513,7 @@ def test_call_with_retry_waits_for_the_restart_and_loads_once(
     result: list[rr.Query] = []
     caller = threading.Thread(
         target=lambda: result.append(
-            sup.call_with_retry(app, name, "res", "camera", timeout=10.0, query_id="q-1")
+            call_with_retry(sup, app, name, "res", "camera", timeout=10.0, query_id="q-1")
         )
     )
     caller.start()
@@ -522,7 +526,9 @@ def test_call_with_retry_waits_for_the_restart_and_loads_once(
 
 
 def test_call_with_retry_gives_up_at_once_when_the_provider_will_not_come_back(
-    supervisors: Callable[..., Supervisor], uid: str
+    supervisors: Callable[..., Supervisor],
+    uid: str,
+    call_with_retry: CallWithRetry,
 ) -> None:
     name = f"p-{uid}"
     sup = supervisors([ManagerSpec(name, restart="temporary")]).start()
@@ -530,11 +536,13 @@ def test_call_with_retry_gives_up_at_once_when_the_provider_will_not_come_back(
     crash(sup, name)
 
     with pytest.raises(rr.RegistrarUnavailableError):
-        sup.call_with_retry(app, name, "res", "camera", timeout=5.0)
+        call_with_retry(sup, app, name, "res", "camera", timeout=5.0)
 
 
 def test_call_with_retry_that_times_out_while_restarting_raises_call_timeout(
-    supervisors: Callable[..., Supervisor], uid: str
+    supervisors: Callable[..., Supervisor],
+    uid: str,
+    call_with_retry: CallWithRetry,
 ) -> None:
     name = f"p-{uid}"
     timer = ManualTimer()
@@ -544,7 +552,7 @@ def test_call_with_retry_that_times_out_while_restarting_raises_call_timeout(
     assert timer.wait_scheduled(1)
 
     with pytest.raises(rr.CallTimeoutError):
-        sup.call_with_retry(app, name, "res", "camera", timeout=0.2)
+        call_with_retry(sup, app, name, "res", "camera", timeout=0.2)
 
 
 def test_an_id_abandoned_while_its_provider_runs_is_released_at_once(
@@ -648,7 +656,10 @@ def test_a_child_of_a_nested_supervisor_being_restarted_is_reported_restarting(
 
 
 def test_call_with_retry_to_a_child_waits_out_its_supervisors_restart_by_the_parent(
-    supervisors: Callable[..., Supervisor], uid: str, monkeypatch: pytest.MonkeyPatch
+    supervisors: Callable[..., Supervisor],
+    uid: str,
+    call_with_retry: CallWithRetry,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     x = f"x-{uid}"
     timer = ManualTimer()
@@ -663,7 +674,7 @@ def test_call_with_retry_to_a_child_waits_out_its_supervisors_restart_by_the_par
 
     def call() -> None:
         try:
-            result.append(sup.call_with_retry(app, x, "res", "camera", timeout=10.0).response)
+            result.append(call_with_retry(sup, app, x, "res", "camera", timeout=10.0).response)
         except Exception as exc:
             result.append(exc)
 
@@ -783,15 +794,19 @@ class TestBadArguments:
         ],
     )
     def test_call_with_retry_with_an_argument_it_cannot_use_is_a_config_error_naming_it(
-        self, sup: rr.Supervisor, arguments: dict[str, Any], named: str
+        self,
+        sup: rr.Supervisor,
+        call_with_retry: CallWithRetry,
+        arguments: dict[str, Any],
+        named: str,
     ) -> None:
         app = sup.registrar(f"app-{uuid.uuid4().hex[:8]}")
         call: dict[str, Any] = {"consumer": app, "target_rr": _erm(sup), "server": "echo"}
         call.update(arguments)
 
         with pytest.raises(rr.ConfigError, match=named):
-            sup.call_with_retry(
-                call.pop("consumer"), call.pop("target_rr"), call.pop("server"), "x", **call
+            call_with_retry(
+                sup, call.pop("consumer"), call.pop("target_rr"), call.pop("server"), "x", **call
             )
 
         assert [] == sup.run_in(_erm(sup), lambda erm: erm.server_queries("echo"), timeout=10)
@@ -874,19 +889,22 @@ class TestBadArguments:
     def test_call_with_retry_with_a_name_first_says_the_consumer_comes_first(
         self,
         sup: rr.Supervisor,
+        call_with_retry: CallWithRetry,
     ) -> None:
         with pytest.raises(
             rr.ConfigError,
             match=r"call_with_retry\(consumer, target_rr, server, request\): the consumer comes "
             "first",
         ):
-            sup.call_with_retry(_erm(sup), "echo", 0)  # type: ignore[arg-type]
+            call_with_retry(sup, _erm(sup), "echo", 0)
 
-    def test_call_with_retry_without_a_request_says_it_is_missing(self, sup: rr.Supervisor) -> None:
+    def test_call_with_retry_without_a_request_says_it_is_missing(
+        self, sup: rr.Supervisor, call_with_retry: CallWithRetry
+    ) -> None:
         app = sup.registrar(f"app-{uuid.uuid4().hex[:8]}")
 
         with pytest.raises(rr.ConfigError, match="request is missing"):
-            sup.call_with_retry(app, _erm(sup), "echo")
+            call_with_retry(sup, app, _erm(sup), "echo")
 
     def test_a_second_with_on_a_stopped_supervisor_says_make_a_new_one(self) -> None:
         sup = rr.Supervisor([rr.ManagerSpec(f"erm-{uuid.uuid4().hex[:8]}", echo_setup)])
