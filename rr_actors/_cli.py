@@ -26,6 +26,7 @@ import dataclasses
 import importlib.metadata
 import json
 import math
+import reprlib
 import sys
 import textwrap
 from collections.abc import Callable, Sequence
@@ -33,8 +34,11 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import rr_actors
+from rr_actors import events
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
+from rr_actors._core import hlc
 from rr_actors._extras import needs
+from rr_actors._log import terminal_width, wrap
 from rr_actors._store import Backup, Unreadable, read_backup
 from rr_actors.errors import CatalogCorruptError, ConfigError, MissingExtraError
 from rr_actors.observe import _commands as observe_commands
@@ -367,20 +371,22 @@ def _events(args: argparse.Namespace, out: TextIO) -> int:
     """Print the system's events (`--network`) or merge files (`--merge`), one JSON line each."""
     import threading  # noqa: PLC0415
 
-    from rr_actors import events  # noqa: PLC0415
     from rr_actors._transport.zenoh.options import network_from  # noqa: PLC0415
     from rr_actors.events.lines import json_lines  # noqa: PLC0415
 
     if args.merge:
-        read: list[events.Event] = []
+        merged: list[tuple[int, str]] = []  # (stamp, line), in the files' order
         for name in args.merge:
+            stamp = 0
             for number, data in json_lines(name):
                 try:
-                    read.append(events.from_dict(data))
+                    stamp, line = _merged_line(data, stamp)
                 except ConfigError as exc:
                     raise ConfigError(f"{name} line {number}: {exc}") from None
-        for event in events.order(read)[: args.count]:
-            out.write(json.dumps(events.to_dict(event)) + "\n")
+                merged.append((stamp, line))
+        merged.sort(key=lambda stamped: stamped[0])  # (stable: as events.order)
+        for _, line in merged[: args.count]:
+            out.write(line + "\n")
         return 0
     with needs("zenoh", "--network"):
         network = network_from(args)
@@ -404,6 +410,47 @@ def _events(args: argparse.Namespace, out: TextIO) -> int:
     ):
         done.wait(args.seconds)
     return 0
+
+
+RUN_KEYS = ("run", "seed")
+"""What an experiment adds to each event's line of its `events.jsonl`: the run's number
+and seed (`rr_actors.experiments.runner`)."""
+
+FAULT_LINES = ("FaultInjected", "FaultSkipped")
+"""The `type` of an experiment's lines for its faults (`experiments.runner.fault_line`):
+not events (no `schema`, no `hlc`); merged at their `at`, the wall clock."""
+
+
+def _merged_line(data: Any, previous: int) -> tuple[int, str]:
+    """One line of an events file as `--merge` prints it, and its stamp.
+
+    An event is printed as `events.to_dict` writes it, with the `run` and `seed` an
+    experiment gave it; an experiment's fault line as it is, stamped at its `at` (at the
+    line before it in its file, `previous`, if it has none: a fault never injected).
+
+    Raises:
+        ConfigError: not an event, an event with a field of neither (or one of a wrong
+            type), or a fault line whose `at` is not a number.
+    """
+    if isinstance(data, dict) and "schema" not in data and data.get("type") in FAULT_LINES:
+        at = data.get("at")
+        if at is None:
+            return previous, json.dumps(data)
+        if type(at) not in (int, float) or not math.isfinite(at):
+            raise ConfigError(f"{data['type']}.at must be a number, got {reprlib.repr(at)}")
+        return hlc.from_seconds(at), json.dumps(data)
+    run: dict[str, int] = {}
+    if isinstance(data, dict) and "schema" in data:
+        data = dict(data)
+        for key in RUN_KEYS:
+            if key in data:
+                value = data.pop(key)
+                if type(value) is not int or (key == "run" and value < 0):
+                    least = " >= 0" if key == "run" else ""
+                    raise ConfigError(f"{key} must be an int{least}, got {reprlib.repr(value)}")
+                run[key] = value
+    event = events.from_dict(data)
+    return event.hlc, json.dumps({**events.to_dict(event), **run})
 
 
 # -- certs -----------------------------------------------------------------------------------
@@ -581,9 +628,16 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
         print(f"{subject}{exc}", file=sys.stderr)  # noqa: T201 - CLI output
         return 2
     except (CatalogCorruptError, ConfigError) as exc:
-        print(f"rr-actors {args.command}: {exc}", file=sys.stderr)  # noqa: T201 - CLI output
+        _error(f"rr-actors {args.command}: {exc}")
         return 1
     return code
+
+
+def _error(line: str) -> None:
+    """`line` on standard error: one line, wrapped at words on a terminal it does not fit
+    (a file's name, its line and what is wrong with it can take more than 80 columns)."""
+    width = terminal_width(sys.stderr)
+    print(line if width is None else wrap(line, width), file=sys.stderr)  # noqa: T201 - CLI output
 
 
 if __name__ == "__main__":

@@ -50,6 +50,9 @@ SMALLEST = {
     "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
     "bench_outbox.py": ["--rounds", "1", "--loads", "5"],
     "experiment_phases.py": ["first", "--repeat", "1", "--duration", "1.2"],
+    "bench_setup.py": [  # (the tests of one file, in this interpreter: no venv, no install)
+        *("--only", "tests", "--python", sys.executable, "--select", "tests/test_docs_index.py"),
+    ],
     "bench_scale.py": [
         *("--sections", "start", "serve", "status", "--counts", "2", "--rounds", "1"),
         *("--sizes", "10", "20", "--kills", "1", "--listen", "--consumers", "1", "3"),

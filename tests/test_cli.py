@@ -25,6 +25,7 @@ import rr_actors as rr
 from rr_actors import events
 from rr_actors.__main__ import main
 from rr_actors._catalog import Catalog, request_digest
+from rr_actors._core import hlc
 from rr_actors._store import codec, files, schema
 from rr_actors._store.files import read_backup
 from rr_actors._store.schema import SCHEMA_VERSION
@@ -500,6 +501,71 @@ def _free_port() -> int:
         return port
 
 
+# -- an experiment's events.jsonl, and what --merge refuses (issue 44) ------------------------
+
+PLAN = """\
+name = "merged"
+duration = 1.0
+repeat = 2
+seed = 7
+
+[tree]
+strategy = "one_for_one"
+
+[[tree.children]]
+name = "db"
+setup = "rr_actors.experiments.services:service"
+
+[workload]
+clients = 1
+rate = 10.0
+hold = 0.2
+
+[[workload.calls]]
+manager = "db"
+server = "resource"
+
+[[faults]]
+kind = "kill_manager"
+target = "db"
+at = [0.5]
+"""
+
+
+def _rr_actors(*argv: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(  # noqa: PLW1510 - the exit code is what is checked
+        [sys.executable, "-m", "rr_actors", *argv],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+REFUSED = {
+    # name: (the line, what the refusal says)
+    "a field of neither": (
+        json.dumps(
+            {**events.to_dict(events.ResourceLoaded("erm", "cam", "r1", "q1", 0.1)), "x": 1}
+        ),
+        "out/events.jsonl line 1: ResourceLoaded: unknown fields ['x']",
+    ),
+    "an event without some of its fields": (
+        json.dumps({"type": "ResourceLoaded", "query_id": "q1", "load_s": 0.1, "schema": 3}),
+        "out/events.jsonl line 1: ResourceLoaded: missing fields ['registrar', 'server', "
+        "'resource_id', 'digest', 'label', 'at', 'pid', 'seq', 'host', 'hlc']",
+    ),
+    "not JSON": (
+        '{"type": ResourceLoaded}',
+        "out/events.jsonl line 1: not JSON (column 10: Expecting value)",
+    ),
+    "a run that is no number": (
+        json.dumps({**events.to_dict(events.ChildStarted("root", "db", 4)), "run": "one"}),
+        "out/events.jsonl line 1: run must be an int >= 0, got 'one'",
+    ),
+}
+
+
 class TestEvents:
     """`rr-actors events`: every host's events as JSON lines (`--network`), or files merged
     (`--merge`).
@@ -593,6 +659,57 @@ class TestEvents:
         assert {"erm"} == {line["registrar"] for line in printed}
         assert [line["hlc"] for line in printed] == sorted(line["hlc"] for line in printed)
         assert all(line["schema"] == events.lines.SCHEMA for line in printed)
+
+    @pytest.mark.timeout(180)
+    def test_merge_reads_an_experiments_events_file_with_its_runs_and_faults(
+        self, tmp_path: Path
+    ) -> None:
+        """An experiment adds `run` and `seed` to each event and writes a line per fault: the
+        file merges as it is (it was refused: `unknown fields ['run', 'seed']`, exit 1;
+        issue 44). Every line comes out once, unchanged, the events in `hlc` order and each
+        fault at its `at`, among the events of its run."""
+        (tmp_path / "plan.toml").write_text(PLAN)
+        ran = _rr_actors("experiment", "plan.toml", "--out", "out", cwd=tmp_path)
+        assert 0 == ran.returncode, ran.stderr
+        written = (tmp_path / "out" / "events.jsonl").read_text().splitlines()
+        station = events.ConsumerAdded("erm", "r1", "q1", "app", at=1.0, pid=9, host="station")
+        (tmp_path / "station.jsonl").write_text(json.dumps(events.to_dict(station)) + "\n")
+
+        merged = _rr_actors("events", "--merge", "out/events.jsonl", "station.jsonl", cwd=tmp_path)
+
+        assert (0, "") == (merged.returncode, merged.stderr)
+        lines = merged.stdout.splitlines()
+        assert sorted([*written, json.dumps(events.to_dict(station))]) == sorted(lines)
+        printed = [json.loads(line) for line in lines]
+        faults = [line for line in printed if line["type"] == "FaultInjected"]
+        assert [(1, 7), (2, 8)] == [(fault["run"], fault["seed"]) for fault in faults]
+        stamps = [hlc.from_seconds(p["at"]) if "hlc" not in p else p["hlc"] for p in printed]
+        assert stamps == sorted(stamps)
+        assert {(1, 7), (2, 8)} == {(p["run"], p["seed"]) for p in printed if "run" in p}
+        assert 1 == sum("run" not in p for p in printed)  # the station's event
+
+    @pytest.mark.parametrize("refused", sorted(REFUSED))
+    def test_what_merge_refuses_is_one_line_in_a_pipe_and_fits_80_columns_on_a_terminal(
+        self, tmp_path: Path, refused: str
+    ) -> None:
+        """One line naming the file, the line and the problem (exit 1); on an 80-column
+        terminal that line wraps at words (`out/events.jsonl line 1: ...` and the problem
+        take more than 80 columns with the prefix `rr-actors events: `)."""
+        line, says = REFUSED[refused]
+        (tmp_path / "out").mkdir()
+        (tmp_path / "out" / "events.jsonl").write_text(line + "\n")
+        argv = ["events", "--merge", "out/events.jsonl"]
+
+        piped = _rr_actors(*argv, cwd=tmp_path)
+        code, shown = on_a_terminal(
+            [sys.executable, "-m", "rr_actors", *argv], columns=80, timeout=60, cwd=tmp_path
+        )
+
+        assert (1, 1) == (piped.returncode, code)
+        assert [f"rr-actors events: {says}"] == piped.stderr.splitlines()
+        wide = [f"[{len(row)}] {row}" for row in shown.splitlines() if len(row) > 80]
+        assert [] == wide, "lines over 80 columns:\n" + "\n".join(wide)
+        assert " ".join(f"rr-actors events: {says}".split()) == " ".join(shown.split())
 
 
 EVENT = events.to_dict(events.ResourceLoaded("erm", "cam", "r1", "q1", 0.1, at=1.0, pid=2))

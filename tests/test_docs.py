@@ -42,12 +42,17 @@ fence (blank lines and other HTML comments may come between), with the reason:
     <!-- docs-test: skip: start() and stop() stand for your own code -->
 
 A marker without a reason, or one that is not followed by a block, fails the test.
+
+A page that shows an example (`--8<-- "examples/x.py"`) also links to its file by its
+path in the repository; one test builds the site (`mkdocs build --strict`) and follows
+those links to the examples' copies in it (`docs/hooks/examples.py`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
 import json
 import os
 import re
@@ -647,6 +652,25 @@ class TestTheIndex:
         assert "**The plan:" in page
         assert "May 2027" in page
 
+    def test_each_time_of_the_second_command_says_when_and_at_which_commit_it_was_measured(
+        self,
+    ) -> None:
+        """The index's table of the README's second command: a time says the day and the
+        commit it was measured at, or that it was not measured; `benchmarks/bench_setup.py`
+        measures a row (issue 44 items 6 and 8: "(to measure)", and times of a suite a
+        third smaller than today's given as today's)."""
+        index = (ROOT / "docs" / "index.md").read_text().splitlines()
+        header = index.index(
+            "| the second command's step | quiet | two CPU-bound processes beside it |"
+        )
+        rows = list(itertools.takewhile(lambda line: line.startswith("|"), index[header + 2 :]))
+        cells = [cell.strip() for row in rows for cell in row.strip("|").split("|")[1:]]
+        measured = re.compile(r".*\(\d{4}-\d\d-\d\d, `[0-9a-f]{7,40}`(, [^)]*)?\)")
+
+        assert 2 == len(rows)
+        assert [] == [c for c in cells if c != "not measured yet" and not measured.fullmatch(c)]
+        assert "python benchmarks/bench_setup.py --busy 2" in "\n".join(index)
+
 
 PAGE = Path(__file__).resolve().parent.parent / "docs" / "reference" / "errors.md"
 ERRORS = sorted(
@@ -688,3 +712,75 @@ class TestTheErrorsPage:
 
         assert tree is not None
         assert set(ERRORS) <= set(re.findall(r"\b(\w+Error)\b", tree[1]))
+
+
+# -- the examples a page shows, as files of the built site -------------------------------------
+
+LINK = re.compile(r"\]\((?P<target>[^)\s#]+)(?:#[^)\s]*)?\)")
+HREF = re.compile(r'href="(?P<target>[^"#]+)"')
+
+
+def included_examples(page: Path) -> list[str]:
+    """The examples a page shows through a snippet include (their paths in the repository)."""
+    return [
+        include.group("path")
+        for block in blocks(page)
+        if (include := SNIPPET.match(block.code.strip())) is not None
+        and include.group("path").startswith("examples/")
+    ]
+
+
+SHOWING = [page for page in PAGES[1:] if included_examples(page)]  # (docs/ only: no README)
+
+
+def test_every_example_a_page_shows_is_linked_by_its_path_in_the_repository() -> None:
+    """A page that shows an example (`--8<-- "examples/x.py"`, rendered only in the built
+    site) links to its file, relative to the page in the repository, where a reader of
+    the page on GitHub or in a checkout finds it (issue 44 item 7)."""
+    unlinked = [
+        f"{rel(page)}: {example}"
+        for page in SHOWING
+        for example in included_examples(page)
+        if (ROOT / example).resolve()
+        not in {
+            (page.parent / m.group("target")).resolve() for m in LINK.finditer(page.read_text())
+        }
+    ]
+
+    assert len(SHOWING) >= 4  # (the walk found the pages)
+    assert [] == unlinked
+
+
+@pytest.mark.timeout(300)
+def test_the_built_site_holds_each_example_a_page_links_and_the_link_resolves(
+    tmp_path: Path,
+) -> None:
+    """`mkdocs build --strict`, as CI runs it: each page's link to an example leads, from
+    the page's own URL, to the example's file in the site, byte for byte the repository's
+    (`docs/hooks/examples.py` copies them and turns the links; issue 44 item 7)."""
+    site = tmp_path / "site"
+    built = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(site)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        check=False,
+        env={**os.environ, "NO_MKDOCS_2_WARNING": "1"},
+    )
+    assert 0 == built.returncode, built.stderr[-3000:]
+
+    followed: dict[str, set[str]] = {}
+    for page in SHOWING:
+        source = page.relative_to(ROOT / "docs").with_suffix("")
+        html = site / ("index.html" if source.name == "index" else source / "index.html")
+        folder = html.parent
+        followed[rel(page)] = {
+            (folder / href.group("target")).resolve().relative_to(site.resolve()).as_posix()
+            for href in HREF.finditer(html.read_text())
+            if (folder / href.group("target")).resolve().is_relative_to(site.resolve() / "examples")
+        }
+        for example in included_examples(page):
+            assert example in followed[rel(page)], f"{rel(page)}: no link to {example}"
+            assert (ROOT / example).read_bytes() == (site / example).read_bytes()
+    assert "examples/filtered_camera.py" in followed["docs/tutorial/first-registrars.md"]

@@ -9,10 +9,18 @@ their tracebacks), nothing else tells anybody.
 
 from __future__ import annotations
 
+import itertools
+import re
 import subprocess
 import sys
 import textwrap
 from pathlib import Path
+
+import pytest
+
+from tests.support.starving import starved
+from tests.support.supervising import linux_trick
+from tests.support.terminal import Terminal
 
 MISTAKES = textwrap.dedent(
     """
@@ -128,3 +136,59 @@ def test_basic_config_after_the_import_takes_the_lines_off_stderr(tmp_path: Path
 
     assert (0, "") == (result.returncode, result.stderr)
     assert "ERROR:rr_actors:unload callback of 'provider/res' raised" in log.read_text()
+
+
+STARVED = textwrap.dedent(
+    """
+    import sys
+    import rr_actors as rr
+
+    def setup(erm):
+        erm.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
+
+    spec = rr.ManagerSpec(
+        "erm", setup, isolation="process", heartbeat=0.1, heartbeat_timeout=0.5
+    )
+    with rr.Supervisor([spec]) as sup:
+        print("pid", sup.child("erm").pid, flush=True)
+        sys.stdin.readline()  # the test starves the manager meanwhile
+    """
+)
+
+STARVED_WARNING = re.compile(
+    r"WARNING rr_actors: manager erm has not answered its heartbeat for [0-9.]+ s, but it "
+    r"could run for only [0-9.]+ s of that \(it waited for a CPU the rest: the machine is "
+    r"overloaded\): not hung; it is killed if that reaches 0\.5 s, or the silence 5 s"
+)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+@linux_trick
+@pytest.mark.timeout(120)
+def test_on_an_80_column_terminal_a_starved_managers_warning_wraps_at_words() -> None:
+    """The heartbeat's WARNING for a manager that waits for a CPU (250 columns on one line)
+    wraps at words on a user's terminal: every line within 80 columns, no word cut, the
+    message whole (issue 44 item 2). The manager is starved for real (`starved`)."""
+    terminal = Terminal([sys.executable, "-c", STARVED], columns=80)
+    try:
+        assert terminal.wait_for(lambda text: "pid " in text and "\n" in text, 60), terminal.text
+        pid = int(re.findall(r"^pid (\d+)", terminal.text, re.MULTILINE)[0])
+        with starved(pid):  # its silence passes the bound (0.5 s) while it waits for a CPU
+            heard = terminal.wait_for(lambda text: "its heartbeat" in _one_line(text), 30)
+        terminal.send("")
+        code, text = terminal.finish(60)
+    finally:
+        terminal.close()
+
+    lines = text.splitlines()
+    wide = [f"[{len(line)}] {line}" for line in lines if len(line) > 80]
+    assert (True, 0) == (heard, code), text
+    assert [] == wide, "lines over 80 columns:\n" + "\n".join(wide)
+    start = next(i for i, line in enumerate(lines) if line.startswith("WARNING rr_actors: "))
+    record = [lines[start]]
+    record += itertools.takewhile(lambda line: line.startswith("    "), lines[start + 1 :])
+    assert len(record) > 1  # (wrapped: one line is 250 columns)
+    assert STARVED_WARNING.fullmatch(_one_line(" ".join(record))), record

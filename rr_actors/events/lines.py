@@ -228,8 +228,8 @@ def parse_json(text: str | bytes, where: str) -> Any:
         return json.loads(text.decode("utf-8") if isinstance(text, bytes) else text)
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{where}: not UTF-8 text ({exc.reason})") from None
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{where}: not JSON ({exc})") from None
+    except json.JSONDecodeError as exc:  # (its line and column are the file's line's)
+        raise ConfigError(f"{where}: not JSON (column {exc.colno}: {exc.msg})") from None
     except RecursionError:
         raise ConfigError(f"{where}: not JSON that can be read (nested too deeply)") from None
     except ValueError:  # (an integer of more digits than Python converts: CVE-2020-10735)

@@ -5,7 +5,9 @@ Two renderers with one interface (`MissionOutput`), chosen once by `make_output`
 - `RichOutput` on a terminal, when `rich` is installed (`pip install 'rr-actors[demo]'`):
   the story scrolls above a live progress line that `rich` redraws in place (never wider
   than the terminal, so nothing wraps or stays behind), then the timeline as a table
-  that fits the terminal's width;
+  that fits the terminal's width. What any process of the demo writes to standard error
+  meanwhile (the same terminal) goes above the live line too, wrapped at words
+  (`stderr.StderrLines`), not on from its end;
 - `PlainOutput` everywhere else (a pipe, a file, no `rich`): plain lines wrapped at
   words to 80 columns (a story line under its text), no progress line, and a timeline
   that fits 80 columns.
@@ -29,6 +31,7 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
 from rr_actors.mission.report import MissionReport, TimelineRow, timeline_rows
+from rr_actors.mission.stderr import StderrLines
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -315,10 +318,12 @@ class RichOutput:
         self._live: Live | None = None
         self._held = False
         self._interrupted = False
+        self._stderr: StderrLines | None = None
 
     def __enter__(self) -> RichOutput:
         from rich.live import Live  # noqa: PLC0415 - rich is optional
 
+        self._stderr = StderrLines.open(self.console.file, self._written)
         if not self.quiet:
             # transient: the progress line is gone when the mission ends; the story stays.
             self._live = Live(
@@ -333,6 +338,9 @@ class RichOutput:
 
     def __exit__(self, *_: object) -> None:
         self._stop_live()
+        if self._stderr is not None:
+            self._stderr.close()
+            self._stderr = None
 
     def _stop_live(self) -> None:
         if self._live is not None:
@@ -341,6 +349,17 @@ class RichOutput:
 
     def _print(self, renderable: Any) -> None:
         self.console.print(renderable, markup=False, highlight=False, emoji=False)
+
+    def _written(self, line: str) -> None:
+        """A line written to standard error (any process of the demo): above the live
+        line, wrapped at words to the terminal's width (a word longer stays whole)."""
+        self.console.print(
+            wrap_line(line, self.console.width),
+            markup=False,
+            highlight=False,
+            emoji=False,
+            soft_wrap=True,  # (wrapped already: rich neither wraps nor crops it again)
+        )
 
     def story(self, line: str) -> None:
         """Print one line of the story above the progress line (unless quiet).

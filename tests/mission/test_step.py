@@ -160,7 +160,8 @@ def test_step_in_a_real_80_column_terminal_waits_for_each_enter(tmp_path: Path) 
     assert 0 == code, text[-3000:]
     assert 5 == enters
     assert "━" in text  # rich's progress bar: rich drew it, not plain lines
-    assert max(len(line) for line in text.splitlines()) <= 80
+    wide = [f"[{len(line)}] {line}" for line in text.splitlines() if len(line) > 80]
+    assert [] == wide, "lines over 80 columns:\n" + "\n".join(wide)  # (which, if any)
     assert 5 * PAUSE <= report["paused_for_enter_s"]
     assert report["mission_time_s"] < report["nominal_time_s"] + PAUSE
 
