@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import shutil
 import subprocess
 from pathlib import Path
@@ -70,6 +71,81 @@ def test_no_file_holds_a_merge_conflict_left_in_it() -> None:
     assert [] == left
 
 
+SEAMED = ("_core", "_catalog", "_store", "_supervision", "_registrar")
+"""The packages whose threads, locks, events, queues, clocks, ids and randomness go through
+`rr_actors._core.runtime`, which a simulation replaces (issue 42, `rr_actors.simulation`)."""
+
+STDLIB_SEAMS = {"threading", "time", "uuid", "random", "queue"}
+"""Modules whose every use in `SEAMED` goes through the runtime (and `os.urandom`,
+`datetime.datetime.now`)."""
+
+STRAGGLERS_ALLOWED = {
+    # the seam itself: the stdlib's own objects, until a simulation replaces them
+    "_core/runtime.py": None,
+    # `LateQueue` (an actor's inbox) is a `queue.SimpleQueue`, with its C methods in a
+    # real run; in a simulation the runtime makes the subclass (`runtime.queue_class`)
+    "_core/queues.py": {"queue.SimpleQueue"},
+}
+"""Files (under rr_actors/) allowed some direct uses (`None`: any), each for its reason."""
+
+
+def _direct_uses(path: Path) -> list[str]:
+    """`line: module.name` for each use of a module of `STDLIB_SEAMS` (or `os.urandom`,
+    `datetime...now`) in `path`, and each name taken by value from the runtime."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    modules: dict[str, str] = {}  # local name -> module
+    uses = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            modules.update(
+                (a.asname or a.name, a.name) for a in node.names if a.name in STDLIB_SEAMS
+            )
+        elif isinstance(node, ast.ImportFrom) and node.module in STDLIB_SEAMS:
+            uses += [f"{node.lineno}: {node.module}.{a.name}" for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module == "rr_actors._core.runtime":
+            uses += [f"{node.lineno}: from runtime import {a.name}" for a in node.names]
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Attribute) or not isinstance(node.value, ast.Name):
+            continue
+        name = node.value.id
+        if name in modules:
+            uses.append(f"{node.lineno}: {modules[name]}.{node.attr}")
+        elif (name, node.attr) == ("os", "urandom"):
+            uses.append(f"{node.lineno}: os.urandom")
+        elif (name, node.attr) == ("datetime", "datetime"):
+            parent = next(
+                (p for p in ast.walk(tree) if isinstance(p, ast.Attribute) and p.value is node),
+                None,
+            )
+            if parent is not None and parent.attr in {"now", "utcnow", "today"}:
+                uses.append(f"{node.lineno}: datetime.datetime.{parent.attr}")
+    return uses
+
+
+def test_the_protocol_uses_threads_clocks_ids_and_randomness_only_through_the_runtime() -> None:
+    """A direct use would stay real in a simulation: a real clock's deadline, a real lock
+    that blocks the simulation's only thread, an id no seed replays (issue 42)."""
+    package = ROOT / "rr_actors"
+    files = [
+        path
+        for seamed in SEAMED
+        for path in sorted((package / seamed).rglob("*.py"))
+        if (package / seamed).is_dir()
+    ]
+    assert len(files) > 40  # the walk found the packages
+    stragglers = []
+    for path in files:
+        name = path.relative_to(package).as_posix()
+        allowed = STRAGGLERS_ALLOWED.get(name, set())
+        if allowed is None:
+            continue
+        stragglers += [
+            f"{name}:{use}" for use in _direct_uses(path) if use.split(": ")[1] not in allowed
+        ]
+
+    assert [] == stragglers
+
+
 MIRRORED = {
     "": ("",),
     "catalog": ("_catalog",),
@@ -80,6 +156,7 @@ MIRRORED = {
     "observe": ("observe",),
     "process": ("_process",),
     "registrar": ("_registrar",),
+    "simulation": ("simulation",),
     "store": ("_store",),
     "supervision": ("_supervision",),
     "testing": ("testing",),
@@ -106,6 +183,7 @@ WHOLE_FEATURES = {
     "test_repository.py": "the repository itself: ignored outputs, import circles, this rule",
     "test_conftest_progress.py": "the suite's own tests/conftest.py: failures named as they come",
     "observe/test_page.py": "the observer's page: the HTML and JavaScript of observe/static/",
+    "simulation/test_registrar.py": "the registrar's semantic rules on the simulation, many seeds",
 }
 """Test modules whose subject is a whole public feature rather than one runtime module (their
 paths under `tests/`), each with why."""

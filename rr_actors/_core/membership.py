@@ -33,9 +33,9 @@ so keeping it for the life of the process costs nothing that matters.
 from __future__ import annotations
 
 import logging
-import threading
 from typing import Protocol
 
+from rr_actors._core import runtime
 from rr_actors._platform import fork
 
 __all__ = ["MEMBERSHIP", "Hearer", "Joined", "Membership"]
@@ -75,7 +75,7 @@ class Membership:
     """Who is gone for good, as this process knows it; the one sender of `peer_lost`."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._gone: dict[str, bool] = {}  # name -> stopped (not lost)
         self._hearers: dict[str, Joined] = {}
 
@@ -162,12 +162,12 @@ class Membership:
         are dropped too (a spare may serve long after the fork, when a name recorded
         then may be back: the child hears what it needs from its supervisor,
         `tell_gone`, and from its carrier)."""
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._hearers.clear()
         self._gone.clear()
 
 
-MEMBERSHIP = Membership()
+MEMBERSHIP = runtime.process_state(Membership(), Membership)
 
 
 fork.after_fork_in_child("the membership", MEMBERSHIP.forget_in_child)
