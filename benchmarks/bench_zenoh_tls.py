@@ -412,8 +412,8 @@ MODES = {
 def gate_mode(mode: str) -> None:
     """In host a's worker, before it joins: keep its `tls/` listener as `MODES[mode]` says
     (the benchmark's own switch: rr_actors has none, its gate is always on)."""
-    from rr_actors._transport.zenoh import gate as zenoh_gate  # noqa: PLC0415
     from rr_actors._transport.zenoh import net as zenoh_net  # noqa: PLC0415
+    from rr_actors._transport.zenoh.ops import gate as zenoh_gate  # noqa: PLC0415
 
     if mode == "none":
         zenoh_net.open_gates = lambda listen: []  # type: ignore[assignment]

@@ -39,7 +39,7 @@ from rr_actors.errors import (
 
 if TYPE_CHECKING:  # at run time, `__getattr__` below imports it (and zenoh) at first use
     from rr_actors._transport.zenoh.net import ZenohNetwork
-    from rr_actors._transport.zenoh.tls import ZenohTLS
+    from rr_actors._transport.zenoh.ops.tls import ZenohTLS
 
 __all__ = [
     "MAX_DEPENDENCY_DEPTH",
@@ -100,6 +100,6 @@ def __getattr__(name: str) -> object:
         return ZenohNetwork
     if name == "ZenohTLS":
         with _extras.needs("zenoh", "rr.ZenohTLS"):
-            from rr_actors._transport.zenoh.tls import ZenohTLS  # noqa: PLC0415 - lazily
+            from rr_actors._transport.zenoh.ops.tls import ZenohTLS  # noqa: PLC0415 - lazily
         return ZenohTLS
     raise AttributeError(f"module 'rr_actors' has no attribute {name!r}")

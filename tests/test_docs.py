@@ -20,7 +20,7 @@ written):
       about 35 s).
     - `openssl ...` runs the system's `openssl` (`.ci/run` installs it) the same way, in
       the page's directory: a page's certificate recipes make real files, which its later
-      blocks (and `tests/transport/test_zenoh_tls_docs.py`) check.
+      blocks (and `tests/transport/zenoh/ops/test_tls.py`) check.
     - `pip install -e .[EXTRAS]` is not run: every extra it names must exist in
       `pyproject.toml`.
     - `python -m pytest -q ...` is not run (it is this very run): it must be the test

@@ -101,6 +101,7 @@ API_CASES = [
         "the observer",
     ),
     ("experiments", "import rr_actors.experiments", "rr_actors.experiments"),
+    ("simulation", "import rr_actors.simulation", "rr_actors.simulation"),
 ]
 
 

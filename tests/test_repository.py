@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import shutil
 import subprocess
 from pathlib import Path
@@ -70,6 +71,81 @@ def test_no_file_holds_a_merge_conflict_left_in_it() -> None:
     assert [] == left
 
 
+SEAMED = ("_core", "_catalog", "_store", "_supervision", "_registrar")
+"""The packages whose threads, locks, events, queues, clocks, ids and randomness go through
+`rr_actors._core.runtime`, which a simulation replaces (issue 42, `rr_actors.simulation`)."""
+
+STDLIB_SEAMS = {"threading", "time", "uuid", "random", "queue"}
+"""Modules whose every use in `SEAMED` goes through the runtime (and `os.urandom`,
+`datetime.datetime.now`)."""
+
+STRAGGLERS_ALLOWED = {
+    # the seam itself: the stdlib's own objects, until a simulation replaces them
+    "_core/runtime.py": None,
+    # `LateQueue` (an actor's inbox) is a `queue.SimpleQueue`, with its C methods in a
+    # real run; in a simulation the runtime makes the subclass (`runtime.queue_class`)
+    "_core/queues.py": {"queue.SimpleQueue"},
+}
+"""Files (under rr_actors/) allowed some direct uses (`None`: any), each for its reason."""
+
+
+def _direct_uses(path: Path) -> list[str]:
+    """`line: module.name` for each use of a module of `STDLIB_SEAMS` (or `os.urandom`,
+    `datetime...now`) in `path`, and each name taken by value from the runtime."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    modules: dict[str, str] = {}  # local name -> module
+    uses = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            modules.update(
+                (a.asname or a.name, a.name) for a in node.names if a.name in STDLIB_SEAMS
+            )
+        elif isinstance(node, ast.ImportFrom) and node.module in STDLIB_SEAMS:
+            uses += [f"{node.lineno}: {node.module}.{a.name}" for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module == "rr_actors._core.runtime":
+            uses += [f"{node.lineno}: from runtime import {a.name}" for a in node.names]
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Attribute) or not isinstance(node.value, ast.Name):
+            continue
+        name = node.value.id
+        if name in modules:
+            uses.append(f"{node.lineno}: {modules[name]}.{node.attr}")
+        elif (name, node.attr) == ("os", "urandom"):
+            uses.append(f"{node.lineno}: os.urandom")
+        elif (name, node.attr) == ("datetime", "datetime"):
+            parent = next(
+                (p for p in ast.walk(tree) if isinstance(p, ast.Attribute) and p.value is node),
+                None,
+            )
+            if parent is not None and parent.attr in {"now", "utcnow", "today"}:
+                uses.append(f"{node.lineno}: datetime.datetime.{parent.attr}")
+    return uses
+
+
+def test_the_protocol_uses_threads_clocks_ids_and_randomness_only_through_the_runtime() -> None:
+    """A direct use would stay real in a simulation: a real clock's deadline, a real lock
+    that blocks the simulation's only thread, an id no seed replays (issue 42)."""
+    package = ROOT / "rr_actors"
+    files = [
+        path
+        for seamed in SEAMED
+        for path in sorted((package / seamed).rglob("*.py"))
+        if (package / seamed).is_dir()
+    ]
+    assert len(files) > 40  # the walk found the packages
+    stragglers = []
+    for path in files:
+        name = path.relative_to(package).as_posix()
+        allowed = STRAGGLERS_ALLOWED.get(name, set())
+        if allowed is None:
+            continue
+        stragglers += [
+            f"{name}:{use}" for use in _direct_uses(path) if use.split(": ")[1] not in allowed
+        ]
+
+    assert [] == stragglers
+
+
 MIRRORED = {
     "": ("",),
     "catalog": ("_catalog",),
@@ -80,10 +156,15 @@ MIRRORED = {
     "observe": ("observe",),
     "process": ("_process",),
     "registrar": ("_registrar",),
+    "simulation": ("simulation",),
     "store": ("_store",),
     "supervision": ("_supervision",),
     "testing": ("testing",),
     "tools": ("_tools",),
+    "transport": ("_transport",),
+    "transport/unix": ("_transport/unix",),
+    "transport/zenoh": ("_transport/zenoh",),
+    "transport/zenoh/ops": ("_transport/zenoh/ops",),
 }
 """Each test folder (its path under `tests/`; `""` is `tests/` itself) and the packages of
 `rr_actors` (their paths under `rr_actors/`) whose modules its test modules mirror.
@@ -102,9 +183,18 @@ WHOLE_FEATURES = {
     "test_repository.py": "the repository itself: ignored outputs, import circles, this rule",
     "test_conftest_progress.py": "the suite's own tests/conftest.py: failures named as they come",
     "observe/test_page.py": "the observer's page: the HTML and JavaScript of observe/static/",
+    "simulation/test_registrar.py": "the registrar's semantic rules on the simulation, many seeds",
 }
 """Test modules whose subject is a whole public feature rather than one runtime module (their
 paths under `tests/`), each with why."""
+
+
+SCENARIO_FOLDERS = {
+    "multihost": "whole systems on two or three hosts in real network namespaces (root): "
+    "each module a scenario across hosts, or the harness that builds them",
+    "support": "helpers the test modules share (no tests)",
+}
+"""Test folders whose modules do not mirror runtime modules, each with why."""
 
 
 def _names(test_folder: str) -> set[str]:
@@ -137,3 +227,15 @@ def test_each_test_module_names_the_runtime_module_it_tests() -> None:
 
 def test_every_whole_feature_listed_is_a_test_module() -> None:
     assert [] == [name for name in WHOLE_FEATURES if not (ROOT / "tests" / name).is_file()]
+
+
+def test_each_test_folder_mirrors_packages_or_says_why_not() -> None:
+    # A new test folder is placed by the rule above or named here with its reason.
+    folders = {
+        path.parent.relative_to(ROOT / "tests").as_posix().replace(".", "")
+        for path in (ROOT / "tests").rglob("*.py")
+        if "__pycache__" not in path.parts
+    }
+    assert len(folders) > 10  # the walk found the tree
+    assert set() == folders - set(MIRRORED) - set(SCENARIO_FOLDERS)
+    assert [] == [name for name in SCENARIO_FOLDERS if name in MIRRORED]

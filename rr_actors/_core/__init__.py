@@ -1,5 +1,7 @@
 """The generic actor machinery: knows nothing of registrars, catalogs or processes.
 
+- `runtime`: the seam every thread, lock, event, queue, clock, id and random value goes
+  through: the stdlib's own objects, or a simulation's (`rr_actors.simulation`).
 - `actor`: pykka's threading actor with a one-lock mailbox and one-shot futures; every
   pykka extension point (and every private name of pykka) rr_actors uses is in that file.
 - `replies`: where the answer to a message goes (`Reply` objects), and how to wait.

@@ -72,15 +72,16 @@ from __future__ import annotations
 
 import itertools
 import logging
-import queue
 import sys
-import threading
+import types
 from collections.abc import Callable
 from types import TracebackType
 from typing import Any, TypeAlias, TypeVar
 
 import pykka
 
+from rr_actors._core import runtime
+from rr_actors._core.ids import new_id
 from rr_actors._core.queues import Late, LateQueue
 from rr_actors._platform import fork
 
@@ -100,9 +101,11 @@ __all__ = [
 _pykka_logger = logging.getLogger("pykka")  # (where pykka's own loop logs)
 _logger = logging.getLogger("rr_actors")
 
-_CALLBACKS_MADE = threading.Lock()  # (`OneShotFuture.add_done_callback`: the first list)
+_CALLBACKS_MADE = runtime.Lock()  # (`OneShotFuture.add_done_callback`: the first list)
 
-_ACTOR_THREAD = threading.local()  # `active` on the thread of an `Actor`'s loop
+_loop_numbers = itertools.count()  # (the actors' threads' names)
+
+_ACTOR_THREAD = runtime.local()  # `active` on the thread of an `Actor`'s loop
 
 
 def on_actor_thread() -> bool:
@@ -159,8 +162,8 @@ class OneShotFuture(pykka.Future[T]):
 
     def __init__(self) -> None:
         super().__init__()
-        self._claim = threading.Lock()  # taken, never released, by whatever settles it
-        self._ready = threading.Lock()  # held until settled; waiters pass it on
+        self._claim = runtime.Lock()  # taken, never released, by whatever settles it
+        self._ready = runtime.Lock()  # held until settled; waiters pass it on
         self._ready.acquire()
         self._settled = False
         self._value: Any = None
@@ -185,9 +188,7 @@ class OneShotFuture(pykka.Future[T]):
             if timeout is None:
                 acquired = self._ready.acquire()
             else:
-                acquired = self._ready.acquire(
-                    timeout=min(max(timeout, 0.0), threading.TIMEOUT_MAX)
-                )
+                acquired = self._ready.acquire(timeout=min(max(timeout, 0.0), runtime.TIMEOUT_MAX))
         finally:  # (also if the wait is interrupted: other waiters must get through)
             if acquired:
                 self._ready.release()  # the next waiter, if any, gets through too
@@ -228,13 +229,13 @@ class OneShotFuture(pykka.Future[T]):
 
     def set_get_hook(self, func: GetHookFunc[T]) -> None:
         self._take_claim()
-        self._hook_lock = threading.Lock()
+        self._hook_lock = runtime.Lock()
         super().set_get_hook(func)
         self._settle()
 
     def _take_claim(self) -> None:
         if not self._claim.acquire(blocking=False):
-            raise queue.Full
+            raise runtime.Full
 
     def add_done_callback(self, fn: Callable[[OneShotFuture[T]], object]) -> None:
         """Run `fn(self)` once it is settled: at once, on this thread, if it is already;
@@ -289,7 +290,7 @@ class Inbox(LateQueue):
 
     def __init__(self) -> None:
         super().__init__()
-        self.turn = threading.Lock()
+        self.turn = runtime.Lock()
         self.handled = 0
         self.stopped = False  # a handler run in the turn stopped the actor
         self._tickets = itertools.count()
@@ -297,7 +298,7 @@ class Inbox(LateQueue):
 
     def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
         next(self._tickets)
-        queue.SimpleQueue.put(self, item, block, timeout)  # (`LateQueue.put`, one frame less)
+        self._put(item, block, timeout)  # (`LateQueue.put`, one frame less)
         if self._late is not None:
             self._drain(self._late)
 
@@ -383,6 +384,14 @@ class Actor(pykka.ThreadingActor):
     """The message kinds a carrier's receiving thread may handle in this actor's turn
     (`deliver`); none by default."""
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        # pykka makes these with `threading` and `uuid`: the runtime's instead (a
+        # simulation's event and seeded id, in a simulation)
+        stopped = runtime.Event()
+        self.actor_stopped = self._actor_ref.actor_stopped = stopped
+        self.actor_urn = self._actor_ref.actor_urn = f"urn:uuid:{new_id()}"
+
     def _handle_receive(self, message: Any) -> Any:
         try:
             return super()._handle_receive(message)
@@ -400,6 +409,10 @@ class Actor(pykka.ThreadingActor):
     @staticmethod
     def _create_future() -> pykka.Future[Any]:
         return OneShotFuture()
+
+    def _start_actor_loop(self) -> None:
+        name = f"{type(self).__name__}-{next(_loop_numbers)}"  # (as pykka names it)
+        runtime.Thread(target=self._actor_loop, name=name, daemon=self.use_daemon_thread).start()
 
     def _actor_loop_setup(self) -> None:
         _ACTOR_THREAD.active = True  # (on the actor's new thread: `on_actor_thread`)
@@ -491,12 +504,20 @@ def _forget_actors() -> None:
     `ActorDeadError` and waits on it return at once; each leaves pykka's registry, whose
     lock (pykka's private `_actor_refs_lock`) is made new first for the same reason.
     """
-    pykka.ActorRegistry._actor_refs_lock = threading.RLock()
+    pykka.ActorRegistry._actor_refs_lock = runtime.RLock()
     for ref in pykka.ActorRegistry.get_all():
-        stopped = threading.Event()
+        stopped = runtime.Event()
         stopped.set()
         ref.actor_stopped = stopped
         pykka.ActorRegistry.unregister(ref)
 
 
 fork.after_fork_in_child("the parent's actors", _forget_actors)
+
+
+def _fresh_registry() -> object:
+    """pykka's registry (its private fields) in a process that starts: no actors."""
+    return types.SimpleNamespace(_actor_refs=[], _actor_refs_lock=runtime.RLock())
+
+
+runtime.process_state(pykka.ActorRegistry, _fresh_registry)

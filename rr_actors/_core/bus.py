@@ -27,10 +27,10 @@ from __future__ import annotations
 
 import itertools
 import logging
-import threading
 from collections.abc import Callable
 from typing import Generic, TypeVar
 
+from rr_actors._core import runtime
 from rr_actors._core.queues import DEFAULT_MAXSIZE, Forwarder, Subscription
 
 __all__ = ["DEFAULT_MAXSIZE", "Forwarder", "Publisher", "Sink", "Subscription"]
@@ -77,12 +77,12 @@ class Publisher(Generic[E]):
         self._logger = logger
         self._describe = describe
         self._notice = notice
-        self._lock = threading.Lock()  # for writers of `_sinks`; `publish` reads without it
+        self._lock = runtime.Lock()  # for writers of `_sinks`; `publish` reads without it
         self._sinks: tuple[Sink[E], ...] = ()
         self._upstream: Publisher[E] | None = None
         self._tap = tap
         self._watchers: tuple[Callable[[bool], object], ...] = ()
-        self._notifying = threading.Lock()
+        self._notifying = runtime.Lock()
 
     @property
     def active(self) -> bool:

@@ -15,12 +15,12 @@ carrier the parent joined is the child's too (the carrier resets its own state).
 from __future__ import annotations
 
 import logging
-import threading
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
 import pykka
 
+from rr_actors._core import runtime
 from rr_actors._core.actor import awaiting, deliver
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._platform import fork
@@ -101,7 +101,7 @@ class Directory:
     """Names of the registrars of this process (and, later, of its system)."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._peers: dict[str, Peer] = {}
         self._gone: dict[str, str] = {}  # name -> "stopped" | "died"
         self._resolvers: tuple[Callable[[str], Peer | None], ...] = ()  # replaced, not changed
@@ -264,7 +264,7 @@ class Directory:
     def forget_in_child(self, parent: int) -> None:
         """In a child forked from process `parent`: the registrars of this process are
         the parent's (their actors have no thread here); nothing restarts here either."""
-        self._lock = threading.Lock()  # a thread of the parent may have held it at the fork
+        self._lock = runtime.Lock()  # a thread of the parent may have held it at the fork
         for name in self._peers:
             self._inherited[name] = parent
         self._peers.clear()
@@ -272,7 +272,7 @@ class Directory:
         self._restarting.clear()
 
 
-DIRECTORY = Directory()
+DIRECTORY = runtime.process_state(Directory(), Directory)
 
 
 def _forget_in_child() -> None:

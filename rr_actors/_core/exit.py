@@ -33,11 +33,10 @@ from __future__ import annotations
 import itertools
 import logging
 import sys
-import threading
-import time
 from collections.abc import Callable
 from types import TracebackType
 
+from rr_actors._core import runtime
 from rr_actors._platform import PLATFORM, fork
 
 __all__ = [
@@ -63,11 +62,21 @@ networks they used."""
 
 _MIN_STOP = 0.1  # seconds each stop still gets once EXIT_TIMEOUT ran out
 
-_lock = threading.Lock()
-_entries: dict[int, tuple[int, str, Callable[[], bool], Callable[[float], None]]] = {}
-_numbers = itertools.count()
+_Entry = tuple[int, str, Callable[[], bool], Callable[[float], None]]
+
+
+class _Listed:
+    """What this process lists to stop at its end (a simulated process: its own)."""
+
+    def __init__(self) -> None:
+        self.lock = runtime.Lock()
+        self.entries: dict[int, _Entry] = {}
+        self.numbers = itertools.count()
+        self.prune_at = 64  # entries; doubled after each pruning, so adding stays O(1) amortised
+
+
+_LISTED = runtime.process_state(_Listed(), _Listed)
 _hooked = False
-_prune_at = 64  # entries; doubled after each pruning, so adding stays O(1) amortised
 
 
 def stop_at_exit(
@@ -85,13 +94,15 @@ def stop_at_exit(
         alive: whether it still needs stopping (called on any thread, must be cheap).
         stop: stops it within `timeout` seconds; what it raises is logged.
     """
-    global _hooked, _prune_at  # (one process-wide list)
-    with _lock:
-        if len(_entries) >= _prune_at:
-            for number in [n for n, entry in _entries.items() if not entry[2]()]:
-                del _entries[number]
-            _prune_at = max(64, 2 * len(_entries))
-        _entries[next(_numbers)] = (tier, what, alive, stop)
+    global _hooked  # (the hook: once per process)
+    listed = _LISTED
+    with listed.lock:
+        entries = listed.entries
+        if len(entries) >= listed.prune_at:
+            for number in [n for n, entry in entries.items() if not entry[2]()]:
+                del entries[number]
+            listed.prune_at = max(64, 2 * len(entries))
+        entries[next(listed.numbers)] = (tier, what, alive, stop)
         if not _hooked:
             try:
                 PLATFORM.at_main_thread_end(stop_everything)
@@ -108,10 +119,10 @@ def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
     registrars left (their threads are daemon threads: the program still ends), not the
     networks (the interpreter would wait for their sessions' threads).
     """
-    deadline = time.monotonic() + timeout
-    with _lock:
-        entries = sorted(_entries.items(), key=lambda item: (item[1][0], -item[0]))
-        _entries.clear()
+    deadline = runtime.monotonic() + timeout
+    with _LISTED.lock:
+        entries = sorted(_LISTED.entries.items(), key=lambda item: (item[1][0], -item[0]))
+        _LISTED.entries.clear()
     interrupted = False
     for _number, (tier, what, alive, stop) in entries:
         if interrupted and tier < NETWORKS:
@@ -119,7 +130,7 @@ def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
         try:
             if alive():
                 logger.info("stopping %s: it was still running when the program ended", what)
-                stop(max(_MIN_STOP, deadline - time.monotonic()))
+                stop(max(_MIN_STOP, deadline - runtime.monotonic()))
         except KeyboardInterrupt:
             if interrupted:
                 return
@@ -146,15 +157,14 @@ def _one_line_interrupts() -> None:
 
 def left_running() -> list[str]:
     """What of the listed supervisors and registrars still runs, oldest first."""
-    with _lock:
-        return [entry[1] for _, entry in sorted(_entries.items()) if entry[2]()]
+    with _LISTED.lock:
+        return [entry[1] for _, entry in sorted(_LISTED.entries.items()) if entry[2]()]
 
 
 def _forget_all() -> None:
     """In a forked child: the parent's registrars and supervisors are not ours to stop."""
-    global _lock  # a thread of the parent may have held it at the fork
-    _lock = threading.Lock()
-    _entries.clear()
+    _LISTED.lock = runtime.Lock()  # a thread of the parent may have held it at the fork
+    _LISTED.entries.clear()
 
 
 fork.after_fork_in_child("the exit hook's list", _forget_all)

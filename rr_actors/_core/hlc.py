@@ -52,10 +52,9 @@ from __future__ import annotations
 import logging
 import math
 import os
-import threading
-import time
 from collections.abc import Callable
 
+from rr_actors._core import runtime
 from rr_actors._core.throttle import Throttle
 from rr_actors.errors import ConfigError
 
@@ -155,15 +154,16 @@ _SKEW_NS = int(_skew() * 1e9)
 
 
 def _skewed_ns() -> int:
-    return time.time_ns() + _SKEW_NS
+    return runtime.wall_ns() + _SKEW_NS
 
 
 class HybridClock:
     """A hybrid logical clock (see the module docstring). Thread-safe; it never raises.
 
     Args:
-        physical: the physical clock, nanoseconds since the epoch (`time.time_ns`);
-            injected by tests.
+        physical: the physical clock, nanoseconds since the epoch (`None`:
+            `runtime.wall_ns`, the stdlib's `time.time_ns` in a real run); injected by
+            tests.
         max_offset: seconds a received stamp may be ahead of `physical` and be taken in
             (see `MAX_OFFSET`); one further ahead is refused.
 
@@ -179,15 +179,15 @@ class HybridClock:
 
     def __init__(
         self,
-        physical: Callable[[], int] = time.time_ns,
+        physical: Callable[[], int] | None = None,
         *,
         max_offset: float = MAX_OFFSET,
     ) -> None:
-        self.physical = physical
+        self.physical = runtime.wall_ns if physical is None else physical
         self._max_ahead = 0
         self.max_offset = max_offset
         self._last = 0
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self.refused = 0
         self._refusals = Throttle(REFUSED_EVERY)
         self._ended = False
@@ -275,6 +275,6 @@ class HybridClock:
         return _MAX
 
 
-CLOCK = HybridClock(_skewed_ns if _SKEW_NS else time.time_ns)
+CLOCK = runtime.process_state(HybridClock(_skewed_ns if _SKEW_NS else None), HybridClock)
 """This process's clock: every event is stamped by it, every message across hosts
 carries its stamp."""

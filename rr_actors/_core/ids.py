@@ -2,13 +2,13 @@
 
 `str(uuid.uuid4())` builds a `UUID` in Python (its checks, its bit twiddling, then its
 formatting). `new_id` gives the same text in one step: the hex digits of 16 bytes from
-`os.urandom`, with the version digit set to 4 and the variant digit to one of `89ab`
-(RFC 4122).
+`runtime.urandom` (`os.urandom`; a simulation's seeded bytes), with the version digit
+set to 4 and the variant digit to one of `89ab` (RFC 4122).
 """
 
 from __future__ import annotations
 
-import os
+from rr_actors._core import runtime
 
 __all__ = ["new_id"]
 
@@ -18,5 +18,5 @@ _VARIANT = {digit: "89ab"[int(digit, 16) & 3] for digit in "0123456789abcdef"}
 
 def new_id() -> str:
     """A random UUID4 as a string (`str(uuid.uuid4())` gives the same form)."""
-    h = os.urandom(16).hex()
+    h = runtime.urandom(16).hex()
     return f"{h[:8]}-{h[8:12]}-4{h[13:16]}-{_VARIANT[h[16]]}{h[17:20]}-{h[20:]}"

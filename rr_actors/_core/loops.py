@@ -29,10 +29,10 @@ import asyncio
 import contextvars
 import functools
 import logging
-import threading
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+from rr_actors._core import runtime
 from rr_actors._core.actor import OneShotFuture, mark_awaiting
 from rr_actors._core.replies import Steps, left
 from rr_actors._platform import fork
@@ -135,7 +135,7 @@ class _ProcessLoop:
     """The process's own event loop, on one daemon thread started at its first use."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None
         self.ident: int | None = None  # its thread's
 
@@ -145,9 +145,9 @@ class _ProcessLoop:
             return loop
         with self._lock:
             if self._loop is None:
-                started = threading.Event()
+                started = runtime.Event()
                 loop = asyncio.new_event_loop()
-                thread = threading.Thread(
+                thread = runtime.Thread(
                     target=self._run, args=(loop, started), name="rr-loop", daemon=True
                 )
                 thread.start()
@@ -157,25 +157,25 @@ class _ProcessLoop:
             return self._loop
 
     @staticmethod
-    def _run(loop: asyncio.AbstractEventLoop, started: threading.Event) -> None:
+    def _run(loop: asyncio.AbstractEventLoop, started: runtime.Event) -> None:
         asyncio.set_event_loop(loop)
         loop.call_soon(started.set)
         loop.run_forever()
 
     def forget(self) -> None:
         """In a forked child: the parent's loop thread is not there; a new one starts."""
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._loop = None
         self.ident = None
 
 
-_PROCESS_LOOP = _ProcessLoop()
+_PROCESS_LOOP = runtime.process_state(_ProcessLoop(), _ProcessLoop)
 fork.after_fork_in_child("the process's event loop", _PROCESS_LOOP.forget)
 
 
 def on_process_loop() -> bool:
     """Whether the calling thread runs the process's own event loop."""
-    return _PROCESS_LOOP.ident == threading.get_ident()
+    return _PROCESS_LOOP.ident == runtime.get_ident()
 
 
 def process_loop() -> asyncio.AbstractEventLoop:

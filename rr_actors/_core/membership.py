@@ -6,7 +6,7 @@ registrar will not come back says so here; every registrar of this process hears
 from here, as one event (`peer_lost`), and one that starts later hears it when it joins:
 
 ```
- a carrier's liveness (messenger.tell_lost) ──────┐
+ a carrier's liveness (Messenger.lost) ─────────┐
  a death-watch mark of this process              ├─► lost(X) ─┐ record X gone for good,
    (_registrar/life.py: the death watch)         │            │ then every hearer:
  a death-watch mark from another process         │            ├─► peer_lost(X)
@@ -15,7 +15,7 @@ from here, as one event (`peer_lost`), and one that starts later hears it when i
  a registrar that starts ──► join(hearer) ──► the names gone for good now (it hears
                                               each as if it had heard the mark: Erlang's
                                               monitor of a dead process is 'DOWN' at once)
- a carrier: reachable again (tell_reachable) ─► reachable(X) ─► forget X, peer_reachable(X)
+ a carrier: reachable again (Messenger.reachable) ─► reachable(X) ─► forget X, peer_reachable(X)
  X served again (a registrar named X starts here, a supervisor restarts it, a carrier
    sees it served) ─► back(X)
  a supervisor stopped X for good ─► stopped(X) ─► record, peer_stopped(X) (what X still
@@ -33,9 +33,9 @@ so keeping it for the life of the process costs nothing that matters.
 from __future__ import annotations
 
 import logging
-import threading
 from typing import Protocol
 
+from rr_actors._core import runtime
 from rr_actors._platform import fork
 
 __all__ = ["MEMBERSHIP", "Hearer", "Joined", "Membership"]
@@ -75,7 +75,7 @@ class Membership:
     """Who is gone for good, as this process knows it; the one sender of `peer_lost`."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._gone: dict[str, bool] = {}  # name -> stopped (not lost)
         self._hearers: dict[str, Joined] = {}
 
@@ -162,12 +162,12 @@ class Membership:
         are dropped too (a spare may serve long after the fork, when a name recorded
         then may be back: the child hears what it needs from its supervisor,
         `tell_gone`, and from its carrier)."""
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._hearers.clear()
         self._gone.clear()
 
 
-MEMBERSHIP = Membership()
+MEMBERSHIP = runtime.process_state(Membership(), Membership)
 
 
 fork.after_fork_in_child("the membership", MEMBERSHIP.forget_in_child)

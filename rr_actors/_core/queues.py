@@ -12,11 +12,11 @@ from __future__ import annotations
 import functools
 import logging
 import queue
-import threading
 from collections.abc import Callable
 from types import TracebackType
-from typing import Any, Generic, TypeVar, cast
+from typing import Any, Generic, Self, TypeVar, cast
 
+from rr_actors._core import runtime
 from rr_actors._core.serial import SerialExecutor, Task
 from rr_actors._core.throttle import Throttle
 from rr_actors.errors import ConfigError
@@ -79,12 +79,21 @@ class LateQueue(queue.SimpleQueue[Any]):
     The put and the close each drain after their own write, so an item is handed on by
     whichever comes second, and once (`get_nowait` is atomic). An actor's inbox
     (`_core.actor.Inbox`) and the call outcomes a registrar takes (`DueAnswers`) are one.
+
+    A `queue.SimpleQueue` with its own (C) methods; made in a simulation, it is of the
+    subclass the runtime gives (`runtime.queue_class`), whose queue methods are the
+    simulation's. So its own methods call `_put`, never `SimpleQueue.put` by name.
     """
 
     _late: Late | None = None
+    _put = queue.SimpleQueue.put
+
+    def __new__(cls) -> Self:
+        made: Self = super().__new__(runtime.queue_class(cls))
+        return made
 
     def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
-        super().put(item, block, timeout)
+        self._put(item, block, timeout)
         if self._late is not None:
             self._drain(self._late)
 
@@ -97,7 +106,7 @@ class LateQueue(queue.SimpleQueue[Any]):
         while True:
             try:
                 item = self.get_nowait()
-            except queue.Empty:
+            except runtime.Empty:
                 return
             late(item)
 
@@ -148,7 +157,7 @@ class _Outbox(Generic[E]):
         self._notice = notice
         self._handle = handle
         self._idle = idle
-        self._lock = threading.Lock()  # gap and drop counts
+        self._lock = runtime.Lock()  # gap and drop counts
         self._gap = 0
         self.dropped = 0
         self._warned = Throttle(LOG_EVERY)  # (gaps opened; `_reported`: drops already logged)

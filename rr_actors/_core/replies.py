@@ -21,14 +21,12 @@ import contextlib
 import dataclasses
 import itertools
 import logging
-import queue
-import threading
-import time
 from collections.abc import Callable, Generator
 from typing import Any, TypeAlias, TypeVar
 
 import pykka
 
+from rr_actors._core import runtime
 from rr_actors._core.actor import OneShotFuture
 from rr_actors.errors import CallTimeoutError
 
@@ -63,11 +61,11 @@ class FutureReply:
         self.future: OneShotFuture[Any] = future or OneShotFuture()
 
     def set_result(self, value: Any) -> None:
-        with contextlib.suppress(queue.Full):
+        with contextlib.suppress(runtime.Full):
             self.future.set(value)
 
     def set_error(self, error: BaseException) -> None:
-        with contextlib.suppress(queue.Full):
+        with contextlib.suppress(runtime.Full):
             self.future.set_exception((type(error), error, error.__traceback__))
 
 
@@ -86,13 +84,13 @@ def wait(future: pykka.Future[Any], timeout: float, what: str) -> Any:
 
 Wait: TypeAlias = tuple[OneShotFuture[Any], float | None]
 """What steps wait for, `(future, deadline)`: `future` settled, until `deadline`
-(`time.monotonic()` seconds; `None`: without a bound). A plain tuple: the steps of every
+(`runtime.monotonic()` seconds; `None`: without a bound). A plain tuple: the steps of every
 blocking call yield one, and a class's construction would cost them a call each."""
 
 
 def left(deadline: float | None) -> float | None:
     """Seconds left until `deadline` (never negative), `None` without one."""
-    return None if deadline is None else max(0.0, deadline - time.monotonic())
+    return None if deadline is None else max(0.0, deadline - runtime.monotonic())
 
 
 Steps: TypeAlias = Generator[Wait, bool, T]
@@ -109,7 +107,7 @@ def run_steps(steps: Steps[T]) -> T:
     try:
         future, deadline = next(steps)
         while True:
-            timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+            timeout = None if deadline is None else max(0.0, deadline - runtime.monotonic())
             try:
                 settled = future.wait(timeout)
             except BaseException as exc:  # noqa: BLE001 - (KeyboardInterrupt & co: the steps decide)
@@ -141,7 +139,7 @@ def on_own_thread(fn: Callable[[], T], name: str) -> Steps[T]:
         else:
             done.set_result(result)
 
-    threading.Thread(target=run, name=name, daemon=True).start()
+    runtime.Thread(target=run, name=name, daemon=True).start()
     yield done.future, None
     result: T = done.future.get(timeout=0)
     return result
@@ -208,7 +206,7 @@ class CallbackReply:
 
     def __init__(self, then: Continuation) -> None:
         self._then: Continuation | None = then
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
 
     def set_result(self, value: Any) -> None:
         self._run(value, None)
@@ -293,7 +291,7 @@ class SharedJoin(Join):
 
     def __init__(self, then: Callable[[], None]) -> None:
         super().__init__(then)
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
 
     def _update(self, parts: int, *, seal: bool) -> None:
         with self._lock:

@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import collections
 import logging
-import threading
-import time
 from collections.abc import Callable
 from typing import Any, TypeVar
+
+from rr_actors._core import runtime
 
 __all__ = ["SerialExecutor", "Task"]
 
@@ -40,7 +40,7 @@ class _Mark:
 
     def __init__(self, fn: Callable[[], Any] | None = None) -> None:
         self.fn = fn
-        self.reached = threading.Event()
+        self.reached = runtime.Event()
         self.ran = False
         self.result: tuple[bool, Any] = (True, None)
 
@@ -92,19 +92,19 @@ class SerialExecutor:
         self._on_idle = on_idle
         self._on_drop = on_drop
         self._on_end = on_end
-        self._lock = threading.Lock()
-        self._cond = threading.Condition(self._lock)
+        self._lock = runtime.Lock()
+        self._cond = runtime.Condition(self._lock)
         self._tasks: collections.deque[Task] = collections.deque()
         self._busy = False  # a task (or `on_end`) runs
         self._sleeping = False  # the thread waits on `_cond`: a submit must wake it
         self._closing = False  # no more tasks are taken
         self._dropping = False  # `close` dropped what was queued: end after the running one
         self._ended = False  # `on_end` ran (or is running)
-        self._hurry = threading.Event()  # a flush or close is due: linger no longer
-        self._thread: threading.Thread | None = None
-        self._due = time.monotonic()  # when `every`'s task runs next (at once, first)
+        self._hurry = runtime.Event()  # a flush or close is due: linger no longer
+        self._thread: runtime.Thread | None = None
+        self._due = runtime.monotonic()  # when `every`'s task runs next (at once, first)
         if every is not None:
-            self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+            self._thread = runtime.Thread(target=self._run, name=name, daemon=True)
             self._thread.start()
 
     @property
@@ -119,7 +119,7 @@ class SerialExecutor:
 
     def on_own_thread(self) -> bool:
         """Whether the calling thread is this executor's thread."""
-        return self._thread is threading.current_thread()
+        return self._thread is runtime.current_thread()
 
     # -- giving it work ----------------------------------------------------------------
 
@@ -245,19 +245,21 @@ class SerialExecutor:
         """Wait (at most `timeout` s) until the executor ended; whether it did."""
         if self.on_own_thread():
             return False  # (it cannot end while it runs this)
-        deadline = None if timeout is None else time.monotonic() + timeout
+        deadline = None if timeout is None else runtime.monotonic() + timeout
         with self._cond:
             if not self._cond.wait_for(lambda: self._ended and not self._busy, timeout):
                 return False
         if self._thread is not None:  # (its last steps: gone once this returns)
-            self._thread.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
+            self._thread.join(
+                None if deadline is None else max(0.0, deadline - runtime.monotonic())
+            )
             return not self._thread.is_alive()
         return True
 
     # -- plumbing ------------------------------------------------------------------------
 
     def _start(self) -> None:  # (hold `_cond`)
-        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+        self._thread = runtime.Thread(target=self._run, name=self.name, daemon=True)
         self._thread.start()
 
     def _ends_now(self) -> bool:
@@ -297,7 +299,7 @@ class SerialExecutor:
         while True:
             if self._every is not None and not self._busy and not self._closing:
                 period, tick = self._every
-                now = time.monotonic()
+                now = runtime.monotonic()
                 if now >= self._due:
                     self._due = now + period
                     self._busy = True
@@ -313,7 +315,7 @@ class SerialExecutor:
                 if self._every is None:
                     self._cond.wait()
                 else:
-                    self._cond.wait(max(0.0, self._due - time.monotonic()))
+                    self._cond.wait(max(0.0, self._due - runtime.monotonic()))
             finally:
                 self._sleeping = False
 

@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import logging
 import reprlib
-import threading
-import time
 from collections.abc import Callable
 from typing import Any
+
+from rr_actors._core import runtime
 
 __all__ = ["EVERY", "LogThrottle", "Throttle", "short"]
 
@@ -36,14 +36,14 @@ class Throttle:
 
     Args:
         every: seconds between two log lines.
-        clock: seconds, monotonic (tests may pass their own).
+        clock: seconds, monotonic (tests may pass their own; `None`: `runtime.monotonic`).
     """
 
     __slots__ = ("clock", "every", "logged", "next_at", "unlogged")
 
-    def __init__(self, every: float = EVERY, *, clock: Callable[[], float] = time.monotonic):
+    def __init__(self, every: float = EVERY, *, clock: Callable[[], float] | None = None):
         self.every = every
-        self.clock = clock
+        self.clock = runtime.monotonic if clock is None else clock
         self.next_at = float("-inf")
         self.logged = False  # whether the first one was logged (in full)
         self.unlogged = 0  # how many happened since the last log line
@@ -67,7 +67,7 @@ class LogThrottle:
     Args:
         logger: where the lines go.
         every: seconds between two lines.
-        clock: seconds, monotonic (tests may pass their own).
+        clock: seconds, monotonic (tests may pass their own; `None`: `runtime.monotonic`).
     """
 
     def __init__(
@@ -75,10 +75,10 @@ class LogThrottle:
         logger: logging.Logger,
         every: float = EVERY,
         *,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Callable[[], float] | None = None,
     ) -> None:
         self._logger = logger
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._throttle = Throttle(every, clock=clock)
 
     def warning(self, message: str, *args: Any) -> None:

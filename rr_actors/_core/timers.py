@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 from typing import Protocol
+
+from rr_actors._core import runtime
 
 __all__ = ["Cancellable", "Timer", "thread_timer"]
 
@@ -22,7 +23,7 @@ Timer = Callable[[float, Callable[[], None]], Cancellable]
 
 def thread_timer(delay: float, fn: Callable[[], None]) -> Cancellable:
     """Run `fn()` on a daemon thread after `delay` seconds (the default `Timer`)."""
-    timer = threading.Timer(delay, fn)
+    timer = runtime.Timer(delay, fn)
     timer.daemon = True
     timer.start()
     return timer

@@ -28,11 +28,9 @@ from __future__ import annotations
 
 import enum
 import logging
-import queue
-import threading
-import time
 from collections.abc import Callable
 
+from rr_actors._core import runtime
 from rr_actors.config import DEFAULT_MAX_WORKERS
 
 __all__ = ["Job", "Workers"]
@@ -98,14 +96,14 @@ class Workers:
         self._name = name
         self._max = max_workers
         self._idle_timeout = idle_timeout
-        self._lock = threading.Lock()
-        self._jobs: queue.SimpleQueue[Job] = queue.SimpleQueue()
+        self._lock = runtime.Lock()
+        self._jobs: runtime.SimpleQueue[Job] = runtime.SimpleQueue()
         self._idle = 0  # workers waiting for a job, minus jobs queued (negative: a backlog)
         self._live = 0  # worker threads that count against max_workers
         self._numbered = 0
         self._abandoned = 0
         self._watched: dict[Job, float] = {}  # running jobs with a timeout -> deadline
-        self._watching = threading.Condition(self._lock)
+        self._watching = runtime.Condition(self._lock)
         self._watchdog = False  # a watchdog thread runs
 
     @property
@@ -169,7 +167,7 @@ class Workers:
         with self._lock:
             self._numbered += 1
             number = self._numbered
-        threading.Thread(
+        runtime.Thread(
             target=self._run, args=(job,), name=f"rr-{self._name}-worker-{number}", daemon=True
         ).start()
 
@@ -194,7 +192,7 @@ class Workers:
         while True:
             try:
                 return self._jobs.get(timeout=self._idle_timeout)
-            except queue.Empty:
+            except runtime.Empty:
                 with self._lock:
                     if self._idle > 0:  # nobody counts on this worker: leave
                         self._idle -= 1
@@ -209,7 +207,7 @@ class Workers:
             job._state = _State.RUNNING
             if job._timeout is None:
                 return True
-            job._deadline = time.monotonic() + job._timeout
+            job._deadline = runtime.monotonic() + job._timeout
             self._watched[job] = job._deadline
             start_watchdog = not self._watchdog
             self._watchdog = True
@@ -262,7 +260,7 @@ class Workers:
 
     def _start_watchdog(self) -> None:
         try:
-            threading.Thread(
+            runtime.Thread(
                 target=self._watch, name=f"rr-{self._name}-watchdog", daemon=True
             ).start()
         except RuntimeError:  # no thread: jobs run unbounded until a later start works
@@ -286,9 +284,9 @@ class Workers:
 
     def _overdue(self) -> list[Job] | None:
         """Wait (holding the lock) until some jobs are overdue; `None` when idle long."""
-        idle_since = time.monotonic()
+        idle_since = runtime.monotonic()
         while True:
-            now = time.monotonic()
+            now = runtime.monotonic()
             if not self._watched:
                 if now - idle_since >= self._idle_timeout:
                     return None
@@ -298,4 +296,4 @@ class Workers:
             if overdue:
                 return overdue
             self._watching.wait(min(self._watched.values()) - now)
-            idle_since = time.monotonic()
+            idle_since = runtime.monotonic()

@@ -82,7 +82,7 @@ class ListenerGate(Protocol):
     """A gate on one TCP listening socket of this process (a library's, such as Zenoh's).
 
     Made by [`Platform.listener_gate`][rr_actors._platform.base.Platform.listener_gate];
-    used by one thread (`_transport/zenoh/gate.py`'s).
+    used by one thread (`_transport/zenoh/ops/gate.py`'s).
     """
 
     address: str

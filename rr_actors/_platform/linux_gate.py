@@ -1,4 +1,4 @@
-"""A gate on a TCP listening socket of this process (Linux): what `zenoh/gate.py` works with.
+"""A gate on a TCP listening socket of this process (Linux): what `zenoh/ops/gate.py` works with.
 
 Zenoh's listening socket lives in our process, so we may act on it through a duplicate of
 its descriptor, without touching Zenoh's own code:

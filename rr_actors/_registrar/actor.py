@@ -38,7 +38,6 @@ a message from the handle, `asked`), or `NO_REPLY`; the step names are what
 from __future__ import annotations
 
 import logging
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -48,6 +47,7 @@ import pykka
 from rr_actors import events
 from rr_actors._catalog import Catalog
 from rr_actors._catalog.texts import plain_text
+from rr_actors._core import runtime
 from rr_actors._core.actor import Actor, OneShotFuture
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
@@ -256,7 +256,7 @@ class RegistrarActor(Actor):
         catalog: Catalog,
         saver: Saver,
         peer: LocalPeer,
-        died: threading.Event,
+        died: runtime.Event,
         due: DueAnswers,
         ended: OneShotFuture[None],
         published: Publisher[Event],
@@ -407,7 +407,7 @@ class Launched:
     in_doubt: tuple[Query, ...]
     """Resources the restore found neither loaded nor unloaded (thesis 4.3.3)."""
     due: DueAnswers
-    died: threading.Event
+    died: runtime.Event
     """Set when a crash of the actor was fully handled."""
     ended: OneShotFuture[None]
     """Settled when the actor handed on its last message (an event loop awaits it)."""
@@ -457,7 +457,7 @@ def launch(
         )
         in_doubt_texts = tuple((r.id, r.request_text) for r in doubtful)
         ended: OneShotFuture[None] = OneShotFuture()
-        died, due, clients = threading.Event(), DueAnswers(), Clients()
+        died, due, clients = runtime.Event(), DueAnswers(), Clients()
         published = events.publisher(EVENT_LOG)
         published.relay_to(upstream)
         ref = RegistrarActor.start(

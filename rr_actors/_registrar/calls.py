@@ -49,13 +49,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import enum
-import threading
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import pykka
 
 from rr_actors._catalog import ClientRecord
+from rr_actors._core import runtime
 from rr_actors._core.actor import OneShotFuture, awaiting
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.queues import LateQueue
@@ -144,7 +144,7 @@ class CallAttempt(OneShotFuture[Any]):
 
     def __init__(self) -> None:
         super().__init__()
-        self._state_lock = threading.Lock()
+        self._state_lock = runtime.Lock()
         self.state = AttemptState.SENDING
         self._awaited = False
 
@@ -299,7 +299,7 @@ class DueAnswers:
 
     def __init__(self) -> None:
         self._attempts: dict[str, CallAttempt] = {}
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self.outcomes = LateQueue()
 
     def __contains__(self, query_id: str) -> bool:

@@ -52,8 +52,6 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
-import time
-import uuid
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -61,8 +59,10 @@ import pykka
 
 from rr_actors import events
 from rr_actors._catalog import ClientRecord, ResourceState
+from rr_actors._core import runtime
 from rr_actors._core.actor import Actor, refuse
 from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.ids import new_id
 from rr_actors._core.replies import FutureReply, Join
 from rr_actors._registrar.calls import (
     AttemptState,
@@ -1173,9 +1173,9 @@ class Reconciling:
             Status.FATAL,
             why,
             source,
-            str(uuid.uuid4()),
+            new_id(),
             FutureReply(),  # (nobody waits for the acknowledgements)
-            sent_at=time.time(),
+            sent_at=runtime.wall(),
         )
         self.redeliver(notice)
         for query_id in ids:

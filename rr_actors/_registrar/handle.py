@@ -42,13 +42,13 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import time
 from collections.abc import Callable
 from typing import Any, Concatenate, ParamSpec, Protocol, Self, TypeVar
 
 import pykka
 
 from rr_actors import events
+from rr_actors._core import runtime
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.exit import REGISTRARS, stop_at_exit
@@ -898,7 +898,7 @@ class Here:
         if on_status is not None and is_coroutine_function(on_status):
             on_status = OnLoop.bind(on_status)  # the loop it was registered from
         limit = self.limit(timeout)
-        deadline = time.monotonic() + limit
+        deadline = runtime.monotonic() + limit
         context = LOADING.get()
         parent: str | None = None
         chain: tuple[str, ...] = ()
@@ -947,7 +947,7 @@ class Here:
     ) -> Steps[list[Query]]:
         _check_names(target_rr=target_rr, server=server)
         limit = self.limit(timeout)
-        deadline = time.monotonic() + limit
+        deadline = runtime.monotonic() + limit
         reply = FutureReply()
         client = yield from self.client(target_rr, server, limit)
         client.tell(FetchVia(server, reply))
@@ -986,7 +986,7 @@ class Here:
         if not self.ref.is_alive():
             return
         limit = self.limit(timeout)
-        deadline = time.monotonic() + limit
+        deadline = runtime.monotonic() + limit
         try:
             until = deadline - limit * (1.0 - STOP_WAITS_FOR_UNLOADS)
             yield from self.asking(Stop(FutureReply(), until), limit, "stop()")
@@ -1030,7 +1030,7 @@ class Here:
         if not self.tell(message):
             raise DIRECTORY.gone_error(self.config.name) from None
         future = message.reply.future
-        if not (yield future, time.monotonic() + limit):
+        if not (yield future, runtime.monotonic() + limit):
             raise CallTimeoutError(f"{what} timed out after {limit:g} s")
         return future.get()
 

@@ -56,8 +56,6 @@ import dataclasses
 import functools
 import hashlib
 import logging
-import threading
-import time
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
@@ -65,6 +63,7 @@ import pykka
 
 from rr_actors import events
 from rr_actors._catalog import Catalog, ClientRecord, Resource, ResourceState
+from rr_actors._core import runtime
 from rr_actors._core.actor import Actor, OneShotFuture, refuse
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.membership import MEMBERSHIP
@@ -164,7 +163,7 @@ class Lifecycle:
         servers: Servers,
         clients: Clients,
         actor: Actor,
-        died: threading.Event,
+        died: runtime.Event,
         ended: OneShotFuture[None],
     ) -> None:
         self.registrar = shared
@@ -300,7 +299,7 @@ class Lifecycle:
             return  # stopping or ended already
         logger.info("registrar %s yields its name: %s", self.registrar.name, message.reason)
         self.registrar.phase = Phase.STOPPING  # (new loads are refused from now on)
-        until = time.monotonic() + self.registrar.config.call_timeout
+        until = runtime.monotonic() + self.registrar.config.call_timeout
         stopped = False
 
         def stop(*_: object) -> None:
@@ -311,7 +310,7 @@ class Lifecycle:
                 self.on_stop(Stop(FutureReply(), until), NO_REPLY)
 
         late = self.registrar.come_back(stop)
-        timer = thread_timer(max(0.0, until - time.monotonic()), lambda: late.set_result(None))
+        timer = thread_timer(max(0.0, until - runtime.monotonic()), lambda: late.set_result(None))
         self.servers.give_up_all(stop)
 
     def on_stop(self, message: Stop, reply: Reply) -> None:
@@ -403,7 +402,9 @@ class Lifecycle:
 
         if until is not None and self.teardown.under_way:
             late = self.registrar.come_back(lambda _value, _error: go(cut_short=True))
-            timer = thread_timer(max(0.0, until - time.monotonic()), lambda: late.set_result(None))
+            timer = thread_timer(
+                max(0.0, until - runtime.monotonic()), lambda: late.set_result(None)
+            )
         self.teardown.when_idle(lambda: go(cut_short=False))
         if not done and until is None:
             go(cut_short=True)

@@ -61,8 +61,6 @@ import contextlib
 import functools
 import inspect
 import logging
-import time
-import uuid
 from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, cast
 
@@ -76,8 +74,10 @@ from rr_actors._catalog import (
     runtime_key,
 )
 from rr_actors._catalog.digest import requests_equal
+from rr_actors._core import runtime
 from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.ids import new_id
 from rr_actors._core.loops import is_coroutine_function, process_loop
 from rr_actors._core.replies import Join
 from rr_actors._core.workers import Workers
@@ -365,7 +365,7 @@ class Provider:
             except ConfigError as exc:
                 message.reply.set_error(exc)
                 return
-        rid = str(uuid.uuid4())
+        rid = new_id()
         resource = self.registrar.catalog.begin_load(rid, message.server, message.request, key=key)
         if server.label is not None:  # its ResourceLoaded names the label: made meanwhile
             self.labelling[rid] = None
@@ -379,7 +379,7 @@ class Provider:
             return
         self.loads[rid] = [waiter]
         self.loading_ids[message.query_id] = rid
-        self.load_started[rid] = time.monotonic()
+        self.load_started[rid] = runtime.monotonic()
         reply = self.registrar.come_back(lambda value, error: self.load_done(rid, value, error))
         server.ref.tell(RunLoad(rid, message.request, (*message.chain, rid), reply))
 
@@ -390,7 +390,7 @@ class Provider:
         for it (`labelled`, bounded by `compare_timeout`), so that its `ResourceLoaded`
         names the label, not the request's text.
         """
-        load_s = time.monotonic() - self.load_started.pop(rid)
+        load_s = runtime.monotonic() - self.load_started.pop(rid)
         if rid in self.labelling and self.registrar.events.active:
             self.labelling[rid] = functools.partial(self.loaded, rid, response, error, load_s)
             return
@@ -1362,7 +1362,7 @@ class Servers:
                     )
             self.teardown.unload_resource(resource, done)
 
-        event = str(uuid.uuid4())
+        event = new_id()
         if self.registrar.events.active:
             self.registrar.events.publish(
                 events.StatusSent(

@@ -32,7 +32,6 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
-import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -40,6 +39,7 @@ import pykka
 
 from rr_actors import events
 from rr_actors._catalog import Catalog, Resource
+from rr_actors._core import runtime
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Continuation, TokenReply, Tokens
@@ -297,7 +297,7 @@ class Probes:
     """The hooks installed on one registrar, by step name (any thread may fire them)."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._before: dict[str, tuple[Hook, ...]] = {}
         self._after: dict[str, tuple[Hook, ...]] = {}
 

@@ -47,17 +47,16 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
-import threading
-import time
-import uuid
 import weakref
 from collections.abc import Callable, Iterable
 from typing import Any
 
 from rr_actors import events
 from rr_actors._catalog import Resource
+from rr_actors._core import runtime
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
+from rr_actors._core.ids import new_id
 from rr_actors._core.loops import OnLoop
 from rr_actors._core.replies import CallbackReply, SharedJoin
 from rr_actors._core.workers import Job, Workers
@@ -102,7 +101,7 @@ class StatusRelay:
         shared = self.registrar
         resource = shared.catalog.resource_of(query_id)
         update = StatusUpdate(query_id, status, message, f"{shared.name}/{resource.server}")
-        event = str(uuid.uuid4())
+        event = new_id()
         told = (
             (events.StatusSent(shared.name, query_id, status, message, event),)
             if shared.events.active
@@ -160,7 +159,7 @@ class StatusRelay:
         if len(self.seen_events) > _SEEN_EVENTS:
             self.seen_events.popitem(last=False)
         join = SharedJoin(then)  # acknowledgements: no trip back through this mailbox
-        sent = time.time() if sent_at is None else sent_at
+        sent = runtime.wall() if sent_at is None else sent_at
         server = self.registrar.servers.get(resource.server)
         query_id = own_query_id or next(iter(resource.consumers), resource.id)
         if server is not None and server.on_status is not None:
@@ -335,7 +334,7 @@ class StatusRelay:
                 continue
             update = StatusUpdate(query_id, message.status, message.message, message.source)
             if self.registrar.events.active:
-                latency = max(0.0, time.time() - message.sent_at)
+                latency = max(0.0, runtime.wall() - message.sent_at)
                 self.registrar.events.publish(
                     events.StatusDelivered(
                         self.registrar.name,
@@ -379,12 +378,10 @@ _HOMES = 4_096
 _SEEN = 16_384
 """(event, query id) pairs a desk remembers, to deliver each once."""
 
-_PROCESS = uuid.uuid4().hex
-
 
 def process() -> str:
     """This process's key in the answers to status batches (a new one after a fork)."""
-    return _PROCESS
+    return DESK.key
 
 
 Parts = tuple[tuple[str, tuple[str, ...]], ...]
@@ -458,7 +455,7 @@ class Runner:
     """
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._calls: collections.deque[_Call] = collections.deque()
         self._drainers = 0  # drainers that take calls (not given up)
         self._running: dict[str, _Drainer] = {}  # query id -> the drainer in its callback
@@ -515,7 +512,7 @@ class Runner:
                     self._drainers -= 1
                     return
                 drainer.query_id = call.query.id
-                drainer.started = time.monotonic()
+                drainer.started = runtime.monotonic()
                 self._running[drainer.query_id] = drainer
             try:
                 call()
@@ -524,11 +521,11 @@ class Runner:
                     if self._running.get(drainer.query_id) is drainer:
                         del self._running[drainer.query_id]
                     if not self._running:
-                        self._quiet_since = time.monotonic()
+                        self._quiet_since = runtime.monotonic()
 
     def _watch_start(self) -> None:
         try:
-            threading.Thread(target=self._watch, name="rr-status-watchdog", daemon=True).start()
+            runtime.Thread(target=self._watch, name="rr-status-watchdog", daemon=True).start()
         except RuntimeError:  # callbacks then run unbounded until a later start works
             logger.exception("no thread to bound the time of status callbacks")
             with self._lock:
@@ -538,8 +535,8 @@ class Runner:
         """The watchdog: every `SLICE`, give up drainers whose callback overran it; end
         after a second with no callback running."""
         while True:
-            time.sleep(SLICE)
-            now = time.monotonic()
+            runtime.sleep(SLICE)
+            now = runtime.monotonic()
             overdue: list[_Drainer] = []
             with self._lock:
                 for drainer in list(self._running.values()):
@@ -569,9 +566,10 @@ class Desk:
         self.targets: weakref.WeakKeyDictionary[LocalPeer, StatusTargets] = (
             weakref.WeakKeyDictionary()
         )
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._seen: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
         self.runner = Runner()
+        self.key = runtime.urandom(16).hex()  # this process's (`process`)
 
     def serve(self, peer: LocalPeer, targets: StatusTargets) -> None:
         """Read `targets` for the registrar behind `peer` (while the directory has it)."""
@@ -602,7 +600,7 @@ class Desk:
                 self.forward(peer, batch, (origin, ids), join, homes)
                 continue
             if homes is not None:
-                homes[origin] = _PROCESS
+                homes[origin] = self.key
             fresh = self.first_time(batch.event, ids)
             if not fresh:
                 continue
@@ -656,7 +654,7 @@ class Desk:
                         query_id,
                         batch.status,
                         batch.hop,
-                        max(0.0, time.time() - batch.sent_at),
+                        max(0.0, runtime.wall() - batch.sent_at),
                         batch.event,
                     )
                 )
@@ -705,13 +703,14 @@ class Desk:
 
     def forget_in_child(self) -> None:
         """In a forked child: the parent's registrars and threads are not here."""
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self.targets = weakref.WeakKeyDictionary()
         self._seen = collections.OrderedDict()
         self.runner = Runner()
+        self.key = runtime.urandom(16).hex()  # one key per process
 
 
-DESK = Desk()
+DESK = runtime.process_state(Desk(), Desk)
 """This process's status desk."""
 
 
@@ -726,7 +725,7 @@ class Routes:
     """
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self.homes: dict[str, str] = {}
         self.relays: dict[str, str] = {}
 
@@ -778,10 +777,4 @@ class Routes:
             del self.relays[home]
 
 
-def _forget_in_child() -> None:
-    global _PROCESS  # one key per process
-    _PROCESS = uuid.uuid4().hex
-    DESK.forget_in_child()
-
-
-fork.after_fork_in_child("the status desk", _forget_in_child)
+fork.after_fork_in_child("the status desk", DESK.forget_in_child)

@@ -15,8 +15,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import sqlite3
-import threading
 from pathlib import Path
+
+from rr_actors._core import runtime
 
 __all__ = [
     "CHECKPOINT_BUSY_TIMEOUT",
@@ -78,11 +79,11 @@ class Checkpointer:
     def __init__(self, path: Path, synchronous: str) -> None:
         self._path = path.resolve()  # the thread connects later: a chdir must not matter
         self._synchronous = synchronous
-        self._wake = threading.Event()
+        self._wake = runtime.Event()
         self._closing = False
-        self._thread: threading.Thread | None = None
+        self._thread: runtime.Thread | None = None
         self._db: sqlite3.Connection | None = None  # the thread's connection, once open
-        self.done = threading.Condition()
+        self.done = runtime.Condition()
         """Notified after each checkpoint (tests and benchmarks wait on it)."""
         self._running = False
         self.checkpoints = 0
@@ -97,7 +98,7 @@ class Checkpointer:
         if self._thread is not None and not self._thread.is_alive():
             return False
         if self._thread is None:
-            thread = threading.Thread(
+            thread = runtime.Thread(
                 target=self._run, name=f"rr-actors-checkpoint:{self._path.name}", daemon=True
             )
             try:

@@ -28,12 +28,12 @@ import errno as errno_names
 import gc
 import os
 import sqlite3
-import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from rr_actors._catalog import NO_DIGEST, ClientRecord, Resource
+from rr_actors._core import runtime
 from rr_actors._store import schema
 from rr_actors._store.codec import (
     STATES_BY_CODE,
@@ -189,7 +189,7 @@ def temporary_path(path: Path, purpose: str) -> Path:
     `.<name>.<8 hex>.<purpose>` if SQLite can open that (see `check_location`), else
     the shorter `.<8 hex>.<purpose>`.
     """
-    token = uuid.uuid4().hex[:8]
+    token = runtime.urandom(4).hex()
     named = path.with_name(f".{path.name}.{token}.{purpose}")
     if _length_problem(named) is None:
         return named
@@ -569,7 +569,9 @@ def quarantine_backup(path: str | os.PathLike[str]) -> Path:
     file = Path(os.fspath(path))
     if not _is_file(file):
         raise ConfigError(f"no catalog backup to quarantine at {str(file)!r}")
-    stamp = datetime.datetime.now(datetime.UTC).strftime("%Y%m%dT%H%M%S.%fZ")
+    stamp = datetime.datetime.fromtimestamp(runtime.wall(), datetime.UTC).strftime(
+        "%Y%m%dT%H%M%S.%fZ"
+    )
     target = file.with_name(f"{file.name}.corrupt-{stamp}")
     for suffix in SIDE_FILES:  # companions first: the main file's name is the anchor
         side = Path(f"{file}{suffix}")

@@ -30,9 +30,9 @@ its `timeout`: from a loop, `await asyncio.to_thread(sup.flush_events)`.
 from __future__ import annotations
 
 import asyncio
-import threading
 from typing import TYPE_CHECKING, Any
 
+from rr_actors._core import runtime
 from rr_actors._core.loops import run_steps_async
 from rr_actors._core.replies import Steps, on_own_thread
 from rr_actors._supervision.retry import MISSING
@@ -72,7 +72,7 @@ class AsyncSupervision:
             SupervisorGaveUpError: a child failed to start (see `start`).
             ConfigError: as for `start`.
         """
-        lock = threading.Lock()
+        lock = runtime.Lock()
         state = {"cancelled": False, "started": False}
 
         def start() -> None:
@@ -90,7 +90,7 @@ class AsyncSupervision:
                 state["cancelled"] = True
                 stop = state["started"]
             if stop:  # (it started just before the cancel: stopped here, on a thread)
-                threading.Thread(target=self.stop, name=f"rr-stop-{self.name}").start()
+                runtime.Thread(target=self.stop, name=f"rr-stop-{self.name}").start()
             raise
         return self
 

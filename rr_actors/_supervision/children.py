@@ -18,10 +18,10 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal, Protocol
 
+from rr_actors._core import runtime
 from rr_actors._process.manager import ManagerExit, ManagerProcess, stopped_cleanly
 from rr_actors._registrar import Served, start_registrar
 from rr_actors.config import (
@@ -178,7 +178,7 @@ class ThreadManager:
             else:
                 on_exit(ManagerExit("crashed (registrar actor died)", normal=False))
 
-        threading.Thread(target=watch, name=f"rr-watch-{spec.name}", daemon=True).start()
+        runtime.Thread(target=watch, name=f"rr-watch-{spec.name}", daemon=True).start()
 
     def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
         """Stop the registrar cleanly; tell its actor to crash if that takes too long.

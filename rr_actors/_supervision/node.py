@@ -27,10 +27,10 @@ from __future__ import annotations
 import functools
 import logging
 import os
-import time
 from collections.abc import Callable
 from typing import TypeVar
 
+from rr_actors._core import runtime
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._supervision.children import Child
 from rr_actors._supervision.exits import Exits
@@ -143,7 +143,7 @@ class Node:
         restart): its managers' callers meanwhile get `RegistrarUnavailableError`.
         """
         if deadline is None and timeout is not None:
-            deadline = time.monotonic() + timeout
+            deadline = runtime.monotonic() + timeout
         if not self._running:
             return
         self._running = False

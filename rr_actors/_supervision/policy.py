@@ -9,9 +9,9 @@ back with it (`affected`); the restart intensity decides when the supervisor giv
 from __future__ import annotations
 
 import collections
-import time
 from collections.abc import Callable, Sequence
 
+from rr_actors._core import runtime
 from rr_actors.config import RestartType, Strategy
 
 __all__ = ["Clock", "RestartIntensity", "affected", "restarts_after", "restarts_with_group"]
@@ -26,10 +26,10 @@ class RestartIntensity:
     Pure logic over an injectable clock (no threads).
     """
 
-    def __init__(self, max_restarts: int, period: float, clock: Clock = time.monotonic) -> None:
+    def __init__(self, max_restarts: int, period: float, clock: Clock | None = None) -> None:
         self.max_restarts = max_restarts
         self.period = period
-        self.clock = clock
+        self.clock = runtime.monotonic if clock is None else clock
         self._times: collections.deque[float] = collections.deque()
 
     def add(self) -> bool:

@@ -20,11 +20,10 @@ moment it subscribed.
 
 from __future__ import annotations
 
-import threading
-import time
 from typing import Any
 
 from rr_actors import events
+from rr_actors._core import runtime
 from rr_actors._core.bus import Publisher
 from rr_actors._process.manager import ManagerProcess
 from rr_actors._registrar.actor import EVENT_LOG
@@ -44,9 +43,9 @@ class EventRelay:
 
     def __init__(self) -> None:
         self.publisher: Publisher[events.Event] = events.publisher(EVENT_LOG)
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._listened = False
-        self._since = 0.0  # `time.time()` of the last switch on: older events are dropped
+        self._since = 0.0  # `runtime.wall()` of the last switch on: older events are dropped
         self._processes: list[ManagerProcess] = []
         self.publisher.watch_listeners(self._switch)
 
@@ -73,12 +72,12 @@ class EventRelay:
         Returns:
             Whether every one answered within `timeout` seconds.
         """
-        deadline = time.monotonic() + timeout
+        deadline = runtime.monotonic() + timeout
         with self._lock:
             processes = [p for p in self._processes if not p.exited.is_set()]
         answered = True
         for process in processes:  # (every one, also after one did not answer)
-            answered = process.sync_events(max(0.0, deadline - time.monotonic())) and answered
+            answered = process.sync_events(max(0.0, deadline - runtime.monotonic())) and answered
         return answered
 
     def deliver(self, batch: list[Any]) -> None:
@@ -92,7 +91,7 @@ class EventRelay:
     def _switch(self, listened: bool) -> None:
         with self._lock:
             if listened and not self._listened:
-                self._since = time.time()
+                self._since = runtime.wall()
             self._listened = listened
             self._processes = [p for p in self._processes if not p.exited.is_set()]
             for process in self._processes:

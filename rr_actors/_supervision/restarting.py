@@ -21,11 +21,11 @@ and whether (and why) this supervisor gave up.
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from rr_actors import events
+from rr_actors._core import runtime
 from rr_actors._core.timers import Cancellable
 from rr_actors._process.manager import ManagerExit
 from rr_actors._supervision.policy import (
@@ -149,7 +149,7 @@ class Restarts:
             record.post(event)
             return
         logger.info("supervisor %s: restarting %s in %.3f s", record.name, ", ".join(names), delay)
-        tree.restart_due.update(dict.fromkeys(names, time.time() + delay))  # (the observer's)
+        tree.restart_due.update(dict.fromkeys(names, runtime.wall() + delay))  # (the observer's)
         record.publish()
         self._timers.append(tree.timer(delay, lambda: record.post(event)))
 

@@ -20,11 +20,11 @@ may be any registrar handle (in this process, or in a manager process).
 
 from __future__ import annotations
 
-import time
-import uuid
 from collections.abc import Callable
 from typing import Any, Protocol
 
+from rr_actors._core import runtime
+from rr_actors._core.ids import new_id
 from rr_actors._core.replies import Steps
 from rr_actors._registrar import Registrar, give_back
 from rr_actors._registrar.handle import call_steps
@@ -92,12 +92,12 @@ def call_with_retry(
     """
     _check(consumer, target_rr, server, request, timeout, query_id)
     limit = timeout if timeout is not None else consumer.config.call_timeout
-    qid = query_id or str(uuid.uuid4())
-    deadline = time.monotonic() + limit
+    qid = query_id or new_id()
+    deadline = runtime.monotonic() + limit
     while True:
         found = _lookup(tree, target_rr)
         before = found.restarts if found is not None else 0
-        left = deadline - time.monotonic()
+        left = deadline - runtime.monotonic()
         if left <= 0:
             abandon(target_rr, qid, consumer.name)
             raise CallTimeoutError(f"call to '{target_rr}/{server}' timed out after {limit:g} s")
@@ -120,7 +120,7 @@ def call_with_retry(
             now = _lookup(tree, target_rr)  # stopped by its supervisor for a restart?
             if now is None or now.state not in _WAITING_STATES:
                 raise
-        wait = max(deadline - time.monotonic(), 1e-3)
+        wait = max(deadline - runtime.monotonic(), 1e-3)
         try:
             yield from tree._restart_wait(target_rr, wait, before + 1)
         except CallTimeoutError:

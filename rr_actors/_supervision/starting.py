@@ -19,11 +19,11 @@ supervisor's thread. Its own state: the state directory its managers' catalogs g
 from __future__ import annotations
 
 import os
-import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from rr_actors import events
+from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._process.manager import ManagerExit
 from rr_actors._supervision.children import (
@@ -178,7 +178,7 @@ class Starting:
         if not restarted:
             publisher.publish(events.ChildStarted(record.name, child.name, pid))
             return
-        restart_s = 0.0 if down_since is None else time.monotonic() - down_since
+        restart_s = 0.0 if down_since is None else runtime.monotonic() - down_since
         publisher.publish(events.ChildRestarted(record.name, child.name, pid, restart_s))
 
     def _start_nested(self, spec: SupervisorSpec, incarnation: int) -> NestedSupervisor:

@@ -17,10 +17,10 @@ as restarting while they are down.
 
 from __future__ import annotations
 
-import time
 from typing import TYPE_CHECKING
 
 from rr_actors import events
+from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._supervision.record import pid_of
 from rr_actors._supervision.tree import consumer_down
@@ -39,7 +39,7 @@ def left(deadline: float | None) -> float | None:
     """Seconds left until `deadline` (at least 1 ms), or `None` without one."""
     if deadline is None:
         return None
-    return max(deadline - time.monotonic(), _MIN_STOP)
+    return max(deadline - runtime.monotonic(), _MIN_STOP)
 
 
 def registrar_names(spec: ManagerSpec | SupervisorSpec) -> list[str]:
@@ -117,7 +117,7 @@ class Stopping:
     def note_exit(self, child: Child, pid: int, reason: str) -> None:
         """Note when `child` went down, and publish `ChildExited`."""
         tree = self.record.tree
-        tree.down_since[child.name] = time.monotonic()
+        tree.down_since[child.name] = runtime.monotonic()
         publisher = tree.events.publisher
         if publisher.active:
             publisher.publish(events.ChildExited(self.record.name, child.name, pid, reason))

@@ -40,12 +40,11 @@ import contextlib
 import functools
 import itertools
 import os
-import random as _random
-import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from rr_actors import events
+from rr_actors._core import runtime
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.exit import SUPERVISORS, stop_at_exit
 from rr_actors._core.replies import Steps, run_steps
@@ -146,10 +145,12 @@ class Supervisor(AsyncSupervision):
             tree at a time uses it: `start` locks it (`<state_dir>/.lock`, holding the
             holder's pid) until `stop` or the process's death.
         name: this supervisor's name (for logs and thread names).
-        clock: monotonic clock in seconds for the intensity window (injectable for tests).
+        clock: monotonic clock in seconds for the intensity window (injectable for tests;
+            `None`: the process's, `time.monotonic`).
         timer: `timer(delay, fn)` that runs `fn` after `delay` seconds (injectable for tests);
             a zero delay restarts without a timer.
-        random: float in `[0, 1)` for the backoff jitter (injectable for tests).
+        random: float in `[0, 1)` for the backoff jitter (injectable for tests; `None`:
+            `random.random`).
         network: the carrier the tree's managers and `registrar()`s are served on: any
             `Transport` (an AF_UNIX `System`, a `ZenohNetwork`); its process managers
             join it through its `address`. The supervisor does not close it (its owner
@@ -170,9 +171,9 @@ class Supervisor(AsyncSupervision):
         backoff: Backoff | None = None,
         state_dir: str | os.PathLike[str] | None = None,
         name: str | None = None,
-        clock: Clock = time.monotonic,
+        clock: Clock | None = None,
         timer: Timer = thread_timer,
-        random: Callable[[], float] = _random.random,
+        random: Callable[[], float] | None = None,
         network: Transport | None = None,
     ) -> None:
         _check_network(network)
@@ -192,7 +193,13 @@ class Supervisor(AsyncSupervision):
             backoff=backoff if backoff is not None else Backoff(),
             state_dir=state_dir,
         )
-        self._tree = Tree(self._spec, clock=clock, timer=timer, random=random, network=network)
+        self._tree = Tree(
+            self._spec,
+            clock=runtime.monotonic if clock is None else clock,
+            timer=timer,
+            random=random,
+            network=network,
+        )
         self._node = Node(self._spec, self._tree)
         self._lock: StateDirLock | None = None
         self._registrars: list[ResourceRegistrar] = []
@@ -288,7 +295,7 @@ class Supervisor(AsyncSupervision):
         """
         if timeout is not None:
             check_seconds("timeout", timeout)
-        deadline = None if timeout is None else time.monotonic() + timeout
+        deadline = None if timeout is None else runtime.monotonic() + timeout
         if not self._started:
             self._watch.close_observers()  # opened on a supervisor that never started
         if not self._started or self._stopped:

@@ -21,14 +21,12 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-import random as _random
-import threading
-import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import cloudpickle
 
+from rr_actors._core import runtime
 from rr_actors._core.replies import FutureReply, Steps
 from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._process.spare import SparePool
@@ -162,27 +160,27 @@ class Tree:
         *,
         clock: Clock,
         timer: Timer = thread_timer,
-        random: Callable[[], float] = _random.random,
+        random: Callable[[], float] | None = None,
         network: Transport | None = None,
     ) -> None:
         self.spec = spec
-        self.cond = threading.Condition()  # published snapshots of the whole tree; waiters
+        self.cond = runtime.Condition()  # published snapshots of the whole tree; waiters
         self.watchers: set[Callable[[], object]] = set()  # woken at each change (lock held)
         self._version = 0  # changes published so far (`wait_changed`)
         self.specs = {child.name: child for child, _ in walk(spec)}
         self.clock = clock
         self.timer = timer
-        self.random = random
+        self.random = runtime.random if random is None else random
         self.latest: dict[str, ChildInfo] = {}  # the last published snapshot of every child
         self.restarts: dict[str, int] = {}  # starts after the first, across incarnations
         self.started: set[str] = set()
-        self.abandon_lock = threading.Lock()
+        self.abandon_lock = runtime.Lock()
         self.abandon_later: dict[str, list[tuple[str, str]]] = {}  # name -> (query id, origin)
         self.wait_cursor: dict[str, int] = {}
         self.processes = Processes(spec, network)  # what process managers share
         self.events = EventRelay()  # the tree's events (`Supervisor.subscribe`)
         self.down_since: dict[str, float] = {}  # name -> when its last incarnation ended
-        self.restart_due: dict[str, float] = {}  # name -> when its backoff ends (time.time())
+        self.restart_due: dict[str, float] = {}  # name -> when its backoff ends (runtime.wall())
 
     # -- changes: what waiters (wait_restarted, the observer) wait for ----------------------
 
@@ -426,7 +424,7 @@ class RestartWait:
             RrError: what it came to (`result`).
         """
         tree = self.tree
-        deadline = time.monotonic() + timeout
+        deadline = runtime.monotonic() + timeout
         decided = FutureReply()
 
         def look() -> None:  # now, and at each publish of the tree (its lock held)

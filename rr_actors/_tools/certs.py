@@ -39,7 +39,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from rr_actors._transport.zenoh.access import private_dir_trouble, private_file_trouble
+from rr_actors._transport.zenoh.ops.access import private_dir_trouble, private_file_trouble
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError
 

@@ -3,13 +3,15 @@
 A registrar talks to other registrars only through the directory
 (`rr_actors._core.directory`): it looks a name up and `tell`s the `Peer` it gets a
 message (`Load`, `Unload`, `StatusNotice`, ...); a message that wants an answer carries a
-`Reply`. A *carrier* makes names of other processes resolvable and moves the messages:
+`Reply`. A process's membership of a system (its `Transport`: a messenger over one
+carrier, `messenger.py`) makes names of other processes resolvable and moves the
+messages:
 
 ```
  process A                                          process B
- registrar ──lookup(name)──► Directory ──resolve──► Carrier.resolve(name) -> Peer
-    │                                                     │
-    └── peer.tell(message) ── bytes / samples ──► carrier delivers to the local registrar
+ registrar ──lookup(name)──► Directory ──resolve──► Transport.resolve(name) -> Peer
+    │                                                 (carrier.knows, carrier.peer)
+    └── peer.tell(message) ── bytes / samples ──► the carrier delivers to the registrar
                                                       (DIRECTORY.lookup(name).tell(message))
     reply.set_result/set_error ◄──── the answer ◄──── the message's stand-in reply
 ```
@@ -48,7 +50,7 @@ The contract every carrier keeps (the transport tests check it for each one):
   names (a manager process's supervisor) or, while `DIRECTORY.restart_expected(name)`,
   its own process speaks for it; a process that merely joined the system has nobody.
   Each carrier says who that is: Zenoh in the registrar's liveliness token, AF_UNIX in
-  `<runtime_dir>/<name>.restart` (`unix/rendezvous.py` says how, and its limits);
+  `<runtime_dir>/<name>.restart` (`unix/system.py` says how, and its limits);
 - **presence**: `Endpoint.peer_reachable(name)` when a registrar that could not be
   reached answers again (a healed link, not a restart); the consumer side retries its
   `Reconcile` until it is answered; `names()` lists the registrars it can reach;
@@ -70,8 +72,10 @@ behind a cut link) as gone: its replies fail with `RegistrarUnavailableError` th
 
 Carriers: `unix/` (AF_UNIX sockets in a private runtime directory, authenticated with a
 per-system key) and `zenoh/` (`zenoh/net.py`'s `ZenohNetwork`, `zenoh/carrier.py`: Eclipse Zenoh
-across hosts, presence by liveliness tokens). Each implements `Transport` and `Address`
-and needs no change in the registrar.
+across hosts, presence by liveliness tokens). Each gives a `Messenger` (which is the
+`Transport`) its `Carrier` (`messenger.py`: a route per registrar reached, a listening
+per registrar served, answers back, liveliness reports) and an `Address`, and needs no
+change in the registrar.
 """
 
 from __future__ import annotations

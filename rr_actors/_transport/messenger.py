@@ -1,39 +1,57 @@
-"""The messenger: what every carrier does with a message, written once over a thin link.
+"""The messenger: what every carrier does with a name and a message, written once.
 
-A carrier moves frames to a name's process and back, and reports processes and servers
-coming and going; everything a message needs besides is here, once for every carrier,
-and the messenger drives the carrier through two small interfaces: a `Route` per
-registrar reached (send a frame; it broke) and a `Link` per process (send an answer back
-to the process a message came from):
+A carrier moves frames between this process and the others of a system and reports
+what it sees of them coming and going; the rest is here, once for every carrier, as
+xoscar writes calls, futures and errors once above its `Channel`. A `Messenger` is one
+process's membership of a system: the `Transport` surface (resolve, serve, run, names,
+close), the names served here, the reply tokens, the stand-in reply, size limits,
+compensation, "send when served" and telling every endpoint what the carrier reports.
+The carrier gives it a `Route` per registrar reached, a `Listening` per registrar
+served here, and a link back to the process a message came from (`Carrier`):
 
 ```
+ naming (any thread)
+ Messenger.resolve(name) ─ served here? None ─ carrier.knows(name)? ─► carrier.peer(name)
+ Messenger.serve(endpoint) ─ the old one of that name (a restart here) stops ─►
+   carrier.listen(endpoint) -> Listening ─ listed ─ listening.settle() ─ watched: its
+   end stops it (Listening.stop) ─ endpoint.listening()
+ Messenger.run(name, fn): served here: fn on this thread; else peer.run(fn)
+
  sending (any thread)
  Remote.tell(message) ─► send(): encode (reply kept under a token), route = peer.route()
    ├─ over route.limit? MessageTooLargeError; unpicklable? ConfigError (nothing sent)
    ├─ route.pending.expect(reply)  (`Replies`: where it waits for its answer)
    └─ route.send(frame) ──────────────────────► the carrier: to the name's process
-        False (the route went): forget the reply, route.broken(), once more or
-        peer.gone()
+        False (the route went): forget the reply, route.broken(), once more or gone()
+ on an actor's thread, to a name a carrier has to ask the network for (its `Lanes`):
+   send_when_served(): encode here; on the name's lane (a carrier's thread, in order
+   with what follows): lanes.found(name)? check size, expect, send now : fail the reply
  Remote.run(fn) ─► submit(fn): tell(Run(fn, reply)) ─► wait (an event loop awaits it)
 
  receiving (the carrier's receiving thread calls the messenger)
  bytes for a registrar here ─► Messenger.message(endpoint, process, token, payload):
    over its limit? refused unread; unpickle; `StandIn` reply; tell the registrar
- the stand-in answers ─► pickles? over the limit? ─► link.answer_to(process, frame);
+ the stand-in answers ─► pickles? over the limit? ─► carrier.answer_to(process, frame);
    lost on the way: the message's compensation() to the registrar (`compensate`)
  an answer ─► route.pending.answered / too_large / refused (`Replies`; too large or
    unreadable: compensate)
+
+ what the carrier reports (its threads)
  a route or a server gone ─► route.pending.fail / Replies.fail(name): at once
- a registrar lost for good / reachable again ─► `tell_lost` / `tell_reachable`: the
-   process's membership (`_core/membership.py`) records it and every registrar here
-   hears it (rule 19, rule 20)
+ a registrar lost for good / reachable again ─► Messenger.lost / reachable: the
+   process's membership (`_core/membership.py`) records it and every registrar served
+   here hears it (rule 19, rule 20)
+ another process's server of a name served here is kept (rule 22) ─► give_way:
+   stop serving it, the registrar yields its name; at its end, its consumers here
+   reconcile with the one kept (`reachable`)
 ```
 
-Carriers: `unix/` (a route is one connection: `_Channel`; answers go back on the
-connection a message came on), `zenoh/` (a route is a registrar's key and the server
-seen for it; answers go to the sender's answer key) and the in-memory double
-(`rr_actors.testing.MemoryNetwork`). Each keeps only its framing, threads and presence.
-Nothing here blocks on a peer: what it sends is queued or dropped by the carrier.
+Carriers: `unix/` (a route is one connection; answers go back on the connection a
+message came on; presence from the runtime directory's files), `zenoh/` (a route is a
+registrar's key and the server seen for it; answers go to the sender's answer key;
+presence from liveliness tokens) and the in-memory double
+(`rr_actors.testing.MemoryNetwork`). Nothing here blocks on a peer: what it sends is
+queued or dropped by the carrier.
 """
 
 from __future__ import annotations
@@ -43,7 +61,8 @@ import contextlib
 import itertools
 import logging
 import pickle
-from collections.abc import Callable, Iterable
+import threading
+from collections.abc import Callable
 from typing import Any, NamedTuple, Protocol
 
 from rr_actors._core.directory import DIRECTORY, Peer, Reply
@@ -60,10 +79,15 @@ from rr_actors.errors import (
     RrError,
     TransferError,
     UnknownRegistrarError,
+    UnknownServerError,
+    _known_names,
 )
 
 __all__ = [
-    "Link",
+    "Carrier",
+    "Lane",
+    "Lanes",
+    "Listening",
     "Lost",
     "Messenger",
     "Outgoing",
@@ -73,8 +97,7 @@ __all__ = [
     "StandIn",
     "run_lost",
     "send",
-    "tell_lost",
-    "tell_reachable",
+    "send_when_served",
 ]
 
 logger = logging.getLogger("rr_actors")
@@ -97,10 +120,62 @@ Raises:
 """
 
 
+# -- what a carrier implements --------------------------------------------------------------
+
+
+class Carrier(Protocol):
+    """A carrier's link between this process and the others of its system: what the
+    messenger asks of it. What it tells the messenger is the other half: bytes for a
+    registrar served here (`Messenger.message`, `oversized`), an answer (the route's
+    `pending`: `Replies.answered`, `too_large`, `refused`), a route or a server gone
+    (`Replies.fail`), and its liveliness reports (`Messenger.lost`, `reachable`,
+    `give_way`), each with the evidence it has."""
+
+    def knows(self, name: str) -> bool:
+        """Whether registrar `name` of another process is served on the system, or was
+        (its messages then fail as for a registrar gone): a peer of it may be made.
+
+        Raises:
+            UnknownRegistrarError: the carrier asked, and nobody serves it (Zenoh).
+            RegistrarUnavailableError: it could not tell in time (a network that did
+                not answer).
+        """
+        ...
+
+    def peer(self, name: str) -> Remote:
+        """A peer of registrar `name` of another process (made once; the messenger keeps it)."""
+        ...
+
+    def listen(self, endpoint: Endpoint) -> Listening:
+        """Take frames for a registrar of this process from now on (the server side).
+
+        Raises:
+            DuplicateNameError: another process of the system serves that name.
+            ConfigError: the carrier cannot serve it (a bad name or address).
+            RegistrarUnavailableError: it cannot tell in time whether another process
+                serves it.
+        """
+        ...
+
+    def answer_to(self, process: Any, data: bytes, on_lost: Lost | None) -> bool:
+        """Send an answer frame back to `process` (the sender the carrier named with the
+        message; never blocks on it); False if it is gone (nothing sent)."""
+        ...
+
+    def names(self) -> list[str]:
+        """The registrars of the system it can reach now (see `Transport.names`)."""
+        ...
+
+    def leave(self) -> None:
+        """This process leaves the system (served registrars are stopped already): fail
+        what still waits, end its threads, close what it opened."""
+        ...
+
+
 class Route(Protocol):
     """The way to one registrar's process, now (a carrier's): what a send needs of it.
 
-    The AF_UNIX carrier's route is a connection (`unix/outbound.py`'s `_Channel`), the
+    The AF_UNIX carrier's route is a connection (`unix/link.py`'s `_Channel`), the
     Zenoh carrier's the registrar's key and the server seen for it
     (`zenoh/carrier.py`'s `_Route`), the in-memory double's its delivery queue.
     """
@@ -126,24 +201,158 @@ class Route(Protocol):
         ...
 
 
-class Link(Protocol):
-    """What the messenger asks of a carrier, besides each registrar's `Route`: sending
-    an answer back to the process a message came from.
+class Lane(Protocol):
+    """A carrier's ordered queue to one name, with a thread that may wait on the network
+    (Zenoh's outbox of a registrar's key): "send when served" runs there."""
 
-    What a carrier tells the messenger is the other half of the link: bytes for a
-    registrar served here (`Messenger.message`, `Messenger.oversized`), an answer
-    (`Replies.answered`, `Replies.too_large`, `Replies.refused` of the route's
-    `pending`), a route or a server gone (`Replies.fail`), a registrar lost for good or
-    reachable again (`tell_lost`, `tell_reachable`).
-    """
-
-    def answer_to(self, process: Any, data: bytes, on_lost: Lost | None) -> bool:
-        """Send an answer frame back to `process` (the sender the carrier named with the
-        message; never blocks on it); False if it is gone (nothing sent)."""
+    def run(self, task: Callable[[], None]) -> bool:
+        """Run `task` on the lane's thread, in order with what is sent to the name; False
+        if the lane is closed. If it closes before `task` ran, `task.dropped()` runs."""
         ...
 
 
-def run_lost(callbacks: Iterable[Lost]) -> None:
+class Lanes(Protocol):
+    """What "send when served" asks of a carrier whose routes may have to ask the network
+    (Zenoh's; its peers' `tell` decides when: `unseen`, on an actor's thread)."""
+
+    def unseen(self, name: str) -> bool:
+        """Whether it sees no server of `name` now, and did not hear it stop."""
+        ...
+
+    def lane(self, name: str) -> Lane | None:
+        """The lane of `name` (`None`: this process left the system)."""
+        ...
+
+    def found(self, name: str, lane: Lane) -> Route | None:
+        """On `lane`'s thread: ask the network for the server of `name` (bounded); its
+        route, whose `send` sends at once on this thread; `None` if nobody serves it
+        (the lane is then retired: what waits behind fails too)."""
+        ...
+
+    def unreached(self, name: str) -> RrError:
+        """The error of a message held for `name` when nobody serves it."""
+        ...
+
+
+class Listening(abc.ABC):
+    """A registrar of this process as its carrier serves it: the server side of the link.
+
+    The messenger stops it once (`stop`, holding `lock`: a second stop waits until the
+    first is done), when the registrar ends, when this process leaves the system, or
+    when it yields its name (`yielded`, rule 22).
+    """
+
+    def __init__(self, endpoint: Endpoint) -> None:
+        self.endpoint = endpoint
+        self.name = endpoint.name
+        self.lock = threading.Lock()
+        self.ended = False
+        self.yielded = False
+
+    @abc.abstractmethod
+    def stop(self, *, stopped: bool) -> None:
+        """Stop taking frames for it; `stopped`: it was stopped cleanly (say so to the
+        others: their messages fail with `RegistrarStoppedError`, not unavailable)."""
+
+    def settle(self) -> None:  # noqa: B027 - a hook: most carriers need nothing
+        """Listed as served now: settle what the carrier heard meanwhile (Zenoh: a rival
+        server, rule 22) and return once the others can find it."""
+
+    def trouble(self) -> tuple[float, str] | None:
+        """For how long (seconds) and why it has been unable to take new connections."""
+        return None
+
+    def forget_in_child(self) -> None:  # noqa: B027 - a hook: most carriers need nothing
+        """In a forked child: let go of the parent's listener without touching it."""
+
+
+class Remote(abc.ABC):
+    """A registrar of another process as a `Peer`: `tell` and `run` are here; a carrier
+    gives each name its `route()` and the error of a name that cannot be reached.
+
+    A peer whose route may have to ask the network (Zenoh's) sends, on an actor's
+    thread, which must never wait on the network, a message to a name its carrier does
+    not see served from the name's lane (`send_when_served`, over the carrier's `Lanes`).
+    """
+
+    name: str
+
+    @abc.abstractmethod
+    def route(self) -> Route:
+        """The way to the registrar now (a carrier's).
+
+        Raises:
+            RegistrarUnavailableError: its process is gone or cannot be reached.
+            RegistrarStoppedError: it was stopped, or this process left the system.
+        """
+
+    @abc.abstractmethod
+    def gone(self) -> RrError:
+        """The error of a message whose frame could not leave (the route went)."""
+
+    def tell(self, message: Any) -> None:
+        """Send `message`; its reply (if any) is answered later. Never blocks on the peer.
+
+        Called from any thread of this process. Messages told to one peer from one
+        process arrive in the order they were told. A peer that is unreachable, frozen
+        or dies later fails the reply (`RegistrarUnavailableError`, or
+        `RegistrarStoppedError` if it was stopped); a caller waiting on it with a
+        timeout gets its `CallTimeoutError` in time.
+
+        Raises:
+            ConfigError: the message (say, the request of a call) cannot be pickled.
+            MessageTooLargeError: pickled, it is larger than the remote registrar's
+                `max_message_bytes`; nothing of it was sent.
+            RegistrarUnavailableError: the registrar's process is known to be unreachable.
+            RegistrarStoppedError: it was stopped, or this process left the system.
+        """
+        send(self, message)
+
+    def deliver(self, message: Any) -> None:
+        """`tell` (a registrar of another process is never run on this thread)."""
+        self.tell(message)
+
+    def run(self, fn: Callable[[Any], Any], *, timeout: float) -> Any:
+        """Run `fn(registrar)` in the registrar's process and return its result.
+
+        `fn` is cloudpickled (closures work) and runs on a fresh thread there, so it may
+        block, e.g. on `registrar.send_status(...)`.
+
+        Args:
+            fn: called with the remote `ResourceRegistrar`; its result must pickle.
+            timeout: seconds to wait for the result.
+
+        Returns:
+            What `fn` returned.
+
+        Raises:
+            CallTimeoutError: no result within `timeout` seconds.
+            RegistrarUnavailableError: the registrar's process died or is unreachable.
+            RegistrarStoppedError: the registrar was stopped.
+            ConfigError: `fn` does not pickle.
+            RrError: its result does not pickle (the message says so).
+            Exception: whatever `fn` raised, re-raised here.
+        """
+        return wait(self.submit(fn).future, timeout, f"run() on registrar {self.name!r}")
+
+    def submit(self, fn: Callable[[Any], Any]) -> FutureReply:
+        """`run` without the wait: send `fn`; its result (or error) settles the reply's
+        future (an error sending it too), whoever waits for it, a thread or a loop."""
+        reply = FutureReply()
+        try:
+            self.tell(Run(fn, reply))
+        except RrError as exc:
+            reply.set_error(exc)
+        return reply
+
+    def close(self, error: RrError) -> None:  # noqa: B027 - a hook: most carriers need nothing
+        """Drop the route this peer holds, if any; what waits on it fails with `error`."""
+
+    def forget_in_child(self) -> None:  # noqa: B027 - a hook: most carriers need nothing
+        """In a forked child: drop the parent's route without touching it."""
+
+
+def run_lost(callbacks: list[Lost]) -> None:
     """Run the `on_lost` of frames that did not leave; one that raises is logged."""
     for on_lost in callbacks:
         try:
@@ -230,79 +439,72 @@ def send(peer: Remote, message: Any) -> None:
     raise peer.gone()
 
 
-class Remote(abc.ABC):
-    """A registrar of another process as a `Peer`: `tell` and `run` are here; a carrier
-    gives each name its `route()` and the error of a name that cannot be reached."""
+def send_when_served(peer: Remote, lanes: Lanes, message: Any) -> None:
+    """Send `message` to registrar `peer.name`, which the carrier does not see served
+    (`Lanes.unseen`), without waiting: an actor's thread must answer its next message
+    (a supervisor's heartbeat too) however slow the network is.
 
-    name: str
+    It is framed here and queued on the name's lane, in order with what is sent to that
+    name after it; there the network is asked (`Lanes.found`), then the frame is sent
+    to the server found, or its reply fails: `Lanes.unreached` if nobody serves the
+    name, `MessageTooLargeError` if it is over that server's `max_message_bytes`. A
+    message without a reply is then dropped (logged at debug level), as the registrar
+    drops one that cannot be sent at once.
 
-    @abc.abstractmethod
-    def route(self) -> Route:
-        """The way to the registrar now (a carrier's).
+    Raises:
+        ConfigError: the message cannot be pickled.
+        RrError: `peer.gone()` if no lane takes it (this process left the system).
+    """
+    outgoing = encode(peer.name, message)
+    for _attempt in (1, 2):  # (the second: its lane was just retired, nobody's)
+        lane = lanes.lane(peer.name)
+        if lane is None:
+            break
+        if lane.run(_WhenServed(peer, lanes, outgoing, lane)):
+            return
+    raise peer.gone()
 
-        Raises:
-            RegistrarUnavailableError: its process is gone or cannot be reached.
-            RegistrarStoppedError: it was stopped, or this process left the system.
-        """
 
-    @abc.abstractmethod
-    def gone(self) -> RrError:
-        """The error of a message whose frame could not leave (the route went)."""
+class _WhenServed:
+    """A message held on its name's lane until the network says who serves the name."""
 
-    def tell(self, message: Any) -> None:
-        """Send `message`; its reply (if any) is answered later. Never blocks on the peer.
+    __slots__ = ("lane", "lanes", "outgoing", "peer")
 
-        Called from any thread of this process. Messages told to one peer from one
-        process arrive in the order they were told. A peer that is unreachable, frozen
-        or dies later fails the reply (`RegistrarUnavailableError`, or
-        `RegistrarStoppedError` if it was stopped); a caller waiting on it with a
-        timeout gets its `CallTimeoutError` in time.
+    def __init__(self, peer: Remote, lanes: Lanes, outgoing: Outgoing, lane: Lane) -> None:
+        self.peer = peer
+        self.lanes = lanes
+        self.outgoing = outgoing
+        self.lane = lane
 
-        Raises:
-            ConfigError: the message (say, the request of a call) cannot be pickled.
-            MessageTooLargeError: pickled, it is larger than the remote registrar's
-                `max_message_bytes`; nothing of it was sent.
-            RegistrarUnavailableError: the registrar's process is known to be unreachable.
-            RegistrarStoppedError: it was stopped, or this process left the system.
-        """
-        send(self, message)
-
-    def deliver(self, message: Any) -> None:
-        """`tell` (a registrar of another process is never run on this thread)."""
-        self.tell(message)
-
-    def run(self, fn: Callable[[Any], Any], *, timeout: float) -> Any:
-        """Run `fn(registrar)` in the registrar's process and return its result.
-
-        `fn` is cloudpickled (closures work) and runs on a fresh thread there, so it may
-        block, e.g. on `registrar.send_status(...)`.
-
-        Args:
-            fn: called with the remote `ResourceRegistrar`; its result must pickle.
-            timeout: seconds to wait for the result.
-
-        Returns:
-            What `fn` returned.
-
-        Raises:
-            CallTimeoutError: no result within `timeout` seconds.
-            RegistrarUnavailableError: the registrar's process died or is unreachable.
-            RegistrarStoppedError: the registrar was stopped.
-            ConfigError: `fn` does not pickle.
-            RrError: its result does not pickle (the message says so).
-            Exception: whatever `fn` raised, re-raised here.
-        """
-        return wait(self.submit(fn).future, timeout, f"run() on registrar {self.name!r}")
-
-    def submit(self, fn: Callable[[Any], Any]) -> FutureReply:
-        """`run` without the wait: send `fn`; its result (or error) settles the reply's
-        future (an error sending it too), whoever waits for it, a thread or a loop."""
-        reply = FutureReply()
+    def __call__(self) -> None:
+        """On the lane's thread: find the server, then send (or fail the reply)."""
+        peer, outgoing = self.peer, self.outgoing
+        route = self.lanes.found(peer.name, self.lane)
+        if route is None:
+            _unsent(outgoing, self.lanes.unreached(peer.name))
+            return
         try:
-            self.tell(Run(fn, reply))
+            check_size(outgoing, peer.name, route.limit)
         except RrError as exc:
-            reply.set_error(exc)
-        return reply
+            _unsent(outgoing, exc)
+            return
+        if outgoing.reply is not None:
+            route.pending.expect(outgoing, peer, route.limit)
+        if not route.send(outgoing.data) and (
+            outgoing.reply is None or route.pending.forget(outgoing.token)
+        ):  # (gone meanwhile: what ended it may have missed this reply)
+            _unsent(outgoing, peer.gone())
+
+    def dropped(self) -> None:
+        """The lane closed before it ran: its reply fails (nothing was sent)."""
+        _unsent(self.outgoing, self.lanes.unreached(self.peer.name))
+
+
+def _unsent(outgoing: Outgoing, error: RrError) -> None:
+    if outgoing.reply is not None:
+        outgoing.reply.set_error(error)
+    else:
+        logger.debug("%s not sent: %s", type(outgoing.message).__name__, error)
 
 
 class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
@@ -387,31 +589,264 @@ class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
             )
 
 
-# -- receiving ----------------------------------------------------------------------------
+# -- the membership: naming, receiving, what the carrier reports --------------------------
 
 
 class Messenger:
-    """What a carrier hands the messages for the registrars it serves here: each is
-    checked, unpickled and told to its registrar with a `StandIn` reply, whose answer
-    goes back through `link.answer_to`. Each step runs on the carrier's receiving thread
-    that calls it and never blocks on a peer.
+    """One process's membership of a system over a carrier: the `Transport` surface
+    (`rr_actors._transport.base`), written once for every carrier.
+
+    A carrier's public class (the AF_UNIX `System`, a `ZenohNetwork`, the in-memory
+    double) is one, and gives it its `Carrier` (`joined`).
 
     Args:
-        link: the carrier (`Link`).
-        lookup: finds a registrar of this process by name (the directory's).
+        system: the system's name (in messages; the AF_UNIX carrier's runtime directory).
+        resolver: whether the directory asks it for names not registered here (the
+            in-memory double's "processes" are all this one: it is not asked).
     """
 
-    __slots__ = ("_link", "_lookup")
+    def __init__(self, system: str, *, resolver: bool = True) -> None:
+        self.system = system
+        self.closed = False
+        self.supervisor: int | None = None  # `supervised_by`'s pid
+        self._resolver = resolver
+        self._lock = threading.Lock()
+        self._served: dict[str, Listening] = {}
+        self._peers: dict[str, Remote] = {}
+        self._carrier: Carrier | None = None
+        self._lookup: Callable[[str], Peer] = DIRECTORY.lookup
 
-    def __init__(self, link: Link, lookup: Callable[[str], Peer] = DIRECTORY.lookup) -> None:
-        self._link = link
-        self._lookup = lookup
+    def joined(self, carrier: Carrier) -> None:
+        """Its carrier is open: names not registered here are asked of it from now on."""
+        self._carrier = carrier
+        if self._resolver:
+            DIRECTORY.add_resolver(self.resolve, self.names)
+
+    def link(self) -> Carrier:
+        """The carrier (a network that opens at first use, Zenoh's, opens it here)."""
+        carrier = self._carrier
+        assert carrier is not None, "a messenger is used before its carrier joined"
+        return carrier
+
+    # -- the Transport surface -----------------------------------------------------------
+
+    def resolve(self, name: str) -> Peer | None:
+        """A peer for registrar `name` of another process, or `None` if it is served here
+        (the directory's own record says stopped or died) or unknown to the carrier.
+
+        Raises:
+            UnknownRegistrarError: the carrier asked, and nobody serves `name`.
+            RegistrarUnavailableError: the carrier could not tell in time.
+        """
+        peer = self._peers.get(name)
+        if peer is not None:
+            return peer
+        if self.closed or name in self._served:
+            return None
+        carrier = self.link()
+        if not carrier.knows(name):
+            return None
+        with self._lock:
+            return self._peers.setdefault(name, carrier.peer(name))
+
+    def names(self) -> list[str]:
+        """The registrars of the system the carrier can reach now (any host)."""
+        return [] if self.closed else self.link().names()
+
+    def serve(self, endpoint: Endpoint) -> None:
+        """Make a registrar of this process reachable from the others of the system; the
+        carrier stops serving it by itself when it ends. Serving a name again (a
+        registrar restarted in this process) stops serving the old one first.
+
+        Raises:
+            DuplicateNameError: another process of the system serves that name.
+            ConfigError: the carrier cannot serve it (a bad name or address).
+            RegistrarUnavailableError: the carrier cannot tell in time whether another
+                process serves it.
+            RegistrarStoppedError: this process left the system.
+        """
+        name = endpoint.name
+        carrier = self.link()
+        with self._lock:
+            if self.closed:
+                raise RegistrarStoppedError(f"this process left system {self.system!r}")
+            old = self._served.pop(name, None)
+            peer = self._peers.pop(name, None)
+        if old is not None:
+            self._unserve(old, stopped=False)
+        if peer is not None:
+            peer.close(RegistrarUnavailableError(f"registrar {name!r} moved into this process"))
+        listening = carrier.listen(endpoint)
+        with self._lock:
+            self._served[name] = listening
+        listening.settle()
+        threading.Thread(
+            target=self._watch_end, args=(listening,), name=f"rr-watch-{name}", daemon=True
+        ).start()
+        endpoint.listening()
+
+    def run(self, name: str, fn: Callable[[Any], Any], *, timeout: float) -> Any:
+        """Run `fn(registrar)` where registrar `name` lives and return what it returns:
+        on the calling thread for one served here, else through the carrier
+        (`Remote.run`).
+
+        Raises:
+            UnknownServerError: nobody serves that name on the system.
+            CallTimeoutError: no result within `timeout` seconds.
+            RegistrarUnavailableError: its process died or cannot be reached.
+            RegistrarStoppedError: it was stopped.
+        """
+        listening = self._served.get(name)
+        if listening is not None:
+            return listening.endpoint.run(fn)
+        try:
+            peer = self.resolve(name)
+        except UnknownRegistrarError as exc:
+            raise UnknownServerError(str(exc)) from None
+        if not isinstance(peer, Remote):
+            raise UnknownServerError(
+                f"no registrar named {name!r} on system {self.system!r}"
+                + _known_names(name, self.names())
+            )
+        return peer.run(fn, timeout=timeout)
+
+    def serving_trouble(self, name: str) -> tuple[float, str] | None:
+        """For how long (seconds) and why registrar `name`, served here, has been unable to
+        take new connections (an AF_UNIX listener out of file descriptors keeps trying);
+        `None` if it can, or if it is not served here.
+
+        A manager process reports it with each heartbeat answer, so its supervisor can
+        restart a manager that stays unable to accept.
+        """
+        listening = self._served.get(name)
+        return None if listening is None else listening.trouble()
+
+    def supervised_by(self, pid: int | None) -> None:
+        """Say that process `pid` speaks for the registrars this process serves from now on
+        when this process dies (rule 19): it restarts them, or sends their death watch (a
+        manager process's supervisor, or the owner of a `RemoteRegistrar`; the manager
+        process says so, `_process/child.py`); `None`: nobody. Until then nobody does,
+        except for a registrar with `DIRECTORY.restart_expected(name)` (its own process).
+
+        Each carrier publishes it with what it serves from then on: AF_UNIX in
+        `<runtime_dir>/<name>.restart`, Zenoh in the registrar's liveliness token.
+        """
+        self.supervisor = pid
+
+    def close(self) -> None:
+        """Leave the system: stop serving (a clean stop says so), fail what waits, close
+        the carrier (idempotent). Registrars are not stopped; stop them first."""
+        with self._lock:
+            if self.closed:
+                return
+            self.closed = True
+            served, peers = list(self._served.values()), list(self._peers.values())
+            self._served.clear()
+            self._peers.clear()
+        if self._resolver:
+            DIRECTORY.remove_resolver(self.resolve)
+        for listening in served:
+            self._unserve(listening, stopped=listening.endpoint.stopped_cleanly())
+        left = RegistrarStoppedError(f"this process left system {self.system!r}")
+        for peer in peers:
+            peer.close(left)
+        if self._carrier is not None:
+            self._carrier.leave()
+
+    # -- who serves what, for the carrier ------------------------------------------------
+
+    def serving(self, name: str) -> Listening | None:
+        """The registrar `name` served here, if any."""
+        return self._served.get(name)
+
+    def served(self) -> list[str]:
+        """The names served here."""
+        return list(self._served)
+
+    def peer(self, name: str) -> Remote | None:
+        """The peer made for registrar `name` of another process, if any."""
+        return self._peers.get(name)
+
+    def give_way(self, listening: Listening, reason: str) -> None:
+        """Another process's server of `listening`'s name is kept (rule 22, the carrier's
+        verdict): this one stops serving (nothing more reaches it; its consumers elsewhere
+        see it go and reconcile with the one kept), and the registrar unloads what it
+        serves and stops (`Endpoint.yield_name`); at its end, its consumers here
+        reconcile with the one kept too. As Erlang's `global` resolves a name registered
+        on both sides of a netsplit. `reason` says why (an ERROR line)."""
+        with listening.lock:
+            if listening.ended:
+                return
+            listening.ended = listening.yielded = True
+            listening.stop(stopped=False)
+        self._forget(listening)
+        logger.error(
+            "%s; this one stops serving: it unloads what it serves and stops, and its "
+            "consumers reconcile with the other one (an id it does not hold is FATAL)",
+            reason,
+        )
+        listening.endpoint.yield_name(reason)
+
+    def lost(self, name: str) -> None:
+        """Registrar `name` is gone for good (rule 19): this process's membership records it
+        and every endpoint served here but `name` hears it (`rr_actors._core.membership`)."""
+        logger.info("registrar %s of system %s is lost (nobody restarts it)", name, self.system)
+        MEMBERSHIP.lost(name, by=f"the carrier of {self.system}", hearers=self._hearers())
+
+    def reachable(self, name: str) -> None:
+        """Registrar `name` is back from the same process (a healed link, rule 20), or the
+        one kept of two servers (rule 22): every endpoint served here but `name` hears it."""
+        logger.info("registrar %s of system %s is reachable again", name, self.system)
+        MEMBERSHIP.reachable(name, hearers=self._hearers())
+
+    def forget_in_child(self) -> None:
+        """In a forked child: drop the parent's listeners and peers (their threads are not
+        here) without touching them; nobody speaks for the child's registrars. Takes no
+        lock (a thread of the parent may have held it at the fork)."""
+        self._lock = threading.Lock()
+        served, peers = list(self._served.values()), list(self._peers.values())
+        self._served.clear()
+        self._peers.clear()
+        self.supervisor = None
+        for listening in served:
+            listening.forget_in_child()
+        for peer in peers:
+            peer.forget_in_child()
+
+    def _hearers(self) -> tuple[Endpoint, ...]:
+        return tuple(listening.endpoint for listening in list(self._served.values()))
+
+    def _watch_end(self, listening: Listening) -> None:
+        endpoint = listening.endpoint
+        endpoint.wait_ended()
+        self._unserve(listening, stopped=endpoint.stopped_cleanly())
+        if listening.yielded:  # its name is the kept one's now: this process's consumers of
+            # it reconcile with that one (rule 20), as other processes' do
+            self.reachable(listening.name)
+
+    def _unserve(self, listening: Listening, *, stopped: bool) -> None:
+        """Stop serving `listening` (once; a second caller waits until it is done), then
+        let go of it: while it is listed, `close` finds it and waits too (a process may
+        exit right after its own `close`)."""
+        with listening.lock:
+            if listening.ended:
+                return
+            listening.ended = True
+            listening.stop(stopped=stopped)
+        self._forget(listening)
+
+    def _forget(self, listening: Listening) -> None:
+        with self._lock:
+            if self._served.get(listening.name) is listening:
+                del self._served[listening.name]
+
+    # -- receiving -----------------------------------------------------------------------
 
     def message(
         self, endpoint: Endpoint, process: Any, token: int, payload: bytes | memoryview
     ) -> None:
         """Deliver one message (`payload`, pickled) from `process` (answers go back to
-        it) to `endpoint`, a registrar served here.
+        it) to `endpoint`, a registrar served here (the carrier's receiving thread).
 
         One over the registrar's `max_message_bytes` is refused unread (`oversized`). One
         that wants an answer (`token`) gets a `StandIn` as its reply. One that cannot be
@@ -445,9 +880,10 @@ class Messenger:
                 error = InternalError(f"a {kind} message for registrar {name!r} cannot be answered")
                 self._error(process, token, error)
                 return
-            link = self._link
+            carrier = self._carrier
+            assert carrier is not None
             reply = StandIn(
-                lambda data, on_lost: link.answer_to(process, data, on_lost),
+                lambda data, on_lost: carrier.answer_to(process, data, on_lost),
                 name,
                 limit,
                 token,
@@ -483,27 +919,19 @@ class Messenger:
         self._error(process, token, error)
 
     def _error(self, process: Any, token: int, error: RrError) -> None:
-        if token != NO_REPLY:
-            self._link.answer_to(process, frame(token, (None, error)), None)
+        if token != NO_REPLY and self._carrier is not None:
+            self._carrier.answer_to(process, frame(token, (None, error)), None)
 
 
 class StandIn:
     """The stand-in for a sender's reply, given to a delivered message: answers over the
-    link (`send`).
+    link (`send`), for registrar `name` of this process (`limit`: its `max_message_bytes`).
 
-    An answer that does not pickle, or is over the registrar's `max_message_bytes`,
-    becomes an error answer (the caller never hangs). When a successful answer does not
-    reach its caller (it does not pickle, is too large, or the caller is gone first), the
-    message's `compensation()` is told to the local registrar: for a `Load`, the consumer
-    id it created is released again.
-
-    Args:
-        send: sends the answer frame to the sender (`SendAnswer`).
-        name: the registrar of this process that got the message.
-        limit: its `max_message_bytes`.
-        token: the sender's token for the answer.
-        message: the message.
-        lookup: finds the registrar `name` (a compensation goes to it).
+    An answer that does not pickle, or is over `limit`, becomes an error answer (the
+    caller never hangs). When a successful answer does not reach its caller (it does not
+    pickle, is too large, or the caller is gone first), the message's `compensation()` is
+    told to the local registrar: for a `Load`, the consumer id it created is released
+    again.
     """
 
     __slots__ = ("_done", "_limit", "_lookup", "_message", "_name", "_send", "_token")
@@ -621,20 +1049,3 @@ def answer(reply: Reply, message: Any, name: str, payload: bytes | memoryview, t
         reply.set_error(error)
     else:
         reply.set_error(InternalError(f"a malformed answer from registrar {name!r}"))
-
-
-# -- presence: what every endpoint served here hears ---------------------------------------
-
-
-def tell_lost(endpoints: Iterable[Endpoint], name: str, system: str) -> None:
-    """Registrar `name` is gone for good (rule 19): this process's membership records it
-    and every endpoint served here but `name` hears it (`rr_actors._core.membership`)."""
-    logger.info("registrar %s of system %s is lost (nobody restarts it)", name, system)
-    MEMBERSHIP.lost(name, by=f"the carrier of {system}", hearers=tuple(endpoints))
-
-
-def tell_reachable(endpoints: Iterable[Endpoint], name: str, system: str) -> None:
-    """Registrar `name` is back from the same process (a healed link; rule 20): every
-    endpoint served here but `name` hears it (`rr_actors._core.membership`)."""
-    logger.info("registrar %s of system %s is reachable again", name, system)
-    MEMBERSHIP.reachable(name, hearers=tuple(endpoints))

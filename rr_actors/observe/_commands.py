@@ -143,7 +143,7 @@ def _network(args: argparse.Namespace) -> ZenohNetwork:
         if not args.name or not args.members:
             raise ConfigError("--certs needs --name (this member) and --members (all of them)")
         with needs("zenoh", "--certs"):
-            from rr_actors._transport.zenoh.tls import ZenohTLS  # noqa: PLC0415 - an extra
+            from rr_actors._transport.zenoh.ops.tls import ZenohTLS  # noqa: PLC0415 - an extra
 
         directory = args.certs.rstrip("/")
         tls = ZenohTLS(

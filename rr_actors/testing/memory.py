@@ -2,34 +2,36 @@
 
 `MemoryNetwork` is a carrier (a `Transport`, like an AF_UNIX `System` or a
 `ZenohNetwork`) whose "processes" are in this one: every registrar served on it counts as
-running in a process of its own. What it carries is what the others carry: frames
-(pickled messages, `codec.frame`) handed from one thread to another, never the Python
-objects, so a message that does not pickle, one over `max_message_bytes` and an answer
-that cannot reach its caller behave as they do across processes. Everything else
-(replies kept under a token, stand-in replies, size limits both ways, compensation,
-failing what waits on a registrar that went) is the messenger's
-(`rr_actors._transport.messenger`), as for every carrier; this file is only the link:
+running in a process of its own, with a messenger of its own; the network itself is the
+test's process. What it carries is what the others carry: frames (pickled messages,
+`codec.frame`) handed from one thread to another, never the Python objects, so a message
+that does not pickle, one over `max_message_bytes` and an answer that cannot reach its
+caller behave as they do across processes. Everything else (naming, replies kept under a
+token, stand-in replies, size limits both ways, compensation, failing what waits on a
+registrar that went) is the messenger's (`rr_actors._transport.messenger`), as for every
+carrier; this file is only the link, its `Carrier`:
 
 ```
  network.resolve(name).tell(m) ─► messenger: encode, check size, keep the reply ─►
-   _Route.send(frame) ─► the delivery thread of `name` (rr-mem-<name>) ─► messenger:
-   unpickle, stand-in reply, tell the registrar ─► answer frame ─► answer_to(route)
-   ─► the answers thread (rr-mem-answers) ─► the route's `pending`: the reply resolves
+   _Route.send(frame) ─► the delivery thread of `name` (rr-mem-<name>) ─► its process's
+   messenger: unpickle, stand-in reply, tell the registrar ─► answer frame ─►
+   answer_to(route) ─► the answers thread (rr-mem-answers) ─► the route's `pending`
 ```
 
 Select it as any carrier: `ResourceRegistrar.start(config, network=MemoryNetwork())`
 serves the registrar on it, `MemoryNetwork.run(name, fn)` runs a function where the
 registrar lives (through the carrier), `MemoryNetwork.resolve(name)` is the peer a
 registrar of another process would get. Registrars of one process find each other in
-the process's directory first, so it is what a test sends through `resolve` and `run`
-that crosses this carrier; a registrar's own calls to another registrar of this process
-do not. `cut(name)` makes the process serving `name` gone, as a `SIGKILL` would: what
-waits on it fails at once with `RegistrarUnavailableError`, later sends raise it.
+the process's directory first (the network is no resolver of the directory), so it is
+what a test sends through `resolve` and `run` that crosses this carrier; a registrar's
+own calls to another registrar of this process do not. `cut(name)` makes the process
+serving `name` gone, as a `SIGKILL` would: what waits on it fails at once with
+`RegistrarUnavailableError`, later sends raise it.
 
 It cannot join another process (`address.attach()` works in this process only), has no
 liveness by lease and never reports a registrar lost for good (rule 19) or reachable
-again (rule 20): `tell_lost` and `tell_reachable` of the messenger are the AF_UNIX and
-Zenoh carriers' business.
+again (rule 20): the messenger's `lost` and `reachable` are the AF_UNIX and Zenoh
+carriers' business.
 """
 
 from __future__ import annotations
@@ -39,11 +41,18 @@ import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from rr_actors._core.directory import Peer
 from rr_actors._core.serial import SerialExecutor, Task
 from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.codec import split_frame
-from rr_actors._transport.messenger import Link, Lost, Messenger, Remote, Replies, run_lost
+from rr_actors._transport.messenger import (
+    Carrier,
+    Listening,
+    Lost,
+    Messenger,
+    Remote,
+    Replies,
+    run_lost,
+)
 from rr_actors.config import check_seconds
 from rr_actors.errors import (
     ConfigError,
@@ -51,7 +60,6 @@ from rr_actors.errors import (
     RegistrarUnavailableError,
     RrError,
     UnknownRegistrarError,
-    UnknownServerError,
     _known_names,
 )
 
@@ -85,16 +93,19 @@ class MemoryAddress:
         return network
 
 
-class _Served:
+class _Served(Listening):
     """A registrar served on the network: its "process", its delivery thread."""
 
-    def __init__(self, endpoint: Endpoint, messenger: Messenger) -> None:
-        self.endpoint = endpoint
-        self.name = endpoint.name
+    def __init__(self, hub: _Hub, endpoint: Endpoint, messenger: Messenger) -> None:
+        super().__init__(endpoint)
+        self.hub = hub
         self.inbox = SerialExecutor(f"rr-mem-{endpoint.name}")
         self.route = _Route(self, messenger)  # every sender's: what waits on it
         self.cut = False  # its process is gone
-        self.ended = False  # its registrar ended
+        self.gone = False  # no longer reached
+
+    def stop(self, *, stopped: bool) -> None:
+        self.hub.end(self, "stopped" if stopped else "unavailable")
 
 
 class _Route:
@@ -111,31 +122,125 @@ class _Route:
 
     def send(self, data: bytes) -> bool:
         served = self.served
-        if served.cut or served.ended:
+        if served.cut or served.gone:
             return False
         endpoint, messenger = served.endpoint, self.messenger
         token, payload = split_frame(data)
         return served.inbox.submit(lambda: messenger.message(endpoint, self, token, payload))
 
     def broken(self) -> bool:
-        return False  # (its end fails what waits on it: `MemoryNetwork._gone`)
+        return False  # (its end fails what waits on it: `_Hub.end`)
 
 
 class _MemoryPeer(Remote):
     """A registrar served on the network, as another "process" reaches it."""
 
-    def __init__(self, network: MemoryNetwork, name: str) -> None:
+    def __init__(self, hub: _Hub, name: str) -> None:
         self.name = name
-        self._network = network
+        self._hub = hub
 
     def route(self) -> _Route:
-        return self._network._route(self.name)
+        return self._hub.route(self.name)
 
     def gone(self) -> RrError:
-        return self._network._gone_error(self.name)
+        return self._hub.gone_error(self.name)
 
 
-class MemoryNetwork:
+class _Hub:
+    """The network between the "processes" (every one's `Carrier`): who serves what,
+    the answers thread. What reaches a served registrar is handed to the network's
+    messenger (any of theirs would do: none keeps state of a message)."""
+
+    def __init__(self, messenger: Messenger) -> None:
+        self.messenger = messenger
+        self.system = messenger.system
+        self.closed = False
+        self._lock = threading.Lock()
+        self._served: dict[str, _Served] = {}
+        self._gone: dict[str, str] = {}  # name -> "stopped" | "unavailable"
+        self._answers = SerialExecutor("rr-mem-answers", on_drop=_lost)
+
+    def knows(self, name: str) -> bool:
+        return name in self._served or name in self._gone
+
+    def names(self) -> list[str]:
+        return [name for name, served in list(self._served.items()) if not served.cut]
+
+    def peer(self, name: str) -> _MemoryPeer:
+        return _MemoryPeer(self, name)
+
+    def listen(self, endpoint: Endpoint) -> _Served:
+        """Serve `endpoint` in a "process" of its own; one served under its name before
+        is cut off (a registrar restarted elsewhere)."""
+        served = _Served(self, endpoint, self.messenger)
+        with self._lock:
+            if self.closed:
+                raise RegistrarStoppedError("the in-memory network was closed")
+            old = self._served.pop(endpoint.name, None)
+            self._served[endpoint.name] = served
+            self._gone.pop(endpoint.name, None)
+        if old is not None:
+            self.end(old, "unavailable")
+        return served
+
+    def route(self, name: str) -> _Route:
+        served = self._served.get(name)
+        if served is None or served.cut or served.gone:
+            raise self.gone_error(name)
+        return served.route
+
+    def gone_error(self, name: str) -> RrError:
+        if self.closed:
+            return RegistrarStoppedError(f"the in-memory network {self.system!r} was closed")
+        if self._gone.get(name) == "stopped":
+            return RegistrarStoppedError(f"registrar {name!r} was stopped")
+        return RegistrarUnavailableError(f"registrar {name!r} cannot be reached (its process went)")
+
+    def answer_to(self, process: _Route, data: bytes, on_lost: Lost | None) -> bool:
+        """Send an answer back over the route its message came by (`process`): on the
+        answers thread, to the route's waiting replies; False if the route went."""
+        if process.served.cut or self.closed:
+            return False
+        return self._answers.submit(_Answer(process, data, on_lost))
+
+    def cut(self, name: str) -> None:
+        served = self._served.get(name)
+        if served is not None:
+            self.end(served, "unavailable")
+        elif name not in self._gone:
+            raise UnknownRegistrarError(
+                f"no registrar named {name!r} was served on the in-memory network "
+                f"{self.system!r}" + _known_names(name, self._served)
+            )
+
+    def end(self, served: _Served, how: str, error: RrError | None = None) -> None:
+        """`served` is no longer reached: what waits on it fails (`how` says why)."""
+        with self._lock:
+            if served.gone:
+                return
+            served.gone = True
+            served.cut = how == "unavailable"
+            if self._served.get(served.name) is served:
+                del self._served[served.name]
+            self._gone[served.name] = how
+        served.inbox.close(timeout=0)
+        error = error or self.gone_error(served.name)
+        served.route.pending.fail(None, error)
+
+    def leave(self) -> None:
+        """The network closes (only the network's own messenger leaves)."""
+        with self._lock:
+            if self.closed:
+                return
+            self.closed = True
+            served = list(self._served.values())
+            self._served.clear()
+        for one in served:
+            self.end(one, "stopped", RegistrarStoppedError("the in-memory network was closed"))
+        self._answers.close(timeout=0)
+
+
+class MemoryNetwork(Messenger):
     """An in-memory system of registrars: each one served on it counts as running in a
     process of its own (see the module docstring). A test double: a `Transport` that
     passes the carrier contract's cases that make sense in one process.
@@ -150,53 +255,26 @@ class MemoryNetwork:
     def __init__(self, system: str = "memory") -> None:
         if system in _NETWORKS:
             raise ConfigError(f"system: an in-memory network named {system!r} is open already")
-        self.system = system
-        self.closed = False
-        self._lock = threading.Lock()
-        self._served: dict[str, _Served] = {}
-        self._gone: dict[str, str] = {}  # name -> "stopped" | "unavailable"
-        self._answers = SerialExecutor("rr-mem-answers", on_drop=_lost)
-        self._messenger = Messenger(self)
+        super().__init__(system, resolver=False)
+        self._hub = _Hub(self)
+        self.joined(self._hub)
         _NETWORKS[system] = self
-
-    # -- the Transport surface ---------------------------------------------------------
 
     @property
     def address(self) -> MemoryAddress:
         """What `attach()`es to this network (in this process)."""
         return MemoryAddress(self.system)
 
-    def resolve(self, name: str) -> Peer | None:
-        """A peer for registrar `name` served on the network (or once served: its
-        messages fail as they would for a registrar gone); `None` if never served."""
-        if self.closed or (name not in self._served and name not in self._gone):
-            return None
-        return _MemoryPeer(self, name)
-
-    def names(self) -> list[str]:
-        """The registrars served on the network now (and not cut off)."""
-        return [name for name, served in list(self._served.items()) if not served.cut]
-
     def serve(self, endpoint: Endpoint) -> None:
-        """Serve a registrar of this process on the network; it stops being served when
-        it ends.
+        """Serve a registrar of this process on the network, in a "process" of its own;
+        it stops being served when it ends.
 
         Raises:
             RegistrarStoppedError: the network was closed.
         """
-        served = _Served(endpoint, self._messenger)
-        with self._lock:
-            if self.closed:
-                raise RegistrarStoppedError("the in-memory network was closed")
-            old = self._served.pop(endpoint.name, None)
-            self._served[endpoint.name] = served
-            self._gone.pop(endpoint.name, None)
-        if old is not None:
-            self._end(old, "unavailable")
-        threading.Thread(
-            target=self._watch, args=(served,), name=f"rr-mem-watch-{served.name}", daemon=True
-        ).start()
-        endpoint.listening()
+        process = Messenger(self.system, resolver=False)
+        process.joined(self._hub)
+        process.serve(endpoint)
 
     def run(self, name: str, fn: Callable[[Any], Any], *, timeout: float) -> Any:
         """Run `fn(registrar)` where registrar `name` lives, through the carrier (see
@@ -210,34 +288,13 @@ class MemoryNetwork:
             ConfigError: `timeout` is not a positive number of seconds.
         """
         check_seconds("timeout", timeout)
-        peer = self.resolve(name)
-        if peer is None:
-            raise UnknownServerError(f"no registrar named {name!r} on system {self.system!r}")
-        assert isinstance(peer, _MemoryPeer)
-        return peer.run(fn, timeout=timeout)
-
-    def serving_trouble(self, name: str) -> tuple[float, str] | None:
-        """Always `None`: nothing to run out of."""
-        return None
-
-    def supervised_by(self, pid: int | None) -> None:
-        """Nothing: the double reports no registrar lost for good (rule 19)."""
+        return super().run(name, fn, timeout=timeout)
 
     def close(self) -> None:
         """Stop serving; what waits fails with `RegistrarStoppedError` (idempotent)."""
-        with self._lock:
-            if self.closed:
-                return
-            self.closed = True
-            served = list(self._served.values())
-            self._served.clear()
-        for one in served:
-            self._end(one, "stopped", RegistrarStoppedError("the in-memory network was closed"))
-        self._answers.close(timeout=0)
+        super().close()
         if _NETWORKS.get(self.system) is self:
             del _NETWORKS[self.system]
-
-    # -- the test's hand ------------------------------------------------------------------
 
     def cut(self, name: str) -> None:
         """The process serving registrar `name` is gone (a `SIGKILL`, a cut link): every
@@ -249,57 +306,7 @@ class MemoryNetwork:
             UnknownRegistrarError: no registrar of that name was ever served on the
                 network (a typo would otherwise cut nothing, and the test pass for it).
         """
-        served = self._served.get(name)
-        if served is not None:
-            self._end(served, "unavailable")
-        elif name not in self._gone:
-            raise UnknownRegistrarError(
-                f"no registrar named {name!r} was served on the in-memory network "
-                f"{self.system!r}" + _known_names(name, self._served)
-            )
-
-    # -- the link (the messenger's) -----------------------------------------------------
-
-    def answer_to(self, process: Any, data: bytes, on_lost: Lost | None) -> bool:
-        """Send an answer back over the route its message came by (`process`): on the
-        answers thread, to the route's waiting replies; False if the route went."""
-        route: _Route = process
-        if route.served.cut or self.closed:
-            return False
-        return self._answers.submit(_Answer(route, data, on_lost))
-
-    # -- plumbing -----------------------------------------------------------------------
-
-    def _route(self, name: str) -> _Route:
-        served = self._served.get(name)
-        if served is None or served.cut or served.ended:
-            raise self._gone_error(name)
-        return served.route
-
-    def _gone_error(self, name: str) -> RrError:
-        if self.closed:
-            return RegistrarStoppedError(f"the in-memory network {self.system!r} was closed")
-        if self._gone.get(name) == "stopped":
-            return RegistrarStoppedError(f"registrar {name!r} was stopped")
-        return RegistrarUnavailableError(f"registrar {name!r} cannot be reached (its process went)")
-
-    def _watch(self, served: _Served) -> None:
-        served.endpoint.wait_ended()
-        self._end(served, "stopped" if served.endpoint.stopped_cleanly() else "unavailable")
-
-    def _end(self, served: _Served, how: str, error: RrError | None = None) -> None:
-        """`served` is no longer reached: what waits on it fails (`how` says why)."""
-        with self._lock:
-            if served.ended:
-                return
-            served.ended = True
-            served.cut = how == "unavailable"
-            if self._served.get(served.name) is served:
-                del self._served[served.name]
-            self._gone[served.name] = how
-        served.inbox.close(timeout=0)
-        error = error or self._gone_error(served.name)
-        served.route.pending.fail(None, error)
+        self._hub.cut(name)
 
 
 class _Answer:
@@ -321,7 +328,7 @@ def _lost(task: Task) -> None:
         run_lost([task.on_lost])
 
 
-if TYPE_CHECKING:  # mypy checks that the double is a carrier and the messenger's link
+if TYPE_CHECKING:  # mypy checks that the double is a carrier
     _transport: type[Transport] = MemoryNetwork
     _address: type[Address] = MemoryAddress
-    _link: type[Link] = MemoryNetwork
+    _carrier: type[Carrier] = _Hub

@@ -11,7 +11,7 @@ the machine, whatever its namespace) stays in the worker (`hosts.KEPT`) and is r
 with `call`.
 
 Bad input (a malformed endpoint, a bad system name, `tls` omitted, a peer of another
-version) needs no second host: `tests/transport/test_transport_zenoh.py`.
+version) needs no second host: `tests/transport/zenoh/test_carrier.py`.
 """
 
 from __future__ import annotations

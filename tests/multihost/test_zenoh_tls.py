@@ -234,7 +234,7 @@ def raw_open(
 
     import zenoh  # noqa: PLC0415
 
-    from rr_actors._transport.zenoh.config import _tls_settings  # noqa: PLC0415
+    from rr_actors._transport.zenoh.ops.config import _tls_settings  # noqa: PLC0415
     from tests.support.waiting import wait_for  # noqa: PLC0415
 
     link: dict[str, Any] = {}
@@ -439,7 +439,7 @@ def test_members_call_each_other_and_each_side_names_the_other(
 def unlinked_within(timeout: float) -> list[list[tuple[str, str]]]:
     """What this worker's link watch counts unlinked (`LinkWatch.unlinked`), looked at every
     `TICK` s for `timeout` s, as the watch looks: each non-empty answer."""
-    from rr_actors._transport.zenoh.watch import TICK  # noqa: PLC0415
+    from rr_actors._transport.zenoh.ops.watch import TICK  # noqa: PLC0415
 
     watch = hosts.KEPT["network"]._watch
     seen = []
@@ -488,7 +488,7 @@ def test_members_that_dial_each_other_are_linked_and_neither_warns(
 
 def grace() -> float:
     """Seconds a connect endpoint may stay unlinked before its WARNING."""
-    from rr_actors._transport.zenoh.watch import GRACE  # noqa: PLC0415
+    from rr_actors._transport.zenoh.ops.watch import GRACE  # noqa: PLC0415
 
     return GRACE
 
@@ -1024,7 +1024,7 @@ def test_a_member_rejoins_in_10_s_though_a_third_host_forges_syns_from_its_addre
     # half-open (more than the gate's HOLD of them: on main's code, b's address was
     # dropped, and b's own re-dials kept the drop up). b's link comes back while the
     # forging goes on (during), then once more after a second run of it (after).
-    from rr_actors._transport.zenoh.gate import HOLD  # noqa: PLC0415
+    from rr_actors._transport.zenoh.ops.gate import HOLD  # noqa: PLC0415
 
     two_hosts, _ = outsider_lab
     a, b, c = two_hosts.a, two_hosts.b, two_hosts.c

@@ -36,7 +36,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors.testing import SharedObjects, actor_ref, start_forkserver
-from tests.support.carriers import setup_servers
+from tests.support.carriers import own_provider_main, setup_servers
 from tests.support.supervising import (
     FakeClock,
     alive,
@@ -45,7 +45,6 @@ from tests.support.supervising import (
     sigkill,
 )
 from tests.support.waiting import wait_for
-from tests.transport.test_transport_lost import own_provider_main
 
 
 @pytest.fixture(scope="module", autouse=True)

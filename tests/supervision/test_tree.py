@@ -133,8 +133,9 @@ class TestNetwork:
         self, network: System, outsider: Callable[[], RemoteRegistrar]
     ) -> None:
         # The caller's connection is made by its first call and ended by the stop; that end
-        # raced with the connection's writer thread (test_transport_writer.py): the
-        # connection stayed open, and the next call's load was read and never answered.
+        # raced with the connection's writer thread (tests/transport/unix/test_link.py's
+        # TestWriterClose): the connection stayed open, and the next call's load was read
+        # and never answered.
         other = outsider()
         outcomes = []
         for _ in range(STOP_ROUNDS):

@@ -223,6 +223,75 @@ def provider_main(
         attached.close()
 
 
+# -- rule 19: an endpoint that records what it hears, a provider nobody supervises ----------
+
+
+class Recorder:
+    """An `Endpoint` that records the `peer_lost` calls it gets (no registrar behind it)."""
+
+    def __init__(self) -> None:
+        self.name = f"recorder-{uuid.uuid4().hex[:8]}"
+        self.max_message_bytes = 1024 * 1024
+        self.lost: list[tuple[str, float]] = []
+        self.changed = threading.Condition()
+        self._ended = threading.Event()
+
+    def run(self, fn: Callable[[Any], Any]) -> Any:
+        return fn(None)
+
+    def wait_ended(self, timeout: float | None = None) -> bool:
+        return self._ended.wait(timeout)
+
+    def stopped_cleanly(self) -> bool:
+        return self._ended.is_set()
+
+    def listening(self) -> None:
+        pass
+
+    def peer_lost(self, name: str) -> None:
+        with self.changed:
+            self.lost.append((name, time.monotonic()))
+            self.changed.notify_all()
+
+    def peer_reachable(self, name: str) -> None:
+        pass
+
+    def lost_names(self) -> list[str]:
+        with self.changed:
+            return [name for name, _ in self.lost]
+
+    def wait_lost(self, name: str, timeout: float = 5.0) -> float | None:
+        """When `name` was first reported lost (monotonic), waiting up to `timeout` s."""
+        with self.changed:
+            self.changed.wait_for(lambda: name in [n for n, _ in self.lost], timeout)
+            return next((at for n, at in self.lost if n == name), None)
+
+    def end(self) -> None:
+        self._ended.set()
+
+
+def own_provider_main(
+    join: tuple[Any, ...], name: str, control: multiprocessing.connection.Connection
+) -> None:
+    """An unsupervised provider process: joins the system by itself (`join`: `("attach",
+    address)`, or `("router", system, endpoint)` for a Zenoh router of its own), serves
+    registrar `name` with the `carriers` servers until told to stop, then stops cleanly."""
+    if join[0] == "attach":
+        transport = join[1].attach()
+    else:
+        transport = rr.ZenohNetwork(system=join[1], connect=[join[2]], tls=None)
+    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, call_timeout=10.0))
+    try:
+        setup_servers(registrar)
+        transport.serve(Served(registrar))
+        control.send("ready")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        registrar.stop()
+        transport.close()
+
+
 # -- fixtures -----------------------------------------------------------------------------------
 
 

@@ -1,6 +1,6 @@
 """What the one-host TLS tests share: a free port, a member's `ZenohTLS`, a TLS router.
 
-`tests/transport/test_zenoh_tls_*.py` make raw Zenoh routers with the very config
+`tests/transport/zenoh/ops/test_*.py` make raw Zenoh routers with the very config
 `ZenohNetwork` makes (`session_config`), in the test process; the certificates come from
 `tests/support/pki.py`.
 """
@@ -16,7 +16,7 @@ from typing import Any
 import zenoh
 
 import rr_actors as rr
-from rr_actors._transport.zenoh.config import session_config
+from rr_actors._transport.zenoh.ops.config import session_config
 from tests.support import pki
 
 MEMBERS = ("robot", "operator")

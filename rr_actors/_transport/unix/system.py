@@ -1,41 +1,48 @@
-"""The AF_UNIX carrier: authenticated channels between the registrars of one machine.
+"""The AF_UNIX carrier: a system of registrars on one machine, met in a runtime directory.
 
-A *system* is a private runtime directory (mode 0700) plus a random authkey. Every process
-that takes part `attach`es it; each registrar it
-`serve`s listens on
-`<runtime_dir>/<registrar>.sock` (AF_UNIX) and holds an exclusive `flock` on
-`<runtime_dir>/<registrar>.lock` for as long as it listens, so one name has one owner.
-Another process reaches that registrar through a
-`RemotePeer` (`outbound.py`), which the directory resolver hands out
-for names that are not registered locally, so the registrar code sends a `Load` the same
-way whether its target lives in this process or another one.
+A *system* is a private runtime directory (mode 0700) plus a random authkey. Every
+process that takes part `attach`es it (an `AttachedSystem`: its messenger, with this
+carrier); each registrar it serves listens on `<runtime_dir>/<name>.sock` (the link:
+`link.py`). The directory is the system's rendezvous, and its files are the carrier's
+evidence of who serves what:
 
-Each listener also publishes its registrar's `max_message_bytes` in
-`<runtime_dir>/<registrar>.limit`, so that a sender refuses a message that is too large
-before it sends anything of it (the listener refuses such a frame unread, too), and who
-speaks for it if its process dies in `<runtime_dir>/<registrar>.restart` (rule 19: a
-registrar gone that nobody restarts is *lost*; how a process finds out, and the limits,
-are in `rr_actors._transport.base`).
+```
+ <name>.sock     the listener's socket: a process reaches the registrar there
+ <name>.lock     its flock, held for as long as it listens: one name, one owner
+ <name>.limit    its max_message_bytes, for senders (a larger message is never sent)
+ <name>.restart  who speaks for it if its process dies: 0, or `<pid> <start time>`
+ <name>.stopped  a tombstone: it was stopped cleanly (its messages fail as stopped)
+```
 
-Wire format: one frame per message (`multiprocessing.connection` framing), `8-byte token
-(little endian) + cloudpickle payload`. A message's `reply` never crosses: the sender keeps
-it in a table under the token (0: no answer wanted) and the receiver substitutes a reply
-that sends `token + pickle((value, error))` back over the same connection. Nothing is
-unpickled from a connection before it passed the authkey handshake
-(`multiprocessing.connection.deliver_challenge` / `answer_challenge`, run on a thread of
-the connection, bounded by a timeout).
+Rule 19 (a registrar gone that nobody restarts is *lost*; the contract is in
+`rr_actors._transport.base`). Each listener publishes `<name>.restart`: `0` when nobody
+restarts the registrar, else the pid (and start time) of the process that speaks for it
+when it dies: the supervisor's process of a manager process (`_process/child.py` says so
+with `supervised_by`; that process restarts it, or sends the death watch if it gives up
+or owns an unsupervised `RemoteRegistrar`), or its own process while
+`DIRECTORY.restart_expected(name)` (a thread manager: it dies with that process). A
+process *judges* a registrar of another process when its connection to it ends or a
+connect to it fails (`UnixCarrier.ended`): a tombstone says stopped (nothing to do); a
+process that holds the name's lock serves it (after a grace of `ENDING_GRACE` s, for a
+process still exiting); otherwise, with no speaker or a speaker gone (or a zombie),
+every endpoint served in this process hears `peer_lost(name)` once (`Messenger.lost`,
+until the name is served again); with a living speaker, the name is *awaited*: polled
+every `AWAIT_POLL` s until it is served again (then this process, if it serves an
+endpoint, connects to it at once, so that its next death is seen too), stopped, or its
+speaker is gone too (then lost). The speaker's own process judges nothing of what it
+speaks for: it decides itself. Limits:
 
-Sending never blocks on the other process: a sender writes a frame itself only when the
-socket takes it at once, otherwise it queues the frame for the connection's writer thread
-(frames of one connection leave in the order they were sent). A frozen peer therefore
-stalls only its own writer thread; callers still time out on their own timeouts.
-
-Failure: when a connection ends (the peer process died or its registrar stopped), every
-answer still outstanding on it fails at once with `RegistrarUnavailableError` (or
-`RegistrarStoppedError` if the registrar was stopped cleanly); the next message connects
-again, so a restarted registrar that binds the same path is reached. Low-level errors
-(`EOFError`, `BrokenPipeError`, `ConnectionResetError`, `OSError`, pickling errors) are
-translated into rr_actors errors with `raise ... from exc` and never reach a caller.
+- a process hears it only if it has, or tries, a connection to that registrar: one that
+  holds ids there has one (its calls opened it; it lasts until the peer ends), so the
+  gap is a consumer whose connection ended earlier for another reason and that sends
+  nothing: it hears at its next message (the failed connect is judged);
+- the lock probe is a shared `flock` held for microseconds; a listener taking the name
+  meanwhile retries for `link.LOCK_RETRY` s before it reports `DuplicateNameError`;
+- a pid is trusted with its start time where `/proc` has it; elsewhere a pid reused
+  by an unrelated process keeps a registrar awaited (not lost) until that one ends;
+- what a speaker that lives on does with the name (a restart, or the death watch when
+  it gives up) is its own: the carrier waits only for its death;
+- `DIRECTORY.restart_expected(name)` is read when the registrar starts serving.
 
 Fork: a child forked from a process that joined a system is a member of it too (same
 runtime directory, same authkey), but none of the parent's listeners, connections or
@@ -57,25 +64,16 @@ import os
 import tempfile
 import threading
 import time
-from collections.abc import Callable
-from typing import Any
 
-from rr_actors._core.directory import DIRECTORY, Peer
+from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._platform import PLATFORM, fork
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.messenger import tell_lost
-from rr_actors._transport.unix.inbound import Listener
-from rr_actors._transport.unix.outbound import RemotePeer
-from rr_actors.errors import (
-    ConfigError,
-    RegistrarStoppedError,
-    RegistrarUnavailableError,
-    UnknownServerError,
-    _known_names,
-)
+from rr_actors._transport.messenger import Lost, Messenger
+from rr_actors._transport.unix.link import Listener, RemotePeer, _Accepted
+from rr_actors.errors import ConfigError
 
-__all__ = ["AttachedSystem", "System", "SystemAddress", "attach"]
+__all__ = ["AttachedSystem", "System", "SystemAddress", "UnixCarrier", "attach"]
 
 logger = logging.getLogger("rr_actors")
 
@@ -133,116 +131,88 @@ class SystemAddress:
         return attach(self)
 
 
-class AttachedSystem:
-    """This process's membership of a system: the resolver, the peers and the listeners.
+class UnixCarrier:
+    """The AF_UNIX carrier of one process's membership (the messenger's `Carrier`): names
+    found in the runtime directory, a `RemotePeer` per name reached, a `Listener` per
+    registrar served, and who is lost (rule 19), judged from the directory's files on
+    the presence thread (`rr-unix-presence`)."""
 
-    Get one with [`attach`][rr_actors._transport.attach] (or `System.create`, which
-    attaches the creating process).
-    """
-
-    def __init__(self, address: SystemAddress) -> None:
+    def __init__(self, messenger: Messenger, address: SystemAddress) -> None:
+        self.messenger = messenger
         self.address = address
-        self.closed = False
-        self._lock = threading.Lock()
-        self._peers: dict[str, RemotePeer] = {}
-        self._listeners: dict[str, Listener] = {}
-        self._speaker: str | None = None  # who restarts what this process serves
-        # rule 19: registrars of other processes whose end is being judged
         self._presence = threading.Condition()
         self._judging: dict[str, float] = {}  # name -> end of its ENDING_GRACE
         self._awaited: set[str] = set()  # gone, their speaker alive
         self._lost: set[str] = set()  # reported lost (until served again)
         self._judge_thread: threading.Thread | None = None
-        DIRECTORY.add_resolver(self.resolve, self.names)
 
-    def serve(self, endpoint: Endpoint) -> None:
-        """Make a registrar of this process reachable from the other processes of the system.
+    @property
+    def closed(self) -> bool:
+        return self.messenger.closed
 
-        Listening stops by itself when the registrar stops or dies. Serving a name again
-        (a registrar restarted in this process) replaces the old listener.
+    # -- the Carrier -------------------------------------------------------------------
 
-        Args:
-            registrar: a running registrar of this process.
+    def knows(self, name: str) -> bool:
+        """Whether registrar `name` listens in the directory, or was stopped there."""
+        return os.path.exists(self.address.socket_path(name)) or os.path.exists(
+            self.address.tombstone_path(name)
+        )
+
+    def peer(self, name: str) -> RemotePeer:
+        return RemotePeer(self, name)
+
+    def listen(self, endpoint: Endpoint) -> Listener:
+        """Listen on `<runtime_dir>/<name>.sock`, holding the name's lock.
 
         Raises:
             DuplicateNameError: a living process of the system already serves that name
                 (it holds the `flock` on `<runtime_dir>/<name>.lock`).
             ConfigError: the socket path is too long or cannot be bound, or the lock
                 file cannot be opened.
-            RegistrarStoppedError: the system was closed.
         """
-        name = endpoint.name
-        path = self.address.socket_path(name)
+        path = self.address.socket_path(endpoint.name)
         if len(os.fsencode(path)) > _MAX_SOCKET_PATH:
             raise ConfigError(
-                f"socket path {path!r} for registrar {name!r} is longer than "
+                f"socket path {path!r} for registrar {endpoint.name!r} is longer than "
                 f"{_MAX_SOCKET_PATH} bytes; use a shorter runtime_dir or name"
             )
-        with self._lock:
-            if self.closed:
-                raise RegistrarStoppedError("the system was closed")
-            old = self._listeners.pop(name, None)
-            peer = self._peers.pop(name, None)
-        if old is not None:
-            old.close(stopped=False)
-        if peer is not None:
-            peer.close(RegistrarUnavailableError(f"registrar {name!r} moved into this process"))
-        listener = Listener(self, endpoint)
-        with self._lock:
-            self._listeners[name] = listener
-        threading.Thread(
-            target=self._watch, args=(endpoint, listener), name=f"rr-watch-{name}", daemon=True
-        ).start()
-        endpoint.listening()  # (it listens: Listener binds in its constructor)
+        return Listener(self, endpoint)
 
-    def run(self, registrar_name: str, fn: Callable[[Any], Any], *, timeout: float) -> Any:
-        """Run `fn(registrar)` where registrar `registrar_name` lives and return the result.
+    def answer_to(self, process: _Accepted, data: bytes, on_lost: Lost | None) -> bool:
+        """An answer goes back on the connection its message came on (`process`)."""
+        return process.send(data, on_lost)
 
-        For a registrar served by this process, `fn` runs in the calling thread;
-        otherwise see [`RemotePeer.run`][rr_actors._transport.RemotePeer.run].
+    def names(self) -> list[str]:
+        """The names of the registrars that listen in the system now (any process)."""
+        try:
+            entries = os.listdir(self.address.runtime_dir)
+        except OSError:
+            return []
+        return [e.removesuffix(".sock") for e in entries if e.endswith(".sock")]
 
-        Raises:
-            UnknownServerError: no registrar of that name is served on the system.
-            CallTimeoutError: no result within `timeout` seconds.
-            RegistrarUnavailableError: its process died or cannot be reached.
-            RegistrarStoppedError: it was stopped.
-        """
-        with self._lock:
-            listener = self._listeners.get(registrar_name)
-        if listener is not None:
-            return listener.endpoint.run(fn)
-        peer = self.resolve(registrar_name)
-        if peer is None:
-            raise UnknownServerError(
-                f"no registrar named {registrar_name!r} on this system"
-                + _known_names(registrar_name, self.names())
-            )
-        assert isinstance(peer, RemotePeer)
-        return peer.run(fn, timeout=timeout)
+    def leave(self) -> None:
+        with self._presence:
+            self._presence.notify_all()  # the presence thread ends
+        with _ATTACHED_LOCK:
+            if _ATTACHED.get(self.address.runtime_dir) is self.messenger:
+                del _ATTACHED[self.address.runtime_dir]
 
-    def supervised_by(self, pid: int | None) -> None:
-        """Say that process `pid` speaks for the registrars this process serves from now
-        on when this process dies: it restarts them, or sends their death watch (a manager
-        process's supervisor, or the owner of a `RemoteRegistrar`); `None`: nobody.
+    # -- what the link asks of its system ------------------------------------------------
 
-        Published in each one's `.restart` file: while that process lives, the others do
-        not count them lost (rule 19); once it is gone too, they do.
-        """
-        self._speaker = None if pid is None else _identity(pid)
-
-    def supervisor(self, name: str) -> str:
+    def speaker(self, name: str) -> str:
         """What registrar `name`, served here, publishes in its `.restart` file: the
-        speaker set by `supervised_by`, else this process while
+        process `supervised_by` named, else this process while
         `DIRECTORY.restart_expected(name)` (a thread manager), else `0` (nobody)."""
-        if self._speaker is not None:
-            return self._speaker
+        supervisor = self.messenger.supervisor
+        if supervisor is not None:
+            return _identity(supervisor)
         if DIRECTORY.restart_expected(name):
             return _identity(os.getpid())
         return NOBODY
 
-    def peer_ended(self, name: str) -> None:
+    def ended(self, name: str) -> None:
         """The connection to registrar `name` ended, or a connect to it failed: judge, on
-        the system's presence thread, whether it is lost (rule 19)."""
+        the presence thread, whether it is lost (rule 19)."""
         with self._presence:
             if self.closed:
                 return
@@ -254,91 +224,13 @@ class AttachedSystem:
                 self._judge_thread.start()
             self._presence.notify_all()
 
-    def serving_trouble(self, name: str) -> tuple[float, str] | None:
-        """For how long (seconds) and why registrar `name` has been unable to take new
-        connections here; `None` if it can (or this process does not serve it).
-
-        A manager process reports it with each heartbeat answer, so its supervisor can
-        restart a manager that stays unable to accept (out of file descriptors, say).
-        """
-        listener = self._listeners.get(name)
-        return None if listener is None else listener.trouble()
-
-    def close(self) -> None:
-        """Leave the system: stop listening, close every connection (idempotent).
-
-        Answers still outstanding fail with `RegistrarStoppedError`. Registrars are not
-        stopped; stop them first.
-        """
-        with self._lock:
-            if self.closed:
-                return
-            self.closed = True
-            listeners = list(self._listeners.values())
-            peers = list(self._peers.values())
-            self._listeners.clear()
-            self._peers.clear()
-        DIRECTORY.remove_resolver(self.resolve)
-        with self._presence:
-            self._presence.notify_all()  # the presence thread ends
-        for listener in listeners:
-            listener.close(stopped=listener.endpoint.stopped_cleanly())
-        for peer in peers:
-            peer.close(RegistrarStoppedError("this process closed its system"))
-        with _ATTACHED_LOCK:
-            if _ATTACHED.get(self.address.runtime_dir) is self:
-                del _ATTACHED[self.address.runtime_dir]
-
     def forget_in_child(self) -> None:
-        """In a forked child: drop the parent's listeners, connections and presence
-        thread; stay attached (see the module's "Fork"). Takes no lock: makes them new."""
-        self._lock = threading.Lock()
+        """In a forked child: drop the parent's presence thread and verdicts."""
         self._presence = threading.Condition()
-        listeners, peers = list(self._listeners.values()), list(self._peers.values())
-        self._listeners.clear()
-        self._peers.clear()
         self._judging.clear()
         self._awaited.clear()
         self._lost.clear()
         self._judge_thread = None
-        self._speaker = None  # whoever restarts the parent's registrars knows not the child's
-        for listener in listeners:
-            listener.forget_in_child()
-        for peer in peers:
-            peer.forget_in_child()
-
-    def __enter__(self) -> AttachedSystem:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.close()
-
-    # -- plumbing ------------------------------------------------------------------------
-
-    def resolve(self, name: str) -> Peer | None:
-        """The directory resolver: a peer for a registrar of another process, or None."""
-        peer = self._peers.get(name)
-        if peer is not None:
-            return peer
-        if self.closed or name in self._listeners:
-            return None  # served here: the directory's own record says stopped or died
-        if not (
-            os.path.exists(self.address.socket_path(name))
-            or os.path.exists(self.address.tombstone_path(name))
-        ):
-            return None
-        with self._lock:
-            return self._peers.setdefault(name, RemotePeer(self, name))
-
-    def names(self) -> list[str]:
-        """The names of the registrars that listen in the system now (any process)."""
-        if self.closed:
-            return []
-        try:
-            entries = os.listdir(self.address.runtime_dir)
-        except OSError:
-            return []
-        return [e.removesuffix(".sock") for e in entries if e.endswith(".sock")]
 
     # -- rule 19: is a registrar of another process lost? --------------------------------
 
@@ -379,7 +271,7 @@ class AttachedSystem:
         `awaited` (its speaker lives), `ours` (this process speaks for it) or `unknown`
         (it published no `.restart` file)."""
         address = self.address
-        if name in self._listeners:
+        if self.messenger.serving(name) is not None:
             return "served"
         if os.path.exists(address.tombstone_path(name)):
             return "stopped"
@@ -396,29 +288,19 @@ class AttachedSystem:
         if verdict == "served":
             self._lost.discard(name)
             MEMBERSHIP.back(name)  # served (again): no longer gone for good
-            peer = self._peers.get(name)
-            if awaited and peer is not None and any(n != name for n in self._listeners):
+            peer = self.messenger.peer(name)
+            if (
+                awaited
+                and isinstance(peer, RemotePeer)
+                and any(n != name for n in self.messenger.served())
+            ):
                 peer.connect()  # restarted: connect now, so that its next end is seen too
         elif verdict == "awaited":
             with self._presence:
                 self._awaited.add(name)
         elif verdict == "lost" and name not in self._lost:
             self._lost.add(name)
-            self._lose(name)
-
-    def _lose(self, name: str) -> None:
-        """Registrar `name` is gone for good: every endpoint served here hears it."""
-        listeners = list(self._listeners.values())
-        tell_lost([listener.endpoint for listener in listeners], name, self.address.runtime_dir)
-
-    def _watch(self, endpoint: Endpoint, listener: Listener) -> None:
-        endpoint.wait_ended()  # the carrier watches the registrar's end
-        # Close before letting go: while it is still listed, the system's own close()
-        # finds it and waits for this close to finish (a process may exit right after).
-        listener.close(stopped=endpoint.stopped_cleanly())
-        with self._lock:
-            if self._listeners.get(listener.name) is listener:
-                del self._listeners[listener.name]
+            self.messenger.lost(name)
 
 
 def _identity(pid: int) -> str:
@@ -474,7 +356,7 @@ def _lock_held(path: str) -> bool:
     """Whether a process holds the name lock at `path` (a listener serves the name).
 
     Probes with a shared `flock` held for microseconds; a listener taking the lock meanwhile
-    retries (`inbound.LOCK_RETRY`). When it cannot tell, it says held (never a false loss).
+    retries (`link.LOCK_RETRY`). When it cannot tell, it says held (never a false loss).
     """
     try:
         fd = os.open(path, os.O_RDONLY)
@@ -489,6 +371,32 @@ def _lock_held(path: str) -> bool:
     finally:
         os.close(fd)  # (closing releases the probe's lock)
     return False
+
+
+class AttachedSystem(Messenger):
+    """This process's membership of a system: its messenger over the AF_UNIX carrier.
+
+    Get one with [`attach`][rr_actors._transport.attach] (or `System.create`, which
+    attaches the creating process).
+    """
+
+    def __init__(self, address: SystemAddress) -> None:
+        super().__init__(address.runtime_dir)
+        self.address = address
+        self._unix = UnixCarrier(self, address)
+        self.joined(self._unix)
+
+    def forget_in_child(self) -> None:
+        """In a forked child: drop the parent's listeners, connections and presence
+        thread; stay attached (see the module's "Fork"). Takes no lock: makes them new."""
+        super().forget_in_child()
+        self._unix.forget_in_child()
+
+    def __enter__(self) -> AttachedSystem:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
 
 
 _ATTACHED: dict[str, AttachedSystem] = {}

@@ -1,8 +1,10 @@
 """The Zenoh carrier (extra `zenoh`): registrars across hosts over Eclipse Zenoh.
 
-`net` (`ZenohNetwork`, a router per host), `carrier` (`ZenohMember`: a process's
-membership), `outbox`, `inbox`, `presence`, `wire` (the key expressions and the header),
-`events` (every host's events as JSON lines), `options` (the command line's network
-options), and who may cross hosts: `tls` (`ZenohTLS`), `config`, `watch`, `probe`,
-`gate`, `access`. Nothing here imports `zenoh` at the package's import: only its modules do.
+The link: `net` (`ZenohNetwork`: a router per host, the session it opens, one system per
+process), `carrier` (`ZenohCarrier`: the messenger's carrier: routes, serving, answers),
+`link` (frames both ways: outboxes and the inbox), `presence` (who serves what, from
+liveliness tokens: the carrier's reports), `wire` (the key expressions and the header).
+The operations, apart: `ops/` (TLS, the access control, the link watch, the gate, the
+events across hosts, the command line's options). Nothing here imports `zenoh` at the
+package's import: only its modules do.
 """

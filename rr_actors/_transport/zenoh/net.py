@@ -13,10 +13,13 @@ never over TCP on loopback, which any local user could reach and send pickles to
  manager processes (address.attach())              manager processes
 ```
 
-Between hosts, `tls/` (mutual TLS, only members admitted: `config`, `tls`,
-`watch`) or, on one trusted network, `tcp/` (`tls=None`: a WARNING per endpoint
-naming who can reach it, on loopback every local user). What crosses:
-`carrier` (and its collaborators); how presence works: `presence`. A process
+Each process's membership is a messenger (`rr_actors._transport.messenger`: the
+`Transport` surface) over a `ZenohCarrier` (`carrier`): the router's is the
+`ZenohNetwork` itself (its session opens at first use), a manager process's a
+`ZenohMember`. Between hosts, `tls/` (mutual TLS, only members admitted: `ops.config`,
+`ops.tls`, `ops.watch`, `ops.gate`) or, on one trusted network, `tcp/` (`tls=None`: a
+WARNING per endpoint naming who can reach it, on loopback every local user). What
+crosses: `carrier` (and its collaborators); how presence works: `presence`. A process
 belongs to one system (the registrar directory is per process): joining a second one is
 a `ConfigError`. A process that opened a Zenoh session must not fork: Zenoh's runtime
 threads are not in the child, whose session (and any new one) would hang. rr_actors
@@ -37,39 +40,40 @@ import socket
 import tempfile
 import threading
 from collections.abc import Callable, Iterable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import zenoh
 
 from rr_actors import events
-from rr_actors._core.addresses import is_loopback
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
-from rr_actors._core.directory import Peer
 from rr_actors._core.exit import NETWORKS, stop_at_exit
 from rr_actors._core.hlc import CLOCK, MAX_OFFSET, check_max_offset
 from rr_actors._platform import fork
-from rr_actors._transport.base import Address, Endpoint, Transport
-from rr_actors._transport.zenoh.access import user
-from rr_actors._transport.zenoh.carrier import ZenohMember
-from rr_actors._transport.zenoh.config import endpoints, parse_endpoint, session_config
-from rr_actors._transport.zenoh.events import check_window
-from rr_actors._transport.zenoh.gate import HandshakeGate, open_gates
-from rr_actors._transport.zenoh.members import MemberAddresses
-from rr_actors._transport.zenoh.watch import LinkWatch, MemberLink, plain_unlinked
+from rr_actors._transport.base import Address, Transport
+from rr_actors._transport.messenger import Messenger
+from rr_actors._transport.zenoh.carrier import ZenohCarrier
+from rr_actors._transport.zenoh.ops.config import (
+    PROBE_TIMEOUT,
+    endpoints,
+    session_config,
+    warn_plain_tcp,
+    warn_unreachable,
+)
+from rr_actors._transport.zenoh.ops.events import EventFeed, check_window
+from rr_actors._transport.zenoh.ops.gate import HandshakeGate, MemberAddresses, open_gates
+from rr_actors._transport.zenoh.ops.watch import LinkWatch, MemberLink, plain_unlinked
+from rr_actors._transport.zenoh.presence import ASK_TIMEOUT
 from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavailableError
 from rr_actors.events.kinds import set_host
 
 if TYPE_CHECKING:
-    from rr_actors._transport.zenoh.seal import Seal
-    from rr_actors._transport.zenoh.tls import ZenohTLS
+    from rr_actors._transport.zenoh.ops.tls import Seal, ZenohTLS
 
-__all__ = ["Services", "ZenohAddress", "ZenohNetwork"]
+__all__ = ["Services", "ZenohAddress", "ZenohMember", "ZenohNetwork"]
 
 logger = logging.getLogger("rr_actors")
-
-_PROBE_TIMEOUT = 0.5  # seconds a `connect` endpoint gets to accept the probe at open
 
 
 def _zenoh_log_from_env() -> None:
@@ -84,69 +88,22 @@ def _seal(tls: ZenohTLS | None, system: str) -> Seal | None:
     """What seals this process's event batches with `tls` (`None` without TLS)."""
     if tls is None:
         return None
-    from rr_actors._transport.zenoh.seal import Seal  # noqa: PLC0415 - cryptography
+    from rr_actors._transport.zenoh.ops.tls import Seal  # noqa: PLC0415 - cryptography
 
     return Seal(tls, system)
 
 
 def _is_tls(tls: object) -> bool:
     try:
-        from rr_actors._transport.zenoh.tls import ZenohTLS  # noqa: PLC0415 - cryptography
+        from rr_actors._transport.zenoh.ops.tls import ZenohTLS  # noqa: PLC0415 - cryptography
     except ImportError:  # without cryptography nobody could have made a ZenohTLS
         return False
     return isinstance(tls, ZenohTLS)
 
 
-# -- plain TCP ------------------------------------------------------------------------------
-
-
-def _who_reaches(host: str) -> str:
-    if is_loopback(host):
-        return "every user and process on this machine"
-    if host in ("0.0.0.0", "::"):  # noqa: S104 - naming the wildcard, not binding it
-        return "anyone who can reach this machine (at any of its addresses)"
-    return f"anyone who can reach {host}"
-
-
-def _who_answers(host: str, port: int) -> str:
-    if is_loopback(host):
-        return f"every user and process on this machine (whoever listens on port {port} first)"
-    return f"whoever answers at {host} port {port} (anyone who can listen there or sits between)"
-
-
-def _warn_plain_tcp(system: str, listen: Iterable[str], connect: Iterable[str]) -> None:
-    """A WARNING per plain-TCP endpoint, naming who can send this process pickles through it.
-
-    Unpickling runs code, and plain TCP asks nobody who they are: loopback is no
-    exception (every local user can connect to it, where the Unix carrier's 0700 runtime
-    directory lets in only this user), and a `connect` endpoint trusts whoever answers.
-    """
-    me = user()
-    for endpoint in listen:
-        _, host, _ = parse_endpoint("listen", endpoint)
-        logger.warning(
-            "ZenohNetwork %r listens on %s in plain TCP (tls=None): %s can connect and run "
-            "code as this user, %s (what crosses is pickles); use tls= and tls/ endpoints",
-            system,
-            endpoint,
-            _who_reaches(host),
-            me,
-        )
-    for endpoint in connect:
-        _, host, port = parse_endpoint("connect", endpoint)
-        logger.warning(
-            "ZenohNetwork %r connects to %s in plain TCP (tls=None): %s can run code as "
-            "this user, %s (what crosses is pickles); use tls= and tls/ endpoints",
-            system,
-            endpoint,
-            _who_answers(host, port),
-            me,
-        )
-
-
 # -- one system per process ----------------------------------------------------------------------
 
-_MEMBER: ZenohMember | None = None
+_MEMBER: ZenohMember | ZenohNetwork | None = None
 _MEMBER_OWNER: object = None
 _MEMBER_LOCK = threading.Lock()
 _OPENED: list[str] = []  # the systems this process opened a Zenoh session for
@@ -164,8 +121,11 @@ def _refuse_in_child() -> None:
 fork.after_fork_in_child("the Zenoh carrier", _refuse_in_child)
 
 
-def _join(system: str, owner: object, open_member: Callable[[], ZenohMember]) -> ZenohMember:
-    """This process's member of `system`: the one it has, or a new one from `open_member`.
+def _join(
+    system: str, owner: object, open_member: Callable[[], ZenohMember | ZenohNetwork]
+) -> ZenohMember | ZenohNetwork:
+    """This process's membership of `system`: the one it has, or a new one from
+    `open_member` (which opened its carrier).
 
     Raises:
         ConfigError: this process is a member of another system, or (for a second
@@ -195,14 +155,14 @@ def _join(system: str, owner: object, open_member: Callable[[], ZenohMember]) ->
         return member
 
 
-def _left(member: ZenohMember) -> None:
+def _left(member: Messenger) -> None:
     global _MEMBER, _MEMBER_OWNER
     with _MEMBER_LOCK:
         if _MEMBER is member:
             _MEMBER, _MEMBER_OWNER = None, None
 
 
-def _close_at_exit(what: str, member: ZenohMember, close: Callable[[], None]) -> None:
+def _close_at_exit(what: str, member: Messenger, close: Callable[[], None]) -> None:
     """Close `member`'s session when the main thread ends, if the program did not: Zenoh's
     callback threads are not daemons, so an open session keeps the interpreter waiting
     for them forever (after an error, or a Ctrl-C, as much as after a forgotten
@@ -250,36 +210,49 @@ class ZenohAddress:
     max_offset: float = MAX_OFFSET
     tls: ZenohTLS | None = None
 
-    def attach(self) -> ZenohMember:
+    def attach(self) -> ZenohMember | ZenohNetwork:
         """Join the system from this process (idempotent): a CLIENT-mode session.
 
         Raises:
             ConfigError: this process is a member of another system.
             RegistrarUnavailableError: the router cannot be reached.
         """
-        return _join(self.system, None, self._open)
+        return _join(self.system, None, lambda: ZenohMember(self))
 
-    def _open(self) -> ZenohMember:
-        set_host(self.member or socket.gethostname())
-        CLOCK.max_offset = self.max_offset
-        config = session_config("client", [], [f"unixsock-stream/{self.socket_path}"], self.lease)
+
+class ZenohMember(Messenger):
+    """A manager process's membership of a system, joined through its host's router
+    (`ZenohAddress.attach`): a messenger over a CLIENT-mode session's carrier.
+
+    Raises:
+        RegistrarUnavailableError: the router cannot be reached.
+    """
+
+    def __init__(self, address: ZenohAddress) -> None:
+        super().__init__(address.system)
+        self.address = address
+        set_host(address.member or socket.gethostname())
+        CLOCK.max_offset = address.max_offset
+        config = session_config(
+            "client", [], [f"unixsock-stream/{address.socket_path}"], address.lease
+        )
         try:
             session = zenoh.open(config)
         except Exception as exc:
             raise RegistrarUnavailableError(
-                f"cannot join system {self.system!r} through {self.socket_path!r}: {exc}"
+                f"cannot join system {address.system!r} through {address.socket_path!r}: {exc}"
             ) from exc
-        member = ZenohMember(
-            self.system,
-            session,
-            self,
-            speakers={self.router_pid: self.router},
-            on_close=_left,
-            router=self.router,
-            seal=_seal(self.tls, self.system),
+        self.joined(
+            ZenohCarrier(
+                self,
+                session,
+                speakers={address.router_pid: address.router},
+                on_close=lambda: _left(self),
+                router=address.router,
+                seal=_seal(address.tls, address.system),
+            )
         )
-        _close_at_exit(f"the membership of system {self.system!r}", member, member.close)
-        return member
+        _close_at_exit(f"the membership of system {address.system!r}", self, self.close)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -305,7 +278,7 @@ class Services:
     links: Callable[[], list[MemberLink]]
 
 
-class ZenohNetwork:
+class ZenohNetwork(Messenger):
     """A system of registrars across hosts over Eclipse Zenoh (`pip install rr-actors[zenoh]`).
 
     Hand it to `ResourceRegistrar.start(..., network=net)` and
@@ -359,7 +332,7 @@ class ZenohNetwork:
         lease: float = 1.0,
         max_offset: float = MAX_OFFSET,
     ) -> None:
-        self.system = check_name("system", system, "a system name")
+        super().__init__(check_name("system", system, "a system name"))
         if tls is not None and not _is_tls(tls):
             raise ConfigError(
                 f"tls must be rr.ZenohTLS(ca=..., cert=..., key=..., members=[...]) or None "
@@ -378,9 +351,9 @@ class ZenohNetwork:
         self.lease = float(lease)
         self.max_offset = check_max_offset(max_offset)
         if tls is None:
-            _warn_plain_tcp(system, self.listen, self.connect)
-        self._lock = threading.Lock()
-        self._member: ZenohMember | None = None
+            warn_plain_tcp(system, self.listen, self.connect)
+        self._open_lock = threading.Lock()
+        self._opened: ZenohCarrier | None = None
         self._runtime_dir: str | None = None
         self._address: ZenohAddress | None = None
         self._watch: LinkWatch | None = None
@@ -396,14 +369,18 @@ class ZenohNetwork:
 
     # -- opening ---------------------------------------------------------------------------
 
-    def _open(self) -> ZenohMember:
-        with self._lock:
-            if self._member is not None:
-                return self._member
-            self._member = _join(self.system, self, self._open_router)
-            return self._member
+    def link(self) -> ZenohCarrier:
+        """The router's carrier: its session opens here, at first use."""
+        carrier = self._opened
+        if carrier is not None:
+            return carrier
+        with self._open_lock:
+            if self._opened is None:
+                _join(self.system, self, self._open_router)
+            assert self._opened is not None
+            return self._opened
 
-    def _open_router(self) -> ZenohMember:
+    def _open_router(self) -> ZenohNetwork:
         # the member name on this process's events (the host name without TLS)
         set_host(self.tls.name if self.tls is not None else socket.gethostname())
         CLOCK.max_offset = self.max_offset
@@ -427,7 +404,7 @@ class ZenohNetwork:
             ) from exc
         try:
             if self.tls is None:
-                self._warn_unreachable()
+                warn_unreachable(self.system, self.connect)
             else:  # names the reason of an unlinked connect endpoint, and who links
                 self._watch = LinkWatch(self.system, session, self.tls, self.connect)
                 self._members = MemberAddresses(self.system, session, self.tls)
@@ -445,26 +422,27 @@ class ZenohNetwork:
                 self.tls,
             )
 
-            def closed(member: ZenohMember) -> None:
+            def closed() -> None:
                 for part in (watch, gate, members):
                     if part is not None:
                         part.close()
-                _left(member)
+                _left(self)
                 shutil.rmtree(runtime_dir, ignore_errors=True)
 
-            member = ZenohMember(
-                self.system,
+            self._opened = ZenohCarrier(
+                self,
                 session,
-                self._address,
                 on_close=closed,
                 link_trouble=lambda: _no_link(self._unlinked(session)),
                 seal=_seal(self.tls, self.system),
             )
-            _close_at_exit(f"ZenohNetwork {self.system!r}", member, self.close)
+            self.joined(self._opened)
+            _close_at_exit(f"ZenohNetwork {self.system!r}", self, self.close)
         except BaseException:  # nothing of a network that did not open is left behind:
+            self._opened = None
             self._unopened(session, runtime_dir)  # (Zenoh's threads would hold the exit)
             raise
-        return member
+        return self
 
     def _unopened(self, session: zenoh.Session, runtime_dir: str) -> None:
         """Close what `_open_router` made before it failed: the watch, the gate, the
@@ -478,63 +456,19 @@ class ZenohNetwork:
             session.close()  # type: ignore[no-untyped-call]
         shutil.rmtree(runtime_dir, ignore_errors=True)
 
-    def _warn_unreachable(self) -> None:
-        for endpoint in self.connect:
-            _, host, port = parse_endpoint("connect", endpoint)
-            try:
-                with socket.create_connection((host, port), timeout=_PROBE_TIMEOUT):
-                    pass
-            except OSError as exc:
-                logger.warning(
-                    "ZenohNetwork %r cannot reach connect endpoint %s now (%s); Zenoh keeps trying",
-                    self.system,
-                    endpoint,
-                    exc,
-                )
-
-    # -- Transport -------------------------------------------------------------------------
+    # -- what a network has besides the Transport surface --------------------------------
 
     @property
     def address(self) -> ZenohAddress:
         """What manager processes of this host join through (opens the session)."""
-        self._open()
+        self.link()
         assert self._address is not None
         return self._address
-
-    @property
-    def closed(self) -> bool:
-        """Whether this process left the system (a network never opened is not closed)."""
-        return self._member is not None and self._member.closed
 
     @property
     def runtime_dir(self) -> str | None:
         """The private directory of the router's Unix socket, once open."""
         return self._runtime_dir
-
-    def resolve(self, name: str) -> Peer | None:
-        """See `Transport.resolve`."""
-        return self._open().resolve(name)
-
-    def names(self) -> list[str]:
-        """See `Transport.names`."""
-        return self._open().names()
-
-    def serve(self, endpoint: Endpoint) -> None:
-        """See `Transport.serve`."""
-        self._open().serve(endpoint)
-
-    def run(self, name: str, fn: Callable[[Any], Any], *, timeout: float) -> Any:
-        """See `Transport.run`."""
-        return self._open().run(name, fn, timeout=timeout)
-
-    def serving_trouble(self, name: str) -> tuple[float, str] | None:
-        """See `Transport.serving_trouble` (always `None` over Zenoh)."""
-        member = self._member
-        return None if member is None else member.serving_trouble(name)
-
-    def supervised_by(self, pid: int | None) -> None:
-        """See `Transport.supervised_by` (`ZenohMember.supervised_by`)."""
-        self._open().supervised_by(pid)
 
     def services(self) -> Services:
         """The router's session and what goes with it, for rr_actors' own services (the
@@ -543,13 +477,13 @@ class ZenohNetwork:
         Raises:
             RegistrarStoppedError: this process left the system (`close()`).
         """
-        member = self._open()
-        if member.closed:
+        carrier = self.link()
+        if self.closed:
             raise RegistrarStoppedError(f"this process left system {self.system!r}")
         watch = self._watch
         return Services(
-            session=member.session,
-            keys=Keys(self.system),
+            session=carrier.session,
+            keys=carrier.keys,
             member=None if self.tls is None else self.tls.name,
             lease=self.lease,
             links=(list) if watch is None else watch.member_links,
@@ -597,8 +531,13 @@ class ZenohNetwork:
         if not callable(callback):  # (before the session opens)
             raise ConfigError(f"callback must be callable, got {callback!r}")
         window = check_window(window)
-        member = self._open()
-        return member.subscribe_events(callback, window=window, maxsize=maxsize)
+        carrier = self.link()
+        if self.closed:
+            raise RegistrarStoppedError("this process left the system")
+        feed = EventFeed(carrier.session, carrier.keys, window, carrier.seal)
+        subscription = feed.subscribe(callback, maxsize)
+        carrier.events.wait_sending(ASK_TIMEOUT)  # (this process's own, from now on)
+        return subscription
 
     def wait_for(self, name: str, *, timeout: float) -> None:
         """Wait until registrar `name` is served on this system (by any host); then return.
@@ -630,16 +569,16 @@ class ZenohNetwork:
             or timeout < 0
         ):
             raise ConfigError(f"timeout must be seconds >= 0, not {timeout!r}")
-        member = self._open()
-        if member.closed:
+        carrier = self.link()
+        if self.closed:
             raise RegistrarStoppedError(f"this process left system {self.system!r}")
-        if member.wait_served(name, timeout=timeout):
+        if carrier.wait_served(name, timeout=timeout):
             return
-        if member.closed:
+        if self.closed:
             raise RegistrarStoppedError(f"this process left system {self.system!r}")
         raise RegistrarUnavailableError(
             f"no registrar named {name!r} was served on system {self.system!r} within "
-            f"{timeout:g} s" + _no_link(self._unlinked(member.session))
+            f"{timeout:g} s" + _no_link(self._unlinked(carrier.session))
         )
 
     def _unlinked(self, session: zenoh.Session) -> list[tuple[str, str]]:
@@ -649,18 +588,18 @@ class ZenohNetwork:
         if watch is not None:
             return watch.unlinked()
         if self.tls is None:
-            return plain_unlinked(session, self.connect, timeout=_PROBE_TIMEOUT)
+            return plain_unlinked(session, self.connect, timeout=PROBE_TIMEOUT)
         return []
 
     def close(self) -> None:
-        """Leave the system: stop serving, fail what waits, close the session (idempotent)."""
+        """Leave the system: stop serving, fail what waits, close the session (idempotent;
+        a network never opened stays so)."""
         if self._watch is not None:
             self._watch.close()  # before the session goes
         if self._gate is not None:
             self._gate.close()  # (its duplicate of a listening socket, too)
-        member = self._member
-        if member is not None:
-            member.close()
+        if self._opened is not None:
+            super().close()
 
     def __enter__(self) -> ZenohNetwork:
         return self

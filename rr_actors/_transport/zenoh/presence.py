@@ -9,10 +9,11 @@
                                   supervisors awaited
                                              │ then, outside the lock
                                              ▼
-                  PresenceEvents (the member): process_gone, server_gone, lost, reachable,
-                                               served_elsewhere
-                     ─► fail waiting replies, close outboxes, peer_lost, peer_reachable,
-                        yield a name served here to the one kept (rule 22)
+          PresenceEvents (the carrier): process_gone, server_gone, served_elsewhere
+            ─► fail waiting replies, close outboxes, yield a name served here to the
+               one kept (rule 22: `Messenger.give_way`)
+          Hearer (the messenger): lost, reachable ─► every endpoint here: peer_lost,
+               peer_reachable
 ```
 
 - a registrar's token (`live/reg/<name>/<zid>/<sup>/<limit>/<stamp>`) goes: every reply waiting
@@ -30,7 +31,7 @@
   (`rr/<s>/ping/<zid>`, `outbox`): its token may be back before what is put to it
   gets through.
 
-Claims (`live/claim/<name>/<zid>`) and `wait_turn` are `serve`'s half of "one name, one
+Claims (`live/claim/<name>/<zid>`) and `wait_turn` are `listen`'s half of "one name, one
 server" (see `carrier`). `wait_turn` decides only from a full answer of the network (a
 liveliness query that timed out answers with an error reply: it is asked again, and
 `serve` fails with `RegistrarUnavailableError` if none comes within `CLAIM_TIMEOUT`). A
@@ -82,6 +83,7 @@ __all__ = [
     "ASK_TIMEOUT",
     "CLAIM_TIMEOUT",
     "NO_WAITING",
+    "Hearer",
     "Presence",
     "PresenceEvents",
     "Server",
@@ -102,7 +104,7 @@ ASK_PAUSE = 0.1
 
 NO_WAITING = threading.local()
 """`active` on threads that must not wait on the network: the presence thread (what its
-reports to the member run, `PresenceEvents`)."""
+reports to the carrier and messenger run, `PresenceEvents`)."""
 
 
 class Server:
@@ -140,13 +142,22 @@ def when(stamp: int) -> str:
 
 
 class PresenceEvents(Protocol):
-    """What `Presence` reports (on the presence thread, in order, outside its lock)."""
+    """What `Presence` reports to its carrier (on the presence thread, in order, outside
+    its lock)."""
 
     def process_gone(self, zid: str) -> None:
         """Process `zid`'s token went: what was open to and from it ends."""
 
     def server_gone(self, name: str) -> None:
         """The last server of registrar `name` went: what waits on it fails."""
+
+    def served_elsewhere(self, name: str, server: Server) -> None:
+        """Another process serves registrar `name` (if this process serves it too, the
+        one of the two that rule 22 does not keep yields: `carrier`)."""
+
+
+class Hearer(Protocol):
+    """What `Presence` reports to the messenger (on the presence thread, in order)."""
 
     def lost(self, name: str) -> None:
         """Registrar `name` is gone for good (nobody restarts it)."""
@@ -156,10 +167,6 @@ class PresenceEvents(Protocol):
         server of it yielded and the one kept serves on (rule 22): its consumers
         reconcile with it."""
 
-    def served_elsewhere(self, name: str, server: Server) -> None:
-        """Another process serves registrar `name` (if this process serves it too, the
-        one of the two that rule 22 does not keep yields: `carrier`)."""
-
 
 class Presence:
     """The liveliness tables of one process's membership (written by its presence thread).
@@ -168,7 +175,8 @@ class Presence:
         system: the system's name (for error messages).
         session: the open session.
         zid: this process's Zenoh id (its own tokens are left out).
-        events: told what follows from a change (see `PresenceEvents`).
+        events: told what follows from a change for the carrier (`PresenceEvents`).
+        hearer: told who is lost or reachable again (`Hearer`: the messenger).
         on_token: called with a process's Zenoh id and whether its token came (`True`)
             or went, once `member` says so (on Zenoh's thread: it must not block).
         router: the Zenoh id of the router this process attached through (`None`: it
@@ -183,6 +191,7 @@ class Presence:
         zid: str,
         events: PresenceEvents,
         *,
+        hearer: Hearer,
         on_token: Callable[[str, bool], None] | None = None,
         router: str | None = None,
     ) -> None:
@@ -191,6 +200,7 @@ class Presence:
         self._session = session
         self._zid = zid
         self._events = events
+        self._hearer = hearer
         self._keys = Keys(system)
         self._changed = threading.Condition(threading.Lock())
         self._seq = 0
@@ -542,7 +552,7 @@ class Presence:
         lost = [name for name, supervisor in self._awaiting.items() if supervisor == zid]
         for name in lost:
             del self._awaiting[name]
-        actions: list[Callable[[], None]] = [functools.partial(self._events.lost, n) for n in lost]
+        actions: list[Callable[[], None]] = [functools.partial(self._hearer.lost, n) for n in lost]
         actions.append(functools.partial(self._events.process_gone, zid))
         return actions
 
@@ -576,7 +586,7 @@ class Presence:
         self._awaiting.pop(name, None)
         actions.append(functools.partial(self._events.served_elsewhere, name, server))
         if self._last.get(name) == zid and zid in self._vanished:
-            actions.append(functools.partial(self._events.reachable, name))  # a healed link
+            actions.append(functools.partial(self._hearer.reachable, name))  # a healed link
         return actions
 
     @staticmethod
@@ -622,7 +632,7 @@ class Presence:
             return []  # held nothing here (this process's consumers call its own)
         if servers:  # one of two that yielded (rule 22): the one kept serves on, and
             # the consumers of the one that went reconcile with it (rule 20)
-            return [functools.partial(self._events.reachable, name)]
+            return [functools.partial(self._hearer.reachable, name)]
         stopped = NameAt(name, zid) in self._stopped
         self._gone[name] = "stopped" if stopped else "died"
         self._last[name] = zid
@@ -631,7 +641,7 @@ class Presence:
             return actions
         supervisor = server.supervisor
         if supervisor == "none" or (supervisor != self._zid and supervisor not in self._procs):
-            actions.append(functools.partial(self._events.lost, name))
+            actions.append(functools.partial(self._hearer.lost, name))
         else:
             self._awaiting[name] = supervisor  # lost if its supervisor goes too
         return actions

@@ -1,0 +1,181 @@
+"""The world the protocol runs in: real threads and clocks, or a simulation of them.
+
+The protocol code (`_core`, `_catalog`, `_store`, `_supervision`, the registrar and the
+messenger) never uses `threading`, `time`, `uuid`, `random` or `queue` itself: it asks
+this module, the only one that knows whether a simulation runs.
+
+```
+ protocol code ── runtime.Lock() · runtime.monotonic() · runtime.Thread(...).start() ──┐
+                                                                                        │
+   real (the default): the stdlib's own objects and functions ◄──────────────────────────┤
+   simulated, while `rr_actors.simulation` runs (`use(seams)`): its greenlet-aware      │
+   objects, its virtual clock and its seeded randomness ◄────────────────────────────────┘
+```
+
+Each name is read where an object is made or a function called (`runtime.Lock()`,
+`runtime.monotonic()`), never imported by value (`from ... import Lock` would keep the
+real one: `tests/test_repository.py` refuses it). So in a real run `runtime.Lock` *is*
+`threading.Lock`: the cost is the attribute read at construction, as `threading.Lock`'s
+own, and nothing per operation.
+
+What is per process (the directory of registrars, the membership, the clock, pykka's
+registry) is registered here with `process_state`, as `_platform.fork` registers what a
+forked child lets go of: a simulation gives each simulated process its own. What is per
+thread is made with `local()`: a simulation gives each simulated thread its own contents.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import random as _random
+import threading
+import time
+from collections.abc import Callable, Mapping
+from typing import Any, TypeVar
+
+__all__ = [
+    "SEAMS",
+    "TIMEOUT_MAX",
+    "Condition",
+    "Empty",
+    "Event",
+    "Full",
+    "Lock",
+    "RLock",
+    "SimpleQueue",
+    "Thread",
+    "Timer",
+    "current_thread",
+    "get_ident",
+    "local",
+    "monotonic",
+    "process_state",
+    "process_states",
+    "queue_class",
+    "random",
+    "simulated",
+    "sleep",
+    "thread_locals",
+    "urandom",
+    "use",
+    "wall",
+    "wall_ns",
+]
+
+T = TypeVar("T")
+Q = TypeVar("Q", bound=queue.SimpleQueue[Any])
+
+# -- the seams: the stdlib's own, until a simulation replaces them ----------------------
+
+Lock = threading.Lock
+RLock = threading.RLock
+Event = threading.Event
+Condition = threading.Condition
+SimpleQueue = queue.SimpleQueue
+Thread = threading.Thread
+Timer = threading.Timer
+
+monotonic = time.monotonic
+"""Seconds of a clock that never steps back: deadlines and durations."""
+wall = time.time
+"""Seconds since the epoch (as `time.time()`)."""
+wall_ns = time.time_ns
+"""Nanoseconds since the epoch (the hybrid clock's physical clock)."""
+sleep = time.sleep
+"""Never in protocol code (it waits on events, futures and timers); for workloads."""
+urandom = os.urandom
+"""`urandom(n)`: `n` random bytes (query ids, file tokens)."""
+random = _random.random
+"""A float in `[0, 1)`: jitter and backoff."""
+get_ident = threading.get_ident
+current_thread = threading.current_thread
+
+
+def queue_class(cls: type[Q]) -> type[Q]:
+    """The class to make for `cls`, a subclass of `queue.SimpleQueue` (`LateQueue`):
+    `cls` itself in a real run; in a simulation, a subclass of it whose queue methods
+    (`put`, `get`, ...) are the simulated queue's, where `cls` does not define its own."""
+    return cls
+
+
+SEAMS = (
+    "Lock",
+    "RLock",
+    "Event",
+    "Condition",
+    "SimpleQueue",
+    "Thread",
+    "Timer",
+    "monotonic",
+    "wall",
+    "wall_ns",
+    "sleep",
+    "urandom",
+    "random",
+    "get_ident",
+    "current_thread",
+    "queue_class",
+)
+"""The names a simulation replaces (`use`); every other name here is the same in both."""
+
+# -- the same in both worlds ------------------------------------------------------------
+
+Empty = queue.Empty
+Full = queue.Full
+TIMEOUT_MAX = threading.TIMEOUT_MAX
+
+_REAL = {name: globals()[name] for name in SEAMS}
+_simulated = False
+_states: list[tuple[object, Callable[[], object]]] = []
+_locals: list[threading.local] = []
+
+
+def use(seams: Mapping[str, Any] | None) -> None:
+    """Run the protocol on `seams` from now on (a value for every name of `SEAMS`), or on
+    the real threads and clocks again (`None`). For `rr_actors.simulation` only: objects
+    made before keep the world they were made in.
+
+    Raises:
+        ValueError: `seams` lacks a name of `SEAMS`, or has one that is not a seam.
+    """
+    global _simulated  # (this module's one switch)
+    if seams is not None and set(seams) != set(SEAMS):
+        raise ValueError(f"a simulation replaces exactly {SEAMS}, not {tuple(seams)}")
+    globals().update(_REAL if seams is None else seams)
+    _simulated = seams is not None
+
+
+def simulated() -> bool:
+    """Whether a simulation runs now."""
+    return _simulated
+
+
+def local() -> threading.local:
+    """A thread-local namespace (`threading.local`) that a simulation keeps per simulated
+    thread too (`thread_locals`). Made once, at import."""
+    namespace = threading.local()
+    _locals.append(namespace)
+    return namespace
+
+
+def thread_locals() -> tuple[threading.local, ...]:
+    """Every namespace made by `local`, in the order made."""
+    return tuple(_locals)
+
+
+def process_state(obj: T, fresh: Callable[[], object]) -> T:
+    """Register `obj` as state of this process; returns it.
+
+    `fresh()` makes the state of a process that starts (an object whose attributes are
+    `obj`'s): a simulation sets `obj`'s attributes to a fresh one's in each simulated
+    process, and back when it ends. In a real run nothing happens: `obj` is the one
+    process's own. Call it once, at the import of the module that holds `obj`.
+    """
+    _states.append((obj, fresh))
+    return obj
+
+
+def process_states() -> tuple[tuple[object, Callable[[], object]], ...]:
+    """Every `(obj, fresh)` registered with `process_state`, in the order registered."""
+    return tuple(_states)

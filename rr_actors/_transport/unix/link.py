@@ -1,0 +1,905 @@
+"""The AF_UNIX link: one connection per pair of processes and registrar, both ways.
+
+```
+ process A (sender)                                         process B (serves "erm")
+ RemotePeer("erm").route() ─ a _Channel: its Writer's thread connects, then the
+   authkey handshake (bounded) ──────────────── connect ──► Listener: accept thread
+ send(frame): written inline if the socket takes it            _Accepted: handshake on
+   at once (MSG_DONTWAIT), else queued for the writer thread     its own thread, then
+                          ──────────────── frames ────────►    reads frames: messenger
+                                                                .message(endpoint, it)
+ the channel's reader thread: answers ─► pending.answered ◄──── its Writer: answers
+ the connection ends (EOF): what waits on it fails at once; the system judges the end
+   (rule 19: `system.py`)
+```
+
+Wire format: one frame per message (`multiprocessing.connection` framing), `8-byte token
+(little endian) + pickle` (`codec`). Both sides of a connection get one deadline,
+`HANDSHAKE_TIMEOUT` seconds, for everything before the first message: the connect (which
+waits for room in a full accept backlog) and every read and write of the handshake; a
+peer that trickles its handshake a byte at a time is cut off at the deadline. Nothing is
+unpickled from a connection before it passed the handshake
+(`multiprocessing.connection.deliver_challenge` / `answer_challenge`).
+
+Sending never blocks on the other process: a sender writes a frame itself only when
+nothing is queued and the socket takes all of it at once; otherwise the frame waits for
+the connection's writer thread (a `SerialExecutor`), the only thread that may block on a
+peer that does not read. A frozen peer therefore stalls only its own writer thread;
+callers still time out on their own timeouts.
+
+Each connection is bounded by the target's `max_message_bytes`, read from the `.limit`
+file its listener publishes: a larger message is refused before anything of it is sent,
+a larger answer is skipped unread (and the listener skips a larger message unread too).
+The listener holds the name's lock file for as long as it listens, so the socket path is
+its own. Its accept thread outlives running out of file descriptors: it backs off, tries
+again and says for how long it could not accept (`Listener.trouble`, for the manager's
+heartbeat answer).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import functools
+import logging
+import math
+import os
+import socket
+import struct
+import threading
+import time
+from collections.abc import Callable
+from multiprocessing import AuthenticationError
+from multiprocessing.connection import Connection, answer_challenge, deliver_challenge
+from typing import Protocol
+
+from rr_actors._core.serial import SerialExecutor, Task
+from rr_actors._transport.base import Endpoint
+from rr_actors._transport.codec import Oversized, frames, unframe
+from rr_actors._transport.messenger import Listening, Lost, Messenger, Remote, Replies, run_lost
+from rr_actors.config import DEFAULT_MAX_MESSAGE_BYTES
+from rr_actors.errors import (
+    ConfigError,
+    DuplicateNameError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    RrError,
+)
+
+__all__ = [
+    "HANDSHAKE_TIMEOUT",
+    "LOCK_RETRY",
+    "Listener",
+    "RemotePeer",
+    "Rendezvous",
+    "Writer",
+    "connect",
+    "handshake",
+    "publish",
+    "read_limit",
+    "shutdown",
+    "split",
+    "take_name_lock",
+]
+
+logger = logging.getLogger("rr_actors")
+
+HANDSHAKE_TIMEOUT = 5.0
+"""Seconds a connection gets to connect and pass the authkey handshake (both sides)."""
+
+LOCK_RETRY = 0.2
+"""Seconds a listener keeps trying to take a name lock that is held: another process may
+be probing it for a few microseconds (`system._lock_held`, rule 19), which is no owner."""
+
+
+class Paths(Protocol):
+    """Where a registrar's files are (`system.SystemAddress`), and the system's secret."""
+
+    @property
+    def authkey(self) -> bytes: ...
+    def socket_path(self, name: str) -> str: ...
+    def tombstone_path(self, name: str) -> str: ...
+    def lock_path(self, name: str) -> str: ...
+    def limit_path(self, name: str) -> str: ...
+    def restart_path(self, name: str) -> str: ...
+
+
+class Rendezvous(Protocol):
+    """What the link needs of its system (`system.UnixCarrier`)."""
+
+    @property
+    def address(self) -> Paths:
+        """Where registrars of the system are found."""
+        ...
+
+    @property
+    def closed(self) -> bool:
+        """Whether this process left the system (no new channel is opened then)."""
+        ...
+
+    @property
+    def messenger(self) -> Messenger:
+        """What a listener hands the messages it reads."""
+        ...
+
+    def speaker(self, name: str) -> str:
+        """What registrar `name`, served here, publishes in its `.restart` file (rule 19)."""
+        ...
+
+    def ended(self, name: str) -> None:
+        """The connection to registrar `name` of another process ended, or a connect to it
+        failed: find out (on another thread) whether it is lost (rule 19). Returns at once."""
+        ...
+
+
+# -- a connection: made, authenticated, written ---------------------------------------------
+
+_HEADER = struct.Struct("!i")  # multiprocessing.connection's frame header
+_LONG = struct.Struct("!Q")  # ... after a header of -1
+
+
+class _Timed:
+    """`send_bytes` and `recv_bytes` of `multiprocessing.connection` over `sock`, by `deadline`.
+
+    `deliver_challenge` and `answer_challenge` need only these two methods. Every read
+    and write waits at most until `deadline` (`time.monotonic()` seconds), so the whole
+    handshake, not each step of it, is bounded.
+    """
+
+    __slots__ = ("deadline", "sock")
+
+    def __init__(self, sock: socket.socket, deadline: float) -> None:
+        self.sock = sock
+        self.deadline = deadline
+
+    def _left(self) -> float:
+        left = self.deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError("the handshake did not finish in time")
+        return left
+
+    def send_bytes(self, data: bytes) -> None:
+        self.sock.settimeout(self._left())
+        self.sock.sendall(_HEADER.pack(len(data)) + data)  # (one bound for the whole send)
+
+    def recv_bytes(self, maxlength: int | None = None) -> bytes:
+        (size,) = _HEADER.unpack(self._recv(_HEADER.size))
+        if size == -1:
+            (size,) = _LONG.unpack(self._recv(_LONG.size))
+        if size < 0 or (maxlength is not None and size > maxlength):
+            raise OSError(f"bad message length in the handshake: {size}")
+        return self._recv(size)
+
+    def _recv(self, size: int) -> bytes:
+        data = b""
+        while len(data) < size:
+            self.sock.settimeout(self._left())
+            chunk = self.sock.recv(size - len(data))
+            if not chunk:
+                raise EOFError("the connection ended during the handshake")
+            data += chunk
+        return data
+
+
+def handshake(sock: socket.socket, authkey: bytes, deadline: float, *, server: bool) -> None:
+    """Pass the mutual authkey handshake on `sock`, all of it before `deadline`
+    (`time.monotonic()` seconds).
+
+    The listening side (`server`) delivers its challenge first, the connecting side
+    answers it and then delivers its own. `sock` is left blocking (no timeout) afterwards.
+
+    Raises:
+        AuthenticationError: the other side does not know `authkey`, or sent a malformed
+            challenge.
+        TimeoutError: it was not done by `deadline`.
+        OSError, EOFError: the connection broke or the other side sent garbage.
+    """
+    timed = _Timed(sock, deadline)
+    try:
+        if server:
+            deliver_challenge(timed, authkey)  # type: ignore[arg-type]
+            answer_challenge(timed, authkey)  # type: ignore[arg-type]
+        else:
+            answer_challenge(timed, authkey)  # type: ignore[arg-type]
+            deliver_challenge(timed, authkey)  # type: ignore[arg-type]
+    except (AuthenticationError, OSError, EOFError):
+        raise
+    except Exception as exc:  # a malformed challenge: multiprocessing asserts, or indexes
+        raise AuthenticationError(f"malformed handshake: {type(exc).__name__}: {exc}") from exc
+    sock.settimeout(None)
+
+
+def shutdown(sock: socket.socket) -> None:
+    """Wake every thread blocked reading or writing `sock` (close alone does not, on Linux)."""
+    with contextlib.suppress(OSError):
+        sock.shutdown(socket.SHUT_RDWR)
+
+
+def split(sock: socket.socket) -> tuple[socket.socket, Connection]:
+    """`sock` for writing plus a `Connection` on a duplicate descriptor for reading.
+
+    Raises:
+        OSError: no descriptor is left for the duplicate (`EMFILE`, `ENFILE`).
+    """
+    return sock, Connection(os.dup(sock.fileno()))
+
+
+def _send_timeout(sock: socket.socket, seconds: float) -> None:
+    """Bound (or with 0, unbound) blocking sends on `sock`, and so a blocking `connect`."""
+    sock.setsockopt(
+        socket.SOL_SOCKET,
+        socket.SO_SNDTIMEO,
+        struct.pack("ll", int(seconds), int((seconds % 1) * 1_000_000)),
+    )
+
+
+def connect(path: str, authkey: bytes) -> tuple[socket.socket, Connection]:
+    """Connect to `path` and pass the handshake, both within `HANDSHAKE_TIMEOUT` seconds.
+
+    When the listener's accept backlog is full (many peers connecting at once, or a
+    listener that is briefly out of file descriptors), the connect waits in the kernel
+    for room until the deadline, rather than failing at once: a blocking AF_UNIX
+    `connect` sleeps on the listener's queue, bounded by the socket's send timeout.
+
+    Raises:
+        OSError, EOFError: nothing listens there, the backlog stayed full until the
+            deadline (`BlockingIOError`), or the connection broke.
+        TimeoutError: the handshake did not finish by the deadline.
+        AuthenticationError: the listener does not know the system's authkey.
+    """
+    deadline = time.monotonic() + HANDSHAKE_TIMEOUT
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        _send_timeout(sock, HANDSHAKE_TIMEOUT)
+        sock.connect(path)
+        _send_timeout(sock, 0)
+        handshake(sock, authkey, deadline, server=False)
+        return split(sock)
+    except BaseException:
+        sock.close()
+        raise
+
+
+class Writer:
+    """The send side of one connection: frames leave in the order they were sent.
+
+    A failed connect or a failed write of the writer thread closes the writer and calls
+    `on_failure(exc)` once; a sender whose own write fails gets False from `send` and
+    cleans up itself. The socket is closed after the last write (`shutdown` at `close`
+    ends a blocked one).
+    """
+
+    __slots__ = ("_closed", "_executor", "_lock", "_on_failure", "_sock")
+
+    def __init__(
+        self,
+        sock: socket.socket | None,
+        on_failure: Callable[[BaseException], None],
+        name: str = "rr-write",
+    ) -> None:
+        self._lock = threading.Lock()  # `_sock` and `_closed`
+        self._sock = sock
+        self._closed = False
+        self._on_failure = on_failure
+        self._executor = SerialExecutor(name, on_drop=_lost, on_end=self._close_socket)
+
+    @property
+    def closed(self) -> bool:
+        """Whether the writer was closed (nothing more is sent)."""
+        return self._closed
+
+    def send(self, frame: bytes, on_lost: Lost | None = None) -> bool:
+        """Send `frame` or queue it (never blocks on the peer).
+
+        Returns:
+            True if the frame was sent or queued (if the connection ends before it is
+            sent, `on_lost` runs); False if the writer was closed or the connection broke
+            just now (the writer is then closed): nothing of the frame was sent.
+        """
+        if self._closed:
+            return False
+        task = _Frame(self, frame, on_lost)
+        try:
+            return self._executor.submit(task, inline=task.now if self._sock else None)
+        except OSError as exc:
+            logger.debug("a send failed, the connection is closed: %s", exc)
+            self.close()  # the caller cleans up: it knows what it was sending
+            return False
+
+    def connect_with(self, connect: Callable[[], object]) -> None:
+        """Run `connect` first on the writer thread of a writer made without a socket; it
+        gives the socket with `attach` (or fails the writer)."""
+        self._executor.submit(connect)
+
+    def attach(self, sock: socket.socket) -> bool:
+        """Give a writer made without a socket its connected socket; False if closed."""
+        with self._lock:
+            if self._closed:
+                return False
+            self._sock = sock
+            return True
+
+    def close(self) -> bool:
+        """Stop sending and end the connection; queued frames are lost (their `on_lost`
+        runs). False if it was closed already.
+
+        The socket is shut down (here, and after the last write before it is closed,
+        whichever comes first), so a thread reading a duplicate of its descriptor wakes
+        and the peer reads the end at once.
+        """
+        with self._lock:
+            if self._closed:
+                return False
+            self._closed = True
+            sock = self._sock
+        if sock is not None:
+            shutdown(sock)
+        self._executor.close(timeout=0)
+        return True
+
+    def forget_in_child(self) -> None:
+        """In a forked child: close this process's copy of the socket, send nothing more.
+
+        Never `shutdown`: the socket is the parent's too, and a shutdown would end it for
+        the parent. Takes no lock (a thread of the parent may have held it at the fork).
+        """
+        self._closed = True
+        self._lock = threading.Lock()
+        self._executor = SerialExecutor(self._executor.name)
+        self._executor.finish()
+        if self._sock is not None:
+            self._sock.close()
+
+    def fail(self, exc: BaseException) -> None:
+        """Close because of `exc` (a failed connect or write) and report it once."""
+        if self.close():
+            self._on_failure(exc)
+
+    def _close_socket(self) -> None:  # (after the last write: the executor's `on_end`)
+        if self._sock is not None:
+            # shut down before closing, here too: were it closed first, a shutdown after
+            # would fail (EBADF) and the reader's duplicate descriptor would keep the
+            # connection open: the peer would never see its end
+            shutdown(self._sock)
+            self._sock.close()
+
+
+class _Frame:
+    """One frame to send (or the part of it the socket did not take at once)."""
+
+    __slots__ = ("data", "on_lost", "writer")
+
+    def __init__(self, writer: Writer, data: bytes | memoryview, on_lost: Lost | None) -> None:
+        self.writer = writer
+        self.data = data
+        self.on_lost = on_lost
+
+    def now(self) -> _Frame | None:
+        """Send what the socket takes at once (the sender's thread); the rest, if any."""
+        sock = self.writer._sock
+        assert sock is not None
+        try:
+            sent = sock.send(self.data, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            sent = 0
+        if sent >= len(self.data):
+            return None
+        self.data = memoryview(self.data)[sent:]
+        return self
+
+    def __call__(self) -> None:
+        """Send it all (the writer thread: may block on the peer)."""
+        sock = self.writer._sock
+        try:
+            if sock is not None:
+                sock.sendall(self.data)
+                return
+            error = OSError("not connected")  # (its connect task failed)
+        except OSError as exc:
+            error = exc
+        _lost(self)
+        self.writer.fail(error)
+
+
+def _lost(task: Task) -> None:
+    if isinstance(task, _Frame) and task.on_lost is not None:
+        run_lost([task.on_lost])
+
+
+# -- the files of a served name ----------------------------------------------------------------
+
+
+def take_name_lock(path: str, name: str) -> int:
+    """Open and `flock` the lock file of registrar `name`; the descriptor holds the lock.
+
+    Raises:
+        DuplicateNameError: another process (or listener) holds it.
+        ConfigError: the file cannot be opened.
+    """
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+    except OSError as exc:
+        raise ConfigError(f"cannot open the lock file {path!r}: {exc}") from exc
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        os.close(fd)
+        raise DuplicateNameError(f"registrar {name!r} is already served on this system") from exc
+    return fd
+
+
+def _take_lock(path: str, name: str) -> int:
+    """`take_name_lock`, retried for `LOCK_RETRY` seconds while it is held."""
+    deadline = time.monotonic() + LOCK_RETRY
+    pause = 0.002
+    while True:
+        try:
+            return take_name_lock(path, name)
+        except DuplicateNameError:
+            if time.monotonic() >= deadline:
+                raise
+        time.sleep(pause)  # (a probe is over in microseconds; an owner stays)
+        pause = min(2 * pause, 0.05)
+
+
+def publish(path: str, text: str) -> None:
+    """Write `text` to `path`, atomically: to a temporary file, then renamed over `path`, so
+    a reader sees the old file or the new one, never half of one. The listener writes
+    its files while it holds the name's lock: no other process writes them meanwhile.
+
+    Raises:
+        OSError: the file cannot be written.
+    """
+    folder, name = os.path.split(path)
+    temporary = os.path.join(folder, f".{name}")
+    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.write(fd, text.encode("ascii"))
+    finally:
+        os.close(fd)
+    os.replace(temporary, path)
+
+
+def read_limit(path: str) -> int:
+    """The limit published at `path`; `DEFAULT_MAX_MESSAGE_BYTES` if there is none.
+
+    A missing or unreadable file means the registrar is not listening (the connect then
+    fails) or was started by an older version: the default is the best guess.
+    """
+    try:
+        with open(path, "rb") as published:
+            value = int(published.read(32))
+    except (OSError, ValueError):
+        return DEFAULT_MAX_MESSAGE_BYTES
+    return value if value > 0 else DEFAULT_MAX_MESSAGE_BYTES
+
+
+# -- the outbound side: a channel to a registrar of another process ---------------------------
+
+
+class _Channel:
+    """One connection from this process to a remote registrar: the peer's `Route`.
+
+    `pending` holds the replies pending for an answer on it (the messenger's `Replies`:
+    each is answered, or failed when the channel is lost, exactly once). `limit` is the
+    target's `max_message_bytes`, both ways.
+    """
+
+    __slots__ = ("limit", "peer", "pending", "reading", "writer")
+
+    def __init__(
+        self,
+        writer: Writer,
+        limit: int = DEFAULT_MAX_MESSAGE_BYTES,
+        peer: RemotePeer | None = None,
+    ) -> None:
+        self.writer = writer
+        self.limit = limit
+        self.peer = peer
+        self.pending = Replies()
+        self.reading: Connection | None = None  # the reader thread's (a duplicate descriptor)
+
+    def send(self, data: bytes) -> bool:
+        """Write or queue a frame (`Writer.send`); False if the connection is gone."""
+        return self.writer.send(data)
+
+    def broken(self) -> bool:
+        """Nothing of a frame left: close the channel (what waits fails); a fresh one may
+        take the frame."""
+        if self.peer is not None:
+            self.peer._lose(self, None)
+        return True
+
+
+class RemotePeer(Remote):
+    """A registrar in another process of the system, reached through its socket (`tell`,
+    `run`: `Remote`; its route is one connection, made lazily on its writer thread)."""
+
+    def __init__(self, system: Rendezvous, name: str) -> None:
+        self.name = name
+        self._system = system
+        self._path = system.address.socket_path(name)
+        self._lock = threading.Lock()
+        self._channel: _Channel | None = None
+
+    def route(self) -> _Channel:
+        """The connection, or a new one whose writer thread connects."""
+        channel = self._channel
+        if channel is None or channel.writer.closed:
+            channel = self._open()
+        return channel
+
+    def gone(self) -> RrError:
+        return self._gone("lost its connection")
+
+    def close(self, error: RrError) -> None:
+        """Close the connection; outstanding answers fail with `error`."""
+        channel = self._channel
+        if channel is not None:
+            self._lose(channel, error)
+
+    def connect(self) -> None:
+        """Open a connection now if there is none (its end is then seen: rule 19)."""
+        with contextlib.suppress(RrError):
+            self._open()
+
+    def forget_in_child(self) -> None:
+        """In a forked child: drop the parent's connection (its threads are not here).
+
+        This process's copies of its descriptors are closed, never shut down (that would
+        end the parent's connection); its replies are the parent's callers' and are
+        dropped. The next `tell` connects anew, from the child. Takes no lock.
+        """
+        self._lock = threading.Lock()
+        channel, self._channel = self._channel, None
+        if channel is None:
+            return
+        channel.pending.clear()
+        channel.writer.forget_in_child()
+        if channel.reading is not None:
+            channel.reading.close()
+
+    def _open(self) -> _Channel:
+        """The current channel, or a new one whose writer thread connects."""
+        with self._lock:
+            channel = self._channel
+            if channel is not None and not channel.writer.closed:
+                return channel
+            if self._system.closed:
+                raise RegistrarStoppedError(f"the system of registrar {self.name!r} was closed")
+            if not os.path.exists(self._path):
+                self._system.ended(self.name)  # (is it lost? rule 19)
+                raise self._gone("cannot be reached (it does not listen)")
+            limit = read_limit(self._system.address.limit_path(self.name))
+            writer = Writer(None, lambda exc: self._failed(fresh, exc), f"rr-write-{self.name}")
+            fresh = _Channel(writer, limit, self)
+            writer.connect_with(functools.partial(self._connect, fresh))  # (its first task)
+            self._channel = channel = fresh
+        return channel
+
+    def _connect(self, channel: _Channel) -> None:
+        """The writer thread of `channel`, first: connect, start its reader."""
+        try:
+            sock, conn = connect(self._path, self._system.address.authkey)
+        except AuthenticationError as exc:
+            error: RrError = RegistrarUnavailableError(
+                f"registrar {self.name!r} refused this process's authkey"
+            )
+            error.__cause__ = exc
+            channel.writer.fail(error)
+            return
+        except Exception as exc:  # noqa: BLE001 - OSError, EOFError, ...: not reachable
+            error = self._gone("cannot be reached", exc)
+            error.__cause__ = exc
+            channel.writer.fail(error)
+            return
+        if not channel.writer.attach(sock):  # closed while connecting
+            conn.close()
+            sock.close()
+            return
+        channel.reading = conn
+        threading.Thread(
+            target=self._read, args=(channel, conn), name=f"rr-read-{self.name}", daemon=True
+        ).start()
+
+    def _failed(self, channel: _Channel, exc: BaseException) -> None:
+        """`channel`'s writer failed (connect or write): fail what waits on it."""
+        if isinstance(exc, RrError):
+            self._lose(channel, exc)
+        else:
+            self._lose(channel, self._gone("lost its connection", exc))
+        if not self._system.closed:
+            self._system.ended(self.name)  # (is it lost? rule 19)
+
+    def _gone(self, how: str, cause: BaseException | None = None) -> RrError:
+        if os.path.exists(self._system.address.tombstone_path(self.name)):
+            return RegistrarStoppedError(f"registrar {self.name!r} was stopped")
+        detail = f" ({type(cause).__name__}: {cause})" if cause is not None else ""
+        return RegistrarUnavailableError(f"registrar {self.name!r} {how}{detail}")
+
+    def _lose(self, channel: _Channel, error: RrError | None) -> None:
+        """Close `channel` and fail every reply still pending on it (any thread)."""
+        channel.writer.close()
+        with self._lock:
+            if self._channel is channel:
+                self._channel = None
+        channel.pending.fail(
+            None, error or (lambda: self._gone("died while answers were outstanding"))
+        )
+
+    def _read(self, channel: _Channel, conn: Connection) -> None:
+        """The reader thread of one connection: resolve answers until it ends.
+
+        An answer that cannot be unpickled here fails its reply; the message's
+        `compensation()` (a `Load`'s: an `Abandon` of its consumer id) goes back to the
+        peer, since the caller gets an error instead of what it asked for (`Replies`).
+        """
+        pending = channel.pending
+        try:
+            for data in frames(conn, channel.limit):
+                try:
+                    if isinstance(data, Oversized):
+                        pending.too_large(data.token, data.size)
+                    else:
+                        pending.answered(*unframe(data))
+                except Exception:
+                    logger.exception("dropped a malformed answer from registrar %s", self.name)
+        finally:
+            self._lose(channel, None)
+            conn.close()
+            if not self._system.closed:
+                self._system.ended(self.name)  # (is it lost? rule 19)
+
+
+# -- the inbound side: a registrar's listener and its connections -----------------------------
+
+
+class _Accepted:
+    """One accepted connection on the provider side; its reader runs on its own thread.
+
+    Raises:
+        OSError: no file descriptor is left for its reading side (`EMFILE`, ...).
+    """
+
+    def __init__(self, listener: Listener, sock: socket.socket, deadline: float) -> None:
+        self.listener = listener
+        self.deadline = deadline  # for the whole handshake
+        self.sock, self.conn = split(sock)
+        self.writer = Writer(self.sock, self._failed, f"rr-answer-{listener.name}")
+
+    def send(self, frame: bytes, on_lost: Lost | None = None) -> bool:
+        """Send or queue an answer; False (it is dropped) if the connection is gone."""
+        if self.writer.send(frame, on_lost):
+            return True
+        logger.debug("answer of %s dropped: the caller's connection is gone", self.listener.name)
+        return False
+
+    def close(self) -> None:
+        """End the connection (any thread); the reader thread then cleans up."""
+        self.writer.close()
+
+    def forget_in_child(self) -> None:
+        """In a forked child: close this process's copies of the descriptors (not shut
+        down: the connection is the parent's)."""
+        self.writer.forget_in_child()
+        self.conn.close()
+
+    def _failed(self, exc: BaseException) -> None:
+        logger.debug("connection to a caller of %s lost: %s", self.listener.name, exc)
+
+    def serve(self) -> None:
+        """Handshake, then deliver every message to the local registrar (its own thread).
+
+        The whole handshake must be done within `HANDSHAKE_TIMEOUT` seconds of the accept:
+        a peer that trickles it byte by byte is cut off at that deadline.
+        """
+        listener = self.listener
+        conn = self.conn
+        try:
+            try:
+                handshake(self.sock, listener.authkey, self.deadline, server=True)
+            except (AuthenticationError, EOFError, OSError) as exc:
+                logger.warning("registrar %s refused a connection: %s", listener.name, exc)
+                return
+            messenger, endpoint = listener.messenger, listener.endpoint
+            for data in frames(conn, listener.max_message_bytes):
+                try:
+                    if isinstance(data, Oversized):
+                        messenger.oversized(endpoint, self, data.token, data.size)
+                    else:
+                        messenger.message(endpoint, self, *unframe(data))
+                except Exception:
+                    logger.exception("registrar %s dropped a malformed message", listener.name)
+        finally:
+            self.writer.close()
+            conn.close()
+            listener.forget(self)
+
+
+_SHORTAGE = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM})
+"""`accept` errors that mean "out of resources for now": back off and try again."""
+
+_BACKOFF_FIRST = 0.01
+_BACKOFF_MAX = 0.5
+"""Seconds the listener waits before it retries an `accept` that failed (doubling).
+
+Well below `HANDSHAKE_TIMEOUT`: a peer waiting in the backlog meanwhile still gets
+through once descriptors are free again."""
+
+
+class Listener(Listening):
+    """Accepts connections for one registrar served by this process (its `Listening`).
+
+    Holding the name's lock, it may unlink a socket left at its path by a process that
+    died; it publishes `.limit` and `.restart` (rule 19) before anyone connects. When
+    `accept` fails for lack of resources (`EMFILE`), it logs once, backs off (cut short
+    when one of its connections ends) and tries again while peers wait in the backlog.
+
+    Raises:
+        DuplicateNameError: another process holds the name's lock.
+        ConfigError: the lock file cannot be opened, or the socket cannot be bound.
+    """
+
+    def __init__(self, system: Rendezvous, endpoint: Endpoint) -> None:
+        super().__init__(endpoint)
+        self.messenger = system.messenger
+        self.max_message_bytes = endpoint.max_message_bytes
+        self.authkey = system.address.authkey
+        self.path = system.address.socket_path(self.name)
+        self.tombstone = system.address.tombstone_path(self.name)
+        self._lock = threading.Lock()
+        self._connections: set[_Accepted] = set()
+        self._closed = False
+        self._wake = threading.Event()  # a connection ended, or the listener closes
+        self._failing_since: float | None = None  # monotonic time of the first failed accept
+        self._failure = ""
+        self._lock_fd = _take_lock(system.address.lock_path(self.name), self.name)
+        self.limit_path = system.address.limit_path(self.name)
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            publish(self.limit_path, str(self.max_message_bytes))  # before anyone connects
+            # who speaks for it if this process dies (rule 19), kept after it ends
+            publish(system.address.restart_path(self.name), system.speaker(self.name))
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.path)  # left behind by a process that died
+            self._sock.bind(self.path)
+            self._sock.listen(socket.SOMAXCONN)  # (connecting peers also wait for room)
+        except OSError as exc:
+            self._sock.close()
+            os.close(self._lock_fd)
+            raise ConfigError(f"cannot listen on {self.path!r}: {exc}") from exc
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.tombstone)
+        threading.Thread(target=self._accept, name=f"rr-listen-{self.name}", daemon=True).start()
+
+    def trouble(self) -> tuple[float, str] | None:
+        """For how long (seconds) and why it has been unable to accept; `None` if it can.
+
+        Infinite seconds if its accept thread died (it never comes back by itself).
+        """
+        since = self._failing_since
+        if since is None:
+            return None
+        return time.monotonic() - since, self._failure
+
+    def _accept(self) -> None:
+        try:
+            self._accept_until_closed()
+        except BaseException as exc:  # a bug: say so, and let the heartbeat report it
+            self._failing_since = -math.inf
+            self._failure = f"its accept thread died: {exc!r}"
+            logger.exception("registrar %s stopped accepting connections", self.name)
+
+    def _accept_until_closed(self) -> None:
+        backoff = _BACKOFF_FIRST
+        while True:
+            try:
+                sock, _ = self._sock.accept()
+                sock.setblocking(True)
+            except OSError as exc:
+                if self._closed:
+                    return
+                if exc.errno == errno.ECONNABORTED:  # the peer gave up before the accept
+                    continue
+                self._cannot_accept(exc, backoff)
+                backoff = min(2 * backoff, _BACKOFF_MAX)
+                continue
+            deadline = time.monotonic() + HANDSHAKE_TIMEOUT
+            try:
+                accepted = _Accepted(self, sock, deadline)
+            except OSError as exc:  # no descriptor for its reading side
+                sock.close()
+                self._cannot_accept(exc, backoff)
+                backoff = min(2 * backoff, _BACKOFF_MAX)
+                continue
+            if self._failing_since is not None:
+                self._accepting_again()
+            backoff = _BACKOFF_FIRST
+            with self._lock:
+                if self._closed:
+                    accepted.close()
+                    accepted.conn.close()
+                    return
+                self._connections.add(accepted)
+            try:
+                threading.Thread(
+                    target=accepted.serve, name=f"rr-link-{self.name}", daemon=True
+                ).start()
+            except RuntimeError as exc:  # no thread for it (a limit on threads): as EMFILE
+                self.forget(accepted)
+                accepted.close()
+                accepted.conn.close()
+                self._cannot_accept(OSError(errno.EAGAIN, f"no thread: {exc}"), backoff)
+                backoff = min(2 * backoff, _BACKOFF_MAX)
+
+    def _cannot_accept(self, exc: OSError, backoff: float) -> None:
+        """Note a failed accept (log the first of a run), then wait before the next."""
+        if self._failing_since is None:
+            self._failing_since = time.monotonic()
+            self._failure = f"{type(exc).__name__}: {exc}"
+            with self._lock:
+                open_connections = len(self._connections)
+            logger.warning(
+                "registrar %s cannot accept connections (%s; %d open): retrying",
+                self.name,
+                exc,
+                open_connections,
+            )
+        if exc.errno not in _SHORTAGE:
+            logger.debug("registrar %s: accept failed: %s", self.name, exc)
+        self._wake.clear()
+        self._wake.wait(backoff)  # cut short when a connection ends or the listener closes
+
+    def _accepting_again(self) -> None:
+        trouble = self.trouble()
+        self._failing_since = None
+        if trouble is not None:
+            logger.info(
+                "registrar %s accepts connections again after %.3f s", self.name, trouble[0]
+            )
+
+    def forget(self, accepted: _Accepted) -> None:
+        with self._lock:
+            self._connections.discard(accepted)
+        self._wake.set()  # its descriptors are free: a listener backing off tries again
+
+    def forget_in_child(self) -> None:
+        """In a forked child: let go of the parent's listener without touching it.
+
+        Closes this process's copies of the listening socket, of the name lock's
+        descriptor (a lock shared with a child would outlive the parent: its peers would
+        think the name still served) and of every connection. Unlike `stop`, nothing is
+        shut down, unlinked or written: the socket, the lock and the files are the
+        parent's, which still serves the name. Takes no lock.
+        """
+        self._closed = True
+        connections = list(self._connections)
+        self._connections.clear()
+        self._lock = threading.Lock()
+        self._sock.close()
+        with contextlib.suppress(OSError):
+            os.close(self._lock_fd)
+        for accepted in connections:
+            accepted.forget_in_child()
+
+    def stop(self, *, stopped: bool) -> None:
+        """Stop listening; with `stopped`, leave a tombstone so peers say "stopped"."""
+        with self._lock:
+            self._closed = True
+            connections = list(self._connections)
+            self._connections.clear()
+        self._wake.set()
+        if stopped:
+            with contextlib.suppress(OSError), open(self.tombstone, "w"):
+                pass
+        with contextlib.suppress(OSError):
+            os.unlink(self.path)
+        with contextlib.suppress(OSError):
+            os.unlink(self.limit_path)
+        with contextlib.suppress(OSError):
+            self._sock.shutdown(socket.SHUT_RDWR)
+        self._sock.close()
+        os.close(self._lock_fd)  # last: the path is free for the next owner only now
+        for accepted in connections:
+            accepted.close()

@@ -1,0 +1,473 @@
+"""The Zenoh link: frames both ways, one writer thread per destination key and one
+decode thread per sending process.
+
+```
+ sending: ZenohCarrier.answer_to, a route's send ─► Outboxes.get(key) ─► Outbox(key).send
+ send when served (the messenger) ──────────────────► Outbox(key).run(task): in order
+                                                          │ its writer thread (SerialExecutor)
+                                                          ▼
+          (a new outbox's first put: ping rr/<s>/ping/<zid> first; a task asks the
+           network for a registrar not seen served, then puts, or fails its reply)
+                                                 publisher.put ─► rr/<s>/reg/<name>
+                                                                  rr/<s>/ans/<zid>
+
+ receiving: put rr/<s>/reg/<name> ─► subscriber callback (Zenoh's thread: never blocks,
+   never decodes) │ sender's token not here: the strangers' thread waits for it
+                  ▼ else queued                (bounded; then dropped, a WARNING)
+          Inbox (sender, message): decode thread (SerialExecutor)
+            version refused? the messenger: too large? unpickle; stand-in reply; tell
+            the registrar ─► reply.set_result ─► the carrier's answer_to(sender)
+   put rr/<s>/ans/<zid> ─► answers callback ─► Inbox (sender, answer): decode thread
+            Replies.answered (the messenger's): reply.set_result(value)
+```
+
+Sending. A sender never blocks on a peer and no answer is sent on an actor thread: one
+writer per destination (a registrar's key for requests, a process's answer key for
+answers), so messages from one process to one registrar keep their order (one writer,
+one Zenoh route, one decode thread there). Puts are reliable and block on a full queue
+(`CongestionControl.BLOCK`) on the writer thread only; Zenoh closes a link that stays
+blocked longer than half the lease. A process that leaves the system
+(`Outboxes.close`) first lets every writer put what it was given, for `DRAIN_TIMEOUT`
+seconds at most, as a socket's close sends what was written before it: the last
+messages of a registrar that stops (the `Abandon` of a call it withdraws) go out before
+the session closes. What is still queued then is lost.
+
+Receiving. Each process decodes on one thread per sending process and kind (messages,
+answers: a held answer never holds up a notice), and only for processes whose liveliness
+token is here (`Presence.member`): the sender id in a header is whatever the sender
+wrote, so a thread per claimed id would let one buggy member start threads without
+bound. The frames of any other sender wait on one thread for strangers, for its token
+(`STRANGER_GRACE`: Zenoh sends declarations ahead of data, so a frame may come before
+its sender's token, or after the token's end), and are dropped if it does not come.
+Nothing is unpickled on Zenoh's thread: unpickling may run code of the sender's choosing
+(a frame's flags say nothing a buggy sender cannot get wrong), and a blocked Zenoh
+thread stalls every message of its link.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import zenoh
+
+from rr_actors._core.hlc import CLOCK
+from rr_actors._core.serial import SerialExecutor, Task
+from rr_actors._core.throttle import LogThrottle, short
+from rr_actors._transport.codec import NO_REPLY
+from rr_actors._transport.messenger import Listening, Lost, Messenger, Replies, run_lost
+from rr_actors._transport.zenoh.wire import (
+    ANSWER,
+    MESSAGE,
+    VERSION,
+    Header,
+    Keys,
+    parse,
+    payload_of,
+    versions_text,
+)
+
+__all__ = [
+    "DRAIN_TIMEOUT",
+    "HEAL_TIMEOUT",
+    "STRANGERS_HELD",
+    "STRANGER_GRACE",
+    "Inbox",
+    "InboxOwner",
+    "Outbox",
+    "Outboxes",
+]
+
+logger = logging.getLogger("rr_actors")
+
+# -- sending: the outboxes ------------------------------------------------------------------
+
+HEAL_TIMEOUT = 2.0
+"""Seconds the first message to a process (just seen, or back from a healed link) waits
+for its answer to a ping (then it is sent anyway)."""
+
+DRAIN_TIMEOUT = 1.0
+"""Seconds a process that leaves the system gives its writers, all together, to put what
+they were given before it closes its session."""
+
+
+class Outbox:
+    """The writer of one destination key: its thread puts payloads in the order sent."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        ready: Callable[[], None] | None = None,
+        *,
+        declared: bool = True,
+    ) -> None:
+        self.key = key
+        self.pinged: str | None = None  # the process a task of `run` pinged (its thread's)
+        self._ready = ready  # runs on the writer thread before the first put
+        self._session = session
+        self._publisher: zenoh.Publisher | None = None
+        if declared:
+            self.declare()
+        name = f"rr-zput-{key.rsplit('/', 1)[-1]}"
+        self._queue = SerialExecutor(name, on_drop=self._lost)
+
+    @property
+    def closed(self) -> bool:
+        return self._queue.closed
+
+    def send(self, data: bytes, on_lost: Lost | None = None) -> bool:
+        """Queue `data`; False (nothing sent) if the outbox is closed."""
+        return self._queue.submit(functools.partial(self.put, data, on_lost))
+
+    def run(self, task: Callable[[], None]) -> bool:
+        """Queue `task` to run on the writer thread, in order with what is sent (it may
+        wait there, and `put`); False if the outbox is closed. If the outbox closes
+        before it runs, its `dropped()` (if it has one) is called instead."""
+        return self._queue.submit(task)
+
+    def declare(self) -> None:
+        """Declare the publisher, if not yet (at creation, or on the writer thread)."""
+        if self._publisher is None:
+            self._publisher = self._session.declare_publisher(
+                self.key,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                express=True,
+                reliability=zenoh.Reliability.RELIABLE,
+            )
+
+    def put(self, data: bytes, on_lost: Lost | None = None) -> bool:
+        """Put `data` now (the writer thread only: `send`'s step, or a task of `run`);
+        False if the session closed (then `on_lost` runs)."""
+        ready, self._ready = self._ready, None
+        if ready is not None:
+            ready()
+        try:
+            self.declare()
+            assert self._publisher is not None
+            self._publisher.put(data)
+        except Exception as exc:  # noqa: BLE001 - the session closed: the frame is lost
+            logger.debug("a put on %s failed: %s", self.key, exc)
+            if on_lost is not None:
+                run_lost([on_lost])
+            return False
+        return True
+
+    def close(self, timeout: float = 0.0) -> None:
+        """Stop sending: what is queued gets `timeout` seconds to be put (0: none), then
+        what is still queued is lost (its `on_lost` runs)."""
+        self._queue.close(timeout=timeout)  # (each dropped frame's `on_lost` runs: `_lost`)
+        with contextlib.suppress(Exception):
+            if self._publisher is not None:
+                self._publisher.undeclare()  # type: ignore[no-untyped-call]
+
+    @staticmethod
+    def _lost(task: Task) -> None:
+        if isinstance(task, functools.partial) and task.args[1] is not None:
+            run_lost([task.args[1]])
+        dropped = getattr(task, "dropped", None)
+        if dropped is not None:
+            run_lost([dropped])
+
+
+class Outboxes:
+    """The outboxes of one process's session, by destination key."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys) -> None:
+        self._session = session
+        self._keys = keys
+        self._lock = threading.Lock()
+        self._outboxes: dict[str, Outbox] = {}
+        self._closed = False
+
+    def get(self, key: str, first_to: str | None = None, *, declared: bool = True) -> Outbox:
+        """The outbox of `key`; the first put of a new one to process `first_to` waits
+        until that process answers a ping (`until_answered`). A new one made with
+        `declared=False` declares its publisher on its writer thread (`declare`, or its
+        first put)."""
+        outbox = self._outboxes.get(key)
+        if outbox is not None and not outbox.closed:
+            return outbox
+        ready = functools.partial(self.until_answered, first_to) if first_to else None
+        # (made before our lock is taken: no Zenoh call under it, its callbacks take it)
+        fresh = Outbox(self._session, key, ready, declared=declared)
+        with self._lock:
+            outbox = self._outboxes.get(key)
+            if self._closed:
+                outbox = None  # (closed meanwhile: a writer made now would never end)
+            elif outbox is None or outbox.closed:
+                self._outboxes[key] = outbox = fresh
+        if outbox is not fresh:
+            fresh.close()
+        if outbox is None:
+            return fresh  # closed: it drops what it is given
+        return outbox
+
+    def pop(self, key: str) -> Outbox | None:
+        """Forget the outbox of `key` (its destination went); the caller closes it."""
+        with self._lock:
+            return self._outboxes.pop(key, None)
+
+    def retire(self, outbox: Outbox) -> None:
+        """Forget `outbox` (if it is still its key's) and close it: what is queued on it
+        is dropped (its `on_lost`, or `dropped()`, runs). Its destination is nobody's."""
+        with self._lock:
+            if self._outboxes.get(outbox.key) is outbox:
+                del self._outboxes[outbox.key]
+        outbox.close()
+
+    def close(self, drain: float = 0.0) -> None:
+        """Close every outbox: what is queued gets `drain` seconds, all outboxes together,
+        to be put (their writers put in parallel); what is still queued then is lost."""
+        with self._lock:
+            self._closed = True
+            outboxes = list(self._outboxes.values())
+        deadline = time.monotonic() + drain
+        for outbox in outboxes:
+            outbox.close(max(0.0, deadline - time.monotonic()))
+
+    def until_answered(self, zid: str) -> None:
+        """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread).
+
+        When a link comes up (a host that joins, a healed link) the process's tokens may
+        be here before what is sent to it gets through: a message put in between was lost
+        without a word (a call right after the heal, or a host's first call right after
+        it joined during a burst of refused handshakes, waited for its timeout). An
+        answered ping went the way the next put goes; it costs one round trip, once per
+        destination.
+        """
+        deadline = time.monotonic() + HEAL_TIMEOUT
+        pause = threading.Event()
+        while not self._closed and time.monotonic() < deadline:
+            try:
+                replies = self._session.get(self._keys.ping(zid), timeout=0.25)
+                if any(reply.ok is not None for reply in replies):
+                    return
+            except Exception:  # noqa: BLE001 - the session closed: the put fails too
+                return
+            pause.wait(0.01)  # (no queryable seen yet: a get returns at once)
+
+
+# -- receiving: the inbox ---------------------------------------------------------------------
+
+STRANGER_GRACE = 2.0
+"""Seconds a frame of a process whose liveliness token is not here waits for the token
+(Zenoh may hand this process a frame before the token its sender declared first); then
+it is dropped. A frame of a process whose token went less than this long ago is
+delivered (Zenoh may hand it over after the token's end, sent later)."""
+
+STRANGERS_HELD = (10_000, 64 * 1024 * 1024)
+"""Frames and bytes of such processes held at most; beyond, new ones are dropped."""
+
+
+class InboxOwner(Protocol):
+    """What the inbox asks of its carrier (`carrier.ZenohCarrier`)."""
+
+    @property
+    def messenger(self) -> Messenger:
+        """What decoded messages are handed to."""
+        ...
+
+    def member(self, zid: str) -> bool:
+        """Whether process `zid`'s liveliness token is here now (Zenoh's threads)."""
+        ...
+
+    def refuse_version(self, sender: str, token: int) -> None:
+        """Tell process `sender` that its message `token` was of another version."""
+        ...
+
+
+class Inbox:
+    """The decode queues of one process (one per sending process and kind); what they
+    decode goes to the messenger: messages for the registrars served here, answers for
+    the replies waiting here (`replies`, by token: every route's `pending`)."""
+
+    def __init__(self, owner: InboxOwner) -> None:
+        self._owner = owner
+        self._messenger = owner.messenger
+        self.replies = Replies()
+        self._lock = threading.Lock()
+        self._closed = False
+        self._inboxes: dict[tuple[str, int], SerialExecutor] = {}
+        self._warned: set[str] = set()
+        self._strangers = SerialExecutor("rr-zread-strangers")
+        self._pending: dict[tuple[str, int], int] = {}  # frames on `_strangers`, by stream
+        self._held = (0, 0)  # frames and bytes on `_strangers`
+        self._arrived: set[str] = set()  # tokens that came while `_strangers` held frames
+        self._left: dict[str, float] = {}  # tokens that went in the last STRANGER_GRACE s
+        self._joined = threading.Condition(threading.Lock())
+        self._dropped = LogThrottle(logger)
+
+    # -- the queues --------------------------------------------------------------------------
+
+    def finish(self, sender: str) -> None:
+        """Process `sender` went: what it sent before is still decoded, then its threads end."""
+        for kind in (MESSAGE, ANSWER):
+            inbox = self._inboxes.pop((sender, kind), None)
+            if inbox is not None:
+                inbox.finish()
+
+    def process_token(self, zid: str, present: bool) -> None:
+        """Process `zid`'s token came (`present`) or went (Zenoh's thread): what of it
+        waits on the strangers' thread may go on. (A frame may still come after its token
+        went: Zenoh sends a declaration before data sent earlier.)"""
+        now = time.monotonic()
+        with self._lock:
+            if not present:
+                self._left = {z: t for z, t in self._left.items() if now - t < STRANGER_GRACE}
+                self._left[zid] = now
+            elif self._held[0]:
+                self._arrived.add(zid)
+        with self._joined:
+            self._joined.notify_all()
+
+    def close(self) -> None:
+        """Stop decoding: what is queued is dropped."""
+        with self._lock:
+            self._closed = True
+            inboxes = [*self._inboxes.values(), self._strangers]
+        with self._joined:
+            self._joined.notify_all()
+        for inbox in inboxes:
+            inbox.close(timeout=0)
+
+    def _receive(self, head: Header, kind: int, item: Any, size: int) -> None:
+        """Hand `item` (`size` bytes) to the decode thread of (sender, `kind`) (Zenoh's
+        callbacks).
+
+        A sender whose process token is not here (yet) gets no thread of its own: its
+        frames wait on the one thread for strangers (`_stranger`), as do its later frames
+        until those before them are done (then they keep their order).
+        """
+        key = (head.sender, kind)
+        task = functools.partial(self._deliver if kind == MESSAGE else self._answered, item)
+        for _attempt in (1, 2):  # (its inbox may have just finished: the sender went)
+            inbox = self._inboxes.get(key)
+            if inbox is None or inbox.closed:
+                with self._lock:
+                    if self._closed:
+                        return
+                    inbox = self._inboxes.get(key)
+                    if inbox is None or inbox.closed:
+                        if key in self._pending or not self._owner.member(head.sender):
+                            self._wait_for_token(key, item, size)
+                            return
+                        inbox = SerialExecutor(f"rr-zread-{head.sender[:8]}-{kind}")
+                        self._inboxes[key] = inbox
+            if inbox.submit(task):
+                return
+
+    def _heard(self, sender: str) -> bool:
+        """Whether process `sender`'s token is here, came since a frame of it waits, or
+        went less than `STRANGER_GRACE` seconds ago."""
+        if self._owner.member(sender) or sender in self._arrived:
+            return True
+        left = self._left.get(sender)
+        return left is not None and time.monotonic() - left < STRANGER_GRACE
+
+    def _wait_for_token(self, key: tuple[str, int], item: Any, size: int) -> None:
+        """Queue `item` of a sender whose token is not here on the strangers' thread (hold
+        `_lock`); over `STRANGERS_HELD`, drop it."""
+        count, held = self._held
+        if count >= STRANGERS_HELD[0] or held + size > STRANGERS_HELD[1]:
+            self._dropped.warning(
+                "dropped a message from process %s: %d messages (%d bytes) of processes "
+                "whose liveliness token is not here already wait for it",
+                short(key[0]),
+                count,
+                held,
+            )
+            return
+        self._held = (count + 1, held + size)
+        self._pending[key] = self._pending.get(key, 0) + 1
+        entry = (time.monotonic() + STRANGER_GRACE, key, item, size)
+        self._strangers.submit(functools.partial(self._stranger, entry))
+
+    def _stranger(self, entry: tuple[float, tuple[str, int], Any, int]) -> None:
+        """Handle one frame of a sender whose token was not here (the strangers' thread):
+        once its token comes, as its own thread would; dropped if it does not come within
+        `STRANGER_GRACE` seconds of the frame."""
+        deadline, (sender, kind), item, size = entry
+        try:
+            with self._joined:
+                while not self._heard(sender) and not self._closed:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        break
+                    self._joined.wait(left)
+            if self._heard(sender):
+                (self._deliver if kind == MESSAGE else self._answered)(item)
+            elif not self._closed:
+                self._dropped.warning(
+                    "dropped a message from process %s: no liveliness token of it came "
+                    "within %g s (it is not a member of this system, its link went, or a "
+                    "buggy member wrote another sender id in its header)",
+                    short(sender),
+                    STRANGER_GRACE,
+                )
+        finally:
+            with self._lock:
+                count, held = self._held
+                self._held = (count - 1, held - size)
+                if count == 1:
+                    self._arrived.clear()
+                left_of_it = self._pending.pop((sender, kind)) - 1
+                if left_of_it:
+                    self._pending[(sender, kind)] = left_of_it
+
+    # -- decoding ----------------------------------------------------------------------------
+
+    def on_message(self, local: Listening, sample: zenoh.Sample) -> None:
+        data = sample.payload.to_bytes()
+        head = parse(data)
+        if head is not None:
+            self._receive(head, MESSAGE, (local, data, head), len(data))
+
+    def on_answer(self, sample: zenoh.Sample) -> None:
+        data = sample.payload.to_bytes()
+        head = parse(data)
+        if head is not None:
+            self._receive(head, ANSWER, (data, head), len(data))
+
+    def _deliver(self, item: tuple[Listening, bytes, Header]) -> None:
+        """Decode one message for a registrar of this process and tell it (its sender's
+        decode thread)."""
+        local, data, head = item
+        token, payload = payload_of(data, head)
+        if not head.ours:
+            self._refuse_version(local.name, head, token)
+            return
+        if head.stamp is not None:
+            CLOCK.receive(head.stamp, head.sender)  # (before the registrar hears of it)
+        self._messenger.message(local.endpoint, head.sender, token, payload)
+
+    def _refuse_version(self, name: str, head: Header, token: int) -> None:
+        """A message of another version: not unpickled; its sender is told why."""
+        if head.sender not in self._warned:
+            self._warned.add(head.sender)
+            logger.warning(
+                "registrar %s refused a message of process %s: %s; pickles do not cross "
+                "versions, so nothing of it was read",
+                name,
+                head.sender,
+                versions_text(head),
+            )
+        if token != NO_REPLY:
+            self._owner.refuse_version(head.sender, token)
+
+    def _answered(self, item: tuple[bytes, Header]) -> None:
+        """Decode one answer and resolve the reply waiting for it (its sender's decode
+        thread)."""
+        data, head = item
+        token, payload = payload_of(data, head)
+        if head.kind == VERSION or not head.ours:
+            self.replies.refused(token, versions_text(head))
+            return
+        if head.stamp is not None and token in self.replies:
+            CLOCK.receive(head.stamp, head.sender)  # (an answer someone waits for)
+        self.replies.answered(token, payload)

@@ -1,0 +1,432 @@
+"""Keep a flood of failed TLS handshakes from locking members out of a router's `tls/` port.
+
+Zenoh 1.10's TLS listener pauses its accept loop 100 ms after every handshake that fails
+(`TLS_ACCEPT_THROTTLE_TIME` in zenoh-link-tls, a constant), and it takes up to 64
+connections into handshakes at once. Anyone who reaches the port can queue connections
+faster than that: each is paid 100 ms later, and a member's connection waits behind them
+(2 s of flood, minutes of lock-out). So, for each `tls/` listen endpoint, on the
+platform's gate on Zenoh's own listening socket (`_platform.linux_gate`; none on other
+platforms, where only a firewall helps):
+
+- the accept queue is shortened to `BACKLOG`: whatever is queued when a flood is seen
+  costs the listener at most (`BACKLOG` + 64) x 0.1 s;
+- every `TICK` s the socket table is read, counting per source address the connections
+  past the TCP handshake only (queued for accept, in a TLS handshake, linked, closing).
+  Half-open ones never count: a SYN with any source address (a member's) costs nothing
+  to forge, and the kernel holds what it answered for a minute while nobody is there to
+  reset it; completing the handshake takes receiving our SYN-ACK at that address;
+- a member's address (`member_addresses`: named in a member's certificate, or of a
+  member's link, up now or since this router started: `members`) is never dropped.
+  Every other address is a stranger, and strangers may hold `HOLD` connections, each
+  and together:
+  - a stranger over `HOLD` floods: every packet from it to the port is dropped by the
+    socket's filter, before the kernel answers its SYN (it costs the listener nothing
+    more), for `DROP` s (WARNING; INFO when it ends);
+  - strangers together over `HOLD`, each under it (one machine's many addresses, or
+    many machines), at two looks in a row, flood too: the port then takes packets from
+    members' addresses only, for `DROP` s (WARNING naming those; INFO when it ends).
+    (Two looks: members that dial a router just started are strangers to it until
+    linked, and their handshakes, however many, end within a look; a flood's stay.)
+
+  A drop ends on time, whatever the source sends meanwhile: one that waited for quiet
+  would last as long as anyone keeps sending with that source address.
+
+Links already up are not touched (each keeps the filter it was accepted with; a few
+instructions per packet). What is left to the firewall
+(`docs/how-to/securing-registrars.md`): a flood from a member's address (members are
+trusted; so are hosts behind a member's NAT), a flood of packets that fills the link, a
+member's first link from an address its certificate does not name while the port takes
+members' addresses only, more than `GATE_SOURCES` members' addresses (no filter holds
+them: the port is then not turned to members only), platforms without a gate.
+
+```
+ thread "rr-zenoh-gate", every TICK s:
+   member_addresses() ─► members (once per look)
+   per tls/ listen endpoint:
+     drops and a members-only spell whose DROP s are over ─► lifted, INFO
+     gate.peers(): connections past the TCP handshake, per source
+       a stranger over HOLD ─► dropped for DROP s, WARNING
+       strangers not dropped, together over HOLD, twice ─► members only for DROP s, WARNING
+     └─ gate.admit_only(members) while members only, else gate.drop_from(dropped)
+```
+
+Which addresses are members' (`MemberAddresses`): those the gate never drops.
+
+A TLS router knows a member by the certificate of its link, and Zenoh tells the
+listener no more of that certificate than its common name. So each router answers a
+`get` on `rr/<system>/cert/<its name>` with its own cert file (public: what it shows in
+every handshake), and fetches the certificate of each member that links to it. A
+member's addresses are then, from the strongest:
+
+- the IP addresses its certificate names (subjectAltName), kept once the certificate
+  checks out as the handshake checks this host's own (`tls.member_addresses`: signed up
+  to the system's CA, in date, its common name the one it linked with): where the CA
+  says the member is, also while it is out of reach, also after it went away;
+- the remote address of its link up now (behind a NAT, say, where no certificate names
+  it);
+- the addresses its links came from since this router started (the last `LEARNED`).
+
+Nothing here trusts what a member says of itself: a certificate anyone relays is the
+CA's word. One that does not check out is said once (WARNING) and not used.
+
+```
+ thread "rr-zenoh-gate" (the gate's), at each look: MemberAddresses.now()
+   session.info.links(): member links up ─► learned addresses
+   a member linked, its certificate not known ─► session.get(rr/<system>/cert/<name>)
+   replies in (try_recv, never blocks) ─► tls.member_addresses() ─► named addresses
+ Zenoh's thread: a get on rr/<system>/cert/<this host> ─► the cert file's bytes
+```
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import ipaddress
+import logging
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import zenoh
+
+from rr_actors._platform import GATE_SOURCES, PLATFORM, ListenerGate
+from rr_actors._transport.zenoh.ops.config import parse_endpoint
+from rr_actors._transport.zenoh.ops.watch import remote
+from rr_actors._transport.zenoh.wire import Keys
+from rr_actors.errors import ConfigError
+
+if TYPE_CHECKING:
+    from rr_actors._transport.zenoh.ops.tls import ZenohTLS
+
+__all__ = [
+    "ASK_AGAIN",
+    "BACKLOG",
+    "DROP",
+    "HOLD",
+    "LEARNED",
+    "TICK",
+    "HandshakeGate",
+    "MemberAddresses",
+    "open_gates",
+]
+
+logger = logging.getLogger("rr_actors")
+
+BACKLOG = 16  # connections the kernel queues for Zenoh's accept at most
+HOLD = 8  # connections strangers may hold to the port: each address, and all together
+TICK = 0.2  # seconds between two looks at the socket table
+DROP = 60.0  # seconds a drop (or a members-only spell) lasts, whatever is sent meanwhile
+
+
+def open_gates(listen: Iterable[str]) -> list[ListenerGate]:
+    """The platform's gates on this process's listening sockets of the `tls/` endpoints
+    of `listen` (Zenoh's, once its session is open); none for port 0 or where the
+    platform has no gate."""
+    gates = []
+    for endpoint in listen:
+        if not endpoint.startswith("tls/"):
+            continue
+        _, host, port = parse_endpoint("listen", endpoint)
+        try:
+            addresses = [str(ipaddress.ip_address(host))]
+        except ValueError:
+            try:
+                addresses = sorted({str(i[4][0]) for i in socket.getaddrinfo(host, port)})
+            except OSError:
+                addresses = []
+        gate = None
+        for address in addresses:
+            gate = PLATFORM.listener_gate(address, port) if port else None
+            if gate is not None:
+                gate.shorten_backlog(BACKLOG)
+                gates.append(gate)
+                break
+        if gate is None:
+            logger.debug("no gate on the listening socket of %s (%s)", endpoint, PLATFORM.name)
+    return gates
+
+
+@dataclasses.dataclass
+class _Port:
+    """What the gate keeps of one listening socket."""
+
+    gate: ListenerGate
+    dropped: dict[str, float] = dataclasses.field(default_factory=dict)  # source -> until
+    members_only: float | None = None  # until when only members' addresses get in
+    admitted: frozenset[str] = frozenset()  # the members' addresses let in meanwhile
+    crowded: bool = False  # strangers together held more than HOLD at the last look
+
+
+class HandshakeGate:
+    """Drops the sources that flood a router's `tls/` listeners (see the module docstring).
+
+    Args:
+        system: the system's name, for the log lines.
+        gates: the gates on the listening sockets (`open_gates`); closed by `close`.
+        member_addresses: the members' addresses now (`members.MemberAddresses.now`),
+            called once per look, on the gate's thread.
+        clock: seconds, monotonic (tests may pass their own).
+        start: start the thread (tests call `look` themselves).
+    """
+
+    def __init__(
+        self,
+        system: str,
+        gates: list[ListenerGate],
+        member_addresses: Callable[[], set[str]],
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        start: bool = True,
+    ) -> None:
+        self._system = system
+        self._ports = [_Port(gate) for gate in gates]
+        self._member_addresses = member_addresses
+        self._clock = clock
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="rr-zenoh-gate", daemon=True)
+        if start and gates:
+            self._thread.start()
+
+    def dropping(self) -> set[str]:
+        """The source addresses dropped now (at any gate; not counting a members-only
+        spell's)."""
+        return {source for port in self._ports for source in port.dropped}
+
+    def members_only(self) -> bool:
+        """Whether some gate takes packets from members' addresses only now."""
+        return any(port.members_only is not None for port in self._ports)
+
+    def close(self) -> None:
+        """Stop, and let go of the sockets (idempotent); call before the session closes
+        (a duplicate of a listening socket would keep its port listening)."""
+        self._stop.set()
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
+            self._thread.join(timeout=5.0)
+        for port in self._ports:
+            port.gate.close()
+        self._ports = []
+
+    def _run(self) -> None:
+        while not self._stop.wait(TICK):
+            try:
+                self.look()
+            except Exception:
+                if self._stop.is_set():
+                    return  # the session closed under us
+                logger.exception(  # once: the gate is a second line, the firewall the first
+                    "ZenohNetwork %r: the gate on its tls/ listeners failed and is off",
+                    self._system,
+                )
+                return
+
+    def look(self) -> None:
+        """One look at each gate: lift the drops whose time is over, drop the floods."""
+        members = frozenset(self._member_addresses())
+        now = self._clock()
+        for port in self._ports:
+            changed = self._lift_due(port, now)
+            changed |= self._drop_floods(port, members, now)
+            if port.members_only is not None and port.admitted != members:
+                port.admitted, changed = members, True  # (a member's certificate came in)
+            if changed:
+                self._filter(port)
+
+    def _lift_due(self, port: _Port, now: float) -> bool:
+        due = sorted(source for source, until in port.dropped.items() if until <= now)
+        ended = port.members_only is not None and port.members_only <= now
+        if not due and not ended:
+            return False
+        for source in due:
+            del port.dropped[source]
+        if ended:
+            port.members_only = None
+        lifted = [*due, *(["every address"] if ended else [])]
+        logger.info(
+            "ZenohNetwork %r: %s:%d takes packets from %s again (dropped for %g s)",
+            self._system,
+            port.gate.address,
+            port.gate.port,
+            ", ".join(lifted),
+            DROP,
+        )
+        return True
+
+    def _drop_floods(self, port: _Port, members: frozenset[str], now: float) -> bool:
+        held = port.gate.peers()
+        strangers = {
+            source: n
+            for source, n in held.items()
+            if source not in members and source not in port.dropped
+        }
+        changed = False
+        for source, n in sorted(strangers.items()):
+            if n <= HOLD or len(port.dropped) >= GATE_SOURCES:
+                continue
+            del strangers[source]
+            port.dropped[source] = now + DROP
+            changed = True
+            logger.warning(
+                "ZenohNetwork %r: %s holds %d connections to %s:%d and is not a member's "
+                "address (failed or unfinished TLS handshakes: Zenoh's listener pauses 0.1 s "
+                "after each failed one): its packets to that port are dropped for %g s",
+                self._system,
+                source,
+                n,
+                port.gate.address,
+                port.gate.port,
+                DROP,
+            )
+        together = sum(strangers.values())
+        crowded, port.crowded = port.crowded, together > HOLD
+        if port.members_only is None and crowded and port.crowded:
+            if len(members) > GATE_SOURCES:
+                return changed  # (no filter holds them all: the firewall's job)
+            port.members_only, port.admitted, changed = now + DROP, members, True
+            logger.warning(
+                "ZenohNetwork %r: %d addresses, none a member's, hold %d connections to "
+                "%s:%d (failed or unfinished TLS handshakes): the port takes packets only "
+                "from members' addresses (%s) for %g s",
+                self._system,
+                len(strangers),
+                together,
+                port.gate.address,
+                port.gate.port,
+                ", ".join(sorted(members)) or "none known yet",
+                DROP,
+            )
+        return changed
+
+    @staticmethod
+    def _filter(port: _Port) -> None:
+        if port.members_only is not None:
+            port.gate.admit_only(port.admitted)
+        else:
+            port.gate.drop_from(port.dropped)  # (none: the filter is taken off)
+
+
+# -- the members' addresses -----------------------------------------------------------------
+
+LEARNED = 4  # addresses kept per member, of those its links came from (the newest)
+ASK_AGAIN = 5.0  # seconds before a certificate asked for and not had is asked for again
+_ASK_TIMEOUT = 2.0  # seconds a get of a certificate waits for its answer
+
+
+class MemberAddresses:
+    """The addresses of the members of one router's system (see the module docstring).
+
+    Args:
+        system: the system's name, for the log lines.
+        session: the router's open Zenoh session.
+        tls: this host's files (its cert is what it answers with) and the members.
+        clock: seconds, monotonic (tests may pass their own).
+
+    `now` is called by one thread (the gate's); `close` by the session's closer.
+    """
+
+    def __init__(
+        self,
+        system: str,
+        session: zenoh.Session,
+        tls: ZenohTLS,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._system = system
+        self._session = session
+        self._tls = tls
+        self._keys = Keys(system)
+        self._clock = clock
+        self._named: dict[str, tuple[str, ...]] = {}  # member -> its certificate's IPs
+        self._learned: dict[str, collections.OrderedDict[str, None]] = {}
+        self._asking: dict[str, Any] = {}  # member -> the replies of its get
+        self._asked: dict[str, float] = {}  # member -> when last asked
+        self._refused: set[str] = set()  # members whose certificate we said we refused
+        self._up: set[str] = set()  # members linked at the last call
+        pem = Path(tls.cert).read_bytes()  # (read once: what Zenoh read when it opened)
+        self._queryable = session.declare_queryable(
+            self._keys.certificate(tls.name), lambda query: query.reply(query.key_expr, pem)
+        )
+
+    def close(self) -> None:
+        """Stop answering for this host's certificate (idempotent)."""
+        try:
+            self._queryable.undeclare()  # type: ignore[no-untyped-call]
+        except Exception:
+            logger.debug("undeclaring the certificate's queryable failed", exc_info=True)
+
+    def now(self) -> set[str]:
+        """The members' addresses now: named in their certificates, or their links' (up
+        now, or the last `LEARNED` each since this router started). Asks for the
+        certificate of a member linked whose certificate is not known yet, without
+        waiting for it (it counts from a later call)."""
+        up = self._links()
+        for name in {name for name, _ in up} - self._up:
+            self._asked.pop(name, None)  # linked anew (restarted, maybe with a new certificate)
+        self._up = {name for name, _ in up}
+        for name, address in up:
+            seen = self._learned.setdefault(name, collections.OrderedDict())
+            seen[address] = None
+            seen.move_to_end(address)
+            while len(seen) > LEARNED:
+                seen.popitem(last=False)
+        self._take_replies()
+        now = self._clock()
+        for name in self._up - self._asking.keys():
+            asked = self._asked.get(name)
+            if asked is None or (name not in self._named and now - asked >= ASK_AGAIN):
+                self._asked[name] = now
+                try:
+                    self._asking[name] = self._session.get(
+                        self._keys.certificate(name), timeout=_ASK_TIMEOUT
+                    )
+                except zenoh.ZError:  # (the session closing under us: asked again later)
+                    logger.debug("asking for %r's certificate failed", name, exc_info=True)
+        known = {address for _, address in up}
+        for addresses in (*self._named.values(), *self._learned.values()):
+            known.update(addresses)
+        return known
+
+    def _links(self) -> set[tuple[str, str]]:
+        """(member name, remote address) of each TLS link of the router to a member."""
+        return {
+            (str(link.auth_identifier), remote(str(link.dst))[0])
+            for link in self._session.info.links()
+            if str(link.dst).startswith("tls/") and link.auth_identifier in self._tls.members
+        }
+
+    def _take_replies(self) -> None:
+        for name, replies in list(self._asking.items()):
+            while True:
+                try:
+                    reply = replies.try_recv()
+                except zenoh.ZError:  # no more replies (the get ended)
+                    del self._asking[name]
+                    break
+                if reply is None:
+                    break  # none yet
+                if reply.ok is not None and self._check(name, reply.ok.payload.to_bytes()):
+                    del self._asking[name]
+                    break
+
+    def _check(self, name: str, pem: bytes) -> bool:
+        """Keep the addresses of `name`'s certificate `pem`, if it checks out (True)."""
+        from rr_actors._transport.zenoh.ops.tls import member_addresses  # noqa: PLC0415 - cryptography
+
+        try:
+            self._named[name] = member_addresses(pem, self._tls, name)
+        except ConfigError as exc:
+            if name not in self._refused:
+                self._refused.add(name)
+                logger.warning(
+                    "ZenohNetwork %r: member %r answered for its certificate with one that "
+                    "does not hold: %s; the handshake gate knows only its links' addresses",
+                    self._system,
+                    name,
+                    exc,
+                )
+            return False
+        return True

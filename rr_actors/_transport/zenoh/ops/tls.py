@@ -1,0 +1,576 @@
+"""`ZenohTLS`: a host's certificates for mutual TLS between the hosts of a system, and
+what they sign (`Seal`: the event batches it sends).
+
+Read and checked once, when the object is made, with `cryptography` (never zenoh), so a
+wrong file is a `ConfigError` in the program that named it, not a refused handshake
+that Zenoh reports only on its standard output:
+
+```
+ ca.pem ───────────┐
+ robot.pem ─ leaf ─┼─ signed by a CA of ca.pem, in date, both TLS uses ─┐
+ robot.key ────────┘   matches the leaf, a type rustls signs with       ├─ ZenohTLS
+ members ─────────── names like registrars', the leaf's CN among them ──┘   (name, addresses,
+                                                                             not_after)
+```
+
+`ZenohNetwork` hands the paths to Zenoh (`transport/link/tls`) and `members` to its
+access control; the files themselves are read again by Zenoh when the session opens.
+
+An event batch's seal (`Seal`): the certificate of the host that sent it, and its
+signature.
+
+```
+ a member process (the router or a manager)         a system-wide subscriber (any member)
+ encode(batch) ─► Seal.seal(data): the host's       Seal.open(data, attachment):
+   certificate chain (its `cert` file) and the ─►     the chain: in date, up to the CA
+   signature of the key (`key`) over SHA-256          (`ca`), its common name in `members`
+   of the system's name and the batch                 (cached); the signature over the
+ put rr/<s>/ev/<zid>, the seal as Zenoh's            system and the batch, by its key
+   attachment                                         ─► the member name, or None
+```
+
+Why a seal and not the link: Zenoh's access control judges a message by the
+certificate of the link it arrives on, and a router member forwards what other members
+sent (where two hosts reach each other only through a third, what one sends reaches the
+other as the router's). So the link cannot say whose a batch is once a router is
+between; the key expression and a field in the payload are whatever the sender wrote.
+A signature made where the batch was made, by the key of a certificate the system's CA
+issued to a member, names its host wherever the batch went: the host of an event is the
+member whose certificate sealed its batch, never its `host` field (`events.EventFeed`).
+
+A seal is `b"rs1" | length of the chain (2 bytes, big endian) | the chain (PEM, as the
+host's cert file holds it) | the signature`: ECDSA with SHA-256, Ed25519, or RSA-PSS
+with SHA-256, as the key is. What is signed is SHA-256 of `rr-events/<system>\0` and the
+batch, so a batch of one system is not one of another.
+
+It protects against a member that writes another host's name in its events (a bug, a
+relay); it does not protect against one that runs code on another member (members are
+trusted with code: pickles), which could read that host's key.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import ipaddress
+import logging
+import os
+import struct
+import threading
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from cryptography import x509
+from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec, ed25519, padding, rsa
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from rr_actors._transport.zenoh.ops.access import private_file_trouble
+from rr_actors.config import check_name
+from rr_actors.errors import ConfigError
+
+__all__ = [
+    "CHAINS_KEPT",
+    "Seal",
+    "ZenohTLS",
+    "authorities",
+    "leaf_of",
+    "member_addresses",
+    "member_of",
+]
+
+logger = logging.getLogger("rr_actors")
+
+_CURVES = (ec.SECP256R1, ec.SECP384R1)  # the ECDSA curves rustls signs and verifies with
+_RSA_MIN_BITS = 2048
+
+
+def _path(argument: str, value: object) -> str:
+    if not isinstance(value, str | os.PathLike):
+        raise ConfigError(f"{argument} must be a path (str or os.PathLike), not {value!r}")
+    path = os.fsdecode(value)
+    if "\0" in path:  # no file has one: open() would raise ValueError
+        raise ConfigError(f"{argument} {path!r} is not a path (it holds a NUL character)")
+    return os.path.abspath(path)
+
+
+def _read(argument: str, path: str) -> bytes:
+    """The bytes of `path`; ConfigError naming it if it is missing or cannot be read."""
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{argument} {path} does not exist") from None
+    except OSError as exc:
+        raise ConfigError(f"{argument} {path} cannot be read: {exc.strerror or exc}") from None
+    if b"-----BEGIN " not in data:
+        raise ConfigError(f"{argument} {path} is not PEM (no '-----BEGIN ...' line)")
+    return data
+
+
+def _certificates(argument: str, path: str) -> list[x509.Certificate]:
+    data = _read(argument, path)  # outside the try: a ConfigError is a ValueError too
+    try:
+        found = x509.load_pem_x509_certificates(data)
+    except ValueError as exc:
+        raise ConfigError(f"{argument} {path} holds no readable certificate: {exc}") from None
+    if not found:
+        raise ConfigError(f"{argument} {path} holds no certificate")
+    return found
+
+
+def _utc(moment: datetime.datetime) -> str:
+    return moment.strftime("%Y-%m-%d %H:%M:%S UTC")
+
+
+def _check_dates(what: str, cert: x509.Certificate, now: datetime.datetime) -> None:
+    start, end = cert.not_valid_before_utc, cert.not_valid_after_utc
+    if now < start:
+        raise ConfigError(
+            f"{what} is not yet valid: valid from {_utc(start)} to {_utc(end)}, now {_utc(now)}"
+        )
+    if now > end:
+        raise ConfigError(
+            f"{what} expired on {_utc(end)} (valid from {_utc(start)}; now {_utc(now)})"
+        )
+
+
+def _common_name(cert: x509.Certificate) -> str | None:
+    names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    value = names[0].value if names else None
+    return value if isinstance(value, str) and value else None
+
+
+def _is_ca(cert: x509.Certificate) -> bool:
+    try:
+        return cert.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+    except x509.ExtensionNotFound:
+        return False
+
+
+def _signed_by(cert: x509.Certificate, issuer: x509.Certificate) -> bool:
+    try:
+        cert.verify_directly_issued_by(issuer)
+    except (ValueError, TypeError, InvalidSignature, UnsupportedAlgorithm):
+        return False
+    return True
+
+
+def _check_key_type(path: str, key: object) -> None:
+    """ConfigError unless rustls (Zenoh's TLS) can sign with `key`."""
+    if isinstance(key, ec.EllipticCurvePrivateKey) and isinstance(key.curve, _CURVES):
+        return
+    if isinstance(key, ed25519.Ed25519PrivateKey):
+        return
+    if isinstance(key, rsa.RSAPrivateKey) and key.key_size >= _RSA_MIN_BITS:
+        return
+    kind = (
+        f"EC {key.curve.name}"
+        if isinstance(key, ec.EllipticCurvePrivateKey)
+        else f"RSA {key.key_size} bits"
+        if isinstance(key, rsa.RSAPrivateKey)
+        else type(key).__name__
+    )
+    raise ConfigError(
+        f"key {path} is {kind}, which Zenoh's TLS (rustls) cannot use: use ECDSA P-256 or "
+        f"P-384, Ed25519, or RSA of {_RSA_MIN_BITS} bits or more"
+    )
+
+
+def _check_uses(path: str, cert: x509.Certificate) -> None:
+    """ConfigError if an extendedKeyUsage leaves out TLS client or server use."""
+    try:
+        uses = set(cert.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value)
+    except x509.ExtensionNotFound:
+        return  # no restriction: every use
+    missing = [
+        label
+        for oid, label in (
+            (ExtendedKeyUsageOID.SERVER_AUTH, "serverAuth (TLS server)"),
+            (ExtendedKeyUsageOID.CLIENT_AUTH, "clientAuth (TLS client)"),
+        )
+        if oid not in uses
+    ]
+    if missing:
+        raise ConfigError(
+            f"cert {path} lacks the extended key usage {' and '.join(missing)}: a host both "
+            f"listens and connects, so its certificate needs serverAuth and clientAuth"
+        )
+
+
+def _members(members: object) -> tuple[str, ...]:
+    if isinstance(members, str | bytes) or not isinstance(members, Iterable):
+        raise ConfigError(f"members must be a list of names such as ['robot'], not {members!r}")
+    names = list(members)
+    if not names:
+        raise ConfigError("members is empty: name at least this host's certificate's name")
+    for name in names:
+        check_name("members:", name, "a member name")
+    return tuple(dict.fromkeys(names))  # order kept, duplicates dropped
+
+
+class ZenohTLS:
+    """A host's CA, certificate, key and the system's members, checked when made.
+
+    The system has its own certificate authority (`ca`): every host holds `ca` and its
+    own certificate and key, and admits the hosts whose certificate's common name is in
+    `members`. As ROS 2's SROS2 keystore: one CA per system, one identity per participant.
+    Make the files with `rr-actors certs init` / `rr-actors certs issue` (or any PKI whose
+    certificates have both TLS uses and the addresses peers dial).
+
+    Args:
+        ca: path (str or `os.PathLike`) to a PEM file of the system's CA certificate(s)
+            (more than one is allowed: all are trusted, e.g. the old and the new CA while
+            it is replaced).
+        cert: path to this host's PEM certificate: the host's own first, then any
+            intermediate CA certificates, each signed by the next; the last is signed
+            by a CA of `ca`.
+        key: path to the certificate's private key, PEM, unencrypted (PKCS#8, PKCS#1 or
+            SEC1): ECDSA P-256 or P-384, Ed25519, or RSA of 2048 bits or more.
+        members: the common names admitted (an iterable of str, not one str), named like
+            registrars; non-empty, and this host's own name must be one. Order is kept,
+            duplicates dropped.
+
+    Attributes:
+        ca, cert, key: the absolute paths.
+        members: the names admitted, a tuple.
+        name: this host's certificate's subject common name (its member name).
+        addresses: the certificate's subject alternative names (IP addresses and DNS
+            names, as strings, in its order): the addresses peers may dial this host at.
+        not_after: when the certificate ends (a timezone-aware UTC datetime).
+
+    Raises:
+        ConfigError: naming the argument and file (or the name) and what is wrong: a
+            path that is not str/PathLike; a file missing, unreadable (e.g. a directory)
+            or not PEM; `ca` without a certificate, or one that is not a CA
+            (BasicConstraints CA=true), expired or not yet valid; `cert` without a
+            certificate, expired or not yet valid (with the dates, UTC), not signed by
+            `ca` (or through an intermediate that is not a CA), without a common name,
+            with an extendedKeyUsage lacking TLS server or client use; `key` not a
+            private key, encrypted, of a type rustls cannot use, or not the certificate's;
+            `members` not an iterable of names, empty, a name that is not a member name,
+            or without this host's name.
+
+    A key file open to group or others, or owned by another user, logs a WARNING on
+    the `rr_actors` logger naming it, its mode or owner, and the fix (`chmod 600`,
+    `chown`). The object is read-only; Zenoh reads the
+    files again when a `ZenohNetwork` opens its session.
+    """
+
+    __slots__ = ("addresses", "ca", "cert", "key", "members", "name", "not_after")
+
+    ca: str
+    cert: str
+    key: str
+    members: tuple[str, ...]
+    name: str
+    addresses: tuple[str, ...]
+    not_after: datetime.datetime
+
+    def __init__(
+        self,
+        *,
+        ca: str | os.PathLike[str],
+        cert: str | os.PathLike[str],
+        key: str | os.PathLike[str],
+        members: Iterable[str],
+    ) -> None:
+        self.ca = _path("ca", ca)
+        self.cert = _path("cert", cert)
+        self.key = _path("key", key)
+        self.members = _members(members)
+        now = datetime.datetime.now(datetime.UTC)
+        leaf = _leaf(self.cert, self.ca, now)
+        name = _common_name(leaf)
+        if name is None:
+            raise ConfigError(
+                f"cert {self.cert} has no subject common name: a member is known by it"
+            )
+        if name not in self.members:
+            raise ConfigError(
+                f"cert {self.cert} is {name!r}, which is not in members {list(self.members)}: "
+                f"a host must be a member of its own system"
+            )
+        _check_key(self.key, leaf, self.cert)
+        self.name = name
+        self.not_after = leaf.not_valid_after_utc
+        self.addresses = _addresses(leaf)
+
+    def __setattr__(self, name: str, value: object) -> None:
+        """Each attribute is set once, when the object is made: make a new one to change it."""
+        if hasattr(self, name):
+            raise AttributeError(f"ZenohTLS.{name} is read-only: make a new ZenohTLS")
+        object.__setattr__(self, name, value)
+
+    def __repr__(self) -> str:
+        return (
+            f"ZenohTLS(name={self.name!r}, addresses={list(self.addresses)}, "
+            f"not_after={_utc(self.not_after)!r}, members={list(self.members)}, "
+            f"ca={self.ca!r}, cert={self.cert!r}, key={self.key!r})"
+        )
+
+
+def _addresses(cert: x509.Certificate) -> tuple[str, ...]:
+    try:
+        names = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    except x509.ExtensionNotFound:
+        return ()
+    return tuple(
+        str(entry.value) for entry in names if isinstance(entry, x509.IPAddress | x509.DNSName)
+    )
+
+
+def authorities(path: str) -> list[x509.Certificate]:
+    """The CA certificates of file `path`, each a CA and in date now.
+
+    Raises:
+        ConfigError: as `ZenohTLS` for its `ca`.
+    """
+    return _authorities(path, datetime.datetime.now(datetime.UTC))
+
+
+def leaf_of(
+    chain: bytes, trusted: list[x509.Certificate], now: datetime.datetime
+) -> x509.Certificate | None:
+    """The host certificate first in PEM `chain` (a host's `cert` file as it is), if every
+    certificate of it is in date at `now`, signed by the next (each intermediate a CA),
+    the last by one of `trusted`; else `None`. Never raises."""
+    try:
+        certificates = x509.load_pem_x509_certificates(chain)
+        if not certificates:
+            return None
+        return _checked_chain(certificates, trusted, "a certificate", "ca", now)
+    except ValueError:  # (a ConfigError is one too)
+        return None
+
+
+def member_of(cert: x509.Certificate) -> str | None:
+    """The member name of host certificate `cert`: its subject common name, if any."""
+    return _common_name(cert)
+
+
+def _authorities(path: str, now: datetime.datetime) -> list[x509.Certificate]:
+    """The CA certificates of `path`: each a CA, in date."""
+    authorities = _certificates("ca", path)
+    for authority in authorities:
+        what = f"ca {path} ({authority.subject.rfc4514_string()})"
+        if not _is_ca(authority):
+            raise ConfigError(f"{what} is not a CA certificate (no BasicConstraints CA=true)")
+        _check_dates(what, authority, now)
+    return authorities
+
+
+def _leaf(path: str, ca: str, now: datetime.datetime) -> x509.Certificate:
+    """The host's certificate of `path` (first), its chain checked up to a CA of `ca`."""
+    chain = _certificates("cert", path)
+    leaf = _checked_chain(chain, _authorities(ca, now), f"cert {path}", f"ca {ca}", now)
+    _check_uses(path, leaf)
+    return leaf
+
+
+def _checked_chain(
+    chain: list[x509.Certificate],
+    authorities: list[x509.Certificate],
+    what: str,
+    ca: str,
+    now: datetime.datetime,
+) -> x509.Certificate:
+    """The first certificate of `chain`, once each of it is in date and signed by the
+    next, the last by one of `authorities` (`what` and `ca` name them in the error)."""
+    for index, link in enumerate(chain):
+        this = what + (f" (intermediate {index})" if index else "")
+        if index and not _is_ca(link):  # Zenoh's TLS (webpki) refuses such a chain
+            raise ConfigError(
+                f"{this} ({link.subject.rfc4514_string()}) is not a CA certificate (no "
+                f"BasicConstraints CA=true), so it cannot sign the certificate before it"
+            )
+        _check_dates(this, link, now)
+        issuers = chain[index + 1 : index + 2] or authorities
+        if not any(_signed_by(link, issuer) for issuer in issuers):
+            by = "the next certificate in it" if index + 1 < len(chain) else ca
+            raise ConfigError(
+                f"{this} ({link.subject.rfc4514_string()}, issued by "
+                f"{link.issuer.rfc4514_string()}) is not signed by {by}"
+            )
+    return chain[0]
+
+
+def member_addresses(pem: bytes, tls: ZenohTLS, name: str) -> tuple[str, ...]:
+    """The IP addresses that member `name`'s certificate names (subjectAltName), from
+    `pem` (its cert file: its certificate, then any intermediates), checked as this
+    host's own: in date, signed up to a CA of `tls.ca`, its common name `name`, and
+    `name` one of `tls.members`. What the handshake gate never drops (`gate`).
+
+    Raises:
+        ConfigError: the certificate is not that, saying why (the caller logs it).
+    """
+    if name not in tls.members:
+        raise ConfigError(f"{name!r} is not in members {list(tls.members)}")
+    what = f"the certificate of member {name!r}"
+    try:
+        chain = x509.load_pem_x509_certificates(pem)
+    except ValueError as exc:
+        raise ConfigError(f"{what} is not PEM certificates: {exc}") from None
+    if not chain:
+        raise ConfigError(f"{what} holds no certificate")
+    now = datetime.datetime.now(datetime.UTC)
+    authorities = _authorities(tls.ca, now)
+    leaf = _checked_chain(chain, authorities, what, f"ca {tls.ca}", now)
+    if _common_name(leaf) != name:
+        raise ConfigError(f"{what} has the common name {_common_name(leaf)!r}")
+    return tuple(address for address in _addresses(leaf) if _is_ip(address))
+
+
+def _is_ip(text: str) -> bool:
+    try:
+        ipaddress.ip_address(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _check_key(path: str, leaf: x509.Certificate, cert_path: str) -> None:
+    """The key of `path` is `leaf`'s, of a type rustls uses; a WARNING if it is not private."""
+    data = _read("key", path)
+    try:
+        private = serialization.load_pem_private_key(data, password=None)
+    except TypeError:
+        raise ConfigError(
+            f"key {path} is encrypted: Zenoh reads an unencrypted key (keep it 0600 instead)"
+        ) from None
+    except (ValueError, UnsupportedAlgorithm) as exc:
+        raise ConfigError(f"key {path} holds no readable private key: {exc}") from None
+    _check_key_type(path, private)
+    spki = serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+    if private.public_key().public_bytes(*spki) != leaf.public_key().public_bytes(*spki):
+        raise ConfigError(f"key {path} is not the private key of cert {cert_path}")
+    trouble = private_file_trouble(path)
+    if trouble is not None:
+        logger.warning("private key %s %s", path, trouble)
+
+
+# -- an event batch's seal ------------------------------------------------------------------
+
+CHAINS_KEPT = 64
+"""Certificate chains a subscriber keeps checked (one per member host, normally); past it,
+it checks them again."""
+
+_MAGIC = b"rs1"
+_HEAD = struct.Struct("!3sH")  # magic, length of the chain
+_PSS = padding.PSS(mgf=padding.MGF1(hashes.SHA256()), salt_length=padding.PSS.DIGEST_LENGTH)
+
+
+class Seal:
+    """Seals the event batches this process sends and opens those it receives, with the
+    certificates of `tls` (see the module docstring). Thread-safe.
+
+    Args:
+        tls: this host's certificates and the system's members.
+        system: the system's name (in what is signed).
+    """
+
+    def __init__(self, tls: ZenohTLS, system: str) -> None:
+        self._tls = tls
+        self._context = f"rr-events/{system}\0".encode()
+        self._lock = threading.Lock()
+        self._signing: tuple[Any, bytes] | None = None  # the key, the seal's head
+        self._trusted: list[Any] | None = None  # the CA's certificates
+        self._chains: dict[bytes, tuple[str, Any, datetime.datetime] | None] = {}
+
+    def _digest(self, data: bytes) -> bytes:
+        digest = hashlib.sha256(self._context)
+        digest.update(data)
+        return digest.digest()
+
+    def seal(self, data: bytes) -> bytes:
+        """The seal of batch `data` (on the sending thread).
+
+        Raises:
+            ConfigError: the host's key or certificate cannot be read any more.
+        """
+        key, head = self._signing or self._load_signing()
+        digest = self._digest(data)
+        if isinstance(key, ec.EllipticCurvePrivateKey):
+            return head + key.sign(digest, ec.ECDSA(hashes.SHA256()))
+        if isinstance(key, rsa.RSAPrivateKey):
+            return head + key.sign(digest, _PSS, hashes.SHA256())
+        assert isinstance(key, ed25519.Ed25519PrivateKey)  # (`ZenohTLS` allows no other kind)
+        return head + key.sign(digest)
+
+    def _load_signing(self) -> tuple[Any, bytes]:
+        tls = self._tls
+        try:
+            chain = Path(tls.cert).read_bytes()
+            key = serialization.load_pem_private_key(Path(tls.key).read_bytes(), password=None)
+        except (OSError, ValueError, TypeError, UnsupportedAlgorithm) as exc:
+            raise ConfigError(
+                f"cannot seal events with cert {tls.cert} and key {tls.key}: {exc}"
+            ) from None
+        if not isinstance(
+            key, ec.EllipticCurvePrivateKey | rsa.RSAPrivateKey | ed25519.Ed25519PrivateKey
+        ):
+            raise ConfigError(f"key {tls.key} cannot sign ({type(key).__name__})")
+        self._signing = key, _HEAD.pack(_MAGIC, len(chain)) + chain
+        return self._signing
+
+    def open(self, data: bytes, seal: bytes | None) -> str | None:
+        """The member whose certificate sealed batch `data` with `seal`; `None` if none
+        did (no seal, a malformed one, a chain the system's CA did not issue or out of
+        date, a common name not in `members`, a signature that does not match). Never
+        raises."""
+        if seal is None or len(seal) < _HEAD.size:
+            return None
+        magic, length = _HEAD.unpack_from(seal)
+        end = _HEAD.size + length
+        checked = (
+            None if magic != _MAGIC or len(seal) <= end else self._chain(seal[_HEAD.size : end])
+        )
+        if checked is None or datetime.datetime.now(datetime.UTC) > checked[2]:
+            return None
+        member, public, _ = checked
+        return member if _verified(public, seal[end:], self._digest(data)) else None
+
+    def _chain(self, chain: bytes) -> tuple[str, Any, datetime.datetime] | None:
+        """What certificate chain `chain` says (its member, its public key, when it ends),
+        if the system's CA issued it to a member; checked once, then kept."""
+        with self._lock:
+            if chain in self._chains:
+                return self._chains[chain]
+        now = datetime.datetime.now(datetime.UTC)
+        leaf = leaf_of(chain, self._authorities(), now)
+        member = None if leaf is None else member_of(leaf)
+        checked = None
+        if leaf is not None and member in self._tls.members:
+            assert member is not None
+            checked = member, leaf.public_key(), leaf.not_valid_after_utc
+        with self._lock:
+            if len(self._chains) >= CHAINS_KEPT:
+                self._chains.clear()
+            self._chains[chain] = checked
+        return checked
+
+    def _authorities(self) -> list[Any]:
+        if self._trusted is None:
+            try:
+                self._trusted = authorities(self._tls.ca)
+            except ConfigError as exc:
+                logger.warning("cannot check the seals of events: %s", exc)
+                return []
+        return self._trusted
+
+
+def _verified(public: Any, signature: bytes, digest: bytes) -> bool:
+    """Whether `signature` is `public`'s over `digest` (as `Seal.seal` signs)."""
+    try:
+        if isinstance(public, ec.EllipticCurvePublicKey):
+            public.verify(signature, digest, ec.ECDSA(hashes.SHA256()))
+        elif isinstance(public, rsa.RSAPublicKey):
+            public.verify(signature, digest, _PSS, hashes.SHA256())
+        elif isinstance(public, ed25519.Ed25519PublicKey):
+            public.verify(signature, digest)
+        else:
+            return False
+    except (InvalidSignature, ValueError, TypeError, UnsupportedAlgorithm):
+        return False
+    return True

@@ -1,0 +1,275 @@
+"""A simulated run: the runtime's seams on one scheduler, in an OS thread of its own.
+
+```
+ run(fn, seed=S) ─► a thread "rr-simulation" ─┬─ runtime.use(the simulated seams)
+   (the caller waits for it, bounded)         ├─ each process state (runtime.process_state)
+                                              │  set to a fresh one: the directory, the
+                                              │  membership, the clock, pykka's registry
+                                              ├─ Scheduler.run(): fn() as the task
+                                              │  "MainThread", and every thread it starts
+                                              └─ the states put back, the real seams back
+ ◄── Run(seed, hash, steps, elapsed, value, errors, trace): the same for the same seed
+```
+
+The run's result is made as soon as the main task and the non-daemon threads ended;
+then every greenlet left (an actor still waiting for mail) is ended where it waits
+(`Scheduler.drop`: its `finally` blocks run then, unlogged, and change nothing of the
+run), since a greenlet left suspended when its thread ends is never freed. Nothing of a
+run is left in the process but what it returned.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import sys
+import threading
+import traceback
+from collections.abc import Callable
+from typing import Any, Generic, TypeVar
+
+from rr_actors._core import runtime
+from rr_actors.simulation import _primitives as sim
+from rr_actors.simulation._scheduler import Scheduler, SimulationError
+
+__all__ = ["Run", "note", "now", "run", "sleep"]
+
+T = TypeVar("T")
+
+MONOTONIC_START = 1_000.0
+"""`runtime.monotonic()` when a run begins."""
+
+WALL_START = 1_767_225_600.0
+"""`runtime.wall()` when a run begins (2026-01-01 00:00 UTC)."""
+
+_MISSING = object()
+_scheduler: Scheduler | None = None  # the run in progress (one at a time per process)
+
+
+@dataclasses.dataclass(frozen=True)
+class Run(Generic[T]):
+    """What a simulated run gave: the same, hash included, for the same seed.
+
+    Attributes:
+        seed: the seed it ran with.
+        hash: the hash of its trace (each step's task and virtual time, and each `note`).
+        steps: how many times the scheduler switched to a task.
+        elapsed: the virtual seconds it took.
+        value: what `fn` returned.
+        errors: the exceptions that ended simulated threads (`name: Type: message`).
+        trace: each step, `(virtual seconds, task number, task name or note)`, if asked.
+    """
+
+    seed: int
+    hash: str
+    steps: int
+    elapsed: float
+    value: T
+    errors: tuple[str, ...]
+    trace: tuple[tuple[float, int, str], ...] | None
+
+
+def run(
+    fn: Callable[[], T],
+    *,
+    seed: int,
+    preempt: float = 0.05,
+    until: float = 3_600.0,
+    max_steps: int = 5_000_000,
+    trace: bool = False,
+    timeout: float | None = 300.0,
+) -> Run[T]:
+    """Run `fn()` on a simulated world: every thread a greenlet of one OS thread, chosen
+    by a scheduler seeded with `seed`, on a virtual clock.
+
+    The run ends when `fn` and every non-daemon thread it started returned; daemon
+    threads still waiting then (an actor's loop) are dropped.
+
+    Args:
+        fn: the run's main task (the simulated process's main thread).
+        seed: the seed of the scheduler's choices and of every random value.
+        preempt: the probability that a thread yields at a choice point (an operation
+            that would not block): 0 runs each thread until it blocks.
+        until: virtual seconds the run may last.
+        max_steps: switches the run may take.
+        trace: keep each step in `Run.trace`, not only its hash.
+        timeout: real seconds the caller waits for the run (`None`: no bound); past
+            them, its thread blocks for real (a real socket, a real lock).
+
+    Returns:
+        The run's seed, trace hash, steps, virtual time, `fn`'s value and thread errors.
+
+    Raises:
+        DeadlockError: nothing could run and nothing was due before `fn` returned.
+        LimitError: past `until` or `max_steps`.
+        SimulationError: the run did not end within `timeout` real seconds (the process
+            should end: its runtime stays simulated), or a simulation already runs.
+        BaseException: what `fn` raised (with the seed in a note).
+    """
+    if runtime.simulated():
+        raise SimulationError("a simulation already runs in this process (one at a time)")
+
+    def make() -> Scheduler:
+        return Scheduler(
+            seed,
+            preempt=preempt,
+            locals=runtime.thread_locals(),
+            max_steps=max_steps,
+            until=until,
+            trace=trace,
+        )
+
+    outcome: list[Any] = []
+    thread = threading.Thread(
+        target=_simulate, args=(make, fn, outcome), name=f"rr-simulation-{seed}", daemon=True
+    )
+    thread.start()
+    thread.join(timeout)
+    if thread.is_alive():
+        frame = sys._current_frames().get(thread.ident or 0)
+        stack = "".join(traceback.format_stack(frame)) if frame is not None else ""
+        raise SimulationError(
+            f"the simulation (seed {seed}) did not end within {timeout:g} real seconds: its "
+            f"thread blocks for real (its runtime stays simulated; end the process):\n{stack}"
+        )
+    ok, done = outcome
+    if not ok:
+        raise done
+    finished: Run[T] = done
+    return finished
+
+
+def _simulate(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: list[Any]) -> None:
+    """The run's OS thread: the seams and states in, the scheduler, then back out.
+    `outcome` gets `(True, the Run)` or `(False, what to raise)`, made before the tasks
+    left are dropped (`Scheduler.drop`: nothing they do then is part of the run)."""
+    global _scheduler  # (the run in progress: `note`, `now`, `sleep`)
+    result: list[Any] = []
+    sched = make()
+
+    def main() -> None:
+        try:
+            value = fn()
+        except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread
+            result.append((False, exc))
+        else:
+            result.append((True, value))
+
+    runtime.use(_seams(sched))
+    _scheduler = sched
+    saved = [_swap_in(obj, fresh()) for obj, fresh in runtime.process_states()]
+    try:
+        sim.Thread(sched, target=main, name="MainThread", daemon=False).start()
+        sched.run()
+        outcome.extend(_finished(sched, *result[0]))
+    except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+        outcome.extend(_finished(sched, False, exc))
+    finally:
+        _scheduler = None
+        sched.drop()
+        for obj, state in zip(runtime.process_states(), saved, strict=True):
+            _put_back(obj[0], state)
+        runtime.use(None)
+
+
+def _finished(sched: Scheduler, ok: bool, value: Any) -> tuple[bool, Any]:
+    """`(True, the Run)`, or `(False, what to raise)` with the seed in a note."""
+    if not ok:
+        if not isinstance(value, SimulationError):
+            value.add_note(
+                f"in the simulation of seed {sched.seed}, at virtual time {sched.now:g} s "
+                f"after {sched.steps} steps"
+            )
+        return False, value
+    return True, Run(
+        seed=sched.seed,
+        hash=sched.hash,
+        steps=sched.steps,
+        elapsed=sched.now,
+        value=value,
+        errors=tuple(sched.errors),
+        trace=None if sched.trace is None else tuple(sched.trace),
+    )
+
+
+def _seams(sched: Scheduler) -> dict[str, Any]:
+    wall_ns_start = int(WALL_START * 1e9)
+    return {
+        "Lock": functools.partial(sim.Lock, sched),
+        "RLock": functools.partial(sim.RLock, sched),
+        "Event": functools.partial(sim.Event, sched),
+        "Condition": functools.partial(sim.Condition, sched),
+        "SimpleQueue": functools.partial(sim.SimpleQueue, sched),
+        "Thread": functools.partial(sim.Thread, sched),
+        "Timer": functools.partial(sim.Timer, sched),
+        "monotonic": lambda: MONOTONIC_START + sched.now,
+        "wall": lambda: WALL_START + sched.now,
+        "wall_ns": lambda: wall_ns_start + round(sched.now * 1e9),
+        "sleep": functools.partial(sim.sleep, sched),
+        "urandom": sched.data.randbytes,
+        "random": sched.data.random,
+        "get_ident": functools.partial(sim.get_ident, sched),
+        "current_thread": functools.partial(sim.current_thread, sched),
+        "queue_class": functools.partial(sim.queue_class, sched, {}),
+    }
+
+
+def _fields(obj: object) -> list[str]:
+    names = list(getattr(obj, "__dict__", ()))
+    for kind in type(obj).__mro__:
+        names.extend(
+            name
+            for name in getattr(kind, "__slots__", ())
+            if name not in names and hasattr(obj, name)
+        )
+    return names
+
+
+def _swap_in(obj: object, fresh: object) -> dict[str, Any]:
+    """Give `obj` the attributes of `fresh`; what it had (to put back)."""
+    saved = {}
+    for name in _fields(fresh):
+        saved[name] = getattr(obj, name, _MISSING)
+        setattr(obj, name, getattr(fresh, name))
+    return saved
+
+
+def _put_back(obj: object, saved: dict[str, Any]) -> None:
+    for name, value in saved.items():
+        if value is _MISSING:
+            delattr(obj, name)
+        else:
+            setattr(obj, name, value)
+
+
+def _running() -> Scheduler:
+    if _scheduler is None or _scheduler.current_or_none() is None:
+        raise RuntimeError("called outside a simulated run's threads")
+    return _scheduler
+
+
+def note(text: str) -> None:
+    """Add `text` to the running simulation's trace and its hash (from a simulated thread).
+
+    Raises:
+        RuntimeError: no simulation runs on the calling thread.
+    """
+    _running().note(text)
+
+
+def now() -> float:
+    """The virtual seconds since the running simulation began.
+
+    Raises:
+        RuntimeError: no simulation runs on the calling thread.
+    """
+    return _running().now
+
+
+def sleep(seconds: float) -> None:
+    """Sleep `seconds` of virtual time (a simulated callback's duration).
+
+    Raises:
+        RuntimeError: no simulation runs on the calling thread.
+    """
+    sim.sleep(_running(), seconds)

@@ -1,0 +1,415 @@
+"""One seeded scheduler: every simulated thread a greenlet, one running at a time, on a
+virtual clock.
+
+```
+ Scheduler.run(main)  (on the scheduler's greenlet)
+   ┌─► a task ready? ── yes ─► pick one (the seeded choice) ─► switch to it; it runs until
+   │        │                  it waits (`block`) or offers a choice point (`pause`) ─────┐
+   │        no ─► a deadline due later? ── yes ─► the clock jumps to it; its tasks are    │
+   │        │                                     ready (a wait's timeout, a sleep)       │
+   │        │                              └ no ─► DeadlockError: who waits on what       │
+   │        └─ main and every non-daemon task ended ─► the run is over                    │
+   └──────────────────────────────────────────────────────────────────────────────────────┘
+```
+
+Time is virtual: it stands still while tasks run, and moves only when none is ready, to
+the next deadline. So a run takes no real time for its waits, and what happens at one
+virtual instant is ordered only by the seeded choices. Every choice is drawn from one
+`random.Random(seed)` (the data of a run, its ids and jitter, from another), so a seed
+replays its run exactly; the trace hash covers each step's task and virtual time.
+
+A task is blocked only by the simulated primitives (`_primitives.py`), which call
+`block` and `wake`; a choice point (`pause`) is where a real thread could be preempted
+although it would not block (an uncontended lock, a put): with probability `preempt`
+the task yields there and the scheduler chooses again, which is what makes the
+interleavings a seed search finds differ.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import heapq
+import itertools
+import logging
+import os
+import random
+import struct
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+import greenlet
+
+from rr_actors.errors import RrError
+
+__all__ = ["DeadlockError", "LimitError", "Scheduler", "SimulationError", "Task"]
+
+logger = logging.getLogger("rr_actors.simulation")
+
+_HERE = str(Path(__file__).parent)
+_ROOT = str(Path(__file__).parent.parent.parent)
+_STEP = struct.Struct("<Id")
+
+
+class SimulationError(RrError):
+    """A simulated run could not go on; the message says where it stood and who waited."""
+
+
+class DeadlockError(SimulationError):
+    """Nothing could run and nothing was due, while the run's main task (or another
+    non-daemon one) had not ended: each waiting task is listed with what it waits on."""
+
+
+class LimitError(SimulationError):
+    """The run went past its limit of steps or of virtual time (a livelock, or a wait
+    that a timer keeps putting off)."""
+
+
+_LOGGERS = ("rr_actors", "rr_actors.events", "rr_actors.simulation", "pykka")
+"""The loggers of the code a simulation runs (`_quiet`)."""
+
+DROP_TRIES = 3
+"""Times a task left at the end of a run is thrown `GreenletExit` before it is given up."""
+
+_GRAVEYARD: list[greenlet.greenlet] = []  # tasks that would not end when dropped
+
+
+@contextlib.contextmanager
+def _quiet() -> Iterator[None]:
+    """Drop the log records of this OS thread meanwhile (the dropped tasks' last words)."""
+    ident = threading.get_ident()
+
+    def other_threads(record: logging.LogRecord) -> bool:
+        return record.thread != ident
+
+    loggers = [logging.getLogger(name) for name in _LOGGERS]
+    for log in loggers:
+        log.addFilter(other_threads)
+    try:
+        yield
+    finally:
+        for log in loggers:
+            log.removeFilter(other_threads)
+
+
+class _Greenlet(greenlet.greenlet):
+    """A greenlet that knows its task (`Scheduler.current`)."""
+
+    task: Task
+
+
+class Task:
+    """One simulated thread: its greenlet, and what it waits on while it waits."""
+
+    __slots__ = (
+        "daemon",
+        "ended",
+        "glet",
+        "locals",
+        "name",
+        "number",
+        "readied",
+        "thread",
+        "token",
+        "waiting",
+        "woken",
+    )
+
+    def __init__(self, number: int, name: str, daemon: bool, thread: Any) -> None:
+        self.number = number
+        self.name = name
+        self.daemon = daemon
+        self.thread = thread  # the simulated `Thread` it runs
+        self.glet: _Greenlet | None = None
+        self.ended = False
+        self.waiting: tuple[object, str] | None = None  # (primitive, operation) it waits in
+        self.readied = False  # made ready while it waited (by a wake or its deadline)
+        self.woken = False  # ... by a wake (not its deadline)
+        self.token = 0  # the wait it is in (a timer of an earlier wait is stale)
+        self.locals: list[dict[str, Any]] = []  # its contents of `runtime.local()`s
+
+    def __repr__(self) -> str:
+        return f"{self.name!r} (#{self.number})"
+
+
+class Scheduler:
+    """Runs tasks one at a time, chosen by a seeded `random.Random`, on a virtual clock.
+
+    Args:
+        seed: the seed of every choice (and, through `data`, of every random value).
+        preempt: the probability that a task yields at a choice point (`pause`).
+        locals: the thread-local namespaces each task keeps its own contents of.
+        max_steps: steps (switches to a task) a run may take.
+        until: virtual seconds a run may last.
+        trace: keep each step (`trace`), not only their hash.
+    """
+
+    def __init__(
+        self,
+        seed: int,
+        *,
+        preempt: float,
+        locals: tuple[Any, ...],
+        max_steps: int,
+        until: float,
+        trace: bool,
+    ) -> None:
+        self.seed = seed
+        self._choices = random.Random(seed)  # noqa: S311 - (a replayable run, not a secret)
+        self.data = random.Random(f"rr_actors.simulation data {seed}")  # noqa: S311
+        self.preempt = preempt
+        self.now = 0.0  # virtual seconds since the run began
+        self.steps = 0
+        self._locals = locals
+        self._max_steps = max_steps
+        self._until = until
+        self._ready: list[Task] = []
+        self._timers: list[tuple[float, int, Task, int]] = []  # (deadline, seq, task, token)
+        self._seq = itertools.count()
+        self._numbers = itertools.count(1)
+        self._tasks: list[Task] = []
+        self._running = 0  # tasks not ended that keep the run going (non-daemon)
+        self._hash = hashlib.blake2b(digest_size=16)
+        self.trace: list[tuple[float, int, str]] | None = [] if trace else None
+        self.errors: list[str] = []
+        self._main = greenlet.getcurrent()  # (made on the thread it runs on)
+
+    # -- tasks -----------------------------------------------------------------------
+
+    def spawn(self, body: Callable[[], object], name: str, daemon: bool, thread: Any) -> Task:
+        """A new task that runs `body()`, ready at once."""
+        task = Task(next(self._numbers), name, daemon, thread)
+        task.locals = [{} for _ in self._locals]
+        glet = _Greenlet(self._body(task, body), parent=self._main)
+        glet.task = task
+        task.glet = glet
+        self._tasks.append(task)
+        if not daemon:
+            self._running += 1
+        self._ready.append(task)
+        return task
+
+    def _body(self, task: Task, body: Callable[[], object]) -> Callable[[], None]:
+        def run() -> None:
+            try:
+                body()
+            except greenlet.GreenletExit:  # (dropped at the end of the run: `drop`)
+                pass
+            except BaseException as exc:  # what ends a thread (logged, as threading does)
+                self.errors.append(f"{task.name}: {type(exc).__name__}: {exc}")
+                logger.exception("simulated thread %s (seed %s) ended", task.name, self.seed)
+            finally:
+                task.ended = True
+                if not task.daemon:
+                    self._running -= 1
+
+        return run
+
+    def current(self) -> Task:
+        """The task that runs now.
+
+        Raises:
+            RuntimeError: the caller is no simulated thread (the scheduler itself, or a
+                real thread that used an object of the simulation).
+        """
+        task: Task | None = getattr(greenlet.getcurrent(), "task", None)
+        if task is None:
+            raise RuntimeError(
+                "a simulated object was used outside the simulation's threads (a real "
+                "thread, or code run while the simulation was not running)"
+            )
+        return task
+
+    def current_or_none(self) -> Task | None:
+        """The task that runs now, if the caller is one."""
+        task: Task | None = getattr(greenlet.getcurrent(), "task", None)
+        return task
+
+    # -- waiting and waking ------------------------------------------------------------
+
+    def block(self, waiting: tuple[object, str], deadline: float | None) -> bool:
+        """Suspend the calling task in `waiting` (primitive, operation) until `wake` or
+        `deadline` (virtual seconds; `None`: none); whether `wake` ended the wait."""
+        task = self.current()
+        task.waiting = waiting
+        task.readied = task.woken = False
+        if deadline is not None:
+            if deadline <= self.now:  # (due already: the others may run first)
+                task.readied = True
+                self._ready.append(task)
+            else:
+                heapq.heappush(self._timers, (deadline, next(self._seq), task, task.token))
+        self._main.switch()
+        task.waiting = None
+        task.token += 1
+        return task.woken
+
+    def wake(self, task: Task) -> None:
+        """End `task`'s wait (if it still waits): it is ready."""
+        if task.waiting is not None and not task.readied:
+            task.readied = task.woken = True
+            self._ready.append(task)
+
+    def pause(self) -> None:
+        """A choice point: with probability `preempt`, the calling task yields and the
+        scheduler chooses again (it may choose the same task)."""
+        if self.preempt and self._choices.random() < self.preempt:
+            task = self.current_or_none()
+            if task is not None:
+                self.block((self, "pause"), self.now)
+
+    def note(self, text: str) -> None:
+        """Add `text` to the trace (and its hash), as said by the running task."""
+        task = self.current_or_none()
+        number = 0 if task is None else task.number
+        self._hash.update(f"note {number} {text}\n".encode())
+        if self.trace is not None:
+            self.trace.append((self.now, number, text))
+
+    @property
+    def hash(self) -> str:
+        """The trace's hash so far (hex)."""
+        return self._hash.hexdigest()
+
+    # -- the loop ----------------------------------------------------------------------
+
+    def run(self) -> None:
+        """Run the tasks until no non-daemon task is left.
+
+        Raises:
+            DeadlockError: nothing can run and nothing is due while one is left.
+            LimitError: past `max_steps` steps or `until` virtual seconds.
+        """
+        ready = self._ready
+        while self._running:
+            if not ready and not self._advance():
+                raise DeadlockError(self.report("deadlock: nothing can run and nothing is due"))
+            if self.steps >= self._max_steps or self.now > self._until:
+                raise LimitError(
+                    self.report(
+                        f"the run went past its limit ({self._max_steps} steps, "
+                        f"{self._until:g} virtual seconds)"
+                    )
+                )
+            index = self._choices.randrange(len(ready)) if len(ready) > 1 else 0
+            task = ready[index]
+            ready[index] = ready[-1]
+            ready.pop()
+            self.steps += 1
+            self._hash.update(_STEP.pack(task.number, self.now))
+            if self.trace is not None:
+                self.trace.append((self.now, task.number, task.name))
+            self._switch(task)
+
+    def _switch(self, task: Task) -> None:
+        namespaces = self._locals
+        for namespace, state in zip(namespaces, task.locals, strict=True):
+            contents = namespace.__dict__
+            contents.clear()
+            contents.update(state)
+        assert task.glet is not None
+        task.glet.switch()
+        if not task.ended:
+            task.locals = [dict(namespace.__dict__) for namespace in namespaces]
+
+    def drop(self) -> int:
+        """End every task left (the run is over: its trace and hash are final); how many
+        would not end.
+
+        A greenlet left suspended when its OS thread ends is never freed, nor is what
+        its frames hold (greenlet's "a cycle of greenlets is a leak", before CPython
+        3.15): each run would keep its actors, catalogs and threads. So each task left is
+        thrown `GreenletExit` where it waits, and its `finally` blocks run now, in
+        simulated threads nobody schedules any more, with nothing of them logged
+        (`_quiet`): what they do can no longer change the run. One that waits again is
+        thrown it again, `DROP_TRIES` times at most.
+        """
+        self.preempt = 0.0  # (no choice points: a `finally` block runs through)
+        stuck = 0
+        with _quiet():
+            for task in self._tasks:
+                glet = task.glet
+                if task.ended or glet is None or not glet:  # (ended, or never started)
+                    continue
+                for _ in range(DROP_TRIES):
+                    task.waiting = None
+                    glet.throw(greenlet.GreenletExit)
+                    if glet.dead:
+                        break
+                else:
+                    stuck += 1
+                    _GRAVEYARD.append(glet)  # (never freed: at least not half run)
+        self._ready.clear()
+        self._timers.clear()
+        return stuck
+
+    def _advance(self) -> bool:
+        """Move the clock to the next deadline and ready its tasks; whether there was one."""
+        timers = self._timers
+        while timers:
+            deadline, _, task, token = heapq.heappop(timers)
+            if task.token != token or task.waiting is None or task.readied:
+                continue  # (a stale timer: that wait ended already)
+            self.now = max(self.now, deadline)
+            task.readied = True
+            self._ready.append(task)
+            while timers and timers[0][0] <= self.now:  # everything due at this instant
+                _, _, task, token = heapq.heappop(timers)
+                if task.token == token and task.waiting is not None and not task.readied:
+                    task.readied = True
+                    self._ready.append(task)
+            return True
+        return False
+
+    # -- reports -----------------------------------------------------------------------
+
+    def report(self, what: str) -> str:
+        """`what`, where the run stood, and what each task left waits on."""
+        lines = [
+            f"{what}, at virtual time {self.now:g} s after {self.steps} steps (seed {self.seed})"
+        ]
+        for task in self._tasks:
+            if task.ended:
+                continue
+            kind = "daemon " if task.daemon else ""
+            if task.waiting is None:
+                lines.append(f"  {kind}{task!r}: ready")
+                continue
+            primitive, operation = task.waiting
+            what = f"{type(primitive).__name__}.{operation}{_describe(primitive)}"
+            lines.append(f"  {kind}{task!r} waits in {what}")
+            lines.extend(f"      at {where}" for where in _where(task))
+        return "\n".join(lines)
+
+
+def _describe(primitive: object) -> str:
+    """` (made at file:line, ...)` of a simulated primitive, or nothing."""
+    describe = getattr(primitive, "describe", None)
+    return f" ({describe()})" if callable(describe) else ""
+
+
+def _where(task: Task, depth: int = 4) -> list[str]:
+    """The innermost frames of `task`'s code (not the simulation's): file:line (function)."""
+    frame: FrameType | None = None if task.glet is None else task.glet.gr_frame
+    while frame is not None and frame.f_code.co_filename.startswith(_HERE):
+        frame = frame.f_back
+    places: list[str] = []
+    while frame is not None and len(places) < depth:
+        if frame.f_code.co_filename.startswith(_HERE):
+            break  # (the task's start: the rest is the simulation's)
+        places.append(
+            f"{short_path(frame.f_code.co_filename)}:{frame.f_lineno} ({frame.f_code.co_name})"
+        )
+        frame = frame.f_back
+    return places
+
+
+def short_path(filename: str) -> str:
+    """`filename` from the package's parent (`rr_actors/...`), or the working directory."""
+    for root in (_ROOT, os.getcwd()):
+        if filename.startswith(root + os.sep):
+            return filename[len(root) + 1 :]
+    return filename

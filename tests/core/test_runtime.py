@@ -1,0 +1,66 @@
+"""The runtime seam in a real run: the stdlib's own objects, nothing wrapped."""
+
+from __future__ import annotations
+
+import os
+import queue
+import random
+import threading
+import time
+
+import pytest
+
+from rr_actors._core import runtime
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.hlc import CLOCK
+from rr_actors._core.queues import LateQueue
+
+
+def test_a_real_run_uses_the_stdlib_objects_and_functions_themselves() -> None:
+    real = {
+        "Lock": threading.Lock,
+        "RLock": threading.RLock,
+        "Event": threading.Event,
+        "Condition": threading.Condition,
+        "SimpleQueue": queue.SimpleQueue,
+        "Thread": threading.Thread,
+        "Timer": threading.Timer,
+        "monotonic": time.monotonic,
+        "wall": time.time,
+        "wall_ns": time.time_ns,
+        "sleep": time.sleep,
+        "urandom": os.urandom,
+        "random": random.random,
+        "get_ident": threading.get_ident,
+        "current_thread": threading.current_thread,
+    }
+
+    assert real == {name: getattr(runtime, name) for name in real}
+    assert not runtime.simulated()
+
+
+def test_a_queue_made_in_a_real_run_is_of_its_own_class_with_the_stdlib_s_methods() -> None:
+    late = LateQueue()
+
+    assert LateQueue is type(late)
+    assert queue.SimpleQueue.get is type(late).get
+
+
+def test_a_simulation_replaces_exactly_the_seams() -> None:
+    with pytest.raises(ValueError, match="exactly"):
+        runtime.use({"Lock": threading.Lock})
+
+    assert runtime.Lock is threading.Lock
+
+
+def test_the_process_s_own_state_is_registered_for_a_simulation_to_give_each_process_its_own() -> (
+    None
+):
+    registered = [obj for obj, _ in runtime.process_states()]
+
+    assert DIRECTORY in registered
+    assert CLOCK in registered
+
+
+def test_a_thread_local_made_by_the_runtime_is_a_threading_local() -> None:
+    assert any(isinstance(made, threading.local) for made in runtime.thread_locals())

@@ -1,0 +1,394 @@
+"""The simulation's scheduler: determinism, virtual time, choice points, deadlock reports."""
+
+from __future__ import annotations
+
+import contextvars
+import gc
+import threading
+import time
+import weakref
+from collections.abc import Callable
+
+import pykka
+import pytest
+
+from rr_actors import simulation
+from rr_actors._core import runtime
+from rr_actors._core.actor import Actor
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.ids import new_id
+from rr_actors._core.serial import SerialExecutor
+
+pytest.importorskip("greenlet")  # (the simulation extra)
+
+
+def workers(count: int, rounds: int) -> Callable[[], list[tuple[int, int, float]]]:
+    """Threads that take turns on a lock and sleep between: who went when."""
+
+    def main() -> list[tuple[int, int, float]]:
+        lock = runtime.Lock()
+        seen: list[tuple[int, int, float]] = []
+
+        def work(number: int) -> None:
+            for step in range(rounds):
+                with lock:
+                    seen.append((number, step, runtime.monotonic()))
+                runtime.sleep(0.25 * (number + 1))
+
+        threads = [runtime.Thread(target=work, args=(n,), name=f"w{n}") for n in range(count)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        return seen
+
+    return main
+
+
+# -- determinism ---------------------------------------------------------------------------
+
+
+def test_one_seed_gives_the_same_trace_hash_and_the_same_result_every_time() -> None:
+    runs = [simulation.run(workers(3, 4), seed=7, preempt=0.3) for _ in range(3)]
+
+    assert 1 == len({(run.hash, run.steps, repr(run.value)) for run in runs})
+
+
+def test_other_seeds_choose_other_interleavings() -> None:
+    orders = {
+        tuple(n for n, _, _ in simulation.run(workers(3, 2), seed=seed, preempt=0.3).value)
+        for seed in range(20)
+    }
+
+    assert len(orders) > 1
+
+
+def test_a_trace_lists_each_step_and_each_note() -> None:
+    def main() -> None:
+        simulation.note("begins")
+        runtime.sleep(2)
+        simulation.note("ends")
+
+    run = simulation.run(main, seed=1, trace=True)
+
+    assert run.trace is not None
+    assert [(0.0, 1, "begins"), (2.0, 1, "ends")] == [s for s in run.trace if s[2] != "MainThread"]
+    assert run.steps == sum(1 for s in run.trace if s[2] == "MainThread")
+
+
+def test_ids_and_random_values_come_from_the_seed() -> None:
+    def main() -> tuple[str, float]:
+        return new_id(), runtime.random()
+
+    first, again, other = (simulation.run(main, seed=s).value for s in (3, 3, 4))
+
+    assert first == again
+    assert first[0] != other[0]
+    assert first[1] != other[1]
+    assert "4" == first[0][14]  # still a UUID4's form
+
+
+# -- virtual time ------------------------------------------------------------------------
+
+
+def test_time_is_virtual_an_hour_of_sleep_takes_no_real_time() -> None:
+    def main() -> float:
+        before = runtime.monotonic()
+        runtime.sleep(3600.0)
+        return runtime.monotonic() - before
+
+    began = time.monotonic()
+    run = simulation.run(main, seed=1, until=4000.0)
+
+    assert 3600.0 == run.value == run.elapsed
+    assert time.monotonic() - began < 30.0
+
+
+def test_the_clock_jumps_to_each_deadline_in_turn() -> None:
+    def main() -> list[tuple[str, float]]:
+        fired: list[tuple[str, float]] = []
+        done = runtime.Event()
+        for name, delay in (("c", 3.0), ("a", 1.0), ("b", 2.0)):
+            timer = runtime.Timer(delay, lambda n=name: fired.append((n, runtime.monotonic())))
+            timer.daemon = True
+            timer.start()
+        cancelled = runtime.Timer(1.5, done.set)
+        cancelled.start()
+        cancelled.cancel()
+        runtime.sleep(5.0)
+        return fired
+
+    start = 1000.0  # (the runtime's monotonic clock when a run begins)
+    assert [("a", start + 1), ("b", start + 2), ("c", start + 3)] == simulation.run(
+        main, seed=1
+    ).value
+
+
+def test_waits_with_a_timeout_run_out_in_virtual_time() -> None:
+    def main() -> list[tuple[object, float]]:
+        held = runtime.Lock()
+        held.acquire()
+        cond = runtime.Condition()
+        queue = runtime.SimpleQueue()
+        outcomes: list[tuple[object, float]] = []
+        began = runtime.monotonic()
+        outcomes.append((runtime.Event().wait(5.0), runtime.monotonic() - began))
+        outcomes.append((held.acquire(timeout=2.0), runtime.monotonic() - began))
+        with cond:
+            outcomes.append((cond.wait(1.0), runtime.monotonic() - began))
+        try:
+            queue.get(timeout=0.5)
+        except runtime.Empty:
+            outcomes.append(("empty", runtime.monotonic() - began))
+        return outcomes
+
+    assert [(False, 5.0), (False, 7.0), (False, 8.0), ("empty", 8.5)] == simulation.run(
+        main, seed=1
+    ).value
+
+
+def test_the_runtime_is_the_stdlib_again_after_a_run_and_the_process_state_too() -> None:
+    before = DIRECTORY.local_peers(), DIRECTORY._lock
+
+    def main() -> bool:
+        return runtime.simulated() and runtime.Lock is not threading.Lock
+
+    assert simulation.run(main, seed=1).value
+    assert runtime.Lock is threading.Lock
+    assert runtime.monotonic is time.monotonic
+    assert not runtime.simulated()
+    assert before == (DIRECTORY.local_peers(), DIRECTORY._lock)
+
+
+# -- choice points -----------------------------------------------------------------------
+
+
+def lost_updates(preempt: float, seeds: range) -> set[int]:
+    """The final counts of two threads that each add 1, 20 times, reading and writing
+    around an uncontended lock (a check-then-act race: they lose updates if preempted)."""
+
+    def main() -> int:
+        count = [0]
+        lock = runtime.Lock()
+
+        def add() -> None:
+            for _ in range(20):
+                seen = count[0]
+                with lock:  # (taken by nobody else: a choice point, never a wait)
+                    pass
+                count[0] = seen + 1
+
+        threads = [runtime.Thread(target=add, name=f"adder{n}") for n in range(2)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        return count[0]
+
+    return {simulation.run(main, seed=seed, preempt=preempt).value for seed in seeds}
+
+
+def test_without_preemption_a_thread_runs_until_it_blocks() -> None:
+    assert {40} == lost_updates(0.0, range(20))
+
+
+def test_choice_points_where_nothing_blocks_let_seeds_find_a_race() -> None:
+    assert {c for c in lost_updates(0.2, range(20)) if c < 40}
+
+
+# -- what stops a run --------------------------------------------------------------------
+
+
+def test_a_wait_that_nothing_can_end_is_a_deadlock_that_says_who_waits_on_what() -> None:
+    def main() -> None:
+        first, second = runtime.Lock(), runtime.Lock()
+        both = runtime.Event()
+
+        def take(one: object, other: object) -> None:
+            with one:  # type: ignore[attr-defined]
+                both.wait(1.0)
+                with other:  # type: ignore[attr-defined]
+                    pass
+
+        threads = [
+            runtime.Thread(target=take, args=(first, second), name="left"),
+            runtime.Thread(target=take, args=(second, first), name="right"),
+        ]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+
+    with pytest.raises(simulation.DeadlockError) as raised:
+        simulation.run(main, seed=1)
+
+    report = str(raised.value)
+    assert "at virtual time 1 s" in report
+    assert "'MainThread' (#1) waits in Thread.join" in report
+    assert "'left' (#2) waits in Lock.acquire (made at tests/simulation" in report
+    assert "taken by 'right' (#3)" in report
+    assert "taken by 'left' (#2)" in report
+    assert "test_scheduler.py:" in report
+    assert "(take)" in report
+
+
+def test_a_run_that_timers_keep_alive_past_its_limit_raises_a_limit_error() -> None:
+    def main() -> None:
+        ticker = SerialExecutor("ticker", every=(1.0, lambda: None))
+        try:
+            runtime.Event().wait()
+        finally:
+            ticker.close()
+
+    with pytest.raises(simulation.LimitError, match="past its limit"):
+        simulation.run(main, seed=1, until=60.0)
+
+
+def test_what_the_main_task_raises_is_raised_with_the_seed() -> None:
+    def main() -> None:
+        raise KeyError("lost")
+
+    with pytest.raises(KeyError) as raised:
+        simulation.run(main, seed=42)
+
+    assert any("seed 42" in note for note in raised.value.__notes__)
+
+
+def test_an_exception_that_ends_a_thread_is_in_the_run_s_errors(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    def main() -> None:
+        thread = runtime.Thread(target=lambda: 1 / 0, name="divider")
+        thread.start()
+        thread.join()
+
+    run = simulation.run(main, seed=1)
+
+    assert ("divider: ZeroDivisionError: division by zero",) == run.errors
+    assert "simulated thread divider (seed 1) ended" in caplog.text
+
+
+def test_threads_left_waiting_when_a_run_ends_are_ended_after_it_outside_its_trace() -> None:
+    ran: list[str] = []
+
+    def main() -> None:
+        def wait_for_ever() -> None:
+            try:
+                runtime.Event().wait()
+            finally:
+                ran.append("finally")
+                simulation.note("too late")  # (the run is over: not in its trace)
+
+        runtime.Thread(target=wait_for_ever, name="forever", daemon=True).start()
+        runtime.sleep(1.0)
+
+    run = simulation.run(main, seed=1, trace=True)
+
+    assert ["finally"] == ran
+    assert run.trace is not None
+    assert [] == [step for step in run.trace if step[2] == "too late"]
+    assert () == run.errors
+
+
+class _Held:
+    """Something only a waiting thread's frame holds."""
+
+
+def test_what_a_thread_left_waiting_held_is_freed_after_the_run() -> None:
+    """A greenlet left suspended when its OS thread ends is never freed (greenlet's "a cycle
+    of greenlets is a leak"): each run would keep its actors and catalogs for good."""
+    held: list[weakref.ref[_Held]] = []
+
+    def main() -> None:
+        def wait_for_ever() -> None:
+            thing = _Held()
+            held.append(weakref.ref(thing))
+            runtime.Event().wait()
+
+        runtime.Thread(target=wait_for_ever, name="forever", daemon=True).start()
+        runtime.sleep(1.0)
+
+    simulation.run(main, seed=1)
+    gc.collect()
+
+    assert [None] == [ref() for ref in held]
+
+
+# -- the simulated threads' own state ----------------------------------------------------
+
+_MINE = runtime.local()
+
+
+def test_each_simulated_thread_has_its_own_thread_local_contents() -> None:
+    def main() -> list[tuple[str, str]]:
+        seen: list[tuple[str, str]] = []
+
+        def mark(name: str) -> None:
+            _MINE.name = name
+            runtime.sleep(1.0)  # (the others run and mark meanwhile)
+            seen.append((name, _MINE.name))
+
+        threads = [runtime.Thread(target=mark, args=(n,), name=n) for n in "abc"]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        return sorted(seen)
+
+    assert [("a", "a"), ("b", "b"), ("c", "c")] == simulation.run(main, seed=1, preempt=0.5).value
+    assert not hasattr(_MINE, "name")  # (this real thread's: untouched)
+
+
+class _Doubler(Actor):
+    def on_receive(self, message: int) -> int:
+        return 2 * message
+
+
+_VARIABLE: contextvars.ContextVar[str] = contextvars.ContextVar("_VARIABLE", default="unset")
+
+
+def test_each_simulated_thread_starts_with_context_variables_of_its_own() -> None:
+    def main() -> list[tuple[str, str]]:
+        seen: list[tuple[str, str]] = []
+
+        def first() -> None:
+            _VARIABLE.set("first")
+            runtime.sleep(1.0)
+            seen.append(("first", _VARIABLE.get()))
+
+        def second() -> None:
+            runtime.sleep(0.5)  # (after `first` set its own)
+            seen.append(("second", _VARIABLE.get()))
+
+        _VARIABLE.set("main")
+        threads = [runtime.Thread(target=body) for body in (first, second)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        return [*seen, ("main", _VARIABLE.get())]
+
+    assert [("second", "unset"), ("first", "first"), ("main", "main")] == simulation.run(
+        main, seed=1
+    ).value
+
+
+def test_actors_run_as_simulated_threads_and_leave_the_real_registry_alone() -> None:
+    def main() -> tuple[list[int], int]:
+        refs = [_Doubler.start() for _ in range(3)]
+        answers = [ref.ask(n) for n, ref in enumerate(refs)]
+        registered = len(pykka.ActorRegistry.get_all())
+        for ref in refs:
+            ref.stop()
+        return answers, registered
+
+    assert ([0, 2, 4], 3) == simulation.run(main, seed=1).value
+    assert [] == pykka.ActorRegistry.get_all()
+
+
+def test_a_simulation_does_not_run_inside_another() -> None:
+    def main() -> None:
+        simulation.run(lambda: None, seed=2)
+
+    with pytest.raises(simulation.SimulationError, match="already runs"):
+        simulation.run(main, seed=1)
