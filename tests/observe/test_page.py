@@ -302,11 +302,11 @@ class TestInAClass:
         """The observer's catalog of erm lags the send, as under load; forced here: it was
         read while the camera loaded (its row, not yet its consumer), and the next read waits
         until the live page drew the status. The late page opens on a fresher catalog."""
-        loading = GatedLoad(process_helpers.event(), process_helpers.event(), device)
+        loading = GatedLoad(process_helpers.event(), process_helpers.event(), device, wait=60)
         sup = figure_27(supervisors, camera=loading).start()
         observer = sup.observe()
         source = observer._source
-        read_catalogs = source._refresh  # (the test reads them itself with it, once)
+        read_catalogs = source._refresh  # (the test reads them with it itself)
         parked, reads = threading.Event(), threading.Event()
 
         def held(dirty: set[str] | None) -> None:  # the refresher's next round waits here
@@ -315,10 +315,7 @@ class TestInAClass:
             read_catalogs(dirty)
 
         monkeypatch.setattr(source, "_refresh", held)
-        assert parked.wait(30)  # (no round under way: the catalogs are read where told)
         app = sup.registrar("action")
-        live = tabs()
-        live.goto(observer.url)
         camera = '#catalogs [data-registrar="erm"] [data-server="camera"] .resource'
         answers: list[rr.Query] = []
         calling = threading.Thread(
@@ -327,9 +324,15 @@ class TestInAClass:
             )
         )
         try:
+            assert parked.wait(30)  # (no round under way: the catalogs are read where told)
+            live = tabs()
+            live.goto(observer.url)
             calling.start()
             assert loading.started.wait(30)
-            read_catalogs(None)  # erm's camera is loading: its row has no consumer yet
+            for _ in range(5):  # erm's camera is loading: its row has no consumer yet
+                read_catalogs(None)
+                if source.hub.get("catalog/erm")["available"]:
+                    break  # (else the read timed out under load: read again)
             live.wait_for_selector(camera)
             loading.gate.set()
             calling.join(30)
