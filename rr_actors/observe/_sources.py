@@ -4,6 +4,8 @@
  LiveSource (a running Supervisor)
    tree watcher thread ── waits on the tree's condition (each publish) ──► "tree"
    event subscription ─── every event (to_dict + describe) ──────────────► events
+        ├─ a StatusSent: named here, once (the catalog last read, the
+        │  ConsumerAdded and ResourceLoaded seen before it)
         └─ marks registrars dirty ──► catalog refresher thread ──────────► "catalog/<name>",
                                       (Supervisor.run_in(name, catalog_of))  "graph"
  BackupSource (a state directory)
@@ -35,7 +37,12 @@ from rr_actors.config import SupervisorSpec, managers
 from rr_actors.errors import ConfigError
 from rr_actors.observe._hub import Hub
 from rr_actors.observe._probe import catalog_of
-from rr_actors.observe._view import dependency_graph, resource_name, summarise_catalog
+from rr_actors.observe._view import (
+    dependency_graph,
+    resource_name,
+    shown,
+    summarise_catalog,
+)
 
 if TYPE_CHECKING:
     from rr_actors._core.bus import Subscription
@@ -67,6 +74,10 @@ SNAPSHOT_TIMEOUT = 1.0
 
 POLL_INTERVAL = 1.0
 """Seconds between two looks at a state directory's backup files."""
+
+NAMES_KEPT = 10_000
+"""Consumers (and resources) whose provider's events the live source keeps to name a status
+by (the oldest are forgotten first: a release missed in an `EventsDropped` is not kept)."""
 
 
 class ChildView(Protocol):
@@ -183,6 +194,13 @@ def _touched(event: events.Event) -> tuple[str, ...] | None:
     return None
 
 
+def _keep(names: dict[tuple[str, str], str], key: tuple[str, str], value: str) -> None:
+    """`names[key] = value`, forgetting the oldest beyond `NAMES_KEPT`."""
+    names[key] = value
+    while len(names) > NAMES_KEPT:
+        del names[next(iter(names))]
+
+
 class LiveSource:
     """Keeps the hub's sections up to date with a running supervision tree.
 
@@ -202,6 +220,8 @@ class LiveSource:
         self._dirty: set[str] | None = None  # None: every registrar
         self._states: dict[str, str] = {}
         self._catalogs: dict[str, dict[str, Any]] = {}
+        self._held: dict[tuple[str, str], str] = {}  # (registrar, query id): resource id
+        self._loaded: dict[tuple[str, str], str] = {}  # (registrar, resource id): its name
         self._subscription: Subscription[events.Event] | None = None
         self._threads: list[threading.Thread] = []
 
@@ -319,20 +339,52 @@ class LiveSource:
     # -- events ---------------------------------------------------------------------------
 
     def _on_event(self, event: events.Event) -> None:
-        """Runs on the subscription's thread, one event at a time (kept as it is: cheap).
-
-        A status sent is named after its resource now, from the catalog last read: the
-        provider may unload that resource right after (a FATAL), before a page shows it.
-        """
+        """Runs on the subscription's thread, one event at a time (kept as it is: cheap)."""
         if isinstance(event, events.StatusSent):
-            section = self._catalogs.get(event.registrar)  # (replaced whole, never changed)
-            name = resource_name(section and section["catalog"], event.query_id)
-            self.hub.add_event(event if name is None else {**event_dict(event), "resource": name})
+            self.hub.add_event({**event_dict(event), "resource": self._name(event)})
         else:
+            self._note_holders(event)
             self.hub.add_event(event)
         touched = _touched(event)
         if touched != ():
             self._mark(touched)
+
+    def _name(self, sent: events.StatusSent) -> str:
+        """The resource a status is about, named once, here, as it goes into the history.
+
+        Every page draws the name the event carries: a page open during the send and one
+        opened later draw the same row. Were it left to each page's own catalog at its
+        render, the first would draw it from a catalog older than the second's (the
+        observer read that catalog during the load, or a read under load failed and kept
+        it, and the next read came after the live page drew the row). Named now, not
+        later: the provider may unload the resource right after (a FATAL), before a page
+        shows it. The catalog last read (`_catalogs`, replaced whole) may lag the send;
+        the provider's own `ConsumerAdded` and `ResourceLoaded` do not: it publishes them
+        before it answers the consumer, so before any status to it. So: the graph's label
+        of the resource the consumer holds (by the catalog, else by its `ConsumerAdded`),
+        else the `ResourceLoaded`'s label, else (the observer saw neither: it began later
+        and has not read that catalog yet) the query id, fixed too.
+        """
+        key = (sent.registrar, sent.query_id)
+        held = self._held.get(key)
+        section = self._catalogs.get(sent.registrar)
+        name = resource_name(section and section["catalog"], sent.query_id, held)
+        if name is None and held is not None:
+            name = self._loaded.get((sent.registrar, held))
+        return name or f"{sent.registrar} (query {sent.query_id[:8]})"
+
+    def _note_holders(self, event: events.Event) -> None:
+        """Keep which resource each consumer holds, and each resource's name (`_name`)."""
+        match event:
+            case events.ResourceLoaded() if event.label is not None:
+                name = f"{event.registrar}/{event.server} {shown(event.label)}"
+                _keep(self._loaded, (event.registrar, event.resource_id), name)
+            case events.ResourceUnloaded():
+                self._loaded.pop((event.registrar, event.resource_id), None)
+            case events.ConsumerAdded():
+                _keep(self._held, (event.registrar, event.query_id), event.resource_id)
+            case events.ConsumerReleased():
+                self._held.pop((event.registrar, event.query_id), None)
 
     def _mark(self, names: tuple[str, ...] | None) -> None:
         with self._dirty_cond:

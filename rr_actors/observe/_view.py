@@ -230,17 +230,23 @@ def _labels(resources: list[dict[str, Any]]) -> list[str]:
     return labels
 
 
-def resource_name(catalog: Mapping[str, Any] | None, query_id: str) -> str | None:
+def resource_name(
+    catalog: Mapping[str, Any] | None, query_id: str, resource_id: str | None = None
+) -> str | None:
     """`"<registrar>/<server> <label>"` of the resource a consumer's `query_id` holds.
 
     How the status timeline names the resource a status is about: by the short label
-    the graph draws, not by its request's text. `None` if `catalog` (a catalog summary)
-    has no such consumer.
+    the graph draws, not by its request's text. `resource_id` is the resource the
+    consumer holds when that is known otherwise (its provider's `ConsumerAdded`): its row
+    names it in a catalog read before the consumer was added (during the load). `None`
+    if `catalog` (a catalog summary) has neither.
     """
     if catalog is None:
         return None
     for resource in catalog["resources"]:
-        if any(c["query_id"] == query_id for c in resource["consumers"]):
+        if resource["id"] == resource_id or any(
+            c["query_id"] == query_id for c in resource["consumers"]
+        ):
             label = resource.get("label") or resource["request"]
             return f"{catalog['registrar']}/{resource['server']} {label}"
     return None

@@ -26,7 +26,8 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from tests.support.observed_tree import REQUEST, figure_27
+from tests.support.gating import GatedLoad
+from tests.support.observed_tree import REQUEST, device, figure_27
 from tests.support.observing import get_json, mission_held_before, request
 
 DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
@@ -296,24 +297,59 @@ class TestInAClass:
     # -- the timeline of a page opened late --------------------------------------------------------
 
     def test_a_page_opened_after_a_status_draws_it_as_a_page_open_during_it_did(
-        self, supervisors: Any, process_helpers: Any, tabs: Any
+        self, supervisors: Any, process_helpers: Any, tabs: Any, monkeypatch: Any
     ) -> None:
-        sup = figure_27(supervisors).start()
+        """The observer's catalog of erm lags the send, as under load; forced here: it was
+        read while the camera loaded (its row, not yet its consumer), and the next read waits
+        until the live page drew the status. The late page opens on a fresher catalog."""
+        loading = GatedLoad(process_helpers.event(), process_helpers.event(), device, wait=60)
+        sup = figure_27(supervisors, camera=loading).start()
         observer = sup.observe()
-        app = sup.registrar("action")
-        query = app.call("cm", "filtered_camera", REQUEST, on_status=lambda q, u: None)
-        live = tabs()
-        live.goto(observer.url)
-        live.wait_for_selector('#catalogs [data-registrar="erm"] [data-server="camera"] .resource')
+        source = observer._source
+        read_catalogs = source._refresh  # (the test reads them with it itself)
+        parked, reads = threading.Event(), threading.Event()
 
-        sup.run_in(
-            "erm",
-            lambda reg: reg.send_status(
-                reg.server_queries("camera")[0].id, rr.Status.FATAL, "camera unplugged"
-            ),
+        def held(dirty: set[str] | None) -> None:  # the refresher's next round waits here
+            parked.set()
+            assert reads.wait(60)
+            read_catalogs(dirty)
+
+        monkeypatch.setattr(source, "_refresh", held)
+        app = sup.registrar("action")
+        camera = '#catalogs [data-registrar="erm"] [data-server="camera"] .resource'
+        answers: list[rr.Query] = []
+        calling = threading.Thread(
+            target=lambda: answers.append(
+                app.call("cm", "filtered_camera", REQUEST, on_status=lambda q, u: None)
+            )
         )
-        sup.flush_events()
-        live.locator('#timeline li[data-status="FATAL"] [data-hop="2"]').wait_for(timeout=5000)
+        try:
+            assert parked.wait(30)  # (no round under way: the catalogs are read where told)
+            live = tabs()
+            live.goto(observer.url)
+            calling.start()
+            assert loading.started.wait(30)
+            for _ in range(5):  # erm's camera is loading: its row has no consumer yet
+                read_catalogs(None)
+                if source.hub.get("catalog/erm")["available"]:
+                    break  # (else the read timed out under load: read again)
+            live.wait_for_selector(camera)
+            loading.gate.set()
+            calling.join(30)
+            (query,) = answers
+
+            sup.run_in(
+                "erm",
+                lambda reg: reg.send_status(
+                    reg.server_queries("camera")[0].id, rr.Status.FATAL, "camera unplugged"
+                ),
+            )
+            sup.flush_events()
+            live.locator('#timeline li[data-status="FATAL"] [data-hop="2"]').wait_for(timeout=5000)
+        finally:
+            loading.gate.set()
+            reads.set()  # the refresher reads the catalogs again: the consumer is in erm's now
+        live.wait_for_selector(f"{camera} li:has-text('consumer')")
         sent = next(
             e for e in get_json(observer.url, "/api/state")["events"] if e["type"] == "StatusSent"
         )

@@ -1,6 +1,6 @@
 """Where the page's sections come from (`rr_actors.observe._sources`): the observer's trust
 boundary at a directory of backups (issue 21, bugs 1 and 5): looking at a backup runs nothing
-from it, and a crafted file fails fast."""
+from it, and a crafted file fails fast; a live tree's status sent, named once."""
 
 from __future__ import annotations
 
@@ -15,12 +15,15 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors import events
 from rr_actors.__main__ import main
 from rr_actors._catalog import Catalog
 from rr_actors._catalog.texts import NOT_SHOWN_OLD
 from rr_actors._store import SqliteStore, read_backup, schema
 from rr_actors._store.codec import dumps
-from rr_actors.observe._sources import read_catalogs
+from rr_actors.config import SupervisorSpec
+from rr_actors.observe._hub import Hub
+from rr_actors.observe._sources import LiveSource, TreeAccess, event_dict, read_catalogs
 
 
 def run(*argv: str) -> tuple[int, str]:
@@ -223,3 +226,29 @@ def test_a_crafted_schema_is_catalog_corrupt_naming_the_file_before_any_read(
     assert 1 == code
     assert str(path) == caught.value.path
     assert os.path.getsize(path) < 100_000  # (nothing was written to it)
+
+
+# -- a live tree: how a status sent is named ----------------------------------------------
+
+
+def test_a_status_sent_is_named_once_from_what_the_observer_saw_before_it() -> None:
+    # What its pages draw whenever they open: the catalog last read may lag the send
+    # (here: none was read); the provider's ConsumerAdded and ResourceLoaded do not.
+    hub = Hub(convert=event_dict)
+    access = TreeAccess(
+        spec=SupervisorSpec("root", []),
+        changes=Any,  # (no thread is started: only the event handler runs)
+        restart_due={},
+        running=lambda: True,
+        registrars=list,
+    )
+    source = LiveSource(Any, access, hub)
+    source._on_event(events.ResourceLoaded("erm", "camera", "r1", "q1", 0.01, None, "'cam'"))
+    for query in ("q1", "q2"):
+        source._on_event(events.ConsumerAdded("erm", "r1", query, "cm"))
+    source._on_event(events.ConsumerReleased("erm", "r1", "q2", "cm", "unload"))
+    for query in ("q1", "q2", "q3"):
+        source._on_event(events.StatusSent("erm", query, rr.Status.FATAL, "unplugged"))
+
+    sent = [e for e in hub.changes({}, 0).events if e["type"] == "StatusSent"]
+    assert ["erm/camera 'cam'", "erm (query q2)", "erm (query q3)"] == [e["resource"] for e in sent]

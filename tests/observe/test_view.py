@@ -212,3 +212,15 @@ def test_a_catalogs_resources_carry_the_short_label_the_graph_draws() -> None:
     # A status row of the timeline names the resource as the graph draws it.
     assert "erm/program jackal-navigation" == resource_name(catalog, "jackal-navigation-q")
     assert resource_name(catalog, "unknown") is None
+
+
+def test_a_consumer_a_catalog_does_not_list_yet_is_named_by_the_resource_it_holds() -> None:
+    # A catalog read during the load lists the resource, not yet its first consumer; the
+    # observer knows which one it holds from its provider's ConsumerAdded (LiveSource._name).
+    loading = Resource("cam", "camera", "/dev/video0", None, ResourceState.LOADING, {})
+    loading.request_text = short("/dev/video0")
+    catalog = summarise_catalog("erm", [loading], [])
+
+    assert resource_name(catalog, "q-cm") is None
+    assert "erm/camera '/dev/video0'" == resource_name(catalog, "q-cm", "cam")
+    assert resource_name(catalog, "q-cm", "another") is None

@@ -7,17 +7,26 @@ import is a millisecond of every restart the tests measure.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
 import rr_actors as rr
 
-__all__ = ["REQUEST", "cm_setup", "erm_setup", "figure_27"]
+__all__ = ["REQUEST", "cm_setup", "device", "erm_setup", "figure_27"]
 
 
-def erm_setup(registrar: rr.ResourceRegistrar) -> None:
-    """The external resource manager: a camera and a filter (stand-ins for processes)."""
-    registrar.register_server("camera", load=lambda r: {"device": r}, unload=lambda q, r: None)
+def device(request: Any) -> dict[str, Any]:
+    """The camera's response (what its load returns)."""
+    return {"device": request}
+
+
+def erm_setup(registrar: rr.ResourceRegistrar, camera: Callable[[Any], Any] | None = None) -> None:
+    """The external resource manager: a camera and a filter (stand-ins for processes).
+
+    `camera`: the camera's load (a test holds it at a gate), else `device`.
+    """
+    registrar.register_server("camera", load=camera or device, unload=lambda q, r: None)
     registrar.register_server("filter", load=lambda r: {"filter": r}, unload=lambda q, r: None)
 
 
@@ -36,12 +45,17 @@ REQUEST = {"device": "/dev/video0", "filter": "blur"}
 
 
 def figure_27(
-    make: Callable[..., rr.Supervisor], isolation: str = "process", **kwargs: Any
+    make: Callable[..., rr.Supervisor],
+    isolation: str = "process",
+    *,
+    camera: Callable[[Any], Any] | None = None,
+    **kwargs: Any,
 ) -> rr.Supervisor:
-    """A supervisor of the ERM and the CM (not started)."""
+    """A supervisor of the ERM and the CM (not started); `camera`: the camera's load."""
+    erm = erm_setup if camera is None else functools.partial(erm_setup, camera=camera)
     return make(
         [
-            rr.ManagerSpec("erm", erm_setup, isolation=isolation),  # type: ignore[arg-type]
+            rr.ManagerSpec("erm", erm, isolation=isolation),  # type: ignore[arg-type]
             rr.ManagerSpec("cm", cm_setup, isolation=isolation),  # type: ignore[arg-type]
         ],
         **kwargs,

@@ -878,6 +878,9 @@
 
   // A status row names its resource as the graph does (its label, not its request): as the
   // server named it when it was sent (it may be unloaded since: LiDAR 1 after F1), else now.
+  // A live tree's observer names every one (LiveSource._name): a page open during the send
+  // and one opened later draw the same row. "Now" is for the events no server named
+  // (another host's, on a page of the whole system).
   function resourceName(sent) {
     if (sent.resource) return sent.resource;
     const section = catalogSection(sent.registrar, sent.member);
