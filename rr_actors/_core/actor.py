@@ -72,6 +72,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 import sys
 import types
 from collections.abc import Callable
@@ -86,6 +87,7 @@ from rr_actors._core.queues import Late, LateQueue
 from rr_actors._platform import fork
 
 __all__ = [
+    "SIGNAL_CHECK",
     "Actor",
     "ContainedError",
     "Inbox",
@@ -145,6 +147,11 @@ OptExcInfo: TypeAlias = tuple[
 GetHookFunc: TypeAlias = Callable[[float | None], T]
 
 
+SIGNAL_CHECK = 0.1
+"""Seconds the main thread blocks at most in one go in a `OneShotFuture`'s wait: a
+Ctrl-C its lock's wait did not see is raised within this."""
+
+
 class OneShotFuture(pykka.Future[T]):
     """A pykka future whose value is handed over by releasing one lock.
 
@@ -180,19 +187,36 @@ class OneShotFuture(pykka.Future[T]):
         time on it while another one holds it for a moment (preempted between taking and
         passing it on) although the future was settled long before: a wait that runs out
         therefore looks at the future once more before it reports a timeout.
+
+        The main thread blocks `SIGNAL_CHECK` seconds at most in one go: CPython runs
+        signal handlers between bytecodes, and a lock's wait wakes for a signal only if
+        the signal lands while it blocks. A Ctrl-C that lands as the thread goes to block
+        (after its last check), or that another thread took, is raised as the slice ends,
+        not when the whole wait does.
         """
         if self._settled:
             return True
-        acquired = False
-        try:
-            if timeout is None:
-                acquired = self._ready.acquire()
-            else:
-                acquired = self._ready.acquire(timeout=min(max(timeout, 0.0), runtime.TIMEOUT_MAX))
-        finally:  # (also if the wait is interrupted: other waiters must get through)
-            if acquired:
-                self._ready.release()  # the next waiter, if any, gets through too
-        return acquired or self._settled
+        end: float | None = None  # (sliced: when the whole wait ends)
+        if (timeout is None or timeout > SIGNAL_CHECK) and runtime.handles_signals():
+            end = math.inf if timeout is None else runtime.monotonic() + timeout
+        while True:
+            if end is not None:
+                timeout = min(SIGNAL_CHECK, end - runtime.monotonic())
+            acquired = False
+            try:
+                if timeout is None:
+                    acquired = self._ready.acquire()
+                else:
+                    acquired = self._ready.acquire(
+                        timeout=min(max(timeout, 0.0), runtime.TIMEOUT_MAX)
+                    )
+            finally:  # (also if the wait is interrupted: other waiters must get through)
+                if acquired:
+                    self._ready.release()  # the next waiter, if any, gets through too
+            if acquired or self._settled:
+                return True
+            if end is None or runtime.monotonic() >= end:
+                return False
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block until it is settled, at most `timeout` seconds; whether it is (what

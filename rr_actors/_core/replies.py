@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import inspect
 import itertools
 import logging
 from collections.abc import Callable, Generator
@@ -101,22 +102,26 @@ returns the result (module docstring)."""
 def run_steps(steps: Steps[T]) -> T:
     """Run `steps` on the calling thread, blocking on each future it waits for.
 
+    An exception the driver gets while the steps wait at a `yield` (a `KeyboardInterrupt`
+    in the wait, or as the driver goes to it) is thrown into them there: the steps
+    decide. One the steps raise ends them.
+
     Raises:
         Exception: what the steps raise (an interruption of a wait is thrown into them).
     """
-    try:
-        future, deadline = next(steps)
-        while True:
-            timeout = None if deadline is None else max(0.0, deadline - runtime.monotonic())
-            try:
-                settled = future.wait(timeout)
-            except BaseException as exc:  # noqa: BLE001 - (KeyboardInterrupt & co: the steps decide)
-                future, deadline = steps.throw(exc)
-                continue
-            future, deadline = steps.send(settled)
-    except StopIteration as done:
-        result: T = done.value
-        return result
+    resume: Callable[[Any], Wait] = steps.send
+    given: Any = None  # (sent to start them)
+    while True:
+        try:
+            future, deadline = resume(given)
+            resume, given = steps.send, future.wait(left(deadline))
+        except StopIteration as done:
+            result: T = done.value
+            return result
+        except BaseException as exc:
+            if inspect.getgeneratorstate(steps) != inspect.GEN_SUSPENDED:
+                raise  # (the steps raised it: they are done)
+            resume, given = steps.throw, exc
 
 
 def on_own_thread(fn: Callable[[], T], name: str) -> Steps[T]:

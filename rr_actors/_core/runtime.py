@@ -48,6 +48,7 @@ __all__ = [
     "Timer",
     "current_thread",
     "get_ident",
+    "handles_signals",
     "local",
     "monotonic",
     "process_state",
@@ -149,6 +150,12 @@ def use(seams: Mapping[str, Any] | None) -> None:
 def simulated() -> bool:
     """Whether a simulation runs now."""
     return _simulated
+
+
+def handles_signals() -> bool:
+    """Whether Python runs signal handlers on the calling thread (a `KeyboardInterrupt` is
+    raised there): the main thread of a real run; never a simulated thread."""
+    return not _simulated and threading.current_thread() is threading.main_thread()
 
 
 def local() -> threading.local:

@@ -8,6 +8,7 @@ from typing import Any
 
 import pytest
 
+from rr_actors._core import runtime
 from rr_actors._core.actor import OneShotFuture
 from rr_actors._core.replies import (
     CallbackReply,
@@ -123,6 +124,30 @@ def test_an_interruption_of_a_wait_is_thrown_into_the_steps() -> None:
 
     with pytest.raises(Interrupted):
         run_steps(_two_waits(Interrupting(), OneShotFuture(), seen))
+    assert ["Interrupted"] == seen
+
+
+def test_an_interruption_before_the_wait_blocks_is_thrown_into_the_steps(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    class Interrupted(BaseException):
+        pass
+
+    def interrupted() -> float:  # (the driver reads the clock after the yield, to block)
+        raise Interrupted
+
+    def one_wait(seen: list[Any]) -> Steps[None]:
+        try:
+            yield OneShotFuture(), 1.0
+        except BaseException as exc:
+            seen.append(type(exc).__name__)
+            raise
+
+    seen: list[Any] = []
+    monkeypatch.setattr(runtime, "monotonic", interrupted)
+
+    with pytest.raises(Interrupted):
+        run_steps(one_wait(seen))
     assert ["Interrupted"] == seen
 
 

@@ -64,3 +64,13 @@ def test_the_process_s_own_state_is_registered_for_a_simulation_to_give_each_pro
 
 def test_a_thread_local_made_by_the_runtime_is_a_threading_local() -> None:
     assert any(isinstance(made, threading.local) for made in runtime.thread_locals())
+
+
+def test_only_the_main_thread_of_a_real_run_handles_signals() -> None:
+    elsewhere: list[bool] = []
+    thread = threading.Thread(target=lambda: elsewhere.append(runtime.handles_signals()))
+    thread.start()
+    thread.join(10)
+
+    assert threading.current_thread() is threading.main_thread()
+    assert (True, [False]) == (runtime.handles_signals(), elsewhere)

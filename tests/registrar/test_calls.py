@@ -8,6 +8,7 @@ before the registrar's next message (`TestOutcomes`), timeouts and providers tha
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 import time
 import uuid
@@ -255,6 +256,12 @@ def _left_behind(registrar: rr.ResourceRegistrar) -> tuple[set[str], set[str]]:
     """Query ids the registrar still expects an answer for, and ones notices wait for."""
     work = pending_work(registrar, timeout=10)
     return set(work.answers_due), set(work.parked_notices)
+
+
+def _blocked_in_wait(ident: int) -> bool:
+    """Whether the thread `ident` blocks in a future's wait (its innermost frame)."""
+    frame = sys._current_frames().get(ident)
+    return frame is not None and frame.f_code is CallAttempt._wait.__code__
 
 
 def _busy(registrar: rr.ResourceRegistrar) -> tuple[threading.Event, pykka.Future[bool]]:
@@ -806,13 +813,19 @@ class TestRaces:
         with pytest.raises(pykka.ActorDeadError):
             asked.get(timeout=10)
 
+    @pytest.mark.parametrize("missed", [False, True], ids=["wakes_the_wait", "missed_by_the_wait"])
     def test_a_call_interrupted_by_ctrl_c_leaves_nothing_behind(
         self,
         started: Callable[..., rr.ResourceRegistrar],
+        missed: bool,
     ) -> None:
         # The interrupted caller never records its answer: it withdraws the call (withdraws its
         # attempt, tells its registrar, sends the provider an Abandon) before the exception
-        # leaves `call`. Its answer, when it comes, is dropped.
+        # leaves `call`. Its answer, when it comes, is dropped. `missed`: the SIGINT is taken
+        # by another thread while the caller blocks in its wait, so the wait is not woken
+        # (CPython checks for signals between bytecodes: one that lands as the caller's
+        # thread goes to block, after its last check, is missed the same way); the caller
+        # raises it at its next check, not when the call's wait ends.
         assert threading.current_thread() is threading.main_thread()
         provider, consumer = started("provider"), started("consumer")
         entered, release = threading.Event(), threading.Event()
@@ -826,20 +839,30 @@ class TestRaces:
 
         calling = threading.Event()
         calling.set()
+        caller = threading.main_thread().ident
+        assert caller is not None
+        sent: list[float] = []
 
         def interrupt() -> None:
             assert entered.wait(10)
+            taker = caller
+            if missed:  # (seen while this thread runs: the caller's frame waits on its lock)
+                assert _wait_for(lambda: _blocked_in_wait(caller), 10)
+                taker = threading.get_ident()
             if calling.is_set():  # (a call that failed otherwise is reported, not interrupted)
-                signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+                sent.append(time.monotonic())
+                signal.pthread_kill(taker, signal.SIGINT)
 
         interrupter = threading.Thread(target=interrupt)
         interrupter.start()
         try:
             with pytest.raises(KeyboardInterrupt):
-                consumer.call(provider.name, "slow", "x", timeout=10)
+                consumer.call(provider.name, "slow", "x", timeout=30)
         finally:
             calling.clear()
+        interrupted = time.monotonic()
         interrupter.join(10)
+        assert interrupted - sent[0] < 5.0  # not the call's 30 s timeout, nor the load's 10 s
         release.set()
         second = consumer.call(provider.name, "slow", "x", timeout=10)  # the same load's answer
 

@@ -117,6 +117,15 @@ def _counting_restart_waits(
     return started
 
 
+def _writers_ended(registrar: str, timeout: float) -> bool:
+    """Join this process's connection writer threads to `registrar` (one whose connect
+    failed ends just after it failed the calls waiting on it); whether all ended."""
+    writers = [t for t in threading.enumerate() if t.name == f"rr-write-{registrar}"]
+    for writer in writers:
+        writer.join(timeout)
+    return not any(writer.is_alive() for writer in writers)
+
+
 def test_awaited_retries_wait_out_a_killed_providers_restart_with_no_thread_each(
     uid: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -140,6 +149,7 @@ def test_awaited_retries_wait_out_a_killed_providers_restart_with_no_thread_each
                 for n in range(calls)
             ]
             await asyncio.wait_for(all_waiting.wait(), 30)
+            assert await asyncio.to_thread(_writers_ended, name, 10)  # (the dead one's)
             during = threading.active_count()
             timer.fire()  # the restart: a manager process started, served, answering
             queries, ticks = await _ticks_while(asyncio.gather(*tasks))
