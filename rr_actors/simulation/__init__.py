@@ -19,6 +19,7 @@ from __future__ import annotations
 from rr_actors._extras import needs
 
 with needs("simulation", "rr_actors.simulation"):  # greenlet: one line if it is missing
+    from rr_actors.simulation._network import SimulatedNetwork
     from rr_actors.simulation._run import Run, kill, note, now, pid, run, sleep, start_process
     from rr_actors.simulation._scheduler import DeadlockError, LimitError, SimulationError
 
@@ -26,6 +27,7 @@ __all__ = [
     "DeadlockError",
     "LimitError",
     "Run",
+    "SimulatedNetwork",
     "SimulationError",
     "kill",
     "note",

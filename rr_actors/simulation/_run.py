@@ -35,7 +35,17 @@ from rr_actors.simulation import _primitives as sim
 from rr_actors.simulation._processes import States
 from rr_actors.simulation._scheduler import Scheduler, SimulationError
 
-__all__ = ["Run", "kill", "note", "now", "pid", "run", "sleep", "start_process"]
+__all__ = [
+    "Run",
+    "kill",
+    "note",
+    "now",
+    "pid",
+    "run",
+    "running_scheduler",
+    "sleep",
+    "start_process",
+]
 
 T = TypeVar("T")
 
@@ -216,7 +226,12 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
     }
 
 
-def _running() -> Scheduler:
+def running_scheduler() -> Scheduler:
+    """The scheduler of the run the calling thread is a simulated thread of.
+
+    Raises:
+        RuntimeError: no simulation runs on the calling thread.
+    """
     if _scheduler is None or _scheduler.current_or_none() is None:
         raise RuntimeError("called outside a simulated run's threads")
     return _scheduler
@@ -228,7 +243,7 @@ def note(text: str) -> None:
     Raises:
         RuntimeError: no simulation runs on the calling thread.
     """
-    _running().note(text)
+    running_scheduler().note(text)
 
 
 def now() -> float:
@@ -237,7 +252,7 @@ def now() -> float:
     Raises:
         RuntimeError: no simulation runs on the calling thread.
     """
-    return _running().now
+    return running_scheduler().now
 
 
 def sleep(seconds: float) -> None:
@@ -246,7 +261,7 @@ def sleep(seconds: float) -> None:
     Raises:
         RuntimeError: no simulation runs on the calling thread.
     """
-    sim.sleep(_running(), seconds)
+    sim.sleep(running_scheduler(), seconds)
 
 
 def pid() -> int:
@@ -255,7 +270,7 @@ def pid() -> int:
     Raises:
         RuntimeError: no simulation runs on the calling thread.
     """
-    sched = _running()
+    sched = running_scheduler()
     return sched.current().process.pid
 
 
@@ -269,7 +284,7 @@ def start_process(target: Callable[[], object], *, name: str) -> int:
     Raises:
         RuntimeError: no simulation runs on the calling thread.
     """
-    sched = _running()
+    sched = running_scheduler()
     process = sched.new_process(name)
     sim.Thread(sched, target=target, name=f"{name}-main", daemon=True, process=process).start()
     return process.pid
@@ -285,7 +300,7 @@ def kill(pid: int, sig: int = signal.SIGKILL) -> None:
         RuntimeError: no simulation runs on the calling thread.
         ProcessLookupError: no simulated process has that pid.
     """
-    sched = _running()
+    sched = running_scheduler()
     process = next((p for p in sched.processes if p.pid == pid), None)
     if process is None:
         raise ProcessLookupError(f"no simulated process {pid}")

@@ -287,12 +287,15 @@ class MemoryNetwork(Messenger):
         ConfigError: another open network of this process has that name.
     """
 
+    _hub_class: type[_Hub] = _Hub
+    """What carries its frames between its "processes" (a simulation's adds faults)."""
+
     def __init__(self, system: str = "memory") -> None:
         if system in _NETWORKS:
             raise ConfigError(f"system: an in-memory network named {system!r} is open already")
         # (in a simulation, its process is one of the network's, as the others are)
         super().__init__(system, resolver=runtime.simulated())
-        self._hub = _Hub(self)
+        self._hub = self._hub_class(self)
         self.joined(self._hub)
         _NETWORKS[system] = self
         _MEMBERS.by_system[system] = self
