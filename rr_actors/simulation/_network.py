@@ -12,6 +12,9 @@ order per link, cuts and heals.
    reached"; what is on the wire across is dropped when it arrives
  heal() ─► links work again; every process hears each name across as reachable again
    (rule 20: its consumers reconcile), on a thread of its own
+ a lease (`lease=`): a process stopped (SIGSTOP) past it is silent: the links to what it
+   serves fail what waits, as at a cut; once it runs again, reachable again (a presence
+   thread of the network's process looks every quarter lease)
  a process ends ─► what it served ends (`_Hub.end`): every link to it fails what waits
 ```
 
@@ -52,10 +55,19 @@ class SimulatedNetwork(MemoryNetwork):
     Args:
         system: its name (`MemoryAddress` finds it by that name).
         delay: `(least, most)` seconds a frame takes on a link.
+        lease: seconds a stopped process is heard (a liveliness lease) before what it
+            serves cannot be reached; `None`: for ever (its heartbeat judges it).
     """
 
-    def __init__(self, system: str = "simulated", *, delay: tuple[float, float] = DELAY) -> None:
+    def __init__(
+        self,
+        system: str = "simulated",
+        *,
+        delay: tuple[float, float] = DELAY,
+        lease: float | None = None,
+    ) -> None:
         self.delay = delay
+        self.lease = lease
         super().__init__(system)
 
     def partition(self, side: Iterable[int]) -> None:
@@ -178,6 +190,11 @@ class _SimulatedHub(_Hub):
         self.network = messenger
         self._links: dict[tuple[int, str], _Link] = {}
         self._side: frozenset[int] | None = None  # the pids cut off the others
+        self._silent: set[str] = set()  # names served by a process silent past its lease
+        if messenger.lease is not None:
+            sim.Thread(
+                self.sched, target=self._presence, name="rr-sim-presence", daemon=True
+            ).start()
 
     def _sender(self) -> Process:
         task = self.sched.current_or_none()
@@ -196,6 +213,10 @@ class _SimulatedHub(_Hub):
         link = self._links.get((sender.pid, name))
         if link is None or link.served is not served or link.closed:
             link = self._links[sender.pid, name] = _Link(self, sender, served)
+        if name in self._silent:
+            raise RegistrarUnavailableError(
+                f"registrar {name!r} cannot be reached (its process is silent past its lease)"
+            )
         if self.apart(link):
             raise RegistrarUnavailableError(
                 f"registrar {name!r} cannot be reached (the network between processes "
@@ -204,7 +225,10 @@ class _SimulatedHub(_Hub):
         return link
 
     def apart(self, link: _Link) -> bool:
-        """Whether `link` crosses the partition."""
+        """Whether `link` crosses the partition, or leads to a process silent past its
+        lease."""
+        if link.served.endpoint.name in self._silent:
+            return True
         side = self._side
         if side is None:
             return False
@@ -234,17 +258,54 @@ class _SimulatedHub(_Hub):
         side, self._side = self._side, None
         if side is None:
             return
-        served = [(name, served_by(one).pid) for name, one in list(self._served.items())]
+        pids = {name: served_by(one).pid for name, one in list(self._served.items())}
+
+        def across(process: Process, name: str) -> bool:
+            return (pids[name] in side) != (process.pid in side)
+
+        self._tell_reachable(list(pids), across)
+
+    def _presence(self) -> None:
+        """Every quarter lease: a stopped process silent past its lease is gone for the
+        others; one that runs again is back (as after a heal)."""
+        lease = self.network.lease
+        assert lease is not None
+        sched = self.sched
+        while not self.closed:
+            sim.sleep(sched, lease / 4)
+            back = []
+            for name, served in list(self._served.items()):
+                process = served_by(served)
+                silent = process.stopped and sched.now - process.stopped_at > lease
+                if silent and name not in self._silent:
+                    self._silent.add(name)
+                    error = RegistrarUnavailableError(
+                        f"registrar {name!r} cannot be reached (its process is silent past "
+                        f"its lease, {lease:g} s)"
+                    )
+                    for link in list(self._links.values()):
+                        if link.served is served and not link.closed:
+                            link.close(error)
+                elif not silent and name in self._silent:
+                    self._silent.discard(name)
+                    back.append(name)
+            self._silent &= set(self._served)
+            if back:
+                self._tell_reachable(back, lambda process, name: True)
+
+    def _tell_reachable(self, names: list[str], across: Callable[[Process, str], bool]) -> None:
+        """Each live process hears the names of `names` it is `across` from as reachable
+        again, on a thread of its own."""
         for process in self.sched.processes:
             if not process.alive:
                 continue
-            across = [name for name, pid in served if (pid in side) != (process.pid in side)]
-            if across:
+            heard = [name for name in names if across(process, name)]
+            if heard:
                 sim.Thread(
                     self.sched,
                     target=self._reachable,
-                    args=(across,),
-                    name=f"rr-heal-{process.pid}",
+                    args=(heard,),
+                    name=f"rr-reachable-{process.pid}",
                     daemon=True,
                     process=process,
                 ).start()

@@ -29,7 +29,17 @@ __all__ = ["Process", "States"]
 class Process:
     """One simulated process (see the module's diagram)."""
 
-    __slots__ = ("at_end", "exitcode", "name", "parked", "pid", "state", "stopped", "tasks")
+    __slots__ = (
+        "at_end",
+        "exitcode",
+        "name",
+        "parked",
+        "pid",
+        "state",
+        "stopped",
+        "stopped_at",
+        "tasks",
+    )
 
     def __init__(self, pid: int, name: str, state: list[dict[str, Any]]) -> None:
         self.pid = pid
@@ -38,6 +48,7 @@ class Process:
         self.tasks: list[Any] = []  # its tasks (`Task`), ended or not
         self.exitcode: int | None = None  # set when it ended
         self.stopped = False  # SIGSTOP: not scheduled until `cont`
+        self.stopped_at = 0.0  # (virtual seconds) when it was stopped last
         self.parked: list[Any] = []  # its tasks made ready while it was stopped
         self.at_end: list[Callable[[], object]] = []  # run once, when it ends
 

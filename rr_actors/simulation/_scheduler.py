@@ -436,8 +436,9 @@ class Scheduler:
 
     def stop(self, process: Process) -> None:
         """SIGSTOP: `process`'s tasks are not run until `cont`."""
-        if process.alive:
+        if process.alive and not process.stopped:
             process.stopped = True
+            process.stopped_at = self.now
 
     def cont(self, process: Process) -> None:
         """SIGCONT: `process`'s tasks run again (those made ready meanwhile are ready)."""

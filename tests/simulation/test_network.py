@@ -4,6 +4,7 @@ fail what waits across them, and heals after which both sides carry on."""
 from __future__ import annotations
 
 import shutil
+import signal
 import tempfile
 from collections.abc import Callable
 from typing import Any
@@ -46,15 +47,21 @@ def test_frames_on_one_wire_arrive_in_order_each_after_its_delay() -> None:
         assert len({round(at - sent, 9) for _, sent, at in arrived}) > 10  # (drawn)
 
 
-def with_provider(body: Callable[[rr.Supervisor, rr.ResourceRegistrar, Any], Any]) -> Any:
+def with_provider(
+    body: Callable[[rr.Supervisor, rr.ResourceRegistrar, Any], Any],
+    lease: float | None = None,
+    heartbeat: float | None = 0.25,
+) -> Any:
     """A scenario: a process manager `provider` (backed up) under a supervisor on a
     simulated network, a consumer `app` in the supervisor's process."""
 
     def scenario() -> Any:
         folder = tempfile.mkdtemp(prefix="rr-sim-network-")
-        network = simulation.SimulatedNetwork()
+        network = simulation.SimulatedNetwork(lease=lease)
         try:
-            manager = rr.ManagerSpec("provider", setup=leaf_setup, isolation="process")
+            manager = rr.ManagerSpec(
+                "provider", setup=leaf_setup, isolation="process", heartbeat=heartbeat
+            )
             supervisor = rr.Supervisor(manager, state_dir=folder, network=network, name="root")
             supervisor.start()
             app = supervisor.registrar("app")
@@ -148,3 +155,29 @@ def test_a_reply_waiting_across_a_cut_fails_when_it_is_cut() -> None:
 
     assert "unavailable" == what
     assert when < 1.1  # (at the cut, not at the call's timeout)
+
+
+def test_a_process_stopped_past_its_lease_cannot_be_reached_until_it_runs_again() -> None:
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any) -> Any:
+        held = app.call("provider", "leaf", "x")
+        pid = supervisor.child("provider").pid
+        simulation.kill(pid, signal.SIGSTOP)
+        simulation.sleep(0.5)  # (within its lease: a call waits for it)
+        try:
+            app.call("provider", "leaf", "y", timeout=0.5)
+        except rr.CallTimeoutError:
+            within = "waits"
+        simulation.sleep(1.0)  # (past it)
+        began = simulation.now()
+        try:
+            app.call("provider", "leaf", "y", timeout=5.0)
+        except rr.RegistrarUnavailableError:
+            past = ("unavailable", simulation.now() - began < 0.1)
+        simulation.kill(pid, signal.SIGCONT)
+        simulation.sleep(1.0)  # (heard again; its consumers reconcile)
+        after = app.call("provider", "leaf", "z").response
+        return within, past, after, [q.id for q in app.client_queries()].count(held.id)
+
+    for seed in range(10):
+        run = simulation.run(with_provider(body, lease=1.0, heartbeat=None), seed=seed)
+        assert ("waits", ("unavailable", True), "leaf z", 1) == run.value, f"seed {seed}"

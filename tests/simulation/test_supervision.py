@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import random
 import shutil
+import signal
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -101,18 +102,26 @@ MANAGERS = {
 
 
 def tree(
-    kills: int, *, cuts: int = 0, backups: bool = True, clients: int = 3, rounds: int = 4
+    kills: int,
+    *,
+    cuts: int = 0,
+    hangs: int = 0,
+    backups: bool = True,
+    clients: int = 3,
+    rounds: int = 4,
 ) -> Callable[[], dict[str, Any]]:
     """The scenario: the tree (its catalogs backed up, or in memory only) on a simulated
-    network, `clients` clients of `rounds` calls each, `kills` kills and `cuts` cuts of
-    a manager's process off the others (each healed after a while), in a seeded order."""
+    network, `clients` clients of `rounds` calls each, `kills` kills, `cuts` cuts of a
+    manager's process off the others (each healed after a while) and `hangs` SIGSTOPs
+    of one (each continued after a while, unless its heartbeat killed it first), in a
+    seeded order."""
 
     def scenario() -> dict[str, Any]:
         JOURNAL.clear()
         folder = tempfile.mkdtemp(prefix="rr-sim-tree-")
         network = simulation.SimulatedNetwork()
         try:
-            faults = ["kill"] * kills + ["cut"] * cuts
+            faults = ["kill"] * kills + ["cut"] * cuts + ["hang"] * hangs
             return _run_tree(network, folder if backups else None, faults, clients, rounds)
         finally:
             network.close()
@@ -195,6 +204,11 @@ def _run_tree(
             _note(fault, name, pid)
             if fault == "kill":
                 simulation.kill(pid)
+            elif fault == "hang":
+                simulation.kill(pid, signal.SIGSTOP)
+                simulation.sleep(choose.uniform(0.1, 2.0))
+                _note("continue")
+                simulation.kill(pid, signal.SIGCONT)  # (nothing if it was killed as hung)
             else:
                 network.partition([pid])
                 simulation.sleep(choose.uniform(0.1, 3.0))
@@ -284,8 +298,9 @@ def test_a_tree_without_backups_tells_its_consumers_what_a_kill_lost() -> None:
 
 
 @SWEEP
-def test_a_tree_under_cuts_and_kills_loses_nothing_acknowledged_and_leaves_nothing() -> None:
+def test_a_tree_under_kills_cuts_and_hangs_loses_nothing_acknowledged_and_leaves_nothing() -> None:
     """A manager's process cut off the others for a while (its callers see it
     unavailable; what was on the wire across is lost), then healed (rule 20: its
-    consumers reconcile), among kills."""
-    assert {} == seeds_where_broken(tree(kills=2, cuts=2))
+    consumers reconcile); one stopped for a while (its heartbeat kills it past 0.75 s),
+    among kills."""
+    assert {} == seeds_where_broken(tree(kills=2, cuts=2, hangs=2))
