@@ -13,6 +13,7 @@
         ── Ping(n) every `heartbeat` s ────────────────► registrar mailbox ─► Pong(n)
         a silence past the bound: Hang ─► kill
         ── Stop(timeout, restarting) ──────────────────► registrar.stop(); exit 0 (1)
+        ◄── Events([event]) while Forward(on) ────────── its registrar's events
         the end (`Scheduler.end`: a kill, an exit) ◄──── at_end: what it served is cut off
         ──► on_exit(ManagerExit) ─► the supervisor's mailbox (the real `_supervision`)
 ```
@@ -21,7 +22,9 @@ The handle is a `ManagerProcess` whose requests (`stop`, `sync_events`,
 `forward_events`) are the real class's, sent on a simulated queue instead of a pipe; a
 kill is `Scheduler.end(process, -SIGKILL)`: its tasks never run again, its backup file
 keeps what committed. Its `stop_process`/`continue_process` are SIGSTOP and SIGCONT.
-The registrar's events are not forwarded to the supervisor's process (issue 42, step 3).
+While the tree has listeners (`Forward(on)`), the registrar's events go to the parent one
+by one on the same queue (`Events`), before the answer to a `SyncEvents`; what a kill
+kept from being sent is not counted (no tally: issue 42, step 3).
 """
 
 from __future__ import annotations
@@ -36,10 +39,13 @@ from typing import Any, cast
 
 import cloudpickle
 
+from rr_actors import events
 from rr_actors._core import runtime
+from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._process.context import ACTOR_DIED_EXIT, stopped_cleanly
 from rr_actors._process.control import (
+    Events,
     EventsSynced,
     Failed,
     Forward,
@@ -52,6 +58,7 @@ from rr_actors._process.control import (
 )
 from rr_actors._process.heartbeat import Hang, Heartbeat
 from rr_actors._process.manager import ManagerExit, ManagerProcess, describe
+from rr_actors._process.received import Received
 from rr_actors._registrar import Served, start_registrar
 from rr_actors._transport.base import Address, Transport
 from rr_actors.config import RegistrarConfig
@@ -93,8 +100,8 @@ def start(
 ) -> SimulatedManager:
     """`ManagerProcess.start` in a simulation: a new simulated process runs the manager;
     returns once it serves (see `ManagerProcess.start` for the arguments and errors)."""
-    del forward_events, on_events  # (no events forwarded yet)
     parent = sched.current().process
+    received = Received(on_events, None)
     process = sched.new_process(name)
     to_child: Any = runtime.SimpleQueue()
     from_child: Any = runtime.SimpleQueue()
@@ -102,7 +109,17 @@ def start(
     sim.Thread(
         sched,
         target=_child,
-        args=(sched, process, setup, config, address, parent.pid, to_child, from_child),
+        args=(
+            sched,
+            process,
+            setup,
+            config,
+            address,
+            parent.pid,
+            forward_events,
+            to_child,
+            from_child,
+        ),
         name=f"{name}-main",
         daemon=True,
         process=process,
@@ -116,7 +133,9 @@ def start(
             raise CallTimeoutError(
                 f"manager {name!r} was not ready within {start_timeout:g} s"
             ) from None
-        if isinstance(message, Ready):
+        if isinstance(message, Events):  # (its restore's in-doubt events, say)
+            received.deliver(name, message.batch)
+        elif isinstance(message, Ready):
             break
         if isinstance(message, Failed):
             raise RegistrarUnavailableError(
@@ -126,7 +145,14 @@ def start(
             reason = describe(message.exitcode).reason
             raise RegistrarUnavailableError(f"manager {name!r} died while starting ({reason})")
     handle = SimulatedManager(
-        name, sched, process, to_child, from_child, heartbeat, heartbeat_timeout, on_exit
+        name,
+        sched,
+        process,
+        (to_child, from_child),
+        heartbeat,
+        heartbeat_timeout,
+        on_exit,
+        received,
     )
     runtime.Thread(target=handle.watch, name=f"rr-watch-{name}", daemon=True).start()
     return handle
@@ -140,18 +166,18 @@ class SimulatedManager(ManagerProcess):
         name: str,
         sched: Scheduler,
         process: Process,
-        to_child: Any,
-        from_child: Any,
+        queues: tuple[Any, Any],
         heartbeat: float | None,
         heartbeat_timeout: float | None,
         on_exit: Callable[[ManagerExit], None],
+        received: Received,
     ) -> None:
         self.name = name
         self.pid = process.pid
         self._sched = sched
         self._process = process
-        self._to_child = to_child
-        self._from_child = from_child
+        self._to_child, self._from_child = queues  # (its control pipe's two ways)
+        self._received = received
         self._beat = (
             None
             if heartbeat is None
@@ -220,7 +246,9 @@ class SimulatedManager(ManagerProcess):
             if isinstance(message, _Ended):
                 return message
             now = runtime.monotonic()
-            if isinstance(message, Pong) and self._beat is not None:
+            if isinstance(message, Events):
+                self._received.deliver(self.name, message.batch)
+            elif isinstance(message, Pong) and self._beat is not None:
                 self._beat.answered(message.number, now)
             elif isinstance(message, EventsSynced):
                 self._synced(message, now)
@@ -275,63 +303,115 @@ def _child(
     config: RegistrarConfig,
     address: Address | None,
     parent: int,
+    forward: bool,
     to_child: Any,
     from_child: Any,
 ) -> None:
     """The manager process's main task: restore, set up, serve; then the control loop."""
-    attached: Transport | None = None
+    child = _Child(sched, process, from_child, forward=forward)
     try:
+        registrar = child.start(setup, config, address, parent)
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, then exit 1
+        from_child.put(Failed("".join(traceback.format_exception(exc))))
+        sched.end(process, 1)
+    from_child.put(Ready(process.pid))
+    runtime.Thread(target=child.watch_actor, name="rr-manager-actor-watch", daemon=True).start()
+    while True:
+        message = to_child.get()
+        handler = _HANDLERS.get(type(message))
+        if handler is None:
+            logger.error("manager %s: unknown control message %r", registrar.name, message)
+        else:
+            handler(child, message)
+
+
+class _Child:
+    """The manager process's side: its registrar, its events to the parent (one by one,
+    while told to forward), its control requests (`_HANDLERS`)."""
+
+    def __init__(self, sched: Scheduler, process: Process, from_child: Any, *, forward: bool):
+        self.sched = sched
+        self.process = process
+        self.from_child = from_child
+        self.hub: Publisher[events.Event] = events.publisher()  # what its registrar relays to
+        self.forwarding = False
+        self.switch(on=forward)
+        self.attached: Transport | None = None
+        self.registrar: Any = None
+        self.stopping = runtime.Event()
+
+    def start(
+        self, setup: bytes, config: RegistrarConfig, address: Address | None, parent: int
+    ) -> Any:
+        """Attach, restore the registrar from its backup, set it up, serve it."""
         if address is not None:
-            attached = address.attach()
-            attached.supervised_by(parent)
-            process.at_end.append(functools.partial(_links_closed, attached))
-        registrar = start_registrar(config, hold_in_doubt=True)
+            self.attached = address.attach()
+            self.attached.supervised_by(parent)
+            self.process.at_end.append(functools.partial(_links_closed, self.attached))
+        registrar = self.registrar = start_registrar(config, upstream=self.hub, hold_in_doubt=True)
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
             setup_fn(registrar)
         registrar.settle_in_doubt()
-        if attached is not None:
-            attached.serve(Served(registrar))
-    except BaseException as exc:  # noqa: BLE001 - reported to the parent, then exit 1
-        from_child.put(Failed("".join(traceback.format_exception(exc))))
-        sched.end(process, 1)
-    stopping = runtime.Event()
+        if self.attached is not None:
+            self.attached.serve(Served(registrar))
+        return registrar
 
-    def watch_actor() -> None:
+    def sink(self, event: events.Event) -> None:
+        self.from_child.put(Events([event]))
+
+    def switch(self, *, on: bool) -> None:
+        if on and not self.forwarding:
+            self.hub.add_sink(self.sink)
+        elif self.forwarding and not on:
+            self.hub.remove_sink(self.sink)
+        self.forwarding = on
+
+    def watch_actor(self) -> None:
+        """Exit when the registrar actor ends: 0 if code in the manager stopped it."""
+        registrar = self.registrar
         registrar._actor.wait_stopped()
-        if not stopping.is_set():
-            _exit(
-                sched, process, attached, 0 if stopped_cleanly(registrar.name) else ACTOR_DIED_EXIT
-            )
+        if not self.stopping.is_set():
+            self.exit(0 if stopped_cleanly(registrar.name) else ACTOR_DIED_EXIT)
 
-    from_child.put(Ready(process.pid))
-    runtime.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
-    while True:
-        message = to_child.get()
-        if isinstance(message, Ping):
-            registrar._actor.ping(_Pong(from_child, message.number))
-        elif isinstance(message, SyncEvents):
-            from_child.put(EventsSynced(message.token))
-        elif isinstance(message, Stop):
-            stopping.set()
-            if message.restarting:  # stopped to be restarted with its group: no tombstone
-                DIRECTORY.mark_restarting([registrar.name])
-            code = 0
-            try:
-                registrar.stop(timeout=message.timeout)
-            except RrError:
-                logger.exception("manager %s did not stop cleanly", registrar.name)
-                code = 1
-            _exit(sched, process, attached, code)
-        elif not isinstance(message, Forward):
-            logger.error("manager %s: unknown control message %r", registrar.name, message)
+    def ping(self, message: Ping) -> None:
+        """Answer through the registrar actor's mailbox: a hung actor sends no pong."""
+        self.registrar._actor.ping(_Pong(self.from_child, message.number))
 
+    def sync_events(self, message: SyncEvents) -> None:
+        self.from_child.put(EventsSynced(message.token))  # (its events went before, in order)
 
-def _exit(sched: Scheduler, process: Process, attached: Transport | None, code: int) -> None:
-    """Leave the network (peers see "stopped" or "died" at once), then end."""
-    if attached is not None:
+    def forward(self, message: Forward) -> None:
+        self.switch(on=message.on)
+
+    def stop(self, message: Stop) -> None:
+        """Stop the registrar, exit (0, or 1 if it did not stop)."""
+        registrar = self.registrar
+        self.stopping.set()
+        if message.restarting:  # stopped to be restarted with its group: no tombstone
+            DIRECTORY.mark_restarting([registrar.name])
+        code = 0
         try:
-            attached.close()
-        except Exception:
-            logger.exception("leaving the network")
-    sched.end(process, code)
+            registrar.stop(timeout=message.timeout)
+        except RrError:
+            logger.exception("manager %s did not stop cleanly", registrar.name)
+            code = 1
+        self.exit(code)
+
+    def exit(self, code: int) -> None:
+        """Leave the network (peers see "stopped" or "died" at once), then end."""
+        if self.attached is not None:
+            try:
+                self.attached.close()
+            except Exception:
+                logger.exception("leaving the network")
+        self.sched.end(self.process, code)
+
+
+_HANDLERS: dict[type[Any], Callable[[_Child, Any], None]] = {
+    Ping: _Child.ping,
+    SyncEvents: _Child.sync_events,
+    Forward: _Child.forward,
+    Stop: _Child.stop,
+}
+"""What the child does with each message of the parent's."""

@@ -171,6 +171,7 @@ def _simulate(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: lis
     runtime.use(_seams(sched))
     _scheduler = sched
     try:
+        sched.new_process("main")  # (its state made of the simulated seams)
         sim.Thread(sched, target=main, name="MainThread", daemon=False).start()
         sched.run()
         outcome.extend(_finished(sched, *result[0]))

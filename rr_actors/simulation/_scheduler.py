@@ -187,8 +187,7 @@ class Scheduler:
         self._main = greenlet.getcurrent()  # (made on the thread it runs on)
         self.states = states
         self._pids = itertools.count(1)
-        self.processes: list[Process] = []
-        self.root = self.new_process("main")
+        self.processes: list[Process] = []  # the first: the run's main process (`root`)
 
     # -- tasks -----------------------------------------------------------------------
 
@@ -396,6 +395,12 @@ class Scheduler:
         return False
 
     # -- processes ---------------------------------------------------------------------
+
+    @property
+    def root(self) -> Process:
+        """The run's main process (the first made, once the simulated seams are in: its
+        fresh state is made of simulated locks)."""
+        return self.processes[0]
 
     def new_process(self, name: str) -> Process:
         """A new simulated process, with a pid of its own and fresh per-process state

@@ -154,3 +154,20 @@ def test_a_stopped_manager_exits_cleanly() -> None:
         return supervisor.child("provider").last_exit
 
     assert "shutdown" == simulation.run(with_tree(body), seed=1).value
+
+
+def test_a_manager_s_events_reach_the_supervisor_s_subscribers_while_they_listen() -> None:
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar) -> Any:
+        heard: list[Any] = []
+        with supervisor.subscribe(heard.append) as subscription:
+            query = app.call("provider", "leaf", "x")
+            app.unload(query.id)
+            assert supervisor.flush_events(timeout=5.0)
+            subscription.wait_delivered(timeout=5.0)
+        return sorted(
+            {type(e).__name__ for e in heard if getattr(e, "registrar", None) == "provider"}
+        )
+
+    kinds = simulation.run(with_tree(body), seed=1).value
+
+    assert ["ConsumerAdded", "ConsumerReleased", "ResourceLoaded", "ResourceUnloaded"] == kinds
