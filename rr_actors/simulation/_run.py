@@ -3,13 +3,13 @@
 ```
  run(fn, seed=S) ─► a thread "rr-simulation" ─┬─ runtime.use(the simulated seams)
    (the caller waits for it, bounded)         ├─ the main process (pid 1): a fresh state of
-   (the caller waits for it, bounded)         │  each runtime.process_state (the directory,
-   (the caller waits for it, bounded)         │  the membership, the clock, pykka's registry)
-   (the caller waits for it, bounded)         ├─ Scheduler.run(): fn() as the task
-   (the caller waits for it, bounded)         │  "MainThread", and every thread it starts
-   (the caller waits for it, bounded)         │  (a process it starts: start_process, a
-   (the caller waits for it, bounded)         │  manager process; kill(pid, sig))
-   (the caller waits for it, bounded)         └─ the states put back, the real seams back
+                                              │  each runtime.process_state (the directory,
+                                              │  the membership, the clock, pykka's registry)
+                                              ├─ Scheduler.run(): fn() as the task
+                                              │  "MainThread", and every thread it starts
+                                              │  (a process it starts: start_process, a
+                                              │  manager process; kill(pid, sig))
+                                              └─ the states put back, the real seams back
  ◄── Run(seed, hash, steps, elapsed, value, errors, trace): the same for the same seed
 ```
 
