@@ -71,9 +71,20 @@ def test_no_file_holds_a_merge_conflict_left_in_it() -> None:
     assert [] == left
 
 
-SEAMED = ("_core", "_catalog", "_store", "_supervision", "_registrar")
-"""The packages whose threads, locks, events, queues, clocks, ids and randomness go through
-`rr_actors._core.runtime`, which a simulation replaces (issue 42, `rr_actors.simulation`)."""
+SEAMED = (
+    "_core",
+    "_catalog",
+    "_store",
+    "_supervision",
+    "_registrar",
+    "_transport/messenger.py",
+    "_transport/codec.py",
+    "_process/manager.py",
+    "testing/memory.py",
+)
+"""The packages (and modules) whose threads, locks, events, queues, clocks, ids and
+randomness go through `rr_actors._core.runtime`, which a simulation replaces (issue 42,
+`rr_actors.simulation`): a simulated process's manager handle and carrier are these."""
 
 STDLIB_SEAMS = {"threading", "time", "uuid", "random", "queue"}
 """Modules whose every use in `SEAMED` goes through the runtime (and `os.urandom`,
@@ -129,8 +140,11 @@ def test_the_protocol_uses_threads_clocks_ids_and_randomness_only_through_the_ru
     files = [
         path
         for seamed in SEAMED
-        for path in sorted((package / seamed).rglob("*.py"))
-        if (package / seamed).is_dir()
+        for path in (
+            sorted((package / seamed).rglob("*.py"))
+            if (package / seamed).is_dir()
+            else [package / seamed]
+        )
     ]
     assert len(files) > 40  # the walk found the packages
     stragglers = []
@@ -184,6 +198,7 @@ WHOLE_FEATURES = {
     "test_conftest_progress.py": "the suite's own tests/conftest.py: failures named as they come",
     "observe/test_page.py": "the observer's page: the HTML and JavaScript of observe/static/",
     "simulation/test_registrar.py": "the registrar's semantic rules on the simulation, many seeds",
+    "simulation/test_supervision.py": "a supervised tree of simulated processes under kills",
 }
 """Test modules whose subject is a whole public feature rather than one runtime module (their
 paths under `tests/`), each with why."""

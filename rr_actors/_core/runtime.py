@@ -50,6 +50,7 @@ __all__ = [
     "get_ident",
     "handles_signals",
     "local",
+    "manager_process",
     "monotonic",
     "process_state",
     "process_states",
@@ -92,6 +93,11 @@ random = _random.random
 get_ident = threading.get_ident
 current_thread = threading.current_thread
 
+manager_process: Any = None
+"""`None` in a real run (`rr_actors._process` forks manager processes); in a simulation,
+what starts a simulated one instead (`ManagerProcess.start` hands over to it, with its
+own arguments)."""
+
 
 def queue_class(cls: type[Q]) -> type[Q]:
     """The class to make for `cls`, a subclass of `queue.SimpleQueue` (`LateQueue`):
@@ -117,6 +123,7 @@ SEAMS = (
     "get_ident",
     "current_thread",
     "queue_class",
+    "manager_process",
 )
 """The names a simulation replaces (`use`); every other name here is the same in both."""
 

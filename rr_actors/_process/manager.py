@@ -35,13 +35,12 @@ import logging
 import multiprocessing.connection
 import os
 import signal
-import threading
-import time
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from typing import TYPE_CHECKING, Any
 
+from rr_actors._core import runtime
 from rr_actors._platform import PLATFORM
 from rr_actors._process.child import main
 from rr_actors._process.context import (
@@ -166,7 +165,7 @@ class ManagerProcess:
         self.pid: int = process.pid
         self._received = received if received is not None else Received(on_events, None)
         self.conn = conn
-        self._send_lock = threading.Lock()
+        self._send_lock = runtime.Lock()
         self._beat = (
             None
             if heartbeat is None
@@ -175,17 +174,17 @@ class ManagerProcess:
                 heartbeat,
                 heartbeat_timeout or 3.0 * heartbeat,
                 PLATFORM.watch_cpu(self.pid),
-                time.monotonic(),
+                runtime.monotonic(),
             )
         )
         self._on_exit = on_exit
         self._on_events = on_events
-        self._syncs: dict[int, threading.Event] = {}  # events-sync tokens waiting for answers
+        self._syncs: dict[int, runtime.Event] = {}  # events-sync tokens waiting for answers
         self._sync_tokens = itertools.count(1)
         self._hung: Hang | None = None
         self._unhealthy: str | None = None  # why it was killed although it answered
         self._stopping = False
-        self.exited = threading.Event()
+        self.exited = runtime.Event()
         self.exit: ManagerExit | None = None
         self._exit_watch = PLATFORM.watch_exit(self.pid)
 
@@ -225,6 +224,21 @@ class ManagerProcess:
                 read, ...) or died before it was ready; the message holds its traceback.
             CallTimeoutError: it was not ready within `start_timeout` seconds (it is killed).
         """
+        simulated = runtime.manager_process
+        if simulated is not None:  # a simulated process (`rr_actors.simulation`)
+            started: ManagerProcess = simulated(
+                name,
+                setup,
+                config,
+                address,
+                start_timeout=start_timeout,
+                heartbeat=heartbeat,
+                heartbeat_timeout=heartbeat_timeout,
+                on_exit=on_exit,
+                forward_events=forward_events,
+                on_events=on_events,
+            )
+            return started
         tally = Tally.create() if on_events is not None else None
         backup = config.backup_path  # (its outbox: what a kill kept from the journal)
         received = Received(on_events, tally, None if backup is None else os.path.abspath(backup))
@@ -251,7 +265,7 @@ class ManagerProcess:
             on_events=on_events,
             received=received,
         )
-        threading.Thread(target=handle._watch, name=f"rr-watch-{name}", daemon=True).start()
+        runtime.Thread(target=handle._watch, name=f"rr-watch-{name}", daemon=True).start()
         return handle
 
     # -- requests ---------------------------------------------------------------------
@@ -279,7 +293,7 @@ class ManagerProcess:
             nothing more will come).
         """
         token = next(self._sync_tokens)  # atomic in CPython
-        done = self._syncs[token] = threading.Event()
+        done = self._syncs[token] = runtime.Event()
         try:
             if self.exited.is_set() or not self._send(SyncEvents(token, timeout)):
                 return self.exited.is_set()
@@ -325,12 +339,12 @@ class ManagerProcess:
             if beat is None or self._stopping:
                 timeout = None  # stopping: no pings; block until it exits (or the pipe says)
             else:
-                timeout = max(0.0, beat.wake_at - time.monotonic())
+                timeout = max(0.0, beat.wake_at - runtime.monotonic())
             woke = multiprocessing.connection.wait(waitables, timeout)
             ended, exitcode = self._ended(woke, waitables)
             if ended:
                 break
-            now = time.monotonic()  # what came before now is read before a judgement
+            now = runtime.monotonic()  # what came before now is read before a judgement
             health = self._read_available(waitables, now)
             if beat is None or self._stopping:
                 continue
@@ -344,7 +358,7 @@ class ManagerProcess:
                 beat = None
             elif verdict is not None:
                 self._send(Ping(verdict))
-                beat.sent(time.monotonic())
+                beat.sent(runtime.monotonic())
         self._finish(exitcode)
 
     def _ended(self, woke: list[Any], waitables: list[Any]) -> tuple[bool, int | None]:
@@ -506,13 +520,13 @@ def _await_ready(
     `received` as they come, and so do those of a start that fails (with the count of
     those it built and never sent).
     """
-    deadline = time.monotonic() + start_timeout
+    deadline = runtime.monotonic() + start_timeout
     pid = process.pid
     assert pid is not None  # (started)
     ready: Ready | Failed | None = None
     ended = False  # the pipe was read to its end
     while ready is None:
-        left = deadline - time.monotonic()
+        left = deadline - runtime.monotonic()
         woke = multiprocessing.connection.wait([conn, process.sentinel], max(left, 0))
         if conn in woke:
             try:

@@ -119,7 +119,7 @@ class Processes:
             from rr_actors._transport import System  # noqa: PLC0415
 
             self.system = System.create()  # also attaches this process
-        if self.spec.has_processes():
+        if self.spec.has_processes() and runtime.manager_process is None:  # (real ones)
             self.spares = SparePool(spares, self.spec.name, delay=spare_delay)
 
     def start_ahead(self, on: bool) -> None:

@@ -16,13 +16,13 @@ import io
 import os
 import pickle
 import struct
-import threading
 from collections.abc import Callable, Iterator
 from multiprocessing.connection import Connection
 from typing import Any
 
 import cloudpickle
 
+from rr_actors._core import runtime
 from rr_actors._core.directory import Reply
 from rr_actors._core.wire import WIRE_TYPES, WireMessage
 from rr_actors._types import Query, Status, StatusUpdate
@@ -81,7 +81,7 @@ class Run(WireMessage):
             else:
                 reply.set_result(result)
 
-        threading.Thread(target=task, name=thread_name, daemon=True).start()
+        runtime.Thread(target=task, name=thread_name, daemon=True).start()
 
 
 # Types pickled by reference with the C pickler's own machinery: cloudpickle's

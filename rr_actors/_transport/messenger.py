@@ -61,10 +61,10 @@ import contextlib
 import itertools
 import logging
 import pickle
-import threading
 from collections.abc import Callable
 from typing import Any, NamedTuple, Protocol
 
+from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY, Peer, Reply
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, wait
@@ -245,7 +245,7 @@ class Listening(abc.ABC):
     def __init__(self, endpoint: Endpoint) -> None:
         self.endpoint = endpoint
         self.name = endpoint.name
-        self.lock = threading.Lock()
+        self.lock = runtime.Lock()
         self.ended = False
         self.yielded = False
 
@@ -610,7 +610,7 @@ class Messenger:
         self.closed = False
         self.supervisor: int | None = None  # `supervised_by`'s pid
         self._resolver = resolver
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._served: dict[str, Listening] = {}
         self._peers: dict[str, Remote] = {}
         self._carrier: Carrier | None = None
@@ -680,7 +680,7 @@ class Messenger:
         with self._lock:
             self._served[name] = listening
         listening.settle()
-        threading.Thread(
+        runtime.Thread(
             target=self._watch_end, args=(listening,), name=f"rr-watch-{name}", daemon=True
         ).start()
         endpoint.listening()
@@ -803,7 +803,7 @@ class Messenger:
         """In a forked child: drop the parent's listeners and peers (their threads are not
         here) without touching them; nobody speaks for the child's registrars. Takes no
         lock (a thread of the parent may have held it at the fork)."""
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         served, peers = list(self._served.values()), list(self._peers.values())
         self._served.clear()
         self._peers.clear()

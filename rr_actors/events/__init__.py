@@ -32,9 +32,11 @@ first 8 characters.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Iterable
 
+from rr_actors._core import runtime
 from rr_actors._core.bus import Publisher
 from rr_actors.events.kinds import (
     CallAnswered,
@@ -106,7 +108,9 @@ def _stamp(event: Event) -> int:
     return event.hlc
 
 
-_EVERYTHING: Publisher[Event] = Publisher(notice=EventsDropped)
+_EVERYTHING: Publisher[Event] = runtime.process_state(
+    Publisher(notice=EventsDropped), functools.partial(Publisher, notice=EventsDropped)
+)
 
 
 def everything() -> Publisher[Event]:

@@ -19,7 +19,21 @@ from __future__ import annotations
 from rr_actors._extras import needs
 
 with needs("simulation", "rr_actors.simulation"):  # greenlet: one line if it is missing
-    from rr_actors.simulation._run import Run, note, now, run, sleep
+    from rr_actors.simulation._network import SimulatedNetwork
+    from rr_actors.simulation._run import Run, kill, note, now, pid, run, sleep, start_process
     from rr_actors.simulation._scheduler import DeadlockError, LimitError, SimulationError
 
-__all__ = ["DeadlockError", "LimitError", "Run", "SimulationError", "note", "now", "run", "sleep"]
+__all__ = [
+    "DeadlockError",
+    "LimitError",
+    "Run",
+    "SimulatedNetwork",
+    "SimulationError",
+    "kill",
+    "note",
+    "now",
+    "pid",
+    "run",
+    "sleep",
+    "start_process",
+]

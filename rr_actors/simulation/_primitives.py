@@ -29,6 +29,7 @@ from collections.abc import Callable
 from types import TracebackType
 from typing import Any
 
+from rr_actors.simulation._processes import Process
 from rr_actors.simulation._scheduler import Scheduler, Task, short_path
 
 __all__ = [
@@ -59,12 +60,14 @@ def _deadline(sched: Scheduler, timeout: float | None) -> float | None:
 class Lock:
     """`threading.Lock`: any task may release it."""
 
-    __slots__ = ("_holder", "_locked", "_made", "_sched", "_waiters")
+    __slots__ = ("_holder", "_locked", "_made", "_sched", "_waiters", "maker")
 
     def __init__(self, sched: Scheduler) -> None:
         self._sched = sched
+        maker = sched.current_or_none()
+        self.maker = None if maker is None else maker.process  # (`Scheduler.end`)
         self._locked = False
-        self._holder: Task | None = None  # who took it last (for reports)
+        self._holder: Task | None = None  # who holds it (for reports; `let_go`)
         self._waiters: collections.deque[Task] = collections.deque()
         self._made = _made_at()
 
@@ -81,7 +84,9 @@ class Lock:
             if not self._wait(sched, _deadline(sched, timeout)):
                 return False
         self._locked = True
-        self._holder = sched.current_or_none()
+        holder = self._holder = sched.current_or_none()
+        if holder is not None:
+            holder.held.append(self)
         return True
 
     def _wait(self, sched: Scheduler, deadline: float | None) -> bool:
@@ -99,10 +104,25 @@ class Lock:
     def release(self) -> None:
         if not self._locked:
             raise RuntimeError("release unlocked lock")
-        self._locked = False
-        if self._waiters:
-            self._sched.wake(self._waiters.popleft())
+        self._free()
         self._sched.pause()
+
+    def _free(self) -> None:
+        self._locked = False
+        holder, self._holder = self._holder, None
+        if holder is not None and self in holder.held:
+            holder.held.remove(self)
+        waiters = self._waiters
+        while waiters:
+            task = waiters.popleft()
+            if not task.killed:
+                self._sched.wake(task)
+                break
+
+    def let_go(self) -> None:
+        """Its holder's process ended (`Scheduler.end`): free it, as if released."""
+        if self._locked:
+            self._free()
 
     def locked(self) -> bool:
         return self._locked
@@ -153,8 +173,11 @@ class RLock(Lock):
             raise RuntimeError("cannot release un-acquired lock")
         self._count -= 1
         if not self._count:
-            self._holder = None
             super().release()
+
+    def let_go(self) -> None:
+        self._count = 0
+        super().let_go()
 
     def _release_save(self) -> int:
         count, self._count = self._count, 1
@@ -199,9 +222,10 @@ class Condition:
         sched = self._sched
         waiter: list[Any] = [sched.current(), False]
         self._waiters.append(waiter)
-        saved = self._lock._release_save()
+        saved = self._lock._release_save()  # (a choice point: a notify may come first)
         try:
-            sched.block((self, "wait"), _deadline(sched, timeout))
+            if not waiter[1]:
+                sched.block((self, "wait"), _deadline(sched, timeout))
         finally:
             if not waiter[1]:
                 self._waiters.remove(waiter)
@@ -231,6 +255,8 @@ class Condition:
         waiters = self._waiters
         while waiters and n > 0:
             waiter = waiters.popleft()
+            if waiter[0].killed:
+                continue
             waiter[1] = True
             self._sched.wake(waiter[0])
             n -= 1
@@ -296,8 +322,12 @@ class SimpleQueue:
 
     def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
         self._items.append(item)
-        if self._waiters:
-            self._sched.wake(self._waiters.popleft())
+        waiters = self._waiters
+        while waiters:
+            task = waiters.popleft()
+            if not task.killed:
+                self._sched.wake(task)
+                break
         self._sched.pause()
 
     def put_nowait(self, item: Any) -> None:
@@ -376,8 +406,10 @@ class Thread:
         kwargs: dict[str, Any] | None = None,
         *,
         daemon: bool | None = None,
+        process: Process | None = None,
     ) -> None:
         self._sched = sched
+        self._process = process  # (`None`: the starting task's)
         self._target = target
         self._args = args
         self._kwargs = kwargs or {}
@@ -398,7 +430,7 @@ class Thread:
     def start(self) -> None:
         if self._task is not None:
             raise RuntimeError("threads can only be started once")
-        self._task = self._sched.spawn(self._bootstrap, self.name, self.daemon, self)
+        self._task = self._sched.spawn(self._bootstrap, self.name, self.daemon, self, self._process)
         self._sched.pause()
 
     def _bootstrap(self) -> None:

@@ -2,11 +2,13 @@
 
 ```
  run(fn, seed=S) ─► a thread "rr-simulation" ─┬─ runtime.use(the simulated seams)
-   (the caller waits for it, bounded)         ├─ each process state (runtime.process_state)
-                                              │  set to a fresh one: the directory, the
-                                              │  membership, the clock, pykka's registry
+   (the caller waits for it, bounded)         ├─ the main process (pid 1): a fresh state of
+                                              │  each runtime.process_state (the directory,
+                                              │  the membership, the clock, pykka's registry)
                                               ├─ Scheduler.run(): fn() as the task
                                               │  "MainThread", and every thread it starts
+                                              │  (a process it starts: start_process, a
+                                              │  manager process; kill(pid, sig))
                                               └─ the states put back, the real seams back
  ◄── Run(seed, hash, steps, elapsed, value, errors, trace): the same for the same seed
 ```
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import signal
 import sys
 import threading
 import traceback
@@ -29,10 +32,22 @@ from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
 from rr_actors._core import runtime
+from rr_actors.simulation import _manager
 from rr_actors.simulation import _primitives as sim
+from rr_actors.simulation._processes import States
 from rr_actors.simulation._scheduler import Scheduler, SimulationError
 
-__all__ = ["Run", "note", "now", "run", "sleep"]
+__all__ = [
+    "Run",
+    "kill",
+    "note",
+    "now",
+    "pid",
+    "run",
+    "running_scheduler",
+    "sleep",
+    "start_process",
+]
 
 T = TypeVar("T")
 
@@ -42,7 +57,6 @@ MONOTONIC_START = 1_000.0
 WALL_START = 1_767_225_600.0
 """`runtime.wall()` when a run begins (2026-01-01 00:00 UTC)."""
 
-_MISSING = object()
 _scheduler: Scheduler | None = None  # the run in progress (one at a time per process)
 
 
@@ -114,6 +128,7 @@ def run(
             seed,
             preempt=preempt,
             locals=runtime.thread_locals(),
+            states=States(runtime.process_states()),
             max_steps=max_steps,
             until=until,
             trace=trace,
@@ -157,8 +172,8 @@ def _simulate(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: lis
 
     runtime.use(_seams(sched))
     _scheduler = sched
-    saved = [_swap_in(obj, fresh()) for obj, fresh in runtime.process_states()]
     try:
+        sched.new_process("main")  # (its state made of the simulated seams)
         sim.Thread(sched, target=main, name="MainThread", daemon=False).start()
         sched.run()
         outcome.extend(_finished(sched, *result[0]))
@@ -167,8 +182,7 @@ def _simulate(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: lis
     finally:
         _scheduler = None
         sched.drop()
-        for obj, state in zip(runtime.process_states(), saved, strict=True):
-            _put_back(obj[0], state)
+        sched.states.close()
         runtime.use(None)
 
 
@@ -211,38 +225,16 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
         "get_ident": functools.partial(sim.get_ident, sched),
         "current_thread": functools.partial(sim.current_thread, sched),
         "queue_class": functools.partial(sim.queue_class, sched, {}),
+        "manager_process": functools.partial(_manager.start, sched),
     }
 
 
-def _fields(obj: object) -> list[str]:
-    names = list(getattr(obj, "__dict__", ()))
-    for kind in type(obj).__mro__:
-        names.extend(
-            name
-            for name in getattr(kind, "__slots__", ())
-            if name not in names and hasattr(obj, name)
-        )
-    return names
+def running_scheduler() -> Scheduler:
+    """The scheduler of the run the calling thread is a simulated thread of.
 
-
-def _swap_in(obj: object, fresh: object) -> dict[str, Any]:
-    """Give `obj` the attributes of `fresh`; what it had (to put back)."""
-    saved = {}
-    for name in _fields(fresh):
-        saved[name] = getattr(obj, name, _MISSING)
-        setattr(obj, name, getattr(fresh, name))
-    return saved
-
-
-def _put_back(obj: object, saved: dict[str, Any]) -> None:
-    for name, value in saved.items():
-        if value is _MISSING:
-            delattr(obj, name)
-        else:
-            setattr(obj, name, value)
-
-
-def _running() -> Scheduler:
+    Raises:
+        RuntimeError: no simulation runs on the calling thread.
+    """
     if _scheduler is None or _scheduler.current_or_none() is None:
         raise RuntimeError("called outside a simulated run's threads")
     return _scheduler
@@ -254,7 +246,7 @@ def note(text: str) -> None:
     Raises:
         RuntimeError: no simulation runs on the calling thread.
     """
-    _running().note(text)
+    running_scheduler().note(text)
 
 
 def now() -> float:
@@ -263,7 +255,7 @@ def now() -> float:
     Raises:
         RuntimeError: no simulation runs on the calling thread.
     """
-    return _running().now
+    return running_scheduler().now
 
 
 def sleep(seconds: float) -> None:
@@ -272,4 +264,52 @@ def sleep(seconds: float) -> None:
     Raises:
         RuntimeError: no simulation runs on the calling thread.
     """
-    sim.sleep(_running(), seconds)
+    sim.sleep(running_scheduler(), seconds)
+
+
+def pid() -> int:
+    """The simulated pid of the calling thread's process (the run's main process: 1).
+
+    Raises:
+        RuntimeError: no simulation runs on the calling thread.
+    """
+    sched = running_scheduler()
+    return sched.current().process.pid
+
+
+def start_process(target: Callable[[], object], *, name: str) -> int:
+    """Start a simulated process that runs `target()` as its main thread; its pid.
+
+    Its per-process state (the directory of registrars, the membership, the clock,
+    pykka's registry, ...) is its own, fresh; the threads it starts are its own. It ends
+    when killed (`kill`), never by itself: a process whose threads all ended idles.
+
+    Raises:
+        RuntimeError: no simulation runs on the calling thread.
+    """
+    sched = running_scheduler()
+    process = sched.new_process(name)
+    sim.Thread(sched, target=target, name=f"{name}-main", daemon=True, process=process).start()
+    return process.pid
+
+
+def kill(pid: int, sig: int = signal.SIGKILL) -> None:
+    """Send `sig` to simulated process `pid`, as `os.kill`: `SIGKILL` (or another
+    deadly signal) ends it at once (no `finally` block of its runs; what it served is cut
+    off the network; its backup keeps what committed), `SIGSTOP` stops running it,
+    `SIGCONT` runs it again. A process that ended already is left alone.
+
+    Raises:
+        RuntimeError: no simulation runs on the calling thread.
+        ProcessLookupError: no simulated process has that pid.
+    """
+    sched = running_scheduler()
+    process = next((p for p in sched.processes if p.pid == pid), None)
+    if process is None:
+        raise ProcessLookupError(f"no simulated process {pid}")
+    if sig == signal.SIGSTOP:
+        sched.stop(process)
+    elif sig == signal.SIGCONT:
+        sched.cont(process)
+    else:
+        sched.end(process, -sig)

@@ -44,6 +44,7 @@ from typing import Any
 import greenlet
 
 from rr_actors.errors import RrError
+from rr_actors.simulation._processes import Process, States
 
 __all__ = ["DeadlockError", "LimitError", "Scheduler", "SimulationError", "Task"]
 
@@ -108,9 +109,12 @@ class Task:
         "daemon",
         "ended",
         "glet",
+        "held",
+        "killed",
         "locals",
         "name",
         "number",
+        "process",
         "readied",
         "thread",
         "token",
@@ -118,13 +122,16 @@ class Task:
         "woken",
     )
 
-    def __init__(self, number: int, name: str, daemon: bool, thread: Any) -> None:
+    def __init__(self, number: int, name: str, daemon: bool, thread: Any, process: Process) -> None:
         self.number = number
         self.name = name
         self.daemon = daemon
         self.thread = thread  # the simulated `Thread` it runs
+        self.process = process  # the simulated process it belongs to
         self.glet: _Greenlet | None = None
         self.ended = False
+        self.killed = False  # its process ended: never switched to again
+        self.held: list[Any] = []  # the simulated locks it holds (let go if it is killed)
         self.waiting: tuple[object, str] | None = None  # (primitive, operation) it waits in
         self.readied = False  # made ready while it waited (by a wake or its deadline)
         self.woken = False  # ... by a wake (not its deadline)
@@ -142,6 +149,7 @@ class Scheduler:
         seed: the seed of every choice (and, through `data`, of every random value).
         preempt: the probability that a task yields at a choice point (`pause`).
         locals: the thread-local namespaces each task keeps its own contents of.
+        states: the per-process singletons each simulated process has its own state of.
         max_steps: steps (switches to a task) a run may take.
         until: virtual seconds a run may last.
         trace: keep each step (`trace`), not only their hash.
@@ -153,6 +161,7 @@ class Scheduler:
         *,
         preempt: float,
         locals: tuple[Any, ...],
+        states: States,
         max_steps: int,
         until: float,
         trace: bool,
@@ -176,12 +185,27 @@ class Scheduler:
         self.trace: list[tuple[float, int, str]] | None = [] if trace else None
         self.errors: list[str] = []
         self._main = greenlet.getcurrent()  # (made on the thread it runs on)
+        self.states = states
+        self._pids = itertools.count(1)
+        self.processes: list[Process] = []  # the first: the run's main process (`root`)
 
     # -- tasks -----------------------------------------------------------------------
 
-    def spawn(self, body: Callable[[], object], name: str, daemon: bool, thread: Any) -> Task:
-        """A new task that runs `body()`, ready at once."""
-        task = Task(next(self._numbers), name, daemon, thread)
+    def spawn(
+        self,
+        body: Callable[[], object],
+        name: str,
+        daemon: bool,
+        thread: Any,
+        process: Process | None = None,
+    ) -> Task:
+        """A new task that runs `body()`, ready at once, in `process` (`None`: the
+        calling task's, or the root process's)."""
+        if process is None:
+            current = self.current_or_none()
+            process = self.root if current is None else current.process
+        task = Task(next(self._numbers), name, daemon, thread, process)
+        process.tasks.append(task)
         task.locals = [{} for _ in self._locals]
         glet = _Greenlet(self._body(task, body), parent=self._main)
         glet.task = task
@@ -202,9 +226,10 @@ class Scheduler:
                 self.errors.append(f"{task.name}: {type(exc).__name__}: {exc}")
                 logger.exception("simulated thread %s (seed %s) ended", task.name, self.seed)
             finally:
-                task.ended = True
-                if not task.daemon:
-                    self._running -= 1
+                if not task.killed:  # (a killed one was counted out by `end`)
+                    task.ended = True
+                    if not task.daemon:
+                        self._running -= 1
 
         return run
 
@@ -249,7 +274,7 @@ class Scheduler:
 
     def wake(self, task: Task) -> None:
         """End `task`'s wait (if it still waits): it is ready."""
-        if task.waiting is not None and not task.readied:
+        if task.waiting is not None and not task.readied and not task.killed:
             task.readied = task.woken = True
             self._ready.append(task)
 
@@ -298,6 +323,9 @@ class Scheduler:
             task = ready[index]
             ready[index] = ready[-1]
             ready.pop()
+            if task.process.stopped:  # (SIGSTOP: ready again at its `cont`)
+                task.process.parked.append(task)
+                continue
             self.steps += 1
             self._hash.update(_STEP.pack(task.number, self.now))
             if self.trace is not None:
@@ -305,6 +333,7 @@ class Scheduler:
             self._switch(task)
 
     def _switch(self, task: Task) -> None:
+        self.states.install(task.process)
         namespaces = self._locals
         for namespace, state in zip(namespaces, task.locals, strict=True):
             contents = namespace.__dict__
@@ -351,18 +380,77 @@ class Scheduler:
         timers = self._timers
         while timers:
             deadline, _, task, token = heapq.heappop(timers)
-            if task.token != token or task.waiting is None or task.readied:
-                continue  # (a stale timer: that wait ended already)
+            if task.token != token or task.waiting is None or task.readied or task.killed:
+                continue  # (a stale timer: that wait ended already, or its process did)
             self.now = max(self.now, deadline)
             task.readied = True
             self._ready.append(task)
             while timers and timers[0][0] <= self.now:  # everything due at this instant
                 _, _, task, token = heapq.heappop(timers)
-                if task.token == token and task.waiting is not None and not task.readied:
+                stale = task.token != token or task.waiting is None or task.readied
+                if not stale and not task.killed:
                     task.readied = True
                     self._ready.append(task)
             return True
         return False
+
+    # -- processes ---------------------------------------------------------------------
+
+    @property
+    def root(self) -> Process:
+        """The run's main process (the first made, once the simulated seams are in: its
+        fresh state is made of simulated locks)."""
+        return self.processes[0]
+
+    def new_process(self, name: str) -> Process:
+        """A new simulated process, with a pid of its own and fresh per-process state
+        (no task yet: `spawn` its first)."""
+        process = Process(next(self._pids), name, self.states.fresh())
+        self.processes.append(process)
+        return process
+
+    def end(self, process: Process, exitcode: int) -> None:
+        """End `process` (a SIGKILL: `-9`; an exit: its code): its tasks are never run
+        again (no `finally` block of theirs runs), the simulated locks they held are let
+        go (those another process made: only the carrier's objects are shared; its own
+        stay as they were, a future's lock too), then its `at_end` callbacks run. From
+        one of its own tasks, never returns."""
+        if not process.alive:
+            return
+        process.exitcode = exitcode
+        process.stopped = False
+        process.parked.clear()
+        me = self.current_or_none()
+        for task in process.tasks:
+            if task.ended or task.killed:
+                continue
+            task.killed = True
+            if not task.daemon:
+                self._running -= 1
+            for lock in reversed(task.held):
+                if lock.maker is not process:  # (another's: a carrier's, shared)
+                    lock.let_go()
+            task.held.clear()
+        self._ready[:] = [task for task in self._ready if not task.killed]
+        ends, process.at_end = process.at_end, []
+        for at_end in ends:
+            at_end()
+        if me is not None and me.killed:
+            self._main.switch()  # (never switched back to)
+            raise AssertionError("a killed task ran again")  # pragma: no cover
+
+    def stop(self, process: Process) -> None:
+        """SIGSTOP: `process`'s tasks are not run until `cont`."""
+        if process.alive and not process.stopped:
+            process.stopped = True
+            process.stopped_at = self.now
+
+    def cont(self, process: Process) -> None:
+        """SIGCONT: `process`'s tasks run again (those made ready meanwhile are ready)."""
+        if process.stopped:
+            process.stopped = False
+            self._ready.extend(process.parked)
+            process.parked.clear()
 
     # -- reports -----------------------------------------------------------------------
 
@@ -372,9 +460,11 @@ class Scheduler:
             f"{what}, at virtual time {self.now:g} s after {self.steps} steps (seed {self.seed})"
         ]
         for task in self._tasks:
-            if task.ended:
+            if task.ended or task.killed:
                 continue
             kind = "daemon " if task.daemon else ""
+            if task.process is not self.root:
+                kind += f"(process {task.process.pid}) "
             if task.waiting is None:
                 lines.append(f"  {kind}{task!r}: ready")
                 continue

@@ -37,10 +37,10 @@ carriers' business.
 from __future__ import annotations
 
 import dataclasses
-import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from rr_actors._core import runtime
 from rr_actors._core.serial import SerialExecutor, Task
 from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.codec import split_frame
@@ -68,6 +68,18 @@ __all__ = ["MemoryAddress", "MemoryNetwork"]
 _NETWORKS: dict[str, MemoryNetwork] = {}  # by system name: what `MemoryAddress` attaches
 
 
+class _Members:
+    """This process's memberships of in-memory networks, by system name: the network
+    itself in the process that made it; in another simulated process (a simulation runs
+    each of its processes on one network), a `_Member` made at its first `attach`."""
+
+    def __init__(self) -> None:
+        self.by_system: dict[str, MemoryNetwork | _Member] = {}
+
+
+_MEMBERS = runtime.process_state(_Members(), _Members)
+
+
 @dataclasses.dataclass(frozen=True)
 class MemoryAddress:
     """How to join a `MemoryNetwork`: it pickles; `attach()` works in this process only.
@@ -78,8 +90,9 @@ class MemoryAddress:
 
     system: str
 
-    def attach(self) -> MemoryNetwork:
-        """The network of that name (this process's).
+    def attach(self) -> Transport:
+        """The network of that name (this process's); in a simulated process other than
+        the one that made it, that process's membership of it (one per process).
 
         Raises:
             RegistrarStoppedError: it was closed, or it is another process's.
@@ -90,7 +103,27 @@ class MemoryAddress:
                 f"no in-memory network {self.system!r} in this process (closed, or another "
                 f"process's: an in-memory network cannot be joined from another process)"
             )
-        return network
+        member = _MEMBERS.by_system.get(self.system)
+        if member is None or member.link() is not network.link():
+            member = _Member(self.system)
+            member.joined(network.link())
+            _MEMBERS.by_system[self.system] = member
+        return member
+
+
+class _Member(Messenger):
+    """A simulated process's membership of a network another one made (`attach`): the
+    directory of that process asks it for names. Leaving is its process's end (the
+    simulation cuts what it served); `close` would close the network."""
+
+    @property
+    def address(self) -> MemoryAddress:
+        return MemoryAddress(self.system)
+
+    def close(self) -> None:
+        """Leave the network (stop serving here): the network stays open."""
+        self._carrier = None  # (its leaving is not the network's: no `leave`)
+        super().close()
 
 
 class _Served(Listening):
@@ -100,6 +133,7 @@ class _Served(Listening):
         super().__init__(endpoint)
         self.hub = hub
         self.inbox = SerialExecutor(f"rr-mem-{endpoint.name}")
+        self.inbox.start()  # (now: its thread is the serving process's)
         self.route = _Route(self, messenger)  # every sender's: what waits on it
         self.cut = False  # its process is gone
         self.gone = False  # no longer reached
@@ -155,10 +189,11 @@ class _Hub:
         self.messenger = messenger
         self.system = messenger.system
         self.closed = False
-        self._lock = threading.Lock()
+        self._lock = runtime.Lock()
         self._served: dict[str, _Served] = {}
         self._gone: dict[str, str] = {}  # name -> "stopped" | "unavailable"
         self._answers = SerialExecutor("rr-mem-answers", on_drop=_lost)
+        self._answers.start()  # (now: its thread is the network's process's)
 
     def knows(self, name: str) -> bool:
         return name in self._served or name in self._gone
@@ -252,13 +287,18 @@ class MemoryNetwork(Messenger):
         ConfigError: another open network of this process has that name.
     """
 
+    _hub_class: type[_Hub] = _Hub
+    """What carries its frames between its "processes" (a simulation's adds faults)."""
+
     def __init__(self, system: str = "memory") -> None:
         if system in _NETWORKS:
             raise ConfigError(f"system: an in-memory network named {system!r} is open already")
-        super().__init__(system, resolver=False)
-        self._hub = _Hub(self)
+        # (in a simulation, its process is one of the network's, as the others are)
+        super().__init__(system, resolver=runtime.simulated())
+        self._hub = self._hub_class(self)
         self.joined(self._hub)
         _NETWORKS[system] = self
+        _MEMBERS.by_system[system] = self
 
     @property
     def address(self) -> MemoryAddress:
@@ -295,6 +335,8 @@ class MemoryNetwork(Messenger):
         super().close()
         if _NETWORKS.get(self.system) is self:
             del _NETWORKS[self.system]
+        if _MEMBERS.by_system.get(self.system) is self:
+            del _MEMBERS.by_system[self.system]
 
     def cut(self, name: str) -> None:
         """The process serving registrar `name` is gone (a `SIGKILL`, a cut link): every

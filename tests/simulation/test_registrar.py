@@ -419,9 +419,13 @@ def test_a_seed_gives_the_same_hashes_in_another_process() -> None:
     """With string hashing fixed (`PYTHONHASHSEED`), as a replay in another process runs."""
     source = (
         "from tests.simulation.test_registrar import PREEMPT, SCENARIOS, simulation\n"
+        "from tests.simulation import test_supervision as supervised\n"
         "for scenario in SCENARIOS:\n"
         "    for seed in range(3):\n"
         "        print(simulation.run(scenario, seed=seed, preempt=PREEMPT).hash)\n"
+        "for seed in range(3):\n"  # (manager processes under kills: issue 42, step 2)
+        "    tree = supervised.tree(kills=3)\n"
+        "    print(simulation.run(tree, seed=seed, preempt=supervised.PREEMPT).hash)\n"
     )
     environment = {**os.environ, "PYTHONHASHSEED": "0"}
     outputs = [
@@ -437,5 +441,5 @@ def test_a_seed_gives_the_same_hashes_in_another_process() -> None:
         for _ in range(2)
     ]
 
-    assert 3 * len(SCENARIOS) == len(outputs[0].split())
+    assert 3 * len(SCENARIOS) + 3 == len(outputs[0].split())
     assert outputs[0] == outputs[1]

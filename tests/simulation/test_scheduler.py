@@ -199,6 +199,31 @@ def test_choice_points_where_nothing_blocks_let_seeds_find_a_race() -> None:
 # -- what stops a run --------------------------------------------------------------------
 
 
+def test_a_notify_that_comes_while_a_waiter_lets_go_of_its_lock_is_not_lost() -> None:
+    """`Condition.wait` releases its lock at a choice point: a notify may come there,
+    before the waiter blocks (a lost wake-up would be a deadlock)."""
+
+    def main() -> int:
+        cond = runtime.Condition(runtime.Lock())
+        woken = []
+
+        def waiter() -> None:
+            with cond:
+                woken.append(cond.wait(timeout=None))
+
+        thread = runtime.Thread(target=waiter, name="waiter")
+        thread.start()
+        for _ in range(50):
+            with cond:
+                cond.notify()
+            if woken:
+                break
+        thread.join()
+        return len(woken)
+
+    assert all(1 == simulation.run(main, seed=s, preempt=0.5).value for s in range(100))
+
+
 def test_a_wait_that_nothing_can_end_is_a_deadlock_that_says_who_waits_on_what() -> None:
     def main() -> None:
         first, second = runtime.Lock(), runtime.Lock()

@@ -1,0 +1,321 @@
+"""The simulated carrier: the in-memory network between simulated processes, with delays,
+order per link, cuts and heals.
+
+```
+ process A: Remote.tell ─► messenger ─► hub.route(name) ─► A's link to name (one per
+   sending process and served registrar; made at A's first send)
+   _Link.send(frame) ─► its wire to B: after a seeded delay, in order (FIFO per link),
+   on a thread of B's (`_Wire`) ─► the messenger: unpickle, tell the registrar
+ B's answer ─► answer_to(link) ─► the link's wire back: after a delay, in order, on a
+   thread of A's ─► link.pending.answered
+ partition(pids) ─► links across fail what waits on them; sends across raise "cannot be
+   reached"; what is on the wire across is dropped when it arrives
+ heal() ─► links work again; every process hears each name across as reachable again
+   (rule 20: its consumers reconcile), on a thread of its own
+ a lease (`lease=`): a process stopped (SIGSTOP) past it is silent: the links to what it
+   serves fail what waits, as at a cut; once it runs again, reachable again (a presence
+   thread of the network's process looks every quarter lease)
+ a process ends ─► what it served ends (`_Hub.end`): every link to it fails what waits
+```
+
+What is not the carrier's (naming, replies kept under a token, stand-in replies, sizes,
+compensation) is the messenger's, as on every carrier. A kill drops what is on the wire
+to the killed process (its wire threads are its own and end with it); what it sent
+before it died still arrives, as a socket's buffered bytes do.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from rr_actors._transport.base import Endpoint
+from rr_actors._transport.codec import split_frame
+from rr_actors._transport.messenger import Lost, Messenger, Replies, run_lost
+from rr_actors.errors import RegistrarUnavailableError, RrError
+from rr_actors.simulation import _primitives as sim
+from rr_actors.simulation._processes import Process
+from rr_actors.simulation._run import running_scheduler
+from rr_actors.simulation._scheduler import Scheduler
+from rr_actors.testing.memory import MemoryNetwork, _Hub, _Served
+
+__all__ = ["SimulatedNetwork"]
+
+logger = logging.getLogger("rr_actors")
+
+DELAY = (0.0005, 0.005)
+"""Seconds a frame takes on a link, at least and at most (each drawn from the seed)."""
+
+
+class SimulatedNetwork(MemoryNetwork):
+    """An in-memory network between simulated processes (made inside a simulated run):
+    each frame after a seeded delay, in order per link; `partition` and `heal`.
+
+    Args:
+        system: its name (`MemoryAddress` finds it by that name).
+        delay: `(least, most)` seconds a frame takes on a link.
+        lease: seconds a stopped process is heard (a liveliness lease) before what it
+            serves cannot be reached; `None`: for ever (its heartbeat judges it).
+    """
+
+    def __init__(
+        self,
+        system: str = "simulated",
+        *,
+        delay: tuple[float, float] = DELAY,
+        lease: float | None = None,
+    ) -> None:
+        self.delay = delay
+        self.lease = lease
+        super().__init__(system)
+
+    def partition(self, side: Iterable[int]) -> None:
+        """Cut the processes of pids `side` off the others (both ways) until `heal`."""
+        hub = self._hub
+        assert isinstance(hub, _SimulatedHub)
+        hub.partition(frozenset(side))
+
+    def heal(self) -> None:
+        """Join every process again; each hears the names across as reachable again."""
+        hub = self._hub
+        assert isinstance(hub, _SimulatedHub)
+        hub.heal()
+
+
+class _Wire:
+    """Frames one way on one link: each after its delay, in order, on a thread of the
+    receiving process (started at the first frame)."""
+
+    __slots__ = ("_hub", "_last", "_name", "_queue", "_thread", "process")
+
+    def __init__(self, hub: _SimulatedHub, process: Process, name: str) -> None:
+        self._hub = hub
+        self.process = process
+        self._name = name
+        self._queue = sim.SimpleQueue(hub.sched)
+        self._last = 0.0  # (the last frame's arrival: none overtakes it)
+        self._thread: sim.Thread | None = None
+
+    def put(self, deliver: Callable[[], object]) -> None:
+        hub = self._hub
+        sched = hub.sched
+        least, most = hub.delay
+        due = max(sched.now + sched.data.uniform(least, most), self._last)
+        self._last = due
+        self._queue.put((due, deliver))
+        if self._thread is None:
+            self._thread = sim.Thread(
+                sched, target=self._run, name=self._name, daemon=True, process=self.process
+            )
+            self._thread.start()
+
+    def _run(self) -> None:
+        sched = self._hub.sched
+        while True:
+            due, deliver = self._queue.get()
+            if due > sched.now:
+                sim.sleep(sched, due - sched.now)
+            try:
+                deliver()
+            except Exception:
+                logger.exception("%s: a delivery failed", self._name)
+
+
+class _Link:
+    """The way from one simulated process to one served registrar (the messenger's
+    `Route`): a wire there, a wire back for the answers."""
+
+    __slots__ = ("_back", "_hub", "_there", "closed", "limit", "pending", "sender", "served")
+
+    def __init__(self, hub: _SimulatedHub, sender: Process, served: _Served) -> None:
+        self._hub = hub
+        self.sender = sender
+        self.served = served
+        self.limit = served.endpoint.max_message_bytes
+        self.pending = Replies()
+        self.closed = False
+        receiver = served_by(served)
+        name = served.endpoint.name
+        self._there = _Wire(hub, receiver, f"rr-link-{sender.pid}-to-{name}")
+        self._back = _Wire(hub, sender, f"rr-link-{name}-to-{sender.pid}")
+
+    def send(self, data: bytes) -> bool:
+        served, hub = self.served, self._hub
+        if self.closed or served.cut or served.gone or hub.apart(self):
+            return False
+        endpoint, messenger = served.endpoint, hub.messenger
+        token, payload = split_frame(data)
+        self._there.put(lambda: self._arrive(messenger, endpoint, token, payload))
+        return True
+
+    def _arrive(self, messenger: Messenger, endpoint: Endpoint, token: int, payload: Any) -> None:
+        if not self.closed and not self._hub.apart(self):  # (else lost on the wire)
+            messenger.message(endpoint, self, token, payload)
+
+    def answer(self, data: bytes, on_lost: Lost | None) -> bool:
+        if self.closed or not self.sender.alive or self._hub.apart(self):
+            return False
+        self._back.put(lambda: self._answered(data, on_lost))
+        return True
+
+    def _answered(self, data: bytes, on_lost: Lost | None) -> None:
+        if self._hub.apart(self):  # lost on the wire: the answer's compensation runs
+            if on_lost is not None:
+                run_lost([on_lost])
+            return
+        self.pending.answered(*split_frame(data))
+
+    def close(self, error: RrError) -> None:
+        self.closed = True
+        self.pending.fail(None, error)
+
+    def broken(self) -> bool:
+        return False  # (its end fails what waits on it: `_SimulatedHub.end`)
+
+
+def served_by(served: _Served) -> Process:
+    process: Process = getattr(served, "process")  # noqa: B009 - set by `listen`
+    return process
+
+
+class _SimulatedHub(_Hub):
+    """The hub of a `SimulatedNetwork`: links per sending process, wires, partitions."""
+
+    def __init__(self, messenger: Messenger) -> None:
+        super().__init__(messenger)
+        assert isinstance(messenger, SimulatedNetwork)
+        self.sched: Scheduler = running_scheduler()
+        self.delay = messenger.delay
+        self.network = messenger
+        self._links: dict[tuple[int, str], _Link] = {}
+        self._side: frozenset[int] | None = None  # the pids cut off the others
+        self._silent: set[str] = set()  # names served by a process silent past its lease
+        if messenger.lease is not None:
+            sim.Thread(
+                self.sched, target=self._presence, name="rr-sim-presence", daemon=True
+            ).start()
+
+    def _sender(self) -> Process:
+        task = self.sched.current_or_none()
+        return self.sched.root if task is None else task.process
+
+    def listen(self, endpoint: Endpoint) -> _Served:
+        served = super().listen(endpoint)
+        served.process = self._sender()  # type: ignore[attr-defined]
+        return served
+
+    def route(self, name: str) -> _Link:  # type: ignore[override]
+        served = self._served.get(name)
+        if served is None or served.cut or served.gone:
+            raise self.gone_error(name)
+        sender = self._sender()
+        link = self._links.get((sender.pid, name))
+        if link is None or link.served is not served or link.closed:
+            link = self._links[sender.pid, name] = _Link(self, sender, served)
+        if name in self._silent:
+            raise RegistrarUnavailableError(
+                f"registrar {name!r} cannot be reached (its process is silent past its lease)"
+            )
+        if self.apart(link):
+            raise RegistrarUnavailableError(
+                f"registrar {name!r} cannot be reached (the network between processes "
+                f"{sender.pid} and {served_by(served).pid} is cut)"
+            )
+        return link
+
+    def apart(self, link: _Link) -> bool:
+        """Whether `link` crosses the partition, or leads to a process silent past its
+        lease."""
+        if link.served.endpoint.name in self._silent:
+            return True
+        side = self._side
+        if side is None:
+            return False
+        return (link.sender.pid in side) != (served_by(link.served).pid in side)
+
+    def answer_to(self, process: Any, data: bytes, on_lost: Lost | None) -> bool:
+        if self.closed:
+            return False
+        link: _Link = process
+        return link.answer(data, on_lost)
+
+    def end(self, served: _Served, how: str, error: RrError | None = None) -> None:
+        super().end(served, how, error)
+        failed = error or self.gone_error(served.name)
+        for link in list(self._links.values()):
+            if link.served is served and not link.closed:
+                link.close(failed)
+
+    def partition(self, side: frozenset[int]) -> None:
+        self._side = side
+        for link in list(self._links.values()):
+            if not link.closed and self.apart(link):
+                name = link.served.endpoint.name
+                link.close(RegistrarUnavailableError(f"registrar {name!r} cannot be reached (cut)"))
+
+    def heal(self) -> None:
+        side, self._side = self._side, None
+        if side is None:
+            return
+        pids = {name: served_by(one).pid for name, one in list(self._served.items())}
+
+        def across(process: Process, name: str) -> bool:
+            return (pids[name] in side) != (process.pid in side)
+
+        self._tell_reachable(list(pids), across)
+
+    def _presence(self) -> None:
+        """Every quarter lease: a stopped process silent past its lease is gone for the
+        others; one that runs again is back (as after a heal)."""
+        lease = self.network.lease
+        assert lease is not None
+        sched = self.sched
+        while not self.closed:
+            sim.sleep(sched, lease / 4)
+            back = []
+            for name, served in list(self._served.items()):
+                process = served_by(served)
+                silent = process.stopped and sched.now - process.stopped_at > lease
+                if silent and name not in self._silent:
+                    self._silent.add(name)
+                    error = RegistrarUnavailableError(
+                        f"registrar {name!r} cannot be reached (its process is silent past "
+                        f"its lease, {lease:g} s)"
+                    )
+                    for link in list(self._links.values()):
+                        if link.served is served and not link.closed:
+                            link.close(error)
+                elif not silent and name in self._silent:
+                    self._silent.discard(name)
+                    back.append(name)
+            self._silent &= set(self._served)
+            if back:
+                self._tell_reachable(back, lambda process, name: True)
+
+    def _tell_reachable(self, names: list[str], across: Callable[[Process, str], bool]) -> None:
+        """Each live process hears the names of `names` it is `across` from as reachable
+        again, on a thread of its own."""
+        for process in self.sched.processes:
+            if not process.alive:
+                continue
+            heard = [name for name in names if across(process, name)]
+            if heard:
+                sim.Thread(
+                    self.sched,
+                    target=self._reachable,
+                    args=(heard,),
+                    name=f"rr-reachable-{process.pid}",
+                    daemon=True,
+                    process=process,
+                ).start()
+
+    def _reachable(self, names: list[str]) -> None:
+        """In a process: the names across the healed cut are reachable again (rule 20)."""
+        member = self.network.address.attach()
+        assert isinstance(member, Messenger)
+        for name in names:
+            member.reachable(name)
+
+
+SimulatedNetwork._hub_class = _SimulatedHub

@@ -1,0 +1,129 @@
+"""Simulated processes: a pid, its tasks, its own per-process state; killed or stopped.
+
+```
+ Scheduler.spawn(body, process=P) ─► a task of P (a thread started by a task of P is P's)
+ Scheduler._switch(task of Q) ─► States.install(Q): what P's singletons hold now is put
+   away as P's, Q's is put in (DIRECTORY, MEMBERSHIP, CLOCK, pykka's registry, ...: every
+   object registered with `runtime.process_state`)
+ Scheduler.end(P, exitcode) (SIGKILL: -9; an exit: its code)
+   ├─ its tasks are never switched to again: no `finally` block runs, as after a SIGKILL
+   │  (dropped with the run's other tasks when the run is over)
+   ├─ the simulated locks they held are let go (only the carrier's objects are shared
+   │  between simulated processes: in a real run a dead process holds nothing of theirs)
+   └─ `P.at_end` run (the kernel's part: the carrier closes P's links; its watcher hears)
+ Scheduler.stop(P) (SIGSTOP): its tasks stay off the ready list until `cont(P)` (SIGCONT)
+```
+
+What a process keeps on its disk (SQLite backups: real files) is not its state here: a
+kill drops its memory and keeps its files with exactly the transactions that committed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+__all__ = ["Process", "States"]
+
+
+class Process:
+    """One simulated process (see the module's diagram)."""
+
+    __slots__ = (
+        "at_end",
+        "exitcode",
+        "name",
+        "parked",
+        "pid",
+        "state",
+        "stopped",
+        "stopped_at",
+        "tasks",
+    )
+
+    def __init__(self, pid: int, name: str, state: list[dict[str, Any]]) -> None:
+        self.pid = pid
+        self.name = name
+        self.state = state  # its singletons' fields while another process's are in
+        self.tasks: list[Any] = []  # its tasks (`Task`), ended or not
+        self.exitcode: int | None = None  # set when it ended
+        self.stopped = False  # SIGSTOP: not scheduled until `cont`
+        self.stopped_at = 0.0  # (virtual seconds) when it was stopped last
+        self.parked: list[Any] = []  # its tasks made ready while it was stopped
+        self.at_end: list[Callable[[], object]] = []  # run once, when it ends
+
+    @property
+    def alive(self) -> bool:
+        """Whether it has not ended (killed or exited)."""
+        return self.exitcode is None
+
+    def __repr__(self) -> str:
+        return f"<simulated process {self.pid} {self.name!r}>"
+
+
+def _fields(obj: object) -> list[str]:
+    names = list(getattr(obj, "__dict__", ()))
+    for kind in type(obj).__mro__:
+        names.extend(
+            name
+            for name in getattr(kind, "__slots__", ())
+            if name not in names and hasattr(obj, name)
+        )
+    return names
+
+
+class States:
+    """The objects registered with `runtime.process_state`, and whose state they hold.
+
+    Args:
+        registered: `(obj, fresh)` pairs (`runtime.process_states()`).
+    """
+
+    def __init__(self, registered: tuple[tuple[object, Callable[[], object]], ...]) -> None:
+        self._objects = [obj for obj, _ in registered]
+        self._fresh = [fresh for _, fresh in registered]
+        self._fields = [_fields(fresh()) for fresh in self._fresh]
+        self._real = self._read()  # the real process's, put back by `close`
+        self._installed: Process | None = None
+
+    def fresh(self) -> list[dict[str, Any]]:
+        """The state of a process that starts: each object's fields as a new one has them."""
+        state = []
+        for fresh, names in zip(self._fresh, self._fields, strict=True):
+            made = fresh()
+            state.append({name: getattr(made, name) for name in names})
+        return state
+
+    def _read(self) -> list[dict[str, Any]]:
+        return [
+            {name: getattr(obj, name, _MISSING) for name in names}
+            for obj, names in zip(self._objects, self._fields, strict=True)
+        ]
+
+    def _write(self, state: list[dict[str, Any]]) -> None:
+        for obj, fields in zip(self._objects, state, strict=True):
+            for name, value in fields.items():
+                if value is _MISSING:
+                    if hasattr(obj, name):
+                        delattr(obj, name)
+                else:
+                    setattr(obj, name, value)
+
+    def install(self, process: Process) -> None:
+        """Make the singletons `process`'s (those of the process in before kept as its)."""
+        if process is self._installed:
+            return
+        if self._installed is not None:
+            self._installed.state = self._read()
+        self._write(process.state)
+        self._installed = process
+
+    def close(self) -> None:
+        """Put back the real process's state (the run is over)."""
+        if self._installed is not None:
+            self._installed.state = self._read()
+        self._write(self._real)
+        self._installed = None
+
+
+_MISSING: Any = object()

@@ -1,0 +1,173 @@
+"""Manager processes in a simulation: the real supervisor starts, restarts and stops them
+as simulated processes (`runtime.manager_process`), their catalogs restored from real
+SQLite backups."""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import tempfile
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors import simulation
+from rr_actors.testing import MemoryNetwork
+
+pytest.importorskip("greenlet")  # (the simulation extra)
+
+
+def leaf_setup(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("leaf", load=lambda r: f"leaf {r}", unload=lambda *_: None)
+
+
+def failing_setup(registrar: rr.ResourceRegistrar) -> None:
+    raise ValueError("no camera")
+
+
+def served(supervisor: rr.Supervisor) -> list[Any]:
+    return sorted(
+        supervisor.run_in(
+            "provider", lambda r: [q.request for q in r.server_queries("leaf")], timeout=5.0
+        )
+    )
+
+
+def with_tree(
+    body: Callable[[rr.Supervisor, rr.ResourceRegistrar], Any], **spec: Any
+) -> Callable[[], Any]:
+    """A scenario: one process manager `provider` (a backup in a temporary folder) under
+    a supervisor on an in-memory network, a consumer `app` in the supervisor's process."""
+
+    def scenario() -> Any:
+        folder = tempfile.mkdtemp(prefix="rr-sim-manager-")
+        network = MemoryNetwork("simulated")
+        try:
+            manager = rr.ManagerSpec(
+                "provider", setup=spec.pop("setup", leaf_setup), isolation="process", **spec
+            )
+            supervisor = rr.Supervisor(manager, state_dir=folder, network=network, name="root")
+            supervisor.start()
+            app = supervisor.registrar("app")
+            try:
+                return body(supervisor, app)
+            finally:
+                supervisor.stop()
+                app.stop()
+        finally:
+            network.close()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    return scenario
+
+
+def test_a_manager_runs_in_a_simulated_process_of_its_own() -> None:
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar) -> Any:
+        query = app.call("provider", "leaf", "x")
+        pid = supervisor.child("provider").pid
+        inside = supervisor.run_in("provider", lambda r: simulation.pid(), timeout=5.0)
+        return query.response, pid, inside, simulation.pid()
+
+    assert ("leaf x", 2, 2, 1) == simulation.run(with_tree(body), seed=1).value
+
+
+def test_a_killed_manager_is_restarted_by_the_supervisor_with_its_catalog_restored() -> None:
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar) -> Any:
+        app.call("provider", "leaf", "x")
+        simulation.kill(supervisor.child("provider").pid)
+        info = supervisor.wait_restarted("provider", timeout=10.0)
+        return info.pid, info.last_exit, served(supervisor)
+
+    for seed in range(20):
+        run = simulation.run(with_tree(body), seed=seed, preempt=0.1)
+        assert (3, "killed by SIGKILL", ["x"]) == run.value, f"seed {seed}"
+
+
+def test_a_hung_manager_is_killed_by_its_heartbeat_and_restarted() -> None:
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar) -> Any:
+        app.call("provider", "leaf", "x")
+        simulation.kill(supervisor.child("provider").pid, signal.SIGSTOP)
+        began = simulation.now()
+        info = supervisor.wait_restarted("provider", timeout=10.0)
+        return info.last_exit.split(":")[0], simulation.now() - began, served(supervisor)
+
+    hung, took, held = simulation.run(with_tree(body, heartbeat=0.5), seed=4).value
+
+    assert "hung" == hung
+    assert 1.0 < took < 5.0  # (its bound: three periods of silence)
+    assert ["x"] == held
+
+
+def test_a_manager_stopped_and_continued_answers_what_was_asked_meanwhile() -> None:
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar) -> Any:
+        pid = supervisor.child("provider").pid
+        simulation.kill(pid, signal.SIGSTOP)
+        outcome: list[Any] = []
+
+        def ask() -> None:
+            outcome.append(app.call("provider", "leaf", "x", timeout=30.0).response)
+            outcome.append(simulation.now())
+
+        asking = simulation_thread(ask)
+        simulation.sleep(5.0)
+        simulation.kill(pid, signal.SIGCONT)
+        asking.join()
+        return outcome[0], outcome[1] >= 5.0, supervisor.child("provider").restarts
+
+    assert ("leaf x", True, 0) == simulation.run(with_tree(body, heartbeat=None), seed=2).value
+
+
+def simulation_thread(target: Callable[[], None]) -> Any:
+    from rr_actors._core import runtime  # noqa: PLC0415
+
+    thread = runtime.Thread(target=target, name="asker")
+    thread.start()
+    return thread
+
+
+def test_a_setup_that_raises_fails_the_start_with_its_traceback() -> None:
+    def scenario() -> str:
+        network = MemoryNetwork("simulated")
+        try:
+            manager = rr.ManagerSpec("provider", setup=failing_setup, isolation="process")
+            try:
+                rr.Supervisor(manager, network=network, name="root").start()
+            except rr.SupervisorGaveUpError as exc:
+                return str(exc.__cause__)
+            return "started"
+        finally:
+            network.close()
+
+    reason = simulation.run(scenario, seed=1).value
+
+    assert "failed to start" in reason
+    assert "ValueError: no camera" in reason
+
+
+def test_a_stopped_manager_exits_cleanly() -> None:
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar) -> Any:
+        query = app.call("provider", "leaf", "x")
+        app.unload(query.id)
+        supervisor.stop()
+        return supervisor.child("provider").last_exit
+
+    assert "shutdown" == simulation.run(with_tree(body), seed=1).value
+
+
+def test_a_manager_s_events_reach_the_supervisor_s_subscribers_while_they_listen() -> None:
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar) -> Any:
+        heard: list[Any] = []
+        with supervisor.subscribe(heard.append) as subscription:
+            query = app.call("provider", "leaf", "x")
+            app.unload(query.id)
+            assert supervisor.flush_events(timeout=5.0)
+            subscription.wait_delivered(timeout=5.0)
+        return sorted(
+            {type(e).__name__ for e in heard if getattr(e, "registrar", None) == "provider"}
+        )
+
+    kinds = simulation.run(with_tree(body), seed=1).value
+
+    assert ["ConsumerAdded", "ConsumerReleased", "ResourceLoaded", "ResourceUnloaded"] == kinds

@@ -1,0 +1,183 @@
+"""The simulated carrier: frames after seeded delays, in order per link; partitions that
+fail what waits across them, and heals after which both sides carry on."""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import tempfile
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+import rr_actors as rr
+from rr_actors import simulation
+from rr_actors.simulation._network import DELAY, _SimulatedHub, _Wire
+from rr_actors.simulation._run import running_scheduler
+
+pytest.importorskip("greenlet")  # (the simulation extra)
+
+
+def leaf_setup(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("leaf", load=lambda r: f"leaf {r}", unload=lambda *_: None)
+
+
+def test_frames_on_one_wire_arrive_in_order_each_after_its_delay() -> None:
+    def main() -> list[tuple[int, float, float]]:
+        network = simulation.SimulatedNetwork()
+        try:
+            hub = network._hub
+            assert isinstance(hub, _SimulatedHub)
+            wire = _Wire(hub, running_scheduler().root, "wire")
+            arrived: list[tuple[int, float, float]] = []
+            for number in range(30):
+                sent = simulation.now()
+                wire.put(lambda n=number, s=sent: arrived.append((n, s, simulation.now())))
+                simulation.sleep(0.001 * (number % 3))
+            simulation.sleep(1.0)
+            return arrived
+        finally:
+            network.close()
+
+    for seed in range(10):
+        arrived = simulation.run(main, seed=seed, preempt=0.1).value
+        assert list(range(30)) == [n for n, _, _ in arrived], f"seed {seed}"
+        assert all(DELAY[0] <= at - sent <= DELAY[1] for _, sent, at in arrived)
+        assert len({round(at - sent, 9) for _, sent, at in arrived}) > 10  # (drawn)
+
+
+def with_provider(
+    body: Callable[[rr.Supervisor, rr.ResourceRegistrar, Any], Any],
+    lease: float | None = None,
+    heartbeat: float | None = 0.25,
+) -> Any:
+    """A scenario: a process manager `provider` (backed up) under a supervisor on a
+    simulated network, a consumer `app` in the supervisor's process."""
+
+    def scenario() -> Any:
+        folder = tempfile.mkdtemp(prefix="rr-sim-network-")
+        network = simulation.SimulatedNetwork(lease=lease)
+        try:
+            manager = rr.ManagerSpec(
+                "provider", setup=leaf_setup, isolation="process", heartbeat=heartbeat
+            )
+            supervisor = rr.Supervisor(manager, state_dir=folder, network=network, name="root")
+            supervisor.start()
+            app = supervisor.registrar("app")
+            try:
+                return body(supervisor, app, network)
+            finally:
+                supervisor.stop()
+                app.stop()
+        finally:
+            network.close()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    return scenario
+
+
+def test_a_call_across_processes_takes_the_time_of_its_frames() -> None:
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any) -> Any:
+        began = simulation.now()
+        query = app.call("provider", "leaf", "x")
+        return query.response, simulation.now() - began
+
+    response, took = simulation.run(with_provider(body), seed=1).value
+
+    assert "leaf x" == response
+    assert took >= 2 * DELAY[0]  # (there and back)
+
+
+def test_a_cut_fails_calls_across_it_and_after_the_heal_both_sides_hold_what_they_held() -> None:
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any) -> Any:
+        held = app.call("provider", "leaf", "x")
+        network.partition([supervisor.child("provider").pid])
+        try:
+            app.call("provider", "leaf", "y", timeout=5.0)
+        except rr.RegistrarUnavailableError:
+            during = "unavailable"
+        else:
+            during = "answered"
+        simulation.sleep(2.0)
+        network.heal()
+        simulation.sleep(1.0)  # (the heal's reconciliation)
+        after = app.call("provider", "leaf", "z").response
+        served = supervisor.run_in(
+            "provider", lambda r: sorted(q.request for q in r.server_queries("leaf")), timeout=5.0
+        )
+        return during, after, served, [q.id for q in app.client_queries()].count(held.id)
+
+    for seed in range(20):
+        run = simulation.run(with_provider(body), seed=seed, preempt=0.1)
+        assert ("unavailable", "leaf z", ["x", "z"], 1) == run.value, f"seed {seed}"
+        assert () == run.errors
+
+
+def test_a_reply_waiting_across_a_cut_fails_when_it_is_cut() -> None:
+    def slow_setup(registrar: rr.ResourceRegistrar) -> None:
+        def load(request: Any) -> Any:
+            simulation.sleep(3.0)
+            return request
+
+        registrar.register_server("slow", load=load, unload=lambda *_: None)
+
+    def scenario() -> Any:
+        network = simulation.SimulatedNetwork()
+        try:
+            manager = rr.ManagerSpec("provider", setup=slow_setup, isolation="process")
+            supervisor = rr.Supervisor(manager, network=network, name="root")
+            supervisor.start()
+            app = supervisor.registrar("app")
+            outcome: list[Any] = []
+
+            def call() -> None:
+                try:
+                    app.call("provider", "slow", "x", timeout=10.0)
+                except rr.RegistrarUnavailableError:
+                    outcome.append(("unavailable", simulation.now()))
+
+            from rr_actors._core import runtime  # noqa: PLC0415
+
+            caller = runtime.Thread(target=call, name="caller")
+            caller.start()
+            simulation.sleep(1.0)
+            network.partition([supervisor.child("provider").pid])
+            caller.join()
+            network.heal()
+            supervisor.stop()
+            app.stop()
+            return outcome
+        finally:
+            network.close()
+
+    ((what, when),) = simulation.run(scenario, seed=5).value
+
+    assert "unavailable" == what
+    assert when < 1.1  # (at the cut, not at the call's timeout)
+
+
+def test_a_process_stopped_past_its_lease_cannot_be_reached_until_it_runs_again() -> None:
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any) -> Any:
+        held = app.call("provider", "leaf", "x")
+        pid = supervisor.child("provider").pid
+        simulation.kill(pid, signal.SIGSTOP)
+        simulation.sleep(0.5)  # (within its lease: a call waits for it)
+        try:
+            app.call("provider", "leaf", "y", timeout=0.5)
+        except rr.CallTimeoutError:
+            within = "waits"
+        simulation.sleep(1.0)  # (past it)
+        began = simulation.now()
+        try:
+            app.call("provider", "leaf", "y", timeout=5.0)
+        except rr.RegistrarUnavailableError:
+            past = ("unavailable", simulation.now() - began < 0.1)
+        simulation.kill(pid, signal.SIGCONT)
+        simulation.sleep(1.0)  # (heard again; its consumers reconcile)
+        after = app.call("provider", "leaf", "z").response
+        return within, past, after, [q.id for q in app.client_queries()].count(held.id)
+
+    for seed in range(10):
+        run = simulation.run(with_provider(body, lease=1.0, heartbeat=None), seed=seed)
+        assert ("waits", ("unavailable", True), "leaf z", 1) == run.value, f"seed {seed}"

@@ -1,0 +1,116 @@
+"""Simulated processes: their own per-process state, a SIGKILL that runs nothing more, a
+SIGSTOP that runs nothing until SIGCONT."""
+
+from __future__ import annotations
+
+import signal
+
+import pytest
+
+from rr_actors import simulation
+from rr_actors._core import runtime
+from rr_actors._core.directory import DIRECTORY
+
+pytest.importorskip("greenlet")  # (the simulation extra)
+
+
+def test_each_process_has_a_pid_and_its_own_per_process_state() -> None:
+    seen: dict[str, object] = {}
+
+    def child() -> None:
+        seen["child pid"] = simulation.pid()
+        seen["child expects"] = DIRECTORY.restart_expected("x")
+        DIRECTORY.expect_restart("y")
+        runtime.Thread(target=lambda: seen.update(thread=simulation.pid()), name="t").start()
+
+    def main() -> None:
+        DIRECTORY.expect_restart("x")
+        pid = simulation.start_process(child, name="child")
+        simulation.sleep(1.0)
+        seen["main pid"], seen["child"] = simulation.pid(), pid
+        seen["main expects"] = (DIRECTORY.restart_expected("x"), DIRECTORY.restart_expected("y"))
+
+    simulation.run(main, seed=1)
+
+    assert 1 == seen["main pid"]
+    assert seen["child"] == seen["child pid"] == seen["thread"] == 2
+    assert seen["child expects"] is False  # (fresh: the main process's is not its)
+    assert (True, False) == seen["main expects"]  # (its own stays its own)
+    assert not DIRECTORY.restart_expected("x")  # (the real process's state is back)
+
+
+def test_a_killed_process_runs_nothing_more_not_even_its_finally_blocks() -> None:
+    journal: list[str] = []
+
+    def child() -> None:
+        def tick() -> None:
+            try:
+                while True:
+                    simulation.sleep(1.0)
+                    journal.append(f"tick {simulation.now():g}")
+            finally:
+                journal.append("finally")
+
+        runtime.Thread(target=tick, name="ticker", daemon=True).start()
+        runtime.Event().wait()
+
+    def main() -> list[str]:
+        pid = simulation.start_process(child, name="child")
+        simulation.sleep(2.5)
+        simulation.kill(pid)
+        simulation.sleep(5.0)
+        return list(journal)
+
+    run = simulation.run(main, seed=3)
+
+    assert ["tick 1", "tick 2"] == run.value
+    assert () == run.errors
+
+
+def test_a_kill_lets_go_of_a_lock_of_another_process_its_thread_held() -> None:
+    """Only a carrier's objects are shared between simulated processes: a dead process
+    holds none of their locks."""
+
+    def main() -> bool:
+        shared = runtime.Lock()
+
+        def child() -> None:
+            shared.acquire()
+            runtime.Event().wait()
+
+        pid = simulation.start_process(child, name="child")
+        simulation.sleep(1.0)
+        taken_before = shared.acquire(timeout=1.0)
+        simulation.kill(pid)
+        return not taken_before and shared.acquire(timeout=1.0)
+
+    assert simulation.run(main, seed=1).value
+
+
+def test_a_stopped_process_runs_nothing_until_it_is_continued() -> None:
+    journal: list[float] = []
+
+    def child() -> None:
+        while True:
+            simulation.sleep(1.0)
+            journal.append(simulation.now())
+
+    def main() -> list[float]:
+        pid = simulation.start_process(child, name="child")
+        simulation.sleep(1.5)
+        simulation.kill(pid, signal.SIGSTOP)
+        simulation.sleep(5.0)
+        simulation.kill(pid, signal.SIGCONT)
+        simulation.sleep(1.2)
+        simulation.kill(pid)
+        return list(journal)
+
+    assert [1.0, 6.5, 7.5] == simulation.run(main, seed=1).value  # (its 2.0 tick at 6.5)
+
+
+def test_killing_an_unknown_pid_raises_as_os_kill_does() -> None:
+    def main() -> None:
+        simulation.kill(99)
+
+    with pytest.raises(ProcessLookupError):
+        simulation.run(main, seed=1)
