@@ -32,7 +32,6 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import dataclasses
-import operator
 import traceback
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -553,25 +552,9 @@ class RunOnActor:
     reply: Reply
 
 
-_TEXT_FIELDS: dict[type, tuple[Callable[[object], tuple[Any, ...]], tuple[tuple[str, bool], ...]]]
-_TEXT_FIELDS = {}
-"""Message type -> a getter of its fields declared `str` or `str | None` (a tuple of their
-values), and `(name, may be None)` of each (found on first use)."""
-
-_STR_ONLY = frozenset({str})
-
-
-def _text_fields(
-    kind: type,
-) -> tuple[Callable[[object], tuple[Any, ...]], tuple[tuple[str, bool], ...]]:
-    fields = dataclasses.fields(kind) if dataclasses.is_dataclass(kind) else ()
-    names = tuple(
-        (f.name, f.type == "str | None") for f in fields if f.type in ("str", "str | None")
-    )
-    if not names:
-        return (lambda _: ()), names
-    first = names[0][0]  # (`attrgetter` of one name gives the value, of two a tuple)
-    return operator.attrgetter(first, *(name for name, _ in names)), names
+_TEXT_FIELDS: dict[type, tuple[tuple[str, bool], ...]] = {}
+"""Message type -> `(name, may be None)` of its fields declared `str` or `str | None`
+(found on first use)."""
 
 
 def misfit(message: object) -> ConfigError | None:
@@ -584,12 +567,12 @@ def misfit(message: object) -> ConfigError | None:
     a peer's code.
     """
     kind = type(message)
-    known = _TEXT_FIELDS.get(kind)
-    if known is None:
-        known = _TEXT_FIELDS[kind] = _text_fields(kind)
-    values, names = known
-    if _STR_ONLY.issuperset(map(type, values(message))):  # every one an exact `str`
-        return None
+    names = _TEXT_FIELDS.get(kind)
+    if names is None:
+        fields = dataclasses.fields(kind) if dataclasses.is_dataclass(kind) else ()
+        names = _TEXT_FIELDS[kind] = tuple(
+            (f.name, f.type == "str | None") for f in fields if f.type in ("str", "str | None")
+        )
     for name, optional in names:
         value = getattr(message, name)
         if (

@@ -18,9 +18,7 @@ import pickle
 import struct
 import threading
 from collections.abc import Callable, Iterator
-from itertools import compress
 from multiprocessing.connection import Connection
-from operator import not_
 from typing import Any
 
 import cloudpickle
@@ -155,10 +153,11 @@ def _plain_walk(item: Any, budget: int) -> int:
         items = item.__dict__.values()
     else:
         return -1
-    for value in compress(items, map(not_, map(_PLAIN_ATOMS.__contains__, map(type, items)))):
-        budget = _plain_walk(value, budget)  # (each item not an atom: the atoms are
-        if budget < 0:  # picked out in C)
-            return -1
+    for value in items:
+        if type(value) not in _PLAIN_ATOMS:
+            budget = _plain_walk(value, budget)
+            if budget < 0:
+                return -1
     return budget
 
 
