@@ -57,9 +57,17 @@ def _echo(conn: multiprocessing.connection.Connection, objects: bool) -> None:
 
 
 def _registrar_main(
-    address: SystemAddress, name: str, setup: bytes, control: multiprocessing.connection.Connection
+    address: SystemAddress,
+    name: str,
+    setup: bytes,
+    control: multiprocessing.connection.Connection,
+    answer: Callable[[Any], Any] | None = None,
 ) -> None:
-    """Serve one registrar on the system until the control pipe says stop (or closes)."""
+    """Serve one registrar on the system until the control pipe says stop (or closes).
+
+    Anything else on the control pipe is answered with `answer(it)` (`count_cross.py`'s
+    marks).
+    """
     attached = attach(address)
     registrar = rr.ResourceRegistrar.start(name)
     try:
@@ -67,7 +75,8 @@ def _registrar_main(
         attached.serve(Served(registrar))
         control.send("ready")
         with contextlib.suppress(EOFError, OSError):
-            control.recv()
+            while (order := control.recv()) != "stop" and answer is not None:
+                control.send(answer(order))
     finally:
         registrar.stop()
         attached.close()
@@ -78,16 +87,34 @@ def registrar_process(
     ctx: Any, address: SystemAddress, name: str, setup: Setup
 ) -> Iterator[multiprocessing.process.BaseProcess]:
     """A registrar `name` in its own process for the duration of the block."""
+    with registrar_child(ctx, address, name, setup) as (process, _):
+        yield process
+
+
+@contextlib.contextmanager
+def registrar_child(
+    ctx: Any,
+    address: SystemAddress,
+    name: str,
+    setup: Setup,
+    target: Callable[..., None] = _registrar_main,
+    started: float = 60,
+) -> Iterator[tuple[multiprocessing.process.BaseProcess, multiprocessing.connection.Connection]]:
+    """`registrar_process`, with the control pipe: `target` runs in the process.
+
+    `target` is `_registrar_main` or one that calls it; it must say it is ready within
+    `started` seconds.
+    """
     parent, child = ctx.Pipe()
     process = ctx.Process(
-        target=_registrar_main, args=(address, name, cloudpickle.dumps(setup), child), daemon=True
+        target=target, args=(address, name, cloudpickle.dumps(setup), child), daemon=True
     )
     process.start()
     child.close()
     try:
-        if not parent.poll(60) or parent.recv() != "ready":
+        if not parent.poll(started) or parent.recv() != "ready":
             raise RuntimeError(f"registrar process {name} did not start")
-        yield process
+        yield process, parent
     finally:
         with contextlib.suppress(OSError):
             parent.send("stop")

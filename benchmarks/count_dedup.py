@@ -1,23 +1,42 @@
-"""A fixed number of in-process dedup-hit calls, to count their instructions under callgrind.
+"""In-process dedup hits counted, not timed: CPU, instructions and Python bytecodes per operation.
 
-Wall-clock timings on a shared machine are noise; instruction counts are not. Run this
-twice under `valgrind --tool=callgrind` with two numbers of calls; the difference of the
-two totals over the difference of the calls is the instructions one operation costs, on
-every thread (the caller, the provider's actor, the consumer's actor):
+Wall-clock timings on a shared machine are noise; what an operation costs is steadier.
+A consumer registrar calls a provider registrar in the same process. Each operation is
+counted on its own, between two marks:
 
-    for n in 100 1100; do PYTHONHASHSEED=0 valgrind --tool=callgrind \\
-        --callgrind-out-file=/tmp/cg.$n python benchmarks/count_dedup.py --calls $n; done
-    # then (totals of /tmp/cg.1100 - totals of /tmp/cg.100) / 1000, from their "summary:" line
+    hit      a dedup-hit `call` (the request is loaded: a consumer id is added)
+    unload   `unload` of one of those ids (not the last consumer: nothing is unloaded)
+    pykka    a raw pykka ask to an echoing `ThreadingActor` (the floor)
+    actor    the same ask to rr_actors' own actor type (the registrars are built on it)
 
-Operations (`--what`): `call`, a dedup-hit call with a plain request (a string);
-`user`, the same with a request of a user class (its `repr`, `==` and `hash` are user
-code); `pykka`, a raw pykka ask to an echoing actor (the baseline); `actor`, the
-same ask to rr_actors' own actor type. With `--profile`
-it prints each Python function called at least once per operation, with the thread
-that called it (a cheap way to see what an operation does).
+How (`--count`):
+
+* `cpu` (the default): the CPU time of every thread of the process and its context
+  switches per operation (`getrusage`), in `--rounds` rounds of `--calls` of each
+  operation in turn; the medians, and each over the pykka ask's (pin it for steadier
+  figures: `taskset -c 0 python benchmarks/count_dedup.py`).
+* `callgrind`: the script runs itself under `valgrind --tool=callgrind`, which dumps
+  (and zeroes) its counters at each mark (`--dump-before=getsid`: a mark calls
+  `os.getsid`); every operation runs `--calls` times, then three times as many, and
+  the difference over the difference of the calls is what one costs, every thread,
+  the same to a tenth of a percent run after run.
+* `bytecodes`: Python bytecodes executed per operation, every thread: `sys.settrace`
+  and `threading.settrace` (installed before any actor starts) with each frame's
+  `f_trace_opcodes` set count every `opcode` event; also the Python function calls per
+  operation, and the distinct functions the operation ran (over its 3x phase). With
+  `--profile`, each function run at least once per operation, by bytecodes (where the
+  work is). Tracing slows the run some 20x; the counts do not depend on it.
+
+Both counted modes run each operation `--calls` and three times `--calls` times and
+print the difference over the difference (fixed costs cancel: the marks, the sync). A
+hit's answer is recorded by the consumer's actor before its next message: every phase
+ends with a message to that actor (`server_queries` of an empty server), so the hit's
+record counts in the hit's phase. `--user` makes the request an instance of a user class
+(its `repr`, `==` and `hash` are user code, run off the actor thread).
 
 Usage:
-    python benchmarks/count_dedup.py [--calls 1000] [--what call|user|pykka] [--profile]
+    python benchmarks/count_dedup.py [--calls 1000] [--count cpu|callgrind|bytecodes]
+        [--rounds 5] [--user] [--profile]
 """
 
 from __future__ import annotations
@@ -25,16 +44,25 @@ from __future__ import annotations
 import argparse
 import collections
 import os
+import re
 import resource
+import statistics
+import subprocess
 import sys
+import tempfile
 import threading
-from types import FrameType
+from collections.abc import Callable
+from pathlib import Path
+from types import CodeType, FrameType
 from typing import Any
 
 import pykka
 
 import rr_actors as rr
 from rr_actors._core.actor import Actor
+
+PACKAGE = Path(rr.__file__).resolve().parent
+OPERATIONS = ("hit", "unload", "pykka", "actor")
 
 
 class Echo(pykka.ThreadingActor):
@@ -69,64 +97,316 @@ def _noop(*_: object) -> None:
     return None
 
 
+# -- counting, shared with count_cross.py --------------------------------------------------------
+
+
+def where(code: CodeType) -> str:
+    """A function's name for a table: its module inside rr_actors (or its file), line, name."""
+    path = Path(code.co_filename)
+    module = str(path.relative_to(PACKAGE.parent)) if path.is_relative_to(PACKAGE) else path.name
+    return f"{module}:{code.co_firstlineno} {code.co_qualname}"
+
+
+class Bytecodes:
+    """Every Python bytecode executed and function called, on every thread started later."""
+
+    def __init__(self) -> None:
+        self._threads: list[tuple[collections.Counter[CodeType], collections.Counter[CodeType]]]
+        self._threads = []
+        self._local = threading.local()
+
+    def start(self) -> None:
+        threading.settrace(self._call)
+        sys.settrace(self._call)
+
+    def _call(self, frame: FrameType, event: str, _: Any) -> Any:
+        mine = self._local.__dict__.get("mine")
+        if mine is None:
+            mine = self._local.mine = self._thread()
+        calls, local = mine
+        calls[frame.f_code] += 1
+        frame.f_trace_opcodes = True
+        frame.f_trace_lines = False
+        return local
+
+    def _thread(self) -> tuple[collections.Counter[CodeType], Callable[..., Any]]:
+        """This thread's counters (no two threads race on one) and its frames' tracer."""
+        ops: collections.Counter[CodeType] = collections.Counter()
+        calls: collections.Counter[CodeType] = collections.Counter()
+        self._threads.append((ops, calls))
+
+        def local(frame: FrameType, event: str, _: Any) -> Any:
+            if event == "opcode":
+                ops[frame.f_code] += 1
+            return local
+
+        return calls, local
+
+    def mark(self) -> dict[str, tuple[int, int]]:
+        """Bytecodes and calls of each function since the last mark: {where: (ops, calls)}."""
+        sys.settrace(None)  # (the mark itself not counted)
+        seen: dict[str, tuple[int, int]] = {}
+        for ops, calls in list(self._threads):
+            taken_ops, taken_calls = dict(ops), dict(calls)
+            ops.subtract(taken_ops)
+            calls.subtract(taken_calls)
+            for code in taken_ops.keys() | taken_calls.keys():
+                name = where(code)
+                was_ops, was_calls = seen.get(name, (0, 0))
+                seen[name] = (
+                    was_ops + taken_ops.get(code, 0),
+                    was_calls + taken_calls.get(code, 0),
+                )
+        sys.settrace(self._call)
+        return {name: counts for name, counts in seen.items() if counts != (0, 0)}
+
+
+class Callgrind:
+    """Marks for callgrind: it dumps and zeroes its counters when `getsid` is called."""
+
+    def mark(self) -> None:
+        os.getsid(0)
+
+
+def callgrind_run(command: list[str], work: str) -> str:
+    """Run `command` under callgrind (children followed), dumping at each mark; its stdout."""
+    done = subprocess.run(
+        [
+            *("valgrind", "--tool=callgrind", "--trace-children=yes", "--dump-instr=no"),
+            *("--dump-before=getsid", f"--callgrind-out-file={work}/cg.%p"),
+            *command,
+        ],
+        env={**os.environ, "PYTHONHASHSEED": "0"},
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if done.returncode != 0:
+        raise RuntimeError(f"callgrind run failed:\n{done.stdout}\n{done.stderr[-3000:]}")
+    return done.stdout
+
+
+def phase_instructions(work: str, pid: int) -> list[int]:
+    """The instructions of each phase of process `pid`: one per dump, in order."""
+    totals = []
+    for number in range(1, 1000):
+        try:
+            with open(f"{work}/cg.{pid}.{number}") as text:
+                for line in text:
+                    if line.startswith(("summary:", "totals:")):
+                        totals.append(int(line.split()[1]))
+                        break
+        except FileNotFoundError:
+            break
+    return totals
+
+
+def per_operation(first: float, second: float, calls: int) -> float:
+    """What one operation costs, from a phase of `calls` and one of `3 * calls`."""
+    return (second - first) / (2 * calls)
+
+
+Counts = dict[str, tuple[int, int]]
+"""What `Bytecodes.mark` returns: {function: (bytecodes, calls)} of one phase."""
+
+
+def per_function(first: Counts, second: Counts, calls: int) -> dict[str, tuple[float, float]]:
+    """Bytecodes and calls of each function per operation, from its two phases."""
+    return {
+        name: (
+            per_operation(first.get(name, (0, 0))[0], second.get(name, (0, 0))[0], calls),
+            per_operation(first.get(name, (0, 0))[1], second.get(name, (0, 0))[1], calls),
+        )
+        for name in first.keys() | second.keys()
+    }
+
+
+def bytecode_row(first: Counts, second: Counts, calls: int) -> tuple[float, float, int]:
+    """Bytecodes, function calls per operation, and the distinct functions of its 3x phase."""
+    functions = per_function(first, second, calls).values()
+    return sum(f[0] for f in functions), sum(f[1] for f in functions), len(second)
+
+
+def print_profile(title: str, first: Counts, second: Counts, calls: int) -> None:
+    """The functions run at least once per operation, by bytecodes; then the modules."""
+    functions = per_function(first, second, calls)
+    print(f"\n{title}: bytecodes and calls per operation, by function")
+    for name, (ops, made) in sorted(functions.items(), key=lambda kv: -kv[1][0]):
+        if made >= 0.99:
+            print(f"  {ops:7.1f} {made:5.1f}  {name}")
+    modules: collections.Counter[str] = collections.Counter()
+    for name, (ops, _) in functions.items():
+        modules[name.split(":")[0]] += ops
+    print(f"{title}: bytecodes per operation, by module")
+    for module, ops in modules.most_common():
+        if ops >= 0.5:
+            print(f"  {ops:7.1f}  {module}")
+
+
+# -- the operations ------------------------------------------------------------------------------
+
+
+class Bench:
+    """The registrars and actors every operation uses, started once."""
+
+    def __init__(self, user: bool) -> None:
+        self.echo = Echo.start()
+        self.actor_echo = ActorEcho.start()
+        self.provider = rr.ResourceRegistrar.start("count-provider")
+        self.consumer = rr.ResourceRegistrar.start("count-consumer")
+        self.provider.register_server("res", load=lambda request: request, unload=_noop)
+        self.consumer.register_server("idle", load=lambda request: request, unload=_noop)
+        self.request: Any = Camera(1) if user else "shared"
+        self.consumer.call(self.provider.name, "res", self.request)  # every call after: a hit
+        self.ids: list[str] = []
+        self.operations: dict[str, Callable[[], object]] = dict(
+            zip(OPERATIONS, (self.hit, self.unload, self.pykka, self.actor), strict=True)
+        )
+
+    def hit(self) -> None:
+        self.ids.append(self.consumer.call(self.provider.name, "res", self.request).id)
+
+    def unload(self) -> None:
+        self.consumer.unload(self.ids.pop())
+
+    def pykka(self) -> None:
+        self.echo.ask("ping")
+
+    def actor(self) -> None:
+        self.actor_echo.ask("ping")
+
+    def sync(self) -> None:
+        """Return once the consumer's actor has handled what it was handed."""
+        self.consumer.server_queries("idle")
+
+    def stop(self) -> None:
+        self.consumer.stop()
+        self.provider.stop()
+        self.echo.stop()
+        self.actor_echo.stop()
+
+
+def phases(bench: Bench, calls: int, mark: Callable[[str], None]) -> None:
+    """Each operation `calls` times, then each `3 * calls` times, a mark after each."""
+    for count in (calls, 3 * calls):
+        for name, operation in bench.operations.items():
+            for _ in range(count):
+                operation()
+            bench.sync()
+            mark(name)
+
+
+def warm(bench: Bench) -> None:
+    """Each operation a few times: threads, caches and clients made before counting."""
+    for _ in range(2):
+        for operation in bench.operations.values():
+            for _ in range(50):
+                operation()
+    bench.sync()
+
+
+def cpu(bench: Bench, calls: int, rounds: int) -> None:
+    """CPU and context switches per operation, in rounds of each operation in turn."""
+    samples: dict[str, list[tuple[float, float]]] = {name: [] for name in bench.operations}
+    for _ in range(rounds):
+        for name, operation in bench.operations.items():
+            before = resource.getrusage(resource.RUSAGE_SELF)
+            for _ in range(calls):
+                operation()
+            bench.sync()
+            after = resource.getrusage(resource.RUSAGE_SELF)
+            seconds = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+            switches = after.ru_nvcsw + after.ru_nivcsw - before.ru_nvcsw - before.ru_nivcsw
+            samples[name].append((seconds / calls * 1e6, switches / calls))
+    floor = statistics.median(s[0] for s in samples["pykka"])
+    print(f"{rounds} rounds x {calls} of each operation, CPU of every thread, medians")
+    print("| operation | CPU per op (us) | context switches per op | / pykka ask |")
+    print("|---|---:|---:|---:|")
+    for name, rows in samples.items():
+        us = statistics.median(s[0] for s in rows)
+        switches = statistics.median(s[1] for s in rows)
+        print(f"| {name} | {us:.1f} | {switches:.2f} | {us / floor:.2f}x |")
+
+
+def counted(args: argparse.Namespace) -> None:
+    """The run under a counter (inside valgrind, or traced): its phases, marked."""
+    bytecodes = Bytecodes() if args.count == "bytecodes" else None
+    if bytecodes is not None:
+        bytecodes.start()  # (before the actors start: their threads inherit it)
+    marker: Callgrind | Bytecodes = bytecodes or Callgrind()
+    marks: list[Counts] = []
+    bench = Bench(args.user)
+    try:
+        warm(bench)
+        marker.mark()
+        phases(bench, args.calls, lambda _: marks.append(marker.mark() or {}))
+    finally:
+        sys.settrace(None)
+        threading.settrace(None)  # type: ignore[arg-type]
+        bench.stop()
+    if bytecodes is None:
+        return
+    n = len(OPERATIONS)
+    print(f"Python bytecodes per operation, every thread ({args.calls} and {3 * args.calls})")
+    print("| operation | bytecodes | function calls | distinct functions |")
+    print("|---|---:|---:|---:|")
+    for name, first, second in zip(OPERATIONS, marks[:n], marks[n:], strict=True):
+        ops, made, distinct = bytecode_row(first, second, args.calls)
+        print(f"| {name} | {ops:.0f} | {made:.1f} | {distinct} |")
+    if args.profile:
+        for name, first, second in zip(OPERATIONS, marks[:n], marks[n:], strict=True):
+            print_profile(name, first, second, args.calls)
+
+
+def callgrind(args: argparse.Namespace) -> None:
+    """Run this script under callgrind; print the instructions per operation."""
+    command = [sys.executable, str(Path(__file__).resolve()), "--calls", str(args.calls)]
+    command += ["--count", "inside-callgrind", *(["--user"] if args.user else [])]
+    with tempfile.TemporaryDirectory() as work:
+        stdout = callgrind_run(command, work)
+        found = re.search(r"^PID (\d+)$", stdout, re.MULTILINE)
+        if found is None:
+            raise RuntimeError(f"no pid in the output:\n{stdout}")
+        totals = phase_instructions(work, int(found.group(1)))[1:]  # (the first: the start)
+    n = len(OPERATIONS)
+    if len(totals) != 2 * n:
+        raise RuntimeError(f"{len(totals)} phases counted, not {2 * n}")
+    per = {
+        name: per_operation(first, second, args.calls)
+        for name, first, second in zip(OPERATIONS, totals[:n], totals[n:], strict=True)
+    }
+    print(f"instructions per operation, every thread ({args.calls} and {3 * args.calls})")
+    print("| operation | instructions | / pykka ask |")
+    print("|---|---:|---:|")
+    for name, count in per.items():
+        print(f"| {name} | {count / 1e3:.1f}k | {count / per['pykka']:.2f}x |")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--calls", type=int, default=1000, help="operations (default 1000)")
-    parser.add_argument("--what", choices=["call", "user", "pykka", "actor"], default="call")
-    parser.add_argument("--profile", action="store_true", help="print Python calls per op")
-    args = parser.parse_args()
-    counts: collections.Counter[tuple[str, str, str]] = collections.Counter()
-    counting = threading.Event()
-
-    def tracer(frame: FrameType, event: str, _: Any) -> None:
-        if event == "call" and counting.is_set():
-            code = frame.f_code
-            where = f"{os.path.basename(code.co_filename)}:{code.co_firstlineno}"
-            counts[(threading.current_thread().name[:16], where, code.co_name)] += 1
-
-    if args.profile:  # (before the actors start: their threads inherit it)
-        threading.setprofile(tracer)
-        sys.setprofile(tracer)
-    echo = Echo.start() if args.what != "actor" else ActorEcho.start()
-    provider = rr.ResourceRegistrar.start("count-provider")
-    consumer = rr.ResourceRegistrar.start("count-consumer")
-    try:
-        provider.register_server("res", load=lambda request: request, unload=_noop)
-        request: Any = Camera(1) if args.what == "user" else "shared"
-        consumer.call(provider.name, "res", request)  # loaded: every call after is a hit
-        for query_id in [consumer.call(provider.name, "res", request).id for _ in range(50)]:
-            consumer.unload(query_id)  # (warm-up)
-        ids: list[str] = []
-        counting.set()
-        before = resource.getrusage(resource.RUSAGE_SELF)
-        for _ in range(args.calls):
-            if args.what in ("pykka", "actor"):
-                echo.ask("ping")
-            else:
-                ids.append(consumer.call(provider.name, "res", request).id)
-        consumer.client_queries()  # (after the consumer recorded every answer)
-        after = resource.getrusage(resource.RUSAGE_SELF)
-        counting.clear()
-        for query_id in ids:
-            consumer.unload(query_id)
-    finally:
-        sys.setprofile(None)
-        threading.setprofile(None)  # type: ignore[arg-type]
-        consumer.stop()
-        provider.stop()
-        echo.stop()
-    print(f"{args.calls} x {args.what}")
-    cpu = (after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime) * 1e6
-    switches = after.ru_nvcsw + after.ru_nivcsw - before.ru_nvcsw - before.ru_nivcsw
-    print(
-        f"per operation: {cpu / args.calls:.1f} us of CPU (every thread), "
-        f"{switches / args.calls:.2f} context switches"
+    parser.add_argument(
+        "--count", choices=["cpu", "callgrind", "bytecodes", "inside-callgrind"], default="cpu"
     )
-    for (thread, where, name), count in sorted(counts.items(), key=lambda kv: -kv[1]):
-        if count >= args.calls:
-            print(f"{count / args.calls:5.1f}  {thread:16} {where:20} {name}")
-    if counts:
-        print(f"Python calls per operation: {sum(counts.values()) / args.calls:.1f}")
+    parser.add_argument("--rounds", type=int, default=5, help="rounds of --count cpu")
+    parser.add_argument("--user", action="store_true", help="a request of a user class")
+    parser.add_argument("--profile", action="store_true", help="bytecodes by function")
+    args = parser.parse_args()
+    if args.profile:
+        args.count = "bytecodes"
+    if args.count == "callgrind":
+        callgrind(args)
+    elif args.count == "cpu":
+        bench = Bench(args.user)
+        try:
+            warm(bench)
+            cpu(bench, args.calls, args.rounds)
+        finally:
+            bench.stop()
+    else:
+        if args.count == "inside-callgrind":
+            print(f"PID {os.getpid()}", flush=True)
+        counted(args)
     return 0
 
 

@@ -56,6 +56,7 @@ from rr_actors._core.throttle import LogThrottle
 from rr_actors._platform import fork
 from rr_actors._registrar.calls import CallFailed, ClientLoaded, DueAnswers, Pending, TakeOutcomes
 from rr_actors._registrar.consumer import Answers, Clients, Flights, Holdings, Reconciling, Releases
+from rr_actors._registrar.display import ClientTexts
 from rr_actors._registrar.life import Lifecycle, Presence, Restoring, cut_short
 from rr_actors._registrar.messages import (
     Abandon,
@@ -273,7 +274,8 @@ class RegistrarActor(Actor):
         targets = StatusTargets(config.name, published, due)  # what the status desk reads
         DESK.serve(peer, targets)
         self.holdings = Holdings(self.shared, self.flights, clients, targets.entries)
-        self.answers = Answers(self.shared, self.flights, self.holdings)
+        texts = ClientTexts(self.shared)  # made by the answers, read by a snapshot
+        self.answers = Answers(self.shared, self.flights, self.holdings, texts)
         self.releases = Releases(self.shared, self.flights, self.holdings, self.answers)
         self.reconciling = Reconciling(
             self.shared, self.flights, self.holdings, self.releases, due, self.dispatch
@@ -303,6 +305,7 @@ class RegistrarActor(Actor):
             self.presence,
             self.servers,
             clients,
+            texts,
             self,
             died,
             ended,

@@ -445,11 +445,13 @@ def publish_forgotten(shared: Shared, query: Query, reason: str) -> None:
 class Answers:
     """Records the answers to this registrar's calls, and their failures."""
 
-    def __init__(self, shared: Shared, flights: Flights, holdings: Holdings) -> None:
+    def __init__(
+        self, shared: Shared, flights: Flights, holdings: Holdings, texts: ClientTexts
+    ) -> None:
         self.registrar = shared
         self.flights = flights
         self.holdings = holdings
-        self.texts = ClientTexts(shared)
+        self.texts = texts
 
     def on_pending(self, message: Pending, reply: Reply) -> None:
         query_id = message.record.query.id
@@ -458,7 +460,7 @@ class Answers:
             if self.owner_gone(record):  # a late sub-call: kept as a call of its own, so a
                 record = ClientRecord(record.query, None)  # crash meanwhile gives it back
             self.registrar.catalog.add_client(record)
-            self.texts.show(query_id)
+            self.texts.added(record)
             failed = self.registrar.commit()
             if failed is not None:  # not durable: the Load must not leave (rule 16)
                 self.registrar.catalog.remove_client(query_id)
@@ -547,7 +549,7 @@ class Answers:
             catalog.client_loaded(query.id, query.response)
         else:
             catalog.add_client(message.record)
-            self.texts.show(query.id)
+            self.texts.added(message.record)
         told = answer_event(self.registrar, message.record, retry=retry)
         failed = self.registrar.commit(*told)  # (written with its record)
         if failed is not None and durable:  # not kept

@@ -28,7 +28,10 @@ write to the backup) would have kept the per-call cost at zero, but a stored rec
 written when it is added, so the texts would have been made two ways. Sharing by identity
 runs no user code, keeps nothing alive that no record holds, and covers the common case,
 a caller (or a `Supervisor`'s retry) passing the same object again; an equal new object
-gets its own text, as before.
+gets its own text, as before. A record that is not written (no backup) gets its text when
+something first reads it (a snapshot: the observer, `catalog_snapshot`), if its request
+is of a built-in type: a dedup hit nobody looks at makes none (`ClientTexts.added`,
+`fill`); a request of a user class has its `repr` run on a worker at once, as before.
 """
 
 from __future__ import annotations
@@ -36,11 +39,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from rr_actors._catalog import Resource
+from rr_actors._catalog import ClientRecord, Resource
 from rr_actors._catalog.texts import display_text, label_text, plain_text
 from rr_actors._registrar.state import Shared
 
 __all__ = ["ClientTexts", "show_request", "show_response"]
+
+_BUILTIN = frozenset({str, bytes, int, float, complex, bool, type(None), dict, list, tuple, set})
+"""Requests of these exact types get their record's text when it is first read."""
 
 
 def _off_actor(
@@ -131,12 +137,34 @@ class ClientTexts:
     rebuilt from the records when it outgrows them.
     """
 
-    __slots__ = ("holders", "shared", "waiting")
+    __slots__ = ("due", "holders", "shared", "waiting")
 
     def __init__(self, shared: Shared) -> None:
         self.shared = shared
         self.holders: dict[int, str] = {}  # id(request) -> a query id whose record holds it
         self.waiting: dict[str, list[str]] = {}  # query id whose text a worker makes -> others
+        self.due: list[str] = []  # query ids of records added whose text nobody read yet
+
+    def added(self, record: ClientRecord) -> None:
+        """A client record was just added (before its write): its text now if it is
+        written (a backup) or its request is not of a built-in type (its `repr` runs on a
+        worker at once, as it always did), else when something first reads it (`fill`)."""
+        query_id = record.query.id
+        if self.shared.saver.store is not None or type(record.query.request) not in _BUILTIN:
+            self.show(query_id)
+            return
+        due = self.due
+        due.append(query_id)
+        clients = self.shared.catalog.clients
+        if len(due) > 2 * len(clients) + 64:  # records gone before anyone read them
+            self.due = [q for q in due if q in clients]
+
+    def fill(self) -> None:
+        """Give each record added since the last read its text (`show`, in the order they
+        were added): before a snapshot copies the records."""
+        due, self.due = self.due, []
+        for query_id in due:
+            self.show(query_id)
 
     def show(self, query_id: str) -> None:
         """Give a client record just added its request's text (before its write)."""

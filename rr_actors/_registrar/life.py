@@ -71,6 +71,7 @@ from rr_actors._core.replies import FutureReply
 from rr_actors._core.timers import Cancellable, Timer, thread_timer
 from rr_actors._registrar.calls import ClientLoaded
 from rr_actors._registrar.consumer import Clients, Flights, Holdings, Reconciling, Releases
+from rr_actors._registrar.display import ClientTexts
 from rr_actors._registrar.messages import (
     ConsumerDown,
     Crash,
@@ -162,6 +163,7 @@ class Lifecycle:
         presence: Presence,
         servers: Servers,
         clients: Clients,
+        texts: ClientTexts,
         actor: Actor,
         died: runtime.Event,
         ended: OneShotFuture[None],
@@ -176,6 +178,7 @@ class Lifecycle:
         self.reconciling = reconciling
         self.presence = presence
         self.clients = clients  # its client actors, stopped with it
+        self.texts = texts  # its client records' texts, made before a snapshot reads them
         self.actor = actor  # (the actor machinery only: its mailbox, `end_now`)
         self.died = died  # set once a crash was fully handled (death watch included)
         self.ended = ended  # set once the actor's thread handed on its last message
@@ -271,6 +274,7 @@ class Lifecycle:
         try:
             if message.check:
                 self.registrar.catalog.check_invariants()
+            self.texts.fill()
             view = CatalogView(
                 resources=tuple(
                     dataclasses.replace(r, consumers=dict(r.consumers))
