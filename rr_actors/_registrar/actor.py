@@ -20,6 +20,7 @@
               │               Holdings   Revoke ResponseUpdated SetStatusCallback          │
               │                          ListClientQueries OpenClient                      │
               │               Releases   Release         Reconciling  ReconcileAsk         │
+              │                                                       LostEverything       │
               │               Flights    (the calls in flight, for the parts above)        │
               │  state.py     Shared: config, catalog, saver, servers, phase, workers      │
               └────────────────────────────────────────────────────────────────────────────┘
@@ -67,6 +68,7 @@ from rr_actors._registrar.messages import (
     ListClientQueries,
     ListServerQueries,
     Load,
+    LostEverything,
     OpenClient,
     PeerLost,
     PeerReachable,
@@ -180,6 +182,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     ConsumerDown: ("consumer_down", lambda a: a.presence.on_consumer_down),  # death watch
     Reconcile: ("reconcile", lambda a: a.unloading.on_reconcile),  # a consumer lists its ids
     ReconcileAsk: ("reconcile_ask", lambda a: a.reconciling.on_reconcile_ask),  # provider restarted
+    LostEverything: ("lost_everything", lambda a: a.reconciling.on_lost_everything),  # no backup
     # -- from a carrier's presence callbacks (`Served`) --
     PeerLost: ("peer_lost", lambda a: a.presence.on_peer_lost),  # gone, nobody restarts it
     PeerReachable: ("peer_reachable", lambda a: a.presence.on_peer_reachable),  # link healed

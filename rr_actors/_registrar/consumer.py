@@ -32,7 +32,9 @@
    │       calls withdrawn, the ids of failed calls and releases given back
    ▼
  Reconciling  it serves (again), or a provider asks (ReconcileAsk) ─► Reconcile(the
-          ids held there: a Listing, its epoch) ─► the provider releases the others,
+          ids held there: a Listing, its epoch); restored from a backup, or restarted
+          without one (LostEverything, from its supervisor): with every registrar of
+          the system, not only those its rows name ─► the provider releases the others,
           names those it no longer knows ─► FATAL to each answered before the list
           left (and up its dependents), then forgotten (rule 20); a provider lost for
           good (`life.py`'s presence) ─► lose_provider: the same, for all (rule 19)
@@ -78,6 +80,7 @@ from rr_actors._registrar.messages import (
     Fetch,
     FetchVia,
     ListClientQueries,
+    LostEverything,
     OpenClient,
     Reconcile,
     ReconcileAsk,
@@ -951,8 +954,9 @@ class Reconciling:
     """Reconciles what this registrar holds at providers with what they hold for it.
 
     `everyone`: with every registrar of the system, not only the providers its catalog
-    names (set when it restores a backup); `asked_to_reconcile`: providers that asked
-    while setup ran.
+    names (set when it restores a backup, or when its supervisor says it restarted
+    without one: `LostEverything`); `asked_to_reconcile`: providers that asked while
+    setup ran.
     """
 
     def __init__(
@@ -1042,6 +1046,16 @@ class Reconciling:
             self.asked_to_reconcile.add(message.serving_rr)
             return
         self.reconcile(message.serving_rr)
+
+    def on_lost_everything(self, _message: LostEverything, _reply: Reply) -> None:
+        """Its supervisor restarted it without a backup (`life.py`'s `lost_everything`):
+        its last run's ids are held at providers no row names, for nobody now. It
+        reconciles with every registrar of the system (now, or once setup is done), and
+        from now on as one restored from a backup does (`everyone`): each provider
+        releases the ids of it that the list does not name (rule 20)."""
+        self.everyone = True
+        if self.registrar.phase is Phase.SERVING:  # (during setup `on_ready` reconciles)
+            self.reconcile_all()
 
     def reconcile(
         self, serving_rr: str, then: Callable[[BaseException | None], None] | None = None

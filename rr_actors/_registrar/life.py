@@ -13,6 +13,7 @@ its peers (lost for good, reachable again), stop or die, and say so.
  serve (now, or on Ready once `setup` returned; Reachable: a carrier serves it):
    as a provider ReconcileAsk to its consumers (after the sweep, which names them), as
    a consumer Reconcile with its providers (`consumer.py`), with everyone if restored
+   (or once told `LostEverything`: restarted without a backup)
  peers (Presence): the membership ─ PeerLost(X) ─► lose(X): what X held here released
    (`provider.py`), what is held at X FATAL, then forgotten (rule 19);
    PeerLost(X, stopped): only the release (rule 12); ConsumerDown (another process's
@@ -28,7 +29,7 @@ its peers (lost for good, reachable again), stop or die, and say so.
  the death watch (functions the supervisor and the process layer call):
    gone_for_good(X, also) ─► this process's membership records X; ConsumerDown(X) to
    each of `also` elsewhere │ back(X) │ tell_gone(Y, X) │ lost_everything(X):
-   ReconcileAsk to all
+   ReconcileAsk to all, and LostEverything to X (it reconciles with everyone)
  the outside's views of it: Served (a carrier: listening, peer_lost, peer_reachable,
    yield_name), Hearing (this process's membership: peer_lost, peer_stopped,
    peer_reachable), each a message to its mailbox
@@ -76,6 +77,7 @@ from rr_actors._registrar.messages import (
     ConsumerDown,
     Crash,
     Flush,
+    LostEverything,
     PeerLost,
     PeerReachable,
     Reachable,
@@ -982,9 +984,17 @@ def tell_gone(target: str, name: str, *, stopped: bool = False) -> None:
 
 
 def lost_everything(name: str, *, also: Iterable[str] = ()) -> None:
-    """Registrar `name` restarted with an empty catalog: every registrar of this process,
-    and those named in `also`, that holds ids there reconciles with it (rule 20)."""
+    """Registrar `name` restarted with an empty catalog (its supervisor restarted it
+    without a backup): every registrar of this process, and those named in `also`, that
+    holds ids there reconciles with it, and `name` itself reconciles with every registrar
+    of the system (`LostEverything`): the ids its last run held are held for nobody, and
+    each provider releases those its new list does not name (rule 20). One killed again
+    before it heard it is told at its next restart."""
     DIRECTORY.broadcast(ReconcileAsk(name, holds_yours=False), also=also, skip=name)
+    try:
+        DIRECTORY.lookup(name).tell(LostEverything())
+    except RrError:
+        logger.debug("lost everything: registrar %s unreachable", name)
 
 
 # -- the catalog as events (CatalogRestored, RegistrarStopped) ------------------------

@@ -4,6 +4,7 @@
  consumer ── Load Unload Abandon Fetch Reconcile ─────────────────────────► provider
  provider ── StatusBatch StatusNotice Revoke ResponseUpdated ReconcileAsk ─► consumer
  death watch ── ConsumerDown ─► every registrar of the other processes
+ death watch ── LostEverything ─► a registrar restarted without a backup
                                               (the wire: `WireMessage`s, they pickle)
  registrar ── RunLoad RunUnload ─► its server actor; handle ── FetchVia ─► a client actor
  timers, carriers, the membership ── Flush Crash Reachable PeerLost PeerReachable
@@ -65,6 +66,7 @@ __all__ = [
     "ListServerQueries",
     "Load",
     "LoadContext",
+    "LostEverything",
     "OpenClient",
     "PeerLost",
     "PeerReachable",
@@ -284,6 +286,14 @@ class ReconcileAsk(WireMessage):
 
     serving_rr: str
     holds_yours: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class LostEverything(WireMessage):
+    """Death watch -> a registrar its supervisor restarted without a backup: you restarted
+    with an empty catalog, so no row names the providers where your last run held ids
+    (held there for nobody now): send every registrar of the system a `Reconcile`, as one
+    restored from a backup does (rule 20)."""
 
 
 @dataclasses.dataclass(frozen=True)

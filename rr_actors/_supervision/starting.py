@@ -8,7 +8,8 @@
                            its config (`<state_dir>/<name>.db` with the tree's state_dir)
               └ a supervisor: a nested Node (`nest`), which gives up by posting Exited
             ─► running; ChildStarted / ChildRestarted; abandoned ids given back;
-               after a restart, the death watch it missed (and, with no backup, FATAL)
+               after a restart, the death watch it missed (and, with no backup, FATAL
+               for what was held at it, and what it held released: lost_everything)
 ```
 
 Each child is handed a watcher callback (run on its watcher thread) that posts its end

@@ -335,7 +335,9 @@ def comes_back(name: str) -> None:
 def lost_everything(root: Level, name: str, network: Transport | None = None) -> None:
     """Manager `name`, which keeps no backup, restarted with an empty catalog: every
     registrar of the system that holds ids there reconciles with it, and hears `FATAL`
-    for each (rule 20; a manager with a backup asks them itself when it serves again).
+    for each, and `name` reconciles with every registrar of the system, which releases
+    the ids its last run held there (rule 20; a manager with a backup does both itself
+    when it serves again).
 
     `root`: the tree's root supervisor (its living process managers are told too);
     `network`: the tree's carrier, whose registrars are told too.

@@ -12,7 +12,7 @@ import pytest
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply
-from rr_actors._registrar import Served
+from rr_actors._registrar import Served, life
 from rr_actors._registrar.actor import DISPATCH, MESSAGE_STEPS
 from rr_actors._registrar.messages import Abandon, ConsumerDown, StatusBatch
 from rr_actors._registrar.state import POINTS
@@ -132,6 +132,13 @@ def _reconcile_ask(p: Pair, hook: Hook) -> None:
     p.held()
     intercept(p.consumer, "reconcile_ask", before=hook)
     Served(p.provider).listening()  # reachable: it asks its consumers what they hold
+
+
+def _lost_everything(p: Pair, hook: Hook) -> None:
+    p.held()
+    intercept(p.consumer, "lost_everything", before=hook)
+    # its supervisor restarted it without a backup: it reconciles with everyone
+    life.lost_everything(p.consumer.name)
 
 
 def _pending(p: Pair, hook: Hook) -> None:
@@ -312,6 +319,7 @@ DRIVERS: dict[str, Callable[[Pair, Hook], None]] = {
     "consumer_down": _consumer_down,
     "reconcile": _reconcile,
     "reconcile_ask": _reconcile_ask,
+    "lost_everything": _lost_everything,
     "pending": _pending,
     "client_loaded": _client_loaded,
     "call_failed": _call_failed,

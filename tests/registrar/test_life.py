@@ -5,7 +5,8 @@ Its start after `setup` (`TestStartup`), the sweep of a restored catalog
 (`TestReadopt`), the catalog in `CatalogRestored` and `RegistrarStopped`
 (`TestCatalogEvents`), a stop (`TestCleanup`, rules 12-13; `TestStopWaitsForUnloads`), a
 crash (`TestCrash`), peers lost for good (`TestMembership`, `TestProviderLost`,
-`TestLostConsumerLoads`: rule 19) and reachable again (`TestReconcileAfterHeal`, rule 20).
+`TestLostConsumerLoads`: rule 19), reachable again (`TestReconcileAfterHeal`, rule 20) and
+restarted by a supervisor without a backup (`TestRestartedWithoutBackup`, rule 20).
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ from rr_actors.testing import (
     pending_work,
 )
 from tests.support.names import named
-from tests.support.supervising import process, sigkill
+from tests.support.supervising import kill_and_wait_restarted, process, sigkill
 from tests.support.waiting import wait_for
 
 # -- for TestStartup -----------------------------------------------------------------------
@@ -251,11 +252,15 @@ BOUND = 5.0
 """Seconds from a SIGKILL to the consumers' `FATAL` (measured: milliseconds)."""
 
 
-def leaf_setup(unloads: Any = None) -> Callable[[rr.ResourceRegistrar], None]:
+def leaf_setup(unloads: Any = None, unloaded: Any = None) -> Callable[[rr.ResourceRegistrar], None]:
+    """A `leaf` server whose unloads are appended to `unloads` (then `unloaded` is set)."""
+
     def setup(registrar: rr.ResourceRegistrar) -> None:
         def unload(request: Any, _response: Any) -> None:
             if unloads is not None:
                 unloads.append(request)
+            if unloaded is not None:
+                unloaded.set()
 
         registrar.register_server("leaf", load=lambda r: {"for": r}, unload=unload)
 
@@ -1423,3 +1428,45 @@ class TestReconcileAfterHeal:
         consumer.stop(timeout=5)  # its release cannot reach the provider: it goes anyway
 
         assert not consumer.is_alive()
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+@pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
+class TestRestartedWithoutBackup:
+    """Rule 20 for a manager its supervisor restarts without a backup (`lost_everything`).
+
+    Its new incarnation holds nothing: the ids its last one held at its providers are held
+    for a consumer that no longer exists, as those of a consumer gone for good are (rule
+    12's death watch), so they are released there, and what nobody else holds is unloaded.
+    Its supervisor tells it it restarted with an empty catalog, and it reconciles with every
+    registrar of the system, as one restored from a backup does. Found by the simulation
+    (`tests/simulation/test_supervision.py`, issue 42); real processes, a real SIGKILL.
+    """
+
+    def test_a_composite_killed_and_restarted_without_backup_has_its_ids_released_at_its_provider(
+        self,
+        supervisors: Callable[..., rr.Supervisor],
+        process_helpers: SharedObjects,
+        uid: str,
+    ) -> None:
+        camera, composite = f"camera-{uid}", f"filter-{uid}"
+        unloads = process_helpers.list()
+        unloaded = process_helpers.event()
+        sup = supervisors(  # no state_dir: no backups
+            [
+                rr.ManagerSpec(camera, leaf_setup(unloads, unloaded), isolation="process"),
+                rr.ManagerSpec(composite, composite_setup(camera, []), isolation="process"),
+            ]
+        )
+        with sup:
+            app = sup.registrar(f"app-{uid}")
+            app.call(composite, "composite", "alone", timeout=10)  # its leaf: the filter's only
+            app.call(composite, "composite", "shared", timeout=10)
+            kept = app.call(camera, "leaf", "shared", timeout=10)  # this leaf the app holds too
+
+            kill_and_wait_restarted(sup, composite)
+            assert unloaded.wait(10)  # released at the camera, unloaded: nobody holds it
+            held = sup.run_in(camera, lambda r: r.server_queries("leaf"), timeout=10)
+
+            assert ["alone"] == list(unloads)
+            assert [("shared", app.name, kept.id)] == [(q.request, q.origin_rr, q.id) for q in held]

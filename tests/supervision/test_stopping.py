@@ -35,12 +35,14 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.replies import FutureReply, wait
 from rr_actors.testing import SharedObjects, actor_ref, start_forkserver
+from rr_actors.testing.carrier import Load
 from tests.support.carriers import own_provider_main, setup_servers
 from tests.support.supervising import (
     FakeClock,
     alive,
-    crash,
     process,
     sigkill,
 )
@@ -227,8 +229,10 @@ class TestStoppedForGood:
     down; `api`'s reconcile came too late to name them, and `api` ended the run holding
     them. A stopped registrar holds nothing (rule 12), so its supervisor's "it will not be
     started again" is a mark as a death for good is (`_core/membership.py`): the provider
-    releases what it still holds of it. Here the stale id comes from the documented limit of
-    a consumer without a backup: restarted, it no longer knows the ids it held.
+    releases what it still holds of it. Here the stale id is a `Load` sent in the consumer's
+    name, which the consumer never knew of (it used to come from a consumer without a
+    backup, killed and restarted: issue 42 had its supervisor's `lost_everything` make it
+    reconcile, and such ids are released at its restart now).
     """
 
     def test_a_consumer_stopped_for_good_by_its_supervisor_has_its_stale_ids_released(
@@ -248,15 +252,17 @@ class TestStoppedForGood:
         sup = rr.Supervisor(
             [
                 rr.ManagerSpec(provider, setup, isolation="thread"),
-                rr.ManagerSpec(consumer, None, isolation="thread"),  # no backup: forgets on restart
+                rr.ManagerSpec(consumer, None, isolation="thread"),
             ],
             backoff=rr.Backoff(initial=0.0, jitter=0.0),
         )
         with sup:
-            sup.run_in(consumer, lambda r: r.call(provider, "leaf", "x", timeout=10))
-            crash(sup, consumer)
-            sup.wait_restarted(consumer, timeout=10)
-            assert [] == sup.run_in(consumer, lambda r: r.client_queries())  # it forgot the id
+            stale = FutureReply()
+            DIRECTORY.lookup(provider).tell(
+                Load(str(uuid.uuid4()), "leaf", "x", consumer, (), stale)
+            )
+            assert "x" == wait(stale.future, 10, "the load in the consumer's name")
+            assert [] == sup.run_in(consumer, lambda r: r.client_queries())  # it knows no id
             assert 1 == len(sup.run_in(provider, lambda r: r.server_queries("leaf")))  # held
             # the tree stops: the consumer first, for good; then the provider
 
