@@ -116,10 +116,6 @@ class Load(WireMessage):
     chain: tuple[str, ...]
     reply: Reply
 
-    def detached(self) -> Load:
-        """This load without its reply (built directly: the hot path of every call)."""
-        return Load(self.query_id, self.server, self.request, self.origin_rr, self.chain, None)  # type: ignore[arg-type]
-
     def compensation(self) -> Abandon:
         """A lost answer leaves a consumer id nobody holds: release it (rule 17)."""
         return Abandon(self.query_id, self.origin_rr)
@@ -221,7 +217,7 @@ class StatusBatch(WireMessage):
     sent_at: float = 0.0
 
     def part(self, parts: tuple[tuple[str, tuple[str, ...]], ...], reply: Reply) -> StatusBatch:
-        """The same status for `parts`, answered to `reply` (built directly, as `detached`)."""
+        """The same status for `parts`, answered to `reply`."""
         return StatusBatch(
             parts,
             self.status,
@@ -232,10 +228,6 @@ class StatusBatch(WireMessage):
             self.hop,
             self.sent_at,
         )
-
-    def detached(self) -> StatusBatch:
-        """This batch without its reply (built directly: `dataclasses.replace` is slower)."""
-        return self.part(self.parts, None)  # type: ignore[arg-type]
 
 
 @dataclasses.dataclass(frozen=True)
