@@ -32,9 +32,10 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import dataclasses
+import functools
 import traceback
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeAlias
 
 import cloudpickle
 
@@ -89,6 +90,7 @@ __all__ = [
     "StatusBatch",
     "StatusNotice",
     "Stop",
+    "TextFields",
     "Unload",
     "UnregisterServer",
     "UpdateResponse",
@@ -98,6 +100,7 @@ __all__ = [
     "give_back",
     "load_error",
     "misfit",
+    "text_fields",
 ]
 
 
@@ -544,27 +547,28 @@ class RunOnActor:
     reply: Reply
 
 
-_TEXT_FIELDS: dict[type, tuple[tuple[str, bool], ...]] = {}
-"""Message type -> `(name, may be None)` of its fields declared `str` or `str | None`
-(found on first use)."""
+TextFields: TypeAlias = tuple[tuple[str, bool], ...]
+"""`(name, may be None)` of a message type's fields declared `str` or `str | None`."""
 
 
-def misfit(message: object) -> ConfigError | None:
-    """A `ConfigError` naming the field of `message` declared `str` (or `str | None`) that
-    holds something else (`None` if none does).
+@functools.cache
+def text_fields(kind: type) -> TextFields:
+    """The fields of message type `kind` that `misfit` checks (found once a type)."""
+    fields = dataclasses.fields(kind) if dataclasses.is_dataclass(kind) else ()
+    return tuple(
+        (f.name, f.type == "str | None") for f in fields if f.type in ("str", "str | None")
+    )
+
+
+def misfit(message: object, names: TextFields) -> ConfigError | None:
+    """A `ConfigError` naming the field of `message` among `names` (`text_fields`) that
+    holds something else than a str (`None` if none does).
 
     A careless caller (`unload(["id"])`) or a buggy peer must not make a registrar die of
     a `TypeError` deep in a handler (an unhashable id, a name `difflib` cannot read): the
     registrar refuses the message instead. Only the value's type is shown: its `repr` is
     a peer's code.
     """
-    kind = type(message)
-    names = _TEXT_FIELDS.get(kind)
-    if names is None:
-        fields = dataclasses.fields(kind) if dataclasses.is_dataclass(kind) else ()
-        names = _TEXT_FIELDS[kind] = tuple(
-            (f.name, f.type == "str | None") for f in fields if f.type in ("str", "str | None")
-        )
     for name, optional in names:
         value = getattr(message, name)
         if (
@@ -574,7 +578,7 @@ def misfit(message: object) -> ConfigError | None:
         ):
             return ConfigError(
                 f"{name} must be a str{' or None' * optional}, not "
-                f"{type(value).__qualname__[:80]} ({kind.__name__} refused)"
+                f"{type(value).__qualname__[:80]} ({type(message).__name__} refused)"
             )
     return None
 
