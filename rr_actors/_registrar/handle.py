@@ -805,7 +805,7 @@ class Here:
             commit_first=config.save_on_modify and config.backup_path is not None,
             stored=config.backup_path is not None,
             probes=lambda: self.probes,
-            listened=lambda: launched.published.active,
+            events=launched.published,
         )
 
     # -- where the actor lives (`Placement`) --------------------------------------------
