@@ -16,7 +16,6 @@ fast path.
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 from rr_actors.errors import RrError, TransferError
@@ -49,11 +48,17 @@ class WireMessage:
         WIRE_TYPES.add(cls)
 
     def detached(self) -> Any:
-        """This message as it crosses to another process: without its `reply`."""
+        """This message as it crosses to another process: without its `reply`.
+
+        A copy of its fields, not a second construction: the fields were checked when the
+        message was built, and a frozen dataclass's `__init__` sets each one through
+        `object.__setattr__` (a `Load` is detached on every call across processes).
+        """
         if not hasattr(self, "reply"):
             return self
-        detached: Any = dataclasses.replace(self, reply=None)  # type: ignore[type-var]
-        return detached
+        copy = object.__new__(type(self))
+        copy.__dict__.update(self.__dict__, reply=None)
+        return copy
 
     def compensation(self) -> WireMessage | None:
         """A message that undoes handling this one when its answer is lost, if any.

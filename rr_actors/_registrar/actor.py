@@ -91,11 +91,13 @@ from rr_actors._registrar.messages import (
     StatusBatch,
     StatusNotice,
     Stop,
+    TextFields,
     Unload,
     UnregisterServer,
     UpdateResponse,
     YieldName,
     misfit,
+    text_fields,
 )
 from rr_actors._registrar.provider import Provider, Servers, Teardown, Unloading
 from rr_actors._registrar.state import NO_REPLY, POINTS, OpenReply, Shared
@@ -314,8 +316,8 @@ class RegistrarActor(Actor):
             ended,
         )
         self.unknown = LogThrottle(logger)  # messages of no known type (a buggy peer's)
-        self.handlers: dict[type, tuple[str, Handler]] = {
-            kind: (step, bind(self)) for kind, (step, bind) in DISPATCH.items()
+        self.handlers: dict[type, tuple[str, Handler, TextFields]] = {
+            kind: (step, bind(self), text_fields(kind)) for kind, (step, bind) in DISPATCH.items()
         }
 
     @property
@@ -340,11 +342,12 @@ class RegistrarActor(Actor):
             text = plain_text(message) or f"<a {type(message).__qualname__[:80]} object>"
             self.unknown.warning("registrar %s ignored an unknown message %s", self.name, text)
             return
-        step, handle = entry
+        step, handle, texts = entry
         to = getattr(message, "reply", None)  # where its answer goes
         if to is None:
             to = NO_REPLY
-        if (wrong := misfit(message)) is not None:  # e.g. `unload(["id"])`: refused, not fatal
+        # e.g. `unload(["id"])`: refused, not fatal (a message with no text field: no check)
+        if texts and (wrong := misfit(message, texts)) is not None:
             if to is NO_REPLY:
                 self.unknown.warning("registrar %s ignored a message: %s", self.name, wrong)
             else:
@@ -372,13 +375,15 @@ class RegistrarActor(Actor):
                 )
             raise
 
-    def inherited(self, kind: type) -> tuple[str, Handler] | None:
+    def inherited(self, kind: type) -> tuple[str, Handler, TextFields] | None:
         """The clause of a subclass of a message in `DISPATCH` (`DurableLoaded` is a
-        `ClientLoaded`), kept for its next one; `None` for an unknown message."""
+        `ClientLoaded`), with the subclass's own text fields, kept for its next one;
+        `None` for an unknown message."""
         for base in kind.__mro__[1:-1]:  # (not the class itself, nor `object`)
             entry = self.handlers.get(base)
             if entry is not None:
-                self.handlers[kind] = entry
+                step, handle, _ = entry
+                entry = self.handlers[kind] = (step, handle, text_fields(kind))
                 return entry
         return None
 

@@ -57,6 +57,7 @@ import pykka
 from rr_actors._catalog import ClientRecord
 from rr_actors._core import runtime
 from rr_actors._core.actor import OneShotFuture, awaiting
+from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.queues import LateQueue
 from rr_actors._core.replies import FutureReply, Steps
@@ -447,8 +448,8 @@ class Calls:
         stored: its client records are stored (a backup), so requests and responses
             must pickle.
         probes: the registrar's test probes, read when a call is withdrawn.
-        listened: whether anyone listens to the registrar's events: a plain call's
-            answer then wakes the actor, which publishes its `CallAnswered` at once.
+        events: the registrar's events: when anyone listens (`active`), a plain call's
+            answer wakes the actor, which publishes its `CallAnswered` at once.
     """
 
     def __init__(
@@ -460,7 +461,7 @@ class Calls:
         commit_first: bool,
         stored: bool,
         probes: Callable[[], Probes | None],
-        listened: Callable[[], bool] = lambda: False,
+        events: Publisher[Any],
     ) -> None:
         self.ref = ref
         self.name = name
@@ -468,7 +469,7 @@ class Calls:
         self.commit_first = commit_first
         self.stored = stored
         self.probes = probes
-        self.listened = listened
+        self.events = events
         self.attempt_type: type[CallAttempt] = CallAttempt
 
     def steps(
@@ -531,7 +532,7 @@ class Calls:
                     loaded = ClientRecord(answered, parent, loaded=True)
                     # (a dependency's owner may be gone: it is given back at once)
                     outcome = ClientLoaded(loaded, on_status, attempt)
-                    self.hand_over(outcome, wake=parent is not None or self.listened())
+                    self.hand_over(outcome, wake=parent is not None or self.events.active)
         except pykka.ActorDeadError:  # this registrar stopped meanwhile: give the id back
             give_back(serving_rr, query_id, self.name)
             raise DIRECTORY.gone_error(self.name) from None

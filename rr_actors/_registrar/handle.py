@@ -409,17 +409,10 @@ class Registrar:
                 cannot be pickled where it must be: across processes, or into this
                 registrar's backup (its client record); the provider then holds nothing.
         """
-        return blocking(
-            call_steps(
-                self,
-                target_rr,
-                server,
-                request,
-                on_status=on_status,
-                timeout=timeout,
-                query_id=query_id,
-            )
+        steps = self._actor.steps(
+            Here.call, timeout, target_rr, server, request, on_status, query_id
         )
+        return blocking(steps)
 
     async def acall(
         self,
@@ -450,14 +443,8 @@ class Registrar:
             asyncio.CancelledError: the awaiting task was cancelled: the call was
                 withdrawn as a timed-out one is (nothing is left held).
         """
-        steps = call_steps(
-            self,
-            target_rr,
-            server,
-            request,
-            on_status=on_status,
-            timeout=timeout,
-            query_id=query_id,
+        steps = self._actor.steps(
+            Here.call, timeout, target_rr, server, request, on_status, query_id
         )
         return await run_steps_async(steps)
 
@@ -818,7 +805,7 @@ class Here:
             commit_first=config.save_on_modify and config.backup_path is not None,
             stored=config.backup_path is not None,
             probes=lambda: self.probes,
-            listened=lambda: launched.published.active,
+            events=launched.published,
         )
 
     # -- where the actor lives (`Placement`) --------------------------------------------
@@ -1316,9 +1303,9 @@ def call_steps(
     timeout: float | None,
     query_id: str | None,
 ) -> Steps[Query]:
-    """The steps of `consumer.call(...)`, where its actor is: `call` runs them blocking,
-    `acall` awaits them, and a protocol built on a call drives them among its own
-    (`Supervisor.call_with_retry` and its twin, `_supervision/retry.py`).
+    """The steps `consumer.call(...)` runs blocking and `acall` awaits, for a protocol
+    built on a call that drives them among its own (`Supervisor.call_with_retry` and its
+    twin, `_supervision/retry.py`).
 
     Raises:
         ConfigError: an argument is invalid (at once; see `Registrar.call`).

@@ -33,9 +33,10 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import dataclasses
+import functools
 import traceback
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeAlias
 
 import cloudpickle
 
@@ -91,6 +92,7 @@ __all__ = [
     "StatusBatch",
     "StatusNotice",
     "Stop",
+    "TextFields",
     "Unload",
     "UnregisterServer",
     "UpdateResponse",
@@ -100,6 +102,7 @@ __all__ = [
     "give_back",
     "load_error",
     "misfit",
+    "text_fields",
 ]
 
 
@@ -117,10 +120,6 @@ class Load(WireMessage):
     origin_rr: str
     chain: tuple[str, ...]
     reply: Reply
-
-    def detached(self) -> Load:
-        """This load without its reply (built directly: the hot path of every call)."""
-        return Load(self.query_id, self.server, self.request, self.origin_rr, self.chain, None)  # type: ignore[arg-type]
 
     def compensation(self) -> Abandon:
         """A lost answer leaves a consumer id nobody holds: release it (rule 17)."""
@@ -223,7 +222,7 @@ class StatusBatch(WireMessage):
     sent_at: float = 0.0
 
     def part(self, parts: tuple[tuple[str, tuple[str, ...]], ...], reply: Reply) -> StatusBatch:
-        """The same status for `parts`, answered to `reply` (built directly, as `detached`)."""
+        """The same status for `parts`, answered to `reply`."""
         return StatusBatch(
             parts,
             self.status,
@@ -234,10 +233,6 @@ class StatusBatch(WireMessage):
             self.hop,
             self.sent_at,
         )
-
-    def detached(self) -> StatusBatch:
-        """This batch without its reply (built directly: `dataclasses.replace` is slower)."""
-        return self.part(self.parts, None)  # type: ignore[arg-type]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -562,27 +557,28 @@ class RunOnActor:
     reply: Reply
 
 
-_TEXT_FIELDS: dict[type, tuple[tuple[str, bool], ...]] = {}
-"""Message type -> `(name, may be None)` of its fields declared `str` or `str | None`
-(found on first use)."""
+TextFields: TypeAlias = tuple[tuple[str, bool], ...]
+"""`(name, may be None)` of a message type's fields declared `str` or `str | None`."""
 
 
-def misfit(message: object) -> ConfigError | None:
-    """A `ConfigError` naming the field of `message` declared `str` (or `str | None`) that
-    holds something else (`None` if none does).
+@functools.cache
+def text_fields(kind: type) -> TextFields:
+    """The fields of message type `kind` that `misfit` checks (found once a type)."""
+    fields = dataclasses.fields(kind) if dataclasses.is_dataclass(kind) else ()
+    return tuple(
+        (f.name, f.type == "str | None") for f in fields if f.type in ("str", "str | None")
+    )
+
+
+def misfit(message: object, names: TextFields) -> ConfigError | None:
+    """A `ConfigError` naming the field of `message` among `names` (`text_fields`) that
+    holds something else than a str (`None` if none does).
 
     A careless caller (`unload(["id"])`) or a buggy peer must not make a registrar die of
     a `TypeError` deep in a handler (an unhashable id, a name `difflib` cannot read): the
     registrar refuses the message instead. Only the value's type is shown: its `repr` is
     a peer's code.
     """
-    kind = type(message)
-    names = _TEXT_FIELDS.get(kind)
-    if names is None:
-        fields = dataclasses.fields(kind) if dataclasses.is_dataclass(kind) else ()
-        names = _TEXT_FIELDS[kind] = tuple(
-            (f.name, f.type == "str | None") for f in fields if f.type in ("str", "str | None")
-        )
     for name, optional in names:
         value = getattr(message, name)
         if (
@@ -592,7 +588,7 @@ def misfit(message: object) -> ConfigError | None:
         ):
             return ConfigError(
                 f"{name} must be a str{' or None' * optional}, not "
-                f"{type(value).__qualname__[:80]} ({kind.__name__} refused)"
+                f"{type(value).__qualname__[:80]} ({type(message).__name__} refused)"
             )
     return None
 

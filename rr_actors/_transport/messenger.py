@@ -108,10 +108,6 @@ _GONE = (RegistrarStoppedError, RegistrarUnavailableError, UnknownRegistrarError
 Lost = Callable[[], None]
 """Called (on any thread) when a queued frame could not be sent: the link ended."""
 
-SendAnswer = Callable[[bytes, "Lost | None"], bool]
-"""Sends an answer frame back to a message's sender; `on_lost` runs if it is queued and
-then lost; False if the sender is gone (nothing sent)."""
-
 Tell = Callable[[Any], object]
 """Tells a message (a compensation) to the registrar an answer came from.
 
@@ -883,7 +879,8 @@ class Messenger:
             carrier = self._carrier
             assert carrier is not None
             reply = StandIn(
-                lambda data, on_lost: carrier.answer_to(process, data, on_lost),
+                carrier,
+                process,
                 name,
                 limit,
                 token,
@@ -924,8 +921,9 @@ class Messenger:
 
 
 class StandIn:
-    """The stand-in for a sender's reply, given to a delivered message: answers over the
-    link (`send`), for registrar `name` of this process (`limit`: its `max_message_bytes`).
+    """The stand-in for a sender's reply, given to a delivered message: answers to its
+    sender `process` (`carrier.answer_to`), for registrar `name` of this process (`limit`:
+    its `max_message_bytes`).
 
     An answer that does not pickle, or is over `limit`, becomes an error answer (the
     caller never hangs). When a successful answer does not reach its caller (it does not
@@ -934,18 +932,29 @@ class StandIn:
     again.
     """
 
-    __slots__ = ("_done", "_limit", "_lookup", "_message", "_name", "_send", "_token")
+    __slots__ = (
+        "_carrier",
+        "_done",
+        "_limit",
+        "_lookup",
+        "_message",
+        "_name",
+        "_process",
+        "_token",
+    )
 
     def __init__(
         self,
-        send: SendAnswer,
+        carrier: Carrier,
+        process: Any,
         name: str,
         limit: int,
         token: int,
         message: Any,
         lookup: Callable[[str], Peer] = DIRECTORY.lookup,
     ) -> None:
-        self._send = send
+        self._carrier = carrier  # answers go back to `process`, its sender
+        self._process = process
         self._lookup = lookup
         self._name = name
         self._limit = limit
@@ -982,7 +991,7 @@ class StandIn:
             data = frame(self._token, (None, too_large))
             error = too_large
         on_lost = self._compensate if error is None else None
-        if not self._send(data, on_lost) and on_lost is not None:
+        if not self._carrier.answer_to(self._process, data, on_lost) and on_lost is not None:
             on_lost()
 
     def _compensate(self) -> None:
