@@ -4,7 +4,7 @@ Every thread of the process gets the `SCHED_IDLE` policy and is pinned to one CP
 busy loop at nice -20 holds, so it stays runnable but runs only when that CPU has nothing
 else to do (never, while the loop runs): a manager starved so, as on an overloaded
 machine, is what the heartbeat's "could run for only ..." WARNING is about.
-(`tests/process/test_heartbeat.py` starves its managers the same way.)
+(`tests/process/test_heartbeat.py` and `tests/test_log.py` starve their managers with it.)
 """
 
 from __future__ import annotations
