@@ -700,7 +700,12 @@ class _Accepted:
             try:
                 handshake(self.sock, listener.authkey, self.deadline, server=True)
             except (AuthenticationError, EOFError, OSError) as exc:
-                logger.warning("registrar %s refused a connection: %s", listener.name, exc)
+                if self.writer.closed:  # the listener stopped and closed it: no refusal
+                    logger.debug(
+                        "registrar %s stopped during a handshake: %s", listener.name, exc
+                    )
+                else:
+                    logger.warning("registrar %s refused a connection: %s", listener.name, exc)
                 return
             messenger, endpoint = listener.messenger, listener.endpoint
             for data in frames(conn, listener.max_message_bytes):

@@ -622,3 +622,28 @@ class TestMalformedChallenge:
         sock, conn = connect(system.address.socket_path(served.name), system.address.authkey)
         conn.close()
         sock.close()
+
+
+def test_a_handshake_cut_short_by_the_registrar_stopping_is_no_refusal(
+    system: System, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A peer still in its handshake when the registrar stops is not "refused": the
+    listener closed the connection itself (CI saw "refused a connection: [Errno 9] Bad
+    file descriptor" when a supervised manager stopped while its parent connected).
+    """
+    caplog.set_level(logging.DEBUG, logger="rr_actors")
+    name = f"stopping-{uuid.uuid4().hex[:8]}"
+    registrar = rr.ResourceRegistrar.start(name)
+    system.serve(Served(registrar))
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as peer:
+        peer.connect(system.address.socket_path(name))
+        peer.settimeout(10)
+        assert peer.recv(4096)  # the challenge: its reader now waits for the answer
+        (link,) = [t for t in threading.enumerate() if t.name == f"rr-link-{name}"]
+        registrar.stop()  # ... while the registrar stops
+        link.join(10)
+        assert not link.is_alive()
+
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert [] == warnings
+    assert any("handshake" in r.getMessage() for r in caplog.records if r.levelno == logging.DEBUG)
