@@ -48,6 +48,7 @@ __all__ = [
     "Timer",
     "current_thread",
     "get_ident",
+    "getpid",
     "handles_signals",
     "local",
     "manager_process",
@@ -92,6 +93,8 @@ random = _random.random
 """A float in `[0, 1)`: jitter and backoff."""
 get_ident = threading.get_ident
 current_thread = threading.current_thread
+getpid = os.getpid
+"""The pid of the calling thread's process (in a simulation, its simulated process's)."""
 
 manager_process: Any = None
 """`None` in a real run (`rr_actors._process` forks manager processes); in a simulation,
@@ -122,6 +125,7 @@ SEAMS = (
     "random",
     "get_ident",
     "current_thread",
+    "getpid",
     "queue_class",
     "manager_process",
 )

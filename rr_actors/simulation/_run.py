@@ -224,6 +224,7 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
         "random": sched.data.random,
         "get_ident": functools.partial(sim.get_ident, sched),
         "current_thread": functools.partial(sim.current_thread, sched),
+        "getpid": lambda: sched.current().process.pid,
         "queue_class": functools.partial(sim.queue_class, sched, {}),
         "manager_process": functools.partial(_manager.start, sched),
     }
