@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 from rr_actors.errors import ConfigError, RrError
 from rr_actors.experiments import experiment, simulate
 from rr_actors.experiments.plan import Plan
-from rr_actors.experiments.reading import load_plan
+from rr_actors.experiments.reading import parse_plan
 
 if TYPE_CHECKING:
     from rich.table import Table as RichTable
@@ -128,10 +128,17 @@ def hash_fixed(argv: list[str], stream: TextIO) -> int | None:
     return done.returncode
 
 
-def _line(run: simulate.SimulatedRun, duration: float) -> dict[str, Any]:
+def _line(run: simulate.SimulatedRun, plan: Plan) -> dict[str, Any]:
+    """A seed's line of `seeds.jsonl`: the run without its history, the plan's duration
+    and file (a replay imports the setups from the file's folder, as the sweep did)."""
     fields = dataclasses.asdict(run)
     del fields["history"]
-    return {**fields, "duration": duration, "findings": list(run.findings)}
+    return {
+        **fields,
+        "findings": list(run.findings),
+        "duration": plan.duration,
+        "plan": plan.source,
+    }
 
 
 def summary_rows(runs: list[simulate.SimulatedRun]) -> list[str]:
@@ -188,7 +195,7 @@ def run_seeds(plan: Plan, seeds: range, out: Path, display: Any) -> list[simulat
 
         def finished(run: simulate.SimulatedRun) -> None:
             runs.append(run)
-            lines.write(json.dumps(_line(run, plan.duration)) + "\n")
+            lines.write(json.dumps(_line(run, plan)) + "\n")
             lines.flush()
             if run.verdict != "held":
                 name = f"events-seed-{run.seed}.jsonl"
@@ -242,7 +249,9 @@ def run_replay(args: argparse.Namespace, stream: TextIO) -> int:
     run_dir = Path(args.run_dir)
     try:
         recorded = _recorded(run_dir, args.seed)
-        plan = load_plan(run_dir / "plan.toml")
+        text = (run_dir / "plan.toml").read_text(encoding="utf-8")
+        source = recorded.get("plan") or str(run_dir / "plan.toml")  # (its setups' folder)
+        plan = parse_plan(text, source=source, name=Path(source).stem)
         plan = plan.with_changes(duration=recorded["duration"])
         simulate.check_simulable(plan)
     except (ConfigError, OSError) as exc:
