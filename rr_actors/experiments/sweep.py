@@ -226,7 +226,9 @@ def summary(display: Any, runs: list[simulate.SimulatedRun], out: Path) -> None:
     if violated or unverifiable:
         seed = (violated or unverifiable)[0]
         display.say(f"replay one: rr-actors replay {out} --seed {seed}")
-    display.say(f"written to {out}/: {', '.join(OUTPUT_FILES)}")
+    kept = len(violated) + len(unverifiable)
+    histories = [f"{kept} histories (events-seed-S.jsonl)"] if kept else []
+    display.say(f"written to {out}/: {', '.join([*OUTPUT_FILES, *histories])}")
 
 
 def replay_arguments(parser: argparse.ArgumentParser) -> None:

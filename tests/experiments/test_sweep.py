@@ -117,7 +117,7 @@ def test_a_planted_bug_names_the_violating_seeds_keeps_their_histories_and_repla
     violated = [seed for seed, line in recorded(out).items() if line["verdict"] == "violated"]
     assert violated
     assert f"violated: seeds {', '.join(map(str, violated))}" in printed
-    assert f"rr-actors replay {out} --seed {violated[0]}" in printed
+    assert f"rr-actors replay {out} --seed {violated[0]}" in " ".join(printed.split())
     history = out / f"events-seed-{violated[0]}.jsonl"
     assert 1 == main(["check", str(history), "--quiet"], io.StringIO())
 
