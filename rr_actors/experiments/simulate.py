@@ -9,7 +9,8 @@
                sup.start(); the workload's Clients (workload.py, simulated threads)     │
                the fault thread: fault_schedule(plan, S), each kill_manager a           │
                  simulation.kill (SIGKILL) of the target's simulated pid, on time       │
-               sleep(duration); wait_all_serving; clients stop; flush; sup.stop()       │
+               sleep(duration); wait_all_serving; clients stop; count_entries      │
+               (the runner's settling); flush; sup.stop()                               │
    ◄── the events, the fault records, t0 ◄──────────────────────────────────────────────┘
    history = events.jsonl's text (the runner's lines: `at` in virtual seconds, pids the
              simulated ones, `run` = 1, `seed` = S) + the fault lines
@@ -50,6 +51,7 @@ from rr_actors.experiments.runner import (
     EVENT_QUEUE,
     _EventLog,
     build_tree,
+    count_entries,
     fault_line,
     wait_all_serving,
 )
@@ -91,6 +93,7 @@ class SimulatedRun:
         faults: how many faults it injected (skipped ones not counted).
         calls_ok: the workload's calls answered.
         calls_failed: the workload's calls that failed.
+        entries_left: rows left in the catalogs at the end (the runner's count, settled).
         virtual_s: the virtual seconds the run took, setup and shutdown included.
         cpu_s: the CPU seconds it took (not part of the history).
         errors: exceptions that ended simulated threads (`name: Type: message`).
@@ -107,6 +110,7 @@ class SimulatedRun:
     faults: int
     calls_ok: int
     calls_failed: int
+    entries_left: int
     virtual_s: float
     cpu_s: float
     errors: tuple[str, ...]
@@ -211,6 +215,7 @@ def run_seed(plan: Plan, seed: int) -> SimulatedRun:
         faults=sum(1 for r in records if not r.skipped),
         calls_ok=calls[0],
         calls_failed=calls[1],
+        entries_left=calls[2],
         virtual_s=ran.elapsed,
         cpu_s=time.process_time() - started,
         errors=ran.errors,
@@ -219,7 +224,7 @@ def run_seed(plan: Plan, seed: int) -> SimulatedRun:
 
 def _world(
     plan: Plan, seed: int, folder: Path
-) -> tuple[list[events.Event], list[FaultRecord], float, tuple[int, int]]:
+) -> tuple[list[events.Event], list[FaultRecord], float, tuple[int, int, int]]:
     """The run, in the simulation's main thread: the runner's steps on simulated seams."""
     from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
 
@@ -247,12 +252,14 @@ def _world(
         runtime.sleep(plan.duration)
         stop.set()
         faults.join()
-        wait_all_serving(sup, [m.name for m in plan.managers()], plan.recovery_timeout)
+        managers = [m.name for m in plan.managers()]
+        wait_all_serving(sup, managers, plan.recovery_timeout)
         for client in clients:
             client.stop(timeout=plan.workload.timeout)
         failed = next((c.failure for c in clients if c.failure is not None), None)
         if failed is not None:
             raise failed
+        left, _ = count_entries(sup, managers, clients)  # (the runner's settling, too)
         sup.flush_events()
     finally:
         sup.stop()
@@ -261,7 +268,7 @@ def _world(
         network.close()
     calls = [c for client in clients for c in client.calls]
     ok = sum(1 for c in calls if c.ok)
-    return list(log.seen), records, wall_t0, (ok, len(calls) - ok)
+    return list(log.seen), records, wall_t0, (ok, len(calls) - ok, left)
 
 
 def _inject(
