@@ -20,14 +20,17 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
+import logging
 import os
 import re
 import shutil
 import statistics
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -205,8 +208,22 @@ def run_seeds(plan: Plan, seeds: range, out: Path, display: Any) -> list[simulat
             if bar is not None and task is not None:
                 bar.update(task, completed=len(runs), description=f"seed {run.seed}")
 
-        simulate.simulate(plan, seeds, on_run=finished)
+        with _warnings_off():
+            simulate.simulate(plan, seeds, on_run=finished)
     return runs
+
+
+@contextlib.contextmanager
+def _warnings_off() -> Iterator[None]:
+    """rr_actors' warnings off while seeds run: each kill of a sweep is one ("child exited:
+    killed by SIGKILL"), thousands a sweep; errors still show."""
+    logger = logging.getLogger("rr_actors")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 def summary(display: Any, runs: list[simulate.SimulatedRun], out: Path) -> None:
@@ -265,7 +282,8 @@ def run_replay(args: argparse.Namespace, stream: TextIO) -> int:
     if code is not None:
         return code
     try:
-        run = simulate.run_seed(plan, args.seed)
+        with _warnings_off():
+            run = simulate.run_seed(plan, args.seed)
     except RrError as exc:
         error(str(exc))
         return 1
