@@ -29,7 +29,8 @@
    │       dependencies (`provider.py`'s teardown) the same way; the provider died or
    │       stopped meanwhile ─► unreleased: left out of its next Reconcile, so it
    │       releases them (its unload runs once); this registrar stops ─► its durable
-   │       calls withdrawn, the ids of failed calls and releases given back
+   │       calls withdrawn, the ids of failed calls and releases given back (Abandon):
+   │       the stop goes on once each provider answered (or could not be reached)
    ▼
  Reconciling  it serves (again), or a provider asks (ReconcileAsk) ─► Reconcile(the
           ids held there: a Listing, its epoch); restored from a backup, or restarted
@@ -77,6 +78,7 @@ from rr_actors._registrar.calls import (
 )
 from rr_actors._registrar.display import ClientTexts
 from rr_actors._registrar.messages import (
+    Abandon,
     Fetch,
     FetchVia,
     ListClientQueries,
@@ -298,16 +300,16 @@ class Flights:
                 if listing is not None and query_id in listing.held and query_id not in lost:
                     self.kept_for_retry[query_id] = serving_rr
 
-    def give_back_unsettled(self) -> None:
-        """This registrar stops: give back the ids of calls that failed as their provider
-        died, which it would no longer retry (also those the provider kept for a retry
-        when it reconciled)."""
-        for query_id, serving_rr in self.unsettled().items():
-            give_back(serving_rr, query_id, self.registrar.name)
+    def take_unsettled(self) -> list[tuple[str, str]]:
+        """This registrar stops: the ids of calls that failed as their provider died,
+        which it would no longer retry (also those the provider kept for a retry when it
+        reconciled), with their providers, to give back; it no longer counts them held."""
+        taken = list(self.unsettled().items())
+        for query_id, _serving_rr in taken:
             self.settle(query_id, None)
-        for query_id, serving_rr in self.kept_for_retry.items():
-            give_back(serving_rr, query_id, self.registrar.name)
+        taken += self.kept_for_retry.items()
         self.kept_for_retry.clear()
+        return taken
 
     # -- notices that overtake the answer they are about --------------------------------
 
@@ -897,18 +899,18 @@ class Releases:
 
     # -- this registrar stops -----------------------------------------------------------
 
-    def withdraw_pending(self, error: RrError) -> None:
+    def withdraw_pending(self, error: RrError, given_back: Join) -> None:
         """This registrar stops: give up its durable calls in flight; their callers get `error`.
 
         The `Abandon` first, then the record, so a crash in between leaves nothing at the
-        provider.
+        provider. Each provider's answer is a part of `given_back` (`give_back_before_stop`).
         """
         for record in list(self.registrar.catalog.clients.values()):
             attempt = self.flights.attempt_of(record.query.id)
             if attempt is not None:
                 self.flights.take_attempt(record.query.id, attempt)
             if record.parent is None and not record.loaded and attempt is not None:
-                give_back(record.query.serving_rr, record.query.id, self.registrar.name)
+                self.give_back_before_stop(record.query.serving_rr, record.query.id, given_back)
                 self.answers.on_call_failed(
                     CallFailed(
                         record.query.id,
@@ -922,14 +924,35 @@ class Releases:
                 )
                 attempt.fail(error)
 
-    def give_back_unsettled(self) -> None:
+    def give_back_unsettled(self, given_back: Join) -> None:
         """This registrar stops: give back the ids of calls that failed as their provider
         died, which it would no longer retry (also those the provider kept for a retry
-        when it reconciled: `Flights`), and of releases that failed so."""
-        self.flights.give_back_unsettled()
+        when it reconciled: `Flights`), and of releases that failed so. Each provider's
+        answer is a part of `given_back` (`give_back_before_stop`)."""
+        for query_id, serving_rr in self.flights.take_unsettled():
+            self.give_back_before_stop(serving_rr, query_id, given_back)
         for query_id, serving_rr in self.unreleased.items():
-            give_back(serving_rr, query_id, self.registrar.name)
+            self.give_back_before_stop(serving_rr, query_id, given_back)
         self.unreleased.clear()
+
+    def give_back_before_stop(self, serving_rr: str, query_id: str, given_back: Join) -> None:
+        """Give `query_id` back to `serving_rr` (an `Abandon` that wants an answer); its
+        answer, or the error of a provider that cannot be reached, is a part of
+        `given_back`: the stop ends only after it (rule 12). Told and not waited for,
+        an `Abandon` could reach the provider after its own stop (its supervisor stops it
+        next), which would then hold the id for a consumer that stopped. A provider that
+        cannot be reached releases it when it reconciles (its restart finds this
+        registrar stopped: `Unloading.release_stopped`)."""
+        done = given_back.add()
+
+        def answered(_: Any, error: BaseException | None) -> None:
+            if error is not None:
+                logger.debug("giving %s back to %s failed: %s", query_id, serving_rr, error)
+            done()
+
+        self.registrar.send(
+            serving_rr, lambda reply: Abandon(query_id, self.registrar.name, reply), answered
+        )
 
 
 # -- reconciling -----------------------------------------------------------------------
