@@ -89,6 +89,7 @@ class SimulatedFaults:
         self._hung: dict[int, str] = {}  # pid -> manager
         self._armed: dict[tuple[int, int], tuple[ScheduledFault, float]] = {}  # not fired yet
         self._due: dict[int, tuple[ScheduledFault, float]] = {}  # on the agenda, by number
+        self._open: dict[tuple[int, int], Callable[[], None]] = {}  # recorded once they end
         self._helpers: list[Any] = []  # load errors' threads
         self._triggered = Triggered((f for f in schedule if f.at is None), wall_t0)
         for fault in schedule:
@@ -123,6 +124,8 @@ class SimulatedFaults:
         for pid in sorted(self._hung):
             simulation.kill(pid, signal.SIGCONT)
         self._hung.clear()
+        for key in list(self._open):
+            self._close(key)
         self.network.heal()  # (a partition_serving still on)
         for fault, _ in self._armed.values():
             SETUP_FAULTS.pop(fault.target or "", None)
@@ -211,12 +214,13 @@ class SimulatedFaults:
             self.log.record(fault, at, self._now(), f"cut pid {pid}'s connections")
         elif kind == "duplicate_delivery":
             for_s = self.plan.faults[fault.fault].for_s or DUPLICATE_FOR
-            self.network.duplicate_first(fault.target, simulation.now() + for_s)
+            count = self.network.duplicate_first(fault.target, simulation.now() + for_s)
             self.network.cut_connections(pid)
-            detail = (
-                f"cut pid {pid}'s connections; each new link's first frame twice for {for_s:g} s"
+            key = (fault.fault, fault.n)
+            self._open[key] = functools.partial(
+                self._duplicated, fault, at, self._now(), pid, count
             )
-            self.log.record(fault, at, self._now(), detail)
+            self._at(runtime.monotonic() + for_s, functools.partial(self._close, key), None)
         elif kind == "kill_before_answer":
             self._arm(fault, at)
             self.network.kill_at_answer(pid, functools.partial(self._fired, fault, at, pid))
@@ -230,6 +234,18 @@ class SimulatedFaults:
             simulation.kill(pid, signal.SIGKILL)
         else:  # (check_simulable refuses the others)
             raise AssertionError(f"fault kind {kind!r} is not simulated")
+
+    def _duplicated(
+        self, fault: ScheduledFault, at: float, injected: float, pid: int, count: list[int]
+    ) -> None:
+        """A duplicate_delivery's `for` is over (or the run): record it, with its count."""
+        detail = f"cut pid {pid}'s connections; {count[0]} first frame(s) of new links twice"
+        self.log.record(fault, at, injected, detail)
+
+    def _close(self, key: tuple[int, int]) -> None:
+        record = self._open.pop(key, None)
+        if record is not None:
+            record()
 
     def _resume(self, pid: int) -> None:
         if self._hung.pop(pid, None) is not None:

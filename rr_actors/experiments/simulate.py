@@ -25,9 +25,9 @@ on it: `rr-actors experiment --simulate` runs under `PYTHONHASHSEED=0`).
 Simulated: the manager faults `kill_manager`, `hang_manager`, `cut_connections`,
 `load_error` and the kinds only a simulation can aim (`plan.SIMULATION_KINDS`), at fixed
 or random times or `after` an event (`_simulated_faults.py`); managers in processes or
-threads, on this host; a `[compare]` plan with its first value. `kill_resource` and
-`[hosts]` are refused with a `PlanError` naming them and why (`check_simulable`), never
-skipped silently.
+threads, on this host; a `[compare]` plan with its first value. `kill_resource`,
+`[hosts]` and the mission's ERM setup are refused with a `PlanError` naming them and why
+(`check_simulable`), never skipped silently.
 """
 
 from __future__ import annotations
@@ -77,6 +77,13 @@ NOT_SIMULATED = {
 }
 """Why a manager's fault kind outside `SIMULATED_KINDS` is not simulated (the kinds
 between hosts: `[hosts]` is not)."""
+
+NOT_SIMULATED_SETUPS = {
+    "rr_actors.mission.managers:erm_setup": "the mission's ERM starts real OS programs and "
+    "watches them from real threads, which a simulation can neither schedule nor kill",
+}
+"""Setups a simulated run refuses, and why (a setup is user code: these are the shipped
+ones known to start real processes or threads)."""
 
 RUN = 1
 """The `run` of every line of a simulated run's history (one run a seed)."""
@@ -132,7 +139,7 @@ def check_simulable(plan: Plan) -> None:
 
     Raises:
         PlanError: a fault kind other than those of `SIMULATED_KINDS` (`kill_resource`,
-            the faults between hosts), or `[hosts]`.
+            the faults between hosts), `[hosts]`, or a setup of `NOT_SIMULATED_SETUPS`.
     """
     source = plan.source or "<plan>"
     for index, fault in enumerate(plan.faults):
@@ -148,6 +155,15 @@ def check_simulable(plan: Plan) -> None:
             "hosts",
             "a plan of several hosts is not simulated (network namespaces, real Zenoh)",
         )
+    for manager in plan.managers():
+        refused = NOT_SIMULATED_SETUPS.get(manager.setup)
+        if refused is not None:
+            raise PlanError(
+                source,
+                0,
+                f"tree.children.{manager.name}.setup",
+                f"{manager.setup} is not simulated: {refused}",
+            )
 
 
 def history_hash(history: str) -> str:

@@ -18,9 +18,10 @@ order per link, cuts and heals.
  a process ends ─► what it served ends (`_Hub.end`): every link to it fails what waits
 
  the faults a plan aims (rr_actors.experiments, on the simulation):
- cut_connections(pid) ─► every link from or to the process closes: what waits on it
-   fails, frames on the wire are lost (an answer's compensation runs), the next send
-   makes a new link (a real connection shut down, then dialled again)
+ cut_connections(pid) ─► every link from or to the process is shut down at the process's
+   end (`_Link.sever`): what it had not read yet is lost, what it had sent still
+   arrives, then what waits on the link fails (an EOF); an answer it can no longer
+   send is compensated; the next send makes a new link (dialled again)
  duplicate_first(name, until) ─► each link made to `name` before `until` puts its first
    frame on the wire twice (a retry after a reconnect that the peer had received)
  kill_at_answer(pid, fire) ─► the process's next answer that is not an error (what the
@@ -93,10 +94,13 @@ class SimulatedNetwork(MemoryNetwork):
         send makes a new one): a real process's connections shut down. How many closed."""
         return self._simulated().cut_connections(pid)
 
-    def duplicate_first(self, name: str, until: float) -> None:
+    def duplicate_first(self, name: str, until: float) -> list[int]:
         """Each link made to registrar `name` before virtual time `until` delivers its
-        first frame twice, the copy right behind it."""
-        self._simulated().duplicate[name] = until
+        first frame twice, the copy right behind it. Returns a one-item list that counts
+        the frames put on the wire twice."""
+        count = [0]
+        self._simulated().duplicate[name] = (until, count)
+        return count
 
     def kill_at_answer(self, pid: int, fire: Callable[[], object]) -> None:
         """At process `pid`'s next answer that is not an error, run `fire()` and SIGKILL
@@ -176,8 +180,8 @@ class _Link:
         self.limit = served.endpoint.max_message_bytes
         self.pending = Replies()
         self.closed = False
-        self.severed = False  # closed by `cut_connections`: what is on the wire is lost
-        self.twice = False  # its first frame goes on the wire twice (`duplicate_first`)
+        self.severed: str | None = None  # "sender" or "served": the end a cut shut down
+        self.twice: list[int] | None = None  # its first frame twice, counted (`duplicate_first`)
         receiver = served_by(served)
         name = served.endpoint.name
         self._there = _Wire(hub, receiver, f"rr-link-{sender.pid}-to-{name}")
@@ -190,14 +194,18 @@ class _Link:
         endpoint, messenger = served.endpoint, hub.messenger
         token, payload = split_frame(data)
         self._there.put(lambda: self._arrive(messenger, endpoint, token, payload))
-        if self.twice:
-            self.twice = False
+        if self.twice is not None:
+            self.twice[0] += 1
+            self.twice = None
             self._there.put(lambda: self._arrive(messenger, endpoint, token, payload))
         return True
 
     def _arrive(self, messenger: Messenger, endpoint: Endpoint, token: int, payload: Any) -> None:
-        if not self.closed and not self._hub.apart(self):  # (else lost on the wire)
-            messenger.message(endpoint, self, token, payload)
+        if self._hub.apart(self):  # lost on the wire
+            return
+        if self.closed and self.severed != "sender":  # (its reader shut down: unread, lost)
+            return
+        messenger.message(endpoint, self, token, payload)
 
     def answer(self, data: bytes, on_lost: Lost | None) -> bool:
         if on_lost is not None:  # (an answer, not an error: what it changed committed)
@@ -208,15 +216,32 @@ class _Link:
         return True
 
     def _answered(self, data: bytes, on_lost: Lost | None) -> None:
-        if self.severed or self._hub.apart(self):  # lost on the wire: its compensation runs
+        if self._hub.apart(self):  # lost on the wire: its compensation runs
             if on_lost is not None:
                 run_lost([on_lost])
+            return
+        if self.severed == "sender":  # its caller's end shut down: unread, and nobody knows
             return
         self.pending.answered(*split_frame(data))
 
     def close(self, error: RrError) -> None:
         self.closed = True
         self.pending.fail(None, error)
+
+    def sever(self, end: str) -> None:
+        """A cut shut down its `end` ("sender" or "served"), as a real connection's
+        `shutdown`: no more sends; the sender's own end fails what waits at once; the
+        served end's does once the answers already on their way arrived (an EOF after
+        the bytes before it)."""
+        self.severed = end
+        error = RegistrarUnavailableError(
+            f"registrar {self.served.endpoint.name!r}: the connection was cut"
+        )
+        if end == "sender":
+            self.close(error)
+            return
+        self.closed = True
+        self._back.put(lambda: self.pending.fail(None, error))
 
     def broken(self) -> bool:
         return False  # (its end fails what waits on it: `_SimulatedHub.end`)
@@ -240,7 +265,7 @@ class _SimulatedHub(_Hub):
         self._side: frozenset[int] | None = None  # the pids cut off the others
         self._silent: set[str] = set()  # names served by a process silent past its lease
         # the faults armed (`SimulatedNetwork`'s methods of the same names)
-        self.duplicate: dict[str, float] = {}  # name -> virtual time until which
+        self.duplicate: dict[str, tuple[float, list[int]]] = {}  # name -> (until, count)
         self.kill_answer: dict[int, Callable[[], object]] = {}  # pid -> what to run first
         self.serving: dict[str, Callable[[int], object]] = {}  # name -> what to run
         if messenger.lease is not None:
@@ -268,7 +293,8 @@ class _SimulatedHub(_Hub):
         link = self._links.get((sender.pid, name))
         if link is None or link.served is not served or link.closed:
             link = self._links[sender.pid, name] = _Link(self, sender, served)
-            link.twice = self.sched.now < self.duplicate.get(name, -1.0)
+            until, count = self.duplicate.get(name, (-1.0, None))
+            link.twice = count if self.sched.now < until else None
         if name in self._silent:
             raise RegistrarUnavailableError(
                 f"registrar {name!r} cannot be reached (its process is silent past its lease)"
@@ -308,9 +334,7 @@ class _SimulatedHub(_Hub):
         for link in list(self._links.values()):
             if link.closed or pid not in (link.sender.pid, served_by(link.served).pid):
                 continue
-            name = link.served.endpoint.name
-            link.severed = True
-            link.close(RegistrarUnavailableError(f"registrar {name!r}: the connection was cut"))
+            link.sever("sender" if link.sender.pid == pid else "served")
             cut += 1
         return cut
 
