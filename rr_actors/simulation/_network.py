@@ -18,10 +18,10 @@ order per link, cuts and heals.
  a process ends ─► what it served ends (`_Hub.end`): every link to it fails what waits
 
  the faults a plan aims (rr_actors.experiments, on the simulation):
- cut_connections(pid) ─► every link from or to the process is shut down at the process's
-   end (`_Link.sever`): what it had not read yet is lost, what it had sent still
-   arrives, then what waits on the link fails (an EOF); an answer it can no longer
-   send is compensated; the next send makes a new link (dialled again)
+ cut_connections(pid) ─► every link from or to the process is shut down (`_Link.sever`):
+   what was sent on it still arrives, then what waits on it fails (an EOF); a send or
+   an answer after the cut fails at its writer (an answer is compensated); the next
+   send makes a new link (dialled again), as after a real connection's shutdown
  duplicate_first(name, until) ─► each link made to `name` before `until` puts its first
    frame on the wire twice (a retry after a reconnect that the peer had received)
  kill_at_answer(pid, fire) ─► the process's next answer that is not an error (what the
@@ -180,7 +180,7 @@ class _Link:
         self.limit = served.endpoint.max_message_bytes
         self.pending = Replies()
         self.closed = False
-        self.severed: str | None = None  # "sender" or "served": the end a cut shut down
+        self.severed = False  # shut down by a cut: what is on its wires still arrives
         self.twice: list[int] | None = None  # its first frame twice, counted (`duplicate_first`)
         receiver = served_by(served)
         name = served.endpoint.name
@@ -203,7 +203,7 @@ class _Link:
     def _arrive(self, messenger: Messenger, endpoint: Endpoint, token: int, payload: Any) -> None:
         if self._hub.apart(self):  # lost on the wire
             return
-        if self.closed and self.severed != "sender":  # (its reader shut down: unread, lost)
+        if self.closed and not self.severed:  # (its process ended)
             return
         messenger.message(endpoint, self, token, payload)
 
@@ -220,27 +220,21 @@ class _Link:
             if on_lost is not None:
                 run_lost([on_lost])
             return
-        if self.severed == "sender":  # its caller's end shut down: unread, and nobody knows
-            return
         self.pending.answered(*split_frame(data))
 
     def close(self, error: RrError) -> None:
         self.closed = True
         self.pending.fail(None, error)
 
-    def sever(self, end: str) -> None:
-        """A cut shut down its `end` ("sender" or "served"), as a real connection's
-        `shutdown`: no more sends; the sender's own end fails what waits at once; the
-        served end's does once the answers already on their way arrived (an EOF after
-        the bytes before it)."""
-        self.severed = end
+    def sever(self) -> None:
+        """A cut shut it down, as `shutdown()` does a connection of the system's sockets:
+        nothing more is sent on it (a send or an answer fails at its writer), what was
+        sent arrives (it was in the reader's queue), and what still waits for an answer
+        fails once the answers already on their way arrived (an EOF after the bytes)."""
+        self.closed = self.severed = True
         error = RegistrarUnavailableError(
             f"registrar {self.served.endpoint.name!r}: the connection was cut"
         )
-        if end == "sender":
-            self.close(error)
-            return
-        self.closed = True
         self._back.put(lambda: self.pending.fail(None, error))
 
     def broken(self) -> bool:
@@ -334,7 +328,7 @@ class _SimulatedHub(_Hub):
         for link in list(self._links.values()):
             if link.closed or pid not in (link.sender.pid, served_by(link.served).pid):
                 continue
-            link.sever("sender" if link.sender.pid == pid else "served")
+            link.sever()
             cut += 1
         return cut
 
