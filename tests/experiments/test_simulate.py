@@ -370,6 +370,26 @@ def test_a_duplicate_delivery_at_a_reconnect_is_delivered_twice_and_holds() -> N
     assert sum(doubled) > 0
 
 
+@SWEEP
+def test_every_simulated_kind_in_one_plan_gives_the_same_history_for_the_same_seed() -> None:
+    plan = with_faults(
+        'kind = "hang_manager"\ntarget = "db"\nat = 0.3\nfor = 0.2',
+        'kind = "cut_connections"\ntarget = "api"\nevery = 0.4',
+        'kind = "load_error"\ntarget = "db"\nat = 0.6\nloads = 2',
+        'kind = "kill_before_answer"\ntarget = "api"\nat = 0.9',
+        'kind = "kill_in_setup"\ntarget = "db"\nat = 1.2',
+        'kind = "partition_serving"\ntarget = "api"\nat = 1.8\nfor = 0.3',
+        'kind = "duplicate_delivery"\ntarget = "db"\nat = 2.4',
+        'kind = "kill_manager"\ntarget = "db"\nafter = { event = "ChildRestarted", nth = 2 }',
+    )
+
+    first, again = simulate.run_seed(plan, 5), simulate.run_seed(plan, 5)
+
+    assert first.history == again.history
+    assert 8 <= len(fired(first)) + len(lines(first, "FaultSkipped"))
+    assert {f["kind"] for f in fired(first)} >= {"hang_manager", "kill_in_setup"}
+
+
 def test_a_kind_only_a_simulation_aims_is_refused_by_a_real_run() -> None:
     from rr_actors.experiments import run  # noqa: PLC0415
 
