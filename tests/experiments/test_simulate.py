@@ -402,6 +402,30 @@ def test_a_kind_only_a_simulation_aims_is_refused_by_a_real_run() -> None:
     assert "only on the simulation" in str(raised.value)
 
 
+@pytest.mark.parametrize(
+    ("base", "fault", "key", "problem"),
+    [
+        (BASE, 'kind = "partition_serving"\ntarget = "db"\nat = 0.5', "faults[0]", "'for'"),
+        (
+            BASE.replace('name = "db"\n', 'name = "db"\nisolation = "thread"\n'),
+            'kind = "kill_before_answer"\ntarget = "db"\nat = 0.5',
+            "faults[0].target",
+            "kill_before_answer needs a process manager",
+        ),
+        (BASE, 'kind = "kill_in_setup"\ntarget = "db"\nat = 0.5\nfor = 1.0', "faults[0].for", ""),
+    ],
+    ids=["partition_serving without for", "on a thread manager", "kill_in_setup with for"],
+)
+def test_a_kind_only_a_simulation_aims_is_validated_as_the_others(
+    base: str, fault: str, key: str, problem: str
+) -> None:
+    with pytest.raises(PlanError) as raised:
+        with_faults(fault, base=base)
+
+    assert key == raised.value.key
+    assert problem in raised.value.problem
+
+
 # -- the shipped plans ---------------------------------------------------------------------
 
 PLANS = ROOT / "rr_actors" / "experiments" / "plans"
