@@ -314,8 +314,9 @@ def test_a_kill_between_a_commit_and_its_answer_is_restarted_and_holds() -> None
 @SWEEP
 @pytest.mark.xfail(
     strict=True,
-    reason="found by this fault: db killed after committing api's consumer and before "
-    "answering keeps the id until its next restart's reconcile (reported, not fixed here)",
+    reason="found by this fault: db, killed after committing api's consumer id and before "
+    "answering, still holds it at the end (released only by a later restart's reconcile, "
+    "not when api stops): the known `[end] db still holds query` finding, reported",
 )
 def test_a_provider_killed_between_a_commit_and_its_answer_releases_the_id() -> None:
     plan = with_faults('kind = "kill_before_answer"\ntarget = "db"\nat = [0.5, 1.5]')
