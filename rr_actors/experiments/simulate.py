@@ -7,10 +7,10 @@
                manager processes simulated, their backups real SQLite files)            │
                subscribe ─► _EventLog (the runner's)                                    │
                sup.start(); the workload's Clients (workload.py, simulated threads)     │
-               the fault thread: fault_schedule(plan, S), each kill_manager a           │
-                 simulation.kill (SIGKILL) of the target's simulated pid, on time       │
-               sleep(duration); wait_all_serving; clients stop; count_entries      │
-               (the runner's settling); flush; sup.stop()                               │
+               the injector: fault_schedule(plan, S) on simulated processes and links   │
+                 (SimulatedFaults, _simulated_faults.py), `after` ones from the events  │
+               sleep(duration); faults stop; wait_all_serving; clients stop;            │
+               count_entries (the runner's settling); flush; sup.stop()                 │
    ◄── the events, the fault records, t0 ◄──────────────────────────────────────────────┘
    history = events.jsonl's text (the runner's lines: `at` in virtual seconds, pids the
              simulated ones, `run` = 1, `seed` = S) + the fault lines
@@ -22,9 +22,11 @@ The same seed gives the same history byte for byte, in this process and in anoth
 started with the same `PYTHONHASHSEED` (the iteration order of a set of strings depends
 on it: `rr-actors experiment --simulate` runs under `PYTHONHASHSEED=0`).
 
-Simulated so far: the fault kind `kill_manager` at fixed or random times (`at`,
-`every`), managers in processes or threads, on this host. Any other fault kind, an
-`after` trigger or `[hosts]` is refused with a `PlanError` naming it
+Simulated: the manager faults `kill_manager`, `hang_manager`, `cut_connections`,
+`load_error` and the kinds only a simulation can aim (`plan.SIMULATION_KINDS`), at fixed
+or random times or `after` an event (`_simulated_faults.py`); managers in processes or
+threads, on this host; a `[compare]` plan with its first value. `kill_resource`,
+`[hosts]` and the mission's ERM setup are refused with a `PlanError` naming them and why
 (`check_simulable`), never skipped silently.
 """
 
@@ -34,18 +36,15 @@ import dataclasses
 import hashlib
 import json
 import shutil
-import signal
 import tempfile
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
 
-import rr_actors as rr
 from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors.experiments import check
-from rr_actors.experiments.plan import Plan, PlanError
+from rr_actors.experiments.plan import SIMULATION_KINDS, Plan, PlanError
 from rr_actors.experiments.results import FaultRecord
 from rr_actors.experiments.runner import (
     EVENT_QUEUE,
@@ -55,7 +54,7 @@ from rr_actors.experiments.runner import (
     fault_line,
     wait_all_serving,
 )
-from rr_actors.experiments.schedule import ScheduledFault, fault_schedule
+from rr_actors.experiments.schedule import fault_schedule
 from rr_actors.experiments.workload import Client
 
 __all__ = [
@@ -67,8 +66,24 @@ __all__ = [
     "simulate",
 ]
 
-SIMULATED_KINDS = frozenset({"kill_manager"})
-"""The fault kinds a simulated run injects (the others: `PlanError`)."""
+SIMULATED_KINDS = frozenset(
+    {"kill_manager", "hang_manager", "cut_connections", "load_error"} | SIMULATION_KINDS
+)
+"""The fault kinds a simulated run injects (`_simulated_faults.py`; the others: `PlanError`)."""
+
+NOT_SIMULATED = {
+    "kill_resource": "a resource's own OS process (a program the mission's ERM starts) is "
+    "not a simulated process",
+}
+"""Why a manager's fault kind outside `SIMULATED_KINDS` is not simulated (the kinds
+between hosts: `[hosts]` is not)."""
+
+NOT_SIMULATED_SETUPS = {
+    "rr_actors.mission.managers:erm_setup": "the mission's ERM starts real OS programs and "
+    "watches them from real threads, which a simulation can neither schedule nor kill",
+}
+"""Setups a simulated run refuses, and why (a setup is user code: these are the shipped
+ones known to start real processes or threads)."""
 
 RUN = 1
 """The `run` of every line of a simulated run's history (one run a seed)."""
@@ -117,30 +132,38 @@ class SimulatedRun:
 
 
 def check_simulable(plan: Plan) -> None:
-    """Refuse what the simulation does not model yet, naming it.
+    """Refuse what the simulation does not model, naming it and why.
+
+    A plan with `[compare]` runs as read: with its first compared value (as its first
+    runs do for real); simulate another value's plan with `plan.variants[i][1]`.
 
     Raises:
-        PlanError: a fault kind other than those of `SIMULATED_KINDS`, a fault
-            triggered by an event (`after`), `[hosts]`, or `[compare]`.
+        PlanError: a fault kind other than those of `SIMULATED_KINDS` (`kill_resource`,
+            the faults between hosts), `[hosts]`, or a setup of `NOT_SIMULATED_SETUPS`.
     """
     source = plan.source or "<plan>"
     for index, fault in enumerate(plan.faults):
         if fault.kind not in SIMULATED_KINDS:
-            simulated = ", ".join(sorted(SIMULATED_KINDS))
+            why = NOT_SIMULATED.get(fault.kind, "the simulation runs one host ([hosts] is not)")
+            raise PlanError(
+                source, 0, f"faults[{index}].kind", f"{fault.kind!r} is not simulated: {why}"
+            )
+    if plan.hosts is not None:
+        raise PlanError(
+            source,
+            0,
+            "hosts",
+            "a plan of several hosts is not simulated (network namespaces, real Zenoh)",
+        )
+    for manager in plan.managers():
+        refused = NOT_SIMULATED_SETUPS.get(manager.setup)
+        if refused is not None:
             raise PlanError(
                 source,
                 0,
-                f"faults[{index}].kind",
-                f"{fault.kind!r} is not simulated yet (--simulate injects: {simulated})",
+                f"tree.children.{manager.name}.setup",
+                f"{manager.setup} is not simulated: {refused}",
             )
-        if fault.after is not None:
-            raise PlanError(
-                source, 0, f"faults[{index}].after", "a triggered fault is not simulated yet"
-            )
-    if plan.hosts is not None:
-        raise PlanError(source, 0, "hosts", "a plan of several hosts is not simulated yet")
-    if plan.compare is not None:
-        raise PlanError(source, 0, "compare", "a compared setting is not simulated yet")
 
 
 def history_hash(history: str) -> str:
@@ -227,31 +250,34 @@ def _world(
 ) -> tuple[list[events.Event], list[FaultRecord], float, tuple[int, int, int]]:
     """The run, in the simulation's main thread: the runner's steps on simulated seams."""
     from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
+    from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415 - ditto
 
     network = simulation.SimulatedNetwork()
     work = folder / "work"
     work.mkdir()
     sup = build_tree(plan, folder / "state" if plan.state else None, seed=seed, network=network)
     log = _EventLog()
-    subscription = sup.subscribe(log, maxsize=EVENT_QUEUE)
-    stop = runtime.Event()
+    injector: list[SimulatedFaults] = []  # (set once the workload starts)
+
+    def seen(event: events.Event) -> None:
+        log(event)
+        for faults in injector:
+            faults.on_event(event)
+
+    subscription = sup.subscribe(seen, maxsize=EVENT_QUEUE)
     records: list[FaultRecord] = []
     try:
         sup.start()
         clients = [Client(i, sup, plan, seed, run_dir=work) for i in range(plan.workload.clients)]
         t0, wall_t0 = runtime.monotonic(), runtime.wall()
-        faults = runtime.Thread(
-            target=_inject,
-            args=(sup, fault_schedule(plan, seed), t0, stop, records),
-            name="rr-simulated-faults",
-            daemon=True,
-        )
+        faults = SimulatedFaults(sup, plan, network, fault_schedule(plan, seed), t0, wall_t0)
+        injector.append(faults)
         faults.start()
         for client in clients:
             client.start(t0=t0, deadline=t0 + plan.duration)
         runtime.sleep(plan.duration)
-        stop.set()
-        faults.join()
+        faults.stop()
+        records = faults.records
         managers = [m.name for m in plan.managers()]
         wait_all_serving(sup, managers, plan.recovery_timeout)
         for client in clients:
@@ -269,43 +295,3 @@ def _world(
     calls = [c for client in clients for c in client.calls]
     ok = sum(1 for c in calls if c.ok)
     return list(log.seen), records, wall_t0, (ok, len(calls) - ok, left)
-
-
-def _inject(
-    sup: rr.Supervisor,
-    schedule: tuple[ScheduledFault, ...],
-    t0: float,
-    stop: Any,
-    records: list[FaultRecord],
-) -> None:
-    """The fault thread: each fault at its time, as the injector's manager faults do (a
-    manager in a thread: its registrar crashed; in a process: SIGKILLed)."""
-    from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
-    from rr_actors.testing import crash  # noqa: PLC0415 - as _manager_faults
-
-    for fault in schedule:
-        assert fault.at is not None
-        assert fault.target is not None
-        if stop.wait(max(0.0, t0 + fault.at - runtime.monotonic())):
-            return
-        info = sup.child(fault.target)
-        if info.state != "running":
-            detail, injected = f"{fault.target} was not running ({info.state})", None
-        elif info.pid is None:
-            crash(sup.run_in(fault.target, lambda registrar: registrar))
-            detail, injected = f"crashed the registrar of {fault.target}", runtime.monotonic()
-        else:
-            simulation.kill(info.pid, signal.SIGKILL)
-            detail, injected = f"SIGKILL pid {info.pid}", runtime.monotonic()
-        records.append(
-            FaultRecord(
-                fault=fault.fault,
-                n=fault.n,
-                kind=fault.kind,
-                target=fault.target,
-                scheduled_s=fault.at,
-                injected_s=None if injected is None else injected - t0,
-                detail=detail,
-                skipped=injected is None,
-            )
-        )

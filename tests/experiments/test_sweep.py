@@ -151,16 +151,16 @@ def test_bad_seeds_exit_2_before_anything_runs(
     assert not (tmp_path / "out" / sweep.SEEDS_FILE).exists()
 
 
-def test_a_fault_kind_not_simulated_yet_exits_2_naming_it(
+def test_a_fault_kind_not_simulated_exits_2_naming_it(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     plan = tmp_path / "plan.toml"
-    plan.write_text(f'{PLAN}\n[[faults]]\nkind = "cut_connections"\ntarget = "db"\nat = 1.0\n')
+    plan.write_text(f'{PLAN}\n[[faults]]\nkind = "kill_resource"\ntarget = "db"\nat = 1.0\n')
 
     code = main(["experiment", str(plan), "--simulate", "--out", str(tmp_path / "out")])
 
     assert 2 == code
-    assert "faults[1].kind: 'cut_connections' is not simulated yet" in capsys.readouterr().err
+    assert "faults[1].kind: 'kill_resource' is not simulated" in capsys.readouterr().err
 
 
 def test_a_replay_of_a_seed_not_run_exits_2(
