@@ -86,20 +86,22 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 FIRST = (
-    "core/test_portable.py",  # (the process tests again on the portable platform)
-    "test_benchmarks.py",
-    "test_docs.py",
-    "simulation/test_supervision.py",
-    "mission/test_hosts.py",
-    "store/test_sqlite.py",
-    "experiments/test_plans.py",
-    "multihost/test_zenoh_tls.py",
-    "experiments/test_check.py",
-    "experiments/test_cli.py",
+    "core/test_portable.py",  # 504 s: the process tests again, on the portable platform
+    "test_benchmarks.py",  # 393 s
+    "test_docs.py",  # 193 s
+    "simulation/test_supervision.py",  # 281 s of CPU: four sweeps of simulated trees
+    "mission/test_hosts.py",  # 117 s
+    "store/test_sqlite.py",  # 104 s
+    "experiments/test_plans.py",  # 102 s
+    "multihost/test_zenoh_tls.py",  # 98 s
+    "experiments/test_check.py",  # 91 s
+    "experiments/test_cli.py",  # 87 s
 )
-"""Test files that run first, longest first: each takes minutes (measured with
-`--durations`), so under pytest-xdist they run beside the rest, not after it (the last
-file handed out sets the suite's end)."""
+"""Test files that run first, longest first, so that under pytest-xdist they run beside
+the rest, not after it (the last file handed out sets when the suite ends). The seconds
+are the sum of their tests among the suite's 80 slowest (`--durations=80` at a load
+average of 15 to 25, 2026-11-24, the whole suite 31 min): a lower bound, lowest for the
+files of many tests (`test_docs.py`: a test per page)."""
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
