@@ -207,6 +207,7 @@ def shrink(
     budget: int = BUDGET,
     tries: int = TRIES,
     on_step: Callable[[str], None] | None = None,
+    on_run: Callable[[int], None] | None = None,
 ) -> Shrunk:
     """Shrink `plan` at `seed` (a violating run) to a small plan that violates the same way.
 
@@ -216,6 +217,7 @@ def shrink(
         budget: the most simulated runs to make (at least 1: the seed's own).
         tries: seeds per candidate (the current seed, then the next ones).
         on_step: called with a line for each kept candidate (progress).
+        on_run: called with the number of runs made after each run (a progress bar).
 
     Returns:
         The smallest plan found, its seed and run.
@@ -230,7 +232,8 @@ def shrink(
     if plan.source is None:
         raise ConfigError("only a plan read from a file can be shrunk (its text is the start)")
     text = Path(plan.source).read_text(encoding="utf-8")
-    return _Shrinker(plan, seed, text, budget, tries, on_step or (lambda _line: None)).run()
+    say = on_step or (lambda _line: None)
+    return _Shrinker(plan, seed, text, budget, tries, say, on_run or (lambda _runs: None)).run()
 
 
 class _Shrinker:
@@ -244,10 +247,11 @@ class _Shrinker:
         budget: int,
         tries: int,
         say: Callable[[str], None],
+        ran: Callable[[int], None],
     ) -> None:
         self.source = plan.source or "<plan>"
         self.duration = plan.duration  # (a run directory's may differ from its file's)
-        self.budget, self.tries, self.say = budget, tries, say
+        self.budget, self.tries, self.say, self.ran = budget, tries, say, ran
         self.runs = 0
         self.tried: set[tuple[str, int]] = set()
         self.steps: list[str] = []
@@ -262,8 +266,10 @@ class _Shrinker:
         self.say(f"shrinking seed {seed} ({first.events} events): {self.kind}")
 
     def run_one(self, plan: Plan, seed: int) -> simulate.SimulatedRun:
+        run = simulate.run_seed(plan, seed)
         self.runs += 1
-        return simulate.run_seed(plan, seed)
+        self.ran(self.runs)
+        return run
 
     def run(self) -> Shrunk:
         self.explicit()
@@ -530,7 +536,11 @@ class _Shrinker:
                 continue
             data = copy.deepcopy(self.data)
             _at(data, where)[key] = value
-            shown = ".".join(str(w) for w in where if w != "*managers")
+            if where[:1] == ("*managers",):
+                where_shown = (_managers(self.data)[where[1]]["name"], *where[2:])
+            else:
+                where_shown = where
+            shown = ".".join(map(str, where_shown))
             yield f"{shown}.{key} = {value:g}".lstrip("."), data
 
 
@@ -595,7 +605,7 @@ def write(shrunk: Shrunk, out: Path, line: dict[str, Any]) -> None:
         f"({shrunk.original_events} events), in {shrunk.runs} simulated runs.",
         f"# Seed {shrunk.seed} of this plan violates with {run.events} events:",
         *(f"# {finding.strip()}" for finding in run.findings if "violation" in finding),
-        f"#   rr-actors replay {out} --seed {shrunk.seed}",
+        f"#   rr-actors replay {out} --story",
         f"#   rr-actors experiment plan.toml --simulate --seeds {shrunk.seed} --out DIR",
     ]
     (out / "plan.toml").write_text("\n".join(header) + "\n\n" + shrunk.text, encoding="utf-8")

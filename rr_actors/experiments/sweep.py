@@ -259,7 +259,11 @@ def replay_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "run_dir", metavar="RUN", help="the --out directory of `rr-actors experiment --simulate`"
     )
-    parser.add_argument("--seed", type=int, required=True, help="the seed to run again")
+    parser.add_argument(
+        "--seed",
+        type=int,
+        help="the seed to run again (default: the only one RUN recorded, as in a shrunk run)",
+    )
     parser.add_argument(
         "--events", metavar="FILE", help="write the replayed history (events.jsonl) to FILE"
     )
@@ -275,6 +279,8 @@ def run_replay(args: argparse.Namespace, stream: TextIO) -> int:
     """`rr-actors replay RUN --seed S [--story]`: 0 the same hash as recorded, 1 not, 2 bad
     input."""
     try:
+        if args.seed is None:
+            args.seed = _only_seed(Path(args.run_dir))
         plan, recorded = recorded_plan(Path(args.run_dir), args.seed)
     except ConfigError as exc:
         _error("replay", str(exc))
@@ -381,10 +387,11 @@ def run_shrink(args: argparse.Namespace, stream: TextIO) -> int:
     return 0
 
 
-class _Say:
-    """A display of plain lines (`cli.Display`'s `say`)."""
+class _Say(contextlib.nullcontext["_Say"]):
+    """A display of plain lines (`cli.Display`'s `say`, no bar)."""
 
     def __init__(self, stream: TextIO) -> None:
+        super().__init__(self)
         self.stream = stream
 
     def say(self, line: object) -> None:
@@ -408,8 +415,19 @@ def shrink_seed(
         ConfigError: the seed does not violate (or the plan has no file).
         RrError: a run failed.
     """
-    with _warnings_off():
-        shrunk = shrink.shrink(plan, seed, budget=budget, tries=tries, on_step=display.say)
+    bar = getattr(display, "bar", None)
+    task = None if bar is None else bar.add_task(f"shrink seed {seed}", total=budget)
+
+    def ran(runs: int) -> None:
+        if bar is not None and task is not None:
+            bar.update(task, completed=runs)
+
+    with _warnings_off(), display:
+        shrunk = shrink.shrink(
+            plan, seed, budget=budget, tries=tries, on_step=display.say, on_run=ran
+        )
+    if bar is not None and task is not None:
+        bar.remove_task(task)
     shrink.write(shrunk, out, seed_line(shrunk.run, shrunk.plan))
     run = shrunk.run
     display.say(
@@ -419,7 +437,7 @@ def shrink_seed(
     )
     display.say(f"  {shrunk.kind}")
     display.say(f"written to {out}/: plan.toml, {SEEDS_FILE}, events-seed-{shrunk.seed}.jsonl")
-    display.say(f"replay it: rr-actors replay {out} --seed {shrunk.seed} --story")
+    display.say(f"replay it: rr-actors replay {out} --story")
     return shrunk
 
 
@@ -445,6 +463,21 @@ def shrink_violations(
         shrink_seed(plan, seed, out / f"shrunk-seed-{seed}", display, budget=budget)
         for seed in dict.fromkeys(firsts.values())
     ]
+
+
+def _only_seed(run_dir: Path) -> int:
+    """The seed of a run directory that recorded one (`ConfigError` if it has more)."""
+    path = run_dir / SEEDS_FILE
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except OSError as exc:
+        raise ConfigError(
+            f"{run_dir}: no {SEEDS_FILE} (not an `experiment --simulate` output)"
+        ) from exc
+    seeds = [json.loads(line).get("seed") for line in lines if line.strip()]
+    if len(seeds) != 1 or not isinstance(seeds[0], int):
+        raise ConfigError(f"{path}: {len(seeds)} seeds recorded: give --seed S")
+    return seeds[0]
 
 
 def _recorded(run_dir: Path, seed: int) -> dict[str, Any]:
