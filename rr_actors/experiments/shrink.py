@@ -608,6 +608,11 @@ def write(shrunk: Shrunk, out: Path, line: dict[str, Any]) -> None:
         f"#   rr-actors replay {out} --story",
         f"#   rr-actors experiment plan.toml --simulate --seeds {shrunk.seed} --out DIR",
     ]
+    if shrunk.plan.base_dir is not None and Path(shrunk.plan.base_dir) != out.resolve():
+        header.append(  # (replay finds them: seeds.jsonl names the original file)
+            f"# (its setups are imported as the original's, from {shrunk.plan.base_dir} "
+            "first: a module of yours there needs that folder on PYTHONPATH)"
+        )
     (out / "plan.toml").write_text("\n".join(header) + "\n\n" + shrunk.text, encoding="utf-8")
     (out / "seeds.jsonl").write_text(json.dumps(line) + "\n", encoding="utf-8")
     (out / f"events-seed-{shrunk.seed}.jsonl").write_text(run.history, encoding="utf-8")

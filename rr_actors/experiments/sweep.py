@@ -416,7 +416,11 @@ def shrink_seed(
         RrError: a run failed.
     """
     bar = getattr(display, "bar", None)
-    task = None if bar is None else bar.add_task(f"shrink seed {seed}", total=budget)
+    task = None
+    if bar is not None:
+        for shown in bar.task_ids:  # (the sweep's, done)
+            bar.update(shown, visible=False)
+        task = bar.add_task(f"shrink seed {seed}", total=budget)
 
     def ran(runs: int) -> None:
         if bar is not None and task is not None:

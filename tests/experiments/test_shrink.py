@@ -53,7 +53,7 @@ def buggy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 @SHRINK
 def test_experiment_shrink_writes_a_smaller_plan_that_violates_the_same_way_and_replays(
-    tmp_path: Path, buggy: Path
+    tmp_path: Path, buggy: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     out = tmp_path / "out"
 
@@ -85,6 +85,7 @@ def test_experiment_shrink_writes_a_smaller_plan_that_violates_the_same_way_and_
     assert "the same history" in printed
 
     again = tmp_path / "again"
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))  # (buggy.py, for the plan run elsewhere)
     code, printed = command(
         "experiment", str(shrunk_dir / "plan.toml"), "--simulate", "--seeds", str(seed),
         "--out", str(again),
