@@ -11,7 +11,7 @@
  ─► lines: `[  0.300 s] #12  api      pid 3   api exited: killed by SIGKILL (pid 3)`
     (virtual seconds from the run's first event, the history's line number, who: the
     registrar, the manager or "fault"; the simulated pid); on a terminal with rich,
-    faults in yellow and the violation in red
+    faults in yellow and the violation in red, a long line wrapped under its text
 ```
 """
 
@@ -48,13 +48,18 @@ class StoryLine:
     text: str
     marked: bool = False
 
-    def plain(self) -> str:
-        """The line as text: `[  0.300 s] #12  api  pid 3  ...` (a violation: `^ ...`)."""
+    def stamp(self) -> str:
+        """What comes before the text: `  [   0.300 s] #12    api        pid 3  ` (a
+        violation: spaces and `^`)."""
         if self.who == "violation":
-            return f"{'':>17}^ {self.text}"
+            return f"{'':>17}^"
         mark = ">>" if self.marked else "  "
         pid = "" if self.pid is None else f"pid {self.pid}"
-        return f"{mark}[{self.at_s:8.3f} s] #{self.line:<5} {self.who:<10} {pid:<7} {self.text}"
+        return f"{mark}[{self.at_s:8.3f} s] #{self.line:<5} {self.who:<10} {pid:<7}"
+
+    def plain(self) -> str:
+        """The line as text, whole (a pipe or a file: one line a step, to search)."""
+        return f"{self.stamp()} {self.text}"
 
 
 def story(history: str) -> list[StoryLine]:
@@ -115,9 +120,10 @@ def tell(history: str, stream: TextIO) -> None:
     if console is None:
         stream.write("".join(f"{s.plain()}\n" for s in steps))
         return
-    from rich.text import Text  # noqa: PLC0415 - rich is optional
+    from rich.table import Table  # noqa: PLC0415 - rich is optional
+    from rich.text import Text  # noqa: PLC0415
 
-    for step in steps:
+    for step in steps:  # (a long text wraps under itself, not under its stamp, as the demo's)
         style = (
             "bold red"
             if step.who == "violation" or step.marked
@@ -125,7 +131,11 @@ def tell(history: str, stream: TextIO) -> None:
             if step.who == "fault"
             else ""
         )
-        console.print(Text(step.plain(), style=style), soft_wrap=True)
+        grid = Table.grid(padding=(0, 1))
+        grid.add_column(no_wrap=True)
+        grid.add_column()
+        grid.add_row(Text(step.stamp(), style=style), Text(step.text, style=style))
+        console.print(grid)
 
 
 def _console(stream: TextIO) -> Any:
