@@ -67,6 +67,9 @@ BUDGET = 400
 TRIES = 3
 """How many seeds a candidate runs with at most: the current one, then the next ones."""
 
+_NOT_RUN = ("description", "repeat", "seed")
+"""Top-level keys a simulated run does not read (its seed is the sweep's): left out."""
+
 _TIMED_KEYS = ("at", "every", "start", "stop", "count")
 """A fault's keys of when it fires: an explicit injection keeps only `at`."""
 
@@ -208,6 +211,7 @@ def shrink(
     tries: int = TRIES,
     on_step: Callable[[str], None] | None = None,
     on_run: Callable[[int], None] | None = None,
+    text: str | None = None,
 ) -> Shrunk:
     """Shrink `plan` at `seed` (a violating run) to a small plan that violates the same way.
 
@@ -218,20 +222,22 @@ def shrink(
         tries: seeds per candidate (the current seed, then the next ones).
         on_step: called with a line for each kept candidate (progress).
         on_run: called with the number of runs made after each run (a progress bar).
+        text: the plan's TOML (default: its file's; a run directory's copy, say).
 
     Returns:
         The smallest plan found, its seed and run.
 
     Raises:
-        ConfigError: the plan has no text to shrink (not read from a file) or the seed
-            does not violate; `budget` or `tries` below 1.
+        ConfigError: no `text` and the plan was not read from a file, the seed does not
+            violate, `budget` or `tries` below 1, or `text` is not the plan's.
         RrError: a run failed (as `simulate.run_seed`).
     """
     if budget < 1 or tries < 1:
         raise ConfigError(f"the budget and the tries must be at least 1 (got {budget}, {tries})")
-    if plan.source is None:
-        raise ConfigError("only a plan read from a file can be shrunk (its text is the start)")
-    text = Path(plan.source).read_text(encoding="utf-8")
+    if text is None and plan.source is None:
+        raise ConfigError("give the plan's text: it is what a shrink starts from")
+    if text is None:
+        text = Path(str(plan.source)).read_text(encoding="utf-8")
     say = on_step or (lambda _line: None)
     return _Shrinker(plan, seed, text, budget, tries, say, on_run or (lambda _runs: None)).run()
 
@@ -250,7 +256,6 @@ class _Shrinker:
         ran: Callable[[int], None],
     ) -> None:
         self.source = plan.source or "<plan>"
-        self.duration = plan.duration  # (a run directory's may differ from its file's)
         self.budget, self.tries, self.say, self.ran = budget, tries, say, ran
         self.runs = 0
         self.tried: set[tuple[str, int]] = set()
@@ -260,8 +265,13 @@ class _Shrinker:
         if not kinds:
             raise ConfigError(f"seed {seed} does not violate a rule: nothing to shrink")
         self.kind, self.original_seed, self.original_events = kinds[0], seed, first.events
-        self.data: dict[str, Any] = tomllib.loads(text)
-        self.data["duration"] = plan.duration
+        try:
+            self.data: dict[str, Any] = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"the plan's text is not TOML: {exc}") from exc
+        for key in _NOT_RUN:
+            self.data.pop(key, None)
+        self.data["duration"] = plan.duration  # (a run directory's may differ from its file's)
         self.plan, self.seed, self.best = plan, seed, first
         self.say(f"shrinking seed {seed} ({first.events} events): {self.kind}")
 
@@ -288,7 +298,8 @@ class _Shrinker:
             for step in passes:
                 step()
             changed = len(self.steps) > before
-        left = "a fixpoint" if not changed else f"the budget ({self.budget} runs) spent"
+        spent = self.runs >= self.budget
+        left = f"the budget ({self.budget} runs) spent" if spent else "a fixpoint"
         self.say(f"done after {self.runs} runs ({left}): {self.best.events} events")
         return Shrunk(
             text=self.text(self.data),

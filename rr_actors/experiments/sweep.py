@@ -368,6 +368,7 @@ def run_shrink(args: argparse.Namespace, stream: TextIO) -> int:
         return 2
     try:
         plan, _ = recorded_plan(run_dir, args.seed)
+        text = (run_dir / "plan.toml").read_text(encoding="utf-8")  # (read: recorded_plan)
     except ConfigError as exc:
         _error("shrink", str(exc))
         return 2
@@ -377,7 +378,9 @@ def run_shrink(args: argparse.Namespace, stream: TextIO) -> int:
     if code is not None:
         return code
     try:
-        shrink_seed(plan, args.seed, out, _Say(stream), budget=args.budget, tries=args.tries)
+        shrink_seed(
+            plan, args.seed, out, _Say(stream), budget=args.budget, tries=args.tries, text=text
+        )
     except ConfigError as exc:
         _error("shrink", str(exc))
         return 2
@@ -407,9 +410,11 @@ def shrink_seed(
     *,
     budget: int = shrink.BUDGET,
     tries: int = shrink.TRIES,
+    text: str | None = None,
 ) -> shrink.Shrunk:
     """Shrink one violating seed (`shrink.shrink`), a line of `display` per kept step, and
-    write the shrunk run into `out` (`shrink.write`: `rr-actors replay OUT --seed S`).
+    write the shrunk run into `out` (`shrink.write`: `rr-actors replay OUT`); `text` the
+    plan's TOML (default: its file's).
 
     Raises:
         ConfigError: the seed does not violate (or the plan has no file).
@@ -428,7 +433,7 @@ def shrink_seed(
 
     with _warnings_off(), display:
         shrunk = shrink.shrink(
-            plan, seed, budget=budget, tries=tries, on_step=display.say, on_run=ran
+            plan, seed, budget=budget, tries=tries, on_step=display.say, on_run=ran, text=text
         )
     if bar is not None and task is not None:
         bar.remove_task(task)

@@ -116,6 +116,29 @@ def test_shrink_of_a_kill_plan_makes_its_faults_explicit_and_deletes_them(
     assert shrunk.run.hash == simulate.run_seed(shrunk.plan, shrunk.seed).hash
 
 
+@SHRINK
+def test_the_shrink_command_shrinks_a_seed_of_a_sweeps_output_from_its_plan_copy(
+    tmp_path: Path, buggy: Path
+) -> None:
+    out = tmp_path / "out"
+    assert (
+        0 == command("experiment", str(buggy), "--simulate", "--seeds", "2", "--out", str(out))[0]
+    )
+    buggy.write_text("not a plan any more: the shrink reads the run's copy")
+
+    code, printed = command("shrink", str(out), "--seed", "2", "--budget", "12")
+
+    assert 0 == code, printed
+    assert "done after 12 runs (the budget (12 runs) spent)" in printed
+    ((seed, line),) = recorded(out / "shrunk-seed-2").items()
+    assert "violated" == line["verdict"]
+    assert int(str(line["events"])) < int(str(recorded(out)[2]["events"]))
+    assert "repeat" not in (out / "shrunk-seed-2" / "plan.toml").read_text()
+    code, printed = command("replay", str(out / "shrunk-seed-2"), "--seed", str(seed))
+    assert 0 == code, printed
+    assert "the same history" in printed
+
+
 def test_the_shrink_command_refuses_a_seed_that_held(
     tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
