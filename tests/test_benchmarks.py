@@ -74,6 +74,7 @@ SMALLEST = {
     "count_cross.py": ["--calls", "5", "--profile"],
     "count_dedup.py": ["--calls", "5", "--profile"],
     "minimal_hit.py": ["--rounds", "1"],
+    "planted_bugs.py": ["--only", "dedup", "--seeds", "3"],
     "stress_crash.py": ["--kills", "4", "--round", "2"],
 }
 """The quickest arguments of each benchmark script (every script must be listed here)."""
