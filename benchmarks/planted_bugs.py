@@ -31,10 +31,14 @@ the docs' figures:
 it met (what the search finds in today's code).
 
 Why these plans: no shipped plan simulated as shipped (each has a `[compare]` or a fault
-kind the simulation does not inject yet), so `simchain` and `simlost` were added to
-`rr_actors/experiments/plans/` for this: a chain `api -> db` under kills, with backups
-(restores, reconciles, retries) and without (every restart loses its catalog: `FATAL`
-climbing the dependency paths, consumers restarted empty).
+kind the simulation did not inject yet), so two were added to
+`rr_actors/experiments/plans/` for this: `simchain` (a chain `api -> db` under kills,
+restored from backups: restores, lazy reads, reconciles, consumers restarted; and a
+temporary manager lost for good: a `FATAL` climbing a dependency path) and `simretry`
+(one manager killed every 0.1-0.3 s while four clients call it back to back: retries
+through restarts, racing the clients' reconciles). The retry plant was not found in 300
+seeds of `simchain`: its window needs a `Load` on its way when the provider dies and
+its retry answered before the client's actor handles the reconcile's answer.
 """
 
 from __future__ import annotations
@@ -113,7 +117,7 @@ PLANTS = (
         "_registrar/consumer.py",
         "                or not self.holdings.answered_before(query_id, listing.epoch)\n",
         "",
-        "simchain",
+        "simretry",
         "reported-lost",
     ),
     Plant(

@@ -30,6 +30,7 @@ SHIPPED = {
     "killheavy",
     "leases",
     "simchain",
+    "simretry",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 
