@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from rr_actors._extras import install_command, needs
 from rr_actors.errors import ConfigError, RrError
-from rr_actors.experiments import experiment, plans, sweep
+from rr_actors.experiments import experiment, plans, shrink, sweep
 from rr_actors.experiments.experiment import (
     ExperimentError,
     ExperimentInterruptedError,
@@ -129,6 +129,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--seeds",
         metavar="A-B",
         help="with --simulate: the seeds to run, A to B included, or one seed (default: 1)",
+    )
+    parser.add_argument(
+        "--shrink",
+        nargs="?",
+        type=_positive_int,
+        const=shrink.BUDGET,
+        metavar="RUNS",
+        help="with --simulate: shrink the first violating seed of each violation kind to a "
+        "small plan that violates the same way, in at most RUNS simulated runs each "
+        f"(default {shrink.BUDGET}; DIR/shrunk-seed-S: rr-actors replay reads it)",
     )
 
 
@@ -404,8 +414,8 @@ def main(args: argparse.Namespace, stream: TextIO) -> int:
     if args.simulate:
         with _one_ctrl_c():
             return _simulated(args, stream)
-    if args.seeds is not None:
-        error("--seeds needs --simulate")
+    if args.seeds is not None or args.shrink is not None:
+        error(f"{'--seeds' if args.seeds is not None else '--shrink'} needs --simulate")
         return 2
     with _one_ctrl_c():
         return _run(args, stream)
@@ -484,6 +494,7 @@ def _simulated(args: argparse.Namespace, stream: TextIO) -> int:
     argv += ["--out", args.out, "--force"]  # (the directory is prepared)
     argv += [*(["--duration", str(args.duration)] if args.duration is not None else [])]
     argv += ["--quiet"] if args.quiet else []
+    argv += ["--shrink", str(args.shrink)] if args.shrink is not None else []
     code = sweep.hash_fixed(argv, stream)
     if code is not None:
         return code
@@ -494,6 +505,12 @@ def _simulated(args: argparse.Namespace, stream: TextIO) -> int:
         error(str(exc))
         return 1
     sweep.summary(display, runs, _shown(out))
+    if args.shrink is not None:
+        try:
+            sweep.shrink_violations(plan, runs, _shown(out), display, budget=args.shrink)
+        except RrError as exc:
+            error(str(exc))
+            return 1
     return 0
 
 

@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 from rr_actors.errors import ConfigError, RrError
-from rr_actors.experiments import experiment, simulate
+from rr_actors.experiments import experiment, shrink, simulate, story
 from rr_actors.experiments.plan import Plan
 from rr_actors.experiments.reading import parse_plan
 
@@ -48,9 +48,15 @@ __all__ = [
     "hash_fixed",
     "parse_seeds",
     "prepare",
+    "recorded_plan",
     "replay_arguments",
     "run_replay",
     "run_seeds",
+    "run_shrink",
+    "seed_line",
+    "shrink_arguments",
+    "shrink_seed",
+    "shrink_violations",
     "summary",
     "summary_rows",
 ]
@@ -131,7 +137,7 @@ def hash_fixed(argv: list[str], stream: TextIO) -> int | None:
     return done.returncode
 
 
-def _line(run: simulate.SimulatedRun, plan: Plan) -> dict[str, Any]:
+def seed_line(run: simulate.SimulatedRun, plan: Plan) -> dict[str, Any]:
     """A seed's line of `seeds.jsonl`: the run without its history, the plan's duration
     and file (a replay imports the setups from the file's folder, as the sweep did)."""
     fields = dataclasses.asdict(run)
@@ -140,7 +146,7 @@ def _line(run: simulate.SimulatedRun, plan: Plan) -> dict[str, Any]:
         **fields,
         "findings": list(run.findings),
         "duration": plan.duration,
-        "plan": plan.source,
+        "plan": None if plan.source is None else os.path.abspath(plan.source),
     }
 
 
@@ -198,7 +204,7 @@ def run_seeds(plan: Plan, seeds: range, out: Path, display: Any) -> list[simulat
 
         def finished(run: simulate.SimulatedRun) -> None:
             runs.append(run)
-            lines.write(json.dumps(_line(run, plan)) + "\n")
+            lines.write(json.dumps(seed_line(run, plan)) + "\n")
             lines.flush()
             if run.verdict != "held":
                 name = f"events-seed-{run.seed}.jsonl"
@@ -253,31 +259,35 @@ def replay_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "run_dir", metavar="RUN", help="the --out directory of `rr-actors experiment --simulate`"
     )
-    parser.add_argument("--seed", type=int, required=True, help="the seed to run again")
+    parser.add_argument(
+        "--seed",
+        type=int,
+        help="the seed to run again (default: the only one RUN recorded, as in a shrunk run)",
+    )
     parser.add_argument(
         "--events", metavar="FILE", help="write the replayed history (events.jsonl) to FILE"
+    )
+    parser.add_argument(
+        "--story",
+        action="store_true",
+        help="tell the run step by step: each event's virtual time, process and what "
+        "happened, in words; the checker's violations marked",
     )
 
 
 def run_replay(args: argparse.Namespace, stream: TextIO) -> int:
-    """`rr-actors replay RUN --seed S`: 0 the same hash as recorded, 1 not, 2 bad input."""
-
-    def error(message: str) -> None:
-        sys.stderr.write(f"rr-actors replay: {message}\n")
-
-    run_dir = Path(args.run_dir)
+    """`rr-actors replay RUN --seed S [--story]`: 0 the same hash as recorded, 1 not, 2 bad
+    input."""
     try:
-        recorded = _recorded(run_dir, args.seed)
-        text = (run_dir / "plan.toml").read_text(encoding="utf-8")
-        source = recorded.get("plan") or str(run_dir / "plan.toml")  # (its setups' folder)
-        plan = parse_plan(text, source=source, name=Path(source).stem)
-        plan = plan.with_changes(duration=recorded["duration"])
-        simulate.check_simulable(plan)
-    except (ConfigError, OSError) as exc:
-        error(str(exc))
+        if args.seed is None:
+            args.seed = _only_seed(Path(args.run_dir))
+        plan, recorded = recorded_plan(Path(args.run_dir), args.seed)
+    except ConfigError as exc:
+        _error("replay", str(exc))
         return 2
     argv = ["replay", args.run_dir, "--seed", str(args.seed)]
     argv += ["--events", args.events] if args.events else []
+    argv += ["--story"] if args.story else []
     code = hash_fixed(argv, stream)
     if code is not None:
         return code
@@ -285,10 +295,12 @@ def run_replay(args: argparse.Namespace, stream: TextIO) -> int:
         with _warnings_off():
             run = simulate.run_seed(plan, args.seed)
     except RrError as exc:
-        error(str(exc))
+        _error("replay", str(exc))
         return 1
     if args.events:
         Path(args.events).write_text(run.history, encoding="utf-8")
+    if args.story:
+        story.tell(run.history, stream)
     same = run.hash == recorded["hash"]
     stream.write(
         f"seed {run.seed}: {run.verdict}, hash {run.hash}\n"
@@ -298,6 +310,183 @@ def run_replay(args: argparse.Namespace, stream: TextIO) -> int:
     for finding in run.findings:
         stream.write(f"{finding}\n")
     return 0 if same else 1
+
+
+def _error(command: str, message: str) -> None:
+    sys.stderr.write(f"rr-actors {command}: {message}\n")
+
+
+def recorded_plan(run_dir: Path, seed: int) -> tuple[Plan, dict[str, Any]]:
+    """The plan of a run directory (its `plan.toml`, its setups imported from the original
+    file's folder, the duration it ran) and the line of `seed` in its `seeds.jsonl`.
+
+    Raises:
+        ConfigError: no such file or line, the plan invalid or not simulable.
+    """
+    recorded = _recorded(run_dir, seed)
+    try:
+        text = (run_dir / "plan.toml").read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{run_dir}: cannot read plan.toml ({exc.strerror or exc})") from exc
+    source = recorded.get("plan") or str(run_dir / "plan.toml")  # (its setups' folder)
+    plan = parse_plan(text, source=source, name=Path(source).stem)
+    plan = plan.with_changes(duration=recorded["duration"])
+    simulate.check_simulable(plan)
+    return plan, recorded
+
+
+def shrink_arguments(parser: argparse.ArgumentParser) -> None:
+    """The `shrink` subcommand's arguments."""
+    parser.add_argument(
+        "run_dir", metavar="RUN", help="the --out directory of `rr-actors experiment --simulate`"
+    )
+    parser.add_argument("--seed", type=int, required=True, help="a seed that violated a rule")
+    parser.add_argument(
+        "--out", metavar="DIR", help="where the shrunk run goes (default: RUN/shrunk-seed-S)"
+    )
+    parser.add_argument(
+        "--budget",
+        type=int,
+        default=shrink.BUDGET,
+        help=f"the most simulated runs to make (default: {shrink.BUDGET})",
+    )
+    parser.add_argument(
+        "--tries",
+        type=int,
+        default=shrink.TRIES,
+        help=f"seeds per candidate: the current one and the next ones (default: {shrink.TRIES})",
+    )
+
+
+def run_shrink(args: argparse.Namespace, stream: TextIO) -> int:
+    """`rr-actors shrink RUN --seed S`: 0 shrunk, 1 a run failed, 2 bad input (the seed
+    did not violate, among others)."""
+    run_dir = Path(args.run_dir)
+    out = Path(args.out) if args.out else run_dir / f"shrunk-seed-{args.seed}"
+    if args.budget < 1 or args.tries < 1:
+        _error("shrink", "--budget and --tries must be at least 1")
+        return 2
+    try:
+        plan, _ = recorded_plan(run_dir, args.seed)
+        text = (run_dir / "plan.toml").read_text(encoding="utf-8")  # (read: recorded_plan)
+    except ConfigError as exc:
+        _error("shrink", str(exc))
+        return 2
+    argv = ["shrink", args.run_dir, "--seed", str(args.seed), "--out", str(out)]
+    argv += ["--budget", str(args.budget), "--tries", str(args.tries)]
+    code = hash_fixed(argv, stream)
+    if code is not None:
+        return code
+    try:
+        shrink_seed(
+            plan, args.seed, out, _Say(stream), budget=args.budget, tries=args.tries, text=text
+        )
+    except ConfigError as exc:
+        _error("shrink", str(exc))
+        return 2
+    except RrError as exc:
+        _error("shrink", str(exc))
+        return 1
+    return 0
+
+
+class _Say(contextlib.nullcontext["_Say"]):
+    """A display of plain lines (`cli.Display`'s `say`, no bar)."""
+
+    def __init__(self, stream: TextIO) -> None:
+        super().__init__(self)
+        self.stream = stream
+
+    def say(self, line: object) -> None:
+        self.stream.write(f"{line}\n")
+        self.stream.flush()
+
+
+def shrink_seed(
+    plan: Plan,
+    seed: int,
+    out: Path,
+    display: Any,
+    *,
+    budget: int = shrink.BUDGET,
+    tries: int = shrink.TRIES,
+    text: str | None = None,
+) -> shrink.Shrunk:
+    """Shrink one violating seed (`shrink.shrink`), a line of `display` per kept step, and
+    write the shrunk run into `out` (`shrink.write`: `rr-actors replay OUT`); `text` the
+    plan's TOML (default: its file's).
+
+    Raises:
+        ConfigError: the seed does not violate (or the plan has no file).
+        RrError: a run failed.
+    """
+    bar = getattr(display, "bar", None)
+    task = None
+    if bar is not None:
+        for shown in bar.task_ids:  # (the sweep's, done)
+            bar.update(shown, visible=False)
+        task = bar.add_task(f"shrink seed {seed}", total=budget)
+
+    def ran(runs: int) -> None:
+        if bar is not None and task is not None:
+            bar.update(task, completed=runs)
+
+    with _warnings_off(), display:
+        shrunk = shrink.shrink(
+            plan, seed, budget=budget, tries=tries, on_step=display.say, on_run=ran, text=text
+        )
+    if bar is not None and task is not None:
+        bar.remove_task(task)
+    shrink.write(shrunk, out, seed_line(shrunk.run, shrunk.plan))
+    run = shrunk.run
+    display.say(
+        f"shrunk seed {seed} ({shrunk.original_events} events) to seed {shrunk.seed}: "
+        f"{run.events} events, {run.faults} faults, {shrunk.plan.workload.clients} "
+        f"clients, {shrunk.plan.duration:g} s ({shrunk.runs} runs)"
+    )
+    display.say(f"  {shrunk.kind}")
+    display.say(f"written to {out}/: plan.toml, {SEEDS_FILE}, events-seed-{shrunk.seed}.jsonl")
+    display.say(f"replay it: rr-actors replay {out} --story")
+    return shrunk
+
+
+def shrink_violations(
+    plan: Plan,
+    runs: list[simulate.SimulatedRun],
+    out: Path,
+    display: Any,
+    *,
+    budget: int = shrink.BUDGET,
+) -> list[shrink.Shrunk]:
+    """`--shrink`: the first violating seed of each violation kind, shrunk into
+    `out/shrunk-seed-S` (one kind is one bug; its other seeds would shrink to it again).
+
+    Raises:
+        RrError: a run failed.
+    """
+    firsts: dict[str, int] = {}
+    for run in runs:
+        for kind in shrink.violation_kinds(run)[:1]:
+            firsts.setdefault(kind, run.seed)
+    return [
+        shrink_seed(plan, seed, out / f"shrunk-seed-{seed}", display, budget=budget)
+        for seed in dict.fromkeys(firsts.values())
+    ]
+
+
+def _only_seed(run_dir: Path) -> int:
+    """The seed of a run directory that recorded one (`ConfigError` if it has more)."""
+    path = run_dir / SEEDS_FILE
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except OSError as exc:
+        raise ConfigError(
+            f"{run_dir}: no {SEEDS_FILE} (not an `experiment --simulate` output)"
+        ) from exc
+    seeds = [json.loads(line).get("seed") for line in lines if line.strip()]
+    if len(seeds) != 1 or not isinstance(seeds[0], int):
+        raise ConfigError(f"{path}: {len(seeds)} seeds recorded: give --seed S")
+    return seeds[0]
 
 
 def _recorded(run_dir: Path, seed: int) -> dict[str, Any]:

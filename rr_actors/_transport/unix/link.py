@@ -701,9 +701,7 @@ class _Accepted:
                 handshake(self.sock, listener.authkey, self.deadline, server=True)
             except (AuthenticationError, EOFError, OSError) as exc:
                 if self.writer.closed:  # the listener stopped and closed it: no refusal
-                    logger.debug(
-                        "registrar %s stopped during a handshake: %s", listener.name, exc
-                    )
+                    logger.debug("registrar %s stopped during a handshake: %s", listener.name, exc)
                 else:
                     logger.warning("registrar %s refused a connection: %s", listener.name, exc)
                 return
