@@ -11,8 +11,8 @@ Issue 42 section 3, "Power". Each row of `PLANTS` is one bug, a small edit of th
       of the plant's rule (the kind of finding the bug must cause), or `--seeds` seeds
     the same seed on an unedited copy: that finding must not be there (else the row
       says "also unplanted": the plant did not cause it)
-    `--shrink`: the found seed shrunk (`rr_actors.experiments.shrink`, where the tree has
-      it) to its smallest failing run, and its events counted
+    `--shrink`: the found seed shrunk (`rr_actors.experiments.shrink`, at most `--budget`
+      runs) to a small plan whose run still violates the plant's rule, its events counted
 
 The worktree itself is never edited. Rows: the bug, the plan, the first seed whose run
 violated the rule, the seeds run, the violation's text, the CPU seconds of the search
@@ -22,8 +22,8 @@ finding, not something to hide). Figures are recorded in docs/performance.md
 ("Planted bugs"). CPU seconds are the steadier figure on a shared machine; pin it for
 the docs' figures:
 
-    taskset -c 0 python benchmarks/planted_bugs.py                    # every plant
-    python benchmarks/planted_bugs.py --only dedup,retry --seeds 200  # a quick look
+    taskset -c 0 python benchmarks/planted_bugs.py --shrink           # every plant
+    python benchmarks/planted_bugs.py --only dedup,retry-fatal --seeds 200  # a quick look
     python benchmarks/planted_bugs.py --check                         # edits apply?
     python benchmarks/planted_bugs.py --baseline --seeds 100          # unplanted code
 
@@ -186,11 +186,11 @@ def child(path: Path, *arguments: str) -> dict[str, Any]:
     return answer
 
 
-def search(plant: Plant, seeds: int, shrink: bool) -> dict[str, Any]:
+def search(plant: Plant, seeds: int, budget: int) -> dict[str, Any]:
     """`plant`'s row: the first seed violating its rule, then that seed unplanted."""
     with tempfile.TemporaryDirectory(prefix=f"rr-planted-{plant.name}-") as folder:
         planted = scratch(Path(folder) / "planted", plant)
-        row = child(planted, "search", plant.plan, plant.rule, str(seeds), str(int(shrink)))
+        row = child(planted, "search", plant.plan, plant.rule, str(seeds), str(budget))
         row["also_unplanted"] = None
         if row["seed"] is not None:
             clean = scratch(Path(folder) / "clean", None)
@@ -261,7 +261,7 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
         }
         print(json.dumps(answer))
         return
-    rule, last, shrink = arguments[1], int(arguments[2]), arguments[3] == "1"
+    rule, last, budget = arguments[1], int(arguments[2]), int(arguments[3])
     first = int(arguments[4]) if len(arguments) > 4 else 1
     answer = {"plan": plan.name, "rule": rule, "seed": None, "seeds": 0, "violation": None}
     for seed in range(first, last + 1):
@@ -273,19 +273,25 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
             answer.update(seed=seed, violation=found[0], events=run.events)
             break
     answer["cpu_s"] = time.process_time() - started
-    answer["shrunk"] = shrunk(plan, answer["seed"], rule) if shrink and answer["seed"] else None
+    answer["shrunk"] = (
+        shrunk(plan, answer["seed"], rule, budget) if budget and answer["seed"] else None
+    )
     print(json.dumps(answer))
 
 
-def shrunk(plan: Any, seed: int, rule: str) -> int | None:
-    """The events of `seed`'s run shrunk to the least that still violates `rule`, where
-    the tree has a shrinker (`rr_actors.experiments.shrink`); None without one."""
-    try:
-        from rr_actors.experiments import shrink  # type: ignore[attr-defined]  # noqa: PLC0415
-    except ImportError:
-        return None
-    result = shrink.shrink(plan, seed, keep=lambda run: bool(violated(run.findings, rule)))
-    return int(result.events)
+def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
+    """`seed`'s run shrunk (`rr_actors.experiments.shrink`) keeping a violation of `rule`:
+    the events of the shrunk run, the violation kind it kept and the runs it made."""
+    from rr_actors.experiments import shrink  # noqa: PLC0415 - the copy's
+
+    kinds = shrink.violation_kinds
+
+    def rule_first(run: Any) -> list[str]:  # (the shrinker keeps a run's first kind)
+        return sorted(kinds(run), key=lambda kind: not kind.startswith(f"[{rule}]"))
+
+    shrink.violation_kinds = rule_first
+    result = shrink.shrink(plan, seed, budget=budget)
+    return {"events": result.run.events, "kind": result.kind, "runs": result.runs}
 
 
 # -- the table ------------------------------------------------------------------------
@@ -312,7 +318,8 @@ def table(rows: list[tuple[Plant, dict[str, Any]]], seeds: int, shrink: bool) ->
             "-" if seed is None else str(row["events"]),
         )
         if shrink:
-            cells += ("-" if row.get("shrunk") is None else str(row["shrunk"]),)
+            small = row.get("shrunk")
+            cells += ("-" if small is None else f"{small['events']} ({small['runs']} runs)",)
         lines.append(cells)
     widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
     for line in lines:
@@ -321,6 +328,8 @@ def table(rows: list[tuple[Plant, dict[str, Any]]], seeds: int, shrink: bool) ->
     for plant, row in rows:
         print(f"{plant.name}: {plant.bug}")
         print(f"    {row['violation'] or f'no [{plant.rule}] violation in {seeds} seeds'}")
+        if row.get("shrunk") is not None:
+            print(f"    shrunk, keeping: {row['shrunk']['kind']}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -332,6 +341,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=10_000, help="most seeds per plant")
     parser.add_argument("--only", help="plants to run, by name, comma-separated")
     parser.add_argument("--shrink", action="store_true", help="shrink each found seed")
+    parser.add_argument("--budget", type=int, default=400, help="most runs of one shrink")
     parser.add_argument("--check", action="store_true", help="only check the edits apply")
     parser.add_argument("--baseline", action="store_true", help="run the unedited code")
     options = parser.parse_args(args)
@@ -354,7 +364,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{rules or 'every seed held'}"
             )
         return 0
-    rows = [(plant, search(plant, options.seeds, options.shrink)) for plant in chosen]
+    budget = options.budget if options.shrink else 0
+    rows = [(plant, search(plant, options.seeds, budget)) for plant in chosen]
     table(rows, options.seeds, options.shrink)
     return 0
 
