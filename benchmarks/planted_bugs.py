@@ -282,7 +282,8 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
 def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
     """`seed`'s run shrunk (`rr_actors.experiments.shrink`) keeping a violation of `rule`:
     the events of the shrunk run, the violation kind it kept and the runs it made."""
-    from rr_actors.experiments import shrink  # noqa: PLC0415 - the copy's
+    from rr_actors.errors import ConfigError  # noqa: PLC0415 - the copy's
+    from rr_actors.experiments import shrink  # noqa: PLC0415
 
     kinds = shrink.violation_kinds
 
@@ -290,7 +291,10 @@ def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
         return sorted(kinds(run), key=lambda kind: not kind.startswith(f"[{rule}]"))
 
     shrink.violation_kinds = rule_first
-    result = shrink.shrink(plan, seed, budget=budget)
+    try:
+        result = shrink.shrink(plan, seed, budget=budget)
+    except ConfigError as exc:  # (its run again did not violate: not replayed)
+        return {"events": None, "kind": f"not shrunk: {exc}", "runs": 1}
     return {"events": result.run.events, "kind": result.kind, "runs": result.runs}
 
 
@@ -319,7 +323,8 @@ def table(rows: list[tuple[Plant, dict[str, Any]]], seeds: int, shrink: bool) ->
         )
         if shrink:
             small = row.get("shrunk")
-            cells += ("-" if small is None else f"{small['events']} ({small['runs']} runs)",)
+            events = "-" if small is None or small["events"] is None else str(small["events"])
+            cells += (events if small is None else f"{events} ({small['runs']} runs)",)
         lines.append(cells)
     widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
     for line in lines:
