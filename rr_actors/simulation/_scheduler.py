@@ -32,6 +32,7 @@ import hashlib
 import heapq
 import itertools
 import logging
+import operator
 import os
 import random
 import struct
@@ -53,6 +54,7 @@ logger = logging.getLogger("rr_actors.simulation")
 _HERE = str(Path(__file__).parent)
 _ROOT = str(Path(__file__).parent.parent.parent)
 _STEP = struct.Struct("<Id")
+_number = operator.attrgetter("number")
 
 
 class SimulationError(RrError):
@@ -319,10 +321,11 @@ class Scheduler:
                         f"{self._until:g} virtual seconds)"
                     )
                 )
-            index = self._choices.randrange(len(ready)) if len(ready) > 1 else 0
-            task = ready[index]
-            ready[index] = ready[-1]
-            ready.pop()
+            if len(ready) > 1:
+                ready.sort(key=_number)  # (the order they were woken in must not count)
+                task = ready.pop(self._choices.randrange(len(ready)))
+            else:
+                task = ready.pop()
             if task.process.stopped:  # (SIGSTOP: ready again at its `cont`)
                 task.process.parked.append(task)
                 continue
