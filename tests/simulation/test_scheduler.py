@@ -63,6 +63,40 @@ def test_other_seeds_choose_other_interleavings() -> None:
     assert len(orders) > 1
 
 
+def woken_in(order: Callable[[list[int]], list[int]]) -> Callable[[], list[int]]:
+    """Five threads wait on an event each; one step sets them all, in `order`: as a step
+    that wakes the waiters of a set of callbacks, whose order is their addresses' and
+    differs from process to process (and from run to run in one). Who ran first."""
+
+    def main() -> list[int]:
+        events = [runtime.Event() for _ in range(5)]
+        ran: list[int] = []
+
+        def wait(number: int) -> None:
+            events[number].wait()
+            ran.append(number)
+
+        threads = [runtime.Thread(target=wait, args=(n,), name=f"w{n}") for n in range(5)]
+        for thread in threads:
+            thread.start()
+        runtime.sleep(1)  # (every thread waits now)
+        for number in order(list(range(5))):
+            events[number].set()  # (no choice point: preempt is 0)
+        for thread in threads:
+            thread.join()
+        return ran
+
+    return main
+
+
+def test_the_order_in_which_one_step_wakes_threads_does_not_change_the_run() -> None:
+    for seed in range(10):
+        forward = simulation.run(woken_in(list), seed=seed, preempt=0.0)
+        backward = simulation.run(woken_in(lambda n: n[::-1]), seed=seed, preempt=0.0)
+
+        assert (forward.hash, forward.value) == (backward.hash, backward.value), seed
+
+
 def test_a_trace_lists_each_step_and_each_note() -> None:
     def main() -> None:
         simulation.note("begins")
