@@ -41,6 +41,7 @@ import json
 import logging
 import os
 import random
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -143,8 +144,11 @@ def recorded(path: str | None) -> dict[int, str]:
 
 
 def commit() -> str:
+    git = shutil.which("git")
+    if git is None:
+        return "?"
     done = subprocess.run(
-        ["git", "-C", str(ROOT), "log", "-1", "--format=%h"],
+        [git, "-C", str(ROOT), "log", "-1", "--format=%h"],
         capture_output=True,
         text=True,
         check=False,

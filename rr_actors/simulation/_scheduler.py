@@ -28,6 +28,7 @@ interleavings a seed search finds differ.
 from __future__ import annotations
 
 import contextlib
+import gc
 import hashlib
 import heapq
 import itertools
@@ -76,6 +77,15 @@ _LOGGERS = ("rr_actors", "rr_actors.events", "rr_actors.simulation", "pykka")
 
 DROP_TRIES = 3
 """Times a task left at the end of a run is thrown `GreenletExit` before it is given up."""
+
+GC_STEPS = 1_000
+"""Steps between two collections of garbage while a run runs. The collector is off
+meanwhile: left on, it would run when allocations (the run's, and those of any other
+thread of the process) reached its threshold, in the middle of whichever task allocated;
+the finalizers of what it frees (a `__del__`, a generator's `finally`, a weakref's
+callback) would then run there, and where the freed memory is reused decides the
+addresses of new objects (the order of a set of them). Between two steps, where the
+scheduler runs, the same seed collects the same garbage at the same point every time."""
 
 _GRAVEYARD: list[greenlet.greenlet] = []  # tasks that would not end when dropped
 
@@ -310,6 +320,15 @@ class Scheduler:
             DeadlockError: nothing can run and nothing is due while one is left.
             LimitError: past `max_steps` steps or `until` virtual seconds.
         """
+        collecting = gc.isenabled()
+        gc.disable()  # (it collects between two steps instead: `_collect`)
+        try:
+            self._loop()
+        finally:
+            if collecting:
+                gc.enable()
+
+    def _loop(self) -> None:
         ready = self._ready
         while self._running:
             if not ready and not self._advance():
@@ -330,6 +349,8 @@ class Scheduler:
                 task.process.parked.append(task)
                 continue
             self.steps += 1
+            if not self.steps % GC_STEPS:
+                _collect(self.steps)
             self._hash.update(_STEP.pack(task.number, self.now))
             if self.trace is not None:
                 self.trace.append((self.now, task.number, task.name))
@@ -476,6 +497,15 @@ class Scheduler:
             lines.append(f"  {kind}{task!r} waits in {what}")
             lines.extend(f"      at {where}" for where in _where(task))
         return "\n".join(lines)
+
+
+def _collect(steps: int) -> None:
+    """Collect garbage now, between two steps: the youngest generation; each tenth time
+    the next one too; each hundredth, all (as CPython's thresholds of 10 do)."""
+    if steps % (GC_STEPS * 100) == 0:
+        gc.collect()
+    else:
+        gc.collect(1 if steps % (GC_STEPS * 10) == 0 else 0)
 
 
 def _describe(primitive: object) -> str:
