@@ -19,7 +19,8 @@ They differ on purpose in what a simulated run must not depend on:
   from run to run and from process to process, and anything ordered by address (a set
   of callbacks, `id()`) comes in another order;
 - the garbage collector: the second process collects 7 times as often (threshold 100,
-  not 700), so finalizers and weakref callbacks run at other moments;
+  not 700) between runs (while a run runs, the simulation collects on its own
+  schedule: `GC_STEPS`);
 - real time: `--busy N` processes that only spin run beside them, so the OS preempts
   the simulation's thread at other moments and every real-time wait differs.
 

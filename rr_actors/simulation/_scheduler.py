@@ -16,7 +16,11 @@ Time is virtual: it stands still while tasks run, and moves only when none is re
 the next deadline. So a run takes no real time for its waits, and what happens at one
 virtual instant is ordered only by the seeded choices. Every choice is drawn from one
 `random.Random(seed)` (the data of a run, its ids and jitter, from another), so a seed
-replays its run exactly; the trace hash covers each step's task and virtual time.
+replays its run exactly; the trace hash covers each step's task and virtual time. A
+choice is among the ready tasks in the order of their numbers, never the order they
+were woken in (a step that wakes several from a set of objects wakes them in the order
+of their addresses), and the garbage collector runs only between two steps
+(`GC_STEPS`): nothing of the process (its heap, its other threads, real time) counts.
 
 A task is blocked only by the simulated primitives (`_primitives.py`), which call
 `block` and `wake`; a choice point (`pause`) is where a real thread could be preempted
