@@ -122,8 +122,9 @@ PLANTS = (
     ),
     Plant(
         "consumer-restart",
-        "an id never released after a consumer's restart: a Reconcile releases none of "
-        "the ids its consumer no longer holds (rule 20)",
+        "an id never released after a restart: a Reconcile releases none of the ids its "
+        "consumer no longer holds (rule 20; sent by a consumer after its own restart, "
+        "and after its provider's)",
         "_registrar/provider.py",
         "        stale = sorted(mine - held)\n",
         "        stale: list[str] = []  # PLANTED: sorted(mine - held)\n",
