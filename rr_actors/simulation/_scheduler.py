@@ -16,7 +16,11 @@ Time is virtual: it stands still while tasks run, and moves only when none is re
 the next deadline. So a run takes no real time for its waits, and what happens at one
 virtual instant is ordered only by the seeded choices. Every choice is drawn from one
 `random.Random(seed)` (the data of a run, its ids and jitter, from another), so a seed
-replays its run exactly; the trace hash covers each step's task and virtual time.
+replays its run exactly; the trace hash covers each step's task and virtual time. A
+choice is among the ready tasks in the order of their numbers, never the order they
+were woken in (a step that wakes several from a set of objects wakes them in the order
+of their addresses), and the garbage collector runs only between two steps
+(`GC_STEPS`): nothing of the process (its heap, its other threads, real time) counts.
 
 A task is blocked only by the simulated primitives (`_primitives.py`), which call
 `block` and `wake`; a choice point (`pause`) is where a real thread could be preempted
@@ -28,10 +32,12 @@ interleavings a seed search finds differ.
 from __future__ import annotations
 
 import contextlib
+import gc
 import hashlib
 import heapq
 import itertools
 import logging
+import operator
 import os
 import random
 import struct
@@ -53,6 +59,7 @@ logger = logging.getLogger("rr_actors.simulation")
 _HERE = str(Path(__file__).parent)
 _ROOT = str(Path(__file__).parent.parent.parent)
 _STEP = struct.Struct("<Id")
+_number = operator.attrgetter("number")
 
 
 class SimulationError(RrError):
@@ -74,6 +81,15 @@ _LOGGERS = ("rr_actors", "rr_actors.events", "rr_actors.simulation", "pykka")
 
 DROP_TRIES = 3
 """Times a task left at the end of a run is thrown `GreenletExit` before it is given up."""
+
+GC_STEPS = 1_000
+"""Steps between two collections of garbage while a run runs. The collector is off
+meanwhile: left on, it would run when allocations (the run's, and those of any other
+thread of the process) reached its threshold, in the middle of whichever task allocated;
+the finalizers of what it frees (a `__del__`, a generator's `finally`, a weakref's
+callback) would then run there, and where the freed memory is reused decides the
+addresses of new objects (the order of a set of them). Between two steps, where the
+scheduler runs, the same seed collects the same garbage at the same point every time."""
 
 _GRAVEYARD: list[greenlet.greenlet] = []  # tasks that would not end when dropped
 
@@ -308,6 +324,15 @@ class Scheduler:
             DeadlockError: nothing can run and nothing is due while one is left.
             LimitError: past `max_steps` steps or `until` virtual seconds.
         """
+        collecting = gc.isenabled()
+        gc.disable()  # (it collects between two steps instead: `_collect`)
+        try:
+            self._loop()
+        finally:
+            if collecting:
+                gc.enable()
+
+    def _loop(self) -> None:
         ready = self._ready
         while self._running:
             if not ready and not self._advance():
@@ -319,14 +344,17 @@ class Scheduler:
                         f"{self._until:g} virtual seconds)"
                     )
                 )
-            index = self._choices.randrange(len(ready)) if len(ready) > 1 else 0
-            task = ready[index]
-            ready[index] = ready[-1]
-            ready.pop()
+            if len(ready) > 1:
+                ready.sort(key=_number)  # (the order they were woken in must not count)
+                task = ready.pop(self._choices.randrange(len(ready)))
+            else:
+                task = ready.pop()
             if task.process.stopped:  # (SIGSTOP: ready again at its `cont`)
                 task.process.parked.append(task)
                 continue
             self.steps += 1
+            if not self.steps % GC_STEPS:
+                _collect(self.steps)
             self._hash.update(_STEP.pack(task.number, self.now))
             if self.trace is not None:
                 self.trace.append((self.now, task.number, task.name))
@@ -473,6 +501,15 @@ class Scheduler:
             lines.append(f"  {kind}{task!r} waits in {what}")
             lines.extend(f"      at {where}" for where in _where(task))
         return "\n".join(lines)
+
+
+def _collect(steps: int) -> None:
+    """Collect garbage now, between two steps: the youngest generation; each tenth time
+    the next one too; each hundredth, all (as CPython's thresholds of 10 do)."""
+    if steps % (GC_STEPS * 100) == 0:
+        gc.collect()
+    else:
+        gc.collect(1 if steps % (GC_STEPS * 10) == 0 else 0)
 
 
 def _describe(primitive: object) -> str:
