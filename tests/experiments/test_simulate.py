@@ -523,8 +523,21 @@ def test_a_kind_only_a_simulation_aims_is_validated_as_the_others(
 PLANS = ROOT / "rr_actors" / "experiments" / "plans"
 
 
+SIMULATED = ["first", "crashloop", "hang", "simchain", "simretry"]
+"""The shipped plans run over two seeds here (killheavy below, for 2 s)."""
+
+REFUSED = ["resource", "strategies", "leases"]
+"""The shipped plans the simulation does not model (the last test says why each)."""
+
+
+def test_every_shipped_plan_is_simulated_or_refused_here() -> None:
+    shipped = {path.stem for path in PLANS.glob("*.toml")}
+
+    assert shipped == {*SIMULATED, "killheavy", *REFUSED}
+
+
 @SWEEP
-@pytest.mark.parametrize("name", ["first", "crashloop", "hang"])
+@pytest.mark.parametrize("name", SIMULATED)
 def test_a_shipped_plan_holds_on_the_simulation(name: str) -> None:
     from rr_actors.experiments import load_plan  # noqa: PLC0415
 
@@ -538,8 +551,6 @@ def test_a_shipped_plan_holds_on_the_simulation(name: str) -> None:
 
 @SWEEP
 def test_killheavy_runs_its_kills_and_cuts_on_the_simulation() -> None:
-    """Its verdicts are not asserted: a kill of it can leave a query held at the end
-    (`[end] db still holds query`), a finding being fixed apart."""
     from rr_actors.experiments import load_plan  # noqa: PLC0415
 
     plan = load_plan(PLANS / "killheavy.toml").with_changes(duration=2.0)
@@ -548,7 +559,7 @@ def test_killheavy_runs_its_kills_and_cuts_on_the_simulation() -> None:
 
     assert {"kill_manager", "cut_connections"} == {f["kind"] for f in fired(run)}
     assert run.calls_ok > 0
-    assert not run.errors
+    held([run])
 
 
 @SWEEP
