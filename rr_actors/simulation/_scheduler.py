@@ -353,12 +353,12 @@ class Scheduler:
                 task.process.parked.append(task)
                 continue
             self.steps += 1
-            if not self.steps % GC_STEPS:
-                _collect(self.steps)
             self._hash.update(_STEP.pack(task.number, self.now))
             if self.trace is not None:
                 self.trace.append((self.now, task.number, task.name))
             self._switch(task)
+            if not self.steps % GC_STEPS:
+                _collect(self.steps)
 
     def _switch(self, task: Task) -> None:
         self.states.install(task.process)
