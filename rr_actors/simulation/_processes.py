@@ -75,6 +75,10 @@ def _fields(obj: object) -> list[str]:
 class States:
     """The objects registered with `runtime.process_state`, and whose state they hold.
 
+    An object whose fields all live in its `__dict__` (most) has a `__dict__` per
+    process, swapped whole at a switch (one assignment, whatever its size); the others
+    (slotted ones, a class) have their fields copied out and in one by one.
+
     Args:
         registered: `(obj, fresh)` pairs (`runtime.process_states()`).
     """
@@ -83,25 +87,32 @@ class States:
         self._objects = [obj for obj, _ in registered]
         self._fresh = [fresh for _, fresh in registered]
         self._fields = [_fields(fresh()) for fresh in self._fresh]
+        self._whole = [
+            _swappable(obj, fresh(), names)
+            for obj, fresh, names in zip(self._objects, self._fresh, self._fields, strict=True)
+        ]
         self._real = self._read()  # the real process's, put back by `close`
         self._installed: Process | None = None
 
     def fresh(self) -> list[dict[str, Any]]:
         """The state of a process that starts: each object's fields as a new one has them."""
         state = []
-        for fresh, names in zip(self._fresh, self._fields, strict=True):
+        for fresh, names, whole in zip(self._fresh, self._fields, self._whole, strict=True):
             made = fresh()
-            state.append({name: getattr(made, name) for name in names})
+            state.append(made.__dict__ if whole else {name: getattr(made, name) for name in names})
         return state
 
     def _read(self) -> list[dict[str, Any]]:
         return [
-            {name: getattr(obj, name, _MISSING) for name in names}
-            for obj, names in zip(self._objects, self._fields, strict=True)
+            obj.__dict__ if whole else {name: getattr(obj, name, _MISSING) for name in names}
+            for obj, names, whole in zip(self._objects, self._fields, self._whole, strict=True)
         ]
 
     def _write(self, state: list[dict[str, Any]]) -> None:
-        for obj, fields in zip(self._objects, state, strict=True):
+        for obj, fields, whole in zip(self._objects, state, self._whole, strict=True):
+            if whole:
+                obj.__dict__ = fields  # (the process's own dict: no copy either way)
+                continue
             for name, value in fields.items():
                 if value is _MISSING:
                     if hasattr(obj, name):
@@ -124,6 +135,14 @@ class States:
             self._installed.state = self._read()
         self._write(self._real)
         self._installed = None
+
+
+def _swappable(obj: object, made: object, names: list[str]) -> bool:
+    """Whether `obj`'s state can be swapped as a whole `__dict__`: an instance (not a
+    class) whose fields, and a fresh one's, are all in its `__dict__`, and nothing more."""
+    if isinstance(obj, type) or not hasattr(obj, "__dict__"):
+        return False
+    return set(vars(obj)) <= set(names) and set(vars(made)) == set(names)
 
 
 _MISSING: Any = object()

@@ -22,7 +22,9 @@ A task is blocked only by the simulated primitives (`_primitives.py`), which cal
 `block` and `wake`; a choice point (`pause`) is where a real thread could be preempted
 although it would not block (an uncontended lock, a put): with probability `preempt`
 the task yields there and the scheduler chooses again, which is what makes the
-interleavings a seed search finds differ.
+interleavings a seed search finds differ. (What is drawn is the number of choice points
+until the next yield, geometric: the same odds, one draw a yield instead of one a
+choice point.)
 """
 
 from __future__ import annotations
@@ -32,9 +34,11 @@ import hashlib
 import heapq
 import itertools
 import logging
+import math
 import os
 import random
 import struct
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -75,6 +79,9 @@ _LOGGERS = ("rr_actors", "rr_actors.events", "rr_actors.simulation", "pykka")
 DROP_TRIES = 3
 """Times a task left at the end of a run is thrown `GreenletExit` before it is given up."""
 
+_NOTHING: dict[
+    str, Any
+] = {}  # a task's contents of a namespace it keeps nothing in (never changed)
 _GRAVEYARD: list[greenlet.greenlet] = []  # tasks that would not end when dropped
 
 
@@ -170,6 +177,7 @@ class Scheduler:
         self._choices = random.Random(seed)  # noqa: S311 - (a replayable run, not a secret)
         self.data = random.Random(f"rr_actors.simulation data {seed}")  # noqa: S311
         self.preempt = preempt
+        self._gap = self._next_gap()  # choice points left before the next yield
         self.now = 0.0  # virtual seconds since the run began
         self.steps = 0
         self._locals = locals
@@ -206,7 +214,7 @@ class Scheduler:
             process = self.root if current is None else current.process
         task = Task(next(self._numbers), name, daemon, thread, process)
         process.tasks.append(task)
-        task.locals = [{} for _ in self._locals]
+        task.locals = [_NOTHING] * len(self._locals)
         glet = _Greenlet(self._body(task, body), parent=self._main)
         glet.task = task
         task.glet = glet
@@ -281,10 +289,22 @@ class Scheduler:
     def pause(self) -> None:
         """A choice point: with probability `preempt`, the calling task yields and the
         scheduler chooses again (it may choose the same task)."""
-        if self.preempt and self._choices.random() < self.preempt:
+        self._gap -= 1
+        if self._gap < 0:
+            self._gap = self._next_gap()
             task = self.current_or_none()
             if task is not None:
                 self.block((self, "pause"), self.now)
+
+    def _next_gap(self) -> int:
+        """Choice points that pass before the next yield: `k` with probability
+        `(1 - preempt)**k * preempt`, as if each yielded with probability `preempt` on
+        its own."""
+        if self.preempt <= 0.0:
+            return sys.maxsize
+        if self.preempt >= 1.0:
+            return 0
+        return int(math.log(1.0 - self._choices.random()) / math.log1p(-self.preempt))
 
     def note(self, text: str) -> None:
         """Add `text` to the trace (and its hash), as said by the running task."""
@@ -337,12 +357,16 @@ class Scheduler:
         namespaces = self._locals
         for namespace, state in zip(namespaces, task.locals, strict=True):
             contents = namespace.__dict__
-            contents.clear()
-            contents.update(state)
+            if contents or state:  # (most tasks keep nothing in most namespaces)
+                contents.clear()
+                contents.update(state)
         assert task.glet is not None
         task.glet.switch()
         if not task.ended:
-            task.locals = [dict(namespace.__dict__) for namespace in namespaces]
+            task.locals = [
+                dict(contents) if (contents := namespace.__dict__) else _NOTHING
+                for namespace in namespaces
+            ]
 
     def drop(self) -> int:
         """End every task left (the run is over: its trace and hash are final); how many
@@ -357,6 +381,7 @@ class Scheduler:
         thrown it again, `DROP_TRIES` times at most.
         """
         self.preempt = 0.0  # (no choice points: a `finally` block runs through)
+        self._gap = self._next_gap()
         stuck = 0
         with _quiet():
             for task in self._tasks:
