@@ -13,7 +13,10 @@ SIGKILLs in 6 virtual seconds. Rows:
                               runs per seed): CPU s of the simulation, of the history and
                               its verdict (`check`), steps, virtual s
     real run                  `rr-actors experiment PLAN --repeat 1`: wall s of the
-                              command (one run, fresh processes, plots), and of its run
+                              command (one run, fresh processes, plots), its workload's
+                              duration, and the CPU s of all its processes (the same
+                              protocol work on real threads: what a simulated run's CPU
+                              cannot go much below)
 
 and the figures the issue sets targets for: simulated runs per CPU-minute (200), and how
 many times faster a simulated run is than a real one of the same plan (20: the real
@@ -37,6 +40,7 @@ import csv
 import logging
 import os
 import platform
+import resource
 import statistics
 import subprocess
 import sys
@@ -190,19 +194,22 @@ def simulated(plan_path: Path, seeds: range, profile: str | None) -> list[dict[s
     return rows
 
 
-def real_run(plan_path: Path) -> tuple[float, float]:
-    """Wall s of `rr-actors experiment PLAN --repeat 1` and of its run (`duration_s` is the
-    workload's; the run's own: from the command's start to its runs.csv line)."""
+def real_run(plan_path: Path) -> tuple[float, float, float]:
+    """Wall s of `rr-actors experiment PLAN --repeat 1`, its workload's duration s (from
+    runs.csv), and the CPU s of all its processes (those reaped: every one of a run)."""
     with tempfile.TemporaryDirectory(prefix="rr-bench-sim-") as tmp:
         out = Path(tmp) / "out"
         command = [sys.executable, "-m", "rr_actors", "experiment", str(plan_path)]
         command += ["--repeat", "1", "--out", str(out), "--quiet"]
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
         start = time.perf_counter()
         subprocess.run(command, check=True, capture_output=True)
         wall = time.perf_counter() - start
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
         with (out / "runs.csv").open() as file:
             (row,) = list(csv.DictReader(file))
-        return wall, float(row["duration_s"])
+        return wall, float(row["duration_s"]), cpu
 
 
 def rate(fn: Callable[[int], float], n: int, rounds: int) -> float:
@@ -211,7 +218,9 @@ def rate(fn: Callable[[int], float], n: int, rounds: int) -> float:
 
 
 def report(
-    rows: list[dict[str, Any]], real: tuple[float, float] | None, floors: tuple[float, ...]
+    rows: list[dict[str, Any]],
+    real: tuple[float, float, float] | None,
+    floors: tuple[float, ...],
 ) -> float:
     """Print the table of figures; the simulated runs per CPU-minute."""
     switch, step, ask = floors
@@ -237,9 +246,10 @@ def report(
     print(f"| a run's steps at the bare scheduler's speed, s | {steps / step:.2f} | |")
     print(f"| a run as raw pykka asks (CPU s per run x asks/s) | {sim * ask:,.0f} | |")
     if real is not None:
-        wall, duration = real
+        wall, duration, real_cpu = real
         print(f"| real run: `rr-actors experiment --repeat 1` wall s | {wall:.2f} | |")
         print(f"| real run: its workload's duration s | {duration:.2f} | |")
+        print(f"| real run: CPU s of all its processes (imports, plots too) | {real_cpu:.2f} | |")
         faster = wall / cpu
         print(
             f"| **x faster than the real run (its wall / a run's CPU)** | **{faster:.1f}** | 20 |"
