@@ -61,6 +61,7 @@ SMALLEST = {
             "2",
         ),
     ],
+    "bench_simulation.py": ["--seeds", "1", "--no-real"],
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1", "--forkserver-first"],
     "bench_three_hosts.py": ["--rounds", "20", "--cuts", "1"],
     "bench_transport.py": ["--rounds", "20", "--paired-rounds", "2"],

@@ -190,6 +190,7 @@ class Scheduler:
         self._tasks: list[Task] = []
         self._running = 0  # tasks not ended that keep the run going (non-daemon)
         self._hash = hashlib.blake2b(digest_size=16)
+        self._unhashed = bytearray()  # steps not in `_hash` yet (hashed in one go: the same hash)
         self.trace: list[tuple[float, int, str]] | None = [] if trace else None
         self.errors: list[str] = []
         self._main = greenlet.getcurrent()  # (made on the thread it runs on)
@@ -310,14 +311,20 @@ class Scheduler:
         """Add `text` to the trace (and its hash), as said by the running task."""
         task = self.current_or_none()
         number = 0 if task is None else task.number
-        self._hash.update(f"note {number} {text}\n".encode())
+        self._hashed().update(f"note {number} {text}\n".encode())
         if self.trace is not None:
             self.trace.append((self.now, number, text))
 
     @property
     def hash(self) -> str:
         """The trace's hash so far (hex)."""
-        return self._hash.hexdigest()
+        return self._hashed().hexdigest()
+
+    def _hashed(self) -> hashlib.blake2b:
+        """The trace's hash, with the steps taken since it was last updated."""
+        self._hash.update(self._unhashed)
+        self._unhashed.clear()
+        return self._hash
 
     # -- the loop ----------------------------------------------------------------------
 
@@ -347,7 +354,7 @@ class Scheduler:
                 task.process.parked.append(task)
                 continue
             self.steps += 1
-            self._hash.update(_STEP.pack(task.number, self.now))
+            self._unhashed += _STEP.pack(task.number, self.now)
             if self.trace is not None:
                 self.trace.append((self.now, task.number, task.name))
             self._switch(task)
@@ -402,6 +409,7 @@ class Scheduler:
 
     def _advance(self) -> bool:
         """Move the clock to the next deadline and ready its tasks; whether there was one."""
+        self._hashed()  # (the steps' buffer kept small: hashed at each jump of the clock)
         timers = self._timers
         while timers:
             deadline, _, task, token = heapq.heappop(timers)
