@@ -61,6 +61,7 @@ SMALLEST = {
             "2",
         ),
     ],
+    "bench_simulation.py": ["--seeds", "1", "--no-real"],
     "bench_simulation_fidelity.py": ["--seeds", "1", "--runs", "2", "--duration", "0.5"],
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1", "--forkserver-first"],
     "bench_three_hosts.py": ["--rounds", "20", "--cuts", "1"],

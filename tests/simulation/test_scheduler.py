@@ -506,3 +506,27 @@ def test_a_simulation_does_not_run_inside_another() -> None:
 
     with pytest.raises(simulation.SimulationError, match="already runs"):
         simulation.run(main, seed=1)
+
+
+CHOICE_POINTS = 20_000
+
+
+def steps_of(preempt: float) -> int:
+    """Steps of a run whose one thread passes `CHOICE_POINTS` choice points (an
+    uncontended lock taken and let go: two each) and never blocks."""
+
+    def main() -> None:
+        lock = runtime.Lock()
+        for _ in range(CHOICE_POINTS // 2):
+            lock.acquire()
+            lock.release()
+
+    return simulation.run(main, seed=3, preempt=preempt).steps
+
+
+def test_a_thread_yields_at_a_choice_point_with_the_odds_of_preempt() -> None:
+    yields = steps_of(0.05) - 1  # (its first step is its start)
+
+    assert 1 == steps_of(0.0)
+    assert CHOICE_POINTS + 1 <= steps_of(1.0)  # (every choice point, its start's too)
+    assert 850 <= yields <= 1150  # 1,000 expected; the binomial's spread is 31
