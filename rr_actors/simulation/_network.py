@@ -271,12 +271,18 @@ class _SimulatedHub(_Hub):
         task = self.sched.current_or_none()
         return self.sched.root if task is None else task.process
 
+    def served(self, endpoint: Endpoint) -> _Served:
+        served = super().served(endpoint)
+        # its process set before `listen` publishes it: a thread that runs while it
+        # starts (a seam may switch) and routes to the name finds it whole
+        served.process = self._sender()  # type: ignore[attr-defined]
+        return served
+
     def listen(self, endpoint: Endpoint) -> _Served:
         served = super().listen(endpoint)
-        process = served.process = self._sender()  # type: ignore[attr-defined]
         fire = self.serving.pop(endpoint.name, None)
         if fire is not None:
-            fire(process.pid)
+            fire(served_by(served).pid)
         return served
 
     def route(self, name: str) -> _Link:  # type: ignore[override]
