@@ -137,7 +137,8 @@ Empty = queue.Empty
 Full = queue.Full
 TIMEOUT_MAX = threading.TIMEOUT_MAX
 
-_REAL = {name: globals()[name] for name in SEAMS}
+REAL = {name: globals()[name] for name in SEAMS}
+"""The real seams (the stdlib's own objects), by name: what `use(None)` puts back."""
 _simulated = False
 _states: list[tuple[object, Callable[[], object]]] = []
 _locals: list[threading.local] = []
@@ -154,7 +155,7 @@ def use(seams: Mapping[str, Any] | None) -> None:
     global _simulated  # (this module's one switch)
     if seams is not None and set(seams) != set(SEAMS):
         raise ValueError(f"a simulation replaces exactly {SEAMS}, not {tuple(seams)}")
-    globals().update(_REAL if seams is None else seams)
+    globals().update(REAL if seams is None else seams)
     _simulated = seams is not None
 
 

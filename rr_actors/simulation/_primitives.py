@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import collections
 import itertools
+import os
 import queue
 import sys
 from collections.abc import Callable
@@ -51,7 +52,13 @@ def _made_at() -> tuple[str, int]:
     """Where the object being made was made (its maker's caller): file and line, for
     reports (`_where`: made into text only then, not for each of the run's objects)."""
     frame = sys._getframe(2)
+    while frame.f_back is not None and frame.f_code.co_filename.startswith(_SIMULATION):
+        frame = frame.f_back  # (the seam's wrapper, a primitive made by another)
     return frame.f_code.co_filename, frame.f_lineno
+
+
+_SIMULATION = os.path.dirname(os.path.abspath(__file__)) + os.sep
+"""This package's folder: a birthplace is the first frame outside it."""
 
 
 def _where(made: tuple[str, int]) -> str:

@@ -277,6 +277,38 @@ def lost_updates(preempt: float, seeds: range) -> set[int]:
     return {simulation.run(main, seed=seed, preempt=preempt).value for seed in seeds}
 
 
+def test_a_real_thread_keeps_the_real_seams_while_a_simulation_runs() -> None:
+    # A real thread still running when a run starts (the status desk's watchdog of an
+    # earlier real registrar, in CI) called `runtime.sleep` and got the simulation's:
+    # "a simulated object was used outside the simulation's threads".
+    inside, done = threading.Event(), threading.Event()
+    seen: list[object] = []
+
+    def real() -> None:
+        assert inside.wait(10)
+        try:
+            runtime.sleep(0.001)
+            seen.append(abs(runtime.monotonic() - time.monotonic()) < 1.0)
+            seen.append(type(runtime.Lock()) is type(threading.Lock()))
+            seen.append(runtime.get_ident() == threading.get_ident())
+        except BaseException as exc:
+            seen.append(exc)
+        finally:
+            done.set()
+
+    thread = threading.Thread(target=real, name="a real thread")
+    thread.start()
+
+    def body() -> None:
+        inside.set()
+        assert done.wait(10)  # (a real wait: the run's OS thread blocks meanwhile)
+
+    simulation.run(body, seed=1)
+    thread.join(10)
+
+    assert [True, True, True] == seen
+
+
 def test_without_preemption_a_thread_runs_until_it_blocks() -> None:
     assert {40} == lost_updates(0.0, range(20))
 
