@@ -15,7 +15,8 @@
    │         unsettled_at  the provider of a call that failed as it died or stopped:
    │                       it may hold the id (a retry may come) ─► listed in the next
    │                       Reconcile; still held there ─► kept_for_retry (released by
-   │                       its next Reconcile, or given back when this one stops)
+   │                       its next Reconcile, or given back when this one stops or
+   │                       the load that made it ends: take_dependencies)
    │         parked        notices (StatusNotice, Revoke, ResponseUpdated) that
    │                       overtook their answer ─► handled again once it came
    │       take_outcomes: the outcomes callers handed over, before each message
@@ -212,6 +213,9 @@ class Flights:
         self.redeliver = redeliver  # handles a message as the actor does (its dispatch)
         self.in_flight: dict[str, InFlight] = {}
         self.kept_for_retry: dict[str, str] = {}  # query id -> the provider that kept it
+        # query id -> the resource whose load made it, of the unsettled or kept ids above
+        # that a load made (a dependency): its retry can only come from that load
+        self.dependency_of: dict[str, str] = {}
 
     # -- one call's record --------------------------------------------------------------
 
@@ -265,11 +269,14 @@ class Flights:
             self.in_flight[query_id].unsettled_at = None
             self.landed(query_id)
 
-    def reset(self, query_id: str, provider: str | None) -> None:
+    def reset(self, query_id: str, provider: str | None, parent: str | None = None) -> None:
         """A new outcome of `query_id`'s call: where it may be held now (`settle`), and
-        it is no longer one its provider kept for a retry."""
+        it is no longer one its provider kept for a retry; `parent`: the resource whose
+        load made the call (`take_dependencies` gives the id back when that load ends)."""
         self.settle(query_id, provider)
         self.kept_for_retry.pop(query_id, None)
+        if provider is not None and parent is not None:
+            self.dependency_of[query_id] = parent
 
     def was_unsettled(self, query_id: str) -> bool:
         """Whether a call with `query_id` failed as its provider died (a retry follows)."""
@@ -299,6 +306,25 @@ class Flights:
                 self.settle(query_id, None)
                 if listing is not None and query_id in listing.held and query_id not in lost:
                     self.kept_for_retry[query_id] = serving_rr
+
+    def take_dependencies(self, rid: str) -> list[tuple[str, str]]:
+        """Resource `rid`'s load ended (it failed, or the resource is unloading): the ids
+        of the calls it made that failed as their provider died or was cut off (also
+        those the provider kept for a retry), with their providers, to give back; no
+        retry can come from a load that ended, and nothing else would release them
+        while this registrar and that provider live. It no longer counts them held."""
+        taken = []
+        for query_id, parent in list(self.dependency_of.items()):
+            if parent != rid:
+                continue
+            del self.dependency_of[query_id]
+            flight = self.in_flight.get(query_id)
+            if flight is not None and flight.unsettled_at is not None:
+                taken.append((query_id, flight.unsettled_at))
+                self.settle(query_id, None)
+            elif query_id in self.kept_for_retry:
+                taken.append((query_id, self.kept_for_retry.pop(query_id)))
+        return taken
 
     def take_unsettled(self) -> list[tuple[str, str]]:
         """This registrar stops: the ids of calls that failed as their provider died,
@@ -640,7 +666,7 @@ class Answers:
         self.flights.take_attempt(message.query_id, message.attempt)
         if current is None or current is message.attempt:
             # (set if it may hold the id: a retry may follow; settled, or unsettled again)
-            self.flights.reset(message.query_id, message.serving_rr)
+            self.flights.reset(message.query_id, message.serving_rr, message.parent)
         record = self.registrar.catalog.clients.get(message.query_id)
         try:
             if current is not None and current is not message.attempt:
@@ -801,6 +827,8 @@ class Releases:
         join = Join(then)
         for record in self.registrar.catalog.dependencies(rid):
             self.release_client(record, join.add())
+        for query_id, serving_rr in self.flights.take_dependencies(rid):
+            give_back(serving_rr, query_id, self.registrar.name)
         join.seal()
 
     def release_client(self, record: ClientRecord, then: Callable[[], None]) -> None:

@@ -943,6 +943,63 @@ class TestReconcile:
         assert taken.is_set()
         assert not ended_first.is_set()
 
+    @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+    @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
+    def test_a_failed_load_gives_back_its_dependency_call_that_failed_as_its_provider_died(
+        self,
+        supervisors: Callable[..., rr.Supervisor],
+        tmp_path: Path,
+        eventually: Callable[..., bool],
+    ) -> None:
+        # Rule 17 case 3 inside a load (rule 5), in manager processes: the provider is
+        # SIGKILLed right after it committed the composite's dependency id, before its
+        # answer left; the call fails (it may have executed) and so does the load. Nothing
+        # can retry a call of a load that ended, so the load's end gives the id back: the
+        # provider, restarted on its backup, reconciles and releases it. It used to be
+        # kept for a retry, listed in the composite's reconcile, and held there for as
+        # long as both lived (a simulated cut, `tests/simulation/test_supervision.py`,
+        # seed 41, found it).
+        uid = uuid.uuid4().hex[:8]
+        p, c = f"p-{uid}", f"c-{uid}"
+
+        def composite(registrar: rr.ResourceRegistrar) -> None:
+            def load(request: Any) -> Any:
+                return registrar.call(p, "leaf", request, timeout=10).response
+
+            registrar.register_server("composite", load=load, unload=lambda _q, _r: None)
+
+        sup = supervisors(
+            [
+                rr.ManagerSpec(p, _provider_setup, isolation="process"),
+                rr.ManagerSpec(c, composite, isolation="process", heartbeat=None),
+            ],
+            state_dir=tmp_path / "state",
+        )
+        subscription = sup.subscribe(lambda _event: None)  # (events on: `events_written`)
+        sup.start()
+
+        def kill_after_commit(registrar: rr.ResourceRegistrar) -> None:
+            import signal  # noqa: PLC0415 - runs in the provider's first process
+
+            from rr_actors.testing import intercept  # noqa: PLC0415
+
+            def kill(told: Any) -> None:
+                if any(getattr(event, "consumer", None) == c for event in told):
+                    os.kill(os.getpid(), signal.SIGKILL)  # committed, not answered
+
+            intercept(registrar, "events_written", before=kill)
+
+        sup.run_in(p, kill_after_commit)
+        app = sup.registrar(f"app-{uid}")
+        with pytest.raises(rr.ResourceLoadError):
+            app.call(c, "composite", "x", timeout=10)
+        sup.wait_restarted(p, timeout=15)
+
+        assert eventually(lambda: ([], []) == _both_ends(sup, p, c), timeout=10)
+        app.stop()
+        sup.stop()
+        subscription.close()
+
 
 class TestReconcileDueCall:
     """Rule 20: what a consumer's `Reconcile` lists, and what it makes of the answer.
