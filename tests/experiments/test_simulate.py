@@ -382,39 +382,45 @@ def test_a_kill_between_a_commit_and_its_answer_is_restarted_and_holds() -> None
         assert len(lines(run, "ChildRestarted")) == 2
 
 
-def given_back_at_the_stop(run: simulate.SimulatedRun) -> set[str]:
-    """api's calls that failed as db died (db may have kept them) and that db released as
-    "abandoned" in the shutdown, before api's stop ended."""
+def failed_and_released(run: simulate.SimulatedRun) -> tuple[set[str], set[str]]:
+    """api's calls that failed as db died (db may have kept them), and those of them that
+    db released before api's stop ended (given back by api's failed load or its stop, or
+    let go when api reconciled with db's restart)."""
     seen = lines(run)
     failed = {
         e["query_id"]
         for e in seen
         if e["type"] == "CallFailed" and e["registrar"] == "api" and e["may_have_executed"]
     }
-    stopped = [i for i, e in enumerate(seen) if e["type"] == "RegistrarStopped"]
-    api_stopped = max(i for i in stopped if seen[i]["registrar"] == "api")
+    api_stopped = max(
+        i for i, e in enumerate(seen) if e["type"] == "RegistrarStopped" and e["registrar"] == "api"
+    )
     released = {
         e["query_id"]
-        for e in seen[stopped[0] : api_stopped]
-        if e["type"] == "ConsumerReleased" and e["registrar"] == "db" and e["reason"] == "abandoned"
+        for e in seen[:api_stopped]
+        if e["type"] == "ConsumerReleased" and e["registrar"] == "db"
     }
-    return released & failed
+    return failed, released & failed
 
 
 @SWEEP
 def test_a_provider_killed_between_a_commit_and_its_answer_releases_the_id() -> None:
     # db dies after it committed api's consumer id, before its answer left; restarted, db
-    # keeps the id for a retry (api listed it when it reconciled). None comes; at the end
-    # the supervisor stops api, whose stop gives the id back (an Abandon), then db at
-    # once. The Abandon used to reach db after its stop (it was not waited for), so db
-    # ended holding ids of a consumer that stopped: `[end]` in 5 of these 8 seeds (and in
-    # seeds 3, 4, 7, 13, 18, 23 of 1-30 of killheavy). The stop now waits for the answers.
+    # keeps the id for a retry (api listed it when it reconciled). No retry can come: the
+    # call was a dependency call of a load that failed. The id used to stay held until
+    # api's stop gave it back, with an Abandon it did not wait for and that reached db
+    # after its own stop: `[end]` in 5 of these 8 seeds (and in seeds 3, 4, 7, 13, 18, 23
+    # of 1-30 of killheavy). A failed load now gives such ids back, and a stop waits for
+    # the answers to what it gives back.
     plan = with_faults('kind = "kill_before_answer"\ntarget = "db"\nat = [0.5, 1.5]')
 
     runs = [simulate.run_seed(plan, seed) for seed in range(1, 9)]
 
     assert [("held", ())] * 8 == [(run.verdict, run.findings) for run in runs]
-    assert any(given_back_at_the_stop(run) for run in runs)  # the path was taken
+    assert [(failed, failed) for failed, _ in map(failed_and_released, runs)] == list(
+        map(failed_and_released, runs)
+    )
+    assert any(failed for failed, _ in map(failed_and_released, runs))  # the path was taken
 
 
 @SWEEP
@@ -536,8 +542,22 @@ def test_every_shipped_plan_is_simulated_or_refused_here() -> None:
     assert shipped == {*SIMULATED, "killheavy", *REFUSED}
 
 
+CROSSING = pytest.mark.xfail(
+    strict=True,
+    reason="an open finding of the simulation (simchain, seed 2): a FATAL sent on to a "
+    "consumer crosses that consumer's release of the id (the Unload's answer overtakes the "
+    "status notice on another connection); the consumer forgot the id and is never told. "
+    "Rule 9 does not say what a consumer releasing while a status is on its way is owed: "
+    "see docs/explanation/semantics.md, rule 9, 'Open'",
+)
+"""simchain's seeds 1-2 here meet the crossing (seed 2): an expected failure until it is
+decided (strict: the day it holds, this marker must go)."""
+
+
 @SWEEP
-@pytest.mark.parametrize("name", SIMULATED)
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=CROSSING) if n == "simchain" else n for n in SIMULATED]
+)
 def test_a_shipped_plan_holds_on_the_simulation(name: str) -> None:
     from rr_actors.experiments import load_plan  # noqa: PLC0415
 
