@@ -263,6 +263,51 @@ def _experiment(args: argparse.Namespace, out: TextIO) -> int:
     return cli.main(args, out)
 
 
+_REPLAY_HELP = "run a seed of a simulated experiment again: the same history, its hash checked"
+
+
+def _replay_arguments(parser: argparse.ArgumentParser) -> None:
+    try:
+        from rr_actors.experiments import sweep  # noqa: PLC0415 - only experiments need it
+    except ImportError:  # the experiments extra is missing: say so when it is used
+        parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+        parser.set_defaults(any_arguments=True)
+        return
+    sweep.replay_arguments(parser)
+
+
+def _replay(args: argparse.Namespace, out: TextIO) -> int:
+    with needs("experiments", THIS_COMMAND):
+        from rr_actors import simulation  # noqa: PLC0415 - its extra (greenlet): said at once
+        from rr_actors.experiments import sweep  # noqa: PLC0415 - only experiments need it
+    del simulation
+    return sweep.run_replay(args, out)
+
+
+_SHRINK_HELP = (
+    "shrink a violating seed of a simulated experiment to a small plan that violates the "
+    "same way, written as a run `replay` reads"
+)
+
+
+def _shrink_arguments(parser: argparse.ArgumentParser) -> None:
+    try:
+        from rr_actors.experiments import sweep  # noqa: PLC0415 - only experiments need it
+    except ImportError:  # the experiments extra is missing: say so when it is used
+        parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+        parser.set_defaults(any_arguments=True)
+        return
+    sweep.shrink_arguments(parser)
+
+
+def _shrink(args: argparse.Namespace, out: TextIO) -> int:
+    with needs("experiments", THIS_COMMAND):
+        from rr_actors import simulation  # noqa: PLC0415 - its extra (greenlet): said at once
+        from rr_actors.experiments import sweep  # noqa: PLC0415 - only experiments need it
+    del simulation
+    return sweep.run_shrink(args, out)
+
+
 _CHECK_HELP = "check a run's events against the semantic rules: a verdict per run"
 
 
@@ -571,6 +616,8 @@ COMMANDS: list[Command] = [
         _experiment,
     ),
     Command("check", _CHECK_HELP, _check_arguments, _check),
+    Command("replay", _REPLAY_HELP, _replay_arguments, _replay),
+    Command("shrink", _SHRINK_HELP, _shrink_arguments, _shrink),
     Command("certs", _CERTS_HELP, _certs_arguments, _certs),
 ]
 """The subcommands, in the order `--help` lists them."""

@@ -9,6 +9,7 @@ processes running (in either placement).
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import multiprocessing
 import os
@@ -57,6 +58,11 @@ def pytest_configure(config: pytest.Config) -> None:
     # and the processes they start need SIGINT not ignored (an ignored signal is inherited).
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    # pytest-xdist hands files out in the order `pytest_collection_modifyitems` gives them
+    # (`FIRST`), not re-sorted by their count of tests: that put `test_portable.py`, one test
+    # that takes minutes, at the very end of the suite.
+    if hasattr(config.option, "loadscopereorder"):  # (pytest-xdist is installed)
+        config.option.loadscopereorder = False
     config.addinivalue_line(
         "markers",
         "thread_only(reason): run this registrar test in the thread placement only",
@@ -79,14 +85,39 @@ def pytest_configure(config: pytest.Config) -> None:
     )
 
 
-FIRST = ("test_portable.py",)
-"""Test files that run first: each takes a minute or two (the portable platform's runs the
-process tests again), so under pytest-xdist they run beside the rest, not after it."""
+FIRST = (
+    "core/test_portable.py",  # 504 s: the process tests again, on the portable platform
+    "test_benchmarks.py",  # 393 s
+    "test_docs.py",  # 193 s
+    "simulation/test_supervision.py",  # 281 s of CPU: four sweeps of simulated trees
+    "mission/test_hosts.py",  # 117 s
+    "store/test_sqlite.py",  # 104 s
+    "experiments/test_plans.py",  # 102 s
+    "multihost/test_zenoh_tls.py",  # 98 s
+    "experiments/test_check.py",  # 91 s
+    "experiments/test_cli.py",  # 87 s
+)
+"""Test files that run first, longest first, so that under pytest-xdist they run beside
+the rest, not after it (the last file handed out sets when the suite ends). The seconds
+are the sum of their tests among the suite's 80 slowest (`--durations=80` at a load
+average of 15 to 25, 2026-11-24, the whole suite 31 min): a lower bound, lowest for the
+files of many tests (`test_docs.py`: a test per page)."""
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Move the `FIRST` files' tests to the front (pytest-xdist hands out files in order)."""
-    items.sort(key=lambda item: item.path.name not in FIRST)  # (stable: order kept otherwise)
+    """The `FIRST` files' tests to the front, in that order; then the other files, those
+    with the most tests first (the order pytest-xdist itself would give them); a file's
+    tests keep their order."""
+    tests = Path(__file__).parent
+    counts = collections.Counter(item.path for item in items)
+
+    def rank(item: pytest.Item) -> tuple[int, int]:
+        listed = item.path.relative_to(tests).as_posix() if item.path.is_relative_to(tests) else ""
+        if listed in FIRST:
+            return (0, FIRST.index(listed))
+        return (1, -counts[item.path])
+
+    items.sort(key=rank)  # (stable: the tests of one file keep their order)
 
 
 def _os_children() -> list[int]:

@@ -61,6 +61,8 @@ SMALLEST = {
             "2",
         ),
     ],
+    "bench_simulation.py": ["--seeds", "1", "--no-real"],
+    "bench_simulation_fidelity.py": ["--seeds", "1", "--runs", "2", "--duration", "0.5"],
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1", "--forkserver-first"],
     "bench_three_hosts.py": ["--rounds", "20", "--cuts", "1"],
     "bench_transport.py": ["--rounds", "20", "--paired-rounds", "2"],
@@ -74,6 +76,7 @@ SMALLEST = {
     "count_cross.py": ["--calls", "5", "--profile"],
     "count_dedup.py": ["--calls", "5", "--profile"],
     "minimal_hit.py": ["--rounds", "1"],
+    "planted_bugs.py": ["--only", "dedup", "--seeds", "3"],
     "stress_crash.py": ["--kills", "4", "--round", "2"],
 }
 """The quickest arguments of each benchmark script (every script must be listed here)."""

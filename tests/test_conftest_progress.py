@@ -5,15 +5,20 @@ happens (`tests/conftest.py`'s `pytest_runtest_logreport`; issue 44 item 8).
 worker has ended: on the suite's three workers, minutes later. The test runs a small
 suite of two files on two workers with this conftest: one test fails at once, the other
 waits (bounded) until the failure's name has been read from the run's output.
+
+And the order files go out in: the slowest first (`FIRST`), as conftest lists them.
 """
 
 from __future__ import annotations
 
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import pytest
+
+from tests import conftest
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -64,3 +69,15 @@ def test_with_q_and_workers_a_failure_is_named_while_other_tests_still_run(
     assert 1 == code, "".join(lines)
     assert gate.exists(), "".join(lines)  # named before test_b ended (it waits for this)
     assert "1 failed, 1 passed" in lines[-1], "".join(lines)
+
+
+def test_the_slowest_files_go_out_first_in_conftests_order_not_re_sorted_by_xdist() -> None:
+    # pytest-xdist re-sorts files by their count of tests unless told not to: the one test
+    # of `test_portable.py` (minutes) then ran last, and the suite waited for it alone.
+    options = types.SimpleNamespace(loadscopereorder=True)
+    conftest.pytest_configure(
+        types.SimpleNamespace(option=options, addinivalue_line=lambda *_: None)
+    )
+
+    assert options.loadscopereorder is False
+    assert [] == [name for name in conftest.FIRST if not (ROOT / "tests" / name).is_file()]

@@ -195,7 +195,7 @@ WHOLE_FEATURES = {
     "test_examples.py": "every program of examples/ runs as its own program",
     "test_benchmarks.py": "every script of benchmarks/ runs at its smallest",
     "test_repository.py": "the repository itself: ignored outputs, import circles, this rule",
-    "test_conftest_progress.py": "the suite's own tests/conftest.py: failures named as they come",
+    "test_conftest_progress.py": "tests/conftest.py: failures named as they come, slow files first",
     "observe/test_page.py": "the observer's page: the HTML and JavaScript of observe/static/",
     "simulation/test_registrar.py": "the registrar's semantic rules on the simulation, many seeds",
     "simulation/test_supervision.py": "a supervised tree of simulated processes under kills",

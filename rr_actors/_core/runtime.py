@@ -48,6 +48,7 @@ __all__ = [
     "Timer",
     "current_thread",
     "get_ident",
+    "getpid",
     "handles_signals",
     "local",
     "manager_process",
@@ -92,6 +93,8 @@ random = _random.random
 """A float in `[0, 1)`: jitter and backoff."""
 get_ident = threading.get_ident
 current_thread = threading.current_thread
+getpid = os.getpid
+"""The pid of the calling thread's process (in a simulation, its simulated process's)."""
 
 manager_process: Any = None
 """`None` in a real run (`rr_actors._process` forks manager processes); in a simulation,
@@ -122,6 +125,7 @@ SEAMS = (
     "random",
     "get_ident",
     "current_thread",
+    "getpid",
     "queue_class",
     "manager_process",
 )
@@ -133,7 +137,8 @@ Empty = queue.Empty
 Full = queue.Full
 TIMEOUT_MAX = threading.TIMEOUT_MAX
 
-_REAL = {name: globals()[name] for name in SEAMS}
+REAL = {name: globals()[name] for name in SEAMS}
+"""The real seams (the stdlib's own objects), by name: what `use(None)` puts back."""
 _simulated = False
 _states: list[tuple[object, Callable[[], object]]] = []
 _locals: list[threading.local] = []
@@ -150,7 +155,7 @@ def use(seams: Mapping[str, Any] | None) -> None:
     global _simulated  # (this module's one switch)
     if seams is not None and set(seams) != set(SEAMS):
         raise ValueError(f"a simulation replaces exactly {SEAMS}, not {tuple(seams)}")
-    globals().update(_REAL if seams is None else seams)
+    globals().update(REAL if seams is None else seams)
     _simulated = seams is not None
 
 

@@ -260,6 +260,7 @@ class CallFailed:
     withdrawn: bool = False  # given up by its caller, who told the provider an Abandon first
     serving_rr: str | None = None  # set if it failed as its provider died or stopped: it
     # may have executed, and a retry with the same id may come (held until reconciled)
+    parent: str | None = None  # the resource of this registrar whose load made the call
     provider: str = ""  # the call's provider and server, and what it failed with (events)
     server: str = ""
     error: BaseException | None = None
@@ -428,6 +429,7 @@ class ClientReply:
             self.query_id,
             self.attempt,
             serving_rr=self.serving_rr if gone else None,
+            parent=self.parent,
             provider=self.serving_rr,
             server=self.server,
             error=error,

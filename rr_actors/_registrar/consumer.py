@@ -15,7 +15,8 @@
    │         unsettled_at  the provider of a call that failed as it died or stopped:
    │                       it may hold the id (a retry may come) ─► listed in the next
    │                       Reconcile; still held there ─► kept_for_retry (released by
-   │                       its next Reconcile, or given back when this one stops)
+   │                       its next Reconcile, or given back when this one stops or
+   │                       the load that made it ends: take_dependencies)
    │         parked        notices (StatusNotice, Revoke, ResponseUpdated) that
    │                       overtook their answer ─► handled again once it came
    │       take_outcomes: the outcomes callers handed over, before each message
@@ -29,7 +30,8 @@
    │       dependencies (`provider.py`'s teardown) the same way; the provider died or
    │       stopped meanwhile ─► unreleased: left out of its next Reconcile, so it
    │       releases them (its unload runs once); this registrar stops ─► its durable
-   │       calls withdrawn, the ids of failed calls and releases given back
+   │       calls withdrawn, the ids of failed calls and releases given back (Abandon):
+   │       the stop goes on once each provider answered (or could not be reached)
    ▼
  Reconciling  it serves (again), or a provider asks (ReconcileAsk) ─► Reconcile(the
           ids held there: a Listing, its epoch); restored from a backup, or restarted
@@ -77,6 +79,7 @@ from rr_actors._registrar.calls import (
 )
 from rr_actors._registrar.display import ClientTexts
 from rr_actors._registrar.messages import (
+    Abandon,
     Fetch,
     FetchVia,
     ListClientQueries,
@@ -210,6 +213,9 @@ class Flights:
         self.redeliver = redeliver  # handles a message as the actor does (its dispatch)
         self.in_flight: dict[str, InFlight] = {}
         self.kept_for_retry: dict[str, str] = {}  # query id -> the provider that kept it
+        # query id -> the resource whose load made it, of the unsettled or kept ids above
+        # that a load made (a dependency): its retry can only come from that load
+        self.dependency_of: dict[str, str] = {}
 
     # -- one call's record --------------------------------------------------------------
 
@@ -263,11 +269,14 @@ class Flights:
             self.in_flight[query_id].unsettled_at = None
             self.landed(query_id)
 
-    def reset(self, query_id: str, provider: str | None) -> None:
+    def reset(self, query_id: str, provider: str | None, parent: str | None = None) -> None:
         """A new outcome of `query_id`'s call: where it may be held now (`settle`), and
-        it is no longer one its provider kept for a retry."""
+        it is no longer one its provider kept for a retry; `parent`: the resource whose
+        load made the call (`take_dependencies` gives the id back when that load ends)."""
         self.settle(query_id, provider)
         self.kept_for_retry.pop(query_id, None)
+        if provider is not None and parent is not None:
+            self.dependency_of[query_id] = parent
 
     def was_unsettled(self, query_id: str) -> bool:
         """Whether a call with `query_id` failed as its provider died (a retry follows)."""
@@ -298,16 +307,35 @@ class Flights:
                 if listing is not None and query_id in listing.held and query_id not in lost:
                     self.kept_for_retry[query_id] = serving_rr
 
-    def give_back_unsettled(self) -> None:
-        """This registrar stops: give back the ids of calls that failed as their provider
-        died, which it would no longer retry (also those the provider kept for a retry
-        when it reconciled)."""
-        for query_id, serving_rr in self.unsettled().items():
-            give_back(serving_rr, query_id, self.registrar.name)
+    def take_dependencies(self, rid: str) -> list[tuple[str, str]]:
+        """Resource `rid`'s load ended (it failed, or the resource is unloading): the ids
+        of the calls it made that failed as their provider died or was cut off (also
+        those the provider kept for a retry), with their providers, to give back; no
+        retry can come from a load that ended, and nothing else would release them
+        while this registrar and that provider live. It no longer counts them held."""
+        taken = []
+        for query_id, parent in list(self.dependency_of.items()):
+            if parent != rid:
+                continue
+            del self.dependency_of[query_id]
+            flight = self.in_flight.get(query_id)
+            if flight is not None and flight.unsettled_at is not None:
+                taken.append((query_id, flight.unsettled_at))
+                self.settle(query_id, None)
+            elif query_id in self.kept_for_retry:
+                taken.append((query_id, self.kept_for_retry.pop(query_id)))
+        return taken
+
+    def take_unsettled(self) -> list[tuple[str, str]]:
+        """This registrar stops: the ids of calls that failed as their provider died,
+        which it would no longer retry (also those the provider kept for a retry when it
+        reconciled), with their providers, to give back; it no longer counts them held."""
+        taken = list(self.unsettled().items())
+        for query_id, _serving_rr in taken:
             self.settle(query_id, None)
-        for query_id, serving_rr in self.kept_for_retry.items():
-            give_back(serving_rr, query_id, self.registrar.name)
+        taken += self.kept_for_retry.items()
         self.kept_for_retry.clear()
+        return taken
 
     # -- notices that overtake the answer they are about --------------------------------
 
@@ -638,7 +666,7 @@ class Answers:
         self.flights.take_attempt(message.query_id, message.attempt)
         if current is None or current is message.attempt:
             # (set if it may hold the id: a retry may follow; settled, or unsettled again)
-            self.flights.reset(message.query_id, message.serving_rr)
+            self.flights.reset(message.query_id, message.serving_rr, message.parent)
         record = self.registrar.catalog.clients.get(message.query_id)
         try:
             if current is not None and current is not message.attempt:
@@ -799,6 +827,8 @@ class Releases:
         join = Join(then)
         for record in self.registrar.catalog.dependencies(rid):
             self.release_client(record, join.add())
+        for query_id, serving_rr in self.flights.take_dependencies(rid):
+            give_back(serving_rr, query_id, self.registrar.name)
         join.seal()
 
     def release_client(self, record: ClientRecord, then: Callable[[], None]) -> None:
@@ -897,18 +927,18 @@ class Releases:
 
     # -- this registrar stops -----------------------------------------------------------
 
-    def withdraw_pending(self, error: RrError) -> None:
+    def withdraw_pending(self, error: RrError, given_back: Join) -> None:
         """This registrar stops: give up its durable calls in flight; their callers get `error`.
 
         The `Abandon` first, then the record, so a crash in between leaves nothing at the
-        provider.
+        provider. Each provider's answer is a part of `given_back` (`give_back_before_stop`).
         """
         for record in list(self.registrar.catalog.clients.values()):
             attempt = self.flights.attempt_of(record.query.id)
             if attempt is not None:
                 self.flights.take_attempt(record.query.id, attempt)
             if record.parent is None and not record.loaded and attempt is not None:
-                give_back(record.query.serving_rr, record.query.id, self.registrar.name)
+                self.give_back_before_stop(record.query.serving_rr, record.query.id, given_back)
                 self.answers.on_call_failed(
                     CallFailed(
                         record.query.id,
@@ -922,14 +952,35 @@ class Releases:
                 )
                 attempt.fail(error)
 
-    def give_back_unsettled(self) -> None:
+    def give_back_unsettled(self, given_back: Join) -> None:
         """This registrar stops: give back the ids of calls that failed as their provider
         died, which it would no longer retry (also those the provider kept for a retry
-        when it reconciled: `Flights`), and of releases that failed so."""
-        self.flights.give_back_unsettled()
+        when it reconciled: `Flights`), and of releases that failed so. Each provider's
+        answer is a part of `given_back` (`give_back_before_stop`)."""
+        for query_id, serving_rr in self.flights.take_unsettled():
+            self.give_back_before_stop(serving_rr, query_id, given_back)
         for query_id, serving_rr in self.unreleased.items():
-            give_back(serving_rr, query_id, self.registrar.name)
+            self.give_back_before_stop(serving_rr, query_id, given_back)
         self.unreleased.clear()
+
+    def give_back_before_stop(self, serving_rr: str, query_id: str, given_back: Join) -> None:
+        """Give `query_id` back to `serving_rr` (an `Abandon` that wants an answer); its
+        answer, or the error of a provider that cannot be reached, is a part of
+        `given_back`: the stop ends only after it (rule 12). Told and not waited for,
+        an `Abandon` could reach the provider after its own stop (its supervisor stops it
+        next), which would then hold the id for a consumer that stopped. A provider that
+        cannot be reached releases it when it reconciles (its restart finds this
+        registrar stopped: `Unloading.release_stopped`)."""
+        done = given_back.add()
+
+        def answered(_: Any, error: BaseException | None) -> None:
+            if error is not None:
+                logger.debug("giving %s back to %s failed: %s", query_id, serving_rr, error)
+            done()
+
+        self.registrar.send(
+            serving_rr, lambda reply: Abandon(query_id, self.registrar.name, reply), answered
+        )
 
 
 # -- reconciling -----------------------------------------------------------------------

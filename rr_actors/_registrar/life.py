@@ -68,7 +68,7 @@ from rr_actors._core import runtime
 from rr_actors._core.actor import Actor, OneShotFuture, refuse
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.membership import MEMBERSHIP
-from rr_actors._core.replies import FutureReply
+from rr_actors._core.replies import FutureReply, Join
 from rr_actors._core.timers import Cancellable, Timer, thread_timer
 from rr_actors._registrar.calls import ClientLoaded
 from rr_actors._registrar.consumer import Clients, Flights, Holdings, Reconciling, Releases
@@ -334,8 +334,10 @@ class Lifecycle:
             f"registrar {self.registrar.name!r} stopped during the call"
         )
         releases = self.releases
-        releases.withdraw_pending(stopped)
-        releases.give_back_unsettled()
+        # the ids given back are released at their providers before the stop goes on
+        given_back = Join(lambda: self.wait_for_unloads(unloads_until, finish))
+        releases.withdraw_pending(stopped, given_back)
+        releases.give_back_unsettled(given_back)
         tops = [
             r
             for r in reversed(self.registrar.catalog.clients.values())
@@ -346,7 +348,7 @@ class Lifecycle:
             if tops:
                 releases.release_client(tops.pop(0), next_one)
                 return
-            self.wait_for_unloads(unloads_until, finish)
+            given_back.seal()
 
         def finish() -> None:
             self.registrar.commit()

@@ -166,10 +166,14 @@ class Unload(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class Abandon(WireMessage):
-    """Consumer -> provider: the caller gave up on `query_id`; release it when possible."""
+    """Consumer -> provider: the caller gave up on `query_id`; release it when possible.
+
+    Answer (to a stopping consumer, which waits for it: `reply` set): `None` once it was
+    released here, or was not held."""
 
     query_id: str
     origin_rr: str
+    reply: Reply | None = None
 
 
 @dataclasses.dataclass(frozen=True)

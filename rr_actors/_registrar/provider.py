@@ -922,8 +922,9 @@ class Unloading:
     def on_unload(self, message: Unload, reply: Reply) -> None:
         self.release(message.query_id, reply, "unload")
 
-    def on_abandon(self, message: Abandon, _reply: Reply) -> None:
+    def on_abandon(self, message: Abandon, reply: Reply) -> None:
         self.release(message.query_id, None, "abandoned")
+        reply.set_result(None)  # (a consumer's stop waits for it; a tell's goes nowhere)
 
     def release_all_of(self, origin_rr: str) -> None:
         """Consumer `origin_rr` is gone for good (`life.py`'s presence: the death watch, or a

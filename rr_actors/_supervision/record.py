@@ -13,10 +13,10 @@ never each other's fields; what one role needs of another it asks by a method.
 from __future__ import annotations
 
 import dataclasses
-import os
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
+from rr_actors._core import runtime
 from rr_actors._process.manager import ManagerExit
 from rr_actors._supervision.children import Child, Level
 
@@ -80,4 +80,4 @@ def pid_of(child: Child) -> int:
     """The process a child runs in: its own (a process manager), else this one."""
     running = child.running
     pid = running.pid if running is not None else None
-    return pid if pid is not None else os.getpid()
+    return pid if pid is not None else runtime.getpid()

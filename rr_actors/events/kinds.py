@@ -15,6 +15,7 @@ import socket
 from typing import Any, TypeAlias
 
 from rr_actors._core import hlc as _hlc
+from rr_actors._core import runtime
 from rr_actors._platform import fork
 from rr_actors._types import Status
 
@@ -110,17 +111,28 @@ def number_events() -> None:
     _numbering = True
 
 
-_pid = os.getpid()
+class _Pid:
+    """The pid this process's events carry: `runtime.getpid()`, read at its first event
+    (a simulated process's own pid in a simulation: each has its own `_Pid`)."""
+
+    def __init__(self) -> None:
+        self.pid = 0  # (not read yet)
+
+
+_PID = runtime.process_state(_Pid(), _Pid)
 
 
 def _current_pid() -> int:
     """`os.getpid()` without a system call per event (kept right across `fork`)."""
-    return _pid
+    pid = _PID.pid
+    if not pid:
+        pid = _PID.pid = runtime.getpid()
+    return pid
 
 
 def _forked() -> None:
-    global _pid, _counter, _numbering
-    _pid = os.getpid()
+    global _counter, _numbering
+    _PID.pid = os.getpid()
     _counter = itertools.count(1)
     _numbering = False
 

@@ -5,9 +5,15 @@ The run builds every `ManagerSpec` with `setup=functools.partial(instrumented_se
 options)`, so the manager imports its real setup by path and calls it with a registrar
 whose `register_server` wraps each `load`:
 
-    injector ──Supervisor.run_in(name, arm_load_error(...))──► _ARMED[name] (this module)
-    client ──call──► registrar ──load(request)──► _guarded: _ARMED says raise? ──► InjectedLoadError
+    injector ──Supervisor.run_in(name, arm_load_error(...))──► _SWITCHES.armed[name] (this module)
+    client ──call──► registrar ──load(request)──► _guarded: armed to raise? ──► InjectedLoadError
                                                               else ──► the setup's own load
+
+On the simulation (`simulate.py`) the same switch is armed the same way: its state is
+per simulated process (`runtime.process_state`), its clock the virtual one; and a
+`kill_in_setup` fault arms `SETUP_FAULTS[name]`, which the next setup of that manager
+runs once the plan's setup returned, before the manager serves (nothing arms it in a real
+run).
 
 `cut_connections` (run on the manager's main thread by a SIGUSR2 handler, so that the
 injector fires it at an exact time with one signal) shuts down every connection of the
@@ -25,12 +31,14 @@ import signal
 import socket
 import stat
 import threading
-import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from rr_actors._core import runtime
+
 __all__ = [
     "CUT_SIGNAL",
+    "SETUP_FAULTS",
     "InjectedLoadError",
     "arm_load_error",
     "catches_cut_signal",
@@ -54,8 +62,19 @@ class _Armed:
     message: str
 
 
-_ARMED: dict[str, _Armed] = {}
-_LOCK = threading.Lock()
+class _Switches:
+    """The load errors armed in this process (a simulated process has its own)."""
+
+    def __init__(self) -> None:
+        self.armed: dict[str, _Armed] = {}
+
+
+_SWITCHES = runtime.process_state(_Switches(), _Switches)
+_LOCK = threading.Lock()  # (never held across a wait: the simulation's one thread is safe)
+
+SETUP_FAULTS: dict[str, Callable[[], object]] = {}
+"""Manager name -> what its next setup runs once the plan's setup returned (popped then):
+armed by the simulation's `kill_in_setup` fault only."""
 
 
 def arm_load_error(
@@ -79,26 +98,28 @@ def arm_load_error(
         registrar: the manager's registrar (given by `run_in`; not used).
     """
     del registrar
-    until = None if for_s is None else time.monotonic() + for_s
+    until = None if for_s is None else runtime.monotonic() + for_s
     with _LOCK:
-        _ARMED[manager] = _Armed(server, None if for_s is not None else loads, until, message)
+        _SWITCHES.armed[manager] = _Armed(
+            server, None if for_s is not None else loads, until, message
+        )
 
 
 def _should_fail(manager: str, server: str) -> str | None:
     """The message to raise with if a load of `manager/server` must fail now, else `None`."""
     with _LOCK:
-        armed = _ARMED.get(manager)
+        armed = _SWITCHES.armed.get(manager)
         if armed is None or (armed.server is not None and armed.server != server):
             return None
         if armed.until is not None:
-            if time.monotonic() < armed.until:
+            if runtime.monotonic() < armed.until:
                 return armed.message
-            del _ARMED[manager]
+            del _SWITCHES.armed[manager]
             return None
         assert armed.remaining is not None
         armed.remaining -= 1
         if armed.remaining <= 0:
-            del _ARMED[manager]
+            del _SWITCHES.armed[manager]
         return armed.message
 
 
@@ -139,10 +160,13 @@ def instrumented_setup(
     """
     from rr_actors.experiments._imports import import_object  # noqa: PLC0415 - runs in managers
 
-    if threading.current_thread() is threading.main_thread():
+    if runtime.handles_signals():
         signal.signal(CUT_SIGNAL, _on_cut_signal)
     setup = import_object(path, base_dir=base_dir)
     setup(_FaultableRegistrar(registrar, registrar.name), **options)
+    fault = SETUP_FAULTS.pop(registrar.name, None)
+    if fault is not None:
+        fault()
 
 
 def _on_cut_signal(_signum: int, _frame: object) -> None:

@@ -30,8 +30,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 from rr_actors._extras import install_command, needs
-from rr_actors.errors import ConfigError
-from rr_actors.experiments import experiment, plans
+from rr_actors.errors import ConfigError, RrError
+from rr_actors.experiments import experiment, plans, shrink, sweep
 from rr_actors.experiments.experiment import (
     ExperimentError,
     ExperimentInterruptedError,
@@ -48,7 +48,16 @@ if TYPE_CHECKING:
     from rich.progress import TaskID
     from rich.table import Table as RichTable
 
-__all__ = ["INTERRUPTED_EXIT", "add_arguments", "fault_line", "main", "summary_lines"]
+__all__ = [
+    "INTERRUPTED_EXIT",
+    "Display",
+    "add_arguments",
+    "error",
+    "fault_line",
+    "main",
+    "plan_file",
+    "summary_lines",
+]
 
 INTERRUPTED_EXIT = 130
 """Exit code after Ctrl-C (128 + SIGINT), as shells use."""
@@ -109,6 +118,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--quiet", action="store_true", help="no progress: print only the summary and the files"
+    )
+    parser.add_argument(
+        "--simulate",
+        action="store_true",
+        help="run the plan on the simulation (virtual time, one seed a run, each replayable: "
+        "rr-actors replay): a verdict per seed, the violating seeds, seeds.jsonl",
+    )
+    parser.add_argument(
+        "--seeds",
+        metavar="A-B",
+        help="with --simulate: the seeds to run, A to B included, or one seed (default: 1)",
+    )
+    parser.add_argument(
+        "--shrink",
+        nargs="?",
+        type=_positive_int,
+        const=shrink.BUDGET,
+        metavar="RUNS",
+        help="with --simulate: shrink the first violating seed of each violation kind to a "
+        "small plan that violates the same way, in at most RUNS simulated runs each "
+        f"(default {shrink.BUDGET}; DIR/shrunk-seed-S: rr-actors replay reads it)",
     )
 
 
@@ -294,7 +324,7 @@ def summary_table(results: Results) -> RichTable:
     return table
 
 
-class _Display:
+class Display:
     """Progress on a terminal (rich) or as plain lines."""
 
     def __init__(self, stream: TextIO, *, quiet: bool) -> None:
@@ -326,7 +356,7 @@ class _Display:
                 transient=True,
             )
 
-    def __enter__(self) -> _Display:
+    def __enter__(self) -> Display:
         if self.bar is not None:
             self.bar.start()
         return self
@@ -360,7 +390,7 @@ class _Display:
         self.bar.update(self.task, completed=completed, description=description)
 
 
-def _error(message: str) -> None:
+def error(message: str) -> None:
     sys.stderr.write(f"rr-actors experiment: {message}\n")
     sys.stderr.flush()
 
@@ -379,7 +409,13 @@ def main(args: argparse.Namespace, stream: TextIO) -> int:
     if args.list:
         return _list(stream)
     if args.plan is None or args.out is None:
-        _error(f"give {'a PLAN and ' if args.plan is None else ''}--out DIR (or --list)")
+        error(f"give {'a PLAN and ' if args.plan is None else ''}--out DIR (or --list)")
+        return 2
+    if args.simulate:
+        with _one_ctrl_c():
+            return _simulated(args, stream)
+    if args.seeds is not None or args.shrink is not None:
+        error(f"{'--seeds' if args.seeds is not None else '--shrink'} needs --simulate")
         return 2
     with _one_ctrl_c():
         return _run(args, stream)
@@ -406,10 +442,10 @@ def _one_ctrl_c() -> Iterator[None]:
 
 
 def _run(args: argparse.Namespace, stream: TextIO) -> int:
-    display = _Display(stream, quiet=args.quiet)
+    display = Display(stream, quiet=args.quiet)
     interrupted = 0
     try:
-        plan = load_plan(_plan_file(args.plan))
+        plan = load_plan(plan_file(args.plan))
         if args.observe:
             with needs("observe", "--observe"):
                 require_extra()  # before --out is made
@@ -427,16 +463,55 @@ def _run(args: argparse.Namespace, stream: TextIO) -> int:
                 on_observe=lambda run, url: display.say(f"run {run}: observer at {url}"),
             )
     except ConfigError as exc:
-        _error(str(exc))
+        error(str(exc))
         return 2
     except ExperimentError as exc:
-        _error(str(exc))
+        error(str(exc))
         return 1
     except ExperimentInterruptedError as exc:
         results = exc.results
         interrupted = 128 + exc.signum  # 130 after Ctrl-C, 143 after SIGTERM, 129 SIGHUP
     _summary(display, results, interrupted=bool(interrupted))
     return interrupted or 0
+
+
+def _simulated(args: argparse.Namespace, stream: TextIO) -> int:
+    """`--simulate`: the plan's seeds on the simulation (`sweep.py`); the exit code."""
+    if args.observe or args.repeat is not None or args.seed is not None:
+        error("--simulate runs --seeds: not --repeat, --seed or --observe")
+        return 2
+    try:
+        seeds = sweep.parse_seeds(args.seeds or "1")
+        plan = load_plan(plan_file(args.plan))
+        if args.duration is not None:
+            plan = plan.with_changes(duration=args.duration)
+        out = Path(args.out)
+        sweep.prepare(plan, out, force=args.force)
+    except ConfigError as exc:
+        error(str(exc))
+        return 2
+    argv = ["experiment", args.plan, "--simulate", "--seeds", f"{seeds[0]}-{seeds[-1]}"]
+    argv += ["--out", args.out, "--force"]  # (the directory is prepared)
+    argv += [*(["--duration", str(args.duration)] if args.duration is not None else [])]
+    argv += ["--quiet"] if args.quiet else []
+    argv += ["--shrink", str(args.shrink)] if args.shrink is not None else []
+    code = sweep.hash_fixed(argv, stream)
+    if code is not None:
+        return code
+    try:
+        with Display(stream, quiet=args.quiet) as display:
+            runs = sweep.run_seeds(plan, seeds, out, display)
+    except RrError as exc:
+        error(str(exc))
+        return 1
+    sweep.summary(display, runs, _shown(out))
+    if args.shrink is not None:
+        try:
+            sweep.shrink_violations(plan, runs, _shown(out), display, budget=args.shrink)
+        except RrError as exc:
+            error(str(exc))
+            return 1
+    return 0
 
 
 LIST_FOOTER = (
@@ -461,7 +536,7 @@ def _list(stream: TextIO) -> int:
     return 0
 
 
-def _plan_file(plan: str) -> Path:
+def plan_file(plan: str) -> Path:
     """The file `plan` names (see `plans.find`), or a `ConfigError` naming the shipped ones."""
     path = plans.find(plan)
     if not path.exists() and path.parent == Path():
@@ -481,7 +556,7 @@ def _shown(path: Path) -> Path:
         return path
 
 
-def _summary(display: _Display, results: Results, *, interrupted: bool) -> None:
+def _summary(display: Display, results: Results, *, interrupted: bool) -> None:
     if interrupted:
         display.say(
             f"interrupted: {len(results.runs)} run(s) finished and kept; every process "

@@ -39,7 +39,7 @@ import rr_actors as rr
 from rr_actors.errors import ConfigError, RrError
 from rr_actors.experiments import _procs
 from rr_actors.experiments._netns import cannot_make_hosts
-from rr_actors.experiments.plan import Plan
+from rr_actors.experiments.plan import SIMULATION_KINDS, Plan, PlanError
 from rr_actors.experiments.reading import load_plan
 from rr_actors.experiments.results import Results, RunResult, show_value
 from rr_actors.experiments.runner import RunSpec
@@ -223,7 +223,8 @@ def run(
         The results of every run.
 
     Raises:
-        PlanError: the plan is invalid (names the file, line and key).
+        PlanError: the plan is invalid (names the file, line and key), or has a fault
+            kind that only a simulation injects (`simulate`).
         ConfigError: an override is out of range, `out` is not usable (or not empty
             without `force`), this platform cannot run experiments (or the plan has
             `[hosts]` and this process is not root), or `observe` was asked
@@ -235,6 +236,14 @@ def run(
     if not isinstance(plan, Plan):
         plan = load_plan(plan)
     plan = plan.with_changes(repeat=repeat, seed=seed, duration=duration)
+    for index, fault in enumerate(plan.faults):
+        if fault.kind in SIMULATION_KINDS:
+            raise PlanError(
+                plan.source or "<plan>",
+                0,
+                f"faults[{index}].kind",
+                f"{fault.kind!r} is only on the simulation (rr-actors experiment --simulate)",
+            )
     reason = unsupported_platform()
     if reason is None and any(p.hosts is not None for _, p in plan.variants):
         reason = cannot_make_hosts()

@@ -24,6 +24,7 @@ __all__ = [
     "MAX_SECONDS",
     "MIN_EVERY",
     "PLACEHOLDERS",
+    "SIMULATION_KINDS",
     "CallMix",
     "Compare",
     "FaultPlan",
@@ -46,11 +47,18 @@ FaultKind = Literal[
     "partition",
     "freeze",
     "kill_router",
+    "duplicate_delivery",
+    "kill_before_answer",
+    "kill_in_setup",
+    "partition_serving",
 ]
 
 FAULT_KINDS: tuple[FaultKind, ...] = typing.get_args(FaultKind)  # every kind a plan may name
-NEEDS_PROCESS = frozenset({"kill_resource", "hang_manager", "cut_connections"})  # OS process
 HOST_KINDS = frozenset({"cut", "partition", "freeze", "kill_router"})  # act between hosts
+SIMULATION_KINDS = frozenset(  # aimed at a point only a simulation can stop at (--simulate)
+    {"duplicate_delivery", "kill_before_answer", "kill_in_setup", "partition_serving"}
+)
+NEEDS_PROCESS = frozenset({"kill_resource", "hang_manager", "cut_connections"} | SIMULATION_KINDS)
 MAX_HOSTS = 8  # the most hosts of a plan (a veth between every two: 28 links)
 # The limits (docs/reference/plan.md). Longer than MAX_SECONDS (11.6 days) overflows the waits
 # of `threading` once added to the clock: a bound here is a clear error, not a dead thread.
@@ -210,7 +218,8 @@ class FaultPlan(_Table, frozen=True):
     count: Annotated[int, Meta(ge=1, le=MAX_INJECTIONS)] | None = None  # with `every`
     after: Trigger | None = None  # inject when an event happens, `delay` later
     delay: SecondsOrZero = 0.0
-    for_s: Seconds | None = msgspec.field(default=None, name="for")  # a hang's (or load error's)
+    # a hang's, load error's, partition_serving's, duplicate_delivery's (default 1 s)
+    for_s: Seconds | None = msgspec.field(default=None, name="for")
     loads: Count = 1  # load_error: how many loads raise (without `for_s`)
     server: str | None = None  # load_error: only loads of this server (default: any)
     message: Text = "injected load error"  # load_error: the exception's message

@@ -70,8 +70,9 @@ KEYS = [f.name for f in dataclasses.fields(Plan) if f.init and f.name not in NOT
 # -- a fault's keys that only go with another key, or with some kinds ---------------------------
 NEEDS_KEY = {"start": "every", "stop": "every", "count": "every", "delay": "after"}
 NEEDS_KIND: dict[str, tuple[str, ...]] = {
-    "for": ("hang_manager", "load_error", "cut", "partition", "freeze")
+    "for": ("hang_manager", "load_error", "cut", "partition", "freeze", "partition_serving")
 }
+NEEDS_KIND["for"] += ("duplicate_delivery",)
 NEEDS_KIND |= {"loads": ("load_error",), "link": ("cut",), "hosts": ("partition",)}
 NEEDS_KIND |= {"server": ("load_error",), "message": ("load_error",)}
 
@@ -392,6 +393,8 @@ class _Reader:
         # -- when: within the run, not too often
         hang = kind == "hang_manager" and fault.for_s is None
         refuse(hang, path, f"'for' is missing{PURPOSE['for']}")
+        cut = kind == "partition_serving" and fault.for_s is None
+        refuse(cut, path, f"'for' is missing{PURPOSE['for_hosts']}")
         lasting = kind in ("cut", "partition", "freeze") and fault.for_s is None
         refuse(lasting, path, f"'for' is missing{PURPOSE['for_hosts']}")
         self.when(fault, path, duration)

@@ -35,6 +35,7 @@ import msgspec
 
 import rr_actors as rr
 from rr_actors import events
+from rr_actors._core import runtime
 from rr_actors._process import context as process_context
 from rr_actors.experiments import _hosts, _procs, check, metrics
 from rr_actors.experiments._instrument import instrumented_setup
@@ -276,11 +277,11 @@ def wait_all_serving(sup: rr.Supervisor, names: list[str], timeout: float) -> No
     not one more: one whose nested supervisor is being restarted by its parent shows
     that supervisor's state, though it has already started again (and counted it).
     """
-    deadline = time.monotonic() + timeout
+    deadline = runtime.monotonic() + timeout
     for name in names:
         info = sup.child(name)
         while info.state != "running":
-            left = deadline - time.monotonic()
+            left = deadline - runtime.monotonic()
             if left <= 0 or sup.gave_up is not None:
                 return  # nothing more comes back
             if info.state in ("exited", "stopped"):
@@ -539,12 +540,12 @@ def count_entries(
     Counted again until no row is left or `settle` seconds passed (`SETTLE_TIMEOUT`):
     what reconciling releases after a late restart is not counted as left.
     """
-    deadline = time.monotonic() + settle
+    deadline = runtime.monotonic() + settle
     while True:
         total, unread = _count_once(sup, managers, clients)
-        if total == 0 or time.monotonic() >= deadline:
+        if total == 0 or runtime.monotonic() >= deadline:
             return total, unread
-        time.sleep(0.05)  # a poll of the catalogs (no event says "reconciled")
+        runtime.sleep(0.05)  # a poll of the catalogs (no event says "reconciled")
 
 
 def _count_once(sup: rr.Supervisor, managers: list[str], clients: list[Client]) -> tuple[int, int]:

@@ -19,11 +19,11 @@ The thesis mission's managers (`rr_actors.mission.managers:erm_setup`, `cm_setup
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from typing import Any
 
 import rr_actors as rr
+from rr_actors._core import runtime
 
 __all__ = ["service"]
 
@@ -56,11 +56,11 @@ def service(
             manager, _, name = target.partition("/")
             registrar.call(manager, name or "resource", request)
         if load_s > 0:
-            time.sleep(load_s)
+            runtime.sleep(load_s)
         return {"server": f"{registrar.name}/{server}", "request": request}
 
     def unload(_request: Any, _response: Any) -> None:
         if unload_s > 0:
-            time.sleep(unload_s)
+            runtime.sleep(unload_s)
 
     registrar.register_server(server, load=load, unload=unload)

@@ -37,14 +37,13 @@ import os
 import queue
 import random
 import sys
-import threading
-import time
-import uuid
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
 import rr_actors as rr
+from rr_actors._core import runtime
+from rr_actors._core.ids import new_id
 from rr_actors.errors import ConfigError
 from rr_actors.experiments._imports import import_object
 from rr_actors.experiments.metrics import ClientRecovery
@@ -144,17 +143,17 @@ def retrying(
         except (rr.RegistrarUnavailableError, rr.RegistrarStoppedError, rr.UnknownServerError):
             # (a provider on another host: lost while its link was down, so unknown here
             # until it is seen again; its own host's supervisor restarts it, not this one)
-            left = deadline - time.monotonic()
+            left = deadline - runtime.monotonic()
             if left <= 0 or (before is not None and not _unavailable(sys.exc_info()[1])):
                 raise
             retried()
             now = None if before is None else sup.child(provider)
             if now is None or before is None:
-                threading.Event().wait(min(pause, left))  # a short pause, not a sync point
+                runtime.Event().wait(min(pause, left))  # a short pause, not a sync point
                 pause = min(2 * pause, _RETRY_PAUSE_MAX)
                 continue
             if now.state == "running" and now.restarts == before.restarts:
-                threading.Event().wait(min(pause, left))  # a short pause, not a sync point
+                runtime.Event().wait(min(pause, left))  # a short pause, not a sync point
                 pause = min(2 * pause, _RETRY_PAUSE_MAX)
                 continue
             sup.wait_restarted(provider, timeout=left, restarts=before.restarts + 1)
@@ -235,7 +234,7 @@ class Client:
         """Why this client stopped calling before the end, or `None`: a `ConfigError` for
         a request it could not build (naming the call and the cause), else the bug."""
         self._on_failure = on_failure
-        self._notes: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._notes: queue.SimpleQueue[Any] = runtime.SimpleQueue()
         self._pending: collections.deque[tuple[str, rr.Status, float]] = collections.deque()
         self._held: list[_Held] = []
         self._given_up: list[tuple[CallMix, Any, str]] = []
@@ -243,9 +242,9 @@ class Client:
         self._by_id: dict[str, _Held] = {}
         self._seq = itertools.count()
         self._unique = itertools.count()
-        self._stopping = threading.Event()
+        self._stopping = runtime.Event()
         self._factories: dict[str, Callable[..., Any]] = {}
-        self._thread = threading.Thread(target=self._run, name=f"rr-client-{index}", daemon=True)
+        self._thread = runtime.Thread(target=self._run, name=f"rr-client-{index}", daemon=True)
 
     # -- life cycle -----------------------------------------------------------------------
 
@@ -264,7 +263,7 @@ class Client:
         self._stopping.set()
         self._notes.put(_STOP)
         self._thread.join(timeout + self.workload.timeout + 5.0)
-        deadline = time.monotonic() + timeout
+        deadline = runtime.monotonic() + timeout
         while self._held:
             held = heapq.heappop(self._held)
             self._unload(held, deadline)
@@ -276,7 +275,7 @@ class Client:
                     self.sup,
                     manager,
                     functools.partial(self.registrar.unload, query_id),
-                    deadline=max(deadline, time.monotonic() + 1e-3),
+                    deadline=max(deadline, runtime.monotonic() + 1e-3),
                 )
 
     def _release_given_up(self, mix: CallMix, request: Any, query_id: str, deadline: float) -> None:
@@ -294,14 +293,14 @@ class Client:
             retrying(
                 self.sup,
                 mix.manager,
-                lambda: call(query_id=query_id, timeout=max(1e-3, deadline - time.monotonic())),
-                deadline=max(deadline, time.monotonic() + 1e-3),
+                lambda: call(query_id=query_id, timeout=max(1e-3, deadline - runtime.monotonic())),
+                deadline=max(deadline, runtime.monotonic() + 1e-3),
             )
             retrying(
                 self.sup,
                 mix.manager,
                 functools.partial(self.registrar.unload, query_id),
-                deadline=max(deadline, time.monotonic() + 1e-3),
+                deadline=max(deadline, runtime.monotonic() + 1e-3),
             )
 
     # -- the thread -----------------------------------------------------------------------
@@ -326,21 +325,21 @@ class Client:
         while not self._stopping.is_set():
             if not self._catch_up():
                 break
-            now = time.monotonic()
+            now = runtime.monotonic()
             if now >= next_call:
                 if now >= self.deadline:
                     break
                 self._call_one()
                 next_call += self._gap()
                 if self.workload.rate is None:
-                    next_call = time.monotonic()
+                    next_call = runtime.monotonic()
                 continue
             wake = next_call
             if self._held:
                 wake = min(wake, self._held[0].unload_at)
             try:
-                note = self._notes.get(timeout=max(0.0, wake - time.monotonic()))
-            except queue.Empty:
+                note = self._notes.get(timeout=max(0.0, wake - runtime.monotonic()))
+            except runtime.Empty:
                 continue
             if note is _STOP:
                 break
@@ -363,20 +362,20 @@ class Client:
         while True:
             try:
                 note = self._notes.get_nowait()
-            except queue.Empty:
+            except runtime.Empty:
                 break
             if note is _STOP:
                 return False
             self._pending.append(note)
         while self._pending:
             self._handle(self._pending.popleft())
-        now = time.monotonic()
+        now = runtime.monotonic()
         while self._held and self._held[0].unload_at <= now:
             self._unload(heapq.heappop(self._held), now + self.workload.timeout)
         return True
 
     def _now(self) -> float:
-        return time.monotonic() - self.t0
+        return runtime.monotonic() - self.t0
 
     def _choose(self) -> CallMix:
         mix = self.workload.calls
@@ -421,7 +420,7 @@ class Client:
         query = self._call(mix, request)
         if query is not None:
             held = _Held(
-                time.monotonic() + self.workload.hold, next(self._seq), query, mix, request
+                runtime.monotonic() + self.workload.hold, next(self._seq), query, mix, request
             )
             heapq.heappush(self._held, held)
             self._by_id[query.id] = held
@@ -435,7 +434,7 @@ class Client:
             nonlocal retried
             retried = True
 
-        query_id = str(uuid.uuid4())
+        query_id = new_id()
         call = functools.partial(
             self.registrar.call,
             mix.manager,
@@ -444,12 +443,12 @@ class Client:
             on_status=self._on_status,
             query_id=query_id,
         )
-        deadline = time.monotonic() + self.workload.timeout
+        deadline = runtime.monotonic() + self.workload.timeout
         try:
             query = retrying(
                 self.sup,
                 mix.manager,
-                lambda: call(timeout=max(1e-3, deadline - time.monotonic())),
+                lambda: call(timeout=max(1e-3, deadline - runtime.monotonic())),
                 deadline=deadline,
                 retried=again,
             )
@@ -481,7 +480,7 @@ class Client:
                 self.sup,
                 held.mix.manager,
                 functools.partial(self.registrar.unload, held.query.id),
-                deadline=max(deadline, time.monotonic() + 1e-3),
+                deadline=max(deadline, runtime.monotonic() + 1e-3),
             )
         except rr.UnknownQueryError:
             pass  # released already (its provider sent FATAL and forgot it, say)
@@ -546,15 +545,15 @@ class Client:
         failed (its provider busy loading the new one, on a loaded machine) is tried again
         the same way.
         """
-        deadline = time.monotonic() + self.workload.timeout
+        deadline = runtime.monotonic() + self.workload.timeout
         pause = _RETRY_PAUSE
-        while not self._stopping.is_set() and time.monotonic() < self.deadline:
+        while not self._stopping.is_set() and runtime.monotonic() < self.deadline:
             query = self._call(held.mix, held.request)
             if query is not None and query.response != held.query.response:
                 return query
             if query is not None:
                 self._release(held.mix.manager, query.id)
-            if time.monotonic() + pause > deadline:
+            if runtime.monotonic() + pause > deadline:
                 return None
             self._stopping.wait(pause)
             pause = min(2 * pause, _RETRY_PAUSE_MAX)

@@ -398,13 +398,25 @@ class Faults:
                     note = self._restored(name)
                     break
                 except rr.RegistrarUnavailableError:
-                    target = info.restarts + 1  # killed again meanwhile: the next restart
+                    target = self._restart_after_failure(name, info)
             with self.lock:
                 record.note = note
                 record.recovered_at = time.monotonic()
             self.say(f"{record.id} recovered: {name} restarted and {note}")
         except rr.RrError as exc:
             self.say(f"{record.id}: {name} did not come back: {exc}")
+
+    def _restart_after_failure(self, name: str, info: rr.ChildInfo) -> int:
+        """The restart to wait for after a call to the manager restarted as `info` failed
+        as unavailable: the next one if it was killed again meanwhile (down, or restarted
+        since), else `info`'s own. Across hosts the call may fail only because the
+        station does not see the restarted manager served yet (its token is on the way:
+        `RobotHost`), and no further restart would come: the wait for `info`'s returns
+        once the station sees it."""
+        now = self.sup.child(name)
+        if now.state != "running" or now.restarts > info.restarts:
+            return info.restarts + 1  # killed again meanwhile: the next restart
+        return info.restarts
 
     def _restored(self, name: str) -> str:
         """Ask the restarted manager what it restored; a short note for the report."""

@@ -286,17 +286,29 @@ class RobotHost:
     Make it with `RobotHost.start`; `close()` stops the robot's managers and the process.
     Its methods may be called from any thread.
 
+    A restart's news and the restarted registrar reach the station by two ways: the news
+    over the socket pair, the registrar's token over the network (the station's presence
+    thread applies it, late under load). With the station's `network`, `wait_restarted`
+    returns only once the station sees the manager served too: else a call right after it
+    finds nobody serving the name (`RegistrarUnavailableError`), as if it had died again
+    (CI, load 25: F5 waited for a second restart of rm that never came).
+
     Attributes:
         pid: the robot's host process.
         subscribers: callbacks of `subscribe` (called on this handle's reader thread).
     """
 
     def __init__(
-        self, process: subprocess.Popen[bytes], conn: Connection, say: Callable[[str], None]
+        self,
+        process: subprocess.Popen[bytes],
+        conn: Connection,
+        say: Callable[[str], None],
+        network: rr.ZenohNetwork | None = None,
     ) -> None:
         self._process = process
         self._conn = conn
         self._say = say
+        self._network = network
         self.pid = process.pid
         self.subscribers: list[Callable[[rr.events.Event], object]] = []
         self.on_watch: Callable[[str, float], object] = lambda _kind, _at: None
@@ -312,7 +324,12 @@ class RobotHost:
 
     @classmethod
     def start(
-        cls, prefix: list[str], settings: RobotSettings, *, say: Callable[[str], None]
+        cls,
+        prefix: list[str],
+        settings: RobotSettings,
+        *,
+        say: Callable[[str], None],
+        network: rr.ZenohNetwork | None = None,
     ) -> RobotHost:
         """Start the robot's host (`prefix` puts it in the robot's namespace) and its managers.
 
@@ -321,6 +338,8 @@ class RobotHost:
                 (`ip netns exec <namespace>`).
             settings: what it starts.
             say: receives its story lines (on this handle's reader thread).
+            network: the station's (`wait_restarted` waits until it sees the manager
+                served), or `None`.
 
         Raises:
             MissionError: it did not start (its error, or its output, is in the message).
@@ -335,7 +354,7 @@ class RobotHost:
         finally:
             theirs.close()
         conn = Connection(ours.detach())
-        host = cls(process, conn, say)
+        host = cls(process, conn, say, network)
         try:
             host._send(("start", settings))
             host._ready.result(timeout=START_TIMEOUT)
@@ -399,7 +418,9 @@ class RobotHost:
             raise MissionError("the robot's host process ended") from exc
         try:
             return future.result(timeout=timeout)
-        except TimeoutError:
+        except TimeoutError as exc:
+            if isinstance(exc, rr.CallTimeoutError):  # its answer: a wait of the robot's
+                raise  # supervisor's ran out (not a silence of its host)
             self._waiting.pop(call_id, None)
             raise rr.CallTimeoutError(f"the robot's host did not answer {method}") from None
 
@@ -411,10 +432,24 @@ class RobotHost:
     def wait_restarted(
         self, name: str, *, timeout: float, restarts: int | None = None
     ) -> rr.ChildInfo:
-        """See `Supervisor.wait_restarted` (of the robot's supervisor)."""
+        """See `Supervisor.wait_restarted` (of the robot's supervisor); with the station's
+        network, it returns once the station sees `name` served too (see the class).
+
+        Raises:
+            CallTimeoutError: not restarted, or not seen served here, within `timeout`.
+        """
+        deadline = time.monotonic() + timeout
         info: rr.ChildInfo = self._call(
             "wait_restarted", name, timeout=timeout + 10.0, wait_s=timeout, restarts=restarts
         )
+        if self._network is not None:
+            try:
+                self._network.wait_for(name, timeout=max(deadline - time.monotonic(), 0.0))
+            except rr.RegistrarUnavailableError as exc:
+                raise rr.CallTimeoutError(
+                    f"{name} was restarted on the robot, but the station did not see it "
+                    f"served within {timeout:g} s: {exc}"
+                ) from exc
         return info
 
     def run_in(self, name: str, fn: Callable[[rr.ResourceRegistrar], Any]) -> Any:
@@ -593,6 +628,7 @@ def open_two_hosts(
             observer=robot_observer,
         ),
         say=say,
+        network=network,
     )
     stack.callback(robot.close)
     say(f"robot's host up (pid {robot.pid}): erm and rm started there")

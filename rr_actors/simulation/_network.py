@@ -16,6 +16,17 @@ order per link, cuts and heals.
    serves fail what waits, as at a cut; once it runs again, reachable again (a presence
    thread of the network's process looks every quarter lease)
  a process ends ─► what it served ends (`_Hub.end`): every link to it fails what waits
+
+ the faults a plan aims (rr_actors.experiments, on the simulation):
+ cut_connections(pid) ─► every link from or to the process is shut down (`_Link.sever`):
+   what was sent on it still arrives, then what waits on it fails (an EOF); a send or
+   an answer after the cut fails at its writer (an answer is compensated); the next
+   send makes a new link (dialled again), as after a real connection's shutdown
+ duplicate_first(name, until) ─► each link made to `name` before `until` puts its first
+   frame on the wire twice (a retry after a reconnect that the peer had received)
+ kill_at_answer(pid, fire) ─► the process's next answer that is not an error (what the
+   call changed committed in its backup) never leaves: `fire()`, then it is SIGKILLed
+ on_serve(name, fire) ─► when a process next serves `name`: `fire(pid)` (on its thread)
 ```
 
 What is not the carrier's (naming, replies kept under a token, stand-in replies, sizes,
@@ -72,15 +83,38 @@ class SimulatedNetwork(MemoryNetwork):
 
     def partition(self, side: Iterable[int]) -> None:
         """Cut the processes of pids `side` off the others (both ways) until `heal`."""
-        hub = self._hub
-        assert isinstance(hub, _SimulatedHub)
-        hub.partition(frozenset(side))
+        self._simulated().partition(frozenset(side))
 
     def heal(self) -> None:
         """Join every process again; each hears the names across as reachable again."""
+        self._simulated().heal()
+
+    def cut_connections(self, pid: int) -> int:
+        """Close every link from or to process `pid` (what waits on them fails; the next
+        send makes a new one): a real process's connections shut down. How many closed."""
+        return self._simulated().cut_connections(pid)
+
+    def duplicate_first(self, name: str, until: float) -> list[int]:
+        """Each link made to registrar `name` before virtual time `until` delivers its
+        first frame twice, the copy right behind it. Returns a one-item list that counts
+        the frames put on the wire twice."""
+        count = [0]
+        self._simulated().duplicate[name] = (until, count)
+        return count
+
+    def kill_at_answer(self, pid: int, fire: Callable[[], object]) -> None:
+        """At process `pid`'s next answer that is not an error, run `fire()` and SIGKILL
+        it before the answer leaves (from its own thread: never returns there)."""
+        self._simulated().kill_answer[pid] = fire
+
+    def on_serve(self, name: str, fire: Callable[[int], object]) -> None:
+        """When a process next serves `name`, run `fire(its pid)` on its thread."""
+        self._simulated().serving[name] = fire
+
+    def _simulated(self) -> _SimulatedHub:
         hub = self._hub
         assert isinstance(hub, _SimulatedHub)
-        hub.heal()
+        return hub
 
 
 class _Wire:
@@ -126,7 +160,18 @@ class _Link:
     """The way from one simulated process to one served registrar (the messenger's
     `Route`): a wire there, a wire back for the answers."""
 
-    __slots__ = ("_back", "_hub", "_there", "closed", "limit", "pending", "sender", "served")
+    __slots__ = (
+        "_back",
+        "_hub",
+        "_there",
+        "closed",
+        "limit",
+        "pending",
+        "sender",
+        "served",
+        "severed",
+        "twice",
+    )
 
     def __init__(self, hub: _SimulatedHub, sender: Process, served: _Served) -> None:
         self._hub = hub
@@ -135,6 +180,8 @@ class _Link:
         self.limit = served.endpoint.max_message_bytes
         self.pending = Replies()
         self.closed = False
+        self.severed = False  # shut down by a cut: what is on its wires still arrives
+        self.twice: list[int] | None = None  # its first frame twice, counted (`duplicate_first`)
         receiver = served_by(served)
         name = served.endpoint.name
         self._there = _Wire(hub, receiver, f"rr-link-{sender.pid}-to-{name}")
@@ -147,20 +194,29 @@ class _Link:
         endpoint, messenger = served.endpoint, hub.messenger
         token, payload = split_frame(data)
         self._there.put(lambda: self._arrive(messenger, endpoint, token, payload))
+        if self.twice is not None:
+            self.twice[0] += 1
+            self.twice = None
+            self._there.put(lambda: self._arrive(messenger, endpoint, token, payload))
         return True
 
     def _arrive(self, messenger: Messenger, endpoint: Endpoint, token: int, payload: Any) -> None:
-        if not self.closed and not self._hub.apart(self):  # (else lost on the wire)
-            messenger.message(endpoint, self, token, payload)
+        if self._hub.apart(self):  # lost on the wire
+            return
+        if self.closed and not self.severed:  # (its process ended)
+            return
+        messenger.message(endpoint, self, token, payload)
 
     def answer(self, data: bytes, on_lost: Lost | None) -> bool:
+        if on_lost is not None:  # (an answer, not an error: what it changed committed)
+            self._hub.answering(served_by(self.served))
         if self.closed or not self.sender.alive or self._hub.apart(self):
             return False
         self._back.put(lambda: self._answered(data, on_lost))
         return True
 
     def _answered(self, data: bytes, on_lost: Lost | None) -> None:
-        if self._hub.apart(self):  # lost on the wire: the answer's compensation runs
+        if self._hub.apart(self):  # lost on the wire: its compensation runs
             if on_lost is not None:
                 run_lost([on_lost])
             return
@@ -169,6 +225,17 @@ class _Link:
     def close(self, error: RrError) -> None:
         self.closed = True
         self.pending.fail(None, error)
+
+    def sever(self) -> None:
+        """A cut shut it down, as `shutdown()` does a connection of the system's sockets:
+        nothing more is sent on it (a send or an answer fails at its writer), what was
+        sent arrives (it was in the reader's queue), and what still waits for an answer
+        fails once the answers already on their way arrived (an EOF after the bytes)."""
+        self.closed = self.severed = True
+        error = RegistrarUnavailableError(
+            f"registrar {self.served.endpoint.name!r}: the connection was cut"
+        )
+        self._back.put(lambda: self.pending.fail(None, error))
 
     def broken(self) -> bool:
         return False  # (its end fails what waits on it: `_SimulatedHub.end`)
@@ -191,6 +258,10 @@ class _SimulatedHub(_Hub):
         self._links: dict[tuple[int, str], _Link] = {}
         self._side: frozenset[int] | None = None  # the pids cut off the others
         self._silent: set[str] = set()  # names served by a process silent past its lease
+        # the faults armed (`SimulatedNetwork`'s methods of the same names)
+        self.duplicate: dict[str, tuple[float, list[int]]] = {}  # name -> (until, count)
+        self.kill_answer: dict[int, Callable[[], object]] = {}  # pid -> what to run first
+        self.serving: dict[str, Callable[[int], object]] = {}  # name -> what to run
         if messenger.lease is not None:
             sim.Thread(
                 self.sched, target=self._presence, name="rr-sim-presence", daemon=True
@@ -200,9 +271,18 @@ class _SimulatedHub(_Hub):
         task = self.sched.current_or_none()
         return self.sched.root if task is None else task.process
 
+    def served(self, endpoint: Endpoint) -> _Served:
+        served = super().served(endpoint)
+        # its process set before `listen` publishes it: a thread that runs while it
+        # starts (a seam may switch) and routes to the name finds it whole
+        served.process = self._sender()  # type: ignore[attr-defined]
+        return served
+
     def listen(self, endpoint: Endpoint) -> _Served:
         served = super().listen(endpoint)
-        served.process = self._sender()  # type: ignore[attr-defined]
+        fire = self.serving.pop(endpoint.name, None)
+        if fire is not None:
+            fire(served_by(served).pid)
         return served
 
     def route(self, name: str) -> _Link:  # type: ignore[override]
@@ -213,6 +293,8 @@ class _SimulatedHub(_Hub):
         link = self._links.get((sender.pid, name))
         if link is None or link.served is not served or link.closed:
             link = self._links[sender.pid, name] = _Link(self, sender, served)
+            until, count = self.duplicate.get(name, (-1.0, None))
+            link.twice = count if self.sched.now < until else None
         if name in self._silent:
             raise RegistrarUnavailableError(
                 f"registrar {name!r} cannot be reached (its process is silent past its lease)"
@@ -246,6 +328,22 @@ class _SimulatedHub(_Hub):
         for link in list(self._links.values()):
             if link.served is served and not link.closed:
                 link.close(failed)
+
+    def cut_connections(self, pid: int) -> int:
+        cut = 0
+        for link in list(self._links.values()):
+            if link.closed or pid not in (link.sender.pid, served_by(link.served).pid):
+                continue
+            link.sever()
+            cut += 1
+        return cut
+
+    def answering(self, process: Process) -> None:
+        """`process` answers a call (not with an error): a `kill_at_answer` fires here."""
+        fire = self.kill_answer.pop(process.pid, None)
+        if fire is not None:
+            fire()
+            self.sched.end(process, -9)  # (SIGKILL; from its own thread: never returns)
 
     def partition(self, side: frozenset[int]) -> None:
         self._side = side

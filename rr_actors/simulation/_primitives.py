@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import collections
 import itertools
+import os
 import queue
 import sys
 from collections.abc import Callable
@@ -47,10 +48,21 @@ __all__ = [
 ]
 
 
-def _made_at() -> str:
-    """Where the object being made was made (its maker's caller), for reports."""
+def _made_at() -> tuple[str, int]:
+    """Where the object being made was made (its maker's caller): file and line, for
+    reports (`_where`: made into text only then, not for each of the run's objects)."""
     frame = sys._getframe(2)
-    return f"{short_path(frame.f_code.co_filename)}:{frame.f_lineno}"
+    while frame.f_back is not None and frame.f_code.co_filename.startswith(_SIMULATION):
+        frame = frame.f_back  # (the seam's wrapper, a primitive made by another)
+    return frame.f_code.co_filename, frame.f_lineno
+
+
+_SIMULATION = os.path.dirname(os.path.abspath(__file__)) + os.sep
+"""This package's folder: a birthplace is the first frame outside it."""
+
+
+def _where(made: tuple[str, int]) -> str:
+    return f"{short_path(made[0])}:{made[1]}"
 
 
 def _deadline(sched: Scheduler, timeout: float | None) -> float | None:
@@ -73,7 +85,7 @@ class Lock:
 
     def describe(self) -> str:
         holder = "" if self._holder is None else f", taken by {self._holder!r}"
-        return f"made at {self._made}{holder}"
+        return f"made at {_where(self._made)}{holder}"
 
     def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
         sched = self._sched
@@ -206,7 +218,7 @@ class Condition:
         self._made = _made_at()
 
     def describe(self) -> str:
-        return f"made at {self._made}"
+        return f"made at {_where(self._made)}"
 
     def __enter__(self) -> bool:
         return self._lock.acquire()
@@ -278,7 +290,7 @@ class Event:
         self._made = _made_at()
 
     def describe(self) -> str:
-        return f"made at {self._made}"
+        return f"made at {_where(self._made)}"
 
     def is_set(self) -> bool:
         self._sched.pause()
@@ -318,7 +330,7 @@ class SimpleQueue:
         self._made = _made_at()
 
     def describe(self) -> str:
-        return f"made at {self._made}"
+        return f"made at {_where(self._made)}"
 
     def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
         self._items.append(item)

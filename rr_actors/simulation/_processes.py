@@ -20,6 +20,7 @@ kill drops its memory and keeps its files with exactly the transactions that com
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Callable
 from typing import Any
 
@@ -41,7 +42,7 @@ class Process:
         "tasks",
     )
 
-    def __init__(self, pid: int, name: str, state: list[dict[str, Any]]) -> None:
+    def __init__(self, pid: int, name: str, state: list[Any]) -> None:
         self.pid = pid
         self.name = name
         self.state = state  # its singletons' fields while another process's are in
@@ -75,6 +76,10 @@ def _fields(obj: object) -> list[str]:
 class States:
     """The objects registered with `runtime.process_state`, and whose state they hold.
 
+    An object whose fields all live in its `__dict__` (most) has a `__dict__` per
+    process, swapped whole at a switch (one assignment, whatever its size); the others
+    (slotted ones, a class) have their fields' values copied out (a tuple) and back in.
+
     Args:
         registered: `(obj, fresh)` pairs (`runtime.process_states()`).
     """
@@ -83,26 +88,41 @@ class States:
         self._objects = [obj for obj, _ in registered]
         self._fresh = [fresh for _, fresh in registered]
         self._fields = [_fields(fresh()) for fresh in self._fresh]
+        self._whole = [
+            _swappable(obj, fresh(), names)
+            for obj, fresh, names in zip(self._objects, self._fresh, self._fields, strict=True)
+        ]
+        self._getters = [operator.attrgetter(*names) for names in self._fields]
         self._real = self._read()  # the real process's, put back by `close`
         self._installed: Process | None = None
 
-    def fresh(self) -> list[dict[str, Any]]:
-        """The state of a process that starts: each object's fields as a new one has them."""
+    def fresh(self) -> list[Any]:
+        """The state of a process that starts: each object's fields as a new one has them
+        (its `__dict__`, or a tuple of their values)."""
         state = []
-        for fresh, names in zip(self._fresh, self._fields, strict=True):
+        for fresh, names, whole, getter in zip(
+            self._fresh, self._fields, self._whole, self._getters, strict=True
+        ):
             made = fresh()
-            state.append({name: getattr(made, name) for name in names})
+            state.append(made.__dict__ if whole else _values(getter, names, made))
         return state
 
-    def _read(self) -> list[dict[str, Any]]:
+    def _read(self) -> list[Any]:
         return [
-            {name: getattr(obj, name, _MISSING) for name in names}
-            for obj, names in zip(self._objects, self._fields, strict=True)
+            obj.__dict__ if whole else _values(getter, names, obj)
+            for obj, names, whole, getter in zip(
+                self._objects, self._fields, self._whole, self._getters, strict=True
+            )
         ]
 
-    def _write(self, state: list[dict[str, Any]]) -> None:
-        for obj, fields in zip(self._objects, state, strict=True):
-            for name, value in fields.items():
+    def _write(self, state: list[Any]) -> None:
+        for obj, names, whole, values in zip(
+            self._objects, self._fields, self._whole, state, strict=True
+        ):
+            if whole:
+                obj.__dict__ = values  # (the process's own dict: no copy either way)
+                continue
+            for name, value in zip(names, values, strict=True):
                 if value is _MISSING:
                     if hasattr(obj, name):
                         delattr(obj, name)
@@ -124,6 +144,24 @@ class States:
             self._installed.state = self._read()
         self._write(self._real)
         self._installed = None
+
+
+def _values(getter: Callable[[object], Any], names: list[str], obj: object) -> tuple[Any, ...]:
+    """The values of fields `names` in `obj` (`getter`: `attrgetter(*names)`), `_MISSING`
+    for one it has not."""
+    try:
+        values = getter(obj)
+    except AttributeError:  # (the real object may lack one: rare, so slow)
+        return tuple(getattr(obj, name, _MISSING) for name in names)
+    return values if len(names) > 1 else (values,)
+
+
+def _swappable(obj: object, made: object, names: list[str]) -> bool:
+    """Whether `obj`'s state can be swapped as a whole `__dict__`: an instance (not a
+    class) whose fields, and a fresh one's, are all in its `__dict__`, and nothing more."""
+    if isinstance(obj, type) or not hasattr(obj, "__dict__"):
+        return False
+    return set(vars(obj)) <= set(names) and set(vars(made)) == set(names)
 
 
 _MISSING: Any = object()

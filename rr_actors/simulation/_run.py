@@ -207,8 +207,11 @@ def _finished(sched: Scheduler, ok: bool, value: Any) -> tuple[bool, Any]:
 
 
 def _seams(sched: Scheduler) -> dict[str, Any]:
+    """The simulated seams, for the run's OS thread (the calling one); any other thread
+    of the process (a real thread still running from before the run: a status desk's
+    watchdog, a test's thread) gets the real ones (`_only_here`)."""
     wall_ns_start = int(WALL_START * 1e9)
-    return {
+    simulated: dict[str, Any] = {
         "Lock": functools.partial(sim.Lock, sched),
         "RLock": functools.partial(sim.RLock, sched),
         "Event": functools.partial(sim.Event, sched),
@@ -224,9 +227,25 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
         "random": sched.data.random,
         "get_ident": functools.partial(sim.get_ident, sched),
         "current_thread": functools.partial(sim.current_thread, sched),
+        "getpid": lambda: sched.current().process.pid,
         "queue_class": functools.partial(sim.queue_class, sched, {}),
         "manager_process": functools.partial(_manager.start, sched),
     }
+    here = threading.get_ident()
+    return {name: _only_here(here, seam, runtime.REAL[name]) for name, seam in simulated.items()}
+
+
+def _only_here(here: int, simulated: Callable[..., Any], real: Callable[..., Any]) -> Any:
+    """`simulated` when called on the OS thread `here` (the run's: its greenlets and its
+    scheduler), `real` on any other: the seams are the module's globals, seen by every
+    thread of the process, and a real thread must keep real clocks, sleeps and locks."""
+
+    def seam(*args: Any, **kwargs: Any) -> Any:
+        if threading.get_ident() == here:
+            return simulated(*args, **kwargs)
+        return real(*args, **kwargs)
+
+    return seam
 
 
 def running_scheduler() -> Scheduler:

@@ -16,25 +16,35 @@ Time is virtual: it stands still while tasks run, and moves only when none is re
 the next deadline. So a run takes no real time for its waits, and what happens at one
 virtual instant is ordered only by the seeded choices. Every choice is drawn from one
 `random.Random(seed)` (the data of a run, its ids and jitter, from another), so a seed
-replays its run exactly; the trace hash covers each step's task and virtual time.
+replays its run exactly; the trace hash covers each step's task and virtual time. A
+choice is among the ready tasks in the order of their numbers, never the order they
+were woken in (a step that wakes several from a set of objects wakes them in the order
+of their addresses), and the garbage collector runs only between two steps
+(`GC_STEPS`): nothing of the process (its heap, its other threads, real time) counts.
 
 A task is blocked only by the simulated primitives (`_primitives.py`), which call
 `block` and `wake`; a choice point (`pause`) is where a real thread could be preempted
 although it would not block (an uncontended lock, a put): with probability `preempt`
 the task yields there and the scheduler chooses again, which is what makes the
-interleavings a seed search finds differ.
+interleavings a seed search finds differ. (What is drawn is the number of choice points
+until the next yield, geometric: the same odds, one draw a yield instead of one a
+choice point.)
 """
 
 from __future__ import annotations
 
 import contextlib
+import gc
 import hashlib
 import heapq
 import itertools
 import logging
+import math
+import operator
 import os
 import random
 import struct
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -53,6 +63,7 @@ logger = logging.getLogger("rr_actors.simulation")
 _HERE = str(Path(__file__).parent)
 _ROOT = str(Path(__file__).parent.parent.parent)
 _STEP = struct.Struct("<Id")
+_number = operator.attrgetter("number")
 
 
 class SimulationError(RrError):
@@ -75,6 +86,18 @@ _LOGGERS = ("rr_actors", "rr_actors.events", "rr_actors.simulation", "pykka")
 DROP_TRIES = 3
 """Times a task left at the end of a run is thrown `GreenletExit` before it is given up."""
 
+GC_STEPS = 1_000
+"""Steps between two collections of garbage while a run runs. The collector is off
+meanwhile: left on, it would run when allocations (the run's, and those of any other
+thread of the process) reached its threshold, in the middle of whichever task allocated;
+the finalizers of what it frees (a `__del__`, a generator's `finally`, a weakref's
+callback) would then run there, and where the freed memory is reused decides the
+addresses of new objects (the order of a set of them). Between two steps, where the
+scheduler runs, the same seed collects the same garbage at the same point every time."""
+
+_NOTHING: dict[
+    str, Any
+] = {}  # a task's contents of a namespace it keeps nothing in (never changed)
 _GRAVEYARD: list[greenlet.greenlet] = []  # tasks that would not end when dropped
 
 
@@ -170,6 +193,7 @@ class Scheduler:
         self._choices = random.Random(seed)  # noqa: S311 - (a replayable run, not a secret)
         self.data = random.Random(f"rr_actors.simulation data {seed}")  # noqa: S311
         self.preempt = preempt
+        self._gap = self._next_gap()  # choice points left before the next yield
         self.now = 0.0  # virtual seconds since the run began
         self.steps = 0
         self._locals = locals
@@ -182,6 +206,7 @@ class Scheduler:
         self._tasks: list[Task] = []
         self._running = 0  # tasks not ended that keep the run going (non-daemon)
         self._hash = hashlib.blake2b(digest_size=16)
+        self._unhashed = bytearray()  # steps not in `_hash` yet (hashed in one go: the same hash)
         self.trace: list[tuple[float, int, str]] | None = [] if trace else None
         self.errors: list[str] = []
         self._main = greenlet.getcurrent()  # (made on the thread it runs on)
@@ -206,7 +231,7 @@ class Scheduler:
             process = self.root if current is None else current.process
         task = Task(next(self._numbers), name, daemon, thread, process)
         process.tasks.append(task)
-        task.locals = [{} for _ in self._locals]
+        task.locals = [_NOTHING] * len(self._locals)
         glet = _Greenlet(self._body(task, body), parent=self._main)
         glet.task = task
         task.glet = glet
@@ -281,23 +306,41 @@ class Scheduler:
     def pause(self) -> None:
         """A choice point: with probability `preempt`, the calling task yields and the
         scheduler chooses again (it may choose the same task)."""
-        if self.preempt and self._choices.random() < self.preempt:
+        self._gap -= 1
+        if self._gap < 0:
+            self._gap = self._next_gap()
             task = self.current_or_none()
             if task is not None:
                 self.block((self, "pause"), self.now)
+
+    def _next_gap(self) -> int:
+        """Choice points that pass before the next yield: `k` with probability
+        `(1 - preempt)**k * preempt`, as if each yielded with probability `preempt` on
+        its own."""
+        if self.preempt <= 0.0:
+            return sys.maxsize
+        if self.preempt >= 1.0:
+            return 0
+        return int(math.log(1.0 - self._choices.random()) / math.log1p(-self.preempt))
 
     def note(self, text: str) -> None:
         """Add `text` to the trace (and its hash), as said by the running task."""
         task = self.current_or_none()
         number = 0 if task is None else task.number
-        self._hash.update(f"note {number} {text}\n".encode())
+        self._hashed().update(f"note {number} {text}\n".encode())
         if self.trace is not None:
             self.trace.append((self.now, number, text))
 
     @property
     def hash(self) -> str:
         """The trace's hash so far (hex)."""
-        return self._hash.hexdigest()
+        return self._hashed().hexdigest()
+
+    def _hashed(self) -> hashlib.blake2b:
+        """The trace's hash, with the steps taken since it was last updated."""
+        self._hash.update(self._unhashed)
+        self._unhashed.clear()
+        return self._hash
 
     # -- the loop ----------------------------------------------------------------------
 
@@ -308,6 +351,15 @@ class Scheduler:
             DeadlockError: nothing can run and nothing is due while one is left.
             LimitError: past `max_steps` steps or `until` virtual seconds.
         """
+        collecting = gc.isenabled()
+        gc.disable()  # (it collects between two steps instead: `_collect`)
+        try:
+            self._loop()
+        finally:
+            if collecting:
+                gc.enable()
+
+    def _loop(self) -> None:
         ready = self._ready
         while self._running:
             if not ready and not self._advance():
@@ -319,30 +371,37 @@ class Scheduler:
                         f"{self._until:g} virtual seconds)"
                     )
                 )
-            index = self._choices.randrange(len(ready)) if len(ready) > 1 else 0
-            task = ready[index]
-            ready[index] = ready[-1]
-            ready.pop()
+            if len(ready) > 1:
+                ready.sort(key=_number)  # (the order they were woken in must not count)
+                task = ready.pop(self._choices.randrange(len(ready)))
+            else:
+                task = ready.pop()
             if task.process.stopped:  # (SIGSTOP: ready again at its `cont`)
                 task.process.parked.append(task)
                 continue
             self.steps += 1
-            self._hash.update(_STEP.pack(task.number, self.now))
+            self._unhashed += _STEP.pack(task.number, self.now)
             if self.trace is not None:
                 self.trace.append((self.now, task.number, task.name))
             self._switch(task)
+            if not self.steps % GC_STEPS:
+                _collect(self.steps)
 
     def _switch(self, task: Task) -> None:
         self.states.install(task.process)
         namespaces = self._locals
         for namespace, state in zip(namespaces, task.locals, strict=True):
             contents = namespace.__dict__
-            contents.clear()
-            contents.update(state)
+            if contents or state:  # (most tasks keep nothing in most namespaces)
+                contents.clear()
+                contents.update(state)
         assert task.glet is not None
         task.glet.switch()
         if not task.ended:
-            task.locals = [dict(namespace.__dict__) for namespace in namespaces]
+            task.locals = [
+                dict(contents) if (contents := namespace.__dict__) else _NOTHING
+                for namespace in namespaces
+            ]
 
     def drop(self) -> int:
         """End every task left (the run is over: its trace and hash are final); how many
@@ -357,6 +416,7 @@ class Scheduler:
         thrown it again, `DROP_TRIES` times at most.
         """
         self.preempt = 0.0  # (no choice points: a `finally` block runs through)
+        self._gap = self._next_gap()
         stuck = 0
         with _quiet():
             for task in self._tasks:
@@ -377,6 +437,7 @@ class Scheduler:
 
     def _advance(self) -> bool:
         """Move the clock to the next deadline and ready its tasks; whether there was one."""
+        self._hashed()  # (the steps' buffer kept small: hashed at each jump of the clock)
         timers = self._timers
         while timers:
             deadline, _, task, token = heapq.heappop(timers)
@@ -473,6 +534,15 @@ class Scheduler:
             lines.append(f"  {kind}{task!r} waits in {what}")
             lines.extend(f"      at {where}" for where in _where(task))
         return "\n".join(lines)
+
+
+def _collect(steps: int) -> None:
+    """Collect garbage now, between two steps: the youngest generation; each tenth time
+    the next one too; each hundredth, all (as CPython's thresholds of 10 do)."""
+    if steps % (GC_STEPS * 100) == 0:
+        gc.collect()
+    else:
+        gc.collect(1 if steps % (GC_STEPS * 10) == 0 else 0)
 
 
 def _describe(primitive: object) -> str:

@@ -207,7 +207,7 @@ class _Hub:
     def listen(self, endpoint: Endpoint) -> _Served:
         """Serve `endpoint` in a "process" of its own; one served under its name before
         is cut off (a registrar restarted elsewhere)."""
-        served = _Served(self, endpoint, self.messenger)
+        served = self.served(endpoint)
         with self._lock:
             if self.closed:
                 raise RegistrarStoppedError("the in-memory network was closed")
@@ -217,6 +217,10 @@ class _Hub:
         if old is not None:
             self.end(old, "unavailable")
         return served
+
+    def served(self, endpoint: Endpoint) -> _Served:
+        """A new `_Served` for `endpoint`, complete before anyone can route to it."""
+        return _Served(self, endpoint, self.messenger)
 
     def route(self, name: str) -> _Route:
         served = self._served.get(name)

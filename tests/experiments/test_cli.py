@@ -30,7 +30,7 @@ import rr_actors as rr
 import rr_actors.observe
 from rr_actors.__main__ import main
 from rr_actors.experiments import Progress, RunResult, parse_plan
-from rr_actors.experiments.cli import _Display, fault_line, summary_lines
+from rr_actors.experiments.cli import Display, fault_line, summary_lines
 from rr_actors.experiments.results import FaultRecord, Results
 from tests.support.small_disk import fill, mounted
 
@@ -379,7 +379,7 @@ def finished_run() -> RunResult:
 def test_progress_draws_a_bar_on_a_terminal_and_one_line_per_run_everywhere(
     stream: io.StringIO,
 ) -> None:
-    with _Display(stream, quiet=False) as display:
+    with Display(stream, quiet=False) as display:
         for elapsed in (0.25, 0.5, 1.0):
             display(Progress(1, 2, "tree.strategy", "one_for_all", 7, elapsed, 1.0))
         display(Progress(1, 2, "tree.strategy", "one_for_all", 7, 1.0, 1.0, finished_run()))
@@ -411,7 +411,7 @@ def test_a_piped_run_line_is_at_most_80_columns(changes: dict[str, object]) -> N
     stream = io.StringIO()
     result = dataclasses.replace(finished_run(), **changes)  # type: ignore[arg-type]
 
-    with _Display(stream, quiet=False) as display:
+    with Display(stream, quiet=False) as display:
         display(Progress(1, 100, "tree.strategy", result.value, 7, 1.0, 1.0, result))
     lines = stream.getvalue().splitlines()
 

@@ -21,7 +21,17 @@ from rr_actors.experiments import Results, RunResult, load_plan, plans, run
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "experiments"
 
-SHIPPED = {"strategies", "crashloop", "hang", "resource", "first", "killheavy", "leases"}
+SHIPPED = {
+    "strategies",
+    "crashloop",
+    "hang",
+    "resource",
+    "first",
+    "killheavy",
+    "leases",
+    "simchain",
+    "simretry",
+}
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 
 

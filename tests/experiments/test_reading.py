@@ -569,6 +569,7 @@ class TestRules:
 
         assert (18, "faults[0].for") == (error.line, error.key)
         only = "'hang_manager' or 'load_error' or 'cut' or 'partition' or 'freeze'"
+        only += " or 'partition_serving' or 'duplicate_delivery'"  # (the simulation's)
         assert f"does not go with kind 'kill_manager' (only {only})" == error.problem
 
     def test_a_trigger_status_of_the_wrong_type_names_the_statuses(self) -> None:

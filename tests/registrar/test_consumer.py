@@ -859,6 +859,147 @@ class TestReconcile:
         assert unloaded.wait(10)
         assert [] == restarted.server_queries("leaf")
 
+    @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+    @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
+    def test_a_stop_ends_only_once_its_provider_released_the_failed_call_it_kept(
+        self,
+        supervisors: Callable[..., rr.Supervisor],
+        tmp_path: Path,
+        process_helpers: SharedObjects,
+    ) -> None:
+        # Rule 17 case 3, then rule 12, in manager processes: the provider is SIGKILLed
+        # right after it committed the consumer id, before its answer left; restarted on
+        # its backup, it reconciles and keeps the id for a retry that never comes. The
+        # consumer's stop gives it back, and may not end before the provider released it:
+        # its supervisor stops the provider next, and a give-back still on its way then
+        # was lost (the provider stopped holding the id of a consumer that stopped: a
+        # simulated kill-heavy run, seed 3, found it). The provider is slow to take the
+        # give-back (as under load): it takes it once the consumer's stop step returned,
+        # or once the stop ended, whichever comes first.
+        uid = uuid.uuid4().hex[:8]
+        p, c = f"p-{uid}", f"c-{uid}"
+        sup = supervisors(
+            [
+                rr.ManagerSpec(p, _provider_setup, isolation="process"),
+                rr.ManagerSpec(c, None, isolation="process", heartbeat=None),
+            ],
+            state_dir=tmp_path / "state",
+        )
+        subscription = sup.subscribe(lambda _event: None)  # (events on: `events_written`)
+        sup.start()
+        qid = str(uuid.uuid4())
+        reconciled, moved = process_helpers.event(), process_helpers.event()
+        taken, ended_first = process_helpers.event(), process_helpers.event()
+
+        def arm_consumer(registrar: rr.ResourceRegistrar) -> None:
+            from rr_actors.testing import intercept  # noqa: PLC0415 - runs in the consumer
+
+            def answer(message: Any) -> None:
+                if message.error is None and isinstance(message.value, tuple):
+                    reconciled.set()  # (the answer to a Reconcile: the ids p does not know)
+
+            def drained(_subject: Any) -> None:
+                if not taken.is_set():
+                    ended_first.set()
+                moved.set()
+
+            intercept(registrar, "answer", after=answer)
+            intercept(registrar, "stop", after=lambda _message: moved.set())
+            intercept(registrar, "stop_drained", before=drained)
+
+        def kill_after_commit(registrar: rr.ResourceRegistrar) -> None:
+            import signal  # noqa: PLC0415 - runs in the provider's first process
+
+            from rr_actors.testing import intercept  # noqa: PLC0415
+
+            def kill(told: Any) -> None:
+                if any(getattr(event, "query_id", None) == qid for event in told):
+                    os.kill(os.getpid(), signal.SIGKILL)  # committed, not answered
+
+            intercept(registrar, "events_written", before=kill)
+
+        def slow_give_back(registrar: rr.ResourceRegistrar) -> None:
+            from rr_actors.testing import intercept  # noqa: PLC0415 - runs in the provider
+
+            def abandon(message: Any) -> None:
+                if message.query_id == qid:
+                    assert moved.wait(30)
+                    taken.set()
+
+            intercept(registrar, "abandon", before=abandon)
+
+        sup.run_in(c, arm_consumer)
+        sup.run_in(p, kill_after_commit)
+        with pytest.raises(rr.RegistrarUnavailableError):
+            sup.run_in(c, lambda r: r.call(p, "leaf", "x", query_id=qid, timeout=10))
+        sup.wait_restarted(p, timeout=15)
+        assert reconciled.wait(10)  # the restarted provider asked; the consumer listed it
+        assert [qid] == sup.run_in(p, lambda r: [q.id for q in r.server_queries("leaf")])
+        sup.run_in(p, slow_give_back)
+
+        sup.stop()  # the consumer first, then the provider
+        subscription.close()
+
+        assert taken.is_set()
+        assert not ended_first.is_set()
+
+    @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+    @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
+    def test_a_failed_load_gives_back_its_dependency_call_that_failed_as_its_provider_died(
+        self,
+        supervisors: Callable[..., rr.Supervisor],
+        tmp_path: Path,
+        eventually: Callable[..., bool],
+    ) -> None:
+        # Rule 17 case 3 inside a load (rule 5), in manager processes: the provider is
+        # SIGKILLed right after it committed the composite's dependency id, before its
+        # answer left; the call fails (it may have executed) and so does the load. Nothing
+        # can retry a call of a load that ended, so the load's end gives the id back: the
+        # provider, restarted on its backup, reconciles and releases it. It used to be
+        # kept for a retry, listed in the composite's reconcile, and held there for as
+        # long as both lived (a simulated cut, `tests/simulation/test_supervision.py`,
+        # seed 41, found it).
+        uid = uuid.uuid4().hex[:8]
+        p, c = f"p-{uid}", f"c-{uid}"
+
+        def composite(registrar: rr.ResourceRegistrar) -> None:
+            def load(request: Any) -> Any:
+                return registrar.call(p, "leaf", request, timeout=10).response
+
+            registrar.register_server("composite", load=load, unload=lambda _q, _r: None)
+
+        sup = supervisors(
+            [
+                rr.ManagerSpec(p, _provider_setup, isolation="process"),
+                rr.ManagerSpec(c, composite, isolation="process", heartbeat=None),
+            ],
+            state_dir=tmp_path / "state",
+        )
+        subscription = sup.subscribe(lambda _event: None)  # (events on: `events_written`)
+        sup.start()
+
+        def kill_after_commit(registrar: rr.ResourceRegistrar) -> None:
+            import signal  # noqa: PLC0415 - runs in the provider's first process
+
+            from rr_actors.testing import intercept  # noqa: PLC0415
+
+            def kill(told: Any) -> None:
+                if any(getattr(event, "consumer", None) == c for event in told):
+                    os.kill(os.getpid(), signal.SIGKILL)  # committed, not answered
+
+            intercept(registrar, "events_written", before=kill)
+
+        sup.run_in(p, kill_after_commit)
+        app = sup.registrar(f"app-{uid}")
+        with pytest.raises(rr.ResourceLoadError):
+            app.call(c, "composite", "x", timeout=10)
+        sup.wait_restarted(p, timeout=15)
+
+        assert eventually(lambda: ([], []) == _both_ends(sup, p, c), timeout=10)
+        app.stop()
+        sup.stop()
+        subscription.close()
+
 
 class TestReconcileDueCall:
     """Rule 20: what a consumer's `Reconcile` lists, and what it makes of the answer.

@@ -29,6 +29,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors._core import runtime
 from rr_actors._store import SCHEMA_VERSION
 from rr_actors.testing import (
     RemoteRegistrar,
@@ -38,6 +39,7 @@ from rr_actors.testing import (
     expect_restart,
     pending_work,
 )
+from tests.support import simulated
 from tests.support.durable_pair import durable_config
 from tests.support.gating import GatedLoad
 
@@ -627,6 +629,9 @@ class TestUnload:
         assert (["load", "unload", "load"], 3) == (journal, response)
         assert [again_id] == [q.id for q in provider.server_queries("leaf")]
 
+    @pytest.mark.across_processes(
+        "in one process it runs on the simulation, over many seeds: the test after this one"
+    )
     def test_a_resource_s_unload_runs_only_after_its_dependencies_finished_unloading(
         self, make_registrar, shared
     ):
@@ -662,6 +667,45 @@ class TestUnload:
         consumer.unload(query.id)
 
         assert [True] == leaf_done_when_composite_started
+
+    def test_a_resource_s_unload_runs_only_after_its_dependencies_finished_unloading_any_seed(
+        self,
+    ):
+        """Rule 7, the test above in one process: on the simulation (`tests.support.simulated`),
+        where the dependency's second of waiting is virtual and each seed interleaves the two
+        unloads (and the registrars' threads) another way."""
+
+        def scenario() -> dict[str, Any]:
+            consumer, agent, producer = (
+                rr.ResourceRegistrar.start(name) for name in ("consumer", "agent", "producer")
+            )
+            leaf_done, composite_started = runtime.Event(), runtime.Event()
+            leaf_done_when_composite_started: list[bool] = []
+
+            def leaf_unload(request, response):
+                composite_started.wait(1.0)  # in the right order nothing sets it: time out
+                leaf_done.set()
+
+            def composite_unload(request, response):
+                leaf_done_when_composite_started.append(leaf_done.is_set())
+                composite_started.set()
+
+            producer.register_server("leaf", load=lambda r: r, unload=leaf_unload)
+            agent.register_server(
+                "composite",
+                load=lambda r: agent.call(producer.name, "leaf", r).response,
+                unload=composite_unload,
+            )
+            query = consumer.call(agent.name, "composite", "x")
+            consumer.unload(query.id)
+            return {
+                "seen": leaf_done_when_composite_started,
+                "clean": simulated.stopped_clean(consumer, agent, producer),
+            }
+
+        assert [] == simulated.seeds_where(
+            scenario, lambda run: [True] != run["seen"] or not run["clean"]
+        )
 
     def test_the_first_consumer_leaving_does_not_take_the_resource_s_dependency(
         self, make_registrar, serve, inbox

@@ -4,12 +4,14 @@ SIGSTOP that runs nothing until SIGCONT."""
 from __future__ import annotations
 
 import signal
+from typing import Any
 
 import pytest
 
 from rr_actors import simulation
 from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY
+from rr_actors.simulation._processes import Process, States
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
@@ -114,3 +116,46 @@ def test_killing_an_unknown_pid_raises_as_os_kill_does() -> None:
 
     with pytest.raises(ProcessLookupError):
         simulation.run(main, seed=1)
+
+
+class Plain:
+    def __init__(self) -> None:
+        self.items: list[int] = []
+        self.name = "fresh"
+
+
+class Slotted:
+    __slots__ = ("count", "late")
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.late = "fresh"
+
+
+@pytest.mark.parametrize("steps", [1, 3])
+def test_each_process_keeps_its_own_state_of_a_plain_and_a_slotted_singleton(
+    steps: int,
+) -> None:
+    plain, slotted = Plain(), Slotted()
+    plain.items.append(99)
+    real_dict = plain.__dict__
+    del slotted.late  # (a field the real one lacks comes back missing)
+    states = States(((plain, Plain), (slotted, Slotted)))
+    first, second = Process(1, "a", states.fresh()), Process(2, "b", states.fresh())
+
+    for _ in range(steps):
+        states.install(first)
+        plain.items.append(1)
+        slotted.count += 1
+        states.install(second)
+        assert ([], 0, "fresh") == (plain.items, slotted.count, slotted.late)
+        plain.name = "second's"
+    states.install(first)
+    seen: Any = (list(plain.items), slotted.count, plain.name)
+    states.close()
+
+    assert ([1] * steps, steps, "fresh") == seen
+    assert plain.__dict__ is real_dict
+    assert [99] == plain.items
+    assert 0 == slotted.count
+    assert not hasattr(slotted, "late")

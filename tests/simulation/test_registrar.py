@@ -16,12 +16,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import pykka
 import pytest
 
 import rr_actors as rr
 from rr_actors import simulation
 from rr_actors._core import runtime
+from tests.support import simulated
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
@@ -30,21 +30,8 @@ ROOT = Path(__file__).resolve().parent.parent.parent
 SEEDS = range(300)
 """The seeds each scenario runs with."""
 
-PREEMPT = 0.1
+PREEMPT = simulated.PREEMPT
 """How often a simulated thread yields where it would not block."""
-
-
-def seeds_where(
-    scenario: Callable[[], dict[str, Any]], broken: Callable[[dict[str, Any]], bool]
-) -> list[int]:
-    """The seeds of `SEEDS` whose run of `scenario` is `broken` (or ends a thread with an
-    exception)."""
-    failed = []
-    for seed in SEEDS:
-        run = simulation.run(scenario, seed=seed, preempt=PREEMPT)
-        if run.errors or broken(run.value):
-            failed.append(seed)
-    return failed
 
 
 def start(*names: str, **config: Any) -> list[rr.ResourceRegistrar]:
@@ -58,13 +45,6 @@ def in_threads(*bodies: Callable[[], object]) -> None:
         thread.start()
     for thread in threads:
         thread.join()
-
-
-def stop(*registrars: rr.ResourceRegistrar) -> bool:
-    """Stop `registrars`; whether no actor was left running afterwards."""
-    for registrar in registrars:
-        registrar.stop()
-    return [] == pykka.ActorRegistry.get_all()
 
 
 # -- rules 1-3: load once -------------------------------------------------------------------
@@ -112,7 +92,7 @@ def concurrent_equal_calls() -> dict[str, Any]:
         "responses": [q.response for q in queries],
         "unloads": unloads,
         "left": (provider.server_queries("leaf"), first.client_queries()),
-        "clean": stop(first, second, provider),
+        "clean": simulated.stopped_clean(first, second, provider),
     }
 
 
@@ -128,7 +108,7 @@ def test_concurrent_equal_requests_load_once_and_unload_once_after_the_last_rele
             or not seen["clean"]
         )
 
-    assert [] == seeds_where(concurrent_equal_calls, broken)
+    assert [] == simulated.seeds_where(concurrent_equal_calls, broken, SEEDS)
 
 
 def different_requests() -> dict[str, Any]:
@@ -153,14 +133,18 @@ def different_requests() -> dict[str, Any]:
 
     began = simulation.now()
     in_threads(client("a"), client("b"), client("c"))
-    return {"loads": len(started), "took": max(done) - began, "clean": stop(consumer, provider)}
+    return {
+        "loads": len(started),
+        "took": max(done) - began,
+        "clean": simulated.stopped_clean(consumer, provider),
+    }
 
 
 def test_different_requests_to_one_server_load_concurrently() -> None:
     def broken(seen: dict[str, Any]) -> bool:
         return 3 != seen["loads"] or seen["took"] > 1.0 or not seen["clean"]
 
-    assert [] == seeds_where(different_requests, broken)
+    assert [] == simulated.seeds_where(different_requests, broken, SEEDS)
 
 
 # -- rule 4: a load that raises leaks nothing -------------------------------------------
@@ -201,7 +185,7 @@ def failing_composite() -> dict[str, Any]:
             agent.client_queries(),
             consumer.client_queries(),
         ),
-        "clean": stop(consumer, agent, producer),
+        "clean": simulated.stopped_clean(consumer, agent, producer),
     }
 
 
@@ -215,7 +199,7 @@ def test_a_load_that_raises_fails_its_callers_and_unloads_what_it_had_loaded() -
             or not seen["clean"]
         )
 
-    assert [] == seeds_where(failing_composite, broken)
+    assert [] == simulated.seeds_where(failing_composite, broken, SEEDS)
 
 
 # -- rules 5 and 7: dependencies, and the order of unloads -------------------------------
@@ -251,7 +235,7 @@ def composite() -> dict[str, Any]:
         "responses": [q.response for q in queries],
         "journal": journal,
         "left": (producer.server_queries("leaf"), agent.client_queries()),
-        "clean": stop(consumer, agent, producer),
+        "clean": simulated.stopped_clean(consumer, agent, producer),
     }
 
 
@@ -271,7 +255,7 @@ def test_a_call_made_while_loading_is_a_dependency_released_before_its_resource_
             or not seen["clean"]
         )
 
-    assert [] == seeds_where(composite, broken)
+    assert [] == simulated.seeds_where(composite, broken, SEEDS)
 
 
 # -- rule 9: a status climbs every dependency path, once each ------------------------------
@@ -304,7 +288,12 @@ def climbing_status() -> dict[str, Any]:
     ids = {q.id for q in queries}
     for query in queries:
         consumer.unload(query.id)
-    return {"heard": heard, "leaf": leaf.id, "ids": ids, "clean": stop(consumer, agent, producer)}
+    return {
+        "heard": heard,
+        "leaf": leaf.id,
+        "ids": ids,
+        "clean": simulated.stopped_clean(consumer, agent, producer),
+    }
 
 
 def test_a_status_reaches_each_server_and_consumer_up_the_path_once_before_send_returns() -> None:
@@ -319,7 +308,7 @@ def test_a_status_reaches_each_server_and_consumer_up_the_path_once_before_send_
             or not seen["clean"]
         )
 
-    assert [] == seeds_where(climbing_status, broken)
+    assert [] == simulated.seeds_where(climbing_status, broken, SEEDS)
 
 
 # -- rule 17: a call that timed out leaves nothing behind --------------------------------
@@ -364,7 +353,7 @@ def impatient_and_patient() -> dict[str, Any]:
         "held": held,
         "unloads": sorted(unloads),
         "left": (provider.server_queries("slow"), consumer.client_queries()),
-        "clean": stop(consumer, provider),
+        "clean": simulated.stopped_clean(consumer, provider),
     }
 
 
@@ -379,7 +368,7 @@ def test_a_call_that_timed_out_leaves_nothing_behind_and_takes_nothing_from_a_pa
             or not seen["clean"]
         )
 
-    assert [] == seeds_where(impatient_and_patient, broken)
+    assert [] == simulated.seeds_where(impatient_and_patient, broken, SEEDS)
 
 
 # -- determinism ---------------------------------------------------------------------------

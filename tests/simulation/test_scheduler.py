@@ -63,6 +63,95 @@ def test_other_seeds_choose_other_interleavings() -> None:
     assert len(orders) > 1
 
 
+def woken_in(order: Callable[[list[int]], list[int]]) -> Callable[[], list[int]]:
+    """Five threads wait on an event each; one step sets them all, in `order`: as a step
+    that wakes the waiters of a set of callbacks, whose order is their addresses' and
+    differs from process to process (and from run to run in one). Who ran first."""
+
+    def main() -> list[int]:
+        events = [runtime.Event() for _ in range(5)]
+        ran: list[int] = []
+
+        def wait(number: int) -> None:
+            events[number].wait()
+            ran.append(number)
+
+        threads = [runtime.Thread(target=wait, args=(n,), name=f"w{n}") for n in range(5)]
+        for thread in threads:
+            thread.start()
+        runtime.sleep(1)  # (every thread waits now)
+        for number in order(list(range(5))):
+            events[number].set()  # (no choice point: preempt is 0)
+        for thread in threads:
+            thread.join()
+        return ran
+
+    return main
+
+
+def test_the_order_in_which_one_step_wakes_threads_does_not_change_the_run() -> None:
+    for seed in range(10):
+        forward = simulation.run(woken_in(list), seed=seed, preempt=0.0)
+        backward = simulation.run(woken_in(lambda n: n[::-1]), seed=seed, preempt=0.0)
+
+        assert (forward.hash, forward.value) == (backward.hash, backward.value), seed
+
+
+class _Letter:
+    """Garbage in a cycle whose finalizer sends (as a `__del__` that puts on a queue or
+    releases a lock, or a generator's `finally`): it runs when the collector finds it."""
+
+    def __init__(self, box: runtime.SimpleQueue[int], number: int) -> None:
+        self.box = box
+        self.number = number
+        self.me = self  # (a cycle: only the collector frees it)
+
+    def __del__(self) -> None:
+        self.box.put(self.number)
+
+
+def letters() -> list[int]:
+    """Two threads write letters and throw them away; a third reads what their finalizers
+    send: which arrived, in which order."""
+    box: runtime.SimpleQueue[int] = runtime.SimpleQueue()
+    lock = runtime.Lock()
+
+    def write(first: int) -> None:
+        for number in range(first, first + 1500):
+            _Letter(box, number)
+            with lock:
+                _ = [[n] for n in range(number % 7)]  # (more to collect, or less)
+            runtime.sleep(0)  # (a step each: the run collects every `GC_STEPS` steps)
+
+    threads = [runtime.Thread(target=write, args=(n,), name=f"w{n}") for n in (0, 1000)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    runtime.sleep(1)
+    read = []
+    while not box.empty():
+        read.append(box.get())
+    return read
+
+
+def test_when_the_garbage_collector_runs_does_not_change_the_run() -> None:
+    before, enabled = gc.get_threshold(), gc.isenabled()
+    gc.enable()
+    try:
+        runs = []
+        for threshold in (1, 700, 50):  # (a collection at nearly every allocation, or later)
+            gc.set_threshold(threshold, 10, 10)
+            runs.append(simulation.run(letters, seed=3, preempt=0.3))
+    finally:
+        gc.set_threshold(*before)
+        if not enabled:
+            gc.disable()
+
+    assert runs[0].value  # (some were collected while it ran)
+    assert 1 == len({(run.hash, tuple(run.value)) for run in runs})
+
+
 def test_a_trace_lists_each_step_and_each_note() -> None:
     def main() -> None:
         simulation.note("begins")
@@ -186,6 +275,38 @@ def lost_updates(preempt: float, seeds: range) -> set[int]:
         return count[0]
 
     return {simulation.run(main, seed=seed, preempt=preempt).value for seed in seeds}
+
+
+def test_a_real_thread_keeps_the_real_seams_while_a_simulation_runs() -> None:
+    # A real thread still running when a run starts (the status desk's watchdog of an
+    # earlier real registrar, in CI) called `runtime.sleep` and got the simulation's:
+    # "a simulated object was used outside the simulation's threads".
+    inside, done = threading.Event(), threading.Event()
+    seen: list[object] = []
+
+    def real() -> None:
+        assert inside.wait(10)
+        try:
+            runtime.sleep(0.001)
+            seen.append(abs(runtime.monotonic() - time.monotonic()) < 1.0)
+            seen.append(type(runtime.Lock()) is type(threading.Lock()))
+            seen.append(runtime.get_ident() == threading.get_ident())
+        except BaseException as exc:
+            seen.append(exc)
+        finally:
+            done.set()
+
+    thread = threading.Thread(target=real, name="a real thread")
+    thread.start()
+
+    def body() -> None:
+        inside.set()
+        assert done.wait(10)  # (a real wait: the run's OS thread blocks meanwhile)
+
+    simulation.run(body, seed=1)
+    thread.join(10)
+
+    assert [True, True, True] == seen
 
 
 def test_without_preemption_a_thread_runs_until_it_blocks() -> None:
@@ -417,3 +538,27 @@ def test_a_simulation_does_not_run_inside_another() -> None:
 
     with pytest.raises(simulation.SimulationError, match="already runs"):
         simulation.run(main, seed=1)
+
+
+CHOICE_POINTS = 20_000
+
+
+def steps_of(preempt: float) -> int:
+    """Steps of a run whose one thread passes `CHOICE_POINTS` choice points (an
+    uncontended lock taken and let go: two each) and never blocks."""
+
+    def main() -> None:
+        lock = runtime.Lock()
+        for _ in range(CHOICE_POINTS // 2):
+            lock.acquire()
+            lock.release()
+
+    return simulation.run(main, seed=3, preempt=preempt).steps
+
+
+def test_a_thread_yields_at_a_choice_point_with_the_odds_of_preempt() -> None:
+    yields = steps_of(0.05) - 1  # (its first step is its start)
+
+    assert 1 == steps_of(0.0)
+    assert CHOICE_POINTS + 1 <= steps_of(1.0)  # (every choice point, its start's too)
+    assert 850 <= yields <= 1150  # 1,000 expected; the binomial's spread is 31

@@ -1,0 +1,380 @@
+"""Planted bugs found by the simulation: seeds to find each one, its CPU, its shrunk run.
+
+Issue 42 section 3, "Power". Each row of `PLANTS` is one bug, a small edit of the source
+(a file, its exact old text, the new text, a line saying what the bug is). For each:
+
+    copy rr_actors/ to a temporary folder ─► apply the edit there (the old text must be
+      found exactly once: the script stops, naming the plant, when the code moved)
+    a child process with PYTHONPATH at the copy (and PYTHONHASHSEED=0, as a sweep has):
+      seeds 1, 2, ... of the plant's shipped plan on the simulation
+      (`rr_actors.experiments.simulate.run_seed`) until the first seed with a violation
+      of the plant's rule (the kind of finding the bug must cause), or `--seeds` seeds
+    the same seed on an unedited copy: that finding must not be there (else the row
+      says "also unplanted": the plant did not cause it)
+    `--shrink`: the found seed shrunk (`rr_actors.experiments.shrink`, at most `--budget`
+      runs) to a small plan whose run still violates the plant's rule, its events counted
+
+The worktree itself is never edited. Rows: the bug, the plan, the first seed whose run
+violated the rule, the seeds run, the violation's text, the CPU seconds of the search
+(the child's, `time.process_time`), the events of that seed's history (and after
+shrinking, with `--shrink`). A plant never found within `--seeds` is a row saying so (a
+finding, not something to hide). Figures are recorded in docs/performance.md
+("Planted bugs"). CPU seconds are the steadier figure on a shared machine; pin it for
+the docs' figures:
+
+    taskset -c 0 python benchmarks/planted_bugs.py --shrink           # every plant
+    python benchmarks/planted_bugs.py --only dedup,retry-fatal --seeds 200  # a quick look
+    python benchmarks/planted_bugs.py --check                         # edits apply?
+    python benchmarks/planted_bugs.py --baseline --seeds 100          # unplanted code
+
+`--baseline` runs the plans on the unedited copy instead and prints every violated rule
+it met (what the search finds in today's code).
+
+Why these plans: no shipped plan simulated as shipped (each has a `[compare]` or a fault
+kind the simulation did not inject yet), so two were added to
+`rr_actors/experiments/plans/` for this: `simchain` (a chain `api -> db` under kills,
+restored from backups: restores, lazy reads, reconciles, consumers restarted; and a
+temporary manager lost for good: a `FATAL` climbing a dependency path) and `simretry`
+(one manager killed every 0.1-0.3 s while four clients call it back to back: retries
+through restarts, racing the clients' reconciles). The retry plant was not found in 300
+seeds of `simchain`: its window needs a `Load` on its way when the provider dies and
+its retry answered before the client's actor handles the reconcile's answer.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGE = ROOT / "rr_actors"
+PLANS = PACKAGE / "experiments" / "plans"
+
+
+@dataclasses.dataclass(frozen=True)
+class Plant:
+    """One planted bug: an edit of one file of the package, and what must find it."""
+
+    name: str
+    bug: str  # what the bug is, in a line
+    file: str  # relative to rr_actors/
+    old: str  # found exactly once in the file
+    new: str
+    plan: str  # a plan of rr_actors/experiments/plans/ (its stem)
+    rule: str  # the checker's rule whose violation the bug causes
+
+
+PLANTS = (
+    Plant(
+        "dedup",
+        "an equal request loaded twice: a loaded resource is not shared (rule 1)",
+        "_registrar/provider.py",
+        "        if resource is not None and resource.state is ResourceState.LOADED:"
+        "  # the hot path\n"
+        "            self.share(resource, message)\n"
+        "            return\n",
+        "        if resource is not None and resource.state is ResourceState.LOADED:"
+        "  # the hot path\n"
+        "            resource = None  # PLANTED: no dedup hit, loaded again\n",
+        "simchain",
+        "dedup",
+    ),
+    Plant(
+        "unload-held",
+        "an unload run while held: any release of a loaded resource unloads it (rule 7); "
+        "the catalog refuses to remove a resource with consumers (an assertion), so the "
+        "actor dies after the unload began: its restart finds it in doubt, still held",
+        "_registrar/provider.py",
+        "        if resource.consumers or resource.state is not ResourceState.LOADED:\n",
+        "        if resource.state is not ResourceState.LOADED:  # PLANTED: consumers left\n",
+        "simchain",
+        "in-doubt",
+    ),
+    Plant(
+        "status-path",
+        "a status not sent up one dependency path: one that climbs (hop 2 and up) skips "
+        "consumers in other processes (rule 9)",
+        "_registrar/status.py",
+        "        for relay, parts, batched in self.routes.plan(elsewhere):\n",
+        "        for relay, parts, batched in self.routes.plan(elsewhere if hop == 1 else []):"
+        "  # PLANTED\n",
+        "simchain",
+        "status-reached",
+    ),
+    Plant(
+        "retry-fatal",
+        "a retry answered and then reported FATAL: a Reconcile's 'unknown' settles a "
+        "record answered after its list left (the reverse of 786b5f8, issue 29)",
+        "_registrar/consumer.py",
+        "                or not self.holdings.answered_before(query_id, listing.epoch)\n",
+        "",
+        "simretry",
+        "reported-lost",
+    ),
+    Plant(
+        "consumer-restart",
+        "an id never released after a restart: a Reconcile releases none of the ids its "
+        "consumer no longer holds (rule 20; sent by a consumer after its own restart, "
+        "and after its provider's)",
+        "_registrar/provider.py",
+        "        stale = sorted(mine - held)\n",
+        "        stale: list[str] = []  # PLANTED: sorted(mine - held)\n",
+        "simchain",
+        "end",
+    ),
+    Plant(
+        "restore-unread",
+        "a restore that serves before the catalog is read: a lookup by request does not "
+        "read the restored rows still in the backup first (rule 1 after a restart)",
+        "_catalog/catalog.py",
+        "        if found is None and self._unread is not None:\n            if digest",
+        "        if found is None and self._unread is not None and False:  # PLANTED\n"
+        "            if digest",
+        "simchain",
+        "dedup",
+    ),
+)
+"""The planted bugs, one at a time (docs/performance.md lists them)."""
+
+
+# -- the parent: scratch copies, one child per plant ------------------------------------
+
+
+def plant_text(plant: Plant, text: str) -> str:
+    """`text` (the file's) with `plant`'s edit; SystemExit if its old text is not found
+    exactly once (the code moved: the plant must be written again)."""
+    count = text.count(plant.old)
+    if count != 1:
+        raise SystemExit(
+            f"plant {plant.name!r}: its old text is found {count} times in "
+            f"rr_actors/{plant.file} (must be once): write the plant again\n{plant.old}"
+        )
+    return text.replace(plant.old, plant.new)
+
+
+def scratch(folder: Path, plant: Plant | None) -> Path:
+    """A copy of the package under `folder` (`plant` applied); the PYTHONPATH to use."""
+    target = folder / "rr_actors"
+    shutil.copytree(PACKAGE, target, ignore=shutil.ignore_patterns("__pycache__"))
+    if plant is not None:
+        path = target / plant.file
+        path.write_text(plant_text(plant, path.read_text()))
+    return folder
+
+
+def child(path: Path, *arguments: str) -> dict[str, Any]:
+    """Run this script's child part on the package at `path`; its JSON answer."""
+    env = {**os.environ, "PYTHONPATH": str(path), "PYTHONHASHSEED": "0"}
+    done = subprocess.run(
+        [sys.executable, __file__, "--child", str(path), *arguments],
+        env=env,
+        check=False,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    if done.returncode != 0 or not done.stdout.strip():
+        raise SystemExit(f"the child failed ({done.returncode}): {' '.join(arguments)}")
+    answer: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
+    return answer
+
+
+def search(plant: Plant, seeds: int, budget: int) -> dict[str, Any]:
+    """`plant`'s row: the first seed violating its rule, then that seed unplanted."""
+    with tempfile.TemporaryDirectory(prefix=f"rr-planted-{plant.name}-") as folder:
+        planted = scratch(Path(folder) / "planted", plant)
+        row = child(planted, "search", plant.plan, plant.rule, str(seeds), str(budget))
+        row["also_unplanted"] = None
+        if row["seed"] is not None:
+            clean = scratch(Path(folder) / "clean", None)
+            seed = str(row["seed"])
+            again = child(clean, "search", plant.plan, plant.rule, seed, "0", seed)
+            row["also_unplanted"] = again["seed"] is not None
+    return row
+
+
+def baseline(plans: list[str], seeds: int) -> list[dict[str, Any]]:
+    """Each plan's seeds on an unedited copy: the rules violated, and on which seeds."""
+    with tempfile.TemporaryDirectory(prefix="rr-planted-baseline-") as folder:
+        clean = scratch(Path(folder), None)
+        return [child(clean, "baseline", plan, str(seeds)) for plan in plans]
+
+
+# -- the child: seeds on the copy PYTHONPATH names ----------------------------------------
+
+
+def violated(findings: tuple[str, ...], rule: str | None) -> list[str]:
+    """The violation lines of `findings` (of `rule` only, unless it is None)."""
+    lines = [line.strip() for line in findings if line.lstrip().startswith("violation")]
+    return [line for line in lines if rule is None or f"[{rule}]" in line]
+
+
+def progress(plan: str, seed: int, run: Any, found: str | None) -> None:
+    """A line on stderr per seed run (the table is on stdout)."""
+    rules = sorted(
+        {line.split("[", 1)[1].split("]", 1)[0] for line in violated(run.findings, None)}
+    )
+    mark = f"  <- [{found}]" if found else ""
+    print(
+        f"  {plan} seed {seed}: {run.verdict} {' '.join(rules)} ({run.events} events, "
+        f"{run.cpu_s:.2f} CPU s){mark}",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
+def child_main(path: str, command: str, arguments: list[str]) -> None:
+    """The child: checks it runs the copy at `path`, then `command`; one JSON line out."""
+    import logging  # noqa: PLC0415
+
+    import rr_actors  # noqa: PLC0415 - the copy's, from PYTHONPATH
+    from rr_actors.experiments import load_plan, simulate  # noqa: PLC0415
+
+    here = Path(rr_actors.__file__).resolve()
+    if not here.is_relative_to(Path(path).resolve()):
+        raise SystemExit(f"the child imported {here}, not the copy at {path}")
+    logging.getLogger("rr_actors").setLevel(logging.ERROR)  # (a WARNING per kill)
+    plan = load_plan(str(PLANS / f"{arguments[0]}.toml"))
+    started = time.process_time()
+    if command == "baseline":
+        rules: dict[str, list[int]] = {}
+        seeds = int(arguments[1])
+        for seed in range(1, seeds + 1):
+            run = simulate.run_seed(plan, seed)
+            progress(plan.name, seed, run, None)
+            for line in violated(run.findings, None):
+                rule = line.split("[", 1)[1].split("]", 1)[0]
+                if seed not in rules.setdefault(rule, []):
+                    rules[rule].append(seed)
+        answer: dict[str, Any] = {
+            "plan": plan.name,
+            "seeds": seeds,
+            "rules": rules,
+            "cpu_s": time.process_time() - started,
+        }
+        print(json.dumps(answer))
+        return
+    rule, last, budget = arguments[1], int(arguments[2]), int(arguments[3])
+    first = int(arguments[4]) if len(arguments) > 4 else 1
+    answer = {"plan": plan.name, "rule": rule, "seed": None, "seeds": 0, "violation": None}
+    for seed in range(first, last + 1):
+        run = simulate.run_seed(plan, seed)
+        answer["seeds"] += 1
+        found = violated(run.findings, rule)
+        progress(plan.name, seed, run, rule if found else None)
+        if found:
+            answer.update(seed=seed, violation=found[0], events=run.events)
+            break
+    answer["cpu_s"] = time.process_time() - started
+    answer["shrunk"] = (
+        shrunk(plan, answer["seed"], rule, budget) if budget and answer["seed"] else None
+    )
+    print(json.dumps(answer))
+
+
+def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
+    """`seed`'s run shrunk (`rr_actors.experiments.shrink`) keeping a violation of `rule`:
+    the events of the shrunk run, the violation kind it kept and the runs it made."""
+    from rr_actors.errors import ConfigError  # noqa: PLC0415 - the copy's
+    from rr_actors.experiments import shrink  # noqa: PLC0415
+
+    kinds = shrink.violation_kinds
+
+    def rule_first(run: Any) -> list[str]:  # (the shrinker keeps a run's first kind)
+        return sorted(kinds(run), key=lambda kind: not kind.startswith(f"[{rule}]"))
+
+    shrink.violation_kinds = rule_first
+    try:
+        result = shrink.shrink(plan, seed, budget=budget)
+    except ConfigError as exc:  # (its run again did not violate: not replayed)
+        return {"events": None, "kind": f"not shrunk: {exc}", "runs": 1}
+    return {"events": result.run.events, "kind": result.kind, "runs": result.runs}
+
+
+# -- the table ------------------------------------------------------------------------
+
+
+def table(rows: list[tuple[Plant, dict[str, Any]]], seeds: int, shrink: bool) -> None:
+    """Print the rows (and each plant's violation on its own line below)."""
+    head = ("bug", "plan", "rule", "found at seed", "seeds run", "CPU s", "events")
+    if shrink:
+        head += ("shrunk",)
+    lines = [head]
+    for plant, row in rows:
+        seed = row["seed"]
+        found = "not found" if seed is None else str(seed)
+        if row.get("also_unplanted"):
+            found += " (also unplanted)"
+        cells = (
+            plant.name,
+            row["plan"],
+            plant.rule,
+            found,
+            str(row["seeds"]),
+            f"{row['cpu_s']:.1f}",
+            "-" if seed is None else str(row["events"]),
+        )
+        if shrink:
+            small = row.get("shrunk")
+            events = "-" if small is None or small["events"] is None else str(small["events"])
+            cells += (events if small is None else f"{events} ({small['runs']} runs)",)
+        lines.append(cells)
+    widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
+    for line in lines:
+        print("  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)))
+    print()
+    for plant, row in rows:
+        print(f"{plant.name}: {plant.bug}")
+        print(f"    {row['violation'] or f'no [{plant.rule}] violation in {seeds} seeds'}")
+        if row.get("shrunk") is not None:
+            print(f"    shrunk, keeping: {row['shrunk']['kind']}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if args[:1] == ["--child"]:
+        child_main(args[1], args[2], args[3:])
+        return 0
+    parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
+    parser.add_argument("--seeds", type=int, default=10_000, help="most seeds per plant")
+    parser.add_argument("--only", help="plants to run, by name, comma-separated")
+    parser.add_argument("--shrink", action="store_true", help="shrink each found seed")
+    parser.add_argument("--budget", type=int, default=400, help="most runs of one shrink")
+    parser.add_argument("--check", action="store_true", help="only check the edits apply")
+    parser.add_argument("--baseline", action="store_true", help="run the unedited code")
+    options = parser.parse_args(args)
+    chosen = [p for p in PLANTS if options.only is None or p.name in options.only.split(",")]
+    if not chosen:
+        parser.error(f"--only: none of {', '.join(p.name for p in PLANTS)}")
+    for plant in chosen:
+        plant_text(plant, (PACKAGE / plant.file).read_text())
+    if options.check:
+        print(f"{len(chosen)} plants apply")
+        return 0
+    if options.baseline:
+        plans = sorted({p.plan for p in chosen})
+        for answer in baseline(plans, options.seeds):
+            rules = ", ".join(
+                f"{rule} ({len(s)} seeds, first {s[0]})" for rule, s in answer["rules"].items()
+            )
+            print(
+                f"{answer['plan']}: {answer['seeds']} seeds, {answer['cpu_s']:.1f} CPU s: "
+                f"{rules or 'every seed held'}"
+            )
+        return 0
+    budget = options.budget if options.shrink else 0
+    rows = [(plant, search(plant, options.seeds, budget)) for plant in chosen]
+    table(rows, options.seeds, options.shrink)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,299 @@
+"""The injector of a simulated run: a plan's faults on simulated processes and links.
+
+```
+ fault_schedule(plan, S): timed ─► the agenda (a heap of (virtual time, n, action)) ◄─┐
+                          `after` ─► Triggered (_triggered.py) ◄─ on_event (the run's  │
+                                     subscriber): the n-th match ─► at its due time ───┘
+ the thread "rr-simulated-faults": each action at its time, in order
+   kill_manager ──────► simulation.kill(pid, SIGKILL) (a thread manager: its registrar
+                        crashed, as for real)
+   hang_manager ──────► SIGSTOP; `for` later SIGCONT (unless it was killed meanwhile)
+   cut_connections ───► SimulatedNetwork.cut_connections(pid): its links close
+   load_error ────────► Supervisor.run_in(manager, arm_load_error) on a thread of its own
+   only here (plan.SIMULATION_KINDS):
+   duplicate_delivery ► its links close, and each made to it within `for` s delivers its
+                        first frame twice (SimulatedNetwork.duplicate_first)
+   kill_before_answer ► its next answer (not an error) never leaves: SIGKILL then
+                        (SimulatedNetwork.kill_at_answer)
+   kill_in_setup ─────► SIGKILL now, and SIGKILL again inside its restart's setup
+                        (_instrument.SETUP_FAULTS)
+   partition_serving ─► SIGKILL now; its restart is cut off the other processes as it
+                        serves, for `for` s, then healed (SimulatedNetwork.on_serve)
+ stop ─► hung managers continued; armed faults that never fired, triggers that never
+         came and faults due after the end recorded as skipped (FaultLog)
+```
+
+Every time is virtual and every choice the scheduler's, so the same seed injects the same
+faults at the same instants. A fault aimed at a point (an answer, a setup, a serve) is
+recorded when it fires there.
+"""
+
+from __future__ import annotations
+
+import functools
+import heapq
+import itertools
+import signal
+from collections.abc import Callable
+from typing import Any
+
+import rr_actors as rr
+from rr_actors import events, simulation
+from rr_actors._core import runtime
+from rr_actors.experiments._fault_log import FaultLog
+from rr_actors.experiments._instrument import SETUP_FAULTS, arm_load_error
+from rr_actors.experiments._triggered import Triggered
+from rr_actors.experiments.plan import Plan
+from rr_actors.experiments.results import FaultRecord
+from rr_actors.experiments.schedule import ScheduledFault
+
+__all__ = ["SimulatedFaults"]
+
+RUN_IN_TIMEOUT = 2.0
+"""Virtual seconds `load_error` waits for its manager to take the switch (as for real)."""
+
+DUPLICATE_FOR = 1.0
+"""Seconds a `duplicate_delivery` without `for` duplicates the first frame of new links."""
+
+
+class SimulatedFaults:
+    """Fires a simulated run's faults on its own simulated thread (see the diagram).
+
+    Args:
+        sup: the run's running supervisor.
+        plan: the plan (its faults' `for`, `server`, `loads`, `message`).
+        network: the run's simulated carrier.
+        schedule: the run's fault schedule.
+        t0: `runtime.monotonic()` at the workload's start (the schedule's time 0).
+        wall_t0: `runtime.wall()` then (events' times are on it).
+    """
+
+    def __init__(
+        self,
+        sup: rr.Supervisor,
+        plan: Plan,
+        network: simulation.SimulatedNetwork,
+        schedule: tuple[ScheduledFault, ...],
+        t0: float,
+        wall_t0: float,
+    ) -> None:
+        self.sup = sup
+        self.plan = plan
+        self.network = network
+        self.t0 = t0
+        self.log = FaultLog()
+        self._agenda: list[tuple[float, int, Callable[[], None]]] = []
+        self._order = itertools.count()
+        self._wake = runtime.Condition()
+        self._stopped = False
+        self._hung: dict[int, str] = {}  # pid -> manager
+        self._armed: dict[tuple[int, int], tuple[ScheduledFault, float]] = {}  # not fired yet
+        self._due: dict[int, tuple[ScheduledFault, float]] = {}  # on the agenda, by number
+        self._open: dict[tuple[int, int], Callable[[], None]] = {}  # recorded once they end
+        self._helpers: list[Any] = []  # load errors' threads
+        self._triggered = Triggered((f for f in schedule if f.at is None), wall_t0)
+        for fault in schedule:
+            if fault.at is not None:
+                self._push(fault, fault.at)
+        SETUP_FAULTS.clear()  # (the simulation's alone: nothing arms it in a real run)
+        self._thread = runtime.Thread(target=self._run, name="rr-simulated-faults", daemon=True)
+
+    @property
+    def records(self) -> list[FaultRecord]:
+        """Every fault fired or skipped so far."""
+        return self.log.records
+
+    def start(self) -> None:
+        """Start firing."""
+        self._thread.start()
+
+    def on_event(self, event: events.Event) -> None:
+        """Look at one event of the run (the subscriber's thread); fire what it triggers."""
+        for fault, at in self._triggered.matched(event):
+            self._push(fault, at)
+
+    def stop(self) -> None:
+        """Stop firing; continue hung managers; record what never fired as skipped."""
+        with self._wake:
+            self._stopped = True
+            left, self._agenda = self._agenda, []
+            self._wake.notify()
+        self._thread.join()
+        for thread in self._helpers:
+            thread.join()
+        for pid in sorted(self._hung):
+            simulation.kill(pid, signal.SIGCONT)
+        self._hung.clear()
+        for key in list(self._open):
+            self._close(key)
+        self.network.heal()  # (a partition_serving still on)
+        for fault, _ in self._armed.values():
+            SETUP_FAULTS.pop(fault.target or "", None)
+        for fault in self._triggered.take():
+            self.log.record(
+                fault, None, None, "its trigger did not happen in the run", skipped=True
+            )
+        dues = sorted((at - self.t0, n) for at, n, _ in left)
+        for fault, at in [self._due.pop(n) for _, n in dues if n in self._due]:
+            self.log.record(fault, at, None, "due after the run ended", skipped=True)
+        for fault, at in self._armed.values():
+            self.log.record(fault, at, None, f"armed: {self._aim(fault)} never came", skipped=True)
+        self._armed.clear()
+
+    # -- the agenda ----------------------------------------------------------------------
+
+    def _push(self, fault: ScheduledFault, at: float) -> None:
+        """Fire `fault` at `at` seconds from t0."""
+        self._at(self.t0 + at, functools.partial(self._fire, fault, at), (fault, at))
+
+    def _at(
+        self, when: float, action: Callable[[], None], fault: tuple[ScheduledFault, float] | None
+    ) -> None:
+        with self._wake:
+            if self._stopped:
+                if fault is not None:
+                    self.log.record(*fault, None, "due after the run ended", skipped=True)
+                return
+            n = next(self._order)
+            if fault is not None:
+                self._due[n] = fault
+            heapq.heappush(self._agenda, (when, n, action))
+            self._wake.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._wake:
+                while not self._stopped:
+                    if self._agenda and self._agenda[0][0] <= runtime.monotonic():
+                        break
+                    wait = self._agenda[0][0] - runtime.monotonic() if self._agenda else None
+                    self._wake.wait(wait)
+                if self._stopped:
+                    return
+                _, n, action = heapq.heappop(self._agenda)
+                self._due.pop(n, None)
+            action()
+
+    # -- the faults ----------------------------------------------------------------------
+
+    def _now(self) -> float:
+        return runtime.monotonic() - self.t0
+
+    def _fire(self, fault: ScheduledFault, at: float) -> None:
+        if fault.kind == "load_error":
+            thread = runtime.Thread(
+                target=self._load_error, args=(fault, at), name="rr-simulated-load", daemon=True
+            )
+            self._helpers.append(thread)
+            thread.start()
+            return
+        assert fault.target is not None
+        info = self.sup.child(fault.target)
+        if info.state != "running":
+            detail = f"{fault.target} was not running ({info.state})"
+            self.log.record(fault, at, None, detail, skipped=True)
+            return
+        if info.pid is None:  # a thread manager (reading allows only kill_manager, load_error)
+            from rr_actors.testing import crash  # noqa: PLC0415 - as _manager_faults
+
+            crash(self.sup.run_in(fault.target, lambda registrar: registrar))
+            self.log.record(fault, at, self._now(), f"crashed the registrar of {fault.target}")
+            return
+        pid, kind = info.pid, fault.kind
+        if kind == "kill_manager":
+            simulation.kill(pid, signal.SIGKILL)
+            self.log.record(fault, at, self._now(), f"SIGKILL pid {pid}")
+        elif kind == "hang_manager":
+            simulation.kill(pid, signal.SIGSTOP)
+            self._hung[pid] = fault.target
+            self.log.record(fault, at, self._now(), f"SIGSTOP pid {pid}")
+            for_s = self.plan.faults[fault.fault].for_s or 0.0
+            self._at(runtime.monotonic() + for_s, functools.partial(self._resume, pid), None)
+        elif kind == "cut_connections":
+            self.network.cut_connections(pid)
+            self.log.record(fault, at, self._now(), f"cut pid {pid}'s connections")
+        elif kind == "duplicate_delivery":
+            for_s = self.plan.faults[fault.fault].for_s or DUPLICATE_FOR
+            count = self.network.duplicate_first(fault.target, simulation.now() + for_s)
+            self.network.cut_connections(pid)
+            key = (fault.fault, fault.n)
+            self._open[key] = functools.partial(
+                self._duplicated, fault, at, self._now(), pid, count
+            )
+            self._at(runtime.monotonic() + for_s, functools.partial(self._close, key), None)
+        elif kind == "kill_before_answer":
+            self._arm(fault, at)
+            self.network.kill_at_answer(pid, functools.partial(self._fired, fault, at, pid))
+        elif kind == "kill_in_setup":
+            self._arm(fault, at)
+            SETUP_FAULTS[fault.target] = functools.partial(self._kill_in_setup, fault, at, pid)
+            simulation.kill(pid, signal.SIGKILL)
+        elif kind == "partition_serving":
+            self._arm(fault, at)
+            self.network.on_serve(fault.target, functools.partial(self._partition, fault, at, pid))
+            simulation.kill(pid, signal.SIGKILL)
+        else:  # (check_simulable refuses the others)
+            raise AssertionError(f"fault kind {kind!r} is not simulated")
+
+    def _duplicated(
+        self, fault: ScheduledFault, at: float, injected: float, pid: int, count: list[int]
+    ) -> None:
+        """A duplicate_delivery's `for` is over (or the run): record it, with its count."""
+        detail = f"cut pid {pid}'s connections; {count[0]} first frame(s) of new links twice"
+        self.log.record(fault, at, injected, detail)
+
+    def _close(self, key: tuple[int, int]) -> None:
+        record = self._open.pop(key, None)
+        if record is not None:
+            record()
+
+    def _resume(self, pid: int) -> None:
+        if self._hung.pop(pid, None) is not None:
+            simulation.kill(pid, signal.SIGCONT)  # (a process killed meanwhile: left alone)
+
+    def _aim(self, fault: ScheduledFault) -> str:
+        return {
+            "kill_before_answer": f"an answer of {fault.target}",
+            "kill_in_setup": f"a restart of {fault.target}",
+            "partition_serving": f"{fault.target} serving again",
+        }[fault.kind]
+
+    def _arm(self, fault: ScheduledFault, at: float) -> None:
+        self._armed[fault.fault, fault.n] = (fault, at)
+
+    def _fired(self, fault: ScheduledFault, at: float, pid: int, detail: str = "") -> None:
+        """An armed fault reached its point: record it (the struck process's thread)."""
+        if self._armed.pop((fault.fault, fault.n), None) is None:
+            return
+        detail = detail or f"SIGKILL pid {pid} at its answer (after the commit)"
+        self.log.record(fault, at, self._now(), detail)
+
+    def _kill_in_setup(self, fault: ScheduledFault, at: float, killed: int) -> None:
+        """In the restarted manager's setup (its own thread): SIGKILL it there."""
+        pid = simulation.pid()
+        detail = f"SIGKILL pid {killed}, then pid {pid} inside its setup"
+        self._fired(fault, at, pid, detail)
+        simulation.kill(pid, signal.SIGKILL)  # (never returns)
+
+    def _partition(self, fault: ScheduledFault, at: float, killed: int, pid: int) -> None:
+        """The restarted manager serves (its thread): cut it off, heal `for` s later."""
+        for_s = self.plan.faults[fault.fault].for_s or 0.0
+        self.network.partition([pid])
+        detail = f"SIGKILL pid {killed}; pid {pid} cut off as it serves, for {for_s:g} s"
+        self._fired(fault, at, pid, detail)
+        self._at(runtime.monotonic() + for_s, self.network.heal, None)
+
+    def _load_error(self, fault: ScheduledFault, at: float) -> None:
+        assert fault.target is not None
+        plan = self.plan.faults[fault.fault]
+        arm = functools.partial(
+            arm_load_error, fault.target, plan.server, plan.loads, plan.for_s, plan.message
+        )
+        try:
+            self.sup.run_in(fault.target, arm, timeout=RUN_IN_TIMEOUT)
+        except rr.RrError as exc:
+            self.log.record(fault, at, None, f"{fault.target}: {exc}", skipped=True)
+            return
+        what = f"for {plan.for_s:g} s" if plan.for_s is not None else f"{plan.loads} load(s)"
+        server = f"/{plan.server}" if plan.server else ""
+        self.log.record(fault, at, self._now(), f"loads of {fault.target}{server} raise, {what}")

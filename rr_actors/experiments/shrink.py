@@ -1,0 +1,629 @@
+"""Shrink a violating seed to a small plan that still violates the same way (`--shrink`).
+
+```
+ shrink(plan, seed) ─ the seed's run: its first violation's kind (`violation_kind`:
+ │                    "[end] db still holds query … of api, which stopped", ids and
+ │                    numbers blotted out) is what every candidate must show again
+ ├─ the plan as TOML data; its timed faults made explicit: one atom per injection the
+ │  seed made (`every` and a choice among targets become `at` times and one target)
+ ├─ greedy passes, again and again until a round keeps nothing (a fixpoint) or the
+ │  budget of runs is spent; a pass tries smaller candidates one by one:
+ │     duration  1/8, 1/4, 1/2, 3/4, 9/10 of it: its end cut (the injections after it
+ │               dropped) or its start (those before it dropped, the rest earlier)
+ │     shift     every injection (and the end) earlier, as far as the first one
+ │     faults    delete chunks of injections (delta debugging: halves, quarters, ... ones)
+ │     tree      call a manager's dependency directly, cut a `uses`, drop an unused manager
+ │     workload  fewer clients, fewer call kinds, a lower rate, fewer keys, all or no
+ │               calls shared, a shorter hold
+ │     options   no (or half the) load and unload time of each manager
+ │     round     injection times and the duration to fewer decimals (easier to read)
+ │  a candidate = its TOML text, validated (`parse_plan`) and run whole on the simulation
+ │  with the seed and up to `tries - 1` seeds after it; kept if one of them shows the
+ │  same violation kind and is smaller: fewer events, or as many and a shorter text (or
+ │  one as long that sorts first: the shortlex order, so the passes end); that seed is
+ │  then the shrunk run's; each text and seed runs at most once
+ ◄── Shrunk: the plan's text, its seed, its run (history, hash, events), the kind
+ write(shrunk, out): out/plan.toml (a header says what it shows), out/seeds.jsonl,
+                     out/events-seed-S.jsonl: a run directory `rr-actors replay` reads
+```
+
+Why neighbouring seeds: the seed drives the scheduler and the clients' arrival times, so
+any change of the plan gives another interleaving; a violation that needs a rare one is
+lost by most candidates under the seed alone, and found again under one of a few seeds.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import functools
+import json
+import re
+import tomllib
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+from rr_actors.errors import ConfigError
+from rr_actors.experiments import check, simulate
+from rr_actors.experiments.plan import Plan
+from rr_actors.experiments.reading import parse_plan
+from rr_actors.experiments.schedule import fault_schedule
+
+__all__ = [
+    "BUDGET",
+    "TRIES",
+    "Shrunk",
+    "dump_plan",
+    "shrink",
+    "violation_kind",
+    "violation_kinds",
+    "write",
+]
+
+BUDGET = 400
+"""The most simulated runs one shrink makes (each seed of each candidate is one)."""
+
+TRIES = 3
+"""How many seeds a candidate runs with at most: the current one, then the next ones."""
+
+_NOT_RUN = ("description", "repeat", "seed")
+"""Top-level keys a simulated run does not read (its seed is the sweep's): left out."""
+
+_TIMED_KEYS = ("at", "every", "start", "stop", "count")
+"""A fault's keys of when it fires: an explicit injection keeps only `at`."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Shrunk:
+    """A shrunk run: a plan, a seed, and their run showing the violation kind again.
+
+    Attributes:
+        text: the shrunk plan's TOML (what `write` puts in `plan.toml`, without its header).
+        plan: that text, parsed (its `source` the original's: its setups' folder).
+        seed: the seed the shrunk plan violates with.
+        run: its run (history, hash, events, findings).
+        kind: the violation kind kept (`violation_kind`).
+        original_seed: the seed shrunk.
+        original_events: the events of the original run.
+        runs: the simulated runs the shrink made.
+        steps: what each kept candidate changed, in order.
+    """
+
+    text: str
+    plan: Plan
+    seed: int
+    run: simulate.SimulatedRun
+    kind: str
+    original_seed: int
+    original_events: int
+    runs: int
+    steps: tuple[str, ...]
+
+
+def violation_kind(rule: str, message: str) -> str:
+    """`[rule] message` with ids and numbers blotted out: the same bug in another run
+    (`"[end] db still holds query … of api, which stopped"`)."""
+    text = re.sub(r"\b[0-9a-f]{8}\b", "…", message)
+    text = re.sub(r"[0-9]+(?:\.[0-9]+)?", "N", text)
+    return f"[{rule}] {text}"
+
+
+def violation_kinds(run: simulate.SimulatedRun) -> list[str]:
+    """The kinds of a run's violations, in the order of their first lines (none if held)."""
+    if run.verdict != "violated":
+        return []
+    verdict = check.check(check.read_runs(run.history.splitlines()).get(simulate.RUN, []))
+    kinds = (violation_kind(f.rule, f.message) for f in verdict.findings if f.kind == "violation")
+    return list(dict.fromkeys(kinds))
+
+
+# -- the plan as TOML data, and back ----------------------------------------------------------
+
+_SECTIONS = frozenset({"tree", "workload", "hosts", "compare"})
+"""The top-level keys written as `[tables]`."""
+_ARRAYS = frozenset({"children", "calls", "faults"})
+"""The keys whose tables are written as `[[arrays of tables]]`."""
+
+
+def dump_plan(data: dict[str, Any]) -> str:
+    """A plan's TOML data (as `tomllib` reads it) as TOML text that reads back to it.
+
+    Raises:
+        ConfigError: a value TOML cannot write (`None`, a date is not a plan's).
+    """
+    lines: list[str] = []
+    _table(lines, data, "", top=True)
+    return "\n".join(lines).strip() + "\n"
+
+
+def _table(lines: list[str], table: dict[str, Any], path: str, *, top: bool = False) -> None:
+    def nested(key: str, value: Any) -> bool:
+        if top and key in _SECTIONS and isinstance(value, dict):
+            return True
+        return (
+            key in _ARRAYS
+            and isinstance(value, list)
+            and bool(value)
+            and all(isinstance(v, dict) for v in value)
+        )
+
+    for key, value in table.items():
+        if not nested(key, value):
+            lines.append(f"{_key(key)} = {_value(value)}")
+    for key, value in table.items():
+        if not nested(key, value):
+            continue
+        name = f"{path}.{_key(key)}" if path else _key(key)
+        for item in value if isinstance(value, list) else [value]:
+            lines.extend(["", f"[[{name}]]" if isinstance(value, list) else f"[{name}]"])
+            _table(lines, item, name)
+
+
+def _key(key: str) -> str:
+    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else json.dumps(key)
+
+
+def _value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)
+    if isinstance(value, list | tuple):
+        return f"[{', '.join(map(_value, value))}]"
+    if isinstance(value, dict):
+        inner = ", ".join(f"{_key(k)} = {_value(v)}" for k, v in value.items())
+        return f"{{ {inner} }}" if inner else "{}"
+    raise ConfigError(f"a plan value TOML cannot write: {value!r}")
+
+
+def _dump_atoms(data: dict[str, Any]) -> dict[str, Any]:
+    """The data with its fault atoms grouped back into `[[faults]]` tables: the explicit
+    injections of one kind, target and settings as one table with their `at` times."""
+    tables: list[dict[str, Any]] = []
+    groups: dict[str, dict[str, Any]] = {}
+    for atom in data.get("faults", []):
+        at = atom.get("at")
+        if not isinstance(at, int | float):  # a fault kept whole
+            tables.append(atom)
+            continue
+        rest = {k: v for k, v in atom.items() if k != "at"}
+        group = groups.setdefault(json.dumps(rest, sort_keys=True), {**rest, "at": []})
+        if not group["at"]:
+            tables.append(group)
+        group["at"].append(at)
+    for group in groups.values():
+        group["at"] = sorted(group["at"])
+    out = {k: v for k, v in data.items() if k != "faults"}
+    return out | ({"faults": tables} if tables else {})
+
+
+# -- the shrink ---------------------------------------------------------------------------------
+
+
+def shrink(
+    plan: Plan,
+    seed: int,
+    *,
+    budget: int = BUDGET,
+    tries: int = TRIES,
+    on_step: Callable[[str], None] | None = None,
+    on_run: Callable[[int], None] | None = None,
+    text: str | None = None,
+) -> Shrunk:
+    """Shrink `plan` at `seed` (a violating run) to a small plan that violates the same way.
+
+    Args:
+        plan: a plan read from a file or text (its `source` names where its setups are).
+        seed: a seed it violates with.
+        budget: the most simulated runs to make (at least 1: the seed's own).
+        tries: seeds per candidate (the current seed, then the next ones).
+        on_step: called with a line for each kept candidate (progress).
+        on_run: called with the number of runs made after each run (a progress bar).
+        text: the plan's TOML (default: its file's; a run directory's copy, say).
+
+    Returns:
+        The smallest plan found, its seed and run.
+
+    Raises:
+        ConfigError: no `text` and the plan was not read from a file, the seed does not
+            violate, `budget` or `tries` below 1, or `text` is not the plan's.
+        RrError: a run failed (as `simulate.run_seed`).
+    """
+    if budget < 1 or tries < 1:
+        raise ConfigError(f"the budget and the tries must be at least 1 (got {budget}, {tries})")
+    if text is None and plan.source is None:
+        raise ConfigError("give the plan's text: it is what a shrink starts from")
+    if text is None:
+        text = Path(str(plan.source)).read_text(encoding="utf-8")
+    say = on_step or (lambda _line: None)
+    return _Shrinker(plan, seed, text, budget, tries, say, on_run or (lambda _runs: None)).run()
+
+
+class _Shrinker:
+    """The state of one shrink: the smallest violating candidate so far and the runs made."""
+
+    def __init__(
+        self,
+        plan: Plan,
+        seed: int,
+        text: str,
+        budget: int,
+        tries: int,
+        say: Callable[[str], None],
+        ran: Callable[[int], None],
+    ) -> None:
+        self.source = plan.source or "<plan>"
+        self.budget, self.tries, self.say, self.ran = budget, tries, say, ran
+        self.runs = 0
+        self.tried: set[tuple[str, int]] = set()
+        self.steps: list[str] = []
+        first = self.run_one(plan, seed)
+        kinds = violation_kinds(first)
+        if not kinds:
+            raise ConfigError(f"seed {seed} does not violate a rule: nothing to shrink")
+        self.kind, self.original_seed, self.original_events = kinds[0], seed, first.events
+        try:
+            self.data: dict[str, Any] = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"the plan's text is not TOML: {exc}") from exc
+        for key in _NOT_RUN:
+            self.data.pop(key, None)
+        self.data["duration"] = plan.duration  # (a run directory's may differ from its file's)
+        self.plan, self.seed, self.best = plan, seed, first
+        self.say(f"shrinking seed {seed} ({first.events} events): {self.kind}")
+
+    def run_one(self, plan: Plan, seed: int) -> simulate.SimulatedRun:
+        run = simulate.run_seed(plan, seed)
+        self.runs += 1
+        self.ran(self.runs)
+        return run
+
+    def run(self) -> Shrunk:
+        self.explicit()
+        passes = (
+            self.durations,
+            self.shift,
+            self.faults,
+            self.tree,
+            self.workload,
+            self.options,
+            self.rounded,
+        )
+        changed = True
+        while changed and self.runs < self.budget:
+            before = len(self.steps)
+            for step in passes:
+                step()
+            changed = len(self.steps) > before
+        spent = self.runs >= self.budget
+        left = f"the budget ({self.budget} runs) spent" if spent else "a fixpoint"
+        self.say(f"done after {self.runs} runs ({left}): {self.best.events} events")
+        return Shrunk(
+            text=self.text(self.data),
+            plan=self.plan,
+            seed=self.seed,
+            run=self.best,
+            kind=self.kind,
+            original_seed=self.original_seed,
+            original_events=self.original_events,
+            runs=self.runs,
+            steps=tuple(self.steps),
+        )
+
+    def text(self, data: dict[str, Any]) -> str:
+        return dump_plan(_dump_atoms(data))
+
+    def attempt(self, what: str, data: dict[str, Any], *, same: bool = False) -> bool:
+        """Run the candidate `data` (the seed, then the next ones); keep it if it shows the
+        violation kind and is `smaller` than the best so far (`same`: the same plan said
+        another way, kept if it shows the kind in no more events)."""
+        text = self.text(data)
+        try:
+            plan = parse_plan(text, source=self.source, name=self.plan.name)
+        except ConfigError:
+            return False  # (a cut that left the plan invalid: not a candidate)
+        for seed in range(self.seed, self.seed + self.tries):
+            if self.runs >= self.budget:
+                return False
+            if (text, seed) in self.tried:
+                continue
+            self.tried.add((text, seed))
+            run = self.run_one(plan, seed)
+            smaller = run.events <= self.best.events if same else self.smaller(run, text)
+            if smaller and self.kind in violation_kinds(run):
+                self.data, self.plan, self.seed, self.best = data, plan, seed, run
+                self.steps.append(what)
+                self.say(f"run {self.runs}: {what}: {run.events} events (seed {seed})")
+                return True
+        return False
+
+    def smaller(self, run: simulate.SimulatedRun, text: str) -> bool:
+        """Fewer events; as many and a shorter text, or one as long that sorts first (the
+        shortlex order: every kept candidate is smaller, so the passes end)."""
+        best = self.text(self.data)
+        return (run.events, len(text), text) < (self.best.events, len(best), best)
+
+    def first(self, candidates: Iterator[tuple[str, dict[str, Any]]]) -> bool:
+        """Try `candidates` in order until one is kept."""
+        return any(self.attempt(what, data) for what, data in candidates)
+
+    def repeat(self, candidates: Callable[[], Iterator[tuple[str, dict[str, Any]]]]) -> None:
+        """Try the candidates of the current best again after each one kept."""
+        while self.runs < self.budget and self.first(candidates()):
+            pass
+
+    # -- the passes --------------------------------------------------------------------------
+
+    def explicit(self) -> None:
+        """Every timed fault as the injections this seed made: one atom per injection."""
+        faults = self.data.get("faults", [])
+        schedule = fault_schedule(self.plan, self.seed)
+        atoms: list[dict[str, Any]] = []
+        for index, fault in enumerate(faults):
+            if "after" in fault:
+                atoms.append(fault)
+                continue
+            rest = {k: v for k, v in fault.items() if k not in (*_TIMED_KEYS, "target")}
+            for injection in (s for s in schedule if s.fault == index):
+                target = {} if injection.target is None else {"target": injection.target}
+                atoms.append({**rest, **target, "at": injection.at})
+        data = {**self.data, "faults": atoms}
+        if not faults or self.text(data) == self.text(self.data):
+            self.data = data
+            return
+        if not self.attempt(f"faults made explicit ({len(atoms)} injections)", data, same=True):
+            self.say("faults kept as they are: made explicit, the run did not violate")
+            # (ddmin then deletes whole faults)
+
+    def faults(self) -> None:
+        """Delete injections: chunks of halves, then quarters, ... then single ones."""
+        size = len(self.data.get("faults", [])) // 2
+        while size >= 1 and self.runs < self.budget:
+            start = 0
+            while start < len(atoms := self.data["faults"]) and self.runs < self.budget:
+                kept = atoms[:start] + atoms[start + size :]
+                gone = len(atoms) - len(kept)
+                what = f"{gone} of {len(atoms)} injections deleted"
+                if not self.attempt(what, {**self.data, "faults": kept}):
+                    start += size
+            size //= 2
+
+    def durations(self) -> None:
+        """A shorter run: its end cut (the injections after it dropped), or its start (the
+        injections before it dropped, the others that much earlier), largest cuts first."""
+
+        def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
+            duration = self.data["duration"]
+            for fraction in (0.125, 0.25, 0.5, 0.75, 0.9):
+                shorter = round(duration * fraction, 3)
+                if not 0 < shorter < duration:
+                    continue
+                yield f"duration {duration:g} -> {shorter:g} s", self.until(shorter)
+                if (cut := self.from_(round(duration - shorter, 6))) is not None:
+                    yield f"the first {duration - shorter:g} s of {duration:g} cut", cut
+
+        self.repeat(candidates)
+
+    def from_(self, by: float) -> dict[str, Any] | None:
+        """The data from `by` seconds on: the injections before dropped, the rest `by`
+        earlier (`None` if a fault is not at a time)."""
+        atoms = self.data.get("faults", [])
+        if not all(_timed(a) for a in atoms):
+            return None
+        faults = [{**a, "at": round(a["at"] - by, 6)} for a in atoms if a["at"] >= by]
+        return {**self.data, "duration": round(self.data["duration"] - by, 6), "faults": faults}
+
+    def until(self, duration: float) -> dict[str, Any]:
+        """The data with another duration; the injections at or after it dropped."""
+        faults = [
+            atom
+            for atom in self.data.get("faults", [])
+            if not isinstance(atom.get("at"), int | float) or atom["at"] < duration
+        ]
+        return {**self.data, "duration": duration, "faults": faults}
+
+    def shift(self) -> None:
+        def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
+            times = [a["at"] for a in self.data.get("faults", []) if _timed(a)]
+            if not times or min(times) <= 0:
+                return
+            for by in (min(times), round(min(times) / 2, 6)):
+                if (data := self.from_(by)) is not None:
+                    yield f"every injection {by:g} s earlier", data
+
+        self.repeat(candidates)
+
+    def tree(self) -> None:
+        self.repeat(self.direct_calls)
+        self.repeat(self.cut_uses)
+        self.repeat(self.unused_managers)
+
+    def direct_calls(self) -> Iterator[tuple[str, dict[str, Any]]]:
+        """A workload call to a manager that `uses` another, to that other instead."""
+        managers = {m["name"]: m for m in _managers(self.data)}
+        for index, call in enumerate(self.data.get("workload", {}).get("calls", [])):
+            for use in managers.get(call.get("manager"), {}).get("options", {}).get("uses", []):
+                name, _, server = str(use).partition("/")
+                data = copy.deepcopy(self.data)
+                data["workload"]["calls"][index] |= {
+                    "manager": name,
+                    "server": server or "resource",
+                }
+                yield f"calls to {call['manager']} made to {name}", data
+
+    def cut_uses(self) -> Iterator[tuple[str, dict[str, Any]]]:
+        for manager in _managers(self.data):
+            for use in manager.get("options", {}).get("uses", []):
+                data = copy.deepcopy(self.data)
+                found = next(m for m in _managers(data) if m["name"] == manager["name"])
+                found["options"]["uses"] = [u for u in found["options"]["uses"] if u != use]
+                if not found["options"]["uses"]:
+                    del found["options"]["uses"]
+                yield f"{manager['name']} no longer uses {use}", data
+
+    def unused_managers(self) -> Iterator[tuple[str, dict[str, Any]]]:
+        """Drop a manager nobody calls or uses (and the injections aimed at it)."""
+        used = {c.get("manager") for c in self.data.get("workload", {}).get("calls", [])}
+        for manager in _managers(self.data):
+            used |= {str(u).partition("/")[0] for u in manager.get("options", {}).get("uses", [])}
+        for manager in _managers(self.data):
+            name = manager["name"]
+            if name in used:
+                continue
+            data = copy.deepcopy(self.data)
+            if not _drop(data["tree"], name):
+                continue
+            data["faults"] = [a for a in data.get("faults", []) if _aimed(a) != {name}]
+            for atom in data["faults"]:
+                if isinstance(atom.get("target"), list):
+                    atom["target"] = [t for t in atom["target"] if t != name]
+            yield f"manager {name} dropped", data
+
+    def workload(self) -> None:
+        self.repeat(lambda: self.numbers(("workload",), "clients", [1, 0.5, -1], whole=True))
+        self.repeat(self.fewer_calls)
+        self.repeat(lambda: self.numbers(("workload",), "rate", [0.125, 0.25, 0.5]))
+        for index in range(len(self.data.get("workload", {}).get("calls", []))):
+            call = ("workload", "calls", index)
+            self.repeat(functools.partial(self.numbers, call, "keys", [1, 0.5, -1], whole=True))
+            self.repeat(functools.partial(self.values, call, "shared", [1.0, 0.0]))
+        self.repeat(lambda: self.numbers(("workload",), "hold", [0, 0.5]))
+
+    def fewer_calls(self) -> Iterator[tuple[str, dict[str, Any]]]:
+        calls = self.data.get("workload", {}).get("calls", [])
+        for index in range(len(calls) if len(calls) > 1 else 0):
+            data = copy.deepcopy(self.data)
+            del data["workload"]["calls"][index]
+            yield f"workload.calls[{index}] deleted", data
+
+    def options(self) -> None:
+        for index, manager in enumerate(_managers(self.data)):
+            for key in ("load_s", "unload_s"):
+                if manager.get("options", {}).get(key):
+                    where = ("*managers", index, "options")
+                    self.repeat(functools.partial(self.numbers, where, key, [0, 0.5]))
+
+    def rounded(self) -> None:
+        def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
+            for digits in (1, 2):
+                faults = [
+                    {**a, "at": round(a["at"], digits)} if _timed(a) else a
+                    for a in self.data.get("faults", [])
+                ]
+                duration = self.data["duration"]
+                longer = round(duration + 0.5 * 10**-digits, digits)
+                data = {**self.data, "faults": faults, "duration": longer}
+                if self.text(data) != self.text(self.data):
+                    yield f"times to {digits} decimals", data
+
+        self.repeat(candidates)
+
+    # -- numbers of a table ------------------------------------------------------------------
+
+    def numbers(
+        self, where: tuple[Any, ...], key: str, steps: list[float], *, whole: bool = False
+    ) -> Iterator[tuple[str, dict[str, Any]]]:
+        """Smaller values of a number: a step below 1 scales it, -1 takes one off, 0 and 1
+        are themselves (an int's below 1 is left out)."""
+        current = _at(self.data, where).get(key, _DEFAULTS.get(key))
+        if isinstance(current, bool) or not isinstance(current, int | float):
+            return
+        wanted = []
+        for step in steps:
+            value = current - 1 if step == -1 else (step if step in (0, 1) else current * step)
+            value = int(value) if whole else round(value, 6)
+            if (value >= 1 or not whole) and value < current and value not in wanted:
+                wanted.append(value)
+        yield from self.values(where, key, wanted)
+
+    def values(
+        self, where: tuple[Any, ...], key: str, values: list[Any]
+    ) -> Iterator[tuple[str, dict[str, Any]]]:
+        for value in values:
+            if _at(self.data, where).get(key, _DEFAULTS.get(key)) == value:
+                continue
+            data = copy.deepcopy(self.data)
+            _at(data, where)[key] = value
+            if where[:1] == ("*managers",):
+                where_shown = (_managers(self.data)[where[1]]["name"], *where[2:])
+            else:
+                where_shown = where
+            shown = ".".join(map(str, where_shown))
+            yield f"{shown}.{key} = {value:g}".lstrip("."), data
+
+
+_DEFAULTS = {"shared": 0.5, "hold": 0.5, "clients": 1, "rate": 5.0, "keys": 4}
+"""The plan's defaults of the keys the passes make smaller (`plan.py`)."""
+
+
+def _at(data: dict[str, Any], where: tuple[Any, ...]) -> dict[str, Any]:
+    """The table at `where` (`("*managers", i, ...)`: the i-th manager), made if missing."""
+    node: Any = data
+    steps = list(where)
+    if steps and steps[0] == "*managers":
+        node, steps = _managers(data)[steps[1]], steps[2:]
+    for step in steps:
+        node = node[step] if isinstance(step, int) else node.setdefault(step, {})
+    found: dict[str, Any] = node
+    return found
+
+
+def _managers(data: dict[str, Any]) -> list[dict[str, Any]]:
+    """The manager tables of the tree, depth first."""
+
+    def walk(node: dict[str, Any]) -> Iterator[dict[str, Any]]:
+        for child in node.get("children", []):
+            yield from walk(child) if "children" in child else [child]
+
+    return list(walk(data.get("tree", {})))
+
+
+def _drop(node: dict[str, Any], name: str) -> bool:
+    """Remove the manager `name` from the tree (never a supervisor's last child)."""
+    children = node.get("children", [])
+    for index, child in enumerate(children):
+        if "children" in child:
+            if _drop(child, name):
+                return True
+        elif child.get("name") == name and len(children) > 1:
+            del children[index]
+            return True
+    return False
+
+
+def _timed(atom: dict[str, Any]) -> bool:
+    return isinstance(atom.get("at"), int | float)
+
+
+def _aimed(atom: dict[str, Any]) -> set[str]:
+    target = atom.get("target", [])
+    return {target} if isinstance(target, str) else set(target)
+
+
+# -- the output ---------------------------------------------------------------------------------
+
+
+def write(shrunk: Shrunk, out: Path, line: dict[str, Any]) -> None:
+    """Write the shrunk run as a run directory: `plan.toml` (a header saying what it
+    shows), `seeds.jsonl` (`line`: the run's, as a sweep writes it) and its history."""
+    out.mkdir(parents=True, exist_ok=True)
+    run = shrunk.run
+    header = [
+        f"# Shrunk from {shrunk.plan.source}, seed {shrunk.original_seed} "
+        f"({shrunk.original_events} events), in {shrunk.runs} simulated runs.",
+        f"# Seed {shrunk.seed} of this plan violates with {run.events} events:",
+        *(f"# {finding.strip()}" for finding in run.findings if "violation" in finding),
+        f"#   rr-actors replay {out} --story",
+        f"#   rr-actors experiment plan.toml --simulate --seeds {shrunk.seed} --out DIR",
+    ]
+    if shrunk.plan.base_dir is not None and Path(shrunk.plan.base_dir) != out.resolve():
+        header.append(  # (replay finds them: seeds.jsonl names the original file)
+            f"# (its setups are imported as the original's, from {shrunk.plan.base_dir} "
+            "first: a module of yours there needs that folder on PYTHONPATH)"
+        )
+    (out / "plan.toml").write_text("\n".join(header) + "\n\n" + shrunk.text, encoding="utf-8")
+    (out / "seeds.jsonl").write_text(json.dumps(line) + "\n", encoding="utf-8")
+    (out / f"events-seed-{shrunk.seed}.jsonl").write_text(run.history, encoding="utf-8")

@@ -1,0 +1,304 @@
+"""A plan run on the simulation: its tree, workload and faults in virtual time, one seed a run.
+
+```
+ simulate(plan, seeds) ─► per seed: run_seed(plan, seed)
+   simulation.run(world, seed=S) ─ one OS thread, greenlets, a virtual clock ───────────┐
+     world():  SimulatedNetwork; build_tree (the runner's: every setup instrumented,    │
+               manager processes simulated, their backups real SQLite files)            │
+               subscribe ─► _EventLog (the runner's)                                    │
+               sup.start(); the workload's Clients (workload.py, simulated threads)     │
+               the injector: fault_schedule(plan, S) on simulated processes and links   │
+                 (SimulatedFaults, _simulated_faults.py), `after` ones from the events  │
+               sleep(duration); faults stop; wait_all_serving; clients stop;            │
+               count_entries (the runner's settling); flush; sup.stop()                 │
+   ◄── the events, the fault records, t0 ◄──────────────────────────────────────────────┘
+   history = events.jsonl's text (the runner's lines: `at` in virtual seconds, pids the
+             simulated ones, `run` = 1, `seed` = S) + the fault lines
+   hash    = sha256 of the history; verdict = check.check of its events
+ ◄── SimulatedRun(seed, hash, verdict, findings, history, ...)
+```
+
+The same seed gives the same history byte for byte, in this process and in another one
+started with the same `PYTHONHASHSEED` (the iteration order of a set of strings depends
+on it: `rr-actors experiment --simulate` runs under `PYTHONHASHSEED=0`).
+
+Simulated: the manager faults `kill_manager`, `hang_manager`, `cut_connections`,
+`load_error` and the kinds only a simulation can aim (`plan.SIMULATION_KINDS`), at fixed
+or random times or `after` an event (`_simulated_faults.py`); managers in processes or
+threads, on this host; a `[compare]` plan with its first value. `kill_resource`,
+`[hosts]` and the mission's ERM setup are refused with a `PlanError` naming them and why
+(`check_simulable`), never skipped silently.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+from rr_actors import events
+from rr_actors._core import runtime
+from rr_actors.experiments import check
+from rr_actors.experiments.plan import SIMULATION_KINDS, Plan, PlanError
+from rr_actors.experiments.results import FaultRecord
+from rr_actors.experiments.runner import (
+    EVENT_QUEUE,
+    _EventLog,
+    build_tree,
+    count_entries,
+    fault_line,
+    wait_all_serving,
+)
+from rr_actors.experiments.schedule import fault_schedule
+from rr_actors.experiments.workload import Client
+
+__all__ = [
+    "SIMULATED_KINDS",
+    "SimulatedRun",
+    "check_simulable",
+    "history_hash",
+    "run_seed",
+    "simulate",
+]
+
+SIMULATED_KINDS = frozenset(
+    {"kill_manager", "hang_manager", "cut_connections", "load_error"} | SIMULATION_KINDS
+)
+"""The fault kinds a simulated run injects (`_simulated_faults.py`; the others: `PlanError`)."""
+
+NOT_SIMULATED = {
+    "kill_resource": "a resource's own OS process (a program the mission's ERM starts) is "
+    "not a simulated process",
+}
+"""Why a manager's fault kind outside `SIMULATED_KINDS` is not simulated (the kinds
+between hosts: `[hosts]` is not)."""
+
+NOT_SIMULATED_SETUPS = {
+    "rr_actors.mission.managers:erm_setup": "the mission's ERM starts real OS programs and "
+    "watches them from real threads, which a simulation can neither schedule nor kill",
+}
+"""Setups a simulated run refuses, and why (a setup is user code: these are the shipped
+ones known to start real processes or threads)."""
+
+RUN = 1
+"""The `run` of every line of a simulated run's history (one run a seed)."""
+
+PREEMPT = 0.05
+"""The probability that a simulated thread yields at a choice point (`simulation.run`)."""
+
+RAM_DIR = "/dev/shm"  # noqa: S108 - a private folder is made in it (mkdtemp)
+"""Where a run's folder (its managers' SQLite backups) is made, if there is such a
+folder (Linux's tmpfs): a simulated kill keeps the files anyway, so a disk adds nothing
+but its system calls' cost (the OS's temporary folder otherwise)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulatedRun:
+    """One seed of a plan on the simulation: its history, hash and verdict.
+
+    Attributes:
+        seed: the seed.
+        hash: the SHA-256 of `history` (hex): the same for the same plan and seed.
+        verdict: `check`'s verdict of its events: `"held"`, `"violated"`, `"unverifiable"`.
+        violations: how many findings are violations.
+        unverifiable: how many findings are unverifiable.
+        findings: the verdict's lines (`check.format_verdict`, without its first).
+        history: the run's `events.jsonl` text (its events, then its fault lines).
+        events: how many events it recorded.
+        faults: how many faults it injected (skipped ones not counted).
+        calls_ok: the workload's calls answered.
+        calls_failed: the workload's calls that failed.
+        entries_left: rows left in the catalogs at the end (the runner's count, settled).
+        virtual_s: the virtual seconds the run took, setup and shutdown included.
+        cpu_s: the CPU seconds it took (not part of the history).
+        errors: exceptions that ended simulated threads (`name: Type: message`).
+    """
+
+    seed: int
+    hash: str
+    verdict: str
+    violations: int
+    unverifiable: int
+    findings: tuple[str, ...]
+    history: str = dataclasses.field(repr=False)
+    events: int
+    faults: int
+    calls_ok: int
+    calls_failed: int
+    entries_left: int
+    virtual_s: float
+    cpu_s: float
+    errors: tuple[str, ...]
+
+
+def check_simulable(plan: Plan) -> None:
+    """Refuse what the simulation does not model, naming it and why.
+
+    A plan with `[compare]` runs as read: with its first compared value (as its first
+    runs do for real); simulate another value's plan with `plan.variants[i][1]`.
+
+    Raises:
+        PlanError: a fault kind other than those of `SIMULATED_KINDS` (`kill_resource`,
+            the faults between hosts), `[hosts]`, or a setup of `NOT_SIMULATED_SETUPS`.
+    """
+    source = plan.source or "<plan>"
+    for index, fault in enumerate(plan.faults):
+        if fault.kind not in SIMULATED_KINDS:
+            why = NOT_SIMULATED.get(fault.kind, "the simulation runs one host ([hosts] is not)")
+            raise PlanError(
+                source, 0, f"faults[{index}].kind", f"{fault.kind!r} is not simulated: {why}"
+            )
+    if plan.hosts is not None:
+        raise PlanError(
+            source,
+            0,
+            "hosts",
+            "a plan of several hosts is not simulated (network namespaces, real Zenoh)",
+        )
+    for manager in plan.managers():
+        refused = NOT_SIMULATED_SETUPS.get(manager.setup)
+        if refused is not None:
+            raise PlanError(
+                source,
+                0,
+                f"tree.children.{manager.name}.setup",
+                f"{manager.setup} is not simulated: {refused}",
+            )
+
+
+def history_hash(history: str) -> str:
+    """The SHA-256 (hex) of a history's text: what `replay` compares."""
+    return hashlib.sha256(history.encode("utf-8")).hexdigest()
+
+
+def simulate(
+    plan: Plan,
+    seeds: Iterable[int],
+    *,
+    on_run: Callable[[SimulatedRun], None] | None = None,
+) -> list[SimulatedRun]:
+    """Run `plan` on the simulation once per seed; each run's history, hash and verdict.
+
+    Args:
+        plan: the plan (`check_simulable` must accept it).
+        seeds: the seeds, in the order to run them.
+        on_run: called with each run as it finishes (a progress bar).
+
+    Returns:
+        The runs, in the order of `seeds`.
+
+    Raises:
+        PlanError: what `check_simulable` refuses.
+        RrError: the tree did not start (a setup raised), or a client could not build
+            a request; with the seed in a note.
+        SimulationError: a run deadlocked, went past its limits, or blocked for real.
+    """
+    check_simulable(plan)
+    runs = []
+    for seed in seeds:
+        result = run_seed(plan, seed)
+        runs.append(result)
+        if on_run is not None:
+            on_run(result)
+    return runs
+
+
+def run_seed(plan: Plan, seed: int) -> SimulatedRun:
+    """Run `plan` on the simulation with `seed`: one history, its hash and its verdict.
+
+    Raises:
+        The errors of `simulate`.
+    """
+    from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
+
+    check_simulable(plan)
+    ram = RAM_DIR if os.path.isdir(RAM_DIR) and os.access(RAM_DIR, os.W_OK) else None
+    folder = Path(tempfile.mkdtemp(prefix="rr-sim-run-", dir=ram))
+    started = time.process_time()
+    try:
+        until = plan.duration + plan.recovery_timeout + 600.0
+        ran = simulation.run(
+            lambda: _world(plan, seed, folder), seed=seed, preempt=PREEMPT, until=until
+        )
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    seen, records, wall_t0, calls = ran.value
+    lines = [json.dumps({**events.to_dict(e), "run": RUN, "seed": seed}) for e in seen]
+    lines += [json.dumps(fault_line(r, run=RUN, seed=seed, wall_t0=wall_t0)) for r in records]
+    history = "".join(line + "\n" for line in lines)
+    verdict = check.check(check.read_runs(lines).get(RUN, []))
+    return SimulatedRun(
+        seed=seed,
+        hash=history_hash(history),
+        verdict=verdict.verdict,
+        violations=verdict.violations,
+        unverifiable=verdict.unverifiable,
+        findings=tuple(check.format_verdict(RUN, verdict)[1:]),
+        history=history,
+        events=len(seen),
+        faults=sum(1 for r in records if not r.skipped),
+        calls_ok=calls[0],
+        calls_failed=calls[1],
+        entries_left=calls[2],
+        virtual_s=ran.elapsed,
+        cpu_s=time.process_time() - started,
+        errors=ran.errors,
+    )
+
+
+def _world(
+    plan: Plan, seed: int, folder: Path
+) -> tuple[list[events.Event], list[FaultRecord], float, tuple[int, int, int]]:
+    """The run, in the simulation's main thread: the runner's steps on simulated seams."""
+    from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
+    from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415 - ditto
+
+    network = simulation.SimulatedNetwork()
+    work = folder / "work"
+    work.mkdir()
+    sup = build_tree(plan, folder / "state" if plan.state else None, seed=seed, network=network)
+    log = _EventLog()
+    injector: list[SimulatedFaults] = []  # (set once the workload starts)
+
+    def seen(event: events.Event) -> None:
+        log(event)
+        for faults in injector:
+            faults.on_event(event)
+
+    subscription = sup.subscribe(seen, maxsize=EVENT_QUEUE)
+    records: list[FaultRecord] = []
+    try:
+        sup.start()
+        clients = [Client(i, sup, plan, seed, run_dir=work) for i in range(plan.workload.clients)]
+        t0, wall_t0 = runtime.monotonic(), runtime.wall()
+        faults = SimulatedFaults(sup, plan, network, fault_schedule(plan, seed), t0, wall_t0)
+        injector.append(faults)
+        faults.start()
+        for client in clients:
+            client.start(t0=t0, deadline=t0 + plan.duration)
+        runtime.sleep(plan.duration)
+        faults.stop()
+        records = faults.records
+        managers = [m.name for m in plan.managers()]
+        wait_all_serving(sup, managers, plan.recovery_timeout)
+        for client in clients:
+            client.stop(timeout=plan.workload.timeout)
+        failed = next((c.failure for c in clients if c.failure is not None), None)
+        if failed is not None:
+            raise failed
+        left, _ = count_entries(sup, managers, clients)  # (the runner's settling, too)
+        sup.flush_events()
+    finally:
+        sup.stop()
+        subscription.wait_delivered()
+        subscription.close()
+        network.close()
+    calls = [c for client in clients for c in client.calls]
+    ok = sum(1 for c in calls if c.ok)
+    return list(log.seen), records, wall_t0, (ok, len(calls) - ok, left)

@@ -1,0 +1,507 @@
+"""`rr-actors experiment PLAN --simulate --seeds A-B` and `rr-actors replay RUN --seed S`.
+
+```
+ experiment PLAN --simulate --seeds 1-500 --out DIR
+   PYTHONHASHSEED is not 0? ─► the same command again in a child process with it
+                               (a hash then replays in any process), its output passed on
+   DIR/plan.toml (the plan's copy)
+   simulate.run_seed per seed ─► a progress bar (a terminal with rich) or a line per
+                                 violating seed; DIR/seeds.jsonl: a line per seed (its
+                                 hash, verdict, counts); DIR/events-seed-S.jsonl: the
+                                 history of each seed that did not hold
+   ◄── a summary table, the violating seeds; exit 0 (1: a run failed; 2: bad input)
+
+ replay DIR --seed S
+   DIR/plan.toml, DIR/seeds.jsonl's line of S ─► simulate.run_seed ─► its hash printed
+   and compared with the recorded one; exit 0 same, 1 not (or no such seed recorded)
+```
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import json
+import logging
+import os
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TextIO
+
+from rr_actors.errors import ConfigError, RrError
+from rr_actors.experiments import experiment, shrink, simulate, story
+from rr_actors.experiments.plan import Plan
+from rr_actors.experiments.reading import parse_plan
+
+if TYPE_CHECKING:
+    from rich.table import Table as RichTable
+
+__all__ = [
+    "OUTPUT_FILES",
+    "SEEDS_FILE",
+    "hash_fixed",
+    "parse_seeds",
+    "prepare",
+    "recorded_plan",
+    "replay_arguments",
+    "run_replay",
+    "run_seeds",
+    "run_shrink",
+    "seed_line",
+    "shrink_arguments",
+    "shrink_seed",
+    "shrink_violations",
+    "summary",
+    "summary_rows",
+]
+
+SEEDS_FILE = "seeds.jsonl"
+"""A simulated experiment's results: a JSON line per seed."""
+
+OUTPUT_FILES = ("plan.toml", SEEDS_FILE)
+"""What a simulated experiment writes into `--out` (and `events-seed-S.jsonl` per seed
+whose verdict was not "held")."""
+
+MAX_SEEDS = 10_000_000
+"""The most seeds of one sweep."""
+
+HASH_SEED = "0"
+"""The `PYTHONHASHSEED` a sweep and a replay run with."""
+
+SUMMARY_HEADERS = (
+    "seeds",
+    "held",
+    "violated",
+    "unverifiable",
+    "events",
+    "faults",
+    "calls ok",
+    "calls failed",
+    "virtual s",
+    "seeds/CPU-min",
+)
+
+
+def parse_seeds(text: str) -> range:
+    """`"A-B"` (both included) or `"S"` as a range of seeds.
+
+    Raises:
+        ConfigError: not that form, B below A, or more than `MAX_SEEDS` seeds.
+    """
+    found = re.fullmatch(r"\s*(-?\d+)\s*(?:-\s*(-?\d+)\s*)?", text)
+    if found is None:
+        raise ConfigError(f"--seeds must be A-B or S (whole numbers), got {text!r}")
+    low = int(found[1])
+    high = int(found[2]) if found[2] is not None else low
+    if high < low:
+        raise ConfigError(f"--seeds {text}: the last seed is below the first")
+    if high - low + 1 > MAX_SEEDS:
+        raise ConfigError(f"--seeds {text}: more than {MAX_SEEDS} seeds")
+    return range(low, high + 1)
+
+
+def prepare(plan: Plan, out: Path, *, force: bool) -> None:
+    """Check that the simulation runs `plan`, and make `out` ready (`plan.toml` copied).
+
+    Raises:
+        ConfigError: what `simulate.check_simulable` refuses (a `PlanError`), or `out`
+            is not usable (`experiment.prepare_out`).
+    """
+    simulate.check_simulable(plan)
+    experiment.prepare_out(out, force=force, what="--out")
+    for path in [out / SEEDS_FILE, *out.glob("events-seed-*.jsonl")]:
+        path.unlink(missing_ok=True)
+    if plan.source is not None:
+        shutil.copyfile(plan.source, out / "plan.toml")
+
+
+def hash_fixed(argv: list[str], stream: TextIO) -> int | None:
+    """Run `rr-actors ARGV` in a child with `PYTHONHASHSEED=0` unless this process has it;
+    its exit code (`None`: this process has it, go on here)."""
+    if os.environ.get("PYTHONHASHSEED") == HASH_SEED:
+        return None
+    env = {**os.environ, "PYTHONHASHSEED": HASH_SEED}
+    command = [sys.executable, "-m", "rr_actors", *argv]
+    if stream is sys.stdout:
+        return subprocess.run(command, env=env, check=False).returncode  # noqa: S603
+    done = subprocess.run(  # noqa: S603 - this program, its own arguments
+        command, env=env, check=False, stdout=subprocess.PIPE, text=True
+    )
+    stream.write(done.stdout)
+    return done.returncode
+
+
+def seed_line(run: simulate.SimulatedRun, plan: Plan) -> dict[str, Any]:
+    """A seed's line of `seeds.jsonl`: the run without its history, the plan's duration
+    and file (a replay imports the setups from the file's folder, as the sweep did)."""
+    fields = dataclasses.asdict(run)
+    del fields["history"]
+    return {
+        **fields,
+        "findings": list(run.findings),
+        "duration": plan.duration,
+        "plan": None if plan.source is None else os.path.abspath(plan.source),
+    }
+
+
+def summary_rows(runs: list[simulate.SimulatedRun]) -> list[str]:
+    """The summary's cells (`SUMMARY_HEADERS`): medians of events, faults, calls, time."""
+    verdicts = [r.verdict for r in runs]
+    cpu = sum(r.cpu_s for r in runs)
+
+    def median(values: list[float]) -> str:
+        return f"{statistics.median(values):g}" if values else "-"
+
+    return [
+        str(len(runs)),
+        str(verdicts.count("held")),
+        str(verdicts.count("violated")),
+        str(verdicts.count("unverifiable")),
+        median([r.events for r in runs]),
+        median([r.faults for r in runs]),
+        median([r.calls_ok for r in runs]),
+        median([r.calls_failed for r in runs]),
+        median([round(r.virtual_s, 2) for r in runs]),
+        f"{60 * len(runs) / cpu:.0f}" if cpu > 0 else "-",
+    ]
+
+
+def _table(runs: list[simulate.SimulatedRun]) -> RichTable:
+    from rich import box  # noqa: PLC0415 - rich is optional
+    from rich.table import Table  # noqa: PLC0415
+
+    table = Table(
+        box=box.SIMPLE_HEAD,
+        show_edge=False,
+        pad_edge=False,
+        collapse_padding=True,
+        caption="events, faults, calls, virtual s: medians per seed",
+        caption_justify="left",
+    )
+    for header in SUMMARY_HEADERS:
+        table.add_column(header, justify="right", no_wrap=True)
+    table.add_row(*summary_rows(runs))
+    return table
+
+
+def run_seeds(plan: Plan, seeds: range, out: Path, display: Any) -> list[simulate.SimulatedRun]:
+    """Run each seed, a line of `out/seeds.jsonl` and a step of `display` (`cli.Display`)
+    each, the history of each that did not hold in `out/events-seed-S.jsonl`.
+
+    Raises:
+        RrError: what `simulate.simulate` raises (with the seed in a note).
+    """
+    runs: list[simulate.SimulatedRun] = []
+    bar = display.bar
+    task = None if bar is None else bar.add_task("seeds", total=len(seeds))
+    with (out / SEEDS_FILE).open("w", encoding="utf-8") as lines:
+
+        def finished(run: simulate.SimulatedRun) -> None:
+            runs.append(run)
+            lines.write(json.dumps(seed_line(run, plan)) + "\n")
+            lines.flush()
+            if run.verdict != "held":
+                name = f"events-seed-{run.seed}.jsonl"
+                (out / name).write_text(run.history, encoding="utf-8")
+                if not display.quiet:
+                    display.say(f"seed {run.seed}: {run.verdict} ({name})")
+            if bar is not None and task is not None:
+                bar.update(task, completed=len(runs), description=f"seed {run.seed}")
+
+        with _warnings_off():
+            simulate.simulate(plan, seeds, on_run=finished)
+    return runs
+
+
+@contextlib.contextmanager
+def _warnings_off() -> Iterator[None]:
+    """rr_actors' warnings off while seeds run: each kill of a sweep is one ("child exited:
+    killed by SIGKILL"), thousands a sweep; errors still show."""
+    logger = logging.getLogger("rr_actors")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+def summary(display: Any, runs: list[simulate.SimulatedRun], out: Path) -> None:
+    """The sweep's summary: a table (rich) or lines, the seeds that did not hold."""
+    if display.console is not None:
+        display.say(_table(runs))
+    else:
+        for header, cell in zip(SUMMARY_HEADERS, summary_rows(runs), strict=True):
+            display.say(f"{header:>14}  {cell}")
+    violated = [r.seed for r in runs if r.verdict == "violated"]
+    unverifiable = [r.seed for r in runs if r.verdict == "unverifiable"]
+    display.say(
+        f"violated: seeds {', '.join(map(str, violated))}" if violated else "violated: none"
+    )
+    if unverifiable:
+        display.say(f"unverifiable: seeds {', '.join(map(str, unverifiable))}")
+    if violated or unverifiable:
+        seed = (violated or unverifiable)[0]
+        display.say(f"replay one: rr-actors replay {out} --seed {seed}")
+    kept = len(violated) + len(unverifiable)
+    histories = [f"{kept} histories (events-seed-S.jsonl)"] if kept else []
+    display.say(f"written to {out}/: {', '.join([*OUTPUT_FILES, *histories])}")
+
+
+def replay_arguments(parser: argparse.ArgumentParser) -> None:
+    """The `replay` subcommand's arguments."""
+    parser.add_argument(
+        "run_dir", metavar="RUN", help="the --out directory of `rr-actors experiment --simulate`"
+    )
+    parser.add_argument(
+        "--seed",
+        type=int,
+        help="the seed to run again (default: the only one RUN recorded, as in a shrunk run)",
+    )
+    parser.add_argument(
+        "--events", metavar="FILE", help="write the replayed history (events.jsonl) to FILE"
+    )
+    parser.add_argument(
+        "--story",
+        action="store_true",
+        help="tell the run step by step: each event's virtual time, process and what "
+        "happened, in words; the checker's violations marked",
+    )
+
+
+def run_replay(args: argparse.Namespace, stream: TextIO) -> int:
+    """`rr-actors replay RUN --seed S [--story]`: 0 the same hash as recorded, 1 not, 2 bad
+    input."""
+    try:
+        if args.seed is None:
+            args.seed = _only_seed(Path(args.run_dir))
+        plan, recorded = recorded_plan(Path(args.run_dir), args.seed)
+    except ConfigError as exc:
+        _error("replay", str(exc))
+        return 2
+    argv = ["replay", args.run_dir, "--seed", str(args.seed)]
+    argv += ["--events", args.events] if args.events else []
+    argv += ["--story"] if args.story else []
+    code = hash_fixed(argv, stream)
+    if code is not None:
+        return code
+    try:
+        with _warnings_off():
+            run = simulate.run_seed(plan, args.seed)
+    except RrError as exc:
+        _error("replay", str(exc))
+        return 1
+    if args.events:
+        Path(args.events).write_text(run.history, encoding="utf-8")
+    if args.story:
+        story.tell(run.history, stream)
+    same = run.hash == recorded["hash"]
+    stream.write(
+        f"seed {run.seed}: {run.verdict}, hash {run.hash}\n"
+        f"recorded:        hash {recorded['hash']}: "
+        f"{'the same history' if same else 'a different history'}\n"
+    )
+    for finding in run.findings:
+        stream.write(f"{finding}\n")
+    return 0 if same else 1
+
+
+def _error(command: str, message: str) -> None:
+    sys.stderr.write(f"rr-actors {command}: {message}\n")
+
+
+def recorded_plan(run_dir: Path, seed: int) -> tuple[Plan, dict[str, Any]]:
+    """The plan of a run directory (its `plan.toml`, its setups imported from the original
+    file's folder, the duration it ran) and the line of `seed` in its `seeds.jsonl`.
+
+    Raises:
+        ConfigError: no such file or line, the plan invalid or not simulable.
+    """
+    recorded = _recorded(run_dir, seed)
+    try:
+        text = (run_dir / "plan.toml").read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{run_dir}: cannot read plan.toml ({exc.strerror or exc})") from exc
+    source = recorded.get("plan") or str(run_dir / "plan.toml")  # (its setups' folder)
+    plan = parse_plan(text, source=source, name=Path(source).stem)
+    plan = plan.with_changes(duration=recorded["duration"])
+    simulate.check_simulable(plan)
+    return plan, recorded
+
+
+def shrink_arguments(parser: argparse.ArgumentParser) -> None:
+    """The `shrink` subcommand's arguments."""
+    parser.add_argument(
+        "run_dir", metavar="RUN", help="the --out directory of `rr-actors experiment --simulate`"
+    )
+    parser.add_argument("--seed", type=int, required=True, help="a seed that violated a rule")
+    parser.add_argument(
+        "--out", metavar="DIR", help="where the shrunk run goes (default: RUN/shrunk-seed-S)"
+    )
+    parser.add_argument(
+        "--budget",
+        type=int,
+        default=shrink.BUDGET,
+        help=f"the most simulated runs to make (default: {shrink.BUDGET})",
+    )
+    parser.add_argument(
+        "--tries",
+        type=int,
+        default=shrink.TRIES,
+        help=f"seeds per candidate: the current one and the next ones (default: {shrink.TRIES})",
+    )
+
+
+def run_shrink(args: argparse.Namespace, stream: TextIO) -> int:
+    """`rr-actors shrink RUN --seed S`: 0 shrunk, 1 a run failed, 2 bad input (the seed
+    did not violate, among others)."""
+    run_dir = Path(args.run_dir)
+    out = Path(args.out) if args.out else run_dir / f"shrunk-seed-{args.seed}"
+    if args.budget < 1 or args.tries < 1:
+        _error("shrink", "--budget and --tries must be at least 1")
+        return 2
+    try:
+        plan, _ = recorded_plan(run_dir, args.seed)
+        text = (run_dir / "plan.toml").read_text(encoding="utf-8")  # (read: recorded_plan)
+    except ConfigError as exc:
+        _error("shrink", str(exc))
+        return 2
+    argv = ["shrink", args.run_dir, "--seed", str(args.seed), "--out", str(out)]
+    argv += ["--budget", str(args.budget), "--tries", str(args.tries)]
+    code = hash_fixed(argv, stream)
+    if code is not None:
+        return code
+    try:
+        shrink_seed(
+            plan, args.seed, out, _Say(stream), budget=args.budget, tries=args.tries, text=text
+        )
+    except ConfigError as exc:
+        _error("shrink", str(exc))
+        return 2
+    except RrError as exc:
+        _error("shrink", str(exc))
+        return 1
+    return 0
+
+
+class _Say(contextlib.nullcontext["_Say"]):
+    """A display of plain lines (`cli.Display`'s `say`, no bar)."""
+
+    def __init__(self, stream: TextIO) -> None:
+        super().__init__(self)
+        self.stream = stream
+
+    def say(self, line: object) -> None:
+        self.stream.write(f"{line}\n")
+        self.stream.flush()
+
+
+def shrink_seed(
+    plan: Plan,
+    seed: int,
+    out: Path,
+    display: Any,
+    *,
+    budget: int = shrink.BUDGET,
+    tries: int = shrink.TRIES,
+    text: str | None = None,
+) -> shrink.Shrunk:
+    """Shrink one violating seed (`shrink.shrink`), a line of `display` per kept step, and
+    write the shrunk run into `out` (`shrink.write`: `rr-actors replay OUT`); `text` the
+    plan's TOML (default: its file's).
+
+    Raises:
+        ConfigError: the seed does not violate (or the plan has no file).
+        RrError: a run failed.
+    """
+    bar = getattr(display, "bar", None)
+    task = None
+    if bar is not None:
+        for shown in bar.task_ids:  # (the sweep's, done)
+            bar.update(shown, visible=False)
+        task = bar.add_task(f"shrink seed {seed}", total=budget)
+
+    def ran(runs: int) -> None:
+        if bar is not None and task is not None:
+            bar.update(task, completed=runs)
+
+    with _warnings_off(), display:
+        shrunk = shrink.shrink(
+            plan, seed, budget=budget, tries=tries, on_step=display.say, on_run=ran, text=text
+        )
+    if bar is not None and task is not None:
+        bar.remove_task(task)
+    shrink.write(shrunk, out, seed_line(shrunk.run, shrunk.plan))
+    run = shrunk.run
+    display.say(
+        f"shrunk seed {seed} ({shrunk.original_events} events) to seed {shrunk.seed}: "
+        f"{run.events} events, {run.faults} faults, {shrunk.plan.workload.clients} "
+        f"clients, {shrunk.plan.duration:g} s ({shrunk.runs} runs)"
+    )
+    display.say(f"  {shrunk.kind}")
+    display.say(f"written to {out}/: plan.toml, {SEEDS_FILE}, events-seed-{shrunk.seed}.jsonl")
+    display.say(f"replay it: rr-actors replay {out} --story")
+    return shrunk
+
+
+def shrink_violations(
+    plan: Plan,
+    runs: list[simulate.SimulatedRun],
+    out: Path,
+    display: Any,
+    *,
+    budget: int = shrink.BUDGET,
+) -> list[shrink.Shrunk]:
+    """`--shrink`: the first violating seed of each violation kind, shrunk into
+    `out/shrunk-seed-S` (one kind is one bug; its other seeds would shrink to it again).
+
+    Raises:
+        RrError: a run failed.
+    """
+    firsts: dict[str, int] = {}
+    for run in runs:
+        for kind in shrink.violation_kinds(run)[:1]:
+            firsts.setdefault(kind, run.seed)
+    return [
+        shrink_seed(plan, seed, out / f"shrunk-seed-{seed}", display, budget=budget)
+        for seed in dict.fromkeys(firsts.values())
+    ]
+
+
+def _only_seed(run_dir: Path) -> int:
+    """The seed of a run directory that recorded one (`ConfigError` if it has more)."""
+    path = run_dir / SEEDS_FILE
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except OSError as exc:
+        raise ConfigError(
+            f"{run_dir}: no {SEEDS_FILE} (not an `experiment --simulate` output)"
+        ) from exc
+    seeds = [json.loads(line).get("seed") for line in lines if line.strip()]
+    if len(seeds) != 1 or not isinstance(seeds[0], int):
+        raise ConfigError(f"{path}: {len(seeds)} seeds recorded: give --seed S")
+    return seeds[0]
+
+
+def _recorded(run_dir: Path, seed: int) -> dict[str, Any]:
+    """The line of `seed` in `RUN/seeds.jsonl`.
+
+    Raises:
+        ConfigError: no such file, or no line of that seed.
+    """
+    path = run_dir / SEEDS_FILE
+    if not path.is_file():
+        raise ConfigError(f"{run_dir}: no {SEEDS_FILE} (not an `experiment --simulate` output)")
+    with path.open(encoding="utf-8") as lines:
+        for text in lines:
+            line = json.loads(text)
+            if line.get("seed") == seed:
+                found: dict[str, Any] = line
+                return found
+    raise ConfigError(f"{path}: seed {seed} was not run")

@@ -1,0 +1,238 @@
+"""`--shrink` and `rr-actors shrink` (`rr_actors.experiments.shrink`): a violating seed of a
+plan with a planted bug shrunk to a smaller plan that violates the same way, written as a
+run that `replay` and `experiment --simulate` run again with the same hash; and `replay
+--story` (`rr_actors.experiments.story`): the run told step by step, the violation marked."""
+
+from __future__ import annotations
+
+import io
+import json
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from rr_actors.__main__ import main
+from rr_actors.experiments import load_plan, plans, shrink, simulate, story, sweep
+from tests.experiments.test_simulate import PLAN
+from tests.experiments.test_sweep import BUGGY
+
+pytest.importorskip("greenlet")  # (the simulation extra)
+
+SHRINK = pytest.mark.timeout(600)
+"""A shrink is up to its budget of simulated runs (small ones: a few ms to 0.1 s each),
+in a child process with `PYTHONHASHSEED=0`; several times that under load."""
+
+BUDGET = 120
+"""The runs a test's shrink may make: enough to cut the planted bug's run below half."""
+
+
+def command(*argv: str) -> tuple[int, str]:
+    stream = io.StringIO()
+    code = main(list(argv), stream)
+    return code, stream.getvalue()
+
+
+def recorded(out: Path) -> dict[int, dict[str, object]]:
+    lines = (out / sweep.SEEDS_FILE).read_text().splitlines()
+    return {line["seed"]: line for line in map(json.loads, lines)}
+
+
+@pytest.fixture
+def buggy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A plan whose managers' setup plants a second load of an equal request (rule dedup)."""
+    from rr_actors._registrar.provider import Provider  # noqa: PLC0415
+
+    monkeypatch.setattr(Provider, "matched", Provider.matched)  # (put back at the end)
+    (tmp_path / "buggy.py").write_text(BUGGY)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    plan = tmp_path / "plan.toml"
+    plan.write_text(PLAN.replace("rr_actors.experiments.services:service", "buggy:setup"))
+    return plan
+
+
+@SHRINK
+def test_experiment_shrink_writes_a_smaller_plan_that_violates_the_same_way_and_replays(
+    tmp_path: Path, buggy: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = tmp_path / "out"
+
+    code, printed = command(
+        "experiment", str(buggy), "--simulate", "--seeds", "1", "--out", str(out),
+        "--shrink", str(BUDGET),
+    )  # fmt: skip
+
+    assert 0 == code, printed
+    original = recorded(out)[1]
+    assert "violated" == original["verdict"]
+    shrunk_dir = out / "shrunk-seed-1"
+    ((seed, line),) = recorded(shrunk_dir).items()
+    assert "violated" == line["verdict"]
+    assert int(str(line["events"])) * 2 < int(str(original["events"]))
+    assert any("[dedup]" in finding for finding in line["findings"])  # type: ignore[attr-defined]
+    assert f"replay it: rr-actors replay {shrunk_dir} --story" in " ".join(printed.split())
+    assert "[dedup] " in printed
+    text = (shrunk_dir / "plan.toml").read_text()
+    assert text.startswith("# Shrunk from")
+    plan = tomllib.loads(text)
+    assert "every" not in str(plan.get("faults", ""))  # (the injections made explicit)
+    assert plan["duration"] < 3.0
+    assert (shrunk_dir / f"events-seed-{seed}.jsonl").read_text().count("\n") >= line["events"]
+
+    code, printed = command("replay", str(shrunk_dir))  # (its one seed)
+    assert 0 == code, printed
+    assert f"seed {seed}: violated" in printed
+    assert "the same history" in printed
+
+    again = tmp_path / "again"
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))  # (buggy.py, for the plan run elsewhere)
+    code, printed = command(
+        "experiment", str(shrunk_dir / "plan.toml"), "--simulate", "--seeds", str(seed),
+        "--out", str(again),
+    )  # fmt: skip
+    assert 0 == code, printed
+    assert line["hash"] == recorded(again)[seed]["hash"]
+
+
+@SHRINK
+def test_shrink_of_a_kill_plan_makes_its_faults_explicit_and_deletes_them(
+    tmp_path: Path, buggy: Path
+) -> None:
+    plan = load_plan(buggy)
+    original = simulate.run_seed(plan, 2)
+    assert original.faults > 1
+    assert shrink.violation_kinds(original)
+    steps: list[str] = []
+
+    shrunk = shrink.shrink(plan, 2, budget=BUDGET, on_step=steps.append)
+
+    assert shrunk.runs <= BUDGET
+    assert shrunk.kind == shrink.violation_kinds(original)[0]
+    assert shrunk.kind in shrink.violation_kinds(shrunk.run)
+    assert shrunk.run.events < original.events
+    assert shrunk.run.faults < original.faults
+    assert steps[0].startswith(f"shrinking seed 2 ({original.events} events): [dedup]")
+    assert any("explicit" in step for step in shrunk.steps)
+    assert shrunk.run.hash == simulate.run_seed(shrunk.plan, shrunk.seed).hash
+
+
+@SHRINK
+def test_the_shrink_command_shrinks_a_seed_of_a_sweeps_output_from_its_plan_copy(
+    tmp_path: Path, buggy: Path
+) -> None:
+    out = tmp_path / "out"
+    assert (
+        0 == command("experiment", str(buggy), "--simulate", "--seeds", "2", "--out", str(out))[0]
+    )
+    buggy.write_text("not a plan any more: the shrink reads the run's copy")
+
+    code, printed = command("shrink", str(out), "--seed", "2", "--budget", "12")
+
+    assert 0 == code, printed
+    assert "done after 12 runs (the budget (12 runs) spent)" in printed
+    ((seed, line),) = recorded(out / "shrunk-seed-2").items()
+    assert "violated" == line["verdict"]
+    assert int(str(line["events"])) < int(str(recorded(out)[2]["events"]))
+    assert "repeat" not in (out / "shrunk-seed-2" / "plan.toml").read_text()
+    code, printed = command("replay", str(out / "shrunk-seed-2"), "--seed", str(seed))
+    assert 0 == code, printed
+    assert "the same history" in printed
+
+
+def test_the_shrink_command_refuses_a_seed_that_held(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "plan.toml").write_text(PLAN)
+    out = tmp_path / "out"
+    assert (
+        0 == command("experiment", str(tmp_path / "plan.toml"), "--simulate", "--out", str(out))[0]
+    )
+
+    code = main(["shrink", str(out), "--seed", "1"], io.StringIO())
+
+    assert 2 == code
+    assert "seed 1 does not violate a rule: nothing to shrink" in capfd.readouterr().err
+
+
+def test_shrink_needs_simulate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "plan.toml").write_text(PLAN)
+
+    code = main(["experiment", str(tmp_path / "plan.toml"), "--out", str(tmp_path), "--shrink"])
+
+    assert 2 == code
+    assert "--shrink needs --simulate" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", sorted(plans.shipped()))
+def test_a_plan_written_by_the_shrinker_reads_back_as_the_same_data(name: str) -> None:
+    data = tomllib.loads(plans.shipped()[name].read_text())
+
+    assert data == tomllib.loads(shrink.dump_plan(data))
+
+
+def test_a_violation_kind_is_its_rule_and_message_without_ids_and_numbers() -> None:
+    kind = shrink.violation_kind("end", "db still holds query ec237392 of api-2, which stopped")
+
+    assert "[end] db still holds query … of api-N, which stopped" == kind
+
+
+STORY_PLAN = f"""\
+{PLAN.split("[[faults]]")[0]}
+[[faults]]
+kind = "kill_manager"
+target = "api"
+at = [0.5]
+"""
+
+
+@SHRINK
+def test_replay_story_tells_the_run_step_by_step_with_the_violation_marked(
+    tmp_path: Path, buggy: Path
+) -> None:
+    buggy.write_text(STORY_PLAN.replace("rr_actors.experiments.services:service", "buggy:setup"))
+    out = tmp_path / "out"
+    assert 0 == command("experiment", str(buggy), "--simulate", "--out", str(out))[0]
+    assert "violated" == recorded(out)[1]["verdict"]
+
+    code, printed = command("replay", str(out), "--seed", "1", "--story")
+
+    assert 0 == code, printed
+    lines = printed.splitlines()
+    assert lines[0].startswith("  [   0.000 s] #1 ")
+    assert "restored its catalog: 0 resources" in lines[0]
+    kill = next(i for i, line in enumerate(lines) if "kill_manager api: SIGKILL pid" in line)
+    assert "[   0.500 s]" in lines[kill]
+    assert " fault " in lines[kill]
+    assert "api exited: killed by SIGKILL" in lines[kill + 1]
+    assert any("api restarted after" in line for line in lines[kill:])
+    assert any(" consumes " in line and " pid " in line for line in lines)
+    violation = next(i for i, line in enumerate(lines) if "^ violation [dedup]" in line)
+    assert lines[violation - 1].startswith(">>[")
+    assert " loaded " in lines[violation - 1]
+    assert "the same history" in printed
+
+
+def test_a_story_places_each_fault_before_the_first_event_at_or_after_its_time() -> None:
+    history = "".join(
+        json.dumps(line) + "\n"
+        for line in (
+            {"type": "ChildStarted", "supervisor": "root", "child": "db", "pid": 2,
+             "at": 100.0, "host": "vm", "hlc": 1, "schema": 3, "run": 1, "seed": 1},
+            {"type": "ChildExited", "supervisor": "root", "child": "db", "pid": 2,
+             "reason": "killed by SIGKILL", "at": 100.25, "host": "vm", "hlc": 2,
+             "schema": 3, "run": 1, "seed": 1},
+            {"type": "FaultInjected", "fault": 0, "n": 0, "kind": "kill_manager",
+             "target": "db", "detail": "SIGKILL pid 2", "scheduled_s": 0.25,
+             "injected_s": 0.25, "recovery_s": None, "at": 100.25, "run": 1, "seed": 1},
+        )
+    )  # fmt: skip
+
+    told = story.story(history)
+
+    assert [(s.line, s.who, round(s.at_s, 3)) for s in told] == [
+        (1, "db", 0.0),
+        (3, "fault", 0.25),
+        (2, "db", 0.25),
+    ]
+    assert "kill_manager db: SIGKILL pid 2" == told[1].text
+    assert "db exited: killed by SIGKILL (pid 2)" == told[2].text

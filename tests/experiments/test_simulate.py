@@ -1,0 +1,614 @@
+"""A plan on the simulation (`rr_actors.experiments.simulate`): its tree, workload and
+faults in virtual time, one seed a run: the checker's verdict, the same history (hash)
+for the same seed in this process and in another, a planted bug found and replayed; each
+fault kind's effect in the history (the plan's kinds and those only a simulation can
+aim); the shipped plans on it; what is not simulated is a `PlanError` naming it."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from rr_actors.experiments import PlanError, parse_plan, simulate
+from rr_actors.experiments.plan import Plan
+
+pytest.importorskip("greenlet")  # (the simulation extra)
+
+ROOT = Path(__file__).resolve().parent.parent.parent
+
+SERVICE = "rr_actors.experiments.services:service"
+
+PLAN = f"""\
+name = "simkill"
+duration = 3.0
+
+[tree]
+max_restarts = 1000
+period = 1.0
+
+[[tree.children]]
+name = "db"
+setup = "{SERVICE}"
+
+[[tree.children]]
+name = "api"
+setup = "{SERVICE}"
+options = {{ uses = ["db"], load_s = 0.002 }}
+
+[workload]
+clients = 2
+rate = 10.0
+hold = 0.2
+timeout = 3.0
+
+[[workload.calls]]
+manager = "api"
+server = "resource"
+keys = 3
+
+[[faults]]
+kind = "kill_manager"
+target = ["api", "db"]
+every = {{ min = 0.3, max = 0.8 }}
+"""
+
+BASE = PLAN.split("[[faults]]", maxsplit=1)[0]
+"""The plan without its fault: each fault kind's test adds its own."""
+
+SWEEP = pytest.mark.timeout(300)
+"""A few seeds take a few CPU seconds; under load several times that."""
+
+
+def simkill() -> Plan:
+    return parse_plan(PLAN)
+
+
+@pytest.fixture(autouse=True)
+def _quiet_kills() -> Iterator[None]:
+    """The supervisor logs each kill: hundreds of warnings a sweep."""
+    logging.disable(logging.WARNING)
+    try:
+        yield
+    finally:
+        logging.disable(logging.NOTSET)
+
+
+def plant_second_load(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A planted bug: a provider loads an equal request again instead of sharing it."""
+    from rr_actors._catalog.records import ResourceState  # noqa: PLC0415
+    from rr_actors._registrar.provider import Provider  # noqa: PLC0415
+
+    matched = Provider.matched
+
+    def buggy(self: Provider, message: Any, key: Any, resource: Any) -> None:
+        if resource is not None and resource.state is ResourceState.LOADED:
+            resource = None  # (the bug: no dedup hit, a second load)
+        matched(self, message, key, resource)
+
+    monkeypatch.setattr(Provider, "matched", buggy)
+
+
+@SWEEP
+def test_a_plan_of_kills_holds_on_every_seed_with_faults_and_calls_made() -> None:
+    runs = simulate.simulate(simkill(), range(1, 5))
+
+    assert [1, 2, 3, 4] == [r.seed for r in runs]
+    assert ["held"] * 4 == [r.verdict for r in runs], [r.findings for r in runs]
+    assert all(r.faults > 0 and r.calls_ok > 0 and r.events > 0 for r in runs)
+    assert all(r.virtual_s >= 3.0 for r in runs)
+    assert len({r.hash for r in runs}) == 4
+
+
+@SWEEP
+def test_the_history_is_the_runners_events_jsonl_with_fault_lines_in_virtual_time() -> None:
+    run = simulate.run_seed(simkill(), 2)
+
+    lines = [json.loads(line) for line in run.history.splitlines()]
+    kinds = {line["type"] for line in lines}
+    assert {"ChildStarted", "ChildExited", "ChildRestarted", "FaultInjected"} <= kinds
+    assert all(line["run"] == 1 and line["seed"] == 2 for line in lines)
+    assert simulate.history_hash(run.history) == run.hash
+    first = min(line["at"] for line in lines if line["at"] is not None)
+    assert 1_767_225_600.0 <= first < 1_767_225_600.0 + 60  # (the virtual wall clock)
+    killed = [line for line in lines if line["type"] == "FaultInjected"]
+    assert run.faults == len(killed)
+    assert all(line["detail"].startswith("SIGKILL pid ") for line in killed)
+    assert max(line.get("pid", 0) for line in lines) < 1_000  # simulated pids, not ours
+
+
+@SWEEP
+def test_the_same_seed_gives_the_same_history_here_and_in_another_process() -> None:
+    plan = simkill()
+    first, again = simulate.run_seed(plan, 7), simulate.run_seed(plan, 7)
+    assert first.history == again.history
+
+    script = (
+        "import logging, sys; logging.disable(logging.WARNING)\n"
+        "from rr_actors.experiments import parse_plan, simulate\n"
+        "print(simulate.run_seed(parse_plan(sys.stdin.read()), 7).hash)\n"
+    )
+    env = {**os.environ, "PYTHONHASHSEED": "0"}
+    hashes = [
+        subprocess.run(
+            [sys.executable, "-c", script],
+            input=PLAN,
+            env=env,
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=240,
+        ).stdout.strip()
+        for _ in range(2)
+    ]
+    assert hashes[0] == hashes[1]
+    if os.environ.get("PYTHONHASHSEED") == "0":  # (else this process's sets iterate otherwise)
+        assert first.hash == hashes[0]
+
+
+class _Backwards(set):  # type: ignore[type-arg]
+    """A set that iterates the other way round: as a set of objects ordered by their
+    addresses does in another process, or after another run in this one."""
+
+    def __iter__(self) -> Iterator[Any]:
+        return iter(list(super().__iter__())[::-1])
+
+
+CHAIN = f"""\
+name = "chainkill"
+duration = 2.0
+
+[tree]
+max_restarts = 1000
+period = 1.0
+
+[[tree.children]]
+name = "db"
+setup = "{SERVICE}"
+
+[[tree.children]]
+name = "api"
+setup = "{SERVICE}"
+options = {{ uses = ["db"], load_s = 0.002 }}
+
+[[tree.children]]
+name = "edge"
+setup = "{SERVICE}"
+options = {{ uses = ["api"], load_s = 0.002 }}
+
+[workload]
+clients = 4
+rate = 25.0
+hold = 0.2
+timeout = 3.0
+
+[[workload.calls]]
+manager = "edge"
+server = "resource"
+shared = 0.5
+keys = 4
+
+[[faults]]
+kind = "kill_manager"
+target = ["edge", "api", "db"]
+every = {{ min = 0.15, max = 0.4 }}
+"""
+"""The shipped killheavy plan (without its cut) for 2 s: clients wait for restarts often."""
+
+
+@SWEEP
+def test_the_same_seed_gives_the_same_history_whatever_order_a_set_of_callbacks_has(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from rr_actors._supervision.tree import Tree  # noqa: PLC0415
+
+    plan = parse_plan(CHAIN)
+    seeds = range(1, 9)  # (without the fix, about 2 in 5 of them give another history)
+    first = [simulate.run_seed(plan, seed).history for seed in seeds]
+    made = Tree.__init__
+
+    def backwards(self: Tree, *args: Any, **kwargs: Any) -> None:
+        made(self, *args, **kwargs)
+        self.watchers = _Backwards()  # (the waits woken at each change: in another order)
+
+    monkeypatch.setattr(Tree, "__init__", backwards)
+    again = [simulate.run_seed(plan, seed).history for seed in seeds]
+
+    assert [] == [seed for seed, a, b in zip(seeds, first, again, strict=True) if a != b]
+
+
+@SWEEP
+def test_a_planted_second_load_is_violated_and_its_seed_replays_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    plant_second_load(monkeypatch)
+    plan = simkill()
+
+    runs = simulate.simulate(plan, range(1, 3))
+    violated = [r for r in runs if r.verdict == "violated"]
+    assert violated
+    assert any("[dedup]" in finding for finding in violated[0].findings)
+
+    again = simulate.run_seed(plan, violated[0].seed)
+    assert again.hash == violated[0].hash
+    assert "violated" == again.verdict
+
+
+# -- each fault kind on the simulation: its effect in the history, the verdict held ----------
+
+
+def with_faults(*faults: str, base: str = BASE) -> Plan:
+    """The plan of `base` with these `[[faults]]` tables (their keys, one a line)."""
+    return parse_plan(base + "".join(f"\n[[faults]]\n{fault}\n" for fault in faults))
+
+
+def lines(run: simulate.SimulatedRun, kind: str | None = None) -> list[dict[str, Any]]:
+    """The run's history as dicts (only those of event type `kind`, if given)."""
+    every = [json.loads(line) for line in run.history.splitlines()]
+    return [line for line in every if kind is None or line["type"] == kind]
+
+
+def fired(run: simulate.SimulatedRun) -> list[dict[str, Any]]:
+    return lines(run, "FaultInjected")
+
+
+def held(runs: list[simulate.SimulatedRun]) -> None:
+    assert ["held"] * len(runs) == [r.verdict for r in runs], [r.findings for r in runs]
+    assert all(not r.errors for r in runs), [r.errors for r in runs]
+
+
+@SWEEP
+def test_a_hang_stops_the_process_until_its_heartbeat_kills_it_and_it_restarts() -> None:
+    plan = with_faults('kind = "hang_manager"\ntarget = "db"\nat = 0.5\nfor = 2.0')
+
+    runs = simulate.simulate(plan, range(1, 4))
+
+    held(runs)
+    for run in runs:
+        [hang] = fired(run)
+        assert hang["detail"].startswith("SIGSTOP pid ")
+        exits = [e for e in lines(run, "ChildExited") if e["child"] == "db"]
+        assert "hung" in exits[0]["reason"]  # (its heartbeat went unanswered: killed)
+        assert hang["injected_s"] + 0.5 < exits[0]["at"] - run_t0(run) < hang["injected_s"] + 2.0
+        assert any(e["child"] == "db" for e in lines(run, "ChildRestarted"))
+
+
+@SWEEP
+def test_a_hang_shorter_than_the_heartbeat_timeout_is_continued_without_a_restart() -> None:
+    plan = with_faults('kind = "hang_manager"\ntarget = "db"\nat = [0.5, 1.5]\nfor = 0.2')
+
+    runs = simulate.simulate(plan, range(1, 4))
+
+    held(runs)
+    assert all(len(fired(r)) == 2 and not lines(r, "ChildRestarted") for r in runs)
+    assert all(r.calls_ok > 0 and r.calls_failed == 0 for r in runs)
+
+
+def run_t0(run: simulate.SimulatedRun) -> float:
+    """The wall-clock time (virtual) of the run's workload start: its first fault's `at`
+    less its `injected_s`."""
+    first = fired(run)[0]
+    return float(first["at"] - first["injected_s"])
+
+
+SLOW_API = BASE.replace("load_s = 0.002", "load_s = 0.05")
+"""api's loads take 50 ms: a call is in flight most of the time."""
+
+
+@SWEEP
+def test_a_cut_fails_the_calls_in_flight_and_the_next_ones_connect_again() -> None:
+    plan = with_faults('kind = "cut_connections"\ntarget = "api"\nevery = 0.3', base=SLOW_API)
+
+    runs = simulate.simulate(plan, range(1, 4))
+
+    held(runs)
+    for run in runs:
+        assert all(f["detail"].startswith("cut pid ") for f in fired(run))
+        assert not lines(run, "ChildExited")[:-2]  # (nobody died: only the end's stops)
+        assert lines(run, "CallFailed") or any(c["retry"] for c in lines(run, "CallAnswered"))
+    assert sum(len(lines(r, "CallFailed")) for r in runs) > 0  # (over every seed)
+
+
+@SWEEP
+def test_a_load_error_fails_the_loads_for_its_time_then_they_load_again() -> None:
+    plan = with_faults('kind = "load_error"\ntarget = "db"\nat = 1.0\nfor = 0.5')
+
+    runs = simulate.simulate(plan, range(1, 4))
+
+    held(runs)
+    for run in runs:
+        [error] = fired(run)
+        assert "loads of db raise, for 0.5 s" == error["detail"]
+        assert run.calls_failed > 0
+        t0 = run_t0(run)
+        late = [e for e in lines(run, "ResourceLoaded") if e["registrar"] == "db"]
+        assert any(e["at"] - t0 > 1.5 for e in late)  # (loads again after it)
+
+
+@SWEEP
+def test_a_fault_after_an_event_fires_its_delay_after_that_event() -> None:
+    plan = with_faults(
+        'kind = "kill_manager"\ntarget = "api"\nat = 1.0',
+        'kind = "kill_manager"\ntarget = "db"\n'
+        'after = { event = "ChildRestarted", child = "api" }\ndelay = 0.25',
+    )
+
+    runs = simulate.simulate(plan, range(1, 4))
+
+    held(runs)
+    for run in runs:
+        t0 = run_t0(run)
+        restarted = next(e for e in lines(run, "ChildRestarted") if e["child"] == "api")
+        [after] = [f for f in fired(run) if f["fault"] == 1]
+        assert after["injected_s"] == pytest.approx(restarted["at"] - t0 + 0.25, abs=1e-6)
+        assert any(e["child"] == "db" for e in lines(run, "ChildRestarted"))
+
+
+@SWEEP
+def test_a_trigger_that_never_comes_is_recorded_as_skipped() -> None:
+    plan = with_faults('kind = "kill_manager"\ntarget = "db"\nafter = { event = "ChildRestarted" }')
+
+    run = simulate.run_seed(plan, 1)
+
+    [skipped] = lines(run, "FaultSkipped")
+    assert "its trigger did not happen in the run" == skipped["detail"]
+    assert 0 == run.faults
+
+
+# -- the faults only a simulation can aim ---------------------------------------------------
+
+
+@SWEEP
+def test_a_kill_between_a_commit_and_its_answer_is_restarted_and_holds() -> None:
+    plan = with_faults('kind = "kill_before_answer"\ntarget = "api"\nat = [0.5, 1.5]')
+
+    runs = simulate.simulate(plan, range(1, 5))
+
+    held(runs)
+    for run in runs:
+        kills = fired(run)
+        assert len(kills) == 2
+        assert all(k["detail"].endswith("at its answer (after the commit)") for k in kills)
+        killed = [e for e in lines(run, "ChildExited") if e["reason"] == "killed by SIGKILL"]
+        assert len(killed) == 2
+        assert len(lines(run, "ChildRestarted")) == 2
+
+
+def failed_and_released(run: simulate.SimulatedRun) -> tuple[set[str], set[str]]:
+    """api's calls that failed as db died (db may have kept them), and those of them that
+    db released before api's stop ended (given back by api's failed load or its stop, or
+    let go when api reconciled with db's restart)."""
+    seen = lines(run)
+    failed = {
+        e["query_id"]
+        for e in seen
+        if e["type"] == "CallFailed" and e["registrar"] == "api" and e["may_have_executed"]
+    }
+    api_stopped = max(
+        i for i, e in enumerate(seen) if e["type"] == "RegistrarStopped" and e["registrar"] == "api"
+    )
+    released = {
+        e["query_id"]
+        for e in seen[:api_stopped]
+        if e["type"] == "ConsumerReleased" and e["registrar"] == "db"
+    }
+    return failed, released & failed
+
+
+@SWEEP
+def test_a_provider_killed_between_a_commit_and_its_answer_releases_the_id() -> None:
+    # db dies after it committed api's consumer id, before its answer left; restarted, db
+    # keeps the id for a retry (api listed it when it reconciled). No retry can come: the
+    # call was a dependency call of a load that failed. The id used to stay held until
+    # api's stop gave it back, with an Abandon it did not wait for and that reached db
+    # after its own stop: `[end]` in 5 of these 8 seeds (and in seeds 3, 4, 7, 13, 18, 23
+    # of 1-30 of killheavy). A failed load now gives such ids back, and a stop waits for
+    # the answers to what it gives back.
+    plan = with_faults('kind = "kill_before_answer"\ntarget = "db"\nat = [0.5, 1.5]')
+
+    runs = [simulate.run_seed(plan, seed) for seed in range(1, 9)]
+
+    assert [("held", ())] * 8 == [(run.verdict, run.findings) for run in runs]
+    assert [(failed, failed) for failed, _ in map(failed_and_released, runs)] == list(
+        map(failed_and_released, runs)
+    )
+    assert any(failed for failed, _ in map(failed_and_released, runs))  # the path was taken
+
+
+@SWEEP
+def test_a_kill_inside_setup_kills_the_restart_too_and_it_starts_again() -> None:
+    plan = with_faults('kind = "kill_in_setup"\ntarget = "db"\nat = 0.5')
+
+    runs = simulate.simulate(plan, range(1, 4))
+
+    held(runs)
+    for run in runs:
+        [kill] = fired(run)
+        assert "inside its setup" in kill["detail"]
+        exits = [e["reason"] for e in lines(run, "ChildExited") if e["child"] == "db"]
+        assert "killed by SIGKILL" == exits[0]
+        assert exits[1].startswith("failed to start: ")  # (its restart, killed in setup)
+        assert "died while starting (killed by SIGKILL)" in exits[1]
+        restarted = [e for e in lines(run, "ChildRestarted") if e["child"] == "db"]
+        assert len(restarted) == 1  # (the start after it served)
+        assert len(lines(run, "CatalogRestored")) == 4  # (db twice after the kill)
+
+
+@SWEEP
+def test_a_partition_as_a_restarted_manager_serves_fails_calls_then_heals() -> None:
+    plan = with_faults('kind = "partition_serving"\ntarget = "db"\nat = 0.5\nfor = 0.6')
+
+    runs = simulate.simulate(plan, range(1, 4))
+
+    held(runs)
+    for run in runs:
+        [cut] = fired(run)
+        assert "cut off as it serves, for 0.6 s" in cut["detail"]
+        assert run.calls_failed > 0  # (api could not reach db while it was cut off)
+        t0 = run_t0(run)
+        assert any(e["at"] - t0 > 1.5 for e in lines(run, "CallAnswered"))  # (healed)
+
+
+@SWEEP
+def test_a_duplicate_delivery_at_a_reconnect_is_delivered_twice_and_holds() -> None:
+    plan = with_faults('kind = "duplicate_delivery"\ntarget = ["api", "db"]\nevery = 0.3')
+
+    runs = simulate.simulate(plan, range(1, 4))
+
+    held(runs)
+    doubled = [int(f["detail"].split("; ")[1].split()[0]) for r in runs for f in fired(r)]
+    assert sum(doubled) > 0
+
+
+@SWEEP
+def test_every_simulated_kind_in_one_plan_gives_the_same_history_for_the_same_seed() -> None:
+    plan = with_faults(
+        'kind = "hang_manager"\ntarget = "db"\nat = 0.3\nfor = 0.2',
+        'kind = "cut_connections"\ntarget = "api"\nevery = 0.4',
+        'kind = "load_error"\ntarget = "db"\nat = 0.6\nloads = 2',
+        'kind = "kill_before_answer"\ntarget = "api"\nat = 0.9',
+        'kind = "kill_in_setup"\ntarget = "db"\nat = 1.2',
+        'kind = "partition_serving"\ntarget = "api"\nat = 1.8\nfor = 0.3',
+        'kind = "duplicate_delivery"\ntarget = "db"\nat = 2.4',
+        'kind = "kill_manager"\ntarget = "db"\nafter = { event = "ChildRestarted", nth = 2 }',
+    )
+
+    first, again = simulate.run_seed(plan, 5), simulate.run_seed(plan, 5)
+
+    assert first.history == again.history
+    assert 8 <= len(fired(first)) + len(lines(first, "FaultSkipped"))
+    assert {f["kind"] for f in fired(first)} >= {"hang_manager", "kill_in_setup"}
+
+
+def test_a_kind_only_a_simulation_aims_is_refused_by_a_real_run() -> None:
+    from rr_actors.experiments import run  # noqa: PLC0415
+
+    plan = with_faults('kind = "kill_in_setup"\ntarget = "db"\nat = 0.5')
+
+    with pytest.raises(PlanError) as raised:
+        run(plan)
+
+    assert "faults[0].kind" == raised.value.key
+    assert "only on the simulation" in str(raised.value)
+
+
+@pytest.mark.parametrize(
+    ("base", "fault", "key", "problem"),
+    [
+        (BASE, 'kind = "partition_serving"\ntarget = "db"\nat = 0.5', "faults[0]", "'for'"),
+        (
+            BASE.replace('name = "db"\n', 'name = "db"\nisolation = "thread"\n'),
+            'kind = "kill_before_answer"\ntarget = "db"\nat = 0.5',
+            "faults[0].target",
+            "kill_before_answer needs a process manager",
+        ),
+        (BASE, 'kind = "kill_in_setup"\ntarget = "db"\nat = 0.5\nfor = 1.0', "faults[0].for", ""),
+    ],
+    ids=["partition_serving without for", "on a thread manager", "kill_in_setup with for"],
+)
+def test_a_kind_only_a_simulation_aims_is_validated_as_the_others(
+    base: str, fault: str, key: str, problem: str
+) -> None:
+    with pytest.raises(PlanError) as raised:
+        with_faults(fault, base=base)
+
+    assert key == raised.value.key
+    assert problem in raised.value.problem
+
+
+# -- the shipped plans ---------------------------------------------------------------------
+
+PLANS = ROOT / "rr_actors" / "experiments" / "plans"
+
+
+SIMULATED = ["first", "crashloop", "hang", "simchain", "simretry"]
+"""The shipped plans run over two seeds here (killheavy below, for 2 s)."""
+
+REFUSED = ["resource", "strategies", "leases"]
+"""The shipped plans the simulation does not model (the last test says why each)."""
+
+
+def test_every_shipped_plan_is_simulated_or_refused_here() -> None:
+    shipped = {path.stem for path in PLANS.glob("*.toml")}
+
+    assert shipped == {*SIMULATED, "killheavy", *REFUSED}
+
+
+CROSSING = pytest.mark.xfail(
+    strict=True,
+    reason="an open finding of the simulation (simchain, seed 2): a FATAL sent on to a "
+    "consumer crosses that consumer's release of the id (the Unload's answer overtakes the "
+    "status notice on another connection); the consumer forgot the id and is never told. "
+    "Rule 9 does not say what a consumer releasing while a status is on its way is owed: "
+    "see docs/explanation/semantics.md, rule 9, 'Open'",
+)
+"""simchain's seeds 1-2 here meet the crossing (seed 2): an expected failure until it is
+decided (strict: the day it holds, this marker must go)."""
+
+
+@SWEEP
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=CROSSING) if n == "simchain" else n for n in SIMULATED]
+)
+def test_a_shipped_plan_holds_on_the_simulation(name: str) -> None:
+    from rr_actors.experiments import load_plan  # noqa: PLC0415
+
+    plan = load_plan(PLANS / f"{name}.toml")
+
+    runs = simulate.simulate(plan, range(1, 3))
+
+    held(runs)
+    assert all(r.faults > 0 and r.events > 0 for r in runs)
+
+
+@SWEEP
+def test_killheavy_runs_its_kills_and_cuts_on_the_simulation() -> None:
+    from rr_actors.experiments import load_plan  # noqa: PLC0415
+
+    plan = load_plan(PLANS / "killheavy.toml").with_changes(duration=2.0)
+
+    run = simulate.run_seed(plan, 1)
+
+    assert {"kill_manager", "cut_connections"} == {f["kind"] for f in fired(run)}
+    assert run.calls_ok > 0
+    held([run])
+
+
+@SWEEP
+def test_a_compared_plan_runs_its_first_value_and_each_value_as_its_own_plan() -> None:
+    from rr_actors.experiments import load_plan  # noqa: PLC0415
+
+    plan = load_plan(PLANS / "first.toml")
+    (first, as_read), (second, other) = plan.variants
+
+    assert ("one_for_one", "rest_for_one") == (first, second)
+    assert simulate.run_seed(plan, 1).hash == simulate.run_seed(as_read, 1).hash
+    assert simulate.run_seed(other, 1).verdict == "held"
+
+
+@pytest.mark.parametrize(
+    ("name", "key", "named"),
+    [
+        ("resource", "faults[0].kind", "'kill_resource' is not simulated"),
+        ("strategies", "tree.children.erm.setup", "erm_setup is not simulated"),
+        ("leases", "faults[0].kind", "'cut' is not simulated"),
+    ],
+)
+def test_a_shipped_plan_the_simulation_does_not_model_is_a_plan_error_naming_it(
+    name: str, key: str, named: str
+) -> None:
+    from rr_actors.experiments import load_plan  # noqa: PLC0415
+
+    with pytest.raises(PlanError) as raised:
+        simulate.simulate(load_plan(PLANS / f"{name}.toml"), range(1))
+
+    assert key == raised.value.key
+    assert named in str(raised.value)

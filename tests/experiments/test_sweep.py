@@ -1,0 +1,185 @@
+"""`rr-actors experiment PLAN --simulate --seeds A-B` and `rr-actors replay RUN --seed S`
+(`rr_actors.experiments.sweep`): a verdict and a hash per seed, the violating seeds named
+and their histories kept, a replay that gives the same hash (exit 1 if not)."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import pytest
+
+from rr_actors.__main__ import main
+from rr_actors.errors import ConfigError
+from rr_actors.experiments import sweep
+from tests.experiments.test_simulate import PLAN
+
+pytest.importorskip("greenlet")  # (the simulation extra)
+
+SWEEP = pytest.mark.timeout(300)
+"""Each command may run again in a child process (`PYTHONHASHSEED=0`): a few seconds,
+several times that under load."""
+
+BUGGY = '''\
+"""A setup that plants a bug in every provider of its process: a second load of an
+equal request instead of a dedup hit (undone by the test's monkeypatch)."""
+
+from rr_actors._catalog.records import ResourceState
+from rr_actors._registrar.provider import Provider
+from rr_actors.experiments.services import service
+
+_matched = Provider.matched
+
+
+def _buggy(self, message, key, resource):
+    if resource is not None and resource.state is ResourceState.LOADED:
+        resource = None
+    _matched(self, message, key, resource)
+
+
+def setup(registrar, **options):
+    Provider.matched = _buggy
+    service(registrar, **options)
+'''
+
+
+def command(*argv: str) -> tuple[int, str]:
+    stream = io.StringIO()
+    code = main(list(argv), stream)
+    return code, stream.getvalue()
+
+
+def recorded(out: Path) -> dict[int, dict[str, object]]:
+    lines = (out / sweep.SEEDS_FILE).read_text().splitlines()
+    return {line["seed"]: line for line in map(json.loads, lines)}
+
+
+@SWEEP
+def test_a_sweep_gives_each_seed_a_verdict_and_a_hash_and_a_replay_the_same_hash(
+    tmp_path: Path,
+) -> None:
+    plan, out = tmp_path / "plan.toml", tmp_path / "out"
+    plan.write_text(PLAN)
+
+    code, printed = command(
+        "experiment", str(plan), "--simulate", "--seeds", "1-3", "--out", str(out)
+    )
+
+    assert 0 == code, printed
+    assert "violated: none" in printed
+    assert "seeds/CPU-min" in printed
+    seeds = recorded(out)
+    assert [1, 2, 3] == sorted(seeds)
+    assert all(
+        line["verdict"] == "held" and len(str(line["hash"])) == 64 for line in seeds.values()
+    )
+    assert (out / "plan.toml").read_text() == PLAN
+
+    code, printed = command("replay", str(out), "--seed", "2", "--events", str(tmp_path / "e"))
+    assert 0 == code, printed
+    assert f"hash {seeds[2]['hash']}" in printed
+    assert "the same history" in printed
+    assert (tmp_path / "e").read_text().count('"seed": 2') > 10
+
+
+@SWEEP
+def test_a_replay_whose_hash_differs_from_the_recorded_one_exits_1(tmp_path: Path) -> None:
+    plan, out = tmp_path / "plan.toml", tmp_path / "out"
+    plan.write_text(PLAN)
+    assert 0 == command("experiment", str(plan), "--simulate", "--out", str(out))[0]
+    line = recorded(out)[1]
+    (out / sweep.SEEDS_FILE).write_text(json.dumps({**line, "hash": "0" * 64}) + "\n")
+
+    code, printed = command("replay", str(out), "--seed", "1")
+
+    assert 1 == code
+    assert "a different history" in printed
+
+
+@SWEEP
+def test_a_planted_bug_names_the_violating_seeds_keeps_their_histories_and_replays_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rr_actors._registrar.provider import Provider  # noqa: PLC0415
+
+    monkeypatch.setattr(Provider, "matched", Provider.matched)  # (put back at the end)
+    (tmp_path / "buggy.py").write_text(BUGGY)
+    plan, out = tmp_path / "plan.toml", tmp_path / "out"
+    plan.write_text(PLAN.replace("rr_actors.experiments.services:service", "buggy:setup"))
+    monkeypatch.syspath_prepend(str(tmp_path))
+
+    code, printed = command(
+        "experiment", str(plan), "--simulate", "--seeds", "1-2", "--out", str(out)
+    )
+
+    assert 0 == code, printed
+    violated = [seed for seed, line in recorded(out).items() if line["verdict"] == "violated"]
+    assert violated
+    assert f"violated: seeds {', '.join(map(str, violated))}" in printed
+    assert f"rr-actors replay {out} --seed {violated[0]}" in " ".join(printed.split())
+    history = out / f"events-seed-{violated[0]}.jsonl"
+    assert 1 == main(["check", str(history), "--quiet"], io.StringIO())
+
+    code, printed = command("replay", str(out), "--seed", str(violated[0]))
+    assert 0 == code, printed
+    assert f"seed {violated[0]}: violated" in printed
+    assert "the same history" in printed
+    assert "[dedup]" in printed
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--seeds", "1-3"], "--seeds needs --simulate"),
+        (["--simulate", "--seeds", "5-2"], "the last seed is below the first"),
+        (["--simulate", "--seeds", "x"], "--seeds must be A-B or S"),
+        (["--simulate", "--repeat", "2"], "not --repeat, --seed or --observe"),
+    ],
+    ids=["without --simulate", "backwards", "not numbers", "with --repeat"],
+)
+def test_bad_seeds_exit_2_before_anything_runs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], message: str
+) -> None:
+    plan = tmp_path / "plan.toml"
+    plan.write_text(PLAN)
+
+    code = main(["experiment", str(plan), "--out", str(tmp_path / "out"), *argv])
+
+    assert 2 == code
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out" / sweep.SEEDS_FILE).exists()
+
+
+def test_a_fault_kind_not_simulated_exits_2_naming_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    plan = tmp_path / "plan.toml"
+    plan.write_text(f'{PLAN}\n[[faults]]\nkind = "kill_resource"\ntarget = "db"\nat = 1.0\n')
+
+    code = main(["experiment", str(plan), "--simulate", "--out", str(tmp_path / "out")])
+
+    assert 2 == code
+    assert "faults[1].kind: 'kill_resource' is not simulated" in capsys.readouterr().err
+
+
+def test_a_replay_of_a_seed_not_run_exits_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "plan.toml").write_text(PLAN)
+    (tmp_path / sweep.SEEDS_FILE).write_text(json.dumps({"seed": 1, "hash": "0" * 64}) + "\n")
+
+    assert 2 == main(["replay", str(tmp_path), "--seed", "9"], io.StringIO())
+    assert "seed 9 was not run" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("text", "seeds"), [("1-3", range(1, 4)), ("7", range(7, 8)), (" 0 - 0 ", range(1))]
+)
+def test_seeds_are_a_range_or_one(text: str, seeds: range) -> None:
+    assert seeds == sweep.parse_seeds(text)
+
+
+def test_too_many_seeds_are_refused() -> None:
+    with pytest.raises(ConfigError, match="more than"):
+        sweep.parse_seeds(f"1-{sweep.MAX_SEEDS + 1}")

@@ -1,0 +1,49 @@
+"""A rule checked on the simulation over many seeds, for the test modules that moved a
+semantic-rule test there (issue 42, part 4).
+
+A real run explores the one interleaving the machine happens to produce, and a test whose
+rule needs a bound (a dependency's unload held up to a second) pays it in real seconds.
+On `rr_actors.simulation` the same protocol code runs on greenlets of one thread, a
+seeded scheduler picks the interleaving and the clock is virtual: the bound costs
+nothing, and each seed is another interleaving (each one replays:
+`simulation.run(scenario, seed=S, preempt=PREEMPT)`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import pykka
+
+import rr_actors as rr
+from rr_actors import simulation
+
+__all__ = ["PREEMPT", "SEEDS", "seeds_where", "stopped_clean"]
+
+SEEDS = range(100)
+"""The seeds a moved test runs with."""
+
+PREEMPT = 0.1
+"""How often a simulated thread yields where it would not block."""
+
+
+def seeds_where(
+    scenario: Callable[[], Any],
+    broken: Callable[[Any], bool],
+    seeds: Iterable[int] = SEEDS,
+) -> list[int]:
+    """The seeds whose run of `scenario` is `broken` (or ended a thread with an error)."""
+    failed = []
+    for seed in seeds:
+        run = simulation.run(scenario, seed=seed, preempt=PREEMPT)
+        if run.errors or broken(run.value):
+            failed.append(seed)
+    return failed
+
+
+def stopped_clean(*registrars: rr.ResourceRegistrar) -> bool:
+    """Stop `registrars` (inside the run); whether no actor was left running afterwards."""
+    for registrar in registrars:
+        registrar.stop()
+    return [] == pykka.ActorRegistry.get_all()
