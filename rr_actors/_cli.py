@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import importlib.metadata
 import json
 import math
@@ -265,47 +266,32 @@ def _experiment(args: argparse.Namespace, out: TextIO) -> int:
 
 _REPLAY_HELP = "run a seed of a simulated experiment again: the same history, its hash checked"
 
-
-def _replay_arguments(parser: argparse.ArgumentParser) -> None:
-    try:
-        from rr_actors.experiments import sweep  # noqa: PLC0415 - only experiments need it
-    except ImportError:  # the experiments extra is missing: say so when it is used
-        parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
-        parser.set_defaults(any_arguments=True)
-        return
-    sweep.replay_arguments(parser)
-
-
-def _replay(args: argparse.Namespace, out: TextIO) -> int:
-    with needs("experiments", THIS_COMMAND):
-        from rr_actors import simulation  # noqa: PLC0415 - its extra (greenlet): said at once
-        from rr_actors.experiments import sweep  # noqa: PLC0415 - only experiments need it
-    del simulation
-    return sweep.run_replay(args, out)
-
-
 _SHRINK_HELP = (
     "shrink a violating seed of a simulated experiment to a small plan that violates the "
     "same way, written as a run `replay` reads"
 )
 
 
-def _shrink_arguments(parser: argparse.ArgumentParser) -> None:
+def _sweep_arguments(command: str, parser: argparse.ArgumentParser) -> None:
+    """The arguments of the simulation's `command` (`replay`, `shrink`): `sweep`'s
+    `<command>_arguments`, or none if the experiments extra is missing (said when used)."""
     try:
         from rr_actors.experiments import sweep  # noqa: PLC0415 - only experiments need it
     except ImportError:  # the experiments extra is missing: say so when it is used
         parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
         parser.set_defaults(any_arguments=True)
         return
-    sweep.shrink_arguments(parser)
+    getattr(sweep, f"{command}_arguments")(parser)
 
 
-def _shrink(args: argparse.Namespace, out: TextIO) -> int:
+def _sweep_command(command: str, args: argparse.Namespace, out: TextIO) -> int:
+    """Run the simulation's `command` (`sweep.run_<command>`), its extras checked first."""
     with needs("experiments", THIS_COMMAND):
         from rr_actors import simulation  # noqa: PLC0415 - its extra (greenlet): said at once
         from rr_actors.experiments import sweep  # noqa: PLC0415 - only experiments need it
     del simulation
-    return sweep.run_shrink(args, out)
+    code: int = getattr(sweep, f"run_{command}")(args, out)
+    return code
 
 
 _CHECK_HELP = "check a run's events against the semantic rules: a verdict per run"
@@ -616,8 +602,18 @@ COMMANDS: list[Command] = [
         _experiment,
     ),
     Command("check", _CHECK_HELP, _check_arguments, _check),
-    Command("replay", _REPLAY_HELP, _replay_arguments, _replay),
-    Command("shrink", _SHRINK_HELP, _shrink_arguments, _shrink),
+    Command(
+        "replay",
+        _REPLAY_HELP,
+        functools.partial(_sweep_arguments, "replay"),
+        functools.partial(_sweep_command, "replay"),
+    ),
+    Command(
+        "shrink",
+        _SHRINK_HELP,
+        functools.partial(_sweep_arguments, "shrink"),
+        functools.partial(_sweep_command, "shrink"),
+    ),
     Command("certs", _CERTS_HELP, _certs_arguments, _certs),
 ]
 """The subcommands, in the order `--help` lists them."""
