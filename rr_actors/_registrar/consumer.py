@@ -26,7 +26,9 @@
    │       a restore listed, the client actors; Revoke, ResponseUpdated, set a callback;
    │       forget(id): the one place a held id goes (its QueryForgotten, then committed)
    ▼
- Releases  Release (the handle's unload) ─Unload─► provider ─► forget; a resource's
+ Releases  Release (the handle's unload) ─Unload─► provider ─► the statuses its answer
+   │       carries (on their way to the id, maybe overtaken: rule 9) delivered as their
+   │       StatusNotices ─► forget ─► answered once their callbacks ran; a resource's
    │       dependencies (`provider.py`'s teardown) the same way; the provider died or
    │       stopped meanwhile ─► unreleased: left out of its next Reconcile, so it
    │       releases them (its unload runs once); this registrar stops ─► its durable

@@ -13,6 +13,8 @@
    │               (a failure: its dependencies released, then it is forgotten, rule 4)
  Unload / Abandon ─► Unloading.release(id) ── its load under way? ─► give_up
    │                                    └── the last consumer id? ─► unload_resource
+   │     (an Unload's answer carries the statuses still on their way to that id:
+   │      `status.py`'s Unacknowledged, rule 9)
    ▼
  Teardown.unload_resource ─► its dependencies released (`consumer.py`'s Releases)
    ─RunUnload─► ServerActor ─► unload(request, response) ─► remove_resource: written

@@ -19,7 +19,9 @@ path to the top (rule 9, thesis 4.2.4).
  StatusNotice at a consumer ─► on_status_notice: each client's callback; a dependency ─►
    notify(its parent resource) ─► ... to the top
  acknowledgements: one SharedJoin per status, counted where they arrive; the last one
-   answers the sender
+   answers the sender; until its own comes, a status sent to another process waits in
+   Unacknowledged, by consumer id ─► taken by the answer to that id's Unload, which the
+   consumer delivers before it forgets the id (provider.py, consumer.py's Releases)
 ```
 
 A `FATAL` its provider sends about a resource marks it `failed` in the catalog first
@@ -29,15 +31,17 @@ a new resource, and the dead one stays with its consumers until they release it.
 provider hears it (`on_status`) and decides, repairs it or sends `FATAL` about it itself.
 
 A `send_status` is one event (a UUID): a callback reached twice through a diamond of
-dependencies runs once, and the desk delivers each (event, id) pair once, so a batch sent
-again after its relay failed does not run a callback twice. Callbacks run on worker
-threads, so a callback may call `call`, `unload` or `send_status` on any registrar
-without deadlock. The runner runs the callbacks of the whole process in the order they
-arrived, each consumer id's one at a time, on as few worker threads as keeps them going:
-one while each callback returns at once; another as soon as every one of them is inside
-a callback when more arrive (a callback that calls `send_status`), or once one has run a
-callback for `SLICE` seconds (a slow or hung callback holds its own thread, never the
-other consumers' callbacks, nor, after `SLICE`, its own next one). Each consumer
+dependencies runs once, and each (event, id) pair is delivered once in its process
+(`Desk.first_time`, asked as it is delivered: by the desk's direct path, by
+`on_status_notice`), so a batch sent again after its relay failed does not run a callback
+twice, nor does a status an `Unload`'s answer carried that had come its own way first.
+Callbacks run on worker threads, so a callback may call `call`, `unload` or `send_status`
+on any registrar without deadlock. The runner runs the callbacks of the whole process in
+the order they arrived, each consumer id's one at a time, on as few worker threads as
+keeps them going: one while each callback returns at once; another as soon as every one
+of them is inside a callback when more arrive (a callback that calls `send_status`), or
+once one has run a callback for `SLICE` seconds (a slow or hung callback holds its own
+thread, never the other consumers' callbacks, nor, after `SLICE`, its own next one). Each consumer
 registrar's actor is the only writer of what the desk reads of it (one dict assignment
 each, `consumer.py`'s `Holdings`); the desk reads single entries.
 """
