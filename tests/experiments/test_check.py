@@ -713,11 +713,13 @@ def _delivered(h: History) -> list[int]:
 def drop_delivery(h: History) -> History | None:
     """The last hop of a status a provider sent (or a consumer told itself) is lost.
 
-    Not a delivery to a consumer whose id was already released or forgotten when it came
-    (its release crossed the status): without that delivery the history reads as a
-    release that crossed a status no one owed it, which the checker cannot tell from a
-    lost one (semantics, rule 9, "Open"; a real run under load delivers such a status
-    now and then, the CI of 2026-11-24 saw one in the `resource` plan).
+    Not a delivery to a consumer whose id was already released at its provider or
+    forgotten when it came (its release crossed the status: the `Unload`'s answer carried
+    it, or the notice came between the two; semantics, rule 9): without that delivery the
+    history reads as a consumer that let its id go before the status's last delivery,
+    which `status-reached` excuses (it cannot tell a lost one from a release that crossed
+    the status). A real run under load delivers such a status now and then (the CI of
+    2026-11-24 saw one in the `resource` plan).
     """
     left: set[str] = set()  # ids released at their provider or forgotten so far
     found = []
