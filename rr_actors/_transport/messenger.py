@@ -454,9 +454,9 @@ def send_when_served(peer: Remote, lanes: Lanes, message: Any) -> None:
     It is framed here and queued on the name's lane, in order with what is sent to that
     name after it; there the network is asked (`Lanes.found`), then the frame is sent
     to the server found, or its reply fails: `Lanes.unreached` if nobody serves the
-    name, `RegistrarUnavailableError` if the network could not tell in time (then what
-    waits behind it on the lane fails with the same error, after it: messages told to
-    a name not served yet are delivered in order once it is, or refused in order),
+    name, `RegistrarUnavailableError` if the network could not tell in time, and then
+    what waits behind it on the lane fails after it with the same error (messages told
+    to a name not served yet are delivered in order once it is, or refused in order);
     `MessageTooLargeError` if it is over that server's `max_message_bytes`. A message
     without a reply is then dropped (logged at debug level), as the registrar drops one
     that cannot be sent at once.
