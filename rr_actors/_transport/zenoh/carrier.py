@@ -44,12 +44,13 @@ network; what this process's presence heard decides:
 - a name never heard of, or heard to die (a restart may be served already, its token
   still on its way here): its peer comes at once and each message to it is sent when
   served (`messenger.send_when_served`): framed, and queued on the name's outbox (its
-  lane); the writer thread asks the network, then puts it to the server found, or fails
-  its reply (`UnknownRegistrarError`, or `RegistrarUnavailableError` for one that died,
-  or when the network did not answer in full), then what waits behind it with the same
-  error. One queue per name keeps the order of what this process sends to it, before
-  and after it is seen served (a message sent once it is seen goes on that queue too,
-  behind those still held there).
+  lane); the writer thread asks the network (an answer that names no server is asked
+  again for a while: Zenoh's can be empty at once while the router holds the token),
+  then puts it to the server found, or fails its reply (`UnknownRegistrarError`, or
+  `RegistrarUnavailableError` for one that died, or when the network did not answer in
+  full), then what waits behind it with the same error. One queue per name keeps the
+  order of what this process sends to it, before and after it is seen served (a
+  message sent once it is seen goes on that queue too, behind those still held there).
 
 Why not trust the tables alone: they may lag the network (a consumer's first call, or
 a restarted provider's `ReconcileAsk`, can overtake its token here, and the answer, the
@@ -509,7 +510,8 @@ class ZenohCarrier:
 
     def found(self, name: str, lane: Lane) -> _Route | RrError:
         """On `lane`'s writer thread (the name's outbox): the server of `name`, asked of
-        the network if none is seen; else the error of a message to it: nobody serves
+        the network if none is seen (an answer that names none is asked again for a
+        while: `question_until_seen`); else the error of a message to it: nobody serves
         it (`unreached`), or the network did not answer in full (`question`: a timeout,
         a router that does not answer), so nobody can tell: `RegistrarUnavailableError`,
         as `knows` says on a user's thread. (The messenger then retires the outbox:
@@ -519,7 +521,7 @@ class ZenohCarrier:
         server = presence.server(name)
         why = None
         if server is None and not self.closed and presence.gone(name) != "stopped":
-            why = presence.question(name)
+            why = presence.question_until_seen(name)  # (an empty answer, asked again)
             server = presence.server(name)
         assert isinstance(lane, Outbox)
         outbox = lane
