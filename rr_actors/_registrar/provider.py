@@ -782,7 +782,9 @@ class ServerActor(Actor):
         self.unload = unload
         self.workers = workers
         self.on_loop = is_coroutine_function(load), is_coroutine_function(unload)
-        self.tasks: set[asyncio.Task[None]] = set()  # its coroutines running (loop thread)
+        # its coroutines running (loop thread), in the order they started (a dict: a set
+        # would cancel them in address order at a stop, which no replay repeats)
+        self.tasks: dict[asyncio.Task[None], None] = {}
 
     def on_receive(self, message: Any) -> None:
         if isinstance(message, RunLoad) and self.on_loop[0]:
@@ -830,8 +832,8 @@ class ServerActor(Actor):
 
         def start() -> None:
             task = asyncio.get_running_loop().create_task(coroutine)
-            tasks.add(task)
-            task.add_done_callback(tasks.discard)
+            tasks[task] = None
+            task.add_done_callback(lambda done: tasks.pop(done, None))
 
         process_loop().call_soon_threadsafe(start)
 

@@ -25,7 +25,8 @@ served here, and a link back to the process a message came from (`Carrier`):
         False (the route went): forget the reply, route.broken(), once more or gone()
  on an actor's thread, to a name a carrier has to ask the network for (its `Lanes`):
    send_when_served(): encode here; on the name's lane (a carrier's thread, in order
-   with what follows): lanes.found(name)? check size, expect, send now : fail the reply
+   with what follows): lanes.found(name)? check size, expect, send now : fail the reply,
+   then lanes.retire(lane): what waits behind it fails after it, with its error
  Remote.run(fn) ─► submit(fn): tell(Run(fn, reply)) ─► wait (an event loop awaits it)
 
  receiving (the carrier's receiving thread calls the messenger)
@@ -201,6 +202,10 @@ class Lane(Protocol):
     """A carrier's ordered queue to one name, with a thread that may wait on the network
     (Zenoh's outbox of a registrar's key): "send when served" runs there."""
 
+    refusal: RrError | None
+    """Why it was retired (`Lanes.retire`): the error of every message that waited on it
+    (`None` while open, or once closed for another reason)."""
+
     def run(self, task: Callable[[], None]) -> bool:
         """Run `task` on the lane's thread, in order with what is sent to the name; False
         if the lane is closed. If it closes before `task` ran, `task.dropped()` runs."""
@@ -219,10 +224,16 @@ class Lanes(Protocol):
         """The lane of `name` (`None`: this process left the system)."""
         ...
 
-    def found(self, name: str, lane: Lane) -> Route | None:
+    def found(self, name: str, lane: Lane) -> Route | RrError:
         """On `lane`'s thread: ask the network for the server of `name` (bounded); its
-        route, whose `send` sends at once on this thread; `None` if nobody serves it
-        (the lane is then retired: what waits behind fails too)."""
+        route, whose `send` sends at once on this thread; else the error of the messages
+        held for it: nobody serves it (`unreached`), or the network could not tell in
+        time (`RegistrarUnavailableError`). The lane is then retired (`retire`)."""
+        ...
+
+    def retire(self, lane: Lane, error: RrError) -> None:
+        """On `lane`'s thread, after its message failed with `error`: the lane is nobody's
+        from now on, and what waits on it fails with `error` too, in order (`refusal`)."""
         ...
 
     def unreached(self, name: str) -> RrError:
@@ -443,9 +454,12 @@ def send_when_served(peer: Remote, lanes: Lanes, message: Any) -> None:
     It is framed here and queued on the name's lane, in order with what is sent to that
     name after it; there the network is asked (`Lanes.found`), then the frame is sent
     to the server found, or its reply fails: `Lanes.unreached` if nobody serves the
-    name, `MessageTooLargeError` if it is over that server's `max_message_bytes`. A
-    message without a reply is then dropped (logged at debug level), as the registrar
-    drops one that cannot be sent at once.
+    name, `RegistrarUnavailableError` if the network could not tell in time, and then
+    what waits behind it on the lane fails after it with the same error (messages told
+    to a name not served yet are delivered in order once it is, or refused in order);
+    `MessageTooLargeError` if it is over that server's `max_message_bytes`. A message
+    without a reply is then dropped (logged at debug level), as the registrar drops one
+    that cannot be sent at once.
 
     Raises:
         ConfigError: the message cannot be pickled.
@@ -476,8 +490,9 @@ class _WhenServed:
         """On the lane's thread: find the server, then send (or fail the reply)."""
         peer, outgoing = self.peer, self.outgoing
         route = self.lanes.found(peer.name, self.lane)
-        if route is None:
-            _unsent(outgoing, self.lanes.unreached(peer.name))
+        if isinstance(route, RrError):  # this one fails first, then what waits behind it:
+            _unsent(outgoing, route)  # refused in the order told, never a later one first
+            self.lanes.retire(self.lane, route)
             return
         try:
             check_size(outgoing, peer.name, route.limit)
@@ -492,8 +507,9 @@ class _WhenServed:
             _unsent(outgoing, peer.gone())
 
     def dropped(self) -> None:
-        """The lane closed before it ran: its reply fails (nothing was sent)."""
-        _unsent(self.outgoing, self.lanes.unreached(self.peer.name))
+        """The lane closed before it ran: its reply fails (nothing was sent), with the
+        error of the message before it if the lane was retired."""
+        _unsent(self.outgoing, self.lane.refusal or self.lanes.unreached(self.peer.name))
 
 
 def _unsent(outgoing: Outgoing, error: RrError) -> None:
