@@ -31,12 +31,12 @@ that CPU then too):
     python benchmarks/bench_simulation.py --seeds 1-3 --no-real --profile /tmp/sim.prof
     python benchmarks/bench_simulation.py --seeds 1-3 --no-real --sample /tmp/sim.folded
 
-`--sample` records where the CPU time goes in every thread but the caller's (the
-simulation's), by CPU time (`SIGPROF`, one sample a millisecond of CPU): a sampler of
-wall time (py-spy) charges a loaded machine's waits to the system calls they follow (the
-backups' `stat`, `pread` and commits), by 2x or more. Its file has one folded stack a
-line with its count (`a;b;c 12`, as `py-spy record -f raw`: flamegraph.pl reads it);
-the script prints the functions with the most samples, and the files.
+`--sample` records where the seeds' CPU time goes (the simulation, its history and its
+verdict), one sample a tick of the process's CPU time (`SIGPROF`; 1-4 ms), so the waits
+of a loaded machine count for nothing, unlike a sampler of wall time (py-spy, whose
+shares they blur). Its file has one folded stack a line with its count (`a;b;c 12`, as
+`py-spy record -f raw`: flamegraph.pl reads it); the script prints the functions with
+the most samples, and the files.
 """
 
 from __future__ import annotations
