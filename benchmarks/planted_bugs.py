@@ -142,6 +142,16 @@ PLANTS = (
         "simchain",
         "dedup",
     ),
+    Plant(
+        "heal-no-yield",
+        "two servers of one name after a healed cut: the one served later never gives way "
+        "(rule 22; the reverse of the merge fa1549b, in the decision every carrier runs)",
+        "_transport/messenger.py",
+        "        if not isinstance(local, Ranked) or rival.rank > local.rank:\n",
+        "        if True:  # PLANTED: not isinstance(local, Ranked) or rival.rank > local.rank\n",
+        "simheal",
+        "one-name",
+    ),
 )
 """The planted bugs, one at a time (docs/performance.md lists them)."""
 

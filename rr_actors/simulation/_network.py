@@ -47,7 +47,7 @@ import logging
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from rr_actors._core.hlc import CLOCK
+from rr_actors._core.hlc import CLOCK, from_seconds
 from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import split_frame
 from rr_actors._transport.messenger import Lost, Messenger, Replies, kept, rank, run_lost
@@ -260,7 +260,9 @@ class _Server(_Served):
     def __init__(self, hub: _SimulatedHub, endpoint: Endpoint, process: Process) -> None:
         self.process = process  # (before the delivery thread: it is the process's)
         super().__init__(hub, endpoint, hub.messenger)
-        self.stamp = CLOCK.now()  # (on its process's thread: its process's clock)
+        # its process's clock read (on its thread), not ticked: a reading is no event, and
+        # the histories of runs without a second server stay as they were
+        self.stamp = max(CLOCK.last, from_seconds(CLOCK.wall()))
 
     @property
     def who(self) -> str:
@@ -282,7 +284,8 @@ class _SimulatedHub(_Hub):
         self.sched: Scheduler = running_scheduler()
         self.delay = messenger.delay
         self.network = messenger
-        self._links: dict[tuple[int, _Server], _Link] = {}  # (sender's pid, server) -> ...
+        self._links: dict[tuple[int, str], _Link] = {}  # (sender's pid, name) -> its link
+        self._aside: list[_Link] = []  # links left for another server of their name, open
         self._servers: dict[str, list[_Server]] = {}  # name -> its servers: one a side
         self._side: frozenset[int] | None = None  # the pids cut off the others
         self._silent: set[str] = set()  # names served by a process silent past its lease
@@ -341,9 +344,11 @@ class _SimulatedHub(_Hub):
         near = [one for one in servers if not self._across(one, sender)]
         served = kept(near or servers)
         assert served is not None
-        link = self._links.get((sender.pid, served))
-        if link is None or link.closed:
-            link = self._links[sender.pid, served] = _Link(self, sender, served)
+        link = self._links.get((sender.pid, name))
+        if link is None or link.served is not served or link.closed:
+            if link is not None and not link.closed:  # (to the other server of the name,
+                self._aside.append(link)  # which serves on: what waits on it waits on)
+            link = self._links[sender.pid, name] = _Link(self, sender, served)
             until, count = self.duplicate.get(name, (-1.0, None))
             link.twice = count if self.sched.now < until else None
         if name in self._silent:
@@ -374,24 +379,28 @@ class _SimulatedHub(_Hub):
         return link.answer(data, on_lost)
 
     def end(self, served: _Served, how: str, error: RrError | None = None) -> None:
-        super().end(served, how, error)
         name = served.name
-        with self._lock:
-            rest = [one for one in self._servers.pop(name, []) if one is not served]
-            if rest:  # (the name is served on: by the one beyond a cut, or kept)
-                self._servers[name] = rest
-                self._served[name] = rest[-1]
-                self._gone.pop(name, None)
+        # (first, and without a lock: no choice point lets a `listen` see it served)
+        rest = [one for one in self._servers.pop(name, []) if one is not served]
+        if rest:
+            self._servers[name] = rest
+        super().end(served, how, error)
+        rest = self._servers.get(name, [])
+        if rest:  # (the name is served on: by the one beyond a cut, or kept, or new)
+            self._served[name] = rest[-1]
+            self._gone.pop(name, None)
         failed = error or self.gone_error(name)
-        for key, link in list(self._links.items()):
-            if link.served is served:
-                del self._links[key]
-                if not link.closed:
-                    link.close(failed)
+        for link in self._every_link():
+            if link.served is served and not link.closed:
+                link.close(failed)
+        self._aside = [link for link in self._aside if not link.closed]
+
+    def _every_link(self) -> list[_Link]:
+        return [*self._links.values(), *self._aside]
 
     def cut_connections(self, pid: int) -> int:
         cut = 0
-        for link in list(self._links.values()):
+        for link in self._every_link():
             if link.closed or pid not in (link.sender.pid, served_by(link.served).pid):
                 continue
             link.sever()
@@ -407,7 +416,7 @@ class _SimulatedHub(_Hub):
 
     def partition(self, side: frozenset[int]) -> None:
         self._side = side
-        for link in list(self._links.values()):
+        for link in self._every_link():
             if not link.closed and self.apart(link):
                 name = link.served.endpoint.name
                 link.close(RegistrarUnavailableError(f"registrar {name!r} cannot be reached (cut)"))
@@ -470,7 +479,7 @@ class _SimulatedHub(_Hub):
                         f"registrar {name!r} cannot be reached (its process is silent past "
                         f"its lease, {lease:g} s)"
                     )
-                    for link in list(self._links.values()):
+                    for link in self._every_link():
                         if link.served is served and not link.closed:
                             link.close(error)
                 elif not silent and name in self._silent:
