@@ -187,17 +187,20 @@ def _one_name_rule(history: Sequence[Line], lives: dict[tuple[str, int], Life]) 
     for name, life in lives:
         latest[name] = max(latest.get(name, 0), life)
 
-    def to_the_end(name: str, life: int) -> bool:
-        record = lives[name, life]
+    def to_the_end(name: str) -> Life | None:
+        """The last life of `name` if it served to the end of the run."""
+        record = lives[name, latest[name]]
         reason = exits.get((name.partition("@")[0], record.pid))
-        return latest[name] == life and reason in (None, "shutdown")
+        return record if reason in (None, "shutdown") else None
 
     findings = []
     for (name, life), record in lives.items():
-        if record.beside is None or not to_the_end(name, life) or not to_the_end(*record.beside):
+        if record.beside is None or latest[name] != life or to_the_end(name) is None:
             continue
-        other = lives[record.beside]
         base = record.beside[0]
+        other = to_the_end(base)  # (the one it served beside, or its restart)
+        if other is None:
+            continue
         findings.append(
             Finding(
                 "one-name",
