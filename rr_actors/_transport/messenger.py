@@ -60,10 +60,10 @@ from __future__ import annotations
 
 import abc
 import contextlib
+import datetime
 import itertools
 import logging
 import pickle
-import time
 from collections.abc import Callable, Iterable
 from typing import Any, NamedTuple, Protocol, TypeVar, runtime_checkable
 
@@ -311,8 +311,8 @@ def kept(servers: Iterable[R]) -> R | None:
 
 def when(stamp: int) -> str:
     """A registration stamp as people read it: UTC, to the microsecond."""
-    at = seconds(stamp)
-    return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(at)) + f".{int(at % 1 * 1e6):06d} UTC"
+    at = datetime.datetime.fromtimestamp(seconds(stamp), datetime.UTC)
+    return at.strftime("%Y-%m-%d %H:%M:%S.%f UTC")
 
 
 class Remote(abc.ABC):
