@@ -56,7 +56,7 @@ FaultKind = Literal[
 
 FAULT_KINDS: tuple[FaultKind, ...] = typing.get_args(FaultKind)  # every kind a plan may name
 HOST_KINDS = frozenset({"cut", "partition", "freeze", "kill_router"})  # act between hosts
-SIMULATION_KINDS = frozenset(  # aimed at a point only a simulation can stop at (--simulate)
+SIMULATION_KINDS = frozenset(  # aimed where only a simulation can stop or reach (--simulate)
     {
         "duplicate_delivery",
         "kill_before_answer",

@@ -10,8 +10,8 @@
                the injector: fault_schedule(plan, S) on simulated processes and links   │
                  (SimulatedFaults, _simulated_faults.py), `after` ones from the events  │
                sleep(duration); faults stop; wait_all_serving; clients stop;            │
-               count_entries (the runner's settling); flush; sup.stop(); the           │
-               injector's close (the supervisors of `split_brain`'s second servers)    │
+               count_entries (the runner's settling); flush; sup.stop(); the            │
+               injector's close (the supervisors of `split_brain`'s second servers)     │
    ◄── the events, the fault records, t0 ◄──────────────────────────────────────────────┘
    history = events.jsonl's text (the runner's lines: `at` in virtual seconds, pids the
              simulated ones, `run` = 1, `seed` = S) + the fault lines
