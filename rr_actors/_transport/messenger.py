@@ -133,7 +133,7 @@ class Carrier(Protocol):
     registrar served here (`Messenger.message`, `oversized`), an answer (the route's
     `pending`: `Replies.answered`, `too_large`, `refused`), a route or a server gone
     (`Replies.fail`), and its liveliness reports (`Messenger.lost`, `reachable`,
-    `give_way`), each with the evidence it has."""
+    `served_elsewhere`), each with the evidence it has."""
 
     def knows(self, name: str) -> bool:
         """Whether registrar `name` of another process is served on the system, or was
