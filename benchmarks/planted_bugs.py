@@ -38,7 +38,9 @@ temporary manager lost for good: a `FATAL` climbing a dependency path) and `simr
 (one manager killed every 0.1-0.3 s while four clients call it back to back: retries
 through restarts, racing the clients' reconciles). The retry plant was not found in 300
 seeds of `simchain`: its window needs a `Load` on its way when the provider dies and
-its retry answered before the client's actor handles the reconcile's answer.
+its retry answered before the client's actor handles the reconcile's answer. A third,
+`simheal`, serves `db` on both sides of a cut (the sim-only fault `split_brain`) for
+the plant `heal-no-yield` (rule 22: the one served later never gives way).
 """
 
 from __future__ import annotations
@@ -141,6 +143,16 @@ PLANTS = (
         "            if digest",
         "simchain",
         "dedup",
+    ),
+    Plant(
+        "heal-no-yield",
+        "two servers of one name after a healed cut: the one served later never gives way "
+        "(rule 22; the reverse of the merge fa1549b, in the decision every carrier runs)",
+        "_transport/messenger.py",
+        "        if not isinstance(local, Ranked) or rival.rank > local.rank:\n",
+        "        if True:  # PLANTED: not isinstance(local, Ranked) or rival.rank > local.rank\n",
+        "simheal",
+        "one-name",
     ),
 )
 """The planted bugs, one at a time (docs/performance.md lists them)."""

@@ -42,9 +42,11 @@ served here, and a link back to the process a message came from (`Carrier`):
  a registrar lost for good / reachable again ─► Messenger.lost / reachable: the
    process's membership (`_core/membership.py`) records it and every registrar served
    here hears it (rule 19, rule 20)
- another process's server of a name served here is kept (rule 22) ─► give_way:
-   stop serving it, the registrar yields its name; at its end, its consumers here
-   reconcile with the one kept (`reachable`)
+ another process serves a name served here too (rule 22) ─► served_elsewhere(name,
+   rival): the decision, once for every carrier (the one served first is kept:
+   `rank`, `kept`); this one not kept ─► give_way: stop serving it, the registrar
+   yields its name; at its end, its consumers here reconcile with the one kept
+   (`reachable`)
 ```
 
 Carriers: `unix/` (a route is one connection; answers go back on the connection a
@@ -59,14 +61,16 @@ from __future__ import annotations
 
 import abc
 import contextlib
+import datetime
 import itertools
 import logging
 import pickle
-from collections.abc import Callable
-from typing import Any, NamedTuple, Protocol
+from collections.abc import Callable, Iterable
+from typing import Any, NamedTuple, Protocol, TypeVar, runtime_checkable
 
 from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY, Peer, Reply
+from rr_actors._core.hlc import seconds
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._transport.base import Endpoint
@@ -92,13 +96,17 @@ __all__ = [
     "Lost",
     "Messenger",
     "Outgoing",
+    "Ranked",
     "Remote",
     "Replies",
     "Route",
     "StandIn",
+    "kept",
+    "rank",
     "run_lost",
     "send",
     "send_when_served",
+    "when",
 ]
 
 logger = logging.getLogger("rr_actors")
@@ -126,7 +134,7 @@ class Carrier(Protocol):
     registrar served here (`Messenger.message`, `oversized`), an answer (the route's
     `pending`: `Replies.answered`, `too_large`, `refused`), a route or a server gone
     (`Replies.fail`), and its liveliness reports (`Messenger.lost`, `reachable`,
-    `give_way`), each with the evidence it has."""
+    `served_elsewhere`), each with the evidence it has."""
 
     def knows(self, name: str) -> bool:
         """Whether registrar `name` of another process is served on the system, or was
@@ -271,6 +279,51 @@ class Listening(abc.ABC):
 
     def forget_in_child(self) -> None:  # noqa: B027 - a hook: most carriers need nothing
         """In a forked child: let go of the parent's listener without touching it."""
+
+
+# -- rule 22: two servers of one name ---------------------------------------------------------
+
+
+@runtime_checkable
+class Ranked(Protocol):
+    """A server of a name as rule 22 orders it: a carrier's view of a registrar served
+    here (its `Listening`) or in another process."""
+
+    @property
+    def stamp(self) -> int:
+        """When it began to serve (a `_core.hlc` stamp)."""
+        ...
+
+    @property
+    def who(self) -> str:
+        """Its process as the carrier names it (a Zenoh id, a simulated pid)."""
+        ...
+
+    @property
+    def rank(self) -> tuple[int, int]:
+        """Its place in rule 22's order (`rank`)."""
+        ...
+
+
+R = TypeVar("R", bound=Ranked)
+
+
+def rank(stamp: int, process: int) -> tuple[int, int]:
+    """The place in rule 22's order of a server since `stamp` in process `process` (its
+    id as a number): of two servers of one name, the lower is kept (the earlier stamp;
+    of equal stamps, the lower process id, as claims tie-break)."""
+    return (stamp, process)
+
+
+def kept(servers: Iterable[R]) -> R | None:
+    """Which of the servers of one name is kept (rule 22: the lowest `rank`)."""
+    return min(servers, key=lambda server: server.rank, default=None)
+
+
+def when(stamp: int) -> str:
+    """A registration stamp as people read it: UTC, to the microsecond."""
+    at = datetime.datetime.fromtimestamp(seconds(stamp), datetime.UTC)
+    return at.strftime("%Y-%m-%d %H:%M:%S.%f UTC")
 
 
 class Remote(abc.ABC):
@@ -798,6 +851,22 @@ class Messenger:
             reason,
         )
         listening.endpoint.yield_name(reason)
+
+    def served_elsewhere(self, name: str, rival: Ranked) -> None:
+        """Another process serves registrar `name` too (its carrier sees both, rule 22):
+        if this process serves it and rule 22 keeps `rival` (served first, by its clock
+        stamp; of equal stamps, the lower process id), this one gives way (`give_way`).
+        The process of the one kept does nothing: this one sees it too, and yields."""
+        local = self.serving(name)
+        if not isinstance(local, Ranked) or rival.rank > local.rank:
+            return
+        self.give_way(
+            local,
+            f"registrar {name!r} of system {self.system!r} is served by process "
+            f"{rival.who} too, since {when(rival.stamp)}, before this one "
+            f"(process {local.who}, since {when(local.stamp)}): one name is one "
+            f"registrar (rule 22), and the one served first is kept",
+        )
 
     def lost(self, name: str) -> None:
         """Registrar `name` is gone for good (rule 19): this process's membership records it

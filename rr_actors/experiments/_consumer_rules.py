@@ -118,10 +118,16 @@ def reported_lost(
     cut link counts as lost: the provider may run on over there).
     """
     findings: list[Finding] = []
+    seconds: dict[str, list[Life]] = defaultdict(list)  # name -> lives of second servers
+    for life in lives.values():
+        if life.beside is not None:
+            seconds[life.beside[0]].append(life)
     for line, event in history:
         if not isinstance(event, events.QueryForgotten) or event.reason not in REPORTED:
             continue
         provider, qid, stamp = event.serving_rr, event.query_id, event.hlc
+        if any(s.start <= stamp and not s.ended_before(stamp) for s in seconds[provider]):
+            continue  # (two served the name, behind a cut: either may have answered)
         for holding in holdings.get((provider, qid), ()):
             if holding.since >= stamp or (holding.until is not None and holding.until <= stamp):
                 continue

@@ -73,7 +73,8 @@ Through cuts and heals (rule 22): a name whose server went beyond a cut is lost 
 (rule 19), and may be served on this side; once the link heals, both registrars' tokens
 are seen everywhere. Each carries the clock stamp of when it began to serve: the one
 served first is kept, and the process that serves the other makes it yield
-(`served_elsewhere` ─► `Messenger.give_way`): ERROR, its subscriber and token go, it
+(`served_elsewhere` ─► `Messenger.served_elsewhere`, the decision every carrier
+runs, ─► `Messenger.give_way`): ERROR, its subscriber and token go, it
 unloads what it serves and stops; its consumers, wherever they are, reconcile with the
 one kept (rule 20).
 """
@@ -100,12 +101,13 @@ from rr_actors._transport.messenger import (
     Lost,
     Messenger,
     Remote,
+    rank,
     send,
     send_when_served,
 )
 from rr_actors._transport.zenoh.link import DRAIN_TIMEOUT, Inbox, Outbox, Outboxes
 from rr_actors._transport.zenoh.ops.events import EventExport
-from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence, Server, rank, when
+from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence, Server
 from rr_actors._transport.zenoh.wire import (
     ANSWER,
     MESSAGE,
@@ -203,6 +205,16 @@ class Local(Listening):
         self.token: Any = None
         self.token_key = ""
         self.stamp = 0
+
+    @property
+    def who(self) -> str:
+        """This process: its Zenoh id (`Ranked`)."""
+        return self.carrier.zid
+
+    @property
+    def rank(self) -> tuple[int, int]:
+        """Its place in rule 22's order (`messenger.rank`; the Zenoh id as a number)."""
+        return rank(self.stamp, int(self.carrier.zid, 16))
 
     def settle(self) -> None:
         """A rival heard between its turn and now is settled (rule 22); return once the
@@ -429,21 +441,10 @@ class ZenohCarrier:
             )
 
     def served_elsewhere(self, name: str, server: Server) -> None:
-        """Another process serves registrar `name` (the presence thread): if this process
-        serves it too and rule 22 keeps the other one (registered first, by its clock
-        stamp; of equal stamps, the lower Zenoh id), this one gives way
-        (`Messenger.give_way`). The process of the one kept does nothing: this one sees
-        it too, and yields."""
-        local = self.messenger.serving(name)
-        if not isinstance(local, Local) or server.rank > rank(local.stamp, self.zid):
-            return
-        self.messenger.give_way(
-            local,
-            f"registrar {name!r} of system {self.system!r} is served by process "
-            f"{server.zid} too, since {when(server.stamp)}, before this one "
-            f"(process {self.zid}, since {when(local.stamp)}): one name is one registrar "
-            f"(rule 22), and the one served first is kept",
-        )
+        """Another process serves registrar `name` (the presence thread): the messenger
+        decides, as for every carrier, whether one served here gives way to it
+        (`Messenger.served_elsewhere`, rule 22)."""
+        self.messenger.served_elsewhere(name, server)
 
     # -- sending -------------------------------------------------------------------------
 
