@@ -46,7 +46,9 @@ what cannot be checked):
 - `reported-lost`: a consumer tells itself `FATAL` (`provider lost`, `unknown at
   reconcile`) only for an id its provider lost: not one the provider's life that
   answered (or ran on, on the same host) had added and not released.
-- `end`: nothing is held at the end by a consumer that stopped (`RegistrarStopped`).
+- `end`: nothing is held at the end by a consumer that stopped (`RegistrarStopped`): a
+  provider's life holds what its `CatalogRestored` listed (nothing without a backup) and
+  what it added since.
 - `events`: no event was lost (an `EventsDropped`, a gap in a process's `seq`); a loss
   makes the findings about the registrars of that process unverifiable.
 
@@ -201,7 +203,7 @@ def check(history: Sequence[Line]) -> Verdict:
         *_status_rules.status_path(history, facts),
         *answered,
         *_consumer_rules.reported_lost(history, providers.holdings, lives),
-        *_consumer_rules.end(history),
+        *_consumer_rules.end(steps, history),
     ]
     findings = [
         dataclasses.replace(f, kind="unverifiable", message=f"{f.message} (events were lost)")

@@ -468,6 +468,62 @@ def test_a_status_whose_sender_died_before_it_sent_it_on_reaches_nobody() -> Non
     assert "status-reached" not in {f.rule for f in verdict.findings}, verdict.findings
 
 
+# -- `end` across a provider's restart: what its new life holds ------------------------------
+
+
+def without_backup(pid: int = P + 1) -> list[events.Event]:
+    """erm (no backup) serves cm's Q1 and is killed; its restart (`pid`) forgets Q1, serves
+    Q2; cm is told Q1 is lost at its reconcile (rule 20), releases Q2, stops; erm stops."""
+    return _stamped(
+        [
+            events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=1),
+            events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=2),
+            events.CallAnswered("cm", Q1, "erm", "cam", pid=C),
+            events.ChildExited("sup", "erm", P, "killed by SIGKILL"),
+            events.ResourceLoaded("erm", "cam", RID2, Q2, 0.01, 7, "cam 1", pid=pid, seq=3),
+            events.ConsumerAdded("erm", RID2, Q2, "cm", pid=pid, seq=4),
+            events.CallAnswered("cm", Q2, "erm", "cam", pid=C),
+            events.StatusDelivered("cm", Q1, rr.Status.FATAL, 1, 0.0, "s9", pid=C),
+            events.QueryForgotten("cm", Q1, "erm", "unknown at reconcile", pid=C),
+            events.ConsumerReleased("erm", RID2, Q2, "cm", pid=pid, seq=5),
+            events.ResourceUnloaded("erm", "cam", RID2, pid=pid, seq=6),
+            events.QueryForgotten("cm", Q2, "erm", "unload", pid=C),
+            events.RegistrarStopped("cm", (), (), (), pid=C),
+            events.RegistrarStopped("erm", (), (), (), pid=pid, seq=7),
+        ]
+    )
+
+
+@pytest.mark.parametrize("pid", [P + 1, P], ids=["new process", "same process"])
+def test_a_restart_without_a_backup_forgets_what_its_last_life_held(pid: int) -> None:
+    # a new process (a process manager), or the same one after its ChildExited (a thread
+    # manager): either way a new life with an empty catalog, not still holding Q1
+    verdict = check.check(numbered(without_backup(pid)))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def test_an_id_the_new_life_holds_after_a_restart_without_a_backup_is_still_an_end() -> None:
+    h = without_backup()
+    # Q2, added by the restarted erm: cm gave it back, erm never released it
+    kept = renumbered(_without(h, 9, 10, 13))
+    assert {6, 11} == _found(kept, "end")
+    assert ["end"] == [f.rule for f in check.check(numbered(kept)).findings]
+
+
+def test_a_restart_with_a_restore_holds_what_the_restore_lists() -> None:
+    h = without_backup()
+    # erm has a backup: its restart lists Q1 again, and nobody releases it
+    restored = events.CatalogRestored(
+        "erm", ((RID, "cam", "loaded", "42", ""),), ((Q1, RID, "cm"),), (), (1, 1, 0), pid=P + 1
+    )
+    first = events.CatalogRestored("erm", (), (), (), pid=P)
+    history = _stamped([first, *h[:4], restored, *h[4:7], *h[9:]])
+    assert {6, 13} == _found(history, "end")
+    # a restore that lists no ids (Q1 told lost at the reconcile) holds
+    empty = dataclasses.replace(restored, resources=(), consumers=(), counts=(0, 0, 0))
+    assert "held" == check.check(numbered(_stamped([first, *h[:4], empty, *h[4:]]))).verdict
+
+
 # -- mutations of the shipped plans' real runs: each is caught, by its rule ----------------
 #
 # A mutation turns a clean history into one where a registrar broke a rule (the events
