@@ -164,14 +164,14 @@ def end(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]:
             exited.setdefault((event.child, event.pid), line)
     held: dict[str, dict[str, tuple[str, int]]] = defaultdict(dict)  # provider -> qid -> ...
     for name, line, event, new, _life in steps:
+        if new:
+            stopped.pop(name, None)  # it came back
+            held[name].clear()  # (a restore lists what it holds again)
         if isinstance(event, events.RegistrarStopped):
             stopped[name] = line
             for qid, _rid, consumer, *_ in event.consumers:
                 held[name].setdefault(qid, (consumer, line))
             continue
-        if new:
-            stopped.pop(name, None)  # it came back
-            held[name].clear()  # (a restore lists what it holds again)
         last_pid[name] = event.pid
         if isinstance(event, events.CatalogRestored):
             held[name] = {qid: (c, line) for qid, _rid, c, *_ in event.consumers}

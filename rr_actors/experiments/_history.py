@@ -113,7 +113,8 @@ def walk(history: Sequence[Line]) -> tuple[list[Step], dict[tuple[str, int], Lif
 
     A `StatusDelivered` belongs to the life its registrar is in and begins none (a
     process's status desk may publish it for a registrar, from another thread); a
-    `RegistrarStopped` ends its life.
+    `RegistrarStopped` ends its life, and begins one first if it comes from another
+    process (a restart without a backup that published nothing before its stop).
     """
     pids: dict[str, int] = {}
     current: dict[str, int] = {}  # registrar -> its life now
@@ -132,41 +133,38 @@ def walk(history: Sequence[Line]) -> tuple[list[Step], dict[tuple[str, int], Lif
         if name is None:
             continue
         stamp = event.hlc
-        if isinstance(event, events.StatusDelivered | events.RegistrarStopped):
-            record = now.get(name)
-            if record is None:
-                current[name] = 0
-                record = now[name] = lives[name, 0] = Life(stamp, stamp, line, host=event.host)
-            record.last = max(record.last, stamp)
-            record.last_line = line
-            if isinstance(event, events.RegistrarStopped):
-                if record.end is None:
-                    record.end = stamp
-                over.add(name)
-            steps.append((name, line, event, False, current[name]))
-            continue
+        stopping = isinstance(event, events.RegistrarStopped)
+        joining = stopping or isinstance(event, events.StatusDelivered)
         pid = pids.get(name)
-        if (
-            pid is None
-            or pid != event.pid
-            or name in over
-            or isinstance(event, events.CatalogRestored)
-        ):
-            life = current.get(name, -1) + 1
-            record = now.get(name)
+        if joining:  # (but a stop from another process: a restart that published only it)
+            new = stopping and pid is not None and pid != event.pid
+        else:
+            new = (
+                pid is None
+                or pid != event.pid
+                or name in over
+                or isinstance(event, events.CatalogRestored)
+            )
+        record = now.get(name)
+        if new or record is None:
             if record is not None and record.end is None:
                 record.end = stamp
-            current[name] = life
-            now[name] = lives[name, life] = Life(stamp, stamp, line, host=event.host)
+            current[name] = current.get(name, -1) + 1
+            record = now[name] = lives[name, current[name]] = Life(
+                stamp, stamp, line, host=event.host
+            )
             over.discard(name)
-            new = True
+            new = new or not joining
         else:
-            life = current[name]
-            record = now[name]
             record.last = max(record.last, stamp)
             record.last_line = line
-            new = False
-        pids[name] = event.pid
+        if not joining or new:
+            pids[name] = event.pid
+        if stopping:
+            if record.end is None:
+                record.end = stamp
+            over.add(name)
+        life = current[name]
         steps.append((name, line, event, new, life))
     return steps, lives
 
@@ -193,6 +191,8 @@ class Facts:
             to that registrar at that hop.
         lost: (provider, query id) its consumer reported lost itself (`REPORTED`).
         told_self: (line, consumer, query id) of each `QueryForgotten` of `REPORTED`.
+        outcomes: query id -> `(stamp, answered)` of each of its consumer's
+            `CallAnswered` (`True`) and `CallFailed` (`False`), in order.
     """
 
     with_backup: set[str] = dataclasses.field(default_factory=set)
@@ -209,6 +209,7 @@ class Facts:
     first_delivery: dict[tuple[str, str, int], int] = dataclasses.field(default_factory=dict)
     lost: set[tuple[str, str]] = dataclasses.field(default_factory=set)
     told_self: list[tuple[int, str, str]] = dataclasses.field(default_factory=list)
+    outcomes: dict[str, list[tuple[int, bool]]] = dataclasses.field(default_factory=dict)
 
 
 def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per event kind
@@ -231,6 +232,9 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
         elif isinstance(event, events.CallAnswered):
             if event.parent is not None:
                 facts.parent[event.registrar, event.query_id] = event.parent
+            facts.outcomes.setdefault(event.query_id, []).append((event.hlc, True))
+        elif isinstance(event, events.CallFailed):
+            facts.outcomes.setdefault(event.query_id, []).append((event.hlc, False))
         elif isinstance(event, events.QueryForgotten):
             facts.forgot.setdefault((event.serving_rr, event.query_id), event.hlc)
             if event.reason in REPORTED:

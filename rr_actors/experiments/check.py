@@ -19,7 +19,8 @@ what cannot be checked):
   (a `CatalogRestored` without it, or a restart without a backup), or a clean stop that
   does not list it, is a violation, unless, for a restart, its consumer had forgotten
   it before (`QueryForgotten`): a release committed just before a kill has no
-  `ConsumerReleased`, and the restore shows it.
+  `ConsumerReleased`, and the restore shows it; or, for a restart without a backup, its
+  call had failed for its caller (`CallFailed`: it holds no id).
 - `unload-once`: a resource is unloaded at most once, and only once its last consumer
   id was released; no consumer is added to a resource after its unload; no id is
   released that was not held.

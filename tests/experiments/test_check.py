@@ -510,6 +510,48 @@ def test_an_id_the_new_life_holds_after_a_restart_without_a_backup_is_still_an_e
     assert ["end"] == [f.rule for f in check.check(numbered(kept)).findings]
 
 
+def test_a_restart_without_a_backup_that_publishes_only_its_stop_holds_nothing() -> None:
+    # erm's last restart (another process) serves nothing before the run's end: its
+    # RegistrarStopped begins that life and lists nothing; cm was told Q1 is lost
+    h = without_backup()
+    late = [*h[:4], h[7], h[8], h[12], h[13]]
+    verdict = check.check(numbered(_stamped(late)))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    # cm never told: the restart lost Q1, found at the stop that shows the restart
+    assert {2, 6} == _found(_stamped([*h[:4], h[12], h[13]]), "kept")
+
+
+def _failed() -> events.CallFailed:
+    return events.CallFailed(
+        "cm", Q1, "erm", "cam", "RegistrarUnavailableError", "gone", True, pid=C
+    )
+
+
+@pytest.mark.parametrize("seen", ["before", "after"])
+def test_a_restart_without_a_backup_may_lose_an_id_whose_call_failed_for_its_caller(
+    seen: str,
+) -> None:
+    # erm committed Q1 and was killed before its answer left: cm's call failed (its
+    # caller holds no id, rule 17), seen before or after erm's restart began; the restart
+    # forgets Q1 and nobody is owed a FATAL
+    h = without_backup()
+    gone = [*h[:2], h[3], _failed(), *h[4:7], *h[9:]]
+    if seen == "after":
+        gone = [*h[:2], h[3], h[4], _failed(), *h[5:7], *h[9:]]
+    verdict = check.check(numbered(_stamped(gone)))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def test_an_answered_id_a_restart_without_a_backup_lost_is_owed_a_fatal() -> None:
+    h = without_backup()
+    silent = [*h[:7], *h[9:12], h[13]]  # cm never told; cm does not stop
+    assert {2, 5} == _found(_stamped(silent), "kept")
+    # a failed call, then its retry answered by the same life: held, and lost
+    retried = dataclasses.replace(h[2], retry=True)
+    again = [*h[:2], _failed(), retried, *h[3:7], *h[9:12], h[13]]
+    assert {2, 6} == _found(_stamped(again), "kept")
+
+
 def test_a_restart_with_a_restore_holds_what_the_restore_lists() -> None:
     h = without_backup()
     # erm has a backup: its restart lists Q1 again, and nobody releases it
