@@ -126,8 +126,9 @@ def walk(history: Sequence[Line]) -> tuple[list[Step], dict[tuple[str, int], Lif
 
     A `StatusDelivered` belongs to the life its registrar is in and begins none (a
     process's status desk may publish it for a registrar, from another thread); a
-    `RegistrarStopped` ends its life. The events of a second server of a name are
-    those of the registrar `<name>@<pid>`.
+    `RegistrarStopped` ends its life, and begins one first if it comes from another
+    process (a restart without a backup that published nothing before its stop). The
+    events of a second server of a name are those of the registrar `<name>@<pid>`.
     """
     walker = _Walk(history)
     for line, event in history:
@@ -195,21 +196,32 @@ class _Walk:
         self.steps.append((name, line, event, new, life))
 
     def ending(self, line: int, event: events.Event, name: str) -> None:
-        """A `StatusDelivered` (in its life) or a `RegistrarStopped` (its life ends)."""
+        """A `StatusDelivered` (in its life) or a `RegistrarStopped` (its life ends; from
+        another process it begins one first: a restart without a backup that published
+        nothing before its stop)."""
         stamp = event.hlc
+        stopping = isinstance(event, events.RegistrarStopped)
+        pid = self.pids.get(name)
+        new = stopping and pid is not None and pid != event.pid
         record = self.now.get(name)
-        if record is None:
-            self.current[name] = 0
-            record = self.now[name] = self.lives[name, 0] = Life(
+        if new or record is None:
+            if record is not None and record.end is None:
+                record.end = stamp
+            self.current[name] = self.current.get(name, -1) + 1
+            record = self.now[name] = self.lives[name, self.current[name]] = Life(
                 stamp, stamp, line, host=event.host, pid=event.pid, first_line=line
             )
-        record.last = max(record.last, stamp)
-        record.last_line = line
-        if isinstance(event, events.RegistrarStopped):
+            self.over.discard(name)
+            if new:
+                self.pids[name] = event.pid
+        else:
+            record.last = max(record.last, stamp)
+            record.last_line = line
+        if stopping:
             if record.end is None:
                 record.end = stamp
             self.over.add(name)
-        self.steps.append((name, line, event, False, self.current[name]))
+        self.steps.append((name, line, event, new, self.current[name]))
 
     def server(
         self, line: int, event: events.Event, name: str
@@ -251,6 +263,8 @@ class Facts:
             to that registrar at that hop.
         lost: (provider, query id) its consumer reported lost itself (`REPORTED`).
         told_self: (line, consumer, query id) of each `QueryForgotten` of `REPORTED`.
+        outcomes: query id -> `(stamp, answered)` of each of its consumer's
+            `CallAnswered` (`True`) and `CallFailed` (`False`), in order.
     """
 
     with_backup: set[str] = dataclasses.field(default_factory=set)
@@ -267,6 +281,7 @@ class Facts:
     first_delivery: dict[tuple[str, str, int], int] = dataclasses.field(default_factory=dict)
     lost: set[tuple[str, str]] = dataclasses.field(default_factory=set)
     told_self: list[tuple[int, str, str]] = dataclasses.field(default_factory=list)
+    outcomes: dict[str, list[tuple[int, bool]]] = dataclasses.field(default_factory=dict)
 
 
 def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per event kind
@@ -289,6 +304,9 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
         elif isinstance(event, events.CallAnswered):
             if event.parent is not None:
                 facts.parent[event.registrar, event.query_id] = event.parent
+            facts.outcomes.setdefault(event.query_id, []).append((event.hlc, True))
+        elif isinstance(event, events.CallFailed):
+            facts.outcomes.setdefault(event.query_id, []).append((event.hlc, False))
         elif isinstance(event, events.QueryForgotten):
             facts.forgot.setdefault((event.serving_rr, event.query_id), event.hlc)
             if event.reason in REPORTED:

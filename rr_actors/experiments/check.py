@@ -19,7 +19,8 @@ what cannot be checked):
   (a `CatalogRestored` without it, or a restart without a backup), or a clean stop that
   does not list it, is a violation, unless, for a restart, its consumer had forgotten
   it before (`QueryForgotten`): a release committed just before a kill has no
-  `ConsumerReleased`, and the restore shows it.
+  `ConsumerReleased`, and the restore shows it; or, for a restart without a backup, its
+  call had failed for its caller (`CallFailed`: it holds no id).
 - `unload-once`: a resource is unloaded at most once, and only once its last consumer
   id was released; no consumer is added to a resource after its unload; no id is
   released that was not held.
@@ -46,7 +47,9 @@ what cannot be checked):
 - `reported-lost`: a consumer tells itself `FATAL` (`provider lost`, `unknown at
   reconcile`) only for an id its provider lost: not one the provider's life that
   answered (or ran on, on the same host) had added and not released.
-- `end`: nothing is held at the end by a consumer that stopped (`RegistrarStopped`).
+- `end`: nothing is held at the end by a consumer that stopped (`RegistrarStopped`): a
+  provider's life holds what its `CatalogRestored` listed (nothing without a backup) and
+  what it added since.
 - `one-name` (rule 22): a second server of a name (a process whose events of a registrar
   begin while another one's life of it goes on: only a cut lets each side serve a name)
   yields once the cut heals; two that both serve to the end of the run (neither process
@@ -243,7 +246,7 @@ def check(history: Sequence[Line]) -> Verdict:
         *_status_rules.status_path(history, facts),
         *answered,
         *_consumer_rules.reported_lost(history, providers.holdings, lives),
-        *_consumer_rules.end(history),
+        *_consumer_rules.end(steps, history),
         *_one_name_rule(history, lives),
     ]
     findings = [

@@ -468,6 +468,104 @@ def test_a_status_whose_sender_died_before_it_sent_it_on_reaches_nobody() -> Non
     assert "status-reached" not in {f.rule for f in verdict.findings}, verdict.findings
 
 
+# -- `end` across a provider's restart: what its new life holds ------------------------------
+
+
+def without_backup(pid: int = P + 1) -> list[events.Event]:
+    """erm (no backup) serves cm's Q1 and is killed; its restart (`pid`) forgets Q1, serves
+    Q2; cm is told Q1 is lost at its reconcile (rule 20), releases Q2, stops; erm stops."""
+    return _stamped(
+        [
+            events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=1),
+            events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=2),
+            events.CallAnswered("cm", Q1, "erm", "cam", pid=C),
+            events.ChildExited("sup", "erm", P, "killed by SIGKILL"),
+            events.ResourceLoaded("erm", "cam", RID2, Q2, 0.01, 7, "cam 1", pid=pid, seq=3),
+            events.ConsumerAdded("erm", RID2, Q2, "cm", pid=pid, seq=4),
+            events.CallAnswered("cm", Q2, "erm", "cam", pid=C),
+            events.StatusDelivered("cm", Q1, rr.Status.FATAL, 1, 0.0, "s9", pid=C),
+            events.QueryForgotten("cm", Q1, "erm", "unknown at reconcile", pid=C),
+            events.ConsumerReleased("erm", RID2, Q2, "cm", pid=pid, seq=5),
+            events.ResourceUnloaded("erm", "cam", RID2, pid=pid, seq=6),
+            events.QueryForgotten("cm", Q2, "erm", "unload", pid=C),
+            events.RegistrarStopped("cm", (), (), (), pid=C),
+            events.RegistrarStopped("erm", (), (), (), pid=pid, seq=7),
+        ]
+    )
+
+
+@pytest.mark.parametrize("pid", [P + 1, P], ids=["new process", "same process"])
+def test_a_restart_without_a_backup_forgets_what_its_last_life_held(pid: int) -> None:
+    # a new process (a process manager), or the same one after its ChildExited (a thread
+    # manager): either way a new life with an empty catalog, not still holding Q1
+    verdict = check.check(numbered(without_backup(pid)))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def test_an_id_the_new_life_holds_after_a_restart_without_a_backup_is_still_an_end() -> None:
+    h = without_backup()
+    # Q2, added by the restarted erm: cm gave it back, erm never released it
+    kept = renumbered(_without(h, 9, 10, 13))
+    assert {6, 11} == _found(kept, "end")
+    assert ["end"] == [f.rule for f in check.check(numbered(kept)).findings]
+
+
+def test_a_restart_without_a_backup_that_publishes_only_its_stop_holds_nothing() -> None:
+    # erm's last restart (another process) serves nothing before the run's end: its
+    # RegistrarStopped begins that life and lists nothing; cm was told Q1 is lost
+    h = without_backup()
+    late = [*h[:4], h[7], h[8], h[12], h[13]]
+    verdict = check.check(numbered(_stamped(late)))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    # cm never told: the restart lost Q1, found at the stop that shows the restart
+    assert {2, 6} == _found(_stamped([*h[:4], h[12], h[13]]), "kept")
+
+
+def _failed() -> events.CallFailed:
+    return events.CallFailed(
+        "cm", Q1, "erm", "cam", "RegistrarUnavailableError", "gone", True, pid=C
+    )
+
+
+@pytest.mark.parametrize("seen", ["before", "after"])
+def test_a_restart_without_a_backup_may_lose_an_id_whose_call_failed_for_its_caller(
+    seen: str,
+) -> None:
+    # erm committed Q1 and was killed before its answer left: cm's call failed (its
+    # caller holds no id, rule 17), seen before or after erm's restart began; the restart
+    # forgets Q1 and nobody is owed a FATAL
+    h = without_backup()
+    gone = [*h[:2], h[3], _failed(), *h[4:7], *h[9:]]
+    if seen == "after":
+        gone = [*h[:2], h[3], h[4], _failed(), *h[5:7], *h[9:]]
+    verdict = check.check(numbered(_stamped(gone)))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def test_an_answered_id_a_restart_without_a_backup_lost_is_owed_a_fatal() -> None:
+    h = without_backup()
+    silent = [*h[:7], *h[9:12], h[13]]  # cm never told; cm does not stop
+    assert {2, 5} == _found(_stamped(silent), "kept")
+    # a failed call, then its retry answered by the same life: held, and lost
+    retried = dataclasses.replace(h[2], retry=True)
+    again = [*h[:2], _failed(), retried, *h[3:7], *h[9:12], h[13]]
+    assert {2, 6} == _found(_stamped(again), "kept")
+
+
+def test_a_restart_with_a_restore_holds_what_the_restore_lists() -> None:
+    h = without_backup()
+    # erm has a backup: its restart lists Q1 again, and nobody releases it
+    restored = events.CatalogRestored(
+        "erm", ((RID, "cam", "loaded", "42", ""),), ((Q1, RID, "cm"),), (), (1, 1, 0), pid=P + 1
+    )
+    first = events.CatalogRestored("erm", (), (), (), pid=P)
+    history = _stamped([first, *h[:4], restored, *h[4:7], *h[9:]])
+    assert {6, 13} == _found(history, "end")
+    # a restore that lists no ids (Q1 told lost at the reconcile) holds
+    empty = dataclasses.replace(restored, resources=(), consumers=(), counts=(0, 0, 0))
+    assert "held" == check.check(numbered(_stamped([first, *h[:4], empty, *h[4:]]))).verdict
+
+
 # -- mutations of the shipped plans' real runs: each is caught, by its rule ----------------
 #
 # A mutation turns a clean history into one where a registrar broke a rule (the events
