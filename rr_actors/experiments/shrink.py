@@ -37,6 +37,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
+import itertools
 import json
 import re
 import tomllib
@@ -66,6 +67,18 @@ BUDGET = 400
 
 TRIES = 3
 """How many seeds a candidate runs with at most: the current one, then the next ones."""
+
+WIDEN = 4
+"""At a fixpoint, a candidate runs with this many times as many seeds from then on."""
+
+MOST_TRIES = 1000
+"""The most seeds a candidate runs with (the widest search: its fixpoint ends a shrink)."""
+
+SEEDS = 20
+"""The seeds the seed pass runs the current plan with: 1 to this (or the width)."""
+
+MARGIN = 0.05
+"""Seconds of the run kept after the violation, when the duration is cut there."""
 
 _NOT_RUN = ("description", "repeat", "seed")
 """Top-level keys a simulated run does not read (its seed is the sweep's): left out."""
@@ -258,6 +271,7 @@ class _Shrinker:
         self.source = plan.source or "<plan>"
         self.budget, self.tries, self.say, self.ran = budget, tries, say, ran
         self.runs = 0
+        self.width = tries  # seeds a candidate runs with at most (`attempt`)
         self.tried: set[tuple[str, int]] = set()
         self.steps: list[str] = []
         first = self.run_one(plan, seed)
@@ -284,20 +298,26 @@ class _Shrinker:
     def run(self) -> Shrunk:
         self.explicit()
         passes = (
+            self.supervisors,
             self.durations,
             self.shift,
             self.faults,
             self.tree,
             self.workload,
             self.options,
+            self.seeds,
             self.rounded,
         )
-        changed = True
-        while changed and self.runs < self.budget:
+        while self.runs < self.budget:
             before = len(self.steps)
             for step in passes:
                 step()
-            changed = len(self.steps) > before
+            if len(self.steps) > before:
+                continue
+            if self.width >= MOST_TRIES:
+                break  # (a fixpoint at the widest search)
+            self.width = min(self.width * WIDEN, MOST_TRIES)
+            self.say(f"run {self.runs}: a fixpoint: {self.width} seeds a candidate from here")
         spent = self.runs >= self.budget
         left = f"the budget ({self.budget} runs) spent" if spent else "a fixpoint"
         self.say(f"done after {self.runs} runs ({left}): {self.best.events} events")
@@ -316,16 +336,19 @@ class _Shrinker:
     def text(self, data: dict[str, Any]) -> str:
         return dump_plan(_dump_atoms(data))
 
-    def attempt(self, what: str, data: dict[str, Any], *, same: bool = False) -> bool:
-        """Run the candidate `data` (the seed, then the next ones); keep it if it shows the
-        violation kind and is `smaller` than the best so far (`same`: the same plan said
-        another way, kept if it shows the kind in no more events)."""
+    def attempt(
+        self, what: str, data: dict[str, Any], *, same: bool = False, width: int | None = None
+    ) -> bool:
+        """Run the candidate `data` (the current seed, then 1, 2, ... up to `width`, the
+        search's width by default); keep it if it shows the violation kind and is
+        `smaller` than the best so far (`same`: the same plan said another way, kept if it
+        shows the kind in no more events)."""
         text = self.text(data)
         try:
             plan = parse_plan(text, source=self.source, name=self.plan.name)
         except ConfigError:
             return False  # (a cut that left the plan invalid: not a candidate)
-        for seed in range(self.seed, self.seed + self.tries):
+        for seed in self.candidate_seeds(self.width if width is None else width):
             if self.runs >= self.budget:
                 return False
             if (text, seed) in self.tried:
@@ -340,19 +363,30 @@ class _Shrinker:
                 return True
         return False
 
+    def candidate_seeds(self, width: int) -> Iterator[int]:
+        """The current seed, then 1, 2, ...: `width` seeds in all."""
+        yield self.seed
+        yield from itertools.islice((s for s in itertools.count(1) if s != self.seed), width - 1)
+
     def smaller(self, run: simulate.SimulatedRun, text: str) -> bool:
         """Fewer events; as many and a shorter text, or one as long that sorts first (the
         shortlex order: every kept candidate is smaller, so the passes end)."""
         best = self.text(self.data)
         return (run.events, len(text), text) < (self.best.events, len(best), best)
 
-    def first(self, candidates: Iterator[tuple[str, dict[str, Any]]]) -> bool:
+    def first(
+        self, candidates: Iterator[tuple[str, dict[str, Any]]], width: int | None = None
+    ) -> bool:
         """Try `candidates` in order until one is kept."""
-        return any(self.attempt(what, data) for what, data in candidates)
+        return any(self.attempt(what, data, width=width) for what, data in candidates)
 
-    def repeat(self, candidates: Callable[[], Iterator[tuple[str, dict[str, Any]]]]) -> None:
+    def repeat(
+        self,
+        candidates: Callable[[], Iterator[tuple[str, dict[str, Any]]]],
+        width: int | None = None,
+    ) -> None:
         """Try the candidates of the current best again after each one kept."""
-        while self.runs < self.budget and self.first(candidates()):
+        while self.runs < self.budget and self.first(candidates(), width):
             pass
 
     # -- the passes --------------------------------------------------------------------------
@@ -397,6 +431,13 @@ class _Shrinker:
 
         def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
             duration = self.data["duration"]
+            seen = _violation_at(self.best, self.kind, duration)
+            if seen is not None and seen + MARGIN < duration:
+                shorter = round(seen + MARGIN, 3)
+                yield (
+                    f"duration {duration:g} -> {shorter:g} s (the violation at {seen:.3f} s)",
+                    (self.until(shorter)),
+                )
             for fraction in (0.125, 0.25, 0.5, 0.75, 0.9):
                 shorter = round(duration * fraction, 3)
                 if not 0 < shorter < duration:
@@ -424,6 +465,38 @@ class _Shrinker:
             if not isinstance(atom.get("at"), int | float) or atom["at"] < duration
         ]
         return {**self.data, "duration": duration, "faults": faults}
+
+    def seeds(self) -> None:
+        """The current plan under seeds 1 to `SEEDS` (or the search's width): the seed whose
+        run shows the kind in the fewest events (the scheduler's choices made simpler: no
+        pass edits them)."""
+        text = self.text(self.data)
+        for seed in range(1, max(SEEDS, self.width) + 1):
+            if self.runs >= self.budget:
+                return
+            if (text, seed) in self.tried:
+                continue
+            self.tried.add((text, seed))
+            run = self.run_one(self.plan, seed)
+            if run.events < self.best.events and self.kind in violation_kinds(run):
+                self.seed, self.best = seed, run
+                self.steps.append(f"seed {seed}")
+                self.say(f"run {self.runs}: seed {seed}: {run.events} events")
+
+    def supervisors(self) -> None:
+        """Fewer restarts before a supervisor gives up (a crash loop ends sooner)."""
+        for index in range(len(_supervisors(self.data))):
+            where = ("*supervisors", index)
+            self.repeat(functools.partial(self.counts, where, "max_restarts"))
+
+    def counts(self, where: tuple[Any, ...], key: str) -> Iterator[tuple[str, dict[str, Any]]]:
+        """Smaller values of a count that may be 0, smallest first: 0, 1, 2, 4, 8, ...
+        (the first kept is about the smallest that still violates)."""
+        current = _at(self.data, where).get(key, _DEFAULTS.get(key))
+        if isinstance(current, bool) or not isinstance(current, int):
+            return
+        wanted = [0, *itertools.takewhile(lambda v: v < current, (2**i for i in itertools.count()))]
+        yield from self.values(where, key, [v for v in wanted if v < current])
 
     def shift(self) -> None:
         def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
@@ -519,7 +592,7 @@ class _Shrinker:
                 if self.text(data) != self.text(self.data):
                     yield f"times to {digits} decimals", data
 
-        self.repeat(candidates)
+        self.repeat(candidates, self.tries)  # (for the reader: not worth a wide search)
 
     # -- numbers of a table ------------------------------------------------------------------
 
@@ -549,13 +622,23 @@ class _Shrinker:
             _at(data, where)[key] = value
             if where[:1] == ("*managers",):
                 where_shown = (_managers(self.data)[where[1]]["name"], *where[2:])
+            elif where[:1] == ("*supervisors",):
+                name = _supervisors(self.data)[where[1]].get("name", "tree")
+                where_shown = (name, *where[2:])
             else:
                 where_shown = where
             shown = ".".join(map(str, where_shown))
             yield f"{shown}.{key} = {value:g}".lstrip("."), data
 
 
-_DEFAULTS = {"shared": 0.5, "hold": 0.5, "clients": 1, "rate": 5.0, "keys": 4}
+_DEFAULTS = {
+    "shared": 0.5,
+    "hold": 0.5,
+    "clients": 1,
+    "rate": 5.0,
+    "keys": 4,
+    "max_restarts": 3,
+}
 """The plan's defaults of the keys the passes make smaller (`plan.py`)."""
 
 
@@ -565,6 +648,8 @@ def _at(data: dict[str, Any], where: tuple[Any, ...]) -> dict[str, Any]:
     steps = list(where)
     if steps and steps[0] == "*managers":
         node, steps = _managers(data)[steps[1]], steps[2:]
+    elif steps and steps[0] == "*supervisors":
+        node, steps = _supervisors(data)[steps[1]], steps[2:]
     for step in steps:
         node = node[step] if isinstance(step, int) else node.setdefault(step, {})
     found: dict[str, Any] = node
@@ -579,6 +664,39 @@ def _managers(data: dict[str, Any]) -> list[dict[str, Any]]:
             yield from walk(child) if "children" in child else [child]
 
     return list(walk(data.get("tree", {})))
+
+
+def _supervisors(data: dict[str, Any]) -> list[dict[str, Any]]:
+    """The supervisor tables of the tree (the top one first), depth first."""
+
+    def walk(node: dict[str, Any]) -> Iterator[dict[str, Any]]:
+        yield node
+        for child in node.get("children", []):
+            if "children" in child:
+                yield from walk(child)
+
+    return list(walk(data["tree"])) if "tree" in data else []
+
+
+def _violation_at(run: simulate.SimulatedRun, kind: str, duration: float) -> float | None:
+    """When (seconds after the run's first event) the last event that shows `kind`'s
+    first finding happened, of those within `duration` (`None`: no such event)."""
+    lines = run.history.splitlines()
+    verdict = check.check(check.read_runs(lines).get(simulate.RUN, []))
+    finding = next(
+        (
+            f
+            for f in verdict.findings
+            if f.kind == "violation" and violation_kind(f.rule, f.message) == kind
+        ),
+        None,
+    )
+    if finding is None or not lines:
+        return None
+    start = json.loads(lines[0])["at"]
+    times = [json.loads(lines[n - 1])["at"] - start for n in finding.lines if 0 < n <= len(lines)]
+    times = [t for t in times if t < duration]
+    return max(times) if times else None
 
 
 def _drop(node: dict[str, Any], name: str) -> bool:

@@ -542,22 +542,8 @@ def test_every_shipped_plan_is_simulated_or_refused_here() -> None:
     assert shipped == {*SIMULATED, "killheavy", *REFUSED}
 
 
-CROSSING = pytest.mark.xfail(
-    strict=True,
-    reason="an open finding of the simulation (simchain, seed 2): a FATAL sent on to a "
-    "consumer crosses that consumer's release of the id (the Unload's answer overtakes the "
-    "status notice on another connection); the consumer forgot the id and is never told. "
-    "Rule 9 does not say what a consumer releasing while a status is on its way is owed: "
-    "see docs/explanation/semantics.md, rule 9, 'Open'",
-)
-"""simchain's seeds 1-2 here meet the crossing (seed 2): an expected failure until it is
-decided (strict: the day it holds, this marker must go)."""
-
-
 @SWEEP
-@pytest.mark.parametrize(
-    "name", [pytest.param(n, marks=CROSSING) if n == "simchain" else n for n in SIMULATED]
-)
+@pytest.mark.parametrize("name", SIMULATED)
 def test_a_shipped_plan_holds_on_the_simulation(name: str) -> None:
     from rr_actors.experiments import load_plan  # noqa: PLC0415
 
