@@ -6,30 +6,41 @@
  │                    numbers blotted out) is what every candidate must show again
  ├─ the plan as TOML data; its timed faults made explicit: one atom per injection the
  │  seed made (`every` and a choice among targets become `at` times and one target)
- ├─ greedy passes, again and again until a round keeps nothing (a fixpoint) or the
- │  budget of runs is spent; a pass tries smaller candidates one by one:
- │     duration  1/8, 1/4, 1/2, 3/4, 9/10 of it: its end cut (the injections after it
- │               dropped) or its start (those before it dropped, the rest earlier)
+ ├─ greedy passes, biggest cuts first, again and again until the budget of runs is
+ │  spent or a round at the widest search keeps nothing; a pass tries smaller
+ │  candidates one by one:
+ │     supervisors  fewer restarts before one gives up: 0, 1, 2, 4, ... (a crash loop
+ │                  ends at its first restarts, where its violation shows)
+ │     duration  ended 0.05 s after the violation (the last event the checker cites
+ │               before the workload's end: a run's beginning does not depend on what
+ │               comes later, so the cut keeps it); 1/8, 1/4, 1/2, 3/4, 9/10 of it: its
+ │               end cut (the injections after it dropped) or its start (those before
+ │               it dropped, the rest earlier)
  │     shift     every injection (and the end) earlier, as far as the first one
  │     faults    delete chunks of injections (delta debugging: halves, quarters, ... ones)
  │     tree      call a manager's dependency directly, cut a `uses`, drop an unused manager
  │     workload  fewer clients, fewer call kinds, a lower rate, fewer keys, all or no
  │               calls shared, a shorter hold
  │     options   no (or half the) load and unload time of each manager
+ │     seeds     the same plan under seeds 1..20 (or the width): the fewest events (the
+ │               scheduler's choices made simpler: no pass edits them)
  │     round     injection times and the duration to fewer decimals (easier to read)
  │  a candidate = its TOML text, validated (`parse_plan`) and run whole on the simulation
- │  with the seed and up to `tries - 1` seeds after it; kept if one of them shows the
- │  same violation kind and is smaller: fewer events, or as many and a shorter text (or
- │  one as long that sorts first: the shortlex order, so the passes end); that seed is
- │  then the shrunk run's; each text and seed runs at most once
+ │  with the current seed, then seeds 1, 2, ... (`tries` in all; at each fixpoint the
+ │  width grows 4 times, up to `MOST_TRIES`); kept if one of them shows the same
+ │  violation kind and is smaller: fewer events, or as many and a shorter text (or one
+ │  as long that sorts first: the shortlex order, so the passes end); that seed is then
+ │  the shrunk run's; each text and seed runs at most once
  ◄── Shrunk: the plan's text, its seed, its run (history, hash, events), the kind
  write(shrunk, out): out/plan.toml (a header says what it shows), out/seeds.jsonl,
                      out/events-seed-S.jsonl: a run directory `rr-actors replay` reads
 ```
 
-Why neighbouring seeds: the seed drives the scheduler and the clients' arrival times, so
-any change of the plan gives another interleaving; a violation that needs a rare one is
-lost by most candidates under the seed alone, and found again under one of a few seeds.
+Why other seeds: the seed drives the scheduler and the clients' arrival times, so any
+change of the plan (but a cut of its end) gives another interleaving; a violation that
+needs a rare one is lost by most candidates under the seed alone, and found again under
+one of a few seeds, or, for a race one seed in a hundred shows, of a few hundred: the
+widening spends those runs only once the cheap cuts are done and the runs are small.
 """
 
 from __future__ import annotations
@@ -62,11 +73,11 @@ __all__ = [
     "write",
 ]
 
-BUDGET = 400
+BUDGET = 2500
 """The most simulated runs one shrink makes (each seed of each candidate is one)."""
 
 TRIES = 3
-"""How many seeds a candidate runs with at most: the current one, then the next ones."""
+"""How many seeds a candidate runs with at first: the current one, then 1, 2, ..."""
 
 WIDEN = 4
 """At a fixpoint, a candidate runs with this many times as many seeds from then on."""
@@ -232,7 +243,8 @@ def shrink(
         plan: a plan read from a file or text (its `source` names where its setups are).
         seed: a seed it violates with.
         budget: the most simulated runs to make (at least 1: the seed's own).
-        tries: seeds per candidate (the current seed, then the next ones).
+        tries: seeds per candidate at first (the current seed, then 1, 2, ...); four
+            times as many after each fixpoint, up to `MOST_TRIES`.
         on_step: called with a line for each kept candidate (progress).
         on_run: called with the number of runs made after each run (a progress bar).
         text: the plan's TOML (default: its file's; a run directory's copy, say).
