@@ -50,6 +50,7 @@ import dataclasses
 import functools
 import itertools
 import json
+import logging
 import re
 import tomllib
 from collections.abc import Callable, Iterator
@@ -302,7 +303,13 @@ class _Shrinker:
         self.say(f"shrinking seed {seed} ({first.events} events): {self.kind}")
 
     def run_one(self, plan: Plan, seed: int) -> simulate.SimulatedRun:
-        run = simulate.run_seed(plan, seed)
+        logger = logging.getLogger("rr_actors")
+        level = logger.level
+        logger.setLevel(logging.CRITICAL)  # (a candidate's supervisor giving up: not news)
+        try:
+            run = simulate.run_seed(plan, seed)
+        finally:
+            logger.setLevel(level)
         self.runs += 1
         self.ran(self.runs)
         return run
