@@ -14,6 +14,8 @@ import pytest
 
 from rr_actors.__main__ import main
 from rr_actors.experiments import load_plan, plans, shrink, simulate, story, sweep
+from rr_actors.experiments.plan import Plan
+from rr_actors.experiments.reading import parse_plan
 from tests.experiments.test_simulate import PLAN
 from tests.experiments.test_sweep import BUGGY
 
@@ -201,6 +203,32 @@ def test_a_crash_loop_is_shrunk_by_fewer_restarts_and_a_cut_after_its_violation(
     assert shrunk.run.events <= 40
     assert "max_restarts = 1\n" in shrunk.text
     assert shrunk.run.hash == simulate.run_seed(shrunk.plan, shrunk.seed).hash
+
+
+def test_a_run_cut_short_begins_as_the_longer_one_did() -> None:
+    # What the shrinker's cuts rely on: a run's beginning depends on nothing that comes
+    # later. The injector used to take its lock once per timed injection as the run
+    # began (a choice point of the scheduler each), so the number of injections still to
+    # come changed the interleaving from the first calls on (here in 3 of these 5 seeds).
+    base = PLAN.split("[[faults]]")[0]
+    kills = '[[faults]]\nkind = "kill_manager"\ntarget = "api"\nat = '
+    later = [round(1.5 + 0.05 * i, 2) for i in range(30)]
+    long = parse_plan(f"{base}{kills}{[0.5, 1.0, *later]}\n")
+    short = parse_plan(f"{base.replace('duration = 3.0', 'duration = 1.2')}{kills}[0.5, 1.0]\n")
+
+    def events(plan: Plan, seed: int) -> list[str]:  # (the fault lines come after them)
+        return [
+            line
+            for line in simulate.run_seed(plan, seed).history.splitlines()
+            if '"schema"' in line
+        ]
+
+    for seed in range(1, 6):
+        first, cut = events(long, seed), events(short, seed)
+        start = json.loads(first[0])["at"]
+        before = [line for line in first if json.loads(line)["at"] < start + 1.1]
+        assert len(before) > 20
+        assert (seed, before) == (seed, cut[: len(before)])
 
 
 def test_the_shrink_command_refuses_a_seed_that_held(
