@@ -294,7 +294,8 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
 
 def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
     """`seed`'s run shrunk (`rr_actors.experiments.shrink`) keeping a violation of `rule`:
-    the events of the shrunk run, the violation kind it kept and the runs it made."""
+    the events of the shrunk run, the violation kind it kept, the runs it made and their
+    CPU seconds."""
     from rr_actors.errors import ConfigError  # noqa: PLC0415 - the copy's
     from rr_actors.experiments import shrink  # noqa: PLC0415
 
@@ -304,11 +305,17 @@ def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
         return sorted(kinds(run), key=lambda kind: not kind.startswith(f"[{rule}]"))
 
     shrink.violation_kinds = rule_first
+    started = time.process_time()
     try:
         result = shrink.shrink(plan, seed, budget=budget)
     except ConfigError as exc:  # (its run again did not violate: not replayed)
-        return {"events": None, "kind": f"not shrunk: {exc}", "runs": 1}
-    return {"events": result.run.events, "kind": result.kind, "runs": result.runs}
+        return {"events": None, "kind": f"not shrunk: {exc}", "runs": 1, "cpu_s": 0.0}
+    return {
+        "events": result.run.events,
+        "kind": result.kind,
+        "runs": result.runs,
+        "cpu_s": time.process_time() - started,
+    }
 
 
 # -- the table ------------------------------------------------------------------------
@@ -337,7 +344,8 @@ def table(rows: list[tuple[Plant, dict[str, Any]]], seeds: int, shrink: bool) ->
         if shrink:
             small = row.get("shrunk")
             events = "-" if small is None or small["events"] is None else str(small["events"])
-            cells += (events if small is None else f"{events} ({small['runs']} runs)",)
+            spent = "" if small is None else f" ({small['runs']} runs, {small['cpu_s']:.0f} CPU s)"
+            cells += (events + spent,)
         lines.append(cells)
     widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
     for line in lines:
@@ -359,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=10_000, help="most seeds per plant")
     parser.add_argument("--only", help="plants to run, by name, comma-separated")
     parser.add_argument("--shrink", action="store_true", help="shrink each found seed")
-    parser.add_argument("--budget", type=int, default=400, help="most runs of one shrink")
+    parser.add_argument("--budget", type=int, default=2500, help="most runs of one shrink")
     parser.add_argument("--check", action="store_true", help="only check the edits apply")
     parser.add_argument("--baseline", action="store_true", help="run the unedited code")
     options = parser.parse_args(args)

@@ -111,9 +111,17 @@ class SimulatedFaults:
         self._open: dict[tuple[int, int], Callable[[], None]] = {}  # recorded once they end
         self._helpers: list[Any] = []  # load errors' threads
         self._triggered = Triggered((f for f in schedule if f.at is None), wall_t0)
+        # The timed faults put on the agenda without its lock (no thread sees it yet): a
+        # lock taken is a choice point of the scheduler, so that taking it once per
+        # injection would make the run before the first one depend on how many come
+        # later, and a shorter run (a shrink's cut) would not begin as the longer one.
         for fault in schedule:
             if fault.at is not None:
-                self._push(fault, fault.at)
+                n = next(self._order)
+                self._due[n] = (fault, fault.at)
+                action = functools.partial(self._fire, fault, fault.at)
+                self._agenda.append((self.t0 + fault.at, n, action))
+        heapq.heapify(self._agenda)
         SETUP_FAULTS.clear()  # (the simulation's alone: nothing arms it in a real run)
         self._thread = runtime.Thread(target=self._run, name="rr-simulated-faults", daemon=True)
 
