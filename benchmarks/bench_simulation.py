@@ -29,6 +29,14 @@ that CPU then too):
 
     taskset -c 0 python benchmarks/bench_simulation.py --seeds 1-20
     python benchmarks/bench_simulation.py --seeds 1-3 --no-real --profile /tmp/sim.prof
+    python benchmarks/bench_simulation.py --seeds 1-3 --no-real --sample /tmp/sim.folded
+
+`--sample` records where the seeds' CPU time goes (the simulation, its history and its
+verdict), one sample a tick of the process's CPU time (`SIGPROF`; 1-4 ms), so the waits
+of a loaded machine count for nothing, unlike a sampler of wall time (py-spy, whose
+shares they blur). Its file has one folded stack a line with its count (`a;b;c 12`, as
+`py-spy record -f raw`: flamegraph.pl reads it); the script prints the functions with
+the most samples, and the files.
 """
 
 from __future__ import annotations
@@ -37,17 +45,23 @@ import argparse
 import contextlib
 import cProfile
 import csv
+import functools
 import logging
 import os
 import platform
 import resource
+import signal
 import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
+import types
+from collections import Counter
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 import greenlet
@@ -58,6 +72,7 @@ from rr_actors import simulation
 from rr_actors._core import runtime
 from rr_actors.experiments import simulate
 from rr_actors.experiments.reading import load_plan
+from rr_actors.simulation import _run
 
 PLANS = Path(rr_actors.__file__).parent / "experiments" / "plans"
 
@@ -152,15 +167,94 @@ def split_simulation(seen: list[tuple[float, int]]) -> Iterator[None]:
         simulation.run = real  # type: ignore[assignment]
 
 
-def simulated(plan_path: Path, seeds: range, profile: str | None) -> list[dict[str, Any]]:
-    """One row per seed: CPU s (whole, simulation), steps, virtual s, hash, verdict."""
+class _Inline:
+    """A `threading.Thread` that runs its target in `start`, in the calling thread."""
+
+    def __init__(self, target: Callable[..., None], args: tuple[Any, ...], **_: Any) -> None:
+        self._run = functools.partial(target, *args)
+
+    def start(self) -> None:
+        self._run()
+
+    def join(self, timeout: float | None = None) -> None:
+        pass
+
+    def is_alive(self) -> bool:
+        return False
+
+
+@contextlib.contextmanager
+def cpu_samples(stacks: Counter[str], every: float = 0.001) -> Iterator[None]:
+    """Meanwhile, each `every` seconds of the process's CPU time (`SIGPROF`), where the
+    simulation is (its running greenlet's frames) is counted in `stacks`, folded
+    (`outer;...;inner`). Python runs a signal's handler in the main thread, at its next
+    instruction, so the simulation runs in the calling (main) thread meanwhile, not in a
+    thread of its own (`simulation.run`'s `threading.Thread` made `_Inline`): a sampler
+    thread would get the GIL only where the simulation lets it go (its system calls)."""
+
+    def sample(_signum: int, frame: FrameType | None) -> None:
+        stacks[_folded(frame)] += 1
+
+    if threading.current_thread() is not threading.main_thread():
+        raise RuntimeError("CPU samples are taken in the main thread only")
+    threads = _run.threading
+    _run.threading = types.SimpleNamespace(Thread=_Inline, get_ident=threading.get_ident)  # type: ignore[assignment]
+    previous = signal.signal(signal.SIGPROF, sample)
+    signal.setitimer(signal.ITIMER_PROF, every, every)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_PROF, 0, 0)
+        signal.signal(signal.SIGPROF, previous)
+        _run.threading = threads  # type: ignore[assignment]
+
+
+def _folded(frame: FrameType | None) -> str:
+    names = []
+    while frame is not None:
+        code = frame.f_code
+        where = code.co_filename.rpartition("site-packages/")[2]
+        where = where.rpartition("rr_actors/")[2] if "rr_actors/" in where else where
+        names.append(f"{code.co_qualname} ({where}:{frame.f_lineno})")
+        frame = frame.f_back
+    return ";".join(reversed(names))
+
+
+def print_samples(stacks: Counter[str], path: str) -> None:
+    """Write `stacks` to `path` (folded); print the top functions and files by samples."""
+    with open(path, "w", encoding="utf-8") as file:
+        file.writelines(f"{stack} {count}\n" for stack, count in stacks.items())
+    total = sum(stacks.values()) or 1
+    functions: Counter[str] = Counter()
+    files: Counter[str] = Counter()
+    for stack, count in stacks.items():
+        inner = stack.rpartition(";")[2]
+        name, _, where = inner.partition(" (")
+        file = where.rpartition(":")[0]
+        functions[f"{file}: {name}"] += count
+        files[file] += count
+    print(f"\nCPU samples of the simulation: {total:,} (a tick of CPU each: 1 to 4 ms), in {path}")
+    for title, counter in (("functions", functions), ("files", files)):
+        print(f"| {title} (the innermost frame) | share |\n|---|---:|")
+        for key, count in counter.most_common(25):
+            print(f"| {key} | {100 * count / total:.1f}% |")
+
+
+def simulated(
+    plan_path: Path, seeds: range, profile: str | None, stacks: Counter[str] | None = None
+) -> list[dict[str, Any]]:
+    """One row per seed: CPU s (whole, simulation), steps, virtual s, hash, verdict;
+    `stacks`: the simulation thread's CPU samples added there (`cpu_samples`)."""
     plan = load_plan(plan_path)
     rows = []
     profiler = cProfile.Profile() if profile else None
     logging.getLogger("rr_actors").setLevel(logging.ERROR)  # (as the sweep: a kill is one)
     for seed in seeds:
         seen: list[tuple[float, int]] = []
-        with split_simulation(seen):
+        with (
+            split_simulation(seen),
+            cpu_samples(stacks) if stacks is not None else contextlib.nullcontext(),
+        ):
             if profiler is not None:
                 profiler.enable()
             start = time.process_time()
@@ -263,6 +357,9 @@ def main() -> None:
     parser.add_argument("--no-real", action="store_true", help="skip the real run")
     parser.add_argument("--profile", help="write a cProfile of the seeds' calling thread here")
     parser.add_argument(
+        "--sample", help="write CPU-time samples of the simulation's thread here (folded)"
+    )
+    parser.add_argument(
         "--min-runs", type=float, default=0.0, help="exit 1 below this many runs per CPU-minute"
     )
     args = parser.parse_args()
@@ -284,9 +381,12 @@ def main() -> None:
     print(f"        {ask:,.0f} pykka asks/s (real threads, of CPU)")
     with tempfile.TemporaryDirectory(prefix="rr-bench-sim-") as tmp:
         plan_path = killheavy_without_cut(Path(tmp))
-        rows = simulated(plan_path, seeds, args.profile)
+        stacks: Counter[str] | None = Counter() if args.sample else None
+        rows = simulated(plan_path, seeds, args.profile, stacks)
         real = None if args.no_real else real_run(plan_path)
     runs_per_minute = report(rows, real, (switch, step, ask))
+    if stacks is not None and args.sample:
+        print_samples(stacks, args.sample)
     if runs_per_minute < args.min_runs:
         sys.exit(f"below {args.min_runs:g} runs per CPU-minute: {runs_per_minute:.0f}")
 

@@ -38,7 +38,9 @@ temporary manager lost for good: a `FATAL` climbing a dependency path) and `simr
 (one manager killed every 0.1-0.3 s while four clients call it back to back: retries
 through restarts, racing the clients' reconciles). The retry plant was not found in 300
 seeds of `simchain`: its window needs a `Load` on its way when the provider dies and
-its retry answered before the client's actor handles the reconcile's answer.
+its retry answered before the client's actor handles the reconcile's answer. A third,
+`simheal`, serves `db` on both sides of a cut (the sim-only fault `split_brain`) for
+the plant `heal-no-yield` (rule 22: the one served later never gives way).
 """
 
 from __future__ import annotations
@@ -141,6 +143,16 @@ PLANTS = (
         "            if digest",
         "simchain",
         "dedup",
+    ),
+    Plant(
+        "heal-no-yield",
+        "two servers of one name after a healed cut: the one served later never gives way "
+        "(rule 22; the reverse of the merge fa1549b, in the decision every carrier runs)",
+        "_transport/messenger.py",
+        "        if not isinstance(local, Ranked) or rival.rank > local.rank:\n",
+        "        if True:  # PLANTED: not isinstance(local, Ranked) or rival.rank > local.rank\n",
+        "simheal",
+        "one-name",
     ),
 )
 """The planted bugs, one at a time (docs/performance.md lists them)."""
@@ -282,7 +294,8 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
 
 def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
     """`seed`'s run shrunk (`rr_actors.experiments.shrink`) keeping a violation of `rule`:
-    the events of the shrunk run, the violation kind it kept and the runs it made."""
+    the events of the shrunk run, the violation kind it kept, the runs it made and their
+    CPU seconds."""
     from rr_actors.errors import ConfigError  # noqa: PLC0415 - the copy's
     from rr_actors.experiments import shrink  # noqa: PLC0415
 
@@ -292,11 +305,17 @@ def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
         return sorted(kinds(run), key=lambda kind: not kind.startswith(f"[{rule}]"))
 
     shrink.violation_kinds = rule_first
+    started = time.process_time()
     try:
         result = shrink.shrink(plan, seed, budget=budget)
     except ConfigError as exc:  # (its run again did not violate: not replayed)
-        return {"events": None, "kind": f"not shrunk: {exc}", "runs": 1}
-    return {"events": result.run.events, "kind": result.kind, "runs": result.runs}
+        return {"events": None, "kind": f"not shrunk: {exc}", "runs": 1, "cpu_s": 0.0}
+    return {
+        "events": result.run.events,
+        "kind": result.kind,
+        "runs": result.runs,
+        "cpu_s": time.process_time() - started,
+    }
 
 
 # -- the table ------------------------------------------------------------------------
@@ -325,7 +344,8 @@ def table(rows: list[tuple[Plant, dict[str, Any]]], seeds: int, shrink: bool) ->
         if shrink:
             small = row.get("shrunk")
             events = "-" if small is None or small["events"] is None else str(small["events"])
-            cells += (events if small is None else f"{events} ({small['runs']} runs)",)
+            spent = "" if small is None else f" ({small['runs']} runs, {small['cpu_s']:.0f} CPU s)"
+            cells += (events + spent,)
         lines.append(cells)
     widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
     for line in lines:
@@ -347,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=10_000, help="most seeds per plant")
     parser.add_argument("--only", help="plants to run, by name, comma-separated")
     parser.add_argument("--shrink", action="store_true", help="shrink each found seed")
-    parser.add_argument("--budget", type=int, default=400, help="most runs of one shrink")
+    parser.add_argument("--budget", type=int, default=2500, help="most runs of one shrink")
     parser.add_argument("--check", action="store_true", help="only check the edits apply")
     parser.add_argument("--baseline", action="store_true", help="run the unedited code")
     options = parser.parse_args(args)

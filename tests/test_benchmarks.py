@@ -1,4 +1,6 @@
-"""Every benchmark still runs: each script, at its smallest, exits 0 and prints its table.
+"""Every benchmark still runs: each script, at its smallest, exits 0 and prints its table;
+and a benchmark's own logic (a comparison of results, not a measurement) does what its
+table says.
 
 Benchmarks are not timed tests (nothing here asserts a speed); this only keeps them from
 rotting when the code under them changes (a renamed import, a changed signature).
@@ -11,11 +13,15 @@ two busy loops and other test runs); the former 110 s was exceeded there by two 
 
 from __future__ import annotations
 
+import importlib.util
 import subprocess
 import sys
 from pathlib import Path
+from types import ModuleType
 
 import pytest
+
+from rr_actors.experiments import check, load_plan
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -66,6 +72,9 @@ SMALLEST = {
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1", "--forkserver-first"],
     "bench_three_hosts.py": ["--rounds", "20", "--cuts", "1"],
     "bench_transport.py": ["--rounds", "20", "--paired-rounds", "2"],
+    "bench_verdict_kinds.py": [
+        *("--plans", "simretry,leases", "--runs", "1", "--seeds", "1", "--duration", "1"),
+    ],
     "bench_xoscar.py": ["--rounds", "1", "--batch", "5", "--no-load"],
     "bench_zenoh.py": ["--rounds", "20", "--kills", "1", "--cuts", "1"],
     "bench_zenoh_tls.py": [
@@ -131,3 +140,53 @@ def test_alternate_runs_a_benchmark_against_two_trees_and_sums_up_the_ratios() -
 
     assert 0 == done.returncode, done.stderr[-3000:]
     assert "dedup-hit call: " in done.stdout.split("== last column per run")[-1]
+
+
+def _script(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    assert spec is not None
+    assert spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_verdict_kinds_counts_the_rules_of_violations_and_compares_their_sets() -> None:
+    kinds = _script("bench_verdict_kinds")
+    seed = [
+        "  violation [end] api still holds query 1475ed3c of client-0, which stopped",
+        "    line 12: {...}",
+        "  unverifiable [events] 3 events lost in process 7",
+        "  violation [status-reached] client-1: status 6ef0b418 never reached query c77e86b4",
+        "  violation [end] db still holds query e8f2defc of client-2, which stopped",
+    ]
+    assert {"end", "status-reached"} == kinds.kinds_of_lines(seed)
+    verdict = check.Verdict(
+        "violated",
+        9,
+        (
+            check.Finding("kept", "violation", "lost", (1, 2)),
+            check.Finding("end", "unverifiable", "held (events were lost)", (3,)),
+        ),
+    )
+    assert {"kept"} == kinds.kinds_of_verdict(verdict)
+    real = kinds.tally([set(), {"end"}])
+    simulated = kinds.tally([{"end", "status-reached"}, {"end"}, set(), {"end"}])
+    assert {"end": 3, "status-reached": 1} == dict(simulated)  # runs, not findings
+    assert "end 3, status-reached 1" == kinds.show_kinds(simulated)
+    assert "-" == kinds.show_kinds(kinds.tally([set(), set()]))
+    assert not kinds.same_kinds(real, simulated)
+    assert kinds.same_kinds(real, kinds.tally([{"end"}, {"end"}]))  # how often: not a kind
+    assert kinds.same_kinds({}, {"end": 0})
+    assert "3 (1 held, 2 violated)" == kinds.show_verdicts(["violated", "held", "violated"])
+
+
+def test_verdict_kinds_runs_a_compared_plan_at_its_first_value(tmp_path: Path) -> None:
+    kinds = _script("bench_verdict_kinds")
+    source = ROOT / "rr_actors" / "experiments" / "plans" / "hang.toml"
+    cut = load_plan(kinds.first_value_only(source, tmp_path))
+    whole = load_plan(source)
+    assert whole.compare is not None
+    assert cut.compare is not None
+    assert (whole.compare.values[0],) == cut.compare.values
+    assert [whole.variants[0][1].tree] == [p.tree for _, p in cut.variants]

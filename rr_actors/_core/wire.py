@@ -22,14 +22,15 @@ from rr_actors.errors import RrError, TransferError
 
 __all__ = ["WIRE_TYPES", "WIRE_VERSION", "WireMessage"]
 
-WIRE_VERSION = 4
+WIRE_VERSION = 5
 """The version of what crosses between processes (these messages, pickled): a carrier
 that can meet a process of another version (the Zenoh one, across hosts) refuses its
 messages unread. Raise it when a `WireMessage` changes incompatibly. (2: the Zenoh
 carrier's messages carry a clock stamp after the frame's token. 3: a status reaches
 the registrars of a process as one `StatusBatch`. 4: a Zenoh registrar's liveliness
 token carries the clock stamp of when it began to serve, which decides which of two
-servers of one name is kept: rule 22.)"""
+servers of one name is kept: rule 22. 5: an `Unload`'s answer carries the statuses
+still on their way to its id, `StatusOnItsWay`s: rule 9.)"""
 
 WIRE_TYPES: set[type] = set()
 """Every `WireMessage` subclass (filled in as they are defined)."""

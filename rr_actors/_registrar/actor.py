@@ -101,7 +101,7 @@ from rr_actors._registrar.messages import (
 )
 from rr_actors._registrar.provider import Provider, Servers, Teardown, Unloading
 from rr_actors._registrar.state import NO_REPLY, POINTS, OpenReply, Shared
-from rr_actors._registrar.status import DESK, StatusRelay, StatusTargets
+from rr_actors._registrar.status import DESK, StatusRelay, StatusTargets, Unacknowledged
 from rr_actors._store import Saver, open_catalog
 from rr_actors._types import Query
 from rr_actors.config import RegistrarConfig
@@ -281,14 +281,17 @@ class RegistrarActor(Actor):
         self.holdings = Holdings(self.shared, self.flights, clients, targets.entries)
         texts = ClientTexts(self.shared)  # made by the answers, read by a snapshot
         self.answers = Answers(self.shared, self.flights, self.holdings, texts)
-        self.releases = Releases(self.shared, self.flights, self.holdings, self.answers)
+        self.releases = Releases(
+            self.shared, self.flights, self.holdings, self.answers, self.dispatch
+        )
         self.reconciling = Reconciling(
             self.shared, self.flights, self.holdings, self.releases, due, self.dispatch
         )
-        self.status = StatusRelay(self.shared, self.flights, self.holdings)
+        unacked = Unacknowledged()  # statuses on their way, an Unload's answer carries
+        self.status = StatusRelay(self.shared, self.flights, self.holdings, unacked)
         self.teardown = Teardown(self.shared, self.releases)
         self.provider = Provider(self.shared, self.releases, self.teardown)
-        self.unloading = Unloading(self.shared, self.provider, self.teardown)
+        self.unloading = Unloading(self.shared, self.provider, self.teardown, unacked)
         self.servers = Servers(self.shared, self.teardown, self.status)
         self.presence = Presence(self.shared, self.unloading, self.reconciling)
         self.restoring = Restoring(

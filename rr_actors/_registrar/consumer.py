@@ -26,7 +26,9 @@
    │       a restore listed, the client actors; Revoke, ResponseUpdated, set a callback;
    │       forget(id): the one place a held id goes (its QueryForgotten, then committed)
    ▼
- Releases  Release (the handle's unload) ─Unload─► provider ─► forget; a resource's
+ Releases  Release (the handle's unload) ─Unload─► provider ─► the statuses its answer
+   │       carries (on their way to the id, maybe overtaken: rule 9) delivered as their
+   │       StatusNotices ─► forget ─► answered once their callbacks ran; a resource's
    │       dependencies (`provider.py`'s teardown) the same way; the provider died or
    │       stopped meanwhile ─► unreleased: left out of its next Reconcile, so it
    │       releases them (its unload runs once); this registrar stops ─► its durable
@@ -810,12 +812,18 @@ class Releases:
     """Releases the queries this registrar holds, and gives back what it gives up."""
 
     def __init__(
-        self, shared: Shared, flights: Flights, holdings: Holdings, answers: Answers
+        self,
+        shared: Shared,
+        flights: Flights,
+        holdings: Holdings,
+        answers: Answers,
+        redeliver: Callable[[Any], None],
     ) -> None:
         self.registrar = shared
         self.flights = flights
         self.holdings = holdings
         self.answers = answers
+        self.redeliver = redeliver  # handles a message as the actor does (its dispatch)
         self.releasing: set[str] = set()  # ids whose `Unload` is on its way
         # id -> provider, of releases that failed as it died or stopped (`release_later`)
         self.unreleased: dict[str, str] = {}
@@ -839,14 +847,16 @@ class Releases:
         """
         query = record.query
 
-        def answered(_: Any, error: BaseException | None) -> None:
+        def answered(on_its_way: Any, error: BaseException | None) -> None:
             self.releasing.discard(query.id)
             if error is not None and not isinstance(error, UnknownQueryError):
                 logger.warning("releasing %s at %s failed: %s", query.id, query.serving_rr, error)
             if isinstance(error, GONE):
                 self.unreleased[query.id] = query.serving_rr
+            join = Join(then)
+            self.deliver_on_its_way(query.id, on_its_way, join)
             self.holdings.forget(query.id, reason="stop" if record.parent is None else "dependency")
-            then()
+            join.seal()
 
         self.releasing.add(query.id)
         self.registrar.send(
@@ -860,7 +870,7 @@ class Releases:
             raise UnknownQueryError(f"unknown or released query id {query_id!r}")
         query = record.query
 
-        def answered(_: Any, error: BaseException | None) -> None:
+        def answered(on_its_way: Any, error: BaseException | None) -> None:
             self.releasing.discard(query_id)
             if isinstance(error, GONE):  # it may or may not have run it: reconciling
                 reply.set_error(self.release_later(query, error))  # completes it
@@ -874,16 +884,37 @@ class Releases:
                 return
             if isinstance(error, UnknownQueryError):
                 logger.warning("provider %s no longer knew %s", query.serving_rr, query.id)
+
+            def answer() -> None:  # (once the statuses on their way were delivered)
+                if isinstance(error, CallTimeoutError):
+                    reply.set_error(error)
+                else:
+                    reply.set_result(None)
+
+            join = Join(answer)
+            self.deliver_on_its_way(query_id, on_its_way, join)
             self.holdings.forget(query_id)
-            if isinstance(error, CallTimeoutError):
-                reply.set_error(error)
-            else:
-                reply.set_result(None)
+            join.seal()
 
         self.releasing.add(query_id)
         self.registrar.send(
             query.serving_rr, lambda r: Unload(query_id, self.registrar.name, r), answered
         )
+
+    def deliver_on_its_way(self, query_id: str, on_its_way: Any, join: Join) -> None:
+        """Deliver the statuses the answer to `query_id`'s `Unload` carried, before the id
+        is forgotten; each is a part of `join`, done once its callbacks ran.
+
+        They are the statuses its provider sent on to it before it released the id,
+        whose acknowledgements had not come (`StatusOnItsWay`s, `provider.py`'s
+        `Unloading.on_unload`): on another connection than the answer, they may come
+        after it and find the id forgotten. Each is handled as its `StatusNotice` would
+        be (rule 9: its callback, and up a dependency's path); one that came its own way
+        first is not delivered again, nor one that comes after (`status.py` takes each
+        status to an id once).
+        """
+        for status in on_its_way or ():
+            self.redeliver(status.notice((query_id,), self.registrar.come_back(join.add())))
 
     def release_later(self, query: Query, error: BaseException) -> RrError:
         """The `Unload` of `query` failed as its provider died or stopped (`error`).

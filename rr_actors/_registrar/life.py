@@ -184,7 +184,9 @@ class Lifecycle:
         self.actor = actor  # (the actor machinery only: its mailbox, `end_now`)
         self.died = died  # set once a crash was fully handled (death watch included)
         self.ended = ended  # set once the actor's thread handed on its last message
-        self.open_requests: set[OpenReply] = set()  # not answered yet: a death fails them
+        # not answered yet: a death fails them, oldest first (a dict keeps the order they
+        # came in; a set of objects iterates in address order, which no replay repeats)
+        self.open_requests: dict[OpenReply, None] = {}
         self.stop_waiters: list[Reply] | None = None  # while a stop is under way
         self.flush_timer: Cancellable | None = None
         self.hearer = Hearing(shared.peer)  # what this process's membership tells it
@@ -447,7 +449,8 @@ class Lifecycle:
     # -- whoever still waits ----------------------------------------------------------
 
     def fail_waiting(self, error: RrError) -> None:
-        """Answer everyone still waiting on this actor with `error` (it stops or died)."""
+        """Answer everyone still waiting on this actor with `error` (it stops or died); the
+        handle requests oldest first."""
         self.provider.fail_waiting(error)
         self.flights.fail_waiting(error)
         for request in list(self.open_requests):

@@ -91,6 +91,7 @@ __all__ = [
     "Snapshot",
     "StatusBatch",
     "StatusNotice",
+    "StatusOnItsWay",
     "Stop",
     "TextFields",
     "Unload",
@@ -157,7 +158,11 @@ class Load(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class Unload(WireMessage):
-    """Consumer -> provider: release consumer id `query_id`. Answer: `None` or an error."""
+    """Consumer -> provider: release consumer id `query_id`.
+
+    Answer: the statuses about it still on their way to the consumer (`StatusOnItsWay`s,
+    a tuple, mostly empty: rule 9, a release crossing a status), or an error.
+    """
 
     query_id: str
     origin_rr: str
@@ -229,6 +234,39 @@ class StatusBatch(WireMessage):
         """The same status for `parts`, answered to `reply`."""
         return StatusBatch(
             parts,
+            self.status,
+            self.message,
+            self.source,
+            self.event,
+            reply,
+            self.hop,
+            self.sent_at,
+        )
+
+    def on_its_way(self) -> StatusOnItsWay:
+        """This status as an `Unload`'s answer carries it."""
+        return StatusOnItsWay(
+            self.status, self.message, self.source, self.event, self.hop, self.sent_at
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class StatusOnItsWay:
+    """A status a provider sent on to a consumer id, not acknowledged yet when that id's
+    `Unload` was answered: the answer carries it (rule 9). The other fields are a
+    `StatusNotice`'s; `event` makes it reach the id once whichever way comes first."""
+
+    status: Status
+    message: str
+    source: str
+    event: str
+    hop: int
+    sent_at: float
+
+    def notice(self, query_ids: tuple[str, ...], reply: Reply) -> StatusNotice:
+        """The `StatusNotice` it would have come as, for `query_ids`, answered to `reply`."""
+        return StatusNotice(
+            query_ids,
             self.status,
             self.message,
             self.source,

@@ -13,6 +13,8 @@
    │               (a failure: its dependencies released, then it is forgotten, rule 4)
  Unload / Abandon ─► Unloading.release(id) ── its load under way? ─► give_up
    │                                    └── the last consumer id? ─► unload_resource
+   │     (an Unload's answer carries the statuses still on their way to that id:
+   │      `status.py`'s Unacknowledged, rule 9)
    ▼
  Teardown.unload_resource ─► its dependencies released (`consumer.py`'s Releases)
    ─RunUnload─► ServerActor ─► unload(request, response) ─► remove_resource: written
@@ -79,7 +81,7 @@ from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.ids import new_id
 from rr_actors._core.loops import is_coroutine_function, process_loop
-from rr_actors._core.replies import Join
+from rr_actors._core.replies import CallbackReply, Join
 from rr_actors._core.workers import Workers
 from rr_actors._registrar.consumer import Releases
 from rr_actors._registrar.display import show_request, show_response
@@ -105,7 +107,7 @@ from rr_actors._registrar.messages import (
     load_error,
 )
 from rr_actors._registrar.state import Phase, Server, Shared, Waiter, consumers_by_origin
-from rr_actors._registrar.status import StatusRelay
+from rr_actors._registrar.status import StatusRelay, Unacknowledged
 from rr_actors._types import LoadCallback, Status, StatusUpdate, UnloadCallback
 from rr_actors.errors import (
     CallTimeoutError,
@@ -780,7 +782,9 @@ class ServerActor(Actor):
         self.unload = unload
         self.workers = workers
         self.on_loop = is_coroutine_function(load), is_coroutine_function(unload)
-        self.tasks: set[asyncio.Task[None]] = set()  # its coroutines running (loop thread)
+        # its coroutines running (loop thread), in the order they started (a dict: a set
+        # would cancel them in address order at a stop, which no replay repeats)
+        self.tasks: dict[asyncio.Task[None], None] = {}
 
     def on_receive(self, message: Any) -> None:
         if isinstance(message, RunLoad) and self.on_loop[0]:
@@ -828,8 +832,8 @@ class ServerActor(Actor):
 
         def start() -> None:
             task = asyncio.get_running_loop().create_task(coroutine)
-            tasks.add(task)
-            task.add_done_callback(tasks.discard)
+            tasks[task] = None
+            task.add_done_callback(lambda done: tasks.pop(done, None))
 
         process_loop().call_soon_threadsafe(start)
 
@@ -914,13 +918,34 @@ def _refuse_awaitable(response: Any) -> None:
 class Unloading:
     """Releases consumer ids; a resource nobody holds any more is unloaded (`Teardown`)."""
 
-    def __init__(self, shared: Shared, provider: Provider, teardown: Teardown) -> None:
+    def __init__(
+        self, shared: Shared, provider: Provider, teardown: Teardown, unacked: Unacknowledged
+    ) -> None:
         self.registrar = shared
         self.provider = provider
         self.teardown = teardown
+        self.unacked = unacked  # (`status.py`: the statuses on their way, by consumer id)
 
     def on_unload(self, message: Unload, reply: Reply) -> None:
-        self.release(message.query_id, reply, "unload")
+        """Release the id; the answer carries the statuses still on their way to it.
+
+        A status sent on to the consumer before this `Unload` came travels on another
+        connection than the answer and may come after it: the consumer would have
+        forgotten the id. So the answer carries each status sent to that id whose
+        acknowledgement has not come (`Unacknowledged`), and the consumer delivers those
+        that did not reach it first before it forgets the id (rule 9). An error answer
+        carries none: refused, the consumer keeps the id and they still come their way;
+        an `unload` that overran `unload_timeout` gave them that long to come.
+        """
+        query_id, unacked = message.query_id, self.unacked
+
+        def answered(_value: Any, error: BaseException | None) -> None:
+            if error is not None:
+                reply.set_error(error)
+            else:
+                reply.set_result(unacked.take(query_id))
+
+        self.release(query_id, CallbackReply(answered), "unload")
 
     def on_abandon(self, message: Abandon, reply: Reply) -> None:
         self.release(message.query_id, None, "abandoned")

@@ -110,23 +110,24 @@ class OpenReply:
     """A handle request's reply, known to its actor until answered (a crash fails it).
 
     Answered on the actor thread, or, for `send_status`, on the thread of the last
-    acknowledgement: so `open_requests` is only ever changed by single `set` operations
-    (add, discard) and read as a copy (`list(...)`), each atomic.
+    acknowledgement: so `open_requests` (a dict used as an ordered set: in the order the
+    requests came) is only ever changed by single dict operations (set an item, pop
+    one) and read as a copy (`list(...)`), each atomic.
     """
 
     __slots__ = ("open", "reply")
 
-    def __init__(self, reply: Reply, open_requests: set[OpenReply]) -> None:
+    def __init__(self, reply: Reply, open_requests: dict[OpenReply, None]) -> None:
         self.reply = reply
         self.open = open_requests
-        open_requests.add(self)
+        open_requests[self] = None
 
     def set_result(self, value: Any) -> None:
-        self.open.discard(self)
+        self.open.pop(self, None)
         self.reply.set_result(value)
 
     def set_error(self, error: BaseException) -> None:
-        self.open.discard(self)
+        self.open.pop(self, None)
         self.reply.set_error(error)
 
 

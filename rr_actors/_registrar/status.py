@@ -19,7 +19,9 @@ path to the top (rule 9, thesis 4.2.4).
  StatusNotice at a consumer ─► on_status_notice: each client's callback; a dependency ─►
    notify(its parent resource) ─► ... to the top
  acknowledgements: one SharedJoin per status, counted where they arrive; the last one
-   answers the sender
+   answers the sender; until its own comes, a status sent to another process waits in
+   Unacknowledged, by consumer id ─► taken by the answer to that id's Unload, which the
+   consumer delivers before it forgets the id (provider.py, consumer.py's Releases)
 ```
 
 A `FATAL` its provider sends about a resource marks it `failed` in the catalog first
@@ -29,15 +31,17 @@ a new resource, and the dead one stays with its consumers until they release it.
 provider hears it (`on_status`) and decides, repairs it or sends `FATAL` about it itself.
 
 A `send_status` is one event (a UUID): a callback reached twice through a diamond of
-dependencies runs once, and the desk delivers each (event, id) pair once, so a batch sent
-again after its relay failed does not run a callback twice. Callbacks run on worker
-threads, so a callback may call `call`, `unload` or `send_status` on any registrar
-without deadlock. The runner runs the callbacks of the whole process in the order they
-arrived, each consumer id's one at a time, on as few worker threads as keeps them going:
-one while each callback returns at once; another as soon as every one of them is inside
-a callback when more arrive (a callback that calls `send_status`), or once one has run a
-callback for `SLICE` seconds (a slow or hung callback holds its own thread, never the
-other consumers' callbacks, nor, after `SLICE`, its own next one). Each consumer
+dependencies runs once, and each (event, id) pair is delivered once in its process
+(`Desk.first_time`, asked as it is delivered: by the desk's direct path, by
+`on_status_notice`), so a batch sent again after its relay failed does not run a callback
+twice, nor does a status an `Unload`'s answer carried that had come its own way first.
+Callbacks run on worker threads, so a callback may call `call`, `unload` or `send_status`
+on any registrar without deadlock. The runner runs the callbacks of the whole process in
+the order they arrived, each consumer id's one at a time, on as few worker threads as
+keeps them going: one while each callback returns at once; another as soon as every one
+of them is inside a callback when more arrive (a callback that calls `send_status`), or
+once one has run a callback for `SLICE` seconds (a slow or hung callback holds its own
+thread, never the other consumers' callbacks, nor, after `SLICE`, its own next one). Each consumer
 registrar's actor is the only writer of what the desk reads of it (one dict assignment
 each, `consumer.py`'s `Holdings`); the desk reads single entries.
 """
@@ -63,7 +67,7 @@ from rr_actors._core.workers import Job, Workers
 from rr_actors._platform import fork
 from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.consumer import Flights, Holdings
-from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice
+from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice, StatusOnItsWay
 from rr_actors._registrar.state import NO_REPLY, Shared, consumers_by_origin
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors.errors import ConfigError, RrError
@@ -77,6 +81,7 @@ __all__ = [
     "Runner",
     "StatusRelay",
     "StatusTargets",
+    "Unacknowledged",
     "process",
 ]
 
@@ -89,10 +94,13 @@ _SEEN_EVENTS = 4096  # (event, resource) pairs remembered to run each callback o
 class StatusRelay:
     """Delivers statuses: this registrar's own, and those passing through it."""
 
-    def __init__(self, shared: Shared, flights: Flights, holdings: Holdings) -> None:
+    def __init__(
+        self, shared: Shared, flights: Flights, holdings: Holdings, unacked: Unacknowledged
+    ) -> None:
         self.registrar = shared
         self.flights = flights
         self.holdings = holdings
+        self.unacked = unacked  # (an `Unload`'s answer carries those of its id: provider.py)
         self.seen_events: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
         self.routes = Routes()
 
@@ -195,6 +203,7 @@ class StatusRelay:
         if in_process:
             DESK.deliver(batch, join, None, (self.registrar.name, self.flights.redeliver))
         for relay, parts, batched in self.routes.plan(elsewhere):
+            self.unacked.leaving(parts, batch)
             if batched:
                 self.send_batch(relay, batch.part(parts, NO_REPLY), join, refused)
             else:
@@ -212,8 +221,10 @@ class StatusRelay:
         """Send `batch`'s status to registrar `origin` alone, as a `StatusNotice`."""
         done = join.add()
         routes = self.routes
+        unacked = self.unacked
 
         def answered(_value: Any, error: BaseException | None) -> None:
+            unacked.answered(((origin, query_ids),), batch.event)
             if error is not None:
                 routes.forget([origin])  # (ask it where it is again)
                 self.not_sent(origin, batch, error, refused)
@@ -244,21 +255,25 @@ class StatusRelay:
         refused: list[ConfigError] | None = None,
     ) -> None:
         """Send `batch` to registrar `relay` (any thread); its answer completes a part of
-        `join`. Sent to a relay that fails, each part goes again to its own registrar (the
-        desk there delivers what had reached it once)."""
+        `join`, and of `unacked` (its parts were entered there as they left). Sent to a
+        relay that fails, each part goes again to its own registrar (the desk there
+        delivers what had reached it once)."""
         done = join.add()
         routes = self.routes
+        unacked = self.unacked
 
         def answered(value: Any, error: BaseException | None) -> None:
             if error is None:
+                unacked.answered(batch.parts, batch.event)
                 if isinstance(value, dict):
                     routes.learn(value)
             else:
                 routes.forget([relay, *(origin for origin, _ in batch.parts)])
                 if batch.parts != ((relay, batch.parts[0][1]),):  # (not its own part alone)
-                    for part in batch.parts:
+                    for part in batch.parts:  # (still unacknowledged: each its own answer)
                         self.send_batch(part[0], batch.part((part,), NO_REPLY), join, refused)
                 else:
+                    unacked.answered(batch.parts, batch.event)
                     self.not_sent(relay, batch, error, refused)
             done()
 
@@ -323,12 +338,17 @@ class StatusRelay:
         join.seal()
 
     def on_status_notice(self, message: StatusNotice, reply: Reply) -> None:
-        """Consumer side: run the client callbacks, climb to the dependent resources."""
+        """Consumer side: run the client callbacks, climb to the dependent resources.
+
+        Each id once per status (`Desk.first_time`, as the desk's own deliveries): a
+        status an `Unload`'s answer carried (`consumer.py`'s `Releases`) may have come
+        its own way first, or come after it.
+        """
         if self.flights.parked(message):
             return
         catalog = self.registrar.catalog
         join = SharedJoin(lambda: reply.set_result(None))
-        for query_id in message.query_ids:
+        for query_id in DESK.first_time(message.event, message.query_ids):
             record = catalog.clients.get(query_id)
             if record is None:
                 continue
@@ -601,11 +621,8 @@ class Desk:
                 continue
             if homes is not None:
                 homes[origin] = self.key
-            fresh = self.first_time(batch.event, ids)
-            if not fresh:
-                continue
             targets = self.targets.get(peer)
-            slow = self.direct(targets, batch, fresh, join, calls) if targets else fresh
+            slow = self.direct(targets, batch, ids, join, calls) if targets else ids
             if slow:
                 reply = CallbackReply(join.add())
                 notice = StatusNotice(
@@ -636,17 +653,23 @@ class Desk:
         join: SharedJoin,
         calls: list[_Call],
     ) -> tuple[str, ...]:
-        """Queue the callbacks of the ids `targets` has; the others, to go through its
-        registrar's mailbox."""
+        """Queue the callbacks of the ids `targets` has (those the status has not reached
+        yet); the others, to go through its registrar's mailbox (`on_status_notice`
+        takes each once there)."""
         slow: list[str] = []
+        ready: list[tuple[str, tuple[Query, StatusCallback]]] = []
         entries, due = targets.entries, targets.due
         publish = targets.events.active
         for query_id in ids:
             entry = entries.get(query_id)
             if entry is None or query_id in due:
                 slow.append(query_id)
+            else:
+                ready.append((query_id, entry))
+        fresh = set(self.first_time(batch.event, tuple(q for q, _ in ready)))
+        for query_id, (query, callback) in ready:
+            if query_id not in fresh:
                 continue
-            query, callback = entry
             if publish:
                 targets.events.publish(
                     events.StatusDelivered(
@@ -688,7 +711,9 @@ class Desk:
             reply.set_error(exc)
 
     def first_time(self, event: str, ids: tuple[str, ...]) -> tuple[str, ...]:
-        """Those of `ids` that event `event` has not reached here yet (marked now)."""
+        """Those of `ids` that event `event` has not reached here yet (marked now): each
+        delivery to an id in this process asks, as it delivers (`direct`, and
+        `StatusRelay.on_status_notice` on its registrar's actor)."""
         seen = self._seen
         fresh = []
         with self._lock:
@@ -775,6 +800,49 @@ class Routes:
         self.homes.pop(name, None)
         for home in [home for home, relay in self.relays.items() if relay == name]:
             del self.relays[home]
+
+
+class Unacknowledged:
+    """The statuses a provider sent on to consumer ids in other processes, by id, until
+    their answers came (an acknowledgement, or an error): the answer to an id's `Unload`
+    carries those of that id (rule 9: `provider.py`'s `Unloading`).
+
+    Across processes a notice and the answer to its consumer's `Unload` travel on two
+    connections, and the answer can come first; the consumer would forget the id, then
+    find nothing to deliver the notice to. In this process nothing overtakes a notice: it
+    is delivered, or in its registrar's mailbox, before this actor handles the `Unload`.
+    Entered by the provider's actor as the notices leave, cleared by the threads that
+    answer, taken by the actor as it answers an `Unload`.
+    """
+
+    def __init__(self) -> None:
+        self._lock = runtime.Lock()
+        self._of: dict[str, dict[str, StatusOnItsWay]] = {}  # id -> event -> status
+
+    def leaving(self, parts: Parts, batch: StatusBatch) -> None:
+        """`batch`'s status leaves for the ids of `parts`."""
+        status = batch.on_its_way()
+        with self._lock:
+            for _origin, ids in parts:
+                for query_id in ids:
+                    self._of.setdefault(query_id, {})[status.event] = status
+
+    def answered(self, parts: Parts, event: str) -> None:
+        """The answer to status `event` for the ids of `parts` came (any thread)."""
+        with self._lock:
+            for _origin, ids in parts:
+                for query_id in ids:
+                    waiting = self._of.get(query_id)
+                    if waiting is not None:
+                        waiting.pop(event, None)
+                        if not waiting:
+                            del self._of[query_id]
+
+    def take(self, query_id: str) -> tuple[StatusOnItsWay, ...]:
+        """The statuses still on their way to `query_id`, in the order they left (its
+        `Unload` is answered now: none leaves for it any more)."""
+        with self._lock:
+            return tuple(self._of.pop(query_id, {}).values())
 
 
 fork.after_fork_in_child("the status desk", DESK.forget_in_child)

@@ -31,6 +31,7 @@ import contextlib
 import logging
 import os
 import struct
+import weakref
 from pathlib import Path
 
 __all__ = ["SUFFIX", "CommitCount", "lost_commits"]
@@ -57,46 +58,50 @@ class CommitCount:
         self._wal = f"{file}-wal"
         self._salts = b""
         self._count = 0
-        self._fd: int | None = None
-        self._wal_fd: int | None = None
+        self._fds: dict[str, int] = {}  # "count", "wal": the files it keeps open
+        # (a count dropped without `close`, as a registrar killed in a simulation drops
+        # it, closes its files: a killed process's are closed by the kernel)
+        weakref.finalize(self, _close_fds, self._fds)
 
     def committed(self) -> None:
         """A write transaction was committed (call it after each one)."""
         try:
-            if self._wal_fd is None:
-                self._wal_fd = os.open(self._wal, os.O_RDONLY | os.O_CLOEXEC)
-            header = os.pread(self._wal_fd, _WAL_HEADER, 0)
+            wal = self._fds.get("wal")
+            if wal is None:
+                wal = self._fds["wal"] = os.open(self._wal, os.O_RDONLY | os.O_CLOEXEC)
+            header = os.pread(wal, _WAL_HEADER, 0)
             if len(header) < _WAL_HEADER:
                 return
             salts = header[16:24]
             if salts == self._salts:
                 self._count += 1
             else:  # the first commit of this store, or the log restarted: count them all
-                self._salts, self._count = salts, _commit_frames(self._wal_fd, header)
-            if self._fd is None:
-                self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
-                os.fchmod(self._fd, 0o600)  # (whatever the umask: like SQLite's side files)
-            os.pwrite(self._fd, _RECORD.pack(salts, self._count), 0)
+                self._salts, self._count = salts, _commit_frames(wal, header)
+            count = self._fds.get("count")
+            if count is None:
+                count = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+                self._fds["count"] = count
+                os.fchmod(count, 0o600)  # (whatever the umask: like SQLite's side files)
+            os.pwrite(count, _RECORD.pack(salts, self._count), 0)
         except OSError as exc:
             logger.debug("the commit count %s cannot be kept: %s", self.path, exc)
 
     def reopen(self) -> None:
         """The store writes to a new file (it was deleted and written again): a new log."""
-        self._close_fds()
+        _close_fds(self._fds)
         self._salts, self._count = b"", 0
 
     def close(self) -> None:
         """The backup was closed cleanly (SQLite removed its log): forget the count."""
-        self._close_fds()
+        _close_fds(self._fds)
         with contextlib.suppress(OSError):
             os.unlink(self.path)
 
-    def _close_fds(self) -> None:
-        for fd in (self._fd, self._wal_fd):
-            if fd is not None:
-                with contextlib.suppress(OSError):
-                    os.close(fd)
-        self._fd = self._wal_fd = None
+
+def _close_fds(fds: dict[str, int]) -> None:
+    while fds:
+        with contextlib.suppress(OSError):
+            os.close(fds.popitem()[1])
 
 
 def lost_commits(file: Path) -> tuple[int, str] | None:

@@ -25,7 +25,8 @@ served here, and a link back to the process a message came from (`Carrier`):
         False (the route went): forget the reply, route.broken(), once more or gone()
  on an actor's thread, to a name a carrier has to ask the network for (its `Lanes`):
    send_when_served(): encode here; on the name's lane (a carrier's thread, in order
-   with what follows): lanes.found(name)? check size, expect, send now : fail the reply
+   with what follows): lanes.found(name)? check size, expect, send now : fail the reply,
+   then lanes.retire(lane): what waits behind it fails after it, with its error
  Remote.run(fn) ─► submit(fn): tell(Run(fn, reply)) ─► wait (an event loop awaits it)
 
  receiving (the carrier's receiving thread calls the messenger)
@@ -41,9 +42,11 @@ served here, and a link back to the process a message came from (`Carrier`):
  a registrar lost for good / reachable again ─► Messenger.lost / reachable: the
    process's membership (`_core/membership.py`) records it and every registrar served
    here hears it (rule 19, rule 20)
- another process's server of a name served here is kept (rule 22) ─► give_way:
-   stop serving it, the registrar yields its name; at its end, its consumers here
-   reconcile with the one kept (`reachable`)
+ another process serves a name served here too (rule 22) ─► served_elsewhere(name,
+   rival): the decision, once for every carrier (the one served first is kept:
+   `rank`, `kept`); this one not kept ─► give_way: stop serving it, the registrar
+   yields its name; at its end, its consumers here reconcile with the one kept
+   (`reachable`)
 ```
 
 Carriers: `unix/` (a route is one connection; answers go back on the connection a
@@ -58,14 +61,16 @@ from __future__ import annotations
 
 import abc
 import contextlib
+import datetime
 import itertools
 import logging
 import pickle
-from collections.abc import Callable
-from typing import Any, NamedTuple, Protocol
+from collections.abc import Callable, Iterable
+from typing import Any, NamedTuple, Protocol, TypeVar, runtime_checkable
 
 from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY, Peer, Reply
+from rr_actors._core.hlc import seconds
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._transport.base import Endpoint
@@ -91,13 +96,17 @@ __all__ = [
     "Lost",
     "Messenger",
     "Outgoing",
+    "Ranked",
     "Remote",
     "Replies",
     "Route",
     "StandIn",
+    "kept",
+    "rank",
     "run_lost",
     "send",
     "send_when_served",
+    "when",
 ]
 
 logger = logging.getLogger("rr_actors")
@@ -125,7 +134,7 @@ class Carrier(Protocol):
     registrar served here (`Messenger.message`, `oversized`), an answer (the route's
     `pending`: `Replies.answered`, `too_large`, `refused`), a route or a server gone
     (`Replies.fail`), and its liveliness reports (`Messenger.lost`, `reachable`,
-    `give_way`), each with the evidence it has."""
+    `served_elsewhere`), each with the evidence it has."""
 
     def knows(self, name: str) -> bool:
         """Whether registrar `name` of another process is served on the system, or was
@@ -201,6 +210,10 @@ class Lane(Protocol):
     """A carrier's ordered queue to one name, with a thread that may wait on the network
     (Zenoh's outbox of a registrar's key): "send when served" runs there."""
 
+    refusal: RrError | None
+    """Why it was retired (`Lanes.retire`): the error of every message that waited on it
+    (`None` while open, or once closed for another reason)."""
+
     def run(self, task: Callable[[], None]) -> bool:
         """Run `task` on the lane's thread, in order with what is sent to the name; False
         if the lane is closed. If it closes before `task` ran, `task.dropped()` runs."""
@@ -219,10 +232,16 @@ class Lanes(Protocol):
         """The lane of `name` (`None`: this process left the system)."""
         ...
 
-    def found(self, name: str, lane: Lane) -> Route | None:
+    def found(self, name: str, lane: Lane) -> Route | RrError:
         """On `lane`'s thread: ask the network for the server of `name` (bounded); its
-        route, whose `send` sends at once on this thread; `None` if nobody serves it
-        (the lane is then retired: what waits behind fails too)."""
+        route, whose `send` sends at once on this thread; else the error of the messages
+        held for it: nobody serves it (`unreached`), or the network could not tell in
+        time (`RegistrarUnavailableError`). The lane is then retired (`retire`)."""
+        ...
+
+    def retire(self, lane: Lane, error: RrError) -> None:
+        """On `lane`'s thread, after its message failed with `error`: the lane is nobody's
+        from now on, and what waits on it fails with `error` too, in order (`refusal`)."""
         ...
 
     def unreached(self, name: str) -> RrError:
@@ -260,6 +279,51 @@ class Listening(abc.ABC):
 
     def forget_in_child(self) -> None:  # noqa: B027 - a hook: most carriers need nothing
         """In a forked child: let go of the parent's listener without touching it."""
+
+
+# -- rule 22: two servers of one name ---------------------------------------------------------
+
+
+@runtime_checkable
+class Ranked(Protocol):
+    """A server of a name as rule 22 orders it: a carrier's view of a registrar served
+    here (its `Listening`) or in another process."""
+
+    @property
+    def stamp(self) -> int:
+        """When it began to serve (a `_core.hlc` stamp)."""
+        ...
+
+    @property
+    def who(self) -> str:
+        """Its process as the carrier names it (a Zenoh id, a simulated pid)."""
+        ...
+
+    @property
+    def rank(self) -> tuple[int, int]:
+        """Its place in rule 22's order (`rank`)."""
+        ...
+
+
+R = TypeVar("R", bound=Ranked)
+
+
+def rank(stamp: int, process: int) -> tuple[int, int]:
+    """The place in rule 22's order of a server since `stamp` in process `process` (its
+    id as a number): of two servers of one name, the lower is kept (the earlier stamp;
+    of equal stamps, the lower process id, as claims tie-break)."""
+    return (stamp, process)
+
+
+def kept(servers: Iterable[R]) -> R | None:
+    """Which of the servers of one name is kept (rule 22: the lowest `rank`)."""
+    return min(servers, key=lambda server: server.rank, default=None)
+
+
+def when(stamp: int) -> str:
+    """A registration stamp as people read it: UTC, to the microsecond."""
+    at = datetime.datetime.fromtimestamp(seconds(stamp), datetime.UTC)
+    return at.strftime("%Y-%m-%d %H:%M:%S.%f UTC")
 
 
 class Remote(abc.ABC):
@@ -443,9 +507,12 @@ def send_when_served(peer: Remote, lanes: Lanes, message: Any) -> None:
     It is framed here and queued on the name's lane, in order with what is sent to that
     name after it; there the network is asked (`Lanes.found`), then the frame is sent
     to the server found, or its reply fails: `Lanes.unreached` if nobody serves the
-    name, `MessageTooLargeError` if it is over that server's `max_message_bytes`. A
-    message without a reply is then dropped (logged at debug level), as the registrar
-    drops one that cannot be sent at once.
+    name, `RegistrarUnavailableError` if the network could not tell in time, and then
+    what waits behind it on the lane fails after it with the same error (messages told
+    to a name not served yet are delivered in order once it is, or refused in order);
+    `MessageTooLargeError` if it is over that server's `max_message_bytes`. A message
+    without a reply is then dropped (logged at debug level), as the registrar drops one
+    that cannot be sent at once.
 
     Raises:
         ConfigError: the message cannot be pickled.
@@ -476,8 +543,9 @@ class _WhenServed:
         """On the lane's thread: find the server, then send (or fail the reply)."""
         peer, outgoing = self.peer, self.outgoing
         route = self.lanes.found(peer.name, self.lane)
-        if route is None:
-            _unsent(outgoing, self.lanes.unreached(peer.name))
+        if isinstance(route, RrError):  # this one fails first, then what waits behind it:
+            _unsent(outgoing, route)  # refused in the order told, never a later one first
+            self.lanes.retire(self.lane, route)
             return
         try:
             check_size(outgoing, peer.name, route.limit)
@@ -492,8 +560,9 @@ class _WhenServed:
             _unsent(outgoing, peer.gone())
 
     def dropped(self) -> None:
-        """The lane closed before it ran: its reply fails (nothing was sent)."""
-        _unsent(self.outgoing, self.lanes.unreached(self.peer.name))
+        """The lane closed before it ran: its reply fails (nothing was sent), with the
+        error of the message before it if the lane was retired."""
+        _unsent(self.outgoing, self.lane.refusal or self.lanes.unreached(self.peer.name))
 
 
 def _unsent(outgoing: Outgoing, error: RrError) -> None:
@@ -782,6 +851,22 @@ class Messenger:
             reason,
         )
         listening.endpoint.yield_name(reason)
+
+    def served_elsewhere(self, name: str, rival: Ranked) -> None:
+        """Another process serves registrar `name` too (its carrier sees both, rule 22):
+        if this process serves it and rule 22 keeps `rival` (served first, by its clock
+        stamp; of equal stamps, the lower process id), this one gives way (`give_way`).
+        The process of the one kept does nothing: this one sees it too, and yields."""
+        local = self.serving(name)
+        if not isinstance(local, Ranked) or rival.rank > local.rank:
+            return
+        self.give_way(
+            local,
+            f"registrar {name!r} of system {self.system!r} is served by process "
+            f"{rival.who} too, since {when(rival.stamp)}, before this one "
+            f"(process {local.who}, since {when(local.stamp)}): one name is one "
+            f"registrar (rule 22), and the one served first is kept",
+        )
 
     def lost(self, name: str) -> None:
         """Registrar `name` is gone for good (rule 19): this process's membership records it

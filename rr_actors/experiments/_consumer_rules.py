@@ -5,7 +5,8 @@
        │   providers added ──► findings, and the spans `status-reached` asks about
  QueryForgotten (provider lost, unknown at reconcile) + the provider pass's holdings
        ──► reported_lost: its provider's life that held the id had not lost it
- history ──► end: what providers still hold for consumers that stopped
+ steps (+ the history's exits) ──► end: what providers still hold, life by life,
+       for consumers that stopped
 ```
 """
 
@@ -118,10 +119,16 @@ def reported_lost(
     cut link counts as lost: the provider may run on over there).
     """
     findings: list[Finding] = []
+    seconds: dict[str, list[Life]] = defaultdict(list)  # name -> lives of second servers
+    for life in lives.values():
+        if life.beside is not None:
+            seconds[life.beside[0]].append(life)
     for line, event in history:
         if not isinstance(event, events.QueryForgotten) or event.reason not in REPORTED:
             continue
         provider, qid, stamp = event.serving_rr, event.query_id, event.hlc
+        if any(s.start <= stamp and not s.ended_before(stamp) for s in seconds[provider]):
+            continue  # (two served the name, behind a cut: either may have answered)
         for holding in holdings.get((provider, qid), ()):
             if holding.since >= stamp or (holding.until is not None and holding.until <= stamp):
                 continue
@@ -148,29 +155,31 @@ def reported_lost(
     return findings
 
 
-def end(history: Sequence[Line]) -> list[Finding]:
-    """`end`: at the end, no provider holds an id of a consumer that stopped."""
+def end(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]:
+    """`end`: at the end, no provider holds an id of a consumer that stopped.
+
+    A provider holds what its events added and did not release, life by life: a new
+    life holds what its `CatalogRestored` lists, or nothing (a restart without a backup
+    forgets every id; its consumers learn it at their reconcile, rule 20).
+    """
     stopped: dict[str, int] = {}  # consumer -> line of its (last) RegistrarStopped
     last_pid: dict[str, int] = {}
     exited: dict[tuple[str, int], int] = {}  # (child, pid) -> line of its ChildExited
-    held: dict[str, dict[str, tuple[str, int]]] = defaultdict(dict)  # provider -> qid -> ...
     for line, event in history:
         if isinstance(event, events.ChildExited):
             exited.setdefault((event.child, event.pid), line)
-            continue
-        name = getattr(event, "registrar", None)
-        if name is None:
-            continue
+    held: dict[str, dict[str, tuple[str, int]]] = defaultdict(dict)  # provider -> qid -> ...
+    for name, line, event, new, _life in steps:
+        if new:
+            stopped.pop(name, None)  # it came back
+            held[name].clear()  # (a restore lists what it holds again)
         if isinstance(event, events.RegistrarStopped):
             stopped[name] = line
             for qid, _rid, consumer, *_ in event.consumers:
                 held[name].setdefault(qid, (consumer, line))
             continue
-        if last_pid.get(name) not in (None, event.pid):
-            stopped.pop(name, None)  # it came back
         last_pid[name] = event.pid
         if isinstance(event, events.CatalogRestored):
-            stopped.pop(name, None)
             held[name] = {qid: (c, line) for qid, _rid, c, *_ in event.consumers}
         elif isinstance(event, events.ConsumerAdded):
             held[name][event.query_id] = (event.consumer, line)

@@ -15,6 +15,12 @@ in another process (a restarted manager process), or at its first event after a
 `RegistrarStopped`. It ends at that `ChildExited` or `RegistrarStopped`, or where the
 next one begins.
 
+A *second server* of a name is another process whose events of that registrar begin
+while the one it would follow still serves: that one has not ended, and publishes again
+later (a later line, a later stamp). Only a cut lets that be (rule 22: each side may
+serve a name the other lost). Its events are checked as a registrar of their own, named
+`<name>@<pid>` (`@` is in no name), whose life records which life it served `beside`.
+
 Two clocks are used. Within one registrar, the order of its lines (events of one process
 reach the run's subscription in the order they were published). Across registrars, the
 events' hybrid logical clock stamps (`hlc`): a stamp orders a cause before its effects,
@@ -90,6 +96,10 @@ class Life:
         end: the stamp it ended at (its `ChildExited`, its `RegistrarStopped`, or the first
             event of its next life), `None` if the run shows no end.
         host: the host of its events (`""`: not known, as in files of schema 2).
+        pid: the process of its first event.
+        first_line: the line of its first event.
+        beside: for a second server of a name (see the module docstring), the
+            `(registrar, life)` it served beside; `None` for every other life.
     """
 
     start: int
@@ -97,6 +107,9 @@ class Life:
     last_line: int
     end: int | None = None
     host: str = ""
+    pid: int = 0
+    first_line: int = 0
+    beside: tuple[str, int] | None = None
 
     def ended_before(self, stamp: int) -> bool:
         """Whether it had ended at `stamp` (by what the run shows)."""
@@ -113,62 +126,119 @@ def walk(history: Sequence[Line]) -> tuple[list[Step], dict[tuple[str, int], Lif
 
     A `StatusDelivered` belongs to the life its registrar is in and begins none (a
     process's status desk may publish it for a registrar, from another thread); a
-    `RegistrarStopped` ends its life.
+    `RegistrarStopped` ends its life, and begins one first if it comes from another
+    process (a restart without a backup that published nothing before its stop). The
+    events of a second server of a name are those of the registrar `<name>@<pid>`.
     """
-    pids: dict[str, int] = {}
-    current: dict[str, int] = {}  # registrar -> its life now
-    now: dict[str, Life] = {}  # registrar -> that life's record
-    over: set[str] = set()  # registrars whose life ended (their next event begins one)
-    lives: dict[tuple[str, int], Life] = {}
-    steps: list[Step] = []
+    walker = _Walk(history)
     for line, event in history:
         if isinstance(event, events.ChildExited):
-            child = event.child
-            if pids.get(child) == event.pid and child not in over:
-                now[child].end = event.hlc
-                over.add(child)
-            continue
-        name = getattr(event, "registrar", None)
-        if name is None:
-            continue
-        stamp = event.hlc
+            walker.exited(event)
+        elif getattr(event, "registrar", None) is not None:
+            walker.step(line, event)
+    return walker.steps, walker.lives
+
+
+class _Walk:
+    """`walk`'s state: each registrar's pid and life now, and the second servers."""
+
+    def __init__(self, history: Sequence[Line]) -> None:
+        self.last: dict[tuple[str, int], tuple[int, int]] = {}  # (name, pid) -> line, stamp
+        for line, event in history:
+            name = getattr(event, "registrar", None)
+            if name is not None and not isinstance(event, events.StatusDelivered):
+                seen = self.last.get((name, event.pid), (0, 0))
+                self.last[name, event.pid] = (line, max(seen[1], event.hlc))
+        self.pids: dict[str, int] = {}
+        self.current: dict[str, int] = {}  # registrar -> its life now
+        self.now: dict[str, Life] = {}  # registrar -> that life's record
+        self.over: set[str] = set()  # registrars whose life ended (the next event begins one)
+        self.second: dict[tuple[str, int], str] = {}  # (name, pid) of a second server -> ...
+        self.lives: dict[tuple[str, int], Life] = {}
+        self.steps: list[Step] = []
+
+    def exited(self, event: events.ChildExited) -> None:
+        child = self.second.get((event.child, event.pid), event.child)
+        if self.pids.get(child) == event.pid and child not in self.over:
+            self.now[child].end = event.hlc
+            self.over.add(child)
+
+    def step(self, line: int, event: events.Event) -> None:
+        name: str = getattr(event, "registrar")  # noqa: B009 - `walk` checked it
         if isinstance(event, events.StatusDelivered | events.RegistrarStopped):
-            record = now.get(name)
-            if record is None:
-                current[name] = 0
-                record = now[name] = lives[name, 0] = Life(stamp, stamp, line, host=event.host)
-            record.last = max(record.last, stamp)
-            record.last_line = line
-            if isinstance(event, events.RegistrarStopped):
-                if record.end is None:
-                    record.end = stamp
-                over.add(name)
-            steps.append((name, line, event, False, current[name]))
-            continue
-        pid = pids.get(name)
+            self.ending(line, event, self.second.get((name, event.pid), name))
+            return
+        name, beside = self.server(line, event, name)
+        stamp, pid = event.hlc, self.pids.get(name)
         if (
             pid is None
             or pid != event.pid
-            or name in over
+            or name in self.over
             or isinstance(event, events.CatalogRestored)
         ):
-            life = current.get(name, -1) + 1
-            record = now.get(name)
+            life = self.current.get(name, -1) + 1
+            record = self.now.get(name)
             if record is not None and record.end is None:
                 record.end = stamp
-            current[name] = life
-            now[name] = lives[name, life] = Life(stamp, stamp, line, host=event.host)
-            over.discard(name)
+            self.current[name] = life
+            self.now[name] = self.lives[name, life] = Life(
+                stamp, stamp, line, host=event.host, pid=event.pid, first_line=line, beside=beside
+            )
+            self.over.discard(name)
             new = True
         else:
-            life = current[name]
-            record = now[name]
+            life = self.current[name]
+            record = self.now[name]
             record.last = max(record.last, stamp)
             record.last_line = line
             new = False
-        pids[name] = event.pid
-        steps.append((name, line, event, new, life))
-    return steps, lives
+        self.pids[name] = event.pid
+        self.steps.append((name, line, event, new, life))
+
+    def ending(self, line: int, event: events.Event, name: str) -> None:
+        """A `StatusDelivered` (in its life) or a `RegistrarStopped` (its life ends; from
+        another process it begins one first: a restart without a backup that published
+        nothing before its stop)."""
+        stamp = event.hlc
+        stopping = isinstance(event, events.RegistrarStopped)
+        pid = self.pids.get(name)
+        new = stopping and pid is not None and pid != event.pid
+        record = self.now.get(name)
+        if new or record is None:
+            if record is not None and record.end is None:
+                record.end = stamp
+            self.current[name] = self.current.get(name, -1) + 1
+            record = self.now[name] = self.lives[name, self.current[name]] = Life(
+                stamp, stamp, line, host=event.host, pid=event.pid, first_line=line
+            )
+            self.over.discard(name)
+            if new:
+                self.pids[name] = event.pid
+        else:
+            record.last = max(record.last, stamp)
+            record.last_line = line
+        if stopping:
+            if record.end is None:
+                record.end = stamp
+            self.over.add(name)
+        self.steps.append((name, line, event, new, self.current[name]))
+
+    def server(
+        self, line: int, event: events.Event, name: str
+    ) -> tuple[str, tuple[str, int] | None]:
+        """The registrar `event` is of (`<name>@<pid>` for a second server), and, at a
+        second server's first event, the life it serves beside."""
+        known = self.second.get((name, event.pid))
+        if known is not None:
+            return known, None
+        pid = self.pids.get(name)
+        if pid is None or pid == event.pid or name in self.over:
+            return name, None
+        line_then, stamp_then = self.last.get((name, pid), (0, 0))
+        if line_then <= line or stamp_then <= event.hlc:
+            return name, None  # (the one before serves no more: a restart)
+        self.second[name, event.pid] = f"{name}@{event.pid}"
+        return self.second[name, event.pid], (name, self.current[name])
 
 
 @dataclasses.dataclass
@@ -193,6 +263,8 @@ class Facts:
             to that registrar at that hop.
         lost: (provider, query id) its consumer reported lost itself (`REPORTED`).
         told_self: (line, consumer, query id) of each `QueryForgotten` of `REPORTED`.
+        outcomes: query id -> `(stamp, answered)` of each of its consumer's
+            `CallAnswered` (`True`) and `CallFailed` (`False`), in order.
     """
 
     with_backup: set[str] = dataclasses.field(default_factory=set)
@@ -209,6 +281,7 @@ class Facts:
     first_delivery: dict[tuple[str, str, int], int] = dataclasses.field(default_factory=dict)
     lost: set[tuple[str, str]] = dataclasses.field(default_factory=set)
     told_self: list[tuple[int, str, str]] = dataclasses.field(default_factory=list)
+    outcomes: dict[str, list[tuple[int, bool]]] = dataclasses.field(default_factory=dict)
 
 
 def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per event kind
@@ -231,6 +304,9 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
         elif isinstance(event, events.CallAnswered):
             if event.parent is not None:
                 facts.parent[event.registrar, event.query_id] = event.parent
+            facts.outcomes.setdefault(event.query_id, []).append((event.hlc, True))
+        elif isinstance(event, events.CallFailed):
+            facts.outcomes.setdefault(event.query_id, []).append((event.hlc, False))
         elif isinstance(event, events.QueryForgotten):
             facts.forgot.setdefault((event.serving_rr, event.query_id), event.hlc)
             if event.reason in REPORTED:

@@ -133,6 +133,7 @@ class Providers:
         self.fatal_at = facts.fatal_at
         self.parent = facts.parent
         self.watch = facts.lost
+        self.outcomes = facts.outcomes
         self.catalogs: dict[str, _Catalog] = defaultdict(_Catalog)
         self.findings: list[Finding] = []
         self.holdings: dict[tuple[str, str], list[Holding]] = defaultdict(list)
@@ -180,21 +181,37 @@ class Providers:
                 name,
             )
         if not restoring and catalog.pid is not None:
-            self.lose(name, catalog, set(), line, event.hlc, "in a restart without a backup")
+            unheld = {
+                q for q, held in catalog.held.items() if self.failed(q, held.stamp, event.hlc)
+            }
+            self.lose(name, catalog, unheld, line, event.hlc, "in a restart without a backup")
             self.let_go_all(name, catalog, event.hlc)
             catalog.forget_all()
             catalog.blind = False
         catalog.pid = event.pid
         catalog.life = life
 
+    def failed(self, qid: str, since: int, stamp: int) -> bool:
+        """Whether the call of `qid`, added at `since`, had failed for its caller at
+        `stamp` (a restart without a backup, which may lose it: its caller holds no id,
+        rule 17): its consumer's last outcome of it between the two was a `CallFailed`,
+        or, with none between, its first one after (the failure seen after the restart
+        began)."""
+        outcomes = [(at, answered) for at, answered in self.outcomes.get(qid, ()) if at > since]
+        before = [answered for at, answered in outcomes if at < stamp]
+        if before:
+            return not before[-1]
+        return bool(outcomes) and not outcomes[0][1]
+
     def lose(
-        self, name: str, catalog: _Catalog, kept: set[str], line: int, stamp: int, why: str
+        self, name: str, catalog: _Catalog, spared: set[str], line: int, stamp: int, why: str
     ) -> None:
-        """`kept`: the ids held before a restart (at `line`, `stamp`) that it lost are
+        """`kept`: the ids held before a restart (at `line`, `stamp`) that it lost (all
+        but `spared`: those its restore kept, or whose call had failed for its caller) are
         violations, unless their consumer was told `FATAL` since it was added, or had
         forgotten them before."""
         for qid, held in catalog.held.items():
-            if qid in kept:
+            if qid in spared:
                 continue
             # its consumer had let it go: the release was committed, and the kill came
             # before its `ConsumerReleased` was published (the restore shows the commit)

@@ -19,8 +19,15 @@
                         (_instrument.SETUP_FAULTS)
    partition_serving ─► SIGKILL now; its restart is cut off the other processes as it
                         serves, for `for` s, then healed (SimulatedNetwork.on_serve)
+   split_brain ───────► its process cut off every other one; beyond the cut a second
+                        server of its name starts (a supervisor of its own, "beyond-<n>",
+                        its backup its own, the child temporary: a host that saw the name
+                        lost, rule 19), on a thread of its own; `for` s later the cut heals
+                        and rule 22 decides (the one served first is kept, the second
+                        yields); that supervisor runs to the end of the run (`close`)
  stop ─► hung managers continued; armed faults that never fired, triggers that never
          came and faults due after the end recorded as skipped (FaultLog)
+ close (after the tree's stop) ─► the supervisors of second servers stop
 ```
 
 Every time is virtual and every choice the scheduler's, so the same seed injects the same
@@ -35,7 +42,10 @@ import heapq
 import itertools
 import signal
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
+
+import msgspec
 
 import rr_actors as rr
 from rr_actors import events, simulation
@@ -45,6 +55,7 @@ from rr_actors.experiments._instrument import SETUP_FAULTS, arm_load_error
 from rr_actors.experiments._triggered import Triggered
 from rr_actors.experiments.plan import Plan
 from rr_actors.experiments.results import FaultRecord
+from rr_actors.experiments.runner import EVENT_QUEUE, _child_spec
 from rr_actors.experiments.schedule import ScheduledFault
 
 __all__ = ["SimulatedFaults"]
@@ -66,6 +77,8 @@ class SimulatedFaults:
         schedule: the run's fault schedule.
         t0: `runtime.monotonic()` at the workload's start (the schedule's time 0).
         wall_t0: `runtime.wall()` then (events' times are on it).
+        on_event: what the run's events go to (a second server's supervisor's too).
+        state_dir: where second servers keep their backups (`None`: in memory).
     """
 
     def __init__(
@@ -76,8 +89,14 @@ class SimulatedFaults:
         schedule: tuple[ScheduledFault, ...],
         t0: float,
         wall_t0: float,
+        *,
+        on_event: Callable[[events.Event], None] | None = None,
+        state_dir: Path | None = None,
     ) -> None:
         self.sup = sup
+        self._on_event = on_event
+        self._state_dir = state_dir
+        self._beyond: list[tuple[rr.Supervisor, Any]] = []  # second servers' (sup, events)
         self.plan = plan
         self.network = network
         self.t0 = t0
@@ -92,9 +111,17 @@ class SimulatedFaults:
         self._open: dict[tuple[int, int], Callable[[], None]] = {}  # recorded once they end
         self._helpers: list[Any] = []  # load errors' threads
         self._triggered = Triggered((f for f in schedule if f.at is None), wall_t0)
+        # The timed faults put on the agenda without its lock (no thread sees it yet): a
+        # lock taken is a choice point of the scheduler, so that taking it once per
+        # injection would make the run before the first one depend on how many come
+        # later, and a shorter run (a shrink's cut) would not begin as the longer one.
         for fault in schedule:
             if fault.at is not None:
-                self._push(fault, fault.at)
+                n = next(self._order)
+                self._due[n] = (fault, fault.at)
+                action = functools.partial(self._fire, fault, fault.at)
+                self._agenda.append((self.t0 + fault.at, n, action))
+        heapq.heapify(self._agenda)
         SETUP_FAULTS.clear()  # (the simulation's alone: nothing arms it in a real run)
         self._thread = runtime.Thread(target=self._run, name="rr-simulated-faults", daemon=True)
 
@@ -140,6 +167,16 @@ class SimulatedFaults:
             self.log.record(fault, at, None, f"armed: {self._aim(fault)} never came", skipped=True)
         self._armed.clear()
 
+    def close(self) -> None:
+        """Stop the supervisors of second servers (after the tree's stop: the end of the
+        run), once their events are delivered."""
+        for sup, subscription in self._beyond:
+            sup.stop()
+            if subscription is not None:
+                subscription.wait_delivered()
+                subscription.close()
+        self._beyond.clear()
+
     # -- the agenda ----------------------------------------------------------------------
 
     def _push(self, fault: ScheduledFault, at: float) -> None:
@@ -183,6 +220,13 @@ class SimulatedFaults:
         if fault.kind == "load_error":
             thread = runtime.Thread(
                 target=self._load_error, args=(fault, at), name="rr-simulated-load", daemon=True
+            )
+            self._helpers.append(thread)
+            thread.start()
+            return
+        if fault.kind == "split_brain":
+            thread = runtime.Thread(
+                target=self._split_brain, args=(fault, at), name="rr-simulated-split", daemon=True
             )
             self._helpers.append(thread)
             thread.start()
@@ -282,6 +326,48 @@ class SimulatedFaults:
         detail = f"SIGKILL pid {killed}; pid {pid} cut off as it serves, for {for_s:g} s"
         self._fired(fault, at, pid, detail)
         self._at(runtime.monotonic() + for_s, self.network.heal, None)
+
+    def _split_brain(self, fault: ScheduledFault, at: float) -> None:
+        """Cut the target's process off the others, start a second server of its name
+        beyond the cut, heal `for` s after the cut (a thread of its own: the start takes
+        virtual time)."""
+        assert fault.target is not None
+        info = self.sup.child(fault.target)
+        if info.state != "running" or info.pid is None:
+            detail = f"{fault.target} was not running ({info.state})"
+            self.log.record(fault, at, None, detail, skipped=True)
+            return
+        pid, for_s = info.pid, self.plan.faults[fault.fault].for_s or 0.0
+        self.network.partition([pid])
+        injected = self._now()
+        self._at(runtime.monotonic() + for_s, self.network.heal, None)
+        [manager] = [m for m in self.plan.managers() if m.name == fault.target]
+        name = f"beyond-{len(self._beyond) + 1}"
+        state = None if self._state_dir is None else self._state_dir / name
+        beyond = rr.Supervisor(
+            _child_spec(msgspec.structs.replace(manager, restart="temporary"), self.plan.base_dir),
+            state_dir=state,
+            network=self.network,
+            name=name,
+        )
+        on_event = self._on_event
+        subscription = None if on_event is None else beyond.subscribe(on_event, maxsize=EVENT_QUEUE)
+        self._beyond.append((beyond, subscription))
+        # (a millisecond later: the first subscriber's relay keeps the events stamped
+        # after its switch, and an event's `at` is its clock stamp's, to the microsecond)
+        runtime.sleep(0.001)
+        try:
+            beyond.start()
+        except rr.RrError as exc:
+            detail = f"cut pid {pid} off; a second {fault.target} did not start: {exc}"
+            self.log.record(fault, at, injected, detail)
+            return
+        second = beyond.child(fault.target).pid
+        detail = (
+            f"cut pid {pid} off, for {for_s:g} s; a second {fault.target} serves beyond "
+            f"the cut (pid {second}, supervisor {name})"
+        )
+        self.log.record(fault, at, injected, detail)
 
     def _load_error(self, fault: ScheduledFault, at: float) -> None:
         assert fault.target is not None

@@ -19,7 +19,8 @@ what cannot be checked):
   (a `CatalogRestored` without it, or a restart without a backup), or a clean stop that
   does not list it, is a violation, unless, for a restart, its consumer had forgotten
   it before (`QueryForgotten`): a release committed just before a kill has no
-  `ConsumerReleased`, and the restore shows it.
+  `ConsumerReleased`, and the restore shows it; or, for a restart without a backup, its
+  call had failed for its caller (`CallFailed`: it holds no id).
 - `unload-once`: a resource is unloaded at most once, and only once its last consumer
   id was released; no consumer is added to a resource after its unload; no id is
   released that was not held.
@@ -46,7 +47,14 @@ what cannot be checked):
 - `reported-lost`: a consumer tells itself `FATAL` (`provider lost`, `unknown at
   reconcile`) only for an id its provider lost: not one the provider's life that
   answered (or ran on, on the same host) had added and not released.
-- `end`: nothing is held at the end by a consumer that stopped (`RegistrarStopped`).
+- `end`: nothing is held at the end by a consumer that stopped (`RegistrarStopped`): a
+  provider's life holds what its `CatalogRestored` listed (nothing without a backup) and
+  what it added since.
+- `one-name` (rule 22): a second server of a name (a process whose events of a registrar
+  begin while another one's life of it goes on: only a cut lets each side serve a name)
+  yields once the cut heals; two that both serve to the end of the run (neither process
+  exited but at the tree's shutdown) are a violation. The checker sees no cut: a run
+  ends healed, so serving to its end is serving after the heal.
 - `events`: no event was lost (an `EventsDropped`, a gap in a process's `seq`); a loss
   makes the findings about the registrars of that process unverifiable.
 
@@ -70,7 +78,7 @@ from rr_actors import events
 from rr_actors.errors import ConfigError
 from rr_actors.events.lines import json_lines, parse_json
 from rr_actors.experiments import _consumer_rules, _status_rules
-from rr_actors.experiments._history import Finding, Line, gather, registrar_of, walk
+from rr_actors.experiments._history import Finding, Life, Line, gather, registrar_of, walk
 from rr_actors.experiments._provider_rules import Providers
 
 __all__ = [
@@ -99,6 +107,7 @@ RULES = (
     "answered",
     "reported-lost",
     "end",
+    "one-name",
     "events",
 )
 """The rules `check` checks, by name (see the module docstring)."""
@@ -173,6 +182,42 @@ def _loss_rule(history: Sequence[Line]) -> tuple[list[Finding], set[int]]:
     return findings, lossy
 
 
+def _one_name_rule(history: Sequence[Line], lives: dict[tuple[str, int], Life]) -> list[Finding]:
+    """`one-name` (rule 22): a second server of a name and the one it served beside do
+    not both serve to the end of the run."""
+    exits = {(e.child, e.pid): e.reason for _, e in history if isinstance(e, events.ChildExited)}
+    latest: dict[str, int] = {}
+    for name, life in lives:
+        latest[name] = max(latest.get(name, 0), life)
+
+    def to_the_end(name: str) -> Life | None:
+        """The last life of `name` if it served to the end of the run."""
+        record = lives[name, latest[name]]
+        reason = exits.get((name.partition("@")[0], record.pid))
+        return record if reason in (None, "shutdown") else None
+
+    findings = []
+    for (name, life), record in lives.items():
+        if record.beside is None or latest[name] != life or to_the_end(name) is None:
+            continue
+        base = record.beside[0]
+        other = to_the_end(base)  # (the one it served beside, or its restart)
+        if other is None:
+            continue
+        findings.append(
+            Finding(
+                "one-name",
+                "violation",
+                f"two registrars {base} served to the end of the run: pid {other.pid}'s and "
+                f"pid {record.pid}'s, begun while the other served (behind a cut); once it "
+                f"healed, the one served later yields (rule 22)",
+                (other.first_line, record.first_line, record.last_line),
+                (base, name),
+            )
+        )
+    return findings
+
+
 def check(history: Sequence[Line]) -> Verdict:
     """Check one run's events against every rule of `RULES`.
 
@@ -201,7 +246,8 @@ def check(history: Sequence[Line]) -> Verdict:
         *_status_rules.status_path(history, facts),
         *answered,
         *_consumer_rules.reported_lost(history, providers.holdings, lives),
-        *_consumer_rules.end(history),
+        *_consumer_rules.end(steps, history),
+        *_one_name_rule(history, lives),
     ]
     findings = [
         dataclasses.replace(f, kind="unverifiable", message=f"{f.message} (events were lost)")

@@ -51,12 +51,19 @@ FaultKind = Literal[
     "kill_before_answer",
     "kill_in_setup",
     "partition_serving",
+    "split_brain",
 ]
 
 FAULT_KINDS: tuple[FaultKind, ...] = typing.get_args(FaultKind)  # every kind a plan may name
 HOST_KINDS = frozenset({"cut", "partition", "freeze", "kill_router"})  # act between hosts
-SIMULATION_KINDS = frozenset(  # aimed at a point only a simulation can stop at (--simulate)
-    {"duplicate_delivery", "kill_before_answer", "kill_in_setup", "partition_serving"}
+SIMULATION_KINDS = frozenset(  # aimed where only a simulation can stop or reach (--simulate)
+    {
+        "duplicate_delivery",
+        "kill_before_answer",
+        "kill_in_setup",
+        "partition_serving",
+        "split_brain",
+    }
 )
 NEEDS_PROCESS = frozenset({"kill_resource", "hang_manager", "cut_connections"} | SIMULATION_KINDS)
 MAX_HOSTS = 8  # the most hosts of a plan (a veth between every two: 28 links)
@@ -218,7 +225,7 @@ class FaultPlan(_Table, frozen=True):
     count: Annotated[int, Meta(ge=1, le=MAX_INJECTIONS)] | None = None  # with `every`
     after: Trigger | None = None  # inject when an event happens, `delay` later
     delay: SecondsOrZero = 0.0
-    # a hang's, load error's, partition_serving's, duplicate_delivery's (default 1 s)
+    # a hang's, load error's, partition_serving's, split_brain's, duplicate_delivery's (default 1 s)
     for_s: Seconds | None = msgspec.field(default=None, name="for")
     loads: Count = 1  # load_error: how many loads raise (without `for_s`)
     server: str | None = None  # load_error: only loads of this server (default: any)

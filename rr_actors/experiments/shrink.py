@@ -6,30 +6,41 @@
  │                    numbers blotted out) is what every candidate must show again
  ├─ the plan as TOML data; its timed faults made explicit: one atom per injection the
  │  seed made (`every` and a choice among targets become `at` times and one target)
- ├─ greedy passes, again and again until a round keeps nothing (a fixpoint) or the
- │  budget of runs is spent; a pass tries smaller candidates one by one:
- │     duration  1/8, 1/4, 1/2, 3/4, 9/10 of it: its end cut (the injections after it
- │               dropped) or its start (those before it dropped, the rest earlier)
+ ├─ greedy passes, biggest cuts first, again and again until the budget of runs is
+ │  spent or a round at the widest search keeps nothing; a pass tries smaller
+ │  candidates one by one:
+ │     supervisors  fewer restarts before one gives up: 0, 1, 2, 4, ... (a crash loop
+ │                  ends at its first restarts, where its violation shows)
+ │     duration  ended 0.05 s after the violation (the last event the checker cites
+ │               before the workload's end: a run's beginning does not depend on what
+ │               comes later, so the cut keeps it); 1/8, 1/4, 1/2, 3/4, 9/10 of it: its
+ │               end cut (the injections after it dropped) or its start (those before
+ │               it dropped, the rest earlier)
  │     shift     every injection (and the end) earlier, as far as the first one
  │     faults    delete chunks of injections (delta debugging: halves, quarters, ... ones)
  │     tree      call a manager's dependency directly, cut a `uses`, drop an unused manager
  │     workload  fewer clients, fewer call kinds, a lower rate, fewer keys, all or no
  │               calls shared, a shorter hold
  │     options   no (or half the) load and unload time of each manager
+ │     seeds     the same plan under seeds 1..20 (or the width): the fewest events (the
+ │               scheduler's choices made simpler: no pass edits them)
  │     round     injection times and the duration to fewer decimals (easier to read)
  │  a candidate = its TOML text, validated (`parse_plan`) and run whole on the simulation
- │  with the seed and up to `tries - 1` seeds after it; kept if one of them shows the
- │  same violation kind and is smaller: fewer events, or as many and a shorter text (or
- │  one as long that sorts first: the shortlex order, so the passes end); that seed is
- │  then the shrunk run's; each text and seed runs at most once
+ │  with the current seed, then seeds 1, 2, ... (`tries` in all; at each fixpoint the
+ │  width grows 4 times, up to `MOST_TRIES`); kept if one of them shows the same
+ │  violation kind and is smaller: fewer events, or as many and a shorter text (or one
+ │  as long that sorts first: the shortlex order, so the passes end); that seed is then
+ │  the shrunk run's; each text and seed runs at most once
  ◄── Shrunk: the plan's text, its seed, its run (history, hash, events), the kind
  write(shrunk, out): out/plan.toml (a header says what it shows), out/seeds.jsonl,
                      out/events-seed-S.jsonl: a run directory `rr-actors replay` reads
 ```
 
-Why neighbouring seeds: the seed drives the scheduler and the clients' arrival times, so
-any change of the plan gives another interleaving; a violation that needs a rare one is
-lost by most candidates under the seed alone, and found again under one of a few seeds.
+Why other seeds: the seed drives the scheduler and the clients' arrival times, so any
+change of the plan (but a cut of its end) gives another interleaving; a violation that
+needs a rare one is lost by most candidates under the seed alone, and found again under
+one of a few seeds, or, for a race one seed in a hundred shows, of a few hundred: the
+widening spends those runs only once the cheap cuts are done and the runs are small.
 """
 
 from __future__ import annotations
@@ -37,7 +48,9 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
+import itertools
 import json
+import logging
 import re
 import tomllib
 from collections.abc import Callable, Iterator
@@ -61,11 +74,23 @@ __all__ = [
     "write",
 ]
 
-BUDGET = 400
+BUDGET = 2500
 """The most simulated runs one shrink makes (each seed of each candidate is one)."""
 
 TRIES = 3
-"""How many seeds a candidate runs with at most: the current one, then the next ones."""
+"""How many seeds a candidate runs with at first: the current one, then 1, 2, ..."""
+
+WIDEN = 4
+"""At a fixpoint, a candidate runs with this many times as many seeds from then on."""
+
+MOST_TRIES = 1000
+"""The most seeds a candidate runs with (the widest search: its fixpoint ends a shrink)."""
+
+SEEDS = 20
+"""The seeds the seed pass runs the current plan with: 1 to this (or the width)."""
+
+MARGIN = 0.05
+"""Seconds of the run kept after the violation, when the duration is cut there."""
 
 _NOT_RUN = ("description", "repeat", "seed")
 """Top-level keys a simulated run does not read (its seed is the sweep's): left out."""
@@ -219,7 +244,8 @@ def shrink(
         plan: a plan read from a file or text (its `source` names where its setups are).
         seed: a seed it violates with.
         budget: the most simulated runs to make (at least 1: the seed's own).
-        tries: seeds per candidate (the current seed, then the next ones).
+        tries: seeds per candidate at first (the current seed, then 1, 2, ...); four
+            times as many after each fixpoint, up to `MOST_TRIES`.
         on_step: called with a line for each kept candidate (progress).
         on_run: called with the number of runs made after each run (a progress bar).
         text: the plan's TOML (default: its file's; a run directory's copy, say).
@@ -258,6 +284,7 @@ class _Shrinker:
         self.source = plan.source or "<plan>"
         self.budget, self.tries, self.say, self.ran = budget, tries, say, ran
         self.runs = 0
+        self.width = tries  # seeds a candidate runs with at most (`attempt`)
         self.tried: set[tuple[str, int]] = set()
         self.steps: list[str] = []
         first = self.run_one(plan, seed)
@@ -276,7 +303,13 @@ class _Shrinker:
         self.say(f"shrinking seed {seed} ({first.events} events): {self.kind}")
 
     def run_one(self, plan: Plan, seed: int) -> simulate.SimulatedRun:
-        run = simulate.run_seed(plan, seed)
+        logger = logging.getLogger("rr_actors")
+        level = logger.level
+        logger.setLevel(logging.CRITICAL)  # (a candidate's supervisor giving up: not news)
+        try:
+            run = simulate.run_seed(plan, seed)
+        finally:
+            logger.setLevel(level)
         self.runs += 1
         self.ran(self.runs)
         return run
@@ -284,20 +317,26 @@ class _Shrinker:
     def run(self) -> Shrunk:
         self.explicit()
         passes = (
+            self.supervisors,
             self.durations,
             self.shift,
             self.faults,
             self.tree,
             self.workload,
             self.options,
+            self.seeds,
             self.rounded,
         )
-        changed = True
-        while changed and self.runs < self.budget:
+        while self.runs < self.budget:
             before = len(self.steps)
             for step in passes:
                 step()
-            changed = len(self.steps) > before
+            if len(self.steps) > before:
+                continue
+            if self.width >= MOST_TRIES:
+                break  # (a fixpoint at the widest search)
+            self.width = min(self.width * WIDEN, MOST_TRIES)
+            self.say(f"run {self.runs}: a fixpoint: {self.width} seeds a candidate from here")
         spent = self.runs >= self.budget
         left = f"the budget ({self.budget} runs) spent" if spent else "a fixpoint"
         self.say(f"done after {self.runs} runs ({left}): {self.best.events} events")
@@ -316,16 +355,19 @@ class _Shrinker:
     def text(self, data: dict[str, Any]) -> str:
         return dump_plan(_dump_atoms(data))
 
-    def attempt(self, what: str, data: dict[str, Any], *, same: bool = False) -> bool:
-        """Run the candidate `data` (the seed, then the next ones); keep it if it shows the
-        violation kind and is `smaller` than the best so far (`same`: the same plan said
-        another way, kept if it shows the kind in no more events)."""
+    def attempt(
+        self, what: str, data: dict[str, Any], *, same: bool = False, width: int | None = None
+    ) -> bool:
+        """Run the candidate `data` (the current seed, then 1, 2, ... up to `width`, the
+        search's width by default); keep it if it shows the violation kind and is
+        `smaller` than the best so far (`same`: the same plan said another way, kept if it
+        shows the kind in no more events)."""
         text = self.text(data)
         try:
             plan = parse_plan(text, source=self.source, name=self.plan.name)
         except ConfigError:
             return False  # (a cut that left the plan invalid: not a candidate)
-        for seed in range(self.seed, self.seed + self.tries):
+        for seed in self.candidate_seeds(self.width if width is None else width):
             if self.runs >= self.budget:
                 return False
             if (text, seed) in self.tried:
@@ -340,19 +382,30 @@ class _Shrinker:
                 return True
         return False
 
+    def candidate_seeds(self, width: int) -> Iterator[int]:
+        """The current seed, then 1, 2, ...: `width` seeds in all."""
+        yield self.seed
+        yield from itertools.islice((s for s in itertools.count(1) if s != self.seed), width - 1)
+
     def smaller(self, run: simulate.SimulatedRun, text: str) -> bool:
         """Fewer events; as many and a shorter text, or one as long that sorts first (the
         shortlex order: every kept candidate is smaller, so the passes end)."""
         best = self.text(self.data)
         return (run.events, len(text), text) < (self.best.events, len(best), best)
 
-    def first(self, candidates: Iterator[tuple[str, dict[str, Any]]]) -> bool:
+    def first(
+        self, candidates: Iterator[tuple[str, dict[str, Any]]], width: int | None = None
+    ) -> bool:
         """Try `candidates` in order until one is kept."""
-        return any(self.attempt(what, data) for what, data in candidates)
+        return any(self.attempt(what, data, width=width) for what, data in candidates)
 
-    def repeat(self, candidates: Callable[[], Iterator[tuple[str, dict[str, Any]]]]) -> None:
+    def repeat(
+        self,
+        candidates: Callable[[], Iterator[tuple[str, dict[str, Any]]]],
+        width: int | None = None,
+    ) -> None:
         """Try the candidates of the current best again after each one kept."""
-        while self.runs < self.budget and self.first(candidates()):
+        while self.runs < self.budget and self.first(candidates(), width):
             pass
 
     # -- the passes --------------------------------------------------------------------------
@@ -397,6 +450,13 @@ class _Shrinker:
 
         def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
             duration = self.data["duration"]
+            seen = _violation_at(self.best, self.kind, duration)
+            if seen is not None and seen + MARGIN < duration:
+                shorter = round(seen + MARGIN, 3)
+                yield (
+                    f"duration {duration:g} -> {shorter:g} s (the violation at {seen:.3f} s)",
+                    (self.until(shorter)),
+                )
             for fraction in (0.125, 0.25, 0.5, 0.75, 0.9):
                 shorter = round(duration * fraction, 3)
                 if not 0 < shorter < duration:
@@ -424,6 +484,38 @@ class _Shrinker:
             if not isinstance(atom.get("at"), int | float) or atom["at"] < duration
         ]
         return {**self.data, "duration": duration, "faults": faults}
+
+    def seeds(self) -> None:
+        """The current plan under seeds 1 to `SEEDS` (or the search's width): the seed whose
+        run shows the kind in the fewest events (the scheduler's choices made simpler: no
+        pass edits them)."""
+        text = self.text(self.data)
+        for seed in range(1, max(SEEDS, self.width) + 1):
+            if self.runs >= self.budget:
+                return
+            if (text, seed) in self.tried:
+                continue
+            self.tried.add((text, seed))
+            run = self.run_one(self.plan, seed)
+            if run.events < self.best.events and self.kind in violation_kinds(run):
+                self.seed, self.best = seed, run
+                self.steps.append(f"seed {seed}")
+                self.say(f"run {self.runs}: seed {seed}: {run.events} events")
+
+    def supervisors(self) -> None:
+        """Fewer restarts before a supervisor gives up (a crash loop ends sooner)."""
+        for index in range(len(_supervisors(self.data))):
+            where = ("*supervisors", index)
+            self.repeat(functools.partial(self.counts, where, "max_restarts"))
+
+    def counts(self, where: tuple[Any, ...], key: str) -> Iterator[tuple[str, dict[str, Any]]]:
+        """Smaller values of a count that may be 0, smallest first: 0, 1, 2, 4, 8, ...
+        (the first kept is about the smallest that still violates)."""
+        current = _at(self.data, where).get(key, _DEFAULTS.get(key))
+        if isinstance(current, bool) or not isinstance(current, int):
+            return
+        wanted = [0, *itertools.takewhile(lambda v: v < current, (2**i for i in itertools.count()))]
+        yield from self.values(where, key, [v for v in wanted if v < current])
 
     def shift(self) -> None:
         def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
@@ -519,7 +611,7 @@ class _Shrinker:
                 if self.text(data) != self.text(self.data):
                     yield f"times to {digits} decimals", data
 
-        self.repeat(candidates)
+        self.repeat(candidates, self.tries)  # (for the reader: not worth a wide search)
 
     # -- numbers of a table ------------------------------------------------------------------
 
@@ -549,13 +641,23 @@ class _Shrinker:
             _at(data, where)[key] = value
             if where[:1] == ("*managers",):
                 where_shown = (_managers(self.data)[where[1]]["name"], *where[2:])
+            elif where[:1] == ("*supervisors",):
+                name = _supervisors(self.data)[where[1]].get("name", "tree")
+                where_shown = (name, *where[2:])
             else:
                 where_shown = where
             shown = ".".join(map(str, where_shown))
             yield f"{shown}.{key} = {value:g}".lstrip("."), data
 
 
-_DEFAULTS = {"shared": 0.5, "hold": 0.5, "clients": 1, "rate": 5.0, "keys": 4}
+_DEFAULTS = {
+    "shared": 0.5,
+    "hold": 0.5,
+    "clients": 1,
+    "rate": 5.0,
+    "keys": 4,
+    "max_restarts": 3,
+}
 """The plan's defaults of the keys the passes make smaller (`plan.py`)."""
 
 
@@ -565,6 +667,8 @@ def _at(data: dict[str, Any], where: tuple[Any, ...]) -> dict[str, Any]:
     steps = list(where)
     if steps and steps[0] == "*managers":
         node, steps = _managers(data)[steps[1]], steps[2:]
+    elif steps and steps[0] == "*supervisors":
+        node, steps = _supervisors(data)[steps[1]], steps[2:]
     for step in steps:
         node = node[step] if isinstance(step, int) else node.setdefault(step, {})
     found: dict[str, Any] = node
@@ -579,6 +683,39 @@ def _managers(data: dict[str, Any]) -> list[dict[str, Any]]:
             yield from walk(child) if "children" in child else [child]
 
     return list(walk(data.get("tree", {})))
+
+
+def _supervisors(data: dict[str, Any]) -> list[dict[str, Any]]:
+    """The supervisor tables of the tree (the top one first), depth first."""
+
+    def walk(node: dict[str, Any]) -> Iterator[dict[str, Any]]:
+        yield node
+        for child in node.get("children", []):
+            if "children" in child:
+                yield from walk(child)
+
+    return list(walk(data["tree"])) if "tree" in data else []
+
+
+def _violation_at(run: simulate.SimulatedRun, kind: str, duration: float) -> float | None:
+    """When (seconds after the run's first event) the last event that shows `kind`'s
+    first finding happened, of those within `duration` (`None`: no such event)."""
+    lines = run.history.splitlines()
+    verdict = check.check(check.read_runs(lines).get(simulate.RUN, []))
+    finding = next(
+        (
+            f
+            for f in verdict.findings
+            if f.kind == "violation" and violation_kind(f.rule, f.message) == kind
+        ),
+        None,
+    )
+    if finding is None or not lines:
+        return None
+    start = json.loads(lines[0])["at"]
+    times = [json.loads(lines[n - 1])["at"] - start for n in finding.lines if 0 < n <= len(lines)]
+    times = [t for t in times if t < duration]
+    return max(times) if times else None
 
 
 def _drop(node: dict[str, Any], name: str) -> bool:

@@ -10,7 +10,8 @@
                the injector: fault_schedule(plan, S) on simulated processes and links   │
                  (SimulatedFaults, _simulated_faults.py), `after` ones from the events  │
                sleep(duration); faults stop; wait_all_serving; clients stop;            │
-               count_entries (the runner's settling); flush; sup.stop()                 │
+               count_entries (the runner's settling); flush; sup.stop(); the            │
+               injector's close (the supervisors of `split_brain`'s second servers)     │
    ◄── the events, the fault records, t0 ◄──────────────────────────────────────────────┘
    history = events.jsonl's text (the runner's lines: `at` in virtual seconds, pids the
              simulated ones, `run` = 1, `seed` = S) + the fault lines
@@ -277,7 +278,16 @@ def _world(
         sup.start()
         clients = [Client(i, sup, plan, seed, run_dir=work) for i in range(plan.workload.clients)]
         t0, wall_t0 = runtime.monotonic(), runtime.wall()
-        faults = SimulatedFaults(sup, plan, network, fault_schedule(plan, seed), t0, wall_t0)
+        faults = SimulatedFaults(
+            sup,
+            plan,
+            network,
+            fault_schedule(plan, seed),
+            t0,
+            wall_t0,
+            on_event=seen,
+            state_dir=folder / "beyond" if plan.state else None,
+        )
         injector.append(faults)
         faults.start()
         for client in clients:
@@ -296,6 +306,8 @@ def _world(
         sup.flush_events()
     finally:
         sup.stop()
+        for opened in injector:  # (second servers' supervisors: to the end of the run)
+            opened.close()
         subscription.wait_delivered()
         subscription.close()
         network.close()

@@ -354,7 +354,8 @@ def shrink_arguments(parser: argparse.ArgumentParser) -> None:
         "--tries",
         type=int,
         default=shrink.TRIES,
-        help=f"seeds per candidate: the current one and the next ones (default: {shrink.TRIES})",
+        help="seeds per candidate at first: the current one, then 1, 2, ...; four times as "
+        f"many after each round that kept nothing (default: {shrink.TRIES})",
     )
 
 

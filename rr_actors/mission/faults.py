@@ -45,7 +45,7 @@ from rr_actors.mission.config import (
     MissionConfig,
     MissionError,
 )
-from rr_actors.mission.hosts import Trees
+from rr_actors.mission.hosts import Trees, restart_after_failure
 from rr_actors.mission.netns import TwoHosts
 from rr_actors.mission.report import FaultRecord, UnplannedExit
 
@@ -118,6 +118,10 @@ def retry_through_restarts(
 ) -> T:
     """Run `action`; if manager `name` was down or died meanwhile, wait for its restart, retry.
 
+    After an unavailable error it waits for the next restart only if the tree says
+    `name` was killed since it was asked (`restart_after_failure`); else for the one
+    that ran then (at once, or once the station sees it served), and tries again.
+
     Args:
         sup: the supervisor of `name` (or the mission's `Trees`).
         name: the manager `action` talks to.
@@ -142,7 +146,9 @@ def retry_through_restarts(
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise
-            sup.wait_restarted(name, timeout=remaining, restarts=before.restarts + 1)
+            sup.wait_restarted(
+                name, timeout=remaining, restarts=restart_after_failure(sup, name, before)
+            )
 
 
 def _served_names(registrar: rr.ResourceRegistrar) -> list[str]:
@@ -398,25 +404,13 @@ class Faults:
                     note = self._restored(name)
                     break
                 except rr.RegistrarUnavailableError:
-                    target = self._restart_after_failure(name, info)
+                    target = restart_after_failure(self.sup, name, info)
             with self.lock:
                 record.note = note
                 record.recovered_at = time.monotonic()
             self.say(f"{record.id} recovered: {name} restarted and {note}")
         except rr.RrError as exc:
             self.say(f"{record.id}: {name} did not come back: {exc}")
-
-    def _restart_after_failure(self, name: str, info: rr.ChildInfo) -> int:
-        """The restart to wait for after a call to the manager restarted as `info` failed
-        as unavailable: the next one if it was killed again meanwhile (down, or restarted
-        since), else `info`'s own. Across hosts the call may fail only because the
-        station does not see the restarted manager served yet (its token is on the way:
-        `RobotHost`), and no further restart would come: the wait for `info`'s returns
-        once the station sees it."""
-        now = self.sup.child(name)
-        if now.state != "running" or now.restarts > info.restarts:
-            return info.restarts + 1  # killed again meanwhile: the next restart
-        return info.restarts
 
     def _restored(self, name: str) -> str:
         """Ask the restarted manager what it restored; a short note for the report."""

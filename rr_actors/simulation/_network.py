@@ -10,8 +10,14 @@ order per link, cuts and heals.
    thread of A's ─► link.pending.answered
  partition(pids) ─► links across fail what waits on them; sends across raise "cannot be
    reached"; what is on the wire across is dropped when it arrives
- heal() ─► links work again; every process hears each name across as reachable again
-   (rule 20: its consumers reconcile), on a thread of its own
+ a name served on both sides of a partition (`listen` behind a cut: its server beyond
+   is not ended, as a restart's predecessor is): each sender routes to the one on its
+   side; each server carries its serve stamp (the HLC of its process as it listens)
+ heal() ─► links work again; a name served on both sides: each of its processes hears
+   of the others (`Messenger.served_elsewhere`, the decision Zenoh's presence runs:
+   the one served first is kept, the other gives way and yields, rule 22), and from
+   now on every sender routes to the one kept (`kept`); every process hears each name
+   across as reachable again (rule 20: its consumers reconcile), on a thread of its own
  a lease (`lease=`): a process stopped (SIGSTOP) past it is silent: the links to what it
    serves fail what waits, as at a cut; once it runs again, reachable again (a presence
    thread of the network's process looks every quarter lease)
@@ -41,10 +47,11 @@ import logging
 from collections.abc import Callable, Iterable
 from typing import Any
 
+from rr_actors._core.hlc import CLOCK, from_seconds
 from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import split_frame
-from rr_actors._transport.messenger import Lost, Messenger, Replies, run_lost
-from rr_actors.errors import RegistrarUnavailableError, RrError
+from rr_actors._transport.messenger import Lost, Messenger, Replies, kept, rank, run_lost
+from rr_actors.errors import RegistrarStoppedError, RegistrarUnavailableError, RrError
 from rr_actors.simulation import _primitives as sim
 from rr_actors.simulation._processes import Process
 from rr_actors.simulation._run import running_scheduler
@@ -246,6 +253,28 @@ def served_by(served: _Served) -> Process:
     return process
 
 
+class _Server(_Served):
+    """A registrar served on the simulated network: its process, the stamp of when it
+    began to serve (`Ranked`, rule 22)."""
+
+    def __init__(self, hub: _SimulatedHub, endpoint: Endpoint, process: Process) -> None:
+        self.process = process  # (before the delivery thread: it is the process's)
+        super().__init__(hub, endpoint, hub.messenger)
+        # its process's clock read (on its thread), not ticked: a reading is no event, and
+        # the histories of runs without a second server stay as they were
+        self.stamp = max(CLOCK.last, from_seconds(CLOCK.wall()))
+
+    @property
+    def who(self) -> str:
+        """Its process: the simulated pid."""
+        return str(self.process.pid)
+
+    @property
+    def rank(self) -> tuple[int, int]:
+        """Its place in rule 22's order (`messenger.rank`: the pid for a tie)."""
+        return rank(self.stamp, self.process.pid)
+
+
 class _SimulatedHub(_Hub):
     """The hub of a `SimulatedNetwork`: links per sending process, wires, partitions."""
 
@@ -255,7 +284,9 @@ class _SimulatedHub(_Hub):
         self.sched: Scheduler = running_scheduler()
         self.delay = messenger.delay
         self.network = messenger
-        self._links: dict[tuple[int, str], _Link] = {}
+        self._links: dict[tuple[int, str], _Link] = {}  # (sender's pid, name) -> its link
+        self._aside: list[_Link] = []  # links left for another server of their name, open
+        self._servers: dict[str, list[_Server]] = {}  # name -> its servers: one a side
         self._side: frozenset[int] | None = None  # the pids cut off the others
         self._silent: set[str] = set()  # names served by a process silent past its lease
         # the faults armed (`SimulatedNetwork`'s methods of the same names)
@@ -271,27 +302,52 @@ class _SimulatedHub(_Hub):
         task = self.sched.current_or_none()
         return self.sched.root if task is None else task.process
 
-    def served(self, endpoint: Endpoint) -> _Served:
-        served = super().served(endpoint)
+    def served(self, endpoint: Endpoint) -> _Server:
         # its process set before `listen` publishes it: a thread that runs while it
         # starts (a seam may switch) and routes to the name finds it whole
-        served.process = self._sender()  # type: ignore[attr-defined]
-        return served
+        return _Server(self, endpoint, self._sender())
 
     def listen(self, endpoint: Endpoint) -> _Served:
-        served = super().listen(endpoint)
-        fire = self.serving.pop(endpoint.name, None)
+        """Serve `endpoint` in its process. One served under its name before on this
+        side of a partition is cut off (a registrar restarted elsewhere); one beyond it
+        serves on, for the processes of its side (rule 22 decides at the heal)."""
+        server = self.served(endpoint)
+        name = endpoint.name
+        with self._lock:
+            if self.closed:
+                raise RegistrarStoppedError("the in-memory network was closed")
+            before = self._servers.get(name, [])
+            beyond = [other for other in before if self._across(other, server.process)]
+            self._servers[name] = [*beyond, server]
+            self._served[name] = server
+            self._gone.pop(name, None)
+        for old in before:
+            if old not in beyond:
+                self.end(old, "unavailable")
+        fire = self.serving.pop(name, None)
         if fire is not None:
-            fire(served_by(served).pid)
-        return served
+            fire(server.process.pid)
+        return server
+
+    def _across(self, server: _Server, process: Process) -> bool:
+        """Whether the partition divides `process` from `server`'s process."""
+        side = self._side
+        return side is not None and (server.process.pid in side) != (process.pid in side)
 
     def route(self, name: str) -> _Link:  # type: ignore[override]
-        served = self._served.get(name)
-        if served is None or served.cut or served.gone:
+        """The link from this process to the server of `name` it reaches: the one on its
+        side of a partition; of two it sees (after a heal), the one kept (rule 22)."""
+        servers = [one for one in self._servers.get(name, []) if not (one.cut or one.gone)]
+        if not servers:
             raise self.gone_error(name)
         sender = self._sender()
+        near = [one for one in servers if not self._across(one, sender)]
+        served = kept(near or servers)
+        assert served is not None
         link = self._links.get((sender.pid, name))
         if link is None or link.served is not served or link.closed:
+            if link is not None and not link.closed:  # (to the other server of the name,
+                self._aside.append(link)  # which serves on: what waits on it waits on)
             link = self._links[sender.pid, name] = _Link(self, sender, served)
             until, count = self.duplicate.get(name, (-1.0, None))
             link.twice = count if self.sched.now < until else None
@@ -302,7 +358,7 @@ class _SimulatedHub(_Hub):
         if self.apart(link):
             raise RegistrarUnavailableError(
                 f"registrar {name!r} cannot be reached (the network between processes "
-                f"{sender.pid} and {served_by(served).pid} is cut)"
+                f"{sender.pid} and {served.process.pid} is cut)"
             )
         return link
 
@@ -323,15 +379,28 @@ class _SimulatedHub(_Hub):
         return link.answer(data, on_lost)
 
     def end(self, served: _Served, how: str, error: RrError | None = None) -> None:
+        name = served.name
+        # (first, and without a lock: no choice point lets a `listen` see it served)
+        rest = [one for one in self._servers.pop(name, []) if one is not served]
+        if rest:
+            self._servers[name] = rest
         super().end(served, how, error)
-        failed = error or self.gone_error(served.name)
-        for link in list(self._links.values()):
+        rest = self._servers.get(name, [])
+        if rest:  # (the name is served on: by the one beyond a cut, or kept, or new)
+            self._served[name] = rest[-1]
+            self._gone.pop(name, None)
+        failed = error or self.gone_error(name)
+        for link in self._every_link():
             if link.served is served and not link.closed:
                 link.close(failed)
+        self._aside = [link for link in self._aside if not link.closed]
+
+    def _every_link(self) -> list[_Link]:
+        return [*self._links.values(), *self._aside]
 
     def cut_connections(self, pid: int) -> int:
         cut = 0
-        for link in list(self._links.values()):
+        for link in self._every_link():
             if link.closed or pid not in (link.sender.pid, served_by(link.served).pid):
                 continue
             link.sever()
@@ -347,7 +416,7 @@ class _SimulatedHub(_Hub):
 
     def partition(self, side: frozenset[int]) -> None:
         self._side = side
-        for link in list(self._links.values()):
+        for link in self._every_link():
             if not link.closed and self.apart(link):
                 name = link.served.endpoint.name
                 link.close(RegistrarUnavailableError(f"registrar {name!r} cannot be reached (cut)"))
@@ -356,12 +425,41 @@ class _SimulatedHub(_Hub):
         side, self._side = self._side, None
         if side is None:
             return
-        pids = {name: served_by(one).pid for name, one in list(self._served.items())}
+        pids: dict[str, int] = {}  # name -> the pid of its server kept
+        for name, servers in list(self._servers.items()):
+            one = kept(servers)
+            if one is None:
+                continue
+            pids[name] = one.process.pid
+            if len(servers) > 1:
+                self._two_servers(name, servers)
 
         def across(process: Process, name: str) -> bool:
             return (pids[name] in side) != (process.pid in side)
 
         self._tell_reachable(list(pids), across)
+
+    def _two_servers(self, name: str, servers: list[_Server]) -> None:
+        """A name served on both sides of the healed cut: each of its processes hears of
+        the others, on a thread of its own, as Zenoh's presence tells its carrier; the
+        messenger there decides whether its own gives way (rule 22)."""
+        for server in servers:
+            rivals = [other for other in servers if other is not server]
+            sim.Thread(
+                self.sched,
+                target=self._served_elsewhere,
+                args=(name, rivals),
+                name=f"rr-rival-{server.process.pid}",
+                daemon=True,
+                process=server.process,
+            ).start()
+
+    def _served_elsewhere(self, name: str, rivals: list[_Server]) -> None:
+        """In a process serving `name`: the others serve it too (rule 22)."""
+        member = self.network.address.attach()
+        assert isinstance(member, Messenger)
+        for rival in rivals:
+            member.served_elsewhere(name, rival)
 
     def _presence(self) -> None:
         """Every quarter lease: a stopped process silent past its lease is gone for the
@@ -381,7 +479,7 @@ class _SimulatedHub(_Hub):
                         f"registrar {name!r} cannot be reached (its process is silent past "
                         f"its lease, {lease:g} s)"
                     )
-                    for link in list(self._links.values()):
+                    for link in self._every_link():
                         if link.served is served and not link.closed:
                             link.close(error)
                 elif not silent and name in self._silent:

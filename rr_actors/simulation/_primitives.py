@@ -122,8 +122,12 @@ class Lock:
     def _free(self) -> None:
         self._locked = False
         holder, self._holder = self._holder, None
-        if holder is not None and self in holder.held:
-            holder.held.remove(self)
+        if holder is not None:
+            held = holder.held
+            if held and held[-1] is self:  # (most: the last one taken)
+                held.pop()
+            elif self in held:
+                held.remove(self)
         waiters = self._waiters
         while waiters:
             task = waiters.popleft()

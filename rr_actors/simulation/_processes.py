@@ -77,8 +77,9 @@ class States:
     """The objects registered with `runtime.process_state`, and whose state they hold.
 
     An object whose fields all live in its `__dict__` (most) has a `__dict__` per
-    process, swapped whole at a switch (one assignment, whatever its size); the others
-    (slotted ones, a class) have their fields' values copied out (a tuple) and back in.
+    process, swapped whole at a switch (one assignment, whatever its size; the one in use
+    is the process's own, so nothing is read back); the others (slotted ones, a class)
+    have their fields' values copied out (a tuple) and back in, where they differ.
 
     Args:
         registered: `(obj, fresh)` pairs (`runtime.process_states()`).
@@ -93,6 +94,8 @@ class States:
             for obj, fresh, names in zip(self._objects, self._fresh, self._fields, strict=True)
         ]
         self._getters = [operator.attrgetter(*names) for names in self._fields]
+        self._swapped = [(i, obj) for i, obj in enumerate(self._objects) if self._whole[i]]
+        self._copied = [i for i, whole in enumerate(self._whole) if not whole]
         self._real = self._read()  # the real process's, put back by `close`
         self._installed: Process | None = None
 
@@ -115,14 +118,17 @@ class States:
             )
         ]
 
-    def _write(self, state: list[Any]) -> None:
-        for obj, names, whole, values in zip(
-            self._objects, self._fields, self._whole, state, strict=True
-        ):
-            if whole:
-                obj.__dict__ = values  # (the process's own dict: no copy either way)
-                continue
-            for name, value in zip(names, values, strict=True):
+    def _write(self, state: list[Any], now: list[Any] | None = None) -> None:
+        """Put `state` in (`now`: what the copied objects hold now: only the fields that
+        differ are set, so a class's attribute cache is not reset for nothing)."""
+        for i, obj in self._swapped:
+            obj.__dict__ = state[i]  # (the process's own dict: no copy either way)
+        for i in self._copied:
+            obj, names, values = self._objects[i], self._fields[i], state[i]
+            was = now[i] if now is not None else (_UNKNOWN,) * len(names)
+            for name, value, old in zip(names, values, was, strict=True):
+                if value is old:
+                    continue
                 if value is _MISSING:
                     if hasattr(obj, name):
                         delattr(obj, name)
@@ -131,11 +137,16 @@ class States:
 
     def install(self, process: Process) -> None:
         """Make the singletons `process`'s (those of the process in before kept as its)."""
-        if process is self._installed:
+        installed = self._installed
+        if process is installed:
             return
-        if self._installed is not None:
-            self._installed.state = self._read()
-        self._write(process.state)
+        if installed is None:
+            self._write(process.state)
+        else:  # (a whole `__dict__` in its state is the one in use: only the others read)
+            state = installed.state
+            for i in self._copied:
+                state[i] = _values(self._getters[i], self._fields[i], self._objects[i])
+            self._write(process.state, state)
         self._installed = process
 
     def close(self) -> None:
@@ -165,3 +176,4 @@ def _swappable(obj: object, made: object, names: list[str]) -> bool:
 
 
 _MISSING: Any = object()
+_UNKNOWN: Any = object()  # (what a field held before, not read: set it whatever it is)

@@ -240,8 +240,10 @@ def _only_here(here: int, simulated: Callable[..., Any], real: Callable[..., Any
     scheduler), `real` on any other: the seams are the module's globals, seen by every
     thread of the process, and a real thread must keep real clocks, sleeps and locks."""
 
+    ident = threading.get_ident
+
     def seam(*args: Any, **kwargs: Any) -> Any:
-        if threading.get_ident() == here:
+        if ident() == here:
             return simulated(*args, **kwargs)
         return real(*args, **kwargs)
 

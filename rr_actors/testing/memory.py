@@ -92,7 +92,8 @@ class MemoryAddress:
 
     def attach(self) -> Transport:
         """The network of that name (this process's); in a simulated process other than
-        the one that made it, that process's membership of it (one per process).
+        the one that made it, that process's membership of it (one per process; a new
+        one once it left, as a process whose registrar stopped does as it exits).
 
         Raises:
             RegistrarStoppedError: it was closed, or it is another process's.
@@ -104,7 +105,8 @@ class MemoryAddress:
                 f"process's: an in-memory network cannot be joined from another process)"
             )
         member = _MEMBERS.by_system.get(self.system)
-        if member is None or member.link() is not network.link():
+        left = member is not None and member._carrier is None  # (`_Member.close`)
+        if member is None or left or member.link() is not network.link():
             member = _Member(self.system)
             member.joined(network.link())
             _MEMBERS.by_system[self.system] = member

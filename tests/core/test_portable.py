@@ -1,8 +1,13 @@
 """The process tests again, on the portable platform (`rr_actors._platform.portable`).
 
-Every test module that uses manager processes runs again in a subprocess with
-`RR_ACTORS_PLATFORM=portable`, as part of the normal run, so the fallback of each Linux
-trick cannot rot. It runs tests of several layers (minutes).
+The tests of each place a Linux trick is used (`rr_actors._platform`'s `PLATFORM`: the
+manager's context and forkserver, its exit and CPU watches, a child's death with its
+parent and its name, the runtime folder, the end of the main thread) run again in a
+subprocess with `RR_ACTORS_PLATFORM=portable`, as part of the normal run, so the
+fallback of each trick cannot rot. Modules that only use manager processes, through
+those places, are not run twice: `tests/transport/test_base.py` and
+`tests/transport/unix/test_link.py` (a third of this run's time) call no `PLATFORM`
+method of their own.
 """
 
 from __future__ import annotations
@@ -32,14 +37,12 @@ PORTABLE_MODULES = (
     "tests/registrar/test_life.py::TestCrash",
     "tests/transport/test_codec.py",
     "tests/transport/unix/test_system.py",
-    "tests/transport/unix/test_link.py",
     "tests/transport/test_messenger.py::TestStoppingAListener",
-    "tests/transport/test_base.py",
     "tests/registrar/test_consumer.py::TestReconcileEdges",
     "tests/process/test_spare.py::TestWarmUp",
     "tests/process/test_heartbeat.py",
 )
-"""The test modules that use manager processes, run again on the portable platform."""
+"""The tests of the places a Linux trick is used, run again on the portable platform."""
 
 
 @pytest.mark.skipif(PLATFORM.name != "linux", reason="this run is on the portable platform")

@@ -31,6 +31,7 @@ SHIPPED = {
     "leases",
     "simchain",
     "simretry",
+    "simheal",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 

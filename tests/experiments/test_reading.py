@@ -569,7 +569,9 @@ class TestRules:
 
         assert (18, "faults[0].for") == (error.line, error.key)
         only = "'hang_manager' or 'load_error' or 'cut' or 'partition' or 'freeze'"
-        only += " or 'partition_serving' or 'duplicate_delivery'"  # (the simulation's)
+        only += (
+            " or 'partition_serving' or 'duplicate_delivery' or 'split_brain'"  # (the simulation's)
+        )
         assert f"does not go with kind 'kill_manager' (only {only})" == error.problem
 
     def test_a_trigger_status_of_the_wrong_type_names_the_statuses(self) -> None:

@@ -14,6 +14,8 @@ import pytest
 
 from rr_actors.__main__ import main
 from rr_actors.experiments import load_plan, plans, shrink, simulate, story, sweep
+from rr_actors.experiments.plan import Plan
+from rr_actors.experiments.reading import parse_plan
 from tests.experiments.test_simulate import PLAN
 from tests.experiments.test_sweep import BUGGY
 
@@ -137,6 +139,96 @@ def test_the_shrink_command_shrinks_a_seed_of_a_sweeps_output_from_its_plan_copy
     code, printed = command("replay", str(out / "shrunk-seed-2"), "--seed", str(seed))
     assert 0 == code, printed
     assert "the same history" in printed
+
+
+UNLOAD_HELD = '''\
+"""A setup that plants a bug in every provider of its process: an unload run while the
+resource is still held (any release of a loaded one unloads it: the `unload-held` plant of
+benchmarks/planted_bugs.py, undone by the test's monkeypatch). The catalog refuses to
+remove a resource with consumers, so the registrar dies once the unload began, and again
+at each restart, which finds the resource in doubt and still held: a crash loop until
+its supervisor gives up (`[in-doubt]` at the first restart)."""
+
+import inspect
+import textwrap
+
+from rr_actors._registrar import provider
+from rr_actors.experiments.services import service
+
+_source = textwrap.dedent(inspect.getsource(provider.Unloading.release))
+_planted = _source.replace("if resource.consumers or resource.state", "if resource.state")
+assert _planted != _source, "Unloading.release moved: write the plant again"
+_made = {}
+exec(compile(_planted, provider.__file__, "exec"), vars(provider), _made)
+
+
+def setup(registrar, **options):
+    provider.Unloading.release = _made["release"]
+    service(registrar, **options)
+'''
+
+
+@pytest.fixture
+def crash_loop(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """simkill (1000 restarts a second allowed) with the unload-held plant in its setups."""
+    from rr_actors._registrar.provider import Unloading  # noqa: PLC0415
+
+    monkeypatch.setattr(Unloading, "release", Unloading.release)  # (put back at the end)
+    (tmp_path / "unloadheld.py").write_text(UNLOAD_HELD)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    plan = tmp_path / "plan.toml"
+    plan.write_text(PLAN.replace("rr_actors.experiments.services:service", "unloadheld:setup"))
+    return plan
+
+
+@SHRINK
+def test_a_crash_loop_is_shrunk_by_fewer_restarts_and_a_cut_after_its_violation(
+    crash_loop: Path,
+) -> None:
+    # Each run of the plan is a crash loop of 1000 restarts (3,000 events, seconds of
+    # CPU): the shrinker used to spend its budget on such runs (cutting the duration
+    # does not end the loop). Fewer restarts allowed end it at the first one, which is
+    # where the violation shows; the run is then cut just after the violation.
+    plan = load_plan(crash_loop)
+    original = simulate.run_seed(plan, 1)
+    assert original.events > 3000
+    assert shrink.violation_kinds(original)[0].startswith("[in-doubt] api: ")
+
+    shrunk = shrink.shrink(plan, 1, budget=60)
+
+    assert shrunk.kind == shrink.violation_kinds(original)[0]
+    assert shrunk.kind in shrink.violation_kinds(shrunk.run)
+    assert "tree.max_restarts = 1" in shrunk.steps
+    assert any("(the violation at " in step for step in shrunk.steps)
+    assert shrunk.run.events <= 40
+    assert "max_restarts = 1\n" in shrunk.text
+    assert shrunk.run.hash == simulate.run_seed(shrunk.plan, shrunk.seed).hash
+
+
+def test_a_run_cut_short_begins_as_the_longer_one_did() -> None:
+    # What the shrinker's cuts rely on: a run's beginning depends on nothing that comes
+    # later. The injector used to take its lock once per timed injection as the run
+    # began (a choice point of the scheduler each), so the number of injections still to
+    # come changed the interleaving from the first calls on (here in 3 of these 5 seeds).
+    base = PLAN.split("[[faults]]")[0]
+    kills = '[[faults]]\nkind = "kill_manager"\ntarget = "api"\nat = '
+    later = [round(1.5 + 0.05 * i, 2) for i in range(30)]
+    long = parse_plan(f"{base}{kills}{[0.5, 1.0, *later]}\n")
+    short = parse_plan(f"{base.replace('duration = 3.0', 'duration = 1.2')}{kills}[0.5, 1.0]\n")
+
+    def events(plan: Plan, seed: int) -> list[str]:  # (the fault lines come after them)
+        return [
+            line
+            for line in simulate.run_seed(plan, seed).history.splitlines()
+            if '"schema"' in line
+        ]
+
+    for seed in range(1, 6):
+        first, cut = events(long, seed), events(short, seed)
+        start = json.loads(first[0])["at"]
+        before = [line for line in first if json.loads(line)["at"] < start + 1.1]
+        assert len(before) > 20
+        assert (seed, before) == (seed, cut[: len(before)])
 
 
 def test_the_shrink_command_refuses_a_seed_that_held(

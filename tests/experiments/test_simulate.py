@@ -458,6 +458,64 @@ def test_a_partition_as_a_restarted_manager_serves_fails_calls_then_heals() -> N
 
 
 @SWEEP
+def test_a_split_brain_serves_a_name_on_both_sides_and_the_heal_keeps_the_first() -> None:
+    plan = with_faults('kind = "split_brain"\ntarget = "db"\nat = 0.5\nfor = 0.6')
+
+    runs = simulate.simulate(plan, range(1, 4))
+
+    held(runs)
+    for run in runs:
+        [split] = fired(run)
+        assert "a second db serves beyond the cut" in split["detail"]
+        started = {
+            e["supervisor"]: e["pid"] for e in lines(run, "ChildStarted") if e["child"] == "db"
+        }
+        first, second = started["root"], started["beyond-1"]
+        assert first != second
+        served = {e["pid"] for e in lines(run) if e.get("registrar") == "db"}
+        assert {first, second} == served  # (both served db, one on each side)
+        # at the heal the second yields: it releases what it holds ("name yielded"),
+        # unloads it and stops; its process exits, and its temporary child is over
+        exits = [e for e in lines(run, "ChildExited") if e["supervisor"] == "beyond-1"]
+        assert ["normal"] == [e["reason"] for e in exits]
+        stopped = [e for e in lines(run, "RegistrarStopped") if e["pid"] == second]
+        assert [(0, 0, 0)] == [tuple(e["counts"]) for e in stopped]
+        t0 = run_t0(run)
+        assert all(e["at"] - t0 < 1.5 for e in stopped)  # (at the heal, 1.1 s, not the end)
+    yielded = [
+        e for r in runs for e in lines(r, "ConsumerReleased") if e["reason"] == "name yielded"
+    ]
+    assert yielded  # (what the clients got from the second db during the cut)
+
+
+@SWEEP
+def test_without_the_yield_two_servers_of_one_name_are_a_one_name_violation(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from rr_actors._transport.messenger import Messenger  # noqa: PLC0415
+
+    monkeypatch.setattr(Messenger, "served_elsewhere", lambda *_: None)  # (never gives way)
+    plan = with_faults('kind = "split_brain"\ntarget = "db"\nat = 0.5\nfor = 0.6')
+
+    run = simulate.run_seed(plan, 1)
+
+    assert "violated" == run.verdict
+    assert any("[one-name] two registrars db served to the end" in f for f in run.findings)
+
+
+@SWEEP
+def test_the_simheal_plan_holds_for_seeds_1_to_20() -> None:
+    from rr_actors.experiments import load_plan  # noqa: PLC0415
+
+    plan = load_plan(PLANS / "simheal.toml")
+
+    runs = simulate.simulate(plan, range(1, 21))
+
+    held(runs)
+    assert all(r.faults == 1 and r.calls_ok > 0 for r in runs)
+
+
+@SWEEP
 def test_a_duplicate_delivery_at_a_reconnect_is_delivered_twice_and_holds() -> None:
     plan = with_faults('kind = "duplicate_delivery"\ntarget = ["api", "db"]\nevery = 0.3')
 
@@ -511,8 +569,14 @@ def test_a_kind_only_a_simulation_aims_is_refused_by_a_real_run() -> None:
             "kill_before_answer needs a process manager",
         ),
         (BASE, 'kind = "kill_in_setup"\ntarget = "db"\nat = 0.5\nfor = 1.0', "faults[0].for", ""),
+        (BASE, 'kind = "split_brain"\ntarget = "db"\nat = 0.5', "faults[0]", "'for'"),
     ],
-    ids=["partition_serving without for", "on a thread manager", "kill_in_setup with for"],
+    ids=[
+        "partition_serving without for",
+        "on a thread manager",
+        "kill_in_setup with for",
+        "split_brain without for",
+    ],
 )
 def test_a_kind_only_a_simulation_aims_is_validated_as_the_others(
     base: str, fault: str, key: str, problem: str
@@ -529,7 +593,7 @@ def test_a_kind_only_a_simulation_aims_is_validated_as_the_others(
 PLANS = ROOT / "rr_actors" / "experiments" / "plans"
 
 
-SIMULATED = ["first", "crashloop", "hang", "simchain", "simretry"]
+SIMULATED = ["first", "crashloop", "hang", "simchain", "simretry", "simheal"]
 """The shipped plans run over two seeds here (killheavy below, for 2 s)."""
 
 REFUSED = ["resource", "strategies", "leases"]
@@ -542,22 +606,8 @@ def test_every_shipped_plan_is_simulated_or_refused_here() -> None:
     assert shipped == {*SIMULATED, "killheavy", *REFUSED}
 
 
-CROSSING = pytest.mark.xfail(
-    strict=True,
-    reason="an open finding of the simulation (simchain, seed 2): a FATAL sent on to a "
-    "consumer crosses that consumer's release of the id (the Unload's answer overtakes the "
-    "status notice on another connection); the consumer forgot the id and is never told. "
-    "Rule 9 does not say what a consumer releasing while a status is on its way is owed: "
-    "see docs/explanation/semantics.md, rule 9, 'Open'",
-)
-"""simchain's seeds 1-2 here meet the crossing (seed 2): an expected failure until it is
-decided (strict: the day it holds, this marker must go)."""
-
-
 @SWEEP
-@pytest.mark.parametrize(
-    "name", [pytest.param(n, marks=CROSSING) if n == "simchain" else n for n in SIMULATED]
-)
+@pytest.mark.parametrize("name", SIMULATED)
 def test_a_shipped_plan_holds_on_the_simulation(name: str) -> None:
     from rr_actors.experiments import load_plan  # noqa: PLC0415
 

@@ -12,8 +12,9 @@ import pytest
 
 import rr_actors as rr
 from rr_actors.mission import MissionConfig
-from rr_actors.mission.faults import Faults, fault_points
+from rr_actors.mission.faults import Faults, fault_points, retry_through_restarts
 from rr_actors.mission.hosts import Trees, managers_tree
+from rr_actors.testing import crash
 
 
 def test_a_fault_jittered_past_the_goal_strikes_at_the_goal() -> None:
@@ -85,3 +86,31 @@ def test_a_restarted_manager_that_a_call_does_not_reach_yet_is_not_waited_for_ag
     assert line.startswith("F5 recovered: rm restarted"), line
     assert 1 == station.failed
     assert faults.recovered(record)
+
+
+def _registrar(registrar: rr.ResourceRegistrar) -> rr.ResourceRegistrar:
+    return registrar
+
+
+@pytest.mark.timeout(120)
+def test_an_action_on_a_restarted_manager_that_does_not_reach_it_yet_is_tried_again_at_once(
+    tmp_path: Path,
+) -> None:
+    """rm crashed and was restarted once; the first try of an action on it fails as
+    unavailable, though rm was not killed again (the station's view lagged the restart,
+    as F5's under load). `retry_through_restarts` tries again at once; it used to wait for
+    "the count before the try + 1", a second restart that never came, until its timeout
+    (`CallTimeoutError`)."""
+    sup = managers_tree(("rm",), isolation="thread", state_dir=tmp_path, network=None, name=None)
+    with sup:
+        crash(sup.run_in("rm", _registrar))
+        sup.wait_restarted("rm", timeout=30, restarts=1)
+        station = _LateView(sup.registrar("mission"))
+
+        found = retry_through_restarts(
+            sup, "rm", lambda: station.fetch_queries("rm", "robot"), timeout=5.0
+        )
+
+        assert 1 == sup.child("rm").restarts
+    assert [] == found
+    assert 1 == station.failed

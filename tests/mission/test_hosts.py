@@ -24,15 +24,25 @@ import time
 import urllib.parse
 from collections.abc import Iterator
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, cast
 
 import psutil
 import pytest
 
 import rr_actors as rr
 from rr_actors._transport.zenoh import presence
-from rr_actors.mission.hosts import MEMBERS, SYSTEM, RobotHost, RobotSettings, host_network
+from rr_actors.mission.hosts import (
+    MEMBERS,
+    SYSTEM,
+    RobotHost,
+    RobotSettings,
+    Tree,
+    Trees,
+    host_network,
+    managers_tree,
+)
 from rr_actors.mission.run import main
+from rr_actors.testing import crash
 from tests.support.demos import interrupt_demo, one_line_after_the_story, ours
 from tests.support.observing import CHROMIUM_ARGS, chromium, get_json
 from tests.support.tls_lab import free_port
@@ -528,3 +538,67 @@ class TestRobotHost:
             asked.set()
         assert ("running", killed.restarts + 1) == (info.state, info.restarts)
         assert info.pid != killed.pid
+
+
+class _SeenFromTheStation:
+    """The robot's supervisor as the station asks it (not a `Supervisor`, as `RobotHost`
+    is not): its snapshots and restarts."""
+
+    def __init__(self, sup: rr.Supervisor) -> None:
+        self._sup = sup
+
+    def child(self, name: str) -> rr.ChildInfo:
+        return self._sup.child(name)
+
+    def wait_restarted(
+        self, name: str, *, timeout: float, restarts: int | None = None
+    ) -> rr.ChildInfo:
+        return self._sup.wait_restarted(name, timeout=timeout, restarts=restarts)
+
+
+class _LateCall:
+    """The station's registrar under load: its first call after rm's restart finds nobody
+    serving rm (its view of the network lagged the restart); then it is answered."""
+
+    def __init__(self) -> None:
+        self.query_ids: list[str] = []
+
+    def call(self, target_rr: str, _server: str, _request: Any, **kwargs: Any) -> str:
+        self.query_ids.append(kwargs["query_id"])
+        if len(self.query_ids) == 1:
+            raise rr.RegistrarUnavailableError(f"registrar {target_rr!r} cannot be reached")
+        return "answered"
+
+
+def _registrar(registrar: rr.ResourceRegistrar) -> rr.ResourceRegistrar:
+    return registrar
+
+
+@pytest.mark.timeout(120)
+def test_a_call_to_a_restarted_manager_of_the_robot_that_does_not_reach_it_yet_is_tried_again(
+    tmp_path: Path,
+) -> None:
+    """rm (on the robot's host) crashed and was restarted once; the station's first call
+    to it fails as unavailable, though rm was not killed again. `Trees.call_with_retry`
+    calls again, with the same query id, once rm runs (and, across hosts, is seen served);
+    it used to wait for a second restart that never came, until its timeout."""
+    sup = managers_tree(("rm",), isolation="thread", state_dir=tmp_path, network=None, name=None)
+    app = _LateCall()
+    with sup:
+        crash(sup.run_in("rm", _registrar))
+        sup.wait_restarted("rm", timeout=30, restarts=1)
+        robot = cast(Tree, _SeenFromTheStation(sup))
+
+        answer = Trees({"rm": robot}).call_with_retry(
+            cast(rr.ResourceRegistrar, app),
+            "rm",
+            "robot",
+            {"goal": 1},
+            on_status=lambda *_: None,
+            timeout=5.0,
+        )
+
+        assert 1 == sup.child("rm").restarts
+    assert "answered" == answer
+    assert 2 == len(app.query_ids)
+    assert 1 == len(set(app.query_ids))

@@ -400,10 +400,20 @@ def started_lab(two_hosts: hosts.TwoHosts, tmp_path: Path) -> Iterator[tuple[Pat
 
 
 def member_calls(b: hosts.Host, device: int) -> None:
-    """The member `operator` calls `erm` across the veth, as before anyone else came."""
-    assert b.call(hosts.rr_run, "app", call_camera, device, timeout=30) == {
-        "stream": {"device": device}
-    }
+    """The member `operator` calls `erm` across the veth, as before anyone else came.
+
+    A call that fails carries `operator`'s log (INFO and up) as a note: whether its link
+    to `robot` went, and when, is the first question such a failure asks (CI, once, at
+    load 14: "erm unreachable" after the plain attempts of
+    `test_plain_tcp_to_the_tls_port_is_closed_unread`, not reproduced since).
+    """
+    try:
+        answer = b.call(hosts.rr_run, "app", call_camera, device, timeout=30)
+    except Exception as exc:
+        with contextlib.suppress(Exception):
+            exc.add_note("operator's log:\n" + "\n".join(b.call(hosts.rr_logs, timeout=10)))
+        raise
+    assert answer == {"stream": {"device": device}}
 
 
 def never_appear(*paths: Path) -> None:

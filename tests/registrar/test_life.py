@@ -32,9 +32,12 @@ import pytest
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._catalog import Catalog
+from rr_actors._core.directory import Reply
 from rr_actors._registrar import Served, life, start_registrar
+from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.handle import STOP_WAITS_FOR_UNLOADS
 from rr_actors._registrar.life import RETRY_FIRST, RETRY_MAX, retry_delay
+from rr_actors._registrar.state import OpenReply
 from rr_actors._store import restore
 from rr_actors._store.files import read_backup
 from rr_actors._store.sqlite import SqliteStore
@@ -48,6 +51,7 @@ from rr_actors.testing import (
     intercept,
     pending_work,
 )
+from rr_actors.testing.seams import _ask_actor
 from tests.support.names import named
 from tests.support.supervising import kill_and_wait_restarted, process, sigkill
 from tests.support.waiting import wait_for
@@ -233,6 +237,20 @@ def _record(outcome: list[BaseException], fn: Any) -> None:
         fn()
     except BaseException as exc:  # the test inspects what was raised
         outcome.append(exc)
+
+
+class _Noted:
+    """A handle request's reply that notes its number in `failed` when it fails."""
+
+    def __init__(self, number: int, failed: list[int]) -> None:
+        self.number = number
+        self.failed = failed
+
+    def set_result(self, value: Any) -> None:
+        pass
+
+    def set_error(self, error: BaseException) -> None:
+        self.failed.append(self.number)
 
 
 # -- for TestMembership --------------------------------------------------------------------
@@ -1015,6 +1033,22 @@ class TestCrash:
         finally:
             release.set()
             provider.stop()
+
+    def test_the_requests_it_had_accepted_fail_in_the_order_they_came(self) -> None:
+        """Oldest first, as a replay of a simulation repeats it (a set of them failed them
+        in the order of their addresses: another order at each run)."""
+        registrar = rr.ResourceRegistrar.start(_name("erm"))
+        failed: list[int] = []
+
+        def accept(actor: RegistrarActor, reply: Reply) -> None:  # 40 requests stay open
+            for number in range(40):
+                OpenReply(_Noted(number, failed), actor.lifecycle.open_requests)
+            reply.set_result(None)
+
+        _ask_actor(registrar._actor.ref, accept).future.get(timeout=10)
+        crash(registrar)
+
+        assert list(range(40)) == failed
 
     def test_a_request_to_a_crashed_registrar_names_it_unavailable(self) -> None:
         registrar = rr.ResourceRegistrar.start(_name("erm"))

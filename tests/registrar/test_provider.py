@@ -11,6 +11,7 @@ response updates, re-attached status callbacks, rules 10-11), a resource reporte
 
 from __future__ import annotations
 
+import asyncio
 import contextvars
 import pickle
 import shutil
@@ -42,6 +43,7 @@ from rr_actors.testing import (
 from tests.support import simulated
 from tests.support.durable_pair import durable_config
 from tests.support.gating import GatedLoad
+from tests.support.waiting import wait_for
 
 # -- for TestLoad --------------------------------------------------------------------------
 
@@ -2141,3 +2143,58 @@ class TestTemotoFaults:
         assert [] == provider.server_queries("leaf")
         snapshot = catalog_snapshot(provider)
         assert ((), ()) == (snapshot.resources, snapshot.clients)
+
+
+class _CancelledInOrder:
+    """A coroutine load that waits until cancelled; notes each request when it starts
+    (`started`) and when it is cancelled (`cancelled`)."""
+
+    def __init__(self, count: int) -> None:
+        self.count = count
+        self.started: list[int] = []
+        self.cancelled: list[int] = []
+        self.all_started = threading.Event()
+
+    async def __call__(self, request: int) -> Any:
+        self.started.append(request)
+        if len(self.started) == self.count:
+            self.all_started.set()
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            self.cancelled.append(request)
+            raise
+
+
+async def _adrop(_request: Any, _response: Any) -> None:
+    pass
+
+
+def test_a_stop_cancels_the_coroutine_loads_in_flight_in_the_order_they_started() -> None:
+    """Their failures reach their callers, and a simulation's history, in that order (a
+    set of the tasks cancelled them in the order of their addresses: another order at
+    each run)."""
+    provider = rr.ResourceRegistrar.start(f"erm-{uuid.uuid4().hex[:8]}")
+    load = _CancelledInOrder(40)
+    provider.register_server("leaf", load=load, unload=_adrop)
+    outcomes: list[BaseException] = []
+
+    def call(number: int) -> None:
+        try:
+            provider.call(provider.name, "leaf", number, timeout=30)
+        except BaseException as exc:  # the test inspects what was raised
+            outcomes.append(exc)
+
+    callers = [threading.Thread(target=call, args=(n,)) for n in range(load.count)]
+    for caller in callers:
+        caller.start()
+    try:
+        assert load.all_started.wait(20)
+    finally:
+        provider.stop()
+        for caller in callers:
+            caller.join(30)
+
+    assert load.count == len(outcomes)
+    assert wait_for(lambda: len(load.cancelled) == load.count, timeout=10)
+    assert load.started == load.cancelled

@@ -1,7 +1,8 @@
 """Tests of `rr_actors/_registrar/status.py`: statuses sent, fanned out and climbing.
 
 Rule 9 in every placement (`TestStatus`), one pass per process to many consumer
-registrars (`TestFanout`), and a status its consumer cannot take (`TestTooLarge`).
+registrars (`TestFanout`), a status on its way as its consumer releases the id
+(`TestReleaseCrossing`), and a status its consumer cannot take (`TestTooLarge`).
 """
 
 from __future__ import annotations
@@ -173,6 +174,62 @@ def wait_heard(
 
     wait_for(read, timeout=15.0)
     return heard[0]
+
+
+# -- for TestReleaseCrossing ---------------------------------------------------------------
+
+
+def _echo(request: object) -> object:
+    return request
+
+
+def _no_unload(_request: object, _response: object) -> None:
+    return None
+
+
+class Crossing:
+    """A provider in a manager process; here, a consumer and a relay registrar.
+
+    Both hold one resource there, the relay's id first: once the provider knows they share
+    a process, its statuses for them go to the relay as one batch, which a test holds back
+    there (`intercept`) while the consumer releases its id. The relay's callback blocks on
+    the status `"hold"` until `go` is set.
+    """
+
+    def __init__(self, placement: str) -> None:
+        self.network = placement_network(placement)
+        uid = uuid.uuid4().hex[:8]
+        config = rr.RegistrarConfig(name=f"prov-{uid}", call_timeout=20.0)
+        self.provider = RemoteRegistrar.start(config, self.network)
+        self.provider.register_server("leaf", load=_echo, unload=_no_unload)
+        self.relay = rr.ResourceRegistrar.start(f"relay-{uid}", network=self.network)
+        self.consumer = rr.ResourceRegistrar.start(f"cons-{uid}", network=self.network)
+        self.heard: list[str] = []  # what the consumer's callback heard
+        self.relay_heard: list[str] = []
+        self.go = threading.Event()
+        self.relay.call(self.provider.name, "leaf", "r", on_status=self.relayed, timeout=20)
+        self.query = self.consumer.call(
+            self.provider.name, "leaf", "r", on_status=self.record, timeout=20
+        )
+        self.send("warm-up")  # (the provider learns that both are in this process)
+
+    def record(self, _query: rr.Query, update: rr.StatusUpdate) -> None:
+        self.heard.append(update.message)
+
+    def relayed(self, _query: rr.Query, update: rr.StatusUpdate) -> None:
+        self.relay_heard.append(update.message)
+        if update.message == "hold":
+            self.go.wait(20)
+
+    def send(self, message: str, status: rr.Status = rr.Status.UPDATE) -> None:
+        self.provider.send_status(self.query.id, status, message, timeout=20)
+
+    def close(self) -> None:
+        self.go.set()
+        for registrar in (self.consumer, self.relay, self.provider):
+            with contextlib.suppress(rr.RrError):
+                registrar.stop()
+        self.network.close()
 
 
 # -- for TestTooLarge ----------------------------------------------------------------------
@@ -663,6 +720,67 @@ class TestFanout:
         assert [[["warm-up", "again"]] * REGISTRARS * IDS] * PROCESSES == [
             list(process.values()) for process in tree.heard()
         ]
+
+
+class TestReleaseCrossing:
+    """A status on its way to a consumer as the consumer releases its id (rule 9).
+
+    Across processes the status and the answer to the consumer's `Unload` travel on two
+    connections: the answer may come first. The answer carries the statuses sent to that id
+    whose acknowledgement has not come; the consumer delivers those that did not reach it
+    first before it forgets the id and before `unload` returns, and no status twice.
+    """
+
+    pytestmark = pytest.mark.usefixtures("by_value")
+
+    @pytest.fixture(params=["process", "zenoh"])
+    def crossing(self, request: pytest.FixtureRequest) -> Iterator[Crossing]:
+        made = Crossing(request.param)
+        yield made
+        made.close()
+
+    def test_a_status_the_release_overtakes_reaches_the_consumer_once_before_unload_returns(
+        self, crossing: Crossing
+    ) -> None:
+        held, parts = threading.Event(), []
+
+        def hold(batch: Any) -> None:  # (the relay's actor, until the release returned)
+            parts.extend(batch.parts)
+            held.set()
+            assert crossing.go.wait(20)
+
+        with intercept(crossing.relay, "status_batch", before=hold), ThreadPoolExecutor(1) as pool:
+            sent = pool.submit(crossing.send, "unplugged", rr.Status.FATAL)
+            assert held.wait(10)  # on its way to the consumer, held back at its relay
+            assert crossing.consumer.name in dict(parts)
+
+            crossing.consumer.unload(crossing.query.id)
+            heard_when_released = list(crossing.heard)
+            crossing.go.set()
+            sent.result(20)  # (delivered along the whole path: the relay went on)
+
+        assert ["warm-up", "unplugged"] == heard_when_released
+        assert ["warm-up", "unplugged"] == crossing.heard  # (the late notice found it gone)
+        assert ["warm-up", "unplugged"] == crossing.relay_heard
+        assert [] == crossing.consumer.client_queries()
+
+    def test_a_status_that_reached_the_consumer_first_is_not_delivered_again_at_its_release(
+        self, crossing: Crossing
+    ) -> None:
+        notices: list[str] = []
+        intercept(crossing.consumer, "status_notice", after=lambda m: notices.append(m.message))
+
+        with ThreadPoolExecutor(1) as pool:
+            sent = pool.submit(crossing.send, "hold")  # (unacknowledged: the relay's callback
+            assert wait_for(lambda: ["warm-up", "hold"] == crossing.heard)  # holds its batch)
+
+            crossing.consumer.unload(crossing.query.id)
+            crossing.go.set()
+            sent.result(20)
+
+        assert ["hold"] == notices  # the answer carried it; it had come its own way first
+        assert ["warm-up", "hold"] == crossing.heard
+        assert [] == crossing.consumer.client_queries()
 
 
 class TestTooLarge:

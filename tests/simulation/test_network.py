@@ -181,3 +181,70 @@ def test_a_process_stopped_past_its_lease_cannot_be_reached_until_it_runs_again(
     for seed in range(10):
         run = simulation.run(with_provider(body, lease=1.0, heartbeat=None), seed=seed)
         assert ("waits", ("unavailable", True), "leaf z", 1) == run.value, f"seed {seed}"
+
+
+def test_a_name_served_on_both_sides_of_a_cut_is_kept_on_one_after_the_heal() -> None:
+    """Rule 22 on the simulated carrier: a second server of `provider` beyond a cut
+    serves its side; at the heal the one served first is kept and the other yields
+    (`Messenger.served_elsewhere`, as over Zenoh): what it held is released ("name
+    yielded") and unloaded, and the consumer's id there is FATAL and forgotten; what
+    the consumer held at the one kept was forgotten when it met the new one, and the
+    heal's reconcile releases it there (docs/explanation/failure-semantics.md)."""
+
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any) -> Any:
+        held = app.call("provider", "leaf", "x")
+        first = supervisor.child("provider").pid
+        network.partition([first])
+        folder = tempfile.mkdtemp(prefix="rr-sim-beyond-")
+        spec = rr.ManagerSpec(
+            "provider", setup=leaf_setup, isolation="process", restart="temporary"
+        )
+        beyond = rr.Supervisor(spec, state_dir=folder, network=network, name="beyond")
+        seen: list[str] = []
+
+        def record(event: Any) -> None:
+            if isinstance(event, rr.events.ConsumerReleased | rr.events.ResourceUnloaded):
+                seen.append(getattr(event, "reason", "unloaded"))
+
+        subscription = beyond.subscribe(record)
+        try:
+            beyond.start()
+            second = beyond.child("provider").pid
+            during = app.call("provider", "leaf", "y", timeout=5.0)  # (the one on its side)
+            simulation.sleep(1.0)
+            network.heal()
+            simulation.sleep(2.0)  # (the yield, the reconcile)
+            after = app.call("provider", "leaf", "z").response
+            served = supervisor.run_in(
+                "provider",
+                lambda r: sorted(q.request for q in r.server_queries("leaf")),
+                timeout=5.0,
+            )
+            ids = [q.id for q in app.client_queries()]
+            subscription.wait_delivered()
+            return (
+                second != first,
+                during.response,
+                beyond.child("provider").state,
+                seen,
+                after,
+                served,
+                (held.id in ids, during.id in ids),
+            )
+        finally:
+            subscription.close()
+            beyond.stop()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(10):
+        run = simulation.run(with_provider(body), seed=seed, preempt=0.1)
+        assert (
+            True,
+            "leaf y",
+            "exited",
+            ["name yielded", "unloaded"],
+            "leaf z",
+            ["z"],
+            (False, False),
+        ) == run.value, f"seed {seed}"
+        assert () == run.errors

@@ -12,6 +12,7 @@ drops the rest without a word).
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import os
 import sqlite3
@@ -24,6 +25,7 @@ from pathlib import Path
 import pytest
 
 import rr_actors as rr
+from rr_actors._store.commits import CommitCount
 from rr_actors.testing import RemoteRegistrar, SharedObjects
 
 pytestmark = [
@@ -196,3 +198,32 @@ def test_a_log_another_program_checkpointed_and_removed_is_not_reported(
 
     assert [] == [r.getMessage() for r in caplog.records if "commits" in r.getMessage()]
     assert 20 == len(restarted.server_queries("leaf"))
+
+
+def test_a_commit_count_dropped_without_close_closes_its_files(tmp_path: Path) -> None:
+    """A registrar killed in a simulation drops its backup's commit count without `close`
+    (a killed process's files are closed by its kernel, a simulated process's are not):
+    the count closes what it opened once it is dropped. (A sweep of `simchain` kept some
+    12 descriptors a seed open for good: past the usual limit of 1,024 within 100 seeds.)"""
+    file = tmp_path / "b.db"
+    db = sqlite3.connect(file, isolation_level=None)
+    db.execute("PRAGMA journal_mode=WAL")
+    db.execute("CREATE TABLE t (x)")
+
+    def opened(suffix: str) -> int:
+        links = []
+        for fd in os.listdir("/proc/self/fd"):
+            with contextlib.suppress(OSError):  # (the listing's own descriptor, closed)
+                links.append(os.readlink(f"/proc/self/fd/{fd}"))
+        return links.count(f"{file}{suffix}")
+
+    count = CommitCount(file)
+    db.execute("INSERT INTO t VALUES (1)")
+    count.committed()
+    assert (1, 2) == (opened("-commits"), opened("-wal"))  # (the count's, and SQLite's own)
+
+    del count
+    gc.collect()
+
+    assert (0, 1) == (opened("-commits"), opened("-wal"))
+    db.close()

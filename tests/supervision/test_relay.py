@@ -17,6 +17,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
+from rr_actors._core import hlc, runtime
 from rr_actors._supervision.relay import EventRelay
 from rr_actors.testing import SharedObjects
 from tests.support.supervising import kill_and_wait_restarted, pid_of, sigkill
@@ -535,6 +536,30 @@ class TestAListenerSubscribedLate:
         with relay.publisher.subscribe(listener):
             relay.deliver([made_while_nobody_listened])  # forwarded before "off" arrived
             made_after = _loaded(time.time())
+            relay.deliver([made_after])
+            assert got.wait(5)
+
+        assert [made_after] == heard
+
+    def test_an_event_made_in_the_microsecond_the_listener_subscribed_is_delivered_to_it(
+        self, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        """An event's `at` is its clock stamp's, to the microsecond: one made after the
+        subscription within the same microsecond is not older than it. (Found by the
+        simulation, whose clock stands still between steps: a manager started in the
+        virtual instant its tree was first subscribed to lost its `CatalogRestored`.)"""
+        second = float(int(time.time()))
+        monkeypatch.setattr(runtime, "wall", lambda: second + 0.0000004)  # (0.4 us in)
+        relay = EventRelay()
+        heard: list[events.Event] = []
+        got = threading.Event()
+
+        def listener(event: events.Event) -> None:
+            heard.append(event)
+            got.set()
+
+        with relay.publisher.subscribe(listener):
+            made_after = _loaded(hlc.seconds(hlc.from_seconds(runtime.wall())))  # (its stamp's)
             relay.deliver([made_after])
             assert got.wait(5)
 

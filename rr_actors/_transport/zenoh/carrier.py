@@ -44,10 +44,13 @@ network; what this process's presence heard decides:
 - a name never heard of, or heard to die (a restart may be served already, its token
   still on its way here): its peer comes at once and each message to it is sent when
   served (`messenger.send_when_served`): framed, and queued on the name's outbox (its
-  lane); the writer thread asks the network, then puts it to the server found, or fails
-  its reply (`UnknownRegistrarError`, or `RegistrarUnavailableError` for one that died).
-  One queue per name keeps the order of what this process sends to it, before and after
-  it is seen served.
+  lane); the writer thread asks the network (an answer that names no server is asked
+  again for a while: Zenoh's can be empty at once while the router holds the token),
+  then puts it to the server found, or fails its reply (`UnknownRegistrarError`, or
+  `RegistrarUnavailableError` for one that died, or when the network did not answer in
+  full), then what waits behind it with the same error. One queue per name keeps the
+  order of what this process sends to it, before and after it is seen served (a
+  message sent once it is seen goes on that queue too, behind those still held there).
 
 Why not trust the tables alone: they may lag the network (a consumer's first call, or
 a restarted provider's `ReconcileAsk`, can overtake its token here, and the answer, the
@@ -70,7 +73,8 @@ Through cuts and heals (rule 22): a name whose server went beyond a cut is lost 
 (rule 19), and may be served on this side; once the link heals, both registrars' tokens
 are seen everywhere. Each carries the clock stamp of when it began to serve: the one
 served first is kept, and the process that serves the other makes it yield
-(`served_elsewhere` ─► `Messenger.give_way`): ERROR, its subscriber and token go, it
+(`served_elsewhere` ─► `Messenger.served_elsewhere`, the decision every carrier
+runs, ─► `Messenger.give_way`): ERROR, its subscriber and token go, it
 unloads what it serves and stops; its consumers, wherever they are, reconcile with the
 one kept (rule 20).
 """
@@ -97,12 +101,13 @@ from rr_actors._transport.messenger import (
     Lost,
     Messenger,
     Remote,
+    rank,
     send,
     send_when_served,
 )
 from rr_actors._transport.zenoh.link import DRAIN_TIMEOUT, Inbox, Outbox, Outboxes
 from rr_actors._transport.zenoh.ops.events import EventExport
-from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence, Server, rank, when
+from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence, Server
 from rr_actors._transport.zenoh.wire import (
     ANSWER,
     MESSAGE,
@@ -200,6 +205,16 @@ class Local(Listening):
         self.token: Any = None
         self.token_key = ""
         self.stamp = 0
+
+    @property
+    def who(self) -> str:
+        """This process: its Zenoh id (`Ranked`)."""
+        return self.carrier.zid
+
+    @property
+    def rank(self) -> tuple[int, int]:
+        """Its place in rule 22's order (`messenger.rank`; the Zenoh id as a number)."""
+        return rank(self.stamp, int(self.carrier.zid, 16))
 
     def settle(self) -> None:
         """A rival heard between its turn and now is settled (rule 22); return once the
@@ -321,10 +336,7 @@ class ZenohCarrier:
                 why = presence.question(name)
                 known = presence.serves(name)
                 if not known and why is not None:
-                    raise RegistrarUnavailableError(
-                        f"cannot tell whether registrar {name!r} is served on system "
-                        f"{self.system!r}: {why}"
-                    )
+                    raise self._untold(name, why)
         if not known:
             raise self._unknown_error(name)
         return True
@@ -429,21 +441,10 @@ class ZenohCarrier:
             )
 
     def served_elsewhere(self, name: str, server: Server) -> None:
-        """Another process serves registrar `name` (the presence thread): if this process
-        serves it too and rule 22 keeps the other one (registered first, by its clock
-        stamp; of equal stamps, the lower Zenoh id), this one gives way
-        (`Messenger.give_way`). The process of the one kept does nothing: this one sees
-        it too, and yields."""
-        local = self.messenger.serving(name)
-        if not isinstance(local, Local) or server.rank > rank(local.stamp, self.zid):
-            return
-        self.messenger.give_way(
-            local,
-            f"registrar {name!r} of system {self.system!r} is served by process "
-            f"{server.zid} too, since {when(server.stamp)}, before this one "
-            f"(process {self.zid}, since {when(local.stamp)}): one name is one registrar "
-            f"(rule 22), and the one served first is kept",
-        )
+        """Another process serves registrar `name` (the presence thread): the messenger
+        decides, as for every carrier, whether one served here gives way to it
+        (`Messenger.served_elsewhere`, rule 22)."""
+        self.messenger.served_elsewhere(name, server)
 
     # -- sending -------------------------------------------------------------------------
 
@@ -463,6 +464,11 @@ class ZenohCarrier:
             f"no registrar named {name!r} on system {self.system!r}"
             + _known_names(name, DIRECTORY.names() - {name})
             + (self._link_trouble() if self._link_trouble is not None else "")
+        )
+
+    def _untold(self, name: str, why: str) -> RegistrarUnavailableError:
+        return RegistrarUnavailableError(
+            f"cannot tell whether registrar {name!r} is served on system {self.system!r}: {why}"
         )
 
     def unreached(self, name: str) -> RrError:
@@ -503,26 +509,39 @@ class ZenohCarrier:
         publisher's declaration can come back empty at once)."""
         return self.outbox(self.keys.registrar(name), declared=False)
 
-    def found(self, name: str, lane: Lane) -> _Route | None:
+    def found(self, name: str, lane: Lane) -> _Route | RrError:
         """On `lane`'s writer thread (the name's outbox): the server of `name`, asked of
-        the network if none is seen; `None` if nobody serves it (the outbox is retired:
-        what waits behind fails too, and its writer ends). A server just seen gets a
-        ping first (a put before its answer may be lost)."""
+        the network if none is seen (an answer that names none is asked again for a
+        while: `question_until_seen`); else the error of a message to it: nobody serves
+        it (`unreached`), or the network did not answer in full (`question`: a timeout,
+        a router that does not answer), so nobody can tell: `RegistrarUnavailableError`,
+        as `knows` says on a user's thread. (The messenger then retires the outbox:
+        `retire`.) A server just seen gets a ping first (a put before its answer may be
+        lost)."""
         presence = self.presence
         server = presence.server(name)
+        why = None
         if server is None and not self.closed and presence.gone(name) != "stopped":
-            presence.ask(name)
+            why = presence.question_until_seen(name)  # (an empty answer, asked again)
             server = presence.server(name)
         assert isinstance(lane, Outbox)
         outbox = lane
         if server is None:
-            self._outboxes.retire(outbox)
-            return None
+            if why is None or self.closed or presence.gone(name) is not None:
+                return self.unreached(name)
+            return self._untold(name, why)
         outbox.declare()
         if outbox.pinged != server.zid:  # just seen: a put before its ping may be lost
             self._outboxes.until_answered(server.zid)
             outbox.pinged = server.zid
         return _Route(self, name, server, now=outbox)
+
+    def retire(self, lane: Lane, error: RrError) -> None:
+        """Nobody serves the name of `lane` (or nobody could tell): the outbox is retired;
+        what waits on it fails with `error` (its tasks' `dropped`), and its writer ends."""
+        assert isinstance(lane, Outbox)
+        lane.refusal = error
+        self._outboxes.retire(lane)
 
     def outbox(self, key: str, zid: str | None = None, *, declared: bool = True) -> Outbox | None:
         """The outbox of `key`, whose subscriber is in process `zid` (if known: then the

@@ -71,6 +71,7 @@ from rr_actors._transport.zenoh.wire import (
     payload_of,
     versions_text,
 )
+from rr_actors.errors import RrError
 
 __all__ = [
     "DRAIN_TIMEOUT",
@@ -109,6 +110,7 @@ class Outbox:
     ) -> None:
         self.key = key
         self.pinged: str | None = None  # the process a task of `run` pinged (its thread's)
+        self.refusal: RrError | None = None  # why it was retired (the carrier's `retire`)
         self._ready = ready  # runs on the writer thread before the first put
         self._session = session
         self._publisher: zenoh.Publisher | None = None
