@@ -14,8 +14,9 @@ events only while the tree has a listener, so a tree nobody watches builds no ev
 its manager processes (`watch_listeners` switches them on and off). The switch reaches
 each process asynchronously: what a process made before it heard "off" may still arrive
 after a new listener came, so a forwarded event older than the last switch on (by its
-`at`, the same machine's clock, to the microsecond as an event's clock stamp has it) is
-dropped; a new listener hears what happens from the moment it subscribed.
+`at`, the same machine's clock; the switch's time taken down to the microsecond, never
+past its reading) is dropped; a new listener hears what happens from the moment it
+subscribed.
 """
 
 from __future__ import annotations
@@ -91,9 +92,10 @@ class EventRelay:
     def _switch(self, listened: bool) -> None:
         with self._lock:
             if listened and not self._listened:
-                # (to the microsecond: an event's `at` is its clock stamp's, so one made in
-                # the same microsecond, after this, is not older)
-                self._since = hlc.seconds(hlc.from_seconds(runtime.wall()))
+                # (down to the microsecond, so one made in the same microsecond is not
+                # older; never past the reading: `wall * 1e6` rounds up in its last tenth)
+                wall = runtime.wall()
+                self._since = min(wall, hlc.seconds(hlc.from_seconds(wall)))
             self._listened = listened
             self._processes = [p for p in self._processes if not p.exited.is_set()]
             for process in self._processes:

@@ -564,3 +564,28 @@ class TestAListenerSubscribedLate:
             assert got.wait(5)
 
         assert [made_after] == heard
+
+    def test_an_event_made_in_the_instant_the_listener_subscribed_is_delivered_to_it(
+        self, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        """Taken to the microsecond, the switch's time is never past the reading: in a
+        microsecond's last tenth `at * 1e6` rounds up to the next one, which made an
+        event of that very instant older than the switch. (Found by the simulation: 12
+        of `simheal`'s seeds 1-500 lost a second server's `CatalogRestored`.)"""
+        instant = 1_767_225_600.6107929  # (x 1e6 = 1767225600610793.0, a rounding up)
+        assert hlc.seconds(hlc.from_seconds(instant)) > instant
+        monkeypatch.setattr(runtime, "wall", lambda: instant)
+        relay = EventRelay()
+        heard: list[events.Event] = []
+        got = threading.Event()
+
+        def listener(event: events.Event) -> None:
+            heard.append(event)
+            got.set()
+
+        with relay.publisher.subscribe(listener):
+            made_then = _loaded(instant)
+            relay.deliver([made_then])
+            assert got.wait(5)
+
+        assert [made_then] == heard
