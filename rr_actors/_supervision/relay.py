@@ -14,8 +14,8 @@ events only while the tree has a listener, so a tree nobody watches builds no ev
 its manager processes (`watch_listeners` switches them on and off). The switch reaches
 each process asynchronously: what a process made before it heard "off" may still arrive
 after a new listener came, so a forwarded event older than the last switch on (by its
-`at`, the same machine's clock; the switch's time taken down to the microsecond, never
-past its reading) is dropped; a new listener hears what happens from the moment it
+`at`: the switch's time is read from the clock events' `at` is, `hlc.CLOCK`, a skewed
+one included) is dropped; a new listener hears what happens from the moment it
 subscribed.
 """
 
@@ -46,7 +46,7 @@ class EventRelay:
         self.publisher: Publisher[events.Event] = events.publisher(EVENT_LOG)
         self._lock = runtime.Lock()
         self._listened = False
-        self._since = 0.0  # `runtime.wall()` of the last switch on, to the microsecond
+        self._since = 0.0  # `hlc.CLOCK.wall()` of the last switch on: older events are dropped
         self._processes: list[ManagerProcess] = []
         self.publisher.watch_listeners(self._switch)
 
@@ -92,10 +92,7 @@ class EventRelay:
     def _switch(self, listened: bool) -> None:
         with self._lock:
             if listened and not self._listened:
-                # (down to the microsecond, so one made in the same microsecond is not
-                # older; never past the reading: `wall * 1e6` rounds up in its last tenth)
-                wall = runtime.wall()
-                self._since = min(wall, hlc.seconds(hlc.from_seconds(wall)))
+                self._since = hlc.CLOCK.wall()  # (the clock events' `at` reads)
             self._listened = listened
             self._processes = [p for p in self._processes if not p.exited.is_set()]
             for process in self._processes:
