@@ -141,7 +141,8 @@ def recorded(path: str | None) -> dict[int, str]:
     if path is None:
         return {}
     lines = Path(path).read_text(encoding="utf-8").splitlines()
-    return {int(row["seed"]): row["hash"] for row in map(json.loads, lines) if row.strip()}
+    rows = map(json.loads, filter(str.strip, lines))
+    return {int(row["seed"]): row["hash"] for row in rows}
 
 
 def commit() -> str:

@@ -14,8 +14,9 @@ events only while the tree has a listener, so a tree nobody watches builds no ev
 its manager processes (`watch_listeners` switches them on and off). The switch reaches
 each process asynchronously: what a process made before it heard "off" may still arrive
 after a new listener came, so a forwarded event older than the last switch on (by its
-`at`, the same machine's clock, to the microsecond as an event's clock stamp has it) is
-dropped; a new listener hears what happens from the moment it subscribed.
+`at`: the switch's time is read from the clock events' `at` is, `hlc.CLOCK`, a skewed
+one included) is dropped; a new listener hears what happens from the moment it
+subscribed.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ class EventRelay:
         self.publisher: Publisher[events.Event] = events.publisher(EVENT_LOG)
         self._lock = runtime.Lock()
         self._listened = False
-        self._since = 0.0  # `runtime.wall()` of the last switch on, to the microsecond
+        self._since = 0.0  # `hlc.CLOCK.wall()` of the last switch on: older events are dropped
         self._processes: list[ManagerProcess] = []
         self.publisher.watch_listeners(self._switch)
 
@@ -91,9 +92,7 @@ class EventRelay:
     def _switch(self, listened: bool) -> None:
         with self._lock:
             if listened and not self._listened:
-                # (to the microsecond: an event's `at` is its clock stamp's, so one made in
-                # the same microsecond, after this, is not older)
-                self._since = hlc.seconds(hlc.from_seconds(runtime.wall()))
+                self._since = hlc.CLOCK.wall()  # (the clock events' `at` reads)
             self._listened = listened
             self._processes = [p for p in self._processes if not p.exited.is_set()]
             for process in self._processes:

@@ -353,9 +353,6 @@ class SimulatedFaults:
         on_event = self._on_event
         subscription = None if on_event is None else beyond.subscribe(on_event, maxsize=EVENT_QUEUE)
         self._beyond.append((beyond, subscription))
-        # (a millisecond later: the first subscriber's relay keeps the events stamped
-        # after its switch, and an event's `at` is its clock stamp's, to the microsecond)
-        runtime.sleep(0.001)
         try:
             beyond.start()
         except rr.RrError as exc:

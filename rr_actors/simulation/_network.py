@@ -386,7 +386,7 @@ class _SimulatedHub(_Hub):
             self._servers[name] = rest
         super().end(served, how, error)
         rest = self._servers.get(name, [])
-        if rest:  # (the name is served on: by the one beyond a cut, or kept, or new)
+        if rest and not self.closed:  # (served on: by the one beyond a cut, kept, or new)
             self._served[name] = rest[-1]
             self._gone.pop(name, None)
         failed = error or self.gone_error(name)
@@ -394,6 +394,15 @@ class _SimulatedHub(_Hub):
             if link.served is served and not link.closed:
                 link.close(failed)
         self._aside = [link for link in self._aside if not link.closed]
+
+    def leave(self) -> None:
+        """The network closes: every server of a name ends, the one beyond a cut too
+        (the hub's own `leave` ends the newest of each name)."""
+        super().leave()
+        error = RegistrarStoppedError("the in-memory network was closed")
+        while self._servers:
+            servers = next(iter(self._servers.values()))
+            self.end(servers[-1], "stopped", error)
 
     def _every_link(self) -> list[_Link]:
         return [*self._links.values(), *self._aside]

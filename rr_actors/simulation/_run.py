@@ -211,6 +211,10 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
     of the process (a real thread still running from before the run: a status desk's
     watchdog, a test's thread) gets the real ones (`_only_here`)."""
     wall_ns_start = int(WALL_START * 1e9)
+
+    def wall_ns() -> int:
+        return wall_ns_start + round(sched.now * 1e9)
+
     simulated: dict[str, Any] = {
         "Lock": functools.partial(sim.Lock, sched),
         "RLock": functools.partial(sim.RLock, sched),
@@ -220,8 +224,8 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
         "Thread": functools.partial(sim.Thread, sched),
         "Timer": functools.partial(sim.Timer, sched),
         "monotonic": lambda: MONOTONIC_START + sched.now,
-        "wall": lambda: WALL_START + sched.now,
-        "wall_ns": lambda: wall_ns_start + round(sched.now * 1e9),
+        "wall": lambda: wall_ns() / 1e9,  # (as time.time() is time.time_ns(): one clock)
+        "wall_ns": wall_ns,
         "sleep": functools.partial(sim.sleep, sched),
         "urandom": sched.data.randbytes,
         "random": sched.data.random,

@@ -248,3 +248,35 @@ def test_a_name_served_on_both_sides_of_a_cut_is_kept_on_one_after_the_heal() ->
             (False, False),
         ) == run.value, f"seed {seed}"
         assert () == run.errors
+
+
+def test_a_network_closed_during_a_cut_ends_the_server_beyond_it_too() -> None:
+    """A name served on both sides of a cut when the network closes: both servers end
+    (the hub's `leave` ended only the newest of each name; the other was put back as
+    the name's server and still took messages)."""
+
+    def scenario() -> tuple[list[str], list[str]]:
+        folder = tempfile.mkdtemp(prefix="rr-sim-close-")
+        network = simulation.SimulatedNetwork()
+        manager = rr.ManagerSpec("provider", setup=leaf_setup, isolation="process")
+        sup = rr.Supervisor(manager, state_dir=folder, network=network, name="root")
+        spec = rr.ManagerSpec(
+            "provider", setup=leaf_setup, isolation="process", restart="temporary"
+        )
+        beyond = rr.Supervisor(spec, state_dir=f"{folder}/b", network=network, name="beyond")
+        try:
+            sup.start()
+            network.partition([sup.child("provider").pid])
+            beyond.start()
+            hub = network._simulated()
+            served_before = hub.names()
+            network.close()
+            return served_before, hub.names()
+        finally:
+            beyond.stop()
+            sup.stop()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    run = simulation.run(scenario, seed=1)
+
+    assert ((["provider"], []), ()) == (run.value, tuple(run.errors))

@@ -12,7 +12,7 @@ from collections.abc import Callable
 import pykka
 import pytest
 
-from rr_actors import simulation
+from rr_actors import events, simulation
 from rr_actors._core import runtime
 from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY
@@ -234,6 +234,27 @@ def test_waits_with_a_timeout_run_out_in_virtual_time() -> None:
     assert [(False, 5.0), (False, 7.0), (False, 8.0), ("empty", 8.5)] == simulation.run(
         main, seed=1
     ).value
+
+
+def test_the_wall_clock_is_the_one_events_read_so_an_event_made_now_is_not_older_than_now() -> None:
+    """`runtime.wall()` is `runtime.wall_ns()` in seconds, as `time.time()` is
+    `time.time_ns()`'s: an event's `at` reads the latter (`hlc.CLOCK.wall`), a switch
+    time the former (the event relay drops what is older than its switch on). They were
+    two sums rounded apart: at 0.155676965 s in, `wall()` was 0.2 us ahead, and a second
+    server started in the instant its supervisor was first subscribed to lost its
+    `CatalogRestored` (the simulation's `split_brain`, found by `simheal`)."""
+
+    def main() -> list[tuple[float, float, float]]:
+        seen = []
+        start = runtime.monotonic()
+        for instant in (0.155676965, 0.610792999, 1.0, 2.5):
+            runtime.sleep(instant - (runtime.monotonic() - start))
+            made = events.ChildStarted("root", "erm", 1)
+            seen.append((runtime.wall(), runtime.wall_ns() / 1e9, made.at))
+        return seen
+
+    for wall, wall_ns, at in simulation.run(main, seed=1).value:
+        assert wall == wall_ns == at
 
 
 def test_the_runtime_is_the_stdlib_again_after_a_run_and_the_process_state_too() -> None:
