@@ -165,7 +165,10 @@ class Tree:
     ) -> None:
         self.spec = spec
         self.cond = runtime.Condition()  # published snapshots of the whole tree; waiters
-        self.watchers: set[Callable[[], object]] = set()  # woken at each change (lock held)
+        # woken at each change (lock held), in the order they came: a dict, not a set (a
+        # set of callbacks iterates in the order of their addresses, which a simulated seed's
+        # history would then depend on: a wake is a choice point)
+        self.watchers: dict[Callable[[], object], None] = {}
         self._version = 0  # changes published so far (`wait_changed`)
         self.specs = {child.name: child for child, _ in walk(spec)}
         self.clock = clock
@@ -438,7 +441,7 @@ class RestartWait:
 
         with tree.cond:
             look()
-            tree.watchers.add(look)
+            tree.watchers[look] = None
         try:
             if not (yield decided.future, deadline):
                 with tree.cond:
@@ -447,7 +450,7 @@ class RestartWait:
                         raise self.timed_out(timeout)
         finally:
             with tree.cond:
-                tree.watchers.discard(look)
+                tree.watchers.pop(look, None)
         decided.future.get(timeout=0)  # (an error `look` met)
         return self.result()
 

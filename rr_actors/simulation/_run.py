@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import gc
 import signal
 import sys
 import threading
@@ -123,16 +124,21 @@ def run(
     if runtime.simulated():
         raise SimulationError("a simulation already runs in this process (one at a time)")
 
+    made: list[Scheduler] = []
+
     def make() -> Scheduler:
-        return Scheduler(
-            seed,
-            preempt=preempt,
-            locals=runtime.thread_locals(),
-            states=States(runtime.process_states()),
-            max_steps=max_steps,
-            until=until,
-            trace=trace,
+        made.append(
+            Scheduler(
+                seed,
+                preempt=preempt,
+                locals=runtime.thread_locals(),
+                states=States(runtime.process_states()),
+                max_steps=max_steps,
+                until=until,
+                trace=trace,
+            )
         )
+        return made[0]
 
     outcome: list[Any] = []
     thread = threading.Thread(
@@ -147,6 +153,10 @@ def run(
             f"the simulation (seed {seed}) did not end within {timeout:g} real seconds: its "
             f"thread blocks for real (its runtime stays simulated; end the process):\n{stack}"
         )
+    ended = any(not process.alive for process in made[0].processes) if made else False
+    made.clear()
+    if ended:  # (a process that ended left its memory to the collector: its files too)
+        gc.collect()
     ok, done = outcome
     if not ok:
         raise done
