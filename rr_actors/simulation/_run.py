@@ -153,15 +153,32 @@ def run(
             f"the simulation (seed {seed}) did not end within {timeout:g} real seconds: its "
             f"thread blocks for real (its runtime stays simulated; end the process):\n{stack}"
         )
-    ended = any(not process.alive for process in made[0].processes) if made else False
-    made.clear()
-    if ended:  # (a process that ended left its memory to the collector: its files too)
-        gc.collect()
+    ended = sum(not p.alive for p in made[0].processes) if made else 0
+    made.clear()  # (the run's last reference: its garbage can go)
+    _collect_the_ended(ended)
     ok, done = outcome
     if not ok:
         raise done
     finished: Run[T] = done
     return finished
+
+
+COLLECT_AFTER = 64
+"""Simulated processes that ended (in runs of this process) before their garbage is
+collected: a killed process's memory, its backup's open files too, is left to the
+collector, and a crash loop's could hold thousands of descriptors after its run. A full
+collection after every run would cost more than most runs (some 0.1 s in a test
+process's heap), so it comes once this many ended."""
+
+_ended = 0
+
+
+def _collect_the_ended(ended: int) -> None:
+    global _ended  # (the count since the last collection, this process's)
+    _ended += ended
+    if _ended >= COLLECT_AFTER:
+        _ended = 0
+        gc.collect()
 
 
 def _simulate(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: list[Any]) -> None:

@@ -15,6 +15,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import simulation
+from rr_actors.simulation import _run
 from rr_actors.simulation._network import DELAY, _SimulatedHub, _Wire
 from rr_actors.simulation._run import running_scheduler
 
@@ -284,10 +285,12 @@ def test_a_network_closed_during_a_cut_ends_the_server_beyond_it_too() -> None:
     assert ((["provider"], []), ()) == (run.value, tuple(run.errors))
 
 
-def test_the_files_of_the_processes_a_run_killed_are_closed_when_it_ends() -> None:
+def test_the_files_of_the_processes_a_run_killed_are_closed_when_it_ends(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """A simulated kill keeps the killed process's memory (its threads are dropped at the
-    run's end, not at the kill); what it held open, its backup's files, is closed once
-    the run ended, as its kernel would have closed them, not whenever the garbage
+    run's end, not at the kill); what it held open, its backup's files, is closed at
+    the end of a run once `COLLECT_AFTER` processes ended, not whenever the garbage
     collector next runs (a crash loop's some 6,000 descriptors outlived its run in a
     test process and a later test's `select()` failed: descriptor out of range)."""
 
@@ -301,6 +304,7 @@ def test_the_files_of_the_processes_a_run_killed_are_closed_when_it_ends() -> No
             supervisor.wait_restarted("provider", restarts=n + 1, timeout=10.0)
             simulation.sleep(2.0)  # (virtual: within the tree's restart intensity)
 
+    monkeypatch.setattr(_run, "COLLECT_AFTER", 10)  # (the run ends 11 processes)
     gc.collect()
     before = open_files()
     gc.disable()  # (only the run's end may collect)
