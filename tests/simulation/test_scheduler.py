@@ -238,11 +238,12 @@ def test_waits_with_a_timeout_run_out_in_virtual_time() -> None:
 
 def test_the_wall_clock_is_the_one_events_read_so_an_event_made_now_is_not_older_than_now() -> None:
     """`runtime.wall()` is `runtime.wall_ns()` in seconds, as `time.time()` is
-    `time.time_ns()`'s: an event's `at` reads the latter (`hlc.CLOCK.wall`), a switch
-    time the former (the event relay drops what is older than its switch on). They were
-    two sums rounded apart: at 0.155676965 s in, `wall()` was 0.2 us ahead, and a second
-    server started in the instant its supervisor was first subscribed to lost its
-    `CatalogRestored` (the simulation's `split_brain`, found by `simheal`)."""
+    `time.time_ns()`'s: an event's `at` reads the latter (`hlc.CLOCK.wall`), and the event
+    relay read its switch time from the former then (it drops what is older than its
+    switch on; it reads the events' clock now). They were two sums rounded apart: at
+    0.155676965 s in, `wall()` was 0.2 us ahead, and a second server started in the
+    instant its supervisor was first subscribed to lost its `CatalogRestored` (the
+    simulation's `split_brain`, found by `simheal`)."""
 
     def main() -> list[tuple[float, float, float]]:
         seen = []
