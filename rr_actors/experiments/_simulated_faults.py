@@ -217,17 +217,13 @@ class SimulatedFaults:
         return runtime.monotonic() - self.t0
 
     def _fire(self, fault: ScheduledFault, at: float) -> None:
-        if fault.kind == "load_error":
-            thread = runtime.Thread(
-                target=self._load_error, args=(fault, at), name="rr-simulated-load", daemon=True
-            )
-            self._helpers.append(thread)
-            thread.start()
-            return
-        if fault.kind == "split_brain":
-            thread = runtime.Thread(
-                target=self._split_brain, args=(fault, at), name="rr-simulated-split", daemon=True
-            )
+        helper = {
+            "load_error": (self._load_error, "rr-simulated-load"),
+            "split_brain": (self._split_brain, "rr-simulated-split"),
+        }.get(fault.kind)
+        if helper is not None:  # (it takes virtual time: a thread of its own)
+            target, name = helper
+            thread = runtime.Thread(target=target, args=(fault, at), name=name, daemon=True)
             self._helpers.append(thread)
             thread.start()
             return
