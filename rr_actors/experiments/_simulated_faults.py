@@ -38,6 +38,7 @@ recorded when it fires there.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import heapq
 import itertools
@@ -170,13 +171,15 @@ class SimulatedFaults:
 
     def close(self) -> None:
         """Stop the supervisors of second servers (after the tree's stop: the end of the
-        run), once their events are delivered."""
-        for sup, subscription in self._beyond:
-            sup.stop()
-            if subscription is not None:
-                subscription.wait_delivered()
-                subscription.close()
-        self._beyond.clear()
+        run), once their events are delivered; each, though one before it raised (the
+        first error is raised)."""
+        beyond, self._beyond = self._beyond, []
+        with contextlib.ExitStack() as cleanup:
+            for sup, subscription in reversed(beyond):  # (the stack: last in, first out)
+                if subscription is not None:
+                    cleanup.callback(subscription.close)
+                    cleanup.callback(subscription.wait_delivered)
+                cleanup.callback(sup.stop)
 
     # -- the agenda ----------------------------------------------------------------------
 

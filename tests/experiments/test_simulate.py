@@ -530,6 +530,26 @@ def test_a_split_brain_shorter_than_the_second_servers_start_heals_once_it_serve
 
 
 @SWEEP
+def test_a_run_whose_fault_fails_to_close_still_cleans_up_for_the_next_seed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415
+
+    plan = with_faults('kind = "split_brain"\ntarget = "db"\nat = 0.5\nfor = 0.6')
+    clean = simulate.run_seed(plan, 1)
+
+    def close_raises(faults: SimulatedFaults) -> None:
+        raise RuntimeError("the fault's close failed")
+
+    with monkeypatch.context() as patched:
+        patched.setattr(SimulatedFaults, "close", close_raises)
+        with pytest.raises(RuntimeError, match="the fault's close failed"):
+            simulate.run_seed(plan, 1)
+
+    assert clean.hash == simulate.run_seed(plan, 1).hash  # (its network was closed, ...)
+
+
+@SWEEP
 def test_without_the_yield_two_servers_of_one_name_are_a_one_name_violation(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
