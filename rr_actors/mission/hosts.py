@@ -133,21 +133,31 @@ class Tree(Protocol):
         ...
 
 
-def restart_after_failure(tree: Tree | Trees, name: str, before: rr.ChildInfo) -> int:
+def restart_after_failure(
+    tree: Tree | Trees, name: str, before: rr.ChildInfo, tried_again_at: int = -1
+) -> int:
     """The restart of manager `name` to wait for after a call to it, made when `tree`
     said `before`, failed as unavailable: the next one (`before.restarts + 1`) if it was
-    killed since (down now, or restarted since), else `before`'s own.
+    killed since (down now, or restarted since), or if the caller tried again at once at
+    this count already (`tried_again_at`); else `before`'s own.
 
     A call may fail as unavailable with no restart to come: the manager was restarted
     before `before` was read, and this process does not see it served yet (across hosts
     its token is on the way: `RobotHost`). Waiting for "the count + 1" then waits for a
     restart that never comes, until the timeout (the two-host demo's F5: "rm did not
     come back"); the wait for `before`'s own returns at once, or once the station sees
-    it served, and the call is tried again.
+    it served, and the call is tried again. Once per count: a manager killed and not
+    seen so by its tree yet fails every call at once, and trying again at once each time
+    would spin until the tree sees it; the restart that follows is the tree's event to
+    wait for (as `Supervisor.call_with_retry` waits).
     """
     now = tree.child(name)
-    if now.state != "running" or now.restarts > before.restarts:
-        return before.restarts + 1  # killed since: the next restart
+    if (
+        now.state != "running"
+        or now.restarts > before.restarts
+        or tried_again_at == before.restarts
+    ):
+        return before.restarts + 1  # killed since (or tried at once already): the next
     return before.restarts
 
 
@@ -211,7 +221,8 @@ class Trees:
         Every attempt uses one query id, so a provider that answered before it died
         recognises the retry from its restored catalog. After an unavailable error it
         waits for the next restart only if `provider` was killed since the attempt
-        began (`restart_after_failure`), else for the one that ran then.
+        began (`restart_after_failure`), else for the one that ran then (once per
+        restart count).
 
         Raises:
             RegistrarUnavailableError, CallTimeoutError: as `Supervisor.call_with_retry`.
@@ -223,6 +234,7 @@ class Trees:
             )
         qid = str(uuid.uuid4())
         deadline = time.monotonic() + timeout
+        tried_again_at = -1
         while True:
             before = tree.child(provider)
             try:
@@ -237,10 +249,11 @@ class Trees:
             except rr.RegistrarUnavailableError:
                 if time.monotonic() >= deadline:
                     raise
+            target = restart_after_failure(tree, provider, before, tried_again_at)
+            if target == before.restarts:
+                tried_again_at = target
             tree.wait_restarted(
-                provider,
-                timeout=max(deadline - time.monotonic(), 1e-3),
-                restarts=restart_after_failure(tree, provider, before),
+                provider, timeout=max(deadline - time.monotonic(), 1e-3), restarts=target
             )
 
 
