@@ -98,7 +98,6 @@ getpid = os.getpid
 """The pid of the calling thread's process (in a simulation, its simulated process's)."""
 
 
-
 def guards_files() -> bool:
     """Whether the files the protocol keeps (its catalog backups) need guarding against
     what happens to them outside it: another program deleting or replacing one, a log

@@ -207,4 +207,3 @@ def test_a_simulated_backup_keeps_no_commit_count_beside_its_log_and_its_commits
     assert ["b.db", "b.db-shm", "b.db-wal"] == simulated
     restored = read_backup(tmp_path / "sim" / "b.db").resources
     assert [("r1", ["q1"])] == [(r.id, list(r.consumers)) for r in restored]
-
