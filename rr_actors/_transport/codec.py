@@ -134,9 +134,11 @@ def _by_reference(kind: type) -> bool:
 # cloudpickle's own reducer of code objects, read once from its `Pickler.dispatch_table`
 # (pickle's documented hook; which types cloudpickle puts there is its own business, so
 # this is the one place rr_actors relies on it: tests/transport/test_codec.py checks it).
-_CLOUDPICKLE_CODE: Callable[[types.CodeType], Any] = cloudpickle.Pickler.dispatch_table[
+# A cloudpickle without it pickles code its own way, as it did before 3.1.3: file names
+# may then be lost again, nothing else.
+_CLOUDPICKLE_CODE: Callable[[types.CodeType], Any] | None = cloudpickle.Pickler.dispatch_table.get(
     types.CodeType
-]
+)
 
 
 class _AsCloudpickleDoes:
@@ -148,6 +150,7 @@ class _AsCloudpickleDoes:
         self.code = code
 
     def __reduce__(self) -> Any:
+        assert _CLOUDPICKLE_CODE is not None  # (only made when it is there)
         return _CLOUDPICKLE_CODE(self.code)
 
 
@@ -169,7 +172,7 @@ class _Pickler(cloudpickle.Pickler):  # type: ignore[misc]
         kind = type(obj)
         if _by_reference(kind) or (kind is type and _by_reference(obj)):
             return NotImplemented
-        if kind is types.CodeType:  # (before cloudpickle's dispatch_table is consulted)
+        if kind is types.CodeType and _CLOUDPICKLE_CODE is not None:  # (before its table)
             return _reduce_code(obj)
         return super().reducer_override(obj)
 
