@@ -425,6 +425,10 @@ class _SimulatedHub(_Hub):
                 f"registrar {name!r} cannot be reached (this process cannot hear its router: "
                 f"it hears nothing of the rest of the system)"
             )
+        if served.process.pid in self._deaf:
+            raise RegistrarUnavailableError(
+                f"registrar {name!r} cannot be reached (its process cannot hear its router)"
+            )
         if self.apart(link):
             raise RegistrarUnavailableError(
                 f"registrar {name!r} cannot be reached (the network between processes "

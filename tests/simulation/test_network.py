@@ -19,6 +19,7 @@ from rr_actors._core import runtime
 from rr_actors.simulation import _run
 from rr_actors.simulation._network import DELAY, _SimulatedHub, _Wire
 from rr_actors.simulation._run import running_scheduler
+from tests.support import simulated
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
@@ -525,3 +526,57 @@ def test_a_process_that_cannot_hear_its_router_serves_no_name_and_its_calls_fail
             "member after": "leaf n",
             "app after": "leaf c",
         } == out, f"seed {seed}"
+
+
+def lost_under_a_composite() -> dict[str, Any]:
+    """Rule 19 up a dependency path: `app` holds a composite of `agent` (both in the
+    network's process), built on a leaf of `provider`, served by a process nobody
+    restarts; that process is killed: the carrier says `provider` is lost."""
+    network = simulation.SimulatedNetwork()
+    heard: list[tuple[str, str, Any]] = []
+
+    def hear(who: str) -> Callable[[rr.Query, rr.StatusUpdate], None]:
+        return lambda query, update: heard.append((who, query.id, update.status))
+
+    agent, app = (
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name), network=network)
+        for name in ("agent", "app")
+    )
+    try:
+        agent.register_server(
+            "composite",
+            load=lambda r: agent.call("provider", "leaf", r).response,
+            unload=lambda *_: None,
+            on_status=hear("composite"),
+        )
+        pid = simulation.start_process(serve_alone(network, "provider"), name="provider")
+        until_served(network, "provider")
+        held = app.call("agent", "composite", "x", on_status=hear("app"))
+        (leaf,) = agent.client_queries()
+        simulation.kill(pid)
+        simulation.sleep(1.0)
+        return {
+            "heard": sorted(heard),
+            "ids": (leaf.id, held.id),
+            "agent holds": [q.id for q in agent.client_queries()],
+            "app holds": [q.id for q in app.client_queries()],
+        }
+    finally:
+        try:
+            app.stop()
+            agent.stop()
+        finally:
+            network.close()
+
+
+def test_rule_19_a_lost_provider_is_fatal_up_every_path_once_and_forgotten() -> None:
+    def broken(seen: dict[str, Any]) -> bool:
+        _leaf, held = seen["ids"]
+        return (
+            [("app", held, rr.Status.FATAL), ("composite", held, rr.Status.FATAL)]
+            != seen["heard"]  # (the composite's server hears it about what app holds)
+            or [] != seen["agent holds"]  # (forgotten: rule 19)
+            or [held] != seen["app holds"]  # (its composite got FATAL; the id is app's)
+        )
+
+    assert [] == simulated.seeds_where(lost_under_a_composite, broken, simulated.SEEDS)
