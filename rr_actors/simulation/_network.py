@@ -22,6 +22,16 @@ order per link, cuts and heals.
    serves fail what waits, as at a cut; once it runs again, reachable again (a presence
    thread of the network's process looks every quarter lease)
  a process ends ─► what it served ends (`_Hub.end`): every link to it fails what waits
+ rule 19, as the real carriers judge it: each server carries its speaker (who restarts
+   it: its membership's `supervised_by`, or its own process while
+   `DIRECTORY.restart_expected`); a name gone unclean (its process ended, or silent past
+   the lease) that nobody else serves ─► no speaker, or one not heard: every process
+   that hears the network hears `Messenger.lost` (on a thread of its own); else awaited
+   (`_awaiting`), lost once its speaker's process ends
+ deafen(pid) ─► the process cannot hear its router (Zenoh's member whose router went):
+   divided from every other, its `listen` refused (`wait_turn`'s words), every name
+   served elsewhere lost for it, its own judged by the others as above; hear(pid) ─►
+   rejoined as at a heal (rule 22 decides, each side hears the other reachable)
 
  the faults a plan aims (rr_actors.experiments, on the simulation):
  cut_connections(pid) ─► every link from or to the process is shut down (`_Link.sever`):
